@@ -1,0 +1,29 @@
+"""``amuled bench NAME``: benchmarks that print figures, discovered from :mod:`amuled_ma.bench`."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import pkgutil
+
+from amuled_ma import bench
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``amuled bench`` and one sub-command per benchmark module."""
+    parser = subparsers.add_parser(
+        "bench",
+        help="run a benchmark and print its figures",
+        description="Benchmarks print throughput figures measured side by side in one run.",
+    )
+    names = parser.add_subparsers(dest="bench", metavar="NAME")
+    for info in sorted(pkgutil.iter_modules(bench.__path__), key=lambda m: m.name):
+        if info.name.startswith("_"):
+            continue
+        module = importlib.import_module(f"{bench.__name__}.{info.name}")
+        sub = names.add_parser(
+            info.name, help=(module.__doc__ or "").strip().splitlines()[0] if module.__doc__ else None
+        )
+        module.add_arguments(sub)
+        sub.set_defaults(handler=module.main)
+    parser.set_defaults(handler=lambda args: parser.print_help() or 2)

@@ -1,0 +1,39 @@
+"""One error hierarchy for the whole package (Gymnasium's ``error.py`` habit).
+
+Every error names what was wrong, where (file, key, argument, host) and what was
+expected, so a researcher can fix the input without reading our code.
+"""
+
+from __future__ import annotations
+
+
+class AmuledError(Exception):
+    """Base class of every error raised on purpose by amuled-ma."""
+
+
+class ScenarioError(AmuledError, ValueError):
+    """A scenario file or key is missing, unknown, or of the wrong type."""
+
+
+class ClusterDefinitionError(AmuledError, ValueError):
+    """A moral-cluster file under ``prompts/clusters/`` is malformed."""
+
+
+class BeliefParseError(AmuledError, ValueError):
+    """An LLM reply could not be turned into a belief vector."""
+
+
+class BackendUnavailable(AmuledError, RuntimeError):
+    """A belief backend (an Ollama server, say) cannot be reached."""
+
+
+class ModelNotFound(AmuledError, LookupError):
+    """The requested model is not available on the backend."""
+
+
+class ReplayMiss(AmuledError, KeyError):
+    """A replayed recording has no belief for the requested state."""
+
+
+class CheckpointError(AmuledError, FileNotFoundError):
+    """A checkpoint needed by a command is missing or unreadable."""
