@@ -1,0 +1,100 @@
+"""The small interface every belief source implements.
+
+A *belief* is a probability vector over a task's actions, given by one moral-cluster
+agent for one task state. Sources (Ollama, replay of a recording, rules) answer
+batches of :class:`BeliefRequest` with :class:`BeliefResult` in the same order.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+#: Parse / answer statuses a :class:`BeliefResult` may carry.
+STATUSES = ("ok", "repaired", "abstained", "replay_miss", "timeout", "error")
+
+
+@dataclass(frozen=True)
+class BeliefRequest:
+    """One question to one moral-cluster agent about one task state.
+
+    Attributes:
+        task: Task name (``"findmilk"``, ``"driving"``).
+        cluster: Cluster (agent) name, e.g. ``"care"`` or ``"moral_agent"``.
+        obs: The task observation the belief is asked for (the replay key).
+        action_names: Names of the task's actions; index = action id.
+        messages: The full chat sent to an LLM (system, few-shot, state prompt) as
+            ``({"role": ..., "content": ...}, ...)``; empty for sources that need none.
+    """
+
+    task: str
+    cluster: str
+    obs: tuple[float, ...]
+    action_names: tuple[str, ...]
+    messages: tuple[tuple[tuple[str, str], ...], ...] = ()
+
+    @property
+    def num_actions(self) -> int:
+        """Number of task actions the belief ranges over."""
+        return len(self.action_names)
+
+
+@dataclass
+class BeliefResult:
+    """A source's answer to one :class:`BeliefRequest`.
+
+    Attributes:
+        belief: Probability vector, shape ``(n_actions,)``, sums to 1.
+        status: One of :data:`STATUSES`; anything but ``"ok"``/``"repaired"`` means the
+            belief is a fallback (uniform, another source's answer, ...).
+        source: Name of the source that produced the belief.
+        raw: The raw reply text, when there was one.
+        cached: True when the answer came from the belief store without a request.
+        latency_s: Wall-clock seconds spent answering (0 for cache hits).
+        prompt_tokens: Prompt tokens reported by the backend, if any.
+        completion_tokens: Completion tokens reported by the backend, if any.
+        extra: Free-form diagnostics (retry count, error text, ...).
+    """
+
+    belief: np.ndarray
+    status: str
+    source: str
+    raw: str | None = None
+    cached: bool = False
+    latency_s: float = 0.0
+    prompt_tokens: int | None = None
+    completion_tokens: int | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+class BeliefSource(ABC):
+    """Base class of belief sources; subclasses answer batches of requests."""
+
+    #: Short registry name of the source kind (``"ollama"``, ``"replay"``, ``"rules"``).
+    name: str = "source"
+
+    @abstractmethod
+    def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
+        """Answer every request, in order; never raise for one bad reply.
+
+        Args:
+            requests: The batch of requests.
+
+        Returns:
+            One result per request, in the same order.
+        """
+
+    def identity(self) -> dict[str, Any]:
+        """Describe what determines this source's answers (model, digest, options).
+
+        The belief store hashes it into the cache key, so two sources with the same
+        identity share cached answers and two different ones never do.
+        """
+        return {"source": self.name}
+
+    def close(self) -> None:  # noqa: B027 - optional hook
+        """Release clients, threads or files held by the source."""
