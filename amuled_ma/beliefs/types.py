@@ -28,14 +28,15 @@ class BeliefRequest:
         obs: The task observation the belief is asked for (the replay key).
         action_names: Names of the task's actions; index = action id.
         messages: The full chat sent to an LLM (system, few-shot, state prompt) as
-            ``({"role": ..., "content": ...}, ...)``; empty for sources that need none.
+            ``((role, content), ...)`` pairs (hashable, so identical requests in a batch
+            are recognised); empty for sources that need none.
     """
 
     task: str
     cluster: str
     obs: tuple[float, ...]
     action_names: tuple[str, ...]
-    messages: tuple[tuple[tuple[str, str], ...], ...] = ()
+    messages: tuple[tuple[str, str], ...] = ()
 
     @property
     def num_actions(self) -> int:
