@@ -1,0 +1,51 @@
+"""Moral clusters as data: loading cluster files and building the prompts sent to them.
+
+See ``docs/clusters.md``. Typical use::
+
+    from amuled_ma.clusters import build_messages
+    messages = build_messages("care", "findmilk", state_prompt)
+"""
+
+from amuled_ma.clusters.loader import (
+    CREDENCE_INSTRUCTION,
+    KINDS,
+    Cluster,
+    ClusterRegistry,
+    Theory,
+    default_clusters_dir,
+    default_registry,
+    load_cluster,
+    parse_cluster,
+)
+from amuled_ma.clusters.plugins import ENTRY_POINT_GROUP, agent_entry_points, load_agent
+from amuled_ma.clusters.prompting import (
+    build_messages,
+    credence_vector,
+    fewshot_messages,
+    fewshot_path,
+    instruction_text,
+    render_cluster_section,
+    render_system_prompt,
+)
+
+__all__ = [
+    "CREDENCE_INSTRUCTION",
+    "ENTRY_POINT_GROUP",
+    "KINDS",
+    "Cluster",
+    "ClusterRegistry",
+    "Theory",
+    "agent_entry_points",
+    "build_messages",
+    "credence_vector",
+    "default_clusters_dir",
+    "default_registry",
+    "fewshot_messages",
+    "fewshot_path",
+    "instruction_text",
+    "load_agent",
+    "load_cluster",
+    "parse_cluster",
+    "render_cluster_section",
+    "render_system_prompt",
+]
