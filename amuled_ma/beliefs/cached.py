@@ -1,0 +1,269 @@
+"""``CachedSource``: any belief source behind the persistent store, with an in-memory LRU.
+
+``CachedSource(source, store)`` is itself a :class:`~amuled_ma.beliefs.types.BeliefSource`.
+For a batch it computes each request's store key (:func:`~amuled_ma.beliefs.store.request_key`
+with the wrapped source's ``identity()``), answers what it can from memory and then from the
+SQLite store, and sends only the misses, each distinct request once, to the wrapped
+source. Answers are written to the store as soon as they arrive, so nothing already answered
+is lost if the process dies in the middle of a batch:
+
+- a wrapped source that defines ``iter_beliefs(requests)`` yielding ``(index, result)`` as
+  each answer completes gets every answer written on arrival (one short transaction per
+  ``flush_every`` answers);
+- any other source is called chunk by chunk (``chunk_size`` requests per call) and each
+  chunk is written before the next one is sent.
+
+Caching policy (see also :mod:`amuled_ma.beliefs.store`):
+
+- ``"ok"`` and ``"repaired"`` answers are cached permanently and served as hits;
+- ``"abstained"`` (the parser gave up), ``"timeout"`` and ``"error"`` answers are *written*
+  (for the record, raw reply included) but not served, so the next run asks again; a later
+  good answer replaces them. An LLM at temperature 0 that abstains will likely abstain again,
+  which costs one request per run and per state: the price of never freezing a failure;
+- ``"replay_miss"`` answers are not written at all: they say nothing about the model, only
+  that a recording lacked the state.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from amuled_ma.beliefs.store import CACHEABLE, BeliefStore, identity_json, request_key
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+
+#: Statuses never written to the store.
+NOT_STORED = frozenset({"replay_miss"})
+
+
+@dataclass
+class CacheStats:
+    """Counters of a :class:`CachedSource` since creation (or :meth:`CachedSource.reset_stats`).
+
+    Attributes:
+        requests: Requests received (duplicates included).
+        unique: Distinct requests among them (per batch).
+        memory_hits: Distinct requests answered from the in-memory LRU.
+        store_hits: Distinct requests answered from the SQLite store.
+        misses: Distinct requests not found (= requests sent to the wrapped source).
+        sent: Requests sent to the wrapped source.
+        written: Rows written to the store.
+        not_cached: Answers received with a status that is not served back later.
+
+    """
+
+    requests: int = 0
+    unique: int = 0
+    memory_hits: int = 0
+    store_hits: int = 0
+    misses: int = 0
+    sent: int = 0
+    written: int = 0
+    not_cached: int = 0
+
+    @property
+    def hits(self) -> int:
+        """Distinct requests answered without asking the wrapped source."""
+        return self.memory_hits + self.store_hits
+
+    @property
+    def hit_rate(self) -> float:
+        """``hits / unique`` (1.0 for no lookups)."""
+        return self.hits / self.unique if self.unique else 1.0
+
+    def as_dict(self) -> dict[str, Any]:
+        """All counters plus ``hits`` and ``hit_rate``."""
+        return {**asdict(self), "hits": self.hits, "hit_rate": self.hit_rate}
+
+
+class CachedSource(BeliefSource):
+    """A belief source that looks every request up in a store before sending it.
+
+    Args:
+        source: The wrapped source (Ollama, replay, rules, ...).
+        store: The persistent store (shared with other processes if you like).
+        memory_size: Entries kept in the in-memory LRU in front of the store (0: none).
+        chunk_size: Requests per call to a wrapped source without ``iter_beliefs``;
+            each chunk's answers are written before the next chunk is sent.
+        flush_every: With ``iter_beliefs``, answers per store transaction.
+
+    """
+
+    def __init__(
+        self,
+        source: BeliefSource,
+        store: BeliefStore,
+        *,
+        memory_size: int = 65536,
+        chunk_size: int = 64,
+        flush_every: int = 1,
+    ) -> None:
+        self.source = source
+        self.store = store
+        self.memory_size = int(memory_size)
+        self.chunk_size = max(1, int(chunk_size))
+        self.flush_every = max(1, int(flush_every))
+        self.stats = CacheStats()
+        self._memory: OrderedDict[str, BeliefResult] = OrderedDict()
+        self._lock = threading.Lock()
+
+    # -- BeliefSource ----------------------------------------------------------------
+    @property
+    def name(self) -> str:  # type: ignore[override]
+        """The wrapped source's name (a cache is transparent)."""
+        return self.source.name
+
+    @property
+    def needs_messages(self) -> bool:
+        """Whether the wrapped source reads ``BeliefRequest.messages`` (default True)."""
+        return bool(getattr(self.source, "needs_messages", True))
+
+    def identity(self) -> dict[str, Any]:
+        """Return the wrapped source's identity (the cache key is built from it)."""
+        return self.source.identity()
+
+    def close(self) -> None:
+        """Close the wrapped source (the store is left open: it may be shared)."""
+        self.source.close()
+
+    def reset_stats(self) -> None:
+        """Zero the counters."""
+        self.stats = CacheStats()
+
+    def clear_memory(self) -> None:
+        """Empty the in-memory LRU (the store is untouched)."""
+        with self._lock:
+            self._memory.clear()
+
+    def keys(self, requests: Sequence[BeliefRequest]) -> list[str]:
+        """Return the store keys of ``requests`` for the wrapped source."""
+        ident = identity_json(self.source.identity())
+        return [request_key(ident, r) for r in requests]
+
+    def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
+        """Answer from memory, then the store, then the wrapped source (misses only).
+
+        Args:
+            requests: The batch.
+
+        Returns:
+            One result per request, in order; hits have ``cached=True``.
+
+        """
+        ident = identity_json(self.source.identity())
+        keys = [request_key(ident, r) for r in requests]
+        positions: dict[str, list[int]] = {}
+        for i, key in enumerate(keys):
+            positions.setdefault(key, []).append(i)
+        answers: dict[str, BeliefResult] = {}
+
+        stats = self.stats
+        stats.requests += len(requests)
+        stats.unique += len(positions)
+
+        with self._lock:
+            for key in positions:
+                hit = self._memory.get(key)
+                if hit is not None:
+                    self._memory.move_to_end(key)
+                    answers[key] = hit
+        stats.memory_hits += len(answers)
+
+        lookup = [k for k in positions if k not in answers]
+        if lookup:
+            stored = self.store.get_many(lookup, cacheable_only=True)
+            for key, row in stored.items():
+                answers[key] = row.to_result()
+                self._remember(key, answers[key])
+            stats.store_hits += len(stored)
+
+        missing = [k for k in positions if k not in answers]
+        stats.misses += len(missing)
+        if missing:
+            answers.update(self._ask(ident, [(k, requests[positions[k][0]]) for k in missing]))
+
+        out: list[BeliefResult] = [None] * len(requests)  # type: ignore[list-item]
+        for key, idx in positions.items():
+            result = answers[key]
+            for j in idx:  # copies: the LRU's entries must not be mutated by callers
+                out[j] = _copy_result(result)
+        return out
+
+    # -- internals -------------------------------------------------------------------
+    def _remember(self, key: str, result: BeliefResult) -> None:
+        if self.memory_size <= 0 or result.status not in CACHEABLE:
+            return
+        entry = _copy_result(result, cached=True)
+        entry.latency_s = 0.0
+        with self._lock:
+            self._memory[key] = entry
+            self._memory.move_to_end(key)
+            while len(self._memory) > self.memory_size:
+                self._memory.popitem(last=False)
+
+    def _ask(self, ident: str, todo: list[tuple[str, BeliefRequest]]) -> dict[str, BeliefResult]:
+        """Send the misses and write each answer as soon as it is back."""
+        answers: dict[str, BeliefResult] = {}
+        pending: list[tuple[str, str, BeliefRequest, BeliefResult]] = []
+
+        def flush() -> None:
+            if pending:
+                self.stats.written += self.store.put_many(pending)
+                pending.clear()
+
+        def take(key: str, request: BeliefRequest, result: BeliefResult) -> None:
+            result.belief = np.asarray(result.belief, dtype=np.float64)
+            answers[key] = result
+            if result.status not in CACHEABLE:
+                self.stats.not_cached += 1
+            else:
+                self._remember(key, result)
+            if result.status not in NOT_STORED:
+                pending.append((key, ident, request, result))
+
+        requests = [r for _, r in todo]
+        iter_beliefs = getattr(self.source, "iter_beliefs", None)
+        try:
+            if callable(iter_beliefs):
+                self.stats.sent += len(requests)
+                for index, result in iter_beliefs(requests):
+                    key, request = todo[index]
+                    take(key, request, result)
+                    if len(pending) >= self.flush_every:
+                        flush()
+            else:
+                for start in range(0, len(todo), self.chunk_size):
+                    chunk = todo[start : start + self.chunk_size]
+                    self.stats.sent += len(chunk)
+                    results = self.source.beliefs([r for _, r in chunk])
+                    if len(results) != len(chunk):
+                        raise RuntimeError(
+                            f"belief source {self.source.name!r} answered {len(results)} "
+                            f"results for {len(chunk)} requests"
+                        )
+                    for (key, request), result in zip(chunk, results, strict=True):
+                        take(key, request, result)
+                    flush()
+        finally:
+            flush()  # keep whatever arrived, even when the source raised half-way
+        return answers
+
+
+def _copy_result(result: BeliefResult, cached: bool | None = None) -> BeliefResult:
+    """Return an independent copy (duplicates in a batch must not share an array)."""
+    return BeliefResult(
+        belief=result.belief.copy(),
+        status=result.status,
+        source=result.source,
+        raw=result.raw,
+        cached=result.cached if cached is None else cached,
+        latency_s=result.latency_s,
+        prompt_tokens=result.prompt_tokens,
+        completion_tokens=result.completion_tokens,
+        extra=dict(result.extra),
+    )

@@ -1,0 +1,775 @@
+"""Persistent belief store: one SQLite row per belief request ever answered.
+
+LLM calls are the slowest and most fragile part of a run, so every answer is kept on
+disk and a re-run never sends the same request twice. The store is a plain SQLite file
+(standard library only) in WAL mode with a busy timeout, so several processes (parallel
+seeds, a sweep) may read and write it at once, and a process killed in the middle of a
+write (``kill -9``, an OOM kill, a pulled plug on a GPU box job) leaves every committed
+row intact and the file consistent.
+
+## Key
+
+A row is keyed by :func:`request_key`: the SHA-256 (hex) of the canonical JSON (sorted
+keys, no spaces, UTF-8) of::
+
+    {"v": 1,
+     "identity": source.identity(),        # source kind, model name + digest, options,
+                                           # output schema / format, seed, num_ctx, ...
+     "task": request.task, "cluster": request.cluster,
+     "obs": [float, ...], "actions": [name, ...],
+     "messages": [[role, content], ...]}   # the full chat, system prompt and few-shot included
+
+Anything that can change an answer is in the key; two sources with the same identity share
+rows, two different ones never do.
+
+## Schema (version 1)
+
+``beliefs``: ``key`` (primary key), ``source``, ``identity`` (canonical JSON), ``task``,
+``cluster``, ``obs`` / ``actions`` (JSON lists), ``messages_hash`` (-> ``texts.hash``; the
+chat, shared by many rows, is stored once), ``raw`` (the raw reply), ``belief`` (JSON list),
+``status`` (:data:`~amuled_ma.beliefs.types.STATUSES`), ``latency_s``, ``prompt_tokens``,
+``completion_tokens``, ``extra`` (JSON), ``attempts``, ``created_at`` / ``updated_at`` (Unix
+seconds). ``texts``: ``hash`` -> ``body``. ``meta``: ``schema_version``.
+
+## What is served back
+
+Only rows with status ``"ok"`` or ``"repaired"`` (:data:`CACHEABLE`) are answers; they are
+never overwritten. Rows with any other status (``"abstained"``, ``"timeout"``, ``"error"``,
+...) are kept for the record (the raw reply of an abstention is evidence of a model's
+failure) but are *not* served as cache hits, so the next run asks again; a later
+``ok``/``repaired`` answer replaces them and ``attempts`` counts the tries.
+
+## Durability
+
+Every write is one short ``BEGIN IMMEDIATE`` transaction. ``synchronous=NORMAL`` (the WAL
+default) makes a committed transaction survive a crash of the *process*; pass
+``synchronous="FULL"`` to also survive a power loss at some write speed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sqlite3
+import threading
+import time
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from amuled_ma.beliefs.types import STATUSES, BeliefRequest, BeliefResult
+from amuled_ma.errors import AmuledError
+
+#: Statuses whose rows are served back as cached answers.
+CACHEABLE = frozenset({"ok", "repaired"})
+#: Version of the table layout written into ``meta``.
+SCHEMA_VERSION = 1
+#: Version of the key recipe hashed by :func:`request_key`.
+KEY_VERSION = 1
+#: Environment variable naming the default store file.
+STORE_ENV = "AMULED_BELIEF_STORE"
+
+_SQL_CHUNK = 500  # keys per ``IN (...)`` query, well under SQLite's variable limit
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS texts (hash TEXT PRIMARY KEY, body TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS beliefs (
+    key TEXT PRIMARY KEY,
+    source TEXT NOT NULL,
+    identity TEXT NOT NULL,
+    task TEXT NOT NULL,
+    cluster TEXT NOT NULL,
+    obs TEXT NOT NULL,
+    actions TEXT NOT NULL,
+    messages_hash TEXT,
+    raw TEXT,
+    belief TEXT NOT NULL,
+    status TEXT NOT NULL,
+    latency_s REAL,
+    prompt_tokens INTEGER,
+    completion_tokens INTEGER,
+    extra TEXT,
+    attempts INTEGER NOT NULL DEFAULT 1,
+    created_at REAL NOT NULL,
+    updated_at REAL NOT NULL
+);
+CREATE INDEX IF NOT EXISTS beliefs_task_cluster ON beliefs (task, cluster);
+"""
+
+_COLUMNS = (
+    "key, source, identity, task, cluster, obs, actions, messages_hash, raw, belief, status, "
+    "latency_s, prompt_tokens, completion_tokens, extra, attempts, created_at, updated_at"
+)
+
+# Insert, or replace a row that holds no answer yet; an ok/repaired row is never replaced.
+_UPSERT = f"""
+INSERT INTO beliefs ({_COLUMNS}) VALUES ({", ".join("?" * 18)})
+ON CONFLICT (key) DO UPDATE SET
+    raw = excluded.raw, belief = excluded.belief, status = excluded.status,
+    latency_s = excluded.latency_s, prompt_tokens = excluded.prompt_tokens,
+    completion_tokens = excluded.completion_tokens, extra = excluded.extra,
+    attempts = beliefs.attempts + excluded.attempts, updated_at = excluded.updated_at
+WHERE beliefs.status NOT IN ('ok', 'repaired')
+"""
+
+
+class BeliefStoreError(AmuledError, RuntimeError):
+    """The belief store file cannot be opened, or an imported row is malformed."""
+
+
+def default_store_path() -> Path:
+    """Where the store lives when none is named.
+
+    Returns:
+        ``$AMULED_BELIEF_STORE`` if set, else ``$XDG_CACHE_HOME/amuled/beliefs.sqlite``
+        (``~/.cache/amuled/beliefs.sqlite``).
+
+    """
+    env = os.environ.get(STORE_ENV)
+    if env:
+        return Path(env)
+    cache = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(cache) / "amuled" / "beliefs.sqlite"
+
+
+def canonical_json(value: Any) -> str:
+    """Serialise ``value`` as canonical JSON: sorted keys, no spaces, UTF-8 text.
+
+    Args:
+        value: JSON-compatible data (dicts, lists, str, int, float, bool, None).
+
+    Returns:
+        The JSON text; equal data always gives the same text.
+
+    """
+    return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
+
+
+def identity_json(identity: Mapping[str, Any]) -> str:
+    """Canonical JSON of a source's :meth:`~amuled_ma.beliefs.types.BeliefSource.identity`."""
+    return canonical_json(_jsonable(identity))
+
+
+def request_key(identity: Mapping[str, Any] | str, request: BeliefRequest) -> str:
+    """Return the store key of one request to one source (see the module docstring).
+
+    Args:
+        identity: The source's ``identity()`` dict, or its :func:`identity_json` text
+            (faster when hashing many requests to one source).
+        request: The request.
+
+    Returns:
+        64 hex characters.
+
+    """
+    ident = identity if isinstance(identity, str) else identity_json(identity)
+    body = canonical_json(
+        {
+            "actions": list(request.action_names),
+            "cluster": request.cluster,
+            "messages": [[role, content] for role, content in request.messages],
+            "obs": [float(x) for x in request.obs],
+            "task": request.task,
+        }
+    )
+    # Splice the identity in verbatim: same bytes as canonical_json of the whole dict.
+    text = f'{{"identity":{ident},"request":{body},"v":{KEY_VERSION}}}'
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _jsonable(value: Any) -> Any:
+    """Convert numpy scalars/arrays and tuples into plain JSON data."""
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+@dataclass
+class StoredBelief:
+    """One row of the store, as read back.
+
+    Attributes:
+        key: The row's key.
+        source: Source name.
+        identity: The source identity (parsed JSON).
+        task: Task name.
+        cluster: Cluster name.
+        obs: The observation.
+        action_names: Action names.
+        messages: The chat, ``((role, content), ...)``.
+        raw: The raw reply.
+        belief: The belief vector (float64).
+        status: Answer status.
+        latency_s: Seconds the original request took.
+        prompt_tokens: Prompt tokens, if reported.
+        completion_tokens: Completion tokens, if reported.
+        extra: Free-form diagnostics.
+        attempts: How many answers were written for this key.
+        created_at: Unix time of the first write.
+        updated_at: Unix time of the last write.
+
+    """
+
+    key: str
+    source: str
+    identity: dict[str, Any]
+    task: str
+    cluster: str
+    obs: tuple[float, ...]
+    action_names: tuple[str, ...]
+    messages: tuple[tuple[str, str], ...]
+    raw: str | None
+    belief: np.ndarray
+    status: str
+    latency_s: float | None
+    prompt_tokens: int | None
+    completion_tokens: int | None
+    extra: dict[str, Any]
+    attempts: int
+    created_at: float
+    updated_at: float
+
+    @property
+    def cacheable(self) -> bool:
+        """True when the row is an answer served back as a cache hit."""
+        return self.status in CACHEABLE
+
+    def to_result(self) -> BeliefResult:
+        """Return the row as a cache-hit :class:`BeliefResult` (``cached=True``, latency 0)."""
+        extra = dict(self.extra)
+        extra["stored_latency_s"] = self.latency_s
+        return BeliefResult(
+            belief=self.belief.copy(),
+            status=self.status,
+            source=self.source,
+            raw=self.raw,
+            cached=True,
+            latency_s=0.0,
+            prompt_tokens=self.prompt_tokens,
+            completion_tokens=self.completion_tokens,
+            extra=extra,
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        """Return the row as one JSON object (the export format, one line per row)."""
+        return {
+            "key": self.key,
+            "source": self.source,
+            "identity": self.identity,
+            "task": self.task,
+            "cluster": self.cluster,
+            "obs": list(self.obs),
+            "actions": list(self.action_names),
+            "messages": [list(m) for m in self.messages],
+            "raw": self.raw,
+            "belief": self.belief.tolist(),
+            "status": self.status,
+            "latency_s": self.latency_s,
+            "prompt_tokens": self.prompt_tokens,
+            "completion_tokens": self.completion_tokens,
+            "extra": self.extra,
+            "attempts": self.attempts,
+            "created_at": self.created_at,
+            "updated_at": self.updated_at,
+        }
+
+    def request(self) -> BeliefRequest:
+        """Return the request this row answers."""
+        return BeliefRequest(
+            task=self.task,
+            cluster=self.cluster,
+            obs=self.obs,
+            action_names=self.action_names,
+            messages=self.messages,
+        )
+
+
+class BeliefStore:
+    """A SQLite file of belief answers, shared safely by threads and processes.
+
+    Args:
+        path: The database file (created with its folder when missing); ``":memory:"``
+            for a private in-memory store (tests).
+        timeout_s: How long a writer waits for another process's lock before failing.
+        synchronous: SQLite ``synchronous`` level, ``"NORMAL"`` (crash-safe for the
+            process) or ``"FULL"`` (also power-loss safe).
+
+    Raises:
+        BeliefStoreError: The file cannot be opened or is not a belief store.
+
+    """
+
+    def __init__(
+        self, path: str | os.PathLike[str], *, timeout_s: float = 60.0, synchronous: str = "NORMAL"
+    ) -> None:
+        self.path = str(path)
+        self.timeout_s = float(timeout_s)
+        if synchronous.upper() not in {"OFF", "NORMAL", "FULL", "EXTRA"}:
+            raise BeliefStoreError(f"synchronous must be NORMAL or FULL, got {synchronous!r}")
+        self.synchronous = synchronous.upper()
+        self._lock = threading.RLock()
+        self._conn: sqlite3.Connection | None = None
+        self._pid = -1
+        self._messages_seen: set[str] = set()
+        self._connect()
+
+    # -- connection ------------------------------------------------------------------
+    def _connect(self) -> sqlite3.Connection:
+        """Open (or, after a ``fork``, re-open) this process's connection."""
+        if self._conn is not None and self._pid == os.getpid():
+            return self._conn
+        if self.path != ":memory:":
+            Path(self.path).parent.mkdir(parents=True, exist_ok=True)
+        try:
+            conn = sqlite3.connect(
+                self.path, timeout=self.timeout_s, isolation_level=None, check_same_thread=False
+            )
+            conn.execute(f"PRAGMA busy_timeout = {int(self.timeout_s * 1000)}")
+            if self.path != ":memory:":
+                mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+                if str(mode).lower() != "wal":
+                    raise BeliefStoreError(f"{self.path}: cannot switch to WAL mode (got {mode})")
+            conn.execute(f"PRAGMA synchronous = {self.synchronous}")
+            self._conn, self._pid = conn, os.getpid()
+            self._messages_seen = set()
+            self._write(lambda c: self._create_schema(c))
+        except sqlite3.DatabaseError as error:
+            self._conn = None
+            raise BeliefStoreError(f"{self.path}: cannot open belief store: {error}") from error
+        return conn
+
+    @staticmethod
+    def _create_schema(conn: sqlite3.Connection) -> None:
+        for statement in _SCHEMA.split(";"):
+            if statement.strip():
+                conn.execute(statement)
+        row = conn.execute("SELECT value FROM meta WHERE name = 'schema_version'").fetchone()
+        if row is None:
+            conn.execute(
+                "INSERT INTO meta (name, value) VALUES ('schema_version', ?)",
+                (str(SCHEMA_VERSION),),
+            )
+        elif int(row[0]) != SCHEMA_VERSION:
+            raise BeliefStoreError(
+                f"belief store schema version {row[0]}, this amuled-ma reads {SCHEMA_VERSION}"
+            )
+
+    def _write(self, body: Any) -> Any:
+        """Run ``body(conn)`` in one ``BEGIN IMMEDIATE`` transaction."""
+        with self._lock:
+            conn = self._conn if self._pid == os.getpid() else self._connect()
+            assert conn is not None
+            conn.execute("BEGIN IMMEDIATE")
+            try:
+                out = body(conn)
+            except BaseException:
+                conn.execute("ROLLBACK")
+                raise
+            conn.execute("COMMIT")
+            return out
+
+    def _read(self, sql: str, params: Sequence[Any] = ()) -> list[tuple[Any, ...]]:
+        with self._lock:
+            return self._connect().execute(sql, params).fetchall()
+
+    def close(self) -> None:
+        """Close this process's connection (the file stays)."""
+        with self._lock:
+            if self._conn is not None and self._pid == os.getpid():
+                self._conn.close()
+            self._conn = None
+
+    def __enter__(self) -> BeliefStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- reads -----------------------------------------------------------------------
+    def get_many(
+        self, keys: Iterable[str], *, cacheable_only: bool = True
+    ) -> dict[str, StoredBelief]:
+        """Read the rows of ``keys`` that exist.
+
+        Args:
+            keys: Keys to look up (duplicates allowed).
+            cacheable_only: Return only rows served as answers (``ok``/``repaired``).
+
+        Returns:
+            ``{key: row}`` for the keys found.
+
+        """
+        wanted = list(dict.fromkeys(keys))
+        found: dict[str, StoredBelief] = {}
+        status_filter = " AND b.status IN ('ok', 'repaired')" if cacheable_only else ""
+        for start in range(0, len(wanted), _SQL_CHUNK):
+            chunk = wanted[start : start + _SQL_CHUNK]
+            sql = (
+                f"SELECT {_prefixed()}, t.body FROM beliefs b "
+                "LEFT JOIN texts t ON t.hash = b.messages_hash "
+                f"WHERE b.key IN ({','.join('?' * len(chunk))}){status_filter}"
+            )
+            for row in self._read(sql, chunk):
+                stored = _row_to_stored(row)
+                found[stored.key] = stored
+        return found
+
+    def get(self, key: str, *, cacheable_only: bool = True) -> StoredBelief | None:
+        """Read one row, or ``None`` (see :meth:`get_many`)."""
+        return self.get_many([key], cacheable_only=cacheable_only).get(key)
+
+    def iter_rows(
+        self, *, status: Sequence[str] | None = None, task: str | None = None
+    ) -> Iterator[StoredBelief]:
+        """Iterate over every row, oldest first (the export order).
+
+        Args:
+            status: Only these statuses (all when ``None``).
+            task: Only this task (all when ``None``).
+
+        Yields:
+            The rows.
+
+        """
+        where, params = [], []
+        if status:
+            where.append(f"b.status IN ({','.join('?' * len(status))})")
+            params.extend(status)
+        if task:
+            where.append("b.task = ?")
+            params.append(task)
+        sql = (
+            f"SELECT {_prefixed()}, t.body FROM beliefs b "
+            "LEFT JOIN texts t ON t.hash = b.messages_hash"
+            + (f" WHERE {' AND '.join(where)}" if where else "")
+            + " ORDER BY b.created_at, b.rowid"
+        )
+        for row in self._read(sql, params):
+            yield _row_to_stored(row)
+
+    def __len__(self) -> int:
+        return int(self._read("SELECT COUNT(*) FROM beliefs")[0][0])
+
+    def __contains__(self, key: object) -> bool:
+        return bool(self._read("SELECT 1 FROM beliefs WHERE key = ?", (key,)))
+
+    # -- writes ----------------------------------------------------------------------
+    def put_many(
+        self, items: Iterable[tuple[str, Mapping[str, Any] | str, BeliefRequest, BeliefResult]]
+    ) -> int:
+        """Write answers in one transaction.
+
+        An existing ``ok``/``repaired`` row is kept as it is; any other existing row is
+        replaced and its ``attempts`` counted up.
+
+        Args:
+            items: ``(key, identity, request, result)`` tuples; ``identity`` is the
+                source's ``identity()`` dict or its :func:`identity_json` text.
+
+        Returns:
+            The number of rows inserted or replaced.
+
+        """
+        now = time.time()
+        rows, texts = [], {}
+        for key, identity, request, result in items:
+            ident = identity if isinstance(identity, str) else identity_json(identity)
+            messages_hash = None
+            if request.messages:
+                body = canonical_json([[r, c] for r, c in request.messages])
+                messages_hash = hashlib.sha256(body.encode("utf-8")).hexdigest()
+                if messages_hash not in self._messages_seen:
+                    texts[messages_hash] = body
+            rows.append(
+                (
+                    key,
+                    result.source,
+                    ident,
+                    request.task,
+                    request.cluster,
+                    canonical_json([float(x) for x in request.obs]),
+                    canonical_json(list(request.action_names)),
+                    messages_hash,
+                    result.raw,
+                    canonical_json([float(x) for x in np.asarray(result.belief).ravel()]),
+                    result.status,
+                    float(result.latency_s) if result.latency_s is not None else None,
+                    result.prompt_tokens,
+                    result.completion_tokens,
+                    canonical_json(_jsonable(result.extra or {})),
+                    1,
+                    now,
+                    now,
+                )
+            )
+        return self._put_rows(rows, texts)
+
+    def put(
+        self,
+        key: str,
+        identity: Mapping[str, Any] | str,
+        request: BeliefRequest,
+        result: BeliefResult,
+    ) -> int:
+        """Write one answer (see :meth:`put_many`)."""
+        return self.put_many([(key, identity, request, result)])
+
+    def _put_rows(self, rows: list[tuple[Any, ...]], texts: dict[str, str]) -> int:
+        if not rows:
+            return 0
+
+        def body(conn: sqlite3.Connection) -> int:
+            conn.executemany(
+                "INSERT OR IGNORE INTO texts (hash, body) VALUES (?, ?)", list(texts.items())
+            )
+            before = conn.total_changes
+            conn.executemany(_UPSERT, rows)
+            return conn.total_changes - before
+
+        changed = self._write(body)
+        self._messages_seen.update(texts)
+        return int(changed)
+
+    # -- maintenance -----------------------------------------------------------------
+    def integrity_check(self) -> list[str]:
+        """Run SQLite's ``PRAGMA integrity_check``.
+
+        Returns:
+            ``["ok"]`` for a sound file, else SQLite's list of problems.
+
+        """
+        return [str(r[0]) for r in self._read("PRAGMA integrity_check")]
+
+    def checkpoint(self) -> None:
+        """Fold the WAL into the main file (``PRAGMA wal_checkpoint(TRUNCATE)``)."""
+        self._read("PRAGMA wal_checkpoint(TRUNCATE)")
+
+    def stats(self) -> dict[str, Any]:
+        """Count rows and sum latencies and tokens (``amuled beliefs stats``).
+
+        Returns:
+            A JSON-compatible dict: rows, rows per status / source+model / task+cluster,
+            latency and token totals, file sizes.
+
+        """
+        total = len(self)
+        by_status = dict(self._read("SELECT status, COUNT(*) FROM beliefs GROUP BY status"))
+        by_model = [
+            {"source": s, "model": m, "rows": n}
+            for s, m, n in self._read(
+                "SELECT source, json_extract(identity, '$.model'), COUNT(*) FROM beliefs "
+                "GROUP BY 1, 2 ORDER BY 3 DESC"
+            )
+        ]
+        by_cluster = [
+            {"task": t, "cluster": c, "rows": n}
+            for t, c, n in self._read(
+                "SELECT task, cluster, COUNT(*) FROM beliefs GROUP BY 1, 2 ORDER BY 1, 2"
+            )
+        ]
+        lat = self._read(
+            "SELECT COUNT(latency_s), AVG(latency_s), SUM(latency_s), SUM(prompt_tokens), "
+            "SUM(completion_tokens), SUM(attempts) FROM beliefs"
+        )[0]
+        files = {}
+        if self.path != ":memory:":
+            for suffix in ("", "-wal"):
+                p = Path(self.path + suffix)
+                files[p.name] = p.stat().st_size if p.exists() else 0
+        return {
+            "path": self.path,
+            "schema_version": SCHEMA_VERSION,
+            "rows": total,
+            "cacheable_rows": sum(n for s, n in by_status.items() if s in CACHEABLE),
+            "by_status": by_status,
+            "by_model": by_model,
+            "by_task_cluster": by_cluster,
+            "latency_s": {"count": lat[0], "mean": lat[1], "total": lat[2]},
+            "tokens": {"prompt": lat[3] or 0, "completion": lat[4] or 0},
+            "attempts": lat[5] or 0,
+            "distinct_chats": int(self._read("SELECT COUNT(*) FROM texts")[0][0]),
+            "file_bytes": files,
+        }
+
+    # -- export / import -------------------------------------------------------------
+    def export_jsonl(
+        self, fp: IO[str], *, status: Sequence[str] | None = None, task: str | None = None
+    ) -> int:
+        """Write rows as JSON Lines, one object per row (:meth:`StoredBelief.to_json`).
+
+        Args:
+            fp: A text file open for writing.
+            status: Only these statuses (all when ``None``).
+            task: Only this task (all when ``None``).
+
+        Returns:
+            The number of rows written.
+
+        """
+        count = 0
+        for row in self.iter_rows(status=status, task=task):
+            fp.write(json.dumps(row.to_json(), ensure_ascii=False) + "\n")
+            count += 1
+        return count
+
+    def import_jsonl(
+        self, fp: IO[str], *, name: str = "<jsonl>", verify: bool = True, batch: int = 500
+    ) -> dict[str, int]:
+        """Read rows written by :meth:`export_jsonl` (from this or another machine).
+
+        Rows follow the :meth:`put_many` rule: an existing answer is never replaced.
+
+        Args:
+            fp: A text file open for reading.
+            name: The file's name, for error messages.
+            verify: Recompute each key from the row's content and refuse a mismatch.
+            batch: Rows per transaction.
+
+        Returns:
+            ``{"read": n, "written": m}`` (``m < n`` when answers were already there).
+
+        Raises:
+            BeliefStoreError: A line is not a valid row (names the file and line).
+
+        """
+        read = written = 0
+        rows: list[tuple[Any, ...]] = []
+        texts: dict[str, str] = {}
+        for lineno, line in enumerate(fp, start=1):
+            if not line.strip():
+                continue
+            row, text = _json_to_row(line, f"{name}:{lineno}", verify)
+            rows.append(row)
+            if text is not None:
+                texts[text[0]] = text[1]
+            read += 1
+            if len(rows) >= batch:
+                written += self._put_rows(rows, texts)
+                rows, texts = [], {}
+        written += self._put_rows(rows, texts)
+        return {"read": read, "written": written}
+
+
+def _prefixed() -> str:
+    return ", ".join(f"b.{c.strip()}" for c in _COLUMNS.split(","))
+
+
+def _row_to_stored(row: Sequence[Any]) -> StoredBelief:
+    (
+        key,
+        source,
+        identity,
+        task,
+        cluster,
+        obs,
+        actions,
+        _mh,
+        raw,
+        belief,
+        status,
+        latency,
+        ptok,
+        ctok,
+        extra,
+        attempts,
+        created,
+        updated,
+        messages,
+    ) = row
+    return StoredBelief(
+        key=key,
+        source=source,
+        identity=json.loads(identity),
+        task=task,
+        cluster=cluster,
+        obs=tuple(json.loads(obs)),
+        action_names=tuple(json.loads(actions)),
+        messages=tuple((r, c) for r, c in json.loads(messages)) if messages else (),
+        raw=raw,
+        belief=np.asarray(json.loads(belief), dtype=np.float64),
+        status=status,
+        latency_s=latency,
+        prompt_tokens=ptok,
+        completion_tokens=ctok,
+        extra=json.loads(extra) if extra else {},
+        attempts=int(attempts),
+        created_at=float(created),
+        updated_at=float(updated),
+    )
+
+
+def _json_to_row(
+    line: str, where: str, verify: bool
+) -> tuple[tuple[Any, ...], tuple[str, str] | None]:
+    """Validate one exported JSON line and turn it into a table row."""
+    try:
+        obj = json.loads(line)
+    except json.JSONDecodeError as error:
+        raise BeliefStoreError(f"{where}: not JSON ({error})") from error
+    required = ("key", "source", "identity", "task", "cluster", "obs", "actions", "belief")
+    missing = [k for k in (*required, "status") if k not in obj]
+    if missing:
+        raise BeliefStoreError(f"{where}: missing field(s) {', '.join(missing)}")
+    if obj["status"] not in STATUSES:
+        raise BeliefStoreError(f"{where}: status {obj['status']!r} is not one of {STATUSES}")
+    belief = obj["belief"]
+    if not isinstance(belief, list) or len(belief) != len(obj["actions"]):
+        raise BeliefStoreError(
+            f"{where}: belief must be a list of {len(obj['actions'])} numbers, got {belief!r}"
+        )
+    messages = tuple((str(r), str(c)) for r, c in obj.get("messages") or [])
+    request = BeliefRequest(
+        task=obj["task"],
+        cluster=obj["cluster"],
+        obs=tuple(float(x) for x in obj["obs"]),
+        action_names=tuple(obj["actions"]),
+        messages=messages,
+    )
+    ident = identity_json(obj["identity"])
+    if verify:
+        expected = request_key(ident, request)
+        if expected != obj["key"]:
+            raise BeliefStoreError(
+                f"{where}: key {obj['key'][:12]}... does not match the row's content "
+                f"(expected {expected[:12]}...); the row was edited or written by another "
+                "key version (import with --no-verify to keep it anyway)"
+            )
+    text = None
+    messages_hash = None
+    if messages:
+        body = canonical_json([[r, c] for r, c in messages])
+        messages_hash = hashlib.sha256(body.encode("utf-8")).hexdigest()
+        text = (messages_hash, body)
+    now = time.time()
+    row = (
+        obj["key"],
+        obj["source"],
+        ident,
+        request.task,
+        request.cluster,
+        canonical_json(list(request.obs)),
+        canonical_json(list(request.action_names)),
+        messages_hash,
+        obj.get("raw"),
+        canonical_json([float(x) for x in belief]),
+        obj["status"],
+        obj.get("latency_s"),
+        obj.get("prompt_tokens"),
+        obj.get("completion_tokens"),
+        canonical_json(obj.get("extra") or {}),
+        int(obj.get("attempts") or 1),
+        float(obj.get("created_at") or now),
+        float(obj.get("updated_at") or now),
+    )
+    return row, text
