@@ -1,0 +1,107 @@
+"""Input checks shared by every fusion entry point (private).
+
+A belief row (or mass function) is valid when it is finite, non-negative and sums to 1
+within :data:`SUM_TOLERANCE`. Valid rows are rescaled to sum to 1 exactly (to rounding)
+so that every rule works on true probability vectors; invalid rows raise ``ValueError``
+naming the first offending index, e.g. ``beliefs[3, 2]``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+SUM_TOLERANCE = 1e-6
+"""Largest accepted ``|sum(row) - 1|`` for a belief row or mass function."""
+
+
+def _index_text(name: str, index: tuple[int, ...]) -> str:
+    if not index:
+        return name
+    return f"{name}[{', '.join(str(int(i)) for i in index)}]"
+
+
+def check_rows(values: object, name: str = "beliefs", *, min_ndim: int = 2) -> np.ndarray:
+    """Return ``values`` as float64 rows that each sum to 1, or raise ``ValueError``.
+
+    Args:
+        values: array-like of shape ``(..., n)`` with ``ndim >= min_ndim``.
+        name: what to call the array in error messages.
+        min_ndim: the smallest accepted number of dimensions.
+
+    Returns:
+        A new float64 array of the same shape whose last axis sums to 1.
+
+    Raises:
+        ValueError: wrong shape, or a row with NaN/inf, a negative entry, or a sum farther
+            than :data:`SUM_TOLERANCE` from 1 (the message names the row's index).
+
+    """
+    try:
+        array = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be an array of numbers: {exc}") from None
+    if array.ndim < min_ndim:
+        raise ValueError(
+            f"{name} must have at least {min_ndim} dimensions, got shape {array.shape}"
+        )
+    if array.shape[-1] == 0:
+        raise ValueError(f"{name} must have at least one entry per row, got shape {array.shape}")
+    if array.size == 0:
+        return array.copy()
+    finite = np.isfinite(array).all(axis=-1)
+    nonneg = (array >= 0).all(axis=-1)
+    sums = array.sum(axis=-1)
+    close = np.abs(sums - 1.0) <= SUM_TOLERANCE
+    good = finite & nonneg & close
+    if not good.all():
+        index = tuple(int(i) for i in np.argwhere(~good)[0])
+        row = array[index]
+        if not finite[index]:
+            reason = "contains NaN or infinity"
+        elif not nonneg[index]:
+            reason = "has a negative entry"
+        else:
+            reason = f"sums to {float(sums[index])!r}, expected 1 within {SUM_TOLERANCE:g}"
+        raise ValueError(
+            f"{_index_text(name, index)} is not a probability vector: {reason} (got {row.tolist()})"
+        )
+    return array / sums[..., None]
+
+
+def check_weights(weights: object, batch_shape: tuple[int, ...]) -> np.ndarray:
+    """Return per-cluster weights broadcast to ``batch_shape``, or raise ``ValueError``.
+
+    Args:
+        weights: array-like broadcastable to ``batch_shape`` (``(..., n_clusters)``).
+        batch_shape: the shape ``beliefs.shape[:-1]``.
+
+    Returns:
+        A float64 array of shape ``batch_shape``.
+
+    Raises:
+        ValueError: not broadcastable, NaN/inf, negative, or all zero for some leading index.
+
+    """
+    try:
+        array = np.broadcast_to(np.asarray(weights, dtype=np.float64), batch_shape)
+    except ValueError:
+        shape = np.shape(weights)
+        raise ValueError(
+            f"weights of shape {shape} do not broadcast to (..., n_clusters) = {batch_shape}"
+        ) from None
+    if array.size == 0:
+        return array
+    bad_entry = ~np.isfinite(array) | (array < 0)
+    if bad_entry.any():
+        index = tuple(int(i) for i in np.argwhere(bad_entry)[0])
+        raise ValueError(
+            f"{_index_text('weights', index)} = {float(array[index])!r}: weights must be "
+            "finite and non-negative"
+        )
+    zero = array.sum(axis=-1) <= 0
+    if zero.any():
+        index = tuple(int(i) for i in np.argwhere(zero)[0])
+        raise ValueError(
+            f"{_index_text('weights', index)} are all zero: at least one cluster needs weight"
+        )
+    return array

@@ -1,0 +1,450 @@
+"""Xiao (2019) evidence fusion: BJS divergence, Deng entropy, Dempster's rule (vectorized).
+
+## Description
+
+F. Xiao, "Multi-sensor data fusion based on the belief divergence measure of
+evidences and the belief entropy", *Information Fusion* 46 (2019) 23-32, fuses ``k``
+mass functions ``m_1..m_k`` defined on the same focal elements ``A_1..A_n`` in three
+steps (log base 2 throughout, as in the paper and in the AMULED authors' code):
+
+1. **Credibility.** Belief Jensen-Shannon divergence between every pair,
+   ``BJS(m_i, m_j) = 1/2 sum_A [m_i(A) log2(2 m_i(A) / (m_i(A) + m_j(A)))
+   + m_j(A) log2(2 m_j(A) / (m_i(A) + m_j(A)))]`` (with ``0 log 0 = 0``); average
+   distance ``BJS_i = sum_{j != i} BJS(m_i, m_j) / (k - 1)``; support
+   ``Sup_i = 1 / BJS_i``; credibility ``Crd_i = Sup_i / sum_j Sup_j``.
+2. **Information volume.** Deng entropy
+   ``E_d(m_i) = -sum_A m_i(A) log2(m_i(A) / (2^|A| - 1))`` (Shannon entropy when every
+   focal element is a singleton); ``IV_i = exp(E_d(m_i))``, normalised to sum 1.
+3. **Combination.** Adjusted credibility ``ACrd_i = Crd_i * IV_i`` normalised to the
+   final weights ``w_i``; weighted average evidence ``WAE = sum_i w_i m_i``; Dempster's
+   rule combines ``WAE`` with itself ``k - 1`` times (conflict ``K_t`` at step ``t``).
+
+For singleton-only frames (a belief over actions) the ``k - 1`` combinations have the
+closed form ``fused = WAE^k / sum(WAE^k)`` (element-wise power) and
+``K_t = 1 - sum(WAE^{t+1}) / sum(WAE^t)``; :func:`xiao_fusion` uses it whenever every
+focal element is a singleton, and the tests check it against the general combination.
+
+Every function here is batched: leading dimensions of ``masses`` are batch dimensions,
+``masses`` has shape ``(..., k, n)`` and no Python loop runs over the batch.
+
+## Degenerate inputs (defined behaviour, each one tested)
+
+- **All ``k`` mass functions identical.** Every ``BJS`` is 0 and ``1 / 0`` is undefined.
+  We use the limit of the formula: equal credibility, so ``WAE = m`` and the result is
+  Dempster's rule applied to ``m`` ``k - 1`` times (``m^k / sum(m^k)`` for singletons).
+  More generally, when some ``BJS_i`` are exactly 0 (which in exact arithmetic happens
+  only when all are), the credibility is shared equally among those sources.
+  *The AMULED authors' published code returned the raw belief ``m`` in this case* (the
+  recordings in ``shared/amuled-recordings`` show it); we deliberately do not.
+- **A single source (``k = 1``).** No divergence exists: credibility and weight are 1 and
+  the result is the mass function itself (the ``k = 1`` case of ``m^k / sum(m^k)``);
+  ``conflicts`` is empty.
+- **Zeros.** ``0 log 0 = 0`` in both BJS and Deng entropy. The authors' code replaced
+  zeros by ``1e-12`` first; the two agree to about ``1e-11`` (tested to ``1e-9``).
+- **Total conflict (``K = 1``).** Xiao's method never meets it: ``WAE`` combined with
+  itself always keeps the mass ``WAE(A)^2 > 0`` of some ``A`` with ``A ∩ A = A``, and
+  the closed form scales by ``max(WAE)`` so nothing underflows; sources that totally
+  conflict with each other (one-hot beliefs on different actions) are averaged by
+  ``WAE`` first. Dempster's rule itself (:func:`dempster_combine`) is undefined at
+  ``K = 1`` and raises ``ValueError`` naming the batch index (the authors' code
+  returned all-zero masses there; ``evidencelib`` raises ``TotalConflictError``).
+- **Invalid rows.** NaN/inf, a negative mass, or a row sum farther than ``1e-6`` from 1
+  raises ``ValueError`` naming the offending index (e.g. ``masses[3, 2]``). Valid rows
+  are rescaled to sum to exactly 1 before fusing. NaN is never returned.
+
+## Version History
+
+- v0: first version (issue 2).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Hashable, Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from amuled_ma.fusion._validate import check_rows
+
+__all__ = [
+    "FusionResult",
+    "bjs_divergence",
+    "dempster_combine",
+    "deng_entropy",
+    "xiao_fusion",
+]
+
+FocalSets = tuple[frozenset, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class FusionResult:
+    """The fused mass function of one or many fusions, with the diagnostics that explain it.
+
+    Leading dimensions ``...`` are the batch dimensions of the input; ``k`` is the number
+    of sources (moral clusters).
+
+    Attributes:
+        fused: ``(..., n)`` fused masses (a probability vector per leading index), over
+            ``focal_sets`` when given, else over the input's columns (actions).
+        weights: ``(..., k)`` final weight of each source (for ``bjs-dst`` the normalised
+            adjusted credibility ``w_i``; for other rules, each source's share of the
+            fused mass, see :func:`amuled_ma.fusion.fuse`). Sums to 1.
+        credibility: ``(..., k)`` Xiao's credibility ``Crd_i`` (from BJS divergence).
+        entropy: ``(..., k)`` Deng entropy ``E_d(m_i)`` of each source, in bits.
+        conflicts: ``(..., k - 1)`` Dempster's conflict ``K`` at each of the ``k - 1``
+            combinations (empty last axis for rules that do not combine).
+        focal_sets: the focal element of each column of ``fused`` (``xiao_fusion`` only).
+        wae: ``(..., n)`` the weighted average evidence (``bjs-dst`` only).
+        rule: the name of the rule that produced the result.
+
+    """
+
+    fused: np.ndarray
+    weights: np.ndarray
+    credibility: np.ndarray
+    entropy: np.ndarray
+    conflicts: np.ndarray
+    focal_sets: FocalSets | None = None
+    wae: np.ndarray | None = None
+    rule: str = "bjs-dst"
+
+
+# ---------------------------------------------------------------------------------------
+# Measures
+
+
+def _xlog2x(m: np.ndarray) -> np.ndarray:
+    """``m * log2(m)`` element-wise with ``0 log 0 = 0``."""
+    return m * np.log2(np.where(m > 0, m, 1.0))
+
+
+def bjs_divergence(m1: np.ndarray, m2: np.ndarray) -> np.ndarray:
+    """Belief Jensen-Shannon divergence (Xiao 2019, eq. 8), log base 2, over the last axis.
+
+    Args:
+        m1: masses ``(..., n)`` (broadcast against ``m2``).
+        m2: masses ``(..., n)``.
+
+    Returns:
+        ``BJS(m1, m2)`` of shape ``(...)``, in ``[0, 1]``; exactly 0 for identical rows.
+
+    """
+    a = np.asarray(m1, dtype=np.float64)
+    b = np.asarray(m2, dtype=np.float64)
+    s = a + b
+    terms = _xlog2x(a) + _xlog2x(b) - s * (np.log2(np.where(s > 0, s, 1.0)) - 1.0)
+    value = 0.5 * terms.sum(axis=-1)
+    return np.where(np.all(a == b, axis=-1), 0.0, np.maximum(value, 0.0))
+
+
+def _log2_capacity(focal_sets: FocalSets | None) -> np.ndarray | None:
+    """``log2(2^|A| - 1)`` per focal element, or None when all are singletons."""
+    if focal_sets is None:
+        return None
+    sizes = np.array([len(a) for a in focal_sets], dtype=np.float64)
+    if np.all(sizes == 1):
+        return None
+    # log2(2^c - 1) = c + log2(1 - 2^-c), stable for large c.
+    return sizes + np.log2(-np.expm1(-sizes * np.log(2.0)))
+
+
+def deng_entropy(
+    masses: np.ndarray, focal_sets: Iterable[Iterable[Hashable]] | None = None
+) -> np.ndarray:
+    """Deng belief entropy ``E_d(m) = -sum_A m(A) log2(m(A) / (2^|A| - 1))`` in bits.
+
+    Args:
+        masses: ``(..., n)`` mass functions (not validated here).
+        focal_sets: the ``n`` focal elements; ``None`` means singletons (Shannon entropy).
+
+    Returns:
+        ``(...)`` entropies.
+
+    """
+    m = np.asarray(masses, dtype=np.float64)
+    cap = _log2_capacity(None if focal_sets is None else _as_focal_sets(focal_sets))
+    value = -_xlog2x(m).sum(axis=-1)
+    if cap is not None:
+        value = value + (m * cap).sum(axis=-1)
+    return value
+
+
+def _average_bjs(m: np.ndarray) -> np.ndarray:
+    """``BJS_i``: mean divergence of each source to the others, shape ``(..., k)``."""
+    k = m.shape[-2]
+    if k == 1:
+        return np.zeros(m.shape[:-1])
+    i, j = np.triu_indices(k, 1)
+    a = m[..., i, :]
+    b = m[..., j, :]
+    xl = _xlog2x(m)
+    s = a + b
+    terms = xl[..., i, :] + xl[..., j, :] - s * (np.log2(np.where(s > 0, s, 1.0)) - 1.0)
+    pair = 0.5 * terms.sum(axis=-1)
+    pair = np.where(np.all(a == b, axis=-1), 0.0, np.maximum(pair, 0.0))
+    full = np.zeros((*m.shape[:-2], k, k))
+    full[..., i, j] = pair
+    full[..., j, i] = pair
+    return full.sum(axis=-1) / (k - 1)
+
+
+def _credibility(bjs: np.ndarray) -> np.ndarray:
+    """``Crd_i = (1/BJS_i) / sum_j (1/BJS_j)``; its limit where some ``BJS_i`` are 0."""
+    low = bjs.min(axis=-1, keepdims=True)
+    regular = low > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = low / np.where(bjs > 0, bjs, 1.0)  # in (0, 1]: no overflow
+    support = np.where(regular, ratio, (bjs <= 0).astype(np.float64))
+    return support / support.sum(axis=-1, keepdims=True)
+
+
+def _xiao_weights(m: np.ndarray, cap: np.ndarray | None, diagnostics: bool):
+    """Run steps 1-3 up to ``WAE``; return ``(wae, weights, credibility, entropy)``."""
+    crd = _credibility(_average_bjs(m))
+    entropy = -_xlog2x(m).sum(axis=-1)
+    if cap is not None:
+        entropy = entropy + (m * cap).sum(axis=-1)
+    # exp(E - max E) / sum: the normalised information volume, safe from overflow.
+    iv = np.exp(entropy - entropy.max(axis=-1, keepdims=True))
+    acrd = crd * iv
+    weights = acrd / acrd.sum(axis=-1, keepdims=True)
+    wae = (weights[..., :, None] * m).sum(axis=-2)
+    if not diagnostics:
+        return wae, None, None, None
+    return wae, weights, crd, entropy
+
+
+# ---------------------------------------------------------------------------------------
+# Dempster's rule
+
+
+def _closed_form(wae: np.ndarray, k: int, diagnostics: bool):
+    """Dempster's rule on singleton ``wae`` with itself ``k - 1`` times: fused and ``K_t``."""
+    top = wae.max(axis=-1, keepdims=True)
+    r = wae / top  # max entry is 1: r**k never underflows to an all-zero row
+    if not diagnostics:
+        p = r**k
+        return p / p.sum(axis=-1, keepdims=True), None
+    powers = np.cumprod(np.broadcast_to(r[..., None, :], (*r.shape[:-1], k, r.shape[-1])), -2)
+    sums = powers.sum(axis=-1)  # sums[..., t-1] = sum(r^t)
+    fused = powers[..., -1, :] / sums[..., -1:]
+    # K_t = 1 - sum(WAE^{t+1}) / sum(WAE^t), t = 1..k-1 (sum(WAE) = 1 after validation).
+    conflicts = 1.0 - top * sums[..., 1:] / sums[..., :-1]
+    return fused, np.clip(conflicts, 0.0, 1.0)
+
+
+def _as_focal_sets(focal_sets: Iterable[Iterable[Hashable]]) -> FocalSets:
+    result = []
+    for position, item in enumerate(focal_sets):
+        if isinstance(item, str | bytes):
+            raise ValueError(
+                f"focal_sets[{position}] = {item!r}: give a set of hypotheses, e.g. {{{item!r}}}"
+            )
+        subset = frozenset(item)
+        if not subset:
+            raise ValueError(f"focal_sets[{position}] is the empty set: it cannot carry mass")
+        if subset in result:
+            raise ValueError(f"focal_sets[{position}] = {set(subset)} is listed twice")
+        result.append(subset)
+    if not result:
+        raise ValueError("focal_sets is empty")
+    return tuple(result)
+
+
+def _intersection_table(left: FocalSets, right: FocalSets, out: list[frozenset]):
+    """Map each ``(left, right)`` pair to its intersection's column in ``out`` (extended)."""
+    target = np.full(len(left) * len(right), -1)
+    for p, a in enumerate(left):
+        for q, b in enumerate(right):
+            c = a & b
+            if c:
+                if c not in out:
+                    out.append(c)
+                target[p * len(right) + q] = out.index(c)
+    table = np.zeros((target.size, len(out)))
+    hit = target >= 0
+    table[np.flatnonzero(hit), target[hit]] = 1.0
+    return table, (~hit).astype(np.float64)
+
+
+def _combine(m1: np.ndarray, m2: np.ndarray, table: np.ndarray, conflict_of: np.ndarray):
+    """One batched Dempster combination; returns ``(masses, K)`` or raises at ``K = 1``."""
+    outer = (m1[..., :, None] * m2[..., None, :]).reshape((*m1.shape[:-1], -1))
+    joint = outer @ table
+    conflict = outer @ conflict_of
+    total = joint.sum(axis=-1)
+    if np.any(total <= 0):
+        index = tuple(int(i) for i in np.argwhere(total <= 0)[0])
+        where = f" at batch index {index}" if index else ""
+        raise ValueError(
+            f"total conflict (K = 1){where}: Dempster's rule is undefined when no pair of "
+            "focal elements with positive mass intersects"
+        )
+    return joint / total[..., None], np.clip(conflict, 0.0, 1.0)
+
+
+def dempster_combine(
+    m1: np.ndarray,
+    focal_sets1: Iterable[Iterable[Hashable]],
+    m2: np.ndarray,
+    focal_sets2: Iterable[Iterable[Hashable]] | None = None,
+) -> tuple[np.ndarray, FocalSets, np.ndarray]:
+    """Dempster's normalised rule of combination, batched over leading dimensions.
+
+    ``m(C) = sum_{A ∩ B = C} m1(A) m2(B) / (1 - K)`` with conflict
+    ``K = sum_{A ∩ B = ∅} m1(A) m2(B)``.
+
+    Args:
+        m1: ``(..., n1)`` masses over ``focal_sets1``.
+        focal_sets1: ``n1`` non-empty, distinct subsets of the frame.
+        m2: ``(..., n2)`` masses over ``focal_sets2`` (broadcast against ``m1``).
+        focal_sets2: ``n2`` subsets; default ``focal_sets1``.
+
+    Returns:
+        ``(masses, focal_sets, K)``: combined masses ``(..., n)`` over ``focal_sets``
+        (the input's sets first, in order, then new intersections in order of first
+        appearance) and the conflict ``K`` of shape ``(...)``.
+
+    Raises:
+        ValueError: invalid masses or focal sets, or total conflict (``K = 1``).
+
+    Example:
+        >>> import numpy as np
+        >>> m, sets, k = dempster_combine(
+        ...     np.array([0.6, 0.4]), [{"a"}, {"a", "b"}], np.array([0.5, 0.5]), [{"b"}, {"a", "b"}]
+        ... )
+        >>> [sorted(s) for s in sets], np.round(m, 4).tolist(), float(k)
+        ([['a'], ['a', 'b'], ['b']], [0.4286, 0.2857, 0.2857], 0.3)
+
+    """
+    sets1 = _as_focal_sets(focal_sets1)
+    sets2 = sets1 if focal_sets2 is None else _as_focal_sets(focal_sets2)
+    a = check_rows(m1, "m1", min_ndim=1)
+    b = check_rows(m2, "m2", min_ndim=1)
+    if a.shape[-1] != len(sets1) or b.shape[-1] != len(sets2):
+        raise ValueError(
+            f"m1 has {a.shape[-1]} masses for {len(sets1)} focal sets and m2 has "
+            f"{b.shape[-1]} for {len(sets2)}: they must match"
+        )
+    out = list(sets1)
+    for s in sets2:
+        if s not in out:
+            out.append(s)
+    table, conflict_of = _intersection_table(sets1, sets2, out)
+    shape = np.broadcast_shapes(a.shape[:-1], b.shape[:-1])
+    a = np.broadcast_to(a, shape + a.shape[-1:])
+    b = np.broadcast_to(b, shape + b.shape[-1:])
+    masses, conflict = _combine(a, b, table, conflict_of)
+    return masses, tuple(out), conflict
+
+
+# ---------------------------------------------------------------------------------------
+# Xiao (2019)
+
+
+def _general_self_combination(wae: np.ndarray, sets: FocalSets, k: int):
+    """Combine ``wae`` (over ``sets``) with itself ``k - 1`` times by the general rule."""
+    out = list(sets)
+    # Close the focal elements under intersection, then build the table on the closure.
+    grown = True
+    while grown:
+        before = len(out)
+        _intersection_table(tuple(out), sets, out)
+        grown = len(out) > before
+    table, conflict_of = _intersection_table(tuple(out), sets, out)
+    current = np.zeros((*wae.shape[:-1], len(out)))
+    current[..., : len(sets)] = wae
+    conflicts = []
+    for _ in range(k - 1):
+        current, conflict = _combine(current, wae, table, conflict_of)
+        conflicts.append(conflict)
+    stacked = np.stack(conflicts, axis=-1) if conflicts else np.zeros((*wae.shape[:-1], 0))
+    return current, tuple(out), stacked
+
+
+def xiao_fusion(
+    masses: np.ndarray,
+    focal_sets: Iterable[Iterable[Hashable]],
+    *,
+    closed_form: bool | None = None,
+) -> FusionResult:
+    """Fuse ``k`` mass functions with Xiao (2019)'s BJS + belief-entropy + Dempster method.
+
+    The mass functions may have arbitrary focal elements (e.g. ``{A}``, ``{B}``, ``{C}``,
+    ``{A, C}``); see the module docstring for the steps and the degenerate cases.
+
+    Args:
+        masses: ``(..., k, n)``: ``k`` mass functions over the ``n`` ``focal_sets`` per
+            leading index; every row non-negative and summing to 1 (within ``1e-6``).
+        focal_sets: ``n`` distinct non-empty subsets of the frame of discernment (any
+            iterables of hashable hypotheses; strings are rejected, write ``{"A"}``).
+        closed_form: use the singleton closed form ``WAE^k / sum(WAE^k)``; ``None``
+            (default) uses it exactly when every focal element is a singleton, ``False``
+            forces the general combination. ``True`` with non-singletons is an error.
+
+    Returns:
+        A :class:`FusionResult` whose ``fused`` covers ``focal_sets`` (input order) plus
+        any new intersections the combination produced, listed in ``.focal_sets``.
+
+    Raises:
+        ValueError: bad shapes, invalid rows (the message names the index) or focal sets.
+
+    Example:
+        Xiao (2019)'s five-sensor example on the frame ``{A, B, C}``:
+
+        >>> import numpy as np
+        >>> masses = np.array([
+        ...     [0.41, 0.29, 0.30, 0.00],
+        ...     [0.00, 0.90, 0.10, 0.00],
+        ...     [0.58, 0.07, 0.00, 0.35],
+        ...     [0.55, 0.10, 0.00, 0.35],
+        ...     [0.60, 0.10, 0.00, 0.30],
+        ... ])
+        >>> result = xiao_fusion(masses, [{"A"}, {"B"}, {"C"}, {"A", "C"}])
+        >>> np.round(result.wae, 4).tolist()
+        [0.5316, 0.1472, 0.0521, 0.2692]
+        >>> np.round(result.fused, 4).tolist()
+        [0.9895, 0.0002, 0.0061, 0.0043]
+        >>> int(np.argmin(result.weights))  # the outlier sensor m2 gets the least weight
+        1
+        >>> result.conflicts.shape  # K of each of the k - 1 = 4 combinations
+        (4,)
+
+    """
+    sets = _as_focal_sets(focal_sets)
+    m = check_rows(masses, "masses")
+    if m.shape[-1] != len(sets):
+        raise ValueError(f"masses has {m.shape[-1]} columns but {len(sets)} focal sets were given")
+    if m.shape[-2] == 0:
+        raise ValueError(f"masses must hold at least one source, got shape {m.shape}")
+    singletons = all(len(s) == 1 for s in sets)
+    if closed_form and not singletons:
+        raise ValueError("closed_form=True needs every focal element to be a singleton")
+    k = m.shape[-2]
+    wae, weights, crd, entropy = _xiao_weights(m, _log2_capacity(sets), True)
+    if singletons and closed_form is not False:
+        fused, conflicts = _closed_form(wae, k, True)
+        out = sets
+    else:
+        fused, out, conflicts = _general_self_combination(wae, sets, k)
+    return FusionResult(
+        fused=fused,
+        weights=weights,
+        credibility=crd,
+        entropy=entropy,
+        conflicts=conflicts,
+        focal_sets=out,
+        wae=wae,
+        rule="bjs-dst",
+    )
+
+
+def bjs_dst(beliefs: np.ndarray, diagnostics: bool = False) -> np.ndarray | FusionResult:
+    """Apply the ``bjs-dst`` rule to validated singleton beliefs ``(..., k, n)`` (closed form)."""
+    k = beliefs.shape[-2]
+    wae, weights, crd, entropy = _xiao_weights(beliefs, None, diagnostics)
+    fused, conflicts = _closed_form(wae, k, diagnostics)
+    if not diagnostics:
+        return fused
+    return FusionResult(fused, weights, crd, entropy, conflicts, None, wae, "bjs-dst")
