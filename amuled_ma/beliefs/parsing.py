@@ -78,6 +78,7 @@ class ParsedBelief:
         repairs: Names of the repairs applied, keys of :data:`REPAIRS`.
         reasoning: The reply's ``"reasoning"`` field, when there was one.
         error: Why the reply abstained (``None`` otherwise).
+
     """
 
     belief: np.ndarray
@@ -87,7 +88,7 @@ class ParsedBelief:
     error: str | None = None
 
 
-class InvalidBelief(ValueError):
+class InvalidBeliefError(ValueError):
     """A candidate object cannot be a belief (internal to parsing; never escapes)."""
 
 
@@ -108,6 +109,7 @@ def belief_schema(
 
     Returns:
         ``{"type": "object", "properties": {"reasoning": ..., "0": ..., ...}, ...}``.
+
     """
     properties: dict[str, Any] = {}
     if reasoning:
@@ -173,7 +175,7 @@ def _letter_index(key: str, n: int) -> int | None:
 
 def _value(value: Any, repairs: set[str]) -> float:
     if isinstance(value, bool):
-        raise InvalidBelief(f"boolean probability {value!r}")
+        raise InvalidBeliefError(f"boolean probability {value!r}")
     if isinstance(value, int | float):
         number = float(value)
     elif isinstance(value, str):
@@ -182,17 +184,17 @@ def _value(value: Any, repairs: set[str]) -> float:
         try:
             number = float(text.rstrip("%").strip())
         except ValueError:
-            raise InvalidBelief(f"non-numeric probability {value!r}") from None
+            raise InvalidBeliefError(f"non-numeric probability {value!r}") from None
         repairs.add("string_values")
         if percent:
             number /= 100.0
             repairs.add("percent")
     else:
-        raise InvalidBelief(f"non-numeric probability {value!r}")
+        raise InvalidBeliefError(f"non-numeric probability {value!r}")
     if math.isnan(number) or math.isinf(number):
-        raise InvalidBelief(f"probability {number!r} is not finite")
+        raise InvalidBeliefError(f"probability {number!r} is not finite")
     if number < 0:
-        raise InvalidBelief(f"negative probability {number!r}")
+        raise InvalidBeliefError(f"negative probability {number!r}")
     return number
 
 
@@ -209,8 +211,9 @@ def belief_from_mapping(
         ``(belief, repairs, reasoning)``.
 
     Raises:
-        InvalidBelief: The object names no action, holds an invalid probability, or
+        InvalidBeliefError: The object names no action, holds an invalid probability, or
             sums to 0.
+
     """
     n = len(action_names)
     repairs: set[str] = set()
@@ -248,12 +251,12 @@ def belief_from_mapping(
         seen.add(index)
         values[index] = _value(value, repairs)
     if not seen:
-        raise InvalidBelief(f"no key names one of the {n} actions")
+        raise InvalidBeliefError(f"no key names one of the {n} actions")
     if len(seen) < n:
         repairs.add("missing_actions")
     total = float(values.sum())
     if not total > 0 or not math.isfinite(total):
-        raise InvalidBelief("all probabilities are 0")
+        raise InvalidBeliefError("all probabilities are 0")
     if abs(total - 1.0) > SUM_TOLERANCE:
         repairs.add("renormalised")
     return values / total, tuple(sorted(repairs)), reasoning
@@ -303,7 +306,8 @@ def decode_object(candidate: str) -> tuple[dict[str, Any], tuple[str, ...]]:
         ``(object, repairs)``.
 
     Raises:
-        InvalidBelief: Nothing could be read.
+        InvalidBeliefError: Nothing could be read.
+
     """
     try:
         obj = json.loads(candidate)
@@ -339,7 +343,7 @@ def decode_object(candidate: str) -> tuple[dict[str, Any], tuple[str, ...]]:
         pairs[match.group(2).strip()] = match.group(4)
     if pairs:
         return pairs, ("lenient_pairs",)
-    raise InvalidBelief("no readable object")
+    raise InvalidBeliefError("no readable object")
 
 
 # --------------------------------------------------------------------------- entry
@@ -357,13 +361,14 @@ def parse_belief(
 
     Returns:
         The parsed belief with its status and repairs.
+
     """
     n = len(action_names)
     if n == 0:
         return ParsedBelief(np.zeros(0), "abstained", error="no actions")
     try:
         return _parse(text, action_names, structured)
-    except Exception as error:  # noqa: BLE001 - parsing must never break a training loop
+    except Exception as error:
         return ParsedBelief(uniform(n), "abstained", error=f"parser error: {error!r}")
 
 
@@ -386,7 +391,7 @@ def _parse(text: str | None, action_names: Sequence[str], structured: bool) -> P
             try:
                 belief, repairs, reasoning = belief_from_mapping(obj, action_names)
                 return _result(belief, repairs, reasoning)
-            except InvalidBelief:
+            except InvalidBeliefError:
                 pass
         extra.append("schema_ignored")
     reasons: list[str] = []
@@ -394,7 +399,7 @@ def _parse(text: str | None, action_names: Sequence[str], structured: bool) -> P
         try:
             obj, decode_repairs = decode_object(candidate)
             belief, repairs, reasoning = belief_from_mapping(obj, action_names)
-        except (InvalidBelief, ValueError, TypeError, OverflowError) as error:
+        except (InvalidBeliefError, ValueError, TypeError, OverflowError) as error:
             reasons.append(str(error))
             continue
         earlier = ("earlier_object",) if position else ()
