@@ -1,0 +1,74 @@
+"""Build rsl-rl's training configuration (its 5.x dict schema) from a scenario.
+
+rsl-rl's :class:`~rsl_rl.runners.OnPolicyRunner` mutates the dict it is given
+(``obs_groups`` is resolved in place, ``multi_gpu`` is added), so callers pass
+``copy.deepcopy(cfg)`` and save the original with the run.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from amuled_ma.scenario import PPOConfig
+
+#: ``module:Class`` name of our categorical distribution, resolved by rsl-rl.
+CATEGORICAL = "amuled_ma.learn.distribution:CategoricalDistribution"
+
+
+def rsl_rl_config(
+    ppo: PPOConfig,
+    *,
+    num_steps_per_env: int,
+    learning_rate: float | None = None,
+    num_learning_epochs: int | None = None,
+    save_interval: int = 100,
+) -> dict[str, Any]:
+    """Return an rsl-rl 5.x ``train_cfg`` dict for a 2-layer categorical actor-critic.
+
+    Args:
+        ppo: PPO hyperparameters of the scenario.
+        num_steps_per_env: Rollout length per environment copy.
+        learning_rate: Overrides ``ppo.learning_rate`` (fine-tuning has its own).
+        num_learning_epochs: Overrides ``ppo.num_learning_epochs``.
+        save_interval: Iterations between checkpoints.
+
+    Returns:
+        The configuration dict (pass a deep copy to rsl-rl).
+
+    """
+    model = {
+        "class_name": "rsl_rl.models:MLPModel",
+        "hidden_dims": list(ppo.hidden_dims),
+        "activation": ppo.activation,
+        "obs_normalization": False,
+    }
+    return {
+        "num_steps_per_env": int(num_steps_per_env),
+        "save_interval": int(save_interval),
+        "obs_groups": {"actor": ["policy"], "critic": ["policy"]},
+        "check_for_nan": True,
+        "logger": "tensorboard",
+        "actor": {**model, "distribution_cfg": {"class_name": CATEGORICAL}},
+        "critic": dict(model),
+        "algorithm": {
+            "class_name": "rsl_rl.algorithms:PPO",
+            "num_learning_epochs": int(num_learning_epochs or ppo.num_learning_epochs),
+            "num_mini_batches": int(ppo.num_mini_batches),
+            "clip_param": ppo.clip_param,
+            "gamma": ppo.gamma,
+            "lam": ppo.lam,
+            # rsl-rl's value loss is coef * MSE; CleanRL's is vf_coef * 0.5 * MSE.
+            "value_loss_coef": ppo.value_loss_coef * 0.5,
+            "entropy_coef": ppo.entropy_coef,
+            "learning_rate": float(
+                learning_rate if learning_rate is not None else ppo.learning_rate
+            ),
+            "max_grad_norm": ppo.max_grad_norm,
+            "optimizer": "adam",
+            "use_clipped_value_loss": True,
+            # We set the learning rate ourselves (CleanRL's linear annealing or constant).
+            "schedule": "fixed",
+            "desired_kl": None,
+            "normalize_advantage_per_mini_batch": ppo.normalize_advantage_per_mini_batch,
+        },
+    }

@@ -1,0 +1,139 @@
+"""A categorical action distribution for rsl-rl (which ships only continuous ones).
+
+rsl-rl's :class:`~rsl_rl.models.MLPModel` builds its output distribution from a
+``distribution_cfg`` whose ``class_name`` is a ``"module:Class"`` string, so this
+class plugs in without forking rsl-rl::
+
+    "distribution_cfg": {"class_name": "amuled_ma.learn.distribution:CategoricalDistribution"}
+
+rsl-rl stores actions as float tensors of shape ``[num_envs, num_actions]`` (its
+rollout storage is allocated with ``env.num_actions`` columns). We therefore
+represent a discrete action as a **one-hot vector**: :meth:`sample` and
+:meth:`deterministic_output` return one-hot rows, :meth:`log_prob` takes one-hot
+rows, and the environment bridge turns them back into indices with ``argmax``. The
+MLP's output is the vector of logits.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+from rsl_rl.modules.distribution import Distribution
+
+
+class CategoricalDistribution(Distribution):
+    """Categorical distribution over ``output_dim`` actions, one-hot encoded.
+
+    Args:
+        output_dim: Number of discrete actions.
+        init_last_layer_std: Orthogonal-init gain of the logits layer (CleanRL: 0.01,
+            which starts the policy near uniform); hidden layers get ``sqrt(2)``.
+
+    """
+
+    def __init__(self, output_dim: int, init_last_layer_std: float = 0.01) -> None:
+        super().__init__(output_dim)
+        self.init_last_layer_std = init_last_layer_std
+        self._log_probs: torch.Tensor | None = None
+
+    def update(self, mlp_output: torch.Tensor) -> None:
+        """Set the distribution from the MLP's logits."""
+        self._log_probs = torch.log_softmax(mlp_output, dim=-1)
+
+    def sample(self) -> torch.Tensor:
+        """Sample one action per row, returned one-hot (float)."""
+        probs = self._log_probs.exp()  # type: ignore[union-attr]
+        flat = probs.reshape(-1, self.output_dim)
+        index = torch.multinomial(flat, 1).squeeze(-1)
+        one_hot = torch.nn.functional.one_hot(index, self.output_dim).to(probs.dtype)
+        return one_hot.reshape(probs.shape)
+
+    def deterministic_output(self, mlp_output: torch.Tensor) -> torch.Tensor:
+        """Return the most likely action, one-hot."""
+        index = mlp_output.argmax(dim=-1)
+        return torch.nn.functional.one_hot(index, self.output_dim).to(mlp_output.dtype)
+
+    def as_deterministic_output_module(self) -> nn.Module:
+        """Return an export-friendly argmax-to-one-hot module."""
+        return _ArgmaxOneHot(self.output_dim)
+
+    @property
+    def input_dim(self) -> int:
+        """The MLP outputs one logit per action."""
+        return self.output_dim
+
+    @property
+    def probs(self) -> torch.Tensor:
+        """Action probabilities, shape ``[..., output_dim]``."""
+        return self._log_probs.exp()  # type: ignore[union-attr]
+
+    @property
+    def logits(self) -> torch.Tensor:
+        """Normalised log-probabilities, shape ``[..., output_dim]``."""
+        return self._log_probs  # type: ignore[return-value]
+
+    @property
+    def mean(self) -> torch.Tensor:
+        """Mean of the one-hot vector, i.e. the action probabilities."""
+        return self.probs
+
+    @property
+    def std(self) -> torch.Tensor:
+        """Per-component standard deviation of the one-hot vector, ``sqrt(p (1 - p))``."""
+        p = self.probs
+        return (p * (1.0 - p)).sqrt()
+
+    @property
+    def entropy(self) -> torch.Tensor:
+        """Entropy ``-sum p log p`` per row."""
+        log_p = self._log_probs
+        return -(log_p.exp() * log_p).sum(dim=-1)  # type: ignore[union-attr]
+
+    @property
+    def params(self) -> tuple[torch.Tensor, ...]:
+        """The normalised log-probabilities (stored by rsl-rl for its KL schedule)."""
+        return (self._log_probs,)  # type: ignore[return-value]
+
+    def log_prob(self, outputs: torch.Tensor) -> torch.Tensor:
+        """Log-probability of one-hot actions, ``sum(one_hot * log p)`` per row."""
+        return (outputs * self._log_probs).sum(dim=-1)
+
+    def kl_divergence(
+        self, old_params: tuple[torch.Tensor, ...], new_params: tuple[torch.Tensor, ...]
+    ) -> torch.Tensor:
+        """Closed-form ``KL(old || new) = sum p_old (log p_old - log p_new)`` per row."""
+        (old,) = old_params
+        (new,) = new_params
+        return (old.exp() * (old - new)).sum(dim=-1)
+
+    def init_mlp_weights(self, mlp: nn.Module) -> None:
+        """Orthogonal init as CleanRL: gain ``sqrt(2)`` for hidden layers, small for logits."""
+        linears = [m for m in mlp.modules() if isinstance(m, nn.Linear)]
+        for i, layer in enumerate(linears):
+            last = i == len(linears) - 1
+            nn.init.orthogonal_(layer.weight, gain=self.init_last_layer_std if last else 2**0.5)
+            nn.init.zeros_(layer.bias)
+
+
+class _ArgmaxOneHot(nn.Module):
+    def __init__(self, num_actions: int) -> None:
+        super().__init__()
+        self.num_actions = num_actions
+
+    def forward(self, mlp_output: torch.Tensor) -> torch.Tensor:
+        index = mlp_output.argmax(dim=-1)
+        return torch.nn.functional.one_hot(index, self.num_actions).to(mlp_output.dtype)
+
+
+def orthogonal_init(mlp: nn.Module, last_std: float = 1.0) -> None:
+    """Initialise an MLP as CleanRL does (used for the critic, ``last_std = 1``).
+
+    Args:
+        mlp: The network (rsl-rl :class:`~rsl_rl.modules.MLP`).
+        last_std: Gain of the output layer.
+
+    """
+    linears = [m for m in mlp.modules() if isinstance(m, nn.Linear)]
+    for i, layer in enumerate(linears):
+        nn.init.orthogonal_(layer.weight, gain=last_std if i == len(linears) - 1 else 2**0.5)
+        nn.init.zeros_(layer.bias)

@@ -1,0 +1,153 @@
+"""The bridge from our batched task environments to rsl-rl's :class:`~rsl_rl.env.VecEnv`.
+
+rsl-rl expects observations as a :class:`~tensordict.TensorDict` of observation
+groups (we expose one group, ``"policy"``), ``dones`` as one tensor, truncations
+under ``extras["time_outs"]`` (so PPO bootstraps the value of a timed-out state) and
+metrics to log under ``extras["log"]`` with ``"/"``-prefixed keys. The task itself
+auto-resets finished copies; this bridge only converts formats and keeps per-episode
+book-keeping (return of the environment reward, length, task metrics) that the
+trainer drains once per iteration for its learning curves.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from rsl_rl.env import VecEnv
+from tensordict import TensorDict
+
+#: Name of the single observation group handed to rsl-rl.
+OBS_GROUP = "policy"
+
+
+def episode_records(info: dict[str, Any], done_ids: torch.Tensor, num_envs: int) -> list[dict]:
+    """Turn a task's ``info["episode"]`` into one plain dict per finished episode.
+
+    The task reports metrics of the episodes that finished in this step, either as
+    tensors over just the finished copies (in ``done_ids`` order) or over all copies.
+
+    Args:
+        info: The ``info`` dict of one task step.
+        done_ids: Indices of the copies whose episode finished in this step.
+        num_envs: Number of copies.
+
+    Returns:
+        One ``{metric: float}`` dict per finished copy, in ``done_ids`` order.
+
+    """
+    records: list[dict] = [{} for _ in range(len(done_ids))]
+    episode = info.get("episode")
+    if not episode or len(done_ids) == 0:
+        return records
+    for key, value in episode.items():
+        if key.startswith("_"):
+            continue
+        tensor = torch.as_tensor(value).reshape(-1)
+        if tensor.numel() == num_envs and num_envs != len(done_ids):
+            tensor = tensor[done_ids.to(tensor.device)]
+        if tensor.numel() != len(done_ids):
+            continue
+        for record, item in zip(records, tensor.tolist(), strict=True):
+            record[key] = float(item)
+    return records
+
+
+class TaskVecEnv(VecEnv):
+    """Expose a batched task (:mod:`amuled_ma.tasks`) as an rsl-rl ``VecEnv``.
+
+    Args:
+        task: A batched task instance (``reset``, ``step``, ``num_actions``, ...).
+        max_episode_length: Step limit reported to rsl-rl (informational).
+        cfg: Configuration recorded by rsl-rl's logger.
+
+    """
+
+    def __init__(self, task: Any, max_episode_length: int = 1000, cfg: dict | None = None) -> None:
+        self.task = task
+        self.num_envs = int(task.num_envs)
+        self.num_actions = int(task.num_actions)
+        self.device = torch.device(getattr(task, "device", "cpu"))
+        self.max_episode_length = int(max_episode_length)
+        self.episode_length_buf = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
+        self.cfg = cfg or {}
+        self._ep_return = torch.zeros(self.num_envs, device=self.device)
+        self._ep_shaping = torch.zeros(self.num_envs, device=self.device)
+        #: Finished episodes since the last :meth:`drain_episodes`.
+        self.finished: list[dict] = []
+        self.obs = self._as_float(task.reset())
+
+    def _as_float(self, obs: torch.Tensor) -> torch.Tensor:
+        return torch.as_tensor(obs, device=self.device).float()
+
+    def _wrap(self, obs: torch.Tensor) -> TensorDict:
+        return TensorDict({OBS_GROUP: obs}, batch_size=[self.num_envs], device=self.device)
+
+    def get_observations(self) -> TensorDict:
+        """Return the current observations as a TensorDict with one ``"policy"`` group."""
+        return self._wrap(self.obs)
+
+    def reset(self) -> TensorDict:
+        """Reset every copy and return the first observations."""
+        self.obs = self._as_float(self.task.reset())
+        self.episode_length_buf.zero_()
+        self._ep_return.zero_()
+        self._ep_shaping.zero_()
+        return self._wrap(self.obs)
+
+    @staticmethod
+    def to_indices(actions: torch.Tensor) -> torch.Tensor:
+        """Convert one-hot (or logit-like) rows to action indices; pass indices through."""
+        if actions.dim() == 2:
+            return actions.argmax(dim=-1)
+        return actions.long()
+
+    def step(self, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
+        """Step every copy with the given actions (one-hot rows or indices).
+
+        Returns:
+            Observations, rewards ``[N]``, dones ``[N]`` (terminated or truncated) and
+            extras with ``time_outs``, ``log`` and the task's raw ``info``.
+
+        """
+        index = self.to_indices(actions).to(self.device)
+        obs, reward, terminated, truncated, info = self.task.step(index)
+        self.obs = self._as_float(obs)
+        reward = torch.as_tensor(reward, device=self.device).float()
+        terminated = torch.as_tensor(terminated, device=self.device).bool()
+        truncated = torch.as_tensor(truncated, device=self.device).bool()
+        dones = terminated | truncated
+        r_env = torch.as_tensor(info.get("r_env", reward), device=self.device).float()
+        r_shaping = info.get("r_shaping")
+        self._ep_return += r_env
+        if r_shaping is not None:
+            self._ep_shaping += torch.as_tensor(r_shaping, device=self.device).float()
+        self.episode_length_buf += 1
+        extras: dict[str, Any] = {
+            "time_outs": (truncated & ~terminated).float(),
+            "info": info,
+            "actions": index,
+        }
+        if bool(dones.any()):
+            done_ids = dones.nonzero(as_tuple=False).squeeze(-1)
+            records = episode_records(info, done_ids, self.num_envs)
+            for record, env_id in zip(records, done_ids.tolist(), strict=True):
+                record.setdefault("return", float(self._ep_return[env_id]))
+                record.setdefault("length", float(self.episode_length_buf[env_id]))
+                record.setdefault("shaping_return", float(self._ep_shaping[env_id]))
+                record["env_id"] = env_id
+            self.finished.extend(records)
+            extras["log"] = {
+                f"/episode/{key}": sum(r[key] for r in records if key in r)
+                / max(1, sum(1 for r in records if key in r))
+                for key in {k for r in records for k in r if k != "env_id"}
+            }
+            self._ep_return[done_ids] = 0.0
+            self._ep_shaping[done_ids] = 0.0
+            self.episode_length_buf[done_ids] = 0
+        return self._wrap(self.obs), reward, dones.float(), extras
+
+    def drain_episodes(self) -> list[dict]:
+        """Return and forget the episodes finished since the last call."""
+        finished, self.finished = self.finished, []
+        return finished
