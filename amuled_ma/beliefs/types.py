@@ -73,10 +73,18 @@ class BeliefResult:
 
 
 class BeliefSource(ABC):
-    """Base class of belief sources; subclasses answer batches of requests."""
+    """Base class of belief sources; subclasses answer batches of requests.
+
+    Optional protocol: a source may also define ``iter_beliefs(requests)`` yielding
+    ``(index, result)`` pairs as answers complete (in any order); a caller such as
+    :class:`~amuled_ma.beliefs.cached.CachedSource` then stores each answer on arrival.
+    """
 
     #: Short registry name of the source kind (``"ollama"``, ``"replay"``, ``"rules"``).
     name: str = "source"
+    #: Whether the source reads :attr:`BeliefRequest.messages` (an LLM does; replay and
+    #: rules do not, so callers may skip rendering prompts for them).
+    needs_messages: bool = True
 
     @abstractmethod
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:

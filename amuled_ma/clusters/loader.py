@@ -61,6 +61,7 @@ class Theory:
         name: Theory name, e.g. ``"Kantian Ethics"``.
         key_concepts: The theory's key concepts.
         decision_factors: Factors the theory takes into account when deciding.
+
     """
 
     name: str
@@ -88,6 +89,7 @@ class Cluster:
             template with ``{credences}`` overriding :data:`CREDENCE_INSTRUCTION`.
         description: Free text shown by ``amuled clusters list``.
         path: The file the cluster was loaded from.
+
     """
 
     name: str
@@ -197,6 +199,7 @@ def parse_cluster(data: Mapping[str, Any], path: Path) -> Cluster:
 
     Raises:
         ClusterDefinitionError: A field is missing, unknown, or of the wrong type.
+
     """
     unknown = set(data) - _KNOWN_FIELDS
     if unknown:
@@ -260,6 +263,7 @@ def load_cluster(path: str | Path) -> Cluster:
 
     Raises:
         ClusterDefinitionError: The file is unreadable, not TOML, or a field is wrong.
+
     """
     path = Path(path)
     try:
@@ -272,7 +276,7 @@ def load_cluster(path: str | Path) -> Cluster:
 
 
 def default_clusters_dir() -> Path:
-    """The shipped ``prompts/clusters`` directory."""
+    """Return the shipped ``prompts/clusters`` directory."""
     return prompts_dir() / "clusters"
 
 
@@ -283,6 +287,7 @@ class ClusterRegistry:
 
     Args:
         clusters: The clusters, in any order.
+
     """
 
     def __init__(self, clusters: Iterable[Cluster]) -> None:
@@ -323,6 +328,7 @@ class ClusterRegistry:
 
         Raises:
             ClusterDefinitionError: A directory is missing or a file is malformed.
+
         """
         dirs = [default_clusters_dir()] if include_default else []
         dirs += [Path(d) for d in extra_dirs]
@@ -341,6 +347,7 @@ class ClusterRegistry:
 
         Raises:
             ClusterDefinitionError: No such cluster.
+
         """
         resolved = self._resolve(name)
         if resolved is None:
@@ -367,7 +374,7 @@ class ClusterRegistry:
         return [c.name for c in self.all()]
 
     def panel(self) -> list[Cluster]:
-        """The ``kind = "cluster"`` files: the system prompt's clusters and credence axes."""
+        """Return the ``kind = "cluster"`` files: the system prompt's clusters and credence axes."""
         return [c for c in self.all() if c.kind == "cluster"]
 
 
@@ -379,7 +386,7 @@ _DEFAULT: ClusterRegistry | None = None
 
 
 def default_registry() -> ClusterRegistry:
-    """The registry of shipped clusters (loaded once)."""
+    """Return the registry of shipped clusters (loaded once)."""
     global _DEFAULT
     if _DEFAULT is None:
         _DEFAULT = ClusterRegistry.load()

@@ -33,6 +33,7 @@ def load_agent(name: str) -> Any:
 
     Raises:
         KeyError: No installed package registers ``name``.
+
     """
     points = agent_entry_points()
     if name not in points:

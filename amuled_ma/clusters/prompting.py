@@ -83,6 +83,7 @@ def render_system_prompt(
 
     Returns:
         The system prompt text.
+
     """
     panel = default_registry().panel() if panel is None else list(panel)
     path = Path(prompts) / "system.md" if prompts else prompts_dir() / "system.md"
@@ -126,7 +127,7 @@ def _load_fewshot(path: Path) -> Messages:
 
 
 def fewshot_messages(task_name: str, *, prompts: str | Path | None = None) -> Messages:
-    """The few-shot chain-of-thought turns for a task, as ``(role, content)`` pairs.
+    """Return the few-shot chain-of-thought turns for a task, as ``(role, content)`` pairs.
 
     Args:
         task_name: Task name (``"findmilk"``, ``"FindMilk"``, ``"driving"``...).
@@ -134,6 +135,7 @@ def fewshot_messages(task_name: str, *, prompts: str | Path | None = None) -> Me
 
     Returns:
         Alternating ``("user", ...)``, ``("assistant", ...)`` pairs.
+
     """
     return _load_fewshot(fewshot_path(task_name, prompts=prompts))
 
@@ -150,7 +152,7 @@ def credence_vector(
     *,
     registry: ClusterRegistry | None = None,
 ) -> dict[str, float] | None:
-    """The credence vector of a cluster agent over the panel's clusters.
+    """Return the credence vector of a cluster agent over the panel's clusters.
 
     Args:
         cluster: The agent.
@@ -165,6 +167,7 @@ def credence_vector(
 
     Raises:
         ClusterDefinitionError: A credence names no panel cluster, or a value is invalid.
+
     """
     registry = registry or default_registry()
     panel = registry.panel() if panel is None else list(panel)
@@ -196,7 +199,7 @@ def instruction_text(
     *,
     registry: ClusterRegistry | None = None,
 ) -> str:
-    """The agent's closing instruction: the credence sentence or its own text.
+    """Return the agent's closing instruction: the credence sentence or its own text.
 
     Example (the paper's care agent)::
 
@@ -226,7 +229,7 @@ def build_messages(
     prompts: str | Path | None = None,
     fewshot: bool = True,
 ) -> Messages:
-    """The full chat for one cluster agent and one task state.
+    """Return the full chat for one cluster agent and one task state.
 
     Args:
         cluster: The agent (a :class:`Cluster` or a name/alias in ``registry``).
@@ -243,6 +246,7 @@ def build_messages(
 
     Returns:
         ``(("system", ...), ("user", ...), ("assistant", ...), ..., ("user", state))``.
+
     """
     registry = registry or default_registry()
     if isinstance(cluster, str):

@@ -1,0 +1,286 @@
+"""``replay``: answer belief requests from a recording of real LLM answers.
+
+The recording format is the one of ``../shared/amuled-recordings/`` (the AMULED authors'
+own LLM answers converted to JSON; see that folder's README)::
+
+    {"task": "FindMilk", "model": "gpt-4o-mini",
+     "clusters": ["consequentialist", "deontologist", ...], "actions": ["up", ...],
+     "states": [{"obs": [...], "beliefs": {"consequentialist": [...], ...},
+                 "moral_agent": [...], "exchanges": [{"agent", "prompt", "response"}]}]}
+
+A request is looked up by ``(task, observation rounded to `decimals`)`` and by cluster
+name. Cluster names are mapped to the recording's: an explicit ``cluster_names`` entry,
+else the name itself, else any alias of the cluster file (``deontological`` has alias
+``deontologist``, ``social_justice`` has ``social justice``), else a match ignoring case,
+``_``, ``-`` and spaces; an unprompted agent (``moral_agent``) reads the recording's
+``moral_agent`` field.
+
+A state or cluster missing from the recording is a *miss*, counted in
+:attr:`ReplaySource.misses`, and handled by ``miss_policy``:
+
+- ``"error"``: raise :class:`~amuled_ma.errors.ReplayMiss` naming the state and file;
+- ``"uniform"``: answer a uniform belief with status ``"replay_miss"``;
+- ``"fallback"``: ask the ``fallback`` source (all misses of a batch in one call); its
+  answer keeps its own status, with ``extra["replay_miss"] = True``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from amuled_ma.beliefs.parsing import uniform
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.errors import ReplayMiss, ScenarioError
+
+#: Miss policies of :class:`ReplaySource`.
+MISS_POLICIES = ("error", "uniform", "fallback")
+#: Field of a recorded state holding the unprompted "moral agent" belief.
+MORAL_AGENT_FIELD = "moral_agent"
+
+
+def _norm(name: str) -> str:
+    return "".join(ch for ch in name.lower() if ch.isalnum())
+
+
+def obs_key(obs: Sequence[float], decimals: int) -> tuple[float, ...]:
+    """Return the lookup key of an observation: each value rounded, ``-0.0`` folded into ``0.0``."""
+    return tuple(round(float(x), decimals) + 0.0 for x in obs)
+
+
+class Recording:
+    """One recording file, indexed by rounded observation.
+
+    Args:
+        path: The JSON file.
+        decimals: Decimals the observations are rounded to for lookup.
+
+    Raises:
+        ScenarioError: The file is missing or not in the recording format.
+
+    """
+
+    def __init__(self, path: str | Path, *, decimals: int = 3) -> None:
+        self.path = Path(path)
+        try:
+            raw = self.path.read_bytes()
+            data = json.loads(raw)
+        except (OSError, ValueError) as error:
+            raise ScenarioError(f"{self.path}: cannot read recording: {error}") from error
+        for key in ("task", "clusters", "actions", "states"):
+            if key not in data:
+                raise ScenarioError(f"{self.path}: recording has no {key!r} field")
+        self.sha256 = hashlib.sha256(raw).hexdigest()
+        self.task: str = data["task"]
+        self.model: str | None = data.get("model")
+        self.clusters: list[str] = list(data["clusters"])
+        self.actions: list[str] = list(data["actions"])
+        self.decimals = decimals
+        self.states: dict[tuple[float, ...], dict[str, Any]] = {}
+        self.duplicates = 0
+        for i, state in enumerate(data["states"]):
+            if "obs" not in state or "beliefs" not in state:
+                raise ScenarioError(f"{self.path}: states[{i}] has no 'obs' or 'beliefs'")
+            key = obs_key(state["obs"], decimals)
+            if key in self.states:
+                self.duplicates += 1  # first one wins, as in the authors' cache
+                continue
+            self.states[key] = state
+
+    def answer(self, state: Mapping[str, Any], agent: str) -> tuple[np.ndarray, str | None] | None:
+        """Return ``(belief, raw reply or None)`` of ``agent`` in ``state``, if recorded."""
+        if agent == MORAL_AGENT_FIELD:
+            vector = state.get(MORAL_AGENT_FIELD)
+        else:
+            vector = state["beliefs"].get(agent)
+        if vector is None:
+            return None
+        raw = None
+        for exchange in state.get("exchanges", ()):
+            if exchange.get("agent") == agent:
+                raw = exchange.get("response")
+        return np.asarray(vector, dtype=np.float64), raw
+
+
+class ReplaySource(BeliefSource):
+    """Answers from one or more recording files, keyed by observation.
+
+    Args:
+        paths: Recording file(s); several files may cover several tasks.
+        miss_policy: ``"error"``, ``"uniform"`` or ``"fallback"`` (see module doc).
+        fallback: The source asked on a miss with ``miss_policy="fallback"``.
+        decimals: Decimals the observations are rounded to for lookup.
+        cluster_names: Explicit ``{our cluster name: recording agent name}`` mapping.
+        registry: Cluster registry whose aliases map names (default: shipped clusters).
+
+    Raises:
+        ScenarioError: A bad policy, a missing fallback, or an unreadable file.
+
+    """
+
+    name = "replay"
+    needs_messages = False
+
+    def __init__(
+        self,
+        paths: str | Path | Sequence[str | Path],
+        *,
+        miss_policy: str = "error",
+        fallback: BeliefSource | None = None,
+        decimals: int = 3,
+        cluster_names: Mapping[str, str] | None = None,
+        registry: Any = None,
+    ) -> None:
+        if miss_policy not in MISS_POLICIES:
+            raise ScenarioError(
+                f"replay miss_policy: expected one of {', '.join(MISS_POLICIES)}, "
+                f"found {miss_policy!r}"
+            )
+        if miss_policy == "fallback" and fallback is None:
+            raise ScenarioError("replay miss_policy 'fallback' needs a fallback source")
+        if isinstance(paths, str | Path):
+            paths = [paths]
+        self.recordings = [Recording(p, decimals=decimals) for p in paths]
+        if not self.recordings:
+            raise ScenarioError("replay source needs at least one recording file")
+        self.miss_policy = miss_policy
+        self.fallback = fallback
+        self.decimals = decimals
+        self.cluster_names = dict(cluster_names or {})
+        self._registry = registry
+        self.hits = 0
+        self.misses = 0
+        self.misses_by_cluster: Counter[str] = Counter()
+        self._agent_cache: dict[tuple[int, str], str | None] = {}
+
+    # -- lookup ----------------------------------------------------------------------
+    def _recording_for(self, task: str) -> Recording | None:
+        for recording in self.recordings:
+            if _norm(recording.task) == _norm(task):
+                return recording
+        return None
+
+    def _aliases(self, cluster: str) -> tuple[tuple[str, ...], bool]:
+        registry = self._registry
+        if registry is None:
+            from amuled_ma.clusters import default_registry
+
+            registry = self._registry = default_registry()
+        if cluster in registry:
+            found = registry.get(cluster)
+            return found.names, found.kind == "unprompted"
+        return (cluster,), cluster == MORAL_AGENT_FIELD
+
+    def recording_agent(self, recording: Recording, cluster: str) -> str | None:
+        """Return the recording's agent name for our cluster name (``None``: not recorded)."""
+        cache_key = (id(recording), cluster)
+        if cache_key in self._agent_cache:
+            return self._agent_cache[cache_key]
+        agent: str | None = None
+        if cluster in self.cluster_names:
+            agent = self.cluster_names[cluster]
+        else:
+            names, unprompted = self._aliases(cluster)
+            if unprompted:
+                agent = MORAL_AGENT_FIELD
+            else:
+                by_norm = {_norm(c): c for c in recording.clusters}
+                for name in names:
+                    if name in recording.clusters:
+                        agent = name
+                        break
+                    if _norm(name) in by_norm:
+                        agent = by_norm[_norm(name)]
+                        break
+        self._agent_cache[cache_key] = agent
+        return agent
+
+    def lookup(self, request: BeliefRequest) -> tuple[np.ndarray, str | None] | str:
+        """Return ``(belief, raw)`` for a request, or the reason it is a miss."""
+        recording = self._recording_for(request.task)
+        if recording is None:
+            return f"no recording for task {request.task!r}"
+        if len(request.action_names) != len(recording.actions):
+            raise ScenarioError(
+                f"{recording.path}: recording has {len(recording.actions)} actions "
+                f"{recording.actions}, the request has {len(request.action_names)}"
+            )
+        agent = self.recording_agent(recording, request.cluster)
+        if agent is None:
+            return (
+                f"cluster {request.cluster!r} is not in {recording.path.name} "
+                f"(recorded: {', '.join(recording.clusters)}, {MORAL_AGENT_FIELD})"
+            )
+        state = recording.states.get(obs_key(request.obs, recording.decimals))
+        if state is None:
+            return f"state {list(request.obs)} not in {recording.path.name}"
+        answer = recording.answer(state, agent)
+        if answer is None:
+            return f"agent {agent!r} has no belief for state {list(request.obs)}"
+        return answer
+
+    # -- BeliefSource ----------------------------------------------------------------
+    def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
+        """Answer every request from the recordings; misses follow ``miss_policy``."""
+        results: list[BeliefResult | None] = [None] * len(requests)
+        missed: list[int] = []
+        reasons: dict[int, str] = {}
+        for i, request in enumerate(requests):
+            found = self.lookup(request)
+            if isinstance(found, str):
+                self.misses += 1
+                self.misses_by_cluster[request.cluster] += 1
+                if self.miss_policy == "error":
+                    raise ReplayMiss(
+                        f"replay miss: {found} (cluster {request.cluster!r}, task "
+                        f"{request.task!r}); use miss_policy 'uniform' or 'fallback' to go on"
+                    )
+                missed.append(i)
+                reasons[i] = found
+                continue
+            self.hits += 1
+            vector, raw = found
+            total = vector.sum()
+            belief = vector / total if total > 0 else uniform(len(vector))
+            results[i] = BeliefResult(belief=belief, status="ok", source=self.name, raw=raw)
+        if missed and self.miss_policy == "fallback":
+            assert self.fallback is not None
+            answers = self.fallback.beliefs([requests[i] for i in missed])
+            for i, answer in zip(missed, answers, strict=True):
+                answer.extra = {**answer.extra, "replay_miss": True, "miss_reason": reasons[i]}
+                results[i] = answer
+        elif missed:
+            for i in missed:
+                n = requests[i].num_actions
+                results[i] = BeliefResult(
+                    belief=uniform(n),
+                    status="replay_miss",
+                    source=self.name,
+                    extra={"miss_reason": reasons[i]},
+                )
+        return results  # type: ignore[return-value]
+
+    def identity(self) -> dict[str, Any]:
+        """Return the recordings' content hashes, the rounding and the name mapping."""
+        ident: dict[str, Any] = {
+            "source": self.name,
+            "recordings": [
+                {"file": r.path.name, "sha256": r.sha256, "model": r.model} for r in self.recordings
+            ],
+            "decimals": self.decimals,
+            "cluster_names": dict(sorted(self.cluster_names.items())),
+        }
+        if self.miss_policy == "fallback" and self.fallback is not None:
+            ident["fallback"] = self.fallback.identity()
+        return ident
+
+    def close(self) -> None:
+        """Close the fallback source, if any."""
+        if self.fallback is not None:
+            self.fallback.close()

@@ -1,0 +1,165 @@
+"""``rules`` and ``scripted``: belief sources that need no LLM.
+
+- :class:`RulesSource` answers with the synthetic human-feedback policy of the task
+  (``amuled_ma.tasks.human.human_belief(task, obs)``, the paper's "human" baseline), or
+  with any function ``(task, obs) -> belief`` named as ``"module:function"``.
+- :class:`ScriptedSource` answers fixed beliefs per cluster, or calls a function of the
+  request: for tests, examples and ablations.
+
+Every answer is projected onto the probability simplex (negative entries clipped to 0,
+then divided by the sum; all-zero or non-finite answers become uniform with status
+``"error"``), so a buggy rule can never feed an invalid belief to the fusion.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from amuled_ma.beliefs.parsing import uniform
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.errors import ScenarioError
+
+BeliefFn = Callable[[str, np.ndarray], Sequence[float]]
+
+
+def resolve_callable(spec: str | Callable[..., Any]) -> Callable[..., Any]:
+    """Return ``spec`` itself if callable, else import it from a ``"module:attr"`` string.
+
+    Raises:
+        ScenarioError: The string is malformed or names nothing importable.
+
+    """
+    if callable(spec):
+        return spec
+    if not isinstance(spec, str) or ":" not in spec:
+        raise ScenarioError(f"expected a callable or a 'module:function' string, found {spec!r}")
+    module_name, _, attr = spec.partition(":")
+    try:
+        target: Any = importlib.import_module(module_name)
+        for part in attr.split("."):
+            target = getattr(target, part)
+    except (ImportError, AttributeError) as error:
+        raise ScenarioError(f"cannot import {spec!r}: {error}") from error
+    if not callable(target):
+        raise ScenarioError(f"{spec!r} is not callable")
+    return target
+
+
+def to_belief(values: Any, n_actions: int) -> tuple[np.ndarray, str]:
+    """Project a rule's answer onto the simplex.
+
+    Returns:
+        ``(belief, status)``; status ``"ok"``, or ``"error"`` with a uniform belief when
+        the answer has the wrong shape, is not finite, or is all zero.
+
+    """
+    try:
+        vector = np.asarray(values, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        return uniform(n_actions), "error"
+    if vector.shape != (n_actions,) or not np.all(np.isfinite(vector)):
+        return uniform(n_actions), "error"
+    vector = np.clip(vector, 0.0, None)
+    total = vector.sum()
+    if total <= 0:
+        return uniform(n_actions), "error"
+    return vector / total, "ok"
+
+
+def _human_belief(task: str, obs: np.ndarray) -> Any:
+    from amuled_ma.tasks.human import human_belief  # lazy: the tasks package is heavy
+
+    return human_belief(task, obs)
+
+
+class RulesSource(BeliefSource):
+    """The synthetic human-feedback policies, or any rule ``(task, obs) -> belief``.
+
+    Args:
+        policy: ``"human"`` (the task's synthetic human feedback), a callable
+            ``(task, obs) -> belief``, or a ``"module:function"`` string.
+
+    """
+
+    name = "rules"
+    needs_messages = False
+
+    def __init__(self, policy: str | BeliefFn = "human") -> None:
+        self.policy_name = policy if isinstance(policy, str) else _qualname(policy)
+        self._fn: BeliefFn = _human_belief if policy == "human" else resolve_callable(policy)
+
+    def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
+        """Answer each request with the rule; a failing rule gives a uniform ``"error"``."""
+        out = []
+        for request in requests:
+            try:
+                raw = self._fn(request.task, np.asarray(request.obs, dtype=np.float64))
+                belief, status = to_belief(raw, request.num_actions)
+                extra: dict[str, Any] = {}
+            except Exception as error:  # a rule bug must not stop training
+                belief, status = uniform(request.num_actions), "error"
+                extra = {"error": repr(error)}
+            out.append(BeliefResult(belief=belief, status=status, source=self.name, extra=extra))
+        return out
+
+    def identity(self) -> dict[str, Any]:
+        """Return the source kind and the policy's name."""
+        return {"source": self.name, "policy": self.policy_name}
+
+
+class ScriptedSource(BeliefSource):
+    """Fixed or computed beliefs, per cluster.
+
+    Args:
+        beliefs: ``{cluster: belief vector}`` (``"*"`` matches any other cluster), or a
+            callable ``(request) -> belief``. Clusters without an entry get a uniform
+            belief.
+        label: Name of the script in :meth:`identity` (cache keys).
+
+    """
+
+    name = "scripted"
+    needs_messages = False
+
+    def __init__(
+        self,
+        beliefs: Mapping[str, Sequence[float]] | Callable[[BeliefRequest], Any] | None = None,
+        *,
+        label: str = "scripted",
+    ) -> None:
+        self._table = None if callable(beliefs) else dict(beliefs or {})
+        self._fn = beliefs if callable(beliefs) else None
+        self.label = label
+
+    def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
+        """Answer each request from the table or the function."""
+        out = []
+        for request in requests:
+            n = request.num_actions
+            try:
+                if self._fn is not None:
+                    raw = self._fn(request)
+                else:
+                    assert self._table is not None
+                    raw = self._table.get(request.cluster, self._table.get("*", uniform(n)))
+                belief, status = to_belief(raw, n)
+                extra: dict[str, Any] = {}
+            except Exception as error:  # a script bug must not stop training
+                belief, status, extra = uniform(n), "error", {"error": repr(error)}
+            out.append(BeliefResult(belief=belief, status=status, source=self.name, extra=extra))
+        return out
+
+    def identity(self) -> dict[str, Any]:
+        """Return the source kind, the label and (for a table) its content."""
+        ident: dict[str, Any] = {"source": self.name, "label": self.label}
+        if self._table is not None:
+            ident["table"] = {k: [float(x) for x in v] for k, v in sorted(self._table.items())}
+        return ident
+
+
+def _qualname(fn: Callable[..., Any]) -> str:
+    return f"{getattr(fn, '__module__', '?')}:{getattr(fn, '__qualname__', repr(fn))}"
