@@ -25,11 +25,12 @@ rows, two different ones never do.
 ## Schema (version 1)
 
 ``beliefs``: ``key`` (primary key), ``source``, ``identity`` (canonical JSON), ``task``,
-``cluster``, ``obs`` / ``actions`` (JSON lists), ``messages_hash`` (-> ``texts.hash``; the
-chat, shared by many rows, is stored once), ``raw`` (the raw reply), ``belief`` (JSON list),
+``cluster``, ``obs`` / ``actions`` (JSON lists), ``messages`` (JSON ``[[role, text_hash],
+...]``: each message's content lives once in ``texts``, so the system prompt and few-shot
+examples shared by every row are stored once), ``raw`` (the raw reply), ``belief`` (JSON list),
 ``status`` (:data:`~amuled_ma.beliefs.types.STATUSES`), ``latency_s``, ``prompt_tokens``,
 ``completion_tokens``, ``extra`` (JSON), ``attempts``, ``created_at`` / ``updated_at`` (Unix
-seconds). ``texts``: ``hash`` -> ``body``. ``meta``: ``schema_version``.
+seconds). ``texts``: ``hash`` (SHA-256 of the content) -> ``body``. ``meta``: ``schema_version``.
 
 ## What is served back
 
@@ -86,7 +87,7 @@ CREATE TABLE IF NOT EXISTS beliefs (
     cluster TEXT NOT NULL,
     obs TEXT NOT NULL,
     actions TEXT NOT NULL,
-    messages_hash TEXT,
+    messages TEXT,
     raw TEXT,
     belief TEXT NOT NULL,
     status TEXT NOT NULL,
@@ -102,7 +103,7 @@ CREATE INDEX IF NOT EXISTS beliefs_task_cluster ON beliefs (task, cluster);
 """
 
 _COLUMNS = (
-    "key, source, identity, task, cluster, obs, actions, messages_hash, raw, belief, status, "
+    "key, source, identity, task, cluster, obs, actions, messages, raw, belief, status, "
     "latency_s, prompt_tokens, completion_tokens, extra, attempts, created_at, updated_at"
 )
 
@@ -207,7 +208,8 @@ class StoredBelief:
         cluster: Cluster name.
         obs: The observation.
         action_names: Action names.
-        messages: The chat, ``((role, content), ...)``.
+        messages: The chat, ``((role, content), ...)``; ``None`` when not read (see
+            :meth:`BeliefStore.get_many`).
         raw: The raw reply.
         belief: The belief vector (float64).
         status: Answer status.
@@ -228,7 +230,7 @@ class StoredBelief:
     cluster: str
     obs: tuple[float, ...]
     action_names: tuple[str, ...]
-    messages: tuple[tuple[str, str], ...]
+    messages: tuple[tuple[str, str], ...] | None
     raw: str | None
     belief: np.ndarray
     status: str
@@ -271,7 +273,7 @@ class StoredBelief:
             "cluster": self.cluster,
             "obs": list(self.obs),
             "actions": list(self.action_names),
-            "messages": [list(m) for m in self.messages],
+            "messages": [list(m) for m in self.messages or ()],
             "raw": self.raw,
             "belief": self.belief.tolist(),
             "status": self.status,
@@ -291,7 +293,7 @@ class StoredBelief:
             cluster=self.cluster,
             obs=self.obs,
             action_names=self.action_names,
-            messages=self.messages,
+            messages=self.messages or (),
         )
 
 
@@ -322,6 +324,7 @@ class BeliefStore:
         self._conn: sqlite3.Connection | None = None
         self._pid = -1
         self._messages_seen: set[str] = set()
+        self._text_cache: dict[str, str] = {}
         self._connect()
 
     # -- connection ------------------------------------------------------------------
@@ -398,13 +401,15 @@ class BeliefStore:
 
     # -- reads -----------------------------------------------------------------------
     def get_many(
-        self, keys: Iterable[str], *, cacheable_only: bool = True
+        self, keys: Iterable[str], *, cacheable_only: bool = True, with_messages: bool = False
     ) -> dict[str, StoredBelief]:
         """Read the rows of ``keys`` that exist.
 
         Args:
             keys: Keys to look up (duplicates allowed).
             cacheable_only: Return only rows served as answers (``ok``/``repaired``).
+            with_messages: Also read each row's chat (slower; ``messages`` is ``None``
+                otherwise).
 
         Returns:
             ``{key: row}`` for the keys found.
@@ -412,22 +417,46 @@ class BeliefStore:
         """
         wanted = list(dict.fromkeys(keys))
         found: dict[str, StoredBelief] = {}
-        status_filter = " AND b.status IN ('ok', 'repaired')" if cacheable_only else ""
+        status_filter = " AND status IN ('ok', 'repaired')" if cacheable_only else ""
         for start in range(0, len(wanted), _SQL_CHUNK):
             chunk = wanted[start : start + _SQL_CHUNK]
             sql = (
-                f"SELECT {_prefixed()}, t.body FROM beliefs b "
-                "LEFT JOIN texts t ON t.hash = b.messages_hash "
-                f"WHERE b.key IN ({','.join('?' * len(chunk))}){status_filter}"
+                f"SELECT {_COLUMNS} FROM beliefs "
+                f"WHERE key IN ({','.join('?' * len(chunk))}){status_filter}"
             )
-            for row in self._read(sql, chunk):
-                stored = _row_to_stored(row)
+            rows = self._read(sql, chunk)
+            texts = self._texts(rows) if with_messages else None
+            for row in rows:
+                stored = _row_to_stored(row, texts)
                 found[stored.key] = stored
         return found
 
-    def get(self, key: str, *, cacheable_only: bool = True) -> StoredBelief | None:
-        """Read one row, or ``None`` (see :meth:`get_many`)."""
-        return self.get_many([key], cacheable_only=cacheable_only).get(key)
+    def _texts(self, rows: Sequence[Sequence[Any]]) -> dict[str, str]:
+        """Fetch the message bodies referenced by ``rows``."""
+        hashes = {h for row in rows if row[7] for _, h in json.loads(row[7])}
+        texts: dict[str, str] = {}
+        todo = [h for h in hashes if h not in self._text_cache]
+        for start in range(0, len(todo), _SQL_CHUNK):
+            chunk = todo[start : start + _SQL_CHUNK]
+            sql = f"SELECT hash, body FROM texts WHERE hash IN ({','.join('?' * len(chunk))})"
+            texts.update(self._read(sql, chunk))
+        for h in hashes:
+            if h in self._text_cache:
+                texts[h] = self._text_cache[h]
+        if len(self._text_cache) > 4096:
+            self._text_cache.clear()
+        # keep the bodies shared by many rows (system prompt, few-shot turns) at hand
+        for h, body in texts.items():
+            if len(body) > 2000:
+                self._text_cache[h] = body
+        return texts
+
+    def get(
+        self, key: str, *, cacheable_only: bool = True, with_messages: bool = True
+    ) -> StoredBelief | None:
+        """Read one row, chat included by default, or ``None`` (see :meth:`get_many`)."""
+        rows = self.get_many([key], cacheable_only=cacheable_only, with_messages=with_messages)
+        return rows.get(key)
 
     def iter_rows(
         self, *, status: Sequence[str] | None = None, task: str | None = None
@@ -444,19 +473,22 @@ class BeliefStore:
         """
         where, params = [], []
         if status:
-            where.append(f"b.status IN ({','.join('?' * len(status))})")
+            where.append(f"status IN ({','.join('?' * len(status))})")
             params.extend(status)
         if task:
-            where.append("b.task = ?")
+            where.append("task = ?")
             params.append(task)
         sql = (
-            f"SELECT {_prefixed()}, t.body FROM beliefs b "
-            "LEFT JOIN texts t ON t.hash = b.messages_hash"
+            f"SELECT {_COLUMNS} FROM beliefs"
             + (f" WHERE {' AND '.join(where)}" if where else "")
-            + " ORDER BY b.created_at, b.rowid"
+            + " ORDER BY created_at, rowid"
         )
-        for row in self._read(sql, params):
-            yield _row_to_stored(row)
+        rows = self._read(sql, params)
+        for start in range(0, len(rows), _SQL_CHUNK):
+            chunk = rows[start : start + _SQL_CHUNK]
+            texts = self._texts(chunk)
+            for row in chunk:
+                yield _row_to_stored(row, texts)
 
     def __len__(self) -> int:
         return int(self._read("SELECT COUNT(*) FROM beliefs")[0][0])
@@ -485,12 +517,10 @@ class BeliefStore:
         rows, texts = [], {}
         for key, identity, request, result in items:
             ident = identity if isinstance(identity, str) else identity_json(identity)
-            messages_hash = None
-            if request.messages:
-                body = canonical_json([[r, c] for r, c in request.messages])
-                messages_hash = hashlib.sha256(body.encode("utf-8")).hexdigest()
-                if messages_hash not in self._messages_seen:
-                    texts[messages_hash] = body
+            messages_ref, bodies = _split_messages(request.messages)
+            for h, body in bodies.items():
+                if h not in self._messages_seen:
+                    texts[h] = body
             rows.append(
                 (
                     key,
@@ -500,7 +530,7 @@ class BeliefStore:
                     request.cluster,
                     canonical_json([float(x) for x in request.obs]),
                     canonical_json(list(request.action_names)),
-                    messages_hash,
+                    messages_ref,
                     result.raw,
                     canonical_json([float(x) for x in np.asarray(result.belief).ravel()]),
                     result.status,
@@ -598,7 +628,7 @@ class BeliefStore:
             "latency_s": {"count": lat[0], "mean": lat[1], "total": lat[2]},
             "tokens": {"prompt": lat[3] or 0, "completion": lat[4] or 0},
             "attempts": lat[5] or 0,
-            "distinct_chats": int(self._read("SELECT COUNT(*) FROM texts")[0][0]),
+            "distinct_texts": int(self._read("SELECT COUNT(*) FROM texts")[0][0]),
             "file_bytes": files,
         }
 
@@ -649,10 +679,9 @@ class BeliefStore:
         for lineno, line in enumerate(fp, start=1):
             if not line.strip():
                 continue
-            row, text = _json_to_row(line, f"{name}:{lineno}", verify)
+            row, bodies = _json_to_row(line, f"{name}:{lineno}", verify)
             rows.append(row)
-            if text is not None:
-                texts[text[0]] = text[1]
+            texts.update(bodies)
             read += 1
             if len(rows) >= batch:
                 written += self._put_rows(rows, texts)
@@ -661,11 +690,21 @@ class BeliefStore:
         return {"read": read, "written": written}
 
 
-def _prefixed() -> str:
-    return ", ".join(f"b.{c.strip()}" for c in _COLUMNS.split(","))
+def _split_messages(
+    messages: Sequence[tuple[str, str]],
+) -> tuple[str | None, dict[str, str]]:
+    """Return the ``messages`` column (``[[role, text_hash], ...]``) and the bodies."""
+    if not messages:
+        return None, {}
+    refs, bodies = [], {}
+    for role, content in messages:
+        h = hashlib.sha256(content.encode("utf-8")).hexdigest()
+        refs.append([role, h])
+        bodies[h] = content
+    return canonical_json(refs), bodies
 
 
-def _row_to_stored(row: Sequence[Any]) -> StoredBelief:
+def _row_to_stored(row: Sequence[Any], texts: Mapping[str, str] | None) -> StoredBelief:
     (
         key,
         source,
@@ -674,7 +713,7 @@ def _row_to_stored(row: Sequence[Any]) -> StoredBelief:
         cluster,
         obs,
         actions,
-        _mh,
+        messages_ref,
         raw,
         belief,
         status,
@@ -685,8 +724,11 @@ def _row_to_stored(row: Sequence[Any]) -> StoredBelief:
         attempts,
         created,
         updated,
-        messages,
     ) = row
+    messages: tuple[tuple[str, str], ...] | None = None
+    if texts is not None:
+        refs = json.loads(messages_ref) if messages_ref else []
+        messages = tuple((r, texts[h]) for r, h in refs)
     return StoredBelief(
         key=key,
         source=source,
@@ -695,7 +737,7 @@ def _row_to_stored(row: Sequence[Any]) -> StoredBelief:
         cluster=cluster,
         obs=tuple(json.loads(obs)),
         action_names=tuple(json.loads(actions)),
-        messages=tuple((r, c) for r, c in json.loads(messages)) if messages else (),
+        messages=messages,
         raw=raw,
         belief=np.asarray(json.loads(belief), dtype=np.float64),
         status=status,
@@ -709,9 +751,7 @@ def _row_to_stored(row: Sequence[Any]) -> StoredBelief:
     )
 
 
-def _json_to_row(
-    line: str, where: str, verify: bool
-) -> tuple[tuple[Any, ...], tuple[str, str] | None]:
+def _json_to_row(line: str, where: str, verify: bool) -> tuple[tuple[Any, ...], dict[str, str]]:
     """Validate one exported JSON line and turn it into a table row."""
     try:
         obj = json.loads(line)
@@ -745,12 +785,7 @@ def _json_to_row(
                 f"(expected {expected[:12]}...); the row was edited or written by another "
                 "key version (import with --no-verify to keep it anyway)"
             )
-    text = None
-    messages_hash = None
-    if messages:
-        body = canonical_json([[r, c] for r, c in messages])
-        messages_hash = hashlib.sha256(body.encode("utf-8")).hexdigest()
-        text = (messages_hash, body)
+    messages_ref, bodies = _split_messages(messages)
     now = time.time()
     row = (
         obj["key"],
@@ -760,7 +795,7 @@ def _json_to_row(
         request.cluster,
         canonical_json(list(request.obs)),
         canonical_json(list(request.action_names)),
-        messages_hash,
+        messages_ref,
         obj.get("raw"),
         canonical_json([float(x) for x in belief]),
         obj["status"],
@@ -772,4 +807,4 @@ def _json_to_row(
         float(obj.get("created_at") or now),
         float(obj.get("updated_at") or now),
     )
-    return row, text
+    return row, bodies

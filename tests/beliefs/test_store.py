@@ -116,12 +116,15 @@ def test_answers_are_never_replaced_failures_are(store):
     np.testing.assert_array_equal(store.get(key).belief, [1, 0, 0, 0])
 
 
-def test_chat_is_stored_once(store):
+def test_message_bodies_are_stored_once(store):
     items = [(request_key(IDENT, req(i)), IDENT, req(i), res([1, 0, 0, 0])) for i in range(20)]
     assert store.put_many(items) == 20
-    assert store.stats()["distinct_chats"] == 1
-    rows = store.get_many([k for k, *_ in items] + ["nope"])
+    # two distinct message bodies ("be good", "state") for 20 rows
+    assert store.stats()["distinct_texts"] == 2
+    rows = store.get_many([k for k, *_ in items] + ["nope"], with_messages=True)
     assert len(rows) == 20 and all(r.messages == req(0).messages for r in rows.values())
+    fast = store.get_many([k for k, *_ in items])
+    assert all(r.messages is None for r in fast.values())
 
 
 def test_stats(store):
