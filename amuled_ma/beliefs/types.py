@@ -30,6 +30,7 @@ class BeliefRequest:
         messages: The full chat sent to an LLM (system, few-shot, state prompt) as
             ``((role, content), ...)`` pairs (hashable, so identical requests in a batch
             are recognised); empty for sources that need none.
+
     """
 
     task: str
@@ -59,6 +60,7 @@ class BeliefResult:
         prompt_tokens: Prompt tokens reported by the backend, if any.
         completion_tokens: Completion tokens reported by the backend, if any.
         extra: Free-form diagnostics (retry count, error text, ...).
+
     """
 
     belief: np.ndarray
@@ -95,6 +97,7 @@ class BeliefSource(ABC):
 
         Returns:
             One result per request, in the same order.
+
         """
 
     def identity(self) -> dict[str, Any]:
