@@ -158,7 +158,9 @@ class PanelFeedback(Feedback):
         )
         out = self.panel.fused(obs, prompt_vars)
         fused = np.asarray(out.fused, dtype=np.float64).reshape(len(obs), -1)
-        clusters = list(getattr(self.panel, "clusters", []) or [])
+        clusters = list(
+            getattr(self.panel, "cluster_names", None) or getattr(self.panel, "clusters", [])
+        )
         results = []
         weights = getattr(out, "weights", None)
         conflict = getattr(out, "conflict", None)

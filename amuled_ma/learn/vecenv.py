@@ -24,8 +24,9 @@ OBS_GROUP = "policy"
 def episode_records(info: dict[str, Any], done_ids: torch.Tensor, num_envs: int) -> list[dict]:
     """Turn a task's ``info["episode"]`` into one plain dict per finished episode.
 
-    The task reports metrics of the episodes that finished in this step, either as
-    tensors over just the finished copies (in ``done_ids`` order) or over all copies.
+    The task (:mod:`amuled_ma.tasks.base`) reports the episode accumulators of *every*
+    copy, read before the reset, with a ``done`` mask; the rows of ``done_ids`` are the
+    totals of the episodes that just ended.
 
     Args:
         info: The ``info`` dict of one task step.
@@ -41,13 +42,12 @@ def episode_records(info: dict[str, Any], done_ids: torch.Tensor, num_envs: int)
     if not episode or len(done_ids) == 0:
         return records
     for key, value in episode.items():
-        if key.startswith("_"):
+        if key.startswith("_") or key == "done":
             continue
         tensor = torch.as_tensor(value).reshape(-1)
-        if tensor.numel() == num_envs and num_envs != len(done_ids):
-            tensor = tensor[done_ids.to(tensor.device)]
-        if tensor.numel() != len(done_ids):
+        if tensor.numel() != num_envs:
             continue
+        tensor = tensor[done_ids.to(tensor.device)]
         for record, item in zip(records, tensor.tolist(), strict=True):
             record[key] = float(item)
     return records
@@ -132,9 +132,9 @@ class TaskVecEnv(VecEnv):
             done_ids = dones.nonzero(as_tuple=False).squeeze(-1)
             records = episode_records(info, done_ids, self.num_envs)
             for record, env_id in zip(records, done_ids.tolist(), strict=True):
-                record.setdefault("return", float(self._ep_return[env_id]))
+                record.setdefault("return_env", float(self._ep_return[env_id]))
                 record.setdefault("length", float(self.episode_length_buf[env_id]))
-                record.setdefault("shaping_return", float(self._ep_shaping[env_id]))
+                record.setdefault("return_shaping", float(self._ep_shaping[env_id]))
                 record["env_id"] = env_id
             self.finished.extend(records)
             extras["log"] = {

@@ -57,13 +57,15 @@ class GridTask:
         done = terminated | truncated
         final_obs = self._obs()
         info = {"r_env": r_env, "r_shaping": r_shaping, "final_obs": final_obs}
+        # as amuled_ma.tasks.base: accumulators of every copy, read before the reset
+        info["episode"] = {
+            "done": done.clone(),
+            "steps_to_milk": self.t.clone(),
+            "reached_milk": terminated.clone(),
+            "crying_pacified": self.visited.long(),
+        }
         if done.any():
             ids = done.nonzero().squeeze(-1)
-            info["episode"] = {
-                "steps": self.t[ids].float(),
-                "reached_goal": terminated[ids].float(),
-                "babies": self.visited[ids].float(),
-            }
             self.pos[ids] = 0
             self.t[ids] = 0
             self.visited[ids] = False

@@ -1,0 +1,241 @@
+"""Evaluate trained policies: N episodes, greedy and sampled, paper metrics with 95% CIs.
+
+Every episode runs in its own task copy (copy ``i`` seeded ``seed + i``), all copies
+stepped together; each copy's *first* episode is recorded. The metrics are the task's
+own (``info["episode"]``): FindMilk ``steps_to_milk``, ``crying_pacified``,
+``sleeping_woken``, ``reached_milk``; Driving ``collisions``, ``lane_changes``,
+``grandmas_rescued`` (whatever the task reports), plus ``return_env`` and ``length``.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from amuled_ma.errors import CheckpointError
+from amuled_ma.evaluate.stats import mean_ci
+from amuled_ma.learn.trainer import LAST, action_log_probs, load_policy, make_task
+from amuled_ma.scenario import Scenario
+
+#: Keys of ``info["episode"]`` that are book-keeping, not metrics.
+_SKIP = {"done", "return"}
+
+#: The paper's metrics per task, in report order (others follow alphabetically).
+PAPER_METRICS = {
+    "findmilk": ["steps_to_milk", "crying_pacified", "sleeping_woken", "reached_milk"],
+    "driving": ["collisions", "grandmas_rescued", "lane_changes"],
+}
+
+
+def _to_float(value: Any) -> float:
+    return float(value.item() if hasattr(value, "item") else value)
+
+
+def run_episodes(
+    actor: torch.nn.Module,
+    scenario: Scenario,
+    *,
+    episodes: int,
+    mode: str = "greedy",
+    seed: int = 10_000,
+    task_factory: Callable[..., Any] | None = None,
+    record_trajectory: bool = True,
+) -> tuple[list[dict[str, float]], dict[str, Any]]:
+    """Run ``episodes`` episodes of a policy.
+
+    Args:
+        actor: An rsl-rl actor with our categorical head.
+        scenario: The scenario (task and options).
+        episodes: Number of episodes (= task copies).
+        mode: ``greedy`` (argmax) or ``sampled``.
+        seed: Seed of copy 0 (copy ``i`` gets ``seed + i``); also seeds action sampling.
+        task_factory: Replaces :func:`~amuled_ma.learn.trainer.make_task`.
+        record_trajectory: Record copy 0's first episode for pictures.
+
+    Returns:
+        One metrics dict per episode and the trajectory of copy 0.
+
+    """
+    task = (task_factory or make_task)(scenario, episodes, shaping_coef=0.0, seed=seed)
+    obs = torch.as_tensor(task.reset()).float()
+    gen = torch.Generator().manual_seed(seed)
+    done_once = torch.zeros(episodes, dtype=torch.bool)
+    records: list[dict[str, float] | None] = [None] * episodes
+    trajectory: dict[str, Any] = {"obs": [obs[0].tolist()], "actions": [], "events": {}}
+    if hasattr(task, "baby_positions"):
+        trajectory["layout"] = task.baby_positions(0)
+    limit = int(getattr(task, "max_steps", 1000)) + 1
+    with torch.inference_mode():
+        for _ in range(limit):
+            logp = action_log_probs(actor, obs)
+            if mode == "greedy":
+                actions = logp.argmax(dim=-1)
+            else:
+                actions = torch.multinomial(logp.exp(), 1, generator=gen).squeeze(-1)
+            obs, _, terminated, truncated, info = task.step(actions)
+            obs = torch.as_tensor(obs).float()
+            done = torch.as_tensor(terminated) | torch.as_tensor(truncated)
+            if record_trajectory and not bool(done_once[0]):
+                trajectory["actions"].append(int(actions[0]))
+                final = info.get("final_obs", obs)
+                trajectory["obs"].append(torch.as_tensor(final)[0].tolist())
+                for key, value in info.items():
+                    if key in ("final_obs", "episode") or not torch.is_tensor(value):
+                        continue
+                    if value.dim() == 1 and value.numel() == episodes:
+                        trajectory["events"].setdefault(key, []).append(_to_float(value[0]))
+            new = done & ~done_once
+            if bool(new.any()):
+                episode = info.get("episode", {})
+                for i in new.nonzero().squeeze(-1).tolist():
+                    rec: dict[str, float] = {}
+                    for key, value in episode.items():
+                        if key in _SKIP:
+                            continue
+                        tensor = torch.as_tensor(value)
+                        if tensor.dim() >= 1 and tensor.numel() == episodes:
+                            rec[key] = _to_float(tensor[i])
+                    rec["terminated"] = float(bool(torch.as_tensor(terminated)[i]))
+                    records[i] = rec
+                done_once |= new
+            if bool(done_once.all()):
+                break
+    return [r for r in records if r is not None], trajectory
+
+
+def summarize(records: list[dict[str, float]], confidence: float = 0.95) -> dict[str, dict]:
+    """Mean and confidence interval of every metric over episodes."""
+    keys = sorted({k for r in records for k in r})
+    return {k: mean_ci([r[k] for r in records if k in r], confidence) for k in keys}
+
+
+def variant_dirs(run_dir: Path) -> list[Path]:
+    """Folders of a run that hold a final checkpoint, in pipeline order."""
+    order = {"base": 0, "shaped": 1}
+    dirs = [p.parent for p in Path(run_dir).glob(f"*/{LAST}")]
+    return sorted(dirs, key=lambda p: (order.get(p.name, 2), p.name))
+
+
+def evaluate_run(
+    run_dir: Path,
+    scenario: Scenario,
+    *,
+    episodes: int | None = None,
+    modes: list[str] | None = None,
+    variants: list[str] | None = None,
+    task_factory: Callable[..., Any] | None = None,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Evaluate every trained variant of a run; write ``results.json`` and ``results.csv``.
+
+    Args:
+        run_dir: The run directory (one sub-folder per variant).
+        scenario: The run's scenario.
+        episodes: Episodes per variant and mode (default: the scenario's).
+        modes: ``greedy`` and/or ``sampled`` (default: the scenario's).
+        variants: Only these variant folders (default: all with a checkpoint).
+        task_factory: Replaces :func:`~amuled_ma.learn.trainer.make_task`.
+        progress: Show a progress bar.
+
+    Returns:
+        The results: ``{"scenario", "episodes", "confidence", "variants": {name: {mode:
+        {"metrics": {metric: ci}, "trajectory": ...}}}}``.
+
+    Raises:
+        CheckpointError: The run has no trained variant.
+
+    """
+    from tqdm.auto import tqdm
+
+    run_dir = Path(run_dir)
+    ev = scenario.evaluation
+    episodes = episodes or ev.episodes
+    modes = modes or list(ev.modes)
+    dirs = variant_dirs(run_dir)
+    if variants:
+        dirs = [d for d in dirs if d.name in variants]
+    if not dirs:
+        raise CheckpointError(
+            f"no trained variant (*/{LAST}) in {run_dir}; train one with "
+            f"'amuled train {scenario.name} --run-dir {run_dir}'"
+        )
+    results: dict[str, Any] = {
+        "scenario": scenario.name,
+        "task": scenario.task.name,
+        "episodes": episodes,
+        "confidence": ev.confidence,
+        "seed": ev.seed,
+        "variants": {},
+    }
+    jobs = [(d, m) for d in dirs for m in modes]
+    for vdir, mode in tqdm(jobs, desc="evaluate", unit="policy", disable=not progress, leave=False):
+        actor = load_policy(vdir / LAST, scenario)
+        records, trajectory = run_episodes(
+            actor, scenario, episodes=episodes, mode=mode, seed=ev.seed, task_factory=task_factory
+        )
+        entry = results["variants"].setdefault(vdir.name, {})
+        entry[mode] = {
+            "metrics": summarize(records, ev.confidence),
+            "trajectory": trajectory,
+            "episodes": records,
+        }
+        fb = vdir / "feedback.json"
+        if fb.is_file():
+            entry["feedback"] = json.loads(fb.read_text())
+    write_results(run_dir, results)
+    return results
+
+
+def _clean(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_clean(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def write_results(run_dir: Path, results: dict[str, Any]) -> tuple[Path, Path]:
+    """Write ``results.json`` (everything) and ``results.csv`` (a row per variant/mode/metric)."""
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    json_path = run_dir / "results.json"
+    json_path.write_text(json.dumps(_clean(results), indent=1))
+    csv_path = run_dir / "results.csv"
+    with csv_path.open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["variant", "mode", "metric", "mean", "ci_low", "ci_high", "std", "n"])
+        for variant, entry in results["variants"].items():
+            for mode, data in entry.items():
+                if mode == "feedback":
+                    continue
+                for metric, s in data["metrics"].items():
+                    writer.writerow(
+                        [
+                            variant,
+                            mode,
+                            metric,
+                            s["mean"],
+                            s["ci_low"],
+                            s["ci_high"],
+                            s["std"],
+                            s["n"],
+                        ]
+                    )
+    return json_path, csv_path
+
+
+def metric_order(task: str, metrics: list[str]) -> list[str]:
+    """Paper metrics first, then the rest alphabetically."""
+    first = [m for m in PAPER_METRICS.get(task, []) if m in metrics]
+    return first + sorted(m for m in metrics if m not in first)
