@@ -1,5 +1,29 @@
-"""Belief sources (Ollama, replay, rules), reply parsing, and the persistent belief store."""
+"""Belief sources (Ollama, replay, rules), reply parsing, and the persistent belief store.
 
-from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+See ``docs/beliefs.md``. The Ollama source is imported on demand
+(``make_source("ollama", ...)`` or ``amuled_ma.beliefs.ollama``) so that importing this
+package stays light.
+"""
 
-__all__ = ["BeliefRequest", "BeliefResult", "BeliefSource"]
+from amuled_ma.beliefs.parsing import ParsedBelief, belief_schema, parse_belief, uniform
+from amuled_ma.beliefs.replay import ReplaySource
+from amuled_ma.beliefs.rules import RulesSource, ScriptedSource
+from amuled_ma.beliefs.sources import make_source, register_source, source_kinds
+from amuled_ma.beliefs.types import STATUSES, BeliefRequest, BeliefResult, BeliefSource
+
+__all__ = [
+    "STATUSES",
+    "BeliefRequest",
+    "BeliefResult",
+    "BeliefSource",
+    "ParsedBelief",
+    "ReplaySource",
+    "RulesSource",
+    "ScriptedSource",
+    "belief_schema",
+    "make_source",
+    "parse_belief",
+    "register_source",
+    "source_kinds",
+    "uniform",
+]

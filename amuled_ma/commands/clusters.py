@@ -1,0 +1,81 @@
+"""``amuled clusters list``: the moral-cluster agents and code-backed agents available."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``amuled clusters`` and its ``list`` sub-command."""
+    parser = subparsers.add_parser(
+        "clusters",
+        help="list the moral-cluster agents (TOML files) and code-backed agents",
+        description=(
+            "Moral clusters are TOML files: the shipped ones (prompts/clusters) plus any "
+            "--clusters-dir. Code-backed agents come from the 'amuled_ma.agents' entry-point "
+            "group. See docs/clusters.md."
+        ),
+    )
+    actions = parser.add_subparsers(dest="clusters_action", metavar="ACTION")
+    listing = actions.add_parser(
+        "list",
+        help="list every cluster agent with its kind, file and theories",
+        description="List every cluster agent (shipped and user) and code-backed agent.",
+    )
+    listing.add_argument(
+        "--clusters-dir",
+        action="append",
+        type=Path,
+        default=[],
+        metavar="DIR",
+        help="a directory of extra cluster TOML files (repeatable; later ones win)",
+    )
+    listing.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    listing.set_defaults(handler=list_clusters)
+    parser.set_defaults(handler=lambda args: parser.print_help() or 2)
+
+
+def list_clusters(args: argparse.Namespace) -> int:
+    """Print the clusters of the shipped and user directories, and the plug-in agents."""
+    from amuled_ma.clusters import ClusterRegistry, agent_entry_points, credence_vector
+
+    registry = ClusterRegistry.load(args.clusters_dir)
+    panel = registry.panel()
+    plugins = agent_entry_points()
+    rows = []
+    for cluster in registry.all():
+        vector = credence_vector(cluster, panel, registry=registry)
+        rows.append(
+            {
+                "name": cluster.name,
+                "kind": cluster.kind,
+                "title": cluster.title,
+                "aliases": list(cluster.aliases),
+                "theories": [t.name for t in cluster.theories],
+                "credences": vector,
+                "file": str(cluster.path),
+            }
+        )
+    if args.json:
+        entry_points = {name: ep.value for name, ep in sorted(plugins.items())}
+        print(json.dumps({"clusters": rows, "agents": entry_points}, indent=2))
+        return 0
+    width = max(len(r["name"]) for r in rows) if rows else 4
+    print(f"{'NAME':<{width}}  {'KIND':<10}  {'TITLE':<34}  FILE")
+    for row in rows:
+        print(f"{row['name']:<{width}}  {row['kind']:<10}  {row['title']:<34}  {row['file']}")
+        if row["theories"]:
+            print(f"{'':<{width}}  {'':<10}  theories: {', '.join(row['theories'])}")
+        if row["kind"] == "mixture" and row["credences"]:
+            mix = ", ".join(f"{k}: {v}" for k, v in row["credences"].items() if v)
+            print(f"{'':<{width}}  {'':<10}  credences: {mix}")
+    print()
+    if plugins:
+        print("Code-backed agents (entry-point group 'amuled_ma.agents'):")
+        for name, ep in sorted(plugins.items()):
+            print(f"  {name:<{width}}  {ep.value}")
+    else:
+        print("Code-backed agents (entry-point group 'amuled_ma.agents'): none installed")
+    return 0
