@@ -1,0 +1,419 @@
+"""Base class of the batched task environments (many copies stepped by tensor operations).
+
+A :class:`BatchedTask` holds ``num_envs`` independent copies of one task as torch tensors
+and steps all of them with one call. Finished copies reset themselves inside
+:meth:`BatchedTask.step` (auto-reset), so a learner never has to look for them.
+
+Step contract (every task):
+
+``obs, reward, terminated, truncated, info = task.step(actions)``
+
+- ``actions``: integer tensor of shape ``[num_envs]`` with values in ``0..num_actions-1``.
+- ``obs``: float32 ``[num_envs, obs_dim]``, the observation *after* the automatic reset of
+  the copies that finished on this step (the first observation of their next episode).
+- ``reward``: float32 ``[num_envs]``, ``r_env + shaping_coef * r_shaping``.
+- ``terminated`` / ``truncated``: bool ``[num_envs]``. Truncation is the time limit
+  (``max_steps`` steps); a copy that terminates on its last allowed step is terminated,
+  not truncated.
+- ``info``: a dict of tensors, all with leading dimension ``num_envs``:
+
+  - ``"r_env"``, ``"r_shaping"``: float32, the two reward parts of this step.
+  - ``"final_obs"``: float32 ``[num_envs, obs_dim]``, the observation reached by this step
+    *before* any reset (equal to ``obs`` where the copy did not finish).
+  - ``"episode"``: a dict of the episode accumulators including this step, read before
+    they are zeroed for the finished copies: ``"done"`` (bool, ``terminated | truncated``),
+    ``"return"``, ``"return_env"``, ``"return_shaping"`` (float32), ``"length"`` (int64)
+    and the task's metrics (:attr:`BatchedTask.metric_names`). Where ``done`` is true they
+    are the totals of the episode that just ended; elsewhere the running totals of the
+    episode in progress.
+  - task-specific per-step events (see each task's documentation).
+
+Random numbers come from one counter-based stream per copy (:mod:`amuled_ma.tasks._rng`):
+copy ``i`` of a task seeded with ``s`` draws exactly what a single copy seeded with
+``s + i`` draws (the Gymnasium vector-env convention), whatever ``num_envs`` is.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+import numbers
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+
+from amuled_ma.tasks import _rng
+
+__all__ = ["BatchedTask"]
+
+
+class BatchedTask(abc.ABC):
+    """``num_envs`` copies of one task, stepped together with torch tensor operations.
+
+    Subclasses implement the task rules in :meth:`_advance`, :meth:`_reset_where` and
+    :meth:`_observe`; this class does the bookkeeping common to every task (validation,
+    rewards, time limit, auto-reset, episode metrics, seeding).
+
+    Attributes:
+        name: Short task name (``"findmilk"``, ``"driving"``), the key of
+            :data:`amuled_ma.tasks.TASKS` and of the prompt template ``prompts/tasks/<name>.md``.
+        gym_id: The registered Gymnasium id of the single-copy view.
+        action_names: Name of each action, indexed by action id.
+        obs_names: Name of each observation entry (the recordings' ``obs_layout``).
+        obs_low: Lower bound of each observation entry.
+        obs_high: Upper bound of each observation entry.
+        metric_names: Task metrics accumulated per episode and reported in ``info["episode"]``.
+        num_envs: Number of copies.
+        device: Torch device of every tensor.
+        shaping_coef: Coefficient ``c`` of the handcrafted shaping reward.
+        max_steps: Time limit (truncation) in steps.
+
+    """
+
+    name: ClassVar[str]
+    gym_id: ClassVar[str]
+    action_names: ClassVar[tuple[str, ...]]
+    obs_names: ClassVar[tuple[str, ...]]
+    obs_low: ClassVar[tuple[float, ...]]
+    obs_high: ClassVar[tuple[float, ...]]
+    metric_names: ClassVar[tuple[str, ...]]
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        *,
+        device: str | torch.device = "cpu",
+        seed: int | None = None,
+        shaping_coef: float = 0.0,
+        max_steps: int = 300,
+        **task_options: Any,
+    ) -> None:
+        """Create ``num_envs`` copies (call :meth:`reset` before the first step).
+
+        Args:
+            num_envs: Number of copies stepped together (>= 1).
+            device: Torch device holding the state.
+            seed: Base seed used by the first :meth:`reset` that is given no seed; copy
+                ``i`` uses the stream of seed ``seed + i``. ``None``: fresh OS entropy.
+            shaping_coef: Coefficient ``c >= 0`` of the handcrafted shaping reward
+                (``reward = r_env + c * r_shaping``); 0 trains the base agent.
+            max_steps: Time limit in steps (truncation), >= 1.
+            **task_options: Options of the concrete task (for instance ``layout``).
+
+        Raises:
+            ValueError: An argument is out of range; the message names it.
+
+        """
+        if isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral):
+            raise ValueError(f"num_envs: expected a positive integer, got {num_envs!r}")
+        if num_envs < 1:
+            raise ValueError(f"num_envs: expected a positive integer, got {num_envs}")
+        if isinstance(max_steps, bool) or not isinstance(max_steps, numbers.Integral):
+            raise ValueError(f"max_steps: expected a positive integer, got {max_steps!r}")
+        if max_steps < 1:
+            raise ValueError(f"max_steps: expected a positive integer, got {max_steps}")
+        if not isinstance(shaping_coef, numbers.Real) or isinstance(shaping_coef, bool):
+            raise ValueError(f"shaping_coef: expected a non-negative number, got {shaping_coef!r}")
+        if not math.isfinite(float(shaping_coef)) or shaping_coef < 0:
+            raise ValueError(
+                f"shaping_coef: expected a finite non-negative number, got {shaping_coef!r}"
+            )
+        self.num_envs = int(num_envs)
+        self.device = torch.device(device)
+        self.shaping_coef = float(shaping_coef)
+        self.max_steps = int(max_steps)
+        self._seed = self._check_seed(seed, "seed")
+        n, dev = self.num_envs, self.device
+        self._keys: torch.Tensor | None = None
+        self._ctr = torch.zeros(n, dtype=torch.int64, device=dev)
+        self._t = torch.zeros(n, dtype=torch.int64, device=dev)
+        self._ret = torch.zeros(n, dtype=torch.float32, device=dev)
+        self._ret_env = torch.zeros(n, dtype=torch.float32, device=dev)
+        self._ret_shaping = torch.zeros(n, dtype=torch.float32, device=dev)
+        self._metrics = {
+            k: torch.zeros(n, dtype=torch.int64, device=dev) for k in self.metric_names
+        }
+        self._obs: torch.Tensor | None = None
+        self._init_task(**task_options)
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def num_actions(self) -> int:
+        """Number of discrete actions."""
+        return len(self.action_names)
+
+    @property
+    def obs_dim(self) -> int:
+        """Length of one observation vector."""
+        return len(self.obs_names)
+
+    @property
+    def obs(self) -> torch.Tensor:
+        """The current observation ``[num_envs, obs_dim]`` (after the last reset or step)."""
+        if self._obs is None:
+            raise RuntimeError(f"{type(self).__name__}: call reset() before reading obs")
+        return self._obs
+
+    @property
+    def episode_steps(self) -> torch.Tensor:
+        """Steps taken so far in the current episode of each copy (int64 ``[num_envs]``)."""
+        return self._t
+
+    # ------------------------------------------------------------------ public API
+    def reset(self, seed: int | None = None) -> torch.Tensor:
+        """Reset every copy and return the first observations.
+
+        Args:
+            seed: Non-negative base seed; copy ``i`` then uses the stream of seed
+                ``seed + i``. ``None`` keeps the current streams (on the very first reset:
+                the constructor's seed, or OS entropy when that was ``None``).
+
+        Returns:
+            float32 tensor ``[num_envs, obs_dim]``.
+
+        Raises:
+            ValueError: ``seed`` is negative or not an integer.
+
+        """
+        seed = self._check_seed(seed, "seed")
+        if seed is None and self._keys is None:
+            seed = self._seed if self._seed is not None else _rng.entropy_seed()
+        if seed is not None:
+            self._keys = _rng.copy_keys(seed, self.num_envs, self.device)
+            self._ctr.zero_()
+        everyone = torch.ones(self.num_envs, dtype=torch.bool, device=self.device)
+        self._reset_where(everyone)
+        self._t.zero_()
+        self._ret.zero_()
+        self._ret_env.zero_()
+        self._ret_shaping.zero_()
+        for value in self._metrics.values():
+            value.zero_()
+        self._obs = self._observe()
+        return self._obs
+
+    def step(
+        self, actions: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
+        """Advance every copy by one step, auto-resetting the copies that finish.
+
+        Args:
+            actions: Integer tensor ``[num_envs]`` of action ids.
+
+        Returns:
+            ``(obs, reward, terminated, truncated, info)`` as described in the module
+            documentation.
+
+        Raises:
+            ValueError: ``actions`` has the wrong shape or type, or a value outside
+                ``0..num_actions-1``.
+            RuntimeError: :meth:`reset` was never called.
+
+        """
+        if self._obs is None:
+            raise RuntimeError(f"{type(self).__name__}: call reset() before step()")
+        actions = self._check_actions(actions)
+        r_env, r_shaping, terminated, events = self._advance(actions)
+        t = self._t + 1
+        truncated = (t >= self.max_steps) & ~terminated
+        done = terminated | truncated
+        reward = r_env + self.shaping_coef * r_shaping if self.shaping_coef else r_env.clone()
+        ret = self._ret + reward
+        ret_env = self._ret_env + r_env
+        ret_shaping = self._ret_shaping + r_shaping
+        metrics = {k: v + events[k] for k, v in self._metrics.items()}
+        final_obs = self._observe()
+        episode: dict[str, torch.Tensor] = {
+            "done": done,
+            "return": ret,
+            "return_env": ret_env,
+            "return_shaping": ret_shaping,
+            "length": t,
+            **metrics,
+        }
+        self._episode_extras(episode)
+        keep = ~done
+        self._t = t * keep
+        self._ret = ret * keep
+        self._ret_env = ret_env * keep
+        self._ret_shaping = ret_shaping * keep
+        self._metrics = {k: v * keep for k, v in metrics.items()}
+        self._reset_where(done)
+        obs = self._observe_after_reset(final_obs, done)
+        self._obs = obs
+        info: dict[str, Any] = {
+            "r_env": r_env,
+            "r_shaping": r_shaping,
+            "final_obs": final_obs,
+            "episode": episode,
+        }
+        info.update(events)
+        return obs, reward, terminated, truncated, info
+
+    def prompt_variables(self, env_ids: Any = None) -> list[dict[str, Any]]:
+        """Return the template variables of the state prompt of each selected copy.
+
+        Args:
+            env_ids: Copy indices (int, sequence or tensor); ``None`` selects all copies.
+
+        Returns:
+            One dict per selected copy, ready for
+            :func:`amuled_ma.tasks.prompts.render_state_prompt`.
+
+        """
+        ids = self._env_ids(env_ids)
+        obs = self.obs[ids].cpu().numpy()
+        extras = self._prompt_extras(ids)
+        return [self.prompt_variables_from_obs(o, **e) for o, e in zip(obs, extras, strict=True)]
+
+    def state_prompts(self, env_ids: Any = None) -> list[str]:
+        """Return the rendered state prompt of each selected copy (see :meth:`prompt_variables`)."""
+        from amuled_ma.tasks.prompts import render_state_prompt
+
+        return [render_state_prompt(self.name, v) for v in self.prompt_variables(env_ids)]
+
+    @classmethod
+    @abc.abstractmethod
+    def prompt_variables_from_obs(cls, obs: np.ndarray, **extra: Any) -> dict[str, Any]:
+        """Return the prompt variables of one observation (plus task-specific extras)."""
+
+    def render(self, mode: str = "ansi", env_id: int = 0) -> str | np.ndarray:
+        """Render one copy.
+
+        Args:
+            mode: ``"ansi"`` (a text picture) or ``"rgb_array"`` (uint8 ``[H, W, 3]``).
+            env_id: Which copy.
+
+        Returns:
+            The text or the image.
+
+        Raises:
+            ValueError: Unknown ``mode`` or ``env_id`` out of range.
+
+        """
+        env_id = self._env_id(env_id)
+        if mode == "ansi":
+            return self.render_ansi(env_id)
+        if mode == "rgb_array":
+            return self.render_rgb(env_id)
+        raise ValueError(f"mode: expected 'ansi' or 'rgb_array', got {mode!r}")
+
+    @abc.abstractmethod
+    def render_ansi(self, env_id: int = 0) -> str:
+        """Return a text picture of copy ``env_id``."""
+
+    @abc.abstractmethod
+    def render_rgb(self, env_id: int = 0, cell: int = 32) -> np.ndarray:
+        """Return an RGB picture (uint8 ``[H, W, 3]``) of copy ``env_id``."""
+
+    # ------------------------------------------------------------------ hooks
+    def _init_task(self, **task_options: Any) -> None:
+        """Create the task state tensors (subclasses; unknown options: TypeError)."""
+        if task_options:
+            raise TypeError(f"{type(self).__name__}: unexpected option(s) {sorted(task_options)}")
+
+    @abc.abstractmethod
+    def _advance(
+        self, actions: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+        """Apply one step of the rules to every copy.
+
+        Returns:
+            ``(r_env, r_shaping, terminated, events)``; ``events`` maps names to
+            ``[num_envs]`` tensors of this step's events, copied into ``info``; it holds at
+            least one entry per name in :attr:`metric_names` (this step's increment).
+
+        """
+
+    @abc.abstractmethod
+    def _reset_where(self, mask: torch.Tensor) -> None:
+        """Reset the task state of the copies where ``mask`` is true."""
+
+    @abc.abstractmethod
+    def _observe(self) -> torch.Tensor:
+        """Return the observation of every copy from the current state."""
+
+    def _observe_after_reset(self, final_obs: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
+        """Return the observations after the reset of the ``done`` copies."""
+        return torch.where(done[:, None], self._observe(), final_obs)
+
+    def _episode_extras(self, episode: dict[str, torch.Tensor]) -> None:  # noqa: B027
+        """Add derived per-episode metrics to ``episode`` (in place; default: none)."""
+
+    def _prompt_extras(self, ids: torch.Tensor) -> list[dict[str, Any]]:
+        """Return, per selected copy, prompt variables that the observation lacks."""
+        return [{} for _ in range(len(ids))]
+
+    # ------------------------------------------------------------------ helpers
+    def _draw(self) -> torch.Tensor:
+        """Draw one 64-bit number (int64 ``[num_envs]``) per copy and advance every counter."""
+        assert self._keys is not None
+        values = _rng.draw(self._keys, self._ctr)
+        self._ctr = self._ctr + 1
+        return values
+
+    def _draw_many(self, ids: torch.Tensor, count: int) -> torch.Tensor:
+        """Draw ``count`` numbers for each copy in ``ids`` (int64 ``[len(ids), count]``)."""
+        assert self._keys is not None
+        offsets = torch.arange(count, dtype=torch.int64, device=self.device)
+        values = _rng.mix64(self._keys[ids, None] + (self._ctr[ids, None] + offsets) * _rng.GAMMA)
+        self._ctr[ids] += count
+        return values
+
+    def _check_actions(self, actions: Any) -> torch.Tensor:
+        if not isinstance(actions, torch.Tensor):
+            raise ValueError(
+                f"actions: expected a torch integer tensor of shape ({self.num_envs},), "
+                f"got {type(actions).__name__}"
+            )
+        if actions.shape != (self.num_envs,):
+            raise ValueError(
+                f"actions: expected shape ({self.num_envs},), got {tuple(actions.shape)}"
+            )
+        if (
+            actions.dtype.is_floating_point
+            or actions.dtype.is_complex
+            or actions.dtype == torch.bool
+        ):
+            raise ValueError(f"actions: expected an integer tensor, got dtype {actions.dtype}")
+        actions = actions.to(device=self.device, dtype=torch.int64)
+        low, high = torch.aminmax(actions)
+        if int(low) < 0 or int(high) >= self.num_actions:
+            bad = actions[(actions < 0) | (actions >= self.num_actions)][0].item()
+            raise ValueError(
+                f"actions: every action must be in 0..{self.num_actions - 1} "
+                f"({', '.join(self.action_names)}), got {bad}"
+            )
+        return actions
+
+    @staticmethod
+    def _check_seed(seed: Any, name: str) -> int | None:
+        if seed is None:
+            return None
+        if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+            raise ValueError(f"{name}: expected a non-negative integer or None, got {seed!r}")
+        return int(seed)
+
+    def _env_id(self, env_id: Any) -> int:
+        if isinstance(env_id, bool) or not isinstance(env_id, numbers.Integral):
+            raise ValueError(f"env_id: expected an integer, got {env_id!r}")
+        if not 0 <= env_id < self.num_envs:
+            raise ValueError(f"env_id: expected 0..{self.num_envs - 1}, got {env_id}")
+        return int(env_id)
+
+    def _env_ids(self, env_ids: Any) -> torch.Tensor:
+        if env_ids is None:
+            return torch.arange(self.num_envs, device=self.device)
+        if isinstance(env_ids, numbers.Integral) and not isinstance(env_ids, bool):
+            return torch.tensor([self._env_id(env_ids)], device=self.device)
+        ids = torch.as_tensor(env_ids, device=self.device).reshape(-1).to(torch.int64)
+        if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= self.num_envs):
+            raise ValueError(f"env_ids: expected indices in 0..{self.num_envs - 1}")
+        return ids
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(num_envs={self.num_envs}, device={str(self.device)!r}, "
+            f"shaping_coef={self.shaping_coef}, max_steps={self.max_steps})"
+        )
