@@ -1,0 +1,47 @@
+"""Deliberation: the moral panel the learner asks every step, and the PettingZoo env.
+
+- :class:`~amuled_ma.deliberation.panel.MoralPanel`: batched beliefs of every moral cluster
+  for every env copy, fused per copy (what the learner calls; see ``docs/deliberation.md``).
+- :class:`~amuled_ma.deliberation.env.DeliberationEnv`: a native PettingZoo ``ParallelEnv``
+  with an ``"actor"`` and one agent per cluster, registered per task::
+
+      from amuled_ma import deliberation
+      env = deliberation.make("amuled/FindMilkDeliberation-v0")
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from amuled_ma.deliberation.panel import MoralPanel, PanelOutput, PanelStats
+
+if TYPE_CHECKING:
+    from amuled_ma.deliberation.env import DeliberationEnv
+
+__all__ = [
+    "DeliberationEnv",
+    "MoralPanel",
+    "PanelOutput",
+    "PanelStats",
+    "make",
+    "project_to_simplex",
+    "register",
+    "registered_ids",
+]
+
+_LAZY = {
+    "DeliberationEnv": "amuled_ma.deliberation.env",
+    "project_to_simplex": "amuled_ma.deliberation.env",
+    "make": "amuled_ma.deliberation.env",
+    "register": "amuled_ma.deliberation.env",
+    "registered_ids": "amuled_ma.deliberation.env",
+}
+
+
+def __getattr__(name: str) -> Any:
+    """Import the PettingZoo side on first use (the panel does not need it)."""
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,0 +1,443 @@
+"""The moral panel: one belief per (env copy, cluster), fused per env copy.
+
+:class:`MoralPanel` is what the learner calls every step for every env copy::
+
+    panel = MoralPanel("findmilk", ["consequentialist", "deontological", "virtue", "care",
+                                    "social_justice"], CachedSource(source, store))
+    out = panel.fused(obs_batch, prompt_vars)      # obs_batch: (N, obs_dim)
+    reward = out.fused[np.arange(N), actions]      # the AMULED shaping reward
+
+For a batch it
+
+1. deduplicates the env copies by state (observation bytes + prompt variables): many
+   copies share a state, and repeated states are answered from an in-memory LRU of fused
+   rows without rendering, hashing or touching SQLite;
+2. for each new state renders the state prompt
+   (:func:`amuled_ma.tasks.prompts.render_state_prompt`) and builds each cluster's chat
+   (:func:`amuled_ma.clusters.build_messages`), unless the source reads no messages;
+3. sends all (state, cluster) requests in **one** batch to the source (wrap it in
+   :class:`~amuled_ma.beliefs.cached.CachedSource` for the SQLite store);
+4. sanitises the beliefs (a non-finite, negative or all-zero vector becomes uniform with
+   status ``"error"``, so fusion never raises in the training loop) and fuses them with
+   :func:`amuled_ma.fusion.fuse` in one vectorised call.
+
+Only rows whose every cluster answered ``ok``/``repaired`` enter the LRU, so a state that
+got a fallback belief is asked again next time (the store's policy, one level up).
+"""
+
+from __future__ import annotations
+
+import json
+from collections import OrderedDict
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from amuled_ma.beliefs.store import CACHEABLE
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+
+#: Marker substituted by the state prompt in a cluster's pre-built chat.
+_SENTINEL = "\x00AMULED_STATE_PROMPT\x00"
+
+Messages = tuple[tuple[str, str], ...]
+
+
+@dataclass
+class PanelOutput:
+    """The panel's answer for a batch of ``N`` env copies, ``K`` clusters, ``A`` actions.
+
+    Attributes:
+        fused: ``(N, A)`` fused belief per env copy.
+        beliefs: ``(N, K, A)`` each cluster's (sanitised) belief.
+        weights: ``(N, K)`` each cluster's weight in the fusion (sums to 1 per row).
+        conflict: ``(N,)`` Dempster's conflict ``K`` of the first combination (``bjs-dst``;
+            0 for rules that do not combine).
+        conflicts: ``(N, K - 1)`` conflict at each combination (empty for other rules).
+        statuses: ``(N, K)`` status of each belief (``"ok"``, ``"repaired"``, ...).
+        unique: Number of distinct states in the batch.
+        cache_hits: Distinct states answered from the panel's LRU.
+
+    """
+
+    fused: np.ndarray
+    beliefs: np.ndarray
+    weights: np.ndarray
+    conflict: np.ndarray
+    conflicts: np.ndarray
+    statuses: np.ndarray
+    unique: int = 0
+    cache_hits: int = 0
+
+    def reward(self, actions: Any) -> np.ndarray:
+        """Return ``fused[i, actions[i]]``: the shaping reward of the actions taken.
+
+        Args:
+            actions: ``(N,)`` integer actions (array-like or a CPU tensor).
+
+        Returns:
+            ``(N,)`` float64.
+
+        """
+        a = np.asarray(actions, dtype=np.int64).reshape(-1)
+        return self.fused[np.arange(len(a)), a]
+
+
+@dataclass
+class PanelStats:
+    """Counters of a :class:`MoralPanel` since creation.
+
+    Attributes:
+        calls: Calls to :meth:`MoralPanel.fused`.
+        copies: Env copies seen.
+        unique: Distinct states seen (per call).
+        lru_hits: Distinct states answered from the LRU.
+        requests: Belief requests sent to the source (K per new state).
+        fallbacks: Beliefs whose status was not ``ok``/``repaired``.
+        by_status: Count of each status among answered requests.
+
+    """
+
+    calls: int = 0
+    copies: int = 0
+    unique: int = 0
+    lru_hits: int = 0
+    requests: int = 0
+    fallbacks: int = 0
+    by_status: dict[str, int] = field(default_factory=dict)
+
+
+class MoralPanel:
+    """Ask every moral cluster about every env copy's state and fuse the answers.
+
+    Args:
+        task_name: Task name (``"findmilk"``, ``"driving"``), passed to the prompt
+            renderer, the message builder and each request.
+        clusters: The panel's agents, as names or
+            :class:`~amuled_ma.clusters.Cluster` objects, in fusion order.
+        source: Where beliefs come from (typically a
+            :class:`~amuled_ma.beliefs.cached.CachedSource`).
+        fusion_rule: A rule name of :func:`amuled_ma.fusion.fuse`.
+        action_names: The task's action names; default: the task class's
+            ``action_names``.
+        with_messages: Render prompts and build chats; default: the source's
+            ``needs_messages`` attribute (True when it has none).
+        memory_size: Fused states kept in the in-memory LRU (0 disables it).
+        render_state_prompt: ``(task_name, variables) -> str``; default
+            :func:`amuled_ma.tasks.prompts.render_state_prompt`.
+        build_messages: ``(cluster, task_name, state_prompt) -> messages``; default
+            :func:`amuled_ma.clusters.build_messages`.
+
+    """
+
+    def __init__(
+        self,
+        task_name: str,
+        clusters: Sequence[Any],
+        source: BeliefSource,
+        fusion_rule: str = "bjs-dst",
+        *,
+        action_names: Sequence[str] | None = None,
+        with_messages: bool | None = None,
+        memory_size: int = 200_000,
+        render_state_prompt: Callable[[str, Mapping[str, Any]], str] | None = None,
+        build_messages: Callable[[Any, str, str], Messages] | None = None,
+    ) -> None:
+        if not clusters:
+            raise ValueError("a moral panel needs at least one cluster")
+        self.task_name = task_name
+        self._cluster_specs = list(clusters)
+        self.cluster_names = tuple(_cluster_name(c) for c in self._cluster_specs)
+        #: Cluster names, in fusion order (the columns of ``weights``).
+        self.clusters = list(self.cluster_names)
+        if len(set(self.cluster_names)) != len(self.cluster_names):
+            raise ValueError(f"duplicate cluster in panel: {self.cluster_names}")
+        self.source = source
+        self.fusion_rule = fusion_rule
+        self.action_names = tuple(
+            action_names if action_names is not None else _task_action_names(task_name)
+        )
+        if with_messages is None:
+            with_messages = bool(getattr(source, "needs_messages", True))
+        self.with_messages = with_messages
+        self.memory_size = int(memory_size)
+        self._render = render_state_prompt
+        self._build = build_messages
+        self._templates: list[Messages] | None = None
+        self._lru: OrderedDict[bytes, tuple[Any, ...]] = OrderedDict()
+        self.stats = PanelStats()
+        from amuled_ma.fusion import fuse
+
+        self._fuse = fuse
+        # Fail at construction, not in the training loop, on an unknown rule.
+        uniform = np.full((1, len(self.clusters), len(self.action_names)), 1.0 / self.num_actions)
+        fuse(uniform, fusion_rule, return_diagnostics=True)
+
+    @property
+    def num_clusters(self) -> int:
+        """Number of clusters ``K``."""
+        return len(self.clusters)
+
+    @property
+    def num_actions(self) -> int:
+        """Number of actions ``A``."""
+        return len(self.action_names)
+
+    def clear_cache(self) -> None:
+        """Empty the in-memory LRU of fused states."""
+        self._lru.clear()
+
+    # -- prompts ---------------------------------------------------------------------
+    def state_prompt(self, variables: Mapping[str, Any]) -> str:
+        """Render one state prompt with the configured renderer."""
+        if self._render is None:
+            from amuled_ma.tasks.prompts import render_state_prompt
+
+            self._render = render_state_prompt
+        return self._render(self.task_name, variables)
+
+    def messages(self, cluster_index: int, state_prompt: str) -> Messages:
+        """Build the chat of one cluster for one state prompt.
+
+        The chat of each cluster is built once with a placeholder state and the placeholder
+        is then replaced by each state prompt; a self-check at first use falls back to
+        calling the message builder every time if that would change a single byte.
+        """
+        if self._build is None:
+            from amuled_ma.clusters import build_messages
+
+            self._build = build_messages
+        if self._templates is None:
+            self._templates = self._make_templates()
+        if not self._templates:
+            spec = self._cluster_specs[cluster_index]
+            return tuple(self._build(spec, self.task_name, state_prompt))
+        template = self._templates[cluster_index]
+        role, content = template[-1]
+        return (*template[:-1], (role, content.replace(_SENTINEL, state_prompt, 1)))
+
+    def _make_templates(self) -> list[Messages]:
+        assert self._build is not None
+        probe = "Probe state: x=1, y=2 {braces} \\ 'quotes'."
+        templates = []
+        for cluster in self._cluster_specs:
+            template = tuple(self._build(cluster, self.task_name, _SENTINEL))
+            direct = tuple(self._build(cluster, self.task_name, probe))
+            ok = (
+                template
+                and sum(content.count(_SENTINEL) for _, content in template) == 1
+                and _SENTINEL in template[-1][1]
+            )
+            if not ok:
+                return []
+            role, content = template[-1]
+            if (*template[:-1], (role, content.replace(_SENTINEL, probe, 1))) != direct:
+                return []
+            templates.append(template)
+        return templates
+
+    # -- the batch call --------------------------------------------------------------
+    def fused(
+        self, obs_batch: Any, prompt_vars: Sequence[Mapping[str, Any]] | None = None
+    ) -> PanelOutput:
+        """Ask every cluster about every env copy and fuse per copy.
+
+        Args:
+            obs_batch: ``(N, obs_dim)`` observations (numpy or a CPU torch tensor).
+            prompt_vars: ``N`` dicts of the task's prompt variables (the task env's
+                ``prompt_variables()``); may be ``None`` when the source reads no messages.
+
+        Returns:
+            The fused beliefs and diagnostics, see :class:`PanelOutput`.
+
+        Raises:
+            ValueError: ``prompt_vars`` is missing or of the wrong length while messages
+                are needed, or ``obs_batch`` is not 2-D.
+
+        """
+        obs = _as_numpy(obs_batch)
+        if obs.ndim != 2:
+            raise ValueError(f"obs_batch must be (N, obs_dim), got shape {obs.shape}")
+        n, k, a = obs.shape[0], self.num_clusters, self.num_actions
+        if self.with_messages and (prompt_vars is None or len(prompt_vars) != n):
+            got = "None" if prompt_vars is None else f"{len(prompt_vars)} dicts"
+            raise ValueError(f"prompt_vars must hold {n} dicts (one per env copy), got {got}")
+
+        # 1. distinct states of this batch
+        rows = np.ascontiguousarray(obs, dtype=np.float64)
+        keys: list[bytes] = []
+        if self.with_messages:
+            assert prompt_vars is not None
+            for i in range(n):
+                keys.append(rows[i].tobytes() + _freeze(prompt_vars[i]))
+        else:
+            keys = [rows[i].tobytes() for i in range(n)]
+        first: dict[bytes, int] = {}
+        first_index: list[int] = []  # a representative env copy of each distinct state
+        inverse = np.empty(n, dtype=np.int64)
+        for i, key in enumerate(keys):
+            u = first.get(key)
+            if u is None:
+                u = first[key] = len(first_index)
+                first_index.append(i)
+            inverse[i] = u
+        unique_keys = list(first)
+
+        u_count = len(unique_keys)
+        beliefs = np.empty((u_count, k, a))
+        fused = np.empty((u_count, a))
+        weights = np.empty((u_count, k))
+        conflicts = np.zeros((u_count, max(k - 1, 0)))
+        statuses = np.empty((u_count, k), dtype=object)
+
+        # 2. LRU of fused states
+        todo: list[int] = []
+        for u, key in enumerate(unique_keys):
+            hit = self._lru.get(key) if self.memory_size > 0 else None
+            if hit is None:
+                todo.append(u)
+                continue
+            self._lru.move_to_end(key)
+            beliefs[u], fused[u], weights[u], conflicts[u], statuses[u] = hit
+        hits = u_count - len(todo)
+
+        # 3. one batch of requests for the new states
+        if todo:
+            requests: list[BeliefRequest] = []
+            for u in todo:
+                i = first_index[u]
+                obs_t = tuple(float(x) for x in rows[i])
+                state = ""
+                if self.with_messages:
+                    assert prompt_vars is not None
+                    state = self.state_prompt(prompt_vars[i])
+                for c in range(k):
+                    msgs = self.messages(c, state) if self.with_messages else ()
+                    requests.append(
+                        BeliefRequest(
+                            task=self.task_name,
+                            cluster=self.cluster_names[c],
+                            obs=obs_t,
+                            action_names=self.action_names,
+                            messages=msgs,
+                        )
+                    )
+            results = self.source.beliefs(requests)
+            if len(results) != len(requests):
+                raise RuntimeError(
+                    f"belief source {getattr(self.source, 'name', '?')!r} answered "
+                    f"{len(results)} results for {len(requests)} requests"
+                )
+            new_b, new_s = self._collect(results, len(todo))
+            diag = self._fuse(new_b, self.fusion_rule, return_diagnostics=True)
+            idx = np.asarray(todo, dtype=np.int64)
+            beliefs[idx] = new_b
+            statuses[idx] = new_s
+            fused[idx] = diag.fused
+            weights[idx] = diag.weights
+            if k > 1 and diag.conflicts.shape[-1] == k - 1:
+                conflicts[idx] = diag.conflicts
+            self._remember([unique_keys[u] for u in todo], idx, beliefs, fused, weights,
+                           conflicts, statuses)  # fmt: skip
+
+        st = self.stats
+        st.calls += 1
+        st.copies += n
+        st.unique += u_count
+        st.lru_hits += hits
+
+        conflict = conflicts[:, 0] if k > 1 else np.zeros(u_count)
+        return PanelOutput(
+            fused=fused[inverse],
+            beliefs=beliefs[inverse],
+            weights=weights[inverse],
+            conflict=conflict[inverse],
+            conflicts=conflicts[inverse],
+            statuses=statuses[inverse].astype(str),
+            unique=u_count,
+            cache_hits=hits,
+        )
+
+    def _collect(self, results: Sequence[BeliefResult], count: int) -> tuple[np.ndarray, Any]:
+        """Stack results into ``(count, K, A)`` beliefs, making each a valid distribution."""
+        k, a = self.num_clusters, self.num_actions
+        out = np.empty((count * k, a))
+        statuses = np.empty(count * k, dtype=object)
+        st = self.stats
+        st.requests += len(results)
+        for j, result in enumerate(results):
+            b = np.asarray(result.belief, dtype=np.float64).reshape(-1)
+            status = result.status
+            total = b.sum() if b.shape == (a,) else np.nan
+            if b.shape != (a,) or not np.all(np.isfinite(b)) or (b < 0).any() or total <= 0:
+                b, status = np.full(a, 1.0 / a), "error"
+            else:
+                b = b / total
+            out[j] = b
+            statuses[j] = status
+            st.by_status[status] = st.by_status.get(status, 0) + 1
+            if status not in CACHEABLE:
+                st.fallbacks += 1
+        return out.reshape(count, k, a), statuses.reshape(count, k)
+
+    def _remember(
+        self,
+        keys: list[bytes],
+        idx: np.ndarray,
+        beliefs: np.ndarray,
+        fused: np.ndarray,
+        weights: np.ndarray,
+        conflicts: np.ndarray,
+        statuses: np.ndarray,
+    ) -> None:
+        if self.memory_size <= 0:
+            return
+        for key, u in zip(keys, idx, strict=True):
+            if not all(s in CACHEABLE for s in statuses[u]):
+                continue
+            self._lru[key] = (
+                beliefs[u].copy(),
+                fused[u].copy(),
+                weights[u].copy(),
+                conflicts[u].copy(),
+                statuses[u].copy(),
+            )
+        while len(self._lru) > self.memory_size:
+            self._lru.popitem(last=False)
+
+
+def _cluster_name(cluster: Any) -> str:
+    return cluster if isinstance(cluster, str) else str(cluster.name)
+
+
+def _task_action_names(task_name: str) -> tuple[str, ...]:
+    from amuled_ma.tasks import get_task
+
+    names = getattr(get_task(task_name), "action_names", None)
+    if names is None:
+        raise ValueError(f"task {task_name!r} has no class attribute action_names; pass them")
+    return tuple(names)
+
+
+def _as_numpy(x: Any) -> np.ndarray:
+    if hasattr(x, "detach"):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def _freeze(variables: Mapping[str, Any]) -> bytes:
+    """Return a byte string identifying a dict of prompt variables (order-free)."""
+    return b"\x1f" + json.dumps(
+        variables, sort_keys=True, separators=(",", ":"), default=_json_default
+    ).encode("utf-8")
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    return repr(value)
