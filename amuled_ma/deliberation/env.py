@@ -1,0 +1,422 @@
+"""``DeliberationEnv``: one task, an actor and a panel of moral-cluster agents (PettingZoo).
+
+## Description
+
+A native :class:`pettingzoo.ParallelEnv` wrapping one copy of a task env
+(:mod:`amuled_ma.tasks`, ``num_envs=1``). The agents are ``"actor"`` plus one agent per
+moral cluster. Each step, every cluster states a belief over the task's actions, an arbiter
+fuses the beliefs (:func:`amuled_ma.fusion.fuse`), the task steps with the actor's action,
+and the actor is rewarded with the fused belief of the action it took. Following the
+PettingZoo convention the LLMs live *outside* the env: any policy can drive the cluster
+agents, random or scripted beliefs included (a :class:`~amuled_ma.deliberation.MoralPanel`
+is the LLM one).
+
+## Action Space
+
+- ``"actor"``: ``Discrete(n_actions)``, the task action.
+- each cluster: ``Box(0, 1, (n_actions,), float32)``, a belief over the task's actions. It
+  is projected onto the probability simplex in :meth:`DeliberationEnv.step` (see
+  :func:`project_to_simplex`), so any vector is accepted; a missing cluster action counts
+  as the uniform belief.
+
+## Observation Space
+
+- ``"actor"``: the task observation, ``Box(obs_low, obs_high, (obs_dim,), float32)``.
+- each cluster: ``Dict({"prompt": Text, "obs": Box})``: the rendered state prompt
+  (:func:`amuled_ma.tasks.prompts.render_state_prompt`) and the task observation. The
+  ``Text`` space allows ``prompt_max_length`` characters from printable ASCII plus every
+  character of the task's prompt template.
+
+## Rewards
+
+- actor: ``r_env_weight * r_task + feedback_coef * fused[a]``, where ``r_task`` is the task
+  reward (``r_env + shaping_coef * r_shaping``; ``shaping_coef`` defaults to 0, so
+  ``r_task = r_env``) and ``fused[a]`` the fused belief of the action taken.
+- each cluster: its credibility weight in the fusion (``FusionResult.weights``, summing to
+  1 over the clusters), so a run shows which cluster carried the decision.
+
+## Infos
+
+Every agent's info holds ``"fused"`` (the fused vector), ``"beliefs"`` (each cluster's
+projected belief), ``"weights"`` (``{cluster: weight}``), ``"conflict"`` (Dempster's ``K``
+of the first combination; 0 for rules that do not combine), ``"conflicts"`` (``K`` at each
+combination), ``"r_env"``, ``"r_shaping"`` and ``"r_feedback"``.
+
+## Episode end
+
+The episode ends when the task terminates or truncates (its time limit ``max_steps``);
+then every agent is done at once and ``agents`` becomes empty. The observations returned
+on that step are the final ones (before the task's automatic reset); the clusters' final
+``prompt`` is the empty string (nobody is asked about a finished episode).
+
+## Version History
+
+- v0: initial version.
+"""
+
+from __future__ import annotations
+
+import functools
+import string
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+
+ACTOR = "actor"
+
+
+def project_to_simplex(v: Any) -> np.ndarray:
+    """Euclidean projection of a vector onto the probability simplex.
+
+    Returns ``argmin_x ||x - v||_2`` subject to ``x >= 0`` and ``sum(x) = 1``, by the sort
+    algorithm of Wang & Carreira-Perpiñán (2013), "Projection onto the probability
+    simplex: an efficient algorithm with a simple proof" (arXiv:1309.1541)::
+
+        u = sort(v, descending); rho = max{j : u_j + (1 - sum_{i<=j} u_i) / j > 0}
+        theta = (1 - sum_{i<=rho} u_i) / rho;  x = max(v + theta, 0)
+
+    A vector already on the simplex is returned unchanged; a vector with NaN or inf maps to
+    the uniform belief (a broken policy must not crash the env).
+
+    Args:
+        v: A 1-D array-like.
+
+    Returns:
+        The projection (float64), non-negative and summing to 1.
+
+    """
+    v = np.asarray(v, dtype=np.float64).reshape(-1)
+    n = v.size
+    if n == 0:
+        raise ValueError("cannot project an empty vector onto the simplex")
+    if not np.all(np.isfinite(v)):
+        return np.full(n, 1.0 / n)
+    u = np.sort(v)[::-1]
+    css = np.cumsum(u)
+    j = np.arange(1, n + 1)
+    rho = int(np.nonzero(u + (1.0 - css) / j > 0)[0][-1]) + 1
+    theta = (1.0 - css[rho - 1]) / rho
+    x = np.maximum(v + theta, 0.0)
+    return x / x.sum()  # exact to rounding already; this removes the last ulp of drift
+
+
+class DeliberationEnv(ParallelEnv):
+    """The actor and the moral clusters around one task (see the module docstring).
+
+    Args:
+        task_name: A task of :mod:`amuled_ma.tasks` (``"findmilk"``, ``"driving"``).
+        clusters: Cluster agent names (default: the shipped panel, the paper's five).
+        fusion_rule: A rule of :func:`amuled_ma.fusion.fuse`.
+        r_env_weight: Weight of the task reward in the actor's reward.
+        feedback_coef: Coefficient ``c`` of the fused belief of the action taken.
+        shaping_coef: The task's handcrafted shaping coefficient (0: none).
+        max_steps: The task's time limit; ``None`` keeps the task's default.
+        seed: Seed used by the first ``reset`` given none.
+        render_mode: ``None`` or ``"ansi"``.
+        prompt_max_length: ``max_length`` of the prompt ``Text`` space.
+        render_state_prompt: ``(task_name, variables) -> str``; default
+            :func:`amuled_ma.tasks.prompts.render_state_prompt`.
+        task_options: Extra keyword arguments of the task (e.g. ``layout``).
+
+    """
+
+    metadata: dict[str, Any] = {  # noqa: RUF012 - PettingZoo convention
+        "name": "amuled_deliberation_v0",
+        "render_modes": ["ansi"],
+        "is_parallelizable": True,
+    }
+
+    def __init__(
+        self,
+        task_name: str = "findmilk",
+        clusters: Sequence[str] | None = None,
+        fusion_rule: str = "bjs-dst",
+        *,
+        r_env_weight: float = 1.0,
+        feedback_coef: float = 1.0,
+        shaping_coef: float = 0.0,
+        max_steps: int | None = None,
+        seed: int | None = None,
+        render_mode: str | None = None,
+        prompt_max_length: int = 16384,
+        render_state_prompt: Callable[[str, Mapping[str, Any]], str] | None = None,
+        task_options: Mapping[str, Any] | None = None,
+    ) -> None:
+        from amuled_ma.fusion import fuse
+        from amuled_ma.tasks import get_task
+
+        if render_mode not in (None, "ansi"):
+            raise ValueError(f"render_mode: expected None or 'ansi', got {render_mode!r}")
+        if clusters is None:
+            from amuled_ma.clusters import default_registry
+
+            clusters = [c.name for c in default_registry().panel()]
+        clusters = [str(c) for c in clusters]
+        if not clusters or ACTOR in clusters or len(set(clusters)) != len(clusters):
+            raise ValueError(
+                f"clusters: expected distinct names other than 'actor', got {clusters}"
+            )
+        task_cls = get_task(task_name)
+        kwargs: dict[str, Any] = dict(task_options or {})
+        if max_steps is not None:
+            kwargs["max_steps"] = max_steps
+        self.task = task_cls(1, seed=seed, shaping_coef=shaping_coef, **kwargs)
+        self.task_name = task_cls.name
+        self.action_names = tuple(task_cls.action_names)
+        self.cluster_names = tuple(clusters)
+        self.fusion_rule = fusion_rule
+        self.r_env_weight = float(r_env_weight)
+        self.feedback_coef = float(feedback_coef)
+        self.render_mode = render_mode
+        self.prompt_max_length = int(prompt_max_length)
+        self._render_prompt = render_state_prompt
+        self._fuse = fuse
+        self.possible_agents = [ACTOR, *self.cluster_names]
+        self.agents: list[str] = []
+        self._obs = np.zeros(self.task.obs_dim, dtype=np.float32)
+        self._prompt = ""
+        # Fail now, not at the first step, on an unknown rule.
+        k, a = len(self.cluster_names), len(self.action_names)
+        fuse(np.full((k, a), 1.0 / a), fusion_rule, return_diagnostics=True)
+
+    # -- spaces (cached: PettingZoo requires the same object every time) -------------
+    @functools.cache  # noqa: B019 - one env, a handful of agents
+    def observation_space(self, agent: str) -> spaces.Space:
+        """Return the observation space of ``agent`` (the same object every call)."""
+        task = self.task
+        box = spaces.Box(
+            low=np.asarray(task.obs_low, dtype=np.float32),
+            high=np.asarray(task.obs_high, dtype=np.float32),
+            dtype=np.float32,
+        )
+        if agent == ACTOR:
+            return box
+        self._check_agent(agent)
+        text = spaces.Text(
+            max_length=self.prompt_max_length, min_length=0, charset=self._prompt_charset()
+        )
+        return spaces.Dict({"prompt": text, "obs": box})
+
+    @functools.cache  # noqa: B019
+    def action_space(self, agent: str) -> spaces.Space:
+        """Return the action space of ``agent`` (the same object every call)."""
+        n = len(self.action_names)
+        if agent == ACTOR:
+            return spaces.Discrete(n)
+        self._check_agent(agent)
+        return spaces.Box(low=0.0, high=1.0, shape=(n,), dtype=np.float32)
+
+    def _check_agent(self, agent: str) -> None:
+        if agent not in self.possible_agents:
+            raise KeyError(f"unknown agent {agent!r}; agents: {self.possible_agents}")
+
+    def _prompt_charset(self) -> frozenset[str]:
+        chars = set(string.printable)
+        try:
+            from amuled_ma.resources import prompts_dir
+
+            template = prompts_dir() / "tasks" / f"{self.task_name}.md"
+            if template.is_file():
+                chars |= set(template.read_text(encoding="utf-8"))
+        except (ImportError, OSError):
+            pass
+        if self._prompt:
+            chars |= set(self._prompt)
+        return frozenset(chars)
+
+    # -- prompts ---------------------------------------------------------------------
+    def _state_prompt(self) -> str:
+        if self._render_prompt is None:
+            from amuled_ma.tasks.prompts import render_state_prompt
+
+            self._render_prompt = render_state_prompt
+        variables = self.task.prompt_variables()[0]
+        return self._render_prompt(self.task_name, variables)
+
+    def _observations(self) -> dict[str, Any]:
+        obs = {ACTOR: self._obs.copy()}
+        for name in self.cluster_names:
+            obs[name] = {"prompt": self._prompt, "obs": self._obs.copy()}
+        return obs
+
+    # -- ParallelEnv -----------------------------------------------------------------
+    def reset(
+        self, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
+        """Reset the task and return every agent's first observation and an empty info."""
+        obs = self.task.reset(seed=seed)
+        self._obs = _row(obs)
+        self._prompt = self._state_prompt()
+        self.agents = list(self.possible_agents)
+        return self._observations(), {agent: {} for agent in self.agents}
+
+    def step(self, actions: Mapping[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        """Fuse the cluster beliefs, step the task with the actor's action, reward everyone.
+
+        Args:
+            actions: ``{"actor": int, cluster: belief vector, ...}``.
+
+        Returns:
+            ``observations, rewards, terminations, truncations, infos``, keyed by agent.
+
+        Raises:
+            RuntimeError: ``step`` after the episode ended (call ``reset``).
+            KeyError: The actor's action is missing.
+            ValueError: The actor's action is out of range.
+
+        """
+        if not self.agents:
+            raise RuntimeError("step() called with no live agents; call reset() first")
+        if ACTOR not in actions:
+            raise KeyError("actions: missing the 'actor' action")
+        a = int(np.asarray(actions[ACTOR]).reshape(()))
+        n = len(self.action_names)
+        if not 0 <= a < n:
+            raise ValueError(f"actions['actor']: expected 0..{n - 1}, got {a}")
+        beliefs = np.empty((len(self.cluster_names), n))
+        for k, name in enumerate(self.cluster_names):
+            value = actions.get(name)
+            beliefs[k] = np.full(n, 1.0 / n) if value is None else project_to_simplex(value)
+        diag = self._fuse(beliefs, self.fusion_rule, return_diagnostics=True)
+        fused = np.asarray(diag.fused, dtype=np.float64)
+        weights = np.asarray(diag.weights, dtype=np.float64)
+        conflicts = np.asarray(diag.conflicts, dtype=np.float64).reshape(-1)
+
+        import torch
+
+        obs, reward, terminated, truncated, info = self.task.step(
+            torch.tensor([a], dtype=torch.long)
+        )
+        done = bool(terminated[0]) or bool(truncated[0])
+        self._obs = _row(info["final_obs"] if done and "final_obs" in info else obs)
+        r_task = float(reward[0])
+        r_feedback = float(fused[a])
+        rewards = {ACTOR: self.r_env_weight * r_task + self.feedback_coef * r_feedback}
+        for k, name in enumerate(self.cluster_names):
+            rewards[name] = float(weights[k])
+        common = _StepInfo(
+            fused=fused,
+            beliefs=beliefs,
+            weights=dict(zip(self.cluster_names, weights.tolist(), strict=True)),
+            conflict=float(conflicts[0]) if conflicts.size else 0.0,
+            conflicts=conflicts,
+            r_env=float(info["r_env"][0]) if "r_env" in info else r_task,
+            r_shaping=float(info["r_shaping"][0]) if "r_shaping" in info else 0.0,
+            r_feedback=r_feedback,
+        )
+        infos = {agent: common.as_dict() for agent in self.agents}
+        term = dict.fromkeys(self.agents, bool(terminated[0]))
+        trunc = dict.fromkeys(self.agents, bool(truncated[0]) and not bool(terminated[0]))
+        # No cluster is asked about a finished episode: its final prompt is empty.
+        self._prompt = "" if done else self._state_prompt()
+        observations = self._observations()
+        if done:
+            self.agents = []
+        return observations, rewards, term, trunc, infos
+
+    def state(self) -> np.ndarray:
+        """Return the global state: the task observation."""
+        return self._obs.copy()
+
+    def render(self) -> str | None:
+        """Render the task as text (``render_mode="ansi"``), else nothing."""
+        if self.render_mode == "ansi":
+            return self.task.render_ansi(0)
+        return None
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+@dataclass
+class _StepInfo:
+    fused: np.ndarray
+    beliefs: np.ndarray
+    weights: dict[str, float]
+    conflict: float
+    conflicts: np.ndarray
+    r_env: float
+    r_shaping: float
+    r_feedback: float
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "fused": self.fused.copy(),
+            "beliefs": self.beliefs.copy(),
+            "weights": dict(self.weights),
+            "conflict": self.conflict,
+            "conflicts": self.conflicts.copy(),
+            "r_env": self.r_env,
+            "r_shaping": self.r_shaping,
+            "r_feedback": self.r_feedback,
+        }
+
+
+def _row(obs: Any) -> np.ndarray:
+    if hasattr(obs, "detach"):
+        obs = obs.detach().cpu().numpy()
+    return np.asarray(obs, dtype=np.float32).reshape(-1).copy()
+
+
+# -- registry ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class EnvSpec:
+    """A registered deliberation env: its id and the keyword arguments it is made with."""
+
+    env_id: str
+    kwargs: Mapping[str, Any] = field(default_factory=dict)
+
+
+_REGISTRY: dict[str, EnvSpec] = {}
+
+
+def register(env_id: str, **kwargs: Any) -> None:
+    """Register ``env_id`` as ``DeliberationEnv(**kwargs)``.
+
+    Args:
+        env_id: A versioned id, ``"namespace/NameDeliberation-vN"``.
+        **kwargs: :class:`DeliberationEnv` arguments (``task_name`` at least).
+
+    Raises:
+        ValueError: ``env_id`` is already registered.
+
+    """
+    if env_id in _REGISTRY:
+        raise ValueError(f"deliberation env {env_id!r} is already registered")
+    _REGISTRY[env_id] = EnvSpec(env_id, dict(kwargs))
+
+
+def registered_ids() -> list[str]:
+    """Return the registered deliberation env ids, sorted."""
+    return sorted(_REGISTRY)
+
+
+def make(env_id: str, **kwargs: Any) -> DeliberationEnv:
+    """Create a registered deliberation env.
+
+    Args:
+        env_id: e.g. ``"amuled/FindMilkDeliberation-v0"``.
+        **kwargs: Overrides of the registered :class:`DeliberationEnv` arguments.
+
+    Returns:
+        The env (call ``reset`` first).
+
+    Raises:
+        KeyError: Unknown id; the message lists the registered ones.
+
+    """
+    if env_id not in _REGISTRY:
+        raise KeyError(
+            f"unknown deliberation env {env_id!r}; registered: {', '.join(registered_ids())}"
+        )
+    return DeliberationEnv(**{**_REGISTRY[env_id].kwargs, **kwargs})
+
+
+register("amuled/FindMilkDeliberation-v0", task_name="findmilk")
+register("amuled/DrivingDeliberation-v0", task_name="driving")
