@@ -1,8 +1,9 @@
 """Input checks shared by every fusion entry point (private).
 
 A belief row (or mass function) is valid when it is finite, non-negative and sums to 1
-within :data:`SUM_TOLERANCE`. Valid rows are rescaled to sum to 1 exactly (to rounding)
-so that every rule works on true probability vectors; invalid rows raise ``ValueError``
+within :data:`SUM_TOLERANCE`. Valid rows are rescaled to sum to 1 (to rounding) when any
+is off by more than :data:`RESCALE_THRESHOLD`, so every rule works on true probability
+vectors; invalid rows raise ``ValueError``
 naming the first offending index, e.g. ``beliefs[3, 2]``.
 """
 
@@ -12,6 +13,10 @@ import numpy as np
 
 SUM_TOLERANCE = 1e-6
 """Largest accepted ``|sum(row) - 1|`` for a belief row or mass function."""
+
+RESCALE_THRESHOLD = 1e-12
+"""Rows are divided by their sums when some ``|sum(row) - 1|`` exceeds this; inputs that
+are probability vectors to rounding are used bit for bit (as the authors' code did)."""
 
 
 def _index_text(name: str, index: tuple[int, ...]) -> str:
@@ -29,7 +34,8 @@ def check_rows(values: object, name: str = "beliefs", *, min_ndim: int = 2) -> n
         min_ndim: the smallest accepted number of dimensions.
 
     Returns:
-        A new float64 array of the same shape whose last axis sums to 1.
+        A float64 array of the same shape whose rows sum to 1 (to within
+        :data:`RESCALE_THRESHOLD`); it may share memory with ``values``: do not modify it.
 
     Raises:
         ValueError: wrong shape, or a row with NaN/inf, a negative entry, or a sum farther
@@ -47,25 +53,36 @@ def check_rows(values: object, name: str = "beliefs", *, min_ndim: int = 2) -> n
     if array.shape[-1] == 0:
         raise ValueError(f"{name} must have at least one entry per row, got shape {array.shape}")
     if array.size == 0:
-        return array.copy()
+        return array
+    # Fast path: three whole-array reductions. NaN/inf make a row sum non-finite, and a
+    # NaN minimum or sum fails every comparison, so only bad input takes the slow path.
+    sums = np.einsum("...i->...", array)
+    lowest = array.min()
+    if not (
+        lowest >= 0 and sums.max() - 1.0 <= SUM_TOLERANCE and 1.0 - sums.min() <= SUM_TOLERANCE
+    ):
+        _raise_first_bad_row(array, sums, name)
+    if max(sums.max() - 1.0, 1.0 - sums.min()) > RESCALE_THRESHOLD:
+        array = array / sums[..., None]
+    return array
+
+
+def _raise_first_bad_row(array: np.ndarray, sums: np.ndarray, name: str) -> None:
     finite = np.isfinite(array).all(axis=-1)
     nonneg = (array >= 0).all(axis=-1)
-    sums = array.sum(axis=-1)
     close = np.abs(sums - 1.0) <= SUM_TOLERANCE
     good = finite & nonneg & close
-    if not good.all():
-        index = tuple(int(i) for i in np.argwhere(~good)[0])
-        row = array[index]
-        if not finite[index]:
-            reason = "contains NaN or infinity"
-        elif not nonneg[index]:
-            reason = "has a negative entry"
-        else:
-            reason = f"sums to {float(sums[index])!r}, expected 1 within {SUM_TOLERANCE:g}"
-        raise ValueError(
-            f"{_index_text(name, index)} is not a probability vector: {reason} (got {row.tolist()})"
-        )
-    return array / sums[..., None]
+    index = tuple(int(i) for i in np.argwhere(~good)[0])
+    row = array[index]
+    if not finite[index]:
+        reason = "contains NaN or infinity"
+    elif not nonneg[index]:
+        reason = "has a negative entry"
+    else:
+        reason = f"sums to {float(sums[index])!r}, expected 1 within {SUM_TOLERANCE:g}"
+    raise ValueError(
+        f"{_index_text(name, index)} is not a probability vector: {reason} (got {row.tolist()})"
+    )
 
 
 def check_weights(weights: object, batch_shape: tuple[int, ...]) -> np.ndarray:

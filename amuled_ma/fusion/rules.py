@@ -64,7 +64,7 @@ from typing import Any
 import numpy as np
 
 from amuled_ma.fusion._validate import check_rows, check_weights
-from amuled_ma.fusion.xiao import FusionResult, _average_bjs, _credibility, _xlog2x, bjs_dst
+from amuled_ma.fusion.xiao import FusionResult, _measures, bjs_dst
 
 __all__ = ["RULES", "RuleSpec", "fuse", "register_rule", "unregister_rule"]
 
@@ -162,11 +162,12 @@ def _generic_diagnostics(
     k = beliefs.shape[-2]
     if weights is None:
         weights = np.full(beliefs.shape[:-1], 1.0 / k)
+    credibility, entropy = _measures(beliefs)
     return FusionResult(
         fused=fused,
         weights=weights,
-        credibility=_credibility(_average_bjs(beliefs)),
-        entropy=-_xlog2x(beliefs).sum(axis=-1),
+        credibility=credibility,
+        entropy=entropy,
         conflicts=np.zeros((*beliefs.shape[:-2], 0)),
         rule=rule,
     )

@@ -170,68 +170,131 @@ def deng_entropy(
     return value
 
 
-def _average_bjs(m: np.ndarray) -> np.ndarray:
-    """``BJS_i``: mean divergence of each source to the others, shape ``(..., k)``."""
-    k = m.shape[-2]
-    if k == 1:
-        return np.zeros(m.shape[:-1])
-    i, j = np.triu_indices(k, 1)
-    a = m[..., i, :]
-    b = m[..., j, :]
-    xl = _xlog2x(m)
-    s = a + b
-    terms = xl[..., i, :] + xl[..., j, :] - s * (np.log2(np.where(s > 0, s, 1.0)) - 1.0)
-    pair = 0.5 * terms.sum(axis=-1)
-    pair = np.where(np.all(a == b, axis=-1), 0.0, np.maximum(pair, 0.0))
-    full = np.zeros((*m.shape[:-2], k, k))
-    full[..., i, j] = pair
-    full[..., j, i] = pair
-    return full.sum(axis=-1) / (k - 1)
+# Internal layout: "columns". A batch (..., k, n) is transposed once to a contiguous
+# (k, n, B) array (B = product of the batch dimensions) so that every numpy call below
+# works on long contiguous rows of length B and every reduction over clusters or
+# actions adds whole rows; Python loops run over clusters and powers only, never over
+# the batch. This is several times faster than reducing small trailing axes.
+
+_TINY = 1e-300  # added before log2 so that 0 log 0 = 0 * log2(1e-300) = 0, never NaN
 
 
-def _credibility(bjs: np.ndarray) -> np.ndarray:
-    """``Crd_i = (1/BJS_i) / sum_j (1/BJS_j)``; its limit where some ``BJS_i`` are 0."""
-    low = bjs.min(axis=-1, keepdims=True)
-    regular = low > 0
+def _to_columns(m: np.ndarray) -> np.ndarray:
+    """``(..., k, n)`` -> contiguous ``(k, n, B)``."""
+    k, n = m.shape[-2:]
+    flat = m.reshape(-1, k * n)
+    return np.ascontiguousarray(flat.T).reshape(k, n, flat.shape[0])
+
+
+def _from_columns(x: np.ndarray, batch: tuple[int, ...]) -> np.ndarray:
+    """``(c, B)`` -> ``(*batch, c)``."""
+    return np.ascontiguousarray(x.T).reshape(*batch, x.shape[0])
+
+
+def _columns_credibility(bjs: np.ndarray) -> np.ndarray:
+    """``Crd_i = (1/BJS_i) / sum_j (1/BJS_j)`` over axis 0; its limit where some are 0."""
+    low = bjs.min(axis=0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = low / np.where(bjs > 0, bjs, 1.0)  # in (0, 1]: no overflow
-    support = np.where(regular, ratio, (bjs <= 0).astype(np.float64))
-    return support / support.sum(axis=-1, keepdims=True)
+        support = low / np.where(bjs > 0, bjs, 1.0)  # in (0, 1]: no overflow
+    degenerate = ~(low > 0)
+    if degenerate.any():  # some BJS_i == 0: share the credibility among those sources
+        support[:, degenerate] = (bjs[:, degenerate] <= 0).astype(np.float64)
+    return support / support.sum(axis=0)
 
 
-def _xiao_weights(m: np.ndarray, cap: np.ndarray | None, diagnostics: bool):
-    """Run steps 1-3 up to ``WAE``; return ``(wae, weights, credibility, entropy)``."""
-    crd = _credibility(_average_bjs(m))
-    entropy = -_xlog2x(m).sum(axis=-1)
+def _columns_measures(t: np.ndarray, cap: np.ndarray | None):
+    """Credibility ``(k, B)`` and Deng entropy ``(k, B)`` of columns ``t`` ``(k, n, B)``."""
+    k = t.shape[0]
+    floored = t + _TINY  # log2 argument > 0; changes sums of x log x by ~1e-297 at most
+    xl = np.log2(floored)
+    xl *= t  # exactly 0 where t == 0: 0 log 0 = 0
+    neg_h = xl.sum(axis=1)  # sum_A m log2 m, per source
+    rows = t.sum(axis=1)
+    total = np.zeros(rows.shape)
+    for i in range(k - 1):
+        # BJS(m_i, m_j) for all j > i at once, with s = m_i + m_j:
+        # 1/2 [sum m_i log2 m_i + sum m_j log2 m_j - sum s log2 s + sum s].
+        s = floored[i] + floored[i + 1 :]
+        s_log_s = np.log2(s)
+        s_log_s *= s
+        pair = neg_h[i] + neg_h[i + 1 :]
+        pair -= s_log_s.sum(axis=1)
+        pair += rows[i]
+        pair += rows[i + 1 :]
+        pair *= 0.5
+        np.maximum(pair, 0.0, out=pair)
+        pair[(t[i] == t[i + 1 :]).all(axis=1)] = 0.0  # identical rows: exactly 0
+        total[i] += pair.sum(axis=0)
+        total[i + 1 :] += pair
+    credibility = _columns_credibility(total) if k > 1 else np.ones(rows.shape)
+    entropy = -neg_h
     if cap is not None:
-        entropy = entropy + (m * cap).sum(axis=-1)
+        entropy += (t * cap[None, :, None]).sum(axis=1)
+    return credibility, entropy
+
+
+def _columns_wae(t: np.ndarray, cap: np.ndarray | None):
+    """Run steps 1-3 on columns: ``(wae (n, B), weights, credibility, entropy)``."""
+    credibility, entropy = _columns_measures(t, cap)
     # exp(E - max E) / sum: the normalised information volume, safe from overflow.
-    iv = np.exp(entropy - entropy.max(axis=-1, keepdims=True))
-    acrd = crd * iv
-    weights = acrd / acrd.sum(axis=-1, keepdims=True)
-    wae = (weights[..., :, None] * m).sum(axis=-2)
+    volume = np.exp(entropy - entropy.max(axis=0))
+    adjusted = credibility * volume
+    weights = adjusted / adjusted.sum(axis=0)
+    wae = weights[0] * t[0]
+    for i in range(1, t.shape[0]):
+        wae += weights[i] * t[i]
+    return wae, weights, credibility, entropy
+
+
+def _power(r: np.ndarray, k: int) -> np.ndarray:
+    """``r ** k`` for an integer ``k >= 1`` by repeated squaring (faster than ``np.power``)."""
+    result = None
+    base = r
+    while True:
+        if k & 1:
+            result = base.copy() if result is None else result * base
+        k >>= 1
+        if not k:
+            return result
+        base = base * base
+
+
+def _columns_closed_form(wae: np.ndarray, k: int, diagnostics: bool):
+    """Dempster's rule on singleton ``wae`` ``(n, B)`` with itself ``k - 1`` times."""
+    top = wae.max(axis=0)
+    r = wae / top  # max entry is 1: r**k never underflows to an all-zero row
     if not diagnostics:
-        return wae, None, None, None
-    return wae, weights, crd, entropy
+        p = _power(r, k)
+        return p / p.sum(axis=0), None
+    # K_t = 1 - sum(WAE^{t+1}) / sum(WAE^t), t = 1..k-1 (sum(WAE) = 1 after validation).
+    p = r
+    sums = [p.sum(axis=0)]
+    for _ in range(k - 1):
+        p = p * r
+        sums.append(p.sum(axis=0))
+    fused = p / sums[-1]
+    conflicts = np.empty((k - 1, wae.shape[1]))
+    for t in range(k - 1):
+        conflicts[t] = 1.0 - top * sums[t + 1] / sums[t]
+    return fused, np.clip(conflicts, 0.0, 1.0)
+
+
+def _xiao_weights(m: np.ndarray, cap: np.ndarray | None):
+    """Run steps 1-3 on ``(..., k, n)``: ``(wae, weights, credibility, entropy)``."""
+    batch = m.shape[:-2]
+    wae, weights, credibility, entropy = _columns_wae(_to_columns(m), cap)
+    return tuple(_from_columns(x, batch) for x in (wae, weights, credibility, entropy))
+
+
+def _measures(m: np.ndarray, cap: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Xiao credibility and Deng entropy ``(..., k)`` of mass functions ``(..., k, n)``."""
+    batch = m.shape[:-2]
+    credibility, entropy = _columns_measures(_to_columns(m), cap)
+    return _from_columns(credibility, batch), _from_columns(entropy, batch)
 
 
 # ---------------------------------------------------------------------------------------
 # Dempster's rule
-
-
-def _closed_form(wae: np.ndarray, k: int, diagnostics: bool):
-    """Dempster's rule on singleton ``wae`` with itself ``k - 1`` times: fused and ``K_t``."""
-    top = wae.max(axis=-1, keepdims=True)
-    r = wae / top  # max entry is 1: r**k never underflows to an all-zero row
-    if not diagnostics:
-        p = r**k
-        return p / p.sum(axis=-1, keepdims=True), None
-    powers = np.cumprod(np.broadcast_to(r[..., None, :], (*r.shape[:-1], k, r.shape[-1])), -2)
-    sums = powers.sum(axis=-1)  # sums[..., t-1] = sum(r^t)
-    fused = powers[..., -1, :] / sums[..., -1:]
-    # K_t = 1 - sum(WAE^{t+1}) / sum(WAE^t), t = 1..k-1 (sum(WAE) = 1 after validation).
-    conflicts = 1.0 - top * sums[..., 1:] / sums[..., :-1]
-    return fused, np.clip(conflicts, 0.0, 1.0)
 
 
 def _as_focal_sets(focal_sets: Iterable[Iterable[Hashable]]) -> FocalSets:
@@ -422,9 +485,13 @@ def xiao_fusion(
     if closed_form and not singletons:
         raise ValueError("closed_form=True needs every focal element to be a singleton")
     k = m.shape[-2]
-    wae, weights, crd, entropy = _xiao_weights(m, _log2_capacity(sets), True)
+    wae, weights, crd, entropy = _xiao_weights(m, _log2_capacity(sets))
     if singletons and closed_form is not False:
-        fused, conflicts = _closed_form(wae, k, True)
+        fused, conflicts = _columns_closed_form(_to_columns(wae[..., None, :])[0], k, True)
+        fused, conflicts = (
+            _from_columns(fused, m.shape[:-2]),
+            _from_columns(conflicts, m.shape[:-2]),
+        )
         out = sets
     else:
         fused, out, conflicts = _general_self_combination(wae, sets, k)
@@ -442,9 +509,18 @@ def xiao_fusion(
 
 def bjs_dst(beliefs: np.ndarray, diagnostics: bool = False) -> np.ndarray | FusionResult:
     """Apply the ``bjs-dst`` rule to validated singleton beliefs ``(..., k, n)`` (closed form)."""
+    batch = beliefs.shape[:-2]
     k = beliefs.shape[-2]
-    wae, weights, crd, entropy = _xiao_weights(beliefs, None, diagnostics)
-    fused, conflicts = _closed_form(wae, k, diagnostics)
+    wae, weights, crd, entropy = _columns_wae(_to_columns(beliefs), None)
+    fused, conflicts = _columns_closed_form(wae, k, diagnostics)
     if not diagnostics:
-        return fused
-    return FusionResult(fused, weights, crd, entropy, conflicts, None, wae, "bjs-dst")
+        return _from_columns(fused, batch)
+    return FusionResult(
+        fused=_from_columns(fused, batch),
+        weights=_from_columns(weights, batch),
+        credibility=_from_columns(crd, batch),
+        entropy=_from_columns(entropy, batch),
+        conflicts=_from_columns(conflicts, batch),
+        wae=_from_columns(wae, batch),
+        rule="bjs-dst",
+    )

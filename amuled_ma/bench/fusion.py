@@ -1,0 +1,78 @@
+"""Throughput of the bjs-dst fusion arbiter: vectorized numpy vs a per-state pure-Python reference.
+
+Fuses ``--n`` random belief matrices (``--clusters`` x ``--actions``, float64, Dirichlet(1)
+rows) in one :func:`amuled_ma.fusion.fuse` call, and in the same run fuses the first
+``--sample`` of them one at a time with :mod:`amuled_ma.fusion.reference` (dicts of
+frozensets, ``math.log2``), checks that both agree, and prints both throughputs and
+their ratio. Timings are the best of ``--repeats`` runs (wall clock, one process; numpy's
+element-wise code is single-threaded). Targets (issue 2): 100,000 matrices of 5 x 4 in
+under 0.5 s, and at least 100x the reference.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import time
+
+import numpy as np
+
+from amuled_ma.fusion import fuse
+from amuled_ma.fusion.reference import fuse_beliefs
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the benchmark's options to ``parser``."""
+    parser.add_argument("--n", type=int, default=100_000, help="matrices to fuse (vectorized)")
+    parser.add_argument("--clusters", type=int, default=5, help="clusters per matrix")
+    parser.add_argument("--actions", type=int, default=4, help="actions per belief")
+    parser.add_argument(
+        "--sample", type=int, default=2_000, help="matrices fused by the pure-Python reference"
+    )
+    parser.add_argument("--repeats", type=int, default=5, help="timing repeats (best is kept)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed of the beliefs")
+
+
+def _best(func, repeats: int) -> tuple[float, object]:
+    best, out = float("inf"), None
+    for _ in range(max(repeats, 1)):
+        start = time.perf_counter()
+        out = func()
+        best = min(best, time.perf_counter() - start)
+    return best, out
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the benchmark and print the figures; returns 0 (a benchmark, not a test)."""
+    rng = np.random.default_rng(args.seed)
+    beliefs = rng.dirichlet(np.ones(args.actions), size=(args.n, args.clusters))
+    sample = beliefs[: min(args.sample, args.n)]
+    sample_lists = sample.tolist()
+
+    fuse(beliefs[:100])  # warm-up
+    vec_s, fused = _best(lambda: fuse(beliefs, "bjs-dst"), args.repeats)
+    ref_s, ref = _best(lambda: [fuse_beliefs(b) for b in sample_lists], max(args.repeats // 2, 1))
+    diff = float(np.max(np.abs(np.asarray(ref) - fused[: len(sample_lists)])))
+
+    vec_rate = args.n / vec_s
+    ref_rate = len(sample_lists) / ref_s
+    ratio = vec_rate / ref_rate
+    print(
+        f"fusion benchmark: rule bjs-dst, {args.clusters} clusters x {args.actions} actions, "
+        f"float64, numpy {np.__version__}, Python {platform.python_version()}, "
+        f"{platform.machine()}"
+    )
+    print(
+        f"  vectorized fuse():      {args.n:>9,} matrices in {vec_s:8.4f} s  "
+        f"= {vec_rate:>13,.0f} matrices/s  (best of {args.repeats})"
+    )
+    print(
+        f"  pure-Python reference:  {len(sample_lists):>9,} matrices in {ref_s:8.4f} s  "
+        f"= {ref_rate:>13,.0f} matrices/s"
+    )
+    print(f"  speed-up: {ratio:,.0f}x   max |difference| on the sample: {diff:.1e}")
+    if args.n == 100_000 and args.clusters == 5 and args.actions == 4:
+        time_ok = "met" if vec_s < 0.5 else "NOT met"
+        ratio_ok = "met" if ratio >= 100 else "NOT met"
+        print(f"  targets: 100,000 in < 0.5 s: {time_ok}; >= 100x the reference: {ratio_ok}")
+    return 0
