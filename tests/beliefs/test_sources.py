@@ -1,0 +1,126 @@
+"""make_source registry, rules and scripted sources, entry-point agents."""
+
+from __future__ import annotations
+
+import sys
+import types
+from importlib.metadata import EntryPoint
+
+import numpy as np
+import pytest
+
+from amuled_ma.beliefs import (
+    BeliefRequest,
+    BeliefSource,
+    RulesSource,
+    ScriptedSource,
+    make_source,
+    register_source,
+    source_kinds,
+)
+from amuled_ma.beliefs.rules import to_belief
+from amuled_ma.errors import ScenarioError
+
+MILK = ("up", "down", "left", "right")
+
+
+def req(cluster="care", obs=(1.0, 2.0), task="findmilk"):
+    return BeliefRequest(task=task, cluster=cluster, obs=obs, action_names=MILK)
+
+
+def test_builtin_kinds():
+    assert {"ollama", "replay", "rules", "scripted"} <= set(source_kinds())
+    with pytest.raises(ScenarioError, match="unknown belief source kind 'psychic'"):
+        make_source("psychic")
+    with pytest.raises(ScenarioError, match="bad options"):
+        make_source("scripted", colour="blue")
+
+
+def test_scripted_table_and_function():
+    source = make_source("scripted", beliefs={"care": [0, 2, 0, 0], "*": [1, 1, 1, 1]})
+    care, other = source.beliefs([req("care"), req("virtue")])
+    assert np.allclose(care.belief, [0, 1, 0, 0]) and care.status == "ok"
+    assert np.allclose(other.belief, 0.25)
+    fn = ScriptedSource(lambda r: [r.obs[0], 0, 0, 0], label="first")
+    assert np.allclose(fn.beliefs([req()])[0].belief, [1, 0, 0, 0])
+    assert fn.identity() == {"source": "scripted", "label": "first"}
+    broken = ScriptedSource(lambda r: 1 / 0)
+    assert broken.beliefs([req()])[0].status == "error"
+
+
+@pytest.mark.parametrize(
+    ("values", "status"),
+    [
+        ([1, 1, 0, 0], "ok"),
+        ([-1, 1, 0, 0], "ok"),
+        ([0, 0, 0, 0], "error"),
+        ([np.nan, 1, 0, 0], "error"),
+        ([1, 2], "error"),
+        ("x", "error"),
+    ],
+)
+def test_to_belief_projection(values, status):
+    belief, got = to_belief(values, 4)
+    assert got == status
+    assert belief.shape == (4,) and np.isclose(belief.sum(), 1) and np.all(belief >= 0)
+
+
+def test_rules_with_a_callable_and_a_module_path():
+    source = RulesSource(lambda task, obs: [0, 0, 1, 0])
+    assert np.allclose(source.beliefs([req()])[0].belief, [0, 0, 1, 0])
+    module = types.ModuleType("amuled_test_rules")
+    module.rule = lambda task, obs: [0, 0, 0, 1] if task == "findmilk" else [1, 0, 0, 0]
+    sys.modules["amuled_test_rules"] = module
+    try:
+        source = make_source("rules", policy="amuled_test_rules:rule")
+        assert np.allclose(source.beliefs([req()])[0].belief, [0, 0, 0, 1])
+        assert source.identity() == {"source": "rules", "policy": "amuled_test_rules:rule"}
+    finally:
+        del sys.modules["amuled_test_rules"]
+    with pytest.raises(ScenarioError, match="cannot import"):
+        RulesSource("no_such_module_xyz:rule")
+    failing = RulesSource(lambda task, obs: 1 / 0)
+    assert failing.beliefs([req()])[0].status == "error"
+
+
+def test_rules_human_policy_uses_the_tasks_module():
+    pytest.importorskip(
+        "amuled_ma.tasks.human", reason="tasks engineer's human policies not landed"
+    )
+    source = RulesSource("human")
+    result = source.beliefs([req(obs=(0.0, 0.0, 3.0, 3.0, 1.0, 0.0, 0.0, 1.0))])[0]
+    assert result.belief.shape == (4,) and np.isclose(result.belief.sum(), 1)
+
+
+def test_registered_kind_and_entry_point(monkeypatch):
+    class Constant(BeliefSource):
+        name = "constant"
+
+        def __init__(self, index=0):
+            self.index = index
+
+        def beliefs(self, requests):
+            return ScriptedSource({"*": np.eye(4)[self.index]}).beliefs(requests)
+
+    register_source("constant", Constant)
+    assert make_source("constant", index=2).beliefs([req()])[0].belief[2] == 1.0
+
+    module = types.ModuleType("amuled_test_plugin")
+    module.Plugin = Constant
+    sys.modules["amuled_test_plugin"] = module
+    point = EntryPoint("plugged", "amuled_test_plugin:Plugin", "amuled_ma.agents")
+    monkeypatch.setattr(
+        "amuled_ma.clusters.plugins.entry_points",
+        lambda group: [point] if group == "amuled_ma.agents" else [],
+    )
+    try:
+        assert "plugged" in source_kinds()
+        assert make_source("plugged", index=1).beliefs([req()])[0].belief[1] == 1.0
+    finally:
+        del sys.modules["amuled_test_plugin"]
+
+
+def test_factory_must_build_a_source():
+    register_source("notasource", lambda: object())
+    with pytest.raises(ScenarioError, match="did not build a BeliefSource"):
+        make_source("notasource")
