@@ -27,7 +27,7 @@ from amuled_ma.errors import ScenarioError
 from amuled_ma.resources import scenarios_dir
 
 #: The five moral clusters of the paper (Table 1), in the recordings' order.
-PAPER_CLUSTERS = ("consequentialist", "deontologist", "virtue", "care", "social justice")
+PAPER_CLUSTERS = ("consequentialist", "deontological", "virtue", "care", "social_justice")
 
 
 @dataclass(frozen=True)
@@ -146,7 +146,7 @@ class FeedbackConfig:
         host: Ollama server URL.
         concurrency: Requests in flight at once.
         timeout_s: Seconds before one request is abandoned.
-        miss_policy: What a replay miss gives: ``uniform``, ``nearest`` or ``error``.
+        miss_policy: What a replay miss gives: ``uniform``, ``fallback`` or ``error``.
         store: SQLite belief store (cache of every answer).
         clusters: Moral clusters of the panel.
         fusion: Fusion rule of the ``amuled`` variant.
@@ -271,7 +271,7 @@ _SECTIONS: dict[str, type] = {
 
 _CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
     ("feedback", "source"): ("replay", "ollama", "rules"),
-    ("feedback", "miss_policy"): ("uniform", "nearest", "error"),
+    ("feedback", "miss_policy"): ("uniform", "fallback", "error"),
     ("ppo", "activation"): ("tanh", "relu", "elu", "selu", "lrelu", "sigmoid", "identity"),
 }
 

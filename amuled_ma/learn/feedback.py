@@ -220,13 +220,15 @@ def make_source(scenario: Any, run_dir: Path | None = None) -> Any:
 
     Args:
         scenario: The :class:`~amuled_ma.scenario.Scenario`.
-        run_dir: Run directory (the belief store path is relative to it).
+        run_dir: Run directory (a relative belief store path is resolved against it).
 
     Returns:
-        A :class:`~amuled_ma.beliefs.types.BeliefSource`.
-
+        A :class:`~amuled_ma.beliefs.cached.CachedSource` over the scenario's source.
     """
-    beliefs = importlib.import_module("amuled_ma.beliefs")
+    from amuled_ma.beliefs import make_source as build
+    from amuled_ma.beliefs.cached import CachedSource
+    from amuled_ma.beliefs.store import BeliefStore
+
     fb = scenario.feedback
     options: dict[str, Any] = {}
     if fb.source == "replay":
@@ -236,15 +238,16 @@ def make_source(scenario: Any, run_dir: Path | None = None) -> Any:
                 f"{scenario.path}: [feedback].recording {fb.recording!r} not found at {path} "
                 "(set AMULED_RECORDINGS to the folder of the recordings)"
             )
-        options.update(path=path, miss_policy=fb.miss_policy)
+        options.update(paths=path, miss_policy=fb.miss_policy)
     elif fb.source == "ollama":
         options.update(
-            model=fb.model, host=fb.host, concurrency=fb.concurrency, timeout=fb.timeout_s
+            model=fb.model, host=fb.host, concurrency=fb.concurrency, timeout_s=fb.timeout_s
         )
     store_path = Path(fb.store)
     if not store_path.is_absolute():
         store_path = (run_dir or scenario.base_dir) / store_path
-    return beliefs.make_source(fb.source, store=store_path, **options)
+    store_path.parent.mkdir(parents=True, exist_ok=True)
+    return CachedSource(build(fb.source, **options), BeliefStore(store_path))
 
 
 def make_feedback(variant: str, scenario: Any, run_dir: Path | None = None) -> Feedback:

@@ -1,0 +1,272 @@
+"""Experiments: the paper's pipeline and ablations, as resumable jobs over a run directory.
+
+A run directory holds one folder per trained variant::
+
+    runs/findmilk/
+      config.json                 the fully resolved scenario and the command
+      base/ shaped/               base training (c = 0, c = 1)
+      finetune-human/ finetune-amuled/
+      ablate-clusters/finetune-cluster-care/ ...   ablations (anchored to ../base)
+      results.json results.csv report.md *.png
+
+Each variant folder holds ``model_last.pt`` (rsl-rl checkpoint; ``infos["completed"]``
+tells whether it finished), ``train_cfg.json`` (the rsl-rl config as given, before rsl-rl
+mutates its copy), ``curve.json``, TensorBoard events under ``tb/`` and, for fine-tunes,
+``feedback.json`` (fused-belief diagnostics).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError
+from amuled_ma.learn.feedback import MORAL_AGENT, make_feedback, parse_variant
+from amuled_ma.learn.trainer import LAST, Trainer, TrainOutcome
+from amuled_ma.scenario import Scenario
+
+#: The variants of the paper's main figure, in order.
+MAIN_VARIANTS = ("base", "shaped", "finetune:human", "finetune:amuled")
+#: What ``amuled ablate --what`` accepts.
+ABLATIONS = ("clusters", "aggregation", "models", "kl")
+#: The lambda_KL sweep of the ``kl`` ablation (the paper's value is 2.5).
+KL_SWEEP = (0.0, 0.5, 1.0, 2.5, 5.0, 10.0)
+
+
+def default_run_dir(scenario: Scenario) -> Path:
+    """``<output.runs_dir>/<scenario name>``, relative to the current directory."""
+    return Path(scenario.output.runs_dir) / scenario.name
+
+
+def variant_dir_name(variant: str) -> str:
+    """Folder name of a variant (``finetune:cluster:care`` -> ``finetune-cluster-care``)."""
+    return variant.replace(":", "-").replace(" ", "_").replace("/", "_")
+
+
+def checkpoint_state(path: Path) -> dict[str, Any] | None:
+    """Return a checkpoint's ``infos`` (None when there is no checkpoint)."""
+    if not path.is_file():
+        return None
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False).get("infos") or {}
+    except Exception as error:
+        raise CheckpointError(f"cannot read checkpoint {path}: {error}") from error
+
+
+@dataclass
+class JobResult:
+    """One trained (or skipped) variant.
+
+    Attributes:
+        variant: The variant name.
+        out_dir: Its folder.
+        skipped: True when a completed checkpoint was already there.
+        outcome: The training outcome (None when skipped).
+
+    """
+
+    variant: str
+    out_dir: Path
+    skipped: bool = False
+    outcome: TrainOutcome | None = None
+
+
+def _prepare(out_dir: Path, *, resume: bool, force: bool, skip_completed: bool, hint: str) -> str:
+    """Decide what to do with an existing variant folder: ``new``, ``resume`` or ``skip``."""
+    state = checkpoint_state(out_dir / LAST)
+    if state is None:
+        return "new"
+    if state.get("completed") and skip_completed and not force:
+        return "skip"
+    if force:
+        return "new"
+    if resume:
+        return "skip" if state.get("completed") else "resume"
+    raise AmuledError(
+        f"{out_dir} already holds a checkpoint (iteration {state.get('iteration')}/"
+        f"{state.get('total_iterations')}); continue it with '{hint} --resume' or start over "
+        "with --force"
+    )
+
+
+def base_checkpoint(run_dir: Path, scenario: Scenario, base_variant: str = "base") -> Path:
+    """Return the completed base checkpoint a fine-tune is anchored to.
+
+    Raises:
+        CheckpointError: Missing or unfinished, naming the command that makes it.
+
+    """
+    path = Path(run_dir) / base_variant / LAST
+    state = checkpoint_state(path)
+    make = (
+        f"amuled train {scenario.path or scenario.name} --variant {base_variant} "
+        f"--run-dir {run_dir}"
+    )
+    if state is None:
+        raise CheckpointError(f"no base checkpoint at {path}; make one with: {make}")
+    if not state.get("completed"):
+        raise CheckpointError(
+            f"the base checkpoint {path} is unfinished (iteration {state.get('iteration')}/"
+            f"{state.get('total_iterations')}); finish it with: {make} --resume"
+        )
+    return path
+
+
+def train_variant(
+    scenario: Scenario,
+    run_dir: Path,
+    variant: str,
+    *,
+    resume: bool = False,
+    force: bool = False,
+    skip_completed: bool = False,
+    progress: bool = False,
+    hint: str = "",
+    iterations: int | None = None,
+    seed: int | None = None,
+    out_dir: Path | None = None,
+    base_dir: Path | None = None,
+    task_factory: Callable[..., Any] | None = None,
+    feedback_factory: Callable[[str], Any] | None = None,
+) -> JobResult:
+    """Train one variant (``base``, ``shaped`` or ``finetune:<feedback>``) into the run.
+
+    Args:
+        scenario: The scenario.
+        run_dir: The run directory.
+        variant: What to train.
+        resume: Continue an unfinished checkpoint.
+        force: Start over even when a checkpoint exists.
+        skip_completed: Leave a completed variant alone (pipelines).
+        progress: Show a progress bar.
+        hint: The command that re-runs this job (for messages and Ctrl-C).
+        iterations: Override the number of iterations.
+        seed: Override the scenario's seed.
+        out_dir: Folder of the variant (default ``run_dir/<variant folder>``).
+        base_dir: Run directory holding the base checkpoint (default ``run_dir``).
+        task_factory: Replaces the task constructor (tests).
+        feedback_factory: ``variant -> Feedback``, replaces :func:`make_feedback` (tests).
+
+    Returns:
+        The job result.
+
+    """
+    run_dir = Path(run_dir)
+    out = Path(out_dir) if out_dir else run_dir / variant_dir_name(variant)
+    action = _prepare(out, resume=resume, force=force, skip_completed=skip_completed, hint=hint)
+    if action == "skip":
+        return JobResult(variant, out, skipped=True)
+    feedback = None
+    base_ckpt = None
+    if variant.startswith("finetune"):
+        fb_name = variant.split(":", 1)[1] if ":" in variant else ""
+        parse_variant(fb_name)
+        base_ckpt = base_checkpoint(base_dir or run_dir, scenario)
+        feedback = (feedback_factory or (lambda v: make_feedback(v, scenario, run_dir)))(fb_name)
+    elif variant not in ("base", "shaped"):
+        raise ScenarioError(
+            f"unknown variant {variant!r}; expected base, shaped or finetune:<feedback>"
+        )
+    try:
+        trainer = Trainer(
+            scenario,
+            out,
+            variant=variant,
+            feedback=feedback,
+            base_checkpoint=base_ckpt,
+            resume=action == "resume",
+            seed=seed,
+            iterations=iterations,
+            progress=progress,
+            resume_hint=f"{hint} --resume" if hint else None,
+            task_factory=task_factory,
+        )
+        outcome = trainer.train()
+    finally:
+        if feedback is not None:
+            feedback.close()
+    return JobResult(variant, out, outcome=outcome)
+
+
+def write_config(run_dir: Path, scenario: Scenario, extra: dict[str, Any] | None = None) -> Path:
+    """Write ``config.json``: the fully resolved scenario, the command line and extras."""
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    path = run_dir / "config.json"
+    data = {
+        "scenario": scenario.to_dict(),
+        "command": sys.argv,
+        "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "torch": torch.__version__,
+    }
+    try:
+        from importlib.metadata import version
+
+        import rsl_rl  # noqa: F401
+
+        data["rsl_rl"] = version("rsl-rl-lib")
+    except Exception:  # pragma: no cover - metadata missing
+        pass
+    data.update(extra or {})
+    path.write_text(json.dumps(data, indent=2, default=str))
+    return path
+
+
+def ablation_variants(what: str, scenario: Scenario) -> list[tuple[str, Scenario, str]]:
+    """List the fine-tunes of one ablation: ``(feedback variant, scenario, folder name)``.
+
+    Args:
+        what: ``clusters``, ``aggregation``, ``models`` or ``kl``.
+        scenario: The base scenario.
+
+    Returns:
+        The jobs, each with the (possibly modified) scenario it runs on.
+
+    """
+    if what == "clusters":
+        jobs = [(f"cluster:{c}", scenario, "") for c in scenario.feedback.clusters]
+        jobs.append(("moral", scenario, ""))
+        jobs.append(("amuled", scenario, ""))
+    elif what == "aggregation":
+        jobs = [(f"agg:{rule}", scenario, "") for rule in ("mean", "max", "vote")]
+        jobs.append(("amuled", scenario, ""))
+    elif what == "kl":
+        jobs = [
+            ("amuled", scenario.replace("finetune", lambda_kl=lam), f"finetune-amuled-kl{lam:g}")
+            for lam in KL_SWEEP
+        ]
+    elif what == "models":
+        jobs = []
+        if scenario.feedback.source == "replay":
+            rec = scenario.recording_path()
+            task = scenario.task.name
+            for path in sorted(rec.parent.glob(f"{task}-*.json")):
+                model = path.stem[len(task) + 1 :]
+                sc = scenario.replace("feedback", recording=str(path), model=model)
+                jobs.append(("amuled", sc, f"finetune-amuled-{model}"))
+        else:
+            jobs.append(("amuled", scenario, f"finetune-amuled-{scenario.feedback.model}"))
+        if not jobs:
+            raise AmuledError(f"no recordings for task {scenario.task.name!r} next to {rec}")
+    else:
+        raise ScenarioError(f"unknown ablation {what!r}; expected one of {', '.join(ABLATIONS)}")
+    return [(v, sc, name or variant_dir_name(f"finetune:{v}")) for v, sc, name in jobs]
+
+
+def cluster_names(variants: Sequence[str]) -> list[str]:
+    """Return the clusters named by ``cluster:<name>`` variants (and the moral agent)."""
+    out = []
+    for v in variants:
+        kind, arg = parse_variant(v)
+        if kind == "cluster" and arg:
+            out.append(arg)
+        elif kind == "moral":
+            out.append(MORAL_AGENT)
+    return out
