@@ -224,6 +224,7 @@ def make_source(scenario: Any, run_dir: Path | None = None) -> Any:
 
     Returns:
         A :class:`~amuled_ma.beliefs.cached.CachedSource` over the scenario's source.
+
     """
     from amuled_ma.beliefs import make_source as build
     from amuled_ma.beliefs.cached import CachedSource
