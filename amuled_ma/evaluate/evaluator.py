@@ -132,6 +132,7 @@ def evaluate_run(
     variants: list[str] | None = None,
     task_factory: Callable[..., Any] | None = None,
     progress: bool = False,
+    extra_dirs: list[Path] | None = None,
 ) -> dict[str, Any]:
     """Evaluate every trained variant of a run; write ``results.json`` and ``results.csv``.
 
@@ -143,6 +144,7 @@ def evaluate_run(
         variants: Only these variant folders (default: all with a checkpoint).
         task_factory: Replaces :func:`~amuled_ma.learn.trainer.make_task`.
         progress: Show a progress bar.
+        extra_dirs: Further variant folders evaluated alongside (an ablation's base).
 
     Returns:
         The results: ``{"scenario", "episodes", "confidence", "variants": {name: {mode:
@@ -161,6 +163,8 @@ def evaluate_run(
     dirs = variant_dirs(run_dir)
     if variants:
         dirs = [d for d in dirs if d.name in variants]
+    extra = [Path(d) for d in extra_dirs or [] if (Path(d) / LAST).is_file()]
+    dirs = [d for d in extra if d.name not in {x.name for x in dirs}] + dirs
     if not dirs:
         raise CheckpointError(
             f"no trained variant (*/{LAST}) in {run_dir}; train one with "

@@ -1,0 +1,131 @@
+"""Shared options and helpers of the experiment commands (train, finetune, run, ablate, ...)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from amuled_ma.errors import AmuledError, ScenarioError
+
+
+def add_scenario_args(parser: argparse.ArgumentParser) -> None:
+    """Add the scenario argument and the options every training command shares."""
+    parser.add_argument(
+        "scenario",
+        metavar="SCENARIO",
+        help="scenario TOML file, or the name of a shipped scenario (findmilk, driving)",
+    )
+    parser.add_argument(
+        "--run-dir",
+        type=Path,
+        default=None,
+        help="run directory (default: <[output].runs_dir>/<scenario name>)",
+    )
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue unfinished variants from their last checkpoint, skip finished ones",
+    )
+    parser.add_argument(
+        "--force", action="store_true", help="start over even where checkpoints exist"
+    )
+    parser.add_argument("--seed", type=int, default=None, help="override [task].seed")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override a scenario key, value in TOML syntax (repeatable), "
+        "e.g. --set finetune.lambda_kl=1.0 --set base.total_steps=100_000",
+    )
+    parser.add_argument(
+        "--no-progress", action="store_true", help="no progress bars (log-friendly output)"
+    )
+
+
+def parse_override(text: str) -> tuple[str, str, Any]:
+    """Parse ``section.key=value`` (value in TOML syntax; bare words are strings)."""
+    key, sep, raw = text.partition("=")
+    section, dot, name = key.strip().partition(".")
+    if not sep or not dot or not name:
+        raise ScenarioError(
+            f"--set {text!r}: expected SECTION.KEY=VALUE, e.g. finetune.lambda_kl=1.0"
+        )
+    try:
+        value = tomllib.loads(f"v = {raw.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw.strip()
+    return section, name, value
+
+
+def load(args: argparse.Namespace) -> Any:
+    """Load the scenario named on the command line and apply ``--set`` overrides."""
+    from amuled_ma.scenario import load_scenario
+
+    scenario = load_scenario(args.scenario)
+    for text in getattr(args, "overrides", []):
+        section, name, value = parse_override(text)
+        if not hasattr(scenario, section) or section in ("name", "path"):
+            raise ScenarioError(f"--set {text!r}: unknown section [{section}]")
+        scenario = scenario.replace(section, **{name: value})
+    return scenario
+
+
+def run_dir_of(args: argparse.Namespace, scenario: Any) -> Path:
+    """Return the run directory: ``--run-dir`` or the scenario's default."""
+    from amuled_ma.learn.experiments import default_run_dir
+
+    return Path(args.run_dir) if args.run_dir else default_run_dir(scenario)
+
+
+def command_line(name: str, args: argparse.Namespace, run_dir: Path, *extra: str) -> str:
+    """Return the shell command that re-runs a job (used for resume hints)."""
+    parts = ["amuled", name, str(args.scenario), *extra, "--run-dir", str(run_dir)]
+    for text in getattr(args, "overrides", []):
+        parts += ["--set", text]
+    if getattr(args, "seed", None) is not None:
+        parts += ["--seed", str(args.seed)]
+    return shlex.join(parts)
+
+
+def scenario_of_run(run_dir: Path) -> Any:
+    """Rebuild the scenario a run was made with, from its ``config.json``."""
+    from amuled_ma.scenario import scenario_from_dict
+
+    path = Path(run_dir) / "config.json"
+    if not path.is_file():
+        raise AmuledError(
+            f"{run_dir} is not a run directory (no config.json); make one with "
+            "'amuled run SCENARIO' or 'amuled train SCENARIO'"
+        )
+    data = json.loads(path.read_text())["scenario"]
+    source = data.pop("path", None)
+    return scenario_from_dict(data, path=Path(source) if source else None)
+
+
+def say(message: str) -> None:
+    """Print a status line (stderr stays free for errors)."""
+    print(message, flush=True)
+    sys.stdout.flush()
+
+
+def describe(job: Any) -> str:
+    """One line about a finished training job."""
+    if job.skipped:
+        return f"  = {job.variant}: already trained ({job.out_dir})"
+    out = job.outcome
+    rate = out.env_steps / max(out.wall_s, 1e-9)
+    line = (
+        f"  ✓ {job.variant}: {out.iterations} iterations, {out.env_steps:,} env steps in "
+        f"{out.wall_s:.1f} s ({rate:,.0f} steps/s)"
+    )
+    if out.feedback:
+        line += f", {out.feedback['unique_states']} distinct states"
+        line += f", replay miss rate {100 * out.feedback['miss_rate']:.2f}%"
+    return line

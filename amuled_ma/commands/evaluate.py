@@ -1,0 +1,63 @@
+"""``amuled evaluate``: evaluate every trained variant of a run and write its report."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from amuled_ma.commands import _experiment as common
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``amuled evaluate``."""
+    parser = subparsers.add_parser(
+        "evaluate",
+        help="evaluate a run's policies (mean and 95%% CI) and write report.md",
+        description=(
+            "Run N episodes of every trained variant in RUN_DIR, greedy and sampled, and "
+            "write results.json, results.csv, report.md and PNG figures into RUN_DIR."
+        ),
+    )
+    parser.add_argument("run_dir", metavar="RUN_DIR", type=Path, help="a run directory")
+    parser.add_argument(
+        "--episodes", type=int, default=None, help="episodes per policy (default: scenario's, 50)"
+    )
+    parser.add_argument(
+        "--modes",
+        nargs="+",
+        choices=("greedy", "sampled"),
+        default=None,
+        help="action selection modes (default: the scenario's)",
+    )
+    parser.add_argument(
+        "--variants", nargs="+", default=None, help="only these variant folders (default: all)"
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    parser.set_defaults(handler=evaluate_command)
+
+
+def evaluate_command(args: argparse.Namespace) -> int:
+    """Run ``amuled evaluate``."""
+    from amuled_ma.evaluate.evaluator import evaluate_run
+    from amuled_ma.evaluate.report import write_report
+
+    start = time.perf_counter()
+    run_dir = Path(args.run_dir)
+    scenario = common.scenario_of_run(run_dir)
+    extra = [run_dir.parent / "base"] if run_dir.name.startswith("ablate-") else None
+    results = evaluate_run(
+        run_dir,
+        scenario,
+        episodes=args.episodes,
+        modes=args.modes,
+        variants=args.variants,
+        progress=not args.no_progress,
+        extra_dirs=extra,
+    )
+    report = write_report(run_dir, results)
+    common.say(
+        f"evaluate {run_dir}: {len(results['variants'])} variants x {results['episodes']} "
+        f"episodes in {time.perf_counter() - start:.1f} s; report {report}"
+    )
+    return 0

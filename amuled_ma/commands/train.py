@@ -1,0 +1,97 @@
+"""``amuled train`` and ``amuled finetune``: train one variant of a scenario."""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from amuled_ma.commands import _experiment as common
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``amuled train`` and ``amuled finetune``."""
+    train = subparsers.add_parser(
+        "train",
+        help="train a base policy (c = 0) or a base + shaping policy (c = 1)",
+        description=(
+            "Train a PPO policy on the task reward r = r_env + c * r_shaping: --variant base "
+            "(c = 0, the policy fine-tunes start from) or shaped (c = [base].shaping_coef). "
+            "Writes <run-dir>/<variant>/ with model_last.pt, curve.json, TensorBoard logs."
+        ),
+    )
+    common.add_scenario_args(train)
+    train.add_argument("--variant", choices=("base", "shaped"), default="base")
+    train.set_defaults(handler=train_command)
+
+    finetune = subparsers.add_parser(
+        "finetune",
+        help="fine-tune the base policy on fused moral feedback with a KL anchor",
+        description=(
+            "Fine-tune a copy of <run-dir>/base on r = f(B)[a] - lambda_KL * (log pi(a|s) - "
+            "log pi_base(a|s)). Feedback: amuled (the clusters fused with bjs-dst), human "
+            "(rule-based), cluster:<name> (one cluster), moral (unprompted moral agent), "
+            "agg:mean|max|vote (other fusion rules)."
+        ),
+    )
+    common.add_scenario_args(finetune)
+    finetune.add_argument(
+        "--feedback",
+        default="amuled",
+        help="amuled | human | moral | cluster:<name> | agg:mean|max|vote (default: amuled)",
+    )
+    finetune.set_defaults(handler=finetune_command)
+
+
+def train_command(args: argparse.Namespace) -> int:
+    """Run ``amuled train``."""
+    from amuled_ma.learn.experiments import train_variant, write_config
+
+    scenario = common.load(args)
+    run_dir = common.run_dir_of(args, scenario)
+    hint = common.command_line("train", args, run_dir, "--variant", args.variant)
+    write_config(run_dir, scenario, {"variant": args.variant})
+    start = time.perf_counter()
+    job = train_variant(
+        scenario,
+        run_dir,
+        args.variant,
+        resume=args.resume,
+        force=args.force,
+        progress=not args.no_progress,
+        hint=hint,
+        seed=args.seed,
+    )
+    common.say(common.describe(job))
+    common.say(
+        f"train {scenario.name}/{args.variant}: done in {time.perf_counter() - start:.1f} s; "
+        f"checkpoint {job.out_dir / 'model_last.pt'}"
+    )
+    return 0
+
+
+def finetune_command(args: argparse.Namespace) -> int:
+    """Run ``amuled finetune``."""
+    from amuled_ma.learn.experiments import train_variant, variant_dir_name, write_config
+
+    scenario = common.load(args)
+    run_dir = common.run_dir_of(args, scenario)
+    variant = f"finetune:{args.feedback}"
+    hint = common.command_line("finetune", args, run_dir, "--feedback", args.feedback)
+    start = time.perf_counter()
+    job = train_variant(
+        scenario,
+        run_dir,
+        variant,
+        resume=args.resume,
+        force=args.force,
+        progress=not args.no_progress,
+        hint=hint,
+        seed=args.seed,
+    )
+    write_config(run_dir / variant_dir_name(variant), scenario, {"variant": variant})
+    common.say(common.describe(job))
+    common.say(
+        f"finetune {scenario.name}/{args.feedback}: done in {time.perf_counter() - start:.1f} s; "
+        f"checkpoint {job.out_dir / 'model_last.pt'}"
+    )
+    return 0
