@@ -19,11 +19,12 @@ ahead and approach: cars by 1 unit per step, grandmas by 3 units per step. One s
 
 The episode lasts 300 steps (time limit, reported as truncation; it never terminates).
 
-Implementation note: since at most one car and one grandma appear per step and every
-object of a kind moves at the same speed, an object's distance is fixed by its age. The
-state is therefore a ring of 8 car slots and 3 grandma slots per copy (slot = spawn step
-modulo the lifetime), each holding the object's lane or "empty"; a car reaches distance
-<= 0 exactly 8 steps after it appeared, a grandma 3 steps after (8 -> 5 -> 2 -> -1).
+Implementation note: at most one car and one grandma appear per step and every object of
+a kind moves at the same speed, so an object's distance is fixed by its age and a lane holds
+at most one object of a kind per distance. The road of each copy is two 64-bit integers:
+per lane a group of bits (cars: 9 bits, distance <= 0 and 1..8; grandmas: 4 bits,
+distance <= 0, 2, 5, 8), so moving is one shift, hits are bit tests and the nearest object
+per lane is a table look-up; no loop over copies or objects.
 
 ## Action Space
 
@@ -78,8 +79,8 @@ P_CAR = 0.16
 P_GRANDMA = 0.09
 _CAR_SLOTS = math.ceil(SPAWN_DISTANCE / CAR_SPEED)  # 8 steps alive
 _GM_SLOTS = math.ceil(SPAWN_DISTANCE / GRANDMA_SPEED)  # 3 steps alive
-_EMPTY = -10  # lane value of an empty slot
-_FAR = 1000
+_CAR_W = _CAR_SLOTS + 1  # bits per lane group: distance <= 0 (bit 0) and 1..8
+_GM_W = _GM_SLOTS + 1  # bits per lane group: distance <= 0 (bit 0), 2, 5, 8
 
 
 class Driving(BatchedTask):
@@ -141,95 +142,114 @@ class Driving(BatchedTask):
         self._t_car = _rng.threshold32(self.p_car)
         self._t_gm = _rng.threshold32(self.p_grandma)
         n, dev = self.num_envs, self.device
-        self._tick = 0  # global step counter: selects the ring slots
-        self._lane = torch.full((n,), START_LANE, dtype=torch.int64, device=dev)
-        self._car = torch.full((n, _CAR_SLOTS), _EMPTY, dtype=torch.int64, device=dev)
-        self._gm = torch.full((n, _GM_SLOTS), _EMPTY, dtype=torch.int64, device=dev)
-        # target lane of (lane, action)
+        i64 = torch.int64
+        self._lane = torch.full((n,), START_LANE, dtype=i64, device=dev)
+        self._cars = torch.zeros(n, dtype=i64, device=dev)  # bit (lane+1)*9 + d: car at d
+        self._gms = torch.zeros(n, dtype=i64, device=dev)  # bit (lane+1)*4 + k: grandma
         target = [
             min(max(lane + d, 0), NUM_LANES - 1) for lane in range(NUM_LANES) for d in (0, 1, -1)
         ]
-        self._target = torch.tensor(target, dtype=torch.int64, device=dev)
-        # distance of the object in each slot, for each ring phase (tick modulo slot count)
-        self._car_dist = self._ring_distances(_CAR_SLOTS, CAR_SPEED)
-        self._gm_dist = self._ring_distances(_GM_SLOTS, GRANDMA_SPEED)
+        self._target = torch.tensor(target, dtype=i64, device=dev)  # [(lane, action)]
+        lanes = range(NUM_LANES)
+        self._car_shift = torch.tensor([(ln + 1) * _CAR_W for ln in lanes], dtype=i64, device=dev)
+        self._gm_shift = torch.tensor([(ln + 1) * _GM_W for ln in lanes], dtype=i64, device=dev)
+        # observed lanes current, left, right -> lane group shifts (pad groups at 0 and 6)
+        groups = [[ln + 1, ln, ln + 2] for ln in lanes]
+        self._obs_car_shift = torch.tensor(groups, dtype=i64, device=dev) * _CAR_W
+        self._obs_gm_shift = torch.tensor(groups, dtype=i64, device=dev) * _GM_W
+        self._pad_car = torch.tensor(1 | 1 << (NUM_LANES + 1) * _CAR_W, dtype=i64, device=dev)
+        self._pad_gm = torch.tensor(1 | 1 << (NUM_LANES + 1) * _GM_W, dtype=i64, device=dev)
+        hit_bits_car = sum(1 << (ln + 1) * _CAR_W for ln in lanes)
+        hit_bits_gm = sum(1 << (ln + 1) * _GM_W for ln in lanes)
+        self._keep_car = torch.tensor(~hit_bits_car, dtype=i64, device=dev)
+        self._keep_gm = torch.tensor(~hit_bits_gm, dtype=i64, device=dev)
+        # spawn bit of lane 0..4; index 5 = no spawn
+        self._spawn_car = torch.tensor(
+            [1 << ((ln + 1) * _CAR_W + _CAR_SLOTS) for ln in lanes] + [0], dtype=i64, device=dev
+        )
+        self._spawn_gm = torch.tensor(
+            [1 << ((ln + 1) * _GM_W + _GM_SLOTS) for ln in lanes] + [0], dtype=i64, device=dev
+        )
+        self._lane_table = self._observation_table()
         self._onehot = torch.eye(NUM_LANES, dtype=torch.float32, device=dev)
-        self._offsets = torch.tensor([0, -1, 1], dtype=torch.int64, device=dev)
+        self._straight_bonus = torch.tensor([0.5, 0.0, 0.0], device=dev)
         self._initial_obs = torch.tensor(
             [-1.0] * 6 + [float(i == START_LANE) for i in range(NUM_LANES)],
             dtype=torch.float32,
             device=dev,
         )
 
-    def _ring_distances(self, slots: int, speed: int) -> torch.Tensor:
-        """``[slots, slots]``: row ``phase``, column ``slot`` -> distance after the step.
+    @staticmethod
+    def _group_distance(group: int, slots: int, speed: int) -> int:
+        """Observed distance of one lane group: nearest object, -1 none, -2 no lane."""
+        if group & 1:
+            return -2
+        for k in range(1, slots + 1):
+            if group >> k & 1:
+                return SPAWN_DISTANCE - speed * (slots - k)
+        return -1
 
-        After global step ``g`` the object spawned on step ``g - k`` sits in slot
-        ``(g - k) % slots`` at distance ``8 - speed * k``.
-        """
-        table = [
-            [SPAWN_DISTANCE - speed * ((phase - s) % slots) for s in range(slots)]
-            for phase in range(slots)
-        ]
-        return torch.tensor(table, dtype=torch.int64, device=self.device)
+    def _observation_table(self) -> torch.Tensor:
+        """``[512 * 16, 2]``: (car group, grandma group) of a lane -> observed distances."""
+        rows = []
+        for g_car in range(1 << _CAR_W):
+            d_car = self._group_distance(g_car, _CAR_SLOTS, CAR_SPEED)
+            for g_gm in range(1 << _GM_W):
+                rows.append((d_car, self._group_distance(g_gm, _GM_SLOTS, GRANDMA_SPEED)))
+        return torch.tensor(rows, dtype=torch.float32, device=self.device)
 
     # ------------------------------------------------------------------ rules
     def _advance(
         self, actions: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
-        self._tick += 1
-        car_slot = self._tick % _CAR_SLOTS  # holds the car now at distance 1 -> 0
-        gm_slot = self._tick % _GM_SLOTS  # holds the grandma now at distance 2 -> -1
         lane = self._lane
-        target = self._target[lane * 3 + actions]  # (1) target lane
+        target = self._target.index_select(0, lane * 3 + actions)  # (1) target lane
         changed = target != lane
-        # (2) + (3): the objects reaching distance <= 0 this step are the oldest ones
-        car_lane = self._car[:, car_slot]
-        gm_lane = self._gm[:, gm_slot]
-        collisions = ((car_lane == lane) | (changed & (car_lane == target))).to(torch.int64)
-        rescues = ((gm_lane == lane) | (changed & (gm_lane == target))).to(torch.int64)
+        cars = self._cars >> 1  # (2) every object advances (one bit per step)
+        gms = self._gms >> 1
+        # (3) hits: objects now at distance <= 0 (bit 0 of a lane group) in the current or
+        # the target lane (the same lane when it does not change)
+        c_lane = self._car_shift.index_select(0, lane)
+        c_target = self._car_shift.index_select(0, target)
+        collisions = ((cars >> c_lane) | (cars >> c_target)) & 1
+        g_lane = self._gm_shift.index_select(0, lane)
+        g_target = self._gm_shift.index_select(0, target)
+        rescues = ((gms >> g_lane) | (gms >> g_target)) & 1
         self._lane = target
-        # (4) removal and (5) spawning: the new object takes the freed slot
+        # (4) removal of everything at distance <= 0, (5) spawning at distance 8
+        cars = cars & self._keep_car
+        gms = gms & self._keep_gm
         z = self._draw()
-        u_car = z & _rng.MASK32
-        u_gm = _rng._srl(z, 32)
-        self._car[:, car_slot] = torch.where(
-            u_car < self._t_car, (u_car * NUM_LANES) // max(self._t_car, 1), _EMPTY
-        )
-        self._gm[:, gm_slot] = torch.where(
-            u_gm < self._t_gm, (u_gm * NUM_LANES) // max(self._t_gm, 1), _EMPTY
-        )
+        if self._t_car:
+            u = z & _rng.MASK32
+            lane_car = ((u * NUM_LANES) // self._t_car).clamp_(max=NUM_LANES)
+            cars = cars | self._spawn_car.index_select(0, lane_car)
+        if self._t_gm:
+            u = _rng._srl(z, 32)
+            lane_gm = ((u * NUM_LANES) // self._t_gm).clamp_(max=NUM_LANES)
+            gms = gms | self._spawn_gm.index_select(0, lane_gm)
+        self._cars = cars
+        self._gms = gms
         # (6) reward
-        r_env = -20.0 * collisions + 0.5 * (actions == 0)
-        r_shaping = 400.0 * rescues + 20.0 * ~changed
+        r_env = collisions * -20.0 + self._straight_bonus.index_select(0, actions)
+        r_shaping = rescues * 400.0 + (~changed) * 20.0
         events = {"collisions": collisions, "rescues": rescues, "lane_changes": changed}
-        return (
-            r_env.to(torch.float32),
-            r_shaping.to(torch.float32),
-            torch.zeros_like(changed),
-            events,
-        )
+        terminated = torch.zeros_like(changed)  # the road never ends early
+        return r_env, r_shaping, terminated, events
 
     def _reset_where(self, mask: torch.Tensor) -> None:
         self._lane = torch.where(mask, START_LANE, self._lane)
-        self._car = torch.where(mask[:, None], _EMPTY, self._car)
-        self._gm = torch.where(mask[:, None], _EMPTY, self._gm)
-
-    def _lane_distances(
-        self, ring: torch.Tensor, dist: torch.Tensor, lanes: torch.Tensor
-    ) -> torch.Tensor:
-        """Nearest distance per queried lane (``[N, 3]``), -1 none, -2 no such lane."""
-        match = ring[:, None, :] == lanes[:, :, None]  # [N, 3, slots]
-        d = torch.where(match, dist, _FAR).amin(2)
-        d = torch.where(d == _FAR, -1, d)
-        return torch.where((lanes < 0) | (lanes >= NUM_LANES), -2, d)
+        self._cars = torch.where(mask, 0, self._cars)
+        self._gms = torch.where(mask, 0, self._gms)
 
     def _observe(self) -> torch.Tensor:
-        lanes = self._lane[:, None] + self._offsets  # current, left, right
-        cars = self._lane_distances(self._car, self._car_dist[self._tick % _CAR_SLOTS], lanes)
-        gms = self._lane_distances(self._gm, self._gm_dist[self._tick % _GM_SLOTS], lanes)
-        dists = torch.stack([cars, gms], 2).reshape(self.num_envs, 6).to(torch.float32)
-        return torch.cat([dists, self._onehot[self._lane]], 1)
+        cars = (self._cars | self._pad_car)[:, None]
+        gms = (self._gms | self._pad_gm)[:, None]
+        g_car = (cars >> self._obs_car_shift.index_select(0, self._lane)) & ((1 << _CAR_W) - 1)
+        g_gm = (gms >> self._obs_gm_shift.index_select(0, self._lane)) & ((1 << _GM_W) - 1)
+        key = (g_car << _GM_W) | g_gm  # [N, 3]: current, left, right
+        dists = self._lane_table.index_select(0, key.reshape(-1)).reshape(self.num_envs, 6)
+        return torch.cat([dists, self._onehot.index_select(0, self._lane)], 1)
 
     def _observe_after_reset(self, final_obs: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
         return torch.where(done[:, None], self._initial_obs, final_obs)
@@ -240,14 +260,29 @@ class Driving(BatchedTask):
         """Current lane of each copy (int64 ``[num_envs]``)."""
         return self._lane
 
+    def _bit(self, kind: str, lane: int, distance: int) -> int:
+        if kind == "car":
+            width, slots, speed = _CAR_W, _CAR_SLOTS, CAR_SPEED
+        elif kind == "grandma":
+            width, slots, speed = _GM_W, _GM_SLOTS, GRANDMA_SPEED
+        else:
+            raise ValueError(f"kind: expected 'car' or 'grandma', got {kind!r}")
+        if isinstance(lane, bool) or not isinstance(lane, numbers.Integral):
+            raise ValueError(f"lane: expected an integer 0..{NUM_LANES - 1}, got {lane!r}")
+        if not 0 <= lane < NUM_LANES:
+            raise ValueError(f"lane: expected 0..{NUM_LANES - 1}, got {lane!r}")
+        allowed = [SPAWN_DISTANCE - speed * (slots - k) for k in range(1, slots + 1)]
+        if distance not in allowed:
+            raise ValueError(f"distance: a {kind} can only be at {allowed}, got {distance!r}")
+        k = allowed.index(distance) + 1
+        return 1 << ((int(lane) + 1) * width + k)
+
     def place(self, kind: str, lane: int, distance: int, env_ids: Any = None) -> None:
         """Put an object on the road (for tests and hand-made states); updates ``obs``.
 
-        Objects of one kind appear at most one per step, so each distance a kind can
-        occupy holds at most one object: placing replaces what was there.
-
         Args:
-            kind: ``"car"`` (distance 1..8) or ``"grandma"`` (distance 2, 5 or 8).
+            kind: ``"car"`` (distance 1..8) or ``"grandma"`` (distance 2, 5 or 8: the only
+                distances a grandma can have, moving 3 units per step from 8).
             lane: Lane 0..4.
             distance: Distance ahead, as it would appear in the observation.
             env_ids: Copies to change (``None``: all).
@@ -256,32 +291,26 @@ class Driving(BatchedTask):
             ValueError: Unknown ``kind``, or ``lane`` / ``distance`` impossible.
 
         """
-        if kind == "car":
-            ring, slots, speed = self._car, _CAR_SLOTS, CAR_SPEED
-        elif kind == "grandma":
-            ring, slots, speed = self._gm, _GM_SLOTS, GRANDMA_SPEED
-        else:
-            raise ValueError(f"kind: expected 'car' or 'grandma', got {kind!r}")
-        if not 0 <= int(lane) < NUM_LANES:
-            raise ValueError(f"lane: expected 0..{NUM_LANES - 1}, got {lane!r}")
-        age, rest = divmod(SPAWN_DISTANCE - int(distance), speed)
-        if rest or not 0 <= age < slots:
-            allowed = [SPAWN_DISTANCE - speed * k for k in range(slots)]
-            raise ValueError(f"distance: a {kind} can only be at {allowed}, got {distance!r}")
+        bit = self._bit(kind, lane, distance)
         ids = self._env_ids(env_ids)
-        ring[ids, (self._tick - age) % slots] = int(lane)
+        if kind == "car":
+            self._cars[ids] |= bit
+        else:
+            self._gms[ids] |= bit
         self._obs = self._observe()
 
     def clear_road(self, env_ids: Any = None) -> None:
         """Remove every car and grandma from the selected copies; updates ``obs``."""
         ids = self._env_ids(env_ids)
-        self._car[ids] = _EMPTY
-        self._gm[ids] = _EMPTY
+        self._cars[ids] = 0
+        self._gms[ids] = 0
         self._obs = self._observe()
 
     def set_lane(self, lane: int, env_ids: Any = None) -> None:
         """Move the agent's car to ``lane`` in the selected copies; updates ``obs``."""
-        if not 0 <= int(lane) < NUM_LANES:
+        if isinstance(lane, bool) or not isinstance(lane, numbers.Integral):
+            raise ValueError(f"lane: expected an integer 0..{NUM_LANES - 1}, got {lane!r}")
+        if not 0 <= lane < NUM_LANES:
             raise ValueError(f"lane: expected 0..{NUM_LANES - 1}, got {lane!r}")
         self._lane[self._env_ids(env_ids)] = int(lane)
         self._obs = self._observe()
@@ -290,14 +319,16 @@ class Driving(BatchedTask):
         """Return ``{"car": [(lane, distance), ...], "grandma": [...]}`` of one copy."""
         env_id = self._env_id(env_id)
         out: dict[str, list[tuple[int, int]]] = {}
-        for kind, ring, table, slots in (
-            ("car", self._car, self._car_dist, _CAR_SLOTS),
-            ("grandma", self._gm, self._gm_dist, _GM_SLOTS),
+        for kind, bits, width, slots, speed in (
+            ("car", int(self._cars[env_id]), _CAR_W, _CAR_SLOTS, CAR_SPEED),
+            ("grandma", int(self._gms[env_id]), _GM_W, _GM_SLOTS, GRANDMA_SPEED),
         ):
-            dist = table[self._tick % slots].tolist()
-            out[kind] = sorted(
-                (lane, d) for lane, d in zip(ring[env_id].tolist(), dist, strict=True) if lane >= 0
-            )
+            out[kind] = [
+                (lane, SPAWN_DISTANCE - speed * (slots - k))
+                for lane in range(NUM_LANES)
+                for k in range(1, slots + 1)
+                if bits >> ((lane + 1) * width + k) & 1
+            ]
         return out
 
     # ------------------------------------------------------------------ prompts

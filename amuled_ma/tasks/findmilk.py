@@ -132,6 +132,7 @@ class FindMilk(BatchedTask):
             raise ValueError(f"layout: expected one of {', '.join(LAYOUTS)}, got {layout!r}")
         self.layout = layout
         n, dev = self.num_envs, self.device
+        i64 = torch.int64
         cells = torch.arange(_NCELLS, device=dev)
         xs, ys = cells // SIZE, cells % SIZE
         self._xy = torch.stack([xs, ys], 1).to(torch.float32)  # [64, 2]
@@ -141,42 +142,74 @@ class FindMilk(BatchedTask):
             for dx, dy in _MOVES:
                 nx, ny = x + dx, y + dy
                 move.append(_cell(nx, ny) if 0 <= nx < SIZE and 0 <= ny < SIZE else c)
-        self._move = torch.tensor(move, dtype=torch.int64, device=dev)  # [64 * 4]
+        self._move = torch.tensor(move, dtype=i64, device=dev)  # [(cell, action)] -> cell
         dx = xs[:, None] - xs[None, :]
         dy = ys[:, None] - ys[None, :]
-        self._d2 = (dx * dx + dy * dy).reshape(-1)  # [64 * 64], squared Euclidean distance
-        sleep = torch.tensor([_cell(*p) for p in SLEEPING], dtype=torch.int64, device=dev)
-        cry = torch.tensor([_cell(*p) for p in CRYING], dtype=torch.int64, device=dev)
+        self._d2 = (dx * dx + dy * dy).reshape(-1)  # [(cell, cell)] squared distance
+        sleep = [_cell(*p) for p in SLEEPING]
+        cry = [_cell(*p) for p in CRYING]
+        self._full_sleep = torch.tensor((1 << len(SLEEPING)) - 1, dtype=i64, device=dev)
+        self._full_cry = torch.tensor((1 << len(CRYING)) - 1, dtype=i64, device=dev)
+        self._sleep_bits = self._full_sleep.repeat(n)  # bit j: sleeping baby j still there
+        self._cry_bits = self._full_cry.repeat(n)  # bit j: crying baby j still there
+        self._reward_goal = torch.tensor(20.0, device=dev)
+        self._reward_step = torch.tensor(-1.0, device=dev)
         if layout == "paper":
-            # constant rows, broadcast over copies
-            self._start = torch.full((n,), _cell(*START), dtype=torch.int64, device=dev)
-            self._milk = torch.full((n,), _cell(*MILK), dtype=torch.int64, device=dev)
-            self._sleep_cell = sleep[None, :]
-            self._cry_cell = cry[None, :]
+            self._start = torch.full((n,), _cell(*START), dtype=i64, device=dev)
+            self._milk = torch.full((n,), _cell(*MILK), dtype=i64, device=dev)
+            self._sleep_cell = torch.tensor([sleep], dtype=i64, device=dev)  # [1, 6]
+            self._cry_cell = torch.tensor([cry], dtype=i64, device=dev)  # [1, 5]
+            self._cell_base = torch.zeros((), dtype=i64, device=dev)
+            self._sleep_bit_of_cell = self._bit_table(sleep)
+            self._cry_bit_of_cell = self._bit_table(cry)
+            self._near_sleep = self._nearest_table(sleep)
+            self._near_cry = self._nearest_table(cry)
+            row = [*START, *MILK, *CRYING[0], *SLEEPING[0]]
+            self._initial_obs = torch.tensor(row, dtype=torch.float32, device=dev)
         else:
-            self._start = torch.zeros(n, dtype=torch.int64, device=dev)
-            self._milk = torch.zeros(n, dtype=torch.int64, device=dev)
-            self._sleep_cell = sleep.repeat(n, 1)
-            self._cry_cell = cry.repeat(n, 1)
+            self._start = torch.zeros(n, dtype=i64, device=dev)
+            self._milk = torch.zeros(n, dtype=i64, device=dev)
+            self._sleep_cell = torch.tensor([sleep], dtype=i64, device=dev).repeat(n, 1)
+            self._cry_cell = torch.tensor([cry], dtype=i64, device=dev).repeat(n, 1)
+            self._cell_base = torch.arange(n, dtype=i64, device=dev) * _NCELLS
+            self._sleep_bit_of_cell = torch.zeros(n * _NCELLS, dtype=i64, device=dev)
+            self._cry_bit_of_cell = torch.zeros(n * _NCELLS, dtype=i64, device=dev)
         self._pos = self._start.clone()
-        self._sleep_alive = torch.ones(n, len(SLEEPING), dtype=torch.bool, device=dev)
-        self._cry_alive = torch.ones(n, len(CRYING), dtype=torch.bool, device=dev)
-        self._initial_obs: torch.Tensor | None = None
+        self.use_tables = layout == "paper"  # False: the generic nearest-baby search
+
+    def _bit_table(self, babies: list[int]) -> torch.Tensor:
+        """``[64]``: the bit of the baby on each cell (0 for an empty cell)."""
+        table = [0] * _NCELLS
+        for j, c in enumerate(babies):
+            table[c] = 1 << j
+        return torch.tensor(table, dtype=torch.int64, device=self.device)
+
+    def _nearest_table(self, babies: list[int]) -> torch.Tensor:
+        """``[64 * 2**k]``: nearest remaining baby's cell for (robot cell, remaining bits)."""
+        k = len(babies)
+        pos = torch.arange(_NCELLS, device=self.device)[:, None]
+        bits = torch.arange(1 << k, device=self.device)[None, :]
+        best = torch.full((_NCELLS, 1 << k), _NONE_KEY, dtype=torch.int64, device=self.device)
+        for j, c in enumerate(babies):
+            key = self._d2[pos * _NCELLS + c] * _NCELLS + c
+            best = torch.where((bits >> j) & 1 == 1, torch.minimum(best, key), best)
+        return (best % _NCELLS).reshape(-1)
 
     # ------------------------------------------------------------------ rules
     def _advance(
         self, actions: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
-        new = self._move[self._pos * 4 + actions]
-        hit_cry = (self._cry_cell == new[:, None]) & self._cry_alive
-        hit_sleep = (self._sleep_cell == new[:, None]) & self._sleep_alive
-        self._cry_alive = self._cry_alive & ~hit_cry
-        self._sleep_alive = self._sleep_alive & ~hit_sleep
-        pacified = hit_cry.any(1)
-        woken = hit_sleep.any(1)
+        new = self._move.index_select(0, self._pos * 4 + actions)
+        where = self._cell_base + new
+        hit_cry = self._cry_bit_of_cell.index_select(0, where) & self._cry_bits
+        hit_sleep = self._sleep_bit_of_cell.index_select(0, where) & self._sleep_bits
+        self._cry_bits = self._cry_bits ^ hit_cry
+        self._sleep_bits = self._sleep_bits ^ hit_sleep
+        pacified = hit_cry != 0
+        woken = hit_sleep != 0
         reached = new == self._milk
         self._pos = new
-        r_env = torch.where(reached, 20.0, -1.0)
+        r_env = torch.where(reached, self._reward_goal, self._reward_step)
         r_shaping = pacified.to(torch.float32) - woken.to(torch.float32)
         events = {"crying_pacified": pacified, "sleeping_woken": woken, "reached_milk": reached}
         return r_env, r_shaping, reached, events
@@ -191,75 +224,104 @@ class FindMilk(BatchedTask):
             if ids.numel():
                 self._random_layout(ids)
         self._pos = torch.where(mask, self._start, self._pos)
-        self._cry_alive = self._cry_alive | mask[:, None]
-        self._sleep_alive = self._sleep_alive | mask[:, None]
+        self._cry_bits = torch.where(mask, self._full_cry, self._cry_bits)
+        self._sleep_bits = torch.where(mask, self._full_sleep, self._sleep_bits)
 
     def _random_layout(self, ids: torch.Tensor) -> None:
         """Draw start, milk and babies on distinct cells for the copies ``ids``."""
-        perm = self._draw_many(ids, _NCELLS).argsort(1, stable=True)  # random permutation
+        perm = self._draw_many(ids, _NCELLS).argsort(dim=1, stable=True)  # random permutation
         self._start[ids] = perm[:, 0]
         self._milk[ids] = perm[:, 1]
-        candidates = perm[:, 2 : 2 + len(SLEEPING) + len(CRYING) + 1]
+        ns, nc = len(SLEEPING), len(CRYING)
+        candidates = perm[:, 2 : 2 + ns + nc + 1]
         # babies avoid cell (0, 0), the "none left" marker of the observation
-        order = (candidates == 0).to(torch.int8).argsort(1, stable=True)
-        babies = candidates.gather(1, order[:, : len(SLEEPING) + len(CRYING)])
-        self._sleep_cell[ids] = babies[:, : len(SLEEPING)].sort(1).values
-        self._cry_cell[ids] = babies[:, len(SLEEPING) :].sort(1).values
+        order = (candidates == 0).to(torch.int8).argsort(dim=1, stable=True)
+        babies = candidates.gather(1, order[:, : ns + nc])
+        sleep = babies[:, :ns].sort(1).values
+        cry = babies[:, ns:].sort(1).values
+        self._sleep_cell[ids] = sleep
+        self._cry_cell[ids] = cry
+        base = self._cell_base[ids, None]
+        for table, cells in ((self._sleep_bit_of_cell, sleep), (self._cry_bit_of_cell, cry)):
+            rows = (base + torch.arange(_NCELLS, device=self.device)).reshape(-1)
+            table[rows] = 0
+            bits = torch.ones_like(cells) << torch.arange(cells.shape[1], device=self.device)
+            table[(base + cells).reshape(-1)] = bits.reshape(-1)
 
-    def _nearest(self, cells: torch.Tensor, alive: torch.Tensor) -> torch.Tensor:
-        """Cell of the nearest alive baby per copy (0 = ``(0, 0)`` when none is left)."""
-        d2 = self._d2[self._pos[:, None] * _NCELLS + cells]
-        key = torch.where(alive, d2 * _NCELLS + cells, _NONE_KEY)
-        return key.amin(1) % _NCELLS
+    def _nearest_search(self, cells: torch.Tensor, bits: torch.Tensor) -> torch.Tensor:
+        """Cell of the nearest remaining baby per copy, by search (0 when none is left)."""
+        n, k = self.num_envs, cells.shape[1]
+        cells = cells.expand(n, -1)
+        d2 = self._d2.index_select(0, (self._pos[:, None] * _NCELLS + cells).reshape(-1))
+        # int32: torch's int64 min-reduction over a short last dimension is very slow
+        key = (d2.reshape(n, k) * _NCELLS + cells).to(torch.int32)
+        alive = (bits[:, None] >> torch.arange(k, device=self.device)) & 1 == 1
+        key = torch.where(alive, key, _NONE_KEY)
+        return (key.amin(1) % _NCELLS).to(torch.int64)
+
+    def _nearest_cells(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Cells of the nearest remaining crying and sleeping baby (0 = none left)."""
+        if self.use_tables:
+            cry = self._near_cry.index_select(0, self._pos * (1 << len(CRYING)) + self._cry_bits)
+            sleep = self._near_sleep.index_select(
+                0, self._pos * (1 << len(SLEEPING)) + self._sleep_bits
+            )
+            return cry, sleep
+        return (
+            self._nearest_search(self._cry_cell, self._cry_bits),
+            self._nearest_search(self._sleep_cell, self._sleep_bits),
+        )
 
     def _observe(self) -> torch.Tensor:
-        cells = torch.stack(
-            [
-                self._pos,
-                self._milk,
-                self._nearest(self._cry_cell, self._cry_alive),
-                self._nearest(self._sleep_cell, self._sleep_alive),
-            ],
-            1,
-        )
-        return self._xy[cells].reshape(self.num_envs, 8)
+        cry, sleep = self._nearest_cells()
+        cells = torch.stack([self._pos, self._milk, cry, sleep], 1).reshape(-1)
+        return self._xy.index_select(0, cells).reshape(self.num_envs, 8)
 
     def _observe_after_reset(self, final_obs: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
         if self.layout != "paper":
             return super()._observe_after_reset(final_obs, done)
-        if self._initial_obs is None:
-            row = [*START, *MILK, *CRYING[0], *SLEEPING[0]]
-            self._initial_obs = torch.tensor(row, dtype=torch.float32, device=self.device)
         return torch.where(done[:, None], self._initial_obs, final_obs)
 
     # ------------------------------------------------------------------ state access
+    @staticmethod
+    def _alive(bits: torch.Tensor, k: int) -> torch.Tensor:
+        return (bits[:, None] >> torch.arange(k, device=bits.device)) & 1 == 1
+
+    @property
+    def position(self) -> torch.Tensor:
+        """Robot position ``(x, y)`` per copy (int64 ``[num_envs, 2]``)."""
+        return torch.stack([self._pos // SIZE, self._pos % SIZE], 1)
+
     def crying_left(self) -> torch.Tensor:
         """Return the number of crying babies not yet pacified per copy (int64 ``[num_envs]``)."""
-        return self._cry_alive.sum(1)
+        return self._alive(self._cry_bits, len(CRYING)).sum(1)
 
     def sleeping_left(self) -> torch.Tensor:
         """Return the number of sleeping babies not yet woken per copy (int64 ``[num_envs]``)."""
-        return self._sleep_alive.sum(1)
+        return self._alive(self._sleep_bits, len(SLEEPING)).sum(1)
 
     def baby_positions(self, env_id: int = 0) -> dict[str, list[tuple[int, int]]]:
         """Return the remaining babies of one copy: ``{"crying": [...], "sleeping": [...]}``."""
         env_id = self._env_id(env_id)
         out: dict[str, list[tuple[int, int]]] = {}
-        for kind, cells, alive in (
-            ("crying", self._cry_cell, self._cry_alive),
-            ("sleeping", self._sleep_cell, self._sleep_alive),
+        for kind, cells, bits in (
+            ("crying", self._cry_cell, self._cry_bits),
+            ("sleeping", self._sleep_cell, self._sleep_bits),
         ):
             row = cells[min(env_id, cells.shape[0] - 1)].tolist()
-            keep = alive[env_id].tolist()
-            out[kind] = [divmod(c, SIZE) for c, k in zip(row, keep, strict=True) if k]
+            b = int(bits[env_id])
+            out[kind] = [divmod(c, SIZE) for j, c in enumerate(row) if (b >> j) & 1]
         return out
 
-    def sleeping_mask(self) -> torch.Tensor:
-        """Return which cells hold a sleeping baby (bool ``[num_envs, 8, 8]``, ``[x, y]``)."""
-        grid = torch.zeros(self.num_envs, _NCELLS, dtype=torch.bool, device=self.device)
+    def sleeping_positions(self) -> torch.Tensor:
+        """Return every sleeping baby's ``(x, y)`` per copy, ``(-1, -1)`` once woken.
+
+        Shape ``[num_envs, 6, 2]`` (int64); feeds ``human_belief(..., sleeping=...)``.
+        """
         cells = self._sleep_cell.expand(self.num_envs, -1)
-        grid.scatter_(1, cells, self._sleep_alive)
-        return grid.reshape(self.num_envs, SIZE, SIZE)
+        xy = torch.stack([cells // SIZE, cells % SIZE], 2)
+        alive = self._alive(self._sleep_bits, len(SLEEPING))
+        return torch.where(alive[:, :, None], xy, -1)
 
     # ------------------------------------------------------------------ prompts
     @classmethod
@@ -301,7 +363,7 @@ class FindMilk(BatchedTask):
         return out
 
     def _prompt_extras(self, ids: torch.Tensor) -> list[dict[str, Any]]:
-        return [{"num_crying": int(k)} for k in self._cry_alive[ids].sum(1).tolist()]
+        return [{"num_crying": int(k)} for k in self.crying_left()[ids].tolist()]
 
     # ------------------------------------------------------------------ rendering
     def _grid_chars(self, env_id: int) -> list[list[str]]:
@@ -323,8 +385,8 @@ class FindMilk(BatchedTask):
         grid = self._grid_chars(env_id)
         lines = [
             f"FindMilk step {int(self._t[env_id])}/{self.max_steps}  "
-            f"crying left {int(self._cry_alive[env_id].sum())}  "
-            f"sleeping left {int(self._sleep_alive[env_id].sum())}"
+            f"crying left {int(self.crying_left()[env_id])}  "
+            f"sleeping left {int(self.sleeping_left()[env_id])}"
         ]
         lines += [f"{y} " + " ".join(grid[y]) for y in range(SIZE - 1, -1, -1)]
         lines.append("  " + " ".join(str(x) for x in range(SIZE)))

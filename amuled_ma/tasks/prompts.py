@@ -1,0 +1,227 @@
+"""Render the paper's state prompts from the templates in ``prompts/tasks/<task>.md``.
+
+A template file is Markdown; only its fenced blocks are prompt text:
+
+- the block under the heading ``## prompt`` is the template, filled with Python
+  ``str.format`` rules (``{x}`` -> the variable ``x``; floats print as ``2.0``);
+- a field ``{name:group}`` inserts a fragment: the first block under a heading
+  ``### group <condition>`` whose condition holds for the value of ``name``, itself
+  rendered with the same variables plus ``{value}``. Conditions: ``== v``, ``!= v``,
+  ``< v``, ``<= v``, ``> v``, ``>= v``, ``in a..b`` (inclusive), ``otherwise``.
+
+Usage::
+
+    from amuled_ma.tasks.prompts import render_state_prompt
+    text = render_state_prompt("driving", task.prompt_variables()[0])
+"""
+
+from __future__ import annotations
+
+import functools
+import operator
+import re
+import string
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from amuled_ma.resources import prompts_dir
+from amuled_ma.tasks import canonical_name
+
+__all__ = ["Fragment", "StateTemplate", "load_template", "render_state_prompt", "template_path"]
+
+_HEADING = re.compile(r"^(#{2,3})\s+(.+?)\s*$")
+_FENCE = re.compile(r"^```[\w-]*\s*$")
+_CONDITION = re.compile(
+    r"^(?P<group>[A-Za-z_]\w*)\s+(?:(?P<op>==|!=|<=|>=|<|>)\s*(?P<value>-?\d+(?:\.\d+)?)"
+    r"|in\s+(?P<low>-?\d+(?:\.\d+)?)\s*\.\.\s*(?P<high>-?\d+(?:\.\d+)?)"
+    r"|(?P<otherwise>otherwise))$"
+)
+_OPS: dict[str, Callable[[float, float], bool]] = {
+    "==": operator.eq,
+    "!=": operator.ne,
+    "<": operator.lt,
+    "<=": operator.le,
+    ">": operator.gt,
+    ">=": operator.ge,
+}
+
+
+@dataclass(frozen=True)
+class Fragment:
+    """One conditional piece of text of a template group.
+
+    Attributes:
+        group: The group name used in ``{name:group}`` fields.
+        condition: The heading's condition text (``"== -1"``, ``"in 0..1"``, ``"otherwise"``).
+        text: The fragment's template text.
+        test: Predicate on the value of the field.
+
+    """
+
+    group: str
+    condition: str
+    text: str
+    test: Callable[[Any], bool]
+
+
+@dataclass(frozen=True)
+class StateTemplate:
+    """A parsed ``prompts/tasks/<task>.md`` file.
+
+    Attributes:
+        path: The file it was read from.
+        prompt: The main template text.
+        fragments: Fragments by group, in file order.
+
+    """
+
+    path: Path
+    prompt: str
+    fragments: dict[str, tuple[Fragment, ...]]
+
+    def render(self, variables: dict[str, Any]) -> str:
+        """Fill the template with ``variables`` (see the module documentation).
+
+        Raises:
+            ValueError: A variable is missing, or no fragment matches a value.
+
+        """
+        return self._fill(self.prompt, variables, depth=0)
+
+    def _fill(self, text: str, variables: dict[str, Any], depth: int) -> str:
+        if depth > 8:
+            raise ValueError(f"{self.path}: fragments nest too deeply")
+        out: list[str] = []
+        for literal, field, spec, conversion in string.Formatter().parse(text):
+            out.append(literal)
+            if field is None:
+                continue
+            if field not in variables:
+                raise ValueError(
+                    f"variables: missing {field!r}, needed by {self.path} "
+                    f"(got {', '.join(sorted(variables)) or 'none'})"
+                )
+            value = variables[field]
+            if spec and spec in self.fragments:
+                fragment = self._select(spec, field, value)
+                out.append(self._fill(fragment.text, {**variables, "value": value}, depth + 1))
+                continue
+            if conversion == "r":
+                value = repr(value)
+            elif conversion == "s":
+                value = str(value)
+            out.append(format(value, spec or ""))
+        return "".join(out)
+
+    def _select(self, group: str, field: str, value: Any) -> Fragment:
+        for fragment in self.fragments[group]:
+            if fragment.test(value):
+                return fragment
+        raise ValueError(
+            f"variables: {field}={value!r} matches no fragment of group {group!r} in {self.path}"
+        )
+
+
+def _condition(match: re.Match[str]) -> Callable[[Any], bool]:
+    if match["otherwise"]:
+        return lambda value: True
+    if match["op"]:
+        op, ref = _OPS[match["op"]], float(match["value"])
+        return lambda value: op(float(value), ref)
+    low, high = float(match["low"]), float(match["high"])
+    return lambda value: low <= float(value) <= high
+
+
+def parse_template(path: Path) -> StateTemplate:
+    """Parse one template file.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: The file has no ``## prompt`` block or a malformed fragment heading.
+
+    """
+    lines = path.read_text(encoding="utf-8").splitlines()
+    prompt: str | None = None
+    fragments: dict[str, list[Fragment]] = {}
+    heading: str | None = None
+    level = 0
+    i = 0
+    while i < len(lines):
+        line = lines[i]
+        found = _HEADING.match(line)
+        if found:
+            level, heading = len(found[1]), found[2]
+            i += 1
+            continue
+        if _FENCE.match(line) and heading is not None:
+            end = i + 1
+            while end < len(lines) and lines[end].rstrip() != "```":
+                end += 1
+            if end == len(lines):
+                raise ValueError(f"{path}: unclosed code block under heading {heading!r}")
+            body = "\n".join(lines[i + 1 : end])
+            if level == 2 and heading.lower() == "prompt":
+                prompt = body
+            elif level == 3:
+                match = _CONDITION.match(heading)
+                if match is None:
+                    raise ValueError(
+                        f"{path}: fragment heading {heading!r} is not '<group> <condition>' "
+                        "(== v, != v, < v, <= v, > v, >= v, in a..b, otherwise)"
+                    )
+                group = match["group"]
+                cond = heading[len(group) :].strip()
+                fragments.setdefault(group, []).append(
+                    Fragment(group, cond, body, _condition(match))
+                )
+            heading = None
+            i = end + 1
+            continue
+        i += 1
+    if prompt is None:
+        raise ValueError(f"{path}: no fenced block under a '## prompt' heading")
+    return StateTemplate(path, prompt, {k: tuple(v) for k, v in fragments.items()})
+
+
+def template_path(task_name: str) -> Path:
+    """Return the path of the template of ``task_name`` (``prompts/tasks/<task>.md``)."""
+    return prompts_dir() / "tasks" / f"{canonical_name(task_name)}.md"
+
+
+@functools.lru_cache(maxsize=16)
+def _load_cached(path: Path, mtime_ns: int) -> StateTemplate:
+    return parse_template(path)
+
+
+def load_template(task_name: str) -> StateTemplate:
+    """Return the parsed template of ``task_name`` (cached until the file changes).
+
+    Raises:
+        ValueError: Unknown task.
+        FileNotFoundError: The template file is missing.
+
+    """
+    path = template_path(task_name)
+    if not path.is_file():
+        raise FileNotFoundError(f"state prompt template of {task_name!r} not found at {path}")
+    return _load_cached(path, path.stat().st_mtime_ns)
+
+
+def render_state_prompt(task_name: str, variables: dict[str, Any]) -> str:
+    """Render the state prompt of one state.
+
+    Args:
+        task_name: ``"findmilk"`` or ``"driving"`` (or a Gymnasium id).
+        variables: The template variables, e.g. ``task.prompt_variables()[i]``.
+
+    Returns:
+        The prompt text: task description, state and the list of actions, as the paper's
+        authors sent it (without the cluster's credence sentence).
+
+    Raises:
+        ValueError: Unknown task, missing variable, or a value no fragment accepts.
+
+    """
+    return load_template(task_name).render(variables)
