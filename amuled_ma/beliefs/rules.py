@@ -93,18 +93,42 @@ class RulesSource(BeliefSource):
         self._fn: BeliefFn = _human_belief if policy == "human" else resolve_callable(policy)
 
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
-        """Answer each request with the rule; a failing rule gives a uniform ``"error"``."""
-        out = []
-        for request in requests:
-            try:
-                raw = self._fn(request.task, np.asarray(request.obs, dtype=np.float64))
-                belief, status = to_belief(raw, request.num_actions)
-                extra: dict[str, Any] = {}
-            except Exception as error:  # a rule bug must not stop training
-                belief, status = uniform(request.num_actions), "error"
-                extra = {"error": repr(error)}
-            out.append(BeliefResult(belief=belief, status=status, source=self.name, extra=extra))
-        return out
+        """Answer each request with the rule; a failing rule gives a uniform ``"error"``.
+
+        Requests of one task with observations of one length are answered by a single
+        batched call (the tasks' policies accept ``(batch, obs_dim)``); if that call
+        fails or returns the wrong shape, each request is asked on its own.
+        """
+        out: list[BeliefResult | None] = [None] * len(requests)
+        groups: dict[tuple[str, int, int], list[int]] = {}
+        for i, request in enumerate(requests):
+            key = (request.task, len(request.obs), request.num_actions)
+            groups.setdefault(key, []).append(i)
+        for (task, _, n), indices in groups.items():
+            if len(indices) > 1:
+                try:
+                    obs = np.asarray([requests[i].obs for i in indices], dtype=np.float64)
+                    batch = np.asarray(self._fn(task, obs), dtype=np.float64)
+                except Exception:
+                    batch = None
+                if batch is not None and batch.shape == (len(indices), n):
+                    for i, row in zip(indices, batch, strict=True):
+                        belief, status = to_belief(row, n)
+                        out[i] = BeliefResult(belief=belief, status=status, source=self.name)
+                    continue
+            for i in indices:
+                out[i] = self._one(requests[i])
+        return out  # type: ignore[return-value]
+
+    def _one(self, request: BeliefRequest) -> BeliefResult:
+        try:
+            raw = self._fn(request.task, np.asarray(request.obs, dtype=np.float64))
+            belief, status = to_belief(raw, request.num_actions)
+            extra: dict[str, Any] = {}
+        except Exception as error:  # a rule bug must not stop training
+            belief, status = uniform(request.num_actions), "error"
+            extra = {"error": repr(error)}
+        return BeliefResult(belief=belief, status=status, source=self.name, extra=extra)
 
     def identity(self) -> dict[str, Any]:
         """Return the source kind and the policy's name."""

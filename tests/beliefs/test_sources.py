@@ -124,3 +124,23 @@ def test_factory_must_build_a_source():
     register_source("notasource", lambda: object())
     with pytest.raises(ScenarioError, match="did not build a BeliefSource"):
         make_source("notasource")
+
+
+def test_rules_batch_call_and_per_request_fallback():
+    calls = []
+
+    def batched(task, obs):
+        calls.append(obs.shape)
+        return np.tile([1.0, 0, 0, 0], (len(obs), 1)) if obs.ndim == 2 else [1.0, 0, 0, 0]
+
+    results = RulesSource(batched).beliefs([req(obs=(float(i), 0.0)) for i in range(5)])
+    assert calls == [(5, 2)] and all(r.belief[0] == 1.0 for r in results)
+
+    def single_only(task, obs):
+        calls.append(obs.shape)
+        return [0, obs[0], 0, 1]
+
+    calls.clear()
+    results = RulesSource(single_only).beliefs([req(obs=(1.0, 0.0)), req(obs=(3.0, 0.0))])
+    assert calls == [(2, 2), (2,), (2,)]
+    assert np.allclose(results[1].belief, [0, 0.75, 0, 0.25])

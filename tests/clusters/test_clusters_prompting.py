@@ -147,3 +147,20 @@ def test_state_prompt_block_matches_every_recorded_prompt(load_recording, record
                 assert messages[-1][1] == prompt
                 checked += 1
     assert checked == 384
+
+
+def test_with_the_task_renderer_driving_prompts_are_the_recorded_ones(load_recording):
+    """End to end with the tasks engineer's renderer: every recorded Driving prompt."""
+    np = pytest.importorskip("numpy")
+    prompts = pytest.importorskip("amuled_ma.tasks.prompts")
+    driving = pytest.importorskip("amuled_ma.tasks.driving")
+    recording = load_recording("driving-llama-3_1-70b.json")
+    checked = 0
+    for state in recording["states"]:
+        for exchange in state.get("exchanges", ()):
+            variables = driving.Driving.prompt_variables_from_obs(np.asarray(state["obs"]))
+            text = prompts.render_state_prompt("driving", variables)
+            ours = next(k for k, v in AGENTS.items() if v == exchange["agent"])
+            assert build_messages(ours, "driving", text)[-1][1] == exchange["prompt"]
+            checked += 1
+    assert checked == 30
