@@ -1,0 +1,131 @@
+"""End-to-end: ``amuled run`` / ``train`` / ``finetune`` / ``evaluate`` / ``ablate`` on tiny budgets."""
+
+import json
+
+import pytest
+
+from amuled_ma.cli import main
+
+TINY = [
+    "--set", "base.total_steps=1024",
+    "--set", "base.num_envs=16",
+    "--set", "base.num_steps_per_env=16",
+    "--set", "finetune.iterations=3",
+    "--set", "finetune.num_envs=4",
+    "--set", "finetune.num_steps_per_env=8",
+    "--set", "output.tensorboard=false",
+    "--no-progress",
+]  # fmt: skip
+RULES = ["--set", 'feedback.source="rules"']
+
+
+def test_run_writes_run_dir_report_and_resumes(tmp_path, capsys, monkeypatch):
+    run_dir = tmp_path / "run"
+    args = ["run", "findmilk", "--run-dir", str(run_dir), "--episodes", "3", *TINY, *RULES]
+
+    # Ctrl-C in the middle of the first fine-tune: checkpoint + resume command
+    from amuled_ma.learn import trainer as trainer_mod
+
+    original = trainer_mod.Trainer._rollout
+    calls = {"n": 0}
+
+    def interrupt_second_finetune_iteration(self):
+        if self.finetuning:
+            calls["n"] += 1
+            if calls["n"] == 2:
+                raise KeyboardInterrupt
+        return original(self)
+
+    monkeypatch.setattr(trainer_mod.Trainer, "_rollout", interrupt_second_finetune_iteration)
+    assert main(args) == 130
+    out = capsys.readouterr().out
+    assert "resume with: amuled run findmilk" in out and "--resume" in out
+    assert (run_dir / "finetune-human" / "model_last.pt").is_file()
+
+    # without --resume: a clear error naming --resume
+    monkeypatch.setattr(trainer_mod.Trainer, "_rollout", original)
+    assert main(args) == 1
+    assert "--resume" in capsys.readouterr().err
+
+    assert main([*args, "--resume"]) == 0
+    out = capsys.readouterr().out
+    assert "base: already trained" in out and "finetune:amuled" in out
+    assert "report" in out.splitlines()[-1]
+
+    for variant in ("base", "shaped", "finetune-human", "finetune-amuled"):
+        assert (run_dir / variant / "model_last.pt").is_file(), variant
+        assert (run_dir / variant / "train_cfg.json").is_file(), variant
+    curve = json.loads((run_dir / "finetune-human" / "curve.json").read_text())
+    assert [row["iteration"] for row in curve] == [1, 2, 3]
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["scenario"]["finetune"]["iterations"] == 3
+    assert config["scenario"]["feedback"]["source"] == "rules"
+    results = json.loads((run_dir / "results.json").read_text())
+    assert set(results["variants"]) == {"base", "shaped", "finetune-human", "finetune-amuled"}
+    assert results["variants"]["base"]["greedy"]["metrics"]["steps_to_milk"]["n"] == 3
+    report = (run_dir / "report.md").read_text()
+    assert "Fused-belief diagnostics" in report and "trajectory_findmilk.png" in report
+    assert (run_dir / "trajectory_findmilk.png").is_file()
+    assert (run_dir / "results.csv").is_file()
+
+    # resume on a finished run does nothing but re-evaluate
+    assert main([*args, "--resume"]) == 0
+    assert capsys.readouterr().out.count("already trained") == 4
+
+    # amuled evaluate on the run dir
+    assert (
+        main(["evaluate", str(run_dir), "--episodes", "2", "--modes", "greedy", "--no-progress"])
+        == 0
+    )
+    assert "report" in capsys.readouterr().out
+
+
+def test_finetune_without_base_names_the_command(tmp_path, capsys):
+    code = main(["finetune", "findmilk", "--run-dir", str(tmp_path), *TINY, *RULES])
+    assert code == 1
+    err = capsys.readouterr().err
+    assert "amuled train" in err and "--variant base" in err
+
+
+def test_bad_scenario_key_names_file_key_and_type(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[finetune]\nlambda_kl = 'big'\n")
+    assert main(["train", str(bad), "--run-dir", str(tmp_path / "r")]) == 1
+    err = capsys.readouterr().err
+    assert str(bad) in err and "[finetune].lambda_kl" in err and "float" in err
+
+
+def test_bad_override(tmp_path, capsys):
+    assert main(["train", "findmilk", "--set", "base.numenvs=3", "--run-dir", str(tmp_path)]) == 1
+    assert "numenvs" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["train", "finetune", "run", "ablate", "evaluate"])
+def test_help(command, capsys):
+    with pytest.raises(SystemExit) as info:
+        main([command, "--help"])
+    assert info.value.code == 0
+    assert "usage: amuled" in capsys.readouterr().out
+
+
+def test_ablate_aggregation_with_replay(tmp_path, capsys, recordings_dir):
+    run_dir = tmp_path / "run"
+    args = ["ablate", "findmilk", "--what", "aggregation", "--run-dir", str(run_dir)]
+    args += [
+        "--episodes",
+        "2",
+        *TINY,
+        "--set",
+        f'feedback.recording="{recordings_dir}/findmilk-gpt-4o-mini.json"',
+    ]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "4 variants done" in out
+    abl = run_dir / "ablate-aggregation"
+    for name in ("finetune-agg-mean", "finetune-agg-max", "finetune-agg-vote", "finetune-amuled"):
+        assert (abl / name / "model_last.pt").is_file(), name
+    results = json.loads((abl / "results.json").read_text())
+    assert "base" in results["variants"]
+    fb = results["variants"]["finetune-amuled"]["feedback"]
+    assert 0.0 <= fb["miss_rate"] < 0.5 and fb["mean_conflict"] is not None
+    assert (abl / "ablation_aggregation.png").is_file()
