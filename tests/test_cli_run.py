@@ -1,4 +1,4 @@
-"""End-to-end: ``amuled run`` / ``train`` / ``finetune`` / ``evaluate`` / ``ablate`` on tiny budgets."""
+"""End-to-end: amuled run / train / finetune / evaluate / ablate on tiny budgets."""
 
 import json
 
