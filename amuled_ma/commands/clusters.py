@@ -34,6 +34,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     listing.add_argument("--json", action="store_true", help="print JSON instead of a table")
     listing.set_defaults(handler=list_clusters)
+    show = actions.add_parser(
+        "show",
+        help="print the chat a cluster agent receives (system prompt, few-shot, state)",
+        description=(
+            "Print the three blocks sent to one cluster agent: the system prompt, the few-shot "
+            "examples of the task, and the state prompt (a placeholder unless --state is given) "
+            "ending with the agent's credence sentence."
+        ),
+    )
+    show.add_argument("name", help="cluster name or alias")
+    show.add_argument("--task", default="findmilk", help="task (selects the few-shot file)")
+    show.add_argument("--state", default="<STATE PROMPT>", help="state prompt text")
+    show.add_argument("--clusters-dir", action="append", type=Path, default=[], metavar="DIR")
+    show.set_defaults(handler=show_cluster)
     parser.set_defaults(handler=lambda args: parser.print_help() or 2)
 
 
@@ -78,4 +92,16 @@ def list_clusters(args: argparse.Namespace) -> int:
             print(f"  {name:<{width}}  {ep.value}")
     else:
         print("Code-backed agents (entry-point group 'amuled_ma.agents'): none installed")
+    return 0
+
+
+def show_cluster(args: argparse.Namespace) -> int:
+    """Print the messages one cluster agent receives."""
+    from amuled_ma.clusters import ClusterRegistry, build_messages
+
+    registry = ClusterRegistry.load(args.clusters_dir)
+    messages = build_messages(args.name, args.task, args.state, registry=registry)
+    for role, content in messages:
+        print(f"----- {role} -----")
+        print(content)
     return 0

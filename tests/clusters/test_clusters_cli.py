@@ -33,3 +33,24 @@ def test_clusters_list_bad_file_is_a_clear_error(tmp_path, capsys):
     assert main(["clusters", "list", "--clusters-dir", str(tmp_path)]) == 1
     err = capsys.readouterr().err
     assert "bad.toml" in err and "'credence_label'" in err
+
+
+def test_clusters_show(capsys):
+    assert main(["clusters", "show", "deontologist", "--state", "HERE"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("----- user -----") == 4 and out.count("----- assistant -----") == 3
+    assert "HERE\n\nBehave as an agent that assigns the following credence values: " in out
+    assert "Deontological: 1.0" in out
+
+
+def test_clusters_list_shows_entry_point_agents(monkeypatch, capsys):
+    from importlib.metadata import EntryPoint
+
+    point = EntryPoint("terminal_human", "my_pkg.human:Source", "amuled_ma.agents")
+    monkeypatch.setattr(
+        "amuled_ma.clusters.plugins.entry_points",
+        lambda group: [point] if group == "amuled_ma.agents" else [],
+    )
+    assert main(["clusters", "list"]) == 0
+    line = capsys.readouterr().out.splitlines()[-1]
+    assert line.split() == ["terminal_human", "my_pkg.human:Source"]
