@@ -3,8 +3,8 @@
 A belief row (or mass function) is valid when it is finite, non-negative and sums to 1
 within :data:`SUM_TOLERANCE`. Valid rows are rescaled to sum to 1 (to rounding) when any
 is off by more than :data:`RESCALE_THRESHOLD`, so every rule works on true probability
-vectors; invalid rows raise ``ValueError``
-naming the first offending index, e.g. ``beliefs[3, 2]``.
+vectors; invalid rows raise ``ValueError`` naming the first offending index, e.g.
+``beliefs[3, 2]``.
 """
 
 from __future__ import annotations

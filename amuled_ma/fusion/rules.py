@@ -29,7 +29,8 @@ looks the rule up and calls it once for the whole batch.
 ## Degenerate inputs
 
 Invalid rows (NaN/inf, negative, sum not within ``1e-6`` of 1) raise ``ValueError`` naming
-the index, e.g. ``beliefs[3, 2]``; valid rows are rescaled to sum to 1 exactly. An empty
+the index, e.g. ``beliefs[3, 2]``; valid rows are rescaled to sum to 1 when one is off by
+more than ``1e-12`` (rows that already sum to 1 to rounding are used bit for bit). An empty
 batch (a leading dimension of size 0) returns an empty result. See
 :mod:`amuled_ma.fusion.xiao` for identical beliefs, ``k = 1``, zeros and total conflict.
 
