@@ -174,23 +174,29 @@ class CachedSource(BeliefSource):
                     answers[key] = hit
         stats.memory_hits += len(answers)
 
+        fresh: set[str] = set()  # answers not shared with the LRU: handed out as they are
         lookup = [k for k in positions if k not in answers]
         if lookup:
-            stored = self.store.get_many(lookup, cacheable_only=True)
-            for key, row in stored.items():
-                answers[key] = row.to_result()
-                self._remember(key, answers[key])
+            stored = self.store.lookup(lookup)
+            for key, result in stored.items():
+                answers[key] = result
+                self._remember(key, result)
+            fresh.update(stored)
             stats.store_hits += len(stored)
 
         missing = [k for k in positions if k not in answers]
         stats.misses += len(missing)
         if missing:
-            answers.update(self._ask(ident, [(k, requests[positions[k][0]]) for k in missing]))
+            asked = self._ask(ident, [(k, requests[positions[k][0]]) for k in missing])
+            answers.update(asked)
+            fresh.update(asked)
 
         out: list[BeliefResult] = [None] * len(requests)  # type: ignore[list-item]
         for key, idx in positions.items():
             result = answers[key]
-            for j in idx:  # copies: the LRU's entries must not be mutated by callers
+            # the LRU keeps its own copies; each position gets an independent object
+            out[idx[0]] = result if key in fresh else _copy_result(result)
+            for j in idx[1:]:
                 out[j] = _copy_result(result)
         return out
 

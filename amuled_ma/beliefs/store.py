@@ -49,6 +49,7 @@ default) makes a committed transaction survive a crash of the *process*; pass
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -169,18 +170,28 @@ def request_key(identity: Mapping[str, Any] | str, request: BeliefRequest) -> st
 
     """
     ident = identity if isinstance(identity, str) else identity_json(identity)
-    body = canonical_json(
-        {
-            "actions": list(request.action_names),
-            "cluster": request.cluster,
-            "messages": [[role, content] for role, content in request.messages],
-            "obs": [float(x) for x in request.obs],
-            "task": request.task,
-        }
+    # Byte for byte canonical_json({"identity": ..., "request": {...}, "v": KEY_VERSION}),
+    # assembled from pieces so that the long message bodies shared by many requests (system
+    # prompt, few-shot turns) are JSON-encoded once per process, not once per request.
+    messages = ",".join(f"[{_enc(role)},{_enc(content)}]" for role, content in request.messages)
+    text = (
+        f'{{"identity":{ident},"request":{{"actions":{_enc_names(request.action_names)},'
+        f'"cluster":{_enc(request.cluster)},"messages":[{messages}],'
+        f'"obs":{canonical_json([float(x) for x in request.obs])},"task":{_enc(request.task)}}},'
+        f'"v":{KEY_VERSION}}}'
     )
-    # Splice the identity in verbatim: same bytes as canonical_json of the whole dict.
-    text = f'{{"identity":{ident},"request":{body},"v":{KEY_VERSION}}}'
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+@functools.lru_cache(maxsize=16384)
+def _enc(text: str) -> str:
+    """JSON-encode a string (memoised: prompt blocks and roles repeat across requests)."""
+    return json.dumps(text, ensure_ascii=False)
+
+
+@functools.lru_cache(maxsize=256)
+def _enc_names(names: tuple[str, ...]) -> str:
+    return canonical_json(list(names))
 
 
 def _jsonable(value: Any) -> Any:
@@ -451,6 +462,46 @@ class BeliefStore:
                 self._text_cache[h] = body
         return texts
 
+    def lookup(self, keys: Iterable[str]) -> dict[str, BeliefResult]:
+        """Read the answers (``ok``/``repaired`` rows) of ``keys`` as cache-hit results.
+
+        The fast path of :class:`~amuled_ma.beliefs.cached.CachedSource`: only the columns
+        of a :class:`BeliefResult` are read and parsed.
+
+        Args:
+            keys: Keys to look up (duplicates allowed).
+
+        Returns:
+            ``{key: result}`` (``cached=True``, ``latency_s=0``, the original latency in
+            ``extra["stored_latency_s"]``) for the keys found.
+
+        """
+        wanted = list(dict.fromkeys(keys))
+        found: dict[str, BeliefResult] = {}
+        loads = json.loads
+        for start in range(0, len(wanted), _SQL_CHUNK):
+            chunk = wanted[start : start + _SQL_CHUNK]
+            sql = (
+                "SELECT key, source, raw, belief, status, latency_s, prompt_tokens, "
+                "completion_tokens, extra FROM beliefs "
+                f"WHERE key IN ({','.join('?' * len(chunk))}) AND status IN ('ok', 'repaired')"
+            )
+            for key, source, raw, belief, status, lat, ptok, ctok, extra in self._read(sql, chunk):
+                info = loads(extra) if extra and extra != "{}" else {}
+                info["stored_latency_s"] = lat
+                found[key] = BeliefResult(
+                    belief=np.array(loads(belief), dtype=np.float64),
+                    status=status,
+                    source=source,
+                    raw=raw,
+                    cached=True,
+                    latency_s=0.0,
+                    prompt_tokens=ptok,
+                    completion_tokens=ctok,
+                    extra=info,
+                )
+        return found
+
     def get(
         self, key: str, *, cacheable_only: bool = True, with_messages: bool = True
     ) -> StoredBelief | None:
@@ -690,6 +741,18 @@ class BeliefStore:
         return {"read": read, "written": written}
 
 
+@functools.lru_cache(maxsize=4096)
+def _text_hash_cached(text: str) -> str:
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _text_hash(text: str) -> str:
+    """SHA-256 of a message body, memoising the long ones (shared prompt blocks)."""
+    if len(text) < 256:
+        return hashlib.sha256(text.encode("utf-8")).hexdigest()
+    return _text_hash_cached(text)
+
+
 def _split_messages(
     messages: Sequence[tuple[str, str]],
 ) -> tuple[str | None, dict[str, str]]:
@@ -698,7 +761,7 @@ def _split_messages(
         return None, {}
     refs, bodies = [], {}
     for role, content in messages:
-        h = hashlib.sha256(content.encode("utf-8")).hexdigest()
+        h = _text_hash(content)
         refs.append([role, h])
         bodies[h] = content
     return canonical_json(refs), bodies

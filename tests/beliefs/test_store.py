@@ -57,6 +57,22 @@ def test_key_is_sha256_of_documented_canonical_json():
     assert request_key(canonical_json(IDENT), r) == request_key(IDENT, r)
 
 
+def test_key_of_long_unicode_messages_is_canonical_json():
+    long = 'Système "prompt" \\ with\nnewlines, émojis 🙂 and tabs\t. ' * 40
+    r = BeliefRequest("driving", "care", (-1.0, 2.5), ("straight", "right", "left"),
+                      (("system", long), ("user", "short"), ("user", long + "x")))  # fmt: skip
+    whole = {
+        "identity": IDENT,
+        "request": {"actions": ["straight", "right", "left"], "cluster": "care",
+                    "messages": [["system", long], ["user", "short"], ["user", long + "x"]],
+                    "obs": [-1.0, 2.5], "task": "driving"},
+        "v": 1,
+    }  # fmt: skip
+    expected = hashlib.sha256(canonical_json(whole).encode()).hexdigest()
+    assert request_key(IDENT, r) == expected
+    assert request_key(IDENT, r) == expected  # memoised pieces give the same bytes
+
+
 def test_key_changes_with_every_part():
     base = request_key(IDENT, req(1))
     variants = [
