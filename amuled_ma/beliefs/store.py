@@ -194,6 +194,14 @@ def _enc_names(names: tuple[str, ...]) -> str:
     return canonical_json(list(names))
 
 
+def _extra_json(extra: Mapping[str, Any] | None) -> str:
+    """Serialise diagnostics, writing anything JSON cannot hold (an exception...) as repr."""
+    try:
+        return canonical_json(_jsonable(extra or {}))
+    except (TypeError, ValueError):
+        return json.dumps(_jsonable(extra or {}), sort_keys=True, default=repr)
+
+
 def _jsonable(value: Any) -> Any:
     """Convert numpy scalars/arrays and tuples into plain JSON data."""
     if isinstance(value, Mapping):
@@ -588,7 +596,7 @@ class BeliefStore:
                     float(result.latency_s) if result.latency_s is not None else None,
                     result.prompt_tokens,
                     result.completion_tokens,
-                    canonical_json(_jsonable(result.extra or {})),
+                    _extra_json(result.extra),
                     1,
                     now,
                     now,

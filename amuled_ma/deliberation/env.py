@@ -318,6 +318,34 @@ class DeliberationEnv(ParallelEnv):
             self.agents = []
         return observations, rewards, term, trunc, infos
 
+    def panel_actions(self, panel: Any) -> dict[str, np.ndarray]:
+        """Return every cluster agent's action as answered by a moral panel.
+
+        The LLM side of the PettingZoo convention: the panel (a
+        :class:`~amuled_ma.deliberation.MoralPanel` over any belief source) answers for the
+        current state; add the actor's action and pass the dict to :meth:`step`.
+
+        Args:
+            panel: A moral panel whose ``clusters`` include this env's cluster agents.
+
+        Returns:
+            ``{cluster: belief}`` for every live cluster agent.
+
+        Raises:
+            KeyError: A cluster agent of this env is not in the panel.
+
+        """
+        names = list(getattr(panel, "clusters", []))
+        missing = [c for c in self.cluster_names if c not in names]
+        if missing:
+            raise KeyError(f"panel has no cluster(s) {missing}; it has {names}")
+        out = panel.fused(self._obs[None, :], self.task.prompt_variables())
+        return {
+            c: out.beliefs[0, names.index(c)].astype(np.float32)
+            for c in self.cluster_names
+            if c in self.agents
+        }
+
     def state(self) -> np.ndarray:
         """Return the global state: the task observation."""
         return self._obs.copy()

@@ -118,6 +118,12 @@ def test_round_trip_all_fields(store):
     assert len(store) == 1 and key in store
 
 
+def test_unserialisable_extra_is_kept_as_repr(store):
+    key = request_key(IDENT, req(1))
+    store.put(key, IDENT, req(1), res([1, 0, 0, 0], extra={"error": ValueError("boom"), "n": 2}))
+    assert store.get(key).extra == {"error": "ValueError('boom')", "n": 2}
+
+
 def test_answers_are_never_replaced_failures_are(store):
     key = request_key(IDENT, req(1))
     store.put(key, IDENT, req(1), res([0.25] * 4, status="abstained", raw="no json here"))

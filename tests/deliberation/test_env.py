@@ -138,3 +138,28 @@ def test_projection_is_the_nearest_point():
         # no random simplex point is closer (a KKT-free sanity check)
         for y in rng.dirichlet(np.ones(5), size=20):
             assert np.linalg.norm(x - v) <= np.linalg.norm(y - v) + 1e-12
+
+
+def test_driven_by_a_moral_panel():
+    from amuled_ma.beliefs.types import BeliefResult, BeliefSource
+    from amuled_ma.deliberation import MoralPanel
+
+    class Fixed(BeliefSource):
+        name = "fixed"
+        needs_messages = False
+
+        def beliefs(self, requests):
+            table = {"a": [0.0, 0.0, 1.0, 0.0], "b": [0.0, 0.0, 0.5, 0.5]}
+            return [BeliefResult(np.array(table[r.cluster]), "ok", self.name) for r in requests]
+
+    env = DeliberationEnv("findmilk", ["a", "b"], "mean")
+    env.reset(seed=0)
+    panel = MoralPanel("findmilk", ["b", "a"], Fixed(), "mean")
+    actions = env.panel_actions(panel)
+    np.testing.assert_allclose(actions["a"], [0, 0, 1, 0])
+    np.testing.assert_allclose(actions["b"], [0, 0, 0.5, 0.5])
+    _, rew, _, _, info = env.step({"actor": 2, **actions})
+    np.testing.assert_allclose(info["actor"]["fused"], [0, 0, 0.75, 0.25])
+    assert rew["actor"] == pytest.approx(info["actor"]["r_env"] + 0.75)
+    with pytest.raises(KeyError, match="no cluster"):
+        env.panel_actions(MoralPanel("findmilk", ["a"], Fixed(), "mean"))
