@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 Mass = Mapping[frozenset, float]
 
@@ -67,7 +68,7 @@ def dempster(m1: Mass, m2: Mass) -> tuple[dict[frozenset, float], float]:
     return {c: v / norm for c, v in joint.items()}, conflict
 
 
-def xiao_fuse(masses: Sequence[Mass]) -> tuple[dict[frozenset, float], dict[str, list[float]]]:
+def xiao_fuse(masses: Sequence[Mass]) -> tuple[dict[frozenset, float], dict[str, Any]]:
     """Fuse ``k`` mass functions with Xiao (2019); returns ``(fused, diagnostics)``.
 
     Args:
@@ -83,8 +84,9 @@ def xiao_fuse(masses: Sequence[Mass]) -> tuple[dict[frozenset, float], dict[str,
     if k == 1:
         credibility = [1.0]
     else:
-        distance = [sum(bjs(masses[i], masses[j]) for j in range(k) if j != i) / (k - 1)
-                    for i in range(k)]  # fmt: skip
+        distance = [
+            sum(bjs(masses[i], masses[j]) for j in range(k) if j != i) / (k - 1) for i in range(k)
+        ]
         if any(d == 0 for d in distance):  # limit: share among the zero-distance sources
             zeros = [1.0 if d == 0 else 0.0 for d in distance]
             credibility = [z / sum(zeros) for z in zeros]

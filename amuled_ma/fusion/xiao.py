@@ -377,8 +377,9 @@ def dempster_combine(
 
     Returns:
         ``(masses, focal_sets, K)``: combined masses ``(..., n)`` over ``focal_sets``
-        (the input's sets first, in order, then new intersections in order of first
-        appearance) and the conflict ``K`` of shape ``(...)``.
+        (``focal_sets1`` in order, then the sets of ``focal_sets2`` not among them, then
+        new intersections in order of first appearance; sets that receive no mass have
+        0) and the conflict ``K`` of shape ``(...)``.
 
     Raises:
         ValueError: invalid masses or focal sets, or total conflict (``K = 1``).
