@@ -153,3 +153,14 @@ def test_invalid_focal_sets():
         xiao_fusion(m, [{"a"}, {"b"}, {"c"}])
     with pytest.raises(ValueError, match="closed_form=True"):
         xiao_fusion(m, [{"a"}, {"a", "b"}], closed_form=True)
+
+
+@pytest.mark.parametrize("rule", RULES)
+def test_input_is_not_modified_and_output_is_float64(rule):
+    beliefs = np.array([[0.5, 0.25, 0.25], [0.2, 0.3, 0.5]], dtype=np.float32)
+    before = beliefs.copy()
+    out = fuse(beliefs, rule)
+    np.testing.assert_array_equal(beliefs, before)
+    assert out.dtype == np.float64
+    lists = fuse(beliefs.tolist(), rule)  # nested lists work too
+    np.testing.assert_allclose(lists, out)
