@@ -90,6 +90,20 @@ def action_log_probs(actor: torch.nn.Module, obs: torch.Tensor) -> torch.Tensor:
     return torch.log_softmax(actor.mlp(actor.obs_normalizer(obs)), dim=-1)
 
 
+def make_optimizer(alg: Any, lr: float) -> torch.optim.Optimizer:
+    """Adam over actor and critic as CleanRL (``eps = 1e-5``), fused where torch has it.
+
+    rsl-rl builds a plain ``torch.optim.Adam``; on CPU with small nets the per-parameter
+    Python loop of that implementation is a large part of an update, and the fused kernel
+    is about 3x faster (measured on FindMilk updates).
+    """
+    params = [*alg.actor.parameters(), *alg.critic.parameters()]
+    try:
+        return torch.optim.Adam(params, lr=lr, eps=1e-5, fused=True)
+    except (RuntimeError, TypeError):  # pragma: no cover - older torch or device
+        return torch.optim.Adam(params, lr=lr, eps=1e-5, foreach=True)
+
+
 @dataclass
 class TrainOutcome:
     """What a training call produced.
@@ -211,6 +225,7 @@ class Trainer:
         )
         self.alg = self.runner.alg
         orthogonal_init(self.alg.critic.mlp, last_std=1.0)
+        self.alg.optimizer = make_optimizer(self.alg, self.lr)
         self.base_actor: torch.nn.Module | None = None
         self.base_checkpoint = Path(base_checkpoint) if base_checkpoint else None
         self.curve: list[dict] = []
