@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -91,6 +91,11 @@ class CachedSource(BeliefSource):
         chunk_size: Requests per call to a wrapped source without ``iter_beliefs``;
             each chunk's answers are written before the next chunk is sent.
         flush_every: With ``iter_beliefs``, answers per store transaction.
+        identity: The identity to key the store with, instead of asking the source. The
+            source's ``identity()`` may need its backend (the Ollama source asks the server
+            for the model digest); giving the identity recorded in the store
+            (:meth:`~amuled_ma.beliefs.store.BeliefStore.identities`) replays a store on a
+            machine without the backend: hits never touch the source, only misses do.
 
     """
 
@@ -102,6 +107,7 @@ class CachedSource(BeliefSource):
         memory_size: int = 65536,
         chunk_size: int = 64,
         flush_every: int = 1,
+        identity: Mapping[str, Any] | None = None,
     ) -> None:
         self.source = source
         self.store = store
@@ -111,6 +117,8 @@ class CachedSource(BeliefSource):
         self.stats = CacheStats()
         self._memory: OrderedDict[str, BeliefResult] = OrderedDict()
         self._lock = threading.Lock()
+        self._identity = dict(identity) if identity is not None else None
+        self._identity_json: str | None = None
 
     # -- BeliefSource ----------------------------------------------------------------
     @property
@@ -124,8 +132,20 @@ class CachedSource(BeliefSource):
         return bool(getattr(self.source, "needs_messages", True))
 
     def identity(self) -> dict[str, Any]:
-        """Return the wrapped source's identity (the cache key is built from it)."""
-        return self.source.identity()
+        """Return the identity the store is keyed with (the source's, asked once)."""
+        if self._identity is None:
+            self._identity = dict(self.source.identity())
+        return dict(self._identity)
+
+    def refresh_identity(self) -> None:
+        """Ask the source for its identity again at the next batch (a model re-pulled...)."""
+        self._identity = None
+        self._identity_json = None
+
+    def _ident(self) -> str:
+        if self._identity_json is None:
+            self._identity_json = identity_json(self.identity())
+        return self._identity_json
 
     def close(self) -> None:
         """Close the wrapped source (the store is left open: it may be shared)."""
@@ -142,7 +162,7 @@ class CachedSource(BeliefSource):
 
     def keys(self, requests: Sequence[BeliefRequest]) -> list[str]:
         """Return the store keys of ``requests`` for the wrapped source."""
-        ident = identity_json(self.source.identity())
+        ident = self._ident()
         return [request_key(ident, r) for r in requests]
 
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
@@ -155,7 +175,7 @@ class CachedSource(BeliefSource):
             One result per request, in order; hits have ``cached=True``.
 
         """
-        ident = identity_json(self.source.identity())
+        ident = self._ident()
         keys = [request_key(ident, r) for r in requests]
         positions: dict[str, list[int]] = {}
         for i, key in enumerate(keys):

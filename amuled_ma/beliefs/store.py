@@ -549,6 +549,21 @@ class BeliefStore:
             for row in chunk:
                 yield _row_to_stored(row, texts)
 
+    def identities(self) -> list[dict[str, Any]]:
+        """Return each distinct source identity in the store with its row count.
+
+        Returns:
+            ``[{"identity": {...}, "rows": n, "answers": m}, ...]``, most rows first; pass
+            an ``identity`` to :class:`~amuled_ma.beliefs.cached.CachedSource` to replay the
+            store without the source's backend.
+
+        """
+        rows = self._read(
+            "SELECT identity, COUNT(*), SUM(status IN ('ok', 'repaired')) FROM beliefs "
+            "GROUP BY identity ORDER BY 2 DESC"
+        )
+        return [{"identity": json.loads(i), "rows": n, "answers": int(m)} for i, n, m in rows]
+
     def __len__(self) -> int:
         return int(self._read("SELECT COUNT(*) FROM beliefs")[0][0])
 
@@ -688,6 +703,7 @@ class BeliefStore:
             "tokens": {"prompt": lat[3] or 0, "completion": lat[4] or 0},
             "attempts": lat[5] or 0,
             "distinct_texts": int(self._read("SELECT COUNT(*) FROM texts")[0][0]),
+            "identities": self.identities(),
             "file_bytes": files,
         }
 

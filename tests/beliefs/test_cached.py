@@ -168,3 +168,46 @@ def test_transparent_identity_and_name(store):
     assert cached.needs_messages is True
     src.needs_messages = False
     assert cached.needs_messages is False
+
+
+class Offline(Scripted):
+    """A source whose backend is gone: identity() and beliefs() both fail."""
+
+    def identity(self):
+        raise ConnectionError("no server")
+
+    def beliefs(self, requests):
+        raise ConnectionError("no server")
+
+
+def test_replay_a_store_without_the_backend(tmp_path):
+    path = tmp_path / "gpu.sqlite"
+    with BeliefStore(path) as gpu:
+        CachedSource(Scripted(), gpu).beliefs([req(i) for i in range(4)])
+    with BeliefStore(path) as laptop:
+        (entry,) = laptop.identities()
+        assert entry == {"identity": {"source": "scripted", "model": "m1"}, "rows": 4,
+                         "answers": 4}  # fmt: skip
+        cached = CachedSource(Offline(), laptop, identity=entry["identity"])
+        out = cached.beliefs([req(i) for i in range(4)])
+        assert [int(np.argmax(r.belief)) for r in out] == [0, 1, 2, 0]
+        assert cached.stats.sent == 0
+        with pytest.raises(ConnectionError):  # only a miss needs the backend
+            cached.beliefs([req(9)])
+
+
+def test_identity_is_asked_once(store):
+    class Counting(Scripted):
+        asked = 0
+
+        def identity(self):
+            Counting.asked += 1
+            return super().identity()
+
+    cached = CachedSource(Counting(), store)
+    for i in range(3):
+        cached.beliefs([req(i)])
+    assert Counting.asked == 1
+    cached.refresh_identity()
+    cached.beliefs([req(0)])
+    assert Counting.asked == 2
