@@ -28,7 +28,7 @@ Every function here is batched: leading dimensions of ``masses`` are batch dimen
 ``masses`` has shape ``(..., k, n)`` and no Python loop runs over the states of the
 batch. Internally the batch is transposed to ``(k, n, B)`` so that each numpy call works
 on long contiguous rows, and the ``bjs-dst`` fast path walks it in cache-sized blocks of
-8192 states (each block fully vectorized): 100,000 fusions of 5 x 4 take well under
+4096 states (each block fully vectorized): 100,000 fusions of 5 x 4 take well under
 0.1 s on one core (see ``amuled bench fusion`` and ``docs/fusion.md``).
 
 ## Degenerate inputs (defined behaviour, each one tested)
@@ -182,7 +182,7 @@ def deng_entropy(
 # the batch. This is several times faster than reducing small trailing axes.
 
 _NEAR_ZERO_BJS = 1e-9  # pairs below this are compared element-wise for exact identity
-_BLOCK = 8192  # states per block in bjs_dst: keeps the temporaries in the CPU cache
+_BLOCK = 4096  # states per block in bjs_dst: keeps the temporaries in the CPU cache
 _TINY = 1e-300  # added before log2 so that 0 log 0 = 0 * log2(1e-300) = 0, never NaN
 
 
