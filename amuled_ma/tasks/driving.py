@@ -315,6 +315,30 @@ class Driving(BatchedTask):
         self._lane[self._env_ids(env_ids)] = int(lane)
         self._obs = self._observe()
 
+    def road(self) -> dict[str, torch.Tensor]:
+        """Return the occupancy of the road of every copy.
+
+        Returns:
+            ``{"car": ..., "grandma": ...}``, bool tensors ``[num_envs, 5, 9]`` indexed by
+            lane and distance ``0..8`` (distance 0 is always empty between steps).
+
+        """
+        out = {}
+        for kind, bits, width, slots, speed in (
+            ("car", self._cars, _CAR_W, _CAR_SLOTS, CAR_SPEED),
+            ("grandma", self._gms, _GM_W, _GM_SLOTS, GRANDMA_SPEED),
+        ):
+            grid = torch.zeros(
+                self.num_envs, NUM_LANES, SPAWN_DISTANCE + 1, dtype=torch.bool, device=self.device
+            )
+            for k in range(1, slots + 1):
+                shifts = torch.arange(1, NUM_LANES + 1, device=self.device) * width + k
+                grid[:, :, SPAWN_DISTANCE - speed * (slots - k)] = (
+                    bits[:, None] >> shifts
+                ) & 1 == 1
+            out[kind] = grid
+        return out
+
     def objects(self, env_id: int = 0) -> dict[str, list[tuple[int, int]]]:
         """Return ``{"car": [(lane, distance), ...], "grandma": [...]}`` of one copy."""
         env_id = self._env_id(env_id)
