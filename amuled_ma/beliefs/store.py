@@ -52,6 +52,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import math
 import os
 import sqlite3
 import threading
@@ -171,16 +172,40 @@ def request_key(identity: Mapping[str, Any] | str, request: BeliefRequest) -> st
     """
     ident = identity if isinstance(identity, str) else identity_json(identity)
     # Byte for byte canonical_json({"identity": ..., "request": {...}, "v": KEY_VERSION}),
-    # assembled from pieces so that the long message bodies shared by many requests (system
-    # prompt, few-shot turns) are JSON-encoded once per process, not once per request.
-    messages = ",".join(f"[{_enc(role)},{_enc(content)}]" for role, content in request.messages)
-    text = (
-        f'{{"identity":{ident},"request":{{"actions":{_enc_names(request.action_names)},'
-        f'"cluster":{_enc(request.cluster)},"messages":[{messages}],'
-        f'"obs":{canonical_json([float(x) for x in request.obs])},"task":{_enc(request.task)}}},'
-        f'"v":{KEY_VERSION}}}'
+    # hashed in two parts: the prefix up to the last message (identity, actions, cluster,
+    # system prompt, few-shot turns: shared by every request of one cluster) is hashed once
+    # per process and its SHA-256 state copied; only the state prompt and obs are new.
+    messages = request.messages
+    head, last = (messages[:-1], messages[-1]) if messages else ((), None)
+    digest = _prefix_state(ident, tuple(request.action_names), request.cluster, head).copy()
+    last_text = (
+        f"[{_enc(last[0])},{json.dumps(last[1], ensure_ascii=False)}]" if last is not None else ""
     )
-    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+    obs = _floats_json(request.obs)
+    tail = f'{last_text}],"obs":{obs},"task":{_enc(request.task)}}},"v":{KEY_VERSION}}}'
+    digest.update(tail.encode("utf-8"))
+    return digest.hexdigest()
+
+
+def _floats_json(values: Sequence[float]) -> str:
+    """Return ``canonical_json([float(x) for x in values])``, fast for finite floats."""
+    floats = [float(x) for x in values]
+    if all(math.isfinite(x) for x in floats):
+        return "[" + ",".join(map(float.__repr__, floats)) + "]"
+    return canonical_json(floats)
+
+
+@functools.lru_cache(maxsize=1024)
+def _prefix_state(
+    ident: str, actions: tuple[str, ...], cluster: str, head: tuple[tuple[str, str], ...]
+) -> Any:
+    """SHA-256 state after the key text's prefix, up to (not including) the last message."""
+    msgs = "".join(f"[{_enc(role)},{_enc(content)}]," for role, content in head)
+    text = (
+        f'{{"identity":{ident},"request":{{"actions":{_enc_names(actions)},'
+        f'"cluster":{_enc(cluster)},"messages":[{msgs}'
+    )
+    return hashlib.sha256(text.encode("utf-8"))
 
 
 @functools.lru_cache(maxsize=16384)

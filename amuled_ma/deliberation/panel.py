@@ -28,7 +28,7 @@ got a fallback belief is asked again next time (the store's policy, one level up
 from __future__ import annotations
 
 import json
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -362,23 +362,31 @@ class MoralPanel:
     def _collect(self, results: Sequence[BeliefResult], count: int) -> tuple[np.ndarray, Any]:
         """Stack results into ``(count, K, A)`` beliefs, making each a valid distribution."""
         k, a = self.num_clusters, self.num_actions
-        out = np.empty((count * k, a))
-        statuses = np.empty(count * k, dtype=object)
+        m = count * k
+        out = np.full((m, a), np.nan)
+        statuses = np.empty(m, dtype=object)
+        for j, result in enumerate(results):
+            b = result.belief
+            if getattr(b, "shape", None) == (a,):
+                out[j] = b
+            else:
+                flat = np.asarray(b, dtype=np.float64).reshape(-1)
+                if flat.shape == (a,):
+                    out[j] = flat  # anything else stays NaN: invalid
+            statuses[j] = result.status
+        # vectorised validation: finite, non-negative, positive sum; else uniform "error"
+        with np.errstate(invalid="ignore"):
+            total = out.sum(axis=1)
+            valid = np.isfinite(out).all(axis=1) & (out >= 0).all(axis=1) & (total > 0)
+        out[valid] /= total[valid, None]
+        out[~valid] = 1.0 / a
+        statuses[~valid] = "error"
         st = self.stats
         st.requests += len(results)
-        for j, result in enumerate(results):
-            b = np.asarray(result.belief, dtype=np.float64).reshape(-1)
-            status = result.status
-            total = b.sum() if b.shape == (a,) else np.nan
-            if b.shape != (a,) or not np.all(np.isfinite(b)) or (b < 0).any() or total <= 0:
-                b, status = np.full(a, 1.0 / a), "error"
-            else:
-                b = b / total
-            out[j] = b
-            statuses[j] = status
-            st.by_status[status] = st.by_status.get(status, 0) + 1
+        for status, n in Counter(statuses.tolist()).items():
+            st.by_status[status] = st.by_status.get(status, 0) + n
             if status not in CACHEABLE:
-                st.fallbacks += 1
+                st.fallbacks += n
         return out.reshape(count, k, a), statuses.reshape(count, k)
 
     def _remember(

@@ -71,6 +71,10 @@ def test_key_of_long_unicode_messages_is_canonical_json():
     expected = hashlib.sha256(canonical_json(whole).encode()).hexdigest()
     assert request_key(IDENT, r) == expected
     assert request_key(IDENT, r) == expected  # memoised pieces give the same bytes
+    # no messages at all (sources that read none)
+    bare = BeliefRequest("driving", "care", (-1.0, 2.5), ("straight", "right", "left"))
+    whole["request"]["messages"] = []
+    assert request_key(IDENT, bare) == hashlib.sha256(canonical_json(whole).encode()).hexdigest()
 
 
 def test_key_changes_with_every_part():
