@@ -4,7 +4,7 @@ Every episode runs in its own task copy (copy ``i`` seeded ``seed + i``), all co
 stepped together; each copy's *first* episode is recorded. The metrics are the task's
 own (``info["episode"]``): FindMilk ``steps_to_milk``, ``crying_pacified``,
 ``sleeping_woken``, ``reached_milk``; Driving ``collisions``, ``lane_changes``,
-``grandmas_rescued`` (whatever the task reports), plus ``return_env`` and ``length``.
+``rescues`` (grandmas rescued), plus ``return_env`` and ``length``.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ _SKIP = {"done", "return"}
 #: The paper's metrics per task, in report order (others follow alphabetically).
 PAPER_METRICS = {
     "findmilk": ["steps_to_milk", "crying_pacified", "sleeping_woken", "reached_milk"],
-    "driving": ["collisions", "grandmas_rescued", "lane_changes"],
+    "driving": ["collisions", "rescues", "lane_changes"],
 }
 
 

@@ -23,7 +23,7 @@ from amuled_ma.evaluate.stats import t_quantile
 _CURVE_KEYS = {
     "findmilk": ["episode/return_env", "episode/steps_to_milk", "episode/crying_pacified",
                  "episode/sleeping_woken"],
-    "driving": ["episode/return_env", "episode/collisions", "episode/grandmas_rescued",
+    "driving": ["episode/return_env", "episode/collisions", "episode/rescues",
                 "episode/lane_changes"],
 }  # fmt: skip
 _FT_KEYS = ["feedback/feedback_reward", "feedback/kl"]

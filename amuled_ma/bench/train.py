@@ -1,0 +1,271 @@
+"""Training speed and quality: our figures beside the reference (the paper authors' code).
+
+Measures, with the shipped scenarios:
+
+- FindMilk base training: wall-clock and env steps until the greedy policy is first
+  optimal (14 steps to the milk in 100% of the evaluation episodes), and the full run;
+- Driving base training: the full run, and the greedy policy's collisions, grandmas
+  rescued and lane changes per episode (50 episodes);
+- a fine-tuning run of the paper's length (1,000 iterations x 128 steps) with the replay
+  source (AMULED feedback), in iterations per second;
+- the cost of fusing one state's five beliefs (``bjs-dst``), batched as in training.
+
+Reference figures were measured on this kind of machine (2 cores, no GPU) with the
+paper authors' published code (CleanRL PPO, SyncVectorEnv, per-state Python fusion).
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+#: Reference figures (the authors' code) and our targets, per measured figure.
+REFERENCE: dict[str, tuple[str, str]] = {
+    "findmilk_optimal_s": ("~51k steps (~16 s at 3,100 steps/s)", "< 10 s"),
+    "findmilk_full_s": ("~160 s (~3,100 steps/s)", "< 30 s"),
+    "driving_full_s": ("~185 s", "< 40 s"),
+    "driving_collisions": ("0.7", "<= 0.7"),
+    "driving_grandmas": ("5.1", "-"),
+    "driving_lane_changes": ("15.8", "-"),
+    "finetune_s": ("~6 min (2.7-2.9 it/s)", "< 60 s"),
+    "fusion_ms": ("~18 ms per state", "-"),
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the benchmark's options."""
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="a tenth of every budget (a smoke run, figures not comparable)",
+    )
+    parser.add_argument(
+        "--skip",
+        nargs="*",
+        default=[],
+        choices=("findmilk", "driving", "finetune", "fusion"),
+        help="parts to leave out",
+    )
+    parser.add_argument(
+        "--out", type=Path, default=None, help="folder for the runs (default: a temp folder)"
+    )
+
+
+def _eval(actor: Any, scenario: Any, episodes: int) -> list[dict]:
+    from amuled_ma.evaluate.evaluator import run_episodes
+
+    records, _ = run_episodes(
+        actor, scenario, episodes=episodes, mode="greedy", record_trajectory=False
+    )
+    return records
+
+
+def bench_findmilk(out: Path, quick: bool) -> dict[str, Any]:
+    """FindMilk base training: time to the first optimal greedy policy, and the full run."""
+    from amuled_ma.learn.trainer import Trainer
+    from amuled_ma.scenario import load_scenario
+
+    sc = load_scenario("findmilk").replace("output", tensorboard=False)
+    if quick:
+        sc = sc.replace("base", total_steps=sc.base.total_steps // 10)
+    first: dict[str, Any] = {}
+    eval_time = [0.0]
+    start = [0.0]
+
+    def check(trainer: Trainer, it: int) -> None:
+        if first:
+            return
+        t0 = time.perf_counter()
+        records = _eval(trainer.policy(), sc, 10)
+        trainer.alg.train_mode()
+        eval_time[0] += time.perf_counter() - t0
+        if all(r["reached_milk"] and r["steps_to_milk"] == 14 for r in records):
+            first["iteration"] = it
+            first["steps"] = it * sc.base.num_envs * sc.base.num_steps_per_env
+            first["wall_s"] = time.perf_counter() - start[0] - eval_time[0]
+
+    trainer = Trainer(sc, out / "findmilk-base", eval_callback=check, resume=False)
+    start[0] = time.perf_counter()
+    outcome = trainer.train()
+    wall = time.perf_counter() - start[0] - eval_time[0]
+    final = _eval(trainer.policy(), sc, 50)
+    return {
+        "steps": outcome.env_steps,
+        "full_s": wall,
+        "steps_per_s": outcome.env_steps / wall,
+        "optimal": first,
+        "final_optimal_frac": sum(r["steps_to_milk"] == 14 for r in final) / len(final),
+        "checkpoint": outcome.checkpoint,
+    }
+
+
+def bench_driving(out: Path, quick: bool) -> dict[str, Any]:
+    """Driving base training: the full run and the greedy policy's metrics."""
+    from amuled_ma.evaluate.evaluator import summarize
+    from amuled_ma.learn.trainer import Trainer
+    from amuled_ma.scenario import load_scenario
+
+    sc = load_scenario("driving").replace("output", tensorboard=False)
+    if quick:
+        sc = sc.replace("base", total_steps=sc.base.total_steps // 10)
+    trainer = Trainer(sc, out / "driving-base")
+    t0 = time.perf_counter()
+    outcome = trainer.train()
+    wall = time.perf_counter() - t0
+    stats = summarize(_eval(trainer.policy(), sc, 50))
+    return {"steps": outcome.env_steps, "full_s": wall, "metrics": stats}
+
+
+def bench_finetune(out: Path, base_ckpt: Path | None, quick: bool) -> dict[str, Any]:
+    """Time a fine-tune of the paper's length with replayed AMULED feedback."""
+    from amuled_ma.learn.experiments import train_variant
+    from amuled_ma.learn.trainer import LAST, Trainer
+    from amuled_ma.scenario import load_scenario
+
+    sc = load_scenario("findmilk").replace("output", tensorboard=False)
+    if not sc.recording_path().exists():
+        return {"skipped": f"recording not found at {sc.recording_path()}"}
+    run = out / "finetune-run"
+    (run / "base").mkdir(parents=True, exist_ok=True)
+    if base_ckpt is None or not Path(base_ckpt).is_file():
+        Trainer(sc.replace("base", total_steps=100_000), run / "base").train()
+    else:
+        (run / "base" / LAST).write_bytes(Path(base_ckpt).read_bytes())
+    iterations = sc.finetune.iterations // (10 if quick else 1)
+    t0 = time.perf_counter()
+    job = train_variant(sc, run, "finetune:amuled", force=True, iterations=iterations)
+    wall = time.perf_counter() - t0
+    assert job.outcome is not None
+    return {
+        "iterations": iterations,
+        "transitions_per_iteration": sc.finetune.num_envs * sc.finetune.num_steps_per_env,
+        "wall_s": wall,
+        "it_per_s": iterations / wall,
+        "miss_rate": (job.outcome.feedback or {}).get("miss_rate"),
+        "unique_states": (job.outcome.feedback or {}).get("unique_states"),
+    }
+
+
+def bench_fusion() -> dict[str, Any]:
+    """Cost of fusing five beliefs per state with bjs-dst, per state, batched and alone."""
+    import numpy as np
+
+    from amuled_ma.fusion import fuse
+
+    rng = np.random.default_rng(0)
+    beliefs = rng.dirichlet(np.ones(4), size=(1024, 5))
+    fuse(beliefs[:8], "bjs-dst")
+    t0 = time.perf_counter()
+    for _ in range(5):
+        fuse(beliefs, "bjs-dst", return_diagnostics=True)
+    batched = (time.perf_counter() - t0) / (5 * len(beliefs))
+    t0 = time.perf_counter()
+    for i in range(200):
+        fuse(beliefs[i], "bjs-dst")
+    single = (time.perf_counter() - t0) / 200
+    return {"batched_ms": batched * 1e3, "single_ms": single * 1e3}
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the benchmark and print our figures beside the reference."""
+    import torch
+
+    torch.set_num_threads(1)
+    tmp = None
+    if args.out is None:
+        tmp = tempfile.TemporaryDirectory(prefix="amuled-bench-")
+        out = Path(tmp.name)
+    else:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+    rows: list[tuple[str, str, str, str]] = []
+    fm: dict[str, Any] = {}
+    if "findmilk" not in args.skip:
+        print("FindMilk base training ...", flush=True)
+        fm = bench_findmilk(out, args.quick)
+        opt = fm["optimal"]
+        first = f"{opt['steps']:,} steps, {opt['wall_s']:.1f} s" if opt else "not reached"
+        rows.append(
+            (
+                "FindMilk greedy first optimal (14 steps, 100%)",
+                first,
+                *REFERENCE["findmilk_optimal_s"],
+            )
+        )
+        rows.append((
+            f"FindMilk base run ({fm['steps']:,} steps)",
+            f"{fm['full_s']:.1f} s ({fm['steps_per_s']:,.0f} steps/s)",
+            *REFERENCE["findmilk_full_s"],
+        ))  # fmt: skip
+        rows.append(
+            (
+                "FindMilk final greedy optimal",
+                f"{100 * fm['final_optimal_frac']:.0f}%",
+                "100%",
+                "100%",
+            )
+        )
+    if "driving" not in args.skip:
+        print("Driving base training ...", flush=True)
+        dr = bench_driving(out, args.quick)
+        m = dr["metrics"]
+        rows.append(
+            (
+                f"Driving base run ({dr['steps']:,} steps)",
+                f"{dr['full_s']:.1f} s",
+                *REFERENCE["driving_full_s"],
+            )
+        )
+        pairs = (
+            ("collisions", "driving_collisions"),
+            ("rescues", "driving_grandmas"),
+            ("lane_changes", "driving_lane_changes"),
+        )
+        for key, ref in pairs:
+            if key in m:
+                s = m[key]
+                rows.append(
+                    (
+                        f"Driving greedy {key} / episode",
+                        f"{s['mean']:.2f} ± {s['half_width']:.2f}",
+                        *REFERENCE[ref],
+                    )
+                )
+    if "finetune" not in args.skip:
+        print("Fine-tuning with replayed AMULED feedback ...", flush=True)
+        ft = bench_finetune(out, fm.get("checkpoint"), args.quick)
+        if "skipped" in ft:
+            rows.append(
+                ("Fine-tune, 1,000 it x 128 steps", ft["skipped"], *REFERENCE["finetune_s"])
+            )
+        else:
+            rows.append((
+                f"Fine-tune, {ft['iterations']:,} it x "
+                f"{ft['transitions_per_iteration']} steps (replay)",
+                f"{ft['wall_s']:.1f} s ({ft['it_per_s']:.1f} it/s, miss rate "
+                f"{100 * (ft['miss_rate'] or 0):.2f}%)",
+                *REFERENCE["finetune_s"],
+            ))  # fmt: skip
+    if "fusion" not in args.skip:
+        fu = bench_fusion()
+        rows.append((
+            "bjs-dst fusion of 5 beliefs, per state",
+            f"{fu['batched_ms']:.4f} ms batched, {fu['single_ms']:.3f} ms alone",
+            *REFERENCE["fusion_ms"],
+        ))  # fmt: skip
+    widths = [
+        max(len(r[i]) for r in [("figure", "ours", "reference", "target"), *rows]) for i in range(4)
+    ]
+    line = "  ".join(f"{{:<{w}}}" for w in widths)
+    print()
+    print(line.format("figure", "ours", "reference (authors' code)", "target"))
+    print(line.format(*("-" * w for w in widths)))
+    for row in rows:
+        print(line.format(*row))
+    print(f"\n(torch threads: {torch.get_num_threads()}; quick: {args.quick})")
+    if tmp is not None:
+        tmp.cleanup()
+    return 0
