@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -93,7 +94,8 @@ def _stats(args: argparse.Namespace) -> int:
     print(f"  rows: {figures['rows']} ({figures['cacheable_rows']} served as answers)")
     print("  by status: " + ", ".join(f"{k} {v}" for k, v in sorted(figures["by_status"].items())))
     for entry in figures["by_model"]:
-        print(f"  source {entry['source']}, model {entry['model']}: {entry['rows']} rows")
+        model = f", model {entry['model']}" if entry["model"] is not None else ""
+        print(f"  source {entry['source']}{model}: {entry['rows']} rows")
     for entry in figures["by_task_cluster"]:
         print(f"  {entry['task']} / {entry['cluster']}: {entry['rows']} rows")
     lat = figures["latency_s"]
@@ -111,7 +113,13 @@ def _stats(args: argparse.Namespace) -> int:
 def _export(args: argparse.Namespace) -> int:
     with _existing_store(args.store) as store:
         if args.output == "-":
-            count = store.export_jsonl(sys.stdout, status=args.status, task=args.task)
+            try:
+                count = store.export_jsonl(sys.stdout, status=args.status, task=args.task)
+                sys.stdout.flush()
+            except BrokenPipeError:  # `amuled beliefs export | head`: the reader left
+                devnull = os.open(os.devnull, os.O_WRONLY)
+                os.dup2(devnull, sys.stdout.fileno())
+                return 0
         else:
             with open(args.output, "w", encoding="utf-8") as fp:
                 count = store.export_jsonl(fp, status=args.status, task=args.task)
