@@ -224,8 +224,6 @@ class DeliberationEnv(ParallelEnv):
                 chars |= set(template.read_text(encoding="utf-8"))
         except (ImportError, OSError):
             pass
-        if self._prompt:
-            chars |= set(self._prompt)
         return frozenset(chars)
 
     # -- prompts ---------------------------------------------------------------------
