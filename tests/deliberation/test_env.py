@@ -6,7 +6,7 @@ import warnings
 
 import numpy as np
 import pytest
-from pettingzoo.test import parallel_api_test, seed_test
+from pettingzoo.test import api_test, parallel_api_test, seed_test
 from pettingzoo.test.seed_test import parallel_seed_test
 from pettingzoo.utils.conversions import parallel_to_aec
 
@@ -25,6 +25,14 @@ def test_parallel_api(env_id):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no "agent was not given ..." style warnings
         parallel_api_test(env, num_cycles=100)
+
+
+@pytest.mark.parametrize("env_id", registered_ids())
+def test_aec_api(env_id):
+    # advisory warnings (agent naming, Dict observations) are expected for this design
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        api_test(parallel_to_aec(make(env_id, max_steps=30)), num_cycles=50)
 
 
 @pytest.mark.parametrize("env_id", registered_ids())
