@@ -95,3 +95,15 @@ def test_registry():
     assert (task.num_envs, task.num_actions, task.obs_dim) == (4, 4, 8)
     assert get_task("driving").action_names == ("straight", "right", "left")
     assert make_batched("driving").obs_dim == 11
+
+
+def test_registration_prompts_and_human_do_not_import_torch():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, amuled_ma, amuled_ma.tasks.prompts, amuled_ma.tasks.human, "
+        "amuled_ma.tasks.registration; print('torch' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
