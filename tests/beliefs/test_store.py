@@ -286,3 +286,24 @@ def test_several_processes_write_at_once(tmp_path):
             i = int(row.obs[0])
             np.testing.assert_allclose(row.belief, np.array([i % 7, 1.0]) / (i % 7 + 1.0))
             assert row.raw == f"r{i}" and row.attempts == 1
+
+
+def _child_write(store, i):
+    r = req(100 + i)
+    store.put(request_key(IDENT, r), IDENT, r, res([0, 0, 1, 0], raw=f"child {i}"))
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="fork start method")
+def test_a_forked_child_reopens_its_own_connection(store):
+    import multiprocessing
+
+    store.put(request_key(IDENT, req(1)), IDENT, req(1), res([1, 0, 0, 0]))
+    ctx = multiprocessing.get_context("fork")
+    procs = [ctx.Process(target=_child_write, args=(store, i)) for i in range(2)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(30)
+    assert [p.exitcode for p in procs] == [0, 0]
+    assert len(store) == 3 and store.integrity_check() == ["ok"]
+    assert store.get(request_key(IDENT, req(101))).raw == "child 1"
