@@ -186,31 +186,11 @@ _BLOCK = 4096  # states per block in bjs_dst: keeps the temporaries in the CPU c
 _TINY = 1e-300  # added before log2 so that 0 log 0 = 0 * log2(1e-300) = 0, never NaN
 
 
-class _Scratch:
-    """Large temporaries of one block, reused from block to block.
-
-    Allocating and freeing them for every block makes the C heap grow and shrink, and
-    the page faults that follow cost about 40% of the run time (measured); reusing them
-    avoids that.
-    """
-
-    def __init__(self, k: int, n: int, size: int) -> None:
-        pairs = max(k - 1, 1)
-        self.columns = np.empty((k, n, size))
-        self.floored = np.empty((k, n, size))
-        self.xlogx = np.empty((k, n, size))
-        self.pair_sum = np.empty((pairs, n, size))
-        self.pair_log = np.empty((pairs, n, size))
-
-
-def _to_columns(m: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """``(..., k, n)`` -> contiguous ``(k, n, B)`` (written into ``out`` when given)."""
+def _to_columns(m: np.ndarray) -> np.ndarray:
+    """``(..., k, n)`` -> contiguous ``(k, n, B)``."""
     k, n = m.shape[-2:]
     flat = m.reshape(-1, k * n)
-    if out is None:
-        return np.ascontiguousarray(flat.T).reshape(k, n, flat.shape[0])
-    np.copyto(out.reshape(k * n, flat.shape[0]), flat.T)
-    return out
+    return np.ascontiguousarray(flat.T).reshape(k, n, flat.shape[0])
 
 
 def _from_columns(x: np.ndarray, batch: tuple[int, ...]) -> np.ndarray:
@@ -229,14 +209,11 @@ def _columns_credibility(bjs: np.ndarray) -> np.ndarray:
     return support / support.sum(axis=0)
 
 
-def _columns_measures(t: np.ndarray, cap: np.ndarray | None, scratch: _Scratch | None = None):
+def _columns_measures(t: np.ndarray, cap: np.ndarray | None):
     """Credibility ``(k, B)`` and Deng entropy ``(k, B)`` of columns ``t`` ``(k, n, B)``."""
     k = t.shape[0]
-    if scratch is None:
-        scratch = _Scratch(*t.shape)
-    # log2 argument > 0; changes sums of x log x by ~1e-297 at most.
-    floored = np.add(t, _TINY, out=scratch.floored)
-    xl = np.log2(floored, out=scratch.xlogx)
+    floored = t + _TINY  # log2 argument > 0; changes sums of x log x by ~1e-297 at most
+    xl = np.log2(floored)
     xl *= t  # exactly 0 where t == 0: 0 log 0 = 0
     neg_h = xl.sum(axis=1)  # sum_A m log2 m, per source
     rows = t.sum(axis=1)
@@ -244,8 +221,8 @@ def _columns_measures(t: np.ndarray, cap: np.ndarray | None, scratch: _Scratch |
     for i in range(k - 1):
         # BJS(m_i, m_j) for all j > i at once, with s = m_i + m_j:
         # 1/2 [sum m_i log2 m_i + sum m_j log2 m_j - sum s log2 s + sum s].
-        s = np.add(floored[i], floored[i + 1 :], out=scratch.pair_sum[: k - 1 - i])
-        s_log_s = np.log2(s, out=scratch.pair_log[: k - 1 - i])
+        s = floored[i] + floored[i + 1 :]
+        s_log_s = np.log2(s)
         s_log_s *= s
         pair = neg_h[i] + neg_h[i + 1 :]
         pair -= s_log_s.sum(axis=1)
@@ -268,9 +245,9 @@ def _columns_measures(t: np.ndarray, cap: np.ndarray | None, scratch: _Scratch |
     return credibility, entropy
 
 
-def _columns_wae(t: np.ndarray, cap: np.ndarray | None, scratch: _Scratch | None = None):
+def _columns_wae(t: np.ndarray, cap: np.ndarray | None):
     """Run steps 1-3 on columns: ``(wae (n, B), weights, credibility, entropy)``."""
-    credibility, entropy = _columns_measures(t, cap, scratch)
+    credibility, entropy = _columns_measures(t, cap)
     # exp(E - max E) / sum: the normalised information volume, safe from overflow.
     volume = np.exp(entropy - entropy.max(axis=0))
     adjusted = credibility * volume
@@ -558,14 +535,9 @@ def bjs_dst(beliefs: np.ndarray, diagnostics: bool = False) -> np.ndarray | Fusi
     if diagnostics:
         wae_out, conflicts_out = np.empty((size, n)), np.empty((size, k - 1))
         weights_out, crd_out, entropy_out = (np.empty((size, k)) for _ in range(3))
-    scratch: dict[int, _Scratch] = {}  # by block length: at most two per call
     for start in range(0, size, _BLOCK):
         stop = min(start + _BLOCK, size)
-        work = scratch.get(stop - start) or scratch.setdefault(
-            stop - start, _Scratch(k, n, stop - start)
-        )
-        t = _to_columns(flat[start:stop], out=work.columns)
-        wae, weights, crd, entropy = _columns_wae(t, None, work)
+        wae, weights, crd, entropy = _columns_wae(_to_columns(flat[start:stop]), None)
         block, conflicts = _columns_closed_form(wae, k, diagnostics)
         fused[start:stop] = block.T
         if diagnostics:
