@@ -90,6 +90,11 @@ def test_lru_and_fallbacks_are_asked_again():
     # state 0 came from the LRU; state 1 had a fallback and is asked again
     assert len(src.calls) == 2 and {r.obs[0] for r in src.calls[1]} == {1.0}
     assert out.cache_hits == 1 and out.statuses[0].tolist() == ["ok", "abstained"]
+    # the LRU rows come back whole: statuses, beliefs, fused, weights
+    assert out.statuses[1:].tolist() == [["ok", "ok"]] * 2
+    np.testing.assert_allclose(out.fused[1:], [[0.25, 0.5, 0.25, 0.0]] * 2)
+    np.testing.assert_allclose(out.beliefs[2], [[0.5, 0.5, 0, 0], [0, 0.5, 0.5, 0]])
+    np.testing.assert_allclose(out.weights[1], [0.5, 0.5])
     assert panel.stats.fallbacks == 2 and panel.stats.lru_hits == 1
     panel.clear_cache()
     panel.fused(obs(0))
