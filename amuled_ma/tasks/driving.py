@@ -146,13 +146,23 @@ class Driving(BatchedTask):
         self._lane = torch.full((n,), START_LANE, dtype=i64, device=dev)
         self._cars = torch.zeros(n, dtype=i64, device=dev)  # bit (lane+1)*9 + d: car at d
         self._gms = torch.zeros(n, dtype=i64, device=dev)  # bit (lane+1)*4 + k: grandma
-        target = [
-            min(max(lane + d, 0), NUM_LANES - 1) for lane in range(NUM_LANES) for d in (0, 1, -1)
-        ]
-        self._target = torch.tensor(target, dtype=i64, device=dev)  # [(lane, action)]
+        # per (lane, action): target lane, hit masks (bit 0 of the current and the target
+        # lane groups), straight bonus and the "same lane" shaping term
+        target, hit_car, hit_gm, bonus, same = [], [], [], [], []
+        for lane in range(NUM_LANES):
+            for action, d in enumerate((0, 1, -1)):
+                t = min(max(lane + d, 0), NUM_LANES - 1)
+                target.append(t)
+                hit_car.append(1 << (lane + 1) * _CAR_W | 1 << (t + 1) * _CAR_W)
+                hit_gm.append(1 << (lane + 1) * _GM_W | 1 << (t + 1) * _GM_W)
+                bonus.append(0.5 if action == 0 else 0.0)
+                same.append(20.0 if t == lane else 0.0)
+        self._target = torch.tensor(target, dtype=i64, device=dev)
+        self._hit_car = torch.tensor(hit_car, dtype=i64, device=dev)
+        self._hit_gm = torch.tensor(hit_gm, dtype=i64, device=dev)
+        self._straight_bonus = torch.tensor(bonus, dtype=torch.float32, device=dev)
+        self._same_lane = torch.tensor(same, dtype=torch.float32, device=dev)
         lanes = range(NUM_LANES)
-        self._car_shift = torch.tensor([(ln + 1) * _CAR_W for ln in lanes], dtype=i64, device=dev)
-        self._gm_shift = torch.tensor([(ln + 1) * _GM_W for ln in lanes], dtype=i64, device=dev)
         # observed lanes current, left, right -> lane group shifts (pad groups at 0 and 6)
         groups = [[ln + 1, ln, ln + 2] for ln in lanes]
         self._obs_car_shift = torch.tensor(groups, dtype=i64, device=dev) * _CAR_W
@@ -172,7 +182,6 @@ class Driving(BatchedTask):
         )
         self._lane_table = self._observation_table()
         self._onehot = torch.eye(NUM_LANES, dtype=torch.float32, device=dev)
-        self._straight_bonus = torch.tensor([0.5, 0.0, 0.0], device=dev)
         self._initial_obs = torch.tensor(
             [-1.0] * 6 + [float(i == START_LANE) for i in range(NUM_LANES)],
             dtype=torch.float32,
@@ -202,19 +211,16 @@ class Driving(BatchedTask):
     def _advance(
         self, actions: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
-        lane = self._lane
-        target = self._target.index_select(0, lane * 3 + actions)  # (1) target lane
-        changed = target != lane
+        idx = self._lane * 3 + actions
+        target = self._target.index_select(0, idx)  # (1) target lane
         cars = self._cars >> 1  # (2) every object advances (one bit per step)
         gms = self._gms >> 1
         # (3) hits: objects now at distance <= 0 (bit 0 of a lane group) in the current or
-        # the target lane (the same lane when it does not change)
-        c_lane = self._car_shift.index_select(0, lane)
-        c_target = self._car_shift.index_select(0, target)
-        collisions = ((cars >> c_lane) | (cars >> c_target)) & 1
-        g_lane = self._gm_shift.index_select(0, lane)
-        g_target = self._gm_shift.index_select(0, target)
-        rescues = ((gms >> g_lane) | (gms >> g_target)) & 1
+        # the target lane (the same lane when it does not change); at most one object of a
+        # kind reaches distance <= 0 per step, since at most one appears per step
+        collisions = ((cars & self._hit_car.index_select(0, idx)) != 0).to(torch.int64)
+        rescues = ((gms & self._hit_gm.index_select(0, idx)) != 0).to(torch.int64)
+        changed = target != self._lane
         self._lane = target
         # (4) removal of everything at distance <= 0, (5) spawning at distance 8
         cars = cars & self._keep_car
@@ -231,8 +237,8 @@ class Driving(BatchedTask):
         self._cars = cars
         self._gms = gms
         # (6) reward
-        r_env = collisions * -20.0 + self._straight_bonus.index_select(0, actions)
-        r_shaping = rescues * 400.0 + (~changed) * 20.0
+        r_env = collisions * -20.0 + self._straight_bonus.index_select(0, idx)
+        r_shaping = rescues * 400.0 + self._same_lane.index_select(0, idx)
         events = {"collisions": collisions, "rescues": rescues, "lane_changes": changed}
         terminated = torch.zeros_like(changed)  # the road never ends early
         return r_env, r_shaping, terminated, events
@@ -260,7 +266,8 @@ class Driving(BatchedTask):
         """Current lane of each copy (int64 ``[num_envs]``)."""
         return self._lane
 
-    def _bit(self, kind: str, lane: int, distance: int) -> int:
+    def _bit(self, kind: str, lane: int, distance: int) -> tuple[int, int]:
+        """Return the bit of an object and the bits of that distance in every lane."""
         if kind == "car":
             width, slots, speed = _CAR_W, _CAR_SLOTS, CAR_SPEED
         elif kind == "grandma":
@@ -275,10 +282,15 @@ class Driving(BatchedTask):
         if distance not in allowed:
             raise ValueError(f"distance: a {kind} can only be at {allowed}, got {distance!r}")
         k = allowed.index(distance) + 1
-        return 1 << ((int(lane) + 1) * width + k)
+        row = sum(1 << ((ln + 1) * width + k) for ln in range(NUM_LANES))
+        return 1 << ((int(lane) + 1) * width + k), row
 
     def place(self, kind: str, lane: int, distance: int, env_ids: Any = None) -> None:
         """Put an object on the road (for tests and hand-made states); updates ``obs``.
+
+        The rules let at most one object of a kind appear per step, and all objects of a
+        kind move at the same speed, so no two objects of a kind share a distance, in any
+        lanes; ``place`` keeps that true (the step relies on it).
 
         Args:
             kind: ``"car"`` (distance 1..8) or ``"grandma"`` (distance 2, 5 or 8: the only
@@ -288,15 +300,19 @@ class Driving(BatchedTask):
             env_ids: Copies to change (``None``: all).
 
         Raises:
-            ValueError: Unknown ``kind``, or ``lane`` / ``distance`` impossible.
+            ValueError: Unknown ``kind``; ``lane`` or ``distance`` impossible; another
+                object of that kind already at that distance in another lane.
 
         """
-        bit = self._bit(kind, lane, distance)
+        bit, row = self._bit(kind, lane, distance)
         ids = self._env_ids(env_ids)
-        if kind == "car":
-            self._cars[ids] |= bit
-        else:
-            self._gms[ids] |= bit
+        road = self._cars if kind == "car" else self._gms
+        if bool(((road[ids] & (row & ~bit)) != 0).any()):
+            raise ValueError(
+                f"distance: another {kind} is already at distance {distance} in another lane "
+                "(the rules let at most one appear per step)"
+            )
+        road[ids] |= bit
         self._obs = self._observe()
 
     def clear_road(self, env_ids: Any = None) -> None:

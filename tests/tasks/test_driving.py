@@ -72,12 +72,13 @@ def test_collision_and_rescue_in_the_current_lane():
 
 def test_objects_in_other_lanes_do_not_hit_but_are_removed():
     task = quiet()
-    task.place("car", 0, 1)
-    task.place("grandma", 4, 2)
     task.place("car", 3, 1)  # the lane to the right
+    task.place("grandma", 4, 2)
+    task.place("car", 1, 2)
     _, _, _, _, info = step(task, STRAIGHT)
     assert info["collisions"].item() == 0 and info["rescues"].item() == 0
-    assert task.objects() == {"car": [], "grandma": []}  # passed objects leave every lane
+    # passed objects leave every lane; the others move on
+    assert task.objects() == {"car": [(1, 1)], "grandma": []}
 
 
 def test_lane_change_counts_current_and_target_lane():
@@ -218,3 +219,7 @@ def test_place_rejects_impossible_objects():
         task.place("car", 5, 3)
     with pytest.raises(ValueError, match="kind"):
         task.place("cat", 2, 3)
+    task.place("car", 1, 4)
+    with pytest.raises(ValueError, match="another car is already at distance 4"):
+        task.place("car", 3, 4)
+    task.place("car", 1, 4)  # the same object again is fine
