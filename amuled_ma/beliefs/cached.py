@@ -10,7 +10,7 @@ is lost if the process dies in the middle of a batch:
 - a wrapped source that defines ``iter_beliefs(requests)`` yielding ``(index, result)`` as
   each answer completes gets every answer written on arrival (one short transaction per
   ``flush_every`` answers);
-- any other source is called chunk by chunk (``chunk_size`` requests per call) and each
+- any other source is called chunk by chunk (``chunk_size``, 256, requests per call) and each
   chunk is written before the next one is sent.
 
 Caching policy (see also :mod:`amuled_ma.beliefs.store`):
@@ -105,7 +105,7 @@ class CachedSource(BeliefSource):
         store: BeliefStore,
         *,
         memory_size: int = 65536,
-        chunk_size: int = 64,
+        chunk_size: int = 256,
         flush_every: int = 1,
         identity: Mapping[str, Any] | None = None,
     ) -> None:

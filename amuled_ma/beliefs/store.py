@@ -221,6 +221,8 @@ def _enc_names(names: tuple[str, ...]) -> str:
 
 def _extra_json(extra: Mapping[str, Any] | None) -> str:
     """Serialise diagnostics, writing anything JSON cannot hold (an exception...) as repr."""
+    if not extra:
+        return "{}"
     try:
         return canonical_json(_jsonable(extra or {}))
     except (TypeError, ValueError):
@@ -627,11 +629,11 @@ class BeliefStore:
                     ident,
                     request.task,
                     request.cluster,
-                    canonical_json([float(x) for x in request.obs]),
-                    canonical_json(list(request.action_names)),
+                    _floats_json(request.obs),
+                    _enc_names(tuple(request.action_names)),
                     messages_ref,
                     result.raw,
-                    canonical_json([float(x) for x in np.asarray(result.belief).ravel()]),
+                    _floats_json(np.asarray(result.belief, dtype=np.float64).ravel().tolist()),
                     result.status,
                     float(result.latency_s) if result.latency_s is not None else None,
                     result.prompt_tokens,
@@ -811,9 +813,9 @@ def _split_messages(
     refs, bodies = [], {}
     for role, content in messages:
         h = _text_hash(content)
-        refs.append([role, h])
+        refs.append(f'[{_enc(role)},"{h}"]')  # == canonical_json([[role, h], ...])
         bodies[h] = content
-    return canonical_json(refs), bodies
+    return "[" + ",".join(refs) + "]", bodies
 
 
 def _row_to_stored(row: Sequence[Any], texts: Mapping[str, str] | None) -> StoredBelief:

@@ -17,6 +17,10 @@ fusion of every copy. A *lookup* is one (env copy, cluster) belief, so one call 
 3. **warm panel**: the second run's panel again, its in-memory LRU of fused states now
    full: the steady-state cost of a learner step over states already seen.
 
+Each of ``--repeats`` trials (3) runs the three on a fresh store; the fastest time of each
+run is printed (the least disturbed by other jobs on the machine), and any trial missing
+the second-run target is printed as it was.
+
 ``--live`` measures requests per second against a real Ollama server instead (at
 concurrency 1, 2, 4, first run and cached second run): see :mod:`amuled_ma.bench._live`.
 """
@@ -52,7 +56,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rule", default="bjs-dst", help="fusion rule")
     parser.add_argument("--seed", type=int, default=0, help="seed of the states drawn")
     parser.add_argument(
-        "--store", type=Path, default=None, help="belief store file (default: a temporary one)"
+        "--repeats", type=int, default=3, help="trials, each on a fresh store; best is shown"
+    )
+    parser.add_argument(
+        "--store",
+        type=Path,
+        default=None,
+        help="keep the last trial's belief store in this file (it must not exist yet)",
     )
     live = parser.add_argument_group("live mode (a real Ollama server)")
     live.add_argument("--live", action="store_true", help="measure a live Ollama server")
@@ -129,7 +139,6 @@ def _replay(args: argparse.Namespace) -> int:
     obs = states[rng.integers(0, len(states), size=args.copies)]
 
     with tempfile.TemporaryDirectory(prefix="amuled-bench-beliefs-") as tmp:
-        store_path = args.store or Path(tmp) / "beliefs.sqlite"
 
         def panel_on(store: BeliefStore) -> tuple[MoralPanel, CachedSource]:
             cached = CachedSource(ReplaySource(path, miss_policy="uniform"), store)
@@ -152,17 +161,31 @@ def _replay(args: argparse.Namespace) -> int:
             return end - start, middle - start, out
 
         lookups = args.copies * len(clusters)
-        rows = []
-        with BeliefStore(store_path) as store:
-            panel, cached = panel_on(store)
-            rows.append(("1 cold store", *timed(panel), cached.stats))
-        with BeliefStore(store_path) as store:  # as a new process would
-            panel, cached = panel_on(store)
-            rows.append(("2 second run (new process)", *timed(panel), cached.stats))
-            second = cached.stats
-            cached.reset_stats()
-            rows.append(("3 warm panel (LRU)", *timed(panel), cached.stats))
-            store_rows = len(store)
+        rows: list[Any] = []
+        repeats = max(1, args.repeats)
+        for r in range(repeats):
+            last = r == repeats - 1
+            store_path = args.store if (last and args.store) else Path(tmp) / f"b{r}.sqlite"
+            trial = []
+            with BeliefStore(store_path) as store:
+                panel, cached = panel_on(store)
+                trial.append(("1 cold store", *timed(panel), cached.stats))
+            with BeliefStore(store_path) as store:  # as a new process would
+                panel, cached = panel_on(store)
+                trial.append(("2 second run (new process)", *timed(panel), cached.stats))
+                second = cached.stats
+                cached.reset_stats()
+                trial.append(("3 warm panel (LRU)", *timed(panel), cached.stats))
+                store_rows = len(store)
+            if not (second.hit_rate == 1.0 and second.sent == 0):
+                rows = trial  # report the failing trial as it was
+                break
+            # keep the fastest trial of each run (the least disturbed by other jobs)
+            rows = (
+                trial
+                if not rows
+                else [min(a, b, key=lambda x: x[1]) for a, b in zip(rows, trial, strict=True)]
+            )
 
     print(
         f"beliefs bench (replay): {path.name}, task {args.task}, {args.copies} env copies x "
@@ -170,7 +193,8 @@ def _replay(args: argparse.Namespace) -> int:
     )
     print(
         f"  python {platform.python_version()}, numpy {np.__version__}, {platform.machine()}, "
-        f"{os.cpu_count()} CPUs visible; store rows after run 1: {store_rows}"
+        f"{os.cpu_count()} CPUs visible; store rows after run 1: {store_rows}; "
+        f"best of {repeats} trial(s)"
     )
     print(
         "  run                        | seconds (vars) | lookups/s | distinct states | "
@@ -188,6 +212,7 @@ def _replay(args: argparse.Namespace) -> int:
     )
     statuses = dict(zip(*np.unique(rows[0][3].statuses, return_counts=True), strict=True))
     print("  statuses of run 1: " + ", ".join(f"{k} {v}" for k, v in sorted(statuses.items())))
+    second = rows[1][4]
     ok = second.hit_rate == 1.0 and second.sent == 0
     print(
         "  second run: "
