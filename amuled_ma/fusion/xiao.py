@@ -28,8 +28,8 @@ Every function here is batched: leading dimensions of ``masses`` are batch dimen
 ``masses`` has shape ``(..., k, n)`` and no Python loop runs over the states of the
 batch. Internally the batch is transposed to ``(k, n, B)`` so that each numpy call works
 on long contiguous rows, and the ``bjs-dst`` fast path walks it in cache-sized blocks of
-4096 states (each block fully vectorized): 100,000 fusions of 5 x 4 take well under
-0.1 s on one core (see ``amuled bench fusion`` and ``docs/fusion.md``).
+4096 states (each block fully vectorized): 100,000 fusions of 5 x 4 take about 0.07 s of
+CPU time on one core (see ``amuled bench fusion`` and ``docs/fusion.md``).
 
 ## Degenerate inputs (defined behaviour, each one tested)
 
@@ -524,7 +524,7 @@ def bjs_dst(beliefs: np.ndarray, diagnostics: bool = False) -> np.ndarray | Fusi
     """Apply the ``bjs-dst`` rule to validated singleton beliefs ``(..., k, n)`` (closed form).
 
     The flattened batch is processed in blocks of ``_BLOCK`` states so that every
-    temporary stays in the CPU cache (about 1.8x faster than one pass over 100,000
+    temporary stays in the CPU cache (about 1.5x faster than one pass over 100,000
     states, measured); each block is fully vectorized, there is no per-state loop.
     """
     batch = beliefs.shape[:-2]
