@@ -26,7 +26,10 @@ def recordings_dir() -> Path:
     """The folder of real LLM recordings; skips when it is not beside the checkout."""
     path = _recordings_path()
     if not path.is_dir():
-        pytest.skip(f"recordings not found at {path} (set AMULED_RECORDINGS or put shared/ beside the clone)")
+        pytest.skip(
+            f"recordings not found at {path} "
+            "(set AMULED_RECORDINGS or put shared/ beside the clone)"
+        )
     return path
 
 

@@ -1,4 +1,4 @@
-"""Benchmarks, one module each, run with ``amuled bench NAME`` or ``python -m amuled_ma.bench NAME``.
+"""Benchmarks, one module each: ``amuled bench NAME`` or ``python -m amuled_ma.bench NAME``.
 
 A module here defines ``add_arguments(parser)`` and ``main(args) -> int``; its first
 docstring line is its help text.

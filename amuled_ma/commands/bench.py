@@ -21,9 +21,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         if info.name.startswith("_"):
             continue
         module = importlib.import_module(f"{bench.__name__}.{info.name}")
-        sub = names.add_parser(
-            info.name, help=(module.__doc__ or "").strip().splitlines()[0] if module.__doc__ else None
-        )
+        summary = (module.__doc__ or "").strip().splitlines()
+        sub = names.add_parser(info.name, help=summary[0] if summary else None)
         module.add_arguments(sub)
         sub.set_defaults(handler=module.main)
     parser.set_defaults(handler=lambda args: parser.print_help() or 2)
