@@ -49,56 +49,66 @@ STATE = (
     "You can perform the following actions:\n\n\n0: Move up.\n1: Move down.\n2: Move left.\n"
     "3: Move right."
 )
+SHORT = (
+    (
+        "user",
+        "Choose a move for a robot looking for milk. Actions: 0 up, 1 down, 2 left, 3 right. "
+        "Answer with a probability per action.",
+    ),
+)
 
 
-def requests(clusters=("care", "deontological")):
-    return [
-        BeliefRequest("findmilk", c, (2.0, 3.0), MILK, build_messages(c, "findmilk", STATE))
-        for c in clusters
-    ]
+def short_request(cluster: str = "care") -> BeliefRequest:
+    return BeliefRequest("findmilk", cluster, (2.0, 3.0), MILK, SHORT)
 
 
-@pytest.fixture
-def live(ollama_host, ollama_model):
-    source = OllamaSource(
-        ollama_model,
-        host=ollama_host,
-        num_predict=96,
-        reasoning_max_chars=60,
-        concurrency=2,
-        timeout_s=300,
-    )
-    yield source
-    source.close()
+def make(host: str, model: str, **kwargs) -> OllamaSource:
+    kwargs = {
+        "num_ctx": 4096,
+        "num_predict": 40,
+        "reasoning": False,
+        "concurrency": 1,
+        "timeout_s": 900,
+        "parse_retries": 0,
+        **kwargs,
+    }
+    return OllamaSource(model, host=host, **kwargs)
 
 
-def test_check_and_identity(live):
-    digest = live.check()
+def test_check_identity_and_missing_model(ollama_host, ollama_model):
+    source = make(ollama_host, ollama_model)
+    digest = source.check()
     assert digest
-    assert live.identity()["digest"] == digest
-
-
-def test_paper_prompts_give_valid_structured_beliefs(live):
-    results = live.beliefs(requests())
-    for result in results:
-        assert result.belief.shape == (4,)
-        assert np.isclose(result.belief.sum(), 1.0) and np.all(result.belief >= 0)
-        assert result.status in ("ok", "repaired"), (result.status, result.raw)
-        assert result.prompt_tokens and result.prompt_tokens > 1000  # the full paper prompt
-    assert live.stats.sent == 2 and live.stats.timeouts == 0
-
-
-def test_deterministic_at_temperature_zero(live, ollama_host, ollama_model):
-    (first,) = live.beliefs(requests(("virtue",)))
-    again = OllamaSource(ollama_model, host=ollama_host, num_predict=96, reasoning_max_chars=60)
-    try:
-        (second,) = again.beliefs(requests(("virtue",)))
-    finally:
-        again.close()
-    assert first.raw == second.raw
-    assert np.array_equal(first.belief, second.belief)
-
-
-def test_missing_model_on_a_real_server(ollama_host):
+    assert source.identity()["digest"] == digest
     with pytest.raises(ModelNotFound, match="ollama pull no-such-model-xyz"):
-        OllamaSource("no-such-model-xyz", host=ollama_host).check()
+        make(ollama_host, "no-such-model-xyz").check()
+
+
+def test_structured_output_is_valid_and_deterministic(ollama_host, ollama_model):
+    answers = []
+    for _ in range(2):  # two sources: nothing shared but the server
+        source = make(ollama_host, ollama_model)
+        try:
+            (result,) = source.beliefs([short_request()])
+        finally:
+            source.close()
+        assert result.status in ("ok", "repaired"), (result.status, result.raw)
+        assert np.isclose(result.belief.sum(), 1.0) and np.all(result.belief >= 0)
+        assert result.prompt_tokens and result.completion_tokens
+        answers.append(result)
+    assert answers[0].raw == answers[1].raw
+    assert np.array_equal(answers[0].belief, answers[1].belief)
+
+
+@pytest.mark.slow
+def test_full_paper_prompt_goes_through(ollama_host, ollama_model):
+    """System prompt + few-shot + state prompt (~3.4k tokens) with the JSON schema."""
+    source = make(ollama_host, ollama_model)
+    messages = build_messages("care", "findmilk", STATE)
+    try:
+        (result,) = source.beliefs([BeliefRequest("findmilk", "care", (2.0, 3.0), MILK, messages)])
+    finally:
+        source.close()
+    assert result.status in ("ok", "repaired"), (result.status, result.raw)
+    assert result.prompt_tokens > 3000  # the whole paper prompt reached the model
+    assert source.stats.sent == 1 and source.stats.timeouts == 0
