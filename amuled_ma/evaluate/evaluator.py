@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -120,7 +121,16 @@ def variant_dirs(run_dir: Path) -> list[Path]:
     """Folders of a run that hold a final checkpoint, in pipeline order."""
     order = {"base": 0, "shaped": 1}
     dirs = [p.parent for p in Path(run_dir).glob(f"*/{LAST}")]
-    return sorted(dirs, key=lambda p: (order.get(p.name, 2), p.name))
+
+    def key(path: Path) -> tuple:
+        # natural order: finetune-amuled-kl2.5 before finetune-amuled-kl10
+        parts = re.split(r"(\d+(?:\.\d+)?)", path.name)
+        return (
+            order.get(path.name, 2),
+            [(0, float(p)) if i % 2 else (1, p) for i, p in enumerate(parts)],
+        )
+
+    return sorted(dirs, key=key)
 
 
 def evaluate_run(
