@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import re
 import socket
 import threading
 import time
@@ -73,6 +74,9 @@ def chat(
     )
 
 
+_REQUEST_LINE = re.compile(rb"(?:^|\r\n)((?:GET|POST|HEAD|DELETE) /[^ ]*) HTTP/1\.[01]\r\n")
+
+
 class DelayProxy:
     """A loopback TCP proxy that forwards to ``target`` after ``delay`` seconds per connection.
 
@@ -87,6 +91,8 @@ class DelayProxy:
         self.target_port = target_port
         self.delay = delay
         self.connections = 0
+        #: ``"METHOD /path"`` of every HTTP request forwarded (read from the client's bytes).
+        self.requests: list[str] = []
         self._listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self._listener.bind(("127.0.0.1", 0))
@@ -121,14 +127,17 @@ class DelayProxy:
             )
             done = threading.Event()
 
-            def pump(src: socket.socket, dst: socket.socket) -> None:
+            def pump(src: socket.socket, dst: socket.socket, sniff: bool) -> None:
                 with contextlib.suppress(OSError):
                     while chunk := src.recv(65536):
+                        if sniff:
+                            for match in _REQUEST_LINE.finditer(chunk):
+                                self.requests.append(match.group(1).decode())
                         dst.sendall(chunk)
                 done.set()
 
-            threading.Thread(target=pump, args=(client, upstream), daemon=True).start()
-            threading.Thread(target=pump, args=(upstream, client), daemon=True).start()
+            threading.Thread(target=pump, args=(client, upstream, True), daemon=True).start()
+            threading.Thread(target=pump, args=(upstream, client, False), daemon=True).start()
             while not done.wait(0.1) and not self._stop.is_set():
                 pass
 
