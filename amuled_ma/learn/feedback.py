@@ -244,11 +244,21 @@ def make_source(scenario: Any, run_dir: Path | None = None) -> Any:
         options.update(
             model=fb.model, host=fb.host, concurrency=fb.concurrency, timeout_s=fb.timeout_s
         )
+    source = build(fb.source, **options)
+    # Preflight before anything is written: an unreachable server or a missing model
+    # fails here, with the source's own message, and leaves the run directory untouched.
+    check = getattr(source, "check", None)
+    if callable(check):
+        try:
+            check()
+        except BaseException:
+            source.close()
+            raise
     store_path = Path(fb.store)
     if not store_path.is_absolute():
         store_path = (run_dir or scenario.base_dir) / store_path
     store_path.parent.mkdir(parents=True, exist_ok=True)
-    return CachedSource(build(fb.source, **options), BeliefStore(store_path))
+    return CachedSource(source, BeliefStore(store_path))
 
 
 def make_feedback(variant: str, scenario: Any, run_dir: Path | None = None) -> Feedback:

@@ -89,3 +89,33 @@ def test_ablation_lists():
     assert variant_dir_name("finetune:cluster:care") == "finetune-cluster-care"
     with pytest.raises(ScenarioError):
         ablation_variants("nope", sc)
+
+
+def test_make_source_preflight_fails_before_writing(tmp_path):
+    from amuled_ma.beliefs import register_source
+    from amuled_ma.beliefs.types import BeliefSource
+    from amuled_ma.errors import BackendUnavailable
+    from amuled_ma.learn.feedback import make_source
+
+    class Down(BeliefSource):
+        name = "down"
+        closed = False
+
+        def check(self):
+            raise BackendUnavailable("no server at nowhere")
+
+        def beliefs(self, requests):  # pragma: no cover - never reached
+            return []
+
+        def close(self):
+            Down.closed = True
+
+    register_source("down-for-test", lambda **_: Down())
+    import dataclasses
+
+    sc = scenario_from_dict({})
+    sc = dataclasses.replace(sc, feedback=dataclasses.replace(sc.feedback, source="down-for-test"))
+    with pytest.raises(BackendUnavailable):
+        make_source(sc, tmp_path / "run")
+    assert Down.closed
+    assert not (tmp_path / "run").exists()
