@@ -43,6 +43,7 @@ from rsl_rl.runners import OnPolicyRunner
 from amuled_ma.errors import CheckpointError
 from amuled_ma.learn.config import rsl_rl_config
 from amuled_ma.learn.distribution import orthogonal_init
+from amuled_ma.learn.fast_ppo import ppo_update
 from amuled_ma.learn.feedback import Feedback
 from amuled_ma.learn.vecenv import OBS_GROUP, TaskVecEnv
 from amuled_ma.scenario import Scenario
@@ -381,7 +382,7 @@ class Trainer:
             for it in range(start_it, self.total_iterations):
                 self._set_lr(it)
                 extra = self._rollout()
-                losses = self.alg.update()
+                losses = ppo_update(self.alg)  # = self.alg.update(), bit for bit, leaner
                 self.runner.current_learning_iteration = it + 1
                 self.wall_offset = wall0 + time.perf_counter() - t0
                 episodes = self.env.drain_episodes()
