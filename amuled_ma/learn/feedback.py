@@ -42,7 +42,8 @@ class Feedback(ABC):
     name: str = "feedback"
 
     def __init__(self) -> None:
-        self._memo: dict[bytes, tuple[np.ndarray, dict[str, Any]]] = {}
+        # observation bytes -> (belief, diagnostics, the diagnostics prepared for _account)
+        self._memo: dict[bytes, tuple[np.ndarray, dict[str, Any], tuple]] = {}
         self.steps = 0
         self.lookups = 0
         self.statuses: Counter[str] = Counter()
@@ -68,33 +69,36 @@ class Feedback(ABC):
         array = obs.detach().cpu().numpy().astype(np.float32, copy=False)
         ids = list(range(len(array))) if env_ids is None else list(env_ids)
         keys = [row.tobytes() for row in array]
+        memo = self._memo
         missing: dict[bytes, int] = {}
         for i, key in enumerate(keys):
-            if key not in self._memo and key not in missing:
+            if key not in memo and key not in missing:
                 missing[key] = i
         if missing:
             rows = list(missing.values())
             results = self._compute(array[rows], task, [ids[i] for i in rows])
             self.lookups += len(rows)
             for key, result in zip(missing, results, strict=True):
-                self._memo[key] = (np.asarray(result[0], dtype=np.float64), result[1])
-        out = np.empty((len(array), self._memo[keys[0]][0].shape[-1]))
-        for i, key in enumerate(keys):
-            belief, diag = self._memo[key]
-            out[i] = belief
-            self._account(diag)
+                diag = result[1]
+                memo[key] = (np.asarray(result[0], dtype=np.float64), diag, _prepare(diag))
+        entries = [memo[key] for key in keys]
+        out = np.stack([entry[0] for entry in entries]) if entries else np.empty((0, 0))
+        for entry in entries:
+            self._account(entry[2])
         self.steps += len(array)
         return out
 
-    def _account(self, diag: dict[str, Any]) -> None:
-        for status in diag.get("statuses", ()):
+    def _account(self, prepared: tuple) -> None:
+        """Add one row's diagnostics (as :func:`_prepare` returns them) to the totals."""
+        statuses, weights, conflict = prepared
+        for status in statuses:
             self.statuses[status] += 1
-        weights = diag.get("weights")
         if weights:
-            for name, value in weights.items():
-                self._weight_sum[name] = self._weight_sum.get(name, 0.0) + float(value)
+            weight_sum = self._weight_sum
+            for name, value in weights:
+                weight_sum[name] = weight_sum.get(name, 0.0) + value
             self._diag_count += 1
-            self._conflict_sum += float(diag.get("conflict", 0.0))
+            self._conflict_sum += conflict
 
     def summary(self) -> dict[str, Any]:
         """Diagnostics so far: per-cluster mean weight, mean conflict, statuses, miss rate."""
@@ -112,6 +116,18 @@ class Feedback(ABC):
 
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release the underlying source."""
+
+
+def _prepare(diag: dict[str, Any]) -> tuple:
+    """Return ``(statuses, ((cluster, weight), ...) or None, conflict)`` of a diagnostics dict.
+
+    Done once per distinct state, so the per-row accounting of every step is a few
+    additions, in the same order and with the same floats as reading the dict each time.
+    """
+    weights = diag.get("weights")
+    pairs = tuple((name, float(value)) for name, value in weights.items()) if weights else None
+    conflict = float(diag.get("conflict", 0.0)) if weights else 0.0
+    return tuple(diag.get("statuses", ())), pairs, conflict
 
 
 class CallableFeedback(Feedback):

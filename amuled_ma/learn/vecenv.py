@@ -37,20 +37,26 @@ def episode_records(info: dict[str, Any], done_ids: torch.Tensor, num_envs: int)
         One ``{metric: float}`` dict per finished copy, in ``done_ids`` order.
 
     """
-    records: list[dict] = [{} for _ in range(len(done_ids))]
+    count = len(done_ids)
     episode = info.get("episode")
-    if not episode or len(done_ids) == 0:
-        return records
+    if not episode or count == 0:
+        return [{} for _ in range(count)]
+    keys: list[str] = []
+    columns: list[torch.Tensor] = []
     for key, value in episode.items():
         if key.startswith("_") or key == "done":
             continue
         tensor = torch.as_tensor(value).reshape(-1)
         if tensor.numel() != num_envs:
             continue
-        tensor = tensor[done_ids.to(tensor.device)]
-        for record, item in zip(records, tensor.tolist(), strict=True):
-            record[key] = float(item)
-    return records
+        keys.append(key)
+        # float64 holds every float32, int (< 2**53) and bool value exactly
+        columns.append(tensor.to(torch.float64))
+    if not keys:
+        return [{} for _ in range(count)]
+    # one gather and one conversion to Python floats for all metrics of all episodes
+    table = torch.stack(columns, 1)[done_ids.to(columns[0].device)].tolist()
+    return [dict(zip(keys, row, strict=True)) for row in table]
 
 
 class TaskVecEnv(VecEnv):
@@ -79,6 +85,12 @@ class TaskVecEnv(VecEnv):
 
     def _as_float(self, obs: torch.Tensor) -> torch.Tensor:
         return torch.as_tensor(obs, device=self.device).float()
+
+    def _as(self, value: Any, dtype: torch.dtype) -> torch.Tensor:
+        """Return ``value`` as a ``dtype`` tensor on this device (itself when it already is)."""
+        if isinstance(value, torch.Tensor) and value.dtype == dtype and value.device == self.device:
+            return value
+        return torch.as_tensor(value, device=self.device).to(dtype)
 
     def _wrap(self, obs: torch.Tensor) -> TensorDict:
         return TensorDict({OBS_GROUP: obs}, batch_size=[self.num_envs], device=self.device)
@@ -110,18 +122,20 @@ class TaskVecEnv(VecEnv):
             extras with ``time_outs``, ``log`` and the task's raw ``info``.
 
         """
-        index = self.to_indices(actions).to(self.device)
+        index = self.to_indices(actions)
+        if index.device != self.device:
+            index = index.to(self.device)
         obs, reward, terminated, truncated, info = self.task.step(index)
-        self.obs = self._as_float(obs)
-        reward = torch.as_tensor(reward, device=self.device).float()
-        terminated = torch.as_tensor(terminated, device=self.device).bool()
-        truncated = torch.as_tensor(truncated, device=self.device).bool()
+        self.obs = self._as(obs, torch.float32)
+        reward = self._as(reward, torch.float32)
+        terminated = self._as(terminated, torch.bool)
+        truncated = self._as(truncated, torch.bool)
         dones = terminated | truncated
-        r_env = torch.as_tensor(info.get("r_env", reward), device=self.device).float()
+        r_env = info.get("r_env")
+        self._ep_return += reward if r_env is None else self._as(r_env, torch.float32)
         r_shaping = info.get("r_shaping")
-        self._ep_return += r_env
         if r_shaping is not None:
-            self._ep_shaping += torch.as_tensor(r_shaping, device=self.device).float()
+            self._ep_shaping += self._as(r_shaping, torch.float32)
         self.episode_length_buf += 1
         extras: dict[str, Any] = {
             "time_outs": (truncated & ~terminated).float(),
@@ -132,9 +146,13 @@ class TaskVecEnv(VecEnv):
             done_ids = dones.nonzero(as_tuple=False).squeeze(-1)
             records = episode_records(info, done_ids, self.num_envs)
             for record, env_id in zip(records, done_ids.tolist(), strict=True):
-                record.setdefault("return_env", float(self._ep_return[env_id]))
-                record.setdefault("length", float(self.episode_length_buf[env_id]))
-                record.setdefault("return_shaping", float(self._ep_shaping[env_id]))
+                # the task's own totals win; these are the bridge's, for tasks without them
+                if "return_env" not in record:
+                    record["return_env"] = float(self._ep_return[env_id])
+                if "length" not in record:
+                    record["length"] = float(self.episode_length_buf[env_id])
+                if "return_shaping" not in record:
+                    record["return_shaping"] = float(self._ep_shaping[env_id])
                 record["env_id"] = env_id
             self.finished.extend(records)
             extras["log"] = {
