@@ -50,6 +50,8 @@ def supports(alg: Any) -> bool:
         and _plain_mlp(alg.critic)
         and isinstance(getattr(alg.actor, "distribution", None), CategoricalDistribution)
         and getattr(alg.critic, "distribution", None) is None
+        and alg.actor.obs_groups == alg.critic.obs_groups
+        and list(alg.storage.observations.keys()) == list(alg.actor.obs_groups)
     )
 
 
@@ -143,3 +145,74 @@ def ppo_update(alg: Any) -> dict[str, float]:
     n = num_epochs * num_mb
     st.clear()
     return {"value": sums[0] / n, "surrogate": sums[1] / n, "entropy": sums[2] / n}
+
+
+def act(alg: Any, state: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """rsl-rl's ``PPO.act`` on a plain observation tensor, without the transition object.
+
+    Same operations in the same order (actor logits, sample, critic value, log-probability),
+    so the same actions and the same random draws. Call under ``torch.inference_mode()``.
+
+    Args:
+        alg: An rsl-rl PPO instance for which :func:`supports` holds.
+        state: Observations ``[N, obs_dim]`` (the single observation group).
+
+    Returns:
+        ``(actions, values, actions_log_prob, log_probs)``: one-hot actions ``[N, A]``,
+        values ``[N, 1]``, log-probabilities of the actions ``[N]`` and of every action
+        ``[N, A]`` (the distribution parameters rsl-rl stores).
+
+    """
+    dist: CategoricalDistribution = alg.actor.distribution
+    dist.update(alg.actor.mlp(state))
+    actions = dist.sample()
+    values = alg.critic.mlp(state)
+    return actions, values, dist.log_prob(actions), dist.logits
+
+
+def record(
+    alg: Any,
+    state: torch.Tensor,
+    actions: torch.Tensor,
+    values: torch.Tensor,
+    actions_log_prob: torch.Tensor,
+    log_probs: torch.Tensor,
+    rewards: torch.Tensor,
+    dones: torch.Tensor,
+    time_outs: torch.Tensor,
+) -> None:
+    """rsl-rl's ``PPO.process_env_step`` plus ``RolloutStorage.add_transition``, direct.
+
+    The reward is bootstrapped on time-outs (``r + gamma * V(s) * time_out``) exactly as
+    rsl-rl does, and every tensor is copied into the same storage slot.
+
+    Args:
+        alg: An rsl-rl PPO instance for which :func:`supports` holds.
+        state: Observations the actions were taken in ``[N, obs_dim]``.
+        actions: One-hot actions ``[N, A]`` (from :func:`act`).
+        values: Critic values ``[N, 1]``.
+        actions_log_prob: ``[N]``.
+        log_probs: ``[N, A]``.
+        rewards: ``[N]``.
+        dones: ``[N]`` (float, terminated or truncated).
+        time_outs: ``[N]`` (float, truncated and not terminated).
+
+    """
+    st = alg.storage
+    if st.step >= st.num_transitions_per_env:
+        raise OverflowError("rollout buffer overflow: call clear() before adding transitions")
+    rewards = rewards.clone()
+    rewards += alg.gamma * torch.squeeze(values * time_outs.unsqueeze(1).to(alg.device), 1)
+    step = st.step
+    st.observations[alg.actor.obs_groups[0]][step].copy_(state)
+    st.actions[step].copy_(actions)
+    st.rewards[step].copy_(rewards.view(-1, 1))
+    st.dones[step].copy_(dones.view(-1, 1))
+    st.values[step].copy_(values)
+    st.actions_log_prob[step].copy_(actions_log_prob.view(-1, 1))
+    if st.distribution_params is None:
+        st.distribution_params = (
+            torch.zeros(st.num_transitions_per_env, *log_probs.shape, device=st.device),
+        )
+    st.distribution_params[0][step].copy_(log_probs)
+    st.step += 1

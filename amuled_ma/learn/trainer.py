@@ -41,6 +41,7 @@ os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 from rsl_rl.runners import OnPolicyRunner
 
 from amuled_ma.errors import CheckpointError
+from amuled_ma.learn import fast_ppo
 from amuled_ma.learn.config import rsl_rl_config
 from amuled_ma.learn.distribution import orthogonal_init
 from amuled_ma.learn.fast_ppo import ppo_update
@@ -304,6 +305,47 @@ class Trainer:
             group["lr"] = lr
 
     def _rollout(self) -> dict[str, Any]:
+        if not fast_ppo.supports(self.alg):
+            return self._rollout_rsl_rl()
+        alg, env = self.alg, self.env
+        state = env.obs
+        fb_sum, kl_sum, n = 0.0, 0.0, 0
+        ft = self.scenario.finetune
+        with torch.inference_mode():
+            for _ in range(self.steps_per_env):
+                actions, values, logp, log_probs = fast_ppo.act(alg, state)
+                index = actions.argmax(dim=-1)
+                if self.finetuning:
+                    assert self.feedback is not None and self.base_actor is not None
+                    beliefs = torch.as_tensor(self.feedback(state, self.task), dtype=torch.float32)
+                    fb = beliefs.gather(1, index.unsqueeze(1)).squeeze(1)
+                    logp_base = action_log_probs(self.base_actor, state).gather(
+                        1, index.unsqueeze(1)
+                    )
+                    kl_term = kl_reward(logp, logp_base.squeeze(1), ft.lambda_kl)
+                    obs, r_task, dones, extras = env.step_tensors(index)
+                    rewards = fb + kl_term
+                    if ft.env_reward_coef:
+                        r_env = extras["info"].get("r_env", r_task)
+                        rewards = rewards + ft.env_reward_coef * torch.as_tensor(r_env).float()
+                    fb_sum += float(fb.sum())
+                    kl_sum += float((logp - logp_base.squeeze(1)).sum())
+                    n += len(index)
+                else:
+                    obs, rewards, dones, extras = env.step_tensors(index)
+                fast_ppo.record(
+                    alg, state, actions, values, logp, log_probs, rewards, dones,
+                    extras["time_outs"],
+                )  # fmt: skip
+                state = obs
+            alg.compute_returns(env.get_observations())
+        out: dict[str, Any] = {}
+        if n:
+            out["feedback_reward"] = fb_sum / n
+            out["kl"] = kl_sum / n
+        return out
+
+    def _rollout_rsl_rl(self) -> dict[str, Any]:
         alg, env = self.alg, self.env
         obs = env.get_observations()
         fb_sum, kl_sum, n = 0.0, 0.0, 0

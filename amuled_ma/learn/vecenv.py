@@ -122,6 +122,13 @@ class TaskVecEnv(VecEnv):
             extras with ``time_outs``, ``log`` and the task's raw ``info``.
 
         """
+        obs, reward, dones, extras = self.step_tensors(actions)
+        return self._wrap(obs), reward, dones, extras
+
+    def step_tensors(
+        self, actions: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
+        """:meth:`step` with the observations as a plain tensor ``[N, obs_dim]``."""
         index = self.to_indices(actions)
         if index.device != self.device:
             index = index.to(self.device)
@@ -163,7 +170,7 @@ class TaskVecEnv(VecEnv):
             self._ep_return[done_ids] = 0.0
             self._ep_shaping[done_ids] = 0.0
             self.episode_length_buf[done_ids] = 0
-        return self._wrap(self.obs), reward, dones.float(), extras
+        return self.obs, reward, dones.float(), extras
 
     def drain_episodes(self) -> list[dict]:
         """Return and forget the episodes finished since the last call."""
