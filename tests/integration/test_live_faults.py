@@ -241,11 +241,6 @@ def test_cli_finetune_without_server_fails_fast_and_clearly(
     assert not (run_dir / "finetune-cluster-care" / "model_last.pt").exists()
 
 
-@pytest.mark.xfail(
-    reason="learner: 'amuled finetune' creates beliefs.sqlite and train_cfg.json before the "
-    "Ollama source is checked (learn/feedback.make_source + trainer); preflight first",
-    strict=False,
-)
 def test_cli_finetune_without_server_writes_nothing(tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
     _train_base(run_dir)
