@@ -55,6 +55,25 @@ def supports(alg: Any) -> bool:
     )
 
 
+def mlp_forward(mlp: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
+    """``mlp(x)`` for an rsl-rl MLP of Linear and Tanh layers, without the module wrappers.
+
+    ``F.linear`` and ``torch.tanh`` are exactly what ``nn.Linear`` and ``nn.Tanh`` call;
+    any other layer (or a hook on one) goes through the module itself.
+    """
+    if mlp._forward_hooks or mlp._forward_pre_hooks:
+        return mlp(x)
+    for layer in mlp:
+        kind = type(layer)
+        if kind is torch.nn.Linear and not (layer._forward_hooks or layer._forward_pre_hooks):
+            x = torch.nn.functional.linear(x, layer.weight, layer.bias)
+        elif kind is torch.nn.Tanh and not (layer._forward_hooks or layer._forward_pre_hooks):
+            x = torch.tanh(x)
+        else:
+            x = layer(x)
+    return x
+
+
 def _clip_grad_norm(params: list[torch.Tensor], max_norm: float) -> None:
     """``torch.nn.utils.clip_grad_norm_`` (2-norm, foreach, one CPU dtype), minus its wrappers."""
     grads = [p.grad for p in params if p.grad is not None]
@@ -110,10 +129,10 @@ def ppo_update(alg: Any) -> dict[str, float]:
             b_values = values_old[idx]
             b_returns = returns[idx]
             # actor: logits -> log-softmax; rsl-rl draws a (discarded) sample here
-            dist.update(actor.mlp(obs_actor[idx]))
+            dist.update(mlp_forward(actor.mlp, obs_actor[idx]))
             dist.sample()
             log_probs = dist.log_prob(actions[idx])
-            values = critic.mlp(obs_critic[idx])
+            values = mlp_forward(critic.mlp, obs_critic[idx])
             entropy = dist.entropy
             ratio = torch.exp(log_probs - torch.squeeze(old_logp[idx]))
             surrogate = -torch.squeeze(adv) * ratio
@@ -164,9 +183,9 @@ def act(alg: Any, state: torch.Tensor) -> tuple[torch.Tensor, ...]:
 
     """
     dist: CategoricalDistribution = alg.actor.distribution
-    dist.update(alg.actor.mlp(state))
+    dist.update(mlp_forward(alg.actor.mlp, state))
     actions = dist.sample()
-    values = alg.critic.mlp(state)
+    values = mlp_forward(alg.critic.mlp, state)
     return actions, values, dist.log_prob(actions), dist.logits
 
 

@@ -89,7 +89,7 @@ def kl_reward(logp: torch.Tensor, logp_base: torch.Tensor, lambda_kl: float) -> 
 
 def action_log_probs(actor: torch.nn.Module, obs: torch.Tensor) -> torch.Tensor:
     """Return ``log pi(.|s)`` ``[N, A]`` of an rsl-rl MLP actor with our categorical head."""
-    return torch.log_softmax(actor.mlp(actor.obs_normalizer(obs)), dim=-1)
+    return torch.log_softmax(fast_ppo.mlp_forward(actor.mlp, actor.obs_normalizer(obs)), dim=-1)
 
 
 def make_optimizer(alg: Any, lr: float) -> torch.optim.Optimizer:
