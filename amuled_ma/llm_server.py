@@ -339,8 +339,8 @@ class ServerState:
         if not _pid_alive(self.pid):
             return False
         cmdline = _pid_cmdline(self.pid)
-        if not cmdline:  # no /proc (not Linux): trust the pid
-            return True
+        if not cmdline:  # no /proc (not Linux): trust the pid; else a zombie or mid-exec
+            return not Path("/proc/self/cmdline").exists()
         # cmdline[1] covers a script run by its interpreter (``python .../ollama serve``).
         name = Path(self.binary).name
         return any(Path(part).name == name for part in cmdline[:2]) and "serve" in cmdline[1:]

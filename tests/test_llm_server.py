@@ -221,6 +221,10 @@ def test_down_never_kills_a_process_it_did_not_start(tmp_path: Path) -> None:
     """A stale state whose pid now belongs to another process: cleared, process untouched."""
     other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
     try:
+        deadline = time.monotonic() + 10  # until it has exec'd (no forked copy of pytest)
+        while "time.sleep" not in " ".join(llm_server._pid_cmdline(other.pid)):
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
         state = llm_server.ServerState(
             pid=other.pid,
             host="http://127.0.0.1:1",
