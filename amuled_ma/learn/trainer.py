@@ -40,7 +40,7 @@ os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
 from rsl_rl.runners import OnPolicyRunner
 
-from amuled_ma.errors import CheckpointError
+from amuled_ma.errors import CheckpointError, ScenarioError
 from amuled_ma.learn import fast_ppo
 from amuled_ma.learn.config import rsl_rl_config
 from amuled_ma.learn.distribution import orthogonal_init
@@ -215,6 +215,16 @@ class Trainer:
             )
             shaping = base.shaping_coef if variant == "shaped" else 0.0
         self.shaping_coef = shaping
+        section = "finetune" if self.finetuning else "base"
+        minibatch = self.num_envs * self.steps_per_env // ppo.num_mini_batches
+        if ppo.normalize_advantage_per_mini_batch and minibatch < 2:
+            raise ScenarioError(
+                f"{scenario.path or scenario.name}: [{section}] num_envs x num_steps_per_env = "
+                f"{self.num_envs * self.steps_per_env} transitions split into "
+                f"[ppo] num_mini_batches = {ppo.num_mini_batches} gives mini-batches of "
+                f"{minibatch}; per-mini-batch advantage normalisation needs at least 2 "
+                "(raise num_envs or num_steps_per_env)"
+            )
         torch.manual_seed(self.seed)
         np.random.seed(self.seed % (2**32))
         self.task = (task_factory or make_task)(
