@@ -48,6 +48,7 @@ def test_finetune_survives_kill_9_of_the_server_and_resumes(
         "--set", "feedback.timeout_s=300.0", "--set", "finetune.iterations=4",
         "--set", "finetune.num_envs=1", "--set", "finetune.num_steps_per_env=2",
         "--set", "finetune.save_interval=1", "--set", "output.tensorboard=false",
+        "--set", "ppo.num_mini_batches=1",  # 2 transitions per iteration: one mini-batch
     ]  # fmt: skip
     checkpoint = run_dir / "finetune-cluster-care" / "model_last.pt"
     job = subprocess.Popen(finetune, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
