@@ -169,8 +169,12 @@ class PanelFeedback(Feedback):
         self.source = source
 
     def _compute(self, obs: np.ndarray, task: Any, env_ids: Sequence[int]) -> list[tuple]:
+        # a source that reads no messages (replay, rules) needs no prompt variables
+        needs_prompts = bool(getattr(self.panel, "with_messages", True))
         prompt_vars = (
-            task.prompt_variables(list(env_ids)) if hasattr(task, "prompt_variables") else None
+            task.prompt_variables(list(env_ids))
+            if needs_prompts and hasattr(task, "prompt_variables")
+            else None
         )
         out = self.panel.fused(obs, prompt_vars)
         fused = np.asarray(out.fused, dtype=np.float64).reshape(len(obs), -1)
