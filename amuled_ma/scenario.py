@@ -143,26 +143,30 @@ class FeedbackConfig:
         source: Belief source kind: ``replay``, ``ollama`` or ``rules``.
         recording: Recording file replayed by the ``replay`` source.
         model: LLM name for the ``ollama`` source.
-        host: Ollama server URL.
+        host: Ollama server URL; empty: ``$OLLAMA_HOST``, else ``http://127.0.0.1:11434``.
         concurrency: Requests in flight at once.
         timeout_s: Seconds before one request is abandoned.
         miss_policy: What a replay miss gives: ``uniform``, ``fallback`` or ``error``.
         store: SQLite belief store (cache of every answer).
         clusters: Moral clusters of the panel.
         fusion: Fusion rule of the ``amuled`` variant.
+        ollama: Further keyword arguments of
+            :class:`~amuled_ma.beliefs.ollama.OllamaSource` (``num_predict``, ``num_ctx``,
+            ``reasoning``, ``seed``, ``retries``, ...), checked against its signature.
 
     """
 
     source: str = "replay"
     recording: str = ""
     model: str = ""
-    host: str = "http://localhost:11434"
+    host: str = ""
     concurrency: int = 4
     timeout_s: float = 120.0
     miss_policy: str = "uniform"
     store: str = "beliefs.sqlite"
     clusters: list[str] = field(default_factory=lambda: list(PAPER_CLUSTERS))
     fusion: str = "bjs-dst"
+    ollama: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

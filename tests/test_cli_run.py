@@ -38,7 +38,7 @@ def test_run_writes_run_dir_report_and_resumes(tmp_path, capsys, monkeypatch):
 
     monkeypatch.setattr(trainer_mod.Trainer, "_rollout", interrupt_second_finetune_iteration)
     assert main(args) == 130
-    out = capsys.readouterr().out
+    out = capsys.readouterr().err
     assert "resume with: amuled run findmilk" in out and "--resume" in out
     assert (run_dir / "finetune-human" / "model_last.pt").is_file()
 

@@ -262,7 +262,11 @@ def make_source(scenario: Any, run_dir: Path | None = None) -> Any:
         options.update(paths=path, miss_policy=fb.miss_policy)
     elif fb.source == "ollama":
         options.update(
-            model=fb.model, host=fb.host, concurrency=fb.concurrency, timeout_s=fb.timeout_s
+            model=fb.model,
+            host=fb.host or None,
+            concurrency=fb.concurrency,
+            timeout_s=fb.timeout_s,
+            **_ollama_options(scenario),
         )
     source = build(fb.source, **options)
     # Preflight before anything is written: an unreachable server or a missing model
@@ -279,6 +283,24 @@ def make_source(scenario: Any, run_dir: Path | None = None) -> Any:
         store_path = (run_dir or scenario.base_dir) / store_path
     store_path.parent.mkdir(parents=True, exist_ok=True)
     return CachedSource(source, BeliefStore(store_path))
+
+
+def _ollama_options(scenario: Any) -> dict[str, Any]:
+    """Return ``[feedback].ollama``, checked against :class:`OllamaSource`'s keywords."""
+    import inspect
+
+    from amuled_ma.beliefs.ollama import OllamaSource
+
+    allowed = set(inspect.signature(OllamaSource).parameters) - {
+        "model", "host", "concurrency", "timeout_s", "transport", "fallback"
+    }  # fmt: skip
+    unknown = sorted(set(scenario.feedback.ollama) - allowed)
+    if unknown:
+        raise ScenarioError(
+            f"{scenario.path or scenario.name}: [feedback.ollama] unknown key(s) "
+            f"{', '.join(unknown)}; expected some of {', '.join(sorted(allowed))}"
+        )
+    return dict(scenario.feedback.ollama)
 
 
 def make_feedback(variant: str, scenario: Any, run_dir: Path | None = None) -> Feedback:

@@ -27,6 +27,7 @@ import io
 import json
 import math
 import os
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -40,7 +41,7 @@ os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
 from rsl_rl.runners import OnPolicyRunner
 
-from amuled_ma.errors import CheckpointError, ScenarioError
+from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError
 from amuled_ma.learn import fast_ppo
 from amuled_ma.learn.config import rsl_rl_config
 from amuled_ma.learn.distribution import orthogonal_init
@@ -454,15 +455,18 @@ class Trainer:
                     )
                 if (it + 1) % self.cfg["save_interval"] == 0 and it + 1 < self.total_iterations:
                     self.save(self.out_dir / LAST, completed=False)
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, AmuledError) as stop:
+            # Ctrl-C, or a belief backend that stayed down after its retries: keep the work.
             bar.close()
             path = self.save(self.out_dir / LAST, completed=False)
+            why = "interrupted" if isinstance(stop, KeyboardInterrupt) else "stopped"
             print(
-                f"\ninterrupted at iteration {self.runner.current_learning_iteration}/"
-                f"{self.total_iterations}; checkpoint written to {path}"
+                f"\n{why} at iteration {self.runner.current_learning_iteration}/"
+                f"{self.total_iterations}; checkpoint written to {path}",
+                file=sys.stderr,
             )
             if self.resume_hint:
-                print(f"resume with: {self.resume_hint}")
+                print(f"resume with: {self.resume_hint}", file=sys.stderr)
             raise
         finally:
             if writer is not None:
