@@ -129,3 +129,37 @@ def describe(job: Any) -> str:
         line += f", {out.feedback['unique_states']} distinct states"
         line += f", replay miss rate {100 * out.feedback['miss_rate']:.2f}%"
     return line
+
+
+def train_job(
+    scenario: Any, run_dir: Path, variant: str, args: argparse.Namespace, hint: str, **kwargs: Any
+) -> Any:
+    """Train one variant with the command line's ``--resume/--force/--seed`` and report it.
+
+    Args:
+        scenario: The loaded scenario.
+        run_dir: The run directory.
+        variant: ``base``, ``shaped`` or ``finetune:<feedback>``.
+        args: The parsed command line (``resume``, ``force``, ``no_progress``, ``seed``).
+        hint: The command that resumes this job, printed when it stops early.
+        **kwargs: More keywords of :func:`~amuled_ma.learn.experiments.train_variant`.
+
+    Returns:
+        The job's :class:`~amuled_ma.learn.experiments.JobResult`.
+
+    """
+    from amuled_ma.learn.experiments import train_variant
+
+    job = train_variant(
+        scenario,
+        run_dir,
+        variant,
+        resume=args.resume,
+        force=args.force,
+        progress=not args.no_progress,
+        hint=hint,
+        seed=args.seed,
+        **kwargs,
+    )
+    say(describe(job))
+    return job

@@ -45,24 +45,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ablate.set_defaults(handler=ablate_command)
 
 
-def _train(scenario, run_dir, variant, args, hint, **kwargs):
-    from amuled_ma.learn.experiments import train_variant
-
-    job = train_variant(
-        scenario,
-        run_dir,
-        variant,
-        resume=args.resume,
-        force=args.force,
-        progress=not args.no_progress,
-        hint=hint,
-        seed=args.seed,
-        **kwargs,
-    )
-    common.say(common.describe(job))
-    return job
-
-
 def run_command(args: argparse.Namespace) -> int:
     """Run ``amuled run``."""
     from amuled_ma.evaluate.evaluator import evaluate_run
@@ -76,7 +58,7 @@ def run_command(args: argparse.Namespace) -> int:
     write_config(run_dir, scenario, {"variants": list(MAIN_VARIANTS)})
     common.say(f"run {scenario.name} -> {run_dir}")
     for variant in MAIN_VARIANTS:
-        _train(scenario, run_dir, variant, args, hint)
+        common.train_job(scenario, run_dir, variant, args, hint)
     results = evaluate_run(run_dir, scenario, episodes=args.episodes, progress=not args.no_progress)
     report = write_report(run_dir, results, title=f"{scenario.name}: the paper's main comparison")
     greedy = {k: v.get("greedy", {}).get("metrics", {}) for k, v in results["variants"].items()}
@@ -115,9 +97,10 @@ def ablate_command(args: argparse.Namespace) -> int:
     write_config(out, scenario, {"ablation": args.what, "variants": [j[2] for j in jobs]})
     common.say(f"ablate {scenario.name} --what {args.what}: {len(jobs)} fine-tunes -> {out}")
     base_args = argparse.Namespace(**{**vars(args), "resume": True, "force": False})
-    _train(scenario, run_dir, "base", base_args, common.command_line("train", args, run_dir))
+    train_hint = common.command_line("train", args, run_dir)
+    common.train_job(scenario, run_dir, "base", base_args, train_hint)
     for feedback, sc, folder in jobs:
-        _train(sc, run_dir, f"finetune:{feedback}", args, hint, out_dir=out / folder)
+        common.train_job(sc, run_dir, f"finetune:{feedback}", args, hint, out_dir=out / folder)
     results = evaluate_run(
         out,
         scenario,

@@ -44,24 +44,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def train_command(args: argparse.Namespace) -> int:
     """Run ``amuled train``."""
-    from amuled_ma.learn.experiments import train_variant, write_config
+    from amuled_ma.learn.experiments import write_config
 
     scenario = common.load(args)
     run_dir = common.run_dir_of(args, scenario)
     hint = common.command_line("train", args, run_dir, "--variant", args.variant)
     write_config(run_dir, scenario, {"variant": args.variant})
     start = time.perf_counter()
-    job = train_variant(
-        scenario,
-        run_dir,
-        args.variant,
-        resume=args.resume,
-        force=args.force,
-        progress=not args.no_progress,
-        hint=hint,
-        seed=args.seed,
-    )
-    common.say(common.describe(job))
+    job = common.train_job(scenario, run_dir, args.variant, args, hint)
     common.say(
         f"train {scenario.name}/{args.variant}: done in {time.perf_counter() - start:.1f} s; "
         f"checkpoint {job.out_dir / 'model_last.pt'}"
@@ -71,25 +61,15 @@ def train_command(args: argparse.Namespace) -> int:
 
 def finetune_command(args: argparse.Namespace) -> int:
     """Run ``amuled finetune``."""
-    from amuled_ma.learn.experiments import train_variant, variant_dir_name, write_config
+    from amuled_ma.learn.experiments import variant_dir_name, write_config
 
     scenario = common.load(args)
     run_dir = common.run_dir_of(args, scenario)
     variant = f"finetune:{args.feedback}"
     hint = common.command_line("finetune", args, run_dir, "--feedback", args.feedback)
     start = time.perf_counter()
-    job = train_variant(
-        scenario,
-        run_dir,
-        variant,
-        resume=args.resume,
-        force=args.force,
-        progress=not args.no_progress,
-        hint=hint,
-        seed=args.seed,
-    )
+    job = common.train_job(scenario, run_dir, variant, args, hint)
     write_config(run_dir / variant_dir_name(variant), scenario, {"variant": variant})
-    common.say(common.describe(job))
     common.say(
         f"finetune {scenario.name}/{args.feedback}: done in {time.perf_counter() - start:.1f} s; "
         f"checkpoint {job.out_dir / 'model_last.pt'}"
