@@ -35,6 +35,14 @@ def add_scenario_args(parser: argparse.ArgumentParser) -> None:
         "--force", action="store_true", help="start over even where checkpoints exist"
     )
     parser.add_argument("--seed", type=int, default=None, help="override [task].seed")
+    add_overrides_argument(parser)
+    parser.add_argument(
+        "--no-progress", action="store_true", help="no progress bars (log-friendly output)"
+    )
+
+
+def add_overrides_argument(parser: argparse.ArgumentParser) -> None:
+    """Add the repeatable ``--set SECTION.KEY=VALUE`` scenario override."""
     parser.add_argument(
         "--set",
         dest="overrides",
@@ -43,9 +51,6 @@ def add_scenario_args(parser: argparse.ArgumentParser) -> None:
         metavar="SECTION.KEY=VALUE",
         help="override a scenario key, value in TOML syntax (repeatable), "
         "e.g. --set finetune.lambda_kl=1.0 --set base.total_steps=100_000",
-    )
-    parser.add_argument(
-        "--no-progress", action="store_true", help="no progress bars (log-friendly output)"
     )
 
 

@@ -16,6 +16,8 @@ import sys
 import time
 from pathlib import Path
 
+from amuled_ma.commands._experiment import add_overrides_argument
+
 #: Budget overrides: every ``--set`` the demo applies to the shipped scenario.
 DEMO_BUDGET: dict[str, tuple[str, ...]] = {
     "findmilk": (
@@ -67,14 +69,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--run-dir", type=Path, default=None, help="run directory (default runs/demo-<task>)"
     )
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="SECTION.KEY=VALUE",
-        help="further scenario overrides, applied after the demo budget",
-    )
+    add_overrides_argument(parser)  # applied after the demo budget
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.set_defaults(handler=demo_command)
 
