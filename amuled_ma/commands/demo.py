@@ -64,7 +64,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--host",
         default=None,
-        help="Ollama server URL (default: $OLLAMA_HOST if set, else a private server)",
+        help="Ollama server URL (default: $OLLAMA_HOST if set; else a private server for "
+        "amuled-tiny, http://127.0.0.1:11434 for any other model)",
     )
     parser.add_argument(
         "--run-dir", type=Path, default=None, help="run directory (default runs/demo-<task>)"
@@ -86,6 +87,8 @@ def demo_command(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     model = args.model or llm_server.TINY_MODEL
     host = args.host or os.environ.get("OLLAMA_HOST")
+    if host is None and model != llm_server.TINY_MODEL:
+        host = llm_server.DEFAULT_HOST  # a real model lives on the user's own Ollama install
     started_dir: Path | None = None
     if host is None:
         started_dir = llm_server.default_state_dir() / "demo"
