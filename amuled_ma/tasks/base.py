@@ -38,6 +38,7 @@ from __future__ import annotations
 import abc
 import math
 import numbers
+from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
 import numpy as np
@@ -46,6 +47,33 @@ import torch
 from amuled_ma.tasks import _rng
 
 __all__ = ["BatchedTask"]
+
+
+def paint_cells(
+    rows: Sequence[Sequence[str]],
+    colours: Mapping[str, tuple[int, int, int]],
+    cell: int,
+    background: int,
+) -> np.ndarray:
+    """Draw a character grid as an RGB image: one padded square per non-``.`` character.
+
+    Args:
+        rows: The grid, top row first; every row has the same length.
+        colours: RGB colour of each character that is drawn.
+        cell: Side of one cell in pixels.
+        background: Grey level of the empty image.
+
+    Returns:
+        ``uint8`` array ``[len(rows) * cell, len(rows[0]) * cell, 3]``.
+    """
+    img = np.full((len(rows) * cell, len(rows[0]) * cell, 3), background, dtype=np.uint8)
+    pad = max(1, cell // 8)
+    for r, row in enumerate(rows):
+        for c, ch in enumerate(row):
+            if ch != ".":
+                img[r * cell + pad : (r + 1) * cell - pad,
+                    c * cell + pad : (c + 1) * cell - pad] = colours[ch]  # fmt: skip
+    return img
 
 
 class BatchedTask(abc.ABC):

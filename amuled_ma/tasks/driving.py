@@ -66,7 +66,7 @@ import numpy as np
 import torch
 
 from amuled_ma.tasks import _rng
-from amuled_ma.tasks.base import BatchedTask
+from amuled_ma.tasks.base import BatchedTask, paint_cells
 
 __all__ = ["Driving"]
 
@@ -438,15 +438,6 @@ class Driving(BatchedTask):
             "A": (40, 40, 40),
         }
         rows = self._road_chars(env_id)
-        height = SPAWN_DISTANCE + 1
-        img = np.full((height * cell, NUM_LANES * cell, 3), 110, dtype=np.uint8)
-        pad = max(1, cell // 8)
-        for d in range(height):
-            r = SPAWN_DISTANCE - d
-            for lane in range(NUM_LANES):
-                ch = rows[d][lane]
-                if ch != ".":
-                    img[r * cell + pad : (r + 1) * cell - pad,
-                        lane * cell + pad : (lane + 1) * cell - pad] = colours[ch]  # fmt: skip
+        img = paint_cells(rows[::-1], colours, cell, background=110)  # distance 8 on top
         img[:, ::cell] = (240, 240, 240)
         return img

@@ -57,7 +57,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from amuled_ma.tasks.base import BatchedTask
+from amuled_ma.tasks.base import BatchedTask, paint_cells
 
 __all__ = ["CRYING", "LAYOUTS", "MILK", "SIZE", "SLEEPING", "START", "FindMilk"]
 
@@ -403,15 +403,7 @@ class FindMilk(BatchedTask):
             "R": (40, 40, 40),
         }
         grid = self._grid_chars(env_id)
-        img = np.full((SIZE * cell, SIZE * cell, 3), 255, dtype=np.uint8)
-        pad = max(1, cell // 8)
-        for y in range(SIZE):
-            row = SIZE - 1 - y
-            for x in range(SIZE):
-                ch = grid[y][x]
-                if ch != ".":
-                    img[row * cell + pad : (row + 1) * cell - pad,
-                        x * cell + pad : (x + 1) * cell - pad] = colours[ch]  # fmt: skip
+        img = paint_cells(grid[::-1], colours, cell, background=255)  # y = 7 on top
         img[::cell, :] = (200, 200, 200)
         img[:, ::cell] = (200, 200, 200)
         return img
