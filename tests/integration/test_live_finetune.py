@@ -64,6 +64,7 @@ def test_finetune_survives_kill_9_of_the_server_and_resumes(
     assert job.returncode == 1, output
     assert time.monotonic() - killed_at < 60
     assert "no Ollama server answers at" in output and "amuled ollama up" in output
+    assert "checkpoint written to" in output and "resume with: amuled finetune findmilk" in output
     assert checkpoint.is_file()
     with BeliefStore(run_dir / "beliefs.sqlite") as store:
         answered = sum(i["answers"] for i in store.identities())  # cacheable (ok/repaired)
