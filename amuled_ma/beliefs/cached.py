@@ -215,16 +215,16 @@ class CachedSource(BeliefSource):
         for key, idx in positions.items():
             result = answers[key]
             # the LRU keeps its own copies; each position gets an independent object
-            out[idx[0]] = result if key in fresh else _copy_result(result)
+            out[idx[0]] = result if key in fresh else result.copy()
             for j in idx[1:]:
-                out[j] = _copy_result(result)
+                out[j] = result.copy()
         return out
 
     # -- internals -------------------------------------------------------------------
     def _remember(self, key: str, result: BeliefResult) -> None:
         if self.memory_size <= 0 or result.status not in CACHEABLE:
             return
-        entry = _copy_result(result, cached=True)
+        entry = result.copy(cached=True)
         entry.latency_s = 0.0
         with self._lock:
             self._memory[key] = entry
@@ -278,18 +278,3 @@ class CachedSource(BeliefSource):
         finally:
             flush()  # keep whatever arrived, even when the source raised half-way
         return answers
-
-
-def _copy_result(result: BeliefResult, cached: bool | None = None) -> BeliefResult:
-    """Return an independent copy (duplicates in a batch must not share an array)."""
-    return BeliefResult(
-        belief=result.belief.copy(),
-        status=result.status,
-        source=result.source,
-        raw=result.raw,
-        cached=result.cached if cached is None else cached,
-        latency_s=result.latency_s,
-        prompt_tokens=result.prompt_tokens,
-        completion_tokens=result.completion_tokens,
-        extra=dict(result.extra),
-    )

@@ -455,7 +455,7 @@ class OllamaSource(BeliefSource):
                     key = pending.pop(future)
                     result = future.result()
                     for j, index in enumerate(groups[key]):
-                        yield index, result if j == 0 else _copy(result)
+                        yield index, result if j == 0 else result.copy()
         finally:
             for future in pending:
                 future.cancel()
@@ -475,17 +475,3 @@ class OllamaSource(BeliefSource):
         self._client.close()
         if self.fallback is not None:
             self.fallback.close()
-
-
-def _copy(result: BeliefResult) -> BeliefResult:
-    return BeliefResult(
-        belief=result.belief.copy(),
-        status=result.status,
-        source=result.source,
-        raw=result.raw,
-        cached=result.cached,
-        latency_s=result.latency_s,
-        prompt_tokens=result.prompt_tokens,
-        completion_tokens=result.completion_tokens,
-        extra=dict(result.extra),
-    )

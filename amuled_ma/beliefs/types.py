@@ -7,6 +7,7 @@ batches of :class:`BeliefRequest` with :class:`BeliefResult` in the same order.
 
 from __future__ import annotations
 
+import dataclasses
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -72,6 +73,16 @@ class BeliefResult:
     prompt_tokens: int | None = None
     completion_tokens: int | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+
+    def copy(self, **changes: Any) -> BeliefResult:
+        """Return an independent copy (own belief array and extra dict), with ``changes``.
+
+        Duplicates of one request in a batch get copies, so that no two results share
+        an array a caller might modify.
+        """
+        return dataclasses.replace(
+            self, belief=self.belief.copy(), extra=dict(self.extra), **changes
+        )
 
 
 class BeliefSource(ABC):
