@@ -22,6 +22,7 @@ RULES = ["--set", 'feedback.source="rules"']
 def test_run_writes_run_dir_report_and_resumes(tmp_path, capsys, monkeypatch):
     run_dir = tmp_path / "run"
     args = ["run", "findmilk", "--run-dir", str(run_dir), "--episodes", "3", *TINY, *RULES]
+    args += ["--jobs", "1"]  # in this process, where the patched rollout below applies
 
     # Ctrl-C in the middle of the first fine-tune: checkpoint + resume command
     from amuled_ma.learn import trainer as trainer_mod
@@ -108,11 +109,15 @@ def test_help(command, capsys):
     assert "usage: amuled" in capsys.readouterr().out
 
 
-def test_ablate_aggregation_with_replay(tmp_path, capsys, recordings_dir):
+def test_ablate_aggregation_with_replay_two_seeds_in_parallel(tmp_path, capsys, recordings_dir):
     run_dir = tmp_path / "run"
     args = ["ablate", "findmilk", "--what", "aggregation", "--run-dir", str(run_dir)]
     args += [
         "--episodes",
+        "2",
+        "--seeds",
+        "2",
+        "--jobs",
         "2",
         *TINY,
         "--set",
@@ -120,12 +125,24 @@ def test_ablate_aggregation_with_replay(tmp_path, capsys, recordings_dir):
     ]
     assert main(args) == 0
     out = capsys.readouterr().out
-    assert "4 variants done" in out
+    assert "4 variants x 2 seed(s) done" in out and "on 2 worker(s)" in out
     abl = run_dir / "ablate-aggregation"
     for name in ("finetune-agg-mean", "finetune-agg-max", "finetune-agg-vote", "finetune-amuled"):
-        assert (abl / name / "model_last.pt").is_file(), name
+        for replica in (name, f"{name}.seed2"):
+            assert (abl / replica / "model_last.pt").is_file(), replica
+    assert (run_dir / "base.seed2" / "model_last.pt").is_file()
     results = json.loads((abl / "results.json").read_text())
-    assert "base" in results["variants"]
+    assert "base" in results["variants"] and "base.seed2" not in results["variants"]
+    # two seeds: the figure is the mean of the two per-seed means, the interval is over
+    # the seeds (t_{0.975,1} = 12.706, from a t table)
+    entry = results["variants"]["finetune-amuled"]["greedy"]
+    assert entry["ci_over"] == "seeds" and entry["n_seeds"] == 2
+    means = [r["return_env"]["mean"] for r in entry["replicas"].values()]
+    stat = entry["metrics"]["return_env"]
+    assert stat["n"] == 2 and stat["mean"] == pytest.approx(sum(means) / 2)
+    spread = abs(means[0] - means[1]) / 2**0.5  # sample std of two values
+    assert stat["half_width"] == pytest.approx(12.706 * spread / 2**0.5)
+    assert "| finetune-amuled | 2 |" in (abl / "report.md").read_text()
     fb = results["variants"]["finetune-amuled"]["feedback"]
     assert 0.0 <= fb["miss_rate"] < 0.5 and fb["mean_conflict"] is not None
     assert (abl / "ablation_aggregation.png").is_file()

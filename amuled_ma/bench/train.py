@@ -87,7 +87,7 @@ def bench_findmilk(out: Path, quick: bool) -> dict[str, Any]:
             first["steps"] = it * sc.base.num_envs * sc.base.num_steps_per_env
             first["wall_s"] = time.perf_counter() - start[0] - eval_time[0]
 
-    trainer = Trainer(sc, out / "findmilk-base", eval_callback=check, resume=False)
+    trainer = Trainer(sc, out / "findmilk-base", on_iteration=check, resume=False)
     start[0] = time.perf_counter()
     outcome = trainer.train()
     wall = time.perf_counter() - start[0] - eval_time[0]

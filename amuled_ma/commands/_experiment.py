@@ -96,6 +96,8 @@ def command_line(name: str, args: argparse.Namespace, run_dir: Path, *extra: str
         parts += ["--set", text]
     if getattr(args, "seed", None) is not None:
         parts += ["--seed", str(args.seed)]
+    if getattr(args, "seeds", 1) != 1:
+        parts += ["--seeds", str(args.seeds)]
     return shlex.join(parts)
 
 

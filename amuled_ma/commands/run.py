@@ -22,6 +22,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     common.add_scenario_args(run)
     run.add_argument("--episodes", type=int, default=None, help="evaluation episodes per policy")
+    add_parallel_args(run)
     run.set_defaults(handler=run_command)
 
     ablate = subparsers.add_parser(
@@ -42,29 +43,68 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="which ablation",
     )
     ablate.add_argument("--episodes", type=int, default=None, help="evaluation episodes")
+    add_parallel_args(ablate)
     ablate.set_defaults(handler=ablate_command)
+
+
+def add_parallel_args(parser: argparse.ArgumentParser) -> None:
+    """Add ``--seeds`` (training replicas) and ``--jobs`` (worker processes)."""
+    parser.add_argument(
+        "--seeds",
+        type=int,
+        default=1,
+        metavar="N",
+        help="train every variant with N seeds (--seed or [task].seed, then +1, ...); "
+        "replicas go to <variant>.seed<k>/ and the intervals cover the seeds (default: 1)",
+    )
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=0,
+        metavar="N",
+        help="train N jobs at once in worker processes; 1 = all in this process; "
+        "0 = one per CPU core, or 1 when the feedback is a live Ollama server (default: 0)",
+    )
+
+
+def _train_all(jobs: list, args: argparse.Namespace, hint: str) -> None:
+    """Train a job graph with the command line's ``--jobs`` and print one line per job."""
+    from amuled_ma.learn.jobs import resolve_workers, run_jobs
+
+    workers = resolve_workers(args.jobs, jobs)
+    common.say(f"  {len(jobs)} training jobs, {workers} at a time")
+    outcome = run_jobs(
+        jobs, workers=workers, progress=not args.no_progress, hint=hint, describe=common.describe
+    )
+    common.say(f"  training done in {outcome.wall_s:.1f} s on {outcome.workers} worker(s)")
 
 
 def run_command(args: argparse.Namespace) -> int:
     """Run ``amuled run``."""
     from amuled_ma.evaluate.evaluator import evaluate_run
     from amuled_ma.evaluate.report import write_report
-    from amuled_ma.learn.experiments import MAIN_VARIANTS, write_config
+    from amuled_ma.learn.experiments import (
+        MAIN_VARIANTS,
+        plan_run,
+        training_seeds,
+        write_config,
+    )
 
     start = time.perf_counter()
     scenario = common.load(args)
     run_dir = common.run_dir_of(args, scenario)
+    seeds = training_seeds(scenario, args.seed, args.seeds)
     hint = common.command_line("run", args, run_dir)
-    write_config(run_dir, scenario, {"variants": list(MAIN_VARIANTS)})
+    jobs = plan_run(scenario, run_dir, seeds, resume=args.resume, force=args.force)
+    write_config(run_dir, scenario, {"variants": list(MAIN_VARIANTS), "seeds": seeds})
     common.say(f"run {scenario.name} -> {run_dir}")
-    for variant in MAIN_VARIANTS:
-        common.train_job(scenario, run_dir, variant, args, hint)
+    _train_all(jobs, args, hint)
     results = evaluate_run(run_dir, scenario, episodes=args.episodes, progress=not args.no_progress)
     report = write_report(run_dir, results, title=f"{scenario.name}: the paper's main comparison")
     greedy = {k: v.get("greedy", {}).get("metrics", {}) for k, v in results["variants"].items()}
     common.say(_summary_line(scenario.task.name, greedy))
     common.say(
-        f"run {scenario.name}: {len(MAIN_VARIANTS)} variants done in "
+        f"run {scenario.name}: {len(MAIN_VARIANTS)} variants x {len(seeds)} seed(s) done in "
         f"{time.perf_counter() - start:.1f} s; report {report}"
     )
     return 0
@@ -86,32 +126,40 @@ def ablate_command(args: argparse.Namespace) -> int:
     """Run ``amuled ablate``."""
     from amuled_ma.evaluate.evaluator import evaluate_run
     from amuled_ma.evaluate.report import plot_bars, write_report
-    from amuled_ma.learn.experiments import ablation_variants, write_config
+    from amuled_ma.learn.experiments import (
+        ablation_variants,
+        plan_ablation,
+        training_seeds,
+        write_config,
+    )
 
     start = time.perf_counter()
     scenario = common.load(args)
     run_dir = common.run_dir_of(args, scenario)
     out = run_dir / f"ablate-{args.what}"
+    seeds = training_seeds(scenario, args.seed, args.seeds)
     hint = common.command_line("ablate", args, run_dir, "--what", args.what)
-    jobs = ablation_variants(args.what, scenario)
-    write_config(out, scenario, {"ablation": args.what, "variants": [j[2] for j in jobs]})
-    common.say(f"ablate {scenario.name} --what {args.what}: {len(jobs)} fine-tunes -> {out}")
-    base_args = argparse.Namespace(**{**vars(args), "resume": True, "force": False})
-    train_hint = common.command_line("train", args, run_dir)
-    common.train_job(scenario, run_dir, "base", base_args, train_hint)
-    for feedback, sc, folder in jobs:
-        common.train_job(sc, run_dir, f"finetune:{feedback}", args, hint, out_dir=out / folder)
+    variants = [folder for _, _, folder in ablation_variants(args.what, scenario)]
+    jobs = plan_ablation(args.what, scenario, run_dir, seeds, resume=args.resume, force=args.force)
+    write_config(out, scenario, {"ablation": args.what, "variants": variants, "seeds": seeds})
+    common.say(
+        f"ablate {scenario.name} --what {args.what}: {len(variants)} fine-tunes x "
+        f"{len(seeds)} seed(s) -> {out}"
+    )
+    _train_all(jobs, args, hint)
+    bases = [run_dir / job.out_dir.name for job in jobs if job.variant == "base"]
     results = evaluate_run(
         out,
         scenario,
         episodes=args.episodes,
         progress=not args.no_progress,
-        extra_dirs=[run_dir / "base"],
+        extra_dirs=bases,
     )
     report = write_report(out, results, title=f"{scenario.name}: ablation of {args.what}")
     plot_bars(results, "greedy", Path(out) / f"ablation_{args.what}.png")
     common.say(
-        f"ablate {scenario.name} --what {args.what}: {len(jobs)} variants done in "
+        f"ablate {scenario.name} --what {args.what}: {len(variants)} variants x "
+        f"{len(seeds)} seed(s) done in "
         f"{time.perf_counter() - start:.1f} s; report {report}"
     )
     return 0

@@ -22,6 +22,7 @@ import torch
 
 from amuled_ma.errors import CheckpointError
 from amuled_ma.evaluate.stats import mean_ci
+from amuled_ma.learn.experiments import split_replica
 from amuled_ma.learn.trainer import LAST, action_log_probs, load_policy, make_task
 from amuled_ma.scenario import Scenario
 
@@ -117,6 +118,74 @@ def summarize(records: list[dict[str, float]], confidence: float = 0.95) -> dict
     return {k: mean_ci([r[k] for r in records if k in r], confidence) for k in keys}
 
 
+def combine_replicas(
+    replicas: list[tuple[str, list[dict[str, float]], dict[str, Any]]], confidence: float
+) -> dict[str, Any]:
+    """One variant's evaluation over its seed replicas.
+
+    With one replica the intervals are over its episodes. With several, each metric is the
+    mean of the per-seed means and its interval is over the seeds (n = seeds): the spread
+    of training runs, not only of episodes. The trajectory and episode records are the
+    first replica's; every replica's own summary is kept under ``"replicas"``.
+
+    Args:
+        replicas: ``(folder, episode records, trajectory)`` per seed replica.
+        confidence: Two-sided confidence level.
+
+    Returns:
+        ``{"metrics", "ci_over", "n_seeds", "trajectory", "episodes"[, "replicas"]}``.
+
+    """
+    _first, records, trajectory = replicas[0]
+    entry: dict[str, Any] = {
+        "metrics": summarize(records, confidence),
+        "ci_over": "episodes",
+        "n_seeds": len(replicas),
+        "trajectory": trajectory,
+        "episodes": records,
+    }
+    if len(replicas) > 1:
+        per_seed = {name: summarize(recs, confidence) for name, recs, _ in replicas}
+        keys = sorted({k for s in per_seed.values() for k in s})
+        entry["metrics"] = {
+            k: mean_ci([s[k]["mean"] for s in per_seed.values() if k in s], confidence)
+            for k in keys
+        }
+        entry["ci_over"] = "seeds"
+        entry["replicas"] = per_seed
+    return entry
+
+
+def merge_feedback(summaries: list[dict[str, Any]]) -> dict[str, Any]:
+    """Fused-belief diagnostics of several seed replicas: means, with statuses summed."""
+    if len(summaries) == 1:
+        return summaries[0]
+    statuses: dict[str, int] = {}
+    for s in summaries:
+        for key, count in (s.get("statuses") or {}).items():
+            statuses[key] = statuses.get(key, 0) + count
+    clusters = sorted({c for s in summaries for c in (s.get("mean_weight") or {})})
+    conflicts = [s["mean_conflict"] for s in summaries if s.get("mean_conflict") is not None]
+    total = sum(statuses.values())
+    return {
+        "feedback": summaries[0].get("feedback"),
+        "replicas": len(summaries),
+        "steps": sum(s.get("steps", 0) for s in summaries),
+        "unique_states": float(np.mean([s.get("unique_states", 0) for s in summaries])),
+        "mean_weight": {
+            c: float(
+                np.mean(
+                    [s["mean_weight"][c] for s in summaries if c in (s.get("mean_weight") or {})]
+                )
+            )
+            for c in clusters
+        },
+        "mean_conflict": float(np.mean(conflicts)) if conflicts else None,
+        "statuses": statuses,
+        "miss_rate": statuses.get("replay_miss", 0) / total if total else 0.0,
+    }
+
+
 def variant_dirs(run_dir: Path) -> list[Path]:
     """Folders of a run that hold a final checkpoint, in pipeline order."""
     order = {"base": 0, "shaped": 1}
@@ -188,21 +257,30 @@ def evaluate_run(
         "seed": ev.seed,
         "variants": {},
     }
-    jobs = [(d, m) for d in dirs for m in modes]
-    for vdir, mode in tqdm(jobs, desc="evaluate", unit="policy", disable=not progress, leave=False):
+    groups: dict[str, list[Path]] = {}
+    for vdir in dirs:
+        groups.setdefault(split_replica(vdir.name)[0], []).append(vdir)
+    jobs = [(name, vdir, m) for name, members in groups.items() for vdir in members for m in modes]
+    runs: dict[tuple[str, str], list[tuple[str, list, dict]]] = {}
+    for name, vdir, mode in tqdm(
+        jobs, desc="evaluate", unit="policy", disable=not progress, leave=False
+    ):
         actor = load_policy(vdir / LAST, scenario)
         records, trajectory = run_episodes(
             actor, scenario, episodes=episodes, mode=mode, seed=ev.seed, task_factory=task_factory
         )
-        entry = results["variants"].setdefault(vdir.name, {})
-        entry[mode] = {
-            "metrics": summarize(records, ev.confidence),
-            "trajectory": trajectory,
-            "episodes": records,
-        }
-        fb = vdir / "feedback.json"
-        if fb.is_file():
-            entry["feedback"] = json.loads(fb.read_text())
+        runs.setdefault((name, mode), []).append((vdir.name, records, trajectory))
+    for (name, mode), replicas in runs.items():
+        entry = results["variants"].setdefault(name, {})
+        entry[mode] = combine_replicas(replicas, ev.confidence)
+    for name, members in groups.items():
+        summaries = [
+            json.loads((d / "feedback.json").read_text())
+            for d in members
+            if (d / "feedback.json").is_file()
+        ]
+        if summaries:
+            results["variants"][name]["feedback"] = merge_feedback(summaries)
     write_results(run_dir, results)
     return results
 
@@ -228,7 +306,9 @@ def write_results(run_dir: Path, results: dict[str, Any]) -> tuple[Path, Path]:
     csv_path = run_dir / "results.csv"
     with csv_path.open("w", newline="") as handle:
         writer = csv.writer(handle)
-        writer.writerow(["variant", "mode", "metric", "mean", "ci_low", "ci_high", "std", "n"])
+        writer.writerow(
+            ["variant", "mode", "metric", "mean", "ci_low", "ci_high", "std", "n", "ci_over"]
+        )
         for variant, entry in results["variants"].items():
             for mode, data in entry.items():
                 if mode == "feedback":
@@ -244,6 +324,7 @@ def write_results(run_dir: Path, results: dict[str, Any]) -> tuple[Path, Path]:
                             s["ci_high"],
                             s["std"],
                             s["n"],
+                            data.get("ci_over", "episodes"),
                         ]
                     )
     return json_path, csv_path

@@ -18,6 +18,7 @@ import numpy as np
 
 from amuled_ma.evaluate.evaluator import metric_order
 from amuled_ma.evaluate.stats import t_quantile
+from amuled_ma.learn.experiments import split_replica
 
 #: Curve keys plotted per task (the first that exists in a curve is used).
 _CURVE_KEYS = {
@@ -61,37 +62,62 @@ def _rolling_band(values: list[float | None], window: int) -> tuple[np.ndarray, 
     return mean, half
 
 
-def load_curves(run_dir: Path) -> dict[str, list[dict]]:
-    """Read every variant's ``curve.json``."""
-    curves = {}
+def load_curves(run_dir: Path) -> dict[str, list[list[dict]]]:
+    """Read every variant's ``curve.json``, seed replicas grouped under their variant."""
+    curves: dict[str, list[list[dict]]] = {}
     for path in sorted(Path(run_dir).glob("*/curve.json")):
-        curves[path.parent.name] = json.loads(path.read_text())
+        variant = split_replica(path.parent.name)[0]
+        curves.setdefault(variant, []).append(json.loads(path.read_text()))
     return curves
 
 
+def curve_band(replicas: list[list[dict]], key: str) -> tuple[np.ndarray, ...]:
+    """x, mean and 95% half-width of one metric over a variant's replicas.
+
+    Each replica's curve is first smoothed by a rolling mean over 5% of its iterations.
+    One replica: the band is the t-interval over that window. Several: the mean over the
+    seeds and the t-interval over the seeds (curves cut to the shortest).
+    """
+    n = min(len(c) for c in replicas)
+    x = np.array([row["env_steps"] for row in replicas[0][:n]], dtype=float)
+    window = max(1, n // 20)
+    bands = [_rolling_band([row.get(key) for row in c[:n]], window) for c in replicas]
+    if len(bands) == 1:
+        return x, bands[0][0], bands[0][1]
+    means = np.stack([mean for mean, _ in bands])
+    with np.errstate(invalid="ignore"):
+        count = np.isfinite(means).sum(axis=0)
+        mean = np.nanmean(np.where(np.isfinite(means), means, np.nan), axis=0)
+        std = np.nanstd(means, axis=0, ddof=1)
+        quantile = np.array([t_quantile(int(k) - 1) if k > 1 else 0.0 for k in count])
+        half = np.where(count > 1, quantile * std / np.sqrt(np.maximum(count, 1)), 0.0)
+    return x, mean, half
+
+
 def plot_curves(
-    curves: dict[str, list[dict]], keys: list[str], path: Path, title: str
+    curves: dict[str, list[list[dict]]], keys: list[str], path: Path, title: str
 ) -> Path | None:
     """Plot one panel per key, one line (rolling mean, 95% band) per variant."""
-    keys = [k for k in keys if any(k in row for c in curves.values() for row in c)]
+    keys = [k for k in keys if any(k in row for cs in curves.values() for c in cs for row in c)]
     if not keys or not curves:
         return None
     plt = _plt()
     fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.4), squeeze=False)
     for ax, key in zip(axes[0], keys, strict=True):
-        for name, curve in curves.items():
-            if not any(key in row for row in curve):
+        for name, replicas in curves.items():
+            if not any(key in row for c in replicas for row in c):
                 continue
-            x = np.array([row["env_steps"] for row in curve])
-            window = max(1, len(curve) // 20)
-            mean, half = _rolling_band([row.get(key) for row in curve], window)
-            (line,) = ax.plot(x, mean, label=name, lw=1.4)
+            x, mean, half = curve_band(replicas, key)
+            label = name if len(replicas) == 1 else f"{name} ({len(replicas)} seeds)"
+            (line,) = ax.plot(x, mean, label=label, lw=1.4)
             ax.fill_between(x, mean - half, mean + half, color=line.get_color(), alpha=0.2, lw=0)
         ax.set_title(key.split("/", 1)[-1].replace("_", " "))
         ax.set_xlabel("environment steps")
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=7)
-    fig.suptitle(title + " (rolling mean, 95% band over a 5% window of iterations)", fontsize=9)
+    several = any(len(r) > 1 for r in curves.values())
+    band = "over seeds" if several else "over a 5% window of iterations"
+    fig.suptitle(f"{title} (rolling mean over 5% of iterations, 95% band {band})", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -237,10 +263,11 @@ def metrics_table(results: dict[str, Any], mode: str) -> str:
         results.get("task", ""), sorted({m for v in variants.values() for m in v["metrics"]})
     )
     metrics = [m for m in metrics if m not in ("terminated", "return")]
-    lines = ["| variant | " + " | ".join(metrics) + " |", "|---|" + "---|" * len(metrics)]
+    head = "| variant | seeds | " + " | ".join(metrics) + " |"
+    lines = [head, "|---|---|" + "---|" * len(metrics)]
     for name, data in variants.items():
         cells = [_fmt(data["metrics"].get(m)) for m in metrics]
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+        lines.append(f"| {name} | {data.get('n_seeds', 1)} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -291,7 +318,10 @@ def write_report(run_dir: Path, results: dict[str, Any], *, title: str | None = 
         "",
         f"Task `{task}`; {n} evaluation episodes per variant and mode (seeds from "
         f"{results.get('seed')}); figures are mean ± half-width of the "
-        f"{int(100 * results.get('confidence', 0.95))}% Student-t confidence interval.",
+        f"{int(100 * results.get('confidence', 0.95))}% Student-t confidence interval. "
+        "A variant trained with one seed has its interval over the evaluation episodes; "
+        "one trained with several (column *seeds*) has the mean of its per-seed means and "
+        "the interval over the seeds, so it covers the spread of training runs.",
         "",
     ]
     for mode in ("greedy", "sampled"):

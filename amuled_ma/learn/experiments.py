@@ -18,6 +18,7 @@ mutates its copy), ``curve.json``, TensorBoard events under ``tb/`` and, for fin
 from __future__ import annotations
 
 import json
+import re
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -29,6 +30,7 @@ import torch
 
 from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError
 from amuled_ma.learn.feedback import MORAL_AGENT, make_feedback, parse_variant
+from amuled_ma.learn.jobs import TrainJob
 from amuled_ma.learn.trainer import LAST, Trainer, TrainOutcome
 from amuled_ma.scenario import Scenario
 
@@ -38,6 +40,36 @@ MAIN_VARIANTS = ("base", "shaped", "finetune:human", "finetune:amuled")
 ABLATIONS = ("clusters", "aggregation", "models", "kl")
 #: The lambda_KL sweep of the ``kl`` ablation (the paper's value is 2.5).
 KL_SWEEP = (0.0, 0.5, 1.0, 2.5, 5.0, 10.0)
+
+
+#: A seed replica's folder: ``<variant folder>.seed<k>`` (the first seed keeps the plain name).
+_REPLICA = re.compile(r"^(?P<folder>.+)\.seed(?P<seed>\d+)$")
+
+
+def training_seeds(scenario: Scenario, seed: int | None = None, count: int = 1) -> list[int]:
+    """The training seeds of a run: ``count`` consecutive seeds from ``seed`` or ``[task].seed``.
+
+    Raises:
+        AmuledError: ``count`` is below 1.
+
+    """
+    if count < 1:
+        raise AmuledError(f"--seeds must be at least 1, got {count}")
+    first = scenario.task.seed if seed is None else seed
+    return [first + k for k in range(count)]
+
+
+def replica_folder(folder: str, seed: int, first_seed: int) -> str:
+    """Folder of one seed replica: the plain name for the first seed, else ``.seed<k>`` added."""
+    return folder if seed == first_seed else f"{folder}.seed{seed}"
+
+
+def split_replica(folder: str) -> tuple[str, int | None]:
+    """``finetune-amuled.seed3`` -> ``("finetune-amuled", 3)``; a plain name -> ``(name, None)``."""
+    match = _REPLICA.match(folder)
+    if match is None:
+        return folder, None
+    return match["folder"], int(match["seed"])
 
 
 def default_run_dir(scenario: Scenario) -> Path:
@@ -78,13 +110,17 @@ class JobResult:
     outcome: TrainOutcome | None = None
 
 
-def _prepare(out_dir: Path, *, resume: bool, force: bool, skip_completed: bool, hint: str) -> str:
-    """Decide what to do with an existing variant folder: ``new``, ``resume`` or ``skip``."""
-    state = checkpoint_state(out_dir / LAST)
+def prepare_variant(out_dir: Path, *, resume: bool, force: bool, hint: str) -> str:
+    """Decide what to do with a variant folder: ``new``, ``resume`` or ``skip``.
+
+    Raises:
+        AmuledError: It holds a checkpoint and neither ``resume`` nor ``force`` is set; the
+            message names both options.
+
+    """
+    state = checkpoint_state(Path(out_dir) / LAST)
     if state is None:
         return "new"
-    if state.get("completed") and skip_completed and not force:
-        return "skip"
     if force:
         return "new"
     if resume:
@@ -126,13 +162,14 @@ def train_variant(
     *,
     resume: bool = False,
     force: bool = False,
-    skip_completed: bool = False,
     progress: bool = False,
     hint: str = "",
     iterations: int | None = None,
     seed: int | None = None,
     out_dir: Path | None = None,
     base_dir: Path | None = None,
+    base_variant: str = "base",
+    on_iteration: Callable[[Any, int], None] | None = None,
     task_factory: Callable[..., Any] | None = None,
     feedback_factory: Callable[[str], Any] | None = None,
 ) -> JobResult:
@@ -144,13 +181,14 @@ def train_variant(
         variant: What to train.
         resume: Continue an unfinished checkpoint.
         force: Start over even when a checkpoint exists.
-        skip_completed: Leave a completed variant alone (pipelines).
         progress: Show a progress bar.
         hint: The command that re-runs this job (for messages and Ctrl-C).
         iterations: Override the number of iterations.
         seed: Override the scenario's seed.
         out_dir: Folder of the variant (default ``run_dir/<variant folder>``).
         base_dir: Run directory holding the base checkpoint (default ``run_dir``).
+        base_variant: Folder of the base checkpoint in ``base_dir`` (a seed replica's base).
+        on_iteration: Called as ``fn(trainer, iteration)`` after every iteration.
         task_factory: Replaces the task constructor (tests).
         feedback_factory: ``variant -> Feedback``, replaces :func:`make_feedback` (tests).
 
@@ -160,7 +198,7 @@ def train_variant(
     """
     run_dir = Path(run_dir)
     out = Path(out_dir) if out_dir else run_dir / variant_dir_name(variant)
-    action = _prepare(out, resume=resume, force=force, skip_completed=skip_completed, hint=hint)
+    action = prepare_variant(out, resume=resume, force=force, hint=hint)
     if action == "skip":
         return JobResult(variant, out, skipped=True)
     feedback = None
@@ -168,7 +206,7 @@ def train_variant(
     if variant.startswith("finetune"):
         fb_name = variant.split(":", 1)[1] if ":" in variant else ""
         parse_variant(fb_name)
-        base_ckpt = base_checkpoint(base_dir or run_dir, scenario)
+        base_ckpt = base_checkpoint(base_dir or run_dir, scenario, base_variant)
         feedback = (feedback_factory or (lambda v: make_feedback(v, scenario, run_dir)))(fb_name)
     elif variant not in ("base", "shaped"):
         raise ScenarioError(
@@ -186,6 +224,7 @@ def train_variant(
             iterations=iterations,
             progress=progress,
             resume_hint=f"{hint} --resume" if hint else None,
+            on_iteration=on_iteration,
             task_factory=task_factory,
         )
         outcome = trainer.train()
@@ -270,3 +309,88 @@ def cluster_names(variants: Sequence[str]) -> list[str]:
         elif kind == "moral":
             out.append(MORAL_AGENT)
     return out
+
+
+def plan_run(
+    scenario: Scenario,
+    run_dir: Path,
+    seeds: Sequence[int],
+    *,
+    resume: bool = False,
+    force: bool = False,
+) -> list[TrainJob]:
+    """The jobs of ``amuled run``: :data:`MAIN_VARIANTS` for every seed.
+
+    Each seed's fine-tunes need (and anchor to) that seed's base policy.
+    """
+    run_dir = Path(run_dir)
+    jobs = []
+    for seed in seeds:
+        base = replica_folder("base", seed, seeds[0])
+        for variant in MAIN_VARIANTS:
+            folder = replica_folder(variant_dir_name(variant), seed, seeds[0])
+            jobs.append(
+                TrainJob(
+                    name=folder,
+                    scenario=scenario,
+                    run_dir=run_dir,
+                    variant=variant,
+                    out_dir=run_dir / folder,
+                    seed=seed,
+                    base_variant=base,
+                    needs=(base,) if variant.startswith("finetune") else (),
+                    resume=resume,
+                    force=force,
+                )
+            )
+    return jobs
+
+
+def plan_ablation(
+    what: str,
+    scenario: Scenario,
+    run_dir: Path,
+    seeds: Sequence[int],
+    *,
+    resume: bool = False,
+    force: bool = False,
+) -> list[TrainJob]:
+    """The jobs of ``amuled ablate --what WHAT``: each seed's base, then its fine-tunes.
+
+    A seed's base is trained only when its folder lacks a finished checkpoint (it is shared
+    with ``amuled run``); the fine-tunes go to ``<run_dir>/ablate-<what>/``.
+    """
+    run_dir = Path(run_dir)
+    out = run_dir / f"ablate-{what}"
+    variants = ablation_variants(what, scenario)
+    jobs = []
+    for seed in seeds:
+        base = replica_folder("base", seed, seeds[0])
+        jobs.append(
+            TrainJob(
+                name=base,
+                scenario=scenario,
+                run_dir=run_dir,
+                variant="base",
+                out_dir=run_dir / base,
+                seed=seed,
+                resume=True,
+            )
+        )
+        for feedback, sc, folder in variants:
+            replica = replica_folder(folder, seed, seeds[0])
+            jobs.append(
+                TrainJob(
+                    name=f"{out.name}/{replica}",
+                    scenario=sc,
+                    run_dir=run_dir,
+                    variant=f"finetune:{feedback}",
+                    out_dir=out / replica,
+                    seed=seed,
+                    base_variant=base,
+                    needs=(base,),
+                    resume=resume,
+                    force=force,
+                )
+            )
+    return jobs

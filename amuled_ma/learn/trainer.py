@@ -156,7 +156,7 @@ class Trainer:
         iterations: Overrides the number of iterations (tests, benchmarks).
         progress: Show a tqdm progress bar.
         resume_hint: The shell command that resumes this job (printed on Ctrl-C).
-        eval_callback: Called as ``fn(trainer, iteration)`` after every iteration.
+        on_iteration: Called as ``fn(trainer, iteration)`` after every iteration.
         task_factory: Replaces :func:`make_task` (same signature), e.g. in tests.
 
     """
@@ -174,7 +174,7 @@ class Trainer:
         iterations: int | None = None,
         progress: bool = False,
         resume_hint: str | None = None,
-        eval_callback: Callable[[Trainer, int], None] | None = None,
+        on_iteration: Callable[[Trainer, int], None] | None = None,
         task_factory: Callable[..., Any] | None = None,
     ) -> None:
         torch.set_num_threads(1)
@@ -186,7 +186,7 @@ class Trainer:
         self.seed = scenario.task.seed if seed is None else seed
         self.progress = progress
         self.resume_hint = resume_hint
-        self.eval_callback = eval_callback
+        self.on_iteration = on_iteration
         ppo = scenario.ppo
         if self.finetuning:
             ft = scenario.finetune
@@ -446,8 +446,8 @@ class Trainer:
                     for key, value in row.items():
                         if key not in ("iteration", "env_steps") and value is not None:
                             writer.add_scalar(key, value, row["env_steps"])
-                if self.eval_callback is not None:
-                    self.eval_callback(self, it + 1)
+                if self.on_iteration is not None:
+                    self.on_iteration(self, it + 1)
                 bar.update(1)
                 if self.progress and recent:
                     bar.set_postfix(

@@ -35,7 +35,7 @@ def test_resume_continues_from_checkpoint(tmp_path, tiny_scenario, factory):
         tiny_scenario,
         tmp_path / "b",
         task_factory=factory,
-        eval_callback=stop_at_3,
+        on_iteration=stop_at_3,
         resume_hint="amuled x",
     )
     with pytest.raises(KeyboardInterrupt):

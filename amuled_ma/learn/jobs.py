@@ -1,0 +1,336 @@
+"""Run a graph of training jobs, in this process or in parallel worker processes.
+
+An experiment (``amuled run``, ``amuled ablate``) is a list of :class:`TrainJob`, each
+naming the jobs it needs first (a fine-tune needs its base). :func:`run_jobs` checks every
+job's folder before anything starts (so a clash with an old checkpoint fails at once),
+then trains them:
+
+- ``workers == 1``: one after the other in this process, each with its own progress bar;
+- ``workers > 1``: in a pool of ``spawn``-ed worker processes, a job starting as soon as
+  the jobs it needs are done; one progress bar counts the iterations of all jobs.
+
+Every job is single-threaded (``torch.set_num_threads(1)``), so ``workers`` = CPU cores
+fills the machine. Fine-tunes of one run share the SQLite belief store, which is safe
+across processes (WAL).
+
+Ctrl-C in parallel mode: the workers ignore SIGINT; the parent sets a stop event that every
+running job checks after each iteration, so each writes its checkpoint as it would on a
+Ctrl-C of its own; the parent then prints the resume command once and re-raises
+:class:`KeyboardInterrupt`. A failing job stops new jobs from starting; running ones finish
+(their work is kept) and the first error is raised.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import queue
+import signal
+import sys
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from amuled_ma.errors import AmuledError
+from amuled_ma.scenario import Scenario
+
+
+@dataclass(frozen=True)
+class TrainJob:
+    """One variant to train, as :func:`~amuled_ma.learn.experiments.train_variant` takes it.
+
+    Attributes:
+        name: Unique name of the job in its graph (shown in messages).
+        scenario: The scenario it trains on.
+        run_dir: The run directory (belief store, default folders).
+        variant: ``base``, ``shaped`` or ``finetune:<feedback>``.
+        out_dir: Its folder.
+        seed: Training seed (None: the scenario's).
+        base_variant: Folder (under ``run_dir``) of the base checkpoint a fine-tune anchors to.
+        needs: Names of the jobs that must finish first.
+        resume: Continue an unfinished checkpoint; skip a finished one.
+        force: Start over even where a checkpoint exists.
+
+    """
+
+    name: str
+    scenario: Scenario
+    run_dir: Path
+    variant: str
+    out_dir: Path
+    seed: int | None = None
+    base_variant: str = "base"
+    needs: tuple[str, ...] = ()
+    resume: bool = False
+    force: bool = False
+
+
+@dataclass
+class JobsOutcome:
+    """What :func:`run_jobs` did.
+
+    Attributes:
+        results: One :class:`~amuled_ma.learn.experiments.JobResult` per job, in job order.
+        wall_s: Wall-clock seconds of the whole graph.
+        workers: Worker processes used (1: this process).
+
+    """
+
+    results: list[Any] = field(default_factory=list)
+    wall_s: float = 0.0
+    workers: int = 1
+
+
+def available_cpus() -> int:
+    """CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - macOS, Windows
+        return os.cpu_count() or 1
+
+
+def resolve_workers(requested: int, jobs: Sequence[TrainJob]) -> int:
+    """Number of worker processes: ``requested``, or with 0 one per core (1 for Ollama).
+
+    A live Ollama server is itself the bottleneck and uses every core, so ``0`` (auto) keeps
+    fine-tunes that ask it in this process; replay and rules feedback scale with cores.
+    """
+    if requested < 0:
+        raise AmuledError(f"--jobs must be 0 (auto) or a positive count, got {requested}")
+    if requested == 0:
+        live = any(
+            j.variant.startswith("finetune") and j.scenario.feedback.source == "ollama"
+            for j in jobs
+        )
+        requested = 1 if live else available_cpus()
+    return max(1, min(requested, len(jobs) or 1))
+
+
+def total_iterations(job: TrainJob) -> int:
+    """Iterations a job runs to (for the progress bar)."""
+    if job.variant.startswith("finetune"):
+        return job.scenario.finetune.iterations
+    base = job.scenario.base
+    return max(1, base.total_steps // (base.num_envs * base.num_steps_per_env))
+
+
+def check_order(jobs: Sequence[TrainJob]) -> None:
+    """Raise :class:`AmuledError` on duplicate names or a need that is not in the graph."""
+    names = [j.name for j in jobs]
+    if len(set(names)) != len(names):
+        raise AmuledError(f"duplicate job names in {names}")
+    known: set[str] = set()
+    for job in jobs:
+        missing = [n for n in job.needs if n not in known]
+        if missing:
+            raise AmuledError(f"job {job.name!r} needs {missing}, which do not come before it")
+        known.add(job.name)
+
+
+def _train(
+    job: TrainJob,
+    *,
+    progress: bool,
+    hint: str,
+    on_iteration: Callable[[Any, int], None] | None = None,
+) -> Any:
+    from amuled_ma.learn.experiments import train_variant
+
+    return train_variant(
+        job.scenario,
+        job.run_dir,
+        job.variant,
+        resume=job.resume,
+        force=job.force,
+        progress=progress,
+        hint=hint,
+        seed=job.seed,
+        out_dir=job.out_dir,
+        base_variant=job.base_variant,
+        on_iteration=on_iteration,
+    )
+
+
+# ------------------------------------------------------------------ worker side
+_STOP: Any = None
+_PROGRESS: Any = None
+
+
+def _init_worker(stop: Any, progress: Any) -> None:
+    """Worker initializer: ignore SIGINT (the parent coordinates stops), keep the channels."""
+    global _STOP, _PROGRESS
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _STOP, _PROGRESS = stop, progress
+
+
+def _worker_train(job: TrainJob) -> Any:
+    """Train one job in a worker; report iterations, stop when the parent asks."""
+    pending = 0
+    last_sent = time.monotonic()
+
+    def on_iteration(_trainer: Any, _iteration: int) -> None:
+        nonlocal pending, last_sent
+        pending += 1
+        now = time.monotonic()
+        if now - last_sent > 0.25:
+            _PROGRESS.put((job.name, pending))
+            pending, last_sent = 0, now
+        if _STOP.is_set():
+            raise KeyboardInterrupt
+
+    if _STOP.is_set():  # queued before the stop: do not start
+        raise KeyboardInterrupt
+    try:
+        return _train(job, progress=False, hint="", on_iteration=on_iteration)
+    finally:
+        if pending:
+            _PROGRESS.put((job.name, pending))
+
+
+# ------------------------------------------------------------------ parent side
+def _preflight(jobs: Sequence[TrainJob], hint: str) -> dict[str, str]:
+    """Decide new/resume/skip for every job before anything runs (errors come first)."""
+    from amuled_ma.learn.experiments import prepare_variant
+
+    return {
+        j.name: prepare_variant(j.out_dir, resume=j.resume, force=j.force, hint=hint) for j in jobs
+    }
+
+
+def run_jobs(
+    jobs: Sequence[TrainJob],
+    *,
+    workers: int = 1,
+    progress: bool = False,
+    hint: str = "",
+    describe: Callable[[Any], str] = str,
+) -> JobsOutcome:
+    """Train a graph of jobs.
+
+    Args:
+        jobs: The jobs, each after the jobs it needs.
+        workers: Worker processes; 1 trains in this process.
+        progress: Show progress bars.
+        hint: The command that re-runs the graph (its ``--resume`` form is printed on stops).
+        describe: Turns each finished :class:`~amuled_ma.learn.experiments.JobResult`
+            into the line printed about it.
+
+    Returns:
+        The outcome, results in job order.
+
+    Raises:
+        AmuledError: A job's folder clashes with an old checkpoint (before anything runs),
+            or a job failed (after the running ones finished).
+        KeyboardInterrupt: Ctrl-C, after every running job wrote its checkpoint.
+
+    """
+    check_order(jobs)
+    actions = _preflight(jobs, hint)
+    start = time.perf_counter()
+    if workers <= 1 or len(jobs) <= 1:
+        results = []
+        for job in jobs:
+            result = _train(job, progress=progress, hint=hint)
+            print(describe(result), flush=True)
+            results.append(result)
+        return JobsOutcome(results, time.perf_counter() - start, 1)
+    from amuled_ma.learn.experiments import JobResult
+
+    skipped = {j.name: JobResult(j.variant, j.out_dir, skipped=True) for j in jobs
+               if actions[j.name] == "skip"}  # fmt: skip
+    for result in skipped.values():
+        print(describe(result), flush=True)
+    todo = [j for j in jobs if j.name not in skipped]
+    results_by_name = {
+        **skipped,
+        **_run_parallel(todo, workers, progress, hint, describe, set(skipped)),
+    }
+    return JobsOutcome(
+        [results_by_name[j.name] for j in jobs], time.perf_counter() - start, workers
+    )
+
+
+def _run_parallel(
+    jobs: Sequence[TrainJob],
+    workers: int,
+    progress: bool,
+    hint: str,
+    describe: Callable[[Any], str],
+    already_done: set[str],
+) -> dict[str, Any]:
+    from tqdm.auto import tqdm
+
+    ctx = mp.get_context("spawn")
+    stop, channel = ctx.Event(), ctx.Queue()
+    waiting = list(jobs)
+    running: dict[Future, TrainJob] = {}
+    done: dict[str, Any] = {}
+    failure: BaseException | None = None
+    bar = tqdm(
+        total=sum(total_iterations(j) for j in jobs),
+        desc=f"{len(jobs)} jobs on {workers} workers",
+        unit="it",
+        disable=not progress,
+        dynamic_ncols=True,
+    )
+
+    def drain() -> None:
+        while True:
+            try:
+                _name, count = channel.get_nowait()
+            except queue.Empty:
+                return
+            bar.update(count)
+
+    executor = ProcessPoolExecutor(
+        max_workers=workers, mp_context=ctx, initializer=_init_worker, initargs=(stop, channel)
+    )
+    try:
+        while waiting or running:
+            if failure is None:
+                ready = [j for j in waiting if all(n in done or n in already_done for n in j.needs)]
+                for job in ready:
+                    waiting.remove(job)
+                    running[executor.submit(_worker_train, job)] = job
+            elif not running:
+                break
+            finished, _ = wait(list(running), timeout=0.25, return_when=FIRST_COMPLETED)
+            drain()
+            for future in finished:
+                job = running.pop(future)
+                if future.cancelled():
+                    continue
+                try:
+                    result = future.result()
+                except BaseException as error:  # re-raised below, after the running jobs
+                    if failure is None:
+                        failure = error
+                        for other in running:
+                            other.cancel()  # queued jobs do not start; running ones finish
+                    bar.write(f"  ✗ {job.name}: {type(error).__name__}: {error}", file=sys.stderr)
+                    continue
+                done[job.name] = result
+                bar.write(describe(result))
+    except KeyboardInterrupt:
+        stop.set()
+        bar.write("stopping: every running job writes its checkpoint ...", file=sys.stderr)
+        for future in running:
+            future.cancel()
+        wait(list(running))  # each running job ends with KeyboardInterrupt after saving
+        failure = KeyboardInterrupt()
+    finally:
+        executor.shutdown(wait=True, cancel_futures=True)
+        drain()
+        bar.close()
+    if isinstance(failure, KeyboardInterrupt):
+        if hint:
+            print(f"resume with: {hint} --resume", file=sys.stderr)
+        raise failure
+    if failure is not None:
+        if hint:
+            print(f"after fixing it, continue with: {hint} --resume", file=sys.stderr)
+        raise failure
+    return done

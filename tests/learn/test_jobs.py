@@ -1,0 +1,165 @@
+"""The job graph: planning, seed replicas, parallel workers, a real Ctrl-C to the group."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from amuled_ma.errors import AmuledError
+from amuled_ma.learn.experiments import (
+    checkpoint_state,
+    plan_ablation,
+    plan_run,
+    replica_folder,
+    split_replica,
+    training_seeds,
+)
+from amuled_ma.learn.jobs import TrainJob, check_order, resolve_workers, run_jobs
+from amuled_ma.scenario import load_scenario
+
+TINY = {
+    "base": {"total_steps": 1024, "num_envs": 16, "num_steps_per_env": 16},
+    "finetune": {"iterations": 3, "num_envs": 4, "num_steps_per_env": 8},
+    "output": {"tensorboard": False},
+    "feedback": {"source": "rules"},
+}
+
+
+def tiny_scenario():
+    scenario = load_scenario("findmilk")
+    for section, values in TINY.items():
+        scenario = scenario.replace(section, **values)
+    return scenario
+
+
+def test_seed_replica_names_round_trip():
+    assert replica_folder("finetune-amuled", 1, 1) == "finetune-amuled"
+    assert replica_folder("finetune-amuled", 3, 1) == "finetune-amuled.seed3"
+    assert split_replica("finetune-amuled.seed3") == ("finetune-amuled", 3)
+    assert split_replica("finetune-amuled-kl2.5") == ("finetune-amuled-kl2.5", None)
+    assert training_seeds(tiny_scenario(), None, 3) == [1, 2, 3]  # [task].seed = 1
+    assert training_seeds(tiny_scenario(), 7, 2) == [7, 8]
+    with pytest.raises(AmuledError, match="--seeds"):
+        training_seeds(tiny_scenario(), None, 0)
+
+
+def test_plan_run_anchors_each_seed_to_its_own_base(tmp_path):
+    jobs = plan_run(tiny_scenario(), tmp_path, [1, 2])
+    assert [j.name for j in jobs] == [
+        "base", "shaped", "finetune-human", "finetune-amuled",
+        "base.seed2", "shaped.seed2", "finetune-human.seed2", "finetune-amuled.seed2",
+    ]  # fmt: skip
+    by_name = {j.name: j for j in jobs}
+    assert by_name["finetune-amuled.seed2"].needs == ("base.seed2",)
+    assert by_name["finetune-amuled.seed2"].base_variant == "base.seed2"
+    assert by_name["finetune-amuled.seed2"].seed == 2
+    assert by_name["shaped.seed2"].needs == ()
+    assert by_name["finetune-human"].out_dir == tmp_path / "finetune-human"
+
+
+def test_plan_ablation_reuses_bases_and_writes_under_ablate_dir(tmp_path):
+    jobs = plan_ablation("aggregation", tiny_scenario(), tmp_path, [1, 2], resume=False)
+    bases = [j for j in jobs if j.variant == "base"]
+    assert [j.name for j in bases] == ["base", "base.seed2"]
+    assert all(j.resume for j in bases)  # a finished base from `amuled run` is reused
+    tunes = [j for j in jobs if j.variant != "base"]
+    assert len(tunes) == 8  # mean, max, vote, bjs-dst x 2 seeds
+    assert {j.out_dir.parent for j in tunes} == {tmp_path / "ablate-aggregation"}
+    assert {j.needs for j in tunes} == {("base",), ("base.seed2",)}
+
+
+def test_check_order_and_workers():
+    sc = tiny_scenario()
+    a = TrainJob("a", sc, Path("r"), "base", Path("r/a"))
+    b = TrainJob("b", sc, Path("r"), "finetune:amuled", Path("r/b"), needs=("a",))
+    check_order([a, b])
+    with pytest.raises(AmuledError, match="needs"):
+        check_order([b, a])
+    with pytest.raises(AmuledError, match="duplicate"):
+        check_order([a, a])
+    assert resolve_workers(5, [a, b]) == 2  # never more workers than jobs
+    assert resolve_workers(1, [a, b]) == 1
+    live = TrainJob(
+        "c", sc.replace("feedback", source="ollama"), Path("r"), "finetune:amuled", Path("c")
+    )
+    assert resolve_workers(0, [a, live]) == 1  # a live Ollama server: one at a time
+    assert resolve_workers(0, [a, b]) == min(2, len(os.sched_getaffinity(0)))
+    with pytest.raises(AmuledError, match="--jobs"):
+        resolve_workers(-1, [a])
+
+
+def _learned(row: dict) -> dict:
+    """A curve row without its wall-clock figures."""
+    return {k: v for k, v in row.items() if k != "wall_s" and not k.startswith("time/")}
+
+
+def test_parallel_training_is_bit_identical_to_sequential(tmp_path):
+    """Worker processes change where a job runs, not what it learns."""
+    runs = {}
+    for workers in (1, 2):
+        run_dir = tmp_path / f"w{workers}"
+        jobs = plan_run(tiny_scenario(), run_dir, [1, 2])
+        outcome = run_jobs(jobs, workers=workers, describe=lambda r: r.variant)
+        assert outcome.workers == workers and len(outcome.results) == 8
+        runs[workers] = {j.name: json.loads((j.out_dir / "curve.json").read_text()) for j in jobs}
+    for name, curve in runs[1].items():
+        other = runs[2][name]
+        assert [_learned(row) for row in curve] == [_learned(row) for row in other], name
+    # the two seeds really differ
+    assert runs[1]["finetune-amuled"] != runs[1]["finetune-amuled.seed2"]
+
+
+def test_parallel_stops_on_ctrl_c_with_checkpoints_then_resumes(tmp_path):
+    """A real SIGINT to the whole process group, as a terminal's Ctrl-C sends it."""
+    run_dir = tmp_path / "run"
+    amuled = [sys.executable, "-m", "amuled_ma"]
+    args = ["ablate", "findmilk", "--what", "aggregation", "--run-dir", str(run_dir)]
+    args += ["--jobs", "2", "--episodes", "2", "--no-progress"]
+    for section, values in {**TINY, "finetune": {**TINY["finetune"], "iterations": 4000}}.items():
+        for key, value in values.items():
+            text = json.dumps(value) if isinstance(value, str) else str(value).lower()
+            args += ["--set", f"{section}.{key}={text}"]
+    env = {**os.environ, "GIT_PYTHON_REFRESH": "quiet"}
+    proc = subprocess.Popen(
+        [*amuled, *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        env=env,
+    )
+    deadline = time.monotonic() + 120
+    tunes = [run_dir / "ablate-aggregation" / n for n in ("finetune-agg-mean", "finetune-agg-max")]
+    while time.monotonic() < deadline and not all(t.exists() for t in tunes):
+        time.sleep(0.2)
+    time.sleep(2.0)  # both fine-tunes are iterating now
+    os.killpg(proc.pid, signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, (out, err)
+    assert "resume with: amuled ablate findmilk --what aggregation" in err
+    assert err.count("resume with:") == 1  # once, from the parent
+    stopped = [checkpoint_state(t / "model_last.pt") for t in tunes]
+    assert all(s is not None and not s["completed"] for s in stopped), stopped
+    assert all(0 < s["iteration"] < 4000 for s in stopped)
+    assert not (run_dir / "ablate-aggregation" / "finetune-agg-vote" / "model_last.pt").exists()
+
+    # resume, shortened to 3 iterations past the furthest stop
+    last = max(s["iteration"] for s in stopped)
+    resume = [a if a != "finetune.iterations=4000" else f"finetune.iterations={last + 3}"
+              for a in args]  # fmt: skip
+    done = subprocess.run(
+        [*amuled, *resume, "--resume"], capture_output=True, text=True, env=env, timeout=300
+    )
+    assert done.returncode == 0, done.stderr
+    for tune, state in zip(tunes, stopped, strict=True):
+        curve = json.loads((tune / "curve.json").read_text())
+        assert [row["iteration"] for row in curve] == list(range(1, last + 4))
+        assert checkpoint_state(tune / "model_last.pt")["iteration"] == last + 3
+        assert state["iteration"] <= last
