@@ -55,3 +55,55 @@ def test_evaluate_run_writes_results_and_report(tmp_path):
     ):
         assert (tmp_path / name).is_file(), name
         assert f"]({name})" in text
+
+
+def test_seed_replicas_combine_over_seeds_by_hand():
+    from amuled_ma.evaluate.evaluator import combine_replicas, merge_feedback
+
+    # seed 1: rescues 2, 4 (mean 3); seed 2: 6, 6 (mean 6); seed 3: 0, 0 (mean 0)
+    replicas = [
+        ("finetune-amuled", [{"rescues": 2.0}, {"rescues": 4.0}], {"t": 1}),
+        ("finetune-amuled.seed2", [{"rescues": 6.0}, {"rescues": 6.0}], {"t": 2}),
+        ("finetune-amuled.seed3", [{"rescues": 0.0}, {"rescues": 0.0}], {"t": 3}),
+    ]
+    entry = combine_replicas(replicas, 0.95)
+    stat = entry["metrics"]["rescues"]
+    # per-seed means 3, 6, 0: mean 3, sample std 3, t_{0.975,2} = 4.303 (t table)
+    assert stat["n"] == 3 and stat["mean"] == 3.0 and stat["std"] == 3.0
+    assert abs(stat["half_width"] - 4.303 * 3.0 / 3**0.5) < 1e-9
+    assert entry["ci_over"] == "seeds" and entry["trajectory"] == {"t": 1}
+    assert entry["replicas"]["finetune-amuled.seed2"]["rescues"]["mean"] == 6.0
+    one = combine_replicas(replicas[:1], 0.95)
+    assert one["ci_over"] == "episodes" and one["metrics"]["rescues"]["n"] == 2
+
+    a = {
+        "feedback": "amuled",
+        "steps": 10,
+        "unique_states": 4,
+        "mean_conflict": 0.2,
+        "mean_weight": {"care": 0.3, "virtue": 0.1},
+        "statuses": {"ok": 45, "replay_miss": 5},
+    }
+    b = {"feedback": "amuled", "steps": 30, "unique_states": 8, "mean_conflict": 0.4,
+         "mean_weight": {"care": 0.5, "virtue": 0.3}, "statuses": {"ok": 150}}  # fmt: skip
+    merged = merge_feedback([a, b])
+    assert merged["steps"] == 40 and merged["unique_states"] == 6.0
+    assert abs(merged["mean_conflict"] - 0.3) < 1e-12
+    assert abs(merged["mean_weight"]["care"] - 0.4) < 1e-12
+    assert merged["statuses"] == {"ok": 195, "replay_miss": 5}
+    assert merged["miss_rate"] == 5 / 200
+
+
+def test_learning_curve_band_over_seeds_by_hand():
+    from amuled_ma.evaluate.report import curve_band
+
+    def curve(values):
+        return [{"env_steps": 100 * (i + 1), "r": v} for i, v in enumerate(values)]
+
+    # 3 rows: the rolling window is 1 row, so each seed's curve is its raw values
+    x, mean, half = curve_band([curve([1, 2, 3]), curve([3, 4, 5])], "r")
+    assert x.tolist() == [100, 200, 300] and mean.tolist() == [2, 3, 4]
+    # two seeds differing by 2: std sqrt(2), half = t_{0.975,1} * sqrt(2) / sqrt(2) = 12.706
+    assert all(abs(h - 12.706) < 1e-9 for h in half)
+    x, mean, half = curve_band([curve([1, 2, 3]), curve([3, 4])], "r")  # cut to the shortest
+    assert x.tolist() == [100, 200] and half.tolist() == [12.706, 12.706]
