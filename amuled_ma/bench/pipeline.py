@@ -1,0 +1,127 @@
+"""The paper's whole offline pipeline, timed: run + ablate clusters + ablate aggregation.
+
+For each task (FindMilk, Driving) and each ``--jobs`` setting, in a fresh run directory:
+``amuled run TASK``, ``amuled ablate TASK --what clusters``, ``amuled ablate TASK --what
+aggregation`` with the shipped scenarios (replay source), each stage timed. Several
+``--jobs`` values (e.g. ``--jobs 1,0``) run one after the other in the same invocation,
+so their ratio is measured side by side. Target (issue 6): the whole of it, both tasks,
+in under 15 minutes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+#: The issue's target for the whole pipeline, both tasks [s].
+TARGET_S = 15 * 60
+#: The stages, as ``amuled`` arguments after the scenario.
+STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("run", ("run",)),
+    ("ablate clusters", ("ablate", "--what", "clusters")),
+    ("ablate aggregation", ("ablate", "--what", "aggregation")),
+)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the benchmark's options."""
+    parser.add_argument(
+        "--jobs",
+        default="0",
+        help="comma-separated --jobs values to time side by side, e.g. 1,0 "
+        "(1 = one process, 0 = one worker per core; default: 0)",
+    )
+    parser.add_argument(
+        "--tasks",
+        default="findmilk,driving",
+        help="comma-separated shipped scenarios (default: findmilk,driving)",
+    )
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="scenario override passed to every stage (repeatable; figures then differ "
+        "from the target's conditions)",
+    )
+    parser.add_argument(
+        "--out", type=Path, default=None, help="folder for the runs (default: a temp folder)"
+    )
+
+
+def _jobs_values(text: str) -> list[int]:
+    from amuled_ma.errors import AmuledError
+
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        values = []
+    if not values or any(v < 0 for v in values):
+        raise AmuledError(f"--jobs {text!r}: expected comma-separated counts >= 0, e.g. 1,0")
+    return values
+
+
+def time_pipeline(
+    tasks: list[str], jobs: int, out: Path, overrides: list[str]
+) -> dict[tuple[str, str], float]:
+    """Run every stage of every task into ``out/<task>``; return seconds per (task, stage)."""
+    from amuled_ma.cli import main as amuled
+    from amuled_ma.errors import AmuledError
+
+    seconds: dict[tuple[str, str], float] = {}
+    sets = [a for text in overrides for a in ("--set", text)]
+    for task in tasks:
+        for stage, argv in STAGES:
+            command, *rest = argv
+            args = [command, task, *rest, "--run-dir", str(out / task), "--jobs", str(jobs)]
+            args += ["--no-progress", *sets]
+            print(f"[jobs={jobs}] amuled {' '.join(args)}", flush=True)
+            t0 = time.perf_counter()
+            code = amuled(args)
+            seconds[(task, stage)] = time.perf_counter() - t0
+            if code != 0:
+                raise AmuledError(f"'amuled {' '.join(args)}' exited with status {code}")
+    return seconds
+
+
+def main(args: argparse.Namespace) -> int:
+    """Time the pipeline for every ``--jobs`` value and print the table."""
+    from amuled_ma.learn.jobs import available_cpus
+
+    values = _jobs_values(args.jobs)
+    tasks = [t.strip() for t in args.tasks.split(",") if t.strip()]
+    tmp = None
+    if args.out is None:
+        tmp = tempfile.TemporaryDirectory(prefix="amuled-bench-pipeline-")
+        root = Path(tmp.name)
+    else:
+        root = Path(args.out)
+    timings = {}
+    for jobs in values:
+        timings[jobs] = time_pipeline(tasks, jobs, root / f"jobs{jobs}", args.overrides)
+    cpus = available_cpus()
+    labels = [f"--jobs {j}" + (f" ({cpus} workers)" if j == 0 else "") for j in values]
+    print()
+    print(f"Pipeline wall-clock [s], {len(tasks)} task(s), {cpus} CPU core(s):")
+    print("| stage | " + " | ".join(labels) + " |")
+    print("|---|" + "---|" * len(values))
+    for task in tasks:
+        for stage, _ in STAGES:
+            cells = [f"{timings[j][(task, stage)]:.1f}" for j in values]
+            print(f"| {task}: {stage} | " + " | ".join(cells) + " |")
+    totals = [sum(timings[j].values()) for j in values]
+    print("| **total** | " + " | ".join(f"**{t:.1f}** ({t / 60:.1f} min)" for t in totals) + " |")
+    if len(values) > 1:
+        print(f"speed-up of --jobs {values[-1]} over --jobs {values[0]}: "
+              f"{totals[0] / totals[-1]:.2f}x")  # fmt: skip
+    verdict = "met" if totals[-1] < TARGET_S else "NOT met"
+    print(f"target: the whole pipeline in < {TARGET_S / 60:.0f} min with --jobs {values[-1]}: "
+          f"{verdict} ({totals[-1] / 60:.1f} min)")  # fmt: skip
+    if args.overrides:
+        print("(scenario overrides given: not the target's conditions)")
+    if tmp is not None:
+        tmp.cleanup()
+    return 0
