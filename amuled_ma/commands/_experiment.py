@@ -123,13 +123,17 @@ def say(message: str) -> None:
 
 
 def describe(job: Any) -> str:
-    """One line about a finished training job."""
+    """One line about a finished training job (a seed replica's seed in brackets)."""
+    from amuled_ma.learn.experiments import split_replica
+
+    seed = split_replica(Path(job.out_dir).name)[1]
+    name = job.variant if seed is None else f"{job.variant} [seed {seed}]"
     if job.skipped:
-        return f"  = {job.variant}: already trained ({job.out_dir})"
+        return f"  = {name}: already trained ({job.out_dir})"
     out = job.outcome
     rate = out.env_steps / max(out.wall_s, 1e-9)
     line = (
-        f"  ✓ {job.variant}: {out.iterations} iterations, {out.env_steps:,} env steps in "
+        f"  ✓ {name}: {out.iterations} iterations, {out.env_steps:,} env steps in "
         f"{out.wall_s:.1f} s ({rate:,.0f} steps/s)"
     )
     if out.feedback:
