@@ -143,6 +143,14 @@ def test_ablate_aggregation_with_replay_two_seeds_in_parallel(tmp_path, capsys, 
     spread = abs(means[0] - means[1]) / 2**0.5  # sample std of two values
     assert stat["half_width"] == pytest.approx(12.706 * spread / 2**0.5)
     assert "| finetune-amuled | 2 |" in (abl / "report.md").read_text()
+
+    # amuled evaluate on the ablation folder finds the base replicas beside it
+    argv = ["evaluate", str(abl), "--episodes", "2", "--modes", "greedy", "--no-progress"]
+    assert main([*argv, "--variants", "base", "finetune-amuled"]) == 0
+    again = json.loads((abl / "results.json").read_text())["variants"]
+    assert set(again) == {"base", "finetune-amuled"}
+    assert again["base"]["greedy"]["n_seeds"] == 2
+    assert again["finetune-amuled"]["greedy"]["n_seeds"] == 2
     fb = results["variants"]["finetune-amuled"]["feedback"]
     assert 0.0 <= fb["miss_rate"] < 0.5 and fb["mean_conflict"] is not None
     assert (abl / "ablation_aggregation.png").is_file()

@@ -45,7 +45,9 @@ def evaluate_command(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     run_dir = Path(args.run_dir)
     scenario = common.scenario_of_run(run_dir)
-    extra = [run_dir.parent / "base"] if run_dir.name.startswith("ablate-") else None
+    extra = None
+    if run_dir.name.startswith("ablate-"):  # the base policy and its seed replicas
+        extra = [run_dir.parent / "base", *sorted(run_dir.parent.glob("base.seed*"))]
     results = evaluate_run(
         run_dir,
         scenario,

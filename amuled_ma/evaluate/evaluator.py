@@ -220,7 +220,7 @@ def evaluate_run(
         scenario: The run's scenario.
         episodes: Episodes per variant and mode (default: the scenario's).
         modes: ``greedy`` and/or ``sampled`` (default: the scenario's).
-        variants: Only these variant folders (default: all with a checkpoint).
+        variants: Only these variants (folder names; a name takes its seed replicas along).
         task_factory: Replaces :func:`~amuled_ma.learn.trainer.make_task`.
         progress: Show a progress bar.
         extra_dirs: Further variant folders evaluated alongside (an ablation's base).
@@ -241,7 +241,7 @@ def evaluate_run(
     modes = modes or list(ev.modes)
     dirs = variant_dirs(run_dir)
     if variants:
-        dirs = [d for d in dirs if d.name in variants]
+        dirs = [d for d in dirs if d.name in variants or split_replica(d.name)[0] in variants]
     extra = [Path(d) for d in extra_dirs or [] if (Path(d) / LAST).is_file()]
     dirs = [d for d in extra if d.name not in {x.name for x in dirs}] + dirs
     if not dirs:
