@@ -11,9 +11,11 @@ in under 15 minutes.
 from __future__ import annotations
 
 import argparse
-import tempfile
 import time
 from pathlib import Path
+
+from amuled_ma.bench._output import output_folder
+from amuled_ma.commands._experiment import add_overrides_argument
 
 #: The issue's target for the whole pipeline, both tasks [s].
 TARGET_S = 15 * 60
@@ -38,15 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="findmilk,driving",
         help="comma-separated shipped scenarios (default: findmilk,driving)",
     )
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="SECTION.KEY=VALUE",
-        help="scenario override passed to every stage (repeatable; figures then differ "
-        "from the target's conditions)",
-    )
+    add_overrides_argument(
+        parser
+    )  # passed to every stage; figures then leave the target's conditions
     parser.add_argument(
         "--out", type=Path, default=None, help="folder for the runs (default: a temp folder)"
     )
@@ -93,15 +89,10 @@ def main(args: argparse.Namespace) -> int:
 
     values = _jobs_values(args.jobs)
     tasks = [t.strip() for t in args.tasks.split(",") if t.strip()]
-    tmp = None
-    if args.out is None:
-        tmp = tempfile.TemporaryDirectory(prefix="amuled-bench-pipeline-")
-        root = Path(tmp.name)
-    else:
-        root = Path(args.out)
     timings = {}
-    for jobs in values:
-        timings[jobs] = time_pipeline(tasks, jobs, root / f"jobs{jobs}", args.overrides)
+    with output_folder(args.out, "amuled-bench-pipeline-") as root:
+        for jobs in values:
+            timings[jobs] = time_pipeline(tasks, jobs, root / f"jobs{jobs}", args.overrides)
     cpus = available_cpus()
     labels = [f"--jobs {j}" + (f" ({cpus} workers)" if j == 0 else "") for j in values]
     print()
@@ -122,6 +113,4 @@ def main(args: argparse.Namespace) -> int:
           f"{verdict} ({totals[-1] / 60:.1f} min)")  # fmt: skip
     if args.overrides:
         print("(scenario overrides given: not the target's conditions)")
-    if tmp is not None:
-        tmp.cleanup()
     return 0

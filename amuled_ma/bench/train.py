@@ -17,10 +17,11 @@ paper authors' published code (CleanRL PPO, SyncVectorEnv, per-state Python fusi
 from __future__ import annotations
 
 import argparse
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+from amuled_ma.bench._output import output_folder
 
 #: Reference figures (the authors' code) and our targets, per measured figure.
 REFERENCE: dict[str, tuple[str, str]] = {
@@ -174,13 +175,23 @@ def main(args: argparse.Namespace) -> int:
     import torch
 
     torch.set_num_threads(1)
-    tmp = None
-    if args.out is None:
-        tmp = tempfile.TemporaryDirectory(prefix="amuled-bench-")
-        out = Path(tmp.name)
-    else:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
+    with output_folder(args.out, "amuled-bench-") as out:
+        rows = _measure(args, out)
+    widths = [
+        max(len(r[i]) for r in [("figure", "ours", "reference", "target"), *rows]) for i in range(4)
+    ]
+    line = "  ".join(f"{{:<{w}}}" for w in widths)
+    print()
+    print(line.format("figure", "ours", "reference (authors' code)", "target"))
+    print(line.format(*("-" * w for w in widths)))
+    for row in rows:
+        print(line.format(*row))
+    print(f"\n(torch threads: {torch.get_num_threads()}; quick: {args.quick})")
+    return 0
+
+
+def _measure(args: argparse.Namespace, out: Path) -> list[tuple[str, str, str, str]]:
+    """Run the selected parts into ``out``; one table row per figure."""
     rows: list[tuple[str, str, str, str]] = []
     fm: dict[str, Any] = {}
     if "findmilk" not in args.skip:
@@ -256,16 +267,4 @@ def main(args: argparse.Namespace) -> int:
             f"{fu['batched_ms']:.4f} ms batched, {fu['single_ms']:.3f} ms alone",
             *REFERENCE["fusion_ms"],
         ))  # fmt: skip
-    widths = [
-        max(len(r[i]) for r in [("figure", "ours", "reference", "target"), *rows]) for i in range(4)
-    ]
-    line = "  ".join(f"{{:<{w}}}" for w in widths)
-    print()
-    print(line.format("figure", "ours", "reference (authors' code)", "target"))
-    print(line.format(*("-" * w for w in widths)))
-    for row in rows:
-        print(line.format(*row))
-    print(f"\n(torch threads: {torch.get_num_threads()}; quick: {args.quick})")
-    if tmp is not None:
-        tmp.cleanup()
-    return 0
+    return rows

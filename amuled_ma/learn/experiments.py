@@ -311,6 +311,26 @@ def cluster_names(variants: Sequence[str]) -> list[str]:
     return out
 
 
+def _job(
+    name: str, scenario: Scenario, run_dir: Path, variant: str, out_dir: Path, seed: int,
+    base: str, *, resume: bool, force: bool,
+) -> TrainJob:  # fmt: skip
+    """A job of a plan; a fine-tune needs (and anchors to) the base folder ``base``."""
+    tune = variant.startswith("finetune")
+    return TrainJob(
+        name=name,
+        scenario=scenario,
+        run_dir=run_dir,
+        variant=variant,
+        out_dir=out_dir,
+        seed=seed,
+        base_variant=base,
+        needs=(base,) if tune else (),
+        resume=resume,
+        force=force,
+    )
+
+
 def plan_run(
     scenario: Scenario,
     run_dir: Path,
@@ -330,19 +350,9 @@ def plan_run(
         for variant in MAIN_VARIANTS:
             folder = replica_folder(variant_dir_name(variant), seed, seeds[0])
             jobs.append(
-                TrainJob(
-                    name=folder,
-                    scenario=scenario,
-                    run_dir=run_dir,
-                    variant=variant,
-                    out_dir=run_dir / folder,
-                    seed=seed,
-                    base_variant=base,
-                    needs=(base,) if variant.startswith("finetune") else (),
-                    resume=resume,
-                    force=force,
-                )
-            )
+                _job(folder, scenario, run_dir, variant, run_dir / folder, seed, base,
+                     resume=resume, force=force)
+            )  # fmt: skip
     return jobs
 
 
@@ -367,30 +377,13 @@ def plan_ablation(
     for seed in seeds:
         base = replica_folder("base", seed, seeds[0])
         jobs.append(
-            TrainJob(
-                name=base,
-                scenario=scenario,
-                run_dir=run_dir,
-                variant="base",
-                out_dir=run_dir / base,
-                seed=seed,
-                resume=True,
-            )
-        )
+            _job(base, scenario, run_dir, "base", run_dir / base, seed, base,
+                 resume=True, force=False)
+        )  # fmt: skip
         for feedback, sc, folder in variants:
             replica = replica_folder(folder, seed, seeds[0])
             jobs.append(
-                TrainJob(
-                    name=f"{out.name}/{replica}",
-                    scenario=sc,
-                    run_dir=run_dir,
-                    variant=f"finetune:{feedback}",
-                    out_dir=out / replica,
-                    seed=seed,
-                    base_variant=base,
-                    needs=(base,),
-                    resume=resume,
-                    force=force,
-                )
-            )
+                _job(f"{out.name}/{replica}", sc, run_dir, f"finetune:{feedback}", out / replica,
+                     seed, base, resume=resume, force=force)
+            )  # fmt: skip
     return jobs
