@@ -249,7 +249,8 @@ def diagnostics_table(results: dict[str, Any]) -> str:
         cells += [f"{weights[c]:.3f}" if c in weights else "" for c in clusters]
         cells.append("" if conflict is None else f"{conflict:.3f}")
         cells.append(f"{100 * fb.get('miss_rate', 0.0):.1f}%")
-        cells.append(str(fb.get("unique_states", "")))
+        states = fb.get("unique_states", "")
+        cells.append(f"{states:.1f}" if isinstance(states, float) else str(states))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
