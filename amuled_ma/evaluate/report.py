@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -85,7 +86,9 @@ def curve_band(replicas: list[list[dict]], key: str) -> tuple[np.ndarray, ...]:
     if len(bands) == 1:
         return x, bands[0][0], bands[0][1]
     means = np.stack([mean for mean, _ in bands])
-    with np.errstate(invalid="ignore"):
+    # Iterations where no seed logged the metric (NaN everywhere) stay NaN, silently.
+    with warnings.catch_warnings(), np.errstate(invalid="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)
         count = np.isfinite(means).sum(axis=0)
         mean = np.nanmean(np.where(np.isfinite(means), means, np.nan), axis=0)
         std = np.nanstd(means, axis=0, ddof=1)

@@ -107,3 +107,22 @@ def test_learning_curve_band_over_seeds_by_hand():
     assert all(abs(h - 12.706) < 1e-9 for h in half)
     x, mean, half = curve_band([curve([1, 2, 3]), curve([3, 4])], "r")  # cut to the shortest
     assert x.tolist() == [100, 200] and half.tolist() == [12.706, 12.706]
+
+
+def test_learning_curve_band_iteration_no_seed_logged_is_nan_without_warning():
+    import warnings
+
+    import numpy as np
+
+    from amuled_ma.evaluate.report import curve_band
+
+    # the metric is missing at the second row in both seeds (an episode metric that no
+    # episode finished in that iteration): NaN there, one seed's value where only one has it
+    a = [{"env_steps": 1, "r": 1.0}, {"env_steps": 2}, {"env_steps": 3, "r": 5.0}]
+    b = [{"env_steps": 1, "r": 3.0}, {"env_steps": 2}, {"env_steps": 3}]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _x, mean, half = curve_band([a, b], "r")
+    assert mean[0] == 2.0 and abs(half[0] - 12.706) < 1e-9
+    assert np.isnan(mean[1]) and half[1] == 0.0
+    assert mean[2] == 5.0 and half[2] == 0.0
