@@ -21,8 +21,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         if info.name.startswith("_"):
             continue
         module = importlib.import_module(f"{bench.__name__}.{info.name}")
-        summary = (module.__doc__ or "").strip().splitlines()
-        sub = names.add_parser(info.name, help=summary[0] if summary else None)
+        doc = (module.__doc__ or "").strip()
+        sub = names.add_parser(
+            info.name,
+            help=doc.splitlines()[0] if doc else None,
+            description=doc or None,
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
         module.add_arguments(sub)
         sub.set_defaults(handler=module.main)
     parser.set_defaults(handler=lambda args: parser.print_help() or 2)
