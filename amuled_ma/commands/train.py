@@ -61,15 +61,12 @@ def train_command(args: argparse.Namespace) -> int:
 
 def finetune_command(args: argparse.Namespace) -> int:
     """Run ``amuled finetune``."""
-    from amuled_ma.learn.experiments import variant_dir_name, write_config
-
     scenario = common.load(args)
     run_dir = common.run_dir_of(args, scenario)
     variant = f"finetune:{args.feedback}"
     hint = common.command_line("finetune", args, run_dir, "--feedback", args.feedback)
     start = time.perf_counter()
     job = common.train_job(scenario, run_dir, variant, args, hint)
-    write_config(run_dir / variant_dir_name(variant), scenario, {"variant": variant})
     common.say(
         f"finetune {scenario.name}/{args.feedback}: done in {time.perf_counter() - start:.1f} s; "
         f"checkpoint {job.out_dir / 'model_last.pt'}"

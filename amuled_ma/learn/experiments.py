@@ -10,9 +10,11 @@ A run directory holds one folder per trained variant::
       results.json results.csv report.md *.png
 
 Each variant folder holds ``model_last.pt`` (rsl-rl checkpoint; ``infos["completed"]``
-tells whether it finished), ``train_cfg.json`` (the rsl-rl config as given, before rsl-rl
-mutates its copy), ``curve.json``, TensorBoard events under ``tb/`` and, for fine-tunes,
-``feedback.json`` (fused-belief diagnostics).
+tells whether it finished), ``config.json`` (the resolved scenario it was trained with and,
+under ``"training"``, the settings that decide what it learns: a resume or a skip checks
+them against the current ones), ``train_cfg.json`` (the rsl-rl config as given, before
+rsl-rl mutates its copy), ``curve.json``, TensorBoard events under ``tb/`` and, for
+fine-tunes, ``feedback.json`` (fused-belief diagnostics).
 """
 
 from __future__ import annotations
@@ -110,12 +112,132 @@ class JobResult:
     outcome: TrainOutcome | None = None
 
 
-def prepare_variant(out_dir: Path, *, resume: bool, force: bool, hint: str) -> str:
-    """Decide what to do with a variant folder: ``new``, ``resume`` or ``skip``.
+#: Scenario keys left out of :func:`training_config`: paths, logging and service keys, the
+#: seed (the job's own seed is kept) and the run's length (kept as ``"iterations"``: a
+#: resume may lengthen a run).
+_NOT_LEARNED = {
+    "task": ("seed",),
+    "base": ("save_interval", "total_steps"),
+    "finetune": ("save_interval", "iterations"),
+    "feedback": ("host", "concurrency", "timeout_s", "store"),
+}
+
+
+def training_config(
+    scenario: Scenario, variant: str, seed: int | None = None, iterations: int | None = None
+) -> dict[str, Any]:
+    """The settings that decide what a variant learns, as plain JSON data.
+
+    A folder's saved copy (``config.json``, key ``"training"``) is compared with the current
+    one before a resume or a skip, so that a run never continues, or passes off as
+    finished, a variant trained with other settings. Left out: paths, logging and service
+    keys (:data:`_NOT_LEARNED`), the recording's folder (its file name stays), and the
+    feedback section for base training and for the rule-based human feedback. The run's
+    length is kept apart, as the number of PPO iterations the job trains to.
+
+    Args:
+        scenario: The scenario of the job.
+        variant: ``base``, ``shaped`` or ``finetune:<feedback>``.
+        seed: The job's training seed (default: ``[task].seed``).
+        iterations: An override of the number of iterations, if any.
+
+    Returns:
+        ``{"variant", "seed", "iterations", section: {key: value}, ...}``.
+
+    """
+    data = scenario.to_dict()
+    if variant in ("base", "shaped"):
+        sections: tuple[str, ...] = ("task", "ppo", "base")
+        base = scenario.base
+        total = max(1, base.total_steps // (base.num_envs * base.num_steps_per_env))
+    else:
+        sections = ("task", "ppo", "finetune")
+        if variant != "finetune:human":
+            sections += ("feedback",)
+        total = scenario.finetune.iterations
+    out: dict[str, Any] = {
+        "variant": variant,
+        "seed": scenario.task.seed if seed is None else seed,
+        "iterations": iterations or total,
+    }
+    for section in sections:
+        skip = _NOT_LEARNED.get(section, ())
+        out[section] = {k: v for k, v in data[section].items() if k not in skip}
+    if out.get("feedback", {}).get("recording"):
+        out["feedback"]["recording"] = Path(out["feedback"]["recording"]).name
+    return json.loads(json.dumps(out, default=str))
+
+
+def _differences(saved: Any, current: Any, prefix: str = "") -> list[str]:
+    """``key: saved -> current`` for every leaf that differs between two JSON values."""
+    if isinstance(saved, dict) and isinstance(current, dict):
+        out = []
+        for key in sorted(set(saved) | set(current), key=str):
+            name = f"{prefix}.{key}" if prefix else str(key)
+            out += _differences(saved.get(key), current.get(key), name)
+        return out
+    return [] if saved == current else [f"{prefix}: {saved!r} -> {current!r}"]
+
+
+def check_training_config(out_dir: Path, training: dict[str, Any]) -> None:
+    """Refuse to resume or skip a variant trained with other settings.
+
+    Args:
+        out_dir: The variant folder (its ``config.json`` holds the saved settings; a folder
+            without one, from an older version, is accepted).
+        training: The current :func:`training_config`.
 
     Raises:
-        AmuledError: It holds a checkpoint and neither ``resume`` nor ``force`` is set; the
-            message names both options.
+        AmuledError: The settings differ; the message lists each differing key with its
+            saved and current value and names ``--force`` and ``--run-dir``.
+
+    """
+    path = Path(out_dir) / "config.json"
+    if not path.is_file():
+        return
+    try:
+        saved = json.loads(path.read_text()).get("training")
+    except (OSError, ValueError, AttributeError) as err:
+        raise AmuledError(f"{path}: not a readable config ({err}); retrain with --force") from err
+    if saved is None:
+        return
+    diffs = _differences(
+        {k: v for k, v in saved.items() if k != "iterations"},
+        {k: v for k, v in training.items() if k != "iterations"},
+    )
+    if diffs:
+        shown = "; ".join(diffs[:8]) + (f"; and {len(diffs) - 8} more" if len(diffs) > 8 else "")
+        raise AmuledError(
+            f"{out_dir} was trained with other settings than now (saved -> now: {shown}; "
+            f"saved in {path}); retrain it with --force, or keep it and train into another "
+            "--run-dir"
+        )
+
+
+def prepare_variant(
+    out_dir: Path,
+    *,
+    resume: bool,
+    force: bool,
+    hint: str,
+    training: dict[str, Any] | None = None,
+) -> str:
+    """Decide what to do with a variant folder: ``new``, ``resume`` or ``skip``.
+
+    Args:
+        out_dir: The variant folder.
+        resume: Continue an unfinished checkpoint, skip a finished one.
+        force: Start over.
+        hint: The command that re-runs the job (for the error message).
+        training: The job's :func:`training_config`; a resume or a skip requires the
+            folder's saved settings to match it, and a finished checkpoint is skipped only
+            when it trained to the job's number of iterations (fewer: it is resumed to
+            that number).
+
+    Raises:
+        AmuledError: It holds a checkpoint and neither ``resume`` nor ``force`` is set (the
+            message names both options), or ``resume`` is set and the checkpoint was
+            trained with other settings or past the job's number of iterations.
 
     """
     state = checkpoint_state(Path(out_dir) / LAST)
@@ -124,7 +246,20 @@ def prepare_variant(out_dir: Path, *, resume: bool, force: bool, hint: str) -> s
     if force:
         return "new"
     if resume:
-        return "skip" if state.get("completed") else "resume"
+        done = state.get("iteration") or 0
+        if training is None:
+            return "skip" if state.get("completed") else "resume"
+        check_training_config(out_dir, training)
+        target = training["iterations"]
+        if done > target:
+            raise AmuledError(
+                f"{out_dir} holds a checkpoint at iteration {done}, past the {target} "
+                "iterations asked for now; retrain it with --force, or ask for at least "
+                f"{done} iterations"
+            )
+        if state.get("completed") and done == target:
+            return "skip"
+        return "resume"
     raise AmuledError(
         f"{out_dir} already holds a checkpoint (iteration {state.get('iteration')}/"
         f"{state.get('total_iterations')}); continue it with '{hint} --resume' or start over "
@@ -198,7 +333,8 @@ def train_variant(
     """
     run_dir = Path(run_dir)
     out = Path(out_dir) if out_dir else run_dir / variant_dir_name(variant)
-    action = prepare_variant(out, resume=resume, force=force, hint=hint)
+    training = training_config(scenario, variant, seed, iterations)
+    action = prepare_variant(out, resume=resume, force=force, hint=hint, training=training)
     if action == "skip":
         return JobResult(variant, out, skipped=True)
     feedback = None
@@ -212,6 +348,8 @@ def train_variant(
         raise ScenarioError(
             f"unknown variant {variant!r}; expected base, shaped or finetune:<feedback>"
         )
+    if action == "new" or not (out / "config.json").is_file():
+        write_config(out, scenario, {"variant": variant, "training": training})
     try:
         trainer = Trainer(
             scenario,

@@ -193,11 +193,28 @@ def _worker_train(job: TrainJob) -> Any:
 # ------------------------------------------------------------------ parent side
 def _preflight(jobs: Sequence[TrainJob], hint: str) -> dict[str, str]:
     """Decide new/resume/skip for every job before anything runs (errors come first)."""
-    from amuled_ma.learn.experiments import prepare_variant
+    from amuled_ma.learn.experiments import prepare_variant, training_config
 
-    return {
-        j.name: prepare_variant(j.out_dir, resume=j.resume, force=j.force, hint=hint) for j in jobs
-    }
+    actions, problems = {}, []
+    for j in jobs:
+        try:
+            actions[j.name] = prepare_variant(
+                j.out_dir,
+                resume=j.resume,
+                force=j.force,
+                hint=hint,
+                training=training_config(j.scenario, j.variant, j.seed),
+            )
+        except AmuledError as err:
+            problems.append(str(err))
+    if len(problems) == 1:
+        raise AmuledError(problems[0])
+    if problems:
+        raise AmuledError(
+            f"{len(problems)} of {len(jobs)} jobs cannot start, nothing was trained:\n"
+            + "\n".join(f"  - {p}" for p in problems)
+        )
+    return actions
 
 
 def run_jobs(
