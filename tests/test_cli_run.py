@@ -154,3 +154,25 @@ def test_ablate_aggregation_with_replay_two_seeds_in_parallel(tmp_path, capsys, 
     fb = results["variants"]["finetune-amuled"]["feedback"]
     assert 0.0 <= fb["miss_rate"] < 0.5 and fb["mean_conflict"] is not None
     assert (abl / "ablation_aggregation.png").is_file()
+
+
+def test_ablate_after_run_evaluates_the_runs_amuled_finetune_without_retraining(tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    common = ["findmilk", "--run-dir", str(run_dir), "--episodes", "2", "--jobs", "1"]
+    assert main(["run", *common, *TINY, *RULES]) == 0
+    capsys.readouterr()
+    assert main(["ablate", "--what", "aggregation", *common, *TINY, *RULES]) == 0
+    out = capsys.readouterr().out
+    assert f"finetune:amuled: already trained ({run_dir / 'finetune-amuled'})" in out
+    abl = run_dir / "ablate-aggregation"
+    assert not (abl / "finetune-amuled").exists()
+    assert json.loads((abl / "config.json").read_text())["shared"] == ["base", "finetune-amuled"]
+    results = json.loads((abl / "results.json").read_text())["variants"]
+    assert {"base", "finetune-amuled", "finetune-agg-mean"} <= set(results)
+    run_results = json.loads((run_dir / "results.json").read_text())["variants"]
+    assert results["finetune-amuled"]["greedy"] == run_results["finetune-amuled"]["greedy"]
+
+    # amuled evaluate on the ablation folder takes the same shared folders along
+    argv = ["evaluate", str(abl), "--episodes", "2", "--modes", "greedy", "--no-progress"]
+    assert main(argv) == 0
+    assert "finetune-amuled" in json.loads((abl / "results.json").read_text())["variants"]

@@ -116,6 +116,20 @@ def scenario_of_run(run_dir: Path) -> Any:
     return scenario_from_dict(data, path=Path(source) if source else None)
 
 
+def shared_folders(ablation_dir: Path) -> list[str]:
+    """The run's folders an ablation is evaluated with: its ``config.json`` ``"shared"``.
+
+    An ablation written before that key existed shares the base and its seed replicas.
+    """
+    ablation_dir = Path(ablation_dir)
+    path = ablation_dir / "config.json"
+    shared = json.loads(path.read_text()).get("shared") if path.is_file() else None
+    if shared is None:
+        run_dir = ablation_dir.parent
+        shared = ["base", *sorted(p.name for p in run_dir.glob("base.seed*"))]
+    return list(shared)
+
+
 def say(message: str) -> None:
     """Print a status line (stderr stays free for errors)."""
     print(message, flush=True)

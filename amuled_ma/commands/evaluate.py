@@ -46,8 +46,8 @@ def evaluate_command(args: argparse.Namespace) -> int:
     run_dir = Path(args.run_dir)
     scenario = common.scenario_of_run(run_dir)
     extra = None
-    if run_dir.name.startswith("ablate-"):  # the base policy and its seed replicas
-        extra = [run_dir.parent / "base", *sorted(run_dir.parent.glob("base.seed*"))]
+    if run_dir.name.startswith("ablate-"):  # the run's folders the ablation shares
+        extra = [run_dir.parent / name for name in common.shared_folders(run_dir)]
     results = evaluate_run(
         run_dir,
         scenario,

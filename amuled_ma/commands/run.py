@@ -141,19 +141,25 @@ def ablate_command(args: argparse.Namespace) -> int:
     hint = common.command_line("ablate", args, run_dir, "--what", args.what)
     variants = [folder for _, _, folder in ablation_variants(args.what, scenario)]
     jobs = plan_ablation(args.what, scenario, run_dir, seeds, resume=args.resume, force=args.force)
-    write_config(out, scenario, {"ablation": args.what, "variants": variants, "seeds": seeds})
+    # the run's folders an ablation evaluates with its own: the bases, and fine-tunes the
+    # run already finished with the same settings (not trained again)
+    shared = [job.out_dir.name for job in jobs if job.out_dir.parent == run_dir]
+    write_config(
+        out,
+        scenario,
+        {"ablation": args.what, "variants": variants, "seeds": seeds, "shared": shared},
+    )
     common.say(
         f"ablate {scenario.name} --what {args.what}: {len(variants)} fine-tunes x "
         f"{len(seeds)} seed(s) -> {out}"
     )
     _train_all(jobs, args, hint)
-    bases = [run_dir / job.out_dir.name for job in jobs if job.variant == "base"]
     results = evaluate_run(
         out,
         scenario,
         episodes=args.episodes,
         progress=not args.no_progress,
-        extra_dirs=bases,
+        extra_dirs=[run_dir / name for name in shared],
     )
     report = write_report(out, results, title=f"{scenario.name}: ablation of {args.what}")
     plot_bars(results, "greedy", Path(out) / f"ablation_{args.what}.png")

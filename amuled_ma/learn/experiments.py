@@ -214,6 +214,29 @@ def check_training_config(out_dir: Path, training: dict[str, Any]) -> None:
         )
 
 
+def finished_with(out_dir: Path, training: dict[str, Any]) -> bool:
+    """Whether a folder holds a finished checkpoint trained with exactly ``training``.
+
+    Args:
+        out_dir: A variant folder.
+        training: A :func:`training_config` (its number of iterations included).
+
+    Returns:
+        True when ``model_last.pt`` is finished and ``config.json`` records the same
+        settings; False otherwise (also for folders written before settings were recorded).
+
+    """
+    state = checkpoint_state(Path(out_dir) / LAST)
+    path = Path(out_dir) / "config.json"
+    if not (state and state.get("completed")) or not path.is_file():
+        return False
+    try:
+        saved = json.loads(path.read_text()).get("training")
+    except (OSError, ValueError, AttributeError):
+        return False
+    return saved == training and state.get("iteration") == training["iterations"]
+
+
 def prepare_variant(
     out_dir: Path,
     *,
@@ -506,7 +529,10 @@ def plan_ablation(
     """The jobs of ``amuled ablate --what WHAT``: each seed's base, then its fine-tunes.
 
     A seed's base is trained only when its folder lacks a finished checkpoint (it is shared
-    with ``amuled run``); the fine-tunes go to ``<run_dir>/ablate-<what>/``.
+    with ``amuled run``); the fine-tunes go to ``<run_dir>/ablate-<what>/``, except a
+    fine-tune that ``amuled run`` already finished with exactly the same settings (its
+    AMULED fine-tune, :func:`finished_with`): that job points at the run's folder and is
+    skipped, so the same policy is not trained twice.
     """
     run_dir = Path(run_dir)
     out = run_dir / f"ablate-{what}"
@@ -520,8 +546,14 @@ def plan_ablation(
         )  # fmt: skip
         for feedback, sc, folder in variants:
             replica = replica_folder(folder, seed, seeds[0])
+            variant = f"finetune:{feedback}"
+            trained = run_dir / replica
+            if finished_with(trained, training_config(sc, variant, seed)):
+                jobs.append(_job(replica, sc, run_dir, variant, trained, seed, base,
+                                 resume=True, force=False))  # fmt: skip
+                continue
             jobs.append(
-                _job(f"{out.name}/{replica}", sc, run_dir, f"finetune:{feedback}", out / replica,
+                _job(f"{out.name}/{replica}", sc, run_dir, variant, out / replica,
                      seed, base, resume=resume, force=force)
             )  # fmt: skip
     return jobs

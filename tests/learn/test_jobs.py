@@ -163,3 +163,32 @@ def test_parallel_stops_on_ctrl_c_with_checkpoints_then_resumes(tmp_path):
         assert [row["iteration"] for row in curve] == list(range(1, last + 4))
         assert checkpoint_state(tune / "model_last.pt")["iteration"] == last + 3
         assert state["iteration"] <= last
+
+
+def test_plan_ablation_reuses_the_runs_amuled_finetune_only_with_same_settings(tmp_path):
+    run_dir = tmp_path / "run"
+    run_jobs(plan_run(tiny_scenario(), run_dir, [1, 2]), describe=str)
+    checkpoint = (run_dir / "finetune-amuled" / "model_last.pt").read_bytes()
+
+    jobs = plan_ablation("aggregation", tiny_scenario(), run_dir, [1, 2])
+    where = {j.name: j.out_dir for j in jobs if j.variant == "finetune:amuled"}
+    assert where == {
+        "finetune-amuled": run_dir / "finetune-amuled",
+        "finetune-amuled.seed2": run_dir / "finetune-amuled.seed2",
+    }
+    others = [j.out_dir.parent for j in jobs if j.variant.startswith("finetune:agg")]
+    assert len(others) == 6 and set(others) == {run_dir / "ablate-aggregation"}
+    outcome = run_jobs(jobs, describe=str)
+    skipped = {Path(r.out_dir).name for r in outcome.results if r.skipped}
+    assert skipped == {"base", "base.seed2", "finetune-amuled", "finetune-amuled.seed2"}
+    assert (run_dir / "finetune-amuled" / "model_last.pt").read_bytes() == checkpoint
+    assert not (run_dir / "ablate-aggregation" / "finetune-amuled").exists()
+
+    # other settings or another length: the ablation trains its own
+    for scenario in (
+        tiny_scenario().replace("finetune", lambda_kl=0.5),
+        tiny_scenario().replace("finetune", iterations=4),
+    ):
+        jobs = plan_ablation("aggregation", scenario, run_dir, [1], resume=True)
+        (amuled,) = [j for j in jobs if j.variant == "finetune:amuled"]
+        assert amuled.out_dir == run_dir / "ablate-aggregation" / "finetune-amuled"
