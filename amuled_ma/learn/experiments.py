@@ -179,6 +179,27 @@ def _differences(saved: Any, current: Any, prefix: str = "") -> list[str]:
     return [] if saved == current else [f"{prefix}: {saved!r} -> {current!r}"]
 
 
+def saved_training_config(out_dir: Path) -> dict[str, Any] | None:
+    """The ``"training"`` settings a variant folder's ``config.json`` recorded, if any.
+
+    Returns:
+        The settings, or None for a folder without them (none trained yet, or written
+        before settings were recorded).
+
+    Raises:
+        AmuledError: ``config.json`` exists but cannot be read as JSON.
+
+    """
+    path = Path(out_dir) / "config.json"
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise AmuledError(f"{path}: not a readable config ({err}); retrain with --force") from err
+    return data.get("training") if isinstance(data, dict) else None
+
+
 def check_training_config(out_dir: Path, training: dict[str, Any]) -> None:
     """Refuse to resume or skip a variant trained with other settings.
 
@@ -192,13 +213,7 @@ def check_training_config(out_dir: Path, training: dict[str, Any]) -> None:
             saved and current value and names ``--force`` and ``--run-dir``.
 
     """
-    path = Path(out_dir) / "config.json"
-    if not path.is_file():
-        return
-    try:
-        saved = json.loads(path.read_text()).get("training")
-    except (OSError, ValueError, AttributeError) as err:
-        raise AmuledError(f"{path}: not a readable config ({err}); retrain with --force") from err
+    saved = saved_training_config(out_dir)
     if saved is None:
         return
     diffs = _differences(
@@ -209,8 +224,8 @@ def check_training_config(out_dir: Path, training: dict[str, Any]) -> None:
         shown = "; ".join(diffs[:8]) + (f"; and {len(diffs) - 8} more" if len(diffs) > 8 else "")
         raise AmuledError(
             f"{out_dir} was trained with other settings than now (saved -> now: {shown}; "
-            f"saved in {path}); retrain it with --force, or keep it and train into another "
-            "--run-dir"
+            f"saved in {Path(out_dir) / 'config.json'}); retrain it with --force, or keep it "
+            "and train into another --run-dir"
         )
 
 
@@ -227,12 +242,11 @@ def finished_with(out_dir: Path, training: dict[str, Any]) -> bool:
 
     """
     state = checkpoint_state(Path(out_dir) / LAST)
-    path = Path(out_dir) / "config.json"
-    if not (state and state.get("completed")) or not path.is_file():
+    if not (state and state.get("completed")):
         return False
     try:
-        saved = json.loads(path.read_text()).get("training")
-    except (OSError, ValueError, AttributeError):
+        saved = saved_training_config(out_dir)
+    except AmuledError:
         return False
     return saved == training and state.get("iteration") == training["iterations"]
 

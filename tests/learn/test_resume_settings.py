@@ -100,3 +100,17 @@ def test_resume_refuses_other_settings_skips_same_and_lengthens(tmp_path):
         json.loads((tune / "config.json").read_text())["training"]["finetune"]["lambda_kl"] == 0.5
     )
     assert checkpoint_state(tune / "model_last.pt")["iteration"] == 3
+
+
+def test_unreadable_saved_settings_name_the_file(tmp_path):
+    from amuled_ma.learn.experiments import finished_with
+
+    run_dir = tmp_path / "run"
+    sc = tiny()
+    train_variant(sc, run_dir, "base")
+    config = run_dir / "base" / "config.json"
+    assert finished_with(run_dir / "base", training_config(sc, "base"))
+    config.write_text("{not json")
+    with pytest.raises(AmuledError, match=f"{config}: not a readable config .*--force"):
+        train_variant(sc, run_dir, "base", resume=True)
+    assert not finished_with(run_dir / "base", training_config(sc, "base"))
