@@ -137,9 +137,12 @@ def test_parallel_stops_on_ctrl_c_with_checkpoints_then_resumes(tmp_path):
     )
     deadline = time.monotonic() + 120
     tunes = [run_dir / "ablate-aggregation" / n for n in ("finetune-agg-mean", "finetune-agg-max")]
-    while time.monotonic() < deadline and not all(t.exists() for t in tunes):
+    # both fine-tunes are iterating: each has written its first periodic checkpoint
+    # (a variant folder exists earlier, from config.json, while its worker still sets up)
+    while time.monotonic() < deadline and not all((t / "model_last.pt").exists() for t in tunes):
         time.sleep(0.2)
-    time.sleep(2.0)  # both fine-tunes are iterating now
+    assert proc.poll() is None, proc.communicate()
+    time.sleep(1.0)
     os.killpg(proc.pid, signal.SIGINT)
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, (out, err)
