@@ -116,6 +116,10 @@ def test_parallel_training_is_bit_identical_to_sequential(tmp_path):
     assert runs[1]["finetune-amuled"] != runs[1]["finetune-amuled.seed2"]
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_parallel_stops_on_ctrl_c_with_checkpoints_then_resumes(tmp_path):
     """A real SIGINT to the whole process group, as a terminal's Ctrl-C sends it."""
     run_dir = tmp_path / "run"
@@ -134,6 +138,9 @@ def test_parallel_stops_on_ctrl_c_with_checkpoints_then_resumes(tmp_path):
         text=True,
         start_new_session=True,
         env=env,
+        # a terminal's foreground job takes Ctrl-C; a job started in the background of a
+        # non-interactive shell (as CI runners may start pytest) inherits SIGINT ignored
+        preexec_fn=_default_sigint,
     )
     deadline = time.monotonic() + 120
     tunes = [run_dir / "ablate-aggregation" / n for n in ("finetune-agg-mean", "finetune-agg-max")]
