@@ -257,7 +257,7 @@ def prepare_variant(
     resume: bool,
     force: bool,
     hint: str,
-    training: dict[str, Any] | None = None,
+    training: dict[str, Any],
 ) -> str:
     """Decide what to do with a variant folder: ``new``, ``resume`` or ``skip``.
 
@@ -284,8 +284,6 @@ def prepare_variant(
         return "new"
     if resume:
         done = state.get("iteration") or 0
-        if training is None:
-            return "skip" if state.get("completed") else "resume"
         check_training_config(out_dir, training)
         target = training["iterations"]
         if done > target:
