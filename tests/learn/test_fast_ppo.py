@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from amuled_ma.learn import fast_ppo
 from amuled_ma.learn.fast_ppo import ppo_update, supports
 from amuled_ma.learn.feedback import CallableFeedback
 from amuled_ma.learn.trainer import LAST, Trainer
@@ -26,6 +27,10 @@ def _iterate(trainer: Trainer, fast: bool, iterations: int = 3):
         losses = ppo_update(trainer.alg) if fast else trainer.alg.update()
         out.append((extra, losses, trainer.env.drain_episodes()))
     alg = trainer.alg
+    if fast:  # the comparison covers the direct paths, not only their fallbacks
+        both = [*alg.actor.parameters(), *alg.critic.parameters()]
+        assert fast_ppo._DirectAdam.of(alg.optimizer, both) is not None
+        assert fast_ppo._SAME_STREAM and all(fast_ppo._SAME_STREAM.values())
     params = [p.detach().clone() for p in [*alg.actor.parameters(), *alg.critic.parameters()]]
     return out, params, torch.get_rng_state(), trainer.task.obs.clone()
 
@@ -75,3 +80,46 @@ def test_unsupported_configuration_falls_back_to_rsl_rl(tmp_path):
     trainer.alg.update = lambda: calls.append(1) or {"value": 0.0}
     assert ppo_update(trainer.alg) == {"value": 0.0}
     assert calls == [1]
+
+
+def test_direct_adam_step_equals_optimizer_step():
+    torch.manual_seed(0)
+    params = [torch.randn(5, 3, requires_grad=True), torch.randn(3, requires_grad=True)]
+    twins = [p.detach().clone().requires_grad_() for p in params]
+    opt = torch.optim.Adam(params, lr=1e-3, eps=1e-5, fused=True)
+    ref = torch.optim.Adam(twins, lr=1e-3, eps=1e-5, fused=True)
+    assert fast_ppo._DirectAdam.of(opt, params) is None  # no state before the first step
+    for step in range(4):
+        grads = [torch.randn_like(p) for p in params]
+        for p, q, g in zip(params, twins, grads, strict=True):
+            p.grad, q.grad = g.clone(), g.clone()
+        direct = fast_ppo._DirectAdam.of(opt, params)
+        if direct is None:
+            assert step == 0
+            opt.step()
+        else:
+            direct.step()
+        ref.step()
+        assert all(torch.equal(p, q) for p, q in zip(params, twins, strict=True))
+    assert torch.equal(opt.state[params[0]]["step"], ref.state[twins[0]]["step"])
+    # anything the direct call does not reproduce goes through optimizer.step()
+    assert fast_ppo._DirectAdam.of(opt, params[::-1]) is None
+    amsgrad = torch.optim.Adam(params, amsgrad=True, fused=True)
+    amsgrad.step()  # its state exists, yet the direct call does not do AMSGrad
+    assert fast_ppo._DirectAdam.of(amsgrad, params) is None
+    assert fast_ppo._DirectAdam.of(torch.optim.SGD(params, lr=0.1), params) is None
+
+
+def test_discarded_sample_moves_the_random_stream_as_a_sample_does():
+    from amuled_ma.learn.distribution import CategoricalDistribution
+
+    dist = CategoricalDistribution(4)
+    dist.update(torch.randn(7, 4))
+    torch.manual_seed(3)
+    dist.sample()
+    expected = torch.rand(5)
+    for _ in range(2):  # the first call checks the shape, the second draws directly
+        torch.manual_seed(3)
+        fast_ppo._discarded_sample(dist)
+        assert torch.equal(torch.rand(5), expected)
+    assert fast_ppo._SAME_STREAM[((7, 4), torch.float32, "cpu")] is True
