@@ -104,8 +104,8 @@ def _clip_grad_norms(groups: tuple[list[torch.Tensor], ...], max_norm: float) ->
         torch._foreach_mul_(group, coef)
 
 
-#: (shape, dtype) of a sample -> whether drawing ``exponential_`` alone moves torch's
-#: random stream exactly as ``CategoricalDistribution.sample`` does (checked once each)
+#: (shape, dtype, device type) of a sample -> whether drawing ``exponential_`` alone moves
+#: torch's random stream exactly as ``CategoricalDistribution.sample`` does (checked once each)
 _SAME_STREAM: dict[tuple, bool] = {}
 
 
