@@ -116,45 +116,70 @@ def test_parallel_training_is_bit_identical_to_sequential(tmp_path):
     assert runs[1]["finetune-amuled"] != runs[1]["finetune-amuled.seed2"]
 
 
+AMULED = [sys.executable, "-m", "amuled_ma"]
+ENV = {**os.environ, "GIT_PYTHON_REFRESH": "quiet"}
+
+
 def _default_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
-def test_parallel_stops_on_ctrl_c_with_checkpoints_then_resumes(tmp_path):
-    """A real SIGINT to the whole process group, as a terminal's Ctrl-C sends it."""
-    run_dir = tmp_path / "run"
-    amuled = [sys.executable, "-m", "amuled_ma"]
+def _ablate_args(run_dir: Path, iterations: int) -> list[str]:
+    """``amuled ablate findmilk --what aggregation`` on TINY, in 2 workers."""
     args = ["ablate", "findmilk", "--what", "aggregation", "--run-dir", str(run_dir)]
     args += ["--jobs", "2", "--episodes", "2", "--no-progress"]
-    for section, values in {**TINY, "finetune": {**TINY["finetune"], "iterations": 4000}}.items():
+    tiny = {**TINY, "finetune": {**TINY["finetune"], "iterations": iterations}}
+    for section, values in tiny.items():
         for key, value in values.items():
             text = json.dumps(value) if isinstance(value, str) else str(value).lower()
             args += ["--set", f"{section}.{key}={text}"]
-    env = {**os.environ, "GIT_PYTHON_REFRESH": "quiet"}
-    proc = subprocess.Popen(
-        [*amuled, *args],
+    return args
+
+
+def _start(args: list[str]) -> subprocess.Popen:
+    return subprocess.Popen(
+        [*AMULED, *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
-        env=env,
+        env=ENV,
         # a terminal's foreground job takes Ctrl-C; a job started in the background of a
         # non-interactive shell (as CI runners may start pytest) inherits SIGINT ignored
         preexec_fn=_default_sigint,
     )
-    deadline = time.monotonic() + 120
-    tunes = [run_dir / "ablate-aggregation" / n for n in ("finetune-agg-mean", "finetune-agg-max")]
-    # both fine-tunes are iterating: each has written its first periodic checkpoint
-    # (a variant folder exists earlier, from config.json, while its worker still sets up)
-    while time.monotonic() < deadline and not all((t / "model_last.pt").exists() for t in tunes):
-        time.sleep(0.2)
+
+
+def _wait_for(paths: list[Path], proc: subprocess.Popen, timeout: float = 120) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and not all(p.exists() for p in paths):
+        time.sleep(0.1)
     assert proc.poll() is None, proc.communicate()
-    time.sleep(1.0)
+    assert all(p.exists() for p in paths), [p for p in paths if not p.exists()]
+
+
+def _ctrl_c(proc: subprocess.Popen) -> str:
+    """SIGINT to the whole process group, as a terminal's Ctrl-C; returns stderr."""
     os.killpg(proc.pid, signal.SIGINT)
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, (out, err)
     assert "resume with: amuled ablate findmilk --what aggregation" in err
     assert err.count("resume with:") == 1  # once, from the parent
+    assert "Traceback" not in err, err
+    return err
+
+
+def test_parallel_stops_on_ctrl_c_with_checkpoints_then_resumes(tmp_path):
+    """A real SIGINT to the whole process group, as a terminal's Ctrl-C sends it."""
+    run_dir = tmp_path / "run"
+    args = _ablate_args(run_dir, 4000)
+    proc = _start(args)
+    tunes = [run_dir / "ablate-aggregation" / n for n in ("finetune-agg-mean", "finetune-agg-max")]
+    # both fine-tunes are iterating: each has written its first periodic checkpoint
+    # (a variant folder exists earlier, from config.json, while its worker still sets up)
+    _wait_for([t / "model_last.pt" for t in tunes], proc)
+    time.sleep(1.0)
+    _ctrl_c(proc)
     stopped = [checkpoint_state(t / "model_last.pt") for t in tunes]
     assert all(s is not None and not s["completed"] for s in stopped), stopped
     assert all(0 < s["iteration"] < 4000 for s in stopped)
@@ -162,17 +187,35 @@ def test_parallel_stops_on_ctrl_c_with_checkpoints_then_resumes(tmp_path):
 
     # resume, shortened to 3 iterations past the furthest stop
     last = max(s["iteration"] for s in stopped)
-    resume = [a if a != "finetune.iterations=4000" else f"finetune.iterations={last + 3}"
-              for a in args]  # fmt: skip
-    done = subprocess.run(
-        [*amuled, *resume, "--resume"], capture_output=True, text=True, env=env, timeout=300
-    )
+    resume = [*_ablate_args(run_dir, last + 3), "--resume"]
+    done = subprocess.run([*AMULED, *resume], capture_output=True, text=True, env=ENV, timeout=300)
     assert done.returncode == 0, done.stderr
     for tune, state in zip(tunes, stopped, strict=True):
         curve = json.loads((tune / "curve.json").read_text())
         assert [row["iteration"] for row in curve] == list(range(1, last + 4))
         assert checkpoint_state(tune / "model_last.pt")["iteration"] == last + 3
         assert state["iteration"] <= last
+
+
+def test_ctrl_c_while_the_workers_start_the_finetunes_then_resume(tmp_path):
+    """Ctrl-C as soon as the fine-tunes' folders appear, before either has iterated much."""
+    run_dir = tmp_path / "run"
+    proc = _start(_ablate_args(run_dir, 4000))
+    tunes = [run_dir / "ablate-aggregation" / n for n in ("finetune-agg-mean", "finetune-agg-max")]
+    _wait_for([t / "config.json" for t in tunes], proc)
+    _ctrl_c(proc)
+    # whatever a job had reached is kept (a checkpoint of an unfinished run, or nothing yet)
+    stopped = [checkpoint_state(t / "model_last.pt") for t in tunes]
+    assert all(s is None or not s["completed"] for s in stopped), stopped
+    assert checkpoint_state(run_dir / "base" / "model_last.pt")["completed"]
+
+    target = 3 + max((s["iteration"] for s in stopped if s), default=0)
+    resume = [*_ablate_args(run_dir, target), "--resume"]
+    done = subprocess.run([*AMULED, *resume], capture_output=True, text=True, env=ENV, timeout=300)
+    assert done.returncode == 0, done.stderr
+    for tune in [*tunes, run_dir / "ablate-aggregation" / "finetune-agg-vote"]:
+        curve = json.loads((tune / "curve.json").read_text())
+        assert [row["iteration"] for row in curve] == list(range(1, target + 1))
 
 
 def test_plan_ablation_reuses_the_runs_amuled_finetune_only_with_same_settings(tmp_path):
