@@ -16,8 +16,10 @@ across processes (WAL).
 Ctrl-C in parallel mode: the workers ignore SIGINT; the parent sets a stop event that every
 running job checks after each iteration, so each writes its checkpoint as it would on a
 Ctrl-C of its own; the parent then prints the resume command once and re-raises
-:class:`KeyboardInterrupt`. A failing job stops new jobs from starting; running ones finish
-(their work is kept) and the first error is raised.
+:class:`KeyboardInterrupt`. If the parent dies without a word (``kill -9``), each worker
+notices, lets its running job write its checkpoint the same way, and exits. A failing job
+stops new jobs from starting; running ones finish (their work is kept) and the first error
+is raised.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import os
 import queue
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
@@ -157,17 +160,38 @@ def _train(
 # ------------------------------------------------------------------ worker side
 _STOP: Any = None
 _PROGRESS: Any = None
+#: set when the parent process is gone (killed): the running job checkpoints and ends
+_ORPHANED = threading.Event()
+#: clear while this worker trains a job
+_IDLE = threading.Event()
 
 
 def _init_worker(stop: Any, progress: Any) -> None:
-    """Worker initializer: ignore SIGINT (the parent coordinates stops), keep the channels."""
+    """Worker initializer: ignore SIGINT (the parent coordinates stops), keep the channels.
+
+    A watcher thread ends the worker when the parent dies (``kill -9``, a crash): the
+    pool's workers would otherwise train on unattended and then wait for work forever.
+    """
     global _STOP, _PROGRESS
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _STOP, _PROGRESS = stop, progress
+    _IDLE.set()
+    threading.Thread(target=_exit_with_parent, name="parent-watch", daemon=True).start()
+
+
+def _exit_with_parent() -> None:
+    """Wait for the parent to end; let the running job write its checkpoint; exit."""
+    parent = mp.parent_process()
+    if parent is None:
+        return
+    parent.join()
+    _ORPHANED.set()
+    _IDLE.wait()  # the running job stops after its current iteration, checkpoint written
+    os._exit(1)  # not sys.exit: queue feeder threads would wait for a reader that is gone
 
 
 def _worker_train(job: TrainJob) -> Any:
-    """Train one job in a worker; report iterations, stop when the parent asks."""
+    """Train one job in a worker; report iterations, stop when the parent asks or dies."""
     pending = 0
     last_sent = time.monotonic()
 
@@ -178,16 +202,18 @@ def _worker_train(job: TrainJob) -> Any:
         if now - last_sent > 0.25:
             _PROGRESS.put((job.name, pending))
             pending, last_sent = 0, now
-        if _STOP.is_set():
+        if _STOP.is_set() or _ORPHANED.is_set():
             raise KeyboardInterrupt
 
-    if _STOP.is_set():  # queued before the stop: do not start
+    if _STOP.is_set() or _ORPHANED.is_set():  # queued before the stop: do not start
         raise KeyboardInterrupt
+    _IDLE.clear()
     try:
         return _train(job, progress=False, hint="", on_iteration=on_iteration)
     finally:
-        if pending:
+        if pending and not _ORPHANED.is_set():
             _PROGRESS.put((job.name, pending))
+        _IDLE.set()
 
 
 # ------------------------------------------------------------------ parent side

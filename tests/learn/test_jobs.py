@@ -218,6 +218,54 @@ def test_ctrl_c_while_the_workers_start_the_finetunes_then_resume(tmp_path):
         assert [row["iteration"] for row in curve] == list(range(1, target + 1))
 
 
+def _children(pid: int) -> list[int]:
+    """Process ids whose parent is ``pid`` (from /proc)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _running(pid: int) -> bool:
+    """Whether ``pid`` still runs (a zombie waiting to be reaped does not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux /proc")
+def test_workers_checkpoint_and_exit_when_the_parent_is_killed(tmp_path):
+    """A real ``kill -9`` of the parent: no worker trains on unattended or lingers."""
+    run_dir = tmp_path / "run"
+    proc = _start(_ablate_args(run_dir, 4000))
+    tunes = [run_dir / "ablate-aggregation" / n for n in ("finetune-agg-mean", "finetune-agg-max")]
+    _wait_for([t / "model_last.pt" for t in tunes], proc)
+    workers = _children(proc.pid)
+    assert len(workers) >= 2, workers  # two workers (and multiprocessing's resource tracker)
+    os.kill(proc.pid, signal.SIGKILL)
+    # the workers hold the same stdout/stderr: end of file means every one has exited
+    _out, err = proc.communicate(timeout=120)
+    assert proc.returncode == -signal.SIGKILL
+    assert not [pid for pid in workers if _running(pid)]
+    assert err.count("interrupted at iteration") == 2, err  # each running job checkpointed
+    stopped = [checkpoint_state(t / "model_last.pt") for t in tunes]
+    assert all(not s["completed"] and 100 <= s["iteration"] < 4000 for s in stopped), stopped
+
+    last = max(s["iteration"] for s in stopped)
+    resume = [*_ablate_args(run_dir, last + 3), "--resume"]
+    done = subprocess.run([*AMULED, *resume], capture_output=True, text=True, env=ENV, timeout=300)
+    assert done.returncode == 0, done.stderr
+    for tune in tunes:
+        curve = json.loads((tune / "curve.json").read_text())
+        assert [row["iteration"] for row in curve] == list(range(1, last + 4))
+
+
 def test_plan_ablation_reuses_the_runs_amuled_finetune_only_with_same_settings(tmp_path):
     run_dir = tmp_path / "run"
     run_jobs(plan_run(tiny_scenario(), run_dir, [1, 2]), describe=str)
