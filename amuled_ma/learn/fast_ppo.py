@@ -120,15 +120,19 @@ def _discarded_sample(dist: CategoricalDistribution) -> None:
     log_probs = dist.logits.detach()
     key = (tuple(log_probs.shape), log_probs.dtype, log_probs.device.type)
     same = _SAME_STREAM.get(key)
+
+    def draw() -> None:
+        torch.empty_like(log_probs, memory_format=torch.contiguous_format).exponential_()
+
     with torch.no_grad():
         if same:
-            torch.empty_like(log_probs, memory_format=torch.contiguous_format).exponential_()
+            draw()
         elif same is None and log_probs.device.type == "cpu":
             before = torch.get_rng_state()
             dist.sample()
             after = torch.get_rng_state()
             torch.set_rng_state(before)
-            torch.empty_like(log_probs, memory_format=torch.contiguous_format).exponential_()
+            draw()
             _SAME_STREAM[key] = torch.equal(torch.get_rng_state(), after)
             torch.set_rng_state(after)
         else:

@@ -190,6 +190,11 @@ def _exit_with_parent() -> None:
     os._exit(1)  # not sys.exit: queue feeder threads would wait for a reader that is gone
 
 
+def _stop_requested() -> bool:
+    """Whether this worker's job must stop: the parent asked (Ctrl-C) or is gone."""
+    return _STOP.is_set() or _ORPHANED.is_set()
+
+
 def _worker_train(job: TrainJob) -> Any:
     """Train one job in a worker; report iterations, stop when the parent asks or dies."""
     pending = 0
@@ -202,10 +207,10 @@ def _worker_train(job: TrainJob) -> Any:
         if now - last_sent > 0.25:
             _PROGRESS.put((job.name, pending))
             pending, last_sent = 0, now
-        if _STOP.is_set() or _ORPHANED.is_set():
+        if _stop_requested():
             raise KeyboardInterrupt
 
-    if _STOP.is_set() or _ORPHANED.is_set():  # queued before the stop: do not start
+    if _stop_requested():  # queued before the stop: do not start
         raise KeyboardInterrupt
     _IDLE.clear()
     try:

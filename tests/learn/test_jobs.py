@@ -169,12 +169,26 @@ def _ctrl_c(proc: subprocess.Popen) -> str:
     return err
 
 
+def _tunes(run_dir: Path, *names: str) -> list[Path]:
+    return [run_dir / "ablate-aggregation" / f"finetune-agg-{n}" for n in names]
+
+
+def _resume_to(run_dir: Path, iterations: int, tunes: list[Path]) -> None:
+    """``--resume`` the ablation to ``iterations``; each of ``tunes`` then has every one."""
+    resume = [*_ablate_args(run_dir, iterations), "--resume"]
+    done = subprocess.run([*AMULED, *resume], capture_output=True, text=True, env=ENV, timeout=300)
+    assert done.returncode == 0, done.stderr
+    for tune in tunes:
+        curve = json.loads((tune / "curve.json").read_text())
+        assert [row["iteration"] for row in curve] == list(range(1, iterations + 1))
+
+
 def test_parallel_stops_on_ctrl_c_with_checkpoints_then_resumes(tmp_path):
     """A real SIGINT to the whole process group, as a terminal's Ctrl-C sends it."""
     run_dir = tmp_path / "run"
     args = _ablate_args(run_dir, 4000)
     proc = _start(args)
-    tunes = [run_dir / "ablate-aggregation" / n for n in ("finetune-agg-mean", "finetune-agg-max")]
+    tunes = _tunes(run_dir, "mean", "max")
     # both fine-tunes are iterating: each has written its first periodic checkpoint
     # (a variant folder exists earlier, from config.json, while its worker still sets up)
     _wait_for([t / "model_last.pt" for t in tunes], proc)
@@ -183,25 +197,20 @@ def test_parallel_stops_on_ctrl_c_with_checkpoints_then_resumes(tmp_path):
     stopped = [checkpoint_state(t / "model_last.pt") for t in tunes]
     assert all(s is not None and not s["completed"] for s in stopped), stopped
     assert all(0 < s["iteration"] < 4000 for s in stopped)
-    assert not (run_dir / "ablate-aggregation" / "finetune-agg-vote" / "model_last.pt").exists()
+    assert not (_tunes(run_dir, "vote")[0] / "model_last.pt").exists()
 
     # resume, shortened to 3 iterations past the furthest stop
     last = max(s["iteration"] for s in stopped)
-    resume = [*_ablate_args(run_dir, last + 3), "--resume"]
-    done = subprocess.run([*AMULED, *resume], capture_output=True, text=True, env=ENV, timeout=300)
-    assert done.returncode == 0, done.stderr
-    for tune, state in zip(tunes, stopped, strict=True):
-        curve = json.loads((tune / "curve.json").read_text())
-        assert [row["iteration"] for row in curve] == list(range(1, last + 4))
+    _resume_to(run_dir, last + 3, tunes)
+    for tune in tunes:
         assert checkpoint_state(tune / "model_last.pt")["iteration"] == last + 3
-        assert state["iteration"] <= last
 
 
 def test_ctrl_c_while_the_workers_start_the_finetunes_then_resume(tmp_path):
     """Ctrl-C as soon as the fine-tunes' folders appear, before either has iterated much."""
     run_dir = tmp_path / "run"
     proc = _start(_ablate_args(run_dir, 4000))
-    tunes = [run_dir / "ablate-aggregation" / n for n in ("finetune-agg-mean", "finetune-agg-max")]
+    tunes = _tunes(run_dir, "mean", "max")
     _wait_for([t / "config.json" for t in tunes], proc)
     _ctrl_c(proc)
     # whatever a job had reached is kept (a checkpoint of an unfinished run, or nothing yet)
@@ -210,12 +219,7 @@ def test_ctrl_c_while_the_workers_start_the_finetunes_then_resume(tmp_path):
     assert checkpoint_state(run_dir / "base" / "model_last.pt")["completed"]
 
     target = 3 + max((s["iteration"] for s in stopped if s), default=0)
-    resume = [*_ablate_args(run_dir, target), "--resume"]
-    done = subprocess.run([*AMULED, *resume], capture_output=True, text=True, env=ENV, timeout=300)
-    assert done.returncode == 0, done.stderr
-    for tune in [*tunes, run_dir / "ablate-aggregation" / "finetune-agg-vote"]:
-        curve = json.loads((tune / "curve.json").read_text())
-        assert [row["iteration"] for row in curve] == list(range(1, target + 1))
+    _resume_to(run_dir, target, _tunes(run_dir, "mean", "max", "vote"))
 
 
 def _children(pid: int) -> list[int]:
@@ -251,7 +255,7 @@ def test_workers_checkpoint_and_exit_when_the_parent_is_killed(tmp_path):
     """A real ``kill -9`` of the parent: no worker trains on unattended or lingers."""
     run_dir = tmp_path / "run"
     proc = _start(_ablate_args(run_dir, 4000))
-    tunes = [run_dir / "ablate-aggregation" / n for n in ("finetune-agg-mean", "finetune-agg-max")]
+    tunes = _tunes(run_dir, "mean", "max")
     _wait_for([t / "model_last.pt" for t in tunes], proc)
     workers = _children(proc.pid)
     assert len(workers) >= 2, workers  # two workers (and multiprocessing's resource tracker)
@@ -269,13 +273,7 @@ def test_workers_checkpoint_and_exit_when_the_parent_is_killed(tmp_path):
     stopped = [checkpoint_state(t / "model_last.pt") for t in tunes]
     assert all(not s["completed"] and 100 <= s["iteration"] < 4000 for s in stopped), stopped
 
-    last = max(s["iteration"] for s in stopped)
-    resume = [*_ablate_args(run_dir, last + 3), "--resume"]
-    done = subprocess.run([*AMULED, *resume], capture_output=True, text=True, env=ENV, timeout=300)
-    assert done.returncode == 0, done.stderr
-    for tune in tunes:
-        curve = json.loads((tune / "curve.json").read_text())
-        assert [row["iteration"] for row in curve] == list(range(1, last + 4))
+    _resume_to(run_dir, max(s["iteration"] for s in stopped) + 3, tunes)
 
 
 def test_plan_ablation_reuses_the_runs_amuled_finetune_only_with_same_settings(tmp_path):
