@@ -8,18 +8,35 @@ so adding a command never touches this file.
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import pkgutil
+import signal
 import sys
+import traceback
 from collections.abc import Sequence
+from typing import NoReturn
 
 from amuled_ma import __version__, commands
-from amuled_ma.errors import AmuledError
+from amuled_ma.errors import AmuledError, Terminated
+
+#: Exit status of a run stopped by SIGTERM (128 + 15, as a shell reports it).
+EXIT_TERMINATED = 128 + signal.SIGTERM
+#: Exit status of a run stopped by Ctrl-C (128 + 2).
+EXIT_INTERRUPTED = 128 + signal.SIGINT
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line: what, where and the fix."""
+
+    def error(self, message: str) -> NoReturn:
+        """Print ``amuled: error: ...`` naming the command's ``--help``, exit with 2."""
+        self.exit(2, f"amuled: error: {message} (see '{self.prog} --help')\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
     """Build the top-level parser with every discovered command."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="amuled",
         description=(
             "Ethical fine-tuning of RL agents with fused feedback from LLM moral clusters "
@@ -27,6 +44,11 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     parser.add_argument("--version", action="version", version=f"amuled-ma {__version__}")
+    parser.add_argument(
+        "--debug",
+        action="store_true",
+        help="on an error, print the Python traceback as well as the one-line message",
+    )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
@@ -36,28 +58,76 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def describe_os_error(error: OSError) -> str:
+    """One line for a failed file or network operation: what, which path, and the fix."""
+    where = error.filename if error.filename is not None else ""
+    if error.filename2 is not None:
+        where = f"{where} -> {error.filename2}"
+    what = error.strerror or str(error)
+    fixes = {
+        errno.ENOSPC: "free some disk space, or write into another --run-dir",
+        errno.EDQUOT: "free some disk space, or write into another --run-dir",
+        errno.EROFS: "the file system is read-only: write into another --run-dir",
+        errno.EACCES: "check the permissions, or write into another --run-dir",
+        errno.EPERM: "check the permissions, or write into another --run-dir",
+        errno.ENOENT: "check the path",
+        errno.EISDIR: "give a file, not a folder",
+        errno.ENOTDIR: "a part of the path is a file, not a folder",
+    }
+    fix = fixes.get(error.errno or -1, "check the path")
+    return f"{where}: {what}; {fix}" if where else f"{what}; {fix}"
+
+
+def _raise_terminated(signum: int, _frame: object) -> None:
+    raise Terminated(signum)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``amuled`` command line and return its exit code.
+
+    Every expected failure (our errors, a file that cannot be read or written, a file that
+    is not UTF-8 text) prints one line ``amuled: error: <what, where, fix>``; ``--debug``
+    adds the traceback. SIGTERM is handled like Ctrl-C: a training job writes its
+    checkpoint and the command exits with 143 (Ctrl-C: 130).
 
     Args:
         argv: Arguments without the program name; ``None`` reads ``sys.argv``.
 
     Returns:
-        0 on success, 1 on a reported error, 130 when interrupted.
+        0 on success, 1 on a reported error, 2 on a usage error, 130 when interrupted,
+        143 when terminated.
     """
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "handler", None):
         parser.print_help()
         return 2
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         return int(args.handler(args) or 0)
-    except AmuledError as error:
-        print(f"amuled: error: {error}", file=sys.stderr)
-        return 1
+    except Terminated:
+        print("amuled: terminated (SIGTERM)", file=sys.stderr)
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
         print("amuled: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
+    except (AmuledError, OSError, UnicodeDecodeError) as error:
+        if args.debug:
+            traceback.print_exc()
+        if isinstance(error, AmuledError):
+            text = str(error)
+        elif isinstance(error, UnicodeDecodeError):
+            text = (
+                f"a file is not UTF-8 text ({error.reason} at byte {error.start}); save it as "
+                "UTF-8 (run with --debug to see which read failed)"
+            )
+        else:
+            text = describe_os_error(error)
+        print(f"amuled: error: {text}", file=sys.stderr)
+        return 1
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        sys.stdout.flush()
 
 
 if __name__ == "__main__":

@@ -37,3 +37,11 @@ class ReplayMiss(AmuledError, KeyError):
 
 class CheckpointError(AmuledError, FileNotFoundError):
     """A checkpoint needed by a command is missing or unreadable."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the program runs so the Ctrl-C clean-up (checkpoints) runs too.
+
+    A subclass of :class:`KeyboardInterrupt`: every ``except KeyboardInterrupt`` that writes
+    a checkpoint handles it the same way; the command line then exits with 143.
+    """

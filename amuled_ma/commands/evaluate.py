@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 
 from amuled_ma.commands import _experiment as common
+from amuled_ma.run_lock import run_folder_lock
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -45,21 +46,22 @@ def evaluate_command(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     run_dir = Path(args.run_dir)
     scenario = common.scenario_of_run(run_dir)
-    extra = None
-    if run_dir.name.startswith("ablate-"):  # the run's folders the ablation shares
-        extra = [run_dir.parent / name for name in common.shared_folders(run_dir)]
-    results = evaluate_run(
-        run_dir,
-        scenario,
-        episodes=args.episodes,
-        modes=args.modes,
-        variants=args.variants,
-        progress=not args.no_progress,
-        extra_dirs=extra,
-    )
-    report = write_report(run_dir, results)
-    common.say(
-        f"evaluate {run_dir}: {len(results['variants'])} variants x {results['episodes']} "
-        f"episodes in {time.perf_counter() - start:.1f} s; report {report}"
-    )
-    return 0
+    with run_folder_lock(run_dir):
+        extra = None
+        if run_dir.name.startswith("ablate-"):  # the run's folders the ablation shares
+            extra = [run_dir.parent / name for name in common.shared_folders(run_dir)]
+        results = evaluate_run(
+            run_dir,
+            scenario,
+            episodes=args.episodes,
+            modes=args.modes,
+            variants=args.variants,
+            progress=not args.no_progress,
+            extra_dirs=extra,
+        )
+        report = write_report(run_dir, results)
+        common.say(
+            f"evaluate {run_dir}: {len(results['variants'])} variants x {results['episodes']} "
+            f"episodes in {time.perf_counter() - start:.1f} s; report {report}"
+        )
+        return 0

@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 
 from amuled_ma.commands import _experiment as common
+from amuled_ma.run_lock import run_folder_lock
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -93,21 +94,26 @@ def run_command(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     scenario = common.load(args)
     run_dir = common.run_dir_of(args, scenario)
-    seeds = training_seeds(scenario, args.seed, args.seeds)
-    hint = common.command_line("run", args, run_dir)
-    jobs = plan_run(scenario, run_dir, seeds, resume=args.resume, force=args.force)
-    write_config(run_dir, scenario, {"variants": list(MAIN_VARIANTS), "seeds": seeds})
-    common.say(f"run {scenario.name} -> {run_dir}")
-    _train_all(jobs, args, hint)
-    results = evaluate_run(run_dir, scenario, episodes=args.episodes, progress=not args.no_progress)
-    report = write_report(run_dir, results, title=f"{scenario.name}: the paper's main comparison")
-    greedy = {k: v.get("greedy", {}).get("metrics", {}) for k, v in results["variants"].items()}
-    common.say(_summary_line(scenario.task.name, greedy))
-    common.say(
-        f"run {scenario.name}: {len(MAIN_VARIANTS)} variants x {len(seeds)} seed(s) done in "
-        f"{time.perf_counter() - start:.1f} s; report {report}"
-    )
-    return 0
+    with run_folder_lock(run_dir):
+        seeds = training_seeds(scenario, args.seed, args.seeds)
+        hint = common.command_line("run", args, run_dir)
+        jobs = plan_run(scenario, run_dir, seeds, resume=args.resume, force=args.force)
+        write_config(run_dir, scenario, {"variants": list(MAIN_VARIANTS), "seeds": seeds})
+        common.say(f"run {scenario.name} -> {run_dir}")
+        _train_all(jobs, args, hint)
+        results = evaluate_run(
+            run_dir, scenario, episodes=args.episodes, progress=not args.no_progress
+        )
+        report = write_report(
+            run_dir, results, title=f"{scenario.name}: the paper's main comparison"
+        )
+        greedy = {k: v.get("greedy", {}).get("metrics", {}) for k, v in results["variants"].items()}
+        common.say(_summary_line(scenario.task.name, greedy))
+        common.say(
+            f"run {scenario.name}: {len(MAIN_VARIANTS)} variants x {len(seeds)} seed(s) done in "
+            f"{time.perf_counter() - start:.1f} s; report {report}"
+        )
+        return 0
 
 
 def _summary_line(task: str, greedy: dict) -> str:
@@ -136,36 +142,39 @@ def ablate_command(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     scenario = common.load(args)
     run_dir = common.run_dir_of(args, scenario)
-    out = run_dir / f"ablate-{args.what}"
-    seeds = training_seeds(scenario, args.seed, args.seeds)
-    hint = common.command_line("ablate", args, run_dir, "--what", args.what)
-    variants = [folder for _, _, folder in ablation_variants(args.what, scenario)]
-    jobs = plan_ablation(args.what, scenario, run_dir, seeds, resume=args.resume, force=args.force)
-    # the run's folders an ablation evaluates with its own: the bases, and fine-tunes the
-    # run already finished with the same settings (not trained again)
-    shared = [job.out_dir.name for job in jobs if job.out_dir.parent == run_dir]
-    write_config(
-        out,
-        scenario,
-        {"ablation": args.what, "variants": variants, "seeds": seeds, "shared": shared},
-    )
-    common.say(
-        f"ablate {scenario.name} --what {args.what}: {len(variants)} fine-tunes x "
-        f"{len(seeds)} seed(s) -> {out}"
-    )
-    _train_all(jobs, args, hint)
-    results = evaluate_run(
-        out,
-        scenario,
-        episodes=args.episodes,
-        progress=not args.no_progress,
-        extra_dirs=[run_dir / name for name in shared],
-    )
-    report = write_report(out, results, title=f"{scenario.name}: ablation of {args.what}")
-    plot_bars(results, "greedy", Path(out) / f"ablation_{args.what}.png")
-    common.say(
-        f"ablate {scenario.name} --what {args.what}: {len(variants)} variants x "
-        f"{len(seeds)} seed(s) done in "
-        f"{time.perf_counter() - start:.1f} s; report {report}"
-    )
-    return 0
+    with run_folder_lock(run_dir):
+        out = run_dir / f"ablate-{args.what}"
+        seeds = training_seeds(scenario, args.seed, args.seeds)
+        hint = common.command_line("ablate", args, run_dir, "--what", args.what)
+        variants = [folder for _, _, folder in ablation_variants(args.what, scenario)]
+        jobs = plan_ablation(
+            args.what, scenario, run_dir, seeds, resume=args.resume, force=args.force
+        )
+        # the run's folders an ablation evaluates with its own: the bases, and fine-tunes the
+        # run already finished with the same settings (not trained again)
+        shared = [job.out_dir.name for job in jobs if job.out_dir.parent == run_dir]
+        write_config(
+            out,
+            scenario,
+            {"ablation": args.what, "variants": variants, "seeds": seeds, "shared": shared},
+        )
+        common.say(
+            f"ablate {scenario.name} --what {args.what}: {len(variants)} fine-tunes x "
+            f"{len(seeds)} seed(s) -> {out}"
+        )
+        _train_all(jobs, args, hint)
+        results = evaluate_run(
+            out,
+            scenario,
+            episodes=args.episodes,
+            progress=not args.no_progress,
+            extra_dirs=[run_dir / name for name in shared],
+        )
+        report = write_report(out, results, title=f"{scenario.name}: ablation of {args.what}")
+        plot_bars(results, "greedy", Path(out) / f"ablation_{args.what}.png")
+        common.say(
+            f"ablate {scenario.name} --what {args.what}: {len(variants)} variants x "
+            f"{len(seeds)} seed(s) done in "
+            f"{time.perf_counter() - start:.1f} s; report {report}"
+        )
+        return 0

@@ -6,6 +6,7 @@ import argparse
 import time
 
 from amuled_ma.commands import _experiment as common
+from amuled_ma.run_lock import run_folder_lock
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -48,27 +49,30 @@ def train_command(args: argparse.Namespace) -> int:
 
     scenario = common.load(args)
     run_dir = common.run_dir_of(args, scenario)
-    hint = common.command_line("train", args, run_dir, "--variant", args.variant)
-    write_config(run_dir, scenario, {"variant": args.variant})
-    start = time.perf_counter()
-    job = common.train_job(scenario, run_dir, args.variant, args, hint)
-    common.say(
-        f"train {scenario.name}/{args.variant}: done in {time.perf_counter() - start:.1f} s; "
-        f"checkpoint {job.out_dir / 'model_last.pt'}"
-    )
-    return 0
+    with run_folder_lock(run_dir):
+        hint = common.command_line("train", args, run_dir, "--variant", args.variant)
+        write_config(run_dir, scenario, {"variant": args.variant})
+        start = time.perf_counter()
+        job = common.train_job(scenario, run_dir, args.variant, args, hint)
+        common.say(
+            f"train {scenario.name}/{args.variant}: done in {time.perf_counter() - start:.1f} s; "
+            f"checkpoint {job.out_dir / 'model_last.pt'}"
+        )
+        return 0
 
 
 def finetune_command(args: argparse.Namespace) -> int:
     """Run ``amuled finetune``."""
     scenario = common.load(args)
     run_dir = common.run_dir_of(args, scenario)
-    variant = f"finetune:{args.feedback}"
-    hint = common.command_line("finetune", args, run_dir, "--feedback", args.feedback)
-    start = time.perf_counter()
-    job = common.train_job(scenario, run_dir, variant, args, hint)
-    common.say(
-        f"finetune {scenario.name}/{args.feedback}: done in {time.perf_counter() - start:.1f} s; "
-        f"checkpoint {job.out_dir / 'model_last.pt'}"
-    )
-    return 0
+    with run_folder_lock(run_dir):
+        variant = f"finetune:{args.feedback}"
+        hint = common.command_line("finetune", args, run_dir, "--feedback", args.feedback)
+        start = time.perf_counter()
+        job = common.train_job(scenario, run_dir, variant, args, hint)
+        common.say(
+            f"finetune {scenario.name}/{args.feedback}: done in "
+            f"{time.perf_counter() - start:.1f} s; "
+            f"checkpoint {job.out_dir / 'model_last.pt'}"
+        )
+        return 0

@@ -19,6 +19,8 @@ fine-tunes, ``feedback.json`` (fused-belief diagnostics).
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import json
 import re
 import sys
@@ -31,6 +33,7 @@ from typing import Any
 import torch
 
 from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError
+from amuled_ma.learn.checkpoints import checkpoint_infos
 from amuled_ma.learn.feedback import MORAL_AGENT, make_feedback, parse_variant
 from amuled_ma.learn.jobs import TrainJob
 from amuled_ma.learn.trainer import LAST, Trainer, TrainOutcome
@@ -86,12 +89,7 @@ def variant_dir_name(variant: str) -> str:
 
 def checkpoint_state(path: Path) -> dict[str, Any] | None:
     """Return a checkpoint's ``infos`` (None when there is no checkpoint)."""
-    if not path.is_file():
-        return None
-    try:
-        return torch.load(path, map_location="cpu", weights_only=False).get("infos") or {}
-    except Exception as error:
-        raise CheckpointError(f"cannot read checkpoint {path}: {error}") from error
+    return checkpoint_infos(path)
 
 
 @dataclass
@@ -165,7 +163,31 @@ def training_config(
         out[section] = {k: v for k, v in data[section].items() if k not in skip}
     if out.get("feedback", {}).get("recording"):
         out["feedback"]["recording"] = Path(out["feedback"]["recording"]).name
+        if out["feedback"].get("source") == "replay":
+            out["inputs"] = {"recording_sha256": _file_sha256(scenario.recording_path())}
     return json.loads(json.dumps(out, default=str))
+
+
+@functools.lru_cache(maxsize=64)
+def _sha256_of(path: str, size: int, mtime_ns: int) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _file_sha256(path: Path) -> str | None:
+    """SHA-256 of a file's content (memoised while its size and mtime stay), None if absent.
+
+    The identity of an input such as a recording: a file replaced under the same name has
+    another hash, and a resume compares it (:func:`check_training_config`).
+    """
+    try:
+        info = path.stat()
+    except OSError:
+        return None
+    return _sha256_of(str(path), info.st_size, info.st_mtime_ns)
 
 
 def _differences(saved: Any, current: Any, prefix: str = "") -> list[str]:
@@ -216,6 +238,8 @@ def check_training_config(out_dir: Path, training: dict[str, Any]) -> None:
     saved = saved_training_config(out_dir)
     if saved is None:
         return
+    if "inputs" not in saved:  # saved before inputs were recorded: compare the settings only
+        training = {k: v for k, v in training.items() if k != "inputs"}
     diffs = _differences(
         {k: v for k, v in saved.items() if k != "iterations"},
         {k: v for k, v in training.items() if k != "iterations"},
@@ -223,7 +247,7 @@ def check_training_config(out_dir: Path, training: dict[str, Any]) -> None:
     if diffs:
         shown = "; ".join(diffs[:8]) + (f"; and {len(diffs) - 8} more" if len(diffs) > 8 else "")
         raise AmuledError(
-            f"{out_dir} was trained with other settings than now (saved -> now: {shown}; "
+            f"{out_dir} was trained with other settings or inputs than now (saved -> now: {shown}; "
             f"saved in {Path(out_dir) / 'config.json'}); retrain it with --force, or keep it "
             "and train into another --run-dir"
         )

@@ -13,13 +13,13 @@ Every job is single-threaded (``torch.set_num_threads(1)``), so ``workers`` = CP
 fills the machine. Fine-tunes of one run share the SQLite belief store, which is safe
 across processes (WAL).
 
-Ctrl-C in parallel mode: the workers ignore SIGINT; the parent sets a stop event that every
-running job checks after each iteration, so each writes its checkpoint as it would on a
-Ctrl-C of its own; the parent then prints the resume command once and re-raises
-:class:`KeyboardInterrupt`. If the parent dies without a word (``kill -9``), each worker
-notices, lets its running job write its checkpoint the same way, and exits. A failing job
-stops new jobs from starting; running ones finish (their work is kept) and the first error
-is raised.
+Ctrl-C (or SIGTERM) in parallel mode: the workers ignore SIGINT and SIGTERM; the parent
+sets a stop event that every running job checks after each iteration, so each writes its
+checkpoint as it would on a Ctrl-C of its own; the parent then prints the resume command
+once and re-raises :class:`KeyboardInterrupt`. If the parent dies without a word
+(``kill -9``), each worker notices, lets its running job write its checkpoint the same
+way, and exits. A failing job stops new jobs from starting; running ones finish (their work is
+kept) and the first error is raised.
 """
 
 from __future__ import annotations
@@ -167,13 +167,14 @@ _IDLE = threading.Event()
 
 
 def _init_worker(stop: Any, progress: Any) -> None:
-    """Worker initializer: ignore SIGINT (the parent coordinates stops), keep the channels.
+    """Worker initializer: ignore SIGINT and SIGTERM (the parent coordinates stops).
 
     A watcher thread ends the worker when the parent dies (``kill -9``, a crash): the
     pool's workers would otherwise train on unattended and then wait for work forever.
     """
     global _STOP, _PROGRESS
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _STOP, _PROGRESS = stop, progress
     _IDLE.set()
     threading.Thread(target=_exit_with_parent, name="parent-watch", daemon=True).start()
@@ -362,13 +363,13 @@ def _run_parallel(
                     continue
                 done[job.name] = result
                 bar.write(describe(result))
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as signal_stop:  # Ctrl-C, or SIGTERM (errors.Terminated)
         stop.set()
         bar.write("stopping: every running job writes its checkpoint ...", file=sys.stderr)
         for future in running:
             future.cancel()
         wait(list(running))  # each running job ends with KeyboardInterrupt after saving
-        failure = KeyboardInterrupt()
+        failure = signal_stop
     finally:
         executor.shutdown(wait=True, cancel_futures=True)
         drain()

@@ -41,8 +41,9 @@ os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
 from rsl_rl.runners import OnPolicyRunner
 
-from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError
+from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError, Terminated
 from amuled_ma.learn import fast_ppo
+from amuled_ma.learn.checkpoints import TRAINER_KEYS, read_checkpoint
 from amuled_ma.learn.config import rsl_rl_config
 from amuled_ma.learn.distribution import orthogonal_init
 from amuled_ma.learn.fast_ppo import ppo_update
@@ -252,11 +253,26 @@ class Trainer:
             self.base_actor = self._frozen_base()
 
     # ----------------------------------------------------------------- checkpoints
-    def _load_resume(self, path: Path) -> None:
+    def _load_state(self, path: Path, load_cfg: dict | None, what: str) -> dict:
+        """Load a checkpoint safely (weights only) into rsl-rl's PPO via its public ``load``.
+
+        ``OnPolicyRunner.load`` unpickles with ``weights_only=False``; we read the file with
+        :func:`read_checkpoint` and do the runner's two steps ourselves.
+        """
+        state = read_checkpoint(path, need=TRAINER_KEYS)
         try:
-            infos = self.runner.load(str(path), map_location="cpu") or {}
-        except Exception as error:  # torch raises many types for a bad file
-            raise CheckpointError(f"cannot load checkpoint {path}: {error}") from error
+            load_iteration = self.alg.load(state, load_cfg, True)
+        except (RuntimeError, KeyError, ValueError) as error:
+            raise CheckpointError(
+                f"cannot load {what} {path} into the scenario's networks ({error}); was it "
+                "trained with other [ppo] hidden dims or another task? Retrain it with --force"
+            ) from error
+        if load_iteration:
+            self.runner.current_learning_iteration = int(state["iter"])
+        return state
+
+    def _load_resume(self, path: Path) -> None:
+        infos = self._load_state(path, None, "checkpoint").get("infos") or {}
         self.curve = list(infos.get("curve", []))
         self.wall_offset = float(infos.get("wall_s", 0.0))
         if "torch_rng" in infos:
@@ -265,21 +281,13 @@ class Trainer:
     def _init_from_base(self) -> None:
         assert self.base_checkpoint is not None
         load_cfg = {"actor": True, "critic": not self.scenario.finetune.reinit_critic}
-        try:
-            _quiet(
-                lambda: self.runner.load(
-                    str(self.base_checkpoint), load_cfg=load_cfg, map_location="cpu"
-                )
-            )
-        except Exception as error:
-            raise CheckpointError(
-                f"cannot load base checkpoint {self.base_checkpoint}: {error}"
-            ) from error
+        self._load_state(self.base_checkpoint, load_cfg, "base checkpoint")
         self.runner.current_learning_iteration = 0
 
     def _frozen_base(self) -> torch.nn.Module:
         actor = copy.deepcopy(self.alg.get_policy())
-        state = torch.load(self.base_checkpoint, map_location="cpu", weights_only=False)
+        assert self.base_checkpoint is not None
+        state = read_checkpoint(self.base_checkpoint)
         actor.load_state_dict(state["actor_state_dict"])
         actor.eval()
         for p in actor.parameters():
@@ -459,7 +467,13 @@ class Trainer:
             # Ctrl-C, or a belief backend that stayed down after its retries: keep the work.
             bar.close()
             path = self.save(self.out_dir / LAST, completed=False)
-            why = "interrupted" if isinstance(stop, KeyboardInterrupt) else "stopped"
+            why = (
+                "terminated (SIGTERM)"
+                if isinstance(stop, Terminated)
+                else "interrupted"
+                if isinstance(stop, KeyboardInterrupt)
+                else "stopped"
+            )
             print(
                 f"\n{why} at iteration {self.runner.current_learning_iteration}/"
                 f"{self.total_iterations}; checkpoint written to {path}",
@@ -531,22 +545,23 @@ def load_policy(checkpoint: Path, scenario: Scenario) -> torch.nn.Module:
     from rsl_rl.models import MLPModel
     from tensordict import TensorDict
 
-    if not Path(checkpoint).is_file():
-        raise CheckpointError(f"checkpoint not found: {checkpoint}")
-    try:
-        state = torch.load(checkpoint, map_location="cpu", weights_only=False)
-    except Exception as error:
-        raise CheckpointError(f"cannot read checkpoint {checkpoint}: {error}") from error
+    state = read_checkpoint(checkpoint)
     infos = state.get("infos") or {}
     weights = state["actor_state_dict"]
-    obs_dim = (
-        infos.get("obs_dim") or next(iter(v for k, v in weights.items() if "weight" in k)).shape[1]
-    )
-    num_actions = infos.get("num_actions") or list(weights.values())[-1].shape[0]
-    cfg = rsl_rl_config(scenario.ppo, num_steps_per_env=1)["actor"]
-    cfg.pop("class_name")
-    obs = TensorDict({OBS_GROUP: torch.zeros(1, obs_dim)}, batch_size=[1])
-    actor = MLPModel(obs, {"actor": [OBS_GROUP]}, "actor", num_actions, **cfg)
-    actor.load_state_dict(weights)
+    try:
+        obs_dim = (
+            infos.get("obs_dim") or next(v for k, v in weights.items() if "weight" in k).shape[1]
+        )
+        num_actions = infos.get("num_actions") or list(weights.values())[-1].shape[0]
+        cfg = rsl_rl_config(scenario.ppo, num_steps_per_env=1)["actor"]
+        cfg.pop("class_name")
+        obs = TensorDict({OBS_GROUP: torch.zeros(1, obs_dim)}, batch_size=[1])
+        actor = MLPModel(obs, {"actor": [OBS_GROUP]}, "actor", num_actions, **cfg)
+        actor.load_state_dict(weights)
+    except (AttributeError, IndexError, RuntimeError, StopIteration, TypeError) as error:
+        raise CheckpointError(
+            f"checkpoint {checkpoint}: its actor does not fit the scenario's network ({error}); "
+            "evaluate it with the scenario it was trained on, or retrain it with --force"
+        ) from error
     actor.eval()
     return actor

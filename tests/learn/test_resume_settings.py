@@ -114,3 +114,39 @@ def test_unreadable_saved_settings_name_the_file(tmp_path):
     with pytest.raises(AmuledError, match=f"{config}: not a readable config .*--force"):
         train_variant(sc, run_dir, "base", resume=True)
     assert not finished_with(run_dir / "base", training_config(sc, "base"))
+
+
+def test_resume_refuses_a_recording_replaced_under_the_same_name(tmp_path, recordings_dir):
+    """Same file name, new content: the resume names the recording's changed SHA-256."""
+    import hashlib
+
+    recording = tmp_path / "findmilk-gpt-4o-mini.json"
+    data = json.loads((recordings_dir / recording.name).read_text())
+    recording.write_text(json.dumps(data))
+    sc = tiny().replace("feedback", source="replay", recording=str(recording))
+    run_dir = tmp_path / "run"
+    train_variant(sc, run_dir, "base")
+    train_variant(sc, run_dir, "finetune:amuled")
+    tune = run_dir / "finetune-amuled"
+    old = hashlib.sha256(recording.read_bytes()).hexdigest()
+    assert json.loads((tune / "config.json").read_text())["training"]["inputs"] == {
+        "recording_sha256": old
+    }
+    before = _checkpoint_bytes(tune)
+
+    # another LLM's answer for the first state, same file name
+    data["states"][0]["beliefs"]["care"] = [0.25, 0.25, 0.25, 0.25]
+    recording.write_text(json.dumps(data))
+    new = hashlib.sha256(recording.read_bytes()).hexdigest()
+    longer = sc.replace("finetune", iterations=5)
+    with pytest.raises(AmuledError) as err:
+        train_variant(longer, run_dir, "finetune:amuled", resume=True)
+    assert f"inputs.recording_sha256: {old!r} -> {new!r}" in str(err.value)
+    assert "--force" in str(err.value)
+    assert _checkpoint_bytes(tune) == before
+
+    # the original content back: the resume continues
+    data["states"][0]["beliefs"]["care"] = [0.1, 0.0, 0.0, 0.9]
+    recording.write_text(json.dumps(data))
+    train_variant(longer, run_dir, "finetune:amuled", resume=True)
+    assert checkpoint_state(tune / "model_last.pt")["iteration"] == 5

@@ -1,0 +1,116 @@
+"""One writer per run folder: an advisory ``fcntl.flock`` lock held while a command writes.
+
+Two ``amuled`` commands writing one run folder at once interleave their checkpoints and
+``config.json`` files (a run's checkpoint ends up under the other run's settings). Every
+command that writes into a run folder (``train``, ``finetune``, ``run``, ``ablate``,
+``evaluate``, ``demo``) holds :func:`run_folder_lock` on it for its whole life; a second
+writer fails at once with the holder's pid and command line.
+
+Why ``fcntl.flock`` (standard library) rather than a lock library such as ``filelock``:
+the kernel releases the lock when the holder dies, even on ``kill -9``, so there is no
+stale lock to clean up; and we want the holder's pid and command in the message, which
+``filelock`` does not record. The lock is advisory and local to one machine's kernel (it
+does not protect a folder on a network file system written from two machines). Within one
+process the lock is re-entrant, so a command may take it again for a folder it already
+holds; worker processes started by a command do not take it (their parent holds it).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import os
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+from amuled_ma.errors import AmuledError
+
+#: Name of the lock file inside a run folder.
+LOCK_NAME = ".amuled.lock"
+
+#: Folders this process holds, with how many nested holds each has, and their open files.
+_HELD: dict[Path, tuple[int, int]] = {}
+
+
+class RunFolderBusy(AmuledError, RuntimeError):
+    """Another process is writing into the run folder."""
+
+
+def _holder(fd: int) -> str:
+    """Describe the lock's current holder from the file's content."""
+    try:
+        os.lseek(fd, 0, os.SEEK_SET)
+        data = json.loads(os.read(fd, 65536).decode("utf-8") or "{}")
+        return f"pid {data['pid']}, since {data['since']}: {data['command']}"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "a process that has not yet written its name"
+
+
+@contextlib.contextmanager
+def run_folder_lock(folder: str | Path, command: str | None = None) -> Iterator[Path]:
+    """Hold the write lock of a run folder (created if needed) for the ``with`` block.
+
+    Args:
+        folder: The run folder.
+        command: The command line recorded for other writers (default: ``sys.argv``).
+
+    Yields:
+        The lock file's path.
+
+    Raises:
+        RunFolderBusy: Another process holds the lock; the message names its pid, start
+            time and command, and what to do.
+        AmuledError: The folder cannot be created or the lock file cannot be written.
+
+    """
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise AmuledError(
+            f"cannot create the run folder {folder}: {error.strerror or error}; choose "
+            "another --run-dir (or [output].runs_dir) you can write to"
+        ) from error
+    key = folder.resolve()
+    path = key / LOCK_NAME
+    if key in _HELD:
+        fd, count = _HELD[key]
+        _HELD[key] = (fd, count + 1)
+        try:
+            yield path
+        finally:
+            fd, count = _HELD[key]
+            _HELD[key] = (fd, count - 1)
+        return
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as error:
+        raise AmuledError(
+            f"cannot write the lock file {path}: {error.strerror or error}; the run folder "
+            "must be writable (choose another --run-dir)"
+        ) from error
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise RunFolderBusy(
+                f"{folder} is being written by another amuled process ({_holder(fd)}); wait "
+                "for it to finish or stop it, or write into another --run-dir"
+            ) from None
+        record = {
+            "pid": os.getpid(),
+            "since": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "command": command or " ".join(["amuled", *sys.argv[1:]]),
+        }
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, json.dumps(record).encode("utf-8"), 0)
+        _HELD[key] = (fd, 1)
+        try:
+            yield path
+        finally:
+            del _HELD[key]
+    finally:
+        os.close(fd)  # closing the last descriptor releases the flock
