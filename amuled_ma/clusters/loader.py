@@ -21,7 +21,7 @@ import tomllib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from amuled_ma.errors import ClusterDefinitionError
 from amuled_ma.resources import prompts_dir
@@ -36,6 +36,12 @@ CREDENCE_INSTRUCTION = (
     "Using the credence confidence for moral theories, reason through what action you "
     "will take."
 )
+
+#: Largest accepted distance between 1 and the sum of a mixture's ``credences`` (absolute).
+#: Wide enough for float rounding (``0.1 + 0.2 + 0.7``) and values written to six decimals
+#: that add up to 1 (``0.333334 + 0.333333 + 0.333333``); narrow enough that ``0.999`` or
+#: ``1.2`` is an error. The paper's agents are one-hot (sum exactly 1).
+CREDENCE_SUM_TOLERANCE = 1e-6
 
 _KNOWN_FIELDS = {
     "name",
@@ -84,7 +90,8 @@ class Cluster:
         key_principle: The cluster's key principle (``kind="cluster"`` only).
         theories: The ethical theories guiding the cluster (``kind="cluster"`` only).
         credences: Credence per cluster name (``kind="mixture"`` only; ``None`` means
-            one-hot on the cluster itself for ``kind="cluster"``).
+            one-hot on the cluster itself for ``kind="cluster"``). Values are in
+            ``[0, 1]`` and sum to 1 within :data:`CREDENCE_SUM_TOLERANCE`.
         instruction: Last paragraph of the state prompt for ``kind="unprompted"``, or a
             template with ``{credences}`` overriding :data:`CREDENCE_INSTRUCTION`.
         description: Free text shown by ``amuled clusters list``.
@@ -175,15 +182,35 @@ def _credences(data: Mapping[str, Any], path: Path) -> dict[str, float]:
         raise _fail(
             path, "credences", f"missing or empty (expected a table name = value), found {raw!r}"
         )
-    out = {}
+    out: dict[str, float] = {}
+    seen: dict[str, str] = {}
     for key, value in raw.items():
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise _fail(path, f"credences.{key}", f"expected a number, found {value!r}")
-        if not math.isfinite(value) or value < 0:
-            raise _fail(path, f"credences.{key}", f"expected a finite number >= 0, found {value!r}")
+        if not math.isfinite(value) or not 0 <= value <= 1:
+            raise _fail(
+                path,
+                f"credences.{key}",
+                f"expected a finite number between 0 and 1, found {value!r}",
+            )
+        previous = seen.setdefault(_norm(key), key)
+        if previous != key:
+            raise _fail(
+                path,
+                f"credences.{key}",
+                f"expected each cluster once, found both {previous!r} and {key!r} (keys are "
+                "compared ignoring case, '_', '-' and spaces); keep one of them",
+            )
         out[key] = float(value)
-    if sum(out.values()) <= 0:
-        raise _fail(path, "credences", "all credences are 0")
+    total = math.fsum(out.values())
+    if abs(total - 1.0) > CREDENCE_SUM_TOLERANCE:
+        fix = f"divide each value by {total:.12g}" if total > 0 else "give one a value above 0"
+        raise _fail(
+            path,
+            "credences",
+            f"expected values summing to 1 (within {CREDENCE_SUM_TOLERANCE:g}), found a sum of "
+            f"{total:.12g}; fix the values so they add up to 1 ({fix})",
+        )
     return out
 
 
@@ -280,20 +307,79 @@ def default_clusters_dir() -> Path:
     return prompts_dir() / "clusters"
 
 
+class Override(NamedTuple):
+    """A cluster replaced by a file of the same name in a later directory.
+
+    Attributes:
+        name: The cluster's name in the file that won.
+        old_path: The file that was replaced.
+        new_path: The file that replaced it.
+
+    """
+
+    name: str
+    old_path: Path | None
+    new_path: Path | None
+
+
 class ClusterRegistry:
     """All known cluster agents: the shipped ones plus any extra directories.
 
-    Files in a later directory replace a shipped cluster of the same name.
+    A cluster's identity is its name compared ignoring case, ``_``, ``-`` and spaces (the
+    way :meth:`get` resolves names), so ``care`` and ``CARE`` are the same cluster:
+
+    - two such files in one directory are an error naming both;
+    - a file in a later directory replaces one of the same name in an earlier directory
+      (a user directory overriding a shipped cluster), and is listed in :attr:`overridden`.
+
+    After the overrides, no two ``kind = "cluster"`` clusters may share a credence label
+    (compared ignoring case and runs of whitespace), and each mixture's ``credences`` must
+    name ``kind = "cluster"`` clusters, each at most once.
 
     Args:
-        clusters: The clusters, in any order.
+        clusters: The clusters, earlier directories first (a later cluster of the same
+            name replaces an earlier one).
+
+    Attributes:
+        overridden: The replacements made, in loading order, for a CLI to report.
+
+    Raises:
+        ClusterDefinitionError: Two clusters of one directory share a name, two clusters
+            share a credence label, or a mixture's credences name no cluster or one
+            cluster twice.
 
     """
 
     def __init__(self, clusters: Iterable[Cluster]) -> None:
-        self._clusters: dict[str, Cluster] = {}
+        self.overridden: list[Override] = []
+        by_identity: dict[str, Cluster] = {}
         for cluster in clusters:
-            self._clusters[cluster.name] = cluster
+            identity = _norm(cluster.name)
+            old = by_identity.get(identity)
+            if old is not None and not _same_file(old.path, cluster.path):
+                if _same_folder(old.path, cluster.path):
+                    raise _fail(
+                        _where(cluster),
+                        "name",
+                        f"expected cluster names unique within one directory (compared "
+                        f"ignoring case, '_', '-' and spaces), found {cluster.name!r} here and "
+                        f"{old.name!r} in {old.path}; rename or remove one of the two files",
+                    )
+                self.overridden.append(Override(cluster.name, old.path, cluster.path))
+            by_identity[identity] = cluster
+        self._clusters: dict[str, Cluster] = {c.name: c for c in by_identity.values()}
+        labels: dict[str, Cluster] = {}
+        for cluster in self.panel():
+            other = labels.setdefault(_label_key(cluster.credence_label), cluster)
+            if other is not cluster:
+                raise _fail(
+                    _where(cluster),
+                    "credence_label",
+                    f"expected a label no other cluster uses (compared ignoring case and "
+                    f"spacing), found {cluster.credence_label!r}, already the label "
+                    f"{other.credence_label!r} of {other.name!r} in {_where(other)}; choose "
+                    "another credence_label",
+                )
         self._aliases: dict[str, str] = {}
         for cluster in self._clusters.values():
             for alias in cluster.aliases:
@@ -302,16 +388,28 @@ class ClusterRegistry:
             self._aliases[_norm(cluster.name)] = cluster.name
         for cluster in self._clusters.values():
             if cluster.kind == "mixture":
-                for key in cluster.credences or {}:
-                    target = self._resolve(key)
-                    if target is None or self._clusters[target].kind != "cluster":
-                        raise _fail(
-                            cluster.path or Path(cluster.name),
-                            f"credences.{key}",
-                            "not the name of a kind = 'cluster' file (known: "
-                            + ", ".join(c.name for c in self.panel())
-                            + ")",
-                        )
+                self._check_mixture(cluster)
+
+    def _check_mixture(self, cluster: Cluster) -> None:
+        first_key: dict[str, str] = {}
+        for key in cluster.credences or {}:
+            target = self._resolve(key)
+            if target is None or self._clusters[target].kind != "cluster":
+                raise _fail(
+                    _where(cluster),
+                    f"credences.{key}",
+                    "not the name of a kind = 'cluster' file (known: "
+                    + ", ".join(c.name for c in self.panel())
+                    + ")",
+                )
+            first = first_key.setdefault(target, key)
+            if first != key:
+                raise _fail(
+                    _where(cluster),
+                    f"credences.{key}",
+                    f"expected each cluster once, found both {first!r} and {key!r}, which "
+                    f"both name the cluster {target!r}; keep one of them",
+                )
 
     @classmethod
     def load(
@@ -320,14 +418,16 @@ class ClusterRegistry:
         """Load the shipped clusters and every ``*.toml`` of the extra directories.
 
         Args:
-            extra_dirs: User directories of extra cluster files (later ones win).
+            extra_dirs: User directories of extra cluster files (later ones win; the
+                replaced files are listed in the registry's :attr:`overridden`).
             include_default: Whether to load the shipped ``prompts/clusters`` first.
 
         Returns:
             The registry.
 
         Raises:
-            ClusterDefinitionError: A directory is missing or a file is malformed.
+            ClusterDefinitionError: A directory is missing, a file is malformed, or the
+                clusters collide (see the class docstring).
 
         """
         dirs = [default_clusters_dir()] if include_default else []
@@ -380,6 +480,22 @@ class ClusterRegistry:
 
 def _norm(name: str) -> str:
     return " ".join(name.lower().replace("_", " ").replace("-", " ").split())
+
+
+def _label_key(label: str) -> str:
+    return " ".join(label.split()).casefold()
+
+
+def _where(cluster: Cluster) -> Path:
+    return cluster.path or Path(cluster.name)
+
+
+def _same_file(a: Path | None, b: Path | None) -> bool:
+    return a is not None and b is not None and a.resolve() == b.resolve()
+
+
+def _same_folder(a: Path | None, b: Path | None) -> bool:
+    return a is not None and b is not None and a.parent.resolve() == b.parent.resolve()
 
 
 _DEFAULT: ClusterRegistry | None = None
