@@ -72,10 +72,17 @@ def list_clusters(args: argparse.Namespace) -> int:
                 "file": str(cluster.path),
             }
         )
+    overridden = [
+        {"name": o.name, "replaced": str(o.old_path), "by": str(o.new_path)}
+        for o in registry.overridden
+    ]
     if args.json:
         entry_points = {name: ep.value for name, ep in sorted(plugins.items())}
-        print(json.dumps({"clusters": rows, "agents": entry_points}, indent=2))
+        out = {"clusters": rows, "agents": entry_points, "overridden": overridden}
+        print(json.dumps(out, indent=2))
         return 0
+    for o in overridden:
+        print(f"note: {o['by']} overrides the cluster {o['name']!r} of {o['replaced']}")
     width = max(len(r["name"]) for r in rows) if rows else 4
     print(f"{'NAME':<{width}}  {'KIND':<10}  {'TITLE':<34}  FILE")
     for row in rows:

@@ -95,6 +95,16 @@ def test_user_directory_overriding_care_is_reported(tmp_path):
     assert new_path == mine
 
 
+def test_clusters_list_says_which_file_overrides_which(tmp_path, capsys):
+    from amuled_ma.cli import main
+
+    mine = write_cluster(tmp_path, "care", title="Care Ethics", order=4)
+    assert main(["clusters", "list", "--clusters-dir", str(tmp_path)]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith(f"note: {mine} overrides the cluster 'care' of ")
+    assert first.endswith("care.toml") and str(mine) != first.rsplit(" ", 1)[1]
+
+
 def test_override_in_another_case_replaces_instead_of_adding_a_sixth_cluster(tmp_path):
     mine = write_cluster(tmp_path, "CARE", title="Care Ethics", order=4)
     registry = ClusterRegistry.load([tmp_path])
