@@ -19,6 +19,10 @@ class ClusterDefinitionError(AmuledError, ValueError):
     """A moral-cluster file under ``prompts/clusters/`` is malformed."""
 
 
+class PromptError(AmuledError, ValueError):
+    """A prompt file (state template, system prompt, few-shot examples) is missing or malformed."""
+
+
 class BeliefParseError(AmuledError, ValueError):
     """An LLM reply could not be turned into a belief vector."""
 

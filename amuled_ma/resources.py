@@ -41,3 +41,36 @@ def prompts_dir() -> Path:
 def scenarios_dir() -> Path:
     """Return the shipped ``scenarios/`` directory."""
     return data_dir("scenarios")
+
+
+def read_text(path: Path, what: str, error_class: type[Exception] | None = None) -> str:
+    """Read a UTF-8 text file the user gave or the package ships, with a clear error.
+
+    Args:
+        path: The file.
+        what: What the file is, for the message (``"scenario"``, ``"cluster file"``, ...).
+        error_class: The :class:`~amuled_ma.errors.AmuledError` subclass to raise
+            (default: ``AmuledError``).
+
+    Returns:
+        Its text.
+
+    Raises:
+        AmuledError: (or ``error_class``) The file cannot be read or is not UTF-8 text;
+            the message names the file, the problem and the fix.
+
+    """
+    from amuled_ma.errors import AmuledError
+
+    fail = error_class or AmuledError
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError as error:
+        raise fail(
+            f"{path}: the {what} is not UTF-8 text ({error.reason} at byte {error.start}); "
+            "save it as UTF-8"
+        ) from error
+    except OSError as error:
+        raise fail(
+            f"{path}: cannot read the {what}: {error.strerror or error}; check the path"
+        ) from error

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from amuled_ma.bench._output import output_folder
+from amuled_ma.evaluate.report import format_stat
 
 #: Reference figures (the authors' code) and our targets, per measured figure.
 REFERENCE: dict[str, tuple[str, str]] = {
@@ -241,7 +242,7 @@ def _measure(args: argparse.Namespace, out: Path) -> list[tuple[str, str, str, s
                 rows.append(
                     (
                         f"Driving greedy {key} / episode",
-                        f"{s['mean']:.2f} ± {s['half_width']:.2f}",
+                        format_stat(s),
                         *REFERENCE[ref],
                     )
                 )

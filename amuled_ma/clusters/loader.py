@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from amuled_ma.errors import ClusterDefinitionError
-from amuled_ma.resources import prompts_dir
+from amuled_ma.resources import prompts_dir, read_text
 
 #: Kinds of cluster files.
 KINDS = ("cluster", "mixture", "unprompted")
@@ -294,9 +294,7 @@ def load_cluster(path: str | Path) -> Cluster:
     """
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except OSError as error:
-        raise ClusterDefinitionError(f"{path}: cannot read cluster file: {error}") from error
+        data = tomllib.loads(read_text(path, "cluster file", ClusterDefinitionError))
     except tomllib.TOMLDecodeError as error:
         raise ClusterDefinitionError(f"{path}: not valid TOML: {error}") from error
     return parse_cluster(data, path)

@@ -28,8 +28,8 @@ from amuled_ma.clusters.loader import (
     ClusterRegistry,
     default_registry,
 )
-from amuled_ma.errors import ClusterDefinitionError
-from amuled_ma.resources import prompts_dir
+from amuled_ma.errors import ClusterDefinitionError, PromptError
+from amuled_ma.resources import prompts_dir, read_text
 
 #: One cluster's section of the system prompt (the authors' wording).
 CLUSTER_SECTION = (
@@ -68,7 +68,7 @@ def render_cluster_section(cluster: Cluster) -> str:
 
 @functools.lru_cache(maxsize=8)
 def _read_text(path: Path) -> str:
-    return path.read_text(encoding="utf-8")
+    return read_text(path, "system prompt", PromptError)
 
 
 def render_system_prompt(
@@ -108,8 +108,8 @@ def fewshot_path(task_name: str, *, prompts: str | Path | None = None) -> Path:
 @functools.lru_cache(maxsize=32)
 def _load_fewshot(path: Path) -> Messages:
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, tomllib.TOMLDecodeError) as error:
+        data = tomllib.loads(read_text(path, "few-shot file", ClusterDefinitionError))
+    except tomllib.TOMLDecodeError as error:
         raise ClusterDefinitionError(f"{path}: cannot read few-shot examples: {error}") from error
     examples = data.get("examples", [])
     if not isinstance(examples, list):

@@ -13,6 +13,37 @@ from typing import Any
 from amuled_ma.errors import AmuledError, ScenarioError
 
 
+def bounded_int(low: int, high: int | None = None) -> Any:
+    """An argparse ``type``: an integer in ``[low, high]`` (no upper bound if ``high`` is None).
+
+    A value outside is a usage error naming the range, e.g. ``--seed -5``.
+    """
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, found {text!r}") from None
+        if value < low or (high is not None and value > high):
+            wanted = f">= {low}" if high is None else f"in {low}..{high}"
+            raise argparse.ArgumentTypeError(f"expected an integer {wanted}, found {value}")
+        return value
+
+    parse.__name__ = "integer"
+    return parse
+
+
+def positive_float(text: str) -> float:
+    """An argparse ``type``: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, found {text!r}") from None
+    if not (value > 0 and value != float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, found {text}")
+    return value
+
+
 def add_scenario_args(parser: argparse.ArgumentParser) -> None:
     """Add the scenario argument and the options every training command shares."""
     parser.add_argument(
@@ -34,7 +65,9 @@ def add_scenario_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--force", action="store_true", help="start over even where checkpoints exist"
     )
-    parser.add_argument("--seed", type=int, default=None, help="override [task].seed")
+    parser.add_argument(
+        "--seed", type=bounded_int(0, 2**63 - 1), default=None, help="override [task].seed"
+    )
     add_overrides_argument(parser)
     parser.add_argument(
         "--no-progress", action="store_true", help="no progress bars (log-friendly output)"

@@ -22,7 +22,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("run_dir", metavar="RUN_DIR", type=Path, help="a run directory")
     parser.add_argument(
-        "--episodes", type=int, default=None, help="episodes per policy (default: scenario's, 50)"
+        "--episodes",
+        type=common.bounded_int(1),
+        default=None,
+        help="episodes per policy (default: scenario's, 50)",
     )
     parser.add_argument(
         "--modes",

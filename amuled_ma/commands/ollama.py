@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from amuled_ma import llm_server
+from amuled_ma.commands._experiment import bounded_int, positive_float
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -39,9 +40,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help=f"register '{llm_server.TINY_MODEL}' (SmolLM2-135M-Instruct, for plumbing tests)",
     )
     up.add_argument("--gguf", type=Path, help="GGUF file for --tiny (default: found automatically)")
-    up.add_argument("--port", type=int, help="port on 127.0.0.1 (default: a free one)")
-    up.add_argument("--num-parallel", type=int, default=2, help="OLLAMA_NUM_PARALLEL (default 2)")
-    up.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for the server")
+    up.add_argument(
+        "--port", type=bounded_int(1, 65535), help="port on 127.0.0.1 (default: a free one)"
+    )
+    up.add_argument(
+        "--num-parallel", type=bounded_int(1), default=2, help="OLLAMA_NUM_PARALLEL (default 2)"
+    )
+    up.add_argument(
+        "--timeout", type=positive_float, default=60.0, help="seconds to wait for the server"
+    )
     up.add_argument("--state-dir", type=Path, help=state_help)
     up.set_defaults(handler=_up)
 

@@ -22,7 +22,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         ),
     )
     common.add_scenario_args(run)
-    run.add_argument("--episodes", type=int, default=None, help="evaluation episodes per policy")
+    run.add_argument(
+        "--episodes",
+        type=common.bounded_int(1),
+        default=None,
+        help="evaluation episodes per policy",
+    )
     add_parallel_args(run)
     run.set_defaults(handler=run_command)
 
@@ -43,7 +48,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         choices=("clusters", "aggregation", "models", "kl"),
         help="which ablation",
     )
-    ablate.add_argument("--episodes", type=int, default=None, help="evaluation episodes")
+    ablate.add_argument(
+        "--episodes", type=common.bounded_int(1), default=None, help="evaluation episodes"
+    )
     add_parallel_args(ablate)
     ablate.set_defaults(handler=ablate_command)
 
@@ -52,7 +59,7 @@ def add_parallel_args(parser: argparse.ArgumentParser) -> None:
     """Add ``--seeds`` (training replicas) and ``--jobs`` (worker processes)."""
     parser.add_argument(
         "--seeds",
-        type=int,
+        type=common.bounded_int(1),
         default=1,
         metavar="N",
         help="train every variant with N seeds (--seed or [task].seed, then +1, ...); "
@@ -60,7 +67,7 @@ def add_parallel_args(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--jobs",
-        type=int,
+        type=common.bounded_int(0),
         default=0,
         metavar="N",
         help="train N jobs at once in worker processes; 1 = all in this process; "

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from amuled_ma.errors import CheckpointError
+from amuled_ma.errors import CheckpointError, ScenarioError
 from amuled_ma.evaluate.stats import mean_ci
 from amuled_ma.learn.experiments import split_replica
 from amuled_ma.learn.trainer import LAST, action_log_probs, load_policy, make_task
@@ -237,7 +237,11 @@ def evaluate_run(
 
     run_dir = Path(run_dir)
     ev = scenario.evaluation
-    episodes = episodes or ev.episodes
+    episodes = ev.episodes if episodes is None else episodes
+    if episodes < 1:
+        raise ScenarioError(
+            f"episodes: expected at least 1 evaluation episode per policy, found {episodes}"
+        )
     modes = modes or list(ev.modes)
     dirs = variant_dirs(run_dir)
     if variants:

@@ -40,11 +40,22 @@ def _plt():
     return plt
 
 
-def _fmt(stat: dict[str, Any] | None, digits: int = 2) -> str:
+def format_stat(stat: dict[str, Any] | None, digits: int = 2) -> str:
+    """``mean ± half width`` of a :func:`~amuled_ma.evaluate.stats.mean_ci` summary.
+
+    ``n/a`` without a mean; ``± n/a (n = 1)`` where the interval is undefined.
+    """
     if not stat or stat.get("mean") is None or not math.isfinite(stat["mean"]):
         return "n/a"
-    half = stat.get("half_width") or 0.0
+    half = stat.get("half_width")
+    if half is None or not math.isfinite(half):
+        return f"{stat['mean']:.{digits}f} ± n/a (n = {stat.get('n', '?')})"
     return f"{stat['mean']:.{digits}f} ± {half:.{digits}f}"
+
+
+def _finite_or_zero(value: float | None) -> float:
+    """An error bar's half width; an undefined interval (one value) draws none."""
+    return value if value is not None and math.isfinite(value) else 0.0
 
 
 def _rolling_band(values: list[float | None], window: int) -> tuple[np.ndarray, ...]:
@@ -143,7 +154,9 @@ def plot_bars(results: dict[str, Any], mode: str, path: Path, title: str = "") -
     names = list(variants)
     for ax, metric in zip(axes.flat, metrics, strict=False):
         means = [variants[n]["metrics"].get(metric, {}).get("mean", np.nan) for n in names]
-        errs = [variants[n]["metrics"].get(metric, {}).get("half_width", 0.0) or 0.0 for n in names]
+        errs = [
+            _finite_or_zero(variants[n]["metrics"].get(metric, {}).get("half_width")) for n in names
+        ]
         ax.bar(
             range(len(names)),
             means,
@@ -270,7 +283,7 @@ def metrics_table(results: dict[str, Any], mode: str) -> str:
     head = "| variant | seeds | " + " | ".join(metrics) + " |"
     lines = [head, "|---|---|" + "---|" * len(metrics)]
     for name, data in variants.items():
-        cells = [_fmt(data["metrics"].get(m)) for m in metrics]
+        cells = [format_stat(data["metrics"].get(m)) for m in metrics]
         lines.append(f"| {name} | {data.get('n_seeds', 1)} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

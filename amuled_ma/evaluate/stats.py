@@ -37,7 +37,8 @@ def mean_ci(values: Sequence[float], confidence: float = 0.95) -> dict[str, floa
 
     Returns:
         ``{"mean", "std", "n", "ci_low", "ci_high", "half_width"}``; with one value the
-        interval is degenerate (half width 0), with none every figure is NaN.
+        spread and the interval are undefined (NaN: one episode says nothing about the
+        variability, so no "± 0" is claimed), with none every figure is NaN.
 
     """
     n = len(values)
@@ -46,14 +47,8 @@ def mean_ci(values: Sequence[float], confidence: float = 0.95) -> dict[str, floa
         return {"mean": nan, "std": nan, "n": 0, "ci_low": nan, "ci_high": nan, "half_width": nan}
     mean = sum(values) / n
     if n == 1:
-        return {
-            "mean": mean,
-            "std": 0.0,
-            "n": 1,
-            "ci_low": mean,
-            "ci_high": mean,
-            "half_width": 0.0,
-        }
+        nan = math.nan
+        return {"mean": mean, "std": nan, "n": 1, "ci_low": nan, "ci_high": nan, "half_width": nan}
     var = sum((v - mean) ** 2 for v in values) / (n - 1)
     std = math.sqrt(var)
     half = t_quantile(n - 1, confidence) * std / math.sqrt(n)

@@ -78,8 +78,12 @@ def split_replica(folder: str) -> tuple[str, int | None]:
 
 
 def default_run_dir(scenario: Scenario) -> Path:
-    """``<output.runs_dir>/<scenario name>``, relative to the current directory."""
-    return Path(scenario.output.runs_dir) / scenario.name
+    """``<output.runs_dir>/<scenario name>``, relative to the current directory.
+
+    The name is a single safe path component, so the run stays inside ``runs_dir``
+    (:meth:`~amuled_ma.scenario.Scenario.default_run_dir`).
+    """
+    return scenario.default_run_dir()
 
 
 def variant_dir_name(variant: str) -> str:
@@ -156,7 +160,7 @@ def training_config(
     out: dict[str, Any] = {
         "variant": variant,
         "seed": scenario.task.seed if seed is None else seed,
-        "iterations": iterations or total,
+        "iterations": total if iterations is None else iterations,
     }
     for section in sections:
         skip = _NOT_LEARNED.get(section, ())

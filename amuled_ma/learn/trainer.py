@@ -196,7 +196,7 @@ class Trainer:
             if base_checkpoint is None or not Path(base_checkpoint).is_file():
                 raise CheckpointError(f"base checkpoint not found: {base_checkpoint}")
             self.num_envs, self.steps_per_env = ft.num_envs, ft.num_steps_per_env
-            self.total_iterations = iterations or ft.iterations
+            self.total_iterations = ft.iterations if iterations is None else iterations
             self.lr, self.anneal = ft.learning_rate, ft.anneal_lr
             self.cfg = rsl_rl_config(
                 ppo,
@@ -210,7 +210,9 @@ class Trainer:
             base = scenario.base
             self.num_envs, self.steps_per_env = base.num_envs, base.num_steps_per_env
             batch = base.num_envs * base.num_steps_per_env
-            self.total_iterations = iterations or max(1, base.total_steps // batch)
+            self.total_iterations = (
+                max(1, base.total_steps // batch) if iterations is None else iterations
+            )
             self.lr, self.anneal = ppo.learning_rate, ppo.anneal_lr
             self.cfg = rsl_rl_config(
                 ppo, num_steps_per_env=base.num_steps_per_env, save_interval=base.save_interval

@@ -23,6 +23,8 @@ import importlib
 from collections.abc import Iterator, Mapping
 from typing import TYPE_CHECKING, Any
 
+from amuled_ma.errors import ScenarioError
+
 if TYPE_CHECKING:
     from amuled_ma.tasks.base import BatchedTask
     from amuled_ma.tasks.driving import Driving
@@ -77,11 +79,11 @@ def canonical_name(name: str) -> str:
 
     """
     if not isinstance(name, str):
-        raise ValueError(f"name: expected a task name, got {name!r}")
+        raise ScenarioError(f"name: expected a task name, got {name!r}")
     key = name.strip().lower()
     key = _ALIASES.get(key, key)
     if key not in _ENTRY_POINTS:
-        raise ValueError(f"name: unknown task {name!r}; known tasks: {', '.join(_ENTRY_POINTS)}")
+        raise ScenarioError(f"name: unknown task {name!r}; known tasks: {', '.join(_ENTRY_POINTS)}")
     return key
 
 

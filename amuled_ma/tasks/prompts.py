@@ -26,7 +26,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from amuled_ma.resources import prompts_dir
+from amuled_ma.errors import PromptError
+from amuled_ma.resources import prompts_dir, read_text
 from amuled_ma.tasks import canonical_name
 
 __all__ = ["Fragment", "StateTemplate", "load_template", "render_state_prompt", "template_path"]
@@ -92,14 +93,14 @@ class StateTemplate:
 
     def _fill(self, text: str, variables: dict[str, Any], depth: int) -> str:
         if depth > 8:
-            raise ValueError(f"{self.path}: fragments nest too deeply")
+            raise PromptError(f"{self.path}: fragments nest too deeply")
         out: list[str] = []
         for literal, field, spec, conversion in string.Formatter().parse(text):
             out.append(literal)
             if field is None:
                 continue
             if field not in variables:
-                raise ValueError(
+                raise PromptError(
                     f"variables: missing {field!r}, needed by {self.path} "
                     f"(got {', '.join(sorted(variables)) or 'none'})"
                 )
@@ -119,7 +120,7 @@ class StateTemplate:
         for fragment in self.fragments[group]:
             if fragment.test(value):
                 return fragment
-        raise ValueError(
+        raise PromptError(
             f"variables: {field}={value!r} matches no fragment of group {group!r} in {self.path}"
         )
 
@@ -138,11 +139,11 @@ def parse_template(path: Path) -> StateTemplate:
     """Parse one template file.
 
     Raises:
-        FileNotFoundError: ``path`` does not exist.
-        ValueError: The file has no ``## prompt`` block or a malformed fragment heading.
+        PromptError: ``path`` cannot be read or is not UTF-8; it has no ``## prompt``
+            block or a malformed fragment heading.
 
     """
-    lines = path.read_text(encoding="utf-8").splitlines()
+    lines = read_text(path, "state prompt template", PromptError).splitlines()
     prompt: str | None = None
     fragments: dict[str, list[Fragment]] = {}
     heading: str | None = None
@@ -160,14 +161,14 @@ def parse_template(path: Path) -> StateTemplate:
             while end < len(lines) and lines[end].rstrip() != "```":
                 end += 1
             if end == len(lines):
-                raise ValueError(f"{path}: unclosed code block under heading {heading!r}")
+                raise PromptError(f"{path}: unclosed code block under heading {heading!r}")
             body = "\n".join(lines[i + 1 : end])
             if level == 2 and heading.lower() == "prompt":
                 prompt = body
             elif level == 3:
                 match = _CONDITION.match(heading)
                 if match is None:
-                    raise ValueError(
+                    raise PromptError(
                         f"{path}: fragment heading {heading!r} is not '<group> <condition>' "
                         "(== v, != v, < v, <= v, > v, >= v, in a..b, otherwise)"
                     )
@@ -181,7 +182,7 @@ def parse_template(path: Path) -> StateTemplate:
             continue
         i += 1
     if prompt is None:
-        raise ValueError(f"{path}: no fenced block under a '## prompt' heading")
+        raise PromptError(f"{path}: no fenced block under a '## prompt' heading")
     return StateTemplate(path, prompt, {k: tuple(v) for k, v in fragments.items()})
 
 
@@ -200,12 +201,15 @@ def load_template(task_name: str) -> StateTemplate:
 
     Raises:
         ValueError: Unknown task.
-        FileNotFoundError: The template file is missing.
+        PromptError: The template file is missing.
 
     """
     path = template_path(task_name)
     if not path.is_file():
-        raise FileNotFoundError(f"state prompt template of {task_name!r} not found at {path}")
+        raise PromptError(
+            f"{path}: the state prompt template of task {task_name!r} is missing; reinstall "
+            "amuled-ma, or restore prompts/tasks/ from the repository"
+        )
     return _load_cached(path, path.stat().st_mtime_ns)
 
 

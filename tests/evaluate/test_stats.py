@@ -15,7 +15,9 @@ def test_mean_ci_hand_computed():
 
 
 def test_degenerate_cases():
-    assert mean_ci([4.0])["half_width"] == 0.0
+    one = mean_ci([4.0])  # one value: no spread, no interval (not "± 0")
+    assert one["mean"] == 4.0 and one["n"] == 1
+    assert all(math.isnan(one[k]) for k in ("std", "ci_low", "ci_high", "half_width"))
     assert math.isnan(mean_ci([])["mean"])
     assert mean_ci([2.0] * 50)["half_width"] == 0.0
 
