@@ -1,4 +1,4 @@
-"""Belief sources (Ollama, replay, rules), reply parsing, and the persistent belief store.
+"""Belief sources (Ollama, replay, rules), reply parsing, the belief check, and the store.
 
 See ``docs/beliefs.md``. The Ollama source is imported on demand
 (``make_source("ollama", ...)`` or ``amuled_ma.beliefs.ollama``) so that importing this
@@ -10,20 +10,32 @@ from amuled_ma.beliefs.replay import ReplaySource
 from amuled_ma.beliefs.rules import RulesSource, ScriptedSource
 from amuled_ma.beliefs.sources import make_source, register_source, source_kinds
 from amuled_ma.beliefs.types import STATUSES, BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.beliefs.validate import (
+    SUM_TOLERANCE,
+    InvalidBeliefError,
+    check_belief,
+    checked_result,
+    validate_belief,
+)
 
 __all__ = [
     "STATUSES",
+    "SUM_TOLERANCE",
     "BeliefRequest",
     "BeliefResult",
     "BeliefSource",
+    "InvalidBeliefError",
     "ParsedBelief",
     "ReplaySource",
     "RulesSource",
     "ScriptedSource",
     "belief_schema",
+    "check_belief",
+    "checked_result",
     "make_source",
     "parse_belief",
     "register_source",
     "source_kinds",
     "uniform",
+    "validate_belief",
 ]

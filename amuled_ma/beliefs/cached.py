@@ -22,6 +22,15 @@ Caching policy (see also :mod:`amuled_ma.beliefs.store`):
   which costs one request per run and per state: the price of never freezing a failure;
 - ``"replay_miss"`` answers are not written at all: they say nothing about the model, only
   that a recording lacked the state.
+
+Every answer of the wrapped source is checked on arrival
+(:func:`amuled_ma.beliefs.validate.checked_result`): an ``"ok"``/``"repaired"`` answer whose
+belief is not a valid probability vector over the request's actions (NaN, inf, negative,
+all zero, the wrong length, a sum off 1 by more than 1e-6) becomes status ``"error"`` with
+a uniform belief, the reason in ``extra["error"]`` and the values found in
+``extra["invalid_belief"]``; it is counted in :attr:`CacheStats.invalid`, written for the
+record and asked again next run, never served. So a plug-in source that answers NaN can
+never put an ``"ok"`` row into the store, and the store refuses to write one anyway.
 """
 
 from __future__ import annotations
@@ -36,6 +45,7 @@ import numpy as np
 
 from amuled_ma.beliefs.store import CACHEABLE, BeliefStore, identity_json, request_key
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.beliefs.validate import checked_result
 
 #: Statuses never written to the store.
 NOT_STORED = frozenset({"replay_miss"})
@@ -54,6 +64,8 @@ class CacheStats:
         sent: Requests sent to the wrapped source.
         written: Rows written to the store.
         not_cached: Answers received with a status that is not served back later.
+        invalid: Answers whose belief was invalid (turned into status ``"error"``, or,
+            for a failure, given a uniform belief).
 
     """
 
@@ -65,6 +77,7 @@ class CacheStats:
     sent: int = 0
     written: int = 0
     not_cached: int = 0
+    invalid: int = 0
 
     @property
     def hits(self) -> int:
@@ -243,7 +256,19 @@ class CachedSource(BeliefSource):
                 pending.clear()
 
         def take(key: str, request: BeliefRequest, result: BeliefResult) -> None:
-            result.belief = np.asarray(result.belief, dtype=np.float64)
+            if not isinstance(result, BeliefResult):
+                raise RuntimeError(
+                    f"belief source {self.source.name!r} answered {type(result).__name__}, "
+                    "expected BeliefResult"
+                )
+            checked_result(result, request.num_actions)
+            if "invalid_belief" in result.extra:
+                self.stats.invalid += 1
+            # the invariant the store relies on: an answer always holds a valid belief
+            assert result.status not in CACHEABLE or (
+                result.belief.shape == (request.num_actions,)
+                and bool(np.isfinite(result.belief).all())
+            )
             answers[key] = result
             if result.status not in CACHEABLE:
                 self.stats.not_cached += 1

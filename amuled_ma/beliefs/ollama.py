@@ -24,6 +24,12 @@ source sends it with ``ollama.Client.chat`` and parses the reply with
   if one is given, else with a uniform belief and status ``"timeout"`` or ``"error"``;
   all of it is counted in :attr:`OllamaSource.stats` and logged. A server that stops
   answering altogether raises :class:`~amuled_ma.errors.BackendUnavailable`.
+- **Checked answers**: a parsed belief must be a valid probability vector over the
+  request's actions (:mod:`amuled_ma.beliefs.validate`). A reply that parses to anything
+  else (NaN, inf, negative, all zero, the wrong length) counts as an abstention: it is
+  re-asked like one, and if it stays invalid the answer has status ``"abstained"``, a
+  uniform belief, the reason in ``extra["error"]`` and the values in
+  ``extra["invalid_belief"]``; never ``"ok"``.
 - **Bad setup**: an unreachable server raises ``BackendUnavailable`` within
   ``check_timeout_s`` (5 s) naming the host and how to start a server; a model the
   server lacks raises :class:`~amuled_ma.errors.ModelNotFound` naming the model and the
@@ -47,6 +53,12 @@ import ollama
 
 from amuled_ma.beliefs.parsing import belief_schema, parse_belief, uniform
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.beliefs.validate import (
+    ANSWER_STATUSES,
+    check_belief,
+    checked_result,
+    show_values,
+)
 from amuled_ma.errors import BackendUnavailable, ModelNotFound, ScenarioError
 
 log = logging.getLogger(__name__)
@@ -356,6 +368,7 @@ class OllamaSource(BeliefSource):
         base_seed = int(self.options["seed"])
         reply = None
         parsed = None
+        status, belief, invalid = "abstained", uniform(n), None
         for attempt in range(self.parse_retries + 1):
             if attempt:
                 self._count(parse_retries=1)
@@ -376,22 +389,34 @@ class OllamaSource(BeliefSource):
                 completion_tokens=int(reply.eval_count or 0),
             )
             parsed = parse_belief(content, request.action_names, structured=self.structured)
-            if parsed.status != "abstained":
+            status, belief, invalid = parsed.status, parsed.belief, None
+            checked, reason = check_belief(parsed.belief, n)
+            if checked is not None:
+                belief = checked
+            elif status in ANSWER_STATUSES:  # the parser let an invalid belief through
+                invalid = f"the reply gave an invalid belief: it {reason}"
+                status, belief = "abstained", uniform(n)
+            else:
+                belief = uniform(n)
+            if status != "abstained":
                 break
         assert reply is not None and parsed is not None
-        self._count(**{parsed.status: 1})
-        if parsed.status == "abstained":
-            log.warning("ollama reply abstained for cluster %s: %s", request.cluster, parsed.error)
+        self._count(**{status if status in ("ok", "repaired") else "abstained": 1})
+        error = "; ".join(e for e in (invalid, parsed.error) if e) or None
+        if status == "abstained":
+            log.warning("ollama reply abstained for cluster %s: %s", request.cluster, error)
         extra: dict[str, Any] = {"attempts": attempt + 1, "model": self.model}
         if parsed.repairs:
             extra["repairs"] = list(parsed.repairs)
         if parsed.reasoning:
             extra["reasoning"] = parsed.reasoning
-        if parsed.error:
-            extra["error"] = parsed.error
+        if error:
+            extra["error"] = error
+        if invalid:
+            extra["invalid_belief"] = show_values(parsed.belief)
         return BeliefResult(
-            belief=parsed.belief,
-            status=parsed.status,
+            belief=belief,
+            status=status,
             source=self.name,
             raw=reply.message.content if reply.message is not None else None,
             latency_s=time.perf_counter() - start,
@@ -405,7 +430,7 @@ class OllamaSource(BeliefSource):
     ) -> BeliefResult:
         self._count(fallbacks=1)
         if self.fallback is not None:
-            result = self.fallback.beliefs([request])[0]
+            result = checked_result(self.fallback.beliefs([request])[0], request.num_actions)
             result.extra = {**result.extra, "ollama_failure": failure.status, "error": str(failure)}
             return result
         return BeliefResult(

@@ -22,6 +22,14 @@ A state or cluster missing from the recording is a *miss*, counted in
 - ``"uniform"``: answer a uniform belief with status ``"replay_miss"``;
 - ``"fallback"``: ask the ``fallback`` source (all misses of a batch in one call); its
   answer keeps its own status, with ``extra["replay_miss"] = True``.
+
+Every recorded belief is checked when the file is loaded
+(:mod:`amuled_ma.beliefs.validate`: finite, non-negative, one value per recorded action,
+summing to 1 within 1e-6). A recording with any invalid belief is refused with a
+:class:`~amuled_ma.errors.ScenarioError` naming the file, the count and the first few bad
+entries (``states[i]``, the observation, the agent, the values and why), so that no
+invalid belief is ever replayed as an answer. ``"beliefs": null`` and an agent's ``null``
+mean *not recorded* (``driving-gpt-4o-mini.json`` keeps only fused beliefs): a miss.
 """
 
 from __future__ import annotations
@@ -37,12 +45,15 @@ import numpy as np
 
 from amuled_ma.beliefs.parsing import uniform
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.beliefs.validate import RULE, check_belief, checked_result, show_values
 from amuled_ma.errors import ReplayMiss, ScenarioError
 
 #: Miss policies of :class:`ReplaySource`.
 MISS_POLICIES = ("error", "uniform", "fallback")
 #: Field of a recorded state holding the unprompted "moral agent" belief.
 MORAL_AGENT_FIELD = "moral_agent"
+#: Invalid beliefs listed by name when a recording is refused (all are counted).
+SHOWN_PROBLEMS = 5
 
 
 def _norm(name: str) -> str:
@@ -55,14 +66,15 @@ def obs_key(obs: Sequence[float], decimals: int) -> tuple[float, ...]:
 
 
 class Recording:
-    """One recording file, indexed by rounded observation.
+    """One recording file, indexed by rounded observation, every belief checked.
 
     Args:
         path: The JSON file.
         decimals: Decimals the observations are rounded to for lookup.
 
     Raises:
-        ScenarioError: The file is missing or not in the recording format.
+        ScenarioError: The file is missing, not in the recording format, or holds an
+            invalid belief (the message lists the first :data:`SHOWN_PROBLEMS` and the count).
 
     """
 
@@ -70,42 +82,109 @@ class Recording:
         self.path = Path(path)
         try:
             raw = self.path.read_bytes()
-            data = json.loads(raw)
-        except (OSError, ValueError) as error:
+        except OSError as error:
             raise ScenarioError(f"{self.path}: cannot read recording: {error}") from error
+        try:
+            data = json.loads(raw)
+        except (ValueError, RecursionError) as error:
+            deep = "nested deeper than Python's JSON reader can follow (a recording is 4 deep)"
+            why = deep if isinstance(error, RecursionError) else str(error)
+            raise ScenarioError(
+                f"{self.path}: cannot read recording: not JSON ({why}); expected the format of "
+                "the AMULED recordings (see amuled_ma.beliefs.replay)"
+            ) from None
+        if not isinstance(data, dict):
+            raise ScenarioError(
+                f"{self.path}: a recording is a JSON object, found {type(data).__name__}"
+            )
         for key in ("task", "clusters", "actions", "states"):
             if key not in data:
                 raise ScenarioError(f"{self.path}: recording has no {key!r} field")
+        for key in ("clusters", "actions"):
+            if not isinstance(data[key], list) or not all(isinstance(x, str) for x in data[key]):
+                raise ScenarioError(
+                    f"{self.path}: {key!r} must be a list of names, found "
+                    f"{show_values(data[key], 80)}"
+                )
+        if not isinstance(data["states"], list):
+            raise ScenarioError(f"{self.path}: 'states' must be a list of states")
         self.sha256 = hashlib.sha256(raw).hexdigest()
-        self.task: str = data["task"]
+        self.task: str = str(data["task"])
         self.model: str | None = data.get("model")
         self.clusters: list[str] = list(data["clusters"])
         self.actions: list[str] = list(data["actions"])
         self.decimals = decimals
         self.states: dict[tuple[float, ...], dict[str, Any]] = {}
         self.duplicates = 0
+        # rounded obs -> {agent: checked belief}; MORAL_AGENT_FIELD for the moral agent
+        self._beliefs: dict[tuple[float, ...], dict[str, np.ndarray]] = {}
+        problems: list[str] = []
+        invalid = 0
+        n = len(self.actions)
         for i, state in enumerate(data["states"]):
-            if "obs" not in state or "beliefs" not in state:
+            if not isinstance(state, dict) or "obs" not in state or "beliefs" not in state:
                 raise ScenarioError(f"{self.path}: states[{i}] has no 'obs' or 'beliefs'")
-            key = obs_key(state["obs"], decimals)
+            try:
+                key = obs_key(state["obs"], decimals)
+            except (TypeError, ValueError, OverflowError):
+                raise ScenarioError(
+                    f"{self.path}: states[{i}].obs must be a list of numbers, found "
+                    f"{show_values(state['obs'], 80)}"
+                ) from None
+            recorded = state["beliefs"]
+            if recorded is not None and not isinstance(recorded, dict):
+                raise ScenarioError(
+                    f"{self.path}: states[{i}].beliefs must be an object {{agent: belief}} or "
+                    f"null, found {show_values(recorded, 80)}"
+                )
+            vectors: dict[str, np.ndarray] = {}
+            entries = [(f"beliefs[{a!r}]", a, v) for a, v in (recorded or {}).items()]
+            entries.append((MORAL_AGENT_FIELD, MORAL_AGENT_FIELD, state.get(MORAL_AGENT_FIELD)))
+            for field, agent, values in entries:
+                if values is None:
+                    continue  # not recorded: a miss
+                belief, reason = check_belief(values, n)
+                if belief is None:
+                    invalid += 1
+                    if len(problems) < SHOWN_PROBLEMS:
+                        problems.append(
+                            f"states[{i}].{field} (obs {show_values(state['obs'], 60)}): "
+                            f"{show_values(values, 60)} {reason}"
+                        )
+                    continue
+                vectors[agent] = belief
             if key in self.states:
                 self.duplicates += 1  # first one wins, as in the authors' cache
                 continue
             self.states[key] = state
+            self._beliefs[key] = vectors
+        if invalid:
+            raise ScenarioError(
+                f"{self.path}: refusing to load the recording: {invalid} invalid belief(s) "
+                f"(an invalid belief would be replayed as an answer); the first "
+                f"{len(problems)}: {'; '.join(problems)}. {RULE} ({n} actions: "
+                f"{', '.join(self.actions)}); correct or remove these entries (null means "
+                "'not recorded'), or regenerate the recording"
+            )
 
     def answer(self, state: Mapping[str, Any], agent: str) -> tuple[np.ndarray, str | None] | None:
-        """Return ``(belief, raw reply or None)`` of ``agent`` in ``state``, if recorded."""
-        if agent == MORAL_AGENT_FIELD:
-            vector = state.get(MORAL_AGENT_FIELD)
-        else:
-            vector = state["beliefs"].get(agent)
+        """Return ``(belief, raw reply or None)`` of ``agent`` in ``state``, if recorded.
+
+        The belief is the one checked at load (a copy), divided by its sum.
+        """
+        return self._answer(obs_key(state["obs"], self.decimals), state, agent)
+
+    def _answer(
+        self, key: tuple[float, ...], state: Mapping[str, Any], agent: str
+    ) -> tuple[np.ndarray, str | None] | None:
+        vector = self._beliefs[key].get(agent)
         if vector is None:
             return None
         raw = None
-        for exchange in state.get("exchanges", ()):
-            if exchange.get("agent") == agent:
+        for exchange in state.get("exchanges") or ():
+            if isinstance(exchange, dict) and exchange.get("agent") == agent:
                 raw = exchange.get("response")
-        return np.asarray(vector, dtype=np.float64), raw
+        return vector.copy(), raw
 
 
 class ReplaySource(BeliefSource):
@@ -217,10 +296,11 @@ class ReplaySource(BeliefSource):
                 f"cluster {request.cluster!r} is not in {recording.path.name} "
                 f"(recorded: {', '.join(recording.clusters)}, {MORAL_AGENT_FIELD})"
             )
-        state = recording.states.get(obs_key(request.obs, recording.decimals))
+        key = obs_key(request.obs, recording.decimals)
+        state = recording.states.get(key)
         if state is None:
             return f"state {list(request.obs)} not in {recording.path.name}"
-        answer = recording.answer(state, agent)
+        answer = recording._answer(key, state, agent)
         if answer is None:
             return f"agent {agent!r} has no belief for state {list(request.obs)}"
         return answer
@@ -245,14 +325,13 @@ class ReplaySource(BeliefSource):
                 reasons[i] = found
                 continue
             self.hits += 1
-            vector, raw = found
-            total = vector.sum()
-            belief = vector / total if total > 0 else uniform(len(vector))
+            belief, raw = found  # checked when the recording was loaded
             results[i] = BeliefResult(belief=belief, status="ok", source=self.name, raw=raw)
         if missed and self.miss_policy == "fallback":
             assert self.fallback is not None
             answers = self.fallback.beliefs([requests[i] for i in missed])
             for i, answer in zip(missed, answers, strict=True):
+                checked_result(answer, requests[i].num_actions)
                 answer.extra = {**answer.extra, "replay_miss": True, "miss_reason": reasons[i]}
                 results[i] = answer
         elif missed:

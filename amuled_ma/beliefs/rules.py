@@ -6,9 +6,13 @@
 - :class:`ScriptedSource` answers fixed beliefs per cluster, or calls a function of the
   request: for tests, examples and ablations.
 
-Every answer is projected onto the probability simplex (negative entries clipped to 0,
-then divided by the sum; all-zero or non-finite answers become uniform with status
-``"error"``), so a buggy rule can never feed an invalid belief to the fusion.
+A rule's answer is a vector of non-negative *scores*, one per action, divided by their
+sum (``[0, 2, 0, 0]`` is ``[0, 1, 0, 0]``). It is checked with the package's one belief
+rule (:func:`amuled_ma.beliefs.validate.check_belief` with ``scores=True``): an answer of
+the wrong length, with a NaN, an infinity or a negative entry, or summing to 0 or to an
+overflow becomes a uniform belief with status ``"error"`` and the reason in
+``extra["error"]``, so a buggy rule can never feed an invalid belief to the fusion or
+store one as ``"ok"``.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import numpy as np
 
 from amuled_ma.beliefs.parsing import uniform
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.beliefs.validate import check_belief, show_values
 from amuled_ma.errors import ScenarioError
 
 BeliefFn = Callable[[str, np.ndarray], Sequence[float]]
@@ -50,24 +55,43 @@ def resolve_callable(spec: str | Callable[..., Any]) -> Callable[..., Any]:
 
 
 def to_belief(values: Any, n_actions: int) -> tuple[np.ndarray, str]:
-    """Project a rule's answer onto the simplex.
+    """Turn a rule's scores into a belief (divided by their sum), or a uniform ``"error"``.
 
     Returns:
         ``(belief, status)``; status ``"ok"``, or ``"error"`` with a uniform belief when
-        the answer has the wrong shape, is not finite, or is all zero.
+        the answer has the wrong length, a non-finite or negative entry, or a sum of 0
+        or an overflowing one (:func:`scores_problem` says which).
 
     """
-    try:
-        vector = np.asarray(values, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        return uniform(n_actions), "error"
-    if vector.shape != (n_actions,) or not np.all(np.isfinite(vector)):
-        return uniform(n_actions), "error"
-    vector = np.clip(vector, 0.0, None)
-    total = vector.sum()
-    if total <= 0:
-        return uniform(n_actions), "error"
-    return vector / total, "ok"
+    belief, _ = _checked(values, n_actions)
+    return (uniform(n_actions), "error") if belief is None else (belief, "ok")
+
+
+def scores_problem(values: Any, n_actions: int) -> str | None:
+    """Return why a rule's answer is not a valid score vector, or ``None``."""
+    return _checked(values, n_actions)[1]
+
+
+def _checked(values: Any, n_actions: int) -> tuple[np.ndarray | None, str | None]:
+    if isinstance(values, np.ndarray) and values.ndim != 1:
+        values = values.reshape(-1)  # a (1, A) row of a batched rule is one answer
+    return check_belief(values, n_actions, scores=True)
+
+
+def _result(values: Any, n_actions: int, source: str) -> BeliefResult:
+    """A rule's answer as a result: ``"ok"``, or a uniform ``"error"`` with the reason."""
+    belief, reason = _checked(values, n_actions)
+    if belief is None:
+        return BeliefResult(
+            belief=uniform(n_actions),
+            status="error",
+            source=source,
+            extra={
+                "error": f"{source} gave an invalid belief: it {reason}",
+                "invalid_belief": show_values(values),
+            },
+        )
+    return BeliefResult(belief=belief, status="ok", source=source)
 
 
 def _human_belief(task: str, obs: np.ndarray) -> Any:
@@ -113,8 +137,7 @@ class RulesSource(BeliefSource):
                     batch = None
                 if batch is not None and batch.shape == (len(indices), n):
                     for i, row in zip(indices, batch, strict=True):
-                        belief, status = to_belief(row, n)
-                        out[i] = BeliefResult(belief=belief, status=status, source=self.name)
+                        out[i] = _result(row, n, self.name)
                     continue
             for i in indices:
                 out[i] = self._one(requests[i])
@@ -123,12 +146,14 @@ class RulesSource(BeliefSource):
     def _one(self, request: BeliefRequest) -> BeliefResult:
         try:
             raw = self._fn(request.task, np.asarray(request.obs, dtype=np.float64))
-            belief, status = to_belief(raw, request.num_actions)
-            extra: dict[str, Any] = {}
         except Exception as error:  # a rule bug must not stop training
-            belief, status = uniform(request.num_actions), "error"
-            extra = {"error": repr(error)}
-        return BeliefResult(belief=belief, status=status, source=self.name, extra=extra)
+            return BeliefResult(
+                belief=uniform(request.num_actions),
+                status="error",
+                source=self.name,
+                extra={"error": repr(error)},
+            )
+        return _result(raw, request.num_actions, self.name)
 
     def identity(self) -> dict[str, Any]:
         """Return the source kind and the policy's name."""
@@ -170,11 +195,12 @@ class ScriptedSource(BeliefSource):
                 else:
                     assert self._table is not None
                     raw = self._table.get(request.cluster, self._table.get("*", uniform(n)))
-                belief, status = to_belief(raw, n)
-                extra: dict[str, Any] = {}
             except Exception as error:  # a script bug must not stop training
-                belief, status, extra = uniform(n), "error", {"error": repr(error)}
-            out.append(BeliefResult(belief=belief, status=status, source=self.name, extra=extra))
+                out.append(
+                    BeliefResult(uniform(n), "error", self.name, extra={"error": repr(error)})
+                )
+                continue
+            out.append(_result(raw, n, self.name))
         return out
 
     def identity(self) -> dict[str, Any]:

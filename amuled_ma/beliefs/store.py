@@ -40,6 +40,28 @@ never overwritten. Rows with any other status (``"abstained"``, ``"timeout"``, `
 failure) but are *not* served as cache hits, so the next run asks again; a later
 ``ok``/``repaired`` answer replaces them and ``attempts`` counts the tries.
 
+## Every belief is checked
+
+Every row's ``belief`` is a valid belief of its row's action count
+(:mod:`amuled_ma.beliefs.validate`: finite, non-negative, one value per action, summing
+to 1 within 1e-6), whatever its status: an answer holds the model's belief, any other row
+the fallback the run used. :meth:`BeliefStore.put_many` refuses to write anything else
+(:class:`BeliefStoreError` naming the key and what was found; the
+:class:`~amuled_ma.beliefs.cached.CachedSource` in front of it has already turned an
+invalid answer into status ``"error"``), and every read refuses a row whose columns are
+not JSON or whose belief is invalid (a file edited by hand, or written by an older
+amuled-ma), naming the store, the key and how to remove the row. Export writes standard
+JSON only; import refuses ``NaN``/``Infinity``, JSON nested deeper than Python can read,
+and invalid beliefs, naming the file and line.
+
+## Read-only use
+
+``BeliefStore(path, read_only=True)`` (``amuled beliefs stats`` and ``export``) opens an
+existing file with SQLite's ``mode=ro``, creating nothing, and writes nothing. Where even
+that cannot work (WAL mode needs a ``-shm`` file beside the store, which cannot be created
+in a folder you may not write), it opens the file ``immutable=1``: a snapshot of what was
+checkpointed into the main file, without the changes still in a ``-wal`` file.
+
 ## Durability
 
 Every write is one short ``BEGIN IMMEDIATE`` transaction. ``synchronous=NORMAL`` (the WAL
@@ -57,6 +79,7 @@ import os
 import sqlite3
 import threading
 import time
+import urllib.parse
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -65,6 +88,7 @@ from typing import IO, Any
 import numpy as np
 
 from amuled_ma.beliefs.types import STATUSES, BeliefRequest, BeliefResult
+from amuled_ma.beliefs.validate import RULE, check_belief, show_values
 from amuled_ma.errors import AmuledError
 
 #: Statuses whose rows are served back as cached answers.
@@ -220,13 +244,33 @@ def _enc_names(names: tuple[str, ...]) -> str:
 
 
 def _extra_json(extra: Mapping[str, Any] | None) -> str:
-    """Serialise diagnostics, writing anything JSON cannot hold (an exception...) as repr."""
+    """Serialise diagnostics as standard JSON.
+
+    Anything JSON cannot hold is written as its repr (an exception...), and so is a
+    non-finite float (``"nan"``, ``"inf"``), so no row ever holds a non-standard ``NaN``.
+    """
     if not extra:
         return "{}"
+    plain = _plain(extra)
     try:
-        return canonical_json(_jsonable(extra or {}))
+        return canonical_json(plain)
     except (TypeError, ValueError):
-        return json.dumps(_jsonable(extra or {}), sort_keys=True, default=repr)
+        return json.dumps(plain, sort_keys=True, default=repr)
+
+
+def _plain(value: Any) -> Any:
+    """:func:`_jsonable`, with non-finite floats written as their repr (``"nan"``)."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _plain(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return repr(value)
+    return value
 
 
 def _jsonable(value: Any) -> Any:
@@ -352,6 +396,9 @@ class BeliefStore:
         timeout_s: How long a writer waits for another process's lock before failing.
         synchronous: SQLite ``synchronous`` level, ``"NORMAL"`` (crash-safe for the
             process) or ``"FULL"`` (also power-loss safe).
+        read_only: Open an existing file for reading only (SQLite ``mode=ro``, else
+            ``immutable=1`` where ``mode=ro`` cannot open it; see the module doc):
+            nothing is created or written, and every write raises.
 
     Raises:
         BeliefStoreError: The file cannot be opened or is not a belief store.
@@ -359,18 +406,27 @@ class BeliefStore:
     """
 
     def __init__(
-        self, path: str | os.PathLike[str], *, timeout_s: float = 60.0, synchronous: str = "NORMAL"
+        self,
+        path: str | os.PathLike[str],
+        *,
+        timeout_s: float = 60.0,
+        synchronous: str = "NORMAL",
+        read_only: bool = False,
     ) -> None:
         self.path = str(path)
         self.timeout_s = float(timeout_s)
         if synchronous.upper() not in {"OFF", "NORMAL", "FULL", "EXTRA"}:
             raise BeliefStoreError(f"synchronous must be NORMAL or FULL, got {synchronous!r}")
         self.synchronous = synchronous.upper()
+        self.read_only = bool(read_only)
+        #: How the file is open: ``"read-write"``, ``"read-only"`` or ``"immutable"``.
+        self.open_mode = "read-only" if self.read_only else "read-write"
         self._lock = threading.RLock()
         self._conn: sqlite3.Connection | None = None
         self._pid = -1
         self._messages_seen: set[str] = set()
         self._text_cache: dict[str, str] = {}
+        self._width: dict[str, int] = {}  # ``actions`` column text -> action count
         self._connect()
 
     # -- connection ------------------------------------------------------------------
@@ -378,6 +434,8 @@ class BeliefStore:
         """Open (or, after a ``fork``, re-open) this process's connection."""
         if self._conn is not None and self._pid == os.getpid():
             return self._conn
+        if self.read_only:
+            return self._connect_read_only()
         if self.path != ":memory:":
             Path(self.path).parent.mkdir(parents=True, exist_ok=True)
         try:
@@ -386,7 +444,7 @@ class BeliefStore:
             )
             conn.execute(f"PRAGMA busy_timeout = {int(self.timeout_s * 1000)}")
             if self.path != ":memory:":
-                mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+                mode = self._journal_wal(conn)
                 if str(mode).lower() != "wal":
                     raise BeliefStoreError(f"{self.path}: cannot switch to WAL mode (got {mode})")
             conn.execute(f"PRAGMA synchronous = {self.synchronous}")
@@ -397,6 +455,68 @@ class BeliefStore:
             self._conn = None
             raise BeliefStoreError(f"{self.path}: cannot open belief store: {error}") from error
         return conn
+
+    def _journal_wal(self, conn: sqlite3.Connection) -> str:
+        """Switch to WAL mode, waiting up to ``timeout_s`` for other processes' locks.
+
+        SQLite does not call the busy handler for this switch, so several processes
+        creating one new store at once (parallel seeds) would otherwise fail at once
+        with "database is locked".
+        """
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            try:
+                return str(conn.execute("PRAGMA journal_mode = WAL").fetchone()[0])
+            except sqlite3.OperationalError as error:
+                if "locked" not in str(error) or time.monotonic() > deadline:
+                    raise
+                time.sleep(0.05)
+
+    def _connect_read_only(self) -> sqlite3.Connection:
+        """Open an existing file with ``mode=ro``, else ``immutable=1``; create nothing."""
+        path = Path(self.path)
+        if self.path == ":memory:" or not path.is_file():
+            raise BeliefStoreError(
+                f"no belief store at {self.path} to open read-only (give --store PATH or set "
+                f"{STORE_ENV})"
+            )
+        quoted = urllib.parse.quote(str(path.resolve()))
+        failures = []
+        for mode in ("mode=ro", "immutable=1"):
+            conn = None
+            try:
+                conn = sqlite3.connect(
+                    f"file:{quoted}?{mode}",
+                    uri=True,
+                    timeout=self.timeout_s,
+                    isolation_level=None,
+                    check_same_thread=False,
+                )
+                conn.execute(f"PRAGMA busy_timeout = {int(self.timeout_s * 1000)}")
+                self._check_schema(conn)
+            except sqlite3.DatabaseError as error:
+                if conn is not None:
+                    conn.close()
+                failures.append(f"{mode}: {error}")
+                if "not a database" in str(error) or "no such table" in str(error):
+                    break  # the file itself is wrong: immutable=1 cannot help
+                continue
+            self._conn, self._pid = conn, os.getpid()
+            self.open_mode = "read-only" if mode == "mode=ro" else "immutable"
+            return conn
+        raise BeliefStoreError(
+            f"{self.path}: cannot open belief store read-only ({'; '.join(failures)}); "
+            "check that the file is a belief store and readable"
+        )
+
+    @staticmethod
+    def _check_schema(conn: sqlite3.Connection) -> None:
+        row = conn.execute("SELECT value FROM meta WHERE name = 'schema_version'").fetchone()
+        if row is None or int(row[0]) != SCHEMA_VERSION:
+            found = "none" if row is None else row[0]
+            raise BeliefStoreError(
+                f"belief store schema version {found}, this amuled-ma reads {SCHEMA_VERSION}"
+            )
 
     @staticmethod
     def _create_schema(conn: sqlite3.Connection) -> None:
@@ -416,6 +536,11 @@ class BeliefStore:
 
     def _write(self, body: Any) -> Any:
         """Run ``body(conn)`` in one ``BEGIN IMMEDIATE`` transaction."""
+        if self.read_only:
+            raise BeliefStoreError(
+                f"{self.path}: the belief store is open read-only; open it without "
+                "read_only=True (and with write access to the file and its folder) to write"
+            )
         with self._lock:
             conn = self._conn if self._pid == os.getpid() else self._connect()
             assert conn is not None
@@ -430,7 +555,14 @@ class BeliefStore:
 
     def _read(self, sql: str, params: Sequence[Any] = ()) -> list[tuple[Any, ...]]:
         with self._lock:
-            return self._connect().execute(sql, params).fetchall()
+            try:
+                return self._connect().execute(sql, params).fetchall()
+            except sqlite3.DatabaseError as error:
+                raise BeliefStoreError(
+                    f"{self.path}: cannot read the belief store: {error}; if the file is "
+                    "damaged, restore it from an export ('amuled beliefs import') or delete "
+                    "it (every belief is then asked again)"
+                ) from error
 
     def close(self) -> None:
         """Close this process's connection (the file stays)."""
@@ -473,13 +605,13 @@ class BeliefStore:
             rows = self._read(sql, chunk)
             texts = self._texts(rows) if with_messages else None
             for row in rows:
-                stored = _row_to_stored(row, texts)
+                stored = _row_to_stored(row, texts, self.path)
                 found[stored.key] = stored
         return found
 
     def _texts(self, rows: Sequence[Sequence[Any]]) -> dict[str, str]:
         """Fetch the message bodies referenced by ``rows``."""
-        hashes = {h for row in rows if row[7] for _, h in json.loads(row[7])}
+        hashes = {h for row in rows if row[7] for _, h in _messages_refs(row, self.path)}
         texts: dict[str, str] = {}
         todo = [h for h in hashes if h not in self._text_cache]
         for start in range(0, len(todo), _SQL_CHUNK):
@@ -513,19 +645,28 @@ class BeliefStore:
         """
         wanted = list(dict.fromkeys(keys))
         found: dict[str, BeliefResult] = {}
-        loads = json.loads
+        width = self._width
         for start in range(0, len(wanted), _SQL_CHUNK):
             chunk = wanted[start : start + _SQL_CHUNK]
             sql = (
                 "SELECT key, source, raw, belief, status, latency_s, prompt_tokens, "
-                "completion_tokens, extra FROM beliefs "
+                "completion_tokens, extra, actions FROM beliefs "
                 f"WHERE key IN ({','.join('?' * len(chunk))}) AND status IN ('ok', 'repaired')"
             )
-            for key, source, raw, belief, status, lat, ptok, ctok, extra in self._read(sql, chunk):
-                info = loads(extra) if extra and extra != "{}" else {}
+            for key, source, raw, belief, status, lat, ptok, ctok, extra, actions in self._read(
+                sql, chunk
+            ):
+                where = f"{self.path}: row {key}"
+                n = width.get(actions)
+                if n is None:
+                    names = _load_column(actions, "actions", where, key)
+                    if not isinstance(names, list) or not names:
+                        raise _bad_row(where, key, f"actions is not a list of names: {actions!r}")
+                    n = width[actions] = len(names)
+                info = _load_extra(extra, where, key)
                 info["stored_latency_s"] = lat
                 found[key] = BeliefResult(
-                    belief=np.array(loads(belief), dtype=np.float64),
+                    belief=_stored_belief(belief, n, where, key),
                     status=status,
                     source=source,
                     raw=raw,
@@ -574,7 +715,7 @@ class BeliefStore:
             chunk = rows[start : start + _SQL_CHUNK]
             texts = self._texts(chunk)
             for row in chunk:
-                yield _row_to_stored(row, texts)
+                yield _row_to_stored(row, texts, self.path)
 
     def identities(self) -> list[dict[str, Any]]:
         """Return each distinct source identity in the store with its row count.
@@ -589,7 +730,12 @@ class BeliefStore:
             "SELECT identity, COUNT(*), SUM(status IN ('ok', 'repaired')) FROM beliefs "
             "GROUP BY identity ORDER BY 2 DESC"
         )
-        return [{"identity": json.loads(i), "rows": n, "answers": int(m)} for i, n, m in rows]
+        out = []
+        for ident, n, m in rows:
+            where = f"{self.path}: identity {ident[:60]!r}"
+            identity = _load_column(ident, "identity", where, None)
+            out.append({"identity": identity, "rows": n, "answers": int(m or 0)})
+        return out
 
     def __len__(self) -> int:
         return int(self._read("SELECT COUNT(*) FROM beliefs")[0][0])
@@ -606,6 +752,9 @@ class BeliefStore:
         An existing ``ok``/``repaired`` row is kept as it is; any other existing row is
         replaced and its ``attempts`` counted up.
 
+        Every belief, whatever its status, must be valid for the request's action count
+        (:mod:`amuled_ma.beliefs.validate`); it is written divided by its sum.
+
         Args:
             items: ``(key, identity, request, result)`` tuples; ``identity`` is the
                 source's ``identity()`` dict or its :func:`identity_json` text.
@@ -613,10 +762,23 @@ class BeliefStore:
         Returns:
             The number of rows inserted or replaced.
 
+        Raises:
+            BeliefStoreError: A belief is invalid (nothing of the batch is written).
+
         """
         now = time.time()
         rows, texts = [], {}
         for key, identity, request, result in items:
+            belief, reason = check_belief(result.belief, len(request.action_names))
+            if belief is None:
+                raise BeliefStoreError(
+                    f"{self.path}: refusing to write row {key} ({request.task} / "
+                    f"{request.cluster}, status {result.status!r}, source {result.source!r}): "
+                    f"belief {show_values(result.belief)} {reason}; {RULE}; pass a source's "
+                    "answers through CachedSource (or amuled_ma.beliefs.validate."
+                    "checked_result), which turns an invalid answer into status 'error' with "
+                    "a uniform fallback"
+                )
             ident = identity if isinstance(identity, str) else identity_json(identity)
             messages_ref, bodies = _split_messages(request.messages)
             for h, body in bodies.items():
@@ -633,7 +795,7 @@ class BeliefStore:
                     _enc_names(tuple(request.action_names)),
                     messages_ref,
                     result.raw,
-                    _floats_json(np.asarray(result.belief, dtype=np.float64).ravel().tolist()),
+                    _floats_json(belief.tolist()),
                     result.status,
                     float(result.latency_s) if result.latency_s is not None else None,
                     result.prompt_tokens,
@@ -720,6 +882,7 @@ class BeliefStore:
                 files[p.name] = p.stat().st_size if p.exists() else 0
         return {
             "path": self.path,
+            "open_mode": self.open_mode,
             "schema_version": SCHEMA_VERSION,
             "rows": total,
             "cacheable_rows": sum(n for s, n in by_status.items() if s in CACHEABLE),
@@ -751,7 +914,13 @@ class BeliefStore:
         """
         count = 0
         for row in self.iter_rows(status=status, task=task):
-            fp.write(json.dumps(row.to_json(), ensure_ascii=False) + "\n")
+            try:
+                line = json.dumps(row.to_json(), ensure_ascii=False, allow_nan=False)
+            except ValueError as error:  # a NaN/inf in a column other than the belief
+                raise _bad_row(
+                    f"{self.path}: row {row.key}", row.key, f"not standard JSON ({error})"
+                ) from error
+            fp.write(line + "\n")
             count += 1
         return count
 
@@ -772,13 +941,26 @@ class BeliefStore:
             ``{"read": n, "written": m}`` (``m < n`` when answers were already there).
 
         Raises:
-            BeliefStoreError: A line is not a valid row (names the file and line).
+            BeliefStoreError: A line is not a valid row (names the file and line): not
+                standard JSON (``NaN``, ``Infinity``, nested too deeply), a missing
+                field, an unknown status, an invalid belief, a key that does not match.
 
         """
         read = written = 0
         rows: list[tuple[Any, ...]] = []
         texts: dict[str, str] = {}
-        for lineno, line in enumerate(fp, start=1):
+        lineno = 0
+        lines = iter(fp)
+        while True:
+            try:
+                line = next(lines)
+            except StopIteration:
+                break
+            except UnicodeDecodeError as error:
+                raise BeliefStoreError(
+                    f"{name}:{lineno + 1}: not UTF-8 text ({error}); export files are UTF-8"
+                ) from None
+            lineno += 1
             if not line.strip():
                 continue
             row, bodies = _json_to_row(line, f"{name}:{lineno}", verify)
@@ -818,7 +1000,72 @@ def _split_messages(
     return "[" + ",".join(refs) + "]", bodies
 
 
-def _row_to_stored(row: Sequence[Any], texts: Mapping[str, str] | None) -> StoredBelief:
+def _bad_row(where: str, key: str | None, problem: str) -> BeliefStoreError:
+    """The error of a damaged store row: where, what was found, how to remove the row."""
+    fix = (
+        f"delete the row (SQL: DELETE FROM beliefs WHERE key = '{key}') so the next run asks "
+        "again, or rebuild the store from an export"
+        if key
+        else "rebuild the store from an export"
+    )
+    return BeliefStoreError(
+        f"{where}: {problem}; the row is damaged (edited by hand, or written by another "
+        f"program or an older amuled-ma); {fix}"
+    )
+
+
+def _why(error: BaseException) -> str:
+    if isinstance(error, RecursionError):
+        return "nested deeper than Python's JSON reader can follow"
+    return str(error)
+
+
+def _load_column(text: Any, column: str, where: str, key: str | None) -> Any:
+    """Parse one JSON column of a stored row; a parse failure names the row."""
+    try:
+        return json.loads(text)
+    except (TypeError, ValueError, RecursionError) as error:
+        raise _bad_row(
+            where, key, f"column {column!r} is not JSON ({_why(error)}): {show_values(text, 80)}"
+        ) from None
+
+
+def _load_extra(text: str | None, where: str, key: str) -> dict[str, Any]:
+    """Parse the ``extra`` column (non-finite floats become ``"nan"``/``"inf"`` text)."""
+    if not text or text == "{}":
+        return {}
+    value = _load_column(text, "extra", where, key)
+    if not isinstance(value, dict):
+        raise _bad_row(where, key, f"column 'extra' is not a JSON object: {show_values(text, 80)}")
+    # rows of an older amuled-ma may hold NaN/Infinity (this one writes "nan"/"inf" text)
+    return _plain(value) if "NaN" in text or "Infinity" in text else value
+
+
+def _stored_belief(text: str, n_actions: int, where: str, key: str) -> np.ndarray:
+    """Parse and check a stored belief; an invalid one names the row and the fix."""
+    values = _load_column(text, "belief", where, key)
+    belief, reason = check_belief(values, n_actions)
+    if belief is None:
+        raise _bad_row(where, key, f"belief {show_values(values)} {reason}; {RULE}")
+    return belief
+
+
+def _messages_refs(row: Sequence[Any], path: str) -> list[tuple[str, str]]:
+    """The ``[[role, text_hash], ...]`` of a row's ``messages`` column, checked."""
+    key = row[0]
+    refs = _load_column(row[7], "messages", f"{path}: row {key}", key)
+    if not isinstance(refs, list) or not all(
+        isinstance(r, list) and len(r) == 2 and all(isinstance(x, str) for x in r) for r in refs
+    ):
+        raise _bad_row(
+            f"{path}: row {key}", key, f"column 'messages' is not [[role, hash], ...]: {row[7]!r}"
+        )
+    return [(r, h) for r, h in refs]
+
+
+def _row_to_stored(
+    row: Sequence[Any], texts: Mapping[str, str] | None, path: str = "<store>"
+) -> StoredBelief:
     (
         key,
         source,
@@ -839,55 +1086,103 @@ def _row_to_stored(row: Sequence[Any], texts: Mapping[str, str] | None) -> Store
         created,
         updated,
     ) = row
+    where = f"{path}: row {key}"
     messages: tuple[tuple[str, str], ...] | None = None
     if texts is not None:
-        refs = json.loads(messages_ref) if messages_ref else []
+        refs = _messages_refs(row, path) if messages_ref else []
+        missing = [h for _, h in refs if h not in texts]
+        if missing:
+            raise _bad_row(where, key, f"message text {missing[0]} is not in table 'texts'")
         messages = tuple((r, texts[h]) for r, h in refs)
+    obs_values = _load_column(obs, "obs", where, key)
+    names = _load_column(actions, "actions", where, key)
+    if not isinstance(names, list) or not names or not all(isinstance(a, str) for a in names):
+        raise _bad_row(where, key, f"column 'actions' is not a list of names: {actions!r}")
+    if not isinstance(obs_values, list) or not all(
+        isinstance(x, int | float) and not isinstance(x, bool) for x in obs_values
+    ):
+        raise _bad_row(where, key, f"column 'obs' is not a list of numbers: {obs!r}")
+    ident = _load_column(identity, "identity", where, key)
     return StoredBelief(
         key=key,
         source=source,
-        identity=json.loads(identity),
+        identity=ident,
         task=task,
         cluster=cluster,
-        obs=tuple(json.loads(obs)),
-        action_names=tuple(json.loads(actions)),
+        obs=tuple(obs_values),
+        action_names=tuple(names),
         messages=messages,
         raw=raw,
-        belief=np.asarray(json.loads(belief), dtype=np.float64),
+        belief=_stored_belief(belief, len(names), where, key),
         status=status,
         latency_s=latency,
         prompt_tokens=ptok,
         completion_tokens=ctok,
-        extra=json.loads(extra) if extra else {},
+        extra=_load_extra(extra, where, key),
         attempts=int(attempts),
         created_at=float(created),
         updated_at=float(updated),
     )
 
 
+def _finite_number(value: Any) -> bool:
+    """True for an int or float (not a bool) that is a finite float64."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return False
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:
+        return False
+
+
+def _reject_constant(name: str) -> Any:
+    """``parse_constant`` of the JSONL reader: ``NaN``, ``Infinity`` are not standard JSON."""
+    raise ValueError(f"{name} is not standard JSON (JSON has no NaN or infinity)")
+
+
 def _json_to_row(line: str, where: str, verify: bool) -> tuple[tuple[Any, ...], dict[str, str]]:
     """Validate one exported JSON line and turn it into a table row."""
     try:
-        obj = json.loads(line)
-    except json.JSONDecodeError as error:
-        raise BeliefStoreError(f"{where}: not JSON ({error})") from error
+        obj = json.loads(line, parse_constant=_reject_constant)
+    except (ValueError, RecursionError) as error:
+        raise BeliefStoreError(
+            f"{where}: not JSON ({_why(error)}); each line must be one standard JSON object "
+            "written by 'amuled beliefs export' (fix or remove the line)"
+        ) from None
+    if not isinstance(obj, dict):
+        raise BeliefStoreError(
+            f"{where}: expected a JSON object (one exported row), found {show_values(obj, 80)}"
+        )
     required = ("key", "source", "identity", "task", "cluster", "obs", "actions", "belief")
     missing = [k for k in (*required, "status") if k not in obj]
     if missing:
         raise BeliefStoreError(f"{where}: missing field(s) {', '.join(missing)}")
     if obj["status"] not in STATUSES:
         raise BeliefStoreError(f"{where}: status {obj['status']!r} is not one of {STATUSES}")
-    belief = obj["belief"]
-    if not isinstance(belief, list) or len(belief) != len(obj["actions"]):
+    key = obj["key"]
+    at = f"{where} (key {key})"
+    actions = obj["actions"]
+    if not isinstance(actions, list) or not actions or not all(isinstance(a, str) for a in actions):
+        raise BeliefStoreError(f"{at}: actions must be a list of names, found {actions!r}")
+    belief, reason = check_belief(obj["belief"], len(actions))
+    if belief is None:
         raise BeliefStoreError(
-            f"{where}: belief must be a list of {len(obj['actions'])} numbers, got {belief!r}"
+            f"{at}: belief {show_values(obj['belief'])} {reason}; {RULE} ({len(actions)} "
+            "actions); fix or remove the line and import the file again (rows already "
+            "imported are kept, never duplicated)"
         )
-    messages = tuple((str(r), str(c)) for r, c in obj.get("messages") or [])
+    obs = obj["obs"]
+    if not isinstance(obs, list) or not all(_finite_number(x) for x in obs):
+        raise BeliefStoreError(f"{at}: obs must be a list of finite numbers, found {obs!r}")
+    try:
+        messages = tuple((str(r), str(c)) for r, c in obj.get("messages") or [])
+    except (TypeError, ValueError) as error:
+        raise BeliefStoreError(f"{at}: messages must be [[role, text], ...] ({error})") from None
     request = BeliefRequest(
         task=obj["task"],
         cluster=obj["cluster"],
-        obs=tuple(float(x) for x in obj["obs"]),
-        action_names=tuple(obj["actions"]),
+        obs=tuple(float(x) for x in obs),
+        action_names=tuple(actions),
         messages=messages,
     )
     ident = identity_json(obj["identity"])
@@ -901,24 +1196,27 @@ def _json_to_row(line: str, where: str, verify: bool) -> tuple[tuple[Any, ...], 
             )
     messages_ref, bodies = _split_messages(messages)
     now = time.time()
-    row = (
-        obj["key"],
-        obj["source"],
-        ident,
-        request.task,
-        request.cluster,
-        canonical_json(list(request.obs)),
-        canonical_json(list(request.action_names)),
-        messages_ref,
-        obj.get("raw"),
-        canonical_json([float(x) for x in belief]),
-        obj["status"],
-        obj.get("latency_s"),
-        obj.get("prompt_tokens"),
-        obj.get("completion_tokens"),
-        canonical_json(obj.get("extra") or {}),
-        int(obj.get("attempts") or 1),
-        float(obj.get("created_at") or now),
-        float(obj.get("updated_at") or now),
-    )
+    try:
+        row = (
+            obj["key"],
+            obj["source"],
+            ident,
+            request.task,
+            request.cluster,
+            canonical_json(list(request.obs)),
+            canonical_json(list(request.action_names)),
+            messages_ref,
+            obj.get("raw"),
+            canonical_json(belief.tolist()),
+            obj["status"],
+            obj.get("latency_s"),
+            obj.get("prompt_tokens"),
+            obj.get("completion_tokens"),
+            _extra_json(obj.get("extra") or {}),
+            int(obj.get("attempts") or 1),
+            float(obj.get("created_at") or now),
+            float(obj.get("updated_at") or now),
+        )
+    except (TypeError, ValueError) as error:
+        raise BeliefStoreError(f"{at}: malformed row ({error})") from None
     return row, bodies

@@ -172,6 +172,7 @@ def say(message: str) -> None:
 def describe(job: Any) -> str:
     """One line about a finished training job (a seed replica's seed in brackets)."""
     from amuled_ma.learn.experiments import split_replica
+    from amuled_ma.learn.feedback import summary_lines
 
     seed = split_replica(Path(job.out_dir).name)[1]
     name = job.variant if seed is None else f"{job.variant} [seed {seed}]"
@@ -186,6 +187,15 @@ def describe(job: Any) -> str:
     if out.feedback:
         line += f", {out.feedback['unique_states']} distinct states"
         line += f", replay miss rate {100 * out.feedback['miss_rate']:.2f}%"
+        line += f", not answered {100 * out.feedback.get('failure_rate', 0.0):.2f}%"
+        # per agent, the agents that left states unanswered (abstained, errors, misses)
+        failing = {
+            name: row
+            for name, row in (out.feedback.get("agents") or {}).items()
+            if row.get("failed")
+        }
+        shown = summary_lines({**out.feedback, "agents": failing})[1:]
+        line += "".join("\n    " + text for text in shown)
     return line
 
 

@@ -9,6 +9,9 @@ importing it there::
 
 The store file is ``--store``, else ``$AMULED_BELIEF_STORE``, else
 ``~/.cache/amuled/beliefs.sqlite`` (see :func:`amuled_ma.beliefs.store.default_store_path`).
+``stats`` and ``export`` open it read-only (SQLite ``mode=ro``, else ``immutable=1``), so
+they also work on a store you may only read. Export writes standard JSON only, and import
+refuses anything else (``NaN``, invalid beliefs), naming the file and line.
 """
 
 from __future__ import annotations
@@ -75,12 +78,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _existing_store(path: Path | None) -> BeliefStore:
+    """Open an existing store for reading only (``mode=ro``): works on read-only files."""
     path = path or default_store_path()
     if not path.is_file():
         raise BeliefStoreError(
             f"no belief store at {path} (give --store PATH or set AMULED_BELIEF_STORE)"
         )
-    return BeliefStore(path)
+    return BeliefStore(path, read_only=True)
 
 
 def _stats(args: argparse.Namespace) -> int:
@@ -91,6 +95,11 @@ def _stats(args: argparse.Namespace) -> int:
         print(json.dumps(figures, indent=2))
         return 0
     print(f"belief store {figures['path']} (schema v{figures['schema_version']})")
+    if figures["open_mode"] == "immutable":
+        print(
+            "  opened immutable (the file and its folder are not writable): rows still in a "
+            "-wal file beside it are not counted"
+        )
     print(f"  rows: {figures['rows']} ({figures['cacheable_rows']} served as answers)")
     print("  by status: " + ", ".join(f"{k} {v}" for k, v in sorted(figures["by_status"].items())))
     for entry in figures["by_model"]:
@@ -121,8 +130,15 @@ def _export(args: argparse.Namespace) -> int:
                 os.dup2(devnull, sys.stdout.fileno())
                 return 0
         else:
-            with open(args.output, "w", encoding="utf-8") as fp:
-                count = store.export_jsonl(fp, status=args.status, task=args.task)
+            # written beside the target and renamed at the end: a row that cannot be
+            # exported (a damaged store) leaves no half-written file behind
+            part = Path(f"{args.output}.part")
+            try:
+                with open(part, "w", encoding="utf-8") as fp:
+                    count = store.export_jsonl(fp, status=args.status, task=args.task)
+                os.replace(part, args.output)
+            finally:
+                part.unlink(missing_ok=True)
     print(f"exported {count} rows from {store.path}", file=sys.stderr)
     return 0
 

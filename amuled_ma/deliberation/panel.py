@@ -17,8 +17,12 @@ For a batch it
    (:func:`amuled_ma.clusters.build_messages`), unless the source reads no messages;
 3. sends all (state, cluster) requests in **one** batch to the source (wrap it in
    :class:`~amuled_ma.beliefs.cached.CachedSource` for the SQLite store);
-4. sanitises the beliefs (a non-finite, negative or all-zero vector becomes uniform with
-   status ``"error"``, so fusion never raises in the training loop) and fuses them with
+4. checks every belief with the package's one rule (:mod:`amuled_ma.beliefs.validate`:
+   finite, non-negative, one value per action, summing to 1 within 1e-6; within the
+   tolerance it is divided by its sum): an invalid belief, whatever status its source gave
+   it, becomes uniform with status ``"error"`` (counted in :attr:`PanelStats.invalid`, its
+   reason kept in :attr:`PanelStats.invalid_reasons`), so fusion never raises in the
+   training loop and no invalid belief is fused as an answer; then fuses them with
    :func:`amuled_ma.fusion.fuse` in one vectorised call.
 
 Only rows whose every cluster answered ``ok``/``repaired`` enter the LRU, so a state that
@@ -37,6 +41,7 @@ import numpy as np
 
 from amuled_ma.beliefs.store import CACHEABLE
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.beliefs.validate import check_belief, check_beliefs, show_values
 
 #: Marker substituted by the state prompt in a cluster's pre-built chat.
 _SENTINEL = "\x00AMULED_STATE_PROMPT\x00"
@@ -96,6 +101,8 @@ class PanelStats:
         requests: Belief requests sent to the source (K per new state).
         fallbacks: Beliefs whose status was not ``ok``/``repaired``.
         by_status: Count of each status among answered requests.
+        invalid: Beliefs that were not valid probability vectors (made uniform ``"error"``).
+        invalid_reasons: The first few of them, ``"cluster: values: reason"``.
 
     """
 
@@ -106,6 +113,12 @@ class PanelStats:
     requests: int = 0
     fallbacks: int = 0
     by_status: dict[str, int] = field(default_factory=dict)
+    invalid: int = 0
+    invalid_reasons: list[str] = field(default_factory=list)
+
+
+#: How many invalid-belief reasons :class:`PanelStats` keeps.
+_KEEP_REASONS = 10
 
 
 class MoralPanel:
@@ -376,28 +389,34 @@ class MoralPanel:
         )
 
     def _collect(self, results: Sequence[BeliefResult], count: int) -> tuple[np.ndarray, Any]:
-        """Stack results into ``(count, K, A)`` beliefs, making each a valid distribution."""
+        """Stack results into ``(count, K, A)`` beliefs; an invalid one becomes uniform error."""
         k, a = self.num_clusters, self.num_actions
         m = count * k
         out = np.full((m, a), np.nan)
         statuses = np.empty(m, dtype=object)
+        odd: dict[int, str] = {}  # results that are not a float vector of length A at all
         for j, result in enumerate(results):
             b = result.belief
-            if getattr(b, "shape", None) == (a,):
+            if isinstance(b, np.ndarray) and b.shape == (a,) and b.dtype.kind in "iuf":
                 out[j] = b
             else:
-                flat = np.asarray(b, dtype=np.float64).reshape(-1)
-                if flat.shape == (a,):
-                    out[j] = flat  # anything else stays NaN: invalid
+                belief, reason = check_belief(b, a)
+                if belief is None:
+                    odd[j] = f"{show_values(b)} {reason}"
+                else:
+                    out[j] = belief
             statuses[j] = result.status
-        # vectorised validation: finite, non-negative, positive sum; else uniform "error"
-        with np.errstate(invalid="ignore"):
-            total = out.sum(axis=1)
-            valid = np.isfinite(out).all(axis=1) & (out >= 0).all(axis=1) & (total > 0)
-        out[valid] /= total[valid, None]
-        out[~valid] = 1.0 / a
-        statuses[~valid] = "error"
+        # one vectorised check of the package's rule (amuled_ma.beliefs.validate)
+        out, reasons = check_beliefs(out)
+        bad = [j for j, reason in enumerate(reasons) if reason is not None]
         st = self.stats
+        if bad:
+            out[bad] = 1.0 / a
+            statuses[bad] = "error"
+            st.invalid += len(bad)
+            for j in bad[: max(0, _KEEP_REASONS - len(st.invalid_reasons))]:
+                found = odd.get(j) or f"{show_values(results[j].belief)} {reasons[j]}"
+                st.invalid_reasons.append(f"{self.cluster_names[j % k]}: {found}")
         st.requests += len(results)
         for status, n in Counter(statuses.tolist()).items():
             st.by_status[status] = st.by_status.get(status, 0) + n

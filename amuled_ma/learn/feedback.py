@@ -13,6 +13,14 @@ Variants (``--feedback``):
 - ``cluster:<name>``: one moral cluster alone;
 - ``moral``: the unprompted "behave as a moral agent" agent;
 - ``agg:mean|max|vote``: the five clusters fused with another rule.
+
+Every call counts, per agent (cluster), the status of the belief each rewarded step was
+given: ``ok`` / ``repaired`` (an answer), ``abstained`` / ``timeout`` / ``error`` (a
+failure: the fused reward used a uniform fallback for that agent) and ``replay_miss``.
+:meth:`Feedback.summary` holds them (``"agents"``, JSON-ready, for ``feedback.json`` and
+``results.json``), :meth:`Feedback.agent_report` returns them on their own, and
+:func:`summary_lines` prints them, so a server that always fails or answers NaN reads
+"error 100.00%", not "miss rate 0.00%".
 """
 
 from __future__ import annotations
@@ -33,6 +41,10 @@ from amuled_ma.errors import AmuledError, ScenarioError
 MORAL_AGENT = "moral_agent"
 #: Aggregation rules of the ``agg:`` variants.
 AGGREGATIONS = ("mean", "max", "vote")
+#: Statuses reported per agent, in this order (any other status a source gives is added).
+REPORTED_STATUSES = ("ok", "repaired", "abstained", "timeout", "error", "replay_miss")
+#: Statuses that are answers; every other one is a failure (a fallback belief was used).
+ANSWERED = frozenset({"ok", "repaired"})
 
 
 class Feedback(ABC):
@@ -47,6 +59,10 @@ class Feedback(ABC):
         self.steps = 0
         self.lookups = 0
         self.statuses: Counter[str] = Counter()
+        #: ``(agent, status)`` -> rewarded steps whose belief of that agent had that status.
+        self.agent_statuses: Counter[tuple[str, str]] = Counter()
+        #: The same, counted once per distinct state asked (not per step).
+        self.agent_statuses_unique: Counter[tuple[str, str]] = Counter()
         self._weight_sum: dict[str, float] = {}
         self._conflict_sum = 0.0
         self._diag_count = 0
@@ -80,7 +96,9 @@ class Feedback(ABC):
             self.lookups += len(rows)
             for key, result in zip(missing, results, strict=True):
                 diag = result[1]
-                memo[key] = (np.asarray(result[0], dtype=np.float64), diag, _prepare(diag))
+                prepared = _prepare(diag, self.name)
+                memo[key] = (np.asarray(result[0], dtype=np.float64), diag, prepared)
+                self.agent_statuses_unique.update(prepared[0])
         entries = [memo[key] for key in keys]
         out = np.stack([entry[0] for entry in entries]) if entries else np.empty((0, 0))
         for entry in entries:
@@ -90,9 +108,11 @@ class Feedback(ABC):
 
     def _account(self, prepared: tuple) -> None:
         """Add one row's diagnostics (as :func:`_prepare` returns them) to the totals."""
-        statuses, weights, conflict = prepared
-        for status in statuses:
-            self.statuses[status] += 1
+        pairs, weights, conflict = prepared
+        statuses, agent_statuses = self.statuses, self.agent_statuses
+        for pair in pairs:
+            agent_statuses[pair] += 1
+            statuses[pair[1]] += 1
         if weights:
             weight_sum = self._weight_sum
             for name, value in weights:
@@ -100,8 +120,54 @@ class Feedback(ABC):
             self._diag_count += 1
             self._conflict_sum += conflict
 
+    def agent_report(self, *, per: str = "steps") -> dict[str, dict[str, Any]]:
+        """Per agent: how many beliefs had each status, and the share that failed.
+
+        Args:
+            per: ``"steps"`` (each rewarded env step counts: the share of the reward
+                built on fallbacks) or ``"states"`` (each distinct state asked counts once).
+
+        Returns:
+            ``{agent: {"ok": n, "repaired": n, "abstained": n, "timeout": n, "error": n,
+            "replay_miss": n, (any other status), "total": n, "failed": n,
+            "failure_rate": failed / total}}``, agents in the order first seen. ``failed``
+            counts every status but ``ok`` and ``repaired``; a future stopping threshold
+            can compare ``failure_rate`` with a limit.
+
+        Raises:
+            ValueError: ``per`` is neither ``"steps"`` nor ``"states"``.
+
+        """
+        if per not in ("steps", "states"):
+            raise ValueError(f"per must be 'steps' or 'states', got {per!r}")
+        counts = self.agent_statuses if per == "steps" else self.agent_statuses_unique
+        report: dict[str, dict[str, Any]] = {}
+        for (agent, status), n in counts.items():
+            row = report.setdefault(agent, dict.fromkeys(REPORTED_STATUSES, 0))
+            row[status] = row.get(status, 0) + n
+        for row in report.values():
+            total = sum(row.values())
+            failed = total - row["ok"] - row["repaired"]
+            row.update(total=total, failed=failed, failure_rate=failed / total if total else 0.0)
+        return report
+
+    def failure_rate(self) -> float:
+        """Share of all agents' beliefs over rewarded steps that were not answers (0..1)."""
+        total = sum(self.statuses.values())
+        answered = sum(n for status, n in self.statuses.items() if status in ANSWERED)
+        return (total - answered) / total if total else 0.0
+
     def summary(self) -> dict[str, Any]:
-        """Diagnostics so far: per-cluster mean weight, mean conflict, statuses, miss rate."""
+        """Diagnostics so far, JSON-ready (``feedback.json``, ``results.json``).
+
+        Returns:
+            ``feedback`` (variant), ``steps``, ``unique_states``, ``mean_weight`` and
+            ``mean_conflict`` (fusion), ``statuses`` (all agents, per step),
+            ``miss_rate`` (replay misses / beliefs), ``failure_rate`` (beliefs that were
+            not answers / beliefs), ``agents`` (:meth:`agent_report` per step) and
+            ``agents_per_state`` (per distinct state).
+
+        """
         total = sum(self.statuses.values())
         n = max(1, self._diag_count)
         return {
@@ -112,22 +178,66 @@ class Feedback(ABC):
             "mean_conflict": self._conflict_sum / n if self._diag_count else None,
             "statuses": dict(self.statuses),
             "miss_rate": (self.statuses.get("replay_miss", 0) / total) if total else 0.0,
+            "failure_rate": self.failure_rate(),
+            "agents": self.agent_report(per="steps"),
+            "agents_per_state": self.agent_report(per="states"),
         }
 
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release the underlying source."""
 
 
-def _prepare(diag: dict[str, Any]) -> tuple:
-    """Return ``(statuses, ((cluster, weight), ...) or None, conflict)`` of a diagnostics dict.
+def _prepare(diag: dict[str, Any], default_agent: str = "feedback") -> tuple:
+    """Return ``(((agent, status), ...), ((cluster, weight), ...) or None, conflict)``.
 
+    The agents are ``diag["agents"]`` (one name per status), else the weights' names when
+    they match the statuses one to one, else ``default_agent`` (the variant's name).
     Done once per distinct state, so the per-row accounting of every step is a few
     additions, in the same order and with the same floats as reading the dict each time.
     """
     weights = diag.get("weights")
     pairs = tuple((name, float(value)) for name, value in weights.items()) if weights else None
     conflict = float(diag.get("conflict", 0.0)) if weights else 0.0
-    return tuple(diag.get("statuses", ())), pairs, conflict
+    statuses = tuple(str(s) for s in diag.get("statuses", ()))
+    agents = tuple(diag.get("agents") or (weights or {}))
+    if len(agents) != len(statuses):
+        agents = (default_agent,) * len(statuses)
+    return tuple(zip(agents, statuses, strict=True)), pairs, conflict
+
+
+def summary_lines(summary: dict[str, Any]) -> list[str]:
+    """Format a :meth:`Feedback.summary` for people: one headline, one line per agent.
+
+    Works on summaries written before per-agent counts existed (headline only).
+
+    Args:
+        summary: The dict of :meth:`Feedback.summary` (or a ``feedback.json``).
+
+    Returns:
+        Lines without trailing newlines, e.g.::
+
+            beliefs not answered: 50.00% of 800 (abstained 0, timeout 0, error 400, ...)
+              care: ok 400, repaired 0, abstained 0, timeout 0, error 0, replay_miss 0
+              virtue: ok 0, repaired 0, abstained 0, timeout 0, error 400 (100.00%), ...
+
+    """
+    statuses = summary.get("statuses") or {}
+    total = sum(statuses.values())
+    failed = total - sum(n for s, n in statuses.items() if s in ANSWERED)
+    others = [s for s in statuses if s not in REPORTED_STATUSES]
+    parts = ", ".join(f"{s} {statuses.get(s, 0):,}" for s in (*REPORTED_STATUSES[2:], *others))
+    rate = 100 * failed / total if total else 0.0
+    lines = [f"beliefs not answered: {rate:.2f}% of {total:,} ({parts})"]
+    for agent, row in (summary.get("agents") or {}).items():
+        agent_total = row.get("total") or 0
+        cells = []
+        for status, n in row.items():
+            if status in ("total", "failed", "failure_rate"):
+                continue
+            share = f" ({100 * n / agent_total:.2f}%)" if n and agent_total else ""
+            cells.append(f"{status} {n:,}{share if status not in ANSWERED else ''}")
+        lines.append(f"  {agent}: {', '.join(cells)}")
+    return lines
 
 
 class CallableFeedback(Feedback):
@@ -198,6 +308,8 @@ class PanelFeedback(Feedback):
                 diag["statuses"] = (
                     (row_status,) if isinstance(row_status, str) else tuple(row_status)
                 )
+                if len(clusters) == len(diag["statuses"]):
+                    diag["agents"] = tuple(clusters)
             results.append((fused[i], diag))
         return results
 

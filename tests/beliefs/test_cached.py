@@ -87,7 +87,7 @@ def test_miss_then_hit_and_dedup(store):
     assert [r.raw for r in again] == ["reply 1", "reply 2", "reply 1", "reply 1", "reply 4"]
     assert cached.stats.as_dict() | {} == {
         "requests": 5, "unique": 3, "memory_hits": 0, "store_hits": 3, "misses": 0,
-        "sent": 0, "written": 0, "not_cached": 0, "hits": 3, "hit_rate": 1.0,
+        "sent": 0, "written": 0, "not_cached": 0, "invalid": 0, "hits": 3, "hit_rate": 1.0,
     }  # fmt: skip
 
 

@@ -107,10 +107,25 @@ def test_invalid_beliefs_become_uniform_errors():
     out = panel.fused(obs(3))
     np.testing.assert_allclose(out.fused[0], [0.25] * 4)
     assert out.statuses[0].tolist() == ["error", "error"]
-    # an unnormalised but valid vector is renormalised: [2, 2, 0, 0] -> [.5, .5, 0, 0]
-    ok = {("belief", "a", 4.0): [2.0, 2.0, 0, 0], ("belief", "b", 4.0): [2.0, 2.0, 0, 0]}
-    panel = MoralPanel("findmilk", ["a", "b"], Table(statuses=ok), "mean", action_names=ACTIONS)
-    np.testing.assert_allclose(panel.fused(obs(4)).fused[0], [0.5, 0.5, 0, 0])
+    assert panel.stats.invalid == 2
+    assert panel.stats.invalid_reasons == [
+        "a: [nan, 1.0, 0.0, 0.0] holds nan at index 0 (not a finite number)",
+        "b: [0.0, 0.0, 0.0, 0.0] sums to 0 (every value is zero)",
+    ]
+    # a vector off 1 by more than the tolerance is not a belief: [2, 2, 0, 0] is refused
+    # (an "ok" answer must be a probability vector; only the reply parser repairs sums)
+    off = {("belief", "a", 4.0): [2.0, 2.0, 0, 0], ("belief", "b", 4.0): [0.5, 0.5, 0, 0]}
+    panel = MoralPanel("findmilk", ["a", "b"], Table(statuses=off), "mean", action_names=ACTIONS)
+    out = panel.fused(obs(4))
+    assert out.statuses[0].tolist() == ["error", "ok"]
+    np.testing.assert_allclose(out.fused[0], [0.375, 0.375, 0.125, 0.125])  # mean(uniform, b)
+    # within 1e-6 of 1 it is a belief, divided by its sum: [.5 + 5e-7, .5, 0, 0]
+    near = {("belief", c, 5.0): [0.5 + 5e-7, 0.5, 0, 0] for c in "ab"}
+    panel = MoralPanel("findmilk", ["a", "b"], Table(statuses=near), "mean", action_names=ACTIONS)
+    out = panel.fused(obs(5))
+    assert out.statuses[0].tolist() == ["ok", "ok"]
+    total = 1.0 + 5e-7
+    np.testing.assert_allclose(out.beliefs[0, 0], [(0.5 + 5e-7) / total, 0.5 / total, 0, 0])
 
 
 def fake_render(task, variables):

@@ -1,13 +1,22 @@
+import json
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 
+from amuled_ma.beliefs.types import BeliefResult, BeliefSource
 from amuled_ma.errors import ScenarioError
 from amuled_ma.learn.experiments import ablation_variants, variant_dir_name
-from amuled_ma.learn.feedback import CallableFeedback, PanelFeedback, parse_variant
+from amuled_ma.learn.feedback import (
+    CallableFeedback,
+    PanelFeedback,
+    parse_variant,
+    summary_lines,
+)
 from amuled_ma.scenario import scenario_from_dict
+
+MILK = ("up", "down", "left", "right")
 
 
 class FakePanel:
@@ -46,6 +55,9 @@ def test_panel_feedback_batches_new_states_once_and_reports_diagnostics():
     assert summary["mean_weight"] == pytest.approx({"a": 0.25, "b": 0.75})
     assert summary["mean_conflict"] == pytest.approx(0.5)
     assert summary["miss_rate"] == pytest.approx(0.5)
+    # per agent: FakePanel's "a" always answered, "b" was always a replay miss
+    assert summary["agents"]["a"]["ok"] == 6 and summary["agents"]["b"]["replay_miss"] == 6
+    assert summary["agents"]["b"]["failure_rate"] == 1.0 and summary["failure_rate"] == 0.5
 
 
 def test_callable_feedback():
@@ -119,3 +131,77 @@ def test_make_source_preflight_fails_before_writing(tmp_path):
         make_source(sc, tmp_path / "run")
     assert Down.closed
     assert not (tmp_path / "run").exists()
+
+
+class _Answers(BeliefSource):
+    """A plug-in source: per cluster, a fixed answer given with status "ok"."""
+
+    name = "plugin"
+    needs_messages = False
+
+    def __init__(self, table):
+        self.table = table
+
+    def beliefs(self, requests):
+        return [
+            BeliefResult(np.asarray(self.table[r.cluster], dtype=np.float64), "ok", self.name)
+            for r in requests
+        ]
+
+
+def _panel_feedback(tmp_path, table, clusters=("care", "virtue")):
+    from amuled_ma.beliefs.cached import CachedSource
+    from amuled_ma.beliefs.store import BeliefStore
+    from amuled_ma.deliberation import MoralPanel
+
+    store = BeliefStore(tmp_path / "beliefs.sqlite")
+    source = CachedSource(_Answers(table), store)
+    panel = MoralPanel("findmilk", list(clusters), source, "mean", action_names=MILK)
+    return PanelFeedback("amuled", panel, source), store
+
+
+def test_a_source_that_answers_nan_is_reported_as_100_percent_errors(tmp_path):
+    # a server that always answers NaN used to read "miss rate 0.00%"
+    fb, store = _panel_feedback(tmp_path, {"care": [np.nan] * 4, "virtue": [np.nan] * 4})
+    obs = torch.tensor([[0.0, 1.0], [0.0, 1.0], [2.0, 3.0]])
+    rewards = fb(obs, FakeTask())
+    fb(obs, FakeTask())
+    np.testing.assert_array_equal(rewards, np.full((3, 4), 0.25))  # uniform fallbacks
+    summary = fb.summary()
+    assert summary["miss_rate"] == 0.0 and summary["failure_rate"] == 1.0
+    assert summary["statuses"] == {"error": 12}  # 6 rewarded steps x 2 agents
+    for agent in ("care", "virtue"):
+        row = summary["agents"][agent]
+        assert (row["ok"], row["error"], row["total"], row["failure_rate"]) == (0, 6, 6, 1.0)
+        assert summary["agents_per_state"][agent]["error"] == 2  # 2 distinct states
+    json.dumps(summary, allow_nan=False)  # results.json-ready
+    assert summary_lines(summary) == [
+        "beliefs not answered: 100.00% of 12 (abstained 0, timeout 0, error 12, replay_miss 0)",
+        "  care: ok 0, repaired 0, abstained 0, timeout 0, error 6 (100.00%), replay_miss 0",
+        "  virtue: ok 0, repaired 0, abstained 0, timeout 0, error 6 (100.00%), replay_miss 0",
+    ]
+    # nothing was stored as an answer
+    assert store.stats()["by_status"] == {"error": 4} and store.stats()["cacheable_rows"] == 0
+    store.close()
+
+
+def test_per_agent_counts_separate_a_failing_agent_from_a_good_one(tmp_path):
+    fb, store = _panel_feedback(tmp_path, {"care": [0.0, 0.0, 0.0, 1.0], "virtue": [-1, 0, 0, 2]})
+    fb(torch.tensor([[0.0, 1.0], [5.0, 3.0]]), FakeTask())
+    summary = fb.summary()
+    assert summary["agents"]["care"]["ok"] == 2 and summary["agents"]["care"]["failed"] == 0
+    assert summary["agents"]["virtue"]["error"] == 2
+    assert summary["failure_rate"] == 0.5
+    assert fb.agent_report(per="states")["virtue"]["failure_rate"] == 1.0
+    lines = summary_lines(summary)
+    assert lines[0] == (
+        "beliefs not answered: 50.00% of 4 (abstained 0, timeout 0, error 2, replay_miss 0)"
+    )
+    assert lines[1] == "  care: ok 2, repaired 0, abstained 0, timeout 0, error 0, replay_miss 0"
+    # a summary written before per-agent counts existed still prints its headline
+    assert summary_lines({"statuses": {"ok": 9, "replay_miss": 1}}) == [
+        "beliefs not answered: 10.00% of 10 (abstained 0, timeout 0, error 0, replay_miss 1)"
+    ]
+    with pytest.raises(ValueError, match="per must be"):
+        fb.agent_report(per="episodes")
+    store.close()
