@@ -34,6 +34,7 @@ from typing import Any
 
 import httpx
 
+from amuled_ma.beliefs.hosts import normalize_host
 from amuled_ma.errors import AmuledError, BackendUnavailable, ModelNotFound
 
 #: Version that ``.ci/setup-ollama`` builds and the tests were measured with.
@@ -69,26 +70,6 @@ def cache_dir() -> Path:
 def default_state_dir() -> Path:
     """Return where ``amuled ollama up`` keeps its server's state, models and log."""
     return cache_dir() / "server"
-
-
-def normalize_host(host: str) -> str:
-    """Return ``host`` as a URL with scheme and port (``127.0.0.1:8080`` -> ``http://...``).
-
-    Args:
-        host: ``HOST``, ``HOST:PORT`` or a full ``http(s)://HOST:PORT`` URL.
-
-    Returns:
-        ``scheme://host:port`` without a trailing slash.
-
-    """
-    host = host.strip().rstrip("/")
-    if "://" not in host:
-        host = "http://" + host
-    scheme, rest = host.split("://", 1)
-    has_port = "]:" in rest if rest.startswith("[") else ":" in rest  # "[" : IPv6 literal
-    if not has_port:
-        rest += ":443" if scheme == "https" else ":11434"
-    return f"{scheme}://{rest}"
 
 
 def find_binary(explicit: str | os.PathLike[str] | None = None) -> Path:

@@ -461,14 +461,79 @@ class Scenario:
         path = Path(os.path.expandvars(os.path.expanduser(value)))
         return path if path.is_absolute() else (self.base_dir / path).resolve()
 
-    def recording_path(self) -> Path:
-        """Path of the replayed recording, with ``$AMULED_RECORDINGS`` as a fallback folder."""
-        path = self.resolve(self.feedback.recording)
-        if not path.exists() and os.environ.get("AMULED_RECORDINGS"):
-            alt = Path(os.environ["AMULED_RECORDINGS"]) / Path(self.feedback.recording).name
-            if alt.exists():
-                return alt
-        return path
+    def recording_path(self, *, required: bool = False) -> Path:
+        """Find the replayed recording ``[feedback].recording``, by path or by name.
+
+        ``recording`` is a path (``"../data/findmilk-gpt-4o-mini.json"``) or a bare name
+        (``"findmilk-gpt-4o-mini"``, ``.json`` optional). Each place is searched for its file
+        name, then (unless it ends in ``.json``) that name with ``.json`` added. The first
+        existing file wins:
+
+        1. the value as given, relative to the scenario file;
+        2. ``$AMULED_RECORDINGS/<name>.json``;
+        3. the user data folder, :func:`user_recordings_dir` (where
+           ``amuled import authors PATH`` writes);
+        4. ``../shared/amuled-recordings/<name>.json`` beside the repository checkout
+           (the nearest folder with ``.git``) that holds the current directory.
+
+        Args:
+            required: Raise when no place holds the file. Without it the value as given
+                (resolved) is returned, as before this lookup existed, so callers that
+                test ``.exists()`` keep working.
+
+        Returns:
+            The recording file.
+
+        Raises:
+            ScenarioError: ``required`` and nothing was found (or the value is empty); the
+                message lists every place looked and names ``amuled import authors PATH``.
+
+        """
+        value = self.feedback.recording
+        as_given = self.resolve(value)
+        where = self.path or f"scenario {self.name!r}"
+        if not value.strip():
+            if required:
+                raise ScenarioError(
+                    f"{where}: [feedback].recording is empty; name a recording file, or a "
+                    "recording by name such as 'findmilk-gpt-4o-mini'"
+                )
+            return as_given
+        names = [Path(value).name]
+        if not value.endswith(".json"):
+            names.append(f"{names[0]}.json")
+        given = [as_given.with_name(n) for n in names]
+        env = os.environ.get("AMULED_RECORDINGS")
+        cwd = Path.cwd().resolve()
+        root = next((d for d in (cwd, *cwd.parents) if (d / ".git").exists()), None)
+        folders = [
+            ("$AMULED_RECORDINGS", Path(os.path.expanduser(env)) if env else None, "not set"),
+            ("the user data folder", user_recordings_dir(), ""),
+            (
+                "beside the checkout",
+                root.parent / "shared" / "amuled-recordings" if root else None,
+                "the current directory is in no checkout",
+            ),
+        ]
+        candidates = given + [f / n for _, f, _ in folders if f is not None for n in names]
+        for path in candidates:
+            if path.is_file():
+                return path
+        if not required:
+            return as_given
+        looked = "; ".join(
+            [f"as given (relative to the scenario file): {' or '.join(map(str, given))}"]
+            + [
+                f"{label}: {folder / names[-1] if folder is not None else f'({why})'}"
+                for label, folder, why in folders
+            ]
+        )
+        raise ScenarioError(
+            f"{where}: [feedback].recording {value!r} not found; looked in: {looked}. Fix: "
+            "convert the AMULED authors' recordings with 'amuled import authors PATH' "
+            "(PATH = a checkout of https://github.com/temetski/moral_agent), or set "
+            f"AMULED_RECORDINGS to the folder holding {names[-1]}"
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """Return the fully resolved scenario as plain data (for ``config.json``)."""
@@ -524,6 +589,29 @@ _CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
     ("feedback", "miss_policy"): ("uniform", "fallback", "error"),
     ("ppo", "activation"): ("tanh", "relu", "elu", "selu", "lrelu", "sigmoid", "identity"),
 }
+
+
+# --------------------------------------------------------------------- user data
+#: Folder name of our files in the XDG data folder (``~/.local/share/amuled-ma``).
+USER_DATA_NAME = "amuled-ma"
+
+
+def user_data_dir() -> Path:
+    """The user data folder: ``$AMULED_DATA``, else ``$XDG_DATA_HOME/amuled-ma``.
+
+    ``$XDG_DATA_HOME`` defaults to ``~/.local/share``. Imported recordings live in its
+    ``recordings/`` sub-folder (:func:`user_recordings_dir`).
+    """
+    env = os.environ.get("AMULED_DATA")
+    if env:
+        return Path(os.path.expanduser(env))
+    xdg = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(os.path.expanduser(xdg)) / USER_DATA_NAME
+
+
+def user_recordings_dir() -> Path:
+    """Folder of the user's recordings: ``<user_data_dir()>/recordings``."""
+    return user_data_dir() / "recordings"
 
 
 # --------------------------------------------------------------------- path components
@@ -762,6 +850,10 @@ def validate_section(section: str, values: dict[str, Any], source: str) -> None:
                 _check_number(f"{key}[{i}]", item, rng, source)
         else:
             _check_number(key, value, rng, source)
+    if section == "feedback" and values.get("host"):
+        from amuled_ma.beliefs.hosts import normalize_host
+
+        normalize_host(values["host"], where=f"{source}: key [feedback].host")
     _check_budget(section, values, source)
 
 

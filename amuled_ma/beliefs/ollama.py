@@ -51,6 +51,7 @@ from typing import Any
 import httpx
 import ollama
 
+from amuled_ma.beliefs.hosts import normalize_host
 from amuled_ma.beliefs.parsing import belief_schema, parse_belief, uniform
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.beliefs.validate import (
@@ -73,16 +74,15 @@ def resolve_host(host: str | None = None) -> str:
     """Return the server URL: ``host``, else ``$OLLAMA_HOST``, else the default.
 
     ``HOST`` and ``HOST:PORT`` forms get a scheme and the default port 11434.
+
+    Raises:
+        ScenarioError: The address is malformed (:func:`~amuled_ma.beliefs.hosts.normalize_host`).
     """
-    raw = (host or os.environ.get("OLLAMA_HOST") or DEFAULT_HOST).strip().rstrip("/")
-    if "://" not in raw:
-        raw = "http://" + raw
-    scheme, rest = raw.split("://", 1)
-    netloc, slash, path = rest.partition("/")
-    has_port = "]:" in netloc if netloc.startswith("[") else ":" in netloc
-    if not has_port:
-        netloc += ":443" if scheme == "https" else ":11434"
-    return f"{scheme}://{netloc}{slash}{path}".rstrip("/")
+    if host:
+        return normalize_host(host)
+    if os.environ.get("OLLAMA_HOST"):
+        return normalize_host(os.environ["OLLAMA_HOST"], where="$OLLAMA_HOST")
+    return DEFAULT_HOST
 
 
 def _unreachable(host: str, error: BaseException | None) -> BackendUnavailable:
