@@ -129,6 +129,10 @@ def _export(args: argparse.Namespace) -> int:
                 devnull = os.open(os.devnull, os.O_WRONLY)
                 os.dup2(devnull, sys.stdout.fileno())
                 return 0
+        elif Path(args.output).exists() and not Path(args.output).is_file():
+            # a device or a pipe (/dev/stdout, a FIFO): written in place, never replaced
+            with open(args.output, "w", encoding="utf-8") as fp:
+                count = store.export_jsonl(fp, status=args.status, task=args.task)
         else:
             # written beside the target and renamed at the end: a row that cannot be
             # exported (a damaged store) leaves no half-written file behind

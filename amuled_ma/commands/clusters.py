@@ -105,7 +105,9 @@ def list_clusters(args: argparse.Namespace) -> int:
 def show_cluster(args: argparse.Namespace) -> int:
     """Print the messages one cluster agent receives."""
     from amuled_ma.clusters import ClusterRegistry, build_messages
+    from amuled_ma.tasks import canonical_name
 
+    canonical_name(args.task)  # an unknown task is an error, not the default few-shot file
     registry = ClusterRegistry.load(args.clusters_dir)
     messages = build_messages(args.name, args.task, args.state, registry=registry)
     for role, content in messages:
