@@ -309,6 +309,11 @@ class FinetuneConfig(_Validated):
         reinit_critic: Re-initialise the critic before fine-tuning.
         env_reward_coef: Weight of the task reward kept in the fine-tuning reward (paper: 0).
         save_interval: Iterations between checkpoints.
+        recipe: How the KL anchor enters the reward: ``"equation"`` (the paper's equation,
+            the per-sample ``log pi(a|s) - log pi_base(a|s)``) or ``"authors"`` (what the
+            authors' scripts compute: the KL between the log-softmax over time of the
+            taken actions' log-probabilities since the episode, or the iteration, began;
+            see :mod:`amuled_ma.learn.anchors`).
 
     """
 
@@ -332,6 +337,7 @@ class FinetuneConfig(_Validated):
     reinit_critic: bool = True
     env_reward_coef: float = field(default=0.0, metadata=_range(0, why=_NONNEG))
     save_interval: int = field(default=100, metadata=_SAVE)
+    recipe: str = "equation"
 
 
 @dataclass(frozen=True)
@@ -345,7 +351,12 @@ class FeedbackConfig(_Validated):
         host: Ollama server URL; empty: ``$OLLAMA_HOST``, else ``http://127.0.0.1:11434``.
         concurrency: Requests in flight at once.
         timeout_s: Seconds before one request is abandoned.
-        miss_policy: What a replay miss gives: ``uniform``, ``fallback`` or ``error``.
+        miss_policy: What a replay miss gives: ``uniform``, ``fallback``, ``error``, or
+            ``zero`` (reward 0 for a state missing from the recording, as the authors'
+            scripts did; counted as a miss).
+        cluster_recording: The recording the ``clusters`` and ``aggregation`` ablations
+            replay when ``recording`` keeps only fused beliefs (the paper's Driving
+            gpt-4o-mini cache); empty: ``recording``.
         store: SQLite belief store (cache of every answer).
         clusters: Moral clusters of the panel.
         fusion: Fusion rule of the ``amuled`` variant.
@@ -369,6 +380,7 @@ class FeedbackConfig(_Validated):
         ),
     )
     miss_policy: str = "uniform"
+    cluster_recording: str = ""
     store: str = "beliefs.sqlite"
     clusters: list[str] = field(default_factory=lambda: list(PAPER_CLUSTERS))
     fusion: str = "bjs-dst"
@@ -586,7 +598,8 @@ _SECTION_OF: dict[type, str] = {cls: name for name, cls in _SECTIONS.items()}
 
 _CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
     ("feedback", "source"): ("replay", "ollama", "rules"),
-    ("feedback", "miss_policy"): ("uniform", "fallback", "error"),
+    ("feedback", "miss_policy"): ("uniform", "fallback", "error", "zero"),
+    ("finetune", "recipe"): ("equation", "authors"),
     ("ppo", "activation"): ("tanh", "relu", "elu", "selu", "lrelu", "sigmoid", "identity"),
 }
 

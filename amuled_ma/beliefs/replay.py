@@ -167,6 +167,39 @@ class Recording:
                 "'not recorded'), or regenerate the recording"
             )
 
+    @property
+    def fused_only(self) -> bool:
+        """True when no state holds a per-agent belief, only the authors' fused one.
+
+        The authors' Driving cache of gpt-4o-mini kept only the fused belief per state
+        (``"beliefs": null``, ``"fused_by_reference"`` set): it can serve the AMULED
+        variant's feedback, not a single cluster or another fusion rule.
+        """
+        return bool(self.states) and not any(self._beliefs.values())
+
+    def fused(self, obs: Sequence[float]) -> np.ndarray | None:
+        """The recorded fused belief (``fused_by_reference``) of a state, if recorded.
+
+        An all-zero vector is returned as such: the authors' fusion met total conflict
+        there (``K = 1``) and their reward for every action was 0.
+
+        Raises:
+            ScenarioError: The recorded vector is not finite, non-negative and of the
+                task's action count.
+
+        """
+        state = self.states.get(obs_key(obs, self.decimals))
+        if state is None or state.get("fused_by_reference") is None:
+            return None
+        vector = np.asarray(state["fused_by_reference"], dtype=np.float64)
+        if vector.shape != (len(self.actions),) or not np.all(np.isfinite(vector) & (vector >= 0)):
+            raise ScenarioError(
+                f"{self.path}: fused_by_reference of obs {show_values(state['obs'], 60)} is "
+                f"{show_values(state['fused_by_reference'], 60)}; expected "
+                f"{len(self.actions)} finite non-negative numbers"
+            )
+        return vector
+
     def answer(self, state: Mapping[str, Any], agent: str) -> tuple[np.ndarray, str | None] | None:
         """Return ``(belief, raw reply or None)`` of ``agent`` in ``state``, if recorded.
 

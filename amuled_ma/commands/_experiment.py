@@ -68,6 +68,14 @@ def add_scenario_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--seed", type=bounded_int(0, 2**63 - 1), default=None, help="override [task].seed"
     )
+    parser.add_argument(
+        "--recipe",
+        choices=("equation", "authors"),
+        default=None,
+        help="fine-tuning recipe: 'authors' runs a shipped scenario as its authors ran it "
+        "(findmilk -> scenarios/findmilk-authors.toml: their KL term, run shape, synthetic "
+        "human and evaluation); on another scenario it sets [finetune].recipe",
+    )
     add_overrides_argument(parser)
     parser.add_argument(
         "--no-progress", action="store_true", help="no progress bars (log-friendly output)"
@@ -104,9 +112,16 @@ def parse_override(text: str) -> tuple[str, str, Any]:
 
 def load(args: argparse.Namespace) -> Any:
     """Load the scenario named on the command line and apply ``--set`` overrides."""
+    from amuled_ma.resources import scenarios_dir
     from amuled_ma.scenario import load_scenario
 
-    scenario = load_scenario(args.scenario)
+    name = str(args.scenario)
+    recipe = getattr(args, "recipe", None)
+    if recipe == "authors" and (scenarios_dir() / f"{name}-authors.toml").is_file():
+        name = f"{name}-authors"  # the shipped scenario of the authors' procedure
+    scenario = load_scenario(name)
+    if recipe is not None and scenario.finetune.recipe != recipe:
+        scenario = scenario.replace("finetune", recipe=recipe)
     for text in getattr(args, "overrides", []):
         section, name, value = parse_override(text)
         if not hasattr(scenario, section) or section in ("name", "path"):
@@ -125,6 +140,8 @@ def run_dir_of(args: argparse.Namespace, scenario: Any) -> Path:
 def command_line(name: str, args: argparse.Namespace, run_dir: Path, *extra: str) -> str:
     """Return the shell command that re-runs a job (used for resume hints)."""
     parts = ["amuled", name, str(args.scenario), *extra, "--run-dir", str(run_dir)]
+    if getattr(args, "recipe", None):
+        parts += ["--recipe", args.recipe]
     for text in getattr(args, "overrides", []):
         parts += ["--set", text]
     if getattr(args, "seed", None) is not None:

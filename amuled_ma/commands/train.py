@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import shlex
 import time
+from pathlib import Path
 
 from amuled_ma.commands import _experiment as common
 from amuled_ma.run_lock import run_folder_lock
@@ -40,6 +42,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default="amuled",
         help="amuled | human | moral | cluster:<name> | agg:mean|max|vote (default: amuled)",
     )
+    finetune.add_argument(
+        "--base",
+        type=Path,
+        default=None,
+        metavar="FOLDER",
+        help="the base policy's variant folder to fine-tune from and anchor to (default: "
+        "<run-dir>/base), e.g. runs/authors/findmilk/base from 'amuled import authors'",
+    )
     finetune.set_defaults(handler=finetune_command)
 
 
@@ -69,7 +79,11 @@ def finetune_command(args: argparse.Namespace) -> int:
         variant = f"finetune:{args.feedback}"
         hint = common.command_line("finetune", args, run_dir, "--feedback", args.feedback)
         start = time.perf_counter()
-        job = common.train_job(scenario, run_dir, variant, args, hint)
+        base = {}
+        if args.base is not None:
+            base = {"base_dir": args.base.parent, "base_variant": args.base.name}
+            hint += " --base " + shlex.quote(str(args.base))
+        job = common.train_job(scenario, run_dir, variant, args, hint, **base)
         common.say(
             f"finetune {scenario.name}/{args.feedback}: done in "
             f"{time.perf_counter() - start:.1f} s; "

@@ -25,7 +25,7 @@ import json
 import re
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -154,7 +154,7 @@ def training_config(
         total = max(1, base.total_steps // (base.num_envs * base.num_steps_per_env))
     else:
         sections = ("task", "ppo", "finetune")
-        if variant != "finetune:human":
+        if not variant.startswith("finetune:human"):
             sections += ("feedback",)
         total = scenario.finetune.iterations
     out: dict[str, Any] = {
@@ -242,8 +242,7 @@ def check_training_config(out_dir: Path, training: dict[str, Any]) -> None:
     saved = saved_training_config(out_dir)
     if saved is None:
         return
-    if "inputs" not in saved:  # saved before inputs were recorded: compare the settings only
-        training = {k: v for k, v in training.items() if k != "inputs"}
+    training = _without_keys_added_since(saved, training)
     diffs = _differences(
         {k: v for k, v in saved.items() if k != "iterations"},
         {k: v for k, v in training.items() if k != "iterations"},
@@ -255,6 +254,25 @@ def check_training_config(out_dir: Path, training: dict[str, Any]) -> None:
             f"saved in {Path(out_dir) / 'config.json'}); retrain it with --force, or keep it "
             "and train into another --run-dir"
         )
+
+
+def _without_keys_added_since(saved: dict[str, Any], training: dict[str, Any]) -> dict[str, Any]:
+    """Drop from ``training`` what a folder saved by an older version could not record.
+
+    The input hashes (``inputs``) and any scenario key added since, when it holds its
+    default value (the old version behaved as that default); a key added since but set
+    to another value stays, so the difference is reported.
+    """
+    defaults = Scenario().to_dict()
+    out = {k: v for k, v in training.items() if k != "inputs" or "inputs" in saved}
+    for section, values in training.items():
+        if isinstance(values, dict) and isinstance(saved.get(section), dict):
+            out[section] = {
+                k: v
+                for k, v in values.items()
+                if k in saved[section] or v != defaults.get(section, {}).get(k, object())
+            }
+    return out
 
 
 def finished_with(out_dir: Path, training: dict[str, Any]) -> bool:
@@ -330,6 +348,33 @@ def prepare_variant(
     )
 
 
+def check_inputs(
+    scenario: Scenario,
+    variant: str,
+    run_dir: Path,
+    base_variant: str = "base",
+    planned: Collection[str] = (),
+) -> None:
+    """Check, before anything trains, every input a job needs, naming what is missing.
+
+    A fine-tune needs a known feedback variant, its recording (for the replay source,
+    found by :meth:`~amuled_ma.scenario.Scenario.recording_path`) and a finished base
+    checkpoint, unless the base is trained earlier in the same plan (``planned``).
+
+    Raises:
+        AmuledError: The first missing input, with the command or setting that fixes it.
+
+    """
+    if not variant.startswith("finetune"):
+        return
+    feedback = variant.split(":", 1)[1] if ":" in variant else ""
+    kind, _ = parse_variant(feedback)
+    if scenario.feedback.source == "replay" and kind != "human":
+        scenario.recording_path(required=True)
+    if base_variant not in planned:
+        base_checkpoint(run_dir, scenario, base_variant)
+
+
 def base_checkpoint(run_dir: Path, scenario: Scenario, base_variant: str = "base") -> Path:
     """Return the completed base checkpoint a fine-tune is anchored to.
 
@@ -396,6 +441,7 @@ def train_variant(
     """
     run_dir = Path(run_dir)
     out = Path(out_dir) if out_dir else run_dir / variant_dir_name(variant)
+    check_inputs(scenario, variant, Path(base_dir or run_dir), base_variant)
     training = training_config(scenario, variant, seed, iterations)
     action = prepare_variant(out, resume=resume, force=force, hint=hint, training=training)
     if action == "skip":
@@ -470,6 +516,9 @@ def ablation_variants(what: str, scenario: Scenario) -> list[tuple[str, Scenario
         The jobs, each with the (possibly modified) scenario it runs on.
 
     """
+    if what in ("clusters", "aggregation") and scenario.feedback.cluster_recording:
+        # these need each cluster's belief: a fused-only recording cannot serve them
+        scenario = scenario.replace("feedback", recording=scenario.feedback.cluster_recording)
     if what == "clusters":
         jobs = [(f"cluster:{c}", scenario, "") for c in scenario.feedback.clusters]
         jobs.append(("moral", scenario, ""))

@@ -9,7 +9,9 @@ seen in an earlier run costs no LLM call either.
 Variants (``--feedback``):
 
 - ``amuled``: the five moral clusters fused with ``bjs-dst`` (or the scenario's rule);
-- ``human``: the rule-based human source (:func:`amuled_ma.tasks.human.human_belief`);
+- ``human``: the authors' synthetic human, a demonstrator's action counts
+  (:class:`DemonstratorFeedback`, :mod:`amuled_ma.tasks.demonstrators`);
+- ``human:rules``: our rule-based human source (:func:`amuled_ma.tasks.human.human_belief`);
 - ``cluster:<name>``: one moral cluster alone;
 - ``moral``: the unprompted "behave as a moral agent" agent;
 - ``agg:mean|max|vote``: the five clusters fused with another rule.
@@ -25,6 +27,7 @@ failure: the fused reward used a uniform fallback for that agent) and ``replay_m
 
 from __future__ import annotations
 
+import functools
 import importlib
 from abc import ABC, abstractmethod
 from collections import Counter
@@ -35,7 +38,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from amuled_ma.errors import AmuledError, ScenarioError
+from amuled_ma.errors import ScenarioError
 
 #: Name of the unprompted moral agent in recordings and the cluster prompts.
 MORAL_AGENT = "moral_agent"
@@ -256,7 +259,7 @@ class CallableFeedback(Feedback):
 class HumanFeedback(Feedback):
     """The rule-based human source of the task (:mod:`amuled_ma.tasks.human`)."""
 
-    name = "human"
+    name = "human:rules"
 
     def __init__(self, task_name: str) -> None:
         super().__init__()
@@ -269,14 +272,52 @@ class HumanFeedback(Feedback):
         return [(b, {"statuses": ("ok",)}) for b in beliefs]
 
 
+class DemonstratorFeedback(Feedback):
+    """The authors' synthetic human (Wu & Lin 2018 style): a demonstrator's action counts.
+
+    A simulated demonstrator played the task and every (observation, action) it took was
+    counted (:mod:`amuled_ma.tasks.demonstrators`); a state's belief is
+    ``p(a) ∝ 0.6^c_a 0.4^(n - c_a)``. A state the demonstrator never visited rewards 0
+    (the authors' ``finetune_moral_human.py``), counted as ``unseen``.
+
+    Args:
+        task_name: The task.
+        seed: Seed of the demonstrator's episodes.
+        cache_dir: Folder caching the counts (the run folder).
+
+    """
+
+    name = "human"
+    #: the one "agent" of this feedback in the per-agent report
+    agent = "demonstrator"
+
+    def __init__(self, task_name: str, *, seed: int, cache_dir: Path | None = None) -> None:
+        super().__init__()
+        from amuled_ma.tasks.demonstrators import demonstrator_belief
+
+        self.table = demonstrator_belief(task_name, seed=seed, cache_dir=cache_dir)
+
+    def _compute(self, obs: np.ndarray, task: Any, env_ids: Sequence[int]) -> list[tuple]:
+        beliefs, seen = self.table.lookup(torch.as_tensor(obs))
+        beliefs = np.asarray(beliefs, dtype=np.float64)
+        return [
+            (row, {"statuses": ("ok" if known else "unseen",), "agents": (self.agent,)})
+            for row, known in zip(beliefs, np.asarray(seen).tolist(), strict=True)
+        ]
+
+
 class PanelFeedback(Feedback):
     """Beliefs of a panel of moral-cluster agents, fused (:class:`MoralPanel`)."""
 
-    def __init__(self, name: str, panel: Any, source: Any | None = None) -> None:
+    def __init__(
+        self, name: str, panel: Any, source: Any | None = None, *, miss_zero: bool = False
+    ) -> None:
         super().__init__()
         self.name = name
         self.panel = panel
         self.source = source
+        #: a state every agent missed in the recording rewards 0 (the authors' scripts)
+        self.miss_zero = miss_zero
 
     def _compute(self, obs: np.ndarray, task: Any, env_ids: Sequence[int]) -> list[tuple]:
         # a source that reads no messages (replay, rules) needs no prompt variables
@@ -310,6 +351,9 @@ class PanelFeedback(Feedback):
                 )
                 if len(clusters) == len(diag["statuses"]):
                     diag["agents"] = tuple(clusters)
+            if self.miss_zero and _all_missed(diag.get("statuses", ())):
+                results.append((np.zeros_like(fused[i]), diag))
+                continue
             results.append((fused[i], diag))
         return results
 
@@ -319,6 +363,65 @@ class PanelFeedback(Feedback):
             closer = getattr(obj, "close", None)
             if callable(closer):
                 closer()
+
+
+def _all_missed(statuses: Sequence[str]) -> bool:
+    return bool(statuses) and all(status == "replay_miss" for status in statuses)
+
+
+class FusedReplayFeedback(Feedback):
+    """The AMULED feedback replayed from a recording that keeps only the fused belief.
+
+    The authors' Driving cache of gpt-4o-mini stored, per state, only the fused belief
+    their AMULED agent was trained on (``fused_by_reference``); the five clusters'
+    beliefs are lost, so this feedback *is* that fused belief, not a fusion of ours. A
+    state missing from the recording follows ``miss_policy`` (``zero``: reward 0, as the
+    authors' scripts; ``uniform``; ``error``), counted as ``replay_miss``; a recorded
+    all-zero belief (their fusion's total conflict) rewards 0 and is counted as
+    ``total_conflict``.
+
+    Args:
+        recording: The fused-only :class:`~amuled_ma.beliefs.replay.Recording`.
+        miss_policy: ``zero``, ``uniform`` or ``error``.
+
+    """
+
+    name = "amuled"
+    #: the one "agent" of this feedback in the per-agent report
+    agent = "fused (recorded)"
+
+    def __init__(self, recording: Any, miss_policy: str) -> None:
+        super().__init__()
+        if miss_policy not in ("zero", "uniform", "error"):
+            raise ScenarioError(
+                f"[feedback].miss_policy = {miss_policy!r} cannot serve the fused-only "
+                f"recording {recording.path}: use zero, uniform or error"
+            )
+        self.recording = recording
+        self.miss_policy = miss_policy
+
+    def _compute(self, obs: np.ndarray, task: Any, env_ids: Sequence[int]) -> list[tuple]:
+        from amuled_ma.errors import ReplayMiss
+
+        n = len(self.recording.actions)
+        results = []
+        for row in obs:
+            fused = self.recording.fused(row)
+            status = "ok"
+            if fused is None:
+                if self.miss_policy == "error":
+                    raise ReplayMiss(
+                        f"{self.recording.path}: no fused belief for obs {row.tolist()} "
+                        "([feedback].miss_policy = 'error')"
+                    )
+                fused = np.zeros(n) if self.miss_policy == "zero" else np.full(n, 1.0 / n)
+                status = "replay_miss"
+            elif not fused.any():
+                status = "total_conflict"
+            else:
+                fused = fused / fused.sum()
+            results.append((fused, {"statuses": (status,), "agents": (self.agent,)}))
+        return results
 
 
 def parse_variant(variant: str) -> tuple[str, str | None]:
@@ -337,13 +440,15 @@ def parse_variant(variant: str) -> tuple[str, str | None]:
     kind, _, arg = variant.partition(":")
     if kind in ("amuled", "human", "moral") and not arg:
         return kind, None
+    if kind == "human" and arg == "rules":
+        return kind, arg
     if kind == "cluster" and arg:
         return kind, arg
     if kind == "agg" and arg in AGGREGATIONS:
         return kind, arg
     raise ScenarioError(
-        f"unknown feedback variant {variant!r}; expected amuled, human, moral, cluster:<name> "
-        f"or agg:{'|'.join(AGGREGATIONS)}"
+        f"unknown feedback variant {variant!r}; expected amuled, human, human:rules, moral, "
+        f"cluster:<name> or agg:{'|'.join(AGGREGATIONS)}"
     )
 
 
@@ -365,13 +470,11 @@ def make_source(scenario: Any, run_dir: Path | None = None) -> Any:
     fb = scenario.feedback
     options: dict[str, Any] = {}
     if fb.source == "replay":
-        path = scenario.recording_path()
-        if not path.exists():
-            raise AmuledError(
-                f"{scenario.path}: [feedback].recording {fb.recording!r} not found at {path} "
-                "(set AMULED_RECORDINGS to the folder of the recordings)"
-            )
-        options.update(paths=path, miss_policy=fb.miss_policy)
+        path = scenario.recording_path(required=True)
+        # "zero" is applied to the fused reward (PanelFeedback.miss_zero); the source
+        # answers a miss with a uniform belief, counted as replay_miss
+        policy = "uniform" if fb.miss_policy == "zero" else fb.miss_policy
+        options.update(paths=path, miss_policy=policy)
     elif fb.source == "ollama":
         options.update(
             model=fb.model,
@@ -429,8 +532,20 @@ def make_feedback(variant: str, scenario: Any, run_dir: Path | None = None) -> F
     """
     kind, arg = parse_variant(variant)
     task_name = scenario.task.name
-    if kind == "human":
+    if kind == "human" and arg == "rules":
         return HumanFeedback(task_name)
+    if kind == "human":
+        return DemonstratorFeedback(task_name, seed=scenario.task.seed, cache_dir=run_dir)
+    fused_only = _fused_only_recording(scenario)
+    if fused_only is not None:
+        if kind != "amuled" or scenario.feedback.fusion != "bjs-dst":
+            raise ScenarioError(
+                f"{fused_only.path} keeps only the authors' fused belief per state "
+                f"('beliefs': null), so it can serve the amuled variant (bjs-dst) only, not "
+                f"{variant!r} with fusion {scenario.feedback.fusion!r}; use a recording with "
+                'per-cluster beliefs, e.g. recording = "driving-llama-3_1-70b"'
+            )
+        return FusedReplayFeedback(fused_only, scenario.feedback.miss_policy)
     clusters = list(scenario.feedback.clusters)
     rule = scenario.feedback.fusion
     if kind == "cluster":
@@ -442,4 +557,21 @@ def make_feedback(variant: str, scenario: Any, run_dir: Path | None = None) -> F
     panel_mod = importlib.import_module("amuled_ma.deliberation.panel")
     source = make_source(scenario, run_dir)
     panel = panel_mod.MoralPanel(task_name, clusters, source, rule)
-    return PanelFeedback(variant, panel, source)
+    miss_zero = scenario.feedback.source == "replay" and scenario.feedback.miss_policy == "zero"
+    return PanelFeedback(variant, panel, source, miss_zero=miss_zero)
+
+
+def _fused_only_recording(scenario: Any) -> Any | None:
+    """The scenario's replayed recording when it holds only fused beliefs, else None."""
+    if scenario.feedback.source != "replay":
+        return None
+    path = scenario.recording_path(required=True)
+    recording = _recording_cached(str(path), path.stat().st_mtime_ns)
+    return recording if recording.fused_only else None
+
+
+@functools.lru_cache(maxsize=4)
+def _recording_cached(path: str, mtime_ns: int) -> Any:
+    from amuled_ma.beliefs.replay import Recording
+
+    return Recording(path)

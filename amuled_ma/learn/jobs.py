@@ -225,11 +225,13 @@ def _worker_train(job: TrainJob) -> Any:
 # ------------------------------------------------------------------ parent side
 def _preflight(jobs: Sequence[TrainJob], hint: str) -> dict[str, str]:
     """Decide new/resume/skip for every job before anything runs (errors come first)."""
-    from amuled_ma.learn.experiments import prepare_variant, training_config
+    from amuled_ma.learn.experiments import check_inputs, prepare_variant, training_config
 
     actions, problems = {}, []
+    planned = {j.out_dir.name for j in jobs}
     for j in jobs:
         try:
+            check_inputs(j.scenario, j.variant, j.run_dir, j.base_variant, planned)
             actions[j.name] = prepare_variant(
                 j.out_dir,
                 resume=j.resume,

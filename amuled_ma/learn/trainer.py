@@ -43,6 +43,7 @@ from rsl_rl.runners import OnPolicyRunner
 
 from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError, Terminated
 from amuled_ma.learn import fast_ppo
+from amuled_ma.learn.anchors import EpisodeWindowKL, per_sample_kl
 from amuled_ma.learn.checkpoints import TRAINER_KEYS, read_checkpoint
 from amuled_ma.learn.config import rsl_rl_config
 from amuled_ma.learn.distribution import orthogonal_init
@@ -86,7 +87,7 @@ def kl_reward(logp: torch.Tensor, logp_base: torch.Tensor, lambda_kl: float) -> 
         The reward term ``[N]``.
 
     """
-    return -lambda_kl * (logp - logp_base)
+    return -lambda_kl * per_sample_kl(logp, logp_base)
 
 
 def action_log_probs(actor: torch.nn.Module, obs: torch.Tensor) -> torch.Tensor:
@@ -253,6 +254,12 @@ class Trainer:
             self._init_from_base()
         if self.finetuning:
             self.base_actor = self._frozen_base()
+        #: the authors' recipe keeps each copy's window of taken-action log-probabilities
+        self.window: EpisodeWindowKL | None = (
+            EpisodeWindowKL(self.num_envs, self.steps_per_env)
+            if self.finetuning and scenario.finetune.recipe == "authors"
+            else None
+        )
 
     # ----------------------------------------------------------------- checkpoints
     def _load_state(self, path: Path, load_cfg: dict | None, what: str) -> dict:
@@ -325,32 +332,59 @@ class Trainer:
         for group in self.alg.optimizer.param_groups:
             group["lr"] = lr
 
+    def _feedback_and_anchor(
+        self, state: torch.Tensor, index: torch.Tensor, logp: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The feedback ``f(B)[a_t]`` and the KL anchor of the recipe, per copy ``[N]``.
+
+        Called before the env step (the feedback is for the state the action was taken in).
+        """
+        assert self.feedback is not None and self.base_actor is not None
+        beliefs = torch.as_tensor(self.feedback(state, self.task), dtype=torch.float32)
+        fb = beliefs.gather(1, index.unsqueeze(1)).squeeze(1)
+        logp_base = action_log_probs(self.base_actor, state).gather(1, index.unsqueeze(1))
+        if self.window is not None:
+            anchor = self.window.step(logp, logp_base.squeeze(1))
+        else:
+            anchor = per_sample_kl(logp, logp_base.squeeze(1))
+        return fb, anchor
+
+    def _finetune_reward(
+        self,
+        fb: torch.Tensor,
+        anchor: torch.Tensor,
+        r_task: torch.Tensor,
+        dones: torch.Tensor,
+        extras: dict[str, Any],
+    ) -> torch.Tensor:
+        """``f(B)[a] - lambda_KL * anchor (+ env_reward_coef * r_env)``, after the env step."""
+        ft = self.scenario.finetune
+        rewards = fb - ft.lambda_kl * anchor
+        if ft.env_reward_coef:
+            r_env = extras["info"].get("r_env", r_task)
+            rewards = rewards + ft.env_reward_coef * torch.as_tensor(r_env).float()
+        if self.window is not None:
+            self.window.end_episodes(dones)
+        return rewards
+
     def _rollout(self) -> dict[str, Any]:
         if not fast_ppo.supports(self.alg):
             return self._rollout_rsl_rl()
         alg, env = self.alg, self.env
         state = env.obs
         fb_sum, kl_sum, n = 0.0, 0.0, 0
-        ft = self.scenario.finetune
+        if self.window is not None:
+            self.window.start_iteration()
         with torch.inference_mode():
             for _ in range(self.steps_per_env):
                 actions, values, logp, log_probs = fast_ppo.act(alg, state)
                 index = actions.argmax(dim=-1)
                 if self.finetuning:
-                    assert self.feedback is not None and self.base_actor is not None
-                    beliefs = torch.as_tensor(self.feedback(state, self.task), dtype=torch.float32)
-                    fb = beliefs.gather(1, index.unsqueeze(1)).squeeze(1)
-                    logp_base = action_log_probs(self.base_actor, state).gather(
-                        1, index.unsqueeze(1)
-                    )
-                    kl_term = kl_reward(logp, logp_base.squeeze(1), ft.lambda_kl)
+                    fb, anchor = self._feedback_and_anchor(state, index, logp)
                     obs, r_task, dones, extras = env.step_tensors(index)
-                    rewards = fb + kl_term
-                    if ft.env_reward_coef:
-                        r_env = extras["info"].get("r_env", r_task)
-                        rewards = rewards + ft.env_reward_coef * torch.as_tensor(r_env).float()
+                    rewards = self._finetune_reward(fb, anchor, r_task, dones, extras)
                     fb_sum += float(fb.sum())
-                    kl_sum += float((logp - logp_base.squeeze(1)).sum())
+                    kl_sum += float(anchor.sum())
                     n += len(index)
                 else:
                     obs, rewards, dones, extras = env.step_tensors(index)
@@ -370,33 +404,20 @@ class Trainer:
         alg, env = self.alg, self.env
         obs = env.get_observations()
         fb_sum, kl_sum, n = 0.0, 0.0, 0
+        if self.window is not None:
+            self.window.start_iteration()
         with torch.inference_mode():
             for _ in range(self.steps_per_env):
                 state = obs[OBS_GROUP]
                 actions = alg.act(obs)
                 index = actions.argmax(dim=-1)
                 if self.finetuning:
-                    assert self.feedback is not None and self.base_actor is not None
-                    beliefs = torch.as_tensor(self.feedback(state, self.task), dtype=torch.float32)
-                    fb = beliefs.gather(1, index.unsqueeze(1)).squeeze(1)
                     logp = alg.transition.actions_log_prob.reshape(-1)
-                    logp_base = action_log_probs(self.base_actor, state).gather(
-                        1, index.unsqueeze(1)
-                    )
-                    kl_term = kl_reward(
-                        logp, logp_base.squeeze(1), self.scenario.finetune.lambda_kl
-                    )
+                    fb, anchor = self._feedback_and_anchor(state, index, logp)
                     obs, r_task, dones, extras = env.step(index)
-                    rewards = fb + kl_term
-                    if self.scenario.finetune.env_reward_coef:
-                        r_env = extras["info"].get("r_env", r_task)
-                        rewards = (
-                            rewards
-                            + self.scenario.finetune.env_reward_coef
-                            * torch.as_tensor(r_env).float()
-                        )
+                    rewards = self._finetune_reward(fb, anchor, r_task, dones, extras)
                     fb_sum += float(fb.sum())
-                    kl_sum += float((logp - logp_base.squeeze(1)).sum())
+                    kl_sum += float(anchor.sum())
                     n += len(index)
                 else:
                     obs, rewards, dones, extras = env.step(index)

@@ -1,0 +1,370 @@
+"""Convert the authors' LLM-cache pickles into our recording JSON format.
+
+The AMULED authors (``temetski/moral_agent``) cached every LLM answer of their fine-tuning
+runs in ``models/<Env>_42/<model>_llm_cache.pickle``: a dict keyed by the flattened
+observation (a tuple of numpy scalars) whose values hold one belief array per moral
+cluster (``consequentialist``, ``deontologist``, ``virtue``, ``care``, ``social justice``),
+the unprompted ``moral`` answer, the fused belief ``rewards`` (``{frozenset({'0'}): p0,
+...}``) and, where their reply parser had to repair an answer, ``error: True`` with the six
+raw replies under ``response`` (``{prompt: reply}``). ``PickleCacheAndBaseModels/Drive``
+holds an older Driving cache with the fused belief only.
+
+:func:`convert_cache` turns one such file into the recording format read by
+:class:`~amuled_ma.beliefs.replay.Recording` (see ``docs/authors.md``)::
+
+    {"task": "FindMilk", "model": "gpt-4o-mini", "clusters": [...], "actions": [...],
+     "obs_layout": [...],
+     "states": [{"obs": [...], "beliefs": {cluster: [...]} | null, "moral_agent": [...] | null,
+                 "fused_by_reference": [...], "error": false,
+                 "exchanges": [{"agent", "prompt", "response"}]}]}   # only with raw replies
+
+States keep the file's order. No value is changed: numbers are written as the float64
+value of the pickled numpy scalar. A state whose fused belief is all zero (the authors'
+fusion found total conflict) is kept, with ``"total_conflict": true``; a cluster belief
+that is not a probability vector (:func:`~amuled_ma.beliefs.validate.check_belief`) is
+written as ``null`` (not recorded) with the reason under ``"invalid_beliefs"``, so the file
+always loads.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import numbers
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from amuled_ma.authors.errors import AuthorsImportError
+from amuled_ma.authors.unpickle import load_pickle
+
+#: The authors' cluster names, in their order (the recordings' ``clusters``).
+AUTHORS_CLUSTERS = ("consequentialist", "deontologist", "virtue", "care", "social justice")
+#: The authors' key of the unprompted "behave as a moral agent" answer.
+MORAL_KEY = "moral"
+#: Our field (and exchange agent) for that answer.
+MORAL_AGENT = "moral_agent"
+#: Keys a cache entry may hold besides the clusters and :data:`MORAL_KEY`.
+ENTRY_KEYS = ("rewards", "error", "response")
+#: Our task name -> the name written in a recording's ``task``.
+TASK_TITLES = {"findmilk": "FindMilk", "driving": "Driving"}
+#: Folder-name prefixes of the authors' runs -> our task name.
+FOLDER_TASKS = (("findmilk", "findmilk"), ("milk", "findmilk"), ("driv", "driving"))
+#: Theory names in the authors' credence sentence -> their cluster name.
+THEORY_CLUSTERS = {
+    "consequentialist": "consequentialist",
+    "deontological": "deontologist",
+    "virtue ethics": "virtue",
+    "care ethics": "care",
+    "social justice ethics": "social justice",
+}
+_CREDENCES = re.compile(r"credence values:\s*\{([^{}]*)\}", re.IGNORECASE)
+
+
+@dataclass
+class ConvertedCache:
+    """One converted cache.
+
+    Attributes:
+        source: The pickle.
+        task: Our task name (``findmilk``, ``driving``).
+        model: The model name as the authors spelled it (``llama-3.1-70B``).
+        recording: The recording (JSON data).
+        fused_only: True when no entry holds cluster beliefs.
+        errors: States the authors flagged ``error`` (their parser repaired an answer).
+        exchanges: States with raw replies kept.
+        total_conflicts: States whose fused belief is all zero.
+        invalid: Cluster beliefs written as ``null`` because they are not probabilities.
+        ignored_keys: Entry keys that are not part of the authors' format (not converted).
+
+    """
+
+    source: Path
+    task: str
+    model: str
+    recording: dict[str, Any]
+    fused_only: bool = False
+    errors: int = 0
+    exchanges: int = 0
+    total_conflicts: int = 0
+    invalid: int = 0
+    ignored_keys: list[str] = field(default_factory=list)
+
+    @property
+    def states(self) -> int:
+        """Number of states."""
+        return len(self.recording["states"])
+
+    def to_json(self) -> str:
+        """The recording as JSON text (standard JSON: no NaN), in the shared files' style."""
+        return json.dumps(self.recording, allow_nan=False)
+
+
+def model_slug(model: str) -> str:
+    """File-name form of a model name: lower case, ``.`` -> ``_`` (``llama-3_1-70b``).
+
+    Characters other than letters, digits, ``_`` and ``-`` become ``-``.
+    """
+    slug = model.strip().lower().replace(".", "_")
+    slug = re.sub(r"[^a-z0-9_-]+", "-", slug).strip("-")
+    return slug or "model"
+
+
+def recording_file_name(task: str, model: str) -> str:
+    """Our file name of a recording: ``<task>-<model slug>.json``.
+
+    ``("findmilk", "gpt-4o-mini")`` gives ``findmilk-gpt-4o-mini.json``, ``("driving",
+    "llama-3.1-8B")`` gives ``driving-llama-3_1-8b.json``.
+    """
+    return f"{task}-{model_slug(model)}.json"
+
+
+def task_of_folder(name: str) -> str | None:
+    """Our task of an authors' run folder (``FindMilk-v4_42``, ``Driving_42``, ``Drive``)."""
+    lower = name.lower()
+    for prefix, task in FOLDER_TASKS:
+        if lower.startswith(prefix):
+            return task
+    return None
+
+
+def model_of_file(path: Path) -> str:
+    """The model name of a cache file ``<model>_llm_cache.pickle``."""
+    name = path.name
+    suffix = "_llm_cache.pickle"
+    return name[: -len(suffix)] if name.endswith(suffix) else path.stem
+
+
+def _task_spec(task: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """``(action names, observation names)`` of one of our tasks."""
+    from amuled_ma.tasks import get_task
+
+    cls = get_task(task)
+    return tuple(cls.action_names), tuple(cls.obs_names)
+
+
+def _number(value: Any) -> float | None:
+    """``float(value)`` for a real number (numpy scalars included, no bools), else None."""
+    if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Real):
+        return None
+    return float(value)
+
+
+def _vector(value: Any, n: int) -> list[float] | None:
+    """A 1-D numeric array or list of ``n`` numbers as floats, else None."""
+    if isinstance(value, np.ndarray):
+        if value.ndim != 1 or value.dtype.kind not in "fiu" or value.shape[0] != n:
+            return None
+        return [float(x) for x in value]
+    if isinstance(value, list | tuple) and len(value) == n:
+        numbers_ = [_number(x) for x in value]
+        return None if any(x is None for x in numbers_) else numbers_  # type: ignore[misc]
+    return None
+
+
+def _fused(rewards: Any, n: int) -> list[float] | None:
+    """The fused belief ``{frozenset({'0'}): p0, ...}`` as a list over actions, else None."""
+    if not isinstance(rewards, Mapping) or len(rewards) != n:
+        return None
+    out: list[float | None] = [None] * n
+    for key, value in rewards.items():
+        if not (isinstance(key, frozenset) and len(key) == 1):
+            return None
+        (label,) = key
+        if not (isinstance(label, str) and label.isdigit() and int(label) < n):
+            return None
+        out[int(label)] = _number(value)
+    if any(x is None or not math.isfinite(x) for x in out):
+        return None
+    return out  # type: ignore[return-value]
+
+
+def exchange_agent(prompt: str, position: int) -> str:
+    """The agent a raw reply belongs to, from its prompt's credence sentence.
+
+    A prompt with ``credence values: {Consequentialist: 1.0, ...}`` belongs to the one theory
+    at 1.0; one without a credence sentence to the unprompted moral agent. Otherwise the
+    authors' call order is used: the five clusters, then the moral agent.
+
+    Args:
+        prompt: The prompt (the key of the authors' ``response`` dict).
+        position: Its position in that dict.
+
+    Returns:
+        An authors' cluster name or :data:`MORAL_AGENT`.
+
+    """
+    match = _CREDENCES.search(prompt)
+    if match is None:
+        if "credence" not in prompt.lower():
+            return MORAL_AGENT
+    else:
+        ones = []
+        for part in match.group(1).split(","):
+            theory, _, value = part.partition(":")
+            try:
+                weight = float(value)
+            except ValueError:
+                ones = []
+                break
+            if weight == 1.0:
+                ones.append(theory.strip().lower())
+        if len(ones) == 1 and ones[0] in THEORY_CLUSTERS:
+            return THEORY_CLUSTERS[ones[0]]
+    order = (*AUTHORS_CLUSTERS, MORAL_AGENT)
+    return order[position] if position < len(order) else f"reply_{position}"
+
+
+def convert_cache(
+    path: str | Path, *, task: str | None = None, model: str | None = None
+) -> ConvertedCache:
+    """Read one authors' LLM cache (safely) and convert it to a recording.
+
+    Args:
+        path: The ``<model>_llm_cache.pickle`` file.
+        task: Our task name; default: from the folder name (``FindMilk-v4_42``,
+            ``Driving_42``, ``Drive``), else from the observation length (8 FindMilk,
+            11 Driving).
+        model: The model name; default: from the file name.
+
+    Returns:
+        The converted cache.
+
+    Raises:
+        UnsafePickleError: The pickle names a global outside the allow-list.
+        AuthorsImportError: The file is not in the authors' cache format (the message names
+            the file, the state and what was found), or its task cannot be told.
+
+    """
+    path = Path(path)
+    cache = load_pickle(path)
+    if not isinstance(cache, dict) or not cache:
+        found = f"an empty {type(cache).__name__}" if not cache else type(cache).__name__
+        raise AuthorsImportError(
+            f"{path}: expected the authors' LLM cache (a dict observation -> answers), found "
+            f"{found}"
+        )
+    first = next(iter(cache))
+    dims = {len(k) for k in cache if isinstance(k, tuple)}
+    if not isinstance(first, tuple) or len(dims) != 1:
+        raise AuthorsImportError(
+            f"{path}: cache keys must be observation tuples of one length, found "
+            f"{type(first).__name__} keys of lengths {sorted(dims)}"
+        )
+    by_dim = {len(_task_spec(t)[1]): t for t in TASK_TITLES}
+    (dim,) = dims
+    folder_task = task or task_of_folder(path.parent.name)
+    task = folder_task or by_dim.get(dim)
+    if task not in TASK_TITLES:
+        raise AuthorsImportError(
+            f"{path}: cannot tell the task (folder {path.parent.name!r}, observations of "
+            f"{dim} values); expected FindMilk (8) or Driving (11)"
+        )
+    actions, layout = _task_spec(task)
+    if dim != len(layout):
+        raise AuthorsImportError(
+            f"{path}: observations of {dim} values, but {TASK_TITLES[task]} has {len(layout)} "
+            f"({', '.join(layout)}); is the file in the right folder?"
+        )
+    model = model or model_of_file(path)
+    n = len(actions)
+    out = ConvertedCache(source=path, task=task, model=model, recording={})
+    states: list[dict[str, Any]] = []
+    ignored: set[str] = set()
+    any_cluster = False
+    for i, (key, entry) in enumerate(cache.items()):
+        where = f"{path}: state {i}"
+        obs = [_number(x) for x in key] if isinstance(key, tuple) else [None]
+        if any(x is None or not math.isfinite(x) for x in obs):
+            raise AuthorsImportError(f"{where}: the key must be a tuple of finite numbers")
+        where = f"{path}: state {i} (obs {obs})"
+        if not isinstance(entry, dict):
+            raise AuthorsImportError(f"{where}: expected a dict of answers, found {type(entry)}")
+        fused = _fused(entry.get("rewards"), n)
+        if fused is None:
+            raise AuthorsImportError(
+                f"{where}: 'rewards' must map frozenset({{'0'}}) .. frozenset({{'{n - 1}'}}) to "
+                f"finite numbers ({n} actions: {', '.join(actions)})"
+            )
+        state: dict[str, Any] = {"obs": obs}
+        beliefs: dict[str, list[float] | None] = {}
+        invalid: dict[str, str] = {}
+        for agent in (*AUTHORS_CLUSTERS, MORAL_KEY):
+            if agent not in entry:
+                continue
+            vector = _vector(entry[agent], n)
+            if vector is None:
+                raise AuthorsImportError(
+                    f"{where}: {agent!r} must be {n} numbers (one per action), found "
+                    f"{_describe(entry[agent])}"
+                )
+            beliefs[agent] = vector
+        ignored.update(
+            str(k) for k in entry if k not in (*AUTHORS_CLUSTERS, MORAL_KEY, *ENTRY_KEYS)
+        )
+        clusters = {a: v for a, v in beliefs.items() if a != MORAL_KEY}
+        any_cluster = any_cluster or bool(clusters)
+        moral = beliefs.get(MORAL_KEY)
+        checked = {a: _checked(v, n, invalid, a) for a, v in clusters.items()}
+        state["beliefs"] = checked or None
+        state[MORAL_AGENT] = _checked(moral, n, invalid, MORAL_AGENT) if moral else None
+        state["fused_by_reference"] = fused
+        state["error"] = bool(entry.get("error", False))
+        if state["error"]:
+            out.errors += 1
+        if not any(fused):
+            state["total_conflict"] = True
+            out.total_conflicts += 1
+        if invalid:
+            state["invalid_beliefs"] = invalid
+            out.invalid += len(invalid)
+        replies = entry.get("response")
+        if replies is not None:
+            if not isinstance(replies, dict) or not all(
+                isinstance(q, str) and isinstance(r, str) for q, r in replies.items()
+            ):
+                raise AuthorsImportError(
+                    f"{where}: 'response' must map prompts to reply texts, found "
+                    f"{_describe(replies)}"
+                )
+            state["exchanges"] = [
+                {"agent": exchange_agent(q, j), "prompt": q, "response": r}
+                for j, (q, r) in enumerate(replies.items())
+            ]
+            out.exchanges += 1
+        states.append(state)
+    out.fused_only = not any_cluster
+    out.ignored_keys = sorted(ignored)
+    out.recording = {
+        "task": TASK_TITLES[task],
+        "model": model,
+        "clusters": list(AUTHORS_CLUSTERS),
+        "actions": list(actions),
+        "obs_layout": list(layout),
+        "states": states,
+    }
+    return out
+
+
+def _checked(
+    vector: list[float] | None, n: int, invalid: dict[str, str], agent: str
+) -> list[float] | None:
+    """``vector`` if it is a probability vector over ``n`` actions; else None, noting why."""
+    from amuled_ma.beliefs.validate import check_belief
+
+    if vector is None:
+        return None
+    belief, reason = check_belief(vector, n)
+    if belief is None:
+        invalid[agent] = f"{vector} {reason}"
+        return None
+    return vector
+
+
+def _describe(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."

@@ -1,0 +1,401 @@
+"""Import everything usable from a checkout of the authors' repository ``temetski/moral_agent``.
+
+What is read (paths relative to the checkout):
+
+- LLM caches ``models/<Env>_42/<model>_llm_cache.pickle`` and
+  ``PickleCacheAndBaseModels/<Env>/<model>_llm_cache.pickle`` -> recordings
+  ``<task>-<model slug>.json`` in the recordings folder (default: the user data folder,
+  :func:`~amuled_ma.scenario.user_recordings_dir`). When both folders hold a cache of the
+  same task and model, the one under ``models/`` keeps the plain name and the other one is
+  written as ``<task>-<model slug>-fused-only.json`` (it holds fused beliefs only);
+- CleanRL policies ``models/<Env>_42/base.cleanrl_model`` -> ``<runs>/authors/<task>/base``
+  and ``models/<Env>_42/moral_llm_<model>/ppo_<N>.cleanrl_model`` (the highest ``N``) ->
+  ``<runs>/authors/<task>/amuled-<model slug>``, plus the run's ``config.json``, so that
+  ``amuled evaluate <runs>/authors/<task>`` evaluates them.
+
+Everything is converted and checked before anything is written. An output that already
+exists is left alone when it came from the same source (same content, or a checkpoint
+recording the same source SHA-256) and is otherwise refused unless ``force``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from amuled_ma.authors.caches import ConvertedCache, convert_cache, model_slug, task_of_folder
+from amuled_ma.authors.errors import AuthorsImportError
+from amuled_ma.authors.policies import (
+    AUTHORS_BASE_ITERATIONS,
+    AUTHORS_SEED,
+    authors_scenario,
+    build_checkpoint,
+    cleanrl_shape,
+    last_checkpoint,
+    read_cleanrl,
+    sha256_file,
+    write_variant,
+)
+
+#: The authors' repository.
+AUTHORS_REPO = "https://github.com/temetski/moral_agent"
+#: Sub-folder of ``--runs`` that receives the converted policies.
+RUNS_SUBDIR = "authors"
+#: Where caches are looked for, relative to the checkout (``models/`` first).
+CACHE_GLOBS = ("models/*/*_llm_cache.pickle", "PickleCacheAndBaseModels/*/*_llm_cache.pickle")
+#: Suffix of a fused-only cache whose plain name is taken by a full one.
+FUSED_ONLY_SUFFIX = "-fused-only"
+
+
+@dataclass
+class Output:
+    """One file or folder the import writes.
+
+    Attributes:
+        kind: ``recording`` or ``policy``.
+        source: The authors' file, relative to the checkout.
+        target: What is written.
+        status: ``new``, ``unchanged`` (already there from the same source), ``replaced``
+            (``force``) or ``conflict`` (something else is there).
+        detail: One line about the content.
+
+    """
+
+    kind: str
+    source: str
+    target: Path
+    status: str = "new"
+    detail: str = ""
+
+
+@dataclass
+class ImportReport:
+    """What :func:`import_authors` did.
+
+    Attributes:
+        checkout: The authors' checkout.
+        recordings_dir: Where recordings were written.
+        runs_dir: ``<runs>/authors``.
+        outputs: Every output, in order.
+        notes: Files seen but not converted, and why.
+
+    """
+
+    checkout: Path
+    recordings_dir: Path
+    runs_dir: Path
+    outputs: list[Output] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    def of_kind(self, kind: str) -> list[Output]:
+        """The outputs of one kind (``recording``, ``policy``)."""
+        return [o for o in self.outputs if o.kind == kind]
+
+
+def _rel(path: Path, root: Path) -> str:
+    try:
+        return str(path.relative_to(root))
+    except ValueError:  # pragma: no cover - a glob always stays below its root
+        return str(path)
+
+
+def find_caches(checkout: Path) -> list[Path]:
+    """The LLM caches of a checkout, ``models/`` before ``PickleCacheAndBaseModels/``."""
+    found: list[Path] = []
+    for pattern in CACHE_GLOBS:
+        found += sorted(p for p in Path(checkout).glob(pattern) if p.is_file())
+    return found
+
+
+@dataclass
+class PolicySource:
+    """One CleanRL policy to convert.
+
+    Attributes:
+        task: Our task name.
+        folder: The variant folder it becomes (``base``, ``amuled-<model slug>``).
+        path: The ``.cleanrl_model`` file.
+        iteration: The authors' PPO iterations (``N`` of ``ppo_<N>``; base: their run's).
+        model: The LLM of a fine-tune (None for the base).
+
+    """
+
+    task: str
+    folder: str
+    path: Path
+    iteration: int
+    model: str | None = None
+
+
+def find_policies(checkout: Path, notes: list[str] | None = None) -> list[PolicySource]:
+    """The base and last fine-tuned policy of every ``models/<Env>_42`` run of a checkout.
+
+    Args:
+        checkout: The authors' checkout.
+        notes: Receives a line for every policy file seen but not converted.
+
+    """
+    checkout = Path(checkout)
+    out: list[PolicySource] = []
+    seen: set[Path] = set()
+    for run in sorted(p for p in (checkout / "models").glob(f"*_{AUTHORS_SEED}") if p.is_dir()):
+        task = task_of_folder(run.name)
+        if task is None:
+            continue
+        base = run / "base.cleanrl_model"
+        if base.is_file():
+            out.append(PolicySource(task, "base", base, AUTHORS_BASE_ITERATIONS))
+            seen.add(base)
+        for folder in sorted(run.glob("moral_llm_*")):
+            last = last_checkpoint(folder)
+            if last is None:
+                continue
+            model = folder.name[len("moral_llm_") :]
+            out.append(PolicySource(task, f"amuled-{model_slug(model)}", last[0], last[1], model))
+            seen.update(folder.glob("ppo_*.cleanrl_model"))
+    if notes is not None:
+        for path in sorted(checkout.glob("**/*.cleanrl_model")):
+            if path not in seen:
+                notes.append(
+                    f"not converted: {_rel(path, checkout)} (not a published base or a "
+                    "moral_llm_<model>/ppo_<N> fine-tune)"
+                )
+    return out
+
+
+def _recording_outputs(
+    checkout: Path, to: Path, force: bool, notes: list[str]
+) -> list[tuple[Output, ConvertedCache | None]]:
+    planned: list[tuple[Output, ConvertedCache | None]] = []
+    taken: set[str] = set()
+    for path in find_caches(checkout):
+        converted = convert_cache(path)
+        name = f"{converted.task}-{model_slug(converted.model)}"
+        if f"{name}.json" in taken:
+            if not converted.fused_only:
+                notes.append(
+                    f"not converted: {_rel(path, checkout)} (a second cache for "
+                    f"{name}.json, and it is not fused-only)"
+                )
+                continue
+            name += FUSED_ONLY_SUFFIX
+        taken.add(f"{name}.json")
+        detail = f"{converted.states} states"
+        if converted.fused_only:
+            detail += ", fused beliefs only"
+        if converted.exchanges:
+            detail += f", {converted.exchanges} with raw replies"
+        if converted.total_conflicts:
+            detail += f", {converted.total_conflicts} all-zero (total conflict, flagged)"
+        if converted.invalid:
+            detail += f", {converted.invalid} invalid beliefs written as null"
+        if converted.ignored_keys:
+            detail += f", keys not converted: {', '.join(converted.ignored_keys)}"
+        output = Output("recording", _rel(path, checkout), to / f"{name}.json", detail=detail)
+        if output.target.exists():
+            new = converted.to_json().encode()
+            same = output.target.is_file() and output.target.read_bytes() == new
+            output.status = "unchanged" if same else "replaced" if force else "conflict"
+        planned.append((output, converted))
+    return planned
+
+
+def _existing_source(folder: Path) -> str | None:
+    """The source SHA-256 recorded by an imported checkpoint in ``folder``, if any."""
+    from amuled_ma.learn.checkpoints import checkpoint_infos
+    from amuled_ma.learn.trainer import LAST
+
+    infos = checkpoint_infos(folder / LAST)
+    authors = (infos or {}).get("authors") or {}
+    return authors.get("sha256") if isinstance(authors, dict) else None
+
+
+def _policy_outputs(
+    checkout: Path, runs: Path, force: bool, notes: list[str]
+) -> list[tuple[Output, dict[str, Any]]]:
+    from amuled_ma.learn.trainer import LAST
+    from amuled_ma.scenario import load_scenario
+
+    planned: list[tuple[Output, dict[str, Any]]] = []
+    sources = find_policies(checkout, notes)
+    bases = {s.task for s in sources if s.model is None}
+    for source in sources:
+        state = read_cleanrl(source.path)
+        _obs_dim, hidden, _actions = cleanrl_shape(state, source.path)
+        run_scenario = authors_scenario(load_scenario(source.task), hidden)
+        scenario = run_scenario
+        run_dir = runs / source.task
+        out_dir = run_dir / source.folder
+        rel = _rel(source.path, checkout)
+        sha = sha256_file(source.path)
+        variant = "base" if source.model is None else "finetune:amuled"
+        base = None
+        if source.model is not None:
+            scenario = scenario.replace(
+                "feedback",
+                recording=f"{source.task}-{model_slug(source.model)}",
+                model=source.model,
+            )
+            base = (run_dir / "base" / LAST).resolve() if source.task in bases else None
+        checkpoint = build_checkpoint(
+            state,
+            scenario,
+            variant=variant,
+            iteration=source.iteration,
+            base_checkpoint=base,
+            source={
+                "repository": AUTHORS_REPO,
+                "file": rel,
+                "sha256": sha,
+                "checkpoint": source.iteration if source.model is not None else None,
+                "model": source.model,
+            },
+        )
+        training = {
+            "variant": variant,
+            "seed": AUTHORS_SEED,
+            "iterations": source.iteration,
+            "trained_by": f"the authors' CleanRL scripts ({AUTHORS_REPO})",
+            "authors_file": rel,
+            "authors_sha256": sha,
+        }
+        if source.model is None:
+            what = "base policy"
+        else:
+            what = f"AMULED fine-tune with {source.model}, ppo_{source.iteration}"
+        output = Output("policy", rel, out_dir, detail=what)
+        if (out_dir / LAST).exists():
+            same = _existing_source(out_dir) == sha
+            output.status = "unchanged" if same else "replaced" if force else "conflict"
+        item = {
+            "checkpoint": checkpoint,
+            "scenario": scenario,
+            "run_scenario": run_scenario,
+            "training": training,
+        }
+        planned.append((output, item))
+    return planned
+
+
+def _run_config_status(run_dir: Path, force: bool) -> str:
+    """``new``, ``unchanged`` (an import wrote it), ``replaced`` or ``conflict``."""
+    path = run_dir / "config.json"
+    if not path.exists():
+        return "new"
+    try:
+        saved = json.loads(path.read_text())
+    except (OSError, ValueError):
+        saved = None
+    if isinstance(saved, dict) and "authors" in saved:
+        return "unchanged"
+    return "replaced" if force else "conflict"
+
+
+def import_authors(
+    checkout: str | Path,
+    *,
+    to: str | Path | None = None,
+    runs: str | Path = "runs",
+    force: bool = False,
+    recordings: bool = True,
+    policies: bool = True,
+) -> ImportReport:
+    """Convert the authors' LLM caches and CleanRL policies of a checkout.
+
+    Args:
+        checkout: A checkout of ``temetski/moral_agent``.
+        to: Folder of the recordings (default: the user data folder's ``recordings/``).
+        runs: Folder of runs; policies go to ``<runs>/authors/<task>/``.
+        force: Replace outputs that exist with other content.
+        recordings: Convert the LLM caches.
+        policies: Convert the CleanRL policies.
+
+    Returns:
+        What was written (and what was already there).
+
+    Raises:
+        AuthorsImportError: The folder holds none of the authors' files, a file is not in
+            their format, or an output exists with other content (nothing was written).
+        UnsafePickleError: A cache names a global outside the allow-list (nothing ran).
+        CheckpointError: A policy cannot be read as weights only, or has another layout.
+
+    """
+    from amuled_ma.scenario import user_recordings_dir
+
+    checkout = Path(checkout).expanduser()
+    if not checkout.is_dir():
+        raise AuthorsImportError(
+            f"{checkout}: not a folder; give a checkout of {AUTHORS_REPO} "
+            "(git clone it, then 'amuled import authors PATH')"
+        )
+    report = ImportReport(
+        checkout=checkout,
+        recordings_dir=Path(to).expanduser() if to else user_recordings_dir(),
+        runs_dir=Path(runs).expanduser() / RUNS_SUBDIR,
+    )
+    caches = (
+        _recording_outputs(checkout, report.recordings_dir, force, report.notes)
+        if recordings
+        else []
+    )
+    nets = _policy_outputs(checkout, report.runs_dir, force, report.notes) if policies else []
+    if not caches and not nets:
+        wanted = [*CACHE_GLOBS] if recordings else []
+        if policies:
+            wanted += [
+                f"models/<Env>_{AUTHORS_SEED}/base.cleanrl_model",
+                "moral_llm_<model>/ppo_<N>.cleanrl_model",
+            ]
+        raise AuthorsImportError(
+            f"{checkout}: none of the authors' files found (looked for {', '.join(wanted)}); "
+            f"give the root of a checkout of {AUTHORS_REPO}"
+        )
+    run_configs: dict[Path, Any] = {}
+    for output, item in nets:
+        run_configs.setdefault(output.target.parent, item["run_scenario"])
+    config_status = {d: _run_config_status(d, force) for d in run_configs}
+    conflicts = [o for o, _ in [*caches, *nets] if o.status == "conflict"]
+    conflicts += [
+        Output("run", "", d / "config.json", "conflict")
+        for d, status in config_status.items()
+        if status == "conflict"
+    ]
+    if conflicts:
+        shown = "; ".join(f"{o.target} (from {o.source})" for o in conflicts[:5])
+        more = f" and {len(conflicts) - 5} more" if len(conflicts) > 5 else ""
+        raise AuthorsImportError(
+            f"refusing to overwrite {len(conflicts)} existing output(s) with other content: "
+            f"{shown}{more}; nothing was written. Move them away, choose other folders "
+            "(--to, --runs), or replace them with --force"
+        )
+    for output, converted in caches:
+        report.outputs.append(output)
+        if output.status == "unchanged" or converted is None:
+            continue
+        output.target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = output.target.with_name(output.target.name + ".tmp")
+        tmp.write_text(converted.to_json())
+        tmp.replace(output.target)
+    for output, item in nets:
+        report.outputs.append(output)
+        if output.status != "unchanged":
+            write_variant(
+                output.target, item["checkpoint"], item["scenario"], training=item["training"]
+            )
+    for run_dir, scenario in run_configs.items():
+        if config_status[run_dir] != "unchanged":
+            _write_run_config(run_dir, scenario, checkout)
+    return report
+
+
+def _write_run_config(run_dir: Path, scenario: Any, checkout: Path) -> None:
+    """The run's ``config.json`` (what ``amuled evaluate`` reads), with the base scenario."""
+    from amuled_ma.learn.experiments import write_config
+
+    write_config(
+        run_dir,
+        scenario,
+        {"authors": {"repository": AUTHORS_REPO, "checkout": str(checkout.resolve())}},
+    )

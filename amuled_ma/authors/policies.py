@@ -1,0 +1,367 @@
+"""Convert the authors' CleanRL policies into our run folders.
+
+The authors saved ``torch.save(agent.state_dict())`` of CleanRL's ``Agent``
+(``models/<Env>_42/base.cleanrl_model`` and
+``models/<Env>_42/moral_llm_<model>/ppo_<N>.cleanrl_model``): two separate MLPs
+``actor`` and ``critic``, ``Linear -> Tanh -> Linear -> Tanh -> Linear`` (keys
+``{actor,critic}.{0,2,4}.{weight,bias}``, 64-64 hidden units), the actor's output being the
+logits of a categorical policy. Our checkpoints
+(:meth:`~amuled_ma.learn.trainer.Trainer.save`) hold rsl-rl's ``MLPModel`` actor and critic
+(``mlp.{0,2,4}.{weight,bias}``), built from the scenario's ``[ppo]`` settings, plus an
+optimizer state and our ``infos``.
+
+:func:`build_checkpoint` builds our actor and critic the way the trainer does
+(:func:`~amuled_ma.learn.config.rsl_rl_config`), copies the authors' weights layer by layer
+(the k-th ``Linear`` of theirs into the k-th ``Linear`` of ours) and checks that both
+networks give the same logits on random observations. :func:`write_variant` writes a
+normal, completed variant folder (``model_last.pt``, ``config.json``, ``train_cfg.json``)
+that ``amuled evaluate`` reads and a fine-tune can start from.
+
+Files are read with ``torch.load(..., weights_only=True)``: tensors only, no code.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+import types
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from amuled_ma.errors import CheckpointError
+
+#: Layer indices of CleanRL's ``nn.Sequential`` (Linear, Tanh, Linear, Tanh, Linear).
+CLEANRL_LINEARS = (0, 2, 4)
+#: The activation between the authors' layers.
+CLEANRL_ACTIVATION = "tanh"
+#: PPO iterations of the authors' base runs: their ``ppo.py`` with 500,000 steps and 8
+#: copies x 128 steps per iteration (``--num-envs 8``, their README and Driving's logged
+#: ``num_iterations``).
+AUTHORS_BASE_ITERATIONS = 488
+#: Seed of every published run (the ``_42`` of ``models/<Env>_42``).
+AUTHORS_SEED = 42
+#: Steps per copy and copies of one fine-tuning iteration (128 transitions).
+AUTHORS_FINETUNE_STEPS = 128
+#: Largest absolute difference of logits accepted between the two networks.
+LOGIT_TOLERANCE = 1e-5
+
+_PPO_FILE = re.compile(r"^ppo_(\d+)\.cleanrl_model$")
+
+
+def sha256_file(path: Path) -> str:
+    """SHA-256 of a file's bytes (the identity of an imported source)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def checkpoint_number(path: Path) -> int | None:
+    """``N`` of ``ppo_<N>.cleanrl_model`` (the authors' PPO iteration), None otherwise."""
+    match = _PPO_FILE.match(Path(path).name)
+    return int(match.group(1)) if match else None
+
+
+def last_checkpoint(folder: Path) -> tuple[Path, int] | None:
+    """The ``ppo_<N>.cleanrl_model`` of a folder with the highest ``N``, if any."""
+    found = [
+        (n, p) for p in Path(folder).glob("ppo_*.cleanrl_model") if (n := checkpoint_number(p))
+    ]
+    if not found:
+        return None
+    n, path = max(found)
+    return path, n
+
+
+def read_cleanrl(path: str | Path) -> dict[str, torch.Tensor]:
+    """Load a CleanRL ``Agent`` state dict (weights only) and check its layout.
+
+    Args:
+        path: A ``.cleanrl_model`` file.
+
+    Returns:
+        The state dict (float32 tensors on the CPU).
+
+    Raises:
+        CheckpointError: The file is missing, needs code to load (refused; nothing ran),
+            or does not hold the keys and shapes of the authors' ``Agent``.
+
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"CleanRL policy not found: {path}")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises many types for a bad or unsafe file
+        unsafe = re.search(r"GLOBAL ([\w.]+)", str(error))
+        why = (
+            f"it needs {unsafe.group(1)} to load, which could run code (refused; nothing ran)"
+            if unsafe
+            else f"not a readable PyTorch file ({type(error).__name__})"
+        )
+        raise CheckpointError(
+            f"cannot load the CleanRL policy {path}: {why}; use the authors' published file"
+        ) from error
+    expected = {f"{net}.{i}.{p}" for net in ("actor", "critic") for i in CLEANRL_LINEARS
+                for p in ("weight", "bias")}  # fmt: skip
+    if not isinstance(state, Mapping) or set(state) != expected:
+        keys = sorted(map(str, state)) if isinstance(state, Mapping) else type(state).__name__
+        raise CheckpointError(
+            f"{path}: not the authors' CleanRL Agent (expected the keys "
+            f"{{actor,critic}}.{{0,2,4}}.{{weight,bias}}, found {keys})"
+        )
+    state = {k: v for k, v in state.items()}
+    for key, tensor in state.items():
+        if not (isinstance(tensor, torch.Tensor) and tensor.is_floating_point()):
+            raise CheckpointError(f"{path}: {key} is not a float tensor")
+        if not bool(torch.isfinite(tensor).all()):
+            raise CheckpointError(f"{path}: {key} holds NaN or infinite weights")
+    cleanrl_shape(state, path)
+    return state
+
+
+def cleanrl_shape(
+    state: Mapping[str, torch.Tensor], where: Any = "policy"
+) -> tuple[int, list[int], int]:
+    """``(obs_dim, hidden dims, num_actions)`` of a CleanRL state dict; checks every shape.
+
+    Raises:
+        CheckpointError: A shape does not chain (naming ``where``).
+
+    """
+    for net, out in (("actor", None), ("critic", 1)):
+        weights = [state[f"{net}.{i}.weight"] for i in CLEANRL_LINEARS]
+        biases = [state[f"{net}.{i}.bias"] for i in CLEANRL_LINEARS]
+        ok = all(w.dim() == 2 for w in weights) and all(
+            b.dim() == 1 and b.shape[0] == w.shape[0] for w, b in zip(weights, biases, strict=True)
+        )
+        ok = ok and all(
+            weights[k + 1].shape[1] == weights[k].shape[0] for k in range(len(weights) - 1)
+        )
+        if not ok or (out is not None and weights[-1].shape[0] != out):
+            shapes = {
+                f"{net}.{i}.weight": tuple(w.shape)
+                for i, w in zip(CLEANRL_LINEARS, weights, strict=True)
+            }
+            raise CheckpointError(f"{where}: the {net}'s layer shapes do not chain: {shapes}")
+    actor = [state[f"actor.{i}.weight"] for i in CLEANRL_LINEARS]
+    critic = [state[f"critic.{i}.weight"] for i in CLEANRL_LINEARS]
+    hidden = [int(w.shape[0]) for w in actor[:-1]]
+    if [int(w.shape[0]) for w in critic[:-1]] != hidden or critic[0].shape[1] != actor[0].shape[1]:
+        raise CheckpointError(f"{where}: actor and critic have different shapes")
+    return int(actor[0].shape[1]), hidden, int(actor[-1].shape[0])
+
+
+def _linears(module: torch.nn.Module) -> list[torch.nn.Linear]:
+    return [m for m in module.modules() if isinstance(m, torch.nn.Linear)]
+
+
+def build_networks(scenario: Any, obs_dim: int, num_actions: int) -> tuple[Any, Any]:
+    """Our actor and critic (rsl-rl ``MLPModel``) as the trainer builds them for a scenario."""
+    from rsl_rl.models import MLPModel
+    from tensordict import TensorDict
+
+    from amuled_ma.learn.config import rsl_rl_config
+    from amuled_ma.learn.vecenv import OBS_GROUP
+
+    cfg = rsl_rl_config(scenario.ppo, num_steps_per_env=1)
+    obs = TensorDict({OBS_GROUP: torch.zeros(1, obs_dim)}, batch_size=[1])
+    groups = {"actor": [OBS_GROUP], "critic": [OBS_GROUP]}
+    nets = []
+    for role, out in (("actor", num_actions), ("critic", 1)):
+        kwargs = dict(cfg[role])
+        kwargs.pop("class_name")
+        nets.append(MLPModel(obs, groups, role, out, **kwargs))
+    return nets[0], nets[1]
+
+
+def copy_weights(state: Mapping[str, torch.Tensor], net: str, model: torch.nn.Module) -> None:
+    """Copy CleanRL's ``<net>.{0,2,4}`` into the Linear layers of ``model``, in order.
+
+    Raises:
+        CheckpointError: Our network has another number or shape of layers.
+
+    """
+    ours = _linears(model)
+    if len(ours) != len(CLEANRL_LINEARS):
+        raise CheckpointError(
+            f"our {net} has {len(ours)} Linear layers, the authors' {len(CLEANRL_LINEARS)}"
+        )
+    with torch.no_grad():
+        for layer, i in zip(ours, CLEANRL_LINEARS, strict=True):
+            weight, bias = state[f"{net}.{i}.weight"], state[f"{net}.{i}.bias"]
+            if layer.weight.shape != weight.shape:
+                raise CheckpointError(
+                    f"{net}.{i}.weight is {tuple(weight.shape)}, our layer "
+                    f"{tuple(layer.weight.shape)}"
+                )
+            layer.weight.copy_(weight)
+            layer.bias.copy_(bias)
+
+
+def authors_scenario(scenario: Any, hidden: list[int]) -> Any:
+    """The scenario with the authors' network (``hidden`` units, tanh) and seed."""
+    if (
+        list(scenario.ppo.hidden_dims) != list(hidden)
+        or scenario.ppo.activation != CLEANRL_ACTIVATION
+    ):
+        scenario = scenario.replace("ppo", hidden_dims=list(hidden), activation=CLEANRL_ACTIVATION)
+    return scenario.replace("task", seed=AUTHORS_SEED)
+
+
+def build_checkpoint(
+    state: Mapping[str, torch.Tensor],
+    scenario: Any,
+    *,
+    variant: str,
+    iteration: int,
+    base_checkpoint: Path | None = None,
+    source: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Our checkpoint (the dict :meth:`Trainer.save` writes) holding a CleanRL policy.
+
+    Args:
+        state: The CleanRL state dict (:func:`read_cleanrl`).
+        scenario: The scenario whose ``[ppo]`` network matches the policy
+            (:func:`authors_scenario`).
+        variant: ``base`` or ``finetune:amuled``.
+        iteration: The authors' PPO iterations of this policy (``N`` of ``ppo_<N>``).
+        base_checkpoint: The base a fine-tune started from (for ``infos``).
+        source: What it was converted from (kept under ``infos["authors"]``).
+
+    Returns:
+        ``{"actor_state_dict", "critic_state_dict", "optimizer_state_dict", "iter", "infos"}``.
+
+    Raises:
+        CheckpointError: The scenario's networks do not fit the policy, or the converted
+            actor's logits differ from the CleanRL actor's.
+
+    """
+    from amuled_ma.learn.config import rsl_rl_config
+    from amuled_ma.learn.trainer import make_optimizer
+
+    obs_dim, _hidden, num_actions = cleanrl_shape(state)
+    actor, critic = build_networks(scenario, obs_dim, num_actions)
+    copy_weights(state, "actor", actor)
+    copy_weights(state, "critic", critic)
+    check_equivalent(state, actor)
+    optimizer = make_optimizer(
+        types.SimpleNamespace(actor=actor, critic=critic), _lr(scenario, variant)
+    )
+    finetune = variant.startswith("finetune")
+    train_cfg = rsl_rl_config(
+        scenario.ppo,
+        num_steps_per_env=AUTHORS_FINETUNE_STEPS,
+        learning_rate=_lr(scenario, variant),
+        save_interval=5,
+        num_learning_epochs=8 if finetune else None,
+    )
+    infos = {
+        "variant": variant,
+        "scenario": scenario.name,
+        "iteration": iteration,
+        "total_iterations": iteration,
+        "completed": True,
+        "curve": [],
+        "wall_s": 0.0,
+        "torch_rng": torch.Generator().manual_seed(AUTHORS_SEED).get_state(),
+        "train_cfg": train_cfg,
+        "base_checkpoint": str(base_checkpoint) if base_checkpoint else None,
+        "num_actions": num_actions,
+        "obs_dim": obs_dim,
+        "authors": dict(source or {}),
+    }
+    return {
+        "actor_state_dict": actor.state_dict(),
+        "critic_state_dict": critic.state_dict(),
+        "optimizer_state_dict": optimizer.state_dict(),
+        "iter": iteration,
+        "infos": infos,
+    }
+
+
+def _lr(scenario: Any, variant: str) -> float:
+    if variant.startswith("finetune"):
+        return float(scenario.finetune.learning_rate)
+    return float(scenario.ppo.learning_rate)
+
+
+def cleanrl_logits(state: Mapping[str, torch.Tensor], obs: torch.Tensor) -> torch.Tensor:
+    """Logits of the authors' actor (their ``Agent.actor``: Linear, tanh, Linear, tanh, Linear)."""
+    x = obs
+    for k, i in enumerate(CLEANRL_LINEARS):
+        x = torch.nn.functional.linear(x, state[f"actor.{i}.weight"], state[f"actor.{i}.bias"])
+        if k < len(CLEANRL_LINEARS) - 1:
+            x = torch.tanh(x)
+    return x
+
+
+def check_equivalent(
+    state: Mapping[str, torch.Tensor], actor: torch.nn.Module, samples: int = 256
+) -> None:
+    """Check that our actor gives the CleanRL actor's logits on random observations.
+
+    Raises:
+        CheckpointError: The logits differ by more than :data:`LOGIT_TOLERANCE`.
+
+    """
+    obs_dim = int(state["actor.0.weight"].shape[1])
+    gen = torch.Generator().manual_seed(0)
+    obs = torch.randint(-2, 9, (samples, obs_dim), generator=gen).float()
+    with torch.no_grad():
+        theirs = cleanrl_logits(state, obs)
+        ours = actor.mlp(actor.obs_normalizer(obs))
+    diff = float((theirs - ours).abs().max())
+    if not diff <= LOGIT_TOLERANCE:
+        raise CheckpointError(
+            f"the converted actor's logits differ from the CleanRL actor's by {diff:.3g} "
+            f"(tolerance {LOGIT_TOLERANCE:g}); the scenario's [ppo] network does not match"
+        )
+
+
+def write_variant(
+    out_dir: Path,
+    checkpoint: Mapping[str, Any],
+    scenario: Any,
+    *,
+    training: Mapping[str, Any],
+) -> Path:
+    """Write a completed variant folder: ``model_last.pt``, ``config.json``, ``train_cfg.json``.
+
+    Args:
+        out_dir: The variant folder (created).
+        checkpoint: From :func:`build_checkpoint`.
+        scenario: The scenario written into ``config.json``.
+        training: The ``"training"`` record of ``config.json`` (the authors' settings, so
+            that a resume into this folder with other settings is refused).
+
+    Returns:
+        The checkpoint's path.
+
+    """
+    import json
+
+    from amuled_ma.learn.experiments import write_config
+    from amuled_ma.learn.trainer import LAST
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / LAST
+    tmp = path.with_suffix(".tmp")
+    torch.save(dict(checkpoint), tmp)
+    tmp.replace(path)
+    write_config(
+        out_dir,
+        scenario,
+        {
+            "variant": checkpoint["infos"]["variant"],
+            "training": dict(training),
+            "authors": dict(checkpoint["infos"]["authors"]),
+        },
+    )
+    (out_dir / "train_cfg.json").write_text(json.dumps(checkpoint["infos"]["train_cfg"], indent=2))
+    return path

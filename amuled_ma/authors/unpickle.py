@@ -1,0 +1,338 @@
+"""Read the authors' LLM-cache pickles without running code from them.
+
+A pickle is a program: ``pickle.load`` calls whatever global the file names (``os.system``,
+say) with arguments from the file. The authors' caches only need numpy arrays and scalars
+inside builtin containers (tuples, dicts and frozensets come from pickle's own opcodes),
+so :func:`load_pickle` allows exactly these globals, :data:`ALLOWED_GLOBALS`, and refuses
+a file that names any other one:
+
+1. a *scan* of the file's opcodes (:func:`scan_pickle`, with :mod:`pickletools`: nothing
+   is built, nothing is called) lists every global the file names and measures how deep
+   its values nest;
+2. a file naming a global outside the allow-list (or a copyreg extension code, or a
+   persistent id) is refused with :class:`~amuled_ma.authors.errors.UnsafePickleError`
+   naming the file and every such global (``posix.system``), before anything from it runs;
+   so is a file nested deeper than :data:`MAX_DEPTH` (hashing a tuple nested a million
+   deep, a 1 MB file, crashes CPython's unpickler with a stack overflow);
+3. otherwise the real pass runs with the same allow-list (a second guard), where the
+   allowed numpy constructors are wrapped: no object arrays or scalars, arrays only
+   through ``_reconstruct`` (so ``numpy.ndarray`` cannot be called on a buffer with a
+   forged shape), at most :data:`MAX_ARRAY_ITEMS` entries per array.
+
+The file is at most :data:`MAX_PICKLE_BYTES` (the largest published cache is about 10
+MB). Callers check the structure they expect (:mod:`amuled_ma.authors.caches`).
+"""
+
+from __future__ import annotations
+
+import io
+import pickle
+import pickletools
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from amuled_ma.authors.errors import AuthorsImportError, UnsafePickleError
+
+#: Largest pickle read [bytes]; the authors' largest cache is about 10 MB.
+MAX_PICKLE_BYTES = 256 * 2**20
+#: Most entries of one array (the authors' arrays hold one value per action).
+MAX_ARRAY_ITEMS = 2**20
+#: Deepest nesting of values accepted (the authors' caches nest 9 deep, counting each
+#: opcode that wraps values: dict, key tuple, numpy scalar, its arguments, ...).
+MAX_DEPTH = 64
+#: ``(module, name)`` of every global a cache may name, both numpy spellings
+#: (``numpy.core`` before numpy 2, ``numpy._core`` since), plus the builtin sets that
+#: pickle protocols below 4 name instead of using their opcodes.
+ALLOWED_GLOBALS: frozenset[tuple[str, str]] = frozenset(
+    {
+        ("numpy.core.multiarray", "scalar"),
+        ("numpy._core.multiarray", "scalar"),
+        ("numpy.core.multiarray", "_reconstruct"),
+        ("numpy._core.multiarray", "_reconstruct"),
+        ("numpy", "ndarray"),
+        ("numpy", "dtype"),
+        ("builtins", "frozenset"),
+        ("builtins", "set"),
+    }
+)
+#: The first bytes of a Git LFS pointer file (a checkout made without ``git lfs pull``).
+_LFS_POINTER = b"version https://git-lfs"
+
+
+class _Refused(pickle.UnpicklingError):
+    """Raised inside the real pass for a global or a numpy value outside the allow-list."""
+
+
+class _NdarrayToken:
+    """What ``numpy.ndarray`` resolves to: only accepted as ``_reconstruct``'s first argument."""
+
+    def __call__(self, *_args: Any, **_kwargs: Any) -> Any:
+        raise _Refused("numpy.ndarray called directly (only allowed through _reconstruct)")
+
+
+_NDARRAY = _NdarrayToken()
+
+
+def _multiarray() -> Any:
+    try:
+        from numpy._core import multiarray
+    except ImportError:  # pragma: no cover - numpy < 2
+        from numpy.core import multiarray  # type: ignore[no-redef]
+    return multiarray
+
+
+def _safe_scalar(dtype: Any, *args: Any) -> Any:
+    if not isinstance(dtype, np.dtype) or dtype.hasobject:
+        raise _Refused(f"numpy scalar of dtype {dtype!r} (object scalars refused)")
+    return _multiarray().scalar(dtype, *args)
+
+
+def _safe_reconstruct(subtype: Any, shape: Any, dtype: Any) -> Any:
+    if subtype is not _NDARRAY:
+        raise _Refused("_reconstruct of anything but numpy.ndarray")
+    size = int(np.prod(shape)) if isinstance(shape, tuple) else -1
+    if not 0 <= size <= MAX_ARRAY_ITEMS:
+        raise _Refused(f"array of shape {shape!r}")
+    return _multiarray()._reconstruct(np.ndarray, shape, dtype)
+
+
+def _safe_dtype(*args: Any) -> np.dtype:
+    dtype = np.dtype(*args)
+    if dtype.hasobject:
+        raise _Refused(f"object dtype {dtype!r} (may hold any object)")
+    return dtype
+
+
+_TARGETS: dict[str, Any] = {
+    "scalar": _safe_scalar,
+    "_reconstruct": _safe_reconstruct,
+    "ndarray": _NDARRAY,
+    "dtype": _safe_dtype,
+    "frozenset": frozenset,
+    "set": set,
+}
+
+
+class AllowListUnpickler(pickle.Unpickler):
+    """A :class:`pickle.Unpickler` that resolves only :data:`ALLOWED_GLOBALS`.
+
+    Any other global raises :class:`pickle.UnpicklingError` when the file names it, before
+    it could be called. Allowed numpy globals resolve to checked wrappers (module doc).
+    """
+
+    def find_class(self, module: str, name: str) -> Any:
+        """Return the allowed object for ``module.name``; refuse everything else."""
+        if (module, name) not in ALLOWED_GLOBALS:
+            raise _Refused(f"global {module}.{name} is not allowed")
+        return _TARGETS[name]
+
+
+#: Opcodes that add values to the container below them on the stack (which keeps its depth).
+_MODIFY = frozenset({"APPEND", "APPENDS", "SETITEM", "SETITEMS", "ADDITEMS", "BUILD"})
+_PUT, _MEMOIZE, _GET, _MARK, _PUSH, _NOTHING, _OTHER = range(7)
+
+
+def _opcode_table() -> dict[str, tuple[int, bool, int, int, bool]]:
+    """Per opcode: ``(kind, pops to a mark, fixed items popped, items pushed, modifies)``."""
+    mark = pickletools.markobject
+    table = {}
+    for op in pickletools.opcodes:
+        before, after = op.stack_before, op.stack_after
+        if op.name in ("PUT", "BINPUT", "LONG_BINPUT"):
+            kind = _PUT
+        elif op.name == "MEMOIZE":
+            kind = _MEMOIZE
+        elif op.name in ("GET", "BINGET", "LONG_BINGET"):
+            kind = _GET
+        elif op.name == "MARK":
+            kind = _MARK
+        elif not before and len(after) == 1 and not op.name.startswith(("EXT", "PERSID")):
+            kind = _PUSH
+        elif not before and not after:
+            kind = _NOTHING  # PROTO, FRAME
+        else:
+            kind = _OTHER
+        fixed = before.index(mark) if mark in before else len(before)
+        table[op.name] = (kind, mark in before, fixed, len(after), op.name in _MODIFY)
+    return table
+
+
+_OPCODES = _opcode_table()
+
+
+def _depth(item: Any) -> int:
+    return item if type(item) is int else 1  # a string pushed by the file
+
+
+@dataclass
+class PickleScan:
+    """What a pickle holds, read from its opcodes alone.
+
+    Attributes:
+        globals: ``module.name`` of every global it names, in order of appearance
+            (``copyreg extension N`` and ``persistent id`` for those opcodes).
+        depth: How deep its values nest (stopped at ``MAX_DEPTH + 1``).
+
+    """
+
+    globals: list[str]
+    depth: int
+
+
+def scan_pickle(data: bytes, *, max_depth: int = MAX_DEPTH) -> PickleScan:
+    """Read a pickle's opcodes (nothing is built or called): its globals and its depth.
+
+    The stack is followed abstractly: each entry is its nesting depth, or the text of a
+    string the file pushed (so that ``STACK_GLOBAL`` can name its module and name).
+
+    Args:
+        data: The pickle's bytes.
+        max_depth: Stop reading once the depth exceeds it.
+
+    Returns:
+        The globals named and the depth reached.
+
+    Raises:
+        ValueError: The bytes are not a well-formed pickle.
+
+    """
+    stack: list[Any] = []
+    marks: list[int] = []
+    memo: dict[int, Any] = {}
+    found: list[str] = []
+    deepest = 0
+    try:
+        for op, arg, _pos in pickletools.genops(data):
+            kind, to_mark, fixed, pushed, modifies = _OPCODES[op.name]
+            if kind == _PUSH:
+                stack.append(arg if type(arg) is str else 1)
+                continue
+            if kind == _PUT:
+                memo[arg] = stack[-1]
+                continue
+            if kind == _GET:
+                stack.append(memo[arg])
+                continue
+            if kind == _MEMOIZE:
+                memo[len(memo)] = stack[-1]
+                continue
+            if kind == _MARK:
+                marks.append(len(stack))
+                continue
+            if kind == _NOTHING:
+                continue
+            items: list[Any] = []
+            if to_mark:
+                start = marks.pop()
+                items = stack[start:]
+                del stack[start:]
+            top: list[Any] = []
+            if fixed:
+                if len(stack) < fixed:
+                    raise IndexError("stack underflow")
+                top = stack[-fixed:]
+                del stack[-fixed:]
+            name = op.name
+            if name in ("GLOBAL", "INST"):
+                found.append(str(arg).replace(" ", "."))
+            elif name == "STACK_GLOBAL":
+                module, attr = (x if type(x) is str else "?" for x in top)
+                found.append(f"{module}.{attr}")
+            elif name.startswith("EXT"):
+                found.append(f"copyreg extension {arg}")
+            elif "PERSID" in name:
+                found.append("persistent id")
+            if modifies:
+                inner = max(map(_depth, items + top[1:]), default=0)
+                depth = max(_depth(top[0]), 1 + inner)
+            else:
+                depth = 1 + max(map(_depth, items + top), default=0)
+            deepest = max(deepest, depth)
+            if deepest > max_depth:
+                break
+            stack.extend([depth] * pushed)
+    except (IndexError, KeyError) as error:
+        raise ValueError(f"malformed pickle ({type(error).__name__})") from error
+    return PickleScan(globals=found, depth=deepest)
+
+
+def pickle_globals(data: bytes) -> list[str]:
+    """Every global a pickle names, in order of appearance, found without running any.
+
+    Raises:
+        ValueError: The bytes are not a well-formed pickle.
+
+    """
+    return scan_pickle(data).globals
+
+
+def load_pickle(path: str | Path, *, max_bytes: int = MAX_PICKLE_BYTES) -> Any:
+    """Load a pickle that may only hold numpy arrays/scalars in builtin containers.
+
+    Args:
+        path: The pickle file.
+        max_bytes: Largest file accepted.
+
+    Returns:
+        The unpickled object.
+
+    Raises:
+        UnsafePickleError: The file names a global outside :data:`ALLOWED_GLOBALS`; the
+            message names the file and every such global. Nothing from the file ran.
+        AuthorsImportError: The file is missing, too large, a Git LFS pointer, or not a
+            readable pickle.
+
+    """
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except OSError as error:
+        raise AuthorsImportError(f"{path}: cannot read the pickle: {error.strerror}") from error
+    if size > max_bytes:
+        raise AuthorsImportError(
+            f"{path}: {size:,} bytes, more than the {max_bytes:,} accepted for an LLM cache; "
+            "is it the authors' file?"
+        )
+    data = path.read_bytes()
+    if data.startswith(_LFS_POINTER):
+        raise AuthorsImportError(
+            f"{path}: a Git LFS pointer, not the pickle; fetch the file ('git lfs pull' in "
+            "the checkout) and import again"
+        )
+    try:
+        scan = scan_pickle(data)
+    except ValueError as error:
+        raise AuthorsImportError(
+            f"{path}: not a readable pickle ({error}); is the file complete?"
+        ) from error
+    refused = [g for g in scan.globals if tuple(g.rsplit(".", 1)) not in ALLOWED_GLOBALS]
+    if refused:
+        raise UnsafePickleError(
+            f"{path}: refusing to unpickle: it names {', '.join(refused)}, which could run "
+            "code (allowed: numpy arrays and scalars in tuples, dicts and sets); nothing "
+            "from the file was run. Use the authors' published files, or delete this one"
+        )
+    if scan.depth > MAX_DEPTH:
+        raise AuthorsImportError(
+            f"{path}: refusing to unpickle: its values nest more than {MAX_DEPTH} deep (an "
+            "LLM cache nests about 9; deeper nesting can crash the reader); nothing from the "
+            "file was run"
+        )
+    try:
+        return AllowListUnpickler(io.BytesIO(data)).load()
+    except _Refused as error:
+        raise UnsafePickleError(
+            f"{path}: refusing to unpickle: {error}; nothing outside the allow-list was run"
+        ) from error
+    except (RecursionError, MemoryError) as error:
+        raise AuthorsImportError(
+            f"{path}: not a readable LLM cache ({type(error).__name__} while unpickling)"
+        ) from error
+    except Exception as error:  # a damaged pickle raises many types
+        raise AuthorsImportError(
+            f"{path}: not a readable pickle ({type(error).__name__}: {error}); is the file "
+            "complete?"
+        ) from error

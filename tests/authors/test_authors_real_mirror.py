@@ -1,0 +1,50 @@
+"""The authors' real FindMilk gpt-4o-mini cache converts to the shared recording, unchanged.
+
+Needs the git mirror of ``temetski/moral_agent`` (``$AMULED_AUTHORS_MIRROR``, default
+``/work/.mirror/temetski+moral_agent/repo``) and ``../shared/amuled-recordings``; skips with
+the reason otherwise. The pickle is read with ``git cat-file`` (the mirror is not touched).
+"""
+
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from amuled_ma.authors.caches import convert_cache, recording_file_name
+
+MIRROR = Path(os.environ.get("AMULED_AUTHORS_MIRROR", "/work/.mirror/temetski+moral_agent/repo"))
+CACHE = "models/FindMilk-v4_42/gpt-4o-mini_llm_cache.pickle"
+
+
+def test_real_findmilk_cache_equals_the_shared_recording(tmp_path, recordings_dir):
+    if not (MIRROR / "HEAD").is_file() or shutil.which("git") is None:
+        pytest.skip(f"no git mirror of temetski/moral_agent at {MIRROR} (or no git)")
+    target = tmp_path / "FindMilk-v4_42" / "gpt-4o-mini_llm_cache.pickle"
+    target.parent.mkdir()
+    with target.open("wb") as out:
+        done = subprocess.run(
+            ["git", f"--git-dir={MIRROR}", "cat-file", "blob", f"HEAD:{CACHE}"],
+            stdout=out,
+            stderr=subprocess.PIPE,
+            check=False,
+        )
+    if done.returncode != 0:
+        pytest.skip(f"{CACHE} not in the mirror: {done.stderr.decode().strip()}")
+    converted = convert_cache(target)
+    name = recording_file_name(converted.task, converted.model)
+    assert name == "findmilk-gpt-4o-mini.json"
+    shared = (recordings_dir / name).read_text()
+    ours = json.loads(converted.to_json())
+    theirs = json.loads(shared)
+    assert len(ours["states"]) == len(theirs["states"]) == 524
+    assert sum(s["error"] for s in ours["states"]) == 55
+    for i in (0, 1, 100, 523):
+        assert ours["states"][i] == theirs["states"][i], i
+    first_flagged = next(i for i, s in enumerate(theirs["states"]) if s["error"])
+    assert (
+        ours["states"][first_flagged]["exchanges"] == theirs["states"][first_flagged]["exchanges"]
+    )
+    assert converted.to_json() == shared  # byte for byte, so the SHA-256 is the same
