@@ -20,10 +20,13 @@ For a batch it
 4. checks every belief with the package's one rule (:mod:`amuled_ma.beliefs.validate`:
    finite, non-negative, one value per action, summing to 1 within 1e-6; within the
    tolerance it is divided by its sum): an invalid belief, whatever status its source gave
-   it, becomes uniform with status ``"error"`` (counted in :attr:`PanelStats.invalid`, its
-   reason kept in :attr:`PanelStats.invalid_reasons`), so fusion never raises in the
-   training loop and no invalid belief is fused as an answer; then fuses them with
-   :func:`amuled_ma.fusion.fuse` in one vectorised call.
+   it, becomes status ``"error"`` (counted in :attr:`PanelStats.invalid`, its reason kept
+   in :attr:`PanelStats.invalid_reasons`), so fusion never raises in the training loop and
+   no invalid belief is fused as an answer;
+5. fuses with :func:`amuled_ma.fusion.fuse`, vectorised over the states that the same
+   agents answered: an agent without an answer (abstained, timeout, error, replay miss)
+   **abstains**: it is left out of that state's fusion and gets weight 0, never a fake
+   uniform belief; a state nobody answered gets the uniform fallback, counted.
 
 Only rows whose every cluster answered ``ok``/``repaired`` enter the LRU, so a state that
 got a fallback belief is asked again next time (the store's policy, one level up).
@@ -103,6 +106,7 @@ class PanelStats:
         by_status: Count of each status among answered requests.
         invalid: Beliefs that were not valid probability vectors (made uniform ``"error"``).
         invalid_reasons: The first few of them, ``"cluster: values: reason"``.
+        no_answer: Distinct states no agent answered (fused to the uniform fallback).
 
     """
 
@@ -115,6 +119,7 @@ class PanelStats:
     by_status: dict[str, int] = field(default_factory=dict)
     invalid: int = 0
     invalid_reasons: list[str] = field(default_factory=list)
+    no_answer: int = 0
 
 
 #: How many invalid-belief reasons :class:`PanelStats` keeps.
@@ -359,14 +364,10 @@ class MoralPanel:
                     f"{len(results)} results for {len(requests)} requests"
                 )
             new_b, new_s = self._collect(results, len(todo))
-            diag = self._fuse(new_b, self.fusion_rule, return_diagnostics=True)
             idx = np.asarray(todo, dtype=np.int64)
             beliefs[idx] = new_b
             statuses[idx] = new_s
-            fused[idx] = diag.fused
-            weights[idx] = diag.weights
-            if k > 1 and diag.conflicts.shape[-1] == k - 1:
-                conflicts[idx] = diag.conflicts
+            fused[idx], weights[idx], conflicts[idx] = self._fuse_answers(new_b, new_s)
             self._remember([unique_keys[u] for u in todo], idx, beliefs, fused, weights,
                            conflicts, statuses)  # fmt: skip
 
@@ -387,6 +388,47 @@ class MoralPanel:
             unique=u_count,
             cache_hits=hits,
         )
+
+    def _fuse_answers(
+        self, beliefs: np.ndarray, statuses: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Fuse each state's answers; an agent that did not answer abstains.
+
+        An agent whose belief is not an answer (status other than ``ok``/``repaired``:
+        abstained, timeout, error, replay miss) is left out of that state's fusion: the
+        rule runs over the agents that answered, and the absent agent's weight is 0. It
+        is never fed as a uniform belief, which BJS weighting would favour (a uniform
+        belief is close to every other one). A state no agent answered gets the
+        documented fallback, the uniform belief, counted in :attr:`PanelStats.no_answer`.
+
+        Args:
+            beliefs: ``(U, K, A)`` each agent's checked belief.
+            statuses: ``(U, K)`` their statuses.
+
+        Returns:
+            ``fused (U, A)``, ``weights (U, K)``, ``conflicts (U, K - 1)`` (the conflicts
+            of the answering agents' combinations first, zeros after).
+
+        """
+        u_count, k, a = beliefs.shape
+        answered = np.isin(statuses.astype(str), list(CACHEABLE))
+        fused = np.full((u_count, a), 1.0 / a)
+        weights = np.zeros((u_count, k))
+        conflicts = np.zeros((u_count, max(k - 1, 0)))
+        patterns, inverse = np.unique(answered, axis=0, return_inverse=True)
+        for p, pattern in enumerate(patterns):
+            rows = np.flatnonzero(inverse.reshape(-1) == p)
+            cols = np.flatnonzero(pattern)
+            if len(cols) == 0:
+                self.stats.no_answer += len(rows)
+                continue
+            subset = beliefs[rows] if len(cols) == k else beliefs[rows][:, cols]
+            diag = self._fuse(subset, self.fusion_rule, return_diagnostics=True)
+            fused[rows] = diag.fused
+            weights[np.ix_(rows, cols)] = diag.weights
+            if len(cols) > 1 and diag.conflicts.shape[-1] == len(cols) - 1:
+                conflicts[rows, : len(cols) - 1] = diag.conflicts
+        return fused, weights, conflicts
 
     def _collect(self, results: Sequence[BeliefResult], count: int) -> tuple[np.ndarray, Any]:
         """Stack results into ``(count, K, A)`` beliefs; an invalid one becomes uniform error."""

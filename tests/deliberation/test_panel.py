@@ -101,7 +101,7 @@ def test_lru_and_fallbacks_are_asked_again():
     assert len(src.calls) == 3
 
 
-def test_invalid_beliefs_become_uniform_errors():
+def test_invalid_beliefs_become_errors_that_abstain():
     bad = {("belief", "a", 3.0): [np.nan, 1, 0, 0], ("belief", "b", 3.0): [0.0, 0.0, 0.0, 0.0]}
     panel = MoralPanel("findmilk", ["a", "b"], Table(statuses=bad), "mean", action_names=ACTIONS)
     out = panel.fused(obs(3))
@@ -118,7 +118,9 @@ def test_invalid_beliefs_become_uniform_errors():
     panel = MoralPanel("findmilk", ["a", "b"], Table(statuses=off), "mean", action_names=ACTIONS)
     out = panel.fused(obs(4))
     assert out.statuses[0].tolist() == ["error", "ok"]
-    np.testing.assert_allclose(out.fused[0], [0.375, 0.375, 0.125, 0.125])  # mean(uniform, b)
+    # a abstains: the fusion is b's belief alone (not mean(uniform, b) = .375/.375/.125/.125)
+    np.testing.assert_allclose(out.fused[0], [0.5, 0.5, 0.0, 0.0])
+    np.testing.assert_allclose(out.weights[0], [0.0, 1.0])
     # within 1e-6 of 1 it is a belief, divided by its sum: [.5 + 5e-7, .5, 0, 0]
     near = {("belief", c, 5.0): [0.5 + 5e-7, 0.5, 0, 0] for c in "ab"}
     panel = MoralPanel("findmilk", ["a", "b"], Table(statuses=near), "mean", action_names=ACTIONS)
