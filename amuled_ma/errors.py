@@ -39,6 +39,10 @@ class ReplayMiss(AmuledError, KeyError):
     """A replayed recording has no belief for the requested state."""
 
 
+class AbstentionError(AmuledError, RuntimeError):
+    """A panel agent left more states unanswered than ``[feedback].max_abstention`` allows."""
+
+
 class CheckpointError(AmuledError, FileNotFoundError):
     """A checkpoint needed by a command is missing or unreadable."""
 

@@ -363,6 +363,13 @@ class FeedbackConfig(_Validated):
         ollama: Further keyword arguments of
             :class:`~amuled_ma.beliefs.ollama.OllamaSource` (``num_predict``, ``num_ctx``,
             ``reasoning``, ``seed``, ``retries``, ...), checked against its signature.
+        clusters_dirs: Folders of user cluster files (relative to the scenario file),
+            loaded after the shipped ones; a file overrides a shipped cluster of its name.
+        max_abstention: The largest share of distinct states one panel agent may leave
+            unanswered (abstained, timeout, error, replay miss); beyond it the run stops
+            with an error naming the agent, its source and the fix (checked from 20 states).
+        name: The fine-tune's variant name (folder ``finetune-<name>``); empty: named
+            after the feedback (``finetune-amuled``).
 
     """
 
@@ -385,6 +392,14 @@ class FeedbackConfig(_Validated):
     clusters: list[str] = field(default_factory=lambda: list(PAPER_CLUSTERS))
     fusion: str = "bjs-dst"
     ollama: dict[str, Any] = field(default_factory=dict)
+    clusters_dirs: list[str] = field(default_factory=list)
+    max_abstention: float = field(
+        default=0.2,
+        metadata=_range(
+            0, 1, why="share of distinct states an agent may leave unanswered before a run stops"
+        ),
+    )
+    name: str = ""
 
 
 @dataclass(frozen=True)

@@ -69,6 +69,15 @@ def add_scenario_args(parser: argparse.ArgumentParser) -> None:
         "--seed", type=bounded_int(0, 2**63 - 1), default=None, help="override [task].seed"
     )
     parser.add_argument(
+        "--clusters-dir",
+        action="append",
+        type=Path,
+        default=[],
+        metavar="DIR",
+        help="a folder of your own cluster TOML files (repeatable; later ones win; a file "
+        "overrides a shipped cluster of its name); adds to [feedback].clusters_dirs",
+    )
+    parser.add_argument(
         "--recipe",
         choices=("equation", "authors"),
         default=None,
@@ -122,11 +131,20 @@ def load(args: argparse.Namespace) -> Any:
     scenario = load_scenario(name)
     if recipe is not None and scenario.finetune.recipe != recipe:
         scenario = scenario.replace("finetune", recipe=recipe)
+    user_dirs = [str(Path(d).resolve()) for d in getattr(args, "clusters_dir", [])]
+    if user_dirs:
+        dirs = [*scenario.feedback.clusters_dirs, *user_dirs]
+        scenario = scenario.replace("feedback", clusters_dirs=dirs)
     for text in getattr(args, "overrides", []):
         section, name, value = parse_override(text)
         if not hasattr(scenario, section) or section in ("name", "path"):
             raise ScenarioError(f"--set {text!r}: unknown section [{section}]")
         scenario = scenario.replace(section, **{name: value})
+    if scenario.feedback.clusters_dirs:
+        from amuled_ma.learn.feedback import cluster_registry
+
+        for o in cluster_registry(scenario).overridden:
+            say(f"note: {o.new_path} overrides the cluster {o.name!r} of {o.old_path}")
     return scenario
 
 
@@ -142,6 +160,8 @@ def command_line(name: str, args: argparse.Namespace, run_dir: Path, *extra: str
     parts = ["amuled", name, str(args.scenario), *extra, "--run-dir", str(run_dir)]
     if getattr(args, "recipe", None):
         parts += ["--recipe", args.recipe]
+    for folder in getattr(args, "clusters_dir", []):
+        parts += ["--clusters-dir", str(folder)]
     for text in getattr(args, "overrides", []):
         parts += ["--set", text]
     if getattr(args, "seed", None) is not None:

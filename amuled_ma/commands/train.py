@@ -9,6 +9,7 @@ from pathlib import Path
 
 from amuled_ma.commands import _experiment as common
 from amuled_ma.run_lock import run_folder_lock
+from amuled_ma.scenario import check_path_component
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -41,6 +42,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--feedback",
         default="amuled",
         help="amuled | human | moral | cluster:<name> | agg:mean|max|vote (default: amuled)",
+    )
+    finetune.add_argument(
+        "--name",
+        default=None,
+        metavar="NAME",
+        help="name this fine-tune (folder finetune-NAME), so that several panels live side "
+        "by side in one run folder and one report; default: [feedback].name, else the "
+        "feedback (finetune-amuled)",
     )
     finetune.add_argument(
         "--base",
@@ -79,9 +88,15 @@ def finetune_command(args: argparse.Namespace) -> int:
         variant = f"finetune:{args.feedback}"
         hint = common.command_line("finetune", args, run_dir, "--feedback", args.feedback)
         start = time.perf_counter()
-        base = {}
+        base: dict = {}
+        if args.name is not None:
+            scenario = scenario.replace("feedback", name=args.name)
+            hint += " --name " + shlex.quote(args.name)
+        if scenario.feedback.name:
+            check_path_component(scenario.feedback.name, "--name (or [feedback].name)")
+            base["out_dir"] = run_dir / f"finetune-{scenario.feedback.name}"
         if args.base is not None:
-            base = {"base_dir": args.base.parent, "base_variant": args.base.name}
+            base.update(base_dir=args.base.parent, base_variant=args.base.name)
             hint += " --base " + shlex.quote(str(args.base))
         job = common.train_job(scenario, run_dir, variant, args, hint, **base)
         common.say(

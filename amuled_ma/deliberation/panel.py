@@ -34,7 +34,6 @@ got a fallback belief is asked again next time (the store's policy, one level up
 
 from __future__ import annotations
 
-import json
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -45,6 +44,7 @@ import numpy as np
 from amuled_ma.beliefs.store import CACHEABLE
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.beliefs.validate import check_belief, check_beliefs, show_values
+from amuled_ma.deliberation.state_key import freeze
 
 #: Marker substituted by the state prompt in a cluster's pre-built chat.
 _SENTINEL = "\x00AMULED_STATE_PROMPT\x00"
@@ -290,7 +290,7 @@ class MoralPanel:
         if self.with_messages:
             assert prompt_vars is not None
             for i in range(n):
-                keys.append(rows[i].tobytes() + _freeze(prompt_vars[i]))
+                keys.append(rows[i].tobytes() + freeze(prompt_vars[i]))
         else:
             keys = [rows[i].tobytes() for i in range(n)]
         first: dict[bytes, int] = {}
@@ -507,20 +507,3 @@ def _as_numpy(x: Any) -> np.ndarray:
     if hasattr(x, "detach"):
         x = x.detach().cpu().numpy()
     return np.asarray(x)
-
-
-def _freeze(variables: Mapping[str, Any]) -> bytes:
-    """Return a byte string identifying a dict of prompt variables (order-free)."""
-    return b"\x1f" + json.dumps(
-        variables, sort_keys=True, separators=(",", ":"), default=_json_default
-    ).encode("utf-8")
-
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if hasattr(value, "tolist"):
-        return value.tolist()
-    return repr(value)

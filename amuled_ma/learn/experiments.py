@@ -34,7 +34,7 @@ import torch
 
 from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError
 from amuled_ma.learn.checkpoints import checkpoint_infos
-from amuled_ma.learn.feedback import MORAL_AGENT, make_feedback, parse_variant
+from amuled_ma.learn.feedback import MORAL_AGENT, make_feedback, panel_of, parse_variant
 from amuled_ma.learn.jobs import TrainJob
 from amuled_ma.learn.trainer import LAST, Trainer, TrainOutcome
 from amuled_ma.scenario import Scenario
@@ -357,7 +357,8 @@ def check_inputs(
 ) -> None:
     """Check, before anything trains, every input a job needs, naming what is missing.
 
-    A fine-tune needs a known feedback variant, its recording (for the replay source,
+    A fine-tune needs a known feedback variant whose agents are known clusters (shipped
+    or in ``[feedback].clusters_dirs``), its recording (for the replay source,
     found by :meth:`~amuled_ma.scenario.Scenario.recording_path`) and a finished base
     checkpoint, unless the base is trained earlier in the same plan (``planned``).
 
@@ -369,8 +370,10 @@ def check_inputs(
         return
     feedback = variant.split(":", 1)[1] if ":" in variant else ""
     kind, _ = parse_variant(feedback)
-    if scenario.feedback.source == "replay" and kind != "human":
-        scenario.recording_path(required=True)
+    if kind != "human":
+        panel_of(feedback, scenario)  # every agent of the panel is a known cluster
+        if scenario.feedback.source == "replay":
+            scenario.recording_path(required=True)
     if base_variant not in planned:
         base_checkpoint(run_dir, scenario, base_variant)
 

@@ -28,17 +28,17 @@ failure: the fused reward used a uniform fallback for that agent) and ``replay_m
 from __future__ import annotations
 
 import functools
-import importlib
 from abc import ABC, abstractmethod
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from amuled_ma.errors import ScenarioError
+from amuled_ma.deliberation.state_key import freeze
+from amuled_ma.errors import ClusterDefinitionError, ScenarioError
 
 #: Name of the unprompted moral agent in recordings and the cluster prompts.
 MORAL_AGENT = "moral_agent"
@@ -48,6 +48,11 @@ AGGREGATIONS = ("mean", "max", "vote")
 REPORTED_STATUSES = ("ok", "repaired", "abstained", "timeout", "error", "replay_miss")
 #: Statuses that are answers; every other one is a failure (a fallback belief was used).
 ANSWERED = frozenset({"ok", "repaired"})
+#: Statuses that are a feedback's documented answer, not an agent's failure: the authors'
+#: fusion met total conflict (reward 0), a demonstrator never visited the state (reward 0).
+DOCUMENTED_ZERO = frozenset({"total_conflict", "unseen"})
+#: Distinct states an agent must have been asked before its abstention rate is judged.
+MIN_STATES_JUDGED = 20
 
 
 class Feedback(ABC):
@@ -70,9 +75,24 @@ class Feedback(ABC):
         self._conflict_sum = 0.0
         self._diag_count = 0
 
+    #: Largest share of distinct states one agent may leave unanswered (None: no limit),
+    #: ``[feedback].max_abstention``; see :meth:`check_abstention`.
+    max_abstention: float | None = None
+
+    #: Whether a state is the observation *and* the task's prompt variables (a source that
+    #: reads prompts: on FindMilk the number of crying babies is in the prompt, not in the
+    #: observation); the in-process memo and the panel then key alike.
+    keyed_by_prompt: bool = False
+
     @abstractmethod
-    def _compute(self, obs: np.ndarray, task: Any, env_ids: Sequence[int]) -> list[tuple]:
-        """Return ``(belief [A], diagnostics)`` for each new observation row."""
+    def _compute(
+        self,
+        obs: np.ndarray,
+        task: Any,
+        env_ids: Sequence[int],
+        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
+    ) -> list[tuple]:
+        """Return ``(belief [A], diagnostics)`` for each new state (row of ``obs``)."""
 
     def __call__(
         self, obs: torch.Tensor, task: Any, env_ids: Sequence[int] | None = None
@@ -87,7 +107,12 @@ class Feedback(ABC):
         """
         array = obs.detach().cpu().numpy().astype(np.float32, copy=False)
         ids = list(range(len(array))) if env_ids is None else list(env_ids)
-        keys = [row.tobytes() for row in array]
+        prompt_vars = None
+        if self.keyed_by_prompt and hasattr(task, "prompt_variables"):
+            prompt_vars = task.prompt_variables(ids)
+            keys = [row.tobytes() + freeze(v) for row, v in zip(array, prompt_vars, strict=True)]
+        else:
+            keys = [row.tobytes() for row in array]
         memo = self._memo
         missing: dict[bytes, int] = {}
         for i, key in enumerate(keys):
@@ -95,13 +120,20 @@ class Feedback(ABC):
                 missing[key] = i
         if missing:
             rows = list(missing.values())
-            results = self._compute(array[rows], task, [ids[i] for i in rows])
+            results = self._compute(
+                array[rows],
+                task,
+                [ids[i] for i in rows],
+                None if prompt_vars is None else [prompt_vars[i] for i in rows],
+            )
             self.lookups += len(rows)
             for key, result in zip(missing, results, strict=True):
                 diag = result[1]
                 prepared = _prepare(diag, self.name)
                 memo[key] = (np.asarray(result[0], dtype=np.float64), diag, prepared)
                 self.agent_statuses_unique.update(prepared[0])
+            if self.max_abstention is not None:
+                self.check_abstention()
         entries = [memo[key] for key in keys]
         out = np.stack([entry[0] for entry in entries]) if entries else np.empty((0, 0))
         for entry in entries:
@@ -153,6 +185,49 @@ class Feedback(ABC):
             failed = total - row["ok"] - row["repaired"]
             row.update(total=total, failed=failed, failure_rate=failed / total if total else 0.0)
         return report
+
+    def agent_source(self, agent: str) -> str:
+        """A short description of where ``agent``'s beliefs come from (for messages)."""
+        return self.name
+
+    def check_abstention(self) -> None:
+        """Stop when an agent left too many distinct states unanswered.
+
+        Raises:
+            AbstentionError: An agent asked about at least :data:`MIN_STATES_JUDGED`
+                distinct states failed to answer (abstained, timeout, error, replay miss)
+                more than :attr:`max_abstention` of them; the message names the agent, its
+                source, the counts and the fix.
+
+        """
+        from amuled_ma.errors import AbstentionError
+
+        limit = self.max_abstention
+        if limit is None:
+            return
+        for agent, row in self.agent_report(per="states").items():
+            total = row["total"]
+            failures = {
+                status: n
+                for status, n in row.items()
+                if status not in ANSWERED
+                and status not in DOCUMENTED_ZERO
+                and status not in ("total", "failed", "failure_rate")
+                and n
+            }
+            failed = sum(failures.values())
+            if total < MIN_STATES_JUDGED or failed <= limit * total:
+                continue
+            parts = ", ".join(f"{status} {n}" for status, n in failures.items())
+            raise AbstentionError(
+                f"agent {agent!r} (source: {self.agent_source(agent)}) left {failed} of "
+                f"{total} distinct states unanswered ({parts}): {failed / total:.0%}, above "
+                f"[feedback].max_abstention = {limit:g}; feedback that is mostly missing is "
+                "noise. Check that the recording holds this agent (a user cluster needs a "
+                "live source, see docs/clusters.md), that the server answers ('amuled ollama "
+                "status') and that the model exists; or allow more with --set "
+                "feedback.max_abstention=..."
+            )
 
     def failure_rate(self) -> float:
         """Share of all agents' beliefs over rewarded steps that were not answers (0..1)."""
@@ -251,7 +326,13 @@ class CallableFeedback(Feedback):
         self.fn = fn
         self.name = name
 
-    def _compute(self, obs: np.ndarray, task: Any, env_ids: Sequence[int]) -> list[tuple]:
+    def _compute(
+        self,
+        obs: np.ndarray,
+        task: Any,
+        env_ids: Sequence[int],
+        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
+    ) -> list[tuple]:
         beliefs = np.asarray(self.fn(obs), dtype=np.float64)
         return [(b, {"statuses": ("ok",)}) for b in beliefs]
 
@@ -264,9 +345,17 @@ class HumanFeedback(Feedback):
     def __init__(self, task_name: str) -> None:
         super().__init__()
         self.task_name = task_name
-        self._human_belief = importlib.import_module("amuled_ma.tasks.human").human_belief
+        from amuled_ma.tasks.human import human_belief
 
-    def _compute(self, obs: np.ndarray, task: Any, env_ids: Sequence[int]) -> list[tuple]:
+        self._human_belief = human_belief
+
+    def _compute(
+        self,
+        obs: np.ndarray,
+        task: Any,
+        env_ids: Sequence[int],
+        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
+    ) -> list[tuple]:
         beliefs = np.asarray(self._human_belief(self.task_name, obs), dtype=np.float64)
         beliefs = beliefs.reshape(len(obs), -1)
         return [(b, {"statuses": ("ok",)}) for b in beliefs]
@@ -297,7 +386,13 @@ class DemonstratorFeedback(Feedback):
 
         self.table = demonstrator_belief(task_name, seed=seed, cache_dir=cache_dir)
 
-    def _compute(self, obs: np.ndarray, task: Any, env_ids: Sequence[int]) -> list[tuple]:
+    def _compute(
+        self,
+        obs: np.ndarray,
+        task: Any,
+        env_ids: Sequence[int],
+        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
+    ) -> list[tuple]:
         beliefs, seen = self.table.lookup(torch.as_tensor(obs))
         beliefs = np.asarray(beliefs, dtype=np.float64)
         return [
@@ -318,15 +413,16 @@ class PanelFeedback(Feedback):
         self.source = source
         #: a state every agent missed in the recording rewards 0 (the authors' scripts)
         self.miss_zero = miss_zero
-
-    def _compute(self, obs: np.ndarray, task: Any, env_ids: Sequence[int]) -> list[tuple]:
         # a source that reads no messages (replay, rules) needs no prompt variables
-        needs_prompts = bool(getattr(self.panel, "with_messages", True))
-        prompt_vars = (
-            task.prompt_variables(list(env_ids))
-            if needs_prompts and hasattr(task, "prompt_variables")
-            else None
-        )
+        self.keyed_by_prompt = bool(getattr(panel, "with_messages", True))
+
+    def _compute(
+        self,
+        obs: np.ndarray,
+        task: Any,
+        env_ids: Sequence[int],
+        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
+    ) -> list[tuple]:
         out = self.panel.fused(obs, prompt_vars)
         fused = np.asarray(out.fused, dtype=np.float64).reshape(len(obs), -1)
         clusters = list(
@@ -357,12 +453,28 @@ class PanelFeedback(Feedback):
             results.append((fused[i], diag))
         return results
 
+    def agent_source(self, agent: str) -> str:
+        """The source answering ``agent``: its kind and model or recording."""
+        source = self.source
+        per_agent = getattr(source, "source_for", None)
+        if callable(per_agent):
+            source = per_agent(agent)
+        return describe_identity(source.identity()) if source is not None else self.name
+
     def close(self) -> None:
         """Close the belief source, if it has ``close``."""
         for obj in (self.panel, self.source):
             closer = getattr(obj, "close", None)
             if callable(closer):
                 closer()
+
+
+def describe_identity(identity: Mapping[str, Any]) -> str:
+    """``replay (findmilk-gpt-4o-mini.json)``, ``ollama (llama3.1:8b)``: a source in words."""
+    kind = str(identity.get("source", "source"))
+    files = [r.get("file") for r in identity.get("recordings") or () if isinstance(r, dict)]
+    detail = ", ".join(str(f) for f in files if f) or identity.get("model") or ""
+    return f"{kind} ({detail})" if detail else kind
 
 
 def _all_missed(statuses: Sequence[str]) -> bool:
@@ -400,7 +512,17 @@ class FusedReplayFeedback(Feedback):
         self.recording = recording
         self.miss_policy = miss_policy
 
-    def _compute(self, obs: np.ndarray, task: Any, env_ids: Sequence[int]) -> list[tuple]:
+    def agent_source(self, agent: str) -> str:
+        """The fused-only recording."""
+        return f"replay ({self.recording.path.name}, fused beliefs only)"
+
+    def _compute(
+        self,
+        obs: np.ndarray,
+        task: Any,
+        env_ids: Sequence[int],
+        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
+    ) -> list[tuple]:
         from amuled_ma.errors import ReplayMiss
 
         n = len(self.recording.actions)
@@ -545,20 +667,74 @@ def make_feedback(variant: str, scenario: Any, run_dir: Path | None = None) -> F
                 f"{variant!r} with fusion {scenario.feedback.fusion!r}; use a recording with "
                 'per-cluster beliefs, e.g. recording = "driving-llama-3_1-70b"'
             )
-        return FusedReplayFeedback(fused_only, scenario.feedback.miss_policy)
-    clusters = list(scenario.feedback.clusters)
-    rule = scenario.feedback.fusion
+        fused = FusedReplayFeedback(fused_only, scenario.feedback.miss_policy)
+        fused.max_abstention = scenario.feedback.max_abstention
+        return fused
+    from amuled_ma.clusters import build_messages
+    from amuled_ma.deliberation.panel import MoralPanel
+
+    registry = cluster_registry(scenario)
+    clusters, rule = panel_of(variant, scenario, registry)
+    source = make_source(scenario, run_dir)
+    panel = MoralPanel(
+        task_name,
+        clusters,
+        source,
+        rule,
+        build_messages=functools.partial(build_messages, registry=registry),
+    )
+    miss_zero = scenario.feedback.source == "replay" and scenario.feedback.miss_policy == "zero"
+    feedback = PanelFeedback(variant, panel, source, miss_zero=miss_zero)
+    feedback.max_abstention = scenario.feedback.max_abstention
+    return feedback
+
+
+def cluster_registry(scenario: Any) -> Any:
+    """The shipped clusters plus the scenario's ``[feedback].clusters_dirs`` (later win).
+
+    Raises:
+        ClusterDefinitionError: A folder is missing or a file is malformed or collides.
+
+    """
+    dirs = [scenario.resolve(d) for d in scenario.feedback.clusters_dirs]
+    return _registry_cached(tuple(str(d) for d in dirs))
+
+
+@functools.lru_cache(maxsize=8)
+def _registry_cached(dirs: tuple[str, ...]) -> Any:
+    from amuled_ma.clusters import ClusterRegistry
+
+    return ClusterRegistry.load(list(dirs))
+
+
+def panel_of(variant: str, scenario: Any, registry: Any | None = None) -> tuple[list, str]:
+    """The panel of a feedback variant: its agents (cluster objects) and fusion rule.
+
+    Raises:
+        ClusterDefinitionError: A named cluster is in no loaded cluster file; the message
+            lists the known ones (a user cluster needs ``--clusters-dir``).
+
+    """
+    kind, arg = parse_variant(variant)
+    registry = registry or cluster_registry(scenario)
+    names, rule = list(scenario.feedback.clusters), scenario.feedback.fusion
     if kind == "cluster":
-        clusters, rule = [arg], "mean"
+        names, rule = [arg], "mean"
     elif kind == "moral":
-        clusters, rule = [MORAL_AGENT], "mean"
+        names, rule = [MORAL_AGENT], "mean"
     elif kind == "agg":
         rule = arg
-    panel_mod = importlib.import_module("amuled_ma.deliberation.panel")
-    source = make_source(scenario, run_dir)
-    panel = panel_mod.MoralPanel(task_name, clusters, source, rule)
-    miss_zero = scenario.feedback.source == "replay" and scenario.feedback.miss_policy == "zero"
-    return PanelFeedback(variant, panel, source, miss_zero=miss_zero)
+    clusters = []
+    for name in names:
+        if name not in registry:
+            dirs = ", ".join(scenario.feedback.clusters_dirs) or "none"
+            raise ClusterDefinitionError(
+                f"feedback {variant!r}: no moral cluster {name!r} in the shipped cluster files "
+                f"or the user folders ({dirs}); known: {', '.join(registry.names())}; put its "
+                "TOML file in a folder and pass --clusters-dir FOLDER (docs/clusters.md)"
+            )
+        clusters.append(registry.get(name))
+    return clusters, rule
 
 
 def _fused_only_recording(scenario: Any) -> Any | None:
