@@ -285,8 +285,49 @@ def evaluate_run(
         ]
         if summaries:
             results["variants"][name]["feedback"] = merge_feedback(summaries)
+        panel = panel_record(members[0])
+        if panel is not None:
+            results["variants"][name]["panel"] = panel
     write_results(run_dir, results)
     return results
+
+
+def panel_record(variant_dir: Path) -> dict[str, Any] | None:
+    """What a fine-tune's feedback was: variant, recipe, lambda_KL, agents and their sources.
+
+    Read from the variant folder's ``config.json`` (``"training"``); None for a base
+    policy or a folder without recorded settings.
+    """
+    path = Path(variant_dir) / "config.json"
+    try:
+        training = json.loads(path.read_text()).get("training") or {}
+    except (OSError, ValueError):
+        return None
+    variant = str(training.get("variant", ""))
+    if not variant.startswith("finetune"):
+        return None
+    finetune = training.get("finetune") or {}
+    feedback = training.get("feedback") or {}
+    record: dict[str, Any] = {
+        "feedback": variant.split(":", 1)[1] if ":" in variant else variant,
+        "recipe": finetune.get("recipe", "equation"),
+        "lambda_kl": finetune.get("lambda_kl"),
+        "iterations": training.get("iterations"),
+        "seed": training.get("seed"),
+    }
+    if feedback:
+        record.update(
+            agents=list(feedback.get("clusters") or []),
+            source=feedback.get("source"),
+            model=feedback.get("model"),
+            recording=feedback.get("recording"),
+            fusion=feedback.get("fusion"),
+            agent_sources=feedback.get("agents") or {},
+            clusters_dirs=list(feedback.get("clusters_dirs") or []),
+        )
+    if training.get("inputs"):
+        record["inputs"] = training["inputs"]
+    return record
 
 
 def _clean(value: Any) -> Any:
@@ -315,7 +356,7 @@ def write_results(run_dir: Path, results: dict[str, Any]) -> tuple[Path, Path]:
         )
         for variant, entry in results["variants"].items():
             for mode, data in entry.items():
-                if mode == "feedback":
+                if mode in ("feedback", "panel"):
                     continue
                 for metric, s in data["metrics"].items():
                     writer.writerow(

@@ -288,6 +288,39 @@ def metrics_table(results: dict[str, Any], mode: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def panels_table(results: dict[str, Any]) -> str:
+    """A Markdown table of each fine-tune's feedback (``results["variants"][*]["panel"]``)."""
+    rows = []
+    for name, entry in results.get("variants", {}).items():
+        panel = entry.get("panel")
+        if not panel:
+            continue
+        agents = ", ".join(panel.get("agents") or []) or "-"
+        if panel.get("feedback") in ("human", "human:rules"):
+            agents = "the synthetic human" if panel["feedback"] == "human" else "our human rule"
+        elif str(panel.get("feedback", "")).startswith(("cluster:", "moral")):
+            agents = str(panel["feedback"])
+        source = panel.get("source") or "-"
+        detail = panel.get("recording") if source == "replay" else panel.get("model")
+        overrides = panel.get("agent_sources") or {}
+        if overrides:
+            source += "; " + ", ".join(
+                f"{agent}: {spec.get('source', '?')}" for agent, spec in overrides.items()
+            )
+        rows.append(
+            f"| {name} | {panel.get('feedback')} | {panel.get('recipe')} | "
+            f"{panel.get('lambda_kl')} | {panel.get('iterations')} | {agents} | "
+            f"{source}{f' ({detail})' if detail else ''} | {panel.get('fusion') or '-'} |"
+        )
+    if not rows:
+        return ""
+    head = (
+        "| variant | feedback | recipe | lambda_KL | iterations | agents | source | fusion |\n"
+        "|---|---|---|---|---|---|---|---|"
+    )
+    return head + "\n" + "\n".join(rows) + "\n"
+
+
 def write_report(run_dir: Path, results: dict[str, Any], *, title: str | None = None) -> Path:
     """Write ``report.md`` and its PNG figures into ``run_dir``.
 
@@ -345,6 +378,17 @@ def write_report(run_dir: Path, results: dict[str, Any], *, title: str | None = 
         table = metrics_table(results, mode)
         if table:
             lines += [f"## Metrics, {mode} policy", "", table]
+    panels = panels_table(results)
+    if panels:
+        lines += [
+            "## Feedback of each fine-tune",
+            "",
+            "What each fine-tuned variant was trained on (its folder's `config.json`): the "
+            "recipe of the KL anchor, lambda_KL, the panel's agents and where their beliefs "
+            "came from.",
+            "",
+            panels,
+        ]
     lines += [
         "## Fused-belief diagnostics",
         "",
