@@ -70,6 +70,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--run-dir", type=Path, default=None, help="run directory (default runs/demo-<task>)"
     )
+    parser.add_argument(
+        "--clusters-dir",
+        action="append",
+        type=Path,
+        default=[],
+        metavar="DIR",
+        help="a folder of your own cluster TOML files (repeatable), as for 'amuled run'",
+    )
     add_overrides_argument(parser)  # applied after the demo budget
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.set_defaults(handler=demo_command)
@@ -109,6 +117,8 @@ def demo_command(args: argparse.Namespace) -> int:
     ]
     argv = ["run", args.task, "--run-dir", str(run_dir), "--resume"]
     argv += [item for text in overrides for item in ("--set", text)]
+    for folder in args.clusters_dir:
+        argv += ["--clusters-dir", str(folder)]
     if args.no_progress:
         argv.append("--no-progress")
     try:

@@ -60,6 +60,7 @@ import functools
 import string
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -121,6 +122,9 @@ class DeliberationEnv(ParallelEnv):
         render_state_prompt: ``(task_name, variables) -> str``; default
             :func:`amuled_ma.tasks.prompts.render_state_prompt`.
         task_options: Extra keyword arguments of the task (e.g. ``layout``).
+        clusters_dirs: Folders of user cluster files, loaded after the shipped ones (a file
+            overrides a shipped cluster of its name); the default panel and the names in
+            ``clusters`` are resolved against them.
 
     """
 
@@ -145,17 +149,18 @@ class DeliberationEnv(ParallelEnv):
         prompt_max_length: int = 16384,
         render_state_prompt: Callable[[str, Mapping[str, Any]], str] | None = None,
         task_options: Mapping[str, Any] | None = None,
+        clusters_dirs: Sequence[str | Path] = (),
     ) -> None:
+        from amuled_ma.clusters import ClusterRegistry, default_registry
         from amuled_ma.fusion import fuse
         from amuled_ma.tasks import get_task
 
         if render_mode not in (None, "ansi"):
             raise ValueError(f"render_mode: expected None or 'ansi', got {render_mode!r}")
+        registry = ClusterRegistry.load(clusters_dirs) if clusters_dirs else default_registry()
         if clusters is None:
-            from amuled_ma.clusters import default_registry
-
-            clusters = [c.name for c in default_registry().panel()]
-        clusters = [str(c) for c in clusters]
+            clusters = [c.name for c in registry.panel()]
+        clusters = [registry.get(str(c)).name if str(c) in registry else str(c) for c in clusters]
         if not clusters or ACTOR in clusters or len(set(clusters)) != len(clusters):
             raise ValueError(
                 f"clusters: expected distinct names other than 'actor', got {clusters}"
