@@ -363,6 +363,12 @@ class FeedbackConfig(_Validated):
         ollama: Further keyword arguments of
             :class:`~amuled_ma.beliefs.ollama.OllamaSource` (``num_predict``, ``num_ctx``,
             ``reasoning``, ``seed``, ``retries``, ...), checked against its signature.
+        agents: A belief source per panel member, ``{agent: table}`` from the
+            ``[feedback.agents.<agent>]`` tables: ``source`` = ``replay``, ``ollama``,
+            ``rules``, ``terminal``, ``entry-point`` or ``policy`` and that kind's keys
+            (:data:`amuled_ma.beliefs.routing.AGENT_KEYS`); an agent without a table uses
+            ``source``. Checked on load by
+            :func:`amuled_ma.beliefs.routing.check_agent_tables` (see ``docs/beliefs.md``).
         clusters_dirs: Folders of user cluster files (relative to the scenario file),
             loaded after the shipped ones; a file overrides a shipped cluster of its name.
         max_abstention: The largest share of distinct states one panel agent may leave
@@ -392,6 +398,7 @@ class FeedbackConfig(_Validated):
     clusters: list[str] = field(default_factory=lambda: list(PAPER_CLUSTERS))
     fusion: str = "bjs-dst"
     ollama: dict[str, Any] = field(default_factory=dict)
+    agents: dict[str, dict[str, Any]] = field(default_factory=dict)
     clusters_dirs: list[str] = field(default_factory=list)
     max_abstention: float = field(
         default=0.2,
@@ -878,6 +885,16 @@ def validate_section(section: str, values: dict[str, Any], source: str) -> None:
                 _check_number(f"{key}[{i}]", item, rng, source)
         else:
             _check_number(key, value, rng, source)
+    if section == "feedback" and values.get("agents") is not None:
+        from amuled_ma.beliefs.routing import check_agent_tables
+
+        check_agent_tables(
+            values["agents"],
+            where=source,
+            clusters=values["clusters"],
+            default_source=values["source"],
+            default_model=values["model"],
+        )
     if section == "feedback" and values.get("host"):
         from amuled_ma.beliefs.hosts import normalize_host
 

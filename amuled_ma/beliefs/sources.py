@@ -2,10 +2,13 @@
 
 Built-in kinds: ``"ollama"`` (:class:`~amuled_ma.beliefs.ollama.OllamaSource`),
 ``"replay"`` (:class:`~amuled_ma.beliefs.replay.ReplaySource`), ``"rules"``
-(:class:`~amuled_ma.beliefs.rules.RulesSource`) and ``"scripted"``
-(:class:`~amuled_ma.beliefs.rules.ScriptedSource`). Other kinds are looked up in the
-``amuled_ma.agents`` entry-point group (code-backed agents shipped by other packages),
-or added at run time with :func:`register_source`.
+(:class:`~amuled_ma.beliefs.rules.RulesSource`), ``"scripted"``
+(:class:`~amuled_ma.beliefs.rules.ScriptedSource`), ``"terminal"``
+(:class:`~amuled_ma.beliefs.terminal.TerminalSource`), ``"policy"``
+(:class:`~amuled_ma.beliefs.policy.PolicySource`) and ``"entry-point"``
+(:func:`entry_point_source`: a plug-in named by entry-point name or ``"module:Class"``).
+Other kinds are looked up in the ``amuled_ma.agents`` entry-point group (code-backed
+agents shipped by other packages), or added at run time with :func:`register_source`.
 
 Options are the source class's keyword arguments. A ``fallback`` option given as a
 mapping ``{"kind": ..., ...}`` is itself built with :func:`make_source`, so a scenario
@@ -26,6 +29,9 @@ _BUILTIN: dict[str, str] = {
     "replay": "amuled_ma.beliefs.replay:ReplaySource",
     "rules": "amuled_ma.beliefs.rules:RulesSource",
     "scripted": "amuled_ma.beliefs.rules:ScriptedSource",
+    "terminal": "amuled_ma.beliefs.terminal:TerminalSource",
+    "policy": "amuled_ma.beliefs.policy:PolicySource",
+    "entry-point": "amuled_ma.beliefs.sources:entry_point_source",
 }
 _REGISTERED: dict[str, Callable[..., BeliefSource]] = {}
 
@@ -65,12 +71,93 @@ def _factory(kind: str) -> Callable[..., BeliefSource]:
     )
 
 
+def load_agent_factory(name: str) -> Callable[..., BeliefSource]:
+    """Resolve a plug-in agent: an ``amuled_ma.agents`` entry-point name or ``"module:Class"``.
+
+    Args:
+        name: An installed entry point's name (``terminal_human``), or an importable
+            ``"pkg.module:Class"`` (any callable returning a :class:`BeliefSource`).
+
+    Returns:
+        The factory.
+
+    Raises:
+        ScenarioError: No entry point has the name, or the ``module:Class`` string does not
+            import; the message lists the installed entry points and the fix.
+
+    """
+    from amuled_ma.clusters.plugins import ENTRY_POINT_GROUP, agent_entry_points
+
+    if not isinstance(name, str) or not name.strip():
+        raise ScenarioError(
+            f"entry-point agent: name expects an entry-point name or 'module:Class', found {name!r}"
+        )
+    if ":" in name:
+        from amuled_ma.beliefs.rules import resolve_callable
+
+        try:
+            return resolve_callable(name)
+        except ScenarioError as error:
+            raise ScenarioError(
+                f"entry-point agent {name!r}: {error}; fix the 'module:Class' string (the "
+                "module must be importable from this Python environment)"
+            ) from error
+    points = agent_entry_points()
+    if name not in points:
+        installed = ", ".join(sorted(points)) or "none"
+        raise ScenarioError(
+            f"entry-point agent {name!r}: no installed package registers it in the "
+            f"{ENTRY_POINT_GROUP!r} entry-point group (installed: {installed}); install the "
+            "package that provides it, or give 'module:Class'"
+        )
+    try:
+        return points[name].load()
+    except Exception as error:
+        raise ScenarioError(
+            f"entry-point agent {name!r} ({points[name].value}) failed to load: {error!r}; "
+            "fix or reinstall the package that provides it"
+        ) from error
+
+
+def entry_point_source(name: str, options: Mapping[str, Any] | None = None) -> BeliefSource:
+    """Build a plug-in agent's source: ``load_agent_factory(name)(**options)``.
+
+    Args:
+        name: See :func:`load_agent_factory`.
+        options: The factory's keyword arguments.
+
+    Returns:
+        The source.
+
+    Raises:
+        ScenarioError: The name does not resolve, the factory refuses the options or
+            fails, or it does not return a :class:`BeliefSource`.
+
+    """
+    factory = load_agent_factory(name)
+    options = dict(options or {})
+    try:
+        source = factory(**options)
+    except Exception as error:
+        raise ScenarioError(
+            f"entry-point agent {name!r}: building it with options {sorted(options)} "
+            f"failed: {error!r}; fix its options"
+        ) from error
+    if not isinstance(source, BeliefSource):
+        raise ScenarioError(
+            f"entry-point agent {name!r} built {type(source).__name__}, expected an "
+            "amuled_ma.beliefs.BeliefSource; fix the plug-in"
+        )
+    return source
+
+
 def make_source(kind: str, **options: Any) -> BeliefSource:
     """Build a belief source by kind.
 
     Args:
-        kind: ``"ollama"``, ``"replay"``, ``"rules"``, ``"scripted"``, a registered
-            kind, or an ``amuled_ma.agents`` entry-point name.
+        kind: ``"ollama"``, ``"replay"``, ``"rules"``, ``"scripted"``, ``"terminal"``,
+            ``"policy"``, ``"entry-point"``, a registered kind, or an
+            ``amuled_ma.agents`` entry-point name.
         **options: The source's keyword arguments.
 
     Returns:

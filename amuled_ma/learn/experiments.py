@@ -169,6 +169,10 @@ def training_config(
         out["feedback"]["recording"] = Path(out["feedback"]["recording"]).name
         if out["feedback"].get("source") == "replay":
             out["inputs"] = {"recording_sha256": _file_sha256(scenario.recording_path())}
+    for agent, spec in sorted((out.get("feedback", {}).get("agents") or {}).items()):
+        if spec.get("source") == "replay" and spec.get("recording"):
+            path = scenario.replace("feedback", recording=spec["recording"]).recording_path()
+            out.setdefault("inputs", {})[f"recording_sha256[{agent}]"] = _file_sha256(path)
     return json.loads(json.dumps(out, default=str))
 
 
@@ -371,8 +375,12 @@ def check_inputs(
     feedback = variant.split(":", 1)[1] if ":" in variant else ""
     kind, _ = parse_variant(feedback)
     if kind != "human":
-        panel_of(feedback, scenario)  # every agent of the panel is a known cluster
-        if scenario.feedback.source == "replay":
+        agents, _ = panel_of(feedback, scenario)  # every agent is a known cluster
+        if scenario.feedback.agents:
+            from amuled_ma.beliefs.routing import preflight
+
+            preflight(scenario, agents)  # every agent's own source answers
+        elif scenario.feedback.source == "replay":
             scenario.recording_path(required=True)
     if base_variant not in planned:
         base_checkpoint(run_dir, scenario, base_variant)

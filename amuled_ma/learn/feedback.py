@@ -574,70 +574,102 @@ def parse_variant(variant: str) -> tuple[str, str | None]:
     )
 
 
-def make_source(scenario: Any, run_dir: Path | None = None) -> Any:
-    """Create the scenario's belief source, wrapped in the belief store cache.
+def make_source(scenario: Any, run_dir: Path | None = None, *, agents: Any = None) -> Any:
+    """Create the scenario's belief source(s), wrapped in the belief store cache.
+
+    Without a ``[feedback.agents.<name>]`` table for any of ``agents``: the source of
+    ``[feedback].source`` behind the store, as always. With some: a
+    :class:`~amuled_ma.beliefs.routing.RoutedSource` sending each agent's requests to its
+    own source, each distinct source behind the one store in its own
+    :class:`~amuled_ma.beliefs.cached.CachedSource` (so every store key holds the identity
+    of the source that answered), agents without a table on ``[feedback].source``.
+
+    Preflight, before anything is written: every source is built (a recording read, a
+    policy file loaded, a plug-in resolved) and checked (an Ollama server and model
+    reachable); a problem fails here, naming the agent's table, the source and the fix,
+    and leaves the run directory untouched.
 
     Args:
         scenario: The :class:`~amuled_ma.scenario.Scenario`.
         run_dir: Run directory (a relative belief store path is resolved against it).
+        agents: The panel's agents (names or cluster objects); default
+            ``[feedback].clusters`` and ``moral_agent``.
 
     Returns:
-        A :class:`~amuled_ma.beliefs.cached.CachedSource` over the scenario's source.
+        A ``CachedSource`` over the scenario's source, or a ``RoutedSource`` of them.
+
+    Raises:
+        AmuledError: A source cannot be built or checked (see
+            :func:`amuled_ma.beliefs.routing.build_members`).
 
     """
     from amuled_ma.beliefs import make_source as build
     from amuled_ma.beliefs.cached import CachedSource
+    from amuled_ma.beliefs.routing import (
+        RoutedSource,
+        build_members,
+        default_spec,
+        match_agents,
+        panel_specs,
+    )
     from amuled_ma.beliefs.store import BeliefStore
 
     fb = scenario.feedback
-    options: dict[str, Any] = {}
-    if fb.source == "replay":
-        path = scenario.recording_path(required=True)
-        # "zero" is applied to the fused reward (PanelFeedback.miss_zero); the source
-        # answers a miss with a uniform belief, counted as replay_miss
-        policy = "uniform" if fb.miss_policy == "zero" else fb.miss_policy
-        options.update(paths=path, miss_policy=policy)
-    elif fb.source == "ollama":
-        options.update(
-            model=fb.model,
-            host=fb.host or None,
-            concurrency=fb.concurrency,
-            timeout_s=fb.timeout_s,
-            **_ollama_options(scenario),
-        )
-    source = build(fb.source, **options)
-    # Preflight before anything is written: an unreachable server or a missing model
-    # fails here, with the source's own message, and leaves the run directory untouched.
-    check = getattr(source, "check", None)
-    if callable(check):
-        try:
-            check()
-        except BaseException:
-            source.close()
-            raise
-    store_path = Path(fb.store)
-    if not store_path.is_absolute():
-        store_path = (run_dir or scenario.base_dir) / store_path
-    store_path.parent.mkdir(parents=True, exist_ok=True)
-    return CachedSource(source, BeliefStore(store_path))
+    if agents is None:
+        agents = [*fb.clusters, *([MORAL_AGENT] if MORAL_AGENT not in fb.clusters else [])]
+    agents = list(agents)
+
+    def store() -> BeliefStore:
+        store_path = Path(fb.store)
+        if not store_path.is_absolute():
+            store_path = (run_dir or scenario.base_dir) / store_path
+        store_path.parent.mkdir(parents=True, exist_ok=True)
+        return BeliefStore(store_path)
+
+    if not match_agents(list(fb.agents), agents):
+        spec = default_spec(scenario, _ollama_options)
+        source = build(spec.kind, **spec.options)
+        # Preflight before anything is written: an unreachable server or a missing model
+        # fails here, with the source's own message, and leaves the run directory untouched.
+        check = getattr(source, "check", None)
+        if callable(check):
+            try:
+                check()
+            except BaseException:
+                source.close()
+                raise
+        return CachedSource(source, store())
+
+    specs, default, problems = panel_specs(scenario, agents, _ollama_options)
+    routes, default_source = build_members(
+        specs, default, where=str(scenario.path or scenario.name), build=build, problems=problems
+    )
+    shared = store()
+    cached: dict[int, CachedSource] = {}
+    kinds = {id(routes[a]): specs[a] for a in routes}
+
+    def wrap(source: Any) -> CachedSource:
+        if id(source) not in cached:
+            spec = kinds.get(id(source))
+            identity = None
+            if spec is not None and spec.kind == "entry-point":
+                # a plug-in's own identity may be the bare default ({"source": name}):
+                # the entry point and its options keep two plug-ins' answers apart
+                identity = {"source": "entry-point", **spec.options, "plugin": source.identity()}
+            cached[id(source)] = CachedSource(source, shared, identity=identity)
+        return cached[id(source)]
+
+    return RoutedSource(
+        {agent: wrap(source) for agent, source in routes.items()},
+        wrap(default_source) if default_source is not None else None,
+    )
 
 
 def _ollama_options(scenario: Any) -> dict[str, Any]:
     """Return ``[feedback].ollama``, checked against :class:`OllamaSource`'s keywords."""
-    import inspect
+    from amuled_ma.beliefs.routing import scenario_ollama_options
 
-    from amuled_ma.beliefs.ollama import OllamaSource
-
-    allowed = set(inspect.signature(OllamaSource).parameters) - {
-        "model", "host", "concurrency", "timeout_s", "transport", "fallback"
-    }  # fmt: skip
-    unknown = sorted(set(scenario.feedback.ollama) - allowed)
-    if unknown:
-        raise ScenarioError(
-            f"{scenario.path or scenario.name}: [feedback.ollama] unknown key(s) "
-            f"{', '.join(unknown)}; expected some of {', '.join(sorted(allowed))}"
-        )
-    return dict(scenario.feedback.ollama)
+    return scenario_ollama_options(scenario)
 
 
 def make_feedback(variant: str, scenario: Any, run_dir: Path | None = None) -> Feedback:
@@ -659,6 +691,14 @@ def make_feedback(variant: str, scenario: Any, run_dir: Path | None = None) -> F
     if kind == "human":
         return DemonstratorFeedback(task_name, seed=scenario.task.seed, cache_dir=run_dir)
     fused_only = _fused_only_recording(scenario)
+    if fused_only is not None and scenario.feedback.agents:
+        from amuled_ma.beliefs.routing import match_agents
+
+        # agents with their own source are a panel of their own: no fused-only shortcut
+        # (a replay member on the fused-only recording is refused by the preflight)
+        agents, _ = panel_of(variant, scenario)
+        if match_agents(list(scenario.feedback.agents), agents):
+            fused_only = None
     if fused_only is not None:
         if kind != "amuled" or scenario.feedback.fusion != "bjs-dst":
             raise ScenarioError(
@@ -675,7 +715,7 @@ def make_feedback(variant: str, scenario: Any, run_dir: Path | None = None) -> F
 
     registry = cluster_registry(scenario)
     clusters, rule = panel_of(variant, scenario, registry)
-    source = make_source(scenario, run_dir)
+    source = make_source(scenario, run_dir, agents=clusters)
     panel = MoralPanel(
         task_name,
         clusters,
@@ -683,7 +723,10 @@ def make_feedback(variant: str, scenario: Any, run_dir: Path | None = None) -> F
         rule,
         build_messages=functools.partial(build_messages, registry=registry),
     )
-    miss_zero = scenario.feedback.source == "replay" and scenario.feedback.miss_policy == "zero"
+    replays = scenario.feedback.source == "replay" or any(
+        table.get("source") == "replay" for table in scenario.feedback.agents.values()
+    )
+    miss_zero = replays and scenario.feedback.miss_policy == "zero"
     feedback = PanelFeedback(variant, panel, source, miss_zero=miss_zero)
     feedback.max_abstention = scenario.feedback.max_abstention
     return feedback

@@ -96,20 +96,25 @@ def available_cpus() -> int:
 
 
 def resolve_workers(requested: int, jobs: Sequence[TrainJob]) -> int:
-    """Number of worker processes: ``requested``, or with 0 one per core (1 for Ollama).
+    """Number of worker processes: ``requested``, or with 0 one per core (1 when live).
 
-    A live Ollama server is itself the bottleneck and uses every core, so ``0`` (auto) keeps
-    fine-tunes that ask it in this process; replay and rules feedback scale with cores.
+    A live Ollama server is itself the bottleneck and uses every core, and a person at the
+    terminal answers only in this process, so ``0`` (auto) keeps fine-tunes that ask either
+    (for any agent) in this process; replay and rules feedback scale with cores.
     """
     if requested < 0:
         raise AmuledError(f"--jobs must be 0 (auto) or a positive count, got {requested}")
     if requested == 0:
-        live = any(
-            j.variant.startswith("finetune") and j.scenario.feedback.source == "ollama"
-            for j in jobs
-        )
+        live = any(j.variant.startswith("finetune") and _asks_live(j.scenario) for j in jobs)
         requested = 1 if live else available_cpus()
     return max(1, min(requested, len(jobs) or 1))
+
+
+def _asks_live(scenario: Scenario) -> bool:
+    """Whether a scenario's feedback asks an Ollama server or a person (any agent)."""
+    kinds = {scenario.feedback.source}
+    kinds |= {str(spec.get("source")) for spec in scenario.feedback.agents.values()}
+    return bool(kinds & {"ollama", "terminal"})
 
 
 def total_iterations(job: TrainJob) -> int:

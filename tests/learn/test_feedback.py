@@ -39,7 +39,9 @@ class FakePanel:
 
 class FakeTask:
     def prompt_variables(self, ids):
-        return [{"id": i} for i in ids]
+        # the state's prompt variables (the same for every copy here); PanelFeedback keys a
+        # state by observation and prompt variables, as the panel does
+        return [{"crying": 2} for _ in ids]
 
 
 def test_panel_feedback_batches_new_states_once_and_reports_diagnostics():

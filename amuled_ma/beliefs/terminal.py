@@ -1,0 +1,281 @@
+"""``terminal``: a person at the terminal gives a panel member's beliefs.
+
+For each request the source shows the state (the last message of the request's chat:
+the task's state prompt and the agent's instruction, or the observation when the
+request carries no chat) and the task's actions, then reads **one line** from its input
+stream (``sys.stdin`` by default):
+
+- ``0.7 0.1 0.1 0.1`` (spaces or commas between the numbers): one non-negative number
+  per action, divided by their sum (``1 1 0 0`` is ``[0.5, 0.5, 0, 0]``);
+- ``2``: one action index alone, a one-hot belief on that action;
+- ``skip``: no answer for this state (status ``"abstained"``, reason in
+  ``extra["error"]``; the panel leaves the agent out of that state's fusion).
+
+Anything else (a wrong count, a negative or non-finite number, an index out of range, an
+empty line) is refused with the reason and asked again, at most ``attempts`` lines in
+all; then the state is abstained. The end of the input (stdin closed, a job in a worker
+process without a terminal) abstains the state and every later one with the reason, and
+is never waited on.
+
+Put the source behind the belief store like any other
+(:class:`~amuled_ma.beliefs.cached.CachedSource`; a scenario's
+``[feedback.agents.<name>] source = "terminal"`` does): each answer is written as soon as
+it is typed (the source implements ``iter_beliefs``), so a person is asked once per
+state and an interrupted run resumes with the states not yet answered. Abstentions are
+written for the record but asked again in a later run (the store's policy).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import sys
+import time
+from collections.abc import Iterator, Sequence
+from typing import IO, Any
+
+import numpy as np
+
+from amuled_ma.beliefs.parsing import uniform
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.beliefs.validate import check_belief
+from amuled_ma.errors import ScenarioError
+
+#: The answer that abstains on purpose.
+SKIP = "skip"
+#: Most answer lines read per state (``attempts`` may not exceed it).
+MAX_ATTEMPTS = 100
+#: Longest answer line read (characters); a longer line is refused.
+MAX_LINE_CHARS = 10_000
+
+_SPLIT = re.compile(r"[\s,;]+")
+
+
+def parse_answer(line: str, n_actions: int) -> tuple[np.ndarray | None, str | None]:
+    """Read one typed answer.
+
+    Args:
+        line: The line as typed (surrounding whitespace ignored).
+        n_actions: The task's action count.
+
+    Returns:
+        ``(belief, None)`` for a belief, ``(None, None)`` for ``skip``, or
+        ``(None, reason)`` for an answer that is refused (the reason says what was found
+        and what is expected).
+
+    """
+    text = line.strip()
+    if text.lower() == SKIP:
+        return None, None
+    expected = (
+        f"expected {n_actions} non-negative numbers (one per action, e.g. "
+        f"{' '.join(['0.25'] * n_actions) if n_actions <= 8 else '0.5 0.5 0 ...'}), "
+        f"an action index 0..{n_actions - 1}, or {SKIP}"
+    )
+    if not text:
+        return None, f"found an empty line; {expected}"
+    if len(text) > MAX_LINE_CHARS:
+        return None, f"found a line of {len(text)} characters; {expected}"
+    tokens = [t for t in _SPLIT.split(text) if t]
+    if len(tokens) == 1 and re.fullmatch(r"[+-]?\d+", tokens[0]):
+        index = int(tokens[0])
+        if not 0 <= index < n_actions:
+            return None, f"found the action index {index}, out of range; {expected}"
+        belief = np.zeros(n_actions)
+        belief[index] = 1.0
+        return belief, None
+    values: list[float] = []
+    for token in tokens:
+        try:
+            value = float(token)
+        except ValueError:
+            return None, f"found {token!r}, not a number; {expected}"
+        if not math.isfinite(value):
+            return None, f"found {token!r}, not a finite number; {expected}"
+        values.append(value)
+    belief, reason = check_belief(values, n_actions, scores=True)
+    if belief is None:
+        return None, f"the answer {reason}; {expected}"
+    return belief, None
+
+
+class TerminalSource(BeliefSource):
+    """Beliefs typed by a person, one line per state.
+
+    Args:
+        person: Who answers; part of :meth:`identity`, so two people's answers are kept
+            apart in the belief store.
+        attempts: Lines read per state before an invalid answer abstains (1 to
+            :data:`MAX_ATTEMPTS`).
+        stdin: Where answers are read (default ``sys.stdin``, looked up at each batch).
+        stdout: Where states and prompts are written (default ``sys.stderr``, so that
+            a program's standard output keeps only its results).
+
+    Raises:
+        ScenarioError: ``attempts`` out of range, or ``person`` empty.
+
+    """
+
+    name = "terminal"
+    #: The state prompt is shown to the person, so the panel renders it.
+    needs_messages = True
+
+    def __init__(
+        self,
+        *,
+        person: str = "human",
+        attempts: int = 3,
+        stdin: IO[str] | None = None,
+        stdout: IO[str] | None = None,
+    ) -> None:
+        if isinstance(attempts, bool) or not isinstance(attempts, int):
+            raise ScenarioError(f"terminal source: attempts expects an integer, found {attempts!r}")
+        if not 1 <= attempts <= MAX_ATTEMPTS:
+            raise ScenarioError(
+                f"terminal source: attempts expects an integer in [1, {MAX_ATTEMPTS}] "
+                f"(answer lines read per state), found {attempts}"
+            )
+        if not isinstance(person, str) or not person.strip():
+            raise ScenarioError(
+                f"terminal source: person expects a non-empty name, found {person!r}"
+            )
+        self.person = person
+        self.attempts = attempts
+        self._stdin = stdin
+        self._stdout = stdout
+        #: Set once the input stream has ended; every later request abstains unread.
+        self.eof = False
+        #: Counters: ``asked`` states shown, ``answered``, ``skipped``, ``invalid`` lines
+        #: refused, ``gave_up`` states abstained after ``attempts`` invalid lines,
+        #: ``eof`` states abstained because the input had ended.
+        self.stats: dict[str, int] = dict.fromkeys(
+            ("asked", "answered", "skipped", "invalid", "gave_up", "eof"), 0
+        )
+
+    # -- BeliefSource ----------------------------------------------------------------
+    def identity(self) -> dict[str, Any]:
+        """Return the kind and the person (what decides the answers)."""
+        return {"source": self.name, "person": self.person}
+
+    def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
+        """Ask for every request in turn; see the module docstring."""
+        out: list[BeliefResult | None] = [None] * len(requests)
+        for index, result in self.iter_beliefs(requests):
+            out[index] = result
+        return out  # type: ignore[return-value]
+
+    def iter_beliefs(self, requests: Sequence[BeliefRequest]) -> Iterator[tuple[int, BeliefResult]]:
+        """Yield ``(index, result)`` as each answer is typed (identical requests asked once).
+
+        Args:
+            requests: The batch.
+
+        Yields:
+            One pair per request; duplicates get copies of the first answer.
+
+        """
+        groups: dict[BeliefRequest, list[int]] = {}
+        for i, request in enumerate(requests):
+            groups.setdefault(request, []).append(i)
+        for number, (request, indices) in enumerate(groups.items(), start=1):
+            result = self._ask(request, number, len(groups))
+            for j, index in enumerate(indices):
+                yield index, result if j == 0 else result.copy()
+
+    # -- internals -------------------------------------------------------------------
+    def _write(self, text: str) -> None:
+        stream = self._stdout if self._stdout is not None else sys.stderr
+        stream.write(text)
+        stream.flush()
+
+    def _read(self) -> str | None:
+        stream = self._stdin if self._stdin is not None else sys.stdin
+        if stream is None:  # pragma: no cover - pythonw, a daemon without stdin
+            return None
+        try:
+            line = stream.readline(MAX_LINE_CHARS + 2)
+        except (OSError, ValueError):  # a closed or unreadable stream is an end of input
+            return None
+        return line if line else None
+
+    def _show(self, request: BeliefRequest, number: int, total: int) -> None:
+        lines = [
+            "",
+            f"== {self.person}: agent {request.cluster!r}, task {request.task!r}, "
+            f"state {number} of {total} ==",
+        ]
+        if request.messages:
+            lines.append(request.messages[-1][1].rstrip())
+        else:
+            lines.append(f"observation: {', '.join(f'{x:g}' for x in request.obs)}")
+        lines.append(
+            "actions: " + " | ".join(f"{i}: {name}" for i, name in enumerate(request.action_names))
+        )
+        lines.append(
+            f"answer with {request.num_actions} probabilities (e.g. "
+            f"{' '.join(['0.25'] * request.num_actions) if request.num_actions <= 8 else '...'}"
+            f"), an action index, or {SKIP}"
+        )
+        self._write("\n".join(lines) + "\n")
+
+    def _abstain(
+        self, request: BeliefRequest, reason: str, raw: str | None, start: float
+    ) -> BeliefResult:
+        return BeliefResult(
+            belief=uniform(request.num_actions),
+            status="abstained",
+            source=self.name,
+            raw=raw,
+            latency_s=time.perf_counter() - start,
+            extra={"error": reason, "person": self.person},
+        )
+
+    def _ask(self, request: BeliefRequest, number: int, total: int) -> BeliefResult:
+        start = time.perf_counter()
+        n = request.num_actions
+        if self.eof:
+            self.stats["eof"] += 1
+            return self._abstain(request, self._eof_reason(), None, start)
+        self.stats["asked"] += 1
+        self._show(request, number, total)
+        last = None
+        for attempt in range(1, self.attempts + 1):
+            self._write("belief> ")
+            line = self._read()
+            if line is None:
+                self.eof = True
+                self.stats["eof"] += 1
+                self._write("\n(end of input: no answer)\n")
+                return self._abstain(request, self._eof_reason(), last, start)
+            last = line.rstrip("\r\n")
+            belief, reason = parse_answer(last, n)
+            if belief is not None:
+                self.stats["answered"] += 1
+                return BeliefResult(
+                    belief=belief,
+                    status="ok",
+                    source=self.name,
+                    raw=last,
+                    latency_s=time.perf_counter() - start,
+                    extra={"person": self.person, "attempts": attempt},
+                )
+            if reason is None:
+                self.stats["skipped"] += 1
+                return self._abstain(request, f"skipped by {self.person}", last, start)
+            self.stats["invalid"] += 1
+            left = self.attempts - attempt
+            self._write(f"not read: {reason} ({left} attempt{'s' if left != 1 else ''} left)\n")
+        self.stats["gave_up"] += 1
+        return self._abstain(
+            request,
+            f"{self.attempts} invalid answer(s) from {self.person}; the last: {last!r}",
+            last,
+            start,
+        )
+
+    def _eof_reason(self) -> str:
+        return (
+            f"the input of the terminal source ({self.person}) has ended (stdin closed or "
+            "not a terminal); run the job in this process (amuled ... --jobs 1) at a "
+            "terminal, or pipe the answers in, one line per state"
+        )
