@@ -37,3 +37,16 @@ def test_bench_pipeline_times_every_stage_side_by_side(tmp_path, capsys):
 def test_bench_pipeline_bad_jobs(capsys):
     assert main(["bench", "pipeline", "--jobs", "two"]) == 1
     assert "--jobs 'two'" in capsys.readouterr().err
+
+
+def test_bench_authors_times_a_short_authors_recipe_fine_tune(capsys):
+    from argparse import Namespace
+
+    from amuled_ma.bench import authors
+
+    args = Namespace(tasks="findmilk", iterations=3, base_steps=2048, out=None)
+    assert authors.main(args) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].split() == ["task", "iterations", "ours", "[s]", "authors", "[s]", "speed-up"]
+    cells = out[1].split()
+    assert cells[0] == "findmilk" and cells[1] == "3" and float(cells[3]) == 1.0  # 360 s x 3/1000
