@@ -117,7 +117,8 @@ class DeliberationEnv(ParallelEnv):
         shaping_coef: The task's handcrafted shaping coefficient (0: none).
         max_steps: The task's time limit; ``None`` keeps the task's default.
         seed: Seed used by the first ``reset`` given none.
-        render_mode: ``None`` or ``"ansi"``.
+        render_mode: ``None``, ``"ansi"`` (the task as text, with the last step's beliefs,
+            weights and fused belief under it) or ``"rgb_array"`` (the task's picture).
         prompt_max_length: ``max_length`` of the prompt ``Text`` space.
         render_state_prompt: ``(task_name, variables) -> str``; default
             :func:`amuled_ma.tasks.prompts.render_state_prompt`.
@@ -130,7 +131,7 @@ class DeliberationEnv(ParallelEnv):
 
     metadata: dict[str, Any] = {  # noqa: RUF012 - PettingZoo convention
         "name": "amuled_deliberation_v0",
-        "render_modes": ["ansi"],
+        "render_modes": ["ansi", "rgb_array"],
         "is_parallelizable": True,
     }
 
@@ -155,8 +156,10 @@ class DeliberationEnv(ParallelEnv):
         from amuled_ma.fusion import fuse
         from amuled_ma.tasks import get_task
 
-        if render_mode not in (None, "ansi"):
-            raise ValueError(f"render_mode: expected None or 'ansi', got {render_mode!r}")
+        if render_mode not in (None, "ansi", "rgb_array"):
+            raise ValueError(
+                f"render_mode: expected None, 'ansi' or 'rgb_array', got {render_mode!r}"
+            )
         registry = ClusterRegistry.load(clusters_dirs) if clusters_dirs else default_registry()
         if clusters is None:
             clusters = [c.name for c in registry.panel()]
@@ -184,6 +187,7 @@ class DeliberationEnv(ParallelEnv):
         self.agents: list[str] = []
         self._obs = np.zeros(self.task.obs_dim, dtype=np.float32)
         self._prompt = ""
+        self._last: tuple[int, _StepInfo] | None = None  # the last step, for render()
         # Fail now, not at the first step, on an unknown rule.
         k, a = len(self.cluster_names), len(self.action_names)
         fuse(np.full((k, a), 1.0 / a), fusion_rule, return_diagnostics=True)
@@ -254,6 +258,7 @@ class DeliberationEnv(ParallelEnv):
         obs = self.task.reset(seed=seed)
         self._obs = _row(obs)
         self._prompt = self._state_prompt()
+        self._last = None
         self.agents = list(self.possible_agents)
         return self._observations(), {agent: {} for agent in self.agents}
 
@@ -311,6 +316,7 @@ class DeliberationEnv(ParallelEnv):
             r_shaping=float(info["r_shaping"][0]) if "r_shaping" in info else 0.0,
             r_feedback=r_feedback,
         )
+        self._last = (a, common)
         infos = {agent: common.as_dict() for agent in self.agents}
         term = dict.fromkeys(self.agents, bool(terminated[0]))
         trunc = dict.fromkeys(self.agents, bool(truncated[0]) and not bool(terminated[0]))
@@ -353,11 +359,34 @@ class DeliberationEnv(ParallelEnv):
         """Return the global state: the task observation."""
         return self._obs.copy()
 
-    def render(self) -> str | None:
-        """Render the task as text (``render_mode="ansi"``), else nothing."""
-        if self.render_mode == "ansi":
-            return self.task.render_ansi(0)
-        return None
+    def render(self) -> str | np.ndarray | None:
+        """Render the env in its ``render_mode``; nothing without one.
+
+        ``"ansi"``: the task as text and, after a step, that step's panel under it: each
+        cluster's belief over the actions and its fusion weight, the fused belief,
+        Dempster's conflict ``K`` and the actor's action. ``"rgb_array"``: the task's
+        picture (uint8 ``[H, W, 3]``).
+        """
+        if self.render_mode == "rgb_array":
+            return self.task.render_rgb(0)
+        if self.render_mode != "ansi":
+            return None
+        text = self.task.render_ansi(0)
+        if self._last is None:
+            return text
+        action, info = self._last
+        width = max(len(name) for name in (*self.cluster_names, "fused"))
+        cols = [name[:7].rjust(7) for name in self.action_names]
+        lines = [
+            f"last step: actor {self.action_names[action]}, conflict K {info.conflict:.3f}",
+            f"{'':<{width}}  {' '.join(cols)}   weight",
+        ]
+        for k, name in enumerate(self.cluster_names):
+            row = " ".join(f"{v:7.3f}" for v in info.beliefs[k])
+            lines.append(f"{name:<{width}}  {row}   {info.weights[name]:6.3f}")
+        row = " ".join(f"{v:7.3f}" for v in info.fused)
+        lines.append(f"{'fused':<{width}}  {row}")
+        return text + "\n".join(lines) + "\n"
 
     def close(self) -> None:
         """Nothing to release."""

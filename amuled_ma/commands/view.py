@@ -1,0 +1,101 @@
+"""``amuled view``: one self-contained HTML page showing why a fine-tuned agent acts."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from amuled_ma.commands import _experiment as common
+from amuled_ma.errors import Terminated
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``amuled view``."""
+    parser = subparsers.add_parser(
+        "view",
+        help="write one HTML page replaying an evaluation episode step by step, with the "
+        "panel's beliefs (works offline)",
+        description=(
+            "Replay evaluation episode K (seed [evaluation].seed + K) of each fine-tuned "
+            "variant of RUN_DIR and write ONE self-contained HTML file (no server, no "
+            "network): the task step by step, each panel agent's belief, fusion weight, "
+            "status and reasoning, Dempster's conflict, the fused belief, the fine-tuned "
+            "and the base policy's actions (flagged where they differ) and a timeline to "
+            "jump to. Keys: ArrowLeft/ArrowRight, Home/End, PageUp/PageDown, [ and ]."
+        ),
+    )
+    parser.add_argument("run_dir", metavar="RUN_DIR", type=Path, help="a run directory")
+    parser.add_argument(
+        "--variant",
+        dest="variants",
+        action="append",
+        default=None,
+        metavar="V",
+        help="a variant folder to show (repeatable; default: every fine-tuned variant)",
+    )
+    parser.add_argument(
+        "--episode",
+        type=common.bounded_int(0),
+        default=0,
+        metavar="K",
+        help="evaluation episode K, seeded [evaluation].seed + K (default 0)",
+    )
+    parser.add_argument(
+        "--mode",
+        choices=("greedy", "sampled"),
+        default="greedy",
+        help="greedy: the policy's most probable action (default); sampled: drawn",
+    )
+    parser.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="the HTML file (default: RUN_DIR/view-episode<K>.html)",
+    )
+    parser.add_argument(
+        "--serve",
+        action="store_true",
+        help="also serve the page on 127.0.0.1 (a free port) until Ctrl-C; prints the URL",
+    )
+    parser.add_argument(
+        "--port", type=common.bounded_int(0, 65535), default=0, help="port for --serve (0: free)"
+    )
+    parser.add_argument(
+        "--serve-seconds",
+        type=common.positive_float,
+        default=None,
+        metavar="S",
+        help="with --serve, stop after S seconds (default: at Ctrl-C)",
+    )
+    parser.set_defaults(handler=view_command)
+
+
+def view_command(args: argparse.Namespace) -> int:
+    """Run ``amuled view``."""
+    from amuled_ma.evaluate.viewer import serve, write_view
+
+    run_dir = Path(args.run_dir)
+    common.scenario_of_run(run_dir)  # a clear error when RUN_DIR is no run
+    common.say(f"view {run_dir}: episode {args.episode}, {args.mode} actions")
+    result = write_view(
+        run_dir,
+        args.output,
+        variants=args.variants,
+        episode=args.episode,
+        mode=args.mode,
+        say=common.say,
+    )
+    common.say(
+        f"wrote {result.path} ({result.size / 1e6:.2f} MB, {len(result.variants)} variant(s), "
+        f"{result.seconds:.1f} s); open it in a browser: {result.path.resolve().as_uri()}"
+    )
+    if args.serve:
+        try:
+            serve(result.path, port=args.port, seconds=args.serve_seconds, say=common.say)
+        except KeyboardInterrupt as stop:
+            if isinstance(stop, Terminated):
+                raise  # SIGTERM: the usual exit status 143
+            common.say("stopped serving")
+    return 0

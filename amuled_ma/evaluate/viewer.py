@@ -1,0 +1,561 @@
+"""``amuled view``: one self-contained HTML page to see why a fine-tuned agent acts.
+
+For evaluation episode ``K`` of each chosen variant of a run, the page shows step by step
+the task (FindMilk grid with the path so far and the babies pacified or woken; Driving road
+with cars and grandmas, collisions and rescues marked), each panel agent's belief over the
+actions, its fusion weight and status (an agent that did not answer abstains, weight 0),
+its raw reply when the run's belief store or the replayed recording kept one, Dempster's
+conflict ``K``, the fused belief, the action the fine-tuned policy took and the one the base
+policy would take (flagged where they differ), and a timeline of conflict and
+disagreements to jump to. Keyboard: ArrowLeft/ArrowRight, Home/End, PageUp/PageDown,
+``[``/``]`` (previous/next disagreement).
+
+The page is one file: its CSS, script and data are inline, and a strict
+Content-Security-Policy (``default-src 'none'``, the inline script and style allowed by
+their SHA-256 hashes) lets it load nothing and send nothing, so it works from a
+``file://`` URL offline. ``serve`` shows it on ``127.0.0.1`` when a browser cannot open
+files.
+
+The data are compact: probabilities rounded to 4 decimals, each distinct state's beliefs
+once (steps point at their state), each text (raw reply, state prompt) once.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import html
+import http.server
+import json
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from amuled_ma.errors import AmuledError, CheckpointError
+from amuled_ma.evaluate import episode_trace as trace
+
+#: Decimals kept for probabilities, weights and conflicts in the page.
+DECIMALS = 4
+#: Longest raw reply or prompt kept in the page, in characters (the rest is cut, said so).
+MAX_TEXT = 6000
+#: Characters of text (replies, prompts) a page keeps in all: past it every text is cut
+#: to an equal share, so that a long live-LLM episode stays a few MB.
+TEXT_BUDGET = 2_000_000
+#: The shortest a text is cut to by :data:`TEXT_BUDGET`.
+MIN_TEXT = 400
+#: The page's assets, shipped beside this module.
+ASSETS = Path(__file__).resolve().parent
+
+
+@dataclass
+class ViewResult:
+    """What :func:`write_view` wrote.
+
+    Attributes:
+        path: The HTML file.
+        size: Its size in bytes.
+        variants: ``(name, steps, distinct states)`` per variant shown.
+        seconds: Time taken to build it.
+
+    """
+
+    path: Path
+    size: int
+    variants: list[tuple[str, int, int]]
+    seconds: float
+
+
+class TextTable:
+    """Texts stored once; a step or an agent points at its text by index."""
+
+    def __init__(self, limit: int = MAX_TEXT) -> None:
+        self.limit = limit
+        self.texts: list[str] = []
+        self._index: dict[str, int] = {}
+
+    def add(self, text: str | None) -> int:
+        """Index of ``text`` in the table (added once), -1 for no text."""
+        if not text:
+            return -1
+        text = _cut(text, self.limit)
+        found = self._index.get(text)
+        if found is None:
+            found = self._index[text] = len(self.texts)
+            self.texts.append(text)
+        return found
+
+    def fit(self, budget: int = TEXT_BUDGET) -> bool:
+        """Cut every text to an equal share of ``budget`` characters when they exceed it.
+
+        Returns:
+            True when texts were cut.
+
+        """
+        total = sum(len(t) for t in self.texts)
+        if total <= budget or not self.texts:
+            return False
+        share = max(MIN_TEXT, budget // len(self.texts))
+        self.texts = [_cut(t, share) for t in self.texts]
+        return True
+
+
+def _cut(text: str, limit: int) -> str:
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit]}\n[... {len(text) - limit} more characters, cut for the page]"
+
+
+def _round(values: Any, decimals: int = DECIMALS) -> Any:
+    """Nested lists of floats rounded (``-0.0`` as ``0.0``) for JSON."""
+    array = np.round(np.asarray(values, dtype=np.float64), decimals) + 0.0
+    return array.tolist()
+
+
+def _compact_number(value: float) -> int | float:
+    return int(value) if float(value).is_integer() else round(float(value), DECIMALS)
+
+
+def choose_variants(run_dir: Path, names: Sequence[str] | None = None) -> list[Path]:
+    """The variant folders to show: the named ones, else every fine-tuned variant.
+
+    Without names, a variant's seed replicas (``<name>.seed<k>``) are left out (its first
+    replica is shown); name a replica folder to see it.
+
+    Raises:
+        CheckpointError: A named folder has no checkpoint, or the run has no fine-tuned
+            variant; the message lists the variants found.
+
+    """
+    from amuled_ma.evaluate.evaluator import variant_dirs
+    from amuled_ma.learn.experiments import split_replica
+
+    run_dir = Path(run_dir)
+    found = variant_dirs(run_dir)
+    listing = ", ".join(d.name for d in found) or "none"
+    if names:
+        chosen = []
+        for name in names:
+            folder = run_dir / name
+            if not (folder / trace.LAST).is_file():
+                raise CheckpointError(
+                    f"{run_dir}: no trained variant {name!r} (no {folder / trace.LAST}); "
+                    f"variants found: {listing}"
+                )
+            chosen.append(folder)
+        return chosen
+    chosen = [
+        d
+        for d in found
+        if trace.feedback_variant(d) is not None and split_replica(d.name)[1] is None
+    ]
+    if not chosen:
+        raise CheckpointError(
+            f"{run_dir}: no fine-tuned variant (*/{trace.LAST} of a 'finetune' folder); "
+            f"variants found: {listing}; fine-tune one with 'amuled finetune', or name one "
+            "with --variant"
+        )
+    return chosen
+
+
+def variant_view(
+    run_dir: Path,
+    variant_dir: Path,
+    texts: TextTable,
+    *,
+    episode: int = 0,
+    mode: str = "greedy",
+) -> dict[str, Any]:
+    """Replay one variant's evaluation episode and gather what the page shows of it.
+
+    Args:
+        run_dir: The run folder (belief store, base policy).
+        variant_dir: The variant folder (its policy and settings).
+        texts: The page's text table (raw replies and prompts are added to it).
+        episode: Evaluation episode ``K``.
+        mode: ``greedy`` or ``sampled``.
+
+    Returns:
+        The variant's entry of the page's data.
+
+    """
+    run_dir, variant_dir = Path(run_dir), Path(variant_dir)
+    scenario = trace.variant_scenario(run_dir, variant_dir)
+    actor = trace.load_actor(variant_dir / trace.LAST, scenario)
+    base_path = trace.base_checkpoint_of(run_dir, variant_dir)
+    base_actor = trace.load_actor(base_path, scenario) if base_path is not None else None
+    feedback_name = trace.feedback_variant(variant_dir)
+    feedback = store = None
+    if feedback_name is not None:
+        feedback, store = trace.open_feedback(feedback_name, scenario, run_dir)
+    try:
+        panel = getattr(feedback, "panel", None)
+        live = feedback if feedback is not None and panel is None else None
+        ep = trace.replay_episode(
+            actor, scenario, episode=episode, mode=mode, base_actor=base_actor, live_feedback=live
+        )
+        first, index = ep.unique_states()
+        entry = _episode_entry(ep, variant_dir.name)
+        entry.update(
+            feedback=feedback_name,
+            policy=str(variant_dir / trace.LAST),
+            base=str(base_path) if base_path is not None else None,
+            explain=(
+                f"amuled explain --state-from {run_dir} --variant {variant_dir.name} "
+                f"--episode {episode} --mode {mode} --step {{step}}"
+            ),
+            distinct_states=len(first),
+        )
+        if base_path is None:
+            entry["note_base"] = "no base policy found for this variant"
+        if panel is not None:
+            answers = trace.ask_panel(
+                panel, ep.obs[first], [ep.prompt_vars[t] for t in first], store
+            )
+            entry.update(_panel_entry(answers, texts))
+            entry.update(
+                kind="panel",
+                s=index.tolist(),
+                source=trace.describe_feedback(feedback),
+                raw_note=(
+                    "Neither the run's belief store nor the recording kept a reply text for "
+                    "this answer (the authors' recordings keep the exchanges of the states "
+                    "their parser had to repair only)."
+                ),
+            )
+        elif live is not None and ep.live_beliefs is not None:
+            entry.update(_live_entry(ep, first, live, texts))
+            entry.update(kind="belief", s=index.tolist(), source=trace.describe_feedback(live))
+            entry["note"] = (
+                f"The feedback '{feedback_name}' of this variant is not a panel of agents "
+                f"({type(live).__name__}): shown is the feedback belief itself, the reward "
+                "the fine-tune was given, with no per-agent beliefs, weights or reasoning."
+            )
+        else:
+            entry.update(kind="none", st=None, s=None, agents=[])
+            entry["note"] = (
+                "This variant was not fine-tuned on feedback (a base policy): only its "
+                "actions are shown."
+            )
+        if base_path is None:
+            entry["note"] = (entry.get("note", "") + " No base policy was found: base "
+                             "actions are not shown.").strip()  # fmt: skip
+        return entry
+    finally:
+        if feedback is not None:
+            feedback.close()
+        if store is not None:
+            store.close()
+
+
+def _episode_entry(ep: trace.Episode, name: str) -> dict[str, Any]:
+    picture: dict[str, Any] = {"kind": ep.task if ep.layout is not None else "text"}
+    picture.update(ep.layout or {})
+    note = ""
+    if ep.task == "driving":
+        note = "Red: cars, green: grandmas, black: the agent's car at distance 0."
+    elif ep.task == "findmilk":
+        note = (
+            "M milk, C crying baby (✓ once pacified), S sleeping baby (! once woken); the "
+            "orange line is the path so far."
+        )
+    return {
+        "name": name,
+        "mode": ep.mode,
+        "T": ep.length,
+        "terminated": ep.terminated,
+        "metrics": {k: _compact_number(v) for k, v in ep.metrics.items()},
+        "picture": picture,
+        "picture_note": note,
+        "frames": ep.frames,
+        "a": ep.actions.tolist(),
+        "b": ep.base_actions.tolist() if ep.base_actions is not None else None,
+        "p": _round(ep.probs, 3),
+        "bp": _round(ep.base_probs, 3) if ep.base_probs is not None else None,
+        "ev": {
+            k: [_compact_number(x) for x in v.tolist()] for k, v in ep.events.items() if v.any()
+        },
+        "r": _round(ep.rewards, 2),
+    }
+
+
+def _panel_entry(answers: trace.PanelAnswers, texts: TextTable) -> dict[str, Any]:
+    names = sorted(set(answers.statuses.reshape(-1).tolist()))
+    code = {name: i for i, name in enumerate(names)}
+    return {
+        "agents": answers.agents,
+        "rule": answers.rule,
+        "statuses": names,
+        "st": {
+            "b": _round(answers.beliefs),
+            "w": _round(answers.weights),
+            "s": [[code[s] for s in row] for row in answers.statuses.tolist()],
+            "k": _round(answers.conflicts),
+            "f": _round(answers.fused),
+            "x": [[texts.add(r) for r in row] for row in answers.raws],
+            "why": [[texts.add(r) for r in row] for row in answers.reasons],
+            "q": [texts.add(p) for p in answers.prompts],
+        },
+    }
+
+
+def _live_entry(ep: trace.Episode, first: list[int], feedback: Any, texts: TextTable) -> dict:
+    assert ep.live_beliefs is not None and ep.live_statuses is not None
+    agent = str(getattr(feedback, "agent", getattr(feedback, "name", "feedback")))
+    statuses = []
+    for t in first:
+        pairs = ep.live_statuses[t]
+        statuses.append(pairs[0][1] if pairs else "ok")
+    names = sorted(set(statuses))
+    code = {name: i for i, name in enumerate(names)}
+    beliefs = ep.live_beliefs[first]
+    from amuled_ma.tasks.prompts import render_state_prompt
+
+    prompts = []
+    for t in first:
+        try:
+            prompts.append(texts.add(render_state_prompt(ep.task, ep.prompt_vars[t])))
+        except (AmuledError, KeyError, ValueError):
+            prompts.append(-1)
+    return {
+        "agents": [agent],
+        "rule": None,
+        "statuses": names,
+        "st": {
+            "b": _round(beliefs[:, None, :]),
+            "w": None,
+            "s": [[code[s]] for s in statuses],
+            "k": None,
+            "f": _round(beliefs),
+            "x": None,
+            "why": None,
+            "q": prompts,
+        },
+    }
+
+
+def build_view(
+    run_dir: Path,
+    *,
+    variants: Sequence[str] | None = None,
+    episode: int = 0,
+    mode: str = "greedy",
+    say: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Gather the page's data: every chosen variant's episode and beliefs.
+
+    Args:
+        run_dir: The run folder.
+        variants: Variant folder names (default: every fine-tuned variant).
+        episode: Evaluation episode ``K`` (seed ``[evaluation].seed + K``).
+        mode: ``greedy`` (the policy's most probable action) or ``sampled``.
+        say: Called with a progress line per variant.
+
+    Returns:
+        The JSON-ready data of the page.
+
+    """
+    from amuled_ma import __version__
+    from amuled_ma.commands._experiment import scenario_of_run
+
+    run_dir = Path(run_dir)
+    scenario = scenario_of_run(run_dir)
+    folders = choose_variants(run_dir, variants)
+    texts = TextTable()
+    entries = []
+    for folder in folders:
+        start = time.perf_counter()
+        entry = variant_view(run_dir, folder, texts, episode=episode, mode=mode)
+        entries.append(entry)
+        if say is not None:
+            say(
+                f"  {folder.name}: {entry['T']} steps, {entry['distinct_states']} distinct "
+                f"states, {entry.get('kind')} feedback ({time.perf_counter() - start:.1f} s)"
+            )
+    if texts.fit(TEXT_BUDGET) and say is not None:
+        say(
+            f"  texts cut to fit {TEXT_BUDGET:,} characters in all "
+            "(amuled explain --full prints them whole)"
+        )
+    seed = scenario.evaluation.seed + episode
+    how = (
+        "greedy: each step the policy's most probable action (as amuled evaluate's greedy mode)"
+        if mode == "greedy"
+        else "sampled: actions drawn from the policy (a generator seeded with the episode's "
+        "seed; amuled evaluate draws its own)"
+    )
+    return {
+        "version": 1,
+        "title": f"AMULED viewer: {scenario.name}, evaluation episode {episode}",
+        "subtitle": (
+            f"run {run_dir} · task {scenario.task.name} · episode {episode} (seed {seed} = "
+            f"[evaluation].seed {scenario.evaluation.seed} + {episode}) · {how}"
+        ),
+        "footer": (
+            f"Written by amuled-ma {__version__} (amuled view). Beliefs from the run's belief "
+            "store (read-only) or the variant's source; probabilities rounded to "
+            f"{DECIMALS} decimals. This page loads nothing from the network."
+        ),
+        "run": str(run_dir),
+        "scenario": scenario.name,
+        "task": scenario.task.name,
+        "episode": episode,
+        "seed": seed,
+        "mode": mode,
+        "actions": _action_names(scenario.task.name),
+        "texts": texts.texts,
+        "variants": entries,
+    }
+
+
+def _action_names(task_name: str) -> list[str]:
+    from amuled_ma.tasks import get_task
+
+    return list(get_task(task_name).action_names)
+
+
+def _csp_hash(text: str) -> str:
+    digest = hashlib.sha256(text.encode("utf-8")).digest()
+    return "'sha256-" + base64.b64encode(digest).decode("ascii") + "'"
+
+
+def render_html(data: dict[str, Any]) -> str:
+    """The page: the data, the viewer's script and style, all inline, under a strict CSP.
+
+    The JSON is written with ``<``, ``>``, ``&`` and the line separators escaped, so no
+    text in it (an LLM's reply, say) can end the script element.
+    """
+    script = (ASSETS / "viewer.js").read_text(encoding="utf-8")
+    style = (ASSETS / "viewer.css").read_text(encoding="utf-8")
+    payload = json.dumps(data, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
+    for char, escape in (
+        ("<", "\\u003c"),
+        (">", "\\u003e"),
+        ("&", "\\u0026"),
+        ("\u2028", "\\u2028"),
+        ("\u2029", "\\u2029"),
+    ):
+        payload = payload.replace(char, escape)
+    csp = (
+        f"default-src 'none'; script-src {_csp_hash(script)}; style-src {_csp_hash(style)}; "
+        "img-src data:; base-uri 'none'; form-action 'none'"
+    )
+    title = html.escape(str(data.get("title", "AMULED viewer")))
+    return (
+        "<!DOCTYPE html>\n"
+        '<html lang="en">\n<head>\n<meta charset="utf-8">\n'
+        f'<meta http-equiv="Content-Security-Policy" content="{csp}">\n'
+        '<meta name="viewport" content="width=device-width, initial-scale=1">\n'
+        f"<title>{title}</title>\n"
+        f"<style>{style}</style>\n"
+        "</head>\n<body>\n"
+        '<div id="app"><noscript>This page needs JavaScript (inline, nothing is '
+        "downloaded).</noscript></div>\n"
+        f'<script type="application/json" id="amuled-data">{payload}</script>\n'
+        f"<script>{script}</script>\n"
+        "</body>\n</html>\n"
+    )
+
+
+def default_output(run_dir: Path, episode: int) -> Path:
+    """``<run>/view-episode<K>.html``."""
+    return Path(run_dir) / f"view-episode{episode}.html"
+
+
+def write_view(
+    run_dir: Path,
+    output: Path | None = None,
+    *,
+    variants: Sequence[str] | None = None,
+    episode: int = 0,
+    mode: str = "greedy",
+    say: Callable[[str], None] | None = None,
+) -> ViewResult:
+    """Build the page of a run's episode and write it (see :func:`build_view`).
+
+    Returns:
+        The :class:`ViewResult`.
+
+    """
+    start = time.perf_counter()
+    data = build_view(run_dir, variants=variants, episode=episode, mode=mode, say=say)
+    page = render_html(data)
+    path = Path(output) if output is not None else default_output(run_dir, episode)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(page, encoding="utf-8")
+    tmp.replace(path)
+    shown = [(v["name"], int(v["T"]), int(v.get("distinct_states", 0))) for v in data["variants"]]
+    return ViewResult(path, path.stat().st_size, shown, time.perf_counter() - start)
+
+
+class _OneFileHandler(http.server.BaseHTTPRequestHandler):
+    """Serve one file at ``/`` (and its name); everything else is 404."""
+
+    body: bytes = b""
+    name: str = "index.html"
+
+    def do_GET(self) -> None:
+        """Answer the page, or 404."""
+        if self.path.split("?", 1)[0] not in ("/", f"/{self.name}"):
+            self.send_error(404, "only the viewer page is served here")
+            return
+        self.send_response(200)
+        self.send_header("Content-Type", "text/html; charset=utf-8")
+        self.send_header("Content-Length", str(len(self.body)))
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+        self.wfile.write(self.body)
+
+    def log_message(self, format: str, *args: Any) -> None:
+        """Stay quiet (the command prints the URL once)."""
+
+
+def make_server(path: Path, host: str = "127.0.0.1", port: int = 0) -> http.server.HTTPServer:
+    """An HTTP server for one file on ``host`` (a free port when ``port`` is 0).
+
+    Raises:
+        OSError: The address cannot be bound.
+
+    """
+    body = Path(path).read_bytes()
+    handler = type("ViewerHandler", (_OneFileHandler,), {"body": body, "name": Path(path).name})
+    return http.server.ThreadingHTTPServer((host, port), handler)
+
+
+def serve(
+    path: Path,
+    *,
+    host: str = "127.0.0.1",
+    port: int = 0,
+    seconds: float | None = None,
+    say: Callable[[str], None] = print,
+) -> None:
+    """Serve one page until Ctrl-C (or ``seconds``), printing its URL.
+
+    Args:
+        path: The HTML file.
+        host: Address to listen on (default: this machine only).
+        port: Port (0: a free one).
+        seconds: Stop after this many seconds (None: until Ctrl-C).
+        say: Where the URL is printed.
+
+    """
+    server = make_server(path, host, port)
+    url = f"http://{host}:{server.server_address[1]}/"
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    say(f"serving {path} at {url} (Ctrl-C stops)")
+    try:
+        if seconds is None:
+            while thread.is_alive():
+                thread.join(0.5)
+        else:
+            thread.join(seconds)
+    finally:
+        server.shutdown()
+        server.server_close()
