@@ -68,15 +68,7 @@ def add_scenario_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--seed", type=bounded_int(0, 2**63 - 1), default=None, help="override [task].seed"
     )
-    parser.add_argument(
-        "--clusters-dir",
-        action="append",
-        type=Path,
-        default=[],
-        metavar="DIR",
-        help="a folder of your own cluster TOML files (repeatable; later ones win; a file "
-        "overrides a shipped cluster of its name); adds to [feedback].clusters_dirs",
-    )
+    add_clusters_dir_argument(parser)
     parser.add_argument(
         "--recipe",
         choices=("equation", "authors"),
@@ -88,6 +80,19 @@ def add_scenario_args(parser: argparse.ArgumentParser) -> None:
     add_overrides_argument(parser)
     parser.add_argument(
         "--no-progress", action="store_true", help="no progress bars (log-friendly output)"
+    )
+
+
+def add_clusters_dir_argument(parser: argparse.ArgumentParser) -> None:
+    """Add the repeatable ``--clusters-dir DIR`` (user cluster files)."""
+    parser.add_argument(
+        "--clusters-dir",
+        action="append",
+        type=Path,
+        default=[],
+        metavar="DIR",
+        help="a folder of your own cluster TOML files (repeatable; later ones win; a file "
+        "overrides a shipped cluster of its name); adds to [feedback].clusters_dirs",
     )
 
 

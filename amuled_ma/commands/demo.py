@@ -2,10 +2,11 @@
 
 It trains the base and base + shaping policies briefly, fine-tunes the base on human
 feedback and on AMULED's fused feedback with the five moral clusters asked **live** on a
-local Ollama model, evaluates all four and writes ``report.md``. With no server given it
-starts a private one (``amuled ollama up --tiny``) and stops it afterwards. The tiny model
-(SmolLM2-135M) only exercises the plumbing: its moral judgement is meaningless. Point the
-demo at a real model with ``ollama pull llama3.1:8b`` and ``--model llama3.1:8b``.
+local Ollama model, evaluates all four, writes ``report.md`` and ends with the step-by-step
+viewer of the AMULED fine-tune (``view-episode0.html``, as ``amuled view``). With no server
+given it starts a private one (``amuled ollama up --tiny``) and stops it afterwards. The tiny
+model (SmolLM2-135M) only exercises the plumbing: its moral judgement is meaningless. Point
+the demo at a real model with ``ollama pull llama3.1:8b`` and ``--model llama3.1:8b``.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import sys
 import time
 from pathlib import Path
 
-from amuled_ma.commands._experiment import add_overrides_argument
+from amuled_ma.commands._experiment import add_clusters_dir_argument, add_overrides_argument
 
 #: Budget overrides: every ``--set`` the demo applies to the shipped scenario.
 DEMO_BUDGET: dict[str, tuple[str, ...]] = {
@@ -47,8 +48,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=(
             "Train base and base + shaping policies briefly, fine-tune the base on human "
             "feedback and on AMULED's fused feedback with the five moral clusters asked live "
-            "on a local Ollama model, evaluate all four and write report.md. With no server "
-            "given, a private one is started (amuled ollama up --tiny) and stopped afterwards. "
+            "on a local Ollama model, evaluate all four, write report.md and the viewer page "
+            "view-episode0.html (amuled view). With no server given, a private one is started "
+            "(amuled ollama up --tiny) and stopped afterwards. "
             "The tiny model only exercises the plumbing; for a real model: ollama pull "
             "llama3.1:8b, then --model llama3.1:8b."
         ),
@@ -70,14 +72,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--run-dir", type=Path, default=None, help="run directory (default runs/demo-<task>)"
     )
-    parser.add_argument(
-        "--clusters-dir",
-        action="append",
-        type=Path,
-        default=[],
-        metavar="DIR",
-        help="a folder of your own cluster TOML files (repeatable), as for 'amuled run'",
-    )
+    add_clusters_dir_argument(parser)
     add_overrides_argument(parser)  # applied after the demo budget
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.set_defaults(handler=demo_command)
@@ -121,10 +116,13 @@ def demo_command(args: argparse.Namespace) -> int:
         argv += ["--clusters-dir", str(folder)]
     if args.no_progress:
         argv.append("--no-progress")
+    view: Path | None = None
     try:
         llm_server.preflight(host, model)  # one clear error up front: no server or no model
         _say(f"beliefs from {model} at {host}")
         code = main(argv)
+        if code == 0:  # while the server still runs: the page may ask it about new states
+            view = write_demo_view(run_dir)
     finally:
         if started_dir is not None:
             _say(llm_server.down(started_dir))
@@ -132,4 +130,34 @@ def demo_command(args: argparse.Namespace) -> int:
     report = run_dir / "report.md"
     if code == 0 and report.is_file():
         print(report.resolve())
+        if view is not None:
+            print(view.resolve())
     return code
+
+
+def write_demo_view(run_dir: Path) -> Path | None:
+    """Write the viewer page of the demo's AMULED fine-tune and link it from the report.
+
+    The page is ``RUN_DIR/view-episode0.html`` (:func:`amuled_ma.evaluate.viewer.write_view`,
+    variant ``finetune-amuled``, greedy evaluation episode 0).
+
+    Args:
+        run_dir: The demo's run folder.
+
+    Returns:
+        The page's path, or None when it could not be written (the reason is printed).
+
+    """
+    from amuled_ma.errors import AmuledError
+    from amuled_ma.evaluate.report import link_viewer
+    from amuled_ma.evaluate.viewer import write_view
+
+    _say("writing the step-by-step viewer of finetune-amuled")
+    try:
+        result = write_view(run_dir, variants=["finetune-amuled"], say=_say)
+    except AmuledError as error:
+        _say(f"no viewer written: {error}")
+        return None
+    link_viewer(run_dir)
+    _say(f"viewer {result.path} ({result.size / 1e6:.2f} MB); open it in a browser")
+    return result.path

@@ -11,7 +11,8 @@ Variants (``--feedback``):
 - ``amuled``: the five moral clusters fused with ``bjs-dst`` (or the scenario's rule);
 - ``human``: the authors' synthetic human, a demonstrator's action counts
   (:class:`DemonstratorFeedback`, :mod:`amuled_ma.tasks.demonstrators`);
-- ``human:rules``: our rule-based human source (:func:`amuled_ma.tasks.human.human_belief`);
+- ``human:rules``: our rule-based human source (:func:`amuled_ma.tasks.human.human_belief`,
+  through :class:`CallableFeedback`);
 - ``cluster:<name>``: one moral cluster alone;
 - ``moral``: the unprompted "behave as a moral agent" agent;
 - ``agg:mean|max|vote``: the five clusters fused with another rule.
@@ -334,30 +335,6 @@ class CallableFeedback(Feedback):
         prompt_vars: Sequence[Mapping[str, Any]] | None = None,
     ) -> list[tuple]:
         beliefs = np.asarray(self.fn(obs), dtype=np.float64)
-        return [(b, {"statuses": ("ok",)}) for b in beliefs]
-
-
-class HumanFeedback(Feedback):
-    """The rule-based human source of the task (:mod:`amuled_ma.tasks.human`)."""
-
-    name = "human:rules"
-
-    def __init__(self, task_name: str) -> None:
-        super().__init__()
-        self.task_name = task_name
-        from amuled_ma.tasks.human import human_belief
-
-        self._human_belief = human_belief
-
-    def _compute(
-        self,
-        obs: np.ndarray,
-        task: Any,
-        env_ids: Sequence[int],
-        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
-    ) -> list[tuple]:
-        beliefs = np.asarray(self._human_belief(self.task_name, obs), dtype=np.float64)
-        beliefs = beliefs.reshape(len(obs), -1)
         return [(b, {"statuses": ("ok",)}) for b in beliefs]
 
 
@@ -687,7 +664,12 @@ def make_feedback(variant: str, scenario: Any, run_dir: Path | None = None) -> F
     kind, arg = parse_variant(variant)
     task_name = scenario.task.name
     if kind == "human" and arg == "rules":
-        return HumanFeedback(task_name)
+        from amuled_ma.tasks.human import human_belief
+
+        return CallableFeedback(
+            lambda obs: np.asarray(human_belief(task_name, obs)).reshape(len(obs), -1),
+            name="human:rules",
+        )
     if kind == "human":
         return DemonstratorFeedback(task_name, seed=scenario.task.seed, cache_dir=run_dir)
     fused_only = _fused_only_recording(scenario)
