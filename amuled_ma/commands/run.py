@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 from amuled_ma.commands import _experiment as common
 from amuled_ma.run_lock import run_folder_lock
@@ -138,7 +137,7 @@ def _summary_line(task: str, greedy: dict) -> str:
 def ablate_command(args: argparse.Namespace) -> int:
     """Run ``amuled ablate``."""
     from amuled_ma.evaluate.evaluator import evaluate_run
-    from amuled_ma.evaluate.report import plot_bars, write_report
+    from amuled_ma.evaluate.report import write_report
     from amuled_ma.learn.experiments import (
         ablation_variants,
         plan_ablation,
@@ -177,8 +176,9 @@ def ablate_command(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             extra_dirs=[run_dir / name for name in shared],
         )
-        report = write_report(out, results, title=f"{scenario.name}: ablation of {args.what}")
-        plot_bars(results, "greedy", Path(out) / f"ablation_{args.what}.png")
+        report = write_report(
+            out, results, title=f"{scenario.name}: ablation of {args.what}", ablation=args.what
+        )
         common.say(
             f"ablate {scenario.name} --what {args.what}: {len(variants)} variants x "
             f"{len(seeds)} seed(s) done in "

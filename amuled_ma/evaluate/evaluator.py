@@ -183,7 +183,27 @@ def merge_feedback(summaries: list[dict[str, Any]]) -> dict[str, Any]:
         "mean_conflict": float(np.mean(conflicts)) if conflicts else None,
         "statuses": statuses,
         "miss_rate": statuses.get("replay_miss", 0) / total if total else 0.0,
+        "failure_rate": (
+            (total - statuses.get("ok", 0) - statuses.get("repaired", 0)) / total if total else 0.0
+        ),
+        "agents": _sum_agents([s.get("agents") or {} for s in summaries]),
+        "agents_per_state": _sum_agents([s.get("agents_per_state") or {} for s in summaries]),
     }
+
+
+def _sum_agents(reports: list[dict[str, dict[str, Any]]]) -> dict[str, dict[str, Any]]:
+    """Per-agent status counts of several replicas, summed; rates recomputed."""
+    out: dict[str, dict[str, Any]] = {}
+    for report in reports:
+        for agent, row in report.items():
+            merged = out.setdefault(agent, {})
+            for status, count in row.items():
+                if status != "failure_rate":
+                    merged[status] = merged.get(status, 0) + count
+    for row in out.values():
+        total = row.get("total", 0)
+        row["failure_rate"] = row.get("failed", 0) / total if total else 0.0
+    return out
 
 
 def variant_dirs(run_dir: Path) -> list[Path]:

@@ -1,10 +1,19 @@
 """The run report: ``report.md`` with PNG figures (matplotlib, headless).
 
-Figures: learning curves with 95% bands per variant, bar charts of the paper's metrics
-with 95% CIs per variant (and per cluster in the cluster ablation), one FindMilk greedy
-trajectory on the grid per variant, one Driving greedy episode per variant, and a table
-of the fused belief's diagnostics (mean weight of each cluster, mean conflict, replay
-miss rate) for every fine-tuned variant.
+The report opens with the run's settings (task, recipe, lambda_KL, iterations, seeds, the
+panel and its sources, the recording and its SHA-256) and a link to the step-by-step
+viewer (``amuled view``). Then the metric tables (greedy and sampled) with each variant's
+difference to the base policy and a sentence for every fine-tune whose greedy policy
+scores exactly as the base one, each fine-tune's feedback, the fused-belief diagnostics,
+and how often each panel agent answered, abstained or missed the replay.
+
+Figures, one colour per variant in all of them (:func:`variant_colors`): learning curves
+with 95% bands (y-range robust to early spikes, :func:`robust_ylim`), the metrics as bars
+with 95% CIs and value labels (a bar of height 0 gets a marker), one greedy trajectory per
+variant (FindMilk: the grid with the path, the milk and each baby pacified or woken;
+Driving: one strip of lanes and events per variant) and, in an ablation folder, the
+ablation's own figure (each variant vs AMULED on the paper's metrics, sorted; lambda_KL
+sweeps as metric against lambda_KL).
 """
 
 from __future__ import annotations
@@ -12,12 +21,13 @@ from __future__ import annotations
 import json
 import math
 import warnings
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from amuled_ma.evaluate.evaluator import metric_order
+from amuled_ma.evaluate.evaluator import PAPER_METRICS, metric_order
 from amuled_ma.evaluate.stats import t_quantile
 from amuled_ma.learn.experiments import split_replica
 
@@ -30,6 +40,22 @@ _CURVE_KEYS = {
 }  # fmt: skip
 _FT_KEYS = ["feedback/feedback_reward", "feedback/kl"]
 
+#: Two means closer than this are "equal" (the difference table and the equals-base note).
+EQUAL_TOL = 1e-9
+#: Metrics left out of the bar charts (book-keeping, or the shaping the base never sees).
+_NOT_PLOTTED = ("terminated", "return_shaping", "return")
+#: The figures :func:`write_report` writes; one of these it did not write this time is a
+#: stale one from an earlier report and is removed, so every PNG is the report's.
+FIGURE_NAMES = (
+    "curves_base.png", "curves_finetune.png", "metrics_greedy.png", "metrics_sampled.png",
+    "trajectory_findmilk.png", "episode_driving.png",
+)  # fmt: skip
+#: The viewer page ``amuled view`` writes by default (episode 0).
+VIEWER_PAGE = "view-episode0.html"
+#: How the report's viewer line starts (:func:`link_viewer` finds it by this).
+VIEWER_PREFIX = "**Step by step:**"
+_DPI = 110
+
 
 def _plt():
     import matplotlib
@@ -38,6 +64,10 @@ def _plt():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+# ---------------------------------------------------------------------------------------
+# Numbers and colours
 
 
 def format_stat(stat: dict[str, Any] | None, digits: int = 2) -> str:
@@ -53,9 +83,123 @@ def format_stat(stat: dict[str, Any] | None, digits: int = 2) -> str:
     return f"{stat['mean']:.{digits}f} ± {half:.{digits}f}"
 
 
-def _finite_or_zero(value: float | None) -> float:
-    """An error bar's half width; an undefined interval (one value) draws none."""
-    return value if value is not None and math.isfinite(value) else 0.0
+def compact_number(value: float) -> str:
+    """A tick label that stays short: ``950``, ``10k``, ``12.5k``, ``1.25M``.
+
+    Args:
+        value: The tick's value.
+
+    Returns:
+        The label (at most 3 significant digits past the first thousand).
+
+    """
+    magnitude = abs(value)
+    for scale, suffix in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
+        if magnitude >= scale:
+            return f"{value / scale:.3g}{suffix}"
+    return f"{value:.3g}" if magnitude else "0"
+
+
+def _short(value: float) -> str:
+    """A bar's value label: 3 significant figures at most, no exponent below 1e6."""
+    magnitude = abs(value)
+    if magnitude <= EQUAL_TOL:
+        return "0"
+    if magnitude >= 100:
+        return f"{value:.0f}"
+    if magnitude >= 10:
+        return f"{value:.1f}"
+    return f"{value:.2f}"
+
+
+def variant_colors(names: Iterable[str]) -> dict[str, str]:
+    """One fixed colour per variant: the sorted names take matplotlib's tab10 in turn.
+
+    The same names give the same colours whatever their order, so a report's figures
+    (curves, bars, trajectories, the ablation's) all draw a variant in one colour. Past
+    ten variants the palette is tab20 with its ten dark shades first, then the light ones.
+
+    Args:
+        names: The variants (repeats are ignored).
+
+    Returns:
+        ``{name: "#rrggbb"}``.
+
+    """
+    from matplotlib import colormaps
+    from matplotlib.colors import to_hex
+
+    unique = sorted(set(names))
+    if len(unique) <= 10:
+        palette = [colormaps["tab10"](i) for i in range(10)]
+    else:
+        tab20 = colormaps["tab20"]
+        palette = [tab20(i) for i in (*range(0, 20, 2), *range(1, 20, 2))]
+    return {name: to_hex(palette[i % len(palette)]) for i, name in enumerate(unique)}
+
+
+def robust_ylim(
+    series: Sequence[Sequence[float]],
+    *,
+    skip: float = 0.1,
+    percentiles: tuple[float, float] = (2.0, 98.0),
+    reach: float = 1.0,
+    pad: float = 0.08,
+) -> tuple[float, float, str] | None:
+    """A y-range for learning curves that early spikes do not squash.
+
+    The core range is the 2nd to 98th percentile (nearest value) of all series' values
+    after their first 10% of points: the first 5% and the 5% rolling window that carries
+    them into the smoothed line. It is widened to every value (early ones too) within one
+    core range of it, so a curve's genuine ramp or late extreme stays in view and only a far
+    outlier (a spike of the first iterations) is left out; then a margin of 8% is added.
+
+    Args:
+        series: The plotted lines (NaN points are ignored).
+        skip: Share of each series' first points left out of the percentiles.
+        percentiles: Lower and upper percentile of the core range.
+        reach: Values within ``reach`` core ranges of it are kept in view (a flat core
+            counts as ``max(0.1 * |value|, 0.5)`` wide).
+        pad: Margin on each side, as a share of the range.
+
+    Returns:
+        ``(low, high, note)``: ``note`` says which values fall outside and are clipped
+        (``"early values above the range clipped"``, ``"values below the range
+        clipped"``, ...), or is ``""``. None without a finite value.
+
+    """
+    arrays = [np.asarray(s, dtype=float) for s in series]
+    starts = [math.floor(skip * len(a)) for a in arrays]
+    every = np.concatenate([*arrays, np.empty(0)])
+    every = every[np.isfinite(every)]
+    if not every.size:
+        return None
+    tail = np.concatenate([*(a[k:] for a, k in zip(arrays, starts, strict=True)), np.empty(0)])
+    tail = tail[np.isfinite(tail)]
+    core = np.percentile(tail if tail.size else every, percentiles, method="nearest")
+    low, high = float(core[0]), float(core[1])
+    width = high - low if high > low else max(0.1 * abs(low), 0.5)
+    near = every[(every >= low - reach * width) & (every <= high + reach * width)]
+    low, high = float(near.min()), float(near.max())
+    margin = pad * (high - low) if high > low else max(0.1 * abs(low), 0.5)
+    low, high = low - margin, high + margin
+    above = below = False
+    early_only = True
+    for a, k in zip(arrays, starts, strict=True):
+        with np.errstate(invalid="ignore"):
+            out_high, out_low = a > high, a < low
+        above |= bool(out_high.any())
+        below |= bool(out_low.any())
+        if (out_high | out_low)[k:].any():
+            early_only = False
+    if not (above or below):
+        return low, high, ""
+    side = "above and below" if above and below else "above" if above else "below"
+    return low, high, f"{'early ' if early_only else ''}values {side} the range clipped"
+
+
+# ---------------------------------------------------------------------------------------
+# Learning curves
 
 
 def _rolling_band(values: list[float | None], window: int) -> tuple[np.ndarray, ...]:
@@ -108,146 +252,570 @@ def curve_band(replicas: list[list[dict]], key: str) -> tuple[np.ndarray, ...]:
     return x, mean, half
 
 
-def plot_curves(
-    curves: dict[str, list[list[dict]]], keys: list[str], path: Path, title: str
-) -> Path | None:
-    """Plot one panel per key, one line (rolling mean, 95% band) per variant."""
+def _grid(plt: Any, n: int, cols: int, width: float, height: float, **kwargs: Any) -> tuple:
+    cols = max(1, min(cols, n))
+    rows = math.ceil(n / cols)
+    fig, axes = plt.subplots(
+        rows, cols, figsize=(width * cols, height * rows), squeeze=False,
+        layout="constrained", **kwargs,
+    )  # fmt: skip
+    return fig, list(axes.flat)
+
+
+def _legend_below(fig: Any, handles: list, labels: list[str], spare: list) -> None:
+    """The figure's one legend: in the first unused panel, else below the panels."""
+    if not handles:
+        return
+    if spare:
+        spare[0].legend(handles, labels, loc="center", fontsize=8, frameon=False)
+        return
+    fig.legend(
+        handles, labels, loc="outside lower center", ncol=min(4, len(labels)), fontsize=8,
+        frameon=False,
+    )  # fmt: skip
+
+
+def curves_figure(
+    curves: dict[str, list[list[dict]]],
+    keys: list[str],
+    title: str,
+    colors: dict[str, str] | None = None,
+) -> Any | None:
+    """The learning-curve figure (see :func:`plot_curves`); None when nothing to draw."""
     keys = [k for k in keys if any(k in row for cs in curves.values() for c in cs for row in c)]
     if not keys or not curves:
         return None
+    from matplotlib.ticker import FuncFormatter, MaxNLocator
+
+    colors = colors or variant_colors(curves)
     plt = _plt()
-    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.4), squeeze=False)
-    for ax, key in zip(axes[0], keys, strict=True):
+    fig, axes = _grid(plt, len(keys), 3, 4.3, 3.2)
+    legend: dict[str, Any] = {}
+    for ax, key in zip(axes, keys, strict=False):
+        lines = []
         for name, replicas in curves.items():
             if not any(key in row for c in replicas for row in c):
                 continue
             x, mean, half = curve_band(replicas, key)
             label = name if len(replicas) == 1 else f"{name} ({len(replicas)} seeds)"
-            (line,) = ax.plot(x, mean, label=label, lw=1.4)
+            (line,) = ax.plot(x, mean, label=label, lw=1.5, color=colors.get(name))
             ax.fill_between(x, mean - half, mean + half, color=line.get_color(), alpha=0.2, lw=0)
-        ax.set_title(key.split("/", 1)[-1].replace("_", " "))
-        ax.set_xlabel("environment steps")
+            legend.setdefault(label, line)
+            lines.append(mean)
+        heading = key.split("/", 1)[-1].replace("_", " ")
+        limits = robust_ylim(lines)
+        if limits is not None:
+            ax.set_ylim(limits[0], limits[1])
+            if limits[2]:
+                heading += f"\n({limits[2]})"
+        ax.set_title(heading, fontsize=9)
+        ax.set_xlabel("environment steps", fontsize=8)
+        ax.xaxis.set_major_locator(MaxNLocator(nbins=5, integer=True))
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda value, _pos: compact_number(value)))
+        ax.tick_params(labelsize=8)
         ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=7)
+    spare = axes[len(keys) :]
+    for ax in spare:
+        ax.axis("off")
     several = any(len(r) > 1 for r in curves.values())
     band = "over seeds" if several else "over a 5% window of iterations"
     fig.suptitle(f"{title} (rolling mean over 5% of iterations, 95% band {band})", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    _legend_below(fig, list(legend.values()), list(legend), spare)
+    return fig
+
+
+def _save(fig: Any, path: Path) -> Path:
+    plt = _plt()
+    fig.savefig(path, dpi=_DPI)
     plt.close(fig)
     return path
 
 
-def plot_bars(results: dict[str, Any], mode: str, path: Path, title: str = "") -> Path | None:
-    """Bar chart per metric, one bar per variant, 95% CI error bars."""
-    variants = {k: v[mode] for k, v in results["variants"].items() if mode in v}
-    if not variants:
-        return None
+def plot_curves(
+    curves: dict[str, list[list[dict]]],
+    keys: list[str],
+    path: Path,
+    title: str,
+    colors: dict[str, str] | None = None,
+) -> Path | None:
+    """Plot one panel per key, one line (rolling mean, 95% band) per variant.
+
+    The y-range of each panel is :func:`robust_ylim` of its lines (the panel's title says
+    when values are clipped); x ticks are compact (``20k``).
+
+    Args:
+        curves: ``{variant: [replica curve, ...]}`` (:func:`load_curves`).
+        keys: Curve keys, one panel each (missing ones are skipped).
+        path: The PNG to write.
+        title: The figure's title.
+        colors: ``{variant: colour}`` (default: :func:`variant_colors` of the curves).
+
+    Returns:
+        ``path``, or None when no key has data.
+
+    """
+    fig = curves_figure(curves, keys, title, colors)
+    return None if fig is None else _save(fig, path)
+
+
+# ---------------------------------------------------------------------------------------
+# Bars
+
+
+def _hbars(
+    ax: Any,
+    positions: Sequence[float],
+    stats: Sequence[dict[str, Any] | None],
+    colors: Sequence[str],
+    *,
+    emphasise: Sequence[bool] | None = None,
+) -> None:
+    """Horizontal bars with 95% CI whiskers and value labels; a zero bar gets a marker.
+
+    A bar of height 0 would be invisible: it is drawn as a thick tick of its colour at 0
+    (``gid="zero-bar"``) with its label ``0``; a missing mean is labelled ``n/a``.
+    """
+    means = np.array([_mean(s) for s in stats], dtype=float)
+    errs = np.array([_finite_or_zero((s or {}).get("half_width")) for s in stats])
+    drawn = np.where(np.isfinite(means), means, 0.0)
+    bold = list(emphasise or [False] * len(stats))
+    ax.barh(
+        positions, drawn, xerr=errs, height=0.72, color=colors,
+        edgecolor=["black" if b else c for b, c in zip(bold, colors, strict=True)],
+        linewidth=[1.8 if b else 0.8 for b in bold],
+        error_kw={"capsize": 2, "elinewidth": 1.0, "ecolor": "0.25"},
+    )  # fmt: skip
+    ax.axvline(0.0, color="0.35", lw=0.8, zorder=1)
+    for pos, mean, err, color in zip(positions, means, errs, colors, strict=True):
+        if not math.isfinite(mean):
+            ax.annotate("n/a", (0, pos), xytext=(4, 0), textcoords="offset points",
+                        va="center", fontsize=7, color="0.4", gid="bar-label")  # fmt: skip
+            continue
+        if abs(mean) <= EQUAL_TOL:
+            ax.plot([0.0], [pos], marker="|", markersize=12, markeredgewidth=3.0,
+                    color=color, zorder=4, gid="zero-bar")  # fmt: skip
+        right = mean >= 0
+        ax.annotate(
+            _short(mean), (mean + err if right else mean - err, pos),
+            xytext=(4 if right else -4, 0), textcoords="offset points",
+            ha="left" if right else "right", va="center", fontsize=7, gid="bar-label",
+        )  # fmt: skip
+    reach = np.abs(drawn) + errs
+    if not reach.size or float(reach.max()) <= EQUAL_TOL:
+        ax.set_xlim(-0.15, 1.0)
+    else:
+        ax.margins(x=0.25)
+
+
+def _mean(stat: dict[str, Any] | None) -> float:
+    value = (stat or {}).get("mean")
+    return float(value) if value is not None else math.nan
+
+
+def _finite_or_zero(value: float | None) -> float:
+    """An error bar's half width; an undefined interval (one value) draws none."""
+    return value if value is not None and math.isfinite(value) else 0.0
+
+
+def _plotted_metrics(results: dict[str, Any], variants: dict[str, Any]) -> list[str]:
     metrics = metric_order(
         results.get("task", ""), sorted({m for v in variants.values() for m in v["metrics"]})
     )
-    metrics = [m for m in metrics if m not in ("terminated", "return_shaping", "return")]
-    plt = _plt()
-    cols = min(4, len(metrics))
-    rows = math.ceil(len(metrics) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.0 * rows), squeeze=False)
+    return [m for m in metrics if m not in _NOT_PLOTTED]
+
+
+def bars_figure(
+    results: dict[str, Any], mode: str, title: str = "", colors: dict[str, str] | None = None
+) -> Any | None:
+    """The metrics bar figure (see :func:`plot_bars`); None without that mode."""
+    variants = {k: v[mode] for k, v in results["variants"].items() if mode in v}
+    if not variants:
+        return None
+    metrics = _plotted_metrics(results, variants)
+    if not metrics:
+        return None
     names = list(variants)
-    for ax, metric in zip(axes.flat, metrics, strict=False):
-        means = [variants[n]["metrics"].get(metric, {}).get("mean", np.nan) for n in names]
-        errs = [
-            _finite_or_zero(variants[n]["metrics"].get(metric, {}).get("half_width")) for n in names
-        ]
-        ax.bar(
-            range(len(names)),
-            means,
-            yerr=errs,
-            capsize=3,
-            color=[f"C{i}" for i in range(len(names))],
-        )
-        ax.set_xticks(range(len(names)))
-        ax.set_xticklabels(names, rotation=40, ha="right", fontsize=7)
+    colors = colors or variant_colors(names)
+    plt = _plt()
+    height = 0.3 * len(names) + 1.1
+    fig, axes = _grid(plt, len(metrics), 3, 3.3, height, sharey=True)
+    fig.set_size_inches(fig.get_size_inches()[0] + 1.8, fig.get_size_inches()[1] + 0.4)
+    positions = np.arange(len(names))[::-1]  # the first variant on top
+    for ax, metric in zip(axes, metrics, strict=False):
+        stats = [variants[n]["metrics"].get(metric) for n in names]
+        _hbars(ax, positions, stats, [colors[n] for n in names])
         ax.set_title(metric.replace("_", " "), fontsize=9)
-        ax.grid(axis="y", alpha=0.3)
-    for ax in list(axes.flat)[len(metrics) :]:
+        ax.set_yticks(positions, names, fontsize=8)
+        ax.tick_params(axis="x", labelsize=7)
+        ax.grid(axis="x", alpha=0.3)
+    for ax in axes[len(metrics) :]:
         ax.axis("off")
-    fig.suptitle(title or f"{results.get('scenario')}: {mode} policy, mean and 95% CI", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    fig.suptitle(
+        title
+        or f"{results.get('scenario')}: {mode} policy, mean and 95% CI "
+        "(a bar of height 0: a thick tick at 0)",
+        fontsize=9,
+    )
+    return fig
 
 
-def plot_findmilk(results: dict[str, Any], path: Path, mode: str = "greedy") -> Path | None:
-    """One FindMilk greedy trajectory per variant on the 8x8 grid (babies, milk, path)."""
+def plot_bars(
+    results: dict[str, Any],
+    mode: str,
+    path: Path,
+    title: str = "",
+    colors: dict[str, str] | None = None,
+) -> Path | None:
+    """Bar chart per metric, one horizontal bar per variant, 95% CI whiskers, value labels.
+
+    Args:
+        results: The evaluation results.
+        mode: ``greedy`` or ``sampled``.
+        path: The PNG to write.
+        title: The figure's title (default: scenario, mode).
+        colors: ``{variant: colour}`` (default: :func:`variant_colors` of the variants).
+
+    Returns:
+        ``path``, or None when no variant was evaluated in ``mode``.
+
+    """
+    fig = bars_figure(results, mode, title, colors)
+    return None if fig is None else _save(fig, path)
+
+
+def ablation_figure(
+    results: dict[str, Any],
+    what: str,
+    colors: dict[str, str] | None = None,
+    mode: str = "greedy",
+) -> Any | None:
+    """An ablation's own figure: its fine-tunes against AMULED on the paper's metrics.
+
+    ``kl``: each paper metric against lambda_KL (one point per fine-tune, 95% CI). Other
+    ablations: one panel per paper metric, the fine-tunes as horizontal bars sorted by
+    their mean (largest on top), AMULED outlined in black. The base policy is a dashed
+    line in every panel.
+
+    Args:
+        results: The ablation's evaluation results.
+        what: ``clusters``, ``aggregation``, ``models`` or ``kl``.
+        colors: ``{variant: colour}``.
+        mode: Which policy mode.
+
+    Returns:
+        The figure, or None without a fine-tune.
+
+    """
+    variants = {k: v[mode] for k, v in results["variants"].items() if mode in v}
+    base = variants.pop("base", None)
+    tunes = {k: v for k, v in variants.items() if k != "shaped"}
+    if not tunes:
+        return None
+    task = results.get("task", "")
+    metrics = [
+        m for m in PAPER_METRICS.get(task, []) if any(m in v["metrics"] for v in tunes.values())
+    ]
+    metrics = metrics or _plotted_metrics(results, tunes)[:4]
+    colors = colors or variant_colors(results["variants"])
+    lambdas = {
+        name: (results["variants"][name].get("panel") or {}).get("lambda_kl") for name in tunes
+    }
+    plt = _plt()
+    if what == "kl" and all(isinstance(v, int | float) for v in lambdas.values()):
+        order = sorted(tunes, key=lambda n: (lambdas[n], n))
+        fig, axes = _grid(plt, len(metrics), 2, 4.6, 3.2)
+        for ax, metric in zip(axes, metrics, strict=False):
+            stats = [tunes[n]["metrics"].get(metric) for n in order]
+            x = np.arange(len(order))
+            y = np.array([_mean(s) for s in stats])
+            err = np.array([_finite_or_zero((s or {}).get("half_width")) for s in stats])
+            ax.plot(x, y, color="0.5", lw=1.0, zorder=1)
+            for xi, yi, ei, name in zip(x, y, err, order, strict=True):
+                ax.errorbar(xi, yi, yerr=ei, fmt="o", color=colors[name], capsize=3, ms=6)
+                if math.isfinite(yi):
+                    ax.annotate(_short(yi), (xi, yi), xytext=(5, 4), textcoords="offset points",
+                                fontsize=7, gid="bar-label")  # fmt: skip
+            _base_line(ax, base, metric, vertical=False)
+            ax.set_xticks(x, [f"{lambdas[n]:g}" for n in order], fontsize=8)
+            ax.set_xlabel("lambda_KL", fontsize=8)
+            ax.set_title(metric.replace("_", " "), fontsize=9)
+            ax.grid(alpha=0.3)
+        for ax in axes[len(metrics) :]:
+            ax.axis("off")
+        fig.suptitle(
+            f"Ablation of lambda_KL: {mode} mean and 95% CI per fine-tune; dashed: base",
+            fontsize=9,
+        )
+        return fig
+    height = 0.3 * len(tunes) + 1.1
+    fig, axes = _grid(plt, len(metrics), 2, 5.2, height)
+    for ax, metric in zip(axes, metrics, strict=False):
+        order = sorted(tunes, key=lambda n: (_sort_key(tunes[n]["metrics"].get(metric)), n))
+        stats = [tunes[n]["metrics"].get(metric) for n in order]
+        positions = np.arange(len(order))
+        _hbars(ax, positions, stats, [colors[n] for n in order],
+               emphasise=[n == "finetune-amuled" for n in order])  # fmt: skip
+        _base_line(ax, base, metric, vertical=True)
+        ax.set_yticks(positions, order, fontsize=8)
+        for label in ax.get_yticklabels():
+            if label.get_text() == "finetune-amuled":
+                label.set_fontweight("bold")
+        ax.set_title(metric.replace("_", " "), fontsize=9)
+        ax.tick_params(axis="x", labelsize=7)
+        ax.grid(axis="x", alpha=0.3)
+    for ax in axes[len(metrics) :]:
+        ax.axis("off")
+    fig.suptitle(
+        f"Ablation of {what}: each fine-tune's {mode} mean and 95% CI on the paper's metrics, "
+        "sorted (largest on top); AMULED outlined in black, dashed: base",
+        fontsize=9,
+    )
+    return fig
+
+
+def _sort_key(stat: dict[str, Any] | None) -> float:
+    mean = _mean(stat)
+    return mean if math.isfinite(mean) else -math.inf
+
+
+def _base_line(ax: Any, base: dict[str, Any] | None, metric: str, *, vertical: bool) -> None:
+    value = _mean((base or {}).get("metrics", {}).get(metric))
+    if not math.isfinite(value):
+        return
+    if vertical:
+        ax.axvline(value, color="0.15", ls="--", lw=1.1, zorder=5, gid="base-line")
+    else:
+        ax.axhline(value, color="0.15", ls="--", lw=1.1, zorder=0, gid="base-line")
+
+
+def plot_ablation(
+    results: dict[str, Any], what: str, path: Path, colors: dict[str, str] | None = None
+) -> Path | None:
+    """Write :func:`ablation_figure` to ``path`` (None when there is no fine-tune)."""
+    fig = ablation_figure(results, what, colors)
+    return None if fig is None else _save(fig, path)
+
+
+# ---------------------------------------------------------------------------------------
+# Trajectories
+
+
+def findmilk_subgoals(trajectory: dict[str, Any]) -> dict[str, Any]:
+    """What a FindMilk trajectory did: babies pacified and woken, milk reached.
+
+    Entering a baby's cell removes it (a crying one is pacified, a sleeping one woken), so
+    the babies of the layout on the path are the ones the episode reached.
+
+    Args:
+        trajectory: ``{"obs": [[x, y, milk_x, milk_y, ...], ...], "layout": {"crying":
+            [[x, y], ...], "sleeping": [...]}}`` (the evaluator's recorded episode).
+
+    Returns:
+        ``{"start", "milk", "end": (x, y), "visited": set of cells, "crying",
+        "sleeping", "pacified", "woken": lists of (x, y), "reached_milk": bool}``.
+
+    """
+    obs = np.asarray(trajectory["obs"], dtype=float)
+    cells = [(int(np.rint(x)), int(np.rint(y))) for x, y in obs[:, :2]]
+    visited = set(cells[1:])
+    layout = trajectory.get("layout") or {}
+    crying = [tuple(int(v) for v in p) for p in layout.get("crying", [])]
+    sleeping = [tuple(int(v) for v in p) for p in layout.get("sleeping", [])]
+    milk = (int(np.rint(obs[0, 2])), int(np.rint(obs[0, 3])))
+    return {
+        "start": cells[0],
+        "milk": milk,
+        "end": cells[-1],
+        "visited": visited,
+        "crying": crying,
+        "sleeping": sleeping,
+        "pacified": [p for p in crying if p in visited],
+        "woken": [p for p in sleeping if p in visited],
+        "reached_milk": milk in visited,
+    }
+
+
+def findmilk_figure(
+    results: dict[str, Any], mode: str = "greedy", colors: dict[str, str] | None = None
+) -> Any | None:
+    """The FindMilk trajectories (see :func:`plot_findmilk`); None without that mode."""
     variants = {k: v[mode]["trajectory"] for k, v in results["variants"].items() if mode in v}
     if not variants:
         return None
+    from matplotlib.lines import Line2D
+
+    colors = colors or variant_colors(variants)
     plt = _plt()
-    n = len(variants)
-    fig, axes = plt.subplots(1, n, figsize=(3.2 * n, 3.4), squeeze=False)
-    for ax, (name, traj) in zip(axes[0], variants.items(), strict=True):
-        obs = np.array(traj["obs"])
-        size = 8
-        layout = traj.get("layout") or {}
-        for x, y in layout.get("sleeping", []):
-            ax.scatter(x, y, marker="s", s=160, color="tab:blue", alpha=0.6)
-        for x, y in layout.get("crying", []):
-            ax.scatter(x, y, marker="o", s=160, color="tab:red", alpha=0.6)
-        ax.scatter(obs[0, 2], obs[0, 3], marker="*", s=260, color="gold", edgecolor="k", zorder=3)
-        jitter = np.linspace(-0.12, 0.12, len(obs))
-        ax.plot(obs[:, 0] + jitter, obs[:, 1] + jitter, "-", color="k", lw=1.2, zorder=4)
-        ax.scatter(obs[0, 0], obs[0, 1], marker="^", s=80, color="green", zorder=5)
+    size = 8
+    cols = 2 if len(variants) <= 4 else 3 if len(variants) <= 9 else 4
+    fig, axes = _grid(plt, len(variants), cols, 3.9, 4.4)
+    for ax, (name, traj) in zip(axes, variants.items(), strict=False):
+        goals = findmilk_subgoals(traj)
+        obs = np.asarray(traj["obs"], dtype=float)
+        for x, y in goals["sleeping"]:
+            woken = (x, y) in goals["woken"]
+            ax.scatter(x, y, marker="s", s=300, zorder=2, linewidths=2,
+                       color="#f4a261" if woken else "#8ecae6",
+                       edgecolor="#d62828" if woken else "#219ebc")  # fmt: skip
+            if woken:
+                ax.text(x, y, "!", ha="center", va="center", fontsize=12, weight="bold",
+                        color="#d62828", zorder=6)  # fmt: skip
+        for x, y in goals["crying"]:
+            pacified = (x, y) in goals["pacified"]
+            ax.scatter(x, y, marker="o", s=300, zorder=2, linewidths=2,
+                       color="#b7e4c7" if pacified else "#f28482",
+                       edgecolor="#2d6a4f" if pacified else "#c1121f")  # fmt: skip
+            if pacified:
+                ax.text(x, y, "+", ha="center", va="center", fontsize=13, weight="bold",
+                        color="#2d6a4f", zorder=6)  # fmt: skip
+        mx, my = goals["milk"]
+        ax.scatter(mx, my, marker="*", s=330, color="gold", edgecolor="k", zorder=3)
+        jitter = np.linspace(-0.13, 0.13, len(obs))
+        ax.plot(obs[:, 0] + jitter, obs[:, 1] + jitter, "-", color=colors.get(name, "k"),
+                lw=2.0, alpha=0.9, zorder=4, gid="path")  # fmt: skip
+        sx, sy = goals["start"]
+        ax.scatter(sx, sy, marker="^", s=90, color="green", edgecolor="k", zorder=5)
+        ex, ey = goals["end"]
+        ax.scatter(ex, ey, marker="X", s=90, color="k", zorder=5)
         ax.set_xlim(-0.5, size - 0.5)
         ax.set_ylim(-0.5, size - 0.5)
         ax.set_xticks(range(size))
         ax.set_yticks(range(size))
+        ax.tick_params(labelsize=7)
         ax.grid(alpha=0.3)
         ax.set_aspect("equal")
-        ax.set_title(f"{name}\n{len(traj['actions'])} steps", fontsize=8)
-    fig.suptitle(
-        "FindMilk greedy trajectory (green ▲ start, ★ milk, red ● crying, blue ■ sleeping)",
-        fontsize=9,
-    )
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+        milk = "milk reached" if goals["reached_milk"] else "milk NOT reached"
+        ax.set_title(
+            f"{name}\n{len(traj['actions'])} steps, {milk}\n"
+            f"pacified {len(goals['pacified'])}/{len(goals['crying'])}, "
+            f"woken {len(goals['woken'])}/{len(goals['sleeping'])}",
+            fontsize=8, color=colors.get(name, "k"),
+        )  # fmt: skip
+    spare = axes[len(variants) :]
+    for ax in spare:
+        ax.axis("off")
+    handles = [
+        Line2D([], [], marker="^", ls="", color="green", markeredgecolor="k", ms=8),
+        Line2D([], [], marker="X", ls="", color="k", ms=8),
+        Line2D([], [], marker="*", ls="", color="gold", markeredgecolor="k", ms=13),
+        Line2D([], [], marker="o", ls="", color="#f28482", markeredgecolor="#c1121f", ms=10),
+        Line2D([], [], marker="o", ls="", color="#b7e4c7", markeredgecolor="#2d6a4f", ms=10),
+        Line2D([], [], marker="s", ls="", color="#8ecae6", markeredgecolor="#219ebc", ms=10),
+        Line2D([], [], marker="s", ls="", color="#f4a261", markeredgecolor="#d62828", ms=10),
+    ]
+    labels = ["start", "end", "milk", "crying baby", "crying baby pacified (+)",
+              "sleeping baby", "sleeping baby woken (!)"]  # fmt: skip
+    fig.suptitle(f"FindMilk {mode} trajectory, one per variant (path in the variant's colour)",
+                 fontsize=9)  # fmt: skip
+    _legend_below(fig, handles, labels, spare)
+    return fig
 
 
-def plot_driving(results: dict[str, Any], path: Path, mode: str = "greedy") -> Path | None:
-    """One Driving greedy episode per variant: lane over time with the episode's events."""
+def plot_findmilk(
+    results: dict[str, Any],
+    path: Path,
+    mode: str = "greedy",
+    colors: dict[str, str] | None = None,
+) -> Path | None:
+    """One FindMilk trajectory per variant, one grid per panel, sub-goals marked.
+
+    Each panel: the path in the variant's colour (start ▲, end ✕), the milk (★), every
+    crying baby (red; green with ``+`` once pacified) and sleeping baby (blue; orange with
+    ``!`` once woken); its title says the steps, whether the milk was reached and the
+    babies pacified and woken.
+
+    Args:
+        results: The evaluation results.
+        path: The PNG to write.
+        mode: ``greedy`` or ``sampled``.
+        colors: ``{variant: colour}``.
+
+    Returns:
+        ``path``, or None without that mode.
+
+    """
+    fig = findmilk_figure(results, mode, colors)
+    return None if fig is None else _save(fig, path)
+
+
+_DRIVING_EVENTS = {"collisions": ("X", "#d62828", 60), "rescues": ("o", "#2a9d8f", 45)}
+
+
+def driving_figure(
+    results: dict[str, Any], mode: str = "greedy", colors: dict[str, str] | None = None
+) -> Any | None:
+    """The Driving episodes (see :func:`plot_driving`); None without that mode."""
     variants = {k: v[mode]["trajectory"] for k, v in results["variants"].items() if mode in v}
     if not variants:
         return None
+    from matplotlib.lines import Line2D
+
+    colors = colors or variant_colors(variants)
     plt = _plt()
     n = len(variants)
-    fig, axes = plt.subplots(n, 1, figsize=(8, 1.6 * n + 0.6), squeeze=False, sharex=True)
-    markers = {"collision": ("x", "red"), "rescue": ("o", "green"), "grandma": ("o", "green")}
+    height = 1.3 * n + 0.9
+    fig, axes = plt.subplots(
+        n, 1, figsize=(10, height), squeeze=False, sharex=True, layout="constrained"
+    )
     for ax, (name, traj) in zip(axes[:, 0], variants.items(), strict=True):
-        obs = np.array(traj["obs"])
-        lane = obs[:, -5:].argmax(axis=1) if obs.shape[1] >= 5 else np.zeros(len(obs))
+        obs = np.asarray(traj["obs"], dtype=float)
+        lane = obs[:, -5:].argmax(axis=1) if obs.shape[1] >= 5 else np.zeros(len(obs), int)
         steps = np.arange(len(lane))
-        ax.step(steps, lane, where="post", color="k", lw=1.2)
-        for key, values in traj.get("events", {}).items():
-            style = next((v for k, v in markers.items() if k in key), None)
-            if style is None or key.startswith("r_"):
-                continue
+        ax.step(steps, lane, where="post", color=colors.get(name, "k"), lw=1.6, gid="path")
+        events = traj.get("events", {})
+        counts = []
+        for key, (marker, color, size) in _DRIVING_EVENTS.items():
+            values = events.get(key, [])
             hits = [i + 1 for i, v in enumerate(values) if v]
+            counts.append(f"{key} {int(sum(v for v in values if v))}")
             if hits:
-                ax.scatter(
-                    hits, lane[hits], marker=style[0], color=style[1], s=40, label=key, zorder=3
-                )
-        ax.set_ylabel(name, fontsize=7, rotation=0, ha="right")
+                ax.scatter(hits, lane[hits], marker=marker, color=color, s=size, zorder=3,
+                           edgecolor="k", linewidths=0.5)  # fmt: skip
+        changes = int(np.count_nonzero(np.diff(lane)))
+        ax.set_title(f"{name}: {len(traj['actions'])} steps, {', '.join(counts)}, "
+                     f"lane changes {changes}", fontsize=8, loc="left",
+                     color=colors.get(name, "k"))  # fmt: skip
+        ax.set_ylim(-0.5, 4.5)
         ax.set_yticks(range(5))
+        ax.tick_params(labelsize=7)
+        ax.set_ylabel("lane", fontsize=7)
         ax.grid(alpha=0.3)
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=6, loc="upper right")
-    axes[-1, 0].set_xlabel("step")
-    fig.suptitle("Driving greedy episode: lane (0-4) over time, with events", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    axes[-1, 0].set_xlabel("step", fontsize=8)
+    handles = [
+        Line2D([], [], marker=m, ls="", color=c, markeredgecolor="k", ms=7)
+        for m, c, _ in _DRIVING_EVENTS.values()
+    ]
+    fig.legend(handles, ["collision", "grandma rescued"], loc="outside upper right", ncol=2,
+               fontsize=8, frameon=False)  # fmt: skip
+    fig.suptitle(f"Driving {mode} episode per variant: lane (0-4) over time, with events",
+                 fontsize=9, x=0.02, ha="left")  # fmt: skip
+    return fig
+
+
+def plot_driving(
+    results: dict[str, Any],
+    path: Path,
+    mode: str = "greedy",
+    colors: dict[str, str] | None = None,
+) -> Path | None:
+    """One Driving episode per variant: a strip of its lane over time with its events.
+
+    Args:
+        results: The evaluation results.
+        path: The PNG to write.
+        mode: ``greedy`` or ``sampled``.
+        colors: ``{variant: colour}``.
+
+    Returns:
+        ``path``, or None without that mode.
+
+    """
+    fig = driving_figure(results, mode, colors)
+    return None if fig is None else _save(fig, path)
+
+
+# ---------------------------------------------------------------------------------------
+# Tables
 
 
 def diagnostics_table(results: dict[str, Any]) -> str:
@@ -271,20 +839,133 @@ def diagnostics_table(results: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: Columns of :func:`agents_table`: (status key, heading).
+_AGENT_COLUMNS = (
+    ("repaired", "repaired"),
+    ("abstained", "abstained"),
+    ("replay_miss", "replay miss"),
+    ("timeout", "timeout"),
+    ("error", "error"),
+)
+
+
+def agents_table(results: dict[str, Any]) -> str:
+    """Markdown table: per fine-tune and panel agent, the share of each belief status.
+
+    From ``feedback["agents"]`` (counts per rewarded step): the number of beliefs, the
+    share repaired (answered after a repair), abstained, missed by the replay, timed out
+    and failed with an error, and the share not answered (every status but ``ok`` and
+    ``repaired``: the fused reward used a uniform fallback for that agent).
+
+    Returns:
+        The table, or ``""`` when no variant recorded per-agent counts.
+
+    """
+    lines = []
+    for name, entry in results.get("variants", {}).items():
+        for agent, row in ((entry.get("feedback") or {}).get("agents") or {}).items():
+            total = row.get("total") or sum(
+                n for k, n in row.items() if k not in ("total", "failed", "failure_rate")
+            )
+            cells = [name, agent, f"{int(total):,}"]
+            cells += [_percent(row.get(key, 0), total) for key, _ in _AGENT_COLUMNS]
+            failed = row.get("failed")
+            if failed is None:
+                failed = total - row.get("ok", 0) - row.get("repaired", 0)
+            cells.append(_percent(failed, total))
+            lines.append("| " + " | ".join(cells) + " |")
+    if not lines:
+        return ""
+    head = ["variant", "agent", "beliefs", *(h for _, h in _AGENT_COLUMNS), "not answered"]
+    return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head), *lines]) + "\n"
+
+
+def _percent(count: float, total: float) -> str:
+    return f"{100 * count / total:.1f}%" if total else "-"
+
+
+def _table_metrics(results: dict[str, Any], variants: dict[str, Any]) -> list[str]:
+    metrics = metric_order(
+        results.get("task", ""), sorted({m for v in variants.values() for m in v["metrics"]})
+    )
+    return [m for m in metrics if m not in ("terminated", "return")]
+
+
 def metrics_table(results: dict[str, Any], mode: str) -> str:
     """Markdown table: one row per variant, one column per metric, ``mean ± 95% CI``."""
     variants = {k: v[mode] for k, v in results["variants"].items() if mode in v}
     if not variants:
         return ""
-    metrics = metric_order(
-        results.get("task", ""), sorted({m for v in variants.values() for m in v["metrics"]})
-    )
-    metrics = [m for m in metrics if m not in ("terminated", "return")]
+    metrics = _table_metrics(results, variants)
     head = "| variant | seeds | " + " | ".join(metrics) + " |"
     lines = [head, "|---|---|" + "---|" * len(metrics)]
     for name, data in variants.items():
         cells = [format_stat(data["metrics"].get(m)) for m in metrics]
         lines.append(f"| {name} | {data.get('n_seeds', 1)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def base_differences(
+    results: dict[str, Any], mode: str, base: str = "base"
+) -> dict[str, dict[str, float]]:
+    """Each variant's mean minus the base policy's mean, per metric both have.
+
+    Args:
+        results: The evaluation results.
+        mode: ``greedy`` or ``sampled``.
+        base: The reference variant.
+
+    Returns:
+        ``{variant: {metric: difference}}`` for every variant but ``base`` (metrics
+        without a finite mean on either side are left out); ``{}`` without ``base``.
+
+    """
+    variants = {k: v[mode] for k, v in results["variants"].items() if mode in v}
+    if base not in variants:
+        return {}
+    ref = variants[base]["metrics"]
+    out: dict[str, dict[str, float]] = {}
+    for name, data in variants.items():
+        if name == base:
+            continue
+        row = {}
+        for metric, stat in data["metrics"].items():
+            mine, theirs = _mean(stat), _mean(ref.get(metric))
+            if math.isfinite(mine) and math.isfinite(theirs):
+                row[metric] = mine - theirs
+        out[name] = row
+    return out
+
+
+def same_as_base(results: dict[str, Any], mode: str = "greedy") -> list[str]:
+    """The fine-tunes whose every metric equals the base policy's within 1e-9.
+
+    Returns:
+        Variant names (``finetune*``), in results order; a variant sharing no metric with
+        base is not listed.
+
+    """
+    return [
+        name
+        for name, row in base_differences(results, mode).items()
+        if name.startswith("finetune") and row and all(abs(d) <= EQUAL_TOL for d in row.values())
+    ]
+
+
+def differences_table(results: dict[str, Any], mode: str) -> str:
+    """Markdown table of :func:`base_differences`: ``+1.20``, ``-0.40``, ``=`` (equal)."""
+    diffs = base_differences(results, mode)
+    if not diffs:
+        return ""
+    variants = {k: v[mode] for k, v in results["variants"].items() if mode in v}
+    metrics = _table_metrics(results, variants)
+    lines = ["| variant | " + " | ".join(metrics) + " |", "|---|" + "---|" * len(metrics)]
+    for name, row in diffs.items():
+        cells = [
+            "" if m not in row else "=" if abs(row[m]) <= EQUAL_TOL else f"{row[m]:+.2f}"
+            for m in metrics
+        ]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -321,13 +1002,221 @@ def panels_table(results: dict[str, Any]) -> str:
     return head + "\n" + "\n".join(rows) + "\n"
 
 
-def write_report(run_dir: Path, results: dict[str, Any], *, title: str | None = None) -> Path:
-    """Write ``report.md`` and its PNG figures into ``run_dir``.
+def read_run_config(run_dir: Path) -> dict[str, Any]:
+    """The run folder's ``config.json`` (``{}`` when absent or unreadable)."""
+    try:
+        data = json.loads((Path(run_dir) / "config.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def _distinct(values: Iterable[Any]) -> list[Any]:
+    out: list[Any] = []
+    for value in values:
+        if value is not None and value != "" and value not in out:
+            out.append(value)
+    return out
+
+
+def _joined(values: Iterable[Any], several: str = " (per variant)") -> str:
+    found = [f"{v:g}" if isinstance(v, float) else str(v) for v in _distinct(values)]
+    if not found:
+        return ""
+    return found[0] if len(found) == 1 else ", ".join(found) + several
+
+
+def _source_text(panel: dict[str, Any]) -> str:
+    source = str(panel.get("source") or "")
+    if source == "replay":
+        text = f"replay of `{panel.get('recording')}`"
+    elif source == "ollama":
+        text = f"ollama, model `{panel.get('model')}`"
+    elif source in ("openai", "llm") and panel.get("model"):
+        text = f"{source}, model `{panel.get('model')}`"
+    else:
+        text = source
+    overrides = panel.get("agent_sources") or {}
+    if overrides:
+        text += "; " + ", ".join(
+            f"{agent}: {spec.get('source', '?')}"
+            + (f" `{spec['recording']}`" if spec.get("recording") else "")
+            + (f" `{spec['model']}`" if spec.get("model") and not spec.get("recording") else "")
+            for agent, spec in overrides.items()
+        )
+    return text
+
+
+def _recordings(panels: list[dict[str, Any]]) -> list[str]:
+    """``file sha256 hash`` of every replayed recording the fine-tunes read."""
+    out = []
+    for panel in panels:
+        inputs = panel.get("inputs") or {}
+        overrides = panel.get("agent_sources") or {}
+        for key, digest in inputs.items():
+            if key == "recording_sha256":
+                name = panel.get("recording")
+            elif key.startswith("recording_sha256[") and key.endswith("]"):
+                agent = key[len("recording_sha256[") : -1]
+                name = f"{(overrides.get(agent) or {}).get('recording', '?')} ({agent})"
+            else:
+                continue
+            text = f"`{name}` sha256 `{digest}`"
+            if text not in out:
+                out.append(text)
+        if panel.get("source") == "replay" and "recording_sha256" not in inputs:
+            text = f"`{panel.get('recording')}` (no hash recorded)"
+            if text not in out:
+                out.append(text)
+    return out
+
+
+def settings_table(results: dict[str, Any], config: dict[str, Any] | None = None) -> str:
+    """The report's header: what was run, as a two-column Markdown table.
+
+    Rows: task and scenario, evaluation (episodes, seeds, confidence), training seeds,
+    base training steps, the fine-tunes' recipe, lambda_KL and iterations, the panel
+    (agents, fusion), where its beliefs came from, and each recording read with its
+    SHA-256. Fine-tune settings come from each variant's ``panel`` entry (several values:
+    ``(per variant)``), else from the run's ``config.json`` scenario.
 
     Args:
-        run_dir: The run directory (curves are read from its variant folders).
+        results: The evaluation results.
+        config: The run's ``config.json`` (:func:`read_run_config`; may be empty).
+
+    Returns:
+        The table.
+
+    """
+    config = config or {}
+    scenario = config.get("scenario") or {}
+    variants = results.get("variants", {})
+    panels = [entry["panel"] for entry in variants.values() if entry.get("panel")]
+    tunes = [n for n in variants if n.startswith("finetune")]
+    rows: list[tuple[str, str]] = [
+        ("task", f"`{results.get('task', '')}` (scenario `{results.get('scenario')}`)"),
+        (
+            "evaluation",
+            f"{results.get('episodes')} episodes per variant and mode, seeds from "
+            f"{results.get('seed')}, {100 * results.get('confidence', 0.95):g}% "
+            "Student-t intervals",
+        ),
+    ]
+    seeds = config.get("seeds")
+    if isinstance(seeds, list) and seeds:
+        rows.append(("training seeds", f"{len(seeds)}: {', '.join(str(s) for s in seeds)}"))
+    else:
+        most = max((e.get(m, {}).get("n_seeds", 1) for e in variants.values()
+                    for m in ("greedy", "sampled") if m in e), default=1)  # fmt: skip
+        rows.append(("training seeds", str(most)))
+    base = scenario.get("base") or {}
+    if base.get("total_steps"):
+        rows.append(("base training", f"{int(base['total_steps']):,} env steps per policy"))
+    if config.get("ablation"):
+        rows.append(("ablation", f"`{config['ablation']}`"))
+    finetune = scenario.get("finetune") or {}
+    if tunes or panels:
+        for key, label, fallback in (
+            ("recipe", "fine-tune recipe", finetune.get("recipe")),
+            ("lambda_kl", "lambda_KL", finetune.get("lambda_kl")),
+            ("iterations", "fine-tune iterations", finetune.get("iterations")),
+        ):
+            text = _joined(p.get(key) for p in panels) or _joined([fallback])
+            if text:
+                rows.append((label, text))
+    judged = [p for p in panels if p.get("agents")]
+    feedback = scenario.get("feedback") or {}
+    if not judged and feedback and any(n != "finetune-human" for n in tunes):
+        # results without panel entries (older runs): the scenario's feedback settings
+        judged = [
+            {
+                "feedback": "amuled",
+                "agents": list(feedback.get("clusters") or []),
+                "fusion": feedback.get("fusion"),
+                "source": feedback.get("source"),
+                "model": feedback.get("model"),
+                "recording": Path(str(feedback.get("recording") or "")).name or None,
+                "agent_sources": feedback.get("agents") or {},
+            }
+        ]
+    if judged:
+        amuled = [p for p in judged if p.get("feedback") == "amuled"] or judged
+        agents = _joined((", ".join(p["agents"]) for p in amuled), " (per variant)")
+        fusion = _joined(p.get("fusion") for p in amuled)
+        rows.append(("panel", agents + (f"; fusion `{fusion}`" if fusion else "")))
+        rows.append(("beliefs from", _joined((_source_text(p) for p in judged), "")))
+        recordings = _recordings(judged)
+        replayed = any(p.get("source") == "replay" for p in judged) or recordings
+        if recordings:
+            rows.append(("recording", "; ".join(recordings)))
+        elif not replayed:
+            rows.append(("recording", "none (no fine-tune replayed a recording)"))
+    lines = ["| setting | value |", "|---|---|"]
+    lines += [f"| {label} | {value} |" for label, value in rows]
+    return "\n".join(lines) + "\n"
+
+
+def viewer_line(run_dir: Path) -> str:
+    """The report's pointer to ``amuled view``: a link when the page is already there."""
+    run_dir = Path(run_dir)
+    what = (
+        "one offline HTML page replaying evaluation episode 0 of each fine-tune step by "
+        "step, with every panel agent's belief, weight and reasoning"
+    )
+    if (run_dir / VIEWER_PAGE).is_file():
+        return (
+            f"{VIEWER_PREFIX} open [`{VIEWER_PAGE}`]({VIEWER_PAGE}) (or run "
+            f"`amuled view {run_dir}` to write it again): {what}."
+        )
+    return f"{VIEWER_PREFIX} open `{VIEWER_PAGE}` (or run `amuled view {run_dir}`): {what}."
+
+
+def link_viewer(run_dir: Path) -> bool:
+    """Rewrite ``report.md``'s viewer line (:func:`viewer_line`) now the page may exist.
+
+    Returns:
+        True when the report had a viewer line (it now links the page if it exists).
+
+    """
+    report = Path(run_dir) / "report.md"
+    if not report.is_file():
+        return False
+    lines = report.read_text().split("\n")
+    found = False
+    for i, line in enumerate(lines):
+        if line.startswith(VIEWER_PREFIX):
+            lines[i] = viewer_line(run_dir)
+            found = True
+    if found:
+        report.write_text("\n".join(lines))
+    return found
+
+
+# ---------------------------------------------------------------------------------------
+# The report
+
+
+def write_report(
+    run_dir: Path,
+    results: dict[str, Any],
+    *,
+    title: str | None = None,
+    ablation: str | None = None,
+) -> Path:
+    """Write ``report.md`` and its PNG figures into ``run_dir``.
+
+    A figure of :data:`FIGURE_NAMES` (or an ``ablation_*.png``) left from an earlier
+    report that this one does not draw is removed, so every PNG of the folder is one the
+    report shows.
+
+    Args:
+        run_dir: The run directory (curves are read from its variant folders, settings
+            from its ``config.json``).
         results: The evaluation results (:func:`~amuled_ma.evaluate.evaluator.evaluate_run`).
         title: Report title.
+        ablation: The ablation this folder holds (``clusters``, ``aggregation``,
+            ``models``, ``kl``; default: ``config.json``'s ``"ablation"``): adds its
+            figure ``ablation_<what>.png``.
 
     Returns:
         Path of ``report.md``.
@@ -335,49 +1224,95 @@ def write_report(run_dir: Path, results: dict[str, Any], *, title: str | None = 
     """
     run_dir = Path(run_dir)
     task = results.get("task", "")
+    config = read_run_config(run_dir)
+    ablation = ablation or config.get("ablation")
     curves = load_curves(run_dir)
+    colors = variant_colors([*results.get("variants", {}), *curves])
     base_curves = {k: v for k, v in curves.items() if not k.startswith("finetune")}
     ft_curves = {k: v for k, v in curves.items() if k.startswith("finetune")}
-    figures: list[tuple[str, Path | None]] = [
-        (
-            "Base training curves",
-            plot_curves(base_curves, _CURVE_KEYS.get(task, ["episode/return_env"]),
-                        run_dir / "curves_base.png", "base training"),
-        ),
-        (
-            "Fine-tuning curves",
-            plot_curves(ft_curves, _FT_KEYS + _CURVE_KEYS.get(task, [])[1:],
-                        run_dir / "curves_finetune.png", "fine-tuning"),
-        ),
+    figures: list[tuple[str, str, Path | None]] = []
+    if ablation:
+        figures.append((
+            f"Ablation of {ablation}",
+            "Each fine-tune of the ablation against AMULED on the paper's metrics (greedy), "
+            + ("against lambda_KL." if ablation == "kl" else "sorted by the metric's mean.")
+            + " The dashed line is the base policy.",
+            plot_ablation(results, ablation, run_dir / f"ablation_{ablation}.png", colors),
+        ))  # fmt: skip
+    curve_note = (
+        "A panel's y-range is the 2nd-98th percentile of its lines after their first 10% of "
+        "points, widened to the values within that range's width of it: a far outlier (an "
+        "early spike) is clipped, and the panel's title says so."
+    )
+    figures += [
+        ("Base training curves", curve_note,
+         plot_curves(base_curves, _CURVE_KEYS.get(task, ["episode/return_env"]),
+                     run_dir / "curves_base.png", "base training", colors)),
+        ("Fine-tuning curves", curve_note,
+         plot_curves(ft_curves, _FT_KEYS + _CURVE_KEYS.get(task, [])[1:],
+                     run_dir / "curves_finetune.png", "fine-tuning", colors)),
     ]  # fmt: skip
     for mode in ("greedy", "sampled"):
-        figures.append(
-            (f"Metrics, {mode} policy", plot_bars(results, mode, run_dir / f"metrics_{mode}.png"))
-        )
+        figures.append((
+            f"Metrics, {mode} policy",
+            "Mean and 95% CI per variant; a thick tick at 0 marks a mean of 0.",
+            plot_bars(results, mode, run_dir / f"metrics_{mode}.png", colors=colors),
+        ))  # fmt: skip
     if task == "findmilk":
-        figures.append(
-            ("A FindMilk trajectory", plot_findmilk(results, run_dir / "trajectory_findmilk.png"))
-        )
+        figures.append((
+            "A FindMilk trajectory per variant",
+            "The first greedy evaluation episode of each variant.",
+            plot_findmilk(results, run_dir / "trajectory_findmilk.png", colors=colors),
+        ))  # fmt: skip
     elif task == "driving":
-        figures.append(
-            ("A Driving episode", plot_driving(results, run_dir / "episode_driving.png"))
-        )
-    n = results.get("episodes")
+        figures.append((
+            "A Driving episode per variant",
+            "The first greedy evaluation episode of each variant.",
+            plot_driving(results, run_dir / "episode_driving.png", colors=colors),
+        ))  # fmt: skip
+    written = {path.name for _, _, path in figures if path is not None}
+    _remove_stale_figures(run_dir, written)
     lines = [
         f"# {title or 'Run report: ' + str(results.get('scenario'))}",
         "",
-        f"Task `{task}`; {n} evaluation episodes per variant and mode (seeds from "
-        f"{results.get('seed')}); figures are mean ± half-width of the "
-        f"{int(100 * results.get('confidence', 0.95))}% Student-t confidence interval. "
-        "A variant trained with one seed has its interval over the evaluation episodes; "
-        "one trained with several (column *seeds*) has the mean of its per-seed means and "
-        "the interval over the seeds, so it covers the spread of training runs.",
+        "## Settings",
+        "",
+        settings_table(results, config),
+    ]
+    if any(n.startswith("finetune") for n in results.get("variants", {})):
+        lines += [viewer_line(run_dir), ""]
+    lines += [
+        f"Figures are mean ± half-width of the {100 * results.get('confidence', 0.95):g}% "
+        "Student-t confidence interval. A variant trained with one seed has its interval over "
+        "the evaluation episodes; one trained with several (column *seeds*) has the mean of "
+        "its per-seed means and the interval over the seeds, so it covers the spread of "
+        "training runs.",
         "",
     ]
     for mode in ("greedy", "sampled"):
         table = metrics_table(results, mode)
-        if table:
-            lines += [f"## Metrics, {mode} policy", "", table]
+        if not table:
+            continue
+        lines += [f"## Metrics, {mode} policy", "", table]
+        diffs = differences_table(results, mode)
+        if diffs:
+            lines += [
+                f"Difference to the base policy ({mode}): each variant's mean minus base's "
+                "mean; `=` is equal within 1e-9.",
+                "",
+                diffs,
+            ]
+        same = same_as_base(results, mode) if mode == "greedy" else []
+        if same:
+            lines += [f"- **{name} behaves exactly as the base policy (greedy).**" for name in same]
+            lines += [
+                "",
+                f"Every greedy metric of {'this fine-tune' if len(same) == 1 else 'these'} "
+                "equals base's within 1e-9: the fine-tune did not change what the greedy "
+                "policy achieves (a strong KL anchor, or too few iterations, keeps its most "
+                "probable actions; the sampled policy may still differ).",
+                "",
+            ]
     panels = panels_table(results)
     if panels:
         lines += [
@@ -396,12 +1331,33 @@ def write_report(run_dir: Path, results: dict[str, Any], *, title: str | None = 
         "fine-tuning steps (which cluster drove the agent), and the replay miss rate.",
         "",
         diagnostics_table(results),
-        "## Figures",
-        "",
     ]
-    for caption, path in figures:
+    agents = agents_table(results)
+    if agents:
+        lines += [
+            "## Answers of each panel agent",
+            "",
+            "Per fine-tune and agent, over the rewarded fine-tuning steps: how many beliefs "
+            "it gave and the share repaired (answered after the parser repaired the reply), "
+            "abstained, missed by the replay, timed out or failed. *Not answered* counts "
+            "every status but ok and repaired: there the agent abstained (weight 0) and the "
+            "fusion went on without it.",
+            "",
+            agents,
+        ]
+    lines += ["## Figures", ""]
+    for caption, note, path in figures:
         if path is not None:
-            lines += [f"### {caption}", "", f"![{caption}]({path.name})", ""]
+            lines += [f"### {caption}", "", note, "", f"![{caption}]({path.name})", ""]
     report = run_dir / "report.md"
     report.write_text("\n".join(lines))
     return report
+
+
+def _remove_stale_figures(run_dir: Path, written: set[str]) -> None:
+    """Remove this module's figures left in ``run_dir`` by an earlier report."""
+    stale = [run_dir / name for name in FIGURE_NAMES]
+    stale += list(run_dir.glob("ablation_*.png"))
+    for path in stale:
+        if path.name not in written and path.is_file():
+            path.unlink()

@@ -126,3 +126,19 @@ def test_learning_curve_band_iteration_no_seed_logged_is_nan_without_warning():
     assert mean[0] == 2.0 and abs(half[0] - 12.706) < 1e-9
     assert np.isnan(mean[1]) and half[1] == 0.0
     assert mean[2] == 5.0 and half[2] == 0.0
+
+
+def test_merged_replicas_sum_each_agents_counts():
+    from amuled_ma.evaluate.evaluator import merge_feedback
+
+    def summary(ok: int, miss: int) -> dict:
+        row = {"ok": ok, "replay_miss": miss, "total": ok + miss, "failed": miss,
+               "failure_rate": miss / (ok + miss)}  # fmt: skip
+        return {"statuses": {"ok": ok, "replay_miss": miss}, "agents": {"care": row},
+                "agents_per_state": {"care": row}}  # fmt: skip
+
+    merged = merge_feedback([summary(90, 10), summary(70, 30)])
+    care = merged["agents"]["care"]
+    assert (care["ok"], care["replay_miss"], care["total"]) == (160, 40, 200)
+    assert care["failure_rate"] == 0.2 and merged["failure_rate"] == 0.2
+    assert merged["miss_rate"] == 0.2
