@@ -43,6 +43,14 @@ class AbstentionError(AmuledError, RuntimeError):
     """A panel agent left more states unanswered than ``[feedback].max_abstention`` allows."""
 
 
+class AuthorsImportError(AmuledError, ValueError):
+    """A file of the paper authors' checkout is missing, malformed, or would overwrite data."""
+
+
+class UnsafePickleError(AuthorsImportError):
+    """A pickle needs a global outside the allow-list; nothing from it was run."""
+
+
 class CheckpointError(AmuledError, FileNotFoundError):
     """A checkpoint needed by a command is missing or unreadable."""
 

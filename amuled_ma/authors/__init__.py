@@ -11,7 +11,8 @@ authors' repository and writes our formats; see ``docs/authors.md``. Modules:
 - :mod:`amuled_ma.authors.policies`: CleanRL policy (weights only) -> our checkpoint and
   variant folder (:func:`~amuled_ma.authors.policies.build_checkpoint`);
 - :mod:`amuled_ma.authors.checkout`: finds the files of a checkout and imports them all
-  (:func:`~amuled_ma.authors.checkout.import_authors`);
-- :mod:`amuled_ma.authors.errors`: :class:`~amuled_ma.authors.errors.AuthorsImportError`,
-  :class:`~amuled_ma.authors.errors.UnsafePickleError`.
+  (:func:`~amuled_ma.authors.checkout.import_authors`).
+
+Errors: :class:`~amuled_ma.errors.AuthorsImportError` and
+:class:`~amuled_ma.errors.UnsafePickleError` (the package's one hierarchy).
 """

@@ -39,8 +39,8 @@ from typing import Any
 
 import numpy as np
 
-from amuled_ma.authors.errors import AuthorsImportError
 from amuled_ma.authors.unpickle import load_pickle
+from amuled_ma.errors import AuthorsImportError
 
 #: The authors' cluster names, in their order (the recordings' ``clusters``).
 AUTHORS_CLUSTERS = ("consequentialist", "deontologist", "virtue", "care", "social justice")

@@ -26,7 +26,6 @@ from pathlib import Path
 from typing import Any
 
 from amuled_ma.authors.caches import ConvertedCache, convert_cache, model_slug, task_of_folder
-from amuled_ma.authors.errors import AuthorsImportError
 from amuled_ma.authors.policies import (
     AUTHORS_BASE_ITERATIONS,
     AUTHORS_SEED,
@@ -38,6 +37,7 @@ from amuled_ma.authors.policies import (
     sha256_file,
     write_variant,
 )
+from amuled_ma.errors import AuthorsImportError
 
 #: The authors' repository.
 AUTHORS_REPO = "https://github.com/temetski/moral_agent"

@@ -10,7 +10,7 @@ a file that names any other one:
    is built, nothing is called) lists every global the file names and measures how deep
    its values nest;
 2. a file naming a global outside the allow-list (or a copyreg extension code, or a
-   persistent id) is refused with :class:`~amuled_ma.authors.errors.UnsafePickleError`
+   persistent id) is refused with :class:`~amuled_ma.errors.UnsafePickleError`
    naming the file and every such global (``posix.system``), before anything from it runs;
    so is a file nested deeper than :data:`MAX_DEPTH` (hashing a tuple nested a million
    deep, a 1 MB file, crashes CPython's unpickler with a stack overflow);
@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from amuled_ma.authors.errors import AuthorsImportError, UnsafePickleError
+from amuled_ma.errors import AuthorsImportError, UnsafePickleError
 
 #: Largest pickle read [bytes]; the authors' largest cache is about 10 MB.
 MAX_PICKLE_BYTES = 256 * 2**20

@@ -18,8 +18,8 @@ from amuled_ma.authors.caches import (
     model_slug,
     recording_file_name,
 )
-from amuled_ma.authors.errors import AuthorsImportError
 from amuled_ma.beliefs.replay import Recording, obs_key
+from amuled_ma.errors import AuthorsImportError
 
 
 def write_recording(tmp_path, converted):

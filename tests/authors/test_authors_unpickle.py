@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from authors_fakes import findmilk_cache, write_pickle
 
-from amuled_ma.authors.errors import AuthorsImportError, UnsafePickleError
 from amuled_ma.authors.unpickle import load_pickle, pickle_globals, scan_pickle
+from amuled_ma.errors import AuthorsImportError, UnsafePickleError
 
 
 class TouchMarker:
