@@ -32,6 +32,7 @@ from typing import Any
 import torch
 
 from amuled_ma.errors import CheckpointError
+from amuled_ma.torch_files import load_weights_only
 
 #: Layer indices of CleanRL's ``nn.Sequential`` (Linear, Tanh, Linear, Tanh, Linear).
 CLEANRL_LINEARS = (0, 2, 4)
@@ -92,20 +93,7 @@ def read_cleanrl(path: str | Path) -> dict[str, torch.Tensor]:
 
     """
     path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"CleanRL policy not found: {path}")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # torch raises many types for a bad or unsafe file
-        unsafe = re.search(r"GLOBAL ([\w.]+)", str(error))
-        why = (
-            f"it needs {unsafe.group(1)} to load, which could run code (refused; nothing ran)"
-            if unsafe
-            else f"not a readable PyTorch file ({type(error).__name__})"
-        )
-        raise CheckpointError(
-            f"cannot load the CleanRL policy {path}: {why}; use the authors' published file"
-        ) from error
+    state = load_weights_only(path, "the CleanRL policy")
     expected = {f"{net}.{i}.{p}" for net in ("actor", "critic") for i in CLEANRL_LINEARS
                 for p in ("weight", "bias")}  # fmt: skip
     if not isinstance(state, Mapping) or set(state) != expected:

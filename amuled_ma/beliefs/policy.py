@@ -41,7 +41,8 @@ import numpy as np
 from amuled_ma.beliefs.parsing import uniform
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.beliefs.validate import check_belief, show_values
-from amuled_ma.errors import ScenarioError
+from amuled_ma.errors import CheckpointError, ScenarioError
+from amuled_ma.torch_files import load_weights_only
 
 #: Activations of an inferred MLP (``torch.nn`` class names).
 ACTIVATIONS = {
@@ -85,18 +86,9 @@ def load_weights(path: str | Path, key: str = "") -> dict[str, Any]:
             f"policy file {path} not found; fix the path (relative to the scenario file)"
         )
     try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # torch raises several types for a refused or bad file
-        unsafe = re.search(r"GLOBAL ([\w.]+)", str(error))
-        if unsafe:
-            why = (
-                f"it needs the Python object {unsafe.group(1)} to load, which could run code "
-                "from the file (refused: weights_only; nothing in it ran)"
-            )
-        else:
-            first = str(error).strip().splitlines()
-            why = f"it is not a readable torch file ({first[0] if first else type(error).__name__})"
-        raise ScenarioError(f"policy file {path}: {why}; {_FIX}") from None
+        data = load_weights_only(path, "policy file")
+    except CheckpointError as error:
+        raise ScenarioError(f"{error}; {_FIX}") from None
     where = "the file"
     for part in [p for p in key.split(".") if p] if key else []:
         if not isinstance(data, Mapping) or part not in data:

@@ -13,14 +13,12 @@ See ``docs/trust.md`` for what each input file may do.
 
 from __future__ import annotations
 
-import re
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from amuled_ma.errors import CheckpointError
+from amuled_ma.torch_files import load_weights_only
 
 #: Keys every checkpoint written by :class:`~amuled_ma.learn.trainer.Trainer` holds.
 TRAINER_KEYS = ("actor_state_dict", "critic_state_dict", "optimizer_state_dict", "iter", "infos")
@@ -43,25 +41,15 @@ def read_checkpoint(path: str | Path, *, need: Iterable[str] = ("actor_state_dic
 
     """
     path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"checkpoint not found: {path}")
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # torch raises many types for a bad or unsafe file
-        unsafe = re.search(r"GLOBAL ([\w.]+)", str(error))
-        if unsafe:
-            why = (
-                f"it needs {unsafe.group(1)} to load, which could run code from the file "
-                "(refused as not weights-only; nothing was run)"
-            )
-        else:
-            detail = re.search(r"WeightsUnpickler error: \s*(.+)", str(error))
-            first = (detail.group(1) if detail else str(error)).strip().splitlines()
-            why = f"it is not a readable PyTorch checkpoint ({first[0] if first else error})"
+        state = load_weights_only(path, "checkpoint")
+    except CheckpointError as error:
+        if not path.is_file():
+            raise
         raise CheckpointError(
-            f"cannot load checkpoint {path}: {why}; retrain it (--force), or convert a "
-            "checkpoint you trust to plain tensors and numbers"
-        ) from error
+            f"{error}; retrain it (--force), or convert a checkpoint you trust to plain "
+            "tensors and numbers"
+        ) from error.__cause__
     if not isinstance(state, dict):
         raise CheckpointError(
             f"cannot load checkpoint {path}: expected a dict of state dicts, found "

@@ -89,7 +89,7 @@ def test_read_checkpoint_names_missing_keys(tmp_path):
     with pytest.raises(CheckpointError, match="expected a dict of state dicts, found list"):
         read_checkpoint(path)
     path.write_bytes(b"not a checkpoint")
-    with pytest.raises(CheckpointError, match="not a readable PyTorch checkpoint"):
+    with pytest.raises(CheckpointError, match="not a readable PyTorch file"):
         read_checkpoint(path)
 
 

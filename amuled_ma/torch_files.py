@@ -1,0 +1,53 @@
+"""Load a PyTorch file without running code from it: one loader for every ``.pt`` we read.
+
+``torch.load(..., weights_only=True)`` unpickles tensors, numbers, strings and builtin
+containers only; a file that needs any other global (e.g. ``posix.system``) is refused by
+PyTorch's restricted unpickler before anything from it runs. Checkpoints
+(:mod:`amuled_ma.learn.checkpoints`), policy agents (:mod:`amuled_ma.beliefs.policy`) and the
+authors' CleanRL policies (:mod:`amuled_ma.authors.policies`) all load through
+:func:`load_weights_only`. See ``docs/trust.md``.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+from amuled_ma.errors import CheckpointError
+
+
+def load_weights_only(path: str | Path, what: str = "checkpoint") -> Any:
+    """``torch.load(path, map_location="cpu", weights_only=True)``, with a clear error.
+
+    Args:
+        path: The file.
+        what: What the file is, for the message (``"checkpoint"``, ``"policy file"``).
+
+    Returns:
+        The loaded object (plain data and tensors).
+
+    Raises:
+        CheckpointError: The file is missing, needs a global to load (named; refused, so
+            nothing from it ran), or is not a readable PyTorch file.
+
+    """
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{what} not found: {path}")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises many types for a bad or unsafe file
+        unsafe = re.search(r"GLOBAL ([\w.]+)", str(error))
+        if unsafe:
+            why = (
+                f"it needs {unsafe.group(1)} to load, which could run code from the file "
+                "(refused as not weights-only; nothing was run)"
+            )
+        else:
+            detail = re.search(r"WeightsUnpickler error: \s*(.+)", str(error))
+            first = (detail.group(1) if detail else str(error)).strip().splitlines()
+            why = f"it is not a readable PyTorch file ({first[0] if first else error})"
+        raise CheckpointError(f"cannot load {what} {path}: {why}") from error
