@@ -90,7 +90,7 @@ def test_a_pickled_module_is_refused_unloaded(tmp_path, mlp):
     with pytest.raises(ScenarioError) as info:
         PolicySource(path)
     assert "needs torch.nn.modules.container.Sequential to load" in str(info.value)
-    assert "(refused: weights_only; nothing in it ran)" in str(info.value)
+    assert "(refused as not weights-only; nothing was run)" in str(info.value)
     assert "torch.save(model.state_dict(), path)" in str(info.value)
 
 
