@@ -56,6 +56,7 @@ _KNOWN_FIELDS = {
     "credences",
     "instruction",
     "description",
+    "source",
 }
 
 
@@ -95,6 +96,10 @@ class Cluster:
         instruction: Last paragraph of the state prompt for ``kind="unprompted"``, or a
             template with ``{credences}`` overriding :data:`CREDENCE_INSTRUCTION`.
         description: Free text shown by ``amuled clusters list``.
+        source: The agent's default belief source, a ``[source]`` table with the keys of a
+            scenario's ``[feedback.agents.<name>]`` table (``source = "ollama"``, ``model =
+            ...``); a scenario's own table for the agent overrides it. None: the
+            scenario's ``[feedback].source``.
         path: The file the cluster was loaded from.
 
     """
@@ -111,6 +116,7 @@ class Cluster:
     credences: Mapping[str, float] | None = None
     instruction: str | None = None
     description: str = ""
+    source: Mapping[str, Any] | None = None
     path: Path | None = field(default=None, compare=False)
 
     @property
@@ -214,6 +220,25 @@ def _credences(data: Mapping[str, Any], path: Path) -> dict[str, float]:
     return out
 
 
+def _source_table(data: Mapping[str, Any], path: Path) -> dict[str, Any] | None:
+    """The optional ``[source]`` table: where this agent's beliefs come from by default.
+
+    Its keys are checked like a scenario's ``[feedback.agents.<name>]`` table when a
+    panel is built (:mod:`amuled_ma.beliefs.routing`); here only its shape.
+    """
+    table = data.get("source")
+    if table is None:
+        return None
+    if not isinstance(table, dict) or not isinstance(table.get("source"), str):
+        raise _fail(
+            path,
+            "source",
+            f"expected a table with a 'source' kind, e.g. [source] source = \"ollama\", "
+            f'model = "llama3.1:8b"; found {table!r}',
+        )
+    return dict(table)
+
+
 def parse_cluster(data: Mapping[str, Any], path: Path) -> Cluster:
     """Validate one parsed cluster TOML document.
 
@@ -257,6 +282,7 @@ def parse_cluster(data: Mapping[str, Any], path: Path) -> Cluster:
         "aliases": tuple(aliases),
         "instruction": instruction,
         "description": _string(data, "description", path, required=False),
+        "source": _source_table(data, path),
         "path": path,
         "credence_label": title,
     }

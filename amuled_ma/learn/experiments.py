@@ -34,7 +34,13 @@ import torch
 
 from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError
 from amuled_ma.learn.checkpoints import checkpoint_infos
-from amuled_ma.learn.feedback import MORAL_AGENT, make_feedback, panel_of, parse_variant
+from amuled_ma.learn.feedback import (
+    MORAL_AGENT,
+    make_feedback,
+    panel_of,
+    parse_variant,
+    with_cluster_sources,
+)
 from amuled_ma.learn.jobs import TrainJob
 from amuled_ma.learn.trainer import LAST, Trainer, TrainOutcome
 from amuled_ma.scenario import Scenario
@@ -376,6 +382,7 @@ def check_inputs(
     kind, _ = parse_variant(feedback)
     if kind != "human":
         agents, _ = panel_of(feedback, scenario)  # every agent is a known cluster
+        scenario = with_cluster_sources(scenario, agents)
         if scenario.feedback.agents:
             from amuled_ma.beliefs.routing import preflight
 

@@ -697,6 +697,7 @@ def make_feedback(variant: str, scenario: Any, run_dir: Path | None = None) -> F
 
     registry = cluster_registry(scenario)
     clusters, rule = panel_of(variant, scenario, registry)
+    scenario = with_cluster_sources(scenario, clusters)
     source = make_source(scenario, run_dir, agents=clusters)
     panel = MoralPanel(
         task_name,
@@ -760,6 +761,26 @@ def panel_of(variant: str, scenario: Any, registry: Any | None = None) -> tuple[
             )
         clusters.append(registry.get(name))
     return clusters, rule
+
+
+def with_cluster_sources(scenario: Any, clusters: Sequence[Any]) -> Any:
+    """The scenario with each cluster file's default ``[source]`` as an agent table.
+
+    A cluster file may name where its beliefs come from (``[source]``); the scenario's own
+    ``[feedback.agents.<name>]`` table for that agent wins.
+    """
+    from amuled_ma.beliefs.routing import match_agents
+
+    tables = dict(scenario.feedback.agents)
+    named = match_agents(list(tables), clusters)
+    defaults = {
+        c.name: dict(c.source)
+        for c in clusters
+        if getattr(c, "source", None) and c.name not in named
+    }
+    if not defaults:
+        return scenario
+    return scenario.replace("feedback", agents={**defaults, **tables})
 
 
 def _fused_only_recording(scenario: Any) -> Any | None:

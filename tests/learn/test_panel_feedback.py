@@ -168,3 +168,27 @@ def test_named_variant_with_a_user_cluster_sits_beside_amuled(tmp_path, capsys):
     report = (run_dir / "report.md").read_text()
     assert "finetune-with-welfare" in report and "finetune-amuled" in report
     assert "animal_welfare" in report
+
+
+def test_a_cluster_file_names_its_default_source_and_the_scenario_overrides_it(tmp_path):
+    from amuled_ma.learn.feedback import make_feedback
+    from amuled_ma.scenario import load_scenario
+
+    clusters = tmp_path / "clusters"
+    clusters.mkdir()
+    (clusters / "animal_welfare.toml").write_text(WELFARE + '\n[source]\nsource = "rules"\n')
+    panel = ["consequentialist", "deontological", "virtue", "care", "social_justice",
+             "animal_welfare"]  # fmt: skip
+    scenario = load_scenario("findmilk").replace(
+        "feedback", clusters=panel, clusters_dirs=[str(clusters)],
+        store=str(tmp_path / "s.sqlite"), recording="findmilk-gpt-4o-mini",
+    )  # fmt: skip
+    feedback = make_feedback("amuled", scenario, tmp_path)
+    assert feedback.agent_source("animal_welfare").startswith("rules")
+    assert feedback.agent_source("care").startswith("replay")
+    feedback.close()
+    # the scenario's table for the agent wins over the file's default
+    overridden = scenario.replace("feedback", agents={"animal_welfare": {"source": "replay"}})
+    feedback = make_feedback("amuled", overridden, tmp_path)
+    assert feedback.agent_source("animal_welfare").startswith("replay")
+    feedback.close()
