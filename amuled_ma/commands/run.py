@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 from amuled_ma.commands import _experiment as common
 from amuled_ma.run_lock import run_folder_lock
@@ -26,6 +27,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=common.bounded_int(1),
         default=None,
         help="evaluation episodes per policy",
+    )
+    run.add_argument(
+        "--base",
+        type=Path,
+        default=None,
+        metavar="FOLDER",
+        help="fine-tune every seed from this finished base folder instead of the run's own "
+        "bases (default with --recipe authors: the authors' imported base, "
+        "<runs_dir>/authors/<task>/base, when it is there)",
     )
     add_parallel_args(run)
     run.set_defaults(handler=run_command)
@@ -103,7 +113,18 @@ def run_command(args: argparse.Namespace) -> int:
     with run_folder_lock(run_dir):
         seeds = training_seeds(scenario, args.seed, args.seeds)
         hint = common.command_line("run", args, run_dir)
-        jobs = plan_run(scenario, run_dir, seeds, resume=args.resume, force=args.force)
+        base = args.base
+        imported = Path(scenario.output.runs_dir) / "authors" / scenario.task.name / "base"
+        if base is None and scenario.finetune.recipe == "authors":
+            if (imported / "model_last.pt").is_file():
+                base = imported
+                common.say(f"  fine-tunes start from the authors' imported base {imported}")
+            else:
+                common.say(
+                    f"  fine-tunes start from this run's own bases (no imported authors' base "
+                    f"at {imported}; 'amuled import authors PATH' makes one)"
+                )
+        jobs = plan_run(scenario, run_dir, seeds, resume=args.resume, force=args.force, base=base)
         write_config(run_dir, scenario, {"variants": list(MAIN_VARIANTS), "seeds": seeds})
         common.say(f"run {scenario.name} -> {run_dir}")
         _train_all(jobs, args, hint)

@@ -320,9 +320,10 @@ def panel_record(variant_dir: Path) -> dict[str, Any] | None:
     """
     path = Path(variant_dir) / "config.json"
     try:
-        training = json.loads(path.read_text()).get("training") or {}
+        config = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
+    training = config.get("training") or {}
     variant = str(training.get("variant", ""))
     if not variant.startswith("finetune"):
         return None
@@ -347,6 +348,8 @@ def panel_record(variant_dir: Path) -> dict[str, Any] | None:
         )
     if training.get("inputs"):
         record["inputs"] = training["inputs"]
+    if config.get("base_checkpoint"):
+        record["base_checkpoint"] = config["base_checkpoint"]
     return record
 
 

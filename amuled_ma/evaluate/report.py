@@ -969,6 +969,14 @@ def differences_table(results: dict[str, Any], mode: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _base_label(checkpoint: str | None) -> str:
+    """The base a fine-tune started from: its variant folder, or where it lives."""
+    if not checkpoint:
+        return "-"
+    folder = Path(checkpoint).parent
+    return f"`{folder}`" if folder.parent.name and "authors" in folder.parts else folder.name
+
+
 def panels_table(results: dict[str, Any]) -> str:
     """A Markdown table of each fine-tune's feedback (``results["variants"][*]["panel"]``)."""
     rows = []
@@ -991,13 +999,14 @@ def panels_table(results: dict[str, Any]) -> str:
         rows.append(
             f"| {name} | {panel.get('feedback')} | {panel.get('recipe')} | "
             f"{panel.get('lambda_kl')} | {panel.get('iterations')} | {agents} | "
-            f"{source}{f' ({detail})' if detail else ''} | {panel.get('fusion') or '-'} |"
+            f"{source}{f' ({detail})' if detail else ''} | {panel.get('fusion') or '-'} | "
+            f"{_base_label(panel.get('base_checkpoint'))} |"
         )
     if not rows:
         return ""
     head = (
-        "| variant | feedback | recipe | lambda_KL | iterations | agents | source | fusion |\n"
-        "|---|---|---|---|---|---|---|---|"
+        "| variant | feedback | recipe | lambda_KL | iterations | agents | source | fusion | "
+        "base |\n|---|---|---|---|---|---|---|---|---|"
     )
     return head + "\n" + "\n".join(rows) + "\n"
 

@@ -476,7 +476,10 @@ def train_variant(
             f"unknown variant {variant!r}; expected base, shaped or finetune:<feedback>"
         )
     if action == "new" or not (out / "config.json").is_file():
-        write_config(out, scenario, {"variant": variant, "training": training})
+        extra: dict[str, Any] = {"variant": variant, "training": training}
+        if base_ckpt is not None:
+            extra["base_checkpoint"] = str(base_ckpt)
+        write_config(out, scenario, extra)
     try:
         trainer = Trainer(
             scenario,
@@ -581,10 +584,18 @@ def cluster_names(variants: Sequence[str]) -> list[str]:
 
 def _job(
     name: str, scenario: Scenario, run_dir: Path, variant: str, out_dir: Path, seed: int,
-    base: str, *, resume: bool, force: bool,
+    base: str, *, resume: bool, force: bool, base_dir: Path | None = None,
 ) -> TrainJob:  # fmt: skip
-    """A job of a plan; a fine-tune needs (and anchors to) the base folder ``base``."""
+    """A job of a plan; a fine-tune needs (and anchors to) the base folder ``base``.
+
+    With ``base_dir`` the base is a finished folder outside the plan (nothing to wait for).
+    """
     tune = variant.startswith("finetune")
+    if base_dir is not None:
+        return TrainJob(
+            name=name, scenario=scenario, run_dir=run_dir, variant=variant, out_dir=out_dir,
+            seed=seed, base_variant=base, resume=resume, force=force, base_dir=base_dir,
+        )  # fmt: skip
     return TrainJob(
         name=name,
         scenario=scenario,
@@ -606,19 +617,28 @@ def plan_run(
     *,
     resume: bool = False,
     force: bool = False,
+    base: Path | None = None,
 ) -> list[TrainJob]:
     """The jobs of ``amuled run``: :data:`MAIN_VARIANTS` for every seed.
 
-    Each seed's fine-tunes need (and anchor to) that seed's base policy.
+    Each seed's fine-tunes need (and anchor to) that seed's base policy, or, with ``base``
+    (a finished variant folder such as the authors' imported ``runs/authors/findmilk/base``),
+    all anchor to that one.
     """
     run_dir = Path(run_dir)
     jobs = []
     for seed in seeds:
-        base = replica_folder("base", seed, seeds[0])
+        own = replica_folder("base", seed, seeds[0])
         for variant in MAIN_VARIANTS:
             folder = replica_folder(variant_dir_name(variant), seed, seeds[0])
+            if base is not None and variant.startswith("finetune"):
+                jobs.append(
+                    _job(folder, scenario, run_dir, variant, run_dir / folder, seed, base.name,
+                         resume=resume, force=force, base_dir=base.parent)
+                )  # fmt: skip
+                continue
             jobs.append(
-                _job(folder, scenario, run_dir, variant, run_dir / folder, seed, base,
+                _job(folder, scenario, run_dir, variant, run_dir / folder, seed, own,
                      resume=resume, force=force)
             )  # fmt: skip
     return jobs

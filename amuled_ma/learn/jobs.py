@@ -56,6 +56,8 @@ class TrainJob:
         needs: Names of the jobs that must finish first.
         resume: Continue an unfinished checkpoint; skip a finished one.
         force: Start over even where a checkpoint exists.
+        base_dir: The folder holding ``base_variant`` (default: ``run_dir``), e.g. the
+            authors' imported base, ``runs/authors/findmilk``.
 
     """
 
@@ -69,6 +71,7 @@ class TrainJob:
     needs: tuple[str, ...] = ()
     resume: bool = False
     force: bool = False
+    base_dir: Path | None = None
 
 
 @dataclass
@@ -158,6 +161,7 @@ def _train(
         seed=job.seed,
         out_dir=job.out_dir,
         base_variant=job.base_variant,
+        base_dir=job.base_dir,
         on_iteration=on_iteration,
     )
 
@@ -236,7 +240,8 @@ def _preflight(jobs: Sequence[TrainJob], hint: str) -> dict[str, str]:
     planned = {j.out_dir.name for j in jobs}
     for j in jobs:
         try:
-            check_inputs(j.scenario, j.variant, j.run_dir, j.base_variant, planned)
+            base_dir = j.base_dir or j.run_dir
+            check_inputs(j.scenario, j.variant, base_dir, j.base_variant, planned)
             actions[j.name] = prepare_variant(
                 j.out_dir,
                 resume=j.resume,
