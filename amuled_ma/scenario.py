@@ -371,9 +371,10 @@ class FeedbackConfig(_Validated):
             :func:`amuled_ma.beliefs.routing.check_agent_tables` (see ``docs/beliefs.md``).
         clusters_dirs: Folders of user cluster files (relative to the scenario file),
             loaded after the shipped ones; a file overrides a shipped cluster of its name.
-        max_abstention: The largest share of distinct states one panel agent may leave
+        max_abstention: The largest share of rewarded steps one panel agent may leave
             unanswered (abstained, timeout, error, replay miss); beyond it the run stops
-            with an error naming the agent, its source and the fix (checked from 20 states).
+            with an error naming the agent, its source and the fix (judged once the agent
+            was asked 20 distinct states).
         name: The fine-tune's variant name (folder ``finetune-<name>``); empty: named
             after the feedback (``finetune-amuled``).
 
@@ -403,7 +404,7 @@ class FeedbackConfig(_Validated):
     max_abstention: float = field(
         default=0.2,
         metadata=_range(
-            0, 1, why="share of distinct states an agent may leave unanswered before a run stops"
+            0, 1, why="share of rewarded steps an agent may leave unanswered before a run stops"
         ),
     )
     name: str = ""

@@ -54,6 +54,8 @@ ANSWERED = frozenset({"ok", "repaired"})
 DOCUMENTED_ZERO = frozenset({"total_conflict", "unseen"})
 #: Distinct states an agent must have been asked before its abstention rate is judged.
 MIN_STATES_JUDGED = 20
+#: Calls between two abstention checks when no new state was asked.
+CHECK_EVERY = 16
 
 
 class Feedback(ABC):
@@ -66,6 +68,7 @@ class Feedback(ABC):
         # observation bytes -> (belief, diagnostics, the diagnostics prepared for _account)
         self._memo: dict[bytes, tuple[np.ndarray, dict[str, Any], tuple]] = {}
         self.steps = 0
+        self.calls = 0
         self.lookups = 0
         self.statuses: Counter[str] = Counter()
         #: ``(agent, status)`` -> rewarded steps whose belief of that agent had that status.
@@ -76,7 +79,7 @@ class Feedback(ABC):
         self._conflict_sum = 0.0
         self._diag_count = 0
 
-    #: Largest share of distinct states one agent may leave unanswered (None: no limit),
+    #: Largest share of rewarded steps one agent may leave unanswered (None: no limit),
     #: ``[feedback].max_abstention``; see :meth:`check_abstention`.
     max_abstention: float | None = None
 
@@ -133,13 +136,16 @@ class Feedback(ABC):
                 prepared = _prepare(diag, self.name)
                 memo[key] = (np.asarray(result[0], dtype=np.float64), diag, prepared)
                 self.agent_statuses_unique.update(prepared[0])
-            if self.max_abstention is not None:
-                self.check_abstention()
         entries = [memo[key] for key in keys]
         out = np.stack([entry[0] for entry in entries]) if entries else np.empty((0, 0))
         for entry in entries:
             self._account(entry[2])
         self.steps += len(array)
+        # judged on new states, and every CHECK_EVERY calls (a policy that keeps visiting
+        # states an agent cannot answer raises the share without asking anything new)
+        if self.max_abstention is not None and (missing or self.calls % CHECK_EVERY == 0):
+            self.check_abstention()
+        self.calls += 1
         return out
 
     def _account(self, prepared: tuple) -> None:
@@ -192,13 +198,17 @@ class Feedback(ABC):
         return self.name
 
     def check_abstention(self) -> None:
-        """Stop when an agent left too many distinct states unanswered.
+        """Stop when an agent left too much of the reward without its answer.
+
+        The share is over rewarded steps (how much of the feedback the agent's failures
+        touched), judged once the agent was asked :data:`MIN_STATES_JUDGED` distinct
+        states: a few rarely visited states the agent could not answer do not stop a run,
+        an agent that fails on the states the policy keeps visiting does.
 
         Raises:
-            AbstentionError: An agent asked about at least :data:`MIN_STATES_JUDGED`
-                distinct states failed to answer (abstained, timeout, error, replay miss)
-                more than :attr:`max_abstention` of them; the message names the agent, its
-                source, the counts and the fix.
+            AbstentionError: An agent failed to answer (abstained, timeout, error, replay
+                miss) on more than :attr:`max_abstention` of the rewarded steps; the
+                message names the agent, its source, the counts and the fix.
 
         """
         from amuled_ma.errors import AbstentionError
@@ -206,7 +216,10 @@ class Feedback(ABC):
         limit = self.max_abstention
         if limit is None:
             return
-        for agent, row in self.agent_report(per="states").items():
+        states = self.agent_report(per="states")
+        for agent, row in self.agent_report(per="steps").items():
+            if states.get(agent, {}).get("total", 0) < MIN_STATES_JUDGED:
+                continue
             total = row["total"]
             failures = {
                 status: n
@@ -217,12 +230,13 @@ class Feedback(ABC):
                 and n
             }
             failed = sum(failures.values())
-            if total < MIN_STATES_JUDGED or failed <= limit * total:
+            if failed <= limit * total:
                 continue
-            parts = ", ".join(f"{status} {n}" for status, n in failures.items())
+            parts = ", ".join(f"{status} {n:,}" for status, n in failures.items())
             raise AbstentionError(
-                f"agent {agent!r} (source: {self.agent_source(agent)}) left {failed} of "
-                f"{total} distinct states unanswered ({parts}): {failed / total:.0%}, above "
+                f"agent {agent!r} (source: {self.agent_source(agent)}) left {failed:,} of "
+                f"{total:,} rewarded steps unanswered ({parts}; {states[agent]['total']:,} "
+                f"distinct states asked): {failed / total:.0%}, above "
                 f"[feedback].max_abstention = {limit:g}; feedback that is mostly missing is "
                 "noise. Check that the recording holds this agent (a user cluster needs a "
                 "live source, see docs/clusters.md), that the server answers ('amuled ollama "

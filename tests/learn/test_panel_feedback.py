@@ -192,3 +192,33 @@ def test_a_cluster_file_names_its_default_source_and_the_scenario_overrides_it(t
     feedback = make_feedback("amuled", overridden, tmp_path)
     assert feedback.agent_source("animal_welfare").startswith("replay")
     feedback.close()
+
+
+def test_rare_unanswered_states_do_not_stop_a_run():
+    """25 of 45 distinct states unanswered, but visited once each among 1,000 steps: 2.5%."""
+
+    class RareMisses(BeliefSource):
+        name = "rare"
+        needs_messages = False
+
+        def beliefs(self, requests):
+            return [
+                BeliefResult(np.full(4, 0.25), "replay_miss", self.name)
+                if r.obs[0] >= 100
+                else BeliefResult(np.array([0.7, 0.1, 0.1, 0.1]), "ok", self.name)
+                for r in requests
+            ]
+
+    feedback = PanelFeedback("amuled", _panel(RareMisses()), RareMisses())
+    feedback.max_abstention = 0.2
+    common = torch.arange(20, dtype=torch.float32).repeat_interleave(8).reshape(20, 8)
+    rare = (100 + torch.arange(25, dtype=torch.float32)).repeat_interleave(8).reshape(25, 8)
+    for _ in range(48):
+        feedback(common, None)  # 960 steps on 20 answered states
+    feedback(rare, None)  # 25 steps on 25 unanswered states
+    report = feedback.agent_report(per="states")["a"]
+    assert report["replay_miss"] == 25 and report["total"] == 45
+    # per step: 25 of 985 = 2.5%, far below the limit; per distinct state it would be 56%
+    with pytest.raises(AbstentionError):
+        for _ in range(40):
+            feedback(rare, None)  # now the policy keeps visiting them: 1,025 of 1,985
