@@ -127,7 +127,7 @@ _NOT_LEARNED = {
     "task": ("seed",),
     "base": ("save_interval", "total_steps"),
     "finetune": ("save_interval", "iterations"),
-    "feedback": ("host", "concurrency", "timeout_s", "store"),
+    "feedback": ("host", "concurrency", "timeout_s", "store", "max_abstention", "name"),
 }
 
 
@@ -252,6 +252,7 @@ def check_training_config(out_dir: Path, training: dict[str, Any]) -> None:
     saved = saved_training_config(out_dir)
     if saved is None:
         return
+    saved = _learned_only(saved)
     training = _without_keys_added_since(saved, training)
     diffs = _differences(
         {k: v for k, v in saved.items() if k != "iterations"},
@@ -264,6 +265,19 @@ def check_training_config(out_dir: Path, training: dict[str, Any]) -> None:
             f"saved in {Path(out_dir) / 'config.json'}); retrain it with --force, or keep it "
             "and train into another --run-dir"
         )
+
+
+def _learned_only(saved: dict[str, Any]) -> dict[str, Any]:
+    """A saved training config without the keys :data:`_NOT_LEARNED` now leaves out.
+
+    A folder saved when such a key was still recorded (a service key like
+    ``max_abstention``) is compared on what decides learning only.
+    """
+    out = dict(saved)
+    for section, keys in _NOT_LEARNED.items():
+        if isinstance(out.get(section), dict):
+            out[section] = {k: v for k, v in out[section].items() if k not in keys}
+    return out
 
 
 def _without_keys_added_since(saved: dict[str, Any], training: dict[str, Any]) -> dict[str, Any]:
@@ -304,7 +318,11 @@ def finished_with(out_dir: Path, training: dict[str, Any]) -> bool:
         saved = saved_training_config(out_dir)
     except AmuledError:
         return False
-    return saved == training and state.get("iteration") == training["iterations"]
+    return (
+        saved is not None
+        and _learned_only(saved) == training
+        and state.get("iteration") == training["iterations"]
+    )
 
 
 def prepare_variant(
