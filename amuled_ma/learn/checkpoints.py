@@ -1,11 +1,11 @@
 """Read checkpoints without running code from them.
 
-A PyTorch checkpoint is a pickle: loaded with ``weights_only=False`` it may run any code
+A PyTorch checkpoint is a pickle: loaded with ``weights_only`` off it may run any code
 its author put in it. Every checkpoint and policy this package reads goes through
 :func:`read_checkpoint`, which loads with ``torch.load(..., weights_only=True)`` (tensors,
 numbers, strings and builtin containers only; PyTorch's restricted unpickler refuses any
 other global before anything runs) and checks that the keys a caller needs are there.
-rsl-rl's own ``OnPolicyRunner.load`` loads with ``weights_only=False``, so we never call it:
+rsl-rl's own ``OnPolicyRunner.load`` loads with ``weights_only`` off, so we never call it:
 the trainer reads the state here and hands it to rsl-rl's public ``PPO.load``.
 
 See ``docs/trust.md`` for what each input file may do.

@@ -265,7 +265,7 @@ class Trainer:
     def _load_state(self, path: Path, load_cfg: dict | None, what: str) -> dict:
         """Load a checkpoint safely (weights only) into rsl-rl's PPO via its public ``load``.
 
-        ``OnPolicyRunner.load`` unpickles with ``weights_only=False``; we read the file with
+        ``OnPolicyRunner.load`` unpickles with ``weights_only`` off; we read the file with
         :func:`read_checkpoint` and do the runner's two steps ourselves.
         """
         state = read_checkpoint(path, need=TRAINER_KEYS)
