@@ -3,20 +3,9 @@
 import json
 
 import pytest
+from tiny_cli import RULES, TINY
 
 from amuled_ma.cli import main
-
-TINY = [
-    "--set", "base.total_steps=1024",
-    "--set", "base.num_envs=16",
-    "--set", "base.num_steps_per_env=16",
-    "--set", "finetune.iterations=3",
-    "--set", "finetune.num_envs=4",
-    "--set", "finetune.num_steps_per_env=8",
-    "--set", "output.tensorboard=false",
-    "--no-progress",
-]  # fmt: skip
-RULES = ["--set", 'feedback.source="rules"']
 
 
 def test_run_writes_run_dir_report_and_resumes(tmp_path, capsys, monkeypatch):

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 from matplotlib.colors import to_hex
+from tiny_cli import RULES, TINY
 
 from amuled_ma.cli import main
 from amuled_ma.evaluate.report import (
@@ -34,17 +35,6 @@ from amuled_ma.evaluate.report import (
     write_report,
 )
 
-TINY = [
-    "--set", "base.total_steps=1024",
-    "--set", "base.num_envs=16",
-    "--set", "base.num_steps_per_env=16",
-    "--set", "finetune.iterations=3",
-    "--set", "finetune.num_envs=4",
-    "--set", "finetune.num_steps_per_env=8",
-    "--set", "output.tensorboard=false",
-    "--no-progress",
-]  # fmt: skip
-RULES = ["--set", 'feedback.source="rules"']
 SHA = "0f" * 32
 
 #: matplotlib's tab10, C0..C3 (documented default colour cycle).

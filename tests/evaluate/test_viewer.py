@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from tiny_cli import RULES, TINY
 
 from amuled_ma.cli import main
 from amuled_ma.commands._experiment import scenario_of_run
@@ -31,17 +32,6 @@ from amuled_ma.evaluate import viewer
 from amuled_ma.learn.feedback import make_feedback
 from amuled_ma.learn.trainer import action_log_probs, load_policy, make_task
 
-TINY = [
-    "--set", "base.total_steps=1024",
-    "--set", "base.num_envs=16",
-    "--set", "base.num_steps_per_env=16",
-    "--set", "finetune.iterations=3",
-    "--set", "finetune.num_envs=4",
-    "--set", "finetune.num_steps_per_env=8",
-    "--set", "output.tensorboard=false",
-    "--no-progress",
-]  # fmt: skip
-RULES = ["--set", 'feedback.source="rules"']
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path("/usr/bin/chromedriver")
 #: Targets of issue 17: a 300-step Driving episode with five agents.
