@@ -108,9 +108,7 @@ def test_a_malicious_pickle_payload_runs_nothing(tmp_path):
     marker = tmp_path / "pwned"
     path = tmp_path / "evil.pt"
     torch.save({"0.weight": torch.zeros(4, 8), "trap": Payload(marker)}, path)
-    with pytest.raises(
-        ScenarioError, match=r"needs exec to load.*nothing was run"
-    ):
+    with pytest.raises(ScenarioError, match=r"needs exec to load.*nothing was run"):
         PolicySource(path)
     assert not marker.exists()
 
