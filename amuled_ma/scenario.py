@@ -1,20 +1,28 @@
 """Scenarios: everything one experiment needs, read from a TOML file and validated.
 
 A scenario file has one table per concern (``[task]``, ``[ppo]``, ``[base]``,
-``[finetune]``, ``[feedback]``, ``[evaluation]``, ``[output]``); each maps onto a
-frozen dataclass below. Every key is checked on load: an unknown key or a value of
-the wrong type raises :class:`~amuled_ma.errors.ScenarioError` naming the file, the
-key, the expected type and the type found. Keys left out take the defaults below,
-which follow the paper (Dubey, Dailisan, Mahajan, "AMULED") and CleanRL's PPO.
+``[finetune]``, ``[feedback]``, ``[evaluation]``, ``[output]``); each maps onto a frozen
+pydantic v2 model below (:class:`TaskConfig`, :class:`PPOConfig`, ...), and the whole file
+onto :class:`Scenario`. Keys left out take the defaults below, which follow the paper
+(Dubey, Dailisan, Mahajan, "AMULED") and CleanRL's PPO.
 
-Every number has a range, declared next to its field (``metadata={"range": Range(...)}``)
-and enforced by one checker, :func:`validate_section`, on load, on ``--set`` overrides
-(:meth:`Scenario.replace`) and on construction in code (``__post_init__``): NaN and
-infinities are always refused, and so are sizes whose buffers would not fit in
+pydantic validates every key, on load (:func:`load_scenario`, :func:`scenario_from_dict`),
+on ``--set`` overrides (:meth:`Scenario.replace`) and on construction in code: types are
+strict (an integer is never read from ``1e8`` or ``true``; a float key takes an integer),
+unknown keys are refused (``extra="forbid"``), choices are ``Literal`` types and every
+number has a range declared on its field (``Field(ge=..., gt=..., le=..., lt=...)``, the
+reason as its ``description``; :func:`field_range` reads it back). NaN and infinities are
+always refused, also inside the free tables ``[task].options``, ``[feedback].ollama`` and
+``[feedback.agents]``; so are sizes whose buffers would not fit in
 :data:`MEMORY_FRACTION` of the machine's memory and runs longer than
-:data:`MAX_ENV_STEPS`. Values used as folder names (the scenario ``name``,
-``[task].name``) must be one safe path component (:func:`check_path_component`);
-:func:`safe_child` builds a path below a root and refuses one that would leave it.
+:data:`MAX_ENV_STEPS` (model validators, across keys). Values used as folder names (the
+scenario ``name``, ``[task].name``) must be one safe path component
+(:func:`check_path_component`); :func:`safe_child` builds a path below a root and refuses
+one that would leave it.
+
+Any failure is one :class:`~amuled_ma.errors.ScenarioError` line naming the file, the
+``[section].key``, what was expected (and why, for a range) and what was found, converted
+from pydantic's :class:`~pydantic.ValidationError` by :func:`scenario_error`.
 
 Relative paths in a scenario (recordings, belief store, output folder) are resolved
 against the scenario file's folder, never the current directory. A shipped scenario
@@ -23,17 +31,27 @@ can be named without a path (``amuled run findmilk``): see :func:`resolve_scenar
 
 from __future__ import annotations
 
-import dataclasses
+import difflib
 import itertools
 import math
 import os
 import tomllib
-import types
 import typing
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping
+from contextvars import ContextVar
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, ClassVar, Literal, TypeVar
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from amuled_ma.errors import ScenarioError
 from amuled_ma.resources import read_text, scenarios_dir
@@ -84,10 +102,28 @@ NAME_RULE = (
     "characters; not starting with '.' or '-'; no leading or trailing space"
 )
 
+#: The source named in errors of a scenario or section built in code (no file).
+BUILT_IN_CODE = "<scenario built in code>"
+
+#: ``[feedback].source``: the belief source of agents without a ``[feedback.agents]`` table.
+FeedbackSource = Literal["replay", "ollama", "rules"]
+#: ``[feedback].miss_policy``: what a replay miss gives.
+MissPolicy = Literal["uniform", "fallback", "error", "zero"]
+#: ``[finetune].recipe``: how the KL anchor enters the fine-tuning reward.
+Recipe = Literal["equation", "authors"]
+#: ``[ppo].activation``: rsl-rl's names of the hidden activation.
+Activation = Literal["tanh", "relu", "elu", "selu", "lrelu", "sigmoid", "identity"]
+#: ``[evaluation].modes``: action selection of the evaluation episodes.
+EvaluationMode = Literal["greedy", "sampled"]
+
 
 @dataclass(frozen=True)
 class Range:
     """The allowed values of a numeric scenario key; NaN and infinities never are.
+
+    A section model declares its ranges as pydantic ``Field`` bounds; :func:`field_range`
+    and :func:`field_length` read them back as a ``Range``, which describes them in
+    errors and in ``docs/learning.md``.
 
     Attributes:
         low: Smallest allowed value (None: no lower end).
@@ -134,49 +170,70 @@ def _number(value: float) -> str:
     return f"{value:g}" if isinstance(value, float) else str(value)
 
 
-def _range(
-    low: float | None = None,
-    high: float | None = None,
-    *,
-    why: str,
-    low_open: bool = False,
-    high_open: bool = False,
-    length: Range | None = None,
-) -> dict[str, Any]:
-    """Field metadata declaring a key's range (and a list's length range)."""
-    meta: dict[str, Any] = {"range": Range(low, high, low_open, high_open, why)}
-    if length is not None:
-        meta["length"] = length
-    return meta
+# Reasons of ranges shared by several keys (each key's ``Field(description=...)``).
+_SEED_WHY = "a seed of torch and of the tasks' 64-bit random streams"
+_EPOCHS_WHY = "optimisation passes over each rollout; CleanRL 4, authors 16"
+_LR_WHY = "Adam step size: 0 learns nothing, beyond 1 the update diverges"
+_SAVE_WHY = "iterations between checkpoints; 0 would divide by zero"
+_ENVS_WHY = "parallel copies; with num_steps_per_env also checked against memory"
+_STEPS_WHY = "rollout length per copy; with num_envs also checked against memory"
+_WEIGHT_WHY = "a weight; negative flips the term's sign"
 
 
-#: Field metadata of a string used as a folder or file name.
-_COMPONENT: dict[str, Any] = {"component": True}
-
-_SEED = _range(0, MAX_SEED, why="a seed of torch and of the tasks' 64-bit random streams")
-_EPOCHS = _range(1, 1000, why="optimisation passes over each rollout; CleanRL 4, authors 16")
-_LR = _range(
-    0, 1, low_open=True, why="Adam step size: 0 learns nothing, beyond 1 the update diverges"
-)
-_SAVE = _range(1, why="iterations between checkpoints; 0 would divide by zero")
-_ENVS = _range(1, why="parallel copies; with num_steps_per_env also checked against memory")
-_STEPS_PER_ENV = _range(1, why="rollout length per copy; with num_envs also checked against memory")
-_NONNEG = "a weight; negative flips the term's sign"
+#: The validation context (``{"source": <file or override>}``) of the scenario being
+#: validated. pydantic passes ``model_validate``'s context to validators but calls a model's
+#: own ``__init__`` (the section models have one) without it, so :func:`_validate` also
+#: sets it here for :func:`_init` to pass on (the pattern of pydantic's documentation,
+#: "Using validation context with BaseModel initialization").
+_CONTEXT: ContextVar[dict[str, str] | None] = ContextVar("amuled_scenario_context", default=None)
 
 
-class _Validated:
-    """Mixin: a section checks its numbers and names whenever it is built (also in code)."""
+def _init(model: BaseModel, data: dict[str, Any], loc: tuple[str, ...]) -> None:
+    """Validate ``data`` into ``model``, the ``__init__`` of the scenario models.
 
-    def __post_init__(self) -> None:
-        section = _SECTION_OF.get(type(self))
-        if section is not None:
-            fields = dataclasses.fields(typing.cast(Any, self))
-            values = {f.name: getattr(self, f.name) for f in fields}
-            validate_section(section, values, "<scenario built in code>")
+    Inside the validation of a file (:func:`_validate`) pydantic's error is left to it, to
+    be reported with the file's name; built in code, it is converted here.
+    """
+    context = _CONTEXT.get()
+    try:
+        model.__pydantic_validator__.validate_python(data, self_instance=model, context=context)
+    except ValidationError as error:
+        if context is not None:
+            raise
+        raise scenario_error(error, BUILT_IN_CODE, loc) from None
 
 
-@dataclass(frozen=True)
-class TaskConfig(_Validated):
+def _source(info: ValidationInfo) -> str:
+    """The file (or override) being validated: the validation context's ``source``."""
+    context = info.context
+    if isinstance(context, Mapping) and isinstance(context.get("source"), str):
+        return context["source"]
+    return BUILT_IN_CODE
+
+
+class _Section(BaseModel):
+    """Base of the section models: strict, frozen, no unknown keys, no NaN.
+
+    Built in code (``TaskConfig(seed=-1)``), a section is validated like a file and a
+    failure raises :class:`~amuled_ma.errors.ScenarioError`, not pydantic's error.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+
+    #: The table's name in a scenario file (``task`` for ``[task]``).
+    section: ClassVar[str] = ""
+
+    def __init__(self, /, **data: Any) -> None:
+        _init(self, data, (self.section,))
+
+
+def _finite_table(section: str, value: Any, info: ValidationInfo) -> Any:
+    """Refuse NaN and infinities anywhere in a free-form table, naming the nested key."""
+    _check_finite(f"[{section}].{info.field_name}", value, _source(info))
+    return value
+
+
+class TaskConfig(_Section):
     """The task environment.
 
     Attributes:
@@ -188,17 +245,27 @@ class TaskConfig(_Validated):
 
     """
 
-    name: str = field(default="findmilk", metadata=_COMPONENT)
-    seed: int = field(default=1, metadata=_SEED)
-    max_steps: int = field(
-        default=0,
-        metadata=_range(0, 10**7, why="episode step limit; 0 keeps the task's default"),
+    section: ClassVar[str] = "task"
+
+    name: str = "findmilk"
+    seed: int = Field(1, ge=0, le=MAX_SEED, description=_SEED_WHY)
+    max_steps: int = Field(
+        0, ge=0, le=10**7, description="episode step limit; 0 keeps the task's default"
     )
-    options: dict[str, Any] = field(default_factory=dict)
+    options: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator("name")
+    @classmethod
+    def _name_is_a_folder_name(cls, value: str, info: ValidationInfo) -> str:
+        return check_path_component(value, f"{_source(info)}: key [task].name")
+
+    @field_validator("options")
+    @classmethod
+    def _options_are_finite(cls, value: Any, info: ValidationInfo) -> Any:
+        return _finite_table("task", value, info)
 
 
-@dataclass(frozen=True)
-class PPOConfig(_Validated):
+class PPOConfig(_Section):
     """PPO hyperparameters shared by base training and fine-tuning (CleanRL ``ppo.py`` defaults).
 
     Attributes:
@@ -219,53 +286,57 @@ class PPOConfig(_Validated):
 
     """
 
-    hidden_dims: list[int] = field(
+    section: ClassVar[str] = "ppo"
+
+    hidden_dims: list[
+        Annotated[
+            int,
+            Field(
+                ge=1,
+                le=65_536,
+                description="units of a hidden layer; the networks are also checked against memory",
+            ),
+        ]
+    ] = Field(
         default_factory=lambda: [64, 64],
-        metadata=_range(
-            1,
-            65_536,
-            why="units of a hidden layer; the networks are also checked against memory",
-            length=Range(1, 64, why="rsl-rl's MLP needs at least one hidden layer"),
-        ),
+        min_length=1,
+        max_length=64,
+        description="hidden layers; rsl-rl's MLP needs at least one",
     )
-    activation: str = "tanh"
-    learning_rate: float = field(default=2.5e-4, metadata=_LR)
+    activation: Activation = "tanh"
+    learning_rate: float = Field(2.5e-4, gt=0, le=1, description=_LR_WHY)
     anneal_lr: bool = True
-    gamma: float = field(
-        default=0.99,
-        metadata=_range(0, 1, why="discount factor: above 1 returns grow without bound"),
+    gamma: float = Field(
+        0.99, ge=0, le=1, description="discount factor: above 1 returns grow without bound"
     )
-    lam: float = field(
-        default=0.95,
-        metadata=_range(0, 1, why="GAE lambda, a weight between TD(0) and Monte Carlo"),
+    lam: float = Field(
+        0.95, ge=0, le=1, description="GAE lambda, a weight between TD(0) and Monte Carlo"
     )
-    clip_param: float = field(
-        default=0.2,
-        metadata=_range(
-            0,
-            1,
-            low_open=True,
-            high_open=True,
-            why="PPO ratio clip: the ratio is clipped to [1 - clip, 1 + clip], which must be "
-            "positive",
-        ),
+    clip_param: float = Field(
+        0.2,
+        gt=0,
+        lt=1,
+        description="PPO ratio clip: the ratio is clipped to [1 - clip, 1 + clip], which must "
+        "be positive",
     )
-    entropy_coef: float = field(default=0.01, metadata=_range(0, why=_NONNEG))
-    value_loss_coef: float = field(default=0.5, metadata=_range(0, why=_NONNEG))
-    max_grad_norm: float = field(
-        default=0.5,
-        metadata=_range(0, low_open=True, why="gradient norm clip: 0 would zero every update"),
+    entropy_coef: float = Field(0.01, ge=0, description=_WEIGHT_WHY)
+    value_loss_coef: float = Field(0.5, ge=0, description=_WEIGHT_WHY)
+    max_grad_norm: float = Field(
+        0.5, gt=0, description="gradient norm clip: 0 would zero every update"
     )
-    num_learning_epochs: int = field(default=4, metadata=_EPOCHS)
-    num_mini_batches: int = field(
-        default=4,
-        metadata=_range(1, 65_536, why="mini-batches per epoch; each needs transitions"),
+    num_learning_epochs: int = Field(4, ge=1, le=1000, description=_EPOCHS_WHY)
+    num_mini_batches: int = Field(
+        4, ge=1, le=65_536, description="mini-batches per epoch; each needs transitions"
     )
     normalize_advantage_per_mini_batch: bool = True
 
+    @model_validator(mode="after")
+    def _networks_fit_in_memory(self, info: ValidationInfo) -> PPOConfig:
+        _check_budget("ppo", dict(self), _source(info))
+        return self
 
-@dataclass(frozen=True)
-class BaseConfig(_Validated):
+
+class BaseConfig(_Section):
     """Base training (paper, Simulation Studies): ``r = r_env + c * r_shaping``.
 
     Attributes:
@@ -277,25 +348,28 @@ class BaseConfig(_Validated):
 
     """
 
-    total_steps: int = field(
-        default=500_000,
-        metadata=_range(
-            1,
-            MAX_ENV_STEPS,
-            why="env steps of the run, capped at MAX_ENV_STEPS (about 28 h at 100k steps/s)",
-        ),
+    section: ClassVar[str] = "base"
+
+    total_steps: int = Field(
+        500_000,
+        ge=1,
+        le=MAX_ENV_STEPS,
+        description="env steps of the run, capped at MAX_ENV_STEPS (about 28 h at 100k steps/s)",
     )
-    num_envs: int = field(default=4, metadata=_ENVS)
-    num_steps_per_env: int = field(default=128, metadata=_STEPS_PER_ENV)
-    shaping_coef: float = field(
-        default=1.0,
-        metadata=_range(0, why="weight c of the shaping reward (the tasks need c >= 0)"),
+    num_envs: int = Field(4, ge=1, description=_ENVS_WHY)
+    num_steps_per_env: int = Field(128, ge=1, description=_STEPS_WHY)
+    shaping_coef: float = Field(
+        1.0, ge=0, description="weight c of the shaping reward (the tasks need c >= 0)"
     )
-    save_interval: int = field(default=100, metadata=_SAVE)
+    save_interval: int = Field(100, ge=1, description=_SAVE_WHY)
+
+    @model_validator(mode="after")
+    def _rollouts_fit_in_memory(self, info: ValidationInfo) -> BaseConfig:
+        _check_budget("base", dict(self), _source(info))
+        return self
 
 
-@dataclass(frozen=True)
-class FinetuneConfig(_Validated):
+class FinetuneConfig(_Section):
     """Fine-tuning on fused feedback: ``r = -lambda_kl * KL(pi || pi_base) + f(B)[a]``.
 
     Attributes:
@@ -317,31 +391,36 @@ class FinetuneConfig(_Validated):
 
     """
 
-    lambda_kl: float = field(
-        default=2.5,
-        metadata=_range(
-            0, why="weight of the KL anchor to the base policy; negative rewards drifting away"
-        ),
+    section: ClassVar[str] = "finetune"
+
+    lambda_kl: float = Field(
+        2.5,
+        ge=0,
+        description="weight of the KL anchor to the base policy; negative rewards drifting away",
     )
-    iterations: int = field(
-        default=1000,
-        metadata=_range(
-            1, 10**8, why="PPO iterations; iterations x num_envs x num_steps_per_env is also capped"
-        ),
+    iterations: int = Field(
+        1000,
+        ge=1,
+        le=10**8,
+        description="PPO iterations; iterations x num_envs x num_steps_per_env is also capped",
     )
-    num_envs: int = field(default=1, metadata=_ENVS)
-    num_steps_per_env: int = field(default=128, metadata=_STEPS_PER_ENV)
-    num_learning_epochs: int = field(default=16, metadata=_EPOCHS)
-    learning_rate: float = field(default=2.5e-4, metadata=_LR)
+    num_envs: int = Field(1, ge=1, description=_ENVS_WHY)
+    num_steps_per_env: int = Field(128, ge=1, description=_STEPS_WHY)
+    num_learning_epochs: int = Field(16, ge=1, le=1000, description=_EPOCHS_WHY)
+    learning_rate: float = Field(2.5e-4, gt=0, le=1, description=_LR_WHY)
     anneal_lr: bool = False
     reinit_critic: bool = True
-    env_reward_coef: float = field(default=0.0, metadata=_range(0, why=_NONNEG))
-    save_interval: int = field(default=100, metadata=_SAVE)
-    recipe: str = "equation"
+    env_reward_coef: float = Field(0.0, ge=0, description=_WEIGHT_WHY)
+    save_interval: int = Field(100, ge=1, description=_SAVE_WHY)
+    recipe: Recipe = "equation"
+
+    @model_validator(mode="after")
+    def _rollouts_fit_and_run_is_capped(self, info: ValidationInfo) -> FinetuneConfig:
+        _check_budget("finetune", dict(self), _source(info))
+        return self
 
 
-@dataclass(frozen=True)
-class FeedbackConfig(_Validated):
+class FeedbackConfig(_Section):
     """Where beliefs come from and how they are fused.
 
     Attributes:
@@ -349,6 +428,7 @@ class FeedbackConfig(_Validated):
         recording: Recording file replayed by the ``replay`` source.
         model: LLM name for the ``ollama`` source.
         host: Ollama server URL; empty: ``$OLLAMA_HOST``, else ``http://127.0.0.1:11434``.
+            Checked on load by :func:`amuled_ma.beliefs.hosts.normalize_host`.
         concurrency: Requests in flight at once.
         timeout_s: Seconds before one request is abandoned.
         miss_policy: What a replay miss gives: ``uniform``, ``fallback``, ``error``, or
@@ -359,7 +439,10 @@ class FeedbackConfig(_Validated):
             gpt-4o-mini cache); empty: ``recording``.
         store: SQLite belief store (cache of every answer).
         clusters: Moral clusters of the panel.
-        fusion: Fusion rule of the ``amuled`` variant.
+        fusion: Fusion rule of the ``amuled`` variant, a name of
+            :data:`amuled_ma.fusion.RULES` (``bjs-dst``, ``mean``, ``single:2``, ...). A
+            plain string, not a ``Literal``: rules can be registered at run time
+            (:func:`amuled_ma.fusion.register_rule`) and take a parameter after ``:``.
         ollama: Further keyword arguments of
             :class:`~amuled_ma.beliefs.ollama.OllamaSource` (``num_predict``, ``num_ctx``,
             ``reasoning``, ``seed``, ``retries``, ...), checked against its signature.
@@ -380,38 +463,70 @@ class FeedbackConfig(_Validated):
 
     """
 
-    source: str = "replay"
+    section: ClassVar[str] = "feedback"
+
+    source: FeedbackSource = "replay"
     recording: str = ""
     model: str = ""
     host: str = ""
-    concurrency: int = field(
-        default=4, metadata=_range(1, 1024, why="LLM requests in flight, one connection each")
+    concurrency: int = Field(
+        4, ge=1, le=1024, description="LLM requests in flight, one connection each"
     )
-    timeout_s: float = field(
-        default=120.0,
-        metadata=_range(
-            0, 86_400, low_open=True, why="seconds per LLM request: 0 fails all, above a day hangs"
-        ),
+    timeout_s: float = Field(
+        120.0,
+        gt=0,
+        le=86_400,
+        description="seconds per LLM request: 0 fails all, above a day hangs",
     )
-    miss_policy: str = "uniform"
+    miss_policy: MissPolicy = "uniform"
     cluster_recording: str = ""
     store: str = "beliefs.sqlite"
-    clusters: list[str] = field(default_factory=lambda: list(PAPER_CLUSTERS))
+    clusters: list[str] = Field(default_factory=lambda: list(PAPER_CLUSTERS))
     fusion: str = "bjs-dst"
-    ollama: dict[str, Any] = field(default_factory=dict)
-    agents: dict[str, dict[str, Any]] = field(default_factory=dict)
-    clusters_dirs: list[str] = field(default_factory=list)
-    max_abstention: float = field(
-        default=0.2,
-        metadata=_range(
-            0, 1, why="share of rewarded steps an agent may leave unanswered before a run stops"
-        ),
+    ollama: dict[str, Any] = Field(default_factory=dict)
+    agents: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    clusters_dirs: list[str] = Field(default_factory=list)
+    max_abstention: float = Field(
+        0.2,
+        ge=0,
+        le=1,
+        description="share of rewarded steps an agent may leave unanswered before a run stops",
     )
     name: str = ""
 
+    @field_validator("host")
+    @classmethod
+    def _host_is_a_url(cls, value: str, info: ValidationInfo) -> str:
+        if value:
+            from amuled_ma.beliefs.hosts import normalize_host
 
-@dataclass(frozen=True)
-class EvaluationConfig(_Validated):
+            normalize_host(value, where=f"{_source(info)}: key [feedback].host")
+        return value
+
+    @field_validator("ollama")
+    @classmethod
+    def _ollama_is_finite(cls, value: Any, info: ValidationInfo) -> Any:
+        return _finite_table("feedback", value, info)
+
+    @field_validator("agents", mode="before")
+    @classmethod
+    def _agent_tables(cls, value: Any, info: ValidationInfo) -> Any:
+        """Check the tables before their type, so that the messages name the table and fix."""
+        _finite_table("feedback", value, info)
+        if all(k in info.data for k in ("clusters", "source", "model")):  # else: reported
+            from amuled_ma.beliefs.routing import check_agent_tables
+
+            check_agent_tables(
+                value,
+                where=_source(info),
+                clusters=info.data["clusters"],
+                default_source=info.data["source"],
+                default_model=info.data["model"],
+            )
+        return value
+
+
+class EvaluationConfig(_Section):
     """Evaluation protocol.
 
     Attributes:
@@ -422,30 +537,30 @@ class EvaluationConfig(_Validated):
 
     """
 
-    episodes: int = field(
-        default=50,
-        metadata=_range(
-            1,
-            1_000_000,
-            why="episodes run as parallel task copies (paper: 50); also checked against memory",
-        ),
+    section: ClassVar[str] = "evaluation"
+
+    episodes: int = Field(
+        50,
+        ge=1,
+        le=1_000_000,
+        description="episodes run as parallel task copies (paper: 50); also checked against memory",
     )
-    seed: int = field(default=10_000, metadata=_SEED)
-    modes: list[str] = field(default_factory=lambda: ["greedy", "sampled"])
-    confidence: float = field(
-        default=0.95,
-        metadata=_range(
-            0,
-            1,
-            low_open=True,
-            high_open=True,
-            why="two-sided confidence level; 1 would need an infinite interval",
-        ),
+    seed: int = Field(10_000, ge=0, le=MAX_SEED, description=_SEED_WHY)
+    modes: list[EvaluationMode] = Field(default_factory=lambda: ["greedy", "sampled"])
+    confidence: float = Field(
+        0.95,
+        gt=0,
+        lt=1,
+        description="two-sided confidence level; 1 would need an infinite interval",
     )
 
+    @model_validator(mode="after")
+    def _episodes_fit_in_memory(self, info: ValidationInfo) -> EvaluationConfig:
+        _check_budget("evaluation", dict(self), _source(info))
+        return self
 
-@dataclass(frozen=True)
-class OutputConfig(_Validated):
+
+class OutputConfig(_Section):
     """Where runs go.
 
     Attributes:
@@ -454,13 +569,33 @@ class OutputConfig(_Validated):
 
     """
 
+    section: ClassVar[str] = "output"
+
     runs_dir: str = "runs"
     tensorboard: bool = True
 
 
-@dataclass(frozen=True)
-class Scenario:
+_M = TypeVar("_M", bound=BaseModel)
+
+
+def _validate(model: type[_M], data: Any, source: str, loc: tuple[str, ...] = ()) -> _M:
+    """``model.model_validate(data)`` with ``source`` in the context and errors converted."""
+    context = {"source": source}
+    token = _CONTEXT.set(context)
+    try:
+        return model.model_validate(data, context=context)
+    except ValidationError as error:
+        raise scenario_error(error, source, loc) from None
+    finally:
+        _CONTEXT.reset(token)
+
+
+class Scenario(BaseModel):
     """A whole experiment setup.
+
+    Built in code (``Scenario(name="x")``) it is validated like a file; a failure raises
+    :class:`~amuled_ma.errors.ScenarioError`. ``model_copy(update=...)`` copies without
+    validating; :meth:`replace` validates.
 
     Attributes:
         name: Scenario name (the file stem unless ``name`` is set at top level); it names
@@ -476,15 +611,25 @@ class Scenario:
 
     """
 
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+
     name: str = "scenario"
     path: Path | None = None
-    task: TaskConfig = field(default_factory=TaskConfig)
-    ppo: PPOConfig = field(default_factory=PPOConfig)
-    base: BaseConfig = field(default_factory=BaseConfig)
-    finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
-    feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
-    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
-    output: OutputConfig = field(default_factory=OutputConfig)
+    task: TaskConfig = Field(default_factory=TaskConfig)
+    ppo: PPOConfig = Field(default_factory=PPOConfig)
+    base: BaseConfig = Field(default_factory=BaseConfig)
+    finetune: FinetuneConfig = Field(default_factory=FinetuneConfig)
+    feedback: FeedbackConfig = Field(default_factory=FeedbackConfig)
+    evaluation: EvaluationConfig = Field(default_factory=EvaluationConfig)
+    output: OutputConfig = Field(default_factory=OutputConfig)
+
+    def __init__(self, /, **data: Any) -> None:
+        _init(self, data, ())
+
+    @field_validator("name")
+    @classmethod
+    def _name_is_a_folder_name(cls, value: str, info: ValidationInfo) -> str:
+        return check_path_component(value, f"{_source(info)}: key name")
 
     @property
     def base_dir(self) -> Path:
@@ -571,23 +716,59 @@ class Scenario:
         )
 
     def to_dict(self) -> dict[str, Any]:
-        """Return the fully resolved scenario as plain data (for ``config.json``)."""
-        data = dataclasses.asdict(self)
+        """Return the fully resolved scenario as plain data (for ``config.json``).
+
+        Every section's keys (defaults filled in), the ``name`` and the ``path`` (a string,
+        or None). :func:`scenario_from_dict` builds the scenario back from it once ``path``
+        is taken out.
+        """
+        data = self.model_dump()
         data["path"] = str(self.path) if self.path else None
         return data
 
-    def __post_init__(self) -> None:
-        check_path_component(self.name, f"{self.path or '<scenario>'}: key name")
+    def settings(self) -> dict[str, Any]:
+        """Return the validated settings as plain JSON data, for comparing two scenarios.
+
+        ``{section: {key: value}}`` for the seven sections (``task``, ``ppo``, ``base``,
+        ``finetune``, ``feedback``, ``evaluation``, ``output``), every key present with
+        defaults filled in, values as JSON types (``model_dump(mode="json")``: lists, not
+        tuples; floats stay floats, so ``lambda_kl = 3`` and ``3.0`` compare equal). Left
+        out: ``name`` and ``path``, which say where a scenario lives and where its runs go,
+        not what a run learns. Paths inside the sections (``recording``, ``store``,
+        ``runs_dir``) are kept as written, not resolved. Two scenarios with equal
+        ``settings()`` train and evaluate alike; a resume check compares the saved
+        ``settings()`` (or the part of it a variant depends on) with the current one.
+
+        Returns:
+            A new dict of JSON-serialisable data (``json.dumps`` takes it as it is).
+
+        """
+        return self.model_dump(mode="json", exclude={"name", "path"})
 
     def replace(self, section: str, **changes: Any) -> Scenario:
-        """Return a copy with some keys of one section changed (validated like a file)."""
-        current = getattr(self, section)
-        merged = {f.name: getattr(current, f.name) for f in dataclasses.fields(current)}
-        for key, value in changes.items():
-            merged[key] = value
+        """Return a copy with some keys of one section changed, validated like a file.
+
+        Args:
+            section: The section (``"finetune"``).
+            **changes: New values by key (``lambda_kl=1.0``).
+
+        Returns:
+            The new scenario; this one is unchanged.
+
+        Raises:
+            ScenarioError: An unknown section or key, or a value of the wrong type or out of
+                its range; the message names ``<file> (override of [section])``.
+
+        """
         source = f"{self.path or self.name} (override of [{section}])"
-        new_section = _build(type(current), merged, source, section)
-        return dataclasses.replace(self, **{section: new_section})
+        model = _SECTIONS.get(section)
+        if model is None:
+            raise ScenarioError(_unknown_section(section, source))
+        current = getattr(self, section)
+        merged = {key: getattr(current, key) for key in type(current).model_fields}
+        merged.update(changes)
+        new_section = _validate(model, merged, source, (section,))
+        return self.model_copy(update={section: new_section})
 
     def default_run_dir(self, runs_dir: str | os.PathLike[str] | None = None) -> Path:
         """Return ``<runs_dir>/<name>``, guaranteed to lie directly inside ``runs_dir``.
@@ -607,7 +788,8 @@ class Scenario:
         return safe_child(root, self.name, what=f"{self.path or '<scenario>'}: key name")
 
 
-_SECTIONS: dict[str, type] = {
+#: The section models by table name, in the order of a scenario file.
+_SECTIONS: dict[str, type[_Section]] = {
     "task": TaskConfig,
     "ppo": PPOConfig,
     "base": BaseConfig,
@@ -615,15 +797,6 @@ _SECTIONS: dict[str, type] = {
     "feedback": FeedbackConfig,
     "evaluation": EvaluationConfig,
     "output": OutputConfig,
-}
-
-_SECTION_OF: dict[type, str] = {cls: name for name, cls in _SECTIONS.items()}
-
-_CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
-    ("feedback", "source"): ("replay", "ollama", "rules"),
-    ("feedback", "miss_policy"): ("uniform", "fallback", "error", "zero"),
-    ("finetune", "recipe"): ("equation", "authors"),
-    ("ppo", "activation"): ("tanh", "relu", "elu", "selu", "lrelu", "sigmoid", "identity"),
 }
 
 
@@ -747,27 +920,15 @@ def _bytes(n: float) -> str:
     raise AssertionError  # pragma: no cover
 
 
-def _kind(value: Any, rng: Range) -> str:
-    if isinstance(value, int) and not isinstance(value, bool):
+def _kind(number_type: Any, rng: Range) -> str:
+    """What a key of ``number_type`` (``int`` or ``float``) in ``rng`` is, in words."""
+    if number_type is int:
         if rng.low is not None and rng.low >= 1:
             return "a positive integer"
         if rng.low == 0:
             return "a non-negative integer"
         return "an integer"
     return "a finite number"
-
-
-def _check_number(key: str, value: Any, rng: Range, source: str) -> None:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ScenarioError(
-            f"{source}: key {key} expects a number {rng.describe()}, "
-            f"found {_found_name(value)} ({value!r})"
-        )
-    if value not in rng:
-        raise ScenarioError(
-            f"{source}: key {key} expects {_kind(value, rng)} {rng.describe()} "
-            f"({rng.why}), found {value!r}"
-        )
 
 
 def _check_finite(key: str, value: Any, source: str) -> None:
@@ -850,67 +1011,113 @@ def _check_budget(section: str, values: dict[str, Any], source: str) -> None:
         )
 
 
-def validate_section(section: str, values: dict[str, Any], source: str) -> None:
-    """Check every value of one section against its declared range and rules.
+def _bounds(metadata: list[Any], why: str | None) -> Range | None:
+    """The ``ge``/``gt``/``le``/``lt`` constraints among a field's metadata as a Range."""
+    low = high = None
+    low_open = high_open = False
+    for item in metadata:
+        if getattr(item, "ge", None) is not None:
+            low = item.ge
+        elif getattr(item, "gt", None) is not None:
+            low, low_open = item.gt, True
+        if getattr(item, "le", None) is not None:
+            high = item.le
+        elif getattr(item, "lt", None) is not None:
+            high, high_open = item.lt, True
+    if low is None and high is None:
+        return None
+    return Range(low, high, low_open, high_open, why or "")
 
-    Each numeric field's range is its ``metadata["range"]`` (a list's length range is
-    ``metadata["length"]``); a field with ``metadata["component"]`` must be a safe path
-    component; floats anywhere (also inside free-form tables) must be finite; sizes are
-    checked against memory and the run length against :data:`MAX_ENV_STEPS`.
+
+def _item_field(annotation: Any) -> Any:
+    """The ``Field`` of a list's items (``list[Annotated[int, Field(...)]]``), if any."""
+    if typing.get_origin(annotation) is not list:
+        return None
+    (item,) = typing.get_args(annotation)
+    if typing.get_origin(item) is not Annotated:
+        return None
+    return next((m for m in typing.get_args(item)[1:] if hasattr(m, "metadata")), None)
+
+
+def field_range(model: type[BaseModel], key: str) -> Range | None:
+    """The range of a numeric key, as declared by its ``Field`` bounds and description.
+
+    Args:
+        model: A section model (:class:`PPOConfig`).
+        key: The key (``gamma``); for a list of numbers (``hidden_dims``), the range of
+            each entry.
+
+    Returns:
+        The range, with the field's ``description`` as the reason; None for a key without
+        bounds (a string, a flag, a free table).
+
+    """
+    info = model.model_fields[key]
+    item = _item_field(info.annotation)
+    if item is not None:
+        return _bounds(item.metadata, item.description)
+    return _bounds(info.metadata, info.description)
+
+
+def field_length(model: type[BaseModel], key: str) -> Range | None:
+    """The allowed length of a list key (``min_length``/``max_length``), if it has one.
+
+    Args:
+        model: A section model (:class:`PPOConfig`).
+        key: The key (``hidden_dims``).
+
+    Returns:
+        The range of the number of entries, with the field's ``description`` as the
+        reason; None when the length is free.
+
+    """
+    info = model.model_fields[key]
+    low = next((m.min_length for m in info.metadata if hasattr(m, "min_length")), None)
+    high = next((m.max_length for m in info.metadata if hasattr(m, "max_length")), None)
+    if low is None and high is None:
+        return None
+    return Range(low, high, why=info.description or "")
+
+
+def validate_section(section: str, values: dict[str, Any], source: str) -> _Section:
+    """Validate one section's values as a file's table is validated, and build it.
+
+    Types, choices, the declared ranges (:func:`field_range`), safe names, finite floats
+    (also inside free tables), the memory estimates and the run-length cap: everything
+    the section model checks.
 
     Args:
         section: Section name (``ppo``).
-        values: Every field of the section, by name.
+        values: Keys of the section, by name (keys left out take their defaults).
         source: The file (or ``--set`` override) the values came from, for errors.
 
+    Returns:
+        The section model (:class:`PPOConfig` for ``ppo``).
+
     Raises:
-        ScenarioError: A value is out of range; the message names the file, the
-            ``[section].key``, the expected range and why, and the value found.
+        ScenarioError: An unknown section or key, or a value of the wrong type or out of
+            range; the message names the file, the ``[section].key``, what was expected
+            (the range and why) and the value found.
 
     """
-    for f in dataclasses.fields(_SECTIONS[section]):
-        key, value = f"[{section}].{f.name}", values[f.name]
-        if f.metadata.get("component"):
-            check_path_component(value, f"{source}: key {key}")
-        rng: Range | None = f.metadata.get("range")
-        if rng is None:
-            _check_finite(key, value, source)
-        elif isinstance(value, list):
-            length: Range | None = f.metadata.get("length")
-            if length is not None and len(value) not in length:
-                raise ScenarioError(
-                    f"{source}: key {key} expects a list whose length is "
-                    f"{length.describe()} ({length.why}), found {len(value)} entries ({value!r})"
-                )
-            for i, item in enumerate(value):
-                _check_number(f"{key}[{i}]", item, rng, source)
-        else:
-            _check_number(key, value, rng, source)
-    if section == "feedback" and values.get("agents") is not None:
-        from amuled_ma.beliefs.routing import check_agent_tables
-
-        check_agent_tables(
-            values["agents"],
-            where=source,
-            clusters=values["clusters"],
-            default_source=values["source"],
-            default_model=values["model"],
-        )
-    if section == "feedback" and values.get("host"):
-        from amuled_ma.beliefs.hosts import normalize_host
-
-        normalize_host(values["host"], where=f"{source}: key [feedback].host")
-    _check_budget(section, values, source)
+    model = _SECTIONS.get(section)
+    if model is None:
+        raise ScenarioError(_unknown_section(section, source))
+    return _validate(model, values, source, (section,))
 
 
-# ------------------------------------------------------------------------------ types
+# ------------------------------------------------------------------------ error messages
 def _type_name(tp: Any) -> str:
     origin = typing.get_origin(tp)
+    if origin is Annotated:
+        return _type_name(typing.get_args(tp)[0])
     if origin is list:
         (inner,) = typing.get_args(tp)
         return f"list of {_type_name(inner)}"
     if origin is dict:
         return "table"
+    if origin is Literal:
+        return f"string ({' or '.join(map(str, typing.get_args(tp)))})"
     if tp is float:
         return "float"
     if tp is int:
@@ -920,6 +1127,15 @@ def _type_name(tp: Any) -> str:
     if tp is bool:
         return "boolean"
     return getattr(tp, "__name__", str(tp))
+
+
+def _number_type(annotation: Any) -> Any:
+    """``int`` or ``float`` of a number key or a list of numbers (``list[Annotated[int, ...]]``)."""
+    if typing.get_origin(annotation) is list:
+        annotation = typing.get_args(annotation)[0]
+    if typing.get_origin(annotation) is Annotated:
+        annotation = typing.get_args(annotation)[0]
+    return annotation
 
 
 def _found_name(value: Any) -> str:
@@ -933,42 +1149,8 @@ def _found_name(value: Any) -> str:
     }.get(type(value), type(value).__name__)
 
 
-def _check(tp: Any, value: Any) -> Any:
-    """Return the value converted to ``tp`` or raise TypeError."""
-    origin = typing.get_origin(tp)
-    if origin is list:
-        (inner,) = typing.get_args(tp)
-        if not isinstance(value, list):
-            raise TypeError
-        return [_check(inner, v) for v in value]
-    if origin is dict:
-        if not isinstance(value, dict):
-            raise TypeError
-        return dict(value)
-    if isinstance(origin, type) and issubclass(origin, types.UnionType):  # pragma: no cover
-        raise TypeError
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise TypeError
-        return value
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise TypeError
-        return value
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise TypeError
-        return float(value)
-    if tp is str:
-        if not isinstance(value, str):
-            raise TypeError
-        return value
-    raise TypeError  # pragma: no cover
-
-
-def _float_for_int_hint(tp: Any, value: Any) -> str:
+def _float_for_int_hint(wants_int: bool, value: Any) -> str:
     """Explain a float written where an integer is expected (TOML reads ``1e8`` as float)."""
-    wants_int = tp is int or (typing.get_origin(tp) is list and typing.get_args(tp) == (int,))
     floats = [v for v in (value if isinstance(value, list) else [value]) if isinstance(v, float)]
     if not wants_int or not floats:
         return ""
@@ -981,54 +1163,130 @@ def _float_for_int_hint(tp: Any, value: Any) -> str:
     )
 
 
-def _defaults(cls: type) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for f in dataclasses.fields(cls):
-        if f.default is not dataclasses.MISSING:
-            out[f.name] = f.default
-        else:
-            out[f.name] = f.default_factory()  # type: ignore[misc]
-    return out
+def _did_you_mean(key: str, names: list[str]) -> str:
+    close = difflib.get_close_matches(key, names, n=1)
+    return f" (did you mean {close[0]}?)" if close else ""
 
 
-def _build(cls: type, table: dict[str, Any], source: str, section: str) -> Any:
-    hints = typing.get_type_hints(cls)
-    names = [f.name for f in dataclasses.fields(cls)]
-    kwargs: dict[str, Any] = {}
-    for key, value in table.items():
-        if key not in names:
-            raise ScenarioError(
-                f"{source}: unknown key [{section}].{key}; expected one of: {', '.join(names)}"
-            )
-        try:
-            kwargs[key] = _check(hints[key], value)
-        except TypeError:
-            raise ScenarioError(
-                f"{source}: key [{section}].{key} expects {_type_name(hints[key])}, "
-                f"found {_found_name(value)} ({value!r}){_float_for_int_hint(hints[key], value)}"
-            ) from None
-        choices = _CHOICES.get((section, key))
-        if choices and kwargs[key] not in choices:
-            raise ScenarioError(
-                f"{source}: key [{section}].{key} expects one of {', '.join(choices)}, "
-                f"found {value!r}"
-            )
-    if section == "evaluation":
-        for mode in kwargs.get("modes", []):
-            if mode not in ("greedy", "sampled"):
-                raise ScenarioError(
-                    f"{source}: key [evaluation].modes expects greedy and/or sampled, "
-                    f"found {mode!r}"
-                )
-    validate_section(section, {**_defaults(cls), **kwargs}, source)
-    return cls(**kwargs)
+def _unknown_top_level(key: object, source: str) -> str:
+    names = ["name", *_SECTIONS]
+    return (
+        f"{source}: unknown section or key {key!r}{_did_you_mean(str(key), names)}; expected "
+        f"name or one of the tables {', '.join(f'[{s}]' for s in _SECTIONS)}"
+    )
 
 
+def _unknown_section(section: str, source: str) -> str:
+    return (
+        f"{source}: unknown section [{section}]{_did_you_mean(section, list(_SECTIONS))}; "
+        f"expected one of {', '.join(f'[{s}]' for s in _SECTIONS)}"
+    )
+
+
+#: pydantic error types of a number outside its declared bounds (or NaN, infinite).
+_RANGE_ERRORS = frozenset(
+    {"greater_than", "greater_than_equal", "less_than", "less_than_equal", "finite_number"}
+)
+
+
+def _describe(error: Any, source: str, loc: tuple[Any, ...]) -> str:
+    """One pydantic error (``loc`` from the scenario's top) as a scenario message."""
+    kind, value = error["type"], error.get("input")
+    found = f"found {_found_name(value)} ({value!r})"
+    if not loc:
+        return f"{source}: {error['msg']}, {found}"
+    head = loc[0]
+    if head not in _SECTIONS:  # a top-level key: name, or no key of a scenario file
+        if kind == "extra_forbidden":
+            return _unknown_top_level(head, source)
+        if kind == "string_type":
+            return f"{source}: key {head} expects string, {found}"
+        return f"{source}: key {head}: {error['msg']}, {found}"
+    section, model = str(head), _SECTIONS[str(head)]
+    if len(loc) == 1:
+        if kind in ("model_type", "model_attributes_type", "dict_type"):
+            return f"{source}: key {section} expects table, {found}"
+        return f"{source}: key [{section}]: {error['msg']}, {found}"
+    key, rest = str(loc[1]), loc[2:]
+    names = list(model.model_fields)
+    if kind == "extra_forbidden" and not rest:
+        return (
+            f"{source}: unknown key [{section}].{key}{_did_you_mean(key, names)}; expected one "
+            f"of: {', '.join(names)}"
+        )
+    where = f"[{section}].{key}"
+    info = model.model_fields.get(key)
+    if info is None:  # pragma: no cover - pydantic reports only keys of the model
+        return f"{source}: key {where}: {error['msg']}, {found}"
+    index = rest[0] if rest and isinstance(rest[0], int) else None
+    at = f" at index {index}" if index is not None else ""
+    if kind in _RANGE_ERRORS:
+        rng = field_range(model, key) or Range()
+        number_type = _number_type(info.annotation)
+        if index is not None:
+            where += f"[{index}]"
+        return (
+            f"{source}: key {where} expects {_kind(number_type, rng)} {rng.describe()} "
+            f"({rng.why}), found {value!r}"
+        )
+    if kind in ("too_short", "too_long"):
+        length = field_length(model, key) or Range()
+        return (
+            f"{source}: key {where} expects a list whose length is {length.describe()} "
+            f"({length.why}), found {len(value)} entries ({value!r})"
+        )
+    if kind == "literal_error":
+        tp = info.annotation if index is None else typing.get_args(info.annotation)[0]
+        choices = ", ".join(map(str, typing.get_args(tp)))
+        each = "each entry to be " if index is not None else ""
+        return f"{source}: key {where} expects {each}one of {choices}, found {value!r}{at}"
+    if kind.endswith("_type"):
+        wants_int = kind == "int_type"
+        return (
+            f"{source}: key {where} expects {_type_name(info.annotation)}, {found}{at}"
+            f"{_float_for_int_hint(wants_int, value)}"
+        )
+    return f"{source}: key {where}{at}: {error['msg']}, {found}"
+
+
+def scenario_error(error: ValidationError, source: str, loc: tuple[str, ...] = ()) -> ScenarioError:
+    """Turn pydantic's :class:`~pydantic.ValidationError` into one scenario error line.
+
+    The first problem pydantic found (in the order of the file's sections and keys) is
+    described from its ``loc`` (section, key, list index), ``type`` (which check failed),
+    ``input`` (the value found) and ``ctx``, with the key's declared range and reason
+    (:func:`field_range`) or choices; an unknown key names the close match. A validator's
+    own :class:`~amuled_ma.errors.ScenarioError` (a safe name, the agent tables, memory)
+    is returned as it is. Further problems are counted at the end.
+
+    Args:
+        error: The error of ``model_validate`` (or of a model's construction).
+        source: The file (or ``--set`` override) validated, named first in the message.
+        loc: Where the validated model sits in a scenario: ``("ppo",)`` for a section
+            model, ``()`` for a whole :class:`Scenario`.
+
+    Returns:
+        ``ScenarioError("<source>: key [section].key expects <what>, found <value>")``.
+
+    """
+    problems = error.errors(include_url=False)
+    first = problems[0]
+    cause = (first.get("ctx") or {}).get("error")
+    if isinstance(cause, ScenarioError):
+        return cause
+    message = _describe(first, source, (*loc, *first["loc"]))
+    more = len(problems) - 1
+    if more:
+        message += f" (and {more} more problem{'s' if more > 1 else ''})"
+    return ScenarioError(message)
+
+
+# ---------------------------------------------------------------------------- loading
 def scenario_from_dict(data: dict[str, Any], *, path: Path | None = None) -> Scenario:
     """Build and validate a :class:`Scenario` from parsed TOML data.
 
     Args:
-        data: The parsed TOML document.
+        data: The parsed TOML document (or :meth:`Scenario.to_dict` without ``path``).
         path: The file it came from (used in errors and to resolve relative paths).
 
     Returns:
@@ -1036,31 +1294,19 @@ def scenario_from_dict(data: dict[str, Any], *, path: Path | None = None) -> Sce
 
     Raises:
         ScenarioError: Unknown section or key, a value of the wrong type or out of its
-            range (see :func:`validate_section`), or a name that is no safe folder name.
+            range (see :func:`field_range`), or a name that is no safe folder name.
 
     """
     source = str(path) if path is not None else "<scenario>"
-    kwargs: dict[str, Any] = {}
-    for key, value in data.items():
-        if key == "name":
-            kwargs["name"] = check_path_component(value, f"{source}: key name")
-            continue
-        if key not in _SECTIONS:
-            raise ScenarioError(
-                f"{source}: unknown section or key {key!r}; expected name or one of the tables "
-                f"{', '.join(f'[{s}]' for s in _SECTIONS)}"
-            )
-        if not isinstance(value, dict):
-            raise ScenarioError(
-                f"{source}: key {key} expects table, found {_found_name(value)} ({value!r})"
-            )
-        kwargs[key] = _build(_SECTIONS[key], value, source, key)
-    if "name" not in kwargs:
+    if "path" in data:  # a field of Scenario, but never a key of a scenario file
+        raise ScenarioError(_unknown_top_level("path", source))
+    values = dict(data)
+    if "name" not in values:
         stem = path.stem if path is not None else "scenario"
-        kwargs["name"] = check_path_component(
+        values["name"] = check_path_component(
             stem, f"{source}: the scenario name (the file name, as no top-level name is set)"
         )
-    return Scenario(path=path, **kwargs)
+    return _validate(Scenario, {**values, "path": path}, source)
 
 
 def resolve_scenario_path(name_or_path: str | os.PathLike[str]) -> Path:

@@ -24,6 +24,7 @@ import httpx
 import pytest
 
 from amuled_ma import llm_server
+from amuled_ma.beliefs.hosts import preflight
 from amuled_ma.errors import AmuledError
 
 #: Model the ``ollama`` tests use (``$AMULED_TEST_MODEL`` overrides it).
@@ -94,7 +95,7 @@ def ollama_host() -> Iterator[str]:
     host: str | None = None
     if existing:
         try:
-            llm_server.preflight(existing, TEST_MODEL, timeout=5.0)
+            preflight(existing, TEST_MODEL, timeout=5.0)
             host = llm_server.normalize_host(existing)
         except AmuledError:
             host = None  # not answering or lacks the model: start our own below

@@ -49,9 +49,10 @@ def test_mini_batches_of_one_transition_are_refused_with_the_keys_named(tmp_path
 def test_demo_with_a_real_model_looks_at_the_default_install(monkeypatch, capsys) -> None:
     """No host and a non-tiny model: the user's own server, not a private one."""
     from amuled_ma import llm_server
+    from amuled_ma.beliefs import hosts
 
     monkeypatch.delenv("OLLAMA_HOST", raising=False)
-    monkeypatch.setattr(llm_server, "DEFAULT_HOST", "http://127.0.0.1:1")
+    monkeypatch.setattr(hosts, "DEFAULT_HOST", "http://127.0.0.1:1")
     started = []
     monkeypatch.setattr(llm_server, "up", lambda *a, **k: started.append(1))
     assert main(["demo", "--model", "llama3.1:8b"]) == 1

@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from amuled_ma import llm_server
+from amuled_ma.beliefs.hosts import preflight
 from amuled_ma.cli import main
 from amuled_ma.errors import BackendUnavailable, ModelNotFound
 
@@ -136,7 +137,7 @@ def test_preflight_unreachable_is_fast_and_clear() -> None:
     port = _closed_port()
     start = time.monotonic()
     with pytest.raises(BackendUnavailable) as info:
-        llm_server.preflight(f"127.0.0.1:{port}", "amuled-tiny", timeout=5.0)
+        preflight(f"127.0.0.1:{port}", "amuled-tiny", timeout=5.0)
     assert time.monotonic() - start < 5.0
     assert f"127.0.0.1:{port}" in str(info.value) and "amuled ollama up" in str(info.value)
 
@@ -146,15 +147,15 @@ def test_server_start_models_and_stop(fake_ollama: Path, gguf: Path, tmp_path: P
     host = server.start(timeout=20)
     try:
         assert host.startswith("http://127.0.0.1:")
-        assert llm_server.preflight(host) == "0.0.0-fake"
+        assert preflight(host).version == "0.0.0-fake"
         with pytest.raises(ModelNotFound) as info:
-            llm_server.preflight(host, "amuled-tiny")
+            preflight(host, "amuled-tiny")
         assert "'amuled-tiny'" in str(info.value) and "amuled ollama up --tiny" in str(info.value)
         with pytest.raises(ModelNotFound, match=r"ollama pull llama3\.1:8b"):
-            llm_server.preflight(host, "llama3.1:8b")
+            preflight(host, "llama3.1:8b")
         server.create_model("amuled-tiny", gguf)
-        assert llm_server.preflight(host, "amuled-tiny")
-        assert llm_server.list_models(host) == ["amuled-tiny:latest"]
+        assert preflight(host, "amuled-tiny")
+        assert preflight(host).models == ("amuled-tiny:latest",)
         pid = server.pid
     finally:
         server.stop()
@@ -197,7 +198,7 @@ def _check_up_status_down(
     state = llm_server.read_state(state_dir)
     assert state is not None and state.host == host and state.models == ["amuled-tiny"]
     assert state.is_ours()
-    assert llm_server.preflight(host, "amuled-tiny")
+    assert preflight(host, "amuled-tiny")
 
     # A second 'up' reuses the running server.
     assert main(["ollama", "up", "--binary", str(fake_ollama), *common]) == 0

@@ -204,8 +204,7 @@ def _recording_outputs(
 
 def _existing_source(folder: Path) -> str | None:
     """The source SHA-256 recorded by an imported checkpoint in ``folder``, if any."""
-    from amuled_ma.learn.checkpoints import checkpoint_infos
-    from amuled_ma.learn.trainer import LAST
+    from amuled_ma.learn.checkpoints import LAST, checkpoint_infos
 
     infos = checkpoint_infos(folder / LAST)
     authors = (infos or {}).get("authors") or {}
@@ -215,7 +214,7 @@ def _existing_source(folder: Path) -> str | None:
 def _policy_outputs(
     checkout: Path, runs: Path, force: bool, notes: list[str]
 ) -> list[tuple[Output, dict[str, Any]]]:
-    from amuled_ma.learn.trainer import LAST
+    from amuled_ma.learn.checkpoints import LAST
     from amuled_ma.scenario import load_scenario
 
     planned: list[tuple[Output, dict[str, Any]]] = []
@@ -392,7 +391,7 @@ def import_authors(
 
 def _write_run_config(run_dir: Path, scenario: Any, checkout: Path) -> None:
     """The run's ``config.json`` (what ``amuled evaluate`` reads), with the base scenario."""
-    from amuled_ma.learn.experiments import write_config
+    from amuled_ma.learn.run_folder import write_config
 
     write_config(
         run_dir,

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import hashlib
 import re
-import types
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -150,21 +149,12 @@ def _linears(module: torch.nn.Module) -> list[torch.nn.Linear]:
 
 def build_networks(scenario: Any, obs_dim: int, num_actions: int) -> tuple[Any, Any]:
     """Our actor and critic (rsl-rl ``MLPModel``) as the trainer builds them for a scenario."""
-    from rsl_rl.models import MLPModel
-    from tensordict import TensorDict
+    from amuled_ma.learn.policies import build_model
 
-    from amuled_ma.learn.config import rsl_rl_config
-    from amuled_ma.learn.vecenv import OBS_GROUP
-
-    cfg = rsl_rl_config(scenario.ppo, num_steps_per_env=1)
-    obs = TensorDict({OBS_GROUP: torch.zeros(1, obs_dim)}, batch_size=[1])
-    groups = {"actor": [OBS_GROUP], "critic": [OBS_GROUP]}
-    nets = []
-    for role, out in (("actor", num_actions), ("critic", 1)):
-        kwargs = dict(cfg[role])
-        kwargs.pop("class_name")
-        nets.append(MLPModel(obs, groups, role, out, **kwargs))
-    return nets[0], nets[1]
+    return (
+        build_model(scenario.ppo, "actor", obs_dim, num_actions),
+        build_model(scenario.ppo, "critic", obs_dim, 1),
+    )
 
 
 def copy_weights(state: Mapping[str, torch.Tensor], net: str, model: torch.nn.Module) -> None:
@@ -229,16 +219,16 @@ def build_checkpoint(
             actor's logits differ from the CleanRL actor's.
 
     """
+    from amuled_ma.learn.anchored_ppo import adam
     from amuled_ma.learn.config import rsl_rl_config
-    from amuled_ma.learn.trainer import make_optimizer
 
     obs_dim, _hidden, num_actions = cleanrl_shape(state)
     actor, critic = build_networks(scenario, obs_dim, num_actions)
     copy_weights(state, "actor", actor)
     copy_weights(state, "critic", critic)
     check_equivalent(state, actor)
-    optimizer = make_optimizer(
-        types.SimpleNamespace(actor=actor, critic=critic), _lr(scenario, variant)
+    optimizer = adam(
+        [*actor.parameters(), *critic.parameters()], lr=_lr(scenario, variant), eps=1e-5
     )
     finetune = variant.startswith("finetune")
     train_cfg = rsl_rl_config(
@@ -333,8 +323,8 @@ def write_variant(
     """
     import json
 
-    from amuled_ma.learn.experiments import write_config
-    from amuled_ma.learn.trainer import LAST
+    from amuled_ma.learn.checkpoints import LAST
+    from amuled_ma.learn.run_folder import write_config
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

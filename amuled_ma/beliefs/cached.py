@@ -1,7 +1,7 @@
 """``CachedSource``: any belief source behind the persistent store, with an in-memory LRU.
 
 ``CachedSource(source, store)`` is itself a :class:`~amuled_ma.beliefs.types.BeliefSource`.
-For a batch it computes each request's store key (:func:`~amuled_ma.beliefs.store.request_key`
+For a batch it computes each request's store key (:func:`~amuled_ma.beliefs.keys.request_key`
 with the wrapped source's ``identity()``), answers what it can from memory and then from the
 SQLite store, and sends only the misses, each distinct request once, to the wrapped
 source. Answers are written to the store as soon as they arrive, so nothing already answered
@@ -43,7 +43,9 @@ from typing import Any
 
 import numpy as np
 
-from amuled_ma.beliefs.store import CACHEABLE, BeliefStore, identity_json, request_key
+from amuled_ma.beliefs.keys import identity_json, request_key
+from amuled_ma.beliefs.rows import CACHEABLE
+from amuled_ma.beliefs.store import BeliefStore
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.beliefs.validate import checked_result
 

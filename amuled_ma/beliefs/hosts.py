@@ -1,20 +1,35 @@
-"""Ollama server addresses: one parser for every place a host is given.
+"""Ollama servers: one parser for every place a host is given, one preflight check.
 
 A host comes from ``[feedback].host``, ``--host``, ``$OLLAMA_HOST`` or ``amuled ollama``;
 ``HOST``, ``HOST:PORT`` and ``http(s)://HOST:PORT`` forms are accepted, the scheme
 defaults to ``http`` and the port to 11434 (443 for ``https``). A malformed address (no
 host, a port that is not a number in 1..65535, another scheme) is refused before any
 request, naming where it came from and the fix.
+
+:func:`preflight` is the one check that a server answers at a host and has a model, within
+a time limit. The Ollama belief source
+(:meth:`~amuled_ma.beliefs.ollama.OllamaSource.check`), the private server manager
+(:mod:`amuled_ma.llm_server`), ``amuled demo`` and the test fixture use it: a missing
+server or model is one clear error up front (:func:`unreachable_error`,
+:func:`model_missing_error`), never a retry loop later.
 """
 
 from __future__ import annotations
 
+import time
 import urllib.parse
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
 
-from amuled_ma.errors import ScenarioError
+from amuled_ma.errors import BackendUnavailable, ModelNotFound, ScenarioError
 
 #: Port of an Ollama server when none is given.
 DEFAULT_PORT = 11434
+#: Address of a user's own Ollama server (the Ollama default).
+DEFAULT_HOST = f"http://127.0.0.1:{DEFAULT_PORT}"
+#: Name under which ``amuled ollama up --tiny`` registers the tiny SmolLM2 test model.
+TINY_MODEL = "amuled-tiny"
 
 
 def normalize_host(host: str, *, where: str = "Ollama host") -> str:
@@ -54,3 +69,133 @@ def normalize_host(host: str, *, where: str = "Ollama host") -> str:
         raise ScenarioError(f"{where} {host!r}: port {port} is outside 1..65535 ({example})")
     name = f"[{parts.hostname}]" if ":" in parts.hostname else parts.hostname
     return f"{parts.scheme}://{name}:{port}{parts.path}".rstrip("/")
+
+
+@dataclass(frozen=True)
+class ServerCheck:
+    """What :func:`preflight` found at a server.
+
+    Attributes:
+        host: The server's URL (normalised).
+        version: The version the server reports.
+        models: The names of the models it has (``/api/tags``).
+        digest: The digest of the model asked for (``""`` when the server gives none;
+            ``None`` when no model was asked for).
+
+    """
+
+    host: str
+    version: str
+    models: tuple[str, ...]
+    digest: str | None = None
+
+
+def unreachable_error(host: str, error: BaseException | None = None) -> BackendUnavailable:
+    """The error of a server that does not answer: the host, the cause and how to start one.
+
+    Args:
+        host: The server's URL.
+        error: What the request raised, if anything.
+
+    Returns:
+        The error to raise.
+
+    """
+    why = f" ({type(error).__name__}: {error})" if error is not None else ""
+    return BackendUnavailable(
+        f"no Ollama server answers at {host}{why}; start one with 'amuled ollama up' "
+        "(a private server; it prints its host) or 'ollama serve', or point OLLAMA_HOST "
+        "(or the scenario's host) at a running server"
+    )
+
+
+def model_create_hint(model: str) -> str:
+    """Return the command that makes ``model`` available on a server.
+
+    Args:
+        model: The model name.
+
+    Returns:
+        ``'amuled ollama up --tiny'`` for :data:`TINY_MODEL`, else ``'ollama pull MODEL'``
+        (each with its ``ollama create`` alternative).
+
+    """
+    if model.split(":", 1)[0] == TINY_MODEL:
+        return f"'amuled ollama up --tiny' (or 'ollama create {TINY_MODEL} -f Modelfile')"
+    return f"'ollama pull {model}' (or 'ollama create {model} -f Modelfile' for a local file)"
+
+
+def model_missing_error(
+    model: str, host: str, available: Sequence[str] | None = None
+) -> ModelNotFound:
+    """The error of a model a server lacks: the model, the host, what it has, the fix.
+
+    Args:
+        model: The model asked for.
+        host: The server's URL.
+        available: The models the server has, when known.
+
+    Returns:
+        The error to raise.
+
+    """
+    has = f" (it has: {', '.join(available) or 'no models'})" if available is not None else ""
+    return ModelNotFound(
+        f"model {model!r} is not on the Ollama server at {host}{has}; make it available "
+        f"with {model_create_hint(model)}"
+    )
+
+
+def preflight(
+    host: str,
+    model: str | None = None,
+    timeout: float = 5.0,
+    *,
+    transport: Any = None,
+) -> ServerCheck:
+    """Check, within ``timeout`` seconds, that a server answers at ``host`` and has ``model``.
+
+    Asks ``/api/version`` and ``/api/tags`` over one connection. Call it before a run so
+    that a missing server or model is one clear error up front instead of a retry loop
+    later.
+
+    Args:
+        host: Server address (any form :func:`normalize_host` accepts).
+        model: Model to look for (``NAME`` means ``NAME:latest``); ``None`` checks the
+            server only.
+        timeout: Total seconds allowed for the checks.
+        transport: An ``httpx`` transport (tests use ``httpx.MockTransport``).
+
+    Returns:
+        What was found: version, models and the model's digest.
+
+    Raises:
+        BackendUnavailable: The server does not answer; names the host and how to start one.
+        ModelNotFound: The server lacks the model; names it, what the server has and the
+            command that makes it available.
+        ScenarioError: The address is malformed.
+
+    """
+    import httpx  # here: parsing a host needs no HTTP client
+
+    url = normalize_host(host)
+    deadline = time.monotonic() + timeout
+    try:
+        with httpx.Client(transport=transport, timeout=timeout) as client:
+            reply = client.get(f"{url}/api/version")
+            reply.raise_for_status()
+            version = str(reply.json().get("version", "unknown"))
+            left = max(0.5, deadline - time.monotonic())
+            reply = client.get(f"{url}/api/tags", timeout=left)
+            reply.raise_for_status()
+            listing = reply.json().get("models") or []
+            models = tuple(str(m.get("name") or m.get("model")) for m in listing)
+    except (httpx.HTTPError, ValueError, AttributeError) as error:  # not an Ollama reply
+        raise unreachable_error(url, error) from error
+    if model is None:
+        return ServerCheck(url, version, models)
+    wanted = {model, model if ":" in model else f"{model}:latest"}
+    for entry, name in zip(listing, models, strict=True):
+        if name in wanted or str(entry.get("model")) in wanted:
+            return ServerCheck(url, version, models, str(entry.get("digest") or ""))
+    raise model_missing_error(model, url, models)

@@ -34,7 +34,8 @@ source sends it with ``ollama.Client.chat`` and parses the reply with
   ``check_timeout_s`` (5 s) naming the host and how to start a server; a model the
   server lacks raises :class:`~amuled_ma.errors.ModelNotFound` naming the model and the
   ``ollama pull`` / ``ollama create`` command. Both are checked on first use
-  (:meth:`OllamaSource.check`, also called by :meth:`~OllamaSource.identity`).
+  (:meth:`OllamaSource.check`, also called by :meth:`~OllamaSource.identity`) by the
+  package's one Ollama preflight, :func:`amuled_ma.beliefs.hosts.preflight`.
 """
 
 from __future__ import annotations
@@ -51,7 +52,13 @@ from typing import Any
 import httpx
 import ollama
 
-from amuled_ma.beliefs.hosts import normalize_host
+from amuled_ma.beliefs.hosts import (
+    DEFAULT_HOST,
+    model_missing_error,
+    normalize_host,
+    preflight,
+    unreachable_error,
+)
 from amuled_ma.beliefs.parsing import belief_schema, parse_belief, uniform
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.beliefs.validate import (
@@ -60,12 +67,10 @@ from amuled_ma.beliefs.validate import (
     checked_result,
     show_values,
 )
-from amuled_ma.errors import BackendUnavailable, ModelNotFound, ScenarioError
+from amuled_ma.errors import ScenarioError
 
 log = logging.getLogger(__name__)
 
-#: Host used when neither the argument nor ``$OLLAMA_HOST`` gives one.
-DEFAULT_HOST = "http://127.0.0.1:11434"
 #: HTTP statuses worth retrying.
 RETRY_STATUSES = frozenset({408, 429, 500, 502, 503, 504})
 
@@ -83,24 +88,6 @@ def resolve_host(host: str | None = None) -> str:
     if os.environ.get("OLLAMA_HOST"):
         return normalize_host(os.environ["OLLAMA_HOST"], where="$OLLAMA_HOST")
     return DEFAULT_HOST
-
-
-def _unreachable(host: str, error: BaseException | None) -> BackendUnavailable:
-    why = f" ({type(error).__name__}: {error})" if error is not None else ""
-    return BackendUnavailable(
-        f"no Ollama server answers at {host}{why}; start one with 'amuled ollama up' "
-        "(a private server; it prints its host) or 'ollama serve', or point OLLAMA_HOST "
-        "(or the scenario's host) at a running server"
-    )
-
-
-def _model_hint(model: str) -> str:
-    try:
-        from amuled_ma.llm_server import model_create_hint
-
-        return model_create_hint(model)
-    except ImportError:  # pragma: no cover - llm_server ships with the package
-        return f"'ollama pull {model}' (or 'ollama create {model} -f Modelfile')"
 
 
 @dataclass
@@ -252,6 +239,8 @@ class OllamaSource(BeliefSource):
     def check(self) -> str:
         """Check that the server answers and has the model; return the model's digest.
 
+        Runs :func:`~amuled_ma.beliefs.hosts.preflight` once (later calls return the digest).
+
         Raises:
             BackendUnavailable: No server answers at the host (within ``check_timeout_s``).
             ModelNotFound: The server lacks the model.
@@ -259,27 +248,8 @@ class OllamaSource(BeliefSource):
         """
         if self._checked:
             return self._digest or ""
-        probe = ollama.Client(
-            host=self.host, timeout=httpx.Timeout(self.check_timeout_s), transport=self._transport
-        )
-        try:
-            listing = probe.list()
-        except (ConnectionError, httpx.TransportError) as error:
-            raise _unreachable(self.host, error) from error
-        except ollama.ResponseError as error:
-            raise _unreachable(self.host, error) from error
-        finally:
-            probe.close()
-        wanted = {self.model, self.model if ":" in self.model else f"{self.model}:latest"}
-        available = [str(m.model) for m in listing.models]
-        match = next((m for m in listing.models if str(m.model) in wanted), None)
-        if match is None:
-            raise ModelNotFound(
-                f"model {self.model!r} is not on the Ollama server at {self.host} (it has: "
-                f"{', '.join(available) or 'no models'}); make it available with "
-                f"{_model_hint(self.model)}"
-            )
-        self._digest = match.digest or ""
+        found = preflight(self.host, self.model, self.check_timeout_s, transport=self._transport)
+        self._digest = found.digest or ""
         self._checked = True
         return self._digest
 
@@ -344,10 +314,7 @@ class OllamaSource(BeliefSource):
                     break
             except ollama.ResponseError as error:
                 if error.status_code == 404 and "not found" in str(error.error).lower():
-                    raise ModelNotFound(
-                        f"model {self.model!r} is not on the Ollama server at {self.host}; "
-                        f"make it available with {_model_hint(self.model)}"
-                    ) from error
+                    raise model_missing_error(self.model, self.host) from error
                 last = _FailureError("error", f"server error: {error}")
                 if error.status_code not in RETRY_STATUSES:
                     break
@@ -376,7 +343,7 @@ class OllamaSource(BeliefSource):
                 reply = self._chat(request, base_seed + attempt)
             except _FailureError as failure:
                 if failure.status == "unreachable":
-                    raise _unreachable(self.host, failure) from failure
+                    raise unreachable_error(self.host, failure) from failure
                 if failure.status != "timeout":
                     self._count(errors=1)
                 log.warning(

@@ -563,9 +563,7 @@ def agent_spec(
         recording = rest.get("recording") or fb.recording
         try:
             path = (
-                dataclasses.replace(
-                    scenario, feedback=dataclasses.replace(fb, recording=recording)
-                ).recording_path(required=True)
+                scenario.replace("feedback", recording=recording).recording_path(required=True)
                 if "recording" in rest
                 else scenario.recording_path(required=True)
             )

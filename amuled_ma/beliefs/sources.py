@@ -17,21 +17,66 @@ can say ``fallback = { kind = "ollama", model = "amuled-tiny" }``.
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable, Mapping
 from typing import Any
 
 from amuled_ma.beliefs.types import BeliefSource
 from amuled_ma.errors import ScenarioError
 
-_BUILTIN: dict[str, str] = {
-    "ollama": "amuled_ma.beliefs.ollama:OllamaSource",
-    "replay": "amuled_ma.beliefs.replay:ReplaySource",
-    "rules": "amuled_ma.beliefs.rules:RulesSource",
-    "scripted": "amuled_ma.beliefs.rules:ScriptedSource",
-    "terminal": "amuled_ma.beliefs.terminal:TerminalSource",
-    "policy": "amuled_ma.beliefs.policy:PolicySource",
-    "entry-point": "amuled_ma.beliefs.sources:entry_point_source",
+Factory = Callable[..., BeliefSource]
+
+
+# Each built-in kind is imported on first use: the Ollama client and torch (policy) are
+# heavy, and most runs use one kind.
+def _ollama() -> Factory:
+    from amuled_ma.beliefs.ollama import OllamaSource
+
+    return OllamaSource
+
+
+def _replay() -> Factory:
+    from amuled_ma.beliefs.replay import ReplaySource
+
+    return ReplaySource
+
+
+def _rules() -> Factory:
+    from amuled_ma.beliefs.rules import RulesSource
+
+    return RulesSource
+
+
+def _scripted() -> Factory:
+    from amuled_ma.beliefs.rules import ScriptedSource
+
+    return ScriptedSource
+
+
+def _terminal() -> Factory:
+    from amuled_ma.beliefs.terminal import TerminalSource
+
+    return TerminalSource
+
+
+def _policy() -> Factory:
+    from amuled_ma.beliefs.policy import PolicySource
+
+    return PolicySource
+
+
+def _entry_point() -> Factory:
+    return entry_point_source
+
+
+# kind -> the function importing its factory
+_BUILTIN: dict[str, Callable[[], Factory]] = {
+    "ollama": _ollama,
+    "replay": _replay,
+    "rules": _rules,
+    "scripted": _scripted,
+    "terminal": _terminal,
+    "policy": _policy,
+    "entry-point": _entry_point,
 }
 _REGISTERED: dict[str, Callable[..., BeliefSource]] = {}
 
@@ -58,8 +103,7 @@ def _factory(kind: str) -> Callable[..., BeliefSource]:
     if kind in _REGISTERED:
         return _REGISTERED[kind]
     if kind in _BUILTIN:
-        module, _, attr = _BUILTIN[kind].partition(":")
-        return getattr(importlib.import_module(module), attr)
+        return _BUILTIN[kind]()
     from amuled_ma.clusters.plugins import agent_entry_points
 
     points = agent_entry_points()

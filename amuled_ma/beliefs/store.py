@@ -1,4 +1,4 @@
-"""Persistent belief store: one SQLite row per belief request ever answered.
+"""The belief store: one SQLite row per belief request ever answered.
 
 LLM calls are the slowest and most fragile part of a run, so every answer is kept on
 disk and a re-run never sends the same request twice. The store is a plain SQLite file
@@ -7,52 +7,26 @@ seeds, a sweep) may read and write it at once, and a process killed in the middl
 write (``kill -9``, an OOM kill, a pulled plug on a GPU box job) leaves every committed
 row intact and the file consistent.
 
-## Key
-
-A row is keyed by :func:`request_key`: the SHA-256 (hex) of the canonical JSON (sorted
-keys, no spaces, UTF-8) of::
-
-    {"v": 1,
-     "identity": source.identity(),        # source kind, model name + digest, options,
-                                           # output schema / format, seed, num_ctx, ...
-     "task": request.task, "cluster": request.cluster,
-     "obs": [float, ...], "actions": [name, ...],
-     "messages": [[role, content], ...]}   # the full chat, system prompt and few-shot included
-
-Anything that can change an answer is in the key; two sources with the same identity share
-rows, two different ones never do.
-
-## Schema (version 1)
-
-``beliefs``: ``key`` (primary key), ``source``, ``identity`` (canonical JSON), ``task``,
-``cluster``, ``obs`` / ``actions`` (JSON lists), ``messages`` (JSON ``[[role, text_hash],
-...]``: each message's content lives once in ``texts``, so the system prompt and few-shot
-examples shared by every row are stored once), ``raw`` (the raw reply), ``belief`` (JSON list),
-``status`` (:data:`~amuled_ma.beliefs.types.STATUSES`), ``latency_s``, ``prompt_tokens``,
-``completion_tokens``, ``extra`` (JSON), ``attempts``, ``created_at`` / ``updated_at`` (Unix
-seconds). ``texts``: ``hash`` (SHA-256 of the content) -> ``body``. ``meta``: ``schema_version``.
+A row is keyed by :func:`~amuled_ma.beliefs.keys.request_key`; the table layout, the row
+record :class:`~amuled_ma.beliefs.rows.StoredBelief` and the checks on every row read or
+written are in :mod:`amuled_ma.beliefs.rows`; export and import as JSON Lines in
+:mod:`amuled_ma.beliefs.interchange`.
 
 ## What is served back
 
-Only rows with status ``"ok"`` or ``"repaired"`` (:data:`CACHEABLE`) are answers; they are
-never overwritten. Rows with any other status (``"abstained"``, ``"timeout"``, ``"error"``,
-...) are kept for the record (the raw reply of an abstention is evidence of a model's
-failure) but are *not* served as cache hits, so the next run asks again; a later
-``ok``/``repaired`` answer replaces them and ``attempts`` counts the tries.
+Only rows with status ``"ok"`` or ``"repaired"`` (:data:`~amuled_ma.beliefs.rows.CACHEABLE`)
+are answers; they are never overwritten. Rows with any other status (``"abstained"``,
+``"timeout"``, ``"error"``, ...) are kept for the record (the raw reply of an abstention is
+evidence of a model's failure) but are *not* served as cache hits, so the next run asks
+again; a later ``ok``/``repaired`` answer replaces them and ``attempts`` counts the tries.
 
 ## Every belief is checked
 
-Every row's ``belief`` is a valid belief of its row's action count
-(:mod:`amuled_ma.beliefs.validate`: finite, non-negative, one value per action, summing
-to 1 within 1e-6), whatever its status: an answer holds the model's belief, any other row
-the fallback the run used. :meth:`BeliefStore.put_many` refuses to write anything else
-(:class:`BeliefStoreError` naming the key and what was found; the
-:class:`~amuled_ma.beliefs.cached.CachedSource` in front of it has already turned an
-invalid answer into status ``"error"``), and every read refuses a row whose columns are
-not JSON or whose belief is invalid (a file edited by hand, or written by an older
-amuled-ma), naming the store, the key and how to remove the row. Export writes standard
-JSON only; import refuses ``NaN``/``Infinity``, JSON nested deeper than Python can read,
-and invalid beliefs, naming the file and line.
+:meth:`BeliefStore.put_many` refuses to write a belief that is not valid for its row's
+action count (:class:`~amuled_ma.beliefs.rows.BeliefStoreError` naming the key and what was
+found; the :class:`~amuled_ma.beliefs.cached.CachedSource` in front of it has already
+turned an invalid answer into status ``"error"``), and every read refuses a damaged row
+(:func:`~amuled_ma.beliefs.rows.decode_row`).
 
 ## Read-only use
 
@@ -71,71 +45,43 @@ default) makes a committed transaction survive a crash of the *process*; pass
 
 from __future__ import annotations
 
-import functools
-import hashlib
-import json
-import math
 import os
 import sqlite3
 import threading
 import time
 import urllib.parse
 from collections.abc import Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
-import numpy as np
-
-from amuled_ma.beliefs.types import STATUSES, BeliefRequest, BeliefResult
+from amuled_ma.beliefs.keys import identity_json
+from amuled_ma.beliefs.rows import (
+    CACHEABLE,
+    COLUMNS,
+    SCHEMA,
+    SCHEMA_VERSION,
+    BeliefStoreError,
+    Row,
+    StoredBelief,
+    damaged_row,
+    decode_row,
+    encode_row,
+    load_belief,
+    load_column,
+    load_extra,
+    message_refs,
+)
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
 from amuled_ma.beliefs.validate import RULE, check_belief, show_values
-from amuled_ma.errors import AmuledError
 
-#: Statuses whose rows are served back as cached answers.
-CACHEABLE = frozenset({"ok", "repaired"})
-#: Version of the table layout written into ``meta``.
-SCHEMA_VERSION = 1
-#: Version of the key recipe hashed by :func:`request_key`.
-KEY_VERSION = 1
 #: Environment variable naming the default store file.
 STORE_ENV = "AMULED_BELIEF_STORE"
 
 _SQL_CHUNK = 500  # keys per ``IN (...)`` query, well under SQLite's variable limit
 
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value TEXT NOT NULL);
-CREATE TABLE IF NOT EXISTS texts (hash TEXT PRIMARY KEY, body TEXT NOT NULL);
-CREATE TABLE IF NOT EXISTS beliefs (
-    key TEXT PRIMARY KEY,
-    source TEXT NOT NULL,
-    identity TEXT NOT NULL,
-    task TEXT NOT NULL,
-    cluster TEXT NOT NULL,
-    obs TEXT NOT NULL,
-    actions TEXT NOT NULL,
-    messages TEXT,
-    raw TEXT,
-    belief TEXT NOT NULL,
-    status TEXT NOT NULL,
-    latency_s REAL,
-    prompt_tokens INTEGER,
-    completion_tokens INTEGER,
-    extra TEXT,
-    attempts INTEGER NOT NULL DEFAULT 1,
-    created_at REAL NOT NULL,
-    updated_at REAL NOT NULL
-);
-CREATE INDEX IF NOT EXISTS beliefs_task_cluster ON beliefs (task, cluster);
-"""
-
-_COLUMNS = (
-    "key, source, identity, task, cluster, obs, actions, messages, raw, belief, status, "
-    "latency_s, prompt_tokens, completion_tokens, extra, attempts, created_at, updated_at"
-)
-
 # Insert, or replace a row that holds no answer yet; an ok/repaired row is never replaced.
 _UPSERT = f"""
-INSERT INTO beliefs ({_COLUMNS}) VALUES ({", ".join("?" * 18)})
+INSERT INTO beliefs ({COLUMNS}) VALUES ({", ".join("?" * 18)})
 ON CONFLICT (key) DO UPDATE SET
     raw = excluded.raw, belief = excluded.belief, status = excluded.status,
     latency_s = excluded.latency_s, prompt_tokens = excluded.prompt_tokens,
@@ -143,10 +89,6 @@ ON CONFLICT (key) DO UPDATE SET
     attempts = beliefs.attempts + excluded.attempts, updated_at = excluded.updated_at
 WHERE beliefs.status NOT IN ('ok', 'repaired')
 """
-
-
-class BeliefStoreError(AmuledError, RuntimeError):
-    """The belief store file cannot be opened, or an imported row is malformed."""
 
 
 def default_store_path() -> Path:
@@ -162,229 +104,6 @@ def default_store_path() -> Path:
         return Path(env)
     cache = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     return Path(cache) / "amuled" / "beliefs.sqlite"
-
-
-def canonical_json(value: Any) -> str:
-    """Serialise ``value`` as canonical JSON: sorted keys, no spaces, UTF-8 text.
-
-    Args:
-        value: JSON-compatible data (dicts, lists, str, int, float, bool, None).
-
-    Returns:
-        The JSON text; equal data always gives the same text.
-
-    """
-    return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
-
-
-def identity_json(identity: Mapping[str, Any]) -> str:
-    """Canonical JSON of a source's :meth:`~amuled_ma.beliefs.types.BeliefSource.identity`."""
-    return canonical_json(_jsonable(identity))
-
-
-def request_key(identity: Mapping[str, Any] | str, request: BeliefRequest) -> str:
-    """Return the store key of one request to one source (see the module docstring).
-
-    Args:
-        identity: The source's ``identity()`` dict, or its :func:`identity_json` text
-            (faster when hashing many requests to one source).
-        request: The request.
-
-    Returns:
-        64 hex characters.
-
-    """
-    ident = identity if isinstance(identity, str) else identity_json(identity)
-    # Byte for byte canonical_json({"identity": ..., "request": {...}, "v": KEY_VERSION}),
-    # hashed in two parts: the prefix up to the last message (identity, actions, cluster,
-    # system prompt, few-shot turns: shared by every request of one cluster) is hashed once
-    # per process and its SHA-256 state copied; only the state prompt and obs are new.
-    messages = request.messages
-    head, last = (messages[:-1], messages[-1]) if messages else ((), None)
-    digest = _prefix_state(ident, tuple(request.action_names), request.cluster, head).copy()
-    last_text = (
-        f"[{_enc(last[0])},{json.dumps(last[1], ensure_ascii=False)}]" if last is not None else ""
-    )
-    obs = _floats_json(request.obs)
-    tail = f'{last_text}],"obs":{obs},"task":{_enc(request.task)}}},"v":{KEY_VERSION}}}'
-    digest.update(tail.encode("utf-8"))
-    return digest.hexdigest()
-
-
-def _floats_json(values: Sequence[float]) -> str:
-    """Return ``canonical_json([float(x) for x in values])``, fast for finite floats."""
-    floats = [float(x) for x in values]
-    if all(math.isfinite(x) for x in floats):
-        return "[" + ",".join(map(float.__repr__, floats)) + "]"
-    return canonical_json(floats)
-
-
-@functools.lru_cache(maxsize=1024)
-def _prefix_state(
-    ident: str, actions: tuple[str, ...], cluster: str, head: tuple[tuple[str, str], ...]
-) -> Any:
-    """SHA-256 state after the key text's prefix, up to (not including) the last message."""
-    msgs = "".join(f"[{_enc(role)},{_enc(content)}]," for role, content in head)
-    text = (
-        f'{{"identity":{ident},"request":{{"actions":{_enc_names(actions)},'
-        f'"cluster":{_enc(cluster)},"messages":[{msgs}'
-    )
-    return hashlib.sha256(text.encode("utf-8"))
-
-
-@functools.lru_cache(maxsize=16384)
-def _enc(text: str) -> str:
-    """JSON-encode a string (memoised: prompt blocks and roles repeat across requests)."""
-    return json.dumps(text, ensure_ascii=False)
-
-
-@functools.lru_cache(maxsize=256)
-def _enc_names(names: tuple[str, ...]) -> str:
-    return canonical_json(list(names))
-
-
-def _extra_json(extra: Mapping[str, Any] | None) -> str:
-    """Serialise diagnostics as standard JSON.
-
-    Anything JSON cannot hold is written as its repr (an exception...), and so is a
-    non-finite float (``"nan"``, ``"inf"``), so no row ever holds a non-standard ``NaN``.
-    """
-    if not extra:
-        return "{}"
-    plain = _plain(extra)
-    try:
-        return canonical_json(plain)
-    except (TypeError, ValueError):
-        return json.dumps(plain, sort_keys=True, default=repr)
-
-
-def _plain(value: Any) -> Any:
-    """:func:`_jsonable`, with non-finite floats written as their repr (``"nan"``)."""
-    if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _plain(value.tolist())
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return repr(value)
-    return value
-
-
-def _jsonable(value: Any) -> Any:
-    """Convert numpy scalars/arrays and tuples into plain JSON data."""
-    if isinstance(value, Mapping):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
-
-
-@dataclass
-class StoredBelief:
-    """One row of the store, as read back.
-
-    Attributes:
-        key: The row's key.
-        source: Source name.
-        identity: The source identity (parsed JSON).
-        task: Task name.
-        cluster: Cluster name.
-        obs: The observation.
-        action_names: Action names.
-        messages: The chat, ``((role, content), ...)``; ``None`` when not read (see
-            :meth:`BeliefStore.get_many`).
-        raw: The raw reply.
-        belief: The belief vector (float64).
-        status: Answer status.
-        latency_s: Seconds the original request took.
-        prompt_tokens: Prompt tokens, if reported.
-        completion_tokens: Completion tokens, if reported.
-        extra: Free-form diagnostics.
-        attempts: How many answers were written for this key.
-        created_at: Unix time of the first write.
-        updated_at: Unix time of the last write.
-
-    """
-
-    key: str
-    source: str
-    identity: dict[str, Any]
-    task: str
-    cluster: str
-    obs: tuple[float, ...]
-    action_names: tuple[str, ...]
-    messages: tuple[tuple[str, str], ...] | None
-    raw: str | None
-    belief: np.ndarray
-    status: str
-    latency_s: float | None
-    prompt_tokens: int | None
-    completion_tokens: int | None
-    extra: dict[str, Any]
-    attempts: int
-    created_at: float
-    updated_at: float
-
-    @property
-    def cacheable(self) -> bool:
-        """True when the row is an answer served back as a cache hit."""
-        return self.status in CACHEABLE
-
-    def to_result(self) -> BeliefResult:
-        """Return the row as a cache-hit :class:`BeliefResult` (``cached=True``, latency 0)."""
-        extra = dict(self.extra)
-        extra["stored_latency_s"] = self.latency_s
-        return BeliefResult(
-            belief=self.belief.copy(),
-            status=self.status,
-            source=self.source,
-            raw=self.raw,
-            cached=True,
-            latency_s=0.0,
-            prompt_tokens=self.prompt_tokens,
-            completion_tokens=self.completion_tokens,
-            extra=extra,
-        )
-
-    def to_json(self) -> dict[str, Any]:
-        """Return the row as one JSON object (the export format, one line per row)."""
-        return {
-            "key": self.key,
-            "source": self.source,
-            "identity": self.identity,
-            "task": self.task,
-            "cluster": self.cluster,
-            "obs": list(self.obs),
-            "actions": list(self.action_names),
-            "messages": [list(m) for m in self.messages or ()],
-            "raw": self.raw,
-            "belief": self.belief.tolist(),
-            "status": self.status,
-            "latency_s": self.latency_s,
-            "prompt_tokens": self.prompt_tokens,
-            "completion_tokens": self.completion_tokens,
-            "extra": self.extra,
-            "attempts": self.attempts,
-            "created_at": self.created_at,
-            "updated_at": self.updated_at,
-        }
-
-    def request(self) -> BeliefRequest:
-        """Return the request this row answers."""
-        return BeliefRequest(
-            task=self.task,
-            cluster=self.cluster,
-            obs=self.obs,
-            action_names=self.action_names,
-            messages=self.messages or (),
-        )
 
 
 class BeliefStore:
@@ -520,7 +239,7 @@ class BeliefStore:
 
     @staticmethod
     def _create_schema(conn: sqlite3.Connection) -> None:
-        for statement in _SCHEMA.split(";"):
+        for statement in SCHEMA.split(";"):
             if statement.strip():
                 conn.execute(statement)
         row = conn.execute("SELECT value FROM meta WHERE name = 'schema_version'").fetchone()
@@ -599,19 +318,19 @@ class BeliefStore:
         for start in range(0, len(wanted), _SQL_CHUNK):
             chunk = wanted[start : start + _SQL_CHUNK]
             sql = (
-                f"SELECT {_COLUMNS} FROM beliefs "
+                f"SELECT {COLUMNS} FROM beliefs "
                 f"WHERE key IN ({','.join('?' * len(chunk))}){status_filter}"
             )
             rows = self._read(sql, chunk)
             texts = self._texts(rows) if with_messages else None
             for row in rows:
-                stored = _row_to_stored(row, texts, self.path)
+                stored = decode_row(row, texts, self.path)
                 found[stored.key] = stored
         return found
 
     def _texts(self, rows: Sequence[Sequence[Any]]) -> dict[str, str]:
         """Fetch the message bodies referenced by ``rows``."""
-        hashes = {h for row in rows if row[7] for _, h in _messages_refs(row, self.path)}
+        hashes = {h for row in rows if row[7] for _, h in message_refs(row, self.path)}
         texts: dict[str, str] = {}
         todo = [h for h in hashes if h not in self._text_cache]
         for start in range(0, len(todo), _SQL_CHUNK):
@@ -659,14 +378,15 @@ class BeliefStore:
                 where = f"{self.path}: row {key}"
                 n = width.get(actions)
                 if n is None:
-                    names = _load_column(actions, "actions", where, key)
+                    names = load_column(actions, "actions", where, key)
                     if not isinstance(names, list) or not names:
-                        raise _bad_row(where, key, f"actions is not a list of names: {actions!r}")
+                        problem = f"actions is not a list of names: {actions!r}"
+                        raise damaged_row(where, key, problem)
                     n = width[actions] = len(names)
-                info = _load_extra(extra, where, key)
+                info = load_extra(extra, where, key)
                 info["stored_latency_s"] = lat
                 found[key] = BeliefResult(
-                    belief=_stored_belief(belief, n, where, key),
+                    belief=load_belief(belief, n, where, key),
                     status=status,
                     source=source,
                     raw=raw,
@@ -706,7 +426,7 @@ class BeliefStore:
             where.append("task = ?")
             params.append(task)
         sql = (
-            f"SELECT {_COLUMNS} FROM beliefs"
+            f"SELECT {COLUMNS} FROM beliefs"
             + (f" WHERE {' AND '.join(where)}" if where else "")
             + " ORDER BY created_at, rowid"
         )
@@ -715,7 +435,7 @@ class BeliefStore:
             chunk = rows[start : start + _SQL_CHUNK]
             texts = self._texts(chunk)
             for row in chunk:
-                yield _row_to_stored(row, texts, self.path)
+                yield decode_row(row, texts, self.path)
 
     def identities(self) -> list[dict[str, Any]]:
         """Return each distinct source identity in the store with its row count.
@@ -733,7 +453,7 @@ class BeliefStore:
         out = []
         for ident, n, m in rows:
             where = f"{self.path}: identity {ident[:60]!r}"
-            identity = _load_column(ident, "identity", where, None)
+            identity = load_column(ident, "identity", where, None)
             out.append({"identity": identity, "rows": n, "answers": int(m or 0)})
         return out
 
@@ -767,7 +487,8 @@ class BeliefStore:
 
         """
         now = time.time()
-        rows, texts = [], {}
+        rows: list[Row] = []
+        texts: dict[str, str] = {}
         for key, identity, request, result in items:
             belief, reason = check_belief(result.belief, len(request.action_names))
             if belief is None:
@@ -780,32 +501,24 @@ class BeliefStore:
                     "a uniform fallback"
                 )
             ident = identity if isinstance(identity, str) else identity_json(identity)
-            messages_ref, bodies = _split_messages(request.messages)
-            for h, body in bodies.items():
-                if h not in self._messages_seen:
-                    texts[h] = body
-            rows.append(
-                (
-                    key,
-                    result.source,
-                    ident,
-                    request.task,
-                    request.cluster,
-                    _floats_json(request.obs),
-                    _enc_names(tuple(request.action_names)),
-                    messages_ref,
-                    result.raw,
-                    _floats_json(belief.tolist()),
-                    result.status,
-                    float(result.latency_s) if result.latency_s is not None else None,
-                    result.prompt_tokens,
-                    result.completion_tokens,
-                    _extra_json(result.extra),
-                    1,
-                    now,
-                    now,
-                )
+            row, bodies = encode_row(
+                key,
+                ident,
+                request,
+                belief,
+                source=result.source,
+                status=result.status,
+                raw=result.raw,
+                latency_s=result.latency_s,
+                prompt_tokens=result.prompt_tokens,
+                completion_tokens=result.completion_tokens,
+                extra=result.extra,
+                attempts=1,
+                created_at=now,
+                updated_at=now,
             )
+            rows.append(row)
+            texts.update((h, b) for h, b in bodies.items() if h not in self._messages_seen)
         return self._put_rows(rows, texts)
 
     def put(
@@ -818,7 +531,54 @@ class BeliefStore:
         """Write one answer (see :meth:`put_many`)."""
         return self.put_many([(key, identity, request, result)])
 
-    def _put_rows(self, rows: list[tuple[Any, ...]], texts: dict[str, str]) -> int:
+    def put_rows(self, records: Iterable[StoredBelief]) -> int:
+        """Write whole rows as read from another store, in one transaction.
+
+        The rule of :meth:`put_many` holds (an existing answer is never replaced; another
+        row is replaced and ``attempts`` adds up); unlike it, each row keeps its own
+        ``attempts``, timestamps and identity
+        (:func:`amuled_ma.beliefs.interchange.import_jsonl` uses it).
+
+        Args:
+            records: The rows, chat included (``messages`` ``None`` counts as no chat).
+
+        Returns:
+            The number of rows inserted or replaced.
+
+        Raises:
+            BeliefStoreError: A belief is invalid (nothing of the batch is written).
+
+        """
+        rows: list[Row] = []
+        texts: dict[str, str] = {}
+        for record in records:
+            belief, reason = check_belief(record.belief, len(record.action_names))
+            if belief is None:
+                raise BeliefStoreError(
+                    f"{self.path}: refusing to write row {record.key}: belief "
+                    f"{show_values(record.belief)} {reason}; {RULE}"
+                )
+            row, bodies = encode_row(
+                record.key,
+                identity_json(record.identity),
+                record.request(),
+                belief,
+                source=record.source,
+                status=record.status,
+                raw=record.raw,
+                latency_s=record.latency_s,
+                prompt_tokens=record.prompt_tokens,
+                completion_tokens=record.completion_tokens,
+                extra=record.extra,
+                attempts=record.attempts,
+                created_at=record.created_at,
+                updated_at=record.updated_at,
+            )
+            rows.append(row)
+            texts.update(bodies)
+        return self._put_rows(rows, texts)
+
+    def _put_rows(self, rows: list[Row], texts: dict[str, str]) -> int:
         if not rows:
             return 0
 
@@ -896,327 +656,3 @@ class BeliefStore:
             "identities": self.identities(),
             "file_bytes": files,
         }
-
-    # -- export / import -------------------------------------------------------------
-    def export_jsonl(
-        self, fp: IO[str], *, status: Sequence[str] | None = None, task: str | None = None
-    ) -> int:
-        """Write rows as JSON Lines, one object per row (:meth:`StoredBelief.to_json`).
-
-        Args:
-            fp: A text file open for writing.
-            status: Only these statuses (all when ``None``).
-            task: Only this task (all when ``None``).
-
-        Returns:
-            The number of rows written.
-
-        """
-        count = 0
-        for row in self.iter_rows(status=status, task=task):
-            try:
-                line = json.dumps(row.to_json(), ensure_ascii=False, allow_nan=False)
-            except ValueError as error:  # a NaN/inf in a column other than the belief
-                raise _bad_row(
-                    f"{self.path}: row {row.key}", row.key, f"not standard JSON ({error})"
-                ) from error
-            fp.write(line + "\n")
-            count += 1
-        return count
-
-    def import_jsonl(
-        self, fp: IO[str], *, name: str = "<jsonl>", verify: bool = True, batch: int = 500
-    ) -> dict[str, int]:
-        """Read rows written by :meth:`export_jsonl` (from this or another machine).
-
-        Rows follow the :meth:`put_many` rule: an existing answer is never replaced.
-
-        Args:
-            fp: A text file open for reading.
-            name: The file's name, for error messages.
-            verify: Recompute each key from the row's content and refuse a mismatch.
-            batch: Rows per transaction.
-
-        Returns:
-            ``{"read": n, "written": m}`` (``m < n`` when answers were already there).
-
-        Raises:
-            BeliefStoreError: A line is not a valid row (names the file and line): not
-                standard JSON (``NaN``, ``Infinity``, nested too deeply), a missing
-                field, an unknown status, an invalid belief, a key that does not match.
-
-        """
-        read = written = 0
-        rows: list[tuple[Any, ...]] = []
-        texts: dict[str, str] = {}
-        lineno = 0
-        lines = iter(fp)
-        while True:
-            try:
-                line = next(lines)
-            except StopIteration:
-                break
-            except UnicodeDecodeError as error:
-                raise BeliefStoreError(
-                    f"{name}:{lineno + 1}: not UTF-8 text ({error}); export files are UTF-8"
-                ) from None
-            lineno += 1
-            if not line.strip():
-                continue
-            row, bodies = _json_to_row(line, f"{name}:{lineno}", verify)
-            rows.append(row)
-            texts.update(bodies)
-            read += 1
-            if len(rows) >= batch:
-                written += self._put_rows(rows, texts)
-                rows, texts = [], {}
-        written += self._put_rows(rows, texts)
-        return {"read": read, "written": written}
-
-
-@functools.lru_cache(maxsize=4096)
-def _text_hash_cached(text: str) -> str:
-    return hashlib.sha256(text.encode("utf-8")).hexdigest()
-
-
-def _text_hash(text: str) -> str:
-    """SHA-256 of a message body, memoising the long ones (shared prompt blocks)."""
-    if len(text) < 256:
-        return hashlib.sha256(text.encode("utf-8")).hexdigest()
-    return _text_hash_cached(text)
-
-
-def _split_messages(
-    messages: Sequence[tuple[str, str]],
-) -> tuple[str | None, dict[str, str]]:
-    """Return the ``messages`` column (``[[role, text_hash], ...]``) and the bodies."""
-    if not messages:
-        return None, {}
-    refs, bodies = [], {}
-    for role, content in messages:
-        h = _text_hash(content)
-        refs.append(f'[{_enc(role)},"{h}"]')  # == canonical_json([[role, h], ...])
-        bodies[h] = content
-    return "[" + ",".join(refs) + "]", bodies
-
-
-def _bad_row(where: str, key: str | None, problem: str) -> BeliefStoreError:
-    """The error of a damaged store row: where, what was found, how to remove the row."""
-    fix = (
-        f"delete the row (SQL: DELETE FROM beliefs WHERE key = '{key}') so the next run asks "
-        "again, or rebuild the store from an export"
-        if key
-        else "rebuild the store from an export"
-    )
-    return BeliefStoreError(
-        f"{where}: {problem}; the row is damaged (edited by hand, or written by another "
-        f"program or an older amuled-ma); {fix}"
-    )
-
-
-def _why(error: BaseException) -> str:
-    if isinstance(error, RecursionError):
-        return "nested deeper than Python's JSON reader can follow"
-    return str(error)
-
-
-def _load_column(text: Any, column: str, where: str, key: str | None) -> Any:
-    """Parse one JSON column of a stored row; a parse failure names the row."""
-    try:
-        return json.loads(text)
-    except (TypeError, ValueError, RecursionError) as error:
-        raise _bad_row(
-            where, key, f"column {column!r} is not JSON ({_why(error)}): {show_values(text, 80)}"
-        ) from None
-
-
-def _load_extra(text: str | None, where: str, key: str) -> dict[str, Any]:
-    """Parse the ``extra`` column (non-finite floats become ``"nan"``/``"inf"`` text)."""
-    if not text or text == "{}":
-        return {}
-    value = _load_column(text, "extra", where, key)
-    if not isinstance(value, dict):
-        raise _bad_row(where, key, f"column 'extra' is not a JSON object: {show_values(text, 80)}")
-    # rows of an older amuled-ma may hold NaN/Infinity (this one writes "nan"/"inf" text)
-    return _plain(value) if "NaN" in text or "Infinity" in text else value
-
-
-def _stored_belief(text: str, n_actions: int, where: str, key: str) -> np.ndarray:
-    """Parse and check a stored belief; an invalid one names the row and the fix."""
-    values = _load_column(text, "belief", where, key)
-    belief, reason = check_belief(values, n_actions)
-    if belief is None:
-        raise _bad_row(where, key, f"belief {show_values(values)} {reason}; {RULE}")
-    return belief
-
-
-def _messages_refs(row: Sequence[Any], path: str) -> list[tuple[str, str]]:
-    """The ``[[role, text_hash], ...]`` of a row's ``messages`` column, checked."""
-    key = row[0]
-    refs = _load_column(row[7], "messages", f"{path}: row {key}", key)
-    if not isinstance(refs, list) or not all(
-        isinstance(r, list) and len(r) == 2 and all(isinstance(x, str) for x in r) for r in refs
-    ):
-        raise _bad_row(
-            f"{path}: row {key}", key, f"column 'messages' is not [[role, hash], ...]: {row[7]!r}"
-        )
-    return [(r, h) for r, h in refs]
-
-
-def _row_to_stored(
-    row: Sequence[Any], texts: Mapping[str, str] | None, path: str = "<store>"
-) -> StoredBelief:
-    (
-        key,
-        source,
-        identity,
-        task,
-        cluster,
-        obs,
-        actions,
-        messages_ref,
-        raw,
-        belief,
-        status,
-        latency,
-        ptok,
-        ctok,
-        extra,
-        attempts,
-        created,
-        updated,
-    ) = row
-    where = f"{path}: row {key}"
-    messages: tuple[tuple[str, str], ...] | None = None
-    if texts is not None:
-        refs = _messages_refs(row, path) if messages_ref else []
-        missing = [h for _, h in refs if h not in texts]
-        if missing:
-            raise _bad_row(where, key, f"message text {missing[0]} is not in table 'texts'")
-        messages = tuple((r, texts[h]) for r, h in refs)
-    obs_values = _load_column(obs, "obs", where, key)
-    names = _load_column(actions, "actions", where, key)
-    if not isinstance(names, list) or not names or not all(isinstance(a, str) for a in names):
-        raise _bad_row(where, key, f"column 'actions' is not a list of names: {actions!r}")
-    if not isinstance(obs_values, list) or not all(
-        isinstance(x, int | float) and not isinstance(x, bool) for x in obs_values
-    ):
-        raise _bad_row(where, key, f"column 'obs' is not a list of numbers: {obs!r}")
-    ident = _load_column(identity, "identity", where, key)
-    return StoredBelief(
-        key=key,
-        source=source,
-        identity=ident,
-        task=task,
-        cluster=cluster,
-        obs=tuple(obs_values),
-        action_names=tuple(names),
-        messages=messages,
-        raw=raw,
-        belief=_stored_belief(belief, len(names), where, key),
-        status=status,
-        latency_s=latency,
-        prompt_tokens=ptok,
-        completion_tokens=ctok,
-        extra=_load_extra(extra, where, key),
-        attempts=int(attempts),
-        created_at=float(created),
-        updated_at=float(updated),
-    )
-
-
-def _finite_number(value: Any) -> bool:
-    """True for an int or float (not a bool) that is a finite float64."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return False
-    try:
-        return math.isfinite(float(value))
-    except OverflowError:
-        return False
-
-
-def _reject_constant(name: str) -> Any:
-    """``parse_constant`` of the JSONL reader: ``NaN``, ``Infinity`` are not standard JSON."""
-    raise ValueError(f"{name} is not standard JSON (JSON has no NaN or infinity)")
-
-
-def _json_to_row(line: str, where: str, verify: bool) -> tuple[tuple[Any, ...], dict[str, str]]:
-    """Validate one exported JSON line and turn it into a table row."""
-    try:
-        obj = json.loads(line, parse_constant=_reject_constant)
-    except (ValueError, RecursionError) as error:
-        raise BeliefStoreError(
-            f"{where}: not JSON ({_why(error)}); each line must be one standard JSON object "
-            "written by 'amuled beliefs export' (fix or remove the line)"
-        ) from None
-    if not isinstance(obj, dict):
-        raise BeliefStoreError(
-            f"{where}: expected a JSON object (one exported row), found {show_values(obj, 80)}"
-        )
-    required = ("key", "source", "identity", "task", "cluster", "obs", "actions", "belief")
-    missing = [k for k in (*required, "status") if k not in obj]
-    if missing:
-        raise BeliefStoreError(f"{where}: missing field(s) {', '.join(missing)}")
-    if obj["status"] not in STATUSES:
-        raise BeliefStoreError(f"{where}: status {obj['status']!r} is not one of {STATUSES}")
-    key = obj["key"]
-    at = f"{where} (key {key})"
-    actions = obj["actions"]
-    if not isinstance(actions, list) or not actions or not all(isinstance(a, str) for a in actions):
-        raise BeliefStoreError(f"{at}: actions must be a list of names, found {actions!r}")
-    belief, reason = check_belief(obj["belief"], len(actions))
-    if belief is None:
-        raise BeliefStoreError(
-            f"{at}: belief {show_values(obj['belief'])} {reason}; {RULE} ({len(actions)} "
-            "actions); fix or remove the line and import the file again (rows already "
-            "imported are kept, never duplicated)"
-        )
-    obs = obj["obs"]
-    if not isinstance(obs, list) or not all(_finite_number(x) for x in obs):
-        raise BeliefStoreError(f"{at}: obs must be a list of finite numbers, found {obs!r}")
-    try:
-        messages = tuple((str(r), str(c)) for r, c in obj.get("messages") or [])
-    except (TypeError, ValueError) as error:
-        raise BeliefStoreError(f"{at}: messages must be [[role, text], ...] ({error})") from None
-    request = BeliefRequest(
-        task=obj["task"],
-        cluster=obj["cluster"],
-        obs=tuple(float(x) for x in obs),
-        action_names=tuple(actions),
-        messages=messages,
-    )
-    ident = identity_json(obj["identity"])
-    if verify:
-        expected = request_key(ident, request)
-        if expected != obj["key"]:
-            raise BeliefStoreError(
-                f"{where}: key {obj['key'][:12]}... does not match the row's content "
-                f"(expected {expected[:12]}...); the row was edited or written by another "
-                "key version (import with --no-verify to keep it anyway)"
-            )
-    messages_ref, bodies = _split_messages(messages)
-    now = time.time()
-    try:
-        row = (
-            obj["key"],
-            obj["source"],
-            ident,
-            request.task,
-            request.cluster,
-            canonical_json(list(request.obs)),
-            canonical_json(list(request.action_names)),
-            messages_ref,
-            obj.get("raw"),
-            canonical_json(belief.tolist()),
-            obj["status"],
-            obj.get("latency_s"),
-            obj.get("prompt_tokens"),
-            obj.get("completion_tokens"),
-            _extra_json(obj.get("extra") or {}),
-            int(obj.get("attempts") or 1),
-            float(obj.get("created_at") or now),
-            float(obj.get("updated_at") or now),
-        )
-    except (TypeError, ValueError) as error:
-        raise BeliefStoreError(f"{at}: malformed row ({error})") from None
-    return row, bodies

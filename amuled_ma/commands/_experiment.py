@@ -155,7 +155,7 @@ def load(args: argparse.Namespace) -> Any:
 
 def run_dir_of(args: argparse.Namespace, scenario: Any) -> Path:
     """Return the run directory: ``--run-dir`` or the scenario's default."""
-    from amuled_ma.learn.experiments import default_run_dir
+    from amuled_ma.learn.run_folder import default_run_dir
 
     return Path(args.run_dir) if args.run_dir else default_run_dir(scenario)
 
@@ -213,8 +213,8 @@ def say(message: str) -> None:
 
 def describe(job: Any) -> str:
     """One line about a finished training job (a seed replica's seed in brackets)."""
-    from amuled_ma.learn.experiments import split_replica
     from amuled_ma.learn.feedback import summary_lines
+    from amuled_ma.learn.run_folder import split_replica
 
     seed = split_replica(Path(job.out_dir).name)[1]
     name = job.variant if seed is None else f"{job.variant} [seed {seed}]"
@@ -255,7 +255,7 @@ def train_job(
         **kwargs: More keywords of :func:`~amuled_ma.learn.experiments.train_variant`.
 
     Returns:
-        The job's :class:`~amuled_ma.learn.experiments.JobResult`.
+        The job's :class:`~amuled_ma.learn.run_folder.JobResult`.
 
     """
     from amuled_ma.learn.experiments import train_variant

@@ -22,7 +22,9 @@ import os
 import sys
 from pathlib import Path
 
-from amuled_ma.beliefs.store import BeliefStore, BeliefStoreError, default_store_path
+from amuled_ma.beliefs.interchange import export_jsonl, import_jsonl
+from amuled_ma.beliefs.rows import BeliefStoreError
+from amuled_ma.beliefs.store import BeliefStore, default_store_path
 from amuled_ma.beliefs.types import STATUSES
 
 
@@ -123,7 +125,7 @@ def _export(args: argparse.Namespace) -> int:
     with _existing_store(args.store) as store:
         if args.output == "-":
             try:
-                count = store.export_jsonl(sys.stdout, status=args.status, task=args.task)
+                count = export_jsonl(store, sys.stdout, status=args.status, task=args.task)
                 sys.stdout.flush()
             except BrokenPipeError:  # `amuled beliefs export | head`: the reader left
                 devnull = os.open(os.devnull, os.O_WRONLY)
@@ -132,14 +134,14 @@ def _export(args: argparse.Namespace) -> int:
         elif Path(args.output).exists() and not Path(args.output).is_file():
             # a device or a pipe (/dev/stdout, a FIFO): written in place, never replaced
             with open(args.output, "w", encoding="utf-8") as fp:
-                count = store.export_jsonl(fp, status=args.status, task=args.task)
+                count = export_jsonl(store, fp, status=args.status, task=args.task)
         else:
             # written beside the target and renamed at the end: a row that cannot be
             # exported (a damaged store) leaves no half-written file behind
             part = Path(f"{args.output}.part")
             try:
                 with open(part, "w", encoding="utf-8") as fp:
-                    count = store.export_jsonl(fp, status=args.status, task=args.task)
+                    count = export_jsonl(store, fp, status=args.status, task=args.task)
                 os.replace(part, args.output)
             finally:
                 part.unlink(missing_ok=True)
@@ -152,14 +154,14 @@ def _import(args: argparse.Namespace) -> int:
     with BeliefStore(path) as store:
         for name in args.files:
             if name == "-":
-                counts = store.import_jsonl(sys.stdin, name="<stdin>", verify=not args.no_verify)
+                counts = import_jsonl(store, sys.stdin, name="<stdin>", verify=not args.no_verify)
             else:
                 try:
                     fp = open(name, encoding="utf-8")  # noqa: SIM115 - closed below
                 except OSError as error:
                     raise BeliefStoreError(f"{name}: cannot read: {error}") from error
                 with fp:
-                    counts = store.import_jsonl(fp, name=name, verify=not args.no_verify)
+                    counts = import_jsonl(store, fp, name=name, verify=not args.no_verify)
             print(
                 f"{name}: read {counts['read']} rows, wrote {counts['written']} "
                 f"(answers already in {path} are kept)"

@@ -85,20 +85,19 @@ def _say(message: str) -> None:
 def demo_command(args: argparse.Namespace) -> int:
     """Run ``amuled demo``; return the exit code of the pipeline."""
     from amuled_ma import llm_server
+    from amuled_ma.beliefs.hosts import DEFAULT_HOST, TINY_MODEL, preflight
     from amuled_ma.cli import main
 
     start = time.perf_counter()
-    model = args.model or llm_server.TINY_MODEL
+    model = args.model or TINY_MODEL
     host = args.host or os.environ.get("OLLAMA_HOST")
-    if host is None and model != llm_server.TINY_MODEL:
-        host = llm_server.DEFAULT_HOST  # a real model lives on the user's own Ollama install
+    if host is None and model != TINY_MODEL:
+        host = DEFAULT_HOST  # a real model lives on the user's own Ollama install
     started_dir: Path | None = None
     if host is None:
         started_dir = llm_server.default_state_dir() / "demo"
         _say(f"starting a private Ollama server (state in {started_dir})")
-        state, _ = llm_server.up(
-            state_dir=started_dir, tiny=model == llm_server.TINY_MODEL, timeout=120.0
-        )
+        state, _ = llm_server.up(state_dir=started_dir, tiny=model == TINY_MODEL, timeout=120.0)
         host = state.host
     run_dir = args.run_dir or Path("runs") / f"demo-{args.task}"
     overrides = [
@@ -118,7 +117,7 @@ def demo_command(args: argparse.Namespace) -> int:
         argv.append("--no-progress")
     view: Path | None = None
     try:
-        llm_server.preflight(host, model)  # one clear error up front: no server or no model
+        preflight(host, model)  # one clear error up front: no server or no model
         _say(f"beliefs from {model} at {host}")
         code = main(argv)
         if code == 0:  # while the server still runs: the page may ask it about new states

@@ -100,12 +100,8 @@ def run_command(args: argparse.Namespace) -> int:
     """Run ``amuled run``."""
     from amuled_ma.evaluate.evaluator import evaluate_run
     from amuled_ma.evaluate.report import write_report
-    from amuled_ma.learn.experiments import (
-        MAIN_VARIANTS,
-        plan_run,
-        training_seeds,
-        write_config,
-    )
+    from amuled_ma.learn.experiments import MAIN_VARIANTS, plan_run, training_seeds
+    from amuled_ma.learn.run_folder import write_config
 
     start = time.perf_counter()
     scenario = common.load(args)
@@ -159,12 +155,8 @@ def ablate_command(args: argparse.Namespace) -> int:
     """Run ``amuled ablate``."""
     from amuled_ma.evaluate.evaluator import evaluate_run
     from amuled_ma.evaluate.report import write_report
-    from amuled_ma.learn.experiments import (
-        ablation_variants,
-        plan_ablation,
-        training_seeds,
-        write_config,
-    )
+    from amuled_ma.learn.experiments import ablation_variants, plan_ablation, training_seeds
+    from amuled_ma.learn.run_folder import write_config
 
     start = time.perf_counter()
     scenario = common.load(args)

@@ -29,19 +29,16 @@ __all__ = [
     "registered_ids",
 ]
 
-_LAZY = {
-    "DeliberationEnv": "amuled_ma.deliberation.env",
-    "project_to_simplex": "amuled_ma.deliberation.env",
-    "make": "amuled_ma.deliberation.env",
-    "register": "amuled_ma.deliberation.env",
-    "registered_ids": "amuled_ma.deliberation.env",
-}
+# names served by amuled_ma.deliberation.env, imported on first use
+_ENV_NAMES = frozenset(
+    {"DeliberationEnv", "project_to_simplex", "make", "register", "registered_ids"}
+)
 
 
 def __getattr__(name: str) -> Any:
     """Import the PettingZoo side on first use (the panel does not need it)."""
-    if name in _LAZY:
-        import importlib
+    if name in _ENV_NAMES:
+        from amuled_ma.deliberation import env
 
-        return getattr(importlib.import_module(_LAZY[name]), name)
+        return getattr(env, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

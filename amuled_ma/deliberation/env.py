@@ -31,9 +31,15 @@ is the LLM one).
 
 - actor: ``r_env_weight * r_task + feedback_coef * fused[a]``, where ``r_task`` is the task
   reward (``r_env + shaping_coef * r_shaping``; ``shaping_coef`` defaults to 0, so
-  ``r_task = r_env``) and ``fused[a]`` the fused belief of the action taken.
+  ``r_task = r_env``) and ``fused[a]`` the fused belief of the action taken. It is
+  :func:`amuled_ma.deliberation.mdp.actor_reward`, the function training rewards with: this
+  env is :class:`~amuled_ma.deliberation.mdp.BatchedDeliberation` with one copy, the MDP the
+  learner trains in with many (the learner adds the KL anchor, which needs the policies).
 - each cluster: its credibility weight in the fusion (``FusionResult.weights``, summing to
-  1 over the clusters), so a run shows which cluster carried the decision.
+  1 over the clusters), so a run shows which cluster carried the decision. The clusters are
+  not trained (their policies are fixed prompted LLMs): the reward is a record of how far
+  the arbiter trusted each one at that step, the quantity an ablation or a learned panel
+  would optimise, and it sums to 1 over the panel at every step.
 
 ## Infos
 
@@ -64,8 +70,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
+
+from amuled_ma.deliberation.mdp import BatchedDeliberation
 
 ACTOR = "actor"
 
@@ -173,6 +182,10 @@ class DeliberationEnv(ParallelEnv):
         if max_steps is not None:
             kwargs["max_steps"] = max_steps
         self.task = task_cls(1, seed=seed, shaping_coef=shaping_coef, **kwargs)
+        # the deliberation MDP with one copy; this env's arbiter hands it the fused belief
+        self.mdp = BatchedDeliberation(
+            self.task, None, task_weight=r_env_weight, feedback_coef=feedback_coef
+        )
         self.task_name = task_cls.name
         self.action_names = tuple(task_cls.action_names)
         self.cluster_names = tuple(clusters)
@@ -255,7 +268,7 @@ class DeliberationEnv(ParallelEnv):
         self, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
         """Reset the task and return every agent's first observation and an empty info."""
-        obs = self.task.reset(seed=seed)
+        obs = self.mdp.reset(seed=seed)
         self._obs = _row(obs)
         self._prompt = self._state_prompt()
         self._last = None
@@ -294,16 +307,16 @@ class DeliberationEnv(ParallelEnv):
         weights = np.asarray(diag.weights, dtype=np.float64)
         conflicts = np.asarray(diag.conflicts, dtype=np.float64).reshape(-1)
 
-        import torch
-
-        obs, reward, terminated, truncated, info = self.task.step(
-            torch.tensor([a], dtype=torch.long)
+        out = self.mdp.step(
+            torch.tensor([a], dtype=torch.long), fused=torch.from_numpy(fused).reshape(1, n)
         )
+        info = out.info
+        terminated, truncated = out.terminated, out.truncated
         done = bool(terminated[0]) or bool(truncated[0])
-        self._obs = _row(info["final_obs"] if done and "final_obs" in info else obs)
-        r_task = float(reward[0])
+        self._obs = _row(info["final_obs"] if done and "final_obs" in info else out.obs)
+        r_task = float(out.r_task[0])
         r_feedback = float(fused[a])
-        rewards = {ACTOR: self.r_env_weight * r_task + self.feedback_coef * r_feedback}
+        rewards = {ACTOR: float(out.reward[0])}
         for k, name in enumerate(self.cluster_names):
             rewards[name] = float(weights[k])
         common = _StepInfo(

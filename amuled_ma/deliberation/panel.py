@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from amuled_ma.beliefs.store import CACHEABLE
+from amuled_ma.beliefs.rows import CACHEABLE
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.beliefs.validate import check_belief, check_beliefs, show_values
 from amuled_ma.deliberation.state_key import freeze

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from amuled_ma.beliefs.store import CACHEABLE
+from amuled_ma.beliefs.rows import CACHEABLE
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.deliberation.state_key import freeze
 from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError
@@ -72,8 +72,8 @@ def feedback_variant(variant_dir: Path) -> str | None:
     if variant.startswith("finetune:"):
         return variant.split(":", 1)[1]
     if not variant and Path(variant_dir).name.startswith("finetune-"):
-        from amuled_ma.learn.experiments import split_replica
         from amuled_ma.learn.feedback import parse_variant
+        from amuled_ma.learn.run_folder import split_replica
 
         name = split_replica(Path(variant_dir).name)[0].split("-", 1)[1]
         for candidate in (name, name.replace("-", ":", 1)):  # finetune-cluster-care
@@ -112,7 +112,7 @@ def base_checkpoint_of(run_dir: Path, variant_dir: Path) -> Path | None:
     ``<name>.seed<k>`` looks for ``base.seed<k>`` first). None when there is none.
     """
     from amuled_ma.learn.checkpoints import checkpoint_infos
-    from amuled_ma.learn.experiments import split_replica
+    from amuled_ma.learn.run_folder import split_replica
 
     run_dir, variant_dir = Path(run_dir), Path(variant_dir)
     candidates: list[Path] = []
@@ -274,7 +274,7 @@ def replay_episode(
         base_actor: The base policy, asked in the same states (its greedy action).
         live_feedback: A feedback that needs the live task (human, fused-only replay):
             asked about every state as the episode runs.
-        task_factory: Replaces :func:`~amuled_ma.learn.trainer.make_task`.
+        task_factory: Replaces :func:`~amuled_ma.tasks.make_task`.
 
     Returns:
         The recorded :class:`Episode`.
@@ -283,7 +283,8 @@ def replay_episode(
         ScenarioError: Unknown ``mode`` or a negative ``episode``.
 
     """
-    from amuled_ma.learn.trainer import action_log_probs, make_task
+    from amuled_ma.learn.policies import action_log_probs
+    from amuled_ma.tasks import make_task
 
     if mode not in MODES:
         raise ScenarioError(f"mode: expected one of {', '.join(MODES)}, found {mode!r}")
@@ -788,13 +789,13 @@ def fusion_breakdown(
 
 
 def load_actor(checkpoint: Path, scenario: Any) -> torch.nn.Module:
-    """Load a policy for replay (:func:`~amuled_ma.learn.trainer.load_policy`).
+    """Load a policy for replay (:func:`~amuled_ma.learn.policies.load_policy`).
 
     Raises:
         CheckpointError: The checkpoint is missing or does not fit the scenario.
 
     """
-    from amuled_ma.learn.trainer import load_policy
+    from amuled_ma.learn.policies import load_policy
 
     if not Path(checkpoint).is_file():
         raise CheckpointError(

@@ -22,9 +22,11 @@ import torch
 
 from amuled_ma.errors import CheckpointError, ScenarioError
 from amuled_ma.evaluate.stats import mean_ci
-from amuled_ma.learn.experiments import split_replica
-from amuled_ma.learn.trainer import LAST, action_log_probs, load_policy, make_task
+from amuled_ma.learn.checkpoints import LAST
+from amuled_ma.learn.policies import action_log_probs, load_policy
+from amuled_ma.learn.run_folder import split_replica
 from amuled_ma.scenario import Scenario
+from amuled_ma.tasks import make_task
 
 #: Keys of ``info["episode"]`` that are book-keeping, not metrics.
 _SKIP = {"done", "return"}
@@ -58,7 +60,7 @@ def run_episodes(
         episodes: Number of episodes (= task copies).
         mode: ``greedy`` (argmax) or ``sampled``.
         seed: Seed of copy 0 (copy ``i`` gets ``seed + i``); also seeds action sampling.
-        task_factory: Replaces :func:`~amuled_ma.learn.trainer.make_task`.
+        task_factory: Replaces :func:`~amuled_ma.tasks.make_task`.
         record_trajectory: Record copy 0's first episode for pictures.
 
     Returns:
@@ -241,7 +243,7 @@ def evaluate_run(
         episodes: Episodes per variant and mode (default: the scenario's).
         modes: ``greedy`` and/or ``sampled`` (default: the scenario's).
         variants: Only these variants (folder names; a name takes its seed replicas along).
-        task_factory: Replaces :func:`~amuled_ma.learn.trainer.make_task`.
+        task_factory: Replaces :func:`~amuled_ma.tasks.make_task`.
         progress: Show a progress bar.
         extra_dirs: Further variant folders evaluated alongside (an ablation's base).
 

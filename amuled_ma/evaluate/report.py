@@ -29,7 +29,7 @@ import numpy as np
 
 from amuled_ma.evaluate.evaluator import PAPER_METRICS, metric_order
 from amuled_ma.evaluate.stats import t_quantile
-from amuled_ma.learn.experiments import split_replica
+from amuled_ma.learn.run_folder import split_replica
 
 #: Curve keys plotted per task (the first that exists in a curve is used).
 _CURVE_KEYS = {

@@ -20,6 +20,9 @@ from typing import Any
 from amuled_ma.errors import CheckpointError
 from amuled_ma.torch_files import load_weights_only
 
+#: Name of the newest checkpoint in a variant folder.
+LAST = "model_last.pt"
+
 #: Keys every checkpoint written by :class:`~amuled_ma.learn.trainer.Trainer` holds.
 TRAINER_KEYS = ("actor_state_dict", "critic_state_dict", "optimizer_state_dict", "iter", "infos")
 

@@ -9,7 +9,13 @@ from __future__ import annotations
 
 from typing import Any
 
-from amuled_ma.scenario import PPOConfig
+from amuled_ma.scenario import PPOConfig, Scenario
+
+#: Name of the single observation group handed to rsl-rl.
+OBS_GROUP = "policy"
+
+#: ``module:Class`` name of our PPO (rsl-rl's, anchored), resolved by rsl-rl.
+ANCHORED_PPO = "amuled_ma.learn.anchored_ppo:AnchoredPPO"
 
 #: ``module:Class`` name of our categorical distribution, resolved by rsl-rl.
 CATEGORICAL = "amuled_ma.learn.distribution:CategoricalDistribution"
@@ -22,6 +28,8 @@ def rsl_rl_config(
     learning_rate: float | None = None,
     num_learning_epochs: int | None = None,
     save_interval: int = 100,
+    lambda_kl: float = 0.0,
+    anchor: str = "per_sample",
 ) -> dict[str, Any]:
     """Return an rsl-rl 5.x ``train_cfg`` dict for a 2-layer categorical actor-critic.
 
@@ -31,6 +39,8 @@ def rsl_rl_config(
         learning_rate: Overrides ``ppo.learning_rate`` (fine-tuning has its own).
         num_learning_epochs: Overrides ``ppo.num_learning_epochs``.
         save_interval: Iterations between checkpoints.
+        lambda_kl: Weight of a fine-tune's KL anchor (:class:`AnchoredPPO`).
+        anchor: The anchor's KL term, ``per_sample`` or ``window`` (the authors' recipe).
 
     Returns:
         The configuration dict (pass a deep copy to rsl-rl).
@@ -45,13 +55,16 @@ def rsl_rl_config(
     return {
         "num_steps_per_env": int(num_steps_per_env),
         "save_interval": int(save_interval),
-        "obs_groups": {"actor": ["policy"], "critic": ["policy"]},
+        "obs_groups": {"actor": [OBS_GROUP], "critic": [OBS_GROUP]},
         "check_for_nan": True,
         "logger": "tensorboard",
         "actor": {**model, "distribution_cfg": {"class_name": CATEGORICAL}},
         "critic": dict(model),
         "algorithm": {
-            "class_name": "rsl_rl.algorithms:PPO",
+            "class_name": ANCHORED_PPO,
+            "lambda_kl": float(lambda_kl),
+            "anchor": anchor,
+            "adam_eps": 1e-5,
             "num_learning_epochs": int(num_learning_epochs or ppo.num_learning_epochs),
             "num_mini_batches": int(ppo.num_mini_batches),
             "clip_param": ppo.clip_param,
@@ -72,3 +85,21 @@ def rsl_rl_config(
             "normalize_advantage_per_mini_batch": ppo.normalize_advantage_per_mini_batch,
         },
     }
+
+
+def planned_iterations(scenario: Scenario, *, finetune: bool) -> int:
+    """Number of PPO iterations of a scenario's base run or fine-tune (the one derivation).
+
+    A base run lasts ``[base] total_steps`` environment steps, rounded down to whole
+    iterations of ``num_envs x num_steps_per_env`` (at least one); a fine-tune lasts
+    ``[finetune] iterations``.
+
+    Args:
+        scenario: The scenario.
+        finetune: The fine-tune's count instead of the base run's.
+
+    """
+    if finetune:
+        return int(scenario.finetune.iterations)
+    base = scenario.base
+    return max(1, base.total_steps // (base.num_envs * base.num_steps_per_env))

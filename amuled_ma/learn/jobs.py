@@ -34,44 +34,11 @@ import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 from amuled_ma.errors import AmuledError
+from amuled_ma.learn.run_folder import JobResult, TrainJob, prepare_variant, training_config
 from amuled_ma.scenario import Scenario
-
-
-@dataclass(frozen=True)
-class TrainJob:
-    """One variant to train, as :func:`~amuled_ma.learn.experiments.train_variant` takes it.
-
-    Attributes:
-        name: Unique name of the job in its graph (shown in messages).
-        scenario: The scenario it trains on.
-        run_dir: The run directory (belief store, default folders).
-        variant: ``base``, ``shaped`` or ``finetune:<feedback>``.
-        out_dir: Its folder.
-        seed: Training seed (None: the scenario's).
-        base_variant: Folder (under ``run_dir``) of the base checkpoint a fine-tune anchors to.
-        needs: Names of the jobs that must finish first.
-        resume: Continue an unfinished checkpoint; skip a finished one.
-        force: Start over even where a checkpoint exists.
-        base_dir: The folder holding ``base_variant`` (default: ``run_dir``), e.g. the
-            authors' imported base, ``runs/authors/findmilk``.
-
-    """
-
-    name: str
-    scenario: Scenario
-    run_dir: Path
-    variant: str
-    out_dir: Path
-    seed: int | None = None
-    base_variant: str = "base"
-    needs: tuple[str, ...] = ()
-    resume: bool = False
-    force: bool = False
-    base_dir: Path | None = None
 
 
 @dataclass
@@ -79,13 +46,13 @@ class JobsOutcome:
     """What :func:`run_jobs` did.
 
     Attributes:
-        results: One :class:`~amuled_ma.learn.experiments.JobResult` per job, in job order.
+        results: One :class:`~amuled_ma.learn.run_folder.JobResult` per job, in job order.
         wall_s: Wall-clock seconds of the whole graph.
         workers: Worker processes used (1: this process).
 
     """
 
-    results: list[Any] = field(default_factory=list)
+    results: list[JobResult] = field(default_factory=list)
     wall_s: float = 0.0
     workers: int = 1
 
@@ -147,8 +114,8 @@ def _train(
     progress: bool,
     hint: str,
     on_iteration: Callable[[Any, int], None] | None = None,
-) -> Any:
-    from amuled_ma.learn.experiments import train_variant
+) -> JobResult:
+    from amuled_ma.learn.experiments import train_variant  # here: it imports torch
 
     return train_variant(
         job.scenario,
@@ -205,7 +172,7 @@ def _stop_requested() -> bool:
     return _STOP.is_set() or _ORPHANED.is_set()
 
 
-def _worker_train(job: TrainJob) -> Any:
+def _worker_train(job: TrainJob) -> JobResult:
     """Train one job in a worker; report iterations, stop when the parent asks or dies."""
     pending = 0
     last_sent = time.monotonic()
@@ -234,7 +201,7 @@ def _worker_train(job: TrainJob) -> Any:
 # ------------------------------------------------------------------ parent side
 def _preflight(jobs: Sequence[TrainJob], hint: str) -> dict[str, str]:
     """Decide new/resume/skip for every job before anything runs (errors come first)."""
-    from amuled_ma.learn.experiments import check_inputs, prepare_variant, training_config
+    from amuled_ma.learn.experiments import check_inputs  # here: it imports torch
 
     actions, problems = {}, []
     planned = {j.out_dir.name for j in jobs}
@@ -276,7 +243,7 @@ def run_jobs(
         workers: Worker processes; 1 trains in this process.
         progress: Show progress bars.
         hint: The command that re-runs the graph (its ``--resume`` form is printed on stops).
-        describe: Turns each finished :class:`~amuled_ma.learn.experiments.JobResult`
+        describe: Turns each finished :class:`~amuled_ma.learn.run_folder.JobResult`
             into the line printed about it.
 
     Returns:
@@ -298,8 +265,6 @@ def run_jobs(
             print(describe(result), flush=True)
             results.append(result)
         return JobsOutcome(results, time.perf_counter() - start, 1)
-    from amuled_ma.learn.experiments import JobResult
-
     skipped = {j.name: JobResult(j.variant, j.out_dir, skipped=True) for j in jobs
                if actions[j.name] == "skip"}  # fmt: skip
     for result in skipped.values():

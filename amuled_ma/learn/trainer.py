@@ -1,10 +1,14 @@
-"""Training loops: base PPO training and fine-tuning on fused feedback, on rsl-rl.
+"""Training jobs: base PPO training and fine-tuning on fused feedback, on rsl-rl.
 
-rsl-rl is used as a library: its :class:`~rsl_rl.runners.OnPolicyRunner` builds the
-actor, critic, rollout storage and :class:`~rsl_rl.algorithms.PPO`, and saves and loads
-checkpoints; we drive the iteration loop ourselves (a readable, CleanRL-style loop)
-because fine-tuning has to compute the reward from the policy itself, and because we
-want a progress bar, Ctrl-C checkpoints and learning curves.
+rsl-rl is used through its public API and extension points only. Its
+:class:`~rsl_rl.runners.OnPolicyRunner` builds the actor, critic, rollout storage and the
+algorithm, which is ours by ``class_name``: :class:`~amuled_ma.learn.anchored_ppo.AnchoredPPO`,
+rsl-rl's PPO with the KL anchor of a fine-tune. The environment is the deliberation MDP
+(:class:`~amuled_ma.deliberation.mdp.BatchedDeliberation`, wrapped as rsl-rl's ``VecEnv``
+by :class:`~amuled_ma.learn.vecenv.DeliberationVecEnv`): the same MDP as the PettingZoo
+view. :class:`Trainer` calls ``runner.learn(1)`` once per iteration (rsl-rl's rollout and
+update) and adds what a research run needs around it: the learning-rate schedule, a
+progress bar, learning curves, Ctrl-C and SIGTERM checkpoints, safe resume.
 
 Base training (paper, Simulation Studies): ``r = r_env + c * r_shaping`` with ``c = 0``
 (variant ``base``) or ``c = 1`` (``shaped``); the task computes this sum.
@@ -13,10 +17,12 @@ Fine-tuning (paper, eq. "feedback"): a copy of the base policy keeps training on
 
     r_t = f(B)[a_t] - lambda_KL * (log pi(a_t|s_t) - log pi_base(a_t|s_t))
 
-where ``f(B)`` is the feedback belief for ``s_t`` and ``pi_base`` the frozen base policy.
-The bracket is the per-sample estimator of ``KL(pi || pi_base)``: its expectation over
-``a_t ~ pi`` is the KL divergence, and unlike the closed form it depends on the action,
-so it tells PPO *which* actions move the policy away from the base (see docs/learning.md).
+where ``f(B)`` is the feedback belief for ``s_t`` (the MDP's actor reward,
+:func:`~amuled_ma.deliberation.mdp.actor_reward`) and ``pi_base`` the frozen base policy
+(the anchor, :class:`~amuled_ma.learn.anchored_ppo.AnchoredPPO`). The bracket is the
+per-sample estimator of ``KL(pi || pi_base)``: its expectation over ``a_t ~ pi`` is the KL
+divergence, and unlike the closed form it depends on the action, so it tells PPO *which*
+actions move the policy away from the base (see docs/learning.md).
 """
 
 from __future__ import annotations
@@ -41,72 +47,17 @@ os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
 from rsl_rl.runners import OnPolicyRunner
 
+from amuled_ma.deliberation.mdp import BatchedDeliberation
 from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError, Terminated
-from amuled_ma.learn import fast_ppo
-from amuled_ma.learn.anchors import EpisodeWindowKL, per_sample_kl
-from amuled_ma.learn.checkpoints import TRAINER_KEYS, read_checkpoint
-from amuled_ma.learn.config import rsl_rl_config
-from amuled_ma.learn.distribution import orthogonal_init
-from amuled_ma.learn.fast_ppo import ppo_update
+from amuled_ma.learn.anchored_ppo import AnchoredPPO
+from amuled_ma.learn.checkpoints import LAST, TRAINER_KEYS, read_checkpoint
+from amuled_ma.learn.config import planned_iterations, rsl_rl_config
 from amuled_ma.learn.feedback import Feedback
-from amuled_ma.learn.vecenv import OBS_GROUP, TaskVecEnv
+from amuled_ma.learn.vecenv import DeliberationVecEnv
 from amuled_ma.scenario import Scenario
+from amuled_ma.tasks import make_task
 
-#: Name of the newest checkpoint in a variant folder.
-LAST = "model_last.pt"
-
-
-def make_task(scenario: Scenario, num_envs: int, *, shaping_coef: float, seed: int) -> Any:
-    """Instantiate the scenario's batched task.
-
-    Args:
-        scenario: The scenario.
-        num_envs: Number of copies.
-        shaping_coef: ``c`` of the reward ``r_env + c * r_shaping``.
-        seed: Seed of the task's RNG.
-
-    """
-    from amuled_ma.tasks import get_task
-
-    cls = get_task(scenario.task.name)
-    kwargs: dict[str, Any] = dict(scenario.task.options)
-    if scenario.task.max_steps:
-        kwargs["max_steps"] = scenario.task.max_steps
-    return cls(num_envs, device="cpu", seed=seed, shaping_coef=shaping_coef, **kwargs)
-
-
-def kl_reward(logp: torch.Tensor, logp_base: torch.Tensor, lambda_kl: float) -> torch.Tensor:
-    """Per-sample KL penalty ``-lambda_KL * (log pi(a|s) - log pi_base(a|s))``.
-
-    Args:
-        logp: Log-probability of the taken actions under the trained policy ``[N]``.
-        logp_base: Log-probability of the same actions under the frozen base ``[N]``.
-        lambda_kl: Weight of the anchor.
-
-    Returns:
-        The reward term ``[N]``.
-
-    """
-    return -lambda_kl * per_sample_kl(logp, logp_base)
-
-
-def action_log_probs(actor: torch.nn.Module, obs: torch.Tensor) -> torch.Tensor:
-    """Return ``log pi(.|s)`` ``[N, A]`` of an rsl-rl MLP actor with our categorical head."""
-    return torch.log_softmax(fast_ppo.mlp_forward(actor.mlp, actor.obs_normalizer(obs)), dim=-1)
-
-
-def make_optimizer(alg: Any, lr: float) -> torch.optim.Optimizer:
-    """Adam over actor and critic as CleanRL (``eps = 1e-5``), fused where torch has it.
-
-    rsl-rl builds a plain ``torch.optim.Adam``; on CPU with small nets the per-parameter
-    Python loop of that implementation is a large part of an update, and the fused kernel
-    is about 3x faster (measured on FindMilk updates).
-    """
-    params = [*alg.actor.parameters(), *alg.critic.parameters()]
-    try:
-        return torch.optim.Adam(params, lr=lr, eps=1e-5, fused=True)
-    except (RuntimeError, TypeError):  # pragma: no cover - older torch or device
-        return torch.optim.Adam(params, lr=lr, eps=1e-5, foreach=True)
+__all__ = ["LAST", "TrainOutcome", "Trainer"]
 
 
 @dataclass
@@ -197,7 +148,9 @@ class Trainer:
             if base_checkpoint is None or not Path(base_checkpoint).is_file():
                 raise CheckpointError(f"base checkpoint not found: {base_checkpoint}")
             self.num_envs, self.steps_per_env = ft.num_envs, ft.num_steps_per_env
-            self.total_iterations = ft.iterations if iterations is None else iterations
+            self.total_iterations = (
+                planned_iterations(scenario, finetune=True) if iterations is None else iterations
+            )
             self.lr, self.anneal = ft.learning_rate, ft.anneal_lr
             self.cfg = rsl_rl_config(
                 ppo,
@@ -205,14 +158,15 @@ class Trainer:
                 learning_rate=ft.learning_rate,
                 num_learning_epochs=ft.num_learning_epochs,
                 save_interval=ft.save_interval,
+                lambda_kl=ft.lambda_kl,
+                anchor="window" if ft.recipe == "authors" else "per_sample",
             )
             shaping = 0.0
         else:
             base = scenario.base
             self.num_envs, self.steps_per_env = base.num_envs, base.num_steps_per_env
-            batch = base.num_envs * base.num_steps_per_env
             self.total_iterations = (
-                max(1, base.total_steps // batch) if iterations is None else iterations
+                planned_iterations(scenario, finetune=False) if iterations is None else iterations
             )
             self.lr, self.anneal = ppo.learning_rate, ppo.anneal_lr
             self.cfg = rsl_rl_config(
@@ -235,15 +189,19 @@ class Trainer:
         self.task = (task_factory or make_task)(
             scenario, self.num_envs, shaping_coef=shaping, seed=self.seed
         )
-        self.env = TaskVecEnv(self.task, cfg={"scenario": scenario.name, "variant": variant})
+        # the deliberation MDP: a fine-tune's feedback answers for all copies at once
+        self.mdp = BatchedDeliberation(
+            self.task,
+            feedback,
+            task_weight=scenario.finetune.env_reward_coef if self.finetuning else 1.0,
+            feedback_coef=1.0,
+        )
+        self.env = DeliberationVecEnv(self.mdp, cfg={"scenario": scenario.name, "variant": variant})
         # rsl-rl mutates the dict it is given: hand it a copy, keep the original.
         self.runner: OnPolicyRunner = _quiet(
             lambda: OnPolicyRunner(self.env, copy.deepcopy(self.cfg), log_dir=None, device="cpu")
         )
-        self.alg = self.runner.alg
-        orthogonal_init(self.alg.critic.mlp, last_std=1.0)
-        self.alg.optimizer = make_optimizer(self.alg, self.lr)
-        self.base_actor: torch.nn.Module | None = None
+        self.alg: AnchoredPPO = self.runner.alg
         self.base_checkpoint = Path(base_checkpoint) if base_checkpoint else None
         self.curve: list[dict] = []
         self.wall_offset = 0.0
@@ -253,13 +211,7 @@ class Trainer:
         elif self.finetuning:
             self._init_from_base()
         if self.finetuning:
-            self.base_actor = self._frozen_base()
-        #: the authors' recipe keeps each copy's window of taken-action log-probabilities
-        self.window: EpisodeWindowKL | None = (
-            EpisodeWindowKL(self.num_envs, self.steps_per_env)
-            if self.finetuning and scenario.finetune.recipe == "authors"
-            else None
-        )
+            self.alg.anchor_to(self._base_actor())
 
     # ----------------------------------------------------------------- checkpoints
     def _load_state(self, path: Path, load_cfg: dict | None, what: str) -> dict:
@@ -293,14 +245,12 @@ class Trainer:
         self._load_state(self.base_checkpoint, load_cfg, "base checkpoint")
         self.runner.current_learning_iteration = 0
 
-    def _frozen_base(self) -> torch.nn.Module:
+    def _base_actor(self) -> torch.nn.Module:
+        """An actor with the base checkpoint's weights (the fine-tune's anchor)."""
         actor = copy.deepcopy(self.alg.get_policy())
         assert self.base_checkpoint is not None
         state = read_checkpoint(self.base_checkpoint)
         actor.load_state_dict(state["actor_state_dict"])
-        actor.eval()
-        for p in actor.parameters():
-            p.requires_grad_(False)
         return actor
 
     def save(self, path: Path, *, completed: bool) -> Path:
@@ -328,106 +278,15 @@ class Trainer:
     # ----------------------------------------------------------------- training
     def _set_lr(self, it: int) -> None:
         lr = self.lr * (1.0 - it / self.total_iterations) if self.anneal else self.lr
-        self.alg.learning_rate = lr
-        for group in self.alg.optimizer.param_groups:
-            group["lr"] = lr
+        self.alg.set_learning_rate(lr)
 
-    def _feedback_and_anchor(
-        self, state: torch.Tensor, index: torch.Tensor, logp: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The feedback ``f(B)[a_t]`` and the KL anchor of the recipe, per copy ``[N]``.
+    def _iterate(self) -> None:
+        """One iteration: rsl-rl's rollout and update (``runner.learn(1)``).
 
-        Called before the env step (the feedback is for the state the action was taken in).
+        The runner leaves its iteration counter at the iteration it ran; :meth:`train`
+        advances it.
         """
-        assert self.feedback is not None and self.base_actor is not None
-        beliefs = torch.as_tensor(self.feedback(state, self.task), dtype=torch.float32)
-        fb = beliefs.gather(1, index.unsqueeze(1)).squeeze(1)
-        logp_base = action_log_probs(self.base_actor, state).gather(1, index.unsqueeze(1))
-        if self.window is not None:
-            anchor = self.window.step(logp, logp_base.squeeze(1))
-        else:
-            anchor = per_sample_kl(logp, logp_base.squeeze(1))
-        return fb, anchor
-
-    def _finetune_reward(
-        self,
-        fb: torch.Tensor,
-        anchor: torch.Tensor,
-        r_task: torch.Tensor,
-        dones: torch.Tensor,
-        extras: dict[str, Any],
-    ) -> torch.Tensor:
-        """``f(B)[a] - lambda_KL * anchor (+ env_reward_coef * r_env)``, after the env step."""
-        ft = self.scenario.finetune
-        rewards = fb - ft.lambda_kl * anchor
-        if ft.env_reward_coef:
-            r_env = extras["info"].get("r_env", r_task)
-            rewards = rewards + ft.env_reward_coef * torch.as_tensor(r_env).float()
-        if self.window is not None:
-            self.window.end_episodes(dones)
-        return rewards
-
-    def _rollout(self) -> dict[str, Any]:
-        if not fast_ppo.supports(self.alg):
-            return self._rollout_rsl_rl()
-        alg, env = self.alg, self.env
-        state = env.obs
-        fb_sum, kl_sum, n = 0.0, 0.0, 0
-        if self.window is not None:
-            self.window.start_iteration()
-        with torch.inference_mode():
-            for _ in range(self.steps_per_env):
-                actions, values, logp, log_probs = fast_ppo.act(alg, state)
-                index = actions.argmax(dim=-1)
-                if self.finetuning:
-                    fb, anchor = self._feedback_and_anchor(state, index, logp)
-                    obs, r_task, dones, extras = env.step_tensors(index)
-                    rewards = self._finetune_reward(fb, anchor, r_task, dones, extras)
-                    fb_sum += float(fb.sum())
-                    kl_sum += float(anchor.sum())
-                    n += len(index)
-                else:
-                    obs, rewards, dones, extras = env.step_tensors(index)
-                fast_ppo.record(
-                    alg, state, actions, values, logp, log_probs, rewards, dones,
-                    extras["time_outs"],
-                )  # fmt: skip
-                state = obs
-            alg.compute_returns(env.get_observations())
-        out: dict[str, Any] = {}
-        if n:
-            out["feedback_reward"] = fb_sum / n
-            out["kl"] = kl_sum / n
-        return out
-
-    def _rollout_rsl_rl(self) -> dict[str, Any]:
-        alg, env = self.alg, self.env
-        obs = env.get_observations()
-        fb_sum, kl_sum, n = 0.0, 0.0, 0
-        if self.window is not None:
-            self.window.start_iteration()
-        with torch.inference_mode():
-            for _ in range(self.steps_per_env):
-                state = obs[OBS_GROUP]
-                actions = alg.act(obs)
-                index = actions.argmax(dim=-1)
-                if self.finetuning:
-                    logp = alg.transition.actions_log_prob.reshape(-1)
-                    fb, anchor = self._feedback_and_anchor(state, index, logp)
-                    obs, r_task, dones, extras = env.step(index)
-                    rewards = self._finetune_reward(fb, anchor, r_task, dones, extras)
-                    fb_sum += float(fb.sum())
-                    kl_sum += float(anchor.sum())
-                    n += len(index)
-                else:
-                    obs, rewards, dones, extras = env.step(index)
-                alg.process_env_step(obs, rewards, dones, extras)
-            alg.compute_returns(obs)
-        out: dict[str, Any] = {}
-        if n:
-            out["feedback_reward"] = fb_sum / n
-            out["kl"] = kl_sum / n
-        return out
+        self.runner.learn(1)
 
     def train(self) -> TrainOutcome:
         """Run (or continue) the training loop to its configured number of iterations.
@@ -462,12 +321,12 @@ class Trainer:
         recent: list[dict] = []
         it = start_it
         try:
-            self.alg.train_mode()
             for it in range(start_it, self.total_iterations):
                 self._set_lr(it)
-                extra = self._rollout()
-                losses = ppo_update(self.alg)  # = self.alg.update(), bit for bit, leaner
+                self._iterate()
                 self.runner.current_learning_iteration = it + 1
+                losses = self.alg.last_losses
+                extra = self.alg.rollout_stats()
                 self.wall_offset = wall0 + time.perf_counter() - t0
                 episodes = self.env.drain_episodes()
                 recent = (recent + episodes)[-100:]
@@ -549,42 +408,3 @@ class Trainer:
         """Return the trained actor (an rsl-rl ``MLPModel``) in eval mode."""
         self.alg.eval_mode()
         return self.alg.get_policy()
-
-
-def load_policy(checkpoint: Path, scenario: Scenario) -> torch.nn.Module:
-    """Load the actor of a checkpoint for evaluation.
-
-    Args:
-        checkpoint: A checkpoint written by :class:`Trainer`.
-        scenario: The scenario it was trained on (network shape).
-
-    Returns:
-        The actor in eval mode; call :func:`action_log_probs` on observations.
-
-    Raises:
-        CheckpointError: The file is missing or unreadable.
-
-    """
-    from rsl_rl.models import MLPModel
-    from tensordict import TensorDict
-
-    state = read_checkpoint(checkpoint)
-    infos = state.get("infos") or {}
-    weights = state["actor_state_dict"]
-    try:
-        obs_dim = (
-            infos.get("obs_dim") or next(v for k, v in weights.items() if "weight" in k).shape[1]
-        )
-        num_actions = infos.get("num_actions") or list(weights.values())[-1].shape[0]
-        cfg = rsl_rl_config(scenario.ppo, num_steps_per_env=1)["actor"]
-        cfg.pop("class_name")
-        obs = TensorDict({OBS_GROUP: torch.zeros(1, obs_dim)}, batch_size=[1])
-        actor = MLPModel(obs, {"actor": [OBS_GROUP]}, "actor", num_actions, **cfg)
-        actor.load_state_dict(weights)
-    except (AttributeError, IndexError, RuntimeError, StopIteration, TypeError) as error:
-        raise CheckpointError(
-            f"checkpoint {checkpoint}: its actor does not fit the scenario's network ({error}); "
-            "evaluate it with the scenario it was trained on, or retrain it with --force"
-        ) from error
-    actor.eval()
-    return actor

@@ -19,72 +19,64 @@ This package imports torch lazily: ``import amuled_ma`` only registers the Gymna
 
 from __future__ import annotations
 
-import importlib
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from typing import TYPE_CHECKING, Any
 
-from amuled_ma.errors import ScenarioError
+from amuled_ma.tasks.names import canonical_name
 
 if TYPE_CHECKING:
     from amuled_ma.tasks.base import BatchedTask
     from amuled_ma.tasks.driving import Driving
     from amuled_ma.tasks.findmilk import FindMilk
 
-__all__ = ["TASKS", "BatchedTask", "Driving", "FindMilk", "get_task", "make_batched"]
+__all__ = [
+    "TASKS",
+    "BatchedTask",
+    "Driving",
+    "FindMilk",
+    "canonical_name",
+    "get_task",
+    "make_batched",
+]
 
-# task name -> "module:Class" of its batched core
-_ENTRY_POINTS: dict[str, str] = {
-    "findmilk": "amuled_ma.tasks.findmilk:FindMilk",
-    "driving": "amuled_ma.tasks.driving:Driving",
+
+def _findmilk() -> type[BatchedTask]:
+    from amuled_ma.tasks.findmilk import FindMilk  # here: a task module imports torch
+
+    return FindMilk
+
+
+def _driving() -> type[BatchedTask]:
+    from amuled_ma.tasks.driving import Driving  # here: a task module imports torch
+
+    return Driving
+
+
+# task name -> the function importing its batched core
+_LOADERS: dict[str, Callable[[], type[BatchedTask]]] = {
+    "findmilk": _findmilk,
+    "driving": _driving,
 }
-# other spellings accepted by get_task (compared lower-case)
-_ALIASES: dict[str, str] = {
-    "amuled/findmilk-v0": "findmilk",
-    "find_milk": "findmilk",
-    "amuled/driving-v0": "driving",
-    "driving_and_rescuing": "driving",
-}
-
-
-def _load(entry_point: str) -> type[BatchedTask]:
-    module, _, attr = entry_point.partition(":")
-    return getattr(importlib.import_module(module), attr)
 
 
 class _TaskRegistry(Mapping[str, "type[BatchedTask]"]):
     """Read-only mapping ``task name -> batched task class``, importing on first use."""
 
     def __getitem__(self, name: str) -> type[BatchedTask]:
-        return _load(_ENTRY_POINTS[name])
+        return _LOADERS[name]()
 
     def __iter__(self) -> Iterator[str]:
-        return iter(_ENTRY_POINTS)
+        return iter(_LOADERS)
 
     def __len__(self) -> int:
-        return len(_ENTRY_POINTS)
+        return len(_LOADERS)
 
     def __repr__(self) -> str:
-        return f"TASKS({', '.join(_ENTRY_POINTS)})"
+        return f"TASKS({', '.join(_LOADERS)})"
 
 
 TASKS: Mapping[str, type[BatchedTask]] = _TaskRegistry()
 """Registry of the tasks by short name (``"findmilk"``, ``"driving"``)."""
-
-
-def canonical_name(name: str) -> str:
-    """Return the short task name for ``name`` (short name, alias or Gymnasium id).
-
-    Raises:
-        ValueError: Unknown task; the message lists the known ones.
-
-    """
-    if not isinstance(name, str):
-        raise ScenarioError(f"name: expected a task name, got {name!r}")
-    key = name.strip().lower()
-    key = _ALIASES.get(key, key)
-    if key not in _ENTRY_POINTS:
-        raise ScenarioError(f"name: unknown task {name!r}; known tasks: {', '.join(_ENTRY_POINTS)}")
-    return key
 
 
 def get_task(name: str) -> type[BatchedTask]:
@@ -113,6 +105,32 @@ def make_batched(name: str, num_envs: int = 1, **kwargs: Any) -> BatchedTask:
 
     """
     return get_task(name)(num_envs, **kwargs)
+
+
+def make_task(scenario: Any, num_envs: int, *, shaping_coef: float, seed: int) -> BatchedTask:
+    """Create ``num_envs`` copies of a scenario's task, on the CPU.
+
+    Args:
+        scenario: The scenario (its ``[task]`` section: name, options, ``max_steps``).
+        num_envs: Number of copies.
+        shaping_coef: ``c`` of the reward ``r_env + c * r_shaping``.
+        seed: Seed of the task's RNG.
+
+    Returns:
+        The batched task.
+
+    """
+    kwargs: dict[str, Any] = dict(scenario.task.options)
+    if scenario.task.max_steps:
+        kwargs["max_steps"] = scenario.task.max_steps
+    return make_batched(
+        scenario.task.name,
+        num_envs,
+        device="cpu",
+        seed=seed,
+        shaping_coef=shaping_coef,
+        **kwargs,
+    )
 
 
 def __getattr__(attr: str) -> Any:

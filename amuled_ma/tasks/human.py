@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from amuled_ma.tasks import canonical_name
+from amuled_ma.tasks.names import canonical_name
 
 __all__ = ["human_belief"]
 

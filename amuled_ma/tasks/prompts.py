@@ -28,7 +28,7 @@ from typing import Any
 
 from amuled_ma.errors import PromptError
 from amuled_ma.resources import prompts_dir, read_text
-from amuled_ma.tasks import canonical_name
+from amuled_ma.tasks.names import canonical_name
 
 __all__ = ["Fragment", "StateTemplate", "load_template", "render_state_prompt", "template_path"]
 

@@ -14,7 +14,7 @@ from authors_fakes import (
 
 from amuled_ma.cli import main
 from amuled_ma.learn.checkpoints import TRAINER_KEYS, read_checkpoint
-from amuled_ma.learn.trainer import action_log_probs, load_policy
+from amuled_ma.learn.policies import action_log_probs, load_policy
 from amuled_ma.scenario import scenario_from_dict
 
 

@@ -24,7 +24,7 @@ GOOD = json.dumps({"reasoning": "go", "0": 0.7, "1": 0.1, "2": 0.1, "3": 0.1})
 
 
 class FakeServer:
-    """A minimal Ollama API: /api/tags and /api/chat, with scripted replies."""
+    """A minimal Ollama API: /api/version, /api/tags and /api/chat, with scripted replies."""
 
     def __init__(self, replies=None, models=("amuled-tiny:latest",), delay=0.0):
         self.replies = replies or (lambda body, n: GOOD)
@@ -36,6 +36,8 @@ class FakeServer:
         self.lock = threading.Lock()
 
     def __call__(self, request: httpx.Request) -> httpx.Response:
+        if request.url.path == "/api/version":
+            return httpx.Response(200, json={"version": "0.0.0-fake"})
         if request.url.path == "/api/tags":
             models = [{"model": m, "name": m, "digest": "sha256:abc"} for m in self.models]
             return httpx.Response(200, json={"models": models})

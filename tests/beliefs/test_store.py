@@ -12,12 +12,10 @@ import textwrap
 import numpy as np
 import pytest
 
-from amuled_ma.beliefs.store import (
-    BeliefStore,
-    BeliefStoreError,
-    canonical_json,
-    request_key,
-)
+from amuled_ma.beliefs.interchange import export_jsonl, import_jsonl, row_json
+from amuled_ma.beliefs.keys import canonical_json, request_key
+from amuled_ma.beliefs.rows import BeliefStoreError
+from amuled_ma.beliefs.store import BeliefStore
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
 
 ACTIONS = ("up", "down", "left", "right")
@@ -199,22 +197,22 @@ def test_export_import_round_trip(tmp_path, store):
         )
     store.put_many(items)
     buf = io.StringIO()
-    assert store.export_jsonl(buf) == 30
+    assert export_jsonl(store, buf) == 30
     lines = buf.getvalue().splitlines()
     assert len(lines) == 30 and json.loads(lines[0])["belief"] == [1.0, 0.0, 0.0, 0.0]
 
     with BeliefStore(tmp_path / "laptop.sqlite") as other:
-        assert other.import_jsonl(io.StringIO(buf.getvalue())) == {"read": 30, "written": 30}
-        a = {r.key: r.to_json() for r in store.iter_rows()}
-        b = {r.key: r.to_json() for r in other.iter_rows()}
+        assert import_jsonl(other, io.StringIO(buf.getvalue())) == {"read": 30, "written": 30}
+        a = {r.key: row_json(r) for r in store.iter_rows()}
+        b = {r.key: row_json(r) for r in other.iter_rows()}
         assert a == b
         # importing again changes nothing (answers are never replaced; failures are
         # replaced by the same failure, which counts an attempt)
-        again = other.import_jsonl(io.StringIO(buf.getvalue()))
+        again = import_jsonl(other, io.StringIO(buf.getvalue()))
         assert again == {"read": 30, "written": 10}
         assert other.integrity_check() == ["ok"]
     buf2 = io.StringIO()
-    store.export_jsonl(buf2, status=["ok"])
+    export_jsonl(store, buf2, status=["ok"])
     assert len(buf2.getvalue().splitlines()) == 10
 
 
@@ -231,8 +229,8 @@ def test_import_rejects_bad_rows(store):
         "status": "ok",
     }
     with pytest.raises(BeliefStoreError, match=r"f.jsonl:1: key"):
-        store.import_jsonl(io.StringIO(json.dumps(good)), name="f.jsonl")
-    store.import_jsonl(io.StringIO(json.dumps(good)), verify=False)
+        import_jsonl(store, io.StringIO(json.dumps(good)), name="f.jsonl")
+    import_jsonl(store, io.StringIO(json.dumps(good)), verify=False)
     assert "k" in store
     for bad, match in [
         ({**good, "status": "great"}, "status"),
@@ -240,9 +238,9 @@ def test_import_rejects_bad_rows(store):
         ({k: v for k, v in good.items() if k != "task"}, "missing field"),
     ]:
         with pytest.raises(BeliefStoreError, match=match):
-            store.import_jsonl(io.StringIO("\n" + json.dumps(bad)), name="x", verify=False)
+            import_jsonl(store, io.StringIO("\n" + json.dumps(bad)), name="x", verify=False)
     with pytest.raises(BeliefStoreError, match="x:1: not JSON"):
-        store.import_jsonl(io.StringIO("{oops"), name="x")
+        import_jsonl(store, io.StringIO("{oops"), name="x")
 
 
 def test_not_a_store(tmp_path):
@@ -255,7 +253,8 @@ def test_not_a_store(tmp_path):
 _WRITER = textwrap.dedent(
     """
     import sys, numpy as np
-    from amuled_ma.beliefs.store import BeliefStore, request_key
+    from amuled_ma.beliefs.keys import request_key
+    from amuled_ma.beliefs.store import BeliefStore
     from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
     path, wid, n = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
     ident = {"source": "scripted"}

@@ -7,7 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from amuled_ma.beliefs.store import BeliefStore, request_key
+from amuled_ma.beliefs.interchange import row_json
+from amuled_ma.beliefs.keys import request_key
+from amuled_ma.beliefs.store import BeliefStore
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
 from amuled_ma.cli import main
 
@@ -38,7 +40,7 @@ def test_export_import_round_trip_cli(tmp_path, capsys):
     assert main(["beliefs", "import", "--store", str(laptop), str(dump)]) == 0
     assert "read 12 rows, wrote 12" in capsys.readouterr().out
     with BeliefStore(gpu) as a, BeliefStore(laptop) as b:
-        assert [r.to_json() for r in a.iter_rows()] == [r.to_json() for r in b.iter_rows()]
+        assert [row_json(r) for r in a.iter_rows()] == [row_json(r) for r in b.iter_rows()]
     # only answers, one task
     ok = tmp_path / "ok.jsonl"
     assert main(["beliefs", "export", "--store", str(gpu), "-o", str(ok), "--status", "ok"]) == 0
@@ -186,7 +188,7 @@ def test_read_only_open_of_a_read_only_file_in_a_writable_folder(tmp_path):
 
 
 def test_read_only_store_in_process(tmp_path):
-    from amuled_ma.beliefs.store import BeliefStoreError
+    from amuled_ma.beliefs.rows import BeliefStoreError
 
     missing = tmp_path / "sub" / "none.sqlite"
     with pytest.raises(

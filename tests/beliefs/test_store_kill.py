@@ -25,7 +25,8 @@ BATCH = 40
 _CHILD = textwrap.dedent(
     """
     import sys, time, numpy as np
-    from amuled_ma.beliefs.store import BeliefStore, request_key, _UPSERT
+    from amuled_ma.beliefs.keys import request_key
+    from amuled_ma.beliefs.store import BeliefStore, _UPSERT
     from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
     path, mode, batch = sys.argv[1], sys.argv[2], int(sys.argv[3])
     ident = {"source": "scripted", "model": "m"}

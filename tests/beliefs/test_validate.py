@@ -20,8 +20,11 @@ import pytest
 
 from amuled_ma.beliefs import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.beliefs.cached import CachedSource
+from amuled_ma.beliefs.interchange import export_jsonl, import_jsonl
+from amuled_ma.beliefs.keys import request_key
 from amuled_ma.beliefs.replay import ReplaySource
-from amuled_ma.beliefs.store import BeliefStore, BeliefStoreError, request_key
+from amuled_ma.beliefs.rows import BeliefStoreError
+from amuled_ma.beliefs.store import BeliefStore
 from amuled_ma.beliefs.validate import (
     SUM_TOLERANCE,
     InvalidBeliefError,
@@ -239,7 +242,7 @@ def test_a_damaged_row_is_our_error_at_every_read(tmp_path, text, found):
             lambda: store.lookup([key]),
             lambda: store.get(key),
             lambda: list(store.iter_rows()),
-            lambda: store.export_jsonl(io.StringIO()),
+            lambda: export_jsonl(store, io.StringIO()),
         ]
         for read in reads:
             with pytest.raises(BeliefStoreError) as info:
@@ -276,7 +279,7 @@ def test_import_refuses_each_bad_belief(tmp_path, name, values, reason):
     text = json.dumps(row_json([1.0, 0.0, 0.0, 0.0], i=3)) + "\n" + json.dumps(row_json(values))
     with BeliefStore(tmp_path / "s.sqlite") as store:
         with pytest.raises(BeliefStoreError) as info:
-            store.import_jsonl(io.StringIO(text + "\n"), name="dump.jsonl")
+            import_jsonl(store, io.StringIO(text + "\n"), name="dump.jsonl")
         message = str(info.value)
         assert message.startswith("dump.jsonl:2")
         if "nan" in name or name == "inf":  # json.dumps wrote a NaN/Infinity literal
@@ -291,16 +294,16 @@ def test_import_refuses_non_standard_json_anywhere(tmp_path, literal):
     line = json.dumps(row_json([1.0, 0.0, 0.0, 0.0])).replace('"raw": null', f'"raw": {literal}')
     match = rf"f\.jsonl:1: not JSON \({literal} is not"
     with BeliefStore(tmp_path / "s.sqlite") as store, pytest.raises(BeliefStoreError, match=match):
-        store.import_jsonl(io.StringIO(line), name="f.jsonl")
+        import_jsonl(store, io.StringIO(line), name="f.jsonl")
 
 
 def test_import_refuses_deep_nesting_and_non_objects(tmp_path):
     deep = '{"key": ' + "[" * 100_000 + "]" * 100_000 + "}"
     with BeliefStore(tmp_path / "s.sqlite") as store:
         with pytest.raises(BeliefStoreError, match=r"d\.jsonl:2: not JSON \(nested deeper"):
-            store.import_jsonl(io.StringIO("\n" + deep + "\n"), name="d.jsonl")
+            import_jsonl(store, io.StringIO("\n" + deep + "\n"), name="d.jsonl")
         with pytest.raises(BeliefStoreError, match=r"d\.jsonl:1: expected a JSON object"):
-            store.import_jsonl(io.StringIO("[1, 2]\n"), name="d.jsonl")
+            import_jsonl(store, io.StringIO("[1, 2]\n"), name="d.jsonl")
 
 
 def test_export_writes_standard_json_only(tmp_path):
@@ -314,7 +317,7 @@ def test_export_writes_standard_json_only(tmp_path):
         )
         store.put(request_key(IDENT, req()), IDENT, req(), r)
         buf = io.StringIO()
-        assert store.export_jsonl(buf) == 1
+        assert export_jsonl(store, buf) == 1
     row = strict_loads(buf.getvalue())  # no NaN/Infinity anywhere in the line
     assert row["belief"] == [0.7, 0.1, 0.1, 0.1]
     assert row["extra"] == {"score": "nan", "nested": {"big": "inf"}}
@@ -397,6 +400,8 @@ def test_ollama_never_answers_ok_with_an_invalid_belief(monkeypatch):
     )
 
     def server(request: httpx.Request) -> httpx.Response:
+        if request.url.path == "/api/version":
+            return httpx.Response(200, json={"version": "0.0.0-fake"})
         if request.url.path == "/api/tags":
             return httpx.Response(200, json={"models": [{"model": "m:latest", "digest": "d"}]})
         content = next(replies)

@@ -4,7 +4,8 @@ from fake_task import grid_factory
 
 from amuled_ma.evaluate.evaluator import evaluate_run, run_episodes
 from amuled_ma.evaluate.report import write_report
-from amuled_ma.learn.trainer import Trainer, load_policy
+from amuled_ma.learn.policies import load_policy
+from amuled_ma.learn.trainer import Trainer
 from amuled_ma.scenario import scenario_from_dict
 
 

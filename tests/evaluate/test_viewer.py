@@ -30,7 +30,8 @@ from amuled_ma.commands._experiment import scenario_of_run
 from amuled_ma.evaluate import episode_trace as trace
 from amuled_ma.evaluate import viewer
 from amuled_ma.learn.feedback import make_feedback
-from amuled_ma.learn.trainer import action_log_probs, load_policy, make_task
+from amuled_ma.learn.policies import action_log_probs, load_policy
+from amuled_ma.tasks import make_task
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path("/usr/bin/chromedriver")

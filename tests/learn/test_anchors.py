@@ -88,7 +88,7 @@ def test_authors_recipe_fine_tune_trains_and_logs_its_anchor(tiny_scenario, fact
         scenario, tmp_path / "tune", variant="finetune:left", feedback=feedback,
         base_checkpoint=base.checkpoint, task_factory=factory,
     )  # fmt: skip
-    assert trainer.window is not None
+    assert trainer.alg.window is not None
     out = trainer.train()
     kls = [row["feedback/kl"] for row in out.curve]
     # a window-KL is never negative (a KL divergence), and the windows of several steps
@@ -98,4 +98,4 @@ def test_authors_recipe_fine_tune_trains_and_logs_its_anchor(tiny_scenario, fact
         tiny_scenario, tmp_path / "eq", variant="finetune:left", feedback=feedback,
         base_checkpoint=base.checkpoint, task_factory=factory,
     )  # fmt: skip
-    assert equation.window is None
+    assert equation.alg.window is None

@@ -7,13 +7,14 @@ import torch
 
 from amuled_ma.beliefs.types import BeliefResult, BeliefSource
 from amuled_ma.errors import ScenarioError
-from amuled_ma.learn.experiments import ablation_variants, variant_dir_name
+from amuled_ma.learn.experiments import ablation_variants
 from amuled_ma.learn.feedback import (
     CallableFeedback,
     PanelFeedback,
     parse_variant,
     summary_lines,
 )
+from amuled_ma.learn.run_folder import variant_dir_name
 from amuled_ma.scenario import scenario_from_dict
 
 MILK = ("up", "down", "left", "right")
@@ -125,10 +126,11 @@ def test_make_source_preflight_fails_before_writing(tmp_path):
             Down.closed = True
 
     register_source("down-for-test", lambda **_: Down())
-    import dataclasses
-
     sc = scenario_from_dict({})
-    sc = dataclasses.replace(sc, feedback=dataclasses.replace(sc.feedback, source="down-for-test"))
+    # a plug-in source kind is no choice of a scenario file: set it without validation
+    sc = sc.model_copy(
+        update={"feedback": sc.feedback.model_copy(update={"source": "down-for-test"})}
+    )
     with pytest.raises(BackendUnavailable):
         make_source(sc, tmp_path / "run")
     assert Down.closed

@@ -2,7 +2,12 @@ import math
 
 import torch
 
-from amuled_ma.learn.trainer import kl_reward
+from amuled_ma.learn.anchors import per_sample_kl
+
+
+def kl_reward(logp: torch.Tensor, logp_base: torch.Tensor, lam: float) -> torch.Tensor:
+    # the anchor term of the reward, as AnchoredPPO subtracts it
+    return -lam * per_sample_kl(logp, logp_base)
 
 
 def test_kl_reward_hand_computed():

@@ -5,8 +5,10 @@ import pytest
 import torch
 
 from amuled_ma.errors import CheckpointError
+from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.feedback import CallableFeedback
-from amuled_ma.learn.trainer import LAST, Trainer, action_log_probs, load_policy
+from amuled_ma.learn.policies import action_log_probs, load_policy
+from amuled_ma.learn.trainer import Trainer
 
 
 def test_base_training_writes_checkpoint_curve_and_config(tmp_path, tiny_scenario, factory):

@@ -8,7 +8,7 @@ import pytest
 
 from amuled_ma.cli import main
 from amuled_ma.errors import BackendUnavailable, ScenarioError
-from amuled_ma.learn.experiments import checkpoint_state
+from amuled_ma.learn.run_folder import checkpoint_state
 
 TINY = [
     "--set", "base.total_steps=1024",
@@ -31,7 +31,7 @@ def test_backend_down_mid_finetune_writes_checkpoint_and_resume_command(
 
     run_dir = tmp_path / "run"
     assert main(["train", "findmilk", "--variant", "base", "--run-dir", str(run_dir), *TINY]) == 0
-    original = trainer_mod.Trainer._rollout
+    original = trainer_mod.Trainer._iterate
     calls = {"n": 0}
 
     def server_dies_in_second_iteration(self):
@@ -40,7 +40,7 @@ def test_backend_down_mid_finetune_writes_checkpoint_and_resume_command(
             raise BackendUnavailable("no Ollama server answers at http://127.0.0.1:9 (test)")
         return original(self)
 
-    monkeypatch.setattr(trainer_mod.Trainer, "_rollout", server_dies_in_second_iteration)
+    monkeypatch.setattr(trainer_mod.Trainer, "_iterate", server_dies_in_second_iteration)
     finetune = ["finetune", "findmilk", "--feedback", "human", "--run-dir", str(run_dir), *TINY]
     assert main(finetune) == 1
     err = capsys.readouterr().err
@@ -50,7 +50,7 @@ def test_backend_down_mid_finetune_writes_checkpoint_and_resume_command(
     assert "resume with: amuled finetune findmilk" in err and "--resume" in err
     assert "no Ollama server answers" in err
 
-    monkeypatch.setattr(trainer_mod.Trainer, "_rollout", original)
+    monkeypatch.setattr(trainer_mod.Trainer, "_iterate", original)
     assert main([*finetune, "--resume"]) == 0
     state = checkpoint_state(run_dir / "finetune-human" / "model_last.pt")
     assert state["completed"] is True and calls["n"] == 2  # resumed with the original rollout

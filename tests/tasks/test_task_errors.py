@@ -10,6 +10,7 @@ import torch
 import amuled_ma  # noqa: F401
 from amuled_ma.tasks import TASKS, get_task, make_batched
 from amuled_ma.tasks.gym_env import DrivingEnv
+from amuled_ma.tasks.names import TASK_NAMES
 
 
 @pytest.mark.parametrize("name", ["findmilk", "driving"])
@@ -86,7 +87,7 @@ def test_step_before_reset_and_render_arguments():
 
 
 def test_registry():
-    assert set(TASKS) == {"findmilk", "driving"}
+    assert tuple(TASKS) == TASK_NAMES == ("findmilk", "driving")
     assert get_task("amuled/FindMilk-v0") is TASKS["findmilk"]
     assert get_task("DRIVING").name == "driving"
     with pytest.raises(ValueError, match="unknown task"):

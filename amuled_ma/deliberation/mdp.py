@@ -1,0 +1,179 @@
+"""The deliberation MDP, batched: N task copies, a panel, and the actor's reward, defined once.
+
+Both views of a deliberation step run through :class:`BatchedDeliberation`:
+
+- the learner (:class:`~amuled_ma.learn.vecenv.DeliberationVecEnv`, rsl-rl's ``VecEnv``)
+  trains in it with ``N`` copies; its feedback (a moral panel over a belief source, a
+  replay, a demonstrator, ...) answers for all ``N`` states in one call;
+- the PettingZoo :class:`~amuled_ma.deliberation.env.DeliberationEnv` is the same MDP with
+  one copy, where the cluster agents' actions are the beliefs and its arbiter fuses them.
+
+Each step, the fused belief of the state the action is taken in is read *before* the task
+steps, then the task steps, then :func:`actor_reward` turns the task reward and the fused
+belief of the taken action into the actor's reward. The KL anchor to the base policy is
+not part of the MDP: it needs the policies, so the learner adds it
+(:class:`~amuled_ma.learn.anchored_ppo.AnchoredPPO`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+#: ``(observations [N, obs_dim], task) -> fused beliefs [N, A]``: a learner's feedback
+#: (:class:`~amuled_ma.learn.feedback.Feedback`) or any callable of that shape.
+FeedbackFn = Callable[[torch.Tensor, Any], Any]
+
+
+def actor_reward(
+    r_task: torch.Tensor,
+    fused_taken: torch.Tensor | None,
+    *,
+    task_weight: float,
+    feedback_coef: float,
+) -> torch.Tensor:
+    """The actor's reward: ``task_weight * r_task + feedback_coef * fused[a]``.
+
+    The one definition used by training and by the PettingZoo view. ``r_task`` is the
+    task's reward, ``r_env + shaping_coef * r_shaping`` (the task computes that sum), and
+    ``fused[a]`` the fused belief of the action taken in the state it was taken in. Base
+    training has no feedback (``fused_taken`` is None) and is rewarded ``task_weight *
+    r_task``.
+
+    Args:
+        r_task: Task reward per copy ``[N]``.
+        fused_taken: Fused belief of each copy's action ``[N]``, or None (no feedback).
+        task_weight: Weight of the task reward (``[finetune] env_reward_coef`` when
+            fine-tuning, 1 in base training, ``r_env_weight`` in the PettingZoo env).
+        feedback_coef: Weight ``c`` of the feedback term.
+
+    Returns:
+        The reward ``[N]``, in the dtype of the inputs.
+
+    """
+    if fused_taken is None:
+        return task_weight * r_task
+    return task_weight * r_task + feedback_coef * fused_taken
+
+
+def as_tensor(value: Any, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """Return ``value`` as a ``dtype`` tensor on ``device`` (itself when it already is one)."""
+    if isinstance(value, torch.Tensor) and value.dtype == dtype and value.device == device:
+        return value
+    return torch.as_tensor(value, device=device).to(dtype)
+
+
+@dataclass
+class DeliberationStep:
+    """What one batched step returns.
+
+    Attributes:
+        obs: Next observations ``[N, obs_dim]`` (after the task's automatic reset).
+        reward: The actor's reward ``[N]`` (:func:`actor_reward`).
+        terminated: ``[N]`` bool.
+        truncated: ``[N]`` bool.
+        info: The task's info (``r_env``, ``r_shaping``, ``final_obs``, ``episode``, ...).
+        r_task: The task reward ``[N]``.
+        fused: The fused beliefs of the states the actions were taken in ``[N, A]``, or
+            None without feedback.
+        feedback: ``fused[a]`` per copy ``[N]``, or None without feedback.
+
+    """
+
+    obs: torch.Tensor
+    reward: torch.Tensor
+    terminated: torch.Tensor
+    truncated: torch.Tensor
+    info: dict[str, Any]
+    r_task: torch.Tensor
+    fused: torch.Tensor | None
+    feedback: torch.Tensor | None
+
+
+class BatchedDeliberation:
+    """``N`` copies of a task, the feedback that answers for them, and the actor's reward.
+
+    Call :meth:`reset` before the first :meth:`step`.
+
+    Args:
+        task: A batched task (:mod:`amuled_ma.tasks`), any number of copies.
+        feedback: Answers the fused beliefs of all copies' states in one call; None for base
+            training or when the caller passes the fused beliefs to :meth:`step` itself.
+        task_weight: Weight of the task reward in the actor's reward.
+        feedback_coef: Weight of the fused belief of the action taken.
+
+    """
+
+    def __init__(
+        self,
+        task: Any,
+        feedback: FeedbackFn | None = None,
+        *,
+        task_weight: float = 1.0,
+        feedback_coef: float = 1.0,
+    ) -> None:
+        self.task = task
+        self.feedback = feedback
+        self.task_weight = float(task_weight)
+        self.feedback_coef = float(feedback_coef)
+        self.num_envs = int(task.num_envs)
+        self.num_actions = int(task.num_actions)
+        self.device = torch.device(getattr(task, "device", "cpu"))
+        #: The current observations ``[N, obs_dim]``; set by :meth:`reset`.
+        self.obs = torch.zeros(self.num_envs, int(task.obs_dim), device=self.device)
+
+    def _as(self, value: Any, dtype: torch.dtype) -> torch.Tensor:
+        return as_tensor(value, dtype, self.device)
+
+    def reset(self, seed: int | None = None) -> torch.Tensor:
+        """Reset every copy (seeding the task when ``seed`` is given); return observations."""
+        obs = self.task.reset() if seed is None else self.task.reset(seed=seed)
+        self.obs = self._as(obs, torch.float32)
+        return self.obs
+
+    def beliefs(self) -> torch.Tensor | None:
+        """The feedback's fused beliefs ``[N, A]`` for the current states (None without)."""
+        if self.feedback is None:
+            return None
+        return self._as(self.feedback(self.obs, self.task), torch.float32)
+
+    def step(self, actions: torch.Tensor, fused: Any | None = None) -> DeliberationStep:
+        """Read the fused beliefs of the current states, step the task, reward the actor.
+
+        Args:
+            actions: Action index per copy ``[N]`` (long).
+            fused: The fused beliefs ``[N, A]`` of the current states, when the caller has
+                them (the PettingZoo view fuses its cluster agents' actions); None asks
+                :attr:`feedback` (or gives no feedback term when there is none).
+
+        Returns:
+            The step (:class:`DeliberationStep`).
+
+        """
+        if fused is None:
+            fused = self.beliefs()
+        elif not isinstance(fused, torch.Tensor):
+            fused = torch.as_tensor(np.asarray(fused), device=self.device)
+        taken = None
+        if fused is not None:
+            taken = fused.gather(1, actions.reshape(-1, 1).to(fused.device)).squeeze(1)
+        obs, r_task, terminated, truncated, info = self.task.step(actions)
+        self.obs = self._as(obs, torch.float32)
+        r_task = self._as(r_task, torch.float32 if taken is None else taken.dtype)
+        reward = actor_reward(
+            r_task, taken, task_weight=self.task_weight, feedback_coef=self.feedback_coef
+        )
+        return DeliberationStep(
+            obs=self.obs,
+            reward=reward,
+            terminated=self._as(terminated, torch.bool),
+            truncated=self._as(truncated, torch.bool),
+            info=info,
+            r_task=r_task,
+            fused=fused,
+            feedback=taken,
+        )

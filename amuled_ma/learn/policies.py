@@ -1,0 +1,87 @@
+"""Trained policies outside training: load an actor from a checkpoint, read its probabilities.
+
+Evaluation, the viewer and the authors' importer use these without importing the
+trainer. Both go through rsl-rl's public model API only: an actor is an rsl-rl
+``MLPModel`` with our categorical head (:mod:`amuled_ma.learn.distribution`), built from
+the same configuration as in training (:func:`~amuled_ma.learn.config.rsl_rl_config`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict
+
+from amuled_ma.errors import CheckpointError
+from amuled_ma.learn.checkpoints import read_checkpoint
+from amuled_ma.learn.config import OBS_GROUP, rsl_rl_config
+
+
+def action_log_probs(actor: torch.nn.Module, obs: torch.Tensor) -> torch.Tensor:
+    """Return ``log pi(.|s)`` ``[N, A]`` of an rsl-rl actor with our categorical head.
+
+    A forward pass sets the head's distribution from the logits (deterministic passes
+    too, see :meth:`~amuled_ma.learn.distribution.CategoricalDistribution.deterministic_output`);
+    its parameters are the normalised log-probabilities.
+
+    Args:
+        actor: An rsl-rl ``MLPModel`` reading the observation group ``"policy"``.
+        obs: Observations ``[N, obs_dim]``.
+
+    """
+    actor(TensorDict({OBS_GROUP: obs}, batch_size=[obs.shape[0]], device=obs.device))
+    (log_probs,) = actor.output_distribution_params
+    return log_probs
+
+
+def build_model(ppo: Any, role: str, obs_dim: int, outputs: int) -> torch.nn.Module:
+    """Build an untrained actor or critic of the scenario's network shape (rsl-rl ``MLPModel``).
+
+    Args:
+        ppo: The scenario's ``[ppo]`` settings (hidden sizes, activation).
+        role: ``"actor"`` (our categorical head) or ``"critic"``.
+        obs_dim: Observation size.
+        outputs: Number of actions (actor) or 1 (critic).
+
+    """
+    from rsl_rl.models import MLPModel
+
+    cfg = dict(rsl_rl_config(ppo, num_steps_per_env=1)[role])
+    cfg.pop("class_name")
+    obs = TensorDict({OBS_GROUP: torch.zeros(1, obs_dim)}, batch_size=[1])
+    return MLPModel(obs, {role: [OBS_GROUP]}, role, outputs, **cfg)
+
+
+def load_policy(checkpoint: Path, scenario: Any) -> torch.nn.Module:
+    """Load the actor of a checkpoint for evaluation.
+
+    Args:
+        checkpoint: A checkpoint written by :class:`~amuled_ma.learn.trainer.Trainer`.
+        scenario: The scenario it was trained on (network shape).
+
+    Returns:
+        The actor in eval mode; call :func:`action_log_probs` on observations.
+
+    Raises:
+        CheckpointError: The file is missing or unreadable, or its actor does not fit.
+
+    """
+    state = read_checkpoint(checkpoint)
+    infos = state.get("infos") or {}
+    weights = state["actor_state_dict"]
+    try:
+        obs_dim = (
+            infos.get("obs_dim") or next(v for k, v in weights.items() if "weight" in k).shape[1]
+        )
+        num_actions = infos.get("num_actions") or list(weights.values())[-1].shape[0]
+        actor = build_model(scenario.ppo, "actor", int(obs_dim), int(num_actions))
+        actor.load_state_dict(weights)
+    except (AttributeError, IndexError, RuntimeError, StopIteration, TypeError) as error:
+        raise CheckpointError(
+            f"checkpoint {checkpoint}: its actor does not fit the scenario's network ({error}); "
+            "evaluate it with the scenario it was trained on, or retrain it with --force"
+        ) from error
+    actor.eval()
+    return actor

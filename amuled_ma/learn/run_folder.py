@@ -1,0 +1,440 @@
+"""The run folder: what a run directory holds, and the state of each variant folder in it.
+
+A run directory holds one folder per trained variant::
+
+    runs/findmilk/
+      config.json                 the fully resolved scenario and the command
+      base/ shaped/               base training (c = 0, c = 1)
+      finetune-human/ finetune-amuled/
+      base.seed1/ finetune-amuled.seed1/ ...       seed replicas (``.seed<k>``)
+      ablate-clusters/finetune-cluster-care/ ...   ablations (anchored to ../base)
+      results.json results.csv report.md *.png
+
+Each variant folder holds ``model_last.pt`` (rsl-rl checkpoint; ``infos["completed"]``
+tells whether it finished), ``config.json`` (the resolved scenario it was trained with and,
+under ``"training"``, the settings that decide what it learns: a resume or a skip checks
+them against the current ones), ``train_cfg.json`` (the rsl-rl config as given, before
+rsl-rl mutates its copy), ``curve.json``, TensorBoard events under ``tb/`` and, for
+fine-tunes, ``feedback.json`` (fused-belief diagnostics).
+
+This module names the folders (:func:`variant_dir_name`, :func:`replica_folder`,
+:func:`split_replica`), records a job and its result (:class:`TrainJob`,
+:class:`JobResult`), and decides what a job does with its folder: start, resume or skip
+(:func:`prepare_variant`, :func:`training_config`, :func:`finished_with`,
+:func:`base_checkpoint`). The planner (:mod:`amuled_ma.learn.experiments`) and the job
+runner (:mod:`amuled_ma.learn.jobs`) both build on it.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import re
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from amuled_ma.errors import AmuledError, CheckpointError
+from amuled_ma.learn.checkpoints import LAST, checkpoint_infos
+from amuled_ma.scenario import Scenario
+
+if TYPE_CHECKING:
+    from amuled_ma.learn.trainer import TrainOutcome
+
+
+# -- folder names -------------------------------------------------------------------
+def default_run_dir(scenario: Scenario) -> Path:
+    """``<output.runs_dir>/<scenario name>``, relative to the current directory.
+
+    The name is a single safe path component, so the run stays inside ``runs_dir``
+    (:meth:`~amuled_ma.scenario.Scenario.default_run_dir`).
+    """
+    return scenario.default_run_dir()
+
+
+def variant_dir_name(variant: str) -> str:
+    """Folder name of a variant (``finetune:cluster:care`` -> ``finetune-cluster-care``)."""
+    return variant.replace(":", "-").replace(" ", "_").replace("/", "_")
+
+
+#: A seed replica's folder: ``<variant folder>.seed<k>`` (the first seed keeps the plain name).
+_REPLICA = re.compile(r"^(?P<folder>.+)\.seed(?P<seed>\d+)$")
+
+
+def replica_folder(folder: str, seed: int, first_seed: int) -> str:
+    """Folder of one seed replica: the plain name for the first seed, else ``.seed<k>`` added."""
+    return folder if seed == first_seed else f"{folder}.seed{seed}"
+
+
+def split_replica(folder: str) -> tuple[str, int | None]:
+    """``finetune-amuled.seed3`` -> ``("finetune-amuled", 3)``; a plain name -> ``(name, None)``."""
+    match = _REPLICA.match(folder)
+    if match is None:
+        return folder, None
+    return match["folder"], int(match["seed"])
+
+
+# -- records ------------------------------------------------------------------------
+@dataclass(frozen=True)
+class TrainJob:
+    """One variant to train, as :func:`~amuled_ma.learn.experiments.train_variant` takes it.
+
+    Attributes:
+        name: Unique name of the job in its graph (shown in messages).
+        scenario: The scenario it trains on.
+        run_dir: The run directory (belief store, default folders).
+        variant: ``base``, ``shaped`` or ``finetune:<feedback>``.
+        out_dir: Its folder.
+        seed: Training seed (None: the scenario's).
+        base_variant: Folder (under ``run_dir``) of the base checkpoint a fine-tune anchors to.
+        needs: Names of the jobs that must finish first.
+        resume: Continue an unfinished checkpoint; skip a finished one.
+        force: Start over even where a checkpoint exists.
+        base_dir: The folder holding ``base_variant`` (default: ``run_dir``), e.g. the
+            authors' imported base, ``runs/authors/findmilk``.
+
+    """
+
+    name: str
+    scenario: Scenario
+    run_dir: Path
+    variant: str
+    out_dir: Path
+    seed: int | None = None
+    base_variant: str = "base"
+    needs: tuple[str, ...] = ()
+    resume: bool = False
+    force: bool = False
+    base_dir: Path | None = None
+
+
+@dataclass
+class JobResult:
+    """One trained (or skipped) variant.
+
+    Attributes:
+        variant: The variant name.
+        out_dir: Its folder.
+        skipped: True when a completed checkpoint was already there.
+        outcome: The training outcome (None when skipped).
+
+    """
+
+    variant: str
+    out_dir: Path
+    skipped: bool = False
+    outcome: TrainOutcome | None = None
+
+
+# -- the state of a variant folder --------------------------------------------------
+def checkpoint_state(path: Path) -> dict[str, Any] | None:
+    """Return a checkpoint's ``infos`` (None when there is no checkpoint)."""
+    return checkpoint_infos(path)
+
+
+def base_checkpoint(run_dir: Path, scenario: Scenario, base_variant: str = "base") -> Path:
+    """Return the completed base checkpoint a fine-tune is anchored to.
+
+    Raises:
+        CheckpointError: Missing or unfinished, naming the command that makes it.
+
+    """
+    path = Path(run_dir) / base_variant / LAST
+    state = checkpoint_state(path)
+    make = (
+        f"amuled train {scenario.path or scenario.name} --variant {base_variant} "
+        f"--run-dir {run_dir}"
+    )
+    if state is None:
+        raise CheckpointError(f"no base checkpoint at {path}; make one with: {make}")
+    if not state.get("completed"):
+        raise CheckpointError(
+            f"the base checkpoint {path} is unfinished (iteration {state.get('iteration')}/"
+            f"{state.get('total_iterations')}); finish it with: {make} --resume"
+        )
+    return path
+
+
+#: Scenario keys left out of :func:`training_config`: paths, logging and service keys, the
+#: seed (the job's own seed is kept) and the run's length (kept as ``"iterations"``: a
+#: resume may lengthen a run).
+_NOT_LEARNED = {
+    "task": ("seed",),
+    "base": ("save_interval", "total_steps"),
+    "finetune": ("save_interval", "iterations"),
+    "feedback": ("host", "concurrency", "timeout_s", "store", "max_abstention", "name"),
+}
+
+
+def training_config(
+    scenario: Scenario, variant: str, seed: int | None = None, iterations: int | None = None
+) -> dict[str, Any]:
+    """The settings that decide what a variant learns, as plain JSON data.
+
+    A folder's saved copy (``config.json``, key ``"training"``) is compared with the current
+    one before a resume or a skip, so that a run never continues, or passes off as
+    finished, a variant trained with other settings. Left out: paths, logging and service
+    keys (:data:`_NOT_LEARNED`), the recording's folder (its file name stays), and the
+    feedback section for base training and for the rule-based human feedback. The run's
+    length is kept apart, as the number of PPO iterations the job trains to.
+
+    Args:
+        scenario: The scenario of the job.
+        variant: ``base``, ``shaped`` or ``finetune:<feedback>``.
+        seed: The job's training seed (default: ``[task].seed``).
+        iterations: An override of the number of iterations, if any.
+
+    Returns:
+        ``{"variant", "seed", "iterations", section: {key: value}, ...}``.
+
+    """
+    data = scenario.to_dict()
+    if variant in ("base", "shaped"):
+        sections: tuple[str, ...] = ("task", "ppo", "base")
+        base = scenario.base
+        total = max(1, base.total_steps // (base.num_envs * base.num_steps_per_env))
+    else:
+        sections = ("task", "ppo", "finetune")
+        if not variant.startswith("finetune:human"):
+            sections += ("feedback",)
+        total = scenario.finetune.iterations
+    out: dict[str, Any] = {
+        "variant": variant,
+        "seed": scenario.task.seed if seed is None else seed,
+        "iterations": total if iterations is None else iterations,
+    }
+    for section in sections:
+        skip = _NOT_LEARNED.get(section, ())
+        out[section] = {k: v for k, v in data[section].items() if k not in skip}
+    if out.get("feedback", {}).get("recording"):
+        out["feedback"]["recording"] = Path(out["feedback"]["recording"]).name
+        if out["feedback"].get("source") == "replay":
+            out["inputs"] = {"recording_sha256": _file_sha256(scenario.recording_path())}
+    for agent, spec in sorted((out.get("feedback", {}).get("agents") or {}).items()):
+        if spec.get("source") == "replay" and spec.get("recording"):
+            path = scenario.replace("feedback", recording=spec["recording"]).recording_path()
+            out.setdefault("inputs", {})[f"recording_sha256[{agent}]"] = _file_sha256(path)
+    return json.loads(json.dumps(out, default=str))
+
+
+@functools.lru_cache(maxsize=64)
+def _sha256_of(path: str, size: int, mtime_ns: int) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _file_sha256(path: Path) -> str | None:
+    """SHA-256 of a file's content (memoised while its size and mtime stay), None if absent.
+
+    The identity of an input such as a recording: a file replaced under the same name has
+    another hash, and a resume compares it (:func:`check_training_config`).
+    """
+    try:
+        info = path.stat()
+    except OSError:
+        return None
+    return _sha256_of(str(path), info.st_size, info.st_mtime_ns)
+
+
+def _differences(saved: Any, current: Any, prefix: str = "") -> list[str]:
+    """``key: saved -> current`` for every leaf that differs between two JSON values."""
+    if isinstance(saved, dict) and isinstance(current, dict):
+        out = []
+        for key in sorted(set(saved) | set(current), key=str):
+            name = f"{prefix}.{key}" if prefix else str(key)
+            out += _differences(saved.get(key), current.get(key), name)
+        return out
+    return [] if saved == current else [f"{prefix}: {saved!r} -> {current!r}"]
+
+
+def saved_training_config(out_dir: Path) -> dict[str, Any] | None:
+    """The ``"training"`` settings a variant folder's ``config.json`` recorded, if any.
+
+    Returns:
+        The settings, or None for a folder without them (none trained yet, or written
+        before settings were recorded).
+
+    Raises:
+        AmuledError: ``config.json`` exists but cannot be read as JSON.
+
+    """
+    path = Path(out_dir) / "config.json"
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise AmuledError(f"{path}: not a readable config ({err}); retrain with --force") from err
+    return data.get("training") if isinstance(data, dict) else None
+
+
+def check_training_config(out_dir: Path, training: dict[str, Any]) -> None:
+    """Refuse to resume or skip a variant trained with other settings.
+
+    Args:
+        out_dir: The variant folder (its ``config.json`` holds the saved settings; a folder
+            without one, from an older version, is accepted).
+        training: The current :func:`training_config`.
+
+    Raises:
+        AmuledError: The settings differ; the message lists each differing key with its
+            saved and current value and names ``--force`` and ``--run-dir``.
+
+    """
+    saved = saved_training_config(out_dir)
+    if saved is None:
+        return
+    saved = _learned_only(saved)
+    training = _without_keys_added_since(saved, training)
+    diffs = _differences(
+        {k: v for k, v in saved.items() if k != "iterations"},
+        {k: v for k, v in training.items() if k != "iterations"},
+    )
+    if diffs:
+        shown = "; ".join(diffs[:8]) + (f"; and {len(diffs) - 8} more" if len(diffs) > 8 else "")
+        raise AmuledError(
+            f"{out_dir} was trained with other settings or inputs than now (saved -> now: {shown}; "
+            f"saved in {Path(out_dir) / 'config.json'}); retrain it with --force, or keep it "
+            "and train into another --run-dir"
+        )
+
+
+def _learned_only(saved: dict[str, Any]) -> dict[str, Any]:
+    """A saved training config without the keys :data:`_NOT_LEARNED` now leaves out.
+
+    A folder saved when such a key was still recorded (a service key like
+    ``max_abstention``) is compared on what decides learning only.
+    """
+    out = dict(saved)
+    for section, keys in _NOT_LEARNED.items():
+        if isinstance(out.get(section), dict):
+            out[section] = {k: v for k, v in out[section].items() if k not in keys}
+    return out
+
+
+def _without_keys_added_since(saved: dict[str, Any], training: dict[str, Any]) -> dict[str, Any]:
+    """Drop from ``training`` what a folder saved by an older version could not record.
+
+    The input hashes (``inputs``) and any scenario key added since, when it holds its
+    default value (the old version behaved as that default); a key added since but set
+    to another value stays, so the difference is reported.
+    """
+    defaults = Scenario().to_dict()
+    out = {k: v for k, v in training.items() if k != "inputs" or "inputs" in saved}
+    for section, values in training.items():
+        if isinstance(values, dict) and isinstance(saved.get(section), dict):
+            out[section] = {
+                k: v
+                for k, v in values.items()
+                if k in saved[section] or v != defaults.get(section, {}).get(k, object())
+            }
+    return out
+
+
+def finished_with(out_dir: Path, training: dict[str, Any]) -> bool:
+    """Whether a folder holds a finished checkpoint trained with exactly ``training``.
+
+    Args:
+        out_dir: A variant folder.
+        training: A :func:`training_config` (its number of iterations included).
+
+    Returns:
+        True when ``model_last.pt`` is finished and ``config.json`` records the same
+        settings; False otherwise (also for folders written before settings were recorded).
+
+    """
+    state = checkpoint_state(Path(out_dir) / LAST)
+    if not (state and state.get("completed")):
+        return False
+    try:
+        saved = saved_training_config(out_dir)
+    except AmuledError:
+        return False
+    return (
+        saved is not None
+        and _learned_only(saved) == training
+        and state.get("iteration") == training["iterations"]
+    )
+
+
+def prepare_variant(
+    out_dir: Path,
+    *,
+    resume: bool,
+    force: bool,
+    hint: str,
+    training: dict[str, Any],
+) -> str:
+    """Decide what to do with a variant folder: ``new``, ``resume`` or ``skip``.
+
+    Args:
+        out_dir: The variant folder.
+        resume: Continue an unfinished checkpoint, skip a finished one.
+        force: Start over.
+        hint: The command that re-runs the job (for the error message).
+        training: The job's :func:`training_config`; a resume or a skip requires the
+            folder's saved settings to match it, and a finished checkpoint is skipped only
+            when it trained to the job's number of iterations (fewer: it is resumed to
+            that number).
+
+    Raises:
+        AmuledError: It holds a checkpoint and neither ``resume`` nor ``force`` is set (the
+            message names both options), or ``resume`` is set and the checkpoint was
+            trained with other settings or past the job's number of iterations.
+
+    """
+    state = checkpoint_state(Path(out_dir) / LAST)
+    if state is None:
+        return "new"
+    if force:
+        return "new"
+    if resume:
+        done = state.get("iteration") or 0
+        check_training_config(out_dir, training)
+        target = training["iterations"]
+        if done > target:
+            raise AmuledError(
+                f"{out_dir} holds a checkpoint at iteration {done}, past the {target} "
+                "iterations asked for now; retrain it with --force, or ask for at least "
+                f"{done} iterations"
+            )
+        if state.get("completed") and done == target:
+            return "skip"
+        return "resume"
+    raise AmuledError(
+        f"{out_dir} already holds a checkpoint (iteration {state.get('iteration')}/"
+        f"{state.get('total_iterations')}); continue it with '{hint} --resume' or start over "
+        "with --force"
+    )
+
+
+def write_config(run_dir: Path, scenario: Scenario, extra: dict[str, Any] | None = None) -> Path:
+    """Write ``config.json``: the fully resolved scenario, the command line and extras."""
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    path = run_dir / "config.json"
+    import torch  # here: reading a run folder needs no torch
+
+    data = {
+        "scenario": scenario.to_dict(),
+        "command": sys.argv,
+        "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "torch": torch.__version__,
+    }
+    try:
+        from importlib.metadata import version
+
+        import rsl_rl  # noqa: F401
+
+        data["rsl_rl"] = version("rsl-rl-lib")
+    except Exception:  # pragma: no cover - metadata missing
+        pass
+    data.update(extra or {})
+    path.write_text(json.dumps(data, indent=2, default=str))
+    return path
