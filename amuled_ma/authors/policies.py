@@ -31,6 +31,7 @@ from typing import Any
 import torch
 
 from amuled_ma.errors import CheckpointError
+from amuled_ma.learn.variants import Variant
 from amuled_ma.torch_files import load_weights_only
 
 #: Layer indices of CleanRL's ``nn.Sequential`` (Linear, Tanh, Linear, Tanh, Linear).
@@ -230,7 +231,7 @@ def build_checkpoint(
     optimizer = adam(
         [*actor.parameters(), *critic.parameters()], lr=_lr(scenario, variant), eps=1e-5
     )
-    finetune = variant.startswith("finetune")
+    finetune = Variant.parse(variant).finetuning
     train_cfg = rsl_rl_config(
         scenario.ppo,
         num_steps_per_env=AUTHORS_FINETUNE_STEPS,
@@ -263,7 +264,7 @@ def build_checkpoint(
 
 
 def _lr(scenario: Any, variant: str) -> float:
-    if variant.startswith("finetune"):
+    if Variant.parse(variant).finetuning:
         return float(scenario.finetune.learning_rate)
     return float(scenario.ppo.learning_rate)
 

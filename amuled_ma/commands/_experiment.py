@@ -242,14 +242,20 @@ def describe(job: Any) -> str:
 
 
 def train_job(
-    scenario: Any, run_dir: Path, variant: str, args: argparse.Namespace, hint: str, **kwargs: Any
+    scenario: Any,
+    run_dir: Path,
+    variant: Any,
+    args: argparse.Namespace,
+    hint: str,
+    **kwargs: Any,
 ) -> Any:
     """Train one variant with the command line's ``--resume/--force/--seed`` and report it.
 
     Args:
         scenario: The loaded scenario.
         run_dir: The run directory.
-        variant: ``base``, ``shaped`` or ``finetune:<feedback>``.
+        variant: A :class:`~amuled_ma.learn.variants.Variant` or its text
+            (``base``, ``shaped``, ``finetune:<feedback>``).
         args: The parsed command line (``resume``, ``force``, ``no_progress``, ``seed``).
         hint: The command that resumes this job, printed when it stops early.
         **kwargs: More keywords of :func:`~amuled_ma.learn.experiments.train_variant`.

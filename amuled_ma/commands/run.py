@@ -121,7 +121,8 @@ def run_command(args: argparse.Namespace) -> int:
                     f"at {imported}; 'amuled import authors PATH' makes one)"
                 )
         jobs = plan_run(scenario, run_dir, seeds, resume=args.resume, force=args.force, base=base)
-        write_config(run_dir, scenario, {"variants": list(MAIN_VARIANTS), "seeds": seeds})
+        variants = [str(v) for v in MAIN_VARIANTS]
+        write_config(run_dir, scenario, {"variants": variants, "seeds": seeds})
         common.say(f"run {scenario.name} -> {run_dir}")
         _train_all(jobs, args, hint)
         results = evaluate_run(
@@ -165,7 +166,7 @@ def ablate_command(args: argparse.Namespace) -> int:
         out = run_dir / f"ablate-{args.what}"
         seeds = training_seeds(scenario, args.seed, args.seeds)
         hint = common.command_line("ablate", args, run_dir, "--what", args.what)
-        variants = [folder for _, _, folder in ablation_variants(args.what, scenario)]
+        variants = [variant.folder for variant, _ in ablation_variants(args.what, scenario)]
         jobs = plan_ablation(
             args.what, scenario, run_dir, seeds, resume=args.resume, force=args.force
         )

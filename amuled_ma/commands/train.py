@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from amuled_ma.commands import _experiment as common
+from amuled_ma.learn.variants import Variant
 from amuled_ma.run_lock import run_folder_lock
 from amuled_ma.scenario import check_path_component
 
@@ -85,7 +86,6 @@ def finetune_command(args: argparse.Namespace) -> int:
     scenario = common.load(args)
     run_dir = common.run_dir_of(args, scenario)
     with run_folder_lock(run_dir):
-        variant = f"finetune:{args.feedback}"
         hint = common.command_line("finetune", args, run_dir, "--feedback", args.feedback)
         start = time.perf_counter()
         base: dict = {}
@@ -94,7 +94,7 @@ def finetune_command(args: argparse.Namespace) -> int:
             hint += " --name " + shlex.quote(args.name)
         if scenario.feedback.name:
             check_path_component(scenario.feedback.name, "--name (or [feedback].name)")
-            base["out_dir"] = run_dir / f"finetune-{scenario.feedback.name}"
+        variant = Variant.finetune(args.feedback, label=scenario.feedback.name or None)
         if args.base is not None:
             base.update(base_dir=args.base.parent, base_variant=args.base.name)
             hint += " --base " + shlex.quote(str(args.base))

@@ -68,20 +68,23 @@ def feedback_variant(variant_dir: Path) -> str | None:
     Read from ``config.json`` (``"training"."variant"``, ``finetune:<feedback>``); a
     folder without settings named ``finetune-<feedback>`` is read from its name.
     """
-    variant = str(variant_settings(variant_dir).get("variant") or "")
-    if variant.startswith("finetune:"):
-        return variant.split(":", 1)[1]
-    if not variant and Path(variant_dir).name.startswith("finetune-"):
-        from amuled_ma.learn.feedback import parse_variant
+    from amuled_ma.learn.variants import Variant
+
+    text = str(variant_settings(variant_dir).get("variant") or "")
+    if text:
+        try:
+            return Variant.parse(text).feedback
+        except ScenarioError:
+            return None
+    if Path(variant_dir).name.startswith("finetune-"):
         from amuled_ma.learn.run_folder import split_replica
 
         name = split_replica(Path(variant_dir).name)[0].split("-", 1)[1]
         for candidate in (name, name.replace("-", ":", 1)):  # finetune-cluster-care
             try:
-                parse_variant(candidate)
+                return Variant.finetune(candidate).feedback
             except ScenarioError:
                 continue
-            return candidate
     return None
 
 
@@ -482,10 +485,11 @@ def open_feedback(
     """
     import tempfile
 
-    from amuled_ma.learn.feedback import make_feedback, parse_variant
+    from amuled_ma.learn.feedback import make_feedback
+    from amuled_ma.learn.variants import parse_feedback
 
     store = ReadOnlyStore(store_path_of(scenario, run_dir))
-    if run_dir is not None and parse_variant(feedback_name)[0] == "human":
+    if run_dir is not None and parse_feedback(feedback_name)[0] == "human":
         # the demonstrator's counts are cached in the run folder; no belief store
         return make_feedback(feedback_name, scenario, Path(run_dir)), store
     # built in a scratch folder: make_feedback opens its store for writing, and even

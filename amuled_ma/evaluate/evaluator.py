@@ -25,6 +25,7 @@ from amuled_ma.evaluate.stats import mean_ci
 from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.policies import action_log_probs, load_policy
 from amuled_ma.learn.run_folder import split_replica
+from amuled_ma.learn.variants import Variant
 from amuled_ma.scenario import Scenario
 from amuled_ma.tasks import make_task
 
@@ -326,13 +327,16 @@ def panel_record(variant_dir: Path) -> dict[str, Any] | None:
     except (OSError, ValueError):
         return None
     training = config.get("training") or {}
-    variant = str(training.get("variant", ""))
-    if not variant.startswith("finetune"):
+    try:
+        variant = Variant.parse(str(training.get("variant", "")))
+    except ScenarioError:
+        return None
+    if not variant.finetuning:
         return None
     finetune = training.get("finetune") or {}
     feedback = training.get("feedback") or {}
     record: dict[str, Any] = {
-        "feedback": variant.split(":", 1)[1] if ":" in variant else variant,
+        "feedback": variant.feedback,
         "recipe": finetune.get("recipe", "equation"),
         "lambda_kl": finetune.get("lambda_kl"),
         "iterations": training.get("iterations"),

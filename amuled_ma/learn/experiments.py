@@ -15,13 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from amuled_ma.errors import AmuledError, ScenarioError
-from amuled_ma.learn.feedback import (
-    MORAL_AGENT,
-    make_feedback,
-    panel_of,
-    parse_variant,
-    with_cluster_sources,
-)
+from amuled_ma.learn.feedback import make_feedback, panel_of, with_cluster_sources
 from amuled_ma.learn.run_folder import (
     JobResult,
     TrainJob,
@@ -30,14 +24,19 @@ from amuled_ma.learn.run_folder import (
     prepare_variant,
     replica_folder,
     training_config,
-    variant_dir_name,
     write_config,
 )
 from amuled_ma.learn.trainer import Trainer
+from amuled_ma.learn.variants import AGGREGATIONS, Variant
 from amuled_ma.scenario import Scenario
 
 #: The variants of the paper's main figure, in order.
-MAIN_VARIANTS = ("base", "shaped", "finetune:human", "finetune:amuled")
+MAIN_VARIANTS = (
+    Variant("base"),
+    Variant("shaped"),
+    Variant.finetune("human"),
+    Variant.finetune("amuled"),
+)
 #: What ``amuled ablate --what`` accepts.
 ABLATIONS = ("clusters", "aggregation", "models", "kl")
 #: The lambda_KL sweep of the ``kl`` ablation (the paper's value is 2.5).
@@ -59,7 +58,7 @@ def training_seeds(scenario: Scenario, seed: int | None = None, count: int = 1) 
 
 def check_inputs(
     scenario: Scenario,
-    variant: str,
+    variant: Variant | str,
     run_dir: Path,
     base_variant: str = "base",
     planned: Collection[str] = (),
@@ -75,12 +74,12 @@ def check_inputs(
         AmuledError: The first missing input, with the command or setting that fixes it.
 
     """
-    if not variant.startswith("finetune"):
+    variant = Variant.parse(variant)
+    if not variant.finetuning:
         return
-    feedback = variant.split(":", 1)[1] if ":" in variant else ""
-    kind, _ = parse_variant(feedback)
-    if kind != "human":
-        agents, _ = panel_of(feedback, scenario)  # every agent is a known cluster
+    if variant.asks_panel:
+        assert variant.feedback is not None
+        agents, _ = panel_of(variant.feedback, scenario)  # every agent is a known cluster
         scenario = with_cluster_sources(scenario, agents)
         if scenario.feedback.agents:
             from amuled_ma.beliefs.routing import preflight
@@ -95,7 +94,7 @@ def check_inputs(
 def train_variant(
     scenario: Scenario,
     run_dir: Path,
-    variant: str,
+    variant: Variant | str,
     *,
     resume: bool = False,
     force: bool = False,
@@ -133,8 +132,9 @@ def train_variant(
         The job result.
 
     """
+    variant = Variant.parse(variant)
     run_dir = Path(run_dir)
-    out = Path(out_dir) if out_dir else run_dir / variant_dir_name(variant)
+    out = Path(out_dir) if out_dir else run_dir / variant.folder
     check_inputs(scenario, variant, Path(base_dir or run_dir), base_variant)
     training = training_config(scenario, variant, seed, iterations)
     action = prepare_variant(out, resume=resume, force=force, hint=hint, training=training)
@@ -142,17 +142,13 @@ def train_variant(
         return JobResult(variant, out, skipped=True)
     feedback = None
     base_ckpt = None
-    if variant.startswith("finetune"):
-        fb_name = variant.split(":", 1)[1] if ":" in variant else ""
-        parse_variant(fb_name)
+    if variant.finetuning:
+        assert variant.feedback is not None
         base_ckpt = base_checkpoint(base_dir or run_dir, scenario, base_variant)
-        feedback = (feedback_factory or (lambda v: make_feedback(v, scenario, run_dir)))(fb_name)
-    elif variant not in ("base", "shaped"):
-        raise ScenarioError(
-            f"unknown variant {variant!r}; expected base, shaped or finetune:<feedback>"
-        )
+        make = feedback_factory or (lambda v: make_feedback(v, scenario, run_dir))
+        feedback = make(variant.feedback)
     if action == "new" or not (out / "config.json").is_file():
-        extra: dict[str, Any] = {"variant": variant, "training": training}
+        extra: dict[str, Any] = {"variant": str(variant), "training": training}
         if base_ckpt is not None:
             extra["base_checkpoint"] = str(base_ckpt)
         write_config(out, scenario, extra)
@@ -178,8 +174,8 @@ def train_variant(
     return JobResult(variant, out, outcome=outcome)
 
 
-def ablation_variants(what: str, scenario: Scenario) -> list[tuple[str, Scenario, str]]:
-    """List the fine-tunes of one ablation: ``(feedback variant, scenario, folder name)``.
+def ablation_variants(what: str, scenario: Scenario) -> list[tuple[Variant, Scenario]]:
+    """List the fine-tunes of one ablation: ``(variant, scenario)``.
 
     Args:
         what: ``clusters``, ``aggregation``, ``models`` or ``kl``.
@@ -193,15 +189,18 @@ def ablation_variants(what: str, scenario: Scenario) -> list[tuple[str, Scenario
         # these need each cluster's belief: a fused-only recording cannot serve them
         scenario = scenario.replace("feedback", recording=scenario.feedback.cluster_recording)
     if what == "clusters":
-        jobs = [(f"cluster:{c}", scenario, "") for c in scenario.feedback.clusters]
-        jobs.append(("moral", scenario, ""))
-        jobs.append(("amuled", scenario, ""))
+        jobs = [(Variant.finetune(f"cluster:{c}"), scenario) for c in scenario.feedback.clusters]
+        jobs.append((Variant.finetune("moral"), scenario))
+        jobs.append((Variant.finetune("amuled"), scenario))
     elif what == "aggregation":
-        jobs = [(f"agg:{rule}", scenario, "") for rule in ("mean", "max", "vote")]
-        jobs.append(("amuled", scenario, ""))
+        jobs = [(Variant.finetune(f"agg:{rule}"), scenario) for rule in AGGREGATIONS]
+        jobs.append((Variant.finetune("amuled"), scenario))
     elif what == "kl":
         jobs = [
-            ("amuled", scenario.replace("finetune", lambda_kl=lam), f"finetune-amuled-kl{lam:g}")
+            (
+                Variant.finetune("amuled", label=f"amuled-kl{lam:g}"),
+                scenario.replace("finetune", lambda_kl=lam),
+            )
             for lam in KL_SWEEP
         ]
     elif what == "models":
@@ -212,37 +211,26 @@ def ablation_variants(what: str, scenario: Scenario) -> list[tuple[str, Scenario
             for path in sorted(rec.parent.glob(f"{task}-*.json")):
                 model = path.stem[len(task) + 1 :]
                 sc = scenario.replace("feedback", recording=str(path), model=model)
-                jobs.append(("amuled", sc, f"finetune-amuled-{model}"))
+                jobs.append((Variant.finetune("amuled", label=f"amuled-{model}"), sc))
         else:
-            jobs.append(("amuled", scenario, f"finetune-amuled-{scenario.feedback.model}"))
+            label = f"amuled-{scenario.feedback.model}"
+            jobs.append((Variant.finetune("amuled", label=label), scenario))
         if not jobs:
             raise AmuledError(f"no recordings for task {scenario.task.name!r} next to {rec}")
     else:
         raise ScenarioError(f"unknown ablation {what!r}; expected one of {', '.join(ABLATIONS)}")
-    return [(v, sc, name or variant_dir_name(f"finetune:{v}")) for v, sc, name in jobs]
-
-
-def cluster_names(variants: Sequence[str]) -> list[str]:
-    """Return the clusters named by ``cluster:<name>`` variants (and the moral agent)."""
-    out = []
-    for v in variants:
-        kind, arg = parse_variant(v)
-        if kind == "cluster" and arg:
-            out.append(arg)
-        elif kind == "moral":
-            out.append(MORAL_AGENT)
-    return out
+    return jobs
 
 
 def _job(
-    name: str, scenario: Scenario, run_dir: Path, variant: str, out_dir: Path, seed: int,
+    name: str, scenario: Scenario, run_dir: Path, variant: Variant, out_dir: Path, seed: int,
     base: str, *, resume: bool, force: bool, base_dir: Path | None = None,
 ) -> TrainJob:  # fmt: skip
     """A job of a plan; a fine-tune needs (and anchors to) the base folder ``base``.
 
     With ``base_dir`` the base is a finished folder outside the plan (nothing to wait for).
     """
-    tune = variant.startswith("finetune")
+    tune = variant.finetuning
     if base_dir is not None:
         return TrainJob(
             name=name, scenario=scenario, run_dir=run_dir, variant=variant, out_dir=out_dir,
@@ -282,8 +270,8 @@ def plan_run(
     for seed in seeds:
         own = replica_folder("base", seed, seeds[0])
         for variant in MAIN_VARIANTS:
-            folder = replica_folder(variant_dir_name(variant), seed, seeds[0])
-            if base is not None and variant.startswith("finetune"):
+            folder = replica_folder(variant.folder, seed, seeds[0])
+            if base is not None and variant.finetuning:
                 jobs.append(
                     _job(folder, scenario, run_dir, variant, run_dir / folder, seed, base.name,
                          resume=resume, force=force, base_dir=base.parent)
@@ -320,12 +308,11 @@ def plan_ablation(
     for seed in seeds:
         base = replica_folder("base", seed, seeds[0])
         jobs.append(
-            _job(base, scenario, run_dir, "base", run_dir / base, seed, base,
+            _job(base, scenario, run_dir, Variant("base"), run_dir / base, seed, base,
                  resume=True, force=False)
         )  # fmt: skip
-        for feedback, sc, folder in variants:
-            replica = replica_folder(folder, seed, seeds[0])
-            variant = f"finetune:{feedback}"
+        for variant, sc in variants:
+            replica = replica_folder(variant.folder, seed, seeds[0])
             trained = run_dir / replica
             if finished_with(trained, training_config(sc, variant, seed)):
                 jobs.append(_job(replica, sc, run_dir, variant, trained, seed, base,

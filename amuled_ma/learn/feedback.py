@@ -40,11 +40,10 @@ import torch
 
 from amuled_ma.deliberation.state_key import freeze
 from amuled_ma.errors import ClusterDefinitionError, ScenarioError
+from amuled_ma.learn.variants import parse_feedback
 
 #: Name of the unprompted moral agent in recordings and the cluster prompts.
 MORAL_AGENT = "moral_agent"
-#: Aggregation rules of the ``agg:`` variants.
-AGGREGATIONS = ("mean", "max", "vote")
 #: Statuses reported per agent, in this order (any other status a source gives is added).
 REPORTED_STATUSES = ("ok", "repaired", "abstained", "timeout", "error", "replay_miss")
 #: Statuses that are answers; every other one is a failure (a fallback belief was used).
@@ -537,34 +536,6 @@ class FusedReplayFeedback(Feedback):
         return results
 
 
-def parse_variant(variant: str) -> tuple[str, str | None]:
-    """Split and check a feedback variant name.
-
-    Args:
-        variant: ``amuled``, ``human``, ``moral``, ``cluster:<name>`` or ``agg:<rule>``.
-
-    Returns:
-        ``(kind, argument)``.
-
-    Raises:
-        ScenarioError: The variant is not one of the above.
-
-    """
-    kind, _, arg = variant.partition(":")
-    if kind in ("amuled", "human", "moral") and not arg:
-        return kind, None
-    if kind == "human" and arg == "rules":
-        return kind, arg
-    if kind == "cluster" and arg:
-        return kind, arg
-    if kind == "agg" and arg in AGGREGATIONS:
-        return kind, arg
-    raise ScenarioError(
-        f"unknown feedback variant {variant!r}; expected amuled, human, human:rules, moral, "
-        f"cluster:<name> or agg:{'|'.join(AGGREGATIONS)}"
-    )
-
-
 def make_source(scenario: Any, run_dir: Path | None = None, *, agents: Any = None) -> Any:
     """Create the scenario's belief source(s), wrapped in the belief store cache.
 
@@ -667,7 +638,7 @@ def make_feedback(variant: str, scenario: Any, run_dir: Path | None = None) -> F
     """Build the feedback of one variant for a scenario.
 
     Args:
-        variant: See :func:`parse_variant`.
+        variant: The feedback (see :func:`~amuled_ma.learn.variants.parse_feedback`).
         scenario: The scenario (task, clusters, fusion rule, source).
         run_dir: Run directory holding the belief store.
 
@@ -675,7 +646,7 @@ def make_feedback(variant: str, scenario: Any, run_dir: Path | None = None) -> F
         The feedback, ready to be called every step.
 
     """
-    kind, arg = parse_variant(variant)
+    kind, arg = parse_feedback(variant)
     task_name = scenario.task.name
     if kind == "human" and arg == "rules":
         from amuled_ma.tasks.human import human_belief
@@ -755,7 +726,7 @@ def panel_of(variant: str, scenario: Any, registry: Any | None = None) -> tuple[
             lists the known ones (a user cluster needs ``--clusters-dir``).
 
     """
-    kind, arg = parse_variant(variant)
+    kind, arg = parse_feedback(variant)
     registry = registry or cluster_registry(scenario)
     names, rule = list(scenario.feedback.clusters), scenario.feedback.fusion
     if kind == "cluster":

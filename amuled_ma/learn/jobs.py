@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from amuled_ma.errors import AmuledError
+from amuled_ma.learn.config import planned_iterations
 from amuled_ma.learn.run_folder import JobResult, TrainJob, prepare_variant, training_config
 from amuled_ma.scenario import Scenario
 
@@ -75,7 +76,7 @@ def resolve_workers(requested: int, jobs: Sequence[TrainJob]) -> int:
     if requested < 0:
         raise AmuledError(f"--jobs must be 0 (auto) or a positive count, got {requested}")
     if requested == 0:
-        live = any(j.variant.startswith("finetune") and _asks_live(j.scenario) for j in jobs)
+        live = any(j.variant.finetuning and _asks_live(j.scenario) for j in jobs)
         requested = 1 if live else available_cpus()
     return max(1, min(requested, len(jobs) or 1))
 
@@ -89,10 +90,7 @@ def _asks_live(scenario: Scenario) -> bool:
 
 def total_iterations(job: TrainJob) -> int:
     """Iterations a job runs to (for the progress bar)."""
-    if job.variant.startswith("finetune"):
-        return job.scenario.finetune.iterations
-    base = job.scenario.base
-    return max(1, base.total_steps // (base.num_envs * base.num_steps_per_env))
+    return planned_iterations(job.scenario, finetune=job.variant.finetuning)
 
 
 def check_order(jobs: Sequence[TrainJob]) -> None:

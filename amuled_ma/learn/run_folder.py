@@ -17,7 +17,7 @@ them against the current ones), ``train_cfg.json`` (the rsl-rl config as given, 
 rsl-rl mutates its copy), ``curve.json``, TensorBoard events under ``tb/`` and, for
 fine-tunes, ``feedback.json`` (fused-belief diagnostics).
 
-This module names the folders (:func:`variant_dir_name`, :func:`replica_folder`,
+This module names the replica folders (:func:`replica_folder`,
 :func:`split_replica`), records a job and its result (:class:`TrainJob`,
 :class:`JobResult`), and decides what a job does with its folder: start, resume or skip
 (:func:`prepare_variant`, :func:`training_config`, :func:`finished_with`,
@@ -39,6 +39,8 @@ from typing import TYPE_CHECKING, Any
 
 from amuled_ma.errors import AmuledError, CheckpointError
 from amuled_ma.learn.checkpoints import LAST, checkpoint_infos
+from amuled_ma.learn.config import planned_iterations
+from amuled_ma.learn.variants import Variant
 from amuled_ma.scenario import Scenario
 
 if TYPE_CHECKING:
@@ -53,11 +55,6 @@ def default_run_dir(scenario: Scenario) -> Path:
     (:meth:`~amuled_ma.scenario.Scenario.default_run_dir`).
     """
     return scenario.default_run_dir()
-
-
-def variant_dir_name(variant: str) -> str:
-    """Folder name of a variant (``finetune:cluster:care`` -> ``finetune-cluster-care``)."""
-    return variant.replace(":", "-").replace(" ", "_").replace("/", "_")
 
 
 #: A seed replica's folder: ``<variant folder>.seed<k>`` (the first seed keeps the plain name).
@@ -86,7 +83,7 @@ class TrainJob:
         name: Unique name of the job in its graph (shown in messages).
         scenario: The scenario it trains on.
         run_dir: The run directory (belief store, default folders).
-        variant: ``base``, ``shaped`` or ``finetune:<feedback>``.
+        variant: What it trains (its text, e.g. ``"finetune:amuled"``, is parsed).
         out_dir: Its folder.
         seed: Training seed (None: the scenario's).
         base_variant: Folder (under ``run_dir``) of the base checkpoint a fine-tune anchors to.
@@ -101,7 +98,7 @@ class TrainJob:
     name: str
     scenario: Scenario
     run_dir: Path
-    variant: str
+    variant: Variant
     out_dir: Path
     seed: int | None = None
     base_variant: str = "base"
@@ -110,20 +107,24 @@ class TrainJob:
     force: bool = False
     base_dir: Path | None = None
 
+    def __post_init__(self) -> None:
+        # the variant may be given as its text (``"finetune:amuled"``): read it once here
+        object.__setattr__(self, "variant", Variant.parse(self.variant))
+
 
 @dataclass
 class JobResult:
     """One trained (or skipped) variant.
 
     Attributes:
-        variant: The variant name.
+        variant: What was trained.
         out_dir: Its folder.
         skipped: True when a completed checkpoint was already there.
         outcome: The training outcome (None when skipped).
 
     """
 
-    variant: str
+    variant: Variant
     out_dir: Path
     skipped: bool = False
     outcome: TrainOutcome | None = None
@@ -170,20 +171,24 @@ _NOT_LEARNED = {
 
 
 def training_config(
-    scenario: Scenario, variant: str, seed: int | None = None, iterations: int | None = None
+    scenario: Scenario,
+    variant: Variant | str,
+    seed: int | None = None,
+    iterations: int | None = None,
 ) -> dict[str, Any]:
     """The settings that decide what a variant learns, as plain JSON data.
 
     A folder's saved copy (``config.json``, key ``"training"``) is compared with the current
     one before a resume or a skip, so that a run never continues, or passes off as
-    finished, a variant trained with other settings. Left out: paths, logging and service
+    finished, a variant trained with other settings. They are read from the validated
+    scenario (:meth:`~amuled_ma.scenario.Scenario.settings`). Left out: paths, logging and service
     keys (:data:`_NOT_LEARNED`), the recording's folder (its file name stays), and the
     feedback section for base training and for the rule-based human feedback. The run's
     length is kept apart, as the number of PPO iterations the job trains to.
 
     Args:
         scenario: The scenario of the job.
-        variant: ``base``, ``shaped`` or ``finetune:<feedback>``.
+        variant: What the job trains.
         seed: The job's training seed (default: ``[task].seed``).
         iterations: An override of the number of iterations, if any.
 
@@ -191,18 +196,14 @@ def training_config(
         ``{"variant", "seed", "iterations", section: {key: value}, ...}``.
 
     """
-    data = scenario.to_dict()
-    if variant in ("base", "shaped"):
-        sections: tuple[str, ...] = ("task", "ppo", "base")
-        base = scenario.base
-        total = max(1, base.total_steps // (base.num_envs * base.num_steps_per_env))
-    else:
-        sections = ("task", "ppo", "finetune")
-        if not variant.startswith("finetune:human"):
-            sections += ("feedback",)
-        total = scenario.finetune.iterations
+    variant = Variant.parse(variant)
+    data = scenario.settings()
+    sections: tuple[str, ...] = ("task", "ppo", "finetune" if variant.finetuning else "base")
+    if variant.asks_panel:
+        sections += ("feedback",)
+    total = planned_iterations(scenario, finetune=variant.finetuning)
     out: dict[str, Any] = {
-        "variant": variant,
+        "variant": str(variant),
         "seed": scenario.task.seed if seed is None else seed,
         "iterations": total if iterations is None else iterations,
     }

@@ -53,6 +53,7 @@ from amuled_ma.learn.anchored_ppo import AnchoredPPO
 from amuled_ma.learn.checkpoints import LAST, TRAINER_KEYS, read_checkpoint
 from amuled_ma.learn.config import planned_iterations, rsl_rl_config
 from amuled_ma.learn.feedback import Feedback
+from amuled_ma.learn.variants import Variant
 from amuled_ma.learn.vecenv import DeliberationVecEnv
 from amuled_ma.scenario import Scenario
 from amuled_ma.tasks import make_task
@@ -101,7 +102,8 @@ class Trainer:
     Args:
         scenario: The scenario.
         out_dir: Folder of this variant (created).
-        variant: ``base``, ``shaped`` or ``finetune:<feedback>``.
+        variant: What to train (a :class:`~amuled_ma.learn.variants.Variant` or its text,
+            ``base``, ``shaped`` or ``finetune:<feedback>``).
         feedback: Feedback of a fine-tune (None for base training).
         base_checkpoint: The base policy a fine-tune starts from and is anchored to.
         resume: Continue from ``out_dir/model_last.pt`` when present.
@@ -119,7 +121,7 @@ class Trainer:
         scenario: Scenario,
         out_dir: Path,
         *,
-        variant: str = "base",
+        variant: Variant | str = "base",
         feedback: Feedback | None = None,
         base_checkpoint: Path | None = None,
         resume: bool = False,
@@ -133,9 +135,9 @@ class Trainer:
         torch.set_num_threads(1)
         self.scenario = scenario
         self.out_dir = Path(out_dir)
-        self.variant = variant
+        self.variant = Variant.parse(variant)
         self.feedback = feedback
-        self.finetuning = variant.startswith("finetune")
+        self.finetuning = self.variant.finetuning
         self.seed = scenario.task.seed if seed is None else seed
         self.progress = progress
         self.resume_hint = resume_hint
@@ -172,7 +174,7 @@ class Trainer:
             self.cfg = rsl_rl_config(
                 ppo, num_steps_per_env=base.num_steps_per_env, save_interval=base.save_interval
             )
-            shaping = base.shaping_coef if variant == "shaped" else 0.0
+            shaping = base.shaping_coef if self.variant.kind == "shaped" else 0.0
         self.shaping_coef = shaping
         section = "finetune" if self.finetuning else "base"
         minibatch = self.num_envs * self.steps_per_env // ppo.num_mini_batches
@@ -196,7 +198,9 @@ class Trainer:
             task_weight=scenario.finetune.env_reward_coef if self.finetuning else 1.0,
             feedback_coef=1.0,
         )
-        self.env = DeliberationVecEnv(self.mdp, cfg={"scenario": scenario.name, "variant": variant})
+        self.env = DeliberationVecEnv(
+            self.mdp, cfg={"scenario": scenario.name, "variant": str(self.variant)}
+        )
         # rsl-rl mutates the dict it is given: hand it a copy, keep the original.
         self.runner: OnPolicyRunner = _quiet(
             lambda: OnPolicyRunner(self.env, copy.deepcopy(self.cfg), log_dir=None, device="cpu")
@@ -257,7 +261,7 @@ class Trainer:
         """Write a checkpoint with rsl-rl's runner plus our book-keeping in ``infos``."""
         path.parent.mkdir(parents=True, exist_ok=True)
         infos = {
-            "variant": self.variant,
+            "variant": str(self.variant),
             "scenario": self.scenario.name,
             "iteration": self.runner.current_learning_iteration,
             "total_iterations": self.total_iterations,

@@ -11,10 +11,9 @@ from amuled_ma.learn.experiments import ablation_variants
 from amuled_ma.learn.feedback import (
     CallableFeedback,
     PanelFeedback,
-    parse_variant,
     summary_lines,
 )
-from amuled_ma.learn.run_folder import variant_dir_name
+from amuled_ma.learn.variants import Variant, parse_feedback
 from amuled_ma.scenario import scenario_from_dict
 
 MILK = ("up", "down", "left", "right")
@@ -78,30 +77,31 @@ def test_callable_feedback():
         ("agg:vote", ("agg", "vote")),
     ],
 )
-def test_parse_variant(name, expected):
-    assert parse_variant(name) == expected
+def test_parse_feedback(name, expected):
+    assert parse_feedback(name) == expected
 
 
 @pytest.mark.parametrize("name", ["", "agg:median", "cluster:", "amuled:x", "llm"])
-def test_parse_variant_rejects(name):
+def test_parse_feedback_rejects(name):
     with pytest.raises(ScenarioError, match="unknown feedback variant"):
-        parse_variant(name)
+        parse_feedback(name)
 
 
 def test_ablation_lists():
     sc = scenario_from_dict({})
     clusters = ablation_variants("clusters", sc)
-    assert [v for v, _, _ in clusters][-2:] == ["moral", "amuled"]
+    assert [str(v) for v, _ in clusters][-2:] == ["finetune:moral", "finetune:amuled"]
     assert len(clusters) == len(sc.feedback.clusters) + 2
-    assert [f for _, _, f in ablation_variants("aggregation", sc)] == [
+    assert [v.folder for v, _ in ablation_variants("aggregation", sc)] == [
         "finetune-agg-mean",
         "finetune-agg-max",
         "finetune-agg-vote",
         "finetune-amuled",
     ]
     kl = ablation_variants("kl", sc)
-    assert [s.finetune.lambda_kl for _, s, _ in kl] == [0.0, 0.5, 1.0, 2.5, 5.0, 10.0]
-    assert variant_dir_name("finetune:cluster:care") == "finetune-cluster-care"
+    assert [s.finetune.lambda_kl for _, s in kl] == [0.0, 0.5, 1.0, 2.5, 5.0, 10.0]
+    assert [v.folder for v, _ in kl][1] == "finetune-amuled-kl0.5"
+    assert Variant.parse("finetune:cluster:care").folder == "finetune-cluster-care"
     with pytest.raises(ScenarioError):
         ablation_variants("nope", sc)
 

@@ -60,10 +60,10 @@ def test_plan_run_anchors_each_seed_to_its_own_base(tmp_path):
 
 def test_plan_ablation_reuses_bases_and_writes_under_ablate_dir(tmp_path):
     jobs = plan_ablation("aggregation", tiny_scenario(), tmp_path, [1, 2], resume=False)
-    bases = [j for j in jobs if j.variant == "base"]
+    bases = [j for j in jobs if str(j.variant) == "base"]
     assert [j.name for j in bases] == ["base", "base.seed2"]
     assert all(j.resume for j in bases)  # a finished base from `amuled run` is reused
-    tunes = [j for j in jobs if j.variant != "base"]
+    tunes = [j for j in jobs if str(j.variant) != "base"]
     assert len(tunes) == 8  # mean, max, vote, bjs-dst x 2 seeds
     assert {j.out_dir.parent for j in tunes} == {tmp_path / "ablate-aggregation"}
     assert {j.needs for j in tunes} == {("base",), ("base.seed2",)}
@@ -100,7 +100,7 @@ def test_parallel_training_is_bit_identical_to_sequential(tmp_path):
     for workers in (1, 2):
         run_dir = tmp_path / f"w{workers}"
         jobs = plan_run(tiny_scenario(), run_dir, [1, 2])
-        outcome = run_jobs(jobs, workers=workers, describe=lambda r: r.variant)
+        outcome = run_jobs(jobs, workers=workers, describe=lambda r: str(r.variant))
         assert outcome.workers == workers and len(outcome.results) == 8
         runs[workers] = {j.name: json.loads((j.out_dir / "curve.json").read_text()) for j in jobs}
     for name, curve in runs[1].items():
@@ -276,12 +276,12 @@ def test_plan_ablation_reuses_the_runs_amuled_finetune_only_with_same_settings(t
     checkpoint = (run_dir / "finetune-amuled" / "model_last.pt").read_bytes()
 
     jobs = plan_ablation("aggregation", tiny_scenario(), run_dir, [1, 2])
-    where = {j.name: j.out_dir for j in jobs if j.variant == "finetune:amuled"}
+    where = {j.name: j.out_dir for j in jobs if str(j.variant) == "finetune:amuled"}
     assert where == {
         "finetune-amuled": run_dir / "finetune-amuled",
         "finetune-amuled.seed2": run_dir / "finetune-amuled.seed2",
     }
-    others = [j.out_dir.parent for j in jobs if j.variant.startswith("finetune:agg")]
+    others = [j.out_dir.parent for j in jobs if str(j.variant).startswith("finetune:agg")]
     assert len(others) == 6 and set(others) == {run_dir / "ablate-aggregation"}
     outcome = run_jobs(jobs, describe=str)
     skipped = {Path(r.out_dir).name for r in outcome.results if r.skipped}
@@ -295,5 +295,5 @@ def test_plan_ablation_reuses_the_runs_amuled_finetune_only_with_same_settings(t
         tiny_scenario().replace("finetune", iterations=4),
     ):
         jobs = plan_ablation("aggregation", scenario, run_dir, [1], resume=True)
-        (amuled,) = [j for j in jobs if j.variant == "finetune:amuled"]
+        (amuled,) = [j for j in jobs if str(j.variant) == "finetune:amuled"]
         assert amuled.out_dir == run_dir / "ablate-aggregation" / "finetune-amuled"
