@@ -34,10 +34,10 @@ from amuled_ma.authors.policies import (
     cleanrl_shape,
     last_checkpoint,
     read_cleanrl,
-    sha256_file,
     write_variant,
 )
 from amuled_ma.errors import AuthorsImportError
+from amuled_ma.file_hash import sha256_file
 
 #: The authors' repository.
 AUTHORS_REPO = "https://github.com/temetski/moral_agent"

@@ -22,7 +22,6 @@ Files are read with ``torch.load(..., weights_only=True)``: tensors only, no cod
 
 from __future__ import annotations
 
-import hashlib
 import re
 from collections.abc import Mapping
 from pathlib import Path
@@ -50,15 +49,6 @@ AUTHORS_FINETUNE_STEPS = 128
 LOGIT_TOLERANCE = 1e-5
 
 _PPO_FILE = re.compile(r"^ppo_(\d+)\.cleanrl_model$")
-
-
-def sha256_file(path: Path) -> str:
-    """SHA-256 of a file's bytes (the identity of an imported source)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def checkpoint_number(path: Path) -> int | None:

@@ -28,7 +28,6 @@ runner (:mod:`amuled_ma.learn.jobs`) both build on it.
 from __future__ import annotations
 
 import functools
-import hashlib
 import json
 import re
 import sys
@@ -38,6 +37,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from amuled_ma.errors import AmuledError, CheckpointError
+from amuled_ma.file_hash import sha256_file
 from amuled_ma.learn.checkpoints import LAST, checkpoint_infos
 from amuled_ma.learn.config import planned_iterations
 from amuled_ma.learn.variants import Variant
@@ -223,11 +223,7 @@ def training_config(
 
 @functools.lru_cache(maxsize=64)
 def _sha256_of(path: str, size: int, mtime_ns: int) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+    return sha256_file(path)  # cached by (path, size, mtime): a changed file is hashed again
 
 
 def _file_sha256(path: Path) -> str | None:
