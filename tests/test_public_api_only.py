@@ -88,3 +88,22 @@ def test_no_fast_path_copy_of_rsl_rl():
     assert not (PACKAGE / "learn" / "fast_ppo.py").exists()
     text = "\n".join(p.read_text(encoding="utf-8") for p in sources())
     assert not re.search(r"\bfast_ppo\b", text)
+
+
+def test_installed_torch_and_rsl_rl_are_in_the_pinned_ranges():
+    """CI installs the newest release within each pin; the pins are what CI tests."""
+    import tomllib
+    from importlib.metadata import version
+
+    from packaging.requirements import Requirement
+
+    pyproject = tomllib.loads((PACKAGE.parent / "pyproject.toml").read_text(encoding="utf-8"))
+    pins = {
+        req.name: req.specifier
+        for req in map(Requirement, pyproject["project"]["dependencies"])
+        if req.name in ("torch", "rsl-rl-lib")
+    }
+    assert set(pins) == {"torch", "rsl-rl-lib"}
+    for name, spec in pins.items():
+        assert spec.contains(version(name).split("+")[0]), (name, version(name), str(spec))
+        assert any(s.operator == "<" for s in spec), f"{name} needs an upper bound: {spec}"
