@@ -8,7 +8,12 @@ downloads or builds anything.
 The server is private: it listens on a free loopback port only, keeps its models in its
 own directory (``OLLAMA_MODELS``) and its key in a scratch ``HOME``, so it never touches a
 user's own Ollama install. ``OLLAMA_NUM_PARALLEL=2`` was measured ~15% faster on the tiny
-model; ``OLLAMA_MULTIUSER_CACHE`` is never set (it crashed the runner here).
+model with short prompts; with the paper's 3.6k-token prompts, 1 is faster (each slot keeps
+its own prefix cache and must evaluate the shared prompt once; ``amuled demo`` uses 1, see
+``docs/ollama.md``). ``OLLAMA_MULTIUSER_CACHE`` is never set (it crashed the runner here).
+Flash attention is off (``OLLAMA_FLASH_ATTENTION=0``): Ollama's default ("auto") turns it on
+for the CPU, where it halved the speed of both prompt evaluation and decoding of a
+3.6k-token prompt on the tiny model (measured on a 2-core AMD EPYC with AVX2).
 
 Whether a server (this one or any other) answers and has a model is checked by the
 package's one preflight, :func:`amuled_ma.beliefs.hosts.preflight`.
@@ -257,7 +262,9 @@ class OllamaServer:
         port: TCP port on 127.0.0.1; ``None`` picks a free one.
         num_parallel: ``OLLAMA_NUM_PARALLEL`` (requests served at once per model).
         keep_alive: ``OLLAMA_KEEP_ALIVE`` (how long an idle model stays loaded).
-        extra_env: More environment variables for the server (``OLLAMA_*`` tuning).
+        flash_attention: ``OLLAMA_FLASH_ATTENTION`` (off by default: slower on a CPU).
+        extra_env: More environment variables for the server (``OLLAMA_*`` tuning; they
+            win over the above).
 
     Raises:
         BackendUnavailable: No binary (from :func:`find_binary`).
@@ -271,6 +278,7 @@ class OllamaServer:
         port: int | None = None,
         num_parallel: int = 2,
         keep_alive: str = "1h",
+        flash_attention: bool = False,
         extra_env: dict[str, str] | None = None,
     ) -> None:
         self.binary = find_binary(binary)
@@ -279,6 +287,7 @@ class OllamaServer:
         self.port = port
         self.num_parallel = num_parallel
         self.keep_alive = keep_alive
+        self.flash_attention = flash_attention
         self.extra_env = dict(extra_env or {})
         self.process: subprocess.Popen[bytes] | None = None
         self.version: str | None = None
@@ -312,6 +321,7 @@ class OllamaServer:
             OLLAMA_MODELS=str(self.models_dir),
             OLLAMA_NUM_PARALLEL=str(self.num_parallel),
             OLLAMA_KEEP_ALIVE=self.keep_alive,
+            OLLAMA_FLASH_ATTENTION="1" if self.flash_attention else "0",
             OLLAMA_NO_CLOUD="1",
         )
         env.update(self.extra_env)
@@ -564,6 +574,7 @@ def up(
     gguf: str | os.PathLike[str] | None = None,
     num_parallel: int = 2,
     timeout: float = 60.0,
+    extra_env: dict[str, str] | None = None,
 ) -> tuple[ServerState, bool]:
     """Start a private server in the background (or reuse the one already recorded).
 
@@ -575,6 +586,8 @@ def up(
         gguf: GGUF file for the tiny model; ``None`` uses :func:`find_tiny_gguf`.
         num_parallel: ``OLLAMA_NUM_PARALLEL``.
         timeout: Seconds to wait for the server to answer.
+        extra_env: More ``OLLAMA_*`` variables for a server started here (e.g.
+            ``OLLAMA_DEBUG=1``); a server already running keeps its own.
 
     Returns:
         The server's state and whether it was started by this call.
@@ -596,7 +609,9 @@ def up(
                 stop_process_group(state.pid, timeout=5)
             clear_state(directory)
         gguf_path = find_tiny_gguf(gguf) if tiny else None  # fail before starting anything
-        server = OllamaServer(binary, workdir=directory, port=port, num_parallel=num_parallel)
+        server = OllamaServer(
+            binary, workdir=directory, port=port, num_parallel=num_parallel, extra_env=extra_env
+        )
         server.start(timeout=timeout)
         state = server.state()
         write_state(state, directory)

@@ -267,5 +267,10 @@ def test_server_env_is_private(
     assert env["OLLAMA_MODELS"] == str(tmp_path / "models")
     assert env["HOME"] == str(tmp_path / "home")
     assert env["OLLAMA_NUM_PARALLEL"] == "2"
+    assert env["OLLAMA_FLASH_ATTENTION"] == "0"  # 2x slower on a CPU (docs/ollama.md)
     assert "OLLAMA_MULTIUSER_CACHE" not in env
     assert os.environ["OLLAMA_MULTIUSER_CACHE"] == "1"  # the caller's env is untouched
+    tuned = llm_server.OllamaServer(
+        fake_ollama, workdir=tmp_path, num_parallel=1, extra_env={"OLLAMA_DEBUG": "1"}
+    ).env()
+    assert tuned["OLLAMA_NUM_PARALLEL"] == "1" and tuned["OLLAMA_DEBUG"] == "1"

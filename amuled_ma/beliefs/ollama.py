@@ -24,6 +24,12 @@ source sends it with ``ollama.Client.chat`` and parses the reply with
   if one is given, else with a uniform belief and status ``"timeout"`` or ``"error"``;
   all of it is counted in :attr:`OllamaSource.stats` and logged. A server that stops
   answering altogether raises :class:`~amuled_ma.errors.BackendUnavailable`.
+- **Timings**: every answered request keeps Ollama's own account of its chat calls in
+  ``extra["timing"]`` (:class:`~amuled_ma.beliefs.timing.RequestTiming`: model load,
+  prompt tokens and prefill seconds, tokens generated and decode seconds, server and
+  client seconds; summed over the calls when an abstention was re-asked), and adds it
+  to the log of every open :func:`~amuled_ma.beliefs.timing.record_timings` block
+  (``amuled demo`` prints their breakdown).
 - **Checked answers**: a parsed belief must be a valid probability vector over the
   request's actions (:mod:`amuled_ma.beliefs.validate`). A reply that parses to anything
   else (NaN, inf, negative, all zero, the wrong length) counts as an abstention: it is
@@ -60,6 +66,7 @@ from amuled_ma.beliefs.hosts import (
     unreachable_error,
 )
 from amuled_ma.beliefs.parsing import belief_schema, parse_belief, uniform
+from amuled_ma.beliefs.timing import RequestTiming, publish_timing
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.beliefs.validate import (
     ANSWER_STATUSES,
@@ -336,9 +343,11 @@ class OllamaSource(BeliefSource):
         reply = None
         parsed = None
         status, belief, invalid = "abstained", uniform(n), None
+        timing = RequestTiming()
         for attempt in range(self.parse_retries + 1):
             if attempt:
                 self._count(parse_retries=1)
+            asked = time.perf_counter()
             try:
                 reply = self._chat(request, base_seed + attempt)
             except _FailureError as failure:
@@ -350,6 +359,7 @@ class OllamaSource(BeliefSource):
                     "ollama %s for cluster %s: %s", failure.status, request.cluster, failure
                 )
                 return self._failed(request, failure, time.perf_counter() - start)
+            timing += RequestTiming.from_reply(reply, time.perf_counter() - asked)
             content = reply.message.content if reply.message is not None else None
             self._count(
                 prompt_tokens=int(reply.prompt_eval_count or 0),
@@ -372,7 +382,12 @@ class OllamaSource(BeliefSource):
         error = "; ".join(e for e in (invalid, parsed.error) if e) or None
         if status == "abstained":
             log.warning("ollama reply abstained for cluster %s: %s", request.cluster, error)
-        extra: dict[str, Any] = {"attempts": attempt + 1, "model": self.model}
+        extra: dict[str, Any] = {
+            "attempts": attempt + 1,
+            "model": self.model,
+            "timing": timing.as_dict(),
+        }
+        publish_timing(timing, start, time.perf_counter())
         if parsed.repairs:
             extra["repairs"] = list(parsed.repairs)
         if parsed.reasoning:
