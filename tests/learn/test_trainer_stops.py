@@ -5,23 +5,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import tiny_cli
 
 from amuled_ma.cli import main
 from amuled_ma.errors import BackendUnavailable, ScenarioError
 from amuled_ma.learn.run_folder import checkpoint_state
 
-TINY = [
-    "--set", "base.total_steps=1024",
-    "--set", "base.num_envs=16",
-    "--set", "base.num_steps_per_env=16",
-    "--set", "finetune.iterations=3",
-    "--set", "finetune.num_envs=4",
-    "--set", "finetune.num_steps_per_env=8",
-    "--set", "finetune.save_interval=100",
-    "--set", "output.tensorboard=false",
-    "--set", "feedback.source=rules",
-    "--no-progress",
-]  # fmt: skip
+# the shared tiny run, with no periodic checkpoint and rule-based beliefs
+TINY = [*tiny_cli.TINY, "--set", "finetune.save_interval=100", *tiny_cli.RULES]
 
 
 def test_backend_down_mid_finetune_writes_checkpoint_and_resume_command(
