@@ -18,8 +18,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import torch
-
 TARGET_DRIVING_S = 60.0
 
 
@@ -58,6 +56,8 @@ def _timed(func: Any, repeats: int) -> tuple[Any, float, float]:
 
 def main(args: argparse.Namespace) -> int:
     """Run the benchmark and print the figures; returns 0 (a benchmark, not a test)."""
+    import torch  # here: `amuled --help` need not load it
+
     from amuled_ma.tasks.demonstrators import (
         AUTHORS_STATE_COUNTS,
         DRIVING_COUNT_FROM,

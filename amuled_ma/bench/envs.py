@@ -20,7 +20,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 TARGET_STEPS_PER_S = 1_000_000
 TARGET_RATIO = 20.0
@@ -68,6 +67,8 @@ def bench_core(
     name: str, copies: int, steps: int, repeats: int, layout: str, device: str, seed: int
 ) -> dict[str, float]:
     """Time ``steps`` steps of the batched core with ``copies`` copies."""
+    import torch  # here: `amuled --help` need not load it
+
     from amuled_ma.tasks import make_batched
 
     task = make_batched(name, copies, device=device, seed=seed, **_options(name, layout))
@@ -111,6 +112,8 @@ def bench_gym(name: str, steps: int, repeats: int, layout: str, seed: int) -> di
 
 def main(args: argparse.Namespace) -> int:
     """Run the benchmark and print the figures; returns 0 (a benchmark, not a test)."""
+    import torch  # here: `amuled --help` need not load it
+
     torch.set_num_threads(1)
     copies = [int(c) for c in str(args.copies).split(",") if c.strip()]
     tasks = [t.strip() for t in str(args.tasks).split(",") if t.strip()]

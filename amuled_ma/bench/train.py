@@ -22,7 +22,6 @@ from pathlib import Path
 from typing import Any
 
 from amuled_ma.bench._output import output_folder
-from amuled_ma.evaluate.report import format_stat
 
 #: Reference figures (the authors' code) and our targets, per measured figure.
 REFERENCE: dict[str, tuple[str, str]] = {
@@ -193,6 +192,8 @@ def main(args: argparse.Namespace) -> int:
 
 def _measure(args: argparse.Namespace, out: Path) -> list[tuple[str, str, str, str]]:
     """Run the selected parts into ``out``; one table row per figure."""
+    from amuled_ma.evaluate.report import format_stat  # here: it imports torch
+
     rows: list[tuple[str, str, str, str]] = []
     fm: dict[str, Any] = {}
     if "findmilk" not in args.skip:
