@@ -12,7 +12,7 @@ stale lock to clean up; and we want the holder's pid and command in the message,
 ``filelock`` does not record. The lock is advisory and local to one machine's kernel (it
 does not protect a folder on a network file system written from two machines). Within one
 process the lock is re-entrant, so a command may take it again for a folder it already
-holds; worker processes started by a command do not take it (their parent holds it).
+holds; the Ray tasks of a command do not take it (the command holds it).
 """
 
 from __future__ import annotations

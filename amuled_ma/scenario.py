@@ -115,6 +115,10 @@ Recipe = Literal["equation", "authors"]
 Activation = Literal["tanh", "relu", "elu", "selu", "lrelu", "sigmoid", "identity"]
 #: ``[evaluation].modes``: action selection of the evaluation episodes.
 EvaluationMode = Literal["greedy", "sampled"]
+#: ``[feedback.distill].model``: the distilled reward model's kind.
+DistillModel = Literal["mlp"]
+#: ``[feedback.distill].selection``: which new states the budget spends on.
+DistillSelection = Literal["uncertainty", "random"]
 
 
 @dataclass(frozen=True)
@@ -420,6 +424,88 @@ class FinetuneConfig(_Section):
         return self
 
 
+class DistillConfig(_Section):
+    """``[feedback.distill]``: LLM feedback on a budget (``docs/distill.md``).
+
+    A small ensemble of networks learns each panel member's belief from the states the
+    panel was asked; during fine-tuning a new state is asked (panel and belief store, as
+    without this table) or answered by the model, and the panel is asked about at most
+    ``budget`` of the distinct states visited.
+
+    Attributes:
+        enabled: Distil at all (off: the panel answers every state).
+        budget: A float in ``(0, 1]``: at most that share of the distinct states the
+            fine-tune visits is asked (``max(1, floor(budget x visited))`` at any time);
+            an integer ``>= 1``: at most that many distinct states. ``1.0`` is every
+            state, ``1`` is one state.
+        model: The model's kind: ``"mlp"`` (an ensemble of two-hidden-layer MLPs on the
+            observation, one softmax head per member).
+        ensemble: Networks in the ensemble (their disagreement is the uncertainty).
+        hidden: Units of each hidden layer.
+        selection: ``"uncertainty"`` (ask where the ensemble disagrees most or the state
+            is far from every asked one) or ``"random"`` (the baseline).
+        refit_every: Newly answered asked states between two refits (the first fits come
+            after 1, 2, 4, ... states).
+        holdout: Share of asked states kept out of the fit to measure the model's
+            agreement with the panel.
+        answer_misses: Answer an asked state's replay misses and abstentions by the model
+            (status ``distilled_miss``, counted apart).
+        seed: Seed of the fits and the random selection; unset: the job's training seed.
+
+    """
+
+    section: ClassVar[str] = "feedback.distill"
+
+    enabled: bool = False
+    budget: float | int = 0.1
+    model: DistillModel = "mlp"
+    ensemble: int = Field(
+        5,
+        ge=1,
+        le=64,
+        description="networks in the ensemble; their disagreement is the "
+        "uncertainty (1: the novelty term alone)",
+    )
+    hidden: int = Field(
+        64, ge=1, le=4096, description="units of each of the model's two hidden layers"
+    )
+    selection: DistillSelection = "uncertainty"
+    refit_every: int = Field(
+        32,
+        ge=1,
+        le=1_000_000,
+        description="newly answered asked states between two refits of the model",
+    )
+    holdout: float = Field(
+        0.2,
+        ge=0,
+        le=0.5,
+        description="share of asked states kept out of the fit to measure agreement; above "
+        "0.5 the model would learn from fewer states than it is judged on",
+    )
+    answer_misses: bool = False
+    seed: int | None = Field(None, ge=0, le=MAX_SEED, description=_SEED_WHY)
+
+    def __init__(self, /, **data: Any) -> None:
+        _init(self, data, ("feedback", "distill"))
+
+    @field_validator("budget", mode="before")
+    @classmethod
+    def _budget_is_a_share_or_a_count(cls, value: Any, info: ValidationInfo) -> Any:
+        ok = not isinstance(value, bool) and (
+            (isinstance(value, int) and value >= 1)
+            or (isinstance(value, float) and math.isfinite(value) and 0 < value <= 1)
+        )
+        if not ok:
+            raise ScenarioError(
+                f"{_source(info)}: key [feedback.distill].budget expects a share in (0, 1] "
+                "written as a float (0.1: at most 10% of the distinct states visited are "
+                "asked) or a count >= 1 written as an integer (at most that many distinct "
+                f"states), found {_found_name(value)} ({value!r})"
+            )
+        return value
+
+
 class FeedbackConfig(_Section):
     """Where beliefs come from and how they are fused.
 
@@ -429,6 +515,10 @@ class FeedbackConfig(_Section):
         model: LLM name for the ``ollama`` source.
         host: Ollama server URL; empty: ``$OLLAMA_HOST``, else ``http://127.0.0.1:11434``.
             Checked on load by :func:`amuled_ma.beliefs.hosts.normalize_host`.
+        hosts: A pool of Ollama server URLs instead of ``host`` (each request goes to the
+            least-busy live one, a dead one is left out and its requests retried on
+            another; ``docs/ollama.md``, "A pool of servers"). Checked on load by
+            :func:`amuled_ma.beliefs.hosts.normalize_hosts`; not with ``host``.
         concurrency: Requests in flight at once.
         timeout_s: Seconds before one request is abandoned.
         miss_policy: What a replay miss gives: ``uniform``, ``fallback``, ``error``, or
@@ -460,6 +550,8 @@ class FeedbackConfig(_Section):
             was asked 20 distinct states).
         name: The fine-tune's variant name (folder ``finetune-<name>``); empty: named
             after the feedback (``finetune-amuled``).
+        distill: ``[feedback.distill]``, the panel asked on a budget and a distilled
+            reward model for the rest (:class:`DistillConfig`; off by default).
 
     """
 
@@ -469,6 +561,7 @@ class FeedbackConfig(_Section):
     recording: str = ""
     model: str = ""
     host: str = ""
+    hosts: list[str] = Field(default_factory=list)
     concurrency: int = Field(
         4, ge=1, le=1024, description="LLM requests in flight, one connection each"
     )
@@ -493,6 +586,7 @@ class FeedbackConfig(_Section):
         description="share of rewarded steps an agent may leave unanswered before a run stops",
     )
     name: str = ""
+    distill: DistillConfig = Field(default_factory=DistillConfig)
 
     @field_validator("host")
     @classmethod
@@ -501,6 +595,22 @@ class FeedbackConfig(_Section):
             from amuled_ma.beliefs.hosts import normalize_host
 
             normalize_host(value, where=f"{_source(info)}: key [feedback].host")
+        return value
+
+    @field_validator("hosts")
+    @classmethod
+    def _hosts_are_urls(cls, value: list[str], info: ValidationInfo) -> list[str]:
+        if value:
+            from amuled_ma.beliefs.hosts import normalize_hosts
+
+            normalize_hosts(value, where=f"{_source(info)}: key [feedback].hosts")
+            if info.data.get("host"):
+                raise ScenarioError(
+                    f"{_source(info)}: keys [feedback].host ({info.data['host']!r}) and "
+                    f"[feedback].hosts ({value!r}) are both set; give one server with host, "
+                    'or a pool with hosts = [...] and host = "" (list that server in hosts '
+                    'too; on the command line: --set feedback.host="")'
+                )
         return value
 
     @field_validator("ollama")
@@ -766,7 +876,21 @@ class Scenario(BaseModel):
             raise ScenarioError(_unknown_section(section, source))
         current = getattr(self, section)
         merged = {key: getattr(current, key) for key in type(current).model_fields}
-        merged.update(changes)
+        for key, value in changes.items():
+            head, dot, rest = key.partition(".")
+            if not dot:
+                merged[key] = value
+                continue
+            table = merged.get(head)
+            if not isinstance(table, BaseModel | dict):
+                close = _did_you_mean(head, list(merged))
+                where = (
+                    f"[{section}].{head} is not a table"
+                    if head in merged
+                    else f"no key [{section}].{head}{close}"
+                )
+                raise ScenarioError(f"{source}: key [{section}].{key}: {where}")
+            merged[head] = _with_nested(table, rest, value)
         new_section = _validate(model, merged, source, (section,))
         return self.model_copy(update={section: new_section})
 
@@ -786,6 +910,21 @@ class Scenario(BaseModel):
         """
         root = self.output.runs_dir if runs_dir is None else runs_dir
         return safe_child(root, self.name, what=f"{self.path or '<scenario>'}: key name")
+
+
+def _with_nested(table: BaseModel | dict[str, Any], key: str, value: Any) -> dict[str, Any]:
+    """A nested table's keys as a dict, with ``key`` (dotted for deeper tables) set."""
+    data = (
+        {k: getattr(table, k) for k in type(table).model_fields}
+        if isinstance(table, BaseModel)
+        else dict(table)
+    )
+    head, dot, rest = key.partition(".")
+    if dot and isinstance(data.get(head), BaseModel | dict):
+        data[head] = _with_nested(data[head], rest, value)
+    else:
+        data[key] = value
+    return data
 
 
 #: The section models by table name, in the order of a scenario file.
@@ -1126,6 +1265,8 @@ def _type_name(tp: Any) -> str:
         return "string"
     if tp is bool:
         return "boolean"
+    if isinstance(tp, type) and issubclass(tp, BaseModel):
+        return "table"
     return getattr(tp, "__name__", str(tp))
 
 
@@ -1135,6 +1276,9 @@ def _number_type(annotation: Any) -> Any:
         annotation = typing.get_args(annotation)[0]
     if typing.get_origin(annotation) is Annotated:
         annotation = typing.get_args(annotation)[0]
+    args = [a for a in typing.get_args(annotation) if a is not type(None)]
+    if len(args) == 1 and type(None) in typing.get_args(annotation):  # ``int | None``
+        return args[0]
     return annotation
 
 
@@ -1203,6 +1347,9 @@ def _describe(error: Any, source: str, loc: tuple[Any, ...]) -> str:
             return f"{source}: key {head} expects string, {found}"
         return f"{source}: key {head}: {error['msg']}, {found}"
     section, model = str(head), _SECTIONS[str(head)]
+    while len(loc) > 2 and _table_model(model, loc[1]) is not None:
+        model = _table_model(model, loc[1])  # a nested table: [feedback.distill]
+        section, loc = f"{section}.{loc[1]}", (loc[0], *loc[2:])
     if len(loc) == 1:
         if kind in ("model_type", "model_attributes_type", "dict_type"):
             return f"{source}: key {section} expects table, {found}"
@@ -1247,6 +1394,13 @@ def _describe(error: Any, source: str, loc: tuple[Any, ...]) -> str:
             f"{_float_for_int_hint(wants_int, value)}"
         )
     return f"{source}: key {where}{at}: {error['msg']}, {found}"
+
+
+def _table_model(model: type[BaseModel], key: Any) -> type[BaseModel] | None:
+    """The model of ``model``'s key when that key is a nested table, else None."""
+    info = model.model_fields.get(str(key))
+    tp = info.annotation if info is not None else None
+    return tp if isinstance(tp, type) and issubclass(tp, BaseModel) else None
 
 
 def scenario_error(error: ValidationError, source: str, loc: tuple[str, ...] = ()) -> ScenarioError:

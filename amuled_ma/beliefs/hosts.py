@@ -71,6 +71,45 @@ def normalize_host(host: str, *, where: str = "Ollama host") -> str:
     return f"{parts.scheme}://{name}:{port}{parts.path}".rstrip("/")
 
 
+def normalize_hosts(hosts: Any, *, where: str = "Ollama hosts") -> tuple[str, ...]:
+    """Return a pool's list of server addresses, each checked by :func:`normalize_host`.
+
+    Args:
+        hosts: A list of addresses (``["http://gpu1:11434", "gpu2"]``).
+        where: Where the list came from, for the error message (``key [feedback].hosts``).
+
+    Returns:
+        The normalised URLs, in the order given.
+
+    Raises:
+        ScenarioError: Not a list of strings, an empty list, a malformed address, or the
+            same server twice (after normalisation: ``gpu1`` is ``http://gpu1:11434``).
+
+    """
+    example = 'hosts = ["http://gpu1:11434", "http://gpu2:11434"]'
+    if isinstance(hosts, str | bytes) or not isinstance(hosts, Sequence):
+        raise ScenarioError(
+            f"{where} expects a list of server URLs, found {hosts!r}; write {example}"
+        )
+    if not hosts:
+        raise ScenarioError(
+            f"{where} expects at least one server URL, found an empty list; list the "
+            f"servers ({example}), or give one host instead"
+        )
+    urls: list[str] = []
+    for i, entry in enumerate(hosts):
+        if not isinstance(entry, str):
+            raise ScenarioError(f"{where}[{i}] expects a server URL, found {entry!r} ({example})")
+        url = normalize_host(entry, where=f"{where}[{i}]")
+        if url in urls:
+            raise ScenarioError(
+                f"{where}[{i}] {entry!r} is {url}, the same server as item "
+                f"[{urls.index(url)}] ({hosts[urls.index(url)]!r}); list each server once"
+            )
+        urls.append(url)
+    return tuple(urls)
+
+
 @dataclass(frozen=True)
 class ServerCheck:
     """What :func:`preflight` found at a server.

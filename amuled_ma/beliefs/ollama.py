@@ -6,6 +6,17 @@ source sends it with ``ollama.Client.chat`` and parses the reply with
 :func:`~amuled_ma.beliefs.parsing.parse_belief`.
 
 - **Host**: the ``host`` argument, else ``$OLLAMA_HOST``, else ``http://127.0.0.1:11434``.
+- **A pool of servers** (``hosts=[...]`` instead of ``host``): one client per host; each
+  chat call goes to the live host with the fewest requests in flight
+  (:class:`~amuled_ma.beliefs.host_pool.HostPool`). A host whose call fails with the
+  connection refused or dropped, or a timeout, is taken out of the pool for
+  ``down_for_s`` seconds and the request is retried at once on another host (at most
+  ``len(hosts)`` times: ``len(hosts) + 1`` attempts); the next request after
+  ``down_for_s`` probes it, and an answer puts it back. Each request still gives one
+  result. Every host must answer with the same model digest at the start (:meth:`check`);
+  the hosts are not part of :meth:`~OllamaSource.identity`: the same model on two
+  servers gives the same answers' store keys. Per-host figures:
+  :meth:`OllamaSource.server_stats`.
 - **Determinism**: ``temperature`` 0, a fixed ``seed`` and ``num_ctx`` (Ollama
   ``options``), so the same request gives the same answer and can be cached.
 - **Structured output** (``structured=True``, default): ``format`` is the JSON schema of
@@ -58,10 +69,13 @@ from typing import Any
 import httpx
 import ollama
 
+from amuled_ma.beliefs.host_pool import HostPool
 from amuled_ma.beliefs.hosts import (
     DEFAULT_HOST,
+    ServerCheck,
     model_missing_error,
     normalize_host,
+    normalize_hosts,
     preflight,
     unreachable_error,
 )
@@ -74,7 +88,7 @@ from amuled_ma.beliefs.validate import (
     checked_result,
     show_values,
 )
-from amuled_ma.errors import ScenarioError
+from amuled_ma.errors import AmuledError, BackendUnavailable, ModelNotFound, ScenarioError
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +125,8 @@ class OllamaStats:
         timeouts: Requests that timed out (every attempt counted).
         errors: Requests that failed with a non-timeout error in the end.
         fallbacks: Requests answered by the fallback source or a uniform belief.
+        failovers: Calls retried on another host of the pool after a connection failure
+            or a timeout.
         ok: Answers parsed as is.
         repaired: Answers parsed after repairs.
         abstained: Answers the parser gave up on (uniform).
@@ -128,6 +144,7 @@ class OllamaStats:
     timeouts: int = 0
     errors: int = 0
     fallbacks: int = 0
+    failovers: int = 0
     ok: int = 0
     repaired: int = 0
     abstained: int = 0
@@ -140,9 +157,39 @@ class OllamaStats:
 
 
 class _FailureError(Exception):
-    def __init__(self, status: str, message: str) -> None:
+    def __init__(self, status: str, message: str, host: str = "") -> None:
         super().__init__(message)
         self.status = status
+        self.host = host
+
+
+#: The pool's failure kind of each :class:`_FailureError` status.
+_FAILURE_KINDS = {"timeout": "timeout", "unreachable": "connection", "error": "server_error"}
+
+
+def pool_hosts(host: str | None, hosts: Sequence[str] | None) -> tuple[str, ...]:
+    """The server URLs of a source: ``hosts`` (a pool), else ``host`` resolved.
+
+    Args:
+        host: One server (default ``$OLLAMA_HOST``, then ``http://127.0.0.1:11434``).
+        hosts: A pool of servers, instead of ``host``.
+
+    Returns:
+        The normalised URLs, in the order given.
+
+    Raises:
+        ScenarioError: Both given, an empty list, a string instead of a list, a
+            malformed address or the same server twice.
+
+    """
+    if hosts is None:
+        return (resolve_host(host),)
+    if host:
+        raise ScenarioError(
+            f"ollama: host {host!r} and hosts {list(hosts)!r} are both given; give one "
+            "server with host, or a pool with hosts = [...] (list the host there too)"
+        )
+    return normalize_hosts(hosts, where="ollama hosts")
 
 
 class OllamaSource(BeliefSource):
@@ -151,6 +198,8 @@ class OllamaSource(BeliefSource):
     Args:
         model: Model name on the server (``"amuled-tiny"`` is the test model).
         host: Server URL (default ``$OLLAMA_HOST``, then ``http://127.0.0.1:11434``).
+        hosts: A pool of server URLs instead of ``host`` (see the module's docstring);
+            ``host`` alone is a pool of one, with the retries below.
         structured: Ask for the JSON schema of :func:`belief_schema` via ``format``.
         reasoning: Include the short ``reasoning`` string in the schema.
         reasoning_max_chars: Maximum length of that string.
@@ -170,7 +219,10 @@ class OllamaSource(BeliefSource):
         fallback: Source asked for requests that fail in the end (else uniform).
         keep_alive: Ollama ``keep_alive`` (how long the model stays loaded).
         check_timeout_s: Seconds allowed for the server/model check.
-        transport: An ``httpx`` transport (tests use ``httpx.MockTransport``).
+        down_for_s: In a pool of several hosts, seconds a host that failed (connection,
+            timeout) stays out before a request probes it again.
+        transport: An ``httpx`` transport (tests use ``httpx.MockTransport``; one for
+            every host: it sees the host in each request's URL).
 
     """
 
@@ -182,6 +234,7 @@ class OllamaSource(BeliefSource):
         model: str = "amuled-tiny",
         *,
         host: str | None = None,
+        hosts: Sequence[str] | None = None,
         structured: bool = True,
         reasoning: bool = True,
         reasoning_max_chars: int = 400,
@@ -200,14 +253,20 @@ class OllamaSource(BeliefSource):
         fallback: BeliefSource | None = None,
         keep_alive: str | float | None = None,
         check_timeout_s: float = 4.5,
+        down_for_s: float = 5.0,
         transport: httpx.BaseTransport | None = None,
     ) -> None:
         if concurrency < 1:
             raise ScenarioError(f"ollama concurrency: expected >= 1, found {concurrency}")
         if retries < 0 or parse_retries < 0:
             raise ScenarioError("ollama retries and parse_retries must be >= 0")
+        if not (float(down_for_s) >= 0 and float(down_for_s) < float("inf")):
+            raise ScenarioError(f"ollama down_for_s: expected a number >= 0, found {down_for_s}")
         self.model = model
-        self.host = resolve_host(host)
+        #: The server URLs (one, or a pool).
+        self.hosts = pool_hosts(host, hosts)
+        #: The first server (the only one without a pool).
+        self.host = self.hosts[0]
         self.structured = structured
         self.reasoning = reasoning
         self.reasoning_max_chars = reasoning_max_chars
@@ -229,12 +288,27 @@ class OllamaSource(BeliefSource):
         self.keep_alive = keep_alive
         self.check_timeout_s = float(check_timeout_s)
         self._transport = transport
-        self._client = ollama.Client(
-            host=self.host,
-            timeout=httpx.Timeout(
-                self.timeout_s, connect=min(self.check_timeout_s, self.timeout_s)
+        self._clients = {
+            url: ollama.Client(
+                host=url,
+                timeout=httpx.Timeout(
+                    self.timeout_s, connect=min(self.check_timeout_s, self.timeout_s)
+                ),
+                transport=transport,
+            )
+            for url in self.hosts
+        }
+        self._client = self._clients[self.host]
+        self.down_for_s = float(down_for_s)
+        #: Which host takes each call, and each host's figures (:meth:`server_stats`).
+        self.host_pool = HostPool(
+            self.hosts,
+            down_for_s=self.down_for_s,
+            fix=(
+                "start the servers again, or remove the dead ones from the pool "
+                "([feedback].hosts, or the agent's hosts); 'amuled ollama status' shows a "
+                "private server"
             ),
-            transport=transport,
         )
         self._digest: str | None = None
         self._checked = False
@@ -246,22 +320,85 @@ class OllamaSource(BeliefSource):
     def check(self) -> str:
         """Check that the server answers and has the model; return the model's digest.
 
-        Runs :func:`~amuled_ma.beliefs.hosts.preflight` once (later calls return the digest).
+        Runs :func:`~amuled_ma.beliefs.hosts.preflight` once per host (later calls return
+        the digest). A pool fails loudly at the start: every host must answer and have the
+        model with one digest (the same weights), so that any host's answer is the answer
+        of the source's :meth:`identity`.
 
         Raises:
-            BackendUnavailable: No server answers at the host (within ``check_timeout_s``).
-            ModelNotFound: The server lacks the model.
+            BackendUnavailable: No server answers at a host (within ``check_timeout_s``);
+                for a pool, naming each such host and the fix (start it, or remove it
+                from the pool).
+            ModelNotFound: A server lacks the model, or two servers of the pool have
+                different digests of it (naming both hosts and digests).
 
         """
         if self._checked:
             return self._digest or ""
-        found = preflight(self.host, self.model, self.check_timeout_s, transport=self._transport)
-        self._digest = found.digest or ""
+        if len(self.hosts) == 1:
+            found = preflight(
+                self.host, self.model, self.check_timeout_s, transport=self._transport
+            )
+            self._digest = found.digest or ""
+        else:
+            self._digest = self._check_pool()
         self._checked = True
         return self._digest
 
+    def _check_pool(self) -> str:
+        """Preflight every host of the pool; return the one digest of the model."""
+        found: dict[str, ServerCheck] = {}
+        problems: list[tuple[str, AmuledError]] = []
+        for url in self.hosts:
+            try:
+                found[url] = preflight(
+                    url, self.model, self.check_timeout_s, transport=self._transport
+                )
+            except (BackendUnavailable, ModelNotFound) as error:
+                problems.append((url, error))
+        if problems:
+            lines = "; ".join(str(error) for _, error in problems)
+            urls = ", ".join(url for url, _ in problems)
+            kind = (
+                BackendUnavailable
+                if any(isinstance(e, BackendUnavailable) for _, e in problems)
+                else ModelNotFound
+            )
+            raise kind(
+                f"{len(problems)} of the {len(self.hosts)} Ollama servers of the pool cannot "
+                f"serve model {self.model!r}: {lines}; or remove {urls} from the pool "
+                "([feedback].hosts, or the agent's hosts)"
+            ) from problems[0][1]
+        digests = {url: check.digest or "" for url, check in found.items()}
+        first = self.hosts[0]
+        for url, digest in digests.items():
+            if digest != digests[first]:
+                raise ModelNotFound(
+                    f"model {self.model!r} differs between the Ollama servers of the pool: "
+                    f"{first} has digest {digests[first] or '(none)'!r}, {url} has "
+                    f"{digest or '(none)'!r}; the servers of one pool must hold the same "
+                    f"weights (their answers share store keys): make them equal with "
+                    f"'ollama pull {self.model}' (or the same 'ollama create') on each, or "
+                    f"remove {url} from the pool"
+                )
+        return digests[first]
+
+    def server_stats(self) -> dict[str, dict[str, Any]]:
+        """Each host's figures: requests sent, answered, failed by kind, latencies.
+
+        Returns:
+            :meth:`~amuled_ma.beliefs.host_pool.HostPool.as_dict` of the pool (one host
+            without a pool).
+
+        """
+        return self.host_pool.as_dict()
+
     def identity(self) -> dict[str, Any]:
         """Return the model name and digest, the options and the output format.
+
+        Never the host(s): the same model (same digest, checked on every host of a pool)
+        gives the same answers on any server, so a run resumed on other servers finds its
+        answers in the store.
 
         Raises:
             BackendUnavailable: As :meth:`check`.
@@ -296,39 +433,75 @@ class OllamaSource(BeliefSource):
             for key, value in increments.items():
                 setattr(self.stats, key, getattr(self.stats, key) + value)
 
-    def _chat(self, request: BeliefRequest, seed: int) -> Any:
-        """One chat call with transient-failure retries; raises :class:`_FailureError`."""
+    def _chat(self, request: BeliefRequest, seed: int) -> tuple[Any, str]:
+        """One chat call with retries; return ``(reply, host)`` or raise :class:`_FailureError`.
+
+        Each call goes to a host of the pool. In a pool of several hosts, a connection
+        failure or a timeout takes the host out and the call is retried at once on another
+        host, at most ``len(hosts)`` times. Otherwise (one host, or an HTTP 408/429/5xx)
+        a transient failure is retried ``retries`` times with exponential backoff.
+
+        Raises:
+            _FailureError: The call failed in the end.
+            ModelNotFound: A host lacks the model.
+            BackendUnavailable: Every host of the pool is down (from the pool).
+
+        """
         messages = [{"role": role, "content": content} for role, content in request.messages]
         options = {**self.options, "seed": seed}
-        last: _FailureError | None = None
-        for attempt in range(self.retries + 1):
-            if attempt:
-                self._count(retries=1)
-                time.sleep(min(self.backoff_max_s, self.backoff_s * 2 ** (attempt - 1)))
-            self._count(attempts=1)
-            try:
-                return self._client.chat(
-                    model=self.model,
-                    messages=messages,
-                    format=self.schema(request.action_names),
-                    options=options,
-                    keep_alive=self.keep_alive,
-                )
-            except httpx.TimeoutException as error:
-                self._count(timeouts=1)
-                last = _FailureError("timeout", f"timed out after {self.timeout_s} s: {error!r}")
-                if not self.retry_timeouts:
-                    break
-            except ollama.ResponseError as error:
-                if error.status_code == 404 and "not found" in str(error.error).lower():
-                    raise model_missing_error(self.model, self.host) from error
-                last = _FailureError("error", f"server error: {error}")
-                if error.status_code not in RETRY_STATUSES:
-                    break
-            except (ConnectionError, httpx.TransportError) as error:
-                last = _FailureError("unreachable", f"{type(error).__name__}: {error}")
-        assert last is not None
-        raise last
+        pool = self.host_pool
+        several = len(self.hosts) > 1
+        failed_on: list[str] = []
+        retries = failovers = 0
+        while True:
+            with pool.acquire(avoid=failed_on) as lease:
+                host = lease.host
+                self._count(attempts=1)
+                try:
+                    reply = self._clients[host].chat(
+                        model=self.model,
+                        messages=messages,
+                        format=self.schema(request.action_names),
+                        options=options,
+                        keep_alive=self.keep_alive,
+                    )
+                except httpx.TimeoutException as error:
+                    self._count(timeouts=1)
+                    where = f" at {host}" if several else ""
+                    failure = _FailureError(
+                        "timeout", f"timed out after {self.timeout_s} s{where}: {error!r}", host
+                    )
+                    transient = self.retry_timeouts
+                except ollama.ResponseError as error:
+                    if error.status_code == 404 and "not found" in str(error.error).lower():
+                        lease.fail("model_missing", str(error))
+                        raise model_missing_error(self.model, host) from error
+                    where = f" at {host}" if several else ""
+                    failure = _FailureError("error", f"server error{where}: {error}", host)
+                    transient = error.status_code in RETRY_STATUSES
+                except (ConnectionError, httpx.TransportError) as error:
+                    failure = _FailureError("unreachable", f"{type(error).__name__}: {error}", host)
+                    transient = True
+                else:
+                    return reply, host
+                lease.fail(_FAILURE_KINDS[failure.status], str(failure))
+            if several and failure.status in ("timeout", "unreachable"):
+                if failovers >= len(self.hosts):
+                    raise failure
+                failovers += 1
+                failed_on.append(host)
+                pool.retried(host)
+                self._count(failovers=1)
+                log.warning(
+                    "ollama %s at %s for cluster %s: retried on another host (%s)",
+                    failure.status, host, request.cluster, pool.describe(),
+                )  # fmt: skip
+                continue
+            if not transient or retries >= self.retries:
+                raise failure
+            self._count(retries=1)
+            time.sleep(min(self.backoff_max_s, self.backoff_s * 2**retries))
+            retries += 1
 
     def _answer(self, request: BeliefRequest) -> BeliefResult:
         """Ask, parse, re-ask on abstention; never raises except for a dead server."""
@@ -342,6 +515,7 @@ class OllamaSource(BeliefSource):
         base_seed = int(self.options["seed"])
         reply = None
         parsed = None
+        host = self.host
         status, belief, invalid = "abstained", uniform(n), None
         timing = RequestTiming()
         for attempt in range(self.parse_retries + 1):
@@ -349,10 +523,10 @@ class OllamaSource(BeliefSource):
                 self._count(parse_retries=1)
             asked = time.perf_counter()
             try:
-                reply = self._chat(request, base_seed + attempt)
+                reply, host = self._chat(request, base_seed + attempt)
             except _FailureError as failure:
                 if failure.status == "unreachable":
-                    raise unreachable_error(self.host, failure) from failure
+                    raise self._unreachable(failure) from failure
                 if failure.status != "timeout":
                     self._count(errors=1)
                 log.warning(
@@ -387,6 +561,8 @@ class OllamaSource(BeliefSource):
             "model": self.model,
             "timing": timing.as_dict(),
         }
+        if len(self.hosts) > 1:
+            extra["host"] = host  # the host of the answer (not part of the store key)
         publish_timing(timing, start, time.perf_counter())
         if parsed.repairs:
             extra["repairs"] = list(parsed.repairs)
@@ -405,6 +581,17 @@ class OllamaSource(BeliefSource):
             prompt_tokens=reply.prompt_eval_count,
             completion_tokens=reply.eval_count,
             extra=extra,
+        )
+
+    def _unreachable(self, failure: _FailureError) -> BackendUnavailable:
+        """The error of a call no host answered: the host (or every host of the pool)."""
+        if len(self.hosts) == 1:
+            return unreachable_error(self.host, failure)
+        return BackendUnavailable(
+            f"no Ollama server of the pool answers (last at {failure.host}: {failure}); the "
+            f"hosts: {self.host_pool.describe()}; start them again or remove the dead ones "
+            "from the pool ([feedback].hosts, or the agent's hosts); 'amuled ollama up' "
+            "starts a private server"
         )
 
     def _failed(
@@ -475,10 +662,11 @@ class OllamaSource(BeliefSource):
         return out  # type: ignore[return-value]
 
     def close(self) -> None:
-        """Stop the worker threads and close the HTTP client."""
+        """Stop the worker threads and close the HTTP clients."""
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
-        self._client.close()
+        for client in self._clients.values():
+            client.close()
         if self.fallback is not None:
             self.fallback.close()

@@ -54,6 +54,7 @@ AGENT_KEYS: dict[str, dict[str, tuple[tuple[type, ...], str]]] = {
     "ollama": {
         "model": ((str,), "an Ollama model name"),
         "host": ((str,), "the Ollama server URL"),
+        "hosts": ((list,), "a pool of Ollama server URLs (instead of host)"),
         "concurrency": ((int,), "requests in flight"),
         "timeout_s": ((int, float), "seconds per request"),
     },
@@ -464,6 +465,15 @@ def check_agent_tables(
                 from amuled_ma.beliefs.hosts import normalize_host
 
                 normalize_host(value, where=f"{head} key host")
+            if k == "hosts":
+                from amuled_ma.beliefs.hosts import normalize_hosts
+
+                normalize_hosts(value, where=f"{head} key hosts")
+        if kind == "ollama" and table.get("host") and table.get("hosts"):
+            raise ScenarioError(
+                f"{head} sets both host and hosts; keep host for one server, or hosts = "
+                "[...] for a pool (list that server there too)"
+            )
         if kind in _REQUIRED:
             required, example = _REQUIRED[kind]
             given = table.get(required)
@@ -528,6 +538,7 @@ def default_spec(scenario: Any, ollama_options: Callable[[Any], dict[str, Any]])
         options.update(
             model=fb.model,
             host=fb.host or None,
+            hosts=list(fb.hosts) or None,
             concurrency=fb.concurrency,
             timeout_s=fb.timeout_s,
             **ollama_options(scenario),
@@ -576,9 +587,13 @@ def agent_spec(
         options = {"paths": str(path), "miss_policy": policy}
         detail = f", recording {path.name!r}"
     elif kind == "ollama":
+        own_host, own_hosts = rest.pop("host", None), rest.pop("hosts", None)
+        if not own_host and not own_hosts:  # the table names no server: [feedback]'s
+            own_host, own_hosts = fb.host, list(fb.hosts)
         options = {
             "model": rest.pop("model", None) or fb.model,
-            "host": rest.pop("host", None) or fb.host or None,
+            "host": own_host or None,
+            "hosts": list(own_hosts) if own_hosts else None,
             "concurrency": rest.pop("concurrency", fb.concurrency),
             "timeout_s": float(rest.pop("timeout_s", fb.timeout_s)),
         }
@@ -754,7 +769,7 @@ def scenario_ollama_options(scenario: Any) -> dict[str, Any]:
         scenario.feedback.ollama,
         where=str(scenario.path or scenario.name),
         table_name="[feedback.ollama]",
-        exclude=("model", "host", "concurrency", "timeout_s"),
+        exclude=("model", "host", "hosts", "concurrency", "timeout_s"),
     )
     return dict(scenario.feedback.ollama)
 

@@ -17,6 +17,16 @@ import numpy as np
 
 #: Parse / answer statuses a :class:`BeliefResult` may carry.
 STATUSES = ("ok", "repaired", "abstained", "replay_miss", "timeout", "error")
+#: Statuses of beliefs a distilled reward model gave in the panel's place
+#: (:mod:`amuled_ma.distill`): ``"distilled"`` (a state that was not asked) and
+#: ``"distilled_miss"`` (an asked state's replay miss or abstention, answered by the model).
+#: They are answers for the fusion, reported apart from the panel's, and never stored.
+MODEL_STATUSES = ("distilled", "distilled_miss")
+#: Status of a state that was not asked and whose agent the distilled model cannot answer
+#: yet (no asked state has that agent's answer): a failure, the agent abstains.
+UNASKED = "unasked"
+#: Statuses fused as an agent's answer: the panel's (``ok``, ``repaired``) and the model's.
+FUSED_STATUSES = frozenset({"ok", "repaired", *MODEL_STATUSES})
 
 
 @dataclass(frozen=True)
@@ -52,8 +62,9 @@ class BeliefResult:
 
     Attributes:
         belief: Probability vector, shape ``(n_actions,)``, sums to 1.
-        status: One of :data:`STATUSES`; anything but ``"ok"``/``"repaired"`` means the
-            belief is a fallback (uniform, another source's answer, ...).
+        status: One of :data:`STATUSES` (or, from a distilled model, of
+            :data:`MODEL_STATUSES` or :data:`UNASKED`); anything but ``"ok"``/``"repaired"``
+            and the model's answers means the belief is a fallback (uniform, ...).
         source: Name of the source that produced the belief.
         raw: The raw reply text, when there was one.
         cached: True when the answer came from the belief store without a request.

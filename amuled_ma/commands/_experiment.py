@@ -173,6 +173,12 @@ def command_line(name: str, args: argparse.Namespace, run_dir: Path, *extra: str
         parts += ["--seed", str(args.seed)]
     if getattr(args, "seeds", 1) != 1:
         parts += ["--seeds", str(args.seeds)]
+    if getattr(args, "jobs", 0):
+        parts += ["--jobs", str(args.jobs)]
+    if getattr(args, "ray", None) is not None:
+        parts += ["--ray"] + ([] if args.ray == "local" else [args.ray])
+    if getattr(args, "ray_resource", None):
+        parts += ["--ray-resource", args.ray_resource]
     return shlex.join(parts)
 
 
@@ -213,7 +219,7 @@ def say(message: str) -> None:
 
 def describe(job: Any) -> str:
     """One line about a finished training job (a seed replica's seed in brackets)."""
-    from amuled_ma.learn.feedback import summary_lines
+    from amuled_ma.learn.feedback import distill_line, summary_lines
     from amuled_ma.learn.run_folder import split_replica
 
     seed = split_replica(Path(job.out_dir).name)[1]
@@ -230,13 +236,15 @@ def describe(job: Any) -> str:
         line += f", {out.feedback['unique_states']} distinct states"
         line += f", replay miss rate {100 * out.feedback['miss_rate']:.2f}%"
         line += f", not answered {100 * out.feedback.get('failure_rate', 0.0):.2f}%"
+        if out.feedback.get("distill"):
+            line += "\n  " + distill_line(out.feedback["distill"])
         # per agent, the agents that left states unanswered (abstained, errors, misses)
         failing = {
             name: row
             for name, row in (out.feedback.get("agents") or {}).items()
             if row.get("failed")
         }
-        shown = summary_lines({**out.feedback, "agents": failing})[1:]
+        shown = summary_lines({**out.feedback, "agents": failing, "distill": None})[1:]
         line += "".join("\n    " + text for text in shown)
     return line
 

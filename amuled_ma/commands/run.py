@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 
 from amuled_ma.commands import _experiment as common
+from amuled_ma.errors import AmuledError
 from amuled_ma.run_lock import run_folder_lock
 
 
@@ -42,19 +43,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     ablate = subparsers.add_parser(
         "ablate",
-        help="the paper's ablations: clusters, aggregation, models, kl",
+        help="the paper's ablations: clusters, aggregation, models, kl; and budget",
         description=(
             "Fine-tune the run's base policy with: each cluster alone and the unprompted "
             "moral agent (clusters); mean/max/vote vs bjs-dst (aggregation); every "
-            "recording of the task or the scenario's model (models); a lambda_KL sweep (kl). "
-            "Writes <run-dir>/ablate-<what>/ with a comparison table and plots."
+            "recording of the task or the scenario's model (models); a lambda_KL sweep (kl); "
+            "the panel asked about 100%, 30%, 10%, 3% of the distinct states, the rest "
+            "answered by a distilled reward model, with uncertainty and random selection "
+            "(budget, docs/distill.md). Writes <run-dir>/ablate-<what>/ with a comparison "
+            "table and plots."
         ),
     )
     common.add_scenario_args(ablate)
     ablate.add_argument(
         "--what",
         required=True,
-        choices=("clusters", "aggregation", "models", "kl"),
+        choices=("clusters", "aggregation", "models", "kl", "budget"),
         help="which ablation",
     )
     ablate.add_argument(
@@ -64,8 +68,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ablate.set_defaults(handler=ablate_command)
 
 
+#: ``--ray`` without an address: a local Ray started for the run.
+LOCAL_RAY = "local"
+
+
 def add_parallel_args(parser: argparse.ArgumentParser) -> None:
-    """Add ``--seeds`` (training replicas) and ``--jobs`` (worker processes)."""
+    """Add ``--seeds`` (training replicas), ``--jobs`` and ``--ray`` (where jobs run)."""
     parser.add_argument(
         "--seeds",
         type=common.bounded_int(1),
@@ -79,19 +87,49 @@ def add_parallel_args(parser: argparse.ArgumentParser) -> None:
         type=common.bounded_int(0),
         default=0,
         metavar="N",
-        help="train N jobs at once in worker processes; 1 = all in this process; "
-        "0 = one per CPU core, or 1 when the feedback is a live Ollama server (default: 0)",
+        help="train N jobs at once on a local Ray (one CPU each); 1 = all in this process, "
+        "without Ray; 0 = one per CPU core, or 1 when the feedback is a live Ollama server "
+        "(default: 0)",
+    )
+    parser.add_argument(
+        "--ray",
+        nargs="?",
+        const=LOCAL_RAY,
+        default=None,
+        metavar="ADDRESS",
+        help="train the jobs on Ray: alone, a local Ray with --jobs CPUs (even --jobs 1); "
+        "with an address (HOST:PORT of 'ray start --head', or auto), on that cluster "
+        "(docs/scale.md)",
+    )
+    parser.add_argument(
+        "--ray-resource",
+        default=None,
+        metavar="NAME",
+        help="each job needs one unit of this custom Ray resource: only nodes started with "
+        "--resources '{\"NAME\": k}' train jobs, k at a time (keeps jobs off the GPU "
+        "nodes that serve Ollama)",
     )
 
 
 def _train_all(jobs: list, args: argparse.Namespace, hint: str) -> None:
     """Train a job graph with the command line's ``--jobs`` and print one line per job."""
-    from amuled_ma.learn.jobs import resolve_workers, run_jobs
+    from amuled_ma.learn.jobs import RayTarget, resolve_workers, run_jobs
 
+    if args.ray_resource and args.ray is None:
+        raise AmuledError("--ray-resource needs --ray: it names a resource of a Ray cluster")
+    ray = None
+    if args.ray is not None:
+        ray = RayTarget(None if args.ray == LOCAL_RAY else args.ray, args.ray_resource)
     workers = resolve_workers(args.jobs, jobs)
-    common.say(f"  {len(jobs)} training jobs, {workers} at a time")
+    where = "" if ray is None else f" on Ray ({ray.address or 'local'})"
+    common.say(f"  {len(jobs)} training jobs, {workers} at a time{where}")
     outcome = run_jobs(
-        jobs, workers=workers, progress=not args.no_progress, hint=hint, describe=common.describe
+        jobs,
+        workers=workers,
+        progress=not args.no_progress,
+        hint=hint,
+        describe=common.describe,
+        ray=ray,
     )
     common.say(f"  training done in {outcome.wall_s:.1f} s on {outcome.workers} worker(s)")
 

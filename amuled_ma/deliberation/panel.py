@@ -24,12 +24,15 @@ For a batch it
    in :attr:`PanelStats.invalid_reasons`), so fusion never raises in the training loop and
    no invalid belief is fused as an answer;
 5. fuses with :func:`amuled_ma.fusion.fuse`, vectorised over the states that the same
-   agents answered: an agent without an answer (abstained, timeout, error, replay miss)
-   **abstains**: it is left out of that state's fusion and gets weight 0, never a fake
-   uniform belief; a state nobody answered gets the uniform fallback, counted.
+   agents answered: an agent without an answer (abstained, timeout, error, replay miss,
+   unasked) **abstains**: it is left out of that state's fusion and gets weight 0, never
+   a fake uniform belief; a state nobody answered gets the uniform fallback, counted. A
+   distilled model's belief (``distilled``, ``distilled_miss``,
+   :data:`~amuled_ma.beliefs.types.MODEL_STATUSES`) is an answer here.
 
 Only rows whose every cluster answered ``ok``/``repaired`` enter the LRU, so a state that
-got a fallback belief is asked again next time (the store's policy, one level up).
+got a fallback belief is asked again next time (the store's policy, one level up), and so
+is a state a distilled model answered (it answers again after its next refit).
 """
 
 from __future__ import annotations
@@ -42,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from amuled_ma.beliefs.rows import CACHEABLE
-from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.beliefs.types import FUSED_STATUSES, BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.beliefs.validate import check_belief, check_beliefs, show_values
 from amuled_ma.deliberation.state_key import freeze
 
@@ -102,7 +105,8 @@ class PanelStats:
         unique: Distinct states seen (per call).
         lru_hits: Distinct states answered from the LRU.
         requests: Belief requests sent to the source (K per new state).
-        fallbacks: Beliefs whose status was not ``ok``/``repaired``.
+        fallbacks: Beliefs that were not answers (status other than ``ok``/``repaired``
+            and a distilled model's ``distilled``/``distilled_miss``).
         by_status: Count of each status among answered requests.
         invalid: Beliefs that were not valid probability vectors (made uniform ``"error"``).
         invalid_reasons: The first few of them, ``"cluster: values: reason"``.
@@ -394,8 +398,9 @@ class MoralPanel:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Fuse each state's answers; an agent that did not answer abstains.
 
-        An agent whose belief is not an answer (status other than ``ok``/``repaired``:
-        abstained, timeout, error, replay miss) is left out of that state's fusion: the
+        An agent whose belief is not an answer (status other than ``ok``/``repaired`` and
+        the distilled model's: abstained, timeout, error, replay miss, unasked) is left
+        out of that state's fusion: the
         rule runs over the agents that answered, and the absent agent's weight is 0. It
         is never fed as a uniform belief, which BJS weighting would favour (a uniform
         belief is close to every other one). A state no agent answered gets the
@@ -411,7 +416,7 @@ class MoralPanel:
 
         """
         u_count, k, a = beliefs.shape
-        answered = np.isin(statuses.astype(str), list(CACHEABLE))
+        answered = np.isin(statuses.astype(str), list(FUSED_STATUSES))
         fused = np.full((u_count, a), 1.0 / a)
         weights = np.zeros((u_count, k))
         conflicts = np.zeros((u_count, max(k - 1, 0)))
@@ -462,7 +467,7 @@ class MoralPanel:
         st.requests += len(results)
         for status, n in Counter(statuses.tolist()).items():
             st.by_status[status] = st.by_status.get(status, 0) + n
-            if status not in CACHEABLE:
+            if status not in FUSED_STATUSES:
                 st.fallbacks += n
         return out.reshape(count, k, a), statuses.reshape(count, k)
 

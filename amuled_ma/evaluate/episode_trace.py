@@ -32,8 +32,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from amuled_ma.beliefs.rows import CACHEABLE
-from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.beliefs.types import FUSED_STATUSES, BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.deliberation.state_key import freeze
 from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError
 
@@ -762,7 +761,7 @@ def fusion_breakdown(
     from amuled_ma.fusion import bjs_divergence, fuse
 
     beliefs = np.asarray(beliefs, dtype=np.float64)
-    answered = [i for i, s in enumerate(statuses) if str(s) in CACHEABLE]
+    answered = [i for i, s in enumerate(statuses) if str(s) in FUSED_STATUSES]
     left_out = [(agents[i], str(statuses[i])) for i in range(len(agents)) if i not in answered]
     if not answered:
         return None

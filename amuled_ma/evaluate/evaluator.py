@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from amuled_ma.beliefs.types import FUSED_STATUSES
 from amuled_ma.errors import CheckpointError, ScenarioError
 from amuled_ma.evaluate.stats import mean_ci
 from amuled_ma.learn.checkpoints import LAST
@@ -160,7 +161,11 @@ def combine_replicas(
 
 
 def merge_feedback(summaries: list[dict[str, Any]]) -> dict[str, Any]:
-    """Fused-belief diagnostics of several seed replicas: means, with statuses summed."""
+    """Fused-belief diagnostics of several seed replicas: means, with statuses summed.
+
+    Each LLM server's figures (``llm_servers``) are added up with
+    :func:`~amuled_ma.beliefs.host_pool.merge_host_stats`.
+    """
     if len(summaries) == 1:
         return summaries[0]
     statuses: dict[str, int] = {}
@@ -170,6 +175,16 @@ def merge_feedback(summaries: list[dict[str, Any]]) -> dict[str, Any]:
     clusters = sorted({c for s in summaries for c in (s.get("mean_weight") or {})})
     conflicts = [s["mean_conflict"] for s in summaries if s.get("mean_conflict") is not None]
     total = sum(statuses.values())
+    servers = [s["llm_servers"] for s in summaries if s.get("llm_servers")]
+    extra: dict[str, Any] = {}
+    if servers:
+        from amuled_ma.beliefs.host_pool import merge_host_stats
+
+        extra["llm_servers"] = merge_host_stats(servers)
+    distills = [s["distill"] for s in summaries if s.get("distill")]
+    if distills:
+        extra["distill"] = merge_distill(distills)
+    answered = sum(n for key, n in statuses.items() if key in FUSED_STATUSES)
     return {
         "feedback": summaries[0].get("feedback"),
         "replicas": len(summaries),
@@ -186,12 +201,51 @@ def merge_feedback(summaries: list[dict[str, Any]]) -> dict[str, Any]:
         "mean_conflict": float(np.mean(conflicts)) if conflicts else None,
         "statuses": statuses,
         "miss_rate": statuses.get("replay_miss", 0) / total if total else 0.0,
-        "failure_rate": (
-            (total - statuses.get("ok", 0) - statuses.get("repaired", 0)) / total if total else 0.0
-        ),
+        "failure_rate": (total - answered) / total if total else 0.0,
         "agents": _sum_agents([s.get("agents") or {} for s in summaries]),
         "agents_per_state": _sum_agents([s.get("agents_per_state") or {} for s in summaries]),
+        **extra,
     }
+
+
+#: Counters of a distilled feedback's accounting that add up over seed replicas.
+_DISTILL_SUMS = (
+    "visited_states",
+    "asked_states",
+    "model_states",
+    "cap",
+    "requests_forwarded",
+    "requests_sent",
+    "model_answers",
+    "miss_answers",
+    "unasked_answers",
+    "refits",
+    "holdout_states",
+)
+
+
+def merge_distill(reports: list[dict[str, Any]]) -> dict[str, Any]:
+    """The budget accounting (``feedback["distill"]``) of several seed replicas.
+
+    Counts are summed (``asked_share`` recomputed from the sums), the held-out distances
+    averaged over the replicas that measured them, the settings taken from the first.
+    """
+    if len(reports) == 1:
+        return reports[0]
+    out = {k: v for k, v in reports[0].items() if k not in _DISTILL_SUMS}
+    for key in _DISTILL_SUMS:
+        out[key] = sum(int(r.get(key) or 0) for r in reports)
+    visited = out["visited_states"]
+    out["asked_share"] = out["asked_states"] / visited if visited else 0.0
+    fused = [r["holdout_tv_fused"] for r in reports if r.get("holdout_tv_fused") is not None]
+    out["holdout_tv_fused"] = float(np.mean(fused)) if fused else None
+    members = sorted({m for r in reports for m in (r.get("holdout_tv") or {})})
+    out["holdout_tv"] = {
+        m: float(np.mean([r["holdout_tv"][m] for r in reports if m in (r.get("holdout_tv") or {})]))
+        for m in members
+    }
+    out["replicas"] = len(reports)
+    return out
 
 
 def _sum_agents(reports: list[dict[str, dict[str, Any]]]) -> dict[str, dict[str, Any]]:
@@ -352,6 +406,8 @@ def panel_record(variant_dir: Path) -> dict[str, Any] | None:
             agent_sources=feedback.get("agents") or {},
             clusters_dirs=list(feedback.get("clusters_dirs") or []),
         )
+    if feedback.get("distill"):
+        record["distill"] = feedback["distill"]
     if training.get("inputs"):
         record["inputs"] = training["inputs"]
     if config.get("base_checkpoint"):

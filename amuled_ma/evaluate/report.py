@@ -5,7 +5,9 @@ panel and its sources, the recording and its SHA-256) and a link to the step-by-
 viewer (``amuled view``). Then the metric tables (greedy and sampled) with each variant's
 difference to the base policy and a sentence for every fine-tune whose greedy policy
 scores exactly as the base one, each fine-tune's feedback, the fused-belief diagnostics,
-and how often each panel agent answered, abstained or missed the replay.
+how often each panel agent answered, abstained or missed the replay and, for fine-tunes
+with ``[feedback.distill]``, the feedback budget's accounting (states asked, answered by
+the distilled model, requests sent, the model's agreement with the panel).
 
 Figures, one colour per variant in all of them (:func:`variant_colors`): learning curves
 with 95% bands (y-range robust to early spikes, :func:`robust_ylim`), the metrics as bars
@@ -13,7 +15,7 @@ with 95% CIs and value labels (a bar of height 0 gets a marker), one greedy traj
 variant (FindMilk: the grid with the path, the milk and each baby pacified or woken;
 Driving: one strip of lanes and events per variant) and, in an ablation folder, the
 ablation's own figure (each variant vs AMULED on the paper's metrics, sorted; lambda_KL
-sweeps as metric against lambda_KL).
+sweeps as metric against lambda_KL; budget sweeps as metric against the budget).
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from amuled_ma.beliefs.types import FUSED_STATUSES
 from amuled_ma.evaluate.evaluator import PAPER_METRICS, metric_order
 from amuled_ma.evaluate.stats import t_quantile
 from amuled_ma.learn.run_folder import split_replica
@@ -506,6 +509,8 @@ def ablation_figure(
         The figure, or None without a fine-tune.
 
     """
+    if what == "budget":
+        return budget_figure(results, mode)
     variants = {k: v[mode] for k, v in results["variants"].items() if mode in v}
     base = variants.pop("base", None)
     tunes = {k: v for k, v in variants.items() if k != "shaped"}
@@ -568,6 +573,120 @@ def ablation_figure(
     fig.suptitle(
         f"Ablation of {what}: each fine-tune's {mode} mean and 95% CI on the paper's metrics, "
         "sorted (largest on top); AMULED outlined in black, dashed: base",
+        fontsize=9,
+    )
+    return fig
+
+
+#: Colours of the budget ablation's selections (:func:`budget_figure`; random also dashed).
+SELECTION_COLORS = {"uncertainty": "tab:blue", "random": "tab:orange"}
+
+
+def budget_points(results: dict[str, Any]) -> tuple[list[dict[str, Any]], str | None]:
+    """The budget ablation's fine-tunes as points, and its full-feedback fine-tune.
+
+    Returns:
+        ``([{"variant", "budget", "selection", "distill"}...], full)``: one point per
+        fine-tune with ``[feedback.distill]`` (``budget``: the share of distinct states
+        it may ask; for a count, the share it asked), sorted by selection and budget; and
+        the name of the AMULED fine-tune that asked every state (None without one).
+
+    """
+    points, full = [], None
+    for name, entry in results.get("variants", {}).items():
+        panel = entry.get("panel") or {}
+        settings = panel.get("distill")
+        if not settings:
+            if panel.get("feedback") == "amuled" and full is None:
+                full = name
+            continue
+        report = (entry.get("feedback") or {}).get("distill") or {}
+        budget = settings.get("budget")
+        share = budget if isinstance(budget, float) else report.get("asked_share")
+        selection = "all" if share == 1.0 else str(settings.get("selection"))
+        points.append({
+            "variant": name, "budget": share, "selection": selection, "distill": report,
+        })  # fmt: skip
+    points.sort(key=lambda p: (p["selection"], -(p["budget"] or 0.0), p["variant"]))
+    return points, full
+
+
+def budget_figure(results: dict[str, Any], mode: str = "greedy") -> Any | None:
+    """The budget ablation's figure: each paper metric against the budget.
+
+    One panel per paper metric and one for the model's held-out agreement with the
+    panel (total-variation distance of the fused beliefs): x is the budget (share of the
+    distinct states asked, log scale), one colour per selection (:data:`SELECTION_COLORS`;
+    the 100% point, where nothing is selected, starts both lines), 95% CIs as error bars;
+    the fine-tune that asked every state without a model is a grey band (its 95% CI) with
+    its mean as a line, the base policy a dashed line.
+
+    Returns:
+        The figure, or None without a distilled fine-tune.
+
+    """
+    points, full = budget_points(results)
+    points = [p for p in points if isinstance(p["budget"], int | float) and p["budget"] > 0]
+    if not points:
+        return None
+    variants = results["variants"]
+    task = results.get("task", "")
+    tunes = {p["variant"]: variants[p["variant"]].get(mode) or {} for p in points}
+    metrics = [
+        m for m in PAPER_METRICS.get(task, [])
+        if any(m in (v.get("metrics") or {}) for v in tunes.values())
+    ]  # fmt: skip
+    if not metrics:
+        metrics = _plotted_metrics(results, {k: v for k, v in tunes.items() if v})[:4]
+    panels = [*metrics, "holdout_tv_fused"]
+    plt = _plt()
+    fig, axes = _grid(plt, len(panels), 2, 4.6, 3.2)
+    base = (variants.get("base") or {}).get(mode)
+    full_stats = (variants.get(full) or {}).get(mode) if full else None
+    selections = sorted({p["selection"] for p in points} - {"all"}) or ["all"]
+    budgets = sorted({p["budget"] for p in points})
+    for ax, metric in zip(axes, panels, strict=False):
+        for selection in selections:
+            line = [p for p in points if p["selection"] in (selection, "all")]
+            line.sort(key=lambda p: p["budget"])
+            xs = np.array([p["budget"] for p in line], dtype=float)
+            if metric == "holdout_tv_fused":
+                ys = np.array([
+                    np.nan if p["distill"].get("holdout_tv_fused") is None
+                    else float(p["distill"]["holdout_tv_fused"]) for p in line
+                ])  # fmt: skip
+                err = np.zeros(len(line))
+            else:
+                stats = [(tunes[p["variant"]].get("metrics") or {}).get(metric) for p in line]
+                ys = np.array([_mean(s) for s in stats])
+                err = np.array([_finite_or_zero((s or {}).get("half_width")) for s in stats])
+            color = SELECTION_COLORS.get(selection, "0.3")
+            style = "s--" if selection == "random" else "o-"  # visible where the lines meet
+            ax.errorbar(xs, ys, yerr=err, fmt=style, color=color, capsize=3, ms=5, lw=1.2,
+                        label=selection, gid=f"selection-{selection}")  # fmt: skip
+        if metric != "holdout_tv_fused":
+            stat = ((full_stats or {}).get("metrics") or {}).get(metric)
+            mean = _mean(stat)
+            if math.isfinite(mean):
+                half = _finite_or_zero((stat or {}).get("half_width"))
+                ax.axhspan(mean - half, mean + half, color="0.6", alpha=0.25, lw=0,
+                           gid="full-band")  # fmt: skip
+                ax.axhline(mean, color="0.45", lw=1.0, gid="full-line")
+            _base_line(ax, base, metric, vertical=False)
+            ax.set_title(metric.replace("_", " "), fontsize=9)
+        else:
+            ax.set_title("held-out TV to the panel (fused)", fontsize=9)
+        ax.set_xscale("log")
+        ax.set_xticks(budgets, [f"{100 * b:g}%" for b in budgets], fontsize=8)
+        ax.minorticks_off()
+        ax.set_xlabel("budget (share of distinct states asked)", fontsize=8)
+        ax.grid(alpha=0.3)
+    for ax in axes[len(panels) :]:
+        ax.axis("off")
+    axes[0].legend(fontsize=7, title="selection", title_fontsize=7)
+    fig.suptitle(
+        f"Ablation of the feedback budget: {mode} mean and 95% CI per fine-tune; grey band: "
+        "every state asked (no model); dashed: base",
         fontsize=9,
     )
     return fig
@@ -849,35 +968,182 @@ _AGENT_COLUMNS = (
 )
 
 
+#: Columns of :func:`agents_table` for a distilled feedback: the model's answers (for states
+#: not asked; for an asked state's miss) and the states it could not answer.
+_MODEL_COLUMNS = (
+    ("distilled", "by the model"),
+    ("distilled_miss", "miss by the model"),
+    ("unasked", "unasked"),
+)
+
+
 def agents_table(results: dict[str, Any]) -> str:
     """Markdown table: per fine-tune and panel agent, the share of each belief status.
 
     From ``feedback["agents"]`` (counts per rewarded step): the number of beliefs, the
     share repaired (answered after a repair), abstained, missed by the replay, timed out
     and failed with an error, and the share not answered (every status but ``ok`` and
-    ``repaired``: the fused reward used a uniform fallback for that agent).
+    ``repaired`` and the distilled model's answers: the fused reward went on without that
+    agent). With a distilled feedback (``[feedback.distill]``) three more columns: the
+    share the model answered for states not asked, instead of a miss, and could not.
 
     Returns:
         The table, or ``""`` when no variant recorded per-agent counts.
 
     """
     lines = []
+    rows = [
+        (name, agent, row)
+        for name, entry in results.get("variants", {}).items()
+        for agent, row in ((entry.get("feedback") or {}).get("agents") or {}).items()
+    ]
+    # the distilled model's answers and its failures, only where a fine-tune had one
+    columns = list(_AGENT_COLUMNS)
+    if any(row.get(key) for _, _, row in rows for key, _ in _MODEL_COLUMNS):
+        columns += _MODEL_COLUMNS
+    for name, agent, row in rows:
+        total = row.get("total") or sum(
+            n for k, n in row.items() if k not in ("total", "failed", "failure_rate")
+        )
+        cells = [name, agent, f"{int(total):,}"]
+        cells += [_percent(row.get(key, 0), total) for key, _ in columns]
+        failed = row.get("failed")
+        if failed is None:
+            failed = total - sum(row.get(key, 0) for key in FUSED_STATUSES)
+        cells.append(_percent(failed, total))
+        lines.append("| " + " | ".join(cells) + " |")
+    if not lines:
+        return ""
+    head = ["variant", "agent", "beliefs", *(h for _, h in columns), "not answered"]
+    return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head), *lines]) + "\n"
+
+
+def servers_table(results: dict[str, Any]) -> str:
+    """Markdown table: per fine-tune and LLM server, what the server was asked and did.
+
+    From ``feedback["llm_servers"]`` (:func:`amuled_ma.learn.feedback.llm_server_stats`):
+    requests sent (every attempt: retries and probes included), answered, failed with the
+    kinds of failure, requests retried on another host after failing there, times the
+    server was taken out of the pool and put back, and the mean and 95th-percentile
+    latency of its answered requests.
+
+    Returns:
+        The table, or ``""`` when no variant asked an LLM server.
+
+    """
+    lines = []
     for name, entry in results.get("variants", {}).items():
-        for agent, row in ((entry.get("feedback") or {}).get("agents") or {}).items():
-            total = row.get("total") or sum(
-                n for k, n in row.items() if k not in ("total", "failed", "failure_rate")
-            )
-            cells = [name, agent, f"{int(total):,}"]
-            cells += [_percent(row.get(key, 0), total) for key, _ in _AGENT_COLUMNS]
-            failed = row.get("failed")
-            if failed is None:
-                failed = total - row.get("ok", 0) - row.get("repaired", 0)
-            cells.append(_percent(failed, total))
+        for host, row in ((entry.get("feedback") or {}).get("llm_servers") or {}).items():
+            kinds = ", ".join(f"{k} {n:,}" for k, n in (row.get("failures") or {}).items())
+            failed = f"{int(row.get('failed', 0)):,}" + (f" ({kinds})" if kinds else "")
+            cells = [
+                name,
+                f"`{host}`",
+                f"{int(row.get('sent', 0)):,}",
+                f"{int(row.get('answered', 0)):,}",
+                failed,
+                f"{int(row.get('retried_from', 0)):,}",
+                f"{int(row.get('went_down', 0))} / {int(row.get('came_back', 0))}",
+                *(
+                    "-" if row.get(key) is None else f"{float(row[key]):.2f}"
+                    for key in ("mean_latency_s", "p95_latency_s")
+                ),
+            ]
             lines.append("| " + " | ".join(cells) + " |")
     if not lines:
         return ""
-    head = ["variant", "agent", "beliefs", *(h for _, h in _AGENT_COLUMNS), "not answered"]
+    head = ["variant", "server", "sent", "answered", "failed", "retried elsewhere",
+            "out / back", "mean latency (s)", "p95 latency (s)"]  # fmt: skip
     return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head), *lines]) + "\n"
+
+
+def _tv(value: Any) -> str:
+    return "-" if value is None else f"{float(value):.3f}"
+
+
+def budget_table(results: dict[str, Any]) -> str:
+    """Markdown table: the feedback budget's accounting of every distilled fine-tune.
+
+    From ``feedback["distill"]`` (:meth:`amuled_ma.distill.DistilledSource.report`): the
+    budget and selection, the distinct states visited, asked (and their share), answered
+    by the model, the misses the model answered, the requests forwarded to the panel's
+    source and of those sent to the LLMs (the rest were in the belief store), the refits,
+    and the model's agreement with the panel on the held-out asked states (mean
+    total-variation distance, fused and per member).
+
+    Returns:
+        The table, or ``""`` when no fine-tune was distilled.
+
+    """
+    lines = []
+    for name, entry in results.get("variants", {}).items():
+        d = (entry.get("feedback") or {}).get("distill")
+        if not d:
+            continue
+        budget = d.get("budget")
+        shown = f"{100 * budget:g}%" if isinstance(budget, float) else f"{budget} states"
+        members = ", ".join(f"{m} {_tv(v)}" for m, v in (d.get("holdout_tv") or {}).items())
+        cells = [
+            name,
+            shown,
+            str(d.get("selection")),
+            f"{int(d.get('visited_states', 0)):,}",
+            f"{int(d.get('asked_states', 0)):,} ({100 * d.get('asked_share', 0.0):.1f}%)",
+            f"{int(d.get('model_states', 0)):,}",
+            f"{int(d.get('miss_answers', 0)):,}",
+            f"{int(d.get('requests_forwarded', 0)):,} / {int(d.get('requests_sent', 0)):,}",
+            str(d.get("refits", 0)),
+            f"{_tv(d.get('holdout_tv_fused'))} ({int(d.get('holdout_states', 0))} states)",
+            members or "-",
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    if not lines:
+        return ""
+    head = ["variant", "budget", "selection", "states visited", "asked", "answered by the model",
+            "misses by the model", "requests forwarded / sent", "refits",
+            "held-out TV, fused", "held-out TV per member"]  # fmt: skip
+    return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head), *lines]) + "\n"
+
+
+def budget_ablation_table(results: dict[str, Any], mode: str = "greedy") -> str:
+    """Markdown table of the budget ablation: the paper's metrics against the budget.
+
+    One row per distilled fine-tune (selection, budget, states asked, requests sent, the
+    model's held-out fused TV) and one for the AMULED fine-tune that asked every state,
+    each with the paper's metrics (``mean ± half-width``, ``mode`` policy).
+
+    Returns:
+        The table, or ``""`` without a distilled fine-tune.
+
+    """
+    points, full = budget_points(results)
+    if not points:
+        return ""
+    variants = results["variants"]
+    data = {n: (variants[n].get(mode) or {}) for n in [*(p["variant"] for p in points), full] if n}
+    metrics = [m for m in PAPER_METRICS.get(results.get("task", ""), [])
+               if any(m in (v.get("metrics") or {}) for v in data.values())]  # fmt: skip
+    head = ["selection", "budget", "variant", "asked", "requests sent", "held-out TV, fused",
+            *metrics]  # fmt: skip
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for p in points:
+        d = p["distill"]
+        budget = p["budget"]
+        cells = [
+            p["selection"],
+            "-" if budget is None else f"{100 * budget:g}%",
+            p["variant"],
+            f"{int(d.get('asked_states', 0)):,} of {int(d.get('visited_states', 0)):,}",
+            f"{int(d.get('requests_sent', 0)):,}",
+            _tv(d.get("holdout_tv_fused")),
+        ]
+        cells += [format_stat((data[p["variant"]].get("metrics") or {}).get(m)) for m in metrics]
+        lines.append("| " + " | ".join(cells) + " |")
+    if full:
+        stats = data[full].get("metrics") or {}
+        cells = ["full feedback", "100%", full, "every state", "-", "-"]
+        lines.append("| " + " | ".join(cells + [format_stat(stats.get(m)) for m in metrics]) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def _percent(count: float, total: float) -> str:
@@ -1240,7 +1506,17 @@ def write_report(
     base_curves = {k: v for k, v in curves.items() if not k.startswith("finetune")}
     ft_curves = {k: v for k, v in curves.items() if k.startswith("finetune")}
     figures: list[tuple[str, str, Path | None]] = []
-    if ablation:
+    if ablation == "budget":
+        figures.append((
+            "Ablation of the feedback budget",
+            "Each paper metric (greedy) and the distilled model's held-out agreement with the "
+            "panel against the budget, the share of distinct states the panel was asked "
+            "(log scale), one colour per selection; the grey band is the 95% CI of the "
+            "fine-tune that asked every state without a model, the dashed line the base "
+            "policy.",
+            plot_ablation(results, ablation, run_dir / f"ablation_{ablation}.png", colors),
+        ))  # fmt: skip
+    elif ablation:
         figures.append((
             f"Ablation of {ablation}",
             "Each fine-tune of the ablation against AMULED on the paper's metrics (greedy), "
@@ -1353,6 +1629,48 @@ def write_report(
             "fusion went on without it.",
             "",
             agents,
+        ]
+    budget = budget_table(results)
+    if budget:
+        lines += [
+            "## Feedback budget",
+            "",
+            "Fine-tunes whose panel was asked on a budget (`[feedback.distill]`, "
+            "docs/distill.md): of the distinct states visited, how many the panel was asked "
+            "(the budget caps them), how many the distilled model answered instead, the "
+            "misses and abstentions of asked states it answered, the requests handed to the "
+            "panel's source and how many of them were sent to the LLMs (the others were in "
+            "the belief store), the model's refits, and its agreement with the panel on the "
+            "held-out asked states (mean total-variation distance: 0 agrees, 1 disagrees "
+            "entirely) of the fused belief and of each member.",
+            "",
+            budget,
+        ]
+    if ablation == "budget":
+        table = budget_ablation_table(results)
+        if table:
+            lines += [
+                "## Metrics against the budget",
+                "",
+                "The paper's metrics (greedy, mean ± half-width of the 95% CI) of each "
+                "distilled fine-tune by selection and budget, and of the fine-tune that "
+                "asked the panel about every state.",
+                "",
+                table,
+            ]
+    servers = servers_table(results)
+    if servers:
+        lines += [
+            "## LLM servers",
+            "",
+            "Per fine-tune and LLM server: requests sent (every attempt, retries and probes "
+            "included), answered, failed (by kind), retried on another server of the pool "
+            "after failing there, times taken out of the pool and put back, and the latency "
+            "of the answered requests (the 95th percentile over seed replicas is the largest "
+            "replica's). Each request went to the least-busy live server "
+            "(amuled-ma's docs/ollama.md, section 'A pool of servers').",
+            "",
+            servers,
         ]
     lines += ["## Figures", ""]
     for caption, note, path in figures:

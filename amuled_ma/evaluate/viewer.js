@@ -6,7 +6,8 @@
   var SVG = "http://www.w3.org/2000/svg";
   var ACTIONS = DATA.actions;
   var TEXTS = DATA.texts;
-  var ANSWERED = { ok: 1, repaired: 1 };
+  // the panel's answers and a distilled reward model's (amuled_ma.beliefs.types.FUSED_STATUSES)
+  var ANSWERED = { ok: 1, repaired: 1, distilled: 1, distilled_miss: 1 };
 
   function el(tag, cls, text) {
     var node = document.createElement(tag);

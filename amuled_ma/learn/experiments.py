@@ -15,7 +15,12 @@ from pathlib import Path
 from typing import Any
 
 from amuled_ma.errors import AmuledError, ScenarioError
-from amuled_ma.learn.feedback import make_feedback, panel_of, with_cluster_sources
+from amuled_ma.learn.feedback import (
+    check_distillable,
+    make_feedback,
+    panel_of,
+    with_cluster_sources,
+)
 from amuled_ma.learn.run_folder import (
     JobResult,
     TrainJob,
@@ -38,9 +43,15 @@ MAIN_VARIANTS = (
     Variant.finetune("amuled"),
 )
 #: What ``amuled ablate --what`` accepts.
-ABLATIONS = ("clusters", "aggregation", "models", "kl")
+ABLATIONS = ("clusters", "aggregation", "models", "kl", "budget")
 #: The lambda_KL sweep of the ``kl`` ablation (the paper's value is 2.5).
 KL_SWEEP = (0.0, 0.5, 1.0, 2.5, 5.0, 10.0)
+#: The budgets of the ``budget`` ablation: shares of the distinct states visited that the
+#: panel is asked about (``[feedback.distill].budget``); 100% is asked once, the others
+#: with each of :data:`BUDGET_SELECTIONS`.
+BUDGET_SWEEP = (1.0, 0.3, 0.1, 0.03)
+#: The selections of the ``budget`` ablation (``[feedback.distill].selection``).
+BUDGET_SELECTIONS = ("uncertainty", "random")
 
 
 def training_seeds(scenario: Scenario, seed: int | None = None, count: int = 1) -> list[int]:
@@ -67,7 +78,8 @@ def check_inputs(
 
     A fine-tune needs a known feedback variant whose agents are known clusters (shipped
     or in ``[feedback].clusters_dirs``), its recording (for the replay source,
-    found by :meth:`~amuled_ma.scenario.Scenario.recording_path`) and a finished base
+    found by :meth:`~amuled_ma.scenario.Scenario.recording_path`; with
+    ``[feedback.distill]`` one with per-cluster beliefs) and a finished base
     checkpoint, unless the base is trained earlier in the same plan (``planned``).
 
     Raises:
@@ -87,6 +99,7 @@ def check_inputs(
             preflight(scenario, agents)  # every agent's own source answers
         elif scenario.feedback.source == "replay":
             scenario.recording_path(required=True)
+            check_distillable(scenario)
     if base_variant not in planned:
         base_checkpoint(run_dir, scenario, base_variant)
 
@@ -145,7 +158,11 @@ def train_variant(
     if variant.finetuning:
         assert variant.feedback is not None
         base_ckpt = base_checkpoint(base_dir or run_dir, scenario, base_variant)
-        make = feedback_factory or (lambda v: make_feedback(v, scenario, run_dir))
+        make = feedback_factory or (
+            lambda v: make_feedback(
+                v, scenario, run_dir, state_dir=out, resume=action == "resume", seed=seed
+            )
+        )
         feedback = make(variant.feedback)
     if action == "new" or not (out / "config.json").is_file():
         extra: dict[str, Any] = {"variant": str(variant), "training": training}
@@ -177,15 +194,21 @@ def train_variant(
 def ablation_variants(what: str, scenario: Scenario) -> list[tuple[Variant, Scenario]]:
     """List the fine-tunes of one ablation: ``(variant, scenario)``.
 
+    ``budget``: AMULED with ``[feedback.distill]`` at each budget of
+    :data:`BUDGET_SWEEP` (100% once, the others with each selection of
+    :data:`BUDGET_SELECTIONS`; folders ``finetune-amuled-budget0.1-uncertainty``), and
+    AMULED with every state asked (the full-feedback run, shared with ``amuled run`` when
+    it finished there with the same settings).
+
     Args:
-        what: ``clusters``, ``aggregation``, ``models`` or ``kl``.
+        what: ``clusters``, ``aggregation``, ``models``, ``kl`` or ``budget``.
         scenario: The base scenario.
 
     Returns:
         The jobs, each with the (possibly modified) scenario it runs on.
 
     """
-    if what in ("clusters", "aggregation") and scenario.feedback.cluster_recording:
+    if what in ("clusters", "aggregation", "budget") and scenario.feedback.cluster_recording:
         # these need each cluster's belief: a fused-only recording cannot serve them
         scenario = scenario.replace("feedback", recording=scenario.feedback.cluster_recording)
     if what == "clusters":
@@ -203,6 +226,19 @@ def ablation_variants(what: str, scenario: Scenario) -> list[tuple[Variant, Scen
             )
             for lam in KL_SWEEP
         ]
+    elif what == "budget":
+        full = scenario.replace("feedback", **{"distill.enabled": False})
+        jobs = []
+        for budget in BUDGET_SWEEP:
+            for selection in BUDGET_SELECTIONS[: 1 if budget == 1.0 else None]:
+                label = f"amuled-budget{budget:g}" + ("" if budget == 1.0 else f"-{selection}")
+                sc = scenario.replace(
+                    "feedback",
+                    **{"distill.enabled": True, "distill.budget": budget,
+                       "distill.selection": selection},
+                )  # fmt: skip
+                jobs.append((Variant.finetune("amuled", label=label), sc))
+        jobs.append((Variant.finetune("amuled"), full))
     elif what == "models":
         jobs = []
         if scenario.feedback.source == "replay":

@@ -19,7 +19,9 @@ Variants (``--feedback``):
 
 Every call counts, per agent (cluster), the status of the belief each rewarded step was
 given: ``ok`` / ``repaired`` (an answer), ``abstained`` / ``timeout`` / ``error`` (a
-failure: the fused reward used a uniform fallback for that agent) and ``replay_miss``.
+failure: the fused reward used a uniform fallback for that agent) and ``replay_miss``;
+with ``[feedback.distill]`` also ``distilled`` / ``distilled_miss`` (the distilled
+model's answers, reported apart from the panel's) and ``unasked`` (a failure).
 :meth:`Feedback.summary` holds them (``"agents"``, JSON-ready, for ``feedback.json`` and
 ``results.json``), :meth:`Feedback.agent_report` returns them on their own, and
 :func:`summary_lines` prints them, so a server that always fails or answers NaN reads
@@ -38,6 +40,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from amuled_ma.beliefs.types import MODEL_STATUSES, UNASKED
 from amuled_ma.deliberation.state_key import freeze
 from amuled_ma.errors import ClusterDefinitionError, ScenarioError
 from amuled_ma.learn.variants import parse_feedback
@@ -46,8 +49,12 @@ from amuled_ma.learn.variants import parse_feedback
 MORAL_AGENT = "moral_agent"
 #: Statuses reported per agent, in this order (any other status a source gives is added).
 REPORTED_STATUSES = ("ok", "repaired", "abstained", "timeout", "error", "replay_miss")
-#: Statuses that are answers; every other one is a failure (a fallback belief was used).
-ANSWERED = frozenset({"ok", "repaired"})
+#: Statuses that are answers (the panel's, and the distilled model's); every other one is a
+#: failure (a fallback belief was used).
+ANSWERED = frozenset({"ok", "repaired", *MODEL_STATUSES})
+#: Statuses of beliefs a distilled model gave (or could not give): a memo entry holding one
+#: is refreshed after the model's next refit (:meth:`Feedback._memo_generation`).
+_VOLATILE = frozenset({*MODEL_STATUSES, UNASKED})
 #: Statuses that are a feedback's documented answer, not an agent's failure: the authors'
 #: fusion met total conflict (reward 0), a demonstrator never visited the state (reward 0).
 DOCUMENTED_ZERO = frozenset({"total_conflict", "unseen"})
@@ -77,6 +84,10 @@ class Feedback(ABC):
         self._weight_sum: dict[str, float] = {}
         self._conflict_sum = 0.0
         self._diag_count = 0
+        # memo keys whose belief a distilled model gave; stale ones are answered again
+        self._volatile: set[bytes] = set()
+        self._stale: set[bytes] = set()
+        self._generation: Any = None
 
     #: Largest share of rewarded steps one agent may leave unanswered (None: no limit),
     #: ``[feedback].max_abstention``; see :meth:`check_abstention`.
@@ -86,6 +97,14 @@ class Feedback(ABC):
     #: reads prompts: on FindMilk the number of crying babies is in the prompt, not in the
     #: observation); the in-process memo and the panel then key alike.
     keyed_by_prompt: bool = False
+
+    def _memo_generation(self) -> Any:
+        """A value that changes when memoised model answers must be asked again (None: never)."""
+        return None
+
+    def progress(self) -> dict[str, str]:
+        """Short fields for the training progress bar (none by default)."""
+        return {}
 
     @abstractmethod
     def _compute(
@@ -117,9 +136,16 @@ class Feedback(ABC):
         else:
             keys = [row.tobytes() for row in array]
         memo = self._memo
+        generation = self._memo_generation()
+        if generation != self._generation:
+            # a distilled model was refitted: its memoised answers are asked again
+            self._generation = generation
+            self._stale |= self._volatile
+            self._volatile = set()
+        stale = self._stale
         missing: dict[bytes, int] = {}
         for i, key in enumerate(keys):
-            if key not in memo and key not in missing:
+            if (key not in memo or (stale and key in stale)) and key not in missing:
                 missing[key] = i
         if missing:
             rows = list(missing.values())
@@ -133,8 +159,20 @@ class Feedback(ABC):
             for key, result in zip(missing, results, strict=True):
                 diag = result[1]
                 prepared = _prepare(diag, self.name)
+                if key in stale:  # counted once per distinct state: drop the old answer's
+                    stale.discard(key)
+                    self.agent_statuses_unique.subtract(memo[key][2][0])
+                    self.agent_statuses_unique = +self.agent_statuses_unique
                 memo[key] = (np.asarray(result[0], dtype=np.float64), diag, prepared)
                 self.agent_statuses_unique.update(prepared[0])
+                if any(pair[1] in _VOLATILE for pair in prepared[0]):
+                    self._volatile.add(key)
+            generation = self._memo_generation()
+            if generation != self._generation:
+                # refitted during this call: its answers are the new model's, older ones stale
+                self._generation = generation
+                self._stale |= self._volatile.difference(missing)
+                self._volatile.intersection_update(missing)
         entries = [memo[key] for key in keys]
         out = np.stack([entry[0] for entry in entries]) if entries else np.empty((0, 0))
         for entry in entries:
@@ -172,8 +210,9 @@ class Feedback(ABC):
             ``{agent: {"ok": n, "repaired": n, "abstained": n, "timeout": n, "error": n,
             "replay_miss": n, (any other status), "total": n, "failed": n,
             "failure_rate": failed / total}}``, agents in the order first seen. ``failed``
-            counts every status but ``ok`` and ``repaired``; a future stopping threshold
-            can compare ``failure_rate`` with a limit.
+            counts every status but the answers (:data:`ANSWERED`: ``ok``, ``repaired``
+            and the distilled model's ``distilled``, ``distilled_miss``); a future
+            stopping threshold can compare ``failure_rate`` with a limit.
 
         Raises:
             ValueError: ``per`` is neither ``"steps"`` nor ``"states"``.
@@ -188,7 +227,7 @@ class Feedback(ABC):
             row[status] = row.get(status, 0) + n
         for row in report.values():
             total = sum(row.values())
-            failed = total - row["ok"] - row["repaired"]
+            failed = total - sum(n for status, n in row.items() if status in ANSWERED)
             row.update(total=total, failed=failed, failure_rate=failed / total if total else 0.0)
         return report
 
@@ -256,13 +295,14 @@ class Feedback(ABC):
             ``feedback`` (variant), ``steps``, ``unique_states``, ``mean_weight`` and
             ``mean_conflict`` (fusion), ``statuses`` (all agents, per step),
             ``miss_rate`` (replay misses / beliefs), ``failure_rate`` (beliefs that were
-            not answers / beliefs), ``agents`` (:meth:`agent_report` per step) and
-            ``agents_per_state`` (per distinct state).
+            not answers / beliefs), ``agents`` (:meth:`agent_report` per step),
+            ``agents_per_state`` (per distinct state) and, for a distilled feedback,
+            ``distill`` (:meth:`distill_report`: the budget's accounting).
 
         """
         total = sum(self.statuses.values())
         n = max(1, self._diag_count)
-        return {
+        out = {
             "feedback": self.name,
             "steps": self.steps,
             "unique_states": len(self._memo),
@@ -274,6 +314,14 @@ class Feedback(ABC):
             "agents": self.agent_report(per="steps"),
             "agents_per_state": self.agent_report(per="states"),
         }
+        distill = self.distill_report()
+        if distill:
+            out["distill"] = distill
+        return out
+
+    def distill_report(self) -> dict[str, Any] | None:
+        """The budget's accounting of a distilled feedback (None: not distilled)."""
+        return None
 
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release the underlying source."""
@@ -316,10 +364,17 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
     statuses = summary.get("statuses") or {}
     total = sum(statuses.values())
     failed = total - sum(n for s, n in statuses.items() if s in ANSWERED)
-    others = [s for s in statuses if s not in REPORTED_STATUSES]
+    others = [s for s in statuses if s not in REPORTED_STATUSES and s not in ANSWERED]
     parts = ", ".join(f"{s} {statuses.get(s, 0):,}" for s in (*REPORTED_STATUSES[2:], *others))
     rate = 100 * failed / total if total else 0.0
     lines = [f"beliefs not answered: {rate:.2f}% of {total:,} ({parts})"]
+    distill = summary.get("distill")
+    if distill:
+        lines.append(distill_line(distill))
+        model = sum(statuses.get(s, 0) for s in MODEL_STATUSES)
+        share = 100 * model / total if total else 0.0
+        cells = ", ".join(f"{s} {statuses.get(s, 0):,}" for s in MODEL_STATUSES)
+        lines.append(f"  beliefs from the distilled model: {share:.2f}% of {total:,} ({cells})")
     for agent, row in (summary.get("agents") or {}).items():
         agent_total = row.get("total") or 0
         cells = []
@@ -329,7 +384,38 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
             share = f" ({100 * n / agent_total:.2f}%)" if n and agent_total else ""
             cells.append(f"{status} {n:,}{share if status not in ANSWERED else ''}")
         lines.append(f"  {agent}: {', '.join(cells)}")
+    servers = summary.get("llm_servers") or {}
+    if servers:
+        from amuled_ma.beliefs.host_pool import host_lines
+
+        lines.append(f"LLM servers ({len(servers)}):")
+        lines += [f"  {line}" for line in host_lines(servers)]
     return lines
+
+
+def distill_line(report: Mapping[str, Any]) -> str:
+    """One line of a distilled feedback's accounting (``Feedback.summary()["distill"]``).
+
+    E.g. ``feedback budget 10%: asked 13 of 131 distinct states (9.9%), the model
+    answered 118; 65 requests sent; 4 refits; held-out TV to the panel 0.123 (fused,
+    4 states)``.
+    """
+    budget = report.get("budget")
+    shown = f"{100 * budget:g}%" if isinstance(budget, float) else f"{budget} states"
+    visited, asked = report.get("visited_states", 0), report.get("asked_states", 0)
+    line = (
+        f"  feedback budget {shown} ({report.get('selection')}): asked {asked:,} of "
+        f"{visited:,} distinct states ({100 * report.get('asked_share', 0.0):.1f}%), the model "
+        f"answered {report.get('model_states', 0):,}; {report.get('requests_sent', 0):,} "
+        f"requests sent; {report.get('refits', 0)} refits"
+    )
+    if report.get("miss_answers"):
+        line += f"; {report['miss_answers']:,} misses answered by the model"
+    tv = report.get("holdout_tv_fused")
+    if tv is not None:
+        states = report.get("holdout_states")
+        line += f"; held-out TV to the panel {tv:.3f} (fused, {states} states)"
+    return line
 
 
 class CallableFeedback(Feedback):
@@ -405,6 +491,36 @@ class PanelFeedback(Feedback):
         self.miss_zero = miss_zero
         # a source that reads no messages (replay, rules) needs no prompt variables
         self.keyed_by_prompt = bool(getattr(panel, "with_messages", True))
+        self._distilled_of: Any = object()
+        self._distilled: Any = None
+
+    @property
+    def distilled(self) -> Any:
+        """The :class:`~amuled_ma.distill.DistilledSource` of the panel, if it has one."""
+        source = self.source
+        if self._distilled_of is not source:  # looked up once per source, not every step
+            from amuled_ma.distill import DistilledSource
+
+            self._distilled_of = source
+            self._distilled = source if isinstance(source, DistilledSource) else None
+        return self._distilled
+
+    def _memo_generation(self) -> Any:
+        """The distilled source's number of refits (None without one)."""
+        distilled = self.distilled
+        return None if distilled is None else distilled.generation
+
+    def distill_report(self) -> dict[str, Any] | None:
+        """The distilled source's accounting (None when the panel answers every state)."""
+        distilled = self.distilled
+        return None if distilled is None else distilled.report()
+
+    def progress(self) -> dict[str, str]:
+        """``asked``: distinct states asked / visited, with a distilled source."""
+        distilled = self.distilled
+        if distilled is None:
+            return {}
+        return {"asked": f"{distilled.ledger.asked_count}/{distilled.ledger.visited_count}"}
 
     def _compute(
         self,
@@ -443,6 +559,23 @@ class PanelFeedback(Feedback):
             results.append((fused[i], diag))
         return results
 
+    def summary(self) -> dict[str, Any]:
+        """As :meth:`Feedback.summary`, plus the belief store's figures and the servers'.
+
+        ``store`` is :func:`store_stats`: beliefs wanted, found in memory or in the store,
+        and asked of the source.
+
+        ``llm_servers`` is ``{host: figures}`` (:func:`llm_server_stats`): requests sent,
+        answered and failed (by kind), retried from, latencies, per server.
+        """
+        out = super().summary()
+        servers = llm_server_stats(self.source)
+        if servers:
+            out["llm_servers"] = servers
+        if self.source is not None:
+            out["store"] = store_stats(self.source)
+        return out
+
     def agent_source(self, agent: str) -> str:
         """The source answering ``agent``: its kind and model or recording."""
         source = self.source
@@ -457,6 +590,77 @@ class PanelFeedback(Feedback):
             closer = getattr(obj, "close", None)
             if callable(closer):
                 closer()
+
+
+def nested_sources(source: Any) -> list[Any]:
+    """A belief source and every source inside it, each once.
+
+    Walks a :class:`~amuled_ma.beliefs.cached.CachedSource` (``.source``), a
+    :class:`~amuled_ma.beliefs.routing.RoutedSource` (``.members``), fallbacks and defaults.
+    """
+    found: list[Any] = []
+    seen: set[int] = set()
+
+    def walk(obj: Any) -> None:
+        if obj is None or id(obj) in seen:
+            return
+        seen.add(id(obj))
+        found.append(obj)
+        walk(getattr(obj, "source", None))
+        walk(getattr(obj, "fallback", None))
+        walk(getattr(obj, "default", None))
+        for member in getattr(obj, "members", None) or ():
+            walk(member[0] if isinstance(member, tuple) else member)
+
+    walk(source)
+    return found
+
+
+def llm_server_stats(source: Any) -> dict[str, dict[str, Any]]:
+    """Each LLM server's figures over a belief source and the sources inside it.
+
+    Adds up every ``server_stats()`` found (:class:`~amuled_ma.beliefs.ollama.OllamaSource`)
+    among :func:`nested_sources` with :func:`~amuled_ma.beliefs.host_pool.merge_host_stats`.
+
+    Args:
+        source: The belief source (``None``: no figures).
+
+    Returns:
+        ``{host: figures}``; empty without an LLM server.
+
+    """
+    found = [
+        obj.server_stats()
+        for obj in nested_sources(source)
+        if callable(getattr(obj, "server_stats", None))
+    ]
+    if not found:
+        return {}
+    from amuled_ma.beliefs.host_pool import merge_host_stats
+
+    return merge_host_stats(found)
+
+
+def store_stats(source: Any) -> dict[str, int]:
+    """The belief store's figures over a source: requests, hits, and those asked.
+
+    Adds up the :class:`~amuled_ma.beliefs.cached.CacheStats` of every cached source among
+    :func:`nested_sources`: ``requests`` (beliefs wanted), ``unique`` (distinct ones per
+    batch), ``memory_hits``, ``store_hits`` and ``asked`` (sent to the source behind the
+    store: for an LLM, the requests it was sent).
+    """
+    from amuled_ma.beliefs.cached import CacheStats
+
+    total = {"requests": 0, "unique": 0, "memory_hits": 0, "store_hits": 0, "asked": 0}
+    for obj in nested_sources(source):
+        stats = getattr(obj, "stats", None)
+        if isinstance(stats, CacheStats):
+            total["requests"] += stats.requests
+            total["unique"] += stats.unique
+            total["memory_hits"] += stats.memory_hits
+            total["store_hits"] += stats.store_hits
+            total["asked"] += stats.misses
+    return total
 
 
 def describe_identity(identity: Mapping[str, Any]) -> str:
@@ -575,6 +779,7 @@ def make_source(scenario: Any, run_dir: Path | None = None, *, agents: Any = Non
         panel_specs,
     )
     from amuled_ma.beliefs.store import BeliefStore
+    from amuled_ma.beliefs.store_service import open_store
 
     fb = scenario.feedback
     if agents is None:
@@ -582,11 +787,7 @@ def make_source(scenario: Any, run_dir: Path | None = None, *, agents: Any = Non
     agents = list(agents)
 
     def store() -> BeliefStore:
-        store_path = Path(fb.store)
-        if not store_path.is_absolute():
-            store_path = (run_dir or scenario.base_dir) / store_path
-        store_path.parent.mkdir(parents=True, exist_ok=True)
-        return BeliefStore(store_path)
+        return open_store(store_path(scenario, run_dir))
 
     if not match_agents(list(fb.agents), agents):
         spec = default_spec(scenario, _ollama_options)
@@ -627,6 +828,16 @@ def make_source(scenario: Any, run_dir: Path | None = None, *, agents: Any = Non
     )
 
 
+def store_path(scenario: Any, run_dir: Path | None = None) -> Path:
+    """The belief store file of a scenario's run.
+
+    ``[feedback].store``; a relative path is resolved against the run folder (or the
+    scenario's folder without one).
+    """
+    path = Path(scenario.feedback.store)
+    return path if path.is_absolute() else (run_dir or scenario.base_dir) / path
+
+
 def _ollama_options(scenario: Any) -> dict[str, Any]:
     """Return ``[feedback].ollama``, checked against :class:`OllamaSource`'s keywords."""
     from amuled_ma.beliefs.routing import scenario_ollama_options
@@ -634,16 +845,36 @@ def _ollama_options(scenario: Any) -> dict[str, Any]:
     return scenario_ollama_options(scenario)
 
 
-def make_feedback(variant: str, scenario: Any, run_dir: Path | None = None) -> Feedback:
+def make_feedback(
+    variant: str,
+    scenario: Any,
+    run_dir: Path | None = None,
+    *,
+    state_dir: Path | None = None,
+    resume: bool = False,
+    seed: int | None = None,
+) -> Feedback:
     """Build the feedback of one variant for a scenario.
 
     Args:
         variant: The feedback (see :func:`~amuled_ma.learn.variants.parse_feedback`).
         scenario: The scenario (task, clusters, fusion rule, source).
         run_dir: Run directory holding the belief store.
+        state_dir: The fine-tune's folder. With ``[feedback.distill].enabled``, panel
+            feedback is distilled there (:class:`~amuled_ma.distill.DistilledSource`, its
+            budget kept in the folder's state files); without a folder the panel answers
+            every state (the viewer, ``amuled explain``).
+        resume: Continue the budget kept in ``state_dir`` (a resumed fine-tune);
+            otherwise it starts afresh.
+        seed: The job's training seed, the distilled model's seed unless
+            ``[feedback.distill].seed`` is set (default: ``[task].seed``).
 
     Returns:
         The feedback, ready to be called every step.
+
+    Raises:
+        ScenarioError: ``[feedback.distill]`` is enabled on a recording that keeps only
+            fused beliefs (see :func:`check_distillable`).
 
     """
     kind, arg = parse_feedback(variant)
@@ -667,6 +898,7 @@ def make_feedback(variant: str, scenario: Any, run_dir: Path | None = None) -> F
         if match_agents(list(scenario.feedback.agents), agents):
             fused_only = None
     if fused_only is not None:
+        check_distillable(scenario, fused_only)
         if kind != "amuled" or scenario.feedback.fusion != "bjs-dst":
             raise ScenarioError(
                 f"{fused_only.path} keeps only the authors' fused belief per state "
@@ -684,6 +916,22 @@ def make_feedback(variant: str, scenario: Any, run_dir: Path | None = None) -> F
     clusters, rule = panel_of(variant, scenario, registry)
     scenario = with_cluster_sources(scenario, clusters)
     source = make_source(scenario, run_dir, agents=clusters)
+    distill = scenario.feedback.distill
+    if distill.enabled and state_dir is not None:
+        from amuled_ma.distill import DistilledSource
+
+        try:
+            source = DistilledSource.from_config(
+                source,
+                distill,
+                seed=scenario.task.seed if seed is None else seed,
+                fusion_rule=rule,
+                state_dir=state_dir,
+                resume=resume,
+            )
+        except BaseException:
+            source.close()
+            raise
     panel = MoralPanel(
         task_name,
         clusters,
@@ -698,6 +946,36 @@ def make_feedback(variant: str, scenario: Any, run_dir: Path | None = None) -> F
     feedback = PanelFeedback(variant, panel, source, miss_zero=miss_zero)
     feedback.max_abstention = scenario.feedback.max_abstention
     return feedback
+
+
+def check_distillable(scenario: Any, fused_only: Any | None = None) -> None:
+    """Refuse ``[feedback.distill]`` on a recording that keeps only the fused belief.
+
+    The distilled model learns each panel member's belief; the authors' Driving
+    gpt-4o-mini cache kept only the fused one per state.
+
+    Args:
+        scenario: The scenario.
+        fused_only: Its fused-only recording, if already read (else looked up).
+
+    Raises:
+        ScenarioError: Distillation is enabled and the replayed recording is fused-only;
+            the message names the file and the fix.
+
+    """
+    if not scenario.feedback.distill.enabled:
+        return
+    if fused_only is None:
+        fused_only = _fused_only_recording(scenario)
+    if fused_only is None:
+        return
+    other = scenario.feedback.cluster_recording or "driving-llama-3_1-70b"
+    raise ScenarioError(
+        f"{fused_only.path} keeps only the authors' fused belief per state ('beliefs': null), "
+        "so [feedback.distill] cannot learn each panel member's belief from it; replay a "
+        f'recording with per-cluster beliefs (--set feedback.recording="{other}") or '
+        "turn distillation off (--set feedback.distill.enabled=false)"
+    )
 
 
 def cluster_registry(scenario: Any) -> Any:

@@ -166,7 +166,7 @@ _NOT_LEARNED = {
     "task": ("seed",),
     "base": ("save_interval", "total_steps"),
     "finetune": ("save_interval", "iterations"),
-    "feedback": ("host", "concurrency", "timeout_s", "store", "max_abstention", "name"),
+    "feedback": ("host", "hosts", "concurrency", "timeout_s", "store", "max_abstention", "name"),
 }
 
 
@@ -182,8 +182,9 @@ def training_config(
     one before a resume or a skip, so that a run never continues, or passes off as
     finished, a variant trained with other settings. They are read from the validated
     scenario (:meth:`~amuled_ma.scenario.Scenario.settings`). Left out: paths, logging and service
-    keys (:data:`_NOT_LEARNED`), the recording's folder (its file name stays), and the
-    feedback section for base training and for the rule-based human feedback. The run's
+    keys (:data:`_NOT_LEARNED`), the recording's folder (its file name stays), the
+    ``[feedback.distill]`` table when it is off, and the feedback section for base
+    training and for the rule-based human feedback. The run's
     length is kept apart, as the number of PPO iterations the job trains to.
 
     Args:
@@ -210,6 +211,9 @@ def training_config(
     for section in sections:
         skip = _NOT_LEARNED.get(section, ())
         out[section] = {k: v for k, v in data[section].items() if k not in skip}
+    distill = out.get("feedback", {}).get("distill")
+    if distill is not None and not distill.get("enabled"):
+        del out["feedback"]["distill"]  # off: its other keys change nothing
     if out.get("feedback", {}).get("recording"):
         out["feedback"]["recording"] = Path(out["feedback"]["recording"]).name
         if out["feedback"].get("source") == "replay":

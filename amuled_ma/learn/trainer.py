@@ -242,6 +242,14 @@ class Trainer:
         self.wall_offset = float(infos.get("wall_s", 0.0))
         if "torch_rng" in infos:
             torch.set_rng_state(infos["torch_rng"])
+        if infos.get("env_state") is not None:  # the episodes it stopped in (else: reset)
+            try:
+                self.env.load_state_dict(infos["env_state"])
+            except ValueError as error:
+                raise CheckpointError(
+                    f"{path}: {error}; it was saved by another task or number of copies "
+                    "(retrain with --force)"
+                ) from error
 
     def _init_from_base(self) -> None:
         assert self.base_checkpoint is not None
@@ -269,6 +277,7 @@ class Trainer:
             "curve": self.curve,
             "wall_s": self.wall_offset,
             "torch_rng": torch.get_rng_state(),
+            "env_state": self.env.state_dict(),
             "train_cfg": self.cfg,
             "base_checkpoint": str(self.base_checkpoint) if self.base_checkpoint else None,
             "num_actions": self.env.num_actions,
@@ -344,8 +353,12 @@ class Trainer:
                     self.on_iteration(self, it + 1)
                 bar.update(1)
                 if self.progress and recent:
+                    fields = getattr(self.feedback, "progress", None)  # asked=13/131
+                    extra_fields = fields() if callable(fields) else {}
                     bar.set_postfix(
-                        ret=f"{np.mean([e['return'] for e in recent]):.2f}", refresh=False
+                        ret=f"{np.mean([e['return'] for e in recent]):.2f}",
+                        **extra_fields,
+                        refresh=False,
                     )
                 if (it + 1) % self.cfg["save_interval"] == 0 and it + 1 < self.total_iterations:
                     self.save(self.out_dir / LAST, completed=False)

@@ -98,6 +98,41 @@ class DeliberationVecEnv(VecEnv):
     def _wrap(self, obs: torch.Tensor) -> TensorDict:
         return TensorDict({OBS_GROUP: obs}, batch_size=[self.num_envs], device=self.device)
 
+    def state_dict(self) -> dict[str, Any] | None:
+        """The copies' state, for exact resumes (None: the task cannot save its own).
+
+        The task's (:meth:`~amuled_ma.tasks.base.BatchedTask.state_dict`), the current
+        observations and the running episodes' lengths and sums.
+        """
+        if not callable(getattr(self.task, "state_dict", None)):
+            return None
+        return {
+            "task": self.task.state_dict(),
+            "obs": self.mdp.obs.clone(),
+            "episode_length": self.episode_length_buf.clone(),
+            "episode_return": self._ep_return.clone(),
+            "episode_shaping": self._ep_shaping.clone(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a :meth:`state_dict` of an env built with the same settings.
+
+        Raises:
+            ValueError: It does not fit this env (another task or number of copies).
+
+        """
+        self.task.load_state_dict(state["task"])
+        for name, mine in (
+            ("obs", self.mdp.obs),
+            ("episode_length", self.episode_length_buf),
+            ("episode_return", self._ep_return),
+            ("episode_shaping", self._ep_shaping),
+        ):
+            saved = state.get(name)
+            if not torch.is_tensor(saved) or saved.shape != mine.shape:
+                raise ValueError(f"env state: {name} of shape {tuple(mine.shape)} expected")
+            mine.copy_(saved)
+
     def get_observations(self) -> TensorDict:
         """Return the current observations as a TensorDict with one ``"policy"`` group."""
         return self._wrap(self.mdp.obs)

@@ -189,6 +189,46 @@ class BatchedTask(abc.ABC):
         return self._t
 
     # ------------------------------------------------------------------ public API
+    def state_dict(self) -> dict[str, Any]:
+        """Every tensor of the copies' state (positions, episode sums, random streams).
+
+        A checkpoint keeps it so that a resumed training continues the very episodes it
+        stopped in, drawing the same random numbers: a run stopped between two iterations
+        and resumed equals the run that never stopped.
+
+        Returns:
+            Attribute name -> tensor (cloned), and ``"_metrics"`` -> its dict of tensors.
+
+        """
+        state: dict[str, Any] = {
+            name: value.clone() for name, value in vars(self).items() if torch.is_tensor(value)
+        }
+        state["_metrics"] = {k: v.clone() for k, v in self._metrics.items()}
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a :meth:`state_dict` of a task built with the same settings.
+
+        Raises:
+            ValueError: A tensor is missing or has another shape (another task, another
+                number of copies), naming it.
+
+        """
+        mine = self.state_dict()
+        for name, value in mine.items():
+            saved = state.get(name)
+            if name == "_metrics":
+                if not isinstance(saved, dict) or set(saved) != set(value):
+                    raise ValueError(f"task state: episode metrics {sorted(value)} expected")
+                self._metrics = {k: saved[k].to(self.device).clone() for k in value}
+                continue
+            if not torch.is_tensor(saved) or saved.shape != value.shape:
+                found = tuple(saved.shape) if torch.is_tensor(saved) else type(saved).__name__
+                raise ValueError(
+                    f"task state: {name} of shape {tuple(value.shape)} expected, found {found}"
+                )
+            setattr(self, name, saved.to(self.device).clone())
+
     def reset(self, seed: int | None = None) -> torch.Tensor:
         """Reset every copy and return the first observations.
 

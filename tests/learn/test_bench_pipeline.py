@@ -15,19 +15,23 @@ TINY = [
 
 def test_bench_pipeline_times_every_stage_side_by_side(tmp_path, capsys):
     argv = ["bench", "pipeline", "--tasks", "findmilk", "--jobs", "1,2", "--out", str(tmp_path)]
+    argv.append("--ray")
     for text in TINY:
         argv += ["--set", text]
     assert main(argv) == 0
     out = capsys.readouterr().out
     rows = {}
     for stage in ("run", "ablate clusters", "ablate aggregation"):
-        match = re.search(rf"\| findmilk: {stage} \| ([\d.]+) \| ([\d.]+) \|", out)
+        match = re.search(rf"\| findmilk: {stage} \| ([\d.]+) \| ([\d.]+) \| ([\d.]+) \|", out)
         assert match, stage
-        rows[stage] = [float(match[1]), float(match[2])]
+        rows[stage] = [float(match[1]), float(match[2]), float(match[3])]
     total = re.search(r"\| \*\*total\*\* \| \*\*([\d.]+)\*\* .* \| \*\*([\d.]+)\*\*", out)
     assert total and abs(float(total[1]) - sum(r[0] for r in rows.values())) < 0.2
-    assert "speed-up of --jobs 2 over --jobs 1" in out and "not the target's conditions" in out
-    for jobs in (1, 2):  # every stage wrote its report
+    header = "| stage | --jobs 1 (one process) | --jobs 2 (Ray, 2 CPUs) | --ray (local Ray) |"
+    assert header in out, out
+    assert "speed-up of --ray (local Ray) over --jobs 1 (one process)" in out
+    assert "not the target's conditions" in out
+    for jobs in (1, 2, "ray"):  # every stage wrote its report
         run = tmp_path / f"jobs{jobs}" / "findmilk"
         assert (run / "report.md").is_file()
         assert (run / "ablate-clusters" / "report.md").is_file()

@@ -244,28 +244,46 @@ def _cmdline(pid: int) -> str:
         return "?"
 
 
+def _descendants(pid: int) -> list[int]:
+    """Every process below ``pid`` (Ray's GCS, raylet and workers, for a driver)."""
+    found, todo = [], [pid]
+    while todo:
+        children = _children(todo.pop())
+        found += children
+        todo += children
+    return found
+
+
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux /proc")
-def test_workers_checkpoint_and_exit_when_the_parent_is_killed(tmp_path):
-    """A real ``kill -9`` of the parent: no worker trains on unattended or lingers."""
+def test_a_killed_driver_leaves_no_process_and_resumes_from_its_checkpoints(tmp_path):
+    """A real ``kill -9`` of the driver: its local Ray (GCS, raylet, workers) goes with it.
+
+    The training tasks end at once; Ray's dashboard and runtime-env agents follow about a
+    minute later, when they notice their raylet is gone.
+
+    The jobs cannot write a last checkpoint (Ray kills the tasks of a dead driver); each
+    keeps its last periodic one (every ``save_interval`` = 100 iterations), and
+    ``--resume`` continues from there.
+    """
     run_dir = tmp_path / "run"
     proc = _start(_ablate_args(run_dir, 4000))
     tunes = _tunes(run_dir, "mean", "max")
     _wait_for([t / "model_last.pt" for t in tunes], proc)
-    workers = _children(proc.pid)
-    assert len(workers) >= 2, workers  # two workers (and multiprocessing's resource tracker)
+    below = _descendants(proc.pid)
+    names = " ".join(_cmdline(pid) for pid in below)
+    assert "raylet" in names and "gcs_server" in names, names  # a local Ray under the driver
     os.kill(proc.pid, signal.SIGKILL)
-    # the workers hold the same stdout/stderr: end of file means every one has exited
-    _out, err = proc.communicate(timeout=120)
+    proc.communicate(timeout=120)
     assert proc.returncode == -signal.SIGKILL
-    # a process closes its files a moment before it is gone: allow it that moment
-    deadline = time.monotonic() + 30
-    while any(_running(pid) for pid in workers) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    lingering = {pid: _cmdline(pid) for pid in workers if _running(pid)}
+    # the tasks end at once; Ray's two node agents notice the raylet is gone after ~60 s
+    deadline = time.monotonic() + 150
+    while any(_running(pid) for pid in below) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    lingering = {pid: _cmdline(pid) for pid in below if _running(pid)}
     assert not lingering
-    assert err.count("interrupted at iteration") == 2, err  # each running job checkpointed
     stopped = [checkpoint_state(t / "model_last.pt") for t in tunes]
     assert all(not s["completed"] and 100 <= s["iteration"] < 4000 for s in stopped), stopped
+    assert all(s["iteration"] % 100 == 0 for s in stopped), stopped  # periodic checkpoints
 
     _resume_to(run_dir, max(s["iteration"] for s in stopped) + 3, tunes)
 

@@ -56,3 +56,68 @@ def test_unknown_ollama_option_is_named() -> None:
     )
     with pytest.raises(ScenarioError, match=r"\[feedback.ollama\] unknown key\(s\) temprature"):
         make_source(scenario)
+
+
+@pytest.mark.parametrize("task", ["findmilk", "driving"])
+def test_a_run_stopped_between_iterations_and_resumed_equals_the_run_that_never_stopped(
+    tmp_path: Path, task: str
+) -> None:
+    """The checkpoint keeps the episodes in flight (task state, random streams, sums).
+
+    Fine-tune 6 iterations straight, and 6 iterations stopped after the 3rd (a Ctrl-C at
+    an iteration boundary, as the periodic checkpoint a killed worker leaves behind) then
+    resumed: every learned figure of every iteration, and the final weights, are equal.
+    The base is trained once and shared, so the two fine-tunes start from the same policy.
+    """
+    import json
+    import shutil
+
+    import torch
+
+    from amuled_ma.learn import trainer as trainer_mod
+
+    run_dir = tmp_path / "run"
+    tiny = [*tiny_cli.TINY, "--set", "finetune.iterations=6", *tiny_cli.RULES]
+    assert main(["train", task, "--variant", "base", "--run-dir", str(run_dir), *tiny]) == 0
+
+    for out in ("straight", "stopped"):  # two runs on the one base
+        shutil.copytree(run_dir, tmp_path / out)
+
+    def finetune(out: str, *extra: str) -> int:
+        argv = ["finetune", task, "--feedback", "amuled", "--run-dir", str(tmp_path / out)]
+        return main([*argv, *tiny, *extra])
+
+    assert finetune("straight") == 0
+
+    def stop_after_third(trainer, iteration):
+        if iteration == 3:
+            raise KeyboardInterrupt
+
+    original = trainer_mod.Trainer.__init__
+
+    def with_stop(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        if self.runner.current_learning_iteration == 0:  # the first attempt, not the resume
+            self.on_iteration = stop_after_third
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(trainer_mod.Trainer, "__init__", with_stop)
+        assert finetune("stopped") == 130  # the command line's Ctrl-C exit
+        stopped = tmp_path / "stopped" / "finetune-amuled" / "model_last.pt"
+        assert checkpoint_state(stopped)["iteration"] == 3
+        assert finetune("stopped", "--resume") == 0
+
+    def learned(out: str) -> list[dict]:
+        rows = json.loads((tmp_path / out / "finetune-amuled" / "curve.json").read_text())
+        return [{k: v for k, v in row.items() if k != "wall_s"} for row in rows]
+
+    assert len(learned("straight")) == 6
+    assert learned("stopped") == learned("straight")
+    weights = [
+        torch.load(tmp_path / out / "finetune-amuled" / "model_last.pt", weights_only=True)[
+            "actor_state_dict"
+        ]
+        for out in ("straight", "stopped")
+    ]
+    for name, tensor in weights[0].items():
+        assert torch.equal(tensor, weights[1][name]), name

@@ -1,0 +1,735 @@
+"""``DistilledSource``: the panel asked only where a distilled reward model is unsure.
+
+:class:`DistilledSource` wraps the panel's belief source (the
+:class:`~amuled_ma.beliefs.cached.CachedSource` or
+:class:`~amuled_ma.beliefs.routing.RoutedSource` that
+:func:`amuled_ma.learn.feedback.make_source` builds) and is itself a
+:class:`~amuled_ma.beliefs.types.BeliefSource`. The moral panel hands it one batch of
+requests, one per (state, member). For a batch it
+
+1. groups the requests by state (the observation, and the chat when there is one: on
+   FindMilk the crying babies left are in the prompt, not the observation) and records
+   every state as visited (:class:`~amuled_ma.distill.budget.BudgetLedger`);
+2. answers the states asked before: in this process from the answers kept when they
+   were asked, after a resume by forwarding their requests once more (the belief store
+   answers them: no new request, except for a failed answer, which the store never
+   serves);
+3. lets the selection rank the new states (:mod:`amuled_ma.distill.selection`) and the
+   budget admit the best ones; writes the spent budget to the state file, then forwards
+   their requests to the panel's source, which asks the LLMs and stores the answers;
+4. keeps the answers as training pairs and refits the model when due: after 1, 2, 4, ...
+   asked states with answers, then every ``refit_every`` (earlier fits make the first
+   states' neighbours answerable at once); every ``1 / holdout``-th asked state is kept
+   out of the fit and measures the model's agreement with the panel;
+5. answers every other state with the model (status ``"distilled"``), or, for a member
+   of which no asked state has an answer yet, not at all (``"unasked"``, a failure: that
+   member abstains);
+6. with ``answer_misses``, replaces a replay miss or an abstention of an asked state by
+   the model's belief (status ``"distilled_miss"``).
+
+The model's answers never reach the belief store (they are made above it), so the store
+holds exactly the asked states' answers. Answers of the model count as answers in the
+fusion and are reported apart from the panel's (:meth:`DistilledSource.report`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from fractions import Fraction
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from amuled_ma.beliefs.rows import CACHEABLE
+from amuled_ma.beliefs.types import (
+    MODEL_STATUSES,
+    UNASKED,
+    BeliefRequest,
+    BeliefResult,
+    BeliefSource,
+)
+from amuled_ma.beliefs.validate import check_belief, uniform_belief
+from amuled_ma.distill.budget import BudgetLedger, check_budget
+from amuled_ma.distill.model import EnsembleModel, FitSettings
+from amuled_ma.distill.selection import (
+    SELECTIONS,
+    choose_random,
+    choose_uncertain,
+    disagreement,
+)
+from amuled_ma.distill.state import SAVE_EVERY_S, StateFiles
+from amuled_ma.errors import AmuledError
+
+#: Status of a belief the model gave for a state that was not asked (``"distilled"``), and
+#: of the model's belief in place of an asked state's replay miss or abstention
+#: (``"distilled_miss"``); :data:`~amuled_ma.beliefs.types.UNASKED` (``"unasked"``): a
+#: state not asked whose member the model cannot answer yet (a failure).
+DISTILLED, DISTILLED_MISS = MODEL_STATUSES
+#: Inner statuses the model answers instead with ``answer_misses``.
+MISS_STATUSES = frozenset({"replay_miss", "abstained"})
+
+
+@dataclass
+class DistillStats:
+    """Counters of a :class:`DistilledSource` (kept across a resume).
+
+    Attributes:
+        requests_forwarded: Requests handed to the panel's source: an asked state's, once
+            per process (again after a resume, then mostly answered by the store).
+        requests_sent: Of those, the ones its belief store did not hold, which went to
+            the LLMs (or the recording); the forwarded count when the source keeps no
+            store.
+        model_answers: Beliefs the model gave for states not asked (one per member and
+            state answered; again after each refit).
+        miss_answers: Beliefs the model gave instead of a replay miss or an abstention.
+        unasked_answers: Beliefs of states not asked that the model could not give.
+        refits: Fits of the model.
+
+    """
+
+    requests_forwarded: int = 0
+    requests_sent: int = 0
+    model_answers: int = 0
+    miss_answers: int = 0
+    unasked_answers: int = 0
+    refits: int = 0
+
+
+@dataclass
+class _State:
+    """One state of a batch: its key, observation and each member's request positions."""
+
+    key: str
+    obs: tuple[float, ...]
+    positions: dict[str, list[int]] = field(default_factory=dict)
+
+
+@dataclass
+class _Example:
+    """The panel's answers to one asked state (members that did not answer are absent)."""
+
+    key: str
+    obs: np.ndarray
+    beliefs: dict[str, np.ndarray]
+    holdout: bool
+
+
+class DistilledSource(BeliefSource):
+    """The panel's source behind a budget and a distilled model (see the module).
+
+    Args:
+        source: The panel's source (its store answers asked states again for free); the
+            attribute ``source``, as :class:`~amuled_ma.beliefs.cached.CachedSource` names
+            its wrapped source.
+        budget: A share of distinct visited states in ``(0, 1]`` (float) or a count
+            ``>= 1`` (int) of states the panel may be asked.
+        selection: ``"uncertainty"`` or ``"random"``.
+        ensemble: Networks of the model.
+        hidden: Units of each hidden layer.
+        refit_every: Newly answered asked states between two refits (after the first
+            1, 2, 4, ... states).
+        holdout: Share of asked states kept out of the fit, in ``[0, 0.5]``.
+        answer_misses: Answer an asked state's replay misses and abstentions by the model.
+        seed: Seed of the fits and of the random selection.
+        fusion_rule: The panel's fusion rule (for the fused agreement on held-out states).
+        state_dir: Folder of the state files (None: nothing is kept on disk).
+        resume: Load the state files of ``state_dir`` (the budget already spent, the
+            training pairs); otherwise they are removed and the budget starts afresh.
+        fit_steps: Most Adam steps per fit.
+
+    Raises:
+        AmuledError: A setting out of range, or ``resume`` with state files written with
+            other settings or damaged (the message names the file and ``--force``).
+
+    """
+
+    name = "distilled"
+
+    def __init__(
+        self,
+        source: BeliefSource,
+        *,
+        budget: float | int = 0.1,
+        selection: str = "uncertainty",
+        ensemble: int = 5,
+        hidden: int = 64,
+        refit_every: int = 32,
+        holdout: float = 0.2,
+        answer_misses: bool = False,
+        seed: int = 0,
+        fusion_rule: str = "bjs-dst",
+        state_dir: str | Path | None = None,
+        resume: bool = False,
+        fit_steps: int = 400,
+    ) -> None:
+        if selection not in SELECTIONS:
+            raise AmuledError(
+                f"[feedback.distill].selection expects one of {', '.join(SELECTIONS)}, "
+                f"found {selection!r}"
+            )
+        if not 0.0 <= float(holdout) <= 0.5:
+            raise AmuledError(f"[feedback.distill].holdout expects [0, 0.5], found {holdout!r}")
+        if int(refit_every) < 1 or int(ensemble) < 1 or int(hidden) < 1:
+            raise AmuledError(
+                "[feedback.distill] refit_every, ensemble and hidden must be at least 1, found "
+                f"{refit_every!r}, {ensemble!r}, {hidden!r}"
+            )
+        self.source = source
+        self.budget = check_budget(budget)
+        self.selection = selection
+        self.refit_every = int(refit_every)
+        self.holdout = float(holdout)
+        self.answer_misses = bool(answer_misses)
+        self.seed = int(seed)
+        self.fusion_rule = fusion_rule
+        self.fit = FitSettings(ensemble=int(ensemble), hidden=int(hidden), steps=int(fit_steps))
+        self.ledger = BudgetLedger(self.budget)
+        self.stats = DistillStats()
+        self.members: list[str] = []
+        self.actions: tuple[str, ...] | None = None
+        self.task: str | None = None
+        self.obs_dim: int | None = None
+        self.model: EnsembleModel | None = None
+        #: Number of fits so far (the feedback's memo refreshes the model's answers on a change).
+        self.generation = 0
+        self.agreement: dict[str, Any] = {}
+        self._asked_obs: dict[str, tuple[float, ...]] = {}
+        self._examples: dict[str, _Example] = {}
+        # the panel's answers to the states asked in this process (one forward each)
+        self._answers: dict[str, dict[str, BeliefResult]] = {}
+        self._fit_examples = 0
+        self._rng = np.random.Generator(np.random.PCG64(self.seed))
+        self._files = StateFiles(state_dir) if state_dir is not None else None
+        self._changed = False
+        if self._files is not None:
+            if resume and self._files.exists():
+                self._load()
+            else:
+                self._files.reset()
+
+    @classmethod
+    def from_config(
+        cls,
+        source: BeliefSource,
+        config: Any,
+        *,
+        seed: int,
+        fusion_rule: str,
+        state_dir: str | Path | None = None,
+        resume: bool = False,
+    ) -> DistilledSource:
+        """Build from a ``[feedback.distill]`` section (its ``seed``, if set, wins)."""
+        own = getattr(config, "seed", None)
+        return cls(
+            source,
+            budget=config.budget,
+            selection=config.selection,
+            ensemble=config.ensemble,
+            hidden=config.hidden,
+            refit_every=config.refit_every,
+            holdout=config.holdout,
+            answer_misses=config.answer_misses,
+            seed=seed if own is None else own,
+            fusion_rule=fusion_rule,
+            state_dir=state_dir,
+            resume=resume,
+        )
+
+    # -- BeliefSource ----------------------------------------------------------------
+    @property
+    def needs_messages(self) -> bool:  # type: ignore[override]
+        """Whether the panel's source reads the chat (the state key then includes it)."""
+        return bool(getattr(self.source, "needs_messages", True))
+
+    def identity(self) -> dict[str, Any]:
+        """The panel's source's identity (the store keys are the inner source's)."""
+        return self.source.identity()
+
+    def source_for(self, agent: str) -> Any:
+        """The source answering ``agent``'s asked states (for messages)."""
+        per_agent = getattr(self.source, "source_for", None)
+        return per_agent(agent) if callable(per_agent) else self.source
+
+    def close(self) -> None:
+        """Write the state file and close the panel's source."""
+        try:
+            self._save(force=True)
+        finally:
+            self.source.close()
+
+    def settings(self) -> dict[str, Any]:
+        """What decides this source's answers besides the panel (kept in the state file)."""
+        return {
+            "model": "mlp",
+            "budget": self.budget,
+            "selection": self.selection,
+            "ensemble": self.fit.ensemble,
+            "hidden": self.fit.hidden,
+            "refit_every": self.refit_every,
+            "holdout": self.holdout,
+            "answer_misses": self.answer_misses,
+            "seed": self.seed,
+            "fusion_rule": self.fusion_rule,
+        }
+
+    def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
+        """Forward asked states to the panel's source, answer the others by the model.
+
+        Args:
+            requests: One batch (several members per state).
+
+        Returns:
+            One result per request, in order.
+
+        Raises:
+            RuntimeError: The panel's source answered a different number of results.
+            AmuledError: The requests change task, actions or observation length.
+
+        """
+        if not requests:
+            return []
+        states = self._group(requests)
+        ledger = self.ledger
+        if ledger.visit(s.key for s in states):
+            self._changed = True
+        known = [s for s in states if ledger.is_asked(s.key)]
+        candidates = [s for s in states if not ledger.is_asked(s.key)]
+        remembered = [s for s in known if s.key in self._answers]
+        known = [s for s in known if s.key not in self._answers]
+        chosen = self._choose(candidates, ledger.allowed())
+        if chosen:
+            ledger.ask(s.key for s in chosen)
+            for s in chosen:
+                self._asked_obs[s.key] = s.obs
+            self._save(force=True)  # spend the budget before asking
+        results: list[BeliefResult | None] = [None] * len(requests)
+        forward = known + chosen
+        if forward:
+            self._forward(forward, requests, results)
+        self._recall(remembered, results)
+        forward += remembered
+        if self._refit_due():
+            self._refit()
+        rest = [s for s in candidates if not ledger.is_asked(s.key)]
+        self._answer(rest, results)
+        if self.answer_misses and forward:
+            self._answer_misses(forward, results)
+        self._save()
+        return results  # type: ignore[return-value]
+
+    # -- accounting --------------------------------------------------------------------
+    def report(self) -> dict[str, Any]:
+        """The honest accounting, JSON-ready (``feedback.json``, ``results.json``).
+
+        Returns:
+            The settings; ``visited_states``, ``asked_states``, ``asked_share``, ``cap``
+            (most states the budget allows now), ``model_states`` (visited, not asked:
+            answered by the model); the :class:`DistillStats` counters; ``members``;
+            ``holdout_states`` and ``holdout_tv`` (per member) and ``holdout_tv_fused``:
+            the mean total-variation distance between the model's and the panel's beliefs
+            on the held-out asked states at the last fit (None before one).
+
+        """
+        ledger = self.ledger
+        visited, asked = ledger.visited_count, ledger.asked_count
+        return {
+            **self.settings(),
+            "visited_states": visited,
+            "asked_states": asked,
+            "asked_share": asked / visited if visited else 0.0,
+            "cap": ledger.cap(),
+            "model_states": visited - asked,
+            **asdict(self.stats),
+            "members": list(self.members),
+            "holdout_states": self.agreement.get("states", 0),
+            "holdout_tv": dict(self.agreement.get("tv", {})),
+            "holdout_tv_fused": self.agreement.get("tv_fused"),
+        }
+
+    # -- grouping --------------------------------------------------------------------
+    def _group(self, requests: Sequence[BeliefRequest]) -> list[_State]:
+        """The batch's distinct states, in order of first request."""
+        first = requests[0]
+        if self.actions is None:
+            self.actions, self.task, self.obs_dim = (
+                tuple(first.action_names),
+                first.task,
+                len(first.obs),
+            )
+        occurrences: dict[tuple[bytes, str], int] = {}
+        groups: dict[tuple[bytes, int], dict[str, list[int]]] = {}
+        obs_of: dict[bytes, tuple[float, ...]] = {}
+        for i, request in enumerate(requests):
+            if (
+                tuple(request.action_names) != self.actions
+                or request.task != self.task
+                or len(request.obs) != self.obs_dim
+            ):
+                raise AmuledError(
+                    f"distilled feedback: a request for task {request.task!r} with actions "
+                    f"{request.action_names} and {len(request.obs)} observations, after "
+                    f"{self.task!r} with {self.actions} and {self.obs_dim}; one distilled "
+                    "source serves one task"
+                )
+            raw = np.asarray(request.obs, dtype=np.float64).tobytes()
+            obs_of.setdefault(raw, tuple(float(x) for x in request.obs))
+            slot = occurrences.get((raw, request.cluster), 0)
+            occurrences[(raw, request.cluster)] = slot + 1
+            groups.setdefault((raw, slot), {}).setdefault(request.cluster, []).append(i)
+        states: dict[str, _State] = {}
+        for (raw, _slot), positions in groups.items():
+            key = self._key(raw, positions, requests)
+            state = states.get(key)
+            if state is None:
+                states[key] = _State(key, obs_of[raw], positions)
+            else:  # the same state twice in one batch: answered alike
+                for member, idx in positions.items():
+                    state.positions.setdefault(member, []).extend(idx)
+            for member in positions:
+                if member not in self.members:
+                    self.members.append(member)
+                    self._changed = True
+        return list(states.values())
+
+    def _key(
+        self, raw: bytes, positions: Mapping[str, list[int]], requests: Sequence[BeliefRequest]
+    ) -> str:
+        """A state's key: its observation and every member's chat (128-bit BLAKE2b)."""
+        digest = hashlib.blake2b(digest_size=16)
+        digest.update(raw)
+        for member in sorted(positions):
+            digest.update(b"\x1d" + member.encode("utf-8"))
+            for role, content in requests[positions[member][0]].messages:
+                digest.update(b"\x1e" + role.encode("utf-8") + b"\x1f" + content.encode("utf-8"))
+        return digest.hexdigest()
+
+    # -- selection and asking ----------------------------------------------------------
+    def _choose(self, candidates: list[_State], count: int) -> list[_State]:
+        if count <= 0 or not candidates:
+            return []
+        if count >= len(candidates):
+            return list(candidates)
+        if self.selection == "random":
+            picks = choose_random(len(candidates), count, self._rng)
+            self._changed = True
+        else:
+            obs = np.asarray([s.obs for s in candidates], dtype=np.float64)
+            spread = None
+            if self.model is not None and self.model.fitted:
+                spread = disagreement(self.model.predict_ensemble(obs), self.model.trained)
+            asked = np.asarray(list(self._asked_obs.values()), dtype=np.float64)
+            picks = choose_uncertain(obs, count, asked.reshape(-1, obs.shape[1]), spread)
+        return [candidates[i] for i in picks]
+
+    def _forward(
+        self, forward: list[_State], requests: Sequence[BeliefRequest], results: list
+    ) -> None:
+        """Ask the panel's source about the asked states; keep their answers to learn from."""
+        idx = [i for s in forward for positions in s.positions.values() for i in positions]
+        before = _sent(self.source)
+        answers = self.source.beliefs([requests[i] for i in idx])
+        if len(answers) != len(idx):
+            raise RuntimeError(
+                f"belief source {getattr(self.source, 'name', '?')!r} answered {len(answers)} "
+                f"results for {len(idx)} requests"
+            )
+        after = _sent(self.source)
+        self.stats.requests_forwarded += len(idx)
+        self.stats.requests_sent += len(idx) if before is None or after is None else after - before
+        self._changed = True
+        for i, answer in zip(idx, answers, strict=True):
+            results[i] = answer
+        for s in forward:  # kept for the rest of this process: asked once per process
+            self._answers[s.key] = {
+                member: results[positions[0]] for member, positions in s.positions.items()
+            }
+        order = {key: n for n, key in enumerate(self.ledger.asked)}
+        records = []
+        a = len(self.actions or ())
+        for s in forward:
+            answered: dict[str, np.ndarray] = {}
+            for member, positions in s.positions.items():
+                result = results[positions[0]]
+                if result.status in CACHEABLE:
+                    belief, _ = check_belief(result.belief, a)
+                    if belief is not None:
+                        answered[member] = belief
+            old = self._examples.get(s.key)
+            if old is not None and set(answered) <= set(old.beliefs):
+                continue
+            beliefs = {**(old.beliefs if old else {}), **answered}
+            example = _Example(
+                s.key, np.asarray(s.obs, dtype=np.float64), beliefs, self._is_holdout(order[s.key])
+            )
+            self._examples[s.key] = example
+            records.append({
+                "key": s.key,
+                "obs": list(s.obs),
+                "beliefs": {m: b.tolist() for m, b in beliefs.items()},
+            })  # fmt: skip
+        if records and self._files is not None:
+            self._files.append(records)
+        if any(self._examples[r["key"]].holdout for r in records) and self.model is not None:
+            self._measure([e for e in self._ordered_examples() if e.holdout and e.beliefs])
+
+    def _recall(self, states: list[_State], results: list) -> None:
+        """The panel's answers to states asked earlier in this process, again (copies).
+
+        A state is forwarded to the panel's source once per process: its answers, failures
+        included, are kept; the store would serve the answers but ask a failure again.
+        """
+        for s in states:
+            kept = self._answers[s.key]
+            for member, positions in s.positions.items():
+                result = kept.get(member)
+                if result is None:  # a member not asked with the state before: ask it now
+                    raise AmuledError(
+                        f"distilled feedback: state {s.key} was asked without {member!r}; one "
+                        "distilled source serves one panel"
+                    )
+                for i in positions:
+                    results[i] = result.copy()
+
+    def _is_holdout(self, index: int) -> bool:
+        """Whether the ``index``-th asked state (from 0) is held out (a ``holdout`` share)."""
+        share = Fraction(self.holdout)
+        return math.floor((index + 1) * share) > math.floor(index * share)
+
+    # -- the model ---------------------------------------------------------------------
+    def _ordered_examples(self) -> list[_Example]:
+        return [self._examples[k] for k in self.ledger.asked if k in self._examples]
+
+    def _refit_due(self) -> bool:
+        answered = sum(1 for e in self._examples.values() if e.beliefs)
+        since = answered - self._fit_examples
+        return since > 0 and since >= min(self.refit_every, max(1, self._fit_examples))
+
+    def _arrays(self, examples: list[_Example]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        k, a = len(self.members), len(self.actions or ())
+        obs = np.asarray([e.obs for e in examples], dtype=np.float64).reshape(-1, self.obs_dim or 0)
+        beliefs = np.full((len(examples), k, a), 1.0 / max(a, 1))
+        mask = np.zeros((len(examples), k), dtype=bool)
+        column = {m: j for j, m in enumerate(self.members)}
+        for n, example in enumerate(examples):
+            for member, belief in example.beliefs.items():
+                beliefs[n, column[member]] = belief
+                mask[n, column[member]] = True
+        return obs, beliefs, mask
+
+    def _refit(self, *, generation: int | None = None) -> None:
+        """Fit a new model on the asked states that are not held out."""
+        examples = [e for e in self._ordered_examples() if e.beliefs]
+        self._fit_examples = len(examples)
+        train = [e for e in examples if not e.holdout]
+        if not train or self.actions is None:
+            return
+        new = self.generation + 1 if generation is None else generation
+        model = EnsembleModel(self.members, len(self.actions), self.fit)
+        model.fit(*self._arrays(train), seed=fit_seed(self.seed, new))
+        self.model = model
+        self.generation = new
+        self.stats.refits = max(self.stats.refits, new)
+        self._changed = True
+        self._measure([e for e in examples if e.holdout])
+
+    def _measure(self, held: list[_Example]) -> None:
+        """Agreement of the model with the panel on the held-out asked states."""
+        model = self.model
+        if model is None or not held:
+            self.agreement = {"states": len(held), "tv": {}, "tv_fused": None}
+            return
+        obs, real, mask = self._arrays(held)
+        pred = model.predict(obs)
+        use = mask & model.trained[None, :]
+        tv = 0.5 * np.abs(pred - real).sum(-1)  # (N, K)
+        per_member = {
+            m: float(tv[use[:, j], j].mean()) for j, m in enumerate(self.members) if use[:, j].any()
+        }
+        from amuled_ma.fusion import fuse
+
+        fused_tv = []
+        patterns, inverse = np.unique(use, axis=0, return_inverse=True)
+        for p, pattern in enumerate(patterns):
+            if not pattern.any():
+                continue
+            rows = np.flatnonzero(inverse.reshape(-1) == p)
+            cols = np.flatnonzero(pattern)
+            a = np.asarray(fuse(real[rows][:, cols], self.fusion_rule), dtype=np.float64)
+            b = np.asarray(fuse(pred[rows][:, cols], self.fusion_rule), dtype=np.float64)
+            fused_tv += (0.5 * np.abs(a - b).sum(-1)).tolist()
+        self.agreement = {
+            "states": len(held),
+            "tv": per_member,
+            "tv_fused": float(np.mean(fused_tv)) if fused_tv else None,
+        }
+
+    def _answer(self, states: list[_State], results: list) -> None:
+        """The model's beliefs for states not asked (``unasked`` where it has none)."""
+        if not states:
+            return
+        a = len(self.actions or ())
+        model = self.model if self.model is not None and self.model.fitted else None
+        column = {m: j for j, m in enumerate(model.members)} if model else {}
+        pred = model.predict(np.asarray([s.obs for s in states])) if model else None
+        for n, state in enumerate(states):
+            for member, positions in state.positions.items():
+                j = column.get(member)
+                if pred is not None and j is not None and model is not None and model.trained[j]:
+                    belief, _ = check_belief(pred[n, j], a)
+                    assert belief is not None  # a softmax is a valid belief
+                    result = BeliefResult(
+                        belief, DISTILLED, self.name, extra={"generation": self.generation}
+                    )
+                    self.stats.model_answers += 1
+                else:
+                    result = BeliefResult(
+                        uniform_belief(a),
+                        UNASKED,
+                        self.name,
+                        extra={
+                            "error": f"not asked, and no asked state has {member!r}'s answer "
+                            "yet for the distilled model to learn from"
+                        },
+                    )
+                    self.stats.unasked_answers += 1
+                for m, i in enumerate(positions):
+                    results[i] = result if m == 0 else result.copy()
+        self._changed = True
+
+    def _answer_misses(self, forward: list[_State], results: list) -> None:
+        """Replace the replay misses and abstentions of asked states by the model's beliefs."""
+        model = self.model
+        if model is None or not model.fitted:
+            return
+        column = {m: j for j, m in enumerate(model.members)}
+        todo = [
+            (n, member, positions)
+            for n, s in enumerate(forward)
+            for member, positions in s.positions.items()
+            if results[positions[0]].status in MISS_STATUSES
+            and member in column
+            and model.trained[column[member]]
+        ]
+        if not todo:
+            return
+        a = len(self.actions or ())
+        pred = model.predict(np.asarray([s.obs for s in forward]))
+        for n, member, positions in todo:
+            belief, _ = check_belief(pred[n, column[member]], a)
+            assert belief is not None
+            inner = results[positions[0]]
+            result = BeliefResult(
+                belief,
+                DISTILLED_MISS,
+                self.name,
+                raw=inner.raw,
+                extra={"generation": self.generation, "inner_status": inner.status},
+            )
+            self.stats.miss_answers += 1
+            for m, i in enumerate(positions):
+                results[i] = result if m == 0 else result.copy()
+        self._changed = True
+
+    # -- persistence -----------------------------------------------------------------
+    def _save(self, *, force: bool = False) -> None:
+        files = self._files
+        if files is None or not (force or self._changed):
+            return
+        if not force and time.monotonic() - files.saved_at < SAVE_EVERY_S:
+            return
+        files.save({
+            "settings": self.settings(),
+            "ledger": self.ledger.to_dict(),
+            "asked_obs": {k: list(v) for k, v in self._asked_obs.items()},
+            "members": list(self.members),
+            "task": self.task,
+            "actions": list(self.actions) if self.actions is not None else None,
+            "obs_dim": self.obs_dim,
+            "generation": self.generation,
+            "counters": asdict(self.stats),
+            "rng": _jsonable_rng(self._rng.bit_generator.state),
+        })  # fmt: skip
+        self._changed = False
+
+    def _load(self) -> None:
+        """Continue from the state files: the budget spent, the pairs, the model refitted."""
+        files = self._files
+        assert files is not None
+        data = files.load()
+        where = str(files.ledger)
+        saved = data.get("settings") or {}
+        now = self.settings()
+        diffs = [f"{k}: {saved.get(k)!r} -> {v!r}" for k, v in now.items() if saved.get(k) != v]
+        if diffs:
+            raise AmuledError(
+                f"{where} was written with other [feedback.distill] settings (saved -> now: "
+                f"{'; '.join(diffs)}); start the fine-tune over with --force"
+            )
+        try:
+            self.ledger = BudgetLedger.from_dict(data["ledger"], where)
+            self._asked_obs = {
+                str(k): tuple(float(x) for x in v) for k, v in data["asked_obs"].items()
+            }
+            self.members = [str(m) for m in data["members"]]
+            self.task = data.get("task")
+            self.actions = tuple(data["actions"]) if data.get("actions") is not None else None
+            self.obs_dim = data.get("obs_dim")
+            generation = int(data.get("generation", 0))
+            self.stats = DistillStats(**data.get("counters", {}))
+            if data.get("rng"):
+                self._rng.bit_generator.state = data["rng"]
+        except (KeyError, TypeError, ValueError) as error:
+            raise AmuledError(
+                f"{where}: damaged budget state ({error!r}); start the fine-tune over with --force"
+            ) from error
+        order = {key: n for n, key in enumerate(self.ledger.asked)}
+        for record in files.read_examples():
+            key = str(record.get("key"))
+            if key not in order:
+                continue  # not in the ledger: never charged, so not learned from
+            beliefs = {
+                str(m): np.asarray(b, dtype=np.float64)
+                for m, b in (record.get("beliefs") or {}).items()
+                if m in self.members
+            }
+            obs = np.asarray(record.get("obs"), dtype=np.float64)
+            self._examples[key] = _Example(key, obs, beliefs, self._is_holdout(order[key]))
+        if generation > 0:
+            self._refit(generation=generation)
+
+
+def fit_seed(seed: int, generation: int) -> int:
+    """The seed of the ``generation``-th fit of a run seeded ``seed`` (a 63-bit integer)."""
+    words = np.random.SeedSequence([int(seed) % 2**64, int(generation)]).generate_state(2)
+    return (int(words[0]) << 31 ^ int(words[1])) % 2**63
+
+
+def _sent(source: Any) -> int | None:
+    """Requests the belief caches inside ``source`` sent on (None: it keeps no cache)."""
+    stats = getattr(source, "stats", None)
+    if stats is not None and hasattr(stats, "sent"):
+        return int(stats.sent)
+    members = getattr(source, "members", None)
+    if not members:
+        return None
+    counts = [_sent(member) for member, _agents in members]
+    if any(c is None for c in counts):
+        return None
+    return sum(c for c in counts if c is not None)
+
+
+def _jsonable_rng(state: Mapping[str, Any]) -> dict[str, Any]:
+    """A numpy bit generator's state as plain JSON data."""
+    out: dict[str, Any] = {}
+    for key, value in state.items():
+        if isinstance(value, Mapping):
+            value = _jsonable_rng(value)
+        elif isinstance(value, np.integer):
+            value = int(value)
+        out[key] = value
+    return out

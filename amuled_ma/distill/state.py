@@ -1,0 +1,131 @@
+"""The files that keep a distilled fine-tune's budget and training pairs across a resume.
+
+In the fine-tune's folder:
+
+- ``distill.json``: the settings, the budget ledger (every distinct state visited, the
+  states asked in order, their observations), the panel members and actions, the number
+  of refits, the counters and the random selection's generator. Written whole to a
+  temporary file and moved over the old one (``os.replace``), so a crash leaves the old
+  or the new file, never half of one. It is written **before** a batch's asked states are
+  sent to the panel (the budget is spent first), after a batch that changed anything at
+  most every :data:`SAVE_EVERY_S` seconds, and when the feedback is closed.
+- ``distill-examples.jsonl``: the training pairs, one JSON line per asked state as its
+  answers arrive (observation, each member's belief; appended, never rewritten). A line
+  cut short by a crash is the last one and is ignored; the state is asked again from
+  the store (a cache hit) the next time it is visited.
+
+Nothing here is written into the belief store: the store holds exactly the panel's
+answers to the asked states.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+from amuled_ma.errors import AmuledError
+
+#: File of the budget ledger and counters.
+LEDGER_FILE = "distill.json"
+#: File of the training pairs (JSON Lines).
+EXAMPLES_FILE = "distill-examples.jsonl"
+#: Format tag of :data:`LEDGER_FILE`.
+FORMAT = "amuled-distill/1"
+#: Seconds between two writes of the ledger when no state was asked.
+SAVE_EVERY_S = 5.0
+
+
+class StateFiles:
+    """The two state files of one fine-tune folder.
+
+    Args:
+        folder: The fine-tune's folder (created on the first write).
+
+    """
+
+    def __init__(self, folder: str | os.PathLike[str]) -> None:
+        self.folder = Path(folder)
+        self.ledger = self.folder / LEDGER_FILE
+        self.examples = self.folder / EXAMPLES_FILE
+        self.saved_at = 0.0
+
+    def exists(self) -> bool:
+        """Whether a ledger was written."""
+        return self.ledger.is_file()
+
+    def reset(self) -> None:
+        """Remove both files (a fine-tune that starts over)."""
+        for path in (self.ledger, self.examples):
+            path.unlink(missing_ok=True)
+
+    def load(self) -> dict[str, Any]:
+        """Read the ledger.
+
+        Raises:
+            AmuledError: It is not readable JSON of this format; the message names the
+                file and ``--force`` (start over).
+
+        """
+        try:
+            data = json.loads(self.ledger.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as error:
+            raise AmuledError(
+                f"{self.ledger}: not a readable budget state ({error}); start the fine-tune "
+                "over with --force"
+            ) from error
+        if not isinstance(data, dict) or data.get("format") != FORMAT:
+            raise AmuledError(
+                f"{self.ledger}: not a budget state of format {FORMAT!r}; start the "
+                "fine-tune over with --force"
+            )
+        return data
+
+    def save(self, data: Mapping[str, Any]) -> None:
+        """Write the ledger atomically (temporary file, flush, ``os.replace``)."""
+        self.folder.mkdir(parents=True, exist_ok=True)
+        tmp = self.ledger.with_name(f".{self.ledger.name}.{os.getpid()}.tmp")
+        with tmp.open("w", encoding="utf-8") as handle:
+            json.dump({"format": FORMAT, **data}, handle, separators=(",", ":"))
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, self.ledger)
+        self.saved_at = time.monotonic()
+
+    def append(self, records: Iterable[Mapping[str, Any]]) -> None:
+        """Append training pairs, one JSON line each, and flush."""
+        lines = "".join(json.dumps(r, separators=(",", ":")) + "\n" for r in records)
+        if not lines:
+            return
+        self.folder.mkdir(parents=True, exist_ok=True)
+        with self.examples.open("a", encoding="utf-8") as handle:
+            handle.write(lines)
+            handle.flush()
+
+    def read_examples(self) -> list[dict[str, Any]]:
+        """Every training pair written (a cut last line is skipped).
+
+        Raises:
+            AmuledError: A line other than the last is not JSON (the file was edited).
+
+        """
+        if not self.examples.is_file():
+            return []
+        lines = self.examples.read_text(encoding="utf-8").splitlines()
+        out = []
+        for number, line in enumerate(lines, 1):
+            try:
+                record = json.loads(line)
+            except ValueError as error:
+                if number == len(lines):
+                    break  # cut short by a crash while it was written
+                raise AmuledError(
+                    f"{self.examples}:{number}: not JSON ({error}); start the fine-tune over "
+                    "with --force"
+                ) from error
+            if isinstance(record, dict):
+                out.append(record)
+        return out
