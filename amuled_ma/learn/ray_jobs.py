@@ -42,6 +42,7 @@ from pathlib import Path
 from typing import Any
 
 import ray
+from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from amuled_ma.errors import AmuledError
 from amuled_ma.learn.checkpoints import LAST
@@ -334,8 +335,10 @@ def run_on_ray(
     for run_dir in {j.run_dir for j in jobs}:
         run_dir.mkdir(parents=True, exist_ok=True)
         (run_dir / SHARED_TOKEN).write_text(token)
-    board = SweepBoard.remote()
     driver_node = ray.get_runtime_context().get_node_id()
+    # on the driver's node: an actor on a node that dies would take the bar with it
+    here = NodeAffinitySchedulingStrategy(driver_node, soft=False)
+    board = SweepBoard.options(scheduling_strategy=here).remote()
     stores = start_store_actors(
         store_path(j.scenario, j.run_dir) for j in jobs if j.variant.asks_panel
     )
@@ -357,7 +360,9 @@ def run_on_ray(
     )
 
     def drain() -> None:
-        bar.update(ray.get(board.take.remote()))
+        # the bar only (a lost count is no lost work: the jobs' results are the refs)
+        with contextlib.suppress(ray.exceptions.RayError):
+            bar.update(ray.get(board.take.remote()))
 
     done: dict[str, JobResult] = {}
     failure: BaseException | None = None

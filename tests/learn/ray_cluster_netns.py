@@ -87,8 +87,12 @@ def start_node(env: dict, temp_dir: str, head: bool, private: Path | None = None
 
 
 def learned(run_dir: Path) -> dict:
-    out = {}
+    """Each fine-tune's curve without wall times (a folder without one: None)."""
+    out: dict = {}
     for folder in sorted((run_dir / "ablate-aggregation").glob("finetune-*")):
+        if not (folder / "curve.json").is_file():
+            out[folder.name] = None
+            continue
         rows = json.loads((folder / "curve.json").read_text())
         out[folder.name] = [{k: v for k, v in r.items() if k != "wall_s"} for r in rows]
     return out
