@@ -242,7 +242,7 @@ def train_job(
             f"iteration {state.get('iteration', 0)} on Ray node {node[:8]}",
             flush=True,
         )
-    else:
+    elif inputs is not None:  # on a cluster: say where each job trains
         print(f"{job.name}: starts on Ray node {node[:8]}", flush=True)
     away = node != driver_node  # not the driver's machine: its store through the actor
     for path, actor in stores.items():
@@ -389,7 +389,7 @@ def run_on_ray(
                     for path, data in files.items():
                         unpack(data, Path(path))
                 done[name] = result
-                bar.write(f"{describe(result)} [Ray node {node[:8]}]")
+                bar.write(describe(result) + (f" [Ray node {node[:8]}]" if ship else ""))
     except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (errors.Terminated)
         bar.write("stopping: every running job writes its checkpoint ...", file=sys.stderr)
         # before any cancel frees a CPU that Ray could give a queued task: the stop mark,
