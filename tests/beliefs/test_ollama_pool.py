@@ -2,7 +2,7 @@
 
 Each fake server is an ``httpx.MockTransport`` handler; one transport routes by the host of
 each request's URL. The real two-server test with a ``kill -9`` is
-``tests/integration/test_host_pool.py``. Also: the ``hosts`` scenario keys, the figures in
+``tests/integration/test_live_host_pool.py``. Also: the ``hosts`` scenario keys, the figures in
 the feedback summary, ``results.json`` merging and the report's table.
 """
 

@@ -1,6 +1,6 @@
 """Two real Ollama servers serve one fine-tune; one is killed with ``kill -9`` mid-run.
 
-Run by ``test_host_pool.py`` inside a network namespace of its own (``unshare -n``, only
+Run by ``test_live_host_pool.py`` inside a network namespace of its own (``unshare -n``, only
 the loopback interface up), as ``python host_pool_netns.py WORKDIR``; not a test module.
 
 1. Two private ``ollama serve`` on two loopback ports (one request slot each, the second
