@@ -8,6 +8,10 @@ second node's raylet gets ``kill -9``. Checked: the run finishes; jobs started o
 nodes; the lost job was run again and resumed from its checkpoint (not from iteration 0);
 every fine-tune's learning curve equals that of the same ablation with ``--jobs 1``
 (an exact resume: the checkpoint keeps the episodes in flight).
+
+The script ends with ``ray stop --force``, which stops every Ray process of the machine,
+not only the namespace's: do not run these tests beside another Ray (CI runs tests one
+after the other).
 """
 
 from __future__ import annotations
