@@ -32,6 +32,7 @@ import io
 import logging
 import os
 import signal
+import socket
 import sys
 import tarfile
 import threading
@@ -63,6 +64,34 @@ MAX_RETRIES = 3
 REPORT_EVERY_S = 0.25
 
 
+def check_address(address: str, timeout_s: float = 5.0) -> None:
+    """Fail at once, naming the fix, when no Ray head listens at ``HOST:PORT``.
+
+    ``ray.init`` would otherwise retry for minutes. ``auto`` and ``ray://`` addresses are
+    left to Ray.
+
+    Raises:
+        AmuledError: The address is malformed or nothing accepts a connection there.
+
+    """
+    if address == "auto" or "://" in address:
+        return
+    host, _, port = address.rpartition(":")
+    if not host or not port.isdigit():
+        raise AmuledError(
+            f"--ray {address!r}: expected HOST:PORT of a Ray head (e.g. 10.0.0.5:6379), "
+            "'auto', or nothing for a local Ray"
+        )
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as error:
+        raise AmuledError(
+            f"--ray {address}: no Ray head answers there ({error}); start one on that "
+            f"machine with 'ray start --head --port={port}', or give no address for a "
+            "local Ray"
+        ) from error
+
+
 def connect(address: str | None, workers: int) -> bool:
     """Connect to Ray: start a local one with ``workers`` CPUs, or join ``address``.
 
@@ -80,6 +109,8 @@ def connect(address: str | None, workers: int) -> bool:
     """
     if ray.is_initialized():
         return False
+    if address is not None:
+        check_address(address)
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     options: dict[str, Any] = {"logging_level": logging.WARNING, "log_to_driver": True}
     # Ray's local processes are started in this process's group, where a terminal's Ctrl-C

@@ -315,3 +315,25 @@ def test_plan_ablation_reuses_the_runs_amuled_finetune_only_with_same_settings(t
         jobs = plan_ablation("aggregation", scenario, run_dir, [1], resume=True)
         (amuled,) = [j for j in jobs if str(j.variant) == "finetune:amuled"]
         assert amuled.out_dir == run_dir / "ablate-aggregation" / "finetune-amuled"
+
+
+def test_a_ray_address_where_nothing_listens_fails_at_once_naming_the_fix(tmp_path, capsys):
+    """``--ray HOST:PORT`` with no Ray head there: one line, no minutes of Ray retries."""
+    import socket
+
+    from amuled_ma.cli import main
+
+    with socket.socket() as probe:  # a port nothing listens on: bound, then released
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    argv = ["run", "findmilk", "--run-dir", str(tmp_path / "run"), "--no-progress"]
+    argv += ["--ray", f"127.0.0.1:{port}", "--set", 'feedback.source="rules"']
+    started = time.monotonic()
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert f"--ray 127.0.0.1:{port}: no Ray head answers there" in err, err
+    assert f"ray start --head --port={port}" in err
+    assert time.monotonic() - started < 60
+    assert not list((tmp_path / "run").glob("*/model_last.pt"))  # nothing trained
+    assert main([*argv[:-4], "--ray", "nohost", "--set", 'feedback.source="rules"']) == 1
+    assert "expected HOST:PORT of a Ray head" in capsys.readouterr().err
