@@ -3,7 +3,7 @@
 from pathlib import Path
 
 from amuled_ma.clusters import ClusterRegistry
-from amuled_ma.learn.feedback import panel_of
+from amuled_ma.deliberation.feedback import panel_of
 from amuled_ma.scenario import load_scenario
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"

@@ -391,7 +391,7 @@ def import_authors(
 
 def _write_run_config(run_dir: Path, scenario: Any, checkout: Path) -> None:
     """The run's ``config.json`` (what ``amuled evaluate`` reads), with the base scenario."""
-    from amuled_ma.learn.run_folder import write_config
+    from amuled_ma.experiments.run_folder import write_config
 
     write_config(
         run_dir,

@@ -314,8 +314,8 @@ def write_variant(
     """
     import json
 
+    from amuled_ma.experiments.run_folder import write_config
     from amuled_ma.learn.checkpoints import LAST
-    from amuled_ma.learn.run_folder import write_config
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -22,8 +22,8 @@ specification are one shared object.
 This module also reads and checks the ``[feedback.agents.<name>]`` tables
 (:func:`check_agent_tables`, called by :mod:`amuled_ma.scenario` on load) and turns a
 scenario into the specification of each member's source (:func:`panel_specs`,
-:func:`build_members`, used by :func:`amuled_ma.learn.feedback.make_source`; :func:`preflight`
-checks them all without a store). See
+:func:`build_members`, used by :func:`amuled_ma.deliberation.feedback.make_source`;
+:func:`preflight` checks them all without a store). See
 ``docs/beliefs.md``, section "Per-agent sources".
 """
 
@@ -777,7 +777,7 @@ def scenario_ollama_options(scenario: Any) -> dict[str, Any]:
 def preflight(scenario: Any, agents: Sequence[Any]) -> None:
     """Build and check the source of every agent of a panel, then close them.
 
-    The check :func:`amuled_ma.learn.feedback.make_source` runs, without a store: a
+    The check :func:`amuled_ma.deliberation.feedback.make_source` runs, without a store: a
     planner can call it for every fine-tune before the first job trains.
 
     Args:

@@ -6,7 +6,7 @@ them over a network file system, where SQLite's locks are not safe) must not ope
 SQLite file itself. :func:`open_store` is how the code opens a store: the file, unless
 this process was told, with :func:`serve_store_from`, to reach the store at that path
 through a service (for a sweep on Ray: an actor on the driver's machine,
-:mod:`amuled_ma.learn.ray_store`).
+:mod:`amuled_ma.experiments.ray_store`).
 
 A service is any object with the two methods :class:`~amuled_ma.beliefs.cached.CachedSource`
 uses, ``lookup(keys)`` and ``put_many(items)``, plus ``close()``.

@@ -35,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Run the benchmark and print the figures; returns 0 (a benchmark, not a test)."""
-    from amuled_ma.learn.experiments import train_variant
+    from amuled_ma.experiments.plans import train_variant
     from amuled_ma.scenario import load_scenario
 
     rows = []

@@ -98,7 +98,7 @@ def time_pipeline(
 
 def main(args: argparse.Namespace) -> int:
     """Time the pipeline for every ``--jobs`` value and print the table."""
-    from amuled_ma.learn.jobs import available_cpus
+    from amuled_ma.experiments.jobs import available_cpus
 
     values: list[int | str] = [*_jobs_values(args.jobs), *(["ray"] if args.ray else [])]
     tasks = [t.strip() for t in args.tasks.split(",") if t.strip()]

@@ -122,7 +122,7 @@ def bench_driving(out: Path, quick: bool) -> dict[str, Any]:
 
 def bench_finetune(out: Path, base_ckpt: Path | None, quick: bool) -> dict[str, Any]:
     """Time a fine-tune of the paper's length with replayed AMULED feedback."""
-    from amuled_ma.learn.experiments import train_variant
+    from amuled_ma.experiments.plans import train_variant
     from amuled_ma.learn.trainer import LAST, Trainer
     from amuled_ma.scenario import load_scenario
 

@@ -146,7 +146,7 @@ def load(args: argparse.Namespace) -> Any:
             raise ScenarioError(f"--set {text!r}: unknown section [{section}]")
         scenario = scenario.replace(section, **{name: value})
     if scenario.feedback.clusters_dirs:
-        from amuled_ma.learn.feedback import cluster_registry
+        from amuled_ma.deliberation.feedback import cluster_registry
 
         for o in cluster_registry(scenario).overridden:
             say(f"note: {o.new_path} overrides the cluster {o.name!r} of {o.old_path}")
@@ -155,7 +155,7 @@ def load(args: argparse.Namespace) -> Any:
 
 def run_dir_of(args: argparse.Namespace, scenario: Any) -> Path:
     """Return the run directory: ``--run-dir`` or the scenario's default."""
-    from amuled_ma.learn.run_folder import default_run_dir
+    from amuled_ma.experiments.run_folder import default_run_dir
 
     return Path(args.run_dir) if args.run_dir else default_run_dir(scenario)
 
@@ -219,8 +219,8 @@ def say(message: str) -> None:
 
 def describe(job: Any) -> str:
     """One line about a finished training job (a seed replica's seed in brackets)."""
-    from amuled_ma.learn.feedback import distill_line, summary_lines
-    from amuled_ma.learn.run_folder import split_replica
+    from amuled_ma.deliberation.feedback import distill_line, summary_lines
+    from amuled_ma.experiments.run_folder import split_replica
 
     seed = split_replica(Path(job.out_dir).name)[1]
     name = job.variant if seed is None else f"{job.variant} [seed {seed}]"
@@ -266,13 +266,13 @@ def train_job(
             (``base``, ``shaped``, ``finetune:<feedback>``).
         args: The parsed command line (``resume``, ``force``, ``no_progress``, ``seed``).
         hint: The command that resumes this job, printed when it stops early.
-        **kwargs: More keywords of :func:`~amuled_ma.learn.experiments.train_variant`.
+        **kwargs: More keywords of :func:`~amuled_ma.experiments.plans.train_variant`.
 
     Returns:
-        The job's :class:`~amuled_ma.learn.run_folder.JobResult`.
+        The job's :class:`~amuled_ma.experiments.run_folder.JobResult`.
 
     """
-    from amuled_ma.learn.experiments import train_variant
+    from amuled_ma.experiments.plans import train_variant
 
     job = train_variant(
         scenario,

@@ -267,8 +267,8 @@ class PrefixWarmup:
         from amuled_ma.beliefs.ollama import OllamaSource
         from amuled_ma.clusters import build_messages
         from amuled_ma.commands._experiment import parse_override
+        from amuled_ma.deliberation.feedback import cluster_registry, panel_of
         from amuled_ma.errors import AmuledError
-        from amuled_ma.learn.feedback import cluster_registry, panel_of
         from amuled_ma.scenario import load_scenario
 
         try:  # the scenario as the run will see it (the run reports any error itself)

@@ -113,7 +113,7 @@ def add_parallel_args(parser: argparse.ArgumentParser) -> None:
 
 def _train_all(jobs: list, args: argparse.Namespace, hint: str) -> None:
     """Train a job graph with the command line's ``--jobs`` and print one line per job."""
-    from amuled_ma.learn.jobs import RayTarget, resolve_workers, run_jobs
+    from amuled_ma.experiments.jobs import RayTarget, resolve_workers, run_jobs
 
     if args.ray_resource and args.ray is None:
         raise AmuledError("--ray-resource needs --ray: it names a resource of a Ray cluster")
@@ -138,8 +138,8 @@ def run_command(args: argparse.Namespace) -> int:
     """Run ``amuled run``."""
     from amuled_ma.evaluate.evaluator import evaluate_run
     from amuled_ma.evaluate.report import write_report
-    from amuled_ma.learn.experiments import MAIN_VARIANTS, plan_run, training_seeds
-    from amuled_ma.learn.run_folder import write_config
+    from amuled_ma.experiments.plans import MAIN_VARIANTS, plan_run, training_seeds
+    from amuled_ma.experiments.run_folder import write_config
 
     start = time.perf_counter()
     scenario = common.load(args)
@@ -194,8 +194,8 @@ def ablate_command(args: argparse.Namespace) -> int:
     """Run ``amuled ablate``."""
     from amuled_ma.evaluate.evaluator import evaluate_run
     from amuled_ma.evaluate.report import write_report
-    from amuled_ma.learn.experiments import ablation_variants, plan_ablation, training_seeds
-    from amuled_ma.learn.run_folder import write_config
+    from amuled_ma.experiments.plans import ablation_variants, plan_ablation, training_seeds
+    from amuled_ma.experiments.run_folder import write_config
 
     start = time.perf_counter()
     scenario = common.load(args)

@@ -65,7 +65,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def train_command(args: argparse.Namespace) -> int:
     """Run ``amuled train``."""
-    from amuled_ma.learn.run_folder import write_config
+    from amuled_ma.experiments.run_folder import write_config
 
     scenario = common.load(args)
     run_dir = common.run_dir_of(args, scenario)

@@ -3,7 +3,7 @@
 :class:`DistilledSource` wraps the panel's belief source (the
 :class:`~amuled_ma.beliefs.cached.CachedSource` or
 :class:`~amuled_ma.beliefs.routing.RoutedSource` that
-:func:`amuled_ma.learn.feedback.make_source` builds) and is itself a
+:func:`amuled_ma.deliberation.feedback.make_source` builds) and is itself a
 :class:`~amuled_ma.beliefs.types.BeliefSource`. The moral panel hands it one batch of
 requests, one per (state, member). For a batch it
 

@@ -5,7 +5,7 @@ The viewer (:mod:`amuled_ma.evaluate.viewer`, ``amuled view``) and ``amuled expl
 variant (the evaluation seed ``[evaluation].seed + K``, as
 :func:`~amuled_ma.evaluate.evaluator.run_episodes` seeds copy ``K``), record what the
 policy did and what the base policy would have done, then ask the variant's feedback, built
-as training builds it (:func:`amuled_ma.learn.feedback.make_feedback`), about every state.
+as training builds it (:func:`amuled_ma.deliberation.feedback.make_feedback`), about every state.
 
 - :func:`replay_episode` plays the episode on one task copy and records, per step, the
   observation, the prompt variables, the policy's probabilities and action, the base
@@ -76,7 +76,7 @@ def feedback_variant(variant_dir: Path) -> str | None:
         except ScenarioError:
             return None
     if Path(variant_dir).name.startswith("finetune-"):
-        from amuled_ma.learn.run_folder import split_replica
+        from amuled_ma.experiments.run_folder import split_replica
 
         name = split_replica(Path(variant_dir).name)[0].split("-", 1)[1]
         for candidate in (name, name.replace("-", ":", 1)):  # finetune-cluster-care
@@ -113,8 +113,8 @@ def base_checkpoint_of(run_dir: Path, variant_dir: Path) -> Path | None:
     folder name inside the run), then the run's ``base`` folder (a seed replica
     ``<name>.seed<k>`` looks for ``base.seed<k>`` first). None when there is none.
     """
+    from amuled_ma.experiments.run_folder import split_replica
     from amuled_ma.learn.checkpoints import checkpoint_infos
-    from amuled_ma.learn.run_folder import split_replica
 
     run_dir, variant_dir = Path(run_dir), Path(variant_dir)
     candidates: list[Path] = []
@@ -468,7 +468,7 @@ def open_feedback(
 ) -> tuple[Any, ReadOnlyStore]:
     """Build a variant's feedback as training does, with the run's store read-only.
 
-    :func:`~amuled_ma.learn.feedback.make_feedback` builds it (same agents, fusion rule,
+    :func:`~amuled_ma.deliberation.feedback.make_feedback` builds it (same agents, fusion rule,
     sources and store keys) in a scratch folder; every belief store behind it is then
     replaced by one :class:`ReadOnlyStore` over the run's file, which is never opened for
     writing (an Ollama source still asks its server about states the run never asked).
@@ -484,7 +484,7 @@ def open_feedback(
     """
     import tempfile
 
-    from amuled_ma.learn.feedback import make_feedback
+    from amuled_ma.deliberation.feedback import make_feedback
     from amuled_ma.learn.variants import parse_feedback
 
     store = ReadOnlyStore(store_path_of(scenario, run_dir))
@@ -689,7 +689,7 @@ def _raws_from_store(
 
 def describe_feedback(feedback: Any) -> str:
     """Where a feedback's beliefs come from, in words (for headers)."""
-    from amuled_ma.learn.feedback import describe_identity
+    from amuled_ma.deliberation.feedback import describe_identity
 
     source = getattr(feedback, "source", None)
     if source is not None:

@@ -23,9 +23,9 @@ import torch
 from amuled_ma.beliefs.types import FUSED_STATUSES
 from amuled_ma.errors import CheckpointError, ScenarioError
 from amuled_ma.evaluate.stats import mean_ci
+from amuled_ma.experiments.run_folder import split_replica
 from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.policies import action_log_probs, load_policy
-from amuled_ma.learn.run_folder import split_replica
 from amuled_ma.learn.variants import Variant
 from amuled_ma.scenario import Scenario
 from amuled_ma.tasks import make_task

@@ -32,7 +32,7 @@ import numpy as np
 from amuled_ma.beliefs.types import FUSED_STATUSES
 from amuled_ma.evaluate.evaluator import PAPER_METRICS, metric_order
 from amuled_ma.evaluate.stats import t_quantile
-from amuled_ma.learn.run_folder import split_replica
+from amuled_ma.experiments.run_folder import split_replica
 
 #: Curve keys plotted per task (the first that exists in a curve is used).
 _CURVE_KEYS = {
@@ -1021,7 +1021,7 @@ def agents_table(results: dict[str, Any]) -> str:
 def servers_table(results: dict[str, Any]) -> str:
     """Markdown table: per fine-tune and LLM server, what the server was asked and did.
 
-    From ``feedback["llm_servers"]`` (:func:`amuled_ma.learn.feedback.llm_server_stats`):
+    From ``feedback["llm_servers"]`` (:func:`amuled_ma.deliberation.feedback.llm_server_stats`):
     requests sent (every attempt: retries and probes included), answered, failed with the
     kinds of failure, requests retried on another host after failing there, times the
     server was taken out of the pool and put back, and the mean and 95th-percentile

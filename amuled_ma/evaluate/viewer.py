@@ -132,7 +132,7 @@ def choose_variants(run_dir: Path, names: Sequence[str] | None = None) -> list[P
 
     """
     from amuled_ma.evaluate.evaluator import variant_dirs
-    from amuled_ma.learn.run_folder import split_replica
+    from amuled_ma.experiments.run_folder import split_replica
 
     run_dir = Path(run_dir)
     found = variant_dirs(run_dir)

@@ -3,6 +3,5 @@
 - :mod:`~amuled_ma.learn.distribution`: the categorical distribution plugged into rsl-rl.
 - :mod:`~amuled_ma.learn.vecenv`: the bridge from batched tasks to rsl-rl's ``VecEnv``.
 - :mod:`~amuled_ma.learn.config`: rsl-rl's config dict built from a scenario.
-- :mod:`~amuled_ma.learn.feedback`: feedback variants (amuled, human, cluster, moral, agg).
 - :mod:`~amuled_ma.learn.trainer`: the training loops and checkpoints.
 """

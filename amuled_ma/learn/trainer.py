@@ -47,12 +47,12 @@ os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
 from rsl_rl.runners import OnPolicyRunner
 
+from amuled_ma.deliberation.feedback import Feedback
 from amuled_ma.deliberation.mdp import BatchedDeliberation
 from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError, Terminated
 from amuled_ma.learn.anchored_ppo import AnchoredPPO
 from amuled_ma.learn.checkpoints import LAST, TRAINER_KEYS, read_checkpoint
 from amuled_ma.learn.config import planned_iterations, rsl_rl_config
-from amuled_ma.learn.feedback import Feedback
 from amuled_ma.learn.variants import Variant
 from amuled_ma.learn.vecenv import DeliberationVecEnv
 from amuled_ma.scenario import Scenario

@@ -14,8 +14,8 @@ from amuled_ma.authors.policies import (
     write_variant,
 )
 from amuled_ma.errors import CheckpointError
+from amuled_ma.experiments.plans import train_variant
 from amuled_ma.learn.checkpoints import LAST, TRAINER_KEYS, read_checkpoint
-from amuled_ma.learn.experiments import train_variant
 from amuled_ma.learn.policies import action_log_probs, load_policy
 from amuled_ma.scenario import load_scenario
 

@@ -11,11 +11,11 @@ import torch
 
 from amuled_ma.beliefs import BeliefRequest, make_source
 from amuled_ma.beliefs.routing import RoutedSource
+from amuled_ma.deliberation.feedback import make_feedback
+from amuled_ma.deliberation.feedback import make_source as feedback_source
 from amuled_ma.errors import ScenarioError
+from amuled_ma.experiments.run_folder import training_config
 from amuled_ma.fusion.reference import fuse_beliefs
-from amuled_ma.learn.feedback import make_feedback
-from amuled_ma.learn.feedback import make_source as feedback_source
-from amuled_ma.learn.run_folder import training_config
 from amuled_ma.scenario import load_scenario, scenario_from_dict
 
 MILK = ("up", "down", "left", "right")

@@ -295,9 +295,9 @@ def test_agent_tables_take_hosts(tmp_path) -> None:
 # -- reporting ---------------------------------------------------------------------------
 def test_figures_reach_the_summary_results_and_report(tmp_path) -> None:
     from amuled_ma.beliefs.routing import RoutedSource
+    from amuled_ma.deliberation.feedback import llm_server_stats, summary_lines
     from amuled_ma.evaluate.evaluator import merge_feedback
     from amuled_ma.evaluate.report import servers_table
-    from amuled_ma.learn.feedback import llm_server_stats, summary_lines
 
     servers = {A: Fake(), B: Fake()}
     source = pool_source(servers, concurrency=1)

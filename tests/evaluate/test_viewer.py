@@ -27,9 +27,9 @@ from tiny_cli import RULES, TINY
 
 from amuled_ma.cli import main
 from amuled_ma.commands._experiment import scenario_of_run
+from amuled_ma.deliberation.feedback import make_feedback
 from amuled_ma.evaluate import episode_trace as trace
 from amuled_ma.evaluate import viewer
-from amuled_ma.learn.feedback import make_feedback
 from amuled_ma.learn.policies import action_log_probs, load_policy
 from amuled_ma.tasks import make_task
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
+from amuled_ma.deliberation.feedback import FusedReplayFeedback, PanelFeedback, make_feedback
 from amuled_ma.errors import ScenarioError
-from amuled_ma.learn.experiments import train_variant
-from amuled_ma.learn.feedback import FusedReplayFeedback, PanelFeedback, make_feedback
+from amuled_ma.experiments.plans import train_variant
 from amuled_ma.scenario import load_scenario
 
 STRAIGHT = [-1.0] * 6 + [0.0, 0.0, 1.0, 0.0, 0.0]  # empty road, lane 2

@@ -13,9 +13,14 @@ from pathlib import Path
 import pytest
 
 from amuled_ma.errors import AmuledError
-from amuled_ma.learn.experiments import plan_ablation, plan_run, training_seeds
-from amuled_ma.learn.jobs import check_order, resolve_workers, run_jobs
-from amuled_ma.learn.run_folder import TrainJob, checkpoint_state, replica_folder, split_replica
+from amuled_ma.experiments.jobs import check_order, resolve_workers, run_jobs
+from amuled_ma.experiments.plans import plan_ablation, plan_run, training_seeds
+from amuled_ma.experiments.run_folder import (
+    TrainJob,
+    checkpoint_state,
+    replica_folder,
+    split_replica,
+)
 from amuled_ma.scenario import load_scenario
 
 TINY = {

@@ -11,9 +11,9 @@ import torch
 
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.cli import main
+from amuled_ma.deliberation.feedback import PanelFeedback
 from amuled_ma.deliberation.panel import MoralPanel
 from amuled_ma.errors import AbstentionError
-from amuled_ma.learn.feedback import PanelFeedback
 
 ACTIONS = ("up", "down", "left", "right")
 
@@ -171,7 +171,7 @@ def test_named_variant_with_a_user_cluster_sits_beside_amuled(tmp_path, capsys):
 
 
 def test_a_cluster_file_names_its_default_source_and_the_scenario_overrides_it(tmp_path):
-    from amuled_ma.learn.feedback import make_feedback
+    from amuled_ma.deliberation.feedback import make_feedback
     from amuled_ma.scenario import load_scenario
 
     clusters = tmp_path / "clusters"

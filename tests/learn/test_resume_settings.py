@@ -7,9 +7,9 @@ import json
 import pytest
 
 from amuled_ma.errors import AmuledError
-from amuled_ma.learn.experiments import plan_run, train_variant
-from amuled_ma.learn.jobs import run_jobs
-from amuled_ma.learn.run_folder import checkpoint_state, training_config
+from amuled_ma.experiments.jobs import run_jobs
+from amuled_ma.experiments.plans import plan_run, train_variant
+from amuled_ma.experiments.run_folder import checkpoint_state, training_config
 from amuled_ma.scenario import load_scenario
 
 TINY = {
@@ -104,7 +104,7 @@ def test_resume_refuses_other_settings_skips_same_and_lengthens(tmp_path):
 
 
 def test_unreadable_saved_settings_name_the_file(tmp_path):
-    from amuled_ma.learn.run_folder import finished_with
+    from amuled_ma.experiments.run_folder import finished_with
 
     run_dir = tmp_path / "run"
     sc = tiny()

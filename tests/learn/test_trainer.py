@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
+from amuled_ma.deliberation.feedback import CallableFeedback
 from amuled_ma.errors import CheckpointError
 from amuled_ma.learn.checkpoints import LAST
-from amuled_ma.learn.feedback import CallableFeedback
 from amuled_ma.learn.policies import action_log_probs, load_policy
 from amuled_ma.learn.trainer import Trainer
 

@@ -9,7 +9,7 @@ import tiny_cli
 
 from amuled_ma.cli import main
 from amuled_ma.errors import BackendUnavailable, ScenarioError
-from amuled_ma.learn.run_folder import checkpoint_state
+from amuled_ma.experiments.run_folder import checkpoint_state
 
 # the shared tiny run, with no periodic checkpoint and rule-based beliefs
 TINY = [*tiny_cli.TINY, "--set", "finetune.save_interval=100", *tiny_cli.RULES]
@@ -48,7 +48,7 @@ def test_backend_down_mid_finetune_writes_checkpoint_and_resume_command(
 
 
 def test_unknown_ollama_option_is_named() -> None:
-    from amuled_ma.learn.feedback import make_source
+    from amuled_ma.deliberation.feedback import make_source
     from amuled_ma.scenario import load_scenario
 
     scenario = load_scenario("findmilk").replace(

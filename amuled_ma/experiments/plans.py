@@ -1,11 +1,11 @@
 """Experiments: the paper's pipeline and ablations, as resumable jobs over a run directory.
 
 :func:`plan_run` and :func:`plan_ablation` list the jobs of ``amuled run`` and ``amuled
-ablate`` (:class:`~amuled_ma.learn.run_folder.TrainJob`: a fine-tune needs its seed's
+ablate`` (:class:`~amuled_ma.experiments.run_folder.TrainJob`: a fine-tune needs its seed's
 base), :func:`check_inputs` checks what a job needs before anything trains, and
 :func:`train_variant` trains one variant into its folder. The layout of a run directory,
 and whether a variant folder is new, resumed or skipped, are in
-:mod:`amuled_ma.learn.run_folder`; :mod:`amuled_ma.learn.jobs` runs the planned jobs.
+:mod:`amuled_ma.experiments.run_folder`; :mod:`amuled_ma.experiments.jobs` runs the planned jobs.
 """
 
 from __future__ import annotations
@@ -14,14 +14,14 @@ from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import Any
 
-from amuled_ma.errors import AmuledError, ScenarioError
-from amuled_ma.learn.feedback import (
+from amuled_ma.deliberation.feedback import (
     check_distillable,
     make_feedback,
     panel_of,
     with_cluster_sources,
 )
-from amuled_ma.learn.run_folder import (
+from amuled_ma.errors import AmuledError, ScenarioError
+from amuled_ma.experiments.run_folder import (
     JobResult,
     TrainJob,
     base_checkpoint,

@@ -21,8 +21,8 @@ This module names the replica folders (:func:`replica_folder`,
 :func:`split_replica`), records a job and its result (:class:`TrainJob`,
 :class:`JobResult`), and decides what a job does with its folder: start, resume or skip
 (:func:`prepare_variant`, :func:`training_config`, :func:`finished_with`,
-:func:`base_checkpoint`). The planner (:mod:`amuled_ma.learn.experiments`) and the job
-runner (:mod:`amuled_ma.learn.jobs`) both build on it.
+:func:`base_checkpoint`). The planner (:mod:`amuled_ma.experiments.plans`) and the job
+runner (:mod:`amuled_ma.experiments.jobs`) both build on it.
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ def split_replica(folder: str) -> tuple[str, int | None]:
 # -- records ------------------------------------------------------------------------
 @dataclass(frozen=True)
 class TrainJob:
-    """One variant to train, as :func:`~amuled_ma.learn.experiments.train_variant` takes it.
+    """One variant to train, as :func:`~amuled_ma.experiments.plans.train_variant` takes it.
 
     Attributes:
         name: Unique name of the job in its graph (shown in messages).

@@ -7,7 +7,7 @@ then trains them:
 
 - one worker and no ``--ray``: one after the other in this process, each with its own
   progress bar (debuggable, no start-up cost);
-- otherwise on Ray (:mod:`amuled_ma.learn.ray_jobs`): a local Ray with one CPU per worker,
+- otherwise on Ray (:mod:`amuled_ma.experiments.ray_jobs`): a local Ray with one CPU per worker,
   or the cluster at ``--ray ADDRESS``; one progress bar counts the iterations of all jobs.
 
 Every job is single-threaded (``torch.set_num_threads(1)``), so ``workers`` = CPU cores
@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from amuled_ma.errors import AmuledError
+from amuled_ma.experiments.run_folder import JobResult, TrainJob, prepare_variant, training_config
 from amuled_ma.learn.config import planned_iterations
-from amuled_ma.learn.run_folder import JobResult, TrainJob, prepare_variant, training_config
 from amuled_ma.scenario import Scenario
 
 
@@ -48,7 +48,7 @@ class JobsOutcome:
     """What :func:`run_jobs` did.
 
     Attributes:
-        results: One :class:`~amuled_ma.learn.run_folder.JobResult` per job, in job order.
+        results: One :class:`~amuled_ma.experiments.run_folder.JobResult` per job, in job order.
         wall_s: Wall-clock seconds of the whole graph.
         workers: Worker processes used (1: this process).
 
@@ -114,7 +114,7 @@ def _train(
     hint: str,
     on_iteration: Callable[[Any, int], None] | None = None,
 ) -> JobResult:
-    from amuled_ma.learn.experiments import train_variant  # here: it imports torch
+    from amuled_ma.experiments.plans import train_variant  # here: it imports torch
 
     return train_variant(
         job.scenario,
@@ -135,7 +135,7 @@ def _train(
 # ------------------------------------------------------------------ parent side
 def _preflight(jobs: Sequence[TrainJob], hint: str) -> dict[str, str]:
     """Decide new/resume/skip for every job before anything runs (errors come first)."""
-    from amuled_ma.learn.experiments import check_inputs  # here: it imports torch
+    from amuled_ma.experiments.plans import check_inputs  # here: it imports torch
 
     actions, problems = {}, []
     planned = {j.out_dir.name for j in jobs}
@@ -179,7 +179,7 @@ def run_jobs(
             local Ray with that many CPUs.
         progress: Show progress bars.
         hint: The command that re-runs the graph (its ``--resume`` form is printed on stops).
-        describe: Turns each finished :class:`~amuled_ma.learn.run_folder.JobResult`
+        describe: Turns each finished :class:`~amuled_ma.experiments.run_folder.JobResult`
             into the line printed about it.
         ray: Train on Ray even with one worker, at this cluster (``--ray [ADDRESS]``).
 
@@ -207,7 +207,7 @@ def run_jobs(
     for result in skipped.values():
         print(describe(result), flush=True)
     todo = [j for j in jobs if j.name not in skipped]
-    from amuled_ma.learn.ray_jobs import run_on_ray  # here: importing Ray takes a second
+    from amuled_ma.experiments.ray_jobs import run_on_ray  # here: importing Ray takes a second
 
     target = ray or RayTarget()
     results_by_name = {

@@ -45,12 +45,12 @@ from typing import Any
 import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
+from amuled_ma.deliberation.feedback import store_path
 from amuled_ma.errors import AmuledError
+from amuled_ma.experiments.ray_store import start_store_actors
+from amuled_ma.experiments.run_folder import JobResult, TrainJob, checkpoint_state
 from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.config import planned_iterations
-from amuled_ma.learn.feedback import store_path
-from amuled_ma.learn.ray_store import start_store_actors
-from amuled_ma.learn.run_folder import JobResult, TrainJob, checkpoint_state
 
 #: In a job folder: the sweep whose attempt started it (a retry of the same sweep resumes).
 SWEEP_MARK = ".amuled-sweep"
@@ -224,7 +224,7 @@ def train_job(
             needs: the job's own partial folder, a base trained before this sweep; None
             when files are not shipped (a local Ray: one machine).
         board: The sweep's :class:`SweepBoard` (iteration counts).
-        stores: Belief store path -> its :class:`~amuled_ma.learn.ray_store.BeliefStoreActor`
+        stores: Belief store path -> its :class:`~amuled_ma.experiments.ray_store.BeliefStoreActor`
             on the driver's node; a job on another node opens these instead of the files.
         driver_node: The driver's node id.
         *needed: ``(result, node, shared, files)`` of each job this one needs.
@@ -236,7 +236,7 @@ def train_job(
     """
     import torch
 
-    from amuled_ma.learn.experiments import train_variant  # here: it imports torch
+    from amuled_ma.experiments.plans import train_variant  # here: it imports torch
 
     if threading.current_thread() is threading.main_thread():
         # ray.cancel interrupts a task as a SIGINT would: Python's handler must be set
@@ -244,7 +244,7 @@ def train_job(
     if _stopping(job, sweep):  # queued before a Ctrl-C: do not begin
         raise KeyboardInterrupt
     from amuled_ma.beliefs.store_service import serve_store_from
-    from amuled_ma.learn.ray_store import RemoteStore
+    from amuled_ma.experiments.ray_store import RemoteStore
 
     os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
     torch.set_num_threads(1)
