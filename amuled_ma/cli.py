@@ -82,6 +82,45 @@ def _raise_terminated(signum: int, _frame: object) -> None:
     raise Terminated(signum)
 
 
+#: What a command may raise that the command line reports as one line and an exit status.
+FAILURES = (KeyboardInterrupt, AmuledError, OSError, UnicodeDecodeError)
+
+
+def report_failure(error: BaseException, *, debug: bool = False) -> int:
+    """Print the one line of a failed command on stderr and return its exit status.
+
+    Call it inside the ``except`` block (``debug`` prints the traceback being handled).
+
+    Args:
+        error: One of :data:`FAILURES` (a :class:`~amuled_ma.errors.Terminated` is SIGTERM).
+        debug: Print the Python traceback before the line (not for Ctrl-C or SIGTERM).
+
+    Returns:
+        143 for SIGTERM, 130 for Ctrl-C, 1 for any other failure.
+    """
+    if isinstance(error, Terminated):
+        print("amuled: terminated (SIGTERM)", file=sys.stderr)
+        return EXIT_TERMINATED
+    if isinstance(error, KeyboardInterrupt):
+        print("amuled: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if debug:
+        traceback.print_exc()
+    if isinstance(error, AmuledError):
+        text = str(error)
+    elif isinstance(error, UnicodeDecodeError):
+        text = (
+            f"a file is not UTF-8 text ({error.reason} at byte {error.start}); save it as "
+            "UTF-8 (run with --debug to see which read failed)"
+        )
+    elif isinstance(error, OSError):
+        text = describe_os_error(error)
+    else:
+        raise TypeError(f"report_failure: not a command failure: {error!r}") from error
+    print(f"amuled: error: {text}", file=sys.stderr)
+    return 1
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``amuled`` command line and return its exit code.
 
@@ -105,26 +144,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         return int(args.handler(args) or 0)
-    except Terminated:
-        print("amuled: terminated (SIGTERM)", file=sys.stderr)
-        return EXIT_TERMINATED
-    except KeyboardInterrupt:
-        print("amuled: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except (AmuledError, OSError, UnicodeDecodeError) as error:
-        if args.debug:
-            traceback.print_exc()
-        if isinstance(error, AmuledError):
-            text = str(error)
-        elif isinstance(error, UnicodeDecodeError):
-            text = (
-                f"a file is not UTF-8 text ({error.reason} at byte {error.start}); save it as "
-                "UTF-8 (run with --debug to see which read failed)"
-            )
-        else:
-            text = describe_os_error(error)
-        print(f"amuled: error: {text}", file=sys.stderr)
-        return 1
+    except FAILURES as error:
+        return report_failure(error, debug=args.debug)
     finally:
         signal.signal(signal.SIGTERM, previous)
         sys.stdout.flush()

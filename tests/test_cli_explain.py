@@ -11,8 +11,8 @@ import torch
 from amuled_ma.beliefs.replay import ReplaySource
 from amuled_ma.beliefs.types import BeliefRequest
 from amuled_ma.cli import main
-from amuled_ma.commands._experiment import scenario_of_run
-from amuled_ma.deliberation.feedback import make_feedback
+from amuled_ma.deliberation.build import make_feedback
+from amuled_ma.experiments.run_folder import scenario_of_run
 from amuled_ma.fusion import bjs_divergence, fuse
 from amuled_ma.learn.policies import action_log_probs, load_policy
 from amuled_ma.tasks import make_task

@@ -3,8 +3,8 @@
 from pathlib import Path
 
 from amuled_ma.clusters import ClusterRegistry
-from amuled_ma.deliberation.feedback import panel_of
-from amuled_ma.scenario import load_scenario
+from amuled_ma.deliberation.plan import panel_of
+from amuled_ma.scenario import TerminalSpec, load_scenario
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
@@ -20,6 +20,6 @@ def test_mixed_panel_scenario_gives_each_agent_its_source():
     scenario = load_scenario(EXAMPLES / "mixed_panel.toml")
     agents, rule = panel_of("amuled", scenario)
     assert [a.name for a in agents][-1] == "animal_welfare" and rule == "bjs-dst"
-    assert scenario.feedback.agents["animal_welfare"] == {"source": "terminal"}
-    assert scenario.feedback.agents["social_justice"]["source"] == "ollama"
+    assert scenario.feedback.agents["animal_welfare"] == TerminalSpec(source="terminal")
+    assert scenario.feedback.agents["social_justice"].source == "ollama"
     assert scenario.feedback.source == "replay"

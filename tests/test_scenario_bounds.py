@@ -23,6 +23,7 @@ from amuled_ma.scenario import (
     resolve_scenario_path,
     scenario_from_dict,
 )
+from amuled_ma.scenario import memory as scenario_memory
 
 SECTIONS = {
     "task": scenario_mod.TaskConfig,
@@ -197,7 +198,7 @@ def test_memory_check_refuses_1e8_envs_at_once(tmp_path, section):
 
 def test_memory_check_uses_the_stated_fraction_of_this_machine(monkeypatch):
     gib = 2**30
-    monkeypatch.setattr(scenario_mod, "physical_memory_bytes", lambda: 4 * gib)
+    monkeypatch.setattr(scenario_memory, "physical_memory_bytes", lambda: 4 * gib)
     # 50% of 4 GiB = 2 GiB = 524,288 transitions of 4 KiB
     limit = int(scenario_mod.MEMORY_FRACTION * 4 * gib) // scenario_mod.BYTES_PER_TRANSITION
     assert limit == 524_288
@@ -213,7 +214,7 @@ def test_memory_read_from_sysconf_with_a_fallback(monkeypatch):
     def no_sysconf(name):
         raise ValueError(name)
 
-    monkeypatch.setattr(scenario_mod.os, "sysconf", no_sysconf)
+    monkeypatch.setattr(scenario_memory.os, "sysconf", no_sysconf)
     assert scenario_mod.physical_memory_bytes() == scenario_mod.FALLBACK_MEMORY_BYTES
 
 

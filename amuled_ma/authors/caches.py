@@ -41,13 +41,12 @@ import numpy as np
 
 from amuled_ma.authors.unpickle import load_pickle
 from amuled_ma.errors import AuthorsImportError
+from amuled_ma.scenario import MORAL_AGENT  # our field (and exchange agent) for that answer
 
 #: The authors' cluster names, in their order (the recordings' ``clusters``).
 AUTHORS_CLUSTERS = ("consequentialist", "deontologist", "virtue", "care", "social justice")
 #: The authors' key of the unprompted "behave as a moral agent" answer.
 MORAL_KEY = "moral"
-#: Our field (and exchange agent) for that answer.
-MORAL_AGENT = "moral_agent"
 #: Keys a cache entry may hold besides the clusters and :data:`MORAL_KEY`.
 ENTRY_KEYS = ("rewards", "error", "response")
 #: Our task name -> the name written in a recording's ``task``.

@@ -20,7 +20,6 @@ recording the same source SHA-256) and is otherwise refused unless ``force``.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -280,14 +279,16 @@ def _policy_outputs(
 
 def _run_config_status(run_dir: Path, force: bool) -> str:
     """``new``, ``unchanged`` (an import wrote it), ``replaced`` or ``conflict``."""
-    path = run_dir / "config.json"
-    if not path.exists():
+    from amuled_ma.errors import AmuledError
+    from amuled_ma.experiments.run_folder import CONFIG, read_record
+
+    if not (run_dir / CONFIG).exists():
         return "new"
     try:
-        saved = json.loads(path.read_text())
-    except (OSError, ValueError):
+        saved = read_record(run_dir, checkpoint=False)
+    except AmuledError:
         saved = None
-    if isinstance(saved, dict) and "authors" in saved:
+    if saved is not None and saved.authors is not None:
         return "unchanged"
     return "replaced" if force else "conflict"
 
@@ -396,5 +397,8 @@ def _write_run_config(run_dir: Path, scenario: Any, checkout: Path) -> None:
     write_config(
         run_dir,
         scenario,
-        {"authors": {"repository": AUTHORS_REPO, "checkout": str(checkout.resolve())}},
+        {
+            "authors": {"repository": AUTHORS_REPO, "checkout": str(checkout.resolve())},
+            "seeds": [AUTHORS_SEED],
+        },
     )

@@ -30,8 +30,8 @@ from typing import Any
 import torch
 
 from amuled_ma.errors import CheckpointError
-from amuled_ma.learn.variants import Variant
 from amuled_ma.torch_files import load_weights_only
+from amuled_ma.variants import Variant
 
 #: Layer indices of CleanRL's ``nn.Sequential`` (Linear, Tanh, Linear, Tanh, Linear).
 CLEANRL_LINEARS = (0, 2, 4)
@@ -301,6 +301,9 @@ def write_variant(
 ) -> Path:
     """Write a completed variant folder: ``model_last.pt``, ``config.json``, ``train_cfg.json``.
 
+    Its record (``config.json``) says what the policy is: imported (the authors' file, its
+    SHA-256 and checkpoint iteration), its iterations, complete.
+
     Args:
         out_dir: The variant folder (created).
         checkpoint: From :func:`build_checkpoint`.
@@ -323,14 +326,20 @@ def write_variant(
     tmp = path.with_suffix(".tmp")
     torch.save(dict(checkpoint), tmp)
     tmp.replace(path)
-    write_config(
-        out_dir,
-        scenario,
-        {
-            "variant": checkpoint["infos"]["variant"],
-            "training": dict(training),
-            "authors": dict(checkpoint["infos"]["authors"]),
-        },
-    )
+    infos = checkpoint["infos"]
+    fields: dict[str, Any] = {
+        "variant": infos["variant"],
+        "name": out_dir.name,
+        "seed": training.get("seed"),
+        "training": dict(training),
+        "iterations_planned": infos["total_iterations"],
+        "iterations_done": infos["iteration"],
+        "state": "complete" if infos["completed"] else "interrupted",
+        "authors": dict(infos["authors"]),
+    }
+    variant = Variant.parse(infos["variant"])
+    if variant.finetuning:  # trained by the authors on their panel's feedback with this LLM
+        fields["panel"] = {"feedback": variant.feedback, "model": infos["authors"].get("model")}
+    write_config(out_dir, scenario, fields)
     (out_dir / "train_cfg.json").write_text(json.dumps(checkpoint["infos"]["train_cfg"], indent=2))
     return path

@@ -1,11 +1,13 @@
-"""``CachedSource``: any belief source behind the persistent store, with an in-memory LRU.
+"""``CachedSource``: any belief source behind the persistent store.
 
 ``CachedSource(source, store)`` is itself a :class:`~amuled_ma.beliefs.types.BeliefSource`.
 For a batch it computes each request's store key (:func:`~amuled_ma.beliefs.keys.request_key`
-with the wrapped source's ``identity()``), answers what it can from memory and then from the
-SQLite store, and sends only the misses, each distinct request once, to the wrapped
-source. Answers are written to the store as soon as they arrive, so nothing already answered
-is lost if the process dies in the middle of a batch:
+with the wrapped source's ``identity()``), answers what it can from the SQLite store, and
+sends only the misses, each distinct request once, to the wrapped source. It keeps no
+in-memory copy: in training the feedback's memo in front of the panel answers every state
+seen before (``docs/beliefs.md``, "Caches", measured). Answers are written to the store as
+soon as they arrive, so nothing already answered is lost if the process dies in the middle
+of a batch:
 
 - a wrapped source that defines ``iter_beliefs(requests)`` yielding ``(index, result)`` as
   each answer completes gets every answer written on arrival (one short transaction per
@@ -35,8 +37,6 @@ never put an ``"ok"`` row into the store, and the store refuses to write one any
 
 from __future__ import annotations
 
-import threading
-from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -60,7 +60,6 @@ class CacheStats:
     Attributes:
         requests: Requests received (duplicates included).
         unique: Distinct requests among them (per batch).
-        memory_hits: Distinct requests answered from the in-memory LRU.
         store_hits: Distinct requests answered from the SQLite store.
         misses: Distinct requests not found (= requests sent to the wrapped source).
         sent: Requests sent to the wrapped source.
@@ -73,7 +72,6 @@ class CacheStats:
 
     requests: int = 0
     unique: int = 0
-    memory_hits: int = 0
     store_hits: int = 0
     misses: int = 0
     sent: int = 0
@@ -84,7 +82,7 @@ class CacheStats:
     @property
     def hits(self) -> int:
         """Distinct requests answered without asking the wrapped source."""
-        return self.memory_hits + self.store_hits
+        return self.store_hits
 
     @property
     def hit_rate(self) -> float:
@@ -102,7 +100,6 @@ class CachedSource(BeliefSource):
     Args:
         source: The wrapped source (Ollama, replay, rules, ...).
         store: The persistent store (shared with other processes if you like).
-        memory_size: Entries kept in the in-memory LRU in front of the store (0: none).
         chunk_size: Requests per call to a wrapped source without ``iter_beliefs``;
             each chunk's answers are written before the next chunk is sent.
         flush_every: With ``iter_beliefs``, answers per store transaction.
@@ -119,19 +116,15 @@ class CachedSource(BeliefSource):
         source: BeliefSource,
         store: BeliefStore,
         *,
-        memory_size: int = 65536,
         chunk_size: int = 256,
         flush_every: int = 1,
         identity: Mapping[str, Any] | None = None,
     ) -> None:
         self.source = source
         self.store = store
-        self.memory_size = int(memory_size)
         self.chunk_size = max(1, int(chunk_size))
         self.flush_every = max(1, int(flush_every))
         self.stats = CacheStats()
-        self._memory: OrderedDict[str, BeliefResult] = OrderedDict()
-        self._lock = threading.Lock()
         self._identity = dict(identity) if identity is not None else None
         self._identity_json: str | None = None
 
@@ -170,24 +163,20 @@ class CachedSource(BeliefSource):
         """Zero the counters."""
         self.stats = CacheStats()
 
-    def clear_memory(self) -> None:
-        """Empty the in-memory LRU (the store is untouched)."""
-        with self._lock:
-            self._memory.clear()
-
     def keys(self, requests: Sequence[BeliefRequest]) -> list[str]:
         """Return the store keys of ``requests`` for the wrapped source."""
         ident = self._ident()
         return [request_key(ident, r) for r in requests]
 
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
-        """Answer from memory, then the store, then the wrapped source (misses only).
+        """Answer from the store, then the wrapped source (misses only).
 
         Args:
             requests: The batch.
 
         Returns:
-            One result per request, in order; hits have ``cached=True``.
+            One result per request, in order; hits have ``cached=True``. A request
+            repeated in the batch gets its own copy.
 
         """
         ident = self._ident()
@@ -195,58 +184,27 @@ class CachedSource(BeliefSource):
         positions: dict[str, list[int]] = {}
         for i, key in enumerate(keys):
             positions.setdefault(key, []).append(i)
-        answers: dict[str, BeliefResult] = {}
 
         stats = self.stats
         stats.requests += len(requests)
         stats.unique += len(positions)
 
-        with self._lock:
-            for key in positions:
-                hit = self._memory.get(key)
-                if hit is not None:
-                    self._memory.move_to_end(key)
-                    answers[key] = hit
-        stats.memory_hits += len(answers)
-
-        fresh: set[str] = set()  # answers not shared with the LRU: handed out as they are
-        lookup = [k for k in positions if k not in answers]
-        if lookup:
-            stored = self.store.lookup(lookup)
-            for key, result in stored.items():
-                answers[key] = result
-                self._remember(key, result)
-            fresh.update(stored)
-            stats.store_hits += len(stored)
-
+        answers = dict(self.store.lookup(list(positions)))
+        stats.store_hits += len(answers)
         missing = [k for k in positions if k not in answers]
         stats.misses += len(missing)
         if missing:
-            asked = self._ask(ident, [(k, requests[positions[k][0]]) for k in missing])
-            answers.update(asked)
-            fresh.update(asked)
+            answers.update(self._ask(ident, [(k, requests[positions[k][0]]) for k in missing]))
 
         out: list[BeliefResult] = [None] * len(requests)  # type: ignore[list-item]
         for key, idx in positions.items():
             result = answers[key]
-            # the LRU keeps its own copies; each position gets an independent object
-            out[idx[0]] = result if key in fresh else result.copy()
+            out[idx[0]] = result
             for j in idx[1:]:
                 out[j] = result.copy()
         return out
 
     # -- internals -------------------------------------------------------------------
-    def _remember(self, key: str, result: BeliefResult) -> None:
-        if self.memory_size <= 0 or result.status not in CACHEABLE:
-            return
-        entry = result.copy(cached=True)
-        entry.latency_s = 0.0
-        with self._lock:
-            self._memory[key] = entry
-            self._memory.move_to_end(key)
-            while len(self._memory) > self.memory_size:
-                self._memory.popitem(last=False)
-
     def _ask(self, ident: str, todo: list[tuple[str, BeliefRequest]]) -> dict[str, BeliefResult]:
         """Send the misses and write each answer as soon as it is back."""
         answers: dict[str, BeliefResult] = {}
@@ -274,8 +232,6 @@ class CachedSource(BeliefSource):
             answers[key] = result
             if result.status not in CACHEABLE:
                 self.stats.not_cached += 1
-            else:
-                self._remember(key, result)
             if result.status not in NOT_STORED:
                 pending.append((key, ident, request, result))
 

@@ -170,11 +170,6 @@ def check_belief(
     return vector / total, None
 
 
-def belief_problem(values: Any, n_actions: int) -> str | None:
-    """Return why ``values`` is not a valid belief over ``n_actions`` actions, or ``None``."""
-    return check_belief(values, n_actions)[1]
-
-
 def validate_belief(
     values: Any, n_actions: int, *, where: str, fix: str | None = None, scores: bool = False
 ) -> np.ndarray:

@@ -23,8 +23,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from amuled_ma.errors import ClusterDefinitionError
+from amuled_ma.errors import ClusterDefinitionError, ScenarioError
 from amuled_ma.resources import prompts_dir, read_text
+from amuled_ma.scenario.agents import check_agent_table
 
 #: Kinds of cluster files.
 KINDS = ("cluster", "mixture", "unprompted")
@@ -223,8 +224,9 @@ def _credences(data: Mapping[str, Any], path: Path) -> dict[str, float]:
 def _source_table(data: Mapping[str, Any], path: Path) -> dict[str, Any] | None:
     """The optional ``[source]`` table: where this agent's beliefs come from by default.
 
-    Its keys are checked like a scenario's ``[feedback.agents.<name>]`` table when a
-    panel is built (:mod:`amuled_ma.beliefs.routing`); here only its shape.
+    Its keys are checked on load like a scenario's ``[feedback.agents.<name>]`` table
+    (the spec models of :mod:`amuled_ma.scenario.agents`: kind, keys, types, ranges); an
+    ``ollama`` table may leave ``model`` to the scenario's ``[feedback].model``.
     """
     table = data.get("source")
     if table is None:
@@ -236,6 +238,10 @@ def _source_table(data: Mapping[str, Any], path: Path) -> dict[str, Any] | None:
             f"expected a table with a 'source' kind, e.g. [source] source = \"ollama\", "
             f'model = "llama3.1:8b"; found {table!r}',
         )
+    try:
+        check_agent_table(f"{path}: [source]", table, default_source="ollama", default_model="*")
+    except ScenarioError as error:
+        raise ClusterDefinitionError(str(error)) from None
     return dict(table)
 
 

@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 import sys
 import tomllib
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from amuled_ma.errors import AmuledError, ScenarioError
+from amuled_ma.errors import ScenarioError
+
+if TYPE_CHECKING:
+    from amuled_ma.scenario import Scenario
 
 
 def bounded_int(low: int, high: int | None = None) -> Any:
@@ -124,7 +127,7 @@ def parse_override(text: str) -> tuple[str, str, Any]:
     return section, name, value
 
 
-def load(args: argparse.Namespace) -> Any:
+def load(args: argparse.Namespace) -> Scenario:
     """Load the scenario named on the command line and apply ``--set`` overrides."""
     from amuled_ma.resources import scenarios_dir
     from amuled_ma.scenario import load_scenario
@@ -136,17 +139,43 @@ def load(args: argparse.Namespace) -> Any:
     scenario = load_scenario(name)
     if recipe is not None and scenario.finetune.recipe != recipe:
         scenario = scenario.replace("finetune", recipe=recipe)
-    user_dirs = [str(Path(d).resolve()) for d in getattr(args, "clusters_dir", [])]
+    return customise(
+        scenario,
+        clusters_dirs=getattr(args, "clusters_dir", []),
+        overrides=getattr(args, "overrides", []),
+    )
+
+
+def customise(
+    scenario: Scenario, *, clusters_dirs: Sequence[Path] = (), overrides: Sequence[str] = ()
+) -> Scenario:
+    """Apply ``--clusters-dir`` folders, then ``--set`` overrides, to a loaded scenario.
+
+    Prints a note for every user cluster file that overrides a cluster of its name.
+
+    Args:
+        scenario: The scenario as loaded.
+        clusters_dirs: Folders of user cluster files (added to ``[feedback].clusters_dirs``).
+        overrides: ``SECTION.KEY=VALUE`` texts, applied in order.
+
+    Returns:
+        The new scenario.
+
+    Raises:
+        ScenarioError: An override of an unknown section or key, or a bad value.
+
+    """
+    user_dirs = [str(Path(d).resolve()) for d in clusters_dirs]
     if user_dirs:
         dirs = [*scenario.feedback.clusters_dirs, *user_dirs]
         scenario = scenario.replace("feedback", clusters_dirs=dirs)
-    for text in getattr(args, "overrides", []):
+    for text in overrides:
         section, name, value = parse_override(text)
         if not hasattr(scenario, section) or section in ("name", "path"):
             raise ScenarioError(f"--set {text!r}: unknown section [{section}]")
         scenario = scenario.replace(section, **{name: value})
     if scenario.feedback.clusters_dirs:
-        from amuled_ma.deliberation.feedback import cluster_registry
+        from amuled_ma.deliberation.plan import cluster_registry
 
         for o in cluster_registry(scenario).overridden:
             say(f"note: {o.new_path} overrides the cluster {o.name!r} of {o.old_path}")
@@ -182,71 +211,43 @@ def command_line(name: str, args: argparse.Namespace, run_dir: Path, *extra: str
     return shlex.join(parts)
 
 
-def scenario_of_run(run_dir: Path) -> Any:
-    """Rebuild the scenario a run was made with, from its ``config.json``."""
-    from amuled_ma.scenario import scenario_from_dict
-
-    path = Path(run_dir) / "config.json"
-    if not path.is_file():
-        raise AmuledError(
-            f"{run_dir} is not a run directory (no config.json); make one with "
-            "'amuled run SCENARIO' or 'amuled train SCENARIO'"
-        )
-    data = json.loads(path.read_text())["scenario"]
-    source = data.pop("path", None)
-    return scenario_from_dict(data, path=Path(source) if source else None)
-
-
-def shared_folders(ablation_dir: Path) -> list[str]:
-    """The run's folders an ablation is evaluated with: its ``config.json`` ``"shared"``.
-
-    An ablation written before that key existed shares the base and its seed replicas.
-    """
-    ablation_dir = Path(ablation_dir)
-    path = ablation_dir / "config.json"
-    shared = json.loads(path.read_text()).get("shared") if path.is_file() else None
-    if shared is None:
-        run_dir = ablation_dir.parent
-        shared = ["base", *sorted(p.name for p in run_dir.glob("base.seed*"))]
-    return list(shared)
-
-
 def say(message: str) -> None:
     """Print a status line (stderr stays free for errors)."""
     print(message, flush=True)
     sys.stdout.flush()
 
 
-def describe(job: Any) -> str:
-    """One line about a finished training job (a seed replica's seed in brackets)."""
-    from amuled_ma.deliberation.feedback import distill_line, summary_lines
-    from amuled_ma.experiments.run_folder import split_replica
+def say_outcome(request: Any, outcome: Any, seconds: float) -> None:
+    """Print the end of ``amuled run``/``ablate``/``demo``: the summary and the report's path.
 
-    seed = split_replica(Path(job.out_dir).name)[1]
-    name = job.variant if seed is None else f"{job.variant} [seed {seed}]"
-    if job.skipped:
-        return f"  = {name}: already trained ({job.out_dir})"
-    out = job.outcome
-    rate = out.env_steps / max(out.wall_s, 1e-9)
-    line = (
-        f"  ✓ {name}: {out.iterations} iterations, {out.env_steps:,} env steps in "
-        f"{out.wall_s:.1f} s ({rate:,.0f} steps/s)"
-    )
-    if out.feedback:
-        line += f", {out.feedback['unique_states']} distinct states"
-        line += f", replay miss rate {100 * out.feedback['miss_rate']:.2f}%"
-        line += f", not answered {100 * out.feedback.get('failure_rate', 0.0):.2f}%"
-        if out.feedback.get("distill"):
-            line += "\n  " + distill_line(out.feedback["distill"])
-        # per agent, the agents that left states unanswered (abstained, errors, misses)
-        failing = {
-            name: row
-            for name, row in (out.feedback.get("agents") or {}).items()
-            if row.get("failed")
-        }
-        shown = summary_lines({**out.feedback, "agents": failing, "distill": None})[1:]
-        line += "".join("\n    " + text for text in shown)
-    return line
+    Args:
+        request: The :class:`~amuled_ma.pipeline.PipelineRequest`.
+        outcome: Its :class:`~amuled_ma.pipeline.PipelineOutcome`.
+        seconds: The command's wall time so far.
+
+    """
+    name, done = request.scenario.name, f"{len(outcome.seeds)} seed(s) done in {seconds:.1f} s"
+    if request.ablation is not None:
+        say(
+            f"ablate {name} --what {request.ablation}: {len(outcome.variants)} variants x "
+            f"{done}; report {outcome.report}"
+        )
+        return
+    say(greedy_line(request.scenario.task.name, outcome.results))
+    say(f"run {name}: {len(outcome.variants)} variants x {done}; report {outcome.report}")
+
+
+def greedy_line(task: str, results: Any) -> str:
+    """``  greedy: base[metric=mean, ...]; ...``: the greedy means of the paper's metrics."""
+    from amuled_ma.evaluate.evaluator import PAPER_METRICS
+
+    parts = []
+    for name, variant in results.variants.items():
+        metrics = variant.greedy.metrics if variant.greedy else {}
+        means = {m: metrics[m].mean for m in PAPER_METRICS.get(task, []) if m in metrics}
+        cells = [f"{m}={float('nan') if v is None else v:.2f}" for m, v in means.items()]
+        parts.append(f"{name}[{', '.join(cells)}]")
+    return "  greedy: " + "; ".join(parts)
 
 
 def train_job(
@@ -262,7 +263,7 @@ def train_job(
     Args:
         scenario: The loaded scenario.
         run_dir: The run directory.
-        variant: A :class:`~amuled_ma.learn.variants.Variant` or its text
+        variant: A :class:`~amuled_ma.variants.Variant` or its text
             (``base``, ``shaped``, ``finetune:<feedback>``).
         args: The parsed command line (``resume``, ``force``, ``no_progress``, ``seed``).
         hint: The command that resumes this job, printed when it stops early.
@@ -273,6 +274,7 @@ def train_job(
 
     """
     from amuled_ma.experiments.plans import train_variant
+    from amuled_ma.pipeline import describe_job
 
     job = train_variant(
         scenario,
@@ -285,5 +287,5 @@ def train_job(
         seed=args.seed,
         **kwargs,
     )
-    say(describe(job))
+    say(describe_job(job))
     return job

@@ -13,14 +13,20 @@ but the state and the cluster's credence sentence are shared). What makes it fas
 CPU (``docs/ollama.md``, "Where a request's time goes"): the private server runs one request
 slot (``OLLAMA_NUM_PARALLEL=1``: the shared prompt is evaluated once, then reused from the
 server's prefix cache) without flash attention, and the tiny model answers with the
-probabilities alone (:data:`TINY_REPLY`: no reasoning string, at most 128 tokens). At the
-end the demo prints where the live requests' time went (:func:`print_breakdown`).
+probabilities alone (no reasoning string, at most 128 tokens). At the end the demo prints
+where the live requests' time went (:func:`print_breakdown`).
+
+The demo's settings are a scenario file, ``scenarios/<task>-demo.toml`` (the task's shipped
+scenario with a demo-sized budget and the tiny model's options); the demo adds only what
+depends on its command line (the server, another model) and runs it through the same
+library function as ``amuled run``, :func:`amuled_ma.pipeline.run_pipeline`.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 import threading
 import time
@@ -28,43 +34,25 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from amuled_ma.commands._experiment import add_clusters_dir_argument, add_overrides_argument
+from amuled_ma.commands import _experiment as common
 
 if TYPE_CHECKING:
     from amuled_ma.beliefs.timing import CacheReuse, RequestTiming, TimingLog
+    from amuled_ma.scenario import Scenario
 
-#: Budget overrides: every ``--set`` the demo applies to the shipped scenario.
-DEMO_BUDGET: dict[str, tuple[str, ...]] = {
-    "findmilk": (
-        "base.total_steps=65_536",  # greedy policy optimal after ~33k steps (bench train)
-        "finetune.iterations=1",
-        # 8 transitions (4 mini-batches of 2) from 4 copies x 2 steps: every copy starts
-        # at the paper layout's start, so they share states: ~3 distinct states x 5
-        # clusters asked live, instead of 8 x 5 with 1 copy x 8 steps (docs/ollama.md)
-        "finetune.num_envs=4",
-        "finetune.num_steps_per_env=2",
-        "finetune.save_interval=1",
-        "evaluation.episodes=10",
-    ),
-    "driving": (
-        "base.total_steps=65_536",
-        "finetune.iterations=1",
-        "finetune.num_envs=4",
-        "finetune.num_steps_per_env=2",
-        "finetune.save_interval=1",
-        "evaluation.episodes=10",
-    ),
-}
-
-#: Overrides for the tiny model only (a real model keeps the scenario's options): the
-#: probabilities alone, without the schema's reasoning string (the tiny model's is
-#: meaningless), and a bound on the reply; about 40 tokens instead of about 110 per request.
-TINY_REPLY: tuple[str, ...] = ("feedback.ollama={reasoning = false, num_predict = 128}",)
+#: The demo's tasks; each runs the shipped scenario ``<task>-demo``
+#: (``scenarios/<task>-demo.toml``, :func:`demo_scenario`).
+DEMO_TASKS: tuple[str, ...] = ("driving", "findmilk")
 
 #: Request slots of the demo's private server (``OLLAMA_NUM_PARALLEL``). Each slot keeps
 #: its own prefix cache, so each must evaluate the shared 3.6k-token prompt once; on a
-#: 2-core machine one slot was faster than two (docs/ollama.md).
+#: 2-core machine one slot was faster than two (docs/ollama.md). The demo scenarios'
+#: ``[feedback].concurrency`` is this: more requests in flight than slots would only queue.
 DEMO_NUM_PARALLEL = 1
+
+#: ``[feedback].concurrency`` on a server the demo did not start (``--host``,
+#: ``$OLLAMA_HOST``, or a real model on the default install).
+SHARED_SERVER_CONCURRENCY = 2
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -83,7 +71,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         ),
     )
     parser.add_argument(
-        "--task", choices=sorted(DEMO_BUDGET), default="findmilk", help="task (default findmilk)"
+        "--task",
+        choices=DEMO_TASKS,
+        default="findmilk",
+        help="task (default findmilk); its settings are scenarios/<task>-demo.toml",
     )
     parser.add_argument(
         "--model",
@@ -99,8 +90,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--run-dir", type=Path, default=None, help="run directory (default runs/demo-<task>)"
     )
-    add_clusters_dir_argument(parser)
-    add_overrides_argument(parser)  # applied after the demo budget
+    common.add_clusters_dir_argument(parser)
+    common.add_overrides_argument(parser)  # applied after the demo scenario's own settings
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run folder where it stopped (the demo always does; the option "
+        "makes the resume command it prints on a stop work)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.set_defaults(handler=demo_command)
 
@@ -114,7 +111,7 @@ def demo_command(args: argparse.Namespace) -> int:
     from amuled_ma import llm_server
     from amuled_ma.beliefs.hosts import DEFAULT_HOST, TINY_MODEL, preflight
     from amuled_ma.beliefs.timing import cache_reuse, record_timings
-    from amuled_ma.cli import main
+    from amuled_ma.cli import FAILURES, report_failure
 
     start = time.perf_counter()
     model = args.model or TINY_MODEL
@@ -138,35 +135,32 @@ def demo_command(args: argparse.Namespace) -> int:
         server_log = Path(state.log)
         log_offset = server_log.stat().st_size if server_log.is_file() else 0
     run_dir = args.run_dir or Path("runs") / f"demo-{args.task}"
-    overrides = [
-        "feedback.source=ollama",
-        f"feedback.model={model}",
-        f"feedback.host={host}",
-        # on the private server more requests in flight than slots would only queue
-        f"feedback.concurrency={DEMO_NUM_PARALLEL if started_dir is not None else 2}",
-        "feedback.timeout_s=600.0",
-        *DEMO_BUDGET[args.task],
-        *(TINY_REPLY if model == TINY_MODEL else ()),
-        *args.overrides,
-    ]
-    argv = ["run", args.task, "--run-dir", str(run_dir), "--resume"]
-    argv += [item for text in overrides for item in ("--set", text)]
-    for folder in args.clusters_dir:
-        argv += ["--clusters-dir", str(folder)]
-    if args.no_progress:
-        argv.append("--no-progress")
     view: Path | None = None
     phases: list[tuple[str, TimingLog]] = []
     reuse: CacheReuse | None = None
     warmup: PrefixWarmup | None = None
+    debug = getattr(args, "debug", False)
+    code = 1
     try:
         preflight(host, model)  # one clear error up front: no server or no model
         _say(f"beliefs from {model} at {host}")
-        if started_dir is not None:  # our own idle server: evaluate the shared prompt now
-            warmup = PrefixWarmup.start(host, model, args.task, overrides, args.clusters_dir)
-        with record_timings() as run_log:
-            code = main(argv)
-        phases.append(("fine-tune", run_log))
+        try:  # a failure from here on is the run's: reported, then the server stops
+            scenario = demo_scenario(
+                args.task,
+                model=model,
+                host=host,
+                private=started_dir is not None,
+                clusters_dirs=args.clusters_dir,
+                overrides=args.overrides,
+            )
+        except FAILURES as error:
+            code = report_failure(error, debug=debug)
+        else:
+            if started_dir is not None:  # our own idle server: evaluate the shared prompt now
+                warmup = PrefixWarmup.start(host, model, scenario)
+            with record_timings() as run_log:
+                code = _run_pipeline(scenario, run_dir, demo_hint(args, run_dir), args, debug)
+            phases.append(("fine-tune", run_log))
         if code == 0:  # while the server still runs: the page may ask it about new states
             with record_timings() as view_log:
                 view = write_demo_view(run_dir)
@@ -190,6 +184,89 @@ def demo_command(args: argparse.Namespace) -> int:
     return code
 
 
+def demo_scenario(
+    task: str,
+    *,
+    model: str,
+    host: str,
+    private: bool,
+    clusters_dirs: Sequence[Path] = (),
+    overrides: Sequence[str] = (),
+) -> Scenario:
+    """The scenario of a demo run: ``scenarios/<task>-demo.toml`` on the demo's server.
+
+    The file holds every setting of the demo (its budget, the tiny model and its reply
+    options, the private server's one request slot); this adds what the command line
+    decides: the server (``[feedback].host``), another model (which keeps the Ollama
+    options of the task's own scenario, ``scenarios/<task>.toml``: the file's are the
+    tiny model's), :data:`SHARED_SERVER_CONCURRENCY` requests in flight on a server the
+    demo did not start; then the user's ``--clusters-dir`` folders and ``--set`` overrides.
+
+    Args:
+        task: ``findmilk`` or ``driving``.
+        model: The Ollama model asked.
+        host: The server's URL.
+        private: Whether the demo started that server (its one slot).
+        clusters_dirs: ``--clusters-dir`` folders.
+        overrides: ``--set SECTION.KEY=VALUE`` texts, applied last.
+
+    Returns:
+        The validated scenario.
+
+    Raises:
+        ScenarioError: A bad override (the message names it).
+
+    """
+    from amuled_ma.scenario import load_scenario
+
+    scenario = load_scenario(f"{task}-demo")
+    changes: dict[str, object] = {"host": host}
+    if model != scenario.feedback.model:
+        changes["model"] = model
+        changes["ollama"] = dict(load_scenario(task).feedback.ollama)
+    if not private:
+        changes["concurrency"] = SHARED_SERVER_CONCURRENCY
+    scenario = scenario.replace("feedback", **changes)
+    return common.customise(scenario, clusters_dirs=clusters_dirs, overrides=overrides)
+
+
+def demo_hint(args: argparse.Namespace, run_dir: Path) -> str:
+    """The command that continues this demo (printed with ``--resume`` when it stops)."""
+    parts = ["amuled", "demo", "--task", args.task, "--run-dir", str(run_dir)]
+    if args.model:
+        parts += ["--model", args.model]
+    if args.host:
+        parts += ["--host", args.host]
+    for folder in args.clusters_dir:
+        parts += ["--clusters-dir", str(folder)]
+    for text in args.overrides:
+        parts += ["--set", text]
+    return shlex.join(parts)
+
+
+def _run_pipeline(
+    scenario: Scenario, run_dir: Path, hint: str, args: argparse.Namespace, debug: bool
+) -> int:
+    """Run the demo's main comparison through the pipeline; its exit code (failures printed)."""
+    from amuled_ma import pipeline
+    from amuled_ma.cli import FAILURES, report_failure
+
+    request = pipeline.PipelineRequest(
+        scenario=scenario,
+        run_dir=run_dir,
+        resume=True,
+        progress=not args.no_progress,
+        hint=hint,
+    )
+    start = time.perf_counter()
+    try:
+        outcome = pipeline.run_pipeline(request, say=common.say)
+    except FAILURES as error:
+        return report_failure(error, debug=debug)
+    common.say_outcome(request, outcome, time.perf_counter() - start)
+    return 0
+
+
 def write_demo_view(run_dir: Path) -> Path | None:
     """Write the viewer page of the demo's AMULED fine-tune and link it from the report.
 
@@ -206,10 +283,12 @@ def write_demo_view(run_dir: Path) -> Path | None:
     from amuled_ma.errors import AmuledError
     from amuled_ma.evaluate.report import link_viewer
     from amuled_ma.evaluate.viewer import write_view
+    from amuled_ma.experiments.trained_variants import run_to_view
 
     _say("writing the step-by-step viewer of finetune-amuled")
     try:
-        result = write_view(run_dir, variants=["finetune-amuled"], say=_say)
+        view = run_to_view(run_dir, ["finetune-amuled"])
+        result = write_view(run_dir, view.scenario, view.variants, episodes=view.episodes, say=_say)
     except AmuledError as error:
         _say(f"no viewer written: {error}")
         return None
@@ -246,41 +325,21 @@ class PrefixWarmup:
         self._thread = threading.Thread(target=self._run, name="amuled-warmup", daemon=True)
 
     @classmethod
-    def start(
-        cls,
-        host: str,
-        model: str,
-        task: str,
-        overrides: Sequence[str],
-        clusters_dirs: Sequence[Path] = (),
-    ) -> PrefixWarmup | None:
+    def start(cls, host: str, model: str, scenario: Scenario) -> PrefixWarmup | None:
         """Start the warm-up for the run the demo is about to make (None if it cannot).
 
         Args:
             host: The private server.
             model: The model the run asks.
-            task: The demo's task.
-            overrides: The run's ``--set`` overrides (they may change prompts or options).
-            clusters_dirs: The run's ``--clusters-dir`` folders.
+            scenario: The run's scenario (its prompts and Ollama options).
 
         """
         from amuled_ma.beliefs.ollama import OllamaSource
         from amuled_ma.clusters import build_messages
-        from amuled_ma.commands._experiment import parse_override
-        from amuled_ma.deliberation.feedback import cluster_registry, panel_of
+        from amuled_ma.deliberation.plan import cluster_registry, panel_of
         from amuled_ma.errors import AmuledError
-        from amuled_ma.scenario import load_scenario
 
-        try:  # the scenario as the run will see it (the run reports any error itself)
-            scenario = load_scenario(task)
-            if clusters_dirs:
-                dirs = [str(Path(d).resolve()) for d in clusters_dirs]
-                scenario = scenario.replace(
-                    "feedback", clusters_dirs=[*scenario.feedback.clusters_dirs, *dirs]
-                )
-            for text in overrides:
-                section, name, value = parse_override(text)
-                scenario = scenario.replace(section, **{name: value})
+        try:  # the run reports any error itself
             registry = cluster_registry(scenario)
             clusters, _ = panel_of("amuled", scenario, registry)
             messages = build_messages(clusters[0], scenario.task.name, "", registry=registry)

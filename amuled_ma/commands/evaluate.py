@@ -43,16 +43,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def evaluate_command(args: argparse.Namespace) -> int:
     """Run ``amuled evaluate``."""
-    from amuled_ma.evaluate.evaluator import evaluate_run
+    from amuled_ma.evaluate.evaluator import evaluate_run, variant_dirs
     from amuled_ma.evaluate.report import write_report
+    from amuled_ma.experiments.run_folder import (
+        read_record,
+        scenario_of_run,
+        shared_folders,
+        variant_records,
+    )
 
     start = time.perf_counter()
     run_dir = Path(args.run_dir)
-    scenario = common.scenario_of_run(run_dir)
+    scenario = scenario_of_run(run_dir)
     with run_folder_lock(run_dir):
         extra = None
         if run_dir.name.startswith("ablate-"):  # the run's folders the ablation shares
-            extra = [run_dir.parent / name for name in common.shared_folders(run_dir)]
+            extra = [run_dir.parent / name for name in shared_folders(run_dir)]
+        records = variant_records([*variant_dirs(run_dir), *(extra or [])])
         results = evaluate_run(
             run_dir,
             scenario,
@@ -61,10 +68,11 @@ def evaluate_command(args: argparse.Namespace) -> int:
             variants=args.variants,
             progress=not args.no_progress,
             extra_dirs=extra,
+            records=records,
         )
-        report = write_report(run_dir, results)
+        report = write_report(run_dir, results, run=read_record(run_dir), records=records)
         common.say(
-            f"evaluate {run_dir}: {len(results['variants'])} variants x {results['episodes']} "
+            f"evaluate {run_dir}: {len(results.variants)} variants x {results.episodes} "
             f"episodes in {time.perf_counter() - start:.1f} s; report {report}"
         )
         return 0

@@ -1,5 +1,7 @@
 """``amuled explain``: one state in the terminal, the panel's beliefs and how they were fused.
 
+The command parses and prints; the explanation is :mod:`amuled_ma.evaluate.explain`'s.
+
 Either a state given by hand::
 
     amuled explain findmilk --obs 2,3,7,7,2,2,1,1 --prompt-var num_crying=4
@@ -21,16 +23,16 @@ the shipped scenario of TASK is used (its recording found by name, see
 from __future__ import annotations
 
 import argparse
-import textwrap
-import tomllib
+import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from amuled_ma.commands import _experiment as common
-from amuled_ma.errors import AmuledError, ScenarioError
+from amuled_ma.errors import ScenarioError
+
+if TYPE_CHECKING:
+    from amuled_ma.evaluate import explain
 
 #: Characters of a raw reply printed without ``--full``.
 REPLY_CHARS = 1200
@@ -112,78 +114,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="with --state-from: how the episode's actions were chosen (default greedy)",
     )
     parser.add_argument(
+        "--episodes",
+        type=common.bounded_int(1),
+        default=None,
+        metavar="N",
+        help="with --state-from: the evaluation's episodes per policy, whose K-th is replayed "
+        "(sampled draws depend on it; default: the run's results.json, else "
+        "[evaluation].episodes)",
+    )
+    parser.add_argument(
         "--full", action="store_true", help=f"print whole replies (default: {REPLY_CHARS} chars)"
     )
     parser.add_argument("--prompt", action="store_true", help="print the state prompt too")
     common.add_overrides_argument(parser)
     parser.set_defaults(handler=explain_command)
-
-
-# ---------------------------------------------------------------------------------------
-# Text tables
-
-
-def table(headers: Sequence[str], rows: Sequence[Sequence[Any]], indent: str = "  ") -> str:
-    """Aligned columns: the first left-aligned, the others right-aligned."""
-    cells = [[str(h) for h in headers]] + [[_cell(x) for x in row] for row in rows]
-    widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
-    lines = []
-    for n, row in enumerate(cells):
-        parts = [row[0].ljust(widths[0])]
-        parts += [c.rjust(w) for c, w in zip(row[1:], widths[1:], strict=True)]
-        lines.append(indent + "  ".join(parts).rstrip())
-        if n == 0:
-            lines.append(indent + "  ".join("-" * w for w in widths))
-    return "\n".join(lines)
-
-
-def _cell(value: Any) -> str:
-    if value is None:
-        return "-"
-    if isinstance(value, float | np.floating):
-        return f"{float(value):.4f}"
-    return str(value)
-
-
-# ---------------------------------------------------------------------------------------
-# The command
-
-
-def parse_obs(text: str, task_cls: Any) -> np.ndarray:
-    """``"1,2,3"`` -> float array, checked against the task's observation length.
-
-    Raises:
-        ScenarioError: Not numbers, or the wrong count (the message lists the entries).
-
-    """
-    try:
-        values = [float(x) for x in text.replace(" ", "").split(",") if x != ""]
-    except ValueError:
-        raise ScenarioError(
-            f"--obs {text!r}: expected numbers separated by commas, e.g. 2,3,7,7,2,2,1,1"
-        ) from None
-    names = list(task_cls.obs_names)
-    if len(values) != len(names):
-        raise ScenarioError(
-            f"--obs: {task_cls.name} observations have {len(names)} entries "
-            f"({', '.join(names)}), found {len(values)}"
-        )
-    return np.asarray(values, dtype=np.float32)
-
-
-def parse_prompt_vars(items: Sequence[str]) -> dict[str, Any]:
-    """``["num_crying=4", ...]`` -> ``{"num_crying": 4}`` (values in TOML syntax)."""
-    out: dict[str, Any] = {}
-    for item in items:
-        name, sep, raw = item.partition("=")
-        if not sep or not name.strip():
-            raise ScenarioError(f"--prompt-var {item!r}: expected NAME=VALUE, e.g. num_crying=4")
-        try:
-            value = tomllib.loads(f"v = {raw.strip()}")["v"]
-        except tomllib.TOMLDecodeError:
-            value = raw.strip()
-        out[name.strip()] = value
-    return out
 
 
 def with_overrides(scenario: Any, overrides: Sequence[str]) -> Any:
@@ -203,60 +147,33 @@ def with_overrides(scenario: Any, overrides: Sequence[str]) -> Any:
 
 def explain_command(args: argparse.Namespace) -> int:
     """Run ``amuled explain``."""
-    from amuled_ma.evaluate import episode_trace as trace
+    from amuled_ma.evaluate import explain
+    from amuled_ma.evaluate.episode_trace import replay_variant
+    from amuled_ma.evaluate.readonly_feedback import open_feedback
+    from amuled_ma.experiments.run_folder import scenario_of_run
+    from amuled_ma.experiments.trained_variants import evaluated_episodes, trained_variant
     from amuled_ma.tasks import get_task
 
-    context: list[str] = []
     if args.state_from is not None:
         if args.variant is None or args.step is None:
             raise ScenarioError(
                 "--state-from needs --variant V (a variant folder of the run) and --step N"
             )
         run_dir = Path(args.state_from)
-        common.scenario_of_run(run_dir)  # a clear error when it is no run
-        variant_dir = run_dir / args.variant
-        if not (variant_dir / trace.LAST).is_file():
-            raise AmuledError(
-                f"{run_dir}: no trained variant {args.variant!r} (no "
-                f"{variant_dir / trace.LAST}); variants are the folders with a checkpoint"
-            )
-        scenario = with_overrides(trace.variant_scenario(run_dir, variant_dir), args.overrides)
-        feedback_name = args.feedback or trace.feedback_variant(variant_dir) or "amuled"
-        task_cls = get_task(scenario.task.name)
-        feedback, store = trace.open_feedback(feedback_name, scenario, run_dir)
+        run_scenario = scenario_of_run(run_dir)  # a clear error when it is no run
+        trained = trained_variant(run_dir, run_dir / args.variant)
+        scenario = with_overrides(trained.scenario, args.overrides)
+        trained = dataclasses.replace(trained, scenario=scenario)
+        feedback_name = args.feedback or trained.feedback or "amuled"
+        episodes = args.episodes or evaluated_episodes(run_dir, run_scenario)
+        feedback, store = open_feedback(feedback_name, scenario, run_dir)
         try:
-            actor = trace.load_actor(variant_dir / trace.LAST, scenario)
-            base_path = trace.base_checkpoint_of(run_dir, variant_dir)
-            base = trace.load_actor(base_path, scenario) if base_path is not None else None
             live = feedback if getattr(feedback, "panel", None) is None else None
-            ep = trace.replay_episode(
-                actor,
-                scenario,
-                episode=args.episode,
-                mode=args.mode,
-                base_actor=base,
-                live_feedback=live,
+            ep = replay_variant(
+                trained, episode=args.episode, mode=args.mode, episodes=episodes, live_feedback=live
             )
-            if args.step >= ep.length:
-                raise ScenarioError(
-                    f"--step {args.step}: episode {args.episode} of {args.variant} has "
-                    f"{ep.length} steps (0..{ep.length - 1})"
-                )
-            t = args.step
-            obs, prompt_vars = ep.obs[t], ep.prompt_vars[t]
-            names = ep.action_names
-            line = (
-                f"state of step {t} of evaluation episode {args.episode} (seed {ep.seed}, "
-                f"{args.mode}) of {run_dir}/{args.variant}: the fine-tuned policy took "
-                f"{names[ep.actions[t]]} (p={ep.probs[t][ep.actions[t]]:.3f})"
-            )
-            if ep.base_actions is not None:
-                b = int(ep.base_actions[t])
-                differs = "DIFFERENT from" if b != int(ep.actions[t]) else "the same as"
-                line += f"; the base policy would take {names[b]} ({differs} the fine-tune)"
-            context.append(line)
-            _explain(args, scenario, task_cls, feedback, store, feedback_name, obs, prompt_vars,
-                     context, live_belief=None if live is None else ep.live_beliefs[t])  # fmt: skip
+            state = explain.state_of_step(ep, args.step, f"{run_dir}/{args.variant}")
+            _print(args, scenario, feedback, store, feedback_name, state)
         finally:
             feedback.close()
             store.close()
@@ -268,7 +185,7 @@ def explain_command(args: argparse.Namespace) -> int:
             "--state-from RUN --variant V --step N"
         )
     if args.run_dir is not None:
-        scenario = with_overrides(common.scenario_of_run(Path(args.run_dir)), args.overrides)
+        scenario = with_overrides(scenario_of_run(Path(args.run_dir)), args.overrides)
         if args.scenario and args.scenario not in (scenario.task.name, scenario.name):
             raise ScenarioError(
                 f"TASK {args.scenario!r} does not match the run {args.run_dir} (task "
@@ -279,180 +196,40 @@ def explain_command(args: argparse.Namespace) -> int:
     else:
         scenario = common.load(args)
     task_cls = get_task(scenario.task.name)
-    obs = parse_obs(args.obs, task_cls)
-    extras = parse_prompt_vars(args.prompt_vars)
+    obs = explain.parse_obs(args.obs, task_cls)
+    extras = explain.parse_prompt_vars(args.prompt_vars)
     feedback_name = args.feedback or "amuled"
-    feedback, store = trace.open_feedback(feedback_name, scenario, args.run_dir)
+    feedback, store = open_feedback(feedback_name, scenario, args.run_dir)
     try:
-        prompt_vars = None
-        needs = bool(getattr(getattr(feedback, "panel", None), "with_messages", False))
-        try:
-            prompt_vars = task_cls.prompt_variables_from_obs(obs, **extras)
-        except (ValueError, TypeError) as error:
-            if needs:
-                raise ScenarioError(
-                    f"{scenario.task.name} state prompt: {error}; give the missing variable "
-                    "with --prompt-var NAME=VALUE"
-                ) from None
         where = f"run {args.run_dir}" if args.run_dir else f"scenario {scenario.name} (shipped)"
-        context.append(f"state given by hand, {where}")
-        live_belief = None
-        if getattr(feedback, "panel", None) is None:
-            import torch
-
-            try:
-                live_belief = np.asarray(
-                    feedback(torch.as_tensor(obs[None]), None, [0])[0], dtype=np.float64
-                )
-            except (AttributeError, TypeError):
-                raise ScenarioError(
-                    f"feedback {feedback_name!r} needs the task's full state, not only the "
-                    "observation: take the state from an episode with --state-from RUN "
-                    "--variant V --step N"
-                ) from None
-        _explain(args, scenario, task_cls, feedback, store, feedback_name, obs, prompt_vars,
-                 context, live_belief=live_belief)  # fmt: skip
+        state = explain.state_by_hand(task_cls, feedback, feedback_name, obs, extras, where)
+        _print(args, scenario, feedback, store, feedback_name, state)
     finally:
         feedback.close()
         store.close()
     return 0
 
 
-def _explain(
+def _print(
     args: argparse.Namespace,
     scenario: Any,
-    task_cls: Any,
     feedback: Any,
     store: Any,
     feedback_name: str,
-    obs: np.ndarray,
-    prompt_vars: dict[str, Any] | None,
-    context: list[str],
-    *,
-    live_belief: np.ndarray | None,
+    state: explain.State,
 ) -> None:
-    from amuled_ma.evaluate import episode_trace as trace
-    from amuled_ma.tasks.prompts import render_state_prompt
+    from amuled_ma.evaluate.explain import explain_lines
+    from amuled_ma.tasks import get_task
 
-    say = common.say
-    actions = list(task_cls.action_names)
-    shown = ", ".join(f"{n}={_num(v)}" for n, v in zip(task_cls.obs_names, obs, strict=True))
-    say(f"explain {scenario.task.name}: {shown}")
-    if prompt_vars is not None:
-        extra = {k: v for k, v in prompt_vars.items() if k not in task_cls.obs_names}
-        if extra:
-            say("  prompt variables: " + ", ".join(f"{k}={v}" for k, v in extra.items()))
-    for line in context:
-        say("  " + line)
-    panel = getattr(feedback, "panel", None)
-    say(f"feedback {feedback_name}: {trace.describe_feedback(feedback)}")
-    if panel is None:
-        assert live_belief is not None
-        say(
-            f"  this feedback is not a panel of agents ({type(feedback).__name__}): its belief "
-            "is the reward, with no agents, weights or reasoning to show"
-        )
-        if getattr(feedback, "recording", None) is not None and scenario.feedback.cluster_recording:
-            say(
-                "  for the clusters' own beliefs, replay the recording with them: --set "
-                f'feedback.recording="{scenario.feedback.cluster_recording}"'
-            )
-        say("")
-        say(table(["", *actions], [["feedback belief", *live_belief.tolist()]]))
-        return
-    answers = trace.ask_panel(
-        panel, obs[None].astype(np.float64), [prompt_vars] if prompt_vars else None, store
+    lines = explain_lines(
+        scenario,
+        get_task(scenario.task.name),
+        feedback,
+        store,
+        feedback_name,
+        state,
+        reply_chars=None if args.full else REPLY_CHARS,
+        show_prompt=args.prompt,
     )
-    agents, rule = answers.agents, answers.rule
-    beliefs, weights = answers.beliefs[0], answers.weights[0]
-    statuses = answers.statuses[0].tolist()
-    say(f"  {len(agents)} agents, fusion rule {rule}; an agent that did not answer abstains")
-    say("")
-    say("beliefs:")
-    rows = [
-        [agent, statuses[c], *beliefs[c].tolist(), float(weights[c])]
-        for c, agent in enumerate(agents)
-    ]
-    rows.append([f"fused ({rule})", "", *answers.fused[0].tolist(), ""])
-    say(table(["agent", "status", *actions, "weight"], rows))
-    breakdown = trace.fusion_breakdown(agents, beliefs, statuses, rule)
-    say("")
-    if breakdown is None:
-        say("no agent answered: the fused belief is the uniform fallback")
-    else:
-        _print_breakdown(breakdown, actions, answers.fused[0], answers.conflicts[0])
-    say("")
-    say("reasoning (raw replies):")
-    for c, agent in enumerate(agents):
-        raw = answers.raws[0][c]
-        reason = answers.reasons[0][c]
-        if not raw:
-            why = f" ({reason})" if reason else ""
-            say(f"  {agent} [{statuses[c]}]: no reply text kept{why}")
-            continue
-        text = raw if args.full or len(raw) <= REPLY_CHARS else raw[:REPLY_CHARS]
-        say(f"  {agent} [{statuses[c]}]:")
-        for paragraph in text.splitlines() or [""]:
-            wrapped = textwrap.wrap(paragraph, 96) or [""]
-            for piece in wrapped:
-                say("    | " + piece)
-        if text is not raw:
-            say(f"    | [... {len(raw) - REPLY_CHARS} more characters; --full prints them]")
-    if args.prompt and prompt_vars is not None:
-        say("")
-        say("state prompt:")
-        for line in render_state_prompt(scenario.task.name, prompt_vars).splitlines():
-            say("    " + line)
-
-
-def _num(value: float) -> str:
-    value = float(value)
-    return str(int(value)) if value.is_integer() else f"{value:g}"
-
-
-def _print_breakdown(
-    b: Any, actions: list[str], panel_fused: np.ndarray, panel_conflicts: np.ndarray
-) -> None:
-    say = common.say
-    answered = len(b.agents)
-    say(f"fusion ({b.rule}) over the {answered} agents that answered:")
-    if b.left_out:
-        say(
-            "  left out (weight 0): "
-            + ", ".join(f"{name} ({status})" for name, status in b.left_out)
-        )
-    rows = [
-        [
-            name,
-            float(b.bjs_mean[i]),
-            float(b.credibility[i]),
-            float(b.entropy[i]),
-            float(b.volume[i]),
-            float(b.weights[i]),
-        ]
-        for i, name in enumerate(b.agents)
-    ]
-    say(
-        table(
-            ["agent", "avg BJS", "credibility", "Deng H (bits)", "info volume", "weight"],
-            rows,
-        )
-    )
-    if answered > 1:
-        say("")
-        say("pairwise BJS divergence:")
-        say(table(["", *b.agents], [[b.agents[i], *b.bjs[i].tolist()] for i in range(answered)]))
-    say("")
-    if b.wae is not None:
-        say(table(["", *actions], [["WAE (weighted average evidence)", *b.wae.tolist()]]))
-    if b.conflicts.size:
-        parts = "  ".join(f"K{t + 1}={k:.4f}" for t, k in enumerate(b.conflicts.tolist()))
-        say(f"Dempster's conflict at each of the {b.conflicts.size} combinations: {parts}")
-    else:
-        say("Dempster's conflict: none (this rule does not combine)")
-    agree = np.allclose(b.fused, panel_fused, atol=1e-9)
-    say(
-        table(["", *actions], [["fused (recomputed)", *b.fused.tolist()]])
-        + ("" if agree else "\n  note: the panel's fused belief differs from this recomputation")
-    )
-    del panel_conflicts
+    for line in lines:
+        common.say(line)

@@ -1,14 +1,19 @@
-"""``amuled run`` (the paper's main comparison) and ``amuled ablate`` (its ablations)."""
+"""``amuled run`` (the paper's main comparison) and ``amuled ablate`` (its ablations).
+
+Both parse their arguments into a :class:`~amuled_ma.pipeline.PipelineRequest`, call
+:func:`~amuled_ma.pipeline.run_pipeline` (plan, input checks, training, evaluation,
+report) and print its outcome.
+"""
 
 from __future__ import annotations
 
 import argparse
 import time
 from pathlib import Path
+from typing import Any
 
 from amuled_ma.commands import _experiment as common
 from amuled_ma.errors import AmuledError
-from amuled_ma.run_lock import run_folder_lock
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -111,129 +116,62 @@ def add_parallel_args(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _train_all(jobs: list, args: argparse.Namespace, hint: str) -> None:
-    """Train a job graph with the command line's ``--jobs`` and print one line per job."""
-    from amuled_ma.experiments.jobs import RayTarget, resolve_workers, run_jobs
+def ray_target(args: argparse.Namespace) -> Any:
+    """The command line's ``--ray`` / ``--ray-resource`` as a ``RayTarget`` (None: no Ray).
+
+    Raises:
+        AmuledError: ``--ray-resource`` without ``--ray``.
+
+    """
+    from amuled_ma.experiments.jobs import RayTarget
 
     if args.ray_resource and args.ray is None:
         raise AmuledError("--ray-resource needs --ray: it names a resource of a Ray cluster")
-    ray = None
-    if args.ray is not None:
-        ray = RayTarget(None if args.ray == LOCAL_RAY else args.ray, args.ray_resource)
-    workers = resolve_workers(args.jobs, jobs)
-    where = "" if ray is None else f" on Ray ({ray.address or 'local'})"
-    common.say(f"  {len(jobs)} training jobs, {workers} at a time{where}")
-    outcome = run_jobs(
-        jobs,
-        workers=workers,
+    if args.ray is None:
+        return None
+    return RayTarget(None if args.ray == LOCAL_RAY else args.ray, args.ray_resource)
+
+
+def request_of(args: argparse.Namespace, command: str, *extra: str) -> Any:
+    """The :class:`~amuled_ma.pipeline.PipelineRequest` of ``amuled run`` or ``ablate``."""
+    from amuled_ma.pipeline import PipelineRequest
+
+    scenario = common.load(args)
+    run_dir = common.run_dir_of(args, scenario)
+    return PipelineRequest(
+        scenario=scenario,
+        run_dir=run_dir,
+        ablation=getattr(args, "what", None),
+        seed=args.seed,
+        seeds=args.seeds,
+        episodes=args.episodes,
+        base=getattr(args, "base", None),
+        resume=args.resume,
+        force=args.force,
+        jobs=args.jobs,
+        ray=ray_target(args),
         progress=not args.no_progress,
-        hint=hint,
-        describe=common.describe,
-        ray=ray,
+        hint=common.command_line(command, args, run_dir, *extra),
     )
-    common.say(f"  training done in {outcome.wall_s:.1f} s on {outcome.workers} worker(s)")
 
 
 def run_command(args: argparse.Namespace) -> int:
-    """Run ``amuled run``."""
-    from amuled_ma.evaluate.evaluator import evaluate_run
-    from amuled_ma.evaluate.report import write_report
-    from amuled_ma.experiments.plans import MAIN_VARIANTS, plan_run, training_seeds
-    from amuled_ma.experiments.run_folder import write_config
+    """Run ``amuled run``: the pipeline of the paper's main comparison, then its summary."""
+    from amuled_ma import pipeline
 
     start = time.perf_counter()
-    scenario = common.load(args)
-    run_dir = common.run_dir_of(args, scenario)
-    with run_folder_lock(run_dir):
-        seeds = training_seeds(scenario, args.seed, args.seeds)
-        hint = common.command_line("run", args, run_dir)
-        base = args.base
-        imported = Path(scenario.output.runs_dir) / "authors" / scenario.task.name / "base"
-        if base is None and scenario.finetune.recipe == "authors":
-            if (imported / "model_last.pt").is_file():
-                base = imported
-                common.say(f"  fine-tunes start from the authors' imported base {imported}")
-            else:
-                common.say(
-                    f"  fine-tunes start from this run's own bases (no imported authors' base "
-                    f"at {imported}; 'amuled import authors PATH' makes one)"
-                )
-        jobs = plan_run(scenario, run_dir, seeds, resume=args.resume, force=args.force, base=base)
-        variants = [str(v) for v in MAIN_VARIANTS]
-        write_config(run_dir, scenario, {"variants": variants, "seeds": seeds})
-        common.say(f"run {scenario.name} -> {run_dir}")
-        _train_all(jobs, args, hint)
-        results = evaluate_run(
-            run_dir, scenario, episodes=args.episodes, progress=not args.no_progress
-        )
-        report = write_report(
-            run_dir, results, title=f"{scenario.name}: the paper's main comparison"
-        )
-        greedy = {k: v.get("greedy", {}).get("metrics", {}) for k, v in results["variants"].items()}
-        common.say(_summary_line(scenario.task.name, greedy))
-        common.say(
-            f"run {scenario.name}: {len(MAIN_VARIANTS)} variants x {len(seeds)} seed(s) done in "
-            f"{time.perf_counter() - start:.1f} s; report {report}"
-        )
-        return 0
-
-
-def _summary_line(task: str, greedy: dict) -> str:
-    from amuled_ma.evaluate.evaluator import PAPER_METRICS
-
-    parts = []
-    for name, metrics in greedy.items():
-        cells = [
-            f"{m}={metrics[m]['mean']:.2f}" for m in PAPER_METRICS.get(task, []) if m in metrics
-        ]
-        parts.append(f"{name}[{', '.join(cells)}]")
-    return "  greedy: " + "; ".join(parts)
+    request = request_of(args, "run")
+    outcome = pipeline.run_pipeline(request, say=common.say)
+    common.say_outcome(request, outcome, time.perf_counter() - start)
+    return 0
 
 
 def ablate_command(args: argparse.Namespace) -> int:
-    """Run ``amuled ablate``."""
-    from amuled_ma.evaluate.evaluator import evaluate_run
-    from amuled_ma.evaluate.report import write_report
-    from amuled_ma.experiments.plans import ablation_variants, plan_ablation, training_seeds
-    from amuled_ma.experiments.run_folder import write_config
+    """Run ``amuled ablate``: the pipeline of one ablation."""
+    from amuled_ma import pipeline
 
     start = time.perf_counter()
-    scenario = common.load(args)
-    run_dir = common.run_dir_of(args, scenario)
-    with run_folder_lock(run_dir):
-        out = run_dir / f"ablate-{args.what}"
-        seeds = training_seeds(scenario, args.seed, args.seeds)
-        hint = common.command_line("ablate", args, run_dir, "--what", args.what)
-        variants = [variant.folder for variant, _ in ablation_variants(args.what, scenario)]
-        jobs = plan_ablation(
-            args.what, scenario, run_dir, seeds, resume=args.resume, force=args.force
-        )
-        # the run's folders an ablation evaluates with its own: the bases, and fine-tunes the
-        # run already finished with the same settings (not trained again)
-        shared = [job.out_dir.name for job in jobs if job.out_dir.parent == run_dir]
-        write_config(
-            out,
-            scenario,
-            {"ablation": args.what, "variants": variants, "seeds": seeds, "shared": shared},
-        )
-        common.say(
-            f"ablate {scenario.name} --what {args.what}: {len(variants)} fine-tunes x "
-            f"{len(seeds)} seed(s) -> {out}"
-        )
-        _train_all(jobs, args, hint)
-        results = evaluate_run(
-            out,
-            scenario,
-            episodes=args.episodes,
-            progress=not args.no_progress,
-            extra_dirs=[run_dir / name for name in shared],
-        )
-        report = write_report(
-            out, results, title=f"{scenario.name}: ablation of {args.what}", ablation=args.what
-        )
-        common.say(
-            f"ablate {scenario.name} --what {args.what}: {len(variants)} variants x "
-            f"{len(seeds)} seed(s) done in "
-            f"{time.perf_counter() - start:.1f} s; report {report}"
-        )
-        return 0
+    request = request_of(args, "ablate", "--what", args.what)
+    outcome = pipeline.run_pipeline(request, say=common.say)
+    common.say_outcome(request, outcome, time.perf_counter() - start)
+    return 0

@@ -8,9 +8,9 @@ import time
 from pathlib import Path
 
 from amuled_ma.commands import _experiment as common
-from amuled_ma.learn.variants import Variant
 from amuled_ma.run_lock import run_folder_lock
 from amuled_ma.scenario import check_path_component
+from amuled_ma.variants import Variant
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -83,20 +83,28 @@ def train_command(args: argparse.Namespace) -> int:
 
 def finetune_command(args: argparse.Namespace) -> int:
     """Run ``amuled finetune``."""
+    from amuled_ma.experiments.plans import check_inputs  # here: it imports torch
+
     scenario = common.load(args)
     run_dir = common.run_dir_of(args, scenario)
+    start = time.perf_counter()
+    base: dict = {}
+    if args.name is not None:
+        scenario = scenario.replace("feedback", name=args.name)
+    if scenario.feedback.name:
+        check_path_component(scenario.feedback.name, "--name (or [feedback].name)")
+    variant = Variant.finetune(args.feedback, label=scenario.feedback.name or None)
+    if args.base is not None:
+        base.update(base_dir=args.base.parent, base_variant=args.base.name)
+    # the preflight: every panel member can answer and the base exists, before any folder
+    check_inputs(
+        scenario, variant, Path(base.get("base_dir") or run_dir), base.get("base_variant", "base")
+    )
     with run_folder_lock(run_dir):
         hint = common.command_line("finetune", args, run_dir, "--feedback", args.feedback)
-        start = time.perf_counter()
-        base: dict = {}
         if args.name is not None:
-            scenario = scenario.replace("feedback", name=args.name)
             hint += " --name " + shlex.quote(args.name)
-        if scenario.feedback.name:
-            check_path_component(scenario.feedback.name, "--name (or [feedback].name)")
-        variant = Variant.finetune(args.feedback, label=scenario.feedback.name or None)
         if args.base is not None:
-            base.update(base_dir=args.base.parent, base_variant=args.base.name)
             hint += " --base " + shlex.quote(str(args.base))
         job = common.train_job(scenario, run_dir, variant, args, hint, **base)
         common.say(

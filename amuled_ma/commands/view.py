@@ -41,6 +41,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="evaluation episode K, seeded [evaluation].seed + K (default 0)",
     )
     parser.add_argument(
+        "--episodes",
+        type=common.bounded_int(1),
+        default=None,
+        metavar="N",
+        help="the evaluation's episodes per policy, whose K-th is replayed (sampled draws "
+        "depend on it; default: the run's results.json, else [evaluation].episodes)",
+    )
+    parser.add_argument(
         "--mode",
         choices=("greedy", "sampled"),
         default="greedy",
@@ -74,17 +82,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def view_command(args: argparse.Namespace) -> int:
     """Run ``amuled view``."""
-    from amuled_ma.evaluate.viewer import serve, write_view
+    from amuled_ma.evaluate.page_server import serve
+    from amuled_ma.evaluate.viewer import write_view
+    from amuled_ma.experiments.trained_variants import run_to_view
 
     run_dir = Path(args.run_dir)
-    common.scenario_of_run(run_dir)  # a clear error when RUN_DIR is no run
-    common.say(f"view {run_dir}: episode {args.episode}, {args.mode} actions")
+    view = run_to_view(run_dir, args.variants, args.episodes)
+    common.say(f"view {run_dir}: episode {args.episode} of {view.episodes}, {args.mode} actions")
     result = write_view(
         run_dir,
+        view.scenario,
+        view.variants,
         args.output,
-        variants=args.variants,
         episode=args.episode,
         mode=args.mode,
+        episodes=view.episodes,
         say=common.say,
     )
     common.say(

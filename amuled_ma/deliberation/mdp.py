@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 #: ``(observations [N, obs_dim], task) -> fused beliefs [N, A]``: a learner's feedback
-#: (:class:`~amuled_ma.deliberation.feedback.Feedback`) or any callable of that shape.
+#: (:class:`~amuled_ma.deliberation.feedback_base.Feedback`) or any callable of that shape.
 FeedbackFn = Callable[[torch.Tensor, Any], Any]
 
 

@@ -10,8 +10,7 @@
 For a batch it
 
 1. deduplicates the env copies by state (observation bytes + prompt variables): many
-   copies share a state, and repeated states are answered from an in-memory LRU of fused
-   rows without rendering, hashing or touching SQLite;
+   copies share a state, and each distinct state is asked once;
 2. for each new state renders the state prompt
    (:func:`amuled_ma.tasks.prompts.render_state_prompt`) and builds each cluster's chat
    (:func:`amuled_ma.clusters.build_messages`), unless the source reads no messages;
@@ -30,21 +29,21 @@ For a batch it
    distilled model's belief (``distilled``, ``distilled_miss``,
    :data:`~amuled_ma.beliefs.types.MODEL_STATUSES`) is an answer here.
 
-Only rows whose every cluster answered ``ok``/``repaired`` enter the LRU, so a state that
-got a fallback belief is asked again next time (the store's policy, one level up), and so
-is a state a distilled model answered (it answers again after its next refit).
+The panel keeps no cache of its own: the learner's
+:class:`~amuled_ma.deliberation.feedback_base.Feedback` memoises each state's answer in front
+of it, and the belief store answers every request asked before (``docs/beliefs.md``,
+"Caches": one in-memory cache, measured).
 """
 
 from __future__ import annotations
 
-from collections import Counter, OrderedDict
+from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from amuled_ma.beliefs.rows import CACHEABLE
 from amuled_ma.beliefs.types import FUSED_STATUSES, BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.beliefs.validate import check_belief, check_beliefs, show_values
 from amuled_ma.deliberation.state_key import freeze
@@ -68,7 +67,6 @@ class PanelOutput:
         conflicts: ``(N, K - 1)`` conflict at each combination (empty for other rules).
         statuses: ``(N, K)`` status of each belief (``"ok"``, ``"repaired"``, ...).
         unique: Number of distinct states in the batch.
-        cache_hits: Distinct states answered from the panel's LRU.
 
     """
 
@@ -79,7 +77,6 @@ class PanelOutput:
     conflicts: np.ndarray
     statuses: np.ndarray
     unique: int = 0
-    cache_hits: int = 0
 
     def reward(self, actions: Any) -> np.ndarray:
         """Return ``fused[i, actions[i]]``: the shaping reward of the actions taken.
@@ -103,7 +100,6 @@ class PanelStats:
         calls: Calls to :meth:`MoralPanel.fused`.
         copies: Env copies seen.
         unique: Distinct states seen (per call).
-        lru_hits: Distinct states answered from the LRU.
         requests: Belief requests sent to the source (K per new state).
         fallbacks: Beliefs that were not answers (status other than ``ok``/``repaired``
             and a distilled model's ``distilled``/``distilled_miss``).
@@ -117,7 +113,6 @@ class PanelStats:
     calls: int = 0
     copies: int = 0
     unique: int = 0
-    lru_hits: int = 0
     requests: int = 0
     fallbacks: int = 0
     by_status: dict[str, int] = field(default_factory=dict)
@@ -145,8 +140,6 @@ class MoralPanel:
             ``action_names``.
         with_messages: Render prompts and build chats; default: the source's
             ``needs_messages`` attribute (True when it has none).
-        memory_size: Fused states kept in the in-memory LRU (0 disables it); about
-            0.8 kB each for 5 clusters and 4 actions.
         render_state_prompt: ``(task_name, variables) -> str``; default
             :func:`amuled_ma.tasks.prompts.render_state_prompt`.
         build_messages: ``(cluster, task_name, state_prompt) -> messages``; default
@@ -163,7 +156,6 @@ class MoralPanel:
         *,
         action_names: Sequence[str] | None = None,
         with_messages: bool | None = None,
-        memory_size: int = 100_000,
         render_state_prompt: Callable[[str, Mapping[str, Any]], str] | None = None,
         build_messages: Callable[[Any, str, str], Messages] | None = None,
     ) -> None:
@@ -184,12 +176,9 @@ class MoralPanel:
         if with_messages is None:
             with_messages = bool(getattr(source, "needs_messages", True))
         self.with_messages = with_messages
-        self.memory_size = int(memory_size)
         self._render = render_state_prompt
         self._build = build_messages
         self._templates: list[Messages] | None = None
-        # state key -> (packed row [beliefs K*A | fused A | weights K | conflicts K-1], statuses)
-        self._lru: OrderedDict[bytes, tuple[np.ndarray, tuple[str, ...]]] = OrderedDict()
         self.stats = PanelStats()
         from amuled_ma.fusion import fuse
 
@@ -207,10 +196,6 @@ class MoralPanel:
     def num_actions(self) -> int:
         """Number of actions ``A``."""
         return len(self.action_names)
-
-    def clear_cache(self) -> None:
-        """Empty the in-memory LRU of fused states."""
-        self._lru.clear()
 
     # -- prompts ---------------------------------------------------------------------
     def state_prompt(self, variables: Mapping[str, Any]) -> str:
@@ -306,45 +291,17 @@ class MoralPanel:
                 u = first[key] = len(first_index)
                 first_index.append(i)
             inverse[i] = u
-        unique_keys = list(first)
+        u_count = len(first_index)
 
-        u_count = len(unique_keys)
+        # 2. one batch of requests, one per (distinct state, cluster)
         beliefs = np.empty((u_count, k, a))
+        statuses = np.empty((u_count, k), dtype=object)
         fused = np.empty((u_count, a))
         weights = np.empty((u_count, k))
         conflicts = np.zeros((u_count, max(k - 1, 0)))
-        statuses = np.empty((u_count, k), dtype=object)
-
-        # 2. LRU of fused states
-        todo: list[int] = []
-        hit_rows: list[int] = []
-        hit_entries: list[tuple[np.ndarray, tuple[str, ...]]] = []
-        lru = self._lru
-        for u, key in enumerate(unique_keys):
-            hit = lru.get(key) if self.memory_size > 0 else None
-            if hit is None:
-                todo.append(u)
-                continue
-            lru.move_to_end(key)
-            hit_rows.append(u)
-            hit_entries.append(hit)
-        hits = len(hit_rows)
-        if hits:
-            packed = np.stack([e[0] for e in hit_entries])
-            rows_ = np.asarray(hit_rows, dtype=np.int64)
-            ka = k * a
-            beliefs[rows_] = packed[:, :ka].reshape(hits, k, a)
-            fused[rows_] = packed[:, ka : ka + a]
-            weights[rows_] = packed[:, ka + a : ka + a + k]
-            conflicts[rows_] = packed[:, ka + a + k :]
-            for u, (_, sts) in zip(hit_rows, hit_entries, strict=True):
-                statuses[u] = sts
-
-        # 3. one batch of requests for the new states
-        if todo:
+        if u_count:
             requests: list[BeliefRequest] = []
-            for u in todo:
-                i = first_index[u]
+            for i in first_index:
                 obs_t = tuple(float(x) for x in rows[i])
                 state = ""
                 if self.with_messages:
@@ -367,19 +324,13 @@ class MoralPanel:
                     f"belief source {getattr(self.source, 'name', '?')!r} answered "
                     f"{len(results)} results for {len(requests)} requests"
                 )
-            new_b, new_s = self._collect(results, len(todo))
-            idx = np.asarray(todo, dtype=np.int64)
-            beliefs[idx] = new_b
-            statuses[idx] = new_s
-            fused[idx], weights[idx], conflicts[idx] = self._fuse_answers(new_b, new_s)
-            self._remember([unique_keys[u] for u in todo], idx, beliefs, fused, weights,
-                           conflicts, statuses)  # fmt: skip
+            beliefs, statuses = self._collect(results, u_count)
+            fused, weights, conflicts = self._fuse_answers(beliefs, statuses)
 
         st = self.stats
         st.calls += 1
         st.copies += n
         st.unique += u_count
-        st.lru_hits += hits
 
         conflict = conflicts[:, 0] if k > 1 else np.zeros(u_count)
         return PanelOutput(
@@ -390,7 +341,6 @@ class MoralPanel:
             conflicts=conflicts[inverse],
             statuses=statuses[inverse].astype(str),
             unique=u_count,
-            cache_hits=hits,
         )
 
     def _fuse_answers(
@@ -470,29 +420,6 @@ class MoralPanel:
             if status not in FUSED_STATUSES:
                 st.fallbacks += n
         return out.reshape(count, k, a), statuses.reshape(count, k)
-
-    def _remember(
-        self,
-        keys: list[bytes],
-        idx: np.ndarray,
-        beliefs: np.ndarray,
-        fused: np.ndarray,
-        weights: np.ndarray,
-        conflicts: np.ndarray,
-        statuses: np.ndarray,
-    ) -> None:
-        if self.memory_size <= 0:
-            return
-        n = len(idx)
-        packed = np.concatenate(
-            [beliefs[idx].reshape(n, -1), fused[idx], weights[idx], conflicts[idx]], axis=1
-        )
-        for j, (key, u) in enumerate(zip(keys, idx, strict=True)):
-            sts = tuple(statuses[u])
-            if all(s in CACHEABLE for s in sts):
-                self._lru[key] = (packed[j].copy(), sts)
-        while len(self._lru) > self.memory_size:
-            self._lru.popitem(last=False)
 
 
 def _cluster_name(cluster: Any) -> str:

@@ -173,32 +173,66 @@ class BudgetLedger:
         return {"budget": self.budget, "visited": sorted(self.visited), "asked": list(self.asked)}
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any], where: str = "budget state") -> BudgetLedger:
-        """Rebuild a ledger from :meth:`to_dict`.
+    def from_dict(
+        cls,
+        data: Mapping[str, Any],
+        where: str = "budget state",
+        budget: float | int | None = None,
+    ) -> BudgetLedger:
+        """Rebuild a ledger from :meth:`to_dict`, under the scenario's budget.
+
+        Args:
+            data: What :meth:`to_dict` gave (read from a state file).
+            where: What to name in an error (the file).
+            budget: The scenario's budget: the ledger's must be the same (a state file
+                edited to raise it is refused). None: the ledger's own (tests).
 
         Raises:
-            AmuledError: The data is malformed or breaks the invariant (an asked state
-                not visited, or more asked than the budget allows): ``where`` is named.
+            AmuledError: The data is malformed (keys not strings, a budget of another
+                value or type than the scenario's) or breaks the invariant (an asked state
+                not visited, asked twice, or more asked than the budget allows): ``where``
+                is named, and ``--force``.
 
         """
+        if not isinstance(data, Mapping):
+            raise AmuledError(f"{where}: 'ledger' is not a table; start over with --force")
+        saved = data.get("budget")
+        if budget is not None and (type(saved) is not type(budget) or saved != budget):
+            raise AmuledError(
+                f"{where}: ledger.budget is {saved!r} but the scenario's [feedback.distill]."
+                f"budget is {budget!r} (the file was edited or is another run's); start the "
+                "fine-tune over with --force"
+            )
+        visited, asked = data.get("visited"), data.get("asked")
+        if not (
+            isinstance(visited, list)
+            and isinstance(asked, list)
+            and all(type(k) is str for k in visited)
+            and all(type(k) is str for k in asked)
+        ):
+            raise AmuledError(
+                f"{where}: ledger.visited and ledger.asked must be lists of state keys "
+                "(strings); start over with --force"
+            )
         try:
-            ledger = cls(data["budget"])
-            visited = [str(k) for k in data["visited"]]
-            asked = [str(k) for k in data["asked"]]
-        except (KeyError, TypeError, AmuledError) as error:
+            ledger = cls(saved if budget is None else budget)
+        except AmuledError as error:
             raise AmuledError(
                 f"{where}: not a budget state ({error}); start over with --force"
             ) from error
         ledger.visited = set(visited)
+        if len(ledger.visited) != len(visited):
+            raise AmuledError(f"{where}: a state visited twice; start over with --force")
         if len(set(asked)) != len(asked) or not set(asked) <= ledger.visited:
             raise AmuledError(
-                f"{where}: asked states that were not visited; start over with --force"
+                f"{where}: asked states that were not visited, or asked twice; start over "
+                "with --force"
             )
         if len(asked) > ledger.cap():
             raise AmuledError(
                 f"{where}: {len(asked)} states asked but the budget {ledger.budget!r} allows "
                 f"{ledger.cap()} of {len(visited)} visited; start over with --force"
             )
-        ledger.asked = asked
+        ledger.asked = list(asked)
         ledger._asked = set(asked)
         return ledger

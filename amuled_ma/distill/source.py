@@ -3,7 +3,7 @@
 :class:`DistilledSource` wraps the panel's belief source (the
 :class:`~amuled_ma.beliefs.cached.CachedSource` or
 :class:`~amuled_ma.beliefs.routing.RoutedSource` that
-:func:`amuled_ma.deliberation.feedback.make_source` builds) and is itself a
+:func:`amuled_ma.deliberation.build.make_source` builds) and is itself a
 :class:`~amuled_ma.beliefs.types.BeliefSource`. The moral panel hands it one batch of
 requests, one per (state, member). For a batch it
 
@@ -62,7 +62,7 @@ from amuled_ma.distill.selection import (
     choose_uncertain,
     disagreement,
 )
-from amuled_ma.distill.state import SAVE_EVERY_S, StateFiles
+from amuled_ma.distill.state import SAVE_EVERY_S, StateFiles, check_counters
 from amuled_ma.errors import AmuledError
 
 #: Status of a belief the model gave for a state that was not asked (``"distilled"``), and
@@ -98,6 +98,10 @@ class DistillStats:
     miss_answers: int = 0
     unasked_answers: int = 0
     refits: int = 0
+
+
+#: The counters of :class:`DistillStats` (a state file holds exactly these).
+_COUNTERS = tuple(DistillStats.__dataclass_fields__)
 
 
 @dataclass
@@ -670,8 +674,17 @@ class DistilledSource(BeliefSource):
                 f"{where} was written with other [feedback.distill] settings (saved -> now: "
                 f"{'; '.join(diffs)}); start the fine-tune over with --force"
             )
+        # the scenario's budget is the budget: the ledger's must be the same
+        self.ledger = BudgetLedger.from_dict(data.get("ledger"), where, budget=self.budget)
+        asked = self.ledger.asked_count
+        self.stats = DistillStats(**check_counters(data.get("counters"), _COUNTERS, asked, where))
+        generation = data.get("generation", 0)
+        if type(generation) is not int or not 0 <= generation <= asked:
+            raise AmuledError(
+                f"{where}: generation is {generation!r}, expected an integer in [0, {asked}] "
+                "(at most one fit per asked state); start the fine-tune over with --force"
+            )
         try:
-            self.ledger = BudgetLedger.from_dict(data["ledger"], where)
             self._asked_obs = {
                 str(k): tuple(float(x) for x in v) for k, v in data["asked_obs"].items()
             }
@@ -679,19 +692,25 @@ class DistilledSource(BeliefSource):
             self.task = data.get("task")
             self.actions = tuple(data["actions"]) if data.get("actions") is not None else None
             self.obs_dim = data.get("obs_dim")
-            generation = int(data.get("generation", 0))
-            self.stats = DistillStats(**data.get("counters", {}))
             if data.get("rng"):
                 self._rng.bit_generator.state = data["rng"]
-        except (KeyError, TypeError, ValueError) as error:
+        except (KeyError, TypeError, ValueError, AttributeError) as error:
             raise AmuledError(
                 f"{where}: damaged budget state ({error!r}); start the fine-tune over with --force"
             ) from error
+        if set(self._asked_obs) != set(self.ledger.asked):
+            raise AmuledError(
+                f"{where}: asked_obs and ledger.asked name different states; start the "
+                "fine-tune over with --force"
+            )
         order = {key: n for n, key in enumerate(self.ledger.asked)}
         for record in files.read_examples():
             key = str(record.get("key"))
-            if key not in order:
-                continue  # not in the ledger: never charged, so not learned from
+            if key not in order:  # written only after the ledger charged it: edited
+                raise AmuledError(
+                    f"{files.examples}: answers of state {key[:16]}, which {where} never "
+                    "asked (one of the files was edited); start the fine-tune over with --force"
+                )
             beliefs = {
                 str(m): np.asarray(b, dtype=np.float64)
                 for m, b in (record.get("beliefs") or {}).items()

@@ -37,6 +37,51 @@ EXAMPLES_FILE = "distill-examples.jsonl"
 FORMAT = "amuled-distill/1"
 #: Seconds between two writes of the ledger when no state was asked.
 SAVE_EVERY_S = 5.0
+#: Largest counter a state file may hold (2**53: exact in JSON's doubles).
+MAX_COUNTER = 2**53
+
+
+def check_counters(counters: Any, names: Iterable[str], asked: int, where: str) -> dict[str, int]:
+    """The ``counters`` of a state file, checked: integers in ``[0, 2**53]``, consistent.
+
+    Args:
+        counters: The file's ``counters`` table.
+        names: The counters expected (:class:`~amuled_ma.distill.source.DistillStats`).
+        asked: States asked (the ledger's): no more refits than that.
+        where: The file, named in an error.
+
+    Returns:
+        The counters.
+
+    Raises:
+        AmuledError: A counter missing, unknown, not an integer (a string, a float, a
+            bool), negative or above :data:`MAX_COUNTER`, more requests sent than
+            forwarded, or more refits than asked states: one line naming the file and
+            ``--force``.
+
+    """
+    names = list(names)
+    fix = "the file was edited or damaged; start the fine-tune over with --force"
+    if not isinstance(counters, Mapping) or set(counters) != set(names):
+        raise AmuledError(f"{where}: 'counters' must hold {', '.join(names)}; {fix}")
+    for name in names:
+        value = counters[name]
+        if type(value) is not int or not 0 <= value <= MAX_COUNTER:
+            raise AmuledError(
+                f"{where}: counters.{name} is {value!r}, expected an integer in "
+                f"[0, {MAX_COUNTER}]; {fix}"
+            )
+    if counters.get("requests_sent", 0) > counters.get("requests_forwarded", 0):
+        raise AmuledError(
+            f"{where}: counters.requests_sent ({counters['requests_sent']}) exceeds "
+            f"counters.requests_forwarded ({counters['requests_forwarded']}); {fix}"
+        )
+    if counters.get("refits", 0) > asked:
+        raise AmuledError(
+            f"{where}: counters.refits ({counters['refits']}) exceeds the {asked} states "
+            f"asked; {fix}"
+        )
+    return {name: int(counters[name]) for name in names}
 
 
 class StateFiles:

@@ -9,11 +9,9 @@ own (``info["episode"]``): FindMilk ``steps_to_milk``, ``crying_pacified``,
 
 from __future__ import annotations
 
-import csv
 import json
-import math
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -22,26 +20,19 @@ import torch
 
 from amuled_ma.beliefs.types import FUSED_STATUSES
 from amuled_ma.errors import CheckpointError, ScenarioError
+from amuled_ma.evaluate.results import Results, write_results
+from amuled_ma.evaluate.rollout import TrajectoryRecorder, rollout
 from amuled_ma.evaluate.stats import mean_ci
-from amuled_ma.experiments.run_folder import split_replica
 from amuled_ma.learn.checkpoints import LAST
-from amuled_ma.learn.policies import action_log_probs, load_policy
-from amuled_ma.learn.variants import Variant
+from amuled_ma.learn.policies import load_policy
+from amuled_ma.records import RunRecord
 from amuled_ma.scenario import Scenario
-from amuled_ma.tasks import make_task
-
-#: Keys of ``info["episode"]`` that are book-keeping, not metrics.
-_SKIP = {"done", "return"}
 
 #: The paper's metrics per task, in report order (others follow alphabetically).
 PAPER_METRICS = {
     "findmilk": ["steps_to_milk", "crying_pacified", "sleeping_woken", "reached_milk"],
     "driving": ["collisions", "rescues", "lane_changes"],
 }
-
-
-def _to_float(value: Any) -> float:
-    return float(value.item() if hasattr(value, "item") else value)
 
 
 def run_episodes(
@@ -54,7 +45,7 @@ def run_episodes(
     task_factory: Callable[..., Any] | None = None,
     record_trajectory: bool = True,
 ) -> tuple[list[dict[str, float]], dict[str, Any]]:
-    """Run ``episodes`` episodes of a policy.
+    """Run ``episodes`` episodes of a policy (:func:`~amuled_ma.evaluate.rollout.rollout`).
 
     Args:
         actor: An rsl-rl actor with our categorical head.
@@ -66,53 +57,22 @@ def run_episodes(
         record_trajectory: Record copy 0's first episode for pictures.
 
     Returns:
-        One metrics dict per episode and the trajectory of copy 0.
+        One metrics dict per episode and the trajectory of copy 0 (empty lists without
+        ``record_trajectory``).
 
     """
-    task = (task_factory or make_task)(scenario, episodes, shaping_coef=0.0, seed=seed)
-    obs = torch.as_tensor(task.reset()).float()
-    gen = torch.Generator().manual_seed(seed)
-    done_once = torch.zeros(episodes, dtype=torch.bool)
-    records: list[dict[str, float] | None] = [None] * episodes
-    trajectory: dict[str, Any] = {"obs": [obs[0].tolist()], "actions": [], "events": {}}
-    if hasattr(task, "baby_positions"):
-        trajectory["layout"] = task.baby_positions(0)
-    limit = int(getattr(task, "max_steps", 1000)) + 1
-    with torch.inference_mode():
-        for _ in range(limit):
-            logp = action_log_probs(actor, obs)
-            if mode == "greedy":
-                actions = logp.argmax(dim=-1)
-            else:
-                actions = torch.multinomial(logp.exp(), 1, generator=gen).squeeze(-1)
-            obs, _, terminated, truncated, info = task.step(actions)
-            obs = torch.as_tensor(obs).float()
-            done = torch.as_tensor(terminated) | torch.as_tensor(truncated)
-            if record_trajectory and not bool(done_once[0]):
-                trajectory["actions"].append(int(actions[0]))
-                final = info.get("final_obs", obs)
-                trajectory["obs"].append(torch.as_tensor(final)[0].tolist())
-                for key, value in info.items():
-                    if key in ("final_obs", "episode") or not torch.is_tensor(value):
-                        continue
-                    if value.dim() == 1 and value.numel() == episodes:
-                        trajectory["events"].setdefault(key, []).append(_to_float(value[0]))
-            new = done & ~done_once
-            if bool(new.any()):
-                episode = info.get("episode", {})
-                for i in new.nonzero().squeeze(-1).tolist():
-                    rec: dict[str, float] = {}
-                    for key, value in episode.items():
-                        if key in _SKIP:
-                            continue
-                        tensor = torch.as_tensor(value)
-                        if tensor.dim() >= 1 and tensor.numel() == episodes:
-                            rec[key] = _to_float(tensor[i])
-                    rec["terminated"] = float(bool(torch.as_tensor(terminated)[i]))
-                    records[i] = rec
-                done_once |= new
-            if bool(done_once.all()):
-                break
+    recorder = TrajectoryRecorder(0) if record_trajectory else None
+    records = rollout(
+        actor,
+        scenario,
+        episodes=episodes,
+        mode=mode,
+        seed=seed,
+        task_factory=task_factory,
+        observers=(recorder,) if recorder is not None else (),
+    )
+    empty: dict[str, Any] = {"obs": [], "actions": [], "events": {}}
+    trajectory = recorder.trajectory if recorder is not None else empty
     return [r for r in records if r is not None], trajectory
 
 
@@ -289,7 +249,8 @@ def evaluate_run(
     task_factory: Callable[..., Any] | None = None,
     progress: bool = False,
     extra_dirs: list[Path] | None = None,
-) -> dict[str, Any]:
+    records: Mapping[str, RunRecord] | None = None,
+) -> Results:
     """Evaluate every trained variant of a run; write ``results.json`` and ``results.csv``.
 
     Args:
@@ -297,14 +258,17 @@ def evaluate_run(
         scenario: The run's scenario.
         episodes: Episodes per variant and mode (default: the scenario's).
         modes: ``greedy`` and/or ``sampled`` (default: the scenario's).
-        variants: Only these variants (folder names; a name takes its seed replicas along).
+        variants: Only these variants (their names; a name takes its seed replicas along).
         task_factory: Replaces :func:`~amuled_ma.tasks.make_task`.
         progress: Show a progress bar.
         extra_dirs: Further variant folders evaluated alongside (an ablation's base).
+        records: ``{folder name: record}`` of the variant folders
+            (:func:`~amuled_ma.experiments.run_folder.variant_records`): a folder's
+            variant name (its seed replicas grouped under it) and, for a fine-tune, what it
+            was trained on come from its record; a folder without one is named by itself.
 
     Returns:
-        The results: ``{"scenario", "episodes", "confidence", "variants": {name: {mode:
-        {"metrics": {metric: ci}, "trajectory": ...}}}}``.
+        The results (:class:`~amuled_ma.evaluate.results.Results`).
 
     Raises:
         CheckpointError: The run has no trained variant.
@@ -313,6 +277,7 @@ def evaluate_run(
     from tqdm.auto import tqdm
 
     run_dir = Path(run_dir)
+    records = records or {}
     ev = scenario.evaluation
     episodes = ev.episodes if episodes is None else episodes
     if episodes < 1:
@@ -321,8 +286,13 @@ def evaluate_run(
         )
     modes = modes or list(ev.modes)
     dirs = variant_dirs(run_dir)
+
+    def name_of(folder: Path) -> str:
+        record = records.get(folder.name)
+        return record.name if record is not None and record.name else folder.name
+
     if variants:
-        dirs = [d for d in dirs if d.name in variants or split_replica(d.name)[0] in variants]
+        dirs = [d for d in dirs if d.name in variants or name_of(d) in variants]
     extra = [Path(d) for d in extra_dirs or [] if (Path(d) / LAST).is_file()]
     dirs = [d for d in extra if d.name not in {x.name for x in dirs}] + dirs
     if not dirs:
@@ -340,17 +310,17 @@ def evaluate_run(
     }
     groups: dict[str, list[Path]] = {}
     for vdir in dirs:
-        groups.setdefault(split_replica(vdir.name)[0], []).append(vdir)
+        groups.setdefault(name_of(vdir), []).append(vdir)
     jobs = [(name, vdir, m) for name, members in groups.items() for vdir in members for m in modes]
     runs: dict[tuple[str, str], list[tuple[str, list, dict]]] = {}
     for name, vdir, mode in tqdm(
         jobs, desc="evaluate", unit="policy", disable=not progress, leave=False
     ):
         actor = load_policy(vdir / LAST, scenario)
-        records, trajectory = run_episodes(
+        records_, trajectory = run_episodes(
             actor, scenario, episodes=episodes, mode=mode, seed=ev.seed, task_factory=task_factory
         )
-        runs.setdefault((name, mode), []).append((vdir.name, records, trajectory))
+        runs.setdefault((name, mode), []).append((vdir.name, records_, trajectory))
     for (name, mode), replicas in runs.items():
         entry = results["variants"].setdefault(name, {})
         entry[mode] = combine_replicas(replicas, ev.confidence)
@@ -362,34 +332,29 @@ def evaluate_run(
         ]
         if summaries:
             results["variants"][name]["feedback"] = merge_feedback(summaries)
-        panel = panel_record(members[0])
+        record = records.get(members[0].name)
+        panel = panel_entry(record) if record is not None else None
         if panel is not None:
             results["variants"][name]["panel"] = panel
-    write_results(run_dir, results)
-    return results
+    typed = Results.model_validate(results)
+    write_results(run_dir, typed)
+    return typed
 
 
-def panel_record(variant_dir: Path) -> dict[str, Any] | None:
-    """What a fine-tune's feedback was: variant, recipe, lambda_KL, agents and their sources.
+def panel_entry(record: RunRecord) -> dict[str, Any] | None:
+    """What a fine-tune's feedback was, as ``results.json`` keeps it under ``"panel"``.
 
-    Read from the variant folder's ``config.json`` (``"training"``); None for a base
-    policy or a folder without recorded settings.
+    From the variant folder's record: the variant's feedback, the recipe, lambda_KL, the
+    planned iterations and seed, and (from its ``training`` settings) the agents, their
+    sources, the recording and the fusion rule; None for a folder that is no fine-tune.
     """
-    path = Path(variant_dir) / "config.json"
-    try:
-        config = json.loads(path.read_text())
-    except (OSError, ValueError):
+    variant = record.variant
+    if variant is None or not variant.finetuning:
         return None
-    training = config.get("training") or {}
-    try:
-        variant = Variant.parse(str(training.get("variant", "")))
-    except ScenarioError:
-        return None
-    if not variant.finetuning:
-        return None
+    training = record.training or {}
     finetune = training.get("finetune") or {}
     feedback = training.get("feedback") or {}
-    record: dict[str, Any] = {
+    entry: dict[str, Any] = {
         "feedback": variant.feedback,
         "recipe": finetune.get("recipe", "equation"),
         "lambda_kl": finetune.get("lambda_kl"),
@@ -397,7 +362,7 @@ def panel_record(variant_dir: Path) -> dict[str, Any] | None:
         "seed": training.get("seed"),
     }
     if feedback:
-        record.update(
+        entry.update(
             agents=list(feedback.get("clusters") or []),
             source=feedback.get("source"),
             model=feedback.get("model"),
@@ -407,57 +372,12 @@ def panel_record(variant_dir: Path) -> dict[str, Any] | None:
             clusters_dirs=list(feedback.get("clusters_dirs") or []),
         )
     if feedback.get("distill"):
-        record["distill"] = feedback["distill"]
+        entry["distill"] = feedback["distill"]
     if training.get("inputs"):
-        record["inputs"] = training["inputs"]
-    if config.get("base_checkpoint"):
-        record["base_checkpoint"] = config["base_checkpoint"]
-    return record
-
-
-def _clean(value: Any) -> Any:
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _clean(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_clean(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
-
-
-def write_results(run_dir: Path, results: dict[str, Any]) -> tuple[Path, Path]:
-    """Write ``results.json`` (everything) and ``results.csv`` (a row per variant/mode/metric)."""
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    json_path = run_dir / "results.json"
-    json_path.write_text(json.dumps(_clean(results), indent=1))
-    csv_path = run_dir / "results.csv"
-    with csv_path.open("w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(
-            ["variant", "mode", "metric", "mean", "ci_low", "ci_high", "std", "n", "ci_over"]
-        )
-        for variant, entry in results["variants"].items():
-            for mode, data in entry.items():
-                if mode in ("feedback", "panel"):
-                    continue
-                for metric, s in data["metrics"].items():
-                    writer.writerow(
-                        [
-                            variant,
-                            mode,
-                            metric,
-                            s["mean"],
-                            s["ci_low"],
-                            s["ci_high"],
-                            s["std"],
-                            s["n"],
-                            data.get("ci_over", "episodes"),
-                        ]
-                    )
-    return json_path, csv_path
+        entry["inputs"] = training["inputs"]
+    if record.base_checkpoint:
+        entry["base_checkpoint"] = record.base_checkpoint
+    return entry
 
 
 def metric_order(task: str, metrics: list[str]) -> list[str]:

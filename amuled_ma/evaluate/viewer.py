@@ -13,8 +13,8 @@ disagreements to jump to. Keyboard: ArrowLeft/ArrowRight, Home/End, PageUp/PageD
 The page is one file: its CSS, script and data are inline, and a strict
 Content-Security-Policy (``default-src 'none'``, the inline script and style allowed by
 their SHA-256 hashes) lets it load nothing and send nothing, so it works from a
-``file://`` URL offline. ``serve`` shows it on ``127.0.0.1`` when a browser cannot open
-files.
+``file://`` URL offline. :func:`amuled_ma.evaluate.page_server.serve` shows it on
+``127.0.0.1`` when a browser cannot open files.
 
 The data are compact: probabilities rounded to 4 decimals, each distinct state's beliefs
 once (steps point at their state), each text (raw reply, state prompt) once.
@@ -25,9 +25,7 @@ from __future__ import annotations
 import base64
 import hashlib
 import html
-import http.server
 import json
-import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -36,8 +34,10 @@ from typing import Any
 
 import numpy as np
 
-from amuled_ma.errors import AmuledError, CheckpointError
+from amuled_ma.errors import AmuledError
 from amuled_ma.evaluate import episode_trace as trace
+from amuled_ma.evaluate.panel_answers import PanelAnswers, ask_panel
+from amuled_ma.evaluate.readonly_feedback import describe_feedback, open_feedback
 
 #: Decimals kept for probabilities, weights and conflicts in the page.
 DECIMALS = 4
@@ -120,92 +120,49 @@ def _compact_number(value: float) -> int | float:
     return int(value) if float(value).is_integer() else round(float(value), DECIMALS)
 
 
-def choose_variants(run_dir: Path, names: Sequence[str] | None = None) -> list[Path]:
-    """The variant folders to show: the named ones, else every fine-tuned variant.
-
-    Without names, a variant's seed replicas (``<name>.seed<k>``) are left out (its first
-    replica is shown); name a replica folder to see it.
-
-    Raises:
-        CheckpointError: A named folder has no checkpoint, or the run has no fine-tuned
-            variant; the message lists the variants found.
-
-    """
-    from amuled_ma.evaluate.evaluator import variant_dirs
-    from amuled_ma.experiments.run_folder import split_replica
-
-    run_dir = Path(run_dir)
-    found = variant_dirs(run_dir)
-    listing = ", ".join(d.name for d in found) or "none"
-    if names:
-        chosen = []
-        for name in names:
-            folder = run_dir / name
-            if not (folder / trace.LAST).is_file():
-                raise CheckpointError(
-                    f"{run_dir}: no trained variant {name!r} (no {folder / trace.LAST}); "
-                    f"variants found: {listing}"
-                )
-            chosen.append(folder)
-        return chosen
-    chosen = [
-        d
-        for d in found
-        if trace.feedback_variant(d) is not None and split_replica(d.name)[1] is None
-    ]
-    if not chosen:
-        raise CheckpointError(
-            f"{run_dir}: no fine-tuned variant (*/{trace.LAST} of a 'finetune' folder); "
-            f"variants found: {listing}; fine-tune one with 'amuled finetune', or name one "
-            "with --variant"
-        )
-    return chosen
-
-
 def variant_view(
     run_dir: Path,
-    variant_dir: Path,
+    trained: trace.TrainedVariant,
     texts: TextTable,
     *,
     episode: int = 0,
     mode: str = "greedy",
+    episodes: int | None = None,
 ) -> dict[str, Any]:
     """Replay one variant's evaluation episode and gather what the page shows of it.
 
     Args:
-        run_dir: The run folder (belief store, base policy).
-        variant_dir: The variant folder (its policy and settings).
+        run_dir: The run folder (its belief store, read-only).
+        trained: The variant (policy, scenario, feedback, base policy).
         texts: The page's text table (raw replies and prompts are added to it).
         episode: Evaluation episode ``K``.
         mode: ``greedy`` or ``sampled``.
+        episodes: ``N`` of the evaluation (default ``[evaluation].episodes``).
 
     Returns:
         The variant's entry of the page's data.
 
     """
-    run_dir, variant_dir = Path(run_dir), Path(variant_dir)
-    scenario = trace.variant_scenario(run_dir, variant_dir)
-    actor = trace.load_actor(variant_dir / trace.LAST, scenario)
-    base_path = trace.base_checkpoint_of(run_dir, variant_dir)
-    base_actor = trace.load_actor(base_path, scenario) if base_path is not None else None
-    feedback_name = trace.feedback_variant(variant_dir)
+    run_dir = Path(run_dir)
+    base_path = trained.base_checkpoint
+    feedback_name = trained.feedback
     feedback = store = None
     if feedback_name is not None:
-        feedback, store = trace.open_feedback(feedback_name, scenario, run_dir)
+        feedback, store = open_feedback(feedback_name, trained.scenario, run_dir)
     try:
         panel = getattr(feedback, "panel", None)
         live = feedback if feedback is not None and panel is None else None
-        ep = trace.replay_episode(
-            actor, scenario, episode=episode, mode=mode, base_actor=base_actor, live_feedback=live
+        ep = trace.replay_variant(
+            trained, episode=episode, mode=mode, episodes=episodes, live_feedback=live
         )
         first, index = ep.unique_states()
-        entry = _episode_entry(ep, variant_dir.name)
+        entry = _episode_entry(ep, trained.name)
         entry.update(
             feedback=feedback_name,
-            policy=str(variant_dir / trace.LAST),
+            policy=str(trained.checkpoint),
             base=str(base_path) if base_path is not None else None,
             explain=(
-                f"amuled explain --state-from {run_dir} --variant {variant_dir.name} "
+                f"amuled explain --state-from {run_dir} --variant {trained.name} "
                 f"--episode {episode} --mode {mode} --step {{step}}"
             ),
             distinct_states=len(first),
@@ -213,14 +170,12 @@ def variant_view(
         if base_path is None:
             entry["note_base"] = "no base policy found for this variant"
         if panel is not None:
-            answers = trace.ask_panel(
-                panel, ep.obs[first], [ep.prompt_vars[t] for t in first], store
-            )
+            answers = ask_panel(panel, ep.obs[first], [ep.prompt_vars[t] for t in first], store)
             entry.update(_panel_entry(answers, texts))
             entry.update(
                 kind="panel",
                 s=index.tolist(),
-                source=trace.describe_feedback(feedback),
+                source=describe_feedback(feedback),
                 raw_note=(
                     "Neither the run's belief store nor the recording kept a reply text for "
                     "this answer (the authors' recordings keep the exchanges of the states "
@@ -229,7 +184,7 @@ def variant_view(
             )
         elif live is not None and ep.live_beliefs is not None:
             entry.update(_live_entry(ep, first, live, texts))
-            entry.update(kind="belief", s=index.tolist(), source=trace.describe_feedback(live))
+            entry.update(kind="belief", s=index.tolist(), source=describe_feedback(live))
             entry["note"] = (
                 f"The feedback '{feedback_name}' of this variant is not a panel of agents "
                 f"({type(live).__name__}): shown is the feedback belief itself, the reward "
@@ -283,7 +238,7 @@ def _episode_entry(ep: trace.Episode, name: str) -> dict[str, Any]:
     }
 
 
-def _panel_entry(answers: trace.PanelAnswers, texts: TextTable) -> dict[str, Any]:
+def _panel_entry(answers: PanelAnswers, texts: TextTable) -> dict[str, Any]:
     names = sorted(set(answers.statuses.reshape(-1).tolist()))
     code = {name: i for i, name in enumerate(names)}
     return {
@@ -340,19 +295,24 @@ def _live_entry(ep: trace.Episode, first: list[int], feedback: Any, texts: TextT
 
 def build_view(
     run_dir: Path,
+    scenario: Any,
+    variants: Sequence[trace.TrainedVariant],
     *,
-    variants: Sequence[str] | None = None,
     episode: int = 0,
     mode: str = "greedy",
+    episodes: int | None = None,
     say: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Gather the page's data: every chosen variant's episode and beliefs.
 
     Args:
         run_dir: The run folder.
-        variants: Variant folder names (default: every fine-tuned variant).
+        scenario: The run's scenario (the page's header).
+        variants: The variants to show, resolved by the caller.
         episode: Evaluation episode ``K`` (seed ``[evaluation].seed + K``).
         mode: ``greedy`` (the policy's most probable action) or ``sampled``.
+        episodes: ``N``, the episodes of the run's evaluation (default
+            ``[evaluation].episodes``): episode ``K`` is the ``K``-th of them.
         say: Called with a progress line per variant.
 
     Returns:
@@ -360,20 +320,18 @@ def build_view(
 
     """
     from amuled_ma import __version__
-    from amuled_ma.commands._experiment import scenario_of_run
 
     run_dir = Path(run_dir)
-    scenario = scenario_of_run(run_dir)
-    folders = choose_variants(run_dir, variants)
+    episodes = int(scenario.evaluation.episodes if episodes is None else episodes)
     texts = TextTable()
     entries = []
-    for folder in folders:
+    for trained in variants:
         start = time.perf_counter()
-        entry = variant_view(run_dir, folder, texts, episode=episode, mode=mode)
+        entry = variant_view(run_dir, trained, texts, episode=episode, mode=mode, episodes=episodes)
         entries.append(entry)
         if say is not None:
             say(
-                f"  {folder.name}: {entry['T']} steps, {entry['distinct_states']} distinct "
+                f"  {trained.name}: {entry['T']} steps, {entry['distinct_states']} distinct "
                 f"states, {entry.get('kind')} feedback ({time.perf_counter() - start:.1f} s)"
             )
     if texts.fit(TEXT_BUDGET) and say is not None:
@@ -385,8 +343,8 @@ def build_view(
     how = (
         "greedy: each step the policy's most probable action (as amuled evaluate's greedy mode)"
         if mode == "greedy"
-        else "sampled: actions drawn from the policy (a generator seeded with the episode's "
-        "seed; amuled evaluate draws its own)"
+        else "sampled: actions drawn from the policy with amuled evaluate's own draws (the "
+        f"episode {episode} of its {episodes})"
     )
     return {
         "version": 1,
@@ -406,6 +364,7 @@ def build_view(
         "episode": episode,
         "seed": seed,
         "mode": mode,
+        "episodes": episodes,
         "actions": _action_names(scenario.task.name),
         "texts": texts.texts,
         "variants": entries,
@@ -468,21 +427,35 @@ def default_output(run_dir: Path, episode: int) -> Path:
 
 def write_view(
     run_dir: Path,
+    scenario: Any,
+    variants: Sequence[trace.TrainedVariant],
     output: Path | None = None,
     *,
-    variants: Sequence[str] | None = None,
     episode: int = 0,
     mode: str = "greedy",
+    episodes: int | None = None,
     say: Callable[[str], None] | None = None,
 ) -> ViewResult:
     """Build the page of a run's episode and write it (see :func:`build_view`).
+
+    Args:
+        run_dir: The run folder.
+        scenario: The run's scenario.
+        variants: The variants to show.
+        output: The HTML file (default :func:`default_output`).
+        episode: Evaluation episode ``K``.
+        mode: ``greedy`` or ``sampled``.
+        episodes: ``N`` of the run's evaluation (default ``[evaluation].episodes``).
+        say: Called with a progress line per variant.
 
     Returns:
         The :class:`ViewResult`.
 
     """
     start = time.perf_counter()
-    data = build_view(run_dir, variants=variants, episode=episode, mode=mode, say=say)
+    data = build_view(
+        run_dir, scenario, variants, episode=episode, mode=mode, episodes=episodes, say=say
+    )
     page = render_html(data)
     path = Path(output) if output is not None else default_output(run_dir, episode)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -491,71 +464,3 @@ def write_view(
     tmp.replace(path)
     shown = [(v["name"], int(v["T"]), int(v.get("distinct_states", 0))) for v in data["variants"]]
     return ViewResult(path, path.stat().st_size, shown, time.perf_counter() - start)
-
-
-class _OneFileHandler(http.server.BaseHTTPRequestHandler):
-    """Serve one file at ``/`` (and its name); everything else is 404."""
-
-    body: bytes = b""
-    name: str = "index.html"
-
-    def do_GET(self) -> None:
-        """Answer the page, or 404."""
-        if self.path.split("?", 1)[0] not in ("/", f"/{self.name}"):
-            self.send_error(404, "only the viewer page is served here")
-            return
-        self.send_response(200)
-        self.send_header("Content-Type", "text/html; charset=utf-8")
-        self.send_header("Content-Length", str(len(self.body)))
-        self.send_header("Cache-Control", "no-store")
-        self.end_headers()
-        self.wfile.write(self.body)
-
-    def log_message(self, format: str, *args: Any) -> None:
-        """Stay quiet (the command prints the URL once)."""
-
-
-def make_server(path: Path, host: str = "127.0.0.1", port: int = 0) -> http.server.HTTPServer:
-    """An HTTP server for one file on ``host`` (a free port when ``port`` is 0).
-
-    Raises:
-        OSError: The address cannot be bound.
-
-    """
-    body = Path(path).read_bytes()
-    handler = type("ViewerHandler", (_OneFileHandler,), {"body": body, "name": Path(path).name})
-    return http.server.ThreadingHTTPServer((host, port), handler)
-
-
-def serve(
-    path: Path,
-    *,
-    host: str = "127.0.0.1",
-    port: int = 0,
-    seconds: float | None = None,
-    say: Callable[[str], None] = print,
-) -> None:
-    """Serve one page until Ctrl-C (or ``seconds``), printing its URL.
-
-    Args:
-        path: The HTML file.
-        host: Address to listen on (default: this machine only).
-        port: Port (0: a free one).
-        seconds: Stop after this many seconds (None: until Ctrl-C).
-        say: Where the URL is printed.
-
-    """
-    server = make_server(path, host, port)
-    url = f"http://{host}:{server.server_address[1]}/"
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    say(f"serving {path} at {url} (Ctrl-C stops)")
-    try:
-        if seconds is None:
-            while thread.is_alive():
-                thread.join(0.5)
-        else:
-            thread.join(seconds)
-    finally:
-        server.shutdown()
-        server.server_close()

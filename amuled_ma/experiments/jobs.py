@@ -18,6 +18,7 @@ across processes of one machine (WAL).
 from __future__ import annotations
 
 import os
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -57,6 +58,25 @@ class JobsOutcome:
     results: list[JobResult] = field(default_factory=list)
     wall_s: float = 0.0
     workers: int = 1
+
+
+#: Ray's switch between a one-machine Ray, whose processes listen on loopback only, and a
+#: cluster node; Ray reads it once, when it is imported (:func:`prefer_loopback`).
+SINGLE_MACHINE_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+
+
+def prefer_loopback() -> None:
+    """Make the local Ray this process will start listen on loopback only.
+
+    Sets Ray's ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0`` (a one-machine Ray: its node address,
+    and so every port its processes open, is 127.0.0.1) before Ray is imported, which is
+    when Ray reads it. A no-op once Ray is imported; then the local Ray listens on every
+    interface, its calls still checked against this run's token
+    (:func:`amuled_ma.experiments.ray_jobs.connect` says so). Not for ``--ray ADDRESS``:
+    a cluster's nodes must reach the driver.
+    """
+    if "ray" not in sys.modules:
+        os.environ[SINGLE_MACHINE_ENV] = "0"
 
 
 def available_cpus() -> int:
@@ -114,22 +134,9 @@ def _train(
     hint: str,
     on_iteration: Callable[[Any, int], None] | None = None,
 ) -> JobResult:
-    from amuled_ma.experiments.plans import train_variant  # here: it imports torch
+    from amuled_ma.experiments.plans import train_one_job  # here: it imports torch
 
-    return train_variant(
-        job.scenario,
-        job.run_dir,
-        job.variant,
-        resume=job.resume,
-        force=job.force,
-        progress=progress,
-        hint=hint,
-        seed=job.seed,
-        out_dir=job.out_dir,
-        base_variant=job.base_variant,
-        base_dir=job.base_dir,
-        on_iteration=on_iteration,
-    )
+    return train_one_job(job, progress=progress, hint=hint, on_iteration=on_iteration)
 
 
 # ------------------------------------------------------------------ parent side
@@ -207,9 +214,11 @@ def run_jobs(
     for result in skipped.values():
         print(describe(result), flush=True)
     todo = [j for j in jobs if j.name not in skipped]
+    target = ray or RayTarget()
+    if target.address is None:
+        prefer_loopback()
     from amuled_ma.experiments.ray_jobs import run_on_ray  # here: importing Ray takes a second
 
-    target = ray or RayTarget()
     results_by_name = {
         **skipped,
         **run_on_ray(

@@ -12,28 +12,26 @@ from __future__ import annotations
 
 from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
-from amuled_ma.deliberation.feedback import (
-    check_distillable,
-    make_feedback,
-    panel_of,
-    with_cluster_sources,
-)
+from amuled_ma.deliberation.build import Members, build_feedback, checked_members, run_store
+from amuled_ma.deliberation.plan import PanelPlan, plan_panel
 from amuled_ma.errors import AmuledError, ScenarioError
 from amuled_ma.experiments.run_folder import (
     JobResult,
     TrainJob,
     base_checkpoint,
     finished_with,
+    mark_state,
     prepare_variant,
     replica_folder,
     training_config,
+    variant_fields,
     write_config,
 )
 from amuled_ma.learn.trainer import Trainer
-from amuled_ma.learn.variants import AGGREGATIONS, Variant
 from amuled_ma.scenario import Scenario
+from amuled_ma.variants import AGGREGATIONS, Variant
 
 #: The variants of the paper's main figure, in order.
 MAIN_VARIANTS = (
@@ -67,6 +65,29 @@ def training_seeds(scenario: Scenario, seed: int | None = None, count: int = 1) 
     return [first + k for k in range(count)]
 
 
+class CheckedInputs(NamedTuple):
+    """What :func:`checked_inputs` found: a fine-tune's panel plan, its sources, its base.
+
+    Attributes:
+        plan: The feedback's panel plan (None: not a fine-tune).
+        members: The panel's member sources, built and checked, open (None: no member
+            source); close them, or hand them to
+            :func:`~amuled_ma.deliberation.build.build_feedback`.
+        base_checkpoint: The finished base checkpoint (None: not a fine-tune, or its base
+            is trained earlier in the same plan).
+
+    """
+
+    plan: PanelPlan | None = None
+    members: Members | None = None
+    base_checkpoint: Path | None = None
+
+    def close(self) -> None:
+        """Close the member sources (when they were not handed to a feedback)."""
+        if self.members is not None:
+            self.members.close()
+
+
 def check_inputs(
     scenario: Scenario,
     variant: Variant | str,
@@ -74,34 +95,59 @@ def check_inputs(
     base_variant: str = "base",
     planned: Collection[str] = (),
 ) -> None:
-    """Check, before anything trains, every input a job needs, naming what is missing.
+    """Check, before anything trains or any folder is made, every input a job needs.
 
-    A fine-tune needs a known feedback variant whose agents are known clusters (shipped
-    or in ``[feedback].clusters_dirs``), its recording (for the replay source,
-    found by :meth:`~amuled_ma.scenario.Scenario.recording_path`; with
-    ``[feedback.distill]`` one with per-cluster beliefs) and a finished base
-    checkpoint, unless the base is trained earlier in the same plan (``planned``).
+    :func:`checked_inputs`, the sources it built closed again.
 
     Raises:
-        AmuledError: The first missing input, with the command or setting that fixes it.
+        AmuledError: As :func:`checked_inputs`.
+
+    """
+    checked_inputs(scenario, variant, run_dir, base_variant, planned).close()
+
+
+def checked_inputs(
+    scenario: Scenario,
+    variant: Variant | str,
+    run_dir: Path,
+    base_variant: str = "base",
+    planned: Collection[str] = (),
+) -> CheckedInputs:
+    """Check, before anything trains or any folder is made, every input a job needs.
+
+    A fine-tune needs a known feedback variant whose agents are known clusters (shipped
+    or in ``[feedback].clusters_dirs``), a panel whose every member can answer (the
+    preflight of its plan, :func:`amuled_ma.deliberation.build.preflight`: a replayed
+    recording found, of the task, holding each member it serves and, with
+    ``[feedback.distill]``, per-cluster beliefs; an Ollama server that answers with the
+    model; a plug-in that loads; a policy file) and a finished base checkpoint, unless the
+    base is trained earlier in the same plan (``planned``). Nothing is written.
+
+    Returns:
+        The plan, the member sources the preflight built (open: the job's feedback is
+        built from them, :func:`train_variant`) and the base checkpoint.
+
+    Raises:
+        AmuledError: The first missing input, in one line naming the member and the ways
+            to give it beliefs, or the command or setting that fixes it; nothing is left
+            open.
 
     """
     variant = Variant.parse(variant)
     if not variant.finetuning:
-        return
-    if variant.asks_panel:
-        assert variant.feedback is not None
-        agents, _ = panel_of(variant.feedback, scenario)  # every agent is a known cluster
-        scenario = with_cluster_sources(scenario, agents)
-        if scenario.feedback.agents:
-            from amuled_ma.beliefs.routing import preflight
-
-            preflight(scenario, agents)  # every agent's own source answers
-        elif scenario.feedback.source == "replay":
-            scenario.recording_path(required=True)
-            check_distillable(scenario)
+        return CheckedInputs()
+    assert variant.feedback is not None
+    plan = plan_panel(variant.feedback, scenario)
+    members = checked_members(plan)
+    checked = CheckedInputs(plan, members)
     if base_variant not in planned:
-        base_checkpoint(run_dir, scenario, base_variant)
+        try:
+            base = base_checkpoint(run_dir, scenario, base_variant)
+        except BaseException:
+            checked.close()
+            raise
+        checked = checked._replace(base_checkpoint=base)
+    return checked
 
 
 def train_variant(
@@ -121,6 +167,7 @@ def train_variant(
     on_iteration: Callable[[Any, int], None] | None = None,
     task_factory: Callable[..., Any] | None = None,
     feedback_factory: Callable[[str], Any] | None = None,
+    store: Any = None,
 ) -> JobResult:
     """Train one variant (``base``, ``shaped`` or ``finetune:<feedback>``) into the run.
 
@@ -139,7 +186,11 @@ def train_variant(
         base_variant: Folder of the base checkpoint in ``base_dir`` (a seed replica's base).
         on_iteration: Called as ``fn(trainer, iteration)`` after every iteration.
         task_factory: Replaces the task constructor (tests).
-        feedback_factory: ``variant -> Feedback``, replaces :func:`make_feedback` (tests).
+        feedback_factory: ``variant -> Feedback``, replaces the feedback built from the
+            checked plan (tests).
+        store: The belief store of the fine-tune's panel (default: the run's file,
+            ``[feedback].store``, opened on first use,
+            :func:`~amuled_ma.deliberation.build.run_store`).
 
     Returns:
         The job result.
@@ -148,27 +199,37 @@ def train_variant(
     variant = Variant.parse(variant)
     run_dir = Path(run_dir)
     out = Path(out_dir) if out_dir else run_dir / variant.folder
-    check_inputs(scenario, variant, Path(base_dir or run_dir), base_variant)
-    training = training_config(scenario, variant, seed, iterations)
-    action = prepare_variant(out, resume=resume, force=force, hint=hint, training=training)
-    if action == "skip":
-        return JobResult(variant, out, skipped=True)
-    feedback = None
-    base_ckpt = None
-    if variant.finetuning:
-        assert variant.feedback is not None
-        base_ckpt = base_checkpoint(base_dir or run_dir, scenario, base_variant)
-        make = feedback_factory or (
-            lambda v: make_feedback(
-                v, scenario, run_dir, state_dir=out, resume=action == "resume", seed=seed
-            )
-        )
-        feedback = make(variant.feedback)
+    # the preflight builds and checks the panel's sources once; the feedback is built of them
+    checked = checked_inputs(scenario, variant, Path(base_dir or run_dir), base_variant)
+    try:
+        training = training_config(scenario, variant, seed, iterations)
+        action = prepare_variant(out, resume=resume, force=force, hint=hint, training=training)
+        if action == "skip":
+            return JobResult(variant, out, skipped=True)
+        feedback = None
+        base_ckpt = checked.base_checkpoint
+        if variant.finetuning:
+            assert variant.feedback is not None and checked.plan is not None
+            if feedback_factory is not None:
+                feedback = feedback_factory(variant.feedback)
+            else:
+                members, checked = checked.members, checked._replace(members=None)
+                feedback = build_feedback(
+                    checked.plan,
+                    store if store is not None else run_store(scenario, run_dir),
+                    members=members,  # handed over: the feedback closes them
+                    state_dir=out,
+                    resume=action == "resume",
+                    seed=seed,
+                    cache_dir=run_dir,
+                )
+    finally:
+        checked.close()
     if action == "new" or not (out / "config.json").is_file():
-        extra: dict[str, Any] = {"variant": str(variant), "training": training}
-        if base_ckpt is not None:
-            extra["base_checkpoint"] = str(base_ckpt)
-        write_config(out, scenario, extra)
+        fields = variant_fields(
+            variant, out, training, base_checkpoint=base_ckpt, feedback=feedback
+        )
+        write_config(out, scenario, fields)
     try:
         trainer = Trainer(
             scenario,
@@ -185,10 +246,52 @@ def train_variant(
             task_factory=task_factory,
         )
         outcome = trainer.train()
+        mark_state(out, "complete", outcome.iterations)
+    except Exception:
+        mark_state(out, "failed")  # not an interruption: the record says so
+        raise
     finally:
         if feedback is not None:
             feedback.close()
     return JobResult(variant, out, outcome=outcome)
+
+
+def train_one_job(
+    job: TrainJob,
+    *,
+    progress: bool,
+    hint: str,
+    on_iteration: Callable[[Any, int], None] | None = None,
+    store: Any = None,
+) -> JobResult:
+    """Train one planned job: :func:`train_variant` with the job's own settings.
+
+    Args:
+        job: The job (its scenario, run and variant folders, seed, base, resume / force).
+        progress: Show a progress bar.
+        hint: The command that re-runs this job (for messages and Ctrl-C).
+        on_iteration: Called as ``fn(trainer, iteration)`` after every iteration.
+        store: The belief store of the fine-tune's panel (default: the run's file).
+
+    Returns:
+        The job result.
+
+    """
+    return train_variant(
+        job.scenario,
+        job.run_dir,
+        job.variant,
+        resume=job.resume,
+        force=job.force,
+        progress=progress,
+        hint=hint,
+        seed=job.seed,
+        out_dir=job.out_dir,
+        base_variant=job.base_variant,
+        base_dir=job.base_dir,
+        on_iteration=on_iteration,
+        store=store,
+    )
 
 
 def ablation_variants(what: str, scenario: Scenario) -> list[tuple[Variant, Scenario]]:

@@ -18,8 +18,12 @@ base is trained (the graph is Ray's own dependencies, nothing scheduled by hand)
   running job writes its checkpoint as on a Ctrl-C of its own; the driver prints the
   ``--resume`` command and re-raises. A local Ray dies with its driver (``kill -9``
   included), so no process outlives it.
-- **Progress**: the tasks put their iteration counts on a :class:`ray.util.queue.Queue`;
+- **Progress**: the tasks send their iteration counts to an actor (:class:`SweepBoard`);
   one bar on the driver counts them.
+- **Network**: a local Ray listens on loopback only (:func:`connect`); a cluster is
+  secured by Ray's token authentication (``RAY_AUTH_MODE=token``, docs/scale.md).
+- **A lost actor** (the store or the board, when the driver's node agent dies) ends in
+  one line (:class:`~amuled_ma.errors.AmuledError`), never a traceback.
 
 Results are bit-identical to ``--jobs 1``: every job is single-threaded and seeded by its
 own settings, wherever it runs (``tests/learn/test_jobs.py``).
@@ -28,7 +32,9 @@ own settings, wherever it runs (``tests/learn/test_jobs.py``).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
+import ipaddress
 import logging
 import os
 import signal
@@ -45,8 +51,8 @@ from typing import Any
 import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-from amuled_ma.deliberation.feedback import store_path
-from amuled_ma.errors import AmuledError
+from amuled_ma.deliberation.plan import store_path
+from amuled_ma.errors import AmuledError, Terminated
 from amuled_ma.experiments.ray_store import start_store_actors
 from amuled_ma.experiments.run_folder import JobResult, TrainJob, checkpoint_state
 from amuled_ma.learn.checkpoints import LAST
@@ -60,6 +66,8 @@ SHARED_TOKEN = ".amuled-ray-token"
 STOP_MARK = ".amuled-ray-stop"
 #: Attempts after the first when a worker or node dies (Ray's ``max_retries``).
 MAX_RETRIES = 3
+#: Ray's one-machine switch (set by :func:`amuled_ma.experiments.jobs.prefer_loopback`).
+SINGLE_MACHINE_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
 #: Seconds between progress reports of a task.
 REPORT_EVERY_S = 0.25
 
@@ -92,8 +100,71 @@ def check_address(address: str, timeout_s: float = 5.0) -> None:
         ) from error
 
 
+def _first_line(error: BaseException) -> str:
+    """The first line of an error's message (Ray's carry tracebacks and actor details)."""
+    text = str(error).strip()
+    line = text.splitlines()[0].strip() if text else type(error).__name__
+    return line if len(line) <= 300 else line[:297] + "..."
+
+
+def _restore_sigterm(previous: Any) -> None:
+    """Put back the SIGTERM handler ``ray.init`` replaced (our Ctrl-C-like stop).
+
+    ``ray.init`` installs three in turn: one that calls ``sys.exit``, its local node's
+    (kill Ray's processes, exit 1), and its C++ core worker's fatal-signal handler, which
+    prints "SIGTERM received" and aborts (exit 134) with no checkpoint. ``signal.signal``
+    replaces all three at the C level.
+    """
+    if previous is None or threading.current_thread() is not threading.main_thread():
+        return  # not set from Python (nothing to put back), or not ours to set
+    signal.signal(signal.SIGTERM, previous)
+
+
+class _SigtermCount:
+    """SIGTERMs received while a sweep waits on Ray, passed on to the handler before."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.previous: Any = None
+
+    def __call__(self, signum: int, frame: Any) -> None:
+        self.count += 1
+        if callable(self.previous):
+            self.previous(signum, frame)
+        raise Terminated(signum)
+
+    def restore(self) -> None:
+        """Put the handler before back."""
+        if self.previous is not None:
+            signal.signal(signal.SIGTERM, self.previous)
+            self.previous = None
+
+
+def _count_sigterms() -> _SigtermCount:
+    """Count SIGTERMs while a sweep runs (chained to the handler before).
+
+    Ray's waits turn any exception a signal handler raises into a bare
+    :class:`KeyboardInterrupt`; the count tells a SIGTERM (exit 143) from a Ctrl-C (130).
+    A SIGTERM that stopped no one before (the default) now stops the sweep as Ctrl-C does;
+    one that was ignored stays ignored.
+    """
+    counter = _SigtermCount()
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.getsignal(signal.SIGTERM)
+        if previous not in (signal.SIG_IGN, None):
+            counter.previous = previous
+            signal.signal(signal.SIGTERM, counter)
+    return counter
+
+
 def connect(address: str | None, workers: int) -> bool:
     """Connect to Ray: start a local one with ``workers`` CPUs, or join ``address``.
+
+    A local Ray listens on loopback only (when Ray was imported after
+    :func:`amuled_ma.experiments.jobs.prefer_loopback`); Ray's token authentication is
+    Ray's default for it (the token in ``RAY_AUTH_TOKEN``, else ``~/.ray/auth_token``). On a
+    cluster the token is the cluster's (``RAY_AUTH_MODE=token``, ``RAY_AUTH_TOKEN``). Either
+    way this process's SIGTERM handler is kept (``ray.init`` replaces it).
 
     Args:
         address: A cluster's address (``HOST:PORT``, ``ray://...``, or ``auto``); None
@@ -117,6 +188,7 @@ def connect(address: str | None, workers: int) -> bool:
     # lands: they inherit SIGINT ignored, so the Ctrl-C reaches this driver alone, which
     # stops the tasks in order (train_job restores Python's handler, for ray.cancel).
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if address is None else None
+    previous_term = signal.getsignal(signal.SIGTERM)
     try:
         if address is None:
             ray.init(num_cpus=workers, include_dashboard=False, **options)
@@ -125,12 +197,20 @@ def connect(address: str | None, workers: int) -> bool:
     except (ConnectionError, RuntimeError, ValueError) as error:
         where = address or "a local Ray"
         raise AmuledError(
-            f"--ray {where}: cannot connect ({error}); start the cluster with 'ray start "
-            "--head' on its head node, or give no address for a local Ray"
+            f"--ray {where}: cannot connect ({_first_line(error)}); start the cluster with "
+            "'ray start --head' on its head node, or give no address for a local Ray"
         ) from error
     finally:
         if previous is not None:
             signal.signal(signal.SIGINT, previous)
+        _restore_sigterm(previous_term)
+    if address is None and not ipaddress.ip_address(ray.util.get_node_ip_address()).is_loopback:
+        print(
+            f"amuled: note: the local Ray listens on {ray.util.get_node_ip_address()} too, "
+            f"not on loopback only: Ray was imported before {SINGLE_MACHINE_ENV}=0 was set "
+            "(set it before importing Ray)",
+            file=sys.stderr,
+        )
     return True
 
 
@@ -236,14 +316,13 @@ def train_job(
     """
     import torch
 
-    from amuled_ma.experiments.plans import train_variant  # here: it imports torch
+    from amuled_ma.experiments.plans import train_one_job  # here: it imports torch
 
     if threading.current_thread() is threading.main_thread():
         # ray.cancel interrupts a task as a SIGINT would: Python's handler must be set
         signal.signal(signal.SIGINT, signal.default_int_handler)
     if _stopping(job, sweep):  # queued before a Ctrl-C: do not begin
         raise KeyboardInterrupt
-    from amuled_ma.beliefs.store_service import serve_store_from
     from amuled_ma.experiments.ray_store import RemoteStore
 
     os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
@@ -276,29 +355,26 @@ def train_job(
     elif inputs is not None:  # on a cluster: say where each job trains
         print(f"{job.name}: starts on Ray node {node[:8]}", flush=True)
     away = node != driver_node  # not the driver's machine: its store through the actor
-    for path, actor in stores.items():
-        serve_store_from(path, RemoteStore(actor) if away else None)
-    try:
-        result = train_variant(
-            job.scenario,
-            job.run_dir,
-            job.variant,
-            resume=job.resume or retry,
-            force=job.force and not retry,
-            progress=False,
-            hint="",
-            seed=job.seed,
-            out_dir=job.out_dir,
-            base_variant=job.base_variant,
-            base_dir=job.base_dir,
-            on_iteration=_report(board),
-        )
-    finally:
-        for path in stores:
-            serve_store_from(path, None)
+    actor = stores.get(str(store_path(job.scenario, job.run_dir)))
+    retried = dataclasses.replace(job, resume=job.resume or retry, force=job.force and not retry)
+    result = train_one_job(
+        retried,
+        progress=False,
+        hint="",
+        on_iteration=_report(board),
+        store=RemoteStore(actor) if away and actor is not None else None,
+    )
     # with files shipped, every job returns its folder: a fine-tune on a node without the
     # driver's files needs its base's, wherever the base was trained
     return result, node, shared, ({str(out_dir): pack(out_dir)} if inputs is not None else {})
+
+
+def _ray_failure(name: str, error: BaseException) -> AmuledError:
+    """One line for a job that Ray could not run or finish (a lost worker, node or actor)."""
+    return AmuledError(
+        f"job {name!r} did not finish on Ray: {type(error).__name__}: {_first_line(error)} "
+        "(see 'ray status' and the Ray logs of the node); its last checkpoint is kept"
+    )
 
 
 def _absolute(job: TrainJob) -> TrainJob:
@@ -359,6 +435,7 @@ def run_on_ray(
     from tqdm.auto import tqdm
 
     ours = connect(address, workers)
+    terms = _count_sigterms()
     ship = address is not None if ship_files is None else ship_files
     sweep, token = uuid.uuid4().hex, uuid.uuid4().hex
     jobs = [_absolute(j) for j in jobs]
@@ -408,13 +485,15 @@ def run_on_ray(
                     result, node, shared, files = ray.get(ref)
                 except ray.exceptions.RayTaskError as error:
                     cause = error.cause if isinstance(error.cause, BaseException) else error
+                    if isinstance(cause, ray.exceptions.RayError):  # Ray's, inside the task
+                        cause = _ray_failure(name, cause)
                     if failure is None:
                         failure = cause
                         bar.write(f"  ✗ {name}: {type(cause).__name__}: {cause}", file=sys.stderr)
                     continue
                 except ray.exceptions.RayError as error:  # a dependency failed, or retries ran out
                     if failure is None:
-                        failure = AmuledError(f"job {name!r} did not run: {error}")
+                        failure = _ray_failure(name, error)
                     continue
                 if not shared:  # trained where the driver's files are not: write them here
                     for path, data in files.items():
@@ -422,6 +501,8 @@ def run_on_ray(
                 done[name] = result
                 bar.write(describe(result) + (f" [Ray node {node[:8]}]" if ship else ""))
     except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (errors.Terminated)
+        if terms.count and not isinstance(stop, Terminated):
+            stop = Terminated(signal.SIGTERM)  # Ray's wait turned it into a KeyboardInterrupt
         bar.write("stopping: every running job writes its checkpoint ...", file=sys.stderr)
         # before any cancel frees a CPU that Ray could give a queued task: the stop mark,
         # then the queued tasks (submitted last) first
@@ -437,7 +518,17 @@ def run_on_ray(
         drain()
         bar.close()
         for path, actor in stores.items():
-            figures = ray.get(actor.figures.remote())
+            try:
+                figures = ray.get(actor.figures.remote())
+                ray.get(actor.close.remote())
+            except ray.exceptions.RayError as error:  # its node's agent died, say
+                print(
+                    f"  belief store {path}: its Ray actor was lost "
+                    f"({type(error).__name__}); the rows written before are in the file",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                continue
             if figures["lookup"]:
                 print(
                     f"  belief store {path} served the jobs on other nodes: "
@@ -445,7 +536,7 @@ def run_on_ray(
                     f"calls, {figures['rows_written']:,} rows written",
                     flush=True,
                 )
-            ray.get(actor.close.remote())
+        terms.restore()
         if ours:
             ray.shutdown()
         for run_dir in {j.run_dir for j in jobs}:

@@ -4,8 +4,8 @@ A job on another machine must not ask a state another job already asked, and mus
 open the driver's SQLite file (it may not see it; over a network file system SQLite's
 locks are not safe). :class:`BeliefStoreActor` opens the store on the driver's node (Ray
 pins it there) and answers ``lookup`` / ``put_many``; :class:`RemoteStore` is the
-stand-in a job on another node opens instead of the file
-(:func:`amuled_ma.beliefs.store_service.serve_store_from`). Jobs on the driver's node
+stand-in a job on another node is given instead of the file (the ``store`` argument of
+:func:`amuled_ma.experiments.plans.train_variant`). Jobs on the driver's node
 open the file itself (SQLite WAL is safe across the processes of one machine).
 
 Why this design (docs/scale.md): no server to install (PostgreSQL would be one more
@@ -26,6 +26,7 @@ import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.errors import AmuledError
 
 
 @ray.remote(num_cpus=0)
@@ -60,18 +61,34 @@ class BeliefStoreActor:
 
 
 class RemoteStore:
-    """A job's stand-in for the driver's store: each call goes to the store's actor."""
+    """A job's stand-in for the driver's store: each call goes to the store's actor.
+
+    A lost actor (its node's agent died, the driver's node went away) raises
+    :class:`~amuled_ma.errors.AmuledError` with one line: the job then stops as on a
+    belief backend that stays down, keeping its checkpoint.
+    """
 
     def __init__(self, actor: Any) -> None:
         self.actor = actor
 
+    def _call(self, method: Any, argument: list) -> Any:
+        try:
+            return ray.get(method.remote(argument))
+        except ray.exceptions.RayError as error:  # ActorDiedError, ActorUnavailableError, ...
+            text = str(error).strip().splitlines()[0] if str(error).strip() else ""
+            raise AmuledError(
+                f"the sweep's belief store on the driver's node cannot be reached "
+                f"({type(error).__name__}: {text[:200]}); check the driver's node "
+                "('ray status'), then continue with --resume"
+            ) from None
+
     def lookup(self, keys: Iterable[str]) -> dict[str, Any]:
         """Answers of ``keys`` from the driver's store."""
-        return ray.get(self.actor.lookup.remote(list(keys)))
+        return self._call(self.actor.lookup, list(keys))
 
     def put_many(self, items: Iterable[tuple]) -> int:
         """Write answers into the driver's store; return the rows written."""
-        return ray.get(self.actor.put_many.remote(list(items)))
+        return self._call(self.actor.put_many, list(items))
 
     def close(self) -> None:
         """Nothing to release here (the driver closes the actor's file)."""

@@ -40,8 +40,9 @@ from amuled_ma.errors import AmuledError, CheckpointError
 from amuled_ma.file_hash import sha256_file
 from amuled_ma.learn.checkpoints import LAST, checkpoint_infos
 from amuled_ma.learn.config import planned_iterations
-from amuled_ma.learn.variants import Variant
-from amuled_ma.scenario import Scenario
+from amuled_ma.records import PanelRecord, RunRecord, State
+from amuled_ma.scenario import MORAL_AGENT, Scenario
+from amuled_ma.variants import Variant
 
 if TYPE_CHECKING:
     from amuled_ma.learn.trainer import TrainOutcome
@@ -255,24 +256,17 @@ def _differences(saved: Any, current: Any, prefix: str = "") -> list[str]:
 
 
 def saved_training_config(out_dir: Path) -> dict[str, Any] | None:
-    """The ``"training"`` settings a variant folder's ``config.json`` recorded, if any.
+    """The ``"training"`` settings a variant folder's record (``config.json``) holds, if any.
 
     Returns:
-        The settings, or None for a folder without them (none trained yet, or written
-        before settings were recorded).
+        The settings, or None for a folder without them (none trained yet).
 
     Raises:
-        AmuledError: ``config.json`` exists but cannot be read as JSON.
+        AmuledError: ``config.json`` exists but is not a run record.
 
     """
-    path = Path(out_dir) / "config.json"
-    if not path.is_file():
-        return None
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError) as err:
-        raise AmuledError(f"{path}: not a readable config ({err}); retrain with --force") from err
-    return data.get("training") if isinstance(data, dict) else None
+    record = read_record(out_dir, checkpoint=False)
+    return None if record is None else record.training
 
 
 def check_training_config(out_dir: Path, training: dict[str, Any]) -> None:
@@ -415,16 +409,103 @@ def prepare_variant(
     )
 
 
+# -- the run record (config.json) ---------------------------------------------------
+#: A run's and a variant folder's record.
+CONFIG = "config.json"
+
+
+def read_record(folder: Path, *, checkpoint: bool = True) -> RunRecord | None:
+    """A folder's ``config.json`` as a :class:`~amuled_ma.records.RunRecord`.
+
+    Args:
+        folder: A run directory or a variant folder.
+        checkpoint: Take the iterations done and the state from the folder's checkpoint
+            (``model_last.pt``: the truth of how far it trained), when it has one.
+
+    Returns:
+        The record, or None when the folder has no ``config.json``.
+
+    Raises:
+        AmuledError: ``config.json`` is not a run record (the message names the file).
+
+    """
+    from pydantic import ValidationError
+
+    path = Path(folder) / CONFIG
+    if not path.is_file():
+        return None
+    try:
+        record = RunRecord.model_validate_json(path.read_text())
+    except OSError as err:
+        raise AmuledError(f"{path}: not a readable config ({err}); retrain with --force") from None
+    except ValidationError as err:
+        first = err.errors()[0]
+        where = ".".join(str(part) for part in first["loc"]) or "the file"
+        raise AmuledError(
+            f"{path}: not a readable config ({where}: {first['msg']}); retrain with --force, "
+            "or move the folder out of the run"
+        ) from None
+    return _with_checkpoint(Path(folder), record) if checkpoint else record
+
+
+def _with_checkpoint(folder: Path, record: RunRecord) -> RunRecord:
+    """The record with its checkpoint's iteration and state (complete or not)."""
+    infos = checkpoint_infos(folder / LAST)
+    if infos is None:
+        return record
+    planned = infos.get("total_iterations", record.iterations_planned)  # a resume may lengthen
+    if infos.get("completed"):
+        state = "complete"
+    else:
+        state = "failed" if record.state == "failed" else "interrupted"
+    return record.model_copy(
+        update={
+            "iterations_done": infos.get("iteration"),
+            "iterations_planned": planned,
+            "state": state,
+        }
+    )
+
+
+def write_record(folder: Path, record: RunRecord) -> Path:
+    """Write a folder's ``config.json`` (atomically: a reader never sees half a file)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / CONFIG
+    tmp = path.with_name(CONFIG + ".tmp")
+    tmp.write_text(record.to_json())
+    tmp.replace(path)
+    return path
+
+
+def mark_state(folder: Path, state: State, iterations: int | None = None) -> None:
+    """Record a variant folder's state (and iterations done) when its training ends."""
+    record = read_record(folder, checkpoint=False)
+    if record is not None:
+        update: dict[str, Any] = {"state": state}
+        if iterations is not None:
+            update["iterations_done"] = iterations
+        write_record(folder, record.model_copy(update=update))
+
+
 def write_config(run_dir: Path, scenario: Scenario, extra: dict[str, Any] | None = None) -> Path:
-    """Write ``config.json``: the fully resolved scenario, the command line and extras."""
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    path = run_dir / "config.json"
+    """Write ``config.json``: the resolved scenario, the command line and the record's fields.
+
+    Args:
+        run_dir: The run directory or variant folder.
+        scenario: The scenario.
+        extra: More fields of :class:`~amuled_ma.records.RunRecord` (``variants``,
+            ``seeds``, ``training``, ``panel``, ...).
+
+    Returns:
+        The file's path.
+
+    """
     import torch  # here: reading a run folder needs no torch
 
-    data = {
-        "scenario": scenario.to_dict(),
-        "command": sys.argv,
+    data: dict[str, Any] = {
+        "scenario": json.loads(json.dumps(scenario.to_dict(), default=str)),
+        "command": list(sys.argv),
         "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "torch": torch.__version__,
     }
@@ -437,5 +518,122 @@ def write_config(run_dir: Path, scenario: Scenario, extra: dict[str, Any] | None
     except Exception:  # pragma: no cover - metadata missing
         pass
     data.update(extra or {})
-    path.write_text(json.dumps(data, indent=2, default=str))
-    return path
+    return write_record(run_dir, RunRecord.model_validate(data))
+
+
+def variant_fields(
+    variant: Variant,
+    out_dir: Path,
+    training: dict[str, Any],
+    *,
+    base_checkpoint: Path | None = None,
+    feedback: Any = None,
+) -> dict[str, Any]:
+    """The record's fields of a variant folder about to train (:func:`write_config`'s extra).
+
+    Args:
+        variant: What it trains.
+        out_dir: Its folder (a seed replica ``<name>.seed<k>`` is named ``<name>``).
+        training: Its :func:`training_config`.
+        base_checkpoint: The base a fine-tune starts from.
+        feedback: The fine-tune's feedback (a replay of fused beliefs only is said so).
+
+    Returns:
+        ``{"variant", "label", "name", "seed", "training", "iterations_planned", "state",
+        "panel", "recipe", "lambda_kl", "base_checkpoint"}`` (the fine-tune keys for a
+        fine-tune only).
+
+    """
+    fields: dict[str, Any] = {
+        "variant": str(variant),
+        "label": variant.label,
+        "name": split_replica(Path(out_dir).name)[0],
+        "seed": training.get("seed"),
+        "training": training,
+        "iterations_planned": training.get("iterations"),
+        "iterations_done": 0,
+        "state": "interrupted",  # until its training completes (the checkpoint says so)
+    }
+    if variant.finetuning:
+        finetune = training.get("finetune") or {}
+        fields.update(
+            panel=panel_of_training(variant, training, feedback),
+            recipe=finetune.get("recipe"),
+            lambda_kl=finetune.get("lambda_kl"),
+        )
+        if base_checkpoint is not None:
+            fields["base_checkpoint"] = str(base_checkpoint)
+    return {k: v for k, v in fields.items() if v is not None}
+
+
+def panel_of_training(variant: Variant, training: dict[str, Any], feedback: Any = None) -> Any:
+    """The :class:`~amuled_ma.records.PanelRecord` of a fine-tune, from its settings.
+
+    The members and rule follow the variant (``cluster:<name>`` and ``moral``: that agent
+    alone, averaged; ``agg:<rule>``: the panel with that rule); a feedback replaying a
+    recording of fused beliefs only has no members and no fusion of ours.
+    """
+    from amuled_ma.deliberation.panel_feedback import FusedReplayFeedback
+
+    settings = training.get("feedback") or {}
+    kind, arg = variant.feedback_kind
+    members, rule = list(settings.get("clusters") or []), settings.get("fusion")
+    if kind == "human":
+        members, rule = [], None
+    elif kind == "cluster":
+        members, rule = [str(arg)], "mean"
+    elif kind == "moral":
+        members, rule = [MORAL_AGENT], "mean"
+    elif kind == "agg":
+        rule = arg
+    fused_only = isinstance(feedback, FusedReplayFeedback)
+    if fused_only:
+        members, rule = [], None
+    return PanelRecord(
+        feedback=str(variant.feedback),
+        members=members,
+        source=settings.get("source") if kind != "human" else None,
+        model=settings.get("model") if kind != "human" else None,
+        recording=settings.get("recording") if kind != "human" else None,
+        fused_only=fused_only,
+        fusion=rule,
+        agent_sources=dict(settings.get("agents") or {}),
+        distill=settings.get("distill"),
+    )
+
+
+def variant_records(folders: list[Path]) -> dict[str, RunRecord]:
+    """``{folder name: record}`` of the variant folders that hold one (for the evaluation)."""
+    out = {}
+    for folder in folders:
+        record = read_record(folder)
+        if record is not None:
+            out[Path(folder).name] = record
+    return out
+
+
+def scenario_of_run(run_dir: Path) -> Scenario:
+    """Rebuild the scenario a run (or a variant folder) was made with, from its record.
+
+    Raises:
+        AmuledError: The folder has no ``config.json`` with a scenario; the message names
+            the commands that make a run.
+
+    """
+    from amuled_ma.scenario import scenario_from_dict
+
+    record = read_record(Path(run_dir), checkpoint=False)
+    if record is None or record.scenario is None:
+        raise AmuledError(
+            f"{run_dir} is not a run directory (no config.json with a scenario); make one "
+            "with 'amuled run SCENARIO' or 'amuled train SCENARIO'"
+        )
+    data = dict(record.scenario)
+    source = data.pop("path", None)
+    return scenario_from_dict(data, path=Path(source) if source else None)
+
+
+def shared_folders(ablation_dir: Path) -> list[str]:
+    """The run's folders an ablation is evaluated with: its record's ``shared``."""
+    record = read_record(Path(ablation_dir), checkpoint=False)
+    return list(record.shared or []) if record is not None else []

@@ -47,16 +47,16 @@ os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
 from rsl_rl.runners import OnPolicyRunner
 
-from amuled_ma.deliberation.feedback import Feedback
+from amuled_ma.deliberation.feedback_base import Feedback
 from amuled_ma.deliberation.mdp import BatchedDeliberation
 from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError, Terminated
 from amuled_ma.learn.anchored_ppo import AnchoredPPO
 from amuled_ma.learn.checkpoints import LAST, TRAINER_KEYS, read_checkpoint
 from amuled_ma.learn.config import planned_iterations, rsl_rl_config
-from amuled_ma.learn.variants import Variant
 from amuled_ma.learn.vecenv import DeliberationVecEnv
 from amuled_ma.scenario import Scenario
 from amuled_ma.tasks import make_task
+from amuled_ma.variants import Variant
 
 __all__ = ["LAST", "TrainOutcome", "Trainer"]
 
@@ -102,7 +102,7 @@ class Trainer:
     Args:
         scenario: The scenario.
         out_dir: Folder of this variant (created).
-        variant: What to train (a :class:`~amuled_ma.learn.variants.Variant` or its text,
+        variant: What to train (a :class:`~amuled_ma.variants.Variant` or its text,
             ``base``, ``shaped`` or ``finetune:<feedback>``).
         feedback: Feedback of a fine-tune (None for base training).
         base_checkpoint: The base policy a fine-tune starts from and is anchored to.

@@ -28,7 +28,7 @@ Step contract (every task):
     episode in progress.
   - task-specific per-step events (see each task's documentation).
 
-Random numbers come from one counter-based stream per copy (:mod:`amuled_ma.tasks._rng`):
+Random numbers come from one counter-based stream per copy (:mod:`amuled_ma.tasks.rng`):
 copy ``i`` of a task seeded with ``s`` draws exactly what a single copy seeded with
 ``s + i`` draws (the Gymnasium vector-env convention), whatever ``num_envs`` is.
 """
@@ -44,7 +44,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from amuled_ma.tasks import _rng
+from amuled_ma.tasks import rng
 
 __all__ = ["BatchedTask"]
 
@@ -246,9 +246,9 @@ class BatchedTask(abc.ABC):
         """
         seed = self._check_seed(seed, "seed")
         if seed is None and self._keys is None:
-            seed = self._seed if self._seed is not None else _rng.entropy_seed()
+            seed = self._seed if self._seed is not None else rng.entropy_seed()
         if seed is not None:
-            self._keys = _rng.copy_keys(seed, self.num_envs, self.device)
+            self._keys = rng.copy_keys(seed, self.num_envs, self.device)
             self._ctr.zero_()
         everyone = torch.ones(self.num_envs, dtype=torch.bool, device=self.device)
         self._reset_where(everyone)
@@ -417,15 +417,14 @@ class BatchedTask(abc.ABC):
     def _draw(self) -> torch.Tensor:
         """Draw one 64-bit number (int64 ``[num_envs]``) per copy and advance every counter."""
         assert self._keys is not None
-        values = _rng.draw(self._keys, self._ctr)
+        values = rng.draw(self._keys, self._ctr)
         self._ctr = self._ctr + 1
         return values
 
     def _draw_many(self, ids: torch.Tensor, count: int) -> torch.Tensor:
         """Draw ``count`` numbers for each copy in ``ids`` (int64 ``[len(ids), count]``)."""
         assert self._keys is not None
-        offsets = torch.arange(count, dtype=torch.int64, device=self.device)
-        values = _rng.mix64(self._keys[ids, None] + (self._ctr[ids, None] + offsets) * _rng.GAMMA)
+        values = rng.draws(self._keys[ids], self._ctr[ids], count)
         self._ctr[ids] += count
         return values
 

@@ -65,7 +65,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from amuled_ma.tasks import _rng
+from amuled_ma.tasks import rng
 from amuled_ma.tasks.base import BatchedTask, paint_cells
 
 __all__ = ["Driving"]
@@ -139,8 +139,8 @@ class Driving(BatchedTask):
                 raise ValueError(f"{label}: expected a probability in [0, 1], got {p!r}")
         self.p_car = float(p_car)
         self.p_grandma = float(p_grandma)
-        self._t_car = _rng.threshold32(self.p_car)
-        self._t_gm = _rng.threshold32(self.p_grandma)
+        self._t_car = rng.threshold32(self.p_car)
+        self._t_gm = rng.threshold32(self.p_grandma)
         n, dev = self.num_envs, self.device
         i64 = torch.int64
         self._lane = torch.full((n,), START_LANE, dtype=i64, device=dev)
@@ -227,11 +227,11 @@ class Driving(BatchedTask):
         gms = gms & self._keep_gm
         z = self._draw()
         if self._t_car:
-            u = z & _rng.MASK32
+            u = z & rng.MASK32
             lane_car = ((u * NUM_LANES) // self._t_car).clamp_(max=NUM_LANES)
             cars = cars | self._spawn_car.index_select(0, lane_car)
         if self._t_gm:
-            u = _rng._srl(z, 32)
+            u = rng.shift_right(z, 32)
             lane_gm = ((u * NUM_LANES) // self._t_gm).clamp_(max=NUM_LANES)
             gms = gms | self._spawn_gm.index_select(0, lane_gm)
         self._cars = cars

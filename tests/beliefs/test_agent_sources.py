@@ -11,12 +11,12 @@ import torch
 
 from amuled_ma.beliefs import BeliefRequest, make_source
 from amuled_ma.beliefs.routing import RoutedSource
-from amuled_ma.deliberation.feedback import make_feedback
-from amuled_ma.deliberation.feedback import make_source as feedback_source
+from amuled_ma.deliberation.build import make_feedback
+from amuled_ma.deliberation.build import make_source as feedback_source
 from amuled_ma.errors import ScenarioError
 from amuled_ma.experiments.run_folder import training_config
 from amuled_ma.fusion.reference import fuse_beliefs
-from amuled_ma.scenario import load_scenario, scenario_from_dict
+from amuled_ma.scenario import OllamaSpec, TerminalSpec, load_scenario, scenario_from_dict
 
 MILK = ("up", "down", "left", "right")
 HERE = Path(__file__).resolve().parent
@@ -147,8 +147,11 @@ def test_agent_tables_load_as_plain_data(tmp_path):
     )
     scenario = load_scenario(path)
     agents = scenario.feedback.agents
-    assert agents["care"] == {"source": "ollama", "num_predict": 256}
-    assert agents["social-justice"] == {"source": "terminal", "person": "ann"}
+    # each table is a typed spec; only the keys it set are passed on
+    assert agents["care"] == OllamaSpec(source="ollama", num_predict=256)
+    assert agents["care"].given() == {"num_predict": 256}
+    assert agents["social-justice"] == TerminalSpec(source="terminal", person="ann")
+    assert agents["virtue"].path == "policies/virtue.pt"
     data = json.loads(json.dumps(scenario.to_dict()))
     assert data["feedback"]["agents"]["moral_agent"]["options"] == {"index": 2}
     # what a fine-tune learns from includes each agent's source
@@ -357,7 +360,8 @@ def test_a_fused_only_recording_cannot_serve_replay_members(tmp_path, recordings
 
 
 def test_preflight_alone_checks_a_panel_without_a_store(tmp_path, monkeypatch):
-    from amuled_ma.beliefs.routing import preflight
+    from amuled_ma.deliberation.build import preflight
+    from amuled_ma.deliberation.plan import plan_panel
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.syspath_prepend(str(HERE))
@@ -365,9 +369,9 @@ def test_preflight_alone_checks_a_panel_without_a_store(tmp_path, monkeypatch):
     scenario = scenario_from_dict(
         {"task": {"name": "findmilk"}, "feedback": {"source": "rules", "agents": good}}
     )
-    preflight(scenario, list(scenario.feedback.clusters))
+    preflight(plan_panel("amuled", scenario))
     assert list(tmp_path.iterdir()) == []  # no store, no folder
 
     bad = scenario.replace("feedback", agents={"care": {"source": "policy", "path": "v.pt"}})
     with pytest.raises(ScenarioError, match=r"\[feedback.agents.care\] \(source 'policy'"):
-        preflight(bad, ["care"])
+        preflight(plan_panel("cluster:care", bad))

@@ -68,7 +68,7 @@ def store(tmp_path):
 
 def test_miss_then_hit_and_dedup(store):
     src = Scripted()
-    cached = CachedSource(src, store, memory_size=0)
+    cached = CachedSource(src, store)
     batch = [req(1), req(2), req(1), req(1), req(4)]
     out = cached.beliefs(batch)
     assert [int(np.argmax(r.belief)) for r in out] == [1, 2, 1, 1, 1]
@@ -86,20 +86,22 @@ def test_miss_then_hit_and_dedup(store):
     assert all(r.cached and r.latency_s == 0.0 for r in again)
     assert [r.raw for r in again] == ["reply 1", "reply 2", "reply 1", "reply 1", "reply 4"]
     assert cached.stats.as_dict() | {} == {
-        "requests": 5, "unique": 3, "memory_hits": 0, "store_hits": 3, "misses": 0,
+        "requests": 5, "unique": 3, "store_hits": 3, "misses": 0,
         "sent": 0, "written": 0, "not_cached": 0, "invalid": 0, "hits": 3, "hit_rate": 1.0,
     }  # fmt: skip
 
 
-def test_memory_lru_in_front_of_store(store):
+def test_every_hit_is_read_from_the_store(store):
+    # no in-memory copy in front of the store (docs/beliefs.md, "Caches"): each result
+    # handed out is the caller's own
     src = Scripted()
-    cached = CachedSource(src, store, memory_size=2)
-    cached.beliefs([req(1), req(2), req(3)])  # LRU keeps 2 and 3
+    cached = CachedSource(src, store)
+    cached.beliefs([req(1), req(2), req(3)])
     cached.reset_stats()
     out = cached.beliefs([req(3), req(1)])
-    assert (cached.stats.memory_hits, cached.stats.store_hits) == (1, 1)
+    assert cached.stats.store_hits == 2 and cached.stats.sent == 0
     assert all(r.cached for r in out)
-    out[0].belief[:] = 0  # callers cannot corrupt the LRU
+    out[0].belief[:] = 0  # callers cannot corrupt what the next call reads
     assert cached.beliefs([req(3)])[0].belief.tolist() == [1.0, 0.0, 0.0]
 
 

@@ -233,8 +233,8 @@ def test_one_host_keeps_its_retries_with_backoff() -> None:
 
 # -- scenario keys ---------------------------------------------------------------------
 def test_scenario_hosts_key_and_its_errors(tmp_path) -> None:
-    from amuled_ma.beliefs.routing import default_spec, scenario_ollama_options
     from amuled_ma.commands._experiment import parse_override
+    from amuled_ma.deliberation.plan import default_source
     from amuled_ma.scenario import load_scenario
 
     path = tmp_path / "pool.toml"
@@ -244,7 +244,7 @@ def test_scenario_hosts_key_and_its_errors(tmp_path) -> None:
     )
     scenario = load_scenario(path)
     assert scenario.feedback.hosts == ["gpu1", "http://gpu2:11434"]
-    spec = default_spec(scenario, scenario_ollama_options)
+    spec = default_source(scenario)
     assert spec.options["hosts"] == ["gpu1", "http://gpu2:11434"]
     assert spec.options["host"] is None
     path.write_text('[feedback]\nhost = "gpu0"\nhosts = ["gpu1"]\n')
@@ -258,29 +258,23 @@ def test_scenario_hosts_key_and_its_errors(tmp_path) -> None:
     section, key, value = parse_override('feedback.hosts=["http://a:1", "http://b:2"]')
     changed = load_scenario("findmilk").replace(section, **{key: value})
     assert changed.feedback.hosts == ["http://a:1", "http://b:2"]
-    bad = load_scenario("findmilk").replace("feedback", ollama={"hosts": ["http://a:1"]})
     with pytest.raises(ScenarioError, match=r"\[feedback.ollama\] unknown key\(s\) hosts"):
-        scenario_ollama_options(bad)
+        load_scenario("findmilk").replace("feedback", ollama={"hosts": ["http://a:1"]})
 
 
 def test_agent_tables_take_hosts(tmp_path) -> None:
-    from amuled_ma.beliefs.routing import agent_spec, scenario_ollama_options
-    from amuled_ma.scenario import load_scenario
+    from amuled_ma.deliberation.plan import agent_source
+    from amuled_ma.scenario import OllamaSpec, load_scenario
 
     base = load_scenario("findmilk").replace("feedback", hosts=["http://a:1", "http://b:2"])
     care = {"source": "ollama", "model": "m", "hosts": ["http://c:3", "http://d:4"]}
     scenario = base.replace("feedback", agents={"care": care, "virtue": {"source": "ollama",
                                                                         "model": "m"}})  # fmt: skip
-    own = agent_spec(scenario, "care", scenario.feedback.agents["care"], scenario_ollama_options)
+    own = agent_source(scenario, "care", scenario.feedback.agents["care"])
     assert own.options["hosts"] == ["http://c:3", "http://d:4"] and own.options["host"] is None
-    inherited = agent_spec(
-        scenario, "virtue", scenario.feedback.agents["virtue"], scenario_ollama_options
-    )
+    inherited = agent_source(scenario, "virtue", scenario.feedback.agents["virtue"])
     assert inherited.options["hosts"] == ["http://a:1", "http://b:2"]
-    one = agent_spec(
-        scenario, "care", {"source": "ollama", "model": "m", "host": "http://e:5"},
-        scenario_ollama_options,
-    )  # fmt: skip
+    one = agent_source(scenario, "care", OllamaSpec(source="ollama", model="m", host="http://e:5"))
     assert one.options["host"] == "http://e:5" and one.options["hosts"] is None
     for table, message in (
         ({**care, "host": "http://e:5"}, "sets both host and hosts"),
@@ -295,7 +289,7 @@ def test_agent_tables_take_hosts(tmp_path) -> None:
 # -- reporting ---------------------------------------------------------------------------
 def test_figures_reach_the_summary_results_and_report(tmp_path) -> None:
     from amuled_ma.beliefs.routing import RoutedSource
-    from amuled_ma.deliberation.feedback import llm_server_stats, summary_lines
+    from amuled_ma.deliberation.summaries import llm_server_stats, summary_lines
     from amuled_ma.evaluate.evaluator import merge_feedback
     from amuled_ma.evaluate.report import servers_table
 

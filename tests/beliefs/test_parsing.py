@@ -7,12 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from amuled_ma.beliefs.parsing import (
-    REPAIRS,
-    belief_schema,
-    candidate_objects,
-    parse_belief,
-)
+from amuled_ma.beliefs.parsing import REPAIRS, belief_schema, parse_belief
+from amuled_ma.beliefs.reply_objects import candidate_objects
 
 MILK = ("up", "down", "left", "right")
 DRIVE = ("straight", "right", "left")

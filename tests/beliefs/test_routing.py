@@ -9,11 +9,30 @@ import pytest
 
 from amuled_ma.beliefs import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.beliefs.cached import CachedSource
-from amuled_ma.beliefs.routing import RoutedSource, SourceSpec, build_members
+from amuled_ma.beliefs.routing import RoutedSource
 from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.deliberation.build import build_members
+from amuled_ma.deliberation.plan import PanelPlan
+from amuled_ma.deliberation.plan import SourcePlan as SourceSpec
 from amuled_ma.errors import BackendUnavailable, ScenarioError
 
 MILK = ("up", "down", "left", "right")
+
+
+class _Named:
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+
+def plan_of(routes: dict, default) -> PanelPlan:
+    """A panel plan of ``routes`` plus one agent on the default source."""
+    agents = (*routes, "consequentialist")
+    return PanelPlan(
+        variant="amuled", kind="amuled", task="findmilk", where="s.toml", seed=1,
+        clusters=tuple(_Named(a) for a in agents), routes=routes, default=default,
+    )  # fmt: skip
+
+
 CHAT = (("system", "You are a moral agent."), ("user", "State: x=1."))
 
 
@@ -182,11 +201,8 @@ def test_members_with_equal_specs_are_built_once_and_shared():
     rules = SourceSpec("rules", {"policy": "human"}, "[feedback.agents.x]")
     default = SourceSpec("rules", {"policy": "human"}, "[feedback].source = 'rules'")
     other = SourceSpec("terminal", {"person": "ann", "attempts": 3}, "[feedback.agents.care]")
-    routes, fallback = build_members(
-        {"virtue": rules, "care": other, "deontological": rules},
-        default,
-        where="s.toml",
-        build=build,
+    routes, fallback, _ = build_members(
+        plan_of({"virtue": rules, "care": other, "deontological": rules}, default), build=build
     )
     assert len(built) == 2  # rules once (two agents and the default), terminal once
     assert routes["virtue"] is routes["deontological"] is fallback
@@ -212,7 +228,7 @@ def test_preflight_names_each_agent_and_source_and_closes_what_was_built():
     gone = SourceSpec("policy", {"path": "v.pt"}, "[feedback.agents.virtue] (source 'policy')")
 
     with pytest.raises(ScenarioError) as info:
-        build_members({"care": down, "virtue": gone}, ok, where="s.toml", build=build)
+        build_members(plan_of({"care": down, "virtue": gone}, ok), build=build)
     text = str(info.value)
     assert text.startswith("s.toml: 2 belief sources of the panel cannot be used")
     assert (
@@ -224,7 +240,7 @@ def test_preflight_names_each_agent_and_source_and_closes_what_was_built():
 
     # one problem keeps its own class (the CLI and callers tell them apart)
     with pytest.raises(BackendUnavailable) as one:
-        build_members({"care": down}, ok, where="s.toml", build=build)
+        build_members(plan_of({"care": down}, ok), build=build)
     assert str(one.value) == (
         "s.toml: [feedback.agents.care] (source 'ollama'): no Ollama server answers at "
         "http://nowhere:11434"

@@ -10,13 +10,15 @@ import torch
 from test_distill_source import ACTIONS, MEMBERS, Panel
 
 from amuled_ma.deliberation import MoralPanel
-from amuled_ma.deliberation.feedback import PanelFeedback, make_feedback, summary_lines
+from amuled_ma.deliberation.build import make_feedback
+from amuled_ma.deliberation.panel_feedback import PanelFeedback
+from amuled_ma.deliberation.summaries import summary_lines
 from amuled_ma.distill import DistilledSource
 from amuled_ma.errors import ScenarioError
 from amuled_ma.experiments.plans import ablation_variants, check_inputs
 from amuled_ma.experiments.run_folder import training_config
-from amuled_ma.learn.variants import Variant
 from amuled_ma.scenario import load_scenario
+from amuled_ma.variants import Variant
 
 torch.set_num_threads(1)
 

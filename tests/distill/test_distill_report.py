@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-
 from amuled_ma.evaluate.evaluator import merge_feedback
 from amuled_ma.evaluate.report import (
     agents_table,
@@ -13,6 +11,7 @@ from amuled_ma.evaluate.report import (
     write_report,
 )
 from amuled_ma.evaluate.stats import mean_ci
+from amuled_ma.records import RunRecord
 
 #: A two-step FindMilk episode on the paper's layout (for the trajectory figure).
 TRAJECTORY = {
@@ -95,8 +94,9 @@ def test_the_tables_carry_the_accounting_and_the_metrics():
 
 
 def test_the_report_has_the_tables_and_the_figure(tmp_path):
-    (tmp_path / "config.json").write_text(json.dumps({"ablation": "budget"}))
-    report = write_report(tmp_path, results(), title="budget").read_text()
+    # the run's record (its config.json) names the ablation; the caller hands it over
+    run = RunRecord.model_validate({"ablation": "budget"})
+    report = write_report(tmp_path, results(), title="budget", run=run).read_text()
     assert "## Feedback budget" in report and "## Metrics against the budget" in report
     assert "![Ablation of the feedback budget](ablation_budget.png)" in report
     assert (tmp_path / "ablation_budget.png").stat().st_size > 10_000

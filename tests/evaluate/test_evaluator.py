@@ -38,9 +38,9 @@ def test_evaluate_run_writes_results_and_report(tmp_path):
     Trainer(sc, tmp_path / "base", task_factory=grid_factory).train()
     Trainer(sc, tmp_path / "shaped", variant="shaped", task_factory=grid_factory).train()
     results = evaluate_run(tmp_path, sc, task_factory=grid_factory)
-    assert set(results["variants"]) == {"base", "shaped"}
-    stats = results["variants"]["base"]["greedy"]["metrics"]["steps_to_milk"]
-    assert stats["n"] == 6 and stats["ci_low"] <= stats["mean"] <= stats["ci_high"]
+    assert set(results.variants) == {"base", "shaped"}
+    stats = results.variants["base"].greedy.metrics["steps_to_milk"]
+    assert stats.n == 6 and stats.ci_low <= stats.mean <= stats.ci_high
     saved = json.loads((tmp_path / "results.json").read_text())
     assert saved["episodes"] == 6
     csv = (tmp_path / "results.csv").read_text().splitlines()

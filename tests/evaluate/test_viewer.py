@@ -26,10 +26,12 @@ import torch
 from tiny_cli import RULES, TINY
 
 from amuled_ma.cli import main
-from amuled_ma.commands._experiment import scenario_of_run
-from amuled_ma.deliberation.feedback import make_feedback
+from amuled_ma.deliberation.build import make_feedback
 from amuled_ma.evaluate import episode_trace as trace
-from amuled_ma.evaluate import viewer
+from amuled_ma.evaluate import page_server, viewer
+from amuled_ma.evaluate.readonly_feedback import ReadOnlyStore
+from amuled_ma.experiments.run_folder import scenario_of_run
+from amuled_ma.experiments.trained_variants import trained_variant
 from amuled_ma.learn.policies import action_log_probs, load_policy
 from amuled_ma.tasks import make_task
 
@@ -208,14 +210,14 @@ def test_a_feedback_without_panel_shows_its_belief_and_says_so(findmilk_run, tmp
 def test_viewing_never_writes_to_the_runs_store(findmilk_run, tmp_path):
     store = findmilk_run / "beliefs.sqlite"
     before = store.read_bytes()
-    rows_before = sum(1 for _ in trace.ReadOnlyStore(store).store.iter_rows())
+    rows_before = sum(1 for _ in ReadOnlyStore(store).store.iter_rows())
     # a sampled episode visits states training never asked about
     out = tmp_path / "v.html"
     assert (
         main(["view", str(findmilk_run), "--mode", "sampled", "--episode", "3", "-o", str(out)])
         == 0
     )
-    assert sum(1 for _ in trace.ReadOnlyStore(store).store.iter_rows()) == rows_before
+    assert sum(1 for _ in ReadOnlyStore(store).store.iter_rows()) == rows_before
     assert store.read_bytes() == before
 
 
@@ -275,7 +277,7 @@ def test_view_errors_name_the_run_and_the_variants(findmilk_run, tmp_path, capsy
 def test_serve_answers_the_page_on_localhost_only(findmilk_run, tmp_path, capsys):
     page = tmp_path / "p.html"
     page.write_text("<!DOCTYPE html><p>hello</p>")
-    server = viewer.make_server(page)
+    server = page_server.make_server(page)
     host, port = server.server_address[:2]
     assert host == "127.0.0.1"
     thread = threading.Thread(target=server.serve_forever, daemon=True)
@@ -393,7 +395,7 @@ def test_browser_shows_replayed_reasoning_and_abstentions(
     from amuled_ma.beliefs.types import BeliefRequest
 
     variant = findmilk_run / "finetune-replay"
-    scenario = trace.variant_scenario(findmilk_run, variant)
+    scenario = trained_variant(findmilk_run, variant).scenario
     actor = trace.load_actor(variant / "model_last.pt", scenario)
     path = recordings_dir / "findmilk-gpt-4o-mini.json"
     source = ReplaySource(path, miss_policy="uniform")

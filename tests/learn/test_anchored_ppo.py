@@ -9,7 +9,7 @@ import pytest
 import torch
 from rsl_rl.algorithms import PPO
 
-from amuled_ma.deliberation.feedback import CallableFeedback
+from amuled_ma.deliberation.feedback_base import CallableFeedback
 from amuled_ma.learn.anchored_ppo import AnchoredPPO
 from amuled_ma.learn.policies import action_log_probs
 from amuled_ma.learn.trainer import Trainer

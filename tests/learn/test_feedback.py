@@ -6,15 +6,13 @@ import pytest
 import torch
 
 from amuled_ma.beliefs.types import BeliefResult, BeliefSource
-from amuled_ma.deliberation.feedback import (
-    CallableFeedback,
-    PanelFeedback,
-    summary_lines,
-)
+from amuled_ma.deliberation.feedback_base import CallableFeedback
+from amuled_ma.deliberation.panel_feedback import PanelFeedback
+from amuled_ma.deliberation.summaries import summary_lines
 from amuled_ma.errors import ScenarioError
 from amuled_ma.experiments.plans import ablation_variants
-from amuled_ma.learn.variants import Variant, parse_feedback
 from amuled_ma.scenario import scenario_from_dict
+from amuled_ma.variants import Variant, parse_feedback
 
 MILK = ("up", "down", "left", "right")
 
@@ -109,7 +107,7 @@ def test_ablation_lists():
 def test_make_source_preflight_fails_before_writing(tmp_path):
     from amuled_ma.beliefs import register_source
     from amuled_ma.beliefs.types import BeliefSource
-    from amuled_ma.deliberation.feedback import make_source
+    from amuled_ma.deliberation.build import make_source
     from amuled_ma.errors import BackendUnavailable
 
     class Down(BeliefSource):

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from amuled_ma.deliberation.feedback import FusedReplayFeedback, PanelFeedback, make_feedback
+from amuled_ma.deliberation.build import make_feedback
+from amuled_ma.deliberation.panel_feedback import FusedReplayFeedback, PanelFeedback
 from amuled_ma.errors import ScenarioError
 from amuled_ma.experiments.plans import train_variant
 from amuled_ma.scenario import load_scenario

@@ -1,4 +1,9 @@
-"""The job graph: planning, seed replicas, parallel workers, a real Ctrl-C to the group."""
+"""The job graph: planning, seed replicas, parallel workers, a real Ctrl-C to the group.
+
+Every test that starts Ray runs it in a network namespace it makes (``unshare -n``,
+loopback only; ``tests/netns.py``): skipped with the reason where that is not permitted,
+a failure under ``CI=true``.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
+from netns import require_netns, run_sealed
 
 from amuled_ma.errors import AmuledError
 from amuled_ma.experiments.jobs import check_order, resolve_workers, run_jobs
@@ -99,20 +105,38 @@ def _learned(row: dict) -> dict:
     return {k: v for k, v in row.items() if k != "wall_s" and not k.startswith("time/")}
 
 
+PARALLEL_SCRIPT = """
+import json, sys
+from pathlib import Path
+sys.path[:0] = [sys.argv[2], str(Path(sys.argv[2]).parent)]  # tests/learn, tests
+from test_jobs import tiny_scenario
+from amuled_ma.experiments.jobs import run_jobs
+from amuled_ma.experiments.plans import plan_run
+runs, workers_used = {}, {}
+for workers in (1, 2):
+    run_dir = Path(sys.argv[1]) / f"w{workers}"
+    jobs = plan_run(tiny_scenario(), run_dir, [1, 2])
+    outcome = run_jobs(jobs, workers=workers, describe=lambda r: str(r.variant))
+    workers_used[workers] = [outcome.workers, len(outcome.results)]
+    runs[workers] = {j.name: json.loads((j.out_dir / "curve.json").read_text()) for j in jobs}
+print("RESULT " + json.dumps({"runs": runs, "workers": workers_used}))
+"""
+
+
 def test_parallel_training_is_bit_identical_to_sequential(tmp_path):
     """Worker processes change where a job runs, not what it learns."""
-    runs = {}
-    for workers in (1, 2):
-        run_dir = tmp_path / f"w{workers}"
-        jobs = plan_run(tiny_scenario(), run_dir, [1, 2])
-        outcome = run_jobs(jobs, workers=workers, describe=lambda r: str(r.variant))
-        assert outcome.workers == workers and len(outcome.results) == 8
-        runs[workers] = {j.name: json.loads((j.out_dir / "curve.json").read_text()) for j in jobs}
-    for name, curve in runs[1].items():
-        other = runs[2][name]
+    require_netns()
+    script = tmp_path / "parallel.py"
+    script.write_text(PARALLEL_SCRIPT)
+    here = str(Path(__file__).resolve().parent)
+    result, _ = run_sealed(script, [str(tmp_path), here], timeout=600, env=ENV)
+    assert result["workers"] == {"1": [1, 8], "2": [2, 8]}
+    runs = result["runs"]
+    for name, curve in runs["1"].items():
+        other = runs["2"][name]
         assert [_learned(row) for row in curve] == [_learned(row) for row in other], name
     # the two seeds really differ
-    assert runs[1]["finetune-amuled"] != runs[1]["finetune-amuled.seed2"]
+    assert runs["1"]["finetune-amuled"] != runs["1"]["finetune-amuled.seed2"]
 
 
 AMULED = [sys.executable, "-m", "amuled_ma"]
@@ -135,9 +159,15 @@ def _ablate_args(run_dir: Path, iterations: int) -> list[str]:
     return args
 
 
+def _sealed(command: list[str]) -> list[str]:
+    """``command`` in a new network namespace with loopback only (Ray's ports stay here)."""
+    return ["unshare", "-n", "sh", "-c", 'ip link set lo up && exec "$0" "$@"', *command]
+
+
 def _start(args: list[str]) -> subprocess.Popen:
+    require_netns()
     return subprocess.Popen(
-        [*AMULED, *args],
+        _sealed([*AMULED, *args]),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -175,7 +205,9 @@ def _tunes(run_dir: Path, *names: str) -> list[Path]:
 def _resume_to(run_dir: Path, iterations: int, tunes: list[Path]) -> None:
     """``--resume`` the ablation to ``iterations``; each of ``tunes`` then has every one."""
     resume = [*_ablate_args(run_dir, iterations), "--resume"]
-    done = subprocess.run([*AMULED, *resume], capture_output=True, text=True, env=ENV, timeout=300)
+    done = subprocess.run(
+        _sealed([*AMULED, *resume]), capture_output=True, text=True, env=ENV, timeout=300
+    )
     assert done.returncode == 0, done.stderr
     for tune in tunes:
         curve = json.loads((tune / "curve.json").read_text())

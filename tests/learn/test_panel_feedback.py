@@ -11,9 +11,9 @@ import torch
 
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.cli import main
-from amuled_ma.deliberation.feedback import PanelFeedback
 from amuled_ma.deliberation.panel import MoralPanel
-from amuled_ma.errors import AbstentionError
+from amuled_ma.deliberation.panel_feedback import PanelFeedback
+from amuled_ma.errors import AbstentionError, ScenarioError
 
 ACTIONS = ("up", "down", "left", "right")
 
@@ -171,7 +171,7 @@ def test_named_variant_with_a_user_cluster_sits_beside_amuled(tmp_path, capsys):
 
 
 def test_a_cluster_file_names_its_default_source_and_the_scenario_overrides_it(tmp_path):
-    from amuled_ma.deliberation.feedback import make_feedback
+    from amuled_ma.deliberation.build import make_feedback
     from amuled_ma.scenario import load_scenario
 
     clusters = tmp_path / "clusters"
@@ -188,10 +188,14 @@ def test_a_cluster_file_names_its_default_source_and_the_scenario_overrides_it(t
     assert feedback.agent_source("care").startswith("replay")
     feedback.close()
     # the scenario's table for the agent wins over the file's default
-    overridden = scenario.replace("feedback", agents={"animal_welfare": {"source": "replay"}})
+    overridden = scenario.replace("feedback", agents={"animal_welfare": {"source": "terminal"}})
     feedback = make_feedback("amuled", overridden, tmp_path)
-    assert feedback.agent_source("animal_welfare").startswith("replay")
+    assert feedback.agent_source("animal_welfare").startswith("terminal")
     feedback.close()
+    # a table routing it to a recording that does not hold it is refused up front
+    replayed = scenario.replace("feedback", agents={"animal_welfare": {"source": "replay"}})
+    with pytest.raises(ScenarioError, match='cluster "animal_welfare" is not in recording'):
+        make_feedback("amuled", replayed, tmp_path)
 
 
 def test_rare_unanswered_states_do_not_stop_a_run():

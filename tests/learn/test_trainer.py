@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from amuled_ma.deliberation.feedback import CallableFeedback
+from amuled_ma.deliberation.feedback_base import CallableFeedback
 from amuled_ma.errors import CheckpointError
 from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.policies import action_log_probs, load_policy

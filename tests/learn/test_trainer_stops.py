@@ -48,14 +48,13 @@ def test_backend_down_mid_finetune_writes_checkpoint_and_resume_command(
 
 
 def test_unknown_ollama_option_is_named() -> None:
-    from amuled_ma.deliberation.feedback import make_source
     from amuled_ma.scenario import load_scenario
 
-    scenario = load_scenario("findmilk").replace(
-        "feedback", source="ollama", ollama={"num_predict": 64, "temprature": 0.5}
-    )
+    # refused when the scenario is validated, before any source is built
     with pytest.raises(ScenarioError, match=r"\[feedback.ollama\] unknown key\(s\) temprature"):
-        make_source(scenario)
+        load_scenario("findmilk").replace(
+            "feedback", source="ollama", ollama={"num_predict": 64, "temprature": 0.5}
+        )
 
 
 @pytest.mark.parametrize("task", ["findmilk", "driving"])

@@ -20,9 +20,6 @@ import torch
 from amuled_ma.tasks.demonstrators import (
     DemonstratorBelief,
     DemonstratorCacheError,
-    _episode_keys,
-    _task_seed,
-    _uniforms,
     cache_path,
     counts_to_belief,
     demonstrator_belief,
@@ -33,6 +30,8 @@ from amuled_ma.tasks.demonstrators import (
     play_findmilk,
     sarsa_update,
 )
+from amuled_ma.tasks.demonstrators.play import episode_streams, task_seed, uniforms
+from amuled_ma.tasks.demonstrators.table import observation_bounds
 from amuled_ma.tasks.driving import Driving
 from amuled_ma.tasks.findmilk import FindMilk
 
@@ -160,9 +159,9 @@ def test_findmilk_start_action_frequencies():
 def reference_findmilk(seed: int, episode: int) -> Counter:
     """One episode of ``human_policy_milk.py`` on our task, fed our demonstrator's draws."""
     sleep_positions = [(1, 1), (3, 3), (4, 0), (5, 4), (5, 5), (6, 6)]
-    env = FindMilk(1, seed=_task_seed(seed, episode))
+    env = FindMilk(1, seed=task_seed(seed, episode))
     state = env.reset()[0].tolist()
-    u_all = _uniforms(_episode_keys(seed, episode, 1, torch.device("cpu")), 0, 300)[0].tolist()
+    u_all = uniforms(episode_streams(seed, episode, 1, torch.device("cpu")), 0, 300)[0].tolist()
     trajectory: Counter = Counter()
     for t in range(300):
         x, y = state[0], state[1]
@@ -191,9 +190,7 @@ def reference_findmilk(seed: int, episode: int) -> Counter:
 
 def as_counter(table: DemonstratorBelief) -> Counter:
     """``(observation tuple, action) -> count`` of a table (decoding the keys by hand)."""
-    from amuled_ma.tasks.demonstrators import _encoding
-
-    bounds = _encoding(table.task_name)
+    bounds = observation_bounds(table.task_name)
     out: Counter = Counter()
     for key, row in zip(table.states.tolist(), table.counts.tolist(), strict=True):
         digits = []
@@ -242,9 +239,9 @@ def test_human_reward_from_the_step_info():
 
 def reference_driving(seed: int, episode: int, steps: int) -> Counter:
     """One episode of ``human_policy_drive.py`` on our task, fed our demonstrator's draws."""
-    env = Driving(1, seed=_task_seed(seed, episode), max_steps=steps)
+    env = Driving(1, seed=task_seed(seed, episode), max_steps=steps)
     state = tuple(env.reset()[0].tolist())
-    u_all = _uniforms(_episode_keys(seed, episode, 1, torch.device("cpu")), 0, 5 * steps)
+    u_all = uniforms(episode_streams(seed, episode, 1, torch.device("cpu")), 0, 5 * steps)
     u_all = u_all[0].tolist()
     q: dict = {}
     trajectory: Counter = Counter()

@@ -2,7 +2,7 @@
 
 The rule books below are written from the text of issue 3 with lists and sets (the way the
 authors' code keeps its state); they receive the same random numbers as the cores (the
-per-copy streams of :mod:`amuled_ma.tasks._rng`), so every observation and reward must agree.
+per-copy streams of :mod:`amuled_ma.tasks.rng`), so every observation and reward must agree.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from amuled_ma.tasks import _rng
+from amuled_ma.tasks import rng as streams
 from amuled_ma.tasks.driving import Driving
 from amuled_ma.tasks.findmilk import CRYING, SLEEPING, FindMilk
 
@@ -57,14 +57,14 @@ def test_driving_matches_the_rule_book():
     n, steps, seed, coef = 12, 420, 77, 0.5
     core = Driving(n, seed=seed, shaping_coef=coef)
     obs = core.reset()
-    keys = _rng.copy_keys(seed, n, torch.device("cpu"))
-    t_car, t_gm = _rng.threshold32(0.16), _rng.threshold32(0.09)
+    keys = streams.copy_keys(seed, n, torch.device("cpu"))
+    t_car, t_gm = streams.threshold32(0.16), streams.threshold32(0.09)
     books = [DrivingBook() for _ in range(n)]
     rng = np.random.default_rng(3)
     for t in range(steps):
-        z = _rng.draw(keys, torch.full((n,), t, dtype=torch.int64))
-        u_car = (z & _rng.MASK32).tolist()
-        u_gm = _rng._srl(z, 32).tolist()
+        z = streams.draw(keys, torch.full((n,), t, dtype=torch.int64))
+        u_car = (z & streams.MASK32).tolist()
+        u_gm = streams.shift_right(z, 32).tolist()
         actions = rng.integers(0, 3, n)
         obs, reward, term, trunc, info = core.step(torch.as_tensor(actions))
         for i, book in enumerate(books):

@@ -1,4 +1,4 @@
-"""Counter-based random numbers, one independent stream per environment copy.
+"""Counter-based random numbers (SplitMix64), one independent stream per environment copy.
 
 Every copy ``i`` of a batched task owns a 64-bit key (derived from ``seed + i``, the
 Gymnasium vector-env convention) and a counter. Draw ``k`` of copy ``i`` is the
@@ -7,13 +7,29 @@ not depend on how many other copies step beside it: copy ``i`` of a batched task
 with ``s`` is the same environment as a single copy seeded with ``s + i``.
 
 Integer arithmetic only (int64 tensors, wrapping multiplication), so it runs unchanged
-on any torch device and spawn decisions are exact integer comparisons.
+on any torch device and spawn decisions are exact integer comparisons. This is the one
+SplitMix64 of the project: the tasks and the synthetic human demonstrators
+(:mod:`amuled_ma.tasks.demonstrators`) draw through the functions below.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import torch
+
+__all__ = [
+    "GAMMA",
+    "MASK32",
+    "copy_keys",
+    "draw",
+    "draws",
+    "entropy_seed",
+    "mix64",
+    "shift_right",
+    "splitmix64",
+    "threshold32",
+    "uniform53",
+]
 
 _MASK64 = (1 << 64) - 1
 
@@ -25,21 +41,42 @@ def _signed(value: int) -> int:
 
 
 GAMMA = _signed(0x9E3779B97F4A7C15)
+"""The SplitMix64 increment (golden ratio), as an int64."""
 _C1 = _signed(0xBF58476D1CE4E5B9)
 _C2 = _signed(0x94D049BB133111EB)
 MASK32 = (1 << 32) - 1
+"""The low 32 bits of a draw."""
 
 
-def _srl(z: torch.Tensor, shift: int) -> torch.Tensor:
-    """Logical right shift of int64 values (torch's ``>>`` is arithmetic)."""
+def shift_right(z: torch.Tensor, shift: int) -> torch.Tensor:
+    """Return the logical right shift of int64 values (torch's ``>>`` is arithmetic).
+
+    Args:
+        z: int64 tensor, read as unsigned 64-bit values.
+        shift: Bits to shift, 1..63.
+
+    Returns:
+        int64 tensor of ``z``'s shape, non-negative.
+
+    """
     return (z >> shift) & ((1 << (64 - shift)) - 1)
 
 
 def mix64(z: torch.Tensor) -> torch.Tensor:
     """SplitMix64 finaliser on int64 tensors (bijective, wrapping arithmetic)."""
-    z = (z ^ _srl(z, 30)) * _C1
-    z = (z ^ _srl(z, 27)) * _C2
-    return z ^ _srl(z, 31)
+    z = (z ^ shift_right(z, 30)) * _C1
+    z = (z ^ shift_right(z, 27)) * _C2
+    return z ^ shift_right(z, 31)
+
+
+def splitmix64(value: int) -> int:
+    """Return the SplitMix64 output of the state ``value`` (a Python integer, modulo 2**64).
+
+    The finaliser of ``value + GAMMA``, as an unsigned 64-bit Python integer; the scalar
+    reading of :func:`mix64`, for hashing seeds.
+    """
+    state = torch.tensor(_signed(value + GAMMA), dtype=torch.int64)
+    return int(mix64(state)) & _MASK64
 
 
 def copy_keys(seed: int, num_envs: int, device: torch.device) -> torch.Tensor:
@@ -67,6 +104,31 @@ def entropy_seed() -> int:
 def draw(keys: torch.Tensor, counters: torch.Tensor, offset: int = 0) -> torch.Tensor:
     """Return the 64-bit draw number ``counters + offset`` of each stream (int64)."""
     return mix64(keys + (counters + offset) * GAMMA)
+
+
+def draws(keys: torch.Tensor, counters: torch.Tensor | int, count: int) -> torch.Tensor:
+    """Return draws ``counters .. counters + count - 1`` of each stream.
+
+    Args:
+        keys: Stream keys, int64 ``[N]``.
+        counters: First draw number of each stream (int64 ``[N]``), or one for all.
+        count: Draws per stream.
+
+    Returns:
+        int64 ``[N, count]``.
+
+    """
+    offsets = torch.arange(count, dtype=torch.int64, device=keys.device)
+    if isinstance(counters, torch.Tensor):
+        offsets = counters[:, None] + offsets
+    else:
+        offsets = offsets + counters
+    return mix64(keys[:, None] + offsets * GAMMA)
+
+
+def uniform53(z: torch.Tensor) -> torch.Tensor:
+    """Return draws as float64 uniforms in ``[0, 1)`` (their top 53 bits)."""
+    return shift_right(z, 11).to(torch.float64) * 2.0**-53
 
 
 def threshold32(probability: float) -> int:

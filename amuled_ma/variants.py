@@ -71,8 +71,8 @@ class Variant:
         kind: ``base`` (the task's reward), ``shaped`` (plus handcrafted shaping) or
             ``finetune`` (a copy of the base on feedback, anchored to it).
         feedback: The feedback of a fine-tune (see the module docstring; a library user's own
-            :class:`~amuled_ma.deliberation.feedback.Feedback` may carry any name, checked only when
-            :attr:`feedback_kind` is asked); None otherwise.
+            :class:`~amuled_ma.deliberation.feedback_base.Feedback` may carry any name,
+            checked only when :attr:`feedback_kind` is asked); None otherwise.
         label: A name for the fine-tune's folder instead of the feedback's
             (``finetune-<label>``), e.g. ``[feedback].name`` or an ablation's
             ``amuled-kl0.5``; None: the folder is named after the variant.

@@ -1,0 +1,503 @@
+"""Feedback built from a panel plan, the belief store passed in; the preflight of a plan.
+
+:func:`build_feedback` is the one function that turns a
+:class:`~amuled_ma.deliberation.plan.PanelPlan` into a
+:class:`~amuled_ma.deliberation.feedback_base.Feedback`: the demonstrator, the human rule,
+the authors' fused beliefs, or a :class:`~amuled_ma.deliberation.panel.MoralPanel` over
+its members' sources, each behind the store it is given (a
+:class:`~amuled_ma.beliefs.cached.CachedSource` per distinct source, one
+:class:`~amuled_ma.beliefs.routing.RoutedSource` over them). :func:`preflight` checks a plan
+without a store: every member's source is built and checked (a replay recording holds the
+member's cluster and the task, an Ollama server answers and has the model, a plug-in
+loads), or one error names the member and the ways to give it beliefs. Nothing is written.
+:func:`checked_members` is the preflight that keeps the sources it built and checked
+(:class:`Members`), for :func:`build_feedback` to use instead of building them again.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from amuled_ma.beliefs.cached import CachedSource
+from amuled_ma.beliefs.routing import RoutedSource
+from amuled_ma.beliefs.sources import make_source as build_source
+from amuled_ma.beliefs.types import BeliefSource
+from amuled_ma.deliberation.feedback_base import CallableFeedback, DemonstratorFeedback, Feedback
+from amuled_ma.deliberation.panel_feedback import FusedReplayFeedback, PanelFeedback
+from amuled_ma.deliberation.plan import (
+    PanelPlan,
+    SourcePlan,
+    plan_panel,
+    plan_sources,
+    recording_of,
+    store_path,
+)
+from amuled_ma.errors import AmuledError, ScenarioError
+from amuled_ma.scenario import AGENT_SOURCE_KINDS, MORAL_AGENT, Scenario
+from amuled_ma.scenario.agents import norm
+
+#: The ways to give a member beliefs, named in the preflight's messages.
+_KINDS = " | ".join(f'"{k}"' for k in AGENT_SOURCE_KINDS if k != "replay")
+
+
+def _without(error: BaseException, where: str) -> str:
+    """The error's message without a leading ``"<where>: "`` (it is said once, first)."""
+    text = str(error)
+    return text[len(where) + 2 :] if text.startswith(f"{where}: ") else text
+
+
+def _replay_problem(source: Any, agents: Sequence[str], task: str) -> str | None:
+    """Why a replay source cannot answer ``agents`` on ``task`` (from its recordings)."""
+    recordings = list(getattr(source, "recordings", None) or ())
+    fused_only = [r for r in recordings if r.fused_only]
+    if fused_only:
+        return (
+            f"{fused_only[0].path} keeps only the authors' fused belief per state "
+            "('beliefs': null), so it cannot answer per agent; name a recording "
+            'with per-cluster beliefs (e.g. recording = "driving-llama-3_1-70b")'
+        )
+    matching = [r for r in recordings if norm(r.task) == norm(task)]
+    if not matching:
+        held = ", ".join(f"{r.path.stem} (task {r.task!r})" for r in recordings)
+        return (
+            f"no recording of task {task!r}: {held}; replay a recording of {task} "
+            f"([feedback].recording), or give the members beliefs with "
+            f"[feedback.agents.<name>] source = {_KINDS}"
+        )
+    recording = matching[0]
+    missing = [a for a in agents if source.recording_agent(recording, a) is None]
+    if not missing:
+        return None
+    names = ", ".join(f'"{a}"' for a in missing)
+    what = f"cluster {names} is" if len(missing) == 1 else f"clusters {names} are"
+    table = missing[0] if len(missing) == 1 else "<name>"
+    return (
+        f"{what} not in recording {recording.path.stem} (it holds: "
+        f"{', '.join(recording.clusters)}); give it beliefs with [feedback.agents.{table}] "
+        f"source = {_KINDS}, or drop it from [feedback].clusters"
+    )
+
+
+class Members(NamedTuple):
+    """A plan's member sources, each distinct one built once and checked, open.
+
+    Attributes:
+        routes: ``{agent: source}`` of the members with their own table.
+        default: The source of every other member (None: each has a table).
+        plans: ``{id(source): its SourcePlan}``.
+
+    """
+
+    routes: dict[str, BeliefSource]
+    default: BeliefSource | None
+    plans: dict[int, SourcePlan]
+
+    def close(self) -> None:
+        """Close every distinct source once."""
+        closed: set[int] = set()
+        for source in [
+            *self.routes.values(),
+            *([self.default] if self.default is not None else []),
+        ]:
+            if id(source) not in closed:
+                closed.add(id(source))
+                source.close()
+
+
+def build_members(plan: PanelPlan, *, build: Any = build_source) -> Members:
+    """Build every distinct member source of a plan once and check it; nothing is asked.
+
+    The preflight, per distinct source: building it (a replay recording is read and
+    checked, a policy file loaded, a plug-in resolved and built), then ``check()`` where
+    the source has one (Ollama: the server answers and has the model), then, for a
+    replay member, that its recording is of the task and holds every member it serves.
+
+    Args:
+        plan: The plan.
+        build: ``(kind, **options) -> BeliefSource`` (default ``beliefs.make_source``).
+
+    Returns:
+        The :class:`Members` (``routes``, ``default``, ``plans``); agents with equal plans
+        share one object, and so do an agent and the default.
+
+    Raises:
+        AmuledError: One problem: the member's own error class, its message prefixed
+            with the agent's table and source; several: a :class:`ScenarioError`
+            listing each, one per line. Every source built is closed first.
+
+    """
+    where = plan.where
+    default = plan.default
+    distinct: dict[str, tuple[SourcePlan, list[str]]] = {}
+    if default is not None:
+        distinct[default.key] = (default, [])
+    for agent, spec in plan.routes.items():
+        distinct.setdefault(spec.key, (spec, []))[1].append(agent)
+    served: dict[str, list[str]] = {key: [] for key in distinct}
+    for agent in plan.agents:
+        spec = plan.source_of(agent)
+        if spec is not None:
+            served[spec.key].append(agent)
+    built: dict[str, BeliefSource] = {}
+    problems = list(plan.problems)
+    for key, (spec, agents) in distinct.items():
+        label = spec.label
+        if spec is default and agents:
+            label = f"{label}, also {', '.join(f'[feedback.agents.{a}]' for a in agents)}"
+        elif len(agents) > 1:
+            label = f"{label} (shared by agents {', '.join(agents)})"
+        try:
+            source = build(spec.kind, **json.loads(json.dumps(spec.options)))
+        except Exception as error:
+            problems.append((error, label))
+            continue
+        built[key] = source
+        try:
+            check = getattr(source, "check", None)
+            if callable(check):
+                check()
+            if spec.kind == "replay":
+                problem = _replay_problem(source, served[key], plan.task)
+                if problem:
+                    raise ScenarioError(problem)
+        except Exception as error:
+            problems.append((error, label))
+    if problems:
+        for source in built.values():
+            with contextlib.suppress(Exception):  # the preflight error matters more
+                source.close()
+        if len(problems) == 1:
+            error, label = problems[0]
+            text = f"{where}: {label}: {_without(error, where)}"
+            wrapped: BaseException = ScenarioError(text)
+            if isinstance(error, AmuledError):
+                with contextlib.suppress(TypeError):  # an error class with another signature
+                    wrapped = type(error)(text)
+            raise wrapped from error
+        lines = "\n".join(f"  - {label}: {_without(e, where)}" for e, label in problems)
+        raise ScenarioError(
+            f"{where}: {len(problems)} belief sources of the panel cannot be used; fix each "
+            f"before training:\n{lines}"
+        ) from problems[0][0]
+    routes = {agent: built[spec.key] for agent, spec in plan.routes.items()}
+    plans = {id(built[k]): spec for k, (spec, _) in distinct.items()}
+    return Members(routes, built[default.key] if default is not None else None, plans)
+
+
+def preflight(plan: PanelPlan) -> None:
+    """Check that every member of a plan can answer, before any training or folder.
+
+    :func:`checked_members`, the sources it built closed again.
+
+    Raises:
+        AmuledError: One line naming the member, its source and the ways to give it
+            beliefs (several problems: one line each).
+
+    """
+    members = checked_members(plan)
+    if members is not None:
+        members.close()
+
+
+def checked_members(plan: PanelPlan) -> Members | None:
+    """The preflight of a plan, its member sources kept open for :func:`build_feedback`.
+
+    A panel's sources are built and checked (:func:`build_members`); a fused-only
+    recording must be of the task, and not be asked to distil.
+
+    Returns:
+        The members, built and checked (the caller closes them, or hands them to
+        :func:`build_feedback`); None when the feedback asks no member source (the
+        demonstrator, the human rule, a fused-only recording).
+
+    Raises:
+        AmuledError: One line naming the member, its source and the ways to give it
+            beliefs (several problems: one line each); nothing is left open.
+
+    """
+    if not plan.asks_panel:
+        return None
+    if plan.fused_recording is not None:
+        recording = recording_of(plan.fused_recording)
+        if norm(recording.task) != norm(plan.task):
+            raise ScenarioError(
+                f"{plan.where}: [feedback].recording {recording.path.stem} is of task "
+                f"{recording.task!r}, not {plan.task!r}; replay a recording of {plan.task}"
+            )
+        check_distillable(plan)
+        return None
+    return build_members(plan)
+
+
+def check_distillable(plan: PanelPlan) -> None:
+    """Refuse ``[feedback.distill]`` on a recording that keeps only the fused belief.
+
+    Raises:
+        ScenarioError: The message names the file and the fix.
+
+    """
+    if plan.fused_recording is None or plan.distill is None or not plan.distill.enabled:
+        return
+    raise ScenarioError(
+        f"{plan.fused_recording} keeps only the authors' fused belief per state ('beliefs': "
+        "null), so [feedback.distill] cannot learn each panel member's belief from it; replay "
+        'a recording with per-cluster beliefs (--set feedback.recording="driving-llama-3_1-70b") '
+        "or turn distillation off (--set feedback.distill.enabled=false)"
+    )
+
+
+def panel_source(plan: PanelPlan, store: Any, members: Members | None = None) -> Any:
+    """The belief source of a plan's panel, every member behind ``store``.
+
+    Args:
+        plan: The plan (a panel that is not fused-only).
+        store: The belief store (:class:`~amuled_ma.beliefs.store.BeliefStore`, or
+            anything with its ``lookup`` / ``put_many`` / ``close``).
+        members: The plan's sources, already built and checked
+            (:func:`checked_members`); default: built here.
+
+    Returns:
+        One ``CachedSource`` when every member shares one source, else a ``RoutedSource``
+        of them.
+
+    Raises:
+        AmuledError: As :func:`build_members` (nothing is written then).
+
+    """
+    routes, default, plans = members if members is not None else build_members(plan)
+    if not routes:
+        assert default is not None
+        return CachedSource(default, store)
+    cached: dict[int, CachedSource] = {}
+
+    def wrap(source: Any) -> CachedSource:
+        if id(source) not in cached:
+            spec = plans[id(source)]
+            identity = None
+            if spec.kind == "entry-point":
+                # a plug-in's own identity may be the bare default ({"source": name}):
+                # the entry point and its options keep two plug-ins' answers apart
+                identity = {"source": "entry-point", **spec.options, "plugin": source.identity()}
+            cached[id(source)] = CachedSource(source, store, identity=identity)
+        return cached[id(source)]
+
+    return RoutedSource(
+        {agent: wrap(source) for agent, source in routes.items()},
+        wrap(default) if default is not None else None,
+    )
+
+
+def build_feedback(
+    plan: PanelPlan,
+    store: Any,
+    *,
+    members: Members | None = None,
+    state_dir: Path | None = None,
+    resume: bool = False,
+    seed: int | None = None,
+    cache_dir: Path | None = None,
+) -> Feedback:
+    """Build the feedback of a plan, its panel's members behind ``store``.
+
+    Args:
+        plan: The plan (:func:`~amuled_ma.deliberation.plan.plan_panel`).
+        store: The belief store every member's answers go through (unused without a
+            panel); the caller owns it.
+        members: The plan's member sources as the preflight built and checked them
+            (:func:`checked_members`), handed over: the feedback closes them with
+            itself. Default: built here (and checked).
+        state_dir: The fine-tune's folder. With ``[feedback.distill].enabled``, panel
+            feedback is distilled there (its budget kept in the folder's state files);
+            without a folder the panel answers every state (the viewer, explain).
+        resume: Continue the budget kept in ``state_dir``.
+        seed: The job's training seed, the distilled model's seed unless
+            ``[feedback.distill].seed`` is set (default: ``[task].seed``).
+        cache_dir: Folder caching the demonstrator's counts (the run folder).
+
+    Returns:
+        The feedback, ready to be called every step; its ``plan`` attribute is ``plan``.
+
+    Raises:
+        AmuledError: A member's source cannot be built or checked.
+
+    """
+    feedback = _build(plan, store, members, state_dir, resume, seed, cache_dir)
+    feedback.plan = plan
+    return feedback
+
+
+def _build(
+    plan: PanelPlan,
+    store: Any,
+    members: Members | None,
+    state_dir: Path | None,
+    resume: bool,
+    seed: int | None,
+    cache_dir: Path | None,
+) -> Feedback:
+    if plan.variant == "human:rules":
+        from amuled_ma.tasks.human import human_belief
+
+        task = plan.task
+        return CallableFeedback(
+            lambda obs: np.asarray(human_belief(task, obs)).reshape(len(obs), -1),
+            name="human:rules",
+        )
+    if not plan.asks_panel:
+        return DemonstratorFeedback(plan.task, seed=plan.seed, cache_dir=cache_dir)
+    if plan.fused_recording is not None:
+        check_distillable(plan)
+        fused = FusedReplayFeedback(recording_of(plan.fused_recording), plan.miss_policy)
+        fused.max_abstention = plan.max_abstention
+        return fused
+    from amuled_ma.clusters import build_messages
+    from amuled_ma.deliberation.panel import MoralPanel
+
+    source = panel_source(plan, store, members)
+    if plan.distill.enabled and state_dir is not None:
+        from amuled_ma.distill import DistilledSource
+
+        try:
+            source = DistilledSource.from_config(
+                source,
+                plan.distill,
+                seed=plan.seed if seed is None else seed,
+                fusion_rule=plan.rule,
+                state_dir=state_dir,
+                resume=resume,
+            )
+        except BaseException:
+            source.close()
+            raise
+    panel = MoralPanel(
+        plan.task,
+        list(plan.clusters),
+        source,
+        plan.rule,
+        build_messages=functools.partial(build_messages, registry=plan.registry),
+    )
+    feedback = PanelFeedback(plan.variant, panel, source, miss_zero=plan.miss_zero)
+    feedback.max_abstention = plan.max_abstention
+    return feedback
+
+
+def open_run_store(scenario: Scenario, run_dir: Path | None = None) -> Any:
+    """Open the belief store of a scenario's run (``plan.store_path``)."""
+    from amuled_ma.beliefs.store_service import open_store
+
+    return open_store(store_path(scenario, run_dir))
+
+
+def run_store(scenario: Scenario, run_dir: Path | None = None) -> Any:
+    """The belief store of a scenario's run, opened on first use (:func:`open_run_store`).
+
+    The preflight runs before the store's file exists; a feedback that never asks a
+    member (the demonstrator, a fused-only recording) never opens it.
+    """
+    return _Lazy(lambda: open_run_store(scenario, run_dir))
+
+
+def make_feedback(
+    variant: str,
+    scenario: Scenario,
+    run_dir: Path | None = None,
+    *,
+    state_dir: Path | None = None,
+    resume: bool = False,
+    seed: int | None = None,
+    store: Any = None,
+) -> Feedback:
+    """Plan a variant's panel and build its feedback: :func:`plan_panel` + :func:`build_feedback`.
+
+    Args:
+        variant: The feedback (see :func:`~amuled_ma.variants.parse_feedback`).
+        scenario: The scenario.
+        run_dir: Run directory holding the belief store (and the demonstrator's counts).
+        state_dir: See :func:`build_feedback`.
+        resume: See :func:`build_feedback`.
+        seed: See :func:`build_feedback`.
+        store: The belief store to use (default: the run's, :func:`run_store`, opened
+            only when a member is asked).
+
+    Returns:
+        The feedback.
+
+    """
+    plan = plan_panel(variant, scenario)
+    if store is None:
+        store = run_store(scenario, run_dir)
+    return build_feedback(
+        plan, store, state_dir=state_dir, resume=resume, seed=seed, cache_dir=run_dir
+    )
+
+
+def make_source(scenario: Scenario, run_dir: Path | None = None, *, agents: Any = None) -> Any:
+    """The belief source of a panel of ``agents`` behind the run's store (tests, tools).
+
+    Args:
+        scenario: The scenario.
+        run_dir: Run directory (a relative store path is resolved against it).
+        agents: The panel's agents (names or cluster objects); default
+            ``[feedback].clusters`` and ``moral_agent``.
+
+    """
+    fb = scenario.feedback
+    if agents is None:
+        agents = [*fb.clusters, *([MORAL_AGENT] if MORAL_AGENT not in fb.clusters else [])]
+    names = [a if isinstance(a, str) else a.name for a in agents]
+    routes, default, problems = plan_sources(scenario, list(agents))
+    plan = PanelPlan(
+        variant="amuled",
+        kind="amuled",
+        task=scenario.task.name,
+        where=str(scenario.path or scenario.name),
+        seed=scenario.task.seed,
+        clusters=tuple(_Named(n) for n in names),
+        routes=routes,
+        default=default,
+        problems=tuple(problems),
+    )
+    return panel_source(plan, run_store(scenario, run_dir))
+
+
+class _Named:
+    """A member known by name only (:func:`make_source`)."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+
+class _Lazy:
+    """A store opened on first use: the preflight runs before its file is created."""
+
+    def __init__(self, opener: Any) -> None:
+        self._opener = opener
+        self._store: Any = None
+
+    def _get(self) -> Any:
+        if self._store is None:
+            self._store = self._opener()
+        return self._store
+
+    def lookup(self, keys: Any) -> Any:
+        """The store's ``lookup``."""
+        return self._get().lookup(keys)
+
+    def put_many(self, items: Any) -> Any:
+        """The store's ``put_many``."""
+        return self._get().put_many(items)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._get(), name)
+
+    def close(self) -> None:
+        """Close the store if it was opened."""
+        if self._store is not None:
+            self._store.close()

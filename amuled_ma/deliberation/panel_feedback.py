@@ -1,0 +1,202 @@
+"""Panel feedback: a panel's fused beliefs, or the authors' recorded fused beliefs.
+
+:class:`PanelFeedback` asks a :class:`~amuled_ma.deliberation.panel.MoralPanel` (through
+its belief source, perhaps distilled); :class:`FusedReplayFeedback` replays a recording
+that keeps only the fused belief per state. Both are built from a
+:class:`~amuled_ma.deliberation.plan.PanelPlan` by :mod:`amuled_ma.deliberation.build`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from amuled_ma.deliberation.feedback_base import Feedback
+from amuled_ma.deliberation.summaries import describe_identity, llm_server_stats, store_stats
+from amuled_ma.errors import ScenarioError
+
+
+class PanelFeedback(Feedback):
+    """Beliefs of a panel of moral-cluster agents, fused (:class:`MoralPanel`)."""
+
+    def __init__(
+        self, name: str, panel: Any, source: Any | None = None, *, miss_zero: bool = False
+    ) -> None:
+        super().__init__()
+        self.name = name
+        self.panel = panel
+        self.source = source
+        #: a state every agent missed in the recording rewards 0 (the authors' scripts)
+        self.miss_zero = miss_zero
+        # a source that reads no messages (replay, rules) needs no prompt variables
+        self.keyed_by_prompt = bool(getattr(panel, "with_messages", True))
+        self._distilled_of: Any = object()
+        self._distilled: Any = None
+
+    @property
+    def distilled(self) -> Any:
+        """The :class:`~amuled_ma.distill.DistilledSource` of the panel, if it has one."""
+        source = self.source
+        if self._distilled_of is not source:  # looked up once per source, not every step
+            from amuled_ma.distill import DistilledSource
+
+            self._distilled_of = source
+            self._distilled = source if isinstance(source, DistilledSource) else None
+        return self._distilled
+
+    def _memo_generation(self) -> Any:
+        """The distilled source's number of refits (None without one)."""
+        distilled = self.distilled
+        return None if distilled is None else distilled.generation
+
+    def distill_report(self) -> dict[str, Any] | None:
+        """The distilled source's accounting (None when the panel answers every state)."""
+        distilled = self.distilled
+        return None if distilled is None else distilled.report()
+
+    def progress(self) -> dict[str, str]:
+        """``asked``: distinct states asked / visited, with a distilled source."""
+        distilled = self.distilled
+        if distilled is None:
+            return {}
+        return {"asked": f"{distilled.ledger.asked_count}/{distilled.ledger.visited_count}"}
+
+    def _compute(
+        self,
+        obs: np.ndarray,
+        task: Any,
+        env_ids: Sequence[int],
+        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
+    ) -> list[tuple]:
+        out = self.panel.fused(obs, prompt_vars)
+        fused = np.asarray(out.fused, dtype=np.float64).reshape(len(obs), -1)
+        clusters = list(
+            getattr(self.panel, "cluster_names", None) or getattr(self.panel, "clusters", [])
+        )
+        results = []
+        weights = getattr(out, "weights", None)
+        conflict = getattr(out, "conflict", None)
+        statuses = getattr(out, "statuses", None)
+        for i in range(len(obs)):
+            diag: dict[str, Any] = {}
+            if weights is not None:
+                row = np.asarray(weights[i], dtype=np.float64).reshape(-1)
+                names = clusters if len(clusters) == len(row) else [str(j) for j in range(len(row))]
+                diag["weights"] = dict(zip(names, row.tolist(), strict=True))
+            if conflict is not None:
+                diag["conflict"] = float(np.asarray(conflict).reshape(-1)[i])
+            if statuses is not None:
+                row_status = statuses[i]
+                diag["statuses"] = (
+                    (row_status,) if isinstance(row_status, str) else tuple(row_status)
+                )
+                if len(clusters) == len(diag["statuses"]):
+                    diag["agents"] = tuple(clusters)
+            if self.miss_zero and _all_missed(diag.get("statuses", ())):
+                results.append((np.zeros_like(fused[i]), diag))
+                continue
+            results.append((fused[i], diag))
+        return results
+
+    def summary(self) -> dict[str, Any]:
+        """As :meth:`Feedback.summary`, plus the belief store's figures and the servers'.
+
+        ``store`` is :func:`store_stats`: beliefs wanted, found in memory or in the store,
+        and asked of the source.
+
+        ``llm_servers`` is ``{host: figures}`` (:func:`llm_server_stats`): requests sent,
+        answered and failed (by kind), retried from, latencies, per server.
+        """
+        out = super().summary()
+        servers = llm_server_stats(self.source)
+        if servers:
+            out["llm_servers"] = servers
+        if self.source is not None:
+            out["store"] = store_stats(self.source)
+        return out
+
+    def agent_source(self, agent: str) -> str:
+        """The source answering ``agent``: its kind and model or recording."""
+        source = self.source
+        per_agent = getattr(source, "source_for", None)
+        if callable(per_agent):
+            source = per_agent(agent)
+        return describe_identity(source.identity()) if source is not None else self.name
+
+    def close(self) -> None:
+        """Close the belief source, if it has ``close``."""
+        for obj in (self.panel, self.source):
+            closer = getattr(obj, "close", None)
+            if callable(closer):
+                closer()
+
+
+def _all_missed(statuses: Sequence[str]) -> bool:
+    return bool(statuses) and all(status == "replay_miss" for status in statuses)
+
+
+class FusedReplayFeedback(Feedback):
+    """The AMULED feedback replayed from a recording that keeps only the fused belief.
+
+    The authors' Driving cache of gpt-4o-mini stored, per state, only the fused belief
+    their AMULED agent was trained on (``fused_by_reference``); the five clusters'
+    beliefs are lost, so this feedback *is* that fused belief, not a fusion of ours. A
+    state missing from the recording follows ``miss_policy`` (``zero``: reward 0, as the
+    authors' scripts; ``uniform``; ``error``), counted as ``replay_miss``; a recorded
+    all-zero belief (their fusion's total conflict) rewards 0 and is counted as
+    ``total_conflict``.
+
+    Args:
+        recording: The fused-only :class:`~amuled_ma.beliefs.replay.Recording`.
+        miss_policy: ``zero``, ``uniform`` or ``error``.
+
+    """
+
+    name = "amuled"
+    #: the one "agent" of this feedback in the per-agent report
+    agent = "fused (recorded)"
+
+    def __init__(self, recording: Any, miss_policy: str) -> None:
+        super().__init__()
+        if miss_policy not in ("zero", "uniform", "error"):
+            raise ScenarioError(
+                f"[feedback].miss_policy = {miss_policy!r} cannot serve the fused-only "
+                f"recording {recording.path}: use zero, uniform or error"
+            )
+        self.recording = recording
+        self.miss_policy = miss_policy
+
+    def agent_source(self, agent: str) -> str:
+        """The fused-only recording."""
+        return f"replay ({self.recording.path.name}, fused beliefs only)"
+
+    def _compute(
+        self,
+        obs: np.ndarray,
+        task: Any,
+        env_ids: Sequence[int],
+        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
+    ) -> list[tuple]:
+        from amuled_ma.errors import ReplayMiss
+
+        n = len(self.recording.actions)
+        results = []
+        for row in obs:
+            fused = self.recording.fused(row)
+            status = "ok"
+            if fused is None:
+                if self.miss_policy == "error":
+                    raise ReplayMiss(
+                        f"{self.recording.path}: no fused belief for obs {row.tolist()} "
+                        "([feedback].miss_policy = 'error')"
+                    )
+                fused = np.zeros(n) if self.miss_policy == "zero" else np.full(n, 1.0 / n)
+                status = "replay_miss"
+            elif not fused.any():
+                status = "total_conflict"
+            else:
+                fused = fused / fused.sum()
+            results.append((fused, {"statuses": (status,), "agents": (self.agent,)}))
+        return results

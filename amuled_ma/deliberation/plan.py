@@ -1,0 +1,367 @@
+"""The panel plan: a scenario and a feedback variant resolved once into who answers how.
+
+:func:`plan_panel` reads the scenario once: the panel's members (cluster objects, from the
+shipped cluster files and ``[feedback].clusters_dirs``), the fusion rule, each member's
+source (its ``[feedback.agents.<name>]`` spec, its cluster file's ``[source]``, or
+``[feedback].source``) as a :class:`SourcePlan` of keyword arguments, the fused-only
+recording when the authors kept only the fused belief, the distillation settings and the
+miss policy. :mod:`amuled_ma.deliberation.build` builds the feedback from a plan (the
+belief store passed in) and checks it before training (:func:`~amuled_ma.deliberation.
+build.preflight`). :meth:`PanelPlan.describe` is the plan as plain JSON for a run's record.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from amuled_ma.errors import AmuledError, ClusterDefinitionError, ScenarioError
+from amuled_ma.scenario import AGENT_SPECS, MORAL_AGENT, Scenario
+from amuled_ma.scenario.agents import match_agents
+from amuled_ma.variants import parse_feedback
+
+
+@dataclass(frozen=True)
+class SourcePlan:
+    """What :func:`~amuled_ma.beliefs.sources.make_source` builds for some agents.
+
+    Attributes:
+        kind: The ``make_source`` kind.
+        options: Its keyword arguments (plain data).
+        label: How messages name it (``"[feedback.agents.care] (source 'ollama', model
+            'llama3.1:8b')"``).
+
+    """
+
+    kind: str
+    options: dict[str, Any]
+    label: str
+
+    @property
+    def key(self) -> str:
+        """Canonical JSON of kind and options: equal keys build one shared source."""
+        return json.dumps([self.kind, self.options], sort_keys=True, default=str)
+
+
+@dataclass(frozen=True)
+class PanelPlan:
+    """A feedback variant resolved from a scenario: everything building it needs.
+
+    Attributes:
+        variant: The feedback (``amuled``, ``cluster:care``, ``human``, ...).
+        kind: Its kind (:func:`~amuled_ma.learn.variants.parse_feedback`).
+        task: The task's name.
+        where: The scenario file (or name), first in messages.
+        seed: ``[task].seed`` (the demonstrator's episodes).
+        clusters: The members, cluster objects in panel order (empty without a panel).
+        registry: The cluster registry they came from (for the prompts).
+        rule: The fusion rule.
+        routes: ``{agent: source}`` of the members with their own table.
+        default: The source of every other member (None: each has a table).
+        problems: ``[(error, label)]`` of sources that could not be planned (a recording
+            not found); the preflight reports them with the others.
+        fused_recording: The recording that keeps only the fused belief, when the panel
+            replays it (the whole feedback is then that fused belief).
+        miss_policy: ``[feedback].miss_policy``.
+        miss_zero: A state every member missed rewards 0 (the authors' scripts).
+        distill: ``[feedback.distill]``.
+        max_abstention: ``[feedback].max_abstention``.
+
+    """
+
+    variant: str
+    kind: str
+    task: str
+    where: str
+    seed: int
+    clusters: tuple[Any, ...] = ()
+    registry: Any = None
+    rule: str = ""
+    routes: dict[str, SourcePlan] = field(default_factory=dict)
+    default: SourcePlan | None = None
+    problems: tuple[tuple[BaseException, str], ...] = ()
+    fused_recording: Path | None = None
+    miss_policy: str = "uniform"
+    miss_zero: bool = False
+    distill: Any = None
+    max_abstention: float | None = None
+
+    @property
+    def asks_panel(self) -> bool:
+        """Whether the feedback is a panel's (not the demonstrator or the human rule)."""
+        return self.kind != "human"
+
+    @property
+    def agents(self) -> list[str]:
+        """The members' names, in panel order."""
+        return [c.name for c in self.clusters]
+
+    def source_of(self, agent: str) -> SourcePlan | None:
+        """The source answering ``agent`` (None: the fused-only recording, or no panel)."""
+        return self.routes.get(agent, self.default)
+
+    def describe(self) -> dict[str, Any]:
+        """The plan as plain JSON: members with their source, rule, recording, fused-only.
+
+        Returns:
+            ``{"feedback", "members": [{"agent", "source", "label"}], "fusion",
+            "recording", "fused_only", "distill"}``; ``recording`` is the file name of the
+            replayed recording (None without one).
+
+        """
+        if not self.asks_panel:
+            source = "rules" if self.variant == "human:rules" else "demonstrator"
+            return {
+                "feedback": self.variant,
+                "members": [{"agent": self.variant, "source": source, "label": source}],
+                "fusion": None,
+                "recording": None,
+                "fused_only": False,
+                "distill": False,
+            }
+        recordings = []
+        members = []
+        for agent in self.agents:
+            plan = self.source_of(agent)
+            if plan is None:
+                kind, label = "replay", "fused-only recording"
+            else:
+                kind, label = plan.kind, plan.label
+                if plan.kind == "replay":
+                    recordings.append(Path(plan.options["paths"]).name)
+            members.append({"agent": agent, "source": kind, "label": label})
+        if self.fused_recording is not None:
+            recordings = [self.fused_recording.name]
+        return {
+            "feedback": self.variant,
+            "members": members,
+            "fusion": self.rule,
+            "recording": recordings[0] if recordings else None,
+            "fused_only": self.fused_recording is not None,
+            "distill": bool(self.distill is not None and self.distill.enabled),
+        }
+
+
+def store_path(scenario: Scenario, run_dir: Path | None = None) -> Path:
+    """The belief store file of a scenario's run.
+
+    ``[feedback].store``; a relative path is resolved against the run folder (or the
+    scenario's folder without one).
+    """
+    path = Path(scenario.feedback.store)
+    return path if path.is_absolute() else (run_dir or scenario.base_dir) / path
+
+
+def cluster_registry(scenario: Scenario) -> Any:
+    """The shipped clusters plus the scenario's ``[feedback].clusters_dirs`` (later win).
+
+    Raises:
+        ClusterDefinitionError: A folder is missing or a file is malformed or collides.
+
+    """
+    dirs = [scenario.resolve(d) for d in scenario.feedback.clusters_dirs]
+    return _registry_cached(tuple(str(d) for d in dirs))
+
+
+@functools.lru_cache(maxsize=8)
+def _registry_cached(dirs: tuple[str, ...]) -> Any:
+    from amuled_ma.clusters import ClusterRegistry
+
+    return ClusterRegistry.load(list(dirs))
+
+
+def panel_of(variant: str, scenario: Scenario, registry: Any | None = None) -> tuple[list, str]:
+    """The panel of a feedback variant: its agents (cluster objects) and fusion rule.
+
+    Raises:
+        ClusterDefinitionError: A named cluster is in no loaded cluster file; the message
+            lists the known ones (a user cluster needs ``--clusters-dir``).
+
+    """
+    kind, arg = parse_feedback(variant)
+    registry = registry or cluster_registry(scenario)
+    names, rule = list(scenario.feedback.clusters), scenario.feedback.fusion
+    if kind == "cluster":
+        names, rule = [arg], "mean"
+    elif kind == "moral":
+        names, rule = [MORAL_AGENT], "mean"
+    elif kind == "agg":
+        rule = arg
+    clusters = []
+    for name in names:
+        if name not in registry:
+            dirs = ", ".join(scenario.feedback.clusters_dirs) or "none"
+            raise ClusterDefinitionError(
+                f"feedback {variant!r}: no moral cluster {name!r} in the shipped cluster files "
+                f"or the user folders ({dirs}); known: {', '.join(registry.names())}; put its "
+                "TOML file in a folder and pass --clusters-dir FOLDER (docs/clusters.md)"
+            )
+        clusters.append(registry.get(name))
+    return clusters, rule
+
+
+def with_cluster_sources(scenario: Scenario, clusters: Sequence[Any]) -> Scenario:
+    """The scenario with each cluster file's default ``[source]`` as an agent table.
+
+    A cluster file may name where its beliefs come from (``[source]``); the scenario's own
+    ``[feedback.agents.<name>]`` table for that agent wins.
+    """
+    tables = dict(scenario.feedback.agents)
+    named = match_agents(list(tables), clusters)
+    defaults = {
+        c.name: dict(c.source)
+        for c in clusters
+        if getattr(c, "source", None) and c.name not in named
+    }
+    if not defaults:
+        return scenario
+    return scenario.replace("feedback", agents={**defaults, **tables})
+
+
+def default_source(scenario: Scenario) -> SourcePlan:
+    """The source of ``[feedback].source`` (what every agent without a table uses).
+
+    Raises:
+        ScenarioError: The replayed recording is not found.
+
+    """
+    fb = scenario.feedback
+    model = AGENT_SPECS.get(fb.source)  # a kind registered at run time takes no options
+    spec = model.model_validate({"source": fb.source}) if model is not None else None
+    options = spec.source_options(scenario, "[feedback]") if spec is not None else {}
+    return SourcePlan(fb.source, options, f"[feedback].source = {fb.source!r}")
+
+
+def agent_source(scenario: Scenario, name: str, spec: Any) -> SourcePlan:
+    """The source of one ``[feedback.agents.<name>]`` spec, ``[feedback]``'s values inherited.
+
+    Raises:
+        ScenarioError: The agent's recording is not found.
+
+    """
+    head = f"[feedback.agents.{name}]"
+    options = spec.source_options(scenario, head)
+    detail = spec.detail(options)
+    return SourcePlan(spec.source, options, f"{head} (source {spec.source!r}{detail})")
+
+
+def plan_sources(
+    scenario: Scenario, agents: Sequence[Any]
+) -> tuple[dict[str, SourcePlan], SourcePlan | None, list[tuple[BaseException, str]]]:
+    """Each panel agent's source.
+
+    Args:
+        scenario: The scenario (with the cluster files' ``[source]`` tables merged in).
+        agents: The panel's agents: names or cluster objects (see ``match_agents``).
+
+    Returns:
+        ``({agent: source}`` for agents with a table, the default source (None when
+        every agent has a table), the problems ``[(error, label)]`` of sources that could
+        not be planned``)``.
+
+    """
+    tables = dict(scenario.feedback.agents)
+    matched = match_agents(list(tables), agents)
+    names = [a if isinstance(a, str) else a.name for a in agents]
+    routes: dict[str, SourcePlan] = {}
+    problems: list[tuple[BaseException, str]] = []
+    for agent, table in matched.items():
+        try:
+            routes[agent] = agent_source(scenario, table, tables[table])
+        except AmuledError as error:
+            kind = tables[table].source
+            problems.append((error, f"[feedback.agents.{table}] (source {kind!r})"))
+    default = None
+    others = [a for a in names if a not in matched]
+    if others:
+        try:
+            default = default_source(scenario)
+            default = dataclasses.replace(
+                default, label=f"{default.label} (agents {', '.join(others)})"
+            )
+        except AmuledError as error:
+            label = f"[feedback].source = {scenario.feedback.source!r}"
+            problems.append((error, f"{label} (agents {', '.join(others)})"))
+    return routes, default, problems
+
+
+def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
+    """Resolve a feedback variant of a scenario into its :class:`PanelPlan`, once.
+
+    Args:
+        variant: The feedback (``amuled``, ``human``, ``human:rules``, ``cluster:care``,
+            ``moral``, ``agg:mean``).
+        scenario: The scenario.
+
+    Returns:
+        The plan (sources not built, nothing asked, no file written).
+
+    Raises:
+        ClusterDefinitionError: A member is in no loaded cluster file.
+        ScenarioError: A fused-only recording asked for another variant or fusion rule.
+
+    """
+    kind, arg = parse_feedback(variant)
+    fb = scenario.feedback
+    base = {
+        "variant": variant,
+        "kind": kind,
+        "task": scenario.task.name,
+        "where": str(scenario.path or scenario.name),
+        "seed": scenario.task.seed,
+        "miss_policy": fb.miss_policy,
+        "distill": fb.distill,
+        "max_abstention": fb.max_abstention,
+    }
+    if kind == "human":
+        return PanelPlan(**{**base, "variant": "human:rules" if arg == "rules" else variant})
+    registry = cluster_registry(scenario)
+    clusters, rule = panel_of(variant, scenario, registry)
+    scenario = with_cluster_sources(scenario, clusters)
+    fused = _fused_only_recording(scenario)
+    if fused is not None and match_agents(list(scenario.feedback.agents), clusters):
+        fused = None  # agents with their own source: a panel (the preflight refuses replay)
+    base.update(clusters=tuple(clusters), registry=registry, rule=rule)
+    if fused is not None:
+        if kind != "amuled" or fb.fusion != "bjs-dst":
+            raise ScenarioError(
+                f"{fused} keeps only the authors' fused belief per state ('beliefs': null), so "
+                f"it can serve the amuled variant (bjs-dst) only, not {variant!r} with fusion "
+                f"{fb.fusion!r}; use a recording with per-cluster beliefs, e.g. "
+                'recording = "driving-llama-3_1-70b"'
+            )
+        return PanelPlan(**base, fused_recording=fused)
+    routes, default, problems = plan_sources(scenario, clusters)
+    replays = any(p.kind == "replay" for p in [*routes.values(), default] if p is not None)
+    return PanelPlan(
+        **base,
+        routes=routes,
+        default=default,
+        problems=tuple(problems),
+        miss_zero=replays and fb.miss_policy == "zero",
+    )
+
+
+def _fused_only_recording(scenario: Scenario) -> Path | None:
+    """The scenario's replayed recording when it holds only fused beliefs, else None."""
+    if scenario.feedback.source != "replay":
+        return None
+    path = scenario.recording_path(required=True)
+    return path if recording_of(path).fused_only else None
+
+
+def recording_of(path: Path) -> Any:
+    """The :class:`~amuled_ma.beliefs.replay.Recording` at ``path``, read once per version."""
+    return _recording_cached(str(path), path.stat().st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=4)
+def _recording_cached(path: str, mtime_ns: int) -> Any:
+    from amuled_ma.beliefs.replay import Recording
+
+    return Recording(path)

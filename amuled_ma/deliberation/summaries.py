@@ -1,0 +1,165 @@
+"""Feedback diagnostics in words and figures: statuses per agent, the budget, the store, servers.
+
+:func:`summary_lines` prints a :meth:`~amuled_ma.deliberation.feedback_base.Feedback.summary`
+for people; :func:`store_stats` and :func:`llm_server_stats` add up the figures of every
+source inside a panel's source (:func:`nested_sources`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from amuled_ma.beliefs.types import MODEL_STATUSES
+from amuled_ma.deliberation.feedback_base import ANSWERED, REPORTED_STATUSES
+
+
+def summary_lines(summary: dict[str, Any]) -> list[str]:
+    """Format a :meth:`Feedback.summary` for people: one headline, one line per agent.
+
+    Works on summaries written before per-agent counts existed (headline only).
+
+    Args:
+        summary: The dict of :meth:`Feedback.summary` (or a ``feedback.json``).
+
+    Returns:
+        Lines without trailing newlines, e.g.::
+
+            beliefs not answered: 50.00% of 800 (abstained 0, timeout 0, error 400, ...)
+              care: ok 400, repaired 0, abstained 0, timeout 0, error 0, replay_miss 0
+              virtue: ok 0, repaired 0, abstained 0, timeout 0, error 400 (100.00%), ...
+
+    """
+    statuses = summary.get("statuses") or {}
+    total = sum(statuses.values())
+    failed = total - sum(n for s, n in statuses.items() if s in ANSWERED)
+    others = [s for s in statuses if s not in REPORTED_STATUSES and s not in ANSWERED]
+    parts = ", ".join(f"{s} {statuses.get(s, 0):,}" for s in (*REPORTED_STATUSES[2:], *others))
+    rate = 100 * failed / total if total else 0.0
+    lines = [f"beliefs not answered: {rate:.2f}% of {total:,} ({parts})"]
+    distill = summary.get("distill")
+    if distill:
+        lines.append(distill_line(distill))
+        model = sum(statuses.get(s, 0) for s in MODEL_STATUSES)
+        share = 100 * model / total if total else 0.0
+        cells = ", ".join(f"{s} {statuses.get(s, 0):,}" for s in MODEL_STATUSES)
+        lines.append(f"  beliefs from the distilled model: {share:.2f}% of {total:,} ({cells})")
+    for agent, row in (summary.get("agents") or {}).items():
+        agent_total = row.get("total") or 0
+        cells = []
+        for status, n in row.items():
+            if status in ("total", "failed", "failure_rate"):
+                continue
+            share = f" ({100 * n / agent_total:.2f}%)" if n and agent_total else ""
+            cells.append(f"{status} {n:,}{share if status not in ANSWERED else ''}")
+        lines.append(f"  {agent}: {', '.join(cells)}")
+    servers = summary.get("llm_servers") or {}
+    if servers:
+        from amuled_ma.beliefs.host_pool import host_lines
+
+        lines.append(f"LLM servers ({len(servers)}):")
+        lines += [f"  {line}" for line in host_lines(servers)]
+    return lines
+
+
+def distill_line(report: Mapping[str, Any]) -> str:
+    """One line of a distilled feedback's accounting (``Feedback.summary()["distill"]``).
+
+    E.g. ``feedback budget 10%: asked 13 of 131 distinct states (9.9%), the model
+    answered 118; 65 requests sent; 4 refits; held-out TV to the panel 0.123 (fused,
+    4 states)``.
+    """
+    budget = report.get("budget")
+    shown = f"{100 * budget:g}%" if isinstance(budget, float) else f"{budget} states"
+    visited, asked = report.get("visited_states", 0), report.get("asked_states", 0)
+    line = (
+        f"  feedback budget {shown} ({report.get('selection')}): asked {asked:,} of "
+        f"{visited:,} distinct states ({100 * report.get('asked_share', 0.0):.1f}%), the model "
+        f"answered {report.get('model_states', 0):,}; {report.get('requests_sent', 0):,} "
+        f"requests sent; {report.get('refits', 0)} refits"
+    )
+    if report.get("miss_answers"):
+        line += f"; {report['miss_answers']:,} misses answered by the model"
+    tv = report.get("holdout_tv_fused")
+    if tv is not None:
+        states = report.get("holdout_states")
+        line += f"; held-out TV to the panel {tv:.3f} (fused, {states} states)"
+    return line
+
+
+def nested_sources(source: Any) -> list[Any]:
+    """A belief source and every source inside it, each once.
+
+    Walks a :class:`~amuled_ma.beliefs.cached.CachedSource` (``.source``), a
+    :class:`~amuled_ma.beliefs.routing.RoutedSource` (``.members``), fallbacks and defaults.
+    """
+    found: list[Any] = []
+    seen: set[int] = set()
+
+    def walk(obj: Any) -> None:
+        if obj is None or id(obj) in seen:
+            return
+        seen.add(id(obj))
+        found.append(obj)
+        walk(getattr(obj, "source", None))
+        walk(getattr(obj, "fallback", None))
+        walk(getattr(obj, "default", None))
+        for member in getattr(obj, "members", None) or ():
+            walk(member[0] if isinstance(member, tuple) else member)
+
+    walk(source)
+    return found
+
+
+def llm_server_stats(source: Any) -> dict[str, dict[str, Any]]:
+    """Each LLM server's figures over a belief source and the sources inside it.
+
+    Adds up every ``server_stats()`` found (:class:`~amuled_ma.beliefs.ollama.OllamaSource`)
+    among :func:`nested_sources` with :func:`~amuled_ma.beliefs.host_pool.merge_host_stats`.
+
+    Args:
+        source: The belief source (``None``: no figures).
+
+    Returns:
+        ``{host: figures}``; empty without an LLM server.
+
+    """
+    found = [
+        obj.server_stats()
+        for obj in nested_sources(source)
+        if callable(getattr(obj, "server_stats", None))
+    ]
+    if not found:
+        return {}
+    from amuled_ma.beliefs.host_pool import merge_host_stats
+
+    return merge_host_stats(found)
+
+
+def store_stats(source: Any) -> dict[str, int]:
+    """The belief store's figures over a source: requests, hits, and those asked.
+
+    Adds up the :class:`~amuled_ma.beliefs.cached.CacheStats` of every cached source among
+    :func:`nested_sources`: ``requests`` (beliefs wanted), ``unique`` (distinct ones per
+    batch), ``store_hits`` and ``asked`` (sent to the source behind the
+    store: for an LLM, the requests it was sent).
+    """
+    from amuled_ma.beliefs.cached import CacheStats
+
+    total = {"requests": 0, "unique": 0, "store_hits": 0, "asked": 0}
+    for obj in nested_sources(source):
+        stats = getattr(obj, "stats", None)
+        if isinstance(stats, CacheStats):
+            total["requests"] += stats.requests
+            total["unique"] += stats.unique
+            total["store_hits"] += stats.store_hits
+            total["asked"] += stats.misses
+    return total
+
+
+def describe_identity(identity: Mapping[str, Any]) -> str:
+    """``replay (findmilk-gpt-4o-mini.json)``, ``ollama (llama3.1:8b)``: a source in words."""
+    kind = str(identity.get("source", "source"))
+    files = [r.get("file") for r in identity.get("recordings") or () if isinstance(r, dict)]
+    detail = ", ".join(str(f) for f in files if f) or identity.get("model") or ""
+    return f"{kind} ({detail})" if detail else kind

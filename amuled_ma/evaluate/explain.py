@@ -1,0 +1,448 @@
+"""One state explained: each agent's belief, weight and reasoning, and the fusion's workings.
+
+``amuled explain`` (:mod:`amuled_ma.commands.explain`) parses the command line and prints;
+this module does the rest. A state comes from an evaluation episode
+(:func:`state_of_step`) or is given by hand (:func:`state_by_hand`);
+:func:`explain_lines` asks the variant's feedback about it
+(:func:`~amuled_ma.evaluate.panel_answers.ask_panel`) and writes each agent's belief,
+status, fusion weight and raw reply, then the fusion's intermediate quantities recomputed
+with :mod:`amuled_ma.fusion` (:func:`fusion_breakdown`: pairwise BJS divergences, average
+divergence, credibility, Deng entropy, information volume, weights, the weighted average
+evidence and Dempster's conflict ``K`` of each combination) and the fused belief.
+"""
+
+from __future__ import annotations
+
+import textwrap
+import tomllib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from amuled_ma.beliefs.types import FUSED_STATUSES
+from amuled_ma.errors import ScenarioError
+from amuled_ma.evaluate.panel_answers import ask_panel
+from amuled_ma.evaluate.readonly_feedback import describe_feedback
+
+if TYPE_CHECKING:
+    from amuled_ma.evaluate.episode_trace import Episode
+
+# ---------------------------------------------------------------------------------------
+# Text tables
+
+
+def table(headers: Sequence[str], rows: Sequence[Sequence[Any]], indent: str = "  ") -> str:
+    """Aligned columns: the first left-aligned, the others right-aligned."""
+    cells = [[str(h) for h in headers]] + [[_cell(x) for x in row] for row in rows]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
+    lines = []
+    for n, row in enumerate(cells):
+        parts = [row[0].ljust(widths[0])]
+        parts += [c.rjust(w) for c, w in zip(row[1:], widths[1:], strict=True)]
+        lines.append(indent + "  ".join(parts).rstrip())
+        if n == 0:
+            lines.append(indent + "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def _cell(value: Any) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float | np.floating):
+        return f"{float(value):.4f}"
+    return str(value)
+
+
+def _num(value: float) -> str:
+    value = float(value)
+    return str(int(value)) if value.is_integer() else f"{value:g}"
+
+
+# ---------------------------------------------------------------------------------------
+# The state
+
+
+def parse_obs(text: str, task_cls: Any) -> np.ndarray:
+    """``"1,2,3"`` -> float array, checked against the task's observation length.
+
+    Raises:
+        ScenarioError: Not numbers, or the wrong count (the message lists the entries).
+
+    """
+    try:
+        values = [float(x) for x in text.replace(" ", "").split(",") if x != ""]
+    except ValueError:
+        raise ScenarioError(
+            f"--obs {text!r}: expected numbers separated by commas, e.g. 2,3,7,7,2,2,1,1"
+        ) from None
+    names = list(task_cls.obs_names)
+    if len(values) != len(names):
+        raise ScenarioError(
+            f"--obs: {task_cls.name} observations have {len(names)} entries "
+            f"({', '.join(names)}), found {len(values)}"
+        )
+    return np.asarray(values, dtype=np.float32)
+
+
+def parse_prompt_vars(items: Sequence[str]) -> dict[str, Any]:
+    """``["num_crying=4", ...]`` -> ``{"num_crying": 4}`` (values in TOML syntax)."""
+    out: dict[str, Any] = {}
+    for item in items:
+        name, sep, raw = item.partition("=")
+        if not sep or not name.strip():
+            raise ScenarioError(f"--prompt-var {item!r}: expected NAME=VALUE, e.g. num_crying=4")
+        try:
+            value = tomllib.loads(f"v = {raw.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = raw.strip()
+        out[name.strip()] = value
+    return out
+
+
+@dataclass
+class State:
+    """The state to explain.
+
+    Attributes:
+        obs: ``(obs_dim,)`` its observation.
+        prompt_vars: Its prompt variables (None where the task cannot make them).
+        context: Lines saying where the state comes from.
+        live_belief: ``(A,)`` the belief of a feedback that is not a panel (None for a
+            panel).
+
+    """
+
+    obs: np.ndarray
+    prompt_vars: dict[str, Any] | None
+    context: list[str]
+    live_belief: np.ndarray | None = None
+
+
+def state_of_step(ep: Episode, step: int, where: str) -> State:
+    """State ``step`` of a replayed evaluation episode, with what both policies did there.
+
+    Args:
+        ep: The episode (:func:`~amuled_ma.evaluate.episode_trace.replay_episode`).
+        step: The step ``0 <= step < T``.
+        where: The variant, in words (``runs/findmilk/finetune-amuled``).
+
+    Raises:
+        ScenarioError: The episode has no such step (the message gives its length).
+
+    """
+    if not 0 <= step < ep.length:
+        raise ScenarioError(
+            f"--step {step}: episode {ep.episode} of {where} has {ep.length} steps "
+            f"(0..{ep.length - 1})"
+        )
+    names = ep.action_names
+    taken = int(ep.actions[step])
+    line = (
+        f"state of step {step} of evaluation episode {ep.episode} (seed {ep.seed}, "
+        f"{ep.mode}) of {where}: the fine-tuned policy took {names[taken]} "
+        f"(p={ep.probs[step][taken]:.3f})"
+    )
+    if ep.base_actions is not None:
+        b = int(ep.base_actions[step])
+        differs = "DIFFERENT from" if b != taken else "the same as"
+        line += f"; the base policy would take {names[b]} ({differs} the fine-tune)"
+    live = None if ep.live_beliefs is None else ep.live_beliefs[step]
+    return State(ep.obs[step], ep.prompt_vars[step], [line], live)
+
+
+def state_by_hand(
+    task_cls: Any,
+    feedback: Any,
+    feedback_name: str,
+    obs: np.ndarray,
+    extras: dict[str, Any],
+    where: str,
+) -> State:
+    """A state given by hand: its prompt variables and, for a non-panel feedback, its belief.
+
+    Args:
+        task_cls: The task's class (observation names, prompt variables).
+        feedback: The feedback asked about it.
+        feedback_name: Its name (for messages).
+        obs: The observation (:func:`parse_obs`).
+        extras: Prompt variables the observation lacks (:func:`parse_prompt_vars`).
+        where: Where the scenario comes from, in words.
+
+    Raises:
+        ScenarioError: The panel reads prompts and a variable is missing, or the feedback
+            needs the live task (the message names ``--prompt-var`` or ``--state-from``).
+
+    """
+    import torch
+
+    prompt_vars = None
+    needs = bool(getattr(getattr(feedback, "panel", None), "with_messages", False))
+    try:
+        prompt_vars = task_cls.prompt_variables_from_obs(obs, **extras)
+    except (ValueError, TypeError) as error:
+        if needs:
+            raise ScenarioError(
+                f"{task_cls.name} state prompt: {error}; give the missing variable "
+                "with --prompt-var NAME=VALUE"
+            ) from None
+    live_belief = None
+    if getattr(feedback, "panel", None) is None:
+        try:
+            live_belief = np.asarray(
+                feedback(torch.as_tensor(obs[None]), None, [0])[0], dtype=np.float64
+            )
+        except (AttributeError, TypeError):
+            raise ScenarioError(
+                f"feedback {feedback_name!r} needs the task's full state, not only the "
+                "observation: take the state from an episode with --state-from RUN "
+                "--variant V --step N"
+            ) from None
+    return State(obs, prompt_vars, [f"state given by hand, {where}"], live_belief)
+
+
+# ---------------------------------------------------------------------------------------
+# The fusion of one state, explained
+
+
+@dataclass
+class FusionBreakdown:
+    """The fusion of one state, with its intermediate quantities (``k`` answering agents).
+
+    Attributes:
+        rule: The fusion rule.
+        agents: The agents that answered (fused), in order.
+        left_out: The agents that did not answer (weight 0), with their statuses.
+        beliefs: ``(k, A)`` their beliefs.
+        bjs: ``(k, k)`` pairwise BJS divergences.
+        bjs_mean: ``(k,)`` average divergence of each agent from the others.
+        credibility: ``(k,)`` Xiao's ``Crd_i``.
+        entropy: ``(k,)`` Deng entropy in bits.
+        volume: ``(k,)`` information volume ``exp(E_d)``, normalised to sum 1.
+        weights: ``(k,)`` final weights.
+        wae: ``(A,)`` weighted average evidence (``bjs-dst``; None otherwise).
+        conflicts: ``(k - 1,)`` Dempster's conflict at each combination.
+        fused: ``(A,)`` the fused belief.
+
+    """
+
+    rule: str
+    agents: list[str]
+    left_out: list[tuple[str, str]]
+    beliefs: np.ndarray
+    bjs: np.ndarray
+    bjs_mean: np.ndarray
+    credibility: np.ndarray
+    entropy: np.ndarray
+    volume: np.ndarray
+    weights: np.ndarray
+    wae: np.ndarray | None
+    conflicts: np.ndarray
+    fused: np.ndarray
+
+
+def fusion_breakdown(
+    agents: Sequence[str], beliefs: np.ndarray, statuses: Sequence[str], rule: str
+) -> FusionBreakdown | None:
+    """Recompute one state's fusion over the agents that answered, with diagnostics.
+
+    As the panel fuses (:meth:`~amuled_ma.deliberation.panel.MoralPanel.fused`): an agent
+    without an answer abstains (left out, weight 0). None when no agent answered.
+    """
+    from amuled_ma.fusion import bjs_divergence, fuse
+
+    beliefs = np.asarray(beliefs, dtype=np.float64)
+    answered = [i for i, s in enumerate(statuses) if str(s) in FUSED_STATUSES]
+    left_out = [(agents[i], str(statuses[i])) for i in range(len(agents)) if i not in answered]
+    if not answered:
+        return None
+    sub = beliefs[answered]
+    k = len(answered)
+    diag = fuse(sub[None], rule, return_diagnostics=True)
+    pairwise = bjs_divergence(sub[:, None, :], sub[None, :, :])
+    bjs_mean = pairwise.sum(axis=1) / max(k - 1, 1)
+    entropy = np.asarray(diag.entropy, dtype=np.float64)[0]
+    volume = np.exp(entropy - entropy.max())
+    volume = volume / volume.sum()
+    conflicts = np.asarray(diag.conflicts, dtype=np.float64).reshape(-1)
+    return FusionBreakdown(
+        rule=rule,
+        agents=[agents[i] for i in answered],
+        left_out=left_out,
+        beliefs=sub,
+        bjs=pairwise,
+        bjs_mean=bjs_mean,
+        credibility=np.asarray(diag.credibility, dtype=np.float64)[0],
+        entropy=entropy,
+        volume=volume,
+        weights=np.asarray(diag.weights, dtype=np.float64)[0],
+        wae=None if diag.wae is None else np.asarray(diag.wae, dtype=np.float64)[0],
+        conflicts=conflicts,
+        fused=np.asarray(diag.fused, dtype=np.float64)[0],
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# The explanation, as lines of text
+
+
+def explain_lines(
+    scenario: Any,
+    task_cls: Any,
+    feedback: Any,
+    store: Any,
+    feedback_name: str,
+    state: State,
+    *,
+    reply_chars: int | None = None,
+    show_prompt: bool = False,
+) -> list[str]:
+    """The explanation of one state: the panel's answers, the fusion, the replies.
+
+    Args:
+        scenario: The scenario (task, feedback settings).
+        task_cls: The task's class (observation and action names).
+        feedback: The feedback (:func:`~amuled_ma.evaluate.readonly_feedback.open_feedback`).
+        store: The run's store, read-only (the raw replies of non-answers).
+        feedback_name: The feedback's name.
+        state: The state (:func:`state_of_step` or :func:`state_by_hand`).
+        reply_chars: Characters of a raw reply written (None: whole replies).
+        show_prompt: Add the state prompt.
+
+    Returns:
+        The lines to print.
+
+    """
+    from amuled_ma.tasks.prompts import render_state_prompt
+
+    out: list[str] = []
+    say = out.append
+    obs, prompt_vars = state.obs, state.prompt_vars
+    actions = list(task_cls.action_names)
+    shown = ", ".join(f"{n}={_num(v)}" for n, v in zip(task_cls.obs_names, obs, strict=True))
+    say(f"explain {scenario.task.name}: {shown}")
+    if prompt_vars is not None:
+        extra = {k: v for k, v in prompt_vars.items() if k not in task_cls.obs_names}
+        if extra:
+            say("  prompt variables: " + ", ".join(f"{k}={v}" for k, v in extra.items()))
+    for line in state.context:
+        say("  " + line)
+    panel = getattr(feedback, "panel", None)
+    say(f"feedback {feedback_name}: {describe_feedback(feedback)}")
+    if panel is None:
+        if state.live_belief is None:
+            raise ScenarioError(
+                f"feedback {feedback_name!r} is not a panel and gave no belief for this state"
+            )
+        say(
+            f"  this feedback is not a panel of agents ({type(feedback).__name__}): its belief "
+            "is the reward, with no agents, weights or reasoning to show"
+        )
+        if getattr(feedback, "recording", None) is not None and scenario.feedback.cluster_recording:
+            say(
+                "  for the clusters' own beliefs, replay the recording with them: --set "
+                f'feedback.recording="{scenario.feedback.cluster_recording}"'
+            )
+        say("")
+        say(table(["", *actions], [["feedback belief", *state.live_belief.tolist()]]))
+        return out
+    answers = ask_panel(
+        panel, obs[None].astype(np.float64), [prompt_vars] if prompt_vars else None, store
+    )
+    agents, rule = answers.agents, answers.rule
+    beliefs, weights = answers.beliefs[0], answers.weights[0]
+    statuses = answers.statuses[0].tolist()
+    say(f"  {len(agents)} agents, fusion rule {rule}; an agent that did not answer abstains")
+    say("")
+    say("beliefs:")
+    rows = [
+        [agent, statuses[c], *beliefs[c].tolist(), float(weights[c])]
+        for c, agent in enumerate(agents)
+    ]
+    rows.append([f"fused ({rule})", "", *answers.fused[0].tolist(), ""])
+    say(table(["agent", "status", *actions, "weight"], rows))
+    breakdown = fusion_breakdown(agents, beliefs, statuses, rule)
+    say("")
+    if breakdown is None:
+        say("no agent answered: the fused belief is the uniform fallback")
+    else:
+        out += breakdown_lines(breakdown, actions, answers.fused[0])
+    say("")
+    say("reasoning (raw replies):")
+    for c, agent in enumerate(agents):
+        raw = answers.raws[0][c]
+        reason = answers.reasons[0][c]
+        if not raw:
+            why = f" ({reason})" if reason else ""
+            say(f"  {agent} [{statuses[c]}]: no reply text kept{why}")
+            continue
+        text = raw if reply_chars is None or len(raw) <= reply_chars else raw[:reply_chars]
+        say(f"  {agent} [{statuses[c]}]:")
+        for paragraph in text.splitlines() or [""]:
+            for piece in textwrap.wrap(paragraph, 96) or [""]:
+                say("    | " + piece)
+        if text is not raw:
+            say(f"    | [... {len(raw) - len(text)} more characters; --full prints them]")
+    if show_prompt and prompt_vars is not None:
+        say("")
+        say("state prompt:")
+        for line in render_state_prompt(scenario.task.name, prompt_vars).splitlines():
+            say("    " + line)
+    return out
+
+
+def breakdown_lines(b: FusionBreakdown, actions: list[str], panel_fused: np.ndarray) -> list[str]:
+    """The fusion's intermediate quantities of one state, as lines of text.
+
+    Args:
+        b: The breakdown (:func:`fusion_breakdown`).
+        actions: The action names.
+        panel_fused: The panel's own fused belief (a note is added if the recomputation
+            differs).
+
+    """
+    out: list[str] = []
+    say = out.append
+    answered = len(b.agents)
+    say(f"fusion ({b.rule}) over the {answered} agents that answered:")
+    if b.left_out:
+        say(
+            "  left out (weight 0): "
+            + ", ".join(f"{name} ({status})" for name, status in b.left_out)
+        )
+    rows = [
+        [
+            name,
+            float(b.bjs_mean[i]),
+            float(b.credibility[i]),
+            float(b.entropy[i]),
+            float(b.volume[i]),
+            float(b.weights[i]),
+        ]
+        for i, name in enumerate(b.agents)
+    ]
+    say(
+        table(
+            ["agent", "avg BJS", "credibility", "Deng H (bits)", "info volume", "weight"],
+            rows,
+        )
+    )
+    if answered > 1:
+        say("")
+        say("pairwise BJS divergence:")
+        say(table(["", *b.agents], [[b.agents[i], *b.bjs[i].tolist()] for i in range(answered)]))
+    say("")
+    if b.wae is not None:
+        say(table(["", *actions], [["WAE (weighted average evidence)", *b.wae.tolist()]]))
+    if b.conflicts.size:
+        parts = "  ".join(f"K{t + 1}={k:.4f}" for t, k in enumerate(b.conflicts.tolist()))
+        say(f"Dempster's conflict at each of the {b.conflicts.size} combinations: {parts}")
+    else:
+        say("Dempster's conflict: none (this rule does not combine)")
+    agree = np.allclose(b.fused, panel_fused, atol=1e-9)
+    say(
+        table(["", *actions], [["fused (recomputed)", *b.fused.tolist()]])
+        + ("" if agree else "\n  note: the panel's fused belief differs from this recomputation")
+    )
+    return out

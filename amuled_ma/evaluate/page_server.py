@@ -1,0 +1,81 @@
+"""One HTML file served on this machine, for a browser that cannot open files.
+
+``amuled view --serve``: the page at ``/`` and under its own name, everything else 404,
+nothing logged.
+"""
+
+from __future__ import annotations
+
+import http.server
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+
+class _OneFileHandler(http.server.BaseHTTPRequestHandler):
+    """Serve one file at ``/`` (and its name); everything else is 404."""
+
+    body: bytes = b""
+    name: str = "index.html"
+
+    def do_GET(self) -> None:
+        """Answer the page, or 404."""
+        if self.path.split("?", 1)[0] not in ("/", f"/{self.name}"):
+            self.send_error(404, "only the viewer page is served here")
+            return
+        self.send_response(200)
+        self.send_header("Content-Type", "text/html; charset=utf-8")
+        self.send_header("Content-Length", str(len(self.body)))
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+        self.wfile.write(self.body)
+
+    def log_message(self, format: str, *args: Any) -> None:
+        """Stay quiet (the command prints the URL once)."""
+
+
+def make_server(path: Path, host: str = "127.0.0.1", port: int = 0) -> http.server.HTTPServer:
+    """An HTTP server for one file on ``host`` (a free port when ``port`` is 0).
+
+    Raises:
+        OSError: The address cannot be bound.
+
+    """
+    body = Path(path).read_bytes()
+    handler = type("ViewerHandler", (_OneFileHandler,), {"body": body, "name": Path(path).name})
+    return http.server.ThreadingHTTPServer((host, port), handler)
+
+
+def serve(
+    path: Path,
+    *,
+    host: str = "127.0.0.1",
+    port: int = 0,
+    seconds: float | None = None,
+    say: Callable[[str], None] = print,
+) -> None:
+    """Serve one page until Ctrl-C (or ``seconds``), printing its URL.
+
+    Args:
+        path: The HTML file.
+        host: Address to listen on (default: this machine only).
+        port: Port (0: a free one).
+        seconds: Stop after this many seconds (None: until Ctrl-C).
+        say: Where the URL is printed.
+
+    """
+    server = make_server(path, host, port)
+    url = f"http://{host}:{server.server_address[1]}/"
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    say(f"serving {path} at {url} (Ctrl-C stops)")
+    try:
+        if seconds is None:
+            while thread.is_alive():
+                thread.join(0.5)
+        else:
+            thread.join(seconds)
+    finally:
+        server.shutdown()
+        server.server_close()

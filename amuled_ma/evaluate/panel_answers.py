@@ -1,0 +1,187 @@
+"""What a moral panel says about states, each agent's raw reply kept beside the numbers.
+
+:func:`ask_panel` asks a :class:`~amuled_ma.deliberation.panel.MoralPanel` about distinct
+states with one :meth:`~amuled_ma.deliberation.panel.MoralPanel.fused` call, as training
+makes it, and keeps each agent's raw reply (the belief store's row, or the replayed
+recording's ``exchanges``): :class:`PanelAnswers`, what the viewer draws and ``amuled
+explain`` prints.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.errors import AmuledError
+from amuled_ma.evaluate.readonly_feedback import ReadOnlyStore
+
+
+class _Recorder(BeliefSource):
+    """Pass requests to a source and keep every ``(request, result)`` pair."""
+
+    def __init__(self, inner: Any) -> None:
+        self.inner = inner
+        self.name = getattr(inner, "name", "source")
+        self.pairs: list[tuple[BeliefRequest, BeliefResult]] = []
+
+    @property
+    def needs_messages(self) -> bool:  # type: ignore[override]
+        return bool(getattr(self.inner, "needs_messages", True))
+
+    def identity(self) -> dict[str, Any]:
+        return dict(self.inner.identity())
+
+    def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
+        results = self.inner.beliefs(requests)
+        self.pairs.extend(zip(requests, results, strict=True))
+        return results
+
+
+@dataclass
+class PanelAnswers:
+    """What a panel said about ``U`` states (``K`` agents, ``A`` actions).
+
+    Attributes:
+        agents: The agents, in fusion order.
+        rule: The fusion rule.
+        beliefs: ``(U, K, A)`` each agent's belief (uniform where it did not answer).
+        weights: ``(U, K)`` fusion weights (0 for an agent that abstained).
+        statuses: ``(U, K)`` statuses (``ok``, ``abstained``, ``replay_miss``...).
+        conflicts: ``(U, K - 1)`` Dempster's conflict at each combination.
+        fused: ``(U, A)`` the fused belief.
+        raws: ``U`` lists of ``K`` raw replies (None where neither the store nor the
+            recording kept one).
+        reasons: ``U`` lists of ``K`` notes on a failed answer (miss reason, error).
+        prompts: ``U`` rendered state prompts.
+
+    """
+
+    agents: list[str]
+    rule: str
+    beliefs: np.ndarray
+    weights: np.ndarray
+    statuses: np.ndarray
+    conflicts: np.ndarray
+    fused: np.ndarray
+    raws: list[list[str | None]]
+    reasons: list[list[str | None]]
+    prompts: list[str | None] = field(default_factory=list)
+
+
+def ask_panel(
+    panel: Any,
+    obs: np.ndarray,
+    prompt_vars: Sequence[Mapping[str, Any]] | None,
+    store: ReadOnlyStore | None = None,
+) -> PanelAnswers:
+    """Ask a moral panel about distinct states and keep each agent's raw reply.
+
+    One :meth:`~amuled_ma.deliberation.panel.MoralPanel.fused` call, as training makes it;
+    the source's answers carry the raw replies (a stored row's ``raw``, a replayed
+    recording's ``exchanges``). An agent whose answer has none (an abstention answered
+    again as a miss, say) gets the raw reply of its row in the run's store, if any.
+
+    Args:
+        panel: The moral panel.
+        obs: ``(U, obs_dim)`` distinct states.
+        prompt_vars: Their prompt variables (None when the source reads no prompts).
+        store: The run's store, read-only, for the raw replies of non-answers.
+
+    Returns:
+        The :class:`PanelAnswers`.
+
+    """
+    from amuled_ma.tasks.prompts import render_state_prompt
+
+    obs = np.asarray(obs, dtype=np.float64).reshape(len(obs), -1)
+    recorder = _Recorder(panel.source)
+    original = panel.source
+    panel.source = recorder
+    try:
+        out = panel.fused(obs, list(prompt_vars) if prompt_vars is not None else None)
+    finally:
+        panel.source = original
+    agents = list(panel.clusters)
+    k = len(agents)
+    by_obs: dict[tuple[float, ...], list[int]] = {}
+    for u, row in enumerate(obs):
+        by_obs.setdefault(tuple(float(x) for x in row), []).append(u)
+    raws: list[list[str | None]] = [[None] * k for _ in range(len(obs))]
+    reasons: list[list[str | None]] = [[None] * k for _ in range(len(obs))]
+    requests: list[list[BeliefRequest | None]] = [[None] * k for _ in range(len(obs))]
+    taken: dict[tuple[tuple[float, ...], str], int] = {}
+    column = {name: c for c, name in enumerate(agents)}
+    for request, result in recorder.pairs:
+        c = column.get(request.cluster)
+        candidates = by_obs.get(tuple(request.obs))
+        if c is None or not candidates:
+            continue
+        if panel.with_messages:
+            # requests come in the order of the states: the n-th request of an agent with
+            # this observation belongs to the n-th state with this observation
+            n = taken.get((request.obs, request.cluster), 0)
+            taken[(request.obs, request.cluster)] = n + 1
+            targets = [candidates[min(n, len(candidates) - 1)]]
+        else:  # a source without prompts is asked once per observation
+            targets = candidates
+        extra = result.extra or {}
+        for u in targets:
+            raws[u][c] = result.raw
+            requests[u][c] = request
+            reasons[u][c] = extra.get("miss_reason") or extra.get("error")
+    if store is not None and store.store is not None:
+        _raws_from_store(original, store, requests, raws)
+    prompts: list[str | None] = []
+    for u in range(len(obs)):
+        text = None
+        if prompt_vars is not None:
+            try:
+                text = render_state_prompt(panel.task_name, dict(prompt_vars[u]))
+            except (AmuledError, KeyError, ValueError):
+                text = None
+        prompts.append(text)
+    conflicts = np.asarray(out.conflicts, dtype=np.float64).reshape(len(obs), -1)
+    return PanelAnswers(
+        agents=agents,
+        rule=str(panel.fusion_rule),
+        beliefs=np.asarray(out.beliefs, dtype=np.float64),
+        weights=np.asarray(out.weights, dtype=np.float64),
+        statuses=np.asarray(out.statuses).astype(str),
+        conflicts=conflicts,
+        fused=np.asarray(out.fused, dtype=np.float64),
+        raws=raws,
+        reasons=reasons,
+        prompts=prompts,
+    )
+
+
+def _raws_from_store(
+    source: Any,
+    store: ReadOnlyStore,
+    requests: list[list[BeliefRequest | None]],
+    raws: list[list[str | None]],
+) -> None:
+    """Fill missing raw replies from the run's store rows of any status."""
+    wanted: dict[str, tuple[int, int]] = {}
+    for u, row in enumerate(requests):
+        for c, request in enumerate(row):
+            if request is None or raws[u][c]:
+                continue
+            member = source
+            route = getattr(source, "source_for", None)
+            if callable(route):
+                try:
+                    member = route(request.cluster)
+                except AmuledError:
+                    continue
+            keys = getattr(member, "keys", None)
+            if callable(keys):
+                wanted[keys([request])[0]] = (u, c)
+    if wanted:
+        for key, row in store.rows(list(wanted)).items():
+            u, c = wanted[key]
+            raws[u][c] = row.raw

@@ -1,0 +1,120 @@
+"""A variant's feedback opened to look at a run, with the run's belief store read-only.
+
+``amuled view`` and ``amuled explain`` ask a fine-tune's feedback about states as training
+asked it: :func:`open_feedback` builds it with
+:func:`~amuled_ma.deliberation.build.make_feedback` (same agents, fusion rule, sources
+and store keys), the store it is given being one :class:`ReadOnlyStore` over the run's
+file, so looking at a run never writes to it (an Ollama source still asks its server about
+states the run never asked). :func:`describe_feedback` says in words where its beliefs
+come from.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from amuled_ma.beliefs.types import BeliefResult
+from amuled_ma.errors import AmuledError
+
+
+class ReadOnlyStore:
+    """The run's belief store behind a feedback, opened read-only.
+
+    Stands in for the :class:`~amuled_ma.beliefs.store.BeliefStore` of a
+    :class:`~amuled_ma.beliefs.cached.CachedSource`: lookups read the run's file (SQLite
+    ``mode=ro``), answers to states the run never asked are not written (counted in
+    :attr:`not_written`), so looking at a run never changes it.
+
+    Args:
+        path: The store file; a missing file reads as empty.
+
+    """
+
+    def __init__(self, path: str | Path | None) -> None:
+        from amuled_ma.beliefs.store import BeliefStore
+
+        self.path = Path(path) if path else None
+        self.store = (
+            BeliefStore(self.path, read_only=True)
+            if self.path is not None and self.path.is_file()
+            else None
+        )
+        #: Answers not written to the run's store.
+        self.not_written = 0
+
+    def lookup(self, keys: Sequence[str]) -> dict[str, BeliefResult]:
+        """Cached answers (``ok``/``repaired`` rows) of ``keys`` in the run's store."""
+        return self.store.lookup(keys) if self.store is not None else {}
+
+    def rows(self, keys: Sequence[str]) -> dict[str, Any]:
+        """Every row of ``keys``, answers or not (an abstention's raw reply is kept)."""
+        if self.store is None:
+            return {}
+        return self.store.get_many(keys, cacheable_only=False)
+
+    def put_many(self, items: Any) -> int:
+        """Write nothing: count the answers a writable store would have kept."""
+        self.not_written += len(list(items))
+        return 0
+
+    def close(self) -> None:
+        """Close the read-only connection."""
+        if self.store is not None:
+            self.store.close()
+
+
+def open_feedback(
+    feedback_name: str, scenario: Any, run_dir: Path | None
+) -> tuple[Any, ReadOnlyStore]:
+    """Build a variant's feedback as training does, with the run's store read-only.
+
+    :func:`~amuled_ma.deliberation.build.make_feedback` builds it (same agents, fusion
+    rule, sources and store keys) over one :class:`ReadOnlyStore` of the run's file
+    (:func:`~amuled_ma.deliberation.plan.store_path`), which is never opened for writing
+    (an Ollama source still asks its server about states the run never asked).
+
+    Args:
+        feedback_name: ``amuled``, ``human``, ``cluster:care``, ...
+        scenario: The variant's scenario.
+        run_dir: The run folder holding the store and the demonstrator's counts (None: no
+            store, nothing cached).
+
+    Returns:
+        ``(feedback, store)``.
+
+    """
+    from amuled_ma.deliberation.build import make_feedback
+    from amuled_ma.deliberation.plan import store_path
+
+    run = Path(run_dir) if run_dir is not None else None
+    store = ReadOnlyStore(store_path(scenario, run) if run is not None else None)
+    try:
+        return make_feedback(feedback_name, scenario, run, store=store), store
+    except BaseException:
+        store.close()
+        raise
+
+
+def describe_feedback(feedback: Any) -> str:
+    """Where a feedback's beliefs come from, in words (for headers)."""
+    from amuled_ma.deliberation.summaries import describe_identity
+
+    source = getattr(feedback, "source", None)
+    if source is not None:
+        try:
+            members = getattr(source, "members", None)
+            if members:
+                parts = []
+                for member, agents in members:
+                    who = ", ".join(agents) if agents else "the others"
+                    parts.append(f"{who}: {describe_identity(member.identity())}")
+                return "; ".join(parts)
+            return describe_identity(source.identity())
+        except (AmuledError, OSError, AttributeError):
+            return str(getattr(source, "name", "source"))
+    recording = getattr(feedback, "recording", None)
+    if recording is not None:
+        return f"replay ({Path(recording.path).name}, fused beliefs only)"
+    return str(getattr(feedback, "name", "feedback"))

@@ -1,0 +1,377 @@
+"""Bar figures: the metrics per variant, and an ablation's own figure.
+
+An ablation's figure shows its fine-tunes against AMULED, a lambda_KL sweep as metric
+against lambda_KL, a feedback budget as metric against the budget.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from amuled_ma.evaluate.evaluator import PAPER_METRICS, metric_order
+from amuled_ma.evaluate.report.plotting import (
+    EQUAL_TOL,
+    grid_axes,
+    half_of,
+    mean_of,
+    pyplot,
+    save_figure,
+    short_label,
+    variant_colors,
+)
+from amuled_ma.evaluate.results import ModeResult, Results, Stat
+
+#: Metrics left out of the bar charts (book-keeping, or the shaping the base never sees).
+NOT_PLOTTED = ("terminated", "return_shaping", "return")
+
+
+def _hbars(
+    ax: Any,
+    positions: Sequence[float],
+    stats: Sequence[Stat | None],
+    colors: Sequence[str],
+    *,
+    emphasise: Sequence[bool] | None = None,
+) -> None:
+    """Horizontal bars with 95% CI whiskers and value labels; a zero bar gets a marker.
+
+    A bar of height 0 would be invisible: it is drawn as a thick tick of its colour at 0
+    (``gid="zero-bar"``) with its label ``0``; a missing mean is labelled ``n/a``.
+    """
+    means = np.array([mean_of(s) for s in stats], dtype=float)
+    errs = np.array([half_of(s) for s in stats])
+    drawn = np.where(np.isfinite(means), means, 0.0)
+    bold = list(emphasise or [False] * len(stats))
+    ax.barh(
+        positions, drawn, xerr=errs, height=0.72, color=colors,
+        edgecolor=["black" if b else c for b, c in zip(bold, colors, strict=True)],
+        linewidth=[1.8 if b else 0.8 for b in bold],
+        error_kw={"capsize": 2, "elinewidth": 1.0, "ecolor": "0.25"},
+    )  # fmt: skip
+    ax.axvline(0.0, color="0.35", lw=0.8, zorder=1)
+    for pos, mean, err, color in zip(positions, means, errs, colors, strict=True):
+        if not math.isfinite(mean):
+            ax.annotate("n/a", (0, pos), xytext=(4, 0), textcoords="offset points",
+                        va="center", fontsize=7, color="0.4", gid="bar-label")  # fmt: skip
+            continue
+        if abs(mean) <= EQUAL_TOL:
+            ax.plot([0.0], [pos], marker="|", markersize=12, markeredgewidth=3.0,
+                    color=color, zorder=4, gid="zero-bar")  # fmt: skip
+        right = mean >= 0
+        ax.annotate(
+            short_label(mean), (mean + err if right else mean - err, pos),
+            xytext=(4 if right else -4, 0), textcoords="offset points",
+            ha="left" if right else "right", va="center", fontsize=7, gid="bar-label",
+        )  # fmt: skip
+    reach = np.abs(drawn) + errs
+    if not reach.size or float(reach.max()) <= EQUAL_TOL:
+        ax.set_xlim(-0.15, 1.0)
+    else:
+        ax.margins(x=0.25)
+
+
+def _plotted_metrics(results: Results, variants: Mapping[str, ModeResult]) -> list[str]:
+    metrics = metric_order(results.task, sorted({m for v in variants.values() for m in v.metrics}))
+    return [m for m in metrics if m not in NOT_PLOTTED]
+
+
+def bars_figure(
+    results: Results | Mapping[str, Any],
+    mode: str,
+    title: str = "",
+    colors: dict[str, str] | None = None,
+) -> Any | None:
+    """The metrics bar figure (see :func:`plot_bars`); None without that mode."""
+    results = Results.of(results)
+    variants = results.in_mode(mode)
+    if not variants:
+        return None
+    metrics = _plotted_metrics(results, variants)
+    if not metrics:
+        return None
+    names = list(variants)
+    colors = colors or variant_colors(names)
+    plt = pyplot()
+    height = 0.3 * len(names) + 1.1
+    fig, axes = grid_axes(plt, len(metrics), 3, 3.3, height, sharey=True)
+    fig.set_size_inches(fig.get_size_inches()[0] + 1.8, fig.get_size_inches()[1] + 0.4)
+    positions = np.arange(len(names))[::-1]  # the first variant on top
+    for ax, metric in zip(axes, metrics, strict=False):
+        stats = [variants[n].metrics.get(metric) for n in names]
+        _hbars(ax, positions, stats, [colors[n] for n in names])
+        ax.set_title(metric.replace("_", " "), fontsize=9)
+        ax.set_yticks(positions, names, fontsize=8)
+        ax.tick_params(axis="x", labelsize=7)
+        ax.grid(axis="x", alpha=0.3)
+    for ax in axes[len(metrics) :]:
+        ax.axis("off")
+    fig.suptitle(
+        title
+        or f"{results.scenario}: {mode} policy, mean and 95% CI "
+        "(a bar of height 0: a thick tick at 0)",
+        fontsize=9,
+    )
+    return fig
+
+
+def plot_bars(
+    results: Results | Mapping[str, Any],
+    mode: str,
+    path: Path,
+    title: str = "",
+    colors: dict[str, str] | None = None,
+) -> Path | None:
+    """Bar chart per metric, one horizontal bar per variant, 95% CI whiskers, value labels.
+
+    Args:
+        results: The evaluation results.
+        mode: ``greedy`` or ``sampled``.
+        path: The PNG to write.
+        title: The figure's title (default: scenario, mode).
+        colors: ``{variant: colour}`` (default: :func:`variant_colors` of the variants).
+
+    Returns:
+        ``path``, or None when no variant was evaluated in ``mode``.
+
+    """
+    fig = bars_figure(results, mode, title, colors)
+    return None if fig is None else save_figure(fig, path)
+
+
+def ablation_figure(
+    results: Results | Mapping[str, Any],
+    what: str,
+    colors: dict[str, str] | None = None,
+    mode: str = "greedy",
+) -> Any | None:
+    """An ablation's own figure: its fine-tunes against AMULED on the paper's metrics.
+
+    ``kl``: each paper metric against lambda_KL (one point per fine-tune, 95% CI). Other
+    ablations: one panel per paper metric, the fine-tunes as horizontal bars sorted by
+    their mean (largest on top), AMULED outlined in black. The base policy is a dashed
+    line in every panel.
+
+    Args:
+        results: The ablation's evaluation results.
+        what: ``clusters``, ``aggregation``, ``models`` or ``kl``.
+        colors: ``{variant: colour}``.
+        mode: Which policy mode.
+
+    Returns:
+        The figure, or None without a fine-tune.
+
+    """
+    if what == "budget":
+        return budget_figure(results, mode)
+    results = Results.of(results)
+    variants = results.in_mode(mode)
+    base = variants.pop("base", None)
+    tunes = {k: v for k, v in variants.items() if k != "shaped"}
+    if not tunes:
+        return None
+    task = results.task
+    metrics = [
+        m for m in PAPER_METRICS.get(task, []) if any(m in v.metrics for v in tunes.values())
+    ]
+    metrics = metrics or _plotted_metrics(results, tunes)[:4]
+    colors = colors or variant_colors(results.variants)
+    panels = {name: results.variants[name].panel for name in tunes}
+    lambdas = {name: p.lambda_kl if p is not None else None for name, p in panels.items()}
+    plt = pyplot()
+    if what == "kl" and all(isinstance(v, int | float) for v in lambdas.values()):
+        order = sorted(tunes, key=lambda n: (lambdas[n], n))
+        fig, axes = grid_axes(plt, len(metrics), 2, 4.6, 3.2)
+        for ax, metric in zip(axes, metrics, strict=False):
+            stats = [tunes[n].metrics.get(metric) for n in order]
+            x = np.arange(len(order))
+            y = np.array([mean_of(s) for s in stats])
+            err = np.array([half_of(s) for s in stats])
+            ax.plot(x, y, color="0.5", lw=1.0, zorder=1)
+            for xi, yi, ei, name in zip(x, y, err, order, strict=True):
+                ax.errorbar(xi, yi, yerr=ei, fmt="o", color=colors[name], capsize=3, ms=6)
+                if math.isfinite(yi):
+                    ax.annotate(short_label(yi), (xi, yi), xytext=(5, 4),
+                                textcoords="offset points", fontsize=7,
+                                gid="bar-label")  # fmt: skip
+            _base_line(ax, base, metric, vertical=False)
+            ax.set_xticks(x, [f"{lambdas[n]:g}" for n in order], fontsize=8)
+            ax.set_xlabel("lambda_KL", fontsize=8)
+            ax.set_title(metric.replace("_", " "), fontsize=9)
+            ax.grid(alpha=0.3)
+        for ax in axes[len(metrics) :]:
+            ax.axis("off")
+        fig.suptitle(
+            f"Ablation of lambda_KL: {mode} mean and 95% CI per fine-tune; dashed: base",
+            fontsize=9,
+        )
+        return fig
+    height = 0.3 * len(tunes) + 1.1
+    fig, axes = grid_axes(plt, len(metrics), 2, 5.2, height)
+    for ax, metric in zip(axes, metrics, strict=False):
+        order = sorted(tunes, key=lambda n: (_sort_key(tunes[n].metrics.get(metric)), n))
+        stats = [tunes[n].metrics.get(metric) for n in order]
+        positions = np.arange(len(order))
+        _hbars(ax, positions, stats, [colors[n] for n in order],
+               emphasise=[n == "finetune-amuled" for n in order])  # fmt: skip
+        _base_line(ax, base, metric, vertical=True)
+        ax.set_yticks(positions, order, fontsize=8)
+        for label in ax.get_yticklabels():
+            if label.get_text() == "finetune-amuled":
+                label.set_fontweight("bold")
+        ax.set_title(metric.replace("_", " "), fontsize=9)
+        ax.tick_params(axis="x", labelsize=7)
+        ax.grid(axis="x", alpha=0.3)
+    for ax in axes[len(metrics) :]:
+        ax.axis("off")
+    fig.suptitle(
+        f"Ablation of {what}: each fine-tune's {mode} mean and 95% CI on the paper's metrics, "
+        "sorted (largest on top); AMULED outlined in black, dashed: base",
+        fontsize=9,
+    )
+    return fig
+
+
+#: Colours of the budget ablation's selections (:func:`budget_figure`; random also dashed).
+SELECTION_COLORS = {"uncertainty": "tab:blue", "random": "tab:orange"}
+
+
+def budget_points(
+    results: Results | Mapping[str, Any],
+) -> tuple[list[dict[str, Any]], str | None]:
+    """The budget ablation's fine-tunes as points, and its full-feedback fine-tune.
+
+    Returns:
+        ``([{"variant", "budget", "selection", "distill"}...], full)``: one point per
+        fine-tune with ``[feedback.distill]`` (``budget``: the share of distinct states
+        it may ask; for a count, the share it asked), sorted by selection and budget; and
+        the name of the AMULED fine-tune that asked every state (None without one).
+
+    """
+    points, full = [], None
+    for name, entry in Results.of(results).variants.items():
+        settings = entry.panel.distill if entry.panel is not None else None
+        if not settings:
+            if entry.panel is not None and entry.panel.feedback == "amuled" and full is None:
+                full = name
+            continue
+        report = (entry.feedback.distill if entry.feedback is not None else None) or {}
+        budget = settings.get("budget")
+        share = budget if isinstance(budget, float) else report.get("asked_share")
+        selection = "all" if share == 1.0 else str(settings.get("selection"))
+        points.append({
+            "variant": name, "budget": share, "selection": selection, "distill": report,
+        })  # fmt: skip
+    points.sort(key=lambda p: (p["selection"], -(p["budget"] or 0.0), p["variant"]))
+    return points, full
+
+
+def budget_figure(results: Results | Mapping[str, Any], mode: str = "greedy") -> Any | None:
+    """The budget ablation's figure: each paper metric against the budget.
+
+    One panel per paper metric and one for the model's held-out agreement with the
+    panel (total-variation distance of the fused beliefs): x is the budget (share of the
+    distinct states asked, log scale), one colour per selection (:data:`SELECTION_COLORS`;
+    the 100% point, where nothing is selected, starts both lines), 95% CIs as error bars;
+    the fine-tune that asked every state without a model is a grey band (its 95% CI) with
+    its mean as a line, the base policy a dashed line.
+
+    Returns:
+        The figure, or None without a distilled fine-tune.
+
+    """
+    results = Results.of(results)
+    points, full = budget_points(results)
+    points = [p for p in points if isinstance(p["budget"], int | float) and p["budget"] > 0]
+    if not points:
+        return None
+    variants = results.variants
+    tunes = {p["variant"]: variants[p["variant"]].mode(mode) or ModeResult() for p in points}
+    metrics = [
+        m for m in PAPER_METRICS.get(results.task, [])
+        if any(m in v.metrics for v in tunes.values())
+    ]  # fmt: skip
+    if not metrics:
+        metrics = _plotted_metrics(results, {k: v for k, v in tunes.items() if v.metrics})[:4]
+    panels = [*metrics, "holdout_tv_fused"]
+    plt = pyplot()
+    fig, axes = grid_axes(plt, len(panels), 2, 4.6, 3.2)
+    base = variants["base"].mode(mode) if "base" in variants else None
+    full_stats = variants[full].mode(mode) if full else None
+    selections = sorted({p["selection"] for p in points} - {"all"}) or ["all"]
+    budgets = sorted({p["budget"] for p in points})
+    for ax, metric in zip(axes, panels, strict=False):
+        for selection in selections:
+            line = [p for p in points if p["selection"] in (selection, "all")]
+            line.sort(key=lambda p: p["budget"])
+            xs = np.array([p["budget"] for p in line], dtype=float)
+            if metric == "holdout_tv_fused":
+                ys = np.array([
+                    np.nan if p["distill"].get("holdout_tv_fused") is None
+                    else float(p["distill"]["holdout_tv_fused"]) for p in line
+                ])  # fmt: skip
+                err = np.zeros(len(line))
+            else:
+                stats = [tunes[p["variant"]].metrics.get(metric) for p in line]
+                ys = np.array([mean_of(s) for s in stats])
+                err = np.array([half_of(s) for s in stats])
+            color = SELECTION_COLORS.get(selection, "0.3")
+            style = "s--" if selection == "random" else "o-"  # visible where the lines meet
+            ax.errorbar(xs, ys, yerr=err, fmt=style, color=color, capsize=3, ms=5, lw=1.2,
+                        label=selection, gid=f"selection-{selection}")  # fmt: skip
+        if metric != "holdout_tv_fused":
+            stat = full_stats.metrics.get(metric) if full_stats is not None else None
+            mean = mean_of(stat)
+            if math.isfinite(mean):
+                half = half_of(stat)
+                ax.axhspan(mean - half, mean + half, color="0.6", alpha=0.25, lw=0,
+                           gid="full-band")  # fmt: skip
+                ax.axhline(mean, color="0.45", lw=1.0, gid="full-line")
+            _base_line(ax, base, metric, vertical=False)
+            ax.set_title(metric.replace("_", " "), fontsize=9)
+        else:
+            ax.set_title("held-out TV to the panel (fused)", fontsize=9)
+        ax.set_xscale("log")
+        ax.set_xticks(budgets, [f"{100 * b:g}%" for b in budgets], fontsize=8)
+        ax.minorticks_off()
+        ax.set_xlabel("budget (share of distinct states asked)", fontsize=8)
+        ax.grid(alpha=0.3)
+    for ax in axes[len(panels) :]:
+        ax.axis("off")
+    axes[0].legend(fontsize=7, title="selection", title_fontsize=7)
+    fig.suptitle(
+        f"Ablation of the feedback budget: {mode} mean and 95% CI per fine-tune; grey band: "
+        "every state asked (no model); dashed: base",
+        fontsize=9,
+    )
+    return fig
+
+
+def _sort_key(stat: Stat | None) -> float:
+    mean = mean_of(stat)
+    return mean if math.isfinite(mean) else -math.inf
+
+
+def _base_line(ax: Any, base: ModeResult | None, metric: str, *, vertical: bool) -> None:
+    value = mean_of(base.metrics.get(metric) if base is not None else None)
+    if not math.isfinite(value):
+        return
+    if vertical:
+        ax.axvline(value, color="0.15", ls="--", lw=1.1, zorder=5, gid="base-line")
+    else:
+        ax.axhline(value, color="0.15", ls="--", lw=1.1, zorder=0, gid="base-line")
+
+
+def plot_ablation(
+    results: Results | Mapping[str, Any],
+    what: str,
+    path: Path,
+    colors: dict[str, str] | None = None,
+) -> Path | None:
+    """Write :func:`ablation_figure` to ``path`` (None when there is no fine-tune)."""
+    fig = ablation_figure(results, what, colors)
+    return None if fig is None else save_figure(fig, path)

@@ -1,0 +1,172 @@
+"""Learning curves: each variant's ``curve.json``, a rolling mean with a 95% band."""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from amuled_ma.evaluate.report.plotting import (
+    compact_number,
+    grid_axes,
+    legend_below,
+    pyplot,
+    robust_ylim,
+    save_figure,
+    variant_colors,
+)
+from amuled_ma.evaluate.stats import t_quantile
+
+#: Curve keys plotted per task (the first that exists in a curve is used).
+CURVE_KEYS = {
+    "findmilk": ["episode/return_env", "episode/steps_to_milk", "episode/crying_pacified",
+                 "episode/sleeping_woken"],
+    "driving": ["episode/return_env", "episode/collisions", "episode/rescues",
+                "episode/lane_changes"],
+}  # fmt: skip
+#: Curve keys of a fine-tune's feedback.
+FT_KEYS = ["feedback/feedback_reward", "feedback/kl"]
+
+
+def _rolling_band(values: list[float | None], window: int) -> tuple[np.ndarray, ...]:
+    arr = np.array([np.nan if v is None else v for v in values], dtype=float)
+    mean = np.full_like(arr, np.nan)
+    half = np.full_like(arr, np.nan)
+    for i in range(len(arr)):
+        chunk = arr[max(0, i - window + 1) : i + 1]
+        chunk = chunk[np.isfinite(chunk)]
+        if len(chunk):
+            mean[i] = chunk.mean()
+            if len(chunk) > 1:
+                half[i] = t_quantile(len(chunk) - 1) * chunk.std(ddof=1) / math.sqrt(len(chunk))
+            else:
+                half[i] = 0.0
+    return mean, half
+
+
+def load_curves(
+    run_dir: Path, names: Mapping[str, str] | None = None
+) -> dict[str, list[list[dict]]]:
+    """Read every variant's ``curve.json``, seed replicas grouped under their variant.
+
+    Args:
+        run_dir: The run directory.
+        names: ``{folder: variant name}`` from the folders' records (a seed replica's
+            folder names its variant); a folder not in it is a variant of its own name.
+
+    Returns:
+        ``{variant: [replica curve, ...]}``.
+
+    """
+    names = names or {}
+    curves: dict[str, list[list[dict]]] = {}
+    for path in sorted(Path(run_dir).glob("*/curve.json")):
+        variant = names.get(path.parent.name, path.parent.name)
+        curves.setdefault(variant, []).append(json.loads(path.read_text()))
+    return curves
+
+
+def curve_band(replicas: list[list[dict]], key: str) -> tuple[np.ndarray, ...]:
+    """x, mean and 95% half-width of one metric over a variant's replicas.
+
+    Each replica's curve is first smoothed by a rolling mean over 5% of its iterations.
+    One replica: the band is the t-interval over that window. Several: the mean over the
+    seeds and the t-interval over the seeds (curves cut to the shortest).
+    """
+    n = min(len(c) for c in replicas)
+    x = np.array([row["env_steps"] for row in replicas[0][:n]], dtype=float)
+    window = max(1, n // 20)
+    bands = [_rolling_band([row.get(key) for row in c[:n]], window) for c in replicas]
+    if len(bands) == 1:
+        return x, bands[0][0], bands[0][1]
+    means = np.stack([mean for mean, _ in bands])
+    # Iterations where no seed logged the metric (NaN everywhere) stay NaN, silently.
+    with warnings.catch_warnings(), np.errstate(invalid="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)
+        count = np.isfinite(means).sum(axis=0)
+        mean = np.nanmean(np.where(np.isfinite(means), means, np.nan), axis=0)
+        std = np.nanstd(means, axis=0, ddof=1)
+        quantile = np.array([t_quantile(int(k) - 1) if k > 1 else 0.0 for k in count])
+        half = np.where(count > 1, quantile * std / np.sqrt(np.maximum(count, 1)), 0.0)
+    return x, mean, half
+
+
+def curves_figure(
+    curves: dict[str, list[list[dict]]],
+    keys: list[str],
+    title: str,
+    colors: dict[str, str] | None = None,
+) -> Any | None:
+    """The learning-curve figure (see :func:`plot_curves`); None when nothing to draw."""
+    keys = [k for k in keys if any(k in row for cs in curves.values() for c in cs for row in c)]
+    if not keys or not curves:
+        return None
+    from matplotlib.ticker import FuncFormatter, MaxNLocator
+
+    colors = colors or variant_colors(curves)
+    plt = pyplot()
+    fig, axes = grid_axes(plt, len(keys), 3, 4.3, 3.2)
+    legend: dict[str, Any] = {}
+    for ax, key in zip(axes, keys, strict=False):
+        lines = []
+        for name, replicas in curves.items():
+            if not any(key in row for c in replicas for row in c):
+                continue
+            x, mean, half = curve_band(replicas, key)
+            label = name if len(replicas) == 1 else f"{name} ({len(replicas)} seeds)"
+            (line,) = ax.plot(x, mean, label=label, lw=1.5, color=colors.get(name))
+            ax.fill_between(x, mean - half, mean + half, color=line.get_color(), alpha=0.2, lw=0)
+            legend.setdefault(label, line)
+            lines.append(mean)
+        heading = key.split("/", 1)[-1].replace("_", " ")
+        limits = robust_ylim(lines)
+        if limits is not None:
+            ax.set_ylim(limits[0], limits[1])
+            if limits[2]:
+                heading += f"\n({limits[2]})"
+        ax.set_title(heading, fontsize=9)
+        ax.set_xlabel("environment steps", fontsize=8)
+        ax.xaxis.set_major_locator(MaxNLocator(nbins=5, integer=True))
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda value, _pos: compact_number(value)))
+        ax.tick_params(labelsize=8)
+        ax.grid(alpha=0.3)
+    spare = axes[len(keys) :]
+    for ax in spare:
+        ax.axis("off")
+    several = any(len(r) > 1 for r in curves.values())
+    band = "over seeds" if several else "over a 5% window of iterations"
+    fig.suptitle(f"{title} (rolling mean over 5% of iterations, 95% band {band})", fontsize=9)
+    legend_below(fig, list(legend.values()), list(legend), spare)
+    return fig
+
+
+def plot_curves(
+    curves: dict[str, list[list[dict]]],
+    keys: list[str],
+    path: Path,
+    title: str,
+    colors: dict[str, str] | None = None,
+) -> Path | None:
+    """Plot one panel per key, one line (rolling mean, 95% band) per variant.
+
+    The y-range of each panel is :func:`robust_ylim` of its lines (the panel's title says
+    when values are clipped); x ticks are compact (``20k``).
+
+    Args:
+        curves: ``{variant: [replica curve, ...]}`` (:func:`load_curves`).
+        keys: Curve keys, one panel each (missing ones are skipped).
+        path: The PNG to write.
+        title: The figure's title.
+        colors: ``{variant: colour}`` (default: :func:`variant_colors` of the curves).
+
+    Returns:
+        ``path``, or None when no key has data.
+
+    """
+    fig = curves_figure(curves, keys, title, colors)
+    return None if fig is None else save_figure(fig, path)

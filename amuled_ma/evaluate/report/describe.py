@@ -1,0 +1,347 @@
+"""What the report says each variant is, from the run records: settings, panels, imports.
+
+Every statement here comes from a :class:`~amuled_ma.records.RunRecord`: the run's own
+(``seeds``, ``ablation``, the scenario) and each variant's (its variant, panel, recipe,
+lambda_KL, iterations done and planned, state, base checkpoint, inputs, and for a policy
+imported from the paper's authors its file and checkpoint iteration). A variant evaluated
+without a record (results made by hand, a folder trained outside a run) is described from
+its ``results.json`` entry.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+from amuled_ma.evaluate.results import PanelEntry, Results
+from amuled_ma.records import PanelRecord, RunRecord
+from amuled_ma.variants import Variant
+
+#: The feedbacks of a demonstrator (no panel of LLM agents).
+_DEMONSTRATORS = {"human": "the synthetic human", "human:rules": "our human rule"}
+
+
+def variant_records(
+    results: Results, records: Mapping[str, RunRecord] | None = None
+) -> dict[str, RunRecord | None]:
+    """``{variant: record}`` of every evaluated variant.
+
+    A variant's record is its first seed's folder's (the folder of the variant's name,
+    else any of its replicas); without one, a record is made from its ``results.json``
+    ``panel`` entry (None for a variant that has neither).
+
+    Args:
+        results: The evaluation results.
+        records: ``{folder name: record}`` of the run's variant folders.
+
+    """
+    records = records or {}
+    out: dict[str, RunRecord | None] = {}
+    for name, entry in results.variants.items():
+        found = records.get(name)
+        if found is None:
+            found = next((r for r in records.values() if r.name == name), None)
+        if found is None and entry.panel is not None:
+            found = _from_entry(name, entry.panel)
+        out[name] = found
+    return out
+
+
+def _from_entry(name: str, panel: PanelEntry) -> RunRecord:
+    """A record of what ``results.json`` says of a fine-tune (no ``config.json`` given)."""
+    feedback = panel.feedback or "amuled"
+    members = list(panel.agents or [])
+    return RunRecord(
+        variant=Variant.finetune(feedback),
+        name=name,
+        seed=panel.seed,
+        training={"inputs": panel.inputs} if panel.inputs else None,
+        panel=PanelRecord(
+            feedback=feedback,
+            members=members,
+            source=panel.source,
+            model=panel.model,
+            recording=panel.recording,
+            fusion=panel.fusion,
+            agent_sources=dict(panel.agent_sources or {}),
+            distill=panel.distill,
+        ),
+        recipe=panel.recipe if panel.recipe in ("equation", "authors") else None,
+        lambda_kl=panel.lambda_kl,
+        base_checkpoint=panel.base_checkpoint,
+        iterations_planned=panel.iterations,
+    )
+
+
+def finetune_names(results: Results, described: Mapping[str, RunRecord | None]) -> list[str]:
+    """The fine-tunes: by their record, else by a ``finetune*`` name."""
+    out = []
+    for name in results.variants:
+        record = described.get(name)
+        tuned = record.finetuning if record is not None and record.variant else None
+        if tuned or (tuned is None and name.startswith("finetune")):
+            out.append(name)
+    return out
+
+
+def iterations_text(record: RunRecord) -> str:
+    """``20``, or ``interrupted at 0 of 20``, ``failed at 3 of 20``."""
+    planned = record.iterations_planned
+    done = record.iterations_done
+    if record.unfinished:
+        shown = "?" if done is None else str(done)
+        return f"{record.state} at {shown} of {'?' if planned is None else planned}"
+    value = done if done is not None else planned
+    return "-" if value is None else str(value)
+
+
+def unfinished_lines(described: Mapping[str, RunRecord | None]) -> list[str]:
+    """One line per variant whose training was interrupted or failed."""
+    lines = []
+    for name, record in described.items():
+        if record is not None and record.unfinished:
+            lines.append(
+                f"- **{name} is {record.state} at iteration {record.iterations_done} of "
+                f"{record.iterations_planned}**: its checkpoint is unfinished, and what is "
+                "evaluated is that checkpoint (resume it with `--resume`)."
+            )
+    return lines
+
+
+def imported_table(described: Mapping[str, RunRecord | None]) -> str:
+    """A Markdown table of the policies imported from the paper's authors (``""``: none)."""
+    rows = []
+    for name, record in described.items():
+        if record is None or not record.imported or record.authors is None:
+            continue
+        what = "fine-tune" if record.finetuning else "base policy"
+        model = record.panel.model if record.panel is not None else None
+        if record.finetuning and model:
+            what += f" on the authors' LLM panel ({model})"
+        iteration = record.authors.checkpoint
+        if iteration is None:
+            iteration = record.iterations_done
+        rows.append(
+            f"| {name} | {what} | `{record.authors.file}` | {iteration} | "
+            f"`{record.authors.sha256}` |"
+        )
+    if not rows:
+        return ""
+    head = (
+        "| variant | what | the authors' file | checkpoint iteration | sha256 |\n"
+        "|---|---|---|---|---|"
+    )
+    return head + "\n" + "\n".join(rows) + "\n"
+
+
+def _base_label(checkpoint: str | None) -> str:
+    """The base a fine-tune started from: its variant folder, or where it lives."""
+    if not checkpoint:
+        return "-"
+    folder = Path(checkpoint).parent
+    return f"`{folder}`" if folder.parent.name and "authors" in folder.parts else folder.name
+
+
+def agents_text(panel: PanelRecord) -> str:
+    """Who answered: the panel's members, a demonstrator, or the recorded fused belief."""
+    if panel.feedback in _DEMONSTRATORS:
+        return _DEMONSTRATORS[panel.feedback]
+    if panel.fused_only:
+        return "none asked: the recorded fused belief"
+    if panel.feedback.startswith(("cluster:", "moral")):
+        return panel.feedback
+    return ", ".join(panel.members) or "-"
+
+
+def source_text(panel: PanelRecord) -> str:
+    """Where the beliefs came from, in words."""
+    source = panel.source or ""
+    if panel.fused_only:
+        text = f"replay of `{panel.recording}`, fused beliefs only (the authors' recording)"
+    elif source == "replay":
+        text = f"replay of `{panel.recording}`"
+    elif source in ("ollama", "openai", "llm") and panel.model:
+        text = f"{source}, model `{panel.model}`"
+    else:
+        text = source
+    if panel.agent_sources:
+        text += "; " + ", ".join(
+            f"{agent}: {spec.get('source', '?')}"
+            + (f" `{spec['recording']}`" if spec.get("recording") else "")
+            + (f" `{spec['model']}`" if spec.get("model") and not spec.get("recording") else "")
+            for agent, spec in panel.agent_sources.items()
+        )
+    return text
+
+
+def fusion_text(panel: PanelRecord) -> str:
+    """The fusion rule, or what stood in for it."""
+    if panel.fused_only:
+        return "the authors' (recorded)"
+    return panel.fusion or "-"
+
+
+def panels_table(described: Mapping[str, RunRecord | None]) -> str:
+    """A Markdown table of what each fine-tune trained here was trained on, row by row."""
+    rows = []
+    for name, record in described.items():
+        if record is None or record.panel is None or record.imported:
+            continue
+        panel = record.panel
+        rows.append(
+            f"| {name} | {panel.feedback} | {record.recipe or '-'} | "
+            f"{'-' if record.lambda_kl is None else f'{record.lambda_kl:g}'} | "
+            f"{iterations_text(record)} | {agents_text(panel)} | {source_text(panel) or '-'} | "
+            f"{fusion_text(panel)} | {_base_label(record.base_checkpoint)} |"
+        )
+    if not rows:
+        return ""
+    head = (
+        "| variant | feedback | recipe | lambda_KL | iterations | agents | source | fusion | "
+        "base |\n|---|---|---|---|---|---|---|---|---|"
+    )
+    return head + "\n" + "\n".join(rows) + "\n"
+
+
+def _distinct(values: Iterable[Any]) -> list[Any]:
+    out: list[Any] = []
+    for value in values:
+        if value is not None and value != "" and value not in out:
+            out.append(value)
+    return out
+
+
+def _joined(values: Iterable[Any], several: str = " (per variant)") -> str:
+    found = [f"{v:g}" if isinstance(v, float) else str(v) for v in _distinct(values)]
+    if not found:
+        return ""
+    return found[0] if len(found) == 1 else ", ".join(found) + several
+
+
+def _recordings(records: list[RunRecord]) -> list[str]:
+    """``file sha256 hash`` of every replayed recording the fine-tunes read."""
+    out = []
+    for record in records:
+        panel = record.panel
+        assert panel is not None
+        inputs = (record.training or {}).get("inputs") or {}
+        for key, digest in inputs.items():
+            if key == "recording_sha256":
+                name = panel.recording
+                if panel.fused_only:
+                    name = f"{name}` (fused beliefs only) `"
+            elif key.startswith("recording_sha256[") and key.endswith("]"):
+                agent = key[len("recording_sha256[") : -1]
+                name = f"{(panel.agent_sources.get(agent) or {}).get('recording', '?')} ({agent})"
+            else:
+                continue
+            text = f"`{name}` sha256 `{digest}`".replace(" ``", "")
+            if text not in out:
+                out.append(text)
+        if panel.source == "replay" and "recording_sha256" not in inputs:
+            text = f"`{panel.recording}` (no hash recorded)"
+            if text not in out:
+                out.append(text)
+    return out
+
+
+def settings_table(
+    results: Results | Mapping[str, Any],
+    run: RunRecord | Mapping[str, Any] | None = None,
+    records: Mapping[str, RunRecord] | None = None,
+) -> str:
+    """The report's header: what was run, as a two-column Markdown table.
+
+    Rows: task and scenario, evaluation (episodes, seeds, confidence), training seeds,
+    base training steps, the imported policies, the fine-tunes' recipe, lambda_KL and
+    iterations (an interrupted one says so), the panel (agents, fusion; a replay of fused
+    beliefs only says so), where its beliefs came from, and each recording read with its
+    SHA-256. Fine-tune settings come from each fine-tune's record (several values:
+    ``(per variant)``); recipe and lambda_KL only for fine-tunes trained here.
+
+    Args:
+        results: The evaluation results.
+        run: The run's record (its ``config.json``; may be None).
+        records: ``{folder name: record}`` of the variant folders.
+
+    Returns:
+        The table.
+
+    """
+    results = Results.of(results)
+    if run is not None and not isinstance(run, RunRecord):
+        run = RunRecord.model_validate(run)
+    described = variant_records(results, records)
+    tunes = finetune_names(results, described)
+    trained = [r for n in tunes if (r := described.get(n)) is not None and not r.imported]
+    imported = [r for r in described.values() if r is not None and r.imported]
+    scenario = (run.scenario if run is not None else None) or {}
+    rows: list[tuple[str, str]] = [
+        ("task", f"`{results.task}` (scenario `{results.scenario}`)"),
+        (
+            "evaluation",
+            f"{results.episodes} episodes per variant and mode, seeds from "
+            f"{results.seed}, {100 * results.confidence:g}% Student-t intervals",
+        ),
+    ]
+    seeds = run.seeds if run is not None else None
+    if seeds:
+        rows.append(("training seeds", f"{len(seeds)}: {', '.join(str(s) for s in seeds)}"))
+    else:
+        most = max((m.n_seeds for v in results.variants.values() for m in v.modes().values()),
+                   default=1)  # fmt: skip
+        rows.append(("training seeds", str(most)))
+    base = scenario.get("base") or {}
+    if base.get("total_steps") and not any(not r.finetuning for r in imported):
+        rows.append(("base training", f"{int(base['total_steps']):,} env steps per policy"))
+    if imported:
+        rows.append((
+            "imported policies",
+            "; ".join(
+                f"{r.name}: `{r.authors.file}`, checkpoint iteration "
+                f"{r.authors.checkpoint if r.authors.checkpoint is not None else r.iterations_done}"
+                for r in imported
+                if r.authors is not None
+            ) + " (the authors' CleanRL policies, `amuled import authors`)",
+        ))  # fmt: skip
+    if run is not None and run.ablation:
+        rows.append(("ablation", f"`{run.ablation}`"))
+    if trained:
+        rows.append(("fine-tune recipe", _joined(r.recipe for r in trained)))
+        rows.append(("lambda_KL", _joined(r.lambda_kl for r in trained)))
+        rows.append(("fine-tune iterations", _joined(iterations_text(r) for r in trained)))
+    rows = [(label, value) for label, value in rows if value]
+    judged = [r for r in trained if r.panel is not None and r.panel.feedback not in _DEMONSTRATORS]
+    if judged:
+        amuled = [r for r in judged if r.panel and r.panel.feedback == "amuled"] or judged
+        panels = [r.panel for r in amuled if r.panel is not None]
+        if all(p.fused_only for p in panels):
+            rows.append((
+                "panel",
+                "none asked: the fused beliefs the authors recorded were replayed as they are "
+                "(no agent answered, no fusion of ours)",
+            ))  # fmt: skip
+        else:
+            shown = {
+                r.name or "?": ", ".join(r.panel.members)
+                + (f"; fusion `{r.panel.fusion}`" if r.panel.fusion else "")
+                for r in amuled
+                if r.panel is not None and not r.panel.fused_only
+            }
+            if len(set(shown.values())) == 1:
+                rows.append(("panel", next(iter(shown.values()))))
+            else:  # each fine-tune its own panel, by name
+                rows.append(("panel", "; ".join(f"{n}: {t}" for n, t in shown.items())))
+        rows.append((
+            "beliefs from", _joined((source_text(r.panel) for r in judged if r.panel), "")
+        ))  # fmt: skip
+        recordings = _recordings(judged)
+        replayed = any(r.panel and r.panel.source == "replay" for r in judged) or recordings
+        if recordings:
+            rows.append(("recording", "; ".join(recordings)))
+        elif not replayed:
+            rows.append(("recording", "none (no fine-tune replayed a recording)"))
+    lines = ["| setting | value |", "|---|---|"]
+    lines += [f"| {label} | {value} |" for label, value in rows]
+    return "\n".join(lines) + "\n"

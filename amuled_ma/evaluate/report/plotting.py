@@ -1,0 +1,220 @@
+"""The report's figures' common ground: numbers, colours, panels, the PNG files.
+
+One colour per variant in every figure (:func:`variant_colors`), learning curves' y-range
+robust to early spikes (:func:`robust_ylim`), compact tick and bar labels, a grid of
+panels with one legend, and the statistics' means and half widths as figures draw them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from amuled_ma.evaluate.results import Stat
+
+#: Two means closer than this are "equal" (the difference table and the equals-base note).
+EQUAL_TOL = 1e-9
+_DPI = 110
+
+
+def pyplot() -> Any:
+    """Matplotlib's pyplot on the headless Agg backend."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+# ---------------------------------------------------------------------------------------
+# Numbers and colours
+
+
+def as_stat(stat: Stat | Mapping[str, Any] | None) -> Stat | None:
+    """A statistic as a :class:`~amuled_ma.evaluate.results.Stat` (a dict is validated)."""
+    if stat is None or isinstance(stat, Stat):
+        return stat
+    return Stat.model_validate(dict(stat))
+
+
+def format_stat(stat: Stat | Mapping[str, Any] | None, digits: int = 2) -> str:
+    """``mean ± half width`` of a :func:`~amuled_ma.evaluate.stats.mean_ci` summary.
+
+    ``n/a`` without a mean; ``± n/a (n = 1)`` where the interval is undefined.
+    """
+    stat = as_stat(stat)
+    mean = mean_of(stat)
+    if stat is None or not math.isfinite(mean):
+        return "n/a"
+    half = stat.half_width
+    if half is None or not math.isfinite(half):
+        return f"{mean:.{digits}f} ± n/a (n = {'?' if stat.n is None else stat.n})"
+    return f"{mean:.{digits}f} ± {half:.{digits}f}"
+
+
+def compact_number(value: float) -> str:
+    """A tick label that stays short: ``950``, ``10k``, ``12.5k``, ``1.25M``.
+
+    Args:
+        value: The tick's value.
+
+    Returns:
+        The label (at most 3 significant digits past the first thousand).
+
+    """
+    magnitude = abs(value)
+    for scale, suffix in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
+        if magnitude >= scale:
+            return f"{value / scale:.3g}{suffix}"
+    return f"{value:.3g}" if magnitude else "0"
+
+
+def short_label(value: float) -> str:
+    """A bar's value label: 3 significant figures at most, no exponent below 1e6."""
+    magnitude = abs(value)
+    if magnitude <= EQUAL_TOL:
+        return "0"
+    if magnitude >= 100:
+        return f"{value:.0f}"
+    if magnitude >= 10:
+        return f"{value:.1f}"
+    return f"{value:.2f}"
+
+
+def variant_colors(names: Iterable[str]) -> dict[str, str]:
+    """One fixed colour per variant: the sorted names take matplotlib's tab10 in turn.
+
+    The same names give the same colours whatever their order, so a report's figures
+    (curves, bars, trajectories, the ablation's) all draw a variant in one colour. Past
+    ten variants the palette is tab20 with its ten dark shades first, then the light ones.
+
+    Args:
+        names: The variants (repeats are ignored).
+
+    Returns:
+        ``{name: "#rrggbb"}``.
+
+    """
+    from matplotlib import colormaps
+    from matplotlib.colors import to_hex
+
+    unique = sorted(set(names))
+    if len(unique) <= 10:
+        palette = [colormaps["tab10"](i) for i in range(10)]
+    else:
+        tab20 = colormaps["tab20"]
+        palette = [tab20(i) for i in (*range(0, 20, 2), *range(1, 20, 2))]
+    return {name: to_hex(palette[i % len(palette)]) for i, name in enumerate(unique)}
+
+
+def robust_ylim(
+    series: Sequence[Sequence[float]],
+    *,
+    skip: float = 0.1,
+    percentiles: tuple[float, float] = (2.0, 98.0),
+    reach: float = 1.0,
+    pad: float = 0.08,
+) -> tuple[float, float, str] | None:
+    """A y-range for learning curves that early spikes do not squash.
+
+    The core range is the 2nd to 98th percentile (nearest value) of all series' values
+    after their first 10% of points: the first 5% and the 5% rolling window that carries
+    them into the smoothed line. It is widened to every value (early ones too) within one
+    core range of it, so a curve's genuine ramp or late extreme stays in view and only a far
+    outlier (a spike of the first iterations) is left out; then a margin of 8% is added.
+
+    Args:
+        series: The plotted lines (NaN points are ignored).
+        skip: Share of each series' first points left out of the percentiles.
+        percentiles: Lower and upper percentile of the core range.
+        reach: Values within ``reach`` core ranges of it are kept in view (a flat core
+            counts as ``max(0.1 * |value|, 0.5)`` wide).
+        pad: Margin on each side, as a share of the range.
+
+    Returns:
+        ``(low, high, note)``: ``note`` says which values fall outside and are clipped
+        (``"early values above the range clipped"``, ``"values below the range
+        clipped"``, ...), or is ``""``. None without a finite value.
+
+    """
+    arrays = [np.asarray(s, dtype=float) for s in series]
+    starts = [math.floor(skip * len(a)) for a in arrays]
+    every = np.concatenate([*arrays, np.empty(0)])
+    every = every[np.isfinite(every)]
+    if not every.size:
+        return None
+    tail = np.concatenate([*(a[k:] for a, k in zip(arrays, starts, strict=True)), np.empty(0)])
+    tail = tail[np.isfinite(tail)]
+    core = np.percentile(tail if tail.size else every, percentiles, method="nearest")
+    low, high = float(core[0]), float(core[1])
+    width = high - low if high > low else max(0.1 * abs(low), 0.5)
+    near = every[(every >= low - reach * width) & (every <= high + reach * width)]
+    low, high = float(near.min()), float(near.max())
+    margin = pad * (high - low) if high > low else max(0.1 * abs(low), 0.5)
+    low, high = low - margin, high + margin
+    above = below = False
+    early_only = True
+    for a, k in zip(arrays, starts, strict=True):
+        with np.errstate(invalid="ignore"):
+            out_high, out_low = a > high, a < low
+        above |= bool(out_high.any())
+        below |= bool(out_low.any())
+        if (out_high | out_low)[k:].any():
+            early_only = False
+    if not (above or below):
+        return low, high, ""
+    side = "above and below" if above and below else "above" if above else "below"
+    return low, high, f"{'early ' if early_only else ''}values {side} the range clipped"
+
+
+def grid_axes(plt: Any, n: int, cols: int, width: float, height: float, **kwargs: Any) -> tuple:
+    """A figure of ``n`` panels, ``cols`` wide: ``(figure, [axes])``."""
+    cols = max(1, min(cols, n))
+    rows = math.ceil(n / cols)
+    fig, axes = plt.subplots(
+        rows, cols, figsize=(width * cols, height * rows), squeeze=False,
+        layout="constrained", **kwargs,
+    )  # fmt: skip
+    return fig, list(axes.flat)
+
+
+def legend_below(fig: Any, handles: list, labels: list[str], spare: list) -> None:
+    """The figure's one legend: in the first unused panel, else below the panels."""
+    if not handles:
+        return
+    if spare:
+        spare[0].legend(handles, labels, loc="center", fontsize=8, frameon=False)
+        return
+    fig.legend(
+        handles, labels, loc="outside lower center", ncol=min(4, len(labels)), fontsize=8,
+        frameon=False,
+    )  # fmt: skip
+
+
+def save_figure(fig: Any, path: Path) -> Path:
+    """Write a figure as PNG and close it."""
+    plt = pyplot()
+    fig.savefig(path, dpi=_DPI)
+    plt.close(fig)
+    return path
+
+
+def mean_of(stat: Stat | None) -> float:
+    """A statistic's mean; NaN when there is none."""
+    value = None if stat is None else stat.mean
+    return float(value) if value is not None else math.nan
+
+
+def half_of(stat: Stat | None) -> float:
+    """A statistic's half width for an error bar (0 where the interval is undefined)."""
+    return finite_or_zero(None if stat is None else stat.half_width)
+
+
+def finite_or_zero(value: float | None) -> float:
+    """An error bar's half width; an undefined interval (one value) draws none."""
+    return value if value is not None and math.isfinite(value) else 0.0

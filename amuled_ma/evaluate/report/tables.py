@@ -1,0 +1,351 @@
+"""The report's tables of results.
+
+Metrics, differences to base, the fused-belief diagnostics, each panel agent's answers,
+the LLM servers and the feedback budget, each a Markdown table.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+from amuled_ma.beliefs.types import FUSED_STATUSES
+from amuled_ma.evaluate.evaluator import PAPER_METRICS, metric_order
+from amuled_ma.evaluate.report.bars import budget_points
+from amuled_ma.evaluate.report.plotting import EQUAL_TOL, format_stat, mean_of
+from amuled_ma.evaluate.results import ModeResult, Results
+
+
+def diagnostics_table(results: Results | Mapping[str, Any], finetunes: int | None = None) -> str:
+    """Markdown table of mean per-cluster weight, mean conflict and miss rate per variant.
+
+    Args:
+        results: The evaluation results.
+        finetunes: How many fine-tunes the run lists (default: the variants with
+            diagnostics): with fine-tunes but no diagnostics, the table says so instead of
+            claiming there is no fine-tune.
+
+    """
+    results = Results.of(results)
+    rows = {k: v.feedback for k, v in results.variants.items() if v.feedback is not None}
+    if not rows:
+        if finetunes:
+            return (
+                "_No fine-tune of this run recorded fused-belief diagnostics (a policy "
+                "imported or trained elsewhere comes without its `feedback.json`)._\n"
+            )
+        return "_No fine-tuned variant in this run._\n"
+    clusters = sorted({c for fb in rows.values() for c in fb.mean_weight})
+    head = ["variant", *clusters, "mean conflict", "replay miss rate", "unique states"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, fb in rows.items():
+        weights = fb.mean_weight
+        conflict = fb.mean_conflict
+        cells = [name]
+        cells += [f"{weights[c]:.3f}" if c in weights else "" for c in clusters]
+        cells.append("" if conflict is None else f"{conflict:.3f}")
+        cells.append(f"{100 * fb.miss_rate:.1f}%")
+        states = "" if fb.unique_states is None else fb.unique_states
+        cells.append(f"{states:.1f}" if isinstance(states, float) else str(states))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+#: Columns of :func:`agents_table`: (status key, heading).
+_AGENT_COLUMNS = (
+    ("repaired", "repaired"),
+    ("abstained", "abstained"),
+    ("replay_miss", "replay miss"),
+    ("timeout", "timeout"),
+    ("error", "error"),
+)
+
+
+#: Columns of :func:`agents_table` for a distilled feedback: the model's answers (for states
+#: not asked; for an asked state's miss) and the states it could not answer.
+_MODEL_COLUMNS = (
+    ("distilled", "by the model"),
+    ("distilled_miss", "miss by the model"),
+    ("unasked", "unasked"),
+)
+
+
+def agents_table(results: Results | Mapping[str, Any]) -> str:
+    """Markdown table: per fine-tune and panel agent, the share of each belief status.
+
+    From ``feedback["agents"]`` (counts per rewarded step): the number of beliefs, the
+    share repaired (answered after a repair), abstained, missed by the replay, timed out
+    and failed with an error, and the share not answered (every status but ``ok`` and
+    ``repaired`` and the distilled model's answers: the fused reward went on without that
+    agent). With a distilled feedback (``[feedback.distill]``) three more columns: the
+    share the model answered for states not asked, instead of a miss, and could not.
+
+    Returns:
+        The table, or ``""`` when no variant recorded per-agent counts.
+
+    """
+    lines = []
+    rows = [
+        (name, agent, row)
+        for name, entry in Results.of(results).variants.items()
+        if entry.feedback is not None
+        for agent, row in entry.feedback.agents.items()
+    ]
+    # the distilled model's answers and its failures, only where a fine-tune had one
+    columns = list(_AGENT_COLUMNS)
+    if any(row.get(key) for _, _, row in rows for key, _ in _MODEL_COLUMNS):
+        columns += _MODEL_COLUMNS
+    for name, agent, row in rows:
+        total = row.get("total") or sum(
+            n for k, n in row.items() if k not in ("total", "failed", "failure_rate")
+        )
+        cells = [name, agent, f"{int(total):,}"]
+        cells += [_percent(row.get(key, 0), total) for key, _ in columns]
+        failed = row.get("failed")
+        if failed is None:
+            failed = total - sum(row.get(key, 0) for key in FUSED_STATUSES)
+        cells.append(_percent(failed, total))
+        lines.append("| " + " | ".join(cells) + " |")
+    if not lines:
+        return ""
+    head = ["variant", "agent", "beliefs", *(h for _, h in columns), "not answered"]
+    return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head), *lines]) + "\n"
+
+
+def servers_table(results: Results | Mapping[str, Any]) -> str:
+    """Markdown table: per fine-tune and LLM server, what the server was asked and did.
+
+    From ``feedback["llm_servers"]`` (:func:`amuled_ma.deliberation.summaries.llm_server_stats`):
+    requests sent (every attempt: retries and probes included), answered, failed with the
+    kinds of failure, requests retried on another host after failing there, times the
+    server was taken out of the pool and put back, and the mean and 95th-percentile
+    latency of its answered requests.
+
+    Returns:
+        The table, or ``""`` when no variant asked an LLM server.
+
+    """
+    lines = []
+    for name, entry in Results.of(results).variants.items():
+        servers = entry.feedback.llm_servers if entry.feedback is not None else None
+        for host, row in (servers or {}).items():
+            kinds = ", ".join(f"{k} {n:,}" for k, n in (row.get("failures") or {}).items())
+            failed = f"{int(row.get('failed', 0)):,}" + (f" ({kinds})" if kinds else "")
+            cells = [
+                name,
+                f"`{host}`",
+                f"{int(row.get('sent', 0)):,}",
+                f"{int(row.get('answered', 0)):,}",
+                failed,
+                f"{int(row.get('retried_from', 0)):,}",
+                f"{int(row.get('went_down', 0))} / {int(row.get('came_back', 0))}",
+                *(
+                    "-" if row.get(key) is None else f"{float(row[key]):.2f}"
+                    for key in ("mean_latency_s", "p95_latency_s")
+                ),
+            ]
+            lines.append("| " + " | ".join(cells) + " |")
+    if not lines:
+        return ""
+    head = ["variant", "server", "sent", "answered", "failed", "retried elsewhere",
+            "out / back", "mean latency (s)", "p95 latency (s)"]  # fmt: skip
+    return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head), *lines]) + "\n"
+
+
+def _tv(value: Any) -> str:
+    return "-" if value is None else f"{float(value):.3f}"
+
+
+def budget_table(results: Results | Mapping[str, Any]) -> str:
+    """Markdown table: the feedback budget's accounting of every distilled fine-tune.
+
+    From ``feedback["distill"]`` (:meth:`amuled_ma.distill.DistilledSource.report`): the
+    budget and selection, the distinct states visited, asked (and their share), answered
+    by the model, the misses the model answered, the requests forwarded to the panel's
+    source and of those sent to the LLMs (the rest were in the belief store), the refits,
+    and the model's agreement with the panel on the held-out asked states (mean
+    total-variation distance, fused and per member).
+
+    Returns:
+        The table, or ``""`` when no fine-tune was distilled.
+
+    """
+    lines = []
+    for name, entry in Results.of(results).variants.items():
+        d = entry.feedback.distill if entry.feedback is not None else None
+        if not d:
+            continue
+        budget = d.get("budget")
+        shown = f"{100 * budget:g}%" if isinstance(budget, float) else f"{budget} states"
+        members = ", ".join(f"{m} {_tv(v)}" for m, v in (d.get("holdout_tv") or {}).items())
+        cells = [
+            name,
+            shown,
+            str(d.get("selection")),
+            f"{int(d.get('visited_states', 0)):,}",
+            f"{int(d.get('asked_states', 0)):,} ({100 * d.get('asked_share', 0.0):.1f}%)",
+            f"{int(d.get('model_states', 0)):,}",
+            f"{int(d.get('miss_answers', 0)):,}",
+            f"{int(d.get('requests_forwarded', 0)):,} / {int(d.get('requests_sent', 0)):,}",
+            str(d.get("refits", 0)),
+            f"{_tv(d.get('holdout_tv_fused'))} ({int(d.get('holdout_states', 0))} states)",
+            members or "-",
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    if not lines:
+        return ""
+    head = ["variant", "budget", "selection", "states visited", "asked", "answered by the model",
+            "misses by the model", "requests forwarded / sent", "refits",
+            "held-out TV, fused", "held-out TV per member"]  # fmt: skip
+    return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head), *lines]) + "\n"
+
+
+def budget_ablation_table(results: Results | Mapping[str, Any], mode: str = "greedy") -> str:
+    """Markdown table of the budget ablation: the paper's metrics against the budget.
+
+    One row per distilled fine-tune (selection, budget, states asked, requests sent, the
+    model's held-out fused TV) and one for the AMULED fine-tune that asked every state,
+    each with the paper's metrics (``mean ± half-width``, ``mode`` policy).
+
+    Returns:
+        The table, or ``""`` without a distilled fine-tune.
+
+    """
+    results = Results.of(results)
+    points, full = budget_points(results)
+    if not points:
+        return ""
+    variants = results.variants
+    data = {n: variants[n].mode(mode) or ModeResult()
+            for n in [*(p["variant"] for p in points), full] if n}  # fmt: skip
+    metrics = [m for m in PAPER_METRICS.get(results.task, [])
+               if any(m in v.metrics for v in data.values())]  # fmt: skip
+    head = ["selection", "budget", "variant", "asked", "requests sent", "held-out TV, fused",
+            *metrics]  # fmt: skip
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for p in points:
+        d = p["distill"]
+        budget = p["budget"]
+        cells = [
+            p["selection"],
+            "-" if budget is None else f"{100 * budget:g}%",
+            p["variant"],
+            f"{int(d.get('asked_states', 0)):,} of {int(d.get('visited_states', 0)):,}",
+            f"{int(d.get('requests_sent', 0)):,}",
+            _tv(d.get("holdout_tv_fused")),
+        ]
+        cells += [format_stat(data[p["variant"]].metrics.get(m)) for m in metrics]
+        lines.append("| " + " | ".join(cells) + " |")
+    if full:
+        stats = data[full].metrics
+        cells = ["full feedback", "100%", full, "every state", "-", "-"]
+        lines.append("| " + " | ".join(cells + [format_stat(stats.get(m)) for m in metrics]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _percent(count: float, total: float) -> str:
+    return f"{100 * count / total:.1f}%" if total else "-"
+
+
+def _table_metrics(results: Results, variants: Mapping[str, ModeResult]) -> list[str]:
+    metrics = metric_order(results.task, sorted({m for v in variants.values() for m in v.metrics}))
+    return [m for m in metrics if m not in ("terminated", "return")]
+
+
+def metrics_table(results: Results | Mapping[str, Any], mode: str) -> str:
+    """Markdown table: one row per variant, one column per metric, ``mean ± 95% CI``."""
+    results = Results.of(results)
+    variants = results.in_mode(mode)
+    if not variants:
+        return ""
+    metrics = _table_metrics(results, variants)
+    head = "| variant | seeds | " + " | ".join(metrics) + " |"
+    lines = [head, "|---|---|" + "---|" * len(metrics)]
+    for name, data in variants.items():
+        cells = [format_stat(data.metrics.get(m)) for m in metrics]
+        lines.append(f"| {name} | {data.n_seeds} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def base_differences(
+    results: Results | Mapping[str, Any], mode: str, base: str = "base"
+) -> dict[str, dict[str, float]]:
+    """Each variant's mean minus the base policy's mean, per metric both have.
+
+    Args:
+        results: The evaluation results.
+        mode: ``greedy`` or ``sampled``.
+        base: The reference variant.
+
+    Returns:
+        ``{variant: {metric: difference}}`` for every variant but ``base`` (metrics
+        without a finite mean on either side are left out); ``{}`` without ``base``.
+
+    """
+    variants = Results.of(results).in_mode(mode)
+    if base not in variants:
+        return {}
+    ref = variants[base].metrics
+    out: dict[str, dict[str, float]] = {}
+    for name, data in variants.items():
+        if name == base:
+            continue
+        row = {}
+        for metric, stat in data.metrics.items():
+            mine, theirs = mean_of(stat), mean_of(ref.get(metric))
+            if math.isfinite(mine) and math.isfinite(theirs):
+                row[metric] = mine - theirs
+        out[name] = row
+    return out
+
+
+def same_as_base(
+    results: Results | Mapping[str, Any],
+    mode: str = "greedy",
+    finetunes: Iterable[str] | None = None,
+) -> list[str]:
+    """The fine-tunes whose every metric equals the base policy's within 1e-9.
+
+    Args:
+        results: The evaluation results.
+        mode: ``greedy`` or ``sampled``.
+        finetunes: The fine-tunes' names (from their records; default: the variants with
+            a ``panel`` entry or named ``finetune*``).
+
+    Returns:
+        Variant names, in results order; a variant sharing no metric with base is not
+        listed.
+
+    """
+    results = Results.of(results)
+    if finetunes is None:
+        finetunes = [
+            n
+            for n, v in results.variants.items()
+            if v.panel is not None or n.startswith("finetune")
+        ]
+    tunes = set(finetunes)
+    return [
+        name
+        for name, row in base_differences(results, mode).items()
+        if name in tunes and row and all(abs(d) <= EQUAL_TOL for d in row.values())
+    ]
+
+
+def differences_table(results: Results | Mapping[str, Any], mode: str) -> str:
+    """Markdown table of :func:`base_differences`: ``+1.20``, ``-0.40``, ``=`` (equal)."""
+    results = Results.of(results)
+    diffs = base_differences(results, mode)
+    if not diffs:
+        return ""
+    variants = results.in_mode(mode)
+    metrics = _table_metrics(results, variants)
+    lines = ["| variant | " + " | ".join(metrics) + " |", "|---|" + "---|" * len(metrics)]
+    for name, row in diffs.items():
+        cells = [
+            "" if m not in row else "=" if abs(row[m]) <= EQUAL_TOL else f"{row[m]:+.2f}"
+            for m in metrics
+        ]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"

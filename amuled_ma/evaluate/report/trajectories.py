@@ -1,0 +1,126 @@
+"""Trajectory figures: one recorded greedy episode per variant, drawn by its task.
+
+FindMilk: a grid per variant (:func:`amuled_ma.tasks.findmilk_drawing.draw_findmilk`);
+Driving: a strip of lanes and events per variant
+(:func:`amuled_ma.tasks.driving_drawing.draw_driving`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from amuled_ma.evaluate.report.plotting import (
+    grid_axes,
+    legend_below,
+    pyplot,
+    save_figure,
+    variant_colors,
+)
+from amuled_ma.evaluate.results import Results
+from amuled_ma.tasks.driving_drawing import draw_driving, driving_legend
+from amuled_ma.tasks.findmilk_drawing import draw_findmilk, findmilk_legend
+
+
+def _trajectories(results: Results | Mapping[str, Any], mode: str) -> dict[str, dict[str, Any]]:
+    """``{variant: recorded episode}`` in ``mode``, as plain data."""
+    return {
+        name: entry.trajectory.model_dump()
+        for name, entry in Results.of(results).in_mode(mode).items()
+        if entry.trajectory is not None
+    }
+
+
+def findmilk_figure(
+    results: Results | Mapping[str, Any],
+    mode: str = "greedy",
+    colors: dict[str, str] | None = None,
+) -> Any | None:
+    """The FindMilk trajectories (see :func:`plot_findmilk`); None without that mode."""
+    variants = _trajectories(results, mode)
+    if not variants:
+        return None
+    colors = colors or variant_colors(variants)
+    plt = pyplot()
+    cols = 2 if len(variants) <= 4 else 3 if len(variants) <= 9 else 4
+    fig, axes = grid_axes(plt, len(variants), cols, 3.9, 4.4)
+    for ax, (name, traj) in zip(axes, variants.items(), strict=False):
+        draw_findmilk(ax, name, traj, colors.get(name, "k"))
+    spare = axes[len(variants) :]
+    for ax in spare:
+        ax.axis("off")
+    handles, labels = findmilk_legend()
+    fig.suptitle(f"FindMilk {mode} trajectory, one per variant (path in the variant's colour)",
+                 fontsize=9)  # fmt: skip
+    legend_below(fig, handles, labels, spare)
+    return fig
+
+
+def plot_findmilk(
+    results: Results | Mapping[str, Any],
+    path: Path,
+    mode: str = "greedy",
+    colors: dict[str, str] | None = None,
+) -> Path | None:
+    """One FindMilk trajectory per variant, one grid per panel, sub-goals marked.
+
+    Args:
+        results: The evaluation results.
+        path: The PNG to write.
+        mode: ``greedy`` or ``sampled``.
+        colors: ``{variant: colour}``.
+
+    Returns:
+        ``path``, or None without that mode.
+
+    """
+    fig = findmilk_figure(results, mode, colors)
+    return None if fig is None else save_figure(fig, path)
+
+
+def driving_figure(
+    results: Results | Mapping[str, Any],
+    mode: str = "greedy",
+    colors: dict[str, str] | None = None,
+) -> Any | None:
+    """The Driving episodes (see :func:`plot_driving`); None without that mode."""
+    variants = _trajectories(results, mode)
+    if not variants:
+        return None
+    colors = colors or variant_colors(variants)
+    plt = pyplot()
+    n = len(variants)
+    fig, axes = plt.subplots(
+        n, 1, figsize=(10, 1.3 * n + 0.9), squeeze=False, sharex=True, layout="constrained"
+    )
+    for ax, (name, traj) in zip(axes[:, 0], variants.items(), strict=True):
+        draw_driving(ax, name, traj, colors.get(name, "k"))
+    axes[-1, 0].set_xlabel("step", fontsize=8)
+    handles, labels = driving_legend()
+    fig.legend(handles, labels, loc="outside upper right", ncol=2, fontsize=8, frameon=False)
+    fig.suptitle(f"Driving {mode} episode per variant: lane (0-4) over time, with events",
+                 fontsize=9, x=0.02, ha="left")  # fmt: skip
+    return fig
+
+
+def plot_driving(
+    results: Results | Mapping[str, Any],
+    path: Path,
+    mode: str = "greedy",
+    colors: dict[str, str] | None = None,
+) -> Path | None:
+    """One Driving episode per variant: a strip of its lane over time with its events.
+
+    Args:
+        results: The evaluation results.
+        path: The PNG to write.
+        mode: ``greedy`` or ``sampled``.
+        colors: ``{variant: colour}``.
+
+    Returns:
+        ``path``, or None without that mode.
+
+    """
+    fig = driving_figure(results, mode, colors)
+    return None if fig is None else save_figure(fig, path)

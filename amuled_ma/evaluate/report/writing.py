@@ -1,0 +1,340 @@
+"""``report.md``: the run's settings, tables and figures, written into the run folder.
+
+The report opens with the run's settings (:mod:`~amuled_ma.evaluate.report.describe`: task,
+recipe, lambda_KL, iterations, seeds, the panel and its sources, the recording and its
+SHA-256, the policies imported from the paper's authors, variants interrupted) and a link to
+the step-by-step viewer (``amuled view``); then the metric tables, each fine-tune's
+feedback, the diagnostics (:mod:`~amuled_ma.evaluate.report.tables`) and the figures.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from amuled_ma.evaluate.report.bars import plot_ablation, plot_bars
+from amuled_ma.evaluate.report.curves import CURVE_KEYS, FT_KEYS, load_curves, plot_curves
+from amuled_ma.evaluate.report.describe import (
+    finetune_names,
+    imported_table,
+    panels_table,
+    settings_table,
+    unfinished_lines,
+    variant_records,
+)
+from amuled_ma.evaluate.report.plotting import variant_colors
+from amuled_ma.evaluate.report.tables import (
+    agents_table,
+    budget_ablation_table,
+    budget_table,
+    diagnostics_table,
+    differences_table,
+    metrics_table,
+    same_as_base,
+    servers_table,
+)
+from amuled_ma.evaluate.report.trajectories import plot_driving, plot_findmilk
+from amuled_ma.evaluate.results import Results
+from amuled_ma.records import RunRecord
+
+#: The figures :func:`write_report` writes; one of these it did not write this time is a
+#: stale one from an earlier report and is removed, so every PNG is the report's.
+FIGURE_NAMES = (
+    "curves_base.png", "curves_finetune.png", "metrics_greedy.png", "metrics_sampled.png",
+    "trajectory_findmilk.png", "episode_driving.png",
+)  # fmt: skip
+#: The viewer page ``amuled view`` writes by default (episode 0).
+VIEWER_PAGE = "view-episode0.html"
+#: How the report's viewer line starts (:func:`link_viewer` finds it by this).
+VIEWER_PREFIX = "**Step by step:**"
+
+
+def viewer_line(run_dir: Path) -> str:
+    """The report's pointer to ``amuled view``: a link when the page is already there."""
+    run_dir = Path(run_dir)
+    what = (
+        "one offline HTML page replaying evaluation episode 0 of each fine-tune step by "
+        "step, with every panel agent's belief, weight and reasoning"
+    )
+    if (run_dir / VIEWER_PAGE).is_file():
+        return (
+            f"{VIEWER_PREFIX} open [`{VIEWER_PAGE}`]({VIEWER_PAGE}) (or run "
+            f"`amuled view {run_dir}` to write it again): {what}."
+        )
+    return f"{VIEWER_PREFIX} open `{VIEWER_PAGE}` (or run `amuled view {run_dir}`): {what}."
+
+
+def link_viewer(run_dir: Path) -> bool:
+    """Rewrite ``report.md``'s viewer line (:func:`viewer_line`) now the page may exist.
+
+    Returns:
+        True when the report had a viewer line (it now links the page if it exists).
+
+    """
+    report = Path(run_dir) / "report.md"
+    if not report.is_file():
+        return False
+    lines = report.read_text().split("\n")
+    found = False
+    for i, line in enumerate(lines):
+        if line.startswith(VIEWER_PREFIX):
+            lines[i] = viewer_line(run_dir)
+            found = True
+    if found:
+        report.write_text("\n".join(lines))
+    return found
+
+
+# ---------------------------------------------------------------------------------------
+# The report
+
+
+def write_report(
+    run_dir: Path,
+    results: Results | Mapping[str, Any],
+    *,
+    title: str | None = None,
+    ablation: str | None = None,
+    run: RunRecord | None = None,
+    records: Mapping[str, RunRecord] | None = None,
+) -> Path:
+    """Write ``report.md`` and its PNG figures into ``run_dir``.
+
+    A figure of :data:`FIGURE_NAMES` (or an ``ablation_*.png``) left from an earlier
+    report that this one does not draw is removed, so every PNG of the folder is one the
+    report shows.
+
+    Args:
+        run_dir: The run directory (curves are read from its variant folders).
+        results: The evaluation results (:func:`~amuled_ma.evaluate.evaluator.evaluate_run`).
+        title: Report title.
+        ablation: The ablation this folder holds (``clusters``, ``aggregation``,
+            ``models``, ``kl``, ``budget``; default: the run record's): adds its figure
+            ``ablation_<what>.png``.
+        run: The run's record (its ``config.json``: seeds, ablation, scenario).
+        records: ``{folder name: record}`` of the variant folders: what each variant is
+            (trained here or imported, its panel, iterations and state).
+
+    Returns:
+        Path of ``report.md``.
+
+    """
+    run_dir = Path(run_dir)
+    results = Results.of(results)
+    task = results.task
+    ablation = ablation or (run.ablation if run is not None else None)
+    described = variant_records(results, records)
+    tunes = finetune_names(results, described)
+    names = {folder: r.name for folder, r in (records or {}).items() if r.name}
+    curves = load_curves(run_dir, names)
+    colors = variant_colors([*results.variants, *curves])
+    tuned = set(tunes) | {n for n, r in (records or {}).items() if r.finetuning}
+    tuned |= {r.name for r in (records or {}).values() if r.finetuning and r.name}
+    base_curves = {k: v for k, v in curves.items() if k not in tuned}
+    ft_curves = {k: v for k, v in curves.items() if k in tuned}
+    figures: list[tuple[str, str, Path | None]] = []
+    if ablation == "budget":
+        figures.append((
+            "Ablation of the feedback budget",
+            "Each paper metric (greedy) and the distilled model's held-out agreement with the "
+            "panel against the budget, the share of distinct states the panel was asked "
+            "(log scale), one colour per selection; the grey band is the 95% CI of the "
+            "fine-tune that asked every state without a model, the dashed line the base "
+            "policy.",
+            plot_ablation(results, ablation, run_dir / f"ablation_{ablation}.png", colors),
+        ))  # fmt: skip
+    elif ablation:
+        figures.append((
+            f"Ablation of {ablation}",
+            "Each fine-tune of the ablation against AMULED on the paper's metrics (greedy), "
+            + ("against lambda_KL." if ablation == "kl" else "sorted by the metric's mean.")
+            + " The dashed line is the base policy.",
+            plot_ablation(results, ablation, run_dir / f"ablation_{ablation}.png", colors),
+        ))  # fmt: skip
+    curve_note = (
+        "A panel's y-range is the 2nd-98th percentile of its lines after their first 10% of "
+        "points, widened to the values within that range's width of it: a far outlier (an "
+        "early spike) is clipped, and the panel's title says so."
+    )
+    figures += [
+        ("Base training curves", curve_note,
+         plot_curves(base_curves, CURVE_KEYS.get(task, ["episode/return_env"]),
+                     run_dir / "curves_base.png", "base training", colors)),
+        ("Fine-tuning curves", curve_note,
+         plot_curves(ft_curves, FT_KEYS + CURVE_KEYS.get(task, [])[1:],
+                     run_dir / "curves_finetune.png", "fine-tuning", colors)),
+    ]  # fmt: skip
+    for mode in ("greedy", "sampled"):
+        figures.append((
+            f"Metrics, {mode} policy",
+            "Mean and 95% CI per variant; a thick tick at 0 marks a mean of 0.",
+            plot_bars(results, mode, run_dir / f"metrics_{mode}.png", colors=colors),
+        ))  # fmt: skip
+    if task == "findmilk":
+        figures.append((
+            "A FindMilk trajectory per variant",
+            "The first greedy evaluation episode of each variant.",
+            plot_findmilk(results, run_dir / "trajectory_findmilk.png", colors=colors),
+        ))  # fmt: skip
+    elif task == "driving":
+        figures.append((
+            "A Driving episode per variant",
+            "The first greedy evaluation episode of each variant.",
+            plot_driving(results, run_dir / "episode_driving.png", colors=colors),
+        ))  # fmt: skip
+    written = {path.name for _, _, path in figures if path is not None}
+    _remove_stale_figures(run_dir, written)
+    lines = [
+        f"# {title or 'Run report: ' + str(results.scenario)}",
+        "",
+        "## Settings",
+        "",
+        settings_table(results, run, records),
+    ]
+    imported = imported_table(described)
+    if imported:
+        lines += [
+            "Imported policies, not trained here (`amuled import authors`): the authors' "
+            "file each was converted from and its checkpoint iteration.",
+            "",
+            imported,
+        ]
+    unfinished = unfinished_lines(described)
+    if unfinished:
+        lines += [*unfinished, ""]
+    if tunes:
+        lines += [viewer_line(run_dir), ""]
+    lines += [
+        f"Figures are mean ± half-width of the {100 * results.confidence:g}% "
+        "Student-t confidence interval. A variant trained with one seed has its interval over "
+        "the evaluation episodes; one trained with several (column *seeds*) has the mean of "
+        "its per-seed means and the interval over the seeds, so it covers the spread of "
+        "training runs.",
+        "",
+    ]
+    for mode in ("greedy", "sampled"):
+        table = metrics_table(results, mode)
+        if not table:
+            continue
+        lines += [f"## Metrics, {mode} policy", "", table]
+        diffs = differences_table(results, mode)
+        if diffs:
+            lines += [
+                f"Difference to the base policy ({mode}): each variant's mean minus base's "
+                "mean; `=` is equal within 1e-9.",
+                "",
+                diffs,
+            ]
+        same = same_as_base(results, mode, tunes) if mode == "greedy" else []
+        stopped = [n for n in same if (r := described.get(n)) is not None and r.unfinished]
+        same = [n for n in same if n not in stopped]
+        for name in stopped:
+            record = described[name]
+            assert record is not None
+            lines += [
+                f"- **{name} scores exactly as the base policy (greedy): its training "
+                f"{record.state} at iteration {record.iterations_done} of "
+                f"{record.iterations_planned}.**",
+                "",
+            ]
+        if same:
+            lines += [f"- **{name} behaves exactly as the base policy (greedy).**" for name in same]
+            lines += [
+                "",
+                f"Every greedy metric of {'this fine-tune' if len(same) == 1 else 'these'} "
+                "equals base's within 1e-9: the fine-tune did not change what the greedy "
+                "policy achieves (a strong KL anchor, or too few iterations, keeps its most "
+                "probable actions; the sampled policy may still differ).",
+                "",
+            ]
+    panels = panels_table(described)
+    if panels:
+        lines += [
+            "## Feedback of each fine-tune",
+            "",
+            "What each fine-tuned variant was trained on (its folder's `config.json`): the "
+            "recipe of the KL anchor, lambda_KL, the panel's agents and where their beliefs "
+            "came from.",
+            "",
+            panels,
+        ]
+    lines += [
+        "## Fused-belief diagnostics",
+        "",
+        "Mean weight of each cluster in the fusion and mean Dempster conflict over the "
+        "fine-tuning steps (which cluster drove the agent), and the replay miss rate.",
+        "",
+        diagnostics_table(results, len(tunes)),
+    ]
+    agents = agents_table(results)
+    if agents:
+        lines += [
+            "## Answers of each panel agent",
+            "",
+            "Per fine-tune and agent, over the rewarded fine-tuning steps: how many beliefs "
+            "it gave and the share repaired (answered after the parser repaired the reply), "
+            "abstained, missed by the replay, timed out or failed. *Not answered* counts "
+            "every status but ok and repaired: there the agent abstained (weight 0) and the "
+            "fusion went on without it.",
+            "",
+            agents,
+        ]
+    budget = budget_table(results)
+    if budget:
+        lines += [
+            "## Feedback budget",
+            "",
+            "Fine-tunes whose panel was asked on a budget (`[feedback.distill]`, "
+            "docs/distill.md): of the distinct states visited, how many the panel was asked "
+            "(the budget caps them), how many the distilled model answered instead, the "
+            "misses and abstentions of asked states it answered, the requests handed to the "
+            "panel's source and how many of them were sent to the LLMs (the others were in "
+            "the belief store), the model's refits, and its agreement with the panel on the "
+            "held-out asked states (mean total-variation distance: 0 agrees, 1 disagrees "
+            "entirely) of the fused belief and of each member.",
+            "",
+            budget,
+        ]
+    if ablation == "budget":
+        table = budget_ablation_table(results)
+        if table:
+            lines += [
+                "## Metrics against the budget",
+                "",
+                "The paper's metrics (greedy, mean ± half-width of the 95% CI) of each "
+                "distilled fine-tune by selection and budget, and of the fine-tune that "
+                "asked the panel about every state.",
+                "",
+                table,
+            ]
+    servers = servers_table(results)
+    if servers:
+        lines += [
+            "## LLM servers",
+            "",
+            "Per fine-tune and LLM server: requests sent (every attempt, retries and probes "
+            "included), answered, failed (by kind), retried on another server of the pool "
+            "after failing there, times taken out of the pool and put back, and the latency "
+            "of the answered requests (the 95th percentile over seed replicas is the largest "
+            "replica's). Each request went to the least-busy live server "
+            "(amuled-ma's docs/ollama.md, section 'A pool of servers').",
+            "",
+            servers,
+        ]
+    lines += ["## Figures", ""]
+    for caption, note, path in figures:
+        if path is not None:
+            lines += [f"### {caption}", "", note, "", f"![{caption}]({path.name})", ""]
+    report = run_dir / "report.md"
+    report.write_text("\n".join(lines))
+    return report
+
+
+def _remove_stale_figures(run_dir: Path, written: set[str]) -> None:
+    """Remove this module's figures left in ``run_dir`` by an earlier report."""
+    stale = [run_dir / name for name in FIGURE_NAMES]
+    stale += list(run_dir.glob("ablation_*.png"))
+    for path in stale:
+        if path.name not in written and path.is_file():
+            path.unlink()

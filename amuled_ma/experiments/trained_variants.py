@@ -1,0 +1,173 @@
+"""A run's trained variants, resolved from its records for looking at them.
+
+``amuled view`` and ``amuled explain --state-from`` show a variant's evaluation episode;
+the library that replays it (:mod:`amuled_ma.evaluate.episode_trace`) takes a
+:class:`~amuled_ma.evaluate.episode_trace.TrainedVariant`, resolved here from the run
+folder: the scenario and :class:`~amuled_ma.variants.Variant` the variant's record
+(``config.json``, :func:`~amuled_ma.experiments.run_folder.read_record`) names, its policy,
+the base policy it was fine-tuned from, and the number of episodes the run was evaluated
+with (a sampled episode depends on it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from amuled_ma.errors import AmuledError, CheckpointError
+from amuled_ma.evaluate.episode_trace import TrainedVariant
+from amuled_ma.evaluate.evaluator import variant_dirs
+from amuled_ma.experiments.run_folder import read_record, scenario_of_run, split_replica
+from amuled_ma.learn.checkpoints import LAST, checkpoint_infos
+from amuled_ma.scenario import Scenario
+
+
+def trained_variant(run_dir: Path, variant_dir: Path) -> TrainedVariant:
+    """A variant folder of a run, as the viewer and ``amuled explain`` take it.
+
+    The scenario is the variant's own record's, else the run's.
+
+    Raises:
+        CheckpointError: The folder holds no trained policy (the message names the run).
+        AmuledError: Neither folder holds a record with a scenario.
+
+    """
+    run_dir, variant_dir = Path(run_dir), Path(variant_dir)
+    if not (variant_dir / LAST).is_file():
+        raise CheckpointError(
+            f"{run_dir}: no trained variant {variant_dir.name!r} (no {variant_dir / LAST}); "
+            "variants are the folders with a checkpoint"
+        )
+    record = read_record(variant_dir, checkpoint=False)
+    own = record is not None and record.scenario is not None
+    return TrainedVariant(
+        name=variant_dir.name,
+        checkpoint=variant_dir / LAST,
+        scenario=scenario_of_run(variant_dir if own else run_dir),
+        variant=record.variant if record is not None else None,
+        base_checkpoint=base_checkpoint_of(run_dir, variant_dir),
+    )
+
+
+def base_checkpoint_of(run_dir: Path, variant_dir: Path) -> Path | None:
+    """The base policy a fine-tune started from and was anchored to, if it can be found.
+
+    The record's ``base_checkpoint`` (else the checkpoint's ``infos["base_checkpoint"]``):
+    as given, else its folder name inside the run; then the run's ``base`` folder (a seed
+    replica ``<name>.seed<k>`` looks for ``base.seed<k>`` first). None when there is none.
+    """
+    run_dir, variant_dir = Path(run_dir), Path(variant_dir)
+    record = read_record(variant_dir, checkpoint=False)
+    recorded = record.base_checkpoint if record is not None else None
+    if not recorded:
+        try:
+            recorded = (checkpoint_infos(variant_dir / LAST) or {}).get("base_checkpoint")
+        except AmuledError:
+            recorded = None
+    candidates: list[Path] = []
+    if recorded:
+        recorded_path = Path(str(recorded))
+        candidates += [recorded_path, run_dir / recorded_path.parent.name / LAST]
+        candidates.append(run_dir.parent / recorded_path.parent.name / LAST)
+    seed = split_replica(variant_dir.name)[1]
+    if seed is not None:
+        candidates.append(run_dir / f"base.seed{seed}" / LAST)
+    candidates += [run_dir / "base" / LAST, run_dir.parent / "base" / LAST]
+    for path in candidates:
+        if path.is_file() and path.resolve() != (variant_dir / LAST).resolve():
+            return path
+    return None
+
+
+def choose_variants(run_dir: Path, names: Sequence[str] | None = None) -> list[Path]:
+    """The variant folders to show: the named ones, else every fine-tuned variant.
+
+    Without names, a variant's seed replicas (``<name>.seed<k>``) are left out (its first
+    replica is shown); name a replica folder to see it.
+
+    Raises:
+        CheckpointError: A named folder has no checkpoint, or the run has no fine-tuned
+            variant; the message lists the variants found.
+
+    """
+    run_dir = Path(run_dir)
+    found = variant_dirs(run_dir)
+    listing = ", ".join(d.name for d in found) or "none"
+    if names:
+        chosen = []
+        for name in names:
+            folder = run_dir / name
+            if not (folder / LAST).is_file():
+                raise CheckpointError(
+                    f"{run_dir}: no trained variant {name!r} (no {folder / LAST}); "
+                    f"variants found: {listing}"
+                )
+            chosen.append(folder)
+        return chosen
+    chosen = []
+    for folder in found:
+        record = read_record(folder, checkpoint=False)
+        if record is not None and record.finetuning and split_replica(folder.name)[1] is None:
+            chosen.append(folder)
+    if not chosen:
+        raise CheckpointError(
+            f"{run_dir}: no fine-tuned variant (*/{LAST} of a 'finetune' folder); "
+            f"variants found: {listing}; fine-tune one with 'amuled finetune', or name one "
+            "with --variant"
+        )
+    return chosen
+
+
+def evaluated_episodes(run_dir: Path, scenario: Scenario) -> int:
+    """The episodes per policy of the run's evaluation (a sampled episode depends on it).
+
+    The run's ``results.json`` says; a run not evaluated yet takes the scenario's
+    ``[evaluation].episodes``.
+    """
+    from amuled_ma.evaluate.results import read_results
+
+    if (Path(run_dir) / "results.json").is_file():
+        episodes = read_results(Path(run_dir)).episodes
+        if episodes is not None:
+            return int(episodes)
+    return int(scenario.evaluation.episodes)
+
+
+@dataclass(frozen=True)
+class RunToView:
+    """What the viewer needs of a run: its scenario, the variants, the evaluation's ``N``.
+
+    Attributes:
+        scenario: The run's scenario.
+        variants: The variants to show, resolved.
+        episodes: The episodes per policy of the run's evaluation.
+
+    """
+
+    scenario: Scenario
+    variants: list[TrainedVariant]
+    episodes: int
+
+
+def run_to_view(
+    run_dir: Path, names: Sequence[str] | None = None, episodes: int | None = None
+) -> RunToView:
+    """Resolve a run for ``amuled view`` (or the demo's page).
+
+    Args:
+        run_dir: The run folder.
+        names: Variant folders to show (default: every fine-tuned variant,
+            :func:`choose_variants`).
+        episodes: The evaluation's ``N`` (default :func:`evaluated_episodes`).
+
+    Raises:
+        AmuledError: The folder is no run (no record with a scenario).
+        CheckpointError: See :func:`choose_variants`.
+
+    """
+    run_dir = Path(run_dir)
+    scenario = scenario_of_run(run_dir)
+    chosen = [trained_variant(run_dir, d) for d in choose_variants(run_dir, names)]
+    n = episodes if episodes is not None else evaluated_episodes(run_dir, scenario)
+    return RunToView(scenario, chosen, n)

@@ -1,0 +1,364 @@
+"""The pipeline as a library: plan, check, train, evaluate and report one experiment.
+
+``amuled run`` (the paper's main comparison), ``amuled ablate`` (one of its ablations) and
+``amuled demo`` (the main comparison, demo-sized, on a live model) are each one call of
+:func:`run_pipeline` with a :class:`PipelineRequest`; the commands only parse their
+arguments into the request and print the :class:`PipelineOutcome`. The steps:
+
+1. plan the job graph (:func:`~amuled_ma.experiments.plans.plan_run` or
+   :func:`~amuled_ma.experiments.plans.plan_ablation`: a fine-tune needs its seed's base);
+2. check every job's inputs (:func:`check_plan`, with
+   :func:`~amuled_ma.experiments.plans.check_inputs`) before any folder is made, so a
+   missing recording, base checkpoint or feedback source stops the run and leaves nothing;
+3. hold the run folder's lock (:func:`~amuled_ma.run_lock.run_folder_lock`), write
+   ``config.json`` and train the graph (:func:`~amuled_ma.experiments.jobs.run_jobs`: in this
+   process or on Ray), one line per finished job (:func:`describe_job`);
+4. evaluate every variant (:func:`~amuled_ma.evaluate.evaluator.evaluate_run`) and write
+   ``report.md`` (:func:`~amuled_ma.evaluate.report.write_report`).
+
+A Ctrl-C or SIGTERM (:class:`~amuled_ma.errors.Terminated`) leaves :func:`run_pipeline` as
+``KeyboardInterrupt`` once every running job wrote its checkpoint; the resume command
+printed then is the request's ``hint`` with ``--resume``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from amuled_ma.errors import AmuledError, ScenarioError
+from amuled_ma.experiments.jobs import JobsOutcome, RayTarget, resolve_workers, run_jobs
+from amuled_ma.experiments.run_folder import JobResult, TrainJob, split_replica, write_config
+from amuled_ma.run_lock import run_folder_lock
+from amuled_ma.scenario import Scenario
+
+if TYPE_CHECKING:
+    from amuled_ma.evaluate.results import Results
+
+
+def say_line(message: str) -> None:
+    """Print one progress line on stdout at once (stderr stays free for errors)."""
+    print(message, flush=True)
+
+
+@dataclass(frozen=True)
+class PipelineRequest:
+    """One experiment to run: what to plan, where, and how to train it.
+
+    Attributes:
+        scenario: The scenario, with every override already applied.
+        run_dir: The run folder (an ablation writes into ``run_dir/ablate-<what>/``).
+        ablation: None for the paper's main comparison (``amuled run``), else the ablation
+            (``clusters``, ``aggregation``, ``models``, ``kl`` or ``budget``).
+        seed: The first training seed (None: ``[task].seed``).
+        seeds: Training replicas of every variant (seeds ``seed``, ``seed + 1``, ...).
+        episodes: Evaluation episodes per policy (None: ``[evaluation].episodes``).
+        base: A finished base folder every fine-tune starts from (main comparison only);
+            None: each seed's own base, or with ``[finetune].recipe = "authors"`` the
+            authors' imported base ``<runs_dir>/authors/<task>/base`` when it is there.
+        resume: Continue unfinished variants, skip finished ones.
+        force: Start over even where checkpoints exist.
+        jobs: Jobs at once (0: one per core, or 1 with live feedback; 1: in this process).
+        ray: Train on Ray (a local one, or a cluster's address); None: as ``jobs`` says.
+        progress: Show progress bars.
+        hint: The shell command that re-runs this request; printed with ``--resume`` when a
+            job stops early, and in the message of a folder that clashes.
+
+    Raises:
+        ScenarioError: An unknown ablation.
+        AmuledError: ``base`` given with an ablation.
+
+    """
+
+    scenario: Scenario
+    run_dir: Path
+    ablation: str | None = None
+    seed: int | None = None
+    seeds: int = 1
+    episodes: int | None = None
+    base: Path | None = None
+    resume: bool = False
+    force: bool = False
+    jobs: int = 0
+    ray: RayTarget | None = None
+    progress: bool = True
+    hint: str = ""
+
+    def __post_init__(self) -> None:
+        from amuled_ma.experiments.plans import ABLATIONS  # here: it imports torch
+
+        if self.ablation is not None and self.ablation not in ABLATIONS:
+            raise ScenarioError(
+                f"unknown ablation {self.ablation!r}; expected one of {', '.join(ABLATIONS)}"
+            )
+        if self.ablation is not None and self.base is not None:
+            raise AmuledError(
+                "a base folder applies to the main comparison (amuled run --base), not to "
+                "an ablation: drop it, an ablation fine-tunes the run's own bases"
+            )
+
+
+@dataclass(frozen=True)
+class PipelineOutcome:
+    """What :func:`run_pipeline` did.
+
+    Attributes:
+        out_dir: The folder of the results and the report (the run folder, or its
+            ``ablate-<what>/``).
+        variants: The variants planned (``base``, ..., or the ablation's fine-tune folders).
+        seeds: The training seeds.
+        training: The job graph's outcome (one result per job, wall time, workers).
+        results: The evaluation results, as written to ``results.json``.
+        report: The path of ``report.md``.
+        wall_s: Seconds from the request to the report.
+
+    """
+
+    out_dir: Path
+    variants: tuple[str, ...]
+    seeds: tuple[int, ...]
+    training: JobsOutcome
+    results: Results = field(repr=False)
+    report: Path
+    wall_s: float
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """The planned graph of a request and what is written and said about it."""
+
+    jobs: list[TrainJob]
+    out_dir: Path
+    variants: tuple[str, ...]
+    config: dict[str, Any]
+    announce: str
+    title: str
+    extra_dirs: list[Path]
+
+
+def run_pipeline(
+    request: PipelineRequest, *, say: Callable[[str], None] = say_line
+) -> PipelineOutcome:
+    """Plan, check, train, evaluate and report one experiment (``amuled run``/``ablate``/``demo``).
+
+    Args:
+        request: What to run.
+        say: Prints a progress line (default: stdout, flushed).
+
+    Returns:
+        The outcome: where the report is, the results, the training jobs.
+
+    Raises:
+        AmuledError: An input a job needs is missing (before any folder is made), a
+            folder clashes with an old checkpoint, another process writes the run folder,
+            or a job failed; the message names what and the fix.
+        KeyboardInterrupt: Ctrl-C or SIGTERM, after every running job wrote its checkpoint.
+
+    """
+    from amuled_ma.evaluate.evaluator import evaluate_run, variant_dirs  # torch, matplotlib
+    from amuled_ma.evaluate.report import write_report
+    from amuled_ma.experiments.plans import training_seeds
+    from amuled_ma.experiments.run_folder import read_record, variant_records
+
+    start = time.perf_counter()
+    seeds = training_seeds(request.scenario, request.seed, request.seeds)
+    if request.ablation is None:
+        plan = _plan_main(request, seeds, say)
+    else:
+        plan = _plan_ablation(request, seeds)
+    check_plan(plan.jobs)  # before the lock: a run that cannot start makes no folder
+    with run_folder_lock(request.run_dir):
+        write_config(plan.out_dir, request.scenario, plan.config)
+        say(plan.announce)
+        training = train_jobs(plan.jobs, request, say)
+        records = variant_records([*variant_dirs(plan.out_dir), *plan.extra_dirs])
+        results = evaluate_run(
+            plan.out_dir,
+            request.scenario,
+            episodes=request.episodes,
+            progress=request.progress,
+            extra_dirs=plan.extra_dirs or None,
+            records=records,
+        )
+        report = write_report(
+            plan.out_dir,
+            results,
+            title=plan.title,
+            ablation=request.ablation,
+            run=read_record(plan.out_dir),
+            records=records,
+        )
+    return PipelineOutcome(
+        out_dir=plan.out_dir,
+        variants=plan.variants,
+        seeds=tuple(seeds),
+        training=training,
+        results=results,
+        report=report,
+        wall_s=time.perf_counter() - start,
+    )
+
+
+def _plan_main(request: PipelineRequest, seeds: list[int], say: Callable[[str], None]) -> _Plan:
+    """The main comparison: :data:`~amuled_ma.experiments.plans.MAIN_VARIANTS` per seed."""
+    from amuled_ma.experiments.plans import MAIN_VARIANTS, plan_run
+
+    scenario, run_dir = request.scenario, Path(request.run_dir)
+    base = request.base
+    imported = Path(scenario.output.runs_dir) / "authors" / scenario.task.name / "base"
+    if base is None and scenario.finetune.recipe == "authors":
+        if (imported / "model_last.pt").is_file():
+            base = imported
+            say(f"  fine-tunes start from the authors' imported base {imported}")
+        else:
+            say(
+                f"  fine-tunes start from this run's own bases (no imported authors' base "
+                f"at {imported}; 'amuled import authors PATH' makes one)"
+            )
+    jobs = plan_run(scenario, run_dir, seeds, resume=request.resume, force=request.force, base=base)
+    variants = tuple(str(v) for v in MAIN_VARIANTS)
+    return _Plan(
+        jobs=jobs,
+        out_dir=run_dir,
+        variants=variants,
+        config={"variants": list(variants), "seeds": seeds},
+        announce=f"run {scenario.name} -> {run_dir}",
+        title=f"{scenario.name}: the paper's main comparison",
+        extra_dirs=[],
+    )
+
+
+def _plan_ablation(request: PipelineRequest, seeds: list[int]) -> _Plan:
+    """One ablation: the run's bases, then the ablation's fine-tunes in ``ablate-<what>/``."""
+    from amuled_ma.experiments.plans import ablation_variants, plan_ablation
+
+    scenario, run_dir, what = request.scenario, Path(request.run_dir), request.ablation
+    assert what is not None
+    out = run_dir / f"ablate-{what}"
+    variants = tuple(variant.folder for variant, _ in ablation_variants(what, scenario))
+    jobs = plan_ablation(what, scenario, run_dir, seeds, resume=request.resume, force=request.force)
+    # the run's folders an ablation evaluates with its own: the bases, and fine-tunes the
+    # run already finished with the same settings (not trained again)
+    shared = [job.out_dir.name for job in jobs if job.out_dir.parent == run_dir]
+    return _Plan(
+        jobs=jobs,
+        out_dir=out,
+        variants=variants,
+        config={"ablation": what, "variants": list(variants), "seeds": seeds, "shared": shared},
+        announce=(
+            f"ablate {scenario.name} --what {what}: {len(variants)} fine-tunes x "
+            f"{len(seeds)} seed(s) -> {out}"
+        ),
+        title=f"{scenario.name}: ablation of {what}",
+        extra_dirs=[run_dir / name for name in shared],
+    )
+
+
+def check_plan(jobs: Sequence[TrainJob]) -> None:
+    """Check the inputs of every planned job before anything is made or trained.
+
+    Each job goes through :func:`~amuled_ma.experiments.plans.check_inputs` (its feedback
+    agents, recording or sources, and a finished base unless the plan trains it); nothing
+    is written, no folder is made.
+
+    Args:
+        jobs: The planned graph.
+
+    Raises:
+        AmuledError: One problem as it was raised; several as one message listing each
+            distinct problem once (``N of M jobs cannot start, nothing was trained``).
+
+    """
+    from amuled_ma.experiments.plans import check_inputs  # here: it imports torch
+
+    planned = {job.out_dir.name for job in jobs}
+    errors: list[AmuledError] = []
+    failing = 0
+    for job in jobs:
+        try:
+            base_dir = job.base_dir or job.run_dir
+            check_inputs(job.scenario, job.variant, base_dir, job.base_variant, planned)
+        except AmuledError as error:
+            failing += 1
+            if all(str(error) != str(seen) for seen in errors):
+                errors.append(error)
+    if len(errors) == 1:
+        raise errors[0]
+    if errors:
+        raise AmuledError(
+            f"{failing} of {len(jobs)} jobs cannot start, nothing was trained:\n"
+            + "\n".join(f"  - {error}" for error in errors)
+        )
+
+
+def train_jobs(
+    jobs: Sequence[TrainJob], request: PipelineRequest, say: Callable[[str], None] = say_line
+) -> JobsOutcome:
+    """Train a planned graph as the request says (``jobs``, ``ray``), one line per job.
+
+    Args:
+        jobs: The graph.
+        request: Where and how the jobs run, the progress bars and the resume command.
+        say: Prints a progress line.
+
+    Returns:
+        The outcome of :func:`~amuled_ma.experiments.jobs.run_jobs`.
+
+    """
+    workers = resolve_workers(request.jobs, jobs)
+    ray = request.ray
+    where = "" if ray is None else f" on Ray ({ray.address or 'local'})"
+    say(f"  {len(jobs)} training jobs, {workers} at a time{where}")
+    outcome = run_jobs(
+        jobs,
+        workers=workers,
+        progress=request.progress,
+        hint=request.hint,
+        describe=describe_job,
+        ray=ray,
+    )
+    say(f"  training done in {outcome.wall_s:.1f} s on {outcome.workers} worker(s)")
+    return outcome
+
+
+def describe_job(job: JobResult) -> str:
+    """One line about a finished training job (a seed replica's seed in brackets).
+
+    Args:
+        job: The job's result: skipped (already trained), or trained with its outcome.
+
+    Returns:
+        The line, with the feedback's figures and the agents that left states unanswered
+        on lines of their own.
+
+    """
+    from amuled_ma.deliberation.summaries import distill_line, summary_lines
+
+    seed = split_replica(Path(job.out_dir).name)[1]
+    name = job.variant if seed is None else f"{job.variant} [seed {seed}]"
+    if job.skipped:
+        return f"  = {name}: already trained ({job.out_dir})"
+    out = job.outcome
+    rate = out.env_steps / max(out.wall_s, 1e-9)
+    line = (
+        f"  ✓ {name}: {out.iterations} iterations, {out.env_steps:,} env steps in "
+        f"{out.wall_s:.1f} s ({rate:,.0f} steps/s)"
+    )
+    if out.feedback:
+        line += f", {out.feedback['unique_states']} distinct states"
+        line += f", replay miss rate {100 * out.feedback['miss_rate']:.2f}%"
+        line += f", not answered {100 * out.feedback.get('failure_rate', 0.0):.2f}%"
+        if out.feedback.get("distill"):
+            line += "\n  " + distill_line(out.feedback["distill"])
+        # per agent, the agents that left states unanswered (abstained, errors, misses)
+        failing = {
+            name: row
+            for name, row in (out.feedback.get("agents") or {}).items()
+            if row.get("failed")
+        }
+        shown = summary_lines({**out.feedback, "agents": failing, "distill": None})[1:]
+        line += "".join("\n    " + text for text in shown)
+    return line

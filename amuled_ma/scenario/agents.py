@@ -1,0 +1,491 @@
+"""``[feedback.agents.<name>]`` and a cluster file's ``[source]``: typed agent source specs.
+
+Each table is one of the spec models below, a pydantic discriminated union on ``source``
+(:data:`AgentSpec`); :data:`AGENT_SPECS` is the one registry of the kinds a table may
+name. A new built-in source is its module in :mod:`amuled_ma.beliefs`, one line in
+:func:`amuled_ma.beliefs.sources.make_source`'s registry, and its spec model here (one line
+in :data:`AGENT_SPECS`).
+
+The models are pure description: they import no domain package. Each turns itself into
+the keyword arguments of its source (:meth:`_Spec.source_options`), given the values of
+``[feedback]`` it inherits. :func:`check_agent_tables` checks the raw tables first, so
+that every message names the file, the table, what was expected, what was found and the
+fix (``docs/beliefs.md``, "Per-agent sources").
+"""
+
+from __future__ import annotations
+
+import datetime
+import typing
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Annotated, Any, ClassVar, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from amuled_ma.errors import ScenarioError
+from amuled_ma.scenario.paths import find_recording
+from amuled_ma.scenario.ranges import field_range
+from amuled_ma.urls import normalize_host, normalize_hosts
+
+#: Name of the unprompted moral agent (the ``moral`` variant; ``moral_agent`` in recordings).
+MORAL_AGENT = "moral_agent"
+
+_TYPE_NAMES = {str: "string", int: "integer", float: "float", bool: "boolean", dict: "table",
+               list: "array"}  # fmt: skip
+_PLAIN = (str, int, float, bool, list, dict)
+_OPTION = "an OllamaSource option"
+
+
+def norm(name: str) -> str:
+    """A name compared ignoring case, ``_``, ``-`` and spaces (``social-justice``)."""
+    return "".join(ch for ch in name.lower() if ch.isalnum())
+
+
+def _found(value: Any) -> str:
+    names = {bool: "boolean", int: "integer", float: "float", str: "string", list: "array",
+             dict: "table"}  # fmt: skip
+    return f"{names.get(type(value), type(value).__name__)} ({value!r})"
+
+
+class _Spec(BaseModel):
+    """Base of the agent source specs: strict, frozen, no unknown keys, no NaN."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+
+    #: The key a table of this kind must hold, and an example for the fix (None: none).
+    required: ClassVar[tuple[str, str] | None] = None
+
+    def given(self) -> dict[str, Any]:
+        """The keys the table set (besides ``source``), as plain data."""
+        return self.model_dump(exclude_unset=True, exclude={"source"})
+
+    def detail(self, options: Mapping[str, Any]) -> str:
+        """What names this member in messages, after its kind (``, model 'x'``).
+
+        Args:
+            options: Its source's options (:meth:`source_options`).
+
+        """
+        return ""
+
+    def source_options(self, scenario: Any, head: str) -> dict[str, Any]:
+        """The keyword arguments of this kind's source, ``[feedback]``'s values inherited.
+
+        Args:
+            scenario: The :class:`~amuled_ma.scenario.Scenario` (``[feedback]``, paths).
+            head: The table (``[feedback.agents.care]``), for messages.
+
+        Raises:
+            ScenarioError: A file the table names is not found.
+
+        """
+        return self.given()
+
+
+class ReplaySpec(_Spec):
+    """``source = "replay"``: a recording of the authors' (or our) beliefs."""
+
+    source: Literal["replay"]
+    recording: str = Field(
+        "", description="a recording file or name (default [feedback].recording)"
+    )
+
+    def source_options(self, scenario: Any, head: str) -> dict[str, Any]:  # noqa: D102
+        fb = scenario.feedback
+        key = f"{head} recording" if self.recording else "[feedback].recording"
+        path = find_recording(
+            self.recording or fb.recording,
+            scenario.resolve,
+            where=str(scenario.path or f"scenario {scenario.name!r}"),
+            required=True,
+            key=key,
+        )
+        # "zero" is applied to the fused reward (the panel feedback's miss_zero); the
+        # source answers a miss with a uniform belief, counted as replay_miss
+        policy = "uniform" if fb.miss_policy == "zero" else fb.miss_policy
+        return {"paths": str(path), "miss_policy": policy}
+
+    def detail(self, options: Mapping[str, Any]) -> str:  # noqa: D102 - see _Spec
+        return f", recording {Path(options['paths']).name!r}"
+
+
+class OllamaSpec(_Spec):
+    """``source = "ollama"``: an LLM on an Ollama server (keys: ``OllamaSource``'s keywords).
+
+    A key left out takes ``[feedback]``'s value (``model``, ``host``/``hosts``,
+    ``concurrency``, ``timeout_s``, the ``[feedback.ollama]`` table), then the source's own
+    default; only the keys a table sets are passed on.
+    """
+
+    required = ("model", 'model = "llama3.1:8b" (an Ollama model name)')
+
+    source: Literal["ollama"]
+    model: str = Field("", description="an Ollama model name")
+    host: str = Field("", description="the Ollama server URL")
+    hosts: list[str] = Field(
+        default_factory=list, description="a pool of Ollama server URLs (instead of host)"
+    )
+    concurrency: int = Field(
+        2, ge=1, le=1024, description="LLM requests in flight, one connection each"
+    )
+    timeout_s: float = Field(
+        120.0,
+        gt=0,
+        le=86_400,
+        description="seconds per LLM request: 0 fails all, above a day hangs",
+    )
+    structured: bool = Field(True, description=_OPTION)
+    reasoning: bool = Field(True, description=_OPTION)
+    reasoning_max_chars: int = Field(400, description=_OPTION)
+    temperature: float = Field(0.0, description=_OPTION)
+    seed: int = Field(42, description=_OPTION)
+    num_ctx: int = Field(8192, description=_OPTION)
+    num_predict: int = Field(1024, description=_OPTION)
+    options: dict[str, Any] = Field(default_factory=dict, description=_OPTION)
+    retries: int = Field(2, description=_OPTION)
+    retry_timeouts: bool = Field(False, description=_OPTION)
+    backoff_s: float = Field(0.5, description=_OPTION)
+    backoff_max_s: float = Field(8.0, description=_OPTION)
+    parse_retries: int = Field(1, description=_OPTION)
+    keep_alive: str | int | float | None = Field(None, description=_OPTION)
+    check_timeout_s: float = Field(4.5, description=_OPTION)
+    down_for_s: float = Field(5.0, description=_OPTION)
+
+    def source_options(self, scenario: Any, head: str) -> dict[str, Any]:  # noqa: D102
+        fb = scenario.feedback
+        rest = self.given()
+        own_host, own_hosts = rest.pop("host", None), rest.pop("hosts", None)
+        if not own_host and not own_hosts:  # the table names no server: [feedback]'s
+            own_host, own_hosts = fb.host, list(fb.hosts)
+        options = {
+            "model": rest.pop("model", None) or fb.model,
+            "host": own_host or None,
+            "hosts": list(own_hosts) if own_hosts else None,
+            "concurrency": rest.pop("concurrency", fb.concurrency),
+            "timeout_s": float(rest.pop("timeout_s", fb.timeout_s)),
+        }
+        options.update(fb.ollama)
+        options.update(rest)
+        return options
+
+    def detail(self, options: Mapping[str, Any]) -> str:  # noqa: D102 - see _Spec
+        return f", model {options['model']!r}"
+
+
+class RulesSpec(_Spec):
+    """``source = "rules"``: a rule in Python (the synthetic human, or ``module:function``)."""
+
+    source: Literal["rules"]
+    policy: str = Field("human", description="'human' or 'pkg.module:function'")
+
+    def source_options(self, scenario: Any, head: str) -> dict[str, Any]:  # noqa: D102
+        return {"policy": self.policy}
+
+
+class TerminalSpec(_Spec):
+    """``source = "terminal"``: a person typing beliefs at the terminal."""
+
+    source: Literal["terminal"]
+    person: str = Field("human", description="who answers (kept apart in the store)")
+    attempts: int = Field(3, ge=1, le=100, description="answer lines read per state")
+
+    def source_options(self, scenario: Any, head: str) -> dict[str, Any]:  # noqa: D102
+        return {"person": self.person, "attempts": self.attempts}
+
+
+class EntryPointSpec(_Spec):
+    """``source = "entry-point"``: a plug-in agent (installed name or ``module:Class``)."""
+
+    required = (
+        "name",
+        'name = "my_pkg.agents:MyAgent" (or an installed amuled_ma.agents name)',
+    )
+
+    source: Literal["entry-point"]
+    name: str = Field(description="an installed amuled_ma.agents name or 'pkg.module:Class'")
+    options: dict[str, Any] = Field(
+        default_factory=dict, description="the plug-in's keyword arguments"
+    )
+
+    def detail(self, options: Mapping[str, Any]) -> str:  # noqa: D102 - see _Spec
+        return f", name {self.name!r}"
+
+    def source_options(self, scenario: Any, head: str) -> dict[str, Any]:  # noqa: D102
+        return {"name": self.name, "options": dict(self.options)}
+
+
+class PolicySpec(_Spec):
+    """``source = "policy"``: a saved torch policy's action distribution."""
+
+    required = (
+        "path",
+        'path = "policies/virtue.pt" (a torch.save state dict, relative to the scenario file)',
+    )
+
+    source: Literal["policy"]
+    path: str = Field(description="a torch.save state dict, relative to the scenario file")
+    key: str = Field("", description="the state dict's key in a checkpoint dict")
+    module: str = Field("", description="'pkg.module:Class' of the network")
+    kwargs: dict[str, Any] = Field(default_factory=dict, description="keyword arguments of module")
+    activation: str = Field("tanh", description="activation of an inferred MLP")
+
+    def detail(self, options: Mapping[str, Any]) -> str:  # noqa: D102 - see _Spec
+        return f", path {self.path!r}"
+
+    def source_options(self, scenario: Any, head: str) -> dict[str, Any]:  # noqa: D102
+        return {
+            "path": str(scenario.resolve(self.path)),
+            "key": self.key,
+            "module": self.module,
+            "kwargs": dict(self.kwargs),
+            "activation": self.activation,
+        }
+
+
+#: The one registry of the source kinds an agent table may name: kind -> spec model.
+AGENT_SPECS: dict[str, type[_Spec]] = {
+    "replay": ReplaySpec,
+    "ollama": OllamaSpec,
+    "rules": RulesSpec,
+    "terminal": TerminalSpec,
+    "entry-point": EntryPointSpec,
+    "policy": PolicySpec,
+}
+#: Keys of an ``ollama`` table that ``[feedback]`` sets itself (not in ``[feedback.ollama]``).
+FEEDBACK_OLLAMA_KEYS = ("model", "host", "hosts", "concurrency", "timeout_s")
+
+
+def check_ollama_table(table: Mapping[str, Any], where: str) -> None:
+    """Refuse keys of ``[feedback.ollama]`` that are no ``OllamaSource`` keyword.
+
+    Raises:
+        ScenarioError: Naming the file, the table, the unknown keys and the allowed ones.
+
+    """
+    allowed = set(OllamaSpec.model_fields) - {"source", *FEEDBACK_OLLAMA_KEYS}
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise ScenarioError(
+            f"{where}: [feedback.ollama] unknown key(s) {', '.join(unknown)}; expected some of "
+            f"{', '.join(sorted(allowed))}"
+        )
+
+
+#: Source kinds a ``[feedback.agents.<name>]`` table may name, in the order of messages.
+AGENT_SOURCE_KINDS = tuple(AGENT_SPECS)
+#: An agent table: one of the spec models, chosen by its ``source``.
+AgentSpec = Annotated[
+    ReplaySpec | OllamaSpec | RulesSpec | TerminalSpec | EntryPointSpec | PolicySpec,
+    Field(discriminator="source"),
+]
+assert set(typing.get_args(typing.get_args(AgentSpec)[0])) == set(AGENT_SPECS.values())
+
+
+def _types(annotation: Any) -> tuple[type, ...]:
+    """The plain Python types a key of ``annotation`` accepts (int also for float)."""
+    origin = typing.get_origin(annotation)
+    if origin is list:
+        return (list,)
+    if origin is dict:
+        return (dict,)
+    args = typing.get_args(annotation)
+    if args and origin is not Literal:
+        return tuple(t for a in args if a is not type(None) for t in _types(a))
+    if annotation is float:
+        return (int, float)
+    return (annotation,)
+
+
+def agent_keys(kind: str) -> dict[str, tuple[tuple[type, ...], str]]:
+    """The keys a table of ``kind`` may hold besides ``source``: ``{key: (types, what)}``."""
+    model = AGENT_SPECS[kind]
+    return {
+        key: (_types(info.annotation), info.description or "")
+        for key, info in model.model_fields.items()
+        if key != "source"
+    }
+
+
+def _plain_problem(value: Any, key: str) -> str | None:
+    """Why ``value`` is not plain JSON-able TOML data (a datetime, say), or None."""
+    if isinstance(value, datetime.date | datetime.time):
+        return f"key {key} expects a string, number, boolean, array or table, found {value!r}"
+    if isinstance(value, dict):
+        for k, v in value.items():
+            problem = _plain_problem(v, f"{key}.{k}")
+            if problem:
+                return problem
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            problem = _plain_problem(v, f"{key}[{i}]")
+            if problem:
+                return problem
+    elif not isinstance(value, _PLAIN) and value is not None:
+        return f"key {key} expects a string, number, boolean, array or table, found {value!r}"
+    return None
+
+
+def check_agent_table(
+    head: str, table: Any, *, default_source: str = "", default_model: str = ""
+) -> None:
+    """Check one agent table (its kind, keys, types, ranges and required key).
+
+    Args:
+        head: ``"<file>: [feedback.agents.care]"``, the start of every message.
+        table: The table as read from TOML.
+        default_source: ``[feedback].source`` (an ``ollama`` table without ``model`` takes
+            ``[feedback].model`` only when this is ``"ollama"``).
+        default_model: ``[feedback].model``.
+
+    Raises:
+        ScenarioError: Naming the table, what was expected, what was found and the fix.
+
+    """
+    kinds = ", ".join(AGENT_SOURCE_KINDS)
+    if isinstance(table, BaseModel):
+        return
+    if not isinstance(table, Mapping):
+        raise ScenarioError(
+            f'{head} expects a table such as {{ source = "rules" }}, found {_found(table)}'
+        )
+    kind = table.get("source")
+    if kind is None:
+        raise ScenarioError(f"{head} has no key source; add source = one of {kinds}")
+    if kind not in AGENT_SPECS:
+        raise ScenarioError(
+            f"{head} key source expects one of {kinds}, found {_found(kind)}; fix source "
+            '(a plug-in agent is source = "entry-point" with name = "pkg.module:Class" '
+            "or an installed amuled_ma.agents name)"
+        )
+    model = AGENT_SPECS[kind]
+    allowed = agent_keys(kind)
+    for k, value in table.items():
+        if k == "source":
+            continue
+        if k not in allowed:
+            raise ScenarioError(
+                f"{head} unknown key {k!r} for source = {kind!r}; expected some of "
+                f"{', '.join(['source', *sorted(allowed)])}; fix or remove the key"
+            )
+        problem = _plain_problem(value, k)
+        if problem:
+            raise ScenarioError(f"{head} {problem}")
+        types, what = allowed[k]
+        if value is not None and (
+            not isinstance(value, types) or (isinstance(value, bool) and bool not in types)
+        ):
+            names = " or ".join(_TYPE_NAMES[t] for t in types)
+            raise ScenarioError(
+                f"{head} key {k} expects {names} ({what}), found {_found(value)}; fix the value"
+            )
+        rng = field_range(model, k)
+        if rng is not None and not isinstance(value, bool) and value not in rng:
+            left = "(" if rng.low_open else "["
+            raise ScenarioError(
+                f"{head} key {k} expects a number in {left}{rng.low}, {rng.high}] ({rng.why}), "
+                f"found {value!r}"
+            )
+        if k == "host" and value:
+            normalize_host(value, where=f"{head} key host")
+        if k == "hosts":
+            normalize_hosts(value, where=f"{head} key hosts")
+    if kind == "ollama" and table.get("host") and table.get("hosts"):
+        raise ScenarioError(
+            f"{head} sets both host and hosts; keep host for one server, or hosts = "
+            "[...] for a pool (list that server there too)"
+        )
+    if model.required is not None:
+        required, example = model.required
+        given = table.get(required)
+        if kind == "ollama" and not given and default_source == "ollama" and default_model:
+            return
+        if not isinstance(given, str) or not given.strip():
+            also = (
+                " and [feedback].source is not 'ollama' (so [feedback].model is not an "
+                "Ollama model)"
+                if kind == "ollama"
+                else ""
+            )
+            raise ScenarioError(
+                f"{head} (source = {kind!r}) has no {required}{also}; add {example}"
+            )
+
+
+def check_agent_tables(
+    agents: Any,
+    *,
+    where: str,
+    clusters: Sequence[str],
+    default_source: str,
+    default_model: str,
+) -> None:
+    """Check ``[feedback.agents]``: every table, key, type, range and agent name.
+
+    Args:
+        agents: ``{agent name: table}`` as read from TOML.
+        where: The scenario file (or override), for messages.
+        clusters: ``[feedback].clusters`` (the names tables may use, with ``moral_agent``).
+        default_source: ``[feedback].source``.
+        default_model: ``[feedback].model``.
+
+    Raises:
+        ScenarioError: Naming the file, the ``[feedback.agents.<name>]`` table, what was
+            expected, what was found and the fix.
+
+    """
+    if not isinstance(agents, Mapping):
+        raise ScenarioError(
+            f"{where}: key [feedback].agents expects a table of [feedback.agents.<name>] "
+            f"tables, found {_found(agents)}"
+        )
+    known = {norm(c): c for c in (*clusters, MORAL_AGENT)}
+    seen: dict[str, str] = {}
+    for name, table in agents.items():
+        head = f"{where}: [feedback.agents.{name}]"
+        if not isinstance(table, Mapping | BaseModel):
+            raise ScenarioError(
+                f'{head} expects a table such as {{ source = "rules" }}, found '
+                f"{_found(table)}; write it as a [feedback.agents.{name}] table"
+            )
+        key = norm(str(name))
+        if key not in known:
+            raise ScenarioError(
+                f"{head} names no agent of the panel: expected one of "
+                f"{', '.join(clusters)} or {MORAL_AGENT} ([feedback].clusters), found "
+                f"{name!r}; fix the table's name, or add the cluster to [feedback].clusters"
+            )
+        if key in seen:
+            raise ScenarioError(
+                f"{head} and [feedback.agents.{seen[key]}] name the same agent "
+                f"{known[key]!r}; keep one of the two tables"
+            )
+        seen[key] = str(name)
+        check_agent_table(head, table, default_source=default_source, default_model=default_model)
+
+
+def match_agents(names: Sequence[str], agents: Sequence[Any]) -> dict[str, str]:
+    """Map panel agents to the ``[feedback.agents]`` table naming each.
+
+    Names are compared ignoring case, ``_``, ``-`` and spaces (``social-justice`` is
+    ``social_justice``); an agent given as a cluster object also matches a table named
+    after one of its aliases (``deontologist``).
+
+    Args:
+        names: The table names.
+        agents: The panel's agents: names, or cluster objects (``.name``, ``.names``).
+
+    Returns:
+        ``{agent name: table name}`` for every agent some table names.
+
+    """
+    by_norm = {norm(n): n for n in names}
+    out: dict[str, str] = {}
+    for agent in agents:
+        name = agent if isinstance(agent, str) else str(agent.name)
+        candidates = (name,) if isinstance(agent, str) else (name, *getattr(agent, "names", ()))
+        for candidate in candidates:
+            if norm(candidate) in by_norm:
+                out[name] = by_norm[norm(candidate)]
+                break
+    return out

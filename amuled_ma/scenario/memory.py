@@ -1,0 +1,144 @@
+"""Size checks of a scenario: memory estimates of its buffers, the run-length cap, finite values.
+
+Model validators of :mod:`amuled_ma.scenario.sections` call :func:`check_budget` (across the keys
+of one section) and :func:`check_finite` (inside free tables).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import os
+from collections.abc import Callable
+from typing import Any
+
+from amuled_ma.errors import ScenarioError
+
+#: 500,000 and about 28 hours at 100,000 steps/s: a larger value is a typo, not a run.
+MAX_ENV_STEPS = 10**10
+
+#: Share of the machine's physical memory the estimated buffers of one section may fill.
+MEMORY_FRACTION = 0.5
+
+#: Estimated bytes of one stored rollout transition: the observation (up to
+#: :data:`ASSUMED_OBS_DIM` floats), PPO's per-step buffers (action, reward, done, value,
+#: log-probability, return, advantage, the action distribution), the fused beliefs of
+#: fine-tuning and a mini-batch's forward and backward activations, times a safety factor.
+BYTES_PER_TRANSITION = 4096
+
+#: Estimated bytes of one evaluation episode (a task copy's state, its slice of the
+#: batched forward pass and its Python metrics record), with a safety factor.
+BYTES_PER_EPISODE = 16_384
+
+#: Bytes of one network parameter: float32 x (weight, gradient, Adam's two moments) x
+#: two networks (actor and critic).
+BYTES_PER_PARAMETER = 32
+
+#: Observation length and action count the memory estimates assume: generous upper
+#: bounds of the tasks (FindMilk: 8 observations, 4 actions; Driving: 11 and 3), so the
+#: check needs no task import.
+ASSUMED_OBS_DIM = 64
+ASSUMED_NUM_ACTIONS = 16
+
+#: Machine memory assumed where ``os.sysconf`` cannot tell (8 GiB).
+FALLBACK_MEMORY_BYTES = 8 * 2**30
+
+#: Largest seed: every RNG used (torch, the tasks' int64 streams) takes a 64-bit seed.
+MAX_SEED = 2**63 - 1
+
+
+def physical_memory_bytes() -> int:
+    """Physical memory of this machine (``FALLBACK_MEMORY_BYTES`` where unknown)."""
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):
+        return FALLBACK_MEMORY_BYTES
+    return total if total > 0 else FALLBACK_MEMORY_BYTES
+
+
+def _bytes(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if n < 1024 or unit == "PiB":
+            return f"{n:.1f} {unit}" if unit != "B" else f"{int(n)} B"
+        n /= 1024
+    raise AssertionError  # pragma: no cover
+
+
+def check_finite(key: str, value: Any, source: str) -> None:
+    """Refuse NaN and infinities anywhere in a free-form value (``options``, ``ollama``)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ScenarioError(f"{source}: key {key} expects a finite number, found {value!r}")
+    if isinstance(value, dict):
+        for k, v in value.items():
+            check_finite(f"{key}.{k}", v, source)
+    elif isinstance(value, list | tuple):
+        for i, v in enumerate(value):
+            check_finite(f"{key}[{i}]", v, source)
+
+
+def check_memory(
+    key: str, count: int, unit: int, what: str, source: str, hint: Callable[[int], str]
+) -> None:
+    """Refuse ``count`` items of ``unit`` bytes beyond ``MEMORY_FRACTION`` of the memory."""
+    memory = physical_memory_bytes()
+    budget = MEMORY_FRACTION * memory
+    need = count * unit
+    if need > budget:
+        limit = int(budget // unit)
+        raise ScenarioError(
+            f"{source}: key {key} = {count:,} {what} need about {_bytes(need)} "
+            f"({unit:,} bytes each, estimated) but at most {MEMORY_FRACTION:.0%} of this "
+            f"machine's {_bytes(memory)} of memory may be used; expected at most {limit:,} "
+            f"{what}{hint(limit)}"
+        )
+
+
+def _network_parameters(hidden_dims: list[int]) -> int:
+    dims = [ASSUMED_OBS_DIM, *hidden_dims, ASSUMED_NUM_ACTIONS]
+    return sum(a * b + b for a, b in itertools.pairwise(dims))
+
+
+def check_budget(section: str, values: dict[str, Any], source: str) -> None:
+    """Checks across keys of one section: memory estimates and the run-length cap."""
+    if section in ("base", "finetune"):
+        envs, steps = values["num_envs"], values["num_steps_per_env"]
+        check_memory(
+            f"[{section}].num_envs x [{section}].num_steps_per_env = {envs:,} x {steps:,}",
+            envs * steps,
+            BYTES_PER_TRANSITION,
+            "rollout transitions",
+            source,
+            lambda limit: (
+                f" (e.g. num_envs <= {max(limit // steps, 0):,} at "
+                f"num_steps_per_env = {steps:,}), found num_envs = {envs!r}"
+            ),
+        )
+    if section == "finetune":
+        its, envs, steps = values["iterations"], values["num_envs"], values["num_steps_per_env"]
+        total = its * envs * steps
+        if total > MAX_ENV_STEPS:
+            raise ScenarioError(
+                f"{source}: key [finetune].iterations x num_envs x num_steps_per_env = "
+                f"{its:,} x {envs:,} x {steps:,} = {total:,} env steps; expected at most "
+                f"MAX_ENV_STEPS = {MAX_ENV_STEPS:,} env steps (the cap on one run, about "
+                f"28 hours at 100,000 steps/s), found iterations = {its!r}"
+            )
+    if section == "ppo":
+        check_memory(
+            f"[ppo].hidden_dims = {values['hidden_dims']!r} (actor and critic, "
+            f"{ASSUMED_OBS_DIM} inputs, {ASSUMED_NUM_ACTIONS} outputs assumed)",
+            _network_parameters(values["hidden_dims"]),
+            BYTES_PER_PARAMETER,
+            "network parameters",
+            source,
+            lambda _: " (use narrower or fewer hidden layers)",
+        )
+    if section == "evaluation":
+        check_memory(
+            "[evaluation].episodes",
+            values["episodes"],
+            BYTES_PER_EPISODE,
+            "evaluation episodes",
+            source,
+            lambda _: f", found {values['episodes']!r}",
+        )

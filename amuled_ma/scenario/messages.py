@@ -1,0 +1,209 @@
+"""Error rendering: pydantic's :class:`~pydantic.ValidationError` as one scenario error line.
+
+:func:`scenario_error` names the file, the ``[section].key``, what was expected (and why, for
+a range) and what was found. The section models register themselves in :data:`SECTIONS`
+(this module imports no model).
+"""
+
+from __future__ import annotations
+
+import difflib
+import typing
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ValidationError
+
+from amuled_ma.errors import ScenarioError
+from amuled_ma.scenario.ranges import Range, field_length, field_range
+from amuled_ma.scenario.ranges import found_name as _found_name
+from amuled_ma.scenario.ranges import kind as _kind
+
+#: The section models by table name, in the order of a scenario file (filled by
+#: :mod:`amuled_ma.scenario.sections`).
+SECTIONS: dict[str, type[BaseModel]] = {}
+
+
+#: The source named in errors of a scenario or section built in code (no file).
+BUILT_IN_CODE = "<scenario built in code>"
+
+
+# ------------------------------------------------------------------------ error messages
+def _type_name(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if origin is Annotated:
+        return _type_name(typing.get_args(tp)[0])
+    if origin is list:
+        (inner,) = typing.get_args(tp)
+        return f"list of {_type_name(inner)}"
+    if origin is dict:
+        return "table"
+    if origin is Literal:
+        return f"string ({' or '.join(map(str, typing.get_args(tp)))})"
+    if tp is float:
+        return "float"
+    if tp is int:
+        return "integer"
+    if tp is str:
+        return "string"
+    if tp is bool:
+        return "boolean"
+    if isinstance(tp, type) and issubclass(tp, BaseModel):
+        return "table"
+    return getattr(tp, "__name__", str(tp))
+
+
+def _number_type(annotation: Any) -> Any:
+    """``int`` or ``float`` of a number key or a list of numbers (``list[Annotated[int, ...]]``)."""
+    if typing.get_origin(annotation) is list:
+        annotation = typing.get_args(annotation)[0]
+    if typing.get_origin(annotation) is Annotated:
+        annotation = typing.get_args(annotation)[0]
+    args = [a for a in typing.get_args(annotation) if a is not type(None)]
+    if len(args) == 1 and type(None) in typing.get_args(annotation):  # ``int | None``
+        return args[0]
+    return annotation
+
+
+def _float_for_int_hint(wants_int: bool, value: Any) -> str:
+    """Explain a float written where an integer is expected (TOML reads ``1e8`` as float)."""
+    floats = [v for v in (value if isinstance(value, list) else [value]) if isinstance(v, float)]
+    if not wants_int or not floats:
+        return ""
+    example = next((v for v in floats if v.is_integer()), None)
+    if example is None:
+        return "; an integer is needed here"
+    return (
+        f"; TOML reads {example!r} (written with a decimal point or an exponent such as 1e8) "
+        f"as a float: write the integer as {int(example):_}"
+    )
+
+
+def did_you_mean(key: str, names: list[str]) -> str:
+    """`` (did you mean X?)`` for the name closest to ``key``, or ``""``."""
+    close = difflib.get_close_matches(key, names, n=1)
+    return f" (did you mean {close[0]}?)" if close else ""
+
+
+def unknown_top_level(key: object, source: str) -> str:
+    """The message of an unknown top-level key of a scenario file."""
+    names = ["name", *SECTIONS]
+    return (
+        f"{source}: unknown section or key {key!r}{did_you_mean(str(key), names)}; expected "
+        f"name or one of the tables {', '.join(f'[{s}]' for s in SECTIONS)}"
+    )
+
+
+def unknown_section(section: str, source: str) -> str:
+    """The message of an unknown section."""
+    return (
+        f"{source}: unknown section [{section}]{did_you_mean(section, list(SECTIONS))}; "
+        f"expected one of {', '.join(f'[{s}]' for s in SECTIONS)}"
+    )
+
+
+#: pydantic error types of a number outside its declared bounds (or NaN, infinite).
+_RANGE_ERRORS = frozenset(
+    {"greater_than", "greater_than_equal", "less_than", "less_than_equal", "finite_number"}
+)
+
+
+def _describe(error: Any, source: str, loc: tuple[Any, ...]) -> str:
+    """One pydantic error (``loc`` from the scenario's top) as a scenario message."""
+    kind, value = error["type"], error.get("input")
+    found = f"found {_found_name(value)} ({value!r})"
+    if not loc:
+        return f"{source}: {error['msg']}, {found}"
+    head = loc[0]
+    if head not in SECTIONS:  # a top-level key: name, or no key of a scenario file
+        if kind == "extra_forbidden":
+            return unknown_top_level(head, source)
+        if kind == "string_type":
+            return f"{source}: key {head} expects string, {found}"
+        return f"{source}: key {head}: {error['msg']}, {found}"
+    section, model = str(head), SECTIONS[str(head)]
+    while len(loc) > 2 and _table_model(model, loc[1]) is not None:
+        model = _table_model(model, loc[1])  # a nested table: [feedback.distill]
+        section, loc = f"{section}.{loc[1]}", (loc[0], *loc[2:])
+    if len(loc) == 1:
+        if kind in ("model_type", "model_attributes_type", "dict_type"):
+            return f"{source}: key {section} expects table, {found}"
+        return f"{source}: key [{section}]: {error['msg']}, {found}"
+    key, rest = str(loc[1]), loc[2:]
+    names = list(model.model_fields)
+    if kind == "extra_forbidden" and not rest:
+        return (
+            f"{source}: unknown key [{section}].{key}{did_you_mean(key, names)}; expected one "
+            f"of: {', '.join(names)}"
+        )
+    where = f"[{section}].{key}"
+    info = model.model_fields.get(key)
+    if info is None:  # pragma: no cover - pydantic reports only keys of the model
+        return f"{source}: key {where}: {error['msg']}, {found}"
+    index = rest[0] if rest and isinstance(rest[0], int) else None
+    at = f" at index {index}" if index is not None else ""
+    if kind in _RANGE_ERRORS:
+        rng = field_range(model, key) or Range()
+        number_type = _number_type(info.annotation)
+        if index is not None:
+            where += f"[{index}]"
+        return (
+            f"{source}: key {where} expects {_kind(number_type, rng)} {rng.describe()} "
+            f"({rng.why}), found {value!r}"
+        )
+    if kind in ("too_short", "too_long"):
+        length = field_length(model, key) or Range()
+        return (
+            f"{source}: key {where} expects a list whose length is {length.describe()} "
+            f"({length.why}), found {len(value)} entries ({value!r})"
+        )
+    if kind == "literal_error":
+        tp = info.annotation if index is None else typing.get_args(info.annotation)[0]
+        choices = ", ".join(map(str, typing.get_args(tp)))
+        each = "each entry to be " if index is not None else ""
+        return f"{source}: key {where} expects {each}one of {choices}, found {value!r}{at}"
+    if kind.endswith("_type"):
+        wants_int = kind == "int_type"
+        return (
+            f"{source}: key {where} expects {_type_name(info.annotation)}, {found}{at}"
+            f"{_float_for_int_hint(wants_int, value)}"
+        )
+    return f"{source}: key {where}{at}: {error['msg']}, {found}"
+
+
+def _table_model(model: type[BaseModel], key: Any) -> type[BaseModel] | None:
+    """The model of ``model``'s key when that key is a nested table, else None."""
+    info = model.model_fields.get(str(key))
+    tp = info.annotation if info is not None else None
+    return tp if isinstance(tp, type) and issubclass(tp, BaseModel) else None
+
+
+def scenario_error(error: ValidationError, source: str, loc: tuple[str, ...] = ()) -> ScenarioError:
+    """Turn pydantic's :class:`~pydantic.ValidationError` into one scenario error line.
+
+    The first problem pydantic found (in the order of the file's sections and keys) is
+    described from its ``loc`` (section, key, list index), ``type`` (which check failed),
+    ``input`` (the value found) and ``ctx``, with the key's declared range and reason
+    (:func:`field_range`) or choices; an unknown key names the close match. A validator's
+    own :class:`~amuled_ma.errors.ScenarioError` (a safe name, the agent tables, memory)
+    is returned as it is. Further problems are counted at the end.
+
+    Args:
+        error: The error of ``model_validate`` (or of a model's construction).
+        source: The file (or ``--set`` override) validated, named first in the message.
+        loc: Where the validated model sits in a scenario: ``("ppo",)`` for a section
+            model, ``()`` for a whole :class:`Scenario`.
+
+    Returns:
+        ``ScenarioError("<source>: key [section].key expects <what>, found <value>")``.
+
+    """
+    problems = error.errors(include_url=False)
+    first = problems[0]
+    cause = (first.get("ctx") or {}).get("error")
+    if isinstance(cause, ScenarioError):
+        return cause
+    message = _describe(first, source, (*loc, *first["loc"]))
+    more = len(problems) - 1
+    if more:
+        message += f" (and {more} more problem{'s' if more > 1 else ''})"
+    return ScenarioError(message)

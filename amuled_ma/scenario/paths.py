@@ -1,0 +1,191 @@
+"""Paths of a scenario: safe folder names, the user data folder, recordings by name."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+from amuled_ma.errors import ScenarioError
+from amuled_ma.scenario.ranges import found_name as _found_name
+
+#: Longest name accepted as a path component.
+MAX_NAME_LENGTH = 100
+
+#: What :func:`check_path_component` allows, quoted in its errors.
+NAME_RULE = (
+    f"1 to {MAX_NAME_LENGTH} characters; no '/', '\\', ':' or '..'; no control "
+    "characters; not starting with '.' or '-'; no leading or trailing space"
+)
+
+
+# --------------------------------------------------------------------- user data
+#: Folder name of our files in the XDG data folder (``~/.local/share/amuled-ma``).
+USER_DATA_NAME = "amuled-ma"
+
+
+def user_data_dir() -> Path:
+    """The user data folder: ``$AMULED_DATA``, else ``$XDG_DATA_HOME/amuled-ma``.
+
+    ``$XDG_DATA_HOME`` defaults to ``~/.local/share``. Imported recordings live in its
+    ``recordings/`` sub-folder (:func:`user_recordings_dir`).
+    """
+    env = os.environ.get("AMULED_DATA")
+    if env:
+        return Path(os.path.expanduser(env))
+    xdg = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(os.path.expanduser(xdg)) / USER_DATA_NAME
+
+
+def user_recordings_dir() -> Path:
+    """Folder of the user's recordings: ``<user_data_dir()>/recordings``."""
+    return user_data_dir() / "recordings"
+
+
+# --------------------------------------------------------------------- path components
+def _component_problem(name: str) -> str | None:
+    """What makes ``name`` unsafe as one path component (None: nothing)."""
+    if not name:
+        return "it is empty"
+    if len(name) > MAX_NAME_LENGTH:
+        return f"it has {len(name)} characters"
+    for bad in ("/", "\\", ":", os.sep, os.altsep or "/"):
+        if bad in name:
+            return f"it contains {bad!r}"
+    if ".." in name:
+        return "it contains '..'"
+    for ch in name:
+        if ord(ch) < 32 or 127 <= ord(ch) < 160:
+            return f"it contains the control character U+{ord(ch):04X}"
+    if name[0] in ".-":
+        return f"it starts with {name[0]!r}"
+    if name != name.strip():
+        return "it has a leading or trailing space"
+    return None
+
+
+def check_path_component(name: object, where: str) -> str:
+    """Check that ``name`` can be used as one folder name, and return it.
+
+    Args:
+        name: The value (a scenario name, a task name).
+        where: File and key, for the error (``"s.toml: key name"``).
+
+    Returns:
+        ``name`` unchanged.
+
+    Raises:
+        ScenarioError: ``name`` is not a string, or is empty, too long, or holds a path
+            separator, ``..``, a colon, a control character, a leading ``.``/``-`` or
+            a leading or trailing space.
+
+    """
+    if not isinstance(name, str):
+        raise ScenarioError(f"{where} expects string, found {_found_name(name)} ({name!r})")
+    problem = _component_problem(name)
+    if problem:
+        raise ScenarioError(
+            f"{where} is used as a folder name and must be one safe path component "
+            f"({NAME_RULE}); found {name!r}: {problem}"
+        )
+    return name
+
+
+def safe_child(root: str | os.PathLike[str], name: str, *, what: str = "name") -> Path:
+    """Return ``root / name`` after checking that it lies directly inside ``root``.
+
+    ``name`` must pass :func:`check_path_component`; the joined path is then normalised
+    (without following symbolic links, so a run folder the user linked elsewhere on
+    purpose keeps working) and must have ``root`` as its parent.
+
+    Args:
+        root: The folder the child must stay in (``[output].runs_dir``).
+        name: The child's name.
+        what: File and key of ``name``, for the error.
+
+    Returns:
+        ``Path(root) / name``, relative when ``root`` is.
+
+    Raises:
+        ScenarioError: ``name`` is unsafe, or the path would leave ``root``.
+
+    """
+    check_path_component(name, what)
+    child = Path(root) / name
+    parent = Path(os.path.normpath(os.path.abspath(root)))
+    if Path(os.path.normpath(os.path.abspath(child))).parent != parent:
+        raise ScenarioError(  # pragma: no cover - the component check already stops this
+            f"{what}: {name!r} would put the run outside {parent}; expected a single "
+            f"folder name ({NAME_RULE})"
+        )
+    return child
+
+
+def find_recording(
+    value: str,
+    resolve: Callable[[str], Path],
+    *,
+    where: str,
+    required: bool = False,
+    key: str = "[feedback].recording",
+) -> Path:
+    """Find a recording file by path or by name (see :meth:`Scenario.recording_path`).
+
+    Args:
+        value: The path or bare name (``"findmilk-gpt-4o-mini"``, ``.json`` optional).
+        resolve: Resolves a path against the scenario file's folder.
+        where: The scenario file (or name), first in messages.
+        required: Raise when no place holds the file (else the value as given, resolved).
+        key: The key that named it, for messages.
+
+    Returns:
+        The recording file.
+
+    Raises:
+        ScenarioError: ``required`` and nothing was found (or the value is empty); the
+            message lists every place looked and names ``amuled import authors PATH``.
+
+    """
+    as_given = resolve(value)
+    if not value.strip():
+        if required:
+            raise ScenarioError(
+                f"{where}: {key} is empty; name a recording file, or a "
+                "recording by name such as 'findmilk-gpt-4o-mini'"
+            )
+        return as_given
+    names = [Path(value).name]
+    if not value.endswith(".json"):
+        names.append(f"{names[0]}.json")
+    given = [as_given.with_name(n) for n in names]
+    env = os.environ.get("AMULED_RECORDINGS")
+    cwd = Path.cwd().resolve()
+    root = next((d for d in (cwd, *cwd.parents) if (d / ".git").exists()), None)
+    folders = [
+        ("$AMULED_RECORDINGS", Path(os.path.expanduser(env)) if env else None, "not set"),
+        ("the user data folder", user_recordings_dir(), ""),
+        (
+            "beside the checkout",
+            root.parent / "shared" / "amuled-recordings" if root else None,
+            "the current directory is in no checkout",
+        ),
+    ]
+    candidates = given + [f / n for _, f, _ in folders if f is not None for n in names]
+    for path in candidates:
+        if path.is_file():
+            return path
+    if not required:
+        return as_given
+    looked = "; ".join(
+        [f"as given (relative to the scenario file): {' or '.join(map(str, given))}"]
+        + [
+            f"{label}: {folder / names[-1] if folder is not None else f'({why})'}"
+            for label, folder, why in folders
+        ]
+    )
+    raise ScenarioError(
+        f"{where}: {key} {value!r} not found; looked in: {looked}. Fix: "
+        "convert the AMULED authors' recordings with 'amuled import authors PATH' "
+        "(PATH = a checkout of https://github.com/temetski/moral_agent), or set "
+        f"AMULED_RECORDINGS to the folder holding {names[-1]}"
+    )

@@ -1,0 +1,154 @@
+"""Declared number ranges of scenario keys, read back from the models' ``Field`` bounds."""
+
+from __future__ import annotations
+
+import math
+import typing
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+from pydantic import BaseModel
+
+
+@dataclass(frozen=True)
+class Range:
+    """The allowed values of a numeric scenario key; NaN and infinities never are.
+
+    A section model declares its ranges as pydantic ``Field`` bounds; :func:`field_range`
+    and :func:`field_length` read them back as a ``Range``, which describes them in
+    errors and in ``docs/learning.md``.
+
+    Attributes:
+        low: Smallest allowed value (None: no lower end).
+        high: Largest allowed value (None: no upper end).
+        low_open: Exclude ``low`` itself.
+        high_open: Exclude ``high`` itself.
+        why: The reason for the range, quoted in errors and docs.
+
+    """
+
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+    why: str = ""
+
+    def __contains__(self, value: object) -> bool:
+        """Whether ``value`` is a finite real number inside the range."""
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            return False
+        if not math.isfinite(value):
+            return False
+        if self.low is not None and (value < self.low or (self.low_open and value == self.low)):
+            return False
+        return not (
+            self.high is not None and (value > self.high or (self.high_open and value == self.high))
+        )
+
+    def describe(self) -> str:
+        """The range in words: ``in (0, 1]``, ``>= 1``, ``> 0``."""
+        if self.low is not None and self.high is not None:
+            left, right = "(" if self.low_open else "[", ")" if self.high_open else "]"
+            return f"in {left}{_number(self.low)}, {_number(self.high)}{right}"
+        if self.low is not None:
+            return f"{'>' if self.low_open else '>='} {_number(self.low)}"
+        if self.high is not None:
+            return f"{'<' if self.high_open else '<='} {_number(self.high)}"
+        return "(any finite value)"
+
+
+def _number(value: float) -> str:
+    if isinstance(value, int) and abs(value) >= 10_000:
+        return f"{value:,}"
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def _bounds(metadata: list[Any], why: str | None) -> Range | None:
+    """The ``ge``/``gt``/``le``/``lt`` constraints among a field's metadata as a Range."""
+    low = high = None
+    low_open = high_open = False
+    for item in metadata:
+        if getattr(item, "ge", None) is not None:
+            low = item.ge
+        elif getattr(item, "gt", None) is not None:
+            low, low_open = item.gt, True
+        if getattr(item, "le", None) is not None:
+            high = item.le
+        elif getattr(item, "lt", None) is not None:
+            high, high_open = item.lt, True
+    if low is None and high is None:
+        return None
+    return Range(low, high, low_open, high_open, why or "")
+
+
+def _item_field(annotation: Any) -> Any:
+    """The ``Field`` of a list's items (``list[Annotated[int, Field(...)]]``), if any."""
+    if typing.get_origin(annotation) is not list:
+        return None
+    (item,) = typing.get_args(annotation)
+    if typing.get_origin(item) is not Annotated:
+        return None
+    return next((m for m in typing.get_args(item)[1:] if hasattr(m, "metadata")), None)
+
+
+def field_range(model: type[BaseModel], key: str) -> Range | None:
+    """The range of a numeric key, as declared by its ``Field`` bounds and description.
+
+    Args:
+        model: A section model (:class:`PPOConfig`).
+        key: The key (``gamma``); for a list of numbers (``hidden_dims``), the range of
+            each entry.
+
+    Returns:
+        The range, with the field's ``description`` as the reason; None for a key without
+        bounds (a string, a flag, a free table).
+
+    """
+    info = model.model_fields[key]
+    item = _item_field(info.annotation)
+    if item is not None:
+        return _bounds(item.metadata, item.description)
+    return _bounds(info.metadata, info.description)
+
+
+def field_length(model: type[BaseModel], key: str) -> Range | None:
+    """The allowed length of a list key (``min_length``/``max_length``), if it has one.
+
+    Args:
+        model: A section model (:class:`PPOConfig`).
+        key: The key (``hidden_dims``).
+
+    Returns:
+        The range of the number of entries, with the field's ``description`` as the
+        reason; None when the length is free.
+
+    """
+    info = model.model_fields[key]
+    low = next((m.min_length for m in info.metadata if hasattr(m, "min_length")), None)
+    high = next((m.max_length for m in info.metadata if hasattr(m, "max_length")), None)
+    if low is None and high is None:
+        return None
+    return Range(low, high, why=info.description or "")
+
+
+def kind(number_type: Any, rng: Range) -> str:
+    """What a key of ``number_type`` (``int`` or ``float``) in ``rng`` is, in words."""
+    if number_type is int:
+        if rng.low is not None and rng.low >= 1:
+            return "a positive integer"
+        if rng.low == 0:
+            return "a non-negative integer"
+        return "an integer"
+    return "a finite number"
+
+
+def found_name(value: Any) -> str:
+    """The TOML type name of a value (``integer``, ``table``, ...)."""
+    return {
+        bool: "boolean",
+        int: "integer",
+        float: "float",
+        str: "string",
+        list: "array",
+        dict: "table",
+    }.get(type(value), type(value).__name__)

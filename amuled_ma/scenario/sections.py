@@ -1,0 +1,593 @@
+"""The sections of a scenario file, one frozen pydantic v2 model per table.
+
+``[task]``, ``[ppo]``, ``[base]``, ``[finetune]``, ``[feedback]`` (with ``[feedback.distill]``
+and the typed ``[feedback.agents.<name>]`` specs of :mod:`amuled_ma.scenario.agents`),
+``[evaluation]`` and ``[output]``; strict types, ``extra="forbid"``, ranges declared on
+each field. Errors become one line by :func:`amuled_ma.scenario.messages.scenario_error`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from contextvars import ContextVar
+from typing import Annotated, Any, ClassVar, Literal, TypeVar
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_serializer,
+    field_validator,
+    model_validator,
+)
+
+from amuled_ma.errors import ScenarioError
+from amuled_ma.scenario.agents import AgentSpec, check_agent_tables, check_ollama_table
+from amuled_ma.scenario.memory import MAX_ENV_STEPS, MAX_SEED, check_budget, check_finite
+from amuled_ma.scenario.messages import BUILT_IN_CODE, SECTIONS, scenario_error
+from amuled_ma.scenario.paths import check_path_component
+from amuled_ma.scenario.ranges import found_name as _found_name
+from amuled_ma.urls import normalize_host, normalize_hosts
+
+#: The five moral clusters of the paper (Table 1), in the recordings' order.
+PAPER_CLUSTERS = ("consequentialist", "deontological", "virtue", "care", "social_justice")
+
+#: ``[feedback].source``: the belief source of agents without a ``[feedback.agents]`` table.
+FeedbackSource = Literal["replay", "ollama", "rules"]
+#: ``[feedback].miss_policy``: what a replay miss gives.
+MissPolicy = Literal["uniform", "fallback", "error", "zero"]
+#: ``[finetune].recipe``: how the KL anchor enters the fine-tuning reward.
+Recipe = Literal["equation", "authors"]
+#: ``[ppo].activation``: rsl-rl's names of the hidden activation.
+Activation = Literal["tanh", "relu", "elu", "selu", "lrelu", "sigmoid", "identity"]
+#: ``[evaluation].modes``: action selection of the evaluation episodes.
+EvaluationMode = Literal["greedy", "sampled"]
+#: ``[feedback.distill].model``: the distilled reward model's kind.
+DistillModel = Literal["mlp"]
+#: ``[feedback.distill].selection``: which new states the budget spends on.
+DistillSelection = Literal["uncertainty", "random"]
+
+
+# Reasons of ranges shared by several keys (each key's ``Field(description=...)``).
+_SEED_WHY = "a seed of torch and of the tasks' 64-bit random streams"
+_EPOCHS_WHY = "optimisation passes over each rollout; CleanRL 4, authors 16"
+_LR_WHY = "Adam step size: 0 learns nothing, beyond 1 the update diverges"
+_SAVE_WHY = "iterations between checkpoints; 0 would divide by zero"
+_ENVS_WHY = "parallel copies; with num_steps_per_env also checked against memory"
+_STEPS_WHY = "rollout length per copy; with num_envs also checked against memory"
+_WEIGHT_WHY = "a weight; negative flips the term's sign"
+
+
+#: The validation context (``{"source": <file or override>}``) of the scenario being
+#: validated. pydantic passes ``model_validate``'s context to validators but calls a model's
+#: own ``__init__`` (the section models have one) without it, so :func:`_validate` also
+#: sets it here for :func:`_init` to pass on (the pattern of pydantic's documentation,
+#: "Using validation context with BaseModel initialization").
+_CONTEXT: ContextVar[dict[str, str] | None] = ContextVar("amuled_scenario_context", default=None)
+
+
+def _init(model: BaseModel, data: dict[str, Any], loc: tuple[str, ...]) -> None:
+    """Validate ``data`` into ``model``, the ``__init__`` of the scenario models.
+
+    Inside the validation of a file (:func:`_validate`) pydantic's error is left to it, to
+    be reported with the file's name; built in code, it is converted here.
+    """
+    context = _CONTEXT.get()
+    try:
+        model.__pydantic_validator__.validate_python(data, self_instance=model, context=context)
+    except ValidationError as error:
+        if context is not None:
+            raise
+        raise scenario_error(error, BUILT_IN_CODE, loc) from None
+
+
+def _source(info: ValidationInfo) -> str:
+    """The file (or override) being validated: the validation context's ``source``."""
+    context = info.context
+    if isinstance(context, Mapping) and isinstance(context.get("source"), str):
+        return context["source"]
+    return BUILT_IN_CODE
+
+
+class _Section(BaseModel):
+    """Base of the section models: strict, frozen, no unknown keys, no NaN.
+
+    Built in code (``TaskConfig(seed=-1)``), a section is validated like a file and a
+    failure raises :class:`~amuled_ma.errors.ScenarioError`, not pydantic's error.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+
+    #: The table's name in a scenario file (``task`` for ``[task]``).
+    section: ClassVar[str] = ""
+
+    def __init__(self, /, **data: Any) -> None:
+        _init(self, data, (self.section,))
+
+
+def _finite_table(section: str, value: Any, info: ValidationInfo) -> Any:
+    """Refuse NaN and infinities anywhere in a free-form table, naming the nested key."""
+    check_finite(f"[{section}].{info.field_name}", value, _source(info))
+    return value
+
+
+class TaskConfig(_Section):
+    """The task environment.
+
+    Attributes:
+        name: Task name known to :func:`amuled_ma.tasks.get_task` (``findmilk``, ``driving``);
+            also a file name (prompt templates), so one safe path component.
+        seed: Base random seed of the run.
+        max_steps: Episode step limit; 0 keeps the task's own default.
+        options: Extra keyword options passed to the task constructor.
+
+    """
+
+    section: ClassVar[str] = "task"
+
+    name: str = "findmilk"
+    seed: int = Field(1, ge=0, le=MAX_SEED, description=_SEED_WHY)
+    max_steps: int = Field(
+        0, ge=0, le=10**7, description="episode step limit; 0 keeps the task's default"
+    )
+    options: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator("name")
+    @classmethod
+    def _name_is_a_folder_name(cls, value: str, info: ValidationInfo) -> str:
+        return check_path_component(value, f"{_source(info)}: key [task].name")
+
+    @field_validator("options")
+    @classmethod
+    def _options_are_finite(cls, value: Any, info: ValidationInfo) -> Any:
+        return _finite_table("task", value, info)
+
+
+class PPOConfig(_Section):
+    """PPO hyperparameters shared by base training and fine-tuning (CleanRL ``ppo.py`` defaults).
+
+    Attributes:
+        hidden_dims: Hidden layer widths of the actor and the critic MLPs.
+        activation: Hidden activation (rsl-rl name).
+        learning_rate: Adam learning rate.
+        anneal_lr: Linearly anneal the learning rate to 0 over the run.
+        gamma: Discount factor.
+        lam: GAE lambda.
+        clip_param: PPO clipping coefficient.
+        entropy_coef: Entropy bonus coefficient.
+        value_loss_coef: Value loss coefficient.
+        max_grad_norm: Gradient clipping norm.
+        num_learning_epochs: Optimisation epochs per iteration.
+        num_mini_batches: Mini-batches per epoch.
+        normalize_advantage_per_mini_batch: Normalise advantages per mini-batch (CleanRL)
+            rather than per rollout.
+
+    """
+
+    section: ClassVar[str] = "ppo"
+
+    hidden_dims: list[
+        Annotated[
+            int,
+            Field(
+                ge=1,
+                le=65_536,
+                description="units of a hidden layer; the networks are also checked against memory",
+            ),
+        ]
+    ] = Field(
+        default_factory=lambda: [64, 64],
+        min_length=1,
+        max_length=64,
+        description="hidden layers; rsl-rl's MLP needs at least one",
+    )
+    activation: Activation = "tanh"
+    learning_rate: float = Field(2.5e-4, gt=0, le=1, description=_LR_WHY)
+    anneal_lr: bool = True
+    gamma: float = Field(
+        0.99, ge=0, le=1, description="discount factor: above 1 returns grow without bound"
+    )
+    lam: float = Field(
+        0.95, ge=0, le=1, description="GAE lambda, a weight between TD(0) and Monte Carlo"
+    )
+    clip_param: float = Field(
+        0.2,
+        gt=0,
+        lt=1,
+        description="PPO ratio clip: the ratio is clipped to [1 - clip, 1 + clip], which must "
+        "be positive",
+    )
+    entropy_coef: float = Field(0.01, ge=0, description=_WEIGHT_WHY)
+    value_loss_coef: float = Field(0.5, ge=0, description=_WEIGHT_WHY)
+    max_grad_norm: float = Field(
+        0.5, gt=0, description="gradient norm clip: 0 would zero every update"
+    )
+    num_learning_epochs: int = Field(4, ge=1, le=1000, description=_EPOCHS_WHY)
+    num_mini_batches: int = Field(
+        4, ge=1, le=65_536, description="mini-batches per epoch; each needs transitions"
+    )
+    normalize_advantage_per_mini_batch: bool = True
+
+    @model_validator(mode="after")
+    def _networks_fit_in_memory(self, info: ValidationInfo) -> PPOConfig:
+        check_budget("ppo", dict(self), _source(info))
+        return self
+
+
+class BaseConfig(_Section):
+    """Base training (paper, Simulation Studies): ``r = r_env + c * r_shaping``.
+
+    Attributes:
+        total_steps: Environment steps of the whole run (all copies together).
+        num_envs: Parallel environment copies.
+        num_steps_per_env: Rollout length per copy and iteration.
+        shaping_coef: ``c`` of the ``shaped`` variant (the ``base`` variant uses 0).
+        save_interval: Iterations between checkpoints.
+
+    """
+
+    section: ClassVar[str] = "base"
+
+    total_steps: int = Field(
+        500_000,
+        ge=1,
+        le=MAX_ENV_STEPS,
+        description="env steps of the run, capped at MAX_ENV_STEPS (about 28 h at 100k steps/s)",
+    )
+    num_envs: int = Field(4, ge=1, description=_ENVS_WHY)
+    num_steps_per_env: int = Field(128, ge=1, description=_STEPS_WHY)
+    shaping_coef: float = Field(
+        1.0, ge=0, description="weight c of the shaping reward (the tasks need c >= 0)"
+    )
+    save_interval: int = Field(100, ge=1, description=_SAVE_WHY)
+
+    @model_validator(mode="after")
+    def _rollouts_fit_in_memory(self, info: ValidationInfo) -> BaseConfig:
+        check_budget("base", dict(self), _source(info))
+        return self
+
+
+class FinetuneConfig(_Section):
+    """Fine-tuning on fused feedback: ``r = -lambda_kl * KL(pi || pi_base) + f(B)[a]``.
+
+    Attributes:
+        lambda_kl: Weight of the per-sample KL anchor to the base policy.
+        iterations: PPO iterations.
+        num_envs: Parallel environment copies.
+        num_steps_per_env: Rollout length per copy and iteration.
+        num_learning_epochs: Optimisation epochs per iteration (overrides ``[ppo]``).
+        learning_rate: Adam learning rate (overrides ``[ppo]``).
+        anneal_lr: Anneal the learning rate (overrides ``[ppo]``).
+        reinit_critic: Re-initialise the critic before fine-tuning.
+        env_reward_coef: Weight of the task reward kept in the fine-tuning reward (paper: 0).
+        save_interval: Iterations between checkpoints.
+        recipe: How the KL anchor enters the reward: ``"equation"`` (the paper's equation,
+            the per-sample ``log pi(a|s) - log pi_base(a|s)``) or ``"authors"`` (what the
+            authors' scripts compute: the KL between the log-softmax over time of the
+            taken actions' log-probabilities since the episode, or the iteration, began;
+            see :mod:`amuled_ma.learn.anchors`).
+
+    """
+
+    section: ClassVar[str] = "finetune"
+
+    lambda_kl: float = Field(
+        2.5,
+        ge=0,
+        description="weight of the KL anchor to the base policy; negative rewards drifting away",
+    )
+    iterations: int = Field(
+        1000,
+        ge=1,
+        le=10**8,
+        description="PPO iterations; iterations x num_envs x num_steps_per_env is also capped",
+    )
+    num_envs: int = Field(1, ge=1, description=_ENVS_WHY)
+    num_steps_per_env: int = Field(128, ge=1, description=_STEPS_WHY)
+    num_learning_epochs: int = Field(16, ge=1, le=1000, description=_EPOCHS_WHY)
+    learning_rate: float = Field(2.5e-4, gt=0, le=1, description=_LR_WHY)
+    anneal_lr: bool = False
+    reinit_critic: bool = True
+    env_reward_coef: float = Field(0.0, ge=0, description=_WEIGHT_WHY)
+    save_interval: int = Field(100, ge=1, description=_SAVE_WHY)
+    recipe: Recipe = "equation"
+
+    @model_validator(mode="after")
+    def _rollouts_fit_and_run_is_capped(self, info: ValidationInfo) -> FinetuneConfig:
+        check_budget("finetune", dict(self), _source(info))
+        return self
+
+
+class DistillConfig(_Section):
+    """``[feedback.distill]``: LLM feedback on a budget (``docs/distill.md``).
+
+    A small ensemble of networks learns each panel member's belief from the states the
+    panel was asked; during fine-tuning a new state is asked (panel and belief store, as
+    without this table) or answered by the model, and the panel is asked about at most
+    ``budget`` of the distinct states visited.
+
+    Attributes:
+        enabled: Distil at all (off: the panel answers every state).
+        budget: A float in ``(0, 1]``: at most that share of the distinct states the
+            fine-tune visits is asked (``max(1, floor(budget x visited))`` at any time);
+            an integer ``>= 1``: at most that many distinct states. ``1.0`` is every
+            state, ``1`` is one state.
+        model: The model's kind: ``"mlp"`` (an ensemble of two-hidden-layer MLPs on the
+            observation, one softmax head per member).
+        ensemble: Networks in the ensemble (their disagreement is the uncertainty).
+        hidden: Units of each hidden layer.
+        selection: ``"uncertainty"`` (ask where the ensemble disagrees most or the state
+            is far from every asked one) or ``"random"`` (the baseline).
+        refit_every: Newly answered asked states between two refits (the first fits come
+            after 1, 2, 4, ... states).
+        holdout: Share of asked states kept out of the fit to measure the model's
+            agreement with the panel.
+        answer_misses: Answer an asked state's replay misses and abstentions by the model
+            (status ``distilled_miss``, counted apart).
+        seed: Seed of the fits and the random selection; unset: the job's training seed.
+
+    """
+
+    section: ClassVar[str] = "feedback.distill"
+
+    enabled: bool = False
+    budget: float | int = 0.1
+    model: DistillModel = "mlp"
+    ensemble: int = Field(
+        5,
+        ge=1,
+        le=64,
+        description="networks in the ensemble; their disagreement is the "
+        "uncertainty (1: the novelty term alone)",
+    )
+    hidden: int = Field(
+        64, ge=1, le=4096, description="units of each of the model's two hidden layers"
+    )
+    selection: DistillSelection = "uncertainty"
+    refit_every: int = Field(
+        32,
+        ge=1,
+        le=1_000_000,
+        description="newly answered asked states between two refits of the model",
+    )
+    holdout: float = Field(
+        0.2,
+        ge=0,
+        le=0.5,
+        description="share of asked states kept out of the fit to measure agreement; above "
+        "0.5 the model would learn from fewer states than it is judged on",
+    )
+    answer_misses: bool = False
+    seed: int | None = Field(None, ge=0, le=MAX_SEED, description=_SEED_WHY)
+
+    def __init__(self, /, **data: Any) -> None:
+        _init(self, data, ("feedback", "distill"))
+
+    @field_validator("budget", mode="before")
+    @classmethod
+    def _budget_is_a_share_or_a_count(cls, value: Any, info: ValidationInfo) -> Any:
+        ok = not isinstance(value, bool) and (
+            (isinstance(value, int) and value >= 1)
+            or (isinstance(value, float) and math.isfinite(value) and 0 < value <= 1)
+        )
+        if not ok:
+            raise ScenarioError(
+                f"{_source(info)}: key [feedback.distill].budget expects a share in (0, 1] "
+                "written as a float (0.1: at most 10% of the distinct states visited are "
+                "asked) or a count >= 1 written as an integer (at most that many distinct "
+                f"states), found {_found_name(value)} ({value!r})"
+            )
+        return value
+
+
+class FeedbackConfig(_Section):
+    """Where beliefs come from and how they are fused.
+
+    Attributes:
+        source: Belief source kind: ``replay``, ``ollama`` or ``rules``.
+        recording: Recording file replayed by the ``replay`` source.
+        model: LLM name for the ``ollama`` source.
+        host: Ollama server URL; empty: ``$OLLAMA_HOST``, else ``http://127.0.0.1:11434``.
+            Checked on load by :func:`amuled_ma.urls.normalize_host`.
+        hosts: A pool of Ollama server URLs instead of ``host`` (each request goes to the
+            least-busy live one, a dead one is left out and its requests retried on
+            another; ``docs/ollama.md``, "A pool of servers"). Checked on load by
+            :func:`amuled_ma.urls.normalize_hosts`; not with ``host``.
+        concurrency: Requests in flight at once.
+        timeout_s: Seconds before one request is abandoned.
+        miss_policy: What a replay miss gives: ``uniform``, ``fallback``, ``error``, or
+            ``zero`` (reward 0 for a state missing from the recording, as the authors'
+            scripts did; counted as a miss).
+        cluster_recording: The recording the ``clusters`` and ``aggregation`` ablations
+            replay when ``recording`` keeps only fused beliefs (the paper's Driving
+            gpt-4o-mini cache); empty: ``recording``.
+        store: SQLite belief store (cache of every answer).
+        clusters: Moral clusters of the panel.
+        fusion: Fusion rule of the ``amuled`` variant, a name of
+            :data:`amuled_ma.fusion.RULES` (``bjs-dst``, ``mean``, ``single:2``, ...). A
+            plain string, not a ``Literal``: rules can be registered at run time
+            (:func:`amuled_ma.fusion.register_rule`) and take a parameter after ``:``.
+        ollama: Further keyword arguments of
+            :class:`~amuled_ma.beliefs.ollama.OllamaSource` (``num_predict``, ``num_ctx``,
+            ``reasoning``, ``seed``, ``retries``, ...), checked against its signature.
+        agents: A belief source per panel member, ``{agent: table}`` from the
+            ``[feedback.agents.<agent>]`` tables: ``source`` = ``replay``, ``ollama``,
+            ``rules``, ``terminal``, ``entry-point`` or ``policy`` and that kind's keys
+            (a spec model of :data:`amuled_ma.scenario.agents.AGENT_SPECS`, typed on load;
+            messages by :func:`amuled_ma.scenario.agents.check_agent_tables`); an agent
+            without a table uses ``source`` (see ``docs/beliefs.md``).
+        clusters_dirs: Folders of user cluster files (relative to the scenario file),
+            loaded after the shipped ones; a file overrides a shipped cluster of its name.
+        max_abstention: The largest share of rewarded steps one panel agent may leave
+            unanswered (abstained, timeout, error, replay miss); beyond it the run stops
+            with an error naming the agent, its source and the fix (judged once the agent
+            was asked 20 distinct states).
+        name: The fine-tune's variant name (folder ``finetune-<name>``); empty: named
+            after the feedback (``finetune-amuled``).
+        distill: ``[feedback.distill]``, the panel asked on a budget and a distilled
+            reward model for the rest (:class:`DistillConfig`; off by default).
+
+    """
+
+    section: ClassVar[str] = "feedback"
+
+    source: FeedbackSource = "replay"
+    recording: str = ""
+    model: str = ""
+    host: str = ""
+    hosts: list[str] = Field(default_factory=list)
+    concurrency: int = Field(
+        4, ge=1, le=1024, description="LLM requests in flight, one connection each"
+    )
+    timeout_s: float = Field(
+        120.0,
+        gt=0,
+        le=86_400,
+        description="seconds per LLM request: 0 fails all, above a day hangs",
+    )
+    miss_policy: MissPolicy = "uniform"
+    cluster_recording: str = ""
+    store: str = "beliefs.sqlite"
+    clusters: list[str] = Field(default_factory=lambda: list(PAPER_CLUSTERS))
+    fusion: str = "bjs-dst"
+    ollama: dict[str, Any] = Field(default_factory=dict)
+    agents: dict[str, AgentSpec] = Field(default_factory=dict)
+    clusters_dirs: list[str] = Field(default_factory=list)
+    max_abstention: float = Field(
+        0.2,
+        ge=0,
+        le=1,
+        description="share of rewarded steps an agent may leave unanswered before a run stops",
+    )
+    name: str = ""
+    distill: DistillConfig = Field(default_factory=DistillConfig)
+
+    @field_validator("host")
+    @classmethod
+    def _host_is_a_url(cls, value: str, info: ValidationInfo) -> str:
+        if value:
+            normalize_host(value, where=f"{_source(info)}: key [feedback].host")
+        return value
+
+    @field_validator("hosts")
+    @classmethod
+    def _hosts_are_urls(cls, value: list[str], info: ValidationInfo) -> list[str]:
+        if value:
+            normalize_hosts(value, where=f"{_source(info)}: key [feedback].hosts")
+            if info.data.get("host"):
+                raise ScenarioError(
+                    f"{_source(info)}: keys [feedback].host ({info.data['host']!r}) and "
+                    f"[feedback].hosts ({value!r}) are both set; give one server with host, "
+                    'or a pool with hosts = [...] and host = "" (list that server in hosts '
+                    'too; on the command line: --set feedback.host="")'
+                )
+        return value
+
+    @field_validator("ollama")
+    @classmethod
+    def _ollama_is_finite(cls, value: Any, info: ValidationInfo) -> Any:
+        check_ollama_table(value, _source(info))
+        return _finite_table("feedback", value, info)
+
+    @field_validator("agents", mode="before")
+    @classmethod
+    def _agent_tables(cls, value: Any, info: ValidationInfo) -> Any:
+        """Check the tables before their type, so that the messages name the table and fix."""
+        _finite_table("feedback", value, info)
+        if all(k in info.data for k in ("clusters", "source", "model")):  # else: reported
+            check_agent_tables(
+                value,
+                where=_source(info),
+                clusters=info.data["clusters"],
+                default_source=info.data["source"],
+                default_model=info.data["model"],
+            )
+        return value
+
+    @field_serializer("agents")
+    def _agents_as_written(self, agents: dict[str, Any]) -> dict[str, Any]:
+        """The tables as written (the keys each set), so ``to_dict`` round-trips."""
+        return {
+            name: {"source": spec.source, **spec.model_dump(exclude_unset=True)}
+            for name, spec in agents.items()
+        }
+
+
+class EvaluationConfig(_Section):
+    """Evaluation protocol.
+
+    Attributes:
+        episodes: Episodes per policy and mode.
+        seed: Seed of the evaluation episodes (distinct from training seeds).
+        modes: ``greedy`` and/or ``sampled`` action selection.
+        confidence: Confidence level of the reported intervals.
+
+    """
+
+    section: ClassVar[str] = "evaluation"
+
+    episodes: int = Field(
+        50,
+        ge=1,
+        le=1_000_000,
+        description="episodes run as parallel task copies (paper: 50); also checked against memory",
+    )
+    seed: int = Field(10_000, ge=0, le=MAX_SEED, description=_SEED_WHY)
+    modes: list[EvaluationMode] = Field(default_factory=lambda: ["greedy", "sampled"])
+    confidence: float = Field(
+        0.95,
+        gt=0,
+        lt=1,
+        description="two-sided confidence level; 1 would need an infinite interval",
+    )
+
+    @model_validator(mode="after")
+    def _episodes_fit_in_memory(self, info: ValidationInfo) -> EvaluationConfig:
+        check_budget("evaluation", dict(self), _source(info))
+        return self
+
+
+class OutputConfig(_Section):
+    """Where runs go.
+
+    Attributes:
+        runs_dir: Folder holding one sub-folder per run.
+        tensorboard: Write TensorBoard event files.
+
+    """
+
+    section: ClassVar[str] = "output"
+
+    runs_dir: str = "runs"
+    tensorboard: bool = True
+
+
+_M = TypeVar("_M", bound=BaseModel)
+
+
+def _validate(model: type[_M], data: Any, source: str, loc: tuple[str, ...] = ()) -> _M:
+    """``model.model_validate(data)`` with ``source`` in the context and errors converted."""
+    context = {"source": source}
+    token = _CONTEXT.set(context)
+    try:
+        return model.model_validate(data, context=context)
+    except ValidationError as error:
+        raise scenario_error(error, source, loc) from None
+    finally:
+        _CONTEXT.reset(token)
+
+
+SECTIONS.update(
+    {
+        "task": TaskConfig,
+        "ppo": PPOConfig,
+        "base": BaseConfig,
+        "finetune": FinetuneConfig,
+        "feedback": FeedbackConfig,
+        "evaluation": EvaluationConfig,
+        "output": OutputConfig,
+    }
+)

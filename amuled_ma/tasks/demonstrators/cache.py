@@ -1,0 +1,77 @@
+"""A demonstrator belief built once per task, seed and episode count, kept in a cache file.
+
+:func:`demonstrator_belief` keeps one file per task, seed and episode count in
+``cache_dir`` (:func:`cache_path`); a file whose recorded settings differ from the requested
+ones is rebuilt and overwritten; an unreadable file raises
+:class:`~amuled_ma.tasks.demonstrators.table.DemonstratorCacheError`.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from amuled_ma.tasks import canonical_name
+from amuled_ma.tasks.demonstrators.driving import play_driving
+from amuled_ma.tasks.demonstrators.findmilk import play_findmilk
+from amuled_ma.tasks.demonstrators.table import (
+    DemonstratorBelief,
+    demonstrator_settings,
+    settings_differences,
+)
+
+__all__ = ["cache_path", "demonstrator_belief"]
+
+
+def cache_path(cache_dir: str | os.PathLike, task_name: str, *, seed: int, episodes: int) -> Path:
+    """Return the cache file of a demonstrator belief in ``cache_dir``.
+
+    ``human_demonstrator_<task>_seed<seed>_episodes<episodes>.npz``.
+    """
+    name = canonical_name(task_name)
+    return Path(cache_dir) / f"human_demonstrator_{name}_seed{seed}_episodes{episodes}.npz"
+
+
+def demonstrator_belief(
+    task_name: str,
+    *,
+    seed: int,
+    episodes: int | None = None,
+    cache_dir: str | os.PathLike | None = None,
+    progress: bool = False,
+) -> DemonstratorBelief:
+    """Build the authors' synthetic human belief of a task, or load it from the cache.
+
+    Args:
+        task_name: ``"findmilk"`` or ``"driving"`` (or an alias).
+        seed: The demonstrator's seed.
+        episodes: Episodes played (``None``: the authors' 1,000 / 10,000). Driving counts
+            from episode 601, so it needs more than 601.
+        cache_dir: Folder of the cache file (:func:`cache_path`); ``None``: no cache. A file
+            made with other settings is rebuilt and overwritten.
+        progress: Show a progress bar while playing.
+
+    Returns:
+        The belief table.
+
+    Raises:
+        ValueError: An argument is out of range.
+        DemonstratorCacheError: The cache file exists but cannot be read.
+
+    """
+    settings = demonstrator_settings(task_name, seed=seed, episodes=episodes)
+    name, episodes = settings["task"], settings["episodes"]
+    path = None
+    if cache_dir is not None:
+        path = cache_path(cache_dir, name, seed=settings["seed"], episodes=episodes)
+        if path.exists():
+            cached = DemonstratorBelief.load(path)
+            if not settings_differences(cached.settings, settings) and cached.task_name == name:
+                return cached
+    if name == "findmilk":
+        belief = play_findmilk(seed=settings["seed"], episodes=episodes, progress=progress)
+    else:
+        belief = play_driving(seed=settings["seed"], episodes=episodes, progress=progress)
+    if path is not None:
+        belief.save(path)
+    return belief

@@ -1,0 +1,204 @@
+"""The authors' Driving demonstrator (``algorithms/human_policy_drive.py``), batched.
+
+A tabular SARSA-style Q-learner whose table is *empty at the start of every episode*.
+``Q(s, a)`` of an unseen observation is drawn from a standard normal (the three actions of a
+new observation together); the policy is Boltzmann, ``p(a) ∝ exp(Q(s, a) / 0.7)``; after the
+next action ``a'`` is drawn in ``s'``, ``Q(s, a) += 0.1 * (r + 0.99 * Q(s', a') - Q(s, a))``,
+and after the last step ``Q(s, a) += 0.1 * (r - Q(s, a))``. The reward is the authors'
+"human-preference" one, ``r = 20 * rescues - collisions + 0.5 * [straight]``, computed from
+the task's per-step ``info`` (the task's own reward is not used). 10,000 episodes of 300
+steps; pairs are counted from episode index 601 on (the authors' ``if cnt > 600``: episodes
+601..9999).
+
+Because the Q table is reset every episode and every episode has its own streams
+(:mod:`amuled_ma.tasks.demonstrators.play`), an episode that is not counted cannot change
+any count; only the counted episodes 601..9999 are played (the authors played 0..600 too
+and threw them away, which also only advanced their random generator).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+
+from amuled_ma.tasks.demonstrators.play import (
+    PairCounter,
+    episode_streams,
+    progress_bar,
+    sample,
+    task_seed,
+    uniforms,
+)
+from amuled_ma.tasks.demonstrators.table import (
+    DEFAULT_EPISODES,
+    DRIVING_COUNT_FROM,
+    MAX_STEPS,
+    DemonstratorBelief,
+    check_count,
+    check_seed,
+    demonstrator_settings,
+    encode_observations,
+)
+from amuled_ma.tasks.driving import Driving
+
+__all__ = ["driving_human_reward", "play_driving", "sarsa_update"]
+
+TEMPERATURE = 0.7
+LEARNING_RATE = 0.1
+DISCOUNT = 0.99
+REWARD_RESCUE = 20.0
+REWARD_COLLISION = -1.0
+REWARD_STRAIGHT = 0.5
+
+_DRAWS_PER_STEP = 5  # 4 for the normals of a new observation, 1 for the action
+_TWO_PI = 2.0 * math.pi
+
+
+def sarsa_update(
+    q_prev: Any,
+    reward: Any,
+    q_next: Any = None,
+    *,
+    learning_rate: float = LEARNING_RATE,
+    discount: float = DISCOUNT,
+) -> Any:
+    """Return the updated ``Q(s, a)`` of the authors' SARSA-style step.
+
+    ``Q(s, a) + lr * (r + discount * Q(s', a') - Q(s, a))``, or without the bootstrap term
+    after the last step (``q_next=None``): ``Q(s, a) + lr * (r - Q(s, a))``.
+
+    Args:
+        q_prev: ``Q(s, a)`` (number or tensor).
+        reward: The reward ``r`` of that step.
+        q_next: ``Q(s', a')`` of the next state and the action drawn there; ``None`` after
+            the episode's last step.
+        learning_rate: Step size (the authors: 0.1).
+        discount: Discount (the authors: 0.99).
+
+    Returns:
+        The new ``Q(s, a)`` (same kind as the inputs).
+
+    """
+    target = reward if q_next is None else reward + discount * q_next
+    return q_prev + learning_rate * (target - q_prev)
+
+
+def driving_human_reward(info: Mapping[str, torch.Tensor], actions: torch.Tensor) -> torch.Tensor:
+    """Return the authors' human-preference Driving reward of one step.
+
+    ``20 * rescues - collisions + 0.5 * [action == straight]`` (their ``ishuman_p``).
+
+    Args:
+        info: The ``info`` of :meth:`Driving.step` (``rescues``, ``collisions``).
+        actions: The actions of that step.
+
+    Returns:
+        float64 ``[num_envs]``.
+
+    """
+    return (
+        REWARD_RESCUE * info["rescues"].to(torch.float64)
+        + REWARD_COLLISION * info["collisions"].to(torch.float64)
+        + REWARD_STRAIGHT * (actions == 0).to(torch.float64)
+    )
+
+
+def _play_wave(seed: int, first: int, n: int, max_steps: int, counter: PairCounter) -> None:
+    """Play Driving episodes ``first..first+n-1`` side by side, one Q table each."""
+    task = Driving(n, seed=task_seed(seed, first), max_steps=max_steps)
+    obs = task.reset()
+    streams = episode_streams(seed, first, n, task.device)
+    rows = torch.arange(n)
+    # The Q table of copy i: Q[i, slot] where slot = step of the episode on which the
+    # observation was first met (at most one new observation per step); seen[i, t] holds
+    # the key of step t and slot_of[i, t] its slot, so a key met again finds its slot.
+    seen = torch.empty(n, max_steps, dtype=torch.int32)
+    slot_of = torch.empty(n, max_steps, dtype=torch.int64)
+    q = torch.empty(n, max_steps, 3, dtype=torch.float64)
+    prev_slot = prev_action = prev_reward = None
+    for t in range(max_steps):
+        keys, _ = encode_observations("driving", obs)
+        sid = keys.to(torch.int32)  # < 11**6 * 2**5 < 2**31
+        if t:
+            found, where = (seen[:, :t] == sid[:, None]).max(1)
+            slot = torch.where(found, slot_of[rows, where], t)
+        else:
+            slot = torch.zeros(n, dtype=torch.int64)
+        seen[:, t] = sid
+        slot_of[:, t] = slot
+        u = uniforms(streams, t * _DRAWS_PER_STEP, _DRAWS_PER_STEP)
+        # standard normals (Box-Muller) for the Q row of a new observation; only read
+        # where slot == t, i.e. the observation is new
+        radius = torch.sqrt(-2.0 * torch.log1p(-u[:, 0:2]))
+        angle = _TWO_PI * u[:, 2:4]
+        normals = torch.cat([radius * torch.cos(angle), radius * torch.sin(angle)], 1)
+        q[:, t] = normals[:, :3]
+        q_s = q[rows, slot]  # [n, 3]
+        actions = sample(torch.softmax(q_s / TEMPERATURE, 1), u[:, 4])
+        if prev_slot is not None:
+            q_next = q_s[rows, actions]
+            q[rows, prev_slot, prev_action] = sarsa_update(
+                q[rows, prev_slot, prev_action], prev_reward, q_next
+            )
+        counter.add(keys, actions)
+        obs, _, _, _, info = task.step(actions)
+        prev_slot, prev_action = slot, actions
+        prev_reward = driving_human_reward(info, actions)
+    # the last update, without bootstrap (the table is dropped after it, as the authors did)
+    q[rows, prev_slot, prev_action] = sarsa_update(q[rows, prev_slot, prev_action], prev_reward)
+
+
+def play_driving(
+    *,
+    seed: int,
+    episodes: int = DEFAULT_EPISODES["driving"],
+    count_from: int = DRIVING_COUNT_FROM,
+    max_steps: int = MAX_STEPS,
+    batch_size: int = 2500,
+    progress: bool = False,
+) -> DemonstratorBelief:
+    """Play the Driving Q-learning demonstrator and count ``(observation, action)`` pairs.
+
+    Episodes ``count_from..episodes-1`` are played (each with a fresh Q table and its own
+    random streams) and counted; the earlier ones could not change a count and are skipped.
+
+    Args:
+        seed: Non-negative seed (episode ``e`` has its own streams, see
+            :mod:`amuled_ma.tasks.demonstrators.play`).
+        episodes: Episode indices run to ``episodes - 1`` (the authors: 10,000).
+        count_from: First counted episode index (the authors: 601).
+        max_steps: Steps per episode (the authors: 300; the road never ends early).
+        batch_size: Episodes played side by side (does not change the result).
+        progress: Show a progress bar.
+
+    Returns:
+        The counts and beliefs.
+
+    Raises:
+        ValueError: An argument is out of range.
+
+    """
+    seed = check_seed(seed)
+    episodes = check_count(episodes, "episodes", 1)
+    count_from = check_count(count_from, "count_from", 0)
+    if count_from >= episodes:
+        raise ValueError(
+            f"count_from: expected less than episodes ({episodes}) so something is counted, "
+            f"got {count_from}"
+        )
+    max_steps = check_count(max_steps, "max_steps", 1)
+    batch_size = check_count(batch_size, "batch_size", 1)
+    counter = PairCounter(len(Driving.action_names))
+    with progress_bar(episodes - count_from, "driving demonstrator", progress) as bar:
+        for first in range(count_from, episodes, batch_size):
+            n = min(batch_size, episodes - first)
+            _play_wave(seed, first, n, max_steps, counter)
+            bar.update(n)
+    states, counts = counter.result()
+    settings = demonstrator_settings("driving", seed=seed, episodes=episodes)
+    settings["count_from"] = count_from
+    settings["max_steps"] = max_steps
+    return DemonstratorBelief("driving", states, counts, settings)

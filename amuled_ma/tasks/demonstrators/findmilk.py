@@ -1,0 +1,120 @@
+"""The authors' FindMilk demonstrator (``algorithms/human_policy_milk.py``), batched.
+
+A rule-driven *sampled* policy. For each action take the next cell (a move into a wall keeps
+the cell); its weight is 1 if that cell is one of the six *original* sleeping-baby cells
+(woken or not), else 20 if it is the milk, else ``(24 - d) / 24 * 20`` with ``d`` the
+Manhattan distance from the next cell to the crying baby of the observation (``(0, 0)``
+once none is left, as the authors did), else 5 (``d >= 24``, impossible on 8x8). The action
+is drawn with probabilities ``w / sum(w)``. 1,000 episodes, each until the milk or the
+300-step time limit; every step is counted.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from amuled_ma.tasks.demonstrators.play import (
+    PairCounter,
+    episode_streams,
+    progress_bar,
+    sample,
+    task_seed,
+    uniforms,
+)
+from amuled_ma.tasks.demonstrators.table import (
+    DEFAULT_EPISODES,
+    MAX_STEPS,
+    DemonstratorBelief,
+    check_count,
+    check_seed,
+    demonstrator_settings,
+    encode_observations,
+)
+from amuled_ma.tasks.findmilk import SIZE, SLEEPING, FindMilk
+
+__all__ = ["findmilk_weights", "play_findmilk"]
+
+_MAX_DISTANCE = 24.0
+_SLEEPING_WEIGHT = 1.0
+_MILK_WEIGHT = 20.0
+_FAR_WEIGHT = 5.0
+_MOVES = ((0, 1), (0, -1), (-1, 0), (1, 0))  # up, down, left, right
+
+
+def findmilk_weights(obs: torch.Tensor) -> torch.Tensor:
+    """Return the FindMilk demonstrator's unnormalised weights of the four actions.
+
+    Per action (up, down, left, right) the next cell, clipped to the grid, weighs 1 if it is
+    one of the six original sleeping-baby cells, else 20 if it is the milk, else
+    ``(24 - d) / 24 * 20`` with ``d`` the Manhattan distance to the observed crying baby
+    (``(0, 0)`` when none is left), else 5.
+
+    Args:
+        obs: FindMilk observations ``[N, 8]``.
+
+    Returns:
+        float64 ``[N, 4]``.
+
+    """
+    obs = obs.to(torch.float64)
+    moves = torch.tensor(_MOVES, dtype=torch.float64, device=obs.device)
+    nxt = (obs[:, None, 0:2] + moves).clamp(0.0, SIZE - 1.0)  # [N, 4, 2]
+    sleeping = torch.tensor(SLEEPING, dtype=torch.float64, device=obs.device)  # [6, 2]
+    on_sleep = (nxt[:, :, None, :] == sleeping).all(-1).any(-1)
+    on_milk = (nxt == obs[:, None, 2:4]).all(-1)
+    d = (nxt - obs[:, None, 4:6]).abs().sum(-1)
+    toward = torch.where(d < _MAX_DISTANCE, (_MAX_DISTANCE - d) / _MAX_DISTANCE * 20.0, _FAR_WEIGHT)
+    return torch.where(on_sleep, _SLEEPING_WEIGHT, torch.where(on_milk, _MILK_WEIGHT, toward))
+
+
+def play_findmilk(
+    *,
+    seed: int,
+    episodes: int = DEFAULT_EPISODES["findmilk"],
+    max_steps: int = MAX_STEPS,
+    batch_size: int = 1000,
+    progress: bool = False,
+) -> DemonstratorBelief:
+    """Play the FindMilk rule demonstrator and count every ``(observation, action)``.
+
+    Args:
+        seed: Non-negative seed (episode ``e`` has its own streams, see
+            :mod:`amuled_ma.tasks.demonstrators.play`).
+        episodes: Episodes to play (the authors: 1,000), each until the milk or the limit.
+        max_steps: Time limit of an episode.
+        batch_size: Episodes played side by side (does not change the result).
+        progress: Show a progress bar.
+
+    Returns:
+        The counts and beliefs.
+
+    Raises:
+        ValueError: An argument is out of range.
+
+    """
+    seed = check_seed(seed)
+    episodes = check_count(episodes, "episodes", 1)
+    max_steps = check_count(max_steps, "max_steps", 1)
+    batch_size = check_count(batch_size, "batch_size", 1)
+    counter = PairCounter(len(FindMilk.action_names))
+    with progress_bar(episodes, "findmilk demonstrator", progress) as bar:
+        for first in range(0, episodes, batch_size):
+            n = min(batch_size, episodes - first)
+            task = FindMilk(n, seed=task_seed(seed, first), max_steps=max_steps)
+            obs = task.reset()
+            streams = episode_streams(seed, first, n, task.device)
+            active = torch.ones(n, dtype=torch.bool)
+            for t in range(max_steps):
+                u = uniforms(streams, t, 1)[:, 0]
+                actions = sample(findmilk_weights(obs), u)
+                keys, _ = encode_observations("findmilk", obs)
+                counter.add(keys[active], actions[active])
+                obs, _, terminated, truncated, _ = task.step(actions)
+                active &= ~(terminated | truncated)
+                if not bool(active.any()):
+                    break
+            bar.update(n)
+    states, counts = counter.result()
+    settings = demonstrator_settings("findmilk", seed=seed, episodes=episodes)
+    settings["max_steps"] = max_steps
+    return DemonstratorBelief("findmilk", states, counts, settings)

@@ -1,0 +1,382 @@
+"""A demonstrator's counts as a belief table: observation keys, the 0.6 / 0.4 rule, the file.
+
+Counts to belief (the authors' ``finetune_moral_human.py``): per observation, ``c_a`` the
+count of action ``a`` and ``n = sum(c)``; if ``n > 20`` the counts are rescaled to total 20;
+then ``p(a) ∝ 0.6**c_a * 0.4**(n - c_a)``, normalised (computed in log space; it equals
+``softmax(c_a * ln 1.5)``). An observation the demonstrator never met has no belief: the
+authors' fine-tuning gives reward 0 there.
+
+Observations are keyed exactly: every entry must be an integer within the task's
+observation bounds (``obs_low``/``obs_high``); the key is the mixed-radix number of the
+entries. Anything else (a fraction, out of bounds, NaN) is reported unseen.
+
+:meth:`DemonstratorBelief.save` writes the counts to an ``.npz`` file (no pickle: it loads
+with ``allow_pickle=False``) with the settings (:func:`demonstrator_settings`) as JSON.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import numbers
+import os
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from amuled_ma.errors import AmuledError
+from amuled_ma.tasks import canonical_name, get_task
+
+__all__ = [
+    "AUTHORS_STATE_COUNTS",
+    "DEFAULT_EPISODES",
+    "DRIVING_COUNT_FROM",
+    "MAX_STEPS",
+    "DemonstratorBelief",
+    "DemonstratorCacheError",
+    "check_count",
+    "check_seed",
+    "counts_to_belief",
+    "demonstrator_settings",
+    "encode_observations",
+    "observation_bounds",
+    "settings_differences",
+]
+
+FORMAT_VERSION = 1
+DEFAULT_EPISODES: Mapping[str, int] = {"findmilk": 1000, "driving": 10_000}
+"""Episodes the authors played per task."""
+DRIVING_COUNT_FROM = 601
+"""First counted Driving episode (the authors' ``if cnt > 600``)."""
+AUTHORS_STATE_COUNTS: Mapping[str, int] = {"findmilk": 1120, "driving": 12_270}
+"""Distinct observations of the authors' demonstrator pickles (their notebook's figures)."""
+MAX_STEPS = 300
+"""Time limit of an episode (both tasks, the authors' 300 steps)."""
+
+# counts -> belief (finetune_moral_human.py)
+COUNT_CAP = 20.0
+P_AGREE = 0.6
+
+
+class DemonstratorCacheError(AmuledError, ValueError):
+    """A demonstrator cache file is unreadable, malformed or made with other settings."""
+
+
+# ---------------------------------------------------------------------- arguments
+def check_seed(seed: Any) -> int:
+    """Return ``seed`` as an ``int``, or raise ``ValueError`` unless a non-negative integer."""
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+        raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
+    return int(seed)
+
+
+def check_count(value: Any, label: str, minimum: int) -> int:
+    """Return ``value`` as an ``int``, or raise ``ValueError`` unless an integer >= minimum."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
+        raise ValueError(f"{label}: expected an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+# ---------------------------------------------------------------------- observation keys
+def observation_bounds(task_name: str) -> list[list[int]]:
+    """Return, per observation entry, the integer ``[low, high]`` of the task's bounds.
+
+    Args:
+        task_name: ``"findmilk"`` or ``"driving"`` (canonical name).
+
+    Returns:
+        ``[[low, high], ...]``, one pair per entry (the keys' radixes are ``high - low + 1``).
+
+    """
+    cls = get_task(task_name)
+    return [
+        [math.floor(lo), math.ceil(hi)] for lo, hi in zip(cls.obs_low, cls.obs_high, strict=True)
+    ]
+
+
+@functools.cache
+def _encoder(task_name: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """CPU tensors ``low``, ``high`` (float64) and the int64 place value of each entry."""
+    bounds = observation_bounds(task_name)
+    weight, place = [], 1
+    for lo, hi in reversed(bounds):
+        weight.append(place)
+        place *= hi - lo + 1
+    if place >= 1 << 62:
+        raise ValueError(f"{task_name}: observation bounds too wide for int64 keys")
+    return (
+        torch.tensor([b[0] for b in bounds], dtype=torch.float64),
+        torch.tensor([b[1] for b in bounds], dtype=torch.float64),
+        torch.tensor(weight[::-1], dtype=torch.int64),
+    )
+
+
+def encode_observations(task_name: str, obs: Any) -> tuple[torch.Tensor, torch.Tensor]:
+    """Return the exact integer key of each observation and whether it could be keyed.
+
+    The key is the mixed-radix number of the entries, each shifted by its lower bound
+    (``obs_low``) with radix ``obs_high - obs_low + 1``. It is unique for integer-valued
+    observations within the bounds; any other row gets key ``-1`` and ``valid`` false.
+
+    Args:
+        task_name: ``"findmilk"`` or ``"driving"`` (or an alias).
+        obs: Observations ``[N, obs_dim]`` (tensor, array or nested list).
+
+    Returns:
+        ``(keys, valid)``: int64 ``[N]`` and bool ``[N]``, on the device of ``obs``
+        (CPU for non-tensors).
+
+    Raises:
+        ValueError: ``obs`` is not ``[N, obs_dim]``.
+
+    """
+    name = canonical_name(task_name)
+    low, high, weight = _encoder(name)
+    values = obs if isinstance(obs, torch.Tensor) else torch.as_tensor(np.asarray(obs))
+    if values.ndim != 2 or values.shape[1] != low.numel():
+        raise ValueError(
+            f"obs: expected shape [N, {low.numel()}] for task {name!r}, got {tuple(values.shape)}"
+        )
+    if values.device != low.device:
+        low, high, weight = low.to(values.device), high.to(values.device), weight.to(values.device)
+    values = values.to(torch.float64)
+    valid = ((values == values.round()) & (values >= low) & (values <= high)).all(1)
+    digits = torch.where(valid[:, None], values - low, 0.0).to(torch.int64)
+    keys = (digits * weight).sum(1)
+    return torch.where(valid, keys, -1), valid
+
+
+# ---------------------------------------------------------------------- counts -> belief
+def counts_to_belief(counts: Any) -> torch.Tensor:
+    """Turn per-state action counts into beliefs (the authors' ``0.6 / 0.4`` rule).
+
+    With ``n = sum(c)``: if ``n > 20`` the counts are rescaled to total 20; then
+    ``p(a) ∝ 0.6**c_a * 0.4**(n - c_a)``, normalised, computed in log space.
+
+    Args:
+        counts: Non-negative counts ``[..., num_actions]``.
+
+    Returns:
+        float64 beliefs of the same shape, each row summing to 1.
+
+    """
+    c = torch.as_tensor(counts).to(torch.float64)
+    n = c.sum(-1, keepdim=True)
+    c = torch.where(n > COUNT_CAP, c * COUNT_CAP / n, c)
+    n = c.sum(-1, keepdim=True)
+    log_p = c * math.log(P_AGREE) + (n - c) * math.log(1.0 - P_AGREE)
+    return torch.softmax(log_p, -1)
+
+
+# ---------------------------------------------------------------------- settings
+def demonstrator_settings(task_name: str, *, seed: int, episodes: int | None = None) -> dict:
+    """Return the settings a demonstrator belief of the authors' recipe is built with.
+
+    Args:
+        task_name: ``"findmilk"`` or ``"driving"`` (or an alias).
+        seed: The demonstrator's seed.
+        episodes: Episodes played (``None``: the authors' 1,000 / 10,000).
+
+    Returns:
+        A JSON-ready dict: ``format``, ``task``, ``demonstrator`` (``"rules"`` or
+        ``"sarsa"``), ``seed``, ``episodes``, ``count_from``, ``max_steps``, ``encoding``.
+
+    """
+    name = canonical_name(task_name)
+    seed = check_seed(seed)
+    episodes = DEFAULT_EPISODES[name] if episodes is None else episodes
+    episodes = check_count(episodes, "episodes", 1)
+    return {
+        "format": FORMAT_VERSION,
+        "task": name,
+        "demonstrator": "rules" if name == "findmilk" else "sarsa",
+        "seed": seed,
+        "episodes": episodes,
+        "count_from": 0 if name == "findmilk" else DRIVING_COUNT_FROM,
+        "max_steps": MAX_STEPS,
+        "encoding": observation_bounds(name),
+    }
+
+
+def settings_differences(found: Mapping[str, Any], expect: Mapping[str, Any]) -> str:
+    """Describe the keys of ``expect`` whose value in ``found`` differs (empty: none).
+
+    Args:
+        found: The settings of a file.
+        expect: The settings wanted.
+
+    Returns:
+        ``"key: file X, wanted Y, ..."``, or ``""`` when every key of ``expect`` agrees.
+
+    """
+    return ", ".join(
+        f"{k}: file {found.get(k)!r}, wanted {v!r}" for k, v in expect.items() if found.get(k) != v
+    )
+
+
+# ---------------------------------------------------------------------- belief table
+class DemonstratorBelief:
+    """Counts of a played demonstrator and the beliefs they give, keyed by observation.
+
+    Args:
+        task_name: ``"findmilk"`` or ``"driving"``.
+        states: Observation keys (:func:`encode_observations`), int64 ``[S]``, strictly
+            increasing.
+        counts: Action counts per state, int64 ``[S, num_actions]``, every row summing to
+            at least 1.
+        settings: How the counts were made (:func:`demonstrator_settings`).
+
+    Attributes:
+        task_name: The task's short name.
+        states: The sorted observation keys.
+        counts: The counts.
+        beliefs: float64 ``[S, num_actions]`` (:func:`counts_to_belief`).
+        settings: The settings.
+
+    Raises:
+        ValueError: The arrays are malformed; the message says which.
+
+    """
+
+    def __init__(
+        self,
+        task_name: str,
+        states: torch.Tensor,
+        counts: torch.Tensor,
+        settings: Mapping[str, Any],
+    ) -> None:
+        self.task_name = canonical_name(task_name)
+        num_actions = len(get_task(self.task_name).action_names)
+        states = torch.as_tensor(states).to(device="cpu", dtype=torch.int64).reshape(-1)
+        counts = torch.as_tensor(counts).to(device="cpu", dtype=torch.int64)
+        if counts.shape != (states.numel(), num_actions):
+            raise ValueError(
+                f"counts: expected shape ({states.numel()}, {num_actions}) for "
+                f"{states.numel()} states of {self.task_name!r}, got {tuple(counts.shape)}"
+            )
+        if states.numel() > 1 and not bool((states[1:] > states[:-1]).all()):
+            raise ValueError("states: expected strictly increasing observation keys")
+        if bool((states < 0).any()) or bool((counts < 0).any()):
+            raise ValueError("states/counts: expected non-negative values")
+        if bool((counts.sum(1) < 1).any()):
+            raise ValueError("counts: every state needs at least one counted action")
+        self.states = states
+        self.counts = counts
+        self.beliefs = counts_to_belief(counts)
+        self.settings = dict(settings)
+
+    @property
+    def num_states(self) -> int:
+        """Number of distinct observations the demonstrator met."""
+        return int(self.states.numel())
+
+    @property
+    def num_actions(self) -> int:
+        """Number of actions of the task."""
+        return int(self.counts.shape[1])
+
+    def lookup(self, obs: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        """Return the belief of each observation and whether the demonstrator met it.
+
+        Args:
+            obs: Observations ``[N, obs_dim]`` (tensor, array or list), matched exactly.
+
+        Returns:
+            ``(beliefs, seen)``: float32 ``[N, num_actions]`` (rows of unseen observations
+            are all 0, not a distribution) and bool ``[N]``, on the device of ``obs``
+            (CPU for non-tensors).
+
+        Raises:
+            ValueError: ``obs`` is not ``[N, obs_dim]``.
+
+        """
+        device = obs.device if isinstance(obs, torch.Tensor) else torch.device("cpu")
+        keys, valid = encode_observations(self.task_name, obs)
+        keys = keys.cpu()
+        where = torch.searchsorted(self.states, keys).clamp_(max=max(self.num_states - 1, 0))
+        if self.num_states:
+            seen = valid.cpu() & (self.states[where] == keys)
+            beliefs = torch.where(seen[:, None], self.beliefs[where], 0.0)
+        else:
+            seen = torch.zeros(keys.numel(), dtype=torch.bool)
+            beliefs = torch.zeros(keys.numel(), self.num_actions, dtype=torch.float64)
+        return beliefs.to(device=device, dtype=torch.float32), seen.to(device)
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the counts and settings to ``path`` (``.npz``, no pickle), atomically.
+
+        Args:
+            path: The file to write (its folder is created).
+
+        Returns:
+            The path written.
+
+        """
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                np.savez_compressed(
+                    f,
+                    states=self.states.numpy(),
+                    counts=self.counts.numpy(),
+                    task=np.array(self.task_name),
+                    settings=np.array(json.dumps(self.settings, sort_keys=True)),
+                )
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+    @classmethod
+    def load(
+        cls, path: str | os.PathLike, *, expect: Mapping[str, Any] | None = None
+    ) -> DemonstratorBelief:
+        """Read a file written by :meth:`save`.
+
+        Args:
+            path: The ``.npz`` file.
+            expect: Settings the file must have been made with (every key compared);
+                ``None`` accepts any.
+
+        Returns:
+            The belief table.
+
+        Raises:
+            DemonstratorCacheError: The file cannot be read, is malformed, or was made with
+                other settings than ``expect`` (the message names the file and the fix).
+
+        """
+        path = Path(path)
+        fix = "delete it to rebuild the demonstrator"
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                states = data["states"]
+                counts = data["counts"]
+                task = str(data["task"])
+                settings = json.loads(str(data["settings"]))
+        except (OSError, ValueError, KeyError, json.JSONDecodeError) as err:
+            raise DemonstratorCacheError(
+                f"{path}: not a readable demonstrator cache ({err}); {fix}"
+            ) from err
+        if not isinstance(settings, dict):
+            raise DemonstratorCacheError(f"{path}: settings are not a JSON object; {fix}")
+        if expect is not None:
+            differ = settings_differences(settings, expect)
+            if differ:
+                raise DemonstratorCacheError(
+                    f"{path}: made with other settings ({differ}); {fix}, or ask for those"
+                )
+        try:
+            return cls(task, torch.from_numpy(states), torch.from_numpy(counts), settings)
+        except (ValueError, TypeError) as err:
+            raise DemonstratorCacheError(
+                f"{path}: malformed demonstrator cache ({err}); {fix}"
+            ) from err

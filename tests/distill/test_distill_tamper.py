@@ -1,0 +1,153 @@
+"""A state file edited between two runs is refused with one line; the budget cannot grow.
+
+Before these checks, raising ``ledger.budget`` in ``distill.json`` let a resumed run ask
+far more states than the scenario's budget (245 under a budget of 20), and negative,
+huge or string counters were copied into the report or ended in a traceback.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from test_distill_source import MEMBERS, Panel, requests, source
+
+from amuled_ma.beliefs.cached import CachedSource
+from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.distill.state import EXAMPLES_FILE, LEDGER_FILE
+from amuled_ma.errors import AmuledError
+
+torch.set_num_threads(1)
+
+BUDGET = 3
+
+
+def spend(tmp_path, budget=BUDGET):
+    """A first run: 6 states visited, ``budget`` asked; returns the store (open)."""
+    store = BeliefStore(tmp_path / "beliefs.sqlite")
+    first = source(CachedSource(Panel(), store), tmp_path, budget=budget)
+    first.beliefs(requests(range(6)))
+    first.close()
+    return store
+
+
+def edit(tmp_path, change) -> None:
+    path = tmp_path / LEDGER_FILE
+    data = json.loads(path.read_text())
+    change(data)
+    path.write_text(json.dumps(data))
+
+
+def resume(tmp_path, store, budget=BUDGET):
+    return source(CachedSource(Panel(), store), tmp_path, budget=budget, resume=True)
+
+
+def assert_one_line_refusal(info) -> None:
+    message = str(info.value)
+    assert "\n" not in message
+    assert LEDGER_FILE in message or EXAMPLES_FILE in message
+    assert "--force" in message
+
+
+@pytest.mark.parametrize(
+    ("budget", "forged"), [(BUDGET, 1000), (BUDGET, 1.0), (0.5, 1.0), (0.5, 1)]
+)
+def test_a_raised_ledger_budget_is_refused_and_nothing_more_is_asked(tmp_path, budget, forged):
+    store = spend(tmp_path, budget)
+    rows = len(store)
+    assert rows == 3 * len(MEMBERS)  # 3 of 6 states: a count of 3, or a share of 0.5
+
+    def raise_budget(data):
+        data["ledger"]["budget"] = forged
+
+    edit(tmp_path, raise_budget)
+    with pytest.raises(AmuledError, match=r"ledger\.budget is .* but the scenario") as info:
+        again = resume(tmp_path, store, budget)
+        again.beliefs(requests(range(6, 300)))  # what the old code then asked
+        again.close()
+    assert_one_line_refusal(info)
+    assert len(store) == rows  # the store rows: nothing more was asked
+    store.close()
+
+
+@pytest.mark.parametrize(
+    ("counter", "value"),
+    [
+        ("refits", -5),
+        ("requests_sent", 10**30),
+        ("model_answers", "many"),
+        ("requests_forwarded", 2.5),
+        ("miss_answers", True),
+        ("requests_sent", 10**6),  # more sent than forwarded
+        ("refits", 500),  # more fits than asked states
+    ],
+)
+def test_forged_counters_are_refused_with_one_line(tmp_path, counter, value):
+    store = spend(tmp_path)
+
+    def forge(data):
+        data["counters"][counter] = value
+
+    edit(tmp_path, forge)
+    with pytest.raises(AmuledError, match=f"counters.{counter}") as info:
+        resume(tmp_path, store).report()
+    assert_one_line_refusal(info)
+    store.close()
+
+
+@pytest.mark.parametrize("value", [-1, "3", 10**9, None])
+def test_a_forged_generation_is_refused(tmp_path, value):
+    store = spend(tmp_path)
+    edit(tmp_path, lambda data: data.update(generation=value))
+    with pytest.raises(AmuledError, match="generation is") as info:
+        resume(tmp_path, store)
+    assert_one_line_refusal(info)
+    store.close()
+
+
+def test_asked_states_removed_from_the_ledger_are_found_by_their_answers(tmp_path):
+    # forgetting the asked states would give the budget back; their answers remain
+    store = spend(tmp_path)
+
+    def forget(data):
+        data["ledger"]["asked"] = []
+        data["asked_obs"] = {}
+        data["counters"]["refits"] = data["generation"] = 0
+
+    edit(tmp_path, forget)
+    with pytest.raises(AmuledError, match="never asked") as info:
+        resume(tmp_path, store)
+    assert_one_line_refusal(info)
+    store.close()
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        lambda d: d["ledger"].update(asked=[1, 2, 3]),
+        lambda d: d["ledger"].update(visited="abc"),
+        lambda d: d.update(ledger="x"),
+        lambda d: d.update(counters="x"),
+        lambda d: d["counters"].pop("refits"),
+    ],
+)
+def test_malformed_tables_are_refused_with_one_line(tmp_path, change):
+    store = spend(tmp_path)
+    edit(tmp_path, change)
+    with pytest.raises(AmuledError) as info:
+        resume(tmp_path, store)
+    assert_one_line_refusal(info)
+    store.close()
+
+
+def test_honest_resumes_never_ask_more_than_the_budget(tmp_path):
+    store = spend(tmp_path)
+    for start in range(6, 60, 18):  # three more runs, each resuming the last
+        again = resume(tmp_path, store)
+        again.beliefs(requests(range(start, start + 18)))
+        report = again.report()
+        again.close()
+        assert report["asked_states"] == report["cap"] == BUDGET
+    assert len(store) == BUDGET * len(MEMBERS)  # counted in the store itself
+    store.close()
