@@ -18,7 +18,9 @@ from collections.abc import Sequence
 from typing import NoReturn
 
 from amuled_ma import __version__, commands
+from amuled_ma.clusters.plugins import set_allowed_plugins
 from amuled_ma.errors import AmuledError, Terminated
+from amuled_ma.experiments.third_party_log import third_party_to_log
 
 #: Exit status of a run stopped by SIGTERM (128 + 15, as a shell reports it).
 EXIT_TERMINATED = 128 + signal.SIGTERM
@@ -141,9 +143,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "handler", None):
         parser.print_help()
         return 2
+    # code a data file names is imported only if this command line allowed it
+    set_allowed_plugins(getattr(args, "allow_plugin", None) or ())
     previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
-        return int(args.handler(args) or 0)
+        with third_party_to_log():  # other libraries' warnings: to the log, not the output
+            return int(args.handler(args) or 0)
     except FAILURES as error:
         return report_failure(error, debug=args.debug)
     finally:

@@ -66,6 +66,7 @@ class PipelineRequest:
         progress: Show progress bars.
         hint: The shell command that re-runs this request; printed with ``--resume`` when a
             job stops early, and in the message of a folder that clashes.
+        title: The report's title (None: the plan's, e.g. the paper's main comparison).
 
     Raises:
         ScenarioError: An unknown ablation.
@@ -86,6 +87,7 @@ class PipelineRequest:
     ray: RayTarget | None = None
     progress: bool = True
     hint: str = ""
+    title: str | None = None
 
     def __post_init__(self) -> None:
         from amuled_ma.experiments.plans import ABLATIONS  # here: it imports torch
@@ -158,8 +160,6 @@ def run_pipeline(
         KeyboardInterrupt: Ctrl-C or SIGTERM, after every running job wrote its checkpoint.
 
     """
-    from amuled_ma.evaluate.evaluator import evaluate_run, variant_dirs  # torch, matplotlib
-    from amuled_ma.evaluate.report import write_report
     from amuled_ma.experiments.plans import training_seeds
     from amuled_ma.experiments.run_folder import read_record, variant_records
 
@@ -170,6 +170,10 @@ def run_pipeline(
     else:
         plan = _plan_ablation(request, seeds)
     check_plan(plan.jobs)  # before the lock: a run that cannot start makes no folder
+    # after the checks: a refused run answers before torch and matplotlib are imported
+    from amuled_ma.evaluate.evaluator import evaluate_run, variant_dirs
+    from amuled_ma.evaluate.report import write_report
+
     with run_folder_lock(request.run_dir):
         write_config(plan.out_dir, request.scenario, plan.config)
         say(plan.announce)
@@ -186,7 +190,7 @@ def run_pipeline(
         report = write_report(
             plan.out_dir,
             results,
-            title=plan.title,
+            title=request.title or plan.title,
             ablation=request.ablation,
             run=read_record(plan.out_dir),
             records=records,

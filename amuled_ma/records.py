@@ -2,7 +2,7 @@
 
 Every ``config.json`` of a run, the run's own and each variant folder's, is one
 :class:`RunRecord`: the resolved scenario, the command, what the folder trains
-(:class:`~amuled_ma.learn.variants.Variant`, read once here, never from a folder name), its
+(:class:`~amuled_ma.variants.Variant`, read once here, never from a folder name), its
 panel (:class:`PanelRecord`), the fine-tune's recipe and lambda_KL, the base checkpoint,
 the iterations done and planned, its state (``complete``, ``interrupted``, ``failed``), the
 settings and inputs' hashes a resume checks (``training``) and, for a policy imported from

@@ -67,6 +67,7 @@ def run_folder_lock(folder: str | Path, command: str | None = None) -> Iterator[
 
     """
     folder = Path(folder)
+    made = _missing_ancestors(folder)  # removed again if the command fails and leaves nothing
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as error:
@@ -110,7 +111,30 @@ def run_folder_lock(folder: str | Path, command: str | None = None) -> Iterator[
         _HELD[key] = (fd, 1)
         try:
             yield path
+        except BaseException:
+            _remove_if_empty(path, made)  # a failed command leaves no empty run folder
+            raise
         finally:
             del _HELD[key]
     finally:
         os.close(fd)  # closing the last descriptor releases the flock
+
+
+def _missing_ancestors(folder: Path) -> list[Path]:
+    """``folder`` and those of its parents that do not exist yet, deepest first."""
+    out: list[Path] = []
+    for candidate in [folder, *folder.parents]:
+        if candidate.exists():
+            break
+        out.append(candidate)
+    return out
+
+
+def _remove_if_empty(lock: Path, made: list[Path]) -> None:
+    """Remove the lock file and the folders this command made, if they hold nothing else."""
+    with contextlib.suppress(OSError):
+        if not made or any(p.name != LOCK_NAME for p in made[0].iterdir()):
+            return
+        lock.unlink()
+        for folder in made:
+            folder.rmdir()

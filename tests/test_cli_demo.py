@@ -1,4 +1,7 @@
-"""``amuled demo``: argument handling and the no-server path (the live run is in the README)."""
+"""``amuled demo``: its settings, argument handling, the no-server and no-recording paths.
+
+The whole demo runs in ``tests/integration/test_live_demo.py``.
+"""
 
 from __future__ import annotations
 
@@ -10,7 +13,12 @@ import pytest
 from amuled_ma.beliefs.hosts import TINY_MODEL
 from amuled_ma.cli import main
 from amuled_ma.commands._experiment import parse_override
-from amuled_ma.commands.demo import DEMO_NUM_PARALLEL, DEMO_TASKS, demo_scenario
+from amuled_ma.commands.demo import (
+    DEMO_NUM_PARALLEL,
+    LIVE_CLUSTERS,
+    LIVE_STATES,
+    demo_scenario,
+)
 from amuled_ma.scenario import load_scenario
 
 
@@ -28,7 +36,8 @@ def test_demo_without_server_fails_fast_and_writes_nothing(tmp_path: Path, capsy
 
 #: What ``amuled demo`` set before its settings moved to ``scenarios/<task>-demo.toml``: the
 #: ``--set`` texts of its code (``commands/demo.py`` at 1792ce5: the feedback lines,
-#: ``DEMO_BUDGET``, ``TINY_REPLY``), for the tiny model on the private server.
+#: ``DEMO_BUDGET``, ``TINY_REPLY``), for the tiny model on the private server. Driving's
+#: demo still asks the tiny model live with them.
 OLD_DEMO_SETS = (
     "feedback.source=ollama",
     "feedback.model=amuled-tiny",
@@ -43,25 +52,66 @@ OLD_DEMO_SETS = (
     "feedback.ollama={reasoning = false, num_predict = 128}",
 )
 
+#: FindMilk's demo (issue 27): the authors' scenario (scenarios/findmilk-authors.toml,
+#: their recipe, replay of their gpt-4o-mini recording, 50 sampled episodes) with a
+#: demo-sized budget, and the live leg's model and reply options.
+FINDMILK_DEMO_SETS = (
+    "base.total_steps=131_072",
+    "base.num_envs=64",
+    "base.num_steps_per_env=32",
+    "finetune.iterations=100",
+    "finetune.save_interval=25",
+    "feedback.model=amuled-tiny",
+    "feedback.concurrency=1",
+    "feedback.timeout_s=600.0",
+    "feedback.ollama={reasoning = false, num_predict = 128}",
+)
 
-@pytest.mark.parametrize("task", DEMO_TASKS)
-def test_demo_scenario_file_holds_the_settings_the_demo_set(task: str) -> None:
-    """``scenarios/<task>-demo.toml`` = the task's scenario with the demo's old ``--set``s."""
+
+@pytest.mark.parametrize(
+    ("task", "source", "sets"),
+    [("driving", "driving", OLD_DEMO_SETS), ("findmilk", "findmilk-authors", FINDMILK_DEMO_SETS)],
+)
+def test_demo_scenario_file_holds_the_settings_the_demo_set(task, source, sets) -> None:
+    """``scenarios/<task>-demo.toml`` = its source scenario with the demo's ``--set``s."""
     host = "http://127.0.0.1:5"
-    expected = load_scenario(task)
-    for text in (*OLD_DEMO_SETS, f"feedback.host={host}"):
+    expected = load_scenario(source)
+    for text in (*sets, f"feedback.host={host}"):
         section, name, value = parse_override(text)
         expected = expected.replace(section, **{name: value})
     demo = demo_scenario(task, model=TINY_MODEL, host=host, private=True)
     assert demo.settings() == expected.settings()
     assert demo.name == f"{task}-demo"
     assert demo.feedback.concurrency == DEMO_NUM_PARALLEL  # the private server's slots
-    # the numbers the old demo tests checked, read from the file itself
     file = load_scenario(f"{task}-demo")
-    assert file.finetune.iterations == 1 and file.base.total_steps == 65_536
-    assert file.finetune.num_envs * file.finetune.num_steps_per_env == 8
     assert file.feedback.model == TINY_MODEL and file.feedback.host == ""
     assert file.feedback.ollama == {"reasoning": False, "num_predict": 128}
+
+
+def test_findmilk_demo_replays_the_authors_recording_with_their_recipe() -> None:
+    file = load_scenario("findmilk-demo")
+    assert file.feedback.source == "replay" and file.feedback.recording == "findmilk-gpt-4o-mini"
+    assert file.finetune.recipe == "authors" and file.feedback.miss_policy == "zero"
+    assert file.evaluation.modes[0] == "sampled"  # the paper's figures are sampled
+    assert LIVE_STATES * len(LIVE_CLUSTERS) <= 6  # a handful of live requests
+
+
+def test_demo_without_the_recording_says_where_to_put_it_in_one_line(
+    tmp_path: Path, monkeypatch, capsys
+) -> None:
+    monkeypatch.setenv("AMULED_RECORDINGS", str(tmp_path / "none"))
+    monkeypatch.setenv("AMULED_DATA", str(tmp_path / "data"))
+    monkeypatch.chdir(tmp_path)  # in no checkout: nothing beside it
+    start = time.monotonic()
+    code = main(["demo", "--run-dir", str(tmp_path / "demo")])
+    elapsed = time.monotonic() - start
+    err = capsys.readouterr().err
+    assert code == 2 and elapsed < 10.0
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    assert "findmilk-gpt-4o-mini" in err and "../shared/amuled-recordings" in err
+    assert "AMULED_RECORDINGS" in err and "amuled import authors" in err
+    assert not (tmp_path / "demo").exists()
 
 
 def test_demo_with_a_real_model_keeps_the_tasks_ollama_options_and_asks_two_at_once() -> None:

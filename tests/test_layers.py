@@ -20,7 +20,7 @@ from import_graph import PACKAGE, ROOT, Graph, import_graph
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("cli", "__main__", "commands", "bench"),
     ("pipeline",),
-    ("experiments", "authors"),
+    ("experiments", "authors", "study"),
     ("learn", "evaluate"),
     ("deliberation", "distill"),
     ("beliefs", "llm_server"),

@@ -24,7 +24,13 @@ from collections.abc import Sequence
 from typing import IO, Any
 
 from amuled_ma.beliefs.keys import identity_json, jsonable, request_key
-from amuled_ma.beliefs.rows import BeliefStoreError, StoredBelief, damaged_row, why_not_json
+from amuled_ma.beliefs.rows import (
+    BeliefStoreError,
+    StoredBelief,
+    damaged_row,
+    unstorable_text,
+    why_not_json,
+)
 from amuled_ma.beliefs.store import BeliefStore
 from amuled_ma.beliefs.types import STATUSES, BeliefRequest
 from amuled_ma.beliefs.validate import RULE, check_belief, show_values
@@ -197,6 +203,23 @@ def parse_line(line: str, where: str, verify: bool = True) -> StoredBelief:
     missing = [k for k in (*_REQUIRED, "status") if k not in obj]
     if missing:
         raise BeliefStoreError(f"{where}: missing field(s) {', '.join(missing)}")
+    unstorable = unstorable_text(obj)
+    if unstorable is not None:
+        raise BeliefStoreError(
+            f"{where}: {unstorable}; a store holds UTF-8 text only (fix or remove the line)"
+        )
+    for field in ("key", "source", "task", "cluster", "status"):
+        if not isinstance(obj[field], str) or not obj[field]:
+            raise BeliefStoreError(
+                f"{where}: {field} must be a non-empty string, found {show_values(obj[field], 80)}"
+            )
+    for field, kinds in (("raw", str), ("prompt_tokens", int), ("completion_tokens", int)):
+        value = obj.get(field)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, kinds)):
+            raise BeliefStoreError(
+                f"{where}: {field} must be a {kinds.__name__} or null, found "
+                f"{show_values(value, 80)}"
+            )
     if obj["status"] not in STATUSES:
         raise BeliefStoreError(f"{where}: status {obj['status']!r} is not one of {STATUSES}")
     key = obj["key"]

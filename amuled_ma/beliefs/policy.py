@@ -16,7 +16,11 @@ anything in it runs. So the file holds *weights*; the network's *code* is either
   order; the common prefix such as ``mlp.`` or ``actor.`` is found), with ``activation``
   between them (default ``tanh``, the trainer's and CleanRL's); or
 - named: ``module = "my_pkg.nets:Net"`` (and its keyword arguments ``kwargs``), an
-  importable ``torch.nn.Module`` class whose ``load_state_dict`` takes the weights.
+  importable ``torch.nn.Module`` class whose ``load_state_dict`` takes the weights. The
+  class is code: it is imported only when this run's command line allowed it
+  (``--allow-plugin my_pkg.nets:Net``) or it is an installed ``amuled_ma.agents`` entry
+  point (:func:`amuled_ma.clusters.plugins.load_plugin`); a scenario or a run folder
+  naming it alone is refused before anything is imported.
 
 ``key`` names the state dict inside a checkpoint dict: a checkpoint of the trainer
 (``model_last.pt``) keeps the actor under ``actor_state_dict``, so
@@ -187,8 +191,8 @@ class PolicySource(BeliefSource):
         path: The weights file (``torch.save`` of a state dict, or a checkpoint dict).
         key: Dotted path of the state dict in the file (``"actor_state_dict"`` for a
             trainer checkpoint); ``""``: the file is the state dict.
-        module: ``"pkg.module:Class"`` of a ``torch.nn.Module`` to load the weights into;
-            ``""``: an MLP inferred from the weights.
+        module: ``"pkg.module:Class"`` of a ``torch.nn.Module`` to load the weights into
+            (allowed with ``--allow-plugin``); ``""``: an MLP inferred from the weights.
         kwargs: Keyword arguments of ``module``'s constructor.
         activation: Activation between an inferred MLP's layers (:data:`ACTIVATIONS`).
 
@@ -223,7 +227,7 @@ class PolicySource(BeliefSource):
         if module:
             from amuled_ma.beliefs.rules import resolve_callable
 
-            cls = resolve_callable(module)
+            cls = resolve_callable(module, f"{where}: module")
             try:
                 net = cls(**self.kwargs)
             except Exception as error:

@@ -52,6 +52,8 @@ from amuled_ma.errors import ReplayMiss, ScenarioError
 MISS_POLICIES = ("error", "uniform", "fallback")
 #: Field of a recorded state holding the unprompted "moral agent" belief.
 MORAL_AGENT_FIELD = "moral_agent"
+#: Largest recording file read (bytes, 256 MiB): a larger file is refused before it is read.
+MAX_RECORDING_BYTES = 256 * 1024 * 1024
 #: Invalid beliefs listed by name when a recording is refused (all are counted).
 SHOWN_PROBLEMS = 5
 
@@ -81,6 +83,13 @@ class Recording:
     def __init__(self, path: str | Path, *, decimals: int = 3) -> None:
         self.path = Path(path)
         try:
+            size = self.path.stat().st_size
+            if size > MAX_RECORDING_BYTES:
+                raise ScenarioError(
+                    f"{self.path}: the recording is {size:,} bytes, more than the "
+                    f"{MAX_RECORDING_BYTES:,} a recording may be (the largest shipped one is "
+                    "1.4 MB); it is not read; is it the right file?"
+                )
             raw = self.path.read_bytes()
         except OSError as error:
             raise ScenarioError(f"{self.path}: cannot read recording: {error}") from error

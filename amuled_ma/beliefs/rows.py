@@ -234,6 +234,59 @@ def encode_row(
     return row, bodies
 
 
+#: The column names of :data:`COLUMNS`, in order.
+COLUMN_NAMES = tuple(name.strip() for name in COLUMNS.split(","))
+
+
+def unstorable_text(value: Any, where: str = "") -> str | None:
+    r"""Why a value holds text SQLite cannot store as UTF-8, or None when it can.
+
+    Python strings may hold lone surrogates (``"\udcff"``: a byte that was not UTF-8,
+    read with ``surrogateescape``, or a ``\ud800`` escape in JSON) that no UTF-8 file can
+    hold; writing one would fail in the middle of a transaction.
+
+    Args:
+        value: A string, or JSON-like data (dicts, lists, tuples) holding strings.
+        where: The value's name, for the reason (``raw``, ``extra.error``).
+
+    Returns:
+        ``"<where> holds ... at character N"``, or None.
+
+    """
+    stack: list[tuple[Any, str]] = [(value, where)]
+    while stack:
+        item, name = stack.pop()
+        if isinstance(item, str):
+            try:
+                item.encode("utf-8")
+            except UnicodeEncodeError as error:
+                bad = item[error.start : error.end].encode("utf-8", "backslashreplace")
+                return (
+                    f"{name or 'a value'} holds {bad.decode('ascii')} at character "
+                    f"{error.start}, which is not valid Unicode text (a lone surrogate: a "
+                    "byte that was not UTF-8, or a \\ud800-\\udfff escape)"
+                )
+        elif isinstance(item, Mapping):
+            stack.extend((k, f"{name}.<key>") for k in item)
+            stack.extend((v, f"{name}.{k}" if name else str(k)) for k, v in item.items())
+        elif isinstance(item, list | tuple):
+            stack.extend((v, f"{name}[{i}]") for i, v in enumerate(item))
+    return None
+
+
+def check_storable(row: Row, bodies: Mapping[str, str]) -> str | None:
+    """Why a row from :func:`encode_row` cannot be written as UTF-8 text, or None."""
+    for name, value in zip(COLUMN_NAMES, row, strict=False):
+        reason = unstorable_text(value, name)
+        if reason is not None:
+            return reason
+    for body in bodies.values():
+        reason = unstorable_text(body, "a message")
+        if reason is not None:
+            return reason
+    return None
+
+
 def extra_json(extra: Mapping[str, Any] | None) -> str:
     """Serialise diagnostics as standard JSON.
 

@@ -2,7 +2,8 @@
 
 - :class:`RulesSource` answers with the synthetic human-feedback policy of the task
   (``amuled_ma.tasks.human.human_belief(task, obs)``, the paper's "human" baseline), or
-  with any function ``(task, obs) -> belief`` named as ``"module:function"``.
+  with any function ``(task, obs) -> belief`` named as ``"module:function"`` (an import
+  path the command line allowed with ``--allow-plugin``, or an installed entry point's).
 - :class:`ScriptedSource` answers fixed beliefs per cluster, or calls a function of the
   request: for tests, examples and ablations.
 
@@ -17,7 +18,6 @@ store one as ``"ok"``.
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -31,26 +31,36 @@ from amuled_ma.errors import ScenarioError
 BeliefFn = Callable[[str, np.ndarray], Sequence[float]]
 
 
-def resolve_callable(spec: str | Callable[..., Any]) -> Callable[..., Any]:
-    """Return ``spec`` itself if callable, else import it from a ``"module:attr"`` string.
+def resolve_callable(
+    spec: str | Callable[..., Any], what: str = "rules policy"
+) -> Callable[..., Any]:
+    """Return ``spec`` itself if callable, else load it from a ``"module:attr"`` string.
+
+    A string goes through the one door of code named by data,
+    :func:`amuled_ma.clusters.plugins.load_plugin`: an installed ``amuled_ma.agents``
+    entry point, or an import path this run's command line allowed (``--allow-plugin``);
+    anything else is refused before it is imported.
+
+    Args:
+        spec: A callable, or its import path.
+        what: Who names it, for messages.
 
     Raises:
-        ScenarioError: The string is malformed or names nothing importable.
+        ScenarioError: The string is malformed, not allowed, or names nothing importable
+            or callable.
 
     """
+    from amuled_ma.clusters.plugins import load_plugin
+
     if callable(spec):
         return spec
     if not isinstance(spec, str) or ":" not in spec:
-        raise ScenarioError(f"expected a callable or a 'module:function' string, found {spec!r}")
-    module_name, _, attr = spec.partition(":")
-    try:
-        target: Any = importlib.import_module(module_name)
-        for part in attr.split("."):
-            target = getattr(target, part)
-    except (ImportError, AttributeError) as error:
-        raise ScenarioError(f"cannot import {spec!r}: {error}") from error
+        raise ScenarioError(
+            f"{what}: expected a callable or a 'module:function' string, found {spec!r}"
+        )
+    target = load_plugin(spec, what)
     if not callable(target):
-        raise ScenarioError(f"{spec!r} is not callable")
+        raise ScenarioError(f"{what}: {spec!r} is not callable")
     return target
 
 
@@ -105,7 +115,9 @@ class RulesSource(BeliefSource):
 
     Args:
         policy: ``"human"`` (the task's synthetic human feedback), a callable
-            ``(task, obs) -> belief``, or a ``"module:function"`` string.
+            ``(task, obs) -> belief``, or a ``"module:function"`` string: the value of an
+            installed ``amuled_ma.agents`` entry point, or one this run's command line
+            allowed (``--allow-plugin module:function``); any other is refused unimported.
 
     """
 
@@ -114,7 +126,11 @@ class RulesSource(BeliefSource):
 
     def __init__(self, policy: str | BeliefFn = "human") -> None:
         self.policy_name = policy if isinstance(policy, str) else _qualname(policy)
-        self._fn: BeliefFn = _human_belief if policy == "human" else resolve_callable(policy)
+        self._fn: BeliefFn = (
+            _human_belief
+            if policy == "human"
+            else resolve_callable(policy, "rules source: key policy")
+        )
 
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
         """Answer each request with the rule; a failing rule gives a uniform ``"error"``.

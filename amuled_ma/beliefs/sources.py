@@ -6,7 +6,8 @@ Built-in kinds: ``"ollama"`` (:class:`~amuled_ma.beliefs.ollama.OllamaSource`),
 (:class:`~amuled_ma.beliefs.rules.ScriptedSource`), ``"terminal"``
 (:class:`~amuled_ma.beliefs.terminal.TerminalSource`), ``"policy"``
 (:class:`~amuled_ma.beliefs.policy.PolicySource`) and ``"entry-point"``
-(:func:`entry_point_source`: a plug-in named by entry-point name or ``"module:Class"``).
+(:func:`entry_point_source`: a plug-in named by entry-point name, or by a ``"module:Class"``
+the command line allowed with ``--allow-plugin``).
 Other kinds are looked up in the ``amuled_ma.agents`` entry-point group (code-backed
 agents shipped by other packages), or added at run time with :func:`register_source`.
 
@@ -118,6 +119,12 @@ def _factory(kind: str) -> Callable[..., BeliefSource]:
 def load_agent_factory(name: str) -> Callable[..., BeliefSource]:
     """Resolve a plug-in agent: an ``amuled_ma.agents`` entry-point name or ``"module:Class"``.
 
+    Through the one door of code named by data
+    (:func:`amuled_ma.clusters.plugins.load_plugin`): an installed entry point's name (or
+    value), or a ``"module:Class"`` this run's command line allowed with
+    ``--allow-plugin module:Class``. Any other import path is refused before it is
+    imported: a scenario, a cluster file or a run folder never runs code of its own.
+
     Args:
         name: An installed entry point's name (``terminal_human``), or an importable
             ``"pkg.module:Class"`` (any callable returning a :class:`BeliefSource`).
@@ -126,41 +133,23 @@ def load_agent_factory(name: str) -> Callable[..., BeliefSource]:
         The factory.
 
     Raises:
-        ScenarioError: No entry point has the name, or the ``module:Class`` string does not
-            import; the message lists the installed entry points and the fix.
+        ScenarioError: No entry point has the name, the ``module:Class`` string is not
+            allowed (the message names ``--allow-plugin``) or does not import.
 
     """
-    from amuled_ma.clusters.plugins import ENTRY_POINT_GROUP, agent_entry_points
+    from amuled_ma.clusters.plugins import load_plugin
 
     if not isinstance(name, str) or not name.strip():
         raise ScenarioError(
             f"entry-point agent: name expects an entry-point name or 'module:Class', found {name!r}"
         )
-    if ":" in name:
-        from amuled_ma.beliefs.rules import resolve_callable
-
-        try:
-            return resolve_callable(name)
-        except ScenarioError as error:
-            raise ScenarioError(
-                f"entry-point agent {name!r}: {error}; fix the 'module:Class' string (the "
-                "module must be importable from this Python environment)"
-            ) from error
-    points = agent_entry_points()
-    if name not in points:
-        installed = ", ".join(sorted(points)) or "none"
+    factory = load_plugin(name, f"entry-point agent {name!r}")
+    if not callable(factory):
         raise ScenarioError(
-            f"entry-point agent {name!r}: no installed package registers it in the "
-            f"{ENTRY_POINT_GROUP!r} entry-point group (installed: {installed}); install the "
-            "package that provides it, or give 'module:Class'"
+            f"entry-point agent {name!r}: it names {type(factory).__name__}, not a class or "
+            "function; fix the name"
         )
-    try:
-        return points[name].load()
-    except Exception as error:
-        raise ScenarioError(
-            f"entry-point agent {name!r} ({points[name].value}) failed to load: {error!r}; "
-            "fix or reinstall the package that provides it"
-        ) from error
+    return factory
 
 
 def entry_point_source(name: str, options: Mapping[str, Any] | None = None) -> BeliefSource:

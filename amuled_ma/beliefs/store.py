@@ -45,6 +45,7 @@ default) makes a committed transaction survive a crash of the *process*; pass
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sqlite3
 import threading
@@ -63,6 +64,7 @@ from amuled_ma.beliefs.rows import (
     BeliefStoreError,
     Row,
     StoredBelief,
+    check_storable,
     damaged_row,
     decode_row,
     encode_row,
@@ -70,6 +72,7 @@ from amuled_ma.beliefs.rows import (
     load_column,
     load_extra,
     message_refs,
+    unstorable_text,
 )
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
 from amuled_ma.beliefs.validate import RULE, check_belief, show_values
@@ -173,6 +176,12 @@ class BeliefStore:
         except sqlite3.DatabaseError as error:
             self._conn = None
             raise BeliefStoreError(f"{self.path}: cannot open belief store: {error}") from error
+        except BeliefStoreError as error:
+            self._conn = None
+            cause = error.__cause__
+            if isinstance(cause, sqlite3.DatabaseError):  # creating the tables failed
+                raise BeliefStoreError(f"{self.path}: cannot open belief store: {cause}") from cause
+            raise
         return conn
 
     def _journal_wal(self, conn: sqlite3.Connection) -> str:
@@ -263,13 +272,23 @@ class BeliefStore:
         with self._lock:
             conn = self._conn if self._pid == os.getpid() else self._connect()
             assert conn is not None
-            conn.execute("BEGIN IMMEDIATE")
             try:
-                out = body(conn)
-            except BaseException:
-                conn.execute("ROLLBACK")
-                raise
-            conn.execute("COMMIT")
+                conn.execute("BEGIN IMMEDIATE")
+                try:
+                    out = body(conn)
+                except BaseException:
+                    with contextlib.suppress(sqlite3.Error):
+                        conn.execute("ROLLBACK")
+                    raise
+                conn.execute("COMMIT")
+            except sqlite3.DatabaseError as error:
+                # a damaged file ("database disk image is malformed"), a full disk
+                raise BeliefStoreError(
+                    f"{self.path}: cannot write the belief store: {error}; nothing of this "
+                    "batch was written; if the disk is full, free some space; if the file "
+                    "is damaged, move it away and rebuild it from an export ('amuled "
+                    "beliefs import'), or delete it (every belief is then asked again)"
+                ) from error
             return out
 
     def _read(self, sql: str, params: Sequence[Any] = ()) -> list[tuple[Any, ...]]:
@@ -501,22 +520,25 @@ class BeliefStore:
                     "a uniform fallback"
                 )
             ident = identity if isinstance(identity, str) else identity_json(identity)
-            row, bodies = encode_row(
-                key,
-                ident,
-                request,
-                belief,
-                source=result.source,
-                status=result.status,
-                raw=result.raw,
-                latency_s=result.latency_s,
-                prompt_tokens=result.prompt_tokens,
-                completion_tokens=result.completion_tokens,
-                extra=result.extra,
-                attempts=1,
-                created_at=now,
-                updated_at=now,
-            )
+            try:
+                row, bodies = encode_row(
+                    key,
+                    ident,
+                    request,
+                    belief,
+                    source=result.source,
+                    status=result.status,
+                    raw=result.raw,
+                    latency_s=result.latency_s,
+                    prompt_tokens=result.prompt_tokens,
+                    completion_tokens=result.completion_tokens,
+                    extra=result.extra,
+                    attempts=1,
+                    created_at=now,
+                    updated_at=now,
+                )
+            except UnicodeEncodeError:
+                raise self._unstorable(key, request, result.raw, result.extra) from None
             rows.append(row)
             texts.update((h, b) for h, b in bodies.items() if h not in self._messages_seen)
         return self._put_rows(rows, texts)
@@ -558,22 +580,27 @@ class BeliefStore:
                     f"{self.path}: refusing to write row {record.key}: belief "
                     f"{show_values(record.belief)} {reason}; {RULE}"
                 )
-            row, bodies = encode_row(
-                record.key,
-                identity_json(record.identity),
-                record.request(),
-                belief,
-                source=record.source,
-                status=record.status,
-                raw=record.raw,
-                latency_s=record.latency_s,
-                prompt_tokens=record.prompt_tokens,
-                completion_tokens=record.completion_tokens,
-                extra=record.extra,
-                attempts=record.attempts,
-                created_at=record.created_at,
-                updated_at=record.updated_at,
-            )
+            try:
+                row, bodies = encode_row(
+                    record.key,
+                    identity_json(record.identity),
+                    record.request(),
+                    belief,
+                    source=record.source,
+                    status=record.status,
+                    raw=record.raw,
+                    latency_s=record.latency_s,
+                    prompt_tokens=record.prompt_tokens,
+                    completion_tokens=record.completion_tokens,
+                    extra=record.extra,
+                    attempts=record.attempts,
+                    created_at=record.created_at,
+                    updated_at=record.updated_at,
+                )
+            except UnicodeEncodeError:
+                raise self._unstorable(
+                    record.key, record.request(), record.raw, record.extra
+                ) from None
             rows.append(row)
             texts.update(bodies)
         return self._put_rows(rows, texts)
@@ -590,9 +617,38 @@ class BeliefStore:
             conn.executemany(_UPSERT, rows)
             return conn.total_changes - before
 
+        for row in rows:  # a lone surrogate would fail mid-transaction in SQLite
+            reason = check_storable(row, {})
+            if reason is not None:
+                raise self._refuse(str(row[0]), reason)
+        for text in texts.values():
+            reason = unstorable_text(text, "a message")
+            if reason is not None:
+                raise self._refuse("of this batch", reason)
         changed = self._write(body)
         self._messages_seen.update(texts)
         return int(changed)
+
+    def _refuse(self, key: str, reason: str) -> BeliefStoreError:
+        """The one line of a row whose text cannot be stored (nothing of the batch is)."""
+        return BeliefStoreError(
+            f"{self.path}: refusing to write row {key}: {reason}; nothing of this batch was "
+            "written (fix the text at its source: a file or a reply that is not UTF-8)"
+        )
+
+    def _unstorable(
+        self, key: str, request: BeliefRequest, raw: Any, extra: Any
+    ) -> BeliefStoreError:
+        """The error of a row whose request or answer holds text UTF-8 cannot encode."""
+        fields = {
+            "task": request.task,
+            "cluster": request.cluster,
+            "actions": list(request.action_names),
+            "messages": [list(m) for m in request.messages],
+            "raw": raw,
+            "extra": extra,
+        }
+        return self._refuse(key, unstorable_text(fields) or "a text is not valid Unicode")
 
     # -- maintenance -----------------------------------------------------------------
     def integrity_check(self) -> list[str]:

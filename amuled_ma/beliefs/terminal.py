@@ -12,10 +12,11 @@ stream (``sys.stdin`` by default):
   ``extra["error"]``; the panel leaves the agent out of that state's fusion).
 
 Anything else (a wrong count, a negative or non-finite number, an index out of range, an
-empty line) is refused with the reason and asked again, at most ``attempts`` lines in
-all; then the state is abstained. The end of the input (stdin closed, a job in a worker
-process without a terminal) abstains the state and every later one with the reason, and
-is never waited on.
+empty line, bytes that are not UTF-8 text, which the belief store could not hold) is
+refused with the reason and asked again, at most ``attempts`` lines in all; then the
+state is abstained. The end of the input (stdin closed, a job in a worker process
+without a terminal) abstains the state and every later one with the reason, and is never
+waited on.
 
 Put the source behind the belief store like any other
 (:class:`~amuled_ma.beliefs.cached.CachedSource`; a scenario's
@@ -27,6 +28,8 @@ written for the record but asked again in a later run (the store's policy).
 
 from __future__ import annotations
 
+import contextlib
+import io
 import math
 import re
 import sys
@@ -49,6 +52,33 @@ MAX_ATTEMPTS = 100
 MAX_LINE_CHARS = 10_000
 
 _SPLIT = re.compile(r"[\s,;]+")
+#: What :meth:`TerminalSource._read` returns for a line the input's decoder refused.
+_UNDECODABLE_MARK = "\x00undecodable:"
+_UNDECODABLE = _UNDECODABLE_MARK + "{} at byte {}"
+
+
+def _storable(line: str) -> bool:
+    """Whether a line is text UTF-8 can hold (no lone surrogates from undecodable bytes)."""
+    try:
+        line.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
+
+
+def _printable(line: str) -> str:
+    r"""The line with undecodable bytes as ``\udcNN`` escapes (text the store can hold)."""
+    if line.startswith(_UNDECODABLE_MARK):
+        return "<not UTF-8: " + line[len(_UNDECODABLE_MARK) :] + ">"
+    return line.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+def _not_text(line: str) -> str:
+    """The reason a line of bytes that are not UTF-8 text is refused."""
+    return (
+        f"found bytes that are not UTF-8 text ({_printable(line)[:80]}); type the answer "
+        "again (numbers, an action index or skip)"
+    )
 
 
 def parse_answer(line: str, n_actions: int) -> tuple[np.ndarray | None, str | None]:
@@ -192,8 +222,15 @@ class TerminalSource(BeliefSource):
         stream = self._stdin if self._stdin is not None else sys.stdin
         if stream is None:  # pragma: no cover - pythonw, a daemon without stdin
             return None
+        if isinstance(stream, io.TextIOWrapper) and stream.errors == "strict":
+            # a strict decoder would drop a whole buffered chunk on one stray byte: read
+            # bytes that are not UTF-8 as lone surrogates, refused line by line below
+            with contextlib.suppress(ValueError, OSError, AttributeError):
+                stream.reconfigure(errors="surrogateescape")
         try:
             line = stream.readline(MAX_LINE_CHARS + 2)
+        except UnicodeDecodeError as error:  # a byte that is not text: refused, asked again
+            return _UNDECODABLE.format(error.reason, error.start)
         except (OSError, ValueError):  # a closed or unreadable stream is an end of input
             return None
         return line if line else None
@@ -249,6 +286,11 @@ class TerminalSource(BeliefSource):
                 return self._abstain(request, self._eof_reason(), last, start)
             last = line.rstrip("\r\n")
             belief, reason = parse_answer(last, n)
+            if line.startswith(_UNDECODABLE_MARK) or not _storable(last):
+                # bytes that are not UTF-8 (read as lone surrogates, or refused by the
+                # decoder): the store could not hold the line, so it is not an answer
+                belief, reason = None, _not_text(last)
+                last = _printable(last)
             if belief is not None:
                 self.stats["answered"] += 1
                 return BeliefResult(

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import tomllib
+import unicodedata
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -386,6 +387,20 @@ class ClusterRegistry:
         for cluster in clusters:
             identity = _norm(cluster.name)
             old = by_identity.get(identity)
+            if (
+                old is not None
+                and not _same_file(old.path, cluster.path)
+                and _spelling(old.name) != _spelling(cluster.name)
+            ):
+                raise _fail(
+                    _where(cluster),
+                    "name",
+                    f"expected a name that does not only look like another cluster's, found "
+                    f"{cluster.name!r} ({_codepoints(cluster.name)}), which reads as "
+                    f"{old.name!r} of {old.path} once width, invisible characters and "
+                    "look-alike letters are set aside; rename it (or name the file exactly "
+                    f"{old.name!r} to override that cluster)",
+                )
             if old is not None and not _same_file(old.path, cluster.path):
                 if _same_folder(old.path, cluster.path):
                     raise _fail(
@@ -508,12 +523,57 @@ class ClusterRegistry:
         return [c for c in self.all() if c.kind == "cluster"]
 
 
+#: Characters that print as nothing (zero-width spaces and joiners, the word joiner, the
+#: byte-order mark, the soft hyphen, invisible operators): removed before names compare.
+_INVISIBLE = dict.fromkeys(
+    map(
+        ord,
+        "\u00ad\u034f\u061c\u115f\u1160\u17b4\u17b5\u180e\u200b\u200c\u200d"
+        "\u200e\u200f\u202a\u202b\u202c\u202d\u202e\u2060\u2061\u2062\u2063\u2064"
+        "\u2066\u2067\u2068\u2069\u3164\ufeff\uffa0",
+    ),
+)
+#: Cyrillic and Greek letters drawn like Latin ones (Unicode's confusables, the letters a
+#: name is spelt with): mapped to the Latin letter before names compare.
+_LOOKALIKE = str.maketrans(
+    "\u0430\u0432\u0435\u043a\u043c\u043d\u043e\u0440\u0441\u0442\u0443\u0445\u0455"
+    "\u0456\u0458\u04bb\u04cf\u0501\u051b\u051d\u0410\u0412\u0415\u041a\u041c\u041d"
+    "\u041e\u0420\u0421\u0422\u0423\u0425\u0405\u0406\u0408\u03b1\u03b9\u03ba\u03bd"
+    "\u03bf\u03c1\u03c4\u03c5\u03c7\u0391\u0392\u0395\u0396\u0397\u0399\u039a\u039c"
+    "\u039d\u039f\u03a1\u03a4\u03a5\u03a7\u0131",
+    "aBekMHopcTyxsijhldqwABEKMHOPCTYXSIJaikvoptuxABEZHIKMNOPTYXi",
+)
+
+
+def identity_key(name: str) -> str:
+    """The identity a cluster name (or a credence label) is compared by.
+
+    NFKC (full-width and compatibility forms become plain letters), invisible characters
+    removed, Cyrillic and Greek look-alikes of Latin letters mapped to them, case folded;
+    ``_``, ``-`` and runs of spaces count as one space. ``care``, ``CARE``, ``ｃａｒｅ``,
+    ``ca\u200bre`` and ``cаre`` (a Cyrillic ``а``) are one identity.
+    """
+    text = unicodedata.normalize("NFKC", name).translate(_INVISIBLE).translate(_LOOKALIKE)
+    return " ".join(text.casefold().replace("_", " ").replace("-", " ").split())
+
+
 def _norm(name: str) -> str:
+    return identity_key(name)
+
+
+def _spelling(name: str) -> str:
+    """A name as it is written, up to case, ``_``, ``-`` and spaces (not look-alikes)."""
     return " ".join(name.lower().replace("_", " ").replace("-", " ").split())
 
 
 def _label_key(label: str) -> str:
-    return " ".join(label.split()).casefold()
+    return identity_key(label)
+
+
+def _codepoints(name: str) -> str:
+    """The characters of a name beyond printable ASCII, as ``U+0430``."""
+    odd = [f"U+{ord(c):04X}" for c in name if not (c.isascii() and c.isprintable())]
+    return "characters " + ", ".join(dict.fromkeys(odd)) if odd else "plain ASCII"
 
 
 def _where(cluster: Cluster) -> Path:

@@ -1,4 +1,4 @@
-"""Code-backed agents: the ``amuled_ma.agents`` entry-point group.
+"""Code-backed agents, and the one gate every ``"module:attr"`` string goes through.
 
 A moral cluster is normally a TOML file (no code). Agents that need code, such as rule
 policies or a human answering at the terminal, are :class:`~amuled_ma.beliefs.types.BeliefSource`
@@ -12,15 +12,38 @@ factories published by any installed package under the entry-point group
 The object behind the entry point is called with the source options (keyword arguments)
 and must return a ``BeliefSource``. ``make_source(kind)`` falls back to this group for
 kinds it does not know, and ``amuled clusters list`` shows the registered names.
+
+**Code runs only from code the user installed and named on the command line.** A data file
+(a scenario, a cluster file, a run folder's ``config.json``) may name an installed entry
+point of the group; an import path ``"pkg.module:attr"`` (an entry-point agent's ``name``,
+a ``policy`` source's ``module``, a ``rules`` source's ``policy``) is imported only when
+it is the value of an installed entry point of the group, or when this run's command line
+named it (``--allow-plugin pkg.module:attr``, :func:`set_allowed_plugins`). Anything else
+is refused with one line naming the flag, before anything is imported
+(:func:`load_plugin`).
 """
 
 from __future__ import annotations
 
+import importlib
+import re
+from collections.abc import Iterable
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any
 
+from amuled_ma.errors import ScenarioError
+
 #: Name of the entry-point group of code-backed agents.
 ENTRY_POINT_GROUP = "amuled_ma.agents"
+
+#: The command-line flag that allows an import path for one run.
+ALLOW_FLAG = "--allow-plugin"
+
+#: A ``"pkg.module:attr"`` import path (dotted Python identifiers on both sides).
+IMPORT_PATH = re.compile(r"^[A-Za-z_]\w*(\.[A-Za-z_]\w*)*:[A-Za-z_]\w*(\.[A-Za-z_]\w*)*$")
+
+# The import paths this process's command line allowed (``--allow-plugin``).
+_ALLOWED: frozenset[str] = frozenset()
 
 
 def agent_entry_points() -> dict[str, EntryPoint]:
@@ -39,3 +62,106 @@ def load_agent(name: str) -> Any:
     if name not in points:
         raise KeyError(name)
     return points[name].load()
+
+
+def check_import_path(text: str) -> str:
+    """Return ``text`` if it is a ``"pkg.module:attr"`` import path.
+
+    Raises:
+        ScenarioError: It is not one; the message gives the expected form.
+
+    """
+    if not isinstance(text, str) or not IMPORT_PATH.match(text):
+        raise ScenarioError(
+            f"{ALLOW_FLAG}: expected an import path 'pkg.module:attr' (e.g. "
+            f"my_pkg.agents:MyAgent), found {text!r}"
+        )
+    return text
+
+
+def set_allowed_plugins(paths: Iterable[str]) -> frozenset[str]:
+    """Set the import paths this process may import (``--allow-plugin``), replacing the last.
+
+    The command line calls it once per command with the run's flags; a library user calls
+    it for the plug-ins their own code names (or passes the class or function itself).
+    A Ray worker gets the driver's list with its job.
+
+    Args:
+        paths: ``"pkg.module:attr"`` strings.
+
+    Returns:
+        The list it replaced.
+
+    Raises:
+        ScenarioError: A path is not ``"pkg.module:attr"``.
+
+    """
+    global _ALLOWED
+    previous = _ALLOWED
+    _ALLOWED = frozenset(check_import_path(p) for p in paths)
+    return previous
+
+
+def allowed_plugins() -> frozenset[str]:
+    """The import paths the command line allowed (``--allow-plugin``)."""
+    return _ALLOWED
+
+
+def load_plugin(spec: str, what: str) -> Any:
+    """Import the object an installed entry-point name or an allowed import path names.
+
+    The one door of code named by data: ``spec`` is an installed ``amuled_ma.agents``
+    entry point's name, or a ``"pkg.module:attr"`` that is the value of one, or that this
+    run's command line allowed (``--allow-plugin``). Nothing is imported otherwise.
+
+    Args:
+        spec: The name or import path, as the file gave it.
+        what: Who names it, for messages (``"[feedback.agents.care] name"``).
+
+    Returns:
+        The object (a class or function; not called).
+
+    Raises:
+        ScenarioError: ``spec`` is neither (nothing was imported; the message names the
+            flag), or importing it failed.
+
+    """
+    if not isinstance(spec, str) or not spec.strip():
+        raise ScenarioError(
+            f"{what}: expected an installed {ENTRY_POINT_GROUP} entry-point name or "
+            f"'pkg.module:attr', found {spec!r}"
+        )
+    points = agent_entry_points()
+    if spec in points:
+        try:
+            return points[spec].load()
+        except Exception as error:
+            raise ScenarioError(
+                f"{what}: the installed entry point {spec!r} ({points[spec].value}) failed to "
+                f"load: {error!r}; fix or reinstall the package that provides it"
+            ) from error
+    installed = ", ".join(sorted(points)) or "none"
+    if ":" not in spec:
+        raise ScenarioError(
+            f"{what}: no installed package registers {spec!r} in the {ENTRY_POINT_GROUP!r} "
+            f"entry-point group (installed: {installed}); install the package that provides "
+            f"it, or give 'pkg.module:attr' and allow it with {ALLOW_FLAG} pkg.module:attr"
+        )
+    if spec not in _ALLOWED and spec not in {p.value for p in points.values()}:
+        raise ScenarioError(
+            f"{what}: {spec!r} is an import path, and data files may not name code to run "
+            f"(nothing was imported); if you trust it, name it on this command line with "
+            f"{ALLOW_FLAG} {spec} (or install it as an {ENTRY_POINT_GROUP!r} entry point; "
+            f"installed: {installed})"
+        )
+    module_name, _, attr = spec.partition(":")
+    try:
+        target: Any = importlib.import_module(module_name)
+        for part in attr.split("."):
+            target = getattr(target, part)
+    except (ImportError, AttributeError) as error:
+        raise ScenarioError(
+            f"{what}: cannot import {spec!r}: {error}; fix the 'pkg.module:attr' string (the "
+            "module must be importable from this Python environment)"
+        ) from error
+    return target

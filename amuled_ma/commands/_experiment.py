@@ -99,8 +99,39 @@ def add_clusters_dir_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def allow_plugin_path(text: str) -> str:
+    """An argparse ``type``: a ``pkg.module:attr`` import path (``--allow-plugin``)."""
+    from amuled_ma.clusters.plugins import IMPORT_PATH
+
+    if not IMPORT_PATH.match(text):
+        raise argparse.ArgumentTypeError(
+            f"expected an import path pkg.module:attr (e.g. my_pkg.agents:MyAgent), found {text!r}"
+        )
+    return text
+
+
+def add_allow_plugin_argument(parser: argparse.ArgumentParser) -> None:
+    """Add the repeatable ``--allow-plugin pkg.module:attr`` (code a data file may name).
+
+    The command line (:func:`amuled_ma.cli.main`) hands the list to
+    :func:`amuled_ma.clusters.plugins.set_allowed_plugins` before the command runs.
+    """
+    parser.add_argument(
+        "--allow-plugin",
+        dest="allow_plugin",
+        action="append",
+        type=allow_plugin_path,
+        default=[],
+        metavar="PKG.MODULE:ATTR",
+        help="let this run import and call this plug-in (an entry-point agent's name, a policy "
+        "source's module, a rules source's policy), repeatable; a scenario, cluster file or "
+        "run folder may name only installed amuled_ma.agents entry points without it",
+    )
+
+
 def add_overrides_argument(parser: argparse.ArgumentParser) -> None:
-    """Add the repeatable ``--set SECTION.KEY=VALUE`` scenario override."""
+    """Add ``--set SECTION.KEY=VALUE`` and ``--allow-plugin`` (what this run changes)."""
+    add_allow_plugin_argument(parser)
     parser.add_argument(
         "--set",
         dest="overrides",
@@ -124,6 +155,11 @@ def parse_override(text: str) -> tuple[str, str, Any]:
         value = tomllib.loads(f"v = {raw.strip()}")["v"]
     except tomllib.TOMLDecodeError:
         value = raw.strip()
+    except RecursionError:
+        raise ScenarioError(
+            f"--set {key.strip()}=...: the value is nested deeper than Python can read; "
+            "give a value nested a few levels at most"
+        ) from None
     return section, name, value
 
 
@@ -198,6 +234,8 @@ def command_line(name: str, args: argparse.Namespace, run_dir: Path, *extra: str
         parts += ["--clusters-dir", str(folder)]
     for text in getattr(args, "overrides", []):
         parts += ["--set", text]
+    for path in getattr(args, "allow_plugin", []):
+        parts += ["--allow-plugin", path]  # a run folder never allows code by itself
     if getattr(args, "seed", None) is not None:
         parts += ["--seed", str(args.seed)]
     if getattr(args, "seeds", 1) != 1:

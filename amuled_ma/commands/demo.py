@@ -1,25 +1,35 @@
-"""``amuled demo``: the paper's main job end to end on a local LLM, with a demo-sized budget.
+"""``amuled demo``: AMULED working on FindMilk in a few minutes, then a short live leg.
 
-It trains the base and base + shaping policies briefly, fine-tunes the base on human
-feedback and on AMULED's fused feedback with the five moral clusters asked **live** on a
-local Ollama model, evaluates all four, writes ``report.md`` and ends with the step-by-step
-viewer of the AMULED fine-tune (``view-episode0.html``, as ``amuled view``). With no server
-given it starts a private one (``amuled ollama up --tiny``) and stops it afterwards. The tiny
-model (SmolLM2-135M) only exercises the plumbing: its moral judgement is meaningless. Point
-the demo at a real model with ``ollama pull llama3.1:8b`` and ``--model llama3.1:8b``.
+**The comparison** (``scenarios/findmilk-demo.toml``): the paper's FindMilk comparison
+(base, base + shaping, "human" feedback, AMULED) with the moral clusters' beliefs
+**replayed** from the paper authors' own gpt-4o-mini recording, with their fine-tuning
+recipe (``--recipe authors``), at a demo-sized budget chosen by measuring: a base that
+reaches the milk, an AMULED fine-tune that wakes fewer sleeping babies than its base, the
+paper's row beside ours in ``report.md`` (:mod:`amuled_ma.evaluate.paper`), and the
+step-by-step viewer of the AMULED fine-tune (``view-episode0.html``, as ``amuled view``).
+The recording is found by name (``$AMULED_RECORDINGS``, the user data folder of ``amuled
+import authors``, or ``../shared/amuled-recordings`` beside the checkout); without it the
+demo stops before anything starts, with one line saying where to put it.
 
-Every belief comes from the live model, with the authors' prompts (3.6k tokens, of which all
-but the state and the cluster's credence sentence are shared). What makes it fast on a small
-CPU (``docs/ollama.md``, "Where a request's time goes"): the private server runs one request
-slot (``OLLAMA_NUM_PARALLEL=1``: the shared prompt is evaluated once, then reused from the
-server's prefix cache) without flash attention, and the tiny model answers with the
-probabilities alone (no reasoning string, at most 128 tokens). At the end the demo prints
-where the live requests' time went (:func:`print_breakdown`).
+**The live leg** (:func:`live_leg`): a handful of real requests
+(:data:`LIVE_STATES` states of the AMULED fine-tune's greedy episode x
+:data:`LIVE_CLUSTERS`) to a local Ollama model through a belief store
+(``RUN_DIR/live/beliefs.sqlite``), fused as in training; the answers are a labelled
+section of ``report.md`` and ``live/live.json``. With no server given the demo starts a
+private one (``amuled ollama up --tiny``) and stops it afterwards. The tiny model
+(SmolLM2-135M) only exercises the live path: **its moral judgement is not meaningful**,
+and the report says so. Point it at a real model with ``--model llama3.1:8b``.
 
-The demo's settings are a scenario file, ``scenarios/<task>-demo.toml`` (the task's shipped
-scenario with a demo-sized budget and the tiny model's options); the demo adds only what
-depends on its command line (the server, another model) and runs it through the same
-library function as ``amuled run``, :func:`amuled_ma.pipeline.run_pipeline`.
+What makes the live leg fast on a small CPU (``docs/ollama.md``, "Where a request's time
+goes"): the private server runs one request slot (``OLLAMA_NUM_PARALLEL=1``: the shared
+prompt is evaluated once, then reused from the server's prefix cache), the shared prompt is
+evaluated while the policies train (:class:`PrefixWarmup`), and the tiny model answers with
+the probabilities alone. At the end the demo prints where the live requests' time went
+(:func:`print_breakdown`).
+
+The demo adds only what depends on its command line (the server, another model, the
+report's title) to its scenario and runs it through the same library function as
+``amuled run``, :func:`amuled_ma.pipeline.run_pipeline`.
 """
 
 from __future__ import annotations
@@ -32,7 +42,7 @@ import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from amuled_ma.commands import _experiment as common
 
@@ -50,6 +60,16 @@ DEMO_TASKS: tuple[str, ...] = ("driving", "findmilk")
 #: ``[feedback].concurrency`` is this: more requests in flight than slots would only queue.
 DEMO_NUM_PARALLEL = 1
 
+#: The live leg: the first distinct states of the AMULED fine-tune's greedy evaluation
+#: episode asked of the live model, and the clusters asked about each: 2 x 2 = 4 requests
+#: (15-25 s each for the tiny model on a loaded 2-core machine, docs/ollama.md).
+LIVE_STATES = 2
+LIVE_CLUSTERS: tuple[str, ...] = ("care", "virtue")
+#: The live leg's folder in the run folder (its belief store and ``live.json``).
+LIVE_DIR = "live"
+#: How the report's live-leg section starts.
+LIVE_HEADING = "## Live leg: a few requests to a local model (its judgement is not meaningful)"
+
 #: ``[feedback].concurrency`` on a server the demo did not start (``--host``,
 #: ``$OLLAMA_HOST``, or a real model on the default install).
 SHARED_SERVER_CONCURRENCY = 2
@@ -59,14 +79,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``amuled demo``."""
     parser = subparsers.add_parser(
         "demo",
-        help="the main job end to end on a local Ollama model (demo-sized budget)",
+        help="AMULED working on FindMilk in minutes (replayed beliefs), then a live leg",
         description=(
-            "Train base and base + shaping policies briefly, fine-tune the base on human "
-            "feedback and on AMULED's fused feedback with the five moral clusters asked live "
-            "on a local Ollama model, evaluate all four, write report.md and the viewer page "
-            "view-episode0.html (amuled view). With no server given, a private one is started "
-            "(amuled ollama up --tiny) and stopped afterwards. "
-            "The tiny model only exercises the plumbing; for a real model: ollama pull "
+            "The paper's FindMilk comparison (base, base + shaping, human feedback, AMULED) "
+            "with the moral clusters' beliefs replayed from the paper authors' recording and "
+            "their recipe, at a demo-sized budget; report.md puts the paper's row beside "
+            "ours; the viewer page view-episode0.html shows the AMULED fine-tune step by "
+            "step. Then a short live leg: a few requests to a local Ollama model (a private "
+            "one with the tiny model unless --host/--model), whose judgement is not "
+            "meaningful; it shows the live path. For a real model: ollama pull "
             "llama3.1:8b, then --model llama3.1:8b."
         ),
     )
@@ -114,6 +135,10 @@ def demo_command(args: argparse.Namespace) -> int:
     from amuled_ma.cli import FAILURES, report_failure
 
     start = time.perf_counter()
+    missing = missing_recording(args.task)
+    if missing:
+        print(f"amuled: error: {missing}", file=sys.stderr)
+        return 2
     model = args.model or TINY_MODEL
     host = args.host or os.environ.get("OLLAMA_HOST")
     if host is None and model != TINY_MODEL:
@@ -160,11 +185,13 @@ def demo_command(args: argparse.Namespace) -> int:
                 warmup = PrefixWarmup.start(host, model, scenario)
             with record_timings() as run_log:
                 code = _run_pipeline(scenario, run_dir, demo_hint(args, run_dir), args, debug)
-            phases.append(("fine-tune", run_log))
-        if code == 0:  # while the server still runs: the page may ask it about new states
-            with record_timings() as view_log:
-                view = write_demo_view(run_dir)
-            phases.append(("viewer", view_log))
+            if run_log.timings:
+                phases.append(("fine-tune", run_log))
+        if code == 0:  # while the server still runs
+            with record_timings() as live_log:
+                write_live_leg(run_dir, scenario, model=model, host=host)
+            phases.append(("live leg", live_log))
+            view = write_demo_view(run_dir)
         if server_log is not None:
             reuse = cache_reuse(server_log, log_offset)
     finally:
@@ -230,6 +257,45 @@ def demo_scenario(
     return common.customise(scenario, clusters_dirs=clusters_dirs, overrides=overrides)
 
 
+def missing_recording(task: str) -> str | None:
+    """One line when the demo's scenario replays a recording this machine lacks (else None)."""
+    from amuled_ma.errors import AmuledError
+    from amuled_ma.scenario import load_scenario
+
+    try:
+        scenario = load_scenario(f"{task}-demo")
+    except AmuledError as error:
+        return str(error)
+    if scenario.feedback.source != "replay":
+        return None
+    try:
+        scenario.recording_path(required=True)
+    except AmuledError:
+        name = Path(scenario.feedback.recording).name
+        return (
+            f"amuled demo replays the paper authors' recording {name!r}, not found: put the "
+            "recordings in ../shared/amuled-recordings beside the checkout, set "
+            "AMULED_RECORDINGS=FOLDER, or run 'amuled import authors PATH' (a checkout of "
+            "https://github.com/temetski/moral_agent)"
+        )
+    return None
+
+
+def demo_title(scenario: Scenario) -> str:
+    """The report's title: what the demo's run is, and that it is demo-sized."""
+    fb, ft = scenario.feedback, scenario.finetune
+    where = (
+        f"beliefs replayed from `{Path(fb.recording).name}`"
+        if fb.source == "replay"
+        else f"beliefs asked live of `{fb.model}`"
+    )
+    return (
+        f"{scenario.name}: the paper's {scenario.task.name} comparison, demo-sized "
+        f"({where}, {ft.recipe} recipe, {ft.iterations:,} fine-tuning iterations; "
+        "the paper: 1,000)"
+    )
+
+
 def demo_hint(args: argparse.Namespace, run_dir: Path) -> str:
     """The command that continues this demo (printed with ``--resume`` when it stops)."""
     parts = ["amuled", "demo", "--task", args.task, "--run-dir", str(run_dir)]
@@ -257,6 +323,7 @@ def _run_pipeline(
         resume=True,
         progress=not args.no_progress,
         hint=hint,
+        title=demo_title(scenario),
     )
     start = time.perf_counter()
     try:
@@ -295,6 +362,176 @@ def write_demo_view(run_dir: Path) -> Path | None:
     link_viewer(run_dir)
     _say(f"viewer {result.path} ({result.size / 1e6:.2f} MB); open it in a browser")
     return result.path
+
+
+def live_leg(
+    run_dir: Path,
+    scenario: Scenario,
+    *,
+    model: str,
+    host: str,
+    states: int = LIVE_STATES,
+    clusters: Sequence[str] = LIVE_CLUSTERS,
+) -> dict[str, Any]:
+    """Ask a live model about a few states of the AMULED fine-tune's episode, through a store.
+
+    The states are the first ``states`` distinct states of the fine-tune's greedy
+    evaluation episode 0 (replayed as ``amuled explain`` does); each is asked of every
+    cluster of ``clusters`` with the paper's prompts (``[feedback].source = "ollama"``,
+    the scenario's Ollama options), through the belief store ``RUN_DIR/live/beliefs.sqlite``,
+    and fused with the scenario's rule, as in training.
+
+    Args:
+        run_dir: The demo's run folder (its ``finetune-amuled`` is replayed).
+        scenario: The demo's scenario.
+        model: The live model.
+        host: Its server.
+        states: Distinct states asked.
+        clusters: The clusters asked about each.
+
+    Returns:
+        What ``live/live.json`` holds: the model, host, store, wall seconds, and per state
+        its prompt variables, each cluster's belief, status and weight, the fused belief
+        and Dempster's conflicts.
+
+    Raises:
+        AmuledError: The run has no AMULED fine-tune, or the panel cannot be built.
+
+    """
+    import numpy as np
+
+    from amuled_ma.deliberation.build import make_feedback
+    from amuled_ma.evaluate.episode_trace import replay_variant
+    from amuled_ma.evaluate.panel_answers import ask_panel
+    from amuled_ma.experiments.trained_variants import evaluated_episodes, trained_variant
+    from amuled_ma.tasks import get_task
+
+    trained = trained_variant(run_dir, run_dir / "finetune-amuled")
+    episode = replay_variant(
+        trained, episode=0, mode="greedy", episodes=evaluated_episodes(run_dir, scenario)
+    )
+    seen: set[tuple[float, ...]] = set()
+    picked: list[int] = []
+    for step in range(episode.length):
+        key = tuple(float(x) for x in np.asarray(episode.obs[step]).reshape(-1))
+        if key not in seen:
+            seen.add(key)
+            picked.append(step)
+        if len(picked) == states:
+            break
+    obs = np.stack([np.asarray(episode.obs[i], dtype=np.float64).reshape(-1) for i in picked])
+    prompt_vars = [dict(episode.prompt_vars[i]) for i in picked]
+    live = scenario.replace(
+        "feedback", source="ollama", model=model, host=host, clusters=list(clusters)
+    )
+    out = run_dir / LIVE_DIR
+    out.mkdir(parents=True, exist_ok=True)
+    feedback = make_feedback("amuled", live, out)
+    began = time.perf_counter()
+    try:
+        answers = ask_panel(feedback.panel, obs, prompt_vars)
+    finally:
+        feedback.close()
+    wall = time.perf_counter() - began
+    actions = list(get_task(scenario.task.name).action_names)
+    return {
+        "model": model,
+        "host": host,
+        "store": str(out / Path(live.feedback.store).name),
+        "source": "ollama",
+        "meaningful": False,
+        "wall_s": wall,
+        "requests": len(picked) * len(answers.agents),
+        "actions": actions,
+        "agents": list(answers.agents),
+        "fusion": answers.rule,
+        "states": [
+            {
+                "step": int(step),
+                "obs": obs[u].tolist(),
+                "prompt_vars": {k: _plain(v) for k, v in prompt_vars[u].items()},
+                "beliefs": answers.beliefs[u].tolist(),
+                "statuses": answers.statuses[u].tolist(),
+                "weights": answers.weights[u].tolist(),
+                "fused": answers.fused[u].tolist(),
+                "conflicts": answers.conflicts[u].tolist(),
+            }
+            for u, step in enumerate(picked)
+        ],
+    }
+
+
+def _plain(value: Any) -> Any:
+    """A prompt variable as JSON (numpy numbers as Python's)."""
+    return value.item() if hasattr(value, "item") else value
+
+
+def live_section(leg: dict[str, Any]) -> list[str]:
+    """The report's live-leg section (:data:`LIVE_HEADING`), from :func:`live_leg`'s data."""
+    actions = leg["actions"]
+    lines = [
+        LIVE_HEADING,
+        "",
+        f"**The model `{leg['model']}` was asked live; its moral judgement is not meaningful"
+        + (" (SmolLM2-135M, 135M parameters)" if leg["model"] == "amuled-tiny" else "")
+        + ": this leg only shows the live path** (the paper's prompts -> Ollama -> parsing -> "
+        "the belief store -> fusion). Nothing here trained a policy: every figure above "
+        "comes from the replayed recording.",
+        "",
+        f"{leg['requests']} requests to `{leg['model']}` at `{leg['host']}` in "
+        f"{leg['wall_s']:.1f} s, stored in `{LIVE_DIR}/{Path(leg['store']).name}` (belief "
+        f"source: `ollama`, model `{leg['model']}`); the states are the first distinct states "
+        "of `finetune-amuled`'s greedy evaluation episode 0; fusion "
+        f"`{leg['fusion']}`. Beliefs over {' / '.join(actions)}:",
+        "",
+        "| step | agent | source | status | belief | fusion weight |",
+        "|---|---|---|---|---|---|",
+    ]
+    for state in leg["states"]:
+        for k, agent in enumerate(leg["agents"]):
+            belief = " / ".join(f"{p:.2f}" for p in state["beliefs"][k])
+            lines.append(
+                f"| {state['step']} | {agent} | ollama `{leg['model']}` | "
+                f"{state['statuses'][k]} | {belief} | {state['weights'][k]:.3f} |"
+            )
+        fused = " / ".join(f"{p:.2f}" for p in state["fused"])
+        conflict = ", ".join(f"{c:.3f}" for c in state["conflicts"]) or "-"
+        lines.append(f"| {state['step']} | **fused** | - | Dempster's K {conflict} | {fused} | |")
+    return [*lines, ""]
+
+
+def write_live_leg(run_dir: Path, scenario: Scenario, *, model: str, host: str) -> bool:
+    """Run :func:`live_leg`, write ``live/live.json`` and append its section to ``report.md``.
+
+    Returns:
+        True when the leg ran (a failure is printed and the report says so).
+
+    """
+    import json
+
+    from amuled_ma.errors import AmuledError
+
+    _say(
+        f"live leg: {LIVE_STATES} states x {len(LIVE_CLUSTERS)} clusters asked of {model} "
+        "(its judgement is not meaningful: it shows the live path)"
+    )
+    report = run_dir / "report.md"
+    try:
+        leg = live_leg(run_dir, scenario, model=model, host=host)
+    except (AmuledError, OSError, ValueError) as error:
+        _say(f"live leg failed: {error}")
+        if report.is_file():
+            with report.open("a") as handle:
+                handle.write(f"\n{LIVE_HEADING}\n\nThe live leg failed: {error}\n")
+        return False
+    (run_dir / LIVE_DIR / "live.json").write_text(json.dumps(leg, indent=1))
+    if report.is_file():
+        text = report.read_text()
+        if LIVE_HEADING in text:  # a re-run: replace the old section
+            text = text[: text.index(LIVE_HEADING)].rstrip("\n") + "\n"
+        report.write_text(text.rstrip("\n") + "\n\n" + "\n".join(live_section(leg)))
+    _say(f"live leg: {leg['requests']} requests in {leg['wall_s']:.1f} s")
+    return True
 
 
 class PrefixWarmup:

@@ -38,13 +38,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--variants", nargs="+", default=None, help="only these variant folders (default: all)"
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    common.add_clusters_dir_argument(parser)
     parser.set_defaults(handler=evaluate_command)
 
 
 def evaluate_command(args: argparse.Namespace) -> int:
     """Run ``amuled evaluate``."""
-    from amuled_ma.evaluate.evaluator import evaluate_run, variant_dirs
-    from amuled_ma.evaluate.report import write_report
     from amuled_ma.experiments.run_folder import (
         read_record,
         scenario_of_run,
@@ -54,7 +53,11 @@ def evaluate_command(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     run_dir = Path(args.run_dir)
-    scenario = scenario_of_run(run_dir)
+    scenario = scenario_of_run(run_dir)  # a clear error when it is no run, before torch
+    scenario = common.customise(scenario, clusters_dirs=args.clusters_dir)
+    from amuled_ma.evaluate.evaluator import evaluate_run, variant_dirs  # torch, matplotlib
+    from amuled_ma.evaluate.report import write_report
+
     with run_folder_lock(run_dir):
         extra = None
         if run_dir.name.startswith("ablate-"):  # the run's folders the ablation shares

@@ -126,32 +126,30 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--full", action="store_true", help=f"print whole replies (default: {REPLY_CHARS} chars)"
     )
     parser.add_argument("--prompt", action="store_true", help="print the state prompt too")
+    common.add_clusters_dir_argument(parser)
     common.add_overrides_argument(parser)
     parser.set_defaults(handler=explain_command)
 
 
-def with_overrides(scenario: Any, overrides: Sequence[str]) -> Any:
-    """A run's scenario with ``--set SECTION.KEY=VALUE`` applied (as for a shipped one).
+def with_overrides(
+    scenario: Any, overrides: Sequence[str], clusters_dirs: Sequence[Path] = ()
+) -> Any:
+    """A run's scenario with ``--clusters-dir`` and ``--set`` applied (as for a shipped one).
 
     Raises:
         ScenarioError: A malformed override or an unknown section or key.
+        ClusterDefinitionError: A ``--clusters-dir`` folder is missing or malformed.
 
     """
-    for text in overrides:
-        section, name, value = common.parse_override(text)
-        if not hasattr(scenario, section) or section in ("name", "path"):
-            raise ScenarioError(f"--set {text!r}: unknown section [{section}]")
-        scenario = scenario.replace(section, **{name: value})
-    return scenario
+    return common.customise(scenario, clusters_dirs=clusters_dirs, overrides=overrides)
 
 
 def explain_command(args: argparse.Namespace) -> int:
     """Run ``amuled explain``."""
+    from amuled_ma.deliberation.plan import plan_panel
     from amuled_ma.evaluate import explain
-    from amuled_ma.evaluate.episode_trace import replay_variant
     from amuled_ma.evaluate.readonly_feedback import open_feedback
     from amuled_ma.experiments.run_folder import scenario_of_run
-    from amuled_ma.experiments.trained_variants import evaluated_episodes, trained_variant
     from amuled_ma.tasks import get_task
 
     if args.state_from is not None:
@@ -161,10 +159,15 @@ def explain_command(args: argparse.Namespace) -> int:
             )
         run_dir = Path(args.state_from)
         run_scenario = scenario_of_run(run_dir)  # a clear error when it is no run
+        # here: the episode's replay imports torch, after the checks that need none
+        from amuled_ma.evaluate.episode_trace import replay_variant
+        from amuled_ma.experiments.trained_variants import evaluated_episodes, trained_variant
+
         trained = trained_variant(run_dir, run_dir / args.variant)
-        scenario = with_overrides(trained.scenario, args.overrides)
+        scenario = with_overrides(trained.scenario, args.overrides, args.clusters_dir)
         trained = dataclasses.replace(trained, scenario=scenario)
         feedback_name = args.feedback or trained.feedback or "amuled"
+        plan_panel(feedback_name, scenario)  # an unknown cluster: one line, nothing opened
         episodes = args.episodes or evaluated_episodes(run_dir, run_scenario)
         feedback, store = open_feedback(feedback_name, scenario, run_dir)
         try:
@@ -185,7 +188,9 @@ def explain_command(args: argparse.Namespace) -> int:
             "--state-from RUN --variant V --step N"
         )
     if args.run_dir is not None:
-        scenario = with_overrides(scenario_of_run(Path(args.run_dir)), args.overrides)
+        scenario = with_overrides(
+            scenario_of_run(Path(args.run_dir)), args.overrides, args.clusters_dir
+        )
         if args.scenario and args.scenario not in (scenario.task.name, scenario.name):
             raise ScenarioError(
                 f"TASK {args.scenario!r} does not match the run {args.run_dir} (task "
@@ -195,10 +200,11 @@ def explain_command(args: argparse.Namespace) -> int:
         raise ScenarioError("name TASK (findmilk, driving, ...) or give --run-dir RUN")
     else:
         scenario = common.load(args)
+    feedback_name = args.feedback or "amuled"
+    plan_panel(feedback_name, scenario)  # an unknown cluster: one line, before torch
     task_cls = get_task(scenario.task.name)
     obs = explain.parse_obs(args.obs, task_cls)
     extras = explain.parse_prompt_vars(args.prompt_vars)
-    feedback_name = args.feedback or "amuled"
     feedback, store = open_feedback(feedback_name, scenario, args.run_dir)
     try:
         where = f"run {args.run_dir}" if args.run_dir else f"scenario {scenario.name} (shipped)"

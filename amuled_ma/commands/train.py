@@ -34,15 +34,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=(
             "Fine-tune a copy of <run-dir>/base on r = f(B)[a] - lambda_KL * (log pi(a|s) - "
             "log pi_base(a|s)). Feedback: amuled (the clusters fused with bjs-dst), human "
-            "(rule-based), cluster:<name> (one cluster), moral (unprompted moral agent), "
-            "agg:mean|max|vote (other fusion rules)."
+            "(the authors' synthetic human: a demonstrator's action counts), human:rules (the "
+            "task's rule-based synthetic human), cluster:<name> (one cluster), moral "
+            "(unprompted moral agent), agg:mean|max|vote (other fusion rules)."
         ),
     )
     common.add_scenario_args(finetune)
     finetune.add_argument(
         "--feedback",
         default="amuled",
-        help="amuled | human | moral | cluster:<name> | agg:mean|max|vote (default: amuled)",
+        help="amuled | human | human:rules | moral | cluster:<name> | agg:mean|max|vote "
+        "(default: amuled)",
     )
     finetune.add_argument(
         "--name",

@@ -25,6 +25,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         ),
     )
     parser.add_argument("run_dir", metavar="RUN_DIR", type=Path, help="a run directory")
+    common.add_allow_plugin_argument(parser)  # a run folder names no code to run by itself
     parser.add_argument(
         "--variant",
         dest="variants",
@@ -72,12 +73,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--serve-seconds",
-        type=common.positive_float,
+        type=serve_seconds,
         default=None,
         metavar="S",
         help="with --serve, stop after S seconds (default: at Ctrl-C)",
     )
     parser.set_defaults(handler=view_command)
+
+
+#: Longest ``--serve-seconds`` (about 115 days; Python's timers refuse far larger waits).
+MAX_SERVE_SECONDS = 10_000_000
+
+
+def serve_seconds(text: str) -> float:
+    """An argparse ``type``: a finite number of seconds in (0, :data:`MAX_SERVE_SECONDS`]."""
+    value = common.positive_float(text)
+    if value > MAX_SERVE_SECONDS:
+        raise argparse.ArgumentTypeError(
+            f"expected seconds in (0, {MAX_SERVE_SECONDS:,}], found {text}; leave it out to "
+            "serve until Ctrl-C"
+        )
+    return value
 
 
 def view_command(args: argparse.Namespace) -> int:

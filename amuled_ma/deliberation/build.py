@@ -21,7 +21,7 @@ import functools
 import json
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -29,8 +29,6 @@ from amuled_ma.beliefs.cached import CachedSource
 from amuled_ma.beliefs.routing import RoutedSource
 from amuled_ma.beliefs.sources import make_source as build_source
 from amuled_ma.beliefs.types import BeliefSource
-from amuled_ma.deliberation.feedback_base import CallableFeedback, DemonstratorFeedback, Feedback
-from amuled_ma.deliberation.panel_feedback import FusedReplayFeedback, PanelFeedback
 from amuled_ma.deliberation.plan import (
     PanelPlan,
     SourcePlan,
@@ -43,8 +41,65 @@ from amuled_ma.errors import AmuledError, ScenarioError
 from amuled_ma.scenario import AGENT_SOURCE_KINDS, MORAL_AGENT, Scenario
 from amuled_ma.scenario.agents import norm
 
+if TYPE_CHECKING:  # the feedback classes import torch: loaded when a feedback is built,
+    # so that the preflight's errors come before any heavy import
+    from amuled_ma.deliberation.feedback_base import Feedback
+
 #: The ways to give a member beliefs, named in the preflight's messages.
 _KINDS = " | ".join(f'"{k}"' for k in AGENT_SOURCE_KINDS if k != "replay")
+#: Seconds per request of the private tiny Ollama model here (docs/ollama.md, "Where a
+#: request's time goes": the demo's setting, 4.1 s a request, one slot, load 2.2-3.2).
+TINY_SECONDS_PER_REQUEST = 4.1
+#: The distinct states a budget asks in the preflight's suggestion
+#: (``[feedback.distill].budget``, an integer: that many states; docs/distill.md).
+SUGGESTED_BUDGET = 20
+
+
+def _duration(seconds: float) -> str:
+    """``40 s``, ``12 min``, ``3.1 h``: a rough duration in words."""
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def options_line(missing: Sequence[str], states: int, distill: Any = None) -> str:
+    """The ways to give members without beliefs an answer, each with its cost here.
+
+    Args:
+        missing: The members no source answers (user clusters not in the recording).
+        states: Distinct states a fine-tune of the task asks about (the recording's).
+        distill: ``[feedback.distill]`` (its budget, when on, is the cost to quote).
+
+    Returns:
+        One sentence: a live model (states x members x :data:`TINY_SECONDS_PER_REQUEST`),
+        a person (the number of answers), either on a budget with the distilled model,
+        ``rules`` by name (the cluster's text is not read), or dropping the members.
+
+    """
+    n = len(missing)
+    table = missing[0] if n == 1 else "<name>"
+    members = f"{n} member{'s' if n > 1 else ''}"
+    asks = states * n
+    budget = SUGGESTED_BUDGET
+    if distill is not None and getattr(distill, "enabled", False):
+        value = distill.budget
+        budget = int(value) if isinstance(value, int) else max(1, int(value * states))
+    small = budget * n
+    return (
+        f"give {'it' if n == 1 else 'them'} beliefs with [feedback.agents.{table}]: "
+        f'source = "ollama" (a live model: about {states:,} states x {members} x '
+        f"{TINY_SECONDS_PER_REQUEST} s a request on the tiny model here = "
+        f"~{_duration(asks * TINY_SECONDS_PER_REQUEST)}), "
+        f'source = "terminal" (a person: about {asks:,} answers), either on a budget with '
+        "the distilled model answering the rest (--set feedback.distill.enabled=true --set "
+        f"feedback.distill.budget={budget}: {small:,} requests, "
+        f"~{_duration(small * TINY_SECONDS_PER_REQUEST)} live or {small:,} answers by a "
+        'person; docs/distill.md), source = "rules" named for the agent (the task\'s '
+        'rule answers: the cluster\'s text is not read), a plug-in ("entry-point") or a '
+        'saved policy ("policy"); or drop it from [feedback].clusters'
+    )
 
 
 def _without(error: BaseException, where: str) -> str:
@@ -53,7 +108,9 @@ def _without(error: BaseException, where: str) -> str:
     return text[len(where) + 2 :] if text.startswith(f"{where}: ") else text
 
 
-def _replay_problem(source: Any, agents: Sequence[str], task: str) -> str | None:
+def _replay_problem(
+    source: Any, agents: Sequence[str], task: str, distill: Any = None
+) -> str | None:
     """Why a replay source cannot answer ``agents`` on ``task`` (from its recordings)."""
     recordings = list(getattr(source, "recordings", None) or ())
     fused_only = [r for r in recordings if r.fused_only]
@@ -77,11 +134,10 @@ def _replay_problem(source: Any, agents: Sequence[str], task: str) -> str | None
         return None
     names = ", ".join(f'"{a}"' for a in missing)
     what = f"cluster {names} is" if len(missing) == 1 else f"clusters {names} are"
-    table = missing[0] if len(missing) == 1 else "<name>"
     return (
         f"{what} not in recording {recording.path.stem} (it holds: "
-        f"{', '.join(recording.clusters)}); give it beliefs with [feedback.agents.{table}] "
-        f"source = {_KINDS}, or drop it from [feedback].clusters"
+        f"{', '.join(recording.clusters)}); "
+        f"{options_line(missing, len(recording.states), distill)}"
     )
 
 
@@ -164,7 +220,7 @@ def build_members(plan: PanelPlan, *, build: Any = build_source) -> Members:
             if callable(check):
                 check()
             if spec.kind == "replay":
-                problem = _replay_problem(source, served[key], plan.task)
+                problem = _replay_problem(source, served[key], plan.task, plan.distill)
                 if problem:
                     raise ScenarioError(problem)
         except Exception as error:
@@ -342,6 +398,9 @@ def _build(
     seed: int | None,
     cache_dir: Path | None,
 ) -> Feedback:
+    from amuled_ma.deliberation.feedback_base import CallableFeedback, DemonstratorFeedback
+    from amuled_ma.deliberation.panel_feedback import FusedReplayFeedback, PanelFeedback
+
     if plan.variant == "human:rules":
         from amuled_ma.tasks.human import human_belief
 

@@ -25,6 +25,9 @@ from amuled_ma.scenario import AGENT_SPECS, MORAL_AGENT, Scenario
 from amuled_ma.scenario.agents import match_agents
 from amuled_ma.variants import parse_feedback
 
+#: What every label of a ``rules`` source says: it answers with the task's rule.
+RULES_NOTE = ", the task's rule: the cluster's text is not read"
+
 
 @dataclass(frozen=True)
 class SourcePlan:
@@ -54,7 +57,7 @@ class PanelPlan:
 
     Attributes:
         variant: The feedback (``amuled``, ``cluster:care``, ``human``, ...).
-        kind: Its kind (:func:`~amuled_ma.learn.variants.parse_feedback`).
+        kind: Its kind (:func:`~amuled_ma.variants.parse_feedback`).
         task: The task's name.
         where: The scenario file (or name), first in messages.
         seed: ``[task].seed`` (the demonstrator's episodes).
@@ -234,7 +237,8 @@ def default_source(scenario: Scenario) -> SourcePlan:
     model = AGENT_SPECS.get(fb.source)  # a kind registered at run time takes no options
     spec = model.model_validate({"source": fb.source}) if model is not None else None
     options = spec.source_options(scenario, "[feedback]") if spec is not None else {}
-    return SourcePlan(fb.source, options, f"[feedback].source = {fb.source!r}")
+    note = f" ({RULES_NOTE.removeprefix(', ')})" if fb.source == "rules" else ""
+    return SourcePlan(fb.source, options, f"[feedback].source = {fb.source!r}{note}")
 
 
 def agent_source(scenario: Scenario, name: str, spec: Any) -> SourcePlan:
@@ -246,7 +250,7 @@ def agent_source(scenario: Scenario, name: str, spec: Any) -> SourcePlan:
     """
     head = f"[feedback.agents.{name}]"
     options = spec.source_options(scenario, head)
-    detail = spec.detail(options)
+    detail = spec.detail(options) + (RULES_NOTE if spec.source == "rules" else "")
     return SourcePlan(spec.source, options, f"{head} (source {spec.source!r}{detail})")
 
 
@@ -287,7 +291,38 @@ def plan_sources(
         except AmuledError as error:
             label = f"[feedback].source = {scenario.feedback.source!r}"
             problems.append((error, f"{label} (agents {', '.join(others)})"))
+    if default is not None and default.kind == "rules":
+        users = user_clusters([a for a in agents if not isinstance(a, str) and a.name in others])
+        if users:
+            problems.append((ScenarioError(rules_by_name(users)), default.label))
     return routes, default, problems
+
+
+def user_clusters(clusters: Sequence[Any]) -> list[str]:
+    """The names of the clusters read from a user's folder (not a shipped cluster file)."""
+    from amuled_ma.resources import prompts_dir
+
+    shipped = (prompts_dir() / "clusters").resolve()
+    out = []
+    for cluster in clusters:
+        path = getattr(cluster, "path", None)
+        if path is not None and Path(path).resolve().parent != shipped:
+            out.append(cluster.name)
+    return out
+
+
+def rules_by_name(agents: Sequence[str]) -> str:
+    """Why ``[feedback].source = "rules"`` does not answer for a user's text cluster."""
+    names = ", ".join(f'"{a}"' for a in agents)
+    table = agents[0] if len(agents) == 1 else "<name>"
+    return (
+        f"the rules source answers every agent with the task's rule and never reads a "
+        f"cluster's text, so it does not stand in for your cluster {names} by default; ask "
+        f'for it by name ([feedback.agents.{table}] source = "rules": the rule answers, '
+        "the text is not read), or give it a live model or a person on a budget "
+        '([feedback.agents.<name>] source = "ollama" or "terminal", with [feedback.distill]; '
+        "docs/clusters.md)"
+    )
 
 
 def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:

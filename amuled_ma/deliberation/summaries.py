@@ -158,8 +158,14 @@ def store_stats(source: Any) -> dict[str, int]:
 
 
 def describe_identity(identity: Mapping[str, Any]) -> str:
-    """``replay (findmilk-gpt-4o-mini.json)``, ``ollama (llama3.1:8b)``: a source in words."""
+    """``replay (findmilk-gpt-4o-mini.json)``, ``ollama (llama3.1:8b)``: a source in words.
+
+    A ``rules`` source says it is the task's rule and that no cluster's text is read.
+    """
     kind = str(identity.get("source", "source"))
+    if kind == "rules":  # never a model's name: the rule answers, no cluster text is read
+        policy = identity.get("policy") or "human"
+        return f"rules (the task's rule {policy!r}; the cluster's text is not read)"
     files = [r.get("file") for r in identity.get("recordings") or () if isinstance(r, dict)]
     detail = ", ".join(str(f) for f in files if f) or identity.get("model") or ""
     return f"{kind} ({detail})" if detail else kind

@@ -13,6 +13,7 @@ evidence and Dempster's conflict ``K`` of each combination) and the fused belief
 
 from __future__ import annotations
 
+import re
 import textwrap
 import tomllib
 from collections.abc import Sequence
@@ -23,6 +24,7 @@ import numpy as np
 
 from amuled_ma.beliefs.types import FUSED_STATUSES
 from amuled_ma.errors import ScenarioError
+from amuled_ma.evaluate.numbers import format_number
 from amuled_ma.evaluate.panel_answers import ask_panel
 from amuled_ma.evaluate.readonly_feedback import describe_feedback
 
@@ -47,12 +49,38 @@ def table(headers: Sequence[str], rows: Sequence[Sequence[Any]], indent: str = "
     return "\n".join(lines)
 
 
+#: Characters a terminal would act on rather than show: C0 controls but tab and newline
+#: (ESC starts the sequences that clear the screen, write the clipboard, make links), DEL,
+#: the C1 controls (U+009B is a one-character CSI), the bidirectional overrides, and lone
+#: surrogates (not text: printing one would fail).
+_UNPRINTABLE = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069\ud800-\udfff]")
+
+
+def printable(text: str) -> str:
+    r"""Text safe to print on a terminal: each control character written as an escape.
+
+    ``"\x1b]52;c;...\x07"`` (an OSC clipboard write) prints as ``\x1b]52;c;...\x07``:
+    the reader sees what the reply held, and the terminal runs nothing.
+
+    Args:
+        text: A reply, a reason, a name: text from outside the program.
+
+    Returns:
+        The text with every character of :data:`_UNPRINTABLE` as ``\xNN`` / ``\uNNNN``.
+
+    """
+    return _UNPRINTABLE.sub(_escape, text)
+
+
+def _escape(match: re.Match[str]) -> str:
+    code = ord(match.group())
+    return f"\\x{code:02x}" if code < 0x100 else f"\\u{code:04x}"
+
+
 def _cell(value: Any) -> str:
     if value is None:
         return "-"
-    if isinstance(value, float | np.floating):
-        return f"{float(value):.4f}"
-    return str(value)
+    return format_number(value, 4)  # -0.0000 printed as 0.0000
 
 
 def _num(value: float) -> str:
@@ -346,7 +374,7 @@ def explain_lines(
             )
         say("")
         say(table(["", *actions], [["feedback belief", *state.live_belief.tolist()]]))
-        return out
+        return [printable(line) for line in out]
     answers = ask_panel(
         panel, obs[None].astype(np.float64), [prompt_vars] if prompt_vars else None, store
     )
@@ -389,7 +417,8 @@ def explain_lines(
         say("state prompt:")
         for line in render_state_prompt(scenario.task.name, prompt_vars).splitlines():
             say("    " + line)
-    return out
+    # replies, reasons and names come from outside: no terminal control sequence is printed
+    return [printable(line) for line in out]
 
 
 def breakdown_lines(b: FusionBreakdown, actions: list[str], panel_fused: np.ndarray) -> list[str]:

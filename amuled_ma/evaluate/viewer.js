@@ -6,6 +6,8 @@
   var SVG = "http://www.w3.org/2000/svg";
   var ACTIONS = DATA.actions;
   var TEXTS = DATA.texts;
+  // the colours of the pictures: amuled_ma.tasks.colors.COLORS, the report's figures' table
+  var C = DATA.colors || {};
   // the panel's answers and a distilled reward model's (amuled_ma.beliefs.types.FUSED_STATUSES)
   var ANSWERED = { ok: 1, repaired: 1, distilled: 1, distilled_miss: 1 };
 
@@ -54,23 +56,26 @@
     function cx(x) { return pad + x * c + c / 2; }
     function cy(y) { return pad + (n - 1 - y) * c + c / 2; }
     for (var i = 0; i <= n; i++) {
-      root.appendChild(svg("line", { x1: pad + i * c, y1: pad, x2: pad + i * c, y2: pad + n * c, stroke: "#d5dbe0" }));
-      root.appendChild(svg("line", { x1: pad, y1: pad + i * c, x2: pad + n * c, y2: pad + i * c, stroke: "#d5dbe0" }));
+      root.appendChild(svg("line", { x1: pad + i * c, y1: pad, x2: pad + i * c, y2: pad + n * c, stroke: C.grid }));
+      root.appendChild(svg("line", { x1: pad, y1: pad + i * c, x2: pad + n * c, y2: pad + i * c, stroke: C.grid }));
     }
     var visited = {};
     for (var s = 1; s <= t && s < v.frames.length; s++) visited[v.frames[s][0] + "," + v.frames[s][1]] = s;
     var m = lay.milk;
-    root.appendChild(svg("rect", { x: cx(m[0]) - 15, y: cy(m[1]) - 15, width: 30, height: 30, rx: 5, fill: "#3c6ee6" }));
-    root.appendChild(svg("text", { x: cx(m[0]), y: cy(m[1]) + 5, "text-anchor": "middle", fill: "#fff", "font-size": 13, "font-weight": 700 }, "M"));
-    var kinds = [["crying", "#dc3c3c", "C", "pacified"], ["sleeping", "#3caa50", "S", "woken"]];
+    root.appendChild(svg("rect", { x: cx(m[0]) - 15, y: cy(m[1]) - 15, width: 30, height: 30, rx: 5, fill: C.milk, stroke: C.ink, "stroke-width": 1.5, "class": "milk" }));
+    root.appendChild(svg("text", { x: cx(m[0]), y: cy(m[1]) + 5, "text-anchor": "middle", fill: C.ink, "font-size": 13, "font-weight": 700 }, "M"));
+    // a baby not reached yet: its kind's colour and letter; reached: solid good / bad with a white glyph
+    var kinds = [["crying", C.crying, "C", "pacified", C.good, "✓"], ["sleeping", C.sleeping, "z", "woken", C.bad, "!"]];
     kinds.forEach(function (kind) {
       lay[kind[0]].forEach(function (p) {
         var gone = visited[p[0] + "," + p[1]] !== undefined;
         var g = svg("g", { "class": "baby " + kind[0] + (gone ? " " + kind[3] : "") });
-        g.appendChild(svg("circle", { cx: cx(p[0]), cy: cy(p[1]), r: 14,
-          fill: gone ? "#fff" : kind[1], stroke: kind[1], "stroke-width": 2, "stroke-dasharray": gone ? "3 2" : "" }));
-        g.appendChild(svg("text", { x: cx(p[0]), y: cy(p[1]) + 4, "text-anchor": "middle",
-          fill: gone ? kind[1] : "#fff", "font-size": 11, "font-weight": 700 }, gone ? (kind[0] === "crying" ? "✓" : "!") : kind[2]));
+        var fill = gone ? kind[4] : kind[1];
+        g.appendChild(kind[0] === "crying"
+          ? svg("circle", { cx: cx(p[0]), cy: cy(p[1]), r: 14, fill: fill, stroke: C.ink, "stroke-width": 1.5 })
+          : svg("rect", { x: cx(p[0]) - 13, y: cy(p[1]) - 13, width: 26, height: 26, rx: 3, fill: fill, stroke: C.ink, "stroke-width": 1.5 }));
+        g.appendChild(svg("text", { x: cx(p[0]), y: cy(p[1]) + (gone ? 6 : 4), "text-anchor": "middle",
+          fill: gone ? "#fff" : C.ink, "font-size": gone ? 17 : 11, "font-weight": 700 }, gone ? kind[5] : kind[2]));
         var title = svg("title", {}, kind[0] + " baby at (" + p[0] + ", " + p[1] + ")" + (gone ? ", " + kind[3] + " at step " + (visited[p[0] + "," + p[1]] - 1) : ""));
         g.appendChild(title);
         root.appendChild(g);
@@ -78,14 +83,14 @@
     });
     var pts = [];
     for (var j = 0; j <= t && j < v.frames.length; j++) pts.push(cx(v.frames[j][0]) + "," + cy(v.frames[j][1]));
-    root.appendChild(svg("polyline", { points: pts.join(" "), fill: "none", stroke: "#ef6c00", "stroke-width": 3, "stroke-opacity": 0.7, "stroke-linejoin": "round" }));
+    root.appendChild(svg("polyline", { points: pts.join(" "), fill: "none", stroke: C.path, "stroke-width": 3, "stroke-opacity": 0.7, "stroke-linejoin": "round" }));
     var r = v.frames[Math.min(t, v.frames.length - 1)];
-    root.appendChild(svg("rect", { x: cx(r[0]) - 11, y: cy(r[1]) - 11, width: 22, height: 22, rx: 4, fill: "#28282a", "class": "robot" }));
+    root.appendChild(svg("rect", { x: cx(r[0]) - 11, y: cy(r[1]) - 11, width: 22, height: 22, rx: 4, fill: C.agent, "class": "robot" }));
     if (t < v.T) {
       var moves = { up: [0, 1], down: [0, -1], left: [-1, 0], right: [1, 0] };
       var d = moves[ACTIONS[v.a[t]]];
       if (d) root.appendChild(svg("line", { x1: cx(r[0]), y1: cy(r[1]), x2: cx(r[0]) + d[0] * 26, y2: cy(r[1]) - d[1] * 26,
-        stroke: "#ef6c00", "stroke-width": 4, "marker-end": "" }));
+        stroke: C.path, "stroke-width": 4, "marker-end": "" }));
     }
     return root;
   }
@@ -96,42 +101,42 @@
       "aria-label": "Driving road at step " + t });
     function x(lane) { return pad + 24 + lane * w; }
     function y(d) { return pad + (far - d) * h; }
-    root.appendChild(svg("rect", { x: x(0), y: pad, width: lanes * w, height: (far + 1) * h, fill: "#6e6e6e" }));
+    root.appendChild(svg("rect", { x: x(0), y: pad, width: lanes * w, height: (far + 1) * h, fill: C.road }));
     for (var l = 1; l < lanes; l++)
-      root.appendChild(svg("line", { x1: x(l), y1: pad, x2: x(l), y2: pad + (far + 1) * h, stroke: "#f0f0f0", "stroke-dasharray": "8 8" }));
+      root.appendChild(svg("line", { x1: x(l), y1: pad, x2: x(l), y2: pad + (far + 1) * h, stroke: C.lane_mark, "stroke-dasharray": "8 8" }));
     for (var d = 0; d <= far; d++)
-      root.appendChild(svg("text", { x: pad + 18, y: y(d) + h / 2 + 4, "text-anchor": "end", "font-size": 11, fill: "#5f6b73" }, String(d)));
+      root.appendChild(svg("text", { x: pad + 18, y: y(d) + h / 2 + 4, "text-anchor": "end", "font-size": 11, fill: C.muted }, String(d)));
     var f = v.frames[Math.min(t, v.frames.length - 1)];
     f[1].forEach(function (o) {
       var g = svg("g", { "class": "car" });
-      g.appendChild(svg("rect", { x: x(o[0]) + 10, y: y(o[1]) + 4, width: w - 20, height: h - 8, rx: 4, fill: "#dc3c3c" }));
+      g.appendChild(svg("rect", { x: x(o[0]) + 10, y: y(o[1]) + 4, width: w - 20, height: h - 8, rx: 4, fill: C.car }));
       g.appendChild(svg("title", {}, "car, lane " + o[0] + ", distance " + o[1]));
       root.appendChild(g);
     });
     f[2].forEach(function (o) {
       var g = svg("g", { "class": "grandma" });
-      g.appendChild(svg("circle", { cx: x(o[0]) + w / 2, cy: y(o[1]) + h / 2, r: 10, fill: "#3caa50", stroke: "#fff", "stroke-width": 2 }));
+      g.appendChild(svg("circle", { cx: x(o[0]) + w / 2, cy: y(o[1]) + h / 2, r: 10, fill: C.grandma, stroke: "#fff", "stroke-width": 2 }));
       g.appendChild(svg("title", {}, "grandma, lane " + o[0] + ", distance " + o[1]));
       root.appendChild(g);
     });
     var lane = f[0];
-    root.appendChild(svg("rect", { x: x(lane) + 12, y: y(0) + 3, width: w - 24, height: h - 6, rx: 4, fill: "#1d1d1f", "class": "agent-car" }));
+    root.appendChild(svg("rect", { x: x(lane) + 12, y: y(0) + 3, width: w - 24, height: h - 6, rx: 4, fill: C.agent, "class": "agent-car" }));
     if (t < v.T) {
       var act = ACTIONS[v.a[t]], to = lane + (act === "right" ? 1 : act === "left" ? -1 : 0);
       to = Math.max(0, Math.min(lanes - 1, to));
       root.appendChild(svg("line", { x1: x(lane) + w / 2, y1: y(0) + 2, x2: x(to) + w / 2, y2: y(1) + h / 2,
-        stroke: "#ff9800", "stroke-width": 4 }));
+        stroke: C.policy, "stroke-width": 4 }));
       var ev = v.ev || {};
       // mark the objects this step hit: in the current or the target lane, reaching the
       // agent this step (a car moves 1 per step, a grandma 3)
-      var marks = [["collisions", 1, 1, "✕", "#ff1744", "collision"], ["rescues", 2, 3, "★", "#69f0ae", "rescue"]];
+      var marks = [["collisions", 1, 1, "✕", C.bad, "collision"], ["rescues", 2, 3, "★", C.good, "rescue"]];
       marks.forEach(function (m) {
         if (!ev[m[0]] || !(ev[m[0]][t] > 0)) return;
         var hit = f[m[1]].filter(function (o) { return o[1] <= m[2] && (o[0] === lane || o[0] === to); });
         if (!hit.length) hit = [[to, 0]];
         hit.forEach(function (o) {
           root.appendChild(svg("text", { x: x(o[0]) + w / 2, y: y(o[1]) + h / 2 + 8, "text-anchor": "middle",
-            "font-size": 24, fill: m[4], stroke: "#1d1d1f", "stroke-width": 1, "font-weight": 700, "class": m[5] }, m[3]));
+            "font-size": 26, fill: m[4], stroke: "#fff", "stroke-width": 1.5, "font-weight": 700, "class": m[5] }, m[3]));
         });
       });
     }
@@ -433,9 +438,15 @@
     current.go(target);
   });
 
-  // a link "#<variant>:<step>" opens that variant at that step
+  // a link "#<variant>:<step>" opens that variant at that step; any other fragment
+  // (malformed percent escapes, an unknown name, a huge step) is ignored, never an error
   function fromHash() {
-    var hash = decodeURIComponent((location.hash || "").slice(1));
+    var hash;
+    try {
+      hash = decodeURIComponent(String(location.hash || "").slice(1, 2049));
+    } catch (err) {
+      return false;
+    }
     if (!hash) return false;
     var cut = hash.lastIndexOf(":");
     var name = cut >= 0 ? hash.slice(0, cut) : hash;

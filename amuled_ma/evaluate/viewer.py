@@ -38,6 +38,7 @@ from amuled_ma.errors import AmuledError
 from amuled_ma.evaluate import episode_trace as trace
 from amuled_ma.evaluate.panel_answers import PanelAnswers, ask_panel
 from amuled_ma.evaluate.readonly_feedback import describe_feedback, open_feedback
+from amuled_ma.tasks.colors import COLORS, css_variables
 
 #: Decimals kept for probabilities, weights and conflicts in the page.
 DECIMALS = 4
@@ -212,11 +213,14 @@ def _episode_entry(ep: trace.Episode, name: str) -> dict[str, Any]:
     picture.update(ep.layout or {})
     note = ""
     if ep.task == "driving":
-        note = "Red: cars, green: grandmas, black: the agent's car at distance 0."
+        note = (
+            "Vermillion: cars, green circles: grandmas, black: the agent's car at distance 0; "
+            "red ✕: a collision, green ★: a rescue on this step."
+        )
     elif ep.task == "findmilk":
         note = (
-            "M milk, C crying baby (✓ once pacified), S sleeping baby (! once woken); the "
-            "orange line is the path so far."
+            "M milk, C crying baby (solid green ✓ once pacified), z sleeping baby (solid red "
+            "! once woken); the purple line is the path so far."
         )
     return {
         "name": name,
@@ -366,6 +370,7 @@ def build_view(
         "mode": mode,
         "episodes": episodes,
         "actions": _action_names(scenario.task.name),
+        "colors": dict(COLORS),
         "texts": texts.texts,
         "variants": entries,
     }
@@ -389,7 +394,10 @@ def render_html(data: dict[str, Any]) -> str:
     text in it (an LLM's reply, say) can end the script element.
     """
     script = (ASSETS / "viewer.js").read_text(encoding="utf-8")
-    style = (ASSETS / "viewer.css").read_text(encoding="utf-8")
+    # the colour table of the figures as CSS variables (--c-good, ...), then the style sheet
+    style = css_variables(data.get("colors") or COLORS) + (ASSETS / "viewer.css").read_text(
+        encoding="utf-8"
+    )
     payload = json.dumps(data, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
     for char, escape in (
         ("<", "\\u003c"),

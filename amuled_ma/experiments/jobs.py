@@ -25,7 +25,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from amuled_ma.errors import AmuledError
-from amuled_ma.experiments.run_folder import JobResult, TrainJob, prepare_variant, training_config
+from amuled_ma.experiments.run_folder import JobResult, TrainJob, prepare_variant
+from amuled_ma.experiments.training_settings import training_config
 from amuled_ma.learn.config import planned_iterations
 from amuled_ma.scenario import Scenario
 

@@ -10,6 +10,7 @@ and whether a variant folder is new, resumed or skipped, are in
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -25,11 +26,10 @@ from amuled_ma.experiments.run_folder import (
     mark_state,
     prepare_variant,
     replica_folder,
-    training_config,
     variant_fields,
     write_config,
 )
-from amuled_ma.learn.trainer import Trainer
+from amuled_ma.experiments.training_settings import training_config
 from amuled_ma.scenario import Scenario
 from amuled_ma.variants import AGGREGATIONS, Variant
 
@@ -201,6 +201,10 @@ def train_variant(
     out = Path(out_dir) if out_dir else run_dir / variant.folder
     # the preflight builds and checks the panel's sources once; the feedback is built of them
     checked = checked_inputs(scenario, variant, Path(base_dir or run_dir), base_variant)
+    # after the checks, before the folder is written: torch and rsl-rl load here, so that a
+    # refused job answers fast and a folder with a record is one whose training is starting
+    from amuled_ma.learn.trainer import Trainer
+
     try:
         training = training_config(scenario, variant, seed, iterations)
         action = prepare_variant(out, resume=resume, force=force, hint=hint, training=training)
@@ -248,7 +252,9 @@ def train_variant(
         outcome = trainer.train()
         mark_state(out, "complete", outcome.iterations)
     except Exception:
-        mark_state(out, "failed")  # not an interruption: the record says so
+        # not an interruption: the record says so (unless the disk is full: the error says so)
+        with contextlib.suppress(OSError):
+            mark_state(out, "failed")
         raise
     finally:
         if feedback is not None:

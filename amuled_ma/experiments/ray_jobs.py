@@ -51,10 +51,12 @@ from typing import Any
 import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
+from amuled_ma.clusters.plugins import allowed_plugins, set_allowed_plugins
 from amuled_ma.deliberation.plan import store_path
 from amuled_ma.errors import AmuledError, Terminated
 from amuled_ma.experiments.ray_store import start_store_actors
 from amuled_ma.experiments.run_folder import JobResult, TrainJob, checkpoint_state
+from amuled_ma.experiments.third_party_log import ray_to_log
 from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.config import planned_iterations
 
@@ -189,6 +191,7 @@ def connect(address: str | None, workers: int) -> bool:
     # stops the tasks in order (train_job restores Python's handler, for ray.cancel).
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if address is None else None
     previous_term = signal.getsignal(signal.SIGTERM)
+    ray_to_log()  # Ray's own notices (token authentication, ...) go to the log
     try:
         if address is None:
             ray.init(num_cpus=workers, include_dashboard=False, **options)
@@ -292,6 +295,7 @@ def train_job(
     stores: dict[str, Any],
     driver_node: str,
     *needed: tuple[JobResult, str, bool, dict[str, bytes]],
+    plugins: tuple[str, ...] = (),
 ) -> tuple[JobResult, str, bool, dict[str, bytes]]:
     """Ray task: train one job (``needed``: the results of the jobs it needs, done).
 
@@ -308,6 +312,7 @@ def train_job(
             on the driver's node; a job on another node opens these instead of the files.
         driver_node: The driver's node id.
         *needed: ``(result, node, shared, files)`` of each job this one needs.
+        plugins: The import paths the driver's command line allowed (``--allow-plugin``).
 
     Returns:
         The job's result, the id of the node that trained it, whether that node sees the
@@ -327,6 +332,7 @@ def train_job(
 
     os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
     torch.set_num_threads(1)
+    set_allowed_plugins(plugins)  # the driver's --allow-plugin: a worker allows no more
     shared = _sees_driver_files(job, token)
     if not shared:
         if inputs is None:
@@ -452,11 +458,12 @@ def run_on_ray(
     )
     options: dict[str, Any] = {"resources": {resource: 1}} if resource else {}
     refs: dict[str, Any] = {}
+    plugins = tuple(sorted(allowed_plugins()))
     for job in jobs:  # in graph order: each job's needs are submitted before it
         needed = [refs[n] for n in job.needs if n in refs]
         inputs = _inputs(job, set(by_name)) if ship else None
         refs[job.name] = train_job.options(name=job.name, **options).remote(
-            job, sweep, token, inputs, board, stores, driver_node, *needed
+            job, sweep, token, inputs, board, stores, driver_node, *needed, plugins=plugins
         )
     names = {ref: name for name, ref in refs.items()}
     bar = tqdm(

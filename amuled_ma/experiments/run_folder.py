@@ -20,14 +20,14 @@ fine-tunes, ``feedback.json`` (fused-belief diagnostics).
 This module names the replica folders (:func:`replica_folder`,
 :func:`split_replica`), records a job and its result (:class:`TrainJob`,
 :class:`JobResult`), and decides what a job does with its folder: start, resume or skip
-(:func:`prepare_variant`, :func:`training_config`, :func:`finished_with`,
-:func:`base_checkpoint`). The planner (:mod:`amuled_ma.experiments.plans`) and the job
-runner (:mod:`amuled_ma.experiments.jobs`) both build on it.
+(:func:`prepare_variant`, :func:`finished_with`, :func:`base_checkpoint`; the settings
+compared are :func:`~amuled_ma.experiments.training_settings.training_config`). The
+planner (:mod:`amuled_ma.experiments.plans`) and the job runner
+(:mod:`amuled_ma.experiments.jobs`) both build on it.
 """
 
 from __future__ import annotations
 
-import functools
 import json
 import re
 import sys
@@ -37,9 +37,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from amuled_ma.errors import AmuledError, CheckpointError
-from amuled_ma.file_hash import sha256_file
+from amuled_ma.experiments.training_settings import (
+    differences,
+    learned_only,
+    without_keys_added_since,
+)
 from amuled_ma.learn.checkpoints import LAST, checkpoint_infos
-from amuled_ma.learn.config import planned_iterations
 from amuled_ma.records import PanelRecord, RunRecord, State
 from amuled_ma.scenario import MORAL_AGENT, Scenario
 from amuled_ma.variants import Variant
@@ -160,101 +163,6 @@ def base_checkpoint(run_dir: Path, scenario: Scenario, base_variant: str = "base
     return path
 
 
-#: Scenario keys left out of :func:`training_config`: paths, logging and service keys, the
-#: seed (the job's own seed is kept) and the run's length (kept as ``"iterations"``: a
-#: resume may lengthen a run).
-_NOT_LEARNED = {
-    "task": ("seed",),
-    "base": ("save_interval", "total_steps"),
-    "finetune": ("save_interval", "iterations"),
-    "feedback": ("host", "hosts", "concurrency", "timeout_s", "store", "max_abstention", "name"),
-}
-
-
-def training_config(
-    scenario: Scenario,
-    variant: Variant | str,
-    seed: int | None = None,
-    iterations: int | None = None,
-) -> dict[str, Any]:
-    """The settings that decide what a variant learns, as plain JSON data.
-
-    A folder's saved copy (``config.json``, key ``"training"``) is compared with the current
-    one before a resume or a skip, so that a run never continues, or passes off as
-    finished, a variant trained with other settings. They are read from the validated
-    scenario (:meth:`~amuled_ma.scenario.Scenario.settings`). Left out: paths, logging and service
-    keys (:data:`_NOT_LEARNED`), the recording's folder (its file name stays), the
-    ``[feedback.distill]`` table when it is off, and the feedback section for base
-    training and for the rule-based human feedback. The run's
-    length is kept apart, as the number of PPO iterations the job trains to.
-
-    Args:
-        scenario: The scenario of the job.
-        variant: What the job trains.
-        seed: The job's training seed (default: ``[task].seed``).
-        iterations: An override of the number of iterations, if any.
-
-    Returns:
-        ``{"variant", "seed", "iterations", section: {key: value}, ...}``.
-
-    """
-    variant = Variant.parse(variant)
-    data = scenario.settings()
-    sections: tuple[str, ...] = ("task", "ppo", "finetune" if variant.finetuning else "base")
-    if variant.asks_panel:
-        sections += ("feedback",)
-    total = planned_iterations(scenario, finetune=variant.finetuning)
-    out: dict[str, Any] = {
-        "variant": str(variant),
-        "seed": scenario.task.seed if seed is None else seed,
-        "iterations": total if iterations is None else iterations,
-    }
-    for section in sections:
-        skip = _NOT_LEARNED.get(section, ())
-        out[section] = {k: v for k, v in data[section].items() if k not in skip}
-    distill = out.get("feedback", {}).get("distill")
-    if distill is not None and not distill.get("enabled"):
-        del out["feedback"]["distill"]  # off: its other keys change nothing
-    if out.get("feedback", {}).get("recording"):
-        out["feedback"]["recording"] = Path(out["feedback"]["recording"]).name
-        if out["feedback"].get("source") == "replay":
-            out["inputs"] = {"recording_sha256": _file_sha256(scenario.recording_path())}
-    for agent, spec in sorted((out.get("feedback", {}).get("agents") or {}).items()):
-        if spec.get("source") == "replay" and spec.get("recording"):
-            path = scenario.replace("feedback", recording=spec["recording"]).recording_path()
-            out.setdefault("inputs", {})[f"recording_sha256[{agent}]"] = _file_sha256(path)
-    return json.loads(json.dumps(out, default=str))
-
-
-@functools.lru_cache(maxsize=64)
-def _sha256_of(path: str, size: int, mtime_ns: int) -> str:
-    return sha256_file(path)  # cached by (path, size, mtime): a changed file is hashed again
-
-
-def _file_sha256(path: Path) -> str | None:
-    """SHA-256 of a file's content (memoised while its size and mtime stay), None if absent.
-
-    The identity of an input such as a recording: a file replaced under the same name has
-    another hash, and a resume compares it (:func:`check_training_config`).
-    """
-    try:
-        info = path.stat()
-    except OSError:
-        return None
-    return _sha256_of(str(path), info.st_size, info.st_mtime_ns)
-
-
-def _differences(saved: Any, current: Any, prefix: str = "") -> list[str]:
-    """``key: saved -> current`` for every leaf that differs between two JSON values."""
-    if isinstance(saved, dict) and isinstance(current, dict):
-        out = []
-        for key in sorted(set(saved) | set(current), key=str):
-            name = f"{prefix}.{key}" if prefix else str(key)
-            out += _differences(saved.get(key), current.get(key), name)
-        return out
-    return [] if saved == current else [f"{prefix}: {saved!r} -> {current!r}"]
-
-
 def saved_training_config(out_dir: Path) -> dict[str, Any] | None:
     """The ``"training"`` settings a variant folder's record (``config.json``) holds, if any.
 
@@ -269,67 +177,154 @@ def saved_training_config(out_dir: Path) -> dict[str, Any] | None:
     return None if record is None else record.training
 
 
-def check_training_config(out_dir: Path, training: dict[str, Any]) -> None:
+def check_training_config(out_dir: Path, training: dict[str, Any], hint: str = "") -> None:
     """Refuse to resume or skip a variant trained with other settings.
 
     Args:
         out_dir: The variant folder (its ``config.json`` holds the saved settings; a folder
             without one, from an older version, is accepted).
-        training: The current :func:`training_config`.
+        training: The current :func:`~amuled_ma.experiments.training_settings.training_config`.
+        hint: The command that was run, for the commands the refusal names.
 
     Raises:
-        AmuledError: The settings differ; the message lists each differing key with its
-            saved and current value and names ``--force`` and ``--run-dir``.
+        AmuledError: The settings differ; the message names each differing key with its
+            saved and current value and the command that trains the new settings beside
+            the folder or retrains it alone (:func:`settings_refusal`).
+
+    """
+    diffs = training_differences(out_dir, training)
+    if diffs:
+        raise AmuledError(settings_refusal(out_dir, diffs, hint, training.get("variant")))
+
+
+def training_differences(out_dir: Path, training: dict[str, Any]) -> list[str]:
+    """``key: saved -> now`` for each setting a variant folder was trained with and now lacks.
+
+    Empty when they match, or when the folder saved none (an older version's).
+
+    Raises:
+        AmuledError: ``config.json`` exists but is not a run record.
 
     """
     saved = saved_training_config(out_dir)
     if saved is None:
-        return
-    saved = _learned_only(saved)
-    training = _without_keys_added_since(saved, training)
-    diffs = _differences(
+        return []
+    saved = learned_only(saved)
+    training = without_keys_added_since(saved, training)
+    return differences(
         {k: v for k, v in saved.items() if k != "iterations"},
         {k: v for k, v in training.items() if k != "iterations"},
     )
-    if diffs:
-        shown = "; ".join(diffs[:8]) + (f"; and {len(diffs) - 8} more" if len(diffs) > 8 else "")
-        raise AmuledError(
-            f"{out_dir} was trained with other settings or inputs than now (saved -> now: {shown}; "
-            f"saved in {Path(out_dir) / 'config.json'}); retrain it with --force, or keep it "
-            "and train into another --run-dir"
-        )
 
 
-def _learned_only(saved: dict[str, Any]) -> dict[str, Any]:
-    """A saved training config without the keys :data:`_NOT_LEARNED` now leaves out.
+def settings_refusal(
+    out_dir: Path, diffs: list[str], hint: str = "", variant: str | None = None
+) -> str:
+    """The one-line refusal of a variant folder trained with other settings than now.
 
-    A folder saved when such a key was still recorded (a service key like
-    ``max_abstention``) is compared on what decides learning only.
+    It names the differing keys (saved -> now) and the one command for each thing the
+    user may have meant (:func:`recovery_commands`): train the new settings beside the
+    old folder, or retrain that folder alone.
     """
-    out = dict(saved)
-    for section, keys in _NOT_LEARNED.items():
-        if isinstance(out.get(section), dict):
-            out[section] = {k: v for k, v in out[section].items() if k not in keys}
-    return out
+    keys = ", ".join(d.split(":", 1)[0] for d in diffs[:8])
+    keys += f" and {len(diffs) - 8} more" if len(diffs) > 8 else ""
+    shown = "; ".join(diffs[:8]) + (f"; and {len(diffs) - 8} more" if len(diffs) > 8 else "")
+    beside, again = recovery_commands(out_dir, diffs, hint, variant)
+    return (
+        f"{out_dir} was trained with other settings or inputs than now ({keys} differ; "
+        f"saved -> now: {shown}; saved in {Path(out_dir) / 'config.json'}); to keep it and "
+        f"train the new settings beside it: {beside}; to retrain this folder alone with "
+        f"them: {again}"
+    )
 
 
-def _without_keys_added_since(saved: dict[str, Any], training: dict[str, Any]) -> dict[str, Any]:
-    """Drop from ``training`` what a folder saved by an older version could not record.
+def _tag(diffs: list[str]) -> str:
+    """A short folder-name tag from the first difference's new value (``ollama``)."""
+    now = diffs[0].rsplit(" -> ", 1)[-1] if diffs else ""
+    tag = re.sub(r"[^A-Za-z0-9]+", "-", now).strip("-").lower()[:24].strip("-")
+    return tag or "new"
 
-    The input hashes (``inputs``) and any scenario key added since, when it holds its
-    default value (the old version behaved as that default); a key added since but set
-    to another value stays, so the difference is reported.
+
+def recovery_commands(
+    out_dir: Path, diffs: list[str], hint: str = "", variant: str | None = None
+) -> tuple[str, str]:
+    """The commands that do what the user meant when a folder's settings changed.
+
+    Args:
+        out_dir: The variant folder trained with other settings.
+        diffs: Its differences (:func:`training_differences`).
+        hint: The command that was run (``amuled finetune ...``, ``amuled run ...``).
+        variant: What the folder trains (``finetune:amuled``; the job's
+            :func:`~amuled_ma.experiments.training_settings.training_config` ``"variant"``).
+
+    Returns:
+        ``(beside, again)``: a fine-tune under a new name (``--name``; another
+        ``--run-dir`` for a base or a whole run), and ``--force`` for that variant only
+        (``amuled finetune ... --force`` for one fine-tune of a run).
+
     """
-    defaults = Scenario().to_dict()
-    out = {k: v for k, v in training.items() if k != "inputs" or "inputs" in saved}
-    for section, values in training.items():
-        if isinstance(values, dict) and isinstance(saved.get(section), dict):
-            out[section] = {
-                k: v
-                for k, v in values.items()
-                if k in saved[section] or v != defaults.get(section, {}).get(k, object())
-            }
-    return out
+    import shlex
+
+    out_dir = Path(out_dir)
+    try:
+        parts = shlex.split(hint)
+    except ValueError:
+        parts = []
+    if len(parts) < 3 or parts[0] != "amuled":
+        return ("another --run-dir (or --name NAME for a fine-tune)", "--force")
+    parts = [p for p in parts if p != "--resume"]
+    command, tag = parts[1], _tag(diffs)
+    folder, seed = split_replica(out_dir.name)
+    job = Variant.parse(variant) if variant else None
+    label = None
+    if job is not None and job.finetuning and job.folder != folder:
+        label = folder.removeprefix("finetune-")  # a named fine-tune ([feedback].name)
+    if command == "finetune":
+        label = folder.removeprefix("finetune-")
+        beside = _with_option(parts, "--name", f"{label}-{tag}")
+        return shlex.join(beside), shlex.join([*parts, "--force"])
+    run_dir = _option(parts, "--run-dir")
+    new_dir = f"{run_dir.rstrip('/')}-{tag}" if run_dir else f"runs/{tag}"
+    beside = shlex.join(_with_option(parts, "--run-dir", new_dir))
+    in_run = seed is None and out_dir.parent == Path(run_dir or out_dir.parent)
+    if command in ("run", "ablate") and job is not None and job.finetuning and in_run:
+        one = ["amuled", "finetune", parts[2], "--feedback", str(job.feedback)]
+        if label:
+            one += ["--name", label]
+        for flag in ("--run-dir", "--recipe", "--seed"):
+            if _option(parts, flag) is not None:
+                one += [flag, str(_option(parts, flag))]
+        for i, part in enumerate(parts[:-1]):
+            if part in ("--set", "--clusters-dir", "--allow-plugin"):
+                one += [part, parts[i + 1]]
+        return beside, shlex.join([*one, "--force"])
+    if command == "train":
+        return beside, shlex.join([*parts, "--force"])
+    return beside, shlex.join([*parts, "--force"]) + " (retrains every variant of the run)"
+
+
+def _option(parts: list[str], flag: str) -> str | None:
+    """The value of ``flag`` in a split command line (the last one), or None."""
+    value = None
+    for i, part in enumerate(parts[:-1]):
+        if part == flag:
+            value = parts[i + 1]
+    return value
+
+
+def _with_option(parts: list[str], flag: str, value: str) -> list[str]:
+    """A split command line with ``flag value`` set (replacing any earlier value)."""
+    out: list[str] = []
+    skip = False
+    for part in parts:
+        if skip:
+            skip = False
+            continue
+        if part == flag:
+            skip = True
+            continue
+        out.append(part)
+    return [*out, flag, value]
 
 
 def finished_with(out_dir: Path, training: dict[str, Any]) -> bool:
@@ -337,7 +332,8 @@ def finished_with(out_dir: Path, training: dict[str, Any]) -> bool:
 
     Args:
         out_dir: A variant folder.
-        training: A :func:`training_config` (its number of iterations included).
+        training: A :func:`~amuled_ma.experiments.training_settings.training_config`
+            (its number of iterations included).
 
     Returns:
         True when ``model_last.pt`` is finished and ``config.json`` records the same
@@ -353,7 +349,7 @@ def finished_with(out_dir: Path, training: dict[str, Any]) -> bool:
         return False
     return (
         saved is not None
-        and _learned_only(saved) == training
+        and learned_only(saved) == training
         and state.get("iteration") == training["iterations"]
     )
 
@@ -373,10 +369,10 @@ def prepare_variant(
         resume: Continue an unfinished checkpoint, skip a finished one.
         force: Start over.
         hint: The command that re-runs the job (for the error message).
-        training: The job's :func:`training_config`; a resume or a skip requires the
-            folder's saved settings to match it, and a finished checkpoint is skipped only
-            when it trained to the job's number of iterations (fewer: it is resumed to
-            that number).
+        training: The job's :func:`~amuled_ma.experiments.training_settings.training_config`;
+            a resume or a skip requires the folder's saved settings to match it, and a
+            finished checkpoint is skipped only when it trained to the job's number of
+            iterations (fewer: it is resumed to that number).
 
     Raises:
         AmuledError: It holds a checkpoint and neither ``resume`` nor ``force`` is set (the
@@ -391,7 +387,7 @@ def prepare_variant(
         return "new"
     if resume:
         done = state.get("iteration") or 0
-        check_training_config(out_dir, training)
+        check_training_config(out_dir, training, hint)
         target = training["iterations"]
         if done > target:
             raise AmuledError(
@@ -402,6 +398,9 @@ def prepare_variant(
         if state.get("completed") and done == target:
             return "skip"
         return "resume"
+    diffs = training_differences(out_dir, training)
+    if diffs:  # --resume would be refused too: name what does what the user meant
+        raise AmuledError(settings_refusal(out_dir, diffs, hint, training.get("variant")))
     raise AmuledError(
         f"{out_dir} already holds a checkpoint (iteration {state.get('iteration')}/"
         f"{state.get('total_iterations')}); continue it with '{hint} --resume' or start over "
@@ -473,8 +472,12 @@ def write_record(folder: Path, record: RunRecord) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / CONFIG
     tmp = path.with_name(CONFIG + ".tmp")
-    tmp.write_text(record.to_json())
-    tmp.replace(path)
+    try:
+        tmp.write_text(record.to_json())
+        tmp.replace(path)
+    except OSError:
+        tmp.unlink(missing_ok=True)  # a full disk leaves no half-written file behind
+        raise
     return path
 
 
@@ -534,7 +537,7 @@ def variant_fields(
     Args:
         variant: What it trains.
         out_dir: Its folder (a seed replica ``<name>.seed<k>`` is named ``<name>``).
-        training: Its :func:`training_config`.
+        training: Its :func:`~amuled_ma.experiments.training_settings.training_config`.
         base_checkpoint: The base a fine-tune starts from.
         feedback: The fine-tune's feedback (a replay of fused beliefs only is said so).
 

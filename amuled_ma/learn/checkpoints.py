@@ -8,17 +8,30 @@ other global before anything runs) and checks that the keys a caller needs are t
 rsl-rl's own ``OnPolicyRunner.load`` loads with ``weights_only`` off, so we never call it:
 the trainer reads the state here and hands it to rsl-rl's public ``PPO.load``.
 
+Every checkpoint is written by :func:`write_checkpoint`: into a temporary file in the same
+folder, flushed to disk (``fsync``), then renamed over the old one, so a full disk, a write
+error or a kill mid-write leaves the last checkpoint as it was and no temporary file behind.
+
 See ``docs/trust.md`` for what each input file may do.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import contextlib
+import errno
+import os
+import tempfile
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
 from amuled_ma.errors import CheckpointError
 from amuled_ma.torch_files import load_weights_only
+
+
+class CheckpointWriteError(CheckpointError):
+    """A checkpoint could not be written (full disk, ...); the last one on disk is kept."""
+
 
 #: Name of the newest checkpoint in a variant folder.
 LAST = "model_last.pt"
@@ -80,3 +93,92 @@ def checkpoint_infos(path: str | Path) -> dict[str, Any] | None:
         return None
     infos = read_checkpoint(path, need=()).get("infos")
     return infos if isinstance(infos, dict) else {}
+
+
+def write_checkpoint(path: str | Path, write: Callable[[str], Any]) -> Path:
+    """Write a checkpoint atomically: the old file stays valid until the new one is whole.
+
+    ``write(temp)`` writes the checkpoint to ``temp`` (rsl-rl's ``runner.save``, say), a
+    hidden file in ``path``'s folder; it is then flushed to disk and renamed over ``path``
+    (an atomic replace on POSIX), and the folder entry is flushed too. On any failure the
+    temporary file is removed and ``path`` is left as it was.
+
+    Args:
+        path: The checkpoint to (re)write.
+        write: Writes a whole checkpoint to the path it is given.
+
+    Returns:
+        ``path``.
+
+    Raises:
+        CheckpointWriteError: The write failed (a full disk, a read-only or vanished folder, a
+            file-size limit): one line naming the file, the cause, that the last
+            checkpoint is kept, and the fix.
+
+    """
+    path = Path(path)
+    tmp: str | None = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        os.close(fd)
+        write(tmp)
+        with open(tmp, "rb+") as handle:
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+        tmp = None
+        _fsync_folder(path.parent)
+    except (OSError, RuntimeError) as error:
+        # torch's zip writer reports a failed write as RuntimeError ("file write failed")
+        raise CheckpointWriteError(_write_failure(path, error)) from error
+    finally:
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+    return path
+
+
+def _fsync_folder(folder: Path) -> None:
+    """Flush a folder's entries (the rename) to disk; a no-op where folders cannot be opened."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        with contextlib.suppress(OSError):
+            os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _disk_full(folder: Path, *, margin: int = 1 << 20) -> bool:
+    """Whether the file system of ``folder`` has less than ``margin`` bytes left."""
+    try:
+        stats = os.statvfs(folder)
+    except OSError:
+        return False
+    return stats.f_bavail * stats.f_frsize < margin
+
+
+def _write_failure(path: Path, error: BaseException) -> str:
+    """The one line of a checkpoint that could not be written."""
+    code = getattr(error, "errno", None)
+    text = str(error)
+    if isinstance(error, OSError):
+        text = error.strerror or text
+    elif _disk_full(path.parent):
+        # torch's zip writer names no cause ("unexpected pos 128 vs 0"): the disk says it
+        code, text = errno.ENOSPC, os.strerror(errno.ENOSPC)
+    text = " ".join(text.split())[:200]
+    if code in (errno.ENOSPC, errno.EDQUOT):
+        fix = "free some disk space (or write into another --run-dir), then resume with --resume"
+    elif code == errno.EFBIG:
+        fix = "raise the file-size limit (ulimit -f), then resume with --resume"
+    elif code in (errno.EACCES, errno.EPERM, errno.EROFS):
+        fix = "make the folder writable (or write into another --run-dir), then resume"
+    else:
+        fix = "check the folder and the disk, then resume with --resume"
+    kept = (
+        f"the last checkpoint {path} is kept" if path.is_file() else "no earlier checkpoint exists"
+    )
+    return f"cannot write checkpoint {path}: {text}; {kept}; {fix}"

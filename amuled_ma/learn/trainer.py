@@ -51,7 +51,13 @@ from amuled_ma.deliberation.feedback_base import Feedback
 from amuled_ma.deliberation.mdp import BatchedDeliberation
 from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError, Terminated
 from amuled_ma.learn.anchored_ppo import AnchoredPPO
-from amuled_ma.learn.checkpoints import LAST, TRAINER_KEYS, read_checkpoint
+from amuled_ma.learn.checkpoints import (
+    LAST,
+    TRAINER_KEYS,
+    CheckpointWriteError,
+    read_checkpoint,
+    write_checkpoint,
+)
 from amuled_ma.learn.config import planned_iterations, rsl_rl_config
 from amuled_ma.learn.vecenv import DeliberationVecEnv
 from amuled_ma.scenario import Scenario
@@ -283,10 +289,8 @@ class Trainer:
             "num_actions": self.env.num_actions,
             "obs_dim": int(self.env.obs.shape[-1]),
         }
-        tmp = path.with_suffix(".tmp")
-        self.runner.save(str(tmp), infos=infos)
-        tmp.replace(path)
-        return path
+        # a temp file in the same folder, fsync, atomic rename: a full disk keeps the last one
+        return write_checkpoint(path, lambda tmp: self.runner.save(tmp, infos=infos))
 
     # ----------------------------------------------------------------- training
     def _set_lr(self, it: int) -> None:
@@ -365,6 +369,11 @@ class Trainer:
         except (KeyboardInterrupt, AmuledError) as stop:
             # Ctrl-C, or a belief backend that stayed down after its retries: keep the work.
             bar.close()
+            if isinstance(stop, CheckpointWriteError):
+                # the disk is full (or the folder gone): the last checkpoint on disk is kept
+                if self.resume_hint:
+                    print(f"\nresume with: {self.resume_hint}", file=sys.stderr)
+                raise
             path = self.save(self.out_dir / LAST, completed=False)
             why = (
                 "terminated (SIGTERM)"

@@ -177,7 +177,9 @@ class RulesSpec(_Spec):
     """``source = "rules"``: a rule in Python (the synthetic human, or ``module:function``)."""
 
     source: Literal["rules"]
-    policy: str = Field("human", description="'human' or 'pkg.module:function'")
+    policy: str = Field(
+        "human", description="'human', or 'pkg.module:function' allowed with --allow-plugin"
+    )
 
     def source_options(self, scenario: Any, head: str) -> dict[str, Any]:  # noqa: D102
         return {"policy": self.policy}
@@ -195,7 +197,12 @@ class TerminalSpec(_Spec):
 
 
 class EntryPointSpec(_Spec):
-    """``source = "entry-point"``: a plug-in agent (installed name or ``module:Class``)."""
+    """``source = "entry-point"``: a plug-in agent (installed name or ``module:Class``).
+
+    A ``module:Class`` is code: it is imported only when the run's command line allows it
+    (``--allow-plugin module:Class``); an installed ``amuled_ma.agents`` entry point's name
+    needs no flag (:func:`amuled_ma.clusters.plugins.load_plugin`).
+    """
 
     required = (
         "name",
@@ -203,7 +210,10 @@ class EntryPointSpec(_Spec):
     )
 
     source: Literal["entry-point"]
-    name: str = Field(description="an installed amuled_ma.agents name or 'pkg.module:Class'")
+    name: str = Field(
+        description="an installed amuled_ma.agents name, or 'pkg.module:Class' allowed with "
+        "--allow-plugin"
+    )
     options: dict[str, Any] = Field(
         default_factory=dict, description="the plug-in's keyword arguments"
     )
@@ -226,7 +236,9 @@ class PolicySpec(_Spec):
     source: Literal["policy"]
     path: str = Field(description="a torch.save state dict, relative to the scenario file")
     key: str = Field("", description="the state dict's key in a checkpoint dict")
-    module: str = Field("", description="'pkg.module:Class' of the network")
+    module: str = Field(
+        "", description="'pkg.module:Class' of the network, allowed with --allow-plugin"
+    )
     kwargs: dict[str, Any] = Field(default_factory=dict, description="keyword arguments of module")
     activation: str = Field("tanh", description="activation of an inferred MLP")
 
@@ -355,8 +367,8 @@ def check_agent_table(
     if kind not in AGENT_SPECS:
         raise ScenarioError(
             f"{head} key source expects one of {kinds}, found {_found(kind)}; fix source "
-            '(a plug-in agent is source = "entry-point" with name = "pkg.module:Class" '
-            "or an installed amuled_ma.agents name)"
+            '(a plug-in agent is source = "entry-point" with name = an installed '
+            'amuled_ma.agents name, or "pkg.module:Class" and --allow-plugin pkg.module:Class)'
         )
     model = AGENT_SPECS[kind]
     allowed = agent_keys(kind)

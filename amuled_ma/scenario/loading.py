@@ -83,8 +83,79 @@ def load_scenario(name_or_path: str | os.PathLike[str]) -> Scenario:
 
     """
     path = resolve_scenario_path(name_or_path)
+    text = read_text(path, "scenario", ScenarioError)
+    if len(text) > MAX_SCENARIO_CHARS:
+        raise ScenarioError(
+            f"{path}: the scenario is {len(text):,} characters long, more than the "
+            f"{MAX_SCENARIO_CHARS:,} a scenario may be; is it the right file?"
+        )
+    depth = nesting_depth(text)
+    if depth > MAX_TOML_DEPTH:
+        raise ScenarioError(_too_deep(path, depth))
     try:
-        data = tomllib.loads(read_text(path, "scenario", ScenarioError))
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise ScenarioError(f"{path}: not valid TOML: {error}") from None
-    return scenario_from_dict(data, path=path)
+    except RecursionError:  # nesting the bracket count above did not see (dotted keys)
+        raise ScenarioError(_too_deep(path, None)) from None
+    try:
+        return scenario_from_dict(data, path=path)
+    except RecursionError:
+        raise ScenarioError(_too_deep(path, None)) from None
+
+
+#: Most characters a scenario file may hold (a shipped one holds about 10,000).
+MAX_SCENARIO_CHARS = 1_000_000
+#: Most levels of ``[`` / ``{`` nesting a scenario value may have.
+MAX_TOML_DEPTH = 32
+
+
+def nesting_depth(text: str) -> int:
+    """The deepest nesting of ``[``/``{`` in TOML text, outside strings and comments.
+
+    A rough, linear-time count (a table header ``[a]`` counts as one level), enough to
+    refuse a file nested thousands of levels deep before the TOML reader recurses into it.
+
+    Args:
+        text: The TOML text.
+
+    Returns:
+        The largest number of brackets open at once.
+
+    """
+    depth = deepest = 0
+    quote = ""
+    i, n = 0, len(text)
+    while i < n:
+        char = text[i]
+        if quote:
+            if char == "\\" and quote == '"':
+                i += 2
+                continue
+            if text.startswith(quote, i):
+                i += len(quote)
+                quote = ""
+                continue
+        elif char == "#":
+            end = text.find("\n", i)
+            i = n if end < 0 else end
+            continue
+        elif char in "\"'":
+            quote = char * 3 if text.startswith(char * 3, i) else char
+            i += len(quote)
+            continue
+        elif char in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif char in "]}":
+            depth = max(0, depth - 1)
+        i += 1
+    return deepest
+
+
+def _too_deep(path: Path, depth: int | None) -> str:
+    found = f"{depth} levels" if depth is not None else "deeper than Python can read"
+    return (
+        f"{path}: the scenario nests values {found}; a scenario nests at most "
+        f"{MAX_TOML_DEPTH} levels of [ ] and {{ }} (is it the right file?)"
+    )

@@ -22,6 +22,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Mapping
 from typing import TYPE_CHECKING, Any
 
+from amuled_ma.errors import ScenarioError
 from amuled_ma.tasks.names import canonical_name
 
 if TYPE_CHECKING:
@@ -120,17 +121,32 @@ def make_task(scenario: Any, num_envs: int, *, shaping_coef: float, seed: int) -
         The batched task.
 
     """
-    kwargs: dict[str, Any] = dict(scenario.task.options)
+    options = dict(scenario.task.options)
+    reserved = sorted(set(options) & {"device", "seed", "shaping_coef", "max_steps"})
+    if reserved:
+        raise ScenarioError(
+            f"key [task].options: {', '.join(reserved)} cannot be a task option (it is set "
+            "by the run: [task].seed, [task].max_steps, the reward's shaping); remove it"
+        )
+    kwargs: dict[str, Any] = dict(options)
     if scenario.task.max_steps:
         kwargs["max_steps"] = scenario.task.max_steps
-    return make_batched(
-        scenario.task.name,
-        num_envs,
-        device="cpu",
-        seed=seed,
-        shaping_coef=shaping_coef,
-        **kwargs,
-    )
+    try:
+        return make_batched(
+            scenario.task.name,
+            num_envs,
+            device="cpu",
+            seed=seed,
+            shaping_coef=shaping_coef,
+            **kwargs,
+        )
+    except (TypeError, ValueError) as error:
+        # a task refuses an unknown or invalid option: one line naming the key
+        shown = ", ".join(f"{k}={v!r}" for k, v in options.items()) or "none"
+        raise ScenarioError(
+            f"key [task].options of task {scenario.task.name!r} ({shown}): {error}; see "
+            "docs/tasks.md for the options of each task"
+        ) from None
 
 
 def __getattr__(attr: str) -> Any:

@@ -12,8 +12,14 @@ from typing import Any
 
 import numpy as np
 
-#: Events marked on the strip: ``{key: (marker, colour, size)}``.
-DRIVING_EVENTS = {"collisions": ("X", "#d62828", 60), "rescues": ("o", "#2a9d8f", 45)}
+from amuled_ma.tasks.colors import COLORS
+
+#: Events marked on the strip: ``{key: (marker, colour, size)}`` (the viewer's colours:
+#: a collision is "bad", a rescue "good", :data:`amuled_ma.tasks.colors.COLORS`).
+DRIVING_EVENTS = {
+    "collisions": ("X", COLORS["bad"], 90),
+    "rescues": ("*", COLORS["good"], 140),
+}
 
 
 def draw_driving(ax: Any, name: str, trajectory: Mapping[str, Any], color: str = "k") -> None:
@@ -39,7 +45,7 @@ def draw_driving(ax: Any, name: str, trajectory: Mapping[str, Any], color: str =
         counts.append(f"{key} {int(sum(v for v in values if v))}")
         if hits:
             ax.scatter(hits, lane[hits], marker=marker, color=colour, s=size, zorder=3,
-                       edgecolor="k", linewidths=0.5)  # fmt: skip
+                       edgecolor=COLORS["ink"], linewidths=0.6, gid=f"event-{key}")  # fmt: skip
     changes = int(np.count_nonzero(np.diff(lane)))
     ax.set_title(f"{name}: {len(traj['actions'])} steps, {', '.join(counts)}, "
                  f"lane changes {changes}", fontsize=8, loc="left", color=color)  # fmt: skip
@@ -55,7 +61,7 @@ def driving_legend() -> tuple[list[Any], list[str]]:
     from matplotlib.lines import Line2D
 
     handles = [
-        Line2D([], [], marker=m, ls="", color=c, markeredgecolor="k", ms=7)
+        Line2D([], [], marker=m, ls="", color=c, markeredgecolor=COLORS["ink"], ms=9)
         for m, c, _ in DRIVING_EVENTS.values()
     ]
     return handles, ["collision", "grandma rescued"]

@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from amuled_ma.tasks.colors import COLORS
+
 #: The grid's side (cells).
 SIZE = 8
 
@@ -51,12 +53,32 @@ def findmilk_subgoals(trajectory: Mapping[str, Any]) -> dict[str, Any]:
     }
 
 
+def _baby(ax: Any, x: int, y: int, kind: str, reached: bool) -> None:
+    """One baby: its kind's colour until reached, then its outcome's with a white glyph.
+
+    A crying baby is a circle (``C``), pacified: green with ✓; a sleeping baby a square
+    (``z``), woken: red with ``!``. Every marker is solid with a dark edge (``gid``:
+    ``baby-<kind>`` or ``baby-pacified`` / ``baby-woken``).
+    """
+    outcome = {"crying": ("pacified", "good", "\u2713"), "sleeping": ("woken", "bad", "!")}
+    name, good_or_bad, glyph = outcome[kind]
+    marker = "o" if kind == "crying" else "s"
+    fill = COLORS[good_or_bad] if reached else COLORS[kind]
+    ax.scatter(x, y, marker=marker, s=330, zorder=2, linewidths=1.6, color=fill,
+               edgecolor=COLORS["ink"], gid=f"baby-{name if reached else kind}")  # fmt: skip
+    ax.text(x, y, glyph if reached else ("C" if kind == "crying" else "z"), ha="center",
+            va="center_baseline", fontsize=11 if reached else 8, weight="bold",
+            color="white" if reached else COLORS["ink"], zorder=6)  # fmt: skip
+
+
 def draw_findmilk(ax: Any, name: str, trajectory: Mapping[str, Any], color: str = "k") -> None:
     """Draw one FindMilk episode on a matplotlib axes.
 
-    The path in ``color`` (start ▲, end ✕), the milk (★), every crying baby (red; green
-    with ``+`` once pacified) and sleeping baby (blue; orange with ``!`` once woken); the
-    title says the steps, whether the milk was reached and the babies pacified and woken.
+    The path in ``color`` (start: a white triangle, end: ✕), the milk (★), every crying
+    baby (orange circle ``C``; solid green with ✓ once pacified) and sleeping baby (sky-blue
+    square ``z``; solid red with ``!`` once woken), in the colours of
+    :data:`amuled_ma.tasks.colors.COLORS` (the viewer's too); the title says the steps,
+    whether the milk was reached and the babies pacified and woken.
 
     Args:
         ax: The axes.
@@ -70,30 +92,19 @@ def draw_findmilk(ax: Any, name: str, trajectory: Mapping[str, Any], color: str 
     goals = findmilk_subgoals(traj)
     obs = np.asarray(traj["obs"], dtype=float)
     for x, y in goals["sleeping"]:
-        woken = (x, y) in goals["woken"]
-        ax.scatter(x, y, marker="s", s=300, zorder=2, linewidths=2,
-                   color="#f4a261" if woken else "#8ecae6",
-                   edgecolor="#d62828" if woken else "#219ebc")  # fmt: skip
-        if woken:
-            ax.text(x, y, "!", ha="center", va="center", fontsize=12, weight="bold",
-                    color="#d62828", zorder=6)  # fmt: skip
+        _baby(ax, x, y, "sleeping", (x, y) in goals["woken"])
     for x, y in goals["crying"]:
-        pacified = (x, y) in goals["pacified"]
-        ax.scatter(x, y, marker="o", s=300, zorder=2, linewidths=2,
-                   color="#b7e4c7" if pacified else "#f28482",
-                   edgecolor="#2d6a4f" if pacified else "#c1121f")  # fmt: skip
-        if pacified:
-            ax.text(x, y, "+", ha="center", va="center", fontsize=13, weight="bold",
-                    color="#2d6a4f", zorder=6)  # fmt: skip
+        _baby(ax, x, y, "crying", (x, y) in goals["pacified"])
     mx, my = goals["milk"]
-    ax.scatter(mx, my, marker="*", s=330, color="gold", edgecolor="k", zorder=3)
+    ax.scatter(mx, my, marker="*", s=380, color=COLORS["milk"], edgecolor=COLORS["ink"], zorder=3)
     jitter = np.linspace(-0.13, 0.13, len(obs))
     ax.plot(obs[:, 0] + jitter, obs[:, 1] + jitter, "-", color=color,
             lw=2.0, alpha=0.9, zorder=4, gid="path")  # fmt: skip
     sx, sy = goals["start"]
-    ax.scatter(sx, sy, marker="^", s=90, color="green", edgecolor="k", zorder=5)
+    ax.scatter(sx, sy, marker="^", s=90, color=COLORS["start"], edgecolor=COLORS["ink"],
+               linewidths=1.4, zorder=5)  # fmt: skip
     ex, ey = goals["end"]
-    ax.scatter(ex, ey, marker="X", s=90, color="k", zorder=5)
+    ax.scatter(ex, ey, marker="X", s=90, color=COLORS["agent"], edgecolor="white", zorder=5)
     ax.set_xlim(-0.5, size - 0.5)
     ax.set_ylim(-0.5, size - 0.5)
     ax.set_xticks(range(size))
@@ -114,15 +125,16 @@ def findmilk_legend() -> tuple[list[Any], list[str]]:
     """The legend's handles and labels of :func:`draw_findmilk`'s markers."""
     from matplotlib.lines import Line2D
 
+    ink = COLORS["ink"]
     handles = [
-        Line2D([], [], marker="^", ls="", color="green", markeredgecolor="k", ms=8),
-        Line2D([], [], marker="X", ls="", color="k", ms=8),
-        Line2D([], [], marker="*", ls="", color="gold", markeredgecolor="k", ms=13),
-        Line2D([], [], marker="o", ls="", color="#f28482", markeredgecolor="#c1121f", ms=10),
-        Line2D([], [], marker="o", ls="", color="#b7e4c7", markeredgecolor="#2d6a4f", ms=10),
-        Line2D([], [], marker="s", ls="", color="#8ecae6", markeredgecolor="#219ebc", ms=10),
-        Line2D([], [], marker="s", ls="", color="#f4a261", markeredgecolor="#d62828", ms=10),
+        Line2D([], [], marker="^", ls="", color=COLORS["start"], markeredgecolor=ink, ms=8),
+        Line2D([], [], marker="X", ls="", color=COLORS["agent"], ms=8),
+        Line2D([], [], marker="*", ls="", color=COLORS["milk"], markeredgecolor=ink, ms=13),
+        Line2D([], [], marker="o", ls="", color=COLORS["crying"], markeredgecolor=ink, ms=10),
+        Line2D([], [], marker="o", ls="", color=COLORS["good"], markeredgecolor=ink, ms=10),
+        Line2D([], [], marker="s", ls="", color=COLORS["sleeping"], markeredgecolor=ink, ms=10),
+        Line2D([], [], marker="s", ls="", color=COLORS["bad"], markeredgecolor=ink, ms=10),
     ]
-    labels = ["start", "end", "milk", "crying baby", "crying baby pacified (+)",
-              "sleeping baby", "sleeping baby woken (!)"]  # fmt: skip
+    labels = ["start", "end", "milk", "crying baby (C)", "crying baby pacified (\u2713)",
+              "sleeping baby (z)", "sleeping baby woken (!)"]  # fmt: skip
     return handles, labels

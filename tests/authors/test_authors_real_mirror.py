@@ -1,8 +1,8 @@
 """The authors' real FindMilk gpt-4o-mini cache converts to the shared recording, unchanged.
 
-Needs the git mirror of ``temetski/moral_agent`` (``$AMULED_AUTHORS_MIRROR``, default
-``/work/.mirror/temetski+moral_agent/repo``) and ``../shared/amuled-recordings``; skips with
-the reason otherwise. The pickle is read with ``git cat-file`` (the mirror is not touched).
+Needs the git mirror of ``temetski/moral_agent`` named by ``$AMULED_AUTHORS_MIRROR`` (no
+default: no test names a path of one machine) and ``../shared/amuled-recordings``; skips
+with the reason otherwise. The pickle is read with ``git cat-file`` (the mirror is not touched).
 """
 
 import json
@@ -15,11 +15,14 @@ import pytest
 
 from amuled_ma.authors.caches import convert_cache, recording_file_name
 
-MIRROR = Path(os.environ.get("AMULED_AUTHORS_MIRROR", "/work/.mirror/temetski+moral_agent/repo"))
+MIRROR_ENV = "AMULED_AUTHORS_MIRROR"
+MIRROR = Path(os.environ[MIRROR_ENV]) if os.environ.get(MIRROR_ENV) else None
 CACHE = "models/FindMilk-v4_42/gpt-4o-mini_llm_cache.pickle"
 
 
 def test_real_findmilk_cache_equals_the_shared_recording(tmp_path, recordings_dir):
+    if MIRROR is None:
+        pytest.skip(f"set {MIRROR_ENV} to a git mirror of temetski/moral_agent to run this test")
     if not (MIRROR / "HEAD").is_file() or shutil.which("git") is None:
         pytest.skip(f"no git mirror of temetski/moral_agent at {MIRROR} (or no git)")
     target = tmp_path / "FindMilk-v4_42" / "gpt-4o-mini_llm_cache.pickle"

@@ -11,10 +11,11 @@ import torch
 
 from amuled_ma.beliefs import BeliefRequest, make_source
 from amuled_ma.beliefs.routing import RoutedSource
+from amuled_ma.clusters import plugins
 from amuled_ma.deliberation.build import make_feedback
 from amuled_ma.deliberation.build import make_source as feedback_source
 from amuled_ma.errors import ScenarioError
-from amuled_ma.experiments.run_folder import training_config
+from amuled_ma.experiments.training_settings import training_config
 from amuled_ma.fusion.reference import fuse_beliefs
 from amuled_ma.scenario import OllamaSpec, TerminalSpec, load_scenario, scenario_from_dict
 
@@ -29,6 +30,11 @@ RECORDED = {
     "care": "care",
     "social_justice": "social justice",
 }
+
+
+def allow(monkeypatch: pytest.MonkeyPatch, *paths: str) -> None:
+    """Allow import paths as ``--allow-plugin`` would, for this test only."""
+    monkeypatch.setattr(plugins, "_ALLOWED", frozenset(paths))
 
 
 def write(tmp_path: Path, text: str) -> Path:
@@ -170,6 +176,12 @@ def req(cluster="care") -> BeliefRequest:
 
 def test_an_entry_point_agent_by_module_and_class(monkeypatch):
     monkeypatch.syspath_prepend(str(HERE))
+    allow(
+        monkeypatch,
+        "amuled_agent_helper:FixedAgent",
+        "amuled_agent_helper:not_a_source",
+        "no_such_module_xyz:Agent",
+    )
     source = make_source("entry-point", name="amuled_agent_helper:FixedAgent", options={"index": 2})
     (result,) = source.beliefs([req()])
     assert result.status == "ok" and result.belief.tolist() == [0.0, 0.0, 1.0, 0.0]
@@ -241,7 +253,9 @@ def test_amuled_feedback_fuses_four_replayed_agents_and_one_rule(tmp_path, recor
 
     agents = feedback.summary()["agents"]
     assert all(agents[c]["ok"] == len(states) for c in clusters)
-    assert feedback.agent_source("care") == "rules"
+    assert feedback.agent_source("care") == (
+        "rules (the task's rule 'human'; the cluster's text is not read)"
+    )
     assert feedback.agent_source("virtue") == f"replay ({RECORDING})"
     rows = list(routed.source_for("care").store.iter_rows())
     assert {r.cluster: r.identity["source"] for r in rows} == {
@@ -288,7 +302,8 @@ def test_preflight_names_every_agent_source_and_fix_before_anything_is_written(t
     }
     assert "http://127.0.0.1:9" in text and "ollama serve" in text
     assert "not found; fix the path" in text
-    assert "cannot import 'no_such_mod_xyz:A'" in text
+    assert "'no_such_mod_xyz:A' is an import path" in text
+    assert "--allow-plugin no_such_mod_xyz:A" in text
     assert "[feedback.agents.social_justice] recording 'no-such-recording' not found" in text
     assert not run_dir.exists()
 
@@ -297,6 +312,7 @@ def test_members_of_every_kind_answer_through_one_store(tmp_path, monkeypatch):
     import io
 
     monkeypatch.syspath_prepend(str(HERE))
+    allow(monkeypatch, "amuled_agent_helper:FixedAgent")
     torch.manual_seed(0)
     net = torch.nn.Sequential(torch.nn.Linear(8, 4))
     torch.save(net.state_dict(), tmp_path / "virtue.pt")
@@ -365,6 +381,7 @@ def test_preflight_alone_checks_a_panel_without_a_store(tmp_path, monkeypatch):
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.syspath_prepend(str(HERE))
+    allow(monkeypatch, "amuled_agent_helper:FixedAgent")
     good = {"care": {"source": "entry-point", "name": "amuled_agent_helper:FixedAgent"}}
     scenario = scenario_from_dict(
         {"task": {"name": "findmilk"}, "feedback": {"source": "rules", "agents": good}}

@@ -68,7 +68,10 @@ def test_a_trainer_checkpoint_serves_its_actor_by_key(tmp_path, mlp):
 
 
 def test_a_named_module_class_takes_the_weights(tmp_path, monkeypatch):
+    from amuled_ma.clusters import plugins
+
     monkeypatch.syspath_prepend(str(HERE))
+    monkeypatch.setattr(plugins, "_ALLOWED", frozenset({"amuled_agent_helper:TinyNet"}))
     from amuled_agent_helper import TinyNet
 
     torch.manual_seed(1)

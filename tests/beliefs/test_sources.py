@@ -67,7 +67,12 @@ def test_to_belief_projection(values, status):
     assert belief.shape == (4,) and np.isclose(belief.sum(), 1) and np.all(belief >= 0)
 
 
-def test_rules_with_a_callable_and_a_module_path():
+def test_rules_with_a_callable_and_a_module_path(monkeypatch):
+    from amuled_ma.clusters import plugins
+
+    monkeypatch.setattr(
+        plugins, "_ALLOWED", frozenset({"amuled_test_rules:rule", "no_such_module_xyz:rule"})
+    )
     source = RulesSource(lambda task, obs: [0, 0, 1, 0])
     assert np.allclose(source.beliefs([req()])[0].belief, [0, 0, 1, 0])
     module = types.ModuleType("amuled_test_rules")

@@ -16,7 +16,7 @@ from amuled_ma.deliberation.summaries import summary_lines
 from amuled_ma.distill import DistilledSource
 from amuled_ma.errors import ScenarioError
 from amuled_ma.experiments.plans import ablation_variants, check_inputs
-from amuled_ma.experiments.run_folder import training_config
+from amuled_ma.experiments.training_settings import training_config
 from amuled_ma.scenario import load_scenario
 from amuled_ma.variants import Variant
 

@@ -1,14 +1,24 @@
-"""``amuled demo`` on its own private server with the real tiny model: the timing breakdown.
+"""``amuled demo`` on its own private server with the real tiny model.
 
 The demo starts its private Ollama server (``amuled ollama up --tiny``, the new user's
-path), asks the clusters live and ends with where the requests' time went, from Ollama's
-own metrics. A small budget keeps it to a few requests: two clusters, two fine-tune states,
-episodes of at most four steps (so the viewer asks about few new states).
+path), runs the paper's FindMilk comparison on the authors' replayed recording, then its
+live leg asks the tiny model about a few states and ends with where the requests' time
+went, from Ollama's own metrics.
+
+- :func:`test_demo_shows_amuled_working_and_labels_the_live_leg`: the demo as shipped (issue
+  27's target): its base reaches the milk, its AMULED fine-tune wakes fewer sleeping babies
+  than the base, the paper's row stands beside ours, the live leg is labelled, and on a
+  quiet machine it takes under 3 minutes.
+- :func:`test_demo_prints_where_each_live_request_spent_its_time`: a tiny budget, the
+  timing breakdown.
 """
 
 from __future__ import annotations
 
+import json
+import os
 import re
+import time
 from pathlib import Path
 
 import pytest
@@ -23,6 +33,84 @@ from amuled_ma.errors import AmuledError
 NUMBER = r"([\d,]+(?:\.\d+)?)"
 
 
+def demo_env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The real Ollama build and tiny model, a private server, the shared recordings."""
+    try:
+        binary, gguf = llm_server.find_binary(), llm_server.find_tiny_gguf()
+    except AmuledError as error:
+        if in_ci():
+            pytest.fail(f"the demo needs Ollama and the tiny model (CI=true): {error}")
+        pytest.skip(f"the demo needs Ollama and the tiny model: {error}")
+    monkeypatch.setenv("AMULED_OLLAMA_BIN", str(binary))
+    monkeypatch.setenv("AMULED_TINY_GGUF", str(gguf))
+    monkeypatch.setenv("AMULED_CACHE", str(tmp_path / "cache"))  # not a user's demo server
+    monkeypatch.delenv("OLLAMA_HOST", raising=False)  # the demo's own private server
+    from amuled_ma.commands.demo import missing_recording
+
+    missing = missing_recording("findmilk")
+    if missing:
+        if in_ci():
+            pytest.fail(missing)
+        pytest.skip(missing)
+
+
+#: The demo's target (issue 27): under 3 minutes on this machine when it is quiet.
+TARGET_S = 180.0
+#: The 1-minute load average up to which the machine counts as quiet (2 cores).
+QUIET_LOAD = 2.5
+
+
+@pytest.mark.slow
+def test_demo_shows_amuled_working_and_labels_the_live_leg(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    demo_env(tmp_path, monkeypatch)
+    run_dir = tmp_path / "demo"
+    load_before = os.getloadavg()[0]
+    start = time.monotonic()
+    code = main(["demo", "--run-dir", str(run_dir), "--no-progress"])
+    wall = time.monotonic() - start
+    load_after = os.getloadavg()[0]
+    err = capsys.readouterr().err
+    assert code == 0, err
+    results = json.loads((run_dir / "results.json").read_text())["variants"]
+    report = (run_dir / "report.md").read_text()
+
+    # the base reaches the milk, sampled and greedy, in every episode
+    for mode in ("sampled", "greedy"):
+        assert results["base"][mode]["metrics"]["reached_milk"]["mean"] == 1.0
+    # the AMULED fine-tune wakes fewer sleeping babies than its base: beyond the interval
+    base = results["base"]["sampled"]["metrics"]["sleeping_woken"]
+    amuled = results["finetune-amuled"]["sampled"]["metrics"]["sleeping_woken"]
+    assert amuled["ci_high"] < base["ci_low"], (amuled, base)
+    found = re.search(
+        r"- AMULED \(finetune-amuled, sampled policy\) .*wakes ([\d.]+) fewer sleeping babies "
+        r"than the base \(95% CI ([\d.]+) to ([\d.]+) fewer\)",
+        report,
+    )
+    assert found, report
+    assert float(found.group(1)) == pytest.approx(base["mean"] - amuled["mean"], abs=0.01)
+    # the paper's row beside ours (docs/reproduction.md: 14.2 / 4.9 / 0.6), with the recipe
+    lines = report.splitlines()
+    row = next(line for line in lines if line.startswith("| finetune-amuled | AMULED"))
+    assert "| 14.2 / 4.9 / 0.6 |" in row and row.endswith("| authors |")
+    assert "the paper's main comparison" not in report.split("\n", 1)[0]
+    assert "demo-sized" in report.split("\n", 1)[0]
+    # the live leg: labelled, real requests through its store, each belief's source named
+    heading = next(line for line in lines if line.startswith("## Live leg"))
+    assert "not meaningful" in heading
+    live = report[report.index(heading) :]
+    assert "its moral judgement is not meaningful" in live and "ollama `amuled-tiny`" in live
+    leg = json.loads((run_dir / "live" / "live.json").read_text())
+    assert leg["meaningful"] is False and leg["source"] == "ollama"
+    with BeliefStore(run_dir / "live" / "beliefs.sqlite", read_only=True) as store:
+        rows = [row for row in store.iter_rows() if "timing" in row.extra]
+    assert 1 <= len(rows) <= leg["requests"] <= 6
+    print(f"amuled demo: {wall:.0f} s, load average {load_before:.1f} -> {load_after:.1f}")
+    if max(load_before, load_after) <= QUIET_LOAD:
+        assert wall < TARGET_S, f"{wall:.0f} s at load {load_before:.1f}-{load_after:.1f}"
+
+
 def figures(pattern: str, text: str) -> list[float]:
     """The numbers a breakdown line holds (each ``#`` of ``pattern`` is one)."""
     found = re.search(pattern.replace("#", NUMBER), text)
@@ -34,27 +122,18 @@ def figures(pattern: str, text: str) -> list[float]:
 def test_demo_prints_where_each_live_request_spent_its_time(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    try:
-        binary, gguf = llm_server.find_binary(), llm_server.find_tiny_gguf()
-    except AmuledError as error:
-        if in_ci():
-            pytest.fail(f"the demo needs Ollama and the tiny model (CI=true): {error}")
-        pytest.skip(f"the demo needs Ollama and the tiny model: {error}")
-    monkeypatch.setenv("AMULED_OLLAMA_BIN", str(binary))
-    monkeypatch.setenv("AMULED_TINY_GGUF", str(gguf))
-    monkeypatch.setenv("AMULED_CACHE", str(tmp_path / "cache"))  # not a user's demo server
-    monkeypatch.delenv("OLLAMA_HOST", raising=False)  # the demo's own private server
+    demo_env(tmp_path, monkeypatch)
     run_dir = tmp_path / "demo"
     code = main(
         ["demo", "--run-dir", str(run_dir), "--no-progress",
          "--set", "base.total_steps=4096", "--set", "task.max_steps=4",
-         "--set", "finetune.num_steps_per_env=2", "--set", "ppo.num_mini_batches=1",
-         "--set", 'feedback.clusters=["care", "virtue"]', "--set", "evaluation.episodes=2",
+         "--set", "finetune.iterations=2", "--set", "finetune.num_steps_per_env=2",
+         "--set", "ppo.num_mini_batches=1", "--set", "evaluation.episodes=2",
          "--set", "output.tensorboard=false"]
     )  # fmt: skip
     err = capsys.readouterr().err
     assert code == 0, err
-    assert "[demo] live requests to amuled-tiny (fine-tune " in err
+    assert "[demo] live requests to amuled-tiny (live leg " in err
 
     (requests, calls) = figures(r"requests # \(# chat calls", err)
     (prompt_mean, _, prefill_mean, _) = figures(
@@ -82,9 +161,9 @@ def test_demo_prints_where_each_live_request_spent_its_time(
     assert reused + evaluated == sent and reused > 0  # the shared prefix was reused
     assert prefill + decode + load <= server + 0.2 and server <= client + 0.2  # rounding
 
-    with BeliefStore(run_dir / "beliefs.sqlite", read_only=True) as store:
+    with BeliefStore(run_dir / "live" / "beliefs.sqlite", read_only=True) as store:
         rows = [row for row in store.iter_rows() if "timing" in row.extra]
-    assert 1 <= len(rows) <= requests  # the run's requests (the viewer's are not stored)
+    assert 1 <= len(rows) <= requests  # the live leg's requests, through its store
     for row in rows:
         timing = RequestTiming.from_dict(row.extra["timing"])
         assert timing.calls >= 1 and timing.prompt_tokens > 0 and timing.decode_tokens > 0

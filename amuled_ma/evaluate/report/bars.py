@@ -25,6 +25,7 @@ from amuled_ma.evaluate.report.plotting import (
     variant_colors,
 )
 from amuled_ma.evaluate.results import ModeResult, Results, Stat
+from amuled_ma.tasks.colors import COLORS
 
 #: Metrics left out of the bar charts (book-keeping, or the shaping the base never sees).
 NOT_PLOTTED = ("terminated", "return_shaping", "return")
@@ -152,9 +153,11 @@ def ablation_figure(
     """An ablation's own figure: its fine-tunes against AMULED on the paper's metrics.
 
     ``kl``: each paper metric against lambda_KL (one point per fine-tune, 95% CI). Other
-    ablations: one panel per paper metric, the fine-tunes as horizontal bars sorted by
-    their mean (largest on top), AMULED outlined in black. The base policy is a dashed
-    line in every panel.
+    ablations: one panel per paper metric that differs between the fine-tunes, in
+    ``mode`` and then in the run's other modes (:func:`varying_panels`; the title names
+    the metrics left out as equal), the fine-tunes as horizontal bars sorted by their mean
+    (largest on top), AMULED outlined in black. The base policy is a dashed line in every
+    panel.
 
     Args:
         results: The ablation's evaluation results.
@@ -210,30 +213,83 @@ def ablation_figure(
             fontsize=9,
         )
         return fig
+    panels, equal = varying_panels(results, metrics, mode)
     height = 0.3 * len(tunes) + 1.1
-    fig, axes = grid_axes(plt, len(metrics), 2, 5.2, height)
-    for ax, metric in zip(axes, metrics, strict=False):
-        order = sorted(tunes, key=lambda n: (_sort_key(tunes[n].metrics.get(metric)), n))
-        stats = [tunes[n].metrics.get(metric) for n in order]
+    fig, axes = grid_axes(plt, len(panels), 2, 5.2, height)
+    for ax, (panel_mode, metric) in zip(axes, panels, strict=False):
+        in_mode = {n: results.variants[n].mode(panel_mode) or ModeResult() for n in tunes}
+        order = sorted(tunes, key=lambda n: (_sort_key(in_mode[n].metrics.get(metric)), n))
+        stats = [in_mode[n].metrics.get(metric) for n in order]
         positions = np.arange(len(order))
         _hbars(ax, positions, stats, [colors[n] for n in order],
                emphasise=[n == "finetune-amuled" for n in order])  # fmt: skip
-        _base_line(ax, base, metric, vertical=True)
+        base_mode = results.variants["base"].mode(panel_mode) if base is not None else None
+        _base_line(ax, base_mode, metric, vertical=True)
         ax.set_yticks(positions, order, fontsize=8)
         for label in ax.get_yticklabels():
             if label.get_text() == "finetune-amuled":
                 label.set_fontweight("bold")
-        ax.set_title(metric.replace("_", " "), fontsize=9)
+        title = metric.replace("_", " ")
+        ax.set_title(title if panel_mode == mode else f"{title} ({panel_mode})", fontsize=9)
         ax.tick_params(axis="x", labelsize=7)
         ax.grid(axis="x", alpha=0.3)
-    for ax in axes[len(metrics) :]:
+    for ax in axes[len(panels) :]:
         ax.axis("off")
+    shown = sorted({m for m, _ in panels}, key=lambda m: m != mode)
+    note = ""
+    if equal:
+        note = "\nnot shown, equal for every fine-tune: " + "; ".join(
+            f"{', '.join(m.replace('_', ' ') for m in names)} ({m})" for m, names in equal.items()
+        )
     fig.suptitle(
-        f"Ablation of {what}: each fine-tune's {mode} mean and 95% CI on the paper's metrics, "
-        "sorted (largest on top); AMULED outlined in black, dashed: base",
-        fontsize=9,
-    )
+        f"Ablation of {what}: each fine-tune's mean and 95% CI ({' and '.join(shown)} policy) "
+        "on the paper's metrics that differ between the fine-tunes, sorted (largest on top); "
+        f"AMULED outlined in black, dashed: base{note}",
+        fontsize=9, wrap=True,
+    )  # fmt: skip
     return fig
+
+
+def varying_panels(
+    results: Results, metrics: Sequence[str], mode: str = "greedy"
+) -> tuple[list[tuple[str, str]], dict[str, list[str]]]:
+    """The ``(mode, metric)`` panels of an ablation figure: the metrics that differ.
+
+    A metric whose mean is the same for every fine-tune (a deterministic greedy policy
+    that always reaches the milk, say) draws identical bars and is left out; the other
+    modes the run was evaluated in (``sampled``) add the metrics that differ there. When
+    no metric differs in any mode, every metric of ``mode`` is shown.
+
+    Args:
+        results: The ablation's evaluation results.
+        metrics: The metrics in their order.
+        mode: The figure's first mode.
+
+    Returns:
+        ``([(mode, metric), ...], {mode: [metric left out, ...]})``.
+
+    """
+    tunes = [n for n in results.variants if n not in ("base", "shaped")]
+    modes = sorted({m for n in tunes for m in results.variants[n].modes()}, key=lambda m: m != mode)
+    panels: list[tuple[str, str]] = []
+    equal: dict[str, list[str]] = {}
+    for panel_mode in modes:
+        for metric in metrics:
+            means = [
+                mean_of(r.metrics.get(metric))
+                for n in tunes
+                if (r := results.variants[n].mode(panel_mode)) is not None
+            ]
+            finite = [v for v in means if math.isfinite(v)]
+            if not finite:
+                continue
+            if len(finite) > 1 and max(finite) - min(finite) > EQUAL_TOL:
+                panels.append((panel_mode, metric))
+            else:
+                equal.setdefault(panel_mode, []).append(metric)
+    if not panels:
+        return [(mode, m) for m in metrics], {}
+    return panels, equal
 
 
 #: Colours of the budget ablation's selections (:func:`budget_figure`; random also dashed).
@@ -361,9 +417,9 @@ def _base_line(ax: Any, base: ModeResult | None, metric: str, *, vertical: bool)
     if not math.isfinite(value):
         return
     if vertical:
-        ax.axvline(value, color="0.15", ls="--", lw=1.1, zorder=5, gid="base-line")
+        ax.axvline(value, color=COLORS["reference"], ls="--", lw=1.1, zorder=5, gid="base-line")
     else:
-        ax.axhline(value, color="0.15", ls="--", lw=1.1, zorder=0, gid="base-line")
+        ax.axhline(value, color=COLORS["reference"], ls="--", lw=1.1, zorder=0, gid="base-line")
 
 
 def plot_ablation(

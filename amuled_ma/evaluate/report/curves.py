@@ -1,4 +1,11 @@
-"""Learning curves: each variant's ``curve.json``, a rolling mean with a 95% band."""
+"""Learning curves: each variant's ``curve.json``, a rolling mean, its seeds readable.
+
+How the spread is drawn depends on the seeds (:data:`MAX_SEED_LINES`): with one seed the
+raw values are a faint line behind the rolling mean; with 2 to 5 seeds every seed's rolling
+mean is a thin faint line behind the mean over the seeds (a t-interval over 2 to 5 seeds is
+too wide to read: with 2 seeds its quantile is 12.7); with more, a light 95% band over the
+seeds, cut to the panel.
+"""
 
 from __future__ import annotations
 
@@ -31,6 +38,11 @@ CURVE_KEYS = {
 }  # fmt: skip
 #: Curve keys of a fine-tune's feedback.
 FT_KEYS = ["feedback/feedback_reward", "feedback/kl"]
+#: Up to this many seeds a variant's seeds are drawn as lines; past it, a 95% band.
+MAX_SEED_LINES = 5
+#: Opacity of a seed's line (and of one seed's raw values) and of a band over the seeds.
+SPREAD_ALPHA = 0.3
+BAND_ALPHA = 0.15
 
 
 def _rolling_band(values: list[float | None], window: int) -> tuple[np.ndarray, ...]:
@@ -96,6 +108,20 @@ def curve_band(replicas: list[list[dict]], key: str) -> tuple[np.ndarray, ...]:
     return x, mean, half
 
 
+def seed_lines(replicas: list[list[dict]], key: str) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The steps and each replica's rolling mean of one metric (over 5% of its iterations).
+
+    One replica: its raw values instead (the faint line behind its rolling mean).
+    """
+    n = min(len(c) for c in replicas)
+    x = np.array([row["env_steps"] for row in replicas[0][:n]], dtype=float)
+    rows = [[row.get(key) for row in c[:n]] for c in replicas]
+    if len(replicas) == 1:
+        return x, [np.array([np.nan if v is None else v for v in rows[0]], dtype=float)]
+    window = max(1, n // 20)
+    return x, [_rolling_band(r, window)[0] for r in rows]
+
+
 def curves_figure(
     curves: dict[str, list[list[dict]]],
     keys: list[str],
@@ -112,19 +138,37 @@ def curves_figure(
     plt = pyplot()
     fig, axes = grid_axes(plt, len(keys), 3, 4.3, 3.2)
     legend: dict[str, Any] = {}
+    bands: list[tuple] = []
     for ax, key in zip(axes, keys, strict=False):
-        lines = []
+        lines, spread = [], []
         for name, replicas in curves.items():
             if not any(key in row for c in replicas for row in c):
                 continue
             x, mean, half = curve_band(replicas, key)
             label = name if len(replicas) == 1 else f"{name} ({len(replicas)} seeds)"
-            (line,) = ax.plot(x, mean, label=label, lw=1.5, color=colors.get(name))
-            ax.fill_between(x, mean - half, mean + half, color=line.get_color(), alpha=0.2, lw=0)
+            colour = colors.get(name)
+            if len(replicas) <= MAX_SEED_LINES:
+                xs, each = seed_lines(replicas, key)
+                gid = "raw-line" if len(replicas) == 1 else "seed-line"
+                for values in each:
+                    ax.plot(xs, values, lw=0.8, color=colour, alpha=SPREAD_ALPHA, gid=gid,
+                            zorder=1)  # fmt: skip
+                if len(replicas) > 1:  # one seed's raw values do not set the range
+                    spread += each
+            else:
+                bands.append((ax, x, mean, half, colour))
+            (line,) = ax.plot(x, mean, label=label, lw=1.8, color=colour, gid="mean-line",
+                              zorder=3)  # fmt: skip
             legend.setdefault(label, line)
             lines.append(mean)
         heading = key.split("/", 1)[-1].replace("_", " ")
-        limits = robust_ylim(lines)
+        limits = robust_ylim(lines + spread)
+        for band_ax, x, mean, half, colour in [b for b in bands if b[0] is ax]:
+            low, high = mean - half, mean + half
+            if limits is not None:  # a band is cut to the panel: it never fills it
+                low, high = np.maximum(low, limits[0]), np.minimum(high, limits[1])
+            band_ax.fill_between(x, low, high, color=colour, alpha=BAND_ALPHA, lw=0,
+                                 gid="seed-band", zorder=2)  # fmt: skip
         if limits is not None:
             ax.set_ylim(limits[0], limits[1])
             if limits[2]:
@@ -138,11 +182,23 @@ def curves_figure(
     spare = axes[len(keys) :]
     for ax in spare:
         ax.axis("off")
-    several = any(len(r) > 1 for r in curves.values())
-    band = "over seeds" if several else "over a 5% window of iterations"
-    fig.suptitle(f"{title} (rolling mean over 5% of iterations, 95% band {band})", fontsize=9)
+    fig.suptitle(f"{title}: rolling mean over 5% of iterations; {_spread_note(curves)}",
+                 fontsize=9)  # fmt: skip
     legend_below(fig, list(legend.values()), list(legend), spare)
     return fig
+
+
+def _spread_note(curves: dict[str, list[list[dict]]]) -> str:
+    """What the faint lines or bands of :func:`curves_figure` are."""
+    seeds = {len(r) for r in curves.values()}
+    parts = []
+    if 1 in seeds:
+        parts.append("one seed: faint, its raw values")
+    if any(1 < k <= MAX_SEED_LINES for k in seeds):
+        parts.append("bold: the mean over seeds, faint: each seed")
+    if any(k > MAX_SEED_LINES for k in seeds):
+        parts.append("band: 95% interval over seeds")
+    return "; ".join(parts)
 
 
 def plot_curves(
@@ -152,7 +208,7 @@ def plot_curves(
     title: str,
     colors: dict[str, str] | None = None,
 ) -> Path | None:
-    """Plot one panel per key, one line (rolling mean, 95% band) per variant.
+    """Plot one panel per key, one line (rolling mean) per variant, its seeds' spread faint.
 
     The y-range of each panel is :func:`robust_ylim` of its lines (the panel's title says
     when values are clipped); x ticks are compact (``20k``).

@@ -163,16 +163,24 @@ def source_text(panel: PanelRecord) -> str:
         text = f"replay of `{panel.recording}`"
     elif source in ("ollama", "openai", "llm") and panel.model:
         text = f"{source}, model `{panel.model}`"
+    elif source == "rules":
+        text = "rules (the task's rule; the clusters' text is not read)"
     else:
         text = source
     if panel.agent_sources:
         text += "; " + ", ".join(
             f"{agent}: {spec.get('source', '?')}"
             + (f" `{spec['recording']}`" if spec.get("recording") else "")
-            + (f" `{spec['model']}`" if spec.get("model") and not spec.get("recording") else "")
+            + (f" `{spec['model']}`" if spec.get("model") and _asks_model(spec) else "")
+            + (" (the task's rule; its text is not read)" if spec.get("source") == "rules" else "")
             for agent, spec in panel.agent_sources.items()
         )
     return text
+
+
+def _asks_model(spec: Mapping[str, Any]) -> bool:
+    """Whether an agent's source asks a model (not a recording, a rule or a person)."""
+    return spec.get("source") not in ("replay", "rules", "terminal", "policy")
 
 
 def fusion_text(panel: PanelRecord) -> str:

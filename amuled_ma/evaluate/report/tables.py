@@ -12,9 +12,18 @@ from typing import Any
 
 from amuled_ma.beliefs.types import FUSED_STATUSES
 from amuled_ma.evaluate.evaluator import PAPER_METRICS, metric_order
+from amuled_ma.evaluate.numbers import format_count
+from amuled_ma.evaluate.paper import (
+    PAPER_COLUMNS,
+    PAPER_MODE,
+    PAPER_RECIPE,
+    PAPER_SOURCE,
+    paper_row,
+)
 from amuled_ma.evaluate.report.bars import budget_points
 from amuled_ma.evaluate.report.plotting import EQUAL_TOL, format_stat, mean_of
 from amuled_ma.evaluate.results import ModeResult, Results
+from amuled_ma.evaluate.stats import t_quantile
 
 
 def diagnostics_table(results: Results | Mapping[str, Any], finetunes: int | None = None) -> str:
@@ -46,8 +55,7 @@ def diagnostics_table(results: Results | Mapping[str, Any], finetunes: int | Non
         cells += [f"{weights[c]:.3f}" if c in weights else "" for c in clusters]
         cells.append("" if conflict is None else f"{conflict:.3f}")
         cells.append(f"{100 * fb.miss_rate:.1f}%")
-        states = "" if fb.unique_states is None else fb.unique_states
-        cells.append(f"{states:.1f}" if isinstance(states, float) else str(states))
+        cells.append("" if fb.unique_states is None else format_count(fb.unique_states))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -349,3 +357,175 @@ def differences_table(results: Results | Mapping[str, Any], mode: str) -> str:
         ]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------------------------
+# The paper beside us, and what the fine-tune did
+
+
+#: How a metric's difference to the base reads: (verb phrase before, noun after).
+_PHRASES: dict[str, tuple[str, str]] = {
+    "steps_to_milk": ("takes", "steps to the milk"),
+    "crying_pacified": ("pacifies", "crying babies"),
+    "sleeping_woken": ("wakes", "sleeping babies"),
+    "collisions": ("has", "collisions"),
+    "rescues": ("rescues", "grandmas"),
+    "lane_changes": ("makes", "lane changes"),
+}
+
+
+def _numbers(stat: Any) -> str:
+    mean = mean_of(stat)
+    return "n/a" if not math.isfinite(mean) else f"{mean:g}"
+
+
+def paper_table(
+    results: Results | Mapping[str, Any],
+    recipes: Mapping[str, str | None] | None = None,
+) -> str:
+    """Markdown table: the paper's row beside ours for every variant the paper reports.
+
+    The paper's figures (:data:`~amuled_ma.evaluate.paper.PAPER_ROWS`) are of the sampled
+    policy; ours are in the same mode when it was evaluated (else greedy, and the column
+    says so), ``mean ± half-width`` of the 95% interval.
+
+    Args:
+        results: The evaluation results.
+        recipes: ``{variant: recipe}`` of the fine-tunes trained here (``authors``,
+            ``equation``); a variant without one (a base, an imported policy) shows ``-``.
+
+    Returns:
+        The table and its source line, or ``""`` when the paper has no row for any variant.
+
+    """
+    results = Results.of(results)
+    columns = PAPER_COLUMNS.get(results.task)
+    if not columns:
+        return ""
+    mode = PAPER_MODE if results.in_mode(PAPER_MODE) else "greedy"
+    ours = results.in_mode(mode)
+    lines = []
+    for name, data in ours.items():
+        row = paper_row(results.task, name)
+        if row is None:
+            continue
+        paper = " / ".join(f"{row.values[m]:.1f}" for m in columns)
+        mine = " / ".join(format_stat(data.metrics.get(m)) for m in columns)
+        recipe = (recipes or {}).get(name) or "-"
+        lines.append(f"| {name} | {row.label} | {paper} | {mine} | {recipe} |")
+    if not lines:
+        return ""
+    head = (
+        f"| variant | the paper's row | the paper ({PAPER_RECIPE}' recipe, {PAPER_MODE}) | "
+        f"ours ({mode}, mean ± 95% CI) | our recipe |\n|---|---|---|---|---|"
+    )
+    return (
+        f"Columns: {' / '.join(columns)}. The paper's figures: {PAPER_SOURCE}.\n\n"
+        + head
+        + "\n"
+        + "\n".join(lines)
+        + "\n"
+    )
+
+
+def difference_ci(
+    mine: Any, base: Any, confidence: float = 0.95
+) -> tuple[float, float, float] | None:
+    """A variant's mean minus the base's, with a Welch interval of the difference.
+
+    Args:
+        mine: The variant's :class:`~amuled_ma.evaluate.results.Stat`.
+        base: The base's.
+        confidence: Two-sided confidence level.
+
+    Returns:
+        ``(difference, low, high)``; the interval is the difference itself when neither
+        side varies (a deterministic greedy policy); None without both means, counts and
+        spreads (a single value has no spread).
+
+    """
+    if mine is None or base is None:
+        return None
+    a, b = mean_of(mine), mean_of(base)
+    if not (math.isfinite(a) and math.isfinite(b)) or not mine.n or not base.n:
+        return None
+    if any(s.std is None or not math.isfinite(s.std) for s in (mine, base)):
+        return None  # one value (or none): the spread is unknown, no interval is claimed
+    sa, sb = float(mine.std), float(base.std)
+    va, vb = sa**2 / mine.n, sb**2 / base.n
+    diff = a - b
+    if va + vb <= 0:
+        return diff, diff, diff
+    df_parts = (va**2 / (mine.n - 1) if mine.n > 1 else 0.0) + (
+        vb**2 / (base.n - 1) if base.n > 1 else 0.0
+    )
+    df = max(1, int((va + vb) ** 2 / df_parts)) if df_parts > 0 else 1
+    half = t_quantile(df, confidence) * math.sqrt(va + vb)
+    return diff, diff - half, diff + half
+
+
+def movement_sentence(
+    results: Results | Mapping[str, Any],
+    variant: str = "finetune-amuled",
+    mode: str = "sampled",
+    label: str = "AMULED",
+) -> str:
+    """One sentence: did the fine-tune move away from the base, and which way.
+
+    A metric moved when the interval of its difference to the base
+    (:func:`difference_ci`) excludes 0: ``AMULED wakes 2.10 fewer sleeping babies than
+    the base (95% CI 1.62 to 2.58 fewer)``; with none, ``did not move from the base beyond
+    noise``. A fine-tune that misses the goal in some episodes (FindMilk's milk) says so.
+
+    Args:
+        results: The evaluation results.
+        variant: The fine-tune (a variant of the results).
+        mode: ``greedy`` or ``sampled``.
+        label: How the sentence names it.
+
+    Returns:
+        The sentence, or ``""`` without the variant or the base in ``mode``.
+
+    """
+    results = Results.of(results)
+    modes = results.in_mode(mode)
+    if variant not in modes or "base" not in modes:
+        return ""
+    mine, base = modes[variant].metrics, modes["base"].metrics
+    level = f"{100 * results.confidence:g}% CI"
+    moved, still = [], []
+    for metric in PAPER_COLUMNS.get(results.task, tuple(sorted(set(mine) & set(base)))):
+        found = difference_ci(mine.get(metric), base.get(metric), results.confidence)
+        if found is None:
+            continue
+        diff, low, high = found
+        verb, noun = _PHRASES.get(metric, ("has", metric))
+        if low > EQUAL_TOL or high < -EQUAL_TOL:
+            way = "more" if diff > 0 else "fewer"
+            if low == high:
+                ci = "in every episode: both policies are deterministic"
+            else:
+                near, far = sorted((abs(low), abs(high)))
+                ci = f"{level} {near:.2f} to {far:.2f} {way}"
+            moved.append(f"{verb} {abs(diff):.2f} {way} {noun} than the base ({ci})")
+        else:
+            still.append(noun)
+    where = f"{label} ({variant}, {mode} policy)"
+    if not moved:
+        sentence = (
+            f"{where} did not move from the base beyond noise: the {level} of every "
+            "difference contains 0."
+        )
+    else:
+        sentence = f"{where} " + "; ".join(moved)
+        if still:
+            sentence += f"; no difference beyond noise in {', '.join(still)}"
+        sentence += "."
+    reached = mine.get("reached_milk")
+    share = mean_of(reached)
+    if math.isfinite(share) and share < 1.0 - EQUAL_TOL:
+        sentence += (
+            f" It reaches the milk in only {100 * share:.0f}% of the episodes (an episode "
+            "that misses it counts the step limit as its steps)."
+        )
+    return sentence

@@ -31,6 +31,8 @@ from amuled_ma.evaluate.report.tables import (
     diagnostics_table,
     differences_table,
     metrics_table,
+    movement_sentence,
+    paper_table,
     same_as_base,
     servers_table,
 )
@@ -147,7 +149,9 @@ def write_report(
     elif ablation:
         figures.append((
             f"Ablation of {ablation}",
-            "Each fine-tune of the ablation against AMULED on the paper's metrics (greedy), "
+            "Each fine-tune of the ablation against AMULED on the paper's metrics that differ "
+            "between the fine-tunes (greedy, then sampled; the title names those left out as "
+            "equal), "
             + ("against lambda_KL." if ablation == "kl" else "sorted by the metric's mean.")
             + " The dashed line is the base policy.",
             plot_ablation(results, ablation, run_dir / f"ablation_{ablation}.png", colors),
@@ -200,6 +204,7 @@ def write_report(
             "",
             imported,
         ]
+    lines += _paper_lines(results, described)
     unfinished = unfinished_lines(described)
     if unfinished:
         lines += [*unfinished, ""]
@@ -329,6 +334,32 @@ def write_report(
     report = run_dir / "report.md"
     report.write_text("\n".join(lines))
     return report
+
+
+def _paper_lines(results: Results, described: Mapping[str, RunRecord | None]) -> list[str]:
+    """The section that answers the question: did AMULED move, and where is the paper.
+
+    One sentence per mode on the AMULED fine-tune against the base (with the interval of
+    the difference), then the paper's row beside ours for every variant it reports, with
+    the recipe each side used.
+    """
+    lines: list[str] = []
+    amuled = [n for n in results.variants if n.split(".seed", 1)[0] == "finetune-amuled"]
+    sentences = [
+        movement_sentence(results, amuled[0], mode) for mode in ("sampled", "greedy") if amuled
+    ]
+    table = paper_table(
+        results, {n: r.recipe for n, r in described.items() if r is not None and r.recipe}
+    )
+    if not any(sentences) and not table:
+        return []
+    lines += ["## What AMULED did, beside the paper", ""]
+    lines += [f"- {s}" for s in sentences if s]
+    if any(sentences):
+        lines.append("")
+    if table:
+        lines += [table]
+    return lines
 
 
 def _remove_stale_figures(run_dir: Path, written: set[str]) -> None:

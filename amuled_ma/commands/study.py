@@ -1,0 +1,139 @@
+r"""``amuled study build|serve|analyze|export``: people judge the trained agents.
+
+::
+
+    amuled study build runs/findmilk --variants amuled,base,human --items 40 --seed 7 \\
+        --out studies/findmilk
+    amuled study serve studies/findmilk            # http://127.0.0.1:8765/
+    amuled study analyze studies/findmilk          # studies/findmilk/analysis/report.md
+    amuled study export studies/findmilk -o answers.csv
+
+See ``docs/study.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from amuled_ma.commands import _experiment as common
+
+
+def _variants(text: str) -> list[str]:
+    return [v.strip() for v in text.split(",") if v.strip()]
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``amuled study`` and its sub-commands."""
+    parser = subparsers.add_parser(
+        "study",
+        help="build, serve and analyse a study where people judge the agents' decisions",
+        description=(
+            "A study shows people states the trained policies met, with two variants' "
+            "decisions side by side (blinded, in random order), and stores their choices."
+        ),
+    )
+    parser.set_defaults(handler=lambda args: parser.print_help() or 2)
+    sub = parser.add_subparsers(dest="study_command", metavar="COMMAND")
+
+    build = sub.add_parser("build", help="write a study folder from runs")
+    build.add_argument("runs", metavar="RUN", nargs="+", type=Path, help="run folders")
+    build.add_argument(
+        "--variants",
+        type=_variants,
+        default=["amuled", "base"],
+        help="comma-separated variants to compare (default amuled,base)",
+    )
+    build.add_argument("--items", type=common.bounded_int(1), default=40, help="pairs to ask")
+    build.add_argument("--seed", type=common.bounded_int(0), default=0, help="the draw's seed")
+    build.add_argument(
+        "--attention",
+        type=common.bounded_int(0),
+        default=None,
+        help="attention checks (default: one per ten pairs, at least one)",
+    )
+    build.add_argument(
+        "--episodes",
+        type=common.bounded_int(1),
+        default=3,
+        help="evaluation episodes replayed per variant to find states (default 3)",
+    )
+    build.add_argument("--out", type=Path, required=True, help="the study folder to write")
+    build.add_argument("--force", action="store_true", help="rebuild an existing study")
+    build.set_defaults(handler=_build)
+
+    serve = sub.add_parser("serve", help="serve a study to participants")
+    serve.add_argument("study", metavar="STUDY", type=Path, help="a study folder")
+    serve.add_argument(
+        "--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)"
+    )
+    serve.add_argument("--port", type=common.bounded_int(1, 65535), default=8765)
+    serve.set_defaults(handler=_serve)
+
+    analyze = sub.add_parser("analyze", help="write the study's report")
+    analyze.add_argument("study", metavar="STUDY", type=Path, help="a study folder")
+    analyze.add_argument(
+        "--keep-inattentive",
+        action="store_true",
+        help="keep the answers of participants who failed an attention check",
+    )
+    analyze.set_defaults(handler=_analyze)
+
+    export = sub.add_parser("export", help="the answers as CSV")
+    export.add_argument("study", metavar="STUDY", type=Path, help="a study folder")
+    export.add_argument(
+        "-o", "--output", type=Path, default=None, help="CSV file (default: stdout)"
+    )
+    export.set_defaults(handler=_export)
+
+
+def _build(args: argparse.Namespace) -> int:
+    from amuled_ma.study.build import build_study
+
+    study = build_study(
+        args.runs,
+        args.variants,
+        args.out,
+        items=args.items,
+        seed=args.seed,
+        attention=args.attention,
+        episodes=args.episodes,
+        force=args.force,
+    )
+    pairs = sum(1 for i in study.items if i.kind == "pair")
+    common.say(
+        f"study {args.out}: {pairs} pairs of {study.candidates} candidates and "
+        f"{len(study.items) - pairs} attention checks; edit {args.out / 'consent.html'}, "
+        f"then 'amuled study serve {args.out}'"
+    )
+    return 0
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from amuled_ma.study.server import serve
+
+    common.say(f"study {args.study}: serving on http://{args.host}:{args.port}/ (Ctrl-C stops)")
+    serve(args.study, host=args.host, port=args.port)
+    return 0
+
+
+def _analyze(args: argparse.Namespace) -> int:
+    from amuled_ma.study.report import write_analysis
+
+    path = write_analysis(args.study, keep_inattentive=args.keep_inattentive)
+    common.say(f"study {args.study}: report {path}")
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    import sys
+
+    from amuled_ma.study.analysis import answers_csv
+
+    text = answers_csv(args.study)
+    if args.output is None:
+        sys.stdout.write(text)
+    else:
+        args.output.write_text(text, encoding="utf-8")
+        common.say(f"study {args.study}: answers written to {args.output}")
+    return 0

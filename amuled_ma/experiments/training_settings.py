@@ -1,0 +1,185 @@
+"""The settings that decide what a variant learns, and their comparison before a resume.
+
+:func:`training_config` reads them from the validated scenario (with the SHA-256 of every
+input file the panel reads: recordings and cluster files); a variant folder's record keeps
+a copy, and :mod:`amuled_ma.experiments.run_folder` compares the two
+(:func:`differences`, after :func:`learned_only` and :func:`without_keys_added_since`)
+before it resumes or skips the folder.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from pathlib import Path
+from typing import Any
+
+from amuled_ma.errors import AmuledError
+from amuled_ma.file_hash import sha256_file
+from amuled_ma.learn.config import planned_iterations
+from amuled_ma.scenario import Scenario
+from amuled_ma.variants import Variant
+
+#: Scenario keys left out of :func:`training_config`: paths, logging and service keys, the
+#: seed (the job's own seed is kept) and the run's length (kept as ``"iterations"``: a
+#: resume may lengthen a run).
+NOT_LEARNED = {
+    "task": ("seed",),
+    "base": ("save_interval", "total_steps"),
+    "finetune": ("save_interval", "iterations"),
+    "feedback": ("host", "hosts", "concurrency", "timeout_s", "store", "max_abstention", "name"),
+}
+
+
+def training_config(
+    scenario: Scenario,
+    variant: Variant | str,
+    seed: int | None = None,
+    iterations: int | None = None,
+) -> dict[str, Any]:
+    """The settings that decide what a variant learns, as plain JSON data.
+
+    A folder's saved copy (``config.json``, key ``"training"``) is compared with the current
+    one before a resume or a skip, so that a run never continues, or passes off as
+    finished, a variant trained with other settings. They are read from the validated
+    scenario (:meth:`~amuled_ma.scenario.Scenario.settings`). Left out: paths, logging and service
+    keys (:data:`NOT_LEARNED`), the recording's folder (its file name stays), the
+    ``[feedback.distill]`` table when it is off, and the feedback section for base
+    training and for the rule-based human feedback. ``inputs`` holds the SHA-256 of the
+    recordings replayed and of each cluster file the panel's prompts are made of. The run's
+    length is kept apart, as the number of PPO iterations the job trains to.
+
+    Args:
+        scenario: The scenario of the job.
+        variant: What the job trains.
+        seed: The job's training seed (default: ``[task].seed``).
+        iterations: An override of the number of iterations, if any.
+
+    Returns:
+        ``{"variant", "seed", "iterations", section: {key: value}, ...}``.
+
+    """
+    variant = Variant.parse(variant)
+    data = scenario.settings()
+    sections: tuple[str, ...] = ("task", "ppo", "finetune" if variant.finetuning else "base")
+    if variant.asks_panel:
+        sections += ("feedback",)
+    total = planned_iterations(scenario, finetune=variant.finetuning)
+    out: dict[str, Any] = {
+        "variant": str(variant),
+        "seed": scenario.task.seed if seed is None else seed,
+        "iterations": total if iterations is None else iterations,
+    }
+    for section in sections:
+        skip = NOT_LEARNED.get(section, ())
+        out[section] = {k: v for k, v in data[section].items() if k not in skip}
+    distill = out.get("feedback", {}).get("distill")
+    if distill is not None and not distill.get("enabled"):
+        del out["feedback"]["distill"]  # off: its other keys change nothing
+    if out.get("feedback", {}).get("recording"):
+        out["feedback"]["recording"] = Path(out["feedback"]["recording"]).name
+        if out["feedback"].get("source") == "replay":
+            out["inputs"] = {"recording_sha256": file_sha256(scenario.recording_path())}
+    for agent, spec in sorted((out.get("feedback", {}).get("agents") or {}).items()):
+        if spec.get("source") == "replay" and spec.get("recording"):
+            path = scenario.replace("feedback", recording=spec["recording"]).recording_path()
+            out.setdefault("inputs", {})[f"recording_sha256[{agent}]"] = file_sha256(path)
+    if "feedback" in out:
+        for name, digest in cluster_hashes(scenario, variant).items():
+            out.setdefault("inputs", {})[f"cluster_sha256[{name}]"] = digest
+    return json.loads(json.dumps(out, default=str))
+
+
+def cluster_hashes(scenario: Scenario, variant: Variant) -> dict[str, str | None]:
+    """SHA-256 of the file of each cluster the variant's prompts are made of.
+
+    The panel's members and the clusters the system prompt describes: editing a cluster's
+    text changes what the LLM is told, so a resume compares these like a recording's hash.
+    A panel whose clusters do not load has none here (the preflight names the problem).
+    """
+    from amuled_ma.deliberation.plan import cluster_registry, panel_of
+
+    try:
+        registry = cluster_registry(scenario)
+        members, _rule = panel_of(str(variant.feedback), scenario, registry)
+    except AmuledError:
+        return {}
+    out: dict[str, str | None] = {}
+    for cluster in [*members, *registry.panel()]:
+        if cluster.path is not None and cluster.name not in out:
+            out[cluster.name] = file_sha256(Path(cluster.path))
+    return dict(sorted(out.items()))
+
+
+@functools.lru_cache(maxsize=64)
+def _sha256_of(path: str, size: int, mtime_ns: int) -> str:
+    return sha256_file(path)  # cached by (path, size, mtime): a changed file is hashed again
+
+
+def file_sha256(path: Path) -> str | None:
+    """SHA-256 of a file's content (memoised while its size and mtime stay), None if absent.
+
+    The identity of an input such as a recording: a file replaced under the same name has
+    another hash, and a resume compares it
+    (:func:`~amuled_ma.experiments.run_folder.check_training_config`).
+    """
+    try:
+        info = path.stat()
+    except OSError:
+        return None
+    return _sha256_of(str(path), info.st_size, info.st_mtime_ns)
+
+
+def differences(saved: Any, current: Any, prefix: str = "") -> list[str]:
+    """``key: saved -> current`` for every leaf that differs between two JSON values."""
+    if isinstance(saved, dict) and isinstance(current, dict):
+        out = []
+        for key in sorted(set(saved) | set(current), key=str):
+            name = f"{prefix}.{key}" if prefix else str(key)
+            out += differences(saved.get(key), current.get(key), name)
+        return out
+    return [] if saved == current else [f"{prefix}: {saved!r} -> {current!r}"]
+
+
+def learned_only(saved: dict[str, Any]) -> dict[str, Any]:
+    """A saved training config without the keys :data:`NOT_LEARNED` now leaves out.
+
+    A folder saved when such a key was still recorded (a service key like
+    ``max_abstention``) is compared on what decides learning only.
+    """
+    out = dict(saved)
+    for section, keys in NOT_LEARNED.items():
+        if isinstance(out.get(section), dict):
+            out[section] = {k: v for k, v in out[section].items() if k not in keys}
+    return out
+
+
+def without_keys_added_since(saved: dict[str, Any], training: dict[str, Any]) -> dict[str, Any]:
+    """Drop from ``training`` what a folder saved by an older version could not record.
+
+    The input hashes (``inputs``; the cluster files' hashes of a folder that has none) and
+    any scenario key added since, when it holds its default value (the old version behaved
+    as that default); a key added since but set to another value stays, so the difference
+    is reported.
+    """
+    defaults = Scenario().to_dict()
+    out = {k: v for k, v in training.items() if k != "inputs" or "inputs" in saved}
+    saved_inputs = saved.get("inputs") if isinstance(saved.get("inputs"), dict) else {}
+    if isinstance(out.get("inputs"), dict) and not any(
+        str(k).startswith("cluster_sha256[") for k in saved_inputs
+    ):  # saved before cluster files were hashed
+        out["inputs"] = {
+            k: v for k, v in out["inputs"].items() if not k.startswith("cluster_sha256[")
+        }
+        if not out["inputs"] and "inputs" not in saved:
+            del out["inputs"]
+    for section, values in training.items():
+        if section == "inputs":
+            continue  # hashes, not settings with defaults: dealt with above
+        if isinstance(values, dict) and isinstance(saved.get(section), dict):
+            out[section] = {
+                k: v
+                for k, v in values.items()
+                if k in saved[section] or v != defaults.get(section, {}).get(k, object())
+            }
+    return out

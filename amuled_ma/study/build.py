@@ -1,0 +1,323 @@
+"""``amuled study build``: a study folder from trained runs.
+
+Items are states the compared policies met: evaluation episodes ``0..E-1`` of each compared
+variant are replayed with the evaluator's own rollout
+(:func:`~amuled_ma.evaluate.episode_trace.replay_episode`, greedy, the run's evaluation
+``N``), every distinct state is kept, and each compared variant's greedy action in it is read
+from its policy. A candidate is a state and a pair of variants whose actions there differ
+(where both take the same action there is nothing to choose). ``items`` candidates are drawn
+with NumPy's ``default_rng(seed)``; each shows its two decisions in a random order (``A`` /
+``B``), with no variant name. Attention checks (an instructed answer on a real state) are
+put at random places. Where a compared variant was fine-tuned on a panel, the panel's
+beliefs about each item's state are read from the run's belief store (read-only, as the
+viewer reads them) and kept for the analysis. The same runs, variants, items and seed give
+the same bytes.
+"""
+
+from __future__ import annotations
+
+import itertools
+import shutil
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from amuled_ma.deliberation.state_key import freeze
+from amuled_ma.evaluate import episode_trace as trace
+from amuled_ma.evaluate.evaluator import variant_dirs
+from amuled_ma.evaluate.panel_answers import ask_panel
+from amuled_ma.evaluate.readonly_feedback import open_feedback
+from amuled_ma.experiments.run_folder import read_record, split_replica
+from amuled_ma.experiments.trained_variants import evaluated_episodes, trained_variant
+from amuled_ma.learn.policies import action_log_probs
+from amuled_ma.study.drawing import state_svg
+from amuled_ma.study.model import (
+    CONSENT_FILE,
+    STUDY_FILE,
+    Item,
+    Option,
+    PanelView,
+    Study,
+    StudyError,
+    write_study,
+)
+
+#: Evaluation episodes replayed per variant (states met) unless asked otherwise.
+EPISODES = 3
+#: Decimals kept of a belief (stable bytes across machines).
+DECIMALS = 6
+TEMPLATE = Path(__file__).parent / "templates" / "consent.html"
+
+
+@dataclass
+class _State:
+    run: int
+    task: str
+    met_by: str
+    episode: int
+    step: int
+    obs: np.ndarray
+    prompt_vars: dict[str, Any]
+    svg: str
+
+
+def resolve_variant(run_dir: Path, name: str) -> Path:
+    """The variant folder of a run that ``name`` means.
+
+    ``name`` is a folder (``base``, ``finetune-amuled``), ``finetune-<name>``, or a
+    fine-tune's feedback (``amuled``; ``human`` for ``human:rules``, ...) as its record
+    says. Seed replicas (``<name>.seed<k>``) are left out unless named.
+
+    Raises:
+        StudyError: No variant, or several, fit; the message lists the run's variants.
+
+    """
+    run_dir = Path(run_dir)
+    found = variant_dirs(run_dir)
+    listing = ", ".join(d.name for d in found) or "none"
+    for folder in (run_dir / name, run_dir / f"finetune-{name}"):
+        if folder in found:
+            return folder
+    matches = []
+    for folder in found:
+        if split_replica(folder.name)[1] is not None:
+            continue
+        record = read_record(folder, checkpoint=False)
+        variant = record.variant if record is not None else None
+        feedback = variant.feedback if variant is not None else None
+        if feedback and (feedback == name or feedback.split(":")[0] == name):
+            matches.append(folder)
+    if len(matches) == 1:
+        return matches[0]
+    what = "several variants" if matches else "no variant"
+    raise StudyError(
+        f"--variants: {what} of {run_dir} fit {name!r}; variants found: {listing}; "
+        "name a folder instead"
+    )
+
+
+def _round(values: Any) -> list[Any]:
+    return np.round(np.asarray(values, dtype=np.float64), DECIMALS).tolist()
+
+
+def _prompt(task: str, prompt_vars: dict[str, Any]) -> str | None:
+    from amuled_ma.tasks.prompts import render_state_prompt
+
+    try:
+        return render_state_prompt(task, dict(prompt_vars))
+    except (KeyError, ValueError, Exception):  # a task without a template: no words
+        return None
+
+
+def _states_of_run(
+    r: int, run_dir: Path, names: Sequence[str], folders: list[Path], episodes: int
+) -> tuple[list[_State], dict[str, np.ndarray], Any, list[str]]:
+    """Distinct states the variants met, each variant's greedy action in them, the panel."""
+    trained = [trained_variant(run_dir, folder) for folder in folders]
+    scenario = trained[0].scenario
+    n = evaluated_episodes(run_dir, scenario)
+    actors = [trace.load_actor(t.checkpoint, t.scenario) for t in trained]
+    states: list[_State] = []
+    seen: set[bytes] = set()
+    action_names: list[str] = []
+    for name, actor, tv in zip(names, actors, trained, strict=True):
+        for k in range(min(episodes, n)):
+            ep = trace.replay_episode(actor, tv.scenario, episode=k, episodes=n)
+            action_names = list(ep.action_names)
+            for t in range(ep.length):
+                obs = np.asarray(ep.obs[t], dtype=np.float64)
+                key = obs.tobytes() + freeze(ep.prompt_vars[t])
+                if key in seen:
+                    continue
+                seen.add(key)
+                svg = state_svg(ep.task, ep.layout, ep.frames, t, obs.tolist())
+                states.append(_State(r, ep.task, name, k, t, obs, ep.prompt_vars[t], svg))
+    rows = torch.as_tensor(np.stack([s.obs for s in states]), dtype=torch.float32)
+    with torch.no_grad():
+        actions = {
+            name: action_log_probs(actor, rows).argmax(dim=1).numpy()
+            for name, actor in zip(names, actors, strict=True)
+        }
+    panel = None
+    for tv in trained:
+        if tv.variant is not None and tv.variant.asks_panel and tv.feedback is not None:
+            feedback, store = open_feedback(tv.feedback, tv.scenario, run_dir)
+            try:
+                if getattr(feedback, "panel", None) is not None:
+                    answers = ask_panel(
+                        feedback.panel,
+                        np.stack([s.obs for s in states]),
+                        [s.prompt_vars for s in states],
+                        store,
+                    )
+                    panel = (tv.feedback, answers)
+                    break
+            finally:
+                feedback.close()
+                store.close()
+    return states, actions, panel, action_names
+
+
+def build_study(
+    runs: Sequence[Path],
+    variants: Sequence[str],
+    out: Path,
+    *,
+    items: int,
+    seed: int,
+    attention: int | None = None,
+    episodes: int = EPISODES,
+    force: bool = False,
+) -> Study:
+    """Build a study folder (see the module docstring).
+
+    Args:
+        runs: Run folders (``amuled run`` / ``train`` + ``finetune``).
+        variants: At least two variants to compare (``amuled``, ``base``, ``human``, or
+            folder names), present in every run.
+        out: The study folder to write.
+        items: Pairs to ask about (fewer when the policies differ in fewer states).
+        seed: The draw's seed.
+        attention: Attention checks (default: one per ten pairs, at least one).
+        episodes: Evaluation episodes replayed per variant to find states.
+        force: Replace an existing study's ``study.json`` and pictures (an edited
+            ``consent.html`` is kept either way).
+
+    Returns:
+        The :class:`Study` written.
+
+    Raises:
+        StudyError: Fewer than two variants, a variant not found, no state where two
+            variants differ, or ``out`` holds a study and ``force`` is not set.
+
+    """
+    names = list(dict.fromkeys(variants))
+    if len(names) < 2:
+        raise StudyError(
+            f"--variants: expected at least two variants to compare, found {names}; "
+            "e.g. --variants amuled,base"
+        )
+    if items < 1:
+        raise StudyError(f"--items: expected at least 1, found {items}")
+    out = Path(out)
+    if (out / STUDY_FILE).exists() and not force:
+        raise StudyError(f"{out}: holds a study already ({STUDY_FILE}); pass --force to rebuild")
+    torch.set_num_threads(1)
+    states: list[_State] = []
+    actions: list[dict[str, int]] = []
+    panels: list[tuple[str, Any, int] | None] = []
+    folders: list[dict[str, str]] = []
+    action_names: dict[str, list[str]] = {}
+    for r, run in enumerate(runs):
+        chosen = [resolve_variant(Path(run), name) for name in names]
+        folders.append({name: f.name for name, f in zip(names, chosen, strict=True)})
+        run_states, run_actions, panel, names_of_actions = _states_of_run(
+            r, Path(run), names, chosen, episodes
+        )
+        action_names[run_states[0].task] = names_of_actions
+        for u, state in enumerate(run_states):
+            states.append(state)
+            actions.append({name: int(run_actions[name][u]) for name in names})
+            panels.append((panel[0], panel[1], u) if panel is not None else None)
+    candidates = [
+        (s, a, b)
+        for s in range(len(states))
+        for a, b in itertools.combinations(names, 2)
+        if actions[s][a] != actions[s][b]
+    ]
+    if not candidates:
+        raise StudyError(
+            f"the variants {', '.join(names)} take the same action in every state they met "
+            f"({len(states)} states): nothing to compare; train them longer or compare others"
+        )
+    rng = np.random.default_rng(seed)
+    picks = rng.permutation(len(candidates))[: min(items, len(candidates))]
+    n_att = max(1, len(picks) // 10) if attention is None else int(attention)
+    kinds = ["pair"] * len(picks) + ["attention"] * n_att
+    order = rng.permutation(len(kinds))
+    pairs = iter(picks.tolist())
+    built: list[Item] = []
+    pictures: dict[str, str] = {}
+    for position, slot in enumerate(order.tolist()):
+        item_id = f"q{position + 1:03d}"
+        if kinds[slot] == "pair":
+            s, a, b = candidates[next(pairs)]
+            first, second = (a, b) if rng.random() < 0.5 else (b, a)
+            state = states[s]
+            names_of = action_names[state.task]
+            options = (
+                Option(label="A", variant=first, action=actions[s][first],
+                       action_name=names_of[actions[s][first]]),
+                Option(label="B", variant=second, action=actions[s][second],
+                       action_name=names_of[actions[s][second]]),
+            )  # fmt: skip
+            expected = instruction = None
+        else:
+            s = int(rng.integers(len(states)))
+            state = states[s]
+            names_of = action_names[state.task]
+            two = rng.choice(len(names_of), size=2, replace=False).tolist()
+            options = (
+                Option(label="A", variant=None, action=two[0], action_name=names_of[two[0]]),
+                Option(label="B", variant=None, action=two[1], action_name=names_of[two[1]]),
+            )
+            expected = "A" if rng.random() < 0.5 else "B"
+            instruction = (
+                f"This question checks that you are reading: whatever the situation, please "
+                f"choose option {expected}."
+            )
+        panel_view = None
+        found = panels[s]
+        if found is not None and kinds[slot] == "pair":
+            feedback, answers, u = found
+            panel_view = PanelView(
+                feedback=feedback,
+                agents=list(answers.agents),
+                rule=answers.rule,
+                beliefs=_round(answers.beliefs[u]),
+                statuses=[str(x) for x in answers.statuses[u]],
+                fused=_round(answers.fused[u]),
+            )
+        built.append(
+            Item(
+                id=item_id,
+                kind=kinds[slot],  # type: ignore[arg-type]
+                run=state.run,
+                task=state.task,
+                episode=state.episode,
+                step=state.step,
+                met_by=state.met_by,
+                obs=_round(state.obs),
+                prompt=_prompt(state.task, state.prompt_vars),
+                picture=f"states/{item_id}.svg",
+                options=options,
+                expected=expected,  # type: ignore[arg-type]
+                instruction=instruction,
+                policies=dict(actions[s]),
+                panel=panel_view,
+            )
+        )
+        pictures[item_id] = state.svg
+    study = Study(
+        seed=int(seed),
+        runs=[str(r) for r in runs],
+        variants=names,
+        folders=folders,
+        action_names=action_names,
+        items=built,
+        candidates=len(candidates),
+    )
+    out.mkdir(parents=True, exist_ok=True)
+    if (out / "states").exists():
+        shutil.rmtree(out / "states")
+    (out / "states").mkdir()
+    for item_id, svg in pictures.items():
+        (out / "states" / f"{item_id}.svg").write_text(svg, encoding="utf-8")
+    write_study(out, study)
+    if not (out / CONSENT_FILE).exists():
+        shutil.copyfile(TEMPLATE, out / CONSENT_FILE)
+    return study

@@ -1,0 +1,158 @@
+"""Fuzz the input doors: scenarios, cluster files, recordings, JSONL rows, ``--set``.
+
+A bounded number of generated cases (hypothesis, a fixed seed, a small ``max_examples``)
+goes through the real loading functions in process, and a few through the real command
+line: each ends in a value or an ``AmuledError`` (one line at the command line), never
+another exception, a traceback or a hang.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, seed, settings
+from hypothesis import strategies as st
+
+from amuled_ma.errors import AmuledError
+
+REPO = Path(__file__).resolve().parents[1]
+FUZZ = settings(
+    max_examples=40,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+
+#: JSON-like values: the leaves include lone surrogates, huge and non-finite numbers.
+leaves = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(min_value=-(2**70), max_value=2**70),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(alphabet=st.characters(codec=None), max_size=20),
+    st.sampled_from(["\ud800", "\x1b[2J", "findmilk", "care", "ok", "up"]),
+)
+values = st.recursive(
+    leaves,
+    lambda inner: (
+        st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner, max_size=4)
+    ),
+    max_leaves=12,
+)
+toml_values = st.one_of(
+    st.integers(min_value=-(2**63), max_value=2**63 - 1).map(str),
+    st.floats(allow_nan=True).map(lambda f: repr(f).replace("nan", "nan").replace("inf", "inf")),
+    st.text(max_size=10).map(json.dumps),
+    st.sampled_from(["true", "[1, [2]]", '{layout="evil"}', "", "[" * 200 + "]" * 200, "-5"]),
+)
+keys = st.sampled_from(
+    [
+        "task.options", "task.max_steps", "task.seed", "ppo.gamma", "ppo.device", "base.num_envs",
+        "finetune.iterations", "feedback.source", "feedback.recording", "output.name", "x.y",
+    ]
+)  # fmt: skip
+
+
+def _ok_or_amuled(call) -> None:
+    try:
+        call()
+    except AmuledError as error:
+        assert str(error).strip()
+
+
+@seed(24)
+@FUZZ
+@given(key=keys, value=toml_values)
+def test_set_overrides(key: str, value: str) -> None:
+    from amuled_ma.commands._experiment import parse_override
+    from amuled_ma.scenario import load_scenario
+
+    def apply() -> None:
+        section, name, parsed = parse_override(f"{key}={value}")
+        load_scenario("findmilk").replace(section, **{name: parsed})
+
+    _ok_or_amuled(apply)
+
+
+@seed(24)
+@FUZZ
+@given(text=st.one_of(st.text(max_size=200), values.map(lambda v: f"a = {json.dumps(v)}")))
+def test_scenario_files(tmp_path_factory, text: str) -> None:
+    from amuled_ma.scenario import load_scenario
+
+    path = tmp_path_factory.mktemp("scenario") / "s.toml"
+    path.write_text(text, encoding="utf-8", errors="surrogatepass")
+    _ok_or_amuled(lambda: load_scenario(path))
+
+
+@seed(24)
+@FUZZ
+@given(data=values, raw=st.binary(max_size=64))
+def test_recordings(tmp_path_factory, data, raw: bytes) -> None:
+    from amuled_ma.beliefs.replay import Recording
+
+    folder = tmp_path_factory.mktemp("recording")
+    as_json = folder / "r.json"
+    as_json.write_text(json.dumps(data), encoding="utf-8", errors="surrogatepass")
+    _ok_or_amuled(lambda: Recording(as_json))
+    as_bytes = folder / "b.json"
+    as_bytes.write_bytes(raw)
+    _ok_or_amuled(lambda: Recording(as_bytes))
+
+
+@seed(24)
+@FUZZ
+@given(row=st.fixed_dictionaries({}, optional={
+    k: values for k in ("key", "source", "identity", "task", "cluster", "obs", "actions",
+                        "belief", "status", "raw", "messages", "extra", "attempts")
+}))  # fmt: skip
+def test_jsonl_rows(row: dict) -> None:
+    from amuled_ma.beliefs.interchange import parse_line
+
+    line = json.dumps(row)
+    _ok_or_amuled(lambda: parse_line(line, "fuzz.jsonl:1", verify=True))
+    _ok_or_amuled(lambda: parse_line(line, "fuzz.jsonl:1", verify=False))
+
+
+@seed(24)
+@FUZZ
+@given(text=st.text(max_size=200))
+def test_cluster_files(tmp_path_factory, text: str) -> None:
+    from amuled_ma.clusters.loader import load_cluster
+
+    path = tmp_path_factory.mktemp("clusters") / "c.toml"
+    path.write_text(text, encoding="utf-8", errors="surrogatepass")
+    _ok_or_amuled(lambda: load_cluster(path))
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["train", "findmilk", "--set", "task.options=" + "{a=" * 3000 + "1" + "}" * 3000],
+        ["train", "findmilk", "--set", "ppo.gamma=nan"],
+        ["beliefs", "import", "--store", "{tmp}/s.sqlite", "{tmp}/junk.jsonl"],
+        ["view", "{tmp}", "--serve", "--serve-seconds", "inf"],
+        ["explain", "findmilk", "--obs", "\x1b[2J,nan"],
+    ],
+)
+def test_command_line_cases_end_in_one_line(tmp_path: Path, argv: list[str]) -> None:
+    (tmp_path / "junk.jsonl").write_bytes(b'{"key": "\\ud800"}\n\xff\xfe\n')
+    args = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    done = subprocess.run(
+        [sys.executable, "-m", "amuled_ma", *args, "--run-dir", str(tmp_path / "run")]
+        if args[0] == "train"
+        else [sys.executable, "-m", "amuled_ma", *args],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=120,
+        env={**os.environ, "PYTHONIOENCODING": "utf-8:backslashreplace"},
+    )
+    assert done.returncode in (1, 2), done.stderr
+    assert "Traceback" not in done.stderr, done.stderr
+    assert done.stderr.strip().splitlines()[-1].startswith("amuled: error: ")
