@@ -1,4 +1,4 @@
-"""Fuzz the input doors: scenarios, cluster files, recordings, JSONL rows, ``--set``.
+"""Fuzz the input doors: scenarios, cluster files, recordings, JSONL rows, caches, ``--set``.
 
 A bounded number of generated cases (hypothesis, a fixed seed, a small ``max_examples``)
 goes through the real loading functions in process, and a few through the real command
@@ -10,10 +10,12 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, seed, settings
 from hypothesis import strategies as st
@@ -128,6 +130,45 @@ def test_cluster_files(tmp_path_factory, text: str) -> None:
     path = tmp_path_factory.mktemp("clusters") / "c.toml"
     path.write_text(text, encoding="utf-8", errors="surrogatepass")
     _ok_or_amuled(lambda: load_cluster(path))
+
+
+#: Values of the kinds the authors' caches hold (tuples of numpy scalars, strings, dicts),
+#: and arrays of every dtype kind (object, void, strings: refused, never built).
+cache_values = st.recursive(
+    st.one_of(
+        leaves.filter(lambda v: not (isinstance(v, str) and "\ud800" in v)),
+        st.floats(width=32).map(np.float32),
+        st.integers(min_value=-(2**31), max_value=2**31 - 1).map(np.int64),
+        st.sampled_from(["f4", "i8", "u1", "c8", "?", "V4", "S3", "U2", "O"]).map(
+            lambda kind: np.zeros(3, dtype=kind)
+        ),
+    ),
+    lambda inner: (
+        st.lists(inner, max_size=4).map(tuple)
+        | st.frozensets(st.text(max_size=4), max_size=3)
+        | st.dictionaries(st.one_of(st.text(max_size=6), st.integers()), inner, max_size=4)
+    ),
+    max_leaves=12,
+)
+
+
+@seed(24)
+@FUZZ
+@given(value=cache_values, flips=st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 255))))
+def test_authors_caches(tmp_path_factory, value, flips: list[tuple[int, int]]) -> None:
+    """A cache pickle, whole or with bytes changed, loads or is refused with one line."""
+    from amuled_ma.authors.unpickle import load_pickle
+
+    data = bytearray(pickle.dumps(value, protocol=4))
+    folder = tmp_path_factory.mktemp("caches")
+    whole = folder / "whole_llm_cache.pickle"
+    whole.write_bytes(bytes(data))
+    _ok_or_amuled(lambda: load_pickle(whole))
+    for position, byte in flips:
+        data[position % len(data)] = byte
+    changed = folder / "changed_llm_cache.pickle"
+    changed.write_bytes(bytes(data))
+    _ok_or_amuled(lambda: load_pickle(changed))
 
 
 @pytest.mark.parametrize(

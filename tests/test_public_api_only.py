@@ -1,4 +1,7 @@
-"""The package uses torch and rsl-rl through their public API only (a maintainer can upgrade)."""
+"""The package uses torch, rsl-rl, pickle and numpy through their public API only.
+
+A maintainer must be able to upgrade them: no ``_``-prefixed attribute of theirs is read.
+"""
 
 from __future__ import annotations
 
@@ -22,7 +25,31 @@ def sources() -> list[Path]:
 
 def private_torch_uses(tree: ast.AST) -> list[str]:
     """Every attribute ``torch._x`` (or ``torch.<mod>._x``) read anywhere in a module."""
+    return private_uses(tree, "torch")
+
+
+def private_uses(tree: ast.AST, root: str) -> list[str]:
+    """Every attribute ``<root>._x`` (or ``<root>.<mod>._x``) read or imported in a module.
+
+    ``import <root>._x``, ``from <root>._x import y`` and ``from <root> import _x`` count
+    too (``np`` is read as ``numpy``).
+    """
     found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            parts = node.module.split(".")
+            if parts[0] == root:
+                names = [alias.name for alias in node.names]
+                found += [f"{node.module}.{n}" for n in names if is_private(n)]
+                if any(map(is_private, parts)):
+                    found.append(node.module)
+        elif isinstance(node, ast.Import):
+            found += [
+                alias.name
+                for alias in node.names
+                if alias.name.split(".")[0] == root and any(map(is_private, alias.name.split(".")))
+            ]
+    aliases = {root, "np"} if root == "numpy" else {root}
     for node in ast.walk(tree):
         if (
             isinstance(node, ast.Attribute)
@@ -34,9 +61,13 @@ def private_torch_uses(tree: ast.AST) -> list[str]:
             while isinstance(value, ast.Attribute):
                 chain.append(value.attr)
                 value = value.value
-            if isinstance(value, ast.Name) and value.id == "torch":
-                found.append("torch." + ".".join(reversed(chain)))
+            if isinstance(value, ast.Name) and value.id in aliases:
+                found.append(f"{root}." + ".".join(reversed(chain)))
     return found
+
+
+def is_private(name: str) -> bool:
+    return name.startswith("_") and not (name.startswith("__") and name.endswith("__"))
 
 
 def rsl_rl_writes(tree: ast.AST) -> list[str]:
@@ -70,6 +101,36 @@ def test_no_private_torch_api():
     offenders = {}
     for path in sources():
         uses = private_torch_uses(ast.parse(path.read_text(encoding="utf-8")))
+        if uses:
+            offenders[str(path.relative_to(PACKAGE))] = uses
+    assert offenders == {}
+
+
+def test_private_pickle_and_numpy_uses_are_found():
+    bad = ast.parse(
+        "import pickle\nimport numpy as np\nfrom pickle import _Unpickler\n"
+        "from numpy._core import multiarray\nimport numpy._core.multiarray\n"
+        "class U(pickle._Unpickler):\n    dispatch = pickle._Unpickler.dispatch\n"
+        "x = np._core.multiarray.scalar\ny = pickle.HIGHEST_PROTOCOL\n"
+    )
+    assert sorted(private_uses(bad, "pickle")) == [
+        "pickle._Unpickler",
+        "pickle._Unpickler",
+        "pickle._Unpickler",
+    ]
+    assert sorted(private_uses(bad, "numpy")) == [
+        "numpy._core",  # from numpy._core import multiarray
+        "numpy._core",  # np._core.multiarray.scalar
+        "numpy._core.multiarray",  # import numpy._core.multiarray
+    ]
+
+
+def test_no_private_pickle_or_numpy_api():
+    """The authors' caches are read with :mod:`pickletools`, not pickle's private reader."""
+    offenders = {}
+    for path in sources():
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        uses = private_uses(tree, "pickle") + private_uses(tree, "numpy")
         if uses:
             offenders[str(path.relative_to(PACKAGE))] = uses
     assert offenders == {}

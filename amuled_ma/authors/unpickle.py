@@ -14,21 +14,27 @@ a file that names any other one:
    naming the file and every such global (``posix.system``), before anything from it runs;
    so is a file nested deeper than :data:`MAX_DEPTH` (hashing a tuple nested a million
    deep, a 1 MB file, crashes CPython's unpickler with a stack overflow);
-3. otherwise the real pass runs with the same allow-list (a second guard) in pickle's
-   pure-Python reader, so that a signal handler (the command line's SIGTERM) runs between
-   two opcodes, never blocked by one long C call. It is bounded in time and memory:
+3. otherwise the real pass builds the values with the same allow-list (a second guard) in
+   our own small reader, :class:`~amuled_ma.authors.pickle_reader.BoundedReader`: it
+   interprets the opcodes :func:`pickletools.genops` decodes, only those an LLM cache uses
+   (constants, tuples, lists, dicts, sets, the memo, allowed globals, ``REDUCE`` of them,
+   ``BUILD``), and refuses any other. It is pure Python, so that a signal handler (the
+   command line's SIGTERM) runs between two opcodes, never blocked by one long C call, and
+   it is bounded in time and memory:
 
-   - the allowed numpy constructors are wrapped: plain numeric dtypes only (no object,
-     void, structured or string dtypes), arrays only through ``_reconstruct`` and a checked
-     ``BUILD`` state whose data is in the file (so ``numpy.ndarray`` cannot be called on a
-     buffer with a forged shape), at most :data:`MAX_ARRAY_ITEMS` entries per array and,
-     all arrays together, no more bytes than the file has;
+   - the allowed globals resolve to checked functions, never to numpy's own: plain
+     numeric dtypes only (no object, void, structured or string dtypes), arrays only
+     through ``_reconstruct`` and a checked ``BUILD`` state whose data is in the file (so
+     ``numpy.ndarray`` cannot be called on a buffer with a forged shape), at most
+     :data:`MAX_ARRAY_ITEMS` entries per array and, all arrays together, no more bytes
+     than the file has; ``set()`` and ``frozenset()`` calls hash, all together, no more
+     items than the file has bytes;
    - dict keys and set items are strings, numbers (integers within +-(2**61 - 2)), or flat
      tuples or frozensets of at most :data:`MAX_KEY_ITEMS` of them, and at most
      :data:`MAX_EQUAL_HASHES` keys of one dict share a hash value (colliding keys make
      Python's dicts quadratic);
    - ``BUILD`` sets the state of arrays and dtypes only; ``OBJ``, ``INST`` and ``NEWOBJ``
-     are refused;
+     are refused, and so is any opcode a cache does not use;
    - the process's memory may grow by :data:`MEMORY_PER_BYTE` bytes per byte of the file
      plus :data:`MEMORY_SLACK_BYTES`.
 
@@ -38,428 +44,53 @@ The file is at most :data:`MAX_PICKLE_BYTES`. Callers check the structure they e
 
 from __future__ import annotations
 
-import io
-import math
-import os
-import pickle
 import pickletools
-import resource
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
-import numpy as np
-
+from amuled_ma.authors.pickle_reader import (
+    ALLOWED_DTYPE_KINDS,
+    ALLOWED_GLOBALS,
+    MAX_ARRAY_ITEMS,
+    MAX_EQUAL_HASHES,
+    MAX_KEY_INT,
+    MAX_KEY_ITEMS,
+    MEMORY_CHECK_EVERY,
+    MEMORY_PER_BYTE,
+    MEMORY_SLACK_BYTES,
+    BoundedReader,
+    PickleRefused,
+    PickleUnbounded,
+)
 from amuled_ma.errors import AuthorsImportError, UnsafePickleError
+
+__all__ = [
+    "ALLOWED_DTYPE_KINDS",
+    "ALLOWED_GLOBALS",
+    "MAX_ARRAY_ITEMS",
+    "MAX_DEPTH",
+    "MAX_EQUAL_HASHES",
+    "MAX_KEY_INT",
+    "MAX_KEY_ITEMS",
+    "MAX_PICKLE_BYTES",
+    "MEMORY_CHECK_EVERY",
+    "MEMORY_PER_BYTE",
+    "MEMORY_SLACK_BYTES",
+    "PickleScan",
+    "load_pickle",
+    "pickle_globals",
+    "scan_pickle",
+]
 
 #: Largest pickle read [bytes]: 8 times the largest published cache (1.95 MB, Driving
 #: llama-3.1-70B, read in about 4 s); reading is linear in the file's size.
 MAX_PICKLE_BYTES = 16 * 2**20
-#: Most memory the values read from one file may take [bytes per byte of the file], plus
-#: :data:`MEMORY_SLACK_BYTES`: the 1.95 MB cache grows the process by about 57 MB (29 per
-#: byte); checked on the resident set every :data:`MEMORY_CHECK_EVERY` opcodes.
-MEMORY_PER_BYTE = 64
-#: Memory allowed on top of :data:`MEMORY_PER_BYTE` times the file's size [bytes].
-MEMORY_SLACK_BYTES = 64 * 2**20
-#: Opcodes between two looks at the process's resident memory.
-MEMORY_CHECK_EVERY = 2**15
-#: Most entries of one array (the authors' arrays hold one value per action).
-MAX_ARRAY_ITEMS = 2**20
 #: Deepest nesting of values accepted (the authors' caches nest 9 deep, counting each
 #: opcode that wraps values: dict, key tuple, numpy scalar, its arguments, ...).
 MAX_DEPTH = 64
-#: Most keys of one dict (or items of one set) that may share one hash value. Python's
-#: dicts insert keys of equal hash in quadratic time (a 2 MB file of colliding integer keys
-#: took over 13 minutes); distinct keys of equal hash do not occur in the caches.
-MAX_EQUAL_HASHES = 8
-#: Most items of a tuple or frozenset used as a dict key or set item (the caches' keys are
-#: observations of 8 or 11 numbers; a key is hashed again on every use).
-MAX_KEY_ITEMS = 64
-#: Largest integer (in absolute value) accepted in a dict key or set item: below
-#: ``sys.hash_info.modulus`` (2**61 - 1), where integers hash to themselves (the caches'
-#: keys hold no integers at all).
-MAX_KEY_INT = 2**61 - 2
-#: numpy dtype kinds a cache may hold: bool, signed and unsigned integers, floats, complex
-#: numbers. Void (``V``), object (``O``), structured, string and datetime dtypes are refused.
-ALLOWED_DTYPE_KINDS = frozenset("biufc")
-#: ``(module, name)`` of every global a cache may name, both numpy spellings
-#: (``numpy.core`` before numpy 2, ``numpy._core`` since), plus the builtin sets that
-#: pickle protocols below 4 name instead of using their opcodes.
-ALLOWED_GLOBALS: frozenset[tuple[str, str]] = frozenset(
-    {
-        ("numpy.core.multiarray", "scalar"),
-        ("numpy._core.multiarray", "scalar"),
-        ("numpy.core.multiarray", "_reconstruct"),
-        ("numpy._core.multiarray", "_reconstruct"),
-        ("numpy", "ndarray"),
-        ("numpy", "dtype"),
-        ("builtins", "frozenset"),
-        ("builtins", "set"),
-    }
-)
 #: The first bytes of a Git LFS pointer file (a checkout made without ``git lfs pull``).
 _LFS_POINTER = b"version https://git-lfs"
-
-
-class _Refused(pickle.UnpicklingError):
-    """Raised inside the real pass for a global or a numpy value outside the allow-list."""
-
-
-class _Unbounded(pickle.UnpicklingError):
-    """Raised inside the real pass for a value that would cost unbounded time or memory."""
-
-
-class _NdarrayToken:
-    """What ``numpy.ndarray`` resolves to: only accepted as ``_reconstruct``'s first argument."""
-
-    def __call__(self, *_args: Any, **_kwargs: Any) -> Any:
-        raise _Refused("numpy.ndarray called directly (only allowed through _reconstruct)")
-
-
-_NDARRAY = _NdarrayToken()
-
-
-def _multiarray() -> Any:
-    try:
-        from numpy._core import multiarray
-    except ImportError:  # pragma: no cover - numpy < 2
-        from numpy.core import multiarray  # type: ignore[no-redef]
-    return multiarray
-
-
-def _checked_dtype(dtype: Any) -> np.dtype:
-    """``dtype`` if it is a plain numeric dtype (:data:`ALLOWED_DTYPE_KINDS`), else refuse."""
-    if not isinstance(dtype, np.dtype):
-        raise _Refused(f"a dtype that is not a numpy dtype ({type(dtype).__name__})")
-    if (
-        dtype.hasobject
-        or dtype.kind not in ALLOWED_DTYPE_KINDS
-        or dtype.fields is not None
-        or dtype.subdtype is not None
-        or dtype.itemsize > 16
-    ):
-        what = "object" if dtype.hasobject else "void" if dtype.kind == "V" else "non-numeric"
-        raise _Refused(
-            f"{what} dtype {dtype!r} (only bool, integer, float and complex numbers are "
-            "allowed; object, void and structured dtypes are refused)"
-        )
-    return dtype
-
-
-def _shape(shape: Any) -> tuple[int, ...]:
-    if not (
-        isinstance(shape, tuple)
-        and len(shape) <= 32
-        and all(type(n) is int and 0 <= n <= MAX_ARRAY_ITEMS for n in shape)
-    ):
-        raise _Refused(f"array of shape {shape!r}")
-    items = 1
-    for n in shape:
-        items *= n
-    if items > MAX_ARRAY_ITEMS:
-        raise _Refused(f"array of shape {shape!r} (more than {MAX_ARRAY_ITEMS:,} entries)")
-    return shape
-
-
-def _check_key(key: Any) -> None:
-    """Refuse a dict key or set item whose hashing could cost more than a flat observation's."""
-    kind = type(key)
-    if kind is str or kind is bytes or kind is float or kind is bool or key is None:
-        return
-    if kind is int:
-        if -MAX_KEY_INT <= key <= MAX_KEY_INT:
-            return
-        raise _Unbounded(
-            f"an integer dict key or set item of {key.bit_length()} bits, beyond +-(2**61 - 2) "
-            "(multiples of 2**61 - 1 all hash alike)"
-        )
-    if isinstance(key, np.generic):
-        return  # built by _scalar: a number of an allowed dtype
-    if kind is tuple or kind is frozenset:
-        if len(key) > MAX_KEY_ITEMS:
-            raise _Unbounded(
-                f"a dict key or set item of {len(key):,} values (at most {MAX_KEY_ITEMS})"
-            )
-        for item in key:
-            if type(item) in (tuple, frozenset):
-                raise _Unbounded("a dict key or set item nested in another (keys are flat)")
-            _check_key(item)
-        return
-    raise _Refused(
-        f"a dict key or set item of type {kind.__name__} (keys are strings, numbers, and flat "
-        "tuples or frozensets of them)"
-    )
-
-
-class _HashCounter:
-    """Keys of one dict or set by hash value: refuses more than :data:`MAX_EQUAL_HASHES`."""
-
-    __slots__ = ("counts", "owner")
-
-    def __init__(self, owner: Any) -> None:
-        self.owner = owner  # kept alive, so that its id is not reused while counted
-        self.counts: dict[int, int] = {}
-
-    def admit(self, key: Any) -> None:
-        _check_key(key)
-        h = hash(key)
-        n = self.counts.get(h, 0) + 1
-        if n > MAX_EQUAL_HASHES:
-            raise _Unbounded(
-                f"more than {MAX_EQUAL_HASHES} keys of one dict or set share one hash value "
-                "(keys crafted to collide make reading take quadratic time)"
-            )
-        self.counts[h] = n
-
-
-_DISPATCH = pickle._Unpickler.dispatch  # type: ignore[attr-defined]
-
-
-def _opcode(name: str) -> int:
-    return getattr(pickle, name)[0]
-
-
-class AllowListUnpickler(pickle._Unpickler):  # type: ignore[name-defined,misc]
-    """A pure-Python :class:`pickle.Unpickler` for :data:`ALLOWED_GLOBALS`, bounded.
-
-    Any other global raises :class:`pickle.UnpicklingError` when the file names it, before
-    it could be called. Allowed numpy globals resolve to checked methods (module doc).
-    Pickle's own Python reader (not the C one) runs the opcodes, so a signal handler (the
-    command line's SIGTERM) runs between two opcodes; the opcodes that hash (dict, set and
-    frozenset building) check their keys and count equal hashes, ``BUILD`` only rebuilds
-    arrays and dtypes after checking their state, and arrays together hold at most
-    ``max_array_bytes`` bytes.
-
-    Args:
-        file: The pickle's bytes, as a binary file.
-        max_array_bytes: Most bytes of all arrays together (the file's size: an array's
-            data is in the file).
-
-    """
-
-    dispatch: ClassVar[dict[int, Any]] = dict(_DISPATCH)
-
-    def __init__(self, file: Any, *, max_array_bytes: int = MAX_PICKLE_BYTES) -> None:
-        super().__init__(file)
-        self.array_bytes_left = max_array_bytes
-        self._counters: dict[int, _HashCounter] = {}
-        self._targets: dict[str, Any] = {
-            "scalar": self._scalar,
-            "_reconstruct": self._reconstruct,
-            "ndarray": _NDARRAY,
-            "dtype": self._dtype,
-            "frozenset": self._frozenset,
-            "set": self._set,
-        }
-
-    def load(self, *, max_memory: int | None = None) -> Any:
-        """Read the pickle: :meth:`pickle._Unpickler.load`, looking at memory as it goes.
-
-        Args:
-            max_memory: Most bytes the process's resident memory may grow by (None: no
-                limit); looked at every :data:`MEMORY_CHECK_EVERY` opcodes.
-
-        """
-        self._unframer = pickle._Unframer(self._file_read, self._file_readline)  # type: ignore[attr-defined]
-        self.read = self._unframer.read
-        self.readinto = self._unframer.readinto
-        self.readline = self._unframer.readline
-        self.metastack = []
-        self.stack: list[Any] = []
-        self.append = self.stack.append
-        self.proto = 0
-        read = self.read
-        dispatch = self.dispatch
-        start = _resident_bytes() if max_memory is not None else None
-        count = 0
-        try:
-            while True:
-                key = read(1)
-                if not key:
-                    raise EOFError
-                dispatch[key[0]](self)
-                count += 1
-                if start is not None and count % MEMORY_CHECK_EVERY == 0:
-                    grown = _resident_bytes() - start
-                    if max_memory is not None and grown > max_memory:
-                        raise _Unbounded(
-                            f"its values take more than {max_memory // 2**20:,} MiB of memory "
-                            f"({MEMORY_PER_BYTE} bytes per byte of the file, plus "
-                            f"{MEMORY_SLACK_BYTES // 2**20} MiB)"
-                        )
-        except pickle._Stop as stop:  # type: ignore[attr-defined]
-            return stop.value
-
-    def find_class(self, module: str, name: str) -> Any:
-        """Return the allowed object for ``module.name``; refuse everything else."""
-        if (module, name) not in ALLOWED_GLOBALS:
-            raise _Refused(f"global {module}.{name} is not allowed")
-        return self._targets[name]
-
-    # -- the allowed globals -------------------------------------------------------------
-    def _spend(self, nbytes: int, what: str) -> None:
-        if nbytes > self.array_bytes_left:
-            raise _Unbounded(
-                f"{what} of {nbytes:,} bytes, more than the file's size allows (arrays hold "
-                "at most as many bytes as the file has)"
-            )
-        self.array_bytes_left -= nbytes
-
-    def _scalar(self, dtype: Any, *args: Any) -> Any:
-        dtype = _checked_dtype(dtype)
-        if len(args) != 1 or type(args[0]) is not bytes or len(args[0]) != dtype.itemsize:
-            raise _Refused(f"numpy scalar of dtype {dtype!r} not built from its bytes")
-        return _multiarray().scalar(dtype, *args)
-
-    def _reconstruct(self, subtype: Any, shape: Any, dtype: Any) -> Any:
-        if subtype is not _NDARRAY:
-            raise _Refused("_reconstruct of anything but numpy.ndarray")
-        shape = _shape(shape)
-        if type(dtype) is bytes and len(dtype) <= 8:
-            dtype = np.dtype(dtype.decode("ascii"))
-        dtype = _checked_dtype(dtype)
-        self._spend(math.prod(shape) * dtype.itemsize, f"array of shape {shape}")
-        return _multiarray()._reconstruct(np.ndarray, shape, dtype)
-
-    def _dtype(self, spec: Any, align: Any = False, copy: Any = True) -> np.dtype:
-        if type(spec) is not str or len(spec) > 8 or align is not False:
-            raise _Refused(f"dtype({spec!r}, {align!r}) (only plain numeric type codes)")
-        try:
-            dtype = np.dtype(spec)
-        except TypeError as error:
-            raise _Refused(f"dtype {spec!r} ({error})") from error
-        _checked_dtype(dtype)
-        return np.dtype(spec, align=False, copy=True)  # a copy: BUILD never alters numpy's own
-
-    def _frozenset(self, items: Any = ()) -> frozenset:
-        return frozenset(self._admitted(list(items)))
-
-    def _set(self, items: Any = ()) -> set:
-        return set(self._admitted(list(items)))
-
-    def _admitted(self, items: list[Any]) -> list[Any]:
-        counter = _HashCounter(None)
-        for item in items:
-            counter.admit(item)
-        return items
-
-    # -- opcodes that hash, build or instantiate -----------------------------------------
-    def _counter(self, container: Any) -> _HashCounter:
-        counter = self._counters.get(id(container))
-        if counter is None or counter.owner is not container:
-            counter = self._counters[id(container)] = _HashCounter(container)
-        return counter
-
-    def _setitems(self, target: Any, items: list[Any]) -> None:
-        if type(target) is not dict:
-            raise _Refused(f"SETITEM on a {type(target).__name__}")
-        counter = self._counter(target)
-        for i in range(0, len(items) - 1, 2):
-            counter.admit(items[i])
-            target[items[i]] = items[i + 1]
-
-    def load_setitem(self) -> None:
-        """``SETITEM``: one key and value into the dict below them."""
-        stack = self.stack
-        value = stack.pop()
-        key = stack.pop()
-        self._setitems(stack[-1], [key, value])
-
-    def load_setitems(self) -> None:
-        """``SETITEMS``: the keys and values above the mark into the dict below it."""
-        items = self.pop_mark()
-        self._setitems(self.stack[-1], items)
-
-    def load_dict(self) -> None:
-        """``DICT``: a new dict of the keys and values above the mark."""
-        items = self.pop_mark()
-        target: dict[Any, Any] = {}
-        self._setitems(target, items)
-        self.append(target)
-
-    def load_additems(self) -> None:
-        """``ADDITEMS``: the items above the mark into the set below it."""
-        items = self.pop_mark()
-        target = self.stack[-1]
-        if type(target) is not set:
-            raise _Refused(f"ADDITEMS on a {type(target).__name__}")
-        counter = self._counter(target)
-        for item in items:
-            counter.admit(item)
-            target.add(item)
-
-    def load_frozenset(self) -> None:
-        """``FROZENSET``: a frozenset of the items above the mark."""
-        items = self.pop_mark()  # before self.append is read: pop_mark rebinds it
-        self.append(frozenset(self._admitted(items)))
-
-    def load_build(self) -> None:
-        """``BUILD``: only an array's or a dtype's state, checked before it is set."""
-        stack = self.stack
-        state = stack.pop()
-        inst = stack[-1]
-        if type(inst) is np.ndarray:
-            self._check_array_state(state)
-        elif isinstance(inst, np.dtype):
-            _check_dtype_state(state)
-        else:
-            raise _Refused(f"BUILD of a {type(inst).__name__} (only arrays and dtypes)")
-        inst.__setstate__(state)
-        if isinstance(inst, np.dtype):
-            _checked_dtype(inst)
-
-    def _check_array_state(self, state: Any) -> None:
-        if not (isinstance(state, tuple) and len(state) == 5 and state[0] == 1):
-            raise _Refused("an array state that is not (1, shape, dtype, fortran, bytes)")
-        _, shape, dtype, fortran, data = state
-        shape = _shape(shape)
-        dtype = _checked_dtype(dtype)
-        nbytes = math.prod(shape) * dtype.itemsize
-        if type(fortran) is not bool or type(data) is not bytes or len(data) != nbytes:
-            raise _Refused(
-                f"an array state of shape {shape} and dtype {dtype} without its "
-                f"{nbytes:,} bytes of data"
-            )
-        self._spend(nbytes, f"array of shape {shape}")
-
-    def _refuse_opcode(self) -> None:
-        raise _Refused("an object built by OBJ, INST or NEWOBJ (caches need none)")
-
-    for _name in ("SETITEM", "SETITEMS", "DICT", "ADDITEMS", "FROZENSET", "BUILD"):
-        dispatch[_opcode(_name)] = locals()[f"load_{_name.lower()}"]
-    for _name in ("OBJ", "INST", "NEWOBJ", "NEWOBJ_EX"):
-        dispatch[_opcode(_name)] = _refuse_opcode
-    del _name
-
-
-def _check_dtype_state(state: Any) -> None:
-    """A numeric dtype's state: ``(3, byte order, None, None, None, -1, -1, 0)``."""
-    if not (
-        isinstance(state, tuple)
-        and len(state) == 8
-        and state[0] == 3
-        and state[1] in ("<", ">", "|", "=")
-        and state[2:5] == (None, None, None)
-        and state[5:] == (-1, -1, 0)
-    ):
-        raise _Refused(f"a dtype state {_short(state)} (only plain numeric dtypes)")
-
-
-def _resident_bytes() -> int:
-    """The process's resident memory now (Linux ``/proc/self/statm``), else its peak."""
-    try:
-        with open("/proc/self/statm", "rb") as handle:
-            return int(handle.read().split()[1]) * _PAGE
-    except (OSError, ValueError, IndexError):
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-
-
-_PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
-
-
-def _short(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 80 else text[:77] + "..."
 
 
 #: Opcodes that add values to the container below them on the stack (which keeps its depth).
@@ -654,15 +285,17 @@ def load_pickle(path: str | Path, *, max_bytes: int = MAX_PICKLE_BYTES) -> Any:
             "file was run"
         )
     try:
-        return AllowListUnpickler(io.BytesIO(data), max_array_bytes=len(data)).load(
-            max_memory=MEMORY_PER_BYTE * len(data) + MEMORY_SLACK_BYTES
-        )
-    except _Unbounded as error:
+        return BoundedReader(
+            data,
+            max_array_bytes=len(data),
+            max_memory=MEMORY_PER_BYTE * len(data) + MEMORY_SLACK_BYTES,
+        ).read()
+    except PickleUnbounded as error:
         raise AuthorsImportError(
             f"{path}: refusing to unpickle: {error}; is it the authors' file? Nothing from "
             "the file was run"
         ) from error
-    except _Refused as error:
+    except PickleRefused as error:
         raise UnsafePickleError(
             f"{path}: refusing to unpickle: {error}; nothing outside the allow-list was run"
         ) from error

@@ -17,7 +17,6 @@ The full schema is in ``docs/clusters.md``. Every error names the file and the f
 from __future__ import annotations
 
 import math
-import tomllib
 import unicodedata
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -27,6 +26,7 @@ from typing import Any, NamedTuple
 from amuled_ma.errors import ClusterDefinitionError, ScenarioError
 from amuled_ma.resources import prompts_dir, read_text
 from amuled_ma.scenario.agents import check_agent_table
+from amuled_ma.scenario.loading import parse_toml
 
 #: Kinds of cluster files.
 KINDS = ("cluster", "mixture", "unprompted")
@@ -326,11 +326,13 @@ def load_cluster(path: str | Path) -> Cluster:
 
     """
     path = Path(path)
-    try:
-        data = tomllib.loads(read_text(path, "cluster file", ClusterDefinitionError))
-    except tomllib.TOMLDecodeError as error:
-        raise ClusterDefinitionError(f"{path}: not valid TOML: {error}") from error
+    text = read_text(path, "cluster file", ClusterDefinitionError)
+    data = parse_toml(text, path, "cluster file", ClusterDefinitionError, MAX_CLUSTER_CHARS)
     return parse_cluster(data, path)
+
+
+#: Most characters a cluster file may hold (a shipped one holds about 2,000).
+MAX_CLUSTER_CHARS = 200_000
 
 
 def default_clusters_dir() -> Path:

@@ -216,13 +216,13 @@ def run_jobs(
         print(describe(result), flush=True)
     todo = [j for j in jobs if j.name not in skipped]
     target = ray or RayTarget()
+    before = os.environ.get(SINGLE_MACHINE_ENV)
     if target.address is None:
         prefer_loopback()
-    from amuled_ma.experiments.ray_jobs import run_on_ray  # here: importing Ray takes a second
+    try:
+        from amuled_ma.experiments.ray_jobs import run_on_ray  # here: importing Ray takes a second
 
-    results_by_name = {
-        **skipped,
-        **run_on_ray(
+        ran = run_on_ray(
             todo,
             address=target.address,
             workers=workers,
@@ -230,8 +230,15 @@ def run_jobs(
             hint=hint,
             describe=describe,
             resource=target.resource,
-        ),
-    }
+        )
+    finally:
+        # the local Ray's processes took the switch with them; a process this one starts
+        # later (a `ray start --address` joining a cluster, say) must not inherit it
+        if before is None:
+            os.environ.pop(SINGLE_MACHINE_ENV, None)
+        else:
+            os.environ[SINGLE_MACHINE_ENV] = before
+    results_by_name = {**skipped, **ran}
     return JobsOutcome(
         [results_by_name[j.name] for j in jobs], time.perf_counter() - start, workers
     )

@@ -84,24 +84,11 @@ def load_scenario(name_or_path: str | os.PathLike[str]) -> Scenario:
     """
     path = resolve_scenario_path(name_or_path)
     text = read_text(path, "scenario", ScenarioError)
-    if len(text) > MAX_SCENARIO_CHARS:
-        raise ScenarioError(
-            f"{path}: the scenario is {len(text):,} characters long, more than the "
-            f"{MAX_SCENARIO_CHARS:,} a scenario may be; is it the right file?"
-        )
-    depth = nesting_depth(text)
-    if depth > MAX_TOML_DEPTH:
-        raise ScenarioError(_too_deep(path, depth))
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as error:
-        raise ScenarioError(f"{path}: not valid TOML: {error}") from None
-    except RecursionError:  # nesting the bracket count above did not see (dotted keys)
-        raise ScenarioError(_too_deep(path, None)) from None
+    data = parse_toml(text, path, "scenario", ScenarioError, MAX_SCENARIO_CHARS)
     try:
         return scenario_from_dict(data, path=path)
     except RecursionError:
-        raise ScenarioError(_too_deep(path, None)) from None
+        raise ScenarioError(_too_deep(path, None, "scenario")) from None
 
 
 #: Most characters a scenario file may hold (a shipped one holds about 10,000).
@@ -153,9 +140,45 @@ def nesting_depth(text: str) -> int:
     return deepest
 
 
-def _too_deep(path: Path, depth: int | None) -> str:
+def parse_toml(
+    text: str, path: Path, what: str, error_class: type[Exception], max_chars: int
+) -> dict[str, Any]:
+    """Parse a TOML file's text, refusing a file too long or nested too deep, with one line.
+
+    Args:
+        text: The file's text.
+        path: The file, for messages.
+        what: What the file is (``"scenario"``, ``"cluster file"``), for messages.
+        error_class: The error raised (:class:`ScenarioError`, ``ClusterDefinitionError``).
+        max_chars: The most characters such a file may hold.
+
+    Returns:
+        The parsed document.
+
+    Raises:
+        Exception: ``error_class``: longer than ``max_chars``, nested deeper than
+            :data:`MAX_TOML_DEPTH`, or not valid TOML.
+
+    """
+    if len(text) > max_chars:
+        raise error_class(
+            f"{path}: the {what} is {len(text):,} characters long, more than the "
+            f"{max_chars:,} a {what} may be; is it the right file?"
+        )
+    depth = nesting_depth(text)
+    if depth > MAX_TOML_DEPTH:
+        raise error_class(_too_deep(path, depth, what))
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise error_class(f"{path}: not valid TOML: {error}") from None
+    except RecursionError:  # nesting the bracket count above did not see (dotted keys)
+        raise error_class(_too_deep(path, None, what)) from None
+
+
+def _too_deep(path: Path, depth: int | None, what: str) -> str:
     found = f"{depth} levels" if depth is not None else "deeper than Python can read"
     return (
-        f"{path}: the scenario nests values {found}; a scenario nests at most "
+        f"{path}: the {what} nests values {found}; a {what} nests at most "
         f"{MAX_TOML_DEPTH} levels of [ ] and {{ }} (is it the right file?)"
     )

@@ -159,7 +159,9 @@ def test_named_variant_with_a_user_cluster_sits_beside_amuled(tmp_path, capsys):
              "animal_welfare"]  # fmt: skip
     argv = ["finetune", "findmilk", "--run-dir", str(run_dir), "--clusters-dir", str(clusters),
             "--name", "with-welfare", "--set", f"feedback.clusters={panel!r}".replace("'", '"'),
-            *rules, *TINY]  # fmt: skip
+            *rules, "--set", 'feedback.agents.animal_welfare={source="rules"}',
+            *TINY]  # fmt: skip
+    # rules answer a user's cluster only when asked for it by name (its text is not read)
     assert main(argv) == 0
     assert (run_dir / "finetune-with-welfare" / "model_last.pt").is_file()
     assert (run_dir / "finetune-amuled" / "model_last.pt").is_file()

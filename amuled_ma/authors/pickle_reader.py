@@ -1,0 +1,552 @@
+"""The second pass of :func:`amuled_ma.authors.unpickle.load_pickle`: a small bounded reader.
+
+It builds a pickle's values from :func:`pickletools.genops` (each opcode with its argument
+already decoded, nothing called) and interprets only the opcodes an LLM cache uses:
+constants (``None``, booleans, integers, floats, strings, bytes), tuples, lists, dicts,
+sets and frozensets, the memo, marks, ``GLOBAL``/``STACK_GLOBAL`` of
+:data:`ALLOWED_GLOBALS`, ``REDUCE`` of those globals and ``BUILD`` of arrays and dtypes.
+Any other opcode (``OBJ``, ``INST``, ``NEWOBJ``, persistent ids, extension codes, buffers,
+Python 2 strings, ...) is refused. The loop is pure Python, so a signal handler (the
+command line's SIGTERM) runs between two opcodes, and every step is bounded (the checks
+are listed in :mod:`amuled_ma.authors.unpickle`).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import pickle
+import pickletools
+import resource
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+#: Most memory the values read from one file may take [bytes per byte of the file], plus
+#: :data:`MEMORY_SLACK_BYTES`: the 1.95 MB cache grows the process by about 57 MB (29 per
+#: byte); checked on the resident set every :data:`MEMORY_CHECK_EVERY` opcodes.
+MEMORY_PER_BYTE = 64
+#: Memory allowed on top of :data:`MEMORY_PER_BYTE` times the file's size [bytes].
+MEMORY_SLACK_BYTES = 64 * 2**20
+#: Opcodes between two looks at the process's resident memory.
+MEMORY_CHECK_EVERY = 2**15
+#: Most entries of one array (the authors' arrays hold one value per action).
+MAX_ARRAY_ITEMS = 2**20
+#: Most keys of one dict (or items of one set) that may share one hash value. Python's
+#: dicts insert keys of equal hash in quadratic time (a 2 MB file of colliding integer keys
+#: took over 13 minutes); distinct keys of equal hash do not occur in the caches.
+MAX_EQUAL_HASHES = 8
+#: Most items of a tuple or frozenset used as a dict key or set item (the caches' keys are
+#: observations of 8 or 11 numbers; a key is hashed again on every use).
+MAX_KEY_ITEMS = 64
+#: Largest integer (in absolute value) accepted in a dict key or set item: below
+#: ``sys.hash_info.modulus`` (2**61 - 1), where integers hash to themselves (the caches'
+#: keys hold no integers at all).
+MAX_KEY_INT = 2**61 - 2
+#: numpy dtype kinds a cache may hold: bool, signed and unsigned integers, floats, complex
+#: numbers. Void (``V``), object (``O``), structured, string and datetime dtypes are refused.
+ALLOWED_DTYPE_KINDS = frozenset("biufc")
+#: ``(module, name)`` of every global a cache may name, both numpy spellings
+#: (``numpy.core`` before numpy 2, ``numpy._core`` since), plus the builtin sets that
+#: pickle protocols below 4 name instead of using their opcodes. These are names in the
+#: file only: each resolves to a checked function of the reader, never to numpy's own.
+ALLOWED_GLOBALS: frozenset[tuple[str, str]] = frozenset(
+    {
+        ("numpy.core.multiarray", "scalar"),
+        ("numpy._core.multiarray", "scalar"),
+        ("numpy.core.multiarray", "_reconstruct"),
+        ("numpy._core.multiarray", "_reconstruct"),
+        ("numpy", "ndarray"),
+        ("numpy", "dtype"),
+        ("builtins", "frozenset"),
+        ("builtins", "set"),
+    }
+)
+#: Opcodes whose decoded argument is the value they push.
+_VALUES = frozenset(
+    {
+        "INT", "BININT", "BININT1", "BININT2", "LONG", "LONG1", "LONG4", "FLOAT", "BINFLOAT",
+        "UNICODE", "SHORT_BINUNICODE", "BINUNICODE", "BINUNICODE8",
+        "SHORT_BINBYTES", "BINBYTES", "BINBYTES8",
+    }
+)  # fmt: skip
+#: Opcodes that instantiate arbitrary classes: refused with their own line.
+_OBJECTS = frozenset({"OBJ", "INST", "NEWOBJ", "NEWOBJ_EX"})
+
+
+class PickleRefused(Exception):
+    """A global, opcode or numpy value outside the allow-list."""
+
+
+class PickleUnbounded(Exception):
+    """A value that would cost unbounded time or memory."""
+
+
+class _Allowed:
+    """What an allowed global resolves to: a checked function, callable by ``REDUCE`` only."""
+
+    __slots__ = ("call", "name")
+
+    def __init__(self, name: str, call: Callable[..., Any]) -> None:
+        self.name = name
+        self.call = call
+
+
+def _ndarray(*_args: Any) -> Any:
+    raise PickleRefused("numpy.ndarray called directly (only allowed through _reconstruct)")
+
+
+def _checked_dtype(dtype: Any) -> np.dtype:
+    """``dtype`` if it is a plain numeric dtype (:data:`ALLOWED_DTYPE_KINDS`), else refuse."""
+    if not isinstance(dtype, np.dtype):
+        raise PickleRefused(f"a dtype that is not a numpy dtype ({type(dtype).__name__})")
+    if (
+        dtype.hasobject
+        or dtype.kind not in ALLOWED_DTYPE_KINDS
+        or dtype.fields is not None
+        or dtype.subdtype is not None
+        or dtype.itemsize > 16
+    ):
+        what = "object" if dtype.hasobject else "void" if dtype.kind == "V" else "non-numeric"
+        raise PickleRefused(
+            f"{what} dtype {dtype!r} (only bool, integer, float and complex numbers are "
+            "allowed; object, void and structured dtypes are refused)"
+        )
+    return dtype
+
+
+def _check_dtype_state(state: Any) -> None:
+    """A numeric dtype's state: ``(3, byte order, None, None, None, -1, -1, 0)``."""
+    if not (
+        isinstance(state, tuple)
+        and len(state) == 8
+        and state[0] == 3
+        and state[1] in ("<", ">", "|", "=")
+        and state[2:5] == (None, None, None)
+        and state[5:] == (-1, -1, 0)
+    ):
+        raise PickleRefused(f"a dtype state {_short(state)} (only plain numeric dtypes)")
+
+
+def _shape(shape: Any) -> tuple[int, ...]:
+    if not (
+        isinstance(shape, tuple)
+        and len(shape) <= 32
+        and all(type(n) is int and 0 <= n <= MAX_ARRAY_ITEMS for n in shape)
+    ):
+        raise PickleRefused(f"array of shape {_short(shape)}")
+    if math.prod(shape) > MAX_ARRAY_ITEMS:
+        raise PickleRefused(f"array of shape {shape!r} (more than {MAX_ARRAY_ITEMS:,} entries)")
+    return shape
+
+
+def _check_key(key: Any) -> None:
+    """Refuse a dict key or set item whose hashing could cost more than a flat observation's."""
+    kind = type(key)
+    if kind is str or kind is bytes or kind is float or kind is bool or key is None:
+        return
+    if kind is int:
+        if -MAX_KEY_INT <= key <= MAX_KEY_INT:
+            return
+        raise PickleUnbounded(
+            f"an integer dict key or set item of {key.bit_length()} bits, beyond +-(2**61 - 2) "
+            "(multiples of 2**61 - 1 all hash alike)"
+        )
+    if isinstance(key, np.generic):
+        return  # built by _scalar: a number of an allowed dtype
+    if kind is tuple or kind is frozenset:
+        if len(key) > MAX_KEY_ITEMS:
+            raise PickleUnbounded(
+                f"a dict key or set item of {len(key):,} values (at most {MAX_KEY_ITEMS})"
+            )
+        for item in key:
+            if type(item) in (tuple, frozenset):
+                raise PickleUnbounded("a dict key or set item nested in another (keys are flat)")
+            _check_key(item)
+        return
+    raise PickleRefused(
+        f"a dict key or set item of type {kind.__name__} (keys are strings, numbers, and flat "
+        "tuples or frozensets of them)"
+    )
+
+
+class _HashCounter:
+    """Keys of one dict or set by hash value: refuses more than :data:`MAX_EQUAL_HASHES`."""
+
+    __slots__ = ("counts", "owner")
+
+    def __init__(self, owner: Any) -> None:
+        self.owner = owner  # kept alive, so that its id is not reused while counted
+        self.counts: dict[int, int] = {}
+
+    def admit(self, key: Any) -> None:
+        _check_key(key)
+        h = hash(key)
+        n = self.counts.get(h, 0) + 1
+        if n > MAX_EQUAL_HASHES:
+            raise PickleUnbounded(
+                f"more than {MAX_EQUAL_HASHES} keys of one dict or set share one hash value "
+                "(keys crafted to collide make reading take quadratic time)"
+            )
+        self.counts[h] = n
+
+
+class BoundedReader:
+    """Builds one pickle's values, opcode by opcode, with the allow-list and the bounds.
+
+    Args:
+        data: The pickle's bytes (already scanned: well formed, allowed globals only).
+        max_array_bytes: Most bytes of all arrays together (the file's size: an array's
+            data is in the file); also the most items ``set()``/``frozenset()`` calls may
+            hash, all together.
+        max_memory: Most bytes the process's resident memory may grow by (None: no limit);
+            looked at every :data:`MEMORY_CHECK_EVERY` opcodes.
+
+    """
+
+    def __init__(self, data: bytes, *, max_array_bytes: int, max_memory: int | None) -> None:
+        self.data = data
+        self.array_bytes_left = max_array_bytes
+        self.set_items_left = max_array_bytes
+        self.max_memory = max_memory
+        self.stack: list[Any] = []
+        self.metastack: list[list[Any]] = []
+        self.memo: dict[int, Any] = {}
+        self.counters: dict[int, _HashCounter] = {}
+        self.ndarray = _Allowed("numpy.ndarray", _ndarray)
+        self.targets = {
+            "scalar": _Allowed("numpy scalar", self._scalar),
+            "_reconstruct": _Allowed("numpy _reconstruct", self._reconstruct),
+            "ndarray": self.ndarray,
+            "dtype": _Allowed("numpy.dtype", self._dtype),
+            "frozenset": _Allowed("frozenset", self._frozenset),
+            "set": _Allowed("set", self._set),
+        }
+        self.handlers: dict[str, Callable[[Any], None]] = {
+            "PROTO": self._proto,
+            "FRAME": _nothing,
+            "NONE": lambda _: self.stack.append(None),
+            "NEWTRUE": lambda _: self.stack.append(True),
+            "NEWFALSE": lambda _: self.stack.append(False),
+            "MARK": self._mark,
+            "POP": self._pop,
+            "POP_MARK": self._pop_mark_opcode,
+            "DUP": lambda _: self.stack.append(self.stack[-1]),
+            "MEMOIZE": self._memoize,
+            "EMPTY_TUPLE": lambda _: self.stack.append(()),
+            "TUPLE": self._tuple_mark,
+            "TUPLE1": lambda _: self._tuple(1),
+            "TUPLE2": lambda _: self._tuple(2),
+            "TUPLE3": lambda _: self._tuple(3),
+            "EMPTY_LIST": lambda _: self.stack.append([]),
+            "LIST": self._list,
+            "APPEND": self._append,
+            "APPENDS": self._appends,
+            "EMPTY_DICT": lambda _: self.stack.append({}),
+            "DICT": self._dict,
+            "SETITEM": self._setitem,
+            "SETITEMS": self._setitems,
+            "EMPTY_SET": lambda _: self.stack.append(set()),
+            "ADDITEMS": self._additems,
+            "FROZENSET": self._frozenset_opcode,
+            "GLOBAL": self._global,
+            "STACK_GLOBAL": self._stack_global,
+            "REDUCE": self._reduce,
+            "BUILD": self._build,
+        }
+        for name in ("PUT", "BINPUT", "LONG_BINPUT"):
+            self.handlers[name] = self._put
+        for name in ("GET", "BINGET", "LONG_BINGET"):
+            self.handlers[name] = self._get
+
+    def read(self) -> Any:
+        """The pickle's value.
+
+        Raises:
+            PickleRefused: Something outside the allow-list.
+            PickleUnbounded: Something that would take unbounded time or memory.
+            ValueError: A malformed pickle (``IndexError``, ``KeyError`` too).
+
+        """
+        handlers = self.handlers
+        start = _resident_bytes() if self.max_memory is not None else 0
+        count = 0
+        for op, arg, _pos in pickletools.genops(self.data):
+            name = op.name
+            if name in _VALUES:
+                self.stack.append(arg)
+            elif name == "STOP":
+                return self.stack.pop()
+            else:
+                handler = handlers.get(name)
+                if handler is None:
+                    raise PickleRefused(
+                        "an object built by OBJ, INST or NEWOBJ (caches need none)"
+                        if name in _OBJECTS
+                        else f"the opcode {name} (caches need none)"
+                    )
+                handler(arg)
+            count += 1
+            if count == MEMORY_CHECK_EVERY:
+                count = 0
+                self._check_memory(start)
+        raise ValueError("pickle exhausted before seeing STOP")
+
+    def _check_memory(self, start: int) -> None:
+        if self.max_memory is not None and _resident_bytes() - start > self.max_memory:
+            raise PickleUnbounded(
+                f"its values take more than {self.max_memory // 2**20:,} MiB of memory "
+                f"({MEMORY_PER_BYTE} bytes per byte of the file, plus "
+                f"{MEMORY_SLACK_BYTES // 2**20} MiB)"
+            )
+
+    # -- stack, marks, memo --------------------------------------------------------------
+    def _proto(self, arg: int) -> None:
+        if not 0 <= arg <= pickle.HIGHEST_PROTOCOL:
+            raise ValueError(f"unsupported pickle protocol: {arg}")
+
+    def _mark(self, _arg: None) -> None:
+        self.metastack.append(self.stack)
+        self.stack = []
+
+    def _pop_mark(self) -> list[Any]:
+        items = self.stack
+        self.stack = self.metastack.pop()
+        return items
+
+    def _pop_mark_opcode(self, _arg: None) -> None:
+        self._pop_mark()
+
+    def _pop(self, _arg: None) -> None:
+        if self.stack:
+            self.stack.pop()
+        else:
+            self._pop_mark()
+
+    def _put(self, arg: int) -> None:
+        if arg < 0:
+            raise ValueError("negative PUT argument")
+        self.memo[arg] = self.stack[-1]
+
+    def _get(self, arg: int) -> None:
+        self.stack.append(self.memo[arg])
+
+    def _memoize(self, _arg: None) -> None:
+        self.memo[len(self.memo)] = self.stack[-1]
+
+    # -- containers (items above a mark: popped before self.stack is read again) ----------
+    def _tuple_mark(self, _arg: None) -> None:
+        items = tuple(self._pop_mark())
+        self.stack.append(items)
+
+    def _list(self, _arg: None) -> None:
+        items = self._pop_mark()
+        self.stack.append(items)
+
+    def _tuple(self, n: int) -> None:
+        stack = self.stack
+        if len(stack) < n:
+            raise IndexError("stack underflow")
+        items = tuple(stack[-n:])
+        del stack[-n:]
+        stack.append(items)
+
+    def _append(self, _arg: None) -> None:
+        value = self.stack.pop()
+        self._list_below("APPEND").append(value)
+
+    def _appends(self, _arg: None) -> None:
+        items = self._pop_mark()
+        self._list_below("APPENDS").extend(items)
+
+    def _list_below(self, opcode: str) -> list[Any]:
+        target = self.stack[-1]
+        if type(target) is not list:
+            raise PickleRefused(f"{opcode} on a {type(target).__name__}")
+        return target
+
+    def _counter(self, container: Any) -> _HashCounter:
+        counter = self.counters.get(id(container))
+        if counter is None or counter.owner is not container:
+            counter = self.counters[id(container)] = _HashCounter(container)
+        return counter
+
+    def _into_dict(self, target: Any, items: list[Any]) -> None:
+        if type(target) is not dict:
+            raise PickleRefused(f"SETITEM on a {type(target).__name__}")
+        if len(items) % 2:
+            raise ValueError("odd number of items for a dict")
+        counter = self._counter(target)
+        for i in range(0, len(items), 2):
+            counter.admit(items[i])
+            target[items[i]] = items[i + 1]
+
+    def _dict(self, _arg: None) -> None:
+        items = self._pop_mark()
+        target: dict[Any, Any] = {}
+        self._into_dict(target, items)
+        self.stack.append(target)
+
+    def _setitem(self, _arg: None) -> None:
+        stack = self.stack
+        value = stack.pop()
+        key = stack.pop()
+        self._into_dict(stack[-1], [key, value])
+
+    def _setitems(self, _arg: None) -> None:
+        items = self._pop_mark()
+        self._into_dict(self.stack[-1], items)
+
+    def _additems(self, _arg: None) -> None:
+        items = self._pop_mark()
+        target = self.stack[-1]
+        if type(target) is not set:
+            raise PickleRefused(f"ADDITEMS on a {type(target).__name__}")
+        counter = self._counter(target)
+        for item in items:
+            counter.admit(item)
+            target.add(item)
+
+    def _frozenset_opcode(self, _arg: None) -> None:
+        items = self._pop_mark()
+        self.stack.append(frozenset(self._admitted(items)))
+
+    @staticmethod
+    def _admitted(items: list[Any] | tuple[Any, ...]) -> list[Any] | tuple[Any, ...]:
+        counter = _HashCounter(None)
+        for item in items:
+            counter.admit(item)
+        return items
+
+    # -- globals and the calls they allow ------------------------------------------------
+    def _find(self, module: str, name: str) -> _Allowed:
+        if (module, name) not in ALLOWED_GLOBALS:
+            raise PickleRefused(f"global {module}.{name} is not allowed")
+        return self.targets[name]
+
+    def _global(self, arg: str) -> None:
+        module, name = arg.split(" ", 1)  # genops joins GLOBAL's two lines with a space
+        self.stack.append(self._find(module, name))
+
+    def _stack_global(self, _arg: None) -> None:
+        name = self.stack.pop()
+        module = self.stack.pop()
+        if type(name) is not str or type(module) is not str:
+            raise ValueError("STACK_GLOBAL requires str")
+        self.stack.append(self._find(module, name))
+
+    def _reduce(self, _arg: None) -> None:
+        stack = self.stack
+        args = stack.pop()
+        func = stack[-1]
+        if type(func) is not _Allowed:
+            raise PickleRefused(f"REDUCE on a {type(func).__name__} (only allowed globals)")
+        if type(args) is not tuple:
+            raise PickleRefused(f"{func.name} called on a {type(args).__name__}, not a tuple")
+        stack[-1] = func.call(*args)
+
+    def _spend(self, nbytes: int, what: str) -> None:
+        if nbytes > self.array_bytes_left:
+            raise PickleUnbounded(
+                f"{what} of {nbytes:,} bytes, more than the file's size allows (arrays hold "
+                "at most as many bytes as the file has)"
+            )
+        self.array_bytes_left -= nbytes
+
+    def _scalar(self, dtype: Any, *args: Any) -> Any:
+        dtype = _checked_dtype(dtype)
+        if len(args) != 1 or type(args[0]) is not bytes or len(args[0]) != dtype.itemsize:
+            raise PickleRefused(f"numpy scalar of dtype {dtype!r} not built from its bytes")
+        return np.frombuffer(args[0], dtype=dtype)[0]
+
+    def _reconstruct(self, subtype: Any, shape: Any, dtype: Any) -> np.ndarray:
+        if subtype is not self.ndarray:
+            raise PickleRefused("_reconstruct of anything but numpy.ndarray")
+        shape = _shape(shape)
+        if type(dtype) is bytes and len(dtype) <= 8:
+            dtype = np.dtype(dtype.decode("ascii"))
+        dtype = _checked_dtype(dtype)
+        self._spend(math.prod(shape) * dtype.itemsize, f"array of shape {shape}")
+        return np.zeros(shape, dtype)  # its values come from BUILD
+
+    def _dtype(self, spec: Any, align: Any = False, copy: Any = True) -> np.dtype:
+        if type(spec) is not str or len(spec) > 8 or align is not False:
+            raise PickleRefused(f"dtype({spec!r}, {align!r}) (only plain numeric type codes)")
+        try:
+            dtype = np.dtype(spec)
+        except TypeError as error:
+            raise PickleRefused(f"dtype {spec!r} ({error})") from error
+        _checked_dtype(dtype)
+        return np.dtype(spec, align=False, copy=True)  # a copy: BUILD never alters numpy's own
+
+    def _frozenset(self, items: Any = ()) -> frozenset[Any]:
+        return frozenset(self._admitted(self._set_items(items)))
+
+    def _set(self, items: Any = ()) -> set[Any]:
+        counter = _HashCounter(None)
+        for item in self._set_items(items):
+            counter.admit(item)
+        result = set(items)
+        counter.owner = result  # ADDITEMS on it goes on counting
+        self.counters[id(result)] = counter
+        return result
+
+    def _set_items(self, items: Any) -> Any:
+        if type(items) not in (list, tuple, set, frozenset):
+            raise PickleRefused(f"a set of a {type(items).__name__} (only of a list or tuple)")
+        if len(items) > self.set_items_left:
+            raise PickleUnbounded(
+                "set() and frozenset() calls on more items, all together, than the file has bytes"
+            )
+        self.set_items_left -= len(items)
+        return items
+
+    def _build(self, _arg: None) -> None:
+        """``BUILD``: only an array's or a dtype's state, checked before it is set."""
+        state = self.stack.pop()
+        inst = self.stack[-1]
+        if type(inst) is np.ndarray:
+            self._check_array_state(state)
+        elif isinstance(inst, np.dtype):
+            _check_dtype_state(state)
+        else:
+            raise PickleRefused(f"BUILD of a {type(inst).__name__} (only arrays and dtypes)")
+        inst.__setstate__(state)
+        if isinstance(inst, np.dtype):
+            _checked_dtype(inst)
+
+    def _check_array_state(self, state: Any) -> None:
+        if not (isinstance(state, tuple) and len(state) == 5 and state[0] == 1):
+            raise PickleRefused("an array state that is not (1, shape, dtype, fortran, bytes)")
+        _, shape, dtype, fortran, data = state
+        shape = _shape(shape)
+        dtype = _checked_dtype(dtype)
+        nbytes = math.prod(shape) * dtype.itemsize
+        if type(fortran) is not bool or type(data) is not bytes or len(data) != nbytes:
+            raise PickleRefused(
+                f"an array state of shape {shape} and dtype {dtype} without its "
+                f"{nbytes:,} bytes of data"
+            )
+        self._spend(nbytes, f"array of shape {shape}")
+
+
+def _nothing(_arg: Any) -> None:
+    """``FRAME``: framing only groups opcodes; :func:`pickletools.genops` reads through it."""
+
+
+def _resident_bytes() -> int:
+    """The process's resident memory now (Linux ``/proc/self/statm``), else its peak."""
+    try:
+        with open("/proc/self/statm", "rb") as handle:
+            return int(handle.read().split()[1]) * _PAGE
+    except (OSError, ValueError, IndexError):
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+_PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
