@@ -25,7 +25,6 @@ is refused with one line naming the flag, before anything is imported
 
 from __future__ import annotations
 
-import importlib
 import re
 from collections.abc import Iterable
 from importlib.metadata import EntryPoint, entry_points
@@ -147,21 +146,20 @@ def load_plugin(spec: str, what: str) -> Any:
             f"entry-point group (installed: {installed}); install the package that provides "
             f"it, or give 'pkg.module:attr' and allow it with {ALLOW_FLAG} pkg.module:attr"
         )
-    if spec not in _ALLOWED and spec not in {p.value for p in points.values()}:
+    installed_values = {p.value: p for p in points.values()}
+    if spec not in _ALLOWED and spec not in installed_values:
         raise ScenarioError(
             f"{what}: {spec!r} is an import path, and data files may not name code to run "
             f"(nothing was imported); if you trust it, name it on this command line with "
             f"{ALLOW_FLAG} {spec} (or install it as an {ENTRY_POINT_GROUP!r} entry point; "
             f"installed: {installed})"
         )
-    module_name, _, attr = spec.partition(":")
+    # the installed entry point of that value, or the one the command line named (--allow-plugin)
+    point = installed_values.get(spec) or EntryPoint(name=spec, value=spec, group=ALLOW_FLAG)
     try:
-        target: Any = importlib.import_module(module_name)
-        for part in attr.split("."):
-            target = getattr(target, part)
+        return point.load()
     except (ImportError, AttributeError) as error:
         raise ScenarioError(
             f"{what}: cannot import {spec!r}: {error}; fix the 'pkg.module:attr' string (the "
             "module must be importable from this Python environment)"
         ) from error
-    return target
