@@ -23,6 +23,7 @@ printed then is the request's ``hint`` with ``--resume``.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -61,6 +62,8 @@ class PipelineRequest:
             authors' imported base ``<runs_dir>/authors/<task>/base`` when it is there.
         resume: Continue unfinished variants, skip finished ones.
         force: Start over even where checkpoints exist.
+        retrain: Variant folders (or job names) to retrain from scratch while every other
+            variant is resumed (:func:`~amuled_ma.experiments.plans.retrain_jobs`).
         jobs: Jobs at once (0: one per core, or 1 with live feedback; 1: in this process).
         ray: Train on Ray (a local one, or a cluster's address); None: as ``jobs`` says.
         progress: Show progress bars.
@@ -83,6 +86,7 @@ class PipelineRequest:
     base: Path | None = None
     resume: bool = False
     force: bool = False
+    retrain: tuple[str, ...] = ()
     jobs: int = 0
     ray: RayTarget | None = None
     progress: bool = True
@@ -169,6 +173,10 @@ def run_pipeline(
         plan = _plan_main(request, seeds, say)
     else:
         plan = _plan_ablation(request, seeds)
+    if request.retrain:
+        from amuled_ma.experiments.plans import retrain_jobs
+
+        plan = dataclasses.replace(plan, jobs=retrain_jobs(plan.jobs, request.retrain))
     check_plan(plan.jobs)  # before the lock: a run that cannot start makes no folder
     # after the checks: a refused run answers before torch and matplotlib are imported
     from amuled_ma.evaluate.evaluator import evaluate_run, variant_dirs

@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import re
@@ -25,6 +26,7 @@ from pathlib import Path
 import pytest
 
 from amuled_ma.cli import main
+from amuled_ma.errors import AmuledError
 from amuled_ma.experiments.run_folder import recovery_commands, settings_refusal
 from amuled_ma.experiments.third_party_log import ray_to_log, third_party_to_log
 from amuled_ma.run_lock import LOCK_NAME, run_folder_lock
@@ -105,17 +107,39 @@ def test_a_failed_command_removes_the_folder_it_made(tmp_path):
 def test_recovery_commands_name_a_new_name_or_force_for_that_variant_only(tmp_path):
     diffs = ["feedback.source: 'replay' -> 'ollama'"]
     hint = f"amuled finetune findmilk --feedback amuled --run-dir {tmp_path}"
-    beside, again = recovery_commands(tmp_path / "finetune-amuled", diffs, hint, "finetune:amuled")
+    beside, again = recovery_commands(tmp_path / "finetune-amuled", diffs, hint)
     assert beside == f"{hint} --name amuled-ollama" and again == f"{hint} --force"
     run = f"amuled run findmilk --run-dir {tmp_path} --set feedback.source=ollama --seeds 1"
-    beside, again = recovery_commands(tmp_path / "finetune-amuled", diffs, run, "finetune:amuled")
+    beside, again = recovery_commands(tmp_path / "finetune-amuled", diffs, run)
     assert beside.endswith(f"--run-dir {tmp_path}-ollama")
+    # one command: that folder retrained, the run's other variants resumed, one report
+    assert again == f"{run} --retrain finetune-amuled"
+    ablate = f"amuled ablate findmilk --run-dir {tmp_path} --what clusters --resume"
+    folder = tmp_path / "ablate-clusters" / "finetune-care.seed43"
+    _, again = recovery_commands(folder, diffs, ablate)
     assert again == (
-        f"amuled finetune findmilk --feedback amuled --run-dir {tmp_path} "
-        "--set feedback.source=ollama --force"
+        f"amuled ablate findmilk --run-dir {tmp_path} --what clusters "
+        "--retrain ablate-clusters/finetune-care.seed43"
     )
-    text = settings_refusal(tmp_path / "finetune-amuled", diffs, hint, "finetune:amuled")
+    text = settings_refusal(tmp_path / "finetune-amuled", diffs, hint)
     assert "feedback.source differ" in text and "--name amuled-ollama" in text
+
+
+def test_retrain_names_a_job_of_the_plan_and_takes_its_dependants(tmp_path):
+    from amuled_ma.experiments.plans import plan_run, retrain_jobs
+    from amuled_ma.scenario import load_scenario
+
+    jobs = plan_run(load_scenario("findmilk"), tmp_path, [42, 43])
+    names = {job.name for job in jobs}
+    assert {"base", "finetune-amuled", "base.seed43", "finetune-human.seed43"} <= names
+    picked = {job.name: (job.force, job.resume) for job in retrain_jobs(jobs, ["finetune-amuled"])}
+    assert picked["finetune-amuled"] == (True, False)
+    assert all(v == (False, True) for k, v in picked.items() if k != "finetune-amuled")
+    # a base retrained retrains the fine-tunes anchored to it, and only those
+    again = {j.name for j in retrain_jobs(jobs, ["base.seed43"]) if j.force}
+    assert again == {"base.seed43", "finetune-human.seed43", "finetune-amuled.seed43"}
+    with pytest.raises(AmuledError, match=r"--retrain nope: not a variant of this run; its"):
+        retrain_jobs(jobs, ["nope"])
 
 
 def test_changed_settings_name_the_keys_and_the_one_command_that_works(tmp_path, capsys):
@@ -135,6 +159,36 @@ def test_changed_settings_name_the_keys_and_the_one_command_that_works(tmp_path,
     assert main(shlex.split(beside.group(1))[1:]) == 0
     assert (run_dir / "finetune-amuled-mean" / "model_last.pt").is_file()
     assert (run_dir / "finetune-amuled" / "model_last.pt").is_file()
+
+
+def test_a_changed_run_is_recovered_by_the_one_command_it_prints(tmp_path, capsys):
+    from tiny_cli import RULES
+    from tiny_cli import TINY as RUN_TINY
+
+    run_dir = tmp_path / "run"
+    run = ["run", "findmilk", "--run-dir", str(run_dir), "--episodes", "2", "--jobs", "1"]
+    assert main([*run, *RUN_TINY, *RULES]) == 0
+    kept = {
+        name: (run_dir / name / "model_last.pt").stat().st_mtime_ns
+        for name in ("base", "shaped", "finetune-human")
+    }
+    report = (run_dir / "report.md").stat().st_mtime_ns
+    capsys.readouterr()
+    changed = [*run, *RUN_TINY, *RULES, "--set", "feedback.fusion=mean"]
+    assert main(changed) == 1
+    err = capsys.readouterr().err
+    # the three unchanged variants say --resume; the changed one names its key and the
+    # one command that retrains it alone and resumes the others
+    assert err.count("--resume' or start over with --force") == 3
+    assert "feedback.fusion differ" in err
+    again = re.search(r"to retrain this folder alone with them: (amuled run .*)$", err.strip())
+    assert again and again.group(1).endswith("--retrain finetune-amuled"), err
+    assert main(shlex.split(again.group(1))[1:]) == 0
+    saved = json.loads((run_dir / "finetune-amuled" / "config.json").read_text())
+    assert "'mean'" in repr(saved) or '"mean"' in json.dumps(saved)
+    for name, mtime in kept.items():  # the other variants were kept, not retrained
+        assert (run_dir / name / "model_last.pt").stat().st_mtime_ns == mtime, name
+    assert (run_dir / "report.md").stat().st_mtime_ns > report
 
 
 def test_explain_takes_clusters_dir_and_rules_for_a_user_cluster_only_by_name(

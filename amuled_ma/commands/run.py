@@ -44,6 +44,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "<runs_dir>/authors/<task>/base, when it is there)",
     )
     add_parallel_args(run)
+    add_retrain_arg(run)
     run.set_defaults(handler=run_command)
 
     ablate = subparsers.add_parser(
@@ -70,11 +71,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--episodes", type=common.bounded_int(1), default=None, help="evaluation episodes"
     )
     add_parallel_args(ablate)
+    add_retrain_arg(ablate)
     ablate.set_defaults(handler=ablate_command)
 
 
 #: ``--ray`` without an address: a local Ray started for the run.
 LOCAL_RAY = "local"
+
+
+def add_retrain_arg(parser: argparse.ArgumentParser) -> None:
+    """Add ``--retrain FOLDER``: retrain one variant, resume the others, rewrite the report."""
+    parser.add_argument(
+        "--retrain",
+        action="append",
+        default=[],
+        metavar="FOLDER",
+        help="retrain this variant folder from scratch (e.g. finetune-amuled; its fine-tunes "
+        "too if it is a base) and resume every other variant, then evaluate and report: "
+        "the one command after a setting of one variant changed (repeatable)",
+    )
 
 
 def add_parallel_args(parser: argparse.ArgumentParser) -> None:
@@ -148,6 +163,7 @@ def request_of(args: argparse.Namespace, command: str, *extra: str) -> Any:
         base=getattr(args, "base", None),
         resume=args.resume,
         force=args.force,
+        retrain=tuple(args.retrain),
         jobs=args.jobs,
         ray=ray_target(args),
         progress=not args.no_progress,

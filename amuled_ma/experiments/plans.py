@@ -429,6 +429,48 @@ def plan_run(
     return jobs
 
 
+def retrain_jobs(jobs: Sequence[TrainJob], names: Collection[str]) -> list[TrainJob]:
+    """The plan with ``names`` retrained from scratch and every other job resumed.
+
+    ``amuled run/ablate --retrain NAME``: the one command that retrains a variant whose
+    settings changed and rewrites the report, while the run's other variants are kept
+    (resumed, or skipped where finished). A job that needs a retrained one (a fine-tune of
+    a retrained base) is retrained too: its anchor changed.
+
+    Args:
+        jobs: The planned jobs.
+        names: Job names (``finetune-amuled``, ``ablate-clusters/finetune-care``,
+            ``base.seed43``) or variant folder names (``finetune-care``).
+
+    Returns:
+        The jobs with ``force`` / ``resume`` set per job.
+
+    Raises:
+        AmuledError: A name that is no job of the plan; the message lists the plan's jobs.
+
+    """
+    import dataclasses
+
+    if not names:
+        return list(jobs)
+    chosen = set()
+    for name in names:
+        hits = {job.name for job in jobs if name in (job.name, job.out_dir.name)}
+        if not hits:
+            known = ", ".join(job.name for job in jobs)
+            raise AmuledError(f"--retrain {name}: not a variant of this run; its variants: {known}")
+        chosen |= hits
+    grew = True
+    while grew:  # a job that needs a retrained one is retrained too
+        more = {job.name for job in jobs if chosen.intersection(job.needs)} - chosen
+        chosen |= more
+        grew = bool(more)
+    return [
+        dataclasses.replace(job, force=job.name in chosen, resume=job.name not in chosen)
+        for job in jobs
+    ]
+
+
 def plan_ablation(
     what: str,
     scenario: Scenario,

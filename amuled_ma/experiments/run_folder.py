@@ -194,7 +194,7 @@ def check_training_config(out_dir: Path, training: dict[str, Any], hint: str = "
     """
     diffs = training_differences(out_dir, training)
     if diffs:
-        raise AmuledError(settings_refusal(out_dir, diffs, hint, training.get("variant")))
+        raise AmuledError(settings_refusal(out_dir, diffs, hint))
 
 
 def training_differences(out_dir: Path, training: dict[str, Any]) -> list[str]:
@@ -217,9 +217,7 @@ def training_differences(out_dir: Path, training: dict[str, Any]) -> list[str]:
     )
 
 
-def settings_refusal(
-    out_dir: Path, diffs: list[str], hint: str = "", variant: str | None = None
-) -> str:
+def settings_refusal(out_dir: Path, diffs: list[str], hint: str = "") -> str:
     """The one-line refusal of a variant folder trained with other settings than now.
 
     It names the differing keys (saved -> now) and the one command for each thing the
@@ -229,7 +227,7 @@ def settings_refusal(
     keys = ", ".join(d.split(":", 1)[0] for d in diffs[:8])
     keys += f" and {len(diffs) - 8} more" if len(diffs) > 8 else ""
     shown = "; ".join(diffs[:8]) + (f"; and {len(diffs) - 8} more" if len(diffs) > 8 else "")
-    beside, again = recovery_commands(out_dir, diffs, hint, variant)
+    beside, again = recovery_commands(out_dir, diffs, hint)
     return (
         f"{out_dir} was trained with other settings or inputs than now ({keys} differ; "
         f"saved -> now: {shown}; saved in {Path(out_dir) / 'config.json'}); to keep it and "
@@ -245,22 +243,19 @@ def _tag(diffs: list[str]) -> str:
     return tag or "new"
 
 
-def recovery_commands(
-    out_dir: Path, diffs: list[str], hint: str = "", variant: str | None = None
-) -> tuple[str, str]:
+def recovery_commands(out_dir: Path, diffs: list[str], hint: str = "") -> tuple[str, str]:
     """The commands that do what the user meant when a folder's settings changed.
 
     Args:
         out_dir: The variant folder trained with other settings.
         diffs: Its differences (:func:`training_differences`).
         hint: The command that was run (``amuled finetune ...``, ``amuled run ...``).
-        variant: What the folder trains (``finetune:amuled``; the job's
-            :func:`~amuled_ma.experiments.training_settings.training_config` ``"variant"``).
 
     Returns:
         ``(beside, again)``: a fine-tune under a new name (``--name``; another
-        ``--run-dir`` for a base or a whole run), and ``--force`` for that variant only
-        (``amuled finetune ... --force`` for one fine-tune of a run).
+        ``--run-dir`` for a base or a whole run), and that variant alone retrained
+        (``--force`` for ``finetune``/``train``; for ``run``/``ablate`` the same command with
+        ``--retrain FOLDER``, which resumes the other variants and rewrites the report).
 
     """
     import shlex
@@ -274,30 +269,22 @@ def recovery_commands(
         return ("another --run-dir (or --name NAME for a fine-tune)", "--force")
     parts = [p for p in parts if p != "--resume"]
     command, tag = parts[1], _tag(diffs)
-    folder, seed = split_replica(out_dir.name)
-    job = Variant.parse(variant) if variant else None
-    label = None
-    if job is not None and job.finetuning and job.folder != folder:
-        label = folder.removeprefix("finetune-")  # a named fine-tune ([feedback].name)
     if command == "finetune":
-        label = folder.removeprefix("finetune-")
+        label = split_replica(out_dir.name)[0].removeprefix("finetune-")
         beside = _with_option(parts, "--name", f"{label}-{tag}")
         return shlex.join(beside), shlex.join([*parts, "--force"])
     run_dir = _option(parts, "--run-dir")
     new_dir = f"{run_dir.rstrip('/')}-{tag}" if run_dir else f"runs/{tag}"
     beside = shlex.join(_with_option(parts, "--run-dir", new_dir))
-    in_run = seed is None and out_dir.parent == Path(run_dir or out_dir.parent)
-    if command in ("run", "ablate") and job is not None and job.finetuning and in_run:
-        one = ["amuled", "finetune", parts[2], "--feedback", str(job.feedback)]
-        if label:
-            one += ["--name", label]
-        for flag in ("--run-dir", "--recipe", "--seed"):
-            if _option(parts, flag) is not None:
-                one += [flag, str(_option(parts, flag))]
-        for i, part in enumerate(parts[:-1]):
-            if part in ("--set", "--clusters-dir", "--allow-plugin"):
-                one += [part, parts[i + 1]]
-        return beside, shlex.join([*one, "--force"])
+    if command in ("run", "ablate"):
+        # one command: this folder retrained, the others resumed, the report rewritten
+        root = Path(run_dir) if run_dir else out_dir.parent
+        try:
+            name = out_dir.relative_to(root).as_posix()
+        except ValueError:
+            name = out_dir.name
+        again = [p for p in parts if p != "--force"]
+        return beside, shlex.join([*again, "--retrain", name])
     if command == "train":
         return beside, shlex.join([*parts, "--force"])
     return beside, shlex.join([*parts, "--force"]) + " (retrains every variant of the run)"
@@ -400,7 +387,7 @@ def prepare_variant(
         return "resume"
     diffs = training_differences(out_dir, training)
     if diffs:  # --resume would be refused too: name what does what the user meant
-        raise AmuledError(settings_refusal(out_dir, diffs, hint, training.get("variant")))
+        raise AmuledError(settings_refusal(out_dir, diffs, hint))
     raise AmuledError(
         f"{out_dir} already holds a checkpoint (iteration {state.get('iteration')}/"
         f"{state.get('total_iterations')}); continue it with '{hint} --resume' or start over "
