@@ -142,6 +142,41 @@ def test_one_seed_shows_its_raw_values_faint():
     assert len(raw) == 2 and all(line.get_alpha() < 0.5 for line in raw)
 
 
+def two_seed_bars(n_seeds: int) -> dict:
+    """Two variants with ``n_seeds`` replicas 1.0 apart; the 95% CI over 2 seeds is huge."""
+    variants = {}
+    for k, name in enumerate(("base", "finetune-amuled")):
+        seeds = [4.0 + k + s for s in range(n_seeds)]
+        mean = float(np.mean(seeds))
+        half = 12.706 * float(np.std(seeds, ddof=1)) / np.sqrt(n_seeds)  # t(0.975, 1 dof)
+        variants[name] = {"greedy": {
+            "metrics": {"crying_pacified": stat(mean, half)}, "ci_over": "seeds",
+            "n_seeds": n_seeds,
+            "replicas": {f"seed{42 + s}": {"crying_pacified": stat(v)}
+                         for s, v in enumerate(seeds)},
+        }}  # fmt: skip
+    return {"scenario": "findmilk", "task": "findmilk", "variants": variants}
+
+
+@pytest.mark.parametrize("n_seeds", [2, 5])
+def test_bars_with_few_seeds_show_each_seed_and_their_range(n_seeds, tmp_path):
+    fig = bars_figure(two_seed_bars(n_seeds), "greedy")
+    ax = fig.axes[0]
+    dots = [line for line in ax.get_lines() if line.get_gid() == "seed-dot"]
+    assert len(dots) == 2 and all(len(d.get_xdata()) == n_seeds for d in dots)
+    assert sorted(float(x) for d in dots for x in d.get_xdata()) == sorted(
+        [4.0 + s for s in range(n_seeds)] + [5.0 + s for s in range(n_seeds)]
+    )
+    right = max(ax.get_xlim())
+    title = fig._suptitle.get_text()
+    if n_seeds == 2:  # whiskers: the seeds' range (4..5, 5..6), not a CI of +-6.4
+        assert right < 8.0, right
+        assert "the seeds' range where fewer than 5 seeds" in title
+    else:  # 5 seeds: the 95% CI, and the dots
+        assert "95% CI; dots: each training seed" in title
+    assert_readable(fig, tmp_path / "bars.png")
+
+
 # ---------------------------------------------------------------------------------------
 # The ablation figure shows what differs
 

@@ -31,6 +31,32 @@ from amuled_ma.tasks.colors import COLORS
 NOT_PLOTTED = ("terminated", "return_shaping", "return")
 
 
+#: Fewer training seeds than this: a bar's whisker is the seeds' range, not a 95% CI (a
+#: t-interval over 2 seeds is 12.7 standard errors wide and hides every bar).
+FEW_SEEDS = 5
+
+
+def seed_means(result: ModeResult | None, metric: str) -> list[float]:
+    """Each training seed's mean of ``metric`` (empty for a single-seed variant)."""
+    if result is None or not result.replicas or result.n_seeds < 2:
+        return []
+    values = [mean_of(rep.get(metric)) for rep in result.replicas.values()]
+    return [v for v in values if math.isfinite(v)]
+
+
+def _whiskers(
+    means: np.ndarray, stats: Sequence[Stat | None], seeds: Sequence[Sequence[float]]
+) -> np.ndarray:
+    """``[2, n]`` left and right whisker lengths: a 95% CI, or the range of few seeds."""
+    left = np.array([half_of(s) for s in stats])
+    right = left.copy()
+    for i, values in enumerate(seeds):
+        if 2 <= len(values) < FEW_SEEDS and math.isfinite(means[i]):
+            left[i] = max(means[i] - min(values), 0.0)
+            right[i] = max(max(values) - means[i], 0.0)
+    return np.vstack([left, right])
+
+
 def _hbars(
     ax: Any,
     positions: Sequence[float],
@@ -38,24 +64,34 @@ def _hbars(
     colors: Sequence[str],
     *,
     emphasise: Sequence[bool] | None = None,
+    seeds: Sequence[Sequence[float]] | None = None,
 ) -> None:
-    """Horizontal bars with 95% CI whiskers and value labels; a zero bar gets a marker.
+    """Horizontal bars with whiskers, each seed's mean as a dot, and value labels.
 
+    The whisker is the 95% CI, or with 2-4 training seeds the range of the seeds' means
+    (:data:`FEW_SEEDS`); each seed's mean is a black dot on its bar (``gid="seed-dot"``).
     A bar of height 0 would be invisible: it is drawn as a thick tick of its colour at 0
     (``gid="zero-bar"``) with its label ``0``; a missing mean is labelled ``n/a``.
     """
     means = np.array([mean_of(s) for s in stats], dtype=float)
-    errs = np.array([half_of(s) for s in stats])
+    seeds = list(seeds) if seeds is not None else [[] for _ in stats]
+    xerr = _whiskers(means, stats, seeds)
+    errs = xerr.max(axis=0)
     drawn = np.where(np.isfinite(means), means, 0.0)
     bold = list(emphasise or [False] * len(stats))
+    for pos, values in zip(positions, seeds, strict=True):
+        if values:
+            offsets = np.linspace(-0.18, 0.18, len(values)) if len(values) > 1 else [0.0]
+            ax.plot(values, np.asarray(offsets) + pos, "o", ms=3.2, color="black", alpha=0.75,
+                    zorder=5, gid="seed-dot")  # fmt: skip
     ax.barh(
-        positions, drawn, xerr=errs, height=0.72, color=colors,
+        positions, drawn, xerr=xerr, height=0.72, color=colors,
         edgecolor=["black" if b else c for b, c in zip(bold, colors, strict=True)],
         linewidth=[1.8 if b else 0.8 for b in bold],
         error_kw={"capsize": 2, "elinewidth": 1.0, "ecolor": "0.25"},
     )  # fmt: skip
     ax.axvline(0.0, color="0.35", lw=0.8, zorder=1)
-    for pos, mean, err, color in zip(positions, means, errs, colors, strict=True):
+    for pos, mean, left, right, color in zip(positions, means, *xerr, colors, strict=True):
         if not math.isfinite(mean):
             ax.annotate("n/a", (0, pos), xytext=(4, 0), textcoords="offset points",
                         va="center", fontsize=7, color="0.4", gid="bar-label")  # fmt: skip
@@ -63,11 +99,11 @@ def _hbars(
         if abs(mean) <= EQUAL_TOL:
             ax.plot([0.0], [pos], marker="|", markersize=12, markeredgewidth=3.0,
                     color=color, zorder=4, gid="zero-bar")  # fmt: skip
-        right = mean >= 0
+        up = mean >= 0
         ax.annotate(
-            short_label(mean), (mean + err if right else mean - err, pos),
-            xytext=(4 if right else -4, 0), textcoords="offset points",
-            ha="left" if right else "right", va="center", fontsize=7, gid="bar-label",
+            short_label(mean), (mean + right if up else mean - left, pos),
+            xytext=(4 if up else -4, 0), textcoords="offset points",
+            ha="left" if up else "right", va="center", fontsize=7, gid="bar-label",
         )  # fmt: skip
     reach = np.abs(drawn) + errs
     if not reach.size or float(reach.max()) <= EQUAL_TOL:
@@ -104,7 +140,8 @@ def bars_figure(
     positions = np.arange(len(names))[::-1]  # the first variant on top
     for ax, metric in zip(axes, metrics, strict=False):
         stats = [variants[n].metrics.get(metric) for n in names]
-        _hbars(ax, positions, stats, [colors[n] for n in names])
+        seeds = [seed_means(variants[n], metric) for n in names]
+        _hbars(ax, positions, stats, [colors[n] for n in names], seeds=seeds)
         ax.set_title(metric.replace("_", " "), fontsize=9)
         ax.set_yticks(positions, names, fontsize=8)
         ax.tick_params(axis="x", labelsize=7)
@@ -112,12 +149,21 @@ def bars_figure(
     for ax in axes[len(metrics) :]:
         ax.axis("off")
     fig.suptitle(
-        title
-        or f"{results.scenario}: {mode} policy, mean and 95% CI "
+        title or f"{results.scenario}: {mode} policy, {interval_words(variants.values())} "
         "(a bar of height 0: a thick tick at 0)",
-        fontsize=9,
-    )
+        fontsize=9, wrap=True,
+    )  # fmt: skip
     return fig
+
+
+def interval_words(results: Any) -> str:
+    """What the bars' whiskers and dots are, for a figure's title."""
+    counts = {r.n_seeds for r in results if r.replicas and r.n_seeds >= 2}
+    if not counts:
+        return "mean and 95% CI"
+    few = min(counts) < FEW_SEEDS
+    whisker = "95% CI, or the seeds' range where fewer than 5 seeds" if few else "95% CI"
+    return f"mean, {whisker}; dots: each training seed"
 
 
 def plot_bars(
@@ -222,7 +268,8 @@ def ablation_figure(
         stats = [in_mode[n].metrics.get(metric) for n in order]
         positions = np.arange(len(order))
         _hbars(ax, positions, stats, [colors[n] for n in order],
-               emphasise=[n == "finetune-amuled" for n in order])  # fmt: skip
+               emphasise=[n == "finetune-amuled" for n in order],
+               seeds=[seed_means(in_mode[n], metric) for n in order])  # fmt: skip
         base_mode = results.variants["base"].mode(panel_mode) if base is not None else None
         _base_line(ax, base_mode, metric, vertical=True)
         ax.set_yticks(positions, order, fontsize=8)
@@ -242,7 +289,8 @@ def ablation_figure(
             f"{', '.join(m.replace('_', ' ') for m in names)} ({m})" for m, names in equal.items()
         )
     fig.suptitle(
-        f"Ablation of {what}: each fine-tune's mean and 95% CI ({' and '.join(shown)} policy) "
+        f"Ablation of {what}: each fine-tune's {interval_words(tunes.values())} "
+        f"({' and '.join(shown)} policy) "
         "on the paper's metrics that differ between the fine-tunes, sorted (largest on top); "
         f"AMULED outlined in black, dashed: base{note}",
         fontsize=9, wrap=True,
