@@ -34,28 +34,10 @@ def test_demo_without_server_fails_fast_and_writes_nothing(tmp_path: Path, capsy
     assert not run_dir.exists()
 
 
-#: What ``amuled demo`` set before its settings moved to ``scenarios/<task>-demo.toml``: the
-#: ``--set`` texts of its code (``commands/demo.py`` at 1792ce5: the feedback lines,
-#: ``DEMO_BUDGET``, ``TINY_REPLY``), for the tiny model on the private server. Driving's
-#: demo still asks the tiny model live with them.
-OLD_DEMO_SETS = (
-    "feedback.source=ollama",
-    "feedback.model=amuled-tiny",
-    "feedback.concurrency=1",
-    "feedback.timeout_s=600.0",
-    "base.total_steps=65_536",
-    "finetune.iterations=1",
-    "finetune.num_envs=4",
-    "finetune.num_steps_per_env=2",
-    "finetune.save_interval=1",
-    "evaluation.episodes=10",
-    "feedback.ollama={reasoning = false, num_predict = 128}",
-)
-
-#: FindMilk's demo (issue 27): the authors' scenario (scenarios/findmilk-authors.toml,
-#: their recipe, replay of their gpt-4o-mini recording, 50 sampled episodes) with a
-#: demo-sized budget, and the live leg's model and reply options.
-FINDMILK_DEMO_SETS = (
+#: Each task's demo (issue 27): the authors' scenario (scenarios/<task>-authors.toml, their
+#: recipe, replay of their gpt-4o-mini recording, 50 sampled episodes) with a demo-sized
+#: budget, and the live leg's model and reply options.
+DEMO_SETS = (
     "base.total_steps=131_072",
     "base.num_envs=64",
     "base.num_steps_per_env=32",
@@ -70,7 +52,7 @@ FINDMILK_DEMO_SETS = (
 
 @pytest.mark.parametrize(
     ("task", "source", "sets"),
-    [("driving", "driving", OLD_DEMO_SETS), ("findmilk", "findmilk-authors", FINDMILK_DEMO_SETS)],
+    [("driving", "driving-authors", DEMO_SETS), ("findmilk", "findmilk-authors", DEMO_SETS)],
 )
 def test_demo_scenario_file_holds_the_settings_the_demo_set(task, source, sets) -> None:
     """``scenarios/<task>-demo.toml`` = its source scenario with the demo's ``--set``s."""
@@ -88,9 +70,10 @@ def test_demo_scenario_file_holds_the_settings_the_demo_set(task, source, sets) 
     assert file.feedback.ollama == {"reasoning": False, "num_predict": 128}
 
 
-def test_findmilk_demo_replays_the_authors_recording_with_their_recipe() -> None:
-    file = load_scenario("findmilk-demo")
-    assert file.feedback.source == "replay" and file.feedback.recording == "findmilk-gpt-4o-mini"
+@pytest.mark.parametrize("task", ["findmilk", "driving"])
+def test_demo_replays_the_authors_recording_with_their_recipe(task) -> None:
+    file = load_scenario(f"{task}-demo")
+    assert file.feedback.source == "replay" and file.feedback.recording == f"{task}-gpt-4o-mini"
     assert file.finetune.recipe == "authors" and file.feedback.miss_policy == "zero"
     assert file.evaluation.modes[0] == "sampled"  # the paper's figures are sampled
     assert LIVE_STATES * len(LIVE_CLUSTERS) <= 6  # a handful of live requests

@@ -1,4 +1,4 @@
-"""``amuled demo``: AMULED working on FindMilk in a few minutes, then a short live leg.
+"""``amuled demo``: AMULED working on FindMilk (or Driving) in minutes, then a short live leg.
 
 **The comparison** (``scenarios/findmilk-demo.toml``): the paper's FindMilk comparison
 (base, base + shaping, "human" feedback, AMULED) with the moral clusters' beliefs
@@ -9,7 +9,9 @@ paper's row beside ours in ``report.md`` (:mod:`amuled_ma.evaluate.paper`), and 
 step-by-step viewer of the AMULED fine-tune (``view-episode0.html``, as ``amuled view``).
 The recording is found by name (``$AMULED_RECORDINGS``, the user data folder of ``amuled
 import authors``, or ``../shared/amuled-recordings`` beside the checkout); without it the
-demo stops before anything starts, with one line saying where to put it.
+demo stops before anything starts, with one line saying where to put it. ``--task
+driving`` runs ``scenarios/driving-demo.toml``, the same on Driving (the AMULED reward from
+their recorded fused beliefs, as ``scenarios/driving-authors.toml``).
 
 **The live leg** (:func:`live_leg`): a handful of real requests
 (:data:`LIVE_STATES` states of the AMULED fine-tune's greedy episode x
