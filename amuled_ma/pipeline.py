@@ -31,7 +31,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from amuled_ma.errors import AmuledError, ScenarioError
-from amuled_ma.experiments.jobs import JobsOutcome, RayTarget, resolve_workers, run_jobs
+from amuled_ma.experiments.jobs import (
+    JobsOutcome,
+    RayTarget,
+    ray_connection,
+    resolve_workers,
+    run_jobs,
+)
 from amuled_ma.experiments.run_folder import JobResult, TrainJob, split_replica, write_config
 from amuled_ma.run_lock import run_folder_lock
 from amuled_ma.scenario import Scenario
@@ -53,7 +59,7 @@ class PipelineRequest:
         scenario: The scenario, with every override already applied.
         run_dir: The run folder (an ablation writes into ``run_dir/ablate-<what>/``).
         ablation: None for the paper's main comparison (``amuled run``), else the ablation
-            (``clusters``, ``aggregation``, ``models``, ``kl`` or ``budget``).
+            (``clusters``, ``aggregation``, ``models``, ``kl``, ``budget`` or ``weights``).
         seed: The first training seed (None: ``[task].seed``).
         seeds: Training replicas of every variant (seeds ``seed``, ``seed + 1``, ...).
         episodes: Evaluation episodes per policy (None: ``[evaluation].episodes``).
@@ -182,10 +188,13 @@ def run_pipeline(
     from amuled_ma.evaluate.evaluator import evaluate_run, variant_dirs
     from amuled_ma.evaluate.report import write_report
 
+    workers = resolve_workers(request.jobs, plan.jobs)
     with run_folder_lock(request.run_dir):
-        write_config(plan.out_dir, request.scenario, plan.config)
         say(plan.announce)
-        training = train_jobs(plan.jobs, request, say)
+        # Ray first: a SIGTERM while it starts leaves no run folder (the lock removes it)
+        with ray_connection(plan.jobs, workers=workers, ray=request.ray):
+            write_config(plan.out_dir, request.scenario, plan.config)
+            training = train_jobs(plan.jobs, request, say)
         records = variant_records([*variant_dirs(plan.out_dir), *plan.extra_dirs])
         results = evaluate_run(
             plan.out_dir,

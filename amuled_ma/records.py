@@ -64,6 +64,8 @@ class PanelRecord(BaseModel):
         fusion: The fusion rule (None where nothing is fused).
         agent_sources: Members with a source of their own (``[feedback.agents]``).
         distill: The ``[feedback.distill]`` settings, when the panel was asked on a budget.
+        weights: The file name of the members' prior weights (``[feedback].weights``) the
+            ``bjs-dst`` fusion used; None: the paper's fixed weights.
 
     """
 
@@ -78,6 +80,7 @@ class PanelRecord(BaseModel):
     fusion: str | None = None
     agent_sources: dict[str, dict[str, Any]] = {}
     distill: dict[str, Any] | None = None
+    weights: str | None = None
 
 
 class RunRecord(BaseModel):

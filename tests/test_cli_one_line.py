@@ -47,7 +47,7 @@ def one_line(err: str) -> str:
     ("override", "expected"),
     [
         ('task.options={layout="evil"}', "key [task].options of task 'findmilk'"),
-        ("task.options={evil=1}", "unexpected keyword argument 'evil'"),
+        ("task.options={evil=1}", "unknown option 'evil'"),
         ("task.options={seed=3}", "seed cannot be a task option"),
         ("task.max_steps=-5", "key [task].max_steps expects a non-negative integer"),
         ("ppo.device=", "unknown key [ppo].device"),

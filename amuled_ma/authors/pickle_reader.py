@@ -29,8 +29,13 @@ import numpy as np
 MEMORY_PER_BYTE = 64
 #: Memory allowed on top of :data:`MEMORY_PER_BYTE` times the file's size [bytes].
 MEMORY_SLACK_BYTES = 64 * 2**20
-#: Opcodes between two looks at the process's resident memory.
+#: Opcodes between two looks at the process's resident memory (and at the opcode budget).
 MEMORY_CHECK_EVERY = 2**15
+#: Most opcodes read from one file: reading costs time per opcode (about 1.5 us here), not
+#: per byte, and a file of one-byte opcodes (16 MiB of ``MARK`` or ``EMPTY_SET``) took
+#: 28-39 s. The published caches have at most 896,093 (0.46 per byte of the file); this
+#: is 2.3 times that, read in about 3 s.
+MAX_OPCODES = 2**21
 #: Most entries of one array (the authors' arrays hold one value per action).
 MAX_ARRAY_ITEMS = 2**20
 #: Most keys of one dict (or items of one set) that may share one hash value. Python's
@@ -202,11 +207,20 @@ class BoundedReader:
             hash, all together.
         max_memory: Most bytes the process's resident memory may grow by (None: no limit);
             looked at every :data:`MEMORY_CHECK_EVERY` opcodes.
+        max_opcodes: Most opcodes read (checked every :data:`MEMORY_CHECK_EVERY`).
 
     """
 
-    def __init__(self, data: bytes, *, max_array_bytes: int, max_memory: int | None) -> None:
+    def __init__(
+        self,
+        data: bytes,
+        *,
+        max_array_bytes: int,
+        max_memory: int | None,
+        max_opcodes: int = MAX_OPCODES,
+    ) -> None:
         self.data = data
+        self.max_opcodes = max_opcodes
         self.array_bytes_left = max_array_bytes
         self.set_items_left = max_array_bytes
         self.max_memory = max_memory
@@ -271,7 +285,7 @@ class BoundedReader:
         """
         handlers = self.handlers
         start = _resident_bytes() if self.max_memory is not None else 0
-        count = 0
+        count = read = 0
         for op, arg, _pos in pickletools.genops(self.data):
             name = op.name
             if name in _VALUES:
@@ -290,6 +304,9 @@ class BoundedReader:
             count += 1
             if count == MEMORY_CHECK_EVERY:
                 count = 0
+                read += MEMORY_CHECK_EVERY
+                if read > self.max_opcodes:
+                    raise PickleUnbounded(too_many_opcodes(self.max_opcodes))
                 self._check_memory(start)
         raise ValueError("pickle exhausted before seeing STOP")
 
@@ -529,6 +546,14 @@ class BoundedReader:
                 f"{nbytes:,} bytes of data"
             )
         self._spend(nbytes, f"array of shape {shape}")
+
+
+def too_many_opcodes(limit: int) -> str:
+    """The refusal of a file of more than ``limit`` opcodes (its time is per opcode)."""
+    return (
+        f"more than {limit:,} opcodes (the published caches have at most 896,093; reading "
+        "takes time per opcode, so a longer file would take minutes)"
+    )
 
 
 def _nothing(_arg: Any) -> None:

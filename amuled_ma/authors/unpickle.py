@@ -38,8 +38,9 @@ a file that names any other one:
    - the process's memory may grow by :data:`MEMORY_PER_BYTE` bytes per byte of the file
      plus :data:`MEMORY_SLACK_BYTES`.
 
-The file is at most :data:`MAX_PICKLE_BYTES`. Callers check the structure they expect
-(:mod:`amuled_ma.authors.caches`).
+The file is at most :data:`MAX_PICKLE_BYTES` and :data:`MAX_OPCODES` opcodes (both passes
+cost time per opcode: the scan stops counting there and refuses the file). Callers check
+the structure they expect (:mod:`amuled_ma.authors.caches`).
 """
 
 from __future__ import annotations
@@ -56,12 +57,14 @@ from amuled_ma.authors.pickle_reader import (
     MAX_EQUAL_HASHES,
     MAX_KEY_INT,
     MAX_KEY_ITEMS,
+    MAX_OPCODES,
     MEMORY_CHECK_EVERY,
     MEMORY_PER_BYTE,
     MEMORY_SLACK_BYTES,
     BoundedReader,
     PickleRefused,
     PickleUnbounded,
+    too_many_opcodes,
 )
 from amuled_ma.errors import AuthorsImportError, UnsafePickleError
 
@@ -73,6 +76,7 @@ __all__ = [
     "MAX_EQUAL_HASHES",
     "MAX_KEY_INT",
     "MAX_KEY_ITEMS",
+    "MAX_OPCODES",
     "MAX_PICKLE_BYTES",
     "MEMORY_CHECK_EVERY",
     "MEMORY_PER_BYTE",
@@ -138,14 +142,18 @@ class PickleScan:
         globals: ``module.name`` of every global it names, in order of appearance
             (``copyreg extension N`` and ``persistent id`` for those opcodes).
         depth: How deep its values nest (stopped at ``MAX_DEPTH + 1``).
+        opcodes: Opcodes read (stopped at ``max_opcodes + 1``).
 
     """
 
     globals: list[str]
     depth: int
+    opcodes: int = 0
 
 
-def scan_pickle(data: bytes, *, max_depth: int = MAX_DEPTH) -> PickleScan:
+def scan_pickle(
+    data: bytes, *, max_depth: int = MAX_DEPTH, max_opcodes: int = MAX_OPCODES
+) -> PickleScan:
     """Read a pickle's opcodes (nothing is built or called): its globals and its depth.
 
     The stack is followed abstractly: each entry is its nesting depth, or the text of a
@@ -154,9 +162,11 @@ def scan_pickle(data: bytes, *, max_depth: int = MAX_DEPTH) -> PickleScan:
     Args:
         data: The pickle's bytes.
         max_depth: Stop reading once the depth exceeds it.
+        max_opcodes: Stop reading once more opcodes than this were read (a pass costs
+            time per opcode).
 
     Returns:
-        The globals named and the depth reached.
+        The globals named, the depth reached and the opcodes read.
 
     Raises:
         ValueError: The bytes are not a well-formed pickle.
@@ -166,9 +176,12 @@ def scan_pickle(data: bytes, *, max_depth: int = MAX_DEPTH) -> PickleScan:
     marks: list[int] = []
     memo: dict[int, Any] = {}
     found: list[str] = []
-    deepest = 0
+    deepest = count = 0
     try:
         for op, arg, _pos in pickletools.genops(data):
+            count += 1
+            if count > max_opcodes:
+                break
             kind, to_mark, fixed, pushed, modifies = _OPCODES[op.name]
             if kind == _PUSH:
                 stack.append(arg if type(arg) is str else 1)
@@ -219,7 +232,7 @@ def scan_pickle(data: bytes, *, max_depth: int = MAX_DEPTH) -> PickleScan:
             stack.extend([depth] * pushed)
     except (IndexError, KeyError) as error:
         raise ValueError(f"malformed pickle ({type(error).__name__})") from error
-    return PickleScan(globals=found, depth=deepest)
+    return PickleScan(globals=found, depth=deepest, opcodes=count)
 
 
 def pickle_globals(data: bytes) -> list[str]:
@@ -278,6 +291,11 @@ def load_pickle(path: str | Path, *, max_bytes: int = MAX_PICKLE_BYTES) -> Any:
             "code (allowed: numpy arrays and scalars in tuples, dicts and sets); nothing "
             "from the file was run. Use the authors' published files, or delete this one"
         )
+    if scan.opcodes > MAX_OPCODES:
+        raise AuthorsImportError(
+            f"{path}: refusing to unpickle: {too_many_opcodes(MAX_OPCODES)}; is it the "
+            "authors' file? Nothing from the file was run"
+        )
     if scan.depth > MAX_DEPTH:
         raise AuthorsImportError(
             f"{path}: refusing to unpickle: its values nest more than {MAX_DEPTH} deep (an "
@@ -289,6 +307,7 @@ def load_pickle(path: str | Path, *, max_bytes: int = MAX_PICKLE_BYTES) -> Any:
             data,
             max_array_bytes=len(data),
             max_memory=MEMORY_PER_BYTE * len(data) + MEMORY_SLACK_BYTES,
+            max_opcodes=MAX_OPCODES,
         ).read()
     except PickleUnbounded as error:
         raise AuthorsImportError(

@@ -16,6 +16,7 @@ The full schema is in ``docs/clusters.md``. Every error names the file and the f
 
 from __future__ import annotations
 
+import functools
 import math
 import unicodedata
 from collections.abc import Iterable, Mapping, Sequence
@@ -535,28 +536,57 @@ _INVISIBLE = dict.fromkeys(
         "\u2066\u2067\u2068\u2069\u3164\ufeff\uffa0",
     ),
 )
-#: Cyrillic and Greek letters drawn like Latin ones (Unicode's confusables, the letters a
-#: name is spelt with): mapped to the Latin letter before names compare.
-_LOOKALIKE = str.maketrans(
-    "\u0430\u0432\u0435\u043a\u043c\u043d\u043e\u0440\u0441\u0442\u0443\u0445\u0455"
-    "\u0456\u0458\u04bb\u04cf\u0501\u051b\u051d\u0410\u0412\u0415\u041a\u041c\u041d"
-    "\u041e\u0420\u0421\u0422\u0423\u0425\u0405\u0406\u0408\u03b1\u03b9\u03ba\u03bd"
-    "\u03bf\u03c1\u03c4\u03c5\u03c7\u0391\u0392\u0395\u0396\u0397\u0399\u039a\u039c"
-    "\u039d\u039f\u03a1\u03a4\u03a5\u03a7\u0131",
-    "aBekMHopcTyxsijhldqwABEKMHOPCTYXSIJaikvoptuxABEZHIKMNOPTYXi",
-)
+#: Rounds of prototype mapping and case folding (a prototype may fold to a character that
+#: has a prototype of its own: Cherokee ``Ꮯ`` -> ``C`` -> ``c``); two suffice, one more spare.
+_SKELETON_ROUNDS = 3
+
+
+def _homoglyphs(char: str) -> list[str]:
+    """The characters Unicode's confusables data pairs with one character (maybe none)."""
+    from confusable_homoglyphs import confusables  # here: it reads its 0.9 MB table
+
+    found = confusables.is_confusable(char, greedy=True)
+    return [glyph["c"] for glyph in found[0]["homoglyphs"]] if found else []
+
+
+@functools.lru_cache(maxsize=8192)
+def _prototype(char: str) -> str:
+    """The prototype UTS #39 maps ``char`` to (``ս`` -> ``u``, ``0`` -> ``O``, ``m`` -> ``rn``).
+
+    ``confusable_homoglyphs`` holds Unicode's ``confusables.txt`` as a graph: a character
+    that has a prototype lists that one alone; a prototype lists the characters mapped to
+    it. A prototype with a single such character reads like one, so of such a pair both
+    map to the smaller: the key is the same either way.
+    """
+    glyphs = _homoglyphs(char)
+    if len(glyphs) != 1:
+        return char  # not in the data, or a prototype of several characters
+    (target,) = glyphs
+    if len(target) == 1 and _homoglyphs(target) == [char]:
+        return min(char, target)
+    return target
 
 
 def identity_key(name: str) -> str:
     """The identity a cluster name (or a credence label) is compared by.
 
-    NFKC (full-width and compatibility forms become plain letters), invisible characters
-    removed, Cyrillic and Greek look-alikes of Latin letters mapped to them, case folded;
+    NFKC (full-width, mathematical and other compatibility forms become plain letters),
+    invisible characters removed, case folded, and every character replaced by its
+    prototype of Unicode's confusables (the skeleton of UTS #39, "Unicode Security
+    Mechanisms", from the ``confusable_homoglyphs`` package): Cyrillic, Greek, Armenian,
+    Cherokee and other look-alikes of Latin letters become those letters (and ``0``
+    becomes ``O``, ``1`` and ``I`` become ``l``, ``m`` becomes ``rn``, as UTS #39 says);
     ``_``, ``-`` and runs of spaces count as one space. ``care``, ``CARE``, ``ｃａｒｅ``,
-    ``ca\u200bre`` and ``cаre`` (a Cyrillic ``а``) are one identity.
+    ``ca\u200bre``, ``cаre`` (a Cyrillic ``а``) and ``ᏟᎪᏒᎬ`` (Cherokee) are one identity.
     """
-    text = unicodedata.normalize("NFKC", name).translate(_INVISIBLE).translate(_LOOKALIKE)
-    return " ".join(text.casefold().replace("_", " ").replace("-", " ").split())
+    text = unicodedata.normalize("NFKC", name).translate(_INVISIBLE)
+    for _ in range(_SKELETON_ROUNDS):
+        mapped = "".join(map(_prototype, text.casefold()))
+        mapped = unicodedata.normalize("NFKC", mapped).translate(_INVISIBLE).casefold()
+        if mapped == text:
+            break
+        text = mapped
+    return " ".join(text.replace("_", " ").replace("-", " ").split())
 
 
 def _norm(name: str) -> str:

@@ -49,23 +49,33 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     ablate = subparsers.add_parser(
         "ablate",
-        help="the paper's ablations: clusters, aggregation, models, kl; and budget",
+        help="the paper's ablations: clusters, aggregation, models, kl; budget and weights",
         description=(
             "Fine-tune the run's base policy with: each cluster alone and the unprompted "
             "moral agent (clusters); mean/max/vote vs bjs-dst (aggregation); every "
             "recording of the task or the scenario's model (models); a lambda_KL sweep (kl); "
             "the panel asked about 100%, 30%, 10%, 3% of the distinct states, the rest "
             "answered by a distilled reward model, with uncertainty and random selection "
-            "(budget, docs/distill.md). Writes <run-dir>/ablate-<what>/ with a comparison "
-            "table and plots."
+            "(budget, docs/distill.md); the paper's fixed panel weights against weights learned "
+            "from people, --weights FILE of 'amuled study fit-weights' (weights, "
+            "docs/study.md). Writes <run-dir>/ablate-<what>/ with a comparison table and plots."
         ),
     )
     common.add_scenario_args(ablate)
     ablate.add_argument(
         "--what",
         required=True,
-        choices=("clusters", "aggregation", "models", "kl", "budget"),
+        choices=("clusters", "aggregation", "models", "kl", "budget", "weights"),
         help="which ablation",
+    )
+    ablate.add_argument(
+        "--weights",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="panel weights learned from people ('amuled study fit-weights STUDY' writes "
+        "STUDY/analysis/weights.json): sets [feedback].weights; --what weights compares them "
+        "with the paper's fixed weights",
     )
     ablate.add_argument(
         "--episodes", type=common.bounded_int(1), default=None, help="evaluation episodes"
@@ -152,6 +162,9 @@ def request_of(args: argparse.Namespace, command: str, *extra: str) -> Any:
     from amuled_ma.pipeline import PipelineRequest
 
     scenario = common.load(args)
+    weights = getattr(args, "weights", None)
+    if weights is not None:  # a path from this directory, as any file on the command line
+        scenario = scenario.replace("feedback", weights=str(Path(weights).resolve()))
     run_dir = common.run_dir_of(args, scenario)
     return PipelineRequest(
         scenario=scenario,
@@ -187,7 +200,10 @@ def ablate_command(args: argparse.Namespace) -> int:
     from amuled_ma import pipeline
 
     start = time.perf_counter()
-    request = request_of(args, "ablate", "--what", args.what)
+    extra = ["--what", args.what]
+    if args.weights is not None:
+        extra += ["--weights", str(args.weights.resolve())]
+    request = request_of(args, "ablate", *extra)
     outcome = pipeline.run_pipeline(request, say=common.say)
     common.say_outcome(request, outcome, time.perf_counter() - start)
     return 0

@@ -1,4 +1,4 @@
-r"""``amuled study build|serve|analyze|export``: people judge the trained agents.
+r"""``amuled study build|serve|analyze|export|fit-weights``: people judge the trained agents.
 
 ::
 
@@ -7,6 +7,7 @@ r"""``amuled study build|serve|analyze|export``: people judge the trained agents
     amuled study serve studies/findmilk            # http://127.0.0.1:8765/
     amuled study analyze studies/findmilk          # studies/findmilk/analysis/report.md
     amuled study export studies/findmilk -o answers.csv
+    amuled study fit-weights studies/findmilk      # studies/findmilk/analysis/weights.json
 
 See ``docs/study.md``.
 """
@@ -60,6 +61,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     build.add_argument("--out", type=Path, required=True, help="the study folder to write")
     build.add_argument("--force", action="store_true", help="rebuild an existing study")
+    build.add_argument(
+        "--mode",
+        choices=("pairs", "expert"),
+        default="pairs",
+        help="pairs: people choose between two variants' decisions and rate each one's "
+        "acceptability; expert: experts judge every action of a state with the panel's "
+        "reasons (default pairs)",
+    )
     build.set_defaults(handler=_build)
 
     serve = sub.add_parser("serve", help="serve a study to participants")
@@ -85,6 +94,59 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "-o", "--output", type=Path, default=None, help="CSV file (default: stdout)"
     )
     export.set_defaults(handler=_export)
+    _register_fit_weights(sub)
+
+
+def _register_fit_weights(sub: argparse._SubParsersAction) -> None:
+    """Add ``amuled study fit-weights`` (panel weights learned from the answers)."""
+    fit = sub.add_parser(
+        "fit-weights",
+        help="learn a weight per panel member from the answers ([feedback].weights)",
+        description=(
+            "Fit a prior weight per panel member so that the bjs-dst fused belief best "
+            "predicts the participants' choices (maximum likelihood, 95% bootstrap "
+            "intervals over participants, held-out log-likelihood against the paper's "
+            "fixed weights) and write it for [feedback].weights (docs/study.md)."
+        ),
+    )
+    fit.add_argument("study", metavar="STUDY", type=Path, help="a study folder")
+    fit.add_argument(
+        "--bootstrap",
+        type=common.bounded_int(1, 100_000),
+        default=200,
+        help="resamples of the participants for the intervals (default 200)",
+    )
+    fit.add_argument(
+        "--folds",
+        type=common.bounded_int(2, 1000),
+        default=5,
+        help="folds of participants for the held-out log-likelihood (default 5)",
+    )
+    fit.add_argument(
+        "--seed", type=common.bounded_int(0, 2**63 - 1), default=0, help="seed (default 0)"
+    )
+    fit.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        default=None,
+        help="the weights file (default STUDY/analysis/weights.json)",
+    )
+    fit.add_argument(
+        "--temperature",
+        type=common.positive_float,
+        default=None,
+        metavar="T",
+        help="fix the choice model's temperature (1: Luce's rule on the fused belief); "
+        "default: fitted with the weights",
+    )
+    fit.add_argument(
+        "--keep-inattentive",
+        action="store_true",
+        help="keep the answers of participants who failed an attention check",
+    )
+    fit.add_argument("--no-progress", action="store_true", help="no progress bar")
+    fit.set_defaults(handler=_fit_weights)
 
 
 def _build(args: argparse.Namespace) -> int:
@@ -99,11 +161,17 @@ def _build(args: argparse.Namespace) -> int:
         attention=args.attention,
         episodes=args.episodes,
         force=args.force,
+        mode=args.mode,
     )
     pairs = sum(1 for i in study.items if i.kind == "pair")
+    what = (
+        f"{len(study.items)} states of {study.candidates} met, for experts"
+        if study.mode == "expert"
+        else f"{pairs} pairs of {study.candidates} candidates and "
+        f"{len(study.items) - pairs} attention checks"
+    )
     common.say(
-        f"study {args.out}: {pairs} pairs of {study.candidates} candidates and "
-        f"{len(study.items) - pairs} attention checks; edit {args.out / 'consent.html'}, "
+        f"study {args.out}: {what}; edit {args.out / 'consent.html'}, "
         f"then 'amuled study serve {args.out}'"
     )
     return 0
@@ -136,4 +204,23 @@ def _export(args: argparse.Namespace) -> int:
     else:
         args.output.write_text(text, encoding="utf-8")
         common.say(f"study {args.study}: answers written to {args.output}")
+    return 0
+
+
+def _fit_weights(args: argparse.Namespace) -> int:
+    from amuled_ma.study.weights import fit_weights, summary_lines
+
+    weights, path = fit_weights(
+        args.study,
+        bootstrap=args.bootstrap,
+        folds=args.folds,
+        seed=args.seed,
+        keep_inattentive=args.keep_inattentive,
+        temperature=args.temperature,
+        out=args.output,
+        progress=not args.no_progress,
+    )
+    for line in summary_lines(weights):
+        common.say(line)
+    common.say(f"study {args.study}: weights {path} (name it in a scenario: [feedback] weights)")
     return 0

@@ -441,6 +441,7 @@ def _build(
         source,
         plan.rule,
         build_messages=functools.partial(build_messages, registry=plan.registry),
+        prior=plan.prior,
     )
     feedback = PanelFeedback(plan.variant, panel, source, miss_zero=plan.miss_zero)
     feedback.max_abstention = plan.max_abstention

@@ -177,3 +177,104 @@ class BatchedDeliberation:
             fused=fused,
             feedback=taken,
         )
+
+
+class CopiesView:
+    """Copies ``start .. start + count - 1`` of a batched task, seen as a task of ``count``.
+
+    What a population member's feedback is handed (:class:`MemberFeedback`): its copies
+    numbered from 0, as in a lone run, so ``prompt_variables(ids)`` (and
+    ``state_prompts``) reads copy ``start + id`` of the population's task and ``obs`` is
+    the member's rows. Every other attribute is the task's.
+
+    Args:
+        task: The population's batched task.
+        start: First copy.
+        count: Number of copies.
+        variables: Reads the prompt variables of copies by their indices in ``task``
+            (default: ``task.prompt_variables``); :class:`MemberFeedback` hands its
+            once-per-step reading of every copy.
+
+    """
+
+    _LOCAL_IDS = ("prompt_variables", "state_prompts")
+
+    def __init__(self, task: Any, start: int, count: int, variables: Any = None) -> None:
+        self.task = task
+        self.start = int(start)
+        self.num_envs = int(count)
+        self.variables = variables
+
+    def global_ids(self, env_ids: Any = None) -> list[int]:
+        """The population's copy indices of local ``env_ids`` (None: all of this view)."""
+        if env_ids is None:
+            return list(range(self.start, self.start + self.num_envs))
+        if isinstance(env_ids, int | np.integer):
+            return [self.start + int(env_ids)]
+        return [self.start + int(i) for i in env_ids]
+
+    def __getattr__(self, name: str) -> Any:
+        value = getattr(self.task, name)
+        if name == "obs":
+            return value[self.start : self.start + self.num_envs]
+        if name in self._LOCAL_IDS and callable(value):
+            if name == "prompt_variables" and self.variables is not None:
+                value = self.variables
+
+            def local(env_ids: Any = None) -> Any:
+                return value(self.global_ids(env_ids))
+
+            return local
+        return value
+
+
+class MemberFeedback:
+    """A population's feedback: member ``p``'s feedback answers for member ``p``'s copies.
+
+    A population of ``P`` members trains in one task of ``P x E`` copies, member ``p``
+    owning copies ``p*E .. p*E + E - 1``; each member's feedback (its own panel, fusion
+    rule, memo) is called on its rows with its copies as a task of ``E``
+    (:class:`CopiesView`), exactly as in a lone run, and the answers are stacked. The
+    prompt variables of the states (read by a feedback keyed by prompt) are read for
+    every copy at once, on the first request of a step, and served to each member.
+
+    Args:
+        feedbacks: One feedback per member (:data:`FeedbackFn`).
+        copies: Copies per member ``E``.
+
+    """
+
+    def __init__(self, feedbacks: Any, copies: int) -> None:
+        self.feedbacks = list(feedbacks)
+        self.copies = int(copies)
+        self._views: list[CopiesView] = []
+        self._task: Any = None
+        self._variables: list[Any] | None = None
+
+    def views(self, task: Any) -> list[CopiesView]:
+        """Each member's :class:`CopiesView` of ``task`` (made once per task)."""
+        if not self._views or self._task is not task:
+            self._task = task
+            variables = self.prompt_variables if hasattr(task, "prompt_variables") else None
+            self._views = [
+                CopiesView(task, p * self.copies, self.copies, variables)
+                for p in range(len(self.feedbacks))
+            ]
+        return self._views
+
+    def prompt_variables(self, env_ids: Any) -> list[Any]:
+        """The prompt variables of copies ``env_ids`` now (every copy read once a step)."""
+        if self._variables is None:
+            self._variables = list(self._task.prompt_variables())
+        return [self._variables[i] for i in env_ids]
+
+    def __call__(self, obs: torch.Tensor, task: Any) -> np.ndarray:
+        """The fused beliefs ``[P x E, A]`` of every copy, each from its member's feedback."""
+        views = self.views(task)
+        self._variables = None  # the states changed since the last step
+        parts = []
+        for p, (feedback, view) in enumerate(zip(self.feedbacks, views, strict=True)):
+            rows = obs[p * self.copies : (p + 1) * self.copies]
+            parts.append(np.asarray(feedback(rows, view)))
+        self._variables = None
+        return np.concatenate(parts)

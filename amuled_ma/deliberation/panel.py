@@ -144,6 +144,10 @@ class MoralPanel:
             :func:`amuled_ma.tasks.prompts.render_state_prompt`.
         build_messages: ``(cluster, task_name, state_prompt) -> messages``; default
             :func:`amuled_ma.clusters.build_messages`.
+        prior: A prior weight per cluster, in fusion order (``[feedback].weights``), for a
+            rule that takes one (``bjs-dst``: it multiplies each cluster's credibility);
+            a state fuses the prior of the clusters that answered it. None: the rule's
+            own weights.
 
     """
 
@@ -158,6 +162,7 @@ class MoralPanel:
         with_messages: bool | None = None,
         render_state_prompt: Callable[[str, Mapping[str, Any]], str] | None = None,
         build_messages: Callable[[Any, str, str], Messages] | None = None,
+        prior: Sequence[float] | None = None,
     ) -> None:
         if not clusters:
             raise ValueError("a moral panel needs at least one cluster")
@@ -183,9 +188,15 @@ class MoralPanel:
         from amuled_ma.fusion import fuse
 
         self._fuse = fuse
-        # Fail at construction, not in the training loop, on an unknown rule.
+        #: The clusters' prior weights (``(K,)``), or None.
+        self.prior = None if prior is None else np.asarray(prior, dtype=np.float64)
+        if self.prior is not None and self.prior.shape != (len(self.clusters),):
+            raise ValueError(
+                f"prior has {self.prior.size} weights for {len(self.clusters)} clusters"
+            )
+        # Fail at construction, not in the training loop, on an unknown rule or a bad prior.
         uniform = np.full((1, len(self.clusters), len(self.action_names)), 1.0 / self.num_actions)
-        fuse(uniform, fusion_rule, return_diagnostics=True)
+        fuse(uniform, fusion_rule, prior=self.prior, return_diagnostics=True)
 
     @property
     def num_clusters(self) -> int:
@@ -378,7 +389,12 @@ class MoralPanel:
                 self.stats.no_answer += len(rows)
                 continue
             subset = beliefs[rows] if len(cols) == k else beliefs[rows][:, cols]
-            diag = self._fuse(subset, self.fusion_rule, return_diagnostics=True)
+            prior = None
+            if self.prior is not None:
+                prior = self.prior[cols]
+                if not prior.sum() > 0:  # only clusters with no weight answered: the
+                    prior = None  # rule's own weights among them (a prior of all zeros)
+            diag = self._fuse(subset, self.fusion_rule, prior=prior, return_diagnostics=True)
             fused[rows] = diag.fused
             weights[np.ix_(rows, cols)] = diag.weights
             if len(cols) > 1 and diag.conflicts.shape[-1] == len(cols) - 1:

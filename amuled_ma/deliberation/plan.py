@@ -23,6 +23,7 @@ from typing import Any
 from amuled_ma.errors import AmuledError, ClusterDefinitionError, ScenarioError
 from amuled_ma.scenario import AGENT_SPECS, MORAL_AGENT, Scenario
 from amuled_ma.scenario.agents import match_agents
+from amuled_ma.scenario.panel_weights import member_prior, read_panel_weights
 from amuled_ma.variants import parse_feedback
 
 #: What every label of a ``rules`` source says: it answers with the task's rule.
@@ -74,6 +75,10 @@ class PanelPlan:
         miss_zero: A state every member missed rewards 0 (the authors' scripts).
         distill: ``[feedback.distill]``.
         max_abstention: ``[feedback].max_abstention``.
+        prior: The members' prior weights in panel order (``[feedback].weights``, the
+            ``amuled`` variant only; summing to 1), handed to the ``bjs-dst`` fusion; None:
+            the paper's fixed weights.
+        weights_file: The weights file the prior was read from.
 
     """
 
@@ -93,6 +98,8 @@ class PanelPlan:
     miss_zero: bool = False
     distill: Any = None
     max_abstention: float | None = None
+    prior: tuple[float, ...] | None = None
+    weights_file: Path | None = None
 
     @property
     def asks_panel(self) -> bool:
@@ -114,7 +121,8 @@ class PanelPlan:
         Returns:
             ``{"feedback", "members": [{"agent", "source", "label"}], "fusion",
             "recording", "fused_only", "distill"}``; ``recording`` is the file name of the
-            replayed recording (None without one).
+            replayed recording (None without one). With a member prior, also
+            ``"weights": {"file", "prior": {agent: weight}}``.
 
         """
         if not self.asks_panel:
@@ -140,7 +148,7 @@ class PanelPlan:
             members.append({"agent": agent, "source": kind, "label": label})
         if self.fused_recording is not None:
             recordings = [self.fused_recording.name]
-        return {
+        described = {
             "feedback": self.variant,
             "members": members,
             "fusion": self.rule,
@@ -148,6 +156,12 @@ class PanelPlan:
             "fused_only": self.fused_recording is not None,
             "distill": bool(self.distill is not None and self.distill.enabled),
         }
+        if self.prior is not None:
+            described["weights"] = {
+                "file": self.weights_file.name if self.weights_file is not None else None,
+                "prior": dict(zip(self.agents, self.prior, strict=True)),
+            }
+        return described
 
 
 def store_path(scenario: Scenario, run_dir: Path | None = None) -> Path:
@@ -338,7 +352,9 @@ def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
 
     Raises:
         ClusterDefinitionError: A member is in no loaded cluster file.
-        ScenarioError: A fused-only recording asked for another variant or fusion rule.
+        ScenarioError: A fused-only recording asked for another variant or fusion rule;
+            a ``[feedback].weights`` file that is missing or malformed, that weighs other
+            members than the panel's, or that would apply to a fused-only recording.
 
     """
     kind, arg = parse_feedback(variant)
@@ -362,6 +378,8 @@ def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
     if fused is not None and match_agents(list(scenario.feedback.agents), clusters):
         fused = None  # agents with their own source: a panel (the preflight refuses replay)
     base.update(clusters=tuple(clusters), registry=registry, rule=rule)
+    if kind == "amuled" and fb.weights.strip():
+        base.update(_member_prior(scenario, [c.name for c in clusters], fused))
     if fused is not None:
         if kind != "amuled" or fb.fusion != "bjs-dst":
             raise ScenarioError(
@@ -380,6 +398,26 @@ def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
         problems=tuple(problems),
         miss_zero=replays and fb.miss_policy == "zero",
     )
+
+
+def _member_prior(scenario: Scenario, members: list[str], fused: Path | None) -> dict[str, Any]:
+    """``{"prior", "weights_file"}`` of the ``amuled`` variant from ``[feedback].weights``.
+
+    Raises:
+        ScenarioError: The file is missing or malformed, names other members, or the panel
+            replays a recording of fused beliefs only (there is no member to weigh).
+
+    """
+    where = f"{scenario.path or scenario.name}: key [feedback].weights"
+    path = scenario.resolve(scenario.feedback.weights)
+    if fused is not None:
+        raise ScenarioError(
+            f"{where}: {fused} keeps only the authors' fused belief per state, so there are no "
+            "members' beliefs to weigh; replay a recording with per-cluster beliefs (e.g. "
+            'recording = "driving-llama-3_1-70b") or drop weights'
+        )
+    prior = member_prior(read_panel_weights(path, where=where), members, where=where, path=path)
+    return {"prior": prior, "weights_file": path}
 
 
 def _fused_only_recording(scenario: Scenario) -> Path | None:

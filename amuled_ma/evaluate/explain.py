@@ -271,12 +271,17 @@ class FusionBreakdown:
 
 
 def fusion_breakdown(
-    agents: Sequence[str], beliefs: np.ndarray, statuses: Sequence[str], rule: str
+    agents: Sequence[str],
+    beliefs: np.ndarray,
+    statuses: Sequence[str],
+    rule: str,
+    prior: Sequence[float] | None = None,
 ) -> FusionBreakdown | None:
     """Recompute one state's fusion over the agents that answered, with diagnostics.
 
     As the panel fuses (:meth:`~amuled_ma.deliberation.panel.MoralPanel.fused`): an agent
-    without an answer abstains (left out, weight 0). None when no agent answered.
+    without an answer abstains (left out, weight 0); with the panel's member ``prior``
+    (``[feedback].weights``), that of the agents that answered. None when no agent answered.
     """
     from amuled_ma.fusion import bjs_divergence, fuse
 
@@ -287,7 +292,10 @@ def fusion_breakdown(
         return None
     sub = beliefs[answered]
     k = len(answered)
-    diag = fuse(sub[None], rule, return_diagnostics=True)
+    rho = None if prior is None else np.asarray(prior, dtype=np.float64)[answered]
+    if rho is not None and not rho.sum() > 0:
+        rho = None  # as the panel: only agents without weight answered
+    diag = fuse(sub[None], rule, prior=rho, return_diagnostics=True)
     pairwise = bjs_divergence(sub[:, None, :], sub[None, :, :])
     bjs_mean = pairwise.sum(axis=1) / max(k - 1, 1)
     entropy = np.asarray(diag.entropy, dtype=np.float64)[0]
@@ -390,7 +398,7 @@ def explain_lines(
     ]
     rows.append([f"fused ({rule})", "", *answers.fused[0].tolist(), ""])
     say(table(["agent", "status", *actions, "weight"], rows))
-    breakdown = fusion_breakdown(agents, beliefs, statuses, rule)
+    breakdown = fusion_breakdown(agents, beliefs, statuses, rule, getattr(panel, "prior", None))
     say("")
     if breakdown is None:
         say("no agent answered: the fused belief is the uniform fallback")

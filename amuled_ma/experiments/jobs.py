@@ -13,14 +13,18 @@ then trains them:
 Every job is single-threaded (``torch.set_num_threads(1)``), so ``workers`` = CPU cores
 fills the machine. Fine-tunes of one run share the SQLite belief store, which is safe
 across processes of one machine (WAL).
+
+A caller that writes a run folder connects first (:func:`ray_connection`, around the
+writing and the training): a SIGTERM while Ray starts then leaves no folder behind.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -64,6 +68,35 @@ class JobsOutcome:
 #: Ray's switch between a one-machine Ray, whose processes listen on loopback only, and a
 #: cluster node; Ray reads it once, when it is imported (:func:`prefer_loopback`).
 SINGLE_MACHINE_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+
+
+#: Ray's switch for its C++ failure-signal handler, read once, when Ray is imported
+#: (:func:`keep_sigterm`).
+FAILURE_HANDLER_ENV = "RAY_DISABLE_FAILURE_SIGNAL_HANDLER"
+
+
+def keep_sigterm() -> None:
+    """Keep Ray's C++ core worker from taking this driver's SIGTERM while ``ray.init`` runs.
+
+    ``ray.init`` creates the driver's core worker, whose failure-signal handler (installed
+    unless Ray's ``RAY_DISABLE_FAILURE_SIGNAL_HANDLER`` was set when Ray was imported)
+    prints "SIGTERM received" and aborts (exit 134, no checkpoint, no resume command) for
+    a SIGTERM that arrives before ``ray.init`` returns and the command's own handler is put
+    back. Sets the switch for the import of Ray only: Ray's processes (its workers) keep
+    their handler, which prints a stack trace when they crash. A no-op once Ray is
+    imported.
+    """
+    if "ray" in sys.modules:
+        return
+    before = os.environ.get(FAILURE_HANDLER_ENV)
+    os.environ[FAILURE_HANDLER_ENV] = "1"
+    try:
+        import ray  # noqa: F401 - read the switch now
+    finally:
+        if before is None:
+            os.environ.pop(FAILURE_HANDLER_ENV, None)
+        else:
+            os.environ[FAILURE_HANDLER_ENV] = before
 
 
 def prefer_loopback() -> None:
@@ -170,6 +203,66 @@ def _preflight(jobs: Sequence[TrainJob], hint: str) -> dict[str, str]:
     return actions
 
 
+def uses_ray(jobs: Sequence[TrainJob], workers: int, ray: RayTarget | None) -> bool:
+    """Whether :func:`run_jobs` trains ``jobs`` on Ray (else in this process)."""
+    return not (ray is None and (workers <= 1 or len(jobs) <= 1))
+
+
+@contextlib.contextmanager
+def _ray_switches(local: bool) -> Iterator[None]:
+    """Ray's import-time switches (:func:`keep_sigterm`; loopback for a local Ray)."""
+    before = os.environ.get(SINGLE_MACHINE_ENV)
+    if local:
+        prefer_loopback()
+    keep_sigterm()
+    try:
+        yield
+    finally:
+        # the local Ray's processes took the switch with them; a process this one starts
+        # later (a `ray start --address` joining a cluster, say) must not inherit it
+        if before is None:
+            os.environ.pop(SINGLE_MACHINE_ENV, None)
+        else:
+            os.environ[SINGLE_MACHINE_ENV] = before
+
+
+@contextlib.contextmanager
+def ray_connection(
+    jobs: Sequence[TrainJob], *, workers: int, ray: RayTarget | None = None
+) -> Iterator[None]:
+    """Connect to the Ray :func:`run_jobs` will train ``jobs`` on, for the ``with`` block.
+
+    Enter it before the run folder is written: a SIGTERM (or Ctrl-C) while Ray starts or
+    connects then ends the command (exit 143, or 130) with nothing written, and the run
+    folder's lock removes the folder it made. Without Ray (one worker, no ``--ray``) it
+    does nothing. Ray is shut down (or disconnected from a cluster) when the block ends.
+
+    Args:
+        jobs: The jobs :func:`run_jobs` will get.
+        workers: Its ``workers``.
+        ray: Its ``ray``.
+
+    Raises:
+        AmuledError: No cluster answers at the address.
+        KeyboardInterrupt: SIGTERM (:class:`~amuled_ma.errors.Terminated`) or Ctrl-C
+            while connecting; Ray is shut down first.
+
+    """
+    if not uses_ray(jobs, workers, ray):
+        yield
+        return
+    target = ray or RayTarget()
+    with _ray_switches(target.address is None):
+        from amuled_ma.experiments.ray_jobs import connect, disconnect
+
+        ours = connect(target.address, workers)
+    try:
+        yield
+    finally:
+        if ours:
+            disconnect()
+
+
 def run_jobs(
     jobs: Sequence[TrainJob],
     *,
@@ -203,7 +296,7 @@ def run_jobs(
     check_order(jobs)
     actions = _preflight(jobs, hint)
     start = time.perf_counter()
-    if ray is None and (workers <= 1 or len(jobs) <= 1):
+    if not uses_ray(jobs, workers, ray):
         results = []
         for job in jobs:
             result = _train(job, progress=progress, hint=hint)
@@ -216,10 +309,7 @@ def run_jobs(
         print(describe(result), flush=True)
     todo = [j for j in jobs if j.name not in skipped]
     target = ray or RayTarget()
-    before = os.environ.get(SINGLE_MACHINE_ENV)
-    if target.address is None:
-        prefer_loopback()
-    try:
+    with _ray_switches(target.address is None):
         from amuled_ma.experiments.ray_jobs import run_on_ray  # here: importing Ray takes a second
 
         ran = run_on_ray(
@@ -231,13 +321,6 @@ def run_jobs(
             describe=describe,
             resource=target.resource,
         )
-    finally:
-        # the local Ray's processes took the switch with them; a process this one starts
-        # later (a `ray start --address` joining a cluster, say) must not inherit it
-        if before is None:
-            os.environ.pop(SINGLE_MACHINE_ENV, None)
-        else:
-            os.environ[SINGLE_MACHINE_ENV] = before
     results_by_name = {**skipped, **ran}
     return JobsOutcome(
         [results_by_name[j.name] for j in jobs], time.perf_counter() - start, workers

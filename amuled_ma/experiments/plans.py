@@ -41,7 +41,9 @@ MAIN_VARIANTS = (
     Variant.finetune("amuled"),
 )
 #: What ``amuled ablate --what`` accepts.
-ABLATIONS = ("clusters", "aggregation", "models", "kl", "budget")
+ABLATIONS = ("clusters", "aggregation", "models", "kl", "budget", "weights")
+#: The folder label of the ``weights`` ablation's fine-tune on the learned weights.
+LEARNED_WEIGHTS_LABEL = "amuled-learned-weights"
 #: The lambda_KL sweep of the ``kl`` ablation (the paper's value is 2.5).
 KL_SWEEP = (0.0, 0.5, 1.0, 2.5, 5.0, 10.0)
 #: The budgets of the ``budget`` ablation: shares of the distinct states visited that the
@@ -309,15 +311,31 @@ def ablation_variants(what: str, scenario: Scenario) -> list[tuple[Variant, Scen
     AMULED with every state asked (the full-feedback run, shared with ``amuled run`` when
     it finished there with the same settings).
 
+    ``weights``: AMULED with the paper's fixed weights (``[feedback].weights`` emptied; shared
+    with ``amuled run`` when it finished there with the same settings) and AMULED with the
+    learned weights of ``[feedback].weights`` (folder ``finetune-amuled-learned-weights``),
+    on the same seeds.
+
     Args:
-        what: ``clusters``, ``aggregation``, ``models``, ``kl`` or ``budget``.
+        what: ``clusters``, ``aggregation``, ``models``, ``kl``, ``budget`` or ``weights``.
         scenario: The base scenario.
 
     Returns:
         The jobs, each with the (possibly modified) scenario it runs on.
 
+    Raises:
+        AmuledError: ``weights`` without ``[feedback].weights``.
+
     """
-    if what in ("clusters", "aggregation", "budget") and scenario.feedback.cluster_recording:
+    if what == "weights" and not scenario.feedback.weights.strip():
+        raise AmuledError(
+            f"{scenario.path or scenario.name}: ablate --what weights compares the paper's "
+            "fixed weights with learned ones, but [feedback].weights names no file; pass "
+            "--weights FILE (written by 'amuled study fit-weights STUDY') or set "
+            "[feedback].weights"
+        )
+    needs_members = ("clusters", "aggregation", "budget", "weights")
+    if what in needs_members and scenario.feedback.cluster_recording:
         # these need each cluster's belief: a fused-only recording cannot serve them
         scenario = scenario.replace("feedback", recording=scenario.feedback.cluster_recording)
     if what == "clusters":
@@ -327,6 +345,12 @@ def ablation_variants(what: str, scenario: Scenario) -> list[tuple[Variant, Scen
     elif what == "aggregation":
         jobs = [(Variant.finetune(f"agg:{rule}"), scenario) for rule in AGGREGATIONS]
         jobs.append((Variant.finetune("amuled"), scenario))
+    elif what == "weights":
+        fixed = scenario.replace("feedback", weights="")
+        jobs = [
+            (Variant.finetune("amuled"), fixed),
+            (Variant.finetune("amuled", label=LEARNED_WEIGHTS_LABEL), scenario),
+        ]
     elif what == "kl":
         jobs = [
             (

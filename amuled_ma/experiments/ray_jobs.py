@@ -173,11 +173,19 @@ def connect(address: str | None, workers: int) -> bool:
             starts a local Ray for this run.
         workers: CPUs of the local Ray (one job per CPU); ignored with an address.
 
+    A SIGTERM while ``ray.init`` runs ends the command as a SIGTERM does elsewhere: Ray's
+    handlers for that time exit (``sys.exit(15)``; a local Ray's node kills its processes
+    and exits 1), which is turned back into :class:`~amuled_ma.errors.Terminated` once
+    what Ray started is shut down (its C++ core worker's handler, which would abort, is
+    kept out by :func:`amuled_ma.experiments.jobs.keep_sigterm`).
+
     Returns:
         True when this call connected (and :func:`ray.shutdown` is ours to call).
 
     Raises:
         AmuledError: No cluster answers at ``address``, naming it and the fix.
+        KeyboardInterrupt: SIGTERM (:class:`~amuled_ma.errors.Terminated`) or Ctrl-C while
+            connecting; what Ray had started is shut down.
 
     """
     if ray.is_initialized():
@@ -193,20 +201,30 @@ def connect(address: str | None, workers: int) -> bool:
     previous_term = signal.getsignal(signal.SIGTERM)
     ray_to_log()  # Ray's own notices (token authentication, ...) go to the log
     try:
-        if address is None:
-            ray.init(num_cpus=workers, include_dashboard=False, **options)
-        else:
-            ray.init(address=address, **options)
+        try:
+            if address is None:
+                ray.init(num_cpus=workers, include_dashboard=False, **options)
+            else:
+                ray.init(address=address, **options)
+        finally:
+            _restore_sigterm(previous_term)
+            if previous is not None:
+                signal.signal(signal.SIGINT, previous)
     except (ConnectionError, RuntimeError, ValueError) as error:
         where = address or "a local Ray"
         raise AmuledError(
             f"--ray {where}: cannot connect ({_first_line(error)}); start the cluster with "
             "'ray start --head' on its head node, or give no address for a local Ray"
         ) from error
-    finally:
+    except (SystemExit, KeyboardInterrupt) as stop:
+        # only Ray's SIGTERM handlers call sys.exit while ray.init runs
+        _restore_sigterm(previous_term)
         if previous is not None:
             signal.signal(signal.SIGINT, previous)
-        _restore_sigterm(previous_term)
+        disconnect()
+        if isinstance(stop, SystemExit):
+            raise Terminated(signal.SIGTERM) from None
+        raise
     if address is None and not ipaddress.ip_address(ray.util.get_node_ip_address()).is_loopback:
         print(
             f"amuled: note: the local Ray listens on {ray.util.get_node_ip_address()} too, "
@@ -215,6 +233,16 @@ def connect(address: str | None, workers: int) -> bool:
             file=sys.stderr,
         )
     return True
+
+
+def disconnect() -> None:
+    """Shut down the Ray this process started, or leave the cluster it joined.
+
+    Whatever state ``ray.init`` left (a SIGTERM may have stopped it half-way): Ray's own
+    errors while shutting down are left to its log.
+    """
+    with contextlib.suppress(Exception):
+        ray.shutdown()
 
 
 def pack(folder: Path) -> bytes:
@@ -438,34 +466,32 @@ def run_on_ray(
         KeyboardInterrupt: Ctrl-C, after every running job wrote its checkpoint.
 
     """
+    ours = connect(address, workers)
+    try:
+        return _sweep(jobs, address, progress, hint, describe, resource, ship_files)
+    finally:
+        if ours:
+            disconnect()
+
+
+def _sweep(
+    jobs: Sequence[TrainJob],
+    address: str | None,
+    progress: bool,
+    hint: str,
+    describe: Callable[[Any], str],
+    resource: str | None,
+    ship_files: bool | None,
+) -> dict[str, JobResult]:
+    """:func:`run_on_ray` once connected: submit, wait, stop on a signal, clean up."""
     from tqdm.auto import tqdm
 
-    ours = connect(address, workers)
     terms = _count_sigterms()
     ship = address is not None if ship_files is None else ship_files
     sweep, token = uuid.uuid4().hex, uuid.uuid4().hex
     jobs = [_absolute(j) for j in jobs]
     by_name = {j.name: j for j in jobs}
-    for run_dir in {j.run_dir for j in jobs}:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        (run_dir / SHARED_TOKEN).write_text(token)
-    driver_node = ray.get_runtime_context().get_node_id()
-    # on the driver's node: an actor on a node that dies would take the bar with it
-    here = NodeAffinitySchedulingStrategy(driver_node, soft=False)
-    board = SweepBoard.options(scheduling_strategy=here).remote()
-    stores = start_store_actors(
-        store_path(j.scenario, j.run_dir) for j in jobs if j.variant.asks_panel
-    )
-    options: dict[str, Any] = {"resources": {resource: 1}} if resource else {}
-    refs: dict[str, Any] = {}
-    plugins = tuple(sorted(allowed_plugins()))
-    for job in jobs:  # in graph order: each job's needs are submitted before it
-        needed = [refs[n] for n in job.needs if n in refs]
-        inputs = _inputs(job, set(by_name)) if ship else None
-        refs[job.name] = train_job.options(name=job.name, **options).remote(
-            job, sweep, token, inputs, board, stores, driver_node, *needed, plugins=plugins
-        )
-    names = {ref: name for name, ref in refs.items()}
+    run_dirs = {j.run_dir for j in jobs}
     bar = tqdm(
         total=sum(planned_iterations(j.scenario, finetune=j.variant.finetuning) for j in jobs),
         desc=f"{len(jobs)} jobs on Ray",
@@ -473,16 +499,40 @@ def run_on_ray(
         disable=not progress,
         dynamic_ncols=True,
     )
+    board: Any = None
+    stores: dict[str, Any] = {}
+    refs: dict[str, Any] = {}
+    waiting: list[Any] = []  # the refs not finished yet
 
     def drain() -> None:
         # the bar only (a lost count is no lost work: the jobs' results are the refs)
-        with contextlib.suppress(ray.exceptions.RayError):
-            bar.update(ray.get(board.take.remote()))
+        if board is not None:
+            with contextlib.suppress(ray.exceptions.RayError):
+                bar.update(ray.get(board.take.remote()))
 
     done: dict[str, JobResult] = {}
     failure: BaseException | None = None
-    waiting = list(refs.values())
-    try:
+    try:  # from here on a signal stops the jobs submitted so far, each with its checkpoint
+        for run_dir in run_dirs:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            (run_dir / SHARED_TOKEN).write_text(token)
+        driver_node = ray.get_runtime_context().get_node_id()
+        # on the driver's node: an actor on a node that dies would take the bar with it
+        here = NodeAffinitySchedulingStrategy(driver_node, soft=False)
+        board = SweepBoard.options(scheduling_strategy=here).remote()
+        stores = start_store_actors(
+            store_path(j.scenario, j.run_dir) for j in jobs if j.variant.asks_panel
+        )
+        options: dict[str, Any] = {"resources": {resource: 1}} if resource else {}
+        plugins = tuple(sorted(allowed_plugins()))
+        for job in jobs:  # in graph order: each job's needs are submitted before it
+            needed = [refs[n] for n in job.needs if n in refs]
+            inputs = _inputs(job, set(by_name)) if ship else None
+            refs[job.name] = train_job.options(name=job.name, **options).remote(
+                job, sweep, token, inputs, board, stores, driver_node, *needed, plugins=plugins
+            )
+            waiting.append(refs[job.name])
+        names = {ref: name for name, ref in refs.items()}
         while waiting:
             finished, waiting = ray.wait(waiting, num_returns=1, timeout=REPORT_EVERY_S)
             drain()
@@ -513,7 +563,7 @@ def run_on_ray(
         bar.write("stopping: every running job writes its checkpoint ...", file=sys.stderr)
         # before any cancel frees a CPU that Ray could give a queued task: the stop mark,
         # then the queued tasks (submitted last) first
-        for run_dir in {j.run_dir for j in jobs}:
+        for run_dir in run_dirs:
             (run_dir / STOP_MARK).write_text(sweep)
         for ref in reversed(waiting):
             ray.cancel(ref)
@@ -524,29 +574,9 @@ def run_on_ray(
     finally:
         drain()
         bar.close()
-        for path, actor in stores.items():
-            try:
-                figures = ray.get(actor.figures.remote())
-                ray.get(actor.close.remote())
-            except ray.exceptions.RayError as error:  # its node's agent died, say
-                print(
-                    f"  belief store {path}: its Ray actor was lost "
-                    f"({type(error).__name__}); the rows written before are in the file",
-                    file=sys.stderr,
-                    flush=True,
-                )
-                continue
-            if figures["lookup"]:
-                print(
-                    f"  belief store {path} served the jobs on other nodes: "
-                    f"{figures['keys_looked_up']:,} keys looked up in {figures['lookup']:,} "
-                    f"calls, {figures['rows_written']:,} rows written",
-                    flush=True,
-                )
+        _close_stores(stores)
         terms.restore()
-        if ours:
-            ray.shutdown()
-        for run_dir in {j.run_dir for j in jobs}:
+        for run_dir in run_dirs:
             for mark in (SHARED_TOKEN, STOP_MARK):
                 (run_dir / mark).unlink(missing_ok=True)
     if isinstance(failure, KeyboardInterrupt):
@@ -558,3 +588,26 @@ def run_on_ray(
             print(f"after fixing it, continue with: {hint} --resume", file=sys.stderr)
         raise failure
     return done
+
+
+def _close_stores(stores: dict[str, Any]) -> None:
+    """Close the sweep's store actors, printing what they served jobs on other nodes."""
+    for path, actor in stores.items():
+        try:
+            figures = ray.get(actor.figures.remote())
+            ray.get(actor.close.remote())
+        except ray.exceptions.RayError as error:  # its node's agent died, say
+            print(
+                f"  belief store {path}: its Ray actor was lost "
+                f"({type(error).__name__}); the rows written before are in the file",
+                file=sys.stderr,
+                flush=True,
+            )
+            continue
+        if figures["lookup"]:
+            print(
+                f"  belief store {path} served the jobs on other nodes: "
+                f"{figures['keys_looked_up']:,} keys looked up in {figures['lookup']:,} "
+                f"calls, {figures['rows_written']:,} rows written",
+                flush=True,
+            )

@@ -589,6 +589,7 @@ def panel_of_training(variant: Variant, training: dict[str, Any], feedback: Any 
         fusion=rule,
         agent_sources=dict(settings.get("agents") or {}),
         distill=settings.get("distill"),
+        weights=settings.get("weights") if kind == "amuled" and not fused_only else None,
     )
 
 

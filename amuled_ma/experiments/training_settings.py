@@ -46,8 +46,10 @@ def training_config(
     keys (:data:`NOT_LEARNED`), the recording's folder (its file name stays), the
     ``[feedback.distill]`` table when it is off, and the feedback section for base
     training and for the rule-based human feedback. ``inputs`` holds the SHA-256 of the
-    recordings replayed and of each cluster file the panel's prompts are made of. The run's
-    length is kept apart, as the number of PPO iterations the job trains to.
+    recordings replayed, of each cluster file the panel's prompts are made of and of the
+    ``[feedback].weights`` file (``weights_sha256``; its file name stays, its folder goes,
+    and only the ``amuled`` variant, the one that uses it, keeps it). The run's length is
+    kept apart, as the number of PPO iterations the job trains to.
 
     Args:
         scenario: The scenario of the job.
@@ -76,10 +78,15 @@ def training_config(
     distill = out.get("feedback", {}).get("distill")
     if distill is not None and not distill.get("enabled"):
         del out["feedback"]["distill"]  # off: its other keys change nothing
+    weights = out.get("feedback", {}).pop("weights", "")
+    if weights and variant.feedback_kind[0] == "amuled":  # the prior of its bjs-dst fusion
+        out["feedback"]["weights"] = Path(weights).name
+        out["inputs"] = {"weights_sha256": file_sha256(scenario.resolve(weights))}
     if out.get("feedback", {}).get("recording"):
         out["feedback"]["recording"] = Path(out["feedback"]["recording"]).name
         if out["feedback"].get("source") == "replay":
-            out["inputs"] = {"recording_sha256": file_sha256(scenario.recording_path())}
+            digest = file_sha256(scenario.recording_path())
+            out.setdefault("inputs", {})["recording_sha256"] = digest
     for agent, spec in sorted((out.get("feedback", {}).get("agents") or {}).items()):
         if spec.get("source") == "replay" and spec.get("recording"):
             path = scenario.replace("feedback", recording=spec["recording"]).recording_path()

@@ -85,12 +85,15 @@ def _raise_first_bad_row(array: np.ndarray, sums: np.ndarray, name: str) -> None
     )
 
 
-def check_weights(weights: object, batch_shape: tuple[int, ...]) -> np.ndarray:
+def check_weights(
+    weights: object, batch_shape: tuple[int, ...], name: str = "weights"
+) -> np.ndarray:
     """Return per-cluster weights broadcast to ``batch_shape``, or raise ``ValueError``.
 
     Args:
         weights: array-like broadcastable to ``batch_shape`` (``(..., n_clusters)``).
         batch_shape: the shape ``beliefs.shape[:-1]``.
+        name: what to call the array in error messages (``weights``, ``prior``).
 
     Returns:
         A float64 array of shape ``batch_shape``.
@@ -104,7 +107,7 @@ def check_weights(weights: object, batch_shape: tuple[int, ...]) -> np.ndarray:
     except ValueError:
         shape = np.shape(weights)
         raise ValueError(
-            f"weights of shape {shape} do not broadcast to (..., n_clusters) = {batch_shape}"
+            f"{name} of shape {shape} do not broadcast to (..., n_clusters) = {batch_shape}"
         ) from None
     if array.size == 0:
         return array
@@ -112,13 +115,13 @@ def check_weights(weights: object, batch_shape: tuple[int, ...]) -> np.ndarray:
     if bad_entry.any():
         index = tuple(int(i) for i in np.argwhere(bad_entry)[0])
         raise ValueError(
-            f"{_index_text('weights', index)} = {float(array[index])!r}: weights must be "
+            f"{_index_text(name, index)} = {float(array[index])!r}: {name} must be "
             "finite and non-negative"
         )
     zero = array.sum(axis=-1) <= 0
     if zero.any():
         index = tuple(int(i) for i in np.argwhere(zero)[0])
         raise ValueError(
-            f"{_index_text('weights', index)} are all zero: at least one cluster needs weight"
+            f"{_index_text(name, index)} are all zero: at least one cluster needs weight"
         )
     return array

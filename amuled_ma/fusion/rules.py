@@ -11,7 +11,9 @@ looks the rule up and calls it once for the whole batch.
 
 - ``"bjs-dst"``: Xiao (2019) BJS divergence + Deng-entropy weighting + Dempster's rule
   (see :mod:`amuled_ma.fusion.xiao`), the AMULED arbiter. Closed form
-  ``WAE^k / sum(WAE^k)`` for beliefs over actions (singleton focal elements).
+  ``WAE^k / sum(WAE^k)`` for beliefs over actions (singleton focal elements). Takes an
+  optional member ``prior`` that multiplies Xiao's credibility (learned from people by
+  ``amuled study fit-weights``); no prior is the paper's rule, bit for bit.
 - ``"mean"``: weighted average ``sum_i w_i m_i / sum_i w_i`` (``weights`` default 1).
   This is the paper's "weight_average" baseline.
 - ``"max"``: per-action maximum over clusters, renormalised:
@@ -45,7 +47,8 @@ def geometric(beliefs, *, weights, param, diagnostics):
 
 A rule receives the validated float64 ``beliefs`` ``(..., k, n)`` and the keywords
 ``weights`` (``(..., k)`` or ``None``), ``param`` (the text after ``:`` in the rule name,
-or ``None``) and ``diagnostics`` (bool). It returns the fused ``(..., n)`` array, or a
+or ``None``) and ``diagnostics`` (bool); a rule registered with ``takes_prior=True`` also
+receives ``prior`` (``(..., k)`` or ``None``). It returns the fused ``(..., n)`` array, or a
 :class:`~amuled_ma.fusion.xiao.FusionResult`. When diagnostics are requested and a rule
 returns a plain array, :func:`fuse` adds generic ones: uniform ``weights``, Xiao's
 ``credibility`` and ``entropy`` of the inputs, and no ``conflicts``.
@@ -53,6 +56,7 @@ returns a plain array, :func:`fuse` adds generic ones: uniform ``weights``, Xiao
 ## Version History
 
 - v0: first version (issue 2).
+- v0.1: ``fuse(..., prior=rho)`` for ``bjs-dst`` (issue 28); no prior is unchanged.
 """
 
 from __future__ import annotations
@@ -65,7 +69,7 @@ from typing import Any
 import numpy as np
 
 from amuled_ma.fusion._validate import check_rows, check_weights
-from amuled_ma.fusion.xiao import FusionResult, _measures, bjs_dst
+from amuled_ma.fusion.xiao import FusionResult, _measures, bjs_dst, check_prior
 
 __all__ = ["RULES", "RuleSpec", "fuse", "register_rule", "unregister_rule"]
 
@@ -85,6 +89,7 @@ class RuleSpec:
         takes_weights: whether the rule accepts ``weights``.
         takes_param: whether the rule needs a ``:param`` suffix (``"single:2"``).
         summary: first line of the function's docstring.
+        takes_prior: whether the rule accepts a member ``prior`` (``bjs-dst``).
 
     """
 
@@ -93,6 +98,7 @@ class RuleSpec:
     takes_weights: bool = False
     takes_param: bool = False
     summary: str = ""
+    takes_prior: bool = False
 
 
 _REGISTRY: dict[str, RuleSpec] = {}
@@ -101,7 +107,12 @@ RULES: Mapping[str, RuleSpec] = MappingProxyType(_REGISTRY)
 
 
 def register_rule(
-    name: str, *, takes_weights: bool = False, takes_param: bool = False, replace: bool = False
+    name: str,
+    *,
+    takes_weights: bool = False,
+    takes_param: bool = False,
+    replace: bool = False,
+    takes_prior: bool = False,
 ) -> Callable[[RuleFunc], RuleFunc]:
     """Register the decorated function as the fusion rule ``name``.
 
@@ -111,6 +122,9 @@ def register_rule(
             weights to it is an error.
         takes_param: the rule is selected as ``"name:<param>"`` and needs the param.
         replace: allow replacing an existing rule of that name.
+        takes_prior: the rule accepts a member ``prior`` (it is then called with the
+            keyword ``prior``, a validated ``(..., k)`` array or None); otherwise passing
+            a prior to it is an error.
 
     Returns:
         The decorator; it returns the function unchanged.
@@ -126,7 +140,7 @@ def register_rule(
         if name in _REGISTRY and not replace:
             raise ValueError(f"fusion rule {name!r} is already registered (pass replace=True)")
         summary = (func.__doc__ or "").strip().splitlines()[0] if func.__doc__ else ""
-        _REGISTRY[name] = RuleSpec(name, func, takes_weights, takes_param, summary)
+        _REGISTRY[name] = RuleSpec(name, func, takes_weights, takes_param, summary, takes_prior)
         return func
 
     return decorator
@@ -179,6 +193,7 @@ def fuse(
     rule: str = "bjs-dst",
     *,
     weights: Any = None,
+    prior: Any = None,
     return_diagnostics: bool = False,
 ) -> np.ndarray | FusionResult:
     """Fuse the beliefs of ``k`` moral clusters into one belief over the actions.
@@ -191,6 +206,11 @@ def fuse(
             ``"vote"``, ``"single:<i>"``, or one added with :func:`register_rule`.
         weights: optional per-cluster weights, broadcastable to ``(..., k)``
             (``"mean"`` and ``"vote"`` only); non-negative, not all zero.
+        prior: optional prior reliability ``rho`` of each cluster, broadcastable to
+            ``(..., k)`` (``"bjs-dst"`` only); non-negative, not all zero, any scale. It
+            multiplies Xiao's adjusted credibility, ``w_i ∝ rho_i · Crd_i · IV_i``
+            (``docs/fusion.md``, "A prior on the members"). None, or a prior equal for
+            every cluster, gives the paper's fusion bit for bit.
         return_diagnostics: return a :class:`~amuled_ma.fusion.xiao.FusionResult` with
             ``fused`` and ``weights``, ``credibility``, ``entropy`` ``(..., k)`` and
             ``conflicts`` ``(..., k - 1)`` (``bjs-dst``; empty for other rules).
@@ -200,7 +220,8 @@ def fuse(
         ``FusionResult`` when ``return_diagnostics`` is true.
 
     Raises:
-        ValueError: unknown rule; weights given to a rule that takes none; bad shape; a row
+        ValueError: unknown rule; weights or a prior given to a rule that takes none;
+            a bad prior (negative, all zero, wrong shape); bad shape; a row
             with NaN/inf or a negative entry or that does not sum to 1 (the message names
             the index, e.g. ``beliefs[7, 2]``).
 
@@ -243,7 +264,17 @@ def fuse(
         if not spec.takes_weights:
             raise ValueError(f"fusion rule {rule!r} takes no weights")
         w = check_weights(weights, m.shape[:-1])
-    out = spec.func(m, weights=w, param=param, diagnostics=return_diagnostics)
+    extra: dict[str, Any] = {}
+    if prior is not None:
+        if not spec.takes_prior:
+            raise ValueError(
+                f"fusion rule {rule!r} takes no prior: a member prior multiplies Xiao's "
+                "credibility, use rule 'bjs-dst'"
+            )
+        extra["prior"] = check_prior(prior, m.shape[:-1])
+    elif spec.takes_prior:
+        extra["prior"] = None
+    out = spec.func(m, weights=w, param=param, diagnostics=return_diagnostics, **extra)
     fused = out.fused if isinstance(out, FusionResult) else out
     if fused.shape != m.shape[:-2] + m.shape[-1:]:
         raise ValueError(
@@ -269,10 +300,10 @@ def _share(fused: np.ndarray, contribution: np.ndarray) -> np.ndarray:
     return (part * fused[..., None, :]).sum(axis=-1)
 
 
-@register_rule("bjs-dst")
-def _bjs_dst_rule(beliefs, *, weights, param, diagnostics):
+@register_rule("bjs-dst", takes_prior=True)
+def _bjs_dst_rule(beliefs, *, weights, param, diagnostics, prior=None):
     """Xiao (2019) BJS divergence + belief entropy + Dempster's rule (AMULED)."""
-    return bjs_dst(beliefs, diagnostics)
+    return bjs_dst(beliefs, diagnostics, prior)
 
 
 @register_rule("mean", takes_weights=True)

@@ -16,11 +16,17 @@ steps, each calling rsl-rl's own method:
 Without a base policy (:meth:`anchor_to` never called: base training) it is rsl-rl's PPO
 with CleanRL's Adam (``eps = 1e-5``) and critic initialisation. Everything else (storage,
 returns, the update, checkpoints) is rsl-rl's, unchanged.
+
+Three options (off by default) switch an rsl-rl habit to the CleanRL loop the AMULED
+authors fine-tuned with (:mod:`amuled_ma.learn.ppo_options`): ``grad_clip = "joint"`` (one
+gradient norm over actor and critic), ``reshuffle_each_epoch`` (a new mini-batch partition
+in every epoch) and ``bootstrap_time_outs = False`` (no value bootstrap at a truncation).
 """
 
 from __future__ import annotations
 
 import copy
+import math
 from itertools import chain
 from typing import Any, Literal
 
@@ -30,10 +36,15 @@ from tensordict import TensorDict
 
 from amuled_ma.learn.anchors import EpisodeWindowKL, per_sample_kl
 from amuled_ma.learn.distribution import orthogonal_init
+from amuled_ma.learn.ppo_options import EpochShuffledStorage, clip_jointly
 
 #: ``per_sample``: the paper's ``log pi(a|s) - log pi_base(a|s)`` of each step;
 #: ``window``: the authors' mean over the episode so far (:class:`EpisodeWindowKL`).
 AnchorKind = Literal["per_sample", "window"]
+
+#: ``per_network``: rsl-rl clips the actor's and the critic's gradient norms apart;
+#: ``joint``: one norm over both (CleanRL, :func:`~amuled_ma.learn.ppo_options.clip_jointly`).
+GradClip = Literal["per_network", "joint"]
 
 
 def adam(params: Any, lr: float, eps: float) -> torch.optim.Optimizer:
@@ -59,7 +70,17 @@ class AnchoredPPO(PPO):
         lambda_kl: Weight of the anchor in the reward.
         anchor: Which KL term (:data:`AnchorKind`).
         adam_eps: Adam's ``eps`` (CleanRL: ``1e-5``; torch's default is ``1e-8``).
+        grad_clip: ``per_network`` (rsl-rl) or ``joint`` (CleanRL: ``max_grad_norm`` bounds
+            the norm of actor and critic gradients together; rsl-rl's own two clips are
+            handed ``inf`` and scale by exactly 1).
+        reshuffle_each_epoch: Draw a new mini-batch partition in every epoch (CleanRL)
+            instead of one per update (rsl-rl).
+        bootstrap_time_outs: Add ``gamma * V(s)`` to the reward of a step that ends by the
+            time limit (rsl-rl); False treats a truncation as a termination (CleanRL).
         **kwargs: rsl-rl's :class:`~rsl_rl.algorithms.PPO` arguments.
+
+    Raises:
+        ValueError: ``anchor`` or ``grad_clip`` is not one of its choices.
 
     """
 
@@ -72,11 +93,22 @@ class AnchoredPPO(PPO):
         lambda_kl: float = 0.0,
         anchor: AnchorKind = "per_sample",
         adam_eps: float = 1e-5,
+        grad_clip: GradClip = "per_network",
+        reshuffle_each_epoch: bool = False,
+        bootstrap_time_outs: bool = True,
         **kwargs: Any,
     ) -> None:
-        super().__init__(actor, critic, storage, **kwargs)
         if anchor not in ("per_sample", "window"):
             raise ValueError(f"anchor: expected 'per_sample' or 'window', got {anchor!r}")
+        if grad_clip not in ("per_network", "joint"):
+            raise ValueError(f"grad_clip: expected 'per_network' or 'joint', got {grad_clip!r}")
+        joint_norm = None
+        if grad_clip == "joint":
+            joint_norm = float(kwargs.get("max_grad_norm", 1.0))  # rsl-rl's default: 1.0
+            kwargs["max_grad_norm"] = math.inf  # rsl-rl's per-network clips: a factor of 1
+        if reshuffle_each_epoch:
+            storage = EpochShuffledStorage.like(storage)
+        super().__init__(actor, critic, storage, **kwargs)
         # CleanRL's initialisation of the critic (rsl-rl's actor gets it from the
         # distribution's init_mlp_weights) and CleanRL's Adam.
         orthogonal_init(self.critic, last_std=1.0)
@@ -85,6 +117,11 @@ class AnchoredPPO(PPO):
             lr=self.learning_rate,
             eps=adam_eps,
         )
+        self.grad_clip: GradClip = grad_clip
+        self.joint_max_grad_norm = joint_norm
+        if joint_norm is not None:
+            clip_jointly(self.optimizer, joint_norm)
+        self.bootstrap_time_outs = bool(bootstrap_time_outs)
         self.lambda_kl = float(lambda_kl)
         self.anchor_kind: AnchorKind = anchor
         self.base_actor: Any | None = None
@@ -133,11 +170,23 @@ class AnchoredPPO(PPO):
             self.base_actor(obs)
             logp_base = self.base_actor.get_output_log_prob(actions).reshape(-1)
             logp = self.transition.actions_log_prob.reshape(-1)
-            if self.window is not None:
-                self._anchor = self.window.step(logp, logp_base)
-            else:
-                self._anchor = per_sample_kl(logp, logp_base)
+            self._anchor = self.anchor_of(logp, logp_base)
         return actions
+
+    def anchor_of(self, logp: torch.Tensor, logp_base: torch.Tensor) -> torch.Tensor:
+        """The recipe's anchor of this step, from the taken actions' log-probabilities.
+
+        Args:
+            logp: ``[N]`` log-probabilities under the fine-tuned policy.
+            logp_base: ``[N]`` the same actions under the base policy.
+
+        Returns:
+            ``[N]``: the authors' window KL (``anchor = "window"``) or the per-sample KL.
+
+        """
+        if self.window is not None:
+            return self.window.step(logp, logp_base)
+        return per_sample_kl(logp, logp_base)
 
     def process_env_step(
         self,
@@ -146,7 +195,13 @@ class AnchoredPPO(PPO):
         dones: torch.Tensor,
         extras: dict[str, Any],
     ) -> None:
-        """Subtract ``lambda_KL * anchor`` from the MDP's reward, then rsl-rl's step."""
+        """Subtract ``lambda_KL * anchor`` from the MDP's reward, then rsl-rl's step.
+
+        Without ``bootstrap_time_outs`` rsl-rl is not shown the ``time_outs`` of
+        ``extras``: a truncated step is then closed like a terminated one (CleanRL).
+        """
+        if not self.bootstrap_time_outs and "time_outs" in extras:
+            extras = {k: v for k, v in extras.items() if k != "time_outs"}
         anchor = self._anchor
         if anchor is not None:
             rewards = rewards - self.lambda_kl * anchor

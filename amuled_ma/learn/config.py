@@ -20,6 +20,14 @@ ANCHORED_PPO = "amuled_ma.learn.anchored_ppo:AnchoredPPO"
 #: ``module:Class`` name of our categorical distribution, resolved by rsl-rl.
 CATEGORICAL = "amuled_ma.learn.distribution:CategoricalDistribution"
 
+#: :class:`AnchoredPPO`'s CleanRL options and their defaults (rsl-rl's behaviour); a
+#: configuration names one only when it differs, so the defaults' configs stay as they were.
+PPO_OPTION_DEFAULTS: dict[str, Any] = {
+    "grad_clip": "per_network",
+    "reshuffle_each_epoch": False,
+    "bootstrap_time_outs": True,
+}
+
 
 def rsl_rl_config(
     ppo: PPOConfig,
@@ -30,6 +38,7 @@ def rsl_rl_config(
     save_interval: int = 100,
     lambda_kl: float = 0.0,
     anchor: str = "per_sample",
+    **ppo_options: Any,
 ) -> dict[str, Any]:
     """Return an rsl-rl 5.x ``train_cfg`` dict for a 2-layer categorical actor-critic.
 
@@ -41,11 +50,21 @@ def rsl_rl_config(
         save_interval: Iterations between checkpoints.
         lambda_kl: Weight of a fine-tune's KL anchor (:class:`AnchoredPPO`).
         anchor: The anchor's KL term, ``per_sample`` or ``window`` (the authors' recipe).
+        **ppo_options: :data:`PPO_OPTION_DEFAULTS`' keys (``grad_clip``,
+            ``reshuffle_each_epoch``, ``bootstrap_time_outs``); a value equal to its
+            default is left out of the configuration.
 
     Returns:
         The configuration dict (pass a deep copy to rsl-rl).
 
+    Raises:
+        TypeError: An unknown key in ``ppo_options``.
+
     """
+    unknown = sorted(set(ppo_options) - set(PPO_OPTION_DEFAULTS))
+    if unknown:
+        raise TypeError(f"rsl_rl_config: unknown PPO option(s) {', '.join(unknown)}")
+    options = {k: v for k, v in ppo_options.items() if v != PPO_OPTION_DEFAULTS[k]}
     model = {
         "class_name": "rsl_rl.models:MLPModel",
         "hidden_dims": list(ppo.hidden_dims),
@@ -83,6 +102,7 @@ def rsl_rl_config(
             "schedule": "fixed",
             "desired_kl": None,
             "normalize_advantage_per_mini_batch": ppo.normalize_advantage_per_mini_batch,
+            **options,
         },
     }
 

@@ -168,6 +168,9 @@ class Trainer:
                 save_interval=ft.save_interval,
                 lambda_kl=ft.lambda_kl,
                 anchor="window" if ft.recipe == "authors" else "per_sample",
+                grad_clip=ft.grad_clip,
+                reshuffle_each_epoch=ft.reshuffle_each_epoch,
+                bootstrap_time_outs=ft.bootstrap_time_outs,
             )
             shaping = 0.0
         else:

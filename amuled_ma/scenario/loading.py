@@ -11,6 +11,7 @@ from amuled_ma.errors import ScenarioError
 from amuled_ma.resources import read_text, scenarios_dir
 from amuled_ma.scenario.messages import unknown_top_level
 from amuled_ma.scenario.model import Scenario
+from amuled_ma.scenario.panel_weights import member_prior, read_panel_weights
 from amuled_ma.scenario.paths import check_path_component
 from amuled_ma.scenario.sections import _validate
 
@@ -79,16 +80,43 @@ def load_scenario(name_or_path: str | os.PathLike[str]) -> Scenario:
         The validated scenario.
 
     Raises:
-        ScenarioError: The file is missing, is not valid TOML, or fails validation.
+        ScenarioError: The file is missing, is not valid TOML, or fails validation; or its
+            ``[feedback].weights`` file is missing, malformed or weighs other members than
+            ``[feedback].clusters``.
 
     """
     path = resolve_scenario_path(name_or_path)
     text = read_text(path, "scenario", ScenarioError)
     data = parse_toml(text, path, "scenario", ScenarioError, MAX_SCENARIO_CHARS)
     try:
-        return scenario_from_dict(data, path=path)
+        scenario = scenario_from_dict(data, path=path)
     except RecursionError:
         raise ScenarioError(_too_deep(path, None, "scenario")) from None
+    check_weights_file(scenario)
+    return scenario
+
+
+def check_weights_file(scenario: Scenario) -> tuple[float, ...] | None:
+    """Check the scenario's ``[feedback].weights`` file against its panel, if it names one.
+
+    Args:
+        scenario: The scenario (the file's path is resolved against its folder).
+
+    Returns:
+        The prior in ``[feedback].clusters`` order (summing to 1), or None without a file.
+
+    Raises:
+        ScenarioError: The file is missing, malformed, or names other members than
+            ``[feedback].clusters``; one line naming the scenario, the file and the member.
+
+    """
+    value = scenario.feedback.weights
+    if not value.strip():
+        return None
+    where = f"{scenario.path or scenario.name}: key [feedback].weights"
+    path = scenario.resolve(value)
+    weights = read_panel_weights(path, where=where)
+    return member_prior(weights, scenario.feedback.clusters, where=where, path=path)
 
 
 #: Most characters a scenario file may hold (a shipped one holds about 10,000).

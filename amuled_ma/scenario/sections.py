@@ -30,6 +30,7 @@ from amuled_ma.scenario.memory import MAX_ENV_STEPS, MAX_SEED, check_budget, che
 from amuled_ma.scenario.messages import BUILT_IN_CODE, SECTIONS, scenario_error
 from amuled_ma.scenario.paths import check_path_component
 from amuled_ma.scenario.ranges import found_name as _found_name
+from amuled_ma.scenario.task_options import check_task_options
 from amuled_ma.urls import normalize_host, normalize_hosts
 
 #: The five moral clusters of the paper (Table 1), in the recordings' order.
@@ -41,6 +42,8 @@ FeedbackSource = Literal["replay", "ollama", "rules"]
 MissPolicy = Literal["uniform", "fallback", "error", "zero"]
 #: ``[finetune].recipe``: how the KL anchor enters the fine-tuning reward.
 Recipe = Literal["equation", "authors"]
+#: ``[finetune].grad_clip``: rsl-rl's clipping of each network apart, or CleanRL's joint norm.
+GradClip = Literal["per_network", "joint"]
 #: ``[ppo].activation``: rsl-rl's names of the hidden activation.
 Activation = Literal["tanh", "relu", "elu", "selu", "lrelu", "sigmoid", "identity"]
 #: ``[evaluation].modes``: action selection of the evaluation episodes.
@@ -122,7 +125,8 @@ class TaskConfig(_Section):
             also a file name (prompt templates), so one safe path component.
         seed: Base random seed of the run.
         max_steps: Episode step limit; 0 keeps the task's own default.
-        options: Extra keyword options passed to the task constructor.
+        options: Extra keyword options passed to the task constructor, checked against
+            the task's option model (:mod:`amuled_ma.scenario.task_options`).
 
     """
 
@@ -142,8 +146,12 @@ class TaskConfig(_Section):
 
     @field_validator("options")
     @classmethod
-    def _options_are_finite(cls, value: Any, info: ValidationInfo) -> Any:
-        return _finite_table("task", value, info)
+    def _options_are_the_tasks(cls, value: Any, info: ValidationInfo) -> Any:
+        _finite_table("task", value, info)
+        name = info.data.get("name")  # validated before: absent when it was refused
+        if isinstance(name, str):  # before any folder: the task itself refuses them late
+            check_task_options(name, value, _source(info))
+        return value
 
 
 class PPOConfig(_Section):
@@ -269,6 +277,14 @@ class FinetuneConfig(_Section):
             authors' scripts compute: the KL between the log-softmax over time of the
             taken actions' log-probabilities since the episode, or the iteration, began;
             see :mod:`amuled_ma.learn.anchors`).
+        grad_clip: ``"per_network"`` (rsl-rl: the actor's and the critic's gradients are
+            each clipped to ``[ppo].max_grad_norm``) or ``"joint"`` (CleanRL, the authors'
+            scripts: one norm over both; :mod:`amuled_ma.learn.ppo_options`).
+        reshuffle_each_epoch: Draw a new mini-batch partition in every epoch (CleanRL)
+            instead of one per update, reused by every epoch (rsl-rl).
+        bootstrap_time_outs: Bootstrap the value at a truncation (rsl-rl adds
+            ``gamma * V(s)`` to the reward of a step that hits the time limit); False
+            closes a truncated episode like a terminated one (CleanRL).
 
     """
 
@@ -294,6 +310,9 @@ class FinetuneConfig(_Section):
     env_reward_coef: float = Field(0.0, ge=0, description=_WEIGHT_WHY)
     save_interval: int = Field(100, ge=1, description=_SAVE_WHY)
     recipe: Recipe = "equation"
+    grad_clip: GradClip = "per_network"
+    reshuffle_each_epoch: bool = False
+    bootstrap_time_outs: bool = True
 
     @model_validator(mode="after")
     def _rollouts_fit_and_run_is_capped(self, info: ValidationInfo) -> FinetuneConfig:
@@ -410,6 +429,13 @@ class FeedbackConfig(_Section):
             :data:`amuled_ma.fusion.RULES` (``bjs-dst``, ``mean``, ``single:2``, ...). A
             plain string, not a ``Literal``: rules can be registered at run time
             (:func:`amuled_ma.fusion.register_rule`) and take a parameter after ``:``.
+        weights: A panel weights file (``amuled study fit-weights``; relative to the
+            scenario file, or absolute): a prior on the members that multiplies their
+            credibility in the ``bjs-dst`` fusion of the ``amuled`` variant (the
+            ``cluster:``, ``moral`` and ``agg:`` baselines ignore it). Empty: the paper's
+            fixed weights. Checked when the scenario file is loaded and when the panel is
+            planned (:mod:`amuled_ma.scenario.panel_weights`: the file's members must be
+            the panel's).
         ollama: Further keyword arguments of
             :class:`~amuled_ma.beliefs.ollama.OllamaSource` (``num_predict``, ``num_ctx``,
             ``reasoning``, ``seed``, ``retries``, ...), checked against its signature.
@@ -453,6 +479,7 @@ class FeedbackConfig(_Section):
     store: str = "beliefs.sqlite"
     clusters: list[str] = Field(default_factory=lambda: list(PAPER_CLUSTERS))
     fusion: str = "bjs-dst"
+    weights: str = ""
     ollama: dict[str, Any] = Field(default_factory=dict)
     agents: dict[str, AgentSpec] = Field(default_factory=dict)
     clusters_dirs: list[str] = Field(default_factory=list)
@@ -484,6 +511,18 @@ class FeedbackConfig(_Section):
                     'or a pool with hosts = [...] and host = "" (list that server in hosts '
                     'too; on the command line: --set feedback.host="")'
                 )
+        return value
+
+    @field_validator("weights")
+    @classmethod
+    def _weights_need_bjs_dst(cls, value: str, info: ValidationInfo) -> str:
+        fusion = info.data.get("fusion")
+        if value.strip() and fusion is not None and fusion != "bjs-dst":
+            raise ScenarioError(
+                f"{_source(info)}: key [feedback].weights ({value!r}) is a prior on the "
+                f"members of the bjs-dst fusion, but [feedback].fusion is {fusion!r}; set "
+                'fusion = "bjs-dst" or drop weights (weights = "")'
+            )
         return value
 
     @field_validator("ollama")

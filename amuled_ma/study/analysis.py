@@ -1,10 +1,12 @@
-"""The numbers of a study: win rates, Bradley-Terry strengths, reliability, agreement.
+"""The numbers of a pairs study: win rates, Bradley-Terry, acceptability, reliability, agreement.
 
 Each function takes plain data (the study and its answers) and returns plain numbers;
 :mod:`amuled_ma.study.report` writes them down. Libraries do the statistics: ``choix``
 (Bradley-Terry by iterative Luce spectral ranking, Maystre and Grossglauser 2015),
 ``krippendorff`` (Krippendorff's alpha); the intervals are Wilson's (win rates) and a
-bootstrap over participants (strengths).
+bootstrap over participants (strengths, and the mean acceptability ratings: a participant's
+ratings are not independent of each other, so participants are resampled, not ratings).
+The expert mode's numbers are in :mod:`amuled_ma.study.expert`.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from amuled_ma.study.answers import Answer, read_answers
+from amuled_ma.study.answers import Answer, read_answers, read_expert_answers
 from amuled_ma.study.model import ANSWERS_FILE, Item, Study, StudyError, read_study
 
 Z95 = 1.959963984540054
@@ -126,23 +128,91 @@ def bootstrap_strengths(
     return np.percentile(stack, 2.5, axis=0), np.percentile(stack, 97.5, axis=0)
 
 
-def reliability(pairs: Sequence[tuple[Answer, Item]]) -> float:
-    """Krippendorff's alpha (nominal) of the participants' choices (A or B) over the pairs."""
+def nominal_alpha(values: dict[tuple[str, str], float]) -> float:
+    """Krippendorff's alpha (nominal) of ``{(rater, unit): value}`` (nan when undefined).
+
+    Undefined: fewer than two raters, no unit, or a single value in the whole data.
+    """
     import krippendorff
 
-    people = sorted({a.participant for a, _ in pairs})
-    items = sorted({i.id for _, i in pairs})
-    if len(people) < 2 or not items:
+    raters = sorted({r for r, _ in values})
+    units = sorted({u for _, u in values})
+    if len(raters) < 2 or not units:
         return math.nan
-    rows = {p: r for r, p in enumerate(people)}
-    cols = {i: c for c, i in enumerate(items)}
-    data = np.full((len(people), len(items)), np.nan)
-    for answer, item in pairs:
-        data[rows[answer.participant], cols[item.id]] = 0.0 if answer.choice == "A" else 1.0
+    rows = {p: r for r, p in enumerate(raters)}
+    cols = {i: c for c, i in enumerate(units)}
+    data = np.full((len(raters), len(units)), np.nan)
+    for (rater, unit), value in values.items():
+        data[rows[rater], cols[unit]] = value
     try:
         return float(krippendorff.alpha(reliability_data=data, level_of_measurement="nominal"))
     except ValueError:  # a single value in the whole data: alpha is undefined
         return math.nan
+
+
+def reliability(pairs: Sequence[tuple[Answer, Item]]) -> float:
+    """Krippendorff's alpha (nominal) of the participants' choices (A or B) over the pairs."""
+    return nominal_alpha({(a.participant, i.id): 0.0 if a.choice == "A" else 1.0 for a, i in pairs})
+
+
+@dataclass(frozen=True)
+class MeanInterval:
+    """A mean of ratings with its 95% bootstrap interval over the people who gave them.
+
+    Attributes:
+        mean: The mean of all the ratings (nan without any).
+        low: 2.5th percentile of the resampled means (nan with fewer than two people).
+        high: 97.5th percentile.
+        n: Ratings.
+        people: People who gave them.
+
+    """
+
+    mean: float
+    low: float
+    high: float
+    n: int
+    people: int
+
+
+def bootstrap_mean(
+    by_person: dict[str, list[float]], *, resamples: int = 2000, seed: int = 0
+) -> MeanInterval:
+    """The mean of everyone's ratings and its 95% percentile bootstrap interval.
+
+    Each resample draws as many people as there are, with replacement, and takes the mean
+    of all the ratings of the people drawn (a person drawn twice counts twice).
+    """
+    people = sorted(p for p, values in by_person.items() if values)
+    sums = np.array([float(np.sum(by_person[p])) for p in people])
+    counts = np.array([len(by_person[p]) for p in people], dtype=float)
+    n = int(counts.sum())
+    if not people:
+        return MeanInterval(math.nan, math.nan, math.nan, 0, 0)
+    mean = float(sums.sum() / counts.sum())
+    if len(people) < 2:
+        return MeanInterval(mean, math.nan, math.nan, n, 1)
+    draws = np.random.default_rng(seed).integers(len(people), size=(resamples, len(people)))
+    means = sums[draws].sum(axis=1) / counts[draws].sum(axis=1)
+    low, high = np.percentile(means, [2.5, 97.5])
+    return MeanInterval(mean, float(low), float(high), n, len(people))
+
+
+def acceptability(
+    variants: Sequence[str], pairs: Sequence[tuple[Answer, Item]], *, seed: int = 0
+) -> dict[str, MeanInterval]:
+    """Each variant's mean acceptability rating, with :func:`bootstrap_mean`'s interval.
+
+    A rating counts for the variant that took the rated option; answers stored without
+    ratings (before ratings were asked) are left out.
+    """
+    ratings: dict[str, dict[str, list[float]]] = {v: defaultdict(list) for v in variants}
+    for answer, item in pairs:
+        for option in item.options:
+            rating = answer.rating_a if option.label == "A" else answer.rating_b
+            if rating is not None and option.variant in ratings:
+                ratings[option.variant][answer.participant].append(float(rating))
+    return {v: bootstrap_mean(ratings[v], seed=seed) for v in variants}
 
 
 def majorities(pairs: Sequence[tuple[Answer, Item]]) -> dict[str, tuple[str, int, int]]:
@@ -213,24 +283,53 @@ def load(folder: Path) -> tuple[Study, list[Answer]]:
 CSV_COLUMNS = (
     "participant", "item", "kind", "choice", "chosen_variant", "variant_a", "variant_b",
     "action_a", "action_b", "correct", "ms", "received", "task", "run", "episode", "step",
+    "rating_a", "rating_b",
+)  # fmt: skip
+#: An expert study's CSV: one row per expert, state and action.
+EXPERT_CSV_COLUMNS = (
+    "participant", "item", "action", "action_name", "acceptable", "framework", "clarity",
+    "ms", "received", "task", "run", "episode", "step",
 )  # fmt: skip
 
 
+def _blank(value: object) -> object:
+    return "" if value is None else value
+
+
 def answers_csv(folder: Path) -> str:
-    """Every answer, one row each, with what was shown (for R, pandas, spreadsheets)."""
+    """Every answer, one row each, with what was shown (for R, pandas, spreadsheets).
+
+    A pairs study: one row per answer, with both ratings (empty where none was stored). An
+    expert study: one row per expert, state and action (:data:`EXPERT_CSV_COLUMNS`).
+    """
     study, answers = load(folder)
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
+    if study.mode == "expert":
+        writer.writerow(EXPERT_CSV_COLUMNS)
+        for e in read_expert_answers(Path(folder) / ANSWERS_FILE):
+            item = study.item(e.item)
+            if item is None:
+                continue
+            names = study.action_names.get(item.task, [])
+            for j in e.judgements:
+                writer.writerow(
+                    [e.participant, e.item, j.action, names[j.action] if j.action < len(names)
+                     else "", int(j.acceptable), j.framework, _blank(e.clarity), f"{e.ms:.0f}",
+                     f"{e.received:.3f}", item.task, study.runs[item.run], item.episode,
+                     item.step]
+                )  # fmt: skip
+        return buffer.getvalue()
     writer.writerow(CSV_COLUMNS)
     for a in answers:
         item = study.item(a.item)
-        if item is None:
+        if item is None or item.kind == "expert":
             continue
         oa, ob = item.options
         writer.writerow(
             [a.participant, a.item, item.kind, a.choice, a.variant or "", oa.variant or "",
-             ob.variant or "", oa.action_name, ob.action_name,
-             "" if a.correct is None else a.correct, f"{a.ms:.0f}", f"{a.received:.3f}",
-             item.task, study.runs[item.run], item.episode, item.step]
+             ob.variant or "", oa.action_name, ob.action_name, _blank(a.correct),
+             f"{a.ms:.0f}", f"{a.received:.3f}", item.task, study.runs[item.run],
+             item.episode, item.step, _blank(a.rating_a), _blank(a.rating_b)]
         )  # fmt: skip
     return buffer.getvalue()

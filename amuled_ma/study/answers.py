@@ -4,6 +4,14 @@ Every answer is committed before the server replies (``synchronous=FULL``), so a
 the participant saw accepted survives the server being killed. A participant answers an
 item once: the table's primary key ``(participant, item)`` refuses a second answer, and
 the refusal is kept in ``refusals`` (with the reason), as is every tampered form.
+
+A pair's answer holds the choice and the two acceptability ratings (``rating_a``,
+``rating_b``) in one row. An expert's answer is one row of ``expert_answers`` (the clarity
+of the panel's reasons) and one row of ``expert_actions`` per action, written in one
+transaction. Schema versions (``PRAGMA user_version``): 0 or 1, the first (no ratings, no
+expert tables); 2, this one. Opening a store migrates a file of version 1 in place (the
+columns and tables are added, the rows kept); reading one that was never migrated gives
+its answers with no ratings and no expert answers.
 """
 
 from __future__ import annotations
@@ -30,7 +38,25 @@ CREATE TABLE IF NOT EXISTS answers (
     correct INTEGER,               -- attention checks: 1 when the instructed option was chosen
     ms REAL NOT NULL,              -- time taken, measured by the page (jsPsych's rt)
     received REAL NOT NULL,        -- Unix time the server stored it
+    rating_a INTEGER,              -- acceptability of option A, 1..points (NULL: not asked)
+    rating_b INTEGER,              -- acceptability of option B
     PRIMARY KEY (participant, item)
+);
+CREATE TABLE IF NOT EXISTS expert_answers (
+    participant TEXT NOT NULL REFERENCES participants(id),
+    item TEXT NOT NULL,
+    clarity INTEGER,               -- how clear the panel's reasons are (NULL: none stated)
+    ms REAL NOT NULL,
+    received REAL NOT NULL,
+    PRIMARY KEY (participant, item)
+);
+CREATE TABLE IF NOT EXISTS expert_actions (
+    participant TEXT NOT NULL,
+    item TEXT NOT NULL,
+    action INTEGER NOT NULL,       -- the task's action index
+    acceptable INTEGER NOT NULL,   -- 1 acceptable, 0 not
+    framework TEXT NOT NULL,       -- the framework that justifies it, or 'none'
+    PRIMARY KEY (participant, item, action)
 );
 CREATE TABLE IF NOT EXISTS refusals (
     participant TEXT,
@@ -40,11 +66,19 @@ CREATE TABLE IF NOT EXISTS refusals (
     received REAL NOT NULL
 );
 """
+#: The schema's version (``PRAGMA user_version``).
+VERSION = 2
+#: Columns added to ``answers`` by version 2, with their types.
+RATING_COLUMNS = (("rating_a", "INTEGER"), ("rating_b", "INTEGER"))
 
 
 @dataclass(frozen=True)
 class Answer:
-    """One stored answer (a row of ``answers``)."""
+    """One stored answer to a pair or attention check (a row of ``answers``).
+
+    ``rating_a`` and ``rating_b`` are the acceptability ratings of options A and B (None:
+    stored before ratings were asked).
+    """
 
     participant: str
     item: str
@@ -53,6 +87,45 @@ class Answer:
     correct: int | None
     ms: float
     received: float
+    rating_a: int | None = None
+    rating_b: int | None = None
+
+
+@dataclass(frozen=True)
+class Judgement:
+    """An expert's judgement of one action: acceptable or not, and the framework cited."""
+
+    action: int
+    acceptable: bool
+    framework: str
+
+
+@dataclass(frozen=True)
+class ExpertAnswer:
+    """One expert's answer about a state (a row of ``expert_answers`` and its actions).
+
+    ``clarity`` is how clear the panel's reasons were (None where none was stated).
+    """
+
+    participant: str
+    item: str
+    clarity: int | None
+    judgements: tuple[Judgement, ...]
+    ms: float
+    received: float
+
+
+def _columns(db: sqlite3.Connection, table: str) -> set[str]:
+    return {str(row[1]) for row in db.execute(f"PRAGMA table_info({table})")}
+
+
+def _migrate(db: sqlite3.Connection) -> None:
+    """Bring a file of an earlier schema to :data:`VERSION` (its rows kept)."""
+    have = _columns(db, "answers")
+    for name, kind in RATING_COLUMNS:
+        if name not in have:
+            db.execute(f"ALTER TABLE answers ADD COLUMN {name} {kind}")
+    db.execute(f"PRAGMA user_version = {VERSION}")
 
 
 class AnswerStore:
@@ -71,6 +144,7 @@ class AnswerStore:
         self._db.execute("PRAGMA synchronous=FULL")
         self._db.execute("PRAGMA busy_timeout=10000")
         self._db.executescript(SCHEMA)
+        _migrate(self._db)
 
     def close(self) -> None:
         """Close the connection."""
@@ -109,10 +183,13 @@ class AnswerStore:
         return row is not None and secrets.compare_digest(str(row[0]), str(token))
 
     def answered(self, participant: str) -> list[str]:
-        """The items the participant has answered."""
+        """The items the participant has answered (pairs, attention checks, expert states)."""
         with self._lock:
             rows = self._db.execute(
-                "SELECT item FROM answers WHERE participant = ? ORDER BY received", (participant,)
+                "SELECT item, received FROM answers WHERE participant = ? UNION ALL "
+                "SELECT item, received FROM expert_answers WHERE participant = ? "
+                "ORDER BY received",
+                (participant, participant),
             ).fetchall()
         return [str(r[0]) for r in rows]
 
@@ -121,12 +198,44 @@ class AnswerStore:
         with self._lock:
             try:
                 self._db.execute(
-                    "INSERT INTO answers VALUES (?, ?, ?, ?, ?, ?, ?)",
+                    "INSERT INTO answers (participant, item, choice, variant, correct, ms, "
+                    "received, rating_a, rating_b) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
                     (answer.participant, answer.item, answer.choice, answer.variant,
-                     answer.correct, answer.ms, answer.received),
+                     answer.correct, answer.ms, answer.received, answer.rating_a,
+                     answer.rating_b),
                 )  # fmt: skip
             except sqlite3.IntegrityError:
                 return False
+            return True
+
+    def add_expert(self, answer: ExpertAnswer) -> bool:
+        """Store an expert's answer and its judgements in one transaction.
+
+        Committed before returning; False when the expert has answered that state already
+        (then nothing is stored).
+        """
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                self._db.execute(
+                    "INSERT INTO expert_answers (participant, item, clarity, ms, received) "
+                    "VALUES (?, ?, ?, ?, ?)",
+                    (answer.participant, answer.item, answer.clarity, answer.ms,
+                     answer.received),
+                )  # fmt: skip
+                self._db.executemany(
+                    "INSERT INTO expert_actions (participant, item, action, acceptable, "
+                    "framework) VALUES (?, ?, ?, ?, ?)",
+                    [(answer.participant, answer.item, j.action, int(j.acceptable), j.framework)
+                     for j in answer.judgements],
+                )  # fmt: skip
+            except sqlite3.IntegrityError:
+                self._db.execute("ROLLBACK")
+                return False
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
             return True
 
     def refuse(self, participant: str | None, item: str | None, choice: str | None, reason: str):
@@ -139,16 +248,50 @@ class AnswerStore:
 
 
 def read_answers(path: Path) -> list[Answer]:
-    """Every stored answer of a study's file, read-only (participant, then item order)."""
+    """Every stored answer of a study's file, read-only (participant, then item order).
+
+    A file of schema version 1 (no rating columns) reads with no ratings.
+    """
     db = sqlite3.connect(f"file:{Path(path)}?mode=ro", uri=True)
     try:
+        have = _columns(db, "answers")
+        ratings = ", ".join(n if n in have else "NULL" for n, _ in RATING_COLUMNS)
         rows = db.execute(
-            "SELECT participant, item, choice, variant, correct, ms, received FROM answers "
-            "ORDER BY participant, item"
+            f"SELECT participant, item, choice, variant, correct, ms, received, {ratings} "
+            "FROM answers ORDER BY participant, item"
         ).fetchall()
     finally:
         db.close()
     return [Answer(*row) for row in rows]
+
+
+def read_expert_answers(path: Path) -> list[ExpertAnswer]:
+    """Every expert answer of a study's file, read-only (participant, then item order).
+
+    A file without the expert tables (schema version 1) has none.
+    """
+    db = sqlite3.connect(f"file:{Path(path)}?mode=ro", uri=True)
+    try:
+        if not _columns(db, "expert_answers"):
+            return []
+        rows = db.execute(
+            "SELECT participant, item, clarity, ms, received FROM expert_answers "
+            "ORDER BY participant, item"
+        ).fetchall()
+        judged: dict[tuple[str, str], list[Judgement]] = {}
+        for pid, item, action, acceptable, framework in db.execute(
+            "SELECT participant, item, action, acceptable, framework FROM expert_actions "
+            "ORDER BY participant, item, action"
+        ):
+            judged.setdefault((pid, item), []).append(
+                Judgement(int(action), bool(acceptable), str(framework))
+            )
+    finally:
+        db.close()
+    return [
+        ExpertAnswer(pid, item, clarity, tuple(judged.get((pid, item), ())), ms, received)
+        for pid, item, clarity, ms, received in rows
+    ]
 
 
 def read_refusals(path: Path) -> list[tuple[str | None, str | None, str | None, str]]:

@@ -10,8 +10,13 @@ with NumPy's ``default_rng(seed)``; each shows its two decisions in a random ord
 ``B``), with no variant name. Attention checks (an instructed answer on a real state) are
 put at random places. Where a compared variant was fine-tuned on a panel, the panel's
 beliefs about each item's state are read from the run's belief store (read-only, as the
-viewer reads them) and kept for the analysis. The same runs, variants, items and seed give
-the same bytes.
+viewer reads them) and kept for the analysis, with each member's stated reason
+(:mod:`amuled_ma.study.reasons`). The same runs, variants, items and seed give the same bytes.
+
+In expert mode (``mode="expert"``) an item is a state, drawn from every distinct state the
+compared variants met: the expert sees all the task's actions and the panel's beliefs and
+reasons, and judges each action (acceptable or not, which framework justifies it) and how
+clear the reasons are. No attention checks are asked of experts.
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -45,12 +50,20 @@ from amuled_ma.study.model import (
     StudyError,
     write_study,
 )
+from amuled_ma.study.reasons import stated_reason
 
 #: Evaluation episodes replayed per variant (states met) unless asked otherwise.
 EPISODES = 3
 #: Decimals kept of a belief (stable bytes across machines).
 DECIMALS = 6
-TEMPLATE = Path(__file__).parent / "templates" / "consent.html"
+TEMPLATES = Path(__file__).parent / "templates"
+#: The consent page written into a new study folder, per mode.
+CONSENT_TEMPLATES = {
+    "pairs": TEMPLATES / "consent.html",
+    "expert": TEMPLATES / "consent_expert.html",
+}
+#: The study's modes.
+MODES = ("pairs", "expert")
 
 
 @dataclass
@@ -162,6 +175,47 @@ def _states_of_run(
     return states, actions, panel, action_names
 
 
+def _panel_view(found: tuple[str, Any, int] | None, names_of: list[str]) -> PanelView | None:
+    """The panel's answers about one state (``found``: feedback, answers, row)."""
+    if found is None:
+        return None
+    feedback, answers, u = found
+    return PanelView(
+        feedback=feedback,
+        agents=list(answers.agents),
+        rule=answers.rule,
+        beliefs=_round(answers.beliefs[u]),
+        statuses=[str(x) for x in answers.statuses[u]],
+        fused=_round(answers.fused[u]),
+        reasons=[stated_reason(raw, names_of) for raw in answers.raws[u]],
+    )
+
+
+def _frameworks() -> list[tuple[str, str]]:
+    """The moral frameworks an expert may cite: the clusters of the shipped registry."""
+    from amuled_ma.clusters.loader import default_registry
+
+    return [(c.name, c.title) for c in default_registry().panel()]
+
+
+def _check_arguments(names: list[str], items: int, mode: str, attention: int | None) -> None:
+    if mode not in MODES:
+        raise StudyError(f"--mode: expected one of {', '.join(MODES)}, found {mode!r}")
+    least = 2 if mode == "pairs" else 1
+    if len(names) < least:
+        raise StudyError(
+            f"--variants: expected at least {('one variant', 'two variants')[least - 1]} to "
+            f"compare, found {names}; e.g. --variants amuled,base"
+        )
+    if items < 1:
+        raise StudyError(f"--items: expected at least 1, found {items}")
+    if mode == "expert" and attention:
+        raise StudyError(
+            f"--attention: expert mode asks no attention checks, found {attention}; "
+            "leave --attention out with --mode expert"
+        )
+
+
 def build_study(
     runs: Sequence[Path],
     variants: Sequence[str],
@@ -172,37 +226,37 @@ def build_study(
     attention: int | None = None,
     episodes: int = EPISODES,
     force: bool = False,
+    mode: Literal["pairs", "expert"] = "pairs",
 ) -> Study:
     """Build a study folder (see the module docstring).
 
     Args:
         runs: Run folders (``amuled run`` / ``train`` + ``finetune``).
         variants: At least two variants to compare (``amuled``, ``base``, ``human``, or
-            folder names), present in every run.
+            folder names), present in every run; in expert mode one is enough (the
+            states they met are the items).
         out: The study folder to write.
-        items: Pairs to ask about (fewer when the policies differ in fewer states).
+        items: Pairs to ask about (fewer when the policies differ in fewer states); in
+            expert mode, states.
         seed: The draw's seed.
-        attention: Attention checks (default: one per ten pairs, at least one).
+        attention: Attention checks (default: one per ten pairs, at least one; none in
+            expert mode).
         episodes: Evaluation episodes replayed per variant to find states.
         force: Replace an existing study's ``study.json`` and pictures (an edited
             ``consent.html`` is kept either way).
+        mode: ``pairs`` (people choose and rate) or ``expert`` (experts judge every action).
 
     Returns:
         The :class:`Study` written.
 
     Raises:
-        StudyError: Fewer than two variants, a variant not found, no state where two
-            variants differ, or ``out`` holds a study and ``force`` is not set.
+        StudyError: Too few variants, a variant not found, no state where two variants
+            differ (pairs), attention checks asked in expert mode, an unknown mode, or
+            ``out`` holds a study and ``force`` is not set.
 
     """
     names = list(dict.fromkeys(variants))
-    if len(names) < 2:
-        raise StudyError(
-            f"--variants: expected at least two variants to compare, found {names}; "
-            "e.g. --variants amuled,base"
-        )
-    if items < 1:
-        raise StudyError(f"--items: expected at least 1, found {items}")
+    _check_arguments(names, items, mode, attention)
     out = Path(out)
     if (out / STUDY_FILE).exists() and not force:
         raise StudyError(f"{out}: holds a study already ({STUDY_FILE}); pass --force to rebuild")
@@ -223,6 +277,14 @@ def build_study(
             states.append(state)
             actions.append({name: int(run_actions[name][u]) for name in names})
             panels.append((panel[0], panel[1], u) if panel is not None else None)
+    rng = np.random.default_rng(seed)
+    if mode == "expert":
+        built, pictures = _expert_items(states, actions, panels, action_names, rng, items)
+        return _write(out, Study(
+            mode="expert", seed=int(seed), runs=[str(r) for r in runs], variants=names,
+            folders=folders, action_names=action_names, frameworks=_frameworks(),
+            items=built, candidates=len(states),
+        ), pictures)  # fmt: skip
     candidates = [
         (s, a, b)
         for s in range(len(states))
@@ -234,7 +296,6 @@ def build_study(
             f"the variants {', '.join(names)} take the same action in every state they met "
             f"({len(states)} states): nothing to compare; train them longer or compare others"
         )
-    rng = np.random.default_rng(seed)
     picks = rng.permutation(len(candidates))[: min(items, len(candidates))]
     n_att = max(1, len(picks) // 10) if attention is None else int(attention)
     kinds = ["pair"] * len(picks) + ["attention"] * n_att
@@ -270,18 +331,7 @@ def build_study(
                 f"This question checks that you are reading: whatever the situation, please "
                 f"choose option {expected}."
             )
-        panel_view = None
-        found = panels[s]
-        if found is not None and kinds[slot] == "pair":
-            feedback, answers, u = found
-            panel_view = PanelView(
-                feedback=feedback,
-                agents=list(answers.agents),
-                rule=answers.rule,
-                beliefs=_round(answers.beliefs[u]),
-                statuses=[str(x) for x in answers.statuses[u]],
-                fused=_round(answers.fused[u]),
-            )
+        panel_view = _panel_view(panels[s], names_of) if kinds[slot] == "pair" else None
         built.append(
             Item(
                 id=item_id,
@@ -311,6 +361,38 @@ def build_study(
         items=built,
         candidates=len(candidates),
     )
+    return _write(out, study, pictures)
+
+
+def _expert_items(
+    states: list[_State],
+    actions: list[dict[str, int]],
+    panels: list[tuple[str, Any, int] | None],
+    action_names: dict[str, list[str]],
+    rng: np.random.Generator,
+    items: int,
+) -> tuple[list[Item], dict[str, str]]:
+    """``items`` states drawn from those met, each with the panel's beliefs and reasons."""
+    built: list[Item] = []
+    pictures: dict[str, str] = {}
+    for position, s in enumerate(rng.permutation(len(states))[:items].tolist()):
+        item_id = f"q{position + 1:03d}"
+        state = states[s]
+        built.append(
+            Item(
+                id=item_id, kind="expert", run=state.run, task=state.task,
+                episode=state.episode, step=state.step, met_by=state.met_by,
+                obs=_round(state.obs), prompt=_prompt(state.task, state.prompt_vars),
+                picture=f"states/{item_id}.svg", policies=dict(actions[s]),
+                panel=_panel_view(panels[s], action_names[state.task]),
+            )
+        )  # fmt: skip
+        pictures[item_id] = state.svg
+    return built, pictures
+
+
+def _write(out: Path, study: Study, pictures: dict[str, str]) -> Study:
+    """Write the study folder: ``study.json``, the pictures, the consent page if absent."""
     out.mkdir(parents=True, exist_ok=True)
     if (out / "states").exists():
         shutil.rmtree(out / "states")
@@ -319,5 +401,5 @@ def build_study(
         (out / "states" / f"{item_id}.svg").write_text(svg, encoding="utf-8")
     write_study(out, study)
     if not (out / CONSENT_FILE).exists():
-        shutil.copyfile(TEMPLATE, out / CONSENT_FILE)
+        shutil.copyfile(CONSENT_TEMPLATES[study.mode], out / CONSENT_FILE)
     return study

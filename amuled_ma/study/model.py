@@ -3,7 +3,8 @@
 A study folder (``amuled study build``) holds:
 
 - ``study.json``: :class:`Study`, every item with its state, its two options and which
-  variant each option is (the participant never sees that part, see :func:`public_item`);
+  variant each option is (the participant never sees that part, see :func:`public_item`),
+  or, in expert mode, the state with the panel's beliefs and stated reasons;
 - ``states/<item>.svg``: the state of each item drawn (:mod:`amuled_ma.study.drawing`);
 - ``consent.html``: the instructions and consent page, from a template the researcher edits
   (a rebuild keeps an edited one);
@@ -17,7 +18,7 @@ import json
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from amuled_ma.errors import AmuledError
 
@@ -27,10 +28,23 @@ STUDY_FILE = "study.json"
 CONSENT_FILE = "consent.html"
 #: The answer store.
 ANSWERS_FILE = "answers.sqlite"
-#: The version of the folder format.
-FORMAT = 1
+#: The version of the folder format (2: acceptability ratings and expert mode; a format 1
+#: study, built before them, reads as a pairs study with the default rating scale).
+FORMAT = 2
 #: What a participant is asked about a pair.
 QUESTION = "Which decision is the more morally acceptable one in this situation?"
+#: What a participant is asked about each decision of a pair, on the rating scale.
+RATING_QUESTION = "How morally acceptable is each decision?"
+#: Points of the acceptability scale (1 = completely unacceptable ... 7 = completely
+#: acceptable, a 7-point Likert scale).
+RATING_POINTS = 7
+#: Points of the expert's scale of how clear the panel's reasons are (1 = not clear at all
+#: ... 5 = very clear).
+CLARITY_POINTS = 5
+#: The expert's framework answer when none of the panel's clusters justifies an action.
+NO_FRAMEWORK = "none"
+#: What the page shows of a member whose reply kept no reason.
+NO_REASON = "no stated reason recorded"
 
 
 class StudyError(AmuledError, ValueError):
@@ -69,6 +83,9 @@ class PanelView(_Model):
         beliefs: ``[K][A]`` each member's belief over the actions.
         statuses: ``[K]`` ``ok`` or why a member did not answer.
         fused: ``[A]`` the fused belief.
+        reasons: ``[K]`` each member's stated reason (the reply's ``reasoning``, or the
+            reply's text), None where neither the store nor the recording kept a reply
+            (a rules member, a recording of beliefs only); empty in a format 1 study.
 
     """
 
@@ -78,6 +95,11 @@ class PanelView(_Model):
     beliefs: list[list[float]]
     statuses: list[str]
     fused: list[float]
+    reasons: list[str | None] = Field(default_factory=list)
+
+    def has_reasons(self) -> bool:
+        """Whether any member's reply kept a stated reason."""
+        return any(self.reasons)
 
 
 class Item(_Model):
@@ -85,7 +107,8 @@ class Item(_Model):
 
     Attributes:
         id: ``q001``, ... (stable, in the study's order).
-        kind: ``pair`` (two variants' decisions) or ``attention`` (an instructed answer).
+        kind: ``pair`` (two variants' decisions), ``attention`` (an instructed answer) or
+            ``expert`` (a state with all the task's actions, for an expert to judge).
         run: Index into :attr:`Study.runs`.
         task: The task's name.
         episode: The evaluation episode the state was met in.
@@ -94,7 +117,8 @@ class Item(_Model):
         obs: The observation.
         prompt: The state in words (the task's prompt), None when it cannot be rendered.
         picture: ``states/<id>.svg``.
-        options: The two options, in the order shown.
+        options: The two options, in the order shown (none for an expert item: the expert
+            judges every action of the task).
         expected: The label an attentive participant picks (attention checks only).
         instruction: The attention check's instruction (shown instead of the question).
         policies: Every studied variant's action in this state (the policies' agreement
@@ -104,7 +128,7 @@ class Item(_Model):
     """
 
     id: str
-    kind: Literal["pair", "attention"]
+    kind: Literal["pair", "attention", "expert"]
     run: int = Field(ge=0)
     task: str
     episode: int = Field(ge=0)
@@ -113,11 +137,20 @@ class Item(_Model):
     obs: list[float]
     prompt: str | None
     picture: str
-    options: tuple[Option, Option]
+    options: tuple[Option, Option] | tuple[()] = ()
     expected: Literal["A", "B"] | None = None
     instruction: str | None = None
     policies: dict[str, int] = Field(default_factory=dict)
     panel: PanelView | None = None
+
+    @model_validator(mode="after")
+    def _options_fit_the_kind(self) -> Item:
+        want = 0 if self.kind == "expert" else 2
+        if len(self.options) != want:
+            raise ValueError(f"a {self.kind} item has {want} options, found {len(self.options)}")
+        if want and [o.label for o in self.options] != ["A", "B"]:
+            raise ValueError("options: expected the labels A then B")
+        return self
 
 
 class Study(_Model):
@@ -125,26 +158,44 @@ class Study(_Model):
 
     Attributes:
         format: :data:`FORMAT`.
+        mode: ``pairs`` (people choose between two variants' decisions and rate each one's
+            acceptability) or ``expert`` (experts judge every action of a state).
         seed: The seed it was built with (same runs, variants, items and seed: same bytes).
         runs: The run folders, as given.
         variants: The compared variants (the names asked for).
         folders: ``[run][variant]`` the variant folders they resolved to.
         action_names: ``{task: [names]}``.
         question: What a pair asks.
-        items: The questions, pairs and attention checks, in the study's order.
-        candidates: How many distinct (state, pair of variants that differ) were found.
+        rating_question: What a pair asks about each decision, on the rating scale.
+        rating_points: Points of the acceptability scale (1 to ``rating_points``).
+        clarity_points: Points of the expert's clarity scale (1 to ``clarity_points``).
+        frameworks: ``[name, title]`` of the moral frameworks an expert may cite (the
+            shipped clusters; expert mode), besides :data:`NO_FRAMEWORK`.
+        items: The questions, pairs and attention checks (or expert states), in the
+            study's order.
+        candidates: How many distinct (state, pair of variants that differ) were found
+            (expert mode: distinct states met).
 
     """
 
     format: int = FORMAT
+    mode: Literal["pairs", "expert"] = "pairs"
     seed: int
     runs: list[str]
     variants: list[str]
     folders: list[dict[str, str]]
     action_names: dict[str, list[str]]
     question: str = QUESTION
+    rating_question: str = RATING_QUESTION
+    rating_points: int = Field(RATING_POINTS, ge=2, le=11)
+    clarity_points: int = Field(CLARITY_POINTS, ge=2, le=11)
+    frameworks: list[tuple[str, str]] = Field(default_factory=list)
     items: list[Item]
     candidates: int = Field(ge=0)
+
+    def framework_names(self) -> list[str]:
+        """The frameworks an expert may cite, :data:`NO_FRAMEWORK` last."""
+        return [name for name, _ in self.frameworks] + [NO_FRAMEWORK]
 
     def item(self, item_id: str) -> Item | None:
         """The item of that id, None when the study has none."""
@@ -197,13 +248,36 @@ LEGENDS = {
 }
 
 
-def public_item(item: Item, svg: str) -> dict[str, Any]:
-    """What the participant's page gets of an item: no variant, no expected answer."""
-    return {
+def public_item(item: Item, svg: str, action_names: list[str] | None = None) -> dict[str, Any]:
+    """What the participant's page gets of an item: no variant, no expected answer.
+
+    An expert item also gets every action of the task (``action_names``) and the panel:
+    each member's name, belief and stated reason (None: no stated reason recorded), and
+    the fused belief; never the variant the panel belongs to.
+    """
+    shown: dict[str, Any] = {
         "id": item.id,
+        "kind": item.kind,
         "legend": LEGENDS.get(item.task, ""),
         "prompt": item.prompt,
         "svg": svg,
         "instruction": item.instruction,
         "options": [{"label": o.label, "action": o.action_name} for o in item.options],
     }
+    if item.kind == "expert":
+        shown["actions"] = list(action_names or [])
+        panel = item.panel
+        shown["panel"] = None
+        if panel is not None:
+            reasons = panel.reasons or [None] * len(panel.agents)
+            shown["panel"] = {
+                "members": [
+                    {"name": name, "belief": belief, "status": status, "reason": reason}
+                    for name, belief, status, reason in zip(
+                        panel.agents, panel.beliefs, panel.statuses, reasons, strict=True
+                    )
+                ],
+                "fused": panel.fused,
+            }
+        shown["has_reasons"] = panel is not None and panel.has_reasons()
+    return shown

@@ -1,4 +1,8 @@
-"""``amuled study analyze``: the study's report (``analysis/report.md``, ``summary.json``)."""
+"""``amuled study analyze``: the study's report, its data and its figure.
+
+``analysis/report.md``, ``analysis/summary.json``, and ``analysis/strengths.png`` (a pairs
+study) or ``analysis/expert.png`` (an expert study).
+"""
 
 from __future__ import annotations
 
@@ -8,7 +12,9 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
+from amuled_ma.study import expert
 from amuled_ma.study.analysis import (
+    acceptability,
     agreement,
     attentive,
     bootstrap_strengths,
@@ -18,15 +24,32 @@ from amuled_ma.study.analysis import (
     majorities,
     pair_answers,
     reliability,
+    wilson,
     win_rates,
 )
+from amuled_ma.study.answers import read_expert_answers
+from amuled_ma.study.figures import expert_figure, strengths_figure
+from amuled_ma.study.model import ANSWERS_FILE, NO_REASON, read_study
 
 #: choix's regularisation in the report (a variant that never loses keeps a finite strength).
 ALPHA = 0.01
 
 
-def _f(value: float, digits: int = 3) -> str:
+def _f(value: float | None, digits: int = 3) -> str:
     return "n/a" if value is None or math.isnan(value) else f"{value:.{digits}f}"
+
+
+def _num(value: float) -> float | None:
+    """A number for ``summary.json``: None for nan (JSON has no nan)."""
+    return None if value is None or math.isnan(value) else float(value)
+
+
+def _rates(counts: dict[str, list[int]]) -> dict[str, dict[str, Any]]:
+    out = {}
+    for who, (a, n) in counts.items():
+        low, high = wilson(a, n)
+        out[who] = {"agree": a, "n": n, "rate": a / n, "low": _num(low), "high": _num(high)}
+    return out
 
 
 def summarize(folder: Path, *, keep_inattentive: bool = False) -> dict[str, Any]:
@@ -42,6 +65,7 @@ def summarize(folder: Path, *, keep_inattentive: bool = False) -> dict[str, Any]
         by_person[answer.participant].append(game)
     strengths = bradley_terry(study.variants, games, ALPHA)
     low, high = bootstrap_strengths(study.variants, by_person, seed=study.seed, alpha=ALPHA)
+    rated = acceptability(study.variants, pairs, seed=study.seed)
     majority = majorities(pairs)
     agree = agreement(study, majority)
     disagreements = []
@@ -54,13 +78,19 @@ def summarize(folder: Path, *, keep_inattentive: bool = False) -> dict[str, Any]
         gap = fused[1 - chosen] - fused[chosen]
         if gap > 0:
             disagreements.append(
-                {"item": item_id, "majority": top, "votes": f"{n_top}/{n}", "fused_gap": gap,
-                 "view": f"amuled view {study.runs[item.run]} --variant "
-                         f"{study.folders[item.run][item.met_by]} --episode {item.episode}",
-                 "step": item.step}
-            )  # fmt: skip
+                {
+                    "item": item_id,
+                    "majority": top,
+                    "votes": f"{n_top}/{n}",
+                    "fused_gap": gap,
+                    "view": f"amuled view {study.runs[item.run]} --variant "
+                    f"{study.folders[item.run][item.met_by]} --episode {item.episode}",
+                    "step": item.step,
+                }
+            )
     disagreements.sort(key=lambda d: -d["fused_gap"])
     return {
+        "mode": "pairs",
         "participants": len(everyone),
         "kept": len(kept),
         "answers": len(used),
@@ -70,19 +100,101 @@ def summarize(folder: Path, *, keep_inattentive: bool = False) -> dict[str, Any]
             {"variant": v, "strength": float(s), "low": float(lo), "high": float(hi)}
             for v, s, lo, hi in zip(study.variants, strengths, low, high, strict=True)
         ],
+        "rating_points": study.rating_points,
+        "answers_rated": sum(1 for a, _ in pairs if a.rating_a is not None),
+        "acceptability": [
+            {
+                "variant": v,
+                "mean": _num(m.mean),
+                "low": _num(m.low),
+                "high": _num(m.high),
+                "ratings": m.n,
+                "participants": m.people,
+            }
+            for v, m in rated.items()
+        ],
         "krippendorff_alpha": reliability(pairs),
-        "agreement": {k: {"agree": a, "n": n, "rate": a / n} for k, (a, n) in agree.items()},
+        "agreement": _rates(agree),
         "disagreements": disagreements[:10],
     }
 
 
+def summarize_expert(folder: Path) -> dict[str, Any]:
+    """Every figure of an expert study's report, as JSON-ready data."""
+    study, _ = load(folder)
+    answers = read_expert_answers(Path(folder) / ANSWERS_FILE)
+    sets = expert.acceptable_sets(answers)
+    titles = dict(study.frameworks)
+    clear = expert.clarity(answers, seed=study.seed)
+    unreasoned = expert.unreasoned_states(study)
+    unacceptable = []
+    for item_id, (accepted, n) in sorted(sets.items()):
+        item = study.item(item_id)
+        if item is None or item.panel is None:
+            continue
+        top = expert.top_action(item.panel.fused)
+        if top is not None and top not in accepted:
+            names = study.action_names.get(item.task, [])
+            unacceptable.append(
+                {
+                    "item": item_id,
+                    "fused_top": names[top],
+                    "fused": item.panel.fused[top],
+                    "acceptable": [names[a] for a in sorted(accepted)],
+                    "experts": n,
+                    "view": f"amuled view {study.runs[item.run]} --variant "
+                    f"{study.folders[item.run][item.met_by]} --episode {item.episode}",
+                    "step": item.step,
+                }
+            )
+    return {
+        "mode": "expert",
+        "experts": len({a.participant for a in answers}),
+        "states": len(study.items),
+        "states_judged": len(sets),
+        "judgements": sum(len(a.judgements) for a in answers),
+        "states_without_reason": len(unreasoned),
+        "frameworks": [
+            {
+                **c.__dict__,
+                "share": _num(c.share),
+                "title": titles.get(c.framework, "none of these / other"),
+            }
+            for c in expert.framework_citations(study, answers)
+        ],
+        "acceptable_sets": {
+            k: {"acceptable": sorted(v[0]), "experts": v[1]} for k, v in sorted(sets.items())
+        },
+        "agreement": _rates(expert.expert_agreement(study, sets)),
+        "clarity": {
+            "mean": _num(clear.mean),
+            "low": _num(clear.low),
+            "high": _num(clear.high),
+            "ratings": clear.n,
+            "experts": clear.people,
+            "points": study.clarity_points,
+        },
+        "alpha_acceptable": _num(expert.acceptability_alpha(answers)),
+        "alpha_framework": _num(expert.framework_alpha(study, answers)),
+        "fused_unacceptable": unacceptable[:10],
+    }
+
+
 def write_analysis(folder: Path, *, keep_inattentive: bool = False) -> Path:
-    """Write ``<study>/analysis/report.md`` and ``summary.json``; return the report's path."""
+    """Write ``<study>/analysis/report.md``, ``summary.json`` and the figure.
+
+    Returns:
+        The report's path.
+
+    """
     folder = Path(folder)
+    if read_study(folder).mode == "expert":
+        return _write_expert(folder)
     data = summarize(folder, keep_inattentive=keep_inattentive)
     out = folder / "analysis"
     out.mkdir(exist_ok=True)
     (out / "summary.json").write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+    strengths_figure(data, out / "strengths.png")
     lines = [
         f"# Study {folder.name}: what people chose",
         "",
@@ -112,7 +224,34 @@ def write_analysis(folder: Path, *, keep_inattentive: bool = False) -> Path:
         lines.append(
             f"| {b['variant']} | {_f(b['strength'])} | {_f(b['low'])} to {_f(b['high'])} |"
         )
+    points = data["rating_points"]
     lines += [
+        "",
+        f"## Acceptability (ratings 1 to {points}; mean, 95% bootstrap over participants)",
+        "",
+        f"Each shown decision was rated from 1 (completely unacceptable) to {points} "
+        "(completely acceptable); a rating counts for the variant that took the decision. The "
+        "interval is the 2.5th to 97.5th percentile of the mean over 2000 resamples of the "
+        "participants (a participant's ratings stay together).",
+        "",
+    ]
+    if not data["answers_rated"]:
+        lines.append(
+            "No ratings stored: the answers kept were given before the study asked for ratings."
+        )
+    else:
+        lines += [
+            "| variant | mean | 95% interval | ratings | participants |",
+            "|---|---:|---|---:|---:|",
+        ]
+        for r in data["acceptability"]:
+            lines.append(
+                f"| {r['variant']} | {_f(r['mean'], 2)} | {_f(r['low'], 2)} to "
+                f"{_f(r['high'], 2)} | {r['ratings']} | {r['participants']} |"
+            )
+    lines += [
+        "",
+        "![Bradley-Terry strengths and acceptability](strengths.png)",
         "",
         f"## Inter-rater reliability\n\nKrippendorff's alpha (nominal, choices A/B over the "
         f"pairs): {_f(data['krippendorff_alpha'])}.",
@@ -122,11 +261,14 @@ def write_analysis(folder: Path, *, keep_inattentive: bool = False) -> Path:
         "A panel member or the fused belief agrees when it believes more in the majority's "
         "option's action; a policy when it takes that action in the state.",
         "",
-        "| who | agrees | counted | rate |",
-        "|---|---:|---:|---:|",
+        "| who | agrees | counted | rate | 95% interval (Wilson) |",
+        "|---|---:|---:|---:|---|",
     ]
     for who, a in sorted(data["agreement"].items()):
-        lines.append(f"| {who} | {a['agree']} | {a['n']} | {_f(a['rate'])} |")
+        lines.append(
+            f"| {who} | {a['agree']} | {a['n']} | {_f(a['rate'])} | {_f(a['low'])} to "
+            f"{_f(a['high'])} |"
+        )
     lines += ["", "## Where people and the fused belief disagree most", ""]
     if not data["disagreements"]:
         lines.append("None: the fused belief sides with the majority on every item.")
@@ -134,6 +276,89 @@ def write_analysis(folder: Path, *, keep_inattentive: bool = False) -> Path:
         lines.append(
             f"- {d['item']}: majority {d['majority']} ({d['votes']}), the fused belief "
             f"prefers the other by {_f(d['fused_gap'])}; see `{d['view']}` at step {d['step']}"
+        )
+    path = out / "report.md"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+def _write_expert(folder: Path) -> Path:
+    """The expert study's ``report.md``, ``summary.json`` and ``expert.png``."""
+    data = summarize_expert(folder)
+    out = folder / "analysis"
+    out.mkdir(exist_ok=True)
+    (out / "summary.json").write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+    expert_figure(data, out / "expert.png")
+    no_reason = data["states_without_reason"]
+    lines = [
+        f"# Study {folder.name}: what the experts judged",
+        "",
+        f"{data['experts']} experts judged {data['states_judged']} of {data['states']} states "
+        f"({data['judgements']} judgements of an action).",
+        "",
+        "## Frameworks the experts cite",
+        "",
+        "| framework | cited | share | on actions found acceptable | by action |",
+        "|---|---:|---:|---:|---|",
+    ]
+    for c in data["frameworks"]:
+        actions = ", ".join(f"{a} {k}" for a, k in c["by_action"].items()) or "-"
+        lines.append(
+            f"| {c['title']} | {c['cited']} | {_f(c['share'], 2)} | {c['acceptable']} | {actions} |"
+        )
+    clear = data["clarity"]
+    lines += [
+        "",
+        "## Agreement with the experts",
+        "",
+        "A state's acceptable actions are those more than half of its experts found "
+        "acceptable. A panel member or the fused belief agrees when the action it believes "
+        "most is one of them (a tie at the top is not counted); a policy when its action is.",
+        "",
+        "| who | agrees | counted | rate | 95% interval (Wilson) |",
+        "|---|---:|---:|---:|---|",
+    ]
+    for who, a in sorted(data["agreement"].items()):
+        lines.append(
+            f"| {who} | {a['agree']} | {a['n']} | {_f(a['rate'])} | {_f(a['low'])} to "
+            f"{_f(a['high'])} |"
+        )
+    lines += [
+        "",
+        f"## Clarity of the panel's reasons (1 to {clear['points']})",
+        "",
+        f"Mean {_f(clear['mean'], 2)}, 95% interval {_f(clear['low'], 2)} to "
+        f"{_f(clear['high'], 2)} (bootstrap over experts, 2000 resamples), from "
+        f"{clear['ratings']} ratings by {clear['experts']} experts.",
+        "",
+    ]
+    if no_reason:
+        lines.append(
+            f"{no_reason} of {data['states']} states had no stated reason recorded ('{NO_REASON}' "
+            "on the page): the panel's replies were not kept (a rules panel, or a recording of "
+            "beliefs only), so clarity was not asked there."
+        )
+    else:
+        lines.append("Every state had at least one stated reason.")
+    lines += [
+        "",
+        "## Inter-expert reliability",
+        "",
+        f"Krippendorff's alpha (nominal) over (state, action): acceptable or not "
+        f"{_f(data['alpha_acceptable'])}; the framework cited {_f(data['alpha_framework'])}.",
+        "",
+        "![Frameworks cited and agreement with the experts](expert.png)",
+        "",
+        "## Where the fused belief's top action is unacceptable to the experts",
+        "",
+    ]
+    if not data["fused_unacceptable"]:
+        lines.append("None: the fused belief's top action is acceptable on every state judged.")
+    for d in data["fused_unacceptable"]:
+        lines.append(
+            f"- {d['item']}: the fused belief prefers {d['fused_top']} ({_f(d['fused'])}); "
+            f"the experts ({d['experts']}) accept {', '.join(d['acceptable']) or 'nothing'}; "
+            f"see `{d['view']}` at step {d['step']}"
         )
     path = out / "report.md"
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")

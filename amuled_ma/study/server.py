@@ -9,8 +9,13 @@ Routes (all served from this process; the page loads nothing from the network):
 - ``POST /api/session``: ``{"participant", "token", "source"}`` (all optional) gives the
   participant's id and token and the items left, in the participant's own order (drawn
   from the study's seed and the id, so a reload shows the same order);
-- ``POST /api/answer``: ``{"participant", "token", "item", "choice", "ms"}``; stored at once
-  (200), or refused: a wrong token (403), an unknown item, choice or time (400), an item
+- ``POST /api/answer``: a pair's ``{"participant", "token", "item", "choice", "ms",
+  "ratings": {"A": r, "B": r}}`` (``r`` an integer of the study's acceptability scale, one per
+  shown option), or an expert state's ``{"participant", "token", "item", "ms", "actions":
+  [{"acceptable": true, "framework": "care"}, ...] (one per action of the task), "clarity": c}``
+  (``c`` on the clarity scale, ``null`` where the panel stated no reason); stored at once
+  (200), or refused: a wrong token (403), an unknown item, choice, time, a rating outside
+  the scale or for an option not shown, a judgement that does not fit (400), an item
   already answered by that participant (409). Every refusal is kept with its reason.
 - ``GET /api/health``: ``{"ok": true, "items": n}``.
 """
@@ -33,10 +38,13 @@ from starlette.responses import HTMLResponse, JSONResponse, Response
 from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
-from amuled_ma.study.answers import Answer, AnswerStore
+from amuled_ma.study.answers import Answer, AnswerStore, ExpertAnswer, Judgement
 from amuled_ma.study.model import (
     ANSWERS_FILE,
     CONSENT_FILE,
+    NO_FRAMEWORK,
+    NO_REASON,
+    Item,
     Study,
     StudyError,
     public_item,
@@ -48,6 +56,58 @@ STATIC = Path(__file__).parent / "static"
 ID_PARAMETERS = ("PROLIFIC_PID", "workerId", "participant")
 #: The longest participant id, item id or token accepted.
 MAX_TEXT = 200
+
+
+def _is_time(ms: Any) -> bool:
+    """A time taken in ms: a finite number in ``[0, 24 h)``."""
+    return (
+        not isinstance(ms, bool)
+        and isinstance(ms, int | float)
+        and math.isfinite(ms)
+        and 0 <= ms < 86_400_000
+    )
+
+
+def _on_scale(value: Any, points: int) -> bool:
+    """An integer (not a bool, not a float) from 1 to ``points``."""
+    return isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= points
+
+
+def rating_problem(ratings: Any, item: Item, points: int) -> str | None:
+    """Why a pair's ratings are refused (the reason kept), None when they fit."""
+    labels = [o.label for o in item.options]
+    if not isinstance(ratings, dict):
+        return "ratings missing"
+    if any(label not in labels for label in ratings):
+        return "rating for an option not shown"
+    if any(label not in ratings for label in labels):
+        return "ratings missing"
+    if not all(_on_scale(ratings[label], points) for label in labels):
+        return "rating outside the scale"
+    return None
+
+
+def expert_problem(body: dict[str, Any], item: Item, study: Study) -> str | None:
+    """Why an expert's answer is refused (the reason kept), None when it fits."""
+    actions = body.get("actions")
+    n = len(study.action_names.get(item.task, []))
+    if not isinstance(actions, list) or len(actions) != n:
+        return "expert: not one judgement per action"
+    frameworks = study.framework_names()
+    for judged in actions:
+        if not isinstance(judged, dict) or set(judged) != {"acceptable", "framework"}:
+            return "expert: judgement malformed"
+        if not isinstance(judged["acceptable"], bool):
+            return "expert: acceptable not yes or no"
+        if judged["framework"] not in frameworks:
+            return "expert: unknown framework"
+    clarity = body.get("clarity")
+    if item.panel is not None and item.panel.has_reasons():
+        if not _on_scale(clarity, study.clarity_points):
+            return "clarity outside the scale"
+    elif clarity is not None:
+        return "clarity without a stated reason"
+    return None
 
 
 def participant_order(study: Study, participant: str) -> list[str]:
@@ -133,14 +193,30 @@ class StudyApp:
         pid, token = self.store.participant(wanted or None, source if wanted else "assigned")
         done = set(self.store.answered(pid))
         order = [i for i in participant_order(self.study, pid) if i not in done]
+        study = self.study
+        titles = dict(study.frameworks)
+        items = [
+            public_item(self.items[i], self.pictures[i], study.action_names.get(self.items[i].task))
+            for i in order
+        ]
         return JSONResponse(
             {
                 "participant": pid,
                 "token": token,
-                "question": self.study.question,
+                "mode": study.mode,
+                "question": study.question,
+                "rating_question": study.rating_question,
+                "rating_points": study.rating_points,
+                "clarity_points": study.clarity_points,
+                "frameworks": [
+                    [name, titles.get(name, "none of these / other")]
+                    for name in study.framework_names()
+                ],
+                "no_reason": NO_REASON,
+                "no_framework": NO_FRAMEWORK,
                 "total": len(self.items),
                 "answered": len(done),
-                "items": [public_item(self.items[i], self.pictures[i]) for i in order],
+                "items": items,
             }
         )
 
@@ -152,7 +228,11 @@ class StudyApp:
             return JSONResponse({"error": "the body is not a JSON object"}, status_code=400)
         pid, token = body.get("participant"), body.get("token")
         item_id, choice, ms = body.get("item"), body.get("choice"), body.get("ms")
-        texts = (pid, token, item_id, choice)
+        shown = self.items.get(item_id) if isinstance(item_id, str) else None
+        expert = shown is not None and shown.kind == "expert"
+        texts = (
+            (pid, token, item_id) if expert and choice is None else (pid, token, item_id, choice)
+        )
         if not all(isinstance(x, str) and 0 < len(x) <= MAX_TEXT for x in texts):
             self.store.refuse(None, None, None, "answer: missing or malformed field")
             return JSONResponse(
@@ -166,25 +246,57 @@ class StudyApp:
         if item is None:
             self.store.refuse(pid, item_id, choice, "unknown item")
             return JSONResponse({"error": f"item: unknown {item_id!r}"}, status_code=400)
+        if item.kind == "expert":
+            return self._expert_answer(body, item, pid, ms)
         option = next((o for o in item.options if o.label == choice), None)
         if option is None:
             self.store.refuse(pid, item_id, choice, "unknown choice")
             return JSONResponse({"error": "choice: expected 'A' or 'B'"}, status_code=400)
-        if (
-            isinstance(ms, bool)
-            or not isinstance(ms, int | float)
-            or not math.isfinite(ms)
-            or not 0 <= ms < 86_400_000
-        ):
+        if not _is_time(ms):
             self.store.refuse(pid, item_id, choice, "bad time")
             return JSONResponse({"error": "ms: expected a time in ms"}, status_code=400)
+        ratings = body.get("ratings")
+        problem = rating_problem(ratings, item, self.study.rating_points)
+        if problem is not None:
+            self.store.refuse(pid, item_id, choice, problem)
+            return JSONResponse(
+                {"error": f"ratings: {problem}; expected {{'A': r, 'B': r}}, r an integer "
+                          f"from 1 to {self.study.rating_points}"},
+                status_code=400,
+            )  # fmt: skip
         correct = None if item.expected is None else int(choice == item.expected)
-        stored = self.store.add(
-            Answer(pid, item_id, choice, option.variant, correct, float(ms), time.time())
-        )
-        if not stored:
+        answer = Answer(
+            pid, item_id, choice, option.variant, correct, float(ms), time.time(),
+            rating_a=ratings["A"], rating_b=ratings["B"],
+        )  # fmt: skip
+        if not self.store.add(answer):
             self.store.refuse(pid, item_id, choice, "already answered")
             return JSONResponse({"error": f"item {item_id}: already answered"}, status_code=409)
+        return JSONResponse({"stored": True})
+
+    def _expert_answer(self, body: dict[str, Any], item: Item, pid: str, ms: Any) -> Response:
+        """Store an expert's judgements of a state, or refuse them (the reason is kept)."""
+        if not _is_time(ms):
+            self.store.refuse(pid, item.id, None, "bad time")
+            return JSONResponse({"error": "ms: expected a time in ms"}, status_code=400)
+        problem = expert_problem(body, item, self.study)
+        if problem is not None:
+            self.store.refuse(pid, item.id, None, problem)
+            return JSONResponse(
+                {"error": f"{problem}; expected 'actions': one {{'acceptable': true|false, "
+                          f"'framework': one of {self.study.framework_names()}}} per action, "
+                          f"'clarity': 1 to {self.study.clarity_points} (null where the "
+                          "panel stated no reason)"},
+                status_code=400,
+            )  # fmt: skip
+        judgements = tuple(
+            Judgement(a, bool(j["acceptable"]), str(j["framework"]))
+            for a, j in enumerate(body["actions"])
+        )
+        answer = ExpertAnswer(pid, item.id, body.get("clarity"), judgements, float(ms), time.time())
+        if not self.store.add_expert(answer):
+            self.store.refuse(pid, item.id, None, "already answered")
+            return JSONResponse({"error": f"item {item.id}: already answered"}, status_code=409)
         return JSONResponse({"stored": True})
 
 

@@ -25,7 +25,11 @@ never occupy cell ``(0, 0)``, which the observation uses to mean "none left".
 ``Box(0, 7, (8,), float32)``: ``[x, y, milk_x, milk_y, cry_x, cry_y, sleep_x, sleep_y]``, the
 robot, the milk, and the nearest remaining crying and sleeping baby by Euclidean distance
 (``(0, 0)`` once none of that kind remains). Ties are broken by the smallest ``x``, then
-the smallest ``y`` (the babies are kept sorted by ``(x, y)`` and the first nearest wins).
+the smallest ``y`` (the babies are kept sorted by ``(x, y)`` and the first nearest wins);
+option ``tie_break="random"`` instead picks one of the tied babies uniformly at random,
+drawn anew at every observation from the copy's generator, as the authors' environment
+does (``environments/milk.py``, ``find_closest_position`` shuffles the remaining babies
+with the env's ``np_random`` before its ``argmin``).
 
 ## Rewards
 
@@ -48,6 +52,7 @@ Per step (``[num_envs]`` tensors): ``r_env``, ``r_shaping``, ``crying_pacified``
 ## Version History
 
 - v0: first version, the rules of issue 3 (paper layout, 8x8 grid).
+  Option ``tie_break`` (issue 25; default ``"first"``, the v0 behaviour).
 """
 
 from __future__ import annotations
@@ -59,7 +64,7 @@ import torch
 
 from amuled_ma.tasks.base import BatchedTask, paint_cells
 
-__all__ = ["CRYING", "LAYOUTS", "MILK", "SIZE", "SLEEPING", "START", "FindMilk"]
+__all__ = ["CRYING", "LAYOUTS", "MILK", "SIZE", "SLEEPING", "START", "TIE_BREAKS", "FindMilk"]
 
 SIZE = 8
 START = (0, 0)
@@ -67,6 +72,8 @@ MILK = (7, 7)
 SLEEPING = ((1, 1), (3, 3), (4, 0), (5, 4), (5, 5), (6, 6))
 CRYING = ((2, 2), (2, 3), (4, 4), (5, 6), (6, 7))
 LAYOUTS = ("paper", "random")
+#: How a tie for the nearest baby is broken: first in ``(x, y)`` order, or at random.
+TIE_BREAKS = ("first", "random")
 
 # (dx, dy) of actions up, down, left, right
 _MOVES = ((0, 1), (0, -1), (-1, 0), (1, 0))
@@ -89,9 +96,11 @@ class FindMilk(BatchedTask):
         shaping_coef: Coefficient ``c >= 0`` of the shaping reward.
         max_steps: Time limit in steps.
         layout: ``"paper"`` (fixed layout of the paper) or ``"random"``.
+        tie_break: Which of several equally near babies the observation shows:
+            ``"first"`` (smallest ``(x, y)``) or ``"random"`` (the authors' environment).
 
     Raises:
-        ValueError: Unknown ``layout`` or another argument out of range.
+        ValueError: Unknown ``layout`` or ``tie_break``, or another argument out of range.
 
     """
 
@@ -117,6 +126,7 @@ class FindMilk(BatchedTask):
         shaping_coef: float = 0.0,
         max_steps: int = 300,
         layout: str = "paper",
+        tie_break: str = "first",
     ) -> None:
         super().__init__(
             num_envs,
@@ -125,12 +135,18 @@ class FindMilk(BatchedTask):
             shaping_coef=shaping_coef,
             max_steps=max_steps,
             layout=layout,
+            tie_break=tie_break,
         )
 
-    def _init_task(self, layout: str = "paper") -> None:
+    def _init_task(self, layout: str = "paper", tie_break: str = "first") -> None:
         if layout not in LAYOUTS:
             raise ValueError(f"layout: expected one of {', '.join(LAYOUTS)}, got {layout!r}")
+        if tie_break not in TIE_BREAKS:
+            raise ValueError(
+                f"tie_break: expected one of {', '.join(TIE_BREAKS)}, got {tie_break!r}"
+            )
         self.layout = layout
+        self.tie_break = tie_break
         n, dev = self.num_envs, self.device
         i64 = torch.int64
         cells = torch.arange(_NCELLS, device=dev)
@@ -259,8 +275,30 @@ class FindMilk(BatchedTask):
         key = torch.where(alive, key, _NONE_KEY)
         return (key.amin(1) % _NCELLS).to(torch.int64)
 
+    def _nearest_random(self, cells: torch.Tensor, bits: torch.Tensor) -> torch.Tensor:
+        """Cell of a nearest remaining baby per copy, ties broken at random (0: none left).
+
+        Each copy draws a random order of its babies (``k`` numbers of its generator); the
+        nearest baby first in that order wins, so each of the tied babies is equally likely.
+        """
+        n, k = self.num_envs, cells.shape[1]
+        cells = cells.expand(n, -1)
+        d2 = self._d2.index_select(0, (self._pos[:, None] * _NCELLS + cells).reshape(-1))
+        ids = torch.arange(n, device=self.device)
+        rank = self._draw_many(ids, k).argsort(dim=1).argsort(dim=1)  # a random order
+        key = d2.reshape(n, k) * k + rank
+        alive = (bits[:, None] >> torch.arange(k, device=self.device)) & 1 == 1
+        key = torch.where(alive, key, torch.iinfo(torch.int64).max)
+        nearest = cells.gather(1, key.argmin(1, keepdim=True)).squeeze(1)
+        return torch.where(alive.any(1), nearest, torch.zeros_like(nearest))
+
     def _nearest_cells(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Cells of the nearest remaining crying and sleeping baby (0 = none left)."""
+        if self.tie_break == "random":
+            return (
+                self._nearest_random(self._cry_cell, self._cry_bits),
+                self._nearest_random(self._sleep_cell, self._sleep_bits),
+            )
         if self.use_tables:
             cry = self._near_cry.index_select(0, self._pos * (1 << len(CRYING)) + self._cry_bits)
             sleep = self._near_sleep.index_select(

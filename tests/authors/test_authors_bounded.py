@@ -2,7 +2,8 @@
 
 Each attack runs ``amuled import authors`` in a child process on a checkout holding only
 the hostile cache, with a timeout: before the unpickler was bounded, the 2 MB collision
-cache took over 13 minutes and ignored SIGTERM, and the void-dtype cache 18 s and 1 GB.
+cache took over 13 minutes and ignored SIGTERM, and the void-dtype cache 18 s and 1 GB;
+before the opcode budget, 16 MiB of one-byte opcodes took 25-39 s to read or refuse.
 """
 
 from __future__ import annotations
@@ -18,7 +19,13 @@ import numpy as np
 import pickle_attacks as attacks
 import pytest
 
-from amuled_ma.authors.unpickle import load_pickle
+from amuled_ma.authors.pickle_reader import BoundedReader, PickleUnbounded
+from amuled_ma.authors.unpickle import (
+    MAX_OPCODES,
+    MAX_PICKLE_BYTES,
+    MEMORY_CHECK_EVERY,
+    load_pickle,
+)
 from amuled_ma.errors import AuthorsImportError, UnsafePickleError
 
 CACHE = "models/FindMilk-v4_42/gpt-4o-mini_llm_cache.pickle"
@@ -29,11 +36,12 @@ import amuled_ma.authors.checkout, amuled_ma.tasks  # torch: before the clock an
 from amuled_ma.cli import build_parser, main
 build_parser()  # every command module imported
 before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-start = time.monotonic()
+start, cpu = time.monotonic(), time.process_time()
 print("child: ready", file=sys.stderr, flush=True)
 code = main(sys.argv[1:])
 grown = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) // 1024
-print(f"child: {code} {time.monotonic() - start:.2f} {grown}", file=sys.stderr)
+used = time.process_time() - cpu
+print(f"child: {code} {time.monotonic() - start:.2f} {grown} {used:.2f}", file=sys.stderr)
 sys.exit(code)
 """
 
@@ -51,7 +59,12 @@ def import_command(tmp_path: Path, root: Path) -> list[str]:
             "--runs", str(tmp_path / "runs"), "--to", str(tmp_path / "rec")]  # fmt: skip
 
 
-def run_import(tmp_path: Path, data: bytes, timeout: float = 60.0):
+def run_import(tmp_path: Path, data: bytes, timeout: float = 60.0, *, cpu: bool = False):
+    """``amuled import authors`` of ``data``: exit status, stderr lines, seconds, MiB grown.
+
+    With ``cpu``, the seconds are the child's CPU time (not its wall time: on a loaded
+    machine that is several times longer).
+    """
     root = checkout_with(tmp_path, data)
     env = {**os.environ, "AMULED_DATA": str(tmp_path / "data")}
     done = subprocess.run(
@@ -68,8 +81,8 @@ def run_import(tmp_path: Path, data: bytes, timeout: float = 60.0):
         for line in done.stderr.splitlines()
         if line.startswith("child: ") and "ready" not in line
     ]
-    _, _code, seconds, grown_mib = stats.split()
-    return done.returncode, lines, float(seconds), int(grown_mib)
+    _, _code, seconds, grown_mib, cpu_s = stats.split()
+    return done.returncode, lines, float(cpu_s if cpu else seconds), int(grown_mib)
 
 
 @pytest.mark.parametrize(
@@ -92,6 +105,59 @@ def test_hostile_cache_ends_in_seconds_with_one_line(tmp_path, name, data, expec
     assert "refusing to unpickle" in lines[0]
 
 
+#: Just under 16 MiB, the largest file read: the opcode budget, not the size, bounds it.
+NEAR_CAP = 16 * 2**20 - 64
+
+
+def one_byte_opcodes(kind: str, count: int) -> bytes:
+    """A pickle of ``count`` one-byte opcodes: marks, empty sets or ``None`` in a list."""
+    if kind == "marks":
+        return attacks.PROTO4 + b"(" * count + b"N."
+    if kind == "sets":
+        return attacks.many_sets(count)
+    return attacks.PROTO4 + b"](" + b"N" * count + b"e."
+
+
+@pytest.mark.parametrize(
+    ("name", "data"),
+    [
+        ("16 MiB of MARK", one_byte_opcodes("marks", NEAR_CAP)),
+        ("16 MiB of empty sets", one_byte_opcodes("sets", NEAR_CAP)),
+        ("16 MiB of None", one_byte_opcodes("nones", NEAR_CAP)),
+        ("16 MiB of colliding int keys", attacks.colliding_int_keys(NEAR_CAP)),
+    ],
+)
+def test_a_16_mib_file_of_small_opcodes_is_refused_in_seconds(tmp_path, name, data):
+    # before: read opcode by opcode to its end, 25-39 s (the marks and None files loaded)
+    assert len(data) <= MAX_PICKLE_BYTES
+    code, lines, cpu_s, _grown = run_import(tmp_path, data, timeout=120, cpu=True)
+    assert cpu_s < 5, f"{name}: {cpu_s:.1f} s of CPU"
+    assert code == 1 and len(lines) == 1, lines
+    assert f"more than {MAX_OPCODES:,} opcodes" in lines[0] and CACHE in lines[0], lines
+    assert "refusing to unpickle" in lines[0]
+
+
+def test_the_slowest_file_within_the_opcode_budget_ends_in_seconds(tmp_path):
+    # empty sets, the costliest opcode to build: read until the memory bound refuses it
+    data = one_byte_opcodes("sets", MAX_OPCODES - 8)
+    code, lines, cpu_s, _grown = run_import(tmp_path, data, timeout=120, cpu=True)
+    assert cpu_s < 8, f"{cpu_s:.1f} s of CPU"
+    assert code == 1 and len(lines) == 1 and "MiB of memory" in lines[0], lines
+
+
+def test_the_reader_keeps_its_own_opcode_budget():
+    # the second guard: the reader counts too, should a caller skip the scan
+    data = one_byte_opcodes("nones", 3 * MEMORY_CHECK_EVERY)
+    reader = BoundedReader(
+        data, max_array_bytes=len(data), max_memory=None, max_opcodes=MEMORY_CHECK_EVERY
+    )
+    with pytest.raises(PickleUnbounded, match=f"more than {MEMORY_CHECK_EVERY:,} opcodes"):
+        reader.read()
+    assert len(BoundedReader(data, max_array_bytes=len(data), max_memory=None).read()) == (
+        3 * MEMORY_CHECK_EVERY
+    )
+
+
 def test_colliding_float_keys_refused_by_the_hash_count(tmp_path):
     # 17 floats 2.0 ** (61 j) share the hash 1 (no integer involved)
     assert len({hash(2.0 ** (61 * j)) for j in range(17)}) == 1
@@ -103,9 +169,9 @@ def test_colliding_float_keys_refused_by_the_hash_count(tmp_path):
 
 
 def test_memory_bounded_per_byte_of_file(tmp_path):
-    # 4 million empty sets: 4 MB in the file, about 900 MB in memory
+    # 2 million empty sets (the opcode budget): 2 MB in the file, about 450 MB in memory
     path = tmp_path / "sets.pickle"
-    path.write_bytes(attacks.many_sets(4_000_000))
+    path.write_bytes(attacks.many_sets(MAX_OPCODES - 8))
     started = time.monotonic()
     with pytest.raises(AuthorsImportError, match="MiB of memory"):
         load_pickle(path)
@@ -173,12 +239,11 @@ def terminate(child: subprocess.Popen) -> tuple[float, str]:
 
 
 def test_sigterm_during_a_long_import_ends_it_at_once(tmp_path):
-    # a legal-looking cache that takes seconds to read: 12 MB of float keys in one dict
+    # a legal-looking cache that takes seconds to read: 10 MB of float keys in one dict,
+    # just within the opcode budget (two opcodes a key)
     body = bytearray()
-    x = 0
-    while len(body) < 12 * 2**20:
+    for x in range(MAX_OPCODES // 2 - 8):
         body += b"G" + np.float64(x).byteswap().tobytes() + b"N"
-        x += 1
     child = start_import(tmp_path, attacks.PROTO4 + b"}(" + bytes(body) + b"u.")
     time.sleep(1.5)  # inside the scan or the reading (both take several seconds)
     assert child.poll() is None, "the import ended before SIGTERM: make the file larger"

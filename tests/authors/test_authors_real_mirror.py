@@ -51,3 +51,29 @@ def test_real_findmilk_cache_equals_the_shared_recording(tmp_path, recordings_di
         ours["states"][first_flagged]["exchanges"] == theirs["states"][first_flagged]["exchanges"]
     )
     assert converted.to_json() == shared  # byte for byte, so the SHA-256 is the same
+
+
+def test_every_published_cache_fits_the_opcode_budget_with_room():
+    """The budget (MAX_OPCODES) is 2.3 times the most opcodes of a published cache."""
+    from amuled_ma.authors.unpickle import MAX_OPCODES, scan_pickle
+
+    if MIRROR is None or not (MIRROR / "HEAD").is_file() or shutil.which("git") is None:
+        pytest.skip(f"set {MIRROR_ENV} to a git mirror of temetski/moral_agent to run this test")
+    listing = subprocess.run(
+        ["git", f"--git-dir={MIRROR}", "ls-tree", "-r", "--name-only", "HEAD"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.split()
+    counts = {}
+    for name in (n for n in listing if n.endswith("_llm_cache.pickle")):
+        blob = subprocess.run(
+            ["git", f"--git-dir={MIRROR}", "cat-file", "blob", f"HEAD:{name}"],
+            capture_output=True,
+            check=False,
+        )
+        if blob.returncode == 0:  # a mirror may lack its largest files
+            counts[name] = scan_pickle(blob.stdout).opcodes
+    assert counts, "no LLM cache in the mirror"
+    assert max(counts.values()) == 896_093, counts  # the figure docs/authors.md gives
+    assert max(counts.values()) * 2 < MAX_OPCODES

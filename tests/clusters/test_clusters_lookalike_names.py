@@ -73,3 +73,45 @@ def test_an_override_spelt_the_same_is_still_an_override(tmp_path):
     write(tmp_path / "user", "CARE", title="Care Ethics", label="Care")
     registry = ClusterRegistry.load([tmp_path / "user"])
     assert [o.name for o in registry.overridden] == ["CARE"]
+
+
+#: Look-alikes beyond Cyrillic and Greek, from Unicode's confusables (UTS #39 skeletons
+#: through the ``confusable_homoglyphs`` package). Before, each was a second cluster.
+BEYOND = {
+    "armenian u (U+057D)": ("virtue", "virt\u057de"),
+    "armenian o (U+0585)": ("deontological", "de\u0585ntological"),
+    "cherokee capitals": ("care", "\u13df\u13aa\u13d2\u13ac"),
+    "cherokee small letters": ("care", "\uabaf\uab7a\uaba2\uab7c"),
+    "mathematical bold": ("care", "\U0001d41c\U0001d41a\U0001d42b\U0001d41e"),
+    "mathematical script e": ("virtue", "virtu\u212f"),
+    "apl alpha (U+237A)": ("social_justice", "soci\u237al_justice"),
+}
+
+
+@pytest.mark.parametrize(("shipped", "name"), list(BEYOND.values()), ids=list(BEYOND))
+def test_lookalikes_beyond_cyrillic_and_greek_are_refused(tmp_path, shipped, name):
+    assert identity_key(name) == identity_key(shipped)
+    write(tmp_path / "user", name)
+    with pytest.raises(ClusterDefinitionError) as info:
+        ClusterRegistry.load([tmp_path / "user"])
+    text = str(info.value)
+    assert "only look like another cluster's" in text and f"{shipped!r} of" in text, text
+    assert "U+" in text and "\n" not in text
+
+
+def test_the_skeleton_follows_uts39_for_ascii_too():
+    # confusables.txt maps 0 -> O, 1 and I -> l, m -> rn: names differing so read alike
+    assert identity_key("rn0ral") == identity_key("moral")
+    assert identity_key("va1ue") == identity_key("va|ue") == identity_key("value")
+    # case is folded first (names are case-insensitive): a capital I reads as i, not l
+    assert identity_key("vaIue") == identity_key("vaiue") != identity_key("value")
+    assert identity_key("care") != identity_key("core")
+    assert identity_key("Guardian") == "guardian"  # plain names keep their letters
+
+
+def test_distinct_names_in_other_scripts_stay_distinct(tmp_path):
+    # a script without Latin look-alikes is not folded into Latin (Armenian ayb, gim)
+    assert identity_key("\u0531\u0533") != identity_key("care")
+    write(tmp_path / "user", "\u0531\u0533\u0531", title="Armenian")
+    registry = ClusterRegistry.load([tmp_path / "user"])
+    assert "\u0531\u0533\u0531" in registry.names()

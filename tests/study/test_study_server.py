@@ -13,46 +13,29 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import sqlite3
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
 
 import httpx
 import pytest
-from study_fixtures import tiny_run
+from study_fixtures import (
+    agree_to_consent,
+    artifacts,
+    browser,
+    free_port,
+    start_server,
+    tiny_run,
+    wait_sent,
+    wait_state,
+)
 
 from amuled_ma.study.answers import read_refusals
 from amuled_ma.study.build import build_study
+from amuled_ma.study.report import write_analysis
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMEDRIVER = Path("/usr/bin/chromedriver")
-ROOT = Path(__file__).parents[2]
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(1800)]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def start_server(study: Path, port: int) -> subprocess.Popen:
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "amuled_ma", "study", "serve", str(study), "--port", str(port)],
-        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-    )  # fmt: skip
-    for _ in range(300):
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/api/health", timeout=1).status_code == 200:
-                return proc
-        except httpx.TransportError:
-            time.sleep(0.1)
-    proc.kill()
-    raise AssertionError(f"the server never answered: {proc.stderr.read().decode()[-2000:]}")
 
 
 @pytest.fixture(scope="module")
@@ -61,6 +44,11 @@ def study(tmp_path_factory) -> Path:
     run = tiny_run(folder)
     build_study([run], ["amuled", "base", "human"], folder / "s", items=12, seed=2, attention=2)
     return folder / "s"
+
+
+def ratings_of(n: int) -> dict[str, int]:
+    """The ratings a simulated participant gives its n-th answer (both on the 1..7 scale)."""
+    return {"A": 1 + n % 7, "B": 7 - n % 4}
 
 
 class Participant:
@@ -91,7 +79,8 @@ class Participant:
             if wanted and fail_attention:
                 choice = "B" if wanted == "A" else "A"
             form = {"participant": self.id, "token": self.token, "item": shown["id"]}
-            r = self.post("/api/answer", {**form, "choice": choice, "ms": 850})
+            ratings = ratings_of(len(self.accepted))
+            r = self.post("/api/answer", {**form, "choice": choice, "ms": 850, "ratings": ratings})
             self.codes.append(r.status_code)
             if r.status_code == 200:
                 self.accepted.append(shown["id"])
@@ -99,42 +88,20 @@ class Participant:
 
 
 def browser_participant(base: str, expected: dict, url_id: str, reload_after: int | None):
-    missing = [str(p) for p in (CHROMIUM, CHROMEDRIVER) if not p.exists()]
-    if missing:
-        pytest.skip(f"no browser: {', '.join(missing)} missing; apt-get install chromium "
-                    "chromium-driver (.ci/setup does)")  # fmt: skip
-    webdriver = pytest.importorskip("selenium.webdriver", reason="pip install -e '.[test]'")
-    from selenium.webdriver.chrome.service import Service
+    """Answer every item on the jsPsych page: the choice and both ratings."""
     from selenium.webdriver.common.by import By
 
-    options = webdriver.ChromeOptions()
-    options.binary_location = str(CHROMIUM)
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-                "--window-size=1000,1100"):  # fmt: skip
-        options.add_argument(arg)
-    driver = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
+    driver = browser()
     answered: list[str] = []
     try:
         driver.get(f"{base}/?PROLIFIC_PID={url_id}")
-
-        def wait_state():
-            for _ in range(400):
-                state = driver.execute_script("return document.body.dataset.state")
-                if state in ("consent", "item", "done"):
-                    return state
-                time.sleep(0.025)
-            raise AssertionError(f"page stuck in {state}")
-
         shots = []
         while True:
-            state = wait_state()
+            state = wait_state(driver)
             if state == "done":
                 break
             if state == "consent":
-                driver.find_element(
-                    By.CSS_SELECTOR, "#jspsych-html-button-response-button-0 button"
-                ).click()
-                time.sleep(0.1)
+                agree_to_consent(driver)
                 continue
             item = driver.execute_script("return document.body.dataset.item")
             if item in answered:  # the page moves on after the click: wait for it
@@ -142,23 +109,20 @@ def browser_participant(base: str, expected: dict, url_id: str, reload_after: in
                 continue
             if not shots:
                 shots.append(driver.get_screenshot_as_png())
-            labels = [b.text for b in driver.find_elements(By.CSS_SELECTOR, ".jspsych-btn")]
-            index = 0 if expected[item] in (None, "A") else 1
-            assert labels[index].startswith("AB"[index])
-            driver.find_element(
-                By.CSS_SELECTOR, f"#jspsych-html-button-response-button-{index} button"
-            ).click()
+            labels = [e.text for e in driver.find_elements(By.CSS_SELECTOR, ".option span")]
+            choice = expected[item] or "A"
+            assert [label[:2] for label in labels] == ["A:", "B:"]
+            driver.find_element(By.CSS_SELECTOR, f'input[name="choice"][value="{choice}"]').click()
+            for label, rating in ratings_of(len(answered)).items():
+                driver.find_element(
+                    By.CSS_SELECTOR, f'input[name="rate-{label}"][value="{rating}"]'
+                ).click()
+            driver.find_element(By.ID, "jspsych-survey-html-form-next").click()
             answered.append(item)
             if reload_after is not None and len(answered) == reload_after:
-                for _ in range(200):  # the answer's request has been answered
-                    if driver.execute_script("return document.body.dataset.pending") == "0":
-                        break
-                    time.sleep(0.025)
+                wait_sent(driver)  # the answer's request has been answered
                 driver.refresh()
-        for _ in range(200):
-            if driver.execute_script("return document.body.dataset.pending || '0'") == "0":
-                break
-            time.sleep(0.025)
+        wait_sent(driver)
         return answered, shots
     finally:
         driver.quit()
@@ -194,26 +158,30 @@ def test_twenty_participants_a_kill_and_nothing_lost(study, tmp_path):
         # a browser participant after the restart, reloading the page after 4 answers
         answered, shots = browser_participant(base, expected, "PROLIFIC-1", reload_after=4)
         assert sorted(answered) == sorted(expected)  # resumed: every item once
-        (Path(os.environ.get("AMULED_ARTIFACTS") or tmp_path) / "study-page.png").write_bytes(
-            shots[0]
-        )
+        (artifacts(tmp_path) / "study-page-server.png").write_bytes(shots[0])
         for name in ("PROLIFIC-2", "PROLIFIC-3"):
             assert len(browser_participant(base, expected, name, None)[0]) == n_items
 
         # a double submission, a tampered form
         p = people[0]
         first = expected and next(iter(expected))
-        body = {"participant": p.id, "token": p.token, "item": first, "choice": "A", "ms": 10}
+        body = {"participant": p.id, "token": p.token, "item": first, "choice": "A", "ms": 10,
+                "ratings": {"A": 4, "B": 4}}  # fmt: skip
         assert httpx.post(base + "/api/answer", json=body).status_code == 409
         other = Participant(base, "tamper")
         me = other.post("/api/session", {}).json()
-        own = {"participant": me["participant"], "token": me["token"], "ms": 5}
+        own = {"participant": me["participant"], "token": me["token"], "ms": 5,
+               "ratings": {"A": 2, "B": 6}}  # fmt: skip
         tampered = [
             ({**own, "item": "q999", "choice": "A"}, 400),
             ({**own, "item": first, "choice": "C"}, 400),
             ({**own, "item": first, "choice": "A", "token": p.token}, 403),
             ({**own, "participant": p.id, "item": first, "choice": "B"}, 403),
             ({**own, "item": first, "choice": "A", "ms": "fast"}, 400),
+            ({**own, "item": first, "choice": "A", "ratings": {"A": 8, "B": 1}}, 400),
+            ({**own, "item": first, "choice": "A", "ratings": {"A": 0, "B": 1}}, 400),
+            ({**own, "item": first, "choice": "A", "ratings": {"A": 2, "B": 2, "C": 5}}, 400),
+            ({**own, "item": first, "choice": "A", "ratings": {"A": 2}}, 400),
         ]
         for claim in ({"participant": p.id}, {"participant": p.id, "source": "assigned"}):
             assert httpx.post(base + "/api/session", json=claim).status_code == 403
@@ -250,6 +218,22 @@ def test_twenty_participants_a_kill_and_nothing_lost(study, tmp_path):
     assert failed == {people[3].id}
     assert all(r[4] >= 0 for r in rows)
     reasons = [r[3] for r in read_refusals(study / "answers.sqlite")]
-    for reason in ("unknown item", "unknown choice", "wrong token", "bad time", "already answered"):
+    for reason in ("unknown item", "unknown choice", "wrong token", "bad time", "already answered",
+                   "rating outside the scale", "rating for an option not shown",
+                   "ratings missing"):  # fmt: skip
         assert reason in reasons
     assert db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    # every stored answer has its two ratings on the scale; the tamperer's is the one sent
+    ratings = db.execute("SELECT participant, rating_a, rating_b FROM answers").fetchall()
+    assert all(1 <= a <= 7 and 1 <= b <= 7 for _, a, b in ratings)
+    assert [(a, b) for pid, a, b in ratings if pid == me["participant"]] == [(2, 6)]
+    db.close()
+    # the report of these twenty participants (its figure is the doc's study_analysis.png)
+    report = write_analysis(study).read_text()
+    summary = json.loads((study / "analysis" / "summary.json").read_text())
+    assert summary["participants"] == 21 and summary["kept"] == 20
+    assert summary["answers_rated"] == summary["pairs_answered"]
+    assert "## Acceptability" in report
+    (artifacts(tmp_path) / "study-analysis.png").write_bytes(
+        (study / "analysis" / "strengths.png").read_bytes()
+    )

@@ -187,6 +187,8 @@ def fusion_text(panel: PanelRecord) -> str:
     """The fusion rule, or what stood in for it."""
     if panel.fused_only:
         return "the authors' (recorded)"
+    if panel.weights:
+        return f"{panel.fusion or '-'}, members weighted by `{panel.weights}`"
     return panel.fusion or "-"
 
 

@@ -1,0 +1,391 @@
+"""Fine-tunes per hour: populations of P = 1, 8, 32, 128 beside the same jobs one by one.
+
+For each task, with the authors' recipe (``scenarios/<task>-authors.toml``: 1 copy x 128
+steps, 8 epochs of 4 mini-batches, their window KL, 1,000 iterations): a short base
+policy is trained (``--base-steps``), then fine-tunes of it (``finetune:amuled``, seeds
+42, 43, ..., lambda_KL cycling through 0.5, 1, 2.5, 5) are timed
+
+- one by one with the existing ``Trainer`` (``--lone`` of them, the mean is used), and
+- as populations of P members (``amuled_ma.learn.population.PopulationTrainer``),
+
+side by side in one run. Each measurement times a few iterations (``--warmup`` then
+``--iterations``) and **extrapolates to the recipe's 1,000 iterations**: a job's time is
+its setup + the warm-up iterations (when the feedback's memo is cold and most states are
+new) + (1,000 - warm-up) x the mean of the measured iterations after them; fine-tunes per
+hour = P x 3,600 s / that time. The feedback is the replayed recording of the scenario
+where it is found (``../shared/amuled-recordings/``), else the rule-based source; the
+output names it. One torch thread (the project's setting for small networks). Target
+(issue 26): at P = 32, at least 10x the one-by-one throughput on a 2-core machine.
+
+``--welch N`` measures agreement instead of speed: N seeds (42, 43, ...; lambda_KL 2.5)
+fine-tuned alone and the same N as one population, full runs, each final policy
+evaluated (``[evaluation].episodes``, sampled and greedy, evaluation seed 42) and the
+training's last 100 iterations summarised; per metric, the mean and standard deviation of
+each group over the seeds and Welch's t (and its two-sided p) of the difference.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+from amuled_ma.bench._output import output_folder
+
+#: The authors' recipe's fine-tune length, to which the measured iterations extrapolate.
+RECIPE_ITERATIONS = 1000
+#: lambda_KL of the members, in turn (members differ in seed and KL weight).
+LAMBDAS = (0.5, 1.0, 2.5, 5.0)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the benchmark's options to ``parser``."""
+    parser.add_argument("--tasks", default="findmilk,driving", help="comma-separated tasks")
+    parser.add_argument("--sizes", default="1,8,32,128", help="population sizes P")
+    parser.add_argument(
+        "--warmup", type=int, default=8, help="iterations timed as warm-up (cold memos)"
+    )
+    parser.add_argument(
+        "--iterations", type=int, default=5, help="iterations measured after the warm-up"
+    )
+    parser.add_argument("--lone", type=int, default=2, help="fine-tunes timed one by one")
+    parser.add_argument(
+        "--base-steps", type=int, default=10_240, help="env steps of the short base policy"
+    )
+    parser.add_argument("--device", default="cpu", help="device of the populations (cpu, cuda)")
+    parser.add_argument(
+        "--welch",
+        type=int,
+        default=0,
+        metavar="N",
+        help="instead: N seeds trained alone and N as one population, full runs, their "
+        "metrics compared with Welch's t (docs/learning.md)",
+    )
+    parser.add_argument(
+        "--welch-iterations", type=int, default=None, help="iterations of --welch runs (1,000)"
+    )
+    parser.add_argument("--out", type=Path, default=None, help="keep the runs in this folder")
+
+
+def _rss_mib() -> float:
+    """This process's resident memory now [MiB] (Linux; 0 elsewhere)."""
+    try:
+        pages = int(Path("/proc/self/statm").read_text().split()[1])
+    except (OSError, IndexError, ValueError):
+        return 0.0
+    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+class Stopwatch:
+    """Wall-clock and CPU times of a training call's iterations, from its ``on_iteration``.
+
+    The machine may be shared: the CPU time of this process (one torch thread) is what
+    the code costs, the wall-clock time what it took beside the other load.
+    """
+
+    def __init__(self) -> None:
+        self.marks: list[tuple[float, float]] = []
+        self.start = self.now()
+
+    @staticmethod
+    def now() -> tuple[float, float]:
+        """``(wall, cpu)`` seconds now."""
+        return time.perf_counter(), time.process_time()
+
+    def restart(self) -> None:
+        """Start timing here (after the setup)."""
+        self.start = self.now()
+
+    def __call__(self, _trainer: Any, _iteration: int) -> None:
+        """Mark the end of an iteration (a trainer's ``on_iteration``)."""
+        self.marks.append(self.now())
+
+    def extrapolate(self, setup: tuple[float, float], warmup: int) -> dict[str, float]:
+        """Seconds of a 1,000-iteration run and per steady iteration, wall and CPU.
+
+        Args:
+            setup: ``(wall, cpu)`` seconds of building the trainer.
+            warmup: Iterations counted as warm-up.
+
+        Returns:
+            ``wall_s``, ``cpu_s`` (the whole run), ``wall_it``, ``cpu_it`` (per steady
+            iteration).
+
+        """
+        out = {}
+        for clock, name in enumerate(("wall", "cpu")):
+            first = self.marks[warmup - 1][clock] if warmup else self.start[clock]
+            warm = first - self.start[clock]
+            steady = (self.marks[-1][clock] - first) / (len(self.marks) - warmup)
+            out[f"{name}_s"] = setup[clock] + warm + (RECIPE_ITERATIONS - warmup) * steady
+            out[f"{name}_it"] = steady
+        return out
+
+
+def _since(start: tuple[float, float]) -> tuple[float, float]:
+    wall, cpu = Stopwatch.now()
+    return wall - start[0], cpu - start[1]
+
+
+def _scenario(task: str, base_steps: int) -> tuple[Any, str]:
+    """The task's authors' scenario for the bench, and the name of its feedback source."""
+    from amuled_ma.scenario import load_scenario
+
+    scenario = load_scenario(f"{task}-authors")
+    scenario = scenario.replace("base", total_steps=base_steps)
+    scenario = scenario.replace("output", tensorboard=False)
+    # a short base wanders into states the recording never asked: reward 0 there (the
+    # authors' recipe), without the abstention stop meant for real runs
+    scenario = scenario.replace("feedback", max_abstention=1.0)
+    recording = scenario.recording_path()
+    if recording.exists():
+        return scenario, f"replay of {recording.name}"
+    return scenario.replace("feedback", source="rules"), "rules (no recording found)"
+
+
+def _jobs(scenario: Any, run: Path, base: Path, count: int, tag: str, store: Any) -> list[Any]:
+    """``count`` fine-tune jobs of the base: seeds 42.., lambda_KL in turn, own feedback."""
+    from amuled_ma.deliberation.build import make_feedback
+    from amuled_ma.learn.population_groups import MemberSpec
+
+    jobs = []
+    for k in range(count):
+        seed = 42 + k
+        job = scenario.replace("finetune", lambda_kl=LAMBDAS[k % len(LAMBDAS)])
+        out = run / tag / f"finetune-amuled.seed{seed}"
+        feedback = make_feedback("amuled", job, run, state_dir=out, seed=seed, store=store)
+        jobs.append(
+            MemberSpec(
+                job, out, variant="finetune:amuled", feedback=feedback, base_checkpoint=base,
+                seed=seed,
+            )
+        )  # fmt: skip
+    return jobs
+
+
+def measure_task(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
+    """Time the lone fine-tunes and every population size of one task."""
+    from amuled_ma.deliberation.build import run_store
+    from amuled_ma.learn.population import PopulationTrainer
+    from amuled_ma.learn.population_groups import member_memory_bytes
+    from amuled_ma.learn.trainer import Trainer
+    from amuled_ma.tasks import get_task
+
+    scenario, source = _scenario(task, args.base_steps)
+    run = out / task
+    t0 = time.perf_counter()
+    base = Trainer(scenario, run / "base").train().checkpoint
+    base_s = time.perf_counter() - t0
+    store = run_store(scenario, run)
+    its = args.warmup + args.iterations
+    lone: list[dict[str, float]] = []
+    for job in _jobs(scenario, run, base, args.lone, "lone", store):
+        job.iterations = its
+        watch = Stopwatch()
+        trainer = Trainer(job.scenario, job.out_dir, **job.lone_kwargs(), on_iteration=watch)
+        setup = _since(watch.start)
+        watch.restart()
+        trainer.train()
+        job.feedback.close()
+        lone.append(watch.extrapolate(setup, args.warmup))
+    alone = {key: sum(t[key] for t in lone) / len(lone) for key in lone[0]}
+    rows = []
+    for size in [int(s) for s in args.sizes.split(",") if s.strip()]:
+        jobs = _jobs(scenario, run, base, size, f"p{size}", store)
+        watch = Stopwatch()
+        for job in jobs:
+            job.iterations = its
+        jobs[0].on_iteration = watch
+        population = PopulationTrainer(jobs, device=args.device)
+        setup = _since(watch.start)
+        watch.restart()
+        population.train()
+        rss = _rss_mib()
+        times = watch.extrapolate(setup, args.warmup)
+        for job in jobs:
+            job.feedback.close()
+        del population
+        rows.append({"size": size, "setup": setup, "rss_mib": rss, **times})
+        print(
+            f"  {task} P={size}: {size * 3600 / times['cpu_s']:.1f} fine-tunes/h "
+            f"(CPU time), {size * 3600 / times['wall_s']:.1f} (wall clock)",
+            flush=True,
+        )
+    shape = _jobs(scenario, run, base, 1, "shape", store)[0].shape()
+    task_obj = get_task(scenario.task.name)
+    return {
+        "task": task,
+        "source": source,
+        "base_s": base_s,
+        "alone": alone,
+        "rows": rows,
+        "member_bytes": member_memory_bytes(
+            shape, obs_dim=len(task_obj.obs_names), num_actions=len(task_obj.action_names)
+        ),
+    }
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the benchmark and print the figures side by side; returns 0."""
+    import torch
+
+    torch.set_num_threads(1)
+    if args.welch:
+        with output_folder(args.out, "amuled-bench-population-") as out:
+            for task in [t.strip() for t in args.tasks.split(",") if t.strip()]:
+                print_welch(task, welch(task, args, out))
+        return 0
+    results = []
+    with output_folder(args.out, "amuled-bench-population-") as out:
+        for task in [t.strip() for t in args.tasks.split(",") if t.strip()]:
+            print(f"{task}: base policy, {args.lone} fine-tunes alone, populations ...", flush=True)
+            results.append(measure_task(task, args, out))
+    print()
+    print(
+        f"Fine-tunes per hour, authors' recipe ({RECIPE_ITERATIONS:,} iterations x 128 steps, "
+        "8 epochs x 4 mini-batches), extrapolated from "
+        f"{args.warmup} warm-up + {args.iterations} measured iterations per run; "
+        f"populations on {args.device}, one torch thread, {os.cpu_count()} cores."
+    )
+    header = (
+        f"{'task':<9} {'P':>4} {'one by one/h':>13} {'population/h':>13} {'speed-up':>9} "
+        f"{'wall: 1x1/h':>12} {'pop./h':>7} {'speed-up':>9} {'s/it':>6} {'setup s':>8} "
+        f"{'RSS MiB':>8}"
+    )
+    for result in results:
+        alone = result["alone"]
+        print(
+            f"\n{result['task']}: feedback {result['source']}; one by one (Trainer): "
+            f"{alone['cpu_it']:.3f} CPU s/iteration, {alone['cpu_s'] / 60:.1f} CPU min per "
+            f"fine-tune; memory per member (estimate, tensors + overhead): "
+            f"{result['member_bytes'] / 2**20:.2f} MiB"
+        )
+        print(header)
+        print("-" * len(header))
+        for row in result["rows"]:
+            size = row["size"]
+            cpu_lone, cpu_pop = 3600 / alone["cpu_s"], size * 3600 / row["cpu_s"]
+            wall_lone, wall_pop = 3600 / alone["wall_s"], size * 3600 / row["wall_s"]
+            print(
+                f"{result['task']:<9} {size:>4} {cpu_lone:>13.1f} {cpu_pop:>13.1f} "
+                f"{cpu_pop / cpu_lone:>8.1f}x {wall_lone:>12.1f} {wall_pop:>7.1f} "
+                f"{wall_pop / wall_lone:>8.1f}x {row['cpu_it']:>6.2f} {row['setup'][1]:>8.1f} "
+                f"{row['rss_mib']:>8.0f}"
+            )
+    print(
+        "\nper hour: from this process's CPU time (the machine may be shared; one torch "
+        "thread); wall: from the wall clock. s/it: CPU seconds per steady iteration of the "
+        "population. RSS: this process's resident memory after the population's run."
+    )
+    return 0
+
+
+def _run_metrics(outcome: Any, scenario: Any) -> dict[str, float]:
+    """A finished fine-tune's figures: its evaluation and its last 100 iterations."""
+    from amuled_ma.evaluate.evaluator import run_episodes
+    from amuled_ma.learn.policies import load_policy
+
+    actor = load_policy(outcome.checkpoint, scenario)
+    out: dict[str, float] = {}
+    for mode in ("sampled", "greedy"):
+        records, _ = run_episodes(
+            actor,
+            scenario,
+            episodes=scenario.evaluation.episodes,
+            mode=mode,
+            seed=scenario.evaluation.seed,
+            record_trajectory=False,
+        )
+        for key in sorted({k for r in records for k in r}):
+            values = [r[key] for r in records if key in r]
+            out[f"{mode}/{key}"] = sum(values) / len(values)
+    tail = outcome.curve[-100:]
+    for key in ("feedback/feedback_reward", "feedback/kl", "losses/value", "losses/entropy"):
+        values = [row[key] for row in tail if row.get(key) is not None]
+        if values:
+            out[f"training/{key}"] = sum(values) / len(values)
+    return out
+
+
+def welch(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
+    """Train ``args.welch`` seeds alone and as one population; each run's figures."""
+    from amuled_ma.deliberation.build import run_store
+    from amuled_ma.learn.population import PopulationTrainer
+    from amuled_ma.learn.trainer import Trainer
+
+    scenario, source = _scenario(task, args.base_steps)
+    scenario = scenario.replace("finetune", lambda_kl=2.5)
+    run = out / task
+    base = Trainer(scenario, run / "base").train().checkpoint
+    store = run_store(scenario, run)
+    groups: dict[str, list[dict[str, float]]] = {"alone": [], "population": []}
+    times: dict[str, float] = {}
+    jobs = _jobs(scenario, run, base, args.welch, "alone", store)
+    start = time.process_time()
+    for job in jobs:
+        job.scenario = scenario  # lambda_KL 2.5 for every seed
+        job.iterations = args.welch_iterations
+        outcome = Trainer(job.scenario, job.out_dir, **job.lone_kwargs()).train()
+        job.feedback.close()
+        groups["alone"].append(_run_metrics(outcome, scenario))
+        print(f"  {task}: seed {job.training_seed} alone done", flush=True)
+    times["alone"] = time.process_time() - start
+    jobs = _jobs(scenario, run, base, args.welch, "population", store)
+    for job in jobs:
+        job.scenario = scenario
+        job.iterations = args.welch_iterations
+    start = time.process_time()
+    outcomes = PopulationTrainer(jobs, device=args.device).train()
+    times["population"] = time.process_time() - start
+    for job, outcome in zip(jobs, outcomes, strict=True):
+        job.feedback.close()
+        groups["population"].append(_run_metrics(outcome, scenario))
+    return {"task": task, "source": source, "groups": groups, "cpu_s": times}
+
+
+def welch_t(a: list[float], b: list[float]) -> tuple[float, float | None]:
+    """Welch's t of ``mean(b) - mean(a)`` and its two-sided p (None: no variance at all)."""
+    import math
+
+    na, nb = len(a), len(b)
+    ma, mb = sum(a) / na, sum(b) / nb
+    va = sum((x - ma) ** 2 for x in a) / (na - 1)
+    vb = sum((x - mb) ** 2 for x in b) / (nb - 1)
+    se2 = va / na + vb / nb
+    if se2 == 0:
+        return 0.0 if ma == mb else math.inf, None
+    t = (mb - ma) / math.sqrt(se2)
+    dof = se2**2 / ((va / na) ** 2 / (na - 1) + (vb / nb) ** 2 / (nb - 1))
+    try:
+        from scipy.stats import t as student
+    except ImportError:  # pragma: no cover - scipy is a dependency
+        return t, None
+    return t, float(2 * student.sf(abs(t), dof))
+
+
+def print_welch(task: str, result: dict[str, Any]) -> None:
+    """Print each metric's mean and sd per group, Welch's t and p."""
+    alone, together = result["groups"]["alone"], result["groups"]["population"]
+    n = len(alone)
+    print(
+        f"\n{task}: {n} seeds alone vs the same {n} as one population, full runs; feedback "
+        f"{result['source']}; CPU time alone {result['cpu_s']['alone'] / 60:.1f} min, as a "
+        f"population {result['cpu_s']['population'] / 60:.1f} min"
+    )
+    header = f"{'metric':<34} {'alone':>17} {'population':>17} {'Welch t':>8} {'p':>6}"
+    print(header)
+    print("-" * len(header))
+    for key in sorted(alone[0]):
+        a = [run[key] for run in alone]
+        b = [run[key] for run in together]
+        t, p = welch_t(a, b)
+
+        def stat(values: list[float]) -> str:
+            mean = sum(values) / len(values)
+            sd = (sum((x - mean) ** 2 for x in values) / (len(values) - 1)) ** 0.5
+            return f"{mean:.3f} ± {sd:.3f}"
+
+        shown_p = "-" if p is None else f"{p:.2f}"
+        print(f"{key:<34} {stat(a):>17} {stat(b):>17} {t:>8.2f} {shown_p:>6}")

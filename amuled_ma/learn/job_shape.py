@@ -1,0 +1,128 @@
+"""The shape of one training job: copies, rollout, iterations, learning rate, rsl-rl config.
+
+The same derivation from a scenario and a variant as the lone
+:class:`~amuled_ma.learn.trainer.Trainer`'s constructor makes (``tests/learn/
+test_population_groups.py`` checks that both agree), without building anything: the
+population learner groups jobs by what they share (:mod:`amuled_ma.learn.population_groups`)
+before any of them is built.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from amuled_ma.errors import ScenarioError
+from amuled_ma.learn.config import planned_iterations, rsl_rl_config
+from amuled_ma.scenario import Scenario
+from amuled_ma.variants import Variant
+
+
+@dataclass(frozen=True)
+class JobShape:
+    """What a job's scenario and variant decide about its training loop.
+
+    Attributes:
+        finetuning: A fine-tune (feedback, KL anchor) rather than base training.
+        num_envs: Task copies.
+        steps_per_env: Rollout length per copy.
+        total_iterations: PPO iterations the job trains to.
+        learning_rate: Adam's step size (before annealing).
+        anneal: CleanRL's linear annealing of the learning rate to 0.
+        shaping_coef: ``c`` of the task reward ``r_env + c * r_shaping``.
+        task_weight: Weight of the task reward in the actor's reward.
+        cfg: rsl-rl's training config (pass a deep copy to rsl-rl).
+
+    """
+
+    finetuning: bool
+    num_envs: int
+    steps_per_env: int
+    total_iterations: int
+    learning_rate: float
+    anneal: bool
+    shaping_coef: float
+    task_weight: float
+    cfg: dict[str, Any]
+
+    @property
+    def batch(self) -> int:
+        """Transitions per iteration (``num_envs x steps_per_env``)."""
+        return self.num_envs * self.steps_per_env
+
+    def lr_at(self, iteration: int) -> float:
+        """The learning rate of ``iteration`` (0-based): constant, or linearly annealed."""
+        if self.anneal:
+            return self.learning_rate * (1.0 - iteration / self.total_iterations)
+        return self.learning_rate
+
+
+def job_shape(
+    scenario: Scenario, variant: Variant | str, iterations: int | None = None
+) -> JobShape:
+    """The shape of training ``variant`` on ``scenario``.
+
+    Args:
+        scenario: The scenario.
+        variant: ``base``, ``shaped`` or ``finetune:<feedback>`` (or a parsed variant).
+        iterations: Overrides the planned number of iterations (tests, benchmarks).
+
+    Returns:
+        The job's shape.
+
+    Raises:
+        ScenarioError: Mini-batches of fewer than 2 transitions with per-mini-batch
+            advantage normalisation (one sample normalises to NaN).
+
+    """
+    variant = Variant.parse(variant)
+    ppo = scenario.ppo
+    if variant.finetuning:
+        ft = scenario.finetune
+        num_envs, steps = ft.num_envs, ft.num_steps_per_env
+        total = planned_iterations(scenario, finetune=True) if iterations is None else iterations
+        lr, anneal = ft.learning_rate, ft.anneal_lr
+        cfg = rsl_rl_config(
+            ppo,
+            num_steps_per_env=ft.num_steps_per_env,
+            learning_rate=ft.learning_rate,
+            num_learning_epochs=ft.num_learning_epochs,
+            save_interval=ft.save_interval,
+            lambda_kl=ft.lambda_kl,
+            anchor="window" if ft.recipe == "authors" else "per_sample",
+            grad_clip=ft.grad_clip,
+            reshuffle_each_epoch=ft.reshuffle_each_epoch,
+            bootstrap_time_outs=ft.bootstrap_time_outs,
+        )
+        shaping, task_weight = 0.0, ft.env_reward_coef
+    else:
+        base = scenario.base
+        num_envs, steps = base.num_envs, base.num_steps_per_env
+        total = planned_iterations(scenario, finetune=False) if iterations is None else iterations
+        lr, anneal = ppo.learning_rate, ppo.anneal_lr
+        cfg = rsl_rl_config(
+            ppo, num_steps_per_env=base.num_steps_per_env, save_interval=base.save_interval
+        )
+        shaping = base.shaping_coef if variant.kind == "shaped" else 0.0
+        task_weight = 1.0
+    section = "finetune" if variant.finetuning else "base"
+    minibatch = num_envs * steps // ppo.num_mini_batches
+    if ppo.normalize_advantage_per_mini_batch and minibatch < 2:
+        raise ScenarioError(
+            f"{scenario.path or scenario.name}: [{section}] num_envs x num_steps_per_env = "
+            f"{num_envs * steps} transitions split into "
+            f"[ppo] num_mini_batches = {ppo.num_mini_batches} gives mini-batches of "
+            f"{minibatch}; per-mini-batch advantage normalisation needs at least 2 "
+            "(raise num_envs or num_steps_per_env)"
+        )
+    return JobShape(
+        finetuning=variant.finetuning,
+        num_envs=num_envs,
+        steps_per_env=steps,
+        total_iterations=total,
+        learning_rate=lr,
+        anneal=anneal,
+        shaping_coef=shaping,
+        task_weight=task_weight,
+        cfg=cfg,
+    )

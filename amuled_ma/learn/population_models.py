@@ -1,0 +1,274 @@
+"""A population's actor and critic: P networks of one shape, stacked, as rsl-rl models.
+
+rsl-rl builds its actor and critic from ``cfg["actor"]`` / ``cfg["critic"]`` by
+``class_name``; :class:`PopulationMLPModel` is such a class. It is rsl-rl's
+:class:`~rsl_rl.models.MLPModel` whose MLP is replaced by the same layers stacked over
+``population`` members: each ``nn.Linear(in, out)`` becomes a :class:`StackedLinear` with
+weight ``[P, out, in]`` and bias ``[P, out]`` under the same name, so the model's
+``state_dict`` is the lone model's with a leading member axis (:func:`stack_states`,
+:func:`member_state`). A batch is **member-major**: its ``P x B`` rows are ``P`` blocks of
+``B`` rows, block ``p`` member ``p``'s; one batched matmul (:func:`torch.baddbmm`) per
+layer evaluates every member on its own block.
+
+:class:`PopulationCategoricalDistribution` is our categorical head whose samples come from
+one random stream per member (:class:`MemberStreams`), so member ``p`` draws exactly what
+it draws alone (the lone run draws from torch's global generator).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import torch
+import torch.nn as nn
+from rsl_rl.models import MLPModel
+from tensordict import TensorDict
+
+from amuled_ma.learn.distribution import CategoricalDistribution
+
+
+class MemberStreams:
+    """One CPU random generator per member: the population's stand-in for torch's global one.
+
+    A lone run draws its action samples (``torch.rand``) and its mini-batch permutations
+    (``torch.randperm``) from torch's global CPU generator, seeded by the trainer. Member
+    ``p`` of a population draws the same calls, in the same order, from generator ``p``,
+    whose state is set from the lone run's (:meth:`set_states`), so it draws the same
+    numbers. The generators stay on the CPU on every device (the draws are moved), so a
+    member's stream, and the ``torch_rng`` its checkpoint keeps, are those of a lone run.
+
+    Args:
+        population: Number of members.
+
+    """
+
+    def __init__(self, population: int) -> None:
+        self.population = int(population)
+        self.generators = [torch.Generator() for _ in range(self.population)]
+
+    def __deepcopy__(self, memo: dict) -> MemberStreams:
+        """Copies of a model share its streams (a frozen copy never draws)."""
+        return self
+
+    def get_states(self) -> list[torch.Tensor]:
+        """Each generator's state (a lone run's ``torch.get_rng_state()``)."""
+        return [g.get_state() for g in self.generators]
+
+    def set_states(self, states: Sequence[torch.Tensor]) -> None:
+        """Set each generator's state (``torch.get_rng_state()`` of each lone run)."""
+        if len(states) != self.population:
+            raise ValueError(f"{len(states)} generator states for {self.population} members")
+        for generator, state in zip(self.generators, states, strict=True):
+            generator.set_state(state)
+
+    def uniform(self, rows: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+        """``[rows, 1]`` uniforms in ``[0, 1)``: ``rows / P`` from each member, member-major."""
+        each = rows // self.population
+        draws = [torch.rand((each, 1), dtype=dtype, generator=g) for g in self.generators]
+        return torch.cat(draws).to(device)
+
+    def permutations(self, n: int, device: torch.device) -> torch.Tensor:
+        """``[P, n]``: a random permutation of ``0..n-1`` from each member's stream."""
+        return torch.stack([torch.randperm(n, generator=g) for g in self.generators]).to(device)
+
+
+class PopulationCategoricalDistribution(CategoricalDistribution):
+    """The categorical head (one-hot actions), sampling each member from its own stream.
+
+    Set :attr:`streams` before the first sample (:class:`~amuled_ma.learn.population_ppo.
+    PopulationPPO` does). Sampling is the inverse CDF of
+    :meth:`CategoricalDistribution.sample`, with member ``p``'s uniforms drawn by
+    generator ``p`` in the shape a lone run draws them.
+    """
+
+    def __init__(self, output_dim: int, init_last_layer_std: float = 0.01) -> None:
+        super().__init__(output_dim, init_last_layer_std)
+        self.streams: MemberStreams | None = None
+
+    def sample(self) -> torch.Tensor:
+        """One action per row, one-hot; row block ``p`` drawn from member ``p``'s stream.
+
+        Raises:
+            RuntimeError: No :attr:`streams` were set.
+
+        """
+        if self.streams is None:
+            raise RuntimeError("PopulationCategoricalDistribution: set .streams before sampling")
+        probs = self.probs
+        cdf = probs.cumsum(-1)
+        u = self.streams.uniform(cdf.shape[0], cdf.dtype, cdf.device)
+        index = (cdf < u).sum(-1, keepdim=True).clamp_max(self.output_dim - 1)
+        return torch.zeros_like(probs).scatter_(-1, index, 1.0)
+
+
+class StackedLinear(nn.Module):
+    """``population`` linear layers of one shape, applied to their member-major row blocks.
+
+    Args:
+        population: Number of members ``P``.
+        in_features: Inputs of each layer.
+        out_features: Outputs of each layer.
+
+    Attributes:
+        weight: ``[P, out, in]``; ``weight[p]`` is member ``p``'s ``nn.Linear.weight``.
+        bias: ``[P, out]``.
+
+    """
+
+    def __init__(self, population: int, in_features: int, out_features: int) -> None:
+        super().__init__()
+        self.population = int(population)
+        self.in_features = int(in_features)
+        self.out_features = int(out_features)
+        self.weight = nn.Parameter(torch.empty(population, out_features, in_features))
+        self.bias = nn.Parameter(torch.empty(population, out_features))
+
+    @classmethod
+    def copies_of(cls, layer: nn.Linear, population: int) -> StackedLinear:
+        """``population`` copies of ``layer`` (its weights in every member)."""
+        stacked = cls(population, layer.in_features, layer.out_features)
+        with torch.no_grad():
+            stacked.weight.copy_(layer.weight.expand(population, -1, -1))
+            stacked.bias.copy_(layer.bias.expand(population, -1))
+        return stacked.to(layer.weight.device)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``[P * B, in] -> [P * B, out]``, block ``p`` through member ``p``'s layer."""
+        out = self.blocks(x.reshape(self.population, -1, self.in_features))
+        return out.reshape(-1, self.out_features)
+
+    def blocks(self, x: torch.Tensor) -> torch.Tensor:
+        """``[P, B, in] -> [P, B, out]``: one batched matmul, ``x[p] @ weight[p].T + bias[p]``."""
+        return torch.baddbmm(self.bias.unsqueeze(1), x, self.weight.transpose(1, 2))
+
+    def extra_repr(self) -> str:
+        """The shape, as ``nn.Linear`` shows it, with the population."""
+        return (
+            f"population={self.population}, in_features={self.in_features}, "
+            f"out_features={self.out_features}"
+        )
+
+
+class StackedMLP(nn.Sequential):
+    """An MLP of :class:`StackedLinear` layers, run on ``[P, B, features]`` blocks throughout.
+
+    The same children, under the same indices, as the lone MLP it stacks (so the state
+    dict's names are the lone model's); the rows are split into member blocks once, at
+    the input, and joined once, at the output.
+
+    Args:
+        population: Number of members ``P``.
+        *layers: The layers, :class:`StackedLinear` or parameter-free (activations).
+
+    """
+
+    def __init__(self, population: int, *layers: nn.Module) -> None:
+        super().__init__(*layers)
+        self.population = int(population)
+        # every child in order, an activation the lone MLP shares between layers included
+        self.steps = [(isinstance(m, StackedLinear), m) for m in layers]
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``[P * B, in] -> [P * B, out]``, block ``p`` through member ``p``'s layers."""
+        x = x.reshape(self.population, -1, x.shape[-1])
+        for linear, module in self.steps:
+            x = module.blocks(x) if linear else module(x)
+        return x.reshape(-1, x.shape[-1])
+
+
+def stack_layers(mlp: nn.Sequential, population: int) -> StackedMLP:
+    """The same sequence with each ``nn.Linear`` replaced by ``population`` stacked copies.
+
+    Modules keep their index, so parameter names are unchanged (``"0.weight"``, ...).
+
+    Raises:
+        ValueError: A module other than ``nn.Linear`` has parameters.
+
+    """
+    layers = []
+    # every child, the activation rsl-rl's MLP shares between its layers included, by index
+    children = [
+        (int(name), module)
+        for name, module in mlp.named_modules(remove_duplicate=False)
+        if name and "." not in name
+    ]
+    for _, module in sorted(children, key=lambda item: item[0]):
+        if isinstance(module, nn.Linear):
+            module = StackedLinear.copies_of(module, population)
+        elif any(True for _ in module.parameters()):
+            raise ValueError(f"cannot stack {type(module).__name__} (it has parameters)")
+        layers.append(module)
+    return StackedMLP(population, *layers)
+
+
+class PopulationMLPModel(MLPModel):
+    """rsl-rl's MLP model for ``population`` members at once (plugged in by ``class_name``).
+
+    Args:
+        obs: Observations (rsl-rl passes them to size the input).
+        obs_groups: Observation groups per set.
+        obs_set: ``"actor"`` or ``"critic"``.
+        output_dim: Actions (actor) or 1 (critic).
+        population: Number of members ``P``; every batch has ``P x B`` member-major rows.
+        **kwargs: rsl-rl's :class:`~rsl_rl.models.MLPModel` arguments (``hidden_dims``,
+            ``activation``, ``distribution_cfg``).
+
+    Raises:
+        ValueError: ``obs_normalization`` is on (its statistics would be shared by the
+            members), or ``population`` is below 1.
+
+    """
+
+    def __init__(
+        self,
+        obs: TensorDict,
+        obs_groups: dict[str, list[str]],
+        obs_set: str,
+        output_dim: int,
+        population: int = 1,
+        **kwargs: Any,
+    ) -> None:
+        if kwargs.get("obs_normalization"):
+            raise ValueError("a population model has no observation normalisation (shared stats)")
+        if int(population) < 1:
+            raise ValueError(f"population: expected at least 1 member, got {population}")
+        super().__init__(obs, obs_groups, obs_set, output_dim, **kwargs)
+        self.population = int(population)
+        # every member starts as the lone model rsl-rl just built; the trainer loads each
+        # member's own weights
+        self.mlp = stack_layers(self.mlp, self.population)
+        #: The output of the last forward pass (detached): the critic's values of the
+        #: mini-batch being updated, read for each member's value loss.
+        self.last_output: torch.Tensor | None = None
+
+    def forward(self, obs: TensorDict, *args: Any, **kwargs: Any) -> torch.Tensor:
+        """rsl-rl's forward pass over ``P x B`` member-major rows; keeps :attr:`last_output`."""
+        out = super().forward(obs, *args, **kwargs)
+        self.last_output = out.detach()
+        return out
+
+
+def stack_states(states: Sequence[Mapping[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """The state dict of a population model from its members' lone state dicts.
+
+    Args:
+        states: One rsl-rl ``MLPModel`` state dict per member, same keys and shapes.
+
+    Returns:
+        ``{key: [P, ...]}``.
+
+    Raises:
+        ValueError: The members' keys or shapes differ.
+
+    """
+    keys = list(states[0])
+    for p, state in enumerate(states):
+        if list(state) != keys:
+            raise ValueError(f"member {p}'s model has other parameters than member 0's")
+    return {key: torch.stack([state[key] for state in states]) for key in keys}
+
+
+def member_state(state: Mapping[str, torch.Tensor], member: int) -> dict[str, torch.Tensor]:
+    """Member ``member``'s lone state dict (rsl-rl's ``MLPModel`` format) from a population's."""
+    return {key: value[member].clone() for key, value in state.items()}

@@ -1,0 +1,401 @@
+"""rsl-rl's PPO for a population: P members in one update, each updated as it would be alone.
+
+:class:`PopulationPPO` subclasses :class:`~amuled_ma.learn.anchored_ppo.AnchoredPPO`
+(rsl-rl's PPO with the KL anchor) over the stacked models of
+:mod:`amuled_ma.learn.population_models`, on ``P x E`` task copies (member ``p`` owns
+copies ``p*E .. p*E+E-1``). rsl-rl's rollout, returns and update run unchanged; four of its
+steps would mix the members, and each is made per member at a public extension point:
+
+1. **Mini-batches.** rsl-rl's :meth:`~rsl_rl.storage.RolloutStorage.mini_batch_generator`
+   draws one permutation of all ``P x E x T`` transitions. :class:`PopulationStorage`
+   overrides it: each member draws its own permutation of its ``E x T`` transitions from
+   its own stream (:class:`~amuled_ma.learn.population_models.MemberStreams`), and
+   mini-batch ``k`` is every member's ``k``-th mini-batch, member-major.
+2. **Advantage normalisation** (rsl-rl: over the whole rollout, or over each whole
+   mini-batch) is done per member by the same generator, from ``returns - values``
+   (exactly rsl-rl's raw advantages); rsl-rl's own is switched off.
+3. **Gradient clipping.** rsl-rl clips one norm over all the actor's parameters (all
+   members). It is handed ``max_grad_norm = inf`` (its clips multiply by exactly 1) and a
+   step pre-hook of the optimiser (:meth:`torch.optim.Optimizer.register_step_pre_hook`)
+   clips each member's actor and critic gradients apart (or jointly, ``grad_clip =
+   "joint"``) before Adam's step.
+4. **Loss scale.** rsl-rl's loss is a mean over the ``P x B`` rows of a mini-batch, i.e.
+   ``1/P`` of the sum of the members' losses; the same hook multiplies the gradients by
+   ``P``, so each member receives the gradient of its own loss (Adam is not scale-free:
+   ``eps`` is added to the root of its second moment).
+
+Adam itself is elementwise, so one Adam over the stacked parameters is each member's Adam
+exactly, as long as the members share the learning rate and its schedule (the population
+groups only such jobs, :mod:`amuled_ma.learn.population_groups`). The per-member losses for
+the learning curves are computed in the hook from the same tensors (rsl-rl reports their
+mean over members). Per-member feedback and anchor statistics, the KL weight and the
+recipe's anchor are per copy.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Generator, Sequence
+from typing import Any
+
+import torch
+from rsl_rl.storage import RolloutStorage
+from tensordict import TensorDict
+
+from amuled_ma.learn.anchored_ppo import AnchoredPPO
+from amuled_ma.learn.anchors import per_sample_kl
+from amuled_ma.learn.population_models import MemberStreams
+
+#: Loss keys rsl-rl's update returns, in the order kept per member.
+LOSS_KEYS = ("value", "surrogate", "entropy")
+
+
+class PopulationStorage(RolloutStorage):
+    """rsl-rl's rollout storage whose mini-batches and advantages are per member.
+
+    Args:
+        like: The storage rsl-rl built (its shape, observation groups, device).
+        population: Number of members ``P`` (``like.num_envs`` is ``P x E``).
+        streams: The members' random streams (their permutations).
+        per_mini_batch: Normalise advantages per member and mini-batch (else per member
+            over its rollout).
+        reshuffle_each_epoch: A new permutation per epoch (else one per update, rsl-rl's).
+
+    """
+
+    def __init__(
+        self,
+        like: RolloutStorage,
+        population: int,
+        streams: MemberStreams,
+        *,
+        per_mini_batch: bool,
+        reshuffle_each_epoch: bool = False,
+    ) -> None:
+        super().__init__(
+            like.training_type,
+            like.num_envs,
+            like.num_transitions_per_env,
+            like.observations[0],  # one step of every observation group: [num_envs, ...]
+            like.actions_shape,
+            like.device,
+        )
+        if self.num_envs % population:
+            raise ValueError(f"{self.num_envs} copies do not split into {population} members")
+        self.population = int(population)
+        self.copies = self.num_envs // self.population
+        self.streams = streams
+        self.per_mini_batch = bool(per_mini_batch)
+        self.reshuffle_each_epoch = bool(reshuffle_each_epoch)
+        #: The mini-batch last yielded (read by the optimiser's hook for per-member losses).
+        self.last_batch: RolloutStorage.Batch | None = None
+
+    def member_rows(self, used: int) -> torch.Tensor:
+        """``[P, used]`` flat storage rows: each member's own permutation of its transitions.
+
+        A lone run of ``E`` copies permutes its rows ``t * E + e``; member ``p``'s row
+        ``t * E + e`` is the population's ``t * (P * E) + p * E + e``.
+        """
+        local = self.streams.permutations(used, torch.device(self.device))
+        offsets = torch.arange(self.population, device=local.device).unsqueeze(1) * self.copies
+        return (local // self.copies) * self.num_envs + offsets + local % self.copies
+
+    def mini_batch_generator(
+        self, num_mini_batches: int, num_epochs: int = 8
+    ) -> Generator[RolloutStorage.Batch, None, None]:
+        """Yield each epoch's mini-batches: every member's ``k``-th, member-major.
+
+        Args:
+            num_mini_batches: Mini-batches per epoch (of each member's transitions).
+            num_epochs: Epochs.
+
+        Yields:
+            rsl-rl's mini-batches of ``P x mini_batch_size`` rows, advantages normalised
+            per member.
+
+        """
+        if self.training_type != "rl":
+            raise ValueError("This function is only available for reinforcement learning.")
+        size = self.copies * self.num_transitions_per_env // num_mini_batches
+        used = num_mini_batches * size
+        observations = self.observations.flatten(0, 1)
+        actions = self.actions.flatten(0, 1)
+        values = self.values.flatten(0, 1)
+        returns = self.returns.flatten(0, 1)
+        old_log_prob = self.actions_log_prob.flatten(0, 1)
+        old_params = tuple(p.flatten(0, 1) for p in self.distribution_params)  # type: ignore
+        advantages = returns - values  # rsl-rl's raw advantages, before its normalisation
+        if not self.per_mini_batch:
+            advantages = self._normalised_per_member_rollout(advantages)
+        rows = None
+        for _ in range(num_epochs):
+            if rows is None or self.reshuffle_each_epoch:
+                rows = self.member_rows(used)
+            for i in range(num_mini_batches):
+                index = rows[:, i * size : (i + 1) * size].reshape(-1)
+                batch_adv = advantages[index]
+                if self.per_mini_batch:
+                    batch_adv = _normalised_rows(batch_adv.reshape(self.population, -1))
+                    batch_adv = batch_adv.reshape(-1, 1)
+                self.last_batch = RolloutStorage.Batch(
+                    observations=observations[index],  # type: ignore[arg-type]
+                    actions=actions[index],
+                    values=values[index],
+                    advantages=batch_adv,
+                    returns=returns[index],
+                    old_actions_log_prob=old_log_prob[index],
+                    old_distribution_params=tuple(p[index] for p in old_params),
+                )
+                yield self.last_batch
+
+    def _normalised_per_member_rollout(self, advantages: torch.Tensor) -> torch.Tensor:
+        """rsl-rl's rollout-wide normalisation, over each member's own transitions."""
+        per_step = advantages.reshape(self.num_transitions_per_env, self.population, -1)
+        members = per_step.transpose(0, 1).reshape(self.population, -1)
+        normalised = _normalised_rows(members)
+        shaped = normalised.reshape(self.population, self.num_transitions_per_env, -1)
+        return shaped.transpose(0, 1).reshape(-1, 1)
+
+
+def _normalised_rows(x: torch.Tensor) -> torch.Tensor:
+    """``(x - mean) / (std + 1e-8)`` of each row (rsl-rl's formula, unbiased std)."""
+    return (x - x.mean(dim=1, keepdim=True)) / (x.std(dim=1, keepdim=True) + 1e-8)
+
+
+def _per_member(values: Any, population: int, name: str) -> list[Any]:
+    """A setting given once (all members) or once per member, as a list of ``population``."""
+    if isinstance(values, list | tuple):
+        if len(values) != population:
+            raise ValueError(f"{name}: {len(values)} values for {population} members")
+        return list(values)
+    return [values] * population
+
+
+class _CpuWindow:
+    """The authors' window KL (a CPU tensor book) fed from another device's tensors."""
+
+    def __init__(self, window: Any, device: torch.device) -> None:
+        self.window = window
+        self.device = device
+
+    def start_iteration(self) -> None:
+        self.window.start_iteration()
+
+    def step(self, logp: torch.Tensor, logp_base: torch.Tensor) -> torch.Tensor:
+        return self.window.step(logp.cpu(), logp_base.cpu()).to(self.device)
+
+    def end_episodes(self, dones: torch.Tensor) -> None:
+        self.window.end_episodes(dones.cpu())
+
+
+class PopulationPPO(AnchoredPPO):
+    """rsl-rl's PPO (anchored) over a population, each member updated as it is alone.
+
+    Args:
+        actor: :class:`~amuled_ma.learn.population_models.PopulationMLPModel` with the
+            :class:`~amuled_ma.learn.population_models.PopulationCategoricalDistribution`.
+        critic: :class:`~amuled_ma.learn.population_models.PopulationMLPModel`.
+        storage: rsl-rl's storage of the ``P x E`` copies (replaced by a
+            :class:`PopulationStorage` of the same shape).
+        population: Number of members ``P``.
+        lambda_kl: Each member's KL weight (one value: all members).
+        anchor: Each member's anchor, ``per_sample`` or ``window`` (one value: all).
+        max_grad_norm: Each member's gradient-norm clip.
+        grad_clip: ``per_network`` (actor and critic apart, rsl-rl) or ``joint``.
+        normalize_advantage_per_mini_batch: Per member and mini-batch, or per member
+            over its rollout.
+        reshuffle_each_epoch: A new permutation per member in every epoch.
+        **kwargs: :class:`AnchoredPPO` and rsl-rl's PPO arguments.
+
+    """
+
+    def __init__(
+        self,
+        actor: Any,
+        critic: Any,
+        storage: RolloutStorage,
+        *,
+        population: int,
+        lambda_kl: float | Sequence[float] = 0.0,
+        anchor: str | Sequence[str] = "per_sample",
+        max_grad_norm: float = 1.0,
+        grad_clip: str = "per_network",
+        normalize_advantage_per_mini_batch: bool = False,
+        reshuffle_each_epoch: bool = False,
+        **kwargs: Any,
+    ) -> None:
+        population = int(population)
+        lambdas = [float(v) for v in _per_member(lambda_kl, population, "lambda_kl")]
+        anchors = _per_member(anchor, population, "anchor")
+        for kind in anchors:
+            if kind not in ("per_sample", "window"):
+                raise ValueError(f"anchor: expected 'per_sample' or 'window', got {kind!r}")
+        if grad_clip not in ("per_network", "joint"):
+            raise ValueError(f"grad_clip: expected 'per_network' or 'joint', got {grad_clip!r}")
+        super().__init__(
+            actor,
+            critic,
+            storage,
+            lambda_kl=0.0,
+            anchor="window" if "window" in anchors else "per_sample",
+            # rsl-rl's clips and normalisation span all members: off (a factor of exactly
+            # 1, no normalisation); the hook and the storage do them per member
+            max_grad_norm=math.inf,
+            normalize_advantage_per_mini_batch=False,
+            **kwargs,
+        )
+        self.population = population
+        self.copies = storage.num_envs // population
+        self.member_max_grad_norm = float(max_grad_norm)
+        self.member_grad_clip = grad_clip
+        self.member_lambda_kl = lambdas
+        self.member_anchor = anchors
+        self.streams = MemberStreams(population)
+        self.actor.distribution.streams = self.streams
+        self.storage = PopulationStorage(
+            storage,
+            population,
+            self.streams,
+            per_mini_batch=normalize_advantage_per_mini_batch,
+            reshuffle_each_epoch=reshuffle_each_epoch,
+        )
+        device = torch.device(self.device)
+        self.lambda_kl = torch.tensor(lambdas, device=device).repeat_interleave(self.copies)
+        self.window_rows = torch.tensor(
+            [kind == "window" for kind in anchors], device=device
+        ).repeat_interleave(self.copies)
+        self.step_anchor: torch.Tensor | None = None
+        #: ``[2, P]`` sums of each member's feedback and anchor, one per step of the rollout
+        self.step_sums: list[torch.Tensor] = []
+        self.member_loss_sums = torch.zeros(population, len(LOSS_KEYS), dtype=torch.float64)
+        self.member_losses: list[dict[str, float]] = [{} for _ in range(population)]
+        self.optimizer.register_step_pre_hook(self.before_step)
+
+    # ----------------------------------------------------------------- anchoring
+    def anchor_to(self, base_actor: torch.nn.Module) -> None:
+        """Anchor each member to its base policy (a population model of the bases)."""
+        super().anchor_to(base_actor)
+        if self.window is not None and torch.device(self.device).type != "cpu":
+            self.window = _CpuWindow(self.window, torch.device(self.device))  # type: ignore[assignment]
+
+    def anchor_of(self, logp: torch.Tensor, logp_base: torch.Tensor) -> torch.Tensor:
+        """Each copy's anchor by its member's recipe (window KL or per-sample KL)."""
+        per_sample = per_sample_kl(logp, logp_base)
+        if self.window is None:
+            anchor = per_sample
+        else:
+            anchor = torch.where(self.window_rows, self.window.step(logp, logp_base), per_sample)
+        self.step_anchor = anchor
+        return anchor
+
+    def process_env_step(
+        self,
+        obs: TensorDict,
+        rewards: torch.Tensor,
+        dones: torch.Tensor,
+        extras: dict[str, Any],
+    ) -> None:
+        """Count each member's feedback and anchor; then :class:`AnchoredPPO`'s step."""
+        anchor = self.step_anchor
+        if anchor is not None:
+            feedback = extras.get("feedback")
+            if feedback is None:
+                feedback = torch.zeros_like(anchor)
+            both = torch.stack((feedback.to(anchor.device, anchor.dtype), anchor))
+            self.step_sums.append(both.reshape(2, self.population, -1).sum(2))
+            self.step_anchor = None
+        super().process_env_step(obs, rewards, dones, extras)
+
+    def member_rollout_stats(self) -> list[dict[str, float]]:
+        """Each member's :meth:`AnchoredPPO.rollout_stats` since the last call."""
+        self.rollout_stats()  # AnchoredPPO's totals over all members: reset, unused
+        if not self.step_sums:
+            return [{} for _ in range(self.population)]
+        # [steps, 2, P] float32 sums of each step, added in float64 as AnchoredPPO adds them
+        sums = torch.stack(self.step_sums).to("cpu", torch.float64).sum(0)
+        count = len(self.step_sums) * self.copies
+        self.step_sums = []
+        return [
+            {"feedback_reward": fb / count, "kl": kl / count}
+            for fb, kl in zip(sums[0].tolist(), sums[1].tolist(), strict=True)
+        ]
+
+    # ----------------------------------------------------------------- the update
+    def update(self) -> dict[str, float]:
+        """rsl-rl's update; each member's mean losses are kept in :attr:`member_losses`.
+
+        Returns:
+            rsl-rl's losses (their mean over the members).
+
+        """
+        self.member_loss_sums.zero_()
+        losses = super().update()
+        updates = self.num_learning_epochs * self.num_mini_batches
+        self.member_losses = [
+            dict(zip(LOSS_KEYS, (v / updates for v in row), strict=True))
+            for row in self.member_loss_sums.tolist()
+        ]
+        return losses
+
+    def before_step(self, optimizer: torch.optim.Optimizer, args: Any, kwargs: Any) -> None:
+        """The optimiser's step pre-hook: each member's gradient, clip and losses.
+
+        rsl-rl has computed the gradient of the mean loss over the ``P x B`` rows (and
+        clipped it by a factor of exactly 1). Each member's gradients are scaled by ``P``
+        (the gradient of its own mean loss) and clipped by the norm of its own actor and
+        critic gradients, as ``clip_grad_norm_`` clips a lone run's; then its losses on
+        this mini-batch are added to :attr:`member_loss_sums`.
+        """
+        with torch.no_grad():
+            actor = [p.grad for p in self.actor.parameters() if p.grad is not None]
+            critic = [p.grad for p in self.critic.parameters() if p.grad is not None]
+            if self.member_grad_clip == "joint":
+                self._clip_members(actor + critic)
+            else:
+                self._clip_members(actor)
+                self._clip_members(critic)
+            self._add_member_losses()
+
+    def _clip_members(self, grads: list[torch.Tensor]) -> None:
+        """Scale by ``P`` and clip each member's slice of ``grads`` to its own norm."""
+        if not grads:
+            return
+        members = self.population
+        norms = torch.stack(
+            [torch.linalg.vector_norm(g.reshape(members, -1), dim=1) for g in grads]
+        )
+        total = members * torch.linalg.vector_norm(norms, dim=0)  # each member's norm
+        scale = members * (self.member_max_grad_norm / (total + 1e-6)).clamp(max=1.0)
+        for g in grads:
+            g.mul_(scale.reshape(members, *([1] * (g.dim() - 1))))
+
+    def _add_member_losses(self) -> None:
+        """Each member's value, surrogate and entropy loss on the current mini-batch.
+
+        The terms of rsl-rl's loss (``PPO.update``), evaluated per member on the same
+        tensors: the mini-batch the storage yielded, the actor's distribution of this
+        forward pass and the critic's values. Their mean over members is rsl-rl's own
+        figure (``tests/learn/test_population.py`` checks it).
+        """
+        batch = self.storage.last_batch
+        if batch is None or self.critic.last_output is None:
+            return
+        members = self.population
+        log_prob = self.actor.get_output_log_prob(batch.actions)
+        ratio = torch.exp(log_prob - torch.squeeze(batch.old_actions_log_prob))
+        advantages = torch.squeeze(batch.advantages)
+        clip = self.clip_param
+        surrogate = torch.max(
+            -advantages * ratio, -advantages * torch.clamp(ratio, 1.0 - clip, 1.0 + clip)
+        )
+        values = self.critic.last_output
+        if self.use_clipped_value_loss:
+            clipped = batch.values + (values - batch.values).clamp(-clip, clip)
+            value = torch.max((values - batch.returns).pow(2), (clipped - batch.returns).pow(2))
+        else:
+            value = (batch.returns - values).pow(2)
+        entropy = self.actor.output_entropy
+        terms = torch.stack(
+            [t.reshape(members, -1).mean(1) for t in (value, surrogate, entropy)], dim=1
+        )
+        self.member_loss_sums += terms.to("cpu", torch.float64)

@@ -1,0 +1,146 @@
+"""A population's training state, to and from its members' lone states.
+
+A member's checkpoint is a lone job's (:class:`~amuled_ma.learn.trainer.Trainer`'s format:
+its actor, critic and Adam state, its task copies' state, its random stream), so
+evaluation, the viewer, the report and a lone ``--resume`` read it unchanged. These
+functions stack members' lone states into the population's and slice a member's back out:
+
+- Adam's state (:func:`stack_optimizer_states`, :func:`member_optimizer_state`): each
+  parameter's moments gain a leading member axis; the step counter is shared;
+- the task copies' state (:func:`stack_env_states`, :func:`member_env_state`), the dict of
+  :meth:`~amuled_ma.learn.vecenv.DeliberationVecEnv.state_dict`: a tensor whose leading
+  axis counts copies is concatenated member after member, a table shared by all copies
+  (the same shape in a member's state and in the population's) is kept once;
+- finished episodes (:func:`split_episodes`), each to its member with its own copy index.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import torch
+
+
+def stack_optimizer_states(states: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """The state dict of one optimiser over stacked parameters from the members' own.
+
+    Args:
+        states: Each member's ``optimizer.state_dict()`` (Adam over the lone parameters).
+
+    Returns:
+        A state dict for the same optimiser over the ``[P, ...]`` parameters; the groups'
+        settings are member 0's.
+
+    Raises:
+        ValueError: The members' states differ in parameters or in step count (a
+            population steps its members together).
+
+    """
+    first = states[0]
+    per_param = first["state"]
+    for p, state in enumerate(states):
+        if set(state["state"]) != set(per_param):
+            raise ValueError(f"member {p}'s optimiser state has other parameters than member 0's")
+    stacked: dict[Any, dict[str, Any]] = {}
+    for index, entry in per_param.items():
+        stacked[index] = {}
+        for name, value in entry.items():
+            values = [state["state"][index][name] for state in states]
+            if name == "step":
+                if any(not torch.equal(torch.as_tensor(v), torch.as_tensor(value)) for v in values):
+                    raise ValueError("members at different Adam steps cannot train together")
+                stacked[index][name] = value
+            else:
+                stacked[index][name] = torch.stack(values)
+    return {"state": stacked, "param_groups": first["param_groups"]}
+
+
+def member_optimizer_state(state: Mapping[str, Any], member: int) -> dict[str, Any]:
+    """Member ``member``'s lone optimiser state dict from the population's (on the CPU)."""
+    out: dict[Any, dict[str, Any]] = {}
+    for index, entry in state["state"].items():
+        out[index] = {
+            name: (value.cpu().clone() if name == "step" else value[member].cpu().clone())
+            for name, value in entry.items()
+        }
+    return {"state": out, "param_groups": [dict(g) for g in state["param_groups"]]}
+
+
+def stack_env_states(
+    states: Sequence[Mapping[str, Any]], population_state: Mapping[str, Any]
+) -> dict[str, Any]:
+    """The population env's state from its members' lone env states.
+
+    Args:
+        states: Each member's env state (lone :meth:`DeliberationVecEnv.state_dict`).
+        population_state: The population env's own state (for the shapes).
+
+    Returns:
+        A state for the population env's ``load_state_dict``.
+
+    Raises:
+        ValueError: A tensor is neither per copy nor shared, or a shared table differs
+            between members (they would need other tasks).
+
+    """
+    members = len(states)
+    out: dict[str, Any] = {}
+    for key, mine in population_state.items():
+        values = [state[key] for state in states]
+        if isinstance(mine, Mapping):
+            out[key] = stack_env_states(values, mine)
+            continue
+        if not torch.is_tensor(mine):
+            out[key] = values[0]
+            continue
+        first = values[0]
+        if tuple(first.shape) == tuple(mine.shape):
+            for p, value in enumerate(values):
+                if not torch.equal(value, first):
+                    raise ValueError(f"env state {key!r}: member {p}'s differs from member 0's")
+            out[key] = first.clone()
+        elif mine.dim() and first.dim() and mine.shape[0] == members * first.shape[0]:
+            out[key] = torch.cat(values)
+        else:
+            raise ValueError(
+                f"env state {key!r}: a member's shape {tuple(first.shape)} does not stack "
+                f"into the population's {tuple(mine.shape)}"
+            )
+    return out
+
+
+def member_env_state(
+    state: Mapping[str, Any], template: Mapping[str, Any], member: int
+) -> dict[str, Any]:
+    """Member ``member``'s lone env state from the population's.
+
+    Args:
+        state: The population env's state.
+        template: A lone member's env state (its shapes tell per-copy tensors from
+            shared tables).
+        member: Which member.
+
+    """
+    out: dict[str, Any] = {}
+    for key, value in state.items():
+        like = template[key]
+        if isinstance(value, Mapping):
+            out[key] = member_env_state(value, like, member)
+        elif not torch.is_tensor(value) or tuple(value.shape) == tuple(like.shape):
+            out[key] = value.clone() if torch.is_tensor(value) else value
+        else:
+            rows = like.shape[0]
+            out[key] = value[member * rows : (member + 1) * rows].clone()
+    return out
+
+
+def split_episodes(episodes: Sequence[dict], population: int, copies: int) -> list[list[dict]]:
+    """The finished episodes of each member, with copy indices as in its lone run."""
+    out: list[list[dict]] = [[] for _ in range(population)]
+    for episode in episodes:
+        env_id = int(episode["env_id"])
+        record = dict(episode)
+        record["env_id"] = env_id % copies
+        out[env_id // copies].append(record)
+    return out

@@ -1,0 +1,242 @@
+"""A panel weights file: one prior weight per panel member, named by ``[feedback].weights``.
+
+``amuled study fit-weights STUDY`` writes it (``STUDY/analysis/weights.json``); a person may
+also write one by hand with ``members`` and ``weights`` only. A scenario names it::
+
+    [feedback]
+    fusion = "bjs-dst"
+    weights = "../studies/findmilk/analysis/weights.json"   # relative to the scenario file
+
+The weights are a prior ``rho`` on the members: the ``bjs-dst`` fusion multiplies Xiao's
+adjusted credibility of each member by it (``w_i ∝ rho_i · Crd_i · IV_i``, see
+:func:`amuled_ma.fusion.fuse`); their scale does not matter. This module only describes
+and checks the file (:class:`PanelWeights`, :func:`read_panel_weights`,
+:func:`member_prior`); ``amuled_ma.study.weights`` fits and writes it, and the panel plan
+(``amuled_ma.deliberation.plan``) carries the prior to the fusion.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from amuled_ma.errors import ScenarioError
+
+#: The version of the file's format.
+WEIGHTS_FORMAT = 1
+#: Largest weights file read (a fitted one holds about 2,000 characters).
+MAX_WEIGHTS_BYTES = 1_000_000
+#: What the weights are, written into every fitted file.
+MEANING = (
+    "a prior on the panel members: bjs-dst multiplies each member's credibility by its weight "
+    "(w_i proportional to rho_i * Crd_i * IV_i); fitted so that the fused belief best predicts "
+    "these participants' choices in these states (docs/study.md)"
+)
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class HeldOut(_Model):
+    """Held-out log-likelihood of the participants' choices, K folds over participants.
+
+    Attributes:
+        folds: Folds (each participant's answers are held out once).
+        answers: Answers scored (every attentive pair answer of a panel item).
+        fixed: Sum of held-out log-likelihoods with the fixed (uniform) prior, the paper's
+            weights (the choice temperature fitted on the other folds).
+        learned: The same with the weights fitted on the other folds.
+        fixed_per_answer: ``fixed / answers``.
+        learned_per_answer: ``learned / answers``.
+        difference_low: 2.5% percentile of ``learned - fixed`` over participants resampled.
+        difference_high: 97.5% percentile of the same.
+
+    """
+
+    folds: int = Field(ge=2)
+    answers: int = Field(ge=0)
+    fixed: float
+    learned: float
+    fixed_per_answer: float
+    learned_per_answer: float
+    difference_low: float
+    difference_high: float
+
+
+class WeightsProvenance(_Model):
+    """Where fitted weights came from.
+
+    Attributes:
+        study: The study folder, as given.
+        study_sha256: SHA-256 of its ``study.json``.
+        answers_sha256: SHA-256 of the answers used (``participant,item,choice`` lines, sorted).
+        seed: Seed of the bootstrap and the folds.
+        bootstrap: Bootstrap resamples of the participants.
+        keep_inattentive: Whether participants who failed an attention check were kept.
+        fixed_temperature: The choice temperature, when it was fixed (None: fitted).
+        command: The command that wrote the file.
+
+    """
+
+    study: str
+    study_sha256: str
+    answers_sha256: str
+    seed: int = Field(ge=0)
+    bootstrap: int = Field(ge=0)
+    keep_inattentive: bool = False
+    fixed_temperature: float | None = Field(None, gt=0)
+    command: str = "amuled study fit-weights"
+
+
+class PanelWeights(_Model):
+    """A panel weights file (JSON).
+
+    Attributes:
+        format: :data:`WEIGHTS_FORMAT`.
+        rule: The fusion rule the weights are a prior of (``bjs-dst`` only).
+        meaning: What the weights are, in words.
+        members: The panel members, by name.
+        weights: One non-negative weight per member (not all zero; normalised to sum 1
+            when fitted, any scale when written by hand).
+        low: 2.5% bootstrap percentile of each weight (fitted files).
+        high: 97.5% bootstrap percentile of each weight (fitted files).
+        temperature: The choice model's temperature fitted with the weights.
+        temperature_interval: Its 95% bootstrap interval.
+        participants: Participants whose answers were fitted.
+        answers: Pair answers fitted.
+        items: Items with a panel those answers were about.
+        held_out: Held-out log-likelihood, fixed against learned weights.
+        provenance: Where the weights came from.
+
+    """
+
+    format: Literal[1] = WEIGHTS_FORMAT
+    rule: Literal["bjs-dst"] = "bjs-dst"
+    meaning: str = MEANING
+    members: list[str] = Field(min_length=1, max_length=1000)
+    weights: list[float] = Field(min_length=1, max_length=1000)
+    low: list[float] | None = None
+    high: list[float] | None = None
+    temperature: float | None = Field(None, gt=0)
+    temperature_interval: tuple[float, float] | None = None
+    participants: int | None = Field(None, ge=0)
+    answers: int | None = Field(None, ge=0)
+    items: int | None = Field(None, ge=0)
+    held_out: HeldOut | None = None
+    provenance: WeightsProvenance | None = None
+
+    @field_validator("members")
+    @classmethod
+    def _members_are_distinct(cls, value: list[str]) -> list[str]:
+        seen = set()
+        for name in value:
+            if not name or name in seen:
+                raise ValueError(f"member {name!r} is empty or listed twice")
+            seen.add(name)
+        return value
+
+    @field_validator("weights")
+    @classmethod
+    def _weights_are_a_prior(cls, value: list[float]) -> list[float]:
+        if any(not (w >= 0 and math.isfinite(w)) for w in value):
+            raise ValueError(f"every weight must be a finite number >= 0, found {value}")
+        if not sum(value) > 0:
+            raise ValueError("the weights are all zero: at least one member needs weight")
+        return value
+
+    @model_validator(mode="after")
+    def _one_weight_per_member(self) -> PanelWeights:
+        for key in ("weights", "low", "high"):
+            values = getattr(self, key)
+            if values is not None and len(values) != len(self.members):
+                raise ValueError(f"{key} has {len(values)} values for {len(self.members)} members")
+        return self
+
+    def normalised(self) -> dict[str, float]:
+        """``{member: weight}`` scaled to sum 1."""
+        total = math.fsum(self.weights)
+        return {m: w / total for m, w in zip(self.members, self.weights, strict=True)}
+
+
+def read_panel_weights(path: Path, *, where: str) -> PanelWeights:
+    """Read and check a panel weights file.
+
+    Args:
+        path: The file (already resolved).
+        where: The scenario file and key, first in messages
+            (``"scenarios/x.toml: key [feedback].weights"``).
+
+    Returns:
+        The weights.
+
+    Raises:
+        ScenarioError: No such file, too large, not JSON, or a key that does not fit
+            :class:`PanelWeights`; one line naming the file, the key and the fix.
+
+    """
+    fix = "write it with 'amuled study fit-weights STUDY' (docs/study.md)"
+    try:
+        size = path.stat().st_size
+    except OSError:
+        raise ScenarioError(f"{where}: weights file {path} not found; {fix}") from None
+    if size > MAX_WEIGHTS_BYTES:
+        raise ScenarioError(
+            f"{where}: weights file {path} is {size:,} bytes, more than the "
+            f"{MAX_WEIGHTS_BYTES:,} a weights file may be; is it the right file?"
+        )
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ScenarioError(f"{where}: weights file {path} is not JSON ({error}); {fix}") from None
+    try:
+        return PanelWeights.model_validate(data)
+    except ValidationError as error:
+        first = error.errors()[0]
+        key = ".".join(str(p) for p in first["loc"]) or "(the whole file)"
+        message = str(first["msg"]).removeprefix("Value error, ")
+        raise ScenarioError(f"{where}: weights file {path}: key {key}: {message}; {fix}") from None
+
+
+def member_prior(
+    weights: PanelWeights, members: Sequence[str], *, where: str, path: Path
+) -> tuple[float, ...]:
+    """The weights in the panel's order, after checking they name exactly its members.
+
+    Args:
+        weights: The file's weights.
+        members: The panel's members, in fusion order.
+        where: The scenario file and key, first in messages.
+        path: The weights file, for messages.
+
+    Returns:
+        One weight per member, in ``members``' order, scaled to sum 1.
+
+    Raises:
+        ScenarioError: A member of the panel without a weight, a weight for a member not
+            in the panel, or no weight above 0 among the panel's members; one line.
+
+    """
+    known = weights.normalised()
+    missing = [m for m in members if m not in known]
+    extra = [m for m in known if m not in members]
+    fix = (
+        "fit weights for this panel ('amuled study fit-weights STUDY' on a study of a run "
+        "with these members) or drop [feedback].weights"
+    )
+    if missing:
+        raise ScenarioError(
+            f"{where}: weights file {path} has no weight for the panel member "
+            f"{missing[0]!r} (it names {', '.join(known)}); {fix}"
+        )
+    if extra:
+        raise ScenarioError(
+            f"{where}: weights file {path} weighs {extra[0]!r}, which is not a member of the "
+            f"panel ([feedback].clusters: {', '.join(members)}); {fix}"
+        )
+    return tuple(known[m] for m in members)

@@ -1,0 +1,170 @@
+"""The numbers of an expert study: frameworks cited, the panel against the experts, clarity.
+
+An expert judges every action of a state: acceptable or not, and the framework that
+justifies it (one of the study's frameworks, or ``none``); and how clear the panel's stated
+reasons are, where any was recorded. From those answers:
+
+- **Citations**: how often each framework is cited, over all the judgements, on actions the
+  expert found acceptable, and for which actions.
+- **The experts' acceptable set** of a state: the actions more than half of the experts who
+  judged the state found acceptable.
+- **Agreement with the experts**: a panel member (or the fused belief) agrees on a state when
+  its top action (the one it believes most; a tie at the top counts for neither) is in the
+  experts' acceptable set; a policy when its greedy action there is.
+- **Clarity**: the mean rating with a 95% bootstrap interval over experts
+  (:func:`~amuled_ma.study.analysis.bootstrap_mean`); states without a stated reason are not
+  rated, and are counted.
+- **Reliability**: Krippendorff's alpha (nominal) of the acceptability judgements, units being
+  (state, action) and raters the experts; the same for the frameworks cited.
+"""
+
+from __future__ import annotations
+
+from collections import Counter, defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from amuled_ma.study.analysis import MeanInterval, bootstrap_mean, nominal_alpha
+from amuled_ma.study.answers import ExpertAnswer
+from amuled_ma.study.model import Study
+
+
+@dataclass(frozen=True)
+class Citation:
+    """How often one framework was cited.
+
+    Attributes:
+        framework: Its name (``none``: no framework, or another).
+        cited: Judgements citing it.
+        share: ``cited`` / all judgements.
+        acceptable: Of those, the judgements that found the action acceptable.
+        by_action: Citations per action name.
+
+    """
+
+    framework: str
+    cited: int
+    share: float
+    acceptable: int
+    by_action: dict[str, int] = field(default_factory=dict)
+
+
+def _action_name(study: Study, task: str, action: int) -> str:
+    names = study.action_names.get(task, [])
+    name = names[action] if action < len(names) else str(action)
+    return name if len(study.action_names) <= 1 else f"{task}:{name}"
+
+
+def framework_citations(study: Study, answers: Sequence[ExpertAnswer]) -> list[Citation]:
+    """Each of the study's frameworks (``none`` last), with how often it was cited."""
+    total = sum(len(a.judgements) for a in answers)
+    cited: Counter[str] = Counter()
+    acceptable: Counter[str] = Counter()
+    by_action: dict[str, Counter[str]] = defaultdict(Counter)
+    for answer in answers:
+        item = study.item(answer.item)
+        task = item.task if item is not None else ""
+        for j in answer.judgements:
+            cited[j.framework] += 1
+            acceptable[j.framework] += int(j.acceptable)
+            by_action[j.framework][_action_name(study, task, j.action)] += 1
+    return [
+        Citation(
+            name,
+            cited[name],
+            cited[name] / total if total else float("nan"),
+            acceptable[name],
+            dict(sorted(by_action[name].items())),
+        )
+        for name in study.framework_names()
+    ]
+
+
+def acceptable_sets(answers: Sequence[ExpertAnswer]) -> dict[str, tuple[frozenset[int], int]]:
+    """Per state, the experts' acceptable set and how many experts judged the state.
+
+    The set holds the actions more than half of those experts found acceptable.
+    """
+    yes: dict[str, Counter[int]] = defaultdict(Counter)
+    experts: Counter[str] = Counter()
+    for answer in answers:
+        experts[answer.item] += 1
+        for j in answer.judgements:
+            yes[answer.item][j.action] += int(j.acceptable)
+    return {
+        item: (frozenset(a for a, k in yes[item].items() if 2 * k > n), n)
+        for item, n in experts.items()
+    }
+
+
+def top_action(belief: Sequence[float]) -> int | None:
+    """The action believed most; None when several share the top."""
+    values = np.asarray(belief, dtype=float)
+    best = np.flatnonzero(values == values.max())
+    return int(best[0]) if len(best) == 1 else None
+
+
+def expert_agreement(
+    study: Study, sets: dict[str, tuple[frozenset[int], int]]
+) -> dict[str, list[int]]:
+    """Agreement with the experts' acceptable sets: ``{who: [agree, counted]}``.
+
+    ``cluster:<name>`` and ``fused``: the top action is acceptable to the experts (a tie at
+    the top is not counted); ``policy:<variant>``: the policy's action is.
+    """
+    out: dict[str, list[int]] = {}
+    for item_id, (accepted, _) in sets.items():
+        item = study.item(item_id)
+        if item is None:
+            continue
+        if item.panel is not None:
+            named = [(f"cluster:{a}", b) for a, b in zip(item.panel.agents, item.panel.beliefs,
+                                                        strict=True)]  # fmt: skip
+            for who, belief in [*named, ("fused", item.panel.fused)]:
+                top = top_action(belief)
+                if top is not None:
+                    row = out.setdefault(who, [0, 0])
+                    row[0] += int(top in accepted)
+                    row[1] += 1
+        for variant, action in item.policies.items():
+            row = out.setdefault(f"policy:{variant}", [0, 0])
+            row[0] += int(action in accepted)
+            row[1] += 1
+    return out
+
+
+def clarity(answers: Sequence[ExpertAnswer], *, seed: int = 0) -> MeanInterval:
+    """The mean clarity of the panel's reasons, with its bootstrap interval over experts."""
+    by_expert: dict[str, list[float]] = defaultdict(list)
+    for answer in answers:
+        if answer.clarity is not None:
+            by_expert[answer.participant].append(float(answer.clarity))
+    return bootstrap_mean(by_expert, seed=seed)
+
+
+def acceptability_alpha(answers: Sequence[ExpertAnswer]) -> float:
+    """Krippendorff's alpha (nominal) of acceptable / not over (state, action) units."""
+    return nominal_alpha(
+        {(a.participant, f"{a.item}/{j.action}"): float(j.acceptable)
+         for a in answers for j in a.judgements}
+    )  # fmt: skip
+
+
+def framework_alpha(study: Study, answers: Sequence[ExpertAnswer]) -> float:
+    """Krippendorff's alpha (nominal) of the frameworks cited over (state, action) units."""
+    index = {name: float(i) for i, name in enumerate(study.framework_names())}
+    return nominal_alpha(
+        {(a.participant, f"{a.item}/{j.action}"): index[j.framework]
+         for a in answers for j in a.judgements if j.framework in index}
+    )  # fmt: skip
+
+
+def unreasoned_states(study: Study) -> list[str]:
+    """The states whose panel stated no reason (no panel, or no reply kept)."""
+    return [
+        item.id
+        for item in study.items
+        if item.kind == "expert" and (item.panel is None or not item.panel.has_reasons())
+    ]

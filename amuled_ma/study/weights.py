@@ -1,0 +1,630 @@
+"""Panel weights learned from people: the member prior whose fusion best predicts their choices.
+
+``amuled study fit-weights STUDY`` fits one weight per panel member from a study's answers
+and writes ``STUDY/analysis/weights.json`` (:class:`~amuled_ma.scenario.panel_weights.
+PanelWeights`), the file a scenario names as ``[feedback].weights``.
+
+## The model
+
+The weights are a prior ``rho`` on the members (non-negative, summing to 1) that multiplies
+Xiao's adjusted credibility in the ``bjs-dst`` fusion, ``w_i ∝ rho_i · Crd_i · IV_i``
+(:func:`amuled_ma.fusion.fuse` with ``prior=rho``); ``rho`` uniform is the paper's fusion.
+On an item the panel's fused belief ``f = fuse(beliefs, prior=rho)`` is read at the two
+shown decisions' actions ``a`` (option A) and ``b`` (option B), and a participant picks A
+with probability (Luce's choice rule on ``f``, with a temperature ``tau`` and a floor)::
+
+    P(A) = eps + (1 - 2 eps) · f_a^tau / (f_a^tau + f_b^tau),    eps = FLOOR = 0.001
+
+``tau`` is fitted with the weights: the ``bjs-dst`` belief is sharp (Dempster's rule raises
+the weighted average to the power ``k``), and people choose less surely than it says, so
+without it the weights would be bent to make the fusion as unsure as the people. ``eps``
+keeps every answer possible (a belief of exactly 0 in a chosen action would otherwise
+make the likelihood 0). ``tau = 1, eps = 0`` is the plain Luce rule ``f_a / (f_a + f_b)``;
+``--temperature 1`` fixes ``tau`` there instead of fitting it.
+
+Computed, for singleton beliefs, from the closed form of ``bjs-dst``: with ``w0`` the
+weights of the fusion without a prior (:func:`~amuled_ma.fusion.fuse`'s diagnostics, 0 for
+a member that did not answer) and ``k`` the members who answered,
+``f_a / f_b = (sum_i rho_i w0_i m_i(a) / sum_i rho_i w0_i m_i(b))^k`` (the normalisations
+cancel). The tests check it against ``fuse(..., prior=rho)``.
+
+## The fit
+
+- **Maximum likelihood** over the pair answers of the attentive participants (those who
+  failed an attention check are left out, as in ``amuled study analyze``), on items whose
+  panel used ``bjs-dst``; ``rho = softmax(theta)``, BFGS (SciPy) with the exact gradient,
+  and a weak ridge ``RIDGE/2 · sum (theta_i - mean theta)^2`` that fixes softmax's free
+  constant and keeps a member that explains nothing at a finite, small weight.
+- **Intervals**: 95% percentile intervals of every weight and of ``tau`` from ``bootstrap``
+  resamples of the participants (with replacement), each refitted.
+- **Held-out log-likelihood**: the participants are split into ``folds`` folds; each fold's
+  answers are scored by the model fitted on the other folds, with the learned weights and
+  with the fixed, uniform ones (the paper's; ``tau`` fitted in both), and the difference
+  ``learned - fixed`` gets a 95% interval by resampling the participants' held-out sums.
+
+Random numbers come from ``numpy.random.default_rng(seed)``: the same study, answers and
+seed give the same file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from amuled_ma.beliefs.types import FUSED_STATUSES
+from amuled_ma.fusion import fuse
+from amuled_ma.scenario.panel_weights import HeldOut, PanelWeights, WeightsProvenance
+from amuled_ma.study.analysis import attentive, load, pair_answers
+from amuled_ma.study.answers import Answer
+from amuled_ma.study.model import STUDY_FILE, Study, StudyError
+
+#: The choice model's floor ``eps``: the least probability of either option.
+FLOOR = 1e-3
+#: The ridge on the softmax logits (see the module docstring).
+RIDGE = 0.01
+#: Bounds of the fitted logits and of ``log tau``.
+LOGIT_BOUND = 20.0
+LOG_TEMPERATURE_BOUNDS = (math.log(1e-3), math.log(1e3))
+#: The file ``amuled study fit-weights`` writes in a study folder.
+WEIGHTS_FILE = Path("analysis") / "weights.json"
+_TINY = 1e-300
+
+
+@dataclass(frozen=True)
+class ChoiceData:
+    """A study's panel items and the participants' answers about them, as arrays.
+
+    ``N`` items, ``K`` members, ``M`` answers, ``P`` participants.
+
+    Attributes:
+        members: The members (the union of the items' panels, in order of appearance).
+        items: The item ids.
+        base: ``(N, K)`` the ``bjs-dst`` weights without a prior of the members who answered
+            the item (0 for the others).
+        mass_a: ``(N, K)`` each member's belief in option A's action.
+        mass_b: ``(N, K)`` the same for option B.
+        size: ``(N,)`` the members who answered (the ``k`` of Dempster's combinations).
+        participants: The participants' ids.
+        answer_participant: ``(M,)`` index of each answer's participant.
+        answer_item: ``(M,)`` index of its item.
+        answer_a: ``(M,)`` whether option A was chosen.
+
+    """
+
+    members: tuple[str, ...]
+    items: tuple[str, ...]
+    base: np.ndarray
+    mass_a: np.ndarray
+    mass_b: np.ndarray
+    size: np.ndarray
+    participants: tuple[str, ...]
+    answer_participant: np.ndarray
+    answer_item: np.ndarray
+    answer_a: np.ndarray
+
+    def counts(self, per_participant: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Per item, the (weighted) answers for A and for B.
+
+        Args:
+            per_participant: ``(P,)`` how many times each participant counts (a bootstrap
+                resample, a fold's mask); None: once each.
+
+        Returns:
+            ``(n_a, n_b)``, each ``(N,)``.
+
+        """
+        weight = np.ones(len(self.answer_item))
+        if per_participant is not None:
+            weight = np.asarray(per_participant, dtype=np.float64)[self.answer_participant]
+        n = len(self.items)
+        n_a = np.bincount(self.answer_item, weight * self.answer_a, minlength=n)
+        n_b = np.bincount(self.answer_item, weight * ~self.answer_a, minlength=n)
+        return n_a, n_b
+
+
+def choice_data(
+    study: Study, answers: Sequence[Answer], *, keep_inattentive: bool = False
+) -> ChoiceData:
+    """The arrays of :class:`ChoiceData` from a study and its answers.
+
+    Args:
+        study: The study.
+        answers: Its answers.
+        keep_inattentive: Keep participants who failed an attention check.
+
+    Returns:
+        The :class:`ChoiceData`.
+
+    Raises:
+        StudyError: No item carries a ``bjs-dst`` panel, or no attentive participant
+            answered one; the message says how to get them.
+
+    """
+    items = [
+        i
+        for i in study.items
+        if i.kind == "pair" and i.panel is not None and i.panel.rule == "bjs-dst"
+    ]
+    if not items:
+        raise StudyError(
+            "no pair item of the study carries the beliefs of a panel fused with bjs-dst; "
+            "build it from a run with an AMULED fine-tune and its belief store "
+            "('amuled study build RUN --variants amuled,...')"
+        )
+    members: list[str] = []
+    for item in items:
+        assert item.panel is not None
+        members += [a for a in item.panel.agents if a not in members]
+    column = {m: c for c, m in enumerate(members)}
+    rows, base, mass_a, mass_b, size = [], [], [], [], []
+    for item in items:
+        panel = item.panel
+        assert panel is not None
+        answered = [j for j, s in enumerate(panel.statuses) if s in FUSED_STATUSES]
+        if not answered:
+            continue  # nobody answered: the uniform fallback, the same for every prior
+        beliefs = np.asarray(panel.beliefs, dtype=np.float64)[answered]
+        diag = fuse(beliefs, "bjs-dst", return_diagnostics=True)
+        a, b = (o.action for o in item.options)
+        w0, ma, mb = np.zeros(len(members)), np.zeros(len(members)), np.zeros(len(members))
+        for row, (j, weight) in enumerate(zip(answered, np.asarray(diag.weights), strict=True)):
+            c = column[panel.agents[j]]
+            w0[c], ma[c], mb[c] = weight, beliefs[row, a], beliefs[row, b]
+        rows.append(item.id)
+        base.append(w0)
+        mass_a.append(ma)
+        mass_b.append(mb)
+        size.append(len(answered))
+    index = {item_id: n for n, item_id in enumerate(rows)}
+    everyone = {a.participant for a in answers}
+    kept = everyone if keep_inattentive else attentive(study, answers)
+    used = [(a, i) for a, i in pair_answers(study, answers) if a.participant in kept]
+    used = [(a, i) for a, i in used if i.id in index]
+    if not used:
+        raise StudyError(
+            f"no {'' if keep_inattentive else 'attentive '}participant answered a pair with "
+            "the panel's beliefs yet; serve the study ('amuled study serve STUDY') first"
+        )
+    people = sorted({a.participant for a, _ in used})
+    person = {p: n for n, p in enumerate(people)}
+    return ChoiceData(
+        members=tuple(members),
+        items=tuple(rows),
+        base=np.array(base),
+        mass_a=np.array(mass_a),
+        mass_b=np.array(mass_b),
+        size=np.array(size, dtype=np.float64),
+        participants=tuple(people),
+        answer_participant=np.array([person[a.participant] for a, _ in used], dtype=np.int64),
+        answer_item=np.array([index[i.id] for _, i in used], dtype=np.int64),
+        answer_a=np.array([a.choice == "A" for a, _ in used], dtype=bool),
+    )
+
+
+def _softmax(theta: np.ndarray) -> np.ndarray:
+    e = np.exp(theta - theta.max())
+    return e / e.sum()
+
+
+def _sigmoid(z: np.ndarray) -> np.ndarray:
+    return 0.5 * (1.0 + np.tanh(0.5 * z))  # stable for any z
+
+
+def choice_probability(data: ChoiceData, prior: np.ndarray, temperature: float) -> np.ndarray:
+    """``P(A)`` of every item under a member prior and a temperature (module docstring).
+
+    Args:
+        data: The items.
+        prior: ``(K,)`` non-negative member weights (any scale).
+        temperature: ``tau > 0``.
+
+    Returns:
+        ``(N,)`` probabilities in ``[FLOOR, 1 - FLOOR]``.
+
+    """
+    z = temperature * _log_odds(data, np.asarray(prior, dtype=np.float64))[0]
+    return FLOOR + (1.0 - 2.0 * FLOOR) * _sigmoid(z)
+
+
+def _log_odds(data: ChoiceData, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``log f_a - log f_b`` per item, and the two weighted sums it is made of."""
+    v = data.base * rho
+    s_a = (v * data.mass_a).sum(axis=1) + _TINY
+    s_b = (v * data.mass_b).sum(axis=1) + _TINY
+    return data.size * (np.log(s_a) - np.log(s_b)), s_a, s_b
+
+
+def _objective(
+    free: np.ndarray,
+    full: np.ndarray,
+    mask: np.ndarray,
+    data: ChoiceData,
+    n_a: np.ndarray,
+    n_b: np.ndarray,
+) -> tuple[float, np.ndarray]:
+    """Negative penalised log-likelihood and its gradient in the free parameters.
+
+    The parameters are ``x = (theta_1..theta_K, log tau)``; ``full`` holds all of them and
+    ``mask`` says which are fitted (``free``, in order), the others keep their values.
+    """
+    x = full.copy()
+    x[mask] = free
+    k = len(data.members)
+    theta, eta = x[:k], x[k]
+    rho = _softmax(theta)
+    tau = math.exp(eta)
+    odds, s_a, s_b = _log_odds(data, rho)
+    z = tau * odds
+    q = _sigmoid(z)
+    p_a = FLOOR + (1.0 - 2.0 * FLOOR) * q
+    p_b = FLOOR + (1.0 - 2.0 * FLOOR) * _sigmoid(-z)
+    loglik = float(n_a @ np.log(p_a) + n_b @ np.log(p_b))
+    dz = (n_a / p_a - n_b / p_b) * (1.0 - 2.0 * FLOOR) * q * (1.0 - q)  # dLL/dz
+    # dz/drho_j = tau k (w0_j m_j(a) / s_a - w0_j m_j(b) / s_b); softmax's Jacobian after
+    g = data.size[:, None] * data.base * (data.mass_a / s_a[:, None] - data.mass_b / s_b[:, None])
+    d_rho = tau * (dz @ g)
+    grad = np.empty(k + 1)
+    grad[:k] = -rho * (d_rho - d_rho @ rho)
+    grad[k] = -float(dz @ z)
+    value = -loglik
+    if mask[:k].any():
+        centred = theta - theta.mean()
+        value += 0.5 * RIDGE * float(centred @ centred)
+        grad[:k] += RIDGE * centred
+    return value, grad[mask]
+
+
+@dataclass(frozen=True)
+class Fit:
+    """One maximum-likelihood fit.
+
+    Attributes:
+        prior: ``(K,)`` the members' weights, summing to 1 (uniform for a fixed fit).
+        temperature: ``tau``.
+        log_likelihood: The log-likelihood of the fitted answers (no penalty).
+        x: All the parameters ``(theta..., log tau)`` (a warm start for refits).
+
+    """
+
+    prior: np.ndarray
+    temperature: float
+    log_likelihood: float
+    x: np.ndarray
+
+
+def fit(
+    data: ChoiceData,
+    n_a: np.ndarray,
+    n_b: np.ndarray,
+    *,
+    learn: bool = True,
+    temperature: float | None = None,
+    start: np.ndarray | None = None,
+) -> Fit:
+    """Fit the member prior (``learn``) and the temperature by maximum likelihood.
+
+    Args:
+        data: The items.
+        n_a: ``(N,)`` answers for A per item (weights allowed).
+        n_b: ``(N,)`` answers for B.
+        learn: Fit the prior; False: the fixed, uniform prior (the paper's weights).
+        temperature: A fixed ``tau`` (1: the plain Luce rule); None: fitted.
+        start: Starting parameters (a previous fit's ``x``; the fixed ones are reset).
+
+    Returns:
+        The :class:`Fit`.
+
+    """
+    from scipy.optimize import minimize
+
+    k = len(data.members)
+    x = np.zeros(k + 1) if start is None else np.array(start, dtype=np.float64)
+    mask = np.ones(k + 1, dtype=bool)
+    if not learn:
+        x[:k], mask[:k] = 0.0, False
+    if temperature is not None:
+        x[k], mask[k] = math.log(temperature), False
+    if mask.any():
+        # BFGS (SciPy's, in Python): L-BFGS-B's compiled step calls a multi-threaded BLAS
+        # that made every fit of these few parameters 5x slower on a busy machine (measured)
+        result = minimize(
+            _objective, x[mask], args=(x, mask, data, n_a, n_b), jac=True, method="BFGS",
+            options={"maxiter": 500},
+        )  # fmt: skip
+        x[mask] = result.x
+    x[:k] = np.clip(x[:k], -LOGIT_BOUND, LOGIT_BOUND)
+    x[k] = np.clip(x[k], *LOG_TEMPERATURE_BOUNDS)
+    prior, tau = _softmax(x[:k]), math.exp(x[k])
+    p = choice_probability(data, prior, tau)
+    loglik = float(n_a @ np.log(p) + n_b @ np.log1p(-p))
+    return Fit(prior, tau, loglik, x)
+
+
+def _answer_loglik(data: ChoiceData, model: Fit) -> np.ndarray:
+    """``(M,)`` log-probability of each answer under a fitted model."""
+    p = choice_probability(data, model.prior, model.temperature)[data.answer_item]
+    return np.where(data.answer_a, np.log(p), np.log1p(-p))
+
+
+def _percentiles(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return np.percentile(values, 2.5, axis=0), np.percentile(values, 97.5, axis=0)
+
+
+@dataclass(frozen=True)
+class WeightsFit:
+    """What :func:`fit_study` found.
+
+    Attributes:
+        data: The items and answers fitted.
+        learned: The fit on every answer.
+        fixed: The fit with the uniform prior (the temperature alone).
+        low: ``(K,)`` 2.5% bootstrap percentile of each weight.
+        high: ``(K,)`` 97.5% percentile.
+        temperature_interval: The temperature's 95% bootstrap interval.
+        held_out: The K-fold comparison of learned and fixed weights.
+        draws: ``(B, K)`` the bootstrap's weights.
+
+    """
+
+    data: ChoiceData
+    learned: Fit
+    fixed: Fit
+    low: np.ndarray
+    high: np.ndarray
+    temperature_interval: tuple[float, float]
+    held_out: HeldOut
+    draws: np.ndarray
+
+
+def fit_study(
+    data: ChoiceData,
+    *,
+    bootstrap: int = 200,
+    folds: int = 5,
+    seed: int = 0,
+    temperature: float | None = None,
+    progress: bool = False,
+) -> WeightsFit:
+    """Fit the weights, their bootstrap intervals and the held-out comparison.
+
+    Args:
+        data: The items and answers (:func:`choice_data`).
+        bootstrap: Resamples of the participants for the intervals (at least 1).
+        folds: Folds of participants for the held-out log-likelihood (2 to the number
+            of participants).
+        seed: The seed of the folds and the resamples.
+        temperature: A fixed choice temperature (1: the plain Luce rule); None: fitted.
+        progress: Show a progress bar (on stderr).
+
+    Returns:
+        The :class:`WeightsFit`.
+
+    Raises:
+        StudyError: ``bootstrap`` below 1, or ``folds`` outside 2..participants.
+
+    """
+    people = len(data.participants)
+    if bootstrap < 1:
+        raise StudyError(f"--bootstrap {bootstrap}: give at least 1 resample (200 is usual)")
+    if not 2 <= folds <= people:
+        raise StudyError(
+            f"--folds {folds}: the held-out likelihood needs 2 to {people} folds, one "
+            f"participant at least in each ({people} participants answered); give --folds "
+            f"{max(2, min(5, people))}" + ("" if people >= 2 else " after more participants")
+        )
+    from tqdm.auto import tqdm
+
+    rng = np.random.default_rng(seed)
+    n_a, n_b = data.counts()
+    learned = fit(data, n_a, n_b, temperature=temperature)
+    fixed = fit(data, n_a, n_b, learn=False, temperature=temperature, start=learned.x)
+    bar = tqdm(total=bootstrap + folds, desc="fit-weights", unit="fit", disable=not progress)
+    with bar:
+        # held out: each fold scored by the models fitted on the others
+        order = rng.permutation(people)
+        held_fixed = np.zeros(people)
+        held_learned = np.zeros(people)
+        for fold in np.array_split(order, folds):
+            train = np.ones(people)
+            train[fold] = 0.0
+            ta, tb = data.counts(train)
+            on_learned = fit(data, ta, tb, temperature=temperature, start=learned.x)
+            on_fixed = fit(data, ta, tb, learn=False, temperature=temperature, start=learned.x)
+            test = np.isin(data.answer_participant, fold)
+            for model, out in ((on_learned, held_learned), (on_fixed, held_fixed)):
+                scores = _answer_loglik(data, model)
+                out += np.bincount(data.answer_participant[test], scores[test], minlength=people)
+            bar.update()
+        # intervals: participants resampled with replacement, refitted
+        draws, temperatures = [], []
+        for _ in range(bootstrap):
+            chosen = np.bincount(rng.integers(people, size=people), minlength=people)
+            refit = fit(data, *data.counts(chosen), temperature=temperature, start=learned.x)
+            draws.append(refit.prior)
+            temperatures.append(refit.temperature)
+            bar.update()
+    diff = held_learned - held_fixed
+    resampled = [diff[rng.integers(people, size=people)].sum() for _ in range(bootstrap)]
+    d_low, d_high = _percentiles(np.array(resampled))
+    low, high = _percentiles(np.array(draws))
+    t_low, t_high = _percentiles(np.array(temperatures))
+    answers = len(data.answer_item)
+    held_out = HeldOut(
+        folds=folds,
+        answers=answers,
+        fixed=float(held_fixed.sum()),
+        learned=float(held_learned.sum()),
+        fixed_per_answer=float(held_fixed.sum() / answers),
+        learned_per_answer=float(held_learned.sum() / answers),
+        difference_low=float(d_low),
+        difference_high=float(d_high),
+    )
+    return WeightsFit(
+        data=data,
+        learned=learned,
+        fixed=fixed,
+        low=low,
+        high=high,
+        temperature_interval=(float(t_low), float(t_high)),
+        held_out=held_out,
+        draws=np.array(draws),
+    )
+
+
+def answers_sha256(data: ChoiceData) -> str:
+    """SHA-256 of the answers fitted: ``participant,item,choice`` lines, sorted."""
+    lines = sorted(
+        f"{data.participants[p]},{data.items[i]},{'A' if a else 'B'}"
+        for p, i, a in zip(data.answer_participant, data.answer_item, data.answer_a, strict=True)
+    )
+    return hashlib.sha256("\n".join(lines).encode("utf-8")).hexdigest()
+
+
+def weights_file(
+    result: WeightsFit,
+    *,
+    study: Path,
+    seed: int,
+    bootstrap: int,
+    keep_inattentive: bool,
+    temperature: float | None = None,
+) -> PanelWeights:
+    """The :class:`~amuled_ma.scenario.panel_weights.PanelWeights` of a fit.
+
+    Args:
+        result: The fit.
+        study: The study folder (its ``study.json`` is hashed).
+        seed: The fit's seed.
+        bootstrap: Its resamples.
+        keep_inattentive: Whether inattentive participants were kept.
+        temperature: The fixed temperature, if it was fixed.
+
+    Returns:
+        The file's content.
+
+    """
+    from amuled_ma.file_hash import sha256_file
+
+    def r(values: np.ndarray) -> list[float]:
+        return [round(float(v), 6) for v in values]
+
+    data = result.data
+    return PanelWeights(
+        members=list(data.members),
+        weights=r(result.learned.prior),
+        low=r(result.low),
+        high=r(result.high),
+        temperature=round(result.learned.temperature, 6),
+        temperature_interval=tuple(round(t, 6) for t in result.temperature_interval),
+        participants=len(data.participants),
+        answers=len(data.answer_item),
+        items=len(data.items),
+        held_out=result.held_out,
+        provenance=WeightsProvenance(
+            study=str(study),
+            study_sha256=sha256_file(Path(study) / STUDY_FILE),
+            answers_sha256=answers_sha256(data),
+            seed=seed,
+            bootstrap=bootstrap,
+            keep_inattentive=keep_inattentive,
+            fixed_temperature=temperature,
+        ),
+    )
+
+
+def fit_weights(
+    folder: Path,
+    *,
+    bootstrap: int = 200,
+    folds: int = 5,
+    seed: int = 0,
+    keep_inattentive: bool = False,
+    temperature: float | None = None,
+    out: Path | None = None,
+    progress: bool = False,
+) -> tuple[PanelWeights, Path]:
+    """``amuled study fit-weights``: fit a study's panel weights and write the file.
+
+    Args:
+        folder: The study folder.
+        bootstrap: Bootstrap resamples of the participants.
+        folds: Folds of the held-out log-likelihood.
+        seed: Seed of the folds and resamples.
+        keep_inattentive: Keep participants who failed an attention check.
+        temperature: A fixed choice temperature (1: the plain Luce rule); None: fitted.
+        out: The file to write (default ``STUDY/analysis/weights.json``).
+        progress: Show a progress bar.
+
+    Returns:
+        The weights and the file written.
+
+    Raises:
+        StudyError: No study or answers, no item with a ``bjs-dst`` panel, or bad
+            ``bootstrap``/``folds``; checked before any fit.
+
+    """
+    if bootstrap < 1:
+        raise StudyError(f"--bootstrap {bootstrap}: give at least 1 resample (200 is usual)")
+    if temperature is not None and not (0 < temperature < math.inf):
+        raise StudyError(f"--temperature {temperature}: give a finite number > 0 (1: Luce's rule)")
+    study, answers = load(folder)
+    data = choice_data(study, answers, keep_inattentive=keep_inattentive)
+    result = fit_study(
+        data,
+        bootstrap=bootstrap,
+        folds=folds,
+        seed=seed,
+        temperature=temperature,
+        progress=progress,
+    )
+    weights = weights_file(
+        result,
+        study=folder,
+        seed=seed,
+        bootstrap=bootstrap,
+        keep_inattentive=keep_inattentive,
+        temperature=temperature,
+    )
+    path = Path(out) if out is not None else Path(folder) / WEIGHTS_FILE
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = json.dumps(weights.model_dump(mode="json"), indent=2, sort_keys=True)
+    path.write_text(text + "\n", encoding="utf-8")
+    return weights, path
+
+
+def summary_lines(weights: PanelWeights) -> list[str]:
+    """What ``amuled study fit-weights`` prints: the weights, the temperature, held out.
+
+    Args:
+        weights: A fitted weights file (:func:`fit_weights`).
+
+    Returns:
+        The lines, without line ends.
+
+    """
+    rows = [f"  {'member':<20} {'weight':>7}  95% interval"]
+    low = weights.low or [math.nan] * len(weights.members)
+    high = weights.high or [math.nan] * len(weights.members)
+    for name, value, lo, hi in zip(weights.members, weights.weights, low, high, strict=True):
+        rows.append(f"  {name:<20} {value:7.3f}  [{lo:.3f}, {hi:.3f}]")
+    fixed = weights.provenance is not None and weights.provenance.fixed_temperature is not None
+    if fixed:
+        rows.append(f"  choice temperature {weights.temperature:.3f} (fixed)")
+    elif weights.temperature is not None and weights.temperature_interval is not None:
+        t_low, t_high = weights.temperature_interval
+        rows.append(f"  choice temperature {weights.temperature:.3f} [{t_low:.3f}, {t_high:.3f}]")
+    h = weights.held_out
+    if h is not None:
+        rows.append(
+            f"  held-out log-likelihood per answer ({h.folds} folds, {h.answers} answers of "
+            f"{weights.participants} participants): fixed {h.fixed_per_answer:.4f}, learned "
+            f"{h.learned_per_answer:.4f}; learned - fixed {h.learned - h.fixed:+.1f} "
+            f"[{h.difference_low:+.1f}, {h.difference_high:+.1f}]"
+        )
+    return rows
