@@ -7,9 +7,9 @@ arguments into the request and print the :class:`PipelineOutcome`. The steps:
 
 1. plan the job graph (:func:`~amuled_ma.experiments.plans.plan_run` or
    :func:`~amuled_ma.experiments.plans.plan_ablation`: a fine-tune needs its seed's base);
-2. check every job's inputs (:func:`check_plan`, with
-   :func:`~amuled_ma.experiments.plans.check_inputs`) before any folder is made, so a
-   missing recording, base checkpoint or feedback source stops the run and leaves nothing;
+2. check every job (:func:`~amuled_ma.experiments.plans.check_jobs`: its inputs, then its
+   folder) before any folder is made, so a missing recording, base checkpoint or feedback
+   source, or a folder trained with other settings, stops the run and leaves nothing;
 3. hold the run folder's lock (:func:`~amuled_ma.run_lock.run_folder_lock`), write
    ``config.json`` and train the graph (:func:`~amuled_ma.experiments.jobs.run_jobs`: in this
    process or on Ray), one line per finished job (:func:`describe_job`);
@@ -183,7 +183,9 @@ def run_pipeline(
         from amuled_ma.experiments.plans import retrain_jobs
 
         plan = dataclasses.replace(plan, jobs=retrain_jobs(plan.jobs, request.retrain))
-    check_plan(plan.jobs)  # before the lock: a run that cannot start makes no folder
+    from amuled_ma.experiments.plans import check_jobs  # here: it imports torch
+
+    actions = check_jobs(plan.jobs, request.hint)  # before the lock: a refused run makes no folder
     # after the checks: a refused run answers before torch and matplotlib are imported
     from amuled_ma.evaluate.evaluator import evaluate_run, variant_dirs
     from amuled_ma.evaluate.report import write_report
@@ -194,7 +196,7 @@ def run_pipeline(
         # Ray first: a SIGTERM while it starts leaves no run folder (the lock removes it)
         with ray_connection(plan.jobs, workers=workers, ray=request.ray):
             write_config(plan.out_dir, request.scenario, plan.config)
-            training = train_jobs(plan.jobs, request, say)
+            training = train_jobs(plan.jobs, request, say, actions)
         records = variant_records([*variant_dirs(plan.out_dir), *plan.extra_dirs])
         results = evaluate_run(
             plan.out_dir,
@@ -278,45 +280,11 @@ def _plan_ablation(request: PipelineRequest, seeds: list[int]) -> _Plan:
     )
 
 
-def check_plan(jobs: Sequence[TrainJob]) -> None:
-    """Check the inputs of every planned job before anything is made or trained.
-
-    Each job goes through :func:`~amuled_ma.experiments.plans.check_inputs` (its feedback
-    agents, recording or sources, and a finished base unless the plan trains it); nothing
-    is written, no folder is made.
-
-    Args:
-        jobs: The planned graph.
-
-    Raises:
-        AmuledError: One problem as it was raised; several as one message listing each
-            distinct problem once (``N of M jobs cannot start, nothing was trained``).
-
-    """
-    from amuled_ma.experiments.plans import check_inputs  # here: it imports torch
-
-    planned = {job.out_dir.name for job in jobs}
-    errors: list[AmuledError] = []
-    failing = 0
-    for job in jobs:
-        try:
-            base_dir = job.base_dir or job.run_dir
-            check_inputs(job.scenario, job.variant, base_dir, job.base_variant, planned)
-        except AmuledError as error:
-            failing += 1
-            if all(str(error) != str(seen) for seen in errors):
-                errors.append(error)
-    if len(errors) == 1:
-        raise errors[0]
-    if errors:
-        raise AmuledError(
-            f"{failing} of {len(jobs)} jobs cannot start, nothing was trained:\n"
-            + "\n".join(f"  - {error}" for error in errors)
-        )
-
-
 def train_jobs(
-    jobs: Sequence[TrainJob], request: PipelineRequest, say: Callable[[str], None] = say_line
+    jobs: Sequence[TrainJob],
+    request: PipelineRequest,
+    say: Callable[[str], None] = say_line,
+    actions: dict[str, str] | None = None,
 ) -> JobsOutcome:
     """Train a planned graph as the request says (``jobs``, ``ray``), one line per job.
 
@@ -324,6 +292,8 @@ def train_jobs(
         jobs: The graph.
         request: Where and how the jobs run, the progress bars and the resume command.
         say: Prints a progress line.
+        actions: Each job's start as :func:`~amuled_ma.experiments.plans.check_jobs`
+            decided it (None: decided by :func:`~amuled_ma.experiments.jobs.run_jobs`).
 
     Returns:
         The outcome of :func:`~amuled_ma.experiments.jobs.run_jobs`.
@@ -340,6 +310,7 @@ def train_jobs(
         hint=request.hint,
         describe=describe_job,
         ray=ray,
+        actions=actions,
     )
     say(f"  training done in {outcome.wall_s:.1f} s on {outcome.workers} worker(s)")
     return outcome

@@ -115,17 +115,18 @@ def test_a_missing_recording_stops_before_any_folder_is_made(tmp_path, capsys):
 def test_the_inputs_of_several_jobs_are_named_once_each(tmp_path):
     """Two seeds' AMULED fine-tunes lack the same recording: one line, said once."""
     from amuled_ma.errors import AmuledError
-    from amuled_ma.experiments.plans import plan_run
+    from amuled_ma.experiments.plans import check_jobs, plan_run
     from amuled_ma.scenario import load_scenario
 
     missing = tmp_path / "nowhere.json"
     scenario = load_scenario("findmilk").replace("feedback", recording=str(missing))
     jobs = plan_run(scenario, tmp_path / "run", [1, 2])
     with pytest.raises(AmuledError) as info:
-        pipeline.check_plan(jobs)
+        check_jobs(jobs)
     assert str(missing) in str(info.value) and "\n" not in str(info.value)
     rules = scenario.replace("feedback", source="rules")
-    pipeline.check_plan(plan_run(rules, tmp_path / "run", [1, 2]))  # nothing missing
+    actions = check_jobs(plan_run(rules, tmp_path / "run", [1, 2]))  # nothing missing
+    assert set(actions.values()) == {"new"}
     assert not (tmp_path / "run").exists()
 
 

@@ -29,8 +29,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from amuled_ma.errors import AmuledError
-from amuled_ma.experiments.run_folder import JobResult, TrainJob, prepare_variant
-from amuled_ma.experiments.training_settings import training_config
+from amuled_ma.experiments.run_folder import JobResult, TrainJob
 from amuled_ma.learn.config import planned_iterations
 from amuled_ma.scenario import Scenario
 
@@ -174,35 +173,6 @@ def _train(
 
 
 # ------------------------------------------------------------------ parent side
-def _preflight(jobs: Sequence[TrainJob], hint: str) -> dict[str, str]:
-    """Decide new/resume/skip for every job before anything runs (errors come first)."""
-    from amuled_ma.experiments.plans import check_inputs  # here: it imports torch
-
-    actions, problems = {}, []
-    planned = {j.out_dir.name for j in jobs}
-    for j in jobs:
-        try:
-            base_dir = j.base_dir or j.run_dir
-            check_inputs(j.scenario, j.variant, base_dir, j.base_variant, planned)
-            actions[j.name] = prepare_variant(
-                j.out_dir,
-                resume=j.resume,
-                force=j.force,
-                hint=hint,
-                training=training_config(j.scenario, j.variant, j.seed),
-            )
-        except AmuledError as err:
-            problems.append(str(err))
-    if len(problems) == 1:
-        raise AmuledError(problems[0])
-    if problems:
-        raise AmuledError(
-            f"{len(problems)} of {len(jobs)} jobs cannot start, nothing was trained:\n"
-            + "\n".join(f"  - {p}" for p in problems)
-        )
-    return actions
-
-
 def uses_ray(jobs: Sequence[TrainJob], workers: int, ray: RayTarget | None) -> bool:
     """Whether :func:`run_jobs` trains ``jobs`` on Ray (else in this process)."""
     return not (ray is None and (workers <= 1 or len(jobs) <= 1))
@@ -271,6 +241,7 @@ def run_jobs(
     hint: str = "",
     describe: Callable[[Any], str] = str,
     ray: RayTarget | None = None,
+    actions: dict[str, str] | None = None,
 ) -> JobsOutcome:
     """Train a graph of jobs.
 
@@ -283,6 +254,8 @@ def run_jobs(
         describe: Turns each finished :class:`~amuled_ma.experiments.run_folder.JobResult`
             into the line printed about it.
         ray: Train on Ray even with one worker, at this cluster (``--ray [ADDRESS]``).
+        actions: What :func:`~amuled_ma.experiments.plans.check_jobs` decided for each
+            job, when the caller already checked them (default: checked here).
 
     Returns:
         The outcome, results in job order.
@@ -294,7 +267,10 @@ def run_jobs(
 
     """
     check_order(jobs)
-    actions = _preflight(jobs, hint)
+    if actions is None:
+        from amuled_ma.experiments.plans import check_jobs  # here: it imports torch
+
+        actions = check_jobs(jobs, hint)
     start = time.perf_counter()
     if not uses_ray(jobs, workers, ray):
         results = []

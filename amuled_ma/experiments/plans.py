@@ -453,6 +453,53 @@ def plan_run(
     return jobs
 
 
+def check_jobs(jobs: Sequence[TrainJob], hint: str = "") -> dict[str, str]:
+    """Check every planned job before anything is made or trained, and decide its start.
+
+    Each job's inputs go through :func:`check_inputs` (its feedback agents, recording or
+    sources, and a finished base unless the plan trains it), then its folder through
+    :func:`~amuled_ma.experiments.run_folder.prepare_variant` (new, resume or skip; a
+    checkpoint without ``--resume``/``--force``, or trained with other settings, is
+    refused). Nothing is written, no folder is made.
+
+    Args:
+        jobs: The planned graph.
+        hint: The command that re-runs the graph (named in a refusal).
+
+    Returns:
+        ``{job name: "new" | "resume" | "skip"}``.
+
+    Raises:
+        AmuledError: One problem as it was raised; several as one message listing each
+            distinct problem once (``N of M jobs cannot start, nothing was trained``).
+
+    """
+    planned = {job.out_dir.name for job in jobs}
+    actions: dict[str, str] = {}
+    problems: list[str] = []
+    failing = 0
+    for job in jobs:
+        try:
+            check_inputs(job.scenario, job.variant, job.base_dir or job.run_dir,
+                         job.base_variant, planned)  # fmt: skip
+            training = training_config(job.scenario, job.variant, job.seed)
+            actions[job.name] = prepare_variant(
+                job.out_dir, resume=job.resume, force=job.force, hint=hint, training=training
+            )
+        except AmuledError as error:
+            failing += 1
+            if str(error) not in problems:
+                problems.append(str(error))
+    if len(problems) == 1:
+        raise AmuledError(problems[0])
+    if problems:
+        raise AmuledError(
+            f"{failing} of {len(jobs)} jobs cannot start, nothing was trained:\n"
+            + "\n".join(f"  - {problem}" for problem in problems)
+        )
+    return actions
+
+
 def retrain_jobs(jobs: Sequence[TrainJob], names: Collection[str]) -> list[TrainJob]:
     """The plan with ``names`` retrained from scratch and every other job resumed.
 
