@@ -197,3 +197,65 @@ def test_command_line_cases_end_in_one_line(tmp_path: Path, argv: list[str]) -> 
     assert done.returncode in (1, 2), done.stderr
     assert "Traceback" not in done.stderr, done.stderr
     assert done.stderr.strip().splitlines()[-1].startswith("amuled: error: ")
+
+
+#: Commands that read input files and never train, with their fixed arguments; the fuzz
+#: adds generated arguments after them (``{tmp}``: the example's folder).
+QUIET_COMMANDS = [
+    ["explain", "findmilk", "--feedback", "rules"],
+    ["evaluate", "{tmp}/run"],
+    ["view", "{tmp}/run"],
+    ["beliefs", "stats", "--store", "{tmp}/s.sqlite"],
+    ["beliefs", "import", "--store", "{tmp}/s.sqlite", "{tmp}/in.jsonl"],
+    ["import", "authors", "{tmp}/checkout", "--runs", "{tmp}/runs", "--to", "{tmp}/rec"],
+    ["clusters", "list", "--clusters-dir", "{tmp}/clusters"],
+]
+#: Flags and values of those commands, and values any argument may take. A real argv
+#: holds no NUL character; bytes that are not UTF-8 reach Python as lone surrogates.
+cli_words = st.one_of(
+    st.sampled_from([
+        "--obs", "--state-from", "--variant", "--step", "--episodes", "--seed", "--set",
+        "--run-dir", "--no-verify", "--clusters-dir", "--allow-plugin", "--debug", "-h",
+        "--feedback", "--fusion", "--out", "1e12", "-5", "nan", "0,0,0,0,0,0,0,0",
+        "subprocess:Popen", "ppo.gamma=nan", "task.options={layout=1}", "{tmp}/run",
+        "{tmp}/in.jsonl", "\udcff\udcfe", "\x1b[2J", "../..", "",
+    ]),
+    st.text(alphabet=st.characters(blacklist_characters="\x00"), max_size=12),
+)  # fmt: skip
+
+
+@seed(24)
+@settings(FUZZ, max_examples=30)
+@given(command=st.sampled_from(QUIET_COMMANDS), extra=st.lists(cli_words, max_size=5),
+       jsonl=st.binary(max_size=80))  # fmt: skip
+def test_generated_command_lines(tmp_path_factory, command, extra, jsonl: bytes) -> None:
+    """Generated arguments of the real command line: an exit status, never a traceback.
+
+    In process (``amuled_ma.cli.main``), with standard output strict UTF-8 as a terminal's
+    and standard error writing escapes, as Python sets them up.
+    """
+    import contextlib
+    import io
+
+    from amuled_ma.cli import main
+
+    tmp = tmp_path_factory.mktemp("cli")
+    (tmp / "in.jsonl").write_bytes(jsonl)
+    (tmp / "run").mkdir()
+    (tmp / "clusters").mkdir()
+    (tmp / "clusters" / "c.toml").write_bytes(jsonl)
+    argv = [word.replace("{tmp}", str(tmp)) for word in [*command, *extra]]
+    out = io.TextIOWrapper(io.BytesIO(), encoding="utf-8", errors="strict", write_through=True)
+    err = io.TextIOWrapper(
+        io.BytesIO(), encoding="utf-8", errors="backslashreplace", write_through=True
+    )
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = main(argv)
+        except SystemExit as stop:  # argparse: --help (0) or a usage error (2)
+            code = stop.code
+    text = err.buffer.getvalue().decode("utf-8")
+    assert code in (0, 1, 2), (argv, code, text)
+    assert "Traceback" not in text or "--debug" in argv, (argv, text)
+    if code == 1:
+        assert text.strip().splitlines()[-1].startswith("amuled: error: "), (argv, text)

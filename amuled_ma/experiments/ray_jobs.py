@@ -17,7 +17,8 @@ base is trained (the graph is Ray's own dependencies, nothing scheduled by hand)
   (:func:`ray.cancel`, which raises :class:`KeyboardInterrupt` in a running task); each
   running job writes its checkpoint as on a Ctrl-C of its own; the driver prints the
   ``--resume`` command and re-raises. A local Ray dies with its driver (``kill -9``
-  included), so no process outlives it.
+  included), so no process outlives it. A SIGTERM while ``ray.init`` runs is turned back
+  into the same stop, once what Ray had started is shut down (:func:`connect`).
 - **Progress**: the tasks send their iteration counts to an actor (:class:`SweepBoard`);
   one bar on the driver counts them.
 - **Network**: a local Ray listens on loopback only (:func:`connect`); a cluster is

@@ -97,9 +97,17 @@ def curve(folder: Path) -> list[dict]:
             for r in rows]  # fmt: skip
 
 
-def stop_run(work: Path) -> dict:
+def progress(path: Path) -> dict | None:
+    """A checkpoint's iteration and whether it is complete (None: no checkpoint)."""
     from amuled_ma.experiments.run_folder import checkpoint_state
 
+    state = checkpoint_state(path)
+    if state is None:
+        return None
+    return {"iteration": int(state["iteration"]), "completed": bool(state.get("completed"))}
+
+
+def stop_run(work: Path) -> dict:
     env = cluster_env()
     figures: dict = {}
     start_head(env)
@@ -115,7 +123,7 @@ def stop_run(work: Path) -> dict:
             raise RuntimeError("the run ended early:\n" + (work / "stop.err").read_text())
         time.sleep(1.0)
         figures.update(sigterm(proc, work / "stop"))
-        stopped = {t: checkpoint_state(run_dir / t / "model_last.pt") for t in TUNES}
+        stopped = {t: progress(run_dir / t / "model_last.pt") for t in TUNES}
         figures["stopped"] = stopped
         at_stop = {t: curve(run_dir / t) for t in TUNES if (run_dir / t / "curve.json").exists()}
         hints = [line[len("resume with: "):] for line in figures["stderr"].splitlines()
@@ -128,7 +136,7 @@ def stop_run(work: Path) -> dict:
                                   text=True, timeout=900)  # fmt: skip
             figures["resume_code"] = done.returncode
             figures["resume_tail"] = done.stderr[-3000:]
-            final = {t: checkpoint_state(run_dir / t / "model_last.pt") for t in TUNES}
+            final = {t: progress(run_dir / t / "model_last.pt") for t in TUNES}
             figures["final"] = final
             figures["iterations"] = {t: [r["iteration"] for r in curve(run_dir / t)]
                                      == list(range(1, ITERATIONS + 1)) for t in TUNES}  # fmt: skip
