@@ -5,16 +5,20 @@ steps, 8 epochs of 4 mini-batches, their window KL, 1,000 iterations): a short b
 policy is trained (``--base-steps``), then fine-tunes of it (``finetune:amuled``, seeds
 42, 43, ..., lambda_KL cycling through 0.5, 1, 2.5, 5) are timed
 
-- one by one with the existing ``Trainer`` (``--lone`` of them, the mean is used), and
+- one by one with the existing ``Trainer`` (``--lone`` of them, the mean is used), timed
+  right before each population (a shared machine's load drifts), and
 - as populations of P members (``amuled_ma.learn.population.PopulationTrainer``),
 
 side by side in one run. Each measurement times a few iterations (``--warmup`` then
 ``--iterations``) and **extrapolates to the recipe's 1,000 iterations**: a job's time is
 its setup + the warm-up iterations (when the feedback's memo is cold and most states are
-new) + (1,000 - warm-up) x the mean of the measured iterations after them; fine-tunes per
-hour = P x 3,600 s / that time. The feedback is the replayed recording of the scenario
-where it is found (``../shared/amuled-recordings/``), else the rule-based source; the
-output names it. One torch thread (the project's setting for small networks). Target
+new: on FindMilk about 90 of a run's 110 distinct states come in its first 5 iterations)
++ (1,000 - warm-up) x the mean of the measured iterations after them (10: two of the
+recipe's checkpoints every 5); fine-tunes per hour = P x 3,600 s / that time. The
+feedback is the replayed recording of the scenario where it is found
+(``../shared/amuled-recordings/``), else the rule-based source; the output names it.
+Times are CPU seconds of this process (the machine may be shared), wall-clock figures
+beside them. One torch thread (the project's setting for small networks). Target
 (issue 26): at P = 32, at least 10x the one-by-one throughput on a 2-core machine.
 
 ``--welch N`` measures agreement instead of speed: N seeds (42, 43, ...; lambda_KL 2.5)
@@ -45,12 +49,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tasks", default="findmilk,driving", help="comma-separated tasks")
     parser.add_argument("--sizes", default="1,8,32,128", help="population sizes P")
     parser.add_argument(
-        "--warmup", type=int, default=8, help="iterations timed as warm-up (cold memos)"
+        "--warmup", type=int, default=20, help="iterations timed as warm-up (cold memos)"
     )
     parser.add_argument(
-        "--iterations", type=int, default=5, help="iterations measured after the warm-up"
+        "--iterations", type=int, default=10, help="iterations measured after the warm-up"
     )
-    parser.add_argument("--lone", type=int, default=2, help="fine-tunes timed one by one")
+    parser.add_argument(
+        "--lone", type=int, default=1, help="fine-tunes timed one by one before each population"
+    )
     parser.add_argument(
         "--base-steps", type=int, default=10_240, help="env steps of the short base policy"
     )
@@ -180,19 +186,21 @@ def measure_task(task: str, args: argparse.Namespace, out: Path) -> dict[str, An
     base_s = time.perf_counter() - t0
     store = run_store(scenario, run)
     its = args.warmup + args.iterations
-    lone: list[dict[str, float]] = []
-    for job in _jobs(scenario, run, base, args.lone, "lone", store):
-        job.iterations = its
-        watch = Stopwatch()
-        trainer = Trainer(job.scenario, job.out_dir, **job.lone_kwargs(), on_iteration=watch)
-        setup = _since(watch.start)
-        watch.restart()
-        trainer.train()
-        job.feedback.close()
-        lone.append(watch.extrapolate(setup, args.warmup))
-    alone = {key: sum(t[key] for t in lone) / len(lone) for key in lone[0]}
     rows = []
     for size in [int(s) for s in args.sizes.split(",") if s.strip()]:
+        # the same jobs one by one, timed right before the population (the load of a
+        # shared machine drifts: each population is compared with its neighbours)
+        lone: list[dict[str, float]] = []
+        for job in _jobs(scenario, run, base, args.lone, f"lone{size}", store):
+            job.iterations = its
+            watch = Stopwatch()
+            trainer = Trainer(job.scenario, job.out_dir, **job.lone_kwargs(), on_iteration=watch)
+            setup = _since(watch.start)
+            watch.restart()
+            trainer.train()
+            job.feedback.close()
+            lone.append(watch.extrapolate(setup, args.warmup))
+        alone = {key: sum(t[key] for t in lone) / len(lone) for key in lone[0]}
         jobs = _jobs(scenario, run, base, size, f"p{size}", store)
         watch = Stopwatch()
         for job in jobs:
@@ -207,10 +215,10 @@ def measure_task(task: str, args: argparse.Namespace, out: Path) -> dict[str, An
         for job in jobs:
             job.feedback.close()
         del population
-        rows.append({"size": size, "setup": setup, "rss_mib": rss, **times})
+        rows.append({"size": size, "setup": setup, "rss_mib": rss, "alone": alone, **times})
         print(
-            f"  {task} P={size}: {size * 3600 / times['cpu_s']:.1f} fine-tunes/h "
-            f"(CPU time), {size * 3600 / times['wall_s']:.1f} (wall clock)",
+            f"  {task} P={size}: {size * 3600 / times['cpu_s']:.1f} fine-tunes/h, one by one "
+            f"{3600 / alone['cpu_s']:.1f} (CPU time)",
             flush=True,
         )
     shape = _jobs(scenario, run, base, 1, "shape", store)[0].shape()
@@ -219,7 +227,6 @@ def measure_task(task: str, args: argparse.Namespace, out: Path) -> dict[str, An
         "task": task,
         "source": source,
         "base_s": base_s,
-        "alone": alone,
         "rows": rows,
         "member_bytes": member_memory_bytes(
             shape, obs_dim=len(task_obj.obs_names), num_actions=len(task_obj.action_names)
@@ -255,17 +262,19 @@ def main(args: argparse.Namespace) -> int:
         f"{'RSS MiB':>8}"
     )
     for result in results:
-        alone = result["alone"]
+        rows = result["rows"]
+        lone_it = sum(row["alone"]["cpu_it"] for row in rows) / len(rows)
+        lone_s = sum(row["alone"]["cpu_s"] for row in rows) / len(rows)
         print(
             f"\n{result['task']}: feedback {result['source']}; one by one (Trainer): "
-            f"{alone['cpu_it']:.3f} CPU s/iteration, {alone['cpu_s'] / 60:.1f} CPU min per "
-            f"fine-tune; memory per member (estimate, tensors + overhead): "
-            f"{result['member_bytes'] / 2**20:.2f} MiB"
+            f"{lone_it:.3f} CPU s/iteration, {lone_s / 60:.1f} CPU min per fine-tune "
+            f"(mean of {len(rows) * args.lone} runs); memory per member (estimate, tensors "
+            f"+ objects + its feedback): {result['member_bytes'] / 2**20:.2f} MiB"
         )
         print(header)
         print("-" * len(header))
-        for row in result["rows"]:
-            size = row["size"]
+        for row in rows:
+            size, alone = row["size"], row["alone"]
             cpu_lone, cpu_pop = 3600 / alone["cpu_s"], size * 3600 / row["cpu_s"]
             wall_lone, wall_pop = 3600 / alone["wall_s"], size * 3600 / row["wall_s"]
             print(

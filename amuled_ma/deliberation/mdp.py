@@ -272,9 +272,10 @@ class MemberFeedback:
         """The fused beliefs ``[P x E, A]`` of every copy, each from its member's feedback."""
         views = self.views(task)
         self._variables = None  # the states changed since the last step
-        parts = []
-        for p, (feedback, view) in enumerate(zip(self.feedbacks, views, strict=True)):
-            rows = obs[p * self.copies : (p + 1) * self.copies]
-            parts.append(np.asarray(feedback(rows, view)))
+        blocks = obs.split(self.copies)
+        parts = [
+            np.asarray(feedback(rows, view))
+            for feedback, view, rows in zip(self.feedbacks, views, blocks, strict=True)
+        ]
         self._variables = None
         return np.concatenate(parts)

@@ -35,7 +35,6 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -49,39 +48,24 @@ from rsl_rl.runners import OnPolicyRunner
 from amuled_ma.deliberation.mdp import BatchedDeliberation, MemberFeedback
 from amuled_ma.errors import AmuledError, Terminated
 from amuled_ma.learn.checkpoints import LAST, CheckpointWriteError, write_checkpoint
-from amuled_ma.learn.population_groups import (
-    MEMBER_ALGORITHM_KEYS,
-    MemberSpec,
-    population_key,
-    shared_config,
-)
+from amuled_ma.learn.population_groups import MemberSpec, population_config, population_key
 from amuled_ma.learn.population_models import member_state, stack_states
 from amuled_ma.learn.population_ppo import PopulationPPO
 from amuled_ma.learn.population_state import (
+    MemberStart,
+    lone_start,
     member_env_state,
     member_optimizer_state,
     split_episodes,
     stack_env_states,
     stack_optimizer_states,
 )
-from amuled_ma.learn.trainer import Trainer, TrainOutcome
+from amuled_ma.learn.trainer import TrainOutcome
 from amuled_ma.learn.vecenv import DeliberationVecEnv
 from amuled_ma.tasks import make_task
+from amuled_ma.variants import Variant
 
-__all__ = [
-    "POPULATION_MODEL",
-    "POPULATION_PPO",
-    "MemberStart",
-    "PopulationMember",
-    "PopulationTrainer",
-    "population_config",
-    "train_population",
-]
-
-#: ``module:Class`` names rsl-rl resolves for a population.
-POPULATION_MODEL = "amuled_ma.learn.population_models:PopulationMLPModel"
-POPULATION_CATEGORICAL = "amuled_ma.learn.population_models:PopulationCategoricalDistribution"
-POPULATION_PPO = "amuled_ma.learn.population_ppo:PopulationPPO"
+__all__ = ["PopulationMember", "PopulationTrainer", "curve_row", "train_population"]
 
 
 def _quiet(fn: Callable[[], Any]) -> Any:
@@ -91,98 +75,6 @@ def _quiet(fn: Callable[[], Any]) -> Any:
 
 def _mean(values: list[float]) -> float | None:
     return float(np.mean(values)) if values else None
-
-
-@dataclass
-class MemberStart:
-    """Where a member starts: its lone :class:`Trainer`'s state after construction.
-
-    Attributes:
-        cfg: Its lone rsl-rl config (``train_cfg.json``).
-        actor: Actor state dict.
-        critic: Critic state dict.
-        optimizer: Adam's state dict.
-        base_actor: The frozen base actor's state dict (fine-tunes), else None.
-        iteration: The iteration it starts at.
-        torch_rng: torch's global random state after construction (its stream).
-        env_state: Its task copies' state (None: the task cannot save it).
-        curve: Its learning curve so far (resumed).
-        wall_s: Its training time so far [s].
-        total_iterations: Iterations it trains to.
-        obs_dim: Observation length.
-        num_actions: Actions.
-
-    """
-
-    cfg: dict[str, Any]
-    actor: dict[str, torch.Tensor]
-    critic: dict[str, torch.Tensor]
-    optimizer: dict[str, Any]
-    base_actor: dict[str, torch.Tensor] | None
-    iteration: int
-    torch_rng: torch.Tensor
-    env_state: dict[str, Any] | None
-    curve: list[dict]
-    wall_s: float
-    total_iterations: int
-    obs_dim: int
-    num_actions: int
-
-
-def lone_start(spec: MemberSpec) -> tuple[MemberStart, Trainer]:
-    """Build the member's lone :class:`Trainer` and read where it starts.
-
-    Returns:
-        The start, and the trainer (its actor is the template of a member's policy).
-
-    """
-    trainer = Trainer(spec.scenario, spec.out_dir, **spec.lone_kwargs())
-    alg = trainer.alg
-    saved = alg.save()
-    start = MemberStart(
-        cfg=trainer.cfg,
-        actor=saved["actor_state_dict"],
-        critic=saved["critic_state_dict"],
-        optimizer=saved["optimizer_state_dict"],
-        base_actor=None if alg.base_actor is None else alg.base_actor.state_dict(),
-        iteration=trainer.runner.current_learning_iteration,
-        torch_rng=torch.get_rng_state(),
-        env_state=trainer.env.state_dict(),
-        curve=list(trainer.curve),
-        wall_s=trainer.wall_offset,
-        total_iterations=trainer.total_iterations,
-        obs_dim=int(trainer.env.obs.shape[-1]),
-        num_actions=int(trainer.env.num_actions),
-    )
-    return start, trainer
-
-
-def population_config(cfgs: Sequence[dict[str, Any]]) -> dict[str, Any]:
-    """rsl-rl's config of a population from its members' lone configs.
-
-    The population's model, distribution and algorithm classes, the population size, and
-    each member's KL weight and anchor as lists.
-
-    Raises:
-        ValueError: The members' configs differ in a setting they must share.
-
-    """
-    shared = shared_config(cfgs[0])
-    for p, cfg in enumerate(cfgs):
-        if shared_config(cfg) != shared:
-            raise ValueError(f"member {p} has other training settings than member 0")
-    cfg = copy.deepcopy(cfgs[0])
-    size = len(cfgs)
-    for model in ("actor", "critic"):
-        cfg[model]["class_name"] = POPULATION_MODEL
-        cfg[model]["population"] = size
-    cfg["actor"]["distribution_cfg"]["class_name"] = POPULATION_CATEGORICAL
-    algorithm = cfg["algorithm"]
-    algorithm["class_name"] = POPULATION_PPO
-    algorithm["population"] = size
-    for key in MEMBER_ALGORITHM_KEYS:
-        algorithm[key] = [member["algorithm"][key] for member in cfgs]
-    return cfg
 
 
 class PopulationMember:
@@ -246,65 +138,76 @@ class PopulationTrainer:
         self.device = device
         self.progress = progress
         self.size = len(self.specs)
+        self.finetuning = Variant.parse(self.specs[0].variant).finetuning
+        self.shape = self.specs[0].shape()
+        self.copies = self.shape.num_envs
         starts: list[MemberStart] = []
-        template: torch.nn.Module | None = None
         for spec in self.specs:
             start, trainer = lone_start(spec)
             starts.append(start)
-            if template is None:
-                template = copy.deepcopy(trainer.alg.get_policy()).cpu()
+            if len(starts) == 1:  # the template of a member's lone actor
+                self.template = copy.deepcopy(trainer.alg.get_policy()).cpu()
             del trainer
-        assert template is not None
-        self.template = template
-        self.starts = starts
-        self.finetuning = self.specs[0].variant.finetuning  # type: ignore[union-attr]
-        shape = self.specs[0].shape()
-        self.shape = shape
-        self.copies = shape.num_envs
         self.total_iterations = starts[0].total_iterations
         self.cfgs = [start.cfg for start in starts]
         self.cfg = population_config(self.cfgs)
+        self.env = self._population_env(starts)
+        self.runner: OnPolicyRunner = _quiet(
+            lambda: OnPolicyRunner(self.env, copy.deepcopy(self.cfg), log_dir=None, device=device)
+        )
+        self.alg: PopulationPPO = self.runner.alg
+        self._load_members(starts)
+        self.curves = [list(start.curve) for start in starts]
+        self.wall_offsets = [start.wall_s for start in starts]
+        # what a member's checkpoint repeats from its start (the tensors are loaded: dropped)
+        self.sizes = [(start.obs_dim, start.num_actions) for start in starts]
+        self.members = [PopulationMember(self, p) for p in range(self.size)]
+
+    def _population_env(self, starts: list[MemberStart]) -> DeliberationVecEnv:
+        """One task of ``P x E`` copies, each member's copies in the state its run left them.
+
+        A task without ``state_dict`` (a test's) cannot take its members' states: its
+        copies then start as built with the first member's seed.
+        """
         first = self.specs[0]
         factory = first.task_factory or make_task
         self.task = factory(
             first.scenario,
             self.size * self.copies,
-            shaping_coef=shape.shaping_coef,
+            shaping_coef=self.shape.shaping_coef,
             seed=first.training_seed,
         )
         feedback = None
         if self.finetuning:
             feedback = MemberFeedback([spec.feedback for spec in self.specs], self.copies)
         self.mdp = BatchedDeliberation(
-            self.task, feedback, task_weight=shape.task_weight, feedback_coef=1.0
+            self.task, feedback, task_weight=self.shape.task_weight, feedback_coef=1.0
         )
-        self.env = DeliberationVecEnv(
+        env = DeliberationVecEnv(
             self.mdp, cfg={"scenario": first.scenario.name, "population": self.size}
         )
-        env_states = [start.env_state for start in starts]
-        self.env_template = env_states[0]
-        own = self.env.state_dict()
-        if own is not None and all(state is not None for state in env_states):
-            self.env.load_state_dict(stack_env_states(env_states, own))  # type: ignore[arg-type]
-        self.runner: OnPolicyRunner = _quiet(
-            lambda: OnPolicyRunner(self.env, copy.deepcopy(self.cfg), log_dir=None, device=device)
-        )
-        self.alg: PopulationPPO = self.runner.alg
-        self.alg.actor.load_state_dict(stack_states([start.actor for start in starts]))
-        self.alg.critic.load_state_dict(stack_states([start.critic for start in starts]))
+        states = [start.env_state for start in starts]
+        self.env_template = states[0]
+        own = env.state_dict()
+        if own is not None and all(state is not None for state in states):
+            env.load_state_dict(stack_env_states(states, own))  # type: ignore[arg-type]
+        return env
+
+    def _load_members(self, starts: list[MemberStart]) -> None:
+        """Load every member's weights, Adam state, random stream, iteration and base."""
+        alg = self.alg
+        alg.actor.load_state_dict(stack_states([start.actor for start in starts]))
+        alg.critic.load_state_dict(stack_states([start.critic for start in starts]))
         if starts[0].optimizer["state"]:
-            self.alg.optimizer.load_state_dict(
+            alg.optimizer.load_state_dict(
                 stack_optimizer_states([start.optimizer for start in starts])
             )
-        self.alg.streams.set_states([start.torch_rng for start in starts])
+        alg.streams.set_states([start.torch_rng for start in starts])
         self.runner.current_learning_iteration = starts[0].iteration
         if self.finetuning:
-            base = copy.deepcopy(self.alg.get_policy())
-            base.load_state_dict(stack_states([start.base_actor for start in starts]))  # type: ignore[misc]
-            self.alg.anchor_to(base)
-        self.curves = [list(start.curve) for start in starts]
-        self.wall_offsets = [start.wall_s for start in starts]
-        self.members = [PopulationMember(self, p) for p in range(self.size)]
+            base = copy.deepcopy(alg.get_policy())
+            base.load_state_dict(stack_states([start.base_actor or {} for start in starts]))
+            alg.anchor_to(base)
 
     # ----------------------------------------------------------------- members
     def member_policy(self, member: int) -> torch.nn.Module:
@@ -314,10 +217,21 @@ class PopulationTrainer:
         actor.eval()
         return actor
 
-    def member_checkpoint(self, member: int, *, completed: bool) -> dict[str, Any]:
-        """Member ``member``'s checkpoint as its lone ``Trainer`` writes it."""
-        spec, start = self.specs[member], self.starts[member]
-        env_state = self.env.state_dict()
+    def member_checkpoint(
+        self, member: int, *, completed: bool, shared: dict[str, Any] | None = None
+    ) -> dict[str, Any]:
+        """Member ``member``'s checkpoint as its lone ``Trainer`` writes it.
+
+        Args:
+            member: Which member.
+            completed: Whether its training finished.
+            shared: The population's states read once for several members
+                (:meth:`population_state`); default: read now.
+
+        """
+        spec, (obs_dim, num_actions) = self.specs[member], self.sizes[member]
+        state = shared or self.population_state()
+        env_state = state["env"]
         if env_state is not None and self.env_template is not None:
             env_state = member_env_state(env_state, self.env_template, member)
         else:
@@ -330,26 +244,42 @@ class PopulationTrainer:
             "completed": completed,
             "curve": self.curves[member],
             "wall_s": self.wall_offsets[member],
-            "torch_rng": self.alg.streams.get_states()[member],
+            "torch_rng": self.alg.streams.generators[member].get_state(),
             "env_state": env_state,
-            "train_cfg": start.cfg,
+            "train_cfg": self.cfgs[member],
             "base_checkpoint": str(spec.base_checkpoint) if spec.base_checkpoint else None,
-            "num_actions": start.num_actions,
-            "obs_dim": start.obs_dim,
+            "num_actions": num_actions,
+            "obs_dim": obs_dim,
         }
         return {
-            "actor_state_dict": _cpu(member_state(self.alg.actor.state_dict(), member)),
-            "critic_state_dict": _cpu(member_state(self.alg.critic.state_dict(), member)),
-            "optimizer_state_dict": member_optimizer_state(self.alg.optimizer.state_dict(), member),
+            "actor_state_dict": _cpu(member_state(state["actor"], member)),
+            "critic_state_dict": _cpu(member_state(state["critic"], member)),
+            "optimizer_state_dict": member_optimizer_state(state["optimizer"], member),
             "iter": self.runner.current_learning_iteration,
             "infos": infos,
         }
 
-    def save(self, member: int, *, completed: bool) -> Path:
+    def population_state(self) -> dict[str, Any]:
+        """The population's actor, critic, Adam and env states (for members' checkpoints)."""
+        return {
+            "actor": self.alg.actor.state_dict(),
+            "critic": self.alg.critic.state_dict(),
+            "optimizer": self.alg.optimizer.state_dict(),
+            "env": self.env.state_dict(),
+        }
+
+    def save(self, member: int, *, completed: bool, shared: dict[str, Any] | None = None) -> Path:
         """Write member ``member``'s ``model_last.pt`` (atomically, as a lone job's)."""
-        state = self.member_checkpoint(member, completed=completed)
+        state = self.member_checkpoint(member, completed=completed, shared=shared)
         path = self.specs[member].out_dir / LAST
         return write_checkpoint(path, lambda tmp: torch.save(state, tmp))
+
+    def save_members(self, members: Sequence[int], *, completed: bool) -> list[Path]:
+        """Write the checkpoints of ``members``, the population's states read once."""
+        if not members:
+            return []
+        shared = self.population_state()
+        return [self.save(p, completed=completed, shared=shared) for p in members]
 
     # ----------------------------------------------------------------- training
     def train(self) -> list[TrainOutcome]:
@@ -394,9 +324,12 @@ class PopulationTrainer:
                 for p, spec in enumerate(self.specs):
                     if spec.on_iteration is not None:
                         spec.on_iteration(self.members[p], it + 1)
-                for p, cfg in enumerate(self.cfgs):
-                    if (it + 1) % cfg["save_interval"] == 0 and it + 1 < self.total_iterations:
-                        self.save(p, completed=False)
+                due = [
+                    p
+                    for p, cfg in enumerate(self.cfgs)
+                    if (it + 1) % cfg["save_interval"] == 0 and it + 1 < self.total_iterations
+                ]
+                self.save_members(due, completed=False)
         except (KeyboardInterrupt, AmuledError) as stop:
             bar.close()
             self._stopped(stop)
@@ -407,7 +340,8 @@ class PopulationTrainer:
                     writer.close()
         bar.close()
         wall = time.perf_counter() - t0
-        return [self._finish(p, batch, wall) for p in range(self.size)]
+        paths = self.save_members(range(self.size), completed=True)
+        return [self._finish(p, path, batch, wall) for p, path in enumerate(paths)]
 
     def _record(
         self, it: int, batch: int, walls: list[float], elapsed: float, writers: list[Any]
@@ -428,10 +362,9 @@ class PopulationTrainer:
                     if key not in ("iteration", "env_steps") and value is not None:
                         writers[p].add_scalar(key, value, row["env_steps"])
 
-    def _finish(self, member: int, batch: int, wall: float) -> TrainOutcome:
-        """Write member ``member``'s final checkpoint, curve and feedback summary."""
+    def _finish(self, member: int, path: Path, batch: int, wall: float) -> TrainOutcome:
+        """Write member ``member``'s curve and feedback summary; its outcome."""
         spec = self.specs[member]
-        path = self.save(member, completed=True)
         (spec.out_dir / "curve.json").write_text(json.dumps(self.curves[member]))
         summary = spec.feedback.summary() if spec.feedback is not None else None
         if summary is not None:
@@ -461,8 +394,7 @@ class PopulationTrainer:
             if isinstance(stop, KeyboardInterrupt)
             else "stopped"
         )
-        for p in range(self.size):
-            self.save(p, completed=False)
+        self.save_members(range(self.size), completed=False)
         print(
             f"\n{why} at iteration {self.runner.current_learning_iteration}/"
             f"{self.total_iterations}; checkpoints of {self.size} jobs written "

@@ -10,11 +10,13 @@ feedback (source, clusters, fusion rule, recording), KL weight and recipe, base 
 folders and checkpoint cadence.
 
 :func:`split_populations` groups a list of jobs by that key and cuts each group into
-populations whose estimated memory (:func:`member_memory_bytes` per member) fits a budget.
+populations whose estimated memory (:func:`member_memory_bytes` per member) fits a budget;
+:func:`population_config` is rsl-rl's config of a population from its members' own.
 """
 
 from __future__ import annotations
 
+import copy
 import itertools
 import json
 import math
@@ -28,6 +30,12 @@ from amuled_ma.learn.job_shape import JobShape, job_shape
 from amuled_ma.scenario import Scenario
 from amuled_ma.scenario.memory import MEMORY_FRACTION, physical_memory_bytes
 from amuled_ma.variants import Variant
+
+#: ``module:Class`` names rsl-rl resolves for a population.
+POPULATION_MODEL = "amuled_ma.learn.population_models:PopulationMLPModel"
+POPULATION_CATEGORICAL = "amuled_ma.learn.population_models:PopulationCategoricalDistribution"
+POPULATION_PPO = "amuled_ma.learn.population_ppo:PopulationPPO"
+
 
 #: Settings of a job's rsl-rl algorithm that may differ between members of a population.
 MEMBER_ALGORITHM_KEYS = ("lambda_kl", "anchor")
@@ -252,3 +260,31 @@ def split_populations(
             populations.append(members[start:end])
             start = end
     return populations
+
+
+def population_config(cfgs: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """rsl-rl's config of a population from its members' lone configs.
+
+    The population's model, distribution and algorithm classes, the population size, and
+    each member's KL weight and anchor as lists.
+
+    Raises:
+        ValueError: The members' configs differ in a setting they must share.
+
+    """
+    shared = shared_config(cfgs[0])
+    for p, cfg in enumerate(cfgs):
+        if shared_config(cfg) != shared:
+            raise ValueError(f"member {p} has other training settings than member 0")
+    cfg = copy.deepcopy(cfgs[0])
+    size = len(cfgs)
+    for model in ("actor", "critic"):
+        cfg[model]["class_name"] = POPULATION_MODEL
+        cfg[model]["population"] = size
+    cfg["actor"]["distribution_cfg"]["class_name"] = POPULATION_CATEGORICAL
+    algorithm = cfg["algorithm"]
+    algorithm["class_name"] = POPULATION_PPO
+    algorithm["population"] = size
+    for key in MEMBER_ALGORITHM_KEYS:
+        algorithm[key] = [member["algorithm"][key] for member in cfgs]
+    return cfg

@@ -46,6 +46,9 @@ class MemberStreams:
     def __init__(self, population: int) -> None:
         self.population = int(population)
         self.generators = [torch.Generator() for _ in range(self.population)]
+        # uniforms drawn ahead (:meth:`reserve`): [calls, P x rows, 1], the next call's index
+        self.reserved: torch.Tensor | None = None
+        self.next = 0
 
     def __deepcopy__(self, memo: dict) -> MemberStreams:
         """Copies of a model share its streams (a frozen copy never draws)."""
@@ -62,14 +65,50 @@ class MemberStreams:
         for generator, state in zip(self.generators, states, strict=True):
             generator.set_state(state)
 
+    def reserve(self, each: int, calls: int, dtype: torch.dtype, device: torch.device) -> None:
+        """Draw the next ``calls`` calls of :meth:`uniform` (``each`` per member) at once.
+
+        One ``torch.rand`` of ``calls x each`` per member instead of ``calls``: torch's CPU
+        generator fills a tensor element by element, so the numbers (and the generator's
+        state after) are those of the ``calls`` draws one by one (a rollout: one call per
+        step). Nothing else may draw from the streams until they are used up.
+        """
+        blocks = [torch.rand((calls, each, 1), dtype=dtype, generator=g) for g in self.generators]
+        self.reserved = torch.stack(blocks, dim=1).reshape(calls, -1, 1).to(device)
+        self.next = 0
+
     def uniform(self, rows: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-        """``[rows, 1]`` uniforms in ``[0, 1)``: ``rows / P`` from each member, member-major."""
-        each = rows // self.population
+        """``[rows, 1]`` uniforms in ``[0, 1)``: ``rows / P`` from each member, member-major.
+
+        Raises:
+            ValueError: ``rows`` is not a multiple of the population.
+            RuntimeError: Another draw than the one :meth:`reserve` drew ahead.
+
+        """
+        each, rest = divmod(rows, self.population)
+        if rest:
+            raise ValueError(f"{rows} rows do not split into {self.population} members")
+        reserved = self.reserved
+        if reserved is not None:
+            if reserved.shape[1] != rows or reserved.dtype != dtype:
+                raise RuntimeError("a draw of other uniforms than those reserved ahead")
+            out = reserved[self.next]
+            self.next += 1
+            if self.next == reserved.shape[0]:
+                self.reserved = None
+            return out
         draws = [torch.rand((each, 1), dtype=dtype, generator=g) for g in self.generators]
         return torch.cat(draws).to(device)
 
     def permutations(self, n: int, device: torch.device) -> torch.Tensor:
-        """``[P, n]``: a random permutation of ``0..n-1`` from each member's stream."""
+        """``[P, n]``: a random permutation of ``0..n-1`` from each member's stream.
+
+        Raises:
+            RuntimeError: Uniforms reserved ahead are not used up (they come first).
+
+        """
+        if self.reserved is not None:
+            raise RuntimeError("a permutation drawn before the uniforms reserved ahead")
         return torch.stack([torch.randperm(n, generator=g) for g in self.generators]).to(device)
 
 

@@ -3,7 +3,7 @@
 :class:`PopulationPPO` subclasses :class:`~amuled_ma.learn.anchored_ppo.AnchoredPPO`
 (rsl-rl's PPO with the KL anchor) over the stacked models of
 :mod:`amuled_ma.learn.population_models`, on ``P x E`` task copies (member ``p`` owns
-copies ``p*E .. p*E+E-1``). rsl-rl's rollout, returns and update run unchanged; four of its
+copies ``p*E .. p*E+E-1``). rsl-rl's rollout, returns and update run unchanged; five of its
 steps would mix the members, and each is made per member at a public extension point:
 
 1. **Mini-batches.** rsl-rl's :meth:`~rsl_rl.storage.RolloutStorage.mini_batch_generator`
@@ -23,6 +23,11 @@ steps would mix the members, and each is made per member at a public extension p
    ``1/P`` of the sum of the members' losses; the same hook multiplies the gradients by
    ``P``, so each member receives the gradient of its own loss (Adam is not scale-free:
    ``eps`` is added to the root of its second moment).
+5. **Random numbers.** A lone run samples its actions (rollout and each mini-batch's
+   forward pass) and permutes its mini-batches from torch's global generator. Here each
+   member draws the same calls from its own stream (``MemberStreams``, set to the state
+   the lone run leaves the global one in); :meth:`PopulationPPO.act` draws a rollout's
+   uniforms at its first step, one call per member (the same numbers as one per step).
 
 Adam itself is elementwise, so one Adam over the stacked parameters is each member's Adam
 exactly, as long as the members share the learning rate and its schedule (the population
@@ -271,6 +276,22 @@ class PopulationPPO(AnchoredPPO):
         self.member_losses: list[dict[str, float]] = [{} for _ in range(population)]
         self.optimizer.register_step_pre_hook(self.before_step)
 
+    # ----------------------------------------------------------------- rsl-rl steps
+    def act(self, obs: TensorDict) -> torch.Tensor:
+        """:class:`AnchoredPPO`'s ``act``; a rollout's first step draws its samples' uniforms.
+
+        Each member's stream draws the rollout's ``T`` calls of ``E`` uniforms at once
+        (:meth:`MemberStreams.reserve`: the same numbers as one call per step).
+        """
+        if self.storage.step == 0:
+            self.streams.reserve(
+                self.copies,
+                self.storage.num_transitions_per_env,
+                torch.float32,
+                torch.device(self.device),
+            )
+        return super().act(obs)
+
     # ----------------------------------------------------------------- anchoring
     def anchor_to(self, base_actor: torch.nn.Module) -> None:
         """Anchor each member to its base policy (a population model of the bases)."""
@@ -361,10 +382,9 @@ class PopulationPPO(AnchoredPPO):
         if not grads:
             return
         members = self.population
-        norms = torch.stack(
-            [torch.linalg.vector_norm(g.reshape(members, -1), dim=1) for g in grads]
-        )
-        total = members * torch.linalg.vector_norm(norms, dim=0)  # each member's norm
+        # each member's 2-norm over all its gradients (its rows of the stacked tensors)
+        rows = torch.cat([g.reshape(members, -1) for g in grads], dim=1)
+        total = members * torch.linalg.vector_norm(rows, dim=1)
         scale = members * (self.member_max_grad_norm / (total + 1e-6)).clamp(max=1.0)
         for g in grads:
             g.mul_(scale.reshape(members, *([1] * (g.dim() - 1))))
@@ -395,7 +415,6 @@ class PopulationPPO(AnchoredPPO):
         else:
             value = (batch.returns - values).pow(2)
         entropy = self.actor.output_entropy
-        terms = torch.stack(
-            [t.reshape(members, -1).mean(1) for t in (value, surrogate, entropy)], dim=1
-        )
+        rows = torch.stack((value.reshape(-1), surrogate, entropy))
+        terms = rows.reshape(len(LOSS_KEYS), members, -1).mean(2).T
         self.member_loss_sums += terms.to("cpu", torch.float64)

@@ -12,14 +12,85 @@ functions stack members' lone states into the population's and slice a member's 
   axis counts copies is concatenated member after member, a table shared by all copies
   (the same shape in a member's state and in the population's) is kept once;
 - finished episodes (:func:`split_episodes`), each to its member with its own copy index.
+
+A member starts where its lone run starts (:func:`lone_start`: its lone ``Trainer`` built,
+its state read, :class:`MemberStart`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import torch
+
+from amuled_ma.learn.population_groups import MemberSpec
+from amuled_ma.learn.trainer import Trainer
+
+
+@dataclass
+class MemberStart:
+    """Where a member starts: its lone :class:`Trainer`'s state after construction.
+
+    Attributes:
+        cfg: Its lone rsl-rl config (``train_cfg.json``).
+        actor: Actor state dict.
+        critic: Critic state dict.
+        optimizer: Adam's state dict.
+        base_actor: The frozen base actor's state dict (fine-tunes), else None.
+        iteration: The iteration it starts at.
+        torch_rng: torch's global random state after construction (its stream).
+        env_state: Its task copies' state (None: the task cannot save it).
+        curve: Its learning curve so far (resumed).
+        wall_s: Its training time so far [s].
+        total_iterations: Iterations it trains to.
+        obs_dim: Observation length.
+        num_actions: Actions.
+
+    """
+
+    cfg: dict[str, Any]
+    actor: dict[str, torch.Tensor]
+    critic: dict[str, torch.Tensor]
+    optimizer: dict[str, Any]
+    base_actor: dict[str, torch.Tensor] | None
+    iteration: int
+    torch_rng: torch.Tensor
+    env_state: dict[str, Any] | None
+    curve: list[dict]
+    wall_s: float
+    total_iterations: int
+    obs_dim: int
+    num_actions: int
+
+
+def lone_start(spec: MemberSpec) -> tuple[MemberStart, Trainer]:
+    """Build the member's lone :class:`Trainer` and read where it starts.
+
+    Returns:
+        The start, and the trainer (its actor is the template of a member's policy).
+
+    """
+    trainer = Trainer(spec.scenario, spec.out_dir, **spec.lone_kwargs())
+    alg = trainer.alg
+    saved = alg.save()
+    start = MemberStart(
+        cfg=trainer.cfg,
+        actor=saved["actor_state_dict"],
+        critic=saved["critic_state_dict"],
+        optimizer=saved["optimizer_state_dict"],
+        base_actor=None if alg.base_actor is None else alg.base_actor.state_dict(),
+        iteration=trainer.runner.current_learning_iteration,
+        torch_rng=torch.get_rng_state(),
+        env_state=trainer.env.state_dict(),
+        curve=list(trainer.curve),
+        wall_s=trainer.wall_offset,
+        total_iterations=trainer.total_iterations,
+        obs_dim=int(trainer.env.obs.shape[-1]),
+        num_actions=int(trainer.env.num_actions),
+    )
+    return start, trainer
 
 
 def stack_optimizer_states(states: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
