@@ -105,9 +105,12 @@ def assert_states_close(a: dict, b: dict) -> None:
         torch.testing.assert_close(b[key], a[key], atol=ATOL, rtol=0)
 
 
-def test_members_train_as_they_train_alone(tmp_path, base) -> None:
-    alone = [lone(spec) for spec in specs(tmp_path / "lone", base)]
-    together = train_population(specs(tmp_path / "pop", base))
+@pytest.mark.parametrize("options", [{}, {"tie_break": "random"}])
+def test_members_train_as_they_train_alone(tmp_path, base, options) -> None:
+    # random ties: every copy draws from its own stream each step (findmilk-authors)
+    scenario = tiny().replace("task", options=options)
+    alone = [lone(spec) for spec in specs(tmp_path / "lone", base, scenario)]
+    together = train_population(specs(tmp_path / "pop", base, scenario))
     for a, b in zip(alone, together, strict=True):
         assert b.iterations == a.iterations == 3 and b.env_steps == a.env_steps
         assert_rows_close(a.curve, b.curve)
