@@ -1,10 +1,9 @@
 """The shape of one training job: copies, rollout, iterations, learning rate, rsl-rl config.
 
-The same derivation from a scenario and a variant as the lone
-:class:`~amuled_ma.learn.trainer.Trainer`'s constructor makes (``tests/learn/
-test_population_groups.py`` checks that both agree), without building anything: the
-population learner groups jobs by what they share (:mod:`amuled_ma.learn.population_groups`)
-before any of them is built.
+The one derivation from a scenario and a variant, used by the lone
+:class:`~amuled_ma.learn.trainer.Trainer` and by the population learner, without building
+anything: the population learner groups jobs by what they share
+(:mod:`amuled_ma.learn.population_groups`) before any of them is built.
 """
 
 from __future__ import annotations

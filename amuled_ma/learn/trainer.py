@@ -49,7 +49,7 @@ from rsl_rl.runners import OnPolicyRunner
 
 from amuled_ma.deliberation.feedback_base import Feedback
 from amuled_ma.deliberation.mdp import BatchedDeliberation
-from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError, Terminated
+from amuled_ma.errors import AmuledError, CheckpointError, Terminated
 from amuled_ma.learn.anchored_ppo import AnchoredPPO
 from amuled_ma.learn.checkpoints import (
     LAST,
@@ -58,7 +58,7 @@ from amuled_ma.learn.checkpoints import (
     read_checkpoint,
     write_checkpoint,
 )
-from amuled_ma.learn.config import planned_iterations, rsl_rl_config
+from amuled_ma.learn.job_shape import job_shape
 from amuled_ma.learn.vecenv import DeliberationVecEnv
 from amuled_ma.scenario import Scenario
 from amuled_ma.tasks import make_task
@@ -148,53 +148,19 @@ class Trainer:
         self.progress = progress
         self.resume_hint = resume_hint
         self.on_iteration = on_iteration
-        ppo = scenario.ppo
         if self.finetuning:
-            ft = scenario.finetune
             if feedback is None:
                 raise ValueError("a fine-tune needs feedback")
             if base_checkpoint is None or not Path(base_checkpoint).is_file():
                 raise CheckpointError(f"base checkpoint not found: {base_checkpoint}")
-            self.num_envs, self.steps_per_env = ft.num_envs, ft.num_steps_per_env
-            self.total_iterations = (
-                planned_iterations(scenario, finetune=True) if iterations is None else iterations
-            )
-            self.lr, self.anneal = ft.learning_rate, ft.anneal_lr
-            self.cfg = rsl_rl_config(
-                ppo,
-                num_steps_per_env=ft.num_steps_per_env,
-                learning_rate=ft.learning_rate,
-                num_learning_epochs=ft.num_learning_epochs,
-                save_interval=ft.save_interval,
-                lambda_kl=ft.lambda_kl,
-                anchor="window" if ft.recipe == "authors" else "per_sample",
-                grad_clip=ft.grad_clip,
-                reshuffle_each_epoch=ft.reshuffle_each_epoch,
-                bootstrap_time_outs=ft.bootstrap_time_outs,
-            )
-            shaping = 0.0
-        else:
-            base = scenario.base
-            self.num_envs, self.steps_per_env = base.num_envs, base.num_steps_per_env
-            self.total_iterations = (
-                planned_iterations(scenario, finetune=False) if iterations is None else iterations
-            )
-            self.lr, self.anneal = ppo.learning_rate, ppo.anneal_lr
-            self.cfg = rsl_rl_config(
-                ppo, num_steps_per_env=base.num_steps_per_env, save_interval=base.save_interval
-            )
-            shaping = base.shaping_coef if self.variant.kind == "shaped" else 0.0
-        self.shaping_coef = shaping
-        section = "finetune" if self.finetuning else "base"
-        minibatch = self.num_envs * self.steps_per_env // ppo.num_mini_batches
-        if ppo.normalize_advantage_per_mini_batch and minibatch < 2:
-            raise ScenarioError(
-                f"{scenario.path or scenario.name}: [{section}] num_envs x num_steps_per_env = "
-                f"{self.num_envs * self.steps_per_env} transitions split into "
-                f"[ppo] num_mini_batches = {ppo.num_mini_batches} gives mini-batches of "
-                f"{minibatch}; per-mini-batch advantage normalisation needs at least 2 "
-                "(raise num_envs or num_steps_per_env)"
-            )
+        # copies, rollout, iterations, learning rate, rsl-rl config: one derivation, shared
+        # with the population learner (learn.job_shape)
+        shape = job_shape(scenario, self.variant, iterations)
+        self.num_envs, self.steps_per_env = shape.num_envs, shape.steps_per_env
+        self.total_iterations = shape.total_iterations
+        self.lr, self.anneal = shape.learning_rate, shape.anneal
+        self.cfg = shape.cfg
+        self.shaping_coef = shaping = shape.shaping_coef
         torch.manual_seed(self.seed)
         np.random.seed(self.seed % (2**32))
         self.task = (task_factory or make_task)(
@@ -204,7 +170,7 @@ class Trainer:
         self.mdp = BatchedDeliberation(
             self.task,
             feedback,
-            task_weight=scenario.finetune.env_reward_coef if self.finetuning else 1.0,
+            task_weight=shape.task_weight,
             feedback_coef=1.0,
         )
         self.env = DeliberationVecEnv(
