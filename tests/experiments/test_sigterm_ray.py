@@ -214,4 +214,6 @@ def test_a_lost_belief_store_actor_is_one_line_not_a_traceback(tmp_path):
     error = result["error"]
     assert error is not None and "\n" not in error, error
     assert error.startswith("the sweep's belief store on the driver's node cannot be reached")
-    assert "ActorDiedError" in error and "--resume" in error, error
+    # the kill may still be in flight under load: Ray then says the actor is unavailable
+    assert "ActorDiedError" in error or "ActorUnavailableError" in error, error
+    assert "--resume" in error, error
