@@ -61,3 +61,19 @@ class Terminated(KeyboardInterrupt):
     A subclass of :class:`KeyboardInterrupt`: every ``except KeyboardInterrupt`` that writes
     a checkpoint handles it the same way; the command line then exits with 143.
     """
+
+
+class MemberFailed(AmuledError):
+    """One member of a training population failed (a non-finite gradient, its feedback).
+
+    The population writes the other members' checkpoints and goes on without it
+    (:func:`amuled_ma.learn.population.train_population`).
+
+    Attributes:
+        member: The member's index in its population.
+
+    """
+
+    def __init__(self, member: int, message: str) -> None:
+        super().__init__(message)
+        self.member = member

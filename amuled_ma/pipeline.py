@@ -72,6 +72,8 @@ class PipelineRequest:
             variant is resumed (:func:`~amuled_ma.experiments.plans.retrain_jobs`).
         jobs: Jobs at once (0: one per core, or 1 with live feedback; 1: in this process).
         ray: Train on Ray (a local one, or a cluster's address); None: as ``jobs`` says.
+        population: Train jobs of one shape together as populations (one Ray task each);
+            False (``--no-population``): every job alone.
         progress: Show progress bars.
         hint: The shell command that re-runs this request; printed with ``--resume`` when a
             job stops early, and in the message of a folder that clashes.
@@ -95,6 +97,7 @@ class PipelineRequest:
     retrain: tuple[str, ...] = ()
     jobs: int = 0
     ray: RayTarget | None = None
+    population: bool = True
     progress: bool = True
     hint: str = ""
     title: str | None = None
@@ -311,6 +314,7 @@ def train_jobs(
         describe=describe_job,
         ray=ray,
         actions=actions,
+        population=request.population,
     )
     say(f"  training done in {outcome.wall_s:.1f} s on {outcome.workers} worker(s)")
     return outcome

@@ -246,6 +246,8 @@ def command_line(name: str, args: argparse.Namespace, run_dir: Path, *extra: str
         parts += ["--ray"] + ([] if args.ray == "local" else [args.ray])
     if getattr(args, "ray_resource", None):
         parts += ["--ray-resource", args.ray_resource]
+    if not getattr(args, "population", True):
+        parts.append("--no-population")
     return shlex.join(parts)
 
 

@@ -132,6 +132,14 @@ def add_parallel_args(parser: argparse.ArgumentParser) -> None:
         "(docs/scale.md)",
     )
     parser.add_argument(
+        "--no-population",
+        dest="population",
+        action="store_false",
+        help="train every job alone; by default jobs of one task, network and run shape "
+        "(e.g. the seeds and feedbacks of a sweep) train together as one batched "
+        "population per core, each as it trains alone (docs/learning.md)",
+    )
+    parser.add_argument(
         "--ray-resource",
         default=None,
         metavar="NAME",
@@ -179,6 +187,7 @@ def request_of(args: argparse.Namespace, command: str, *extra: str) -> Any:
         retrain=tuple(args.retrain),
         jobs=args.jobs,
         ray=ray_target(args),
+        population=args.population,
         progress=not args.no_progress,
         hint=common.command_line(command, args, run_dir, *extra),
     )

@@ -24,6 +24,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from amuled_ma.errors import AmuledError
+
 #: ``(observations [N, obs_dim], task) -> fused beliefs [N, A]``: a learner's feedback
 #: (:class:`~amuled_ma.deliberation.feedback_base.Feedback`) or any callable of that shape.
 FeedbackFn = Callable[[torch.Tensor, Any], Any]
@@ -238,6 +240,12 @@ class MemberFeedback:
     prompt variables of the states (read by a feedback keyed by prompt) are read for
     every copy at once, on the first request of a step, and served to each member.
 
+    A member whose feedback fails (an :class:`~amuled_ma.errors.AmuledError`, a belief
+    that is not finite) is not asked again: the reason is kept in :attr:`failures`, its
+    rows get zeros that nothing learns from (the population trainer stops the member after
+    the iteration and keeps its last checkpoint), and the other members' iteration runs
+    exactly as it would have.
+
     Args:
         feedbacks: One feedback per member (:data:`FeedbackFn`).
         copies: Copies per member ``E``.
@@ -250,6 +258,8 @@ class MemberFeedback:
         self._views: list[CopiesView] = []
         self._task: Any = None
         self._variables: list[Any] | None = None
+        #: member -> why its feedback failed (the trainer stops it after the iteration)
+        self.failures: dict[int, str] = {}
 
     def views(self, task: Any) -> list[CopiesView]:
         """Each member's :class:`CopiesView` of ``task`` (made once per task)."""
@@ -273,9 +283,22 @@ class MemberFeedback:
         views = self.views(task)
         self._variables = None  # the states changed since the last step
         blocks = obs.split(self.copies)
-        parts = [
-            np.asarray(feedback(rows, view))
-            for feedback, view, rows in zip(self.feedbacks, views, blocks, strict=True)
-        ]
+        parts = []
+        for member, (feedback, view, rows) in enumerate(
+            zip(self.feedbacks, views, blocks, strict=True)
+        ):
+            part = None
+            if member not in self.failures:
+                try:
+                    part = np.asarray(feedback(rows, view))
+                except AmuledError as error:  # its source stayed down, a replay miss, ...
+                    self.failures[member] = str(error)
+                if part is not None and not np.isfinite(part).all():
+                    self.failures[member] = (
+                        "its feedback gave a belief that is not a finite number (NaN or inf)"
+                    )
+            if member in self.failures:  # a stand-in, never learnt from (the member stops)
+                part = np.zeros((len(rows), task.num_actions))
+            parts.append(part)
         self._variables = None
         return np.concatenate(parts)

@@ -242,6 +242,7 @@ def run_jobs(
     describe: Callable[[Any], str] = str,
     ray: RayTarget | None = None,
     actions: dict[str, str] | None = None,
+    population: bool = True,
 ) -> JobsOutcome:
     """Train a graph of jobs.
 
@@ -256,6 +257,8 @@ def run_jobs(
         ray: Train on Ray even with one worker, at this cluster (``--ray [ADDRESS]``).
         actions: What :func:`~amuled_ma.experiments.plans.check_jobs` decided for each
             job, when the caller already checked them (default: checked here).
+        population: Train jobs of one shape together as populations
+            (:mod:`~amuled_ma.experiments.population_jobs`; ``--no-population``: False).
 
     Returns:
         The outcome, results in job order.
@@ -272,7 +275,8 @@ def run_jobs(
 
         actions = check_jobs(jobs, hint)
     start = time.perf_counter()
-    if not uses_ray(jobs, workers, ray):
+    on_ray = uses_ray(jobs, workers, ray)
+    if not population and not on_ray:
         results = []
         for job in jobs:
             result = _train(job, progress=progress, hint=hint)
@@ -283,13 +287,17 @@ def run_jobs(
                if actions[j.name] == "skip"}  # fmt: skip
     for result in skipped.values():
         print(describe(result), flush=True)
-    todo = [j for j in jobs if j.name not in skipped]
+    groups = job_groups(jobs, actions, workers=workers if on_ray else 1, population=population)
+    if not on_ray:
+        ran = _train_groups(groups, progress=progress, hint=hint, describe=describe)
+        results_by_name = {**skipped, **ran}
+        return JobsOutcome([results_by_name[j.name] for j in jobs], time.perf_counter() - start, 1)
     target = ray or RayTarget()
     with _ray_switches(target.address is None):
         from amuled_ma.experiments.ray_jobs import run_on_ray  # here: importing Ray takes a second
 
         ran = run_on_ray(
-            todo,
+            groups,
             address=target.address,
             workers=workers,
             progress=progress,
@@ -301,3 +309,54 @@ def run_jobs(
     return JobsOutcome(
         [results_by_name[j.name] for j in jobs], time.perf_counter() - start, workers
     )
+
+
+def job_groups(
+    jobs: Sequence[TrainJob], actions: dict[str, str], *, workers: int, population: bool
+) -> list[list[TrainJob]]:
+    """The jobs to train (not skipped) as groups that train together, needs first.
+
+    With ``population``, :func:`~amuled_ma.experiments.population_jobs.population_groups`
+    (jobs of one shape together, one population per worker); else one job a group.
+    """
+    if not population:
+        return [[job] for job in jobs if actions[job.name] != "skip"]
+    from amuled_ma.experiments.population_jobs import population_groups  # here: torch
+
+    return population_groups(jobs, actions, workers=workers)
+
+
+def _train_groups(
+    groups: Sequence[Sequence[TrainJob]],
+    *,
+    progress: bool,
+    hint: str,
+    describe: Callable[[Any], str],
+) -> dict[str, JobResult]:
+    """Train groups one after the other in this process; results by job name.
+
+    A group of one trains as a lone job; a larger one as populations. Jobs that failed
+    alone in a population stop the graph once their group has finished.
+
+    Raises:
+        AmuledError: A job failed (the others of its group finished first).
+
+    """
+    from amuled_ma.experiments.population_jobs import (  # here: torch
+        population_failure,
+        train_population_jobs,
+    )
+
+    results: dict[str, JobResult] = {}
+    for group in groups:
+        if len(group) == 1:
+            results[group[0].name] = result = _train(group[0], progress=progress, hint=hint)
+            print(describe(result), flush=True)
+            continue
+        outcome = train_population_jobs(group, progress=progress, hint=hint)
+        for name, result in outcome.results.items():
+            results[name] = result
+            print(describe(result), flush=True)
+        if outcome.failures:
+            raise population_failure(outcome.failures, hint)
+    return results

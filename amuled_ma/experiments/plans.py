@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable, Collection, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -152,6 +153,123 @@ def checked_inputs(
     return checked
 
 
+@dataclass
+class PreparedJob:
+    """A job ready to train: its folder written, its feedback built (:func:`prepare_job`).
+
+    Attributes:
+        variant: What it trains.
+        out_dir: Its folder (its ``config.json`` written).
+        action: ``"new"`` or ``"resume"``.
+        feedback: A fine-tune's feedback (open: :meth:`close` it), else None.
+        base_checkpoint: A fine-tune's base policy.
+        trainer_kwargs: The other arguments of :class:`~amuled_ma.learn.trainer.Trainer`
+            (``seed``, ``iterations``, ``resume_hint``, ``task_factory``).
+
+    """
+
+    variant: Variant
+    out_dir: Path
+    action: str
+    feedback: Any
+    base_checkpoint: Path | None
+    trainer_kwargs: dict[str, Any]
+
+    def close(self) -> None:
+        """Close the feedback (its sources and store connections)."""
+        if self.feedback is not None:
+            self.feedback.close()
+
+    def finished(self, outcome: Any) -> JobResult:
+        """Record the job complete; its result."""
+        mark_state(self.out_dir, "complete", outcome.iterations)
+        return JobResult(self.variant, self.out_dir, outcome=outcome)
+
+    def failed(self) -> None:
+        """Record the job failed (unless the disk is full: the error says so)."""
+        with contextlib.suppress(OSError):
+            mark_state(self.out_dir, "failed")
+
+
+def prepare_job(
+    scenario: Scenario,
+    run_dir: Path,
+    variant: Variant | str,
+    *,
+    resume: bool = False,
+    force: bool = False,
+    hint: str = "",
+    iterations: int | None = None,
+    seed: int | None = None,
+    out_dir: Path | None = None,
+    base_dir: Path | None = None,
+    base_variant: str = "base",
+    task_factory: Callable[..., Any] | None = None,
+    feedback_factory: Callable[[str], Any] | None = None,
+    store: Any = None,
+) -> PreparedJob | JobResult:
+    """Check a job's inputs, decide new / resume / skip, build its feedback, write its record.
+
+    The arguments are :func:`train_variant`'s.
+
+    Returns:
+        The prepared job, or the result of a job that is already trained (skipped).
+
+    """
+    variant = Variant.parse(variant)
+    run_dir = Path(run_dir)
+    out = Path(out_dir) if out_dir else run_dir / variant.folder
+    # the preflight builds and checks the panel's sources once; the feedback is built of them
+    checked = checked_inputs(scenario, variant, Path(base_dir or run_dir), base_variant)
+    try:
+        training = training_config(scenario, variant, seed, iterations)
+        action = prepare_variant(out, resume=resume, force=force, hint=hint, training=training)
+        if action == "skip":
+            return JobResult(variant, out, skipped=True)
+        feedback = None
+        base_ckpt = checked.base_checkpoint
+        if variant.finetuning:
+            assert variant.feedback is not None and checked.plan is not None
+            if feedback_factory is not None:
+                feedback = feedback_factory(variant.feedback)
+            else:
+                members, checked = checked.members, checked._replace(members=None)
+                feedback = build_feedback(
+                    checked.plan,
+                    store if store is not None else run_store(scenario, run_dir),
+                    members=members,  # handed over: the feedback closes them
+                    state_dir=out,
+                    resume=action == "resume",
+                    seed=seed,
+                    cache_dir=run_dir,
+                )
+    finally:
+        checked.close()
+    try:
+        if action == "new" or not (out / "config.json").is_file():
+            fields = variant_fields(
+                variant, out, training, base_checkpoint=base_ckpt, feedback=feedback
+            )
+            write_config(out, scenario, fields)
+    except BaseException:
+        if feedback is not None:
+            feedback.close()
+        raise
+    return PreparedJob(
+        variant,
+        out,
+        action,
+        feedback,
+        base_ckpt,
+        {
+            "seed": seed,
+            "iterations": iterations,
+            "resume_hint": f"{hint} --resume" if hint else None,
+            "task_factory": task_factory,
+        },
+    )
+
+
 def train_variant(
     scenario: Scenario,
     run_dir: Path,
@@ -198,70 +316,47 @@ def train_variant(
         The job result.
 
     """
-    variant = Variant.parse(variant)
-    run_dir = Path(run_dir)
-    out = Path(out_dir) if out_dir else run_dir / variant.folder
-    # the preflight builds and checks the panel's sources once; the feedback is built of them
-    checked = checked_inputs(scenario, variant, Path(base_dir or run_dir), base_variant)
-    # after the checks, before the folder is written: torch and rsl-rl load here, so that a
-    # refused job answers fast and a folder with a record is one whose training is starting
+    prepared = prepare_job(
+        scenario,
+        run_dir,
+        variant,
+        resume=resume,
+        force=force,
+        hint=hint,
+        iterations=iterations,
+        seed=seed,
+        out_dir=out_dir,
+        base_dir=base_dir,
+        base_variant=base_variant,
+        task_factory=task_factory,
+        feedback_factory=feedback_factory,
+        store=store,
+    )
+    if isinstance(prepared, JobResult):
+        return prepared
+    # after the checks: torch and rsl-rl load here, so that a refused job answers fast
     from amuled_ma.learn.trainer import Trainer
 
     try:
-        training = training_config(scenario, variant, seed, iterations)
-        action = prepare_variant(out, resume=resume, force=force, hint=hint, training=training)
-        if action == "skip":
-            return JobResult(variant, out, skipped=True)
-        feedback = None
-        base_ckpt = checked.base_checkpoint
-        if variant.finetuning:
-            assert variant.feedback is not None and checked.plan is not None
-            if feedback_factory is not None:
-                feedback = feedback_factory(variant.feedback)
-            else:
-                members, checked = checked.members, checked._replace(members=None)
-                feedback = build_feedback(
-                    checked.plan,
-                    store if store is not None else run_store(scenario, run_dir),
-                    members=members,  # handed over: the feedback closes them
-                    state_dir=out,
-                    resume=action == "resume",
-                    seed=seed,
-                    cache_dir=run_dir,
-                )
-    finally:
-        checked.close()
-    if action == "new" or not (out / "config.json").is_file():
-        fields = variant_fields(
-            variant, out, training, base_checkpoint=base_ckpt, feedback=feedback
-        )
-        write_config(out, scenario, fields)
-    try:
         trainer = Trainer(
             scenario,
-            out,
-            variant=variant,
-            feedback=feedback,
-            base_checkpoint=base_ckpt,
-            resume=action == "resume",
-            seed=seed,
-            iterations=iterations,
+            prepared.out_dir,
+            variant=prepared.variant,
+            feedback=prepared.feedback,
+            base_checkpoint=prepared.base_checkpoint,
+            resume=prepared.action == "resume",
             progress=progress,
-            resume_hint=f"{hint} --resume" if hint else None,
             on_iteration=on_iteration,
-            task_factory=task_factory,
+            **prepared.trainer_kwargs,
         )
         outcome = trainer.train()
-        mark_state(out, "complete", outcome.iterations)
+        return prepared.finished(outcome)
     except Exception:
-        # not an interruption: the record says so (unless the disk is full: the error says so)
-        with contextlib.suppress(OSError):
-            mark_state(out, "failed")
+        # not an interruption: the record says so
+        prepared.failed()
         raise
     finally:
-        if feedback is not None:
-            feedback.close()
-    return JobResult(variant, out, outcome=outcome)
+        prepared.close()
 
 
 def train_one_job(

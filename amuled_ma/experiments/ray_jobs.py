@@ -1,8 +1,10 @@
 """Train a job graph on Ray: a local Ray started for the run, or a cluster at an address.
 
-:func:`run_on_ray` submits one Ray task per job (:func:`train_job`, one CPU each); a
-fine-tune's task takes its base's task as an argument, so Ray itself holds it back until the
-base is trained (the graph is Ray's own dependencies, nothing scheduled by hand).
+:func:`run_on_ray` submits one Ray task per group of jobs (:func:`train_group`, one CPU
+each): a lone job, or a population of jobs of one shape
+(:mod:`amuled_ma.experiments.population_jobs`). A fine-tune's task takes its base's task
+as an argument, so Ray itself holds it back until the base is trained (the graph is Ray's
+own dependencies, nothing scheduled by hand).
 
 - **Where the files go.** With a shared file system (every node sees the driver's run folder,
   always so on one machine) each task writes its job folder in place. A node that does not
@@ -55,6 +57,7 @@ from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 from amuled_ma.clusters.plugins import allowed_plugins, set_allowed_plugins
 from amuled_ma.deliberation.plan import store_path
 from amuled_ma.errors import AmuledError, Terminated
+from amuled_ma.experiments.population_jobs import population_failure, train_population_jobs
 from amuled_ma.experiments.ray_store import start_store_actors
 from amuled_ma.experiments.run_folder import JobResult, TrainJob, checkpoint_state
 from amuled_ma.experiments.third_party_log import ray_to_log
@@ -197,7 +200,7 @@ def connect(address: str | None, workers: int) -> bool:
     options: dict[str, Any] = {"logging_level": logging.WARNING, "log_to_driver": True}
     # Ray's local processes are started in this process's group, where a terminal's Ctrl-C
     # lands: they inherit SIGINT ignored, so the Ctrl-C reaches this driver alone, which
-    # stops the tasks in order (train_job restores Python's handler, for ray.cancel).
+    # stops the tasks in order (train_group restores Python's handler, for ray.cancel).
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if address is None else None
     previous_term = signal.getsignal(signal.SIGTERM)
     ray_to_log()  # Ray's own notices (token authentication, ...) go to the log
@@ -314,38 +317,45 @@ def _report(board: Any) -> Callable[[Any, int], None]:
     return on_iteration
 
 
+#: What :func:`train_group` returns: results by job name, node id, whether the node sees
+#: the driver's files, the packed folders, the lines of jobs that failed alone.
+GroupReturn = tuple[dict[str, JobResult], str, bool, dict[str, bytes], list[str]]
+
+
 @ray.remote(num_cpus=1, max_retries=MAX_RETRIES, retry_exceptions=False)
-def train_job(
-    job: TrainJob,
+def train_group(
+    group: list[TrainJob],
     sweep: str,
     token: str,
     inputs: dict[str, bytes] | None,
     board: Any,
     stores: dict[str, Any],
     driver_node: str,
-    *needed: tuple[JobResult, str, bool, dict[str, bytes]],
+    *needed: GroupReturn,
     plugins: tuple[str, ...] = (),
-) -> tuple[JobResult, str, bool, dict[str, bytes]]:
-    """Ray task: train one job (``needed``: the results of the jobs it needs, done).
+) -> GroupReturn:
+    """Ray task: train a group of jobs (one job, or a population; ``needed``: done groups).
 
     Args:
-        job: The job (absolute paths).
+        group: The jobs (absolute paths): one trains as a lone job, more as populations
+            (:func:`~amuled_ma.experiments.population_jobs.train_population_jobs`).
         sweep: This sweep's id: a job folder marked with it was started by an earlier
             attempt of this task, whose checkpoint the job resumes.
         token: The driver's token in the run folder (read back: shared file system).
         inputs: Folders (path -> :func:`pack` archive) a node without the driver's files
-            needs: the job's own partial folder, a base trained before this sweep; None
+            needs: the jobs' own partial folders, bases trained before this sweep; None
             when files are not shipped (a local Ray: one machine).
         board: The sweep's :class:`SweepBoard` (iteration counts).
         stores: Belief store path -> its :class:`~amuled_ma.experiments.ray_store.BeliefStoreActor`
             on the driver's node; a job on another node opens these instead of the files.
         driver_node: The driver's node id.
-        *needed: ``(result, node, shared, files)`` of each job this one needs.
+        *needed: What the groups this one needs returned.
         plugins: The import paths the driver's command line allowed (``--allow-plugin``).
 
     Returns:
-        The job's result, the id of the node that trained it, whether that node sees the
-        driver's files, and its folder packed when files are shipped (else empty).
+        The finished jobs' results by name, the id of the node that trained them, whether
+        that node sees the driver's files, their folders packed when files are shipped
+        (else empty), and a line per job that failed alone in its population.
 
     """
     import torch
@@ -355,31 +365,60 @@ def train_job(
     if threading.current_thread() is threading.main_thread():
         # ray.cancel interrupts a task as a SIGINT would: Python's handler must be set
         signal.signal(signal.SIGINT, signal.default_int_handler)
-    if _stopping(job, sweep):  # queued before a Ctrl-C: do not begin
+    first = group[0]
+    if _stopping(first, sweep):  # queued before a Ctrl-C: do not begin
         raise KeyboardInterrupt
     from amuled_ma.experiments.ray_store import RemoteStore
 
     os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
     torch.set_num_threads(1)
     set_allowed_plugins(plugins)  # the driver's --allow-plugin: a worker allows no more
-    shared = _sees_driver_files(job, token)
+    shared = _sees_driver_files(first, token)
     if not shared:
         if inputs is None:
             raise AmuledError(
-                f"{job.name}: this Ray node does not see the run folder {job.run_dir}; run "
-                "the sweep with files shipped (any --ray ADDRESS does) or share the folder"
+                f"{first.name}: this Ray node does not see the run folder {first.run_dir}; "
+                "run the sweep with files shipped (any --ray ADDRESS does) or share the folder"
             )
         for path, data in inputs.items():
             unpack(data, Path(path))
-        for _result, _node, _shared, files in needed:
-            for path, data in files.items():
+        for returned in needed:
+            for path, data in returned[3].items():
                 unpack(data, Path(path))
+    node = ray.get_runtime_context().get_node_id()
+    away = node != driver_node  # not the driver's machine: its store through the actor
+
+    def store_for(job: TrainJob) -> Any:
+        actor = stores.get(str(store_path(job.scenario, job.run_dir)))
+        return RemoteStore(actor) if away and actor is not None else None
+
+    jobs = [_marked(job, sweep, node, announce=inputs is not None) for job in group]
+    if len(jobs) == 1:
+        job = jobs[0]
+        result = train_one_job(
+            job, progress=False, hint="", on_iteration=_report(board), store=store_for(job)
+        )
+        results, failures = {job.name: result}, []
+    else:
+        outcome = train_population_jobs(
+            jobs, progress=False, hint="", on_iteration=_report(board), store_for=store_for
+        )
+        results, failures = outcome.results, outcome.failures
+    # with files shipped, every job returns its folder: a fine-tune on a node without the
+    # driver's files needs its base's, wherever the base was trained
+    files = (
+        {str(job.out_dir): pack(Path(job.out_dir)) for job in jobs} if inputs is not None else {}
+    )
+    return results, node, shared, files, failures
+
+
+def _marked(job: TrainJob, sweep: str, node: str, *, announce: bool) -> TrainJob:
+    """Mark a job's folder with the sweep; a retry of the same sweep resumes the job."""
     out_dir = Path(job.out_dir)
     mark = out_dir / SWEEP_MARK
     retry = mark.is_file() and mark.read_text() == sweep
     out_dir.mkdir(parents=True, exist_ok=True)
     mark.write_text(sweep)
-    node = ray.get_runtime_context().get_node_id()
     if retry:
         state = checkpoint_state(out_dir / LAST) or {}
         print(
@@ -387,21 +426,9 @@ def train_job(
             f"iteration {state.get('iteration', 0)} on Ray node {node[:8]}",
             flush=True,
         )
-    elif inputs is not None:  # on a cluster: say where each job trains
+    elif announce:  # on a cluster: say where each job trains
         print(f"{job.name}: starts on Ray node {node[:8]}", flush=True)
-    away = node != driver_node  # not the driver's machine: its store through the actor
-    actor = stores.get(str(store_path(job.scenario, job.run_dir)))
-    retried = dataclasses.replace(job, resume=job.resume or retry, force=job.force and not retry)
-    result = train_one_job(
-        retried,
-        progress=False,
-        hint="",
-        on_iteration=_report(board),
-        store=RemoteStore(actor) if away and actor is not None else None,
-    )
-    # with files shipped, every job returns its folder: a fine-tune on a node without the
-    # driver's files needs its base's, wherever the base was trained
-    return result, node, shared, ({str(out_dir): pack(out_dir)} if inputs is not None else {})
+    return dataclasses.replace(job, resume=job.resume or retry, force=job.force and not retry)
 
 
 def _ray_failure(name: str, error: BaseException) -> AmuledError:
@@ -424,21 +451,23 @@ def _absolute(job: TrainJob) -> TrainJob:
     )
 
 
-def _inputs(job: TrainJob, in_sweep: set[str]) -> dict[str, bytes]:
-    """Folders a node without the driver's files needs for ``job``, packed.
+def _inputs(group: Sequence[TrainJob], in_sweep: set[str]) -> dict[str, bytes]:
+    """Folders a node without the driver's files needs for a group's jobs, packed.
 
-    Its own folder (a partial checkpoint to resume), and for a fine-tune whose base is not
-    trained in this sweep, the base's folder (a base trained in the sweep reaches the
-    fine-tune with the base task's result).
+    Each job's own folder (a partial checkpoint to resume), and for a fine-tune whose base
+    is not trained in this sweep, the base's folder (a base trained in the sweep reaches
+    the fine-tune with the base task's result).
     """
-    folders = [Path(job.out_dir)]
-    if job.variant.finetuning and not any(n in in_sweep for n in job.needs):
-        folders.append(Path(job.base_dir or job.run_dir) / job.base_variant)
-    return {str(f): pack(f) for f in folders if f.is_dir()}
+    folders: list[Path] = []
+    for job in group:
+        folders.append(Path(job.out_dir))
+        if job.variant.finetuning and not any(n in in_sweep for n in job.needs):
+            folders.append(Path(job.base_dir or job.run_dir) / job.base_variant)
+    return {str(f): pack(f) for f in dict.fromkeys(folders) if f.is_dir()}
 
 
 def run_on_ray(
-    jobs: Sequence[TrainJob],
+    groups: Sequence[Sequence[TrainJob]],
     *,
     address: str | None,
     workers: int,
@@ -448,10 +477,11 @@ def run_on_ray(
     resource: str | None = None,
     ship_files: bool | None = None,
 ) -> dict[str, JobResult]:
-    """Train ``jobs`` (each after the jobs it needs) as Ray tasks; return results by name.
+    """Train groups of jobs (each after the jobs it needs) as Ray tasks; results by name.
 
     Args:
-        jobs: The jobs to train (skipped ones left out).
+        groups: The jobs to train (skipped ones left out), a Ray task per group (a lone
+            job, or a population), each group after the groups its jobs need.
         address: The Ray cluster, or None for a local Ray with ``workers`` CPUs.
         workers: CPUs of a local Ray.
         progress: Show one progress bar of all jobs' iterations.
@@ -469,14 +499,14 @@ def run_on_ray(
     """
     ours = connect(address, workers)
     try:
-        return _sweep(jobs, address, progress, hint, describe, resource, ship_files)
+        return _sweep(groups, address, progress, hint, describe, resource, ship_files)
     finally:
         if ours:
             disconnect()
 
 
 def _sweep(
-    jobs: Sequence[TrainJob],
+    groups: Sequence[Sequence[TrainJob]],
     address: str | None,
     progress: bool,
     hint: str,
@@ -490,12 +520,14 @@ def _sweep(
     terms = _count_sigterms()
     ship = address is not None if ship_files is None else ship_files
     sweep, token = uuid.uuid4().hex, uuid.uuid4().hex
-    jobs = [_absolute(j) for j in jobs]
-    by_name = {j.name: j for j in jobs}
+    groups = [[_absolute(j) for j in group] for group in groups]
+    jobs = [job for group in groups for job in group]
+    in_sweep = {j.name for j in jobs}
     run_dirs = {j.run_dir for j in jobs}
     bar = tqdm(
         total=sum(planned_iterations(j.scenario, finetune=j.variant.finetuning) for j in jobs),
-        desc=f"{len(jobs)} jobs on Ray",
+        desc=f"{len(jobs)} jobs on Ray"
+        + (f" in {len(groups)} tasks" if len(groups) < len(jobs) else ""),
         unit="it",
         disable=not progress,
         dynamic_ncols=True,
@@ -526,13 +558,17 @@ def _sweep(
         )
         options: dict[str, Any] = {"resources": {resource: 1}} if resource else {}
         plugins = tuple(sorted(allowed_plugins()))
-        for job in jobs:  # in graph order: each job's needs are submitted before it
-            needed = [refs[n] for n in job.needs if n in refs]
-            inputs = _inputs(job, set(by_name)) if ship else None
-            refs[job.name] = train_job.options(name=job.name, **options).remote(
-                job, sweep, token, inputs, board, stores, driver_node, *needed, plugins=plugins
+        task_of: dict[str, str] = {}  # job name -> its task's name
+        for group in groups:  # in graph order: each group's needs are submitted before it
+            name = group[0].name if len(group) == 1 else f"{group[0].name}+{len(group) - 1}"
+            needs = {task_of[n] for job in group for n in job.needs if n in task_of}
+            needed = [refs[n] for n in sorted(needs)]
+            inputs = _inputs(group, in_sweep) if ship else None
+            refs[name] = train_group.options(name=name, **options).remote(
+                group, sweep, token, inputs, board, stores, driver_node, *needed, plugins=plugins
             )
-            waiting.append(refs[job.name])
+            task_of.update((job.name, name) for job in group)
+            waiting.append(refs[name])
         names = {ref: name for name, ref in refs.items()}
         while waiting:
             finished, waiting = ray.wait(waiting, num_returns=1, timeout=REPORT_EVERY_S)
@@ -540,7 +576,7 @@ def _sweep(
             for ref in finished:
                 name = names[ref]
                 try:
-                    result, node, shared, files = ray.get(ref)
+                    results, node, shared, files, failures = ray.get(ref)
                 except ray.exceptions.RayTaskError as error:
                     cause = error.cause if isinstance(error.cause, BaseException) else error
                     if isinstance(cause, ray.exceptions.RayError):  # Ray's, inside the task
@@ -556,8 +592,13 @@ def _sweep(
                 if not shared:  # trained where the driver's files are not: write them here
                     for path, data in files.items():
                         unpack(data, Path(path))
-                done[name] = result
-                bar.write(describe(result) + (f" [Ray node {node[:8]}]" if ship else ""))
+                for job_name, result in results.items():
+                    done[job_name] = result
+                    bar.write(describe(result) + (f" [Ray node {node[:8]}]" if ship else ""))
+                for line in failures:  # jobs that failed alone; their population finished
+                    bar.write(f"  ✗ {line}", file=sys.stderr)
+                if failures and failure is None:
+                    failure = population_failure(failures, "")
     except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (errors.Terminated)
         if terms.count and not isinstance(stop, Terminated):
             stop = Terminated(signal.SIGTERM)  # Ray's wait turned it into a KeyboardInterrupt

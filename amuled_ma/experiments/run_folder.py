@@ -398,6 +398,10 @@ def prepare_variant(
 # -- the run record (config.json) ---------------------------------------------------
 #: A run's and a variant folder's record.
 CONFIG = "config.json"
+#: Largest ``config.json`` read [bytes]: a record holds the scenario, the panel and the
+#: inputs' digests, about 6 KB (a sweep's variant folders' are alike); 4 MB is 600 times
+#: that, and a record is read whole, several at a time (``view``, ``evaluate``).
+MAX_RECORD_BYTES = 4_000_000
 
 
 def read_record(folder: Path, *, checkpoint: bool = True) -> RunRecord | None:
@@ -412,16 +416,26 @@ def read_record(folder: Path, *, checkpoint: bool = True) -> RunRecord | None:
         The record, or None when the folder has no ``config.json``.
 
     Raises:
-        AmuledError: ``config.json`` is not a run record (the message names the file).
+        AmuledError: ``config.json`` is not a run record, or is larger than
+            :data:`MAX_RECORD_BYTES` (refused before it is read); the message names the file.
 
     """
     from pydantic import ValidationError
+
+    from amuled_ma.file_limits import read_bounded_bytes
 
     path = Path(folder) / CONFIG
     if not path.is_file():
         return None
     try:
-        record = RunRecord.model_validate_json(path.read_text())
+        raw = read_bounded_bytes(
+            path,
+            MAX_RECORD_BYTES,
+            "run record",
+            note="a record is about 6 KB",
+            fix="is it the right folder? Retrain with --force, or move the folder out of the run",
+        )
+        record = RunRecord.model_validate_json(raw)
     except OSError as err:
         raise AmuledError(f"{path}: not a readable config ({err}); retrain with --force") from None
     except ValidationError as err:

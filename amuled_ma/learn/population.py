@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import dataclasses
 import io
 import json
 import math
@@ -46,7 +47,7 @@ os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 from rsl_rl.runners import OnPolicyRunner
 
 from amuled_ma.deliberation.mdp import BatchedDeliberation, MemberFeedback
-from amuled_ma.errors import AmuledError, Terminated
+from amuled_ma.errors import AmuledError, MemberFailed, Terminated
 from amuled_ma.learn.checkpoints import LAST, CheckpointWriteError, write_checkpoint
 from amuled_ma.learn.population_groups import MemberSpec, population_config, population_key
 from amuled_ma.learn.population_models import member_state, stack_states
@@ -324,12 +325,16 @@ class PopulationTrainer:
                 for p, spec in enumerate(self.specs):
                     if spec.on_iteration is not None:
                         spec.on_iteration(self.members[p], it + 1)
+                self._check_members()
                 due = [
                     p
                     for p, cfg in enumerate(self.cfgs)
                     if (it + 1) % cfg["save_interval"] == 0 and it + 1 < self.total_iterations
                 ]
                 self.save_members(due, completed=False)
+        except MemberFailed as failed:
+            bar.close()
+            raise self._member_failed(failed) from failed
         except (KeyboardInterrupt, AmuledError) as stop:
             bar.close()
             self._stopped(stop)
@@ -378,6 +383,32 @@ class PopulationTrainer:
             wall_s=wall,
             curve=self.curves[member],
             feedback=summary,
+        )
+
+    def _check_members(self) -> None:
+        """Raise :class:`MemberFailed` for the first member whose feedback or gradient failed."""
+        feedback = self.mdp.feedback
+        failures = dict(feedback.failures) if isinstance(feedback, MemberFeedback) else {}
+        for member in self.alg.failed_members():
+            failures.setdefault(member, "its gradient was not a finite number (NaN or inf)")
+        if failures:
+            member = min(failures)
+            raise MemberFailed(member, failures[member])
+
+    def _member_failed(self, failed: MemberFailed) -> MemberFailed:
+        """Write every other member's checkpoint; the failure, naming the member's folder.
+
+        The failed member's checkpoint on disk (its last before the failure) is kept.
+        """
+        member = failed.member
+        others = [p for p in range(self.size) if p != member]
+        self.save_members(others, completed=False)
+        done = self.runner.current_learning_iteration
+        return MemberFailed(
+            member,
+            f"{self.specs[member].out_dir}: stopped at iteration {done}/"
+            f"{self.total_iterations}: {failed}; its last checkpoint is kept, and the "
+            f"{len(others)} other member(s) of its population go on without it",
         )
 
     def _stopped(self, stop: BaseException) -> None:
@@ -438,6 +469,30 @@ def _cpu(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
 
 def train_population(
     specs: Sequence[MemberSpec], *, device: str = "cpu", progress: bool = False
-) -> list[TrainOutcome]:
-    """Train ``specs`` as one population (:class:`PopulationTrainer`); each member's outcome."""
-    return PopulationTrainer(specs, device=device, progress=progress).train()
+) -> list[TrainOutcome | MemberFailed]:
+    """Train ``specs`` as one population (:class:`PopulationTrainer`); each member's outcome.
+
+    A member that fails (its gradient not finite, its feedback failing) stops alone: the
+    others' checkpoints are written, one line naming the member is printed, and the others
+    go on from their checkpoints as a population without it (resumed as any run is).
+
+    Returns:
+        Per job, in order: its :class:`~amuled_ma.learn.trainer.TrainOutcome`, or the
+        :class:`~amuled_ma.errors.MemberFailed` that stopped it.
+
+    """
+    specs = list(specs)
+    results: dict[int, TrainOutcome | MemberFailed] = {}
+    remaining = list(range(len(specs)))
+    while remaining:
+        trainer = PopulationTrainer([specs[i] for i in remaining], device=device, progress=progress)
+        try:
+            outcomes = trainer.train()
+        except MemberFailed as failed:
+            results[remaining.pop(failed.member)] = failed
+            print(f"amuled: a member of a population failed: {failed}", file=sys.stderr)
+            specs = [dataclasses.replace(spec, resume=True) for spec in specs]
+            continue
+        results.update(zip(remaining, outcomes, strict=True))
+        remaining = []
+    return [results[i] for i in range(len(specs))]

@@ -220,6 +220,7 @@ def split_populations(
     memory_budget: int | None = None,
     *,
     max_size: int | None = None,
+    min_count: int = 1,
     device: str = "cpu",
 ) -> list[list[int]]:
     """Group jobs into populations: equal :func:`population_key`, within a memory budget.
@@ -228,6 +229,9 @@ def split_populations(
         specs: The jobs.
         memory_budget: Bytes one population may use (default: :func:`memory_budget_bytes`).
         max_size: At most this many members per population (None: no limit but memory).
+        min_count: Cut each group into at least this many populations (as many as it
+            has jobs at most): one per worker, so that ``min_count`` cores train at once
+            (two populations of ``P/2`` do more than one of ``P`` on two cores).
         device: Where the populations train (the estimate's device).
 
     Returns:
@@ -240,8 +244,8 @@ def split_populations(
 
     """
     budget = memory_budget_bytes() if memory_budget is None else int(memory_budget)
-    if budget < 1 or (max_size is not None and max_size < 1):
-        raise ValueError("memory_budget and max_size must be positive")
+    if budget < 1 or (max_size is not None and max_size < 1) or min_count < 1:
+        raise ValueError("memory_budget, max_size and min_count must be positive")
     groups: dict[str, list[int]] = {}
     for index, spec in enumerate(specs):
         groups.setdefault(population_key(spec), []).append(index)
@@ -251,7 +255,7 @@ def split_populations(
         size = max(1, budget // each)
         if max_size is not None:
             size = min(size, max_size)
-        count = math.ceil(len(members) / size)
+        count = min(len(members), max(math.ceil(len(members) / size), min_count))
         # as even as the budget allows: 100 jobs at 32 a population are 4 of 25, not 32,32,32,4
         small, larger = divmod(len(members), count)
         start = 0

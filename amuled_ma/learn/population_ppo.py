@@ -274,6 +274,10 @@ class PopulationPPO(AnchoredPPO):
         self.step_sums: list[torch.Tensor] = []
         self.member_loss_sums = torch.zeros(population, len(LOSS_KEYS), dtype=torch.float64)
         self.member_losses: list[dict[str, float]] = [{} for _ in range(population)]
+        #: members whose gradient was not finite in this update (their rows were zeroed)
+        self.nonfinite = torch.zeros(population, dtype=torch.bool, device=device)
+        for parameter in (*self.actor.parameters(), *self.critic.parameters()):
+            parameter.register_hook(self.keep_members_finite)
         self.optimizer.register_step_pre_hook(self.before_step)
 
     # ----------------------------------------------------------------- rsl-rl steps
@@ -350,6 +354,7 @@ class PopulationPPO(AnchoredPPO):
 
         """
         self.member_loss_sums.zero_()
+        self.nonfinite.zero_()
         losses = super().update()
         updates = self.num_learning_epochs * self.num_mini_batches
         self.member_losses = [
@@ -357,6 +362,23 @@ class PopulationPPO(AnchoredPPO):
             for row in self.member_loss_sums.tolist()
         ]
         return losses
+
+    def keep_members_finite(self, grad: torch.Tensor) -> torch.Tensor:
+        """A parameter's gradient hook: a member's non-finite gradient rows become zeros.
+
+        rsl-rl clips with one norm over all members (``clip_grad_norm_``, here by a factor
+        of 1): a NaN in one member's rows would make every member's gradient NaN. The
+        member is marked in :attr:`nonfinite` (the trainer stops it after the update,
+        :class:`~amuled_ma.errors.MemberFailed`) and its rows do not move the others.
+        """
+        rows = grad.reshape(self.population, -1)
+        bad = ~torch.isfinite(rows).all(dim=1)
+        self.nonfinite |= bad
+        return torch.where(bad.unsqueeze(1), torch.zeros_like(rows), rows).reshape(grad.shape)
+
+    def failed_members(self) -> list[int]:
+        """Members whose gradient was not finite in the last update."""
+        return [int(p) for p in torch.nonzero(self.nonfinite).flatten().tolist()]
 
     def before_step(self, optimizer: torch.optim.Optimizer, args: Any, kwargs: Any) -> None:
         """The optimiser's step pre-hook: each member's gradient, clip and losses.

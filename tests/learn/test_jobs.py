@@ -110,31 +110,67 @@ import json, sys
 from pathlib import Path
 sys.path[:0] = [sys.argv[2], str(Path(sys.argv[2]).parent)]  # tests/learn, tests
 from test_jobs import tiny_scenario
-from amuled_ma.experiments.jobs import run_jobs
+from amuled_ma.experiments.jobs import job_groups, run_jobs
 from amuled_ma.experiments.plans import plan_run
-runs, workers_used = {}, {}
-for workers in (1, 2):
-    run_dir = Path(sys.argv[1]) / f"w{workers}"
+runs, workers_used, groups = {}, {}, {}
+CONFIGS = (("1", 1, False), ("2", 2, False), ("p1", 1, True), ("p2", 2, True))
+for label, workers, population in CONFIGS:
+    run_dir = Path(sys.argv[1]) / label
     jobs = plan_run(tiny_scenario(), run_dir, [1, 2])
-    outcome = run_jobs(jobs, workers=workers, describe=lambda r: str(r.variant))
-    workers_used[workers] = [outcome.workers, len(outcome.results)]
-    runs[workers] = {j.name: json.loads((j.out_dir / "curve.json").read_text()) for j in jobs}
-print("RESULT " + json.dumps({"runs": runs, "workers": workers_used}))
+    new = {j.name: "new" for j in jobs}
+    grouped = job_groups(jobs, new, workers=workers, population=population)
+    groups[label] = [[j.name for j in g] for g in grouped]
+    outcome = run_jobs(
+        jobs, workers=workers, describe=lambda r: str(r.variant), population=population
+    )
+    workers_used[label] = [outcome.workers, len(outcome.results)]
+    runs[label] = {j.name: json.loads((j.out_dir / "curve.json").read_text()) for j in jobs}
+print("RESULT " + json.dumps({"runs": runs, "workers": workers_used, "groups": groups}))
 """
 
 
 def test_parallel_training_is_bit_identical_to_sequential(tmp_path):
-    """Worker processes change where a job runs, not what it learns."""
+    """Worker processes change where a job runs, not what it learns; populations neither.
+
+    Without populations, Ray's two workers give bit-identical curves; as populations (one
+    population of each shape in this process, or one per worker on Ray) every job's curve
+    equals its lone run's within float rounding (batched matmuls sum in another order).
+    """
     require_netns()
     script = tmp_path / "parallel.py"
     script.write_text(PARALLEL_SCRIPT)
     here = str(Path(__file__).resolve().parent)
-    result, _ = run_sealed(script, [str(tmp_path), here], timeout=600, env=ENV)
-    assert result["workers"] == {"1": [1, 8], "2": [2, 8]}
+    result, _ = run_sealed(script, [str(tmp_path), here], timeout=900, env=ENV)
+    assert result["workers"] == {"1": [1, 8], "2": [2, 8], "p1": [1, 8], "p2": [2, 8]}
+    # bases first, then the fine-tunes (human and AMULED share a shape), one per worker
+    assert result["groups"]["p1"] == [
+        ["base", "base.seed2"], ["shaped", "shaped.seed2"],
+        ["finetune-human", "finetune-amuled", "finetune-human.seed2", "finetune-amuled.seed2"],
+    ]  # fmt: skip
+    assert result["groups"]["p2"] == [
+        ["base"], ["base.seed2"], ["shaped"], ["shaped.seed2"],
+        ["finetune-human", "finetune-amuled"], ["finetune-human.seed2", "finetune-amuled.seed2"],
+    ]  # fmt: skip
+    assert len(result["groups"]["1"]) == 8
     runs = result["runs"]
     for name, curve in runs["1"].items():
         other = runs["2"][name]
         assert [_learned(row) for row in curve] == [_learned(row) for row in other], name
+        for label in ("p1", "p2"):
+            together = [_learned(row) for row in runs[label][name]]
+            alone = [_learned(row) for row in curve]
+            assert len(together) == len(alone), (label, name)
+            for a, b in zip(alone, together, strict=True):
+                assert set(a) == set(b)
+                for key, value in a.items():
+                    if isinstance(value, float):
+                        assert b[key] == pytest.approx(value, rel=1e-5, abs=1e-6), (
+                            label,
+                            name,
+                            key,
+                        )
+                    else:
+                        assert b[key] == value, (label, name, key)
     # the two seeds really differ
     assert runs["1"]["finetune-amuled"] != runs["1"]["finetune-amuled.seed2"]
 

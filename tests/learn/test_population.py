@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from amuled_ma.deliberation.feedback_base import CallableFeedback
+from amuled_ma.errors import MemberFailed
 from amuled_ma.learn.checkpoints import LAST, TRAINER_KEYS, read_checkpoint
 from amuled_ma.learn.population import PopulationTrainer, train_population
 from amuled_ma.learn.population_groups import MemberSpec
@@ -250,3 +251,72 @@ def test_a_population_on_cuda_trains_as_alone_on_the_cpu(tmp_path, base) -> None
         for key, value in sa["actor_state_dict"].items():
             torch.testing.assert_close(sb["actor_state_dict"][key], value, atol=1e-4, rtol=0)
         assert torch.equal(sb["infos"]["torch_rng"], sa["infos"]["torch_rng"])
+
+
+class NanAfter:
+    """A member's feedback that answers NaN after iteration ``after`` (a bad input)."""
+
+    def __init__(self, inner, after: int) -> None:
+        self.inner, self.after, self.done = inner, after, 0
+
+    def on_iteration(self, _member, iteration: int) -> None:
+        self.done = iteration
+
+    def __call__(self, obs, task):
+        out = np.asarray(self.inner(obs, task), dtype=np.float64)
+        return out if self.done < self.after else np.full_like(out, np.nan)
+
+    def __getattr__(self, name: str):
+        return getattr(self.inner, name)
+
+
+def test_a_member_whose_feedback_fails_stops_alone(tmp_path, base, capsys) -> None:
+    """Member 1's feedback gives NaN in iteration 3: it stops, the others end as alone."""
+    alone = [lone(spec) for spec in specs(tmp_path / "lone", base)]
+    jobs = specs(tmp_path / "pop", base)
+    jobs[1].feedback = NanAfter(jobs[1].feedback, after=2)
+    jobs[1].on_iteration = jobs[1].feedback.on_iteration
+    results = train_population(jobs)
+    failed = results[1]
+    assert isinstance(failed, MemberFailed)
+    assert str(jobs[1].out_dir) in str(failed) and "not a finite number" in str(failed)
+    assert "iteration 3/3" in str(failed)
+    # its last checkpoint (iteration 2, save_interval 2) is kept, untouched by the failure
+    kept = read_checkpoint(jobs[1].out_dir / LAST)
+    assert kept["infos"]["iteration"] == 2 and not kept["infos"]["completed"]
+    assert all(torch.isfinite(v).all() for v in kept["actor_state_dict"].values())
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if "member" in ln]
+    assert len(lines) == 1 and str(jobs[1].out_dir) in lines[0]
+    for k in (0, 2):  # the others: as alone, through the stop and the restart without it
+        a, b = alone[k], results[k]
+        assert b.iterations == 3
+        assert_rows_close(a.curve, b.curve)
+        sa, sb = read_checkpoint(a.checkpoint), read_checkpoint(b.checkpoint)
+        assert_states_close(sa["actor_state_dict"], sb["actor_state_dict"])
+        assert_states_close(sa["critic_state_dict"], sb["critic_state_dict"])
+        assert torch.equal(sa["infos"]["torch_rng"], sb["infos"]["torch_rng"])
+
+
+def test_a_member_whose_gradient_is_nan_does_not_reach_the_others(tmp_path, base) -> None:
+    """rsl-rl clips all members' gradients with one norm: a NaN member is kept out of it."""
+    clean = specs(tmp_path / "clean", base)
+    for job in clean:
+        job.iterations = 1
+    reference = PopulationTrainer(clean)
+    reference.train()
+    jobs = specs(tmp_path / "pop", base)
+    for job in jobs:
+        job.iterations = 1
+    poisoned = PopulationTrainer(jobs)
+    with torch.no_grad():  # member 1's critic answers NaN: its returns, advantages, losses
+        last = list(poisoned.alg.critic.parameters())[-1]
+        last[1] = float("nan")
+    with pytest.raises(MemberFailed, match="gradient was not a finite number") as stop:
+        poisoned.train()
+    assert stop.value.member == 1 and str(jobs[1].out_dir) in str(stop.value)
+    assert not (jobs[1].out_dir / LAST).exists()  # nothing of its NaN update is written
+    for k in (0, 2):
+        got = read_checkpoint(jobs[k].out_dir / LAST)["actor_state_dict"]
+        want = reference.member_checkpoint(k, completed=False)["actor_state_dict"]
+        assert all(torch.isfinite(v).all() for v in got.values())
+        assert_states_close(want, got)

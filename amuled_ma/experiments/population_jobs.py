@@ -1,0 +1,182 @@
+"""The jobs of a sweep trained as populations (``amuled run`` / ``ablate``, issue 26).
+
+:func:`population_groups` cuts a job graph into groups that train together: jobs at the
+same depth of the graph (bases first, then the fine-tunes that need them) whose
+:func:`~amuled_ma.learn.population_groups.population_key` is equal, each group within a
+share of this machine's memory and cut into one population per worker, so that every core
+trains one. :func:`train_population_jobs` trains one group: each job is checked and
+prepared as a lone job is (:func:`~amuled_ma.experiments.plans.prepare_job`: its record,
+its feedback), the group trains as one population
+(:func:`~amuled_ma.learn.population.train_population`), and each job's record is marked
+as a lone job's. A group is one Ray task (:mod:`amuled_ma.experiments.ray_jobs`) or runs
+in this process (:func:`~amuled_ma.experiments.jobs.run_jobs`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from amuled_ma.errors import AmuledError
+from amuled_ma.experiments.plans import PreparedJob, prepare_job
+from amuled_ma.experiments.run_folder import JobResult, TrainJob
+from amuled_ma.learn.population_groups import (
+    MemberSpec,
+    memory_budget_bytes,
+    split_populations,
+)
+
+
+def member_spec(job: TrainJob, resume: bool) -> MemberSpec:
+    """The population member of ``job`` before it is prepared (for grouping only)."""
+    return MemberSpec(job.scenario, job.out_dir, variant=job.variant, seed=job.seed, resume=resume)
+
+
+def population_groups(
+    jobs: Sequence[TrainJob],
+    actions: Mapping[str, str],
+    *,
+    workers: int = 1,
+    memory_budget: int | None = None,
+) -> list[list[TrainJob]]:
+    """Group the jobs to train (not ``skip``) into populations, in an order that trains needs first.
+
+    Args:
+        jobs: The graph, each job after the jobs it needs.
+        actions: ``new`` / ``resume`` / ``skip`` per job name
+            (:func:`~amuled_ma.experiments.plans.check_jobs`).
+        workers: Populations that train at once: each group is cut into at least this
+            many (when it has the jobs), and shares the memory budget with the others.
+        memory_budget: Bytes all running populations may use (default: half of this
+            machine's memory, :func:`~amuled_ma.learn.population_groups.memory_budget_bytes`).
+
+    Returns:
+        Groups of jobs; a job's needs are in earlier groups (or skipped). A group of one
+        is a lone job.
+
+    """
+    todo = [job for job in jobs if actions.get(job.name) != "skip"]
+    depth: dict[str, int] = {}
+    for job in todo:  # graph order: a job's needs are numbered before it
+        depth[job.name] = 1 + max((depth[n] for n in job.needs if n in depth), default=-1)
+    budget = (memory_budget or memory_budget_bytes()) // max(1, workers)
+    groups: list[list[TrainJob]] = []
+    for level in sorted(set(depth.values())):
+        layer = [job for job in todo if depth[job.name] == level]
+        specs = [member_spec(job, actions.get(job.name) == "resume") for job in layer]
+        for members in split_populations(specs, max(1, budget), min_count=workers):
+            groups.append([layer[i] for i in members])
+    return groups
+
+
+@dataclass
+class GroupOutcome:
+    """What :func:`train_population_jobs` did.
+
+    Attributes:
+        results: Job name -> result, for the jobs that finished (trained or skipped).
+        failures: One line per job that failed alone (the others went on).
+
+    """
+
+    results: dict[str, JobResult] = field(default_factory=dict)
+    failures: list[str] = field(default_factory=list)
+
+
+def train_population_jobs(
+    jobs: Sequence[TrainJob],
+    *,
+    progress: bool = False,
+    hint: str = "",
+    on_iteration: Callable[[Any, int], None] | None = None,
+    store_for: Callable[[TrainJob], Any] | None = None,
+) -> GroupOutcome:
+    """Train a group of jobs as populations, each job ending as a lone job ends.
+
+    Each job is prepared as :func:`~amuled_ma.experiments.plans.train_variant` prepares
+    it (an already trained one is skipped); the prepared jobs are split by
+    :func:`~amuled_ma.learn.population_groups.population_key` (a retried group may hold
+    jobs resumed at other iterations) and each part trains as one population. A job
+    that fails alone (its feedback, a gradient that is not finite) is marked ``failed``;
+    the others finish.
+
+    Args:
+        jobs: The group.
+        progress: Show a progress bar per population.
+        hint: The command that re-runs the sweep (its ``--resume`` form is printed on a stop).
+        on_iteration: Called as ``fn(member, iteration)`` for every member after every
+            iteration (:class:`~amuled_ma.learn.population.PopulationMember`).
+        store_for: The belief store of a job's panel (default: the run's file).
+
+    Returns:
+        The finished jobs' results and the failures' lines.
+
+    Raises:
+        AmuledError: A job's inputs are missing (before anything trains).
+        KeyboardInterrupt: Ctrl-C or SIGTERM, after every member wrote its checkpoint.
+
+    """
+    from amuled_ma.learn.population import train_population  # here: it imports torch
+
+    outcome = GroupOutcome()
+    prepared: list[tuple[TrainJob, PreparedJob]] = []
+    done: dict[str, JobResult] = {}
+    try:
+        for job in jobs:
+            ready = prepare_job(
+                job.scenario,
+                job.run_dir,
+                job.variant,
+                resume=job.resume,
+                force=job.force,
+                hint=hint,
+                seed=job.seed,
+                out_dir=job.out_dir,
+                base_dir=job.base_dir,
+                base_variant=job.base_variant,
+                store=store_for(job) if store_for is not None else None,
+            )
+            if isinstance(ready, JobResult):
+                done[job.name] = ready
+            else:
+                prepared.append((job, ready))
+        specs = [
+            MemberSpec(
+                job.scenario,
+                ready.out_dir,
+                variant=ready.variant,
+                feedback=ready.feedback,
+                base_checkpoint=ready.base_checkpoint,
+                resume=ready.action == "resume",
+                on_iteration=on_iteration,
+                **ready.trainer_kwargs,
+            )
+            for job, ready in prepared
+        ]
+        for members in split_populations(specs, memory_budget_bytes()):
+            try:
+                trained = train_population([specs[i] for i in members], progress=progress)
+            except Exception:
+                for i in members:
+                    prepared[i][1].failed()
+                raise
+            for i, result in zip(members, trained, strict=True):
+                job, ready = prepared[i]
+                if isinstance(result, BaseException):
+                    ready.failed()
+                    outcome.failures.append(str(result))
+                else:
+                    done[job.name] = ready.finished(result)
+    finally:
+        for _job, ready in prepared:
+            ready.close()
+    outcome.results = {job.name: done[job.name] for job in jobs if job.name in done}
+    return outcome
+
+
+def population_failure(failures: Sequence[str], hint: str) -> AmuledError:
+    """One error for the jobs that failed alone in their population (the first named)."""
+    more = f" (and {len(failures) - 1} more job(s), printed above)" if len(failures) > 1 else ""
+    then = f"; after fixing it, continue with: {hint} --resume" if hint else ""
+    return AmuledError(f"{failures[0]}{more}{then}")
