@@ -11,6 +11,12 @@ from pathlib import Path
 
 _PACKAGE_DIR = Path(__file__).resolve().parent
 
+#: Largest prompt file read (``prompts/system.md``, ``prompts/tasks/*.md``,
+#: ``prompts/fewshot/*.toml``) [bytes]: the shipped ones hold at most 9,684 bytes (the
+#: few-shot examples), so 1 MB is 100 times that; every byte of them is sent to the LLM
+#: with each request, so a larger file is a wrong file, not a longer prompt.
+MAX_PROMPT_BYTES = 1_000_000
+
 
 def data_dir(name: str) -> Path:
     """Return the directory of a shipped data folder.
@@ -43,7 +49,14 @@ def scenarios_dir() -> Path:
     return data_dir("scenarios")
 
 
-def read_text(path: Path, what: str, error_class: type[Exception] | None = None) -> str:
+def read_text(
+    path: Path,
+    what: str,
+    error_class: type[Exception] | None = None,
+    *,
+    max_bytes: int,
+    note: str = "",
+) -> str:
     """Read a UTF-8 text file the user gave or the package ships, with a clear error.
 
     Args:
@@ -51,26 +64,20 @@ def read_text(path: Path, what: str, error_class: type[Exception] | None = None)
         what: What the file is, for the message (``"scenario"``, ``"cluster file"``, ...).
         error_class: The :class:`~amuled_ma.errors.AmuledError` subclass to raise
             (default: ``AmuledError``).
+        max_bytes: The most bytes the file may hold: a larger one is refused from its size,
+            before it is read (:func:`amuled_ma.file_limits.read_bounded_text`).
+        note: Why the cap is that number, said after it in the refusal.
 
     Returns:
         Its text.
 
     Raises:
-        AmuledError: (or ``error_class``) The file cannot be read or is not UTF-8 text;
-            the message names the file, the problem and the fix.
+        AmuledError: (or ``error_class``) The file cannot be read, is larger than
+            ``max_bytes`` or is not UTF-8 text; the message names the file, the problem
+            and the fix.
 
     """
     from amuled_ma.errors import AmuledError
+    from amuled_ma.file_limits import read_bounded_text
 
-    fail = error_class or AmuledError
-    try:
-        return Path(path).read_text(encoding="utf-8")
-    except UnicodeDecodeError as error:
-        raise fail(
-            f"{path}: the {what} is not UTF-8 text ({error.reason} at byte {error.start}); "
-            "save it as UTF-8"
-        ) from error
-    except OSError as error:
-        raise fail(
-            f"{path}: cannot read the {what}: {error.strerror or error}; check the path"
-        ) from error
+    return read_bounded_text(path, max_bytes, what, error=error_class or AmuledError, note=note)

@@ -5,6 +5,11 @@ work in a fresh namespace: ``unshare -n``, then ``ip link set lo up``. No traffi
 leave the machine, and Ray cannot pick an external interface. The script prints its
 figures as one line ``RESULT {json}``; :func:`run_sealed` returns them with the output.
 
+With ``own_pids=True`` the script also gets a PID namespace of its own (``unshare -n -p -f
+--kill-child --mount-proc``, :data:`OWN_PIDS`): it is PID 1 there, ``ray stop --force`` or
+``pgrep`` inside see the namespace's processes only, and every process it started dies
+with it (or with the launcher, on a timeout).
+
 Needs root (or ``CAP_SYS_ADMIN``) and ``ip``; without them a test skips with the reason,
 except under ``CI=true``, where it fails: CI runs these tests.
 """
@@ -22,6 +27,13 @@ from pathlib import Path
 import pytest
 from ollama_server_fixture import in_ci
 
+#: ``unshare`` for a new network namespace.
+NETWORK = ["unshare", "-n"]
+#: ``unshare`` for a new network namespace and a PID namespace of its own (with its /proc).
+OWN_PIDS = ["unshare", "-n", "-p", "-f", "--kill-child", "--mount-proc"]
+#: Inside the new namespace: bring loopback up, then run the command.
+LOOPBACK_UP = ["sh", "-c", 'ip link set lo up && exec "$0" "$@"']
+
 
 def unavailable(reason: str) -> None:
     """Skip with ``reason``; fail under ``CI=true``."""
@@ -30,13 +42,17 @@ def unavailable(reason: str) -> None:
     pytest.skip(reason)
 
 
-def require_netns() -> None:
-    """Skip (or fail in CI) unless ``unshare -n`` and ``ip`` work here."""
+def require_netns(*, own_pids: bool = False) -> None:
+    """Skip (or fail in CI) unless ``unshare -n`` and ``ip`` work here.
+
+    ``own_pids``: the PID namespace of :func:`run_sealed`'s ``own_pids`` must work too.
+    """
     missing = [tool for tool in ("unshare", "ip") if shutil.which(tool) is None]
     if missing:
         unavailable(f"{' and '.join(missing)} not found: the test needs a network namespace")
+    unshare = OWN_PIDS if own_pids else NETWORK
     probe = subprocess.run(
-        ["unshare", "-n", "sh", "-c", "ip link set lo up"],
+        [*unshare, "sh", "-c", "ip link set lo up"],
         capture_output=True,
         text=True,
         timeout=30,
@@ -44,30 +60,38 @@ def require_netns() -> None:
     )
     if probe.returncode != 0:
         unavailable(
-            "'unshare -n' is not permitted here (it needs root or CAP_SYS_ADMIN): "
+            f"'{' '.join(unshare)}' is not permitted here (it needs root or CAP_SYS_ADMIN): "
             f"{probe.stderr.strip() or probe.returncode}"
         )
 
 
 def run_sealed(
-    script: Path, args: Sequence[str], *, timeout: float, env: Mapping[str, str]
+    script: Path,
+    args: Sequence[str],
+    *,
+    timeout: float,
+    env: Mapping[str, str],
+    own_pids: bool = False,
 ) -> tuple[dict, str]:
     """Run ``python script args`` in a new network namespace; return RESULT and output.
 
-    On a timeout the script gets SIGTERM (it cleans up its servers), then SIGKILL, and the
-    test fails with the output's tail.
+    ``own_pids``: in a PID namespace of its own too (:data:`OWN_PIDS`). On a timeout the
+    script gets SIGTERM (it cleans up its servers), then SIGKILL, and the test fails with
+    the output's tail; with ``own_pids``, SIGKILL at once (``unshare`` ignores SIGTERM, and
+    ``--kill-child`` takes every process of the namespace with it).
     """
-    command = [
-        "unshare", "-n", "sh", "-c", 'ip link set lo up && exec "$0" "$@"',
-        sys.executable, str(script), *args,
-    ]  # fmt: skip
+    unshare = OWN_PIDS if own_pids else NETWORK
+    command = [*unshare, *LOOPBACK_UP, sys.executable, str(script), *args]
     job = subprocess.Popen(
         command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=dict(env)
     )
     try:
         output, _ = job.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
-        job.send_signal(signal.SIGTERM)
+        if own_pids:  # unshare ignores SIGTERM; --kill-child takes the namespace with it
+            job.kill()
+        else:  # the script cleans up its servers
+            job.send_signal(signal.SIGTERM)
         try:
             output, _ = job.communicate(timeout=30)
         except subprocess.TimeoutExpired:

@@ -6,6 +6,7 @@ import re
 
 import numpy as np
 import pytest
+import tiny_cli
 import torch
 
 from amuled_ma.beliefs.replay import ReplaySource
@@ -17,16 +18,8 @@ from amuled_ma.fusion import bjs_divergence, fuse
 from amuled_ma.learn.policies import action_log_probs, load_policy
 from amuled_ma.tasks import make_task
 
-TINY = [
-    "--set", "base.total_steps=1024",
-    "--set", "base.num_envs=16",
-    "--set", "base.num_steps_per_env=16",
-    "--set", "finetune.iterations=2",
-    "--set", "finetune.num_envs=4",
-    "--set", "finetune.num_steps_per_env=8",
-    "--set", "output.tensorboard=false",
-    "--no-progress",
-]  # fmt: skip
+#: The tiny run, its fine-tunes 2 iterations long.
+TINY = [*tiny_cli.TINY, "--set", "finetune.iterations=2"]
 CLUSTERS = ["consequentialist", "deontological", "virtue", "care", "social_justice"]
 NUMBER = r"-?\d+\.\d{4}"
 

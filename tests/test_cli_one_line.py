@@ -8,7 +8,6 @@ nested 10,000 levels deep, ``beliefs import`` of a lone surrogate or into a dama
 from __future__ import annotations
 
 import json
-import os
 import random
 import subprocess
 import sys
@@ -17,30 +16,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tiny_cli import amuled, one_line
 
 from amuled_ma.cli import build_parser, main
-
-REPO = Path(__file__).resolve().parents[1]
-
-
-def amuled(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    """The real command line, in a subprocess."""
-    return subprocess.run(
-        [sys.executable, "-m", "amuled_ma", *args],
-        capture_output=True,
-        text=True,
-        cwd=REPO,
-        timeout=timeout,
-        env={**os.environ, "PYTHONIOENCODING": "utf-8:backslashreplace"},
-    )
-
-
-def one_line(err: str) -> str:
-    """The one ``amuled: error:`` line of stderr (and no traceback)."""
-    assert "Traceback" not in err, err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("amuled: error: "), err
-    return lines[0]
 
 
 @pytest.mark.parametrize(
@@ -141,3 +119,19 @@ def test_a_10_gb_recording_is_refused_unread(tmp_path: Path) -> None:
     )
     assert time.perf_counter() - start < 60
     assert "the recording is 10,737,418,240 bytes, more than the 268,435,456" in done.stdout
+
+
+def test_a_2_gb_line_of_jsonl_is_refused_unread_with_file_and_line(tmp_path: Path) -> None:
+    from amuled_ma.beliefs.interchange import MAX_LINE_CHARS
+
+    big = tmp_path / "big.jsonl"
+    big.write_text("\n")  # line 1: blank (skipped); line 2: 2 GB of zeros, no newline
+    with open(big, "r+b") as handle:  # sparse: no disk used
+        handle.truncate(2 * 2**30)
+    start = time.perf_counter()
+    done = amuled("beliefs", "import", "--store", str(tmp_path / "s.sqlite"), str(big))
+    assert time.perf_counter() - start < 30  # reading 2 GB would take longer, and 2 GB memory
+    assert done.returncode == 1
+    line = one_line(done.stderr)
+    assert line.startswith(f"amuled: error: {big}:2: a line longer than the {MAX_LINE_CHARS:,}")
+    assert "is it the right file?" in line

@@ -11,7 +11,8 @@ from amuled_ma.cli import main
 def test_run_writes_run_dir_report_and_resumes(tmp_path, capsys, monkeypatch):
     run_dir = tmp_path / "run"
     args = ["run", "findmilk", "--run-dir", str(run_dir), "--episodes", "3", *TINY, *RULES]
-    args += ["--jobs", "1"]  # in this process, where the patched rollout below applies
+    # in this process, every job alone (a Trainer), where the patched iteration below applies
+    args += ["--jobs", "1", "--no-population"]
 
     # Ctrl-C in the middle of the first fine-tune: checkpoint + resume command
     from amuled_ma.learn import trainer as trainer_mod

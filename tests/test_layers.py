@@ -26,7 +26,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("beliefs", "llm_server"),
     ("fusion", "tasks", "clusters"),
     ("scenario", "records", "variants"),  # descriptions: they import no domain package
-    ("errors", "urls", "resources", "file_hash", "torch_files", "run_lock"),  # small helpers
+    # small helpers
+    ("errors", "urls", "resources", "file_hash", "file_limits", "torch_files", "run_lock"),
 )
 
 

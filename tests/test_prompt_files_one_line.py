@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import pytest
 
-from amuled_ma.clusters.prompting import render_system_prompt
-from amuled_ma.errors import PromptError
+from amuled_ma.clusters.prompting import fewshot_messages, render_system_prompt
+from amuled_ma.errors import ClusterDefinitionError, PromptError
+from amuled_ma.resources import MAX_PROMPT_BYTES
 from amuled_ma.tasks.prompts import parse_template
 
 
@@ -29,4 +30,55 @@ def test_a_state_template_that_is_not_utf8_is_one_line(tmp_path):
         parse_template(path)
     message = str(info.value)
     assert message.startswith(f"{path}: the state prompt template is not UTF-8 text")
+    assert "\n" not in message
+
+
+def _sparse(path, size: int) -> None:
+    """A file of ``size`` zero bytes that takes no disk (and no time) to make."""
+    with open(path, "wb") as handle:
+        handle.truncate(size)
+
+
+def _refused_unread(message: str, path, what: str) -> None:
+    assert "\n" not in message
+    assert message.startswith(f"{path}: the {what} is {MAX_PROMPT_BYTES + 1:,} bytes, more than ")
+    assert f"the {MAX_PROMPT_BYTES:,} a {what} may be" in message and "it is not read" in message
+
+
+def test_prompt_files_over_1_mb_are_refused_unread(tmp_path):
+    assert MAX_PROMPT_BYTES == 1_000_000
+    (tmp_path / "system.md").write_text("{clusters}\n")
+    _sparse(tmp_path / "system.md", MAX_PROMPT_BYTES + 1)
+    with pytest.raises(PromptError) as info:
+        render_system_prompt(prompts=tmp_path)
+    _refused_unread(str(info.value), tmp_path / "system.md", "system prompt")
+
+    template = tmp_path / "findmilk.md"
+    _sparse(template, MAX_PROMPT_BYTES + 1)
+    with pytest.raises(PromptError) as info:
+        parse_template(template)
+    _refused_unread(str(info.value), template, "state prompt template")
+
+    (tmp_path / "fewshot").mkdir()
+    fewshot = tmp_path / "fewshot" / "default.toml"
+    _sparse(fewshot, MAX_PROMPT_BYTES + 1)
+    with pytest.raises(ClusterDefinitionError) as info:
+        fewshot_messages("findmilk", prompts=tmp_path)
+    _refused_unread(str(info.value), fewshot, "few-shot file")
+
+
+def test_a_prompt_file_at_the_cap_is_read(tmp_path):
+    path = tmp_path / "system.md"
+    path.write_text("{clusters}" + " " * (MAX_PROMPT_BYTES - len("{clusters}")))
+    assert render_system_prompt([], prompts=tmp_path) == " " * (MAX_PROMPT_BYTES - 10)
+
+
+def test_a_few_shot_file_nested_thousands_deep_is_one_line(tmp_path):
+    (tmp_path / "fewshot").mkdir()
+    path = tmp_path / "fewshot" / "default.toml"
+    path.write_text("x = " + "[" * 100_000 + "]" * 100_000 + "\n")
+    with pytest.raises(ClusterDefinitionError) as info:
+        fewshot_messages("findmilk", prompts=tmp_path)
+    message = str(info.value)
+    assert message.startswith(f"{path}: cannot read few-shot examples: nested deeper")
     assert "\n" not in message

@@ -356,3 +356,20 @@ def test_the_docs_list_every_range():
                 row = f"`[{section}].{name}`"
                 assert row in text, f"docs/learning.md does not list {row}"
                 assert rng.describe() in text.split(row, 1)[1].split("\n", 1)[0], row
+
+
+def test_a_2_gb_scenario_is_refused_from_its_size_unread(tmp_path):
+    from amuled_ma.scenario.loading import MAX_SCENARIO_BYTES, MAX_SCENARIO_CHARS
+
+    assert MAX_SCENARIO_BYTES == 4 * MAX_SCENARIO_CHARS  # UTF-8's most bytes a character
+    path = tmp_path / "big.toml"
+    with open(path, "wb") as handle:  # sparse: no disk, no time
+        handle.truncate(2 * 10**9)
+    start = time.perf_counter()
+    with pytest.raises(ScenarioError) as info:
+        load_scenario(path)
+    assert time.perf_counter() - start < 1.0
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith(f"{path}: the scenario is 2,000,000,000 bytes, more than the ")
+    assert f"{MAX_SCENARIO_BYTES:,} a scenario may be" in message and "it is not read" in message

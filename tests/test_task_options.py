@@ -10,40 +10,15 @@ second half of this file holds them together.
 from __future__ import annotations
 
 import inspect
-import os
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
-from tiny_cli import RULES, TINY
+from tiny_cli import RULES, TINY, amuled, one_line
 
 from amuled_ma.errors import ScenarioError
 from amuled_ma.scenario import load_scenario
 from amuled_ma.scenario.task_options import RESERVED, TASK_OPTIONS, options_model
 from amuled_ma.tasks import TASKS, make_batched
 from amuled_ma.tasks.names import ALIASES, TASK_NAMES, canonical_name
-
-REPO = Path(__file__).resolve().parents[1]
-
-
-def amuled(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    """The real command line, in a subprocess."""
-    return subprocess.run(
-        [sys.executable, "-m", "amuled_ma", *args],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        timeout=300,
-        env={**os.environ, "GIT_PYTHON_REFRESH": "quiet"},
-    )
-
-
-def one_line(err: str) -> str:
-    assert "Traceback" not in err, err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("amuled: error: "), err
-    return lines[0]
 
 
 @pytest.mark.parametrize(

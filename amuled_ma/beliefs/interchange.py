@@ -34,6 +34,13 @@ from amuled_ma.beliefs.rows import (
 from amuled_ma.beliefs.store import BeliefStore
 from amuled_ma.beliefs.types import STATUSES, BeliefRequest
 from amuled_ma.beliefs.validate import RULE, check_belief, show_values
+from amuled_ma.file_limits import read_line
+
+#: Longest line read by :func:`import_jsonl` [characters, 16 Mi]: a line is one row with
+#: its whole chat, about 20,000 characters with the shipped prompts (system prompt,
+#: few-shot examples, state, reply); 16 Mi leaves room for a panel of many cluster files
+#: at their cap. A longer line is refused before it is read whole (a 2 GB line is not).
+MAX_LINE_CHARS = 2**24
 
 _REQUIRED = ("key", "source", "identity", "task", "cluster", "obs", "actions", "belief")
 
@@ -128,24 +135,32 @@ def import_jsonl(
         ``{"read": n, "written": m}`` (``m < n`` when answers were already there).
 
     Raises:
-        BeliefStoreError: A line is not a valid row (names the file and line): not
-            standard JSON (``NaN``, ``Infinity``, nested too deeply), a missing
-            field, an unknown status, an invalid belief, a key that does not match.
+        BeliefStoreError: A line is not a valid row (names the file and line): longer
+            than :data:`MAX_LINE_CHARS` (refused before it is read whole), not standard
+            JSON (``NaN``, ``Infinity``, nested too deeply), a missing field, an unknown
+            status, an invalid belief, a key that does not match.
 
     """
     read = written = 0
     rows: list[StoredBelief] = []
     lineno = 0
-    lines = iter(fp)
     while True:
+        where = f"{name}:{lineno + 1}"
         try:
-            line = next(lines)
-        except StopIteration:
-            break
+            line = read_line(
+                fp,
+                MAX_LINE_CHARS,
+                where,
+                error=BeliefStoreError,
+                fix="each line is one row written by 'amuled beliefs export'; is it the right "
+                "file?",
+            )
         except UnicodeDecodeError as error:
             raise BeliefStoreError(
-                f"{name}:{lineno + 1}: not UTF-8 text ({error}); export files are UTF-8"
+                f"{where}: not UTF-8 text ({error}); export files are UTF-8"
             ) from None
+        if not line:
+            break
         lineno += 1
         if not line.strip():
             continue

@@ -34,7 +34,6 @@ torch is imported when a policy source is built, not with :mod:`amuled_ma.belief
 
 from __future__ import annotations
 
-import hashlib
 import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -46,6 +45,7 @@ from amuled_ma.beliefs.parsing import uniform
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.beliefs.validate import check_belief, show_values
 from amuled_ma.errors import CheckpointError, ScenarioError
+from amuled_ma.file_hash import sha256_file
 from amuled_ma.torch_files import load_weights_only
 
 #: Activations of an inferred MLP (``torch.nn`` class names).
@@ -222,7 +222,7 @@ class PolicySource(BeliefSource):
         self.kwargs = dict(kwargs or {})
         self.activation = activation
         weights = load_weights(self.path, key)
-        self.sha256 = hashlib.sha256(self.path.read_bytes()).hexdigest()
+        self.sha256 = sha256_file(self.path)  # in 1 MiB blocks, not the file at once
         where = f"policy file {self.path}"
         if module:
             from amuled_ma.beliefs.rules import resolve_callable

@@ -47,6 +47,7 @@ from amuled_ma.beliefs.parsing import uniform
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.beliefs.validate import RULE, check_belief, checked_result, show_values
 from amuled_ma.errors import ReplayMiss, ScenarioError
+from amuled_ma.file_limits import read_bounded_bytes
 
 #: Miss policies of :class:`ReplaySource`.
 MISS_POLICIES = ("error", "uniform", "fallback")
@@ -83,14 +84,13 @@ class Recording:
     def __init__(self, path: str | Path, *, decimals: int = 3) -> None:
         self.path = Path(path)
         try:
-            size = self.path.stat().st_size
-            if size > MAX_RECORDING_BYTES:
-                raise ScenarioError(
-                    f"{self.path}: the recording is {size:,} bytes, more than the "
-                    f"{MAX_RECORDING_BYTES:,} a recording may be (the largest shipped one is "
-                    "1.4 MB); it is not read; is it the right file?"
-                )
-            raw = self.path.read_bytes()
+            raw = read_bounded_bytes(
+                self.path,
+                MAX_RECORDING_BYTES,
+                "recording",
+                error=ScenarioError,
+                note="the largest shipped one is 1.4 MB",
+            )
         except OSError as error:
             raise ScenarioError(f"{self.path}: cannot read recording: {error}") from error
         try:

@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import sqlite3
 import threading
 import time
@@ -81,6 +82,19 @@ from amuled_ma.beliefs.validate import RULE, check_belief, show_values
 STORE_ENV = "AMULED_BELIEF_STORE"
 
 _SQL_CHUNK = 500  # keys per ``IN (...)`` query, well under SQLite's variable limit
+
+#: Longest value (a reply, a chat message, a row's JSON columns) and row SQLite reads or
+#: writes in a store [bytes, 64 MiB; ``SQLITE_LIMIT_LENGTH``, SQLite's own default is
+#: 1,000,000,000]: 4 bytes (UTF-8's most) a character of the longest line ``amuled beliefs
+#: import`` reads (:data:`~amuled_ma.beliefs.interchange.MAX_LINE_CHARS`, 16 Mi), so every
+#: imported row fits; an answer with its chat is about 20 KB. SQLite refuses a longer
+#: value without reading it into memory.
+MAX_VALUE_BYTES = 2**26
+
+
+class _ValueTooBig(BeliefStoreError):
+    """A read met a value longer than :data:`MAX_VALUE_BYTES` (SQLite's "too big")."""
+
 
 # Insert, or replace a row that holds no answer yet; an ok/repaired row is never replaced.
 _UPSERT = f"""
@@ -165,6 +179,7 @@ class BeliefStore:
                 self.path, timeout=self.timeout_s, isolation_level=None, check_same_thread=False
             )
             conn.execute(f"PRAGMA busy_timeout = {int(self.timeout_s * 1000)}")
+            conn.setlimit(sqlite3.SQLITE_LIMIT_LENGTH, MAX_VALUE_BYTES)
             if self.path != ":memory:":
                 mode = self._journal_wal(conn)
                 if str(mode).lower() != "wal":
@@ -221,6 +236,7 @@ class BeliefStore:
                     check_same_thread=False,
                 )
                 conn.execute(f"PRAGMA busy_timeout = {int(self.timeout_s * 1000)}")
+                conn.setlimit(sqlite3.SQLITE_LIMIT_LENGTH, MAX_VALUE_BYTES)
                 self._check_schema(conn)
             except sqlite3.DatabaseError as error:
                 if conn is not None:
@@ -281,6 +297,12 @@ class BeliefStore:
                         conn.execute("ROLLBACK")
                     raise
                 conn.execute("COMMIT")
+            except sqlite3.DataError as error:  # "string or blob too big"
+                raise BeliefStoreError(
+                    f"{self.path}: cannot write the belief store: a value is longer than the "
+                    f"{MAX_VALUE_BYTES:,} bytes a stored value may be ({error}; an answer with "
+                    "its chat is about 20 KB); nothing of this batch was written"
+                ) from error
             except sqlite3.DatabaseError as error:
                 # a damaged file ("database disk image is malformed"), a full disk
                 raise BeliefStoreError(
@@ -295,12 +317,49 @@ class BeliefStore:
         with self._lock:
             try:
                 return self._connect().execute(sql, params).fetchall()
+            except sqlite3.DataError as error:  # "string or blob too big": not read
+                raise _ValueTooBig(
+                    str(
+                        damaged_row(
+                            str(self.path),
+                            None,
+                            f"a row holds a value longer than the {MAX_VALUE_BYTES:,} bytes a "
+                            f"stored value may be ({error}; an answer with its chat is about "
+                            "20 KB); it is not read",
+                        )
+                    )
+                ) from error
             except sqlite3.DatabaseError as error:
                 raise BeliefStoreError(
                     f"{self.path}: cannot read the belief store: {error}; if the file is "
                     "damaged, restore it from an export ('amuled beliefs import') or delete "
                     "it (every belief is then asked again)"
                 ) from error
+
+    def _read_keys(self, sql: str, keys: Sequence[str]) -> list[tuple[Any, ...]]:
+        """:meth:`_read` of ``sql`` (one ``key IN (?, ...)``), naming the key of a too-long value.
+
+        Raises:
+            BeliefStoreError: A row of ``keys`` holds a value longer than
+                :data:`MAX_VALUE_BYTES`: the store and the row's key, found by asking the
+                keys one at a time (each refused without reading it).
+
+        """
+        try:
+            return self._read(sql, keys)
+        except _ValueTooBig:
+            one = re.sub(r"key IN \([?,]+\)", "key IN (?)", sql)
+            for key in keys:
+                try:
+                    self._read(one, [key])
+                except _ValueTooBig:
+                    raise damaged_row(
+                        f"{self.path}: row {key}",
+                        key,
+                        f"a value longer than the {MAX_VALUE_BYTES:,} bytes a stored value may "
+                        "be (an answer with its chat is about 20 KB); it is not read",
+                    ) from None
+            raise
 
     def close(self) -> None:
         """Close this process's connection (the file stays)."""
@@ -340,7 +399,7 @@ class BeliefStore:
                 f"SELECT {COLUMNS} FROM beliefs "
                 f"WHERE key IN ({','.join('?' * len(chunk))}){status_filter}"
             )
-            rows = self._read(sql, chunk)
+            rows = self._read_keys(sql, chunk)
             texts = self._texts(rows) if with_messages else None
             for row in rows:
                 stored = decode_row(row, texts, self.path)
@@ -391,9 +450,18 @@ class BeliefStore:
                 "completion_tokens, extra, actions FROM beliefs "
                 f"WHERE key IN ({','.join('?' * len(chunk))}) AND status IN ('ok', 'repaired')"
             )
-            for key, source, raw, belief, status, lat, ptok, ctok, extra, actions in self._read(
-                sql, chunk
-            ):
+            for (
+                key,
+                source,
+                raw,
+                belief,
+                status,
+                lat,
+                ptok,
+                ctok,
+                extra,
+                actions,
+            ) in self._read_keys(sql, chunk):
                 where = f"{self.path}: row {key}"
                 n = width.get(actions)
                 if n is None:

@@ -327,13 +327,16 @@ def load_cluster(path: str | Path) -> Cluster:
 
     """
     path = Path(path)
-    text = read_text(path, "cluster file", ClusterDefinitionError)
+    text = read_text(path, "cluster file", ClusterDefinitionError, max_bytes=MAX_CLUSTER_BYTES)
     data = parse_toml(text, path, "cluster file", ClusterDefinitionError, MAX_CLUSTER_CHARS)
     return parse_cluster(data, path)
 
 
 #: Most characters a cluster file may hold (a shipped one holds about 2,000).
 MAX_CLUSTER_CHARS = 200_000
+#: Largest cluster file read [bytes]: 4 bytes per character (UTF-8's most), so no file
+#: within :data:`MAX_CLUSTER_CHARS` is refused by its size.
+MAX_CLUSTER_BYTES = 4 * MAX_CLUSTER_CHARS
 
 
 def default_clusters_dir() -> Path:

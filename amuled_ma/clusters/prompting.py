@@ -29,7 +29,7 @@ from amuled_ma.clusters.loader import (
     default_registry,
 )
 from amuled_ma.errors import ClusterDefinitionError, PromptError
-from amuled_ma.resources import prompts_dir, read_text
+from amuled_ma.resources import MAX_PROMPT_BYTES, prompts_dir, read_text
 
 #: One cluster's section of the system prompt (the authors' wording).
 CLUSTER_SECTION = (
@@ -68,7 +68,7 @@ def render_cluster_section(cluster: Cluster) -> str:
 
 @functools.lru_cache(maxsize=8)
 def _read_text(path: Path) -> str:
-    return read_text(path, "system prompt", PromptError)
+    return read_text(path, "system prompt", PromptError, max_bytes=MAX_PROMPT_BYTES)
 
 
 def render_system_prompt(
@@ -108,9 +108,15 @@ def fewshot_path(task_name: str, *, prompts: str | Path | None = None) -> Path:
 @functools.lru_cache(maxsize=32)
 def _load_fewshot(path: Path) -> Messages:
     try:
-        data = tomllib.loads(read_text(path, "few-shot file", ClusterDefinitionError))
+        text = read_text(path, "few-shot file", ClusterDefinitionError, max_bytes=MAX_PROMPT_BYTES)
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise ClusterDefinitionError(f"{path}: cannot read few-shot examples: {error}") from error
+    except RecursionError:  # "[[[[..." thousands deep: one line, not a traceback
+        raise ClusterDefinitionError(
+            f"{path}: cannot read few-shot examples: nested deeper than Python can read; a "
+            "few-shot file is [[examples]] tables of user and assistant text"
+        ) from None
     examples = data.get("examples", [])
     if not isinstance(examples, list):
         raise ClusterDefinitionError(f"{path}: field 'examples': expected [[examples]] tables")

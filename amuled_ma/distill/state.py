@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from amuled_ma.errors import AmuledError
+from amuled_ma.file_limits import check_size, read_bounded_bytes, read_line
 
 #: File of the budget ledger and counters.
 LEDGER_FILE = "distill.json"
@@ -39,6 +40,21 @@ FORMAT = "amuled-distill/1"
 SAVE_EVERY_S = 5.0
 #: Largest counter a state file may hold (2**53: exact in JSON's doubles).
 MAX_COUNTER = 2**53
+#: Largest ledger read [bytes, 1 GiB]. It grows with the states: 35 bytes a distinct state
+#: visited, and 70 bytes plus about 20 an observation value a state asked (measured), so
+#: a budget of 1,000,000 states asked of 10,000,000 visited, of 16-value observations, is
+#: about 740 MB; it is read whole, and the run held the same in memory.
+MAX_LEDGER_BYTES = 2**30
+#: Largest training-pairs file read [bytes, 2 GiB]: one line a state asked, about 130
+#: bytes for a 2-value observation and 2 members of 4 actions, 1 KB for 16 values and 5
+#: members of 5 actions: a budget of 1,000,000 asked states is about 1 GB. It is read a
+#: line at a time.
+MAX_EXAMPLES_BYTES = 2**31
+#: Longest line of the training-pairs file [bytes]: one state's observation and each
+#: member's belief, about 1 KB (above); a longer line was not written by a fine-tune.
+MAX_EXAMPLE_LINE_BYTES = 2**20
+#: The fix of every refusal of a state file: they are this run's own files.
+_START_OVER = "start the fine-tune over with --force"
 
 
 def check_counters(counters: Any, names: Iterable[str], asked: int, where: str) -> dict[str, int]:
@@ -111,13 +127,23 @@ class StateFiles:
         """Read the ledger.
 
         Raises:
-            AmuledError: It is not readable JSON of this format; the message names the
-                file and ``--force`` (start over).
+            AmuledError: It is larger than :data:`MAX_LEDGER_BYTES` (refused before it is
+                read) or not readable JSON of this format; the message names the file and
+                ``--force`` (start over).
 
         """
         try:
-            data = json.loads(self.ledger.read_text(encoding="utf-8"))
-        except (OSError, ValueError) as error:
+            raw = read_bounded_bytes(
+                self.ledger,
+                MAX_LEDGER_BYTES,
+                "budget state",
+                note="a budget of 1,000,000 asked states is about 740 MB",
+                fix=f"the file was edited or is not this run's; {_START_OVER}",
+            )
+            data = json.loads(raw)
+        except (OSError, ValueError, RecursionError) as error:
+            if isinstance(error, RecursionError):
+                error = ValueError("nested deeper than Python's JSON reader can follow")
             raise AmuledError(
                 f"{self.ledger}: not a readable budget state ({error}); start the fine-tune "
                 "over with --force"
@@ -154,23 +180,45 @@ class StateFiles:
         """Every training pair written (a cut last line is skipped).
 
         Raises:
-            AmuledError: A line other than the last is not JSON (the file was edited).
+            AmuledError: A line other than the last is not JSON (the file was edited), the
+                file is larger than :data:`MAX_EXAMPLES_BYTES` or a line longer than
+                :data:`MAX_EXAMPLE_LINE_BYTES` (refused before it is read whole).
 
         """
         if not self.examples.is_file():
             return []
-        lines = self.examples.read_text(encoding="utf-8").splitlines()
+        fix = f"the file was edited or is not this run's; {_START_OVER}"
         out = []
-        for number, line in enumerate(lines, 1):
-            try:
-                record = json.loads(line)
-            except ValueError as error:
-                if number == len(lines):
-                    break  # cut short by a crash while it was written
-                raise AmuledError(
-                    f"{self.examples}:{number}: not JSON ({error}); start the fine-tune over "
-                    "with --force"
-                ) from error
-            if isinstance(record, dict):
-                out.append(record)
+        try:
+            check_size(
+                self.examples,
+                MAX_EXAMPLES_BYTES,
+                "training-pairs file",
+                note="a budget of 1,000,000 asked states is about 1 GB",
+                fix=fix,
+            )
+            with self.examples.open("rb") as handle:
+                number = 0
+                while line := read_line(
+                    handle,
+                    MAX_EXAMPLE_LINE_BYTES,
+                    f"{self.examples}:{number + 1}",
+                    unit="bytes",
+                    fix=f"a line holds one state's pairs, about 1 KB; {fix}",
+                ):
+                    number += 1
+                    try:
+                        record = json.loads(line)
+                    except (ValueError, RecursionError) as error:
+                        if not line.endswith(b"\n") or not handle.peek(1):
+                            break  # the last line, cut short by a crash while it was written
+                        raise AmuledError(
+                            f"{self.examples}:{number}: not JSON ({error}); {_START_OVER}"
+                        ) from None
+                    if isinstance(record, dict):
+                        out.append(record)
+        except OSError as error:
+            raise AmuledError(
+                f"{self.examples}: cannot read the training pairs ({error}); {_START_OVER}"
+            ) from error
         return out

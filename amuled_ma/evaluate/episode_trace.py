@@ -25,7 +25,7 @@ import torch
 
 from amuled_ma.deliberation.state_key import freeze
 from amuled_ma.errors import CheckpointError, ScenarioError
-from amuled_ma.evaluate.rollout import MODES, Observer, rollout
+from amuled_ma.evaluate.rollout import MODES, Observer, rollout, step_events
 from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.policies import action_log_probs, load_policy
 from amuled_ma.variants import Variant
@@ -265,11 +265,8 @@ class _Tracer(Observer):
         final = torch.as_tensor(info.get("final_obs", obs)).float()
         self.observations.append(final[k].numpy().copy())
         self.rewards.append(float(torch.as_tensor(info["r_env"])[k]))
-        for key, value in info.items():
-            if key in ("final_obs", "episode", "r_env", "r_shaping") or not torch.is_tensor(value):
-                continue
-            if value.dim() == 1 and value.numel() == n:
-                self.events.setdefault(key, []).append(float(value[k]))
+        for key, value in step_events(info, k, n, skip=("r_env", "r_shaping")):
+            self.events.setdefault(key, []).append(value)
         if not (bool(terminated[k]) or bool(truncated[k])):
             self.frames.append(frame_of(task, k))
             return

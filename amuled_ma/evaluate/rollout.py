@@ -23,7 +23,7 @@ does only the evaluation's own work.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from typing import Any
 
 import torch
@@ -94,6 +94,28 @@ class Observer:
 
 def _to_float(value: Any) -> float:
     return float(value.item() if hasattr(value, "item") else value)
+
+
+def step_events(
+    info: Mapping[str, Any], copy: int, copies: int, skip: Collection[str] = ()
+) -> Iterator[tuple[str, float]]:
+    """The per-copy values a step's ``info`` holds for one copy, as ``(key, value)``.
+
+    Args:
+        info: What the task's ``step`` returned as its info.
+        copy: The copy whose values to read.
+        copies: How many copies the task runs (a per-copy tensor has that many values).
+        skip: Keys left out besides ``final_obs`` and ``episode``.
+
+    Yields:
+        Each key of a one-dimensional tensor of ``copies`` values, with the copy's value.
+
+    """
+    for key, value in info.items():
+        if key in ("final_obs", "episode") or key in skip or not torch.is_tensor(value):
+            continue
+        if value.dim() == 1 and value.numel() == copies:
+            yield key, _to_float(value[copy])
 
 
 def rollout(
@@ -222,9 +244,6 @@ class TrajectoryRecorder(Observer):
         final = info.get("final_obs", obs)
         self.trajectory["obs"].append(torch.as_tensor(final)[k].tolist())
         events = self.trajectory["events"]
-        for key, value in info.items():
-            if key in ("final_obs", "episode") or not torch.is_tensor(value):
-                continue
-            if value.dim() == 1 and value.numel() == n:
-                events.setdefault(key, []).append(_to_float(value[k]))
+        for key, value in step_events(info, k, n):
+            events.setdefault(key, []).append(value)
         self._done = bool(terminated[k]) or bool(truncated[k])

@@ -371,6 +371,8 @@ class PopulationPPO(AnchoredPPO):
         member is marked in :attr:`nonfinite` (the trainer stops it after the update,
         :class:`~amuled_ma.errors.MemberFailed`) and its rows do not move the others.
         """
+        if torch.isfinite(grad.sum()):  # the usual case, in one reduction (no copy)
+            return grad
         rows = grad.reshape(self.population, -1)
         bad = ~torch.isfinite(rows).all(dim=1)
         self.nonfinite |= bad

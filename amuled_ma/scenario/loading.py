@@ -13,7 +13,7 @@ from amuled_ma.scenario.messages import unknown_top_level
 from amuled_ma.scenario.model import Scenario
 from amuled_ma.scenario.panel_weights import member_prior, read_panel_weights
 from amuled_ma.scenario.paths import check_path_component
-from amuled_ma.scenario.sections import _validate
+from amuled_ma.scenario.sections import validate_model
 
 
 def scenario_from_dict(data: dict[str, Any], *, path: Path | None = None) -> Scenario:
@@ -40,7 +40,7 @@ def scenario_from_dict(data: dict[str, Any], *, path: Path | None = None) -> Sce
         values["name"] = check_path_component(
             stem, f"{source}: the scenario name (the file name, as no top-level name is set)"
         )
-    return _validate(Scenario, {**values, "path": path}, source)
+    return validate_model(Scenario, {**values, "path": path}, source)
 
 
 def resolve_scenario_path(name_or_path: str | os.PathLike[str]) -> Path:
@@ -86,7 +86,7 @@ def load_scenario(name_or_path: str | os.PathLike[str]) -> Scenario:
 
     """
     path = resolve_scenario_path(name_or_path)
-    text = read_text(path, "scenario", ScenarioError)
+    text = read_text(path, "scenario", ScenarioError, max_bytes=MAX_SCENARIO_BYTES)
     data = parse_toml(text, path, "scenario", ScenarioError, MAX_SCENARIO_CHARS)
     try:
         scenario = scenario_from_dict(data, path=path)
@@ -121,6 +121,10 @@ def check_weights_file(scenario: Scenario) -> tuple[float, ...] | None:
 
 #: Most characters a scenario file may hold (a shipped one holds about 10,000).
 MAX_SCENARIO_CHARS = 1_000_000
+#: Largest scenario file read [bytes]: UTF-8 holds a character in at most 4 bytes, so no
+#: file within :data:`MAX_SCENARIO_CHARS` is refused by its size, and a 2 GB file is
+#: refused before it is read.
+MAX_SCENARIO_BYTES = 4 * MAX_SCENARIO_CHARS
 #: Most levels of ``[`` / ``{`` nesting a scenario value may have.
 MAX_TOML_DEPTH = 32
 

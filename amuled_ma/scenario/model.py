@@ -22,7 +22,7 @@ from amuled_ma.scenario.sections import (
     _init,
     _Section,
     _source,
-    _validate,
+    validate_model,
 )
 
 
@@ -178,7 +178,7 @@ class Scenario(BaseModel):
                 )
                 raise ScenarioError(f"{source}: key [{section}].{key}: {where}")
             merged[head] = _with_nested(table, rest, value)
-        new_section = _validate(model, merged, source, (section,))
+        new_section = validate_model(model, merged, source, (section,))
         return self.model_copy(update={section: new_section})
 
     def default_run_dir(self, runs_dir: str | os.PathLike[str] | None = None) -> Path:
@@ -238,4 +238,4 @@ def validate_section(section: str, values: dict[str, Any], source: str) -> _Sect
     model = SECTIONS.get(section)
     if model is None:
         raise ScenarioError(unknown_section(section, source))
-    return _validate(model, values, source, (section,))
+    return validate_model(model, values, source, (section,))

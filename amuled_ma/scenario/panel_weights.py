@@ -26,6 +26,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from amuled_ma.errors import ScenarioError
+from amuled_ma.file_limits import read_bounded_bytes
 
 #: The version of the file's format.
 WEIGHTS_FORMAT = 1
@@ -182,18 +183,20 @@ def read_panel_weights(path: Path, *, where: str) -> PanelWeights:
     """
     fix = "write it with 'amuled study fit-weights STUDY' (docs/study.md)"
     try:
-        size = path.stat().st_size
+        raw = read_bounded_bytes(
+            path,
+            MAX_WEIGHTS_BYTES,
+            "weights file",
+            error=ScenarioError,
+            head=f"{where}: weights file {path}",
+        )
     except OSError:
         raise ScenarioError(f"{where}: weights file {path} not found; {fix}") from None
-    if size > MAX_WEIGHTS_BYTES:
-        raise ScenarioError(
-            f"{where}: weights file {path} is {size:,} bytes, more than the "
-            f"{MAX_WEIGHTS_BYTES:,} a weights file may be; is it the right file?"
-        )
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise ScenarioError(f"{where}: weights file {path} is not JSON ({error}); {fix}") from None
+        data = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:
+        why = "nested deeper than Python can read" if isinstance(error, RecursionError) else error
+        raise ScenarioError(f"{where}: weights file {path} is not JSON ({why}); {fix}") from None
     try:
         return PanelWeights.model_validate(data)
     except ValidationError as error:

@@ -66,7 +66,7 @@ _WEIGHT_WHY = "a weight; negative flips the term's sign"
 
 #: The validation context (``{"source": <file or override>}``) of the scenario being
 #: validated. pydantic passes ``model_validate``'s context to validators but calls a model's
-#: own ``__init__`` (the section models have one) without it, so :func:`_validate` also
+#: own ``__init__`` (the section models have one) without it, so :func:`validate_model` also
 #: sets it here for :func:`_init` to pass on (the pattern of pydantic's documentation,
 #: "Using validation context with BaseModel initialization").
 _CONTEXT: ContextVar[dict[str, str] | None] = ContextVar("amuled_scenario_context", default=None)
@@ -75,7 +75,7 @@ _CONTEXT: ContextVar[dict[str, str] | None] = ContextVar("amuled_scenario_contex
 def _init(model: BaseModel, data: dict[str, Any], loc: tuple[str, ...]) -> None:
     """Validate ``data`` into ``model``, the ``__init__`` of the scenario models.
 
-    Inside the validation of a file (:func:`_validate`) pydantic's error is left to it, to
+    Inside the validation of a file (:func:`validate_model`) pydantic's error is left to it, to
     be reported with the file's name; built in code, it is converted here.
     """
     context = _CONTEXT.get()
@@ -607,8 +607,28 @@ class OutputConfig(_Section):
 _M = TypeVar("_M", bound=BaseModel)
 
 
-def _validate(model: type[_M], data: Any, source: str, loc: tuple[str, ...] = ()) -> _M:
-    """``model.model_validate(data)`` with ``source`` in the context and errors converted."""
+def validate_model(model: type[_M], data: Any, source: str, loc: tuple[str, ...] = ()) -> _M:
+    """Validate ``data`` into ``model`` as read from ``source`` (a file or an override).
+
+    ``model.model_validate(data)`` with ``{"source": source}`` as the validation context
+    (also in :data:`_CONTEXT`, for the models' own ``__init__``), so every error names
+    where the value came from.
+
+    Args:
+        model: The pydantic model to build (a section model or the whole scenario).
+        data: The values to validate, as parsed from TOML.
+        source: The file or override the values came from, named in errors.
+        loc: Where the model sits in a scenario: ``("ppo",)`` for a section model, ``()``
+            for a whole :class:`~amuled_ma.scenario.model.Scenario`.
+
+    Returns:
+        The validated model.
+
+    Raises:
+        ScenarioError: ``data`` does not validate: one line naming ``source``, the first
+            problem and how many more (:func:`~amuled_ma.scenario.messages.scenario_error`).
+
+    """
     context = {"source": source}
     token = _CONTEXT.set(context)
     try:

@@ -52,6 +52,27 @@ def _rates(counts: dict[str, list[int]]) -> dict[str, dict[str, Any]]:
     return out
 
 
+def _agreement_table(rates: dict[str, dict[str, Any]]) -> list[str]:
+    """The Markdown table of who agrees how often, one row per name in sorted order.
+
+    Args:
+        rates: for each panel member, belief or policy, its ``_rates`` entry.
+
+    Returns:
+        The table's lines: header, separator and one row each.
+    """
+    lines = [
+        "| who | agrees | counted | rate | 95% interval (Wilson) |",
+        "|---|---:|---:|---:|---|",
+    ]
+    for who, a in sorted(rates.items()):
+        lines.append(
+            f"| {who} | {a['agree']} | {a['n']} | {_f(a['rate'])} | {_f(a['low'])} to "
+            f"{_f(a['high'])} |"
+        )
+    return lines
+
+
 def summarize(folder: Path, *, keep_inattentive: bool = False) -> dict[str, Any]:
     """Every figure of the report, as JSON-ready data."""
     study, answers = load(folder)
@@ -261,14 +282,8 @@ def write_analysis(folder: Path, *, keep_inattentive: bool = False) -> Path:
         "A panel member or the fused belief agrees when it believes more in the majority's "
         "option's action; a policy when it takes that action in the state.",
         "",
-        "| who | agrees | counted | rate | 95% interval (Wilson) |",
-        "|---|---:|---:|---:|---|",
     ]
-    for who, a in sorted(data["agreement"].items()):
-        lines.append(
-            f"| {who} | {a['agree']} | {a['n']} | {_f(a['rate'])} | {_f(a['low'])} to "
-            f"{_f(a['high'])} |"
-        )
+    lines += _agreement_table(data["agreement"])
     lines += ["", "## Where people and the fused belief disagree most", ""]
     if not data["disagreements"]:
         lines.append("None: the fused belief sides with the majority on every item.")
@@ -315,14 +330,8 @@ def _write_expert(folder: Path) -> Path:
         "acceptable. A panel member or the fused belief agrees when the action it believes "
         "most is one of them (a tie at the top is not counted); a policy when its action is.",
         "",
-        "| who | agrees | counted | rate | 95% interval (Wilson) |",
-        "|---|---:|---:|---:|---|",
     ]
-    for who, a in sorted(data["agreement"].items()):
-        lines.append(
-            f"| {who} | {a['agree']} | {a['n']} | {_f(a['rate'])} | {_f(a['low'])} to "
-            f"{_f(a['high'])} |"
-        )
+    lines += _agreement_table(data["agreement"])
     lines += [
         "",
         f"## Clarity of the panel's reasons (1 to {clear['points']})",

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from amuled_ma.errors import PromptError
-from amuled_ma.resources import prompts_dir, read_text
+from amuled_ma.resources import MAX_PROMPT_BYTES, prompts_dir, read_text
 from amuled_ma.tasks.names import canonical_name
 
 __all__ = ["Fragment", "StateTemplate", "load_template", "render_state_prompt", "template_path"]
@@ -139,11 +139,13 @@ def parse_template(path: Path) -> StateTemplate:
     """Parse one template file.
 
     Raises:
-        PromptError: ``path`` cannot be read or is not UTF-8; it has no ``## prompt``
+        PromptError: ``path`` cannot be read, is larger than
+            :data:`~amuled_ma.resources.MAX_PROMPT_BYTES` or is not UTF-8; it has no ``## prompt``
             block or a malformed fragment heading.
 
     """
-    lines = read_text(path, "state prompt template", PromptError).splitlines()
+    text = read_text(path, "state prompt template", PromptError, max_bytes=MAX_PROMPT_BYTES)
+    lines = text.splitlines()
     prompt: str | None = None
     fragments: dict[str, list[Fragment]] = {}
     heading: str | None = None

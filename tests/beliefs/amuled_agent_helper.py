@@ -1,18 +1,23 @@
 """Code for the per-agent source tests, imported by ``module:Class`` strings.
 
 The tests put this folder on ``sys.path`` and name ``amuled_agent_helper:FixedAgent`` (an
-entry-point agent) or ``amuled_agent_helper:TinyNet`` (a policy network's class).
+entry-point agent) or ``amuled_agent_helper:TinyNet`` (a policy network's class);
+:func:`install_fixed_entry_point` makes ``FixedAgent`` an installed plug-in.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from importlib.metadata import EntryPoint
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
 from amuled_ma.beliefs import BeliefRequest, BeliefResult, BeliefSource
+
+if TYPE_CHECKING:
+    import pytest
 
 
 class FixedAgent(BeliefSource):
@@ -29,6 +34,18 @@ class FixedAgent(BeliefSource):
         """Answer every request with the same one-hot belief."""
         FixedAgent.calls.append(len(requests))
         return [BeliefResult(np.eye(r.num_actions)[self.index], "ok", self.name) for r in requests]
+
+
+def install_fixed_entry_point(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Make ``fixed`` an installed ``amuled_ma.agents`` entry point naming :class:`FixedAgent`.
+
+    The only entry point of that group :mod:`amuled_ma.clusters.plugins` sees, for the test.
+    """
+    point = EntryPoint("fixed", "amuled_agent_helper:FixedAgent", "amuled_ma.agents")
+    monkeypatch.setattr(
+        "amuled_ma.clusters.plugins.entry_points",
+        lambda group: [point] if group == "amuled_ma.agents" else [],
+    )
 
 
 def not_a_source(**_: Any) -> object:

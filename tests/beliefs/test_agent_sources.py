@@ -194,14 +194,10 @@ def test_an_entry_point_agent_by_module_and_class(monkeypatch):
 
 
 def test_an_entry_point_agent_by_installed_name(monkeypatch):
-    from importlib.metadata import EntryPoint
-
     monkeypatch.syspath_prepend(str(HERE))
-    point = EntryPoint("fixed", "amuled_agent_helper:FixedAgent", "amuled_ma.agents")
-    monkeypatch.setattr(
-        "amuled_ma.clusters.plugins.entry_points",
-        lambda group: [point] if group == "amuled_ma.agents" else [],
-    )
+    from amuled_agent_helper import install_fixed_entry_point
+
+    install_fixed_entry_point(monkeypatch)
     source = make_source("entry-point", name="fixed", options={"index": 1})
     assert source.beliefs([req()])[0].belief.tolist() == [0.0, 1.0, 0.0, 0.0]
     with pytest.raises(ScenarioError, match=r"'ghost': no installed package .*installed: fixed"):

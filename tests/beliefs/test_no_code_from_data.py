@@ -163,14 +163,10 @@ def test_allow_plugin_is_a_checked_flag_and_the_resume_hint_restates_it(tmp_path
 
 
 def test_an_installed_entry_point_needs_no_flag(monkeypatch):
-    from importlib.metadata import EntryPoint
-
     monkeypatch.syspath_prepend(str(HERE))
-    point = EntryPoint("fixed", "amuled_agent_helper:FixedAgent", "amuled_ma.agents")
-    monkeypatch.setattr(
-        "amuled_ma.clusters.plugins.entry_points",
-        lambda group: [point] if group == "amuled_ma.agents" else [],
-    )
+    from amuled_agent_helper import install_fixed_entry_point
+
+    install_fixed_entry_point(monkeypatch)
     assert make_source("entry-point", name="fixed").name == "fixed-agent"
     # its value is the same installed code
     assert make_source("entry-point", name="amuled_agent_helper:FixedAgent").name == "fixed-agent"

@@ -13,6 +13,7 @@ import time
 import httpx
 import numpy as np
 import pytest
+from fake_ollama import GOOD, chat_reply
 
 from amuled_ma.beliefs import BeliefRequest, ScriptedSource, make_source
 from amuled_ma.beliefs.ollama import OllamaSource, resolve_host
@@ -20,7 +21,6 @@ from amuled_ma.clusters import build_messages
 from amuled_ma.errors import BackendUnavailable, ModelNotFound
 
 MILK = ("up", "down", "left", "right")
-GOOD = json.dumps({"reasoning": "go", "0": 0.7, "1": 0.1, "2": 0.1, "3": 0.1})
 
 
 class FakeServer:
@@ -58,17 +58,7 @@ class FakeServer:
             return reply
         if isinstance(reply, Exception):
             raise reply
-        return httpx.Response(
-            200,
-            json={
-                "model": body["model"],
-                "created_at": "2026-01-01T00:00:00Z",
-                "message": {"role": "assistant", "content": reply},
-                "done": True,
-                "prompt_eval_count": 11,
-                "eval_count": 5,
-            },
-        )
+        return chat_reply(body, reply)
 
 
 def source(server, **kwargs):

@@ -16,6 +16,7 @@ import time
 import httpx
 import numpy as np
 import pytest
+from fake_ollama import GOOD, chat_reply
 
 from amuled_ma.beliefs import BeliefRequest
 from amuled_ma.beliefs.cached import CachedSource
@@ -24,7 +25,6 @@ from amuled_ma.beliefs.store import BeliefStore
 from amuled_ma.errors import BackendUnavailable, ModelNotFound, ScenarioError
 
 MILK = ("up", "down", "left", "right")
-GOOD = json.dumps({"reasoning": "go", "0": 0.7, "1": 0.1, "2": 0.1, "3": 0.1})
 A, B = "http://gpu1:11434", "http://gpu2:11434"
 
 
@@ -53,17 +53,7 @@ class Fake:
             self.chats += 1
         time.sleep(self.delay)
         body = json.loads(request.content)
-        return httpx.Response(
-            200,
-            json={
-                "model": body["model"],
-                "created_at": "2026-01-01T00:00:00Z",
-                "message": {"role": "assistant", "content": GOOD},
-                "done": True,
-                "prompt_eval_count": 11,
-                "eval_count": 5,
-            },
-        )
+        return chat_reply(body, GOOD)
 
 
 def router(servers: dict[str, Fake]) -> httpx.MockTransport:

@@ -306,3 +306,39 @@ def test_a_forked_child_reopens_its_own_connection(store):
     assert [p.exitcode for p in procs] == [0, 0]
     assert len(store) == 3 and store.integrity_check() == ["ok"]
     assert store.get(request_key(IDENT, req(101))).raw == "child 1"
+
+
+def test_the_value_cap_holds_every_line_an_import_accepts():
+    from amuled_ma.beliefs import interchange, store
+
+    assert store.MAX_VALUE_BYTES == 4 * interchange.MAX_LINE_CHARS == 2**26  # 64 MiB
+
+
+def test_a_value_over_the_cap_is_refused_unread_naming_store_and_key(tmp_path, monkeypatch):
+    import sqlite3
+
+    from amuled_ma.beliefs import store as store_module
+
+    monkeypatch.setattr(store_module, "MAX_VALUE_BYTES", 10_000)
+    path = tmp_path / "b.sqlite"
+    keys = [request_key(IDENT, req(i)) for i in range(3)]
+    with BeliefStore(path) as s:
+        s.put_many([(k, IDENT, req(i), res([1, 0, 0, 0])) for i, k in enumerate(keys)])
+    with sqlite3.connect(path) as conn:  # edited with another program: no cap there
+        conn.execute("UPDATE beliefs SET raw = ? WHERE key = ?", ("x" * 20_000, keys[1]))
+    with BeliefStore(path) as s:
+        assert set(s.lookup([keys[0], keys[2]])) == {keys[0], keys[2]}  # the others are read
+        for read in (s.lookup, s.get_many):
+            with pytest.raises(BeliefStoreError) as info:
+                read(keys)
+            message = str(info.value)
+            assert "\n" not in message
+            assert message.startswith(f"{path}: row {keys[1]}: a value longer than the 10,000 ")
+            assert f"DELETE FROM beliefs WHERE key = '{keys[1]}'" in message
+        with pytest.raises(BeliefStoreError, match=rf"^{path}: a row holds a value longer than"):
+            list(s.iter_rows())
+        # a write over the cap: one line, nothing of the batch written
+        new = request_key(IDENT, req(9))
+        with pytest.raises(BeliefStoreError, match="a value is longer than the 10,000 bytes"):
+            s.put_many([(new, IDENT, req(9), res([1, 0, 0, 0], raw="y" * 20_000))])
+        assert new not in s

@@ -241,3 +241,24 @@ def test_import_cli_refuses_nan_with_file_and_line(tmp_path, capsys):
     assert main(["beliefs", "import", "--store", str(tmp_path / "l.sqlite"), str(dump)]) == 1
     err = capsys.readouterr().err
     assert "b.jsonl:2: not JSON (NaN is not standard JSON" in err
+
+
+def test_import_reads_a_line_up_to_the_cap_and_refuses_a_longer_one(tmp_path, capsys, monkeypatch):
+    from amuled_ma.beliefs import interchange
+
+    gpu, dump = tmp_path / "gpu.sqlite", tmp_path / "b.jsonl"
+    fill(gpu, 2)
+    main(["beliefs", "export", "--store", str(gpu), "-o", str(dump)])
+    first, second = dump.read_text().splitlines()
+    cap = 2_000
+    monkeypatch.setattr(interchange, "MAX_LINE_CHARS", cap)
+    at_cap = first + " " * (cap - len(first))  # JSON allows the spaces: one row, 2,000 long
+    dump.write_text(at_cap + "\n" + second + " " * (cap + 1 - len(second)) + "\n")
+    capsys.readouterr()
+    assert main(["beliefs", "import", "--store", str(tmp_path / "x.sqlite"), str(dump)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert f"b.jsonl:2: a line longer than the {cap:,} characters a line may be" in err
+    dump.write_text(at_cap)  # the last line, without its newline
+    assert main(["beliefs", "import", "--store", str(tmp_path / "y.sqlite"), str(dump)]) == 0
+    assert "read 1 rows, wrote 1" in capsys.readouterr().out

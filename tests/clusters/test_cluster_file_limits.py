@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from amuled_ma.clusters.loader import MAX_CLUSTER_CHARS, load_cluster
+from amuled_ma.clusters.loader import MAX_CLUSTER_BYTES, MAX_CLUSTER_CHARS, load_cluster
 from amuled_ma.errors import ClusterDefinitionError
 from amuled_ma.scenario.loading import MAX_TOML_DEPTH
 
@@ -47,3 +47,25 @@ def test_an_oversized_cluster_file_is_one_line(tmp_path: Path) -> None:
 
 def test_the_shipped_cluster_still_loads() -> None:
     assert load_cluster(SHIPPED).name == "care"
+
+
+def test_a_2_gb_cluster_file_is_refused_from_its_size_unread(tmp_path: Path) -> None:
+    path = tmp_path / "big.toml"
+    with open(path, "wb") as handle:  # sparse: no disk, no time
+        handle.truncate(2 * 10**9)
+    with pytest.raises(ClusterDefinitionError) as caught:
+        load_cluster(path)
+    text = str(caught.value)
+    assert "\n" not in text
+    assert text.startswith(f"{path}: the cluster file is 2,000,000,000 bytes, more than the ")
+    assert f"{MAX_CLUSTER_BYTES:,} a cluster file may be" in text and "it is not read" in text
+
+
+def test_a_cluster_file_of_the_most_characters_is_not_refused_by_its_size(tmp_path: Path) -> None:
+    # 4-byte characters up to the character cap: within the byte cap, refused for length
+    path = tmp_path / "wide.toml"
+    path.write_text("# " + "\U0001f600" * (MAX_CLUSTER_CHARS - 2), encoding="utf-8")
+    assert path.stat().st_size <= MAX_CLUSTER_BYTES
+    with pytest.raises(ClusterDefinitionError) as caught:
+        load_cluster(path)
+    assert "characters" not in str(caught.value) and "bytes" not in str(caught.value)

@@ -11,41 +11,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from cluster_files import write_cluster
 
 from amuled_ma.clusters import ClusterRegistry, build_messages, load_cluster
 from amuled_ma.clusters.loader import CREDENCE_SUM_TOLERANCE
 from amuled_ma.errors import ClusterDefinitionError
 
 PAPER = ["consequentialist", "deontological", "virtue", "care", "social_justice"]
-
-CLUSTER = """\
-name = "{name}"
-kind = "cluster"
-order = {order}
-title = "{title}"
-credence_label = "{label}"
-focus = "Focus on protecting the vulnerable"
-key_principle = "Never leave anyone behind"
-
-[[theories]]
-name = "Stewardship"
-key_concepts = ["Protection", "Duty of care"]
-decision_factors = ["Vulnerability", "Risk"]
-"""
-
-
-def write_cluster(
-    directory: Path,
-    name: str,
-    *,
-    title: str = "Guardian Ethics",
-    label: str | None = None,
-    order: int = 10,
-) -> Path:
-    directory.mkdir(parents=True, exist_ok=True)
-    path = directory / f"{name}.toml"
-    path.write_text(CLUSTER.format(name=name, title=title, label=label or title, order=order))
-    return path
 
 
 def write_mixture(directory: Path, credences: str, name: str = "blend") -> Path:

@@ -5,26 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from cluster_files import cluster_text
 
 from amuled_ma.clusters import ClusterRegistry, default_registry, load_cluster
 from amuled_ma.errors import ClusterDefinitionError
 
 PAPER = ["consequentialist", "deontological", "virtue", "care", "social_justice"]
-
-VALID = """\
-name = "{name}"
-kind = "cluster"
-order = 10
-title = "Guardian Ethics"
-credence_label = "Guardian Ethics"
-focus = "Focus on protecting the vulnerable"
-key_principle = "Never leave anyone behind"
-
-[[theories]]
-name = "Stewardship"
-key_concepts = ["Protection", "Duty of care"]
-decision_factors = ["Vulnerability", "Risk"]
-"""
 
 
 def write(directory: Path, name: str, text: str) -> Path:
@@ -81,7 +67,7 @@ def test_theory_fields_word_for_word():
     ],
 )
 def test_missing_field_names_file_and_field(tmp_path, field, line):
-    path = write(tmp_path, "guardian", VALID.format(name="guardian").replace(line, ""))
+    path = write(tmp_path, "guardian", cluster_text("guardian").replace(line, ""))
     with pytest.raises(ClusterDefinitionError) as info:
         load_cluster(path)
     assert str(path) in str(info.value)
@@ -89,17 +75,17 @@ def test_missing_field_names_file_and_field(tmp_path, field, line):
 
 
 def test_missing_theories_and_wrong_types(tmp_path):
-    text = VALID.format(name="guardian").split("[[theories]]")[0]
+    text = cluster_text("guardian").split("[[theories]]")[0]
     with pytest.raises(ClusterDefinitionError, match="'theories': missing"):
         load_cluster(write(tmp_path, "guardian", text))
-    bad = VALID.format(name="guardian").replace("order = 10", 'order = "ten"')
+    bad = cluster_text("guardian").replace("order = 10", 'order = "ten"')
     with pytest.raises(ClusterDefinitionError, match="'order'"):
         load_cluster(write(tmp_path, "guardian", bad))
-    bad = 'colour = "blue"\n' + VALID.format(name="guardian")
+    bad = 'colour = "blue"\n' + cluster_text("guardian")
     with pytest.raises(ClusterDefinitionError, match="'colour': unknown field"):
         load_cluster(write(tmp_path, "guardian", bad))
     with pytest.raises(ClusterDefinitionError, match="must equal the file name"):
-        load_cluster(write(tmp_path, "other", VALID.format(name="guardian")))
+        load_cluster(write(tmp_path, "other", cluster_text("guardian")))
     with pytest.raises(ClusterDefinitionError, match="not valid TOML"):
         load_cluster(write(tmp_path, "broken", "name = "))
 
@@ -117,7 +103,7 @@ def test_unprompted_needs_instruction_and_mixture_needs_credences(tmp_path):
 
 
 def test_user_directory_adds_a_cluster_without_code(tmp_path):
-    write(tmp_path, "guardian", VALID.format(name="guardian"))
+    write(tmp_path, "guardian", cluster_text("guardian"))
     registry = ClusterRegistry.load([tmp_path])
     assert registry.names()[-2:] == ["guardian", "moral_agent"]
     assert [c.name for c in registry.panel()] == [*PAPER, "guardian"]

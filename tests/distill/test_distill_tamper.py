@@ -15,7 +15,13 @@ from test_distill_source import MEMBERS, Panel, requests, source
 
 from amuled_ma.beliefs.cached import CachedSource
 from amuled_ma.beliefs.store import BeliefStore
-from amuled_ma.distill.state import EXAMPLES_FILE, LEDGER_FILE
+from amuled_ma.distill.state import (
+    EXAMPLES_FILE,
+    LEDGER_FILE,
+    MAX_EXAMPLE_LINE_BYTES,
+    MAX_EXAMPLES_BYTES,
+    MAX_LEDGER_BYTES,
+)
 from amuled_ma.errors import AmuledError
 
 torch.set_num_threads(1)
@@ -150,4 +156,59 @@ def test_honest_resumes_never_ask_more_than_the_budget(tmp_path):
         again.close()
         assert report["asked_states"] == report["cap"] == BUDGET
     assert len(store) == BUDGET * len(MEMBERS)  # counted in the store itself
+    store.close()
+
+
+def _grow(path, size: int) -> None:
+    """Make ``path`` ``size`` bytes long with zeros, sparse: no disk, no time."""
+    with open(path, "r+b") as handle:
+        handle.truncate(size)
+
+
+def test_a_ledger_over_1_gib_is_refused_unread_with_one_line(tmp_path):
+    assert MAX_LEDGER_BYTES == 2**30
+    store = spend(tmp_path)
+    _grow(tmp_path / LEDGER_FILE, MAX_LEDGER_BYTES + 1)
+    with pytest.raises(AmuledError) as info:
+        resume(tmp_path, store)
+    assert_one_line_refusal(info)
+    assert f"the budget state is {MAX_LEDGER_BYTES + 1:,} bytes, more than the " in str(info.value)
+    assert f"{MAX_LEDGER_BYTES:,} a budget state may be" in str(info.value)
+    store.close()
+
+
+def test_a_training_pairs_file_over_2_gib_is_refused_unread(tmp_path):
+    assert MAX_EXAMPLES_BYTES == 2**31
+    store = spend(tmp_path)
+    _grow(tmp_path / EXAMPLES_FILE, MAX_EXAMPLES_BYTES + 1)
+    with pytest.raises(AmuledError) as info:
+        resume(tmp_path, store)
+    assert_one_line_refusal(info)
+    assert f"the training-pairs file is {MAX_EXAMPLES_BYTES + 1:,} bytes" in str(info.value)
+    store.close()
+
+
+def test_a_training_pairs_line_over_1_mib_is_refused_with_its_line_number(tmp_path):
+    # a 1 GiB line of zeros after the real ones (sparse): never read whole
+    store = spend(tmp_path)
+    path = tmp_path / EXAMPLES_FILE
+    lines = path.read_bytes().count(b"\n")
+    _grow(path, 2**30)
+    with pytest.raises(AmuledError) as info:
+        resume(tmp_path, store)
+    assert_one_line_refusal(info)
+    message = str(info.value)
+    assert message.startswith(f"{path}:{lines + 1}: a line longer than the ")
+    assert f"{MAX_EXAMPLE_LINE_BYTES:,} bytes a line may be" in message
+    store.close()
+
+
+def test_a_cut_last_line_of_the_training_pairs_is_still_skipped(tmp_path):
+    store = spend(tmp_path)
+    path = tmp_path / EXAMPLES_FILE
+    with open(path, "ab") as handle:
+        handle.write(b'{"key": "cut sh')  # a crash while the line was written
+    again = resume(tmp_path, store)
+    assert again.ledger.asked_count == BUDGET
+    again.close()
     store.close()

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 from matplotlib.colors import to_hex
+from report_tables import rows_of
 from tiny_cli import RULES, TINY
 
 from amuled_ma.cli import main
@@ -147,15 +148,6 @@ CONFIG = {
     },
     "seeds": [42, 43, 44],
 }
-
-
-def rows_of(table: str) -> dict[str, list[str]]:
-    """A Markdown table's rows by their first cell."""
-    out = {}
-    for line in table.splitlines()[2:]:
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        out[cells[0]] = cells[1:]
-    return out
 
 
 # ---------------------------------------------------------------------------------------

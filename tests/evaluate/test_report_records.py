@@ -6,7 +6,9 @@ made here with known ``infos``; each expected sentence follows from those number
 
 from __future__ import annotations
 
+import pytest
 import torch
+from report_tables import rows_of
 
 from amuled_ma.evaluate.report import panels_table, settings_table, write_report
 from amuled_ma.experiments.run_folder import read_record, variant_fields, write_config
@@ -45,14 +47,6 @@ def training(**feedback) -> dict:
         },
         "inputs": {"recording_sha256": SHA},
     }
-
-
-def rows_of(table: str) -> dict[str, list[str]]:
-    out = {}
-    for line in table.splitlines()[2:]:
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        out[cells[0]] = cells[1:]
-    return out
 
 
 def test_an_interrupted_fine_tune_is_shown_interrupted_with_its_iteration(tmp_path):
@@ -130,3 +124,34 @@ def test_each_fine_tune_shows_its_own_panel():
     panels = rows_of(panels_table(records))
     assert panels["finetune-a"][4] == "care, virtue" and panels["finetune-a"][6] == "bjs-dst"
     assert panels["finetune-b"][4] == "care, deontological" and panels["finetune-b"][6] == "mean"
+
+
+def test_a_config_json_over_4_mb_is_refused_unread_with_one_line(tmp_path):
+    from amuled_ma.errors import AmuledError
+    from amuled_ma.experiments.run_folder import MAX_RECORD_BYTES
+
+    assert MAX_RECORD_BYTES == 4_000_000
+    folder = tmp_path / "finetune-amuled"
+    fields = variant_fields(Variant.parse("finetune:amuled"), folder, training())
+    write_config(folder, Scenario(), fields)
+    path = folder / "config.json"
+    assert read_record(folder) is not None and path.stat().st_size < 20_000  # about 6 KB
+    with open(path, "r+b") as handle:  # sparse: no disk, no time
+        handle.truncate(10**10)
+    with pytest.raises(AmuledError) as info:
+        read_record(folder)
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith(f"{path}: the run record is 10,000,000,000 bytes, more than the ")
+    assert "4,000,000 a run record may be" in message and "--force" in message
+
+
+def test_a_config_json_that_is_not_utf8_is_one_line(tmp_path):
+    from amuled_ma.errors import AmuledError
+
+    folder = tmp_path / "base"
+    folder.mkdir()
+    (folder / "config.json").write_bytes(b'{"x": "\xff"}')
+    with pytest.raises(AmuledError, match="not a readable config") as info:
+        read_record(folder)
+    assert "\n" not in str(info.value)

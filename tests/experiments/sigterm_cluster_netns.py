@@ -1,10 +1,11 @@
 """Run inside fresh network and PID namespaces: SIGTERM to ``amuled run`` on a Ray cluster.
 
 ``python sigterm_cluster_netns.py stop WORK`` or ``... init WORK``. Not a test itself:
-``test_sigterm_ray_cluster.py`` runs it under ``unshare -n -p -f --mount-proc`` (loopback
-only, and a PID namespace of its own, so that ``ray stop --force`` at the end stops this
-cluster's processes and no other Ray of the machine) and asserts on the ``RESULT {json}``
-line it prints last.
+``test_sigterm_ray_cluster.py`` runs it under ``unshare -n -p -f --mount-proc``
+(``netns.run_sealed(..., own_pids=True)``: loopback only, and a PID namespace of its own,
+so that ``ray stop --force`` at the end stops this cluster's processes and no other Ray of
+the machine) and asserts on the ``RESULT {json}`` line it prints last. The cluster's
+pieces are ``tests/ray_netns.py``.
 
 ``stop``: a head (``ray start --head --node-ip-address=127.0.0.1``, Ray's token
 authentication, two CPUs); ``amuled run findmilk --ray 127.0.0.1:PORT`` on tiny settings;
@@ -24,13 +25,13 @@ import shlex
 import signal
 import subprocess
 import sys
-import tempfile
 import time
-import uuid
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: ray_netns
+from ray_netns import cluster_env, main, start_node, stop_cluster
+
 PORT = 6393
-RAY = str(Path(sys.executable).with_name("ray"))
 AMULED = [sys.executable, "-m", "amuled_ma"]
 #: Fine-tune length: long enough that both still iterate when the first checkpoint is
 #: written (every 100 iterations), short enough to resume to the end in the test.
@@ -43,28 +44,6 @@ TINY = [
     "--set", 'feedback.source="rules"',
 ]  # fmt: skip
 TUNES = ("finetune-human", "finetune-amuled")
-
-
-def cluster_env() -> dict[str, str]:
-    """This process's environment with one token for the cluster and the driver."""
-    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0", "GIT_PYTHON_REFRESH": "quiet"}
-    env.update(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=uuid.uuid4().hex + uuid.uuid4().hex)
-    return env
-
-
-def start_head(env: dict[str, str]) -> None:
-    temp_dir = tempfile.mkdtemp(prefix="r", dir="/tmp")  # socket paths must stay short
-    args = [RAY, "start", "--head", f"--port={PORT}", "--node-ip-address=127.0.0.1",
-            "--num-cpus=2", "--include-dashboard=false", "--disable-usage-stats",
-            f"--temp-dir={temp_dir}"]  # fmt: skip
-    done = subprocess.run(args, env=env, capture_output=True, text=True, timeout=180)
-    if done.returncode:
-        raise RuntimeError(f"{args} failed:\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}")
-
-
-def stop_cluster(env: dict[str, str]) -> None:
-    """``ray stop --force``: in this PID namespace it sees this cluster's processes only."""
-    subprocess.run([RAY, "stop", "--force"], env=env, capture_output=True, timeout=180)
 
 
 def run_args(run_dir: Path, *where: str) -> list[str]:
@@ -110,7 +89,7 @@ def progress(path: Path) -> dict | None:
 def stop_run(work: Path) -> dict:
     env = cluster_env()
     figures: dict = {}
-    start_head(env)
+    start_node(env, PORT, head=True, cpus=2)
     try:
         run_dir = work / "run"
         proc = start(run_args(run_dir, "--ray", f"127.0.0.1:{PORT}"), env, work / "stop")
@@ -209,7 +188,7 @@ def init_run(work: Path) -> dict:
         "local": init_case(work, "local", ["--jobs", "2"], env,
                            lambda pid: bool(_children_named(pid, "gcs_server"))),
     }  # fmt: skip
-    start_head(env)
+    start_node(env, PORT, head=True, cpus=2)
     try:
         figures["cluster"] = init_case(work, "cluster", ["--ray", f"127.0.0.1:{PORT}"], env,
                                        lambda pid: _connected(pid, PORT))  # fmt: skip
@@ -218,12 +197,5 @@ def init_run(work: Path) -> dict:
     return figures
 
 
-def main() -> int:
-    mode, work = sys.argv[1], Path(sys.argv[2])
-    figures = stop_run(work) if mode == "stop" else init_run(work)
-    print("RESULT " + json.dumps(figures), flush=True)
-    return 0
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main({"stop": stop_run, "init": init_run}))

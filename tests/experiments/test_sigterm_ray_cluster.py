@@ -17,38 +17,16 @@ interface and no traffic leaves the machine; and a PID namespace, so that the
 
 from __future__ import annotations
 
-import json
 import os
 import re
-import signal
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
-from netns import require_netns
+from netns import OWN_PIDS, require_netns, run_sealed
 
 SCRIPT = Path(__file__).resolve().parent / "sigterm_cluster_netns.py"
 ITERATIONS = 600  # the script's fine-tune length
-
-
-def run_sealed_pid(mode: str, work: Path, timeout: float) -> tuple[dict, str]:
-    """The script in new network and PID namespaces; its RESULT line and its output."""
-    command = [
-        "unshare", "-n", "-p", "-f", "--kill-child", "--mount-proc",
-        "sh", "-c", 'ip link set lo up && exec "$0" "$@"', sys.executable, str(SCRIPT),
-        mode, str(work),
-    ]  # fmt: skip
-    job = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        output, _ = job.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        job.send_signal(signal.SIGKILL)  # --kill-child: the namespace's processes go too
-        output, _ = job.communicate()
-        pytest.fail(f"the sealed run took more than {timeout} s:\n{output[-6000:]}")
-    lines = [line for line in output.splitlines() if line.startswith("RESULT ")]
-    assert job.returncode == 0 and lines, f"exit {job.returncode}:\n{output[-6000:]}"
-    return json.loads(lines[-1][len("RESULT ") :]), output
 
 
 #: A warning of Ray's C++ core, printed to the driver's stderr by Ray itself while it
@@ -64,8 +42,10 @@ def one_line(stderr: str) -> list[str]:
 
 @pytest.mark.slow
 def test_sigterm_on_a_ray_cluster_checkpoints_and_the_printed_resume_finishes(tmp_path):
-    require_netns()
-    result, _output = run_sealed_pid("stop", tmp_path, timeout=1500)
+    require_netns(own_pids=True)
+    result, _output = run_sealed(
+        SCRIPT, ["stop", str(tmp_path)], timeout=1500, env=os.environ, own_pids=True
+    )
     err = result["stderr"]
     assert result["code"] == 143, err
     assert "Traceback" not in err and "SIGTERM received" not in err, err
@@ -85,8 +65,10 @@ def test_sigterm_on_a_ray_cluster_checkpoints_and_the_printed_resume_finishes(tm
 
 @pytest.mark.slow
 def test_sigterm_during_ray_init_is_one_line_and_leaves_no_run_folder(tmp_path):
-    require_netns()
-    result, _output = run_sealed_pid("init", tmp_path, timeout=900)
+    require_netns(own_pids=True)
+    result, _output = run_sealed(
+        SCRIPT, ["init", str(tmp_path)], timeout=900, env=os.environ, own_pids=True
+    )
     for where in ("local", "cluster"):
         case = result[where]
         assert case["code"] == 143, (where, case)
@@ -96,9 +78,9 @@ def test_sigterm_during_ray_init_is_one_line_and_leaves_no_run_folder(tmp_path):
 
 def test_the_script_exists_and_the_pid_namespace_is_permitted():
     """A cheap check that runs without the slow marker: the launcher's namespaces work."""
-    require_netns()
+    require_netns(own_pids=True)
     probe = subprocess.run(
-        ["unshare", "-n", "-p", "-f", "--kill-child", "--mount-proc", "sh", "-c", "echo $$"],
+        [*OWN_PIDS, "sh", "-c", "echo $$"],
         capture_output=True, text=True, timeout=30, env=dict(os.environ),
     )  # fmt: skip
     assert probe.returncode == 0 and probe.stdout.strip() == "1", probe

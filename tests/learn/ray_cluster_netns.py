@@ -1,12 +1,14 @@
-"""Run inside a fresh network namespace: a two-node Ray cluster on loopback.
+"""Run inside fresh network and PID namespaces: a two-node Ray cluster on loopback.
 
 ``python ray_cluster_netns.py kill WORK`` (a node killed mid-run) or ``... store WORK``
 (the second node does not see the driver's files: its jobs' folders travel through Ray
 and it reaches the belief store through the driver's store actor).
 
-Not a test itself: ``test_ray_cluster.py`` runs it under ``unshare -n`` (loopback only, so
-no traffic can leave the machine and Ray cannot pick an external interface) and asserts on
-the ``RESULT {json}`` line it prints last.
+Not a test itself: ``test_ray_cluster.py`` runs it under ``unshare -n -p -f --mount-proc``
+(``netns.run_sealed(..., own_pids=True)``: loopback only, so no traffic can leave the
+machine and Ray cannot pick an external interface; and a PID namespace of its own, so that
+the ``ray stop --force`` at the end stops this cluster alone) and asserts on the
+``RESULT {json}`` line it prints last. The cluster's pieces are ``tests/ray_netns.py``.
 
 ``kill``:
 
@@ -35,10 +37,11 @@ import re
 import signal
 import subprocess
 import sys
-import tempfile
 import time
-import uuid
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: ray_netns
+from ray_netns import cluster_env, main, start_node, stop_cluster
 
 ITERATIONS, SAVE_EVERY = 150, 25
 TINY = {
@@ -53,12 +56,16 @@ TINY = {
     "feedback.source": '"rules"',
 }
 PORT = 6391
-RAY = str(Path(sys.executable).with_name("ray"))
+#: What each node offers besides its one CPU: one job at a time (``--ray-resource``).
+JOB_SLOT = {"amuled_job": 1}
 
 
 def ablate(run_dir: Path, *extra: str, settings: dict | None = None) -> list[str]:
     args = [sys.executable, "-m", "amuled_ma", "ablate", "findmilk", "--what", "aggregation"]
-    args += ["--run-dir", str(run_dir), "--episodes", "2", "--no-progress", *extra]
+    # every job alone: these runs check Ray's cluster mechanics bit for bit against one
+    # machine (populations are checked on Ray in tests/learn/test_jobs.py)
+    args += ["--run-dir", str(run_dir), "--episodes", "2", "--no-progress", "--no-population"]
+    args += list(extra)
     for key, value in (TINY if settings is None else settings).items():
         args += ["--set", f"{key}={value}"]
     return args
@@ -67,23 +74,6 @@ def ablate(run_dir: Path, *extra: str, settings: dict | None = None) -> list[str
 def raylets() -> set[int]:
     out = subprocess.run(["pgrep", "-x", "raylet"], capture_output=True, text=True).stdout
     return {int(pid) for pid in out.split()}
-
-
-def start_node(env: dict, temp_dir: str, head: bool, private: Path | None = None) -> None:
-    """``ray start`` a head or a second node; ``private``: hidden under an empty tmpfs."""
-    common = ["--node-ip-address=127.0.0.1", "--num-cpus=1", '--resources={"amuled_job": 1}']
-    common += ["--disable-usage-stats"]
-    if head:
-        args = [RAY, "start", "--head", f"--port={PORT}", "--include-dashboard=false"]
-        args += [f"--temp-dir={temp_dir}"]
-    else:
-        args = [RAY, "start", f"--address=127.0.0.1:{PORT}"]
-    if private is not None:  # its own mount namespace: an empty tmpfs over the folder
-        script = f'mount -t tmpfs tmpfs "{private}" && exec "$0" "$@"'
-        args = ["unshare", "-m", "--propagation", "private", "sh", "-c", script, *args]
-    done = subprocess.run([*args, *common], env=env, capture_output=True, text=True, timeout=120)
-    if done.returncode:
-        raise RuntimeError(f"{args} failed:\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}")
 
 
 def learned(run_dir: Path) -> dict:
@@ -96,13 +86,6 @@ def learned(run_dir: Path) -> dict:
         rows = json.loads((folder / "curve.json").read_text())
         out[folder.name] = [{k: v for k, v in r.items() if k != "wall_s"} for r in rows]
     return out
-
-
-def cluster_env() -> dict:
-    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0", "GIT_PYTHON_REFRESH": "quiet"}
-    # Ray's token authentication, one token for the cluster's nodes and the driver
-    env.update(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=uuid.uuid4().hex + uuid.uuid4().hex)
-    return env
 
 
 def asked(run_dir: Path) -> int:
@@ -123,10 +106,9 @@ def store_run(work: Path) -> dict:
     args = ablate(work / "reference", "--jobs", "2", settings=replay)
     subprocess.run(args, env=env, check=True, capture_output=True, timeout=600)
     figures["reference_s"] = round(time.monotonic() - t0, 1)
-    temp_dir = tempfile.mkdtemp(prefix="r", dir="/tmp")
     try:
-        start_node(env, temp_dir, head=True)
-        start_node(env, temp_dir, head=False, private=work)
+        start_node(env, PORT, head=True, cpus=1, resources=JOB_SLOT)
+        start_node(env, PORT, head=False, private=work, cpus=1, resources=JOB_SLOT)
         t0 = time.monotonic()
         args = ablate(work / "ray", "--ray", f"127.0.0.1:{PORT}", "--ray-resource",
                       "amuled_job", settings=replay)  # fmt: skip
@@ -146,7 +128,7 @@ def store_run(work: Path) -> dict:
             tail=output[-3000:],
         )
     finally:
-        subprocess.run([RAY, "stop", "--force"], env=env, capture_output=True, timeout=120)
+        stop_cluster(env)
     return figures
 
 
@@ -157,12 +139,11 @@ def kill_run(work: Path) -> dict:
     subprocess.run(ablate(work / "reference", "--jobs", "1"), env=env, check=True,
                    capture_output=True, timeout=600)  # fmt: skip
     figures["reference_s"] = round(time.monotonic() - t0, 1)
-    temp_dir = tempfile.mkdtemp(prefix="r", dir="/tmp")  # socket paths must stay short
     try:
         t0 = time.monotonic()
-        start_node(env, temp_dir, head=True)
+        start_node(env, PORT, head=True, cpus=1, resources=JOB_SLOT)
         head_raylets = raylets()
-        start_node(env, temp_dir, head=False)
+        start_node(env, PORT, head=False, cpus=1, resources=JOB_SLOT)
         second = raylets() - head_raylets
         assert len(second) == 1, (head_raylets, second)
         figures["cluster_start_s"] = round(time.monotonic() - t0, 1)
@@ -195,16 +176,9 @@ def kill_run(work: Path) -> dict:
             fine_tunes=len(learned(run_dir)), tail=output[-3000:],
         )  # fmt: skip
     finally:
-        subprocess.run([RAY, "stop", "--force"], env=env, capture_output=True, timeout=120)
+        stop_cluster(env)
     return figures
 
 
-def main() -> int:
-    mode, work = sys.argv[1], Path(sys.argv[2])
-    figures = kill_run(work) if mode == "kill" else store_run(work)
-    print("RESULT " + json.dumps(figures), flush=True)
-    return 0
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main({"kill": kill_run, "store": store_run}))

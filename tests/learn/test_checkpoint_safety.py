@@ -9,23 +9,15 @@ import os
 import shutil
 
 import pytest
+import tiny_cli
 import torch
 
 from amuled_ma.cli import main
 from amuled_ma.errors import CheckpointError
 from amuled_ma.learn.checkpoints import read_checkpoint
 
-TINY = [
-    "--set", "base.total_steps=1024",
-    "--set", "base.num_envs=16",
-    "--set", "base.num_steps_per_env=16",
-    "--set", "finetune.iterations=2",
-    "--set", "finetune.num_envs=4",
-    "--set", "finetune.num_steps_per_env=8",
-    "--set", "output.tensorboard=false",
-    "--set", 'feedback.source="rules"',
-    "--no-progress",
-]  # fmt: skip
+#: The tiny run, its fine-tunes 2 iterations long, on the rules panel.
+TINY = [*tiny_cli.TINY, *tiny_cli.RULES, "--set", "finetune.iterations=2"]
 
 
 class _Payload:
@@ -107,3 +99,62 @@ def test_our_checkpoints_load_weights_only_and_resume(trained, tmp_path, capsys)
     tuned = read_checkpoint(run_dir / "finetune-human" / "model_last.pt", need=("iter",))
     assert tuned["iter"] == 3
     capsys.readouterr()
+
+
+def _sparse(path, size: int) -> None:
+    """A file of ``size`` zero bytes that takes no disk (and no time) to make."""
+    with open(path, "wb") as handle:
+        handle.truncate(size)
+
+
+@pytest.mark.parametrize(
+    ("name", "what"), [("model_last.pt", "checkpoint"), ("x.cleanrl_model", "the CleanRL policy")]
+)
+def test_a_checkpoint_over_1_gib_is_refused_unread_with_one_line(tmp_path, monkeypatch, name, what):
+    import time
+
+    from amuled_ma.authors.policies import read_cleanrl
+    from amuled_ma.torch_files import MAX_TORCH_FILE_BYTES
+
+    assert MAX_TORCH_FILE_BYTES == 2**30
+    path = tmp_path / name
+    _sparse(path, MAX_TORCH_FILE_BYTES + 1)
+
+    def never(*args, **kwargs):
+        raise AssertionError("torch.load was called: the file was read")
+
+    monkeypatch.setattr(torch, "load", never)
+    start = time.perf_counter()
+    with pytest.raises(CheckpointError) as info:
+        read_checkpoint(path) if what == "checkpoint" else read_cleanrl(path)
+    assert time.perf_counter() - start < 1.0
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith(f"cannot load {what} {path}: it is 1,073,741,825 bytes, more than ")
+    assert "the 1,073,741,824 a PyTorch file may be" in message and "it is not read" in message
+
+
+def test_a_checkpoint_at_the_cap_is_handed_to_torch(tmp_path, monkeypatch):
+    from amuled_ma.torch_files import MAX_TORCH_FILE_BYTES
+
+    path = tmp_path / "model_last.pt"
+    _sparse(path, MAX_TORCH_FILE_BYTES)
+    called = []
+    monkeypatch.setattr(torch, "load", lambda *a, **k: called.append(a) or {"iter": 1})
+    with pytest.raises(CheckpointError, match="lacks 'actor_state_dict'"):
+        read_checkpoint(path)
+    assert called, "a file at the cap is read"
+
+
+def test_evaluate_refuses_a_checkpoint_over_1_gib_with_one_line(trained, tmp_path, capsys):
+    from amuled_ma.torch_files import MAX_TORCH_FILE_BYTES
+
+    run_dir = tmp_path / "run"
+    shutil.copytree(trained, run_dir)
+    _sparse(run_dir / "base" / "model_last.pt", 2 * MAX_TORCH_FILE_BYTES)
+    capsys.readouterr()
+    assert main(["evaluate", str(run_dir), "--episodes", "1", "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("amuled: error: "), err
+    assert "model_last.pt: it is 2,147,483,648 bytes, more than the 1,073,741,824" in err
+    assert "Traceback" not in err

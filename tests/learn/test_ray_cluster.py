@@ -1,17 +1,18 @@
 """A two-node Ray cluster on loopback trains small ablations: a node killed; a node apart.
 
-``ray_cluster_netns.py`` runs inside a network namespace this test makes (``unshare -n``,
-loopback only): a head and a second ``ray start`` on 127.0.0.1, each offering one unit of
-the custom resource ``amuled_job`` (``--ray-resource``), so the fine-tunes land on both
-nodes. Once two fine-tunes have written a periodic checkpoint (every 25 iterations), the
-second node's raylet gets ``kill -9``. Checked: the run finishes; jobs started on both
-nodes; the lost job was run again and resumed from its checkpoint (not from iteration 0);
-every fine-tune's learning curve equals that of the same ablation with ``--jobs 1``
-(an exact resume: the checkpoint keeps the episodes in flight).
+``ray_cluster_netns.py`` runs inside network and PID namespaces this test makes
+(``unshare -n -p -f --mount-proc``, loopback only): a head and a second ``ray start`` on
+127.0.0.1, each offering one unit of the custom resource ``amuled_job``
+(``--ray-resource``), so the fine-tunes land on both nodes. Once two fine-tunes have
+written a periodic checkpoint (every 25 iterations), the second node's raylet gets
+``kill -9``. Checked: the run finishes; jobs started on both nodes; the lost job was run
+again and resumed from its checkpoint (not from iteration 0); every fine-tune's learning
+curve equals that of the same ablation with ``--jobs 1`` (an exact resume: the checkpoint
+keeps the episodes in flight).
 
-The script ends with ``ray stop --force``, which stops every Ray process of the machine,
-not only the namespace's: do not run these tests beside another Ray (CI runs tests one
-after the other).
+The script ends with ``ray stop --force``; in the script's own PID namespace that stops
+this cluster alone, not another Ray of the machine, and every process left dies with the
+namespace.
 """
 
 from __future__ import annotations
@@ -27,8 +28,10 @@ SCRIPT = Path(__file__).resolve().parent / "ray_cluster_netns.py"
 
 @pytest.mark.slow
 def test_two_node_cluster_loses_a_node_and_finishes_equal_to_one_process(tmp_path: Path):
-    require_netns()
-    result, _output = run_sealed(SCRIPT, ["kill", str(tmp_path)], timeout=840, env=os.environ)
+    require_netns(own_pids=True)
+    result, _output = run_sealed(
+        SCRIPT, ["kill", str(tmp_path)], timeout=840, env=os.environ, own_pids=True
+    )
     context = f"{ {k: v for k, v in result.items() if k != 'tail'} }\n{result['tail']}"
     assert result["code"] == 0, context
     assert len(result["nodes"]) == 2, context  # jobs started on both nodes
@@ -51,8 +54,10 @@ def test_a_node_without_the_driver_files_shares_the_sweep_belief_store(
     machine (``--jobs 2``, one SQLite store; the issue's target: at most 5% more), and
     learns the same policies.
     """
-    require_netns()
-    result, _output = run_sealed(SCRIPT, ["store", str(tmp_path)], timeout=840, env=os.environ)
+    require_netns(own_pids=True)
+    result, _output = run_sealed(
+        SCRIPT, ["store", str(tmp_path)], timeout=840, env=os.environ, own_pids=True
+    )
     context = f"{ {k: v for k, v in result.items() if k != 'tail'} }\n{result['tail']}"
     assert result["code"] == 0, context
     assert len(result["nodes"]) == 2 and result["fine_tunes"] == 4, context
