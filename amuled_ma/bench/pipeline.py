@@ -21,7 +21,11 @@ a column without them, about 3-4 hours on 2 cores).
 from __future__ import annotations
 
 import argparse
+import subprocess
+import sys
+import threading
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from amuled_ma.bench._output import output_folder
@@ -72,6 +76,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="training seeds of every variant, passed to every stage (default: 1)",
     )
     parser.add_argument(
+        "--tasks-at-once",
+        action="store_true",
+        help="run each task's stages in its own process, the tasks at the same time (e.g. "
+        "with --jobs 1: one population per stage per task, one task per core); the total "
+        "is then the wall clock of the whole, not the sum of the stages",
+    )
+    parser.add_argument(
         "--no-population",
         action="store_true",
         help="add a column: every stage with --no-population (every job alone; hours with "
@@ -97,18 +108,31 @@ def _jobs_values(text: str) -> list[int]:
     return values
 
 
+def _subprocess_amuled(args: list[str]) -> int:
+    """Run ``amuled ARGS`` in a process of its own; its exit status."""
+    return subprocess.run([sys.executable, "-m", "amuled_ma", *args], check=False).returncode
+
+
 def time_pipeline(
-    tasks: list[str], jobs: int | str, out: Path, overrides: list[str], extra: list[str] = ()
+    tasks: list[str],
+    jobs: int | str,
+    out: Path,
+    overrides: list[str],
+    extra: Sequence[str] = (),
+    *,
+    run: Callable[[list[str]], int] | None = None,
 ) -> dict[tuple[str, str], float]:
     """Run every stage of every task into ``out/<task>``; return seconds per (task, stage).
 
     ``jobs`` is a ``--jobs`` count, ``"ray"`` for ``--ray`` (a local Ray, every core), or
     ``"alone"`` for ``--no-population`` (one job per core); ``extra`` are more arguments of
-    every stage (``--recipe``, ``--seeds``).
+    every stage (``--recipe``, ``--seeds``); ``run`` runs one ``amuled`` command (default:
+    in this process).
     """
     from amuled_ma.cli import main as amuled
     from amuled_ma.errors import AmuledError
 
+    run = run or amuled
     seconds: dict[tuple[str, str], float] = {}
     sets = [a for text in overrides for a in ("--set", text)]
     for task in tasks:
@@ -121,11 +145,45 @@ def time_pipeline(
             args += ["--no-progress", *sets]
             print(f"[jobs={jobs}] amuled {' '.join(args)}", flush=True)
             t0 = time.perf_counter()
-            code = amuled(args)
+            code = run(args)
             seconds[(task, stage)] = time.perf_counter() - t0
             if code != 0:
                 raise AmuledError(f"'amuled {' '.join(args)}' exited with status {code}")
     return seconds
+
+
+def time_tasks_at_once(
+    tasks: list[str], jobs: int | str, out: Path, overrides: list[str], extra: Sequence[str]
+) -> tuple[dict[tuple[str, str], float], float]:
+    """:func:`time_pipeline` of every task at the same time, each in processes of its own.
+
+    Returns:
+        Seconds per (task, stage), and the wall clock of the whole.
+
+    """
+    from amuled_ma.errors import AmuledError
+
+    seconds: dict[tuple[str, str], float] = {}
+    failures: list[BaseException] = []
+
+    def one(task: str) -> None:
+        try:
+            seconds.update(
+                time_pipeline([task], jobs, out, overrides, extra, run=_subprocess_amuled)
+            )
+        except AmuledError as error:
+            failures.append(error)
+
+    t0 = time.perf_counter()
+    threads = [threading.Thread(target=one, args=(task,)) for task in tasks]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    wall = time.perf_counter() - t0
+    if failures:
+        raise failures[0]
+    return seconds, wall
 
 
 def main(args: argparse.Namespace) -> int:
@@ -139,10 +197,18 @@ def main(args: argparse.Namespace) -> int:
     ]
     tasks = [t.strip() for t in args.tasks.split(",") if t.strip()]
     extra = (["--recipe", args.recipe] if args.recipe else []) + ["--seeds", str(args.seeds)]
-    timings = {}
+    timings, walls = {}, {}
     with output_folder(args.out, "amuled-bench-pipeline-") as root:
         for jobs in values:
-            timings[jobs] = time_pipeline(tasks, jobs, root / f"jobs{jobs}", args.overrides, extra)
+            if args.tasks_at_once:
+                timings[jobs], walls[jobs] = time_tasks_at_once(
+                    tasks, jobs, root / f"jobs{jobs}", args.overrides, extra
+                )
+            else:
+                timings[jobs] = time_pipeline(
+                    tasks, jobs, root / f"jobs{jobs}", args.overrides, extra
+                )
+                walls[jobs] = sum(timings[jobs].values())
     cpus = available_cpus()
     labels = [
         "--ray (local Ray)"
@@ -165,7 +231,10 @@ def main(args: argparse.Namespace) -> int:
         for stage, _ in STAGES:
             cells = [f"{timings[j][(task, stage)]:.1f}" for j in values]
             print(f"| {task}: {stage} | " + " | ".join(cells) + " |")
-    totals = [sum(timings[j].values()) for j in values]
+    totals = [walls[j] for j in values]
+    if args.tasks_at_once:
+        print("(the tasks ran at the same time, each in its own processes: the total is the "
+              "wall clock of the whole)")  # fmt: skip
     print("| **total** | " + " | ".join(f"**{t:.1f}** ({t / 60:.1f} min)" for t in totals) + " |")
     if len(values) > 1:
         print(f"speed-up of {labels[-1]} over {labels[0]}: "

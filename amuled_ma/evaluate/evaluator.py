@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from amuled_ma.beliefs.types import FUSED_STATUSES
-from amuled_ma.errors import CheckpointError, ScenarioError
+from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError
 from amuled_ma.evaluate.results import Results, write_results
 from amuled_ma.evaluate.rollout import TrajectoryRecorder, rollout
 from amuled_ma.evaluate.stats import mean_ci
@@ -33,6 +33,54 @@ PAPER_METRICS = {
     "findmilk": ["steps_to_milk", "crying_pacified", "sleeping_woken", "reached_milk"],
     "driving": ["collisions", "rescues", "lane_changes"],
 }
+#: A fine-tune's fused-belief diagnostics, in its variant folder.
+FEEDBACK_FILE = "feedback.json"
+#: Largest ``feedback.json`` read [bytes]: a fine-tune's is about 4 KB (its counts per
+#: member and status, whatever the run's length); 16 MiB is 4,000 times that, and the
+#: file is read whole, one per variant folder.
+MAX_FEEDBACK_BYTES = 16 * 2**20
+
+
+def read_feedback(folder: Path) -> dict[str, Any] | None:
+    """A variant folder's ``feedback.json`` (a fine-tune's diagnostics), None without one.
+
+    Args:
+        folder: A variant folder.
+
+    Returns:
+        The diagnostics as written by the trainer, or None when the folder has none.
+
+    Raises:
+        AmuledError: The file is larger than :data:`MAX_FEEDBACK_BYTES` (refused from its
+            size, before it is read), cannot be read, or is not a JSON object; one line
+            naming the file.
+
+    """
+    from amuled_ma.file_limits import read_bounded_bytes
+
+    path = Path(folder) / FEEDBACK_FILE
+    if not path.is_file():
+        return None
+    fix = (
+        "is it the right folder? It is written by 'amuled finetune'; fine-tune the variant "
+        "again with --force, or delete the file (the report then has no diagnostics for it)"
+    )
+    try:
+        raw = read_bounded_bytes(
+            path,
+            MAX_FEEDBACK_BYTES,
+            "diagnostics file",
+            note="a fine-tune's is about 4 KB",
+            fix=fix,
+        )
+        data = json.loads(raw)
+    except OSError as err:
+        raise AmuledError(f"{path}: cannot read it ({err.strerror or err}); {fix}") from None
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
+        raise AmuledError(f"{path}: not JSON ({err}); {fix}") from None
+    if not isinstance(data, dict):
+        raise AmuledError(f"{path}: expected a JSON object, found {type(data).__name__}; {fix}")
+    return data
 
 
 def run_episodes(
@@ -272,6 +320,8 @@ def evaluate_run(
 
     Raises:
         CheckpointError: The run has no trained variant.
+        AmuledError: A variant's ``feedback.json`` is over :data:`MAX_FEEDBACK_BYTES` or
+            not JSON (:func:`read_feedback`; checked before any episode is run).
 
     """
     from tqdm.auto import tqdm
@@ -311,6 +361,8 @@ def evaluate_run(
     groups: dict[str, list[Path]] = {}
     for vdir in dirs:
         groups.setdefault(name_of(vdir), []).append(vdir)
+    # the diagnostics first: a file refused costs no evaluation episode
+    feedbacks = {vdir: read_feedback(vdir) for vdir in dirs}
     jobs = [(name, vdir, m) for name, members in groups.items() for vdir in members for m in modes]
     runs: dict[tuple[str, str], list[tuple[str, list, dict]]] = {}
     for name, vdir, mode in tqdm(
@@ -325,11 +377,7 @@ def evaluate_run(
         entry = results["variants"].setdefault(name, {})
         entry[mode] = combine_replicas(replicas, ev.confidence)
     for name, members in groups.items():
-        summaries = [
-            json.loads((d / "feedback.json").read_text())
-            for d in members
-            if (d / "feedback.json").is_file()
-        ]
+        summaries = [feedbacks[d] for d in members if feedbacks[d] is not None]
         if summaries:
             results["variants"][name]["feedback"] = merge_feedback(summaries)
         record = records.get(members[0].name)

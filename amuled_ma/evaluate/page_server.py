@@ -12,6 +12,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+#: Largest page served [bytes]: the page is held in memory and sent whole. A viewer page
+#: is about 0.2 MB (the demo's) and at most a few MB (issue 17's target: 3 MB for a
+#: 300-step Driving episode with five agents); 64 MiB is 20 times that target.
+MAX_PAGE_BYTES = 64 * 2**20
+
 
 class _OneFileHandler(http.server.BaseHTTPRequestHandler):
     """Serve one file at ``/`` (and its name); everything else is 404."""
@@ -38,11 +43,29 @@ class _OneFileHandler(http.server.BaseHTTPRequestHandler):
 def make_server(path: Path, host: str = "127.0.0.1", port: int = 0) -> http.server.HTTPServer:
     """An HTTP server for one file on ``host`` (a free port when ``port`` is 0).
 
+    Args:
+        path: The HTML file, read once (before the address is bound).
+        host: Address to listen on.
+        port: Port (0: a free one).
+
+    Returns:
+        The server, bound, not yet serving.
+
     Raises:
-        OSError: The address cannot be bound.
+        OSError: The file cannot be read, or the address cannot be bound.
+        AmuledError: The file is larger than :data:`MAX_PAGE_BYTES` (refused from its
+            size, before it is read); one line naming it.
 
     """
-    body = Path(path).read_bytes()
+    from amuled_ma.file_limits import read_bounded_bytes
+
+    body = read_bounded_bytes(
+        path,
+        MAX_PAGE_BYTES,
+        "page",
+        note="a viewer page is at most a few MB",
+        fix="is it the right file? Open it in a browser from the file instead (its file:// URL)",
+    )
     handler = type("ViewerHandler", (_OneFileHandler,), {"body": body, "name": Path(path).name})
     return http.server.ThreadingHTTPServer((host, port), handler)
 
@@ -63,6 +86,10 @@ def serve(
         port: Port (0: a free one).
         seconds: Stop after this many seconds (None: until Ctrl-C).
         say: Where the URL is printed.
+
+    Raises:
+        OSError: The page cannot be read, or the address cannot be bound.
+        AmuledError: The page is larger than :data:`MAX_PAGE_BYTES` (:func:`make_server`).
 
     """
     server = make_server(path, host, port)

@@ -22,6 +22,11 @@ from pydantic import BaseModel, ConfigDict
 
 #: The action selection modes a variant is evaluated in.
 MODES = ("greedy", "sampled")
+#: Largest ``results.json`` read [bytes]: about 140 bytes an episode of each variant and
+#: mode, plus about 30 KB for its first episode's trajectory (the demo's 50 episodes of 3
+#: variants in 2 modes: 0.6 MB); 256 MiB holds 100,000 episodes of 8 variants in 2 modes.
+#: The file is read whole (``view``, ``explain``).
+MAX_RESULTS_BYTES = 256 * 2**20
 
 
 class Stat(BaseModel):
@@ -190,17 +195,32 @@ def _cell(value: float | None) -> float:
 def read_results(run_dir: Path) -> Results:
     """Read a run's ``results.json``.
 
+    Args:
+        run_dir: The run directory.
+
+    Returns:
+        The results.
+
     Raises:
-        AmuledError: Missing or not in the shape of :class:`Results`.
+        AmuledError: Missing, not in the shape of :class:`Results`, or larger than
+            :data:`MAX_RESULTS_BYTES` (refused from its size, before it is read).
 
     """
     from pydantic import ValidationError
 
     from amuled_ma.errors import AmuledError
+    from amuled_ma.file_limits import read_bounded_bytes
 
     path = Path(run_dir) / "results.json"
     try:
-        return Results.model_validate_json(path.read_text())
+        raw = read_bounded_bytes(
+            path,
+            MAX_RESULTS_BYTES,
+            "results file",
+            note="about 140 bytes an episode of each variant and mode",
+            fix=f"is it the right folder? Evaluate the run again with 'amuled evaluate {run_dir}'",
+        )
+        return Results.model_validate_json(raw)
     except (OSError, ValidationError) as err:
         first = str(err).splitlines()[0]
         raise AmuledError(

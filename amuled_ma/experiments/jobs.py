@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import contextlib
 import os
-import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from amuled_ma.errors import AmuledError
+from amuled_ma.experiments.ray_switches import ray_switches
 from amuled_ma.experiments.run_folder import JobResult, TrainJob
 from amuled_ma.learn.config import planned_iterations
 from amuled_ma.scenario import Scenario
@@ -62,54 +62,6 @@ class JobsOutcome:
     results: list[JobResult] = field(default_factory=list)
     wall_s: float = 0.0
     workers: int = 1
-
-
-#: Ray's switch between a one-machine Ray, whose processes listen on loopback only, and a
-#: cluster node; Ray reads it once, when it is imported (:func:`prefer_loopback`).
-SINGLE_MACHINE_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
-
-
-#: Ray's switch for its C++ failure-signal handler, read once, when Ray is imported
-#: (:func:`keep_sigterm`).
-FAILURE_HANDLER_ENV = "RAY_DISABLE_FAILURE_SIGNAL_HANDLER"
-
-
-def keep_sigterm() -> None:
-    """Keep Ray's C++ core worker from taking this driver's SIGTERM while ``ray.init`` runs.
-
-    ``ray.init`` creates the driver's core worker, whose failure-signal handler (installed
-    unless Ray's ``RAY_DISABLE_FAILURE_SIGNAL_HANDLER`` was set when Ray was imported)
-    prints "SIGTERM received" and aborts (exit 134, no checkpoint, no resume command) for
-    a SIGTERM that arrives before ``ray.init`` returns and the command's own handler is put
-    back. Sets the switch for the import of Ray only: Ray's processes (its workers) keep
-    their handler, which prints a stack trace when they crash. A no-op once Ray is
-    imported.
-    """
-    if "ray" in sys.modules:
-        return
-    before = os.environ.get(FAILURE_HANDLER_ENV)
-    os.environ[FAILURE_HANDLER_ENV] = "1"
-    try:
-        import ray  # noqa: F401 - read the switch now
-    finally:
-        if before is None:
-            os.environ.pop(FAILURE_HANDLER_ENV, None)
-        else:
-            os.environ[FAILURE_HANDLER_ENV] = before
-
-
-def prefer_loopback() -> None:
-    """Make the local Ray this process will start listen on loopback only.
-
-    Sets Ray's ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0`` (a one-machine Ray: its node address,
-    and so every port its processes open, is 127.0.0.1) before Ray is imported, which is
-    when Ray reads it. A no-op once Ray is imported; then the local Ray listens on every
-    interface, its calls still checked against this run's token
-    (:func:`amuled_ma.experiments.ray_jobs.connect` says so). Not for ``--ray ADDRESS``:
-    a cluster's nodes must reach the driver.
-    """
-    if "ray" not in sys.modules:
-        os.environ[SINGLE_MACHINE_ENV] = "0"
 
 
 def available_cpus() -> int:
@@ -179,24 +131,6 @@ def uses_ray(jobs: Sequence[TrainJob], workers: int, ray: RayTarget | None) -> b
 
 
 @contextlib.contextmanager
-def _ray_switches(local: bool) -> Iterator[None]:
-    """Ray's import-time switches (:func:`keep_sigterm`; loopback for a local Ray)."""
-    before = os.environ.get(SINGLE_MACHINE_ENV)
-    if local:
-        prefer_loopback()
-    keep_sigterm()
-    try:
-        yield
-    finally:
-        # the local Ray's processes took the switch with them; a process this one starts
-        # later (a `ray start --address` joining a cluster, say) must not inherit it
-        if before is None:
-            os.environ.pop(SINGLE_MACHINE_ENV, None)
-        else:
-            os.environ[SINGLE_MACHINE_ENV] = before
-
-
-@contextlib.contextmanager
 def ray_connection(
     jobs: Sequence[TrainJob], *, workers: int, ray: RayTarget | None = None
 ) -> Iterator[None]:
@@ -222,7 +156,7 @@ def ray_connection(
         yield
         return
     target = ray or RayTarget()
-    with _ray_switches(target.address is None):
+    with ray_switches(target.address is None):
         from amuled_ma.experiments.ray_jobs import connect, disconnect
 
         ours = connect(target.address, workers)
@@ -293,7 +227,7 @@ def run_jobs(
         results_by_name = {**skipped, **ran}
         return JobsOutcome([results_by_name[j.name] for j in jobs], time.perf_counter() - start, 1)
     target = ray or RayTarget()
-    with _ray_switches(target.address is None):
+    with ray_switches(target.address is None):
         from amuled_ma.experiments.ray_jobs import run_on_ray  # here: importing Ray takes a second
 
         ran = run_on_ray(

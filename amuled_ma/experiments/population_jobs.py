@@ -3,9 +3,13 @@
 :func:`population_groups` cuts a job graph into groups that train together: jobs at the
 same depth of the graph (bases first, then the fine-tunes that need them) whose
 :func:`~amuled_ma.learn.population_groups.population_key` is equal, each group within a
-share of this machine's memory and cut into one population per worker, so that every core
-trains one. :func:`train_population_jobs` trains one group: each job is checked and
-prepared as a lone job is (:func:`~amuled_ma.experiments.plans.prepare_job`: its record,
+share of this machine's memory. A population costs a fixed ~0.26 s of CPU per iteration
+whatever its size (rsl-rl's rollout loop, the task, the anchor; ``docs/learning.md``), so a
+level is cut into as few populations as fill the workers: its shapes, each cut only when
+there are fewer shapes than workers.
+
+:func:`train_population_jobs` trains one group: each job is checked and prepared as a lone
+job is (:func:`~amuled_ma.experiments.plans.prepare_job`: its record,
 its feedback), the group trains as one population
 (:func:`~amuled_ma.learn.population.train_population`), and each job's record is marked
 as a lone job's. A group is one Ray task (:mod:`amuled_ma.experiments.ray_jobs`) or runs
@@ -14,6 +18,7 @@ in this process (:func:`~amuled_ma.experiments.jobs.run_jobs`).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -24,6 +29,7 @@ from amuled_ma.experiments.run_folder import JobResult, TrainJob
 from amuled_ma.learn.population_groups import (
     MemberSpec,
     memory_budget_bytes,
+    population_key,
     split_populations,
 )
 
@@ -46,8 +52,10 @@ def population_groups(
         jobs: The graph, each job after the jobs it needs.
         actions: ``new`` / ``resume`` / ``skip`` per job name
             (:func:`~amuled_ma.experiments.plans.check_jobs`).
-        workers: Populations that train at once: each group is cut into at least this
-            many (when it has the jobs), and shares the memory budget with the others.
+        workers: Populations that train at once: a level of the graph is cut into at
+            least this many populations (when it has the jobs; its shapes first, each
+            shape cut only when there are fewer shapes than workers), each within its
+            share of the memory budget.
         memory_budget: Bytes all running populations may use (default: half of this
             machine's memory, :func:`~amuled_ma.learn.population_groups.memory_budget_bytes`).
 
@@ -60,12 +68,16 @@ def population_groups(
     depth: dict[str, int] = {}
     for job in todo:  # graph order: a job's needs are numbered before it
         depth[job.name] = 1 + max((depth[n] for n in job.needs if n in depth), default=-1)
-    budget = (memory_budget or memory_budget_bytes()) // max(1, workers)
+    budget = max(1, (memory_budget or memory_budget_bytes()) // max(1, workers))
     groups: list[list[TrainJob]] = []
     for level in sorted(set(depth.values())):
         layer = [job for job in todo if depth[job.name] == level]
         specs = [member_spec(job, actions.get(job.name) == "resume") for job in layer]
-        for members in split_populations(specs, max(1, budget), min_count=workers):
+        # a population costs a fixed ~0.26 s per iteration whatever its size: as few as
+        # fill the workers (the level's shapes first, each cut only when they are fewer)
+        shapes = len({population_key(spec) for spec in specs})
+        each = max(1, math.ceil(workers / max(1, shapes)))
+        for members in split_populations(specs, budget, min_count=each):
             groups.append([layer[i] for i in members])
     return groups
 

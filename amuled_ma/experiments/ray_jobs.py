@@ -59,6 +59,7 @@ from amuled_ma.deliberation.plan import store_path
 from amuled_ma.errors import AmuledError, Terminated
 from amuled_ma.experiments.population_jobs import population_failure, train_population_jobs
 from amuled_ma.experiments.ray_store import start_store_actors
+from amuled_ma.experiments.ray_switches import SINGLE_MACHINE_ENV
 from amuled_ma.experiments.run_folder import JobResult, TrainJob, checkpoint_state
 from amuled_ma.experiments.third_party_log import ray_to_log
 from amuled_ma.learn.checkpoints import LAST
@@ -72,8 +73,6 @@ SHARED_TOKEN = ".amuled-ray-token"
 STOP_MARK = ".amuled-ray-stop"
 #: Attempts after the first when a worker or node dies (Ray's ``max_retries``).
 MAX_RETRIES = 3
-#: Ray's one-machine switch (set by :func:`amuled_ma.experiments.jobs.prefer_loopback`).
-SINGLE_MACHINE_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
 #: Seconds between progress reports of a task.
 REPORT_EVERY_S = 0.25
 
@@ -167,7 +166,7 @@ def connect(address: str | None, workers: int) -> bool:
     """Connect to Ray: start a local one with ``workers`` CPUs, or join ``address``.
 
     A local Ray listens on loopback only (when Ray was imported after
-    :func:`amuled_ma.experiments.jobs.prefer_loopback`); Ray's token authentication is
+    :func:`amuled_ma.experiments.ray_switches.prefer_loopback`); Ray's token authentication is
     Ray's default for it (the token in ``RAY_AUTH_TOKEN``, else ``~/.ray/auth_token``). On a
     cluster the token is the cluster's (``RAY_AUTH_MODE=token``, ``RAY_AUTH_TOKEN``). Either
     way this process's SIGTERM handler is kept (``ray.init`` replaces it).
@@ -181,7 +180,7 @@ def connect(address: str | None, workers: int) -> bool:
     handlers for that time exit (``sys.exit(15)``; a local Ray's node kills its processes
     and exits 1), which is turned back into :class:`~amuled_ma.errors.Terminated` once
     what Ray started is shut down (its C++ core worker's handler, which would abort, is
-    kept out by :func:`amuled_ma.experiments.jobs.keep_sigterm`).
+    kept out by :func:`amuled_ma.experiments.ray_switches.keep_sigterm`).
 
     Returns:
         True when this call connected (and :func:`ray.shutdown` is ours to call).

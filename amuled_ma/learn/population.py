@@ -26,20 +26,16 @@ together and alone from the same seeds and compares losses, parameters and curve
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import dataclasses
-import io
 import json
-import math
 import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
 os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
@@ -49,6 +45,7 @@ from rsl_rl.runners import OnPolicyRunner
 from amuled_ma.deliberation.mdp import BatchedDeliberation, MemberFeedback
 from amuled_ma.errors import AmuledError, MemberFailed, Terminated
 from amuled_ma.learn.checkpoints import LAST, CheckpointWriteError, write_checkpoint
+from amuled_ma.learn.curves import curve_row, quiet
 from amuled_ma.learn.population_groups import MemberSpec, population_config, population_key
 from amuled_ma.learn.population_models import member_state, stack_states
 from amuled_ma.learn.population_ppo import PopulationPPO
@@ -66,16 +63,7 @@ from amuled_ma.learn.vecenv import DeliberationVecEnv
 from amuled_ma.tasks import make_task
 from amuled_ma.variants import Variant
 
-__all__ = ["PopulationMember", "PopulationTrainer", "curve_row", "train_population"]
-
-
-def _quiet(fn: Callable[[], Any]) -> Any:
-    with contextlib.redirect_stdout(io.StringIO()):
-        return fn()
-
-
-def _mean(values: list[float]) -> float | None:
-    return float(np.mean(values)) if values else None
+__all__ = ["PopulationMember", "PopulationTrainer", "train_population"]
 
 
 class PopulationMember:
@@ -153,7 +141,7 @@ class PopulationTrainer:
         self.cfgs = [start.cfg for start in starts]
         self.cfg = population_config(self.cfgs)
         self.env = self._population_env(starts)
-        self.runner: OnPolicyRunner = _quiet(
+        self.runner: OnPolicyRunner = quiet(
             lambda: OnPolicyRunner(self.env, copy.deepcopy(self.cfg), log_dir=None, device=device)
         )
         self.alg: PopulationPPO = self.runner.alg
@@ -434,33 +422,6 @@ class PopulationTrainer:
         )
         for hint in hints:
             print(f"resume with: {hint}", file=sys.stderr)
-
-
-def curve_row(
-    it: int,
-    batch: int,
-    wall_s: float,
-    lr: float,
-    episodes: list[dict],
-    losses: dict,
-    extra: dict,
-) -> dict[str, Any]:
-    """One row of a learning curve, as :class:`Trainer` writes it (``curve.json``)."""
-    row: dict[str, Any] = {
-        "iteration": it,
-        "env_steps": it * batch,
-        "wall_s": round(wall_s, 4),
-        "charts/lr": lr,
-    }
-    for key, value in losses.items():
-        row[f"losses/{key}"] = float(value) if value is not None and math.isfinite(value) else None
-    keys = sorted({k for e in episodes for k in e if k != "env_id"})
-    row["charts/episodes"] = len(episodes)
-    for key in keys:
-        row[f"episode/{key}"] = _mean([e[key] for e in episodes if key in e])
-    for key, value in extra.items():
-        row[f"feedback/{key}"] = value
-    return row
 
 
 def _cpu(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -27,11 +27,8 @@ actions move the policy away from the base (see docs/learning.md).
 
 from __future__ import annotations
 
-import contextlib
 import copy
-import io
 import json
-import math
 import os
 import sys
 import time
@@ -58,6 +55,7 @@ from amuled_ma.learn.checkpoints import (
     read_checkpoint,
     write_checkpoint,
 )
+from amuled_ma.learn.curves import curve_row, quiet
 from amuled_ma.learn.job_shape import job_shape
 from amuled_ma.learn.vecenv import DeliberationVecEnv
 from amuled_ma.scenario import Scenario
@@ -91,15 +89,6 @@ class TrainOutcome:
     completed: bool = True
     curve: list[dict] = field(default_factory=list)
     feedback: dict | None = None
-
-
-def _quiet(fn: Callable[[], Any]) -> Any:
-    with contextlib.redirect_stdout(io.StringIO()):
-        return fn()
-
-
-def _mean(values: list[float]) -> float | None:
-    return float(np.mean(values)) if values else None
 
 
 class Trainer:
@@ -177,7 +166,7 @@ class Trainer:
             self.mdp, cfg={"scenario": scenario.name, "variant": str(self.variant)}
         )
         # rsl-rl mutates the dict it is given: hand it a copy, keep the original.
-        self.runner: OnPolicyRunner = _quiet(
+        self.runner: OnPolicyRunner = quiet(
             lambda: OnPolicyRunner(self.env, copy.deepcopy(self.cfg), log_dir=None, device="cpu")
         )
         self.alg: AnchoredPPO = self.runner.alg
@@ -316,7 +305,9 @@ class Trainer:
                 self.wall_offset = wall0 + time.perf_counter() - t0
                 episodes = self.env.drain_episodes()
                 recent = (recent + episodes)[-100:]
-                row = self._curve_row(it + 1, batch, episodes, losses, extra)
+                row = curve_row(
+                    it + 1, batch, self.wall_offset, self.alg.learning_rate, episodes, losses, extra
+                )
                 self.curve.append(row)
                 if writer is not None:
                     for key, value in row.items():
@@ -377,27 +368,6 @@ class Trainer:
             curve=self.curve,
             feedback=summary,
         )
-
-    def _curve_row(
-        self, it: int, batch: int, episodes: list[dict], losses: dict, extra: dict
-    ) -> dict[str, Any]:
-        row: dict[str, Any] = {
-            "iteration": it,
-            "env_steps": it * batch,
-            "wall_s": round(self.wall_offset, 4),
-            "charts/lr": self.alg.learning_rate,
-        }
-        for key, value in losses.items():
-            row[f"losses/{key}"] = (
-                float(value) if value is not None and math.isfinite(value) else None
-            )
-        keys = sorted({k for e in episodes for k in e if k != "env_id"})
-        row["charts/episodes"] = len(episodes)
-        for key in keys:
-            row[f"episode/{key}"] = _mean([e[key] for e in episodes if key in e])
-        for key, value in extra.items():
-            row[f"feedback/{key}"] = value
-        return row
 
     def policy(self) -> torch.nn.Module:
         """Return the trained actor (an rsl-rl ``MLPModel``) in eval mode."""

@@ -28,6 +28,10 @@ STUDY_FILE = "study.json"
 CONSENT_FILE = "consent.html"
 #: The answer store.
 ANSWERS_FILE = "answers.sqlite"
+#: Largest ``study.json`` read [bytes]: about 3 KB an item (a pair's state, options and
+#: every policy's action; an expert item's panel with its reasons about as much), so the
+#: default 40 items are about 120 KB; 64 MiB holds some 20,000 items. It is read whole.
+MAX_STUDY_BYTES = 64 * 2**20
 #: The version of the folder format (2: acceptability ratings and expert mode; a format 1
 #: study, built before them, reads as a pairs study with the default rating scale).
 FORMAT = 2
@@ -102,6 +106,12 @@ class PanelView(_Model):
         return any(self.reasons)
 
 
+#: What an item's ``picture`` may be: an SVG file directly in the study's ``states/``
+#: (never ``..``, an absolute path or another folder: a study.json from elsewhere must not
+#: make ``study serve`` send other files of the machine to its participants).
+PICTURE_PATTERN = r"^states/[A-Za-z0-9_-]+\.svg$"
+
+
 class Item(_Model):
     """One question of the study.
 
@@ -116,7 +126,8 @@ class Item(_Model):
         met_by: The variant whose episode met the state.
         obs: The observation.
         prompt: The state in words (the task's prompt), None when it cannot be rendered.
-        picture: ``states/<id>.svg``.
+        picture: ``states/<id>.svg``: a file of the study folder's ``states/`` (the server
+            sends it to every participant, so no other path is accepted).
         options: The two options, in the order shown (none for an expert item: the expert
             judges every action of the task).
         expected: The label an attentive participant picks (attention checks only).
@@ -136,7 +147,7 @@ class Item(_Model):
     met_by: str
     obs: list[float]
     prompt: str | None
-    picture: str
+    picture: str = Field(pattern=PICTURE_PATTERN)
     options: tuple[Option, Option] | tuple[()] = ()
     expected: Literal["A", "B"] | None = None
     instruction: str | None = None
@@ -216,18 +227,36 @@ def write_study(folder: Path, study: Study) -> Path:
 def read_study(folder: Path) -> Study:
     """Read a study folder's ``study.json``.
 
+    Args:
+        folder: The study folder.
+
+    Returns:
+        The study.
+
     Raises:
-        StudyError: No such file, or it does not fit the format (the message names the key).
+        StudyError: No such file, larger than :data:`MAX_STUDY_BYTES` (refused from its
+            size, before it is read), not UTF-8, or it does not fit the format (the message
+            names the key).
 
     """
+    from amuled_ma.file_limits import read_bounded_text
+
     path = Path(folder) / STUDY_FILE
     if not path.is_file():
         raise StudyError(
             f"{folder}: no {STUDY_FILE}; build a study with 'amuled study build RUN... "
             f"--out {folder}'"
         )
+    text = read_bounded_text(
+        path,
+        MAX_STUDY_BYTES,
+        "study file",
+        error=StudyError,
+        note="about 3 KB an item",
+        fix="is it the right folder? Rebuild the study with 'amuled study build'",
+    )
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = json.loads(text)
         return Study.model_validate(data)
     except json.JSONDecodeError as exc:
         raise StudyError(f"{path}: not JSON ({exc}); rebuild the study") from exc

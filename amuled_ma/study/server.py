@@ -16,7 +16,8 @@ Routes (all served from this process; the page loads nothing from the network):
   (``c`` on the clarity scale, ``null`` where the panel stated no reason); stored at once
   (200), or refused: a wrong token (403), an unknown item, choice, time, a rating outside
   the scale or for an option not shown, a judgement that does not fit (400), an item
-  already answered by that participant (409). Every refusal is kept with its reason.
+  already answered by that participant (409), a body over :data:`MAX_BODY_BYTES` (413, on
+  both POST routes, not read further). Every refusal is kept with its reason.
 - ``GET /api/health``: ``{"ok": true, "items": n}``.
 """
 
@@ -26,6 +27,7 @@ import contextlib
 import hashlib
 import json
 import math
+import sys
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -56,6 +58,21 @@ STATIC = Path(__file__).parent / "static"
 ID_PARAMETERS = ("PROLIFIC_PID", "workerId", "participant")
 #: The longest participant id, item id or token accepted.
 MAX_TEXT = 200
+#: Largest state picture read [bytes] (``states/<item>.svg``, each sent to every
+#: participant): a drawn state is about 3 KB; 4 MiB is over 1,000 times that.
+MAX_PICTURE_BYTES = 4 * 2**20
+#: Largest consent page read [bytes] (``consent.html``, the researcher's text, read at
+#: start and at each request so an edit shows at once): the shipped templates are about
+#: 2 KB; 16 MiB leaves room for pictures inlined as ``data:`` URLs.
+MAX_CONSENT_BYTES = 16 * 2**20
+#: Largest request body read [bytes]: an answer is a few hundred bytes (an expert's, one
+#: judgement per action, under 1 KB); a longer body is refused (413) unread.
+MAX_BODY_BYTES = 64 * 2**10
+#: What the page shows without a consent file.
+NO_CONSENT = "<p>(no consent page)</p>"
+#: What a participant is shown when the consent file is refused (the reason goes to the
+#: server's stderr, not to the participant).
+CONSENT_REFUSED = "<p>(the consent page cannot be shown; please tell the researcher)</p>"
 
 
 def _is_time(ms: Any) -> bool:
@@ -110,6 +127,17 @@ def expert_problem(body: dict[str, Any], item: Item, study: Study) -> str | None
     return None
 
 
+class _BodyTooLarge(Exception):
+    """A request body over :data:`MAX_BODY_BYTES` (answered 413, not read further)."""
+
+
+def _too_large() -> JSONResponse:
+    return JSONResponse(
+        {"error": f"the body is more than the {MAX_BODY_BYTES:,} bytes an answer may be"},
+        status_code=413,
+    )
+
+
 def participant_order(study: Study, participant: str) -> list[str]:
     """The item ids in the order this participant sees them (seed and id decide it)."""
     digest = hashlib.sha256(f"{study.seed}:{participant}".encode()).digest()
@@ -124,15 +152,31 @@ class StudyApp:
     Args:
         folder: The study folder (``amuled study build``).
 
+    Raises:
+        StudyError: The folder holds no study, or its ``study.json``, a state picture or
+            ``consent.html`` is over its cap (:data:`~amuled_ma.study.model.MAX_STUDY_BYTES`,
+            :data:`MAX_PICTURE_BYTES`, :data:`MAX_CONSENT_BYTES`), unreadable or not UTF-8;
+            one line naming the file, before anything is served.
+
     """
 
     def __init__(self, folder: Path) -> None:
+        from amuled_ma.file_limits import read_bounded_text
+
         self.folder = Path(folder)
         self.study = read_study(self.folder)
         self.pictures = {
-            item.id: (self.folder / item.picture).read_text(encoding="utf-8")
+            item.id: read_bounded_text(
+                self.folder / item.picture,
+                MAX_PICTURE_BYTES,
+                "state picture",
+                error=StudyError,
+                note="a drawn state is about 3 KB",
+                fix="is it the right folder? Rebuild the study with 'amuled study build'",
+            )
             for item in self.study.items
         }
+        self.consent_text()  # an unreadable consent page stops the start, with one line
         self.items = {item.id: item for item in self.study.items}
         self.store = AnswerStore(self.folder / ANSWERS_FILE)
         self.app = Starlette(
@@ -156,26 +200,74 @@ class StudyApp:
         """The participant page."""
         return HTMLResponse((STATIC / "study.html").read_text(encoding="utf-8"))
 
-    async def consent(self, request: Request) -> Response:
-        """The researcher's consent and instructions fragment."""
+    def consent_text(self) -> str:
+        """The study folder's ``consent.html`` (:data:`NO_CONSENT` without one).
+
+        Raises:
+            StudyError: It is larger than :data:`MAX_CONSENT_BYTES` (refused from its size,
+                before it is read), unreadable or not UTF-8; one line naming it.
+
+        """
+        from amuled_ma.file_limits import read_bounded_text
+
         path = self.folder / CONSENT_FILE
-        text = path.read_text(encoding="utf-8") if path.is_file() else "<p>(no consent page)</p>"
-        return HTMLResponse(text)
+        if not path.is_file():
+            return NO_CONSENT
+        return read_bounded_text(
+            path,
+            MAX_CONSENT_BYTES,
+            "consent page",
+            error=StudyError,
+            note="the shipped templates are about 2 KB",
+            fix="is it the right file? Edit it down, or rebuild the study to get the template",
+        )
+
+    async def consent(self, request: Request) -> Response:
+        """The researcher's consent and instructions fragment (500 when it is refused).
+
+        A file refused (edited since the start) is said in one line on the server's stderr;
+        the participant gets :data:`CONSENT_REFUSED`, without the folder's path.
+        """
+        try:
+            return HTMLResponse(self.consent_text())
+        except StudyError as refused:
+            print(f"amuled study serve: {refused}", file=sys.stderr, flush=True)
+            return HTMLResponse(CONSENT_REFUSED, status_code=500)
 
     async def health(self, request: Request) -> Response:
         """Whether the server is up, with its counts."""
         return JSONResponse({"ok": True, "items": len(self.items)})
 
     async def _json(self, request: Request) -> dict[str, Any] | None:
+        """The request's JSON object, None when it is none.
+
+        Raises:
+            _BodyTooLarge: The body is over :data:`MAX_BODY_BYTES` (declared or sent); it
+                is not read further.
+
+        """
+        declared = request.headers.get("content-length", "")
+        if declared.isdigit() and int(declared) > MAX_BODY_BYTES:
+            raise _BodyTooLarge
+        chunks: list[bytes] = []
+        size = 0
+        async for chunk in request.stream():
+            size += len(chunk)
+            if size > MAX_BODY_BYTES:
+                raise _BodyTooLarge
+            chunks.append(chunk)
         try:
-            body = json.loads(await request.body())
-        except (json.JSONDecodeError, UnicodeDecodeError):
+            body = json.loads(b"".join(chunks))
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError):
             return None
         return body if isinstance(body, dict) else None
 
     async def session(self, request: Request) -> Response:
         """A participant's id, token and the items left."""
-        body = await self._json(request)
+        try:
+            body = await self._json(request)
+        except _BodyTooLarge:
+            return _too_large()
         if body is None:
             return JSONResponse({"error": "the body is not a JSON object"}, status_code=400)
         wanted, token = body.get("participant"), body.get("token")
@@ -222,7 +314,11 @@ class StudyApp:
 
     async def answer(self, request: Request) -> Response:
         """Store one answer at once, or refuse it (the reason is kept)."""
-        body = await self._json(request)
+        try:
+            body = await self._json(request)
+        except _BodyTooLarge:
+            self.store.refuse(None, None, None, "answer: body too large")
+            return _too_large()
         if body is None:
             self.store.refuse(None, None, None, "answer: not a JSON object")
             return JSONResponse({"error": "the body is not a JSON object"}, status_code=400)
@@ -304,7 +400,8 @@ def make_app(folder: Path) -> Starlette:
     """The ASGI application of a study folder.
 
     Raises:
-        StudyError: The folder holds no study.
+        StudyError: The folder holds no study, or one of its files is refused
+            (:class:`StudyApp`).
 
     """
     return StudyApp(folder).app
@@ -314,7 +411,8 @@ def serve(folder: Path, host: str = "127.0.0.1", port: int = 8765) -> None:
     """Serve a study until interrupted (uvicorn, one process).
 
     Raises:
-        StudyError: The folder holds no study.
+        StudyError: The folder holds no study, or one of its files is refused
+            (:class:`StudyApp`).
 
     """
     import uvicorn

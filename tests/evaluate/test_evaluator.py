@@ -1,7 +1,11 @@
 import json
+import shutil
 
+import pytest
 from fake_task import grid_factory
+from tiny_cli import TINY, one_line
 
+from amuled_ma.cli import main
 from amuled_ma.evaluate.evaluator import evaluate_run, run_episodes
 from amuled_ma.evaluate.report import write_report
 from amuled_ma.learn.policies import load_policy
@@ -143,3 +147,64 @@ def test_merged_replicas_sum_each_agents_counts():
     assert (care["ok"], care["replay_miss"], care["total"]) == (160, 40, 200)
     assert care["failure_rate"] == 0.2 and merged["failure_rate"] == 0.2
     assert merged["miss_rate"] == 0.2
+
+
+# ---------------------------------------------------------------------------------------
+# Size caps (issue 24): a run folder's files over their cap are refused unread, one line
+
+
+def sparse(path, size: int) -> None:
+    """Make ``path`` a sparse file of ``size`` bytes (no disk, no time)."""
+    with open(path, "wb") as handle:
+        handle.truncate(size)
+
+
+@pytest.fixture(scope="module")
+def tiny_base_run(tmp_path_factory):
+    """A tiny FindMilk run (base only), trained through the real CLI."""
+    run = tmp_path_factory.mktemp("caps") / "findmilk"
+    assert main(["train", "findmilk", "--run-dir", str(run), *TINY]) == 0
+    return run
+
+
+def test_a_feedback_json_over_16_mib_is_refused_before_any_episode(tiny_base_run, tmp_path, capsys):
+    from amuled_ma.evaluate.evaluator import MAX_FEEDBACK_BYTES
+
+    assert MAX_FEEDBACK_BYTES == 16 * 2**20
+    run = tmp_path / "run"
+    shutil.copytree(tiny_base_run, run)
+    path = run / "base" / "feedback.json"
+    sparse(path, 10 * 2**30)
+    capsys.readouterr()
+    argv = ["evaluate", str(run), "--episodes", "1", "--modes", "greedy", "--no-progress"]
+    assert main(argv) == 1
+    line = one_line(capsys.readouterr().err)
+    assert line == (
+        f"amuled: error: {path}: the diagnostics file is 10,737,418,240 bytes, more than the "
+        "16,777,216 a diagnostics file may be (a fine-tune's is about 4 KB); it is not read; "
+        "is it the right folder? It is written by 'amuled finetune'; fine-tune the variant "
+        "again with --force, or delete the file (the report then has no diagnostics for it)"
+    )
+    assert not (run / "results.json").exists()  # refused before any episode ran
+
+
+def test_a_results_json_over_256_mib_is_refused_by_view_with_one_line(
+    tiny_base_run, tmp_path, capsys
+):
+    from amuled_ma.evaluate.results import MAX_RESULTS_BYTES
+
+    assert MAX_RESULTS_BYTES == 256 * 2**20
+    run = tmp_path / "run"
+    shutil.copytree(tiny_base_run, run)
+    sparse(run / "results.json", 10 * 2**30)
+    capsys.readouterr()
+    out = tmp_path / "v.html"
+    assert main(["view", str(run), "--variant", "base", "-o", str(out)]) == 1
+    line = one_line(capsys.readouterr().err)
+    assert line.startswith(
+        f"amuled: error: {run / 'results.json'}: the results file is 10,737,418,240 bytes, "
+        "more than the 268,435,456 a results file may be (about 140 bytes an episode of each "
+        "variant and mode); it is not read; is it the right folder? Evaluate the run again "
+        f"with 'amuled evaluate {run}'"
+    )
+    assert not out.exists()

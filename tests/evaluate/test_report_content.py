@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from matplotlib.colors import to_hex
 from report_tables import rows_of
-from tiny_cli import RULES, TINY
+from tiny_cli import RULES, TINY, one_line
 
 from amuled_ma.cli import main
 from amuled_ma.evaluate.report import (
@@ -407,3 +407,48 @@ def test_tiny_run_and_clusters_ablation_reference_every_figure_once(tmp_path, ca
     assert "open [`view-episode0.html`](view-episode0.html)" in (run_dir / "report.md").read_text()
     payload = re.search(r'id="amuled-data">(.*?)</script>', page.read_text(), re.S).group(1)
     assert [v["name"] for v in json.loads(payload)["variants"]] == ["finetune-amuled"]
+
+
+# ---------------------------------------------------------------------------------------
+# Size caps (issue 24): the files the report reads are refused unread over their cap
+
+
+def sparse(path: Path, size: int) -> Path:
+    """Make ``path`` a sparse file of ``size`` bytes (no disk, no time)."""
+    with open(path, "wb") as handle:
+        handle.truncate(size)
+    return path
+
+
+def test_a_curve_json_over_256_mib_is_refused_by_evaluate_with_one_line(tmp_path, capsys):
+    from amuled_ma.evaluate.report.curves import MAX_CURVE_BYTES
+
+    assert MAX_CURVE_BYTES == 256 * 2**20
+    run = tmp_path / "run"
+    assert main(["train", "findmilk", "--run-dir", str(run), *TINY]) == 0
+    path = sparse(run / "base" / "curve.json", 10 * 2**30)
+    capsys.readouterr()
+    argv = ["evaluate", str(run), "--episodes", "1", "--modes", "greedy", "--no-progress"]
+    assert main(argv) == 1
+    line = one_line(capsys.readouterr().err)
+    assert line == (
+        f"amuled: error: {path}: the learning curve is 10,737,418,240 bytes, more than the "
+        "268,435,456 a learning curve may be (about 590 bytes an iteration); it is not read; "
+        "is it the right folder? It is written by 'amuled train' and 'amuled finetune'; "
+        "retrain the variant with --force, or move its folder out of the run"
+    )
+
+
+def test_a_report_md_over_16_mib_is_refused_unread_when_the_viewer_is_linked(tmp_path):
+    from amuled_ma.errors import AmuledError
+    from amuled_ma.evaluate.report.writing import MAX_REPORT_BYTES
+
+    assert MAX_REPORT_BYTES == 16 * 2**20
+    report = sparse(tmp_path / "report.md", 10 * 2**30)
+    with pytest.raises(AmuledError) as info:
+        link_viewer(tmp_path)
+    assert str(info.value) == (
+        f"{report}: the report is 10,737,418,240 bytes, more than the 16,777,216 a report may "
+        "be (a report is about 10 KB); it is not read; is it the right folder? Write the "
+        f"report again with 'amuled evaluate {tmp_path}'"
+    )

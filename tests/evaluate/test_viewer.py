@@ -531,3 +531,21 @@ def test_browser_driving_300_steps_five_agents_size_and_load(
     print(f"viewer driving episode (300 steps, 5 agents): {figures}")
     assert size < MAX_BYTES, figures
     assert load < MAX_LOAD_S, figures
+
+
+def test_a_page_over_64_mib_is_refused_unread_before_serving(tmp_path):
+    from amuled_ma.errors import AmuledError
+
+    assert page_server.MAX_PAGE_BYTES == 64 * 2**20
+    page = tmp_path / "p.html"
+    with open(page, "wb") as handle:  # sparse: no disk, no time
+        handle.truncate(10 * 2**30)
+    start = time.perf_counter()
+    with pytest.raises(AmuledError) as info:
+        page_server.make_server(page)
+    assert time.perf_counter() - start < 1.0
+    assert str(info.value) == (
+        f"{page}: the page is 10,737,418,240 bytes, more than the 67,108,864 a page may be (a "
+        "viewer page is at most a few MB); it is not read; is it the right file? Open it in "
+        "a browser from the file instead (its file:// URL)"
+    )

@@ -142,13 +142,14 @@ def test_parallel_training_is_bit_identical_to_sequential(tmp_path):
     here = str(Path(__file__).resolve().parent)
     result, _ = run_sealed(script, [str(tmp_path), here], timeout=900, env=ENV)
     assert result["workers"] == {"1": [1, 8], "2": [2, 8], "p1": [1, 8], "p2": [2, 8]}
-    # bases first, then the fine-tunes (human and AMULED share a shape), one per worker
+    # bases first, then the fine-tunes (human and AMULED share a shape); with two workers
+    # a level fills both: its two shapes (base, shaped), or its one shape cut in two
     assert result["groups"]["p1"] == [
         ["base", "base.seed2"], ["shaped", "shaped.seed2"],
         ["finetune-human", "finetune-amuled", "finetune-human.seed2", "finetune-amuled.seed2"],
     ]  # fmt: skip
     assert result["groups"]["p2"] == [
-        ["base"], ["base.seed2"], ["shaped"], ["shaped.seed2"],
+        ["base", "base.seed2"], ["shaped", "shaped.seed2"],
         ["finetune-human", "finetune-amuled"], ["finetune-human.seed2", "finetune-amuled.seed2"],
     ]  # fmt: skip
     assert len(result["groups"]["1"]) == 8
@@ -250,13 +251,19 @@ def _resume_to(run_dir: Path, iterations: int, tunes: list[Path]) -> None:
         assert [row["iteration"] for row in curve] == list(range(1, iterations + 1))
 
 
-def test_parallel_stops_on_ctrl_c_with_checkpoints_then_resumes(tmp_path):
-    """A real SIGINT to the whole process group, as a terminal's Ctrl-C sends it."""
+@pytest.mark.parametrize("population", [False, True], ids=["alone", "populations"])
+def test_parallel_stops_on_ctrl_c_with_checkpoints_then_resumes(tmp_path, population):
+    """A real SIGINT to the whole process group, as a terminal's Ctrl-C sends it.
+
+    Alone, two of the four fine-tunes run on the two workers and the others wait; as
+    populations, the four train as two populations of two, every member stops with its
+    checkpoint, and the resume continues each population from its own iteration.
+    """
     run_dir = tmp_path / "run"
-    args = _ablate_args(run_dir, 4000)
+    args = _ablate_args(run_dir, 4000) + ([] if population else ["--no-population"])
     proc = _start(args)
-    tunes = _tunes(run_dir, "mean", "max")
-    # both fine-tunes are iterating: each has written its first periodic checkpoint
+    tunes = _tunes(run_dir, "mean", "max", *(["vote"] if population else []))
+    # the fine-tunes are iterating: each has written its first periodic checkpoint
     # (a variant folder exists earlier, from config.json, while its worker still sets up)
     _wait_for([t / "model_last.pt" for t in tunes], proc)
     time.sleep(1.0)
@@ -264,7 +271,8 @@ def test_parallel_stops_on_ctrl_c_with_checkpoints_then_resumes(tmp_path):
     stopped = [checkpoint_state(t / "model_last.pt") for t in tunes]
     assert all(s is not None and not s["completed"] for s in stopped), stopped
     assert all(0 < s["iteration"] < 4000 for s in stopped)
-    assert not (_tunes(run_dir, "vote")[0] / "model_last.pt").exists()
+    if not population:  # queued behind the two running ones: never started
+        assert not (_tunes(run_dir, "vote")[0] / "model_last.pt").exists()
 
     # resume, shortened to 3 iterations past the furthest stop
     last = max(s["iteration"] for s in stopped)

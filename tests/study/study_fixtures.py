@@ -6,6 +6,8 @@
   reply with a stated reason (a JSON reply with ``reasoning``, as an Ollama member's), so a
   study of it has states with reasons and states without (:func:`fixture_reason` is the
   text of each);
+- :func:`hand_study`: a one-item study folder written by hand (no run; for what the server
+  does with the folder's files);
 - :func:`start_server`: ``amuled study serve`` in its own process;
 - :func:`browser`: Debian's headless chromium through selenium (skips with the reason when
   absent).
@@ -85,6 +87,37 @@ def reasoned_run(folder: Path, recordings_dir: Path) -> Path:
     assert main(["train", *common]) == 0
     assert main(["finetune", *common, "--set", f'feedback.recording="{recording}"']) == 0
     return run
+
+
+def hand_study(folder: Path) -> Path:
+    """A study folder of one FindMilk pair, written by hand: ``study.json``, its picture
+    and a consent page (what ``amuled study build`` writes, without a run)."""
+    from amuled_ma.study.model import Item, Option, Study, write_study
+
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "states").mkdir(exist_ok=True)
+    (folder / "states" / "q001.svg").write_text("<svg xmlns='http://www.w3.org/2000/svg'/>")
+    (folder / "consent.html").write_text("<p>my own words</p>")
+    options = (
+        Option(label="A", variant="base", action=0, action_name="up"),
+        Option(label="B", variant="amuled", action=1, action_name="down"),
+    )
+    item = Item(id="q001", kind="pair", run=0, task="findmilk", episode=0, step=0,
+                met_by="base", obs=[0.0] * 8, prompt=None, picture="states/q001.svg",
+                options=options)  # fmt: skip
+    study = Study(seed=1, runs=["runs/findmilk"], variants=["base", "amuled"],
+                  folders=[{"base": "base", "amuled": "finetune-amuled"}],
+                  action_names={"findmilk": list(FINDMILK_ACTIONS)}, items=[item],
+                  candidates=1)  # fmt: skip
+    write_study(folder, study)
+    return folder
+
+
+def sparse(path: Path, size: int) -> Path:
+    """Make ``path`` a sparse file of ``size`` bytes (no disk, no time)."""
+    with open(path, "wb") as handle:
+        handle.truncate(size)
+    return path
 
 
 def free_port() -> int:

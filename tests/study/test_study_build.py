@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from study_fixtures import tiny_run
+from study_fixtures import free_port, hand_study, sparse, tiny_run
+from tiny_cli import one_line
 
 from amuled_ma.cli import main
 from amuled_ma.experiments.run_folder import scenario_of_run
@@ -82,3 +83,32 @@ def test_build_refuses_what_does_not_fit(run, tmp_path):
         build_study([run], ["amuled", "base"], tmp_path / "y", items=3, seed=0)
     build_study([run], ["amuled", "base"], tmp_path / "y", items=3, seed=0, force=True)
     assert (tmp_path / "y" / "consent.html").read_text() == "my own words"
+
+
+def test_a_study_json_over_64_mib_is_refused_unread_by_serve_with_one_line(tmp_path, capsys):
+    from amuled_ma.study.model import MAX_STUDY_BYTES
+
+    assert MAX_STUDY_BYTES == 64 * 2**20
+    folder = hand_study(tmp_path / "s")
+    assert len(read_study(folder).items) == 1  # under the cap: read as before
+    path = sparse(folder / "study.json", 10 * 2**30)
+    capsys.readouterr()
+    assert main(["study", "serve", str(folder), "--port", str(free_port())]) == 1
+    line = one_line(capsys.readouterr().err)
+    assert line == (
+        f"amuled: error: {path}: the study file is 10,737,418,240 bytes, more than the "
+        "67,108,864 a study file may be (about 3 KB an item); it is not read; is it the right "
+        "folder? Rebuild the study with 'amuled study build'"
+    )
+
+
+@pytest.mark.parametrize("picture", ["../../etc/passwd", "/etc/passwd", "states/../x.svg", "x.svg"])
+def test_a_picture_outside_the_study_states_folder_is_refused(tmp_path, capsys, picture):
+    """A study.json from elsewhere cannot make the server send another file of the machine."""
+    folder = hand_study(tmp_path / "study")
+    data = json.loads((folder / "study.json").read_text())
+    data["items"][0]["picture"] = picture
+    (folder / "study.json").write_text(json.dumps(data))
+    assert main(["study", "serve", str(folder), "--port", str(free_port())]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "picture" in err and "Traceback" not in err, err

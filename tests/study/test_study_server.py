@@ -25,12 +25,16 @@ from study_fixtures import (
     artifacts,
     browser,
     free_port,
+    hand_study,
+    sparse,
     start_server,
     tiny_run,
     wait_sent,
     wait_state,
 )
+from tiny_cli import one_line
 
+from amuled_ma.cli import main
 from amuled_ma.study.answers import read_refusals
 from amuled_ma.study.build import build_study
 from amuled_ma.study.report import write_analysis
@@ -237,3 +241,72 @@ def test_twenty_participants_a_kill_and_nothing_lost(study, tmp_path):
     (artifacts(tmp_path) / "study-analysis.png").write_bytes(
         (study / "analysis" / "strengths.png").read_bytes()
     )
+
+
+# ---------------------------------------------------------------------------------------
+# Size caps (issue 24): the folder's files and the participants' bodies, bounded
+
+
+def test_a_picture_or_consent_page_over_its_cap_stops_the_start_with_one_line(tmp_path, capsys):
+    from amuled_ma.study.server import MAX_CONSENT_BYTES, MAX_PICTURE_BYTES
+
+    assert (MAX_PICTURE_BYTES, MAX_CONSENT_BYTES) == (4 * 2**20, 16 * 2**20)
+    port = str(free_port())
+    folder = hand_study(tmp_path / "s")
+    picture = sparse(folder / "states" / "q001.svg", 10 * 2**30)
+    capsys.readouterr()
+    assert main(["study", "serve", str(folder), "--port", port]) == 1
+    assert one_line(capsys.readouterr().err) == (
+        f"amuled: error: {picture}: the state picture is 10,737,418,240 bytes, more than the "
+        "4,194,304 a state picture may be (a drawn state is about 3 KB); it is not read; is "
+        "it the right folder? Rebuild the study with 'amuled study build'"
+    )
+    folder = hand_study(tmp_path / "t")
+    consent = sparse(folder / "consent.html", 10 * 2**30)
+    assert main(["study", "serve", str(folder), "--port", port]) == 1
+    assert one_line(capsys.readouterr().err) == (
+        f"amuled: error: {consent}: the consent page is 10,737,418,240 bytes, more than the "
+        "16,777,216 a consent page may be (the shipped templates are about 2 KB); it is not "
+        "read; is it the right file? Edit it down, or rebuild the study to get the template"
+    )
+
+
+def test_a_consent_page_grown_past_its_cap_and_a_long_body_are_refused_unread(tmp_path, capsys):
+    import asyncio
+
+    from amuled_ma.study.server import CONSENT_REFUSED, MAX_BODY_BYTES, StudyApp
+
+    assert MAX_BODY_BYTES == 64 * 2**10
+    folder = hand_study(tmp_path / "s")
+    study = StudyApp(folder)
+
+    async def visit() -> None:
+        transport = httpx.ASGITransport(app=study.app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://study") as client:
+            assert (await client.get("/consent")).text == "<p>my own words</p>"  # as before
+            sparse(folder / "consent.html", 10 * 2**30)  # edited while the study runs
+            answer = await client.get("/consent")
+            assert answer.status_code == 500 and answer.text == CONSENT_REFUSED
+            assert str(folder) not in answer.text  # the participant is not shown the path
+            me = (await client.post("/api/session", json={})).json()
+            body = {"participant": me["participant"], "token": me["token"], "item": "q001",
+                    "choice": "A", "ms": 1000, "ratings": {"A": 2, "B": 5}}  # fmt: skip
+            pad = "x" * MAX_BODY_BYTES
+            assert (await client.post("/api/answer", json={**body, "pad": pad})).status_code == 413
+            assert (await client.post("/api/session", json={"pad": pad})).status_code == 413
+
+            async def chunks():  # no Content-Length: counted as it comes
+                for _ in range(3):
+                    yield b" " * (MAX_BODY_BYTES // 2)
+
+            assert (await client.post("/api/session", content=chunks())).status_code == 413
+            assert (await client.post("/api/answer", json=body)).status_code == 200
+
+    try:
+        asyncio.run(visit())
+    finally:
+        study.store.close()
+    assert "the consent page is 10,737,418,240 bytes" in capsys.readouterr().err
+    assert read_refusals(folder / "answers.sqlite") == [
+        (None, None, None, "answer: body too large")
+    ]

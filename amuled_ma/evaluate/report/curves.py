@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from amuled_ma.errors import AmuledError
 from amuled_ma.evaluate.report.plotting import (
     compact_number,
     grid_axes,
@@ -43,6 +44,10 @@ MAX_SEED_LINES = 5
 #: Opacity of a seed's line (and of one seed's raw values) and of a band over the seeds.
 SPREAD_ALPHA = 0.3
 BAND_ALPHA = 0.15
+#: Largest ``curve.json`` read [bytes]: about 590 bytes an iteration (1,000 iterations,
+#: the paper's fine-tune: 0.6 MB), so 256 MiB holds some 450,000 iterations; every
+#: variant's is read whole for the report.
+MAX_CURVE_BYTES = 256 * 2**20
 
 
 def _rolling_band(values: list[float | None], window: int) -> tuple[np.ndarray, ...]:
@@ -74,13 +79,52 @@ def load_curves(
     Returns:
         ``{variant: [replica curve, ...]}``.
 
+    Raises:
+        AmuledError: A ``curve.json`` is larger than :data:`MAX_CURVE_BYTES` (refused from
+            its size, before it is read), cannot be read or is not JSON; one line naming it.
+
     """
     names = names or {}
     curves: dict[str, list[list[dict]]] = {}
     for path in sorted(Path(run_dir).glob("*/curve.json")):
         variant = names.get(path.parent.name, path.parent.name)
-        curves.setdefault(variant, []).append(json.loads(path.read_text()))
+        curves.setdefault(variant, []).append(read_curve(path))
     return curves
+
+
+def read_curve(path: Path) -> list[dict]:
+    """One variant folder's ``curve.json``: one row per training iteration.
+
+    Args:
+        path: The file.
+
+    Returns:
+        Its rows, as the trainer wrote them.
+
+    Raises:
+        AmuledError: Larger than :data:`MAX_CURVE_BYTES` (refused from its size, before it
+            is read), unreadable or not JSON; one line naming the file.
+
+    """
+    from amuled_ma.file_limits import read_bounded_bytes
+
+    fix = (
+        "is it the right folder? It is written by 'amuled train' and 'amuled finetune'; "
+        "retrain the variant with --force, or move its folder out of the run"
+    )
+    try:
+        raw = read_bounded_bytes(
+            path,
+            MAX_CURVE_BYTES,
+            "learning curve",
+            note="about 590 bytes an iteration",
+            fix=fix,
+        )
+        return json.loads(raw)
+    except OSError as err:
+        raise AmuledError(f"{path}: cannot read it ({err.strerror or err}); {fix}") from None
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
+        raise AmuledError(f"{path}: not JSON ({err}); {fix}") from None
 
 
 def curve_band(replicas: list[list[dict]], key: str) -> tuple[np.ndarray, ...]:

@@ -9,10 +9,12 @@ feedback, the diagnostics (:mod:`~amuled_ma.evaluate.report.tables`) and the fig
 
 from __future__ import annotations
 
+import locale
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from amuled_ma.errors import AmuledError
 from amuled_ma.evaluate.report.bars import plot_ablation, plot_bars
 from amuled_ma.evaluate.report.curves import CURVE_KEYS, FT_KEYS, load_curves, plot_curves
 from amuled_ma.evaluate.report.describe import (
@@ -50,6 +52,10 @@ FIGURE_NAMES = (
 VIEWER_PAGE = "view-episode0.html"
 #: How the report's viewer line starts (:func:`link_viewer` finds it by this).
 VIEWER_PREFIX = "**Step by step:**"
+#: Largest ``report.md`` read back [bytes] (:func:`link_viewer` rewrites one line of it):
+#: a report is about 10 KB (the demo's: 9 KB; a sweep of many variants a few times that);
+#: 16 MiB is 1,600 times that, and the file is read whole.
+MAX_REPORT_BYTES = 16 * 2**20
 
 
 def viewer_line(run_dir: Path) -> str:
@@ -70,14 +76,34 @@ def viewer_line(run_dir: Path) -> str:
 def link_viewer(run_dir: Path) -> bool:
     """Rewrite ``report.md``'s viewer line (:func:`viewer_line`) now the page may exist.
 
+    Args:
+        run_dir: The run directory (its ``report.md``).
+
     Returns:
         True when the report had a viewer line (it now links the page if it exists).
 
+    Raises:
+        AmuledError: ``report.md`` is larger than :data:`MAX_REPORT_BYTES` (refused from
+            its size, before it is read), unreadable or not text; one line naming it.
+
     """
+    from amuled_ma.file_limits import read_bounded_bytes
+
     report = Path(run_dir) / "report.md"
     if not report.is_file():
         return False
-    lines = report.read_text().split("\n")
+    fix = f"is it the right folder? Write the report again with 'amuled evaluate {run_dir}'"
+    encoding = locale.getpreferredencoding(False)  # as write_text wrote it
+    try:
+        raw = read_bounded_bytes(
+            report, MAX_REPORT_BYTES, "report", note="a report is about 10 KB", fix=fix
+        )
+        text = raw.decode(encoding)
+    except OSError as err:
+        raise AmuledError(f"{report}: cannot read it ({err.strerror or err}); {fix}") from None
+    except UnicodeDecodeError as err:
+        raise AmuledError(f"{report}: not {encoding} text ({err.reason}); {fix}") from None
+    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
     found = False
     for i, line in enumerate(lines):
         if line.startswith(VIEWER_PREFIX):

@@ -1,0 +1,60 @@
+"""Learning curves: one row per iteration, as ``Trainer`` and a population write them."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+
+def quiet(fn: Callable[[], Any]) -> Any:
+    """Call ``fn`` with its prints to stdout dropped (rsl-rl's runner prints when built)."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        return fn()
+
+
+def mean_or_none(values: list[float]) -> float | None:
+    """The mean of ``values``; None for none."""
+    return float(np.mean(values)) if values else None
+
+
+def curve_row(
+    it: int,
+    batch: int,
+    wall_s: float,
+    lr: float,
+    episodes: list[dict],
+    losses: dict,
+    extra: dict,
+) -> dict[str, Any]:
+    """One row of a learning curve (``curve.json``), as a lone job and a population write it.
+
+    Args:
+        it: The iteration just finished (1-based).
+        batch: Environment steps per iteration.
+        wall_s: Seconds of training so far.
+        lr: The learning rate of the iteration.
+        episodes: The episodes that ended in it (their sums).
+        losses: rsl-rl's losses of its update.
+        extra: The feedback's figures of its rollout (``feedback/...``).
+
+    """
+    row: dict[str, Any] = {
+        "iteration": it,
+        "env_steps": it * batch,
+        "wall_s": round(wall_s, 4),
+        "charts/lr": lr,
+    }
+    for key, value in losses.items():
+        row[f"losses/{key}"] = float(value) if value is not None and math.isfinite(value) else None
+    keys = sorted({k for e in episodes for k in e if k != "env_id"})
+    row["charts/episodes"] = len(episodes)
+    for key in keys:
+        row[f"episode/{key}"] = mean_or_none([e[key] for e in episodes if key in e])
+    for key, value in extra.items():
+        row[f"feedback/{key}"] = value
+    return row
