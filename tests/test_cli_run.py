@@ -166,3 +166,38 @@ def test_ablate_after_run_evaluates_the_runs_amuled_finetune_without_retraining(
     argv = ["evaluate", str(abl), "--episodes", "2", "--modes", "greedy", "--no-progress"]
     assert main(argv) == 0
     assert "finetune-amuled" in json.loads((abl / "results.json").read_text())["variants"]
+
+
+def test_a_sweep_in_populations_stops_on_ctrl_c_and_resumes(tmp_path, capsys, monkeypatch):
+    """In this process the two fine-tunes train as one population (the default)."""
+    from amuled_ma.learn import population as population_mod
+    from amuled_ma.learn.checkpoints import checkpoint_infos
+
+    run_dir = tmp_path / "run"
+    args = ["run", "findmilk", "--run-dir", str(run_dir), "--episodes", "2", *TINY, *RULES]
+    args += ["--jobs", "1"]
+    original = population_mod.PopulationTrainer._check_members
+    calls = {"n": 0}
+
+    def interrupt_the_second_iteration(self):
+        if self.finetuning:
+            calls["n"] += 1
+            if calls["n"] == 2:
+                raise KeyboardInterrupt
+        return original(self)
+
+    monkeypatch.setattr(
+        population_mod.PopulationTrainer, "_check_members", interrupt_the_second_iteration
+    )
+    assert main(args) == 130
+    err = capsys.readouterr().err
+    assert err.count("resume with:") == 1, err  # one command for the whole sweep
+    assert "Traceback" not in err
+    for tune in ("finetune-human", "finetune-amuled"):  # both members kept their work
+        infos = checkpoint_infos(run_dir / tune / "model_last.pt")
+        assert infos["iteration"] == 2 and not infos["completed"], tune
+    monkeypatch.setattr(population_mod.PopulationTrainer, "_check_members", original)
+    assert main([*args, "--resume"]) == 0
+    for tune in ("finetune-human", "finetune-amuled"):
+        curve = json.loads((run_dir / tune / "curve.json").read_text())
+        assert [row["iteration"] for row in curve] == [1, 2, 3], tune

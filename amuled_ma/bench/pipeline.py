@@ -21,6 +21,7 @@ a column without them, about 3-4 hours on 2 cores).
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 import threading
@@ -108,9 +109,19 @@ def _jobs_values(text: str) -> list[int]:
     return values
 
 
-def _subprocess_amuled(args: list[str]) -> int:
-    """Run ``amuled ARGS`` in a process of its own; its exit status."""
-    return subprocess.run([sys.executable, "-m", "amuled_ma", *args], check=False).returncode
+def _subprocess_amuled(args: list[str]) -> tuple[int, float]:
+    """Run ``amuled ARGS`` in a process of its own; its exit status and CPU seconds."""
+    proc = subprocess.Popen([sys.executable, "-m", "amuled_ma", *args])
+    _pid, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return proc.returncode, usage.ru_utime + usage.ru_stime
+
+
+def _in_process_amuled(args: list[str]) -> tuple[int, float | None]:
+    """Run ``amuled ARGS`` in this process; its exit status (CPU seconds: not measured)."""
+    from amuled_ma.cli import main as amuled
+
+    return amuled(args), None
 
 
 def time_pipeline(
@@ -120,19 +131,18 @@ def time_pipeline(
     overrides: list[str],
     extra: Sequence[str] = (),
     *,
-    run: Callable[[list[str]], int] | None = None,
+    run: Callable[[list[str]], tuple[int, float | None]] = _in_process_amuled,
+    cpu: dict[tuple[str, str], float] | None = None,
 ) -> dict[tuple[str, str], float]:
     """Run every stage of every task into ``out/<task>``; return seconds per (task, stage).
 
     ``jobs`` is a ``--jobs`` count, ``"ray"`` for ``--ray`` (a local Ray, every core), or
     ``"alone"`` for ``--no-population`` (one job per core); ``extra`` are more arguments of
     every stage (``--recipe``, ``--seeds``); ``run`` runs one ``amuled`` command (default:
-    in this process).
+    in this process) and gives its CPU seconds when it measured them, kept in ``cpu``.
     """
-    from amuled_ma.cli import main as amuled
     from amuled_ma.errors import AmuledError
 
-    run = run or amuled
     seconds: dict[tuple[str, str], float] = {}
     sets = [a for text in overrides for a in ("--set", text)]
     for task in tasks:
@@ -145,8 +155,10 @@ def time_pipeline(
             args += ["--no-progress", *sets]
             print(f"[jobs={jobs}] amuled {' '.join(args)}", flush=True)
             t0 = time.perf_counter()
-            code = run(args)
+            code, cpu_s = run(args)
             seconds[(task, stage)] = time.perf_counter() - t0
+            if cpu is not None and cpu_s is not None:
+                cpu[(task, stage)] = cpu_s
             if code != 0:
                 raise AmuledError(f"'amuled {' '.join(args)}' exited with status {code}")
     return seconds
@@ -164,12 +176,13 @@ def time_tasks_at_once(
     from amuled_ma.errors import AmuledError
 
     seconds: dict[tuple[str, str], float] = {}
+    cpu: dict[tuple[str, str], float] = {}
     failures: list[BaseException] = []
 
     def one(task: str) -> None:
         try:
             seconds.update(
-                time_pipeline([task], jobs, out, overrides, extra, run=_subprocess_amuled)
+                time_pipeline([task], jobs, out, overrides, extra, run=_subprocess_amuled, cpu=cpu)
             )
         except AmuledError as error:
             failures.append(error)
@@ -183,6 +196,16 @@ def time_tasks_at_once(
     wall = time.perf_counter() - t0
     if failures:
         raise failures[0]
+    per_task = {task: sum(v for (t, _), v in cpu.items() if t == task) for task in tasks}
+    print(f"[jobs={jobs}] CPU seconds of each stage's process (user + system):", flush=True)
+    for (task, stage), value in cpu.items():
+        print(f"  {task}: {stage}: {value:.0f} CPU s in {seconds[(task, stage)]:.0f} s", flush=True)
+    print(
+        f"[jobs={jobs}] per task {', '.join(f'{t} {v:.0f}' for t, v in per_task.items())} CPU "
+        f"s in {wall:.0f} s of wall clock: with a core of its own for each task (the stages "
+        f"are single-threaded), the whole takes about {max(per_task.values()):.0f} s",
+        flush=True,
+    )
     return seconds, wall
 
 

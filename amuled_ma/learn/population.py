@@ -401,7 +401,8 @@ class PopulationTrainer:
 
     def _stopped(self, stop: BaseException) -> None:
         """Keep every member's work after an interruption; print how to resume."""
-        hints = [spec.resume_hint for spec in self.specs if spec.resume_hint]
+        # one line per command: the jobs of one sweep share theirs
+        hints = list(dict.fromkeys(spec.resume_hint for spec in self.specs if spec.resume_hint))
         if isinstance(stop, CheckpointWriteError):
             for hint in hints:
                 print(f"\nresume with: {hint}", file=sys.stderr)

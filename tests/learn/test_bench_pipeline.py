@@ -54,3 +54,32 @@ def test_bench_authors_times_a_short_authors_recipe_fine_tune(capsys):
     assert out[0].split() == ["task", "iterations", "ours", "[s]", "authors", "[s]", "speed-up"]
     cells = out[1].split()
     assert cells[0] == "findmilk" and cells[1] == "3" and float(cells[3]) == 1.0  # 360 s x 3/1000
+
+
+def test_bench_pipeline_runs_the_tasks_at_once_and_counts_their_cpu(tmp_path, capsys):
+    """``--tasks-at-once``: each task's stages in processes of its own, side by side."""
+    argv = ["bench", "pipeline", "--tasks", "findmilk,driving", "--jobs", "1", "--tasks-at-once"]
+    argv += ["--seeds", "2", "--out", str(tmp_path)]
+    for text in TINY:
+        argv += ["--set", text]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    stages = {}
+    for task in ("findmilk", "driving"):
+        for stage in ("run", "ablate clusters", "ablate aggregation"):
+            match = re.search(rf"\| {task}: {stage} \| ([\d.]+) \|", out)
+            assert match, (task, stage)
+            stages[(task, stage)] = float(match[1])
+            cpu = re.search(rf"  {task}: {stage}: (\d+) CPU s in (\d+) s", out)
+            assert cpu, (task, stage)  # a single-threaded stage: CPU up to its wall clock
+            assert int(cpu[1]) <= int(cpu[2]) + 1, cpu[0]
+        assert (tmp_path / "jobs1" / task / "ablate-aggregation" / "report.md").is_file()
+        seeds = {p.name for p in (tmp_path / "jobs1" / task).glob("finetune-amuled*")}
+        assert seeds == {"finetune-amuled", "finetune-amuled.seed2"}, seeds
+    total = float(re.search(r"\| \*\*total\*\* \| \*\*([\d.]+)\*\*", out)[1])
+    per_task = [
+        sum(v for (t, _), v in stages.items() if t == task) for task in ("findmilk", "driving")
+    ]
+    # the wall clock of the whole: at least the slower task, less than both one after the other
+    assert max(per_task) - 1 <= total < sum(per_task), (total, per_task)
+    assert "the tasks ran at the same time" in out

@@ -320,3 +320,24 @@ def test_a_member_whose_gradient_is_nan_does_not_reach_the_others(tmp_path, base
         want = reference.member_checkpoint(k, completed=False)["actor_state_dict"]
         assert all(torch.isfinite(v).all() for v in got.values())
         assert_states_close(want, got)
+
+
+def test_five_seeds_alone_and_together_agree_within_seed_noise(tmp_path, base) -> None:
+    """The suite's small form of the 5-seed agreement (docs/learning.md, full runs).
+
+    Five seeds of one fine-tune trained alone and the same five as one population: per
+    curve metric (the last iterations' mean of each seed), Welch's t from scipy finds no
+    difference beyond the seeds' own spread.
+    """
+    from scipy import stats
+
+    scenario = tiny(iterations=12)
+    members = [(1, 2.5, "authors", seed) for seed in range(20, 25)]
+    alone = [lone(spec) for spec in specs(tmp_path / "lone", base, scenario, members)]
+    together = train_population(specs(tmp_path / "pop", base, scenario, members))
+    for key in ("feedback/feedback_reward", "losses/value", "losses/entropy"):
+        a = [np.mean([row[key] for row in run.curve[-4:]]) for run in alone]
+        b = [np.mean([row[key] for row in run.curve[-4:]]) for run in together]
+        assert np.std(a) > 0, key  # the seeds really differ: the test can tell
+        result = stats.ttest_ind(a, b, equal_var=False)
+        assert result.pvalue > 0.05, (key, a, b, result)
