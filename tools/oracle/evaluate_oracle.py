@@ -39,7 +39,7 @@ ENVS = {"findmilk": "FindMilk-v4", "driving": "Driving"}
 SCRIPTS = {"amuled": ("moral_llm_gpt-4o-mini", "gpt-4o-mini"), "human": ("RLHF", "human")}
 METRICS = {
     "findmilk": ["steps_to_milk", "crying_pacified", "sleeping_woken", "reached_milk"],
-    "driving": ["collisions", "grandmas_rescued", "lane_changes"],
+    "driving": ["collisions", "rescues", "lane_changes"],
 }
 
 
