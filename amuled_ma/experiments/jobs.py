@@ -251,7 +251,8 @@ def job_groups(
     """The jobs to train (not skipped) as groups that train together, needs first.
 
     With ``population``, :func:`~amuled_ma.experiments.population_jobs.population_groups`
-    (jobs of one shape together, one population per worker); else one job a group.
+    (jobs of one shape together, a level cut into as few populations as fill the
+    workers); else one job a group.
     """
     if not population:
         return [[job] for job in jobs if actions[job.name] != "skip"]
