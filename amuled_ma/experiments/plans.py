@@ -334,6 +334,28 @@ def train_variant(
     )
     if isinstance(prepared, JobResult):
         return prepared
+    return train_prepared(scenario, prepared, progress=progress, on_iteration=on_iteration)
+
+
+def train_prepared(
+    scenario: Scenario,
+    prepared: PreparedJob,
+    *,
+    progress: bool = False,
+    on_iteration: Callable[[Any, int], None] | None = None,
+) -> JobResult:
+    """Train a job :func:`prepare_job` prepared, alone; record it complete or failed.
+
+    Args:
+        scenario: The job's scenario.
+        prepared: The prepared job (closed here).
+        progress: Show a progress bar.
+        on_iteration: Called as ``fn(trainer, iteration)`` after every iteration.
+
+    Returns:
+        The job result.
+
+    """
     # after the checks: torch and rsl-rl load here, so that a refused job answers fast
     from amuled_ma.learn.trainer import Trainer
 
@@ -359,6 +381,33 @@ def train_variant(
         prepared.close()
 
 
+def prepare_planned_job(job: TrainJob, *, hint: str, store: Any = None) -> PreparedJob | JobResult:
+    """:func:`prepare_job` with a planned job's own settings (alone or in a population).
+
+    Args:
+        job: The job (its scenario, run and variant folders, seed, base, resume / force).
+        hint: The command that re-runs this job (for messages and Ctrl-C).
+        store: The belief store of the fine-tune's panel (default: the run's file).
+
+    Returns:
+        The prepared job, or the result of a job that is already trained (skipped).
+
+    """
+    return prepare_job(
+        job.scenario,
+        job.run_dir,
+        job.variant,
+        resume=job.resume,
+        force=job.force,
+        hint=hint,
+        seed=job.seed,
+        out_dir=job.out_dir,
+        base_dir=job.base_dir,
+        base_variant=job.base_variant,
+        store=store,
+    )
+
+
 def train_one_job(
     job: TrainJob,
     *,
@@ -367,7 +416,7 @@ def train_one_job(
     on_iteration: Callable[[Any, int], None] | None = None,
     store: Any = None,
 ) -> JobResult:
-    """Train one planned job: :func:`train_variant` with the job's own settings.
+    """Train one planned job alone: :func:`train_variant` with the job's own settings.
 
     Args:
         job: The job (its scenario, run and variant folders, seed, base, resume / force).
@@ -380,21 +429,10 @@ def train_one_job(
         The job result.
 
     """
-    return train_variant(
-        job.scenario,
-        job.run_dir,
-        job.variant,
-        resume=job.resume,
-        force=job.force,
-        progress=progress,
-        hint=hint,
-        seed=job.seed,
-        out_dir=job.out_dir,
-        base_variant=job.base_variant,
-        base_dir=job.base_dir,
-        on_iteration=on_iteration,
-        store=store,
-    )
+    prepared = prepare_planned_job(job, hint=hint, store=store)
+    if isinstance(prepared, JobResult):
+        return prepared
+    return train_prepared(job.scenario, prepared, progress=progress, on_iteration=on_iteration)
 
 
 def ablation_variants(what: str, scenario: Scenario) -> list[tuple[Variant, Scenario]]:

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from amuled_ma.errors import AmuledError
-from amuled_ma.experiments.plans import PreparedJob, prepare_job
+from amuled_ma.experiments.plans import PreparedJob, prepare_planned_job
 from amuled_ma.experiments.run_folder import JobResult, TrainJob
 from amuled_ma.learn.population_groups import (
     MemberSpec,
@@ -103,6 +103,7 @@ def train_population_jobs(
     hint: str = "",
     on_iteration: Callable[[Any, int], None] | None = None,
     store_for: Callable[[TrainJob], Any] | None = None,
+    announce: bool = True,
 ) -> GroupOutcome:
     """Train a group of jobs as populations, each job ending as a lone job ends.
 
@@ -120,6 +121,8 @@ def train_population_jobs(
         on_iteration: Called as ``fn(member, iteration)`` for every member after every
             iteration (:class:`~amuled_ma.learn.population.PopulationMember`).
         store_for: The belief store of a job's panel (default: the run's file).
+        announce: Print a line naming a job when it fails (a Ray worker leaves it to
+            the driver, which prints the group's :attr:`GroupOutcome.failures`).
 
     Returns:
         The finished jobs' results and the failures' lines.
@@ -136,18 +139,8 @@ def train_population_jobs(
     done: dict[str, JobResult] = {}
     try:
         for job in jobs:
-            ready = prepare_job(
-                job.scenario,
-                job.run_dir,
-                job.variant,
-                resume=job.resume,
-                force=job.force,
-                hint=hint,
-                seed=job.seed,
-                out_dir=job.out_dir,
-                base_dir=job.base_dir,
-                base_variant=job.base_variant,
-                store=store_for(job) if store_for is not None else None,
+            ready = prepare_planned_job(
+                job, hint=hint, store=store_for(job) if store_for is not None else None
             )
             if isinstance(ready, JobResult):
                 done[job.name] = ready
@@ -168,7 +161,9 @@ def train_population_jobs(
         ]
         for members in split_populations(specs, memory_budget_bytes()):
             try:
-                trained = train_population([specs[i] for i in members], progress=progress)
+                trained = train_population(
+                    [specs[i] for i in members], progress=progress, announce=announce
+                )
             except Exception:
                 for i in members:
                     prepared[i][1].failed()
@@ -188,7 +183,15 @@ def train_population_jobs(
 
 
 def population_failure(failures: Sequence[str], hint: str) -> AmuledError:
-    """One error for the jobs that failed alone in their population (the first named)."""
-    more = f" (and {len(failures) - 1} more job(s), printed above)" if len(failures) > 1 else ""
+    """The sweep's closing error for jobs that failed alone (each was named in its own line).
+
+    It names how many, not the jobs again: each failure's line was printed when it
+    happened (:func:`~amuled_ma.learn.population.train_population`) or when its group
+    came back from Ray.
+    """
+    count = f"{len(failures)} jobs" if len(failures) > 1 else "a job"
     then = f"; after fixing it, continue with: {hint} --resume" if hint else ""
-    return AmuledError(f"{failures[0]}{more}{then}")
+    return AmuledError(
+        f"{count} of a population failed alone (named above; their last checkpoints are "
+        f"kept) and the other members finished{then}"
+    )

@@ -400,7 +400,12 @@ def train_group(
         results, failures = {job.name: result}, []
     else:
         outcome = train_population_jobs(
-            jobs, progress=False, hint="", on_iteration=_report(board), store_for=store_for
+            jobs,
+            progress=False,
+            hint="",
+            on_iteration=_report(board),
+            store_for=store_for,
+            announce=False,  # the driver prints each failure once, when the group returns
         )
         results, failures = outcome.results, outcome.failures
     # with files shipped, every job returns its folder: a fine-tune on a node without the

@@ -430,13 +430,18 @@ def _cpu(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
 
 
 def train_population(
-    specs: Sequence[MemberSpec], *, device: str = "cpu", progress: bool = False
+    specs: Sequence[MemberSpec],
+    *,
+    device: str = "cpu",
+    progress: bool = False,
+    announce: bool = True,
 ) -> list[TrainOutcome | MemberFailed]:
     """Train ``specs`` as one population (:class:`PopulationTrainer`); each member's outcome.
 
     A member that fails (its gradient not finite, its feedback failing) stops alone: the
-    others' checkpoints are written, one line naming the member is printed, and the others
-    go on from their checkpoints as a population without it (resumed as any run is).
+    others' checkpoints are written, one line naming the member is printed (with
+    ``announce``; a Ray worker leaves it to the driver), and the others go on from their
+    checkpoints as a population without it (resumed as any run is).
 
     Returns:
         Per job, in order: its :class:`~amuled_ma.learn.trainer.TrainOutcome`, or the
@@ -452,7 +457,8 @@ def train_population(
             outcomes = trainer.train()
         except MemberFailed as failed:
             results[remaining.pop(failed.member)] = failed
-            print(f"amuled: a member of a population failed: {failed}", file=sys.stderr)
+            if announce:
+                print(f"amuled: a member of a population failed: {failed}", file=sys.stderr)
             specs = [dataclasses.replace(spec, resume=True) for spec in specs]
             continue
         results.update(zip(remaining, outcomes, strict=True))
