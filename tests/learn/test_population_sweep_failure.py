@@ -86,9 +86,12 @@ def test_a_sweep_member_that_fails_is_named_once_and_the_others_finish(
         assert state is not None and state["iteration"] == 4 and state["completed"], job.name
         assert read_record(job.out_dir).state == "complete", job.name
     # fixed, the sweep resumes the failed member alone from its checkpoint
+    written = {job.name: (job.out_dir / LAST).stat().st_mtime_ns for job in others}
     monkeypatch.setattr(plans, "build_feedback", real)
     resumed = plan_ablation("aggregation", _scenario(), tmp_path, [1], resume=True)
     run_jobs(resumed, workers=1)
     state = checkpoint_state(bad.out_dir / LAST)
     assert state["iteration"] == 4 and state["completed"]
     assert read_record(bad.out_dir).state == "complete"
+    for job in others:  # the finished ones are skipped, not trained again
+        assert (job.out_dir / LAST).stat().st_mtime_ns == written[job.name], job.name
