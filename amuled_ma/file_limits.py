@@ -11,8 +11,9 @@ with :func:`read_line`: a 2 GB line is never read whole.
 
 from __future__ import annotations
 
+import json
 import os
-from typing import IO, AnyStr
+from typing import IO, Any, AnyStr
 
 from amuled_ma.errors import AmuledError
 
@@ -181,6 +182,40 @@ def read_bounded_text(
             "save it as UTF-8"
         ) from failure
     return text.replace("\r\n", "\n").replace("\r", "\n")
+
+
+def read_bounded_json(
+    path: str | os.PathLike[str],
+    limit: int,
+    noun: str,
+    *,
+    note: str = "",
+    fix: str = RIGHT_FILE,
+) -> Any:
+    """A JSON file read whole, refused with one line when over ``limit``, unreadable or not JSON.
+
+    Args:
+        path: The file.
+        limit: The most bytes it may hold.
+        noun: What it is, for the message (``"learning curve"``).
+        note: Why the cap is that number, said after it.
+        fix: What to do, last in every message.
+
+    Returns:
+        The parsed JSON value.
+
+    Raises:
+        AmuledError: ``"PATH: ... FIX"``: the file is over ``limit`` bytes (refused from its
+            size, before it is read), cannot be read (``cannot read it``) or is not JSON
+            (``not JSON``: malformed, not UTF-8, nested deeper than Python can follow).
+
+    """
+    try:
+        return json.loads(read_bounded_bytes(path, limit, noun, note=note, fix=fix))
+    except OSError as err:
+        raise AmuledError(f"{path}: cannot read it ({err.strerror or err}); {fix}") from None
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
+        raise AmuledError(f"{path}: not JSON ({err}); {fix}") from None
 
 
 def read_line(

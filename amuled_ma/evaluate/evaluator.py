@@ -9,7 +9,6 @@ own (``info["episode"]``): FindMilk ``steps_to_milk``, ``crying_pacified``,
 
 from __future__ import annotations
 
-import json
 import re
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -56,7 +55,7 @@ def read_feedback(folder: Path) -> dict[str, Any] | None:
             naming the file.
 
     """
-    from amuled_ma.file_limits import read_bounded_bytes
+    from amuled_ma.file_limits import read_bounded_json
 
     path = Path(folder) / FEEDBACK_FILE
     if not path.is_file():
@@ -65,19 +64,9 @@ def read_feedback(folder: Path) -> dict[str, Any] | None:
         "is it the right folder? It is written by 'amuled finetune'; fine-tune the variant "
         "again with --force, or delete the file (the report then has no diagnostics for it)"
     )
-    try:
-        raw = read_bounded_bytes(
-            path,
-            MAX_FEEDBACK_BYTES,
-            "diagnostics file",
-            note="a fine-tune's is about 4 KB",
-            fix=fix,
-        )
-        data = json.loads(raw)
-    except OSError as err:
-        raise AmuledError(f"{path}: cannot read it ({err.strerror or err}); {fix}") from None
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
-        raise AmuledError(f"{path}: not JSON ({err}); {fix}") from None
+    data = read_bounded_json(
+        path, MAX_FEEDBACK_BYTES, "diagnostics file", note="a fine-tune's is about 4 KB", fix=fix
+    )
     if not isinstance(data, dict):
         raise AmuledError(f"{path}: expected a JSON object, found {type(data).__name__}; {fix}")
     return data

@@ -9,7 +9,6 @@ seeds, cut to the panel.
 
 from __future__ import annotations
 
-import json
 import math
 import warnings
 from collections.abc import Mapping
@@ -18,7 +17,6 @@ from typing import Any
 
 import numpy as np
 
-from amuled_ma.errors import AmuledError
 from amuled_ma.evaluate.report.plotting import (
     compact_number,
     grid_axes,
@@ -106,25 +104,15 @@ def read_curve(path: Path) -> list[dict]:
             is read), unreadable or not JSON; one line naming the file.
 
     """
-    from amuled_ma.file_limits import read_bounded_bytes
+    from amuled_ma.file_limits import read_bounded_json
 
     fix = (
         "is it the right folder? It is written by 'amuled train' and 'amuled finetune'; "
         "retrain the variant with --force, or move its folder out of the run"
     )
-    try:
-        raw = read_bounded_bytes(
-            path,
-            MAX_CURVE_BYTES,
-            "learning curve",
-            note="about 590 bytes an iteration",
-            fix=fix,
-        )
-        return json.loads(raw)
-    except OSError as err:
-        raise AmuledError(f"{path}: cannot read it ({err.strerror or err}); {fix}") from None
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
-        raise AmuledError(f"{path}: not JSON ({err}); {fix}") from None
+    return read_bounded_json(
+        path, MAX_CURVE_BYTES, "learning curve", note="about 590 bytes an iteration", fix=fix
+    )
 
 
 def curve_band(replicas: list[list[dict]], key: str) -> tuple[np.ndarray, ...]:
