@@ -22,6 +22,14 @@ SINGLE_MACHINE_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
 FAILURE_HANDLER_ENV = "RAY_DISABLE_FAILURE_SIGNAL_HANDLER"
 
 
+def _restore(name: str, before: str | None) -> None:
+    """Put environment variable ``name`` back to ``before`` (None: unset)."""
+    if before is None:
+        os.environ.pop(name, None)
+    else:
+        os.environ[name] = before
+
+
 def keep_sigterm() -> None:
     """Keep Ray's C++ core worker from taking this driver's SIGTERM while ``ray.init`` runs.
 
@@ -40,10 +48,7 @@ def keep_sigterm() -> None:
     try:
         import ray  # noqa: F401 - read the switch now
     finally:
-        if before is None:
-            os.environ.pop(FAILURE_HANDLER_ENV, None)
-        else:
-            os.environ[FAILURE_HANDLER_ENV] = before
+        _restore(FAILURE_HANDLER_ENV, before)
 
 
 def prefer_loopback() -> None:
@@ -77,7 +82,4 @@ def ray_switches(local: bool) -> Iterator[None]:
     finally:
         # the local Ray's processes took the switch with them; a process this one starts
         # later (a `ray start --address` joining a cluster, say) must not inherit it
-        if before is None:
-            os.environ.pop(SINGLE_MACHINE_ENV, None)
-        else:
-            os.environ[SINGLE_MACHINE_ENV] = before
+        _restore(SINGLE_MACHINE_ENV, before)
