@@ -173,8 +173,6 @@ def time_tasks_at_once(
         Seconds per (task, stage), and the wall clock of the whole.
 
     """
-    from amuled_ma.errors import AmuledError
-
     seconds: dict[tuple[str, str], float] = {}
     cpu: dict[tuple[str, str], float] = {}
     failures: list[BaseException] = []
@@ -184,7 +182,7 @@ def time_tasks_at_once(
             seconds.update(
                 time_pipeline([task], jobs, out, overrides, extra, run=_subprocess_amuled, cpu=cpu)
             )
-        except AmuledError as error:
+        except Exception as error:  # a stage that failed, or one that could not start
             failures.append(error)
 
     t0 = time.perf_counter()

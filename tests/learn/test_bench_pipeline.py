@@ -83,3 +83,17 @@ def test_bench_pipeline_runs_the_tasks_at_once_and_counts_their_cpu(tmp_path, ca
     # the wall clock of the whole: at least the slower task, less than both one after the other
     assert max(per_task) - 1 <= total < sum(per_task), (total, per_task)
     assert "the tasks ran at the same time" in out
+
+
+def test_a_task_whose_stage_cannot_start_stops_the_bench_with_its_error(tmp_path, monkeypatch):
+    """With --tasks-at-once, a stage that fails to start (not an amuled error) is raised."""
+    import pytest
+
+    from amuled_ma.bench import pipeline
+
+    def cannot_start(args):
+        raise PermissionError(13, "Permission denied", "python")
+
+    monkeypatch.setattr(pipeline, "_subprocess_amuled", cannot_start)
+    with pytest.raises(PermissionError, match="Permission denied"):
+        pipeline.time_tasks_at_once(["findmilk", "driving"], 1, tmp_path, [], ["--seeds", "1"])
