@@ -92,6 +92,15 @@ _SQL_CHUNK = 500  # keys per ``IN (...)`` query, well under SQLite's variable li
 MAX_VALUE_BYTES = 2**26
 
 
+def _too_long(detail: str = "") -> str:
+    """How every refusal of a too-long store value says it (``detail``: SQLite's words)."""
+    why = f"{detail}; " if detail else ""
+    return (
+        f"longer than the {MAX_VALUE_BYTES:,} bytes a stored value may be ({why}an answer "
+        "with its chat is about 20 KB)"
+    )
+
+
 class _ValueTooBig(BeliefStoreError):
     """A read met a value longer than :data:`MAX_VALUE_BYTES` (SQLite's "too big")."""
 
@@ -299,9 +308,8 @@ class BeliefStore:
                 conn.execute("COMMIT")
             except sqlite3.DataError as error:  # "string or blob too big"
                 raise BeliefStoreError(
-                    f"{self.path}: cannot write the belief store: a value is longer than the "
-                    f"{MAX_VALUE_BYTES:,} bytes a stored value may be ({error}; an answer with "
-                    "its chat is about 20 KB); nothing of this batch was written"
+                    f"{self.path}: cannot write the belief store: a value is "
+                    f"{_too_long(str(error))}; nothing of this batch was written"
                 ) from error
             except sqlite3.DatabaseError as error:
                 # a damaged file ("database disk image is malformed"), a full disk
@@ -323,9 +331,7 @@ class BeliefStore:
                         damaged_row(
                             str(self.path),
                             None,
-                            f"a row holds a value longer than the {MAX_VALUE_BYTES:,} bytes a "
-                            f"stored value may be ({error}; an answer with its chat is about "
-                            "20 KB); it is not read",
+                            f"a row holds a value {_too_long(str(error))}; it is not read",
                         )
                     )
                 ) from error
@@ -356,8 +362,7 @@ class BeliefStore:
                     raise damaged_row(
                         f"{self.path}: row {key}",
                         key,
-                        f"a value longer than the {MAX_VALUE_BYTES:,} bytes a stored value may "
-                        "be (an answer with its chat is about 20 KB); it is not read",
+                        f"a value {_too_long()}; it is not read",
                     ) from None
             raise
 
