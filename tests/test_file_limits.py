@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import pytest
+from sparse_files import sparse
 
 from amuled_ma.errors import AmuledError, PromptError
 from amuled_ma.file_limits import (
@@ -19,12 +20,6 @@ from amuled_ma.file_limits import (
     read_line,
     too_large,
 )
-
-
-def sparse(path: Path, size: int) -> Path:
-    with open(path, "wb") as handle:
-        handle.truncate(size)
-    return path
 
 
 def test_the_refusal_is_one_line_with_file_size_cap_and_fix() -> None:

@@ -7,6 +7,7 @@ state prompt template, as a ``prompts/`` folder given in place of the shipped on
 from __future__ import annotations
 
 import pytest
+from sparse_files import sparse
 
 from amuled_ma.clusters.prompting import fewshot_messages, render_system_prompt
 from amuled_ma.errors import ClusterDefinitionError, PromptError
@@ -33,12 +34,6 @@ def test_a_state_template_that_is_not_utf8_is_one_line(tmp_path):
     assert "\n" not in message
 
 
-def _sparse(path, size: int) -> None:
-    """A file of ``size`` zero bytes that takes no disk (and no time) to make."""
-    with open(path, "wb") as handle:
-        handle.truncate(size)
-
-
 def _refused_unread(message: str, path, what: str) -> None:
     assert "\n" not in message
     assert message.startswith(f"{path}: the {what} is {MAX_PROMPT_BYTES + 1:,} bytes, more than ")
@@ -48,20 +43,20 @@ def _refused_unread(message: str, path, what: str) -> None:
 def test_prompt_files_over_1_mb_are_refused_unread(tmp_path):
     assert MAX_PROMPT_BYTES == 1_000_000
     (tmp_path / "system.md").write_text("{clusters}\n")
-    _sparse(tmp_path / "system.md", MAX_PROMPT_BYTES + 1)
+    sparse(tmp_path / "system.md", MAX_PROMPT_BYTES + 1)
     with pytest.raises(PromptError) as info:
         render_system_prompt(prompts=tmp_path)
     _refused_unread(str(info.value), tmp_path / "system.md", "system prompt")
 
     template = tmp_path / "findmilk.md"
-    _sparse(template, MAX_PROMPT_BYTES + 1)
+    sparse(template, MAX_PROMPT_BYTES + 1)
     with pytest.raises(PromptError) as info:
         parse_template(template)
     _refused_unread(str(info.value), template, "state prompt template")
 
     (tmp_path / "fewshot").mkdir()
     fewshot = tmp_path / "fewshot" / "default.toml"
-    _sparse(fewshot, MAX_PROMPT_BYTES + 1)
+    sparse(fewshot, MAX_PROMPT_BYTES + 1)
     with pytest.raises(ClusterDefinitionError) as info:
         fewshot_messages("findmilk", prompts=tmp_path)
     _refused_unread(str(info.value), fewshot, "few-shot file")

@@ -11,6 +11,7 @@ import json
 
 import pytest
 import torch
+from sparse_files import sparse
 from test_distill_source import MEMBERS, Panel, requests, source
 
 from amuled_ma.beliefs.cached import CachedSource
@@ -159,16 +160,10 @@ def test_honest_resumes_never_ask_more_than_the_budget(tmp_path):
     store.close()
 
 
-def _grow(path, size: int) -> None:
-    """Make ``path`` ``size`` bytes long with zeros, sparse: no disk, no time."""
-    with open(path, "r+b") as handle:
-        handle.truncate(size)
-
-
 def test_a_ledger_over_1_gib_is_refused_unread_with_one_line(tmp_path):
     assert MAX_LEDGER_BYTES == 2**30
     store = spend(tmp_path)
-    _grow(tmp_path / LEDGER_FILE, MAX_LEDGER_BYTES + 1)
+    sparse(tmp_path / LEDGER_FILE, MAX_LEDGER_BYTES + 1)
     with pytest.raises(AmuledError) as info:
         resume(tmp_path, store)
     assert_one_line_refusal(info)
@@ -180,7 +175,7 @@ def test_a_ledger_over_1_gib_is_refused_unread_with_one_line(tmp_path):
 def test_a_training_pairs_file_over_2_gib_is_refused_unread(tmp_path):
     assert MAX_EXAMPLES_BYTES == 2**31
     store = spend(tmp_path)
-    _grow(tmp_path / EXAMPLES_FILE, MAX_EXAMPLES_BYTES + 1)
+    sparse(tmp_path / EXAMPLES_FILE, MAX_EXAMPLES_BYTES + 1)
     with pytest.raises(AmuledError) as info:
         resume(tmp_path, store)
     assert_one_line_refusal(info)
@@ -193,7 +188,7 @@ def test_a_training_pairs_line_over_1_mib_is_refused_with_its_line_number(tmp_pa
     store = spend(tmp_path)
     path = tmp_path / EXAMPLES_FILE
     lines = path.read_bytes().count(b"\n")
-    _grow(path, 2**30)
+    sparse(path, 2**30)
     with pytest.raises(AmuledError) as info:
         resume(tmp_path, store)
     assert_one_line_refusal(info)

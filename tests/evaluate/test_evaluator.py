@@ -3,6 +3,7 @@ import shutil
 
 import pytest
 from fake_task import grid_factory
+from sparse_files import sparse
 from tiny_cli import TINY, one_line
 
 from amuled_ma.cli import main
@@ -151,12 +152,6 @@ def test_merged_replicas_sum_each_agents_counts():
 
 # ---------------------------------------------------------------------------------------
 # Size caps (issue 24): a run folder's files over their cap are refused unread, one line
-
-
-def sparse(path, size: int) -> None:
-    """Make ``path`` a sparse file of ``size`` bytes (no disk, no time)."""
-    with open(path, "wb") as handle:
-        handle.truncate(size)
 
 
 @pytest.fixture(scope="module")

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 from matplotlib.colors import to_hex
 from report_tables import rows_of
+from sparse_files import sparse
 from tiny_cli import RULES, TINY, one_line
 
 from amuled_ma.cli import main
@@ -411,13 +412,6 @@ def test_tiny_run_and_clusters_ablation_reference_every_figure_once(tmp_path, ca
 
 # ---------------------------------------------------------------------------------------
 # Size caps (issue 24): the files the report reads are refused unread over their cap
-
-
-def sparse(path: Path, size: int) -> Path:
-    """Make ``path`` a sparse file of ``size`` bytes (no disk, no time)."""
-    with open(path, "wb") as handle:
-        handle.truncate(size)
-    return path
 
 
 def test_a_curve_json_over_256_mib_is_refused_by_evaluate_with_one_line(tmp_path, capsys):

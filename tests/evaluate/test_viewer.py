@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from sparse_files import sparse
 from tiny_cli import RULES, TINY
 
 from amuled_ma.cli import main
@@ -538,8 +539,7 @@ def test_a_page_over_64_mib_is_refused_unread_before_serving(tmp_path):
 
     assert page_server.MAX_PAGE_BYTES == 64 * 2**20
     page = tmp_path / "p.html"
-    with open(page, "wb") as handle:  # sparse: no disk, no time
-        handle.truncate(10 * 2**30)
+    sparse(page, 10 * 2**30)
     start = time.perf_counter()
     with pytest.raises(AmuledError) as info:
         page_server.make_server(page)

@@ -11,6 +11,7 @@ import shutil
 import pytest
 import tiny_cli
 import torch
+from sparse_files import sparse
 
 from amuled_ma.cli import main
 from amuled_ma.errors import CheckpointError
@@ -101,12 +102,6 @@ def test_our_checkpoints_load_weights_only_and_resume(trained, tmp_path, capsys)
     capsys.readouterr()
 
 
-def _sparse(path, size: int) -> None:
-    """A file of ``size`` zero bytes that takes no disk (and no time) to make."""
-    with open(path, "wb") as handle:
-        handle.truncate(size)
-
-
 @pytest.mark.parametrize(
     ("name", "what"), [("model_last.pt", "checkpoint"), ("x.cleanrl_model", "the CleanRL policy")]
 )
@@ -118,7 +113,7 @@ def test_a_checkpoint_over_1_gib_is_refused_unread_with_one_line(tmp_path, monke
 
     assert MAX_TORCH_FILE_BYTES == 2**30
     path = tmp_path / name
-    _sparse(path, MAX_TORCH_FILE_BYTES + 1)
+    sparse(path, MAX_TORCH_FILE_BYTES + 1)
 
     def never(*args, **kwargs):
         raise AssertionError("torch.load was called: the file was read")
@@ -138,7 +133,7 @@ def test_a_checkpoint_at_the_cap_is_handed_to_torch(tmp_path, monkeypatch):
     from amuled_ma.torch_files import MAX_TORCH_FILE_BYTES
 
     path = tmp_path / "model_last.pt"
-    _sparse(path, MAX_TORCH_FILE_BYTES)
+    sparse(path, MAX_TORCH_FILE_BYTES)
     called = []
     monkeypatch.setattr(torch, "load", lambda *a, **k: called.append(a) or {"iter": 1})
     with pytest.raises(CheckpointError, match="lacks 'actor_state_dict'"):
@@ -151,7 +146,7 @@ def test_evaluate_refuses_a_checkpoint_over_1_gib_with_one_line(trained, tmp_pat
 
     run_dir = tmp_path / "run"
     shutil.copytree(trained, run_dir)
-    _sparse(run_dir / "base" / "model_last.pt", 2 * MAX_TORCH_FILE_BYTES)
+    sparse(run_dir / "base" / "model_last.pt", 2 * MAX_TORCH_FILE_BYTES)
     capsys.readouterr()
     assert main(["evaluate", str(run_dir), "--episodes", "1", "--no-progress"]) == 1
     err = capsys.readouterr().err

@@ -113,13 +113,6 @@ def hand_study(folder: Path) -> Path:
     return folder
 
 
-def sparse(path: Path, size: int) -> Path:
-    """Make ``path`` a sparse file of ``size`` bytes (no disk, no time)."""
-    with open(path, "wb") as handle:
-        handle.truncate(size)
-    return path
-
-
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

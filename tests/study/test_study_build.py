@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from study_fixtures import free_port, hand_study, sparse, tiny_run
+from sparse_files import sparse
+from study_fixtures import free_port, hand_study, tiny_run
 from tiny_cli import one_line
 
 from amuled_ma.cli import main

@@ -20,13 +20,13 @@ from pathlib import Path
 
 import httpx
 import pytest
+from sparse_files import sparse
 from study_fixtures import (
     agree_to_consent,
     artifacts,
     browser,
     free_port,
     hand_study,
-    sparse,
     start_server,
     tiny_run,
     wait_sent,
