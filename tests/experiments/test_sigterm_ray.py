@@ -183,7 +183,7 @@ def test_the_local_ray_listens_on_loopback_only_beside_another_interface(tmp_pat
 
 
 LOST_ACTOR_SCRIPT = """
-import json, sys
+import json, sys, time
 import ray
 from amuled_ma.errors import AmuledError
 from amuled_ma.experiments.ray_jobs import connect
@@ -193,11 +193,17 @@ connect(None, 1)
 store = RemoteStore(actor)
 before = store.lookup(["k"])
 ray.kill(actor)  # as when its node's agent dies: the actor is gone for good
-try:
-    store.lookup(["k"])
-    print("RESULT " + json.dumps({"before": before, "error": None}))
-except AmuledError as error:
-    print("RESULT " + json.dumps({"before": before, "error": str(error)}))
+# ray.kill returns before the actor is gone: a call made at once may still be served;
+# ask until the death is seen (bounded: 100 tries, 0.1 s apart)
+error = None
+for _ in range(100):
+    try:
+        store.lookup(["k"])
+    except AmuledError as lost:
+        error = str(lost)
+        break
+    time.sleep(0.1)
+print("RESULT " + json.dumps({"before": before, "error": error}))
 ray.shutdown()
 """
 
