@@ -15,6 +15,7 @@ from amuled_ma.evaluate.paper import PAPER_ROWS, paper_row
 from amuled_ma.evaluate.report import write_report
 from amuled_ma.evaluate.report.tables import difference_ci, movement_sentence, paper_table
 from amuled_ma.evaluate.results import Stat
+from amuled_ma.evaluate.stats import mean_ci
 
 
 def stat(mean: float, std: float, n: int = 10) -> dict:
@@ -79,19 +80,32 @@ def test_every_task_has_the_13_rows_of_the_papers_tables():
 
 def test_difference_interval_is_welchs():
     # n = 10 each, std 1 each: variance of the difference 0.1 + 0.1 = 0.2; Welch df
-    # 0.2^2 / (2 * 0.1^2 / 9) = 18; t(0.975, 18) = 2.101; half = 2.101 * sqrt(0.2)
+    # 0.2^2 / (2 * 0.1^2 / 9) = 18; t(0.975, 18) = 2.1009 (printed tables);
+    # half = 2.1009 * sqrt(0.2)
     diff, low, high = difference_ci(Stat(**stat(1.0, 1.0)), Stat(**stat(3.1, 1.0)))
-    half = 2.101 * math.sqrt(0.2)
+    half = 2.1009 * math.sqrt(0.2)
     assert diff == pytest.approx(-2.1)
-    assert (low, high) == pytest.approx((-2.1 - half, -2.1 + half))
+    assert (low, high) == pytest.approx((-2.1 - half, -2.1 + half), abs=1e-4)
     # deterministic greedy policies: the difference itself
     assert difference_ci(Stat(**stat(1.0, 0.0)), Stat(**stat(4.0, 0.0))) == (-3.0, -3.0, -3.0)
+    # one value on a side: no spread, no interval
+    assert difference_ci(Stat(**stat(1.0, 1.0)), Stat(**stat(4.0, 0.0, n=1))) is None
+
+
+def test_difference_interval_is_rs_welch_test_on_the_sleep_data():
+    # R's example(t.test): t.test(extra ~ group, data = sleep) prints "df = 17.776" and
+    # "95 percent confidence interval: -3.3654832  0.2054832" (Welch, fractional df)
+    group1 = [0.7, -1.6, -0.2, -1.2, -0.1, 3.4, 3.7, 0.8, 0.0, 2.0]
+    group2 = [1.9, 0.8, 1.1, 0.1, -0.1, 4.4, 5.5, 1.6, 4.6, 3.4]
+    diff, low, high = difference_ci(Stat(**mean_ci(group1)), Stat(**mean_ci(group2)))
+    assert diff == pytest.approx(0.75 - 2.33)
+    assert (low, high) == pytest.approx((-3.3654832, 0.2054832), abs=1e-7)
 
 
 def test_sentence_says_amuled_wakes_fewer_sleeping_babies_with_the_interval():
     amuled = {**BASE, "sleeping_woken": stat(1.0, 1.0)}
     text = movement_sentence(results(amuled, BASE), mode="sampled")
-    half = 2.101 * math.sqrt(0.2)  # as above
+    half = 2.1009 * math.sqrt(0.2)  # as above
     assert text.startswith("AMULED (finetune-amuled, sampled policy) wakes 2.10 fewer sleeping")
     assert f"(95% CI {2.1 - half:.2f} to {2.1 + half:.2f} fewer)" in text
     assert "no difference beyond noise in steps to the milk, crying babies" in text

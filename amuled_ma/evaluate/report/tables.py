@@ -433,6 +433,10 @@ def difference_ci(
 ) -> tuple[float, float, float] | None:
     """A variant's mean minus the base's, with a Welch interval of the difference.
 
+    The interval is the one of ``scipy.stats.ttest_ind(equal_var=False)``, from the two
+    summaries (``ttest_ind_from_stats`` returns neither the degrees of freedom nor an
+    interval, so the Welch-Satterthwaite ``df`` is written out here).
+
     Args:
         mine: The variant's :class:`~amuled_ma.evaluate.results.Stat`.
         base: The base's.
@@ -449,17 +453,14 @@ def difference_ci(
     a, b = mean_of(mine), mean_of(base)
     if not (math.isfinite(a) and math.isfinite(b)) or not mine.n or not base.n:
         return None
-    if any(s.std is None or not math.isfinite(s.std) for s in (mine, base)):
+    if any(s.std is None or not math.isfinite(s.std) or s.n < 2 for s in (mine, base)):
         return None  # one value (or none): the spread is unknown, no interval is claimed
     sa, sb = float(mine.std), float(base.std)
     va, vb = sa**2 / mine.n, sb**2 / base.n
     diff = a - b
     if va + vb <= 0:
         return diff, diff, diff
-    df_parts = (va**2 / (mine.n - 1) if mine.n > 1 else 0.0) + (
-        vb**2 / (base.n - 1) if base.n > 1 else 0.0
-    )
-    df = max(1, int((va + vb) ** 2 / df_parts)) if df_parts > 0 else 1
+    df = (va + vb) ** 2 / (va**2 / (mine.n - 1) + vb**2 / (base.n - 1))  # Welch-Satterthwaite
     half = t_quantile(df, confidence) * math.sqrt(va + vb)
     return diff, diff - half, diff + half
 
