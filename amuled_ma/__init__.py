@@ -1,21 +1,17 @@
 """amuled-ma: ethical fine-tuning of RL agents with feedback from a panel of LLM moral clusters.
 
-Importing the package registers the task environments with Gymnasium
-(``amuled/FindMilk-v0``, ``amuled/Driving-v0``) once the task sub-package exists.
+Importing the package registers the task environments with Gymnasium,
+``amuled/FindMilk-v0`` and ``amuled/Driving-v0``: ``gymnasium.make`` builds them from their
+``module:Class`` entry points, so registering imports neither torch nor the task modules.
+The episode time limit is the environment's own (``max_steps``, default 300), so no
+``TimeLimit`` wrapper is added.
 """
 
 from __future__ import annotations
 
+import gymnasium
+
 __version__ = "0.1.0"
 
-
-def _register_environments() -> None:
-    """Register the Gymnasium ids of every task (idempotent)."""
-    try:
-        from amuled_ma.tasks import registration
-    except ImportError:  # pragma: no cover - only while the tasks package is being built
-        return
-    registration.register_all()
-
-
-_register_environments()
+gymnasium.register(id="amuled/FindMilk-v0", entry_point="amuled_ma.tasks.gym_env:FindMilkEnv")
+gymnasium.register(id="amuled/Driving-v0", entry_point="amuled_ma.tasks.gym_env:DrivingEnv")

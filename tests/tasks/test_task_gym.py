@@ -9,8 +9,8 @@ import torch
 from gymnasium.utils.env_checker import check_env
 
 import amuled_ma  # noqa: F401  (registers the ids)
-from amuled_ma.tasks import make_batched
-from amuled_ma.tasks.registration import GYM_IDS, register_all
+from amuled_ma.tasks import TASKS, make_batched
+from amuled_ma.tasks.gym_env import DrivingEnv, FindMilkEnv
 
 CASES = [
     ("amuled/FindMilk-v0", "findmilk", {}),
@@ -32,11 +32,15 @@ def test_check_env(env_id, name, kw, render_mode):
         assert isinstance(frame, np.ndarray) and frame.dtype == np.uint8 and frame.ndim == 3
 
 
-def test_registration_is_idempotent():
-    register_all()
-    register_all()
-    for env_id in GYM_IDS:
-        assert env_id in gym.registry
+def test_every_task_id_is_registered_and_makes_its_view():
+    assert {name: task.gym_id for name, task in TASKS.items()} == {
+        "findmilk": "amuled/FindMilk-v0",
+        "driving": "amuled/Driving-v0",
+    }
+    for env_id, view in (("amuled/FindMilk-v0", FindMilkEnv), ("amuled/Driving-v0", DrivingEnv)):
+        env = gym.make(env_id)
+        assert type(env.unwrapped) is view and env.spec is not None
+        assert env.spec.max_episode_steps is None  # the task's own max_steps ends an episode
 
 
 @pytest.mark.parametrize(("env_id", "name", "kw", "copies", "steps"), [
@@ -75,7 +79,7 @@ def test_batched_core_and_gym_views_are_identical(env_id, name, kw, copies, step
 
 
 def test_gym_seeding_is_reproducible():
-    for env_id in GYM_IDS:
+    for env_id in ("amuled/FindMilk-v0", "amuled/Driving-v0"):
         a, b = gym.make(env_id), gym.make(env_id)
         oa, _ = a.reset(seed=5)
         ob, _ = b.reset(seed=5)
