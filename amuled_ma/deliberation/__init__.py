@@ -3,10 +3,11 @@
 - :class:`~amuled_ma.deliberation.panel.MoralPanel`: batched beliefs of every moral cluster
   for every env copy, fused per copy (what the learner calls; see ``docs/deliberation.md``).
 - :class:`~amuled_ma.deliberation.env.DeliberationEnv`: a native PettingZoo ``ParallelEnv``
-  with an ``"actor"`` and one agent per cluster, registered per task::
+  with an ``"actor"`` and one agent per cluster; as PettingZoo's env modules offer theirs::
 
-      from amuled_ma import deliberation
-      env = deliberation.make("amuled/FindMilkDeliberation-v0")
+      from amuled_ma.deliberation import env
+      parallel = env.parallel_env("findmilk")  # the ParallelEnv
+      aec = env.env("findmilk")  # its AEC form
 """
 
 from __future__ import annotations
@@ -23,16 +24,11 @@ __all__ = [
     "MoralPanel",
     "PanelOutput",
     "PanelStats",
-    "make",
     "project_to_simplex",
-    "register",
-    "registered_ids",
 ]
 
 # names served by amuled_ma.deliberation.env, imported on first use
-_ENV_NAMES = frozenset(
-    {"DeliberationEnv", "project_to_simplex", "make", "register", "registered_ids"}
-)
+_ENV_NAMES = frozenset({"DeliberationEnv", "project_to_simplex"})
 
 
 def __getattr__(name: str) -> Any:

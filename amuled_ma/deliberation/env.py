@@ -65,14 +65,15 @@ from __future__ import annotations
 import functools
 import string
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 from gymnasium import spaces
-from pettingzoo import ParallelEnv
+from pettingzoo import AECEnv, ParallelEnv
+from pettingzoo.utils.conversions import parallel_to_aec
 
 from amuled_ma.deliberation.mdp import BatchedDeliberation
 
@@ -435,61 +436,26 @@ def _row(obs: Any) -> np.ndarray:
     return np.asarray(obs, dtype=np.float32).reshape(-1).copy()
 
 
-# -- registry ------------------------------------------------------------------------
+# -- PettingZoo's module convention: parallel_env() and env() ---------------------------
 
 
-@dataclass(frozen=True)
-class EnvSpec:
-    """A registered deliberation env: its id and the keyword arguments it is made with."""
-
-    env_id: str
-    kwargs: Mapping[str, Any] = field(default_factory=dict)
-
-
-_REGISTRY: dict[str, EnvSpec] = {}
-
-
-def register(env_id: str, **kwargs: Any) -> None:
-    """Register ``env_id`` as ``DeliberationEnv(**kwargs)``.
+def parallel_env(task_name: str = "findmilk", **kwargs: Any) -> DeliberationEnv:
+    """The deliberation env of ``task_name``, as PettingZoo's env modules offer it.
 
     Args:
-        env_id: A versioned id, ``"namespace/NameDeliberation-vN"``.
-        **kwargs: :class:`DeliberationEnv` arguments (``task_name`` at least).
-
-    Raises:
-        ValueError: ``env_id`` is already registered.
-
-    """
-    if env_id in _REGISTRY:
-        raise ValueError(f"deliberation env {env_id!r} is already registered")
-    _REGISTRY[env_id] = EnvSpec(env_id, dict(kwargs))
-
-
-def registered_ids() -> list[str]:
-    """Return the registered deliberation env ids, sorted."""
-    return sorted(_REGISTRY)
-
-
-def make(env_id: str, **kwargs: Any) -> DeliberationEnv:
-    """Create a registered deliberation env.
-
-    Args:
-        env_id: e.g. ``"amuled/FindMilkDeliberation-v0"``.
-        **kwargs: Overrides of the registered :class:`DeliberationEnv` arguments.
+        task_name: A task of :mod:`amuled_ma.tasks` (``"findmilk"``, ``"driving"``).
+        **kwargs: The other :class:`DeliberationEnv` arguments.
 
     Returns:
         The env (call ``reset`` first).
 
     Raises:
-        KeyError: Unknown id; the message lists the registered ones.
+        ScenarioError: Unknown task; the message lists the known ones.
 
     """
-    if env_id not in _REGISTRY:
-        raise KeyError(
-            f"unknown deliberation env {env_id!r}; registered: {', '.join(registered_ids())}"
-        )
-    return DeliberationEnv(**{**_REGISTRY[env_id].kwargs, **kwargs})
+    return DeliberationEnv(task_name, **kwargs)
 
 
-register("amuled/FindMilkDeliberation-v0", task_name="findmilk")
-register("amuled/DrivingDeliberation-v0", task_name="driving")
+def env(task_name: str = "findmilk", **kwargs: Any) -> AECEnv:
+    """Its AEC form: :func:`parallel_env` through PettingZoo's ``parallel_to_aec``."""
+    return parallel_to_aec(parallel_env(task_name, **kwargs))

@@ -1,4 +1,4 @@
-"""DeliberationEnv: PettingZoo API and seed tests on every registered id, rewards, projection."""
+"""DeliberationEnv: PettingZoo API and seed tests on every task, rewards, projection."""
 
 from __future__ import annotations
 
@@ -8,42 +8,45 @@ import numpy as np
 import pytest
 from pettingzoo.test import api_test, parallel_api_test, seed_test
 from pettingzoo.test.seed_test import parallel_seed_test
-from pettingzoo.utils.conversions import parallel_to_aec
 
-from amuled_ma.deliberation import DeliberationEnv, make, project_to_simplex, registered_ids
+from amuled_ma.deliberation import DeliberationEnv, project_to_simplex
+from amuled_ma.deliberation.env import env, parallel_env
+from amuled_ma.errors import ScenarioError
 
-
-def test_registered_ids():
-    assert registered_ids() == ["amuled/DrivingDeliberation-v0", "amuled/FindMilkDeliberation-v0"]
-    with pytest.raises(KeyError, match="registered: amuled/Driving"):
-        make("amuled/Nope-v0")
+TASKS = ["findmilk", "driving"]
 
 
-@pytest.mark.parametrize("env_id", registered_ids())
-def test_parallel_api(env_id):
-    env = make(env_id, max_steps=40)
+def test_an_unknown_task_names_the_known_ones():
+    with pytest.raises(ScenarioError, match="unknown task 'nope'; known tasks: findmilk, driving"):
+        parallel_env("nope")
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_parallel_api(task):
+    parallel = parallel_env(task, max_steps=40)
+    assert isinstance(parallel, DeliberationEnv) and parallel.task_name == task
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no "agent was not given ..." style warnings
-        parallel_api_test(env, num_cycles=100)
+        parallel_api_test(parallel, num_cycles=100)
 
 
-@pytest.mark.parametrize("env_id", registered_ids())
-def test_aec_api(env_id):
+@pytest.mark.parametrize("task", TASKS)
+def test_aec_api(task):
     # advisory warnings (agent naming, Dict observations) are expected for this design
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
-        api_test(parallel_to_aec(make(env_id, max_steps=30)), num_cycles=50)
+        api_test(env(task, max_steps=30), num_cycles=50)
 
 
-@pytest.mark.parametrize("env_id", registered_ids())
-def test_seed_aec_form(env_id):
-    seed_test(lambda: parallel_to_aec(make(env_id, max_steps=40)), num_cycles=60)
-    parallel_seed_test(lambda: make(env_id, max_steps=40), num_cycles=60)
+@pytest.mark.parametrize("task", TASKS)
+def test_seed_aec_form(task):
+    seed_test(lambda: env(task, max_steps=40), num_cycles=60)
+    parallel_seed_test(lambda: parallel_env(task, max_steps=40), num_cycles=60)
 
 
-@pytest.mark.parametrize("env_id", registered_ids())
-def test_observations_in_spaces_random_beliefs(env_id):
-    env = make(env_id, max_steps=15)
+@pytest.mark.parametrize("task", TASKS)
+def test_observations_in_spaces_random_beliefs(task):
+    env = parallel_env(task, max_steps=15)
     obs, infos = env.reset(seed=3)
     rng = np.random.default_rng(0)
     for _ in range(30):
@@ -91,7 +94,7 @@ def test_bjs_dst_identical_beliefs_info():
 
 
 def test_episode_end_truncation():
-    env = make("amuled/FindMilkDeliberation-v0", max_steps=3)
+    env = parallel_env("findmilk", max_steps=3)
     env.reset(seed=0)
     for step in range(3):
         assert env.agents == env.possible_agents
@@ -105,7 +108,7 @@ def test_episode_end_truncation():
 
 
 def test_bad_actions_and_arguments():
-    env = make("amuled/FindMilkDeliberation-v0")
+    env = parallel_env("findmilk")
     env.reset(seed=0)
     with pytest.raises(KeyError, match="actor"):
         env.step({"care": [1, 0, 0, 0]})
