@@ -257,6 +257,9 @@ def recovery_commands(out_dir: Path, diffs: list[str], hint: str = "") -> tuple[
         (``--force`` for ``finetune``/``train``; for ``run``/``ablate`` the same command with
         ``--retrain FOLDER``, which resumes the other variants and rewrites the report).
 
+    Kept as words of ``hint`` edited with ``shlex``: the job's run folder and name do not
+    reach :func:`prepare_variant` (it gets the folder and the hint), so the hint is their
+    only record here.
     """
     import shlex
 
