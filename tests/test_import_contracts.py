@@ -42,7 +42,8 @@ def test_the_layers_contract_is_kept() -> None:
         timeout=120,
     )
     assert done.returncode == 0, done.stdout + done.stderr
-    assert "1 kept, 0 broken" in done.stdout  # the contract was read and checked
+    # the contract was read and checked (not an empty configuration)
+    assert "No import runs upward through the layers" in done.stdout and " 0 broken" in done.stdout
 
 
 def test_the_cycle_check_finds_one_through_a_package_init() -> None:
