@@ -27,7 +27,16 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("fusion", "tasks", "clusters"),
     ("scenario", "records", "variants"),  # descriptions: they import no domain package
     # small helpers
-    ("errors", "urls", "resources", "file_hash", "file_limits", "torch_files", "run_lock"),
+    (
+        "errors",
+        "urls",
+        "resources",
+        "file_hash",
+        "file_limits",
+        "torch_files",
+        "run_lock",
+        "safe_files",
+    ),
 )
 
 
