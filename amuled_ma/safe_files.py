@@ -103,17 +103,21 @@ def check_write_targets(paths: Iterable[str | os.PathLike[str]]) -> None:
         check_write_target(path)
 
 
-def write_failure(path: Path, error: OSError, fix: str | None = None) -> str:
+def write_failure(
+    path: Path | str, error: OSError, fix: str | None = None, *, kept: str | None = None
+) -> str:
     """The one line of a file that could not be written.
 
     Args:
-        path: The file.
+        path: The file (or what was written, in words, with ``kept`` given).
         error: What the system said.
         fix: What to do, last; default: by the error's kind (free disk space, make the
             folder writable, raise the file-size limit, check the folder).
+        kept: What is left on disk (default: ``the old file is kept`` when ``path`` is a
+            file, else ``nothing was written``).
 
     Returns:
-        ``"cannot write PATH: WHY; the old file is kept (or: nothing was written); FIX"``.
+        ``"cannot write PATH: WHY; KEPT; FIX"``.
 
     """
     code = error.errno
@@ -127,7 +131,8 @@ def write_failure(path: Path, error: OSError, fix: str | None = None) -> str:
             fix = "make the folder writable, or write somewhere else"
         else:
             fix = "check the folder and the disk, then run the command again"
-    kept = "the old file is kept" if path.is_file() else "nothing was written"
+    if kept is None:
+        kept = "the old file is kept" if Path(path).is_file() else "nothing was written"
     return f"cannot write {path}: {why}; {kept}; {fix}"
 
 

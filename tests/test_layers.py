@@ -36,6 +36,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "torch_files",
         "run_lock",
         "safe_files",
+        "tensorboard_log",
     ),
 )
 

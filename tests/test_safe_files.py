@@ -65,9 +65,8 @@ def test_a_link_in_the_target_place_is_refused_and_its_file_untouched(tmp_path: 
 def test_a_dangling_link_is_refused_and_nothing_is_created(tmp_path: Path) -> None:
     link = tmp_path / "metrics_greedy.png"
     link.symlink_to(tmp_path / "made-through-the-link.png")
-    with pytest.raises(UnsafePathError):
-        with atomic_writer(link) as handle:
-            handle.write(b"png")
+    with pytest.raises(UnsafePathError), atomic_writer(link) as handle:
+        handle.write(b"png")
     assert not (tmp_path / "made-through-the-link.png").exists()
 
 
@@ -114,10 +113,9 @@ def test_a_full_disk_names_the_file_keeps_the_old_one_and_leaves_no_temp(
 def test_an_error_inside_the_block_keeps_the_old_file(tmp_path: Path) -> None:
     path = tmp_path / "results.csv"
     path.write_text("old")
-    with pytest.raises(ZeroDivisionError):
-        with atomic_writer(path, text=True) as handle:
-            handle.write("half")
-            _ = 1 / 0
+    with pytest.raises(ZeroDivisionError), atomic_writer(path, text=True) as handle:
+        handle.write("half")
+        _ = 1 / 0
     assert path.read_text() == "old"
     assert leftovers(tmp_path) == []
 
