@@ -186,7 +186,7 @@ def atomic_writer(
     newline: str | None = ...,
     fix: str | None = ...,
 ) -> contextlib.AbstractContextManager[IO[str]]: ...
-@contextlib.contextmanager  # type: ignore[misc]
+@contextlib.contextmanager
 def atomic_writer(
     path: str | os.PathLike[str],
     *,
