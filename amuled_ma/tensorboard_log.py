@@ -47,6 +47,10 @@ class TensorBoardLog:
         log_dir: The folder of the event files (a variant's ``tb/``).
         flush_secs: How often TensorBoard's thread flushes [s].
 
+    Attributes:
+        log_dir: The folder of the event files.
+        failed: Whether a failed write was raised (the log is then incomplete).
+
     Raises:
         FileWriteError: The folder or its first event file cannot be made.
     """
@@ -56,12 +60,14 @@ class TensorBoardLog:
 
         _install_quiet_hook()
         self.log_dir = Path(log_dir)
+        self.failed = False
         try:
             self._writer = SummaryWriter(log_dir=str(self.log_dir), flush_secs=flush_secs)
         except OSError as error:
             raise self._failure(error) from error
 
     def _failure(self, error: OSError) -> FileWriteError:
+        self.failed = True
         return FileWriteError(
             write_failure(
                 f"TensorBoard events in {self.log_dir}",
@@ -88,12 +94,15 @@ class TensorBoardLog:
     def close(self) -> None:
         """Write every queued event and close the file.
 
+        After a failure already raised (:attr:`failed`), it only closes, raising nothing.
+
         Raises:
             FileWriteError: An event could not be written (``flush`` raises what
                 TensorBoard's thread met); the file is closed all the same.
         """
         try:
-            self._writer.flush()
+            if not self.failed:
+                self._writer.flush()
         except OSError as error:
             raise self._failure(error) from error
         finally:

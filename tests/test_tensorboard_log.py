@@ -53,6 +53,8 @@ def test_a_full_disk_is_one_line_naming_the_folder(
         log = TensorBoardLog(disk / "tb", flush_secs=0)
         with pytest.raises(FileWriteError) as caught:
             fill_log(log)
+        assert log.failed
+        log.close()  # after the failure was raised: closes, raises nothing more
     line = str(caught.value)
     assert "\n" not in line
     assert line.startswith(f"cannot write TensorBoard events in {disk / 'tb'}: ")

@@ -118,3 +118,37 @@ def test_a_linked_variant_folder_is_not_read(run: Path, tmp_path: Path) -> None:
     (run / "other").symlink_to(elsewhere)
     with pytest.raises(UnsafePathError, match="outside its folder"):
         load_curves(run)
+
+
+def test_run_refuses_a_linked_report_before_training(
+    run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    outside = tmp_path / "notes.md"
+    outside.write_text("mine")
+    (run / "report.md").symlink_to(outside)
+    capsys.readouterr()
+    assert main(["run", "findmilk", "--run-dir", str(run), *TINY, *RULES, "--resume"]) == 1
+    assert f"{run / 'report.md'}: is a symbolic link (to {outside})" in error_line(capsys)
+    assert outside.read_text() == "mine"
+    assert sorted(p.name for p in run.iterdir() if p.is_dir()) == ["base"]  # nothing trained
+
+
+def test_the_demo_live_section_replaces_the_old_one_and_follows_no_link(
+    tmp_path: Path,
+) -> None:
+    from amuled_ma.commands.demo import LIVE_HEADING, put_live_section
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "report.md").write_text(f"# Report\n\n{LIVE_HEADING}\n\nold leg\n", encoding="utf-8")
+    put_live_section(run, [LIVE_HEADING, "", "new leg", ""])
+    assert (run / "report.md").read_text(encoding="utf-8") == (
+        f"# Report\n\n{LIVE_HEADING}\n\nnew leg\n"
+    )
+    outside = tmp_path / "notes.md"
+    outside.write_text("mine")
+    (run / "report.md").unlink()
+    (run / "report.md").symlink_to(outside)
+    with pytest.raises(UnsafePathError, match="does not follow links"):
+        put_live_section(run, [LIVE_HEADING, "", "new leg", ""])
+    assert outside.read_text() == "mine"
