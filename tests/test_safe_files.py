@@ -147,3 +147,21 @@ def test_reads_refuse_a_link_a_fifo_and_a_way_out(tmp_path: Path) -> None:
     with pytest.raises(UnsafePathError) as caught:
         checked_read_path(run, "linked/secret.json")
     assert f"resolves to {secret.resolve()}" in one_line(caught)
+
+
+def test_a_demonstrator_table_is_written_whole_and_not_through_a_link(tmp_path: Path) -> None:
+    import torch
+
+    from amuled_ma.tasks.demonstrators.table import DemonstratorBelief
+
+    counts = torch.tensor([[3, 1, 0, 0], [0, 0, 2, 2]])
+    table = DemonstratorBelief("findmilk", torch.tensor([5, 9]), counts, {"episodes": 2})
+    path = table.save(tmp_path / "findmilk.npz")
+    back = DemonstratorBelief.load(path, expect={"episodes": 2})
+    assert back.states.tolist() == [5, 9] and back.counts.tolist() == counts.tolist()
+    outside = tmp_path / "outside.npz"
+    outside.write_bytes(b"kept")
+    (tmp_path / "linked.npz").symlink_to(outside)
+    with pytest.raises(UnsafePathError):
+        table.save(tmp_path / "linked.npz")
+    assert outside.read_bytes() == b"kept"
