@@ -44,6 +44,7 @@ import httpx
 
 from amuled_ma.beliefs.hosts import TINY_MODEL, normalize_host, preflight
 from amuled_ma.errors import AmuledError, BackendUnavailable, ModelNotFound
+from amuled_ma.safe_files import write_text_atomic
 
 #: Version that ``.ci/setup-ollama`` builds and the tests were measured with.
 OLLAMA_VERSION = "0.17.4"
@@ -550,14 +551,14 @@ def read_state(state_dir: str | os.PathLike[str] | None = None) -> ServerState |
 
 
 def write_state(state: ServerState, state_dir: str | os.PathLike[str] | None = None) -> Path:
-    """Record ``state`` atomically; return the file's path."""
+    """Record ``state`` whole or not at all (:func:`~amuled_ma.safe_files.write_text_atomic`).
+
+    Returns:
+        The file's path.
+    """
     directory = Path(state_dir or default_state_dir())
     directory.mkdir(parents=True, exist_ok=True)
-    path = directory / "state.json"
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(state.to_json())
-    tmp.replace(path)
-    return path
+    return write_text_atomic(directory / "state.json", state.to_json())
 
 
 def clear_state(state_dir: str | os.PathLike[str] | None = None) -> None:

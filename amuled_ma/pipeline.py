@@ -191,8 +191,10 @@ def run_pipeline(
     actions = check_jobs(plan.jobs, request.hint)  # before the lock: a refused run makes no folder
     # after the checks: a refused run answers before torch and matplotlib are imported
     from amuled_ma.evaluate.evaluator import evaluate_run, variant_dirs
-    from amuled_ma.evaluate.report import write_report
+    from amuled_ma.evaluate.report import evaluation_outputs, write_report
+    from amuled_ma.safe_files import check_write_targets
 
+    check_write_targets(evaluation_outputs(plan.out_dir))  # before training, as the inputs
     workers = resolve_workers(request.jobs, plan.jobs)
     with run_folder_lock(request.run_dir):
         say(plan.announce)

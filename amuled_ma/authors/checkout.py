@@ -28,6 +28,7 @@ from amuled_ma.authors.caches import ConvertedCache, convert_cache, model_slug, 
 from amuled_ma.authors.policies import (
     AUTHORS_BASE_ITERATIONS,
     AUTHORS_SEED,
+    TRAIN_CFG,
     authors_scenario,
     build_checkpoint,
     cleanrl_shape,
@@ -37,6 +38,7 @@ from amuled_ma.authors.policies import (
 )
 from amuled_ma.errors import AuthorsImportError
 from amuled_ma.file_hash import sha256_file
+from amuled_ma.safe_files import check_write_targets, write_text_atomic
 
 #: The authors' repository.
 AUTHORS_REPO = "https://github.com/temetski/moral_agent"
@@ -318,10 +320,13 @@ def import_authors(
     Raises:
         AuthorsImportError: The folder holds none of the authors' files, a file is not in
             their format, or an output exists with other content (nothing was written).
+        UnsafePathError: An output's place holds a link or a device (nothing was written).
+        FileWriteError: An output could not be written (a full disk); one line naming it.
         UnsafePickleError: A cache names a global outside the allow-list (nothing ran).
         CheckpointError: A policy cannot be read as weights only, or has another layout.
 
     """
+    from amuled_ma.learn.checkpoints import LAST
     from amuled_ma.scenario import user_recordings_dir
 
     checkout = Path(checkout).expanduser()
@@ -370,14 +375,15 @@ def import_authors(
             f"{shown}{more}; nothing was written. Move them away, choose other folders "
             "(--to, --runs), or replace them with --force"
         )
+    # a link or a device in an output's place is refused before anything is written
+    check_write_targets(o.target for o, _ in caches)
+    check_write_targets(o.target / name for o, _ in nets for name in (LAST, TRAIN_CFG))
     for output, converted in caches:
         report.outputs.append(output)
         if output.status == "unchanged" or converted is None:
             continue
         output.target.parent.mkdir(parents=True, exist_ok=True)
-        tmp = output.target.with_name(output.target.name + ".tmp")
-        tmp.write_text(converted.to_json())
-        tmp.replace(output.target)
+        write_text_atomic(output.target, converted.to_json())
     for output, item in nets:
         report.outputs.append(output)
         if output.status != "unchanged":

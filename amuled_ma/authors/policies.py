@@ -30,6 +30,7 @@ from typing import Any
 import torch
 
 from amuled_ma.errors import CheckpointError
+from amuled_ma.safe_files import atomic_writer, write_text_atomic
 from amuled_ma.torch_files import load_weights_only
 from amuled_ma.variants import Variant
 
@@ -49,6 +50,9 @@ AUTHORS_FINETUNE_STEPS = 128
 LOGIT_TOLERANCE = 1e-5
 
 _PPO_FILE = re.compile(r"^ppo_(\d+)\.cleanrl_model$")
+
+#: The rsl-rl config an imported variant folder holds beside its checkpoint.
+TRAIN_CFG = "train_cfg.json"
 
 
 def checkpoint_number(path: Path) -> int | None:
@@ -323,9 +327,8 @@ def write_variant(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / LAST
-    tmp = path.with_suffix(".tmp")
-    torch.save(dict(checkpoint), tmp)
-    tmp.replace(path)
+    with atomic_writer(path) as handle:
+        torch.save(dict(checkpoint), handle)
     infos = checkpoint["infos"]
     fields: dict[str, Any] = {
         "variant": infos["variant"],
@@ -341,5 +344,5 @@ def write_variant(
     if variant.finetuning:  # trained by the authors on their panel's feedback with this LLM
         fields["panel"] = {"feedback": variant.feedback, "model": infos["authors"].get("model")}
     write_config(out_dir, scenario, fields)
-    (out_dir / "train_cfg.json").write_text(json.dumps(checkpoint["infos"]["train_cfg"], indent=2))
+    write_text_atomic(out_dir / TRAIN_CFG, json.dumps(checkpoint["infos"]["train_cfg"], indent=2))
     return path

@@ -18,6 +18,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from amuled_ma.safe_files import write_text_atomic
+
 TARGET_DRIVING_S = 60.0
 
 
@@ -117,6 +119,6 @@ def main(args: argparse.Namespace) -> int:
             f"{'met' if ok else 'MISSED'}"
         )
     if args.json:
-        args.json.write_text(json.dumps(rows, indent=2))
+        write_text_atomic(args.json, json.dumps(rows, indent=2))
         print(f"\nfigures written to {args.json}")
     return 0

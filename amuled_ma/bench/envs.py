@@ -21,6 +21,8 @@ from typing import Any
 
 import numpy as np
 
+from amuled_ma.safe_files import write_text_atomic
+
 TARGET_STEPS_PER_S = 1_000_000
 TARGET_RATIO = 20.0
 
@@ -153,6 +155,6 @@ def main(args: argparse.Namespace) -> int:
             f"{'met' if ok_ratio else 'MISSED'}"
         )
     if args.json:
-        args.json.write_text(json.dumps(results, indent=2))
+        write_text_atomic(args.json, json.dumps(results, indent=2))
         print(f"\nfigures written to {args.json}")
     return 0

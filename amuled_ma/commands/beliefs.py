@@ -26,6 +26,7 @@ from amuled_ma.beliefs.interchange import export_jsonl, import_jsonl
 from amuled_ma.beliefs.rows import BeliefStoreError
 from amuled_ma.beliefs.store import BeliefStore, default_store_path
 from amuled_ma.beliefs.types import STATUSES
+from amuled_ma.safe_files import atomic_writer
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -137,14 +138,10 @@ def _export(args: argparse.Namespace) -> int:
                 count = export_jsonl(store, fp, status=args.status, task=args.task)
         else:
             # written beside the target and renamed at the end: a row that cannot be
-            # exported (a damaged store) leaves no half-written file behind
-            part = Path(f"{args.output}.part")
-            try:
-                with open(part, "w", encoding="utf-8") as fp:
-                    count = export_jsonl(store, fp, status=args.status, task=args.task)
-                os.replace(part, args.output)
-            finally:
-                part.unlink(missing_ok=True)
+            # exported (a damaged store) leaves no half-written file behind; a link in the
+            # target's place is refused, never followed
+            with atomic_writer(args.output, text=True) as fp:
+                count = export_jsonl(store, fp, status=args.status, task=args.task)
     print(f"exported {count} rows from {store.path}", file=sys.stderr)
     return 0
 

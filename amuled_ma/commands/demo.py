@@ -47,6 +47,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from amuled_ma.commands import _experiment as common
+from amuled_ma.safe_files import checked_read_path, write_text_atomic
 
 if TYPE_CHECKING:
     from amuled_ma.beliefs.timing import CacheReuse, RequestTiming, TimingLog
@@ -517,23 +518,41 @@ def write_live_leg(run_dir: Path, scenario: Scenario, *, model: str, host: str) 
         f"live leg: {LIVE_STATES} states x {len(LIVE_CLUSTERS)} clusters asked of {model} "
         "(its judgement is not meaningful: it shows the live path)"
     )
-    report = run_dir / "report.md"
     try:
         leg = live_leg(run_dir, scenario, model=model, host=host)
     except (AmuledError, OSError, ValueError) as error:
         _say(f"live leg failed: {error}")
-        if report.is_file():
-            with report.open("a") as handle:
-                handle.write(f"\n{LIVE_HEADING}\n\nThe live leg failed: {error}\n")
+        put_live_section(run_dir, [LIVE_HEADING, "", f"The live leg failed: {error}", ""])
         return False
-    (run_dir / LIVE_DIR / "live.json").write_text(json.dumps(leg, indent=1))
-    if report.is_file():
-        text = report.read_text()
-        if LIVE_HEADING in text:  # a re-run: replace the old section
-            text = text[: text.index(LIVE_HEADING)].rstrip("\n") + "\n"
-        report.write_text(text.rstrip("\n") + "\n\n" + "\n".join(live_section(leg)))
+    write_text_atomic(run_dir / LIVE_DIR / "live.json", json.dumps(leg, indent=1))
+    put_live_section(run_dir, live_section(leg))
     _say(f"live leg: {leg['requests']} requests in {leg['wall_s']:.1f} s")
     return True
+
+
+def put_live_section(run_dir: Path, lines: list[str]) -> None:
+    """End ``report.md`` with the live leg's section, in place of an earlier one.
+
+    Read through :func:`~amuled_ma.safe_files.checked_read_path` and written back whole
+    (:func:`~amuled_ma.safe_files.write_text_atomic`); without a report, nothing is written.
+
+    Raises:
+        AmuledError: ``report.md`` is a link, not a regular file, over
+            :data:`~amuled_ma.evaluate.report.writing.MAX_REPORT_BYTES`, or could not be
+            written (a full disk); one line naming it.
+        UnicodeDecodeError: It is not UTF-8 text.
+    """
+    from amuled_ma.evaluate.report.writing import MAX_REPORT_BYTES
+    from amuled_ma.file_limits import read_bounded_bytes
+
+    report = checked_read_path(run_dir, "report.md")
+    if not report.is_file():
+        return
+    fix = f"is it the right folder? Write the report again with 'amuled evaluate {run_dir}'"
+    text = read_bounded_bytes(report, MAX_REPORT_BYTES, "report", fix=fix).decode("utf-8")
+    if LIVE_HEADING in text:  # a re-run: replace the old section
+        text = text[: text.index(LIVE_HEADING)]
+    write_text_atomic(report, text.rstrip("\n") + "\n\n" + "\n".join(lines))
 
 
 class PrefixWarmup:

@@ -56,8 +56,10 @@ def evaluate_command(args: argparse.Namespace) -> int:
     scenario = scenario_of_run(run_dir)  # a clear error when it is no run, before torch
     scenario = common.customise(scenario, clusters_dirs=args.clusters_dir)
     from amuled_ma.evaluate.evaluator import evaluate_run, variant_dirs  # torch, matplotlib
-    from amuled_ma.evaluate.report import write_report
+    from amuled_ma.evaluate.report import evaluation_outputs, write_report
+    from amuled_ma.safe_files import check_write_targets
 
+    check_write_targets(evaluation_outputs(run_dir))  # a link or a device: refused before work
     with run_folder_lock(run_dir):
         extra = None
         if run_dir.name.startswith("ablate-"):  # the run's folders the ablation shares

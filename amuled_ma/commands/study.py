@@ -202,7 +202,9 @@ def _export(args: argparse.Namespace) -> int:
     if args.output is None:
         sys.stdout.write(text)
     else:
-        args.output.write_text(text, encoding="utf-8")
+        from amuled_ma.safe_files import write_text_atomic
+
+        write_text_atomic(args.output, text)
         common.say(f"study {args.study}: answers written to {args.output}")
     return 0
 

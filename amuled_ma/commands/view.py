@@ -61,7 +61,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=Path,
         default=None,
         metavar="FILE",
-        help="the HTML file (default: RUN_DIR/view-episode<K>.html)",
+        help="the HTML file (default: RUN_DIR/view-episode<K>.html); a new or a regular "
+        "file, written whole or not at all: a link, a device or a FIFO is refused",
     )
     parser.add_argument(
         "--serve",
@@ -101,8 +102,11 @@ def view_command(args: argparse.Namespace) -> int:
     from amuled_ma.evaluate.page_server import serve
     from amuled_ma.evaluate.viewer import write_view
     from amuled_ma.experiments.trained_variants import run_to_view
+    from amuled_ma.safe_files import check_write_target
 
     run_dir = Path(args.run_dir)
+    if args.output is not None:
+        check_write_target(args.output)  # a link or a device is refused before any work
     view = run_to_view(run_dir, args.variants, args.episodes)
     common.say(f"view {run_dir}: episode {args.episode} of {view.episodes}, {args.mode} actions")
     result = write_view(

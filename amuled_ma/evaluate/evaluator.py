@@ -19,12 +19,13 @@ import torch
 
 from amuled_ma.beliefs.types import FUSED_STATUSES
 from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError
-from amuled_ma.evaluate.results import Results, write_results
+from amuled_ma.evaluate.results import RESULTS_FILES, Results, write_results
 from amuled_ma.evaluate.rollout import TrajectoryRecorder, rollout
 from amuled_ma.evaluate.stats import mean_ci
 from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.policies import load_policy
 from amuled_ma.records import RunRecord
+from amuled_ma.safe_files import check_write_targets, checked_read_path
 from amuled_ma.scenario import Scenario
 
 #: The paper's metrics per task, in report order (others follow alphabetically).
@@ -51,13 +52,14 @@ def read_feedback(folder: Path) -> dict[str, Any] | None:
 
     Raises:
         AmuledError: The file is larger than :data:`MAX_FEEDBACK_BYTES` (refused from its
-            size, before it is read), cannot be read, or is not a JSON object; one line
-            naming the file.
+            size, before it is read), a link or not a regular file
+            (:func:`~amuled_ma.safe_files.checked_read_path`), cannot be read, or is not a
+            JSON object; one line naming the file.
 
     """
     from amuled_ma.file_limits import read_bounded_json
 
-    path = Path(folder) / FEEDBACK_FILE
+    path = checked_read_path(folder, FEEDBACK_FILE)
     if not path.is_file():
         return None
     fix = (
@@ -309,13 +311,16 @@ def evaluate_run(
 
     Raises:
         CheckpointError: The run has no trained variant.
-        AmuledError: A variant's ``feedback.json`` is over :data:`MAX_FEEDBACK_BYTES` or
-            not JSON (:func:`read_feedback`; checked before any episode is run).
+        AmuledError: A variant's ``feedback.json`` is over :data:`MAX_FEEDBACK_BYTES`,
+            not JSON, or a link (:func:`read_feedback`); ``results.json`` or
+            ``results.csv`` is a link or not a regular file; each checked before any
+            episode is run.
 
     """
     from tqdm.auto import tqdm
 
     run_dir = Path(run_dir)
+    check_write_targets(run_dir / name for name in RESULTS_FILES)  # before any episode
     records = records or {}
     ev = scenario.evaluation
     episodes = ev.episodes if episodes is None else episodes

@@ -20,6 +20,13 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
+from amuled_ma.safe_files import (
+    atomic_writer,
+    check_write_targets,
+    checked_read_path,
+    write_text_atomic,
+)
+
 #: The action selection modes a variant is evaluated in.
 MODES = ("greedy", "sampled")
 #: Largest ``results.json`` read [bytes]: about 140 bytes an episode of each variant and
@@ -165,15 +172,30 @@ def _clean(value: Any) -> Any:
     return value
 
 
+#: The files :func:`write_results` writes into a run folder.
+RESULTS_FILES = ("results.json", "results.csv")
+
+
 def write_results(run_dir: Path, results: Results | Mapping[str, Any]) -> tuple[Path, Path]:
-    """Write ``results.json`` (everything) and ``results.csv`` (a row per variant/mode/metric)."""
+    """Write ``results.json`` (everything) and ``results.csv`` (a row per variant/mode/metric).
+
+    Both through :func:`~amuled_ma.safe_files.atomic_writer` (UTF-8).
+
+    Returns:
+        The two paths.
+
+    Raises:
+        UnsafePathError: Either is a link or not a regular file; neither is written.
+        FileWriteError: A file could not be written (a full disk); one line naming it.
+
+    """
     results = Results.of(results)
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    json_path = run_dir / "results.json"
-    json_path.write_text(json.dumps(results.to_data(), indent=1))
-    csv_path = run_dir / "results.csv"
-    with csv_path.open("w", newline="") as handle:
+    json_path, csv_path = (run_dir / name for name in RESULTS_FILES)
+    check_write_targets((json_path, csv_path))
+    write_text_atomic(json_path, json.dumps(results.to_data(), indent=1))
+    with atomic_writer(csv_path, text=True, newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(
             ["variant", "mode", "metric", "mean", "ci_low", "ci_high", "std", "n", "ci_over"]
@@ -202,8 +224,9 @@ def read_results(run_dir: Path) -> Results:
         The results.
 
     Raises:
-        AmuledError: Missing, not in the shape of :class:`Results`, or larger than
-            :data:`MAX_RESULTS_BYTES` (refused from its size, before it is read).
+        AmuledError: Missing, not in the shape of :class:`Results`, larger than
+            :data:`MAX_RESULTS_BYTES` (refused from its size, before it is read), or a
+            link or not a regular file (:func:`~amuled_ma.safe_files.checked_read_path`).
 
     """
     from pydantic import ValidationError
@@ -211,7 +234,7 @@ def read_results(run_dir: Path) -> Results:
     from amuled_ma.errors import AmuledError
     from amuled_ma.file_limits import read_bounded_bytes
 
-    path = Path(run_dir) / "results.json"
+    path = checked_read_path(run_dir, "results.json")
     try:
         raw = read_bounded_bytes(
             path,

@@ -38,6 +38,7 @@ from amuled_ma.errors import AmuledError
 from amuled_ma.evaluate import episode_trace as trace
 from amuled_ma.evaluate.panel_answers import PanelAnswers, ask_panel
 from amuled_ma.evaluate.readonly_feedback import describe_feedback, open_feedback
+from amuled_ma.safe_files import check_write_target, write_text_atomic
 from amuled_ma.tasks.colors import COLORS, css_variables
 
 #: Decimals kept for probabilities, weights and conflicts in the page.
@@ -459,16 +460,19 @@ def write_view(
     Returns:
         The :class:`ViewResult`.
 
+    Raises:
+        UnsafePathError: The output is a link, a device, a FIFO or a folder; refused
+            before the episode is replayed.
+        FileWriteError: It could not be written (a full disk); one line naming it.
+
     """
     start = time.perf_counter()
+    path = check_write_target(output if output is not None else default_output(run_dir, episode))
     data = build_view(
         run_dir, scenario, variants, episode=episode, mode=mode, episodes=episodes, say=say
     )
     page = render_html(data)
-    path = Path(output) if output is not None else default_output(run_dir, episode)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(page, encoding="utf-8")
-    tmp.replace(path)
+    write_text_atomic(path, page)
     shown = [(v["name"], int(v["T"]), int(v.get("distinct_states", 0))) for v in data["variants"]]
     return ViewResult(path, path.stat().st_size, shown, time.perf_counter() - start)

@@ -50,6 +50,7 @@ from amuled_ma.evaluate.report.writing import (
     FIGURE_NAMES,
     VIEWER_PAGE,
     VIEWER_PREFIX,
+    evaluation_outputs,
     link_viewer,
     viewer_line,
     write_report,
@@ -58,11 +59,11 @@ from amuled_ma.tasks.findmilk_drawing import findmilk_subgoals
 
 __all__ = [
     "FIGURE_NAMES", "VIEWER_PAGE", "VIEWER_PREFIX", "ablation_figure", "agents_table",
-    "bars_figure", "base_differences", "budget_ablation_table", "budget_figure",
-    "budget_points", "budget_table", "compact_number", "curve_band", "curves_figure",
-    "diagnostics_table", "differences_table", "driving_figure", "findmilk_figure",
+    "bars_figure", "base_differences", "budget_ablation_table", "budget_figure", "budget_points",
+    "budget_table", "compact_number", "curve_band", "curves_figure", "diagnostics_table",
+    "differences_table", "driving_figure", "evaluation_outputs", "findmilk_figure",
     "findmilk_subgoals", "format_stat", "imported_table", "link_viewer", "load_curves",
-    "metrics_table", "panels_table", "plot_ablation", "plot_bars", "plot_curves",
-    "plot_driving", "plot_findmilk", "robust_ylim", "same_as_base", "servers_table",
-    "settings_table", "variant_colors", "viewer_line", "write_report",
+    "metrics_table", "panels_table", "plot_ablation", "plot_bars", "plot_curves", "plot_driving",
+    "plot_findmilk", "robust_ylim", "same_as_base", "servers_table", "settings_table",
+    "variant_colors", "viewer_line", "write_report",
 ]  # fmt: skip

@@ -27,6 +27,7 @@ from amuled_ma.evaluate.report.plotting import (
     variant_colors,
 )
 from amuled_ma.evaluate.stats import t_quantile
+from amuled_ma.safe_files import checked_read_path
 
 #: Curve keys plotted per task (the first that exists in a curve is used).
 CURVE_KEYS = {
@@ -79,13 +80,17 @@ def load_curves(
 
     Raises:
         AmuledError: A ``curve.json`` is larger than :data:`MAX_CURVE_BYTES` (refused from
-            its size, before it is read), cannot be read or is not JSON; one line naming it.
+            its size, before it is read), a link, not a regular file or outside
+            ``run_dir`` (:func:`~amuled_ma.safe_files.checked_read_path`), cannot be read
+            or is not JSON; one line naming it.
 
     """
     names = names or {}
     curves: dict[str, list[list[dict]]] = {}
-    for path in sorted(Path(run_dir).glob("*/curve.json")):
+    run_dir = Path(run_dir)
+    for path in sorted(run_dir.glob("*/curve.json")):
         variant = names.get(path.parent.name, path.parent.name)
+        checked_read_path(run_dir, path.relative_to(run_dir))
         curves.setdefault(variant, []).append(read_curve(path))
     return curves
 

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from amuled_ma.evaluate.results import Stat
+from amuled_ma.safe_files import atomic_writer
 
 #: Two means closer than this are "equal" (the difference table and the equals-base note).
 EQUAL_TOL = 1e-9
@@ -197,10 +198,18 @@ def legend_below(fig: Any, handles: list, labels: list[str], spare: list) -> Non
 
 
 def save_figure(fig: Any, path: Path) -> Path:
-    """Write a figure as PNG and close it."""
+    """Write a figure as PNG (:func:`~amuled_ma.safe_files.atomic_writer`) and close it.
+
+    Raises:
+        UnsafePathError: ``path`` is a link or not a regular file.
+        FileWriteError: It could not be written (a full disk); one line naming it.
+    """
     plt = pyplot()
-    fig.savefig(path, dpi=_DPI)
-    plt.close(fig)
+    try:
+        with atomic_writer(path) as handle:
+            fig.savefig(handle, format="png", dpi=_DPI)
+    finally:
+        plt.close(fig)
     return path
 
 

@@ -9,7 +9,6 @@ feedback, the diagnostics (:mod:`~amuled_ma.evaluate.report.tables`) and the fig
 
 from __future__ import annotations
 
-import locale
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -39,8 +38,9 @@ from amuled_ma.evaluate.report.tables import (
     servers_table,
 )
 from amuled_ma.evaluate.report.trajectories import plot_driving, plot_findmilk
-from amuled_ma.evaluate.results import Results
+from amuled_ma.evaluate.results import RESULTS_FILES, Results
 from amuled_ma.records import RunRecord
+from amuled_ma.safe_files import check_write_targets, checked_read_path, write_text_atomic
 
 #: The figures :func:`write_report` writes; one of these it did not write this time is a
 #: stale one from an earlier report and is removed, so every PNG is the report's.
@@ -84,16 +84,18 @@ def link_viewer(run_dir: Path) -> bool:
 
     Raises:
         AmuledError: ``report.md`` is larger than :data:`MAX_REPORT_BYTES` (refused from
-            its size, before it is read), unreadable or not text; one line naming it.
+            its size, before it is read), unreadable or not text; a link or not a regular
+            file (:func:`~amuled_ma.safe_files.checked_read_path`); it cannot be written
+            back (:func:`~amuled_ma.safe_files.write_text_atomic`); one line naming it.
 
     """
     from amuled_ma.file_limits import read_bounded_bytes
 
-    report = Path(run_dir) / "report.md"
+    report = checked_read_path(run_dir, "report.md")
     if not report.is_file():
         return False
     fix = f"is it the right folder? Write the report again with 'amuled evaluate {run_dir}'"
-    encoding = locale.getpreferredencoding(False)  # as write_text wrote it
+    encoding = "utf-8"  # as write_report wrote it
     try:
         raw = read_bounded_bytes(
             report, MAX_REPORT_BYTES, "report", note="a report is about 10 KB", fix=fix
@@ -110,12 +112,29 @@ def link_viewer(run_dir: Path) -> bool:
             lines[i] = viewer_line(run_dir)
             found = True
     if found:
-        report.write_text("\n".join(lines))
+        write_text_atomic(report, "\n".join(lines))
     return found
 
 
 # ---------------------------------------------------------------------------------------
 # The report
+
+
+def evaluation_outputs(run_dir: Path) -> list[Path]:
+    """The files an evaluation and its report write or remove in ``run_dir``.
+
+    :data:`~amuled_ma.evaluate.results.RESULTS_FILES`, ``report.md``, :data:`FIGURE_NAMES`
+    and every ``ablation_*.png`` there. ``amuled evaluate`` and the pipeline check them
+    (:func:`~amuled_ma.safe_files.check_write_targets`) before the first episode, so a
+    refused one costs no work.
+    """
+    run_dir = Path(run_dir)
+    return [
+        *(run_dir / name for name in RESULTS_FILES),
+        run_dir / "report.md",
+        *(run_dir / name for name in FIGURE_NAMES),
+        *sorted(run_dir.glob("ablation_*.png")),
+    ]
 
 
 def write_report(
@@ -147,8 +166,14 @@ def write_report(
     Returns:
         Path of ``report.md``.
 
+    Raises:
+        UnsafePathError: One of :func:`evaluation_outputs` is a link or not a regular file;
+            refused before any figure is drawn.
+        FileWriteError: A file could not be written (a full disk); one line naming it.
+
     """
     run_dir = Path(run_dir)
+    check_write_targets(evaluation_outputs(run_dir))
     results = Results.of(results)
     task = results.task
     ablation = ablation or (run.ablation if run is not None else None)
@@ -357,9 +382,7 @@ def write_report(
     for caption, note, path in figures:
         if path is not None:
             lines += [f"### {caption}", "", note, "", f"![{caption}]({path.name})", ""]
-    report = run_dir / "report.md"
-    report.write_text("\n".join(lines))
-    return report
+    return write_text_atomic(run_dir / "report.md", "\n".join(lines))
 
 
 def _paper_lines(results: Results, described: Mapping[str, RunRecord | None]) -> list[str]:

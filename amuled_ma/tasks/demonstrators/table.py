@@ -21,7 +21,6 @@ import json
 import math
 import numbers
 import os
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -30,6 +29,7 @@ import numpy as np
 import torch
 
 from amuled_ma.errors import AmuledError
+from amuled_ma.safe_files import atomic_writer
 from amuled_ma.tasks import canonical_name, get_task
 
 __all__ = [
@@ -316,23 +316,21 @@ class DemonstratorBelief:
         Returns:
             The path written.
 
+        Raises:
+            UnsafePathError: ``path`` is a link or not a regular file.
+            FileWriteError: It could not be written (a full disk); the old file is kept.
+
         """
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez_compressed(
-                    f,
-                    states=self.states.numpy(),
-                    counts=self.counts.numpy(),
-                    task=np.array(self.task_name),
-                    settings=np.array(json.dumps(self.settings, sort_keys=True)),
-                )
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        with atomic_writer(path) as f:
+            np.savez_compressed(
+                f,
+                states=self.states.numpy(),
+                counts=self.counts.numpy(),
+                task=np.array(self.task_name),
+                settings=np.array(json.dumps(self.settings, sort_keys=True)),
+            )
         return path
 
     @classmethod
