@@ -5,7 +5,8 @@ Routes (all served from this process; the page loads nothing from the network):
 - ``GET /``: the participant page (jsPsych 7, shipped in ``amuled_ma/study/static``); a
   recruiting platform's id comes in the URL (``?PROLIFIC_PID=``, ``?workerId=``,
   ``?participant=``);
-- ``GET /consent``: the study folder's ``consent.html`` (the researcher's text);
+- ``GET /consent``: the study folder's ``consent.html`` (the researcher's text; 404 where it
+  became a link or not a regular file);
 - ``POST /api/session``: ``{"participant", "token", "source"}`` (all optional) gives the
   participant's id and token and the items left, in the participant's own order (drawn
   from the study's seed and the id, so a reload shows the same order);
@@ -14,11 +15,15 @@ Routes (all served from this process; the page loads nothing from the network):
   shown option), or an expert state's ``{"participant", "token", "item", "ms", "actions":
   [{"acceptable": true, "framework": "care"}, ...] (one per action of the task), "clarity": c}``
   (``c`` on the clarity scale, ``null`` where the panel stated no reason); stored at once
-  (200), or refused: a wrong token (403), an unknown item, choice, time, a rating outside
-  the scale or for an option not shown, a judgement that does not fit (400), an item
+  (200), or refused: a wrong token (403), a body that does not fit its model
+  (:mod:`amuled_ma.study.requests`: an unknown item, choice, time, a rating outside the
+  scale or for an option not shown, a judgement that does not fit; 400), an item
   already answered by that participant (409), a body over :data:`MAX_BODY_BYTES` (413, on
   both POST routes, not read further). Every refusal is kept with its reason.
 - ``GET /api/health``: ``{"ok": true, "items": n}``.
+
+:func:`serve` listens on 127.0.0.1 unless told ``public``, and checks the folder's files and
+binds the port before it says where it serves.
 """
 
 from __future__ import annotations
