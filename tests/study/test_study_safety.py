@@ -345,14 +345,11 @@ def test_build_names_a_missing_run_folder_before_importing_torch(tmp_path):
         f"rc = main(['study', 'build', {str(tmp_path / 'nope')!r}, '--out', "
         f"{str(tmp_path / 'out')!r}]); print(rc, 'torch' in sys.modules)"
     )
-    started = time.perf_counter()
     done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True,
                           text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})  # fmt: skip
-    seconds = time.perf_counter() - started
-    assert done.stdout.split() == ["1", "False"]
+    assert done.stdout.split() == ["1", "False"]  # refused, and torch never imported
     assert one_line(done.stderr) == (
         f"amuled: error: {tmp_path / 'nope'}: the run folder does not exist; give a run "
         "folder of 'amuled run' or 'amuled train' (is the path right?)"
     )
-    assert seconds < 5, seconds  # no torch: about 0.5 s here; the build's imports were 4 to 6 s
     assert not (tmp_path / "out").exists()
