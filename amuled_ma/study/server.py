@@ -346,9 +346,10 @@ class StudyApp:
             form = self.pair_model.model_validate(fields)
         except ValidationError as refused:
             loc, kind, _ = first_error(refused)
-            self.store.refuse(pid, item_id, choice, pair_reason(loc, kind))
+            reason = pair_reason(loc, kind)
+            self.store.refuse(pid, item_id, choice, reason)
             return _bad(
-                f"{_said(refused)}; expected 'choice': 'A' or 'B', 'ms': a time in ms, "
+                f"{reason} ({_said(refused)}); expected 'choice': 'A' or 'B', 'ms': a time in ms, "
                 f"'ratings': {{'A': r, 'B': r}}, r an integer from 1 to "
                 f"{self.study.rating_points}"
             )
@@ -382,13 +383,13 @@ class StudyApp:
             form = self.expert_model.model_validate(fields)
         except ValidationError as refused:
             loc, kind, _ = first_error(refused)
-            problem, said = expert_reason(loc, kind), _said(refused)
+            problem, said = expert_reason(loc, kind), f" ({_said(refused)})"
         else:
-            problem = said = self._expert_problem(form, item)
+            problem, said = self._expert_problem(form, item), ""
         if problem is not None:
             self.store.refuse(pid, item.id, None, problem)
             return _bad(
-                f"{said}; expected 'ms': a time in ms, 'actions': one {{'acceptable': "
+                f"{problem}{said}; expected 'ms': a time in ms, 'actions': one {{'acceptable': "
                 f"true|false, 'framework': one of {self.study.framework_names()}}} per "
                 f"action, 'clarity': 1 to {self.study.clarity_points} (null where the panel "
                 "stated no reason)"
