@@ -15,9 +15,15 @@ See ``docs/study.md``.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from amuled_ma.commands import _experiment as common
+
+
+def _warn(line: str) -> None:
+    """One ``amuled: warning: ...`` line on stderr."""
+    print(f"amuled: warning: {line}", file=sys.stderr, flush=True)
 
 
 def _variants(text: str) -> list[str]:
@@ -74,9 +80,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     serve = sub.add_parser("serve", help="serve a study to participants")
     serve.add_argument("study", metavar="STUDY", type=Path, help="a study folder")
     serve.add_argument(
-        "--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)"
+        "--host",
+        default="127.0.0.1",
+        help="address to listen on (default 127.0.0.1, this machine only; any other "
+        "address needs --public)",
+    )
+    serve.add_argument(
+        "--public",
+        action="store_true",
+        help="allow a --host other machines can reach (0.0.0.0: every interface); a "
+        "warning line says so",
     )
     serve.add_argument("--port", type=common.bounded_int(1, 65535), default=8765)
+    serve.add_argument(
+        "--allow-placeholder-consent",
+        action="store_true",
+        help="serve a consent.html that still holds the template's [placeholders] (a trial run)",
+    )
     serve.set_defaults(handler=_serve)
 
     analyze = sub.add_parser("analyze", help="write the study's report")
@@ -150,6 +170,9 @@ def _register_fit_weights(sub: argparse._SubParsersAction) -> None:
 
 
 def _build(args: argparse.Namespace) -> int:
+    from amuled_ma.study.model import check_run_folders
+
+    check_run_folders(args.runs)  # before the heavy imports of the build (torch)
     from amuled_ma.study.build import build_study
 
     study = build_study(
@@ -180,22 +203,26 @@ def _build(args: argparse.Namespace) -> int:
 def _serve(args: argparse.Namespace) -> int:
     from amuled_ma.study.server import serve
 
-    common.say(f"study {args.study}: serving on http://{args.host}:{args.port}/ (Ctrl-C stops)")
-    serve(args.study, host=args.host, port=args.port)
+    serve(
+        args.study,
+        host=args.host,
+        port=args.port,
+        public=args.public,
+        allow_placeholder_consent=args.allow_placeholder_consent,
+        say=common.say,
+    )
     return 0
 
 
 def _analyze(args: argparse.Namespace) -> int:
     from amuled_ma.study.report import write_analysis
 
-    path = write_analysis(args.study, keep_inattentive=args.keep_inattentive)
+    path = write_analysis(args.study, keep_inattentive=args.keep_inattentive, warn=_warn)
     common.say(f"study {args.study}: report {path}")
     return 0
 
 
 def _export(args: argparse.Namespace) -> int:
-    import sys
-
     from amuled_ma.study.analysis import answers_csv
 
     text = answers_csv(args.study)

@@ -14,8 +14,9 @@ from __future__ import annotations
 import csv
 import io
 import math
+import unicodedata
 from collections import Counter, defaultdict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +26,12 @@ from amuled_ma.study.answers import Answer, read_answers, read_expert_answers
 from amuled_ma.study.model import ANSWERS_FILE, Item, Study, StudyError, read_study
 
 Z95 = 1.959963984540054
+#: Fewer participants (experts) than this and the report warns that its intervals are
+#: unreliable: the intervals are percentile bootstraps over people, and n people have only
+#: C(2n - 1, n) distinct resamples (126 for n = 5, 92,378 for n = 10); below about 10 the
+#: percentile interval is known to be too narrow (it undercovers: Davison and Hinkley 1997,
+#: section 5.3; Efron and Tibshirani 1993, ch. 13), and one person moves every estimate.
+MIN_PARTICIPANTS = 10
 
 
 def wilson(wins: int, n: int, z: float = Z95) -> tuple[float, float]:
@@ -128,16 +135,45 @@ def bootstrap_strengths(
     return np.percentile(stack, 2.5, axis=0), np.percentile(stack, 97.5, axis=0)
 
 
-def nominal_alpha(values: dict[tuple[str, str], float]) -> float:
-    """Krippendorff's alpha (nominal) of ``{(rater, unit): value}`` (nan when undefined).
+def few_people(people: int, who: str = "participants") -> str | None:
+    """The warning when ``people`` is under :data:`MIN_PARTICIPANTS`, None otherwise."""
+    if people >= MIN_PARTICIPANTS:
+        return None
+    return (
+        f"only {people} {who}: the 95% intervals (bootstrap over {who}) are unreliable "
+        f"below {MIN_PARTICIPANTS} and one person moves every estimate; gather more answers "
+        "before drawing conclusions"
+    )
 
-    Undefined: fewer than two raters, no unit, or a single value in the whole data.
+
+def alpha_unavailable(values: dict[tuple[str, str], float]) -> str | None:
+    """Why Krippendorff's alpha of ``{(rater, unit): value}`` is undefined, None when it is not.
+
+    Alpha compares the disagreement observed between raters on a unit with the one
+    expected by chance; it needs two raters on a unit, and values that vary (with a single
+    value in the whole data both disagreements are 0 and alpha is 0/0).
+    """
+    raters = {r for r, _ in values}
+    if len(raters) < 2:
+        return f"fewer than 2 raters ({len(raters)})"
+    count = Counter(u for _, u in values)
+    if max(count.values()) < 2:
+        return "no item was answered by 2 or more raters"
+    if len(set(values.values())) < 2:
+        return "no variation: every answer has the same value"
+    return None
+
+
+def nominal_alpha(values: dict[tuple[str, str], float]) -> float:
+    """Krippendorff's alpha (nominal) of ``{(rater, unit): value}``.
+
+    Returns nan where it is undefined (:func:`alpha_unavailable` says why).
     """
     import krippendorff
 
     raters = sorted({r for r, _ in values})
     units = sorted({u for _, u in values})
-    if len(raters) < 2 or not units:
+    if alpha_unavailable(values) is not None:
         return math.nan
     rows = {p: r for r, p in enumerate(raters)}
     cols = {i: c for c, i in enumerate(units)}
@@ -150,9 +186,14 @@ def nominal_alpha(values: dict[tuple[str, str], float]) -> float:
         return math.nan
 
 
+def choice_values(pairs: Sequence[tuple[Answer, Item]]) -> dict[tuple[str, str], float]:
+    """``{(participant, item): 0 for A, 1 for B}``: the data of :func:`reliability`."""
+    return {(a.participant, i.id): 0.0 if a.choice == "A" else 1.0 for a, i in pairs}
+
+
 def reliability(pairs: Sequence[tuple[Answer, Item]]) -> float:
     """Krippendorff's alpha (nominal) of the participants' choices (A or B) over the pairs."""
-    return nominal_alpha({(a.participant, i.id): 0.0 if a.choice == "A" else 1.0 for a, i in pairs})
+    return nominal_alpha(choice_values(pairs))
 
 
 @dataclass(frozen=True)
@@ -292,44 +333,68 @@ EXPERT_CSV_COLUMNS = (
 )  # fmt: skip
 
 
-def _blank(value: object) -> object:
-    return "" if value is None else value
+#: What a spreadsheet reads as a formula at the start of a cell (OWASP, CSV injection).
+FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
+
+
+def safe_cell(value: object) -> object:
+    r"""A CSV cell a spreadsheet shows as text, never runs (OWASP's CSV-injection rule).
+
+    Text starting with one of :data:`FORMULA_STARTS` gets a leading ``'``; then every
+    control character (Unicode category ``Cc``: tabs, newlines, escape, delete, C1) is
+    written as ``\xNN`` (``\x1b`` for escape), so no cell holds one. Numbers and
+    None pass (None as an empty cell).
+    """
+    if value is None:
+        return ""
+    if not isinstance(value, str):
+        return value
+    text = "'" + value if value.startswith(FORMULA_STARTS) else value
+    return "".join(f"\\x{ord(c):02x}" if unicodedata.category(c) == "Cc" else c for c in text)
+
+
+def _csv_writer(buffer: io.StringIO) -> Callable[[Sequence[object]], None]:
+    """A CSV row writer that puts every cell through :func:`safe_cell`."""
+    writer = csv.writer(buffer, lineterminator="\n")
+    return lambda row: writer.writerow([safe_cell(cell) for cell in row])
 
 
 def answers_csv(folder: Path) -> str:
     """Every answer, one row each, with what was shown (for R, pandas, spreadsheets).
 
     A pairs study: one row per answer, with both ratings (empty where none was stored). An
-    expert study: one row per expert, state and action (:data:`EXPERT_CSV_COLUMNS`).
+    expert study: one row per expert, state and action (:data:`EXPERT_CSV_COLUMNS`). Every
+    cell goes through :func:`safe_cell` (a participant's id like ``=HYPERLINK(...)`` is
+    written ``'=HYPERLINK(...)``).
     """
     study, answers = load(folder)
     buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
+    write = _csv_writer(buffer)
     if study.mode == "expert":
-        writer.writerow(EXPERT_CSV_COLUMNS)
+        write(EXPERT_CSV_COLUMNS)
         for e in read_expert_answers(Path(folder) / ANSWERS_FILE):
             item = study.item(e.item)
             if item is None:
                 continue
             names = study.action_names.get(item.task, [])
             for j in e.judgements:
-                writer.writerow(
+                write(
                     [e.participant, e.item, j.action, names[j.action] if j.action < len(names)
-                     else "", int(j.acceptable), j.framework, _blank(e.clarity), f"{e.ms:.0f}",
+                     else "", int(j.acceptable), j.framework, e.clarity, f"{e.ms:.0f}",
                      f"{e.received:.3f}", item.task, study.runs[item.run], item.episode,
                      item.step]
                 )  # fmt: skip
         return buffer.getvalue()
-    writer.writerow(CSV_COLUMNS)
+    write(CSV_COLUMNS)
     for a in answers:
         item = study.item(a.item)
         if item is None or item.kind == "expert":
             continue
         oa, ob = item.options
-        writer.writerow(
+        write(
             [a.participant, a.item, item.kind, a.choice, a.variant or "", oa.variant or "",
-             ob.variant or "", oa.action_name, ob.action_name, _blank(a.correct),
+             ob.variant or "", oa.action_name, ob.action_name, a.correct,
              f"{a.ms:.0f}", f"{a.received:.3f}", item.task, study.runs[item.run],
-             item.episode, item.step, _blank(a.rating_a), _blank(a.rating_b)]
+             item.episode, item.step, a.rating_a, a.rating_b]
         )  # fmt: skip
     return buffer.getvalue()

@@ -48,6 +48,7 @@ from amuled_ma.study.model import (
     PanelView,
     Study,
     StudyError,
+    check_run_folders,
     write_study,
 )
 from amuled_ma.study.reasons import stated_reason
@@ -250,12 +251,13 @@ def build_study(
         The :class:`Study` written.
 
     Raises:
-        StudyError: Too few variants, a variant not found, no state where two variants
-            differ (pairs), attention checks asked in expert mode, an unknown mode, or
-            ``out`` holds a study and ``force`` is not set.
+        StudyError: A run folder missing, too few variants, a variant not found, no state
+            where two variants differ (pairs), attention checks asked in expert mode, an
+            unknown mode, or ``out`` holds a study and ``force`` is not set.
 
     """
     names = list(dict.fromkeys(variants))
+    check_run_folders([Path(r) for r in runs])
     _check_arguments(names, items, mode, attention)
     out = Path(out)
     if (out / STUDY_FILE).exists() and not force:

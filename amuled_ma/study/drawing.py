@@ -1,11 +1,13 @@
 """A state drawn as a small, self-contained SVG (what a participant sees of an item).
 
-The pictures follow the report's and the viewer's conventions: FindMilk is the grid with
-``y`` growing upwards, the robot, the milk (gold star), the crying babies (red discs) and the
-sleeping babies (blue squares) still in the room; Driving is the five-lane road seen from
-behind the car, with the cars (grey) and the grandmas (green) ahead at their distance. The
-text is deterministic (fixed number formats, no ids from a counter), so a rebuilt study has
-the same bytes.
+The pictures follow the report's and the viewer's conventions (``tasks/findmilk_drawing.py``,
+``evaluate/viewer.js``) in the colours of their one table, :data:`amuled_ma.tasks.colors.COLORS`:
+FindMilk is the grid with ``y`` growing upwards, the robot (a dark square), the milk (a gold
+star), the crying babies (orange discs marked ``C``) and the sleeping babies (sky-blue squares
+marked ``z``) still in the room; Driving is the five-lane road seen from behind the car, with
+the other cars (vermillion) and the grandmas (bluish green) ahead at their distance, the
+agent's car dark. The text is deterministic (fixed number formats, no ids from a counter), so
+a rebuilt study has the same bytes.
 """
 
 from __future__ import annotations
@@ -13,6 +15,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from html import escape
 from typing import Any
+
+from amuled_ma.tasks.colors import COLORS
 
 CELL = 40
 
@@ -37,26 +41,29 @@ def findmilk_svg(
     def xy(cell: Sequence[int]) -> tuple[int, int]:
         return int(cell[0]) * CELL + CELL // 2, (size - 1 - int(cell[1])) * CELL + CELL // 2
 
-    body = [f'<rect width="{size * CELL}" height="{size * CELL}" fill="#fbfbf8"/>']
+    ink, grid = COLORS["ink"], COLORS["grid"]
+    body = [f'<rect width="{size * CELL}" height="{size * CELL}" fill="#ffffff"/>']
     for i in range(size + 1):
         body.append(
-            f'<line x1="{i * CELL}" y1="0" x2="{i * CELL}" y2="{size * CELL}" stroke="#ccc"/>'
+            f'<line x1="{i * CELL}" y1="0" x2="{i * CELL}" y2="{size * CELL}" stroke="{grid}"/>'
         )
         body.append(
-            f'<line x1="0" y1="{i * CELL}" x2="{size * CELL}" y2="{i * CELL}" stroke="#ccc"/>'
+            f'<line x1="0" y1="{i * CELL}" x2="{size * CELL}" y2="{i * CELL}" stroke="{grid}"/>'
         )
-    for cell in sleeping:
-        x, y = xy(cell)
-        body.append(
-            f'<rect class="sleeping" x="{x - 13}" y="{y - 13}" width="26" height="26" '
-            'fill="#8ecae6" stroke="#219ebc" stroke-width="2"/>'
-        )
-    for cell in crying:
-        x, y = xy(cell)
-        body.append(
-            f'<circle class="crying" cx="{x}" cy="{y}" r="13" fill="#f28482" '
-            'stroke="#c1121f" stroke-width="2"/>'
-        )
+    for kind, cells in (("sleeping", sleeping), ("crying", crying)):
+        for cell in cells:  # as the viewer: the kind's colour, its letter, a dark edge
+            x, y = xy(cell)
+            shape = (
+                f'<circle cx="{x}" cy="{y}" r="14"'
+                if kind == "crying"
+                else f'<rect x="{x - 13}" y="{y - 13}" width="26" height="26" rx="3"'
+            )
+            body.append(
+                f'<g class="{kind}">{shape} fill="{COLORS[kind]}" stroke="{ink}" '
+                f'stroke-width="1.5"/><text x="{x}" y="{y + 4}" text-anchor="middle" '
+                f'fill="{ink}" font-size="11" font-weight="700">'
+                f"{'C' if kind == 'crying' else 'z'}</text></g>"
+            )
     mx, my = xy(milk)
     star = " ".join(
         f"{mx + r * c:.1f},{my + r * s:.1f}"
@@ -66,11 +73,11 @@ def findmilk_svg(
             (15, -0.951, -0.309), (6, -0.588, -0.809),
         )
     )  # fmt: skip
-    body.append(f'<polygon class="milk" points="{star}" fill="gold" stroke="#000"/>')
+    body.append(f'<polygon class="milk" points="{star}" fill="{COLORS["milk"]}" stroke="{ink}"/>')
     rx, ry = xy(robot)
     body.append(
-        f'<rect class="robot" x="{rx - 9}" y="{ry - 9}" width="18" height="18" rx="4" '
-        'fill="#333" stroke="#000"/>'
+        f'<rect class="robot" x="{rx - 11}" y="{ry - 11}" width="22" height="22" rx="4" '
+        f'fill="{COLORS["agent"]}"/>'
     )
     title = (
         f"FindMilk: robot at ({int(robot[0])}, {int(robot[1])}), milk at ({int(milk[0])}, "
@@ -88,30 +95,30 @@ def driving_svg(
     def xy(ln: int, d: int) -> tuple[int, int]:
         return int(ln) * CELL + CELL // 2, (distance - int(d)) * CELL + CELL // 2
 
-    body = [f'<rect width="{width}" height="{height}" fill="#555"/>']
+    body = [f'<rect width="{width}" height="{height}" fill="{COLORS["road"]}"/>']
     for i in range(1, lanes):
         body.append(
-            f'<line x1="{i * CELL}" y1="0" x2="{i * CELL}" y2="{height}" stroke="#eee" '
-            'stroke-dasharray="8 8"/>'
+            f'<line x1="{i * CELL}" y1="0" x2="{i * CELL}" y2="{height}" '
+            f'stroke="{COLORS["lane_mark"]}" stroke-dasharray="8 8"/>'
         )
     for ln, d in cars:
         if 0 < int(d) <= distance:
             x, y = xy(ln, d)
             body.append(
                 f'<rect class="car" x="{x - 11}" y="{y - 15}" width="22" height="30" rx="4" '
-                'fill="#adb5bd" stroke="#000"/>'
+                f'fill="{COLORS["car"]}"/>'
             )
     for ln, d in grandmas:
         if 0 < int(d) <= distance:
             x, y = xy(ln, d)
             body.append(
-                f'<circle class="grandma" cx="{x}" cy="{y}" r="11" fill="#2a9d8f" stroke="#fff" '
-                'stroke-width="2"/>'
+                f'<circle class="grandma" cx="{x}" cy="{y}" r="10" fill="{COLORS["grandma"]}" '
+                'stroke="#fff" stroke-width="2"/>'
             )
     x, y = xy(lane, 0)
     body.append(
-        f'<rect class="agent" x="{x - 12}" y="{y - 16}" width="24" height="32" rx="5" '
-        'fill="#e63946" stroke="#fff" stroke-width="2"/>'
+        f'<rect class="agent" x="{x - 12}" y="{y - 16}" width="24" height="32" rx="4" '
+        f'fill="{COLORS["agent"]}" stroke="#fff" stroke-width="2"/>'
     )
     title = (
         f"Driving: your car in lane {int(lane)} of {lanes}, {len(cars)} cars and "

@@ -144,21 +144,27 @@ def clarity(answers: Sequence[ExpertAnswer], *, seed: int = 0) -> MeanInterval:
     return bootstrap_mean(by_expert, seed=seed)
 
 
+def acceptability_values(answers: Sequence[ExpertAnswer]) -> dict[tuple[str, str], float]:
+    """``{(expert, "state/action"): 1 acceptable, 0 not}``: the data of its alpha."""
+    return {(a.participant, f"{a.item}/{j.action}"): float(j.acceptable)
+            for a in answers for j in a.judgements}  # fmt: skip
+
+
+def framework_values(study: Study, answers: Sequence[ExpertAnswer]) -> dict[tuple[str, str], float]:
+    """``{(expert, "state/action"): the framework's index}``: the data of its alpha."""
+    index = {name: float(i) for i, name in enumerate(study.framework_names())}
+    return {(a.participant, f"{a.item}/{j.action}"): index[j.framework]
+            for a in answers for j in a.judgements if j.framework in index}  # fmt: skip
+
+
 def acceptability_alpha(answers: Sequence[ExpertAnswer]) -> float:
     """Krippendorff's alpha (nominal) of acceptable / not over (state, action) units."""
-    return nominal_alpha(
-        {(a.participant, f"{a.item}/{j.action}"): float(j.acceptable)
-         for a in answers for j in a.judgements}
-    )  # fmt: skip
+    return nominal_alpha(acceptability_values(answers))
 
 
 def framework_alpha(study: Study, answers: Sequence[ExpertAnswer]) -> float:
     """Krippendorff's alpha (nominal) of the frameworks cited over (state, action) units."""
-    index = {name: float(i) for i, name in enumerate(study.framework_names())}
-    return nominal_alpha(
-        {(a.participant, f"{a.item}/{j.action}"): index[j.framework]
-         for a in answers for j in a.judgements if j.framework in index}
-    )  # fmt: skip
+    return nominal_alpha(framework_values(study, answers))
 
 
 def unreasoned_states(study: Study) -> list[str]:

@@ -15,6 +15,8 @@ A study folder (``amuled study build``) holds:
 from __future__ import annotations
 
 import json
+import os
+import stat
 from pathlib import Path
 from typing import Any, Literal
 
@@ -53,6 +55,105 @@ NO_REASON = "no stated reason recorded"
 
 class StudyError(AmuledError, ValueError):
     """A study folder, a study's argument or an answer that does not fit the study."""
+
+
+class NotInFolder(StudyError):
+    """A study folder's file that is a symbolic link, not a regular file, or outside it."""
+
+
+def read_folder_file(
+    folder: Path,
+    relative: str,
+    limit: int,
+    noun: str,
+    *,
+    note: str,
+    fix: str,
+) -> str:
+    """A regular UTF-8 file inside a study folder, never a link or another file of the machine.
+
+    The path is opened with ``O_NOFOLLOW`` (a link as the last part is refused, not
+    followed) and must resolve inside the folder (a linked ``states/`` leaving it is
+    refused); the open file must be a regular file of at most ``limit`` bytes.
+
+    Args:
+        folder: The study folder.
+        relative: The file's path inside it (``consent.html``, ``states/q001.svg``).
+        limit: The most bytes it may hold.
+        noun: What it is, for the message.
+        note: Why the cap is that number.
+        fix: What to do when it is too large.
+
+    Returns:
+        Its text (newlines as :meth:`pathlib.Path.read_text` reads them).
+
+    Raises:
+        NotInFolder: The file is a symbolic link, not a regular file, or resolves outside
+            the folder; one line naming it.
+        StudyError: It is over ``limit`` bytes, unreadable or not UTF-8; one line.
+
+    """
+    from amuled_ma.file_limits import too_large
+
+    path = Path(folder) / relative
+    refuse = f"{path}: the {noun} must be a regular file inside the study folder, "
+    redo = "; replace it by the file itself (rebuild the study with 'amuled study build')"
+    try:
+        inside = path.resolve().is_relative_to(Path(folder).resolve())
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | getattr(os, "O_NONBLOCK", 0))
+    except OSError as failure:
+        if os.path.islink(path):
+            link = f"found a symbolic link to {os.readlink(path)}"
+            raise NotInFolder(refuse + link + redo) from None
+        raise StudyError(
+            f"{path}: cannot read the {noun}: {failure.strerror or failure}; check the path"
+        ) from failure
+    with os.fdopen(fd, "rb") as handle:
+        info = os.fstat(handle.fileno())
+        if not stat.S_ISREG(info.st_mode):
+            raise NotInFolder(refuse + f"found {_file_kind(info.st_mode)}{redo}")
+        if not inside:
+            raise NotInFolder(refuse + f"it resolves to {path.resolve()}{redo}")
+        if info.st_size > limit:
+            raise StudyError(too_large(f"{path}: the {noun}", info.st_size, limit, noun,
+                                       note=note, fix=fix))  # fmt: skip
+        data = handle.read(limit + 1)
+    if len(data) > limit:
+        raise StudyError(f"{path}: the {noun} holds more than the {limit:,} bytes it may; {fix}")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as failure:
+        raise StudyError(
+            f"{path}: the {noun} is not UTF-8 text ({failure.reason} at byte {failure.start}); "
+            "save it as UTF-8"
+        ) from failure
+    return text.replace("\r\n", "\n").replace("\r", "\n")
+
+
+def _file_kind(mode: int) -> str:
+    """``a directory``, ``a FIFO``, ...: what a non-regular file is, for a refusal."""
+    for test, name in ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO"),
+                       (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device")):  # fmt: skip
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def check_run_folders(runs: list[Path]) -> None:
+    """Refuse a run folder that does not exist, before anything is read or imported.
+
+    Raises:
+        StudyError: A run is not a folder; one line naming it.
+
+    """
+    for run in runs:
+        if not Path(run).is_dir():
+            what = "is not a folder" if Path(run).exists() else "does not exist"
+            raise StudyError(
+                f"{run}: the run folder {what}; give a run folder of 'amuled run' or "
+                "'amuled train' (is the path right?)"
+            )
 
 
 class _Model(BaseModel):
@@ -234,46 +335,44 @@ def read_study(folder: Path) -> Study:
         The study.
 
     Raises:
-        StudyError: No such file, larger than :data:`MAX_STUDY_BYTES` (refused from its
-            size, before it is read), not UTF-8, or it does not fit the format (the message
-            names the key).
+        StudyError: No such file, a link or not a regular file (:func:`read_folder_file`),
+            larger than :data:`MAX_STUDY_BYTES` (refused from its size, before it is read),
+            not UTF-8, not JSON (nested deeper than pydantic's parser follows, 200 levels,
+            included), or it does not fit the format (the message names the key).
 
     """
-    from amuled_ma.file_limits import read_bounded_text
-
     path = Path(folder) / STUDY_FILE
-    if not path.is_file():
+    if not path.is_file() and not path.is_symlink():
         raise StudyError(
             f"{folder}: no {STUDY_FILE}; build a study with 'amuled study build RUN... "
             f"--out {folder}'"
         )
-    text = read_bounded_text(
-        path,
+    text = read_folder_file(
+        Path(folder),
+        STUDY_FILE,
         MAX_STUDY_BYTES,
         "study file",
-        error=StudyError,
         note="about 3 KB an item",
         fix="is it the right folder? Rebuild the study with 'amuled study build'",
     )
-    try:
-        data = json.loads(text)
-        return Study.model_validate(data)
-    except json.JSONDecodeError as exc:
-        raise StudyError(f"{path}: not JSON ({exc}); rebuild the study") from exc
+    try:  # pydantic's parser: nesting deeper than it follows is a JSON error, not a crash
+        return Study.model_validate_json(text)
     except ValidationError as exc:
-        first = exc.errors()[0]
+        first = exc.errors(include_url=False)[0]
+        if first["type"] == "json_invalid":
+            raise StudyError(f"{path}: not JSON ({first['msg']}); rebuild the study") from None
         where = ".".join(str(p) for p in first["loc"])
         raise StudyError(
             f"{path}: key {where}: {first['msg']}; rebuild it with 'amuled study build'"
-        ) from exc
+        ) from None
 
 
 #: What the picture shows, per task (under the picture).
 LEGENDS = {
-    "findmilk": "Black square: the robot. Gold star: the milk. Red discs: crying babies. "
-    "Blue squares: sleeping babies. Up is up on the picture.",
-    "driving": "Red: your car (bottom row). Grey: other cars. Green discs: grandmas to rescue. "
-    "Everything ahead comes closer at each step.",
+    "findmilk": "Dark square: the robot. Gold star: the milk. Orange discs (C): crying babies. "
+    "Sky-blue squares (z): sleeping babies. Up is up on the picture.",
+    "driving": "Dark: your car (bottom row). Orange-red: other cars. Green discs: grandmas to "
+    "rescue. Everything ahead comes closer at each step.",
 }
 
 

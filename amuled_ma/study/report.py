@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -16,10 +17,13 @@ from amuled_ma.study import expert
 from amuled_ma.study.analysis import (
     acceptability,
     agreement,
+    alpha_unavailable,
     attentive,
     bootstrap_strengths,
     bradley_terry,
+    choice_values,
     comparisons,
+    few_people,
     load,
     majorities,
     pair_answers,
@@ -112,6 +116,7 @@ def summarize(folder: Path, *, keep_inattentive: bool = False) -> dict[str, Any]
     disagreements.sort(key=lambda d: -d["fused_gap"])
     return {
         "mode": "pairs",
+        "warnings": [w for w in [few_people(len(kept))] if w],
         "participants": len(everyone),
         "kept": len(kept),
         "answers": len(used),
@@ -135,6 +140,7 @@ def summarize(folder: Path, *, keep_inattentive: bool = False) -> dict[str, Any]
             for v, m in rated.items()
         ],
         "krippendorff_alpha": reliability(pairs),
+        "krippendorff_alpha_unavailable": alpha_unavailable(choice_values(pairs)),
         "agreement": _rates(agree),
         "disagreements": disagreements[:10],
     }
@@ -168,9 +174,11 @@ def summarize_expert(folder: Path) -> dict[str, Any]:
                     "step": item.step,
                 }
             )
+    experts = len({a.participant for a in answers})
     return {
         "mode": "expert",
-        "experts": len({a.participant for a in answers}),
+        "warnings": [w for w in [few_people(experts, "experts")] if w],
+        "experts": experts,
         "states": len(study.items),
         "states_judged": len(sets),
         "judgements": sum(len(a.judgements) for a in answers),
@@ -197,12 +205,35 @@ def summarize_expert(folder: Path) -> dict[str, Any]:
         },
         "alpha_acceptable": _num(expert.acceptability_alpha(answers)),
         "alpha_framework": _num(expert.framework_alpha(study, answers)),
+        "alpha_acceptable_unavailable": alpha_unavailable(expert.acceptability_values(answers)),
+        "alpha_framework_unavailable": alpha_unavailable(expert.framework_values(study, answers)),
         "fused_unacceptable": unacceptable[:10],
     }
 
 
-def write_analysis(folder: Path, *, keep_inattentive: bool = False) -> Path:
+def _alpha(value: float | None, unavailable: str | None) -> str:
+    """An alpha as the report says it: the number, or ``n/a (why)``."""
+    return f"n/a ({unavailable})" if value is None or unavailable else _f(value)
+
+
+def _warnings(data: dict[str, Any]) -> list[str]:
+    """The report's warning lines (``**Warning:** ...``), each followed by a blank line."""
+    return [line for w in data["warnings"] for line in (f"**Warning:** {w}.", "")]
+
+
+def write_analysis(
+    folder: Path,
+    *,
+    keep_inattentive: bool = False,
+    warn: Callable[[str], None] | None = None,
+) -> Path:
     """Write ``<study>/analysis/report.md``, ``summary.json`` and the figure.
+
+    Args:
+        folder: The study folder.
+        keep_inattentive: Keep the answers of participants who failed an attention check.
+        warn: Told each warning of the report (too few participants,
+            :data:`~amuled_ma.study.analysis.MIN_PARTICIPANTS`), one line each.
 
     Returns:
         The report's path.
@@ -210,8 +241,11 @@ def write_analysis(folder: Path, *, keep_inattentive: bool = False) -> Path:
     """
     folder = Path(folder)
     if read_study(folder).mode == "expert":
-        return _write_expert(folder)
+        return _write_expert(folder, warn)
     data = summarize(folder, keep_inattentive=keep_inattentive)
+    for line in data["warnings"]:
+        if warn is not None:
+            warn(line)
     out = folder / "analysis"
     out.mkdir(exist_ok=True)
     (out / "summary.json").write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
@@ -223,6 +257,7 @@ def write_analysis(folder: Path, *, keep_inattentive: bool = False) -> Path:
         f"({'all' if keep_inattentive else 'those who passed every attention check'}); "
         f"{data['pairs_answered']} answers to pairs.",
         "",
+        *_warnings(data),
         "## Win rates (chosen / shown, Wilson 95% interval)",
         "",
         "| variant | wins | shown | rate | 95% interval |",
@@ -275,7 +310,7 @@ def write_analysis(folder: Path, *, keep_inattentive: bool = False) -> Path:
         "![Bradley-Terry strengths and acceptability](strengths.png)",
         "",
         f"## Inter-rater reliability\n\nKrippendorff's alpha (nominal, choices A/B over the "
-        f"pairs): {_f(data['krippendorff_alpha'])}.",
+        f"pairs): {_alpha(data['krippendorff_alpha'], data['krippendorff_alpha_unavailable'])}.",
         "",
         "## Agreement with the participants' majority",
         "",
@@ -297,9 +332,12 @@ def write_analysis(folder: Path, *, keep_inattentive: bool = False) -> Path:
     return path
 
 
-def _write_expert(folder: Path) -> Path:
+def _write_expert(folder: Path, warn: Callable[[str], None] | None) -> Path:
     """The expert study's ``report.md``, ``summary.json`` and ``expert.png``."""
     data = summarize_expert(folder)
+    for line in data["warnings"]:
+        if warn is not None:
+            warn(line)
     out = folder / "analysis"
     out.mkdir(exist_ok=True)
     (out / "summary.json").write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
@@ -311,6 +349,7 @@ def _write_expert(folder: Path) -> Path:
         f"{data['experts']} experts judged {data['states_judged']} of {data['states']} states "
         f"({data['judgements']} judgements of an action).",
         "",
+        *_warnings(data),
         "## Frameworks the experts cite",
         "",
         "| framework | cited | share | on actions found acceptable | by action |",
@@ -353,8 +392,9 @@ def _write_expert(folder: Path) -> Path:
         "",
         "## Inter-expert reliability",
         "",
-        f"Krippendorff's alpha (nominal) over (state, action): acceptable or not "
-        f"{_f(data['alpha_acceptable'])}; the framework cited {_f(data['alpha_framework'])}.",
+        "Krippendorff's alpha (nominal) over (state, action): acceptable or not "
+        f"{_alpha(data['alpha_acceptable'], data['alpha_acceptable_unavailable'])}; the "
+        f"framework cited {_alpha(data['alpha_framework'], data['alpha_framework_unavailable'])}.",
         "",
         "![Frameworks cited and agreement with the experts](expert.png)",
         "",

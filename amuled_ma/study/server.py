@@ -5,7 +5,8 @@ Routes (all served from this process; the page loads nothing from the network):
 - ``GET /``: the participant page (jsPsych 7, shipped in ``amuled_ma/study/static``); a
   recruiting platform's id comes in the URL (``?PROLIFIC_PID=``, ``?workerId=``,
   ``?participant=``);
-- ``GET /consent``: the study folder's ``consent.html`` (the researcher's text);
+- ``GET /consent``: the study folder's ``consent.html`` (the researcher's text; 404 where it
+  became a link or not a regular file);
 - ``POST /api/session``: ``{"participant", "token", "source"}`` (all optional) gives the
   participant's id and token and the items left, in the participant's own order (drawn
   from the study's seed and the id, so a reload shows the same order);
@@ -14,26 +15,32 @@ Routes (all served from this process; the page loads nothing from the network):
   shown option), or an expert state's ``{"participant", "token", "item", "ms", "actions":
   [{"acceptable": true, "framework": "care"}, ...] (one per action of the task), "clarity": c}``
   (``c`` on the clarity scale, ``null`` where the panel stated no reason); stored at once
-  (200), or refused: a wrong token (403), an unknown item, choice, time, a rating outside
-  the scale or for an option not shown, a judgement that does not fit (400), an item
+  (200), or refused: a wrong token (403), a body that does not fit its model
+  (:mod:`amuled_ma.study.requests`: an unknown item, choice, time, a rating outside the
+  scale or for an option not shown, a judgement that does not fit; 400), an item
   already answered by that participant (409), a body over :data:`MAX_BODY_BYTES` (413, on
   both POST routes, not read further). Every refusal is kept with its reason.
 - ``GET /api/health``: ``{"ok": true, "items": n}``.
+
+:func:`serve` listens on 127.0.0.1 unless told ``public``, and checks the folder's files and
+binds the port before it says where it serves.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
-import json
-import math
+import ipaddress
+import re
+import socket
 import sys
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
+from pydantic import BaseModel, ValidationError
 from starlette.applications import Starlette
 from starlette.requests import Request
 from starlette.responses import HTMLResponse, JSONResponse, Response
@@ -46,18 +53,30 @@ from amuled_ma.study.model import (
     CONSENT_FILE,
     NO_FRAMEWORK,
     NO_REASON,
+    STUDY_FILE,
     Item,
+    NotInFolder,
     Study,
     StudyError,
     public_item,
+    read_folder_file,
     read_study,
+)
+from amuled_ma.study.requests import (
+    AnswerEnvelope,
+    SessionRequest,
+    answer_models,
+    expert_reason,
+    first_error,
+    pair_reason,
+    where,
 )
 
 STATIC = Path(__file__).parent / "static"
+#: The consent page templates ``amuled study build`` writes into a study folder.
+TEMPLATES = Path(__file__).parent / "templates"
 #: URL parameters a recruiting platform puts the participant's id in.
 ID_PARAMETERS = ("PROLIFIC_PID", "workerId", "participant")
-#: The longest participant id, item id or token accepted.
-MAX_TEXT = 200
 #: Largest state picture read [bytes] (``states/<item>.svg``, each sent to every
 #: participant): a drawn state is about 3 KB; 4 MiB is over 1,000 times that.
 MAX_PICTURE_BYTES = 4 * 2**20
@@ -75,58 +94,6 @@ NO_CONSENT = "<p>(no consent page)</p>"
 CONSENT_REFUSED = "<p>(the consent page cannot be shown; please tell the researcher)</p>"
 
 
-def _is_time(ms: Any) -> bool:
-    """A time taken in ms: a finite number in ``[0, 24 h)``."""
-    return (
-        not isinstance(ms, bool)
-        and isinstance(ms, int | float)
-        and math.isfinite(ms)
-        and 0 <= ms < 86_400_000
-    )
-
-
-def _on_scale(value: Any, points: int) -> bool:
-    """An integer (not a bool, not a float) from 1 to ``points``."""
-    return isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= points
-
-
-def rating_problem(ratings: Any, item: Item, points: int) -> str | None:
-    """Why a pair's ratings are refused (the reason kept), None when they fit."""
-    labels = [o.label for o in item.options]
-    if not isinstance(ratings, dict):
-        return "ratings missing"
-    if any(label not in labels for label in ratings):
-        return "rating for an option not shown"
-    if any(label not in ratings for label in labels):
-        return "ratings missing"
-    if not all(_on_scale(ratings[label], points) for label in labels):
-        return "rating outside the scale"
-    return None
-
-
-def expert_problem(body: dict[str, Any], item: Item, study: Study) -> str | None:
-    """Why an expert's answer is refused (the reason kept), None when it fits."""
-    actions = body.get("actions")
-    n = len(study.action_names.get(item.task, []))
-    if not isinstance(actions, list) or len(actions) != n:
-        return "expert: not one judgement per action"
-    frameworks = study.framework_names()
-    for judged in actions:
-        if not isinstance(judged, dict) or set(judged) != {"acceptable", "framework"}:
-            return "expert: judgement malformed"
-        if not isinstance(judged["acceptable"], bool):
-            return "expert: acceptable not yes or no"
-        if judged["framework"] not in frameworks:
-            return "expert: unknown framework"
-    clarity = body.get("clarity")
-    if item.panel is not None and item.panel.has_reasons():
-        if not _on_scale(clarity, study.clarity_points):
-            return "clarity outside the scale"
-    elif clarity is not None:
-        return "clarity without a stated reason"
-    return None
-
-
 class _BodyTooLarge(Exception):
     """A request body over :data:`MAX_BODY_BYTES` (answered 413, not read further)."""
 
@@ -136,6 +103,30 @@ def _too_large() -> JSONResponse:
         {"error": f"the body is more than the {MAX_BODY_BYTES:,} bytes an answer may be"},
         status_code=413,
     )
+
+
+def _bad(error: str) -> JSONResponse:
+    """A refused request (400) with its one-line reason."""
+    return JSONResponse({"error": error}, status_code=400)
+
+
+def _said(error: ValidationError) -> str:
+    """A validation error as a reply's short reason: ``ratings.A: Input should be ...``."""
+    loc, _, message = first_error(error)
+    return f"{where(loc)}: {message}"
+
+
+def placeholders(text: str) -> list[str]:
+    """The shipped consent templates' ``[...]`` placeholders that ``text`` still holds.
+
+    Whitespace is compared loosely (a placeholder may be re-wrapped); a bracket the templates
+    do not hold (``[1]``, a citation) is not one.
+    """
+    found = set()
+    for template in sorted(TEMPLATES.glob("*.html")):
+        found.update(" ".join(p.split()) for p in re.findall(r"\[[^\[\]]+\]", template.read_text()))
+    flat = " ".join(text.split())
+    return [p for p in sorted(found) if p in flat]
 
 
 def participant_order(study: Study, participant: str) -> list[str]:
@@ -149,35 +140,51 @@ def participant_order(study: Study, participant: str) -> list[str]:
 class StudyApp:
     """The server's state: the study, its pictures and its answer store.
 
+    Every file of the folder it reads (``study.json``, the state pictures,
+    ``consent.html``) is read by :func:`~amuled_ma.study.model.read_folder_file`: a
+    regular file inside the folder, never a link.
+
     Args:
         folder: The study folder (``amuled study build``).
+        allow_placeholder_consent: Serve a ``consent.html`` that still holds the template's
+            placeholders (a trial run).
 
     Raises:
         StudyError: The folder holds no study, or its ``study.json``, a state picture or
-            ``consent.html`` is over its cap (:data:`~amuled_ma.study.model.MAX_STUDY_BYTES`,
-            :data:`MAX_PICTURE_BYTES`, :data:`MAX_CONSENT_BYTES`), unreadable or not UTF-8;
-            one line naming the file, before anything is served.
+            ``consent.html`` is a link, not a regular file, outside the folder, over its
+            cap (:data:`~amuled_ma.study.model.MAX_STUDY_BYTES`, :data:`MAX_PICTURE_BYTES`,
+            :data:`MAX_CONSENT_BYTES`), unreadable or not UTF-8, or ``consent.html`` holds
+            the template's placeholders; one line naming the file, before anything is
+            served.
 
     """
 
-    def __init__(self, folder: Path) -> None:
-        from amuled_ma.file_limits import read_bounded_text
-
+    def __init__(self, folder: Path, *, allow_placeholder_consent: bool = False) -> None:
         self.folder = Path(folder)
         self.study = read_study(self.folder)
         self.pictures = {
-            item.id: read_bounded_text(
-                self.folder / item.picture,
+            item.id: read_folder_file(
+                self.folder,
+                item.picture,
                 MAX_PICTURE_BYTES,
                 "state picture",
-                error=StudyError,
                 note="a drawn state is about 3 KB",
                 fix="is it the right folder? Rebuild the study with 'amuled study build'",
             )
             for item in self.study.items
         }
-        self.consent_text()  # an unreadable consent page stops the start, with one line
+        consent = self.consent_text()  # an unreadable consent page stops the start
+        left = placeholders(consent)
+        if left and not allow_placeholder_consent:
+            raise StudyError(
+                f"{self.folder / CONSENT_FILE}: the consent page still holds the template's "
+                f"placeholders {', '.join(left)}; write the study's own text there, or pass "
+                "--allow-placeholder-consent to serve it as it is (a trial run)"
+            )
         self.items = {item.id: item for item in self.study.items}
+        self.pair_model, self.expert_model = answer_models(
+            self.study.rating_points, self.study.clarity_points, self.study.framework_names()
+        )
         self.store = AnswerStore(self.folder / ANSWERS_FILE)
         self.app = Starlette(
             routes=[
@@ -204,32 +211,35 @@ class StudyApp:
         """The study folder's ``consent.html`` (:data:`NO_CONSENT` without one).
 
         Raises:
+            NotInFolder: It is a link, not a regular file, or outside the folder.
             StudyError: It is larger than :data:`MAX_CONSENT_BYTES` (refused from its size,
                 before it is read), unreadable or not UTF-8; one line naming it.
 
         """
-        from amuled_ma.file_limits import read_bounded_text
-
         path = self.folder / CONSENT_FILE
-        if not path.is_file():
+        if not path.exists() and not path.is_symlink():
             return NO_CONSENT
-        return read_bounded_text(
-            path,
+        return read_folder_file(
+            self.folder,
+            CONSENT_FILE,
             MAX_CONSENT_BYTES,
             "consent page",
-            error=StudyError,
             note="the shipped templates are about 2 KB",
             fix="is it the right file? Edit it down, or rebuild the study to get the template",
         )
 
     async def consent(self, request: Request) -> Response:
-        """The researcher's consent and instructions fragment (500 when it is refused).
+        """The researcher's consent and instructions fragment.
 
         A file refused (edited since the start) is said in one line on the server's stderr;
-        the participant gets :data:`CONSENT_REFUSED`, without the folder's path.
+        the participant gets 404 where it became a link or not a regular file (nothing is
+        sent of it), :data:`CONSENT_REFUSED` with 500 otherwise, never the folder's path.
         """
         try:
             return HTMLResponse(self.consent_text())
+        except NotInFolder as refused:
+            print(f"amuled study serve: {refused}", file=sys.stderr, flush=True)
+            return HTMLResponse("<p>(no consent page)</p>", status_code=404)
         except StudyError as refused:
             print(f"amuled study serve: {refused}", file=sys.stderr, flush=True)
             return HTMLResponse(CONSENT_REFUSED, status_code=500)
@@ -238,8 +248,8 @@ class StudyApp:
         """Whether the server is up, with its counts."""
         return JSONResponse({"ok": True, "items": len(self.items)})
 
-    async def _json(self, request: Request) -> dict[str, Any] | None:
-        """The request's JSON object, None when it is none.
+    async def _body(self, request: Request) -> bytes:
+        """The request's body, at most :data:`MAX_BODY_BYTES`.
 
         Raises:
             _BodyTooLarge: The body is over :data:`MAX_BODY_BYTES` (declared or sent); it
@@ -256,33 +266,27 @@ class StudyApp:
             if size > MAX_BODY_BYTES:
                 raise _BodyTooLarge
             chunks.append(chunk)
-        try:
-            body = json.loads(b"".join(chunks))
-        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError):
-            return None
-        return body if isinstance(body, dict) else None
+        return b"".join(chunks)
 
     async def session(self, request: Request) -> Response:
-        """A participant's id, token and the items left."""
+        """A participant's id, token and the items left (:class:`SessionRequest`)."""
         try:
-            body = await self._json(request)
+            body = SessionRequest.model_validate_json(await self._body(request))
         except _BodyTooLarge:
             return _too_large()
-        if body is None:
-            return JSONResponse({"error": "the body is not a JSON object"}, status_code=400)
-        wanted, token = body.get("participant"), body.get("token")
-        source = str(body.get("source") or "participant")[:MAX_TEXT]
-        if wanted is not None and (not isinstance(wanted, str) or not 0 < len(wanted) <= 200):
-            return JSONResponse({"error": "participant: expected an id"}, status_code=400)
+        except ValidationError as refused:
+            return _bad(_said(refused))
+        wanted, token = body.participant, body.token
         if wanted and token:
-            if not self.store.token_ok(wanted, str(token)):
+            if not self.store.token_ok(wanted, token):
                 self.store.refuse(wanted, None, None, "session: wrong token")
                 return JSONResponse({"error": "participant: wrong token"}, status_code=403)
         elif wanted and wanted.startswith("p-"):  # ids the server assigned need the token
             return JSONResponse(
                 {"error": "participant: an assigned id needs its token"}, status_code=403
             )
-        pid, token = self.store.participant(wanted or None, source if wanted else "assigned")
+        source = body.source or "participant"
+        pid, token = self.store.participant(wanted, source if wanted else "assigned")
         done = set(self.store.answered(pid))
         order = [i for i in participant_order(self.study, pid) if i not in done]
         study = self.study
@@ -313,90 +317,94 @@ class StudyApp:
         )
 
     async def answer(self, request: Request) -> Response:
-        """Store one answer at once, or refuse it (the reason is kept)."""
+        """Store one answer at once, or refuse it (the reason is kept).
+
+        The body is read as an :class:`~amuled_ma.study.requests.AnswerEnvelope` (who,
+        which item), the token and the item are checked, then the whole body is read by
+        the item's model (a pair's or an expert's, on the study's scales).
+        """
         try:
-            body = await self._json(request)
+            envelope = AnswerEnvelope.model_validate_json(await self._body(request))
         except _BodyTooLarge:
             self.store.refuse(None, None, None, "answer: body too large")
             return _too_large()
-        if body is None:
-            self.store.refuse(None, None, None, "answer: not a JSON object")
-            return JSONResponse({"error": "the body is not a JSON object"}, status_code=400)
-        pid, token = body.get("participant"), body.get("token")
-        item_id, choice, ms = body.get("item"), body.get("choice"), body.get("ms")
-        shown = self.items.get(item_id) if isinstance(item_id, str) else None
-        expert = shown is not None and shown.kind == "expert"
-        texts = (
-            (pid, token, item_id) if expert and choice is None else (pid, token, item_id, choice)
-        )
-        if not all(isinstance(x, str) and 0 < len(x) <= MAX_TEXT for x in texts):
+        except ValidationError as refused:
             self.store.refuse(None, None, None, "answer: missing or malformed field")
-            return JSONResponse(
-                {"error": "participant, token, item, choice: expected short strings"},
-                status_code=400,
-            )
-        if not self.store.token_ok(pid, token):
+            return _bad(f"{_said(refused)}; expected participant, token, item: short strings")
+        pid, item_id, choice = envelope.participant, envelope.item, envelope.choice
+        if not self.store.token_ok(pid, envelope.token):
             self.store.refuse(pid, item_id, choice, "wrong token")
             return JSONResponse({"error": "participant: wrong token"}, status_code=403)
         item = self.items.get(item_id)
         if item is None:
             self.store.refuse(pid, item_id, choice, "unknown item")
             return JSONResponse({"error": f"item: unknown {item_id!r}"}, status_code=400)
+        fields = envelope.model_dump(exclude_unset=True)
         if item.kind == "expert":
-            return self._expert_answer(body, item, pid, ms)
-        option = next((o for o in item.options if o.label == choice), None)
-        if option is None:
-            self.store.refuse(pid, item_id, choice, "unknown choice")
-            return JSONResponse({"error": "choice: expected 'A' or 'B'"}, status_code=400)
-        if not _is_time(ms):
-            self.store.refuse(pid, item_id, choice, "bad time")
-            return JSONResponse({"error": "ms: expected a time in ms"}, status_code=400)
-        ratings = body.get("ratings")
-        problem = rating_problem(ratings, item, self.study.rating_points)
-        if problem is not None:
-            self.store.refuse(pid, item_id, choice, problem)
-            return JSONResponse(
-                {"error": f"ratings: {problem}; expected {{'A': r, 'B': r}}, r an integer "
-                          f"from 1 to {self.study.rating_points}"},
-                status_code=400,
-            )  # fmt: skip
-        correct = None if item.expected is None else int(choice == item.expected)
+            return self._expert_answer(fields, item, pid)
+        try:
+            form = self.pair_model.model_validate(fields)
+        except ValidationError as refused:
+            loc, kind, _ = first_error(refused)
+            reason = pair_reason(loc, kind)
+            self.store.refuse(pid, item_id, choice, reason)
+            return _bad(
+                f"{reason} ({_said(refused)}); expected 'choice': 'A' or 'B', 'ms': a time in ms, "
+                f"'ratings': {{'A': r, 'B': r}}, r an integer from 1 to "
+                f"{self.study.rating_points}"
+            )
+        option = next(o for o in item.options if o.label == form.choice)
+        ratings = form.ratings
+        correct = None if item.expected is None else int(form.choice == item.expected)
         answer = Answer(
-            pid, item_id, choice, option.variant, correct, float(ms), time.time(),
-            rating_a=ratings["A"], rating_b=ratings["B"],
+            pid, item_id, form.choice, option.variant, correct, float(form.ms), time.time(),
+            rating_a=ratings.A, rating_b=ratings.B,
         )  # fmt: skip
         if not self.store.add(answer):
             self.store.refuse(pid, item_id, choice, "already answered")
             return JSONResponse({"error": f"item {item_id}: already answered"}, status_code=409)
         return JSONResponse({"stored": True})
 
-    def _expert_answer(self, body: dict[str, Any], item: Item, pid: str, ms: Any) -> Response:
+    def _expert_problem(self, form: BaseModel, item: Item) -> str | None:
+        """Why a well-formed expert answer does not fit its state, None when it does."""
+        if len(form.actions) != len(self.study.action_names.get(item.task, [])):
+            return "expert: not one judgement per action"
+        if item.panel is not None and item.panel.has_reasons():
+            if form.clarity is None:
+                return "clarity outside the scale"
+        elif form.clarity is not None:
+            return "clarity without a stated reason"
+        return None
+
+    def _expert_answer(self, fields: dict[str, object], item: Item, pid: str) -> Response:
         """Store an expert's judgements of a state, or refuse them (the reason is kept)."""
-        if not _is_time(ms):
-            self.store.refuse(pid, item.id, None, "bad time")
-            return JSONResponse({"error": "ms: expected a time in ms"}, status_code=400)
-        problem = expert_problem(body, item, self.study)
+        problem = None
+        try:
+            form = self.expert_model.model_validate(fields)
+        except ValidationError as refused:
+            loc, kind, _ = first_error(refused)
+            problem, said = expert_reason(loc, kind), f" ({_said(refused)})"
+        else:
+            problem, said = self._expert_problem(form, item), ""
         if problem is not None:
             self.store.refuse(pid, item.id, None, problem)
-            return JSONResponse(
-                {"error": f"{problem}; expected 'actions': one {{'acceptable': true|false, "
-                          f"'framework': one of {self.study.framework_names()}}} per action, "
-                          f"'clarity': 1 to {self.study.clarity_points} (null where the "
-                          "panel stated no reason)"},
-                status_code=400,
-            )  # fmt: skip
+            return _bad(
+                f"{problem}{said}; expected 'ms': a time in ms, 'actions': one {{'acceptable': "
+                f"true|false, 'framework': one of {self.study.framework_names()}}} per "
+                f"action, 'clarity': 1 to {self.study.clarity_points} (null where the panel "
+                "stated no reason)"
+            )
         judgements = tuple(
-            Judgement(a, bool(j["acceptable"]), str(j["framework"]))
-            for a, j in enumerate(body["actions"])
+            Judgement(a, j.acceptable, j.framework) for a, j in enumerate(form.actions)
         )
-        answer = ExpertAnswer(pid, item.id, body.get("clarity"), judgements, float(ms), time.time())
+        answer = ExpertAnswer(pid, item.id, form.clarity, judgements, float(form.ms), time.time())
         if not self.store.add_expert(answer):
             self.store.refuse(pid, item.id, None, "already answered")
             return JSONResponse({"error": f"item {item.id}: already answered"}, status_code=409)
         return JSONResponse({"stored": True})
 
 
-def make_app(folder: Path) -> Starlette:
+def make_app(folder: Path, *, allow_placeholder_consent: bool = False) -> Starlette:
     """The ASGI application of a study folder.
 
     Raises:
@@ -404,19 +412,128 @@ def make_app(folder: Path) -> Starlette:
             (:class:`StudyApp`).
 
     """
-    return StudyApp(folder).app
+    return StudyApp(folder, allow_placeholder_consent=allow_placeholder_consent).app
 
 
-def serve(folder: Path, host: str = "127.0.0.1", port: int = 8765) -> None:
-    """Serve a study until interrupted (uvicorn, one process).
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` is this machine only: ``localhost`` or a loopback address."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def check_host(host: str, *, public: bool) -> None:
+    """Refuse an address other machines can reach unless ``public`` is set.
 
     Raises:
-        StudyError: The folder holds no study, or one of its files is refused
-            (:class:`StudyApp`).
+        StudyError: ``host`` is not a loopback address (``""`` and ``0.0.0.0``, every
+            interface, included) and ``public`` is not set; one line naming ``--host``
+            and the fix.
+
+    """
+    if not public and not is_loopback(host):
+        shown = host or repr(host)
+        raise StudyError(
+            f"--host {shown}: not a loopback address (it lets other machines reach the "
+            "study); pass --public as well to serve it there, or leave --host out "
+            "(127.0.0.1, this machine only)"
+        )
+
+
+def listen_socket(host: str, port: int, *, public: bool = False) -> socket.socket:
+    """The bound socket the study is served on (bound here, so a refusal is one line).
+
+    Args:
+        host: The address; a non-loopback one (``""`` and ``0.0.0.0``, every interface,
+            included) needs ``public``.
+        port: The port.
+        public: Allow an address other machines can reach.
+
+    Returns:
+        The socket, bound (uvicorn listens on it).
+
+    Raises:
+        StudyError: A non-loopback address without ``public``, an address that is not
+            this machine's, or a port in use or not allowed; one line naming the argument
+            and the fix.
+
+    """
+    check_host(host, public=public)
+    try:
+        infos = socket.getaddrinfo(
+            host or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
+        )
+    except socket.gaierror as failure:
+        raise StudyError(
+            f"--host {host}: not an address of this machine ({failure.strerror}); give an "
+            "address of one of its interfaces"
+        ) from None
+    family, kind, proto, _, address = infos[0]
+    sock = socket.socket(family, kind, proto)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
+    try:
+        sock.bind(address)
+    except OSError as failure:
+        sock.close()
+        if failure.errno == errno.EADDRINUSE:
+            raise StudyError(
+                f"--port {port}: port {port} of {host or 'every interface'} is in use "
+                f"(another server, or this study served already?); pass a free one with "
+                f"--port N (e.g. --port {port + 1 if port < 65535 else 8765})"
+            ) from None
+        raise StudyError(
+            f"--host {host} --port {port}: cannot listen there ({failure.strerror}); pass "
+            "another address or --port N"
+        ) from None
+    return sock
+
+
+def serve(
+    folder: Path,
+    host: str = "127.0.0.1",
+    port: int = 8765,
+    *,
+    public: bool = False,
+    allow_placeholder_consent: bool = False,
+    say: Callable[[str], None] = print,
+) -> None:
+    """Serve a study until interrupted (uvicorn, one process).
+
+    The folder's files are checked and the socket bound before ``say`` is told the
+    address, so every refusal comes first, as one line.
+
+    Args:
+        folder: The study folder.
+        host: The address (127.0.0.1: this machine only).
+        port: The port.
+        public: Allow a non-loopback ``host`` (a warning line goes to stderr).
+        allow_placeholder_consent: Serve a consent page that holds the template's
+            placeholders.
+        say: Where the ``serving on`` line goes.
+
+    Raises:
+        StudyError: The folder holds no study, one of its files is refused
+            (:class:`StudyApp`), or the address is refused (:func:`listen_socket`).
 
     """
     import uvicorn
 
-    if not (Path(folder) / "study.json").is_file():
-        raise StudyError(f"{folder}: no study.json; build it with 'amuled study build'")
-    uvicorn.run(make_app(folder), host=host, port=int(port), log_level="warning")
+    folder = Path(folder)
+    if not (folder / STUDY_FILE).exists() and not (folder / STUDY_FILE).is_symlink():
+        raise StudyError(f"{folder}: no {STUDY_FILE}; build it with 'amuled study build'")
+    check_host(host, public=public)
+    app = make_app(folder, allow_placeholder_consent=allow_placeholder_consent)
+    sock = listen_socket(host, port, public=public)
+    if not is_loopback(host):
+        print(
+            f"amuled: warning: serving on {host or 'every interface'}: any machine that can "
+            "reach this one can open the study and post answers",
+            file=sys.stderr,
+            flush=True,
+        )
+    say(f"study {folder}: serving on http://{host or '0.0.0.0'}:{port}/ (Ctrl-C stops)")
+    with sock:
+        uvicorn.Server(uvicorn.Config(app, log_level="warning")).run(sockets=[sock])

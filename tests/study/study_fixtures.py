@@ -120,9 +120,14 @@ def free_port() -> int:
 
 
 def start_server(study: Path, port: int) -> subprocess.Popen:
-    """``amuled study serve STUDY --port PORT`` in its own process, once it answers."""
+    """``amuled study serve STUDY --port PORT`` in its own process, once it answers.
+
+    The built studies keep the template's consent page, so it is served with
+    ``--allow-placeholder-consent``.
+    """
     proc = subprocess.Popen(
-        [sys.executable, "-m", "amuled_ma", "study", "serve", str(study), "--port", str(port)],
+        [sys.executable, "-m", "amuled_ma", "study", "serve", str(study), "--port", str(port),
+         "--allow-placeholder-consent"],
         cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
     )  # fmt: skip
     for _ in range(300):

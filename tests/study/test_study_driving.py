@@ -46,12 +46,12 @@ def test_driving_pictures_are_the_road_and_options_its_actions(driving):
             assert me["rating_points"] == 7
             for shown in me["items"][:3]:
                 svg = shown["svg"]
-                # the road: 5 lanes of 40 px, the car (red) on the bottom row, in the lane
+                # the road: 5 lanes of 40 px, the car (dark) on the bottom row, in the lane
                 # the observation's one-hot says (obs[6:11]), seen in the picture's title
                 assert 'aria-label="Driving: your car in lane' in svg
                 assert f'width="{LANES * 40}"' in svg and 'class="agent"' in svg
                 assert svg.count('stroke-dasharray="8 8"') == LANES - 1  # lane markings
-                assert "Grey: other cars" in shown["legend"]
+                assert "Orange-red: other cars" in shown["legend"]
                 assert len(shown["options"]) == 2
                 assert {o["action"] for o in shown["options"]} <= set(DRIVING_ACTIONS)
                 choice = "AB"[k % 2]

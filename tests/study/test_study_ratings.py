@@ -13,13 +13,14 @@ from fractions import Fraction
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from amuled_ma.study import analysis
 from amuled_ma.study.answers import Answer, AnswerStore, read_answers, read_expert_answers
 from amuled_ma.study.model import Item, Option, Study
 from amuled_ma.study.reasons import stated_reason
 from amuled_ma.study.report import write_analysis
-from amuled_ma.study.server import rating_problem
+from amuled_ma.study.requests import answer_models, first_error, pair_reason
 
 
 def pair(item_id: str, a: tuple[str, int], b: tuple[str, int]) -> Item:
@@ -88,18 +89,30 @@ def test_bootstrap_interval_against_the_exact_bootstrap_distribution():
     assert one.mean == 4.0 and np.isnan(one.low) and np.isnan(one.high)
 
 
+def rating_problem(ratings: object, points: int) -> str | None:
+    """The reason the server keeps for a pair's answer with these ratings (None: stored)."""
+    pair_answer, _ = answer_models(points, 5, ["care", "none"])
+    form = {"participant": "p1", "token": "t", "item": "q1", "choice": "A", "ms": 900,
+            "ratings": ratings}  # fmt: skip
+    try:
+        pair_answer.model_validate(form)
+    except ValidationError as refused:
+        return pair_reason(*first_error(refused)[:2])
+    return None
+
+
 def test_a_rating_off_the_scale_or_for_an_option_not_shown_is_refused():
-    item = pair("q1", ("x", 0), ("y", 1))
-    assert rating_problem({"A": 1, "B": 7}, item, 7) is None
-    assert rating_problem({"A": 0, "B": 7}, item, 7) == "rating outside the scale"
-    assert rating_problem({"A": 8, "B": 7}, item, 7) == "rating outside the scale"
-    assert rating_problem({"A": 3.5, "B": 2}, item, 7) == "rating outside the scale"
-    assert rating_problem({"A": True, "B": 2}, item, 7) == "rating outside the scale"
-    assert rating_problem({"A": "5", "B": 2}, item, 7) == "rating outside the scale"
-    assert rating_problem({"A": 3, "B": 3, "C": 2}, item, 7) == "rating for an option not shown"
-    assert rating_problem({"A": 3}, item, 7) == "ratings missing"
-    assert rating_problem(None, item, 7) == "ratings missing"
-    assert rating_problem([3, 4], item, 7) == "ratings missing"
+    assert rating_problem({"A": 1, "B": 7}, 7) is None
+    assert rating_problem({"A": 0, "B": 7}, 7) == "rating outside the scale"
+    assert rating_problem({"A": 8, "B": 7}, 7) == "rating outside the scale"
+    assert rating_problem({"A": 8, "B": 7}, 9) is None  # the study's own scale
+    assert rating_problem({"A": 3.5, "B": 2}, 7) == "rating outside the scale"
+    assert rating_problem({"A": True, "B": 2}, 7) == "rating outside the scale"
+    assert rating_problem({"A": "5", "B": 2}, 7) == "rating outside the scale"
+    assert rating_problem({"A": 3, "B": 3, "C": 2}, 7) == "rating for an option not shown"
+    assert rating_problem({"A": 3}, 7) == "ratings missing"
+    assert rating_problem(None, 7) == "ratings missing"
+    assert rating_problem([3, 4], 7) == "ratings missing"
 
 
 # The answer file's schema before ratings and expert mode (version 1), as it was shipped.

@@ -1,0 +1,152 @@
+r"""The study server's request bodies as pydantic models: every field bounded at the edge.
+
+A body is parsed by pydantic's own JSON parser (``model_validate_json``), which refuses
+invalid UTF-8, lone surrogates (``"\ud800"``), integers of more than 4,300 digits and
+nesting deeper than it follows, as a validation error, not an exception of the server.
+Every model is strict (no ``"5"`` for 5, no ``true`` for 1) and, but for the envelope,
+forbids unknown fields.
+
+An answer is read in two steps: :class:`AnswerEnvelope` (who, with which token, about which
+item) before the token and the item are checked, then the item's own model from
+:func:`answer_models` (a pair's choice and ratings, or an expert's judgements), whose scales
+are the study's: the integers ``1..rating_points`` and ``1..clarity_points``, and the enum
+of the frameworks the study names.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints, ValidationError
+
+#: The longest participant id, item id, token or source accepted [characters].
+MAX_TEXT = 200
+#: The longest time an answer may report [ms]: 24 h.
+MAX_MS = 86_400_000
+#: The most judgements an expert answer may hold (one per action; the tasks have 4 or 3).
+MAX_ACTIONS = 64
+
+#: A short non-empty string (pydantic's parser has already refused what is not UTF-8).
+Text = Annotated[str, StringConstraints(min_length=1, max_length=MAX_TEXT)]
+#: A time taken [ms]: a finite number in ``[0, MAX_MS)``.
+Time = Annotated[float, Field(ge=0, lt=MAX_MS, allow_inf_nan=False)]
+
+
+class _Request(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+
+
+class SessionRequest(_Request):
+    """``POST /api/session``: all optional (no id: the server assigns one)."""
+
+    participant: Text | None = None
+    token: Text | None = None
+    source: Text | None = None
+
+
+class AnswerEnvelope(BaseModel):
+    """``POST /api/answer``, first step: who answers which item (the rest read later)."""
+
+    model_config = ConfigDict(extra="allow", frozen=True, strict=True)
+
+    participant: Text
+    token: Text
+    item: Text
+    choice: Text | None = None
+
+
+def _scale(points: int) -> object:
+    """The points ``1..points`` of a scale: a strict integer (never a bool, a float or text)."""
+    return Annotated[int, Field(strict=True, ge=1, le=points)]
+
+
+def answer_models(
+    rating_points: int, clarity_points: int, frameworks: list[str]
+) -> tuple[type[_Request], type[_Request]]:
+    """The models of a pair's answer and of an expert's, on the study's scales.
+
+    Args:
+        rating_points: Points of the acceptability scale.
+        clarity_points: Points of the clarity scale.
+        frameworks: The frameworks an expert may cite (``none`` included).
+
+    Returns:
+        ``(PairAnswer, ExpertAnswerRequest)``; their fields are checked in the order
+        written, so the first error names the first field that does not fit.
+
+    """
+    rating_scale = _scale(rating_points)
+    clarity_scale = _scale(clarity_points)
+    cited = Literal[tuple(frameworks)]  # type: ignore[valid-type]
+
+    class Ratings(_Request):
+        A: rating_scale  # type: ignore[valid-type]
+        B: rating_scale  # type: ignore[valid-type]
+
+    class PairAnswer(_Request):
+        participant: Text
+        token: Text
+        item: Text
+        choice: Literal["A", "B"]
+        ms: Time
+        ratings: Ratings
+
+    class Judged(_Request):
+        acceptable: bool
+        framework: cited  # type: ignore[valid-type]
+
+    class ExpertAnswerRequest(_Request):
+        participant: Text
+        token: Text
+        item: Text
+        ms: Time
+        actions: list[Judged] = Field(max_length=MAX_ACTIONS)
+        clarity: clarity_scale | None = None  # type: ignore[valid-type]
+
+    return PairAnswer, ExpertAnswerRequest
+
+
+def first_error(error: ValidationError) -> tuple[tuple[str | int, ...], str, str]:
+    """The first error's ``(location, type, message)``, for the refusal and its reply."""
+    first = error.errors(include_url=False, include_input=False)[0]
+    return tuple(first["loc"]), str(first["type"]), str(first["msg"])
+
+
+def where(loc: tuple[str | int, ...]) -> str:
+    """``ratings.A``, ``actions.2.framework``: a location as the reply names it."""
+    return ".".join(str(part) for part in loc) or "body"
+
+
+def pair_reason(loc: tuple[str | int, ...], kind: str) -> str:
+    """The refusal's reason kept for a pair's answer that does not fit its model."""
+    head = loc[0] if loc else ""
+    if head == "choice":
+        return "unknown choice"
+    if head == "ms":
+        return "bad time"
+    if head == "ratings":
+        if len(loc) == 1 or kind == "missing":
+            return "ratings missing"
+        if kind == "extra_forbidden":
+            return "rating for an option not shown"
+        return "rating outside the scale"
+    return f"answer: unexpected or malformed field {where(loc)}"
+
+
+def expert_reason(loc: tuple[str | int, ...], kind: str) -> str:
+    """The refusal's reason kept for an expert's answer that does not fit its model."""
+    head = loc[0] if loc else ""
+    if head == "ms":
+        return "bad time"
+    if head == "clarity":
+        return "clarity outside the scale"
+    if head == "actions":
+        if len(loc) == 1:
+            return "expert: not one judgement per action"
+        field = loc[2] if len(loc) > 2 else None
+        if field == "acceptable" and kind != "extra_forbidden":
+            return "expert: acceptable not yes or no"
+        if field == "framework" and kind != "extra_forbidden":
+            return "expert: unknown framework"
+        return "expert: judgement malformed"
+    return f"answer: unexpected or malformed field {where(loc)}"
