@@ -295,8 +295,6 @@ def ensure_recordings(
         AuthorsImportError: The conversion refused a file.
 
     """
-    from amuled_ma.authors.checkout import import_authors
-
     pins: list[PinnedFile] = []
     for value in values:
         pin = pinned_recording(value, pinned)
@@ -314,6 +312,8 @@ def ensure_recordings(
             f"{size} from {REPOSITORY} at {COMMIT[:12]} (checked), or {manual_route(names)}"
         )
     fetch_pinned(pins, cache=cache, base=base, say=say)
+    from amuled_ma.authors.checkout import import_authors  # here: it imports torch
+
     report = import_authors(
         cache, to=to, policies=False, only={pin.path for pin in pins}, recordings=True
     )
