@@ -32,6 +32,7 @@ from amuled_ma.authors.download import (
     OFFLINE_ENV,
     URL_ENV,
     ensure_recordings,
+    models_ablation_recordings,
     replayed_recordings,
 )
 from amuled_ma.authors.pinned import COMMIT, PINNED, PinnedFile
@@ -227,18 +228,51 @@ def test_each_pin_names_the_recording_the_import_writes():
     assert len({pin.recording for pin in PINNED}) == len(PINNED)
 
 
+def test_the_models_ablation_fetches_every_recording_of_the_task_only_when_its_own_is_missing(
+    tmp_path, monkeypatch
+):
+    folder = tmp_path / "scenarios"
+    folder.mkdir()
+    text = '[task]\nname = "findmilk"\n[feedback]\nrecording = "findmilk-gpt-4o-mini"\n'
+    (folder / "s.toml").write_text(text)
+    monkeypatch.chdir(tmp_path)
+    scenario = load_scenario(folder / "s.toml")
+    assert models_ablation_recordings(scenario) == [
+        "findmilk-gpt-4o-mini",
+        "findmilk-llama-3_1-70b",
+        "findmilk-llama-3_1-8b",
+        "findmilk-mistral-nemo",
+    ]
+    (folder / "findmilk-gpt-4o-mini.json").write_text("{}")  # found: compare those found
+    assert models_ablation_recordings(scenario) == []
+
+
 MIRROR_ENV = "AMULED_AUTHORS_MIRROR"
 
 
-def test_the_pins_are_the_authors_files_at_the_commit():
-    """SHA-256 and size of each pinned file, from the authors' git mirror (skips without one)."""
+def mirror_blob(mirror: str, path: str) -> bytes:
+    return subprocess.run(
+        ["git", f"--git-dir={mirror}", "cat-file", "blob", f"{COMMIT}:{path}"],
+        capture_output=True,
+        check=True,
+    ).stdout
+
+
+def test_the_pins_are_the_authors_files_and_convert_to_the_shared_recording(
+    tmp_path, server, online, scenario, recordings_dir
+):
+    """Each pin against the authors' git mirror; the smallest served and converted as shipped.
+
+    Skips without a mirror (``$AMULED_AUTHORS_MIRROR``) or ``../shared/amuled-recordings``.
+    """
     mirror = os.environ.get(MIRROR_ENV)
     if not mirror or not (Path(mirror) / "HEAD").is_file() or shutil.which("git") is None:
         pytest.skip(f"set {MIRROR_ENV} to a git mirror of temetski/moral_agent to run this test")
     for pin in PINNED:
-        blob = subprocess.run(
-            ["git", f"--git-dir={mirror}", "cat-file", "blob", f"{COMMIT}:{pin.path}"],
-            capture_output=True,
-            check=True,
-        ).stdout
+        blob = mirror_blob(mirror, pin.path)
         assert (hashlib.sha256(blob).hexdigest(), len(blob)) == (pin.sha256, pin.size), pin.path
+    base, served = server
+    pin = min(PINNED, key=lambda p: p.size)  # findmilk-mistral-nemo, 75 KB
+    served.files[f"/authors/{COMMIT}/{pin.path}"] = mirror_blob(mirror, pin.path)
+    written = ensure_recordings(scenario, [pin.recording], cache=tmp_path / "c", base=base)
+    assert written[0].read_bytes() == (recordings_dir / f"{pin.recording}.json").read_bytes()
