@@ -51,6 +51,10 @@ class UnsafePickleError(AuthorsImportError):
     """A pickle needs a global outside the allow-list; nothing from it was run."""
 
 
+class AuthorsFetchError(AmuledError, RuntimeError):
+    """A pinned file of the paper authors could not be fetched, was refused, or fetching is off."""
+
+
 class CheckpointError(AmuledError, FileNotFoundError):
     """A checkpoint needed by a command is missing or unreadable."""
 

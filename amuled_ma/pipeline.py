@@ -6,7 +6,9 @@
 arguments into the request and print the :class:`PipelineOutcome`. The steps:
 
 1. plan the job graph (:func:`~amuled_ma.experiments.plans.plan_run` or
-   :func:`~amuled_ma.experiments.plans.plan_ablation`: a fine-tune needs its seed's base);
+   :func:`~amuled_ma.experiments.plans.plan_ablation`: a fine-tune needs its seed's base),
+   and fetch the paper authors' recordings its fine-tunes replay that are found nowhere on
+   this machine (:func:`fetch_recordings`; not with ``offline``);
 2. check every job (:func:`~amuled_ma.experiments.plans.check_jobs`: its inputs, then its
    folder) before any folder is made, so a missing recording, base checkpoint or feedback
    source, or a folder trained with other settings, stops the run and leaves nothing;
@@ -78,6 +80,8 @@ class PipelineRequest:
         hint: The shell command that re-runs this request; printed with ``--resume`` when a
             job stops early, and in the message of a folder that clashes.
         title: The report's title (None: the plan's, e.g. the paper's main comparison).
+        offline: Never fetch the authors' recordings (``--offline``; also
+            ``$AMULED_OFFLINE=1``): one found nowhere stops the run with the manual route.
 
     Raises:
         ScenarioError: An unknown ablation.
@@ -101,6 +105,7 @@ class PipelineRequest:
     progress: bool = True
     hint: str = ""
     title: str | None = None
+    offline: bool = False
 
     def __post_init__(self) -> None:
         from amuled_ma.experiments.plans import ABLATIONS  # here: it imports torch
@@ -167,9 +172,10 @@ def run_pipeline(
         The outcome: where the report is, the results, the training jobs.
 
     Raises:
-        AmuledError: An input a job needs is missing (before any folder is made), a
-            folder clashes with an old checkpoint, another process writes the run folder,
-            or a job failed; the message names what and the fix.
+        AmuledError: An input a job needs is missing (before any folder is made; an
+            authors' recording found nowhere that cannot be fetched among them), a folder
+            clashes with an old checkpoint, another process writes the run folder, or a
+            job failed; the message names what and the fix.
         KeyboardInterrupt: Ctrl-C or SIGTERM, after every running job wrote its checkpoint.
 
     """
@@ -178,10 +184,15 @@ def run_pipeline(
 
     start = time.perf_counter()
     seeds = training_seeds(request.scenario, request.seed, request.seeds)
+    if request.ablation == "models":  # it plans one fine-tune per recording found beside
+        from amuled_ma.authors.download import models_ablation_recordings
+
+        fetch_recordings(request, models_ablation_recordings(request.scenario), say)
     if request.ablation is None:
         plan = _plan_main(request, seeds, say)
     else:
         plan = _plan_ablation(request, seeds)
+    fetch_recordings(request, _replayed(plan.jobs), say)
     if request.retrain:
         from amuled_ma.experiments.plans import retrain_jobs
 
@@ -228,6 +239,34 @@ def run_pipeline(
         report=report,
         wall_s=time.perf_counter() - start,
     )
+
+
+def _replayed(jobs: Sequence[TrainJob]) -> list[str]:
+    """The recordings the fine-tunes of a graph replay, each once."""
+    from amuled_ma.authors.download import replayed_recordings
+
+    values = [
+        v for job in jobs if job.variant.finetuning for v in replayed_recordings(job.scenario)
+    ]
+    return list(dict.fromkeys(values))
+
+
+def fetch_recordings(
+    request: PipelineRequest, values: Sequence[str], say: Callable[[str], None] = say_line
+) -> None:
+    """Fetch and convert the paper authors' recordings among ``values`` found nowhere here.
+
+    :func:`~amuled_ma.authors.download.ensure_recordings` with the request's scenario and
+    ``offline``: a recording found locally (``$AMULED_RECORDINGS``, the user data folder,
+    ``../shared`` beside the checkout) is never fetched.
+
+    Raises:
+        AuthorsFetchError: Offline, or the fetch failed or was refused (one line).
+
+    """
+    from amuled_ma.authors.download import ensure_recordings
+
+    ensure_recordings(request.scenario, values, offline=request.offline, say=say)
 
 
 def _plan_main(request: PipelineRequest, seeds: list[int], say: Callable[[str], None]) -> _Plan:

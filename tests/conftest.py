@@ -15,6 +15,10 @@ import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
+# No test reaches the network: a paper authors' recording found nowhere is not fetched
+# (amuled_ma.authors.download). The fetch's own tests unset this and serve on 127.0.0.1.
+os.environ["AMULED_OFFLINE"] = "1"
+
 
 def _recordings_path() -> Path:
     env = os.environ.get("AMULED_RECORDINGS")

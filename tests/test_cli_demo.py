@@ -86,6 +86,7 @@ def test_demo_replays_the_authors_recording_with_their_recipe(task) -> None:
 def test_demo_without_the_recording_says_where_to_put_it_in_one_line(
     tmp_path: Path, monkeypatch, capsys
 ) -> None:
+    """Offline (tests/conftest.py sets AMULED_OFFLINE): one line naming both routes."""
     monkeypatch.setenv("AMULED_RECORDINGS", str(tmp_path / "none"))
     monkeypatch.setenv("AMULED_DATA", str(tmp_path / "data"))
     monkeypatch.chdir(tmp_path)  # in no checkout: nothing beside it
@@ -96,7 +97,7 @@ def test_demo_without_the_recording_says_where_to_put_it_in_one_line(
     assert code == 2 and elapsed < 10.0
     lines = [line for line in err.splitlines() if line.strip()]
     assert len(lines) == 1, err
-    assert "findmilk-gpt-4o-mini" in err and "../shared/amuled-recordings" in err
+    assert "findmilk-gpt-4o-mini" in err and "run without it to fetch" in err
     assert "AMULED_RECORDINGS" in err and "amuled import authors" in err
     assert not (tmp_path / "demo").exists()
 

@@ -20,6 +20,7 @@ recording the same source SHA-256) and is otherwise refused unless ``force``.
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -167,11 +168,13 @@ def find_policies(checkout: Path, notes: list[str] | None = None) -> list[Policy
 
 
 def _recording_outputs(
-    checkout: Path, to: Path, force: bool, notes: list[str]
+    checkout: Path, to: Path, force: bool, notes: list[str], only: Collection[str] | None
 ) -> list[tuple[Output, ConvertedCache | None]]:
     planned: list[tuple[Output, ConvertedCache | None]] = []
     taken: set[str] = set()
     for path in find_caches(checkout):
+        if only is not None and _rel(path, checkout) not in only:
+            continue
         converted = convert_cache(path)
         name = f"{converted.task}-{model_slug(converted.model)}"
         if f"{name}.json" in taken:
@@ -303,6 +306,7 @@ def import_authors(
     force: bool = False,
     recordings: bool = True,
     policies: bool = True,
+    only: Collection[str] | None = None,
 ) -> ImportReport:
     """Convert the authors' LLM caches and CleanRL policies of a checkout.
 
@@ -313,6 +317,8 @@ def import_authors(
         force: Replace outputs that exist with other content.
         recordings: Convert the LLM caches.
         policies: Convert the CleanRL policies.
+        only: Convert only the caches at these paths (relative to ``checkout``, as
+            ``models/FindMilk-v4_42/gpt-4o-mini_llm_cache.pickle``); None: every cache.
 
     Returns:
         What was written (and what was already there).
@@ -341,7 +347,7 @@ def import_authors(
         runs_dir=Path(runs).expanduser() / RUNS_SUBDIR,
     )
     caches = (
-        _recording_outputs(checkout, report.recordings_dir, force, report.notes)
+        _recording_outputs(checkout, report.recordings_dir, force, report.notes, only)
         if recordings
         else []
     )

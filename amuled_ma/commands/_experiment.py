@@ -86,6 +86,17 @@ def add_scenario_args(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_offline_argument(parser: argparse.ArgumentParser) -> None:
+    """Add ``--offline``: never fetch the paper authors' recordings (``$AMULED_OFFLINE=1`` too)."""
+    parser.add_argument(
+        "--offline",
+        action="store_true",
+        help="never fetch: a paper authors' recording found nowhere on this machine stops the "
+        "run with the manual route (by default it is fetched once from their repository at a "
+        "pinned commit, checked, and kept; docs/authors.md); also AMULED_OFFLINE=1",
+    )
+
+
 def add_clusters_dir_argument(parser: argparse.ArgumentParser) -> None:
     """Add the repeatable ``--clusters-dir DIR`` (user cluster files)."""
     parser.add_argument(

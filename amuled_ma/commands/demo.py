@@ -8,8 +8,10 @@ reaches the milk, an AMULED fine-tune that wakes fewer sleeping babies than its 
 paper's row beside ours in ``report.md`` (:mod:`amuled_ma.evaluate.paper`), and the
 step-by-step viewer of the AMULED fine-tune (``view-episode0.html``, as ``amuled view``).
 The recording is found by name (``$AMULED_RECORDINGS``, the user data folder of ``amuled
-import authors``, or ``../shared/amuled-recordings`` beside the checkout); without it the
-demo stops before anything starts, with one line saying where to put it. ``--task
+import authors``, or ``../shared/amuled-recordings`` beside the checkout); found nowhere, it
+is fetched once from the authors' repository at a pinned commit, checked and converted
+(:mod:`amuled_ma.authors.download`), before anything starts; with ``--offline`` (or no
+network) the demo stops there with one line naming the manual route. ``--task
 driving`` runs ``scenarios/driving-demo.toml``, the same on Driving (the AMULED reward from
 their recorded fused beliefs, as ``scenarios/driving-authors.toml``).
 
@@ -123,6 +125,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "makes the resume command it prints on a stop work)",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    common.add_offline_argument(parser)
     parser.set_defaults(handler=demo_command)
 
 
@@ -138,7 +141,7 @@ def demo_command(args: argparse.Namespace) -> int:
     from amuled_ma.cli import FAILURES, report_failure
 
     start = time.perf_counter()
-    missing = missing_recording(args.task)
+    missing = missing_recording(args.task, offline=args.offline)
     if missing:
         print(f"amuled: error: {missing}", file=sys.stderr)
         return 2
@@ -260,25 +263,39 @@ def demo_scenario(
     return common.customise(scenario, clusters_dirs=clusters_dirs, overrides=overrides)
 
 
-def missing_recording(task: str) -> str | None:
-    """One line when the demo's scenario replays a recording this machine lacks (else None)."""
+def missing_recording(task: str, *, offline: bool = False) -> str | None:
+    """One line when the demo's scenario replays a recording this machine lacks (else None).
+
+    A pinned recording of the paper authors found nowhere here is first fetched and
+    converted (:func:`amuled_ma.authors.download.ensure_recordings`, its lines said with
+    ``[demo]``), unless ``offline`` or ``$AMULED_OFFLINE=1``.
+
+    Args:
+        task: ``findmilk`` or ``driving``.
+        offline: Never fetch.
+
+    Returns:
+        The error line (a failed or refused fetch, or offline: the routes), or None.
+
+    """
+    from amuled_ma.authors.download import ensure_recordings, replayed_recordings
     from amuled_ma.errors import AmuledError
     from amuled_ma.scenario import load_scenario
 
     try:
         scenario = load_scenario(f"{task}-demo")
+        if scenario.feedback.source != "replay":
+            return None
+        ensure_recordings(scenario, replayed_recordings(scenario), offline=offline, say=_say)
     except AmuledError as error:
         return str(error)
-    if scenario.feedback.source != "replay":
-        return None
     try:
         scenario.recording_path(required=True)
     except AmuledError:
         name = Path(scenario.feedback.recording).name
         return (
-            f"amuled demo replays the paper authors' recording {name!r}, not found: put the "
-            "recordings in ../shared/amuled-recordings beside the checkout, set "
-            "AMULED_RECORDINGS=FOLDER, or run 'amuled import authors PATH' (a checkout of "
+            f"amuled demo replays the paper authors' recording {name!r}, not found: set "
+            "AMULED_RECORDINGS=FOLDER, or run 'amuled import authors PATH' (a clone of "
             "https://github.com/temetski/moral_agent)"
         )
     return None
@@ -327,6 +344,7 @@ def _run_pipeline(
         progress=not args.no_progress,
         hint=hint,
         title=demo_title(scenario),
+        offline=args.offline,
     )
     start = time.perf_counter()
     try:

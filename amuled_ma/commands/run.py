@@ -45,6 +45,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_parallel_args(run)
     add_retrain_arg(run)
+    common.add_offline_argument(run)
     run.set_defaults(handler=run_command)
 
     ablate = subparsers.add_parser(
@@ -82,6 +83,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_parallel_args(ablate)
     add_retrain_arg(ablate)
+    common.add_offline_argument(ablate)
     ablate.set_defaults(handler=ablate_command)
 
 
@@ -190,6 +192,7 @@ def request_of(args: argparse.Namespace, command: str, *extra: str) -> Any:
         population=args.population,
         progress=not args.no_progress,
         hint=common.command_line(command, args, run_dir, *extra),
+        offline=args.offline,
     )
 
 

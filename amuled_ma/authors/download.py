@@ -1,0 +1,322 @@
+"""Fetch the paper authors' pinned files on first use; convert them as ``amuled import authors``.
+
+A scenario that replays one of the authors' recordings (``findmilk-gpt-4o-mini``, ...) and
+finds it in none of the places of :func:`~amuled_ma.scenario.paths.find_recording` gets it
+here: :func:`ensure_recordings` fetches the LLM cache it is made from
+(:data:`~amuled_ma.authors.pinned.PINNED`) from the authors' repository at the pinned commit
+with pooch, which streams each file to a temporary file beside its place in the cache folder
+and moves it there only when its SHA-256 is the pinned one (else the temporary file is
+deleted and nothing stays). The cache folder (:func:`cache_folder`) then holds the files at
+their paths in the repository, like a partial checkout, and
+:func:`~amuled_ma.authors.checkout.import_authors` converts them into the user data folder's
+``recordings/``, where the lookup finds them from then on. A file found locally is never
+fetched; with ``offline`` (``--offline``, ``$AMULED_OFFLINE=1``) nothing is fetched and a
+missing file is one line naming the manual route.
+
+Environment: ``$AMULED_AUTHORS_URL`` replaces :data:`~amuled_ma.authors.pinned.RAW_BASE` (a
+mirror, or the tests' loopback server; the URL of a file is ``<base>/<commit>/<path>``),
+``$AMULED_CACHE`` the cache root (default: platformdirs' user cache folder of ``amuled-ma``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+from collections.abc import Callable, Collection, Iterator, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, BinaryIO
+
+from amuled_ma.authors.pinned import COMMIT, PINNED, RAW_BASE, REPOSITORY, PinnedFile
+from amuled_ma.errors import AuthorsFetchError
+from amuled_ma.file_hash import sha256_file
+
+if TYPE_CHECKING:
+    from amuled_ma.scenario import Scenario
+
+#: Set to 1 (or true, yes, on) to never fetch, as ``--offline``.
+OFFLINE_ENV = "AMULED_OFFLINE"
+#: Replaces :data:`~amuled_ma.authors.pinned.RAW_BASE` (a mirror; the tests' loopback server).
+URL_ENV = "AMULED_AUTHORS_URL"
+#: Replaces the cache root (shared with the Ollama server's state, :mod:`amuled_ma.llm_server`).
+CACHE_ENV = "AMULED_CACHE"
+#: Seconds to connect, and between two reads of a download, before it is abandoned.
+CONNECT_TIMEOUT_S = 10.0
+READ_TIMEOUT_S = 60.0
+#: What a fetch says of the files' terms (the authors' repository has no licence file).
+TERMS = "from the paper authors' own repository, under their terms (it has no licence file)"
+
+
+def offline_requested(flag: bool = False) -> bool:
+    """Whether fetching is off: ``flag`` (``--offline``) or ``$AMULED_OFFLINE`` set to 1/true."""
+    return flag or os.environ.get(OFFLINE_ENV, "").strip().lower() in ("1", "true", "yes", "on")
+
+
+def base_url() -> str:
+    """The base of every URL: ``$AMULED_AUTHORS_URL``, else raw GitHub's of the authors' repo."""
+    return (os.environ.get(URL_ENV) or RAW_BASE).rstrip("/")
+
+
+def cache_folder() -> Path:
+    """Where fetched files are kept: ``<cache root>/authors/<first 12 of the commit>/``.
+
+    The cache root is ``$AMULED_CACHE``, else ``platformdirs.user_cache_dir("amuled-ma")``
+    (``~/.cache/amuled-ma`` on Linux, ``$XDG_CACHE_HOME`` respected).
+    """
+    env = os.environ.get(CACHE_ENV)
+    if env:
+        root = Path(env).expanduser()
+    else:
+        import platformdirs
+
+        root = Path(platformdirs.user_cache_dir("amuled-ma", appauthor=False))
+    return root / "authors" / COMMIT[:12]
+
+
+def _mb(size: int) -> str:
+    return f"{size / 1e6:.1f} MB"
+
+
+def pinned_recording(value: str, pinned: Sequence[PinnedFile] = PINNED) -> PinnedFile | None:
+    """The pinned file a recording value (a name or a path, ``.json`` optional) comes from."""
+    name = Path(value).name
+    name = name.removesuffix(".json")
+    return next((pin for pin in pinned if pin.recording == name), None)
+
+
+def replayed_recordings(scenario: Scenario) -> list[str]:
+    """The recordings a fine-tune of ``scenario`` replays (``[feedback]`` and its agents' tables).
+
+    ``[feedback].recording`` when ``[feedback].source`` is ``replay``, and each
+    ``[feedback.agents.<agent>]`` table of ``source = "replay"`` (its ``recording``, else
+    ``[feedback].recording``); each value once, in that order.
+    """
+    fb = scenario.feedback
+    values = [fb.recording] if fb.source == "replay" else []
+    for spec in fb.agents.values():
+        if spec.source == "replay":
+            values.append(getattr(spec, "recording", "") or fb.recording)
+    return list(dict.fromkeys(v for v in values if v.strip()))
+
+
+def models_ablation_recordings(scenario: Scenario) -> list[str]:
+    """The recordings to fetch before the ``models`` ablation is planned.
+
+    That ablation fine-tunes on every recording of the task beside the scenario's own. When
+    the scenario replays a pinned recording found nowhere here, every pinned recording of
+    its task (they are then converted side by side); else none (it compares those found).
+    """
+    own = scenario.feedback.recording
+    if scenario.feedback.source != "replay" or pinned_recording(own) is None:
+        return []
+    if _found_locally(scenario, own):
+        return []
+    task = scenario.task.name
+    return [pin.recording for pin in PINNED if pin.recording.startswith(f"{task}-")]
+
+
+def _found_locally(scenario: Scenario, value: str) -> bool:
+    from amuled_ma.scenario.paths import find_recording
+
+    where = str(scenario.path or scenario.name)
+    return find_recording(value, scenario.resolve, where=where).is_file()
+
+
+def _cached(pin: PinnedFile, cache: Path) -> bool:
+    path = cache / pin.path
+    return path.is_file() and path.stat().st_size == pin.size and sha256_file(path) == pin.sha256
+
+
+def manual_route(names: Collection[str]) -> str:
+    """The ways to get recordings without fetching, for messages."""
+    files = ", ".join(f"{n}.json" for n in names)
+    return (
+        f"'git clone {REPOSITORY}' then 'amuled import authors PATH' (PATH = the clone), "
+        f"or set AMULED_RECORDINGS to a folder holding {files}"
+    )
+
+
+class _CappedFile:
+    """A writable file that refuses to grow past the pinned size (a server serving more)."""
+
+    def __init__(self, raw: BinaryIO, limit: int, url: str) -> None:
+        self.raw, self.limit, self.url, self.written = raw, limit, url, 0
+
+    def write(self, chunk: bytes) -> int:
+        self.written += len(chunk)
+        if self.written > self.limit:
+            raise AuthorsFetchError(
+                f"refusing {self.url}: it sends more than the pinned {self.limit:,} bytes; "
+                "the download was deleted"
+            )
+        return self.raw.write(chunk)
+
+    def flush(self) -> None:
+        self.raw.flush()
+
+
+def _downloader(pin: PinnedFile) -> Callable[[str, str, object], None]:
+    """Pooch's HTTP downloader, writing through :class:`_CappedFile` (``pin.size`` at most)."""
+    import pooch
+
+    http = pooch.HTTPDownloader(progressbar=False, timeout=(CONNECT_TIMEOUT_S, READ_TIMEOUT_S))
+
+    def download(url: str, output_file: str, pup: object) -> None:
+        with open(output_file, "wb") as raw:
+            http(url, _CappedFile(raw, pin.size, url), pup)
+
+    return download
+
+
+@contextlib.contextmanager
+def _quiet_pooch() -> Iterator[None]:
+    """Pooch's own "Downloading file ..." lines off: the fetch says its one line itself."""
+    import pooch
+
+    logger = pooch.get_logger()
+    level = logger.level
+    logger.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
+def fetch_pinned(
+    pins: Sequence[PinnedFile],
+    *,
+    cache: Path | None = None,
+    base: str | None = None,
+    say: Callable[[str], None] = print,
+) -> Path:
+    """Fetch the pinned files not already in the cache, each checked against its SHA-256.
+
+    Says one line first (what, from where, how large, under whose terms) when anything is
+    fetched; a file already in the cache with its pinned SHA-256 is not fetched again.
+
+    Args:
+        pins: The files.
+        cache: The cache folder (default :func:`cache_folder`).
+        base: The URL base (default :func:`base_url`); a file is ``<base>/<commit>/<path>``.
+        say: Prints the line.
+
+    Returns:
+        The cache folder, holding each file at its path in the repository.
+
+    Raises:
+        AuthorsFetchError: A file could not be fetched (network, HTTP status, disk), or it
+            was refused (its SHA-256 is not the pinned one, or it is larger); the message
+            names the file, the URL and the manual route. Nothing partial stays in the cache.
+
+    """
+    import pooch
+    import requests
+
+    cache = cache or cache_folder()
+    base = (base or base_url()).rstrip("/")
+    wanted = [pin for pin in pins if not _cached(pin, cache)]
+    if not wanted:
+        return cache
+    names = ", ".join(pin.path for pin in wanted)
+    total = sum(pin.size for pin in wanted)
+    say(
+        f"fetching {len(wanted)} file(s), {_mb(total)}: {names} from {base}/{COMMIT[:12]}/ "
+        f"(pinned commit, each checked against its SHA-256) into {cache}; {TERMS}"
+    )
+    pup = pooch.create(
+        path=cache,
+        base_url=f"{base}/{COMMIT}/",
+        registry={pin.path: f"sha256:{pin.sha256}" for pin in pins},
+    )
+    for pin in wanted:
+        url = f"{base}/{COMMIT}/{pin.path}"
+        route = manual_route([pin.recording])
+        try:
+            with _quiet_pooch():
+                pup.fetch(pin.path, downloader=_downloader(pin))
+        except AuthorsFetchError as error:
+            raise AuthorsFetchError(
+                f"{error}; nothing was kept in {cache}. Else: {route}"
+            ) from None
+        except ValueError:  # pooch: the SHA-256 differs (the temporary file is deleted)
+            raise AuthorsFetchError(
+                f"refusing {url}: its SHA-256 is not the pinned {pin.sha256} "
+                f"(amuled_ma/authors/pinned.py); the download was deleted, nothing was kept "
+                f"in {cache}. Try again later, or: {route}"
+            ) from None
+        except requests.RequestException as error:
+            reason = type(error).__name__
+            raise AuthorsFetchError(
+                f"could not fetch {url} ({reason}: {str(error)[:200]}); without network: {route}"
+            ) from None
+        except OSError as error:
+            raise AuthorsFetchError(
+                f"could not write {pin.path} into the cache folder {cache}: {error}; set "
+                f"{CACHE_ENV} to a writable folder, or: {route}"
+            ) from None
+    return cache
+
+
+def ensure_recordings(
+    scenario: Scenario,
+    values: Sequence[str],
+    *,
+    offline: bool = False,
+    say: Callable[[str], None] = print,
+    pinned: Sequence[PinnedFile] = PINNED,
+    cache: Path | None = None,
+    base: str | None = None,
+    to: Path | None = None,
+) -> list[Path]:
+    """Fetch and convert the authors' recordings among ``values`` that are found nowhere here.
+
+    A value found by the scenario's lookup (:func:`~amuled_ma.scenario.paths.find_recording`:
+    as given, ``$AMULED_RECORDINGS``, the user data folder, ``../shared`` beside the checkout)
+    or not among ``pinned`` is left alone (an unknown one is the lookup's error later). The
+    others' files are fetched (:func:`fetch_pinned`) unless already cached, then converted by
+    :func:`~amuled_ma.authors.checkout.import_authors` into ``to``.
+
+    Args:
+        scenario: Resolves the values (its folder, its name for messages).
+        values: Recording values (names or paths), e.g. :func:`replayed_recordings`.
+        offline: Never fetch (also when ``$AMULED_OFFLINE`` is set).
+        say: Prints the fetch's line and the conversion's.
+        pinned: The pinned files (the tests pass their own).
+        cache: The cache folder (default :func:`cache_folder`).
+        base: The URL base (default :func:`base_url`).
+        to: Where recordings are written (default the user data folder's ``recordings/``).
+
+    Returns:
+        The recordings written (empty: nothing was missing).
+
+    Raises:
+        AuthorsFetchError: Offline with a file not cached (one line naming the routes), or
+            the fetch failed (:func:`fetch_pinned`).
+        AuthorsImportError: The conversion refused a file.
+
+    """
+    pins: list[PinnedFile] = []
+    for value in values:
+        pin = pinned_recording(value, pinned)
+        if pin is not None and pin not in pins and not _found_locally(scenario, value):
+            pins.append(pin)
+    if not pins:
+        return []
+    cache = cache or cache_folder()
+    if offline_requested(offline) and not all(_cached(pin, cache) for pin in pins):
+        names = [pin.recording for pin in pins]
+        size = _mb(sum(pin.size for pin in pins))
+        raise AuthorsFetchError(
+            f"the paper authors' recording {', '.join(names)} is not on this machine and "
+            f"fetching is off (--offline or {OFFLINE_ENV}=1): run without it to fetch "
+            f"{size} from {REPOSITORY} at {COMMIT[:12]} (checked), or {manual_route(names)}"
+        )
+    fetch_pinned(pins, cache=cache, base=base, say=say)
+    from amuled_ma.authors.checkout import import_authors  # here: it imports torch
+
+    report = import_authors(
+        cache, to=to, policies=False, only={pin.path for pin in pins}, recordings=True
+    )
+    written = [output.target for output in report.of_kind("recording")]
+    say(f"converted to {', '.join(str(path) for path in written)}")
+    return written
