@@ -151,6 +151,9 @@ class PopulationTrainer:
         # what a member's checkpoint repeats from its start (the tensors are loaded: dropped)
         self.sizes = [(start.obs_dim, start.num_actions) for start in starts]
         self.members = [PopulationMember(self, p) for p in range(self.size)]
+        #: The state after the last whole iteration (:meth:`population_state`, cloned),
+        #: what a stop writes.
+        self.snapshot: dict[str, Any] = self.population_state(copy_now=True)
 
     def _population_env(self, starts: list[MemberStart]) -> DeliberationVecEnv:
         """One task of ``P x E`` copies, each member's copies in the state its run left them.
@@ -214,8 +217,9 @@ class PopulationTrainer:
         Args:
             member: Which member.
             completed: Whether its training finished.
-            shared: The population's states read once for several members
-                (:meth:`population_state`); default: read now.
+            shared: The population's state read once for several members
+                (:meth:`population_state`, or the :attr:`snapshot` of the last whole
+                iteration); default: read now.
 
         """
         spec, (obs_dim, num_actions) = self.specs[member], self.sizes[member]
@@ -225,15 +229,16 @@ class PopulationTrainer:
             env_state = member_env_state(env_state, self.env_template, member)
         else:
             env_state = None
+        iteration = state["iteration"]
         infos = {
             "variant": str(spec.variant),
             "scenario": spec.scenario.name,
-            "iteration": self.runner.current_learning_iteration,
+            "iteration": iteration,
             "total_iterations": self.total_iterations,
             "completed": completed,
-            "curve": self.curves[member],
-            "wall_s": self.wall_offsets[member],
-            "torch_rng": self.alg.streams.generators[member].get_state(),
+            "curve": self.curves[member][: state["rows"][member]],
+            "wall_s": state["walls"][member],
+            "torch_rng": state["rng"][member],
             "env_state": env_state,
             "train_cfg": self.cfgs[member],
             "base_checkpoint": str(spec.base_checkpoint) if spec.base_checkpoint else None,
@@ -244,18 +249,35 @@ class PopulationTrainer:
             "actor_state_dict": _cpu(member_state(state["actor"], member)),
             "critic_state_dict": _cpu(member_state(state["critic"], member)),
             "optimizer_state_dict": member_optimizer_state(state["optimizer"], member),
-            "iter": self.runner.current_learning_iteration,
+            "iter": iteration,
             "infos": infos,
         }
 
-    def population_state(self) -> dict[str, Any]:
-        """The population's actor, critic, Adam and env states (for members' checkpoints)."""
-        return {
+    def population_state(self, *, copy_now: bool = False) -> dict[str, Any]:
+        """Everything a member's checkpoint holds, read once for all members.
+
+        The actor, critic, Adam and env states, the iteration, each member's random
+        stream, wall time and number of curve rows.
+
+        Args:
+            copy_now: Clone every tensor (a :attr:`snapshot` that training does not
+                change); else the live tensors, for a checkpoint written at once.
+
+        """
+        state = {
             "actor": self.alg.actor.state_dict(),
             "critic": self.alg.critic.state_dict(),
             "optimizer": self.alg.optimizer.state_dict(),
-            "env": self.env.state_dict(),
+            "env": self.env.state_dict(),  # cloned by the env
+            "iteration": self.runner.current_learning_iteration,
+            "rng": self.alg.streams.get_states(),  # new tensors
+            "walls": list(self.wall_offsets),
+            "rows": [len(curve) for curve in self.curves],
         }
+        if copy_now:
+            for key in ("actor", "critic", "optimizer"):
+                state[key] = copy.deepcopy(state[key])
+        return state
 
     def save(self, member: int, *, completed: bool, shared: dict[str, Any] | None = None) -> Path:
         """Write member ``member``'s ``model_last.pt`` (atomically, as a lone job's)."""
@@ -263,11 +285,24 @@ class PopulationTrainer:
         path = self.specs[member].out_dir / LAST
         return write_checkpoint(path, lambda tmp: torch.save(state, tmp))
 
-    def save_members(self, members: Sequence[int], *, completed: bool) -> list[Path]:
-        """Write the checkpoints of ``members``, the population's states read once."""
+    def save_members(
+        self,
+        members: Sequence[int],
+        *,
+        completed: bool,
+        shared: dict[str, Any] | None = None,
+    ) -> list[Path]:
+        """Write the checkpoints of ``members``, the population's state read once.
+
+        Args:
+            members: Which members.
+            completed: Whether their training finished.
+            shared: The state to write (default: :meth:`population_state` now).
+
+        """
         if not members:
             return []
-        shared = self.population_state()
+        shared = shared or self.population_state()
         return [self.save(p, completed=completed, shared=shared) for p in members]
 
     # ----------------------------------------------------------------- training
@@ -309,6 +344,7 @@ class PopulationTrainer:
                 self.runner.learn(1)
                 self.runner.current_learning_iteration = it + 1
                 self._record(it + 1, batch, walls, time.perf_counter() - t0, writers)
+                self.snapshot = self.population_state(copy_now=True)
                 bar.update(1)
                 for p, spec in enumerate(self.specs):
                     if spec.on_iteration is not None:
@@ -319,7 +355,7 @@ class PopulationTrainer:
                     for p, cfg in enumerate(self.cfgs)
                     if (it + 1) % cfg["save_interval"] == 0 and it + 1 < self.total_iterations
                 ]
-                self.save_members(due, completed=False)
+                self.save_members(due, completed=False, shared=self.snapshot)
         except MemberFailed as failed:
             bar.close()
             raise self._member_failed(failed) from failed
@@ -414,9 +450,11 @@ class PopulationTrainer:
             if isinstance(stop, KeyboardInterrupt)
             else "stopped"
         )
-        self.save_members(range(self.size), completed=False)
+        # the state after the last whole iteration: a stop inside one (its rollout or
+        # update half done, its random numbers drawn) resumes as if it never began
+        self.save_members(range(self.size), completed=False, shared=self.snapshot)
         print(
-            f"\n{why} at iteration {self.runner.current_learning_iteration}/"
+            f"\n{why} at iteration {self.snapshot['iteration']}/"
             f"{self.total_iterations}; checkpoints of {self.size} jobs written "
             f"(first: {self.specs[0].out_dir / LAST})",
             file=sys.stderr,
