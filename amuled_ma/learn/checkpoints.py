@@ -36,7 +36,7 @@ class CheckpointWriteError(CheckpointError):
 #: Name of the newest checkpoint in a variant folder.
 LAST = "model_last.pt"
 
-#: Keys every checkpoint written by :class:`~amuled_ma.learn.trainer.Trainer` holds.
+#: Keys every job's checkpoint holds (:mod:`amuled_ma.learn.population` writes them).
 TRAINER_KEYS = ("actor_state_dict", "critic_state_dict", "optimizer_state_dict", "iter", "infos")
 
 

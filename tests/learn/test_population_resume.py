@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from lone_trainer import Trainer
 from test_population import MEMBERS, prefers, specs, tiny
 
 from amuled_ma.deliberation.feedback_base import CallableFeedback
@@ -21,7 +22,6 @@ from amuled_ma.errors import Terminated
 from amuled_ma.learn.checkpoints import LAST, read_checkpoint
 from amuled_ma.learn.population import PopulationTrainer, train_population
 from amuled_ma.learn.population_groups import MemberSpec
-from amuled_ma.learn.trainer import Trainer
 
 #: Iterations, and a checkpoint every SAVE: periodic checkpoints at 2 and 4.
 ITERATIONS, SAVE = 5, 2
