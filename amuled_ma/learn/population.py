@@ -272,8 +272,9 @@ class PopulationTrainer:
         alg = self.alg
         if isinstance(alg, PopulationPPO):
             return alg.failed_members()
-        params = [*alg.actor.parameters(), *alg.critic.parameters()]
-        return [] if all(bool(torch.isfinite(p).all()) for p in params) else [0]
+        # a NaN or inf anywhere makes its parameter's sum not finite: one reduction each
+        sums = torch.stack([p.sum() for p in (*alg.actor.parameters(), *alg.critic.parameters())])
+        return [] if bool(torch.isfinite(sums).all()) else [0]
 
     # ----------------------------------------------------------------- members
     def member_policy(self, member: int) -> torch.nn.Module:

@@ -325,6 +325,20 @@ def test_a_member_whose_gradient_is_nan_does_not_reach_the_others(tmp_path, base
         assert_states_close(want, got)
 
 
+def test_a_job_alone_whose_weights_turn_nan_stops_with_its_start_kept(tmp_path, base) -> None:
+    """A population of one (the lone classes): a NaN update is caught after the iteration."""
+    [job] = specs(tmp_path, base, members=MEMBERS[:1])
+    job.iterations = 1
+    alone = PopulationTrainer([job])
+    with torch.no_grad():
+        list(alone.alg.critic.parameters())[-1].fill_(float("nan"))
+    with pytest.raises(MemberFailed, match="gradient was not a finite number"):
+        alone.train()
+    kept = read_checkpoint(job.out_dir / LAST)
+    assert kept["infos"]["iteration"] == 0
+    assert_states_close(read_checkpoint(base)["actor_state_dict"], kept["actor_state_dict"])
+
+
 def test_five_seeds_alone_and_together_agree_within_seed_noise(tmp_path, base) -> None:
     """The suite's small form of the 5-seed agreement (docs/learning.md, full runs).
 
