@@ -38,7 +38,7 @@ import json
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -52,7 +52,7 @@ from rsl_rl.runners import OnPolicyRunner
 from amuled_ma.deliberation.mdp import BatchedDeliberation, MemberFeedback
 from amuled_ma.errors import AmuledError, MemberFailed, Terminated
 from amuled_ma.learn.anchored_ppo import AnchoredPPO
-from amuled_ma.learn.checkpoints import LAST, CheckpointWriteError, write_checkpoint
+from amuled_ma.learn.checkpoints import LAST, CheckpointWriteError, write_checkpoints
 from amuled_ma.learn.curves import curve_row, quiet
 from amuled_ma.learn.population_groups import MemberSpec, population_config, population_key
 from amuled_ma.learn.population_models import member_state, stack_states
@@ -358,9 +358,7 @@ class PopulationTrainer:
 
     def save(self, member: int, *, completed: bool, shared: dict[str, Any] | None = None) -> Path:
         """Write member ``member``'s ``model_last.pt`` (atomically, as a lone job's)."""
-        state = self.member_checkpoint(member, completed=completed, shared=shared)
-        path = self.specs[member].out_dir / LAST
-        return write_checkpoint(path, lambda tmp: torch.save(state, tmp))
+        return self.save_members([member], completed=completed, shared=shared)[0]
 
     def save_members(
         self,
@@ -377,10 +375,33 @@ class PopulationTrainer:
             shared: The state to write (default: :meth:`population_state` now).
 
         """
+        return self.save_states([(p, shared) for p in members], completed=completed)
+
+    def save_states(
+        self, members: Sequence[tuple[int, dict[str, Any] | None]], *, completed: bool
+    ) -> list[Path]:
+        """Write members' checkpoints as one set, each from its state.
+
+        Every member's old checkpoint stays until all new ones are whole
+        (:func:`~amuled_ma.learn.checkpoints.write_checkpoints`): a stop or a full disk
+        while they are written leaves the members at one iteration.
+
+        Args:
+            members: ``(member, state)`` pairs; a state None is read now (once).
+            completed: Whether their training finished.
+
+        """
         if not members:
             return []
-        shared = shared or self.population_state()
-        return [self.save(p, completed=completed, shared=shared) for p in members]
+        now: dict[str, Any] | None = None
+        writes = []
+        for p, state in members:
+            if state is None:
+                now = now or self.population_state()
+                state = now
+            checkpoint = self.member_checkpoint(p, completed=completed, shared=state)
+            writes.append((self.specs[p].out_dir / LAST, _saver(checkpoint)))
+        return write_checkpoints(writes)
 
     # ----------------------------------------------------------------- training
     def iterate(self) -> None:
@@ -513,8 +534,8 @@ class PopulationTrainer:
         """
         member = failed.member
         others = [p for p in range(self.size) if p != member]
-        self.save_members(others, completed=False, shared=self.snapshot)
-        self.save_members([member], completed=False, shared=self.before)
+        pairs = [(p, self.snapshot) for p in others] + [(member, self.before)]
+        self.save_states(pairs, completed=False)
         spec = self.specs[member]
         go_on = ""
         if others:
@@ -559,6 +580,11 @@ class PopulationTrainer:
         )
         for hint in hints:
             print(f"resume with: {hint}", file=sys.stderr)
+
+
+def _saver(checkpoint: dict[str, Any]) -> Callable[[str], None]:
+    """Writes ``checkpoint`` to the path it is given (:func:`torch.save`)."""
+    return lambda tmp: torch.save(checkpoint, tmp)
 
 
 def _cpu(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -150,3 +150,31 @@ def test_a_killed_population_resumes_from_its_last_checkpoint(
     assert iterations_written(jobs) == [2 * SAVE, 2 * SAVE]
     again = finetunes(tmp_path, base) if kind == "finetune" else bases(tmp_path)
     assert_same_run(uninterrupted[kind], resume(again))
+
+
+def test_a_kill_while_the_members_checkpoints_are_written_leaves_one_iteration(
+    tmp_path, base, uninterrupted, monkeypatch
+) -> None:
+    """Killed inside the second member's write of checkpoint 4: both stay at checkpoint 2.
+
+    Members at two iterations would resume as two populations of other sizes, whose float
+    sums differ from this one's (the gradient of a mean over ``P x B`` rows): the set is
+    written whole or not at all, so the resume is exact.
+    """
+    jobs = finetunes(tmp_path, base)
+    writes = {"n": 0}
+    save = torch.save
+
+    def killed_in_the_fourth_write(obj, path) -> None:  # checkpoint 2: writes 1-2; 4: 3-4
+        writes["n"] += 1
+        save(obj, path)
+        if writes["n"] == 4:
+            raise Killed
+
+    monkeypatch.setattr(torch, "save", killed_in_the_fourth_write)
+    with pytest.raises(Killed):
+        train_population(jobs)
+    monkeypatch.setattr(torch, "save", save)
+    assert iterations_written(jobs) == [SAVE, SAVE]
+    assert not [p for job in jobs for p in job.out_dir.iterdir() if p.suffix == ".tmp"]
+    assert_same_run(uninterrupted["finetune"], resume(finetunes(tmp_path, base)))
