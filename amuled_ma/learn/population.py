@@ -163,23 +163,31 @@ class PopulationTrainer:
         self.finetuning = Variant.parse(self.specs[0].variant).finetuning
         self.shape = self.specs[0].shape()
         self.copies = self.shape.num_envs
+        # one member on the CPU: its own lone runner (rsl-rl's classes: its numbers, its speed)
+        self.stacked = self.size > 1 or torch.device(device).type != "cpu"
         starts: list[MemberStart] = []
         for spec in self.specs:
-            start, actor = lone_start(spec)
+            start, runner, env = lone_start(spec)
             starts.append(start)
             if len(starts) == 1:  # the template of a member's lone actor
-                self.template = actor
+                self.template = copy.deepcopy(runner.alg.get_policy()).cpu()
         self.total_iterations = starts[0].total_iterations
         self.cfgs = [start.cfg for start in starts]
-        # one member on the CPU: the lone job's own rsl-rl classes (its numbers, its speed)
-        self.stacked = self.size > 1 or torch.device(device).type != "cpu"
         self.cfg = population_config(self.cfgs) if self.stacked else copy.deepcopy(self.cfgs[0])
-        self.env = self._population_env(starts)
-        self.runner: OnPolicyRunner = quiet(
-            lambda: OnPolicyRunner(self.env, copy.deepcopy(self.cfg), log_dir=None, device=device)
-        )
+        if self.stacked:
+            self.env = self._population_env(starts)
+            self.runner: OnPolicyRunner = quiet(
+                lambda: OnPolicyRunner(
+                    self.env, copy.deepcopy(self.cfg), log_dir=None, device=device
+                )
+            )
+        else:  # the lone runner as built, its weights, state and random stream loaded
+            self.env, self.runner = env, runner
+            self.mdp, self.env_template = env.mdp, starts[0].env_state
         self.alg: PopulationPPO | AnchoredPPO = self.runner.alg
-        self._load_members(starts)
+        if self.stacked:
+            self._load_members(starts)
+        self._anchor(starts)
         self.curves = [list(start.curve) for start in starts]
         self.wall_offsets = [start.wall_s for start in starts]
         # what a member's checkpoint repeats from its start (the tensors are loaded: dropped)
@@ -232,10 +240,13 @@ class PopulationTrainer:
             )
         self._set_streams([start.torch_rng for start in starts])
         self.runner.current_learning_iteration = starts[0].iteration
+
+    def _anchor(self, starts: list[MemberStart]) -> None:
+        """A fine-tune's anchor: every member's base actor, frozen."""
         if self.finetuning:
-            base = copy.deepcopy(alg.get_policy())
+            base = copy.deepcopy(self.alg.get_policy())
             base.load_state_dict(self._stack([start.base_actor or {} for start in starts]))
-            alg.anchor_to(base)
+            self.alg.anchor_to(base)
 
     # ------------------------------------------------- stacked, or one member alone
     def _stack(self, states: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:

@@ -79,7 +79,7 @@ class MemberStart:
     num_actions: int
 
 
-def lone_start(spec: MemberSpec) -> tuple[MemberStart, torch.nn.Module]:
+def lone_start(spec: MemberSpec) -> tuple[MemberStart, OnPolicyRunner, DeliberationVecEnv]:
     """Where the member starts: the state its job has when it is built alone.
 
     The job's own rsl-rl runner (:class:`~amuled_ma.learn.anchored_ppo.AnchoredPPO` over
@@ -90,7 +90,8 @@ def lone_start(spec: MemberSpec) -> tuple[MemberStart, torch.nn.Module]:
     critic unless ``[finetune].reinit_critic``).
 
     Returns:
-        The start, and the member's lone actor (on the CPU: the template of its policy).
+        The start, and the member's lone runner (at its start iteration, not yet anchored
+        to its base) and env: a job alone trains on them.
 
     Raises:
         ValueError: A fine-tune without feedback.
@@ -145,6 +146,7 @@ def lone_start(spec: MemberSpec) -> tuple[MemberStart, torch.nn.Module]:
     if shape.finetuning:
         assert base_checkpoint is not None
         base_actor = read_checkpoint(base_checkpoint)["actor_state_dict"]
+    runner.current_learning_iteration = iteration
     saved = alg.save()
     start = MemberStart(
         cfg=shape.cfg,
@@ -161,7 +163,7 @@ def lone_start(spec: MemberSpec) -> tuple[MemberStart, torch.nn.Module]:
         obs_dim=int(env.obs.shape[-1]),
         num_actions=int(env.num_actions),
     )
-    return start, copy.deepcopy(alg.get_policy()).cpu()
+    return start, runner, env
 
 
 def _load(alg: AnchoredPPO, path: Path, load_cfg: dict | None, what: str) -> dict:
