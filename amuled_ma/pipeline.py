@@ -18,6 +18,9 @@ arguments into the request and print the :class:`PipelineOutcome`. The steps:
 4. evaluate every variant (:func:`~amuled_ma.evaluate.evaluator.evaluate_run`) and write
    ``report.md`` (:func:`~amuled_ma.evaluate.report.write_report`).
 
+``amuled train`` and ``amuled finetune`` are one job through steps 2 and 3
+(:func:`train_alone`).
+
 A Ctrl-C or SIGTERM (:class:`~amuled_ma.errors.Terminated`) leaves :func:`run_pipeline` as
 ``KeyboardInterrupt`` once every running job wrote its checkpoint; the resume command
 printed then is the request's ``hint`` with ``--resume``.
@@ -43,6 +46,7 @@ from amuled_ma.experiments.jobs import (
 from amuled_ma.experiments.run_folder import JobResult, TrainJob, split_replica, write_config
 from amuled_ma.run_lock import run_folder_lock
 from amuled_ma.scenario import Scenario
+from amuled_ma.variants import Variant
 
 if TYPE_CHECKING:
     from amuled_ma.evaluate.results import Results
@@ -267,6 +271,68 @@ def fetch_recordings(
     from amuled_ma.authors.download import ensure_recordings
 
     ensure_recordings(request.scenario, values, offline=request.offline, say=say)
+
+
+def train_alone(
+    request: PipelineRequest,
+    variant: Variant,
+    *,
+    base_variant: str = "base",
+    base_dir: Path | None = None,
+    config: dict[str, Any] | None = None,
+) -> JobResult:
+    """Train one job (``amuled train`` / ``finetune``): the pipeline's steps 2 and 3 for it.
+
+    The job is checked before any folder is made
+    (:func:`~amuled_ma.experiments.plans.check_jobs`: its inputs, then its folder), the run
+    folder's lock is held, ``config.json`` written (with ``config``), and the job trained
+    by the executor of every graph (:func:`~amuled_ma.experiments.jobs.run_jobs`, a group
+    of one); nothing is evaluated.
+
+    Args:
+        request: The run folder, seed, resume / force, progress bars and resume command
+            (its other fields are not used).
+        variant: What to train.
+        base_variant: A fine-tune's base folder in ``base_dir``.
+        base_dir: The run folder holding the base (default: the request's).
+        config: Run-level ``config.json`` fields to write (None: the file is left alone).
+
+    Returns:
+        The job's result (trained, or skipped when already finished).
+
+    Raises:
+        AmuledError: An input is missing or the folder clashes (before any folder is
+            made), another process writes the run folder, or the job failed.
+        KeyboardInterrupt: Ctrl-C or SIGTERM, after the job wrote its checkpoint.
+
+    """
+    from amuled_ma.experiments.plans import check_jobs  # here: it imports torch
+
+    run_dir = Path(request.run_dir)
+    job = TrainJob(
+        name=variant.folder,
+        scenario=request.scenario,
+        run_dir=run_dir,
+        variant=variant,
+        out_dir=run_dir / variant.folder,
+        seed=request.seed,
+        base_variant=base_variant,
+        resume=request.resume,
+        force=request.force,
+        base_dir=base_dir,
+    )
+    actions = check_jobs([job], request.hint)  # before the lock: a refused job makes no folder
+    with run_folder_lock(run_dir):
+        if config is not None:
+            write_config(run_dir, request.scenario, config)
+        outcome = run_jobs(
+            [job],
+            progress=request.progress,
+            hint=request.hint,
+            describe=describe_job,
+            actions=actions,
+        )
+    return outcome.results[0]
 
 
 def _plan_main(request: PipelineRequest, seeds: list[int], say: Callable[[str], None]) -> _Plan:

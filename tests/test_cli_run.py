@@ -15,9 +15,9 @@ def test_run_writes_run_dir_report_and_resumes(tmp_path, capsys, monkeypatch):
     args += ["--jobs", "1", "--no-population"]
 
     # Ctrl-C in the middle of the first fine-tune: checkpoint + resume command
-    from amuled_ma.learn import trainer as trainer_mod
+    from amuled_ma.learn import population as population_mod
 
-    original = trainer_mod.Trainer._iterate
+    original = population_mod.PopulationTrainer.iterate
     calls = {"n": 0}
 
     def interrupt_second_finetune_iteration(self):
@@ -27,14 +27,16 @@ def test_run_writes_run_dir_report_and_resumes(tmp_path, capsys, monkeypatch):
                 raise KeyboardInterrupt
         return original(self)
 
-    monkeypatch.setattr(trainer_mod.Trainer, "_iterate", interrupt_second_finetune_iteration)
+    monkeypatch.setattr(
+        population_mod.PopulationTrainer, "iterate", interrupt_second_finetune_iteration
+    )
     assert main(args) == 130
     out = capsys.readouterr().err
     assert "resume with: amuled run findmilk" in out and "--resume" in out
     assert (run_dir / "finetune-human" / "model_last.pt").is_file()
 
     # without --resume: a clear error naming --resume
-    monkeypatch.setattr(trainer_mod.Trainer, "_iterate", original)
+    monkeypatch.setattr(population_mod.PopulationTrainer, "iterate", original)
     assert main(args) == 1
     assert "--resume" in capsys.readouterr().err
 

@@ -15,7 +15,7 @@ PACKAGE = Path(amuled_ma.__file__).parent
 #: rsl-rl objects whose attributes we must not write (its runner, algorithm, storage).
 RSL_RL_OBJECTS = ("runner", "alg", "storage", "transition")
 #: The one write we allow: the runner's public iteration counter, which ``learn`` leaves at
-#: the iteration it ran (see ``Trainer._iterate``).
+#: the iteration it ran (see ``PopulationTrainer.iterate``).
 ALLOWED_WRITES = {"runner.current_learning_iteration"}
 
 

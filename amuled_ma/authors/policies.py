@@ -6,9 +6,9 @@ The authors saved ``torch.save(agent.state_dict())`` of CleanRL's ``Agent``
 ``actor`` and ``critic``, ``Linear -> Tanh -> Linear -> Tanh -> Linear`` (keys
 ``{actor,critic}.{0,2,4}.{weight,bias}``, 64-64 hidden units), the actor's output being the
 logits of a categorical policy. Our checkpoints
-(:meth:`~amuled_ma.learn.trainer.Trainer.save`) hold rsl-rl's ``MLPModel`` actor and critic
-(``mlp.{0,2,4}.{weight,bias}``), built from the scenario's ``[ppo]`` settings, plus an
-optimizer state and our ``infos``.
+(:meth:`~amuled_ma.learn.population.PopulationTrainer.save`) hold rsl-rl's ``MLPModel``
+actor and critic (``mlp.{0,2,4}.{weight,bias}``), built from the scenario's ``[ppo]``
+settings, plus an optimizer state and our ``infos``.
 
 :func:`build_checkpoint` builds our actor and critic the way the trainer does
 (:func:`~amuled_ma.learn.config.rsl_rl_config`), copies the authors' weights layer by layer
@@ -195,7 +195,7 @@ def build_checkpoint(
     base_checkpoint: Path | None = None,
     source: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Our checkpoint (the dict :meth:`Trainer.save` writes) holding a CleanRL policy.
+    """Our checkpoint (the dict a trained job's ``model_last.pt`` holds) holding a CleanRL policy.
 
     Args:
         state: The CleanRL state dict (:func:`read_cleanrl`).

@@ -5,7 +5,7 @@ steps, 8 epochs of 4 mini-batches, their window KL, 1,000 iterations): a short b
 policy is trained (``--base-steps``), then fine-tunes of it (``finetune:amuled``, seeds
 42, 43, ..., lambda_KL cycling through 0.5, 1, 2.5, 5) are timed
 
-- one by one with the existing ``Trainer`` (``--lone`` of them, the mean is used), timed
+- one by one, each a population of one (``--lone`` of them, the mean is used), timed
   right before each population (a shared machine's load drifts), and
 - as populations of P members (``amuled_ma.learn.population.PopulationTrainer``),
 
@@ -176,14 +176,13 @@ def measure_task(task: str, args: argparse.Namespace, out: Path) -> dict[str, An
     """Time the lone fine-tunes and every population size of one task."""
     from amuled_ma.deliberation.build import run_store
     from amuled_ma.learn.population import PopulationTrainer
-    from amuled_ma.learn.population_groups import member_memory_bytes
-    from amuled_ma.learn.trainer import Trainer
+    from amuled_ma.learn.population_groups import MemberSpec, member_memory_bytes
     from amuled_ma.tasks import get_task
 
     scenario, source = _scenario(task, args.base_steps)
     run = out / task
     t0 = time.perf_counter()
-    base = Trainer(scenario, run / "base").train().checkpoint
+    base = _alone(MemberSpec(scenario, run / "base")).train()[0].checkpoint
     base_s = time.perf_counter() - t0
     store = run_store(scenario, run)
     its = args.warmup + args.iterations
@@ -195,7 +194,8 @@ def measure_task(task: str, args: argparse.Namespace, out: Path) -> dict[str, An
         for job in _jobs(scenario, run, base, args.lone, f"lone{size}", store):
             job.iterations = its
             watch = Stopwatch()
-            trainer = Trainer(job.scenario, job.out_dir, **job.lone_kwargs(), on_iteration=watch)
+            job.on_iteration = watch
+            trainer = _alone(job)
             setup = _since(watch.start)
             watch.restart()
             trainer.train()
@@ -267,7 +267,7 @@ def main(args: argparse.Namespace) -> int:
         lone_it = sum(row["alone"]["cpu_it"] for row in rows) / len(rows)
         lone_s = sum(row["alone"]["cpu_s"] for row in rows) / len(rows)
         print(
-            f"\n{result['task']}: feedback {result['source']}; one by one (Trainer): "
+            f"\n{result['task']}: feedback {result['source']}; one by one (alone): "
             f"{lone_it:.3f} CPU s/iteration, {lone_s / 60:.1f} CPU min per fine-tune "
             f"(mean of {len(rows) * args.lone} runs); memory per member (estimate, tensors "
             f"+ objects + its feedback): {result['member_bytes'] / 2**20:.2f} MiB"
@@ -319,16 +319,23 @@ def _run_metrics(outcome: Any, scenario: Any) -> dict[str, float]:
     return out
 
 
+def _alone(job: Any) -> Any:
+    """A job trained alone: a population of one (the lone job's rsl-rl classes)."""
+    from amuled_ma.learn.population import PopulationTrainer
+
+    return PopulationTrainer([job])
+
+
 def welch(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
     """Train ``args.welch`` seeds alone and as one population; each run's figures."""
     from amuled_ma.deliberation.build import run_store
     from amuled_ma.learn.population import PopulationTrainer
-    from amuled_ma.learn.trainer import Trainer
+    from amuled_ma.learn.population_groups import MemberSpec
 
     scenario, source = _scenario(task, args.base_steps)
     scenario = scenario.replace("finetune", lambda_kl=2.5)
     run = out / task
-    base = Trainer(scenario, run / "base").train().checkpoint
+    base = _alone(MemberSpec(scenario, run / "base")).train()[0].checkpoint
     store = run_store(scenario, run)
     groups: dict[str, list[dict[str, float]]] = {"alone": [], "population": []}
     times: dict[str, float] = {}
@@ -337,7 +344,7 @@ def welch(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
     for job in jobs:
         job.scenario = scenario  # lambda_KL 2.5 for every seed
         job.iterations = args.welch_iterations
-        outcome = Trainer(job.scenario, job.out_dir, **job.lone_kwargs()).train()
+        outcome = _alone(job).train()[0]
         job.feedback.close()
         groups["alone"].append(_run_metrics(outcome, scenario))
         print(f"  {task}: seed {job.training_seed} alone done", flush=True)

@@ -64,9 +64,17 @@ def _eval(actor: Any, scenario: Any, episodes: int) -> list[dict]:
     return records
 
 
+def _lone(scenario: Any, out_dir: Path, on_iteration: Any = None) -> Any:
+    """One base-training job alone: a population of one (``PopulationTrainer``)."""
+    from amuled_ma.learn.population import PopulationTrainer
+    from amuled_ma.learn.population_groups import MemberSpec
+
+    return PopulationTrainer([MemberSpec(scenario, out_dir, on_iteration=on_iteration)])
+
+
 def bench_findmilk(out: Path, quick: bool) -> dict[str, Any]:
     """FindMilk base training: time to the first optimal greedy policy, and the full run."""
-    from amuled_ma.learn.trainer import Trainer
+    from amuled_ma.learn.population import PopulationMember
     from amuled_ma.scenario import load_scenario
 
     sc = load_scenario("findmilk").replace("output", tensorboard=False)
@@ -76,23 +84,22 @@ def bench_findmilk(out: Path, quick: bool) -> dict[str, Any]:
     eval_time = [0.0]
     start = [0.0]
 
-    def check(trainer: Trainer, it: int) -> None:
+    def check(member: PopulationMember, it: int) -> None:
         if first:
             return
         t0 = time.perf_counter()
-        records = _eval(trainer.policy(), sc, 10)
-        trainer.alg.train_mode()
+        records = _eval(member.policy(), sc, 10)
         eval_time[0] += time.perf_counter() - t0
         if all(r["reached_milk"] and r["steps_to_milk"] == 14 for r in records):
             first["iteration"] = it
             first["steps"] = it * sc.base.num_envs * sc.base.num_steps_per_env
             first["wall_s"] = time.perf_counter() - start[0] - eval_time[0]
 
-    trainer = Trainer(sc, out / "findmilk-base", on_iteration=check, resume=False)
+    trainer = _lone(sc, out / "findmilk-base", on_iteration=check)
     start[0] = time.perf_counter()
-    outcome = trainer.train()
+    outcome = trainer.train()[0]
     wall = time.perf_counter() - start[0] - eval_time[0]
-    final = _eval(trainer.policy(), sc, 50)
+    final = _eval(trainer.member_policy(0), sc, 50)
     return {
         "steps": outcome.env_steps,
         "full_s": wall,
@@ -106,24 +113,23 @@ def bench_findmilk(out: Path, quick: bool) -> dict[str, Any]:
 def bench_driving(out: Path, quick: bool) -> dict[str, Any]:
     """Driving base training: the full run and the greedy policy's metrics."""
     from amuled_ma.evaluate.evaluator import summarize
-    from amuled_ma.learn.trainer import Trainer
     from amuled_ma.scenario import load_scenario
 
     sc = load_scenario("driving").replace("output", tensorboard=False)
     if quick:
         sc = sc.replace("base", total_steps=sc.base.total_steps // 10)
-    trainer = Trainer(sc, out / "driving-base")
+    trainer = _lone(sc, out / "driving-base")
     t0 = time.perf_counter()
-    outcome = trainer.train()
+    outcome = trainer.train()[0]
     wall = time.perf_counter() - t0
-    stats = summarize(_eval(trainer.policy(), sc, 50))
+    stats = summarize(_eval(trainer.member_policy(0), sc, 50))
     return {"steps": outcome.env_steps, "full_s": wall, "metrics": stats}
 
 
 def bench_finetune(out: Path, base_ckpt: Path | None, quick: bool) -> dict[str, Any]:
     """Time a fine-tune of the paper's length with replayed AMULED feedback."""
     from amuled_ma.experiments.plans import train_variant
-    from amuled_ma.learn.trainer import LAST, Trainer
+    from amuled_ma.learn.checkpoints import LAST
     from amuled_ma.scenario import load_scenario
 
     sc = load_scenario("findmilk").replace("output", tensorboard=False)
@@ -132,7 +138,7 @@ def bench_finetune(out: Path, base_ckpt: Path | None, quick: bool) -> dict[str, 
     run = out / "finetune-run"
     (run / "base").mkdir(parents=True, exist_ok=True)
     if base_ckpt is None or not Path(base_ckpt).is_file():
-        Trainer(sc.replace("base", total_steps=100_000), run / "base").train()
+        _lone(sc.replace("base", total_steps=100_000), run / "base").train()
     else:
         (run / "base" / LAST).write_bytes(Path(base_ckpt).read_bytes())
     iterations = sc.finetune.iterations // (10 if quick else 1)

@@ -6,10 +6,10 @@ import argparse
 import shlex
 import time
 from pathlib import Path
+from typing import Any
 
 from amuled_ma.commands import _experiment as common
-from amuled_ma.run_lock import run_folder_lock
-from amuled_ma.scenario import check_path_component
+from amuled_ma.scenario import Scenario, check_path_component
 from amuled_ma.variants import Variant
 
 
@@ -66,26 +66,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def train_command(args: argparse.Namespace) -> int:
-    """Run ``amuled train``."""
-    from amuled_ma.experiments.run_folder import write_config
+    """Run ``amuled train``: a one-job request through the pipeline (checks, lock, record)."""
+    from amuled_ma.pipeline import train_alone
 
     scenario = common.load(args)
     run_dir = common.run_dir_of(args, scenario)
-    with run_folder_lock(run_dir):
-        hint = common.command_line("train", args, run_dir, "--variant", args.variant)
-        write_config(run_dir, scenario, {"variant": args.variant})
-        start = time.perf_counter()
-        job = common.train_job(scenario, run_dir, args.variant, args, hint)
-        common.say(
-            f"train {scenario.name}/{args.variant}: done in {time.perf_counter() - start:.1f} s; "
-            f"checkpoint {job.out_dir / 'model_last.pt'}"
-        )
-        return 0
+    hint = common.command_line("train", args, run_dir, "--variant", args.variant)
+    start = time.perf_counter()
+    job = train_alone(
+        _request(scenario, run_dir, args, hint),
+        Variant.parse(args.variant),
+        config={"variant": args.variant},
+    )
+    common.say(
+        f"train {scenario.name}/{args.variant}: done in {time.perf_counter() - start:.1f} s; "
+        f"checkpoint {job.out_dir / 'model_last.pt'}"
+    )
+    return 0
 
 
 def finetune_command(args: argparse.Namespace) -> int:
-    """Run ``amuled finetune``."""
-    from amuled_ma.experiments.plans import check_inputs  # here: it imports torch
+    """Run ``amuled finetune``: a one-job request through the pipeline (checks, lock, record)."""
+    from amuled_ma.pipeline import train_alone
 
     scenario = common.load(args)
     run_dir = common.run_dir_of(args, scenario)
@@ -98,20 +100,31 @@ def finetune_command(args: argparse.Namespace) -> int:
     variant = Variant.finetune(args.feedback, label=scenario.feedback.name or None)
     if args.base is not None:
         base.update(base_dir=args.base.parent, base_variant=args.base.name)
-    # the preflight: every panel member can answer and the base exists, before any folder
-    check_inputs(
-        scenario, variant, Path(base.get("base_dir") or run_dir), base.get("base_variant", "base")
+    hint = common.command_line("finetune", args, run_dir, "--feedback", args.feedback)
+    if args.name is not None:
+        hint += " --name " + shlex.quote(args.name)
+    if args.base is not None:
+        hint += " --base " + shlex.quote(str(args.base))
+    # the preflight (every panel member can answer, the base exists) runs before any folder
+    job = train_alone(_request(scenario, run_dir, args, hint), variant, **base)
+    common.say(
+        f"finetune {scenario.name}/{args.feedback}: done in "
+        f"{time.perf_counter() - start:.1f} s; "
+        f"checkpoint {job.out_dir / 'model_last.pt'}"
     )
-    with run_folder_lock(run_dir):
-        hint = common.command_line("finetune", args, run_dir, "--feedback", args.feedback)
-        if args.name is not None:
-            hint += " --name " + shlex.quote(args.name)
-        if args.base is not None:
-            hint += " --base " + shlex.quote(str(args.base))
-        job = common.train_job(scenario, run_dir, variant, args, hint, **base)
-        common.say(
-            f"finetune {scenario.name}/{args.feedback}: done in "
-            f"{time.perf_counter() - start:.1f} s; "
-            f"checkpoint {job.out_dir / 'model_last.pt'}"
-        )
-        return 0
+    return 0
+
+
+def _request(scenario: Scenario, run_dir: Path, args: argparse.Namespace, hint: str) -> Any:
+    """The pipeline request of one job from the command line (seed, resume, force)."""
+    from amuled_ma.pipeline import PipelineRequest
+
+    return PipelineRequest(
+        scenario,
+        run_dir,
+        seed=args.seed,
+        resume=args.resume,
+        force=args.force,
+        progress=not args.no_progress,
+        hint=hint,
+    )

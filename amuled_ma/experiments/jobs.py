@@ -112,18 +112,6 @@ def check_order(jobs: Sequence[TrainJob]) -> None:
         known.add(job.name)
 
 
-def _train(
-    job: TrainJob,
-    *,
-    progress: bool,
-    hint: str,
-    on_iteration: Callable[[Any, int], None] | None = None,
-) -> JobResult:
-    from amuled_ma.experiments.plans import train_one_job  # here: it imports torch
-
-    return train_one_job(job, progress=progress, hint=hint, on_iteration=on_iteration)
-
-
 # ------------------------------------------------------------------ parent side
 def uses_ray(jobs: Sequence[TrainJob], workers: int, ray: RayTarget | None) -> bool:
     """Whether :func:`run_jobs` trains ``jobs`` on Ray (else in this process)."""
@@ -210,13 +198,6 @@ def run_jobs(
         actions = check_jobs(jobs, hint)
     start = time.perf_counter()
     on_ray = uses_ray(jobs, workers, ray)
-    if not population and not on_ray:
-        results = []
-        for job in jobs:
-            result = _train(job, progress=progress, hint=hint)
-            print(describe(result), flush=True)
-            results.append(result)
-        return JobsOutcome(results, time.perf_counter() - start, 1)
     skipped = {j.name: JobResult(j.variant, j.out_dir, skipped=True) for j in jobs
                if actions[j.name] == "skip"}  # fmt: skip
     for result in skipped.values():
@@ -270,11 +251,12 @@ def _train_groups(
 ) -> dict[str, JobResult]:
     """Train groups one after the other in this process; results by job name.
 
-    A group of one trains as a lone job; a larger one as populations. Jobs that failed
-    alone in a population stop the graph once their group has finished.
+    Every group trains as populations (a group of one: a population of one). Jobs that
+    failed alone in a population stop the graph once their group has finished.
 
     Raises:
-        AmuledError: A job failed (the others of its group finished first).
+        AmuledError: A job failed (the others of its group finished first; a lone job's
+            own error).
 
     """
     from amuled_ma.experiments.population_jobs import (  # here: torch
@@ -284,10 +266,6 @@ def _train_groups(
 
     results: dict[str, JobResult] = {}
     for group in groups:
-        if len(group) == 1:
-            results[group[0].name] = result = _train(group[0], progress=progress, hint=hint)
-            print(describe(result), flush=True)
-            continue
         outcome = train_population_jobs(group, progress=progress, hint=hint)
         for name, result in outcome.results.items():
             results[name] = result

@@ -14,7 +14,7 @@ import contextlib
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from amuled_ma.deliberation.build import Members, build_feedback, checked_members, run_store
 from amuled_ma.deliberation.plan import PanelPlan, plan_panel
@@ -33,6 +33,9 @@ from amuled_ma.experiments.run_folder import (
 from amuled_ma.experiments.training_settings import training_config
 from amuled_ma.scenario import Scenario
 from amuled_ma.variants import AGGREGATIONS, Variant
+
+if TYPE_CHECKING:
+    from amuled_ma.learn.population_groups import MemberSpec
 
 #: The variants of the paper's main figure, in order.
 MAIN_VARIANTS = (
@@ -163,8 +166,9 @@ class PreparedJob:
         action: ``"new"`` or ``"resume"``.
         feedback: A fine-tune's feedback (open: :meth:`close` it), else None.
         base_checkpoint: A fine-tune's base policy.
-        trainer_kwargs: The other arguments of :class:`~amuled_ma.learn.trainer.Trainer`
-            (``seed``, ``iterations``, ``resume_hint``, ``task_factory``).
+        trainer_kwargs: The other fields of its
+            :class:`~amuled_ma.learn.population_groups.MemberSpec` (``seed``,
+            ``iterations``, ``resume_hint``, ``task_factory``).
 
     """
 
@@ -304,7 +308,7 @@ def train_variant(
         out_dir: Folder of the variant (default ``run_dir/<variant folder>``).
         base_dir: Run directory holding the base checkpoint (default ``run_dir``).
         base_variant: Folder of the base checkpoint in ``base_dir`` (a seed replica's base).
-        on_iteration: Called as ``fn(trainer, iteration)`` after every iteration.
+        on_iteration: Called as ``fn(member, iteration)`` after every iteration.
         task_factory: Replaces the task constructor (tests).
         feedback_factory: ``variant -> Feedback``, replaces the feedback built from the
             checked plan (tests).
@@ -346,32 +350,30 @@ def train_prepared(
 ) -> JobResult:
     """Train a job :func:`prepare_job` prepared, alone; record it complete or failed.
 
+    A job alone is a population of one (:class:`~amuled_ma.learn.population.
+    PopulationTrainer`): the one training loop of every job.
+
     Args:
         scenario: The job's scenario.
         prepared: The prepared job (closed here).
         progress: Show a progress bar.
-        on_iteration: Called as ``fn(trainer, iteration)`` after every iteration.
+        on_iteration: Called as ``fn(member, iteration)`` after every iteration
+            (:class:`~amuled_ma.learn.population.PopulationMember`).
 
     Returns:
         The job result.
 
+    Raises:
+        MemberFailed: Its feedback failed or its gradient was not finite (its checkpoint
+            before that iteration is written).
+
     """
     # after the checks: torch and rsl-rl load here, so that a refused job answers fast
-    from amuled_ma.learn.trainer import Trainer
+    from amuled_ma.learn.population import PopulationTrainer
 
     try:
-        trainer = Trainer(
-            scenario,
-            prepared.out_dir,
-            variant=prepared.variant,
-            feedback=prepared.feedback,
-            base_checkpoint=prepared.base_checkpoint,
-            resume=prepared.action == "resume",
-            progress=progress,
-            on_iteration=on_iteration,
-            **prepared.trainer_kwargs,
-        )
-        outcome = trainer.train()
+        member = member_of(scenario, prepared, on_iteration)
+        outcome = PopulationTrainer([member], progress=progress).train()[0]
         return prepared.finished(outcome)
     except Exception:
         # not an interruption: the record says so
@@ -379,6 +381,26 @@ def train_prepared(
         raise
     finally:
         prepared.close()
+
+
+def member_of(
+    scenario: Scenario,
+    prepared: PreparedJob,
+    on_iteration: Callable[[Any, int], None] | None = None,
+) -> MemberSpec:
+    """The population member that trains a prepared job (its feedback, base, resume)."""
+    from amuled_ma.learn.population_groups import MemberSpec  # here: it imports torch
+
+    return MemberSpec(
+        scenario,
+        prepared.out_dir,
+        variant=prepared.variant,
+        feedback=prepared.feedback,
+        base_checkpoint=prepared.base_checkpoint,
+        resume=prepared.action == "resume",
+        on_iteration=on_iteration,
+        **prepared.trainer_kwargs,
+    )
 
 
 def prepare_planned_job(job: TrainJob, *, hint: str, store: Any = None) -> PreparedJob | JobResult:
@@ -422,7 +444,7 @@ def train_one_job(
         job: The job (its scenario, run and variant folders, seed, base, resume / force).
         progress: Show a progress bar.
         hint: The command that re-runs this job (for messages and Ctrl-C).
-        on_iteration: Called as ``fn(trainer, iteration)`` after every iteration.
+        on_iteration: Called as ``fn(member, iteration)`` after every iteration.
         store: The belief store of the fine-tune's panel (default: the run's file).
 
     Returns:

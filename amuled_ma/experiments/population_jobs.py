@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from amuled_ma.errors import AmuledError
-from amuled_ma.experiments.plans import PreparedJob, prepare_planned_job
+from amuled_ma.experiments.plans import PreparedJob, member_of, prepare_planned_job
 from amuled_ma.experiments.run_folder import JobResult, TrainJob
 from amuled_ma.learn.population_groups import (
     MemberSpec,
@@ -146,24 +146,15 @@ def train_population_jobs(
                 done[job.name] = ready
             else:
                 prepared.append((job, ready))
-        specs = [
-            MemberSpec(
-                job.scenario,
-                ready.out_dir,
-                variant=ready.variant,
-                feedback=ready.feedback,
-                base_checkpoint=ready.base_checkpoint,
-                resume=ready.action == "resume",
-                on_iteration=on_iteration,
-                **ready.trainer_kwargs,
-            )
-            for job, ready in prepared
-        ]
+        specs = [member_of(job.scenario, ready, on_iteration) for job, ready in prepared]
+        alone = len(jobs) == 1  # a lone job: its failure is the group's error
         for members in split_populations(specs, memory_budget_bytes()):
             try:
                 trained = train_population(
-                    [specs[i] for i in members], progress=progress, announce=announce
+                    [specs[i] for i in members], progress=progress, announce=announce and not alone
                 )
+                if alone and isinstance(trained[0], BaseException):
+                    raise trained[0]
             except Exception:
                 for i in members:
                     prepared[i][1].failed()

@@ -359,8 +359,6 @@ def train_group(
     """
     import torch
 
-    from amuled_ma.experiments.plans import train_one_job  # here: it imports torch
-
     if threading.current_thread() is threading.main_thread():
         # ray.cancel interrupts a task as a SIGINT would: Python's handler must be set
         signal.signal(signal.SIGINT, signal.default_int_handler)
@@ -392,22 +390,15 @@ def train_group(
         return RemoteStore(actor) if away and actor is not None else None
 
     jobs = [_marked(job, sweep, node, announce=inputs is not None) for job in group]
-    if len(jobs) == 1:
-        job = jobs[0]
-        result = train_one_job(
-            job, progress=False, hint="", on_iteration=_report(board), store=store_for(job)
-        )
-        results, failures = {job.name: result}, []
-    else:
-        outcome = train_population_jobs(
-            jobs,
-            progress=False,
-            hint="",
-            on_iteration=_report(board),
-            store_for=store_for,
-            announce=False,  # the driver prints each failure once, when the group returns
-        )
-        results, failures = outcome.results, outcome.failures
+    outcome = train_population_jobs(
+        jobs,
+        progress=False,
+        hint="",
+        on_iteration=_report(board),
+        store_for=store_for,
+        announce=False,  # the driver prints each failure once, when the group returns
+    )
+    results, failures = outcome.results, outcome.failures
     # with files shipped, every job returns its folder: a fine-tune on a node without the
     # driver's files needs its base's, wherever the base was trained
     files = (

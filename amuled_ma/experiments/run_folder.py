@@ -48,7 +48,7 @@ from amuled_ma.scenario import MORAL_AGENT, Scenario
 from amuled_ma.variants import Variant
 
 if TYPE_CHECKING:
-    from amuled_ma.learn.trainer import TrainOutcome
+    from amuled_ma.learn.population import TrainOutcome
 
 
 # -- folder names -------------------------------------------------------------------

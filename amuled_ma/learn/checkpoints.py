@@ -21,7 +21,7 @@ import contextlib
 import errno
 import os
 import tempfile
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +36,7 @@ class CheckpointWriteError(CheckpointError):
 #: Name of the newest checkpoint in a variant folder.
 LAST = "model_last.pt"
 
-#: Keys every checkpoint written by :class:`~amuled_ma.learn.trainer.Trainer` holds.
+#: Keys every job's checkpoint holds (:mod:`amuled_ma.learn.population` writes them).
 TRAINER_KEYS = ("actor_state_dict", "critic_state_dict", "optimizer_state_dict", "iter", "infos")
 
 
@@ -136,6 +136,54 @@ def write_checkpoint(path: str | Path, write: Callable[[str], Any]) -> Path:
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
     return path
+
+
+def write_checkpoints(writes: Sequence[tuple[Path, Callable[[str], Any]]]) -> list[Path]:
+    """Write several checkpoints as one set: every old file stays until all new ones are whole.
+
+    Each ``write(temp)`` writes its checkpoint to a hidden file in its folder, flushed to
+    disk; only when every one is whole are they renamed over their paths, one after the
+    other (atomic replaces of microseconds). A population's members thus keep checkpoints of
+    one iteration: a process killed or a disk filled while they are written leaves every
+    member at its previous checkpoint.
+
+    Args:
+        writes: ``(path, write)`` per checkpoint, as :func:`write_checkpoint` takes them.
+
+    Returns:
+        The paths, in order.
+
+    Raises:
+        CheckpointWriteError: A write failed (named as :func:`write_checkpoint` names it);
+            every temporary file is removed and every old checkpoint kept.
+
+    """
+    temps: list[tuple[str, Path]] = []
+    path = Path()
+    try:
+        for path, write in writes:
+            path = Path(path)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+            os.close(fd)
+            temps.append((tmp, path))
+            write(tmp)
+            with open(tmp, "rb+") as handle:
+                os.fsync(handle.fileno())
+        while temps:
+            tmp, path = temps[0]
+            os.replace(tmp, path)
+            temps.pop(0)
+    except (OSError, RuntimeError) as error:
+        raise CheckpointWriteError(_write_failure(path, error)) from error
+    finally:
+        for tmp, _ in temps:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+    done = [Path(path) for path, _ in writes]
+    for folder in dict.fromkeys(path.parent for path in done):
+        _fsync_folder(folder)
+    return done
 
 
 def _fsync_folder(folder: Path) -> None:

@@ -1,4 +1,4 @@
-"""Learning curves: one row per iteration, as ``Trainer`` and a population write them."""
+"""Learning curves: one row per iteration and job, as a population writes them."""
 
 from __future__ import annotations
 

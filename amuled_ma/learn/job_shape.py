@@ -1,9 +1,8 @@
 """The shape of one training job: copies, rollout, iterations, learning rate, rsl-rl config.
 
-The one derivation from a scenario and a variant, used by the lone
-:class:`~amuled_ma.learn.trainer.Trainer` and by the population learner, without building
-anything: the population learner groups jobs by what they share
-(:mod:`amuled_ma.learn.population_groups`) before any of them is built.
+The one derivation from a scenario and a variant, used where a job is built
+(:func:`~amuled_ma.learn.population_state.lone_start`) and, without building anything,
+where jobs are grouped by what they share (:mod:`amuled_ma.learn.population_groups`).
 """
 
 from __future__ import annotations

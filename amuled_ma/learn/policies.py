@@ -58,7 +58,7 @@ def load_policy(checkpoint: Path, scenario: Any) -> torch.nn.Module:
     """Load the actor of a checkpoint for evaluation.
 
     Args:
-        checkpoint: A checkpoint written by :class:`~amuled_ma.learn.trainer.Trainer`.
+        checkpoint: A job's checkpoint (:mod:`amuled_ma.learn.population`).
         scenario: The scenario it was trained on (network shape).
 
     Returns:

@@ -1,10 +1,11 @@
-"""Population training: P jobs of one shape trained together, each as it trains alone.
+"""Training: every job trains here, P jobs of one shape together, each as it trains alone.
 
+A job alone (``amuled train``, ``finetune``, ``--no-population``) is a population of one.
 A fine-tune with the authors' recipe (1 copy x 128 steps x 1,000 iterations, 8 epochs of
 4 mini-batches) is made of tiny tensors: its cost is Python and kernel launches, not
 arithmetic. :class:`PopulationTrainer` trains ``P`` such jobs (:class:`~amuled_ma.learn.
-population_groups.MemberSpec`, what :class:`~amuled_ma.learn.trainer.Trainer` takes) in
-one process, through rsl-rl's own runner (``runner.learn(1)`` per iteration):
+population_groups.MemberSpec`) in one process, through rsl-rl's own runner
+(``runner.learn(1)`` per iteration, the learning-rate schedule, curves, checkpoints):
 
 - one batched task of ``P x E`` copies (member ``p`` owns copies ``p*E .. p*E + E - 1``),
   in one deliberation MDP whose feedback asks each member's own feedback about its
@@ -14,14 +15,19 @@ one process, through rsl-rl's own runner (``runner.learn(1)`` per iteration):
   plugged into rsl-rl by ``class_name``, and :class:`~amuled_ma.learn.population_ppo.
   PopulationPPO`, which keeps each member's update its own (mini-batches, advantage
   normalisation, gradient clipping, loss scale) and each member's random stream its own.
+  A population of one on the CPU trains on the lone job's own classes (rsl-rl's
+  ``MLPModel``, :class:`~amuled_ma.learn.anchored_ppo.AnchoredPPO`, torch's global
+  random generator): the same numbers, with nothing spent on members.
 
-Each member **starts where its lone run starts**: its lone ``Trainer`` is built (its seed,
-its base policy or its checkpoint when resumed) and its weights, Adam state, torch random
-state and task copies are taken from it. Each member **ends as a lone job ends**: its
-``model_last.pt`` (same format: resume, evaluation, the report and the viewer read it as a
-lone job's), ``curve.json``, ``train_cfg.json`` (its lone config), ``feedback.json`` and
-TensorBoard events, in its own folder. ``tests/learn/test_population.py`` trains members
-together and alone from the same seeds and compares losses, parameters and curves.
+Each member **starts where its lone run starts** (:func:`~amuled_ma.learn.
+population_state.lone_start`: its seed, its base policy or its checkpoint when resumed).
+Each member **ends as a lone job ends**: its ``model_last.pt`` (resume, evaluation, the
+report and the viewer read it), ``curve.json``, ``train_cfg.json`` (its lone config),
+``feedback.json`` and TensorBoard events, in its own folder. A stop inside an iteration
+writes the state after the last whole one (:attr:`PopulationTrainer.snapshot`), so a
+resume is exact. ``tests/learn/test_population.py`` trains members together and with the
+lone loop kept as the oracle (``tests/learn/lone_trainer.py``) from the same seeds and
+compares losses, parameters and curves.
 """
 
 from __future__ import annotations
@@ -32,7 +38,8 @@ import json
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +51,8 @@ from rsl_rl.runners import OnPolicyRunner
 
 from amuled_ma.deliberation.mdp import BatchedDeliberation, MemberFeedback
 from amuled_ma.errors import AmuledError, MemberFailed, Terminated
-from amuled_ma.learn.checkpoints import LAST, CheckpointWriteError, write_checkpoint
+from amuled_ma.learn.anchored_ppo import AnchoredPPO
+from amuled_ma.learn.checkpoints import LAST, CheckpointWriteError, write_checkpoints
 from amuled_ma.learn.curves import curve_row, quiet
 from amuled_ma.learn.population_groups import MemberSpec, population_config, population_key
 from amuled_ma.learn.population_models import member_state, stack_states
@@ -58,12 +66,37 @@ from amuled_ma.learn.population_state import (
     stack_env_states,
     stack_optimizer_states,
 )
-from amuled_ma.learn.trainer import TrainOutcome
 from amuled_ma.learn.vecenv import DeliberationVecEnv
 from amuled_ma.tasks import make_task
 from amuled_ma.variants import Variant
 
-__all__ = ["PopulationMember", "PopulationTrainer", "train_population"]
+__all__ = ["LAST", "PopulationMember", "PopulationTrainer", "TrainOutcome", "train_population"]
+
+
+@dataclass
+class TrainOutcome:
+    """What training one job produced.
+
+    Attributes:
+        out_dir: The job's folder (checkpoints, curve, TensorBoard).
+        checkpoint: Path of the final checkpoint.
+        iterations: Iterations completed in total.
+        env_steps: Environment steps in total.
+        wall_s: Wall-clock seconds of this call.
+        completed: False when interrupted.
+        curve: Per-iteration rows (learning curve).
+        feedback: Feedback diagnostics (fine-tuning only).
+
+    """
+
+    out_dir: Path
+    checkpoint: Path
+    iterations: int
+    env_steps: int
+    wall_s: float
+    completed: bool = True
+    curve: list[dict] = field(default_factory=list)
+    feedback: dict | None = None
 
 
 class PopulationMember:
@@ -130,27 +163,40 @@ class PopulationTrainer:
         self.finetuning = Variant.parse(self.specs[0].variant).finetuning
         self.shape = self.specs[0].shape()
         self.copies = self.shape.num_envs
+        # one member on the CPU: its own lone runner (rsl-rl's classes: its numbers, its speed)
+        self.stacked = self.size > 1 or torch.device(device).type != "cpu"
         starts: list[MemberStart] = []
         for spec in self.specs:
-            start, trainer = lone_start(spec)
+            start, runner, env = lone_start(spec)
             starts.append(start)
             if len(starts) == 1:  # the template of a member's lone actor
-                self.template = copy.deepcopy(trainer.alg.get_policy()).cpu()
-            del trainer
+                self.template = copy.deepcopy(runner.alg.get_policy()).cpu()
         self.total_iterations = starts[0].total_iterations
         self.cfgs = [start.cfg for start in starts]
-        self.cfg = population_config(self.cfgs)
-        self.env = self._population_env(starts)
-        self.runner: OnPolicyRunner = quiet(
-            lambda: OnPolicyRunner(self.env, copy.deepcopy(self.cfg), log_dir=None, device=device)
-        )
-        self.alg: PopulationPPO = self.runner.alg
-        self._load_members(starts)
+        self.cfg = population_config(self.cfgs) if self.stacked else copy.deepcopy(self.cfgs[0])
+        if self.stacked:
+            self.env = self._population_env(starts)
+            self.runner: OnPolicyRunner = quiet(
+                lambda: OnPolicyRunner(
+                    self.env, copy.deepcopy(self.cfg), log_dir=None, device=device
+                )
+            )
+        else:  # the lone runner as built, its weights, state and random stream loaded
+            self.env, self.runner = env, runner
+            self.mdp, self.env_template = env.mdp, starts[0].env_state
+        self.alg: PopulationPPO | AnchoredPPO = self.runner.alg
+        if self.stacked:
+            self._load_members(starts)
+        self._anchor(starts)
         self.curves = [list(start.curve) for start in starts]
         self.wall_offsets = [start.wall_s for start in starts]
         # what a member's checkpoint repeats from its start (the tensors are loaded: dropped)
         self.sizes = [(start.obs_dim, start.num_actions) for start in starts]
         self.members = [PopulationMember(self, p) for p in range(self.size)]
+        #: The state after the last whole iteration (:meth:`population_state`, cloned),
+        #: what a stop writes; :attr:`before`: the one before it, what a failed member keeps.
+        self.snapshot: dict[str, Any] = self.population_state(copy_now=True)
+        self.before = self.snapshot
 
     def _population_env(self, starts: list[MemberStart]) -> DeliberationVecEnv:
         """One task of ``P x E`` copies, each member's copies in the state its run left them.
@@ -185,37 +231,81 @@ class PopulationTrainer:
     def _load_members(self, starts: list[MemberStart]) -> None:
         """Load every member's weights, Adam state, random stream, iteration and base."""
         alg = self.alg
-        alg.actor.load_state_dict(stack_states([start.actor for start in starts]))
-        alg.critic.load_state_dict(stack_states([start.critic for start in starts]))
+        alg.actor.load_state_dict(self._stack([start.actor for start in starts]))
+        alg.critic.load_state_dict(self._stack([start.critic for start in starts]))
         if starts[0].optimizer["state"]:
+            optimizers = [start.optimizer for start in starts]
             alg.optimizer.load_state_dict(
-                stack_optimizer_states([start.optimizer for start in starts])
+                stack_optimizer_states(optimizers) if self.stacked else optimizers[0]
             )
-        alg.streams.set_states([start.torch_rng for start in starts])
+        self._set_streams([start.torch_rng for start in starts])
         self.runner.current_learning_iteration = starts[0].iteration
+
+    def _anchor(self, starts: list[MemberStart]) -> None:
+        """A fine-tune's anchor: every member's base actor, frozen."""
         if self.finetuning:
-            base = copy.deepcopy(alg.get_policy())
-            base.load_state_dict(stack_states([start.base_actor or {} for start in starts]))
-            alg.anchor_to(base)
+            base = copy.deepcopy(self.alg.get_policy())
+            base.load_state_dict(self._stack([start.base_actor or {} for start in starts]))
+            self.alg.anchor_to(base)
+
+    # ------------------------------------------------- stacked, or one member alone
+    def _stack(self, states: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+        """The model state of the members' lone states (:func:`stack_states`)."""
+        return stack_states(states) if self.stacked else dict(states[0])
+
+    def _member(self, state: dict[str, torch.Tensor], member: int) -> dict[str, torch.Tensor]:
+        """Member ``member``'s lone model state (:func:`member_state`)."""
+        if self.stacked:
+            return member_state(state, member)
+        return {key: value.clone() for key, value in state.items()}
+
+    def _streams(self) -> list[torch.Tensor]:
+        """Each member's random state (a lone job draws from torch's global generator)."""
+        if self.stacked:
+            return self.alg.streams.get_states()  # type: ignore[union-attr]
+        return [torch.get_rng_state()]
+
+    def _set_streams(self, states: list[torch.Tensor]) -> None:
+        if self.stacked:
+            self.alg.streams.set_states(states)  # type: ignore[union-attr]
+        else:
+            torch.set_rng_state(states[0])
+
+    def _losses_and_stats(self) -> tuple[list[dict[str, float]], list[dict[str, float]]]:
+        """Each member's losses and feedback / anchor means of the last iteration."""
+        alg = self.alg
+        if isinstance(alg, PopulationPPO):
+            return alg.member_losses, alg.member_rollout_stats()
+        return [alg.last_losses], [alg.rollout_stats()]
+
+    def _failed_members(self) -> list[int]:
+        """Members whose weights the last update made not finite (their gradient)."""
+        alg = self.alg
+        if isinstance(alg, PopulationPPO):
+            return alg.failed_members()
+        # a NaN or inf anywhere makes its parameter's sum not finite: one reduction each
+        sums = torch.stack([p.sum() for p in (*alg.actor.parameters(), *alg.critic.parameters())])
+        return [] if bool(torch.isfinite(sums).all()) else [0]
 
     # ----------------------------------------------------------------- members
     def member_policy(self, member: int) -> torch.nn.Module:
         """Member ``member``'s actor now, as a lone rsl-rl ``MLPModel`` (CPU, eval mode)."""
         actor = copy.deepcopy(self.template)
-        actor.load_state_dict(member_state(self.alg.actor.state_dict(), member))
+        actor.load_state_dict(self._member(self.alg.actor.state_dict(), member))
         actor.eval()
         return actor
 
     def member_checkpoint(
         self, member: int, *, completed: bool, shared: dict[str, Any] | None = None
     ) -> dict[str, Any]:
-        """Member ``member``'s checkpoint as its lone ``Trainer`` writes it.
+        """Member ``member``'s checkpoint, in the format of a job alone.
 
         Args:
             member: Which member.
             completed: Whether its training finished.
-            shared: The population's states read once for several members
-                (:meth:`population_state`); default: read now.
+            shared: The population's state read once for several members
+                (:meth:`population_state`, or the :attr:`snapshot` of the last whole
+                iteration); default: read now.
 
         """
         spec, (obs_dim, num_actions) = self.specs[member], self.sizes[member]
@@ -225,15 +315,16 @@ class PopulationTrainer:
             env_state = member_env_state(env_state, self.env_template, member)
         else:
             env_state = None
+        iteration = state["iteration"]
         infos = {
             "variant": str(spec.variant),
             "scenario": spec.scenario.name,
-            "iteration": self.runner.current_learning_iteration,
+            "iteration": iteration,
             "total_iterations": self.total_iterations,
             "completed": completed,
-            "curve": self.curves[member],
-            "wall_s": self.wall_offsets[member],
-            "torch_rng": self.alg.streams.generators[member].get_state(),
+            "curve": self.curves[member][: state["rows"][member]],
+            "wall_s": state["walls"][member],
+            "torch_rng": state["rng"][member],
             "env_state": env_state,
             "train_cfg": self.cfgs[member],
             "base_checkpoint": str(spec.base_checkpoint) if spec.base_checkpoint else None,
@@ -241,36 +332,97 @@ class PopulationTrainer:
             "obs_dim": obs_dim,
         }
         return {
-            "actor_state_dict": _cpu(member_state(state["actor"], member)),
-            "critic_state_dict": _cpu(member_state(state["critic"], member)),
-            "optimizer_state_dict": member_optimizer_state(state["optimizer"], member),
-            "iter": self.runner.current_learning_iteration,
+            "actor_state_dict": _cpu(self._member(state["actor"], member)),
+            "critic_state_dict": _cpu(self._member(state["critic"], member)),
+            "optimizer_state_dict": member_optimizer_state(
+                state["optimizer"], member if self.stacked else None
+            ),
+            "iter": iteration,
             "infos": infos,
         }
 
-    def population_state(self) -> dict[str, Any]:
-        """The population's actor, critic, Adam and env states (for members' checkpoints)."""
-        return {
+    def population_state(self, *, copy_now: bool = False) -> dict[str, Any]:
+        """Everything a member's checkpoint holds, read once for all members.
+
+        The actor, critic, Adam and env states, the iteration, each member's random
+        stream, wall time and number of curve rows.
+
+        Args:
+            copy_now: Clone every tensor (a :attr:`snapshot` that training does not
+                change); else the live tensors, for a checkpoint written at once.
+
+        """
+        state = {
             "actor": self.alg.actor.state_dict(),
             "critic": self.alg.critic.state_dict(),
             "optimizer": self.alg.optimizer.state_dict(),
-            "env": self.env.state_dict(),
+            "env": self.env.state_dict(),  # cloned by the env
+            "iteration": self.runner.current_learning_iteration,
+            "rng": self._streams(),  # new tensors
+            "walls": list(self.wall_offsets),
+            "rows": [len(curve) for curve in self.curves],
         }
+        if copy_now:
+            for key in ("actor", "critic", "optimizer"):
+                state[key] = _cloned(state[key])
+        return state
 
     def save(self, member: int, *, completed: bool, shared: dict[str, Any] | None = None) -> Path:
         """Write member ``member``'s ``model_last.pt`` (atomically, as a lone job's)."""
-        state = self.member_checkpoint(member, completed=completed, shared=shared)
-        path = self.specs[member].out_dir / LAST
-        return write_checkpoint(path, lambda tmp: torch.save(state, tmp))
+        return self.save_members([member], completed=completed, shared=shared)[0]
 
-    def save_members(self, members: Sequence[int], *, completed: bool) -> list[Path]:
-        """Write the checkpoints of ``members``, the population's states read once."""
+    def save_members(
+        self,
+        members: Sequence[int],
+        *,
+        completed: bool,
+        shared: dict[str, Any] | None = None,
+    ) -> list[Path]:
+        """Write the checkpoints of ``members``, the population's state read once.
+
+        Args:
+            members: Which members.
+            completed: Whether their training finished.
+            shared: The state to write (default: :meth:`population_state` now).
+
+        """
+        return self.save_states([(p, shared) for p in members], completed=completed)
+
+    def save_states(
+        self, members: Sequence[tuple[int, dict[str, Any] | None]], *, completed: bool
+    ) -> list[Path]:
+        """Write members' checkpoints as one set, each from its state.
+
+        Every member's old checkpoint stays until all new ones are whole
+        (:func:`~amuled_ma.learn.checkpoints.write_checkpoints`): a stop or a full disk
+        while they are written leaves the members at one iteration.
+
+        Args:
+            members: ``(member, state)`` pairs; a state None is read now (once).
+            completed: Whether their training finished.
+
+        """
         if not members:
             return []
-        shared = self.population_state()
-        return [self.save(p, completed=completed, shared=shared) for p in members]
+        now: dict[str, Any] | None = None
+        writes = []
+        for p, state in members:
+            if state is None:
+                now = now or self.population_state()
+                state = now
+            checkpoint = self.member_checkpoint(p, completed=completed, shared=state)
+            writes.append((self.specs[p].out_dir / LAST, _saver(checkpoint)))
+        return write_checkpoints(writes)
 
     # ----------------------------------------------------------------- training
+    def iterate(self) -> None:
+        """One iteration of every member: rsl-rl's rollout and update (``runner.learn(1)``).
+
+        The runner leaves its iteration counter at the iteration it ran; :meth:`train`
+        advances it.
+        """
+        self.runner.learn(1)
+
     def train(self) -> list[TrainOutcome]:
         """Run (or continue) every member to its configured number of iterations.
 
@@ -295,7 +447,8 @@ class PopulationTrainer:
         bar = tqdm(
             total=self.total_iterations,
             initial=start_it,
-            desc=f"{self.specs[0].scenario.name}/population of {self.size}",
+            desc=f"{self.specs[0].scenario.name}/"
+            + (f"population of {self.size}" if self.size > 1 else str(self.specs[0].variant)),
             unit="it",
             disable=not self.progress,
             dynamic_ncols=True,
@@ -306,9 +459,10 @@ class PopulationTrainer:
         try:
             for it in range(start_it, self.total_iterations):
                 self.alg.set_learning_rate(self.shape.lr_at(it))
-                self.runner.learn(1)
+                self.iterate()
                 self.runner.current_learning_iteration = it + 1
                 self._record(it + 1, batch, walls, time.perf_counter() - t0, writers)
+                self.before, self.snapshot = self.snapshot, self.population_state(copy_now=True)
                 bar.update(1)
                 for p, spec in enumerate(self.specs):
                     if spec.on_iteration is not None:
@@ -319,7 +473,7 @@ class PopulationTrainer:
                     for p, cfg in enumerate(self.cfgs)
                     if (it + 1) % cfg["save_interval"] == 0 and it + 1 < self.total_iterations
                 ]
-                self.save_members(due, completed=False)
+                self.save_members(due, completed=False, shared=self.snapshot)
         except MemberFailed as failed:
             bar.close()
             raise self._member_failed(failed) from failed
@@ -340,8 +494,7 @@ class PopulationTrainer:
         self, it: int, batch: int, walls: list[float], elapsed: float, writers: list[Any]
     ) -> None:
         """Each member's curve row of iteration ``it`` (and its TensorBoard scalars)."""
-        losses = self.alg.member_losses
-        stats = self.alg.member_rollout_stats()
+        losses, stats = self._losses_and_stats()
         episodes = split_episodes(self.env.drain_episodes(), self.size, self.copies)
         for p in range(self.size):
             self.wall_offsets[p] = walls[p] + elapsed
@@ -377,26 +530,34 @@ class PopulationTrainer:
         """Raise :class:`MemberFailed` for the first member whose feedback or gradient failed."""
         feedback = self.mdp.feedback
         failures = dict(feedback.failures) if isinstance(feedback, MemberFeedback) else {}
-        for member in self.alg.failed_members():
+        for member in self._failed_members():
             failures.setdefault(member, "its gradient was not a finite number (NaN or inf)")
         if failures:
             member = min(failures)
             raise MemberFailed(member, failures[member])
 
     def _member_failed(self, failed: MemberFailed) -> MemberFailed:
-        """Write every other member's checkpoint; the failure, naming the member's folder.
+        """Write every member's checkpoint; the failure, naming the member's folder.
 
-        The failed member's checkpoint on disk (its last before the failure) is kept.
+        The failed member's is its state before the iteration that failed
+        (:attr:`before`: nothing of that iteration is written); the others' their state
+        now. A job alone (a population of one) prints its resume command.
         """
         member = failed.member
         others = [p for p in range(self.size) if p != member]
-        self.save_members(others, completed=False)
-        done = self.runner.current_learning_iteration
+        pairs = [(p, self.snapshot) for p in others] + [(member, self.before)]
+        self.save_states(pairs, completed=False)
+        spec = self.specs[member]
+        go_on = ""
+        if others:
+            go_on = f", and the {len(others)} other member(s) of its population go on without it"
+        elif spec.resume_hint:
+            print(f"\nresume with: {spec.resume_hint}", file=sys.stderr)
         return MemberFailed(
             member,
-            f"{self.specs[member].out_dir}: stopped at iteration {done}/"
-            f"{self.total_iterations}: {failed}; its last checkpoint is kept, and the "
-            f"{len(others)} other member(s) of its population go on without it",
+            f"{spec.out_dir}: stopped in iteration {self.snapshot['iteration']}/"
+            f"{self.total_iterations}: {failed}; its checkpoint of iteration "
+            f"{self.before['iteration']} is written{go_on}",
         )
 
     def _stopped(self, stop: BaseException) -> None:
@@ -414,19 +575,42 @@ class PopulationTrainer:
             if isinstance(stop, KeyboardInterrupt)
             else "stopped"
         )
-        self.save_members(range(self.size), completed=False)
+        # the state after the last whole iteration: a stop inside one (its rollout or
+        # update half done, its random numbers drawn) resumes as if it never began
+        self.save_members(range(self.size), completed=False, shared=self.snapshot)
+        first = self.specs[0].out_dir / LAST
+        written = (
+            f"checkpoints of {self.size} jobs written (first: {first})"
+            if self.size > 1
+            else f"checkpoint written to {first}"
+        )
         print(
-            f"\n{why} at iteration {self.runner.current_learning_iteration}/"
-            f"{self.total_iterations}; checkpoints of {self.size} jobs written "
-            f"(first: {self.specs[0].out_dir / LAST})",
+            f"\n{why} at iteration {self.snapshot['iteration']}/{self.total_iterations}; "
+            + written,
             file=sys.stderr,
         )
         for hint in hints:
             print(f"resume with: {hint}", file=sys.stderr)
 
 
+def _saver(checkpoint: dict[str, Any]) -> Callable[[str], None]:
+    """Writes ``checkpoint`` to the path it is given (:func:`torch.save`)."""
+    return lambda tmp: torch.save(checkpoint, tmp)
+
+
 def _cpu(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     return {key: value.cpu() for key, value in state.items()}
+
+
+def _cloned(value: Any) -> Any:
+    """``value`` with every tensor in its dicts and lists cloned (a state dict's copy)."""
+    if torch.is_tensor(value):
+        return value.clone()
+    if isinstance(value, dict):
+        return {key: _cloned(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_cloned(item) for item in value]
+    return value
 
 
 def train_population(
@@ -444,7 +628,7 @@ def train_population(
     checkpoints as a population without it (resumed as any run is).
 
     Returns:
-        Per job, in order: its :class:`~amuled_ma.learn.trainer.TrainOutcome`, or the
+        Per job, in order: its :class:`TrainOutcome`, or the
         :class:`~amuled_ma.errors.MemberFailed` that stopped it.
 
     """

@@ -1,6 +1,6 @@
 """Which training jobs train together as one population, and how many fit in memory.
 
-A job is what :class:`~amuled_ma.learn.trainer.Trainer` takes (:class:`MemberSpec`). Jobs
+A job is a :class:`MemberSpec` (its scenario, folder, variant, feedback, base). Jobs
 train as one population (:class:`~amuled_ma.learn.population.PopulationTrainer`) when
 their :func:`population_key` is equal: the same task (all of ``[task]`` but the seed), the
 same network and PPO settings, the same run shape (copies, rollout, epochs, mini-batches,
@@ -56,7 +56,7 @@ FEEDBACK_BYTES = 4 * 2**20
 
 @dataclass
 class MemberSpec:
-    """One job of a population: the arguments of :class:`~amuled_ma.learn.trainer.Trainer`.
+    """One training job, a member of a population (a job alone: a population of one).
 
     Attributes:
         scenario: The scenario.
@@ -107,7 +107,7 @@ class MemberSpec:
         return int((infos or {}).get("iteration", 0))
 
     def lone_kwargs(self) -> dict[str, Any]:
-        """The keyword arguments of the lone :class:`~amuled_ma.learn.trainer.Trainer`."""
+        """The job as keyword arguments (of the lone loop ``tests/learn`` checks against)."""
         return {
             "variant": self.variant,
             "feedback": self.feedback,
@@ -237,7 +237,7 @@ def split_populations(
     Returns:
         Populations as lists of indices into ``specs``, in the order of their first job;
         jobs keep their order inside a population. A job alone in its key is a
-        population of one (its ``Trainer`` run, in effect).
+        population of one.
 
     Raises:
         ValueError: ``memory_budget`` or ``max_size`` is below 1.

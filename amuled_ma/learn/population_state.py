@@ -1,6 +1,6 @@
 """A population's training state, to and from its members' lone states.
 
-A member's checkpoint is a lone job's (:class:`~amuled_ma.learn.trainer.Trainer`'s format:
+A member's checkpoint is a lone job's (the same format:
 its actor, critic and Adam state, its task copies' state, its random stream), so
 evaluation, the viewer, the report and a lone ``--resume`` read it unchanged. These
 functions stack members' lone states into the population's and slice a member's back out:
@@ -13,25 +13,39 @@ functions stack members' lone states into the population's and slice a member's 
   (the same shape in a member's state and in the population's) is kept once;
 - finished episodes (:func:`split_episodes`), each to its member with its own copy index.
 
-A member starts where its lone run starts (:func:`lone_start`: its lone ``Trainer`` built,
-its state read, :class:`MemberStart`).
+A member starts where its lone run starts (:func:`lone_start`: its lone runner built from
+its seed, its checkpoint or base loaded, :class:`MemberStart`).
 """
 
 from __future__ import annotations
 
+import copy
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
+os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
+
+from rsl_rl.runners import OnPolicyRunner
+
+from amuled_ma.deliberation.mdp import BatchedDeliberation
+from amuled_ma.errors import CheckpointError
+from amuled_ma.learn.anchored_ppo import AnchoredPPO
+from amuled_ma.learn.checkpoints import LAST, TRAINER_KEYS, read_checkpoint
+from amuled_ma.learn.curves import quiet
 from amuled_ma.learn.population_groups import MemberSpec
-from amuled_ma.learn.trainer import Trainer
+from amuled_ma.learn.vecenv import DeliberationVecEnv
+from amuled_ma.tasks import make_task
 
 
 @dataclass
 class MemberStart:
-    """Where a member starts: its lone :class:`Trainer`'s state after construction.
+    """Where a member starts: its lone job's state once built (:func:`lone_start`).
 
     Attributes:
         cfg: Its lone rsl-rl config (``train_cfg.json``).
@@ -65,32 +79,108 @@ class MemberStart:
     num_actions: int
 
 
-def lone_start(spec: MemberSpec) -> tuple[MemberStart, Trainer]:
-    """Build the member's lone :class:`Trainer` and read where it starts.
+def lone_start(spec: MemberSpec) -> tuple[MemberStart, OnPolicyRunner, DeliberationVecEnv]:
+    """Where the member starts: the state its job has when it is built alone.
+
+    The job's own rsl-rl runner (:class:`~amuled_ma.learn.anchored_ppo.AnchoredPPO` over
+    its ``E`` copies) is built after ``torch.manual_seed(seed)`` and
+    ``numpy.random.seed(seed)``, so its weights are drawn as a lone job draws them; then a
+    resumed job loads its ``model_last.pt`` (weights, Adam, iteration, curve, torch's
+    random state, task copies) and a new fine-tune its base checkpoint (the actor, and the
+    critic unless ``[finetune].reinit_critic``).
 
     Returns:
-        The start, and the trainer (its actor is the template of a member's policy).
+        The start, and the member's lone runner (at its start iteration, not yet anchored
+        to its base) and env: a job alone trains on them.
+
+    Raises:
+        ValueError: A fine-tune without feedback.
+        CheckpointError: The base checkpoint is missing, or a checkpoint does not fit the
+            scenario's networks or task copies.
 
     """
-    trainer = Trainer(spec.scenario, spec.out_dir, **spec.lone_kwargs())
-    alg = trainer.alg
+    torch.set_num_threads(1)
+    scenario, shape = spec.scenario, spec.shape()
+    base_checkpoint = Path(spec.base_checkpoint) if spec.base_checkpoint else None
+    if shape.finetuning:
+        if spec.feedback is None:
+            raise ValueError("a fine-tune needs feedback")
+        if base_checkpoint is None or not base_checkpoint.is_file():
+            raise CheckpointError(f"base checkpoint not found: {base_checkpoint}")
+    seed = spec.training_seed
+    torch.manual_seed(seed)
+    np.random.seed(seed % (2**32))
+    task = (spec.task_factory or make_task)(
+        scenario, shape.num_envs, shaping_coef=shape.shaping_coef, seed=seed
+    )
+    mdp = BatchedDeliberation(task, spec.feedback, task_weight=shape.task_weight, feedback_coef=1.0)
+    env = DeliberationVecEnv(mdp, cfg={"scenario": scenario.name, "variant": str(spec.variant)})
+    # rsl-rl mutates the dict it is given: hand it a copy
+    runner = quiet(
+        lambda: OnPolicyRunner(env, copy.deepcopy(shape.cfg), log_dir=None, device="cpu")
+    )
+    alg: AnchoredPPO = runner.alg
+    iteration, curve, wall_s = 0, [], 0.0
+    last = spec.out_dir / LAST
+    if spec.resume and last.is_file():
+        state = _load(alg, last, None, "checkpoint")
+        iteration = int(state["iter"])
+        infos = state.get("infos") or {}
+        curve = list(infos.get("curve", []))
+        wall_s = float(infos.get("wall_s", 0.0))
+        if "torch_rng" in infos:
+            torch.set_rng_state(infos["torch_rng"])
+        if infos.get("env_state") is not None:  # the episodes it stopped in (else: reset)
+            try:
+                env.load_state_dict(infos["env_state"])
+            except ValueError as error:
+                raise CheckpointError(
+                    f"{last}: {error}; it was saved by another task or number of copies "
+                    "(retrain with --force)"
+                ) from error
+    elif shape.finetuning:
+        assert base_checkpoint is not None
+        load_cfg = {"actor": True, "critic": not scenario.finetune.reinit_critic}
+        _load(alg, base_checkpoint, load_cfg, "base checkpoint")
+    base_actor = None
+    if shape.finetuning:
+        assert base_checkpoint is not None
+        base_actor = read_checkpoint(base_checkpoint)["actor_state_dict"]
+    runner.current_learning_iteration = iteration
     saved = alg.save()
     start = MemberStart(
-        cfg=trainer.cfg,
+        cfg=shape.cfg,
         actor=saved["actor_state_dict"],
         critic=saved["critic_state_dict"],
         optimizer=saved["optimizer_state_dict"],
-        base_actor=None if alg.base_actor is None else alg.base_actor.state_dict(),
-        iteration=trainer.runner.current_learning_iteration,
+        base_actor=base_actor,
+        iteration=iteration,
         torch_rng=torch.get_rng_state(),
-        env_state=trainer.env.state_dict(),
-        curve=list(trainer.curve),
-        wall_s=trainer.wall_offset,
-        total_iterations=trainer.total_iterations,
-        obs_dim=int(trainer.env.obs.shape[-1]),
-        num_actions=int(trainer.env.num_actions),
+        env_state=env.state_dict(),
+        curve=curve,
+        wall_s=wall_s,
+        total_iterations=shape.total_iterations,
+        obs_dim=int(env.obs.shape[-1]),
+        num_actions=int(env.num_actions),
     )
-    return start, trainer
+    return start, runner, env
+
+
+def _load(alg: AnchoredPPO, path: Path, load_cfg: dict | None, what: str) -> dict:
+    """Load a checkpoint (read weights-only) into rsl-rl's PPO through its public ``load``.
+
+    ``OnPolicyRunner.load`` unpickles with ``weights_only`` off; the file is read with
+    :func:`read_checkpoint` and handed to ``PPO.load``, the runner's own step.
+    """
+    state = read_checkpoint(path, need=TRAINER_KEYS)
+    try:
+        alg.load(state, load_cfg, True)
+    except (RuntimeError, KeyError, ValueError) as error:
+        raise CheckpointError(
+            f"cannot load {what} {path} into the scenario's networks ({error}); was it "
+            "trained with other [ppo] hidden dims or another task? Retrain it with --force"
+        ) from error
+    return state
 
 
 def stack_optimizer_states(states: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
@@ -127,12 +217,20 @@ def stack_optimizer_states(states: Sequence[Mapping[str, Any]]) -> dict[str, Any
     return {"state": stacked, "param_groups": first["param_groups"]}
 
 
-def member_optimizer_state(state: Mapping[str, Any], member: int) -> dict[str, Any]:
-    """Member ``member``'s lone optimiser state dict from the population's (on the CPU)."""
+def member_optimizer_state(state: Mapping[str, Any], member: int | None) -> dict[str, Any]:
+    """Member ``member``'s lone optimiser state dict from the population's (on the CPU).
+
+    ``member`` None: the state is a lone optimiser's already (a population of one on the
+    lone classes); a copy of it.
+    """
     out: dict[Any, dict[str, Any]] = {}
     for index, entry in state["state"].items():
         out[index] = {
-            name: (value.cpu().clone() if name == "step" else value[member].cpu().clone())
+            name: (
+                value.cpu().clone()
+                if name == "step" or member is None
+                else value[member].cpu().clone()
+            )
             for name, value in entry.items()
         }
     return {"state": out, "param_groups": [dict(g) for g in state["param_groups"]]}

@@ -37,9 +37,9 @@ def test_a_distilled_fine_tune_asks_at_most_its_budget_and_reports_it(
         "--set", "feedback.distill.refit_every=4",
     ]  # fmt: skip
 
-    from amuled_ma.learn import trainer as trainer_mod
+    from amuled_ma.learn import population as population_mod
 
-    original = trainer_mod.Trainer._iterate
+    original = population_mod.PopulationTrainer.iterate
     calls = {"n": 0}
 
     def stop_at_iteration_5(self):
@@ -48,12 +48,12 @@ def test_a_distilled_fine_tune_asks_at_most_its_budget_and_reports_it(
             raise KeyboardInterrupt
         return original(self)
 
-    monkeypatch.setattr(trainer_mod.Trainer, "_iterate", stop_at_iteration_5)
+    monkeypatch.setattr(population_mod.PopulationTrainer, "iterate", stop_at_iteration_5)
     assert main(finetune) == 130
     folder = run_dir / "finetune-amuled"
     spent = json.loads((folder / "distill.json").read_text())["ledger"]
     assert spent["asked"]  # the budget spent before the interruption is on disk
-    monkeypatch.setattr(trainer_mod.Trainer, "_iterate", original)
+    monkeypatch.setattr(population_mod.PopulationTrainer, "iterate", original)
 
     assert main([*finetune, "--resume"]) == 0
     out = capsys.readouterr().out

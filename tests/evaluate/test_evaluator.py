@@ -10,8 +10,15 @@ from amuled_ma.cli import main
 from amuled_ma.evaluate.evaluator import evaluate_run, run_episodes
 from amuled_ma.evaluate.report import write_report
 from amuled_ma.learn.policies import load_policy
-from amuled_ma.learn.trainer import Trainer
+from amuled_ma.learn.population import train_population
+from amuled_ma.learn.population_groups import MemberSpec
 from amuled_ma.scenario import scenario_from_dict
+
+
+def train(sc, out_dir, variant: str = "base"):
+    """Train one job alone (a population of one) on the fake grid task."""
+    [outcome] = train_population([MemberSpec(sc, out_dir, variant, task_factory=grid_factory)])
+    return outcome
 
 
 def scenario():
@@ -27,7 +34,7 @@ def scenario():
 
 def test_run_episodes_one_record_per_copy(tmp_path):
     sc = scenario()
-    out = Trainer(sc, tmp_path / "base", task_factory=grid_factory).train()
+    out = train(sc, tmp_path / "base")
     actor = load_policy(out.checkpoint, sc)
     records, traj = run_episodes(actor, sc, episodes=5, mode="sampled", task_factory=grid_factory)
     assert len(records) == 5
@@ -40,8 +47,8 @@ def test_run_episodes_one_record_per_copy(tmp_path):
 
 def test_evaluate_run_writes_results_and_report(tmp_path):
     sc = scenario()
-    Trainer(sc, tmp_path / "base", task_factory=grid_factory).train()
-    Trainer(sc, tmp_path / "shaped", variant="shaped", task_factory=grid_factory).train()
+    train(sc, tmp_path / "base")
+    train(sc, tmp_path / "shaped", "shaped")
     results = evaluate_run(tmp_path, sc, task_factory=grid_factory)
     assert set(results.variants) == {"base", "shaped"}
     stats = results.variants["base"].greedy.metrics["steps_to_milk"]

@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 import torch
+from lone_trainer import Trainer
 from rsl_rl.algorithms import PPO
 
 from amuled_ma.deliberation.feedback_base import CallableFeedback
 from amuled_ma.learn.anchored_ppo import AnchoredPPO
 from amuled_ma.learn.policies import action_log_probs
-from amuled_ma.learn.trainer import Trainer
 
 LEFT = [0.0, 0.0, 1.0, 0.0]
 

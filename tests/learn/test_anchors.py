@@ -75,9 +75,9 @@ def test_equation_anchor_is_the_log_ratio():
 
 def test_authors_recipe_fine_tune_trains_and_logs_its_anchor(tiny_scenario, factory, tmp_path):
     import numpy as np
+    from lone_trainer import Trainer
 
     from amuled_ma.deliberation.feedback_base import CallableFeedback
-    from amuled_ma.learn.trainer import Trainer
 
     base = Trainer(tiny_scenario, tmp_path / "base", task_factory=factory).train()
     scenario = tiny_scenario.replace("finetune", recipe="authors", lambda_kl=1.0)

@@ -13,13 +13,13 @@ import math
 import numpy as np
 import pytest
 import torch
+from lone_trainer import Trainer
 from rsl_rl.storage import RolloutStorage
 from tensordict import TensorDict
 
 from amuled_ma.deliberation.feedback_base import CallableFeedback
 from amuled_ma.learn.config import rsl_rl_config
 from amuled_ma.learn.ppo_options import EpochShuffledStorage, clip_jointly
-from amuled_ma.learn.trainer import Trainer
 from amuled_ma.scenario import PPOConfig
 from amuled_ma.tasks.findmilk import FindMilk
 

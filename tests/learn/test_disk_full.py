@@ -74,12 +74,12 @@ def test_write_checkpoint_on_a_full_disk_keeps_the_old_file(small_disk: Path) ->
 def test_disk_full_during_a_finetune_keeps_the_last_checkpoint(
     small_disk: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from amuled_ma.learn import trainer as trainer_mod
+    from amuled_ma.learn import population as population_mod
 
     run_dir = small_disk / "run"
     tiny = [*tiny_cli.TINY, "--set", "finetune.save_interval=1", *tiny_cli.RULES]
     assert main(["train", "findmilk", "--variant", "base", "--run-dir", str(run_dir), *tiny]) == 0
-    original = trainer_mod.Trainer._iterate
+    original = population_mod.PopulationTrainer.iterate
     calls = {"n": 0, "filler": None}
 
     def disk_fills_in_the_second_iteration(self):
@@ -88,7 +88,9 @@ def test_disk_full_during_a_finetune_keeps_the_last_checkpoint(
             calls["filler"] = fill(small_disk)
         return original(self)
 
-    monkeypatch.setattr(trainer_mod.Trainer, "_iterate", disk_fills_in_the_second_iteration)
+    monkeypatch.setattr(
+        population_mod.PopulationTrainer, "iterate", disk_fills_in_the_second_iteration
+    )
     finetune = ["finetune", "findmilk", "--feedback", "human", "--run-dir", str(run_dir), *tiny]
     capsys.readouterr()
     assert main(finetune) == 1
@@ -106,6 +108,6 @@ def test_disk_full_during_a_finetune_keeps_the_last_checkpoint(
     assert leftovers(run_dir) == []
 
     calls["filler"].unlink()
-    monkeypatch.setattr(trainer_mod.Trainer, "_iterate", original)
+    monkeypatch.setattr(population_mod.PopulationTrainer, "iterate", original)
     assert main([*finetune, "--resume"]) == 0
     assert checkpoint_state(checkpoint)["completed"] is True

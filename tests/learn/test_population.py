@@ -14,13 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from lone_trainer import Trainer
 
 from amuled_ma.deliberation.feedback_base import CallableFeedback
 from amuled_ma.errors import MemberFailed
 from amuled_ma.learn.checkpoints import LAST, TRAINER_KEYS, read_checkpoint
 from amuled_ma.learn.population import PopulationTrainer, train_population
 from amuled_ma.learn.population_groups import MemberSpec
-from amuled_ma.learn.trainer import Trainer
 from amuled_ma.scenario import scenario_from_dict
 
 #: Float tolerance: the members' float32 networks after a few Adam steps.
@@ -280,8 +280,8 @@ def test_a_member_whose_feedback_fails_stops_alone(tmp_path, base, capsys) -> No
     failed = results[1]
     assert isinstance(failed, MemberFailed)
     assert str(jobs[1].out_dir) in str(failed) and "not a finite number" in str(failed)
-    assert "iteration 3/3" in str(failed)
-    # its last checkpoint (iteration 2, save_interval 2) is kept, untouched by the failure
+    assert "in iteration 3/3" in str(failed) and "checkpoint of iteration 2" in str(failed)
+    # its checkpoint is its state before the iteration that failed
     kept = read_checkpoint(jobs[1].out_dir / LAST)
     assert kept["infos"]["iteration"] == 2 and not kept["infos"]["completed"]
     assert all(torch.isfinite(v).all() for v in kept["actor_state_dict"].values())
@@ -314,12 +314,29 @@ def test_a_member_whose_gradient_is_nan_does_not_reach_the_others(tmp_path, base
     with pytest.raises(MemberFailed, match="gradient was not a finite number") as stop:
         poisoned.train()
     assert stop.value.member == 1 and str(jobs[1].out_dir) in str(stop.value)
-    assert not (jobs[1].out_dir / LAST).exists()  # nothing of its NaN update is written
+    # nothing of its NaN update is written: its checkpoint is its start, the base's actor
+    kept = read_checkpoint(jobs[1].out_dir / LAST)
+    assert kept["infos"]["iteration"] == 0
+    assert_states_close(read_checkpoint(base)["actor_state_dict"], kept["actor_state_dict"])
     for k in (0, 2):
         got = read_checkpoint(jobs[k].out_dir / LAST)["actor_state_dict"]
         want = reference.member_checkpoint(k, completed=False)["actor_state_dict"]
         assert all(torch.isfinite(v).all() for v in got.values())
         assert_states_close(want, got)
+
+
+def test_a_job_alone_whose_weights_turn_nan_stops_with_its_start_kept(tmp_path, base) -> None:
+    """A population of one (the lone classes): a NaN update is caught after the iteration."""
+    [job] = specs(tmp_path, base, members=MEMBERS[:1])
+    job.iterations = 1
+    alone = PopulationTrainer([job])
+    with torch.no_grad():
+        list(alone.alg.critic.parameters())[-1].fill_(float("nan"))
+    with pytest.raises(MemberFailed, match="gradient was not a finite number"):
+        alone.train()
+    kept = read_checkpoint(job.out_dir / LAST)
+    assert kept["infos"]["iteration"] == 0
+    assert_states_close(read_checkpoint(base)["actor_state_dict"], kept["actor_state_dict"])
 
 
 def test_five_seeds_alone_and_together_agree_within_seed_noise(tmp_path, base) -> None:
@@ -341,3 +358,23 @@ def test_five_seeds_alone_and_together_agree_within_seed_noise(tmp_path, base) -
         assert np.std(a) > 0, key  # the seeds really differ: the test can tell
         result = stats.ttest_ind(a, b, equal_var=False)
         assert result.pvalue > 0.05, (key, a, b, result)
+
+
+@pytest.mark.parametrize("kind", ["base", "finetune"])
+def test_a_population_of_one_is_the_lone_run_bit_for_bit(tmp_path, base, kind) -> None:
+    """One job alone (``amuled train`` / ``finetune``) trains as the lone ``Trainer`` did."""
+    if kind == "base":
+        job = MemberSpec(tiny(), tmp_path / "pop" / "b", seed=4, iterations=3)
+    else:
+        job = specs(tmp_path / "pop", base, members=MEMBERS[1:2])[0]
+    [together] = train_population([job])
+    job.out_dir = tmp_path / "lone" / job.out_dir.name
+    alone = lone(job)
+    strip = [{k: v for k, v in row.items() if k != "wall_s"} for row in alone.curve]
+    assert [{k: v for k, v in row.items() if k != "wall_s"} for row in together.curve] == strip
+    sa, sb = read_checkpoint(alone.checkpoint), read_checkpoint(together.checkpoint)
+    for key in ("actor_state_dict", "critic_state_dict"):
+        for name, value in sa[key].items():
+            assert torch.equal(sb[key][name], value), (key, name)
+    assert torch.equal(sb["infos"]["torch_rng"], sa["infos"]["torch_rng"])
+    assert_env_states_equal(sa["infos"]["env_state"], sb["infos"]["env_state"])

@@ -1,3 +1,5 @@
+"""One job alone (a population of one): files, resume, a fine-tune's start and effect."""
+
 import json
 
 import numpy as np
@@ -8,11 +10,17 @@ from amuled_ma.deliberation.feedback_base import CallableFeedback
 from amuled_ma.errors import CheckpointError
 from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.policies import action_log_probs, load_policy
-from amuled_ma.learn.trainer import Trainer
+from amuled_ma.learn.population import PopulationTrainer
+from amuled_ma.learn.population_groups import MemberSpec
+
+
+def Trainer(scenario, out_dir, **job) -> PopulationTrainer:  # noqa: N802 - the job's trainer
+    """A job alone, as ``amuled train`` / ``finetune`` trains it."""
+    return PopulationTrainer([MemberSpec(scenario, out_dir, **job)])
 
 
 def test_base_training_writes_checkpoint_curve_and_config(tmp_path, tiny_scenario, factory):
-    out = Trainer(tiny_scenario, tmp_path / "base", task_factory=factory).train()
+    [out] = Trainer(tiny_scenario, tmp_path / "base", task_factory=factory).train()
     assert out.completed and out.iterations == 6 and out.env_steps == 6 * 128
     assert (tmp_path / "base" / LAST).is_file()
     curve = json.loads((tmp_path / "base" / "curve.json").read_text())
@@ -46,7 +54,7 @@ def test_resume_continues_from_checkpoint(tmp_path, tiny_scenario, factory):
     assert state["iter"] == 3 and not state["infos"]["completed"]
     resumed = Trainer(tiny_scenario, tmp_path / "b", task_factory=factory, resume=True)
     assert resumed.runner.current_learning_iteration == 3
-    out = resumed.train()
+    [out] = resumed.train()
     assert out.iterations == 6 and len(out.curve) == 6
 
 
@@ -64,7 +72,7 @@ def test_finetune_needs_base_checkpoint(tmp_path, tiny_scenario, factory):
 
 
 def test_finetune_moves_policy_towards_feedback_and_anchors(tmp_path, tiny_scenario, factory):
-    base = Trainer(tiny_scenario, tmp_path / "base", task_factory=factory).train()
+    [base] = Trainer(tiny_scenario, tmp_path / "base", task_factory=factory).train()
 
     def always_left(obs):
         out = np.zeros((len(obs), 4))
@@ -85,9 +93,9 @@ def test_finetune_moves_policy_towards_feedback_and_anchors(tmp_path, tiny_scena
     base_actor = load_policy(base.checkpoint, scenario)
     obs = torch.tensor([[0.0, 0.0, 4.0, 4.0], [2.0, 2.0, 4.0, 4.0]])
     torch.testing.assert_close(
-        action_log_probs(trainer.policy(), obs), action_log_probs(base_actor, obs)
+        action_log_probs(trainer.member_policy(0), obs), action_log_probs(base_actor, obs)
     )
-    out = trainer.train()
+    [out] = trainer.train()
     assert out.feedback["steps"] == 15 * 2 * 16
     assert out.feedback["unique_states"] <= 25
     p_left = action_log_probs(load_policy(out.checkpoint, scenario), obs).exp()[:, 2]

@@ -18,11 +18,11 @@ TINY = [*tiny_cli.TINY, "--set", "finetune.save_interval=100", *tiny_cli.RULES]
 def test_backend_down_mid_finetune_writes_checkpoint_and_resume_command(
     tmp_path: Path, capsys, monkeypatch
 ) -> None:
-    from amuled_ma.learn import trainer as trainer_mod
+    from amuled_ma.learn import population as population_mod
 
     run_dir = tmp_path / "run"
     assert main(["train", "findmilk", "--variant", "base", "--run-dir", str(run_dir), *TINY]) == 0
-    original = trainer_mod.Trainer._iterate
+    original = population_mod.PopulationTrainer.iterate
     calls = {"n": 0}
 
     def server_dies_in_second_iteration(self):
@@ -31,7 +31,9 @@ def test_backend_down_mid_finetune_writes_checkpoint_and_resume_command(
             raise BackendUnavailable("no Ollama server answers at http://127.0.0.1:9 (test)")
         return original(self)
 
-    monkeypatch.setattr(trainer_mod.Trainer, "_iterate", server_dies_in_second_iteration)
+    monkeypatch.setattr(
+        population_mod.PopulationTrainer, "iterate", server_dies_in_second_iteration
+    )
     finetune = ["finetune", "findmilk", "--feedback", "human", "--run-dir", str(run_dir), *TINY]
     assert main(finetune) == 1
     err = capsys.readouterr().err
@@ -41,7 +43,7 @@ def test_backend_down_mid_finetune_writes_checkpoint_and_resume_command(
     assert "resume with: amuled finetune findmilk" in err and "--resume" in err
     assert "no Ollama server answers" in err
 
-    monkeypatch.setattr(trainer_mod.Trainer, "_iterate", original)
+    monkeypatch.setattr(population_mod.PopulationTrainer, "iterate", original)
     assert main([*finetune, "--resume"]) == 0
     state = checkpoint_state(run_dir / "finetune-human" / "model_last.pt")
     assert state["completed"] is True and calls["n"] == 2  # resumed with the original rollout
@@ -73,7 +75,7 @@ def test_a_run_stopped_between_iterations_and_resumed_equals_the_run_that_never_
 
     import torch
 
-    from amuled_ma.learn import trainer as trainer_mod
+    from amuled_ma.learn import population as population_mod
 
     run_dir = tmp_path / "run"
     tiny = [*tiny_cli.TINY, "--set", "finetune.iterations=6", *tiny_cli.RULES]
@@ -88,19 +90,19 @@ def test_a_run_stopped_between_iterations_and_resumed_equals_the_run_that_never_
 
     assert finetune("straight") == 0
 
-    def stop_after_third(trainer, iteration):
+    def stop_after_third(member, iteration):
         if iteration == 3:
             raise KeyboardInterrupt
 
-    original = trainer_mod.Trainer.__init__
+    original = population_mod.PopulationTrainer.__init__
 
     def with_stop(self, *args, **kwargs):
         original(self, *args, **kwargs)
         if self.runner.current_learning_iteration == 0:  # the first attempt, not the resume
-            self.on_iteration = stop_after_third
+            self.specs[0].on_iteration = stop_after_third
 
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(trainer_mod.Trainer, "__init__", with_stop)
+        patch.setattr(population_mod.PopulationTrainer, "__init__", with_stop)
         assert finetune("stopped") == 130  # the command line's Ctrl-C exit
         stopped = tmp_path / "stopped" / "finetune-amuled" / "model_last.pt"
         assert checkpoint_state(stopped)["iteration"] == 3

@@ -1,4 +1,11 @@
-"""Training jobs: base PPO training and fine-tuning on fused feedback, on rsl-rl.
+"""The lone trainer: one job on rsl-rl's own classes, the oracle populations are checked against.
+
+The package trains every job as a population (:mod:`amuled_ma.learn.population`; one job
+is a population of one). This is the straightforward loop a population must reproduce
+member by member: ``tests/learn/test_population*.py`` train the same jobs here and there
+from the same seeds and compare curves, weights, random states and checkpoints.
+
+Base PPO training and fine-tuning on fused feedback, on rsl-rl.
 
 rsl-rl is used through its public API and extension points only. Its
 :class:`~rsl_rl.runners.OnPolicyRunner` builds the actor, critic, rollout storage and the
@@ -33,7 +40,6 @@ import os
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -57,38 +63,13 @@ from amuled_ma.learn.checkpoints import (
 )
 from amuled_ma.learn.curves import curve_row, quiet
 from amuled_ma.learn.job_shape import job_shape
+from amuled_ma.learn.population import TrainOutcome
 from amuled_ma.learn.vecenv import DeliberationVecEnv
 from amuled_ma.scenario import Scenario
 from amuled_ma.tasks import make_task
 from amuled_ma.variants import Variant
 
 __all__ = ["LAST", "TrainOutcome", "Trainer"]
-
-
-@dataclass
-class TrainOutcome:
-    """What a training call produced.
-
-    Attributes:
-        out_dir: The variant's folder (checkpoints, curve, TensorBoard).
-        checkpoint: Path of the final (or interrupt) checkpoint.
-        iterations: Iterations completed in total.
-        env_steps: Environment steps in total.
-        wall_s: Wall-clock seconds of this call.
-        completed: False when interrupted.
-        curve: Per-iteration rows (learning curve).
-        feedback: Feedback diagnostics (fine-tuning only).
-
-    """
-
-    out_dir: Path
-    checkpoint: Path
-    iterations: int
-    env_steps: int
-    wall_s: float
-    completed: bool = True
-    curve: list[dict] = field(default_factory=list)
-    feedback: dict | None = None
 
 
 class Trainer:
