@@ -28,6 +28,7 @@ from amuled_ma.errors import ScenarioError
 from amuled_ma.scenario.agents import AgentSpec, check_agent_tables, check_ollama_table
 from amuled_ma.scenario.memory import MAX_ENV_STEPS, MAX_SEED, check_budget, check_finite
 from amuled_ma.scenario.messages import BUILT_IN_CODE, SECTIONS, scenario_error
+from amuled_ma.scenario.panel_checks import check_clusters, check_fusion
 from amuled_ma.scenario.paths import check_path_component
 from amuled_ma.scenario.ranges import found_name as _found_name
 from amuled_ma.scenario.task_options import check_task_options
@@ -512,6 +513,16 @@ class FeedbackConfig(_Section):
                     'too; on the command line: --set feedback.host="")'
                 )
         return value
+
+    @field_validator("clusters")
+    @classmethod
+    def _clusters_are_a_panel(cls, value: list[str], info: ValidationInfo) -> list[str]:
+        return check_clusters(value, _source(info))
+
+    @field_validator("fusion")
+    @classmethod
+    def _fusion_is_a_rule(cls, value: str, info: ValidationInfo) -> str:
+        return check_fusion(value, info.data.get("clusters"), _source(info))
 
     @field_validator("weights")
     @classmethod
