@@ -74,8 +74,28 @@ def test_a_single_rule_within_the_panel_is_accepted():
         assert scenario.replace("feedback", fusion=rule).feedback.fusion == rule
 
 
-def test_the_scenarios_rules_are_the_shipped_fusion_rules():
+def test_the_scenarios_rules_are_the_registered_fusion_rules():
     assert dict(FUSION_RULES) == {name: spec.takes_param for name, spec in RULES.items()}
+    assert {"bjs-dst", "mean", "max", "vote", "single"} <= set(FUSION_RULES)
+
+
+def test_a_rule_registered_in_code_may_be_named_until_it_is_removed():
+    from amuled_ma.fusion import register_rule, unregister_rule
+    from amuled_ma.scenario import load_scenario
+
+    scenario = load_scenario("findmilk")
+
+    @register_rule("geometric")
+    def geometric(beliefs, *, weights, param, diagnostics):
+        """Normalised geometric mean."""
+        return beliefs.mean(axis=-2)
+
+    try:
+        assert scenario.replace("feedback", fusion="geometric").feedback.fusion == "geometric"
+    finally:
+        unregister_rule("geometric")
+    with pytest.raises(ScenarioError, match="found 'geometric'"):
+        scenario.replace("feedback", fusion="geometric")
 
 
 def test_names_of_invisible_characters_and_small_capitals():

@@ -18,9 +18,9 @@ from amuled_ma.errors import ScenarioError
 from amuled_ma.scenario.names import identity_key, odd_character
 
 #: The fusion rules a scenario may name, and whether each takes a parameter after ``:``:
-#: the rules :mod:`amuled_ma.fusion` ships (``tests/test_scenario_panel_checks.py`` holds
-#: the two equal). A rule registered in code is named in a scenario once
-#: :func:`allow_fusion_rule` has added it here.
+#: the rules :mod:`amuled_ma.fusion` ships, and every rule registered since
+#: (:func:`amuled_ma.fusion.register_rule` calls :func:`allow_fusion_rule`;
+#: ``tests/test_scenario_panel_checks.py`` holds the two equal).
 _FUSION_RULES: dict[str, bool] = {
     "bjs-dst": False,
     "mean": False,
@@ -29,8 +29,6 @@ _FUSION_RULES: dict[str, bool] = {
     "single": True,
 }
 FUSION_RULES: Mapping[str, bool] = MappingProxyType(_FUSION_RULES)
-#: A rule's name: what :func:`amuled_ma.fusion.register_rule` is given.
-_RULE_NAME = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 #: Longest cluster name [characters] (a file name of the cluster folder).
 MAX_CLUSTER_NAME = 100
 
@@ -38,6 +36,11 @@ MAX_CLUSTER_NAME = 100
 def allow_fusion_rule(name: str, takes_param: bool = False) -> None:
     """Let scenarios name a fusion rule registered in code (``name`` or ``name:<param>``)."""
     _FUSION_RULES[name] = takes_param
+
+
+def forget_fusion_rule(name: str) -> None:
+    """Stop scenarios naming a rule no longer registered (none of that name: nothing)."""
+    _FUSION_RULES.pop(name, None)
 
 
 def _choices() -> str:
@@ -105,7 +108,7 @@ def check_fusion(value: str, clusters: Sequence[str] | None, source: str) -> str
     head = f"{source}: key [feedback].fusion"
     name, sep, param = value.partition(":")
     takes = FUSION_RULES.get(name)
-    if takes is None or not _RULE_NAME.fullmatch(name):
+    if takes is None:
         raise ScenarioError(
             f"{head} expects a fusion rule, found {value[:60]!r}"
             f"{_close(name, list(FUSION_RULES))}; "
