@@ -142,3 +142,30 @@ def test_explain_help(capsys):
         main(["explain", "--help"])
     assert info.value.code == 0
     assert "--state-from" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (["--obs", "nan,3,7,7,2,2,1,1"], "--obs: entry 1 (x) is 'nan', expected a finite number"),
+        (["--obs", "2,1e400,7,7,2,2,1,1"], "entry 2 (y) is '1e400', expected a finite number"),
+        (["--obs", "2,3,7,7,2,2,1,-1e39"], "is '-1e39', expected a finite number"),  # float32
+        (
+            ["--obs", "2,3,7,7,2,2,1,1", "--prompt-var", "num_crying=1e400"],
+            "--prompt-var num_crying: expected a finite number, found inf",
+        ),
+        (
+            ["--obs", "2,3,7,7,2,2,1,1", "--prompt-var", "num_crying=nan"],
+            "--prompt-var num_crying: expected a finite number, found nan",
+        ),
+        (
+            ["--obs", "2,3,7,7,2,2,1,1", "--prompt-var", f"num_crying={10**30}"],
+            "expected a number within +-9,007,199,254,740,992 (2^53), found 1e+30",
+        ),
+    ],
+)
+def test_explain_refuses_numbers_that_are_not_finite_with_one_line(capsys, argv, expected):
+    assert main(["explain", "findmilk", *argv]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("amuled: error: ")
+    assert expected in err

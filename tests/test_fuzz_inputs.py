@@ -259,3 +259,157 @@ def test_generated_command_lines(tmp_path_factory, command, extra, jsonl: bytes)
     assert "Traceback" not in text or "--debug" in argv, (argv, text)
     if code == 1:
         assert text.strip().splitlines()[-1].startswith("amuled: error: "), (argv, text)
+
+
+# -- a distilled fine-tune's state files ----------------------------------------------------
+class _Panel:
+    """A panel source of two members: a fixed belief for every request (no store)."""
+
+    name = "fuzz-panel"
+    needs_messages = False
+
+    def identity(self) -> dict:
+        return {"source": self.name}
+
+    def beliefs(self, requests):
+        from amuled_ma.beliefs.types import BeliefResult
+
+        return [BeliefResult(np.array([0.7, 0.1, 0.1, 0.1]), "ok", self.name) for _ in requests]
+
+    def close(self) -> None:
+        pass
+
+
+def _requests(states):
+    from amuled_ma.beliefs.types import BeliefRequest
+
+    return [
+        BeliefRequest("findmilk", member, (float(s), 0.0), ("up", "down", "left", "right"), ())
+        for s in states
+        for member in ("care", "virtue")
+    ]
+
+
+def _distilled(folder: Path, *, resume: bool):
+    from amuled_ma.distill import DistilledSource
+
+    return DistilledSource(
+        _Panel(), budget=0.25, ensemble=2, hidden=4, fit_steps=5, seed=1,
+        state_dir=folder, resume=resume,
+    )  # fmt: skip
+
+
+_HONEST: dict[str, bytes] = {}
+
+
+def _honest_files() -> dict[str, bytes]:
+    """The two state files of a fine-tune that visited 8 states and asked 2 (made once)."""
+    if not _HONEST:
+        import tempfile
+
+        from amuled_ma.distill.state import EXAMPLES_FILE, LEDGER_FILE
+
+        with tempfile.TemporaryDirectory() as name:
+            source = _distilled(Path(name), resume=False)
+            source.beliefs(_requests(range(8)))
+            source.close()
+            for file in (LEDGER_FILE, EXAMPLES_FILE):
+                _HONEST[file] = (Path(name) / file).read_bytes()
+    return _HONEST
+
+
+def _paths(value, prefix=()):
+    """Every path to a value of a JSON document (tables and lists walked)."""
+    yield prefix
+    if isinstance(value, dict):
+        for key, inner in value.items():
+            yield from _paths(inner, (*prefix, key))
+    elif isinstance(value, list):
+        for i, inner in enumerate(value[:3]):
+            yield from _paths(inner, (*prefix, i))
+
+
+def _replaced(document, path, new):
+    if not path:
+        return new
+    head, *rest = path
+    document[head] = _replaced(document[head], tuple(rest), new)
+    return document
+
+
+def _resume_ok_or_amuled(folder: Path) -> None:
+    """Resume from the files: a refusal, or a source that keeps within the budget."""
+
+    def resume() -> None:
+        source = _distilled(folder, resume=True)
+        source.beliefs(_requests(range(8, 16)))
+        ledger = source.ledger
+        assert ledger.asked_count <= max(ledger.cap(), 2)  # 2: the honest run's asked
+        assert source.report()["requests_forwarded"] <= 2 * 2 + 2 * 8
+
+    _ok_or_amuled(resume)
+
+
+@seed(24)
+@FUZZ
+@given(choice=st.integers(0, 10**6), new=values)
+def test_distill_ledgers(tmp_path_factory, choice: int, new) -> None:
+    """``distill.json`` with one value anywhere replaced: resumed within budget, or one line."""
+    from amuled_ma.distill.state import EXAMPLES_FILE, LEDGER_FILE
+
+    honest = _honest_files()
+    document = json.loads(honest[LEDGER_FILE])
+    paths = list(_paths(document))
+    document = _replaced(document, paths[choice % len(paths)], new)
+    folder = tmp_path_factory.mktemp("distill")
+    (folder / LEDGER_FILE).write_text(json.dumps(document), errors="surrogatepass")
+    (folder / EXAMPLES_FILE).write_bytes(honest[EXAMPLES_FILE])
+    _resume_ok_or_amuled(folder)
+
+
+@seed(24)
+@FUZZ
+@given(choice=st.integers(0, 10**6), new=values, raw=st.binary(max_size=40))
+def test_distill_training_pairs(tmp_path_factory, choice: int, new, raw: bytes) -> None:
+    """``distill-examples.jsonl`` with a value replaced and bytes added: resumed, or one line."""
+    from amuled_ma.distill.state import EXAMPLES_FILE, LEDGER_FILE
+
+    honest = _honest_files()
+    lines = honest[EXAMPLES_FILE].decode().splitlines()
+    record = json.loads(lines[0])
+    paths = list(_paths(record))
+    record = _replaced(record, paths[choice % len(paths)], new)
+    text = json.dumps(record) + "\n" + "\n".join(lines[1:]) + "\n"
+    folder = tmp_path_factory.mktemp("distill")
+    (folder / LEDGER_FILE).write_bytes(honest[LEDGER_FILE])
+    (folder / EXAMPLES_FILE).write_bytes(text.encode("utf-8", "surrogatepass") + raw)
+    _resume_ok_or_amuled(folder)
+
+
+#: ``--set`` values of a list key: TOML lists, broken ones, and names of every kind.
+set_lists = st.one_of(
+    st.lists(st.text(max_size=8), max_size=4).map(lambda items: json.dumps(items)),
+    st.lists(st.text(max_size=8), max_size=4).map(lambda items: "[" + ",".join(items)),
+    st.text(alphabet="[]{},'\"= abc\u2800\ufe0f", max_size=20),
+    st.sampled_from(["[]", "['care','care']", "['care','CARE']", "['care'", "[care]"]),
+)
+
+
+@seed(24)
+@FUZZ
+@given(key=st.sampled_from(["feedback.clusters", "feedback.hosts", "evaluation.modes",
+                            "ppo.hidden_dims", "feedback.fusion", "fedback.clusters"]),
+       value=set_lists)  # fmt: skip
+def test_set_lists(key: str, value: str) -> None:
+    """A ``--set`` of a list, parsed and applied: a scenario, or one ``AmuledError`` line."""
+    from amuled_ma.scenario import load_scenario
+    from amuled_ma.scenario.overrides import parse_set
+
+    def apply() -> None:
+        section, name, parsed = parse_set(f"{key}={value}")
+        load_scenario("findmilk").replace(section, **{name: parsed})
+
+    try:
+        apply()
+    except AmuledError as error:
+        assert "\n" not in str(error).strip()

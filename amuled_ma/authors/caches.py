@@ -241,8 +241,11 @@ def convert_cache(
     """
     path = Path(path)
     cache = load_pickle(path)
-    if not isinstance(cache, dict) or not cache:
-        found = f"an empty {type(cache).__name__}" if not cache else type(cache).__name__
+    if not isinstance(cache, dict) or len(cache) == 0:
+        # never the value's truth: an array of several values has none (numpy raises)
+        found = "an empty dict" if isinstance(cache, dict) else type(cache).__name__
+        if isinstance(cache, np.ndarray):
+            found += f" of shape {cache.shape} and dtype {cache.dtype}"
         raise AuthorsImportError(
             f"{path}: expected the authors' LLM cache (a dict observation -> answers), found "
             f"{found}"

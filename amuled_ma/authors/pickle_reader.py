@@ -42,6 +42,13 @@ MAX_ARRAY_ITEMS = 2**20
 #: dicts insert keys of equal hash in quadratic time (a 2 MB file of colliding integer keys
 #: took over 13 minutes); distinct keys of equal hash do not occur in the caches.
 MAX_EQUAL_HASHES = 8
+#: Most work of hashing and checking dict keys and set items, all together [units: one a
+#: key, plus one a value of a tuple or frozenset key]. Each opcode may make the reader hash
+#: up to 65 values (a memoized 64-value tuple used again as a key, or ``set()`` of a
+#: memoized list of such tuples), so the opcode cap alone let a 16 MiB file spend minutes of
+#: CPU on keys; the published caches need at most 147,488 units (53,632 keys), this is 7.1
+#: times that, read in about 0.2 s at its most costly (numpy scalars in 64-value tuples).
+MAX_KEY_WORK = 2**20
 #: Most items of a tuple or frozenset used as a dict key or set item (the caches' keys are
 #: observations of 8 or 11 numbers; a key is hashed again on every use).
 MAX_KEY_ITEMS = 64
@@ -176,17 +183,37 @@ def _check_key(key: Any) -> None:
     )
 
 
+class _KeyWork:
+    """The key work left to one file (:data:`MAX_KEY_WORK`), spent before a key is hashed."""
+
+    __slots__ = ("left", "limit")
+
+    def __init__(self, limit: int) -> None:
+        self.left = self.limit = limit
+
+    def spend(self, key: Any) -> None:
+        self.left -= 1 + len(key) if type(key) is tuple or type(key) is frozenset else 1
+        if self.left < 0:
+            raise PickleUnbounded(
+                f"more than {self.limit:,} units of work hashing dict keys and set items (one "
+                "a key and one a value of a tuple key; the published caches need at most "
+                "147,488)"
+            )
+
+
 class _HashCounter:
     """Keys of one dict or set by hash value: refuses more than :data:`MAX_EQUAL_HASHES`."""
 
-    __slots__ = ("counts", "owner")
+    __slots__ = ("counts", "owner", "work")
 
-    def __init__(self, owner: Any) -> None:
+    def __init__(self, owner: Any, work: _KeyWork) -> None:
         self.owner = owner  # kept alive, so that its id is not reused while counted
+        self.work = work
         self.counts: dict[int, int] = {}
 
     def admit(self, key: Any) -> None:
         _check_key(key)
+        self.work.spend(key)
         h = hash(key)
         n = self.counts.get(h, 0) + 1
         if n > MAX_EQUAL_HASHES:
@@ -208,6 +235,7 @@ class BoundedReader:
         max_memory: Most bytes the process's resident memory may grow by (None: no limit);
             looked at every :data:`MEMORY_CHECK_EVERY` opcodes.
         max_opcodes: Most opcodes read (checked every :data:`MEMORY_CHECK_EVERY`).
+        max_key_work: Most key work (:data:`MAX_KEY_WORK`), checked at every key.
 
     """
 
@@ -218,8 +246,10 @@ class BoundedReader:
         max_array_bytes: int,
         max_memory: int | None,
         max_opcodes: int = MAX_OPCODES,
+        max_key_work: int = MAX_KEY_WORK,
     ) -> None:
         self.data = data
+        self.key_work = _KeyWork(max_key_work)
         self.max_opcodes = max_opcodes
         self.array_bytes_left = max_array_bytes
         self.set_items_left = max_array_bytes
@@ -386,7 +416,7 @@ class BoundedReader:
     def _counter(self, container: Any) -> _HashCounter:
         counter = self.counters.get(id(container))
         if counter is None or counter.owner is not container:
-            counter = self.counters[id(container)] = _HashCounter(container)
+            counter = self.counters[id(container)] = _HashCounter(container, self.key_work)
         return counter
 
     def _into_dict(self, target: Any, items: list[Any]) -> None:
@@ -429,9 +459,8 @@ class BoundedReader:
         items = self._pop_mark()
         self.stack.append(frozenset(self._admitted(items)))
 
-    @staticmethod
-    def _admitted(items: list[Any] | tuple[Any, ...]) -> list[Any] | tuple[Any, ...]:
-        counter = _HashCounter(None)
+    def _admitted(self, items: list[Any] | tuple[Any, ...]) -> list[Any] | tuple[Any, ...]:
+        counter = _HashCounter(None, self.key_work)
         for item in items:
             counter.admit(item)
         return items
@@ -501,7 +530,7 @@ class BoundedReader:
         return frozenset(self._admitted(self._set_items(items)))
 
     def _set(self, items: Any = ()) -> set[Any]:
-        counter = _HashCounter(None)
+        counter = _HashCounter(None, self.key_work)
         for item in self._set_items(items):
             counter.admit(item)
         result = set(items)

@@ -32,7 +32,9 @@ a file that names any other one:
    - dict keys and set items are strings, numbers (integers within +-(2**61 - 2)), or flat
      tuples or frozensets of at most :data:`MAX_KEY_ITEMS` of them, and at most
      :data:`MAX_EQUAL_HASHES` keys of one dict share a hash value (colliding keys make
-     Python's dicts quadratic);
+     Python's dicts quadratic); checking and hashing them costs, all together, at most
+     :data:`~amuled_ma.authors.pickle_reader.MAX_KEY_WORK` units (one a key and one a
+     value of a tuple key: a memoized tuple used again is hashed again);
    - ``BUILD`` sets the state of arrays and dtypes only; ``OBJ``, ``INST`` and ``NEWOBJ``
      are refused, and so is any opcode a cache does not use;
    - the process's memory may grow by :data:`MEMORY_PER_BYTE` bytes per byte of the file

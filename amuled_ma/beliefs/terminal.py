@@ -50,6 +50,9 @@ SKIP = "skip"
 MAX_ATTEMPTS = 100
 #: Longest answer line read (characters); a longer line is refused.
 MAX_LINE_CHARS = 10_000
+#: Most digits of a typed action index (an index is below the action count; Python's
+#: ``int`` refuses a text of more than 4,300 digits with an error of its own).
+MAX_INDEX_DIGITS = 20
 
 _SPLIT = re.compile(r"[\s,;]+")
 #: What :meth:`TerminalSource._read` returns for a line the input's decoder refused.
@@ -81,6 +84,11 @@ def _not_text(line: str) -> str:
     )
 
 
+def _cut(token: str) -> str:
+    """A typed token as the reason quotes it: its first 40 characters and its length."""
+    return repr(token) if len(token) <= 40 else f"{token[:40]!r}... ({len(token):,} characters)"
+
+
 def parse_answer(line: str, n_actions: int) -> tuple[np.ndarray | None, str | None]:
     """Read one typed answer.
 
@@ -108,6 +116,10 @@ def parse_answer(line: str, n_actions: int) -> tuple[np.ndarray | None, str | No
         return None, f"found a line of {len(text)} characters; {expected}"
     tokens = [t for t in _SPLIT.split(text) if t]
     if len(tokens) == 1 and re.fullmatch(r"[+-]?\d+", tokens[0]):
+        if len(tokens[0]) > MAX_INDEX_DIGITS:  # int() of thousands of digits raises
+            return None, (
+                f"found an action index of {len(tokens[0]):,} digits, out of range; {expected}"
+            )
         index = int(tokens[0])
         if not 0 <= index < n_actions:
             return None, f"found the action index {index}, out of range; {expected}"
@@ -119,9 +131,9 @@ def parse_answer(line: str, n_actions: int) -> tuple[np.ndarray | None, str | No
         try:
             value = float(token)
         except ValueError:
-            return None, f"found {token!r}, not a number; {expected}"
+            return None, f"found {_cut(token)}, not a number; {expected}"
         if not math.isfinite(value):
-            return None, f"found {token!r}, not a finite number; {expected}"
+            return None, f"found {_cut(token)}, not a finite number; {expected}"
         values.append(value)
     belief, reason = check_belief(values, n_actions, scores=True)
     if belief is None:

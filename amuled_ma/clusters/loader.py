@@ -16,9 +16,7 @@ The full schema is in ``docs/clusters.md``. Every error names the file and the f
 
 from __future__ import annotations
 
-import functools
 import math
-import unicodedata
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +26,7 @@ from amuled_ma.errors import ClusterDefinitionError, ScenarioError
 from amuled_ma.resources import prompts_dir, read_text
 from amuled_ma.scenario.agents import check_agent_table
 from amuled_ma.scenario.loading import parse_toml
+from amuled_ma.scenario.names import identity_key, odd_character
 
 #: Kinds of cluster files.
 KINDS = ("cluster", "mixture", "unprompted")
@@ -126,6 +125,18 @@ class Cluster:
     def names(self) -> tuple[str, ...]:
         """The cluster's name followed by its aliases."""
         return (self.name, *self.aliases)
+
+
+def _refuse_odd_characters(path: Path, field_name: str, value: str) -> None:
+    """Refuse a name holding a character that prints as nothing (:func:`odd_character`)."""
+    odd = odd_character(value)
+    if odd is not None:
+        raise _fail(
+            path,
+            field_name,
+            f"expected a name of visible characters, found {value!r} holding {odd}, which "
+            "prints as nothing or changes how another character looks; remove it",
+        )
 
 
 def _fail(path: Path, field_name: str, problem: str) -> ClusterDefinitionError:
@@ -267,6 +278,7 @@ def parse_cluster(data: Mapping[str, Any], path: Path) -> Cluster:
             path, sorted(unknown)[0], f"unknown field (known: {', '.join(sorted(_KNOWN_FIELDS))})"
         )
     name = _string(data, "name", path, required=True)
+    _refuse_odd_characters(path, "name", name)
     if name != path.stem:
         raise _fail(path, "name", f"must equal the file name {path.stem!r}, found {name!r}")
     kind = data.get("kind", "cluster")
@@ -279,6 +291,8 @@ def parse_cluster(data: Mapping[str, Any], path: Path) -> Cluster:
     aliases = data.get("aliases", [])
     if not isinstance(aliases, list) or not all(isinstance(a, str) and a for a in aliases):
         raise _fail(path, "aliases", f"expected a list of strings, found {aliases!r}")
+    for alias in aliases:
+        _refuse_odd_characters(path, "aliases", alias)
     instruction = data.get("instruction")
     if instruction is not None and (not isinstance(instruction, str) or not instruction.strip()):
         raise _fail(path, "instruction", f"expected a non-empty string, found {instruction!r}")
@@ -296,6 +310,7 @@ def parse_cluster(data: Mapping[str, Any], path: Path) -> Cluster:
     }
     if kind == "cluster":
         fields["credence_label"] = _string(data, "credence_label", path, required=True)
+        _refuse_odd_characters(path, "credence_label", fields["credence_label"])
         fields["focus"] = _string(data, "focus", path, required=True)
         fields["key_principle"] = _string(data, "key_principle", path, required=True)
         fields["theories"] = _theories(data, path)
@@ -527,69 +542,6 @@ class ClusterRegistry:
     def panel(self) -> list[Cluster]:
         """Return the ``kind = "cluster"`` files: the system prompt's clusters and credence axes."""
         return [c for c in self.all() if c.kind == "cluster"]
-
-
-#: Characters that print as nothing (zero-width spaces and joiners, the word joiner, the
-#: byte-order mark, the soft hyphen, invisible operators): removed before names compare.
-_INVISIBLE = dict.fromkeys(
-    map(
-        ord,
-        "\u00ad\u034f\u061c\u115f\u1160\u17b4\u17b5\u180e\u200b\u200c\u200d"
-        "\u200e\u200f\u202a\u202b\u202c\u202d\u202e\u2060\u2061\u2062\u2063\u2064"
-        "\u2066\u2067\u2068\u2069\u3164\ufeff\uffa0",
-    ),
-)
-#: Rounds of prototype mapping and case folding (a prototype may fold to a character that
-#: has a prototype of its own: Cherokee ``Ꮯ`` -> ``C`` -> ``c``); two suffice, one more spare.
-_SKELETON_ROUNDS = 3
-
-
-def _homoglyphs(char: str) -> list[str]:
-    """The characters Unicode's confusables data pairs with one character (maybe none)."""
-    from confusable_homoglyphs import confusables  # here: it reads its 0.9 MB table
-
-    found = confusables.is_confusable(char, greedy=True)
-    return [glyph["c"] for glyph in found[0]["homoglyphs"]] if found else []
-
-
-@functools.lru_cache(maxsize=8192)
-def _prototype(char: str) -> str:
-    """The prototype UTS #39 maps ``char`` to (``ս`` -> ``u``, ``0`` -> ``O``, ``m`` -> ``rn``).
-
-    ``confusable_homoglyphs`` holds Unicode's ``confusables.txt`` as a graph: a character
-    that has a prototype lists that one alone; a prototype lists the characters mapped to
-    it. A prototype with a single such character reads like one, so of such a pair both
-    map to the smaller: the key is the same either way.
-    """
-    glyphs = _homoglyphs(char)
-    if len(glyphs) != 1:
-        return char  # not in the data, or a prototype of several characters
-    (target,) = glyphs
-    if len(target) == 1 and _homoglyphs(target) == [char]:
-        return min(char, target)
-    return target
-
-
-def identity_key(name: str) -> str:
-    """The identity a cluster name (or a credence label) is compared by.
-
-    NFKC (full-width, mathematical and other compatibility forms become plain letters),
-    invisible characters removed, case folded, and every character replaced by its
-    prototype of Unicode's confusables (the skeleton of UTS #39, "Unicode Security
-    Mechanisms", from the ``confusable_homoglyphs`` package): Cyrillic, Greek, Armenian,
-    Cherokee and other look-alikes of Latin letters become those letters (and ``0``
-    becomes ``O``, ``1`` and ``I`` become ``l``, ``m`` becomes ``rn``, as UTS #39 says);
-    ``_``, ``-`` and runs of spaces count as one space. ``care``, ``CARE``, ``ｃａｒｅ``,
-    ``ca\u200bre``, ``cаre`` (a Cyrillic ``а``) and ``ᏟᎪᏒᎬ`` (Cherokee) are one identity.
-    """
-    text = unicodedata.normalize("NFKC", name).translate(_INVISIBLE)
-    for _ in range(_SKELETON_ROUNDS):
-        mapped = "".join(map(_prototype, text.casefold()))
-        mapped = unicodedata.normalize("NFKC", mapped).translate(_INVISIBLE).casefold()
-        if mapped == text:
-            break
-        text = mapped
-    return " ".join(text.replace("_", " ").replace("-", " ").split())
 
 
 def _norm(name: str) -> str:

@@ -47,25 +47,13 @@ if TYPE_CHECKING:  # the feedback classes import torch: loaded when a feedback i
 
 #: The ways to give a member beliefs, named in the preflight's messages.
 _KINDS = " | ".join(f'"{k}"' for k in AGENT_SOURCE_KINDS if k != "replay")
-#: Seconds per request of the private tiny Ollama model here (docs/ollama.md, "Where a
-#: request's time goes": the demo's setting, 4.1 s a request, one slot, load 2.2-3.2).
-TINY_SECONDS_PER_REQUEST = 4.1
 #: The distinct states a budget asks in the preflight's suggestion
 #: (``[feedback.distill].budget``, an integer: that many states; docs/distill.md).
 SUGGESTED_BUDGET = 20
 
 
-def _duration(seconds: float) -> str:
-    """``40 s``, ``12 min``, ``3.1 h``: a rough duration in words."""
-    if seconds < 120:
-        return f"{seconds:.0f} s"
-    if seconds < 7200:
-        return f"{seconds / 60:.0f} min"
-    return f"{seconds / 3600:.1f} h"
-
-
 def options_line(missing: Sequence[str], states: int, distill: Any = None) -> str:
-    """The ways to give members without beliefs an answer, each with its cost here.
+    """The ways to give members without beliefs an answer, short, as ``--set`` options.
 
     Args:
         missing: The members no source answers (user clusters not in the recording).
@@ -73,32 +61,25 @@ def options_line(missing: Sequence[str], states: int, distill: Any = None) -> st
         distill: ``[feedback.distill]`` (its budget, when on, is the cost to quote).
 
     Returns:
-        One sentence: a live model (states x members x :data:`TINY_SECONDS_PER_REQUEST`),
-        a person (the number of answers), either on a budget with the distilled model,
-        ``rules`` by name (the cluster's text is not read), or dropping the members.
+        One clause: the ``--set`` of a person at the terminal with the number of answers
+        (states x members; on the budget of ``[feedback.distill]``, or
+        :data:`SUGGESTED_BUDGET`, with the distilled model), dropping the members, and
+        where a live model and the other sources are described (docs/clusters.md).
 
     """
     n = len(missing)
-    table = missing[0] if n == 1 else "<name>"
-    members = f"{n} member{'s' if n > 1 else ''}"
     asks = states * n
     budget = SUGGESTED_BUDGET
     if distill is not None and getattr(distill, "enabled", False):
         value = distill.budget
         budget = int(value) if isinstance(value, int) else max(1, int(value * states))
-    small = budget * n
+    tables = ",".join(f'{m}={{source="terminal"}}' for m in missing)
+    them = "it" if n == 1 else "them"
     return (
-        f"give {'it' if n == 1 else 'them'} beliefs with [feedback.agents.{table}]: "
-        f'source = "ollama" (a live model: about {states:,} states x {members} x '
-        f"{TINY_SECONDS_PER_REQUEST} s a request on the tiny model here = "
-        f"~{_duration(asks * TINY_SECONDS_PER_REQUEST)}), "
-        f'source = "terminal" (a person: about {asks:,} answers), either on a budget with '
-        "the distilled model answering the rest (--set feedback.distill.enabled=true --set "
-        f"feedback.distill.budget={budget}: {small:,} requests, "
-        f"~{_duration(small * TINY_SECONDS_PER_REQUEST)} live or {small:,} answers by a "
-        'person; docs/distill.md), source = "rules" named for the agent (the task\'s '
-        'rule answers: the cluster\'s text is not read), a plug-in ("entry-point") or a '
-        'saved policy ("policy"); or drop it from [feedback].clusters'
+        f"answer {them} at the terminal with --set 'feedback.agents={{{tables}}}' ({asks:,} "
+        f"answers, or {budget * n:,} with --set feedback.distill.enabled=true), or drop "
+        f"{them} from feedback.clusters; a live model and other "
+        "sources: docs/clusters.md#a-cluster-no-recording-holds"
     )
 
 

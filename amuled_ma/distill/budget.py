@@ -19,6 +19,13 @@ rounding of a product lets one more in. States of a batch are visited before any
 is asked, so a batch of new states raises the cap before the selection admits its share
 of them.
 
+A resumed ledger credits the cap only with states it can vouch for: the states asked
+(charged, so a made-up one only spends budget) and the states visited in this process. The
+visited states read from a state file are kept (a state seen before is not new) but raise
+the cap only when they are visited again, so a state file cannot grow the budget the
+scenario sets: edited to hold made-up visited states, it holds no more than the honest file
+would (the cap of a resumed run starts lower and climbs back as the states are seen again).
+
 Pure Python; :class:`BudgetLedger` is what :class:`~amuled_ma.distill.source.DistilledSource`
 consults and what its state file keeps, so a resumed run starts with the budget it
 already spent.
@@ -100,7 +107,8 @@ class BudgetLedger:
 
     Attributes:
         budget: The setting.
-        visited: Keys of every distinct state visited.
+        visited: Keys of every distinct state visited (a state file's included).
+        credited: Keys of the states the cap counts: asked, or visited by this process.
         asked: Keys of the states asked, in the order they were asked.
 
     """
@@ -108,6 +116,7 @@ class BudgetLedger:
     def __init__(self, budget: float | int) -> None:
         self.budget = check_budget(budget)
         self.visited: set[str] = set()
+        self.credited: set[str] = set()
         self.asked: list[str] = []
         self._asked: set[str] = set()
 
@@ -122,8 +131,8 @@ class BudgetLedger:
         return len(self.asked)
 
     def cap(self) -> int:
-        """Most states that may be asked now (:func:`budget_cap` of the visited count)."""
-        return budget_cap(self.budget, len(self.visited))
+        """Most states that may be asked now (:func:`budget_cap` of the credited count)."""
+        return budget_cap(self.budget, len(self.credited))
 
     def allowed(self) -> int:
         """How many more distinct states may be asked now (never negative)."""
@@ -137,6 +146,7 @@ class BudgetLedger:
         """Record states as visited; return those visited for the first time (in order)."""
         new = []
         for key in keys:
+            self.credited.add(key)
             if key not in self.visited:
                 self.visited.add(key)
                 new.append(key)
@@ -157,7 +167,7 @@ class BudgetLedger:
         if len(set(keys)) != len(keys):
             raise BudgetExceeded(f"the same state is asked twice in one batch: {keys}")
         for key in keys:
-            if key not in self.visited or key in self._asked:
+            if key not in self.credited or key in self._asked:
                 why = "was already asked" if key in self._asked else "was not visited"
                 raise BudgetExceeded(f"state {key} cannot be asked: it {why}")
         if len(keys) > self.allowed():
@@ -187,11 +197,15 @@ class BudgetLedger:
             budget: The scenario's budget: the ledger's must be the same (a state file
                 edited to raise it is refused). None: the ledger's own (tests).
 
+        Returns:
+            The ledger; its cap credits the asked states only (see the module), until the
+            visited ones are visited again.
+
         Raises:
             AmuledError: The data is malformed (keys not strings, a budget of another
                 value or type than the scenario's) or breaks the invariant (an asked state
-                not visited, asked twice, or more asked than the budget allows): ``where``
-                is named, and ``--force``.
+                not visited, asked twice, or more asked than the budget allows of the
+                file's visited states): ``where`` is named, and ``--force``.
 
         """
         if not isinstance(data, Mapping):
@@ -228,11 +242,13 @@ class BudgetLedger:
                 f"{where}: asked states that were not visited, or asked twice; start over "
                 "with --force"
             )
-        if len(asked) > ledger.cap():
+        allowed = budget_cap(ledger.budget, len(ledger.visited))
+        if len(asked) > allowed:
             raise AmuledError(
                 f"{where}: {len(asked)} states asked but the budget {ledger.budget!r} allows "
-                f"{ledger.cap()} of {len(visited)} visited; start over with --force"
+                f"{allowed} of {len(visited)} visited; start over with --force"
             )
         ledger.asked = list(asked)
         ledger._asked = set(asked)
+        ledger.credited = set(asked)
         return ledger

@@ -62,7 +62,13 @@ from amuled_ma.distill.selection import (
     choose_uncertain,
     disagreement,
 )
-from amuled_ma.distill.state import SAVE_EVERY_S, StateFiles, check_counters
+from amuled_ma.distill.state import (
+    SAVE_EVERY_S,
+    StateFiles,
+    check_counters,
+    check_ledger_rest,
+    check_state_keys,
+)
 from amuled_ma.errors import AmuledError
 
 #: Status of a belief the model gave for a state that was not asked (``"distilled"``), and
@@ -684,39 +690,51 @@ class DistilledSource(BeliefSource):
                 f"{where}: generation is {generation!r}, expected an integer in [0, {asked}] "
                 "(at most one fit per asked state); start the fine-tune over with --force"
             )
-        try:
-            self._asked_obs = {
-                str(k): tuple(float(x) for x in v) for k, v in data["asked_obs"].items()
-            }
-            self.members = [str(m) for m in data["members"]]
-            self.task = data.get("task")
-            self.actions = tuple(data["actions"]) if data.get("actions") is not None else None
-            self.obs_dim = data.get("obs_dim")
-            if data.get("rng"):
-                self._rng.bit_generator.state = data["rng"]
-        except (KeyError, TypeError, ValueError, AttributeError) as error:
-            raise AmuledError(
-                f"{where}: damaged budget state ({error!r}); start the fine-tune over with --force"
-            ) from error
+        check_state_keys(self.ledger.visited, "ledger.visited", where)
+        check_state_keys(self.ledger.asked, "ledger.asked", where)
+        rest = check_ledger_rest(data, where)
+        self._asked_obs = {k: tuple(v) for k, v in rest.asked_obs.items()}
+        self.members = list(rest.members)
+        self.task = rest.task
+        self.actions = tuple(rest.actions) if rest.actions is not None else None
+        self.obs_dim = rest.obs_dim
+        if rest.rng is not None:
+            self._rng.bit_generator.state = rest.rng.model_dump()
         if set(self._asked_obs) != set(self.ledger.asked):
             raise AmuledError(
                 f"{where}: asked_obs and ledger.asked name different states; start the "
                 "fine-tune over with --force"
             )
         order = {key: n for n, key in enumerate(self.ledger.asked)}
-        for record in files.read_examples():
-            key = str(record.get("key"))
+        a = len(self.actions or ())
+        for line, record in files.read_examples():
+            key = record.key
             if key not in order:  # written only after the ledger charged it: edited
                 raise AmuledError(
-                    f"{files.examples}: answers of state {key[:16]}, which {where} never "
+                    f"{line}: answers of state {key[:16]}, which {where} never "
                     "asked (one of the files was edited); start the fine-tune over with --force"
                 )
-            beliefs = {
-                str(m): np.asarray(b, dtype=np.float64)
-                for m, b in (record.get("beliefs") or {}).items()
-                if m in self.members
-            }
-            obs = np.asarray(record.get("obs"), dtype=np.float64)
+            if len(record.obs) != self.obs_dim:
+                raise AmuledError(
+                    f"{line}: obs has {len(record.obs)} values, but {where} says obs_dim "
+                    f"{self.obs_dim} (one of the files was edited); start the fine-tune over "
+                    "with --force"
+                )
+            beliefs = {}
+            for member, values in record.beliefs.items():
+                belief, why = check_belief(values, a)
+                if member not in self.members or belief is None:
+                    what = (
+                        f"{member!r}'s belief {why}"
+                        if belief is None
+                        else (f"a belief of {member!r}, not a member of {where}")
+                    )
+                    raise AmuledError(
+                        f"{line}: {what} (one of the files was edited); start the fine-tune "
+                        "over with --force"
+                    )
+                beliefs[member] = belief
+            obs = np.asarray(record.obs, dtype=np.float64)
             self._examples[key] = _Example(key, obs, beliefs, self._is_holdout(order[key]))
         if generation > 0:
             self._refit(generation=generation)

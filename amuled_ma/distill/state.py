@@ -22,10 +22,13 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import time
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from amuled_ma.errors import AmuledError
 from amuled_ma.file_limits import check_size, read_bounded_bytes, read_line
@@ -55,6 +58,137 @@ MAX_EXAMPLES_BYTES = 2**31
 MAX_EXAMPLE_LINE_BYTES = 2**20
 #: The fix of every refusal of a state file: they are this run's own files.
 _START_OVER = "start the fine-tune over with --force"
+#: A state's key as a fine-tune writes it: a 128-bit BLAKE2b digest in hexadecimal.
+STATE_KEY = re.compile(r"[0-9a-f]{32}")
+#: Most values of one observation (the tasks' have 2 to 16; a request holds the whole
+#: observation, so a larger one is not a fine-tune's).
+MAX_OBS_DIM = 4096
+#: Most panel members and actions a state file may name (a panel has a few of each).
+MAX_NAMES = 256
+
+_Finite = Annotated[float, Field(allow_inf_nan=False)]
+_Name = Annotated[str, Field(min_length=1, max_length=200)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(strict=True, extra="forbid", frozen=True)
+
+
+class _RngState(_Strict):
+    state: int = Field(ge=0, lt=2**128)
+    inc: int = Field(ge=0, lt=2**128)
+
+
+class RngState(_Strict):
+    """The random selection's generator, as numpy's ``PCG64.state`` writes it."""
+
+    bit_generator: Literal["PCG64"]
+    state: _RngState
+    has_uint32: int = Field(ge=0, le=1)
+    uinteger: int = Field(ge=0, lt=2**32)
+
+
+class LedgerRest(BaseModel):
+    """The fields of ``distill.json`` besides the settings, ledger, counters and generation.
+
+    Each observation is a list of :data:`MAX_OBS_DIM` finite numbers at most, all of
+    length ``obs_dim``; the members and actions are distinct names; the generator's words
+    are numpy's ranges. :func:`check_ledger_rest` turns a failure into one line.
+    """
+
+    model_config = ConfigDict(strict=True, extra="ignore", frozen=True)
+
+    asked_obs: dict[str, list[_Finite]]
+    members: list[_Name] = Field(max_length=MAX_NAMES)
+    task: _Name | None = None
+    actions: list[_Name] | None = Field(default=None, min_length=1, max_length=MAX_NAMES)
+    obs_dim: int | None = Field(default=None, ge=1, le=MAX_OBS_DIM)
+    rng: RngState | None = None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> LedgerRest:
+        if len(set(self.members)) != len(self.members):
+            raise ValueError(f"members are not distinct: {self.members}")
+        if self.actions is not None and len(set(self.actions)) != len(self.actions):
+            raise ValueError(f"actions are not distinct: {self.actions}")
+        for key, obs in self.asked_obs.items():
+            if not STATE_KEY.fullmatch(key):
+                raise ValueError(f"asked_obs has a key {key[:40]!r}, not a state key")
+            if len(obs) != self.obs_dim:
+                raise ValueError(
+                    f"asked_obs[{key}] has {len(obs)} values, but obs_dim is {self.obs_dim}"
+                )
+        return self
+
+
+def _first_error(error: ValidationError) -> str:
+    """Pydantic's first error as ``field: message, found value`` (the value cut to 60)."""
+    first = error.errors()[0]
+    where = ".".join(str(part) for part in first["loc"])
+    message = str(first["msg"]).removeprefix("Value error, ")
+    found = repr(first.get("input"))
+    found = found if len(found) <= 60 else found[:57] + "..."
+    head = f"{where}: " if where else ""
+    return f"{head}{message}" + ("" if first["type"] == "value_error" else f", found {found}")
+
+
+def check_ledger_rest(data: Mapping[str, Any], where: str) -> LedgerRest:
+    """The observations, names, sizes and generator of a ledger, checked (:class:`LedgerRest`).
+
+    Raises:
+        AmuledError: One line naming ``where``, the field, what was found and ``--force``.
+
+    """
+    try:
+        return LedgerRest.model_validate(dict(data))
+    except ValidationError as error:
+        raise AmuledError(
+            f"{where}: {_first_error(error)}; the file was edited or damaged; {_START_OVER}"
+        ) from None
+
+
+def check_state_keys(keys: Iterable[str], field: str, where: str) -> None:
+    """Refuse a ledger entry that is not a state key as a fine-tune writes it (32 hex digits).
+
+    Raises:
+        AmuledError: One line naming ``where``, ``field``, the entry and ``--force``.
+
+    """
+    for key in keys:
+        if not STATE_KEY.fullmatch(key):
+            raise AmuledError(
+                f"{where}: {field} holds {key[:40]!r}, not a state key (32 hexadecimal "
+                f"digits, as a fine-tune writes them); the file was edited; {_START_OVER}"
+            )
+
+
+class Example(BaseModel):
+    """One line of ``distill-examples.jsonl``: a state's key, observation and beliefs.
+
+    The lengths and the beliefs' sums are checked by the reader, which knows the task
+    (:meth:`amuled_ma.distill.source.DistilledSource` through :func:`check_example`).
+    """
+
+    model_config = ConfigDict(strict=True, extra="forbid", frozen=True)
+
+    key: str = Field(pattern=STATE_KEY.pattern)
+    obs: list[_Finite] = Field(max_length=MAX_OBS_DIM)
+    beliefs: dict[_Name, list[_Finite]] = Field(max_length=MAX_NAMES)
+
+
+def check_example(record: Any, where: str) -> Example:
+    """One training pair, checked (:class:`Example`).
+
+    Raises:
+        AmuledError: One line naming ``where`` (``FILE:LINE``), the field and ``--force``.
+
+    """
+    try:
+        return Example.model_validate(record)
+    except ValidationError as error:
+        raise AmuledError(
+            f"{where}: {_first_error(error)}; the file was edited or damaged; {_START_OVER}"
+        ) from None
 
 
 def check_counters(counters: Any, names: Iterable[str], asked: int, where: str) -> dict[str, int]:
@@ -176,12 +310,13 @@ class StateFiles:
             handle.write(lines)
             handle.flush()
 
-    def read_examples(self) -> list[dict[str, Any]]:
-        """Every training pair written (a cut last line is skipped).
+    def read_examples(self) -> list[tuple[str, Example]]:
+        """Every training pair written (a cut last line is skipped), with its ``FILE:LINE``.
 
         Raises:
-            AmuledError: A line other than the last is not JSON (the file was edited), the
-                file is larger than :data:`MAX_EXAMPLES_BYTES` or a line longer than
+            AmuledError: A line other than the last is not JSON (the file was edited) or
+                not an :class:`Example` (a key, finite numbers, nothing else), the file is
+                larger than :data:`MAX_EXAMPLES_BYTES` or a line longer than
                 :data:`MAX_EXAMPLE_LINE_BYTES` (refused before it is read whole).
 
         """
@@ -215,8 +350,8 @@ class StateFiles:
                         raise AmuledError(
                             f"{self.examples}:{number}: not JSON ({error}); {_START_OVER}"
                         ) from None
-                    if isinstance(record, dict):
-                        out.append(record)
+                    where = f"{self.examples}:{number}"
+                    out.append((where, check_example(record, where)))
         except OSError as error:
             raise AmuledError(
                 f"{self.examples}: cannot read the training pairs ({error}); {_START_OVER}"

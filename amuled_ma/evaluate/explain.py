@@ -13,6 +13,7 @@ evidence and Dempster's conflict ``K`` of each combination) and the fused belief
 
 from __future__ import annotations
 
+import math
 import re
 import textwrap
 import tomllib
@@ -96,11 +97,14 @@ def parse_obs(text: str, task_cls: Any) -> np.ndarray:
     """``"1,2,3"`` -> float array, checked against the task's observation length.
 
     Raises:
-        ScenarioError: Not numbers, or the wrong count (the message lists the entries).
+        ScenarioError: Not numbers, a number that is not finite as a 32-bit float (``nan``,
+            ``inf``, ``1e400``, ``1e39``: observations are float32), or the wrong count
+            (the message lists the entries).
 
     """
+    tokens = [x for x in text.replace(" ", "").split(",") if x != ""]
     try:
-        values = [float(x) for x in text.replace(" ", "").split(",") if x != ""]
+        values = [float(x) for x in tokens]
     except ValueError:
         raise ScenarioError(
             f"--obs {text!r}: expected numbers separated by commas, e.g. 2,3,7,7,2,2,1,1"
@@ -111,11 +115,47 @@ def parse_obs(text: str, task_cls: Any) -> np.ndarray:
             f"--obs: {task_cls.name} observations have {len(names)} entries "
             f"({', '.join(names)}), found {len(values)}"
         )
-    return np.asarray(values, dtype=np.float32)
+    with np.errstate(over="ignore"):
+        obs = np.asarray(values, dtype=np.float32)
+    bad = ~np.isfinite(obs)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ScenarioError(
+            f"--obs: entry {i + 1} ({names[i]}) is {tokens[i][:40]!r}, expected a "
+            f"finite number (within +-{float(np.finfo(np.float32).max):.3g}, a 32-bit float)"
+        )
+    return obs
+
+
+#: Largest integer a prompt variable may be (exact as a float: the tasks count with them).
+MAX_PROMPT_INT = 2**53
+
+
+def _check_prompt_value(name: str, value: Any) -> None:
+    """Refuse a prompt variable that is a non-finite float or an integer beyond 2^53."""
+    numbers = value if isinstance(value, list) else [value]
+    for item in numbers:
+        if isinstance(item, bool) or not isinstance(item, int | float):
+            continue
+        if isinstance(item, float) and not math.isfinite(item):
+            raise ScenarioError(
+                f"--prompt-var {name}: expected a finite number, found {item!r}; e.g. num_crying=4"
+            )
+        if abs(item) > MAX_PROMPT_INT:
+            raise ScenarioError(
+                f"--prompt-var {name}: expected a number within +-{MAX_PROMPT_INT:,} (2^53), "
+                f"found {item:.3g}; e.g. num_crying=4"
+            )
 
 
 def parse_prompt_vars(items: Sequence[str]) -> dict[str, Any]:
-    """``["num_crying=4", ...]`` -> ``{"num_crying": 4}`` (values in TOML syntax)."""
+    """``["num_crying=4", ...]`` -> ``{"num_crying": 4}`` (values in TOML syntax).
+
+    Raises:
+        ScenarioError: Not ``NAME=VALUE``, a value nested deeper than Python reads, or a
+            number that is not finite or beyond 2^53 (:data:`MAX_PROMPT_INT`).
+
+    """
     out: dict[str, Any] = {}
     for item in items:
         name, sep, raw = item.partition("=")
@@ -125,6 +165,11 @@ def parse_prompt_vars(items: Sequence[str]) -> dict[str, Any]:
             value = tomllib.loads(f"v = {raw.strip()}")["v"]
         except tomllib.TOMLDecodeError:
             value = raw.strip()
+        except RecursionError:
+            raise ScenarioError(
+                f"--prompt-var {name.strip()}: the value is nested deeper than Python can read"
+            ) from None
+        _check_prompt_value(name.strip(), value)
         out[name.strip()] = value
     return out
 
@@ -209,7 +254,7 @@ def state_by_hand(
     needs = bool(getattr(getattr(feedback, "panel", None), "with_messages", False))
     try:
         prompt_vars = task_cls.prompt_variables_from_obs(obs, **extras)
-    except (ValueError, TypeError) as error:
+    except (ValueError, TypeError, OverflowError) as error:
         if needs:
             raise ScenarioError(
                 f"{task_cls.name} state prompt: {error}; give the missing variable "

@@ -70,6 +70,7 @@ import numpy as np
 
 from amuled_ma.fusion._validate import check_rows, check_weights
 from amuled_ma.fusion.xiao import FusionResult, _measures, bjs_dst, check_prior
+from amuled_ma.scenario.panel_checks import allow_fusion_rule, forget_fusion_rule
 
 __all__ = ["RULES", "RuleSpec", "fuse", "register_rule", "unregister_rule"]
 
@@ -141,6 +142,7 @@ def register_rule(
             raise ValueError(f"fusion rule {name!r} is already registered (pass replace=True)")
         summary = (func.__doc__ or "").strip().splitlines()[0] if func.__doc__ else ""
         _REGISTRY[name] = RuleSpec(name, func, takes_weights, takes_param, summary, takes_prior)
+        allow_fusion_rule(name, takes_param)  # a scenario may name it from now on
         return func
 
     return decorator
@@ -154,6 +156,7 @@ def unregister_rule(name: str) -> None:
 
     """
     del _REGISTRY[name]
+    forget_fusion_rule(name)
 
 
 def _lookup(rule: str) -> tuple[RuleSpec, str | None]:

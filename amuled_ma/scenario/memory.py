@@ -142,3 +142,102 @@ def check_budget(section: str, values: dict[str, Any], source: str) -> None:
             source,
             lambda _: f", found {values['episodes']!r}",
         )
+
+
+#: Bytes of one parameter of the distilled model while it is fitted: float32 x (weight,
+#: gradient, Adam's two moments).
+BYTES_PER_DISTILL_PARAMETER = 16
+#: Bytes of one activation of a fit, per hidden unit or output of a state: float32 x
+#: (the forward value kept for the backward pass, its gradient, a temporary).
+BYTES_PER_DISTILL_ACTIVATION = 12
+#: Asked states a fit is assumed to hold when the budget is a share (of states not yet
+#: visited): the fits are full-batch on every asked state; a count budget is its count.
+ASSUMED_DISTILL_STATES = 4096
+
+
+def distill_bytes(ensemble: int, hidden: int, members: int, budget: float | int) -> int:
+    """Memory one fit of the distilled model takes [bytes], estimated.
+
+    ``E x P x 16`` for the parameters (``P = D·H + H + H·H + H + H·(K·A) + K·A`` per
+    network of two hidden layers, ``D`` = :data:`ASSUMED_OBS_DIM` inputs, ``K`` members,
+    ``A`` = :data:`ASSUMED_NUM_ACTIONS`) plus ``E x N x (2H + K·A) x 12`` for the full
+    batch's activations (``N`` the budget's count, or :data:`ASSUMED_DISTILL_STATES`).
+    """
+    outputs = members * ASSUMED_NUM_ACTIONS
+    per_network = ASSUMED_OBS_DIM * hidden + hidden + hidden * hidden + hidden
+    per_network += hidden * outputs + outputs
+    states = budget if isinstance(budget, int) and not isinstance(budget, bool) else 0
+    states = states or ASSUMED_DISTILL_STATES
+    parameters = ensemble * per_network * BYTES_PER_DISTILL_PARAMETER
+    return parameters + ensemble * states * (2 * hidden + outputs) * BYTES_PER_DISTILL_ACTIVATION
+
+
+def check_distill_memory(
+    ensemble: int, hidden: int, members: int, budget: float | int, source: str
+) -> None:
+    """Refuse a ``[feedback.distill]`` model whose fit needs more than the memory allows.
+
+    Raises:
+        ScenarioError: :func:`distill_bytes` above :data:`MEMORY_FRACTION` of this
+            machine's memory; the line names ``ensemble``, ``hidden``, the members, the
+            budget's states, the memory needed and what fits.
+
+    """
+    memory = physical_memory_bytes()
+    allowed = MEMORY_FRACTION * memory
+    need = distill_bytes(ensemble, hidden, members, budget)
+    if need <= allowed:
+        return
+    fits = next(
+        (
+            h
+            for h in (2048, 1024, 512, 256, 128, 64)
+            if distill_bytes(ensemble, h, members, budget) <= allowed
+        ),
+        None,
+    )
+    hint = f"e.g. hidden = {fits} at this ensemble" if fits else "a smaller ensemble or budget"
+    states = budget if isinstance(budget, int) else ASSUMED_DISTILL_STATES
+    raise ScenarioError(
+        f"{source}: keys [feedback.distill].ensemble x hidden = {ensemble:,} x {hidden:,} "
+        f"({members} members, {states:,} states a fit) need about {_bytes(need)} to fit the "
+        f"distilled model, but at most {MEMORY_FRACTION:.0%} of this machine's "
+        f"{_bytes(memory)} of memory may be used; {hint} (docs/distill.md)"
+    )
+
+
+#: Memory one planned training job holds before it runs [bytes, estimated]: its scenario,
+#: record, panel plan and the scheduler's entry, with a safety factor.
+BYTES_PER_PLANNED_JOB = 65_536
+#: Most training replicas of one variant (``--seeds``): a sweep of more is a typo.
+MAX_SEEDS = 10_000
+
+
+def check_seed_replicas(seeds: int, variants: int, source: str = "the command line") -> None:
+    """Refuse ``--seeds`` beyond :data:`MAX_SEEDS` or planned jobs beyond the memory.
+
+    Args:
+        seeds: Replicas of each variant.
+        variants: Variants of the run (jobs per seed).
+        source: What to name first in the error.
+
+    Raises:
+        ScenarioError: More than :data:`MAX_SEEDS`, or ``seeds x variants`` jobs of
+            :data:`BYTES_PER_PLANNED_JOB` beyond :data:`MEMORY_FRACTION` of the memory;
+            checked before any job is planned.
+
+    """
+    if seeds > MAX_SEEDS:
+        raise ScenarioError(
+            f"{source}: --seeds {seeds:,}: expected at most {MAX_SEEDS:,} training replicas "
+            f"of each variant ({seeds:,} x {variants} variants would be "
+            f"{seeds * variants:,} training jobs); give fewer seeds"
+        )
+    check_memory(
+        f"--seeds x variants = {seeds:,} x {variants}",
+        seeds * variants,
+        BYTES_PER_PLANNED_JOB,
+        "planned training jobs",
+        source,
+        lambda limit: f" (--seeds <= {max(limit // max(variants, 1), 1):,})",
+    )

@@ -8,6 +8,8 @@ a range) and what was found. The section models register themselves in :data:`SE
 from __future__ import annotations
 
 import difflib
+import re
+import tomllib
 import typing
 from typing import Annotated, Any, Literal
 
@@ -162,12 +164,46 @@ def _describe(error: Any, source: str, loc: tuple[Any, ...]) -> str:
         each = "each entry to be " if index is not None else ""
         return f"{source}: key {where} expects {each}one of {choices}, found {value!r}{at}"
     if kind.endswith("_type"):
+        broken = toml_syntax_error(value) if kind in ("list_type", "dict_type") else None
+        if broken is not None:
+            opens = "list" if value.lstrip()[0] == "[" else "table"
+            return (
+                f"{source}: key {where} expects {_type_name(info.annotation)}, found "
+                f"{value[:60]!r}, which opens a TOML {opens}"
+                f" but is not TOML: {broken}; write strings in quotes and quote the whole "
+                f"value on the command line: --set \"{where[1:].replace('].', '.')}=['a', 'b']\""
+            )
         wants_int = kind == "int_type"
         return (
             f"{source}: key {where} expects {_type_name(info.annotation)}, {found}{at}"
             f"{_float_for_int_hint(wants_int, value)}"
         )
     return f"{source}: key {where}{at}: {error['msg']}, {found}"
+
+
+def toml_syntax_error(value: Any) -> str | None:
+    """Why ``value``, a text opening a TOML list or table (``[``, ``{``), is not TOML.
+
+    Returns:
+        tomllib's message (``Unclosed array (at line 1, column 10)``, the column counted in
+        ``value``), or None when ``value`` does not open a list or table or parses.
+
+    """
+    if not isinstance(value, str) or not value.lstrip().startswith(("[", "{")):
+        return None
+    text = value.strip()
+    try:
+        tomllib.loads(f"v = {text}")
+    except tomllib.TOMLDecodeError as error:
+        # the column in the value, not in "v = <value>"
+        def column(match: re.Match[str]) -> str:
+            return f"column {int(match.group(1)) - len('v = ')}"
+
+        return re.sub(r"line 1, column (\d+)", column, str(error))
+
+    except RecursionError:
+        return "nested deeper than Python's TOML reader can follow"
+    return None
 
 
 def _table_model(model: type[BaseModel], key: Any) -> type[BaseModel] | None:

@@ -26,8 +26,15 @@ from pydantic import (
 
 from amuled_ma.errors import ScenarioError
 from amuled_ma.scenario.agents import AgentSpec, check_agent_tables, check_ollama_table
-from amuled_ma.scenario.memory import MAX_ENV_STEPS, MAX_SEED, check_budget, check_finite
+from amuled_ma.scenario.memory import (
+    MAX_ENV_STEPS,
+    MAX_SEED,
+    check_budget,
+    check_distill_memory,
+    check_finite,
+)
 from amuled_ma.scenario.messages import BUILT_IN_CODE, SECTIONS, scenario_error
+from amuled_ma.scenario.panel_checks import check_clusters, check_fusion
 from amuled_ma.scenario.paths import check_path_component
 from amuled_ma.scenario.ranges import found_name as _found_name
 from amuled_ma.scenario.task_options import check_task_options
@@ -513,6 +520,16 @@ class FeedbackConfig(_Section):
                 )
         return value
 
+    @field_validator("clusters")
+    @classmethod
+    def _clusters_are_a_panel(cls, value: list[str], info: ValidationInfo) -> list[str]:
+        return check_clusters(value, _source(info))
+
+    @field_validator("fusion")
+    @classmethod
+    def _fusion_is_a_rule(cls, value: str, info: ValidationInfo) -> str:
+        return check_fusion(value, info.data.get("clusters"), _source(info))
+
     @field_validator("weights")
     @classmethod
     def _weights_need_bjs_dst(cls, value: str, info: ValidationInfo) -> str:
@@ -545,6 +562,13 @@ class FeedbackConfig(_Section):
                 default_model=info.data["model"],
             )
         return value
+
+    @model_validator(mode="after")
+    def _distilled_model_fits_in_memory(self, info: ValidationInfo) -> FeedbackConfig:
+        d = self.distill
+        if d.enabled:
+            check_distill_memory(d.ensemble, d.hidden, len(self.clusters), d.budget, _source(info))
+        return self
 
     @field_serializer("agents")
     def _agents_as_written(self, agents: dict[str, Any]) -> dict[str, Any]:

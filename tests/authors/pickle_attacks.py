@@ -109,3 +109,18 @@ def colliding_float_keys() -> bytes:
     """``{2.0 ** (61 * j): None for j in range(17)}``: 17 floats of equal hash (1)."""
     body = b"".join(b"G" + struct.pack(">d", 2.0 ** (61 * j)) + NONE for j in range(17))
     return PROTO4 + EMPTY_DICT + MARK + body + SETITEMS + STOP
+
+
+def memoized_key_sets(calls: int, width: int = 64, copies: int = 6) -> bytes:
+    """``set(L)`` ``calls`` times, ``L`` one memoized list of ``copies`` refs to a ``width``-tuple.
+
+    Five opcodes (7 bytes) a call make the reader check and hash ``copies x (width + 1)``
+    values: within the opcode budget, a 16 MiB file of them spends minutes of CPU unless
+    the key work is counted.
+    """
+    item = b"".join(b"G" + struct.pack(">d", float(i)) for i in range(width))
+    tuple_ = MARK + item + b"t" + b"q\xf1"  # TUPLE, BINPUT 0xf1
+    list_ = b"]q\xf2" + MARK + b"h\xf1" * copies + b"e"  # EMPTY_LIST, BINPUT, BINGETs, APPENDS
+    set_global = _global("builtins", "set") + b"q\xf3"
+    call = b"h\xf3h\xf2\x85R0"  # BINGET set, BINGET L, TUPLE1, REDUCE, POP
+    return PROTO4 + tuple_ + list_ + set_global + call * calls + NONE + STOP

@@ -19,7 +19,7 @@ import numpy as np
 import pickle_attacks as attacks
 import pytest
 
-from amuled_ma.authors.pickle_reader import BoundedReader, PickleUnbounded
+from amuled_ma.authors.pickle_reader import MAX_KEY_WORK, BoundedReader, PickleUnbounded
 from amuled_ma.authors.unpickle import (
     MAX_OPCODES,
     MAX_PICKLE_BYTES,
@@ -143,6 +143,28 @@ def test_the_slowest_file_within_the_opcode_budget_ends_in_seconds(tmp_path):
     code, lines, cpu_s, _grown = run_import(tmp_path, data, timeout=120, cpu=True)
     assert cpu_s < 8, f"{cpu_s:.1f} s of CPU"
     assert code == 1 and len(lines) == 1 and "MiB of memory" in lines[0], lines
+
+
+def test_a_file_of_costly_keys_is_refused_by_its_key_work_in_a_second(tmp_path):
+    # 16 MiB of set() calls on a memoized list of 64-value tuples: 2 million opcodes, 400,000
+    # calls hashing 390 values each; counted by opcodes only it took 23-31 s of CPU here
+    # (and 187 s in another form); the key work stops it at 1,048,576 units
+    data = attacks.memoized_key_sets(2_000_000 // 5 - 200)
+    assert len(data) <= MAX_PICKLE_BYTES
+    code, lines, cpu_s, _grown = run_import(tmp_path, data, timeout=120, cpu=True)
+    assert cpu_s < 5, f"{cpu_s:.1f} s of CPU"
+    assert code == 1 and len(lines) == 1, lines
+    assert f"more than {MAX_KEY_WORK:,} units of work hashing dict keys" in lines[0], lines
+    assert "refusing to unpickle" in lines[0] and CACHE in lines[0]
+
+
+def test_the_key_work_counts_values_of_tuple_keys():
+    # 2,688 calls of 6 keys of 65 units: 1,048,320 units, within the budget; one more is not
+    ok = attacks.memoized_key_sets(MAX_KEY_WORK // 390)
+    assert BoundedReader(ok, max_array_bytes=len(ok), max_memory=None).read() is None
+    over = attacks.memoized_key_sets(MAX_KEY_WORK // 390 + 1)
+    with pytest.raises(PickleUnbounded, match="units of work hashing"):
+        BoundedReader(over, max_array_bytes=len(over), max_memory=None).read()
 
 
 def test_the_reader_keeps_its_own_opcode_budget():

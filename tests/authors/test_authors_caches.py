@@ -148,3 +148,29 @@ def test_exchange_agent_from_credences_else_call_order():
     assert exchange_agent(prompt, 4) == "deontologist"
     assert exchange_agent("Behave as moral agent.", 0) == "moral_agent"
     assert exchange_agent("credence values: {Virtue Ethics: 0.5, Care Ethics: 0.5}", 3) == "care"
+
+
+@pytest.mark.parametrize(
+    ("value", "found"),
+    [
+        (np.arange(6.0), "found ndarray of shape (6,) and dtype float64"),
+        (np.zeros((2, 3), dtype=np.int64), "found ndarray of shape (2, 3) and dtype int64"),
+        (10**5000, "found int"),  # its repr would be refused (4,300 digits at most)
+        ({}, "found an empty dict"),
+    ],
+    ids=["array", "matrix", "huge int", "empty dict"],
+)
+def test_a_cache_that_is_not_a_dict_is_one_line(tmp_path, capsys, value, found):
+    from amuled_ma.cli import main
+
+    path = write_pickle(
+        tmp_path / "models" / "FindMilk-v4_42" / "gpt-4o-mini_llm_cache.pickle", value
+    )
+    with pytest.raises(AuthorsImportError, match=r"expected the authors' LLM cache") as info:
+        convert_cache(path)
+    assert found in str(info.value)
+    # and through the command: one line, no traceback (numpy's truth value of an array)
+    runs, out = tmp_path / "runs", tmp_path / "rec"
+    assert main(["import", "authors", str(tmp_path), "--runs", str(runs), "--to", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("amuled: error: ") and err.count("\n") == 1 and found in err

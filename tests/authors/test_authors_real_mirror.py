@@ -77,3 +77,34 @@ def test_every_published_cache_fits_the_opcode_budget_with_room():
     assert counts, "no LLM cache in the mirror"
     assert max(counts.values()) == 896_093, counts  # the figure docs/authors.md gives
     assert max(counts.values()) * 2 < MAX_OPCODES
+
+
+def test_every_published_cache_fits_the_key_work_budget_with_room():
+    """The key work budget (MAX_KEY_WORK) is 7.1 times the most a published cache needs."""
+    from amuled_ma.authors import pickle_reader
+    from amuled_ma.authors.pickle_reader import MAX_KEY_WORK, BoundedReader
+
+    if MIRROR is None or not (MIRROR / "HEAD").is_file() or shutil.which("git") is None:
+        pytest.skip(f"set {MIRROR_ENV} to a git mirror of temetski/moral_agent to run this test")
+    listing = subprocess.run(
+        ["git", f"--git-dir={MIRROR}", "ls-tree", "-r", "--name-only", "HEAD"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.split()
+    spent = {}
+    for name in (n for n in listing if n.endswith("_llm_cache.pickle")):
+        blob = subprocess.run(
+            ["git", f"--git-dir={MIRROR}", "cat-file", "blob", f"HEAD:{name}"],
+            capture_output=True,
+            check=False,
+        )
+        if blob.returncode != 0:  # a mirror may lack its largest files
+            continue
+        data = blob.stdout
+        reader = BoundedReader(data, max_array_bytes=len(data), max_memory=None)
+        reader.read()
+        spent[name] = MAX_KEY_WORK - reader.key_work.left
+    assert spent, "no LLM cache in the mirror"
+    assert max(spent.values()) == 147_488, spent  # the figure pickle_reader gives
+    assert max(spent.values()) * 7 < pickle_reader.MAX_KEY_WORK

@@ -112,6 +112,21 @@ def test_invalid_lines_are_refused_and_asked_again():
     assert source.stats["invalid"] == 4 and source.stats["answered"] == 1
 
 
+def test_an_answer_of_thousands_of_digits_is_asked_again_with_a_short_reason():
+    # int() of more than 4,300 digits raises ValueError; float() of them is inf
+    lines = "9" * 5000 + "\n" + " ".join(["7" * 2000] * 4) + "\n" + "x" * 5000 + "\n1\n"
+    out = io.StringIO()
+    source = TerminalSource(attempts=4, stdin=io.StringIO(lines), stdout=out)
+    (result,) = source.beliefs([req()])
+    assert result.status == "ok" and result.belief.tolist() == [0.0, 1.0, 0.0, 0.0]
+    shown = out.getvalue()
+    assert "found an action index of 5,000 digits, out of range" in shown
+    assert "... (2,000 characters), not a finite number" in shown
+    assert "... (5,000 characters), not a number" in shown
+    assert max(len(line) for line in shown.splitlines()) < 1000  # reasons quote 40 characters
+    assert source.stats["invalid"] == 3
+
+
 def test_too_many_invalid_lines_abstain_and_the_next_state_is_asked():
     source = TerminalSource(
         attempts=2, stdin=io.StringIO("x\nnan 0 0 1\n3\n"), stdout=io.StringIO()

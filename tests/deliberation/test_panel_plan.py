@@ -101,9 +101,14 @@ def test_a_cluster_absent_from_the_recording_stops_the_command(tmp_path, capsys,
     err = _stops_before_training(tmp_path, capsys, path)
     assert 'cluster "animal_welfare" is not in recording findmilk-gpt-4o-mini' in err
     assert "(it holds: consequentialist, deontologist, virtue, care, social justice)" in err
-    assert '[feedback.agents.animal_welfare]: source = "ollama" (a live model' in err
-    assert 'source = "terminal" (a person' in err and '"rules" named for the agent' in err
-    assert "drop it from [feedback].clusters" in err
+    # the fix in the form a command line takes, short; the other sources are in the docs
+    assert "--set 'feedback.agents={animal_welfare={source=\"terminal\"}}'" in err
+    assert "(524 answers, or 20 with --set feedback.distill.enabled=true)" in err
+    assert "drop it from feedback.clusters" in err
+    assert "docs/clusters.md#a-cluster-no-recording-holds" in err
+    assert "[feedback.agents." not in err  # no TOML table a command line cannot take
+    fix = err[err.index("answer it") :]
+    assert len(fix) < 300, len(fix)  # the ways were 650 characters of TOML tables
 
 
 def test_a_recording_of_another_task_stops_the_command(tmp_path, capsys, recordings_dir):

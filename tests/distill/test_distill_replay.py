@@ -55,6 +55,23 @@ def test_a_distilled_fine_tune_asks_at_most_its_budget_and_reports_it(
     assert spent["asked"]  # the budget spent before the interruption is on disk
     monkeypatch.setattr(population_mod.PopulationTrainer, "iterate", original)
 
+    # an edited state file stops the resume with one line, before any state is asked
+    honest = (folder / "distill.json").read_text()
+    capsys.readouterr()
+    for edit, words in (
+        (lambda d: d["ledger"]["visited"].append("../../made-up"), "ledger.visited holds"),
+        (lambda d: d["asked_obs"][d["ledger"]["asked"][0]].__setitem__(0, math.nan), "finite"),
+        (lambda d: d["rng"]["state"].update(state=2**200), "rng.state.state"),
+    ):
+        document = json.loads(honest)
+        edit(document)
+        (folder / "distill.json").write_text(json.dumps(document))
+        assert main([*finetune, "--resume"]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith("amuled: error: ") and err.count("\n") == 1, err
+        assert words in err and "distill.json" in err and "--force" in err
+    (folder / "distill.json").write_text(honest)
+
     assert main([*finetune, "--resume"]) == 0
     out = capsys.readouterr().out
     assert "feedback budget 10% (uncertainty): asked" in out

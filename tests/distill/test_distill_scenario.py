@@ -99,3 +99,66 @@ def test_the_docs_list_every_range_and_key():
     distill = (DOCS / "distill.md").read_text(encoding="utf-8")
     for name in DistillConfig.model_fields:
         assert f"`{name}`" in distill, f"docs/distill.md does not document {name}"
+
+
+def test_the_memory_of_a_fit_by_hand_and_against_the_real_model():
+    import torch
+
+    from amuled_ma.distill.model import _init_params
+    from amuled_ma.scenario import memory
+
+    # E=2, H=3, K=1 member, A=16, D=64: P = 64*3 + 3 + 3*3 + 3 + 3*16 + 16 = 271 a network;
+    # 2 x 271 x 16 bytes + 2 x 5 states x (2*3 + 16) x 12 bytes = 8,672 + 2,640
+    assert memory.distill_bytes(2, 3, 1, 5) == 11_312
+    params = _init_params(torch.Generator().manual_seed(0), 2, 64, 3, 16)
+    assert sum(p.numel() for p in params) == 2 * 271  # the model's own tensors
+    # a share budget: the fit is assumed to hold 4,096 states
+    assert memory.distill_bytes(2, 3, 1, 0.1) == 8_672 + 2 * 4096 * 22 * 12
+
+
+def test_a_distilled_model_beyond_memory_is_refused_in_a_moment(tmp_path, monkeypatch):
+    import time
+
+    from amuled_ma.scenario import memory
+
+    monkeypatch.setattr(memory, "physical_memory_bytes", lambda: 32 * 2**30)
+    start = time.process_time()
+    text = load_error(
+        tmp_path, "[feedback.distill]\nenabled = true\nhidden = 4096\nensemble = 64\n"
+    )
+    assert time.process_time() - start < 2
+    assert "[feedback.distill].ensemble x hidden = 64 x 4,096" in text
+    assert "need about 40.8 GiB" in text and "32.0 GiB" in text
+    assert "e.g. hidden = 1024" in text and "\n" not in text
+    # off, the model is never built: no check
+    path = tmp_path / "off.toml"
+    path.write_text("[feedback.distill]\nenabled = false\nhidden = 4096\nensemble = 64\n")
+    assert load_scenario(path).feedback.distill.hidden == 4096
+    path.write_text("[feedback.distill]\nenabled = true\nhidden = 1024\nensemble = 64\n")
+    assert load_scenario(path).feedback.distill.hidden == 1024  # about 7.8 GiB: fits
+
+
+def test_a_distilled_model_beyond_any_memory_is_one_line_on_the_command_line(tmp_path, capsys):
+    from amuled_ma.cli import main
+
+    # 10**6 asked states in one full-batch fit of 64 networks of 4,096 units: about 6 TB
+    argv = ["train", "findmilk", "--variant", "base", "--run-dir", str(tmp_path / "r")]
+    # (each --set is checked as it is applied: switched on last, the whole model is checked)
+    for text in ("hidden=4096", "ensemble=64", "budget=1000000", "enabled=true"):
+        argv += ["--set", f"feedback.distill.{text}"]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "need about 5.8 TiB to fit the distilled model" in err
+    assert not (tmp_path / "r").exists()
+
+
+def test_seed_replicas_are_checked_before_planning(monkeypatch):
+    from amuled_ma.scenario import memory
+
+    memory.check_seed_replicas(5, 4)
+    with pytest.raises(ScenarioError, match=r"--seeds 1,000,000,000: expected at most 10,000"):
+        memory.check_seed_replicas(10**9, 4)
+    monkeypatch.setattr(memory, "physical_memory_bytes", lambda: 2**30)
+    # 8,000 x 4 jobs x 65,536 bytes = 2 GB > half of 1 GiB; 512 MiB / 65,536 / 4 = 2,048
+    with pytest.raises(ScenarioError, match=r"\(--seeds <= 2,048\)"):
+        memory.check_seed_replicas(8000, 4)

@@ -207,3 +207,110 @@ def test_a_cut_last_line_of_the_training_pairs_is_still_skipped(tmp_path):
     assert again.ledger.asked_count == BUDGET
     again.close()
     store.close()
+
+
+def made_up_keys(n: int) -> list[str]:
+    """``n`` keys that look like a fine-tune's (32 hex digits) but name no state visited."""
+    return [f"{k:032x}" for k in range(10**6, 10**6 + n)]
+
+
+def test_made_up_visited_states_never_raise_the_requests_sent(tmp_path):
+    # a share of 0.1: 20 states visited, 2 asked; 100,000 made-up visited states would let
+    # floor(0.1 x 100,020) = 10,002 states be asked under a cap taken from the file
+    honest, forged = tmp_path / "honest", tmp_path / "forged"
+    sent = {}
+    for folder in (honest, forged):
+        folder.mkdir()
+        store = BeliefStore(folder / "beliefs.sqlite")
+        first = source(CachedSource(Panel(), store), folder, budget=0.1)
+        first.beliefs(requests(range(20)))
+        first.close()
+        assert len(store) == 2 * len(MEMBERS)
+        if folder is forged:
+            edit(folder, lambda d: d["ledger"]["visited"].extend(made_up_keys(100_000)))
+        inner = Panel()
+        again = source(CachedSource(inner, store), folder, budget=0.1, resume=True)
+        again.beliefs(requests(range(20, 60)))
+        again.close()
+        sent[folder.name] = sum(len(call) for call in inner.calls)
+        report = again.report()
+        # the cap counts the asked and the re-visited states only: 2 + 40 of them
+        assert report["cap"] == 4
+        assert len(store) == 4 * len(MEMBERS)  # asked states' rows: within 0.1 x 42
+        store.close()
+    assert sent["forged"] == sent["honest"]
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("visited", "../../etc"), ("visited", "x" * 32), ("visited", "ABCDEF" * 6)],
+)
+def test_ledger_entries_that_are_not_state_keys_are_refused(tmp_path, field, value):
+    store = spend(tmp_path)
+    edit(tmp_path, lambda d: d["ledger"][field].append(value))
+    with pytest.raises(AmuledError, match=f"ledger.{field} holds") as info:
+        resume(tmp_path, store)
+    assert_one_line_refusal(info)
+    store.close()
+
+
+def forge_obs(data, value):
+    key = next(iter(data["asked_obs"]))
+    data["asked_obs"][key][0] = value
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        (lambda d: d["rng"]["state"].update(state=2**200), "rng.state.state"),
+        (lambda d: d["rng"].update(bit_generator="MT19937"), "rng.bit_generator"),
+        (lambda d: d["rng"].update(has_uint32=7), "rng.has_uint32"),
+        (lambda d: d.update(obs_dim=10**9), "obs_dim"),
+        (lambda d: d.update(obs_dim=3), "obs_dim is 3"),
+        (lambda d: forge_obs(d, float("nan")), "finite number"),
+        (lambda d: forge_obs(d, float("inf")), "finite number"),
+        (lambda d: forge_obs(d, "1.0"), "valid number"),
+        (lambda d: d.update(members=["care", "care"]), "not distinct"),
+        (lambda d: d.update(actions=[]), "actions"),
+    ],
+)
+def test_every_numeric_field_of_the_ledger_is_checked(tmp_path, change, words):
+    store = spend(tmp_path)
+    path = tmp_path / LEDGER_FILE
+    data = json.loads(path.read_text())
+    change(data)
+    path.write_text(json.dumps(data))  # json writes NaN and Infinity, as an editor may
+    with pytest.raises(AmuledError, match=words) as info:
+        resume(tmp_path, store)
+    assert_one_line_refusal(info)
+    store.close()
+
+
+def edit_example(tmp_path, change) -> None:
+    path = tmp_path / EXAMPLES_FILE
+    lines = [json.loads(line) for line in path.read_text().splitlines()]
+    change(lines[0])
+    path.write_text("".join(json.dumps(line) + "\n" for line in lines))
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        (lambda r: r["beliefs"].update(care=[0.001] * 1000), "has 1000 value"),
+        (lambda r: r["beliefs"].update(care=[float("nan")] * 4), "finite number"),
+        (lambda r: r["beliefs"].update(care=[-0.5, 0.5, 0.5, 0.5]), "negative"),
+        (lambda r: r["beliefs"].update(evil=[0.25] * 4), "not a member"),
+        (lambda r: r.update(obs=[float("inf"), 0.0]), "finite number"),
+        (lambda r: r.update(obs=[1.0] * 7), "obs has 7 values"),
+        (lambda r: r.update(key="zz"), "key"),
+        (lambda r: r.update(extra=1), "extra"),
+    ],
+)
+def test_every_training_pair_is_checked(tmp_path, change, words):
+    store = spend(tmp_path)
+    edit_example(tmp_path, change)
+    with pytest.raises(AmuledError, match=words) as info:
+        resume(tmp_path, store)
+    assert_one_line_refusal(info)
+    assert f"{EXAMPLES_FILE}:1: " in str(info.value)
+    store.close()
