@@ -19,13 +19,26 @@ from typing import NoReturn
 
 from amuled_ma import __version__, commands
 from amuled_ma.clusters.plugins import set_allowed_plugins
-from amuled_ma.errors import AmuledError, Terminated
+from amuled_ma.errors import (
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_REFUSED,
+    EXIT_TERMINATED,
+    EXIT_USAGE,
+    AmuledError,
+    Terminated,
+)
 from amuled_ma.experiments.third_party_log import third_party_to_log
 
-#: Exit status of a run stopped by SIGTERM (128 + 15, as a shell reports it).
-EXIT_TERMINATED = 128 + signal.SIGTERM
-#: Exit status of a run stopped by Ctrl-C (128 + 2).
-EXIT_INTERRUPTED = 128 + signal.SIGINT
+#: The exit statuses, as ``amuled --help`` and docs/trust.md list them.
+EXIT_CODES_HELP = (
+    "exit status: "
+    f"{EXIT_OK} done; "
+    f"{EXIT_REFUSED} an input or a run refused (one line 'amuled: error: ...'); "
+    f"{EXIT_USAGE} a usage error (an unknown option, a missing argument); "
+    f"{EXIT_INTERRUPTED} interrupted (Ctrl-C); "
+    f"{EXIT_TERMINATED} terminated (SIGTERM)"
+)
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -33,7 +46,7 @@ class OneLineParser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         """Print ``amuled: error: ...`` naming the command's ``--help``, exit with 2."""
-        self.exit(2, f"amuled: error: {message} (see '{self.prog} --help')\n")
+        self.exit(EXIT_USAGE, f"amuled: error: {message} (see '{self.prog} --help')\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -44,6 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
             "Ethical fine-tuning of RL agents with fused feedback from LLM moral clusters "
             "(AMULED). Run 'amuled COMMAND --help' for a command's options."
         ),
+        epilog=EXIT_CODES_HELP,
     )
     parser.add_argument("--version", action="version", version=f"amuled-ma {__version__}")
     parser.add_argument(
@@ -80,6 +94,20 @@ def describe_os_error(error: OSError) -> str:
     return f"{where}: {what}; {fix}" if where else f"{what}; {fix}"
 
 
+def one_line(text: str) -> str:
+    """``text`` as one line: its non-blank lines, stripped of indentation and list dashes.
+
+    A line ending with ``:`` runs into the next with a space; the others join with ``"; "``.
+    """
+    parts = [line.strip().lstrip("-").strip() for line in text.splitlines()]
+    joined = ""
+    for part in filter(None, parts):
+        if joined:
+            joined += " " if joined.endswith(":") else "; "
+        joined += part
+    return joined
+
+
 def _raise_terminated(signum: int, _frame: object) -> None:
     raise Terminated(signum)
 
@@ -98,11 +126,12 @@ def report_failure(error: BaseException, *, debug: bool = False) -> int:
         debug: Print the Python traceback before the line (not for Ctrl-C or SIGTERM).
 
     Returns:
-        143 for SIGTERM, 130 for Ctrl-C, 1 for any other failure.
+        The error class's ``exit_code`` (:mod:`amuled_ma.errors`: 143 for SIGTERM,
+        1 for an :class:`~amuled_ma.errors.AmuledError`); 130 for Ctrl-C, 1 for a file error.
     """
     if isinstance(error, Terminated):
         print("amuled: terminated (SIGTERM)", file=sys.stderr)
-        return EXIT_TERMINATED
+        return error.exit_code
     if isinstance(error, KeyboardInterrupt):
         print("amuled: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -119,8 +148,8 @@ def report_failure(error: BaseException, *, debug: bool = False) -> int:
         text = describe_os_error(error)
     else:
         raise TypeError(f"report_failure: not a command failure: {error!r}") from error
-    print(f"amuled: error: {text}", file=sys.stderr)
-    return 1
+    print(f"amuled: error: {one_line(text)}", file=sys.stderr)
+    return getattr(error, "exit_code", EXIT_REFUSED)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -142,13 +171,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if not getattr(args, "handler", None):
         parser.print_help()
-        return 2
+        return EXIT_USAGE
     # code a data file names is imported only if this command line allowed it
     set_allowed_plugins(getattr(args, "allow_plugin", None) or ())
     previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         with third_party_to_log():  # other libraries' warnings: to the log, not the output
-            return int(args.handler(args) or 0)
+            return int(args.handler(args) or EXIT_OK)
     except FAILURES as error:
         return report_failure(error, debug=args.debug)
     finally:

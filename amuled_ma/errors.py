@@ -6,9 +6,28 @@ expected, so a researcher can fix the input without reading our code.
 
 from __future__ import annotations
 
+from typing import ClassVar
+
+#: Exit status of a command that finished.
+EXIT_OK = 0
+#: Exit status of a refused input or a failed run (an :class:`AmuledError`, a file error).
+EXIT_REFUSED = 1
+#: Exit status of a usage error: an unknown option or a missing argument (argparse's).
+EXIT_USAGE = 2
+#: Exit status of a run stopped by Ctrl-C (128 + SIGINT).
+EXIT_INTERRUPTED = 130
+#: Exit status of a run stopped by SIGTERM (128 + SIGTERM).
+EXIT_TERMINATED = 143
+
 
 class AmuledError(Exception):
-    """Base class of every error raised on purpose by amuled-ma."""
+    """Base class of every error raised on purpose by amuled-ma.
+
+    Attributes:
+        exit_code: The command line's exit status for this error.
+    """
+
+    exit_code: ClassVar[int] = EXIT_REFUSED
 
 
 class ScenarioError(AmuledError, ValueError):
@@ -65,6 +84,8 @@ class Terminated(KeyboardInterrupt):
     A subclass of :class:`KeyboardInterrupt`: every ``except KeyboardInterrupt`` that writes
     a checkpoint handles it the same way; the command line then exits with 143.
     """
+
+    exit_code: ClassVar[int] = EXIT_TERMINATED
 
 
 class MemberFailed(AmuledError):

@@ -367,11 +367,11 @@ class OllamaServer:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.process.poll() is not None:
-                tail = self.log_tail()
+                last = (self.log_tail().strip().splitlines() or ["(empty)"])[-1]
                 self.process = None
                 raise BackendUnavailable(
-                    f"{self.binary} serve exited at start (port {port}); end of its log "
-                    f"{self.log_path}:\n{tail}"
+                    f"{self.binary} serve exited at start (port {port}); its log "
+                    f"{self.log_path} ends with: {last}"
                 )
             version = server_version(self.host, timeout=1.0)
             if version is not None:

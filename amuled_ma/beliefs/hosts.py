@@ -49,20 +49,31 @@ class ServerCheck:
     digest: str | None = None
 
 
-def unreachable_error(host: str, error: BaseException | None = None) -> BackendUnavailable:
+def up_command(model: str | None) -> str:
+    """``amuled ollama up --tiny`` for :data:`TINY_MODEL` (any tag), else ``amuled ollama up``."""
+    tiny = model is not None and model.split(":", 1)[0] == TINY_MODEL
+    return "amuled ollama up --tiny" if tiny else "amuled ollama up"
+
+
+def unreachable_error(
+    host: str, error: BaseException | None = None, model: str | None = None
+) -> BackendUnavailable:
     """The error of a server that does not answer: the host, the cause and how to start one.
 
     Args:
         host: The server's URL.
         error: What the request raised, if anything.
+        model: The model the caller wanted; for :data:`TINY_MODEL` the advice is
+            ``'amuled ollama up --tiny'``.
 
     Returns:
         The error to raise.
 
     """
     why = f" ({type(error).__name__}: {error})" if error is not None else ""
+    up = up_command(model)
     return BackendUnavailable(
-        f"no Ollama server answers at {host}{why}; start one with 'amuled ollama up' "
+        f"no Ollama server answers at {host}{why}; start one with '{up}' "
         "(a private server; it prints its host) or 'ollama serve', or point OLLAMA_HOST "
         "(or the scenario's host) at a running server"
     )
@@ -150,7 +161,7 @@ def preflight(
             listing = reply.json().get("models") or []
             models = tuple(str(m.get("name") or m.get("model")) for m in listing)
     except (httpx.HTTPError, ValueError, AttributeError) as error:  # not an Ollama reply
-        raise unreachable_error(url, error) from error
+        raise unreachable_error(url, error, model) from error
     if model is None:
         return ServerCheck(url, version, models)
     wanted = {model, model if ":" in model else f"{model}:latest"}

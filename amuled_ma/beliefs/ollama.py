@@ -78,6 +78,7 @@ from amuled_ma.beliefs.hosts import (
     normalize_hosts,
     preflight,
     unreachable_error,
+    up_command,
 )
 from amuled_ma.beliefs.parsing import belief_schema, parse_belief, uniform
 from amuled_ma.beliefs.timing import RequestTiming, publish_timing
@@ -586,12 +587,12 @@ class OllamaSource(BeliefSource):
     def _unreachable(self, failure: _FailureError) -> BackendUnavailable:
         """The error of a call no host answered: the host (or every host of the pool)."""
         if len(self.hosts) == 1:
-            return unreachable_error(self.host, failure)
+            return unreachable_error(self.host, failure, self.model)
         return BackendUnavailable(
             f"no Ollama server of the pool answers (last at {failure.host}: {failure}); the "
             f"hosts: {self.host_pool.describe()}; start them again or remove the dead ones "
-            "from the pool ([feedback].hosts, or the agent's hosts); 'amuled ollama up' "
-            "starts a private server"
+            "from the pool ([feedback].hosts, or the agent's hosts); "
+            f"'{up_command(self.model)}' starts a private server"
         )
 
     def _failed(

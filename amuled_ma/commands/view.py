@@ -98,13 +98,21 @@ def serve_seconds(text: str) -> float:
 
 
 def view_command(args: argparse.Namespace) -> int:
-    """Run ``amuled view``."""
+    """Run ``amuled view``.
+
+    Raises:
+        AmuledError: RUN_DIR is not a run folder; checked before torch is imported.
+    """
+    from amuled_ma.experiments.run_folder import scenario_of_run
+
+    run_dir = Path(args.run_dir)
+    scenario_of_run(run_dir)  # a missing or wrong folder: one line, before the heavy imports
+
     from amuled_ma.evaluate.page_server import serve
     from amuled_ma.evaluate.viewer import write_view
     from amuled_ma.experiments.trained_variants import run_to_view
     from amuled_ma.safe_files import check_write_target
 
-    run_dir = Path(args.run_dir)
     if args.output is not None:
         check_write_target(args.output)  # a link or a device is refused before any work
     view = run_to_view(run_dir, args.variants, args.episodes)

@@ -7,6 +7,8 @@ the demonstrators) can check it without importing torch or a task.
 
 from __future__ import annotations
 
+import difflib
+
 from amuled_ma.errors import ScenarioError
 
 __all__ = ["ALIASES", "TASK_NAMES", "canonical_name"]
@@ -32,7 +34,8 @@ def canonical_name(name: str) -> str:
         The short name (``"findmilk"`` or ``"driving"``).
 
     Raises:
-        ScenarioError: Not a string, or an unknown task; the message lists the known ones.
+        ScenarioError: Not a string, or an unknown task; the message lists the known ones
+            and the closest (:func:`difflib.get_close_matches`).
 
     """
     if not isinstance(name, str):
@@ -40,5 +43,9 @@ def canonical_name(name: str) -> str:
     key = name.strip().lower()
     key = ALIASES.get(key, key)
     if key not in TASK_NAMES:
-        raise ScenarioError(f"name: unknown task {name!r}; known tasks: {', '.join(TASK_NAMES)}")
+        close = difflib.get_close_matches(key, [*TASK_NAMES, *ALIASES], n=1)
+        hint = f"; did you mean {ALIASES.get(close[0], close[0])}?" if close else ""
+        raise ScenarioError(
+            f"name: unknown task {name!r}; known tasks: {', '.join(TASK_NAMES)}{hint}"
+        )
     return key
