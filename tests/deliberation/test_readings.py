@@ -75,3 +75,25 @@ def test_summary_lines_carry_the_readings() -> None:
     summary = {"statuses": {"ok": 1, "repaired": 3}, "agents": {"care": {"ok": 1, "repaired": 3}}}
     lines = summary_lines(summary)
     assert "  reading: care: 75% of answers needed a repair" in "\n".join(lines)
+
+
+def test_report_readings_per_variant() -> None:
+    """The report's bullets name the variant; a variant whose figures call for none has none."""
+    from amuled_ma.evaluate.report.writing import readings_lines
+    from amuled_ma.evaluate.results import Results
+
+    results = Results.of(
+        {
+            "variants": {
+                "base": {},
+                "finetune-amuled": {"feedback": {"distill": {"holdout_tv_fused": 0.71}}},
+                "finetune-plain": {"feedback": {"agents": {"care": {"ok": 9, "repaired": 1}}}},
+            }
+        }
+    )
+    lines = readings_lines(results)
+    assert lines == [
+        "- **finetune-amuled**: held-out TV 0.71: on states it was not fit to, the distilled "
+        "model places 71% of the probability mass differently from the panel; far from the "
+        "panel: its most likely action can differ from the panel's"
+    ]
