@@ -55,6 +55,47 @@ TINY_SECONDS_PER_REQUEST = 4.1
 SUGGESTED_BUDGET = 20
 
 
+#: Recorded requests a median needs before it stands for this machine's cost per request.
+MIN_TIMED_REQUESTS = 5
+
+
+class RequestCost(NamedTuple):
+    """Seconds per live request to a model, and where the figure comes from (in words)."""
+
+    seconds: float
+    basis: str
+
+
+def request_cost(store: Path | None, model: str) -> RequestCost:
+    """What one live request to ``model`` costs on this machine.
+
+    Args:
+        store: The run's belief store (``None`` or absent: nothing recorded).
+        model: The Ollama model name.
+
+    Returns:
+        The median of the store's recorded seconds per answered request to ``model``
+        (:meth:`~amuled_ma.beliefs.store.BeliefStore.request_seconds`) when it holds at
+        least :data:`MIN_TIMED_REQUESTS`, basis ``"measured here: median of N recorded
+        requests"``; else :data:`TINY_SECONDS_PER_REQUEST`, basis ``"the docs' figure for
+        the tiny model, not measured here"``.
+
+    """
+    if store is not None and Path(store).is_file():
+        from amuled_ma.beliefs.store import BeliefStore
+
+        with BeliefStore(store, read_only=True) as held:
+            seconds = held.request_seconds(model)
+        if len(seconds) >= MIN_TIMED_REQUESTS:
+            return RequestCost(
+                float(np.median(seconds)),
+                f"measured here: median of {len(seconds)} recorded requests",
+            )
+    return RequestCost(
+        TINY_SECONDS_PER_REQUEST, "the docs' figure for the tiny model, not measured here"
+    )
+
+
 def _duration(seconds: float) -> str:
     """``40 s``, ``12 min``, ``3.1 h``: a rough duration in words."""
     if seconds < 120:
@@ -64,20 +105,26 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h"
 
 
-def options_line(missing: Sequence[str], states: int, distill: Any = None) -> str:
+def options_line(
+    missing: Sequence[str], states: int, distill: Any = None, cost: RequestCost | None = None
+) -> str:
     """The ways to give members without beliefs an answer, each with its cost here.
 
     Args:
         missing: The members no source answers (user clusters not in the recording).
         states: Distinct states a fine-tune of the task asks about (the recording's).
         distill: ``[feedback.distill]`` (its budget, when on, is the cost to quote).
+        cost: Seconds per live request and their basis (:func:`request_cost`); ``None``:
+            the docs' figure for the tiny model, said so.
 
     Returns:
-        One sentence: a live model (states x members x :data:`TINY_SECONDS_PER_REQUEST`),
+        One sentence: a live model (states x members x ``cost.seconds``, with its basis),
         a person (the number of answers), either on a budget with the distilled model,
         ``rules`` by name (the cluster's text is not read), or dropping the members.
 
     """
+    cost = cost or request_cost(None, "")
+    per = cost.seconds
     n = len(missing)
     table = missing[0] if n == 1 else "<name>"
     members = f"{n} member{'s' if n > 1 else ''}"
@@ -90,12 +137,11 @@ def options_line(missing: Sequence[str], states: int, distill: Any = None) -> st
     return (
         f"give {'it' if n == 1 else 'them'} beliefs with [feedback.agents.{table}]: "
         f'source = "ollama" (a live model: about {states:,} states x {members} x '
-        f"{TINY_SECONDS_PER_REQUEST} s a request on the tiny model here = "
-        f"~{_duration(asks * TINY_SECONDS_PER_REQUEST)}), "
+        f"{per:.1f} s a request ({cost.basis}) = ~{_duration(asks * per)}), "
         f'source = "terminal" (a person: about {asks:,} answers), either on a budget with '
         "the distilled model answering the rest (--set feedback.distill.enabled=true --set "
         f"feedback.distill.budget={budget}: {small:,} requests, "
-        f"~{_duration(small * TINY_SECONDS_PER_REQUEST)} live or {small:,} answers by a "
+        f"~{_duration(small * per)} live or {small:,} answers by a "
         'person; docs/distill.md), source = "rules" named for the agent (the task\'s '
         'rule answers: the cluster\'s text is not read), a plug-in ("entry-point") or a '
         'saved policy ("policy"); or drop it from [feedback].clusters'
