@@ -549,6 +549,32 @@ class BeliefStore:
             out.append({"identity": identity, "rows": n, "answers": int(m or 0)})
         return out
 
+    def request_seconds(self, model: str) -> list[float]:
+        """The recorded seconds of each answered live request to ``model``, oldest first.
+
+        Args:
+            model: The model name as the source's identity holds it (``"model"``).
+
+        Returns:
+            ``latency_s`` of the ``ok``/``repaired`` rows whose identity names ``model`` and
+            whose latency is above 0 (a row answered from a replay or a cache records 0).
+
+        """
+        rows = self._read(
+            "SELECT identity, latency_s FROM beliefs WHERE status IN ('ok', 'repaired') "
+            "AND latency_s > 0 ORDER BY created_at, rowid"
+        )
+        models: dict[str, object] = {}
+        out = []
+        for ident, latency in rows:
+            if ident not in models:
+                where = f"{self.path}: identity {ident[:60]!r}"
+                identity = load_column(ident, "identity", where, None)
+                models[ident] = identity.get("model") if isinstance(identity, dict) else None
+            if models[ident] == model:
+                out.append(float(latency))
+        return out
+
     def __len__(self) -> int:
         return int(self._read("SELECT COUNT(*) FROM beliefs")[0][0])
 

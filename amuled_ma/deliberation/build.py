@@ -52,6 +52,50 @@ _KINDS = " | ".join(f'"{k}"' for k in AGENT_SOURCE_KINDS if k != "replay")
 SUGGESTED_BUDGET = 20
 
 
+#: Seconds per request of the private tiny Ollama model in the docs (docs/ollama.md, "Where a
+#: request's time goes"), quoted as such when the store has too few timed requests.
+TINY_SECONDS_PER_REQUEST = 4.1
+#: Recorded requests a median needs before it stands for this machine's cost per request.
+MIN_TIMED_REQUESTS = 5
+
+
+class RequestCost(NamedTuple):
+    """Seconds per live request to a model, and where the figure comes from (in words)."""
+
+    seconds: float
+    basis: str
+
+
+def request_cost(store: Path | None, model: str) -> RequestCost:
+    """What one live request to ``model`` costs on this machine.
+
+    Args:
+        store: The run's belief store (``None`` or absent: nothing recorded).
+        model: The Ollama model name.
+
+    Returns:
+        The median of the store's recorded seconds per answered request to ``model``
+        (:meth:`~amuled_ma.beliefs.store.BeliefStore.request_seconds`) when it holds at
+        least :data:`MIN_TIMED_REQUESTS`, basis ``"measured here: median of N recorded
+        requests"``; else :data:`TINY_SECONDS_PER_REQUEST`, basis ``"the docs' figure for
+        the tiny model, not measured here"``.
+
+    """
+    if store is not None and Path(store).is_file():
+        from amuled_ma.beliefs.store import BeliefStore
+
+        with BeliefStore(store, read_only=True) as held:
+            seconds = held.request_seconds(model)
+        if len(seconds) >= MIN_TIMED_REQUESTS:
+            return RequestCost(
+                float(np.median(seconds)),
+                f"measured here: median of {len(seconds)} recorded requests",
+            )
+    return RequestCost(
+        TINY_SECONDS_PER_REQUEST, "the docs' figure for the tiny model, not measured here"
+    )
+
+
 def options_line(missing: Sequence[str], states: int, distill: Any = None) -> str:
     """The ways to give members without beliefs an answer, short, as ``--set`` options.
 

@@ -53,6 +53,7 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
             share = f" ({100 * n / agent_total:.2f}%)" if n and agent_total else ""
             cells.append(f"{status} {n:,}{share if status not in ANSWERED else ''}")
         lines.append(f"  {agent}: {', '.join(cells)}")
+    lines += [f"  reading: {sentence}" for sentence in readings(summary)]
     servers = summary.get("llm_servers") or {}
     if servers:
         from amuled_ma.beliefs.host_pool import host_lines
@@ -60,6 +61,85 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
         lines.append(f"LLM servers ({len(servers)}):")
         lines += [f"  {line}" for line in host_lines(servers)]
     return lines
+
+
+#: An agent whose replies were repaired more often than this (of its answers) mostly did not
+#: follow the requested format: past half, the parser's reading is the typical answer.
+REPAIRED_MAJORITY = 0.5
+#: Held-out total variation up to which the distilled model reads as close to the panel
+#: (at most a tenth of the probability mass placed differently) ...
+TV_CLOSE = 0.1
+#: ... and above which it reads as far (over a third placed differently: its most likely
+#: action can differ from the panel's).
+TV_FAR = 1 / 3
+#: Mean belief entropy, as a share of the maximum (log2 of the action count), at or above
+#: which an agent's beliefs read as nearly flat (0.26/0.24/0.24/0.26 over four actions: 0.9994).
+FLAT_ENTROPY = 0.95
+
+
+def readings(summary: Mapping[str, Any]) -> list[str]:
+    """One sentence on what each figure of a feedback summary means for the result.
+
+    Args:
+        summary: A :meth:`Feedback.summary` (or ``feedback.json``): ``agents`` (per-agent
+            status counts), ``statuses``, ``distill`` (``holdout_tv_fused``), ``mean_weight``
+            and, where known, ``mean_entropy_share`` (per agent: mean Deng entropy of its
+            beliefs / log2 of the action count).
+
+    Returns:
+        Sentences, each present exactly when its condition holds: an agent repaired on more
+        than :data:`REPAIRED_MAJORITY` of its answers; the distilled model's held-out TV
+        (close up to :data:`TV_CLOSE`, far above :data:`TV_FAR`); the share of beliefs
+        the distilled model gave (when above 0); an agent at or above
+        :data:`FLAT_ENTROPY` that carries the largest mean weight.
+
+    """
+    out: list[str] = []
+    for agent, row in (summary.get("agents") or {}).items():
+        answered = row.get("ok", 0) + row.get("repaired", 0)
+        repaired = row.get("repaired", 0)
+        if answered and repaired / answered > REPAIRED_MAJORITY:
+            out.append(
+                f"{agent}: {100 * repaired / answered:.0f}% of answers needed a repair: the "
+                "model rarely followed the requested format; its beliefs are the parser's "
+                "reading of free text"
+            )
+    distill = summary.get("distill") or {}
+    tv = distill.get("holdout_tv_fused")
+    if tv is not None:
+        verdict = (
+            "close to the panel"
+            if tv <= TV_CLOSE
+            else "far from the panel: its most likely action can differ from the panel's"
+            if tv > TV_FAR
+            else "a rough stand-in for the panel"
+        )
+        out.append(
+            f"held-out TV {tv:.2f}: on states it was not fit to, the distilled model places "
+            f"{100 * tv:.0f}% of the probability mass differently from the panel; {verdict}"
+        )
+    statuses = summary.get("statuses") or {}
+    total = sum(statuses.values())
+    model = sum(statuses.get(s, 0) for s in MODEL_STATUSES)
+    if distill and total and model:
+        out.append(
+            f"{100 * model / total:.0f}% of the beliefs came from the distilled model, not the "
+            "panel: on those steps the reward is the distilled model's guess (its agreement "
+            "is the held-out TV)"
+        )
+    weights = summary.get("mean_weight") or {}
+    shares = summary.get("mean_entropy_share") or {}
+    if weights and shares:
+        top = max(weights, key=lambda a: weights[a])
+        share = shares.get(top)
+        if share is not None and share >= FLAT_ENTROPY and len(weights) > 1:
+            out.append(
+                f"{top}'s beliefs are nearly flat (entropy {share:.2f} of max) yet it carries "
+                f"the largest weight ({weights[top]:.2f}): Xiao's weighting rewards information "
+                "volume (Deng entropy), so a flat agent gains weight; consider dropping it or "
+                "giving it a prior weight"
+            )
+    return out
 
 
 def distill_line(report: Mapping[str, Any]) -> str:

@@ -323,6 +323,17 @@ def write_report(
         "",
         diagnostics_table(results, len(tunes)),
     ]
+    read = readings_lines(results)
+    if read:
+        lines += [
+            "## What the figures mean",
+            "",
+            "One sentence per figure that changes how the result reads (the thresholds are "
+            "in amuled_ma/deliberation/summaries.py, `readings`).",
+            "",
+            *read,
+            "",
+        ]
     agents = agents_table(results)
     if agents:
         lines += [
@@ -383,6 +394,27 @@ def write_report(
         if path is not None:
             lines += [f"### {caption}", "", note, "", f"![{caption}]({path.name})", ""]
     return write_text_atomic(run_dir / "report.md", "\n".join(lines))
+
+
+def readings_lines(results: Results) -> list[str]:
+    """Markdown bullets ``- **variant**: sentence``: each fine-tune's feedback readings.
+
+    Args:
+        results: The run's results; a variant without ``feedback.json`` gives none.
+
+    Returns:
+        One bullet per sentence of :func:`~amuled_ma.deliberation.summaries.readings`, in
+        variant order; empty when no figure calls for one.
+
+    """
+    from amuled_ma.deliberation.summaries import readings
+
+    return [
+        f"- **{name}**: {sentence}"
+        for name, variant in results.variants.items()
+        if variant.feedback is not None
+        for sentence in readings(variant.feedback.model_dump())
+    ]
 
 
 def _paper_lines(results: Results, described: Mapping[str, RunRecord | None]) -> list[str]:
