@@ -1,7 +1,7 @@
 """``CachedSource``: any belief source behind the persistent store.
 
-``CachedSource(source, store)`` is itself a :class:`~amuled_ma.beliefs.types.BeliefSource`.
-For a batch it computes each request's store key (:func:`~amuled_ma.beliefs.keys.request_key`
+``CachedSource(source, store)`` is itself a `BeliefSource`.
+For a batch it computes each request's store key (`request_key`
 with the wrapped source's ``identity()``), answers what it can from the SQLite store, and
 sends only the misses, each distinct request once, to the wrapped source. It keeps no
 in-memory copy: in training the feedback's memo in front of the panel answers every state
@@ -15,7 +15,7 @@ of a batch:
 - any other source is called chunk by chunk (``chunk_size``, 256, requests per call) and each
   chunk is written before the next one is sent.
 
-Caching policy (see also :mod:`amuled_ma.beliefs.store`):
+Caching policy (see also `store`):
 
 - ``"ok"`` and ``"repaired"`` answers are cached permanently and served as hits;
 - ``"abstained"`` (the parser gave up), ``"timeout"`` and ``"error"`` answers are *written*
@@ -26,11 +26,11 @@ Caching policy (see also :mod:`amuled_ma.beliefs.store`):
   that a recording lacked the state.
 
 Every answer of the wrapped source is checked on arrival
-(:func:`amuled_ma.beliefs.validate.checked_result`): an ``"ok"``/``"repaired"`` answer whose
+(`checked_result`): an ``"ok"``/``"repaired"`` answer whose
 belief is not a valid probability vector over the request's actions (NaN, inf, negative,
 all zero, the wrong length, a sum off 1 by more than 1e-6) becomes status ``"error"`` with
 a uniform belief, the reason in ``extra["error"]`` and the values found in
-``extra["invalid_belief"]``; it is counted in :attr:`CacheStats.invalid`, written for the
+``extra["invalid_belief"]``; it is counted in `CacheStats.invalid`, written for the
 record and asked again next run, never served. So a plug-in source that answers NaN can
 never put an ``"ok"`` row into the store, and the store refuses to write one anyway.
 """
@@ -55,7 +55,7 @@ NOT_STORED = frozenset({"replay_miss"})
 
 @dataclass
 class CacheStats:
-    """Counters of a :class:`CachedSource` since creation (or :meth:`CachedSource.reset_stats`).
+    """Counters of a `CachedSource` since creation (or `CachedSource.reset_stats`).
 
     Attributes:
         requests: Requests received (duplicates included).
@@ -106,7 +106,7 @@ class CachedSource(BeliefSource):
         identity: The identity to key the store with, instead of asking the source. The
             source's ``identity()`` may need its backend (the Ollama source asks the server
             for the model digest); giving the identity recorded in the store
-            (:meth:`~amuled_ma.beliefs.store.BeliefStore.identities`) replays a store on a
+            (`identities`) replays a store on a
             machine without the backend: hits never touch the source, only misses do.
 
     """

@@ -53,7 +53,7 @@ def make_server(path: Path, host: str = "127.0.0.1", port: int = 0) -> http.serv
 
     Raises:
         OSError: The file cannot be read, or the address cannot be bound.
-        AmuledError: The file is larger than :data:`MAX_PAGE_BYTES` (refused from its
+        AmuledError: The file is larger than `MAX_PAGE_BYTES` (refused from its
             size, before it is read); one line naming it.
 
     """
@@ -89,7 +89,7 @@ def serve(
 
     Raises:
         OSError: The page cannot be read, or the address cannot be bound.
-        AmuledError: The page is larger than :data:`MAX_PAGE_BYTES` (:func:`make_server`).
+        AmuledError: The page is larger than `MAX_PAGE_BYTES` (`make_server`).
 
     """
     server = make_server(path, host, port)

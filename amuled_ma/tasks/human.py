@@ -1,6 +1,6 @@
 """The paper's synthetic "human feedback" baseline: a rule-obeying belief over actions.
 
-:func:`human_belief` turns observations into probability vectors over the task's actions,
+`human_belief` turns observations into probability vectors over the task's actions,
 vectorised over any leading dimensions, from the observation alone.
 
 FindMilk (the issue's rule, as in the authors' ``algorithms/human_policy_milk.py``): for each
