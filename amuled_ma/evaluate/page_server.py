@@ -13,8 +13,8 @@ from pathlib import Path
 from typing import Any
 
 #: Largest page served [bytes]: the page is held in memory and sent whole. A viewer page
-#: is about 0.2 MB (the demo's) and at most a few MB (issue 17's target: 3 MB for a
-#: 300-step Driving episode with five agents); 64 MiB is 20 times that target.
+#: is about 0.2 MB (the demo's), about 3 MB for a 300-step Driving episode with five
+#: agents; 64 MiB is 20 times that.
 MAX_PAGE_BYTES = 64 * 2**20
 
 

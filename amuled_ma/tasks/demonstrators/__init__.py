@@ -32,8 +32,8 @@ on any device and answers on that device.
 
 ## Version History
 
-- v1: first version (issue 13, item 2).
-- v1.1: split into one module per job (issue 23); the counts are unchanged.
+- v1: first version.
+- v1.1: one module per job; the counts are unchanged.
 """
 
 from __future__ import annotations
