@@ -1,46 +1,31 @@
 """The belief store: one SQLite row per belief request ever answered.
 
-LLM calls are the slowest and most fragile part of a run, so every answer is kept on
-disk and a re-run never sends the same request twice. The store is a plain SQLite file
-(standard library only) in WAL mode with a busy timeout, so several processes (parallel
-seeds, a sweep) may read and write it at once, and a process killed in the middle of a
-write (``kill -9``, an OOM kill, a pulled plug on a GPU box job) leaves every committed
-row intact and the file consistent.
-
-A row is keyed by `request_key`; the table layout, the row
-record `StoredBelief` and the checks on every row read or
-written are in `rows`; export and import as JSON Lines in
-`interchange`.
+Every answer is kept so a re-run never sends the same request twice. A SQLite file in WAL
+mode with a busy timeout: several processes may read and write it at once, and a process
+killed mid-write leaves every committed row intact. Rows are keyed by `request_key`; the
+row layout and its checks are in `rows`, JSON Lines export/import in `interchange`.
 
 ## What is served back
 
-Only rows with status ``"ok"`` or ``"repaired"`` (`CACHEABLE`)
-are answers; they are never overwritten. Rows with any other status (``"abstained"``,
-``"timeout"``, ``"error"``, ...) are kept for the record (the raw reply of an abstention is
-evidence of a model's failure) but are *not* served as cache hits, so the next run asks
-again; a later ``ok``/``repaired`` answer replaces them and ``attempts`` counts the tries.
+Only rows with status ``"ok"`` or ``"repaired"`` (`CACHEABLE`) are answers, never
+overwritten. Rows with any other status are kept for the record but not served, so the
+next run asks again; a later answer replaces them and ``attempts`` counts the tries.
 
 ## Every belief is checked
 
-`BeliefStore.put_many` refuses to write a belief that is not valid for its row's
-action count (`BeliefStoreError` naming the key and what was
-found; the `CachedSource` in front of it has already
-turned an invalid answer into status ``"error"``), and every read refuses a damaged row
-(`decode_row`).
+`BeliefStore.put_many` refuses a belief not valid for its row's action count
+(`BeliefStoreError`); every read refuses a damaged row (`decode_row`).
 
 ## Read-only use
 
-``BeliefStore(path, read_only=True)`` (``amuled beliefs stats`` and ``export``) opens an
-existing file with SQLite's ``mode=ro``, creating nothing, and writes nothing. Where even
-that cannot work (WAL mode needs a ``-shm`` file beside the store, which cannot be created
-in a folder you may not write), it opens the file ``immutable=1``: a snapshot of what was
-checkpointed into the main file, without the changes still in a ``-wal`` file.
+``BeliefStore(path, read_only=True)`` opens an existing file with ``mode=ro`` and writes
+nothing; in a folder it cannot write (no ``-shm`` file possible) it opens ``immutable=1``:
+what was checkpointed into the main file, without the ``-wal`` changes.
 
 ## Durability
 
-Every write is one short ``BEGIN IMMEDIATE`` transaction. ``synchronous=NORMAL`` (the WAL
-default) makes a committed transaction survive a crash of the *process*; pass
-``synchronous="FULL"`` to also survive a power loss at some write speed.
+Every write is one ``BEGIN IMMEDIATE`` transaction. ``synchronous=NORMAL`` survives a
+process crash; ``synchronous="FULL"`` also a power loss, at some write speed.
 """
 
 from __future__ import annotations

@@ -1,38 +1,18 @@
 """The moral panel: one belief per (env copy, cluster), fused per env copy.
 
-`MoralPanel` is what the learner calls every step for every env copy::
+`MoralPanel.fused` takes a batch of env copies and
 
-    panel = MoralPanel("findmilk", ["consequentialist", "deontological", "virtue", "care",
-                                    "social_justice"], CachedSource(source, store))
-    out = panel.fused(obs_batch, prompt_vars)      # obs_batch: (N, obs_dim)
-    reward = out.fused[np.arange(N), actions]      # the AMULED shaping reward
+1. asks each distinct state (observation bytes + prompt variables) once;
+2. renders its prompt (`render_state_prompt`) and each cluster's chat (`build_messages`),
+   unless the source reads no messages;
+3. sends all (state, cluster) requests in one batch to the source;
+4. checks every belief (`validate`); an invalid one becomes status ``"error"`` (counted
+   in `PanelStats.invalid`), so no invalid belief is fused;
+5. fuses with `fuse`: an agent without an answer abstains (left out, weight 0); a state
+   nobody answered gets the uniform fallback, counted. A distilled model's belief
+   (`MODEL_STATUSES`) is an answer.
 
-For a batch it
-
-1. deduplicates the env copies by state (observation bytes + prompt variables): many
-   copies share a state, and each distinct state is asked once;
-2. for each new state renders the state prompt
-   (`render_state_prompt`) and builds each cluster's chat
-   (`build_messages`), unless the source reads no messages;
-3. sends all (state, cluster) requests in **one** batch to the source (wrap it in
-   `CachedSource` for the SQLite store);
-4. checks every belief with the package's one rule (`validate`:
-   finite, non-negative, one value per action, summing to 1 within 1e-6; within the
-   tolerance it is divided by its sum): an invalid belief, whatever status its source gave
-   it, becomes status ``"error"`` (counted in `PanelStats.invalid`, its reason kept
-   in `PanelStats.invalid_reasons`), so fusion never raises in the training loop and
-   no invalid belief is fused as an answer;
-5. fuses with `fuse`, vectorised over the states that the same
-   agents answered: an agent without an answer (abstained, timeout, error, replay miss,
-   unasked) **abstains**: it is left out of that state's fusion and gets weight 0, never
-   a fake uniform belief; a state nobody answered gets the uniform fallback, counted. A
-   distilled model's belief (``distilled``, ``distilled_miss``,
-   `MODEL_STATUSES`) is an answer here.
-
-The panel keeps no cache of its own: the learner's
-`Feedback` memoises each state's answer in front
-of it, and the belief store answers every request asked before (``docs/beliefs.md``,
-"Caches": one in-memory cache, measured).
+The panel keeps no cache; `Feedback` memoises in front of it (``docs/beliefs.md``, "Caches").
 """
 
 from __future__ import annotations
