@@ -1,6 +1,6 @@
 """Turn an LLM reply into a belief vector, and never crash doing it.
 
-The order of attempts (documented in ``docs/beliefs.md``):
+The order of attempts:
 
 1. **Structured reply** (``structured=True``, the Ollama ``format`` schema of
    `belief_schema`): the whole reply is one JSON object with one probability per

@@ -17,23 +17,17 @@ rounding; one already within rounding is handed on bit for bit (``[0.7, 0.1, 0.1
 sums to 0.9999999999999999 and stays as written). So the check is idempotent: a belief
 that passes several doors (a store write, a read, an export, an import) keeps its bits.
 
-The tolerance 1e-6 is far above float64 rounding (the authors' recordings sum to 1
-within 4e-16) and float32 rounding of a few entries (about 1e-7), and far below any
-difference that matters to a reward; a reply that is off by more (``[0.3, 0.3, 0.3]``)
-must be repaired on purpose by the reply parser (status ``"repaired"``), not here.
+The tolerance 1e-6 is above float32 rounding and below any difference that matters to a
+reward; a reply off by more is repaired by the reply parser (status ``"repaired"``).
 
 Rule-based sources (`rules`) are documented to return *scores*
 that are scaled to sum to 1; they call `check_belief` with ``scores=True``, which
 accepts any finite, non-negative vector with a positive finite sum and divides it by
 that sum. Every other rule above holds for them too.
 
-What a door does with an invalid belief (see ``docs/beliefs.md``):
-
-- files (recordings, JSON Lines imports, store rows) raise an error that names the
-  file, the line / row / key, what was found and the fix (`validate_belief`);
-- live answers (Ollama, rules, replay fallbacks, plug-in sources, through
-  `checked_result`) become an abstention (status ``"abstained"`` or ``"error"``)
-  with a uniform fallback belief and the reason in ``extra["error"]``, never ``"ok"``.
+An invalid belief from a file raises an error naming where (`validate_belief`); a live
+answer becomes status ``"error"`` or ``"abstained"`` with a uniform belief
+(`checked_result`).
 """
 
 from __future__ import annotations
