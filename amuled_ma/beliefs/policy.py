@@ -6,10 +6,8 @@ sees, not the state prompt). The network maps it, as a float32 row, to one logit
 action; the belief is the softmax of the logits. Requests of one task are answered in
 one forward pass, without gradients, on the CPU.
 
-The file is read with ``torch.load(path, map_location="cpu", weights_only=True)`` only:
-tensors, numbers, strings and plain containers; a file that needs any other Python
-object to load (a pickled ``nn.Module``, a malicious payload) is refused before
-anything in it runs. So the file holds *weights*; the network's *code* is either
+The file is read with ``torch.load(..., weights_only=True)``: a file needing any other
+Python object is refused before anything in it runs. The network's code is either
 
 - inferred: a multi-layer perceptron from the state dict's linear layers
   (``<prefix><i>.weight`` of shape ``(out, in)`` and ``<prefix><i>.bias``, in index

@@ -23,13 +23,10 @@ A state or cluster missing from the recording is a *miss*, counted in
 - ``"fallback"``: ask the ``fallback`` source (all misses of a batch in one call); its
   answer keeps its own status, with ``extra["replay_miss"] = True``.
 
-Every recorded belief is checked when the file is loaded
-(`validate`: finite, non-negative, one value per recorded action,
-summing to 1 within 1e-6). A recording with any invalid belief is refused with a
-`ScenarioError` naming the file, the count and the first few bad
-entries (``states[i]``, the observation, the agent, the values and why), so that no
-invalid belief is ever replayed as an answer. ``"beliefs": null`` and an agent's ``null``
-mean *not recorded* (``driving-gpt-4o-mini.json`` keeps only fused beliefs): a miss.
+Every recorded belief is checked on load (`validate`); a recording with any invalid
+belief is refused with a `ScenarioError` naming the file and the first few bad entries.
+``"beliefs": null`` and an agent's ``null`` mean *not recorded* (a miss;
+``driving-gpt-4o-mini.json`` keeps only fused beliefs).
 """
 
 from __future__ import annotations
