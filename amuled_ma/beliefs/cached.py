@@ -1,13 +1,9 @@
 """``CachedSource``: any belief source behind the persistent store.
 
-``CachedSource(source, store)`` is itself a :class:`~amuled_ma.beliefs.types.BeliefSource`.
-For a batch it computes each request's store key (:func:`~amuled_ma.beliefs.keys.request_key`
-with the wrapped source's ``identity()``), answers what it can from the SQLite store, and
-sends only the misses, each distinct request once, to the wrapped source. It keeps no
-in-memory copy: in training the feedback's memo in front of the panel answers every state
-seen before (``docs/beliefs.md``, "Caches", measured). Answers are written to the store as
-soon as they arrive, so nothing already answered is lost if the process dies in the middle
-of a batch:
+``CachedSource(source, store)`` is a `BeliefSource` that answers what it can from the
+store (key: `request_key` with the wrapped source's ``identity()``) and sends only the
+misses, each distinct request once, to the wrapped source. It keeps no in-memory copy.
+Answers are written as they arrive, so a process dying mid-batch loses none:
 
 - a wrapped source that defines ``iter_beliefs(requests)`` yielding ``(index, result)`` as
   each answer completes gets every answer written on arrival (one short transaction per
@@ -15,24 +11,10 @@ of a batch:
 - any other source is called chunk by chunk (``chunk_size``, 256, requests per call) and each
   chunk is written before the next one is sent.
 
-Caching policy (see also :mod:`amuled_ma.beliefs.store`):
-
-- ``"ok"`` and ``"repaired"`` answers are cached permanently and served as hits;
-- ``"abstained"`` (the parser gave up), ``"timeout"`` and ``"error"`` answers are *written*
-  (for the record, raw reply included) but not served, so the next run asks again; a later
-  good answer replaces them. An LLM at temperature 0 that abstains will likely abstain again,
-  which costs one request per run and per state: the price of never freezing a failure;
-- ``"replay_miss"`` answers are not written at all: they say nothing about the model, only
-  that a recording lacked the state.
-
-Every answer of the wrapped source is checked on arrival
-(:func:`amuled_ma.beliefs.validate.checked_result`): an ``"ok"``/``"repaired"`` answer whose
-belief is not a valid probability vector over the request's actions (NaN, inf, negative,
-all zero, the wrong length, a sum off 1 by more than 1e-6) becomes status ``"error"`` with
-a uniform belief, the reason in ``extra["error"]`` and the values found in
-``extra["invalid_belief"]``; it is counted in :attr:`CacheStats.invalid`, written for the
-record and asked again next run, never served. So a plug-in source that answers NaN can
-never put an ``"ok"`` row into the store, and the store refuses to write one anyway.
+What is served is the store's rule (`store`); ``"replay_miss"`` answers are not written
+(they say nothing about the model). Every answer is checked on arrival (`checked_result`):
+an invalid belief becomes status ``"error"`` (counted in `CacheStats.invalid`), written
+for the record, never served.
 """
 
 from __future__ import annotations
@@ -55,7 +37,7 @@ NOT_STORED = frozenset({"replay_miss"})
 
 @dataclass
 class CacheStats:
-    """Counters of a :class:`CachedSource` since creation (or :meth:`CachedSource.reset_stats`).
+    """Counters of a `CachedSource` since creation (or `CachedSource.reset_stats`).
 
     Attributes:
         requests: Requests received (duplicates included).
@@ -106,7 +88,7 @@ class CachedSource(BeliefSource):
         identity: The identity to key the store with, instead of asking the source. The
             source's ``identity()`` may need its backend (the Ollama source asks the server
             for the model digest); giving the identity recorded in the store
-            (:meth:`~amuled_ma.beliefs.store.BeliefStore.identities`) replays a store on a
+            (`identities`) replays a store on a
             machine without the backend: hits never touch the source, only misses do.
 
     """

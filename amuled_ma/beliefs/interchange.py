@@ -1,6 +1,6 @@
 """JSON Lines interchange of the belief store: ``amuled beliefs export`` and ``import``.
 
-An export file holds one JSON object per line, one per store row (:func:`row_json`): the
+An export file holds one JSON object per line, one per store row (`row_json`): the
 row's key, source and identity, the request (task, cluster, observation, action names, the
 full chat), the answer (raw reply, belief, status, latency, tokens, diagnostics) and its
 bookkeeping (attempts, timestamps). It moves answers between machines (record on a GPU
@@ -10,7 +10,7 @@ Export writes standard JSON only (``allow_nan=False``; the store keeps non-finit
 diagnostics as the text ``"nan"``/``"inf"``). Import refuses ``NaN``/``Infinity``, JSON
 nested deeper than Python can read, a missing field, an unknown status, a non-finite
 observation and an invalid belief, naming the file and line; with ``verify`` it recomputes
-each key (:func:`~amuled_ma.beliefs.keys.request_key`) and refuses a row whose key does
+each key (`request_key`) and refuses a row whose key does
 not match its content. Imported rows follow the store's rule: an existing answer is never
 replaced, so importing a file twice duplicates nothing.
 """
@@ -36,7 +36,7 @@ from amuled_ma.beliefs.types import STATUSES, BeliefRequest
 from amuled_ma.beliefs.validate import RULE, check_belief, show_values
 from amuled_ma.file_limits import read_line
 
-#: Longest line read by :func:`import_jsonl` [characters, 16 Mi]: a line is one row with
+#: Longest line read by `import_jsonl` [characters, 16 Mi]: a line is one row with
 #: its whole chat, about 20,000 characters with the shipped prompts (system prompt,
 #: few-shot examples, state, reply); 16 Mi leaves room for a panel of many cluster files
 #: at their cap. A longer line is refused before it is read whole (a 2 GB line is not).
@@ -49,7 +49,7 @@ def row_json(row: StoredBelief) -> dict[str, Any]:
     """Return a row as one JSON object (the export format, one line per row).
 
     Args:
-        row: A row read with its chat (:meth:`~amuled_ma.beliefs.store.BeliefStore.iter_rows`).
+        row: A row read with its chat (`iter_rows`).
 
     Returns:
         The JSON-compatible dict.
@@ -84,7 +84,7 @@ def export_jsonl(
     status: Sequence[str] | None = None,
     task: str | None = None,
 ) -> int:
-    """Write a store's rows as JSON Lines, one object per row (:func:`row_json`).
+    """Write a store's rows as JSON Lines, one object per row (`row_json`).
 
     Args:
         store: The store (read-only is enough).
@@ -120,7 +120,7 @@ def import_jsonl(
     verify: bool = True,
     batch: int = 500,
 ) -> dict[str, int]:
-    """Read rows written by :func:`export_jsonl` (from this or another machine) into a store.
+    """Read rows written by `export_jsonl` (from this or another machine) into a store.
 
     Rows follow the store's rule: an existing answer is never replaced.
 
@@ -136,7 +136,7 @@ def import_jsonl(
 
     Raises:
         BeliefStoreError: A line is not a valid row (names the file and line): longer
-            than :data:`MAX_LINE_CHARS` (refused before it is read whole), not standard
+            than `MAX_LINE_CHARS` (refused before it is read whole), not standard
             JSON (``NaN``, ``Infinity``, nested too deeply), a missing field, an unknown
             status, an invalid belief, a key that does not match.
 

@@ -1,7 +1,7 @@
 """The belief key recipe: how a source identity and a request are hashed into a store key.
 
-A row of the belief store (:mod:`amuled_ma.beliefs.store`) is keyed by
-:func:`request_key`: the SHA-256 (hex) of the canonical JSON (sorted keys, no spaces,
+A row of the belief store (`store`) is keyed by
+`request_key`: the SHA-256 (hex) of the canonical JSON (sorted keys, no spaces,
 UTF-8) of::
 
     {"v": 1,
@@ -16,8 +16,8 @@ rows, two different ones never do. The key is computed in two parts (the prefix 
 every request of one cluster is hashed once per process), byte for byte the same as hashing
 the whole canonical text.
 
-The JSON encoders used for the key (:func:`string_json`, :func:`names_json`,
-:func:`floats_json`) are memoised or fast-pathed, and the store's row encoding uses them
+The JSON encoders used for the key (`string_json`, `names_json`,
+`floats_json`) are memoised or fast-pathed, and the store's row encoding uses them
 too, so a row's columns are the same text as the key's parts.
 """
 
@@ -34,7 +34,7 @@ import numpy as np
 
 from amuled_ma.beliefs.types import BeliefRequest
 
-#: Version of the key recipe hashed by :func:`request_key`.
+#: Version of the key recipe hashed by `request_key`.
 KEY_VERSION = 1
 
 
@@ -73,7 +73,7 @@ def jsonable(value: Any) -> Any:
 
 
 def identity_json(identity: Mapping[str, Any]) -> str:
-    """Canonical JSON of a source's :meth:`~amuled_ma.beliefs.types.BeliefSource.identity`.
+    """Canonical JSON of a source's `identity`.
 
     Args:
         identity: The identity dict.
@@ -89,7 +89,7 @@ def request_key(identity: Mapping[str, Any] | str, request: BeliefRequest) -> st
     """Return the store key of one request to one source (see the module docstring).
 
     Args:
-        identity: The source's ``identity()`` dict, or its :func:`identity_json` text
+        identity: The source's ``identity()`` dict, or its `identity_json` text
             (faster when hashing many requests to one source).
         request: The request.
 

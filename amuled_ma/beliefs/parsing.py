@@ -1,9 +1,9 @@
 """Turn an LLM reply into a belief vector, and never crash doing it.
 
-The order of attempts (documented in ``docs/beliefs.md``):
+The order of attempts:
 
 1. **Structured reply** (``structured=True``, the Ollama ``format`` schema of
-   :func:`belief_schema`): the whole reply is one JSON object with one probability per
+   `belief_schema`): the whole reply is one JSON object with one probability per
    action key (``"0"``, ``"1"``, ...) and optionally ``"reasoning"``.
 2. **Last JSON object in the text**: every balanced ``{...}`` span is a candidate, the
    one ending last is tried first, then earlier ones; the first candidate that yields a
@@ -11,9 +11,9 @@ The order of attempts (documented in ``docs/beliefs.md``):
    (Python literal syntax / single quotes, unquoted keys, trailing commas, and finally a
    lenient ``key: number`` scan).
 3. **Abstain**: a uniform belief with status ``"abstained"`` and the reason in
-   :attr:`ParsedBelief.error`.
+   `ParsedBelief.error`.
 
-A candidate object is turned into a belief by :func:`belief_from_mapping`: keys may be
+A candidate object is turned into a belief by `belief_from_mapping`: keys may be
 action indices (``"0"``), ``"action 0"``, action names (``"up"``, ``"Move Up"``,
 ``"move_up"``) or letters (``"A"``); keys that name no action are ignored; missing
 actions get 0; a negative, NaN, infinite or non-numeric probability makes the whole
@@ -23,18 +23,18 @@ An unclosed object (a reply cut off by the token limit) is not completed: the mi
 probabilities are unknown, not zero, so such a reply abstains, as the authors' parser did.
 
 **Cost: linear in the reply's length**, whatever the reply (finding and reading the
-objects, and the limits below, are :mod:`amuled_ma.beliefs.reply_objects`). The braces are
-matched in one vectorised pass; at most :data:`MAX_CANDIDATES` candidates of at most
-:data:`MAX_OBJECT_CHARS` characters are examined, all of them together at most
+objects, and the limits below, are `reply_objects`). The braces are
+matched in one vectorised pass; at most `MAX_CANDIDATES` candidates of at most
+`MAX_OBJECT_CHARS` characters are examined, all of them together at most
 ``EXAMINE_FACTOR * len(reply) + MAX_OBJECT_CHARS`` characters (a candidate that does not
 fit in what is left is skipped). Each step on a candidate is linear: ``json``; regular
 expressions that never backtrack over a run of characters; a ``key: number`` scan that
 visits each colon once. Per reply, ``ast.literal_eval`` (about 50 times slower per
-character than ``json``) reads at most :data:`MAX_LITERAL_CHARS` characters, and at most
-:data:`MAX_KEYS` keys are looked at. A candidate nested deeper than :data:`MAX_NESTING`
+character than ``json``) reads at most `MAX_LITERAL_CHARS` characters, and at most
+`MAX_KEYS` keys are looked at. A candidate nested deeper than `MAX_NESTING`
 levels of ``{``/``[`` is refused unread, and no ``RecursionError`` escapes. A reply that
 trips a limit abstains like any other reply without a usable object, the limit named in
-:attr:`ParsedBelief.error`.
+`ParsedBelief.error`.
 """
 
 from __future__ import annotations
@@ -62,10 +62,10 @@ from amuled_ma.beliefs.reply_objects import (
 )
 from amuled_ma.beliefs.validate import SUM_TOLERANCE
 
-#: Statuses :func:`parse_belief` returns.
+#: Statuses `parse_belief` returns.
 PARSE_STATUSES = ("ok", "repaired", "abstained")
 
-#: Repairs that may be listed in :attr:`ParsedBelief.repairs`.
+#: Repairs that may be listed in `ParsedBelief.repairs`.
 REPAIRS = {
     "schema_ignored": "structured output was requested but the reply is not the schema's JSON",
     "python_literal": "object read as a Python literal (single quotes, True/None, ...)",
@@ -95,7 +95,7 @@ class ParsedBelief:
         belief: Probability vector, shape ``(n_actions,)``: finite, >= 0, sums to 1.
         status: ``"ok"`` (read as is), ``"repaired"`` (see ``repairs``) or
             ``"abstained"`` (uniform; nothing usable in the reply).
-        repairs: Names of the repairs applied, keys of :data:`REPAIRS`.
+        repairs: Names of the repairs applied, keys of `REPAIRS`.
         reasoning: The reply's ``"reasoning"`` field, when there was one.
         error: Why the reply abstained (``None`` otherwise).
 
@@ -248,7 +248,7 @@ def belief_from_mapping(
 
     Raises:
         UnreadableObjectError: The object names no action, holds an invalid probability,
-            sums to 0, or has more than :data:`MAX_KEYS` keys (nested objects' included).
+            sums to 0, or has more than `MAX_KEYS` keys (nested objects' included).
 
     """
     n = len(action_names)
@@ -307,7 +307,7 @@ def _mapped_keys(obj: Mapping[str, Any], action_names: Sequence[str]) -> list[in
 
 
 def _key_count(obj: Mapping[str, Any]) -> int:
-    """How many keys :func:`belief_from_mapping` looks at: the object's and its nested objects'."""
+    """How many keys `belief_from_mapping` looks at: the object's and its nested objects'."""
     if len(obj) > MAX_KEYS:
         return len(obj)
     return len(obj) + sum(len(v) for v in obj.values() if isinstance(v, Mapping))
@@ -326,7 +326,7 @@ def parse_belief(
     Args:
         text: The raw reply (``None`` or empty abstains).
         action_names: The task's action names; index = action id.
-        structured: The reply was requested with :func:`belief_schema` as format.
+        structured: The reply was requested with `belief_schema` as format.
 
     Returns:
         The parsed belief with its status and repairs.

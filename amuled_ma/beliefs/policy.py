@@ -6,10 +6,8 @@ sees, not the state prompt). The network maps it, as a float32 row, to one logit
 action; the belief is the softmax of the logits. Requests of one task are answered in
 one forward pass, without gradients, on the CPU.
 
-The file is read with ``torch.load(path, map_location="cpu", weights_only=True)`` only:
-tensors, numbers, strings and plain containers; a file that needs any other Python
-object to load (a pickled ``nn.Module``, a malicious payload) is refused before
-anything in it runs. So the file holds *weights*; the network's *code* is either
+The file is read with ``torch.load(..., weights_only=True)``: a file needing any other
+Python object is refused before anything in it runs. The network's code is either
 
 - inferred: a multi-layer perceptron from the state dict's linear layers
   (``<prefix><i>.weight`` of shape ``(out, in)`` and ``<prefix><i>.bias``, in index
@@ -19,7 +17,7 @@ anything in it runs. So the file holds *weights*; the network's *code* is either
   importable ``torch.nn.Module`` class whose ``load_state_dict`` takes the weights. The
   class is code: it is imported only when this run's command line allowed it
   (``--allow-plugin my_pkg.nets:Net``) or it is an installed ``amuled_ma.agents`` entry
-  point (:func:`amuled_ma.clusters.plugins.load_plugin`); a scenario or a run folder
+  point (`load_plugin`); a scenario or a run folder
   naming it alone is refused before anything is imported.
 
 ``key`` names the state dict inside a checkpoint dict: a checkpoint of the trainer
@@ -29,7 +27,7 @@ anything in it runs. So the file holds *weights*; the network's *code* is either
 An observation of the wrong length, an output of the wrong shape or a non-finite output
 gives a uniform belief with status ``"error"`` and the reason in ``extra["error"]``.
 
-torch is imported when a policy source is built, not with :mod:`amuled_ma.beliefs`.
+torch is imported when a policy source is built, not with `beliefs`.
 """
 
 from __future__ import annotations
@@ -125,7 +123,7 @@ def infer_mlp(
 
     Args:
         weights: ``{"<prefix><i>.weight": (out, in), "<prefix><i>.bias": (out,), ...}``.
-        activation: A key of :data:`ACTIVATIONS`, put between the layers.
+        activation: A key of `ACTIVATIONS`, put between the layers.
         where: The file, for errors.
 
     Returns:
@@ -194,7 +192,7 @@ class PolicySource(BeliefSource):
         module: ``"pkg.module:Class"`` of a ``torch.nn.Module`` to load the weights into
             (allowed with ``--allow-plugin``); ``""``: an MLP inferred from the weights.
         kwargs: Keyword arguments of ``module``'s constructor.
-        activation: Activation between an inferred MLP's layers (:data:`ACTIVATIONS`).
+        activation: Activation between an inferred MLP's layers (`ACTIVATIONS`).
 
     Raises:
         ScenarioError: The file is missing, unsafe or not a state dict, or the network

@@ -16,20 +16,17 @@ else the name itself, else any alias of the cluster file (``deontological`` has 
 ``moral_agent`` field.
 
 A state or cluster missing from the recording is a *miss*, counted in
-:attr:`ReplaySource.misses`, and handled by ``miss_policy``:
+`ReplaySource.misses`, and handled by ``miss_policy``:
 
-- ``"error"``: raise :class:`~amuled_ma.errors.ReplayMiss` naming the state and file;
+- ``"error"``: raise `ReplayMiss` naming the state and file;
 - ``"uniform"``: answer a uniform belief with status ``"replay_miss"``;
 - ``"fallback"``: ask the ``fallback`` source (all misses of a batch in one call); its
   answer keeps its own status, with ``extra["replay_miss"] = True``.
 
-Every recorded belief is checked when the file is loaded
-(:mod:`amuled_ma.beliefs.validate`: finite, non-negative, one value per recorded action,
-summing to 1 within 1e-6). A recording with any invalid belief is refused with a
-:class:`~amuled_ma.errors.ScenarioError` naming the file, the count and the first few bad
-entries (``states[i]``, the observation, the agent, the values and why), so that no
-invalid belief is ever replayed as an answer. ``"beliefs": null`` and an agent's ``null``
-mean *not recorded* (``driving-gpt-4o-mini.json`` keeps only fused beliefs): a miss.
+Every recorded belief is checked on load (`validate`); a recording with any invalid
+belief is refused with a `ScenarioError` naming the file and the first few bad entries.
+``"beliefs": null`` and an agent's ``null`` mean *not recorded* (a miss;
+``driving-gpt-4o-mini.json`` keeps only fused beliefs).
 """
 
 from __future__ import annotations
@@ -49,7 +46,7 @@ from amuled_ma.beliefs.validate import RULE, check_belief, checked_result, show_
 from amuled_ma.errors import ReplayMiss, ScenarioError
 from amuled_ma.file_limits import read_bounded_bytes
 
-#: Miss policies of :class:`ReplaySource`.
+#: Miss policies of `ReplaySource`.
 MISS_POLICIES = ("error", "uniform", "fallback")
 #: Field of a recorded state holding the unprompted "moral agent" belief.
 MORAL_AGENT_FIELD = "moral_agent"
@@ -77,7 +74,7 @@ class Recording:
 
     Raises:
         ScenarioError: The file is missing, not in the recording format, or holds an
-            invalid belief (the message lists the first :data:`SHOWN_PROBLEMS` and the count).
+            invalid belief (the message lists the first `SHOWN_PROBLEMS` and the count).
 
     """
 

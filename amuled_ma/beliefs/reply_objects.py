@@ -1,19 +1,19 @@
 """The ``{...}`` objects of an LLM reply: found and read, with repairs, in linear time.
 
-:func:`candidate_spans` finds every balanced ``{...}`` span in one vectorised pass over the
-braces, the one ending last first; :func:`decode_candidate` reads one span with strict JSON,
+`candidate_spans` finds every balanced ``{...}`` span in one vectorised pass over the
+braces, the one ending last first; `decode_candidate` reads one span with strict JSON,
 then as a Python literal, then with repairs (single quotes, unquoted keys, trailing commas),
 and finally by a lenient ``key: number`` scan. What the reply parser
-(:mod:`amuled_ma.beliefs.parsing`) does with the objects is not known here.
+(`parsing`) does with the objects is not known here.
 
-**Cost: linear in the reply's length**, whatever the reply. At most :data:`MAX_CANDIDATES`
-candidates of at most :data:`MAX_OBJECT_CHARS` characters are examined, all of them together
+**Cost: linear in the reply's length**, whatever the reply. At most `MAX_CANDIDATES`
+candidates of at most `MAX_OBJECT_CHARS` characters are examined, all of them together
 at most ``EXAMINE_FACTOR * len(reply) + MAX_OBJECT_CHARS`` characters (the parser's
-:class:`ReadBudget`). Each step on a candidate is linear: ``json``; regular expressions that
+`ReadBudget`). Each step on a candidate is linear: ``json``; regular expressions that
 never backtrack over a run of characters; a ``key: number`` scan that visits each colon once.
 Per reply, ``ast.literal_eval`` (about 50 times slower per character than ``json``) reads at
-most :data:`MAX_LITERAL_CHARS` characters, and at most :data:`MAX_KEYS` keys are looked at. A
-candidate nested deeper than :data:`MAX_NESTING` levels of ``{``/``[`` is refused unread, and
+most `MAX_LITERAL_CHARS` characters, and at most `MAX_KEYS` keys are looked at. A
+candidate nested deeper than `MAX_NESTING` levels of ``{``/``[`` is refused unread, and
 no ``RecursionError`` escapes.
 """
 
@@ -47,7 +47,7 @@ MAX_OBJECT_CHARS = 20_000
 #: How many candidate objects (from the end of the text) are examined at most.
 MAX_CANDIDATES = 50
 #: Characters examined over all candidates: this many times the reply's length, plus
-#: :data:`MAX_OBJECT_CHARS` (so nested objects in a short reply are never cut short).
+#: `MAX_OBJECT_CHARS` (so nested objects in a short reply are never cut short).
 EXAMINE_FACTOR = 4
 #: Characters per reply read by ``ast.literal_eval`` (the Python-literal repair); each
 #: reading counts at least 50.
@@ -62,7 +62,7 @@ MAX_KEYS = 256
 class UnreadableObjectError(ValueError):
     """A candidate object cannot be read or cannot be a belief (never escapes the parser).
 
-    Not :class:`amuled_ma.beliefs.validate.InvalidBeliefError`, the error of a door.
+    Not `InvalidBeliefError`, the error of a door.
     """
 
 
@@ -81,7 +81,7 @@ def candidate_spans(text: str) -> tuple[list[tuple[int, int]], int]:
     """``(start, end)`` of the balanced ``{...}`` spans, the one ending last first.
 
     Returns:
-        The first :data:`MAX_CANDIDATES` spans of at most :data:`MAX_OBJECT_CHARS`
+        The first `MAX_CANDIDATES` spans of at most `MAX_OBJECT_CHARS`
         characters, and how many longer spans were left out.
 
     """
@@ -117,14 +117,14 @@ def candidate_objects(text: str) -> list[str]:
     Nested spans are all returned (an outer object ends after its inner ones, so it
     comes first). Braces inside quoted strings are not special-cased: replies rarely
     hold them, and a failed outer candidate falls back to the inner ones. At most
-    :data:`MAX_CANDIDATES` spans of at most :data:`MAX_OBJECT_CHARS` characters are
+    `MAX_CANDIDATES` spans of at most `MAX_OBJECT_CHARS` characters are
     returned; the cost is linear in the text's length.
     """
     return [text[a:b] for a, b in candidate_spans(text)[0]]
 
 
 def too_deep(text: str) -> bool:
-    """Whether ``{``/``[`` nest deeper than :data:`MAX_NESTING` (brackets in strings count)."""
+    """Whether ``{``/``[`` nest deeper than `MAX_NESTING` (brackets in strings count)."""
     if text.count("{") + text.count("[") <= MAX_NESTING:
         return False
     codes = _codes(text)
@@ -195,7 +195,7 @@ class ReadBudget:
     keys: int = MAX_KEYS  # keys and colons to look at
 
     def spend_keys(self, count: int) -> None:
-        """Spend ``count`` keys, or raise :class:`UnreadableObjectError` (spending none)."""
+        """Spend ``count`` keys, or raise `UnreadableObjectError` (spending none)."""
         if count > self.keys:
             raise UnreadableObjectError(f"more than {MAX_KEYS} keys per reply")
         self.keys -= count
@@ -235,7 +235,7 @@ def decode_candidate(candidate: str, budget: ReadBudget) -> tuple[dict[str, Any]
 
     Raises:
         UnreadableObjectError: Nothing could be read, the span is nested deeper than
-            :data:`MAX_NESTING` levels, or the lenient scan would look at more than the
+            `MAX_NESTING` levels, or the lenient scan would look at more than the
             budget's keys.
 
     """

@@ -1,4 +1,4 @@
-"""A belief source per panel member: :class:`RoutedSource` and ``[feedback.agents]``.
+"""A belief source per panel member: `RoutedSource` and ``[feedback.agents]``.
 
 Each member of a panel (a moral cluster, the unprompted moral agent) may take its
 beliefs from its own source: an Ollama model of its own, a person at the terminal, a
@@ -11,16 +11,16 @@ rule, a plug-in, a saved torch policy. A scenario says so per agent::
     [feedback.agents.human]
     source = "terminal"
 
-:class:`RoutedSource` is one :class:`~amuled_ma.beliefs.types.BeliefSource` over these
+`RoutedSource` is one `BeliefSource` over these
 members: it splits a batch by ``request.cluster``, sends each member its sub-batch in
 **one** call (so each member keeps its own deduplication, batching and concurrency) and
 puts the answers back in the batch's order. Members are normally each wrapped in their
-own :class:`~amuled_ma.beliefs.cached.CachedSource` over one shared store, so that every
+own `CachedSource` over one shared store, so that every
 store key holds the identity of the source that answered; members with the same
 specification are one shared object.
 
-The members are planned from the scenario by :mod:`amuled_ma.deliberation.plan` and
-built by :mod:`amuled_ma.deliberation.build`. See ``docs/beliefs.md``, section
+The members are planned from the scenario by `plan` and
+built by `build`. See ``docs/beliefs.md``, section
 "Per-agent sources".
 """
 

@@ -1,16 +1,16 @@
 """The rows of the belief store: table layout, the row record, and the checks on each row.
 
-:mod:`amuled_ma.beliefs.store` moves rows in and out of SQLite; this module says what a row
+`store` moves rows in and out of SQLite; this module says what a row
 holds and turns it into table columns and back, checking every value on the way.
 
 ## Schema (version 1)
 
-``beliefs``: ``key`` (primary key, :func:`~amuled_ma.beliefs.keys.request_key`), ``source``,
+``beliefs``: ``key`` (primary key, `request_key`), ``source``,
 ``identity`` (canonical JSON), ``task``, ``cluster``, ``obs`` / ``actions`` (JSON lists),
 ``messages`` (JSON ``[[role, text_hash], ...]``: each message's content lives once in
 ``texts``, so the system prompt and few-shot examples shared by every row are stored once),
 ``raw`` (the raw reply), ``belief`` (JSON list), ``status``
-(:data:`~amuled_ma.beliefs.types.STATUSES`), ``latency_s``, ``prompt_tokens``,
+(`STATUSES`), ``latency_s``, ``prompt_tokens``,
 ``completion_tokens``, ``extra`` (JSON), ``attempts``, ``created_at`` / ``updated_at`` (Unix
 seconds). ``texts``: ``hash`` (SHA-256 of the content) -> ``body``. ``meta``:
 ``schema_version``.
@@ -18,12 +18,12 @@ seconds). ``texts``: ``hash`` (SHA-256 of the content) -> ``body``. ``meta``:
 ## Every belief is checked
 
 Every row's ``belief`` is a valid belief of its row's action count
-(:mod:`amuled_ma.beliefs.validate`: finite, non-negative, one value per action, summing
+(`validate`: finite, non-negative, one value per action, summing
 to 1 within 1e-6), whatever its status: an answer holds the model's belief, any other row
 the fallback the run used. The store refuses to write anything else, and
-:func:`decode_row` refuses a row whose columns are not JSON or whose belief is invalid (a
+`decode_row` refuses a row whose columns are not JSON or whose belief is invalid (a
 file edited by hand, or written by an older amuled-ma), naming the store, the key and how to
-remove the row (:func:`damaged_row`). Diagnostics (``extra``) are written as standard JSON:
+remove the row (`damaged_row`). Diagnostics (``extra``) are written as standard JSON:
 anything JSON cannot hold as its repr, a non-finite float as ``"nan"``/``"inf"``.
 """
 
@@ -76,13 +76,13 @@ CREATE TABLE IF NOT EXISTS beliefs (
 CREATE INDEX IF NOT EXISTS beliefs_task_cluster ON beliefs (task, cluster);
 """
 
-#: The columns of a ``beliefs`` row, in the order of :func:`encode_row`'s tuples.
+#: The columns of a ``beliefs`` row, in the order of `encode_row`'s tuples.
 COLUMNS = (
     "key, source, identity, task, cluster, obs, actions, messages, raw, belief, status, "
     "latency_s, prompt_tokens, completion_tokens, extra, attempts, created_at, updated_at"
 )
 
-#: A ``beliefs`` row as a tuple of column values (:data:`COLUMNS` order).
+#: A ``beliefs`` row as a tuple of column values (`COLUMNS` order).
 Row = tuple[Any, ...]
 
 
@@ -103,7 +103,7 @@ class StoredBelief:
         obs: The observation.
         action_names: Action names.
         messages: The chat, ``((role, content), ...)``; ``None`` when not read (see
-            :meth:`~amuled_ma.beliefs.store.BeliefStore.get_many`).
+            `get_many`).
         raw: The raw reply.
         belief: The belief vector (float64).
         status: Answer status.
@@ -142,7 +142,7 @@ class StoredBelief:
         return self.status in CACHEABLE
 
     def to_result(self) -> BeliefResult:
-        """Return the row as a cache-hit :class:`BeliefResult` (``cached=True``, latency 0)."""
+        """Return the row as a cache-hit `BeliefResult` (``cached=True``, latency 0)."""
         extra = dict(self.extra)
         extra["stored_latency_s"] = self.latency_s
         return BeliefResult(
@@ -188,11 +188,11 @@ def encode_row(
 ) -> tuple[Row, dict[str, str]]:
     """Turn one answer into a ``beliefs`` row and the message bodies it refers to.
 
-    The belief must already be checked (:func:`~amuled_ma.beliefs.validate.check_belief`).
+    The belief must already be checked (`check_belief`).
 
     Args:
         key: The row's key.
-        identity: The source identity as :func:`~amuled_ma.beliefs.keys.identity_json` text.
+        identity: The source identity as `identity_json` text.
         request: The request answered (its messages become ``[[role, text_hash], ...]``).
         belief: The checked belief.
         source: Source name.
@@ -201,13 +201,13 @@ def encode_row(
         latency_s: Seconds the request took.
         prompt_tokens: Prompt tokens, if reported.
         completion_tokens: Completion tokens, if reported.
-        extra: Diagnostics (:func:`extra_json`).
+        extra: Diagnostics (`extra_json`).
         attempts: Answers counted for this key.
         created_at: Unix time of the first write.
         updated_at: Unix time of this write.
 
     Returns:
-        The row (:data:`COLUMNS` order) and ``{text_hash: body}`` for table ``texts``.
+        The row (`COLUMNS` order) and ``{text_hash: body}`` for table ``texts``.
 
     """
     messages_ref, bodies = split_messages(request.messages)
@@ -234,7 +234,7 @@ def encode_row(
     return row, bodies
 
 
-#: The column names of :data:`COLUMNS`, in order.
+#: The column names of `COLUMNS`, in order.
 COLUMN_NAMES = tuple(name.strip() for name in COLUMNS.split(","))
 
 
@@ -275,7 +275,7 @@ def unstorable_text(value: Any, where: str = "") -> str | None:
 
 
 def check_storable(row: Row, bodies: Mapping[str, str]) -> str | None:
-    """Why a row from :func:`encode_row` cannot be written as UTF-8 text, or None."""
+    """Why a row from `encode_row` cannot be written as UTF-8 text, or None."""
     for name, value in zip(COLUMN_NAMES, row, strict=False):
         reason = unstorable_text(value, name)
         if reason is not None:
@@ -387,7 +387,7 @@ def why_not_json(error: BaseException) -> str:
     """Say why a JSON text could not be read (deep nesting named in words).
 
     Args:
-        error: The error of :func:`json.loads`.
+        error: The error of `json.loads`.
 
     Returns:
         The reason, for an error message.
@@ -411,7 +411,7 @@ def load_column(text: Any, column: str, where: str, key: str | None) -> Any:
         The parsed value.
 
     Raises:
-        BeliefStoreError: The text is not JSON (:func:`damaged_row`).
+        BeliefStoreError: The text is not JSON (`damaged_row`).
 
     """
     try:
@@ -477,7 +477,7 @@ def message_refs(row: Sequence[Any], path: str) -> list[tuple[str, str]]:
     """The ``[[role, text_hash], ...]`` of a row's ``messages`` column, checked.
 
     Args:
-        row: A row in :data:`COLUMNS` order.
+        row: A row in `COLUMNS` order.
         path: The store, for the error.
 
     Returns:
@@ -501,10 +501,10 @@ def message_refs(row: Sequence[Any], path: str) -> list[tuple[str, str]]:
 def decode_row(
     row: Sequence[Any], texts: Mapping[str, str] | None, path: str = "<store>"
 ) -> StoredBelief:
-    """Turn a ``beliefs`` row back into a :class:`StoredBelief`, checking every column.
+    """Turn a ``beliefs`` row back into a `StoredBelief`, checking every column.
 
     Args:
-        row: A row in :data:`COLUMNS` order.
+        row: A row in `COLUMNS` order.
         texts: ``{text_hash: body}`` holding the row's messages; ``None`` leaves
             ``messages`` unread (``None``).
         path: The store, for errors.
@@ -513,7 +513,7 @@ def decode_row(
         The record.
 
     Raises:
-        BeliefStoreError: A column is damaged (:func:`damaged_row`).
+        BeliefStoreError: A column is damaged (`damaged_row`).
 
     """
     (

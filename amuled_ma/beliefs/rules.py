@@ -1,15 +1,15 @@
 """``rules`` and ``scripted``: belief sources that need no LLM.
 
-- :class:`RulesSource` answers with the synthetic human-feedback policy of the task
+- `RulesSource` answers with the synthetic human-feedback policy of the task
   (``amuled_ma.tasks.human.human_belief(task, obs)``, the paper's "human" baseline), or
   with any function ``(task, obs) -> belief`` named as ``"module:function"`` (an import
   path the command line allowed with ``--allow-plugin``, or an installed entry point's).
-- :class:`ScriptedSource` answers fixed beliefs per cluster, or calls a function of the
+- `ScriptedSource` answers fixed beliefs per cluster, or calls a function of the
   request: for tests, examples and ablations.
 
 A rule's answer is a vector of non-negative *scores*, one per action, divided by their
 sum (``[0, 2, 0, 0]`` is ``[0, 1, 0, 0]``). It is checked with the package's one belief
-rule (:func:`amuled_ma.beliefs.validate.check_belief` with ``scores=True``): an answer of
+rule (`check_belief` with ``scores=True``): an answer of
 the wrong length, with a NaN, an infinity or a negative entry, or summing to 0 or to an
 overflow becomes a uniform belief with status ``"error"`` and the reason in
 ``extra["error"]``, so a buggy rule can never feed an invalid belief to the fusion or
@@ -37,7 +37,7 @@ def resolve_callable(
     """Return ``spec`` itself if callable, else load it from a ``"module:attr"`` string.
 
     A string goes through the one door of code named by data,
-    :func:`amuled_ma.clusters.plugins.load_plugin`: an installed ``amuled_ma.agents``
+    `load_plugin`: an installed ``amuled_ma.agents``
     entry point, or an import path this run's command line allowed (``--allow-plugin``);
     anything else is refused before it is imported.
 
@@ -70,7 +70,7 @@ def to_belief(values: Any, n_actions: int) -> tuple[np.ndarray, str]:
     Returns:
         ``(belief, status)``; status ``"ok"``, or ``"error"`` with a uniform belief when
         the answer has the wrong length, a non-finite or negative entry, or a sum of 0
-        or an overflowing one (:func:`scores_problem` says which).
+        or an overflowing one (`scores_problem` says which).
 
     """
     belief, _ = _checked(values, n_actions)
@@ -183,7 +183,7 @@ class ScriptedSource(BeliefSource):
         beliefs: ``{cluster: belief vector}`` (``"*"`` matches any other cluster), or a
             callable ``(request) -> belief``. Clusters without an entry get a uniform
             belief.
-        label: Name of the script in :meth:`identity` (cache keys).
+        label: Name of the script in `identity` (cache keys).
 
     """
 

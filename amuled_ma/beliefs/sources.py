@@ -1,18 +1,18 @@
 """A registry of belief-source kinds: ``make_source(kind, **options)``.
 
-Built-in kinds: ``"ollama"`` (:class:`~amuled_ma.beliefs.ollama.OllamaSource`),
-``"replay"`` (:class:`~amuled_ma.beliefs.replay.ReplaySource`), ``"rules"``
-(:class:`~amuled_ma.beliefs.rules.RulesSource`), ``"scripted"``
-(:class:`~amuled_ma.beliefs.rules.ScriptedSource`), ``"terminal"``
-(:class:`~amuled_ma.beliefs.terminal.TerminalSource`), ``"policy"``
-(:class:`~amuled_ma.beliefs.policy.PolicySource`) and ``"entry-point"``
-(:func:`entry_point_source`: a plug-in named by entry-point name, or by a ``"module:Class"``
+Built-in kinds: ``"ollama"`` (`OllamaSource`),
+``"replay"`` (`ReplaySource`), ``"rules"``
+(`RulesSource`), ``"scripted"``
+(`ScriptedSource`), ``"terminal"``
+(`TerminalSource`), ``"policy"``
+(`PolicySource`) and ``"entry-point"``
+(`entry_point_source`: a plug-in named by entry-point name, or by a ``"module:Class"``
 the command line allowed with ``--allow-plugin``).
 Other kinds are looked up in the ``amuled_ma.agents`` entry-point group (code-backed
-agents shipped by other packages), or added at run time with :func:`register_source`.
+agents shipped by other packages), or added at run time with `register_source`.
 
 Options are the source class's keyword arguments. A ``fallback`` option given as a
-mapping ``{"kind": ..., ...}`` is itself built with :func:`make_source`, so a scenario
+mapping ``{"kind": ..., ...}`` is itself built with `make_source`, so a scenario
 can say ``fallback = { kind = "ollama", model = "amuled-tiny" }``.
 """
 
@@ -86,15 +86,15 @@ def register_source(kind: str, factory: Callable[..., BeliefSource]) -> None:
     """Register (or replace) a source kind at run time.
 
     Args:
-        kind: The name used with :func:`make_source`.
-        factory: Called with the options; returns a :class:`BeliefSource`.
+        kind: The name used with `make_source`.
+        factory: Called with the options; returns a `BeliefSource`.
 
     """
     _REGISTERED[kind] = factory
 
 
 def source_kinds() -> list[str]:
-    """Return every kind :func:`make_source` knows (built-in, registered, entry points)."""
+    """Return every kind `make_source` knows (built-in, registered, entry points)."""
     from amuled_ma.clusters.plugins import agent_entry_points
 
     return sorted({*_BUILTIN, *_REGISTERED, *agent_entry_points()})
@@ -120,14 +120,14 @@ def load_agent_factory(name: str) -> Callable[..., BeliefSource]:
     """Resolve a plug-in agent: an ``amuled_ma.agents`` entry-point name or ``"module:Class"``.
 
     Through the one door of code named by data
-    (:func:`amuled_ma.clusters.plugins.load_plugin`): an installed entry point's name (or
+    (`load_plugin`): an installed entry point's name (or
     value), or a ``"module:Class"`` this run's command line allowed with
     ``--allow-plugin module:Class``. Any other import path is refused before it is
     imported: a scenario, a cluster file or a run folder never runs code of its own.
 
     Args:
         name: An installed entry point's name (``terminal_human``), or an importable
-            ``"pkg.module:Class"`` (any callable returning a :class:`BeliefSource`).
+            ``"pkg.module:Class"`` (any callable returning a `BeliefSource`).
 
     Returns:
         The factory.
@@ -156,7 +156,7 @@ def entry_point_source(name: str, options: Mapping[str, Any] | None = None) -> B
     """Build a plug-in agent's source: ``load_agent_factory(name)(**options)``.
 
     Args:
-        name: See :func:`load_agent_factory`.
+        name: See `load_agent_factory`.
         options: The factory's keyword arguments.
 
     Returns:
@@ -164,7 +164,7 @@ def entry_point_source(name: str, options: Mapping[str, Any] | None = None) -> B
 
     Raises:
         ScenarioError: The name does not resolve, the factory refuses the options or
-            fails, or it does not return a :class:`BeliefSource`.
+            fails, or it does not return a `BeliefSource`.
 
     """
     factory = load_agent_factory(name)

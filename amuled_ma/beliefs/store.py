@@ -1,46 +1,31 @@
 """The belief store: one SQLite row per belief request ever answered.
 
-LLM calls are the slowest and most fragile part of a run, so every answer is kept on
-disk and a re-run never sends the same request twice. The store is a plain SQLite file
-(standard library only) in WAL mode with a busy timeout, so several processes (parallel
-seeds, a sweep) may read and write it at once, and a process killed in the middle of a
-write (``kill -9``, an OOM kill, a pulled plug on a GPU box job) leaves every committed
-row intact and the file consistent.
-
-A row is keyed by :func:`~amuled_ma.beliefs.keys.request_key`; the table layout, the row
-record :class:`~amuled_ma.beliefs.rows.StoredBelief` and the checks on every row read or
-written are in :mod:`amuled_ma.beliefs.rows`; export and import as JSON Lines in
-:mod:`amuled_ma.beliefs.interchange`.
+Every answer is kept so a re-run never sends the same request twice. A SQLite file in WAL
+mode with a busy timeout: several processes may read and write it at once, and a process
+killed mid-write leaves every committed row intact. Rows are keyed by `request_key`; the
+row layout and its checks are in `rows`, JSON Lines export/import in `interchange`.
 
 ## What is served back
 
-Only rows with status ``"ok"`` or ``"repaired"`` (:data:`~amuled_ma.beliefs.rows.CACHEABLE`)
-are answers; they are never overwritten. Rows with any other status (``"abstained"``,
-``"timeout"``, ``"error"``, ...) are kept for the record (the raw reply of an abstention is
-evidence of a model's failure) but are *not* served as cache hits, so the next run asks
-again; a later ``ok``/``repaired`` answer replaces them and ``attempts`` counts the tries.
+Only rows with status ``"ok"`` or ``"repaired"`` (`CACHEABLE`) are answers, never
+overwritten. Rows with any other status are kept for the record but not served, so the
+next run asks again; a later answer replaces them and ``attempts`` counts the tries.
 
 ## Every belief is checked
 
-:meth:`BeliefStore.put_many` refuses to write a belief that is not valid for its row's
-action count (:class:`~amuled_ma.beliefs.rows.BeliefStoreError` naming the key and what was
-found; the :class:`~amuled_ma.beliefs.cached.CachedSource` in front of it has already
-turned an invalid answer into status ``"error"``), and every read refuses a damaged row
-(:func:`~amuled_ma.beliefs.rows.decode_row`).
+`BeliefStore.put_many` refuses a belief not valid for its row's action count
+(`BeliefStoreError`); every read refuses a damaged row (`decode_row`).
 
 ## Read-only use
 
-``BeliefStore(path, read_only=True)`` (``amuled beliefs stats`` and ``export``) opens an
-existing file with SQLite's ``mode=ro``, creating nothing, and writes nothing. Where even
-that cannot work (WAL mode needs a ``-shm`` file beside the store, which cannot be created
-in a folder you may not write), it opens the file ``immutable=1``: a snapshot of what was
-checkpointed into the main file, without the changes still in a ``-wal`` file.
+``BeliefStore(path, read_only=True)`` opens an existing file with ``mode=ro`` and writes
+nothing; in a folder it cannot write (no ``-shm`` file possible) it opens ``immutable=1``:
+what was checkpointed into the main file, without the ``-wal`` changes.
 
 ## Durability
 
-Every write is one short ``BEGIN IMMEDIATE`` transaction. ``synchronous=NORMAL`` (the WAL
-default) makes a committed transaction survive a crash of the *process*; pass
-``synchronous="FULL"`` to also survive a power loss at some write speed.
+Every write is one ``BEGIN IMMEDIATE`` transaction. ``synchronous=NORMAL`` survives a
+process crash; ``synchronous="FULL"`` also a power loss, at some write speed.
 """
 
 from __future__ import annotations
@@ -86,7 +71,7 @@ _SQL_CHUNK = 500  # keys per ``IN (...)`` query, well under SQLite's variable li
 #: Longest value (a reply, a chat message, a row's JSON columns) and row SQLite reads or
 #: writes in a store [bytes, 64 MiB; ``SQLITE_LIMIT_LENGTH``, SQLite's own default is
 #: 1,000,000,000]: 4 bytes (UTF-8's most) a character of the longest line ``amuled beliefs
-#: import`` reads (:data:`~amuled_ma.beliefs.interchange.MAX_LINE_CHARS`, 16 Mi), so every
+#: import`` reads (`MAX_LINE_CHARS`, 16 Mi), so every
 #: imported row fits; an answer with its chat is about 20 KB. SQLite refuses a longer
 #: value without reading it into memory.
 MAX_VALUE_BYTES = 2**26
@@ -102,7 +87,7 @@ def _too_long(detail: str = "") -> str:
 
 
 class _ValueTooBig(BeliefStoreError):
-    """A read met a value longer than :data:`MAX_VALUE_BYTES` (SQLite's "too big")."""
+    """A read met a value longer than `MAX_VALUE_BYTES` (SQLite's "too big")."""
 
 
 # Insert, or replace a row that holds no answer yet; an ok/repaired row is never replaced.
@@ -343,11 +328,11 @@ class BeliefStore:
                 ) from error
 
     def _read_keys(self, sql: str, keys: Sequence[str]) -> list[tuple[Any, ...]]:
-        """:meth:`_read` of ``sql`` (one ``key IN (?, ...)``), naming the key of a too-long value.
+        """`_read` of ``sql`` (one ``key IN (?, ...)``), naming the key of a too-long value.
 
         Raises:
             BeliefStoreError: A row of ``keys`` holds a value longer than
-                :data:`MAX_VALUE_BYTES`: the store and the row's key, found by asking the
+                `MAX_VALUE_BYTES`: the store and the row's key, found by asking the
                 keys one at a time (each refused without reading it).
 
         """
@@ -434,8 +419,8 @@ class BeliefStore:
     def lookup(self, keys: Iterable[str]) -> dict[str, BeliefResult]:
         """Read the answers (``ok``/``repaired`` rows) of ``keys`` as cache-hit results.
 
-        The fast path of :class:`~amuled_ma.beliefs.cached.CachedSource`: only the columns
-        of a :class:`BeliefResult` are read and parsed.
+        The fast path of `CachedSource`: only the columns
+        of a `BeliefResult` are read and parsed.
 
         Args:
             keys: Keys to look up (duplicates allowed).
@@ -493,7 +478,7 @@ class BeliefStore:
     def get(
         self, key: str, *, cacheable_only: bool = True, with_messages: bool = True
     ) -> StoredBelief | None:
-        """Read one row, chat included by default, or ``None`` (see :meth:`get_many`)."""
+        """Read one row, chat included by default, or ``None`` (see `get_many`)."""
         rows = self.get_many([key], cacheable_only=cacheable_only, with_messages=with_messages)
         return rows.get(key)
 
@@ -534,7 +519,7 @@ class BeliefStore:
 
         Returns:
             ``[{"identity": {...}, "rows": n, "answers": m}, ...]``, most rows first; pass
-            an ``identity`` to :class:`~amuled_ma.beliefs.cached.CachedSource` to replay the
+            an ``identity`` to `CachedSource` to replay the
             store without the source's backend.
 
         """
@@ -591,11 +576,11 @@ class BeliefStore:
         replaced and its ``attempts`` counted up.
 
         Every belief, whatever its status, must be valid for the request's action count
-        (:mod:`amuled_ma.beliefs.validate`); it is written divided by its sum.
+        (`validate`); it is written divided by its sum.
 
         Args:
             items: ``(key, identity, request, result)`` tuples; ``identity`` is the
-                source's ``identity()`` dict or its :func:`identity_json` text.
+                source's ``identity()`` dict or its `identity_json` text.
 
         Returns:
             The number of rows inserted or replaced.
@@ -649,16 +634,16 @@ class BeliefStore:
         request: BeliefRequest,
         result: BeliefResult,
     ) -> int:
-        """Write one answer (see :meth:`put_many`)."""
+        """Write one answer (see `put_many`)."""
         return self.put_many([(key, identity, request, result)])
 
     def put_rows(self, records: Iterable[StoredBelief]) -> int:
         """Write whole rows as read from another store, in one transaction.
 
-        The rule of :meth:`put_many` holds (an existing answer is never replaced; another
+        The rule of `put_many` holds (an existing answer is never replaced; another
         row is replaced and ``attempts`` adds up); unlike it, each row keeps its own
         ``attempts``, timestamps and identity
-        (:func:`amuled_ma.beliefs.interchange.import_jsonl` uses it).
+        (`import_jsonl` uses it).
 
         Args:
             records: The rows, chat included (``messages`` ``None`` counts as no chat).

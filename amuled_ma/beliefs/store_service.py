@@ -4,9 +4,9 @@ Jobs of a sweep on several machines must share one belief store, so that no job 
 state another job already asked. A machine that does not see the driver's files (or sees
 them over a network file system, where SQLite's locks are not safe) must not open the
 SQLite file itself: its job is given a service instead (for a sweep on Ray: a stand-in for
-an actor on the driver's machine, :mod:`amuled_ma.experiments.ray_store`), passed in as the
-``store`` of :func:`amuled_ma.experiments.plans.train_variant`. A service is any object with
-the methods :class:`~amuled_ma.beliefs.cached.CachedSource` uses (:class:`StoreService`).
+an actor on the driver's machine, `ray_store`), passed in as the
+``store`` of `train_variant`. A service is any object with
+the methods `CachedSource` uses (`StoreService`).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from amuled_ma.beliefs.store import BeliefStore
 
 
 class StoreService(Protocol):
-    """What :class:`~amuled_ma.beliefs.cached.CachedSource` needs of a store."""
+    """What `CachedSource` needs of a store."""
 
     def lookup(self, keys: Any) -> dict[str, Any]:
         """Answers (``ok``/``repaired`` rows) of ``keys`` as cache-hit results."""
@@ -38,7 +38,7 @@ def open_store(path: str | os.PathLike[str]) -> BeliefStore:
         path: The store file.
 
     Returns:
-        The :class:`~amuled_ma.beliefs.store.BeliefStore`.
+        The `BeliefStore`.
 
     """
     Path(path).parent.mkdir(parents=True, exist_ok=True)

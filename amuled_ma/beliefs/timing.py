@@ -2,16 +2,16 @@
 
 Ollama's chat responses carry ``load_duration``, ``prompt_eval_count``,
 ``prompt_eval_duration``, ``eval_count``, ``eval_duration`` and ``total_duration``.
-:class:`~amuled_ma.beliefs.ollama.OllamaSource` keeps them per answered request
-(:class:`RequestTiming`, in the result's ``extra["timing"]``) and adds them to the
-:class:`TimingLog` of every open :func:`record_timings` block; :func:`timing_breakdown`
+`OllamaSource` keeps them per answered request
+(`RequestTiming`, in the result's ``extra["timing"]``) and adds them to the
+`TimingLog` of every open `record_timings` block; `timing_breakdown`
 summarises them (``amuled demo`` prints it). Sampling (under the JSON grammar) is in
 neither ``prompt_eval_duration`` nor ``eval_duration``, only in ``total_duration``.
 
 Prefix-cache reuse is not in the response: ``prompt_eval_count`` counts the whole prompt,
 cached part included. A server started with ``OLLAMA_DEBUG=1`` logs one
 ``loading cache slot`` line per chat call with the prompt tokens and those reused
-(``used``); :func:`cache_reuse` reads them from its log.
+(``used``); `cache_reuse` reads them from its log.
 """
 
 from __future__ import annotations
@@ -95,7 +95,7 @@ class RequestTiming:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> RequestTiming:
-        """Inverse of :meth:`as_dict` (unknown keys are ignored, missing ones count 0)."""
+        """Inverse of `as_dict` (unknown keys are ignored, missing ones count 0)."""
         zero = cls()
         kinds = {f.name: type(getattr(zero, f.name)) for f in fields(cls)}
         return cls(**{k: kinds[k](v) for k, v in data.items() if k in kinds})
@@ -103,10 +103,10 @@ class RequestTiming:
 
 @dataclass
 class TimingLog:
-    """The timings collected by :func:`record_timings`, and when their requests ran.
+    """The timings collected by `record_timings`, and when their requests ran.
 
     Attributes:
-        timings: One :class:`RequestTiming` per answered request, in order of completion.
+        timings: One `RequestTiming` per answered request, in order of completion.
         first_start: ``time.perf_counter()`` when the first of them was asked (None: none).
         last_end: ``time.perf_counter()`` when the last of them was answered.
 
@@ -136,16 +136,16 @@ _logs_lock = threading.Lock()
 
 @contextlib.contextmanager
 def record_timings() -> Iterator[TimingLog]:
-    """Collect the :class:`RequestTiming` of every request answered in this process.
+    """Collect the `RequestTiming` of every request answered in this process.
 
-    Every :class:`~amuled_ma.beliefs.ollama.OllamaSource` of the process adds to the
+    Every `OllamaSource` of the process adds to the
     yielded log while the block runs (thread-safe), one entry per answered request (the
     chat calls of a re-asked abstention summed into one). Requests that failed (timeout,
     error) have no server metrics and are not listed. Requests made in other processes
     (``amuled run --jobs N`` workers) are not seen.
 
     Yields:
-        The :class:`TimingLog` the timings are added to.
+        The `TimingLog` the timings are added to.
 
     """
     log = TimingLog()
@@ -159,7 +159,7 @@ def record_timings() -> Iterator[TimingLog]:
 
 
 def publish_timing(timing: RequestTiming, start: float, end: float) -> None:
-    """Add one request's timing to every log opened by :func:`record_timings`.
+    """Add one request's timing to every log opened by `record_timings`.
 
     Args:
         timing: The request's timing.
@@ -237,7 +237,7 @@ def timing_breakdown(
     """Summarise where the requests' time went, one line per figure.
 
     Args:
-        timings: One :class:`RequestTiming` per answered request.
+        timings: One `RequestTiming` per answered request.
         wall_s: Wall-clock seconds while they ran, from the first asked to the last
             answered (summed over phases; None: not shown).
         reuse: The server's prefix-cache reuse over the same calls (None: not known).

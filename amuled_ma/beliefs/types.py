@@ -2,7 +2,7 @@
 
 A *belief* is a probability vector over a task's actions, given by one moral-cluster
 agent for one task state. Sources (Ollama, replay of a recording, rules) answer
-batches of :class:`BeliefRequest` with :class:`BeliefResult` in the same order.
+batches of `BeliefRequest` with `BeliefResult` in the same order.
 """
 
 from __future__ import annotations
@@ -15,10 +15,10 @@ from typing import Any
 
 import numpy as np
 
-#: Parse / answer statuses a :class:`BeliefResult` may carry.
+#: Parse / answer statuses a `BeliefResult` may carry.
 STATUSES = ("ok", "repaired", "abstained", "replay_miss", "timeout", "error")
 #: Statuses of beliefs a distilled reward model gave in the panel's place
-#: (:mod:`amuled_ma.distill`): ``"distilled"`` (a state that was not asked) and
+#: (`distill`): ``"distilled"`` (a state that was not asked) and
 #: ``"distilled_miss"`` (an asked state's replay miss or abstention, answered by the model).
 #: They are answers for the fusion, reported apart from the panel's, and never stored.
 MODEL_STATUSES = ("distilled", "distilled_miss")
@@ -58,12 +58,12 @@ class BeliefRequest:
 
 @dataclass
 class BeliefResult:
-    """A source's answer to one :class:`BeliefRequest`.
+    """A source's answer to one `BeliefRequest`.
 
     Attributes:
         belief: Probability vector, shape ``(n_actions,)``, sums to 1.
-        status: One of :data:`STATUSES` (or, from a distilled model, of
-            :data:`MODEL_STATUSES` or :data:`UNASKED`); anything but ``"ok"``/``"repaired"``
+        status: One of `STATUSES` (or, from a distilled model, of
+            `MODEL_STATUSES` or `UNASKED`); anything but ``"ok"``/``"repaired"``
             and the model's answers means the belief is a fallback (uniform, ...).
         source: Name of the source that produced the belief.
         raw: The raw reply text, when there was one.
@@ -101,12 +101,12 @@ class BeliefSource(ABC):
 
     Optional protocol: a source may also define ``iter_beliefs(requests)`` yielding
     ``(index, result)`` pairs as answers complete (in any order); a caller such as
-    :class:`~amuled_ma.beliefs.cached.CachedSource` then stores each answer on arrival.
+    `CachedSource` then stores each answer on arrival.
     """
 
     #: Short registry name of the source kind (``"ollama"``, ``"replay"``, ``"rules"``).
     name: str = "source"
-    #: Whether the source reads :attr:`BeliefRequest.messages` (an LLM does; replay and
+    #: Whether the source reads `BeliefRequest.messages` (an LLM does; replay and
     #: rules do not, so callers may skip rendering prompts for them).
     needs_messages: bool = True
 

@@ -8,32 +8,26 @@ answer) goes through this module, so that no door accepts what another refuses:
 - it has exactly the task's action count (one entry per action, index = action id);
 - every entry is finite (no NaN, no +-inf) and non-negative;
 - its sum is finite (``[1e308, 1e308, 0, 0]`` overflows to inf: invalid) and within
-  :data:`SUM_TOLERANCE` of 1, i.e. ``abs(sum - 1) <= 1e-6``. A sum of 0 (all zero) is
+  `SUM_TOLERANCE` of 1, i.e. ``abs(sum - 1) <= 1e-6``. A sum of 0 (all zero) is
   invalid, as is any other sum.
 
 Within the tolerance a vector whose sum is off 1 by more than float64 rounding
-(:data:`ROUNDING`, 1e-12) is divided by its sum, so the belief handed on sums to 1 within
+(`ROUNDING`, 1e-12) is divided by its sum, so the belief handed on sums to 1 within
 rounding; one already within rounding is handed on bit for bit (``[0.7, 0.1, 0.1, 0.1]``
 sums to 0.9999999999999999 and stays as written). So the check is idempotent: a belief
 that passes several doors (a store write, a read, an export, an import) keeps its bits.
 
-The tolerance 1e-6 is far above float64 rounding (the authors' recordings sum to 1
-within 4e-16) and float32 rounding of a few entries (about 1e-7), and far below any
-difference that matters to a reward; a reply that is off by more (``[0.3, 0.3, 0.3]``)
-must be repaired on purpose by the reply parser (status ``"repaired"``), not here.
+The tolerance 1e-6 is above float32 rounding and below any difference that matters to a
+reward; a reply off by more is repaired by the reply parser (status ``"repaired"``).
 
-Rule-based sources (:mod:`amuled_ma.beliefs.rules`) are documented to return *scores*
-that are scaled to sum to 1; they call :func:`check_belief` with ``scores=True``, which
+Rule-based sources (`rules`) are documented to return *scores*
+that are scaled to sum to 1; they call `check_belief` with ``scores=True``, which
 accepts any finite, non-negative vector with a positive finite sum and divides it by
 that sum. Every other rule above holds for them too.
 
-What a door does with an invalid belief (see ``docs/beliefs.md``):
-
-- files (recordings, JSON Lines imports, store rows) raise an error that names the
-  file, the line / row / key, what was found and the fix (:func:`validate_belief`);
-- live answers (Ollama, rules, replay fallbacks, plug-in sources, through
-  :func:`checked_result`) become an abstention (status ``"abstained"`` or ``"error"``)
-  with a uniform fallback belief and the reason in ``extra["error"]``, never ``"ok"``.
+An invalid belief from a file raises an error naming where (`validate_belief`); a live
+answer becomes status ``"error"`` or ``"abstained"`` with a uniform belief
+(`checked_result`).
 """
 
 from __future__ import annotations
@@ -50,7 +44,7 @@ from amuled_ma.errors import AmuledError
 #: Largest accepted ``abs(sum(belief) - 1)``.
 SUM_TOLERANCE = 1e-6
 #: Largest ``abs(sum(belief) - 1)`` taken as float64 rounding: such a belief is kept as is;
-#: one further off (but within :data:`SUM_TOLERANCE`) is divided by its sum.
+#: one further off (but within `SUM_TOLERANCE`) is divided by its sum.
 ROUNDING = 1e-12
 #: Statuses whose result must hold a valid belief (the answers served back by the store).
 ANSWER_STATUSES = frozenset({"ok", "repaired"})
@@ -135,7 +129,7 @@ def check_belief(
 
     Returns:
         ``(belief, None)`` with ``belief`` a float64 array (divided by its sum unless that
-        is 1 within :data:`ROUNDING`; a new array unless ``values`` was a float64 array
+        is 1 within `ROUNDING`; a new array unless ``values`` was a float64 array
         already kept as is), or ``(None, reason)`` with a one-line reason (what was found).
 
     """
@@ -181,7 +175,7 @@ def validate_belief(
         where: What holds it, for the message (``"rec.json: states[3] 'care'"``,
             ``"dump.jsonl:12 (key 3fa0...)"``).
         fix: How to fix it, appended to the message (a generic hint by default).
-        scores: As in :func:`check_belief`.
+        scores: As in `check_belief`.
 
     Returns:
         The belief, float64, shape ``(n_actions,)``.
@@ -203,7 +197,7 @@ def validate_belief(
 def check_beliefs(matrix: np.ndarray) -> tuple[np.ndarray, list[str | None]]:
     """Check the rows of an ``(m, A)`` float array at once (the panel's batch path).
 
-    Same rule as :func:`check_belief`, vectorised: rows are expected to be float already
+    Same rule as `check_belief`, vectorised: rows are expected to be float already
     (a row that could not be made one is passed in as NaN).
 
     Args:
@@ -211,7 +205,7 @@ def check_beliefs(matrix: np.ndarray) -> tuple[np.ndarray, list[str | None]]:
 
     Returns:
         ``(beliefs, reasons)``: valid rows divided by their sum (unless that is 1 within
-        :data:`ROUNDING`), invalid rows left as they were; ``reasons[i]`` is ``None`` for
+        `ROUNDING`), invalid rows left as they were; ``reasons[i]`` is ``None`` for
         a valid row, else why it is invalid.
 
     """
@@ -241,7 +235,7 @@ def uniform_belief(n_actions: int) -> np.ndarray:
 def checked_result(result: Any, n_actions: int, *, status: str = "error") -> Any:
     """Make a source's answer safe to store and fuse; the door for every live answer.
 
-    A result whose belief is valid gets it as :func:`check_belief` returns it (float64,
+    A result whose belief is valid gets it as `check_belief` returns it (float64,
     summing to 1 within rounding).
     A result whose belief is invalid gets a uniform belief instead; an ``"ok"`` or
     ``"repaired"`` one also gets ``status`` (``"error"`` by default: the source broke its
@@ -249,13 +243,13 @@ def checked_result(result: Any, n_actions: int, *, status: str = "error") -> Any
     ``extra["invalid_belief"]``. The result is changed in place and returned.
 
     Args:
-        result: A :class:`~amuled_ma.beliefs.types.BeliefResult`.
+        result: A `BeliefResult`.
         n_actions: The request's action count.
         status: Status given to an answer whose belief is invalid (``"error"`` or
             ``"abstained"``).
 
     Returns:
-        ``result``; a status in :data:`ANSWER_STATUSES` now always holds a valid belief.
+        ``result``; a status in `ANSWER_STATUSES` now always holds a valid belief.
 
     """
     belief, reason = check_belief(result.belief, n_actions)

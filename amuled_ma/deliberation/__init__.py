@@ -1,8 +1,8 @@
 """Deliberation: the moral panel the learner asks every step, and the PettingZoo env.
 
-- :class:`~amuled_ma.deliberation.panel.MoralPanel`: batched beliefs of every moral cluster
+- `MoralPanel`: batched beliefs of every moral cluster
   for every env copy, fused per copy (what the learner calls; see ``docs/deliberation.md``).
-- :class:`~amuled_ma.deliberation.env.DeliberationEnv`: a native PettingZoo ``ParallelEnv``
+- `DeliberationEnv`: a native PettingZoo ``ParallelEnv``
   with an ``"actor"`` and one agent per cluster; as PettingZoo's env modules offer theirs::
 
       from amuled_ma.deliberation import env

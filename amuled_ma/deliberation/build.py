@@ -1,17 +1,17 @@
 """Feedback built from a panel plan, the belief store passed in; the preflight of a plan.
 
-:func:`build_feedback` is the one function that turns a
-:class:`~amuled_ma.deliberation.plan.PanelPlan` into a
-:class:`~amuled_ma.deliberation.feedback_base.Feedback`: the demonstrator, the human rule,
-the authors' fused beliefs, or a :class:`~amuled_ma.deliberation.panel.MoralPanel` over
+`build_feedback` is the one function that turns a
+`PanelPlan` into a
+`Feedback`: the demonstrator, the human rule,
+the authors' fused beliefs, or a `MoralPanel` over
 its members' sources, each behind the store it is given (a
-:class:`~amuled_ma.beliefs.cached.CachedSource` per distinct source, one
-:class:`~amuled_ma.beliefs.routing.RoutedSource` over them). :func:`preflight` checks a plan
+`CachedSource` per distinct source, one
+`RoutedSource` over them). `preflight` checks a plan
 without a store: every member's source is built and checked (a replay recording holds the
 member's cluster and the task, an Ollama server answers and has the model, a plug-in
 loads), or one error names the member and the ways to give it beliefs. Nothing is written.
-:func:`checked_members` is the preflight that keeps the sources it built and checked
-(:class:`Members`), for :func:`build_feedback` to use instead of building them again.
+`checked_members` is the preflight that keeps the sources it built and checked
+(`Members`), for `build_feedback` to use instead of building them again.
 """
 
 from __future__ import annotations
@@ -107,7 +107,7 @@ def options_line(missing: Sequence[str], states: int, distill: Any = None) -> st
     Returns:
         One clause: the ``--set`` of a person at the terminal with the number of answers
         (states x members; on the budget of ``[feedback.distill]``, or
-        :data:`SUGGESTED_BUDGET`, with the distilled model), dropping the members, and
+        `SUGGESTED_BUDGET`, with the distilled model), dropping the members, and
         where a live model and the other sources are described (docs/clusters.md).
 
     """
@@ -205,12 +205,12 @@ def build_members(plan: PanelPlan, *, build: Any = build_source) -> Members:
         build: ``(kind, **options) -> BeliefSource`` (default ``beliefs.make_source``).
 
     Returns:
-        The :class:`Members` (``routes``, ``default``, ``plans``); agents with equal plans
+        The `Members` (``routes``, ``default``, ``plans``); agents with equal plans
         share one object, and so do an agent and the default.
 
     Raises:
         AmuledError: One problem: the member's own error class, its message prefixed
-            with the agent's table and source; several: a :class:`ScenarioError`
+            with the agent's table and source; several: a `ScenarioError`
             listing each, one per line. Every source built is closed first.
 
     """
@@ -275,7 +275,7 @@ def build_members(plan: PanelPlan, *, build: Any = build_source) -> Members:
 def preflight(plan: PanelPlan) -> None:
     """Check that every member of a plan can answer, before any training or folder.
 
-    :func:`checked_members`, the sources it built closed again.
+    `checked_members`, the sources it built closed again.
 
     Raises:
         AmuledError: One line naming the member, its source and the ways to give it
@@ -288,14 +288,14 @@ def preflight(plan: PanelPlan) -> None:
 
 
 def checked_members(plan: PanelPlan) -> Members | None:
-    """The preflight of a plan, its member sources kept open for :func:`build_feedback`.
+    """The preflight of a plan, its member sources kept open for `build_feedback`.
 
-    A panel's sources are built and checked (:func:`build_members`); a fused-only
+    A panel's sources are built and checked (`build_members`); a fused-only
     recording must be of the task, and not be asked to distil.
 
     Returns:
         The members, built and checked (the caller closes them, or hands them to
-        :func:`build_feedback`); None when the feedback asks no member source (the
+        `build_feedback`); None when the feedback asks no member source (the
         demonstrator, the human rule, a fused-only recording).
 
     Raises:
@@ -339,17 +339,17 @@ def panel_source(plan: PanelPlan, store: Any, members: Members | None = None) ->
 
     Args:
         plan: The plan (a panel that is not fused-only).
-        store: The belief store (:class:`~amuled_ma.beliefs.store.BeliefStore`, or
+        store: The belief store (`BeliefStore`, or
             anything with its ``lookup`` / ``put_many`` / ``close``).
         members: The plan's sources, already built and checked
-            (:func:`checked_members`); default: built here.
+            (`checked_members`); default: built here.
 
     Returns:
         One ``CachedSource`` when every member shares one source, else a ``RoutedSource``
         of them.
 
     Raises:
-        AmuledError: As :func:`build_members` (nothing is written then).
+        AmuledError: As `build_members` (nothing is written then).
 
     """
     routes, default, plans = members if members is not None else build_members(plan)
@@ -388,11 +388,11 @@ def build_feedback(
     """Build the feedback of a plan, its panel's members behind ``store``.
 
     Args:
-        plan: The plan (:func:`~amuled_ma.deliberation.plan.plan_panel`).
+        plan: The plan (`plan_panel`).
         store: The belief store every member's answers go through (unused without a
             panel); the caller owns it.
         members: The plan's member sources as the preflight built and checked them
-            (:func:`checked_members`), handed over: the feedback closes them with
+            (`checked_members`), handed over: the feedback closes them with
             itself. Default: built here (and checked).
         state_dir: The fine-tune's folder. With ``[feedback.distill].enabled``, panel
             feedback is distilled there (its budget kept in the folder's state files);
@@ -481,7 +481,7 @@ def open_run_store(scenario: Scenario, run_dir: Path | None = None) -> Any:
 
 
 def run_store(scenario: Scenario, run_dir: Path | None = None) -> Any:
-    """The belief store of a scenario's run, opened on first use (:func:`open_run_store`).
+    """The belief store of a scenario's run, opened on first use (`open_run_store`).
 
     The preflight runs before the store's file exists; a feedback that never asks a
     member (the demonstrator, a fused-only recording) never opens it.
@@ -499,16 +499,16 @@ def make_feedback(
     seed: int | None = None,
     store: Any = None,
 ) -> Feedback:
-    """Plan a variant's panel and build its feedback: :func:`plan_panel` + :func:`build_feedback`.
+    """Plan a variant's panel and build its feedback: `plan_panel` + `build_feedback`.
 
     Args:
-        variant: The feedback (see :func:`~amuled_ma.variants.parse_feedback`).
+        variant: The feedback (see `parse_feedback`).
         scenario: The scenario.
         run_dir: Run directory holding the belief store (and the demonstrator's counts).
-        state_dir: See :func:`build_feedback`.
-        resume: See :func:`build_feedback`.
-        seed: See :func:`build_feedback`.
-        store: The belief store to use (default: the run's, :func:`run_store`, opened
+        state_dir: See `build_feedback`.
+        resume: See `build_feedback`.
+        seed: See `build_feedback`.
+        store: The belief store to use (default: the run's, `run_store`, opened
             only when a member is asked).
 
     Returns:
@@ -553,7 +553,7 @@ def make_source(scenario: Scenario, run_dir: Path | None = None, *, agents: Any 
 
 
 class _Named:
-    """A member known by name only (:func:`make_source`)."""
+    """A member known by name only (`make_source`)."""
 
     def __init__(self, name: str) -> None:
         self.name = name

@@ -2,44 +2,30 @@
 
 ## Description
 
-A native :class:`pettingzoo.ParallelEnv` wrapping one copy of a task env
-(:mod:`amuled_ma.tasks`, ``num_envs=1``). The agents are ``"actor"`` plus one agent per
-moral cluster. Each step, every cluster states a belief over the task's actions, an arbiter
-fuses the beliefs (:func:`amuled_ma.fusion.fuse`), the task steps with the actor's action,
-and the actor is rewarded with the fused belief of the action it took. Following the
-PettingZoo convention the LLMs live *outside* the env: any policy can drive the cluster
-agents, random or scripted beliefs included (a :class:`~amuled_ma.deliberation.MoralPanel`
-is the LLM one).
+A `pettingzoo.ParallelEnv` over one copy of a task env (``num_envs=1``): agents
+``"actor"`` and one per moral cluster. Each step every cluster states a belief over the
+task's actions, they are fused (`fuse`), the task steps with the actor's action, and the
+actor is rewarded with the fused belief of that action. The LLMs live outside the env
+(`MoralPanel` is one policy for the cluster agents).
 
 ## Action Space
 
 - ``"actor"``: ``Discrete(n_actions)``, the task action.
-- each cluster: ``Box(0, 1, (n_actions,), float32)``, a belief over the task's actions. It
-  is projected onto the probability simplex in :meth:`DeliberationEnv.step` (see
-  :func:`project_to_simplex`), so any vector is accepted; a missing cluster action counts
-  as the uniform belief.
+- each cluster: ``Box(0, 1, (n_actions,), float32)``, a belief, projected onto the simplex
+  (`project_to_simplex`); a missing cluster action counts as uniform.
 
 ## Observation Space
 
 - ``"actor"``: the task observation, ``Box(obs_low, obs_high, (obs_dim,), float32)``.
-- each cluster: ``Dict({"prompt": Text, "obs": Box})``: the rendered state prompt
-  (:func:`amuled_ma.tasks.prompts.render_state_prompt`) and the task observation. The
-  ``Text`` space allows ``prompt_max_length`` characters from printable ASCII plus every
-  character of the task's prompt template.
+- each cluster: ``Dict({"prompt": Text, "obs": Box})``: the state prompt
+  (`render_state_prompt`, at most ``prompt_max_length`` characters) and the observation.
 
 ## Rewards
 
-- actor: ``r_env_weight * r_task + feedback_coef * fused[a]``, where ``r_task`` is the task
-  reward (``r_env + shaping_coef * r_shaping``; ``shaping_coef`` defaults to 0, so
-  ``r_task = r_env``) and ``fused[a]`` the fused belief of the action taken. It is
-  :func:`amuled_ma.deliberation.mdp.actor_reward`, the function training rewards with: this
-  env is :class:`~amuled_ma.deliberation.mdp.BatchedDeliberation` with one copy, the MDP the
-  learner trains in with many (the learner adds the KL anchor, which needs the policies).
+- actor: ``r_env_weight * r_task + feedback_coef * fused[a]`` (`actor_reward`, as in
+  training: this env is `BatchedDeliberation` with one copy).
 - each cluster: its credibility weight in the fusion (``FusionResult.weights``, summing to
-  1 over the clusters), so a run shows which cluster carried the decision. The clusters are
-  not trained (their policies are fixed prompted LLMs): the reward is a record of how far
-  the arbiter trusted each one at that step, the quantity an ablation or a learned panel
-  would optimise, and it sums to 1 over the panel at every step.
+  1 over the clusters); a record only, the clusters are not trained.
 
 ## Infos
 
@@ -50,10 +36,9 @@ combination), ``"r_env"``, ``"r_shaping"`` and ``"r_feedback"``.
 
 ## Episode end
 
-The episode ends when the task terminates or truncates (its time limit ``max_steps``);
-then every agent is done at once and ``agents`` becomes empty. The observations returned
-on that step are the final ones (before the task's automatic reset); the clusters' final
-``prompt`` is the empty string (nobody is asked about a finished episode).
+When the task terminates or truncates (``max_steps``), every agent is done at once and
+``agents`` becomes empty; that step returns the final observations, with an empty
+``prompt``.
 
 ## Version History
 
@@ -119,9 +104,9 @@ class DeliberationEnv(ParallelEnv):
     """The actor and the moral clusters around one task (see the module docstring).
 
     Args:
-        task_name: A task of :mod:`amuled_ma.tasks` (``"findmilk"``, ``"driving"``).
+        task_name: A task of `tasks` (``"findmilk"``, ``"driving"``).
         clusters: Cluster agent names (default: the shipped panel, the paper's five).
-        fusion_rule: A rule of :func:`amuled_ma.fusion.fuse`.
+        fusion_rule: A rule of `fuse`.
         r_env_weight: Weight of the task reward in the actor's reward.
         feedback_coef: Coefficient ``c`` of the fused belief of the action taken.
         shaping_coef: The task's handcrafted shaping coefficient (0: none).
@@ -131,7 +116,7 @@ class DeliberationEnv(ParallelEnv):
             weights and fused belief under it) or ``"rgb_array"`` (the task's picture).
         prompt_max_length: ``max_length`` of the prompt ``Text`` space.
         render_state_prompt: ``(task_name, variables) -> str``; default
-            :func:`amuled_ma.tasks.prompts.render_state_prompt`.
+            `render_state_prompt`.
         task_options: Extra keyword arguments of the task (e.g. ``layout``).
         clusters_dirs: Folders of user cluster files, loaded after the shipped ones (a file
             overrides a shipped cluster of its name); the default panel and the names in
@@ -345,8 +330,8 @@ class DeliberationEnv(ParallelEnv):
         """Return every cluster agent's action as answered by a moral panel.
 
         The LLM side of the PettingZoo convention: the panel (a
-        :class:`~amuled_ma.deliberation.MoralPanel` over any belief source) answers for the
-        current state; add the actor's action and pass the dict to :meth:`step`.
+        `MoralPanel` over any belief source) answers for the
+        current state; add the actor's action and pass the dict to `step`.
 
         Args:
             panel: A moral panel whose ``clusters`` include this env's cluster agents.
@@ -443,8 +428,8 @@ def parallel_env(task_name: str = "findmilk", **kwargs: Any) -> DeliberationEnv:
     """The deliberation env of ``task_name``, as PettingZoo's env modules offer it.
 
     Args:
-        task_name: A task of :mod:`amuled_ma.tasks` (``"findmilk"``, ``"driving"``).
-        **kwargs: The other :class:`DeliberationEnv` arguments.
+        task_name: A task of `tasks` (``"findmilk"``, ``"driving"``).
+        **kwargs: The other `DeliberationEnv` arguments.
 
     Returns:
         The env (call ``reset`` first).
@@ -457,5 +442,5 @@ def parallel_env(task_name: str = "findmilk", **kwargs: Any) -> DeliberationEnv:
 
 
 def env(task_name: str = "findmilk", **kwargs: Any) -> AECEnv:
-    """Its AEC form: :func:`parallel_env` through PettingZoo's ``parallel_to_aec``."""
+    """Its AEC form: `parallel_env` through PettingZoo's ``parallel_to_aec``."""
     return parallel_to_aec(parallel_env(task_name, **kwargs))

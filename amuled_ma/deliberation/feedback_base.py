@@ -1,7 +1,7 @@
 """Feedback for fine-tuning: a belief over actions for every environment copy, each step.
 
 The fine-tuning reward is ``f(B)[a_t]``, the feedback's probability of the action the
-agent took (paper, eq. "feedback"). A :class:`Feedback` answers a whole batch (all
+agent took (paper, eq. "feedback"). A `Feedback` answers a whole batch (all
 environment copies at once) and memoises by observation, so a repeated state costs one
 dictionary lookup; underneath, panel feedback goes through the belief store, so a state
 seen in an earlier run costs no LLM call either.
@@ -10,9 +10,9 @@ Variants (``--feedback``):
 
 - ``amuled``: the five moral clusters fused with ``bjs-dst`` (or the scenario's rule);
 - ``human``: the authors' synthetic human, a demonstrator's action counts
-  (:class:`DemonstratorFeedback`, :mod:`amuled_ma.tasks.demonstrators`);
-- ``human:rules``: our rule-based human source (:func:`amuled_ma.tasks.human.human_belief`,
-  through :class:`CallableFeedback`);
+  (`DemonstratorFeedback`, `demonstrators`);
+- ``human:rules``: our rule-based human source (`human_belief`,
+  through `CallableFeedback`);
 - ``cluster:<name>``: one moral cluster alone;
 - ``moral``: the unprompted "behave as a moral agent" agent;
 - ``agg:mean|max|vote``: the five clusters fused with another rule.
@@ -22,9 +22,9 @@ given: ``ok`` / ``repaired`` (an answer), ``abstained`` / ``timeout`` / ``error`
 failure: the fused reward used a uniform fallback for that agent) and ``replay_miss``;
 with ``[feedback.distill]`` also ``distilled`` / ``distilled_miss`` (the distilled
 model's answers, reported apart from the panel's) and ``unasked`` (a failure).
-:meth:`Feedback.summary` holds them (``"agents"``, JSON-ready, for ``feedback.json`` and
-``results.json``), :meth:`Feedback.agent_report` returns them on their own, and
-:func:`summary_lines` prints them, so a server that always fails or answers NaN reads
+`Feedback.summary` holds them (``"agents"``, JSON-ready, for ``feedback.json`` and
+``results.json``), `Feedback.agent_report` returns them on their own, and
+`summary_lines` prints them, so a server that always fails or answers NaN reads
 "error 100.00%", not "miss rate 0.00%".
 """
 
@@ -48,7 +48,7 @@ REPORTED_STATUSES = ("ok", "repaired", "abstained", "timeout", "error", "replay_
 #: failure (a fallback belief was used).
 ANSWERED = frozenset({"ok", "repaired", *MODEL_STATUSES})
 #: Statuses of beliefs a distilled model gave (or could not give): a memo entry holding one
-#: is refreshed after the model's next refit (:meth:`Feedback._memo_generation`).
+#: is refreshed after the model's next refit (`Feedback._memo_generation`).
 _VOLATILE = frozenset({*MODEL_STATUSES, UNASKED})
 #: Statuses that are a feedback's documented answer, not an agent's failure: the authors'
 #: fusion met total conflict (reward 0), a demonstrator never visited the state (reward 0).
@@ -85,7 +85,7 @@ class Feedback(ABC):
         self._generation: Any = None
 
     #: Largest share of rewarded steps one agent may leave unanswered (None: no limit),
-    #: ``[feedback].max_abstention``; see :meth:`check_abstention`.
+    #: ``[feedback].max_abstention``; see `check_abstention`.
     max_abstention: float | None = None
 
     #: Whether a state is the observation *and* the task's prompt variables (a source that
@@ -181,7 +181,7 @@ class Feedback(ABC):
         return out
 
     def _account(self, prepared: tuple) -> None:
-        """Add one row's diagnostics (as :func:`_prepare` returns them) to the totals."""
+        """Add one row's diagnostics (as `_prepare` returns them) to the totals."""
         pairs, weights, conflict = prepared
         statuses, agent_statuses = self.statuses, self.agent_statuses
         for pair in pairs:
@@ -205,7 +205,7 @@ class Feedback(ABC):
             ``{agent: {"ok": n, "repaired": n, "abstained": n, "timeout": n, "error": n,
             "replay_miss": n, (any other status), "total": n, "failed": n,
             "failure_rate": failed / total}}``, agents in the order first seen. ``failed``
-            counts every status but the answers (:data:`ANSWERED`: ``ok``, ``repaired``
+            counts every status but the answers (`ANSWERED`: ``ok``, ``repaired``
             and the distilled model's ``distilled``, ``distilled_miss``); a future
             stopping threshold can compare ``failure_rate`` with a limit.
 
@@ -234,13 +234,13 @@ class Feedback(ABC):
         """Stop when an agent left too much of the reward without its answer.
 
         The share is over rewarded steps (how much of the feedback the agent's failures
-        touched), judged once the agent was asked :data:`MIN_STATES_JUDGED` distinct
+        touched), judged once the agent was asked `MIN_STATES_JUDGED` distinct
         states: a few rarely visited states the agent could not answer do not stop a run,
         an agent that fails on the states the policy keeps visiting does.
 
         Raises:
             AbstentionError: An agent failed to answer (abstained, timeout, error, replay
-                miss) on more than :attr:`max_abstention` of the rewarded steps; the
+                miss) on more than `max_abstention` of the rewarded steps; the
                 message names the agent, its source, the counts and the fix.
 
         """
@@ -290,9 +290,9 @@ class Feedback(ABC):
             ``feedback`` (variant), ``steps``, ``unique_states``, ``mean_weight`` and
             ``mean_conflict`` (fusion), ``statuses`` (all agents, per step),
             ``miss_rate`` (replay misses / beliefs), ``failure_rate`` (beliefs that were
-            not answers / beliefs), ``agents`` (:meth:`agent_report` per step),
+            not answers / beliefs), ``agents`` (`agent_report` per step),
             ``agents_per_state`` (per distinct state) and, for a distilled feedback,
-            ``distill`` (:meth:`distill_report`: the budget's accounting).
+            ``distill`` (`distill_report`: the budget's accounting).
 
         """
         total = sum(self.statuses.values())
@@ -363,7 +363,7 @@ class DemonstratorFeedback(Feedback):
     """The authors' synthetic human (Wu & Lin 2018 style): a demonstrator's action counts.
 
     A simulated demonstrator played the task and every (observation, action) it took was
-    counted (:mod:`amuled_ma.tasks.demonstrators`); a state's belief is
+    counted (`demonstrators`); a state's belief is
     ``p(a) ∝ 0.6^c_a 0.4^(n - c_a)``. A state the demonstrator never visited rewards 0
     (the authors' ``finetune_moral_human.py``), counted as ``unseen``.
 

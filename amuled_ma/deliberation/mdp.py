@@ -1,18 +1,18 @@
 """The deliberation MDP, batched: N task copies, a panel, and the actor's reward, defined once.
 
-Both views of a deliberation step run through :class:`BatchedDeliberation`:
+Both views of a deliberation step run through `BatchedDeliberation`:
 
-- the learner (:class:`~amuled_ma.learn.vecenv.DeliberationVecEnv`, rsl-rl's ``VecEnv``)
+- the learner (`DeliberationVecEnv`, rsl-rl's ``VecEnv``)
   trains in it with ``N`` copies; its feedback (a moral panel over a belief source, a
   replay, a demonstrator, ...) answers for all ``N`` states in one call;
-- the PettingZoo :class:`~amuled_ma.deliberation.env.DeliberationEnv` is the same MDP with
+- the PettingZoo `DeliberationEnv` is the same MDP with
   one copy, where the cluster agents' actions are the beliefs and its arbiter fuses them.
 
 Each step, the fused belief of the state the action is taken in is read *before* the task
-steps, then the task steps, then :func:`actor_reward` turns the task reward and the fused
+steps, then the task steps, then `actor_reward` turns the task reward and the fused
 belief of the taken action into the actor's reward. The KL anchor to the base policy is
 not part of the MDP: it needs the policies, so the learner adds it
-(:class:`~amuled_ma.learn.anchored_ppo.AnchoredPPO`).
+(`AnchoredPPO`).
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ import torch
 from amuled_ma.errors import AmuledError
 
 #: ``(observations [N, obs_dim], task) -> fused beliefs [N, A]``: a learner's feedback
-#: (:class:`~amuled_ma.deliberation.feedback_base.Feedback`) or any callable of that shape.
+#: (`Feedback`) or any callable of that shape.
 FeedbackFn = Callable[[torch.Tensor, Any], Any]
 
 
@@ -75,7 +75,7 @@ class DeliberationStep:
 
     Attributes:
         obs: Next observations ``[N, obs_dim]`` (after the task's automatic reset).
-        reward: The actor's reward ``[N]`` (:func:`actor_reward`).
+        reward: The actor's reward ``[N]`` (`actor_reward`).
         terminated: ``[N]`` bool.
         truncated: ``[N]`` bool.
         info: The task's info (``r_env``, ``r_shaping``, ``final_obs``, ``episode``, ...).
@@ -99,12 +99,12 @@ class DeliberationStep:
 class BatchedDeliberation:
     """``N`` copies of a task, the feedback that answers for them, and the actor's reward.
 
-    Call :meth:`reset` before the first :meth:`step`.
+    Call `reset` before the first `step`.
 
     Args:
-        task: A batched task (:mod:`amuled_ma.tasks`), any number of copies.
+        task: A batched task (`tasks`), any number of copies.
         feedback: Answers the fused beliefs of all copies' states in one call; None for base
-            training or when the caller passes the fused beliefs to :meth:`step` itself.
+            training or when the caller passes the fused beliefs to `step` itself.
         task_weight: Weight of the task reward in the actor's reward.
         feedback_coef: Weight of the fused belief of the action taken.
 
@@ -125,7 +125,7 @@ class BatchedDeliberation:
         self.num_envs = int(task.num_envs)
         self.num_actions = int(task.num_actions)
         self.device = torch.device(getattr(task, "device", "cpu"))
-        #: The current observations ``[N, obs_dim]``; set by :meth:`reset`.
+        #: The current observations ``[N, obs_dim]``; set by `reset`.
         self.obs = torch.zeros(self.num_envs, int(task.obs_dim), device=self.device)
 
     def _as(self, value: Any, dtype: torch.dtype) -> torch.Tensor:
@@ -150,10 +150,10 @@ class BatchedDeliberation:
             actions: Action index per copy ``[N]`` (long).
             fused: The fused beliefs ``[N, A]`` of the current states, when the caller has
                 them (the PettingZoo view fuses its cluster agents' actions); None asks
-                :attr:`feedback` (or gives no feedback term when there is none).
+                `feedback` (or gives no feedback term when there is none).
 
         Returns:
-            The step (:class:`DeliberationStep`).
+            The step (`DeliberationStep`).
 
         """
         if fused is None:
@@ -184,7 +184,7 @@ class BatchedDeliberation:
 class CopiesView:
     """Copies ``start .. start + count - 1`` of a batched task, seen as a task of ``count``.
 
-    What a population member's feedback is handed (:class:`MemberFeedback`): its copies
+    What a population member's feedback is handed (`MemberFeedback`): its copies
     numbered from 0, as in a lone run, so ``prompt_variables(ids)`` (and
     ``state_prompts``) reads copy ``start + id`` of the population's task and ``obs`` is
     the member's rows. Every other attribute is the task's.
@@ -194,7 +194,7 @@ class CopiesView:
         start: First copy.
         count: Number of copies.
         variables: Reads the prompt variables of copies by their indices in ``task``
-            (default: ``task.prompt_variables``); :class:`MemberFeedback` hands its
+            (default: ``task.prompt_variables``); `MemberFeedback` hands its
             once-per-step reading of every copy.
 
     """
@@ -236,18 +236,18 @@ class MemberFeedback:
     A population of ``P`` members trains in one task of ``P x E`` copies, member ``p``
     owning copies ``p*E .. p*E + E - 1``; each member's feedback (its own panel, fusion
     rule, memo) is called on its rows with its copies as a task of ``E``
-    (:class:`CopiesView`), exactly as in a lone run, and the answers are stacked. The
+    (`CopiesView`), exactly as in a lone run, and the answers are stacked. The
     prompt variables of the states (read by a feedback keyed by prompt) are read for
     every copy at once, on the first request of a step, and served to each member.
 
-    A member whose feedback fails (an :class:`~amuled_ma.errors.AmuledError`, a belief
-    that is not finite) is not asked again: the reason is kept in :attr:`failures`, its
+    A member whose feedback fails (an `AmuledError`, a belief
+    that is not finite) is not asked again: the reason is kept in `failures`, its
     rows get zeros that nothing learns from (the population trainer stops the member after
     the iteration and keeps its last checkpoint), and the other members' iteration runs
     exactly as it would have.
 
     Args:
-        feedbacks: One feedback per member (:data:`FeedbackFn`).
+        feedbacks: One feedback per member (`FeedbackFn`).
         copies: Copies per member ``E``.
 
     """
@@ -262,7 +262,7 @@ class MemberFeedback:
         self.failures: dict[int, str] = {}
 
     def views(self, task: Any) -> list[CopiesView]:
-        """Each member's :class:`CopiesView` of ``task`` (made once per task)."""
+        """Each member's `CopiesView` of ``task`` (made once per task)."""
         if not self._views or self._task is not task:
             self._task = task
             variables = self.prompt_variables if hasattr(task, "prompt_variables") else None

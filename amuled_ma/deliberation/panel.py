@@ -1,38 +1,18 @@
 """The moral panel: one belief per (env copy, cluster), fused per env copy.
 
-:class:`MoralPanel` is what the learner calls every step for every env copy::
+`MoralPanel.fused` takes a batch of env copies and
 
-    panel = MoralPanel("findmilk", ["consequentialist", "deontological", "virtue", "care",
-                                    "social_justice"], CachedSource(source, store))
-    out = panel.fused(obs_batch, prompt_vars)      # obs_batch: (N, obs_dim)
-    reward = out.fused[np.arange(N), actions]      # the AMULED shaping reward
+1. asks each distinct state (observation bytes + prompt variables) once;
+2. renders its prompt (`render_state_prompt`) and each cluster's chat (`build_messages`),
+   unless the source reads no messages;
+3. sends all (state, cluster) requests in one batch to the source;
+4. checks every belief (`validate`); an invalid one becomes status ``"error"`` (counted
+   in `PanelStats.invalid`), so no invalid belief is fused;
+5. fuses with `fuse`: an agent without an answer abstains (left out, weight 0); a state
+   nobody answered gets the uniform fallback, counted. A distilled model's belief
+   (`MODEL_STATUSES`) is an answer.
 
-For a batch it
-
-1. deduplicates the env copies by state (observation bytes + prompt variables): many
-   copies share a state, and each distinct state is asked once;
-2. for each new state renders the state prompt
-   (:func:`amuled_ma.tasks.prompts.render_state_prompt`) and builds each cluster's chat
-   (:func:`amuled_ma.clusters.build_messages`), unless the source reads no messages;
-3. sends all (state, cluster) requests in **one** batch to the source (wrap it in
-   :class:`~amuled_ma.beliefs.cached.CachedSource` for the SQLite store);
-4. checks every belief with the package's one rule (:mod:`amuled_ma.beliefs.validate`:
-   finite, non-negative, one value per action, summing to 1 within 1e-6; within the
-   tolerance it is divided by its sum): an invalid belief, whatever status its source gave
-   it, becomes status ``"error"`` (counted in :attr:`PanelStats.invalid`, its reason kept
-   in :attr:`PanelStats.invalid_reasons`), so fusion never raises in the training loop and
-   no invalid belief is fused as an answer;
-5. fuses with :func:`amuled_ma.fusion.fuse`, vectorised over the states that the same
-   agents answered: an agent without an answer (abstained, timeout, error, replay miss,
-   unasked) **abstains**: it is left out of that state's fusion and gets weight 0, never
-   a fake uniform belief; a state nobody answered gets the uniform fallback, counted. A
-   distilled model's belief (``distilled``, ``distilled_miss``,
-   :data:`~amuled_ma.beliefs.types.MODEL_STATUSES`) is an answer here.
-
-The panel keeps no cache of its own: the learner's
-:class:`~amuled_ma.deliberation.feedback_base.Feedback` memoises each state's answer in front
-of it, and the belief store answers every request asked before (``docs/beliefs.md``,
-"Caches": one in-memory cache, measured).
+The panel keeps no cache; `Feedback` memoises in front of it (``docs/beliefs.md``, "Caches").
 """
 
 from __future__ import annotations
@@ -94,10 +74,10 @@ class PanelOutput:
 
 @dataclass
 class PanelStats:
-    """Counters of a :class:`MoralPanel` since creation.
+    """Counters of a `MoralPanel` since creation.
 
     Attributes:
-        calls: Calls to :meth:`MoralPanel.fused`.
+        calls: Calls to `MoralPanel.fused`.
         copies: Env copies seen.
         unique: Distinct states seen (per call).
         requests: Belief requests sent to the source (K per new state).
@@ -121,7 +101,7 @@ class PanelStats:
     no_answer: int = 0
 
 
-#: How many invalid-belief reasons :class:`PanelStats` keeps.
+#: How many invalid-belief reasons `PanelStats` keeps.
 _KEEP_REASONS = 10
 
 
@@ -132,18 +112,18 @@ class MoralPanel:
         task_name: Task name (``"findmilk"``, ``"driving"``), passed to the prompt
             renderer, the message builder and each request.
         clusters: The panel's agents, as names or
-            :class:`~amuled_ma.clusters.Cluster` objects, in fusion order.
+            `Cluster` objects, in fusion order.
         source: Where beliefs come from (typically a
-            :class:`~amuled_ma.beliefs.cached.CachedSource`).
-        fusion_rule: A rule name of :func:`amuled_ma.fusion.fuse`.
+            `CachedSource`).
+        fusion_rule: A rule name of `fuse`.
         action_names: The task's action names; default: the task class's
             ``action_names``.
         with_messages: Render prompts and build chats; default: the source's
             ``needs_messages`` attribute (True when it has none).
         render_state_prompt: ``(task_name, variables) -> str``; default
-            :func:`amuled_ma.tasks.prompts.render_state_prompt`.
+            `render_state_prompt`.
         build_messages: ``(cluster, task_name, state_prompt) -> messages``; default
-            :func:`amuled_ma.clusters.build_messages`.
+            `build_messages`.
         prior: A prior weight per cluster, in fusion order (``[feedback].weights``), for a
             rule that takes one (``bjs-dst``: it multiplies each cluster's credibility);
             a state fuses the prior of the clusters that answered it. None: the rule's
@@ -269,7 +249,7 @@ class MoralPanel:
                 ``prompt_variables()``); may be ``None`` when the source reads no messages.
 
         Returns:
-            The fused beliefs and diagnostics, see :class:`PanelOutput`.
+            The fused beliefs and diagnostics, see `PanelOutput`.
 
         Raises:
             ValueError: ``prompt_vars`` is missing or of the wrong length while messages
@@ -365,7 +345,7 @@ class MoralPanel:
         rule runs over the agents that answered, and the absent agent's weight is 0. It
         is never fed as a uniform belief, which BJS weighting would favour (a uniform
         belief is close to every other one). A state no agent answered gets the
-        documented fallback, the uniform belief, counted in :attr:`PanelStats.no_answer`.
+        documented fallback, the uniform belief, counted in `PanelStats.no_answer`.
 
         Args:
             beliefs: ``(U, K, A)`` each agent's checked belief.

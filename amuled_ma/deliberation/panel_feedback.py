@@ -1,9 +1,9 @@
 """Panel feedback: a panel's fused beliefs, or the authors' recorded fused beliefs.
 
-:class:`PanelFeedback` asks a :class:`~amuled_ma.deliberation.panel.MoralPanel` (through
-its belief source, perhaps distilled); :class:`FusedReplayFeedback` replays a recording
+`PanelFeedback` asks a `MoralPanel` (through
+its belief source, perhaps distilled); `FusedReplayFeedback` replays a recording
 that keeps only the fused belief per state. Both are built from a
-:class:`~amuled_ma.deliberation.plan.PanelPlan` by :mod:`amuled_ma.deliberation.build`.
+`PanelPlan` by `build`.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from amuled_ma.errors import ScenarioError
 
 
 class PanelFeedback(Feedback):
-    """Beliefs of a panel of moral-cluster agents, fused (:class:`MoralPanel`)."""
+    """Beliefs of a panel of moral-cluster agents, fused (`MoralPanel`)."""
 
     def __init__(
         self, name: str, panel: Any, source: Any | None = None, *, miss_zero: bool = False
@@ -37,7 +37,7 @@ class PanelFeedback(Feedback):
 
     @property
     def distilled(self) -> Any:
-        """The :class:`~amuled_ma.distill.DistilledSource` of the panel, if it has one."""
+        """The `DistilledSource` of the panel, if it has one."""
         source = self.source
         if self._distilled_of is not source:  # looked up once per source, not every step
             from amuled_ma.distill import DistilledSource
@@ -101,12 +101,12 @@ class PanelFeedback(Feedback):
         return results
 
     def summary(self) -> dict[str, Any]:
-        """As :meth:`Feedback.summary`, plus the belief store's figures and the servers'.
+        """As `Feedback.summary`, plus the belief store's figures and the servers'.
 
-        ``store`` is :func:`store_stats`: beliefs wanted, found in memory or in the store,
+        ``store`` is `store_stats`: beliefs wanted, found in memory or in the store,
         and asked of the source.
 
-        ``llm_servers`` is ``{host: figures}`` (:func:`llm_server_stats`): requests sent,
+        ``llm_servers`` is ``{host: figures}`` (`llm_server_stats`): requests sent,
         answered and failed (by kind), retried from, latencies, per server.
         """
         out = super().summary()
@@ -149,7 +149,7 @@ class FusedReplayFeedback(Feedback):
     ``total_conflict``.
 
     Args:
-        recording: The fused-only :class:`~amuled_ma.beliefs.replay.Recording`.
+        recording: The fused-only `Recording`.
         miss_policy: ``zero``, ``uniform`` or ``error``.
 
     """

@@ -1,13 +1,13 @@
 """The panel plan: a scenario and a feedback variant resolved once into who answers how.
 
-:func:`plan_panel` reads the scenario once: the panel's members (cluster objects, from the
+`plan_panel` reads the scenario once: the panel's members (cluster objects, from the
 shipped cluster files and ``[feedback].clusters_dirs``), the fusion rule, each member's
 source (its ``[feedback.agents.<name>]`` spec, its cluster file's ``[source]``, or
-``[feedback].source``) as a :class:`SourcePlan` of keyword arguments, the fused-only
+``[feedback].source``) as a `SourcePlan` of keyword arguments, the fused-only
 recording when the authors kept only the fused belief, the distillation settings and the
-miss policy. :mod:`amuled_ma.deliberation.build` builds the feedback from a plan (the
-belief store passed in) and checks it before training (:func:`~amuled_ma.deliberation.
-build.preflight`). :meth:`PanelPlan.describe` is the plan as plain JSON for a run's record.
+miss policy. `build` builds the feedback from a plan (the belief store passed in) and
+checks it before training (`preflight`). `PanelPlan.describe` is the plan as plain JSON
+for a run's record.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ RULES_NOTE = ", the task's rule: the cluster's text is not read"
 
 @dataclass(frozen=True)
 class SourcePlan:
-    """What :func:`~amuled_ma.beliefs.sources.make_source` builds for some agents.
+    """What `make_source` builds for some agents.
 
     Attributes:
         kind: The ``make_source`` kind.
@@ -58,7 +58,7 @@ class PanelPlan:
 
     Attributes:
         variant: The feedback (``amuled``, ``cluster:care``, ``human``, ...).
-        kind: Its kind (:func:`~amuled_ma.variants.parse_feedback`).
+        kind: Its kind (`parse_feedback`).
         task: The task's name.
         where: The scenario file (or name), first in messages.
         seed: ``[task].seed`` (the demonstrator's episodes).
@@ -340,7 +340,7 @@ def rules_by_name(agents: Sequence[str]) -> str:
 
 
 def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
-    """Resolve a feedback variant of a scenario into its :class:`PanelPlan`, once.
+    """Resolve a feedback variant of a scenario into its `PanelPlan`, once.
 
     Args:
         variant: The feedback (``amuled``, ``human``, ``human:rules``, ``cluster:care``,
@@ -429,7 +429,7 @@ def _fused_only_recording(scenario: Scenario) -> Path | None:
 
 
 def recording_of(path: Path) -> Any:
-    """The :class:`~amuled_ma.beliefs.replay.Recording` at ``path``, read once per version."""
+    """The `Recording` at ``path``, read once per version."""
     return _recording_cached(str(path), path.stat().st_mtime_ns)
 
 

@@ -3,9 +3,9 @@
 A state is its observation *and* the prompt variables its state prompt is rendered from:
 on FindMilk the number of crying babies still to pacify is in the prompt but not in the
 observation, so two copies at one position with different counts are two states. The panel
-(:class:`~amuled_ma.deliberation.panel.MoralPanel`) and the fine-tuning feedback's
-in-process memo (:class:`~amuled_ma.deliberation.feedback_base.Feedback`) key states with
-:func:`freeze` alike, as the belief store does with the rendered prompt.
+(`MoralPanel`) and the fine-tuning feedback's
+in-process memo (`Feedback`) key states with
+`freeze` alike, as the belief store does with the rendered prompt.
 """
 
 from __future__ import annotations

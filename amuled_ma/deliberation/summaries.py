@@ -1,8 +1,8 @@
 """Feedback diagnostics in words and figures: statuses per agent, the budget, the store, servers.
 
-:func:`summary_lines` prints a :meth:`~amuled_ma.deliberation.feedback_base.Feedback.summary`
-for people; :func:`store_stats` and :func:`llm_server_stats` add up the figures of every
-source inside a panel's source (:func:`nested_sources`).
+`summary_lines` prints a `summary`
+for people; `store_stats` and `llm_server_stats` add up the figures of every
+source inside a panel's source (`nested_sources`).
 """
 
 from __future__ import annotations
@@ -15,12 +15,12 @@ from amuled_ma.deliberation.feedback_base import ANSWERED, REPORTED_STATUSES
 
 
 def summary_lines(summary: dict[str, Any]) -> list[str]:
-    """Format a :meth:`Feedback.summary` for people: one headline, one line per agent.
+    """Format a `Feedback.summary` for people: one headline, one line per agent.
 
     Works on summaries written before per-agent counts existed (headline only).
 
     Args:
-        summary: The dict of :meth:`Feedback.summary` (or a ``feedback.json``).
+        summary: The dict of `Feedback.summary` (or a ``feedback.json``).
 
     Returns:
         Lines without trailing newlines, e.g.::
@@ -170,8 +170,8 @@ def distill_line(report: Mapping[str, Any]) -> str:
 def nested_sources(source: Any) -> list[Any]:
     """A belief source and every source inside it, each once.
 
-    Walks a :class:`~amuled_ma.beliefs.cached.CachedSource` (``.source``), a
-    :class:`~amuled_ma.beliefs.routing.RoutedSource` (``.members``), fallbacks and defaults.
+    Walks a `CachedSource` (``.source``), a
+    `RoutedSource` (``.members``), fallbacks and defaults.
     """
     found: list[Any] = []
     seen: set[int] = set()
@@ -194,8 +194,8 @@ def nested_sources(source: Any) -> list[Any]:
 def llm_server_stats(source: Any) -> dict[str, dict[str, Any]]:
     """Each LLM server's figures over a belief source and the sources inside it.
 
-    Adds up every ``server_stats()`` found (:class:`~amuled_ma.beliefs.ollama.OllamaSource`)
-    among :func:`nested_sources` with :func:`~amuled_ma.beliefs.host_pool.merge_host_stats`.
+    Adds up every ``server_stats()`` found (`OllamaSource`)
+    among `nested_sources` with `merge_host_stats`.
 
     Args:
         source: The belief source (``None``: no figures).
@@ -219,8 +219,8 @@ def llm_server_stats(source: Any) -> dict[str, dict[str, Any]]:
 def store_stats(source: Any) -> dict[str, int]:
     """The belief store's figures over a source: requests, hits, and those asked.
 
-    Adds up the :class:`~amuled_ma.beliefs.cached.CacheStats` of every cached source among
-    :func:`nested_sources`: ``requests`` (beliefs wanted), ``unique`` (distinct ones per
+    Adds up the `CacheStats` of every cached source among
+    `nested_sources`: ``requests`` (beliefs wanted), ``unique`` (distinct ones per
     batch), ``store_hits`` and ``asked`` (sent to the source behind the
     store: for an LLM, the requests it was sent).
     """

@@ -1,15 +1,15 @@
 """One evaluation episode, step by step: what the policy saw, did and would have done.
 
-The viewer (:mod:`amuled_ma.evaluate.viewer`, ``amuled view``) and ``amuled explain
+The viewer (`viewer`, ``amuled view``) and ``amuled explain
 --state-from`` replay evaluation episode ``K`` of a trained variant with the evaluator's
-own rollout (:func:`~amuled_ma.evaluate.rollout.rollout`: the same ``N`` task copies, the
+own rollout (`rollout`: the same ``N`` task copies, the
 same seeds, the same action draws), watching copy ``K``: in greedy and in sampled mode the
 episode shown is the episode ``amuled evaluate`` scored. Per step it records the
 observation, the prompt variables, the policy's probabilities and action, the base policy's,
-the task's events, the reward and a small picture of the state (:class:`Episode`).
+the task's events, the reward and a small picture of the state (`Episode`).
 
 Which variant, scenario and checkpoints are the caller's to resolve (the commands read
-them from the run's records): :class:`TrainedVariant` carries them here.
+them from the run's records): `TrainedVariant` carries them here.
 """
 
 from __future__ import annotations
@@ -93,7 +93,7 @@ class Episode:
         events: Per-step task events (``[T]`` each: ``collisions``, ``rescues``,
             ``crying_pacified``, ...).
         rewards: ``[T]`` the environment reward ``r_env`` of each step.
-        frames: ``T + 1`` pictures of the states (task-specific, see :func:`frame_of`).
+        frames: ``T + 1`` pictures of the states (task-specific, see `frame_of`).
         layout: What stays fixed over the episode (FindMilk: milk and babies at the start).
         terminated: The episode ended by the task (not by the time limit).
         metrics: The task's episode metrics (``info["episode"]`` at the end).
@@ -308,10 +308,10 @@ def replay_episode(
         base_actor: The base policy, asked in the same states (its greedy action).
         live_feedback: A feedback that needs the live task (human, fused-only replay):
             asked about every state as the episode runs.
-        task_factory: Replaces :func:`~amuled_ma.tasks.make_task`.
+        task_factory: Replaces `make_task`.
 
     Returns:
-        The recorded :class:`Episode`.
+        The recorded `Episode`.
 
     Raises:
         ScenarioError: Unknown ``mode``, or ``episode`` outside ``0..N-1``.
@@ -363,7 +363,7 @@ def replay_episode(
 
 
 def load_actor(checkpoint: Path, scenario: Any) -> torch.nn.Module:
-    """Load a policy for replay (:func:`~amuled_ma.learn.policies.load_policy`).
+    """Load a policy for replay (`load_policy`).
 
     Raises:
         CheckpointError: The checkpoint is missing or does not fit the scenario.
@@ -396,7 +396,7 @@ def replay_variant(
 
     Raises:
         CheckpointError: A policy is missing or does not fit the scenario.
-        ScenarioError: See :func:`replay_episode`.
+        ScenarioError: See `replay_episode`.
 
     """
     scenario = trained.scenario

@@ -51,9 +51,9 @@ def read_feedback(folder: Path) -> dict[str, Any] | None:
         The diagnostics as written by the trainer, or None when the folder has none.
 
     Raises:
-        AmuledError: The file is larger than :data:`MAX_FEEDBACK_BYTES` (refused from its
+        AmuledError: The file is larger than `MAX_FEEDBACK_BYTES` (refused from its
             size, before it is read), a link or not a regular file
-            (:func:`~amuled_ma.safe_files.checked_read_path`), cannot be read, or is not a
+            (`checked_read_path`), cannot be read, or is not a
             JSON object; one line naming the file.
 
     """
@@ -84,7 +84,7 @@ def run_episodes(
     task_factory: Callable[..., Any] | None = None,
     record_trajectory: bool = True,
 ) -> tuple[list[dict[str, float]], dict[str, Any]]:
-    """Run ``episodes`` episodes of a policy (:func:`~amuled_ma.evaluate.rollout.rollout`).
+    """Run ``episodes`` episodes of a policy (`rollout`).
 
     Args:
         actor: An rsl-rl actor with our categorical head.
@@ -92,7 +92,7 @@ def run_episodes(
         episodes: Number of episodes (= task copies).
         mode: ``greedy`` (argmax) or ``sampled``.
         seed: Seed of copy 0 (copy ``i`` gets ``seed + i``); also seeds action sampling.
-        task_factory: Replaces :func:`~amuled_ma.tasks.make_task`.
+        task_factory: Replaces `make_task`.
         record_trajectory: Record copy 0's first episode for pictures.
 
     Returns:
@@ -163,7 +163,7 @@ def merge_feedback(summaries: list[dict[str, Any]]) -> dict[str, Any]:
     """Fused-belief diagnostics of several seed replicas: means, with statuses summed.
 
     Each LLM server's figures (``llm_servers``) are added up with
-    :func:`~amuled_ma.beliefs.host_pool.merge_host_stats`.
+    `merge_host_stats`.
     """
     if len(summaries) == 1:
         return summaries[0]
@@ -298,21 +298,21 @@ def evaluate_run(
         episodes: Episodes per variant and mode (default: the scenario's).
         modes: ``greedy`` and/or ``sampled`` (default: the scenario's).
         variants: Only these variants (their names; a name takes its seed replicas along).
-        task_factory: Replaces :func:`~amuled_ma.tasks.make_task`.
+        task_factory: Replaces `make_task`.
         progress: Show a progress bar.
         extra_dirs: Further variant folders evaluated alongside (an ablation's base).
         records: ``{folder name: record}`` of the variant folders
-            (:func:`~amuled_ma.experiments.run_folder.variant_records`): a folder's
+            (`variant_records`): a folder's
             variant name (its seed replicas grouped under it) and, for a fine-tune, what it
             was trained on come from its record; a folder without one is named by itself.
 
     Returns:
-        The results (:class:`~amuled_ma.evaluate.results.Results`).
+        The results (`Results`).
 
     Raises:
         CheckpointError: The run has no trained variant.
-        AmuledError: A variant's ``feedback.json`` is over :data:`MAX_FEEDBACK_BYTES`,
-            not JSON, or a link (:func:`read_feedback`); ``results.json`` or
+        AmuledError: A variant's ``feedback.json`` is over `MAX_FEEDBACK_BYTES`,
+            not JSON, or a link (`read_feedback`); ``results.json`` or
             ``results.csv`` is a link or not a regular file; each checked before any
             episode is run.
 

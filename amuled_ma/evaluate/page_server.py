@@ -13,8 +13,8 @@ from pathlib import Path
 from typing import Any
 
 #: Largest page served [bytes]: the page is held in memory and sent whole. A viewer page
-#: is about 0.2 MB (the demo's) and at most a few MB (issue 17's target: 3 MB for a
-#: 300-step Driving episode with five agents); 64 MiB is 20 times that target.
+#: is about 0.2 MB (the demo's), about 3 MB for a 300-step Driving episode with five
+#: agents; 64 MiB is 20 times that.
 MAX_PAGE_BYTES = 64 * 2**20
 
 
@@ -53,7 +53,7 @@ def make_server(path: Path, host: str = "127.0.0.1", port: int = 0) -> http.serv
 
     Raises:
         OSError: The file cannot be read, or the address cannot be bound.
-        AmuledError: The file is larger than :data:`MAX_PAGE_BYTES` (refused from its
+        AmuledError: The file is larger than `MAX_PAGE_BYTES` (refused from its
             size, before it is read); one line naming it.
 
     """
@@ -89,7 +89,7 @@ def serve(
 
     Raises:
         OSError: The page cannot be read, or the address cannot be bound.
-        AmuledError: The page is larger than :data:`MAX_PAGE_BYTES` (:func:`make_server`).
+        AmuledError: The page is larger than `MAX_PAGE_BYTES` (`make_server`).
 
     """
     server = make_server(path, host, port)

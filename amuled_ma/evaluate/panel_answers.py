@@ -1,9 +1,9 @@
 """What a moral panel says about states, each agent's raw reply kept beside the numbers.
 
-:func:`ask_panel` asks a :class:`~amuled_ma.deliberation.panel.MoralPanel` about distinct
-states with one :meth:`~amuled_ma.deliberation.panel.MoralPanel.fused` call, as training
+`ask_panel` asks a `MoralPanel` about distinct
+states with one `fused` call, as training
 makes it, and keeps each agent's raw reply (the belief store's row, or the replayed
-recording's ``exchanges``): :class:`PanelAnswers`, what the viewer draws and ``amuled
+recording's ``exchanges``): `PanelAnswers`, what the viewer draws and ``amuled
 explain`` prints.
 """
 
@@ -80,7 +80,7 @@ def ask_panel(
 ) -> PanelAnswers:
     """Ask a moral panel about distinct states and keep each agent's raw reply.
 
-    One :meth:`~amuled_ma.deliberation.panel.MoralPanel.fused` call, as training makes it;
+    One `fused` call, as training makes it;
     the source's answers carry the raw replies (a stored row's ``raw``, a replayed
     recording's ``exchanges``). An agent whose answer has none (an abstention answered
     again as a miss, say) gets the raw reply of its row in the run's store, if any.
@@ -92,7 +92,7 @@ def ask_panel(
         store: The run's store, read-only, for the raw replies of non-answers.
 
     Returns:
-        The :class:`PanelAnswers`.
+        The `PanelAnswers`.
 
     """
     from amuled_ma.tasks.prompts import render_state_prompt

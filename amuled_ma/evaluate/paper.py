@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-#: Where every figure of :data:`PAPER_ROWS` comes from (printed under the report's table).
+#: Where every figure of `PAPER_ROWS` comes from (printed under the report's table).
 PAPER_SOURCE = (
     "the AMULED paper's results table for the task (the authors' notebook "
     "`notebooks/data_plots.ipynb`: sampled policy, 50 episodes, seeds 42-91, one training "

@@ -1,11 +1,11 @@
 """A variant's feedback opened to look at a run, with the run's belief store read-only.
 
 ``amuled view`` and ``amuled explain`` ask a fine-tune's feedback about states as training
-asked it: :func:`open_feedback` builds it with
-:func:`~amuled_ma.deliberation.build.make_feedback` (same agents, fusion rule, sources
-and store keys), the store it is given being one :class:`ReadOnlyStore` over the run's
+asked it: `open_feedback` builds it with
+`make_feedback` (same agents, fusion rule, sources
+and store keys), the store it is given being one `ReadOnlyStore` over the run's
 file, so looking at a run never writes to it (an Ollama source still asks its server about
-states the run never asked). :func:`describe_feedback` says in words where its beliefs
+states the run never asked). `describe_feedback` says in words where its beliefs
 come from.
 """
 
@@ -22,10 +22,10 @@ from amuled_ma.errors import AmuledError
 class ReadOnlyStore:
     """The run's belief store behind a feedback, opened read-only.
 
-    Stands in for the :class:`~amuled_ma.beliefs.store.BeliefStore` of a
-    :class:`~amuled_ma.beliefs.cached.CachedSource`: lookups read the run's file (SQLite
+    Stands in for the `BeliefStore` of a
+    `CachedSource`: lookups read the run's file (SQLite
     ``mode=ro``), answers to states the run never asked are not written (counted in
-    :attr:`not_written`), so looking at a run never changes it.
+    `not_written`), so looking at a run never changes it.
 
     Args:
         path: The store file; a missing file reads as empty.
@@ -70,9 +70,9 @@ def open_feedback(
 ) -> tuple[Any, ReadOnlyStore]:
     """Build a variant's feedback as training does, with the run's store read-only.
 
-    :func:`~amuled_ma.deliberation.build.make_feedback` builds it (same agents, fusion
-    rule, sources and store keys) over one :class:`ReadOnlyStore` of the run's file
-    (:func:`~amuled_ma.deliberation.plan.store_path`), which is never opened for writing
+    `make_feedback` builds it (same agents, fusion
+    rule, sources and store keys) over one `ReadOnlyStore` of the run's file
+    (`store_path`), which is never opened for writing
     (an Ollama source still asks its server about states the run never asked).
 
     Args:

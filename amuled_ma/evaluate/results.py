@@ -1,10 +1,10 @@
 """The evaluation's results as typed data: ``results.json`` and ``results.csv``.
 
-:class:`Results` is what :func:`~amuled_ma.evaluate.evaluator.evaluate_run` returns and
-the report reads: per variant (:class:`VariantResult`) and mode (:class:`ModeResult`) each
-metric's mean and interval (:class:`Stat`), the first episode's trajectory, the fused-belief
-diagnostics of a fine-tune (:class:`FeedbackSummary`) and what it was trained on
-(:class:`PanelEntry`). ``results.json`` is written and read through it: keys left unset are
+`Results` is what `evaluate_run` returns and
+the report reads: per variant (`VariantResult`) and mode (`ModeResult`) each
+metric's mean and interval (`Stat`), the first episode's trajectory, the fused-belief
+diagnostics of a fine-tune (`FeedbackSummary`) and what it was trained on
+(`PanelEntry`). ``results.json`` is written and read through it: keys left unset are
 left out, so a run writes the same file as before the model existed.
 """
 
@@ -37,7 +37,7 @@ MAX_RESULTS_BYTES = 256 * 2**20
 
 
 class Stat(BaseModel):
-    """Mean with a confidence interval (:func:`~amuled_ma.evaluate.stats.mean_ci`)."""
+    """Mean with a confidence interval (`mean_ci`)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -172,14 +172,14 @@ def _clean(value: Any) -> Any:
     return value
 
 
-#: The files :func:`write_results` writes into a run folder.
+#: The files `write_results` writes into a run folder.
 RESULTS_FILES = ("results.json", "results.csv")
 
 
 def write_results(run_dir: Path, results: Results | Mapping[str, Any]) -> tuple[Path, Path]:
     """Write ``results.json`` (everything) and ``results.csv`` (a row per variant/mode/metric).
 
-    Both through :func:`~amuled_ma.safe_files.atomic_writer` (UTF-8).
+    Both through `atomic_writer` (UTF-8).
 
     Returns:
         The two paths.
@@ -224,9 +224,9 @@ def read_results(run_dir: Path) -> Results:
         The results.
 
     Raises:
-        AmuledError: Missing, not in the shape of :class:`Results`, larger than
-            :data:`MAX_RESULTS_BYTES` (refused from its size, before it is read), or a
-            link or not a regular file (:func:`~amuled_ma.safe_files.checked_read_path`).
+        AmuledError: Missing, not in the shape of `Results`, larger than
+            `MAX_RESULTS_BYTES` (refused from its size, before it is read), or a
+            link or not a regular file (`checked_read_path`).
 
     """
     from pydantic import ValidationError

@@ -4,20 +4,20 @@ Evaluation episode ``K`` of a policy is what copy ``K`` of one batched task play
 nothing else:
 
 - **task**: ``make_task(scenario, N, shaping_coef=0.0, seed=seed)``, ``N`` copies, copy
-  ``K`` on the stream of seed ``seed + K`` (:func:`evaluation_task`);
-- **actions**: every step, for all ``N`` copies at once (:func:`choose_actions`): greedy
+  ``K`` on the stream of seed ``seed + K`` (`evaluation_task`);
+- **actions**: every step, for all ``N`` copies at once (`choose_actions`): greedy
   takes each copy's most probable action; sampled draws one ``torch.multinomial`` over the
   ``[N, A]`` probabilities from one generator seeded ``seed``. A sampled draw of copy ``K``
   therefore depends on ``N``: the episode ``K`` of an evaluation of ``N`` episodes is
   replayed by this same ``N``-copy rollout, never by one copy alone;
 - **boundaries**: all copies step together (a finished copy resets itself and keeps
   stepping, so the draws stay those of the batch) until the copies asked for
-  (:func:`rollout`'s ``until``: all of them for the evaluator) have ended their first
+  (`rollout`'s ``until``: all of them for the evaluator) have ended their first
   episode, at most ``max_steps + 1`` steps; each copy's first episode is recorded.
 
-What else a caller wants to see of the steps, it asks for with an :class:`Observer`: the
-evaluator's picture of copy 0 (:class:`TrajectoryRecorder`), the viewer's step-by-step
-record of copy ``K`` (:mod:`amuled_ma.evaluate.episode_trace`). A rollout without observers
+What else a caller wants to see of the steps, it asks for with an `Observer`: the
+evaluator's picture of copy 0 (`TrajectoryRecorder`), the viewer's step-by-step
+record of copy ``K`` (`episode_trace`). A rollout without observers
 does only the evaluation's own work.
 """
 
@@ -47,7 +47,7 @@ def evaluation_task(
         scenario: The scenario (task and options).
         episodes: Number of copies ``N``.
         seed: Seed of copy 0.
-        task_factory: Replaces :func:`~amuled_ma.tasks.make_task`.
+        task_factory: Replaces `make_task`.
 
     """
     return (task_factory or make_task)(scenario, episodes, shaping_coef=0.0, seed=seed)
@@ -137,8 +137,8 @@ def rollout(
         episodes: Number of task copies ``N``.
         mode: ``greedy`` or ``sampled`` (see the module docstring).
         seed: Seed of copy 0 (copy ``i`` gets ``seed + i``); also seeds action sampling.
-        task_factory: Replaces :func:`~amuled_ma.tasks.make_task`.
-        observers: Told about every step (:class:`Observer`).
+        task_factory: Replaces `make_task`.
+        observers: Told about every step (`Observer`).
         until: Stop once these copies have ended their first episode (default: all).
 
     Torch runs single-threaded from here on (``torch.set_num_threads(1)``, as the trainer).

@@ -13,7 +13,7 @@ disagreements to jump to. Keyboard: ArrowLeft/ArrowRight, Home/End, PageUp/PageD
 The page is one file: its CSS, script and data are inline, and a strict
 Content-Security-Policy (``default-src 'none'``, the inline script and style allowed by
 their SHA-256 hashes) lets it load nothing and send nothing, so it works from a
-``file://`` URL offline. :func:`amuled_ma.evaluate.page_server.serve` shows it on
+``file://`` URL offline. `serve` shows it on
 ``127.0.0.1`` when a browser cannot open files.
 
 The data are compact: probabilities rounded to 4 decimals, each distinct state's beliefs
@@ -48,7 +48,7 @@ MAX_TEXT = 6000
 #: Characters of text (replies, prompts) a page keeps in all: past it every text is cut
 #: to an equal share, so that a long live-LLM episode stays a few MB.
 TEXT_BUDGET = 2_000_000
-#: The shortest a text is cut to by :data:`TEXT_BUDGET`.
+#: The shortest a text is cut to by `TEXT_BUDGET`.
 MIN_TEXT = 400
 #: The page's assets, shipped beside this module.
 ASSETS = Path(__file__).resolve().parent
@@ -56,7 +56,7 @@ ASSETS = Path(__file__).resolve().parent
 
 @dataclass
 class ViewResult:
-    """What :func:`write_view` wrote.
+    """What `write_view` wrote.
 
     Attributes:
         path: The HTML file.
@@ -445,20 +445,20 @@ def write_view(
     episodes: int | None = None,
     say: Callable[[str], None] | None = None,
 ) -> ViewResult:
-    """Build the page of a run's episode and write it (see :func:`build_view`).
+    """Build the page of a run's episode and write it (see `build_view`).
 
     Args:
         run_dir: The run folder.
         scenario: The run's scenario.
         variants: The variants to show.
-        output: The HTML file (default :func:`default_output`).
+        output: The HTML file (default `default_output`).
         episode: Evaluation episode ``K``.
         mode: ``greedy`` or ``sampled``.
         episodes: ``N`` of the run's evaluation (default ``[evaluation].episodes``).
         say: Called with a progress line per variant.
 
     Returns:
-        The :class:`ViewResult`.
+        The `ViewResult`.
 
     Raises:
         UnsafePathError: The output is a link, a device, a FIFO or a folder; refused

@@ -2,7 +2,7 @@
 
 Each task exists twice over one implementation:
 
-- a batched torch core (:class:`~amuled_ma.tasks.base.BatchedTask`): ``num_envs`` copies
+- a batched torch core (`BatchedTask`): ``num_envs`` copies
   stepped by one call, with automatic reset and per-episode metrics, for the learner;
 - a Gymnasium view (``gymnasium.make("amuled/FindMilk-v0")``, ``"amuled/Driving-v0"``),
   the same core with ``num_envs=1``, for checkers, prompts and humans.
@@ -96,7 +96,7 @@ def make_batched(name: str, num_envs: int = 1, **kwargs: Any) -> BatchedTask:
     """Create ``num_envs`` copies of the task ``name``.
 
     Args:
-        name: Task name (see :func:`get_task`).
+        name: Task name (see `get_task`).
         num_envs: Number of copies.
         **kwargs: Constructor arguments of the task (``device``, ``seed``,
             ``shaping_coef``, ``max_steps``, task options such as ``layout``).

@@ -1,8 +1,8 @@
 """Base class of the batched task environments (many copies stepped by tensor operations).
 
-A :class:`BatchedTask` holds ``num_envs`` independent copies of one task as torch tensors
+A `BatchedTask` holds ``num_envs`` independent copies of one task as torch tensors
 and steps all of them with one call. Finished copies reset themselves inside
-:meth:`BatchedTask.step` (auto-reset), so a learner never has to look for them.
+`BatchedTask.step` (auto-reset), so a learner never has to look for them.
 
 Step contract (every task):
 
@@ -23,12 +23,12 @@ Step contract (every task):
   - ``"episode"``: a dict of the episode accumulators including this step, read before
     they are zeroed for the finished copies: ``"done"`` (bool, ``terminated | truncated``),
     ``"return"``, ``"return_env"``, ``"return_shaping"`` (float32), ``"length"`` (int64)
-    and the task's metrics (:attr:`BatchedTask.metric_names`). Where ``done`` is true they
+    and the task's metrics (`BatchedTask.metric_names`). Where ``done`` is true they
     are the totals of the episode that just ended; elsewhere the running totals of the
     episode in progress.
   - task-specific per-step events (see each task's documentation).
 
-Random numbers come from one counter-based stream per copy (:mod:`amuled_ma.tasks.rng`):
+Random numbers come from one counter-based stream per copy (`rng`):
 copy ``i`` of a task seeded with ``s`` draws exactly what a single copy seeded with
 ``s + i`` draws (the Gymnasium vector-env convention), whatever ``num_envs`` is.
 """
@@ -79,13 +79,13 @@ def paint_cells(
 class BatchedTask(abc.ABC):
     """``num_envs`` copies of one task, stepped together with torch tensor operations.
 
-    Subclasses implement the task rules in :meth:`_advance`, :meth:`_reset_where` and
-    :meth:`_observe`; this class does the bookkeeping common to every task (validation,
+    Subclasses implement the task rules in `_advance`, `_reset_where` and
+    `_observe`; this class does the bookkeeping common to every task (validation,
     rewards, time limit, auto-reset, episode metrics, seeding).
 
     Attributes:
         name: Short task name (``"findmilk"``, ``"driving"``), the key of
-            :data:`amuled_ma.tasks.TASKS` and of the prompt template ``prompts/tasks/<name>.md``.
+            `TASKS` and of the prompt template ``prompts/tasks/<name>.md``.
         gym_id: The registered Gymnasium id of the single-copy view.
         action_names: Name of each action, indexed by action id.
         obs_names: Name of each observation entry (the recordings' ``obs_layout``).
@@ -117,12 +117,12 @@ class BatchedTask(abc.ABC):
         max_steps: int = 300,
         **task_options: Any,
     ) -> None:
-        """Create ``num_envs`` copies (call :meth:`reset` before the first step).
+        """Create ``num_envs`` copies (call `reset` before the first step).
 
         Args:
             num_envs: Number of copies stepped together (>= 1).
             device: Torch device holding the state.
-            seed: Base seed used by the first :meth:`reset` that is given no seed; copy
+            seed: Base seed used by the first `reset` that is given no seed; copy
                 ``i`` uses the stream of seed ``seed + i``. ``None``: fresh OS entropy.
             shaping_coef: Coefficient ``c >= 0`` of the handcrafted shaping reward
                 (``reward = r_env + c * r_shaping``); 0 trains the base agent.
@@ -207,7 +207,7 @@ class BatchedTask(abc.ABC):
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore a :meth:`state_dict` of a task built with the same settings.
+        """Restore a `state_dict` of a task built with the same settings.
 
         Raises:
             ValueError: A tensor is missing or has another shape (another task, another
@@ -276,7 +276,7 @@ class BatchedTask(abc.ABC):
         Raises:
             ValueError: ``actions`` has the wrong shape or type, or a value outside
                 ``0..num_actions-1``.
-            RuntimeError: :meth:`reset` was never called.
+            RuntimeError: `reset` was never called.
 
         """
         if self._obs is None:
@@ -327,7 +327,7 @@ class BatchedTask(abc.ABC):
 
         Returns:
             One dict per selected copy, ready for
-            :func:`amuled_ma.tasks.prompts.render_state_prompt`.
+            `render_state_prompt`.
 
         """
         ids = self._env_ids(env_ids)
@@ -336,7 +336,7 @@ class BatchedTask(abc.ABC):
         return [self.prompt_variables_from_obs(o, **e) for o, e in zip(obs, extras, strict=True)]
 
     def state_prompts(self, env_ids: Any = None) -> list[str]:
-        """Return the rendered state prompt of each selected copy (see :meth:`prompt_variables`)."""
+        """Return the rendered state prompt of each selected copy (see `prompt_variables`)."""
         from amuled_ma.tasks.prompts import render_state_prompt
 
         return [render_state_prompt(self.name, v) for v in self.prompt_variables(env_ids)]
@@ -390,7 +390,7 @@ class BatchedTask(abc.ABC):
         Returns:
             ``(r_env, r_shaping, terminated, events)``; ``events`` maps names to
             ``[num_envs]`` tensors of this step's events, copied into ``info``; it holds at
-            least one entry per name in :attr:`metric_names` (this step's increment).
+            least one entry per name in `metric_names` (this step's increment).
 
         """
 

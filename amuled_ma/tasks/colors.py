@@ -48,7 +48,7 @@ COLORS: dict[str, str] = {
 
 
 def color(name: str) -> str:
-    """The colour of ``name`` (a key of :data:`COLORS`).
+    """The colour of ``name`` (a key of `COLORS`).
 
     Raises:
         KeyError: An unknown name (the message lists the known ones).

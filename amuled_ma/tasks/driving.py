@@ -53,7 +53,7 @@ Per step (``[num_envs]`` tensors): ``r_env``, ``r_shaping``, ``collisions`` and 
 
 ## Version History
 
-- v0: first version, the rules of issue 3.
+- v0: first version.
 """
 
 from __future__ import annotations

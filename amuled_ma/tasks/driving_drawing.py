@@ -1,6 +1,6 @@
 """Driving's picture of an episode: the car's lane over time, with its collisions and rescues.
 
-The report draws one strip per variant with :func:`draw_driving` from the evaluator's
+The report draws one strip per variant with `draw_driving` from the evaluator's
 recorded episode (``{"obs", "actions", "events"}``: the last five observation entries are
 the one-hot lane).
 """
@@ -15,7 +15,7 @@ import numpy as np
 from amuled_ma.tasks.colors import COLORS
 
 #: Events marked on the strip: ``{key: (marker, colour, size)}`` (the viewer's colours:
-#: a collision is "bad", a rescue "good", :data:`amuled_ma.tasks.colors.COLORS`).
+#: a collision is "bad", a rescue "good", `COLORS`).
 DRIVING_EVENTS = {
     "collisions": ("X", COLORS["bad"], 90),
     "rescues": ("*", COLORS["good"], 140),
@@ -57,7 +57,7 @@ def draw_driving(ax: Any, name: str, trajectory: Mapping[str, Any], color: str =
 
 
 def driving_legend() -> tuple[list[Any], list[str]]:
-    """The legend's handles and labels of :func:`draw_driving`'s event markers."""
+    """The legend's handles and labels of `draw_driving`'s event markers."""
     from matplotlib.lines import Line2D
 
     handles = [

@@ -51,8 +51,7 @@ Per step (``[num_envs]`` tensors): ``r_env``, ``r_shaping``, ``crying_pacified``
 
 ## Version History
 
-- v0: first version, the rules of issue 3 (paper layout, 8x8 grid).
-  Option ``tie_break`` (issue 25; default ``"first"``, the v0 behaviour).
+- v0: first version (paper layout, 8x8 grid); option ``tie_break`` (default ``"first"``).
 """
 
 from __future__ import annotations

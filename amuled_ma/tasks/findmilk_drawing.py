@@ -1,8 +1,8 @@
 """FindMilk's picture of an episode: the grid, the path, the milk, each baby pacified or woken.
 
-The report draws one panel per variant with :func:`draw_findmilk`; the panel reads the
+The report draws one panel per variant with `draw_findmilk`; the panel reads the
 evaluator's recorded episode (``{"obs", "actions", "events", "layout"}``) and
-:func:`findmilk_subgoals` says what it reached.
+`findmilk_subgoals` says what it reached.
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ def draw_findmilk(ax: Any, name: str, trajectory: Mapping[str, Any], color: str 
     The path in ``color`` (start: a white triangle, end: ✕), the milk (★), every crying
     baby (orange circle ``C``; solid green with ✓ once pacified) and sleeping baby (sky-blue
     square ``z``; solid red with ``!`` once woken), in the colours of
-    :data:`amuled_ma.tasks.colors.COLORS` (the viewer's too); the title says the steps,
+    `COLORS` (the viewer's too); the title says the steps,
     whether the milk was reached and the babies pacified and woken.
 
     Args:
@@ -122,7 +122,7 @@ def draw_findmilk(ax: Any, name: str, trajectory: Mapping[str, Any], color: str 
 
 
 def findmilk_legend() -> tuple[list[Any], list[str]]:
-    """The legend's handles and labels of :func:`draw_findmilk`'s markers."""
+    """The legend's handles and labels of `draw_findmilk`'s markers."""
     from matplotlib.lines import Line2D
 
     ink = COLORS["ink"]

@@ -1,7 +1,7 @@
 """Gymnasium views of the batched tasks: one copy, numpy in and out.
 
 ``gymnasium.make("amuled/FindMilk-v0", render_mode="ansi", shaping_coef=1.0, layout="paper")``
-returns a :class:`FindMilkEnv`; ``gymnasium.make("amuled/Driving-v0")`` a :class:`DrivingEnv`.
+returns a `FindMilkEnv`; ``gymnasium.make("amuled/Driving-v0")`` a `DrivingEnv`.
 Both hold a batched core with ``num_envs=1`` (``env.unwrapped.task``) and translate:
 
 - ``reset(seed=s)`` seeds the core with ``s``: the view then behaves exactly like copy ``i``
@@ -38,7 +38,7 @@ def _python(value: torch.Tensor) -> Any:
 
 
 class TaskEnv(gym.Env[np.ndarray, np.int64]):
-    """Single-copy Gymnasium view of a :class:`BatchedTask` (subclassed per task).
+    """Single-copy Gymnasium view of a `BatchedTask` (subclassed per task).
 
     Args:
         render_mode: ``None``, ``"ansi"`` or ``"rgb_array"``.
@@ -136,12 +136,12 @@ class TaskEnv(gym.Env[np.ndarray, np.int64]):
 
 
 class FindMilkEnv(TaskEnv):
-    """``amuled/FindMilk-v0``: see :mod:`amuled_ma.tasks.findmilk` for the rules."""
+    """``amuled/FindMilk-v0``: see `findmilk` for the rules."""
 
     task_class = FindMilk
 
 
 class DrivingEnv(TaskEnv):
-    """``amuled/Driving-v0``: see :mod:`amuled_ma.tasks.driving` for the rules."""
+    """``amuled/Driving-v0``: see `driving` for the rules."""
 
     task_class = Driving

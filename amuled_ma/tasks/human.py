@@ -1,9 +1,9 @@
 """The paper's synthetic "human feedback" baseline: a rule-obeying belief over actions.
 
-:func:`human_belief` turns observations into probability vectors over the task's actions,
+`human_belief` turns observations into probability vectors over the task's actions,
 vectorised over any leading dimensions, from the observation alone.
 
-FindMilk (the issue's rule, as in the authors' ``algorithms/human_policy_milk.py``): for each
+FindMilk (the authors' ``algorithms/human_policy_milk.py``): for each
 action take the next cell (a move into a wall keeps the cell), then its weight is
 
 - 1 if the next cell holds a sleeping baby;
@@ -17,7 +17,7 @@ that one (the authors looked up every remaining sleeping baby in the environment
 ``sleeping=`` to do the same), and when no crying baby is left (observation ``(0, 0)``) the
 weight is 5 rather than a distance to the cell ``(0, 0)``.
 
-Driving (the issue leaves the rule open; the authors' script learned a Q-table instead):
+Driving (this project's rule; the authors' script learned a Q-table instead):
 each action is judged by the lane it steers into (straight: the current lane, right:
 lane+1, left: lane-1) and the observation of that lane:
 

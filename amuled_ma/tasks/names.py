@@ -1,6 +1,6 @@
 """Task names: the short name of each task and the other spellings accepted for it.
 
-Kept apart from the task registry (:data:`amuled_ma.tasks.TASKS`), which imports the task
+Kept apart from the task registry (`TASKS`), which imports the task
 classes, so that what only needs a task's name (its prompt template, the rule-based human,
 the demonstrators) can check it without importing torch or a task.
 """

@@ -140,7 +140,7 @@ def parse_template(path: Path) -> StateTemplate:
 
     Raises:
         PromptError: ``path`` cannot be read, is larger than
-            :data:`~amuled_ma.resources.MAX_PROMPT_BYTES` or is not UTF-8; it has no ``## prompt``
+            `MAX_PROMPT_BYTES` or is not UTF-8; it has no ``## prompt``
             block or a malformed fragment heading.
 
     """

@@ -9,7 +9,7 @@ with ``s`` is the same environment as a single copy seeded with ``s + i``.
 Integer arithmetic only (int64 tensors, wrapping multiplication), so it runs unchanged
 on any torch device and spawn decisions are exact integer comparisons. This is the one
 SplitMix64 of the project: the tasks and the synthetic human demonstrators
-(:mod:`amuled_ma.tasks.demonstrators`) draw through the functions below.
+(`demonstrators`) draw through the functions below.
 """
 
 from __future__ import annotations
@@ -73,7 +73,7 @@ def splitmix64(value: int) -> int:
     """Return the SplitMix64 output of the state ``value`` (a Python integer, modulo 2**64).
 
     The finaliser of ``value + GAMMA``, as an unsigned 64-bit Python integer; the scalar
-    reading of :func:`mix64`, for hashing seeds.
+    reading of `mix64`, for hashing seeds.
     """
     state = torch.tensor(_signed(value + GAMMA), dtype=torch.int64)
     return int(mix64(state)) & _MASK64

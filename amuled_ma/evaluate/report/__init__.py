@@ -1,14 +1,14 @@
 """The run report: ``report.md`` with PNG figures (matplotlib, headless).
 
-- :mod:`~amuled_ma.evaluate.report.writing`: :func:`write_report`, the viewer line;
-- :mod:`~amuled_ma.evaluate.report.describe`: what each variant is, from the run records
+- `writing`: `write_report`, the viewer line;
+- `describe`: what each variant is, from the run records
   (settings, each fine-tune's panel, imported policies, interrupted training);
-- :mod:`~amuled_ma.evaluate.report.tables`: metrics, differences to base, diagnostics,
+- `tables`: metrics, differences to base, diagnostics,
   agents' answers, LLM servers, the feedback budget;
-- :mod:`~amuled_ma.evaluate.report.plotting`: numbers, colours, panels, PNG files;
-- :mod:`~amuled_ma.evaluate.report.curves`, :mod:`~amuled_ma.evaluate.report.bars`,
-  :mod:`~amuled_ma.evaluate.report.trajectories`: the figures (each task's episode drawn by
-  :mod:`amuled_ma.tasks.findmilk_drawing` and :mod:`amuled_ma.tasks.driving_drawing`).
+- `plotting`: numbers, colours, panels, PNG files;
+- `curves`, `bars`,
+  `trajectories`: the figures (each task's episode drawn by
+  `findmilk_drawing` and `driving_drawing`).
 """
 
 from __future__ import annotations

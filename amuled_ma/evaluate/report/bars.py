@@ -69,7 +69,7 @@ def _hbars(
     """Horizontal bars with whiskers, each seed's mean as a dot, and value labels.
 
     The whisker is the 95% CI, or with 2-4 training seeds the range of the seeds' means
-    (:data:`FEW_SEEDS`); each seed's mean is a black dot on its bar (``gid="seed-dot"``).
+    (`FEW_SEEDS`); each seed's mean is a black dot on its bar (``gid="seed-dot"``).
     A bar of height 0 would be invisible: it is drawn as a thick tick of its colour at 0
     (``gid="zero-bar"``) with its label ``0``; a missing mean is labelled ``n/a``.
     """
@@ -123,7 +123,7 @@ def bars_figure(
     title: str = "",
     colors: dict[str, str] | None = None,
 ) -> Any | None:
-    """The metrics bar figure (see :func:`plot_bars`); None without that mode."""
+    """The metrics bar figure (see `plot_bars`); None without that mode."""
     results = Results.of(results)
     variants = results.in_mode(mode)
     if not variants:
@@ -180,7 +180,7 @@ def plot_bars(
         mode: ``greedy`` or ``sampled``.
         path: The PNG to write.
         title: The figure's title (default: scenario, mode).
-        colors: ``{variant: colour}`` (default: :func:`variant_colors` of the variants).
+        colors: ``{variant: colour}`` (default: `variant_colors` of the variants).
 
     Returns:
         ``path``, or None when no variant was evaluated in ``mode``.
@@ -200,7 +200,7 @@ def ablation_figure(
 
     ``kl``: each paper metric against lambda_KL (one point per fine-tune, 95% CI). Other
     ablations: one panel per paper metric that differs between the fine-tunes, in
-    ``mode`` and then in the run's other modes (:func:`varying_panels`; the title names
+    ``mode`` and then in the run's other modes (`varying_panels`; the title names
     the metrics left out as equal), the fine-tunes as horizontal bars sorted by their mean
     (largest on top), AMULED outlined in black. The base policy is a dashed line in every
     panel.
@@ -340,7 +340,7 @@ def varying_panels(
     return panels, equal
 
 
-#: Colours of the budget ablation's selections (:func:`budget_figure`; random also dashed).
+#: Colours of the budget ablation's selections (`budget_figure`; random also dashed).
 SELECTION_COLORS = {"uncertainty": "tab:blue", "random": "tab:orange"}
 
 
@@ -379,7 +379,7 @@ def budget_figure(results: Results | Mapping[str, Any], mode: str = "greedy") ->
 
     One panel per paper metric and one for the model's held-out agreement with the
     panel (total-variation distance of the fused beliefs): x is the budget (share of the
-    distinct states asked, log scale), one colour per selection (:data:`SELECTION_COLORS`;
+    distinct states asked, log scale), one colour per selection (`SELECTION_COLORS`;
     the 100% point, where nothing is selected, starts both lines), 95% CIs as error bars;
     the fine-tune that asked every state without a model is a grey band (its 95% CI) with
     its mean as a line, the base policy a dashed line.
@@ -476,6 +476,6 @@ def plot_ablation(
     path: Path,
     colors: dict[str, str] | None = None,
 ) -> Path | None:
-    """Write :func:`ablation_figure` to ``path`` (None when there is no fine-tune)."""
+    """Write `ablation_figure` to ``path`` (None when there is no fine-tune)."""
     fig = ablation_figure(results, what, colors)
     return None if fig is None else save_figure(fig, path)

@@ -1,6 +1,6 @@
 """Learning curves: each variant's ``curve.json``, a rolling mean, its seeds readable.
 
-How the spread is drawn depends on the seeds (:data:`MAX_SEED_LINES`): with one seed the
+How the spread is drawn depends on the seeds (`MAX_SEED_LINES`): with one seed the
 raw values are a faint line behind the rolling mean; with 2 to 5 seeds every seed's rolling
 mean is a thin faint line behind the mean over the seeds (a t-interval over 2 to 5 seeds is
 too wide to read: with 2 seeds its quantile is 12.7); with more, a light 95% band over the
@@ -79,9 +79,9 @@ def load_curves(
         ``{variant: [replica curve, ...]}``.
 
     Raises:
-        AmuledError: A ``curve.json`` is larger than :data:`MAX_CURVE_BYTES` (refused from
+        AmuledError: A ``curve.json`` is larger than `MAX_CURVE_BYTES` (refused from
             its size, before it is read), a link, not a regular file or outside
-            ``run_dir`` (:func:`~amuled_ma.safe_files.checked_read_path`), cannot be read
+            ``run_dir`` (`checked_read_path`), cannot be read
             or is not JSON; one line naming it.
 
     """
@@ -105,7 +105,7 @@ def read_curve(path: Path) -> list[dict]:
         Its rows, as the trainer wrote them.
 
     Raises:
-        AmuledError: Larger than :data:`MAX_CURVE_BYTES` (refused from its size, before it
+        AmuledError: Larger than `MAX_CURVE_BYTES` (refused from its size, before it
             is read), unreadable or not JSON; one line naming the file.
 
     """
@@ -165,7 +165,7 @@ def curves_figure(
     title: str,
     colors: dict[str, str] | None = None,
 ) -> Any | None:
-    """The learning-curve figure (see :func:`plot_curves`); None when nothing to draw."""
+    """The learning-curve figure (see `plot_curves`); None when nothing to draw."""
     keys = [k for k in keys if any(k in row for cs in curves.values() for c in cs for row in c)]
     if not keys or not curves:
         return None
@@ -226,7 +226,7 @@ def curves_figure(
 
 
 def _spread_note(curves: dict[str, list[list[dict]]]) -> str:
-    """What the faint lines or bands of :func:`curves_figure` are."""
+    """What the faint lines or bands of `curves_figure` are."""
     seeds = {len(r) for r in curves.values()}
     parts = []
     if 1 in seeds:
@@ -247,15 +247,15 @@ def plot_curves(
 ) -> Path | None:
     """Plot one panel per key, one line (rolling mean) per variant, its seeds' spread faint.
 
-    The y-range of each panel is :func:`robust_ylim` of its lines (the panel's title says
+    The y-range of each panel is `robust_ylim` of its lines (the panel's title says
     when values are clipped); x ticks are compact (``20k``).
 
     Args:
-        curves: ``{variant: [replica curve, ...]}`` (:func:`load_curves`).
+        curves: ``{variant: [replica curve, ...]}`` (`load_curves`).
         keys: Curve keys, one panel each (missing ones are skipped).
         path: The PNG to write.
         title: The figure's title.
-        colors: ``{variant: colour}`` (default: :func:`variant_colors` of the curves).
+        colors: ``{variant: colour}`` (default: `variant_colors` of the curves).
 
     Returns:
         ``path``, or None when no key has data.

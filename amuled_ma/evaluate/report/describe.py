@@ -1,6 +1,6 @@
 """What the report says each variant is, from the run records: settings, panels, imports.
 
-Every statement here comes from a :class:`~amuled_ma.records.RunRecord`: the run's own
+Every statement here comes from a `RunRecord`: the run's own
 (``seeds``, ``ablation``, the scenario) and each variant's (its variant, panel, recipe,
 lambda_KL, iterations done and planned, state, base checkpoint, inputs, and for a policy
 imported from the paper's authors its file and checkpoint iteration). A variant evaluated

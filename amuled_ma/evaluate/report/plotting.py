@@ -1,7 +1,7 @@
 """The report's figures' common ground: numbers, colours, panels, the PNG files.
 
-One colour per variant in every figure (:func:`variant_colors`), learning curves' y-range
-robust to early spikes (:func:`robust_ylim`), compact tick and bar labels, a grid of
+One colour per variant in every figure (`variant_colors`), learning curves' y-range
+robust to early spikes (`robust_ylim`), compact tick and bar labels, a grid of
 panels with one legend, and the statistics' means and half widths as figures draw them.
 """
 
@@ -37,14 +37,14 @@ def pyplot() -> Any:
 
 
 def as_stat(stat: Stat | Mapping[str, Any] | None) -> Stat | None:
-    """A statistic as a :class:`~amuled_ma.evaluate.results.Stat` (a dict is validated)."""
+    """A statistic as a `Stat` (a dict is validated)."""
     if stat is None or isinstance(stat, Stat):
         return stat
     return Stat.model_validate(dict(stat))
 
 
 def format_stat(stat: Stat | Mapping[str, Any] | None, digits: int = 2) -> str:
-    """``mean ± half width`` of a :func:`~amuled_ma.evaluate.stats.mean_ci` summary.
+    """``mean ± half width`` of a `mean_ci` summary.
 
     ``n/a`` without a mean; ``± n/a (n = 1)`` where the interval is undefined.
     """
@@ -198,7 +198,7 @@ def legend_below(fig: Any, handles: list, labels: list[str], spare: list) -> Non
 
 
 def save_figure(fig: Any, path: Path) -> Path:
-    """Write a figure as PNG (:func:`~amuled_ma.safe_files.atomic_writer`) and close it.
+    """Write a figure as PNG (`atomic_writer`) and close it.
 
     Raises:
         UnsafePathError: ``path`` is a link or not a regular file.

@@ -60,7 +60,7 @@ def diagnostics_table(results: Results | Mapping[str, Any], finetunes: int | Non
     return "\n".join(lines) + "\n"
 
 
-#: Columns of :func:`agents_table`: (status key, heading).
+#: Columns of `agents_table`: (status key, heading).
 _AGENT_COLUMNS = (
     ("repaired", "repaired"),
     ("abstained", "abstained"),
@@ -70,7 +70,7 @@ _AGENT_COLUMNS = (
 )
 
 
-#: Columns of :func:`agents_table` for a distilled feedback: the model's answers (for states
+#: Columns of `agents_table` for a distilled feedback: the model's answers (for states
 #: not asked; for an asked state's miss) and the states it could not answer.
 _MODEL_COLUMNS = (
     ("distilled", "by the model"),
@@ -124,7 +124,7 @@ def agents_table(results: Results | Mapping[str, Any]) -> str:
 def servers_table(results: Results | Mapping[str, Any]) -> str:
     """Markdown table: per fine-tune and LLM server, what the server was asked and did.
 
-    From ``feedback["llm_servers"]`` (:func:`amuled_ma.deliberation.summaries.llm_server_stats`):
+    From ``feedback["llm_servers"]`` (`llm_server_stats`):
     requests sent (every attempt: retries and probes included), answered, failed with the
     kinds of failure, requests retried on another host after failing there, times the
     server was taken out of the pool and put back, and the mean and 95th-percentile
@@ -168,7 +168,7 @@ def _tv(value: Any) -> str:
 def budget_table(results: Results | Mapping[str, Any]) -> str:
     """Markdown table: the feedback budget's accounting of every distilled fine-tune.
 
-    From ``feedback["distill"]`` (:meth:`amuled_ma.distill.DistilledSource.report`): the
+    From ``feedback["distill"]`` (`DistilledSource.report`): the
     budget and selection, the distinct states visited, asked (and their share), answered
     by the model, the misses the model answered, the requests forwarded to the panel's
     source and of those sent to the LLMs (the rest were in the belief store), the refits,
@@ -342,7 +342,7 @@ def same_as_base(
 
 
 def differences_table(results: Results | Mapping[str, Any], mode: str) -> str:
-    """Markdown table of :func:`base_differences`: ``+1.20``, ``-0.40``, ``=`` (equal)."""
+    """Markdown table of `base_differences`: ``+1.20``, ``-0.40``, ``=`` (equal)."""
     results = Results.of(results)
     diffs = base_differences(results, mode)
     if not diffs:
@@ -385,7 +385,7 @@ def paper_table(
 ) -> str:
     """Markdown table: the paper's row beside ours for every variant the paper reports.
 
-    The paper's figures (:data:`~amuled_ma.evaluate.paper.PAPER_ROWS`) are of the sampled
+    The paper's figures (`PAPER_ROWS`) are of the sampled
     policy; ours are in the same mode when it was evaluated (else greedy, and the column
     says so), ``mean ± half-width`` of the 95% interval.
 
@@ -438,7 +438,7 @@ def difference_ci(
     interval, so the Welch-Satterthwaite ``df`` is written out here).
 
     Args:
-        mine: The variant's :class:`~amuled_ma.evaluate.results.Stat`.
+        mine: The variant's `Stat`.
         base: The base's.
         confidence: Two-sided confidence level.
 
@@ -474,7 +474,7 @@ def movement_sentence(
     """One sentence: did the fine-tune move away from the base, and which way.
 
     A metric moved when the interval of its difference to the base
-    (:func:`difference_ci`) excludes 0: ``AMULED wakes 2.10 fewer sleeping babies than
+    (`difference_ci`) excludes 0: ``AMULED wakes 2.10 fewer sleeping babies than
     the base (95% CI 1.62 to 2.58 fewer)``; with none, ``did not move from the base beyond
     noise``. A fine-tune that misses the goal in some episodes (FindMilk's milk) says so.
 

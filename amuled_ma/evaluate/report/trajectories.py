@@ -1,8 +1,8 @@
 """Trajectory figures: one recorded greedy episode per variant, drawn by its task.
 
-FindMilk: a grid per variant (:func:`amuled_ma.tasks.findmilk_drawing.draw_findmilk`);
+FindMilk: a grid per variant (`draw_findmilk`);
 Driving: a strip of lanes and events per variant
-(:func:`amuled_ma.tasks.driving_drawing.draw_driving`).
+(`draw_driving`).
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ def findmilk_figure(
     mode: str = "greedy",
     colors: dict[str, str] | None = None,
 ) -> Any | None:
-    """The FindMilk trajectories (see :func:`plot_findmilk`); None without that mode."""
+    """The FindMilk trajectories (see `plot_findmilk`); None without that mode."""
     variants = _trajectories(results, mode)
     if not variants:
         return None
@@ -84,7 +84,7 @@ def driving_figure(
     mode: str = "greedy",
     colors: dict[str, str] | None = None,
 ) -> Any | None:
-    """The Driving episodes (see :func:`plot_driving`); None without that mode."""
+    """The Driving episodes (see `plot_driving`); None without that mode."""
     variants = _trajectories(results, mode)
     if not variants:
         return None

@@ -1,10 +1,10 @@
 """``report.md``: the run's settings, tables and figures, written into the run folder.
 
-The report opens with the run's settings (:mod:`~amuled_ma.evaluate.report.describe`: task,
+The report opens with the run's settings (`describe`: task,
 recipe, lambda_KL, iterations, seeds, the panel and its sources, the recording and its
 SHA-256, the policies imported from the paper's authors, variants interrupted) and a link to
 the step-by-step viewer (``amuled view``); then the metric tables, each fine-tune's
-feedback, the diagnostics (:mod:`~amuled_ma.evaluate.report.tables`) and the figures.
+feedback, the diagnostics (`tables`) and the figures.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from amuled_ma.evaluate.results import RESULTS_FILES, Results
 from amuled_ma.records import RunRecord
 from amuled_ma.safe_files import check_write_targets, checked_read_path, write_text_atomic
 
-#: The figures :func:`write_report` writes; one of these it did not write this time is a
+#: The figures `write_report` writes; one of these it did not write this time is a
 #: stale one from an earlier report and is removed, so every PNG is the report's.
 FIGURE_NAMES = (
     "curves_base.png", "curves_finetune.png", "metrics_greedy.png", "metrics_sampled.png",
@@ -50,9 +50,9 @@ FIGURE_NAMES = (
 )  # fmt: skip
 #: The viewer page ``amuled view`` writes by default (episode 0).
 VIEWER_PAGE = "view-episode0.html"
-#: How the report's viewer line starts (:func:`link_viewer` finds it by this).
+#: How the report's viewer line starts (`link_viewer` finds it by this).
 VIEWER_PREFIX = "**Step by step:**"
-#: Largest ``report.md`` read back [bytes] (:func:`link_viewer` rewrites one line of it):
+#: Largest ``report.md`` read back [bytes] (`link_viewer` rewrites one line of it):
 #: a report is about 10 KB (the demo's: 9 KB; a sweep of many variants a few times that);
 #: 16 MiB is 1,600 times that, and the file is read whole.
 MAX_REPORT_BYTES = 16 * 2**20
@@ -74,7 +74,7 @@ def viewer_line(run_dir: Path) -> str:
 
 
 def link_viewer(run_dir: Path) -> bool:
-    """Rewrite ``report.md``'s viewer line (:func:`viewer_line`) now the page may exist.
+    """Rewrite ``report.md``'s viewer line (`viewer_line`) now the page may exist.
 
     Args:
         run_dir: The run directory (its ``report.md``).
@@ -83,10 +83,10 @@ def link_viewer(run_dir: Path) -> bool:
         True when the report had a viewer line (it now links the page if it exists).
 
     Raises:
-        AmuledError: ``report.md`` is larger than :data:`MAX_REPORT_BYTES` (refused from
+        AmuledError: ``report.md`` is larger than `MAX_REPORT_BYTES` (refused from
             its size, before it is read), unreadable or not text; a link or not a regular
-            file (:func:`~amuled_ma.safe_files.checked_read_path`); it cannot be written
-            back (:func:`~amuled_ma.safe_files.write_text_atomic`); one line naming it.
+            file (`checked_read_path`); it cannot be written
+            back (`write_text_atomic`); one line naming it.
 
     """
     from amuled_ma.file_limits import read_bounded_bytes
@@ -123,9 +123,9 @@ def link_viewer(run_dir: Path) -> bool:
 def evaluation_outputs(run_dir: Path) -> list[Path]:
     """The files an evaluation and its report write or remove in ``run_dir``.
 
-    :data:`~amuled_ma.evaluate.results.RESULTS_FILES`, ``report.md``, :data:`FIGURE_NAMES`
+    `RESULTS_FILES`, ``report.md``, `FIGURE_NAMES`
     and every ``ablation_*.png`` there. ``amuled evaluate`` and the pipeline check them
-    (:func:`~amuled_ma.safe_files.check_write_targets`) before the first episode, so a
+    (`check_write_targets`) before the first episode, so a
     refused one costs no work.
     """
     run_dir = Path(run_dir)
@@ -148,13 +148,13 @@ def write_report(
 ) -> Path:
     """Write ``report.md`` and its PNG figures into ``run_dir``.
 
-    A figure of :data:`FIGURE_NAMES` (or an ``ablation_*.png``) left from an earlier
+    A figure of `FIGURE_NAMES` (or an ``ablation_*.png``) left from an earlier
     report that this one does not draw is removed, so every PNG of the folder is one the
     report shows.
 
     Args:
         run_dir: The run directory (curves are read from its variant folders).
-        results: The evaluation results (:func:`~amuled_ma.evaluate.evaluator.evaluate_run`).
+        results: The evaluation results (`evaluate_run`).
         title: Report title.
         ablation: The ablation this folder holds (``clusters``, ``aggregation``,
             ``models``, ``kl``, ``budget``; default: the run record's): adds its figure
@@ -167,7 +167,7 @@ def write_report(
         Path of ``report.md``.
 
     Raises:
-        UnsafePathError: One of :func:`evaluation_outputs` is a link or not a regular file;
+        UnsafePathError: One of `evaluation_outputs` is a link or not a regular file;
             refused before any figure is drawn.
         FileWriteError: A file could not be written (a full disk); one line naming it.
 

@@ -8,15 +8,15 @@ produced, and turned the counts of each observation into a belief over actions. 
 does the same on our batched tasks (many episodes side by side as task copies), seeded, one
 module per job:
 
-- :mod:`.findmilk`: the FindMilk rule demonstrator (``algorithms/human_policy_milk.py``),
+- `.findmilk`: the FindMilk rule demonstrator (``algorithms/human_policy_milk.py``),
   1,000 episodes, every step counted;
-- :mod:`.driving`: the Driving SARSA-style Q-learner (``algorithms/human_policy_drive.py``),
+- `.driving`: the Driving SARSA-style Q-learner (``algorithms/human_policy_drive.py``),
   10,000 episodes of 300 steps, counted from episode 601;
-- :mod:`.play`: what both share: per-episode random streams (:mod:`amuled_ma.tasks.rng`),
+- `.play`: what both share: per-episode random streams (`rng`),
   the action draw, the pair counter;
-- :mod:`.table`: observation keys, the counts-to-belief rule (``p(a) ∝ 0.6**c_a *
+- `.table`: observation keys, the counts-to-belief rule (``p(a) ∝ 0.6**c_a *
   0.4**(n - c_a)``, counts rescaled to total 20), the belief table and its ``.npz`` file;
-- :mod:`.cache`: :func:`demonstrator_belief`, built once and kept in a cache file.
+- `.cache`: `demonstrator_belief`, built once and kept in a cache file.
 
 ## Usage
 
@@ -32,8 +32,8 @@ on any device and answers on that device.
 
 ## Version History
 
-- v1: first version (issue 13, item 2).
-- v1.1: split into one module per job (issue 23); the counts are unchanged.
+- v1: first version.
+- v1.1: one module per job; the counts are unchanged.
 """
 
 from __future__ import annotations

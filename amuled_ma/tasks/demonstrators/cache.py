@@ -1,9 +1,9 @@
 """A demonstrator belief built once per task, seed and episode count, kept in a cache file.
 
-:func:`demonstrator_belief` keeps one file per task, seed and episode count in
-``cache_dir`` (:func:`cache_path`); a file whose recorded settings differ from the requested
+`demonstrator_belief` keeps one file per task, seed and episode count in
+``cache_dir`` (`cache_path`); a file whose recorded settings differ from the requested
 ones is rebuilt and overwritten; an unreadable file raises
-:class:`~amuled_ma.tasks.demonstrators.table.DemonstratorCacheError`.
+`DemonstratorCacheError`.
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ def demonstrator_belief(
         seed: The demonstrator's seed.
         episodes: Episodes played (``None``: the authors' 1,000 / 10,000). Driving counts
             from episode 601, so it needs more than 601.
-        cache_dir: Folder of the cache file (:func:`cache_path`); ``None``: no cache. A file
+        cache_dir: Folder of the cache file (`cache_path`); ``None``: no cache. A file
             made with other settings is rebuilt and overwritten.
         progress: Show a progress bar while playing.
 

@@ -11,7 +11,7 @@ steps; pairs are counted from episode index 601 on (the authors' ``if cnt > 600`
 601..9999).
 
 Because the Q table is reset every episode and every episode has its own streams
-(:mod:`amuled_ma.tasks.demonstrators.play`), an episode that is not counted cannot change
+(`play`), an episode that is not counted cannot change
 any count; only the counted episodes 601..9999 are played (the authors played 0..600 too
 and threw them away, which also only advanced their random generator).
 """
@@ -92,7 +92,7 @@ def driving_human_reward(info: Mapping[str, torch.Tensor], actions: torch.Tensor
     ``20 * rescues - collisions + 0.5 * [action == straight]`` (their ``ishuman_p``).
 
     Args:
-        info: The ``info`` of :meth:`Driving.step` (``rescues``, ``collisions``).
+        info: The ``info`` of `Driving.step` (``rescues``, ``collisions``).
         actions: The actions of that step.
 
     Returns:
@@ -167,7 +167,7 @@ def play_driving(
 
     Args:
         seed: Non-negative seed (episode ``e`` has its own streams, see
-            :mod:`amuled_ma.tasks.demonstrators.play`).
+            `play`).
         episodes: Episode indices run to ``episodes - 1`` (the authors: 10,000).
         count_from: First counted episode index (the authors: 601).
         max_steps: Steps per episode (the authors: 300; the road never ends early).

@@ -79,7 +79,7 @@ def play_findmilk(
 
     Args:
         seed: Non-negative seed (episode ``e`` has its own streams, see
-            :mod:`amuled_ma.tasks.demonstrators.play`).
+            `play`).
         episodes: Episodes to play (the authors: 1,000), each until the milk or the limit.
         max_steps: Time limit of an episode.
         batch_size: Episodes played side by side (does not change the result).

@@ -1,7 +1,7 @@
 """What both demonstrators' play shares: per-episode streams, action draws, pair counting.
 
 Episode ``e`` of a demonstrator seeded ``s`` plays on the task copy seeded ``b_s + e`` and
-draws its own choices from the counter-based stream (:mod:`amuled_ma.tasks.rng`) of seed
+draws its own choices from the counter-based stream (`rng`) of seed
 ``c_s + e``, where ``b_s`` and ``c_s`` are two hashes of ``s`` (so the episodes of seeds ``s``
 and ``s + 1`` share no stream). The counts therefore depend on ``seed`` and the episode
 indices only, not on how many episodes are played side by side.
@@ -53,7 +53,7 @@ def episode_streams(seed: int, first: int, count: int, device: torch.device) -> 
         device: Torch device of the keys.
 
     Returns:
-        int64 ``[count]``, for :func:`uniforms`.
+        int64 ``[count]``, for `uniforms`.
 
     """
     return rng.copy_keys(_base_seed(seed, _CHOICE_STREAMS) + first, count, device)
@@ -63,7 +63,7 @@ def uniforms(keys: torch.Tensor, start: int, count: int) -> torch.Tensor:
     """Return draws ``start..start+count-1`` of each stream as float64 in ``[0, 1)``.
 
     Args:
-        keys: Stream keys (:func:`episode_streams`), int64 ``[N]``.
+        keys: Stream keys (`episode_streams`), int64 ``[N]``.
         start: First draw number.
         count: Draws per stream.
 

@@ -10,8 +10,8 @@ Observations are keyed exactly: every entry must be an integer within the task's
 observation bounds (``obs_low``/``obs_high``); the key is the mixed-radix number of the
 entries. Anything else (a fraction, out of bounds, NaN) is reported unseen.
 
-:meth:`DemonstratorBelief.save` writes the counts to an ``.npz`` file (no pickle: it loads
-with ``allow_pickle=False``) with the settings (:func:`demonstrator_settings`) as JSON.
+`DemonstratorBelief.save` writes the counts to an ``.npz`` file (no pickle: it loads
+with ``allow_pickle=False``) with the settings (`demonstrator_settings`) as JSON.
 """
 
 from __future__ import annotations
@@ -225,17 +225,17 @@ class DemonstratorBelief:
 
     Args:
         task_name: ``"findmilk"`` or ``"driving"``.
-        states: Observation keys (:func:`encode_observations`), int64 ``[S]``, strictly
+        states: Observation keys (`encode_observations`), int64 ``[S]``, strictly
             increasing.
         counts: Action counts per state, int64 ``[S, num_actions]``, every row summing to
             at least 1.
-        settings: How the counts were made (:func:`demonstrator_settings`).
+        settings: How the counts were made (`demonstrator_settings`).
 
     Attributes:
         task_name: The task's short name.
         states: The sorted observation keys.
         counts: The counts.
-        beliefs: float64 ``[S, num_actions]`` (:func:`counts_to_belief`).
+        beliefs: float64 ``[S, num_actions]`` (`counts_to_belief`).
         settings: The settings.
 
     Raises:
@@ -337,7 +337,7 @@ class DemonstratorBelief:
     def load(
         cls, path: str | os.PathLike, *, expect: Mapping[str, Any] | None = None
     ) -> DemonstratorBelief:
-        """Read a file written by :meth:`save`.
+        """Read a file written by `save`.
 
         Args:
             path: The ``.npz`` file.
