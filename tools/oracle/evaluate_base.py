@@ -3,6 +3,7 @@
 
     python3 tools/oracle/evaluate_base.py AUTHORS_CHECKOUT OUT [--task findmilk]
         [--amuled /work/main/.venv/bin/amuled] [--episodes 50] [--results FILE.json]
+        [--tie-break random|first]
 
 Uses the package only through its command line (``amuled import authors --only policies``,
 ``amuled evaluate``). For each finished seed folder ``OUT/<task>-base/seed<S>`` a checkout
@@ -11,9 +12,11 @@ imported, and the imported ``base`` folders are gathered into ONE run folder
 ``OUT/eval-base-<task>/run`` as seed replicas (``base``, ``base.seed43``, ...); their
 published base is imported and evaluated the same way in ``OUT/eval-base-<task>/published``.
 Both runs' ``config.json`` get ``scenario.evaluation.seed = 42`` (the authors' notebook: env
-seeds 42..91), then ``amuled evaluate RUN --modes greedy sampled --episodes 50``. The
-scenario is the one the import writes (the authors' scenario of the task: FindMilk's
-random tie-breaking included). A summary (mean of per-seed means, 95% t-interval over
+seeds 42..91) and, on FindMilk, ``scenario.task.options.tie_break`` (default ``random``:
+the authors' environment, ``environments/milk.py:106-112``; the import writes the plain
+scenario, whose default is ``first``); then ``amuled evaluate RUN --modes greedy sampled
+--episodes 50``. The evaluation folder is ``OUT/eval-base-<task>`` (``-ties-first`` added
+with ``--tie-break first``). A summary (mean of per-seed means, 95% t-interval over
 the seeds, and each seed) goes to ``OUT/eval-base-<task>/summary.md``; ``--results`` also
 writes it as a small JSON file (per seed and mode, every metric's mean, and each run's
 ``oracle-done`` timing).
@@ -53,10 +56,14 @@ def import_base(amuled: str, base: Path, env: str, task: str, work: Path) -> Pat
     return imports / "authors" / task
 
 
-def evaluate(amuled: str, folder: Path, seeds: list[int] | None, episodes: int) -> dict:
-    """Set the authors' evaluation seeds in ``folder``'s config.json, evaluate, read results."""
+def evaluate(
+    amuled: str, folder: Path, seeds: list[int] | None, episodes: int, tie_break: str | None
+) -> dict:
+    """Set the authors' evaluation seeds (and tie-break) in config.json, evaluate, read results."""
     cfg = json.loads((folder / "config.json").read_text())
     cfg["scenario"]["evaluation"]["seed"] = 42
+    if tie_break:
+        cfg["scenario"]["task"].setdefault("options", {})["tie_break"] = tie_break
     if seeds:
         cfg["seeds"] = seeds
     (folder / "config.json").write_text(json.dumps(cfg, indent=2))
@@ -74,6 +81,7 @@ def main() -> int:
     ap.add_argument("--amuled", default="/work/main/.venv/bin/amuled")
     ap.add_argument("--episodes", type=int, default=50)
     ap.add_argument("--results", type=Path, default=None, help="also write a JSON summary")
+    ap.add_argument("--tie-break", default="random", choices=["random", "first"])
     args = ap.parse_args()
     env, authors, out = ENVS[args.task], args.authors.resolve(), args.out.resolve()
     metrics = METRICS[args.task]
@@ -88,7 +96,8 @@ def main() -> int:
         print(f"no finished oracle base under {out}/{args.task}-base", file=sys.stderr)
         return 1
     seeds = sorted(found)
-    ev = out / f"eval-base-{args.task}"
+    tie_break = args.tie_break if args.task == "findmilk" else None
+    ev = out / (f"eval-base-{args.task}" + ("-ties-first" if tie_break == "first" else ""))
     shutil.rmtree(ev, ignore_errors=True)
     rundir = ev / "run"
 
@@ -110,8 +119,8 @@ def main() -> int:
         target = "base" if seed == seeds[0] else f"base.seed{seed}"
         shutil.move(str(imported / "base"), rundir / target)
 
-    res = evaluate(args.amuled, rundir, seeds, args.episodes)
-    pub = evaluate(args.amuled, pubrun, None, args.episodes)
+    res = evaluate(args.amuled, rundir, seeds, args.episodes, tie_break)
+    pub = evaluate(args.amuled, pubrun, None, args.episodes, tie_break)
 
     summary: dict = {
         "task": args.task,
