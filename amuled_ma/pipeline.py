@@ -185,8 +185,10 @@ def run_pipeline(
     """
     from amuled_ma.experiments.plans import training_seeds
     from amuled_ma.experiments.run_folder import read_record, variant_records
+    from amuled_ma.scenario.memory import check_seed_replicas
 
     start = time.perf_counter()
+    check_seed_replicas(request.seeds, variants=1)  # before a job per seed is planned
     seeds = training_seeds(request.scenario, request.seed, request.seeds)
     if request.ablation == "models":  # it plans one fine-tune per recording found beside
         from amuled_ma.authors.download import models_ablation_recordings

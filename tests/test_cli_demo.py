@@ -12,7 +12,6 @@ import pytest
 
 from amuled_ma.beliefs.hosts import TINY_MODEL
 from amuled_ma.cli import main
-from amuled_ma.commands._experiment import parse_override
 from amuled_ma.commands.demo import (
     DEMO_NUM_PARALLEL,
     LIVE_CLUSTERS,
@@ -20,6 +19,7 @@ from amuled_ma.commands.demo import (
     demo_scenario,
 )
 from amuled_ma.scenario import load_scenario
+from amuled_ma.scenario.overrides import parse_set
 
 
 def test_demo_without_server_fails_fast_and_writes_nothing(tmp_path: Path, capsys) -> None:
@@ -63,7 +63,7 @@ def test_demo_scenario_file_holds_the_settings_the_demo_set(task, source, sets) 
     host = "http://127.0.0.1:5"
     expected = load_scenario(source)
     for text in (*sets, f"feedback.host={host}"):
-        section, name, value = parse_override(text)
+        section, name, value = parse_set(text)
         expected = expected.replace(section, **{name: value})
     demo = demo_scenario(task, model=TINY_MODEL, host=host, private=True)
     assert demo.settings() == expected.settings()

@@ -135,3 +135,12 @@ def test_a_2_gb_line_of_jsonl_is_refused_unread_with_file_and_line(tmp_path: Pat
     line = one_line(done.stderr)
     assert line.startswith(f"amuled: error: {big}:2: a line longer than the {MAX_LINE_CHARS:,}")
     assert "is it the right file?" in line
+
+
+def test_a_billion_seeds_are_refused_before_any_job_is_planned(tmp_path: Path, capsys) -> None:
+    run_dir = tmp_path / "run"
+    start = time.perf_counter()
+    assert main(["run", "findmilk", "--seeds", "1000000000", "--run-dir", str(run_dir)]) == 1
+    assert time.perf_counter() - start < 2.0
+    assert "expected at most 10,000 training replicas" in one_line(capsys.readouterr().err)
+    assert not run_dir.exists()

@@ -71,11 +71,11 @@ def _ok_or_amuled(call) -> None:
 @FUZZ
 @given(key=keys, value=toml_values)
 def test_set_overrides(key: str, value: str) -> None:
-    from amuled_ma.commands._experiment import parse_override
     from amuled_ma.scenario import load_scenario
+    from amuled_ma.scenario.overrides import parse_set
 
     def apply() -> None:
-        section, name, parsed = parse_override(f"{key}={value}")
+        section, name, parsed = parse_set(f"{key}={value}")
         load_scenario("findmilk").replace(section, **{name: parsed})
 
     _ok_or_amuled(apply)

@@ -143,13 +143,13 @@ def test_a_request_refuses_an_unknown_ablation_and_a_base_with_an_ablation(tmp_p
 
 def test_rules_run_through_the_library(tmp_path):
     """The library alone, without the command line: the four variants, report written."""
-    from amuled_ma.commands._experiment import parse_override
     from amuled_ma.scenario import load_scenario
+    from amuled_ma.scenario.overrides import parse_set
 
     scenario = load_scenario("findmilk")
     sets = [arg for arg in [*TINY, *RULES] if arg not in ("--set", "--no-progress")]
     for text in sets:
-        section, name, value = parse_override(text)
+        section, name, value = parse_set(text)
         scenario = scenario.replace(section, **{name: value})
     lines: list[str] = []
     request = pipeline.PipelineRequest(

@@ -5,12 +5,11 @@ from __future__ import annotations
 import argparse
 import shlex
 import sys
-import tomllib
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from amuled_ma.errors import ScenarioError
+from amuled_ma.scenario.overrides import parse_set
 
 if TYPE_CHECKING:
     from amuled_ma.scenario import Scenario
@@ -154,26 +153,6 @@ def add_overrides_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def parse_override(text: str) -> tuple[str, str, Any]:
-    """Parse ``section.key=value`` (value in TOML syntax; bare words are strings)."""
-    key, sep, raw = text.partition("=")
-    section, dot, name = key.strip().partition(".")
-    if not sep or not dot or not name:
-        raise ScenarioError(
-            f"--set {text!r}: expected SECTION.KEY=VALUE, e.g. finetune.lambda_kl=1.0"
-        )
-    try:
-        value = tomllib.loads(f"v = {raw.strip()}")["v"]
-    except tomllib.TOMLDecodeError:
-        value = raw.strip()
-    except RecursionError:
-        raise ScenarioError(
-            f"--set {key.strip()}=...: the value is nested deeper than Python can read; "
-            "give a value nested a few levels at most"
-        ) from None
-    return section, name, value
-
-
 def load(args: argparse.Namespace) -> Scenario:
     """Load the scenario named on the command line and apply ``--set`` overrides."""
     from amuled_ma.resources import scenarios_dir
@@ -217,9 +196,7 @@ def customise(
         dirs = [*scenario.feedback.clusters_dirs, *user_dirs]
         scenario = scenario.replace("feedback", clusters_dirs=dirs)
     for text in overrides:
-        section, name, value = parse_override(text)
-        if not hasattr(scenario, section) or section in ("name", "path"):
-            raise ScenarioError(f"--set {text!r}: unknown section [{section}]")
+        section, name, value = parse_set(text)
         scenario = scenario.replace(section, **{name: value})
     if scenario.feedback.clusters_dirs:
         from amuled_ma.deliberation.plan import cluster_registry

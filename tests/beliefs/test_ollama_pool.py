@@ -223,9 +223,9 @@ def test_one_host_keeps_its_retries_with_backoff() -> None:
 
 # -- scenario keys ---------------------------------------------------------------------
 def test_scenario_hosts_key_and_its_errors(tmp_path) -> None:
-    from amuled_ma.commands._experiment import parse_override
     from amuled_ma.deliberation.plan import default_source
     from amuled_ma.scenario import load_scenario
+    from amuled_ma.scenario.overrides import parse_set
 
     path = tmp_path / "pool.toml"
     path.write_text(
@@ -245,7 +245,7 @@ def test_scenario_hosts_key_and_its_errors(tmp_path) -> None:
     path.write_text('[feedback]\nhosts = ["gpu1", "ftp://gpu2"]\n')
     with pytest.raises(ScenarioError, match=r"key \[feedback\]\.hosts\[1\] 'ftp://gpu2'"):
         load_scenario(path)
-    section, key, value = parse_override('feedback.hosts=["http://a:1", "http://b:2"]')
+    section, key, value = parse_set('feedback.hosts=["http://a:1", "http://b:2"]')
     changed = load_scenario("findmilk").replace(section, **{key: value})
     assert changed.feedback.hosts == ["http://a:1", "http://b:2"]
     with pytest.raises(ScenarioError, match=r"\[feedback.ollama\] unknown key\(s\) hosts"):
