@@ -144,3 +144,8 @@ def test_a_billion_seeds_are_refused_before_any_job_is_planned(tmp_path: Path, c
     assert time.perf_counter() - start < 2.0
     assert "expected at most 10,000 training replicas" in one_line(capsys.readouterr().err)
     assert not run_dir.exists()
+
+
+def test_a_misspelt_scenario_names_the_closest(tmp_path: Path, capsys) -> None:
+    assert main(["run", "findmik", "--run-dir", str(tmp_path / "run")]) == 1
+    assert "(did you mean findmilk?)" in one_line(capsys.readouterr().err)

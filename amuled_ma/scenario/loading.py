@@ -9,7 +9,7 @@ from typing import Any
 
 from amuled_ma.errors import ScenarioError
 from amuled_ma.resources import read_text, scenarios_dir
-from amuled_ma.scenario.messages import unknown_top_level
+from amuled_ma.scenario.messages import did_you_mean, unknown_top_level
 from amuled_ma.scenario.model import Scenario
 from amuled_ma.scenario.panel_weights import member_prior, read_panel_weights
 from amuled_ma.scenario.paths import check_path_component
@@ -63,10 +63,11 @@ def resolve_scenario_path(name_or_path: str | os.PathLike[str]) -> Path:
     for candidate in (shipped / str(name_or_path), shipped / f"{name_or_path}.toml"):
         if candidate.is_file():
             return candidate.resolve()
-    available = ", ".join(sorted(p.stem for p in shipped.glob("*.toml")))
+    names = sorted(p.stem for p in shipped.glob("*.toml"))
+    available = ", ".join(names)
     raise ScenarioError(
         f"scenario {str(name_or_path)!r} not found: not a file, and not a shipped scenario "
-        f"(shipped: {available or 'none'} in {shipped})"
+        f"(shipped: {available or 'none'} in {shipped}){did_you_mean(str(name_or_path), names)}"
     )
 
 
