@@ -32,6 +32,7 @@ compares losses, parameters and curves.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import json
@@ -67,7 +68,9 @@ from amuled_ma.learn.population_state import (
     stack_optimizer_states,
 )
 from amuled_ma.learn.vecenv import DeliberationVecEnv
+from amuled_ma.safe_files import FileWriteError, write_text_atomic
 from amuled_ma.tasks import make_task
+from amuled_ma.tensorboard_log import TensorBoardLog
 from amuled_ma.variants import Variant
 
 __all__ = ["LAST", "PopulationMember", "PopulationTrainer", "TrainOutcome", "train_population"]
@@ -434,14 +437,12 @@ class PopulationTrainer:
         """
         from tqdm.auto import tqdm
 
-        writers: list[Any] = [None] * self.size
+        writers: list[TensorBoardLog | None] = [None] * self.size
         for p, spec in enumerate(self.specs):
             spec.out_dir.mkdir(parents=True, exist_ok=True)
-            (spec.out_dir / "train_cfg.json").write_text(json.dumps(self.cfgs[p], indent=2))
+            write_text_atomic(spec.out_dir / "train_cfg.json", json.dumps(self.cfgs[p], indent=2))
             if spec.scenario.output.tensorboard:
-                from torch.utils.tensorboard import SummaryWriter
-
-                writers[p] = SummaryWriter(log_dir=str(spec.out_dir / "tb"), flush_secs=30)
+                writers[p] = TensorBoardLog(spec.out_dir / "tb", flush_secs=30)
         start_it = self.runner.current_learning_iteration
         batch = self.shape.batch
         bar = tqdm(
@@ -482,16 +483,28 @@ class PopulationTrainer:
             self._stopped(stop)
             raise
         finally:
+            stopping = sys.exc_info()[0] is not None
             for writer in writers:
                 if writer is not None:
-                    writer.close()
+                    # a failed flush must not hide the exception already on its way out
+                    with (
+                        contextlib.suppress(FileWriteError)
+                        if stopping
+                        else contextlib.nullcontext()
+                    ):
+                        writer.close()
         bar.close()
         wall = time.perf_counter() - t0
         paths = self.save_members(range(self.size), completed=True)
         return [self._finish(p, path, batch, wall) for p, path in enumerate(paths)]
 
     def _record(
-        self, it: int, batch: int, walls: list[float], elapsed: float, writers: list[Any]
+        self,
+        it: int,
+        batch: int,
+        walls: list[float],
+        elapsed: float,
+        writers: list[TensorBoardLog | None],
     ) -> None:
         """Each member's curve row of iteration ``it`` (and its TensorBoard scalars)."""
         losses, stats = self._losses_and_stats()
@@ -511,10 +524,10 @@ class PopulationTrainer:
     def _finish(self, member: int, path: Path, batch: int, wall: float) -> TrainOutcome:
         """Write member ``member``'s curve and feedback summary; its outcome."""
         spec = self.specs[member]
-        (spec.out_dir / "curve.json").write_text(json.dumps(self.curves[member]))
+        write_text_atomic(spec.out_dir / "curve.json", json.dumps(self.curves[member]))
         summary = spec.feedback.summary() if spec.feedback is not None else None
         if summary is not None:
-            (spec.out_dir / "feedback.json").write_text(json.dumps(summary, indent=2))
+            write_text_atomic(spec.out_dir / "feedback.json", json.dumps(summary, indent=2))
         done = self.runner.current_learning_iteration
         return TrainOutcome(
             out_dir=spec.out_dir,
