@@ -243,3 +243,17 @@ class CachedSource(BeliefSource):
         finally:
             flush()  # keep whatever arrived, even when the source raised half-way
         return answers
+
+
+def requests_sent(source: Any) -> int | None:
+    """Requests the belief caches inside ``source`` sent on (None: it keeps no cache)."""
+    stats = getattr(source, "stats", None)
+    if stats is not None and hasattr(stats, "sent"):
+        return int(stats.sent)
+    members = getattr(source, "members", None)
+    if not members:
+        return None
+    counts = [requests_sent(member) for member, _agents in members]
+    if any(c is None for c in counts):
+        return None
+    return sum(c for c in counts if c is not None)

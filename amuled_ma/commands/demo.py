@@ -421,6 +421,7 @@ def live_leg(
     """
     import numpy as np
 
+    from amuled_ma.beliefs.cached import requests_sent
     from amuled_ma.deliberation.build import make_feedback
     from amuled_ma.evaluate.episode_trace import replay_variant
     from amuled_ma.evaluate.panel_answers import ask_panel
@@ -451,6 +452,7 @@ def live_leg(
     began = time.perf_counter()
     try:
         answers = ask_panel(feedback.panel, obs, prompt_vars)
+        sent = requests_sent(feedback.source) or 0  # the store answers those asked before
     finally:
         feedback.close()
     wall = time.perf_counter() - began
@@ -462,7 +464,8 @@ def live_leg(
         "source": "ollama",
         "meaningful": False,
         "wall_s": wall,
-        "requests": len(picked) * len(answers.agents),
+        "asked": len(picked) * len(answers.agents),
+        "requests": sent,
         "actions": actions,
         "agents": list(answers.agents),
         "fusion": answers.rule,
@@ -544,7 +547,9 @@ def write_live_leg(run_dir: Path, scenario: Scenario, *, model: str, host: str) 
         return False
     write_text_atomic(run_dir / LIVE_DIR / "live.json", json.dumps(leg, indent=1))
     put_live_section(run_dir, live_section(leg))
-    _say(f"live leg: {leg['requests']} requests in {leg['wall_s']:.1f} s")
+    stored = leg["asked"] - leg["requests"]
+    from_store = f", {stored} answered from {LIVE_DIR}/ without a request" if stored else ""
+    _say(f"live leg: {leg['requests']} requests in {leg['wall_s']:.1f} s{from_store}")
     return True
 
 

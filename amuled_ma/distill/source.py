@@ -45,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from amuled_ma.beliefs.cached import requests_sent
 from amuled_ma.beliefs.rows import CACHEABLE
 from amuled_ma.beliefs.types import (
     MODEL_STATUSES,
@@ -441,14 +442,14 @@ class DistilledSource(BeliefSource):
     ) -> None:
         """Ask the panel's source about the asked states; keep their answers to learn from."""
         idx = [i for s in forward for positions in s.positions.values() for i in positions]
-        before = _sent(self.source)
+        before = requests_sent(self.source)
         answers = self.source.beliefs([requests[i] for i in idx])
         if len(answers) != len(idx):
             raise RuntimeError(
                 f"belief source {getattr(self.source, 'name', '?')!r} answered {len(answers)} "
                 f"results for {len(idx)} requests"
             )
-        after = _sent(self.source)
+        after = requests_sent(self.source)
         self.stats.requests_forwarded += len(idx)
         self.stats.requests_sent += len(idx) if before is None or after is None else after - before
         self._changed = True
@@ -744,20 +745,6 @@ def fit_seed(seed: int, generation: int) -> int:
     """The seed of the ``generation``-th fit of a run seeded ``seed`` (a 63-bit integer)."""
     words = np.random.SeedSequence([int(seed) % 2**64, int(generation)]).generate_state(2)
     return (int(words[0]) << 31 ^ int(words[1])) % 2**63
-
-
-def _sent(source: Any) -> int | None:
-    """Requests the belief caches inside ``source`` sent on (None: it keeps no cache)."""
-    stats = getattr(source, "stats", None)
-    if stats is not None and hasattr(stats, "sent"):
-        return int(stats.sent)
-    members = getattr(source, "members", None)
-    if not members:
-        return None
-    counts = [_sent(member) for member, _agents in members]
-    if any(c is None for c in counts):
-        return None
-    return sum(c for c in counts if c is not None)
 
 
 def _jsonable_rng(state: Mapping[str, Any]) -> dict[str, Any]:
