@@ -155,7 +155,7 @@ def _create_temp(path: Path) -> tuple[int, Path]:
         return fd, tmp
 
 
-def _fsync_folder(folder: Path) -> None:
+def fsync_folder(folder: Path) -> None:
     """Flush a folder's entries (the rename) to disk; a no-op where folders cannot be opened."""
     try:
         fd = os.open(folder, os.O_RDONLY)
@@ -239,7 +239,7 @@ def atomic_writer(
         check_write_target(path)
         os.replace(tmp, path)
         tmp = None
-        _fsync_folder(path.parent)
+        fsync_folder(path.parent)
     except UnsafePathError:
         raise
     except OSError as error:

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from amuled_ma.errors import CheckpointError
+from amuled_ma.safe_files import fsync_folder
 from amuled_ma.torch_files import load_weights_only
 
 
@@ -127,7 +128,7 @@ def write_checkpoint(path: str | Path, write: Callable[[str], Any]) -> Path:
             os.fsync(handle.fileno())
         os.replace(tmp, path)
         tmp = None
-        _fsync_folder(path.parent)
+        fsync_folder(path.parent)
     except (OSError, RuntimeError) as error:
         # torch's zip writer reports a failed write as RuntimeError ("file write failed")
         raise CheckpointWriteError(_write_failure(path, error)) from error
@@ -182,21 +183,8 @@ def write_checkpoints(writes: Sequence[tuple[Path, Callable[[str], Any]]]) -> li
                 os.unlink(tmp)
     done = [Path(path) for path, _ in writes]
     for folder in dict.fromkeys(path.parent for path in done):
-        _fsync_folder(folder)
+        fsync_folder(folder)
     return done
-
-
-def _fsync_folder(folder: Path) -> None:
-    """Flush a folder's entries (the rename) to disk; a no-op where folders cannot be opened."""
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        with contextlib.suppress(OSError):
-            os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _disk_full(folder: Path, *, margin: int = 1 << 20) -> bool:

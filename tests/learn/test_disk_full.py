@@ -7,13 +7,12 @@ otherwise), filled to the last byte by a file written in the second iteration.
 from __future__ import annotations
 
 import contextlib
-import os
-import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 import tiny_cli
+from small_disk import small_disk as mounted_disk
 
 from amuled_ma.cli import main
 from amuled_ma.experiments.run_folder import checkpoint_state
@@ -23,21 +22,8 @@ from amuled_ma.learn.checkpoints import CheckpointWriteError, read_checkpoint, w
 @pytest.fixture
 def small_disk(tmp_path: Path) -> Iterator[Path]:
     """A 64 MiB tmpfs mounted at a fresh folder, unmounted after the test."""
-    mount = tmp_path / "disk"
-    mount.mkdir()
-    if os.geteuid() != 0:
-        pytest.skip("mounting a small tmpfs needs root (the full-disk test uses a real disk)")
-    done = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", "size=64m", "tmpfs", str(mount)],
-        capture_output=True,
-        text=True,
-    )
-    if done.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.strip()}")
-    try:
+    with mounted_disk(tmp_path, "64m") as mount:
         yield mount
-    finally:
-        subprocess.run(["umount", "-l", str(mount)], check=False)
 
 
 def fill(folder: Path) -> Path:
