@@ -11,6 +11,7 @@ import argparse
 import errno
 import importlib
 import pkgutil
+import re
 import signal
 import sys
 import traceback
@@ -95,11 +96,11 @@ def describe_os_error(error: OSError) -> str:
 
 
 def one_line(text: str) -> str:
-    """``text`` as one line: its non-blank lines, stripped of indentation and list dashes.
+    """``text`` as one line: its non-blank lines, stripped of indentation and ``- `` bullets.
 
     A line ending with ``:`` runs into the next with a space; the others join with ``"; "``.
     """
-    parts = [line.strip().lstrip("-").strip() for line in text.splitlines()]
+    parts = [re.sub(r"^- +", "", line.strip()) for line in text.splitlines()]
     joined = ""
     for part in filter(None, parts):
         if joined:

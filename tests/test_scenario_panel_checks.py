@@ -56,7 +56,7 @@ def fails(tmp_path: Path, capsys, *sets: str) -> str:
         ("feedback.fusion='vote:2'", "rule 'vote' takes no parameter"),
         (
             "feedback.clusters=['care',",
-            "found \"['care',\", which opens a TOML list but is not TOML: Invalid value",
+            "the value \"['care',\" opens a TOML list but is not TOML: Invalid value",
         ),
         ("feedback.clusters=['a' 'b']", "Unclosed array (at column 6)"),
     ],
