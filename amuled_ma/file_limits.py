@@ -174,6 +174,17 @@ def read_bounded_text(
         raise error(
             f"{path}: cannot read the {noun}: {failure.strerror or failure}; check the path"
         ) from failure
+    return decode_text(path, data, noun, error=error)
+
+
+def decode_text(
+    path: str | os.PathLike[str], data: bytes, noun: str, *, error: type[Exception] = AmuledError
+) -> str:
+    """``data`` read from ``path`` as UTF-8 text, newlines as ``Path.read_text`` reads them.
+
+    Raises:
+        Exception: ``error``: not UTF-8 text; one line naming the file and the byte.
+    """
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as failure:
@@ -181,7 +192,7 @@ def read_bounded_text(
             f"{path}: the {noun} is not UTF-8 text ({failure.reason} at byte {failure.start}); "
             "save it as UTF-8"
         ) from failure
-    return text.replace("\r\n", "\n").replace("\r", "\n")
+    return text.replace("\r\n", "\n").replace("\r", "\n")  # CR LF and a lone CR -> LF
 
 
 def read_bounded_json(

@@ -93,7 +93,7 @@ def read_folder_file(
         StudyError: It is over ``limit`` bytes, unreadable or not UTF-8; one line.
 
     """
-    from amuled_ma.file_limits import too_large
+    from amuled_ma.file_limits import decode_text, too_large
 
     path = Path(folder) / relative
     refuse = f"{path}: the {noun} must be a regular file inside the study folder, "
@@ -120,14 +120,7 @@ def read_folder_file(
         data = handle.read(limit + 1)
     if len(data) > limit:
         raise StudyError(f"{path}: the {noun} holds more than the {limit:,} bytes it may; {fix}")
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as failure:
-        raise StudyError(
-            f"{path}: the {noun} is not UTF-8 text ({failure.reason} at byte {failure.start}); "
-            "save it as UTF-8"
-        ) from failure
-    return text.replace("\r\n", "\n").replace("\r", "\n")
+    return decode_text(path, data, noun, error=StudyError)
 
 
 def _file_kind(mode: int) -> str:
