@@ -53,10 +53,9 @@ def test_real_findmilk_cache_equals_the_shared_recording(tmp_path, recordings_di
     assert converted.to_json() == shared  # byte for byte, so the SHA-256 is the same
 
 
-def test_every_published_cache_fits_the_opcode_budget_with_room():
-    """The budget (MAX_OPCODES) is 2.3 times the most opcodes of a published cache."""
-    from amuled_ma.authors.unpickle import MAX_OPCODES, scan_pickle
-
+def published_caches() -> dict[str, bytes]:
+    """Every ``*_llm_cache.pickle`` of the mirror's HEAD that it holds (a mirror may lack
+    its largest files); skips the test without a mirror."""
     if MIRROR is None or not (MIRROR / "HEAD").is_file() or shutil.which("git") is None:
         pytest.skip(f"set {MIRROR_ENV} to a git mirror of temetski/moral_agent to run this test")
     listing = subprocess.run(
@@ -65,16 +64,24 @@ def test_every_published_cache_fits_the_opcode_budget_with_room():
         text=True,
         check=True,
     ).stdout.split()
-    counts = {}
+    caches = {}
     for name in (n for n in listing if n.endswith("_llm_cache.pickle")):
         blob = subprocess.run(
             ["git", f"--git-dir={MIRROR}", "cat-file", "blob", f"HEAD:{name}"],
             capture_output=True,
             check=False,
         )
-        if blob.returncode == 0:  # a mirror may lack its largest files
-            counts[name] = scan_pickle(blob.stdout).opcodes
-    assert counts, "no LLM cache in the mirror"
+        if blob.returncode == 0:
+            caches[name] = blob.stdout
+    assert caches, "no LLM cache in the mirror"
+    return caches
+
+
+def test_every_published_cache_fits_the_opcode_budget_with_room():
+    """The budget (MAX_OPCODES) is 2.3 times the most opcodes of a published cache."""
+    from amuled_ma.authors.unpickle import MAX_OPCODES, scan_pickle
+
+    counts = {name: scan_pickle(data).opcodes for name, data in published_caches().items()}
     assert max(counts.values()) == 896_093, counts  # the figure docs/authors.md gives
     assert max(counts.values()) * 2 < MAX_OPCODES
 
@@ -84,27 +91,10 @@ def test_every_published_cache_fits_the_key_work_budget_with_room():
     from amuled_ma.authors import pickle_reader
     from amuled_ma.authors.pickle_reader import MAX_KEY_WORK, BoundedReader
 
-    if MIRROR is None or not (MIRROR / "HEAD").is_file() or shutil.which("git") is None:
-        pytest.skip(f"set {MIRROR_ENV} to a git mirror of temetski/moral_agent to run this test")
-    listing = subprocess.run(
-        ["git", f"--git-dir={MIRROR}", "ls-tree", "-r", "--name-only", "HEAD"],
-        capture_output=True,
-        text=True,
-        check=True,
-    ).stdout.split()
     spent = {}
-    for name in (n for n in listing if n.endswith("_llm_cache.pickle")):
-        blob = subprocess.run(
-            ["git", f"--git-dir={MIRROR}", "cat-file", "blob", f"HEAD:{name}"],
-            capture_output=True,
-            check=False,
-        )
-        if blob.returncode != 0:  # a mirror may lack its largest files
-            continue
-        data = blob.stdout
+    for name, data in published_caches().items():
         reader = BoundedReader(data, max_array_bytes=len(data), max_memory=None)
         reader.read()
         spent[name] = MAX_KEY_WORK - reader.key_work.left
-    assert spent, "no LLM cache in the mirror"
     assert max(spent.values()) == 147_488, spent  # the figure pickle_reader gives
     assert max(spent.values()) * 7 < pickle_reader.MAX_KEY_WORK
