@@ -77,6 +77,8 @@ class Feedback(ABC):
         #: The same, counted once per distinct state asked (not per step).
         self.agent_statuses_unique: Counter[tuple[str, str]] = Counter()
         self._weight_sum: dict[str, float] = {}
+        #: agent -> [sum of its beliefs' entropy shares, rewarded steps it answered]
+        self._entropy_sum: dict[str, list[float]] = {}
         self._conflict_sum = 0.0
         self._diag_count = 0
         # memo keys whose belief a distilled model gave; stale ones are answered again
@@ -182,11 +184,17 @@ class Feedback(ABC):
 
     def _account(self, prepared: tuple) -> None:
         """Add one row's diagnostics (as `_prepare` returns them) to the totals."""
-        pairs, weights, conflict = prepared
+        pairs, weights, conflict, entropies = prepared
         statuses, agent_statuses = self.statuses, self.agent_statuses
         for pair in pairs:
             agent_statuses[pair] += 1
             statuses[pair[1]] += 1
+        if entropies:
+            entropy_sum = self._entropy_sum
+            for name, share in entropies:
+                cell = entropy_sum.setdefault(name, [0.0, 0])
+                cell[0] += share
+                cell[1] += 1
         if weights:
             weight_sum = self._weight_sum
             for name, value in weights:
@@ -288,7 +296,10 @@ class Feedback(ABC):
 
         Returns:
             ``feedback`` (variant), ``steps``, ``unique_states``, ``mean_weight`` and
-            ``mean_conflict`` (fusion), ``statuses`` (all agents, per step),
+            ``mean_conflict`` (fusion), ``mean_entropy_share`` (per agent, over the rewarded
+            steps it answered: the Shannon entropy of its belief / log2 of the action
+            count, 1 for a uniform belief; empty when the feedback reports no beliefs per
+            agent), ``statuses`` (all agents, per step),
             ``miss_rate`` (replay misses / beliefs), ``failure_rate`` (beliefs that were
             not answers / beliefs), ``agents`` (`agent_report` per step),
             ``agents_per_state`` (per distinct state) and, for a distilled feedback,
@@ -303,6 +314,7 @@ class Feedback(ABC):
             "unique_states": len(self._memo),
             "mean_weight": {k: v / n for k, v in self._weight_sum.items()},
             "mean_conflict": self._conflict_sum / n if self._diag_count else None,
+            "mean_entropy_share": {k: v[0] / v[1] for k, v in self._entropy_sum.items()},
             "statuses": dict(self.statuses),
             "miss_rate": (self.statuses.get("replay_miss", 0) / total) if total else 0.0,
             "failure_rate": self.failure_rate(),
@@ -323,7 +335,9 @@ class Feedback(ABC):
 
 
 def _prepare(diag: dict[str, Any], default_agent: str = "feedback") -> tuple:
-    """Return ``(((agent, status), ...), ((cluster, weight), ...) or None, conflict)``.
+    """Return ``(((agent, status), ...), ((cluster, weight), ...) or None, conflict, entropies)``.
+
+    ``entropies`` is ``((agent, entropy share), ...)`` from ``diag["entropy_share"]``, or None.
 
     The agents are ``diag["agents"]`` (one name per status), else the weights' names when
     they match the statuses one to one, else ``default_agent`` (the variant's name).
@@ -337,7 +351,9 @@ def _prepare(diag: dict[str, Any], default_agent: str = "feedback") -> tuple:
     agents = tuple(diag.get("agents") or (weights or {}))
     if len(agents) != len(statuses):
         agents = (default_agent,) * len(statuses)
-    return tuple(zip(agents, statuses, strict=True)), pairs, conflict
+    shares = diag.get("entropy_share")
+    entropies = tuple((name, float(v)) for name, v in shares.items()) if shares else None
+    return tuple(zip(agents, statuses, strict=True)), pairs, conflict, entropies
 
 
 class CallableFeedback(Feedback):

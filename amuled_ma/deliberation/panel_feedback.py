@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from amuled_ma.deliberation.feedback_base import Feedback
+from amuled_ma.deliberation.feedback_base import ANSWERED, Feedback
 from amuled_ma.deliberation.summaries import describe_identity, llm_server_stats, store_stats
 from amuled_ma.errors import ScenarioError
 
@@ -79,6 +79,12 @@ class PanelFeedback(Feedback):
         weights = getattr(out, "weights", None)
         conflict = getattr(out, "conflict", None)
         statuses = getattr(out, "statuses", None)
+        beliefs = getattr(out, "beliefs", None)
+        shares = None
+        if beliefs is not None and statuses is not None:
+            per_agent = np.asarray(beliefs, dtype=np.float64)
+            if per_agent.ndim == 3 and per_agent.shape[:2] == (len(obs), len(clusters)):
+                shares = entropy_shares(per_agent)
         for i in range(len(obs)):
             diag: dict[str, Any] = {}
             if weights is not None:
@@ -94,6 +100,12 @@ class PanelFeedback(Feedback):
                 )
                 if len(clusters) == len(diag["statuses"]):
                     diag["agents"] = tuple(clusters)
+                    if shares is not None:
+                        diag["entropy_share"] = {
+                            name: float(shares[i, j])
+                            for j, name in enumerate(clusters)
+                            if diag["statuses"][j] in ANSWERED
+                        }
             if self.miss_zero and _all_missed(diag.get("statuses", ())):
                 results.append((np.zeros_like(fused[i]), diag))
                 continue
@@ -131,6 +143,24 @@ class PanelFeedback(Feedback):
             closer = getattr(obj, "close", None)
             if callable(closer):
                 closer()
+
+
+def entropy_shares(beliefs: np.ndarray) -> np.ndarray:
+    """Each belief's Shannon entropy as a share of the largest possible.
+
+    Over singletons Deng entropy (Xiao's information volume) is Shannon entropy, so this is
+    what the fusion weighs: 1 for a uniform belief, 0 for one action alone.
+
+    Args:
+        beliefs: ``(..., A)`` probabilities, ``A >= 2``.
+
+    Returns:
+        ``(...)``: ``-sum_a p_a log2 p_a / log2 A`` (terms with ``p_a = 0`` count 0).
+
+    """
+    p = np.clip(np.asarray(beliefs, dtype=np.float64), 0.0, None)
+    logs = np.log2(p, out=np.zeros_like(p), where=p > 0)
+    return -(p * logs).sum(axis=-1) / np.log2(p.shape[-1])
 
 
 def _all_missed(statuses: Sequence[str]) -> bool:

@@ -171,7 +171,6 @@ def merge_feedback(summaries: list[dict[str, Any]]) -> dict[str, Any]:
     for s in summaries:
         for key, count in (s.get("statuses") or {}).items():
             statuses[key] = statuses.get(key, 0) + count
-    clusters = sorted({c for s in summaries for c in (s.get("mean_weight") or {})})
     conflicts = [s["mean_conflict"] for s in summaries if s.get("mean_conflict") is not None]
     total = sum(statuses.values())
     servers = [s["llm_servers"] for s in summaries if s.get("llm_servers")]
@@ -189,14 +188,8 @@ def merge_feedback(summaries: list[dict[str, Any]]) -> dict[str, Any]:
         "replicas": len(summaries),
         "steps": sum(s.get("steps", 0) for s in summaries),
         "unique_states": float(np.mean([s.get("unique_states", 0) for s in summaries])),
-        "mean_weight": {
-            c: float(
-                np.mean(
-                    [s["mean_weight"][c] for s in summaries if c in (s.get("mean_weight") or {})]
-                )
-            )
-            for c in clusters
-        },
+        "mean_weight": _mean_per_agent(summaries, "mean_weight"),
+        "mean_entropy_share": _mean_per_agent(summaries, "mean_entropy_share"),
         "mean_conflict": float(np.mean(conflicts)) if conflicts else None,
         "statuses": statuses,
         "miss_rate": statuses.get("replay_miss", 0) / total if total else 0.0,
@@ -204,6 +197,14 @@ def merge_feedback(summaries: list[dict[str, Any]]) -> dict[str, Any]:
         "agents": _sum_agents([s.get("agents") or {} for s in summaries]),
         "agents_per_state": _sum_agents([s.get("agents_per_state") or {} for s in summaries]),
         **extra,
+    }
+
+
+def _mean_per_agent(summaries: list[dict[str, Any]], key: str) -> dict[str, float]:
+    """Per agent, the mean of ``summary[key][agent]`` over the replicas that have it."""
+    agents = sorted({a for s in summaries for a in (s.get(key) or {})})
+    return {
+        a: float(np.mean([s[key][a] for s in summaries if a in (s.get(key) or {})])) for a in agents
     }
 
 

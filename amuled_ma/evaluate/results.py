@@ -83,6 +83,7 @@ class FeedbackSummary(BaseModel):
     steps: int | None = None
     unique_states: int | float | None = None
     mean_weight: dict[str, float] = {}
+    mean_entropy_share: dict[str, float] = {}
     mean_conflict: float | None = None
     statuses: dict[str, int] = {}
     miss_rate: float = 0.0
