@@ -1,15 +1,23 @@
 """``terminal``: a person at the terminal gives a panel member's beliefs.
 
-For each request the source shows the state (the last message of the request's chat:
-the task's state prompt and the agent's instruction, or the observation when the
-request carries no chat) and the task's actions, then reads **one line** from its input
-stream (``sys.stdin`` by default):
+For each request the source shows ``state k of n`` (``k`` counts the states this person
+was asked in this process; ``n`` is `TerminalSource.expected`, the questions a budget
+allows, when the builder knows it; else how many more states the batch holds), the state
+as a picture
+(`amuled_ma.tasks.pictures.state_picture`: FindMilk's grid, Driving's lanes; a task without
+one: the last message of the request's chat, or the observation when the request carries
+no chat) and the task's actions, then reads **one line** from its input stream
+(``sys.stdin`` by default):
 
 - ``0.7 0.1 0.1 0.1`` (spaces or commas between the numbers): one non-negative number
   per action, divided by their sum (``1 1 0 0`` is ``[0.5, 0.5, 0, 0]``);
 - ``2``: one action index alone, a one-hot belief on that action;
+- ``up`` (or ``Up``, ``u``): one action by name, any case, or by the start of its name
+  when no other action starts alike; a one-hot belief on that action;
 - ``skip``: no answer for this state (status ``"abstained"``, reason in
-  ``extra["error"]``; the panel leaves the agent out of that state's fusion).
+  ``extra["error"]``; the panel leaves the agent out of that state's fusion);
+- ``prompt``: show the full prompt (the last message of the chat: the task's state prompt
+  and the agent's instruction), then ask again; not counted as an attempt.
 
 Anything else (a wrong count, a negative or non-finite number, an index out of range, an
 empty line, bytes that are not UTF-8 text, which the belief store could not hold) is
@@ -43,9 +51,12 @@ from amuled_ma.beliefs.parsing import uniform
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.beliefs.validate import check_belief
 from amuled_ma.errors import ScenarioError
+from amuled_ma.tasks.pictures import state_picture
 
 #: The answer that abstains on purpose.
 SKIP = "skip"
+#: The answer that shows the full prompt and asks again.
+PROMPT = "prompt"
 #: Most answer lines read per state (``attempts`` may not exceed it).
 MAX_ATTEMPTS = 100
 #: Longest answer line read (characters); a longer line is refused.
@@ -89,12 +100,40 @@ def _cut(token: str) -> str:
     return repr(token) if len(token) <= 40 else f"{token[:40]!r}... ({len(token):,} characters)"
 
 
-def parse_answer(line: str, n_actions: int) -> tuple[np.ndarray | None, str | None]:
+def action_by_name(text: str, action_names: Sequence[str]) -> tuple[int | None, list[str]]:
+    """The action a typed name stands for: its whole name or the start of one, any case.
+
+    Args:
+        text: The typed text (surrounding whitespace ignored).
+        action_names: The task's actions, index = action id.
+
+    Returns:
+        ``(index, [])`` for one action (a whole name wins over a longer name it starts);
+        ``(None, names)`` with the actions it starts when more than one; ``(None, [])``
+        when it names none.
+
+    """
+    typed = text.strip().casefold()
+    if not typed:
+        return None, []
+    names = [name.casefold() for name in action_names]
+    if typed in names:
+        return names.index(typed), []
+    starts = [i for i, name in enumerate(names) if name.startswith(typed)]
+    if len(starts) == 1:
+        return starts[0], []
+    return None, [action_names[i] for i in starts]
+
+
+def parse_answer(
+    line: str, n_actions: int, action_names: Sequence[str] = ()
+) -> tuple[np.ndarray | None, str | None]:
     """Read one typed answer.
 
     Args:
         line: The line as typed (surrounding whitespace ignored).
         n_actions: The task's action count.
+        action_names: The task's action names (empty: an action is given by index only).
 
     Returns:
         ``(belief, None)`` for a belief, ``(None, None)`` for ``skip``, or
@@ -105,15 +144,24 @@ def parse_answer(line: str, n_actions: int) -> tuple[np.ndarray | None, str | No
     text = line.strip()
     if text.lower() == SKIP:
         return None, None
+    by_name = f", an action name ({', '.join(action_names)})" if action_names else ""
     expected = (
         f"expected {n_actions} non-negative numbers (one per action, e.g. "
         f"{' '.join(['0.25'] * n_actions) if n_actions <= 8 else '0.5 0.5 0 ...'}), "
-        f"an action index 0..{n_actions - 1}, or {SKIP}"
+        f"an action index 0..{n_actions - 1}{by_name}, or {SKIP}"
     )
     if not text:
         return None, f"found an empty line; {expected}"
     if len(text) > MAX_LINE_CHARS:
         return None, f"found a line of {len(text)} characters; {expected}"
+    if action_names and any(c.isalpha() for c in text):
+        index, alike = action_by_name(text, action_names)
+        if index is not None:
+            belief = np.zeros(n_actions)
+            belief[index] = 1.0
+            return belief, None
+        if alike:
+            return None, f"found {_cut(text)}, the start of {' and '.join(alike)}; {expected}"
     tokens = [t for t in _SPLIT.split(text) if t]
     if len(tokens) == 1 and re.fullmatch(r"[+-]?\d+", tokens[0]):
         if len(tokens[0]) > MAX_INDEX_DIGITS:  # int() of thousands of digits raises
@@ -187,6 +235,9 @@ class TerminalSource(BeliefSource):
         self._stdout = stdout
         #: Set once the input stream has ended; every later request abstains unread.
         self.eof = False
+        #: The states this person will be asked in all (the ``n`` of "state k of n"), set
+        #: by whoever knows it (a budget of states); None: not known ahead.
+        self.expected: int | None = None
         #: Counters: ``asked`` states shown, ``answered``, ``skipped``, ``invalid`` lines
         #: refused, ``gave_up`` states abstained after ``attempts`` invalid lines,
         #: ``eof`` states abstained because the input had ended.
@@ -219,8 +270,8 @@ class TerminalSource(BeliefSource):
         groups: dict[BeliefRequest, list[int]] = {}
         for i, request in enumerate(requests):
             groups.setdefault(request, []).append(i)
-        for number, (request, indices) in enumerate(groups.items(), start=1):
-            result = self._ask(request, number, len(groups))
+        for position, (request, indices) in enumerate(groups.items(), start=1):
+            result = self._ask(request, len(groups) - position)
             for j, index in enumerate(indices):
                 yield index, result if j == 0 else result.copy()
 
@@ -247,23 +298,32 @@ class TerminalSource(BeliefSource):
             return None
         return line if line else None
 
-    def _show(self, request: BeliefRequest, number: int, total: int) -> None:
+    def _show(self, request: BeliefRequest, left: int) -> None:
+        number, total = self.stats["asked"], self.expected
+        if total is not None and number <= total:
+            of = f" of {total}"
+        else:  # the total is not known ahead: what this batch still holds
+            of = f" ({left} more now)" if left else ""
         lines = [
             "",
             f"== {self.person}: agent {request.cluster!r}, task {request.task!r}, "
-            f"state {number} of {total} ==",
+            f"state {number}{of} ==",
         ]
-        if request.messages:
+        picture = state_picture(request.task, request.obs)
+        if picture is not None:
+            lines.append(picture)
+        elif request.messages:
             lines.append(request.messages[-1][1].rstrip())
         else:
             lines.append(f"observation: {', '.join(f'{x:g}' for x in request.obs)}")
         lines.append(
             "actions: " + " | ".join(f"{i}: {name}" for i, name in enumerate(request.action_names))
         )
+        full = f", or {PROMPT} to see the full prompt" if request.messages else ""
         lines.append(
             f"answer with {request.num_actions} probabilities (e.g. "
             f"{' '.join(['0.25'] * request.num_actions) if request.num_actions <= 8 else '...'}"
-            f"), an action index, or {SKIP}"
+            f"), an action index or name, or {SKIP}{full}"
         )
         self._write("\n".join(lines) + "\n")
 
@@ -279,16 +339,17 @@ class TerminalSource(BeliefSource):
             extra={"error": reason, "person": self.person},
         )
 
-    def _ask(self, request: BeliefRequest, number: int, total: int) -> BeliefResult:
+    def _ask(self, request: BeliefRequest, left: int) -> BeliefResult:
         start = time.perf_counter()
         n = request.num_actions
         if self.eof:
             self.stats["eof"] += 1
             return self._abstain(request, self._eof_reason(), None, start)
         self.stats["asked"] += 1
-        self._show(request, number, total)
+        self._show(request, left)
         last = None
-        for attempt in range(1, self.attempts + 1):
+        attempt = 0
+        while attempt < self.attempts:
             self._write("belief> ")
             line = self._read()
             if line is None:
@@ -297,7 +358,11 @@ class TerminalSource(BeliefSource):
                 self._write("\n(end of input: no answer)\n")
                 return self._abstain(request, self._eof_reason(), last, start)
             last = line.rstrip("\r\n")
-            belief, reason = parse_answer(last, n)
+            if last.strip().lower() == PROMPT:  # shown, then asked again: not an attempt
+                self._write(self._prompt_text(request) + "\n")
+                continue
+            attempt += 1
+            belief, reason = parse_answer(last, n, request.action_names)
             if line.startswith(_UNDECODABLE_MARK) or not _storable(last):
                 # bytes that are not UTF-8 (read as lone surrogates, or refused by the
                 # decoder): the store could not hold the line, so it is not an answer
@@ -326,6 +391,13 @@ class TerminalSource(BeliefSource):
             last,
             start,
         )
+
+    @staticmethod
+    def _prompt_text(request: BeliefRequest) -> str:
+        """The full prompt of a request (its chat's last message), or why there is none."""
+        if request.messages:
+            return request.messages[-1][1].rstrip()
+        return f"(no prompt: the panel sent the observation only, {list(request.obs)})"
 
     def _eof_reason(self) -> str:
         return (

@@ -460,6 +460,7 @@ def _build(
         except BaseException:
             source.close()
             raise
+        _count_questions(source, plan)
     panel = MoralPanel(
         plan.task,
         list(plan.clusters),
@@ -471,6 +472,32 @@ def _build(
     feedback = PanelFeedback(plan.variant, panel, source, miss_zero=plan.miss_zero)
     feedback.max_abstention = plan.max_abstention
     return feedback
+
+
+def _count_questions(distilled: Any, plan: PanelPlan) -> None:
+    """Tell each person at the terminal how many states they will be asked.
+
+    On an integer budget (``[feedback.distill].budget``: that many distinct states), a
+    person answering for ``m`` agents is asked ``(budget - states already asked) x m``
+    questions; a budget given as a share of the states visited has no total ahead.
+    """
+    from amuled_ma.beliefs.terminal import TerminalSource
+
+    budget = plan.distill.budget
+    if isinstance(budget, bool) or not isinstance(budget, int):
+        return
+    states = max(0, budget - distilled.ledger.asked_count)
+    panel = distilled.source
+    served: dict[int, tuple[TerminalSource, int]] = {}
+    for cluster in plan.clusters:
+        member = panel.source_for(cluster.name) if isinstance(panel, RoutedSource) else panel
+        if isinstance(member, CachedSource):
+            member = member.source
+        if isinstance(member, TerminalSource):
+            count = served.get(id(member), (member, 0))[1]
+            served[id(member)] = (member, count + 1)
+    for person, agents in served.values():
+        person.expected = states * agents
 
 
 def open_run_store(scenario: Scenario, run_dir: Path | None = None) -> Any:

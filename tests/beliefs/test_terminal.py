@@ -71,7 +71,7 @@ def test_answers_typed_on_a_real_stdin():
     ]
     # the person saw each state prompt, the actions and the prompt line (on stderr)
     assert done.stderr.count("The robot is at (1, 2); a baby cries at (2, 2).") == 2
-    assert "state 1 of 2" in done.stderr and "state 2 of 2" in done.stderr
+    assert "state 1 (1 more now) ==" in done.stderr and "state 2 ==" in done.stderr
     assert "actions: 0: up | 1: down | 2: left | 3: right" in done.stderr
     assert done.stderr.count("belief> ") == 2
 
