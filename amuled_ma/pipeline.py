@@ -206,6 +206,7 @@ def run_pipeline(
     from amuled_ma.experiments.plans import check_jobs  # here: it imports torch
 
     actions = check_jobs(plan.jobs, request.hint)  # before the lock: a refused run makes no folder
+    say_live_costs(plan.jobs, say)
     # after the checks: a refused run answers before torch and matplotlib are imported
     from amuled_ma.evaluate.evaluator import evaluate_run, variant_dirs
     from amuled_ma.evaluate.report import evaluation_outputs, write_report
@@ -245,6 +246,27 @@ def run_pipeline(
         report=report,
         wall_s=time.perf_counter() - start,
     )
+
+
+def say_live_costs(jobs: Sequence[TrainJob], say: Callable[[str], None]) -> None:
+    """Print each live model's cost per request here, and in all, once per distinct line.
+
+    The lines of `amuled_ma.deliberation.build.live_costs` for every fine-tune (the
+    store's recorded times, or one request timed now).
+    """
+    from amuled_ma.deliberation.build import live_costs
+
+    said: set[str] = set()
+    for job in jobs:
+        if job.variant.feedback is None or not job.variant.finetuning:
+            continue
+        lines = live_costs(
+            job.scenario, job.variant.feedback, job.run_dir, lambda text: say(f"  {text}")
+        )
+        for line in lines:
+            if line not in said:
+                said.add(line)
+                say(f"  {line}")
 
 
 def _replayed(jobs: Sequence[TrainJob]) -> list[str]:
@@ -324,6 +346,7 @@ def train_alone(
         base_dir=base_dir,
     )
     actions = check_jobs([job], request.hint)  # before the lock: a refused job makes no folder
+    say_live_costs([job], say_line)
     with run_folder_lock(run_dir):
         if config is not None:
             write_config(run_dir, request.scenario, config)

@@ -19,7 +19,8 @@ from __future__ import annotations
 import contextlib
 import functools
 import json
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -94,6 +95,172 @@ def request_cost(store: Path | None, model: str) -> RequestCost:
     return RequestCost(
         TINY_SECONDS_PER_REQUEST, "the docs' figure for the tiny model, not measured here"
     )
+
+
+#: A cached probe per (model, options): one per process, however many jobs plan the model.
+_PROBED: dict[str, RequestCost] = {}
+
+
+def probe_cost(source: Any, plan: PanelPlan, agent: str) -> RequestCost:
+    """Time one live request to ``source`` on this machine, after one warm-up request.
+
+    The warm-up (the task's first state) loads the model and fills the server's prompt
+    cache with the chat's shared prefix (system prompt, few-shot examples), as the first
+    requests of a run do; the timed request asks about the next state, as every later
+    request of a run does. Nothing is written to the belief store.
+
+    Args:
+        source: The member's source, built and checked (its ``beliefs``).
+        plan: The panel plan (task, seed, cluster registry).
+        agent: The agent whose chat is sent.
+
+    Returns:
+        The timed request's wall seconds, basis ``"measured here: 1 request timed after a
+        warm-up"``; a request that fails gives the docs' figure, basis ``"not measured: the
+        probe failed (...)"``.
+
+    """
+    import torch
+
+    from amuled_ma.beliefs.types import BeliefRequest
+    from amuled_ma.clusters import build_messages
+    from amuled_ma.deliberation.panel import MoralPanel
+    from amuled_ma.tasks import make_batched
+
+    cluster = next(c for c in plan.clusters if c.name == agent)
+    panel = MoralPanel(
+        plan.task,
+        [cluster],
+        source,
+        plan.rule,
+        build_messages=functools.partial(build_messages, registry=plan.registry),
+    )
+    task = make_batched(plan.task, 1, seed=plan.seed)
+    task.reset()
+    states = [(task.obs[0].tolist(), task.prompt_variables([0])[0])]
+    for action in range(panel.num_actions):  # the first action that changes the state
+        task.step(torch.tensor([action]))
+        if task.obs[0].tolist() != states[0][0]:
+            break
+    states.append((task.obs[0].tolist(), task.prompt_variables([0])[0]))
+    requests = [
+        BeliefRequest(
+            plan.task,
+            agent,
+            tuple(float(x) for x in obs),
+            panel.action_names,
+            panel.messages(0, panel.state_prompt(variables)),
+        )
+        for obs, variables in states
+    ]
+    seconds = 0.0
+    for request in requests:
+        start = time.perf_counter()
+        (result,) = source.beliefs([request])
+        seconds = time.perf_counter() - start
+        if result.status not in ("ok", "repaired"):
+            reason = (result.extra or {}).get("error") or result.status
+            return RequestCost(
+                TINY_SECONDS_PER_REQUEST,
+                f"not measured: the probe failed ({str(reason)[:80]}); the docs' figure",
+            )
+    return RequestCost(seconds, "measured here: 1 request timed after a warm-up")
+
+
+def live_cost_lines(
+    plan: PanelPlan,
+    store: Path | None,
+    members: Members,
+    say: Callable[[str], None] | None = None,
+) -> list[str]:
+    """One line per live (Ollama) member source: its cost per request here and in all.
+
+    The cost is `request_cost` (the store's recorded median for the model) when the
+    store holds enough timed requests, else `probe_cost` (cached per model and options
+    in this process).
+
+    Args:
+        plan: The panel plan.
+        store: The run's belief store file (absent: nothing recorded).
+        members: The plan's sources, built and checked (`checked_members`).
+        say: Told before a probe is sent (it takes a request's time, or a model's load).
+
+    Returns:
+        E.g. ``live feedback: social_justice asked of amuled-tiny: 4.2 s a request
+        (measured here: median of 12 recorded requests) x 12 states on the budget = ~50 s``;
+        without an integer budget the total is the cost per new state the fine-tune visits.
+
+    """
+    lines = []
+    budget = plan.distill.budget if plan.distill is not None and plan.distill.enabled else None
+    for source_id, spec in members.plans.items():
+        if spec.kind != "ollama":
+            continue
+        agents = [
+            c.name
+            for c in plan.clusters
+            if id(members.routes.get(c.name, members.default)) == source_id
+        ]
+        if not agents:
+            continue
+        source = members.routes.get(agents[0], members.default)
+        model = str(spec.options.get("model", getattr(source, "model", "")))
+        cost = request_cost(store, model)
+        if not cost.basis.startswith("measured here"):
+            if spec.key not in _PROBED:
+                if say is not None:
+                    say(
+                        f"live feedback: timing a request to {model} here (the belief store "
+                        f"holds fewer than {MIN_TIMED_REQUESTS} timed requests) ..."
+                    )
+                _PROBED[spec.key] = probe_cost(source, plan, agents[0])
+            cost = _PROBED[spec.key]
+        per = f"{cost.seconds:.1f} s a request ({cost.basis})"
+        who = f"{', '.join(agents)} asked of {model}"
+        if isinstance(budget, int) and not isinstance(budget, bool):
+            asks = budget * len(agents)
+            lines.append(
+                f"live feedback: {who}: {per} x {asks:,} requests on the budget "
+                f"({budget:,} states) = ~{asks * cost.seconds:,.0f} s"
+            )
+        else:
+            lines.append(
+                f"live feedback: {who}: {per} x {len(agents)} per new state the fine-tune "
+                "visits (no integer budget: the total is not known ahead)"
+            )
+    return lines
+
+
+def live_costs(
+    scenario: Scenario,
+    feedback: str,
+    run_dir: Path | None,
+    say: Callable[[str], None] | None = None,
+) -> list[str]:
+    """`live_cost_lines` of a fine-tune's panel; no source is built without a live member.
+
+    Args:
+        scenario: The scenario.
+        feedback: The fine-tune's feedback variant.
+        run_dir: The run folder (its belief store's recorded times are read).
+        say: See `live_cost_lines`.
+
+    Raises:
+        AmuledError: As `build_members` (the preflight has passed, so only a server
+            that went away since).
+
+    """
+    plan = plan_panel(feedback, scenario)
+    if not plan.asks_panel or plan.fused_recording is not None:
+        return []
+    specs = [*plan.routes.values(), *([plan.default] if plan.default is not None else [])]
+    if not any(spec.kind == "ollama" for spec in specs):
+        return []
+    members = build_members(plan)
+    try:
+        return live_cost_lines(plan, store_path(scenario, run_dir), members, say)
+    finally:
+        members.close()
 
 
 def options_line(missing: Sequence[str], states: int, distill: Any = None) -> str:
