@@ -81,7 +81,9 @@ def add_scenario_args(parser: argparse.ArgumentParser) -> None:
     )
     add_overrides_argument(parser)
     parser.add_argument(
-        "--no-progress", action="store_true", help="no progress bars (log-friendly output)"
+        "--no-progress",
+        action="store_true",
+        help="no progress bars: a plain progress line at least every 30 s (log-friendly)",
     )
 
 

@@ -539,8 +539,11 @@ def write_live_leg(run_dir: Path, scenario: Scenario, *, model: str, host: str) 
         f"live leg: {LIVE_STATES} states x {len(LIVE_CLUSTERS)} clusters asked of {model} "
         "(its judgement is not meaningful: it shows the live path)"
     )
+    from amuled_ma.progress import Progress
+
     try:
-        leg = live_leg(run_dir, scenario, model=model, host=host)
+        with Progress("live leg", None, bar=False, unit="batch"):  # never silent while asking
+            leg = live_leg(run_dir, scenario, model=model, host=host)
     except (AmuledError, OSError, ValueError) as error:
         _say(f"live leg failed: {error}")
         put_live_section(run_dir, [LIVE_HEADING, "", f"The live leg failed: {error}", ""])

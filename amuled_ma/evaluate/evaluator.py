@@ -24,6 +24,7 @@ from amuled_ma.evaluate.rollout import TrajectoryRecorder, rollout
 from amuled_ma.evaluate.stats import mean_ci
 from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.policies import load_policy
+from amuled_ma.progress import Progress
 from amuled_ma.records import RunRecord
 from amuled_ma.safe_files import check_write_targets, checked_read_path
 from amuled_ma.scenario import Scenario
@@ -318,8 +319,6 @@ def evaluate_run(
             episode is run.
 
     """
-    from tqdm.auto import tqdm
-
     run_dir = Path(run_dir)
     check_write_targets(run_dir / name for name in RESULTS_FILES)  # before any episode
     records = records or {}
@@ -360,14 +359,19 @@ def evaluate_run(
     feedbacks = {vdir: read_feedback(vdir) for vdir in dirs}
     jobs = [(name, vdir, m) for name, members in groups.items() for vdir in members for m in modes]
     runs: dict[tuple[str, str], list[tuple[str, list, dict]]] = {}
-    for name, vdir, mode in tqdm(
-        jobs, desc="evaluate", unit="policy", disable=not progress, leave=False
-    ):
-        actor = load_policy(vdir / LAST, scenario)
-        records_, trajectory = run_episodes(
-            actor, scenario, episodes=episodes, mode=mode, seed=ev.seed, task_factory=task_factory
-        )
-        runs.setdefault((name, mode), []).append((vdir.name, records_, trajectory))
+    with Progress("evaluate", len(jobs), bar=progress, unit="policy") as bar:
+        for name, vdir, mode in jobs:
+            actor = load_policy(vdir / LAST, scenario)
+            records_, trajectory = run_episodes(
+                actor,
+                scenario,
+                episodes=episodes,
+                mode=mode,
+                seed=ev.seed,
+                task_factory=task_factory,
+            )
+            runs.setdefault((name, mode), []).append((vdir.name, records_, trajectory))
+            bar.update(1)
     for (name, mode), replicas in runs.items():
         entry = results["variants"].setdefault(name, {})
         entry[mode] = combine_replicas(replicas, ev.confidence)

@@ -68,6 +68,7 @@ from amuled_ma.learn.population_state import (
     stack_optimizer_states,
 )
 from amuled_ma.learn.vecenv import DeliberationVecEnv
+from amuled_ma.progress import Progress
 from amuled_ma.safe_files import FileWriteError, write_text_atomic
 from amuled_ma.tasks import make_task
 from amuled_ma.tensorboard_log import TensorBoardLog
@@ -139,7 +140,8 @@ class PopulationTrainer:
         specs: The jobs (:class:`MemberSpec`), at least one.
         device: Where the networks and PPO's buffers live (``cpu`` or ``cuda``); the
             task copies stay on the CPU (:func:`~amuled_ma.tasks.make_task`).
-        progress: Show one tqdm bar for the population.
+        progress: Show one tqdm bar for the population (else plain lines past 10 s,
+            `amuled_ma.progress.Progress`).
 
     Raises:
         ValueError: No jobs, or jobs that cannot train together (another key).
@@ -435,8 +437,6 @@ class PopulationTrainer:
             the exception re-raised.
 
         """
-        from tqdm.auto import tqdm
-
         writers: list[TensorBoardLog | None] = [None] * self.size
         for p, spec in enumerate(self.specs):
             spec.out_dir.mkdir(parents=True, exist_ok=True)
@@ -445,15 +445,13 @@ class PopulationTrainer:
                 writers[p] = TensorBoardLog(spec.out_dir / "tb", flush_secs=30)
         start_it = self.runner.current_learning_iteration
         batch = self.shape.batch
-        bar = tqdm(
-            total=self.total_iterations,
-            initial=start_it,
-            desc=f"{self.specs[0].scenario.name}/"
+        bar = Progress(
+            f"{self.specs[0].scenario.name}/"
             + (f"population of {self.size}" if self.size > 1 else str(self.specs[0].variant)),
+            self.total_iterations,
+            bar=self.progress,
+            initial=start_it,
             unit="it",
-            disable=not self.progress,
-            dynamic_ncols=True,
-            leave=False,
         )
         t0 = time.perf_counter()
         walls = list(self.wall_offsets)

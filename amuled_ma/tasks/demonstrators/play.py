@@ -9,10 +9,9 @@ indices only, not on how many episodes are played side by side.
 
 from __future__ import annotations
 
-from typing import Any
-
 import torch
 
+from amuled_ma.progress import Progress
 from amuled_ma.tasks import rng
 
 __all__ = ["PairCounter", "episode_streams", "progress_bar", "sample", "task_seed", "uniforms"]
@@ -135,8 +134,6 @@ class PairCounter:
         return states, counts
 
 
-def progress_bar(total: int, desc: str, enabled: bool) -> Any:
-    """Return a tqdm bar of ``total`` episodes (disabled unless ``enabled``), a context manager."""
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, desc=desc, unit="episode", disable=not enabled, leave=False)
+def progress_bar(total: int, desc: str, enabled: bool) -> Progress:
+    """The progress of ``total`` episodes: a bar when ``enabled``, else plain lines past 10 s."""
+    return Progress(desc, total, bar=enabled, unit="episode")
