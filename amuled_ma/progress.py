@@ -5,15 +5,17 @@ writes a plain line, ``<phase>: <done>/<total> <unit>, <elapsed> elapsed, ETA <l
 once the phase has run `FIRST_LINE_S` and then at least every `PLAIN_EVERY_S`. A watcher
 thread keeps both alive while one step takes long (a fine-tune's iteration waiting on a
 live model, a person at the terminal): the bar's elapsed time is redrawn every
-`BAR_REFRESH_S`, and the plain line is written on time even when no step has finished.
+`BAR_REFRESH_S`, and the plain line is written on time even when no step has finished;
+both keep still while `held` (a question at the terminal).
 """
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from types import TracebackType
 from typing import IO
 
@@ -23,6 +25,26 @@ FIRST_LINE_S = 10.0
 PLAIN_EVERY_S = 30.0
 #: Seconds between two redraws of a bar while no step finishes.
 BAR_REFRESH_S = 1.0
+
+
+_held = 0
+_held_lock = threading.Lock()
+
+
+@contextlib.contextmanager
+def held() -> Iterator[None]:
+    """Keep every bar and plain line still meanwhile (a person reads and types a question).
+
+    The time held counts as elapsed; the next line is due `PLAIN_EVERY_S` after the last.
+    """
+    global _held
+    with _held_lock:
+        _held += 1
+    try:
+        yield
+    finally:
+        with _held_lock:
+            _held -= 1
 
 
 def duration(seconds: float) -> str:
@@ -109,7 +131,7 @@ class Progress:
 
     def check(self) -> bool:
         """Write the plain line if it is due (the watcher calls this); True when written."""
-        if self._bar is not None:
+        if self._bar is not None or _held:
             return False
         with self._lock:
             now = self._clock()
@@ -147,8 +169,9 @@ class Progress:
         wait = BAR_REFRESH_S if self._bar is not None else plain
         while not self._stop.wait(wait):
             if self._bar is not None:
-                with self._lock:
-                    self._bar.refresh()
+                if not _held:
+                    with self._lock:
+                        self._bar.refresh()
             else:
                 self.check()
 

@@ -60,6 +60,18 @@ def test_the_watcher_writes_while_one_step_takes_long() -> None:
     assert out.getvalue().splitlines() == lines
 
 
+def test_held_keeps_the_lines_still_while_a_person_is_asked() -> None:
+    from amuled_ma.progress import held
+
+    clock, out = Clock(), io.StringIO()
+    progress = Progress("findmilk/amuled", 4, bar=False, clock=clock, stream=out, watch=False)
+    clock.now += 45.0
+    with held():
+        assert progress.check() is False  # due, but the question stays readable
+    assert progress.check() is True
+    assert out.getvalue() == "findmilk/amuled: 0/4 it, 45 s elapsed, ETA after the first step\n"
+
+
 def test_durations() -> None:
     assert [duration(s) for s in (0.4, 59.4, 61, 3599, 3600 * 2 + 240)] == [
         "0 s", "59 s", "1 min 1 s", "59 min 59 s", "2 h 4 min",

@@ -51,6 +51,7 @@ from amuled_ma.beliefs.parsing import uniform
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.beliefs.validate import check_belief
 from amuled_ma.errors import ScenarioError
+from amuled_ma.progress import held
 from amuled_ma.tasks.pictures import state_picture
 
 #: The answer that abstains on purpose.
@@ -340,6 +341,10 @@ class TerminalSource(BeliefSource):
         )
 
     def _ask(self, request: BeliefRequest, left: int) -> BeliefResult:
+        with held():  # no progress line or bar redraw over the question
+            return self._question(request, left)
+
+    def _question(self, request: BeliefRequest, left: int) -> BeliefResult:
         start = time.perf_counter()
         n = request.num_actions
         if self.eof:
