@@ -187,7 +187,8 @@ def live_cost_lines(
 
     Returns:
         E.g. ``live feedback: social_justice asked of amuled-tiny: 4.2 s a request
-        (measured here: median of 12 recorded requests) x 12 states on the budget = ~50 s``;
+        (measured here: median of 12 recorded requests) x 12 requests on the budget (12
+        states) = ~50 s`` (requests one at a time);
         without an integer budget the total is the cost per new state the fine-tune visits.
 
     """
