@@ -65,4 +65,9 @@ def test_shipped_mixed_panel_finishes_with_the_budget_of_answers(
     assert all(r.status == "ok" and r.belief.tolist() == [0.0, 1.0, 0.0, 0.0] for r in person)
     assert (run_dir / "finetune-mixed-panel" / "model_last.pt").is_file()
     assert f"asked {len(person)} of" in done.stdout  # the output states the answers asked
+    # each question says where the person is in the budget's questions, with the state's grid
+    questions = [line for line in done.stderr.splitlines() if line.startswith("== human: ")]
+    assert len(questions) == len(person)
+    assert all(q.endswith(f"state {k} of {budget} ==") for k, q in enumerate(questions, 1))
+    assert "      0 1 2 3 4 5 6 7  = x" in done.stderr
     print(f"mixed panel: {len(person)} answers, fine-tune in {seconds:.0f} s")
