@@ -12,6 +12,7 @@ both keep still while `held` (a question at the terminal).
 from __future__ import annotations
 
 import contextlib
+import re
 import sys
 import threading
 import time
@@ -19,6 +20,8 @@ from collections.abc import Callable, Iterator
 from types import TracebackType
 from typing import IO
 
+#: A plain progress line, as `Progress.line` writes it (tools that read stderr skip these).
+PLAIN_LINE = re.compile(r"^.+: [\d,]+/(?:[\d,]+|\?) \S+, .+ elapsed, ETA .+$")
 #: Seconds a phase runs before its first plain line (a shorter phase prints none).
 FIRST_LINE_S = 10.0
 #: Longest silence between two plain lines [s].

@@ -17,6 +17,7 @@ import pytest
 import torch
 
 from amuled_ma.cli import main
+from amuled_ma.progress import PLAIN_LINE
 
 AMULED = [sys.executable, "-m", "amuled_ma"]
 ENV = {**os.environ, "GIT_PYTHON_REFRESH": "quiet"}
@@ -57,7 +58,7 @@ def _one_line_error(done: subprocess.CompletedProcess, *needles: str) -> str:
     err = done.stderr
     assert done.returncode not in (0, None), (done.stdout, err)
     assert "Traceback" not in err, err
-    lines = err.splitlines()
+    lines = [line for line in err.splitlines() if not PLAIN_LINE.match(line)]  # progress aside
     assert len(lines) == 1 and lines[0].startswith("amuled: error: "), err
     for needle in needles:
         assert needle in err, (needle, err)

@@ -72,6 +72,16 @@ def test_held_keeps_the_lines_still_while_a_person_is_asked() -> None:
     assert out.getvalue() == "findmilk/amuled: 0/4 it, 45 s elapsed, ETA after the first step\n"
 
 
+def test_plain_line_pattern_matches_the_lines_and_not_an_error() -> None:
+    from amuled_ma.progress import PLAIN_LINE
+
+    clock = Clock()
+    progress = Progress("findmilk/amuled", 20, bar=False, clock=clock, watch=False)
+    assert PLAIN_LINE.match(progress.line())
+    assert PLAIN_LINE.match("evaluate: 1,204/2,000 policy, 2 h 4 min elapsed, ETA 3 min 0 s")
+    assert not PLAIN_LINE.match("amuled: error: scenario.toml: [finetune] iterations: 0")
+
+
 def test_durations() -> None:
     assert [duration(s) for s in (0.4, 59.4, 61, 3599, 3600 * 2 + 240)] == [
         "0 s", "59 s", "1 min 1 s", "59 min 59 s", "2 h 4 min",

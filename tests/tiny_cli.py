@@ -11,6 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from amuled_ma.progress import PLAIN_LINE
+
 TINY = [
     "--set", "base.total_steps=1024",
     "--set", "base.num_envs=16",
@@ -43,8 +45,8 @@ def amuled(*args: str, cwd: Path = REPO, timeout: float = 300) -> subprocess.Com
 
 
 def one_line(err: str) -> str:
-    """The one ``amuled: error:`` line of stderr (and no traceback)."""
+    """The one ``amuled: error:`` line of stderr (and no traceback; progress lines aside)."""
     assert "Traceback" not in err, err
-    lines = [line for line in err.splitlines() if line.strip()]
+    lines = [line for line in err.splitlines() if line.strip() and not PLAIN_LINE.match(line)]
     assert len(lines) == 1 and lines[0].startswith("amuled: error: "), err
     return lines[0]
