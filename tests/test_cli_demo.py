@@ -214,6 +214,6 @@ def test_demo_without_the_authors_base_offline_says_so_and_goes_on_from_its_own(
     said = next(line for line in err.splitlines() if "authors' published one" in line)
     assert said.startswith("[demo] the fine-tunes start from this run's own base")
     assert "published findmilk base policy is not in runs/authors/findmilk/base" in said
-    assert "run without it to fetch 0.0 MB" in said
+    assert "run without it to fetch 43 kB" in said  # 42,882 bytes
     assert "'amuled import authors PATH --only policies'" in said
     assert not (tmp_path / "demo").exists() and not (tmp_path / "runs").exists()

@@ -81,7 +81,8 @@ def cache_folder() -> Path:
 
 
 def _mb(size: int) -> str:
-    return f"{size / 1e6:.1f} MB"
+    """A size for a message: MB from 1 MB (one decimal), else kB."""
+    return f"{size / 1e6:.1f} MB" if size >= 1e6 else f"{size / 1e3:.0f} kB"
 
 
 def pinned_recording(value: str, pinned: Sequence[PinnedFile] = PINNED) -> PinnedFile | None:

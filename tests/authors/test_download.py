@@ -125,7 +125,8 @@ def test_fetched_once_checked_then_converted_as_the_import_does(
     target = user_recordings_dir() / f"{NAME}.json"
     assert written == [target]
     assert served.asked == [f"/authors/{COMMIT}/{PATH}"]
-    assert len(lines) == 2 and lines[0].startswith("fetching 1 file(s), 0.0 MB: " + PATH)
+    assert len(lines) == 2
+    assert lines[0].startswith(f"fetching 1 file(s), {len(data) / 1e3:.0f} kB: {PATH}")
     assert f"from {base}/{COMMIT[:12]}/" in lines[0] and "under their terms" in lines[0]
     assert (cache / PATH).read_bytes() == data
     # the recording is the one the converter makes of the served cache
@@ -307,7 +308,7 @@ def test_the_authors_base_is_fetched_once_and_converted_into_the_runs_folder(
     folder = ensure_authors_base("findmilk", say=lines.append, **kwargs)
     assert folder == runs / "authors" / "findmilk" / "base"
     assert served.asked == [f"/authors/{COMMIT}/{BASE_PATH}"]
-    assert lines[0].startswith(f"fetching 1 file(s), 0.0 MB: {BASE_PATH}")
+    assert lines[0].startswith(f"fetching 1 file(s), {len(data) / 1e3:.0f} kB: {BASE_PATH}")
     assert "under their terms" in lines[0] and lines[-1] == f"converted to {folder}"
     # the converted policy acts as the served one (its actor's logits)
     scenario = authors_scenario(load_scenario("findmilk"), [64, 64])
@@ -338,6 +339,6 @@ def test_a_tampered_base_is_refused_and_offline_names_both_routes(
     with pytest.raises(AuthorsFetchError) as error:
         ensure_authors_base("findmilk", **kwargs)
     text = str(error.value)
-    assert "\n" not in text and "run without it to fetch 0.0 MB" in text
+    assert "\n" not in text and f"run without it to fetch {len(data) / 1e3:.0f} kB" in text
     assert "'amuled import authors PATH --only policies'" in text
     assert len(served.asked) == 1  # the tampered download only
