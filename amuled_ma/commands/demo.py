@@ -197,6 +197,8 @@ def demo_command(args: argparse.Namespace) -> int:
         if code == 0:
             put_summary(run_dir, scenario)
         if code == 0:  # while the server still runs
+            if warmup is not None:  # the live leg needs the prefix it evaluates: never cut it
+                warmup.join(timeout=scenario.feedback.timeout_s)
             with record_timings() as live_log:
                 write_live_leg(run_dir, scenario, model=model, host=host)
             phases.append(("live leg", live_log))
@@ -783,7 +785,11 @@ class PrefixWarmup:
         self.timing = RequestTiming.from_reply(reply, time.perf_counter() - began)
 
     def join(self, timeout: float = 5.0) -> None:
-        """Wait a little for the warm-up (it is long done when the run ends)."""
+        """Wait for the warm-up, at most ``timeout`` seconds.
+
+        The demo waits before its live leg, so the server is never stopped under a warm-up in
+        flight (a second demo, whose run is already done, reaches the live leg at once).
+        """
         self._thread.join(timeout)
 
     def describe(self) -> str:
