@@ -10,10 +10,13 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from amuled_ma.commands import _experiment as common
 from amuled_ma.errors import AmuledError
+
+if TYPE_CHECKING:
+    from amuled_ma.scenario import Scenario
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -121,7 +124,7 @@ def add_quick_arg(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def quick_scenario(scenario: Any, overrides: list[str]) -> Any:
+def quick_scenario(scenario: Scenario, overrides: list[str]) -> Scenario:
     """``scenario`` at the quick form's budget, but for the keys ``overrides`` sets.
 
     Args:
@@ -141,7 +144,7 @@ def quick_scenario(scenario: Any, overrides: list[str]) -> Any:
     return scenario
 
 
-def quick_note(scenario: Any, episodes: int) -> str:
+def quick_note(scenario: Scenario, episodes: int) -> str:
     """The quick form's warning, for the output and the report's title."""
     return (
         f"quick form: {scenario.base.total_steps:,} base env steps, "
