@@ -3,10 +3,11 @@
 **The comparison** (``scenarios/findmilk-demo.toml``): the paper's FindMilk comparison
 (base, base + shaping, "human" feedback, AMULED) with the moral clusters' beliefs
 **replayed** from the paper authors' own gpt-4o-mini recording, with their fine-tuning
-recipe (``--recipe authors``), at a demo-sized budget chosen by measuring: a base that
-reaches the milk, an AMULED fine-tune that wakes fewer sleeping babies than its base, the
-paper's row beside ours in ``report.md`` (:mod:`amuled_ma.evaluate.paper`), and the
-step-by-step viewer of the AMULED fine-tune (``view-episode0.html``, as ``amuled view``).
+recipe (``--recipe authors``), the fine-tunes starting from the authors' published base
+policy (:func:`fetch_authors_base`), at a demo-sized budget chosen by measuring (300
+fine-tuning iterations, one seed); ``report.md`` opens with every variant beside the
+paper's row (:func:`put_summary`, :mod:`amuled_ma.evaluate.paper`), and the step-by-step
+viewer of the AMULED fine-tune (``view-episode0.html``, as ``amuled view``) is written.
 The recording is found by name (``$AMULED_RECORDINGS``, the user data folder of ``amuled
 import authors``, or ``../shared/amuled-recordings`` beside the checkout); found nowhere, it
 is fetched once from the authors' repository at a pinned commit, checked and converted
@@ -88,8 +89,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=(
             "The paper's FindMilk comparison (base, base + shaping, human feedback, AMULED) "
             "with the moral clusters' beliefs replayed from the paper authors' recording and "
-            "their recipe, at a demo-sized budget; report.md puts the paper's row beside "
-            "ours; the viewer page view-episode0.html shows the AMULED fine-tune step by "
+            "their recipe, fine-tuned from their published base (fetched once) at a "
+            "demo-sized budget; report.md opens with every variant beside the paper's row; "
+            "the viewer page view-episode0.html shows the AMULED fine-tune step by "
             "step. Then a short live leg: a few requests to a local Ollama model (a private "
             "one with the tiny model unless --host/--model), whose judgement is not "
             "meaningful; it shows the live path. For a real model: ollama pull "
