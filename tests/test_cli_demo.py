@@ -217,3 +217,24 @@ def test_demo_without_the_authors_base_offline_says_so_and_goes_on_from_its_own(
     assert "run without it to fetch 43 kB" in said  # 42,882 bytes
     assert "'amuled import authors PATH --only policies'" in said
     assert not (tmp_path / "demo").exists() and not (tmp_path / "runs").exists()
+
+
+def test_a_warm_up_cut_short_by_the_servers_stop_is_said_plainly() -> None:
+    """A second demo stops its server while the warm-up is still in flight: no raw error."""
+    import socket
+
+    from amuled_ma.commands.demo import PrefixWarmup
+
+    listener = socket.create_server(("127.0.0.1", 0))  # accepts, never answers
+    host = f"http://127.0.0.1:{listener.getsockname()[1]}"
+    scenario = demo_scenario("findmilk", model=TINY_MODEL, host=host, private=True)
+    warmup = PrefixWarmup.start(host, TINY_MODEL, scenario)
+    assert warmup is not None
+    warmup.join(0.2)
+    assert warmup.running()
+    warmup.cut = warmup.running()
+    listener.close()  # as the server's stop: the request fails
+    warmup.join(5.0)
+    line = warmup.describe()
+    assert line.startswith("prefix warm-up: still running when the demo stopped its server")
+    assert "Error" not in line and warmup.error is not None  # the failure is kept, not shown

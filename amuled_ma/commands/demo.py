@@ -199,8 +199,6 @@ def demo_command(args: argparse.Namespace) -> int:
         if code == 0:
             put_summary(run_dir, scenario)
         if code == 0:  # while the server still runs
-            if warmup is not None:  # the live leg needs the prefix it evaluates: never cut it
-                warmup.join(timeout=scenario.feedback.timeout_s)
             with record_timings() as live_log:
                 write_live_leg(run_dir, scenario, model=model, host=host)
             phases.append(("live leg", live_log))
@@ -210,6 +208,7 @@ def demo_command(args: argparse.Namespace) -> int:
     finally:
         if warmup is not None:
             warmup.join()
+            warmup.cut = warmup.running()  # the server stops under it: not a failure
         if started_dir is not None:
             _say(llm_server.down(started_dir))
     if warmup is not None:
@@ -732,6 +731,8 @@ class PrefixWarmup:
     Attributes:
         timing: Ollama's account of the warm-up (None until it is done, or on failure).
         error: Why it failed, if it did.
+        cut: The demo stopped its server while the warm-up was still running (a demo whose
+            run and live answers were already there needs no prefix).
 
     """
 
@@ -741,6 +742,7 @@ class PrefixWarmup:
         self.options = options
         self.timing: RequestTiming | None = None
         self.error: str | None = None
+        self.cut = False
         self._thread = threading.Thread(target=self._run, name="amuled-warmup", daemon=True)
 
     @classmethod
@@ -787,15 +789,20 @@ class PrefixWarmup:
         self.timing = RequestTiming.from_reply(reply, time.perf_counter() - began)
 
     def join(self, timeout: float = 5.0) -> None:
-        """Wait for the warm-up, at most ``timeout`` seconds.
-
-        The demo waits before its live leg, so the server is never stopped under a warm-up in
-        flight (a second demo, whose run is already done, reaches the live leg at once).
-        """
+        """Wait a little for the warm-up (it is long done when a run trained)."""
         self._thread.join(timeout)
+
+    def running(self) -> bool:
+        """Whether the warm-up's request is still in flight."""
+        return self._thread.is_alive()
 
     def describe(self) -> str:
         """One line on what the warm-up did."""
+        if self.cut:
+            return (
+                "prefix warm-up: still running when the demo stopped its server, so cut short "
+                "(it only saves the first live request time; nothing depends on it)"
+            )
         if self.timing is None:
             return f"prefix warm-up: {self.error or 'not finished'}"
         return (
