@@ -48,14 +48,22 @@ DEMO_SETS = (
     "feedback.timeout_s=600.0",
     "feedback.ollama={reasoning = false, num_predict = 128}",
 )
+#: FindMilk's demo fine-tunes the authors' published base for 300 iterations; its own base
+#: and shaped policies train at the paper's 500,000 steps (docs/reproduction.md, "The demo").
+FINDMILK_SETS = (
+    *DEMO_SETS,
+    "base.total_steps=500_000",
+    "finetune.iterations=300",
+    "task.options={}",
+)
 
 
 @pytest.mark.parametrize(
     ("task", "source", "sets"),
     [
         ("driving", "driving-authors", DEMO_SETS),
-        # FindMilk's demo keeps first-in-order ties (its own small base; docs/reproduction.md)
-        ("findmilk", "findmilk-authors", (*DEMO_SETS, "task.options={}")),
+        # FindMilk's demo keeps first-in-order ties (measured so; docs/reproduction.md)
+        ("findmilk", "findmilk-authors", FINDMILK_SETS),
     ],
 )
 def test_demo_scenario_file_holds_the_settings_the_demo_set(task, source, sets) -> None:
@@ -140,3 +148,93 @@ def test_demo_with_a_real_model_looks_at_the_default_install(monkeypatch, capsys
     assert main(["demo", "--model", "llama3.1:8b"]) == 1
     assert not started
     assert "127.0.0.1:1" in capsys.readouterr().err
+
+
+def _metric(mean: float, half: float) -> dict[str, float]:
+    return {"mean": mean, "half_width": half}
+
+
+def _variant(steps: float, pacified: float, woken: float, reached: float) -> dict:
+    sampled = {
+        "steps_to_milk": _metric(steps, 0.25),
+        "crying_pacified": _metric(pacified, 0.5),
+        "sleeping_woken": _metric(woken, 0.125),
+    }
+    return {
+        "sampled": {"metrics": sampled},
+        "greedy": {"metrics": {"reached_milk": _metric(reached, 0)}},
+    }
+
+
+def test_the_summary_puts_every_variant_beside_the_paper_first(tmp_path: Path, monkeypatch) -> None:
+    import json
+
+    from amuled_ma.commands.demo import SUMMARY_HEADING, put_summary
+
+    monkeypatch.chdir(tmp_path)  # no runs/authors/findmilk/base here: the run's own base
+    results = {"variants": {
+        "base": _variant(14.0, 4.0, 3.5, 1.0),
+        "shaped": _variant(14.0, 5.0, 0.0, 1.0),
+        "finetune-human": _variant(14.5, 3.75, 1.5, 0.9),
+        "finetune-amuled": _variant(14.25, 4.5, 1.0, 1.0),
+    }}  # fmt: skip
+    (tmp_path / "results.json").write_text(json.dumps(results))
+    (tmp_path / "report.md").write_text("# title\n\n## What AMULED did\n\ntext\n")
+    scenario = load_scenario("findmilk-demo")
+    put_summary(tmp_path, scenario)
+    put_summary(tmp_path, scenario)  # a re-run replaces the section, never adds a second
+    lines = (tmp_path / "report.md").read_text().splitlines()
+    assert lines[:3] == ["# title", "", SUMMARY_HEADING]
+    assert lines.count(SUMMARY_HEADING) == 1 and "## What AMULED did" in lines
+    assert f"{scenario.finetune.iterations:,} fine-tuning iterations (the paper: 1,000)" in lines[4]
+    assert "start from this run's own base" in lines[4]
+    # the paper's rows (docs/reproduction.md), ours as mean ± half-width, greedy milk share
+    assert lines[6:10] == [
+        "- **base** (`base`): 14.00 ± 0.25 / 4.00 ± 0.50 / 3.50 ± 0.12; the paper 14 / 4 / 3.8; "
+        "reaches the milk in 100% of greedy episodes.",
+        "- **base + shaping** (`shaped`): 14.00 ± 0.25 / 5.00 ± 0.50 / 0.00 ± 0.12; the paper "
+        "14 / 5 / 0; reaches the milk in 100% of greedy episodes.",
+        '- **"human" feedback** (`finetune-human`): 14.50 ± 0.25 / 3.75 ± 0.50 / 1.50 ± 0.12; '
+        "the paper 14.9 / 3 / 1.5; reaches the milk in 90% of greedy episodes.",
+        "- **AMULED** (`finetune-amuled`): 14.25 ± 0.25 / 4.50 ± 0.50 / 1.00 ± 0.12; the paper "
+        "14.2 / 4.9 / 0.6; reaches the milk in 100% of greedy episodes.",
+    ]
+
+
+def test_demo_without_the_authors_base_offline_says_so_and_goes_on_from_its_own(
+    tmp_path: Path, monkeypatch, capsys, recordings_dir
+) -> None:
+    """The recording is there, the authors' base is not (runs/authors/findmilk/base)."""
+    monkeypatch.setenv("AMULED_RECORDINGS", str(recordings_dir))
+    monkeypatch.setenv("AMULED_CACHE", str(tmp_path / "cache"))
+    monkeypatch.chdir(tmp_path)
+    code = main(["demo", "--offline", "--host", "http://127.0.0.1:1", "--run-dir", "demo"])
+    err = capsys.readouterr().err
+    assert code == 1  # it went on, to the server that is not there
+    said = next(line for line in err.splitlines() if "authors' published one" in line)
+    assert said.startswith("[demo] the fine-tunes start from this run's own base")
+    assert "published findmilk base policy is not in runs/authors/findmilk/base" in said
+    assert "run without it to fetch 43 kB" in said  # 42,882 bytes
+    assert "'amuled import authors PATH --only policies'" in said
+    assert not (tmp_path / "demo").exists() and not (tmp_path / "runs").exists()
+
+
+def test_a_warm_up_cut_short_by_the_servers_stop_is_said_plainly() -> None:
+    """A second demo stops its server while the warm-up is still in flight: no raw error."""
+    import socket
+
+    from amuled_ma.commands.demo import PrefixWarmup
+
+    listener = socket.create_server(("127.0.0.1", 0))  # accepts, never answers
+    host = f"http://127.0.0.1:{listener.getsockname()[1]}"
+    scenario = demo_scenario("findmilk", model=TINY_MODEL, host=host, private=True)
+    warmup = PrefixWarmup.start(host, TINY_MODEL, scenario)
+    assert warmup is not None
+    warmup.join(0.2)
+    assert warmup.running()
+    warmup.cut = warmup.running()
+    listener.close()  # as the server's stop: the request fails
+    warmup.join(5.0)
+    line = warmup.describe()
+    assert line.startswith("prefix warm-up: still running when the demo stopped its server")
+    assert "Error" not in line and warmup.error is not None  # the failure is kept, not shown

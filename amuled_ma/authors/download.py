@@ -27,7 +27,14 @@ from collections.abc import Callable, Collection, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
 
-from amuled_ma.authors.pinned import COMMIT, PINNED, RAW_BASE, REPOSITORY, PinnedFile
+from amuled_ma.authors.pinned import (
+    BASE_POLICIES,
+    COMMIT,
+    PINNED,
+    RAW_BASE,
+    REPOSITORY,
+    PinnedFile,
+)
 from amuled_ma.errors import AuthorsFetchError
 from amuled_ma.file_hash import sha256_file
 
@@ -74,7 +81,8 @@ def cache_folder() -> Path:
 
 
 def _mb(size: int) -> str:
-    return f"{size / 1e6:.1f} MB"
+    """A size for a message: MB from 1 MB (one decimal), else kB."""
+    return f"{size / 1e6:.1f} MB" if size >= 1e6 else f"{size / 1e3:.0f} kB"
 
 
 def pinned_recording(value: str, pinned: Sequence[PinnedFile] = PINNED) -> PinnedFile | None:
@@ -134,6 +142,16 @@ def manual_route(names: Collection[str]) -> str:
         f"'git clone {REPOSITORY}' then 'amuled import authors PATH' (PATH = the clone), "
         f"or set AMULED_RECORDINGS to a folder holding {files}"
     )
+
+
+def pin_route(pin: PinnedFile) -> str:
+    """The way to get one pinned file without fetching (a recording's, or a base policy's)."""
+    if pin.path.endswith(".cleanrl_model"):
+        return (
+            f"'git clone {REPOSITORY}' then 'amuled import authors PATH --only policies' "
+            f"(PATH = the clone), which writes runs/{pin.recording}"
+        )
+    return manual_route([pin.recording])
 
 
 class _CappedFile:
@@ -230,7 +248,7 @@ def fetch_pinned(
     )
     for pin in wanted:
         url = f"{base}/{COMMIT}/{pin.path}"
-        route = manual_route([pin.recording])
+        route = pin_route(pin)
         try:
             with _quiet_pooch():
                 pup.fetch(pin.path, downloader=_downloader(pin))
@@ -320,3 +338,62 @@ def ensure_recordings(
     written = [output.target for output in report.of_kind("recording")]
     say(f"converted to {', '.join(str(path) for path in written)}")
     return written
+
+
+def ensure_authors_base(
+    task: str,
+    *,
+    runs: Path,
+    offline: bool = False,
+    say: Callable[[str], None] = print,
+    pinned: dict[str, PinnedFile] = BASE_POLICIES,
+    cache: Path | None = None,
+    base: str | None = None,
+) -> Path | None:
+    """The authors' published base policy of ``task`` as a run folder; fetched when missing.
+
+    The folder is ``<runs>/authors/<task>/base`` (what ``amuled import authors`` writes, and
+    where :func:`~amuled_ma.pipeline.run_pipeline` finds the base of a ``recipe = "authors"``
+    run). Found there (its ``model_last.pt``), it is returned as is; else the pinned policy
+    file is fetched (:func:`fetch_pinned`, unless cached) and converted by
+    :func:`~amuled_ma.authors.checkout.import_authors`.
+
+    Args:
+        task: The task (``findmilk``); a task without a pinned base returns None.
+        runs: The folder of runs (the scenario's ``[output].runs_dir``).
+        offline: Never fetch (also when ``$AMULED_OFFLINE`` is set).
+        say: Prints the fetch's line and the conversion's.
+        pinned: The pinned base policies by task (the tests pass their own).
+        cache: The cache folder (default :func:`cache_folder`).
+        base: The URL base (default :func:`base_url`).
+
+    Returns:
+        The base folder, or None when ``task`` has no pinned base.
+
+    Raises:
+        AuthorsFetchError: Offline with the file not cached (one line naming the routes), or
+            the fetch failed (:func:`fetch_pinned`).
+        AuthorsImportError: The conversion refused the file.
+
+    """
+    from amuled_ma.learn.checkpoints import LAST
+
+    pin = pinned.get(task)
+    if pin is None:
+        return None
+    folder = Path(runs) / pin.recording
+    if (folder / LAST).is_file():
+        return folder
+    cache = cache or cache_folder()
+    if offline_requested(offline) and not _cached(pin, cache):
+        raise AuthorsFetchError(
+            f"the paper authors' published {task} base policy is not in {folder} and fetching "
+            f"is off (--offline or {OFFLINE_ENV}=1): run without it to fetch {_mb(pin.size)} "
+            f"from {REPOSITORY} at {COMMIT[:12]} (checked), or {pin_route(pin)}"
+        )
+    fetch_pinned([pin], cache=cache, base=base, say=say)
+    from amuled_ma.authors.checkout import import_authors  # here: it imports torch
+
+    import_authors(cache, runs=runs, recordings=False, policies=True)
+    say(f"converted to {folder}")
+    return folder

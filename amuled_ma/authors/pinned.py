@@ -32,7 +32,8 @@ class PinnedFile:
         path: Its path in the repository.
         sha256: SHA-256 of its bytes (hex).
         size: Its size in bytes.
-        recording: The recording ``amuled import authors`` writes from it (no ``.json``).
+        recording: The recording ``amuled import authors`` writes from it (no ``.json``);
+            for a policy of :data:`BASE_POLICIES`, the run folder it writes under ``<runs>``.
 
     """
 
@@ -87,3 +88,17 @@ PINNED: tuple[PinnedFile, ...] = (
         "driving-llama-3_1-8b",
     ),
 )
+
+
+#: The authors' published base policies ``amuled demo`` starts its fine-tunes from, by task:
+#: the CleanRL policy file and the folder ``amuled import authors`` converts it into
+#: (``<runs>/authors/<task>/base``, its ``recording`` field). Their ``ppo.py`` at 500,000
+#: steps, seed 42 (docs/authors.md).
+BASE_POLICIES: dict[str, PinnedFile] = {
+    "findmilk": PinnedFile(
+        "models/FindMilk-v4_42/base.cleanrl_model",
+        "da2a629ce68ac73126eaeba679c480dbf91f12e897533ae8134b90612346dc39",
+        42_882,
+        "authors/findmilk/base",
+    ),
+}

@@ -3,10 +3,11 @@
 **The comparison** (``scenarios/findmilk-demo.toml``): the paper's FindMilk comparison
 (base, base + shaping, "human" feedback, AMULED) with the moral clusters' beliefs
 **replayed** from the paper authors' own gpt-4o-mini recording, with their fine-tuning
-recipe (``--recipe authors``), at a demo-sized budget chosen by measuring: a base that
-reaches the milk, an AMULED fine-tune that wakes fewer sleeping babies than its base, the
-paper's row beside ours in ``report.md`` (:mod:`amuled_ma.evaluate.paper`), and the
-step-by-step viewer of the AMULED fine-tune (``view-episode0.html``, as ``amuled view``).
+recipe (``--recipe authors``), the fine-tunes starting from the authors' published base
+policy (:func:`fetch_authors_base`), at a demo-sized budget chosen by measuring (300
+fine-tuning iterations, one seed); ``report.md`` opens with every variant beside the
+paper's row (:func:`put_summary`, :mod:`amuled_ma.evaluate.paper`), and the step-by-step
+viewer of the AMULED fine-tune (``view-episode0.html``, as ``amuled view``) is written.
 The recording is found by name (``$AMULED_RECORDINGS``, the user data folder of ``amuled
 import authors``, or ``../shared/amuled-recordings`` beside the checkout); found nowhere, it
 is fetched once from the authors' repository at a pinned commit, checked and converted
@@ -88,8 +89,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=(
             "The paper's FindMilk comparison (base, base + shaping, human feedback, AMULED) "
             "with the moral clusters' beliefs replayed from the paper authors' recording and "
-            "their recipe, at a demo-sized budget; report.md puts the paper's row beside "
-            "ours; the viewer page view-episode0.html shows the AMULED fine-tune step by "
+            "their recipe, fine-tuned from their published base (fetched once) at a "
+            "demo-sized budget; report.md opens with every variant beside the paper's row; "
+            "the viewer page view-episode0.html shows the AMULED fine-tune step by "
             "step. Then a short live leg: a few requests to a local Ollama model (a private "
             "one with the tiny model unless --host/--model), whose judgement is not "
             "meaningful; it shows the live path. For a real model: ollama pull "
@@ -145,6 +147,7 @@ def demo_command(args: argparse.Namespace) -> int:
     if missing:
         print(f"amuled: error: {missing}", file=sys.stderr)
         return 2
+    fetch_authors_base(args.task, offline=args.offline)
     model = args.model or TINY_MODEL
     host = args.host or os.environ.get("OLLAMA_HOST")
     if host is None and model != TINY_MODEL:
@@ -193,6 +196,8 @@ def demo_command(args: argparse.Namespace) -> int:
                 code = _run_pipeline(scenario, run_dir, demo_hint(args, run_dir), args, debug)
             if run_log.timings:
                 phases.append(("fine-tune", run_log))
+        if code == 0:
+            put_summary(run_dir, scenario)
         if code == 0:  # while the server still runs
             with record_timings() as live_log:
                 write_live_leg(run_dir, scenario, model=model, host=host)
@@ -203,6 +208,7 @@ def demo_command(args: argparse.Namespace) -> int:
     finally:
         if warmup is not None:
             warmup.join()
+            warmup.cut = warmup.running()  # the server stops under it: not a failure
         if started_dir is not None:
             _say(llm_server.down(started_dir))
     if warmup is not None:
@@ -299,6 +305,137 @@ def missing_recording(task: str, *, offline: bool = False) -> str | None:
             "https://github.com/temetski/moral_agent)"
         )
     return None
+
+
+def fetch_authors_base(task: str, *, offline: bool = False) -> Path | None:
+    """The authors' published base the demo's fine-tunes start from; fetched when missing.
+
+    A ``recipe = "authors"`` demo scenario fine-tunes from the paper authors' published base
+    policy, ``<runs_dir>/authors/<task>/base`` (where the pipeline finds it); missing, it is
+    fetched from their repository and converted
+    (:func:`amuled_ma.authors.download.ensure_authors_base`, its lines said with ``[demo]``).
+    When it cannot be had (offline, no network, a refused download) the demo says why in
+    one line and its fine-tunes start from the run's own base; the report says which.
+
+    Args:
+        task: ``findmilk`` or ``driving`` (a task without a pinned base: None).
+        offline: Never fetch.
+
+    Returns:
+        The base folder, or None (the run's own base).
+
+    """
+    from amuled_ma.authors.download import ensure_authors_base
+    from amuled_ma.errors import AmuledError
+    from amuled_ma.scenario import load_scenario
+
+    try:
+        scenario = load_scenario(f"{task}-demo")
+        if scenario.finetune.recipe != "authors":
+            return None
+        return ensure_authors_base(
+            task, runs=Path(scenario.output.runs_dir), offline=offline, say=_say
+        )
+    except AmuledError as error:
+        _say(
+            f"the fine-tunes start from this run's own base, not the authors' published one "
+            f"(the figures will be further from the paper's): {error}"
+        )
+        return None
+
+
+#: How the report's summary of every variant against the paper starts (:func:`put_summary`).
+SUMMARY_HEADING = "## Every variant beside the paper"
+
+
+def _cell(metrics: dict[str, Any], name: str) -> str:
+    value = metrics[name]
+    return f"{value['mean']:.2f} ± {value['half_width']:.2f}"
+
+
+def summary_lines(scenario: Scenario, results: dict[str, Any], base: str | None) -> list[str]:
+    """The report's first section: each main variant, sampled, beside the paper's row.
+
+    One sentence per variant of the paper's main comparison found in ``results``: its paper
+    metrics (sampled policy, mean ± half-width of the 95% interval), the paper's figures,
+    and on FindMilk the share of greedy episodes that reach the milk.
+
+    Args:
+        scenario: The demo's scenario (its task and budget).
+        results: ``results.json`` of the run.
+        base: The folder the fine-tunes started from (None: the run's own base).
+
+    Returns:
+        The section's lines, its heading first.
+
+    """
+    from amuled_ma.evaluate.paper import PAPER_COLUMNS, paper_row
+
+    task, ft = scenario.task.name, scenario.finetune
+    columns = PAPER_COLUMNS[task]
+    names = " / ".join(c.replace("_", " ") for c in columns)
+    start = (
+        f"the paper authors' published base policy (`{base}`: their ppo.py, 500,000 steps, "
+        "fetched from their repository)"
+        if base
+        else "this run's own base"
+    )
+    lines = [
+        SUMMARY_HEADING,
+        "",
+        f"Demo-sized: {ft.iterations:,} fine-tuning iterations (the paper: 1,000), one "
+        f"training seed, {scenario.base.total_steps:,} steps for the run's own base and "
+        f"shaped policies; the fine-tunes start from {start}. Sampled policy (the paper's "
+        f"metric), {names}, mean ± 95% interval over the evaluation episodes:",
+        "",
+    ]
+    for variant in ("base", "shaped", "finetune-human", "finetune-amuled"):
+        found = results.get("variants", {}).get(variant)
+        row = paper_row(task, variant)
+        if not found or not found.get("sampled") or row is None:
+            continue
+        ours = " / ".join(_cell(found["sampled"]["metrics"], c) for c in columns)
+        paper = " / ".join(f"{row.values[c]:g}" for c in columns)
+        sentence = f"- **{row.label}** (`{variant}`): {ours}; the paper {paper}"
+        greedy = (found.get("greedy") or {}).get("metrics", {})
+        if "reached_milk" in greedy:
+            share = greedy["reached_milk"]["mean"]
+            sentence += f"; reaches the milk in {share:.0%} of greedy episodes"
+        lines.append(sentence + ".")
+    return [*lines, ""]
+
+
+def put_summary(run_dir: Path, scenario: Scenario) -> None:
+    """Put :func:`summary_lines` right under ``report.md``'s title (replacing an earlier one).
+
+    Read and written as :func:`put_live_section` does; without a report or results, nothing
+    is written.
+
+    Raises:
+        AmuledError: As :func:`put_live_section`.
+
+    """
+    import json
+
+    from amuled_ma.evaluate.report.writing import MAX_REPORT_BYTES
+    from amuled_ma.file_limits import read_bounded_bytes
+
+    report, results = run_dir / "report.md", run_dir / "results.json"
+    if not (report.is_file() and results.is_file()):
+        return
+    fix = f"is it the right folder? Write the report again with 'amuled evaluate {run_dir}'"
+    text = read_bounded_bytes(report, MAX_REPORT_BYTES, "report", fix=fix).decode("utf-8")
+    data = json.loads(read_bounded_bytes(results, MAX_REPORT_BYTES, "results", fix=fix))
+    base = None
+    if scenario.finetune.recipe == "authors":
+        imported = Path(scenario.output.runs_dir) / "authors" / scenario.task.name / "base"
+        base = str(imported) if (imported / "model_last.pt").is_file() else None
+    title, _, rest = text.partition("\n")
+    if rest.lstrip("\n").startswith(SUMMARY_HEADING):  # a re-run: replace the old one
+        rest = rest.lstrip("\n")
+        rest = rest[rest.find("\n## ", 1) + 1 :] if "\n## " in rest else ""
+    section = "\n".join(summary_lines(scenario, data, base))
+    write_text_atomic(report, f"{title}\n\n{section}\n{rest.lstrip(chr(10))}")
 
 
 def demo_title(scenario: Scenario) -> str:
@@ -597,6 +734,8 @@ class PrefixWarmup:
     Attributes:
         timing: Ollama's account of the warm-up (None until it is done, or on failure).
         error: Why it failed, if it did.
+        cut: The demo stopped its server while the warm-up was still running (a demo whose
+            run and live answers were already there needs no prefix).
 
     """
 
@@ -606,6 +745,7 @@ class PrefixWarmup:
         self.options = options
         self.timing: RequestTiming | None = None
         self.error: str | None = None
+        self.cut = False
         self._thread = threading.Thread(target=self._run, name="amuled-warmup", daemon=True)
 
     @classmethod
@@ -652,11 +792,20 @@ class PrefixWarmup:
         self.timing = RequestTiming.from_reply(reply, time.perf_counter() - began)
 
     def join(self, timeout: float = 5.0) -> None:
-        """Wait a little for the warm-up (it is long done when the run ends)."""
+        """Wait a little for the warm-up (it is long done when a run trained)."""
         self._thread.join(timeout)
+
+    def running(self) -> bool:
+        """Whether the warm-up's request is still in flight."""
+        return self._thread.is_alive()
 
     def describe(self) -> str:
         """One line on what the warm-up did."""
+        if self.cut:
+            return (
+                "prefix warm-up: still running when the demo stopped its server, so cut short "
+                "(it only saves the first live request time; nothing depends on it)"
+            )
         if self.timing is None:
             return f"prefix warm-up: {self.error or 'not finished'}"
         return (

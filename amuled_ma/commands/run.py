@@ -10,10 +10,13 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from amuled_ma.commands import _experiment as common
 from amuled_ma.errors import AmuledError
+
+if TYPE_CHECKING:
+    from amuled_ma.scenario import Scenario
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -28,6 +31,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         ),
     )
     common.add_scenario_args(run)
+    add_quick_arg(run)
     run.add_argument(
         "--episodes",
         type=common.bounded_int(1),
@@ -63,6 +67,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         ),
     )
     common.add_scenario_args(ablate)
+    add_quick_arg(ablate)
     ablate.add_argument(
         "--what",
         required=True,
@@ -89,6 +94,64 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 #: ``--ray`` without an address: a local Ray started for the run.
 LOCAL_RAY = "local"
+
+#: The quick form's budget (``--quick``), ``(section, key): value``: about a minute for
+#: ``amuled run findmilk`` on 2 cores (docs/reproduction.md, "The quick form"); a ``--set`` of
+#: the same key wins.
+QUICK_SETTINGS: dict[tuple[str, str], int] = {
+    ("base", "total_steps"): 65_536,
+    ("finetune", "iterations"): 50,
+}
+#: The quick form's evaluation episodes per policy and mode (``--episodes`` wins).
+QUICK_EPISODES = 10
+#: The quick form's run folder: the scenario's default with this ending (``--run-dir`` wins).
+QUICK_SUFFIX = "-quick"
+
+
+def add_quick_arg(parser: argparse.ArgumentParser) -> None:
+    """Add ``--quick``: the short form of the experiment (:data:`QUICK_SETTINGS`)."""
+    base, iterations = (
+        QUICK_SETTINGS[("base", "total_steps")],
+        QUICK_SETTINGS[("finetune", "iterations")],
+    )
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"the short form, about a minute: {base:,} base env steps, {iterations} "
+        f"fine-tuning iterations, {QUICK_EPISODES} evaluation episodes, in "
+        f"<runs_dir>/<scenario name>{QUICK_SUFFIX}; NOT the paper's length (500,000 / 1,000 "
+        "/ 50), the output and report.md say so; --set and --episodes still win",
+    )
+
+
+def quick_scenario(scenario: Scenario, overrides: list[str]) -> Scenario:
+    """``scenario`` at the quick form's budget, but for the keys ``overrides`` sets.
+
+    Args:
+        scenario: The loaded scenario, ``--set`` already applied.
+        overrides: The ``--set SECTION.KEY=VALUE`` texts (a key they name keeps its value).
+
+    Returns:
+        The scenario with :data:`QUICK_SETTINGS` applied.
+
+    """
+    from amuled_ma.scenario.overrides import parse_set
+
+    named = {parse_set(text)[:2] for text in overrides}
+    for (section, key), value in QUICK_SETTINGS.items():
+        if (section, key) not in named:
+            scenario = scenario.replace(section, **{key: value})
+    return scenario
+
+
+def quick_note(scenario: Scenario, episodes: int) -> str:
+    """The quick form's warning, for the output and the report's title."""
+    return (
+        f"quick form: {scenario.base.total_steps:,} base env steps, "
+        f"{scenario.finetune.iterations:,} fine-tuning iterations, {episodes} evaluation "
+        "episodes; NOT the paper's length (500,000 / 1,000 / 50): a check that the pipeline "
+        "runs, its figures are not the paper's"
+    )
 
 
 def add_retrain_arg(parser: argparse.ArgumentParser) -> None:
@@ -176,13 +239,23 @@ def request_of(args: argparse.Namespace, command: str, *extra: str) -> Any:
     if weights is not None:  # a path from this directory, as any file on the command line
         scenario = scenario.replace("feedback", weights=str(Path(weights).resolve()))
     run_dir = common.run_dir_of(args, scenario)
+    episodes, title = args.episodes, None
+    if args.quick:
+        scenario = quick_scenario(scenario, args.overrides)
+        episodes = episodes or QUICK_EPISODES
+        if args.run_dir is None:
+            run_dir = run_dir.with_name(run_dir.name + QUICK_SUFFIX)
+        what = f"ablation of {args.what}" if command == "ablate" else "the paper's main comparison"
+        title = f"{scenario.name}: {what}, {quick_note(scenario, episodes)}"
+        common.say(quick_note(scenario, episodes))
+        extra = (*extra, "--quick")
     return PipelineRequest(
         scenario=scenario,
         run_dir=run_dir,
         ablation=getattr(args, "what", None),
         seed=args.seed,
         seeds=args.seeds,
-        episodes=args.episodes,
+        episodes=episodes,
         base=getattr(args, "base", None),
         resume=args.resume,
         force=args.force,
@@ -192,6 +265,7 @@ def request_of(args: argparse.Namespace, command: str, *extra: str) -> Any:
         population=args.population,
         progress=not args.no_progress,
         hint=common.command_line(command, args, run_dir, *extra),
+        title=title,
         offline=args.offline,
     )
 
@@ -204,6 +278,8 @@ def run_command(args: argparse.Namespace) -> int:
     request = request_of(args, "run")
     outcome = pipeline.run_pipeline(request, say=common.say)
     common.say_outcome(request, outcome, time.perf_counter() - start)
+    if args.quick:
+        common.say(quick_note(request.scenario, request.episodes or QUICK_EPISODES))
     return 0
 
 
@@ -218,4 +294,6 @@ def ablate_command(args: argparse.Namespace) -> int:
     request = request_of(args, "ablate", *extra)
     outcome = pipeline.run_pipeline(request, say=common.say)
     common.say_outcome(request, outcome, time.perf_counter() - start)
+    if args.quick:
+        common.say(quick_note(request.scenario, request.episodes or QUICK_EPISODES))
     return 0

@@ -108,7 +108,7 @@ def finetune_command(args: argparse.Namespace) -> int:
     # the preflight (every panel member can answer, the base exists) runs before any folder
     job = train_alone(_request(scenario, run_dir, args, hint), variant, **base)
     common.say(
-        f"finetune {scenario.name}/{args.feedback}: done in "
+        f"finetune {scenario.name}/{job.out_dir.name}: done in "
         f"{time.perf_counter() - start:.1f} s; "
         f"checkpoint {job.out_dir / 'model_last.pt'}"
     )

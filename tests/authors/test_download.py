@@ -19,7 +19,8 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import pytest
-from authors_fakes import findmilk_cache, write_pickle
+import torch
+from authors_fakes import CleanRLAgent, findmilk_cache, save_agent, write_pickle
 from tiny_cli import TINY
 
 from amuled_ma.authors.caches import (
@@ -31,13 +32,16 @@ from amuled_ma.authors.caches import (
 from amuled_ma.authors.download import (
     OFFLINE_ENV,
     URL_ENV,
+    ensure_authors_base,
     ensure_recordings,
     models_ablation_recordings,
     replayed_recordings,
 )
-from amuled_ma.authors.pinned import COMMIT, PINNED, PinnedFile
+from amuled_ma.authors.pinned import BASE_POLICIES, COMMIT, PINNED, PinnedFile
+from amuled_ma.authors.policies import authors_scenario
 from amuled_ma.cli import main
 from amuled_ma.errors import AuthorsFetchError
+from amuled_ma.learn.policies import action_log_probs, load_policy
 from amuled_ma.scenario import load_scenario, user_recordings_dir
 
 PATH = "models/FindMilk-v4_42/tiny-model_llm_cache.pickle"
@@ -121,7 +125,8 @@ def test_fetched_once_checked_then_converted_as_the_import_does(
     target = user_recordings_dir() / f"{NAME}.json"
     assert written == [target]
     assert served.asked == [f"/authors/{COMMIT}/{PATH}"]
-    assert len(lines) == 2 and lines[0].startswith("fetching 1 file(s), 0.0 MB: " + PATH)
+    assert len(lines) == 2
+    assert lines[0].startswith(f"fetching 1 file(s), {len(data) / 1e3:.0f} kB: {PATH}")
     assert f"from {base}/{COMMIT[:12]}/" in lines[0] and "under their terms" in lines[0]
     assert (cache / PATH).read_bytes() == data
     # the recording is the one the converter makes of the served cache
@@ -268,7 +273,7 @@ def test_the_pins_are_the_authors_files_and_convert_to_the_shared_recording(
     mirror = os.environ.get(MIRROR_ENV)
     if not mirror or not (Path(mirror) / "HEAD").is_file() or shutil.which("git") is None:
         pytest.skip(f"set {MIRROR_ENV} to a git mirror of temetski/moral_agent to run this test")
-    for pin in PINNED:
+    for pin in [*PINNED, *BASE_POLICIES.values()]:
         blob = mirror_blob(mirror, pin.path)
         assert (hashlib.sha256(blob).hexdigest(), len(blob)) == (pin.sha256, pin.size), pin.path
     base, served = server
@@ -276,3 +281,64 @@ def test_the_pins_are_the_authors_files_and_convert_to_the_shared_recording(
     served.files[f"/authors/{COMMIT}/{pin.path}"] = mirror_blob(mirror, pin.path)
     written = ensure_recordings(scenario, [pin.recording], cache=tmp_path / "c", base=base)
     assert written[0].read_bytes() == (recordings_dir / f"{pin.recording}.json").read_bytes()
+
+
+BASE_PATH = "models/FindMilk-v4_42/base.cleanrl_model"
+
+
+@pytest.fixture
+def base_pin(tmp_path: Path) -> tuple[bytes, PinnedFile, CleanRLAgent]:
+    """A CleanRL FindMilk base policy (8 observations, 4 actions) and its pin."""
+    agent = CleanRLAgent(8, 4, seed=4)
+    data = save_agent(tmp_path / "src" / BASE_PATH, agent).read_bytes()
+    pin = PinnedFile(
+        BASE_PATH, hashlib.sha256(data).hexdigest(), len(data), "authors/findmilk/base"
+    )
+    return data, pin, agent
+
+
+def test_the_authors_base_is_fetched_once_and_converted_into_the_runs_folder(
+    tmp_path, server, online, base_pin
+):
+    base, served = server
+    data, pin, agent = base_pin
+    served.files[f"/authors/{COMMIT}/{BASE_PATH}"] = data
+    runs, cache, lines = tmp_path / "runs", tmp_path / "cache", []
+    kwargs = {"runs": runs, "pinned": {"findmilk": pin}, "cache": cache, "base": base}
+    folder = ensure_authors_base("findmilk", say=lines.append, **kwargs)
+    assert folder == runs / "authors" / "findmilk" / "base"
+    assert served.asked == [f"/authors/{COMMIT}/{BASE_PATH}"]
+    assert lines[0].startswith(f"fetching 1 file(s), {len(data) / 1e3:.0f} kB: {BASE_PATH}")
+    assert "under their terms" in lines[0] and lines[-1] == f"converted to {folder}"
+    # the converted policy acts as the served one (its actor's logits)
+    scenario = authors_scenario(load_scenario("findmilk"), [64, 64])
+    obs = torch.rand(200, 8, generator=torch.Generator().manual_seed(2)) * 8
+    with torch.no_grad():
+        ours = action_log_probs(load_policy(folder / "model_last.pt", scenario), obs)
+        theirs = torch.log_softmax(agent.actor(obs), dim=-1)
+    torch.testing.assert_close(ours, theirs, rtol=0, atol=1e-5)
+    # there now: never fetched again, even offline; a task without a pinned base: None
+    assert ensure_authors_base("findmilk", offline=True, **kwargs) == folder
+    assert len(served.asked) == 1
+    assert ensure_authors_base("driving", **kwargs) is None
+
+
+def test_a_tampered_base_is_refused_and_offline_names_both_routes(
+    tmp_path, server, online, base_pin, monkeypatch
+):
+    base, served = server
+    data, pin, _agent = base_pin
+    served.files[f"/authors/{COMMIT}/{BASE_PATH}"] = data[:-1] + bytes([data[-1] ^ 1])
+    runs, cache = tmp_path / "runs", tmp_path / "cache"
+    kwargs = {"runs": runs, "pinned": {"findmilk": pin}, "cache": cache, "base": base}
+    with pytest.raises(AuthorsFetchError, match="its SHA-256 is not the pinned") as error:
+        ensure_authors_base("findmilk", say=lambda _: None, **kwargs)
+    assert "amuled import authors PATH --only policies" in str(error.value)
+    assert files_under(cache) == [] and files_under(runs) == []
+    monkeypatch.setenv(OFFLINE_ENV, "1")
+    with pytest.raises(AuthorsFetchError) as error:
+        ensure_authors_base("findmilk", **kwargs)
+    text = str(error.value)
+    assert "\n" not in text and f"run without it to fetch {len(data) / 1e3:.0f} kB" in text
+    assert "'amuled import authors PATH --only policies'" in text
+    assert len(served.asked) == 1  # the tampered download only

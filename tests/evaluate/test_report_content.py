@@ -351,7 +351,9 @@ def test_ablation_figure_sorts_the_fine_tunes_and_draws_base():
 
 def test_report_points_at_the_viewer_and_links_it_once_written(tmp_path):
     text = write_report(tmp_path, results()).read_text()
-    assert f"open `view-episode0.html` (or run `amuled view {tmp_path}`)" in text
+    # no page yet: the report names the command that writes it, never "open" a missing file
+    assert f"run `amuled view {tmp_path}` to write `view-episode0.html`" in text
+    assert "open `view-episode0.html`" not in text
     assert "](view-episode0.html)" not in text
     (tmp_path / "view-episode0.html").write_text("<!DOCTYPE html>")
     assert link_viewer(tmp_path)

@@ -5,10 +5,12 @@ path), runs the paper's FindMilk comparison on the authors' replayed recording, 
 live leg asks the tiny model about a few states and ends with where the requests' time
 went, from Ollama's own metrics.
 
-- :func:`test_demo_shows_amuled_working_and_labels_the_live_leg`: the demo as shipped (issue
-  27's target): its base reaches the milk, its AMULED fine-tune wakes fewer sleeping babies
-  than the base, the paper's row stands beside ours, the live leg is labelled, and on a
-  quiet machine it takes under 3 minutes.
+- :func:`test_demo_shows_amuled_working_and_labels_the_live_leg`: the demo as shipped: its
+  report opens with every variant beside the paper; the base reaches the milk, shaping
+  pacifies and wakes as the paper's, the AMULED fine-tune wakes fewer sleeping babies than
+  the base, and, from the authors' published base (there when fetched or imported; without
+  it the demo starts from its own), meets the paper's picture; the live leg is labelled,
+  and on a quiet machine it takes under 3 minutes.
 - :func:`test_demo_prints_where_each_live_request_spent_its_time`: a tiny budget, the
   timing breakdown.
 """
@@ -28,6 +30,7 @@ from amuled_ma import llm_server
 from amuled_ma.beliefs.store import BeliefStore
 from amuled_ma.beliefs.timing import RequestTiming
 from amuled_ma.cli import main
+from amuled_ma.commands.demo import SUMMARY_HEADING
 from amuled_ma.errors import AmuledError
 
 NUMBER = r"([\d,]+(?:\.\d+)?)"
@@ -79,10 +82,27 @@ def test_demo_shows_amuled_working_and_labels_the_live_leg(
     # the base reaches the milk, sampled and greedy, in every episode
     for mode in ("sampled", "greedy"):
         assert results["base"][mode]["metrics"]["reached_milk"]["mean"] == 1.0
-    # the AMULED fine-tune wakes fewer sleeping babies than its base: beyond the interval
-    base = results["base"]["sampled"]["metrics"]["sleeping_woken"]
-    amuled = results["finetune-amuled"]["sampled"]["metrics"]["sleeping_woken"]
+    # the report opens with every variant beside the paper's row
+    lines = report.splitlines()
+    assert lines[2] == SUMMARY_HEADING
+    assert [line.split("`")[1] for line in lines[6:10]] == [
+        "base", "shaped", "finetune-human", "finetune-amuled"
+    ]  # fmt: skip
+    # shaping: the paper's 5 / 0 at the paper's 500k base steps (3 seeds: 4.98 / 0.03)
+    sampled = {name: v["sampled"]["metrics"] for name, v in results.items()}
+    assert sampled["shaped"]["crying_pacified"]["mean"] >= 4.5
+    assert sampled["shaped"]["sleeping_woken"]["mean"] <= 0.5
+    # the AMULED fine-tune wakes fewer sleeping babies than the base: beyond the interval
+    base = sampled["base"]["sleeping_woken"]
+    amuled = sampled["finetune-amuled"]["sleeping_woken"]
     assert amuled["ci_high"] < base["ci_low"], (amuled, base)
+    if "the fine-tunes start from the paper authors' published base policy" in lines[4]:
+        # the paper's picture (docs/reproduction.md "The demo": 3 seeds, all within these)
+        assert sampled["finetune-amuled"]["crying_pacified"]["mean"] >= 4.0
+        assert amuled["mean"] <= 1.6
+        assert sampled["finetune-amuled"]["steps_to_milk"]["mean"] <= 15.0
+        human = results["finetune-human"]["greedy"]["metrics"]["reached_milk"]["mean"]
+        assert human >= 0.9
     found = re.search(
         r"- AMULED \(finetune-amuled, sampled policy\) .*wakes ([\d.]+) fewer sleeping babies "
         r"than the base \(95% CI ([\d.]+) to ([\d.]+) fewer\)",
@@ -91,7 +111,6 @@ def test_demo_shows_amuled_working_and_labels_the_live_leg(
     assert found, report
     assert float(found.group(1)) == pytest.approx(base["mean"] - amuled["mean"], abs=0.01)
     # the paper's row beside ours (docs/reproduction.md: 14.2 / 4.9 / 0.6), with the recipe
-    lines = report.splitlines()
     row = next(line for line in lines if line.startswith("| finetune-amuled | AMULED"))
     assert "| 14.2 / 4.9 / 0.6 |" in row and row.endswith("| authors |")
     assert "the paper's main comparison" not in report.split("\n", 1)[0]

@@ -70,7 +70,7 @@ def viewer_line(run_dir: Path) -> str:
             f"{VIEWER_PREFIX} open [`{VIEWER_PAGE}`]({VIEWER_PAGE}) (or run "
             f"`amuled view {run_dir}` to write it again): {what}."
         )
-    return f"{VIEWER_PREFIX} open `{VIEWER_PAGE}` (or run `amuled view {run_dir}`): {what}."
+    return f"{VIEWER_PREFIX} run `amuled view {run_dir}` to write `{VIEWER_PAGE}`: {what}."
 
 
 def link_viewer(run_dir: Path) -> bool:
