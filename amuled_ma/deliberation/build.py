@@ -473,20 +473,15 @@ def _build(
     return feedback
 
 
-def open_run_store(scenario: Scenario, run_dir: Path | None = None) -> Any:
-    """Open the belief store of a scenario's run (``plan.store_path``)."""
-    from amuled_ma.beliefs.store_service import open_store
-
-    return open_store(store_path(scenario, run_dir))
-
-
-def run_store(scenario: Scenario, run_dir: Path | None = None) -> Any:
-    """The belief store of a scenario's run, opened on first use (`open_run_store`).
+def run_store(path: Path) -> Any:
+    """The belief store at ``path`` (a run's: ``plan.store_path``), opened on first use.
 
     The preflight runs before the store's file exists; a feedback that never asks a
     member (the demonstrator, a fused-only recording) never opens it.
     """
-    return _Lazy(lambda: open_run_store(scenario, run_dir))
+    from amuled_ma.beliefs.store_service import open_store
+
+    return _Lazy(lambda: open_store(path))
 
 
 def make_feedback(
@@ -517,7 +512,7 @@ def make_feedback(
     """
     plan = plan_panel(variant, scenario)
     if store is None:
-        store = run_store(scenario, run_dir)
+        store = run_store(store_path(scenario, run_dir))
     return build_feedback(
         plan, store, state_dir=state_dir, resume=resume, seed=seed, cache_dir=run_dir
     )
@@ -549,7 +544,7 @@ def make_source(scenario: Scenario, run_dir: Path | None = None, *, agents: Any 
         default=default,
         problems=tuple(problems),
     )
-    return panel_source(plan, run_store(scenario, run_dir))
+    return panel_source(plan, run_store(store_path(scenario, run_dir)))
 
 
 class _Named:
