@@ -1,4 +1,4 @@
-"""One command to recover (issue 27, item 3), and the routes of a new agent (item 2).
+"""One command to recover, and the routes of a new agent.
 
 - an error that needs no model comes before torch and Ray are imported;
 - a failed command leaves no run folder behind;

@@ -176,7 +176,6 @@ def _jobs(scenario: Any, run: Path, base: Path, count: int, tag: str, store: Any
 def measure_task(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
     """Time the lone fine-tunes and every population size of one task."""
     from amuled_ma.deliberation.build import run_store
-    from amuled_ma.deliberation.plan import store_path
     from amuled_ma.learn.population import PopulationTrainer
     from amuled_ma.learn.population_groups import MemberSpec, member_memory_bytes
     from amuled_ma.tasks import get_task
@@ -186,7 +185,7 @@ def measure_task(task: str, args: argparse.Namespace, out: Path) -> dict[str, An
     t0 = time.perf_counter()
     base = _alone(MemberSpec(scenario, run / "base")).train()[0].checkpoint
     base_s = time.perf_counter() - t0
-    store = run_store(store_path(scenario, run))
+    store = run_store(scenario.store_path(run))
     its = args.warmup + args.iterations
     rows = []
     for size in [int(s) for s in args.sizes.split(",") if s.strip()]:
@@ -331,7 +330,6 @@ def _alone(job: Any) -> Any:
 def welch(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
     """Train ``args.welch`` seeds alone and as one population; each run's figures."""
     from amuled_ma.deliberation.build import run_store
-    from amuled_ma.deliberation.plan import store_path
     from amuled_ma.learn.population import PopulationTrainer
     from amuled_ma.learn.population_groups import MemberSpec
 
@@ -339,7 +337,7 @@ def welch(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
     scenario = scenario.replace("finetune", lambda_kl=2.5)
     run = out / task
     base = _alone(MemberSpec(scenario, run / "base")).train()[0].checkpoint
-    store = run_store(store_path(scenario, run))
+    store = run_store(scenario.store_path(run))
     groups: dict[str, list[dict[str, float]]] = {"alone": [], "population": []}
     times: dict[str, float] = {}
     jobs = _jobs(scenario, run, base, args.welch, "alone", store)

@@ -35,7 +35,6 @@ from amuled_ma.deliberation.plan import (
     plan_panel,
     plan_sources,
     recording_of,
-    store_path,
 )
 from amuled_ma.errors import AmuledError, ScenarioError
 from amuled_ma.scenario import AGENT_SOURCE_KINDS, MORAL_AGENT, Scenario
@@ -474,7 +473,7 @@ def _build(
 
 
 def run_store(path: Path) -> Any:
-    """The belief store at ``path`` (a run's: ``plan.store_path``), opened on first use.
+    """The belief store at ``path`` (a run's: ``Scenario.store_path``), opened on first use.
 
     The preflight runs before the store's file exists; a feedback that never asks a
     member (the demonstrator, a fused-only recording) never opens it.
@@ -512,7 +511,7 @@ def make_feedback(
     """
     plan = plan_panel(variant, scenario)
     if store is None:
-        store = run_store(store_path(scenario, run_dir))
+        store = run_store(scenario.store_path(run_dir))
     return build_feedback(
         plan, store, state_dir=state_dir, resume=resume, seed=seed, cache_dir=run_dir
     )
@@ -544,7 +543,7 @@ def make_source(scenario: Scenario, run_dir: Path | None = None, *, agents: Any 
         default=default,
         problems=tuple(problems),
     )
-    return panel_source(plan, run_store(store_path(scenario, run_dir)))
+    return panel_source(plan, run_store(scenario.store_path(run_dir)))
 
 
 class _Named:

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from amuled_ma.deliberation.build import build_feedback, checked_members, preflight, run_store
-from amuled_ma.deliberation.plan import plan_panel, store_path
+from amuled_ma.deliberation.plan import plan_panel
 from amuled_ma.errors import AmuledError, ScenarioError
 from amuled_ma.experiments.run_folder import (
     JobResult,
@@ -135,7 +135,7 @@ def plan_job(
         shape=job_shape(scenario, variant, job.iterations),
         settings=settings,
         base_checkpoint=base,
-        store=store_path(scenario, job.run_dir) if variant.finetuning else None,
+        store=scenario.store_path(job.run_dir) if variant.finetuning else None,
         action=action,
     )
 

@@ -130,7 +130,7 @@ class TrainJob:
             :func:`~amuled_ma.experiments.training_settings.training_config`).
         base_checkpoint: A fine-tune's base checkpoint (planned).
         store: A fine-tune's belief store file (planned;
-            :func:`~amuled_ma.deliberation.plan.store_path`).
+            :meth:`~amuled_ma.scenario.Scenario.store_path`).
         action: What it does with its folder (planned).
 
     """

@@ -1,4 +1,4 @@
-"""Editing a cluster's text and resuming is refused like a changed recording (issue 24, 6)."""
+"""Editing a cluster's text and resuming is refused like a changed recording."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from amuled_ma.clusters import default_clusters_dir
 from amuled_ma.errors import AmuledError
 from amuled_ma.experiments.plans import train_variant
 from amuled_ma.experiments.run_folder import training_differences
+from amuled_ma.experiments.training_settings import training_config
 from amuled_ma.scenario import load_scenario
 from amuled_ma.variants import Variant
 
@@ -43,6 +44,9 @@ def test_resume_refuses_an_edited_cluster_file(tmp_path):
     assert config["inputs"]["cluster_sha256[care]"] == old
     assert set(config["inputs"]) >= {f"cluster_sha256[{c}]" for c in sc.feedback.clusters}
     assert "inputs" not in settings(sc, "base")  # no panel, no clusters
+    # the hashes come from the job's panel plan: settings without it are refused
+    with pytest.raises(ValueError, match="panel plan"):
+        training_config(sc, Variant.finetune("amuled"))
 
     run_dir = tmp_path / "run"
     train_variant(sc, run_dir, Variant("base"))
