@@ -9,9 +9,10 @@ arguments into the request and print the :class:`PipelineOutcome`. The steps:
    :func:`~amuled_ma.experiments.plans.plan_ablation`: a fine-tune needs its seed's base),
    and fetch the paper authors' recordings its fine-tunes replay that are found nowhere on
    this machine (:func:`fetch_recordings`; not with ``offline``);
-2. check every job (:func:`~amuled_ma.experiments.plans.check_jobs`: its inputs, then its
-   folder) before any folder is made, so a missing recording, base checkpoint or feedback
-   source, or a folder trained with other settings, stops the run and leaves nothing;
+2. plan every job once (:func:`~amuled_ma.experiments.plans.plan_jobs`: its panel plan and
+   preflight, run shape, settings, base checkpoint, new / resume / skip) before any folder
+   is made, so a missing recording, base checkpoint or feedback source, or a folder
+   trained with other settings, stops the run and leaves nothing;
 3. hold the run folder's lock (:func:`~amuled_ma.run_lock.run_folder_lock`), write
    ``config.json`` and train the graph (:func:`~amuled_ma.experiments.jobs.run_jobs`: in this
    process or on Ray), one line per finished job (:func:`describe_job`);
@@ -43,7 +44,13 @@ from amuled_ma.experiments.jobs import (
     resolve_workers,
     run_jobs,
 )
-from amuled_ma.experiments.run_folder import JobResult, TrainJob, split_replica, write_config
+from amuled_ma.experiments.run_folder import (
+    JobResult,
+    Rerun,
+    TrainJob,
+    split_replica,
+    write_config,
+)
 from amuled_ma.run_lock import run_folder_lock
 from amuled_ma.scenario import Scenario
 from amuled_ma.variants import Variant
@@ -82,7 +89,11 @@ class PipelineRequest:
             False (``--no-population``): every job alone.
         progress: Show progress bars.
         hint: The shell command that re-runs this request; printed with ``--resume`` when a
-            job stops early, and in the message of a folder that clashes.
+            job stops early, and in the message of a folder that clashes (default: the
+            line of ``rerun``).
+        rerun: The same command as fields: a folder trained with other settings is
+            refused naming the command that trains beside it or retrains it
+            (:func:`~amuled_ma.experiments.run_folder.recovery_commands`).
         title: The report's title (None: the plan's, e.g. the paper's main comparison).
         offline: Never fetch the authors' recordings (``--offline``; also
             ``$AMULED_OFFLINE=1``): one found nowhere stops the run with the manual route.
@@ -108,10 +119,13 @@ class PipelineRequest:
     population: bool = True
     progress: bool = True
     hint: str = ""
+    rerun: Rerun | None = None
     title: str | None = None
     offline: bool = False
 
     def __post_init__(self) -> None:
+        if self.rerun is not None and not self.hint:
+            object.__setattr__(self, "hint", self.rerun.line(self.run_dir))
         from amuled_ma.experiments.plans import ABLATIONS  # here: it imports torch
 
         if self.ablation is not None and self.ablation not in ABLATIONS:
@@ -189,7 +203,8 @@ def run_pipeline(
 
     start = time.perf_counter()
     check_seed_replicas(request.seeds, variants=1)  # before a job per seed is planned
-    seeds = training_seeds(request.scenario, request.seed, request.seeds)
+    first = request.scenario.task.seed if request.seed is None else request.seed
+    seeds = training_seeds(first, request.seeds)
     if request.ablation == "models":  # it plans one fine-tune per recording found beside
         from amuled_ma.authors.download import models_ablation_recordings
 
@@ -203,9 +218,10 @@ def run_pipeline(
         from amuled_ma.experiments.plans import retrain_jobs
 
         plan = dataclasses.replace(plan, jobs=retrain_jobs(plan.jobs, request.retrain))
-    from amuled_ma.experiments.plans import check_jobs  # here: it imports torch
+    from amuled_ma.experiments.plans import plan_jobs  # here: it imports torch
 
-    actions = check_jobs(plan.jobs, request.hint)  # before the lock: a refused run makes no folder
+    # before the lock: a refused run makes no folder
+    plan = dataclasses.replace(plan, jobs=plan_jobs(plan.jobs, request.hint, request.rerun))
     say_live_costs(plan.jobs, say)
     # after the checks: a refused run answers before torch and matplotlib are imported
     from amuled_ma.evaluate.evaluator import evaluate_run, variant_dirs
@@ -219,7 +235,7 @@ def run_pipeline(
         # Ray first: a SIGTERM while it starts leaves no run folder (the lock removes it)
         with ray_connection(plan.jobs, workers=workers, ray=request.ray):
             write_config(plan.out_dir, request.scenario, plan.config)
-            training = train_jobs(plan.jobs, request, say, actions)
+            training = train_jobs(plan.jobs, request, say)
         records = variant_records([*variant_dirs(plan.out_dir), *plan.extra_dirs])
         results = evaluate_run(
             plan.out_dir,
@@ -258,11 +274,9 @@ def say_live_costs(jobs: Sequence[TrainJob], say: Callable[[str], None]) -> None
 
     said: set[str] = set()
     for job in jobs:
-        if job.variant.feedback is None or not job.variant.finetuning:
-            continue
-        lines = live_costs(
-            job.scenario, job.variant.feedback, job.run_dir, lambda text: say(f"  {text}")
-        )
+        if job.panel is None or job.store is None:
+            continue  # a base, or a fine-tune whose feedback asks no panel
+        lines = live_costs(job.panel, job.store, lambda text: say(f"  {text}"))
         for line in lines:
             if line not in said:
                 said.add(line)
@@ -307,8 +321,8 @@ def train_alone(
 ) -> JobResult:
     """Train one job (``amuled train`` / ``finetune``): the pipeline's steps 2 and 3 for it.
 
-    The job is checked before any folder is made
-    (:func:`~amuled_ma.experiments.plans.check_jobs`: its inputs, then its folder), the run
+    The job is planned before any folder is made
+    (:func:`~amuled_ma.experiments.plans.plan_jobs`: its inputs, then its folder), the run
     folder's lock is held, ``config.json`` written (with ``config``), and the job trained
     by the executor of every graph (:func:`~amuled_ma.experiments.jobs.run_jobs`, a group
     of one); nothing is evaluated.
@@ -330,7 +344,7 @@ def train_alone(
         KeyboardInterrupt: Ctrl-C or SIGTERM, after the job wrote its checkpoint.
 
     """
-    from amuled_ma.experiments.plans import check_jobs  # here: it imports torch
+    from amuled_ma.experiments.plans import plan_jobs  # here: it imports torch
 
     run_dir = Path(request.run_dir)
     job = TrainJob(
@@ -345,17 +359,14 @@ def train_alone(
         force=request.force,
         base_dir=base_dir,
     )
-    actions = check_jobs([job], request.hint)  # before the lock: a refused job makes no folder
-    say_live_costs([job], say_line)
+    # before the lock: a refused job makes no folder
+    jobs = plan_jobs([job], request.hint, request.rerun)
+    say_live_costs(jobs, say_line)
     with run_folder_lock(run_dir):
         if config is not None:
             write_config(run_dir, request.scenario, config)
         outcome = run_jobs(
-            [job],
-            progress=request.progress,
-            hint=request.hint,
-            describe=describe_job,
-            actions=actions,
+            jobs, progress=request.progress, hint=request.hint, describe=describe_job
         )
     return outcome.results[0]
 
@@ -419,16 +430,13 @@ def train_jobs(
     jobs: Sequence[TrainJob],
     request: PipelineRequest,
     say: Callable[[str], None] = say_line,
-    actions: dict[str, str] | None = None,
 ) -> JobsOutcome:
     """Train a planned graph as the request says (``jobs``, ``ray``), one line per job.
 
     Args:
-        jobs: The graph.
+        jobs: The graph, planned (:func:`~amuled_ma.experiments.plans.plan_jobs`).
         request: Where and how the jobs run, the progress bars and the resume command.
         say: Prints a progress line.
-        actions: Each job's start as :func:`~amuled_ma.experiments.plans.check_jobs`
-            decided it (None: decided by :func:`~amuled_ma.experiments.jobs.run_jobs`).
 
     Returns:
         The outcome of :func:`~amuled_ma.experiments.jobs.run_jobs`.
@@ -445,7 +453,6 @@ def train_jobs(
         hint=request.hint,
         describe=describe_job,
         ray=ray,
-        actions=actions,
         population=request.population,
     )
     say(f"  training done in {outcome.wall_s:.1f} s on {outcome.workers} worker(s)")

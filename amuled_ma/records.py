@@ -16,6 +16,7 @@ the report receive records from their caller.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, field_serializer, field_validator, model_validator
@@ -148,7 +149,8 @@ class RunRecord(BaseModel):
     @model_validator(mode="after")
     def _labelled(self) -> RunRecord:
         if self.variant is not None and self.label and self.variant.label != self.label:
-            object.__setattr__(self, "variant", Variant.parse(self.variant, self.label))
+            labelled = dataclasses.replace(self.variant, label=self.label)
+            object.__setattr__(self, "variant", labelled)
         return self
 
     @field_serializer("variant")

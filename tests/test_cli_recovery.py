@@ -1,4 +1,4 @@
-"""One command to recover (issue 27, item 3), and the routes of a new agent (item 2).
+"""One command to recover, and the routes of a new agent.
 
 - an error that needs no model comes before torch and Ray are imported;
 - a failed command leaves no run folder behind;
@@ -27,9 +27,15 @@ import pytest
 
 from amuled_ma.cli import main
 from amuled_ma.errors import AmuledError
-from amuled_ma.experiments.run_folder import recovery_commands, settings_refusal
+from amuled_ma.experiments.run_folder import (
+    Rerun,
+    TrainJob,
+    recovery_commands,
+    settings_refusal,
+)
 from amuled_ma.experiments.third_party_log import ray_to_log, third_party_to_log
 from amuled_ma.run_lock import LOCK_NAME, run_folder_lock
+from amuled_ma.variants import Variant
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
@@ -105,23 +111,36 @@ def test_a_failed_command_removes_the_folder_it_made(tmp_path):
 
 
 def test_recovery_commands_name_a_new_name_or_force_for_that_variant_only(tmp_path):
+    from amuled_ma.scenario import load_scenario
+
+    scenario = load_scenario("findmilk")
+    tune = Variant.finetune("amuled")
+    job = TrainJob("finetune-amuled", scenario, tmp_path, tune, tmp_path / "finetune-amuled")
     diffs = ["feedback.source: 'replay' -> 'ollama'"]
     hint = f"amuled finetune findmilk --feedback amuled --run-dir {tmp_path}"
-    beside, again = recovery_commands(tmp_path / "finetune-amuled", diffs, hint)
+    finetune = Rerun("finetune", ("findmilk", "--feedback", "amuled"))
+    beside, again = recovery_commands(job, diffs, finetune)
     assert beside == f"{hint} --name amuled-ollama" and again == f"{hint} --force"
+    options = ("--set", "feedback.source=ollama", "--seeds", "1")
     run = f"amuled run findmilk --run-dir {tmp_path} --set feedback.source=ollama --seeds 1"
-    beside, again = recovery_commands(tmp_path / "finetune-amuled", diffs, run)
-    assert beside.endswith(f"--run-dir {tmp_path}-ollama")
+    beside, again = recovery_commands(job, diffs, Rerun("run", ("findmilk",), options))
+    assert beside == run.replace(f"--run-dir {tmp_path}", f"--run-dir {tmp_path}-ollama")
     # one command: that folder retrained, the run's other variants resumed, one report
     assert again == f"{run} --retrain finetune-amuled"
-    ablate = f"amuled ablate findmilk --run-dir {tmp_path} --what clusters --resume"
-    folder = tmp_path / "ablate-clusters" / "finetune-care.seed43"
-    _, again = recovery_commands(folder, diffs, ablate)
+    name = "ablate-clusters/finetune-care.seed43"
+    care = TrainJob(name, scenario, tmp_path, Variant.finetune("cluster:care"), tmp_path / name)
+    ablate = Rerun("ablate", ("findmilk", "--what", "clusters"))
+    _, again = recovery_commands(care, diffs, ablate)
     assert again == (
-        f"amuled ablate findmilk --run-dir {tmp_path} --what clusters "
+        f"amuled ablate findmilk --what clusters --run-dir {tmp_path} "
         "--retrain ablate-clusters/finetune-care.seed43"
     )
-    text = settings_refusal(tmp_path / "finetune-amuled", diffs, hint)
+    # without the command's fields: the options are named
+    assert recovery_commands(job, diffs, None, hint) == (
+        "another --run-dir (or --name NAME for a fine-tune)",
+        f"{hint} --force",
+    )
+    text = settings_refusal(job, diffs, finetune)
     assert "feedback.source differ" in text and "--name amuled-ollama" in text
 
 

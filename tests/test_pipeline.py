@@ -115,18 +115,25 @@ def test_a_missing_recording_stops_before_any_folder_is_made(tmp_path, capsys):
 def test_the_inputs_of_several_jobs_are_named_once_each(tmp_path):
     """Two seeds' AMULED fine-tunes lack the same recording: one line, said once."""
     from amuled_ma.errors import AmuledError
-    from amuled_ma.experiments.plans import check_jobs, plan_run
+    from amuled_ma.experiments.plans import plan_jobs, plan_run
     from amuled_ma.scenario import load_scenario
 
     missing = tmp_path / "nowhere.json"
     scenario = load_scenario("findmilk").replace("feedback", recording=str(missing))
     jobs = plan_run(scenario, tmp_path / "run", [1, 2])
     with pytest.raises(AmuledError) as info:
-        check_jobs(jobs)
+        plan_jobs(jobs)
     assert str(missing) in str(info.value) and "\n" not in str(info.value)
     rules = scenario.replace("feedback", source="rules")
-    actions = check_jobs(plan_run(rules, tmp_path / "run", [1, 2]))  # nothing missing
-    assert set(actions.values()) == {"new"}
+    planned = plan_jobs(plan_run(rules, tmp_path / "run", [1, 2]))  # nothing missing
+    assert {job.action for job in planned} == {"new"}
+    # each fine-tune carries its panel plan, settings and base, planned once
+    tunes = [job for job in planned if job.variant.finetuning]
+    assert [job.base_checkpoint for job in tunes] == [
+        tmp_path / "run" / base / "model_last.pt"
+        for base in ("base", "base", "base.seed2", "base.seed2")
+    ]
+    assert all(job.panel is not None and job.settings["seed"] == job.seed for job in tunes)
     assert not (tmp_path / "run").exists()
 
 

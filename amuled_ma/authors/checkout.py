@@ -40,6 +40,7 @@ from amuled_ma.authors.policies import (
 from amuled_ma.errors import AuthorsImportError
 from amuled_ma.file_hash import sha256_file
 from amuled_ma.safe_files import check_write_targets, write_text_atomic
+from amuled_ma.variants import Variant
 
 #: The authors' repository.
 AUTHORS_REPO = "https://github.com/temetski/moral_agent"
@@ -233,7 +234,7 @@ def _policy_outputs(
         out_dir = run_dir / source.folder
         rel = _rel(source.path, checkout)
         sha = sha256_file(source.path)
-        variant = "base" if source.model is None else "finetune:amuled"
+        variant = Variant("base") if source.model is None else Variant.finetune("amuled")
         base = None
         if source.model is not None:
             scenario = scenario.replace(
@@ -257,7 +258,7 @@ def _policy_outputs(
             },
         )
         training = {
-            "variant": variant,
+            "variant": str(variant),
             "seed": AUTHORS_SEED,
             "iterations": source.iteration,
             "trained_by": f"the authors' CleanRL scripts ({AUTHORS_REPO})",

@@ -190,7 +190,7 @@ def build_checkpoint(
     state: Mapping[str, torch.Tensor],
     scenario: Any,
     *,
-    variant: str,
+    variant: Variant,
     iteration: int,
     base_checkpoint: Path | None = None,
     source: Mapping[str, Any] | None = None,
@@ -225,7 +225,7 @@ def build_checkpoint(
     optimizer = adam(
         [*actor.parameters(), *critic.parameters()], lr=_lr(scenario, variant), eps=1e-5
     )
-    finetune = Variant.parse(variant).finetuning
+    finetune = variant.finetuning
     train_cfg = rsl_rl_config(
         scenario.ppo,
         num_steps_per_env=AUTHORS_FINETUNE_STEPS,
@@ -234,7 +234,7 @@ def build_checkpoint(
         num_learning_epochs=8 if finetune else None,
     )
     infos = {
-        "variant": variant,
+        "variant": str(variant),
         "scenario": scenario.name,
         "iteration": iteration,
         "total_iterations": iteration,
@@ -257,8 +257,8 @@ def build_checkpoint(
     }
 
 
-def _lr(scenario: Any, variant: str) -> float:
-    if Variant.parse(variant).finetuning:
+def _lr(scenario: Any, variant: Variant) -> float:
+    if variant.finetuning:
         return float(scenario.finetune.learning_rate)
     return float(scenario.ppo.learning_rate)
 
@@ -323,6 +323,7 @@ def write_variant(
 
     from amuled_ma.experiments.run_folder import write_config
     from amuled_ma.learn.checkpoints import LAST
+    from amuled_ma.records import RunRecord
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -340,8 +341,8 @@ def write_variant(
         "state": "complete" if infos["completed"] else "interrupted",
         "authors": dict(infos["authors"]),
     }
-    variant = Variant.parse(infos["variant"])
-    if variant.finetuning:  # trained by the authors on their panel's feedback with this LLM
+    variant = RunRecord.model_validate({"variant": infos["variant"]}).variant  # its one parser
+    if variant is not None and variant.finetuning:  # the authors' panel's feedback, this LLM
         fields["panel"] = {"feedback": variant.feedback, "model": infos["authors"].get("model")}
     write_config(out_dir, scenario, fields)
     write_text_atomic(out_dir / TRAIN_CFG, json.dumps(checkpoint["infos"]["train_cfg"], indent=2))

@@ -37,6 +37,7 @@ def main(args: argparse.Namespace) -> int:
     """Run the benchmark and print the figures; returns 0 (a benchmark, not a test)."""
     from amuled_ma.experiments.plans import train_variant
     from amuled_ma.scenario import load_scenario
+    from amuled_ma.variants import Variant
 
     rows = []
     with output_folder(args.out, "amuled-bench-authors-") as out:
@@ -48,9 +49,11 @@ def main(args: argparse.Namespace) -> int:
             # (their recipe), without the abstention stop meant for real runs
             scenario = scenario.replace("feedback", max_abstention=1.0)
             run_dir = out / task
-            train_variant(scenario, run_dir, "base")
+            train_variant(scenario, run_dir, Variant("base"))
             start = time.perf_counter()
-            job = train_variant(scenario, run_dir, "finetune:amuled", iterations=args.iterations)
+            job = train_variant(
+                scenario, run_dir, Variant.finetune("amuled"), iterations=args.iterations
+            )
             seconds = time.perf_counter() - start
             assert job.outcome is not None
             rows.append((task, job.outcome.iterations, seconds))

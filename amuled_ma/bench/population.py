@@ -156,6 +156,7 @@ def _jobs(scenario: Any, run: Path, base: Path, count: int, tag: str, store: Any
     """``count`` fine-tune jobs of the base: seeds 42.., lambda_KL in turn, own feedback."""
     from amuled_ma.deliberation.build import make_feedback
     from amuled_ma.learn.population_groups import MemberSpec
+    from amuled_ma.variants import Variant
 
     jobs = []
     for k in range(count):
@@ -165,8 +166,8 @@ def _jobs(scenario: Any, run: Path, base: Path, count: int, tag: str, store: Any
         feedback = make_feedback("amuled", job, run, state_dir=out, seed=seed, store=store)
         jobs.append(
             MemberSpec(
-                job, out, variant="finetune:amuled", feedback=feedback, base_checkpoint=base,
-                seed=seed,
+                job, out, variant=Variant.finetune("amuled"), feedback=feedback,
+                base_checkpoint=base, seed=seed,
             )
         )  # fmt: skip
     return jobs
@@ -184,7 +185,7 @@ def measure_task(task: str, args: argparse.Namespace, out: Path) -> dict[str, An
     t0 = time.perf_counter()
     base = _alone(MemberSpec(scenario, run / "base")).train()[0].checkpoint
     base_s = time.perf_counter() - t0
-    store = run_store(scenario, run)
+    store = run_store(scenario.store_path(run))
     its = args.warmup + args.iterations
     rows = []
     for size in [int(s) for s in args.sizes.split(",") if s.strip()]:
@@ -336,7 +337,7 @@ def welch(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
     scenario = scenario.replace("finetune", lambda_kl=2.5)
     run = out / task
     base = _alone(MemberSpec(scenario, run / "base")).train()[0].checkpoint
-    store = run_store(scenario, run)
+    store = run_store(scenario.store_path(run))
     groups: dict[str, list[dict[str, float]]] = {"alone": [], "population": []}
     times: dict[str, float] = {}
     jobs = _jobs(scenario, run, base, args.welch, "alone", store)

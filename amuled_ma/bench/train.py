@@ -131,6 +131,7 @@ def bench_finetune(out: Path, base_ckpt: Path | None, quick: bool) -> dict[str, 
     from amuled_ma.experiments.plans import train_variant
     from amuled_ma.learn.checkpoints import LAST
     from amuled_ma.scenario import load_scenario
+    from amuled_ma.variants import Variant
 
     sc = load_scenario("findmilk").replace("output", tensorboard=False)
     if not sc.recording_path().exists():
@@ -143,7 +144,7 @@ def bench_finetune(out: Path, base_ckpt: Path | None, quick: bool) -> dict[str, 
         (run / "base" / LAST).write_bytes(Path(base_ckpt).read_bytes())
     iterations = sc.finetune.iterations // (10 if quick else 1)
     t0 = time.perf_counter()
-    job = train_variant(sc, run, "finetune:amuled", force=True, iterations=iterations)
+    job = train_variant(sc, run, Variant.finetune("amuled"), force=True, iterations=iterations)
     wall = time.perf_counter() - t0
     assert job.outcome is not None
     return {

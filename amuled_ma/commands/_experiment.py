@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import shlex
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -12,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 from amuled_ma.scenario.overrides import parse_set
 
 if TYPE_CHECKING:
+    from amuled_ma.experiments.run_folder import Rerun
     from amuled_ma.scenario import Scenario
 
 
@@ -210,35 +210,50 @@ def customise(
 
 def run_dir_of(args: argparse.Namespace, scenario: Any) -> Path:
     """Return the run directory: ``--run-dir`` or the scenario's default."""
-    from amuled_ma.experiments.run_folder import default_run_dir
+    return Path(args.run_dir) if args.run_dir else scenario.default_run_dir()
 
-    return Path(args.run_dir) if args.run_dir else default_run_dir(scenario)
+
+def rerun_of(name: str, args: argparse.Namespace, *extra: str) -> Rerun:
+    """The command that re-runs a job, as fields (its run folder and ``--name`` apart).
+
+    Args:
+        name: The command (``run``, ``ablate``, ``train``, ``finetune``).
+        args: Its parsed arguments.
+        extra: Its own arguments, before ``--run-dir`` (``--variant base``).
+
+    """
+    from amuled_ma.experiments.run_folder import Rerun
+
+    options: list[str] = []
+    if getattr(args, "recipe", None):
+        options += ["--recipe", args.recipe]
+    for folder in getattr(args, "clusters_dir", []):
+        options += ["--clusters-dir", str(folder)]
+    for text in getattr(args, "overrides", []):
+        options += ["--set", text]
+    for path in getattr(args, "allow_plugin", []):
+        options += ["--allow-plugin", path]  # a run folder never allows code by itself
+    if getattr(args, "seed", None) is not None:
+        options += ["--seed", str(args.seed)]
+    if getattr(args, "seeds", 1) != 1:
+        options += ["--seeds", str(args.seeds)]
+    if getattr(args, "jobs", 0):
+        options += ["--jobs", str(args.jobs)]
+    if getattr(args, "ray", None) is not None:
+        options += ["--ray"] + ([] if args.ray == "local" else [args.ray])
+    if getattr(args, "ray_resource", None):
+        options += ["--ray-resource", args.ray_resource]
+    if not getattr(args, "population", True):
+        options.append("--no-population")
+    if getattr(args, "base", None) is not None and name == "finetune":
+        options += ["--base", str(args.base)]
+    name_option = getattr(args, "name", None) if name == "finetune" else None
+    return Rerun(name, (str(args.scenario), *extra), tuple(options), name_option)
 
 
 def command_line(name: str, args: argparse.Namespace, run_dir: Path, *extra: str) -> str:
     """Return the shell command that re-runs a job (used for resume hints)."""
-    parts = ["amuled", name, str(args.scenario), *extra, "--run-dir", str(run_dir)]
-    if getattr(args, "recipe", None):
-        parts += ["--recipe", args.recipe]
-    for folder in getattr(args, "clusters_dir", []):
-        parts += ["--clusters-dir", str(folder)]
-    for text in getattr(args, "overrides", []):
-        parts += ["--set", text]
-    for path in getattr(args, "allow_plugin", []):
-        parts += ["--allow-plugin", path]  # a run folder never allows code by itself
-    if getattr(args, "seed", None) is not None:
-        parts += ["--seed", str(args.seed)]
-    if getattr(args, "seeds", 1) != 1:
-        parts += ["--seeds", str(args.seeds)]
-    if getattr(args, "jobs", 0):
-        parts += ["--jobs", str(args.jobs)]
-    if getattr(args, "ray", None) is not None:
-        parts += ["--ray"] + ([] if args.ray == "local" else [args.ray])
-    if getattr(args, "ray_resource", None):
-        parts += ["--ray-resource", args.ray_resource]
-    if not getattr(args, "population", True):
-        parts.append("--no-population")
-    return shlex.join(parts)
+    return rerun_of(name, args, *extra).line(run_dir)
 
 
 def say(message: str) -> None:

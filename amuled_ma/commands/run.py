@@ -264,7 +264,7 @@ def request_of(args: argparse.Namespace, command: str, *extra: str) -> Any:
         ray=ray_target(args),
         population=args.population,
         progress=not args.no_progress,
-        hint=common.command_line(command, args, run_dir, *extra),
+        rerun=common.rerun_of(command, args, *extra),
         title=title,
         offline=args.offline,
     )

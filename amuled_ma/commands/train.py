@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import argparse
-import shlex
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from amuled_ma.commands import _experiment as common
 from amuled_ma.scenario import Scenario, check_path_component
 from amuled_ma.variants import Variant
+
+if TYPE_CHECKING:
+    from amuled_ma.experiments.run_folder import Rerun
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -71,10 +73,10 @@ def train_command(args: argparse.Namespace) -> int:
 
     scenario = common.load(args)
     run_dir = common.run_dir_of(args, scenario)
-    hint = common.command_line("train", args, run_dir, "--variant", args.variant)
+    rerun = common.rerun_of("train", args, "--variant", args.variant)
     start = time.perf_counter()
     job = train_alone(
-        _request(scenario, run_dir, args, hint),
+        _request(scenario, run_dir, args, rerun),
         Variant.parse(args.variant),
         config={"variant": args.variant},
     )
@@ -100,13 +102,9 @@ def finetune_command(args: argparse.Namespace) -> int:
     variant = Variant.finetune(args.feedback, label=scenario.feedback.name or None)
     if args.base is not None:
         base.update(base_dir=args.base.parent, base_variant=args.base.name)
-    hint = common.command_line("finetune", args, run_dir, "--feedback", args.feedback)
-    if args.name is not None:
-        hint += " --name " + shlex.quote(args.name)
-    if args.base is not None:
-        hint += " --base " + shlex.quote(str(args.base))
+    rerun = common.rerun_of("finetune", args, "--feedback", args.feedback)
     # the preflight (every panel member can answer, the base exists) runs before any folder
-    job = train_alone(_request(scenario, run_dir, args, hint), variant, **base)
+    job = train_alone(_request(scenario, run_dir, args, rerun), variant, **base)
     common.say(
         f"finetune {scenario.name}/{job.out_dir.name}: done in "
         f"{time.perf_counter() - start:.1f} s; "
@@ -115,7 +113,7 @@ def finetune_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def _request(scenario: Scenario, run_dir: Path, args: argparse.Namespace, hint: str) -> Any:
+def _request(scenario: Scenario, run_dir: Path, args: argparse.Namespace, rerun: Rerun) -> Any:
     """The pipeline request of one job from the command line (seed, resume, force)."""
     from amuled_ma.pipeline import PipelineRequest
 
@@ -126,5 +124,5 @@ def _request(scenario: Scenario, run_dir: Path, args: argparse.Namespace, hint: 
         resume=args.resume,
         force=args.force,
         progress=not args.no_progress,
-        hint=hint,
+        rerun=rerun,
     )

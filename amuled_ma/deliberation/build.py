@@ -36,7 +36,6 @@ from amuled_ma.deliberation.plan import (
     plan_panel,
     plan_sources,
     recording_of,
-    store_path,
 )
 from amuled_ma.errors import AmuledError, ScenarioError
 from amuled_ma.scenario import AGENT_SOURCE_KINDS, MORAL_AGENT, Scenario
@@ -233,17 +232,13 @@ def live_cost_lines(
 
 
 def live_costs(
-    scenario: Scenario,
-    feedback: str,
-    run_dir: Path | None,
-    say: Callable[[str], None] | None = None,
+    plan: PanelPlan, store: Path, say: Callable[[str], None] | None = None
 ) -> list[str]:
-    """`live_cost_lines` of a fine-tune's panel; no source is built without a live member.
+    """`live_cost_lines` of a fine-tune's planned panel; no source is built without a live member.
 
     Args:
-        scenario: The scenario.
-        feedback: The fine-tune's feedback variant.
-        run_dir: The run folder (its belief store's recorded times are read).
+        plan: The fine-tune's panel plan (a job's ``panel``).
+        store: Its belief store file (a job's ``store``); its recorded times are read.
         say: See `live_cost_lines`.
 
     Raises:
@@ -251,7 +246,6 @@ def live_costs(
             that went away since).
 
     """
-    plan = plan_panel(feedback, scenario)
     if not plan.asks_panel or plan.fused_recording is not None:
         return []
     specs = [*plan.routes.values(), *([plan.default] if plan.default is not None else [])]
@@ -259,7 +253,7 @@ def live_costs(
         return []
     members = build_members(plan)
     try:
-        return live_cost_lines(plan, store_path(scenario, run_dir), members, say)
+        return live_cost_lines(plan, store, members, say)
     finally:
         members.close()
 
@@ -668,20 +662,15 @@ def _count_questions(distilled: Any, plan: PanelPlan) -> None:
         person.expected = states * agents
 
 
-def open_run_store(scenario: Scenario, run_dir: Path | None = None) -> Any:
-    """Open the belief store of a scenario's run (``plan.store_path``)."""
-    from amuled_ma.beliefs.store_service import open_store
-
-    return open_store(store_path(scenario, run_dir))
-
-
-def run_store(scenario: Scenario, run_dir: Path | None = None) -> Any:
-    """The belief store of a scenario's run, opened on first use (`open_run_store`).
+def run_store(path: Path) -> Any:
+    """The belief store at ``path`` (a run's: ``Scenario.store_path``), opened on first use.
 
     The preflight runs before the store's file exists; a feedback that never asks a
     member (the demonstrator, a fused-only recording) never opens it.
     """
-    return _Lazy(lambda: open_run_store(scenario, run_dir))
+    from amuled_ma.beliefs.store_service import open_store
+
+    return _Lazy(lambda: open_store(path))
 
 
 def make_feedback(
@@ -712,7 +701,7 @@ def make_feedback(
     """
     plan = plan_panel(variant, scenario)
     if store is None:
-        store = run_store(scenario, run_dir)
+        store = run_store(scenario.store_path(run_dir))
     return build_feedback(
         plan, store, state_dir=state_dir, resume=resume, seed=seed, cache_dir=run_dir
     )
@@ -744,7 +733,7 @@ def make_source(scenario: Scenario, run_dir: Path | None = None, *, agents: Any 
         default=default,
         problems=tuple(problems),
     )
-    return panel_source(plan, run_store(scenario, run_dir))
+    return panel_source(plan, run_store(scenario.store_path(run_dir)))
 
 
 class _Named:

@@ -164,16 +164,6 @@ class PanelPlan:
         return described
 
 
-def store_path(scenario: Scenario, run_dir: Path | None = None) -> Path:
-    """The belief store file of a scenario's run.
-
-    ``[feedback].store``; a relative path is resolved against the run folder (or the
-    scenario's folder without one).
-    """
-    path = Path(scenario.feedback.store)
-    return path if path.is_absolute() else (run_dir or scenario.base_dir) / path
-
-
 def cluster_registry(scenario: Scenario) -> Any:
     """The shipped clusters plus the scenario's ``[feedback].clusters_dirs`` (later win).
 

@@ -72,7 +72,7 @@ def open_feedback(
 
     `make_feedback` builds it (same agents, fusion
     rule, sources and store keys) over one `ReadOnlyStore` of the run's file
-    (`store_path`), which is never opened for writing
+    (`Scenario.store_path`), which is never opened for writing
     (an Ollama source still asks its server about states the run never asked).
 
     Args:
@@ -86,10 +86,9 @@ def open_feedback(
 
     """
     from amuled_ma.deliberation.build import make_feedback
-    from amuled_ma.deliberation.plan import store_path
 
     run = Path(run_dir) if run_dir is not None else None
-    store = ReadOnlyStore(store_path(scenario, run) if run is not None else None)
+    store = ReadOnlyStore(scenario.store_path(run) if run is not None else None)
     try:
         return make_feedback(feedback_name, scenario, run, store=store), store
     except BaseException:

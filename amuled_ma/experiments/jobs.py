@@ -30,8 +30,6 @@ from typing import Any
 from amuled_ma.errors import AmuledError
 from amuled_ma.experiments.ray_switches import ray_switches
 from amuled_ma.experiments.run_folder import JobResult, TrainJob
-from amuled_ma.learn.config import planned_iterations
-from amuled_ma.scenario import Scenario
 
 
 @dataclass(frozen=True)
@@ -82,21 +80,17 @@ def resolve_workers(requested: int, jobs: Sequence[TrainJob]) -> int:
     if requested < 0:
         raise AmuledError(f"--jobs must be 0 (auto) or a positive count, got {requested}")
     if requested == 0:
-        live = any(j.variant.finetuning and _asks_live(j.scenario) for j in jobs)
+        live = any(j.variant.finetuning and _asks_live(j) for j in jobs)
         requested = 1 if live else available_cpus()
     return max(1, min(requested, len(jobs) or 1))
 
 
-def _asks_live(scenario: Scenario) -> bool:
-    """Whether a scenario's feedback asks an Ollama server or a person (any agent)."""
-    kinds = {scenario.feedback.source}
-    kinds |= {str(spec.get("source")) for spec in scenario.feedback.agents.values()}
+def _asks_live(job: TrainJob) -> bool:
+    """Whether a job's feedback asks an Ollama server or a person (any agent)."""
+    feedback = job.scenario.feedback
+    kinds = {feedback.source}
+    kinds |= {str(spec.get("source")) for spec in feedback.agents.values()}
     return bool(kinds & {"ollama", "terminal"})
-
-
-def total_iterations(job: TrainJob) -> int:
-    """Iterations a job runs to (for the progress bar)."""
-    return planned_iterations(job.scenario, finetune=job.variant.finetuning)
 
 
 def check_order(jobs: Sequence[TrainJob]) -> None:
@@ -163,13 +157,14 @@ def run_jobs(
     hint: str = "",
     describe: Callable[[Any], str] = str,
     ray: RayTarget | None = None,
-    actions: dict[str, str] | None = None,
     population: bool = True,
 ) -> JobsOutcome:
     """Train a graph of jobs.
 
     Args:
-        jobs: The jobs, each after the jobs it needs.
+        jobs: The jobs, each after the jobs it needs, planned
+            (:func:`~amuled_ma.experiments.plans.plan_jobs`; an unplanned graph is
+            planned here).
         workers: Jobs at once; 1 (without ``ray``) trains in this process, more on a
             local Ray with that many CPUs.
         progress: Show progress bars.
@@ -177,8 +172,6 @@ def run_jobs(
         describe: Turns each finished :class:`~amuled_ma.experiments.run_folder.JobResult`
             into the line printed about it.
         ray: Train on Ray even with one worker, at this cluster (``--ray [ADDRESS]``).
-        actions: What :func:`~amuled_ma.experiments.plans.check_jobs` decided for each
-            job, when the caller already checked them (default: checked here).
         population: Train jobs of one shape together as populations
             (:mod:`~amuled_ma.experiments.population_jobs`; ``--no-population``: False).
 
@@ -192,17 +185,17 @@ def run_jobs(
 
     """
     check_order(jobs)
-    if actions is None:
-        from amuled_ma.experiments.plans import check_jobs  # here: it imports torch
+    if any(job.action is None for job in jobs):
+        from amuled_ma.experiments.plans import plan_jobs  # here: it imports torch
 
-        actions = check_jobs(jobs, hint)
+        jobs = plan_jobs(jobs, hint)
     start = time.perf_counter()
     on_ray = uses_ray(jobs, workers, ray)
     skipped = {j.name: JobResult(j.variant, j.out_dir, skipped=True) for j in jobs
-               if actions[j.name] == "skip"}  # fmt: skip
+               if j.action == "skip"}  # fmt: skip
     for result in skipped.values():
         print(describe(result), flush=True)
-    groups = job_groups(jobs, actions, workers=workers if on_ray else 1, population=population)
+    groups = job_groups(jobs, workers=workers if on_ray else 1, population=population)
     if not on_ray:
         ran = _train_groups(groups, progress=progress, hint=hint, describe=describe)
         results_by_name = {**skipped, **ran}
@@ -226,20 +219,18 @@ def run_jobs(
     )
 
 
-def job_groups(
-    jobs: Sequence[TrainJob], actions: dict[str, str], *, workers: int, population: bool
-) -> list[list[TrainJob]]:
-    """The jobs to train (not skipped) as groups that train together, needs first.
+def job_groups(jobs: Sequence[TrainJob], *, workers: int, population: bool) -> list[list[TrainJob]]:
+    """The planned jobs to train (not skipped) as groups that train together, needs first.
 
     With ``population``, :func:`~amuled_ma.experiments.population_jobs.population_groups`
     (jobs of one shape together, a level cut into as few populations as fill the
     workers); else one job a group.
     """
     if not population:
-        return [[job] for job in jobs if actions[job.name] != "skip"]
+        return [[job] for job in jobs if job.action != "skip"]
     from amuled_ma.experiments.population_jobs import population_groups  # here: torch
 
-    return population_groups(jobs, actions, workers=workers)
+    return population_groups(jobs, workers=workers)
 
 
 def _train_groups(

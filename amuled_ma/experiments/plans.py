@@ -2,25 +2,28 @@
 
 :func:`plan_run` and :func:`plan_ablation` list the jobs of ``amuled run`` and ``amuled
 ablate`` (:class:`~amuled_ma.experiments.run_folder.TrainJob`: a fine-tune needs its seed's
-base), :func:`check_inputs` checks what a job needs before anything trains, and
-:func:`train_variant` trains one variant into its folder. The layout of a run directory,
-and whether a variant folder is new, resumed or skipped, are in
-:mod:`amuled_ma.experiments.run_folder`; :mod:`amuled_ma.experiments.jobs` runs the planned jobs.
+base); :func:`plan_jobs` plans each once (:func:`plan_job`: its panel plan and preflight,
+run shape, settings, base checkpoint, new / resume / skip) before any folder exists;
+:func:`prepare_job` builds a planned job's feedback and writes its record; and
+:func:`train_variant` plans, prepares and trains one variant alone.
+:mod:`amuled_ma.experiments.jobs` trains a planned graph.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any
 
-from amuled_ma.deliberation.build import Members, build_feedback, checked_members, run_store
-from amuled_ma.deliberation.plan import PanelPlan, plan_panel
+from amuled_ma.deliberation.build import build_feedback, checked_members, preflight, run_store
+from amuled_ma.deliberation.plan import plan_panel
 from amuled_ma.errors import AmuledError, ScenarioError
 from amuled_ma.experiments.run_folder import (
     JobResult,
+    Rerun,
     TrainJob,
     base_checkpoint,
     finished_with,
@@ -31,10 +34,15 @@ from amuled_ma.experiments.run_folder import (
     write_config,
 )
 from amuled_ma.experiments.training_settings import training_config
+from amuled_ma.learn.checkpoints import LAST
+from amuled_ma.learn.job_shape import job_shape
 from amuled_ma.scenario import Scenario
 from amuled_ma.variants import AGGREGATIONS, Variant
 
 if TYPE_CHECKING:
+    from amuled_ma.beliefs.store_service import StoreService
+    from amuled_ma.deliberation.feedback_base import Feedback
+    from amuled_ma.learn.population import TrainOutcome
     from amuled_ma.learn.population_groups import MemberSpec
 
 #: The variants of the paper's main figure, in order.
@@ -58,8 +66,8 @@ BUDGET_SWEEP = (1.0, 0.3, 0.1, 0.03)
 BUDGET_SELECTIONS = ("uncertainty", "random")
 
 
-def training_seeds(scenario: Scenario, seed: int | None = None, count: int = 1) -> list[int]:
-    """The training seeds of a run: ``count`` consecutive seeds from ``seed`` or ``[task].seed``.
+def training_seeds(first: int, count: int = 1) -> list[int]:
+    """The training seeds of a run: ``count`` consecutive seeds from ``first``.
 
     Raises:
         AmuledError: ``count`` is below 1.
@@ -67,217 +75,249 @@ def training_seeds(scenario: Scenario, seed: int | None = None, count: int = 1) 
     """
     if count < 1:
         raise AmuledError(f"--seeds must be at least 1, got {count}")
-    first = scenario.task.seed if seed is None else seed
     return [first + k for k in range(count)]
 
 
-class CheckedInputs(NamedTuple):
-    """What :func:`checked_inputs` found: a fine-tune's panel plan, its sources, its base.
-
-    Attributes:
-        plan: The feedback's panel plan (None: not a fine-tune).
-        members: The panel's member sources, built and checked, open (None: no member
-            source); close them, or hand them to
-            :func:`~amuled_ma.deliberation.build.build_feedback`.
-        base_checkpoint: The finished base checkpoint (None: not a fine-tune, or its base
-            is trained earlier in the same plan).
-
-    """
-
-    plan: PanelPlan | None = None
-    members: Members | None = None
-    base_checkpoint: Path | None = None
-
-    def close(self) -> None:
-        """Close the member sources (when they were not handed to a feedback)."""
-        if self.members is not None:
-            self.members.close()
-
-
-def check_inputs(
-    scenario: Scenario,
-    variant: Variant | str,
-    run_dir: Path,
-    base_variant: str = "base",
+def plan_job(
+    job: TrainJob,
+    hint: str = "",
     planned: Collection[str] = (),
-) -> None:
-    """Check, before anything trains or any folder is made, every input a job needs.
+    *,
+    rerun: Rerun | None = None,
+    check_panel: bool = True,
+) -> TrainJob:
+    """Plan a job once: its panel plan, run shape, settings, base checkpoint and start.
 
-    :func:`checked_inputs`, the sources it built closed again.
+    A fine-tune's feedback variant is resolved into its panel plan
+    (:func:`~amuled_ma.deliberation.plan.plan_panel`: known clusters, shipped or in
+    ``[feedback].clusters_dirs``, their sources) and its base checkpoint is found
+    finished, unless the base is trained earlier in the same plan (``planned``); its
+    settings (:func:`~amuled_ma.experiments.training_settings.training_config`, with the
+    inputs' hashes) decide its folder's start
+    (:func:`~amuled_ma.experiments.run_folder.prepare_variant`: new, resume or skip).
+    With ``check_panel`` the panel's preflight runs
+    (:func:`~amuled_ma.deliberation.build.preflight`: a recording holds the member's
+    cluster and the task, a server has the model, a plug-in loads; its sources closed
+    again). Nothing is written.
 
-    Raises:
-        AmuledError: As :func:`checked_inputs`.
-
-    """
-    checked_inputs(scenario, variant, run_dir, base_variant, planned).close()
-
-
-def checked_inputs(
-    scenario: Scenario,
-    variant: Variant | str,
-    run_dir: Path,
-    base_variant: str = "base",
-    planned: Collection[str] = (),
-) -> CheckedInputs:
-    """Check, before anything trains or any folder is made, every input a job needs.
-
-    A fine-tune needs a known feedback variant whose agents are known clusters (shipped
-    or in ``[feedback].clusters_dirs``), a panel whose every member can answer (the
-    preflight of its plan, :func:`amuled_ma.deliberation.build.preflight`: a replayed
-    recording found, of the task, holding each member it serves and, with
-    ``[feedback.distill]``, per-cluster beliefs; an Ollama server that answers with the
-    model; a plug-in that loads; a policy file) and a finished base checkpoint, unless the
-    base is trained earlier in the same plan (``planned``). Nothing is written.
+    Args:
+        job: The job as the plan lists it.
+        hint: The command that re-runs the job (named in a refusal).
+        planned: The folder names the same plan trains (a base among them is not
+            looked for yet).
+        rerun: The command that re-runs the job, as fields (a refusal's recovery commands).
+        check_panel: Run the panel's preflight (False: :func:`prepare_job` checks the
+            sources it builds).
 
     Returns:
-        The plan, the member sources the preflight built (open: the job's feedback is
-        built from them, :func:`train_variant`) and the base checkpoint.
+        The job with its planned fields set.
 
     Raises:
-        AmuledError: The first missing input, in one line naming the member and the ways
-            to give it beliefs, or the command or setting that fixes it; nothing is left
-            open.
+        AmuledError: The first thing missing or clashing, in one line naming the fix.
 
     """
-    variant = Variant.parse(variant)
-    if not variant.finetuning:
-        return CheckedInputs()
-    assert variant.feedback is not None
-    plan = plan_panel(variant.feedback, scenario)
-    members = checked_members(plan)
-    checked = CheckedInputs(plan, members)
-    if base_variant not in planned:
+    variant, scenario = job.variant, job.scenario
+    panel = plan_panel(variant.feedback, scenario) if variant.feedback is not None else None
+    if panel is not None and check_panel:
+        preflight(panel)
+    base = None
+    if variant.finetuning:
+        base = job.base_folder / LAST
+        if job.base_variant not in planned:
+            base = base_checkpoint(job.base_folder, str(scenario.path or scenario.name))
+    settings = training_config(
+        scenario, variant, panel=panel, seed=job.seed, iterations=job.iterations
+    )
+    action = prepare_variant(job, settings, hint=hint, rerun=rerun)
+    return dataclasses.replace(
+        job,
+        panel=panel,
+        shape=job_shape(scenario, variant, job.iterations),
+        settings=settings,
+        base_checkpoint=base,
+        store=scenario.store_path(job.run_dir) if variant.finetuning else None,
+        action=action,
+    )
+
+
+def plan_jobs(
+    jobs: Sequence[TrainJob], hint: str = "", rerun: Rerun | None = None
+) -> list[TrainJob]:
+    """Plan every job of a graph with its preflight (:func:`plan_job`), before any folder is made.
+
+    Args:
+        jobs: The graph, each job after the jobs it needs.
+        hint: The command that re-runs the graph (named in a refusal).
+        rerun: The same command as fields (a refusal's recovery commands).
+
+    Returns:
+        The planned jobs, in order.
+
+    Raises:
+        AmuledError: One problem as it was raised; several as one message listing each
+            distinct problem once (``N of M jobs cannot start, nothing was trained``).
+
+    """
+    names = {job.out_dir.name for job in jobs}
+    out: list[TrainJob] = []
+    errors: dict[str, AmuledError] = {}
+    failing = 0
+    for job in jobs:
         try:
-            base = base_checkpoint(run_dir, scenario, base_variant)
-        except BaseException:
-            checked.close()
-            raise
-        checked = checked._replace(base_checkpoint=base)
-    return checked
+            out.append(plan_job(job, hint, names, rerun=rerun))
+        except AmuledError as error:
+            failing += 1
+            errors.setdefault(str(error), error)
+    problems = list(errors)
+    if len(problems) == 1:
+        raise errors[problems[0]]
+    if problems:
+        raise AmuledError(
+            f"{failing} of {len(jobs)} jobs cannot start, nothing was trained:\n"
+            + "\n".join(f"  - {problem}" for problem in problems)
+        )
+    return out
 
 
 @dataclass
 class PreparedJob:
-    """A job ready to train: its folder written, its feedback built (:func:`prepare_job`).
+    """A planned job ready to train: its folder's record written, its feedback built.
 
     Attributes:
-        variant: What it trains.
-        out_dir: Its folder (its ``config.json`` written).
-        action: ``"new"`` or ``"resume"``.
+        job: The planned job.
         feedback: A fine-tune's feedback (open: :meth:`close` it), else None.
-        base_checkpoint: A fine-tune's base policy.
-        trainer_kwargs: The other fields of its
-            :class:`~amuled_ma.learn.population_groups.MemberSpec` (``seed``,
-            ``iterations``, ``resume_hint``, ``task_factory``).
+        resume_hint: The command that resumes it (printed on Ctrl-C).
 
     """
 
-    variant: Variant
-    out_dir: Path
-    action: str
-    feedback: Any
-    base_checkpoint: Path | None
-    trainer_kwargs: dict[str, Any]
+    job: TrainJob
+    feedback: Feedback | None
+    resume_hint: str | None
 
     def close(self) -> None:
         """Close the feedback (its sources and store connections)."""
         if self.feedback is not None:
             self.feedback.close()
 
-    def finished(self, outcome: Any) -> JobResult:
+    def finished(self, outcome: TrainOutcome) -> JobResult:
         """Record the job complete; its result."""
-        mark_state(self.out_dir, "complete", outcome.iterations)
-        return JobResult(self.variant, self.out_dir, outcome=outcome)
+        mark_state(self.job.out_dir, "complete", outcome.iterations)
+        return JobResult(self.job.variant, self.job.out_dir, outcome=outcome)
 
     def failed(self) -> None:
         """Record the job failed (unless the disk is full: the error says so)."""
         with contextlib.suppress(OSError):
-            mark_state(self.out_dir, "failed")
+            mark_state(self.job.out_dir, "failed")
+
+    def member(
+        self,
+        on_iteration: Callable[[Any, int], None] | None = None,
+        task_factory: Callable[..., Any] | None = None,
+    ) -> MemberSpec:
+        """The population member that trains it (its feedback, base, resume).
+
+        Args:
+            on_iteration: Called as ``fn(member, iteration)`` after every iteration
+                (:class:`~amuled_ma.learn.population.PopulationMember`).
+            task_factory: Replaces the task constructor (tests).
+
+        """
+        from amuled_ma.learn.population_groups import MemberSpec  # here: it imports torch
+
+        job = self.job
+        return MemberSpec(
+            job.scenario,
+            job.out_dir,
+            variant=job.variant,
+            feedback=self.feedback,
+            base_checkpoint=job.base_checkpoint,
+            resume=job.action == "resume",
+            seed=job.seed,
+            iterations=job.iterations,
+            resume_hint=self.resume_hint,
+            on_iteration=on_iteration,
+            task_factory=task_factory,
+            planned_shape=job.shape,
+        )
 
 
 def prepare_job(
-    scenario: Scenario,
-    run_dir: Path,
-    variant: Variant | str,
+    job: TrainJob,
     *,
-    resume: bool = False,
-    force: bool = False,
     hint: str = "",
-    iterations: int | None = None,
-    seed: int | None = None,
-    out_dir: Path | None = None,
-    base_dir: Path | None = None,
-    base_variant: str = "base",
-    task_factory: Callable[..., Any] | None = None,
-    feedback_factory: Callable[[str], Any] | None = None,
-    store: Any = None,
+    store: StoreService | None = None,
+    feedback_factory: Callable[[str], Feedback] | None = None,
 ) -> PreparedJob | JobResult:
-    """Check a job's inputs, decide new / resume / skip, build its feedback, write its record.
+    """Build a planned job's feedback and write its folder's record.
 
-    The arguments are :func:`train_variant`'s.
+    A fine-tune's member sources are built and checked from its panel plan
+    (:func:`~amuled_ma.deliberation.build.checked_members`) and its feedback is built of
+    them; its base, when the same plan trained it, is checked finished.
+
+    Args:
+        job: The job, planned (:func:`plan_job`).
+        hint: The command that re-runs the job (printed with ``--resume`` on a stop).
+        store: The belief store of the fine-tune's panel (default: the run's file,
+            ``[feedback].store``, opened on first use,
+            :func:`~amuled_ma.deliberation.build.run_store`).
+        feedback_factory: ``variant -> Feedback``, replaces the feedback built from the
+            plan (tests).
 
     Returns:
-        The prepared job, or the result of a job that is already trained (skipped).
+        The prepared job, or the result of a job planned as ``skip``.
+
+    Raises:
+        AmuledError: A member cannot answer, or the base the plan trained is unfinished.
 
     """
-    variant = Variant.parse(variant)
-    run_dir = Path(run_dir)
-    out = Path(out_dir) if out_dir else run_dir / variant.folder
-    # the preflight builds and checks the panel's sources once; the feedback is built of them
-    checked = checked_inputs(scenario, variant, Path(base_dir or run_dir), base_variant)
-    try:
-        training = training_config(scenario, variant, seed, iterations)
-        action = prepare_variant(out, resume=resume, force=force, hint=hint, training=training)
-        if action == "skip":
-            return JobResult(variant, out, skipped=True)
-        feedback = None
-        base_ckpt = checked.base_checkpoint
-        if variant.finetuning:
-            assert variant.feedback is not None and checked.plan is not None
-            if feedback_factory is not None:
-                feedback = feedback_factory(variant.feedback)
-            else:
-                members, checked = checked.members, checked._replace(members=None)
-                feedback = build_feedback(
-                    checked.plan,
-                    store if store is not None else run_store(scenario, run_dir),
-                    members=members,  # handed over: the feedback closes them
-                    state_dir=out,
-                    resume=action == "resume",
-                    seed=seed,
-                    cache_dir=run_dir,
-                )
-    finally:
-        checked.close()
-    try:
-        if action == "new" or not (out / "config.json").is_file():
-            fields = variant_fields(
-                variant, out, training, base_checkpoint=base_ckpt, feedback=feedback
+    assert job.action is not None and job.settings is not None, "prepare_job takes a planned job"
+    if job.action == "skip":
+        return JobResult(job.variant, job.out_dir, skipped=True)
+    feedback: Feedback | None = None
+    if job.variant.finetuning:
+        assert job.variant.feedback is not None and job.panel is not None and job.store
+        members = checked_members(job.panel)
+        try:
+            base_checkpoint(job.base_folder, str(job.scenario.path or job.scenario.name))
+        except BaseException:
+            if members is not None:
+                members.close()
+            raise
+        if feedback_factory is not None:
+            if members is not None:
+                members.close()
+            feedback = feedback_factory(job.variant.feedback)
+        else:
+            feedback = build_feedback(
+                job.panel,
+                store if store is not None else run_store(job.store),
+                members=members,  # handed over: the feedback closes them
+                state_dir=job.out_dir,
+                resume=job.action == "resume",
+                seed=job.seed,
+                cache_dir=job.run_dir,
             )
-            write_config(out, scenario, fields)
+    try:
+        if job.action == "new" or not (job.out_dir / "config.json").is_file():
+            fields = variant_fields(
+                job.variant,
+                job.out_dir,
+                job.settings,
+                base_checkpoint=job.base_checkpoint,
+                feedback=feedback,
+            )
+            write_config(job.out_dir, job.scenario, fields)
     except BaseException:
         if feedback is not None:
             feedback.close()
         raise
-    return PreparedJob(
-        variant,
-        out,
-        action,
-        feedback,
-        base_ckpt,
-        {
-            "seed": seed,
-            "iterations": iterations,
-            "resume_hint": f"{hint} --resume" if hint else None,
-            "task_factory": task_factory,
-        },
-    )
+    return PreparedJob(job, feedback, f"{hint} --resume" if hint else None)
 
 
 def train_variant(
     scenario: Scenario,
     run_dir: Path,
-    variant: Variant | str,
+    variant: Variant,
     *,
     resume: bool = False,
     force: bool = False,
@@ -290,10 +330,14 @@ def train_variant(
     base_variant: str = "base",
     on_iteration: Callable[[Any, int], None] | None = None,
     task_factory: Callable[..., Any] | None = None,
-    feedback_factory: Callable[[str], Any] | None = None,
-    store: Any = None,
+    feedback_factory: Callable[[str], Feedback] | None = None,
+    store: StoreService | None = None,
 ) -> JobResult:
     """Train one variant (``base``, ``shaped`` or ``finetune:<feedback>``) into the run.
+
+    The job is planned (:func:`plan_job`), prepared (:func:`prepare_job`) and trained
+    alone, as a population of one (:class:`~amuled_ma.learn.population.PopulationTrainer`:
+    the one training loop of every job); its record says complete or failed.
 
     Args:
         scenario: The scenario.
@@ -311,7 +355,7 @@ def train_variant(
         on_iteration: Called as ``fn(member, iteration)`` after every iteration.
         task_factory: Replaces the task constructor (tests).
         feedback_factory: ``variant -> Feedback``, replaces the feedback built from the
-            checked plan (tests).
+            plan (tests).
         store: The belief store of the fine-tune's panel (default: the run's file,
             ``[feedback].store``, opened on first use,
             :func:`~amuled_ma.deliberation.build.run_store`).
@@ -319,60 +363,35 @@ def train_variant(
     Returns:
         The job result.
 
-    """
-    prepared = prepare_job(
-        scenario,
-        run_dir,
-        variant,
-        resume=resume,
-        force=force,
-        hint=hint,
-        iterations=iterations,
-        seed=seed,
-        out_dir=out_dir,
-        base_dir=base_dir,
-        base_variant=base_variant,
-        task_factory=task_factory,
-        feedback_factory=feedback_factory,
-        store=store,
-    )
-    if isinstance(prepared, JobResult):
-        return prepared
-    return train_prepared(scenario, prepared, progress=progress, on_iteration=on_iteration)
-
-
-def train_prepared(
-    scenario: Scenario,
-    prepared: PreparedJob,
-    *,
-    progress: bool = False,
-    on_iteration: Callable[[Any, int], None] | None = None,
-) -> JobResult:
-    """Train a job :func:`prepare_job` prepared, alone; record it complete or failed.
-
-    A job alone is a population of one (:class:`~amuled_ma.learn.population.
-    PopulationTrainer`): the one training loop of every job.
-
-    Args:
-        scenario: The job's scenario.
-        prepared: The prepared job (closed here).
-        progress: Show a progress bar.
-        on_iteration: Called as ``fn(member, iteration)`` after every iteration
-            (:class:`~amuled_ma.learn.population.PopulationMember`).
-
-    Returns:
-        The job result.
-
     Raises:
+        AmuledError: An input is missing or the folder clashes (nothing written).
         MemberFailed: Its feedback failed or its gradient was not finite (its checkpoint
             before that iteration is written).
 
     """
+    run_dir = Path(run_dir)
+    job = TrainJob(
+        name=variant.folder,
+        scenario=scenario,
+        run_dir=run_dir,
+        variant=variant,
+        out_dir=Path(out_dir) if out_dir else run_dir / variant.folder,
+        seed=seed,
+        base_variant=base_variant,
+        resume=resume,
+        force=force,
+        base_dir=Path(base_dir) if base_dir else None,
+        iterations=iterations,
+    )
+    planned = plan_job(job, hint, check_panel=False)  # prepare_job checks what it builds
+    prepared = prepare_job(planned, hint=hint, store=store, feedback_factory=feedback_factory)
+    if isinstance(prepared, JobResult):
+        return prepared
     # after the checks: torch and rsl-rl load here, so that a refused job answers fast
     from amuled_ma.learn.population import PopulationTrainer
 
     try:
-        member = member_of(scenario, prepared, on_iteration)
+        member = prepared.member(on_iteration, task_factory)
         outcome = PopulationTrainer([member], progress=progress).train()[0]
         return prepared.finished(outcome)
     except Exception:
@@ -381,80 +400,6 @@ def train_prepared(
         raise
     finally:
         prepared.close()
-
-
-def member_of(
-    scenario: Scenario,
-    prepared: PreparedJob,
-    on_iteration: Callable[[Any, int], None] | None = None,
-) -> MemberSpec:
-    """The population member that trains a prepared job (its feedback, base, resume)."""
-    from amuled_ma.learn.population_groups import MemberSpec  # here: it imports torch
-
-    return MemberSpec(
-        scenario,
-        prepared.out_dir,
-        variant=prepared.variant,
-        feedback=prepared.feedback,
-        base_checkpoint=prepared.base_checkpoint,
-        resume=prepared.action == "resume",
-        on_iteration=on_iteration,
-        **prepared.trainer_kwargs,
-    )
-
-
-def prepare_planned_job(job: TrainJob, *, hint: str, store: Any = None) -> PreparedJob | JobResult:
-    """:func:`prepare_job` with a planned job's own settings (alone or in a population).
-
-    Args:
-        job: The job (its scenario, run and variant folders, seed, base, resume / force).
-        hint: The command that re-runs this job (for messages and Ctrl-C).
-        store: The belief store of the fine-tune's panel (default: the run's file).
-
-    Returns:
-        The prepared job, or the result of a job that is already trained (skipped).
-
-    """
-    return prepare_job(
-        job.scenario,
-        job.run_dir,
-        job.variant,
-        resume=job.resume,
-        force=job.force,
-        hint=hint,
-        seed=job.seed,
-        out_dir=job.out_dir,
-        base_dir=job.base_dir,
-        base_variant=job.base_variant,
-        store=store,
-    )
-
-
-def train_one_job(
-    job: TrainJob,
-    *,
-    progress: bool,
-    hint: str,
-    on_iteration: Callable[[Any, int], None] | None = None,
-    store: Any = None,
-) -> JobResult:
-    """Train one planned job alone: :func:`train_variant` with the job's own settings.
-
-    Args:
-        job: The job (its scenario, run and variant folders, seed, base, resume / force).
-        progress: Show a progress bar.
-        hint: The command that re-runs this job (for messages and Ctrl-C).
-        on_iteration: Called as ``fn(member, iteration)`` after every iteration.
-        store: The belief store of the fine-tune's panel (default: the run's file).
-
-    Returns:
-        The job result.
-
-    """
-    prepared = prepare_planned_job(job, hint=hint, store=store)
-    if isinstance(prepared, JobResult):
-        return prepared
-    return train_prepared(job.scenario, prepared, progress=progress, on_iteration=on_iteration)
 
 
 def ablation_variants(what: str, scenario: Scenario) -> list[tuple[Variant, Scenario]]:
@@ -546,34 +491,6 @@ def ablation_variants(what: str, scenario: Scenario) -> list[tuple[Variant, Scen
     return jobs
 
 
-def _job(
-    name: str, scenario: Scenario, run_dir: Path, variant: Variant, out_dir: Path, seed: int,
-    base: str, *, resume: bool, force: bool, base_dir: Path | None = None,
-) -> TrainJob:  # fmt: skip
-    """A job of a plan; a fine-tune needs (and anchors to) the base folder ``base``.
-
-    With ``base_dir`` the base is a finished folder outside the plan (nothing to wait for).
-    """
-    tune = variant.finetuning
-    if base_dir is not None:
-        return TrainJob(
-            name=name, scenario=scenario, run_dir=run_dir, variant=variant, out_dir=out_dir,
-            seed=seed, base_variant=base, resume=resume, force=force, base_dir=base_dir,
-        )  # fmt: skip
-    return TrainJob(
-        name=name,
-        scenario=scenario,
-        run_dir=run_dir,
-        variant=variant,
-        out_dir=out_dir,
-        seed=seed,
-        base_variant=base,
-        needs=(base,) if tune else (),
-        resume=resume,
-        force=force,
-    )
-
-
 def plan_run(
     scenario: Scenario,
     run_dir: Path,
@@ -595,64 +512,16 @@ def plan_run(
         own = replica_folder("base", seed, seeds[0])
         for variant in MAIN_VARIANTS:
             folder = replica_folder(variant.folder, seed, seeds[0])
-            if base is not None and variant.finetuning:
-                jobs.append(
-                    _job(folder, scenario, run_dir, variant, run_dir / folder, seed, base.name,
-                         resume=resume, force=force, base_dir=base.parent)
-                )  # fmt: skip
-                continue
-            jobs.append(
-                _job(folder, scenario, run_dir, variant, run_dir / folder, seed, own,
-                     resume=resume, force=force)
+            job = TrainJob(
+                name=folder, scenario=scenario, run_dir=run_dir, variant=variant,
+                out_dir=run_dir / folder, seed=seed, base_variant=own, resume=resume, force=force,
             )  # fmt: skip
+            if variant.finetuning and base is not None:  # a finished base outside the plan
+                job = dataclasses.replace(job, base_variant=base.name, base_dir=base.parent)
+            elif variant.finetuning:
+                job = dataclasses.replace(job, needs=(own,))
+            jobs.append(job)
     return jobs
-
-
-def check_jobs(jobs: Sequence[TrainJob], hint: str = "") -> dict[str, str]:
-    """Check every planned job before anything is made or trained, and decide its start.
-
-    Each job's inputs go through :func:`check_inputs` (its feedback agents, recording or
-    sources, and a finished base unless the plan trains it), then its folder through
-    :func:`~amuled_ma.experiments.run_folder.prepare_variant` (new, resume or skip; a
-    checkpoint without ``--resume``/``--force``, or trained with other settings, is
-    refused). Nothing is written, no folder is made.
-
-    Args:
-        jobs: The planned graph.
-        hint: The command that re-runs the graph (named in a refusal).
-
-    Returns:
-        ``{job name: "new" | "resume" | "skip"}``.
-
-    Raises:
-        AmuledError: One problem as it was raised; several as one message listing each
-            distinct problem once (``N of M jobs cannot start, nothing was trained``).
-
-    """
-    planned = {job.out_dir.name for job in jobs}
-    actions: dict[str, str] = {}
-    problems: list[str] = []
-    failing = 0
-    for job in jobs:
-        try:
-            check_inputs(job.scenario, job.variant, job.base_dir or job.run_dir,
-                         job.base_variant, planned)  # fmt: skip
-            training = training_config(job.scenario, job.variant, job.seed)
-            actions[job.name] = prepare_variant(
-                job.out_dir, resume=job.resume, force=job.force, hint=hint, training=training
-            )
-        except AmuledError as error:
-            failing += 1
-            if str(error) not in problems:
-                problems.append(str(error))
-    if len(problems) == 1:
-        raise AmuledError(problems[0])
-    if problems:
-        raise AmuledError(
-            f"{failing} of {len(jobs)} jobs cannot start, nothing was trained:\n"
-            + "\n".join(f"  - {problem}" for problem in problems)
-        )
-    return actions
 
 
 def retrain_jobs(jobs: Sequence[TrainJob], names: Collection[str]) -> list[TrainJob]:
@@ -721,18 +590,30 @@ def plan_ablation(
     for seed in seeds:
         base = replica_folder("base", seed, seeds[0])
         jobs.append(
-            _job(base, scenario, run_dir, Variant("base"), run_dir / base, seed, base,
-                 resume=True, force=False)
+            TrainJob(name=base, scenario=scenario, run_dir=run_dir, variant=Variant("base"),
+                     out_dir=run_dir / base, seed=seed, base_variant=base, resume=True)
         )  # fmt: skip
         for variant, sc in variants:
             replica = replica_folder(variant.folder, seed, seeds[0])
-            trained = run_dir / replica
-            if finished_with(trained, training_config(sc, variant, seed)):
-                jobs.append(_job(replica, sc, run_dir, variant, trained, seed, base,
-                                 resume=True, force=False))  # fmt: skip
-                continue
-            jobs.append(
-                _job(f"{out.name}/{replica}", sc, run_dir, variant, out / replica,
-                     seed, base, resume=resume, force=force)
+            job = TrainJob(
+                name=f"{out.name}/{replica}", scenario=sc, run_dir=run_dir, variant=variant,
+                out_dir=out / replica, seed=seed, base_variant=base, needs=(base,),
+                resume=resume, force=force,
             )  # fmt: skip
+            if _finished_in_run(job, run_dir / replica):
+                job = dataclasses.replace(
+                    job, name=replica, out_dir=run_dir / replica, resume=True, force=False
+                )
+            jobs.append(job)
     return jobs
+
+
+def _finished_in_run(job: TrainJob, trained: Path) -> bool:
+    """Whether the run's folder ``trained`` finished ``job`` with exactly its settings."""
+    assert job.variant.feedback is not None
+    try:
+        panel = plan_panel(job.variant.feedback, job.scenario)
+    except AmuledError:
+        return False  # plan_jobs names the problem
+    settings = training_config(job.scenario, job.variant, panel=panel, seed=job.seed)
+    return finished_with(trained, settings)

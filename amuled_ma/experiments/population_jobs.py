@@ -1,4 +1,4 @@
-"""The jobs of a sweep trained as populations (``amuled run`` / ``ablate``, issue 26).
+"""The jobs of a sweep trained as populations (``amuled run`` / ``ablate``).
 
 :func:`population_groups` cuts a job graph into groups that train together: jobs at the
 same depth of the graph (bases first, then the fine-tunes that need them) whose
@@ -19,12 +19,12 @@ in this process (:func:`~amuled_ma.experiments.jobs.run_jobs`).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from amuled_ma.errors import AmuledError
-from amuled_ma.experiments.plans import PreparedJob, member_of, prepare_planned_job
+from amuled_ma.experiments.plans import PreparedJob, prepare_job
 from amuled_ma.experiments.run_folder import JobResult, TrainJob
 from amuled_ma.learn.population_groups import (
     MemberSpec,
@@ -34,14 +34,21 @@ from amuled_ma.learn.population_groups import (
 )
 
 
-def member_spec(job: TrainJob, resume: bool) -> MemberSpec:
-    """The population member of ``job`` before it is prepared (for grouping only)."""
-    return MemberSpec(job.scenario, job.out_dir, variant=job.variant, seed=job.seed, resume=resume)
+def member_spec(job: TrainJob) -> MemberSpec:
+    """The population member of a planned job before it is prepared (for grouping only)."""
+    return MemberSpec(
+        job.scenario,
+        job.out_dir,
+        variant=job.variant,
+        seed=job.seed,
+        iterations=job.iterations,
+        resume=job.action == "resume",
+        planned_shape=job.shape,
+    )
 
 
 def population_groups(
     jobs: Sequence[TrainJob],
-    actions: Mapping[str, str],
     *,
     workers: int = 1,
     memory_budget: int | None = None,
@@ -49,9 +56,8 @@ def population_groups(
     """Group the jobs to train (not ``skip``) into populations, in an order that trains needs first.
 
     Args:
-        jobs: The graph, each job after the jobs it needs.
-        actions: ``new`` / ``resume`` / ``skip`` per job name
-            (:func:`~amuled_ma.experiments.plans.check_jobs`).
+        jobs: The graph, planned (:func:`~amuled_ma.experiments.plans.plan_jobs`), each
+            job after the jobs it needs.
         workers: Populations that train at once: a level of the graph is cut into at
             least this many populations (when it has the jobs; its shapes first, each
             shape cut only when there are fewer shapes than workers), each within its
@@ -64,7 +70,7 @@ def population_groups(
         is a lone job.
 
     """
-    todo = [job for job in jobs if actions.get(job.name) != "skip"]
+    todo = [job for job in jobs if job.action != "skip"]
     depth: dict[str, int] = {}
     for job in todo:  # graph order: a job's needs are numbered before it
         depth[job.name] = 1 + max((depth[n] for n in job.needs if n in depth), default=-1)
@@ -72,7 +78,7 @@ def population_groups(
     groups: list[list[TrainJob]] = []
     for level in sorted(set(depth.values())):
         layer = [job for job in todo if depth[job.name] == level]
-        specs = [member_spec(job, actions.get(job.name) == "resume") for job in layer]
+        specs = [member_spec(job) for job in layer]
         # a population costs a fixed ~0.26 s per iteration whatever its size: as few as
         # fill the workers (the level's shapes first, each cut only when they are fewer)
         shapes = len({population_key(spec) for spec in specs})
@@ -107,15 +113,15 @@ def train_population_jobs(
 ) -> GroupOutcome:
     """Train a group of jobs as populations, each job ending as a lone job ends.
 
-    Each job is prepared as :func:`~amuled_ma.experiments.plans.train_variant` prepares
-    it (an already trained one is skipped); the prepared jobs are split by
+    Each planned job is prepared (:func:`~amuled_ma.experiments.plans.prepare_job`; one
+    planned as ``skip`` is skipped); the prepared jobs are split by
     :func:`~amuled_ma.learn.population_groups.population_key` (a retried group may hold
     jobs resumed at other iterations) and each part trains as one population. A job
     that fails alone (its feedback, a gradient that is not finite) is marked ``failed``;
     the others finish.
 
     Args:
-        jobs: The group.
+        jobs: The group, planned.
         progress: Show a progress bar per population.
         hint: The command that re-runs the sweep (its ``--resume`` form is printed on a stop).
         on_iteration: Called as ``fn(member, iteration)`` for every member after every
@@ -139,14 +145,14 @@ def train_population_jobs(
     done: dict[str, JobResult] = {}
     try:
         for job in jobs:
-            ready = prepare_planned_job(
+            ready = prepare_job(
                 job, hint=hint, store=store_for(job) if store_for is not None else None
             )
             if isinstance(ready, JobResult):
                 done[job.name] = ready
             else:
                 prepared.append((job, ready))
-        specs = [member_of(job.scenario, ready, on_iteration) for job, ready in prepared]
+        specs = [ready.member(on_iteration) for _job, ready in prepared]
         alone = len(jobs) == 1  # a lone job: its failure is the group's error
         for members in split_populations(specs, memory_budget_bytes()):
             try:

@@ -55,15 +55,18 @@ import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from amuled_ma.clusters.plugins import allowed_plugins, set_allowed_plugins
-from amuled_ma.deliberation.plan import store_path
 from amuled_ma.errors import AmuledError, Terminated
 from amuled_ma.experiments.population_jobs import population_failure, train_population_jobs
 from amuled_ma.experiments.ray_store import start_store_actors
 from amuled_ma.experiments.ray_switches import SINGLE_MACHINE_ENV
-from amuled_ma.experiments.run_folder import JobResult, TrainJob, checkpoint_state
+from amuled_ma.experiments.run_folder import (
+    JobResult,
+    TrainJob,
+    checkpoint_state,
+    prepare_variant,
+)
 from amuled_ma.experiments.third_party_log import ray_to_log
 from amuled_ma.learn.checkpoints import LAST
-from amuled_ma.learn.config import planned_iterations
 
 #: In a job folder: the sweep whose attempt started it (a retry of the same sweep resumes).
 SWEEP_MARK = ".amuled-sweep"
@@ -386,7 +389,7 @@ def train_group(
     away = node != driver_node  # not the driver's machine: its store through the actor
 
     def store_for(job: TrainJob) -> Any:
-        actor = stores.get(str(store_path(job.scenario, job.run_dir)))
+        actor = stores.get(str(job.store))
         return RemoteStore(actor) if away and actor is not None else None
 
     jobs = [_marked(job, sweep, node, announce=inputs is not None) for job in group]
@@ -423,7 +426,12 @@ def _marked(job: TrainJob, sweep: str, node: str, *, announce: bool) -> TrainJob
         )
     elif announce:  # on a cluster: say where each job trains
         print(f"{job.name}: starts on Ray node {node[:8]}", flush=True)
-    return dataclasses.replace(job, resume=job.resume or retry, force=job.force and not retry)
+    if not retry:
+        return job
+    # its checkpoint is this sweep's: continue it (the plan said new, or resume from earlier)
+    assert job.settings is not None
+    job = dataclasses.replace(job, resume=True, force=False)
+    return dataclasses.replace(job, action=prepare_variant(job, job.settings))
 
 
 def _ray_failure(name: str, error: BaseException) -> AmuledError:
@@ -443,6 +451,10 @@ def _absolute(job: TrainJob) -> TrainJob:
         run_dir=Path(job.run_dir).resolve(),
         out_dir=Path(job.out_dir).resolve(),
         base_dir=Path(job.base_dir).resolve() if job.base_dir is not None else None,
+        base_checkpoint=(
+            Path(job.base_checkpoint).resolve() if job.base_checkpoint is not None else None
+        ),
+        store=Path(job.store).resolve() if job.store is not None else None,
     )
 
 
@@ -520,7 +532,7 @@ def _sweep(
     in_sweep = {j.name for j in jobs}
     run_dirs = {j.run_dir for j in jobs}
     bar = tqdm(
-        total=sum(planned_iterations(j.scenario, finetune=j.variant.finetuning) for j in jobs),
+        total=sum(j.shape.total_iterations for j in jobs if j.shape is not None),
         desc=f"{len(jobs)} jobs on Ray"
         + (f" in {len(groups)} tasks" if len(groups) < len(jobs) else ""),
         unit="it",
@@ -549,7 +561,7 @@ def _sweep(
         here = NodeAffinitySchedulingStrategy(driver_node, soft=False)
         board = SweepBoard.options(scheduling_strategy=here).remote()
         stores = start_store_actors(
-            store_path(j.scenario, j.run_dir) for j in jobs if j.variant.asks_panel
+            j.store for j in jobs if j.variant.asks_panel and j.store is not None
         )
         options: dict[str, Any] = {"resources": {resource: 1}} if resource else {}
         plugins = tuple(sorted(allowed_plugins()))

@@ -30,11 +30,12 @@ from __future__ import annotations
 
 import json
 import re
+import shlex
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 from amuled_ma.errors import AmuledError, CheckpointError
 from amuled_ma.experiments.training_settings import (
@@ -48,19 +49,12 @@ from amuled_ma.scenario import MORAL_AGENT, Scenario
 from amuled_ma.variants import Variant
 
 if TYPE_CHECKING:
+    from amuled_ma.deliberation.plan import PanelPlan
+    from amuled_ma.learn.job_shape import JobShape
     from amuled_ma.learn.population import TrainOutcome
 
 
 # -- folder names -------------------------------------------------------------------
-def default_run_dir(scenario: Scenario) -> Path:
-    """``<output.runs_dir>/<scenario name>``, relative to the current directory.
-
-    The name is a single safe path component, so the run stays inside ``runs_dir``
-    (:meth:`~amuled_ma.scenario.Scenario.default_run_dir`).
-    """
-    return scenario.default_run_dir()
-
-
 #: A seed replica's folder: ``<variant folder>.seed<k>`` (the first seed keeps the plain name).
 _REPLICA = re.compile(r"^(?P<folder>.+)\.seed(?P<seed>\d+)$")
 
@@ -79,23 +73,65 @@ def split_replica(folder: str) -> tuple[str, int | None]:
 
 
 # -- records ------------------------------------------------------------------------
+#: What a job does with its folder: start it, continue its checkpoint, or keep it as it is.
+Action = Literal["new", "resume", "skip"]
+
+
+@dataclass(frozen=True)
+class Rerun:
+    """The command that re-runs a graph, as fields: ``amuled COMMAND ARGS --run-dir DIR OPTIONS``.
+
+    Attributes:
+        command: ``run``, ``ablate``, ``train`` or ``finetune``.
+        args: The words before ``--run-dir`` (the scenario first).
+        options: The words after it, ``--name`` aside.
+        name: A fine-tune's ``--name`` (None: not given).
+
+    """
+
+    command: str
+    args: tuple[str, ...]
+    options: tuple[str, ...] = ()
+    name: str | None = None
+
+    def line(self, run_dir: Path, *more: str, name: str | None = None) -> str:
+        """The shell command into ``run_dir`` (``name`` instead of :attr:`name`), ``more`` added."""
+        name = name or self.name
+        named = ("--name", name) if name else ()
+        words = ["amuled", self.command, *self.args, "--run-dir", str(run_dir)]
+        return shlex.join([*words, *self.options, *named, *more])
+
+
 @dataclass(frozen=True)
 class TrainJob:
-    """One variant to train, as :func:`~amuled_ma.experiments.plans.train_variant` takes it.
+    """One job of a run: what it trains and where, planned once and carried to its trainer.
+
+    The first fields say what to train (:func:`~amuled_ma.experiments.plans.plan_run`);
+    :func:`~amuled_ma.experiments.plans.plan_job` fills the planned ones (``action`` set:
+    planned), and every later stage reads them instead of deriving them again.
 
     Attributes:
         name: Unique name of the job in its graph (shown in messages).
         scenario: The scenario it trains on.
         run_dir: The run directory (belief store, default folders).
-        variant: What it trains (its text, e.g. ``"finetune:amuled"``, is parsed).
+        variant: What it trains.
         out_dir: Its folder.
         seed: Training seed (None: the scenario's).
-        base_variant: Folder (under ``run_dir``) of the base checkpoint a fine-tune anchors to.
+        base_variant: Folder (under ``base_dir``) of the base checkpoint a fine-tune anchors to.
         needs: Names of the jobs that must finish first.
         resume: Continue an unfinished checkpoint; skip a finished one.
         force: Start over even where a checkpoint exists.
         base_dir: The folder holding ``base_variant`` (default: ``run_dir``), e.g. the
             authors' imported base, ``runs/authors/findmilk``.
+        iterations: An override of the planned number of iterations (tests, benchmarks).
+        panel: A fine-tune's panel plan (planned).
+        shape: Its run shape (planned).
+        settings: What decides what it learns, with the inputs' hashes (planned;
+            :func:`~amuled_ma.experiments.training_settings.training_config`).
+        base_checkpoint: A fine-tune's base checkpoint (planned).
+        store: A fine-tune's belief store file (planned;
+            :meth:`~amuled_ma.scenario.Scenario.store_path`).
+        action: What it does with its folder (planned).
 
     """
 
@@ -110,10 +146,18 @@ class TrainJob:
     resume: bool = False
     force: bool = False
     base_dir: Path | None = None
+    iterations: int | None = None
+    panel: PanelPlan | None = None
+    shape: JobShape | None = None
+    settings: dict[str, Any] | None = None
+    base_checkpoint: Path | None = None
+    store: Path | None = None
+    action: Action | None = None
 
-    def __post_init__(self) -> None:
-        # the variant may be given as its text (``"finetune:amuled"``): read it once here
-        object.__setattr__(self, "variant", Variant.parse(self.variant))
+    @property
+    def base_folder(self) -> Path:
+        """The folder of the base a fine-tune anchors to (``base_dir / base_variant``)."""
+        return Path(self.base_dir or self.run_dir) / self.base_variant
 
 
 @dataclass
@@ -140,18 +184,22 @@ def checkpoint_state(path: Path) -> dict[str, Any] | None:
     return checkpoint_infos(path)
 
 
-def base_checkpoint(run_dir: Path, scenario: Scenario, base_variant: str = "base") -> Path:
+def base_checkpoint(base_folder: Path, scenario_name: str) -> Path:
     """Return the completed base checkpoint a fine-tune is anchored to.
+
+    Args:
+        base_folder: The base's variant folder.
+        scenario_name: The scenario file or name, for the command that makes the base.
 
     Raises:
         CheckpointError: Missing or unfinished, naming the command that makes it.
 
     """
-    path = Path(run_dir) / base_variant / LAST
+    path = Path(base_folder) / LAST
     state = checkpoint_state(path)
     make = (
-        f"amuled train {scenario.path or scenario.name} --variant {base_variant} "
-        f"--run-dir {run_dir}"
+        f"amuled train {scenario_name} --variant {Path(base_folder).name} "
+        f"--run-dir {Path(base_folder).parent}"
     )
     if state is None:
         raise CheckpointError(f"no base checkpoint at {path}; make one with: {make}")
@@ -177,26 +225,6 @@ def saved_training_config(out_dir: Path) -> dict[str, Any] | None:
     return None if record is None else record.training
 
 
-def check_training_config(out_dir: Path, training: dict[str, Any], hint: str = "") -> None:
-    """Refuse to resume or skip a variant trained with other settings.
-
-    Args:
-        out_dir: The variant folder (its ``config.json`` holds the saved settings; a folder
-            without one, from an older version, is accepted).
-        training: The current :func:`~amuled_ma.experiments.training_settings.training_config`.
-        hint: The command that was run, for the commands the refusal names.
-
-    Raises:
-        AmuledError: The settings differ; the message names each differing key with its
-            saved and current value and the command that trains the new settings beside
-            the folder or retrains it alone (:func:`settings_refusal`).
-
-    """
-    diffs = training_differences(out_dir, training)
-    if diffs:
-        raise AmuledError(settings_refusal(out_dir, diffs, hint))
-
-
 def training_differences(out_dir: Path, training: dict[str, Any]) -> list[str]:
     """``key: saved -> now`` for each setting a variant folder was trained with and now lacks.
 
@@ -217,17 +245,27 @@ def training_differences(out_dir: Path, training: dict[str, Any]) -> list[str]:
     )
 
 
-def settings_refusal(out_dir: Path, diffs: list[str], hint: str = "") -> str:
+def settings_refusal(
+    job: TrainJob, diffs: list[str], rerun: Rerun | None = None, hint: str = ""
+) -> str:
     """The one-line refusal of a variant folder trained with other settings than now.
 
     It names the differing keys (saved -> now) and the one command for each thing the
     user may have meant (:func:`recovery_commands`): train the new settings beside the
     old folder, or retrain that folder alone.
+
+    Args:
+        job: The job whose folder was trained with other settings.
+        diffs: Its differences (:func:`training_differences`).
+        rerun: The command that was run, as fields (None: the options are named).
+        hint: That command's text (for a ``--force`` without ``rerun``).
+
     """
+    out_dir = job.out_dir
     keys = ", ".join(d.split(":", 1)[0] for d in diffs[:8])
     keys += f" and {len(diffs) - 8} more" if len(diffs) > 8 else ""
     shown = "; ".join(diffs[:8]) + (f"; and {len(diffs) - 8} more" if len(diffs) > 8 else "")
-    beside, again = recovery_commands(out_dir, diffs, hint)
+    beside, again = recovery_commands(job, diffs, rerun, hint)
     return (
         f"{out_dir} was trained with other settings or inputs than now ({keys} differ; "
         f"saved -> now: {shown}; saved in {Path(out_dir) / 'config.json'}); to keep it and "
@@ -243,78 +281,41 @@ def _tag(diffs: list[str]) -> str:
     return tag or "new"
 
 
-def recovery_commands(out_dir: Path, diffs: list[str], hint: str = "") -> tuple[str, str]:
+def recovery_commands(
+    job: TrainJob, diffs: list[str], rerun: Rerun | None = None, hint: str = ""
+) -> tuple[str, str]:
     """The commands that do what the user meant when a folder's settings changed.
 
     Args:
-        out_dir: The variant folder trained with other settings.
+        job: The job whose folder was trained with other settings.
         diffs: Its differences (:func:`training_differences`).
-        hint: The command that was run (``amuled finetune ...``, ``amuled run ...``).
+        rerun: The command that was run, as fields (None: the options are named).
+        hint: That command's text (``--force`` is added to it without ``rerun``).
 
     Returns:
         ``(beside, again)``: a fine-tune under a new name (``--name``; another
         ``--run-dir`` for a base or a whole run), and that variant alone retrained
         (``--force`` for ``finetune``/``train``; for ``run``/``ablate`` the same command with
-        ``--retrain FOLDER``, which resumes the other variants and rewrites the report).
+        ``--retrain`` and the job's name, which resumes the other variants and rewrites the
+        report).
 
-    Kept as words of ``hint`` edited with ``shlex``: the job's run folder and name do not
-    reach :func:`prepare_variant` (it gets the folder and the hint), so the hint is their
-    only record here.
     """
-    import shlex
-
-    out_dir = Path(out_dir)
-    try:
-        parts = shlex.split(hint)
-    except ValueError:
-        parts = []
-    if len(parts) < 3 or parts[0] != "amuled":
-        return ("another --run-dir (or --name NAME for a fine-tune)", "--force")
-    parts = [p for p in parts if p != "--resume"]
-    command, tag = parts[1], _tag(diffs)
-    if command == "finetune":
-        label = split_replica(out_dir.name)[0].removeprefix("finetune-")
-        beside = _with_option(parts, "--name", f"{label}-{tag}")
-        return shlex.join(beside), shlex.join([*parts, "--force"])
-    run_dir = _option(parts, "--run-dir")
-    new_dir = f"{run_dir.rstrip('/')}-{tag}" if run_dir else f"runs/{tag}"
-    beside = shlex.join(_with_option(parts, "--run-dir", new_dir))
-    if command in ("run", "ablate"):
+    if rerun is None:
+        again = f"{hint} --force" if hint else "--force"
+        return "another --run-dir (or --name NAME for a fine-tune)", again
+    tag = _tag(diffs)
+    if rerun.command == "finetune":
+        label = split_replica(job.out_dir.name)[0].removeprefix("finetune-")
+        beside = rerun.line(job.run_dir, name=f"{label}-{tag}")
+        return beside, rerun.line(job.run_dir, "--force")
+    beside = rerun.line(Path(f"{str(job.run_dir).rstrip('/')}-{tag}"))
+    if rerun.command in ("run", "ablate"):
         # one command: this folder retrained, the others resumed, the report rewritten
-        root = Path(run_dir) if run_dir else out_dir.parent
-        try:
-            name = out_dir.relative_to(root).as_posix()
-        except ValueError:
-            name = out_dir.name
-        again = [p for p in parts if p != "--force"]
-        return beside, shlex.join([*again, "--retrain", name])
-    if command == "train":
-        return beside, shlex.join([*parts, "--force"])
-    return beside, shlex.join([*parts, "--force"]) + " (retrains every variant of the run)"
-
-
-def _option(parts: list[str], flag: str) -> str | None:
-    """The value of ``flag`` in a split command line (the last one), or None."""
-    value = None
-    for i, part in enumerate(parts[:-1]):
-        if part == flag:
-            value = parts[i + 1]
-    return value
-
-
-def _with_option(parts: list[str], flag: str, value: str) -> list[str]:
-    """A split command line with ``flag value`` set (replacing any earlier value)."""
-    out: list[str] = []
-    skip = False
-    for part in parts:
-        if skip:
-            skip = False
-            continue
-        if part == flag:
-            skip = True
-            continue
-        out.append(part)
-    return [*out, flag, value]
+        return beside, rerun.line(job.run_dir, "--retrain", job.name)
+    again = rerun.line(job.run_dir, "--force")
+    if rerun.command == "train":
+        return beside, again
+    return beside, f"{again} (retrains every variant of the run)"
 
 
 def finished_with(out_dir: Path, training: dict[str, Any]) -> bool:
@@ -345,39 +346,35 @@ def finished_with(out_dir: Path, training: dict[str, Any]) -> bool:
 
 
 def prepare_variant(
-    out_dir: Path,
-    *,
-    resume: bool,
-    force: bool,
-    hint: str,
-    training: dict[str, Any],
-) -> str:
-    """Decide what to do with a variant folder: ``new``, ``resume`` or ``skip``.
+    job: TrainJob, training: dict[str, Any], *, hint: str = "", rerun: Rerun | None = None
+) -> Action:
+    """Decide what a job does with its folder: ``new``, ``resume`` or ``skip``.
 
     Args:
-        out_dir: The variant folder.
-        resume: Continue an unfinished checkpoint, skip a finished one.
-        force: Start over.
-        hint: The command that re-runs the job (for the error message).
+        job: The job (its folder, ``resume`` and ``force``).
         training: The job's :func:`~amuled_ma.experiments.training_settings.training_config`;
             a resume or a skip requires the folder's saved settings to match it, and a
             finished checkpoint is skipped only when it trained to the job's number of
             iterations (fewer: it is resumed to that number).
+        hint: The command that re-runs the job (for the error message).
+        rerun: The same command as fields (the recovery commands of a refusal).
 
     Raises:
         AmuledError: It holds a checkpoint and neither ``resume`` nor ``force`` is set (the
             message names both options), or ``resume`` is set and the checkpoint was
-            trained with other settings or past the job's number of iterations.
+            trained with other settings (:func:`settings_refusal`) or past the job's
+            number of iterations.
 
     """
+    out_dir = job.out_dir
     state = checkpoint_state(Path(out_dir) / LAST)
-    if state is None:
+    if state is None or job.force:
         return "new"
-    if force:
-        return "new"
-    if resume:
+    diffs = training_differences(out_dir, training)
+    if diffs:  # a resume is refused, and so is a plain rerun: name what does what was meant
+        raise AmuledError(settings_refusal(job, diffs, rerun, hint))
+    if job.resume:
         done = state.get("iteration") or 0
-        check_training_config(out_dir, training, hint)
         target = training["iterations"]
         if done > target:
             raise AmuledError(
@@ -388,9 +385,6 @@ def prepare_variant(
         if state.get("completed") and done == target:
             return "skip"
         return "resume"
-    diffs = training_differences(out_dir, training)
-    if diffs:  # --resume would be refused too: name what does what the user meant
-        raise AmuledError(settings_refusal(out_dir, diffs, hint))
     raise AmuledError(
         f"{out_dir} already holds a checkpoint (iteration {state.get('iteration')}/"
         f"{state.get('total_iterations')}); continue it with '{hint} --resume' or start over "

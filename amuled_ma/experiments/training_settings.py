@@ -12,13 +12,15 @@ from __future__ import annotations
 import functools
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from amuled_ma.errors import AmuledError
 from amuled_ma.file_hash import sha256_file
 from amuled_ma.learn.config import planned_iterations
 from amuled_ma.scenario import Scenario
 from amuled_ma.variants import Variant
+
+if TYPE_CHECKING:
+    from amuled_ma.deliberation.plan import PanelPlan
 
 #: Scenario keys left out of :func:`training_config`: paths, logging and service keys, the
 #: seed (the job's own seed is kept) and the run's length (kept as ``"iterations"``: a
@@ -33,7 +35,9 @@ NOT_LEARNED = {
 
 def training_config(
     scenario: Scenario,
-    variant: Variant | str,
+    variant: Variant,
+    *,
+    panel: PanelPlan | None = None,
     seed: int | None = None,
     iterations: int | None = None,
 ) -> dict[str, Any]:
@@ -54,14 +58,21 @@ def training_config(
     Args:
         scenario: The scenario of the job.
         variant: What the job trains.
+        panel: A panel fine-tune's plan (:func:`~amuled_ma.deliberation.plan.plan_panel`):
+            the files of its clusters are hashed; None for base training and the
+            demonstrator.
         seed: The job's training seed (default: ``[task].seed``).
         iterations: An override of the number of iterations, if any.
 
     Returns:
         ``{"variant", "seed", "iterations", section: {key: value}, ...}``.
 
+    Raises:
+        ValueError: A fine-tune that asks a panel, without its plan.
+
     """
-    variant = Variant.parse(variant)
+    if variant.asks_panel and (panel is None or not panel.asks_panel):
+        raise ValueError(f"the settings of {variant} need its panel plan")
     data = scenario.settings()
     sections: tuple[str, ...] = ("task", "ppo", "finetune" if variant.finetuning else "base")
     if variant.asks_panel:
@@ -91,28 +102,20 @@ def training_config(
         if spec.get("source") == "replay" and spec.get("recording"):
             path = scenario.replace("feedback", recording=spec["recording"]).recording_path()
             out.setdefault("inputs", {})[f"recording_sha256[{agent}]"] = file_sha256(path)
-    if "feedback" in out:
-        for name, digest in cluster_hashes(scenario, variant).items():
+    if panel is not None and panel.asks_panel:
+        for name, digest in cluster_hashes(panel).items():
             out.setdefault("inputs", {})[f"cluster_sha256[{name}]"] = digest
     return json.loads(json.dumps(out, default=str))
 
 
-def cluster_hashes(scenario: Scenario, variant: Variant) -> dict[str, str | None]:
-    """SHA-256 of the file of each cluster the variant's prompts are made of.
+def cluster_hashes(panel: PanelPlan) -> dict[str, str | None]:
+    """SHA-256 of the file of each cluster the panel's prompts are made of.
 
     The panel's members and the clusters the system prompt describes: editing a cluster's
     text changes what the LLM is told, so a resume compares these like a recording's hash.
-    A panel whose clusters do not load has none here (the preflight names the problem).
     """
-    from amuled_ma.deliberation.plan import cluster_registry, panel_of
-
-    try:
-        registry = cluster_registry(scenario)
-        members, _rule = panel_of(str(variant.feedback), scenario, registry)
-    except AmuledError:
-        return {}
     out: dict[str, str | None] = {}
-    for cluster in [*members, *registry.panel()]:
+    for cluster in [*panel.clusters, *panel.registry.panel()]:
         if cluster.path is not None and cluster.name not in out:
             out[cluster.name] = file_sha256(Path(cluster.path))
     return dict(sorted(out.items()))
@@ -128,7 +131,7 @@ def file_sha256(path: Path) -> str | None:
 
     The identity of an input such as a recording: a file replaced under the same name has
     another hash, and a resume compares it
-    (:func:`~amuled_ma.experiments.run_folder.check_training_config`).
+    (:func:`~amuled_ma.experiments.run_folder.prepare_variant`).
     """
     try:
         info = path.stat()

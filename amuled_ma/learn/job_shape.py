@@ -55,14 +55,12 @@ class JobShape:
         return self.learning_rate
 
 
-def job_shape(
-    scenario: Scenario, variant: Variant | str, iterations: int | None = None
-) -> JobShape:
+def job_shape(scenario: Scenario, variant: Variant, iterations: int | None = None) -> JobShape:
     """The shape of training ``variant`` on ``scenario``.
 
     Args:
         scenario: The scenario.
-        variant: ``base``, ``shaped`` or ``finetune:<feedback>`` (or a parsed variant).
+        variant: What the job trains.
         iterations: Overrides the planned number of iterations (tests, benchmarks).
 
     Returns:
@@ -73,7 +71,6 @@ def job_shape(
             advantage normalisation (one sample normalises to NaN).
 
     """
-    variant = Variant.parse(variant)
     ppo = scenario.ppo
     if variant.finetuning:
         ft = scenario.finetune

@@ -72,7 +72,6 @@ from amuled_ma.progress import Progress
 from amuled_ma.safe_files import FileWriteError, write_text_atomic
 from amuled_ma.tasks import make_task
 from amuled_ma.tensorboard_log import TensorBoardLog
-from amuled_ma.variants import Variant
 
 __all__ = ["LAST", "PopulationMember", "PopulationTrainer", "TrainOutcome", "train_population"]
 
@@ -165,7 +164,7 @@ class PopulationTrainer:
         self.device = device
         self.progress = progress
         self.size = len(self.specs)
-        self.finetuning = Variant.parse(self.specs[0].variant).finetuning
+        self.finetuning = self.specs[0].variant.finetuning
         self.shape = self.specs[0].shape()
         self.copies = self.shape.num_envs
         # one member on the CPU: its own lone runner (rsl-rl's classes: its numbers, its speed)

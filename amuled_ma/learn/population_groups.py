@@ -37,6 +37,9 @@ POPULATION_CATEGORICAL = "amuled_ma.learn.population_models:PopulationCategorica
 POPULATION_PPO = "amuled_ma.learn.population_ppo:PopulationPPO"
 
 
+#: A member's variant unless it says otherwise.
+BASE_VARIANT = Variant("base")
+
 #: Settings of a job's rsl-rl algorithm that may differ between members of a population.
 MEMBER_ALGORITHM_KEYS = ("lambda_kl", "anchor")
 
@@ -71,12 +74,13 @@ class MemberSpec:
         on_iteration: Called as ``fn(member, iteration)`` after every iteration, with the
             member's :class:`~amuled_ma.learn.population.PopulationMember`.
         task_factory: Replaces :func:`~amuled_ma.tasks.make_task` (same signature).
+        planned_shape: Its shape as its plan carries it (None: derived from the scenario).
 
     """
 
     scenario: Scenario
     out_dir: Path
-    variant: Variant | str = "base"
+    variant: Variant = BASE_VARIANT
     feedback: Any = None
     base_checkpoint: Path | None = None
     resume: bool = False
@@ -85,9 +89,9 @@ class MemberSpec:
     resume_hint: str | None = None
     on_iteration: Callable[[Any, int], None] | None = None
     task_factory: Callable[..., Any] | None = None
+    planned_shape: JobShape | None = None
 
     def __post_init__(self) -> None:
-        self.variant = Variant.parse(self.variant)
         self.out_dir = Path(self.out_dir)
 
     @property
@@ -96,7 +100,9 @@ class MemberSpec:
         return self.scenario.task.seed if self.seed is None else int(self.seed)
 
     def shape(self) -> JobShape:
-        """The job's shape (:func:`~amuled_ma.learn.job_shape.job_shape`)."""
+        """The job's shape: its plan's, else :func:`~amuled_ma.learn.job_shape.job_shape`."""
+        if self.planned_shape is not None:
+            return self.planned_shape
         return job_shape(self.scenario, self.variant, self.iterations)
 
     def start_iteration(self) -> int:

@@ -77,6 +77,15 @@ class Scenario(BaseModel):
         path = Path(os.path.expandvars(os.path.expanduser(value)))
         return path if path.is_absolute() else (self.base_dir / path).resolve()
 
+    def store_path(self, run_dir: Path | None = None) -> Path:
+        """The belief store file of a run: ``[feedback].store``.
+
+        A relative path is resolved against the run folder (or this scenario's folder
+        without one).
+        """
+        path = Path(self.feedback.store)
+        return path if path.is_absolute() else (run_dir or self.base_dir) / path
+
     def recording_path(self, *, required: bool = False) -> Path:
         """Find the replayed recording ``[feedback].recording``, by path or by name.
 

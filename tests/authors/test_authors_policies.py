@@ -18,16 +18,19 @@ from amuled_ma.experiments.plans import train_variant
 from amuled_ma.learn.checkpoints import LAST, TRAINER_KEYS, read_checkpoint
 from amuled_ma.learn.policies import action_log_probs, load_policy
 from amuled_ma.scenario import load_scenario
+from amuled_ma.variants import Variant
+
+BASE = Variant("base")
 
 
-def convert(tmp_path, agent, task, variant="base", iteration=7):
+def convert(tmp_path, agent, task, variant=BASE, iteration=7):
     source = save_agent(tmp_path / "src" / "base.cleanrl_model", agent)
     state = read_cleanrl(source)
     scenario = authors_scenario(load_scenario(task), cleanrl_shape(state)[1])
     checkpoint = build_checkpoint(state, scenario, variant=variant, iteration=iteration,
                                   source={"file": "base.cleanrl_model"})  # fmt: skip
     out = tmp_path / "runs" / task / "base"
-    path = write_variant(out, checkpoint, scenario, training={"variant": variant})
+    path = write_variant(out, checkpoint, scenario, training={"variant": str(variant)})
     return path, scenario
 
 
@@ -53,7 +56,9 @@ def test_converted_policy_acts_like_the_cleanrl_one(tmp_path, task, obs_dim, num
 
 
 def test_checkpoint_is_a_completed_trainer_checkpoint(tmp_path):
-    path, _scenario = convert(tmp_path, CleanRLAgent(8, 4), "findmilk", "finetune:amuled", 805)
+    path, _scenario = convert(
+        tmp_path, CleanRLAgent(8, 4), "findmilk", Variant.finetune("amuled"), 805
+    )
     state = read_checkpoint(path, need=TRAINER_KEYS)
     infos = state["infos"]
     assert state["iter"] == 805 and infos["iteration"] == infos["total_iterations"] == 805
@@ -70,7 +75,11 @@ def test_finetune_starts_from_the_converted_base(tmp_path):
     scenario = scenario.replace("output", tensorboard=False)
     scenario = scenario.replace("finetune", num_envs=2, num_steps_per_env=4)
     job = train_variant(
-        scenario, tmp_path / "ft", "finetune:human", base_dir=path.parent.parent, iterations=1
+        scenario,
+        tmp_path / "ft",
+        Variant.finetune("human"),
+        base_dir=path.parent.parent,
+        iterations=1,
     )
     assert job.outcome is not None and job.outcome.iterations == 1
     tuned = read_checkpoint(job.out_dir / LAST, need=TRAINER_KEYS)

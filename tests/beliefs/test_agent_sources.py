@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from job_settings import settings
 
 from amuled_ma.beliefs import BeliefRequest, make_source
 from amuled_ma.beliefs.routing import RoutedSource
@@ -15,7 +16,6 @@ from amuled_ma.clusters import plugins
 from amuled_ma.deliberation.build import make_feedback
 from amuled_ma.deliberation.build import make_source as feedback_source
 from amuled_ma.errors import ScenarioError
-from amuled_ma.experiments.training_settings import training_config
 from amuled_ma.fusion.reference import fuse_beliefs
 from amuled_ma.scenario import OllamaSpec, TerminalSpec, load_scenario, scenario_from_dict
 
@@ -161,12 +161,12 @@ def test_agent_tables_load_as_plain_data(tmp_path):
     data = json.loads(json.dumps(scenario.to_dict()))
     assert data["feedback"]["agents"]["moral_agent"]["options"] == {"index": 2}
     # what a fine-tune learns from includes each agent's source
-    config = training_config(scenario, "finetune:amuled")
+    config = settings(scenario, "finetune:amuled")
     assert config["feedback"]["agents"]["virtue"] == {
         "source": "policy",
         "path": "policies/virtue.pt",
     }
-    assert "feedback" not in training_config(scenario, "base")
+    assert "feedback" not in settings(scenario, "base")
 
 
 # ---------------------------------------------------------------------- entry-point agents

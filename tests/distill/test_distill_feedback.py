@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from job_settings import settings
 from test_distill_source import ACTIONS, MEMBERS, Panel
 
 from amuled_ma.deliberation import MoralPanel
@@ -15,8 +16,8 @@ from amuled_ma.deliberation.panel_feedback import PanelFeedback
 from amuled_ma.deliberation.summaries import summary_lines
 from amuled_ma.distill import DistilledSource
 from amuled_ma.errors import ScenarioError
-from amuled_ma.experiments.plans import ablation_variants, check_inputs
-from amuled_ma.experiments.training_settings import training_config
+from amuled_ma.experiments.plans import ablation_variants, plan_jobs
+from amuled_ma.experiments.run_folder import TrainJob
 from amuled_ma.scenario import load_scenario
 from amuled_ma.variants import Variant
 
@@ -103,7 +104,8 @@ def test_a_fused_only_recording_is_refused_before_any_work(tmp_path):
         "feedback", recording=recording, **{"distill.enabled": True}
     )
     with pytest.raises(ScenarioError, match="cannot learn each panel member") as err:
-        check_inputs(scenario, "finetune:amuled", tmp_path / "run")
+        run = tmp_path / "run"
+        plan_jobs([TrainJob("ft", scenario, run, Variant.finetune("amuled"), run / "ft")])
     assert recording in str(err.value) and 'feedback.recording="driving-llama-3_1-70b"' in str(
         err.value
     )
@@ -130,7 +132,7 @@ def test_the_budget_ablation_plans_each_budget_and_selection_and_the_full_run():
     assert [d.budget for d in distills[:-1]] == [1.0, 0.3, 0.3, 0.1, 0.1, 0.03, 0.03]
     assert all(d.enabled for d in distills[:-1]) and not distills[-1].enabled
     # the full-feedback run is the run's own AMULED fine-tune (shared when finished there)
-    assert training_config(jobs[-1][1], Variant.finetune("amuled")) == training_config(
+    assert settings(jobs[-1][1], Variant.finetune("amuled")) == settings(
         scenario, Variant.finetune("amuled")
     )
     # Driving: the fused-only recording is swapped for the per-cluster one
@@ -141,8 +143,8 @@ def test_the_budget_ablation_plans_each_budget_and_selection_and_the_full_run():
 def test_distill_settings_count_for_a_resume_only_when_on():
     scenario = load_scenario("findmilk")
     variant = Variant.finetune("amuled")
-    assert "distill" not in training_config(scenario, variant)["feedback"]
+    assert "distill" not in settings(scenario, variant)["feedback"]
     off = scenario.replace("feedback", **{"distill.budget": 0.5})  # off: changes nothing
-    assert training_config(off, variant) == training_config(scenario, variant)
+    assert settings(off, variant) == settings(scenario, variant)
     on = scenario.replace("feedback", **{"distill.enabled": True})
-    assert training_config(on, variant)["feedback"]["distill"]["budget"] == 0.1
+    assert settings(on, variant)["feedback"]["distill"]["budget"] == 0.1

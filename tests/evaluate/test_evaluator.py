@@ -13,11 +13,14 @@ from amuled_ma.learn.policies import load_policy
 from amuled_ma.learn.population import train_population
 from amuled_ma.learn.population_groups import MemberSpec
 from amuled_ma.scenario import scenario_from_dict
+from amuled_ma.variants import Variant
 
 
 def train(sc, out_dir, variant: str = "base"):
     """Train one job alone (a population of one) on the fake grid task."""
-    [outcome] = train_population([MemberSpec(sc, out_dir, variant, task_factory=grid_factory)])
+    [outcome] = train_population(
+        [MemberSpec(sc, out_dir, Variant.parse(variant), task_factory=grid_factory)]
+    )
     return outcome
 
 

@@ -20,6 +20,7 @@ from amuled_ma.beliefs.keys import request_key
 from amuled_ma.beliefs.store import BeliefStore
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
 from amuled_ma.deliberation.build import MIN_TIMED_REQUESTS, live_costs, make_feedback
+from amuled_ma.deliberation.plan import plan_panel
 from amuled_ma.scenario import scenario_from_dict
 from amuled_ma.tasks import make_batched
 
@@ -59,7 +60,7 @@ def test_estimate_within_a_factor_of_2_of_the_measured_time(
     torch.set_num_threads(1)
     scenario = _scenario(tmp_path, ollama_host, ollama_model)
     said: list[str] = []
-    (line,) = live_costs(scenario, "amuled", tmp_path, said.append)
+    (line,) = live_costs(plan_panel("amuled", scenario), scenario.store_path(tmp_path), said.append)
     assert said and "timing a request to" in said[0]  # the wait is announced
     match = PER_REQUEST.search(line)
     assert match is not None, line
@@ -97,6 +98,6 @@ def test_the_stores_recorded_times_replace_the_probe(
         store.put_many(items)
     said: list[str] = []
     scenario = _scenario(tmp_path, ollama_host, ollama_model)
-    (line,) = live_costs(scenario, "amuled", tmp_path, said.append)
+    (line,) = live_costs(plan_panel("amuled", scenario), scenario.store_path(tmp_path), said.append)
     assert said == []
     assert f"4.0 s a request (measured here: median of {MIN_TIMED_REQUESTS} recorded" in line

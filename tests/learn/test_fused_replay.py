@@ -11,6 +11,7 @@ from amuled_ma.deliberation.panel_feedback import FusedReplayFeedback, PanelFeed
 from amuled_ma.errors import ScenarioError
 from amuled_ma.experiments.plans import train_variant
 from amuled_ma.scenario import load_scenario
+from amuled_ma.variants import Variant
 
 STRAIGHT = [-1.0] * 6 + [0.0, 0.0, 1.0, 0.0, 0.0]  # empty road, lane 2
 CAR_AHEAD = [3.0, -1.0, -1.0, -1.0, -1.0, -1.0, 0.0, 0.0, 1.0, 0.0, 0.0]
@@ -79,8 +80,8 @@ def test_the_papers_driving_cache_replays(recordings_dir, tmp_path):
         "base", total_steps=512, num_envs=16, num_steps_per_env=16
     )
     sc = sc.replace("finetune", iterations=2, num_envs=4, num_steps_per_env=8)
-    train_variant(sc, tmp_path / "run", "base")
-    job = train_variant(sc, tmp_path / "run", "finetune:amuled")
+    train_variant(sc, tmp_path / "run", Variant("base"))
+    job = train_variant(sc, tmp_path / "run", Variant.finetune("amuled"))
     assert job.outcome.feedback["agents"]["fused (recorded)"]["total"] == 2 * 4 * 8
 
 

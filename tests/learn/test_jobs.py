@@ -28,6 +28,7 @@ from amuled_ma.experiments.run_folder import (
     split_replica,
 )
 from amuled_ma.scenario import load_scenario
+from amuled_ma.variants import Variant
 
 TINY = {
     "base": {"total_steps": 1024, "num_envs": 16, "num_steps_per_env": 16},
@@ -49,10 +50,10 @@ def test_seed_replica_names_round_trip():
     assert replica_folder("finetune-amuled", 3, 1) == "finetune-amuled.seed3"
     assert split_replica("finetune-amuled.seed3") == ("finetune-amuled", 3)
     assert split_replica("finetune-amuled-kl2.5") == ("finetune-amuled-kl2.5", None)
-    assert training_seeds(tiny_scenario(), None, 3) == [1, 2, 3]  # [task].seed = 1
-    assert training_seeds(tiny_scenario(), 7, 2) == [7, 8]
+    assert training_seeds(1, 3) == [1, 2, 3]
+    assert training_seeds(7, 2) == [7, 8]
     with pytest.raises(AmuledError, match="--seeds"):
-        training_seeds(tiny_scenario(), None, 0)
+        training_seeds(1, 0)
 
 
 def test_plan_run_anchors_each_seed_to_its_own_base(tmp_path):
@@ -82,8 +83,8 @@ def test_plan_ablation_reuses_bases_and_writes_under_ablate_dir(tmp_path):
 
 def test_check_order_and_workers():
     sc = tiny_scenario()
-    a = TrainJob("a", sc, Path("r"), "base", Path("r/a"))
-    b = TrainJob("b", sc, Path("r"), "finetune:amuled", Path("r/b"), needs=("a",))
+    a = TrainJob("a", sc, Path("r"), Variant("base"), Path("r/a"))
+    b = TrainJob("b", sc, Path("r"), Variant.finetune("amuled"), Path("r/b"), needs=("a",))
     check_order([a, b])
     with pytest.raises(AmuledError, match="needs"):
         check_order([b, a])
@@ -92,7 +93,11 @@ def test_check_order_and_workers():
     assert resolve_workers(5, [a, b]) == 2  # never more workers than jobs
     assert resolve_workers(1, [a, b]) == 1
     live = TrainJob(
-        "c", sc.replace("feedback", source="ollama"), Path("r"), "finetune:amuled", Path("c")
+        "c",
+        sc.replace("feedback", source="ollama"),
+        Path("r"),
+        Variant.finetune("amuled"),
+        Path("c"),
     )
     assert resolve_workers(0, [a, live]) == 1  # a live Ollama server: one at a time
     assert resolve_workers(0, [a, b]) == min(2, len(os.sched_getaffinity(0)))
@@ -111,14 +116,14 @@ from pathlib import Path
 sys.path[:0] = [sys.argv[2], str(Path(sys.argv[2]).parent)]  # tests/learn, tests
 from test_jobs import tiny_scenario
 from amuled_ma.experiments.jobs import job_groups, run_jobs
-from amuled_ma.experiments.plans import plan_run
+from amuled_ma.experiments.plans import plan_jobs, plan_run
+from amuled_ma.variants import Variant
 runs, workers_used, groups = {}, {}, {}
 CONFIGS = (("1", 1, False), ("2", 2, False), ("p1", 1, True), ("p2", 2, True))
 for label, workers, population in CONFIGS:
     run_dir = Path(sys.argv[1]) / label
-    jobs = plan_run(tiny_scenario(), run_dir, [1, 2])
-    new = {j.name: "new" for j in jobs}
-    grouped = job_groups(jobs, new, workers=workers, population=population)
+    jobs = plan_jobs(plan_run(tiny_scenario(), run_dir, [1, 2]))
+    grouped = job_groups(jobs, workers=workers, population=population)
     groups[label] = [[j.name for j in g] for g in grouped]
     outcome = run_jobs(
         jobs, workers=workers, describe=lambda r: str(r.variant), population=population

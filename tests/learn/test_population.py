@@ -22,6 +22,7 @@ from amuled_ma.learn.checkpoints import LAST, TRAINER_KEYS, read_checkpoint
 from amuled_ma.learn.population import PopulationTrainer, train_population
 from amuled_ma.learn.population_groups import MemberSpec
 from amuled_ma.scenario import scenario_from_dict
+from amuled_ma.variants import Variant
 
 #: Float tolerance: the members' float32 networks after a few Adam steps.
 ATOL = 1e-5
@@ -74,7 +75,7 @@ def specs(root: Path, base: Path, scenario=None, members=MEMBERS) -> list[Member
             MemberSpec(
                 job,
                 root / f"m{seed}",
-                variant=f"finetune:f{action}",
+                variant=Variant.finetune(f"f{action}"),
                 feedback=CallableFeedback(prefers(action), name=f"f{action}"),
                 base_checkpoint=base,
                 seed=seed,

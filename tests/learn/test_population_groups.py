@@ -18,6 +18,7 @@ from amuled_ma.learn.population_groups import (
     split_populations,
 )
 from amuled_ma.scenario import load_scenario
+from amuled_ma.variants import Variant
 
 #: (scenario, variant) -> (copies, rollout, learning rate, annealed, shaping c, task weight),
 #: read from the scenario files' own lines (scenarios/*.toml), not from the code.
@@ -33,7 +34,7 @@ SHAPES = {
 def test_job_shape_reads_the_scenarios_run_shape(name, variant) -> None:
     """The one derivation ``Trainer`` and the population learner both use."""
     scenario = load_scenario(name)
-    shape = job_shape(scenario, variant)
+    shape = job_shape(scenario, Variant.parse(variant))
     envs, steps, lr, anneal, shaping, task_weight = SHAPES[(name, variant)]
     assert (shape.num_envs, shape.steps_per_env) == (envs, steps)
     assert (shape.learning_rate, shape.anneal) == (lr, anneal)
@@ -42,20 +43,20 @@ def test_job_shape_reads_the_scenarios_run_shape(name, variant) -> None:
     if variant.startswith("finetune"):
         assert shape.total_iterations == 1000  # finetune_moral.py: 1000 x 128 / 128
         assert shape.cfg["algorithm"]["num_learning_epochs"] == 8
-    assert job_shape(scenario, variant, iterations=7).total_iterations == 7
+    assert job_shape(scenario, Variant.parse(variant), iterations=7).total_iterations == 7
 
 
 def jobs(tmp_path: Path, count: int, **finetune) -> list[MemberSpec]:
     scenario = load_scenario("findmilk-authors").replace("finetune", **finetune)
     return [
-        MemberSpec(scenario, tmp_path / f"j{k}", variant="finetune:amuled", seed=k)
+        MemberSpec(scenario, tmp_path / f"j{k}", variant=Variant.finetune("amuled"), seed=k)
         for k in range(count)
     ]
 
 
 def test_members_may_differ_in_seed_feedback_kl_and_recipe(tmp_path) -> None:
     a, b = jobs(tmp_path, 2)
-    b.variant = "finetune:cluster:care"  # type: ignore[assignment]
+    b.variant = Variant.finetune("cluster:care")
     b.scenario = b.scenario.replace("finetune", lambda_kl=0.5, recipe="equation")
     b.scenario = b.scenario.replace("feedback", fusion="mean")
     assert population_key(a) == population_key(b)
@@ -99,9 +100,11 @@ def test_memory_per_member_grows_with_the_rollout_and_the_network(tmp_path) -> N
     (spec,) = jobs(tmp_path, 1)
     small = member_memory_bytes(spec.shape(), device="cuda")
     wide = spec.scenario.replace("ppo", hidden_dims=[256, 256])
-    assert member_memory_bytes(job_shape(wide, "finetune:amuled"), device="cuda") > small
+    assert member_memory_bytes(job_shape(wide, Variant.finetune("amuled")), device="cuda") > small
     long = spec.scenario.replace("finetune", num_envs=64)
-    assert member_memory_bytes(job_shape(long, "finetune:amuled"), device="cuda") > 10 * small
+    assert (
+        member_memory_bytes(job_shape(long, Variant.finetune("amuled")), device="cuda") > 10 * small
+    )
 
 
 class Prompts:

@@ -5,13 +5,14 @@ from __future__ import annotations
 import json
 
 import pytest
+from job_settings import settings
 
 from amuled_ma.errors import AmuledError
 from amuled_ma.experiments.jobs import run_jobs
 from amuled_ma.experiments.plans import plan_run, train_variant
 from amuled_ma.experiments.run_folder import checkpoint_state
-from amuled_ma.experiments.training_settings import training_config
 from amuled_ma.scenario import load_scenario
+from amuled_ma.variants import Variant
 
 TINY = {
     "base": {"total_steps": 1024, "num_envs": 16, "num_steps_per_env": 16},  # 4 iterations
@@ -30,31 +31,31 @@ def tiny(**finetune):
 
 def test_training_config_holds_what_a_variant_learns():
     sc = tiny()
-    base = training_config(sc, "base")
+    base = settings(sc, "base")
     assert base["seed"] == 1 and base["iterations"] == 1024 // (16 * 16)
     assert set(base) == {"variant", "seed", "iterations", "task", "ppo", "base"}
     # a fine-tuning or feedback setting does not touch the base ...
-    assert training_config(sc.replace("finetune", lambda_kl=0.5), "base") == base
-    assert training_config(sc.replace("feedback", model="other"), "base") == base
+    assert settings(sc.replace("finetune", lambda_kl=0.5), "base") == base
+    assert settings(sc.replace("feedback", model="other"), "base") == base
     # ... a PPO setting and the seed do
-    assert training_config(sc.replace("ppo", learning_rate=1e-3), "base") != base
-    assert training_config(sc, "base", seed=2)["seed"] == 2
+    assert settings(sc.replace("ppo", learning_rate=1e-3), "base") != base
+    assert settings(sc, "base", seed=2)["seed"] == 2
 
-    amuled = training_config(sc, "finetune:amuled")
+    amuled = settings(sc, "finetune:amuled")
     assert amuled["iterations"] == 3 and amuled["finetune"]["lambda_kl"] == 2.5
-    assert training_config(sc.replace("finetune", lambda_kl=0.5), "finetune:amuled") != amuled
-    assert training_config(sc.replace("feedback", model="other"), "finetune:amuled") != amuled
+    assert settings(sc.replace("finetune", lambda_kl=0.5), "finetune:amuled") != amuled
+    assert settings(sc.replace("feedback", model="other"), "finetune:amuled") != amuled
     # service keys, checkpoint cadence, the recording's folder and the length are not settings
     same = sc.replace("feedback", host="http://elsewhere:1", concurrency=1, timeout_s=5.0)
     same = same.replace("finetune", save_interval=7, iterations=9)
     moved = str(sc.recording_path().parent / "elsewhere" / sc.recording_path().name)
     same = same.replace("feedback", recording=moved)
-    other = training_config(same, "finetune:amuled")
+    other = settings(same, "finetune:amuled")
     assert other.pop("iterations") == 9 and {**other, "iterations": 3} == amuled
     # the rule-based human feedback reads no [feedback] key
-    human = training_config(sc, "finetune:human")
+    human = settings(sc, "finetune:human")
     assert "feedback" not in human
-    assert training_config(sc.replace("feedback", model="other"), "finetune:human") == human
+    assert settings(sc.replace("feedback", model="other"), "finetune:human") == human
 
 
 def _checkpoint_bytes(path):
@@ -97,7 +98,7 @@ def test_resume_refuses_other_settings_skips_same_and_lengthens(tmp_path):
         run_jobs(plan_run(tiny(iterations=2), run_dir, [1], resume=True), describe=str)
 
     # --force retrains with the new settings and records them
-    train_variant(tiny(lambda_kl=0.5), run_dir, "finetune:amuled", force=True)
+    train_variant(tiny(lambda_kl=0.5), run_dir, Variant.finetune("amuled"), force=True)
     assert (
         json.loads((tune / "config.json").read_text())["training"]["finetune"]["lambda_kl"] == 0.5
     )
@@ -109,13 +110,13 @@ def test_unreadable_saved_settings_name_the_file(tmp_path):
 
     run_dir = tmp_path / "run"
     sc = tiny()
-    train_variant(sc, run_dir, "base")
+    train_variant(sc, run_dir, Variant("base"))
     config = run_dir / "base" / "config.json"
-    assert finished_with(run_dir / "base", training_config(sc, "base"))
+    assert finished_with(run_dir / "base", settings(sc, "base"))
     config.write_text("{not json")
     with pytest.raises(AmuledError, match=f"{config}: not a readable config .*--force"):
-        train_variant(sc, run_dir, "base", resume=True)
-    assert not finished_with(run_dir / "base", training_config(sc, "base"))
+        train_variant(sc, run_dir, Variant("base"), resume=True)
+    assert not finished_with(run_dir / "base", settings(sc, "base"))
 
 
 def test_resume_refuses_a_recording_replaced_under_the_same_name(tmp_path, recordings_dir):
@@ -127,8 +128,8 @@ def test_resume_refuses_a_recording_replaced_under_the_same_name(tmp_path, recor
     recording.write_text(json.dumps(data))
     sc = tiny().replace("feedback", source="replay", recording=str(recording))
     run_dir = tmp_path / "run"
-    train_variant(sc, run_dir, "base")
-    train_variant(sc, run_dir, "finetune:amuled")
+    train_variant(sc, run_dir, Variant("base"))
+    train_variant(sc, run_dir, Variant.finetune("amuled"))
     tune = run_dir / "finetune-amuled"
     old = hashlib.sha256(recording.read_bytes()).hexdigest()
     inputs = json.loads((tune / "config.json").read_text())["training"]["inputs"]
@@ -141,7 +142,7 @@ def test_resume_refuses_a_recording_replaced_under_the_same_name(tmp_path, recor
     new = hashlib.sha256(recording.read_bytes()).hexdigest()
     longer = sc.replace("finetune", iterations=5)
     with pytest.raises(AmuledError) as err:
-        train_variant(longer, run_dir, "finetune:amuled", resume=True)
+        train_variant(longer, run_dir, Variant.finetune("amuled"), resume=True)
     assert f"inputs.recording_sha256: {old!r} -> {new!r}" in str(err.value)
     assert "--force" in str(err.value)
     assert _checkpoint_bytes(tune) == before
@@ -149,5 +150,5 @@ def test_resume_refuses_a_recording_replaced_under_the_same_name(tmp_path, recor
     # the original content back: the resume continues
     data["states"][0]["beliefs"]["care"] = [0.1, 0.0, 0.0, 0.9]
     recording.write_text(json.dumps(data))
-    train_variant(longer, run_dir, "finetune:amuled", resume=True)
+    train_variant(longer, run_dir, Variant.finetune("amuled"), resume=True)
     assert checkpoint_state(tune / "model_last.pt")["iteration"] == 5

@@ -12,6 +12,7 @@ from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.policies import action_log_probs, load_policy
 from amuled_ma.learn.population import PopulationTrainer
 from amuled_ma.learn.population_groups import MemberSpec
+from amuled_ma.variants import Variant
 
 
 def Trainer(scenario, out_dir, **job) -> PopulationTrainer:  # noqa: N802 - the job's trainer
@@ -64,7 +65,7 @@ def test_finetune_needs_base_checkpoint(tmp_path, tiny_scenario, factory):
         Trainer(
             tiny_scenario,
             tmp_path / "ft",
-            variant="finetune:x",
+            variant=Variant.finetune("x"),
             feedback=fb,
             base_checkpoint=tmp_path / "missing.pt",
             task_factory=factory,
@@ -84,7 +85,7 @@ def test_finetune_moves_policy_towards_feedback_and_anchors(tmp_path, tiny_scena
     trainer = Trainer(
         scenario,
         tmp_path / "ft",
-        variant="finetune:left",
+        variant=Variant.finetune("left"),
         feedback=fb,
         base_checkpoint=base.checkpoint,
         task_factory=factory,

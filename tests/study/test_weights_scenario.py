@@ -15,15 +15,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from job_settings import settings
 from tiny_cli import TINY
 
 from amuled_ma.cli import main
 from amuled_ma.deliberation.plan import plan_panel
 from amuled_ma.errors import AmuledError, ScenarioError
 from amuled_ma.experiments.plans import ablation_variants, train_variant
-from amuled_ma.experiments.training_settings import training_config
 from amuled_ma.resources import scenarios_dir
 from amuled_ma.scenario import PAPER_CLUSTERS, load_scenario
+from amuled_ma.variants import Variant
 
 #: Written in another order than [feedback].clusters, on another scale than 1.
 WEIGHTS = {"care": 2.0, "virtue": 1.0, "consequentialist": 4.0, "deontological": 2.0,
@@ -167,16 +168,16 @@ def test_editing_the_weights_file_and_resuming_is_refused(tmp_path):
     }.items():
         scenario = scenario.replace(section, **values)
     old = hashlib.sha256(path.read_bytes()).hexdigest()
-    config = training_config(scenario, "finetune:amuled")
+    config = settings(scenario, "finetune:amuled")
     assert config["inputs"]["weights_sha256"] == old and config["feedback"]["weights"] == "w.json"
     for other in ("finetune:cluster:care", "finetune:agg:mean", "base"):
-        assert "weights_sha256" not in training_config(scenario, other).get("inputs", {})
+        assert "weights_sha256" not in settings(scenario, other).get("inputs", {})
     plain = scenario.replace("feedback", weights="")
-    assert "weights" not in training_config(plain, "finetune:amuled")["feedback"]
+    assert "weights" not in settings(plain, "finetune:amuled")["feedback"]
 
     run_dir = tmp_path / "run"
-    train_variant(scenario, run_dir, "base")
-    train_variant(scenario, run_dir, "finetune:amuled")
+    train_variant(scenario, run_dir, Variant("base"))
+    train_variant(scenario, run_dir, Variant.finetune("amuled"))
     record = json.loads((run_dir / "finetune-amuled" / "config.json").read_text())
     assert record["panel"]["weights"] == "w.json"
     assert record["training"]["inputs"]["weights_sha256"] == old
@@ -185,6 +186,6 @@ def test_editing_the_weights_file_and_resuming_is_refused(tmp_path):
     new = hashlib.sha256(path.read_bytes()).hexdigest()
     longer = scenario.replace("finetune", iterations=3)
     with pytest.raises(AmuledError) as err:
-        train_variant(longer, run_dir, "finetune:amuled", resume=True)
+        train_variant(longer, run_dir, Variant.finetune("amuled"), resume=True)
     text = str(err.value)
     assert f"inputs.weights_sha256: {old!r} -> {new!r}" in text and "--force" in text
