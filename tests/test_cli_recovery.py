@@ -6,7 +6,7 @@
   user meant (a new name, or ``--force`` for that variant alone), and that command works;
 - ``explain`` and ``evaluate`` take ``--clusters-dir``; ``rules`` answers a user cluster
   only when named for it, and says that the cluster's text is not read;
-- the README's six-cluster command stops before training, in seconds, with the options;
+- the six-cluster command of docs/clusters.md stops before training, in seconds, with the options;
 - other libraries' warnings go to the log, not into the output.
 """
 
@@ -48,8 +48,8 @@ TUNE = [
     "--set", "finetune.iterations=1", "--set", "finetune.num_envs=2",
     "--set", "finetune.num_steps_per_env=4", "--set", "ppo.num_mini_batches=1",
 ]  # fmt: skip
-#: The README's six-cluster command, its continuation lines included.
-README_LINE = r"amuled finetune findmilk --clusters-dir examples/my_clusters.*?\n(?:\s+--.*\n)*"
+#: The six-cluster command of docs/clusters.md, its continuation lines included.
+CLUSTERS_LINE = r"amuled finetune findmilk --clusters-dir examples/my_clusters.*?\n(?:\s+--.*\n)*"
 #: Runs the command line in a child and says which heavy modules it imported.
 PROBE = (
     "import sys; from amuled_ma.cli import main; code = main(sys.argv[1:]); "
@@ -236,12 +236,12 @@ def test_evaluate_takes_clusters_dir(tmp_path, capsys):
     assert "not a run directory" in capsys.readouterr().err
 
 
-def test_readme_six_cluster_command_stops_before_training_with_the_options(
+def test_the_six_cluster_command_stops_before_training_with_the_options(
     tmp_path, recordings_dir
 ):
-    text = (ROOT / "README.md").read_text()
-    found = re.search(README_LINE, text)
-    assert found, "README: the six-cluster command is gone"
+    text = (ROOT / "docs" / "clusters.md").read_text()
+    found = re.search(CLUSTERS_LINE, text)
+    assert found, "docs/clusters.md: the six-cluster command is gone"
     line = re.sub(r"\\\n\s*", "", found.group(0))
     argv = shlex.split(line.split("#")[0])
     env = {**ENV, "AMULED_RECORDINGS": str(recordings_dir)}

@@ -231,9 +231,7 @@ def live_cost_lines(
     return lines
 
 
-def live_costs(
-    plan: PanelPlan, store: Path, say: Callable[[str], None] | None = None
-) -> list[str]:
+def live_costs(plan: PanelPlan, store: Path, say: Callable[[str], None] | None = None) -> list[str]:
     """`live_cost_lines` of a fine-tune's planned panel; no source is built without a live member.
 
     Args:
