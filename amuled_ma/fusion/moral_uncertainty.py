@@ -13,8 +13,9 @@ fusion rules here with one mapping, used by all four:
   fuses only the members that answered, and every rule here gives the same result for a
   member of credence 0 as without it);
 - its **choiceworthiness** of action ``a`` in a state is its belief, ``W_i(a) = b_i(a)``
-  (the probability the member gives to ``a`` being the right action; an LLM gives no other
-  score, and Q-values of each theory, which Ecoffet & Lehman (2021) learn, do not exist here).
+  (the probability the member gives to ``a`` being the right action). Ecoffet & Lehman (2021)
+  define it as theory ``i``'s action value ``Q_i(s, a)``, learned from the theory's own
+  reward; a panel member has neither, and gives no score but its belief.
 
 Each rule returns a probability vector per state, because the fine-tune's reward is
 ``fused[a]``; how each rule's scores become one is part of its definition below.
@@ -122,10 +123,11 @@ def _mec_rule(beliefs, *, weights, param, diagnostics, prior=None):
 def _nash_vote_rule(beliefs, *, weights, param, diagnostics, prior=None):
     """Nash voting (Ecoffet & Lehman 2021), one state: the vote shares of its equilibrium.
 
-    Voter ``i`` has budget ``c_i B`` and casts votes ``v_i(a) >= 0`` with
-    ``sum_a v_i(a) <= c_i B`` (cost ``sum_a |v_i(a)|^p`` with ``p = cost_exponent = 1``,
-    ``NashEnv.step``); the action is drawn with probability ``p(a) = V(a) / sum_b V(b)``,
-    ``V = sum_j v_j`` (``stochastic_voting``). Spending more on one's most choiceworthy
+    Voter ``i`` casts votes ``u_i(a) >= 0`` at cost ``sum_a |u_i(a)|^p`` from a budget ``B``
+    (``p = cost_exponent = 1``, ``default_budget = 10``), weighted by its credence,
+    ``V = sum_j c_j u_j`` (``NashEnv.step``); with ``v_i = c_i u_i`` that is a budget
+    ``c_i B``, ``sum_a v_i(a) <= c_i B``. The action is drawn with probability
+    ``p(a) = V(a) / sum_b V(b)`` (``stochastic_voting``). Spending more on one's most choiceworthy
     action raises its probability and lowers every other one's in proportion, so every
     voter spends its whole budget, ``sum_b V(b) = B``, and voter ``i``'s expected
     choiceworthiness ``sum_a p(a) b_i(a) = (1/B) sum_a v_i(a) b_i(a) + (others' part)`` is
@@ -155,20 +157,24 @@ def _variance_vote_rule(beliefs, *, weights, param, diagnostics, prior=None):
     deviation of ``b_i`` over the actions of the state (``np.std``, as
     ``VarianceModel.predict`` takes ``np.std`` of each theory's action scores), ``z_i = 0``
     for a flat belief (``sigma_i <= FLAT_SIGMA``). Ecoffet & Lehman average the variance over
-    the states the policy visits; here it is the state's own: the panel memoises each
-    state's fused belief and fuses states in groups of whoever answered them, so a variance
-    over the batch would make a state's reward depend on the states it happened to be fused
-    with. Scores ``S(a) = sum_i c_i z_i(a)``; the probability vector is the code's stochastic
-    variant (``normalized_scores -= min`` per theory, then the credence-weighted sum):
-    ``fused(a) ∝ sum_i c_i (z_i(a) - min_b z_i(b))``, which has ``argmax S`` as its argmax
-    and needs no temperature; uniform when every member of positive credence is flat.
+    the states the policy visits, ``sigma_i = sqrt(E_s Var_a Q_i(s, a))``
+    (``RollingMeanOfStd``); here it is the state's own: the panel memoises each state's fused
+    belief and fuses states in groups of whoever answered them, so a variance over the batch
+    would make a state's reward depend on the states it happened to be fused with
+    (``docs/fusion.md``). Scores ``S(a) = sum_i c_i z_i(a)``; the probability vector is the
+    code's stochastic variant (``normalized_scores -= min`` per theory, then the
+    credence-weighted sum): ``fused(a) ∝ sum_i c_i (z_i(a) - min_b z_i(b))``, which has
+    ``argmax S`` as its argmax and needs no temperature; uniform when every member of
+    positive credence is flat.
     """
     c = credences(beliefs, weights, prior)
     centred = beliefs - beliefs.mean(axis=-1, keepdims=True)
     sigma = np.sqrt((centred**2).mean(axis=-1, keepdims=True))  # np.std(b_i), ddof = 0
     flat = sigma <= FLAT_SIGMA
-    z = np.where(flat, 0.0, centred / np.where(flat, 1.0, sigma))  # mean 0, variance 1
-    part = c[..., :, None] * (z - z.min(axis=-1, keepdims=True))  # c_i (z_i - min z_i)
+    # z_i = (b_i - mean b_i) / sigma_i (Cotton-Barratt et al. 2020; VarianceModel.predict)
+    z = np.where(flat, 0.0, centred / np.where(flat, 1.0, sigma))
+    # c_i (z_i - min z_i): their stochastic variant (normalized_scores -= min, then * credences)
+    part = c[..., :, None] * (z - z.min(axis=-1, keepdims=True))
     votes = part.sum(axis=-2)
     total = votes.sum(axis=-1, keepdims=True)
     n = beliefs.shape[-1]
@@ -197,6 +203,7 @@ def _borda_rule(beliefs, *, weights, param, diagnostics, prior=None):
     below = (other < mine).sum(axis=-1)
     equal = (other == mine).sum(axis=-1) - 1  # the action itself excluded
     points = below + 0.5 * equal  # s_i(a); sums to n (n - 1) / 2 over a
+    # credence-weighted Borda (MacAskill 2016): sum_i c_i s_i(a) / (n (n - 1) / 2)
     fused = (c[..., :, None] * points).sum(axis=-2) / (n * (n - 1) / 2)
     fused = fused / fused.sum(axis=-1, keepdims=True)
     return _result(beliefs, fused, c, "borda", diagnostics)

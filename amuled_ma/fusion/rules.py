@@ -145,7 +145,7 @@ def register_rule(
             raise ValueError(f"fusion rule {name!r} is already registered (pass replace=True)")
         summary = (func.__doc__ or "").strip().splitlines()[0] if func.__doc__ else ""
         _REGISTRY[name] = RuleSpec(name, func, takes_weights, takes_param, summary, takes_prior)
-        allow_fusion_rule(name, takes_param)  # a scenario may name it from now on
+        allow_fusion_rule(name, takes_param, takes_prior)  # a scenario may name it now
         return func
 
     return decorator

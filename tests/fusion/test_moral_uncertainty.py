@@ -7,6 +7,7 @@ Ecoffet & Lehman's code (github.com/uber-research/normative-uncertainty, commit 
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -14,6 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from scipy.stats import rankdata
 
 from amuled_ma.fusion import RULES, fuse
 
@@ -201,6 +203,18 @@ def test_borda_by_hand():
     np.testing.assert_allclose(fuse(np.full((2, 4), 0.25), "borda"), np.full(4, 0.25))
 
 
+def test_borda_points_are_scipys_average_ranks_minus_one():
+    """``s_i(a)`` is ``rankdata(b_i, "average") - 1`` (ties share their ranks' mean)."""
+    rng = np.random.default_rng(5)
+    beliefs = rng.choice([0.1, 0.2, 0.3], size=(4, 6))  # many ties
+    beliefs /= beliefs.sum(axis=-1, keepdims=True)
+    c = rng.dirichlet(np.ones(4))
+    points = np.array([rankdata(b, method="average") - 1 for b in beliefs])
+    np.testing.assert_allclose(
+        fuse(beliefs, "borda", prior=c), c @ points / (6 * 5 / 2), atol=1e-15
+    )
+
+
 def test_borda_uses_only_the_ranking():
     # the same order, other numbers: the same result (mec differs)
     other = np.array([[0.4, 0.2, 0.2, 0.2], [0.9, 0.05, 0.025, 0.025], [0.2, 0.2, 0.2, 0.4]])
@@ -262,3 +276,27 @@ def test_a_unanimous_panel_keeps_the_argmax(one, k, rule):
     out = fuse(np.broadcast_to(belief, (k, belief.size)), rule)
     assert belief[np.argmax(out)] >= belief.max() - 1e-12  # a top action wins
     assert np.all(out[belief == belief.max()] >= out.max() - 1e-12)  # every top action does
+
+
+# --- in a scenario -----------------------------------------------------------------------
+
+
+def test_a_scenario_may_weigh_the_members_of_a_moral_uncertainty_rule(tmp_path):
+    """``[feedback].weights`` with ``fusion = "mec"``: accepted, the credences of the panel."""
+    from amuled_ma.deliberation.plan import plan_panel
+    from amuled_ma.resources import scenarios_dir
+    from amuled_ma.scenario import PAPER_CLUSTERS, load_scenario
+
+    weights = {"care": 2.0, "virtue": 1.0, "consequentialist": 4.0, "deontological": 2.0,
+               "social_justice": 1.0}  # fmt: skip
+    (tmp_path / "w.json").write_text(
+        json.dumps({"members": list(weights), "weights": list(weights.values())})
+    )
+    text = (scenarios_dir() / "findmilk.toml").read_text()
+    text = text.replace('source = "replay"', 'source = "rules"', 1)
+    text = text.replace('fusion = "bjs-dst"', 'fusion = "mec"\nweights = "w.json"')
+    (tmp_path / "findmilk.toml").write_text(text)
+    plan = plan_panel("amuled", load_scenario(tmp_path / "findmilk.toml"))
+    assert plan.rule == "mec"
+    # credences w / sum(w), sum 10, in the panel's order
+    assert plan.prior == pytest.approx([weights[c] / 10 for c in PAPER_CLUSTERS], abs=1e-15)
