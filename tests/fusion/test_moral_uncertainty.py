@@ -300,3 +300,42 @@ def test_a_scenario_may_weigh_the_members_of_a_moral_uncertainty_rule(tmp_path):
     assert plan.rule == "mec"
     # credences w / sum(w), sum 10, in the panel's order
     assert plan.prior == pytest.approx([weights[c] / 10 for c in PAPER_CLUSTERS], abs=1e-15)
+
+
+# --- on the authors' recordings ------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("name", "agree", "top"),
+    [  # docs/reproduction.md's table: same top action as bjs-dst, mean max_a fused[a]
+        (
+            "findmilk-gpt-4o-mini.json",
+            {"mec": 0.960, "nash-vote": 0.996, "variance-vote": 0.977, "borda": 0.969},
+            {"mec": 0.647, "nash-vote": 0.829, "variance-vote": 0.695, "borda": 0.460},
+        ),
+        (
+            "driving-llama-3_1-70b.json",
+            {"mec": 0.973, "nash-vote": 0.994, "variance-vote": 0.991, "borda": 0.992},
+            {"mec": 0.734, "nash-vote": 0.846, "variance-vote": 0.774, "borda": 0.598},
+        ),
+    ],
+)
+def test_every_recorded_state(load_recording, name, agree, top):
+    """Each rule on the five clusters' beliefs of every state the authors recorded."""
+    recording = load_recording(name)
+    clusters = recording["clusters"]
+    beliefs = np.array([[s["beliefs"][c] for c in clusters] for s in recording["states"]])
+    states = np.arange(len(beliefs))
+    best = fuse(beliefs, "bjs-dst").argmax(axis=-1)
+    # nash-vote, counted here from each cluster's favourites: the share of the panel whose
+    # argmax (ties split) is the action
+    favourite = beliefs == beliefs.max(axis=-1, keepdims=True)
+    shares = (favourite / favourite.sum(axis=-1, keepdims=True)).mean(axis=-2)
+    np.testing.assert_allclose(fuse(beliefs, "nash-vote"), shares, atol=1e-12)
+    # uniform credences: mec is the plain mean of the five beliefs
+    np.testing.assert_allclose(fuse(beliefs, "mec"), beliefs.mean(axis=-2), atol=1e-12)
+    for rule in NEW_RULES:
+        fused = fuse(beliefs, rule)
+        same = np.isclose(fused[states, best], fused.max(axis=-1))  # bjs-dst's is a top one
+        assert round(float(same.mean()), 3) == agree[rule], rule
+        assert round(float(fused.max(axis=-1).mean()), 3) == top[rule], rule
