@@ -110,7 +110,14 @@ def _result(
 
 
 @register_rule("mec", takes_weights=True, takes_prior=True)
-def _mec_rule(beliefs, *, weights, param, diagnostics, prior=None):
+def _mec_rule(
+    beliefs: np.ndarray,
+    *,
+    weights: np.ndarray | None,
+    param: str | None,
+    diagnostics: bool,
+    prior: np.ndarray | None = None,
+) -> np.ndarray | FusionResult:
     """Maximise expected choiceworthiness (MacAskill & Ord 2020): sum_i c_i b_i."""
     c = credences(beliefs, weights, prior)
     # MEC: EC(a) = sum_i C(T_i) W_i(a), W_i = b_i (MacAskill & Ord 2020)
@@ -120,7 +127,14 @@ def _mec_rule(beliefs, *, weights, param, diagnostics, prior=None):
 
 
 @register_rule("nash-vote", takes_weights=True, takes_prior=True)
-def _nash_vote_rule(beliefs, *, weights, param, diagnostics, prior=None):
+def _nash_vote_rule(
+    beliefs: np.ndarray,
+    *,
+    weights: np.ndarray | None,
+    param: str | None,
+    diagnostics: bool,
+    prior: np.ndarray | None = None,
+) -> np.ndarray | FusionResult:
     """Nash voting (Ecoffet & Lehman 2021), one state: the vote shares of its equilibrium.
 
     Voter ``i`` casts votes ``u_i(a) >= 0`` at cost ``sum_a |u_i(a)|^p`` from a budget ``B``
@@ -150,7 +164,14 @@ def _nash_vote_rule(beliefs, *, weights, param, diagnostics, prior=None):
 
 
 @register_rule("variance-vote", takes_weights=True, takes_prior=True)
-def _variance_vote_rule(beliefs, *, weights, param, diagnostics, prior=None):
+def _variance_vote_rule(
+    beliefs: np.ndarray,
+    *,
+    weights: np.ndarray | None,
+    param: str | None,
+    diagnostics: bool,
+    prior: np.ndarray | None = None,
+) -> np.ndarray | FusionResult:
     """Variance voting (Cotton-Barratt, MacAskill & Ord 2020; Ecoffet & Lehman 2021).
 
     ``z_i(a) = (b_i(a) - mean_b b_i(b)) / sigma_i``, ``sigma_i`` the population standard
@@ -187,7 +208,14 @@ def _variance_vote_rule(beliefs, *, weights, param, diagnostics, prior=None):
 
 
 @register_rule("borda", takes_weights=True, takes_prior=True)
-def _borda_rule(beliefs, *, weights, param, diagnostics, prior=None):
+def _borda_rule(
+    beliefs: np.ndarray,
+    *,
+    weights: np.ndarray | None,
+    param: str | None,
+    diagnostics: bool,
+    prior: np.ndarray | None = None,
+) -> np.ndarray | FusionResult:
     """Credence-weighted Borda count (MacAskill 2016) of the members' rankings of the actions.
 
     ``s_i(a) = #{b: b_i(b) < b_i(a)} + #{b != a: b_i(b) = b_i(a)} / 2`` (tied actions share
