@@ -12,7 +12,7 @@ Feedback variants (the part after ``finetune:``):
 - ``human``: the authors' demonstrator; ``human:rules``: the rule-based synthetic human;
 - ``moral``: the unprompted moral agent alone;
 - ``cluster:<name>``: one cluster alone;
-- ``agg:<rule>``: the scenario's panel aggregated with ``mean``, ``max`` or ``vote``.
+- ``agg:<rule>``: the scenario's panel aggregated with another rule of :data:`AGGREGATIONS`.
 """
 
 from __future__ import annotations
@@ -22,8 +22,9 @@ from typing import Literal
 
 from amuled_ma.errors import ScenarioError
 
-#: The aggregation baselines of ``agg:<rule>``.
-AGGREGATIONS = ("mean", "max", "vote")
+#: The aggregation baselines of ``agg:<rule>``: the simple rules, then the moral-uncertainty
+#: rules (:mod:`amuled_ma.fusion.moral_uncertainty`).
+AGGREGATIONS = ("mean", "max", "vote", "mec", "nash-vote", "variance-vote", "borda")
 
 #: What a job trains.
 Kind = Literal["base", "shaped", "finetune"]

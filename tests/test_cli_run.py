@@ -117,9 +117,10 @@ def test_ablate_aggregation_with_replay_two_seeds_in_parallel(tmp_path, capsys, 
     ]
     assert main(args) == 0
     out = capsys.readouterr().out
-    assert "4 variants x 2 seed(s) done" in out and "on 2 worker(s)" in out
+    assert "8 variants x 2 seed(s) done" in out and "on 2 worker(s)" in out
     abl = run_dir / "ablate-aggregation"
-    for name in ("finetune-agg-mean", "finetune-agg-max", "finetune-agg-vote", "finetune-amuled"):
+    rules = ("mean", "max", "vote", "mec", "nash-vote", "variance-vote", "borda")
+    for name in (*(f"finetune-agg-{rule}" for rule in rules), "finetune-amuled"):
         for replica in (name, f"{name}.seed2"):
             assert (abl / replica / "model_last.pt").is_file(), replica
     assert (run_dir / "base.seed2" / "model_last.pt").is_file()

@@ -19,7 +19,7 @@ from amuled_ma.errors import ScenarioError
 from amuled_ma.fusion import RULES
 from amuled_ma.scenario.names import identity_key, odd_character
 from amuled_ma.scenario.overrides import parse_set
-from amuled_ma.scenario.panel_checks import FUSION_RULES
+from amuled_ma.scenario.panel_checks import FUSION_RULES, prior_rules
 
 
 def fails(tmp_path: Path, capsys, *sets: str) -> str:
@@ -47,7 +47,13 @@ def fails(tmp_path: Path, capsys, *sets: str) -> str:
         ("feedback.clusters=['care','care\U000e0061']", "U+E0061 (TAG LATIN SMALL LETTER A)"),
         ("feedback.clusters=['care','care\ufe0f']", "U+FE0F (VARIATION SELECTOR-16)"),
         ("feedback.clusters=['care','']", "expects names of 1 to 100 characters"),
-        ("feedback.fusion='evil'", "found 'evil'; the rules: bjs-dst, mean, max, vote, single:<i>"),
+        (
+            "feedback.fusion='evil'",
+            "found 'evil'; the rules: bjs-dst, mean, max, vote, single:<i>, mec, nash-vote, "
+            "variance-vote, borda (docs/fusion.md)",
+        ),
+        ("feedback.fusion='nash-votes'", "found 'nash-votes' (did you mean 'nash-vote'?)"),
+        ("feedback.fusion='borda:2'", "rule 'borda' takes no parameter"),
         ("feedback.fusion=''", "key [feedback].fusion expects a fusion rule, found ''"),
         ("feedback.fusion='means'", "found 'means' (did you mean 'mean'?)"),
         ("feedback.fusion='single:99'", "single:<i> with i an integer in [-5, 4]"),
@@ -70,13 +76,15 @@ def test_a_single_rule_within_the_panel_is_accepted():
     from amuled_ma.scenario import load_scenario
 
     scenario = load_scenario("findmilk")
-    for rule in ("single:0", "single:-5", "single:4", "vote", "bjs-dst"):
+    for rule in ("single:0", "single:-5", "single:4", "vote", "bjs-dst", "mec", "borda"):
         assert scenario.replace("feedback", fusion=rule).feedback.fusion == rule
 
 
 def test_the_scenarios_rules_are_the_registered_fusion_rules():
     assert dict(FUSION_RULES) == {name: spec.takes_param for name, spec in RULES.items()}
     assert {"bjs-dst", "mean", "max", "vote", "single"} <= set(FUSION_RULES)
+    assert set(prior_rules()) == {name for name, spec in RULES.items() if spec.takes_prior}
+    assert set(prior_rules()) == {"bjs-dst", "mec", "nash-vote", "variance-vote", "borda"}
 
 
 def test_a_rule_registered_in_code_may_be_named_until_it_is_removed():

@@ -86,7 +86,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--feedback",
         default=None,
-        help="feedback variant: amuled (default), cluster:<name>, agg:mean|max|vote, moral, "
+        help="feedback variant: amuled (default), cluster:<name>, agg:<rule> (mean, max, vote, "
+        "mec, nash-vote, variance-vote, borda), moral, "
         "human, human:rules; with --state-from: the variant's own",
     )
     parser.add_argument(

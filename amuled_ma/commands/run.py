@@ -57,7 +57,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="the paper's ablations: clusters, aggregation, models, kl; budget and weights",
         description=(
             "Fine-tune the run's base policy with: each cluster alone and the unprompted "
-            "moral agent (clusters); mean/max/vote vs bjs-dst (aggregation); every "
+            "moral agent (clusters); mean/max/vote and the moral-uncertainty rules mec/"
+            "nash-vote/variance-vote/borda vs bjs-dst (aggregation); every "
             "recording of the task or the scenario's model (models); a lambda_KL sweep (kl); "
             "the panel asked about 100%, 30%, 10%, 3% of the distinct states, the rest "
             "answered by a distilled reward model, with uncertainty and random selection "

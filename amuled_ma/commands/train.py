@@ -38,14 +38,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             "log pi_base(a|s)). Feedback: amuled (the clusters fused with bjs-dst), human "
             "(the authors' synthetic human: a demonstrator's action counts), human:rules (the "
             "task's rule-based synthetic human), cluster:<name> (one cluster), moral "
-            "(unprompted moral agent), agg:mean|max|vote (other fusion rules)."
+            "(unprompted moral agent), agg:<rule> (another fusion rule: mean, max, vote, mec, "
+            "nash-vote, variance-vote, borda)."
         ),
     )
     common.add_scenario_args(finetune)
     finetune.add_argument(
         "--feedback",
         default="amuled",
-        help="amuled | human | human:rules | moral | cluster:<name> | agg:mean|max|vote "
+        help="amuled | human | human:rules | moral | cluster:<name> | agg:<rule> (mean, max, "
+        "vote, mec, nash-vote, variance-vote, borda) "
         "(default: amuled)",
     )
     finetune.add_argument(

@@ -15,7 +15,8 @@ Variants (``--feedback``):
   through `CallableFeedback`);
 - ``cluster:<name>``: one moral cluster alone;
 - ``moral``: the unprompted "behave as a moral agent" agent;
-- ``agg:mean|max|vote``: the five clusters fused with another rule.
+- ``agg:<rule>``: the five clusters fused with another rule
+  (:data:`amuled_ma.variants.AGGREGATIONS`).
 
 Every call counts, per agent (cluster), the status of the belief each rewarded step was
 given: ``ok`` / ``repaired`` (an answer), ``abstained`` / ``timeout`` / ``error`` (a

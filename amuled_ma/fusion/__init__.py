@@ -15,6 +15,8 @@ fused = fuse(beliefs)                      # (..., k, n) -> (..., n), rule "bjs-
 result = fuse(beliefs, return_diagnostics=True)
 result.weights, result.credibility, result.entropy, result.conflicts
 fuse(beliefs, "mean"); fuse(beliefs, "max"); fuse(beliefs, "vote"); fuse(beliefs, "single:0")
+fuse(beliefs, "mec"); fuse(beliefs, "nash-vote"); fuse(beliefs, "variance-vote")
+fuse(beliefs, "borda")
 xiao_fusion(masses, [{"A"}, {"B"}, {"C"}, {"A", "C"}])   # general focal elements
 ```
 
@@ -25,6 +27,9 @@ xiao_fusion(masses, [{"A"}, {"B"}, {"C"}, {"A", "C"}])   # general focal element
 - :func:`xiao_fusion`, :func:`dempster_combine`, :func:`bjs_divergence`,
   :func:`deng_entropy`, :class:`FusionResult`: :mod:`amuled_ma.fusion.xiao` (the maths
   and every degenerate case are documented there).
+- ``mec``, ``nash-vote``, ``variance-vote``, ``borda``, the rules for acting under moral
+  uncertainty: :mod:`amuled_ma.fusion.moral_uncertainty` (their mapping from beliefs and
+  their sources are documented there).
 - :mod:`amuled_ma.fusion.reference`: a plain per-state pure-Python implementation with
   dicts of frozensets, used as a test oracle and as the benchmark's baseline.
 
@@ -35,6 +40,7 @@ xiao_fusion(masses, [{"A"}, {"B"}, {"C"}, {"A", "C"}])   # general focal element
 
 from __future__ import annotations
 
+from amuled_ma.fusion import moral_uncertainty  # noqa: F401  (registers mec, nash-vote, ...)
 from amuled_ma.fusion._validate import SUM_TOLERANCE
 from amuled_ma.fusion.rules import RULES, RuleSpec, fuse, register_rule, unregister_rule
 from amuled_ma.fusion.xiao import (

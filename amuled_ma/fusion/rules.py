@@ -27,6 +27,9 @@ looks the rule up and calls it once for the whole batch.
   authors' code took the lowest index instead). ``weights`` scale the votes.
 - ``"single:<i>"``: cluster ``i``'s own belief (``i`` may be negative, Python style): the
   per-cluster ablation.
+- ``"mec"``, ``"nash-vote"``, ``"variance-vote"``, ``"borda"``: the rules for acting under
+  moral uncertainty, the members' ``weights`` or ``prior`` as credences
+  (:mod:`amuled_ma.fusion.moral_uncertainty`).
 
 ## Degenerate inputs
 
@@ -142,7 +145,7 @@ def register_rule(
             raise ValueError(f"fusion rule {name!r} is already registered (pass replace=True)")
         summary = (func.__doc__ or "").strip().splitlines()[0] if func.__doc__ else ""
         _REGISTRY[name] = RuleSpec(name, func, takes_weights, takes_param, summary, takes_prior)
-        allow_fusion_rule(name, takes_param)  # a scenario may name it from now on
+        allow_fusion_rule(name, takes_param, takes_prior)  # a scenario may name it now
         return func
 
     return decorator
@@ -206,14 +209,18 @@ def fuse(
             over ``n`` actions (non-negative, summing to 1 within ``1e-6``). Leading
             dimensions are batch dimensions, fused in one vectorized call.
         rule: a registered rule name: ``"bjs-dst"`` (default), ``"mean"``, ``"max"``,
-            ``"vote"``, ``"single:<i>"``, or one added with :func:`register_rule`.
+            ``"vote"``, ``"single:<i>"``, ``"mec"``, ``"nash-vote"``, ``"variance-vote"``,
+            ``"borda"``, or one added with :func:`register_rule`.
         weights: optional per-cluster weights, broadcastable to ``(..., k)``
-            (``"mean"`` and ``"vote"`` only); non-negative, not all zero.
+            (the rules with ``takes_weights``: all but ``bjs-dst``, ``max`` and
+            ``single``); non-negative, not all zero.
         prior: optional prior reliability ``rho`` of each cluster, broadcastable to
-            ``(..., k)`` (``"bjs-dst"`` only); non-negative, not all zero, any scale. It
-            multiplies Xiao's adjusted credibility, ``w_i ∝ rho_i · Crd_i · IV_i``
-            (``docs/fusion.md``, "A prior on the members"). None, or a prior equal for
-            every cluster, gives the paper's fusion bit for bit.
+            ``(..., k)`` (the rules with ``takes_prior``: ``bjs-dst`` and the
+            moral-uncertainty rules, which take it as the credences); non-negative, not
+            all zero, any scale. For ``bjs-dst`` it multiplies Xiao's adjusted
+            credibility, ``w_i ∝ rho_i · Crd_i · IV_i`` (``docs/fusion.md``, "A prior on
+            the members"). None, or a prior equal for every cluster, gives the paper's
+            fusion bit for bit.
         return_diagnostics: return a :class:`~amuled_ma.fusion.xiao.FusionResult` with
             ``fused`` and ``weights``, ``credibility``, ``entropy`` ``(..., k)`` and
             ``conflicts`` ``(..., k - 1)`` (``bjs-dst``; empty for other rules).

@@ -27,20 +27,45 @@ _FUSION_RULES: dict[str, bool] = {
     "max": False,
     "vote": False,
     "single": True,
+    "mec": False,
+    "nash-vote": False,
+    "variance-vote": False,
+    "borda": False,
 }
 FUSION_RULES: Mapping[str, bool] = MappingProxyType(_FUSION_RULES)
+#: The rules of :data:`FUSION_RULES` that take a member prior (``[feedback].weights``):
+#: ``bjs-dst`` multiplies Xiao's credibility by it, the moral-uncertainty rules read it as
+#: their credences (registered with ``takes_prior``; the same test holds the two equal).
+_PRIOR_RULES: set[str] = {"bjs-dst", "mec", "nash-vote", "variance-vote", "borda"}
 #: Longest cluster name [characters] (a file name of the cluster folder).
 MAX_CLUSTER_NAME = 100
 
 
-def allow_fusion_rule(name: str, takes_param: bool = False) -> None:
-    """Let scenarios name a fusion rule registered in code (``name`` or ``name:<param>``)."""
+def allow_fusion_rule(name: str, takes_param: bool = False, takes_prior: bool = False) -> None:
+    """Let scenarios name a fusion rule registered in code (``name`` or ``name:<param>``).
+
+    Args:
+        name: The rule's name.
+        takes_param: The rule is named ``name:<param>``.
+        takes_prior: The rule takes a member prior, so ``[feedback].weights`` may go with it.
+
+    """
     _FUSION_RULES[name] = takes_param
+    if takes_prior:
+        _PRIOR_RULES.add(name)
+    else:
+        _PRIOR_RULES.discard(name)
 
 
 def forget_fusion_rule(name: str) -> None:
     """Stop scenarios naming a rule no longer registered (none of that name: nothing)."""
     _FUSION_RULES.pop(name, None)
+    _PRIOR_RULES.discard(name)
+
+
+def prior_rules() -> tuple[str, ...]:
+    """The fusion rules that take a member prior, in the order of :data:`FUSION_RULES`."""
+    return tuple(n for n in FUSION_RULES if n in _PRIOR_RULES)
 
 
 def _choices() -> str:

@@ -34,7 +34,7 @@ from amuled_ma.scenario.memory import (
     check_finite,
 )
 from amuled_ma.scenario.messages import BUILT_IN_CODE, SECTIONS, scenario_error
-from amuled_ma.scenario.panel_checks import check_clusters, check_fusion
+from amuled_ma.scenario.panel_checks import check_clusters, check_fusion, prior_rules
 from amuled_ma.scenario.paths import check_path_component
 from amuled_ma.scenario.ranges import found_name as _found_name
 from amuled_ma.scenario.task_options import check_task_options
@@ -437,9 +437,11 @@ class FeedbackConfig(_Section):
             plain string, not a ``Literal``: rules can be registered at run time
             (:func:`amuled_ma.fusion.register_rule`) and take a parameter after ``:``.
         weights: A panel weights file (``amuled study fit-weights``; relative to the
-            scenario file, or absolute): a prior on the members that multiplies their
-            credibility in the ``bjs-dst`` fusion of the ``amuled`` variant (the
-            ``cluster:``, ``moral`` and ``agg:`` baselines ignore it). Empty: the paper's
+            scenario file, or absolute): a prior on the members of the ``amuled``
+            variant's fusion, which ``bjs-dst`` multiplies into their credibility and the
+            moral-uncertainty rules (``mec``, ``nash-vote``, ``variance-vote``, ``borda``)
+            take as their credences; other rules take none (the ``cluster:``, ``moral``
+            and ``agg:`` baselines ignore it). Empty: the paper's
             fixed weights. Checked when the scenario file is loaded and when the panel is
             planned (:mod:`amuled_ma.scenario.panel_weights`: the file's members must be
             the panel's).
@@ -532,13 +534,15 @@ class FeedbackConfig(_Section):
 
     @field_validator("weights")
     @classmethod
-    def _weights_need_bjs_dst(cls, value: str, info: ValidationInfo) -> str:
+    def _weights_need_a_prior_rule(cls, value: str, info: ValidationInfo) -> str:
         fusion = info.data.get("fusion")
-        if value.strip() and fusion is not None and fusion != "bjs-dst":
+        rules = prior_rules()
+        if value.strip() and fusion is not None and fusion not in rules:
             raise ScenarioError(
                 f"{_source(info)}: key [feedback].weights ({value!r}) is a prior on the "
-                f"members of the bjs-dst fusion, but [feedback].fusion is {fusion!r}; set "
-                'fusion = "bjs-dst" or drop weights (weights = "")'
+                f"panel's members, which only the rules {', '.join(rules)} take, but "
+                f"[feedback].fusion is {fusion!r}; set fusion to one of them (e.g. "
+                'fusion = "bjs-dst") or drop weights (weights = "")'
             )
         return value
 

@@ -94,6 +94,10 @@ def test_ablation_lists():
         "finetune-agg-mean",
         "finetune-agg-max",
         "finetune-agg-vote",
+        "finetune-agg-mec",
+        "finetune-agg-nash-vote",
+        "finetune-agg-variance-vote",
+        "finetune-agg-borda",
         "finetune-amuled",
     ]
     kl = ablation_variants("kl", sc)

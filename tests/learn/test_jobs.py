@@ -76,7 +76,7 @@ def test_plan_ablation_reuses_bases_and_writes_under_ablate_dir(tmp_path):
     assert [j.name for j in bases] == ["base", "base.seed2"]
     assert all(j.resume for j in bases)  # a finished base from `amuled run` is reused
     tunes = [j for j in jobs if str(j.variant) != "base"]
-    assert len(tunes) == 8  # mean, max, vote, bjs-dst x 2 seeds
+    assert len(tunes) == 16  # mean, max, vote, mec, nash-vote, variance-vote, borda, bjs-dst x 2
     assert {j.out_dir.parent for j in tunes} == {tmp_path / "ablate-aggregation"}
     assert {j.needs for j in tunes} == {("base",), ("base.seed2",)}
 
@@ -386,7 +386,7 @@ def test_plan_ablation_reuses_the_runs_amuled_finetune_only_with_same_settings(t
         "finetune-amuled.seed2": run_dir / "finetune-amuled.seed2",
     }
     others = [j.out_dir.parent for j in jobs if str(j.variant).startswith("finetune:agg")]
-    assert len(others) == 6 and set(others) == {run_dir / "ablate-aggregation"}
+    assert len(others) == 14 and set(others) == {run_dir / "ablate-aggregation"}  # 7 x 2
     outcome = run_jobs(jobs, describe=str)
     skipped = {Path(r.out_dir).name for r in outcome.results if r.skipped}
     assert skipped == {"base", "base.seed2", "finetune-amuled", "finetune-amuled.seed2"}

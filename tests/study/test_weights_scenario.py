@@ -127,6 +127,7 @@ def test_another_rule_or_a_fused_only_recording_is_refused(tmp_path):
         load_scenario(scenario_file(tmp_path, "w.json", fusion="mean"))
     text = str(info.value)
     assert "[feedback].weights" in text and "'mean'" in text and "\n" not in text
+    assert "the rules bjs-dst, mec, nash-vote, variance-vote, borda take" in text
     # Driving's paper recording keeps only the fused belief: nothing to weigh
     driving = load_scenario("driving").replace("feedback", weights=str(tmp_path / "w.json"))
     try:
