@@ -129,7 +129,7 @@ def _reward(value: str) -> Any:
 class SmartGrid(BatchedTask):
     """``num_envs`` copies of a small smart grid, one learning household in each.
 
-    Task options: ``households`` (>= 1, the learner is the first) and ``offices`` (>= 0),
+    Task options: ``households`` (1..1000, the learner is the first) and ``offices`` (0..1000),
     the prosumers of the package's OpenEI daily profiles. ``max_steps`` defaults to 24 (one
     day of the daily profiles, one step an hour).
     """
@@ -180,8 +180,8 @@ class SmartGrid(BatchedTask):
     # ------------------------------------------------------------------ hooks
     def _init_task(self, *, households: int, offices: int) -> None:
         for option, value, low in (("households", households, 1), ("offices", offices, 0)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"{option}: expected an integer >= {low}, got {value!r}")
+            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= 1000:
+                raise ValueError(f"{option}: expected an integer in {low}..1000, got {value!r}")
         try:
             from smartgrid import SmartGrid as PackageGrid
             from smartgrid import World
