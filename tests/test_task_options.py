@@ -18,7 +18,7 @@ from amuled_ma.errors import ScenarioError
 from amuled_ma.scenario import load_scenario
 from amuled_ma.scenario.task_options import RESERVED, TASK_OPTIONS, options_model
 from amuled_ma.tasks import TASKS, make_batched
-from amuled_ma.tasks.names import ALIASES, TASK_NAMES, canonical_name
+from amuled_ma.tasks.names import ALIASES, BUILTIN_TASKS, TASK_NAMES, canonical_name
 
 
 @pytest.mark.parametrize(
@@ -71,7 +71,7 @@ def _task_parameters(name: str) -> dict[str, inspect.Parameter]:
     return {p: v for p, v in signature.parameters.items() if p not in skip}
 
 
-@pytest.mark.parametrize("name", TASK_NAMES)
+@pytest.mark.parametrize("name", BUILTIN_TASKS)
 def test_each_task_has_an_option_model_with_its_options_and_defaults(name):
     model = TASK_OPTIONS[name]
     parameters = _task_parameters(name)

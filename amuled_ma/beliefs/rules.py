@@ -1,9 +1,11 @@
 """``rules`` and ``scripted``: belief sources that need no LLM.
 
 - `RulesSource` answers with the synthetic human-feedback policy of the task
-  (``amuled_ma.tasks.human.human_belief(task, obs)``, the paper's "human" baseline), or
-  with any function ``(task, obs) -> belief`` named as ``"module:function"`` (an import
-  path the command line allowed with ``--allow-plugin``, or an installed entry point's).
+  (``amuled_ma.tasks.human.human_belief(task, obs)``, the paper's "human" baseline), with
+  one of the task's own per-value judges (``"judge:<value>"``,
+  ``BatchedTask.judge_scores``), or with any function ``(task, obs) -> belief`` named as
+  ``"module:function"`` (an import path the command line allowed with ``--allow-plugin``,
+  or an installed entry point's).
 - `ScriptedSource` answers fixed beliefs per cluster, or calls a function of the
   request: for tests, examples and ablations.
 
@@ -110,11 +112,27 @@ def _human_belief(task: str, obs: np.ndarray) -> Any:
     return human_belief(task, obs)
 
 
+#: Prefix of a ``rules`` policy that names one of the task's own judges.
+JUDGE_PREFIX = "judge:"
+
+
+def _task_judge(judge: str) -> BeliefFn:
+    """The rule ``(task, obs) -> scores`` of the task's own judge ``judge``."""
+
+    def rule(task: str, obs: np.ndarray) -> Any:
+        from amuled_ma.tasks import get_task  # lazy: the tasks package is heavy
+
+        return get_task(task).judge_scores(judge, obs)
+
+    return rule
+
+
 class RulesSource(BeliefSource):
     """The synthetic human-feedback policies, or any rule ``(task, obs) -> belief``.
 
     Args:
-        policy: ``"human"`` (the task's synthetic human feedback), a callable
+        policy: ``"human"`` (the task's synthetic human feedback), ``"judge:<value>"``
+            (the task's own judge of that value, ``BatchedTask.judge_scores``), a callable
             ``(task, obs) -> belief``, or a ``"module:function"`` string: the value of an
             installed ``amuled_ma.agents`` entry point, or one this run's command line
             allowed (``--allow-plugin module:function``); any other is refused unimported.
@@ -126,11 +144,12 @@ class RulesSource(BeliefSource):
 
     def __init__(self, policy: str | BeliefFn = "human") -> None:
         self.policy_name = policy if isinstance(policy, str) else _qualname(policy)
-        self._fn: BeliefFn = (
-            _human_belief
-            if policy == "human"
-            else resolve_callable(policy, "rules source: key policy")
-        )
+        if policy == "human":
+            self._fn: BeliefFn = _human_belief
+        elif isinstance(policy, str) and policy.startswith(JUDGE_PREFIX):
+            self._fn = _task_judge(policy.removeprefix(JUDGE_PREFIX))
+        else:
+            self._fn = resolve_callable(policy, "rules source: key policy")
 
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
         """Answer each request with the rule; a failing rule gives a uniform ``"error"``.

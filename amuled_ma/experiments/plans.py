@@ -502,15 +502,21 @@ def plan_run(
 ) -> list[TrainJob]:
     """The jobs of ``amuled run``: :data:`MAIN_VARIANTS` for every seed.
 
-    Each seed's fine-tunes need (and anchor to) that seed's base policy, or, with ``base``
+    The ``human`` fine-tune is planned only for a task with synthetic human feedback
+    (``BatchedTask.human_feedback``: the paper's two tasks). Each seed's fine-tunes need
+    (and anchor to) that seed's base policy, or, with ``base``
     (a finished variant folder such as the authors' imported ``runs/authors/findmilk/base``),
     all anchor to that one.
     """
+    from amuled_ma.tasks import get_task
+
+    human = get_task(scenario.task.name).human_feedback
+    variants = [v for v in MAIN_VARIANTS if human or v != Variant.finetune("human")]
     run_dir = Path(run_dir)
     jobs = []
     for seed in seeds:
         own = replica_folder("base", seed, seeds[0])
-        for variant in MAIN_VARIANTS:
+        for variant in variants:
             folder = replica_folder(variant.folder, seed, seeds[0])
             job = TrainJob(
                 name=folder, scenario=scenario, run_dir=run_dir, variant=variant,

@@ -174,11 +174,16 @@ class OllamaSpec(_Spec):
 
 
 class RulesSpec(_Spec):
-    """``source = "rules"``: a rule in Python (the synthetic human, or ``module:function``)."""
+    """``source = "rules"``: a rule in Python.
+
+    The synthetic human, a task's own judge ``judge:<value>``, or ``module:function``.
+    """
 
     source: Literal["rules"]
     policy: str = Field(
-        "human", description="'human', or 'pkg.module:function' allowed with --allow-plugin"
+        "human",
+        description="'human', 'judge:<value>' (the task's own judge), or "
+        "'pkg.module:function' allowed with --allow-plugin",
     )
 
     def source_options(self, scenario: Any, head: str) -> dict[str, Any]:  # noqa: D102

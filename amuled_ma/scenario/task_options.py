@@ -58,14 +58,34 @@ class DrivingOptions(_Options):
     p_grandma: float = Field(0.09, ge=0, le=1, description="a probability per step")
 
 
-#: The option model of each task, by its short name.
-TASK_OPTIONS: dict[str, type[_Options]] = {"findmilk": FindMilkOptions, "driving": DrivingOptions}
+class SmartGridOptions(_Options):
+    """Options of the smart grid (``amuled_ma.tasks.smartgrid.SmartGrid``).
+
+    Attributes:
+        households: Households of the grid, the learner first (OpenEI daily profile).
+        offices: Offices of the grid (OpenEI daily profile).
+
+    """
+
+    households: int = Field(3, ge=1, le=1000, description="a count of prosumers")
+    offices: int = Field(1, ge=0, le=1000, description="a count of prosumers")
+
+
+#: The option model of each built-in task, by its short name (an entry-point task checks
+#: its own options when it is built).
+TASK_OPTIONS: dict[str, type[_Options]] = {
+    "findmilk": FindMilkOptions,
+    "driving": DrivingOptions,
+    "smartgrid": SmartGridOptions,
+}
 #: Other spellings of a task name (``amuled_ma.tasks.names.ALIASES``, compared lower-case).
 _ALIASES = {
     "amuled/findmilk-v0": "findmilk",
     "find_milk": "findmilk",
     "amuled/driving-v0": "driving",
     "driving_and_rescuing": "driving",
+    "smart_grid": "smartgrid",
+    "ethical-smart-grid": "smartgrid",
 }
 
 

@@ -1,6 +1,12 @@
-"""Task environments of the paper: FindMilk and Driving-and-Rescuing.
+"""Task environments: the paper's FindMilk and Driving-and-Rescuing, and adapted ones.
 
-Each task exists twice over one implementation:
+A task is a `BatchedTask` subclass. The paper's two and the smart-grid adapter
+(``amuled_ma.tasks.smartgrid``, over the ``ethical-smart-grid`` package, the optional
+extra ``smartgrid``) are built in; any installed package adds one by publishing its class
+under the entry-point group ``amuled_ma.tasks`` (``docs/tasks.md``, "Adding a task"), with no
+edit to this package.
+
+The paper's tasks exist twice over one implementation:
 
 - a batched torch core (`BatchedTask`): ``num_envs`` copies
   stepped by one call, with automatic reset and per-episode metrics, for the learner;
@@ -23,7 +29,12 @@ from collections.abc import Callable, Iterator, Mapping
 from typing import TYPE_CHECKING, Any
 
 from amuled_ma.errors import ScenarioError
-from amuled_ma.tasks.names import canonical_name
+from amuled_ma.tasks.names import (
+    ENTRY_POINT_GROUP,
+    canonical_name,
+    task_entry_points,
+    task_names,
+)
 
 if TYPE_CHECKING:
     from amuled_ma.tasks.base import BatchedTask
@@ -38,6 +49,7 @@ __all__ = [
     "canonical_name",
     "get_task",
     "make_batched",
+    "task_names",
 ]
 
 
@@ -53,40 +65,89 @@ def _driving() -> type[BatchedTask]:
     return Driving
 
 
-# task name -> the function importing its batched core
+def _smartgrid() -> type[BatchedTask]:
+    from amuled_ma.tasks.smartgrid import SmartGrid  # here: imports torch; the package lazily
+
+    return SmartGrid
+
+
+# built-in task name -> the function importing its batched core
 _LOADERS: dict[str, Callable[[], type[BatchedTask]]] = {
     "findmilk": _findmilk,
     "driving": _driving,
+    "smartgrid": _smartgrid,
 }
 
 
+def _load_entry_point(name: str) -> type[BatchedTask]:
+    """The class an installed ``amuled_ma.tasks`` entry point publishes, checked.
+
+    Raises:
+        ScenarioError: It fails to import, is not a `BatchedTask` subclass, or its
+            ``name`` differs from the entry point's; one line naming the entry point.
+
+    """
+    from amuled_ma.tasks.base import BatchedTask
+
+    point = task_entry_points()[name]
+    head = f"task {name!r}: the installed {ENTRY_POINT_GROUP} entry point {point.value!r}"
+    try:
+        cls = point.load()
+    except Exception as error:
+        raise ScenarioError(
+            f"{head} failed to import: {error!r}; fix or reinstall the package providing it"
+        ) from error
+    if not (isinstance(cls, type) and issubclass(cls, BatchedTask)):
+        raise ScenarioError(
+            f"{head} is {cls!r}, expected a subclass of amuled_ma.tasks.BatchedTask; "
+            "publish the task class itself"
+        )
+    if getattr(cls, "name", None) != name:
+        raise ScenarioError(
+            f"{head} is a class named {getattr(cls, 'name', None)!r}, expected name = "
+            f"{name!r}; give the class the entry point's name"
+        )
+    return cls
+
+
 class _TaskRegistry(Mapping[str, "type[BatchedTask]"]):
-    """Read-only mapping ``task name -> batched task class``, importing on first use."""
+    """Read-only mapping ``task name -> batched task class``, importing on first use.
+
+    Built-in tasks first, then the installed ``amuled_ma.tasks`` entry points (read at
+    every lookup, so a package installed while the process runs is found).
+    """
 
     def __getitem__(self, name: str) -> type[BatchedTask]:
-        return _LOADERS[name]()
+        if name in _LOADERS:
+            return _LOADERS[name]()
+        if name in task_entry_points():
+            return _load_entry_point(name)
+        raise KeyError(name)
 
     def __iter__(self) -> Iterator[str]:
-        return iter(_LOADERS)
+        return iter(task_names())
 
     def __len__(self) -> int:
-        return len(_LOADERS)
+        return len(task_names())
 
     def __repr__(self) -> str:
-        return f"TASKS({', '.join(_LOADERS)})"
+        return f"TASKS({', '.join(task_names())})"
 
 
 TASKS: Mapping[str, type[BatchedTask]] = _TaskRegistry()
-"""Registry of the tasks by short name (``"findmilk"``, ``"driving"``)."""
+"""Registry of the tasks by short name (built-in, then entry points)."""
 
 
 def get_task(name: str) -> type[BatchedTask]:
-    """Return the batched task class named ``name`` (``"findmilk"`` or ``"driving"``).
+    """Return the batched task class named ``name``.
 
-    Gymnasium ids (``"amuled/FindMilk-v0"``) and any capitalisation are accepted too.
+    Short names (``"findmilk"``, ``"driving"``, ``"smartgrid"``, an installed entry
+    point's), their aliases, Gymnasium ids (``"amuled/FindMilk-v0"``) and any
+    capitalisation are accepted.
 
     Raises:
-        ValueError: Unknown task.
+        ScenarioError: Unknown task (a ``ValueError``), or an entry point that does not
+            load a task class.
 
     """
     return TASKS[canonical_name(name)]

@@ -39,6 +39,7 @@ import abc
 import math
 import numbers
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
@@ -92,6 +93,11 @@ class BatchedTask(abc.ABC):
         obs_low: Lower bound of each observation entry.
         obs_high: Upper bound of each observation entry.
         metric_names: Task metrics accumulated per episode and reported in ``info["episode"]``.
+        prompt_template: The state prompt template of a task published outside this
+            package (``None``: the shipped ``prompts/tasks/<name>.md``).
+        judge_names: The task's own per-value judges (`judge_scores`); none by default.
+        human_feedback: Whether the task has the synthetic human feedback
+            (``amuled_ma.tasks.human``, the demonstrators): the paper's two tasks.
         num_envs: Number of copies.
         device: Torch device of every tensor.
         shaping_coef: Coefficient ``c`` of the handcrafted shaping reward.
@@ -106,6 +112,9 @@ class BatchedTask(abc.ABC):
     obs_low: ClassVar[tuple[float, ...]]
     obs_high: ClassVar[tuple[float, ...]]
     metric_names: ClassVar[tuple[str, ...]]
+    prompt_template: ClassVar[Path | None] = None
+    judge_names: ClassVar[tuple[str, ...]] = ()
+    human_feedback: ClassVar[bool] = False
 
     def __init__(
         self,
@@ -345,6 +354,28 @@ class BatchedTask(abc.ABC):
     @abc.abstractmethod
     def prompt_variables_from_obs(cls, obs: np.ndarray, **extra: Any) -> dict[str, Any]:
         """Return the prompt variables of one observation (plus task-specific extras)."""
+
+    @classmethod
+    def judge_scores(cls, judge: str, obs: np.ndarray) -> np.ndarray:
+        """The task's own judge of one value: non-negative scores per action.
+
+        A task that ships per-value judges (`judge_names`) overrides it; the ``rules``
+        belief source answers ``policy = "judge:<name>"`` with it.
+
+        Args:
+            judge: A name of `judge_names`.
+            obs: One observation ``[obs_dim]`` or several ``[B, obs_dim]``.
+
+        Returns:
+            ``[num_actions]`` or ``[B, num_actions]`` scores (a belief once divided by
+            their sum).
+
+        Raises:
+            ValueError: The task has no judge of that name.
+
+        """
+        known = ", ".join(cls.judge_names) or "none"
+        raise ValueError(f"judge: task {cls.name!r} has no judge {judge!r} (its judges: {known})")
 
     def render(self, mode: str = "ansi", env_id: int = 0) -> str | np.ndarray:
         """Render one copy.

@@ -111,6 +111,7 @@ class Driving(BatchedTask):
     obs_high: ClassVar[tuple[float, ...]] = (float(SPAWN_DISTANCE),) * 6 + (1.0,) * NUM_LANES
     metric_names: ClassVar[tuple[str, ...]] = ("collisions", "rescues", "lane_changes")
     num_lanes: ClassVar[int] = NUM_LANES
+    human_feedback: ClassVar[bool] = True
 
     def __init__(
         self,

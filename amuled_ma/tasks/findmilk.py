@@ -113,6 +113,7 @@ class FindMilk(BatchedTask):
     obs_high: ClassVar[tuple[float, ...]] = (float(SIZE - 1),) * 8
     metric_names: ClassVar[tuple[str, ...]] = ("crying_pacified", "sleeping_woken", "reached_milk")
     grid_size: ClassVar[int] = SIZE
+    human_feedback: ClassVar[bool] = True
     num_crying_babies: ClassVar[int] = len(CRYING)
     num_sleeping_babies: ClassVar[int] = len(SLEEPING)
 

@@ -28,7 +28,7 @@ from typing import Any
 
 from amuled_ma.errors import PromptError
 from amuled_ma.resources import MAX_PROMPT_BYTES, prompts_dir, read_text
-from amuled_ma.tasks.names import canonical_name
+from amuled_ma.tasks.names import BUILTIN_TASKS, canonical_name, task_entry_points
 
 __all__ = ["Fragment", "StateTemplate", "load_template", "render_state_prompt", "template_path"]
 
@@ -189,8 +189,21 @@ def parse_template(path: Path) -> StateTemplate:
 
 
 def template_path(task_name: str) -> Path:
-    """Return the path of the template of ``task_name`` (``prompts/tasks/<task>.md``)."""
-    return prompts_dir() / "tasks" / f"{canonical_name(task_name)}.md"
+    """Return the path of the template of ``task_name``.
+
+    A built-in task's is ``prompts/tasks/<task>.md``; a task published through the
+    ``amuled_ma.tasks`` entry-point group names its own (``BatchedTask.prompt_template``).
+    """
+    name = canonical_name(task_name)
+    if name in BUILTIN_TASKS:
+        return prompts_dir() / "tasks" / f"{name}.md"
+    own = getattr(task_entry_points()[name].load(), "prompt_template", None)  # its class says
+    if own is None:
+        raise PromptError(
+            f"task {name!r}: its class sets no prompt_template; give the path of its state "
+            "prompt template (docs/tasks.md, 'Adding a task')"
+        )
+    return Path(own)
 
 
 @functools.lru_cache(maxsize=16)

@@ -10,7 +10,7 @@ import torch
 import amuled_ma  # noqa: F401
 from amuled_ma.tasks import TASKS, get_task, make_batched
 from amuled_ma.tasks.gym_env import DrivingEnv
-from amuled_ma.tasks.names import TASK_NAMES
+from amuled_ma.tasks.names import BUILTIN_TASKS, TASK_NAMES
 
 
 @pytest.mark.parametrize("name", ["findmilk", "driving"])
@@ -87,7 +87,8 @@ def test_step_before_reset_and_render_arguments():
 
 
 def test_registry():
-    assert tuple(TASKS) == TASK_NAMES == ("findmilk", "driving")
+    assert TASK_NAMES == ("findmilk", "driving")
+    assert tuple(TASKS)[:3] == BUILTIN_TASKS == ("findmilk", "driving", "smartgrid")
     assert get_task("amuled/FindMilk-v0") is TASKS["findmilk"]
     assert get_task("DRIVING").name == "driving"
     with pytest.raises(ValueError, match="unknown task"):

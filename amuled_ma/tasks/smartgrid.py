@@ -1,0 +1,400 @@
+"""Ethical Smart Grid (Chaput et al., ``ethical-smart-grid`` 2.0.0) as an AMULED task.
+
+An adapter, not a fork: every rule, profile, observation and reward is the package's own
+(imported lazily; install the extra ``amuled-ma[smartgrid]``). What the adapter adds:
+
+- **One learning prosumer.** The package's world holds several prosumers (a PettingZoo
+  ``ParallelEnv``); AMULED's MDP has one actor, so the first household acts through the
+  policy and the other prosumers follow a fixed rule, "take the whole need from the grid"
+  (``FIXED_ACTION``). A shared policy over every prosumer would need one panel per
+  prosumer and step; it is not supported.
+- **Named discrete actions** (`ACTIONS`): the package's action is six continuous
+  quantities; each named action sets them from the prosumer's need ``n``, battery ``s``
+  and capacity ``c`` at that step (`action_vector`).
+- **Copies.** ``num_envs`` independent package environments stepped in a Python loop,
+  what Gymnasium's ``SyncVectorEnv`` does (the package has no batched core). Copy ``i``
+  seeded ``s`` is reset with seed ``s + i``; later episodes draw their seed from the copy's
+  own stream. Before each copy steps, the package's global-observation memo (a class
+  attribute keyed by the step number alone, so shared by every world of a process) is
+  cleared, or copies at the same step would read each other's observation.
+- **Rewards.** ``r_env`` = the package's ``Comfort`` of the learner (its need met: the
+  task); ``r_shaping`` = the package's default reward ``AdaptabilityThree`` (its
+  handcrafted ethical reward: ``Equity`` before step 2,000, so here always ``Equity``).
+- **Judges** (`JUDGES`): the package's per-value rewards, ``Comfort``, ``Equity`` and
+  ``OverConsumption``, asked about each action by a one-step look-ahead on a copy of the
+  world (`judge_scores`); ``rules`` agents with ``policy = "judge:<value>"`` answer with
+  them (``scenarios/smartgrid.toml``).
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import weakref
+from collections import OrderedDict
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+
+from amuled_ma.errors import ScenarioError
+from amuled_ma.tasks.base import BatchedTask, paint_cells
+
+__all__ = ["ACTIONS", "FIXED_ACTION", "JUDGES", "JUDGE_TEMPERATURE", "SmartGrid", "action_vector"]
+
+#: The learner's actions, by id: the name, then what it does.
+ACTIONS: tuple[tuple[str, str], ...] = (
+    ("grid", "take the whole need from the grid"),
+    ("battery", "use the battery first, the rest of the need from the grid"),
+    ("frugal", "take half of the need from the grid"),
+    ("hoard", "take the whole need from the grid and fill the battery from the grid"),
+    ("share", "take half of the need from the grid and give the battery's energy to the grid"),
+)
+#: The action of every prosumer but the learner.
+FIXED_ACTION = 0
+#: The judges: value name -> the package's reward class (module, class).
+JUDGES: dict[str, tuple[str, str]] = {
+    "comfort": ("smartgrid.rewards.numeric.per_agent.comfort", "Comfort"),
+    "equity": ("smartgrid.rewards.numeric.differentiated", "Equity"),
+    "over_consumption": ("smartgrid.rewards.numeric.differentiated", "OverConsumption"),
+}
+#: Temperature of a judge's belief: p(a) ∝ exp(r_v(a) / JUDGE_TEMPERATURE). The package's
+#: rewards lie in [-1, 1]; 0.1 makes a difference of 0.1 in reward a factor e in belief.
+JUDGE_TEMPERATURE = 0.1
+#: Judge scores kept per process, by observation (a state asked twice is computed once).
+MAX_SCORED = 65_536
+
+# observation bytes (float32) -> (task, copy) whose current state it is
+_LIVE: dict[bytes, tuple[weakref.ref[SmartGrid], int]] = {}
+# observation bytes -> judge rewards [judge, action]
+_SCORED: OrderedDict[bytes, np.ndarray] = OrderedDict()
+
+
+def action_vector(action: int, need: float, storage: float, capacity: float) -> list[int]:
+    """The package's action for a named action (`ACTIONS`), in Wh.
+
+    Args:
+        action: The action id.
+        need: The prosumer's need ``n`` at this step.
+        storage: Its battery's content ``s``.
+        capacity: Its battery's capacity ``c``.
+
+    Returns:
+        ``[grid_consumption, storage_consumption, store_energy, give_energy, buy_energy,
+        sell_energy]`` as integers (the package's action space is ``int64``).
+
+    """
+    from_battery = min(storage, need)
+    vectors = (
+        (need, 0, 0, 0, 0, 0),  # grid
+        (need - from_battery, from_battery, 0, 0, 0, 0),  # battery
+        (need / 2, 0, 0, 0, 0, 0),  # frugal
+        (need, 0, capacity - storage, 0, 0, 0),  # hoard
+        (need / 2, 0, 0, storage, 0, 0),  # share
+    )
+    return [round(max(0.0, float(v))) for v in vectors[action]]
+
+
+@functools.cache
+def _profiles() -> Any:
+    """The package's OpenEI daily profiles (Household, Office), loaded once per process.
+
+    The package's own ``find_profile_data`` fails on Python 3.11 (``MultiplexedPath.joinpath``
+    with two arguments), so the files are found with ``importlib.resources`` here.
+    """
+    from importlib.resources import files
+
+    from smartgrid.agents import DataOpenEIConversion, comfort
+
+    folder = files("smartgrid.data") / "openei"
+    converter = DataOpenEIConversion()
+    converter.load(
+        "Household",
+        str(folder / "profile_residential_daily.npz"),
+        comfort.flexible_comfort_profile,
+    )
+    converter.load(
+        "Office", str(folder / "profile_office_daily.npz"), comfort.neutral_comfort_profile
+    )
+    return converter
+
+
+def _reward(value: str) -> Any:
+    import importlib
+
+    module, name = JUDGES[value]
+    return getattr(importlib.import_module(module), name)()
+
+
+class SmartGrid(BatchedTask):
+    """``num_envs`` copies of a small smart grid, one learning household in each.
+
+    Task options: ``households`` (1..1000, the learner is the first) and ``offices`` (0..1000),
+    the prosumers of the package's OpenEI daily profiles. ``max_steps`` defaults to 24 (one
+    day of the daily profiles, one step an hour).
+    """
+
+    name = "smartgrid"
+    gym_id = ""
+    action_names = tuple(name for name, _ in ACTIONS)
+    obs_names = (
+        "personal_storage",
+        "comfort",
+        "payoff",
+        "hour",
+        "available_energy",
+        "equity",
+        "energy_loss",
+        "autonomy",
+        "exclusion",
+        "well_being",
+        "over_consumption",
+    )
+    obs_low = (0.0,) * 11
+    obs_high = (1.0,) * 11
+    metric_names = ("need_met", "grid_overloaded")
+    judge_names: ClassVar[tuple[str, ...]] = tuple(JUDGES)
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        *,
+        device: str | torch.device = "cpu",
+        seed: int | None = None,
+        shaping_coef: float = 0.0,
+        max_steps: int = 24,
+        households: int = 3,
+        offices: int = 1,
+    ) -> None:
+        """Create the copies (see `BatchedTask`; options above)."""
+        super().__init__(
+            num_envs,
+            device=device,
+            seed=seed,
+            shaping_coef=shaping_coef,
+            max_steps=max_steps,
+            households=households,
+            offices=offices,
+        )
+
+    # ------------------------------------------------------------------ hooks
+    def _init_task(self, *, households: int, offices: int) -> None:
+        for option, value, low in (("households", households, 1), ("offices", offices, 0)):
+            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= 1000:
+                raise ValueError(f"{option}: expected an integer in {low}..1000, got {value!r}")
+        try:
+            from smartgrid import SmartGrid as PackageGrid
+            from smartgrid import World
+            from smartgrid.agents import Agent
+            from smartgrid.observation import ObservationManager
+            from smartgrid.util import RandomEnergyGenerator
+        except ImportError as error:
+            raise ScenarioError(
+                f"task 'smartgrid' needs the package ethical-smart-grid ({error}); install "
+                "it with: pip install 'amuled-ma[smartgrid]'"
+            ) from None
+        profiles = _profiles().profiles
+        self._envs = []
+        for _ in range(self.num_envs):
+            agents = [Agent(f"Household{k + 1}", profiles["Household"]) for k in range(households)]
+            agents += [Agent(f"Office{k + 1}", profiles["Office"]) for k in range(offices)]
+            world = World(agents, RandomEnergyGenerator())
+            rewards = [_reward(v) for v in JUDGES]
+            self._envs.append(PackageGrid(world, rewards, None, ObservationManager()))
+        self._shaping = [_reward("equity") for _ in range(self.num_envs)]
+        self._learner = "Household1"
+        n = self.num_envs
+        self._value_sums = torch.zeros(n, len(JUDGES), dtype=torch.float32)
+        self._live_keys: list[bytes | None] = [None] * n
+        weakref.finalize(self, _forget, self._live_keys)  # the list itself, kept current
+
+    def _advance(
+        self, actions: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+        n = self.num_envs
+        values = torch.zeros(n, len(JUDGES), dtype=torch.float32)
+        r_shaping = torch.zeros(n, dtype=torch.float32)
+        overloaded = torch.zeros(n, dtype=torch.int64)
+        for i, (env, action) in enumerate(zip(self._envs, actions.tolist(), strict=True)):
+            rewards, over = _step(env, self._learner, int(action))
+            values[i] = torch.tensor([rewards[v] for v in JUDGES])
+            r_shaping[i] = rewards["equity"]
+            overloaded[i] = int(over > 0)
+        self._value_sums += values
+        comfort = values[:, 0]
+        events = {"need_met": (comfort >= 0.9).to(torch.int64), "grid_overloaded": overloaded}
+        return comfort.clone(), r_shaping, torch.zeros(n, dtype=torch.bool), events
+
+    def _episode_extras(self, episode: dict[str, torch.Tensor]) -> None:
+        """Each judge's mean reward per step over the episode (``comfort``, ...)."""
+        steps = episode["length"].clamp(min=1).to(torch.float32)
+        for k, value in enumerate(JUDGES):
+            episode[value] = self._value_sums[:, k] / steps
+
+    def _reset_where(self, mask: torch.Tensor) -> None:
+        ids = torch.nonzero(mask).flatten()
+        if len(ids) == 0:
+            return
+        seeds = self._draw_many(ids, 1)[:, 0].tolist()
+        for i, s in zip(ids.tolist(), seeds, strict=True):
+            env = self._envs[i]
+            env.observation_manager.reset()
+            env.reset(seed=s & 0x7FFF_FFFF_FFFF_FFFF)
+        self._value_sums[ids] = 0.0
+
+    def _observe(self) -> torch.Tensor:
+        rows = []
+        for env in self._envs:
+            env.observation_manager.reset()  # the package's memo is shared by every world
+            agent = env.world.agents_by_name[self._learner]
+            rows.append(np.asarray(env.observation_manager.compute(env.world, agent)))
+        obs = torch.as_tensor(np.asarray(rows, dtype=np.float32))
+        self._remember(obs)
+        return obs
+
+    def _remember(self, obs: torch.Tensor) -> None:
+        """Mark each copy's observation as live, for the judges' look-ahead."""
+        me = weakref.ref(self)
+        for i, row in enumerate(obs.numpy()):
+            old = self._live_keys[i]
+            owner, copy_id = _LIVE.get(old, (None, -1)) if old is not None else (None, -1)
+            if owner is not None and owner() is self and copy_id == i:
+                del _LIVE[old]
+            key = row.tobytes()
+            _LIVE[key] = (me, i)
+            self._live_keys[i] = key
+
+    def _prompt_extras(self, ids: torch.Tensor) -> list[dict[str, Any]]:
+        extras = []
+        for i in ids.tolist():
+            agent = self._envs[i].world.agents_by_name[self._learner]
+            extras.append(
+                {
+                    "need": round(float(agent.need)),
+                    "storage": round(float(agent.state.storage)),
+                    "capacity": round(float(agent.profile.max_storage)),
+                    "prosumers": len(self._envs[i].world.agents),
+                }
+            )
+        return extras
+
+    @classmethod
+    def prompt_variables_from_obs(cls, obs: np.ndarray, **extra: Any) -> dict[str, Any]:
+        """The template variables: each observation entry in percent, the hour, extras.
+
+        ``need``, ``storage``, ``capacity`` (Wh) and ``prosumers`` are not in the
+        observation; without them (a replayed observation) they read ``unknown``.
+        """
+        variables: dict[str, Any] = {
+            name: round(100 * float(v)) for name, v in zip(cls.obs_names, obs, strict=True)
+        }
+        variables["hour"] = round(24 * float(obs[3])) % 24
+        for key in ("need", "storage", "capacity", "prosumers"):
+            variables[key] = extra.get(key, "unknown")
+        return variables
+
+    # ------------------------------------------------------------------ judges
+    @classmethod
+    def judge_scores(cls, judge: str, obs: np.ndarray) -> np.ndarray:
+        """The judge's belief scores ``exp((r_v(a) - max r_v) / JUDGE_TEMPERATURE)``.
+
+        ``r_v(a)`` is the package's reward of value ``judge`` for the learner after one
+        step with action ``a`` (the other prosumers acting `FIXED_ACTION`), on a copy of
+        the world of the state whose observation is ``obs`` (the live copy showing it,
+        in this process; the result is kept for `MAX_SCORED` states).
+
+        Args:
+            judge: A name of `JUDGES`.
+            obs: One observation ``[obs_dim]`` or several ``[B, obs_dim]``.
+
+        Returns:
+            ``[num_actions]`` or ``[B, num_actions]`` non-negative scores.
+
+        Raises:
+            ValueError: Unknown judge, or a state no live copy of this process shows
+                (e.g. a replayed observation).
+
+        """
+        if judge not in JUDGES:
+            raise ValueError(f"judge: expected one of {', '.join(JUDGES)}, got {judge!r}")
+        rows = np.atleast_2d(np.asarray(obs, dtype=np.float32))
+        k = list(JUDGES).index(judge)
+        out = np.stack([_scores(row.tobytes())[k] for row in rows])
+        out = np.exp((out - out.max(axis=1, keepdims=True)) / JUDGE_TEMPERATURE)
+        return out[0] if np.asarray(obs).ndim == 1 else out
+
+    # ------------------------------------------------------------------ pictures
+    def render_ansi(self, env_id: int = 0) -> str:
+        """One line per prosumer: need, battery, comfort (the learner marked ``*``)."""
+        world = self._envs[env_id].world
+        lines = [f"step {world.current_step}, available {round(world.available_energy)} Wh"]
+        for agent in world.agents:
+            mark = "*" if agent.name == self._learner else " "
+            lines.append(
+                f"{mark}{agent.name:<12} need {round(agent.need):>6} Wh  battery "
+                f"{round(agent.state.storage):>6}/{round(agent.profile.max_storage)} Wh  "
+                f"comfort {agent.state.comfort:.2f}"
+            )
+        return "\n".join(lines)
+
+    def render_rgb(self, env_id: int = 0, cell: int = 32) -> np.ndarray:
+        """One column per prosumer, its battery filled in tenths (the learner in blue)."""
+        agents = list(self._envs[env_id].world.agents)
+        rows = []
+        for level in range(10, 0, -1):
+            row = ""
+            for agent in agents:
+                full = agent.storage_ratio * 10 >= level - 0.5
+                row += ("L" if agent.name == self._learner else "P") if full else "."
+            rows.append(row)
+        colours = {"L": (31, 119, 180), "P": (127, 127, 127)}
+        return paint_cells(rows, colours, cell, 255)
+
+
+def _step(env: Any, learner: str, action: int) -> tuple[dict[str, float], float]:
+    """Step one package environment; the learner's rewards by judge, the over-consumption."""
+    world = env.world
+    actions = {}
+    for agent in world.agents:
+        chosen = action if agent.name == learner else FIXED_ACTION
+        actions[agent.name] = action_vector(
+            chosen, agent.need, agent.state.storage, agent.profile.max_storage
+        )
+    env.observation_manager.reset()  # the package's memo is shared by every world
+    _, rewards, _, _, _ = env.step(actions)
+    env.observation_manager.reset()
+    over = env.observation_manager.compute_global(world).over_consumption
+    env.observation_manager.reset()
+    learner_rewards = rewards[learner]  # by the reward's name, its class name
+    return {v: float(learner_rewards[JUDGES[v][1]]) for v in JUDGES}, float(over)
+
+
+def _scores(key: bytes) -> np.ndarray:
+    """Every judge's reward ``[judge, action]`` of the state whose observation is ``key``."""
+    if key in _SCORED:
+        _SCORED.move_to_end(key)
+        return _SCORED[key]
+    task_ref, copy_id = _LIVE.get(key, (None, -1))
+    task = task_ref() if task_ref is not None else None
+    if task is None:
+        raise ValueError(
+            "smartgrid judge: no live smart-grid copy in this process shows this observation "
+            "(the judges look one step ahead from the world itself; a replayed state cannot "
+            "be judged)"
+        )
+    out = np.zeros((len(JUDGES), len(ACTIONS)))
+    for a in range(len(ACTIONS)):
+        trial = copy.deepcopy(task._envs[copy_id])
+        rewards, _ = _step(trial, task._learner, a)
+        out[:, a] = [rewards[v] for v in JUDGES]
+    _SCORED[key] = out
+    if len(_SCORED) > MAX_SCORED:
+        _SCORED.popitem(last=False)
+    return out
+
+
+def _forget(keys: list[bytes | None]) -> None:
+    """Drop a garbage-collected task's live observations."""
+    for key in keys:
+        if key is not None:
+            _LIVE.pop(key, None)
