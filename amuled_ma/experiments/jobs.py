@@ -89,8 +89,8 @@ def resolve_workers(requested: int, jobs: Sequence[TrainJob]) -> int:
 
 def _asks_live(scenario: Scenario) -> bool:
     """Whether a scenario's feedback asks an Ollama server or a person (any agent)."""
-    kinds = {scenario.feedback.source}
-    kinds |= {str(spec.get("source")) for spec in scenario.feedback.agents.values()}
+    kinds: set[str] = {scenario.feedback.source}
+    kinds |= {spec.source for spec in scenario.feedback.agents.values()}
     return bool(kinds & {"ollama", "terminal"})
 
 

@@ -35,6 +35,8 @@ from amuled_ma.scenario import Scenario
 from amuled_ma.variants import AGGREGATIONS, Variant
 
 if TYPE_CHECKING:
+    from amuled_ma.beliefs.store_service import StoreService
+    from amuled_ma.learn.population import TrainOutcome
     from amuled_ma.learn.population_groups import MemberSpec
 
 #: The variants of the paper's main figure, in order.
@@ -184,7 +186,7 @@ class PreparedJob:
         if self.feedback is not None:
             self.feedback.close()
 
-    def finished(self, outcome: Any) -> JobResult:
+    def finished(self, outcome: TrainOutcome) -> JobResult:
         """Record the job complete; its result."""
         mark_state(self.out_dir, "complete", outcome.iterations)
         return JobResult(self.variant, self.out_dir, outcome=outcome)
@@ -210,7 +212,7 @@ def prepare_job(
     base_variant: str = "base",
     task_factory: Callable[..., Any] | None = None,
     feedback_factory: Callable[[str], Any] | None = None,
-    store: Any = None,
+    store: StoreService | None = None,
 ) -> PreparedJob | JobResult:
     """Check a job's inputs, decide new / resume / skip, build its feedback, write its record.
 
@@ -237,9 +239,10 @@ def prepare_job(
             if feedback_factory is not None:
                 feedback = feedback_factory(variant.feedback)
             else:
-                members, checked = checked.members, checked._replace(members=None)
+                plan, members = checked.plan, checked.members
+                checked = checked._replace(members=None)
                 feedback = build_feedback(
-                    checked.plan,
+                    plan,
                     store if store is not None else run_store(scenario, run_dir),
                     members=members,  # handed over: the feedback closes them
                     state_dir=out,
@@ -291,7 +294,7 @@ def train_variant(
     on_iteration: Callable[[Any, int], None] | None = None,
     task_factory: Callable[..., Any] | None = None,
     feedback_factory: Callable[[str], Any] | None = None,
-    store: Any = None,
+    store: StoreService | None = None,
 ) -> JobResult:
     """Train one variant (``base``, ``shaped`` or ``finetune:<feedback>``) into the run.
 
@@ -403,7 +406,9 @@ def member_of(
     )
 
 
-def prepare_planned_job(job: TrainJob, *, hint: str, store: Any = None) -> PreparedJob | JobResult:
+def prepare_planned_job(
+    job: TrainJob, *, hint: str, store: StoreService | None = None
+) -> PreparedJob | JobResult:
     """:func:`prepare_job` with a planned job's own settings (alone or in a population).
 
     Args:
@@ -436,7 +441,7 @@ def train_one_job(
     progress: bool,
     hint: str,
     on_iteration: Callable[[Any, int], None] | None = None,
-    store: Any = None,
+    store: StoreService | None = None,
 ) -> JobResult:
     """Train one planned job alone: :func:`train_variant` with the job's own settings.
 

@@ -49,7 +49,7 @@ import time
 import uuid
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
@@ -64,6 +64,12 @@ from amuled_ma.experiments.run_folder import JobResult, TrainJob, checkpoint_sta
 from amuled_ma.experiments.third_party_log import ray_to_log
 from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.config import planned_iterations
+
+if TYPE_CHECKING:
+    from types import FrameType
+
+    #: What ``signal.getsignal`` returns: a handler, ``SIG_DFL``/``SIG_IGN``, or None.
+    _Handler = Callable[[int, FrameType | None], object] | int | signal.Handlers | None
 
 #: In a job folder: the sweep whose attempt started it (a retry of the same sweep resumes).
 SWEEP_MARK = ".amuled-sweep"
@@ -112,7 +118,7 @@ def _first_line(error: BaseException) -> str:
     return line if len(line) <= 300 else line[:297] + "..."
 
 
-def _restore_sigterm(previous: Any) -> None:
+def _restore_sigterm(previous: _Handler) -> None:
     """Put back the SIGTERM handler ``ray.init`` replaced (our Ctrl-C-like stop).
 
     ``ray.init`` installs three in turn: one that calls ``sys.exit``, its local node's
@@ -132,7 +138,7 @@ class _SigtermCount:
         self.count = 0
         self.previous: Any = None
 
-    def __call__(self, signum: int, frame: Any) -> None:
+    def __call__(self, signum: int, frame: FrameType | None) -> None:
         self.count += 1
         if callable(self.previous):
             self.previous(signum, frame)
@@ -547,7 +553,8 @@ def _sweep(
         driver_node = ray.get_runtime_context().get_node_id()
         # on the driver's node: an actor on a node that dies would take the bar with it
         here = NodeAffinitySchedulingStrategy(driver_node, soft=False)
-        board = SweepBoard.options(scheduling_strategy=here).remote()
+        # mypy types a @ray.remote class as the class, not Ray's ActorClass with .options
+        board = SweepBoard.options(scheduling_strategy=here).remote()  # type: ignore[attr-defined]
         stores = start_store_actors(
             store_path(j.scenario, j.run_dir) for j in jobs if j.variant.asks_panel
         )

@@ -48,6 +48,7 @@ from amuled_ma.scenario import MORAL_AGENT, Scenario
 from amuled_ma.variants import Variant
 
 if TYPE_CHECKING:
+    from amuled_ma.deliberation.feedback_base import Feedback
     from amuled_ma.learn.population import TrainOutcome
 
 
@@ -274,8 +275,8 @@ def recovery_commands(out_dir: Path, diffs: list[str], hint: str = "") -> tuple[
     command, tag = parts[1], _tag(diffs)
     if command == "finetune":
         label = split_replica(out_dir.name)[0].removeprefix("finetune-")
-        beside = _with_option(parts, "--name", f"{label}-{tag}")
-        return shlex.join(beside), shlex.join([*parts, "--force"])
+        renamed = _with_option(parts, "--name", f"{label}-{tag}")
+        return shlex.join(renamed), shlex.join([*parts, "--force"])
     run_dir = _option(parts, "--run-dir")
     new_dir = f"{run_dir.rstrip('/')}-{tag}" if run_dir else f"runs/{tag}"
     beside = shlex.join(_with_option(parts, "--run-dir", new_dir))
@@ -534,7 +535,7 @@ def variant_fields(
     training: dict[str, Any],
     *,
     base_checkpoint: Path | None = None,
-    feedback: Any = None,
+    feedback: Feedback | None = None,
 ) -> dict[str, Any]:
     """The record's fields of a variant folder about to train (:func:`write_config`'s extra).
 
@@ -573,7 +574,9 @@ def variant_fields(
     return {k: v for k, v in fields.items() if v is not None}
 
 
-def panel_of_training(variant: Variant, training: dict[str, Any], feedback: Any = None) -> Any:
+def panel_of_training(
+    variant: Variant, training: dict[str, Any], feedback: Feedback | None = None
+) -> PanelRecord:
     """The :class:`~amuled_ma.records.PanelRecord` of a fine-tune, from its settings.
 
     The members and rule follow the variant (``cluster:<name>`` and ``moral``: that agent
