@@ -474,9 +474,9 @@ def describe_job(job: JobResult) -> str:
 
     seed = split_replica(Path(job.out_dir).name)[1]
     name = job.variant if seed is None else f"{job.variant} [seed {seed}]"
-    if job.skipped:
-        return f"  = {name}: already trained ({job.out_dir})"
     out = job.outcome
+    if job.skipped or out is None:
+        return f"  = {name}: already trained ({job.out_dir})"
     rate = out.env_steps / max(out.wall_s, 1e-9)
     line = (
         f"  ✓ {name}: {out.iterations} iterations, {out.env_steps:,} env steps in "

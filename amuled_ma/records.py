@@ -143,7 +143,7 @@ class RunRecord(BaseModel):
 
     @field_validator("variant", mode="before")
     @classmethod
-    def _parse_variant(cls, value: Any) -> Any:
+    def _parse_variant(cls, value: Variant | str | None) -> Variant | None:
         return None if value is None else Variant.parse(value)
 
     @model_validator(mode="after")

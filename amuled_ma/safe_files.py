@@ -28,7 +28,7 @@ import secrets
 import stat
 from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import IO, Literal, overload
+from typing import IO, Any, Literal, overload
 
 from amuled_ma.errors import AmuledError
 
@@ -194,7 +194,7 @@ def atomic_writer(
     encoding: str = "utf-8",
     newline: str | None = None,
     fix: str | None = None,
-) -> Iterator[IO[bytes] | IO[str]]:
+) -> Iterator[IO[Any]]:
     """A file object whose contents replace ``path`` when the block ends without error.
 
     For writers that need a file object (``fig.savefig(handle, format="png")``,

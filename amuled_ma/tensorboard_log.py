@@ -15,7 +15,6 @@ from __future__ import annotations
 import contextlib
 import threading
 from pathlib import Path
-from typing import Any
 
 from amuled_ma.safe_files import FileWriteError, write_failure
 
@@ -23,7 +22,7 @@ _hook_lock = threading.Lock()
 _previous_hook = threading.excepthook
 
 
-def _quiet_hook(args: Any) -> None:
+def _quiet_hook(args: threading.ExceptHookArgs) -> None:
     """``threading.excepthook``: silent for an ``OSError`` ending a TensorBoard thread."""
     thread_module = type(args.thread).__module__ if args.thread is not None else ""
     if issubclass(args.exc_type, OSError) and thread_module.startswith("tensorboard."):

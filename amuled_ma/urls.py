@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import urllib.parse
 from collections.abc import Sequence
-from typing import Any
 
 from amuled_ma.errors import ScenarioError
 
@@ -58,7 +57,7 @@ def normalize_host(host: str, *, where: str = "Ollama host") -> str:
     return f"{parts.scheme}://{name}:{port}{parts.path}".rstrip("/")
 
 
-def normalize_hosts(hosts: Any, *, where: str = "Ollama hosts") -> tuple[str, ...]:
+def normalize_hosts(hosts: object, *, where: str = "Ollama hosts") -> tuple[str, ...]:
     """Return a pool's list of server addresses, each checked by :func:`normalize_host`.
 
     Args:

@@ -109,8 +109,10 @@ class Variant:
         """
         if isinstance(text, Variant):
             return text if label is None else cls(text.kind, text.feedback, label)
-        if text in ("base", "shaped"):
-            return cls(text)  # type: ignore[arg-type]
+        if text == "base":
+            return cls("base")
+        if text == "shaped":
+            return cls("shaped")
         kind, _, feedback = str(text).partition(":")
         if kind != "finetune":
             raise ScenarioError(

@@ -236,9 +236,7 @@ def test_evaluate_takes_clusters_dir(tmp_path, capsys):
     assert "not a run directory" in capsys.readouterr().err
 
 
-def test_the_six_cluster_command_stops_before_training_with_the_options(
-    tmp_path, recordings_dir
-):
+def test_the_six_cluster_command_stops_before_training_with_the_options(tmp_path, recordings_dir):
     text = (ROOT / "docs" / "clusters.md").read_text()
     found = re.search(CLUSTERS_LINE, text)
     assert found, "docs/clusters.md: the six-cluster command is gone"

@@ -146,26 +146,26 @@ def _task_spec(task: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
     return tuple(cls.action_names), tuple(cls.obs_names)
 
 
-def _number(value: Any) -> float | None:
+def _number(value: object) -> float | None:
     """``float(value)`` for a real number (numpy scalars included, no bools), else None."""
     if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Real):
         return None
     return float(value)
 
 
-def _vector(value: Any, n: int) -> list[float] | None:
+def _vector(value: object, n: int) -> list[float] | None:
     """A 1-D numeric array or list of ``n`` numbers as floats, else None."""
     if isinstance(value, np.ndarray):
         if value.ndim != 1 or value.dtype.kind not in "fiu" or value.shape[0] != n:
             return None
         return [float(x) for x in value]
     if isinstance(value, list | tuple) and len(value) == n:
-        numbers_ = [_number(x) for x in value]
-        return None if any(x is None for x in numbers_) else numbers_  # type: ignore[misc]
+        floats = [x for x in map(_number, value) if x is not None]
+        return floats if len(floats) == n else None
     return None
 
 
-def _fused(rewards: Any, n: int) -> list[float] | None:
+def _fused(rewards: object, n: int) -> list[float] | None:
     """The fused belief ``{frozenset({'0'}): p0, ...}`` as a list over actions, else None."""
     if not isinstance(rewards, Mapping) or len(rewards) != n:
         return None
@@ -202,7 +202,7 @@ def exchange_agent(prompt: str, position: int) -> str:
         if "credence" not in prompt.lower():
             return MORAL_AGENT
     else:
-        ones = []
+        ones: list[str] = []
         for part in match.group(1).split(","):
             theory, _, value = part.partition(":")
             try:
@@ -367,6 +367,6 @@ def _checked(
     return vector
 
 
-def _describe(value: Any) -> str:
+def _describe(value: object) -> str:
     text = repr(value)
     return text if len(text) <= 80 else text[:77] + "..."

@@ -23,7 +23,7 @@ from __future__ import annotations
 from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from amuled_ma.authors.caches import ConvertedCache, convert_cache, model_slug, task_of_folder
 from amuled_ma.authors.policies import (
@@ -41,6 +41,9 @@ from amuled_ma.errors import AuthorsImportError
 from amuled_ma.file_hash import sha256_file
 from amuled_ma.safe_files import check_write_targets, write_text_atomic
 from amuled_ma.variants import Variant
+
+if TYPE_CHECKING:
+    from amuled_ma.scenario import Scenario
 
 #: The authors' repository.
 AUTHORS_REPO = "https://github.com/temetski/moral_agent"
@@ -403,7 +406,7 @@ def import_authors(
     return report
 
 
-def _write_run_config(run_dir: Path, scenario: Any, checkout: Path) -> None:
+def _write_run_config(run_dir: Path, scenario: Scenario, checkout: Path) -> None:
     """The run's ``config.json`` (what ``amuled evaluate`` reads), with the base scenario."""
     from amuled_ma.experiments.run_folder import write_config
 

@@ -18,8 +18,8 @@ import os
 import pickle
 import pickletools
 import resource
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Collection
+from typing import Any, NoReturn, TypeVar
 
 import numpy as np
 
@@ -85,6 +85,7 @@ _VALUES = frozenset(
 )  # fmt: skip
 #: Opcodes that instantiate arbitrary classes: refused with their own line.
 _OBJECTS = frozenset({"OBJ", "INST", "NEWOBJ", "NEWOBJ_EX"})
+_Items = TypeVar("_Items", bound=Collection[Any])
 
 
 class PickleRefused(Exception):
@@ -105,11 +106,11 @@ class _Allowed:
         self.call = call
 
 
-def _ndarray(*_args: Any) -> Any:
+def _ndarray(*_args: object) -> NoReturn:
     raise PickleRefused("numpy.ndarray called directly (only allowed through _reconstruct)")
 
 
-def _checked_dtype(dtype: Any) -> np.dtype:
+def _checked_dtype(dtype: object) -> np.dtype:
     """``dtype`` if it is a plain numeric dtype (:data:`ALLOWED_DTYPE_KINDS`), else refuse."""
     if not isinstance(dtype, np.dtype):
         raise PickleRefused(f"a dtype that is not a numpy dtype ({type(dtype).__name__})")
@@ -128,7 +129,7 @@ def _checked_dtype(dtype: Any) -> np.dtype:
     return dtype
 
 
-def _check_dtype_state(state: Any) -> None:
+def _check_dtype_state(state: object) -> None:
     """A numeric dtype's state: ``(3, byte order, None, None, None, -1, -1, 0)``."""
     if not (
         isinstance(state, tuple)
@@ -141,7 +142,7 @@ def _check_dtype_state(state: Any) -> None:
         raise PickleRefused(f"a dtype state {_short(state)} (only plain numeric dtypes)")
 
 
-def _shape(shape: Any) -> tuple[int, ...]:
+def _shape(shape: object) -> tuple[int, ...]:
     if not (
         isinstance(shape, tuple)
         and len(shape) <= 32
@@ -153,12 +154,12 @@ def _shape(shape: Any) -> tuple[int, ...]:
     return shape
 
 
-def _check_key(key: Any) -> None:
+def _check_key(key: object) -> None:
     """Refuse a dict key or set item whose hashing could cost more than a flat observation's."""
     kind = type(key)
     if kind is str or kind is bytes or kind is float or kind is bool or key is None:
         return
-    if kind is int:
+    if type(key) is int:
         if -MAX_KEY_INT <= key <= MAX_KEY_INT:
             return
         raise PickleUnbounded(
@@ -167,7 +168,7 @@ def _check_key(key: Any) -> None:
         )
     if isinstance(key, np.generic):
         return  # built by _scalar: a number of an allowed dtype
-    if kind is tuple or kind is frozenset:
+    if type(key) is tuple or type(key) is frozenset:
         if len(key) > MAX_KEY_ITEMS:
             raise PickleUnbounded(
                 f"a dict key or set item of {len(key):,} values (at most {MAX_KEY_ITEMS})"
@@ -191,7 +192,7 @@ class _KeyWork:
     def __init__(self, limit: int) -> None:
         self.left = self.limit = limit
 
-    def spend(self, key: Any) -> None:
+    def spend(self, key: object) -> None:
         self.left -= 1 + len(key) if type(key) is tuple or type(key) is frozenset else 1
         if self.left < 0:
             raise PickleUnbounded(
@@ -206,12 +207,12 @@ class _HashCounter:
 
     __slots__ = ("counts", "owner", "work")
 
-    def __init__(self, owner: Any, work: _KeyWork) -> None:
+    def __init__(self, owner: object, work: _KeyWork) -> None:
         self.owner = owner  # kept alive, so that its id is not reused while counted
         self.work = work
         self.counts: dict[int, int] = {}
 
-    def admit(self, key: Any) -> None:
+    def admit(self, key: object) -> None:
         _check_key(key)
         self.work.spend(key)
         h = hash(key)
@@ -413,13 +414,13 @@ class BoundedReader:
             raise PickleRefused(f"{opcode} on a {type(target).__name__}")
         return target
 
-    def _counter(self, container: Any) -> _HashCounter:
+    def _counter(self, container: object) -> _HashCounter:
         counter = self.counters.get(id(container))
         if counter is None or counter.owner is not container:
             counter = self.counters[id(container)] = _HashCounter(container, self.key_work)
         return counter
 
-    def _into_dict(self, target: Any, items: list[Any]) -> None:
+    def _into_dict(self, target: object, items: list[Any]) -> None:
         if type(target) is not dict:
             raise PickleRefused(f"SETITEM on a {type(target).__name__}")
         if len(items) % 2:
@@ -459,7 +460,7 @@ class BoundedReader:
         items = self._pop_mark()
         self.stack.append(frozenset(self._admitted(items)))
 
-    def _admitted(self, items: list[Any] | tuple[Any, ...]) -> list[Any] | tuple[Any, ...]:
+    def _admitted(self, items: _Items) -> _Items:
         counter = _HashCounter(None, self.key_work)
         for item in items:
             counter.admit(item)
@@ -500,23 +501,24 @@ class BoundedReader:
             )
         self.array_bytes_left -= nbytes
 
-    def _scalar(self, dtype: Any, *args: Any) -> Any:
-        dtype = _checked_dtype(dtype)
-        if len(args) != 1 or type(args[0]) is not bytes or len(args[0]) != dtype.itemsize:
-            raise PickleRefused(f"numpy scalar of dtype {dtype!r} not built from its bytes")
-        return np.frombuffer(args[0], dtype=dtype)[0]
+    def _scalar(self, dtype: object, *args: object) -> np.generic:
+        checked = _checked_dtype(dtype)
+        data = args[0] if len(args) == 1 else None
+        if type(data) is not bytes or len(data) != checked.itemsize:
+            raise PickleRefused(f"numpy scalar of dtype {checked!r} not built from its bytes")
+        return np.frombuffer(data, dtype=checked)[0]
 
-    def _reconstruct(self, subtype: Any, shape: Any, dtype: Any) -> np.ndarray:
+    def _reconstruct(self, subtype: object, shape: object, dtype: object) -> np.ndarray:
         if subtype is not self.ndarray:
             raise PickleRefused("_reconstruct of anything but numpy.ndarray")
-        shape = _shape(shape)
+        dims = _shape(shape)
         if type(dtype) is bytes and len(dtype) <= 8:
             dtype = np.dtype(dtype.decode("ascii"))
-        dtype = _checked_dtype(dtype)
-        self._spend(math.prod(shape) * dtype.itemsize, f"array of shape {shape}")
-        return np.zeros(shape, dtype)  # its values come from BUILD
+        checked = _checked_dtype(dtype)
+        self._spend(math.prod(dims) * checked.itemsize, f"array of shape {dims}")
+        return np.zeros(dims, checked)  # its values come from BUILD
 
-    def _dtype(self, spec: Any, align: Any = False, copy: Any = True) -> np.dtype:
+    def _dtype(self, spec: object, align: object = False, copy: object = True) -> np.dtype:
         if type(spec) is not str or len(spec) > 8 or align is not False:
             raise PickleRefused(f"dtype({spec!r}, {align!r}) (only plain numeric type codes)")
         try:
@@ -526,20 +528,24 @@ class BoundedReader:
         _checked_dtype(dtype)
         return np.dtype(spec, align=False, copy=True)  # a copy: BUILD never alters numpy's own
 
-    def _frozenset(self, items: Any = ()) -> frozenset[Any]:
+    def _frozenset(self, items: object = ()) -> frozenset[Any]:
         return frozenset(self._admitted(self._set_items(items)))
 
-    def _set(self, items: Any = ()) -> set[Any]:
+    def _set(self, items: object = ()) -> set[Any]:
         counter = _HashCounter(None, self.key_work)
-        for item in self._set_items(items):
+        checked = self._set_items(items)
+        for item in checked:
             counter.admit(item)
-        result = set(items)
+        result = set(checked)
         counter.owner = result  # ADDITEMS on it goes on counting
         self.counters[id(result)] = counter
         return result
 
-    def _set_items(self, items: Any) -> Any:
-        if type(items) not in (list, tuple, set, frozenset):
+    def _set_items(self, items: object) -> Collection[Any]:
+        # type(...) refuses subclasses; isinstance tells the type checker what passed
+        if type(items) not in (list, tuple, set, frozenset) or not isinstance(
+            items, list | tuple | set | frozenset
+        ):
             raise PickleRefused(f"a set of a {type(items).__name__} (only of a list or tuple)")
         if len(items) > self.set_items_left:
             raise PickleUnbounded(
@@ -562,7 +568,7 @@ class BoundedReader:
         if isinstance(inst, np.dtype):
             _checked_dtype(inst)
 
-    def _check_array_state(self, state: Any) -> None:
+    def _check_array_state(self, state: object) -> None:
         if not (isinstance(state, tuple) and len(state) == 5 and state[0] == 1):
             raise PickleRefused("an array state that is not (1, shape, dtype, fortran, bytes)")
         _, shape, dtype, fortran, data = state
@@ -585,7 +591,7 @@ def too_many_opcodes(limit: int) -> str:
     )
 
 
-def _nothing(_arg: Any) -> None:
+def _nothing(_arg: object) -> None:
     """``FRAME``: framing only groups opcodes; :func:`pickletools.genops` reads through it."""
 
 
@@ -601,6 +607,6 @@ def _resident_bytes() -> int:
 _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
 
 
-def _short(value: Any) -> str:
+def _short(value: object) -> str:
     text = repr(value)
     return text if len(text) <= 80 else text[:77] + "..."

@@ -25,7 +25,7 @@ from __future__ import annotations
 import re
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -33,6 +33,11 @@ from amuled_ma.errors import CheckpointError
 from amuled_ma.safe_files import atomic_writer, write_text_atomic
 from amuled_ma.torch_files import load_weights_only
 from amuled_ma.variants import Variant
+
+if TYPE_CHECKING:
+    from rsl_rl.models import MLPModel
+
+    from amuled_ma.scenario import Scenario
 
 #: Layer indices of CleanRL's ``nn.Sequential`` (Linear, Tanh, Linear, Tanh, Linear).
 CLEANRL_LINEARS = (0, 2, 4)
@@ -107,7 +112,7 @@ def read_cleanrl(path: str | Path) -> dict[str, torch.Tensor]:
 
 
 def cleanrl_shape(
-    state: Mapping[str, torch.Tensor], where: Any = "policy"
+    state: Mapping[str, torch.Tensor], where: object = "policy"
 ) -> tuple[int, list[int], int]:
     """``(obs_dim, hidden dims, num_actions)`` of a CleanRL state dict; checks every shape.
 
@@ -142,7 +147,7 @@ def _linears(module: torch.nn.Module) -> list[torch.nn.Linear]:
     return [m for m in module.modules() if isinstance(m, torch.nn.Linear)]
 
 
-def build_networks(scenario: Any, obs_dim: int, num_actions: int) -> tuple[Any, Any]:
+def build_networks(scenario: Scenario, obs_dim: int, num_actions: int) -> tuple[MLPModel, MLPModel]:
     """Our actor and critic (rsl-rl ``MLPModel``) as the trainer builds them for a scenario."""
     from amuled_ma.learn.policies import build_model
 
@@ -176,7 +181,7 @@ def copy_weights(state: Mapping[str, torch.Tensor], net: str, model: torch.nn.Mo
             layer.bias.copy_(bias)
 
 
-def authors_scenario(scenario: Any, hidden: list[int]) -> Any:
+def authors_scenario(scenario: Scenario, hidden: list[int]) -> Scenario:
     """The scenario with the authors' network (``hidden`` units, tanh) and seed."""
     if (
         list(scenario.ppo.hidden_dims) != list(hidden)
@@ -188,7 +193,7 @@ def authors_scenario(scenario: Any, hidden: list[int]) -> Any:
 
 def build_checkpoint(
     state: Mapping[str, torch.Tensor],
-    scenario: Any,
+    scenario: Scenario,
     *,
     variant: Variant,
     iteration: int,
@@ -257,7 +262,7 @@ def build_checkpoint(
     }
 
 
-def _lr(scenario: Any, variant: Variant) -> float:
+def _lr(scenario: Scenario, variant: Variant) -> float:
     if variant.finetuning:
         return float(scenario.finetune.learning_rate)
     return float(scenario.ppo.learning_rate)
@@ -274,7 +279,7 @@ def cleanrl_logits(state: Mapping[str, torch.Tensor], obs: torch.Tensor) -> torc
 
 
 def check_equivalent(
-    state: Mapping[str, torch.Tensor], actor: torch.nn.Module, samples: int = 256
+    state: Mapping[str, torch.Tensor], actor: MLPModel, samples: int = 256
 ) -> None:
     """Check that our actor gives the CleanRL actor's logits on random observations.
 
@@ -299,7 +304,7 @@ def check_equivalent(
 def write_variant(
     out_dir: Path,
     checkpoint: Mapping[str, Any],
-    scenario: Any,
+    scenario: Scenario,
     *,
     training: Mapping[str, Any],
 ) -> Path:

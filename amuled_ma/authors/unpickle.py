@@ -50,7 +50,7 @@ from __future__ import annotations
 import pickletools
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from amuled_ma.authors.pickle_reader import (
     ALLOWED_DTYPE_KINDS,
@@ -132,7 +132,7 @@ def _opcode_table() -> dict[str, tuple[int, bool, int, int, bool]]:
 _OPCODES = _opcode_table()
 
 
-def _depth(item: Any) -> int:
+def _depth(item: object) -> int:
     return item if type(item) is int else 1  # a string pushed by the file
 
 
@@ -188,11 +188,11 @@ def scan_pickle(
             if kind == _PUSH:
                 stack.append(arg if type(arg) is str else 1)
                 continue
-            if kind == _PUT:
-                memo[arg] = stack[-1]
+            if kind == _PUT:  # the PUT and GET opcodes' argument is the memo index
+                memo[cast(int, arg)] = stack[-1]
                 continue
             if kind == _GET:
-                stack.append(memo[arg])
+                stack.append(memo[cast(int, arg)])
                 continue
             if kind == _MEMOIZE:
                 memo[len(memo)] = stack[-1]

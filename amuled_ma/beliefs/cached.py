@@ -27,8 +27,8 @@ import numpy as np
 
 from amuled_ma.beliefs.keys import identity_json, request_key
 from amuled_ma.beliefs.rows import CACHEABLE
-from amuled_ma.beliefs.store import BeliefStore
-from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.beliefs.store_service import StoreService
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, every_answer
 from amuled_ma.beliefs.validate import checked_result
 
 #: Statuses never written to the store.
@@ -96,7 +96,7 @@ class CachedSource(BeliefSource):
     def __init__(
         self,
         source: BeliefSource,
-        store: BeliefStore,
+        store: StoreService,
         *,
         chunk_size: int = 256,
         flush_every: int = 1,
@@ -112,12 +112,12 @@ class CachedSource(BeliefSource):
 
     # -- BeliefSource ----------------------------------------------------------------
     @property
-    def name(self) -> str:  # type: ignore[override]
+    def name(self) -> str:  # type: ignore[override]  # property over an attribute
         """The wrapped source's name (a cache is transparent)."""
         return self.source.name
 
     @property
-    def needs_messages(self) -> bool:
+    def needs_messages(self) -> bool:  # type: ignore[override]  # property over an attribute
         """Whether the wrapped source reads ``BeliefRequest.messages`` (default True)."""
         return bool(getattr(self.source, "needs_messages", True))
 
@@ -178,13 +178,13 @@ class CachedSource(BeliefSource):
         if missing:
             answers.update(self._ask(ident, [(k, requests[positions[k][0]]) for k in missing]))
 
-        out: list[BeliefResult] = [None] * len(requests)  # type: ignore[list-item]
+        out: list[BeliefResult | None] = [None] * len(requests)
         for key, idx in positions.items():
             result = answers[key]
             out[idx[0]] = result
             for j in idx[1:]:
                 out[j] = result.copy()
-        return out
+        return every_answer(out, self.name)
 
     # -- internals -------------------------------------------------------------------
     def _ask(self, ident: str, todo: list[tuple[str, BeliefRequest]]) -> dict[str, BeliefResult]:
@@ -245,7 +245,7 @@ class CachedSource(BeliefSource):
         return answers
 
 
-def requests_sent(source: Any) -> int | None:
+def requests_sent(source: object) -> int | None:
     """Requests the belief caches inside ``source`` sent on (None: it keeps no cache)."""
     stats = getattr(source, "stats", None)
     if stats is not None and hasattr(stats, "sent"):

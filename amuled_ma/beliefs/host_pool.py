@@ -430,7 +430,7 @@ def merge_host_stats(reports: Iterable[Mapping[str, Mapping[str, Any]]]) -> dict
     return out
 
 
-def _seconds(value: Any) -> str:
+def _seconds(value: float | None) -> str:
     return "-" if value is None else f"{float(value):.2f} s"
 
 

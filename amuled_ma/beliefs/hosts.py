@@ -19,10 +19,13 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 from amuled_ma.errors import BackendUnavailable, ModelNotFound
 from amuled_ma.urls import DEFAULT_PORT, normalize_host, normalize_hosts  # noqa: F401 - the public names stay here
+
+if TYPE_CHECKING:
+    import httpx
 
 #: Address of a user's own Ollama server (the Ollama default).
 DEFAULT_HOST = f"http://127.0.0.1:{DEFAULT_PORT}"
@@ -121,7 +124,7 @@ def preflight(
     model: str | None = None,
     timeout: float = 5.0,
     *,
-    transport: Any = None,
+    transport: httpx.BaseTransport | None = None,
 ) -> ServerCheck:
     """Check, within ``timeout`` seconds, that a server answers at ``host`` and has ``model``.
 

@@ -173,7 +173,7 @@ def import_jsonl(
     return {"read": read, "written": written}
 
 
-def _finite_number(value: Any) -> bool:
+def _finite_number(value: object) -> bool:
     """True for an int or float (not a bool) that is a finite float64."""
     if isinstance(value, bool) or not isinstance(value, int | float):
         return False

@@ -38,7 +38,7 @@ from amuled_ma.beliefs.types import BeliefRequest
 KEY_VERSION = 1
 
 
-def canonical_json(value: Any) -> str:
+def canonical_json(value: object) -> str:
     """Serialise ``value`` as canonical JSON: sorted keys, no spaces, UTF-8 text.
 
     Args:
@@ -51,7 +51,7 @@ def canonical_json(value: Any) -> str:
     return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
 
 
-def jsonable(value: Any) -> Any:
+def jsonable(value: object) -> Any:
     """Convert numpy scalars/arrays and tuples (at any depth) into plain JSON data.
 
     Args:

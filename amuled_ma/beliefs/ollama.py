@@ -82,7 +82,7 @@ from amuled_ma.beliefs.hosts import (
 )
 from amuled_ma.beliefs.parsing import belief_schema, parse_belief, uniform
 from amuled_ma.beliefs.timing import RequestTiming, publish_timing
-from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, every_answer
 from amuled_ma.beliefs.validate import (
     ANSWER_STATUSES,
     check_belief,
@@ -660,7 +660,7 @@ class OllamaSource(BeliefSource):
         out: list[BeliefResult | None] = [None] * len(requests)
         for index, result in self.iter_beliefs(requests):
             out[index] = result
-        return out  # type: ignore[return-value]
+        return every_answer(out, self.name)
 
     def close(self) -> None:
         """Stop the worker threads and close the HTTP clients."""

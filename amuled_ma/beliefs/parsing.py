@@ -200,7 +200,7 @@ def _letter_index(key: str, n: int) -> int | None:
 # --------------------------------------------------------------------------- values
 
 
-def _brief(value: Any) -> str:
+def _brief(value: object) -> str:
     """``repr(value)``, at most 80 characters (an error message never holds a whole reply)."""
     try:
         text = repr(value)
@@ -209,7 +209,7 @@ def _brief(value: Any) -> str:
     return text if len(text) <= 80 else f"{text[:77]}..."
 
 
-def _value(value: Any, repairs: set[str]) -> float:
+def _value(value: object, repairs: set[str]) -> float:
     if isinstance(value, bool):
         raise UnreadableObjectError(f"boolean probability {value!r}")
     if isinstance(value, int | float):
@@ -382,13 +382,13 @@ def _parse(text: str | None, action_names: Sequence[str], structured: bool) -> P
         earlier = ("earlier_object",) if position else ()
         return _result(belief, (*extra, *decode_repairs, *repairs, *earlier), reasoning)
     if reasons:
-        error = f"no valid object: {reasons[0]}"
+        why = f"no valid object: {reasons[0]}"
     elif skipped:
-        error = "no valid object"
+        why = "no valid object"
     else:
-        error = "no JSON object in the reply"
+        why = "no JSON object in the reply"
     if skipped:
-        error += f" ({skipped} candidates not examined: the reply's budget is spent)"
+        why += f" ({skipped} candidates not examined: the reply's budget is spent)"
     if too_long and not spans:
-        error += f" ({too_long} objects over {MAX_OBJECT_CHARS} characters not read)"
-    return ParsedBelief(uniform(n), "abstained", tuple(extra), error=error)
+        why += f" ({too_long} objects over {MAX_OBJECT_CHARS} characters not read)"
+    return ParsedBelief(uniform(n), "abstained", tuple(extra), error=why)

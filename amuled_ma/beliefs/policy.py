@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from amuled_ma.beliefs.parsing import uniform
-from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, every_answer
 from amuled_ma.beliefs.validate import check_belief, show_values
 from amuled_ma.errors import CheckpointError, ScenarioError
 from amuled_ma.file_hash import sha256_file
@@ -281,7 +281,7 @@ class PolicySource(BeliefSource):
                     if belief is not None
                     else self._error(n, f"the policy's belief {reason}")
                 )
-        return out  # type: ignore[return-value]
+        return every_answer(out, self.name)
 
     def _forward(
         self, rows: list[tuple[float, ...]], n: int

@@ -36,15 +36,18 @@ import json
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from amuled_ma.beliefs.parsing import uniform
-from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, every_answer
 from amuled_ma.beliefs.validate import RULE, check_belief, checked_result, show_values
 from amuled_ma.errors import ReplayMiss, ScenarioError
 from amuled_ma.file_limits import read_bounded_bytes
+
+if TYPE_CHECKING:
+    from amuled_ma.clusters import ClusterRegistry
 
 #: Miss policies of `ReplaySource`.
 MISS_POLICIES = ("error", "uniform", "fallback")
@@ -131,7 +134,7 @@ class Recording:
             if not isinstance(state, dict) or "obs" not in state or "beliefs" not in state:
                 raise ScenarioError(f"{self.path}: states[{i}] has no 'obs' or 'beliefs'")
             try:
-                key = obs_key(state["obs"], decimals)
+                state_key = obs_key(state["obs"], decimals)
             except (TypeError, ValueError, OverflowError):
                 raise ScenarioError(
                     f"{self.path}: states[{i}].obs must be a list of numbers, found "
@@ -159,11 +162,11 @@ class Recording:
                         )
                     continue
                 vectors[agent] = belief
-            if key in self.states:
+            if state_key in self.states:
                 self.duplicates += 1  # first one wins, as in the authors' cache
                 continue
-            self.states[key] = state
-            self._beliefs[key] = vectors
+            self.states[state_key] = state
+            self._beliefs[state_key] = vectors
         if invalid:
             raise ScenarioError(
                 f"{self.path}: refusing to load the recording: {invalid} invalid belief(s) "
@@ -253,7 +256,7 @@ class ReplaySource(BeliefSource):
         fallback: BeliefSource | None = None,
         decimals: int = 3,
         cluster_names: Mapping[str, str] | None = None,
-        registry: Any = None,
+        registry: ClusterRegistry | None = None,
     ) -> None:
         if miss_policy not in MISS_POLICIES:
             raise ScenarioError(
@@ -382,7 +385,7 @@ class ReplaySource(BeliefSource):
                     source=self.name,
                     extra={"miss_reason": reasons[i]},
                 )
-        return results  # type: ignore[return-value]
+        return every_answer(results, self.name)
 
     def identity(self) -> dict[str, Any]:
         """Return the recordings' content hashes, the rounding and the name mapping."""

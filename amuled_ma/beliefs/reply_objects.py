@@ -152,6 +152,14 @@ _VALUE = re.compile(
     re.IGNORECASE,
 )
 _KEY_RUN = re.compile(r"[^\"'{},:\n]*")
+
+
+def _run_length(text: str) -> int:
+    """Length of the run of key characters that ``text`` starts with (0 for none)."""
+    match = _KEY_RUN.match(text)
+    return match.end() if match else 0
+
+
 _KEY_MAX = 80
 
 
@@ -167,11 +175,11 @@ def _pair_key(text: str, start: int, colon: int) -> str | None:
     head = segment.rstrip()
     k = len(head)
     if k and head[-1] in "\"'":
-        run = _KEY_RUN.match(head[max(0, k - 2 - _KEY_MAX) : k - 1][::-1]).end()
+        run = _run_length(head[max(0, k - 2 - _KEY_MAX) : k - 1][::-1])
         if 1 <= run <= _KEY_MAX and k - 2 - run >= 0 and head[k - 2 - run] == head[-1]:
             return head[k - 1 - run : k - 1]
     elif k:
-        run = _KEY_RUN.match(head[max(0, k - _KEY_MAX) :][::-1]).end()
+        run = _run_length(head[max(0, k - _KEY_MAX) :][::-1])
         if run:
             return head[k - run :]
     tail = segment[k:]

@@ -30,7 +30,7 @@ import dataclasses
 from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
-from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, every_answer
 from amuled_ma.errors import ScenarioError
 
 
@@ -70,7 +70,7 @@ class RoutedSource(BeliefSource):
         ]
 
     @property
-    def needs_messages(self) -> bool:  # type: ignore[override]
+    def needs_messages(self) -> bool:  # type: ignore[override]  # property over an attribute
         """True when any member reads ``BeliefRequest.messages``."""
         return any(bool(getattr(s, "needs_messages", True)) for s, _ in self.members)
 
@@ -138,7 +138,7 @@ class RoutedSource(BeliefSource):
                 )
             for i, result in zip(indices, results, strict=True):
                 out[i] = result
-        return out  # type: ignore[return-value]
+        return every_answer(out, self.name)
 
     def iter_beliefs(self, requests: Sequence[BeliefRequest]) -> Iterator[tuple[int, BeliefResult]]:
         """Yield ``(index, result)`` member by member, as each member answers.

@@ -238,7 +238,7 @@ def encode_row(
 COLUMN_NAMES = tuple(name.strip() for name in COLUMNS.split(","))
 
 
-def unstorable_text(value: Any, where: str = "") -> str | None:
+def unstorable_text(value: object, where: str = "") -> str | None:
     r"""Why a value holds text SQLite cannot store as UTF-8, or None when it can.
 
     Python strings may hold lone surrogates (``"\udcff"``: a byte that was not UTF-8,

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from amuled_ma.beliefs.parsing import uniform
-from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, every_answer
 from amuled_ma.beliefs.validate import check_belief, show_values
 from amuled_ma.errors import ScenarioError
 
@@ -66,7 +66,7 @@ def resolve_callable(
     return target
 
 
-def to_belief(values: Any, n_actions: int) -> tuple[np.ndarray, str]:
+def to_belief(values: object, n_actions: int) -> tuple[np.ndarray, str]:
     """Turn a rule's scores into a belief (divided by their sum), or a uniform ``"error"``.
 
     Returns:
@@ -79,18 +79,18 @@ def to_belief(values: Any, n_actions: int) -> tuple[np.ndarray, str]:
     return (uniform(n_actions), "error") if belief is None else (belief, "ok")
 
 
-def scores_problem(values: Any, n_actions: int) -> str | None:
+def scores_problem(values: object, n_actions: int) -> str | None:
     """Return why a rule's answer is not a valid score vector, or ``None``."""
     return _checked(values, n_actions)[1]
 
 
-def _checked(values: Any, n_actions: int) -> tuple[np.ndarray | None, str | None]:
+def _checked(values: object, n_actions: int) -> tuple[np.ndarray | None, str | None]:
     if isinstance(values, np.ndarray) and values.ndim != 1:
         values = values.reshape(-1)  # a (1, A) row of a batched rule is one answer
     return check_belief(values, n_actions, scores=True)
 
 
-def _result(values: Any, n_actions: int, source: str) -> BeliefResult:
+def _result(values: object, n_actions: int, source: str) -> BeliefResult:
     """A rule's answer as a result: ``"ok"``, or a uniform ``"error"`` with the reason."""
     belief, reason = _checked(values, n_actions)
     if belief is None:
@@ -176,7 +176,7 @@ class RulesSource(BeliefSource):
                     continue
             for i in indices:
                 out[i] = self._one(requests[i])
-        return out  # type: ignore[return-value]
+        return every_answer(out, self.name)
 
     def _one(self, request: BeliefRequest) -> BeliefResult:
         try:

@@ -495,7 +495,8 @@ class BeliefStore:
             The rows.
 
         """
-        where, params = [], []
+        where: list[str] = []
+        params: list[str] = []
         if status:
             where.append(f"status IN ({','.join('?' * len(status))})")
             params.extend(status)

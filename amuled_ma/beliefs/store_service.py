@@ -12,19 +12,24 @@ the methods `CachedSource` uses (`StoreService`).
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
 from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
+
+#: One answer to write: ``(key, source identity, request, result)``.
+StoreItem = tuple[str, Mapping[str, Any] | str, BeliefRequest, BeliefResult]
 
 
 class StoreService(Protocol):
     """What `CachedSource` needs of a store."""
 
-    def lookup(self, keys: Any) -> dict[str, Any]:
+    def lookup(self, keys: list[str]) -> dict[str, BeliefResult]:
         """Answers (``ok``/``repaired`` rows) of ``keys`` as cache-hit results."""
 
-    def put_many(self, items: Any) -> int:
+    def put_many(self, items: Sequence[StoreItem]) -> int:
         """Write answers; return the rows written."""
 
     def close(self) -> None:

@@ -48,7 +48,7 @@ from typing import IO, Any
 import numpy as np
 
 from amuled_ma.beliefs.parsing import uniform
-from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, every_answer
 from amuled_ma.beliefs.validate import check_belief
 from amuled_ma.errors import ScenarioError
 from amuled_ma.progress import held
@@ -184,10 +184,10 @@ def parse_answer(
         if not math.isfinite(value):
             return None, f"found {_cut(token)}, not a finite number; {expected}"
         values.append(value)
-    belief, reason = check_belief(values, n_actions, scores=True)
-    if belief is None:
+    checked, reason = check_belief(values, n_actions, scores=True)
+    if checked is None:
         return None, f"the answer {reason}; {expected}"
-    return belief, None
+    return checked, None
 
 
 class TerminalSource(BeliefSource):
@@ -256,7 +256,7 @@ class TerminalSource(BeliefSource):
         out: list[BeliefResult | None] = [None] * len(requests)
         for index, result in self.iter_beliefs(requests):
             out[index] = result
-        return out  # type: ignore[return-value]
+        return every_answer(out, self.name)
 
     def iter_beliefs(self, requests: Sequence[BeliefRequest]) -> Iterator[tuple[int, BeliefResult]]:
         """Yield ``(index, result)`` as each answer is typed (identical requests asked once).

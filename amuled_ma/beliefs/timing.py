@@ -56,7 +56,7 @@ class RequestTiming:
     wall_s: float = 0.0
 
     @classmethod
-    def from_reply(cls, reply: Any, wall_s: float) -> RequestTiming:
+    def from_reply(cls, reply: object, wall_s: float) -> RequestTiming:
         """Read the metrics of one ``chat`` response (absent ones count 0).
 
         Args:

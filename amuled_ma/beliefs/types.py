@@ -132,3 +132,21 @@ class BeliefSource(ABC):
 
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release clients, threads or files held by the source."""
+
+
+def every_answer(results: Sequence[BeliefResult | None], source: str) -> list[BeliefResult]:
+    """The results of a batch, once every request holds one.
+
+    Args:
+        results: One slot per request, filled by a source.
+        source: The source's name, for the message.
+
+    Raises:
+        RuntimeError: A request was left without a result (a bug of ``source``).
+
+    """
+    answered = [r for r in results if r is not None]
+    if len(answered) != len(results):
+        missing = len(results) - len(answered)
+        raise RuntimeError(f"belief source {source!r} left {missing} request(s) without a result")
+    return answered

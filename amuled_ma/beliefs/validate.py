@@ -35,11 +35,14 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeGuard
 
 import numpy as np
 
 from amuled_ma.errors import AmuledError
+
+if TYPE_CHECKING:
+    from amuled_ma.beliefs.types import BeliefResult
 
 #: Largest accepted ``abs(sum(belief) - 1)``.
 SUM_TOLERANCE = 1e-6
@@ -61,7 +64,7 @@ class InvalidBeliefError(AmuledError, ValueError):
     """A belief vector is not a probability distribution over the task's actions."""
 
 
-def show_values(values: Any, limit: int = _MAX_SHOWN_CHARS) -> str:
+def show_values(values: object, limit: int = _MAX_SHOWN_CHARS) -> str:
     """Return a short, plain-text rendering of ``values`` for messages and diagnostics.
 
     Non-finite floats are written ``nan`` / ``inf`` (never JSON's non-standard ``NaN``),
@@ -76,7 +79,7 @@ def show_values(values: Any, limit: int = _MAX_SHOWN_CHARS) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def _as_vector(values: Any) -> tuple[np.ndarray | None, str | None]:
+def _as_vector(values: object) -> tuple[np.ndarray | None, str | None]:
     """Return ``(float64 vector, None)`` or ``(None, why it is not a flat list of numbers)``."""
     if isinstance(values, np.ndarray):
         if values.dtype.kind not in "iuf":
@@ -96,7 +99,7 @@ def _as_vector(values: Any) -> tuple[np.ndarray | None, str | None]:
         return None, "holds a number too large for a float (overflow)"
 
 
-def _is_float_vector(values: Any) -> bool:
+def _is_float_vector(values: object) -> TypeGuard[np.ndarray]:
     return isinstance(values, np.ndarray) and values.dtype == np.float64 and values.ndim == 1
 
 
@@ -117,7 +120,7 @@ def _sums_to_one(items: list[Any], n_actions: int) -> bool:
 
 
 def check_belief(
-    values: Any, n_actions: int, *, scores: bool = False
+    values: object, n_actions: int, *, scores: bool = False
 ) -> tuple[np.ndarray | None, str | None]:
     """Check one belief; never raises.
 
@@ -139,9 +142,10 @@ def check_belief(
             vector = values if isinstance(values, np.ndarray) else np.array(items)
             total = float(sum(items))
             return (vector, None) if abs(total - 1.0) <= ROUNDING else (vector / total, None)
-    vector, why = _as_vector(values)
-    if vector is None:
+    as_vector, why = _as_vector(values)
+    if as_vector is None:
         return None, why
+    vector = as_vector
     if vector.shape != (n_actions,):
         return None, f"has {vector.size} value(s), expected {n_actions} (one per action)"
     finite = np.isfinite(vector)
@@ -165,7 +169,7 @@ def check_belief(
 
 
 def validate_belief(
-    values: Any, n_actions: int, *, where: str, fix: str | None = None, scores: bool = False
+    values: object, n_actions: int, *, where: str, fix: str | None = None, scores: bool = False
 ) -> np.ndarray:
     """Return ``values`` as a valid belief (divided by its sum), or raise.
 
@@ -232,7 +236,7 @@ def uniform_belief(n_actions: int) -> np.ndarray:
     return np.full(n_actions, 1.0 / n_actions)
 
 
-def checked_result(result: Any, n_actions: int, *, status: str = "error") -> Any:
+def checked_result(result: BeliefResult, n_actions: int, *, status: str = "error") -> BeliefResult:
     """Make a source's answer safe to store and fuse; the door for every live answer.
 
     A result whose belief is valid gets it as `check_belief` returns it (float64,

@@ -34,10 +34,14 @@ import os
 import platform
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from amuled_ma.tasks.base import BatchedTask
 
 #: Recording used per task by default (the largest one of each task).
 DEFAULT_RECORDINGS = {
@@ -110,7 +114,7 @@ def _recordings_dir() -> Path:
     return here.parent / "shared" / "amuled-recordings"
 
 
-def _prompt_vars(task_cls: Any, task: str, obs: np.ndarray) -> dict[str, Any]:
+def _prompt_vars(task_cls: type[BatchedTask], task: str, obs: np.ndarray) -> dict[str, Any]:
     if task == "findmilk":
         # The crying-baby count is not in the observation; 1 when one remains (x,y != 0,0).
         crying = int(obs[4] != 0 or obs[5] != 0)
@@ -121,12 +125,12 @@ def _prompt_vars(task_cls: Any, task: str, obs: np.ndarray) -> dict[str, Any]:
 class _Copies:
     """The env copies of the benchmark as the feedback sees a task: their prompt variables."""
 
-    def __init__(self, task_cls: Any, task: str, obs: np.ndarray) -> None:
+    def __init__(self, task_cls: type[BatchedTask], task: str, obs: np.ndarray) -> None:
         self._args = (task_cls, task, obs)
         #: Seconds spent computing the prompt variables.
         self.seconds = 0.0
 
-    def prompt_variables(self, ids: Any) -> list[dict[str, Any]]:
+    def prompt_variables(self, ids: Sequence[int]) -> list[dict[str, Any]]:
         """Each copy's prompt variables, as the task's ``prompt_variables``."""
         start = time.perf_counter()
         task_cls, task, obs = self._args

@@ -15,10 +15,13 @@ import argparse
 import json
 import platform
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from amuled_ma.safe_files import write_text_atomic
+
+_Out = TypeVar("_Out")
 
 TARGET_DRIVING_S = 60.0
 
@@ -45,9 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, help="also write the figures to this JSON file")
 
 
-def _timed(func: Any, repeats: int) -> tuple[Any, float, float]:
+def _timed(func: Callable[[], _Out], repeats: int) -> tuple[_Out, float, float]:
     """Result of the last call, best wall-clock and best CPU seconds over ``repeats`` calls."""
-    wall, cpu, result = float("inf"), float("inf"), None
+    wall, cpu = float("inf"), float("inf")
     for _ in range(max(repeats, 1)):
         start_wall, start_cpu = time.perf_counter(), time.process_time()
         result = func()

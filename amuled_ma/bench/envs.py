@@ -16,6 +16,7 @@ import argparse
 import json
 import platform
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -50,7 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, help="also write the figures to this JSON file")
 
 
-def _best(func: Any, repeats: int) -> tuple[float, float]:
+def _best(func: Callable[[], object], repeats: int) -> tuple[float, float]:
     """Best wall-clock and best process CPU time over ``repeats`` calls of ``func``."""
     wall, cpu = float("inf"), float("inf")
     for _ in range(max(repeats, 1)):
@@ -100,7 +101,10 @@ def bench_gym(name: str, steps: int, repeats: int, layout: str, seed: int) -> di
 
     env = gym.make(get_task(name).gym_id, **_options(name, layout))
     env.reset(seed=seed)
-    actions = np.random.default_rng(seed).integers(0, env.action_space.n, steps).tolist()
+    space = env.action_space
+    if not isinstance(space, gym.spaces.Discrete):
+        raise TypeError(f"{name}: expected a Discrete action space, got {space}")
+    actions = np.random.default_rng(seed).integers(0, int(space.n), steps).tolist()
 
     def run() -> None:
         for a in actions:

@@ -35,9 +35,16 @@ import math
 import os
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from amuled_ma.bench._output import output_folder
+
+if TYPE_CHECKING:
+    from amuled_ma.beliefs.store_service import StoreService
+    from amuled_ma.learn import population as learn_population
+    from amuled_ma.learn.population import TrainOutcome
+    from amuled_ma.learn.population_groups import MemberSpec
+    from amuled_ma.scenario import Scenario
 
 #: The authors' recipe's fine-tune length, to which the measured iterations extrapolate.
 RECIPE_ITERATIONS = 1000
@@ -105,7 +112,7 @@ class Stopwatch:
         """Start timing here (after the setup)."""
         self.start = self.now()
 
-    def __call__(self, _trainer: Any, _iteration: int) -> None:
+    def __call__(self, _trainer: object, _iteration: int) -> None:
         """Mark the end of an iteration (a trainer's ``on_iteration``)."""
         self.marks.append(self.now())
 
@@ -152,13 +159,15 @@ def _scenario(task: str, base_steps: int) -> tuple[Any, str]:
     return scenario.replace("feedback", source="rules"), "rules (no recording found)"
 
 
-def _jobs(scenario: Any, run: Path, base: Path, count: int, tag: str, store: Any) -> list[Any]:
+def _jobs(
+    scenario: Scenario, run: Path, base: Path, count: int, tag: str, store: StoreService
+) -> list[MemberSpec]:
     """``count`` fine-tune jobs of the base: seeds 42.., lambda_KL in turn, own feedback."""
     from amuled_ma.deliberation.build import make_feedback
     from amuled_ma.learn.population_groups import MemberSpec
     from amuled_ma.variants import Variant
 
-    jobs = []
+    jobs: list[MemberSpec] = []
     for k in range(count):
         seed = 42 + k
         job = scenario.replace("finetune", lambda_kl=LAMBDAS[k % len(LAMBDAS)])
@@ -293,7 +302,7 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_metrics(outcome: Any, scenario: Any) -> dict[str, float]:
+def _run_metrics(outcome: TrainOutcome, scenario: Scenario) -> dict[str, float]:
     """A finished fine-tune's figures: its evaluation and its last 100 iterations."""
     from amuled_ma.evaluate.evaluator import run_episodes
     from amuled_ma.learn.policies import load_policy
@@ -320,7 +329,7 @@ def _run_metrics(outcome: Any, scenario: Any) -> dict[str, float]:
     return out
 
 
-def _alone(job: Any) -> Any:
+def _alone(job: MemberSpec) -> learn_population.PopulationTrainer:
     """A job trained alone: a population of one (the lone job's rsl-rl classes)."""
     from amuled_ma.learn.population import PopulationTrainer
 

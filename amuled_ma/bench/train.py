@@ -19,9 +19,17 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from amuled_ma.bench._output import output_folder
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from rsl_rl.models import MLPModel
+
+    from amuled_ma.learn import population as learn_population
+    from amuled_ma.scenario import Scenario
 
 #: Reference figures (the authors' code) and our targets, per measured figure.
 REFERENCE: dict[str, tuple[str, str]] = {
@@ -55,7 +63,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _eval(actor: Any, scenario: Any, episodes: int) -> list[dict]:
+def _eval(actor: MLPModel, scenario: Scenario, episodes: int) -> list[dict]:
     from amuled_ma.evaluate.evaluator import run_episodes
 
     records, _ = run_episodes(
@@ -64,7 +72,9 @@ def _eval(actor: Any, scenario: Any, episodes: int) -> list[dict]:
     return records
 
 
-def _lone(scenario: Any, out_dir: Path, on_iteration: Any = None) -> Any:
+def _lone(
+    scenario: Scenario, out_dir: Path, on_iteration: Callable[[Any, int], None] | None = None
+) -> learn_population.PopulationTrainer:
     """One base-training job alone: a population of one (``PopulationTrainer``)."""
     from amuled_ma.learn.population import PopulationTrainer
     from amuled_ma.learn.population_groups import MemberSpec

@@ -154,7 +154,7 @@ def _string(data: Mapping[str, Any], key: str, path: Path, *, required: bool) ->
     return value
 
 
-def _string_list(value: Any, path: Path, key: str) -> tuple[str, ...]:
+def _string_list(value: object, path: Path, key: str) -> tuple[str, ...]:
     if (
         not isinstance(value, list)
         or not value

@@ -123,12 +123,12 @@ def _load_fewshot(path: Path) -> Messages:
     out: list[tuple[str, str]] = []
     for i, example in enumerate(examples):
         for role in ("user", "assistant"):
-            text = example.get(role) if isinstance(example, dict) else None
-            if not isinstance(text, str) or not text:
+            turn = example.get(role) if isinstance(example, dict) else None
+            if not isinstance(turn, str) or not turn:
                 raise ClusterDefinitionError(
                     f"{path}: field 'examples[{i}].{role}': missing or not a non-empty string"
                 )
-            out.append((role, text))
+            out.append((role, turn))
     return tuple(out)
 
 
@@ -180,7 +180,8 @@ def credence_vector(
     if credences is None:
         if cluster.kind == "unprompted":
             return None
-        credences = cluster.credences if cluster.kind == "mixture" else {cluster.name: 1.0}
+        mixture = cluster.credences if cluster.kind == "mixture" else None
+        credences = mixture if mixture is not None else {cluster.name: 1.0}
     by_name = {c.name: c for c in panel}
     values = {c.name: 0.0 for c in panel}
     for key, value in credences.items():

@@ -6,16 +6,20 @@ import argparse
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from amuled_ma.scenario.overrides import parse_set
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from amuled_ma.evaluate.results import Results
     from amuled_ma.experiments.run_folder import Rerun
+    from amuled_ma.pipeline import PipelineOutcome, PipelineRequest
     from amuled_ma.scenario import Scenario
 
 
-def bounded_int(low: int, high: int | None = None) -> Any:
+def bounded_int(low: int, high: int | None = None) -> Callable[[str], int]:
     """An argparse ``type``: an integer in ``[low, high]`` (no upper bound if ``high`` is None).
 
     A value outside is a usage error naming the range, e.g. ``--seed -5``.
@@ -208,7 +212,7 @@ def customise(
     return scenario
 
 
-def run_dir_of(args: argparse.Namespace, scenario: Any) -> Path:
+def run_dir_of(args: argparse.Namespace, scenario: Scenario) -> Path:
     """Return the run directory: ``--run-dir`` or the scenario's default."""
     return Path(args.run_dir) if args.run_dir else scenario.default_run_dir()
 
@@ -262,7 +266,7 @@ def say(message: str) -> None:
     sys.stdout.flush()
 
 
-def say_outcome(request: Any, outcome: Any, seconds: float) -> None:
+def say_outcome(request: PipelineRequest, outcome: PipelineOutcome, seconds: float) -> None:
     """Print the end of ``amuled run``/``ablate``/``demo``: the summary and the report's path.
 
     Args:
@@ -282,7 +286,7 @@ def say_outcome(request: Any, outcome: Any, seconds: float) -> None:
     say(f"run {name}: {len(outcome.variants)} variants x {done}; report {outcome.report}")
 
 
-def greedy_line(task: str, results: Any) -> str:
+def greedy_line(task: str, results: Results) -> str:
     """``  greedy: base[metric=mean, ...]; ...``: the greedy means of the paper's metrics."""
     from amuled_ma.evaluate.evaluator import PAPER_METRICS
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -58,7 +59,7 @@ def list_clusters(args: argparse.Namespace) -> int:
     registry = ClusterRegistry.load(args.clusters_dir)
     panel = registry.panel()
     plugins = agent_entry_points()
-    rows = []
+    rows: list[dict[str, Any]] = []
     for cluster in registry.all():
         vector = credence_vector(cluster, panel, registry=registry)
         rows.append(

@@ -560,6 +560,7 @@ def live_leg(
 
     from amuled_ma.beliefs.cached import requests_sent
     from amuled_ma.deliberation.build import make_feedback
+    from amuled_ma.deliberation.panel_feedback import PanelFeedback
     from amuled_ma.evaluate.episode_trace import replay_variant
     from amuled_ma.evaluate.panel_answers import ask_panel
     from amuled_ma.experiments.trained_variants import evaluated_episodes, trained_variant
@@ -586,6 +587,9 @@ def live_leg(
     out = run_dir / LIVE_DIR
     out.mkdir(parents=True, exist_ok=True)
     feedback = make_feedback("amuled", live, out)
+    if not isinstance(feedback, PanelFeedback):  # an ollama source is always asked as a panel
+        feedback.close()
+        raise TypeError(f"the live panel's feedback is a {type(feedback).__name__}")
     began = time.perf_counter()
     try:
         answers = ask_panel(feedback.panel, obs, prompt_vars)
@@ -622,7 +626,7 @@ def live_leg(
     }
 
 
-def _plain(value: Any) -> Any:
+def _plain(value: object) -> Any:
     """A prompt variable as JSON (numpy numbers as Python's)."""
     return value.item() if hasattr(value, "item") else value
 

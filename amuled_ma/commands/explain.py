@@ -26,13 +26,16 @@ import argparse
 import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from amuled_ma.commands import _experiment as common
 from amuled_ma.errors import ScenarioError
 
 if TYPE_CHECKING:
+    from amuled_ma.deliberation.feedback_base import Feedback
     from amuled_ma.evaluate import explain
+    from amuled_ma.evaluate.readonly_feedback import ReadOnlyStore
+    from amuled_ma.scenario import Scenario
 
 #: Characters of a raw reply printed without ``--full``.
 REPLY_CHARS = 1200
@@ -133,8 +136,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def with_overrides(
-    scenario: Any, overrides: Sequence[str], clusters_dirs: Sequence[Path] = ()
-) -> Any:
+    scenario: Scenario, overrides: Sequence[str], clusters_dirs: Sequence[Path] = ()
+) -> Scenario:
     """A run's scenario with ``--clusters-dir`` and ``--set`` applied (as for a shipped one).
 
     Raises:
@@ -219,9 +222,9 @@ def explain_command(args: argparse.Namespace) -> int:
 
 def _print(
     args: argparse.Namespace,
-    scenario: Any,
-    feedback: Any,
-    store: Any,
+    scenario: Scenario,
+    feedback: Feedback,
+    store: ReadOnlyStore,
     feedback_name: str,
     state: explain.State,
 ) -> None:

@@ -10,12 +10,14 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from amuled_ma.commands import _experiment as common
 from amuled_ma.errors import AmuledError
 
 if TYPE_CHECKING:
+    from amuled_ma.experiments.jobs import RayTarget
+    from amuled_ma.pipeline import PipelineRequest
     from amuled_ma.scenario import Scenario
 
 
@@ -215,7 +217,7 @@ def add_parallel_args(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def ray_target(args: argparse.Namespace) -> Any:
+def ray_target(args: argparse.Namespace) -> RayTarget | None:
     """The command line's ``--ray`` / ``--ray-resource`` as a ``RayTarget`` (None: no Ray).
 
     Raises:
@@ -231,7 +233,7 @@ def ray_target(args: argparse.Namespace) -> Any:
     return RayTarget(None if args.ray == LOCAL_RAY else args.ray, args.ray_resource)
 
 
-def request_of(args: argparse.Namespace, command: str, *extra: str) -> Any:
+def request_of(args: argparse.Namespace, command: str, *extra: str) -> PipelineRequest:
     """The :class:`~amuled_ma.pipeline.PipelineRequest` of ``amuled run`` or ``ablate``."""
     from amuled_ma.pipeline import PipelineRequest
 

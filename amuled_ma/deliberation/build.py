@@ -27,9 +27,12 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 
 from amuled_ma.beliefs.cached import CachedSource
+from amuled_ma.beliefs.replay import ReplaySource
 from amuled_ma.beliefs.routing import RoutedSource
 from amuled_ma.beliefs.sources import make_source as build_source
-from amuled_ma.beliefs.types import BeliefSource
+from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.store_service import StoreItem, StoreService
+from amuled_ma.beliefs.types import BeliefResult, BeliefSource
 from amuled_ma.deliberation.plan import (
     PanelPlan,
     SourcePlan,
@@ -43,7 +46,9 @@ from amuled_ma.scenario.agents import norm
 
 if TYPE_CHECKING:  # the feedback classes import torch: loaded when a feedback is built,
     # so that the preflight's errors come before any heavy import
+    from amuled_ma.clusters import Cluster
     from amuled_ma.deliberation.feedback_base import Feedback
+    from amuled_ma.scenario import DistillConfig
 
 #: The ways to give a member beliefs, named in the preflight's messages.
 _KINDS = " | ".join(f'"{k}"' for k in AGENT_SOURCE_KINDS if k != "replay")
@@ -256,7 +261,7 @@ def live_costs(plan: PanelPlan, store: Path, say: Callable[[str], None] | None =
         members.close()
 
 
-def options_line(missing: Sequence[str], states: int, distill: Any = None) -> str:
+def options_line(missing: Sequence[str], states: int, distill: DistillConfig | None = None) -> str:
     """The ways to give members without beliefs an answer, short, as ``--set`` options.
 
     Args:
@@ -274,7 +279,7 @@ def options_line(missing: Sequence[str], states: int, distill: Any = None) -> st
     n = len(missing)
     asks = states * n
     budget = SUGGESTED_BUDGET
-    if distill is not None and getattr(distill, "enabled", False):
+    if distill is not None and distill.enabled:
         value = distill.budget
         budget = int(value) if isinstance(value, int) else max(1, int(value * states))
     tables = ",".join(f'{m}={{source="terminal"}}' for m in missing)
@@ -294,10 +299,10 @@ def _without(error: BaseException, where: str) -> str:
 
 
 def _replay_problem(
-    source: Any, agents: Sequence[str], task: str, distill: Any = None
+    source: ReplaySource, agents: Sequence[str], task: str, distill: DistillConfig | None = None
 ) -> str | None:
     """Why a replay source cannot answer ``agents`` on ``task`` (from its recordings)."""
-    recordings = list(getattr(source, "recordings", None) or ())
+    recordings = list(source.recordings)
     fused_only = [r for r in recordings if r.fused_only]
     if fused_only:
         return (
@@ -352,7 +357,7 @@ class Members(NamedTuple):
                 source.close()
 
 
-def build_members(plan: PanelPlan, *, build: Any = build_source) -> Members:
+def build_members(plan: PanelPlan, *, build: Callable[..., BeliefSource] = build_source) -> Members:
     """Build every distinct member source of a plan once and check it; nothing is asked.
 
     The preflight, per distinct source: building it (a replay recording is read and
@@ -383,9 +388,9 @@ def build_members(plan: PanelPlan, *, build: Any = build_source) -> Members:
         distinct.setdefault(spec.key, (spec, []))[1].append(agent)
     served: dict[str, list[str]] = {key: [] for key in distinct}
     for agent in plan.agents:
-        spec = plan.source_of(agent)
-        if spec is not None:
-            served[spec.key].append(agent)
+        planned = plan.source_of(agent)
+        if planned is not None:
+            served[planned.key].append(agent)
     built: dict[str, BeliefSource] = {}
     problems = list(plan.problems)
     for key, (spec, agents) in distinct.items():
@@ -404,7 +409,7 @@ def build_members(plan: PanelPlan, *, build: Any = build_source) -> Members:
             check = getattr(source, "check", None)
             if callable(check):
                 check()
-            if spec.kind == "replay":
+            if spec.kind == "replay" and isinstance(source, ReplaySource):
                 problem = _replay_problem(source, served[key], plan.task, plan.distill)
                 if problem:
                     raise ScenarioError(problem)
@@ -415,13 +420,13 @@ def build_members(plan: PanelPlan, *, build: Any = build_source) -> Members:
             with contextlib.suppress(Exception):  # the preflight error matters more
                 source.close()
         if len(problems) == 1:
-            error, label = problems[0]
-            text = f"{where}: {label}: {_without(error, where)}"
+            first, label = problems[0]
+            text = f"{where}: {label}: {_without(first, where)}"
             wrapped: BaseException = ScenarioError(text)
-            if isinstance(error, AmuledError):
+            if isinstance(first, AmuledError):
                 with contextlib.suppress(TypeError):  # an error class with another signature
-                    wrapped = type(error)(text)
-            raise wrapped from error
+                    wrapped = type(first)(text)
+            raise wrapped from first
         lines = "\n".join(f"  - {label}: {_without(e, where)}" for e, label in problems)
         raise ScenarioError(
             f"{where}: {len(problems)} belief sources of the panel cannot be used; fix each "
@@ -494,7 +499,9 @@ def check_distillable(plan: PanelPlan) -> None:
     )
 
 
-def panel_source(plan: PanelPlan, store: Any, members: Members | None = None) -> Any:
+def panel_source(
+    plan: PanelPlan, store: StoreService, members: Members | None = None
+) -> CachedSource | RoutedSource:
     """The belief source of a plan's panel, every member behind ``store``.
 
     Args:
@@ -518,7 +525,7 @@ def panel_source(plan: PanelPlan, store: Any, members: Members | None = None) ->
         return CachedSource(default, store)
     cached: dict[int, CachedSource] = {}
 
-    def wrap(source: Any) -> CachedSource:
+    def wrap(source: BeliefSource) -> CachedSource:
         if id(source) not in cached:
             spec = plans[id(source)]
             identity = None
@@ -537,7 +544,7 @@ def panel_source(plan: PanelPlan, store: Any, members: Members | None = None) ->
 
 def build_feedback(
     plan: PanelPlan,
-    store: Any,
+    store: StoreService,
     *,
     members: Members | None = None,
     state_dir: Path | None = None,
@@ -576,7 +583,7 @@ def build_feedback(
 
 def _build(
     plan: PanelPlan,
-    store: Any,
+    store: StoreService,
     members: Members | None,
     state_dir: Path | None,
     resume: bool,
@@ -604,8 +611,8 @@ def _build(
     from amuled_ma.clusters import build_messages
     from amuled_ma.deliberation.panel import MoralPanel
 
-    source = panel_source(plan, store, members)
-    if plan.distill.enabled and state_dir is not None:
+    source: BeliefSource = panel_source(plan, store, members)
+    if plan.distill is not None and plan.distill.enabled and state_dir is not None:
         from amuled_ma.distill import DistilledSource
 
         try:
@@ -643,6 +650,8 @@ def _count_questions(distilled: Any, plan: PanelPlan) -> None:
     """
     from amuled_ma.beliefs.terminal import TerminalSource
 
+    if plan.distill is None:
+        return
     budget = plan.distill.budget
     if isinstance(budget, bool) or not isinstance(budget, int):
         return
@@ -660,7 +669,7 @@ def _count_questions(distilled: Any, plan: PanelPlan) -> None:
         person.expected = states * agents
 
 
-def run_store(path: Path) -> Any:
+def run_store(path: Path) -> StoreService:
     """The belief store at ``path`` (a run's: ``Scenario.store_path``), opened on first use.
 
     The preflight runs before the store's file exists; a feedback that never asks a
@@ -679,7 +688,7 @@ def make_feedback(
     state_dir: Path | None = None,
     resume: bool = False,
     seed: int | None = None,
-    store: Any = None,
+    store: StoreService | None = None,
 ) -> Feedback:
     """Plan a variant's panel and build its feedback: `plan_panel` + `build_feedback`.
 
@@ -705,7 +714,12 @@ def make_feedback(
     )
 
 
-def make_source(scenario: Scenario, run_dir: Path | None = None, *, agents: Any = None) -> Any:
+def make_source(
+    scenario: Scenario,
+    run_dir: Path | None = None,
+    *,
+    agents: Sequence[str | Cluster] | None = None,
+) -> CachedSource | RoutedSource:
     """The belief source of a panel of ``agents`` behind the run's store (tests, tools).
 
     Args:
@@ -744,20 +758,20 @@ class _Named:
 class _Lazy:
     """A store opened on first use: the preflight runs before its file is created."""
 
-    def __init__(self, opener: Any) -> None:
+    def __init__(self, opener: Callable[[], BeliefStore]) -> None:
         self._opener = opener
-        self._store: Any = None
+        self._store: BeliefStore | None = None
 
-    def _get(self) -> Any:
+    def _get(self) -> BeliefStore:
         if self._store is None:
             self._store = self._opener()
         return self._store
 
-    def lookup(self, keys: Any) -> Any:
+    def lookup(self, keys: list[str]) -> dict[str, BeliefResult]:
         """The store's ``lookup``."""
         return self._get().lookup(keys)
 
-    def put_many(self, items: Any) -> Any:
+    def put_many(self, items: Sequence[StoreItem]) -> int:
         """The store's ``put_many``."""
         return self._get().put_many(items)
 

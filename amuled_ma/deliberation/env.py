@@ -52,9 +52,10 @@ import string
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
 import torch
 from gymnasium import spaces
 from pettingzoo import AECEnv, ParallelEnv
@@ -62,10 +63,13 @@ from pettingzoo.utils.conversions import parallel_to_aec
 
 from amuled_ma.deliberation.mdp import BatchedDeliberation
 
+if TYPE_CHECKING:
+    from amuled_ma.deliberation.panel import MoralPanel
+
 ACTOR = "actor"
 
 
-def project_to_simplex(v: Any) -> np.ndarray:
+def project_to_simplex(v: npt.ArrayLike) -> np.ndarray:
     """Euclidean projection of a vector onto the probability simplex.
 
     Returns ``argmin_x ||x - v||_2`` subject to ``x >= 0`` and ``sum(x) = 1``, by the sort
@@ -244,7 +248,7 @@ class DeliberationEnv(ParallelEnv):
         return self._render_prompt(self.task_name, variables)
 
     def _observations(self) -> dict[str, Any]:
-        obs = {ACTOR: self._obs.copy()}
+        obs: dict[str, Any] = {ACTOR: self._obs.copy()}
         for name in self.cluster_names:
             obs[name] = {"prompt": self._prompt, "obs": self._obs.copy()}
         return obs
@@ -326,7 +330,7 @@ class DeliberationEnv(ParallelEnv):
             self.agents = []
         return observations, rewards, term, trunc, infos
 
-    def panel_actions(self, panel: Any) -> dict[str, np.ndarray]:
+    def panel_actions(self, panel: MoralPanel) -> dict[str, np.ndarray]:
         """Return every cluster agent's action as answered by a moral panel.
 
         The LLM side of the PettingZoo convention: the panel (a
@@ -415,7 +419,7 @@ class _StepInfo:
         }
 
 
-def _row(obs: Any) -> np.ndarray:
+def _row(obs: npt.ArrayLike | torch.Tensor) -> np.ndarray:
     if hasattr(obs, "detach"):
         obs = obs.detach().cpu().numpy()
     return np.asarray(obs, dtype=np.float32).reshape(-1).copy()

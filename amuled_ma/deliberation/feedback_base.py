@@ -35,13 +35,16 @@ from abc import ABC, abstractmethod
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
 from amuled_ma.beliefs.types import MODEL_STATUSES, UNASKED
 from amuled_ma.deliberation.state_key import freeze
+
+if TYPE_CHECKING:
+    from amuled_ma.deliberation.plan import PanelPlan
 
 #: Statuses reported per agent, in this order (any other status a source gives is added).
 REPORTED_STATUSES = ("ok", "repaired", "abstained", "timeout", "error", "replay_miss")
@@ -65,6 +68,9 @@ class Feedback(ABC):
 
     #: Variant name (``amuled``, ``human``, ``cluster:care``, ...).
     name: str = "feedback"
+    #: The panel plan it was built from (:func:`~amuled_ma.deliberation.build.build_feedback`
+    #: sets it); None for a feedback built directly.
+    plan: PanelPlan | None = None
 
     def __init__(self) -> None:
         # observation bytes -> (belief, diagnostics, the diagnostics prepared for _account)
@@ -108,14 +114,14 @@ class Feedback(ABC):
     def _compute(
         self,
         obs: np.ndarray,
-        task: Any,
+        task: object,
         env_ids: Sequence[int],
         prompt_vars: Sequence[Mapping[str, Any]] | None = None,
     ) -> list[tuple]:
         """Return ``(belief [A], diagnostics)`` for each new state (row of ``obs``)."""
 
     def __call__(
-        self, obs: torch.Tensor, task: Any, env_ids: Sequence[int] | None = None
+        self, obs: torch.Tensor, task: object, env_ids: Sequence[int] | None = None
     ) -> np.ndarray:
         """Return beliefs ``[N, A]`` for a batch of observations (one row per copy).
 
@@ -368,7 +374,7 @@ class CallableFeedback(Feedback):
     def _compute(
         self,
         obs: np.ndarray,
-        task: Any,
+        task: object,
         env_ids: Sequence[int],
         prompt_vars: Sequence[Mapping[str, Any]] | None = None,
     ) -> list[tuple]:
@@ -404,12 +410,12 @@ class DemonstratorFeedback(Feedback):
     def _compute(
         self,
         obs: np.ndarray,
-        task: Any,
+        task: object,
         env_ids: Sequence[int],
         prompt_vars: Sequence[Mapping[str, Any]] | None = None,
     ) -> list[tuple]:
-        beliefs, seen = self.table.lookup(torch.as_tensor(obs))
-        beliefs = np.asarray(beliefs, dtype=np.float64)
+        table_beliefs, seen = self.table.lookup(torch.as_tensor(obs))
+        beliefs = np.asarray(table_beliefs, dtype=np.float64)
         return [
             (row, {"statuses": ("ok" if known else "unseen",), "agents": (self.agent,)})
             for row, known in zip(beliefs, np.asarray(seen).tolist(), strict=True)

@@ -17,14 +17,18 @@ not part of the MDP: it needs the policies, so the learner adds it
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
 import torch
 
 from amuled_ma.errors import AmuledError
+
+if TYPE_CHECKING:
+    from amuled_ma.tasks.base import BatchedTask
 
 #: ``(observations [N, obs_dim], task) -> fused beliefs [N, A]``: a learner's feedback
 #: (`Feedback`) or any callable of that shape.
@@ -62,7 +66,9 @@ def actor_reward(
     return task_weight * r_task + feedback_coef * fused_taken
 
 
-def as_tensor(value: Any, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+def as_tensor(
+    value: npt.ArrayLike | torch.Tensor, dtype: torch.dtype, device: torch.device
+) -> torch.Tensor:
     """Return ``value`` as a ``dtype`` tensor on ``device`` (itself when it already is one)."""
     if isinstance(value, torch.Tensor) and value.dtype == dtype and value.device == device:
         return value
@@ -112,7 +118,7 @@ class BatchedDeliberation:
 
     def __init__(
         self,
-        task: Any,
+        task: BatchedTask,
         feedback: FeedbackFn | None = None,
         *,
         task_weight: float = 1.0,
@@ -128,7 +134,7 @@ class BatchedDeliberation:
         #: The current observations ``[N, obs_dim]``; set by `reset`.
         self.obs = torch.zeros(self.num_envs, int(task.obs_dim), device=self.device)
 
-    def _as(self, value: Any, dtype: torch.dtype) -> torch.Tensor:
+    def _as(self, value: npt.ArrayLike | torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
         return as_tensor(value, dtype, self.device)
 
     def reset(self, seed: int | None = None) -> torch.Tensor:
@@ -143,7 +149,9 @@ class BatchedDeliberation:
             return None
         return self._as(self.feedback(self.obs, self.task), torch.float32)
 
-    def step(self, actions: torch.Tensor, fused: Any | None = None) -> DeliberationStep:
+    def step(
+        self, actions: torch.Tensor, fused: npt.ArrayLike | torch.Tensor | None = None
+    ) -> DeliberationStep:
         """Read the fused beliefs of the current states, step the task, reward the actor.
 
         Args:
@@ -201,13 +209,13 @@ class CopiesView:
 
     _LOCAL_IDS = ("prompt_variables", "state_prompts")
 
-    def __init__(self, task: Any, start: int, count: int, variables: Any = None) -> None:
+    def __init__(self, task: BatchedTask, start: int, count: int, variables: Any = None) -> None:
         self.task = task
         self.start = int(start)
         self.num_envs = int(count)
         self.variables = variables
 
-    def global_ids(self, env_ids: Any = None) -> list[int]:
+    def global_ids(self, env_ids: int | Sequence[int] | None = None) -> list[int]:
         """The population's copy indices of local ``env_ids`` (None: all of this view)."""
         if env_ids is None:
             return list(range(self.start, self.start + self.num_envs))
@@ -252,7 +260,7 @@ class MemberFeedback:
 
     """
 
-    def __init__(self, feedbacks: Any, copies: int) -> None:
+    def __init__(self, feedbacks: Sequence[FeedbackFn], copies: int) -> None:
         self.feedbacks = list(feedbacks)
         self.copies = int(copies)
         self._views: list[CopiesView] = []
@@ -261,7 +269,7 @@ class MemberFeedback:
         #: member -> why its feedback failed (the trainer stops it after the iteration)
         self.failures: dict[int, str] = {}
 
-    def views(self, task: Any) -> list[CopiesView]:
+    def views(self, task: BatchedTask) -> list[CopiesView]:
         """Each member's `CopiesView` of ``task`` (made once per task)."""
         if not self._views or self._task is not task:
             self._task = task
@@ -272,18 +280,18 @@ class MemberFeedback:
             ]
         return self._views
 
-    def prompt_variables(self, env_ids: Any) -> list[Any]:
+    def prompt_variables(self, env_ids: Sequence[int]) -> list[dict[str, Any]]:
         """The prompt variables of copies ``env_ids`` now (every copy read once a step)."""
         if self._variables is None:
             self._variables = list(self._task.prompt_variables())
         return [self._variables[i] for i in env_ids]
 
-    def __call__(self, obs: torch.Tensor, task: Any) -> np.ndarray:
+    def __call__(self, obs: torch.Tensor, task: BatchedTask) -> np.ndarray:
         """The fused beliefs ``[P x E, A]`` of every copy, each from its member's feedback."""
         views = self.views(task)
         self._variables = None  # the states changed since the last step
         blocks = obs.split(self.copies)
-        parts = []
+        parts: list[np.ndarray] = []
         for member, (feedback, view, rows) in enumerate(
             zip(self.feedbacks, views, blocks, strict=True)
         ):
@@ -297,7 +305,7 @@ class MemberFeedback:
                     self.failures[member] = (
                         "its feedback gave a belief that is not a finite number (NaN or inf)"
                     )
-            if member in self.failures:  # a stand-in, never learnt from (the member stops)
+            if member in self.failures or part is None:  # a stand-in, never learnt from
                 part = np.zeros((len(rows), task.num_actions))
             parts.append(part)
         self._variables = None

@@ -20,13 +20,19 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
 
 from amuled_ma.beliefs.types import FUSED_STATUSES, BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.beliefs.validate import check_belief, check_beliefs, show_values
 from amuled_ma.deliberation.state_key import freeze
+
+if TYPE_CHECKING:  # torch and the cluster files are loaded by what hands them in
+    import torch
+
+    from amuled_ma.clusters import Cluster
 
 #: Marker substituted by the state prompt in a cluster's pre-built chat.
 _SENTINEL = "\x00AMULED_STATE_PROMPT\x00"
@@ -58,7 +64,7 @@ class PanelOutput:
     statuses: np.ndarray
     unique: int = 0
 
-    def reward(self, actions: Any) -> np.ndarray:
+    def reward(self, actions: npt.ArrayLike | torch.Tensor) -> np.ndarray:
         """Return ``fused[i, actions[i]]``: the shaping reward of the actions taken.
 
         Args:
@@ -239,7 +245,9 @@ class MoralPanel:
 
     # -- the batch call --------------------------------------------------------------
     def fused(
-        self, obs_batch: Any, prompt_vars: Sequence[Mapping[str, Any]] | None = None
+        self,
+        obs_batch: npt.ArrayLike | torch.Tensor,
+        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
     ) -> PanelOutput:
         """Ask every cluster about every env copy and fuse per copy.
 
@@ -418,7 +426,7 @@ class MoralPanel:
         return out.reshape(count, k, a), statuses.reshape(count, k)
 
 
-def _cluster_name(cluster: Any) -> str:
+def _cluster_name(cluster: str | Cluster) -> str:
     return cluster if isinstance(cluster, str) else str(cluster.name)
 
 
@@ -431,7 +439,7 @@ def _task_action_names(task_name: str) -> tuple[str, ...]:
     return tuple(names)
 
 
-def _as_numpy(x: Any) -> np.ndarray:
+def _as_numpy(x: npt.ArrayLike | torch.Tensor) -> np.ndarray:
     if hasattr(x, "detach"):
         x = x.detach().cpu().numpy()
     return np.asarray(x)

@@ -9,7 +9,7 @@ that keeps only the fused belief per state. Both are built from a
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -17,12 +17,22 @@ from amuled_ma.deliberation.feedback_base import ANSWERED, Feedback
 from amuled_ma.deliberation.summaries import describe_identity, llm_server_stats, store_stats
 from amuled_ma.errors import ScenarioError
 
+if TYPE_CHECKING:
+    from amuled_ma.beliefs.replay import Recording
+    from amuled_ma.beliefs.types import BeliefSource
+    from amuled_ma.deliberation.panel import MoralPanel
+
 
 class PanelFeedback(Feedback):
     """Beliefs of a panel of moral-cluster agents, fused (`MoralPanel`)."""
 
     def __init__(
-        self, name: str, panel: Any, source: Any | None = None, *, miss_zero: bool = False
+        self,
+        name: str,
+        panel: MoralPanel,
+        source: BeliefSource | None = None,
+        *,
+        miss_zero: bool = False,
     ) -> None:
         super().__init__()
         self.name = name
@@ -66,7 +76,7 @@ class PanelFeedback(Feedback):
     def _compute(
         self,
         obs: np.ndarray,
-        task: Any,
+        task: object,
         env_ids: Sequence[int],
         prompt_vars: Sequence[Mapping[str, Any]] | None = None,
     ) -> list[tuple]:
@@ -188,7 +198,7 @@ class FusedReplayFeedback(Feedback):
     #: the one "agent" of this feedback in the per-agent report
     agent = "fused (recorded)"
 
-    def __init__(self, recording: Any, miss_policy: str) -> None:
+    def __init__(self, recording: Recording, miss_policy: str) -> None:
         super().__init__()
         if miss_policy not in ("zero", "uniform", "error"):
             raise ScenarioError(
@@ -205,7 +215,7 @@ class FusedReplayFeedback(Feedback):
     def _compute(
         self,
         obs: np.ndarray,
-        task: Any,
+        task: object,
         env_ids: Sequence[int],
         prompt_vars: Sequence[Mapping[str, Any]] | None = None,
     ) -> list[tuple]:

@@ -18,13 +18,21 @@ import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from amuled_ma.errors import AmuledError, ClusterDefinitionError, ScenarioError
 from amuled_ma.scenario import AGENT_SPECS, MORAL_AGENT, Scenario
 from amuled_ma.scenario.agents import match_agents
 from amuled_ma.scenario.panel_weights import member_prior, read_panel_weights
 from amuled_ma.variants import parse_feedback
+
+if TYPE_CHECKING:
+    from amuled_ma.scenario.agents import AgentSpec
+
+if TYPE_CHECKING:  # loaded by the functions that use them (a plan is made before any read)
+    from amuled_ma.beliefs.replay import Recording
+    from amuled_ma.clusters import Cluster, ClusterRegistry
+    from amuled_ma.scenario import DistillConfig
 
 #: What every label of a ``rules`` source says: it answers with the task's rule.
 RULES_NOTE = ", the task's rule: the cluster's text is not read"
@@ -88,7 +96,7 @@ class PanelPlan:
     where: str
     seed: int
     clusters: tuple[Any, ...] = ()
-    registry: Any = None
+    registry: ClusterRegistry | None = None
     rule: str = ""
     routes: dict[str, SourcePlan] = field(default_factory=dict)
     default: SourcePlan | None = None
@@ -96,7 +104,7 @@ class PanelPlan:
     fused_recording: Path | None = None
     miss_policy: str = "uniform"
     miss_zero: bool = False
-    distill: Any = None
+    distill: DistillConfig | None = None
     max_abstention: float | None = None
     prior: tuple[float, ...] | None = None
     weights_file: Path | None = None
@@ -148,7 +156,7 @@ class PanelPlan:
             members.append({"agent": agent, "source": kind, "label": label})
         if self.fused_recording is not None:
             recordings = [self.fused_recording.name]
-        described = {
+        described: dict[str, Any] = {
             "feedback": self.variant,
             "members": members,
             "fusion": self.rule,
@@ -164,7 +172,7 @@ class PanelPlan:
         return described
 
 
-def cluster_registry(scenario: Scenario) -> Any:
+def cluster_registry(scenario: Scenario) -> ClusterRegistry:
     """The shipped clusters plus the scenario's ``[feedback].clusters_dirs`` (later win).
 
     Raises:
@@ -176,13 +184,15 @@ def cluster_registry(scenario: Scenario) -> Any:
 
 
 @functools.lru_cache(maxsize=8)
-def _registry_cached(dirs: tuple[str, ...]) -> Any:
+def _registry_cached(dirs: tuple[str, ...]) -> ClusterRegistry:
     from amuled_ma.clusters import ClusterRegistry
 
     return ClusterRegistry.load(list(dirs))
 
 
-def panel_of(variant: str, scenario: Scenario, registry: Any | None = None) -> tuple[list, str]:
+def panel_of(
+    variant: str, scenario: Scenario, registry: ClusterRegistry | None = None
+) -> tuple[list[Cluster], str]:
     """The panel of a feedback variant: its agents (cluster objects) and fusion rule.
 
     Raises:
@@ -193,11 +203,11 @@ def panel_of(variant: str, scenario: Scenario, registry: Any | None = None) -> t
     kind, arg = parse_feedback(variant)
     registry = registry or cluster_registry(scenario)
     names, rule = list(scenario.feedback.clusters), scenario.feedback.fusion
-    if kind == "cluster":
+    if kind == "cluster" and arg:
         names, rule = [arg], "mean"
     elif kind == "moral":
         names, rule = [MORAL_AGENT], "mean"
-    elif kind == "agg":
+    elif kind == "agg" and arg:
         rule = arg
     clusters = []
     for name in names:
@@ -212,7 +222,7 @@ def panel_of(variant: str, scenario: Scenario, registry: Any | None = None) -> t
     return clusters, rule
 
 
-def with_cluster_sources(scenario: Scenario, clusters: Sequence[Any]) -> Scenario:
+def with_cluster_sources(scenario: Scenario, clusters: Sequence[Cluster]) -> Scenario:
     """The scenario with each cluster file's default ``[source]`` as an agent table.
 
     A cluster file may name where its beliefs come from (``[source]``); the scenario's own
@@ -220,11 +230,7 @@ def with_cluster_sources(scenario: Scenario, clusters: Sequence[Any]) -> Scenari
     """
     tables = dict(scenario.feedback.agents)
     named = match_agents(list(tables), clusters)
-    defaults = {
-        c.name: dict(c.source)
-        for c in clusters
-        if getattr(c, "source", None) and c.name not in named
-    }
+    defaults = {c.name: dict(c.source) for c in clusters if c.source and c.name not in named}
     if not defaults:
         return scenario
     return scenario.replace("feedback", agents={**defaults, **tables})
@@ -245,7 +251,7 @@ def default_source(scenario: Scenario) -> SourcePlan:
     return SourcePlan(fb.source, options, f"[feedback].source = {fb.source!r}{note}")
 
 
-def agent_source(scenario: Scenario, name: str, spec: Any) -> SourcePlan:
+def agent_source(scenario: Scenario, name: str, spec: AgentSpec) -> SourcePlan:
     """The source of one ``[feedback.agents.<name>]`` spec, ``[feedback]``'s values inherited.
 
     Raises:
@@ -259,7 +265,7 @@ def agent_source(scenario: Scenario, name: str, spec: Any) -> SourcePlan:
 
 
 def plan_sources(
-    scenario: Scenario, agents: Sequence[Any]
+    scenario: Scenario, agents: Sequence[str | Cluster]
 ) -> tuple[dict[str, SourcePlan], SourcePlan | None, list[tuple[BaseException, str]]]:
     """Each panel agent's source.
 
@@ -349,27 +355,28 @@ def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
     """
     kind, arg = parse_feedback(variant)
     fb = scenario.feedback
-    base = {
-        "variant": variant,
-        "kind": kind,
-        "task": scenario.task.name,
-        "where": str(scenario.path or scenario.name),
-        "seed": scenario.task.seed,
-        "miss_policy": fb.miss_policy,
-        "distill": fb.distill,
-        "max_abstention": fb.max_abstention,
-    }
+    base = PanelPlan(
+        variant=variant,
+        kind=kind,
+        task=scenario.task.name,
+        where=str(scenario.path or scenario.name),
+        seed=scenario.task.seed,
+        miss_policy=fb.miss_policy,
+        distill=fb.distill,
+        max_abstention=fb.max_abstention,
+    )
     if kind == "human":
-        return PanelPlan(**{**base, "variant": "human:rules" if arg == "rules" else variant})
+        return dataclasses.replace(base, variant="human:rules" if arg == "rules" else variant)
     registry = cluster_registry(scenario)
     clusters, rule = panel_of(variant, scenario, registry)
     scenario = with_cluster_sources(scenario, clusters)
     fused = _fused_only_recording(scenario)
     if fused is not None and match_agents(list(scenario.feedback.agents), clusters):
         fused = None  # agents with their own source: a panel (the preflight refuses replay)
-    base.update(clusters=tuple(clusters), registry=registry, rule=rule)
+    base = dataclasses.replace(base, clusters=tuple(clusters), registry=registry, rule=rule)
     if kind == "amuled" and fb.weights.strip():
-        base.update(_member_prior(scenario, [c.name for c in clusters], fused))
+        prior, weights_file = _member_prior(scenario, [c.name for c in clusters], fused)
+        base = dataclasses.replace(base, prior=prior, weights_file=weights_file)
     if fused is not None:
         if kind != "amuled" or fb.fusion != "bjs-dst":
             raise ScenarioError(
@@ -378,11 +385,11 @@ def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
                 f"{fb.fusion!r}; use a recording with per-cluster beliefs, e.g. "
                 'recording = "driving-llama-3_1-70b"'
             )
-        return PanelPlan(**base, fused_recording=fused)
+        return dataclasses.replace(base, fused_recording=fused)
     routes, default, problems = plan_sources(scenario, clusters)
     replays = any(p.kind == "replay" for p in [*routes.values(), default] if p is not None)
-    return PanelPlan(
-        **base,
+    return dataclasses.replace(
+        base,
         routes=routes,
         default=default,
         problems=tuple(problems),
@@ -390,8 +397,10 @@ def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
     )
 
 
-def _member_prior(scenario: Scenario, members: list[str], fused: Path | None) -> dict[str, Any]:
-    """``{"prior", "weights_file"}`` of the ``amuled`` variant from ``[feedback].weights``.
+def _member_prior(
+    scenario: Scenario, members: list[str], fused: Path | None
+) -> tuple[tuple[float, ...], Path]:
+    """``(prior, weights_file)`` of the ``amuled`` variant from ``[feedback].weights``.
 
     Raises:
         ScenarioError: The file is missing or malformed, names other members, or the panel
@@ -407,7 +416,7 @@ def _member_prior(scenario: Scenario, members: list[str], fused: Path | None) ->
             'recording = "driving-llama-3_1-70b") or drop weights'
         )
     prior = member_prior(read_panel_weights(path, where=where), members, where=where, path=path)
-    return {"prior": prior, "weights_file": path}
+    return prior, path
 
 
 def _fused_only_recording(scenario: Scenario) -> Path | None:
@@ -418,13 +427,13 @@ def _fused_only_recording(scenario: Scenario) -> Path | None:
     return path if recording_of(path).fused_only else None
 
 
-def recording_of(path: Path) -> Any:
+def recording_of(path: Path) -> Recording:
     """The `Recording` at ``path``, read once per version."""
     return _recording_cached(str(path), path.stat().st_mtime_ns)
 
 
 @functools.lru_cache(maxsize=4)
-def _recording_cached(path: str, mtime_ns: int) -> Any:
+def _recording_cached(path: str, mtime_ns: int) -> Recording:
     from amuled_ma.beliefs.replay import Recording
 
     return Recording(path)

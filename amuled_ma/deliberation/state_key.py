@@ -24,7 +24,7 @@ def freeze(variables: Mapping[str, Any]) -> bytes:
     ).encode("utf-8")
 
 
-def _json_default(value: Any) -> Any:
+def _json_default(value: object) -> Any:
     if isinstance(value, np.ndarray):
         return value.tolist()
     if isinstance(value, np.generic):

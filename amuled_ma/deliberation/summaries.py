@@ -8,10 +8,13 @@ source inside a panel's source (`nested_sources`).
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from amuled_ma.beliefs.types import MODEL_STATUSES
 from amuled_ma.deliberation.feedback_base import ANSWERED, REPORTED_STATUSES
+
+if TYPE_CHECKING:
+    from amuled_ma.beliefs.types import BeliefSource
 
 
 def summary_lines(summary: dict[str, Any]) -> list[str]:
@@ -46,13 +49,13 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
         lines.append(f"  beliefs from the distilled model: {share:.2f}% of {total:,} ({cells})")
     for agent, row in (summary.get("agents") or {}).items():
         agent_total = row.get("total") or 0
-        cells = []
+        agent_cells: list[str] = []
         for status, n in row.items():
             if status in ("total", "failed", "failure_rate"):
                 continue
-            share = f" ({100 * n / agent_total:.2f}%)" if n and agent_total else ""
-            cells.append(f"{status} {n:,}{share if status not in ANSWERED else ''}")
-        lines.append(f"  {agent}: {', '.join(cells)}")
+            agent_share = f" ({100 * n / agent_total:.2f}%)" if n and agent_total else ""
+            agent_cells.append(f"{status} {n:,}{agent_share if status not in ANSWERED else ''}")
+        lines.append(f"  {agent}: {', '.join(agent_cells)}")
     lines += [f"  reading: {sentence}" for sentence in readings(summary)]
     servers = summary.get("llm_servers") or {}
     if servers:
@@ -167,7 +170,7 @@ def distill_line(report: Mapping[str, Any]) -> str:
     return line
 
 
-def nested_sources(source: Any) -> list[Any]:
+def nested_sources(source: BeliefSource | None) -> list[Any]:
     """A belief source and every source inside it, each once.
 
     Walks a `CachedSource` (``.source``), a
@@ -176,7 +179,7 @@ def nested_sources(source: Any) -> list[Any]:
     found: list[Any] = []
     seen: set[int] = set()
 
-    def walk(obj: Any) -> None:
+    def walk(obj: object) -> None:
         if obj is None or id(obj) in seen:
             return
         seen.add(id(obj))
@@ -191,7 +194,7 @@ def nested_sources(source: Any) -> list[Any]:
     return found
 
 
-def llm_server_stats(source: Any) -> dict[str, dict[str, Any]]:
+def llm_server_stats(source: BeliefSource | None) -> dict[str, dict[str, Any]]:
     """Each LLM server's figures over a belief source and the sources inside it.
 
     Adds up every ``server_stats()`` found (`OllamaSource`)
@@ -216,7 +219,7 @@ def llm_server_stats(source: Any) -> dict[str, dict[str, Any]]:
     return merge_host_stats(found)
 
 
-def store_stats(source: Any) -> dict[str, int]:
+def store_stats(source: BeliefSource | None) -> dict[str, int]:
     """The belief store's figures over a source: requests, hits, and those asked.
 
     Adds up the `CacheStats` of every cached source among

@@ -45,7 +45,7 @@ class BudgetExceeded(AmuledError, RuntimeError):
     """More distinct states were to be asked than the budget allows (a bug, never expected)."""
 
 
-def check_budget(budget: Any, where: str = "[feedback.distill].budget") -> float | int:
+def check_budget(budget: object, where: str = "[feedback.distill].budget") -> float | int:
     """Return ``budget`` if it is a share in ``(0, 1]`` (float) or a count ``>= 1`` (int).
 
     Args:
@@ -185,7 +185,7 @@ class BudgetLedger:
     @classmethod
     def from_dict(
         cls,
-        data: Mapping[str, Any],
+        data: object,
         where: str = "budget state",
         budget: float | int | None = None,
     ) -> BudgetLedger:
@@ -229,7 +229,7 @@ class BudgetLedger:
                 "(strings); start over with --force"
             )
         try:
-            ledger = cls(saved if budget is None else budget)
+            ledger = cls(check_budget(saved) if budget is None else budget)
         except AmuledError as error:
             raise AmuledError(
                 f"{where}: not a budget state ({error}); start over with --force"

@@ -170,7 +170,7 @@ class EnsembleModel:
                     break
                 previous = loss_value
         self._params = [p.detach() for p in params]
-        self.trained = mask.any(axis=0) if n else np.zeros(k, dtype=bool)
+        self.trained = np.asarray(mask.any(axis=0)) if n else np.zeros(k, dtype=bool)
         return FitReport(steps=step, loss=loss_value, examples=n)
 
     # ------------------------------------------------------------------ predicting

@@ -41,7 +41,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from fractions import Fraction
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -71,6 +71,9 @@ from amuled_ma.distill.state import (
     check_state_keys,
 )
 from amuled_ma.errors import AmuledError
+
+if TYPE_CHECKING:
+    from amuled_ma.scenario import DistillConfig
 
 #: Status of a belief the model gave for a state that was not asked (``"distilled"``), and
 #: of the model's belief in place of an asked state's replay miss or abstention
@@ -227,7 +230,7 @@ class DistilledSource(BeliefSource):
     def from_config(
         cls,
         source: BeliefSource,
-        config: Any,
+        config: DistillConfig,
         *,
         seed: int,
         fusion_rule: str,
@@ -460,7 +463,7 @@ class DistilledSource(BeliefSource):
                 member: results[positions[0]] for member, positions in s.positions.items()
             }
         order = {key: n for n, key in enumerate(self.ledger.asked)}
-        records = []
+        records: list[dict[str, Any]] = []
         a = len(self.actions or ())
         for s in forward:
             answered: dict[str, np.ndarray] = {}

@@ -176,7 +176,7 @@ class Example(BaseModel):
     beliefs: dict[_Name, list[_Finite]] = Field(max_length=MAX_NAMES)
 
 
-def check_example(record: Any, where: str) -> Example:
+def check_example(record: object, where: str) -> Example:
     """One training pair, checked (:class:`Example`).
 
     Raises:
@@ -191,7 +191,9 @@ def check_example(record: Any, where: str) -> Example:
         ) from None
 
 
-def check_counters(counters: Any, names: Iterable[str], asked: int, where: str) -> dict[str, int]:
+def check_counters(
+    counters: object, names: Iterable[str], asked: int, where: str
+) -> dict[str, int]:
     """The ``counters`` of a state file, checked: integers in ``[0, 2**53]``, consistent.
 
     Args:

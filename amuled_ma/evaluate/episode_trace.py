@@ -18,7 +18,7 @@ from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -28,7 +28,16 @@ from amuled_ma.errors import CheckpointError, ScenarioError
 from amuled_ma.evaluate.rollout import MODES, Observer, rollout, step_events
 from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.policies import action_log_probs, load_policy
+from amuled_ma.tasks.driving import Driving
+from amuled_ma.tasks.findmilk import FindMilk
 from amuled_ma.variants import Variant
+
+if TYPE_CHECKING:
+    from rsl_rl.models import MLPModel
+
+    from amuled_ma.deliberation.feedback_base import Feedback
+    from amuled_ma.scenario import Scenario
+    from amuled_ma.tasks.base import BatchedTask
 
 __all__ = [
     "LAST",
@@ -58,7 +67,7 @@ class TrainedVariant:
 
     name: str
     checkpoint: Path
-    scenario: Any
+    scenario: Scenario
     variant: Variant | None
     base_checkpoint: Path | None = None
 
@@ -151,24 +160,24 @@ class Episode:
         return first, index
 
 
-def frame_of(task: Any, copy: int = 0) -> Any:
+def frame_of(task: BatchedTask, copy: int = 0) -> Any:
     """A small, JSON-ready picture of one copy of a task.
 
     FindMilk: the robot's ``[x, y]``. Driving: ``[lane, [lane, distance] of each car,
     [lane, distance] of each grandma]``. Any other task: its ``render_ansi`` text.
     """
-    if task.name == "findmilk":
+    if isinstance(task, FindMilk):
         x, y = (int(v) for v in task.position[copy].tolist())
         return [x, y]
-    if task.name == "driving":
+    if isinstance(task, Driving):
         objects = task.objects(copy)
         return [int(task.lane[copy]), objects["car"], objects["grandma"]]
     return task.render_ansi(copy)
 
 
-def layout_of(task: Any, obs: torch.Tensor, copy: int = 0) -> dict[str, Any] | None:
+def layout_of(task: BatchedTask, obs: torch.Tensor, copy: int = 0) -> dict[str, Any] | None:
     """What stays fixed over an episode of one copy (FindMilk: the milk and the babies)."""
-    if task.name == "findmilk":
+    if isinstance(task, FindMilk):
         babies = task.baby_positions(copy)
         milk = [int(v) for v in obs[copy, 2:4].tolist()]
         return {
@@ -177,12 +186,12 @@ def layout_of(task: Any, obs: torch.Tensor, copy: int = 0) -> dict[str, Any] | N
             "crying": [list(p) for p in babies["crying"]],
             "sleeping": [list(p) for p in babies["sleeping"]],
         }
-    if task.name == "driving":
+    if isinstance(task, Driving):
         return {"lanes": int(task.num_lanes), "distance": 8}
     return None
 
 
-def _final_frame(task: Any, previous: Any, final_obs: torch.Tensor) -> Any:
+def _final_frame(task: BatchedTask, previous: Any, final_obs: torch.Tensor) -> Any:
     """The picture of the last state, after the task reset the copy.
 
     FindMilk: the robot's position is in the final observation. Driving: the lane is in
@@ -202,7 +211,7 @@ def _final_frame(task: Any, previous: Any, final_obs: torch.Tensor) -> Any:
 class _Tracer(Observer):
     """Records copy ``K`` of a rollout step by step, until its first episode ends."""
 
-    def __init__(self, copy: int, base_actor: Any, live_feedback: Any) -> None:
+    def __init__(self, copy: int, base_actor: MLPModel, live_feedback: Feedback | None) -> None:
         self.k = copy
         self.base_actor = base_actor
         self.live_feedback = live_feedback
@@ -224,14 +233,14 @@ class _Tracer(Observer):
         self.task_name = ""
         self.action_names: tuple[str, ...] = ()
 
-    def start(self, task: Any, obs: torch.Tensor) -> None:
+    def start(self, task: BatchedTask, obs: torch.Tensor) -> None:
         self.task_name, self.action_names = str(task.name), tuple(task.action_names)
         self.layout = layout_of(task, obs, self.k)
         self.observations.append(obs[self.k].numpy().copy())
         self.frames.append(frame_of(task, self.k))
 
     def before_step(
-        self, task: Any, obs: torch.Tensor, logp: torch.Tensor, actions: torch.Tensor
+        self, task: BatchedTask, obs: torch.Tensor, logp: torch.Tensor, actions: torch.Tensor
     ) -> None:
         if self.done:
             return
@@ -253,7 +262,7 @@ class _Tracer(Observer):
 
     def after_step(
         self,
-        task: Any,
+        task: BatchedTask,
         obs: torch.Tensor,
         terminated: torch.Tensor,
         truncated: torch.Tensor,
@@ -282,13 +291,13 @@ class _Tracer(Observer):
 
 def replay_episode(
     actor: torch.nn.Module,
-    scenario: Any,
+    scenario: Scenario,
     *,
     episode: int = 0,
     mode: str = "greedy",
     episodes: int | None = None,
     base_actor: torch.nn.Module | None = None,
-    live_feedback: Any = None,
+    live_feedback: Feedback | None = None,
     task_factory: Callable[..., Any] | None = None,
 ) -> Episode:
     """Play evaluation episode ``episode`` of a policy and record every step.
@@ -362,7 +371,7 @@ def replay_episode(
     )
 
 
-def load_actor(checkpoint: Path, scenario: Any) -> torch.nn.Module:
+def load_actor(checkpoint: Path, scenario: Scenario) -> torch.nn.Module:
     """Load a policy for replay (`load_policy`).
 
     Raises:
@@ -383,7 +392,7 @@ def replay_variant(
     episode: int = 0,
     mode: str = "greedy",
     episodes: int | None = None,
-    live_feedback: Any = None,
+    live_feedback: Feedback | None = None,
 ) -> Episode:
     """Replay evaluation episode ``episode`` of a trained variant, its base policy beside it.
 

@@ -376,7 +376,7 @@ def evaluate_run(
         entry = results["variants"].setdefault(name, {})
         entry[mode] = combine_replicas(replicas, ev.confidence)
     for name, members in groups.items():
-        summaries = [feedbacks[d] for d in members if feedbacks[d] is not None]
+        summaries = [summary for d in members if (summary := feedbacks[d]) is not None]
         if summaries:
             results["variants"][name]["feedback"] = merge_feedback(summaries)
         record = records.get(members[0].name)

@@ -30,7 +30,11 @@ from amuled_ma.evaluate.panel_answers import ask_panel
 from amuled_ma.evaluate.readonly_feedback import describe_feedback
 
 if TYPE_CHECKING:
+    from amuled_ma.deliberation.feedback_base import Feedback
     from amuled_ma.evaluate.episode_trace import Episode
+    from amuled_ma.evaluate.readonly_feedback import ReadOnlyStore
+    from amuled_ma.scenario import Scenario
+    from amuled_ma.tasks.base import BatchedTask
 
 # ---------------------------------------------------------------------------------------
 # Text tables
@@ -78,7 +82,7 @@ def _escape(match: re.Match[str]) -> str:
     return f"\\x{code:02x}" if code < 0x100 else f"\\u{code:04x}"
 
 
-def _cell(value: Any) -> str:
+def _cell(value: object) -> str:
     if value is None:
         return "-"
     return format_number(value, 4)  # -0.0000 printed as 0.0000
@@ -93,7 +97,7 @@ def _num(value: float) -> str:
 # The state
 
 
-def parse_obs(text: str, task_cls: Any) -> np.ndarray:
+def parse_obs(text: str, task_cls: type[BatchedTask]) -> np.ndarray:
     """``"1,2,3"`` -> float array, checked against the task's observation length.
 
     Raises:
@@ -131,7 +135,7 @@ def parse_obs(text: str, task_cls: Any) -> np.ndarray:
 MAX_PROMPT_INT = 2**53
 
 
-def _check_prompt_value(name: str, value: Any) -> None:
+def _check_prompt_value(name: str, value: object) -> None:
     """Refuse a prompt variable that is a non-finite float or an integer beyond 2^53."""
     numbers = value if isinstance(value, list) else [value]
     for item in numbers:
@@ -226,8 +230,8 @@ def state_of_step(ep: Episode, step: int, where: str) -> State:
 
 
 def state_by_hand(
-    task_cls: Any,
-    feedback: Any,
+    task_cls: type[BatchedTask],
+    feedback: Feedback,
     feedback_name: str,
     obs: np.ndarray,
     extras: dict[str, Any],
@@ -369,10 +373,10 @@ def fusion_breakdown(
 
 
 def explain_lines(
-    scenario: Any,
-    task_cls: Any,
-    feedback: Any,
-    store: Any,
+    scenario: Scenario,
+    task_cls: type[BatchedTask],
+    feedback: Feedback,
+    store: ReadOnlyStore,
     feedback_name: str,
     state: State,
     *,

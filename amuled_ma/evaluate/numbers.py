@@ -8,12 +8,11 @@ that is not whole keeps one decimal, ``2706.5``), and a value rounded to zero ha
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 
 
-def format_number(value: Any, digits: int = 4) -> str:
+def format_number(value: object, digits: int = 4) -> str:
     """A table cell: an integer as an integer, a float with ``digits`` decimals, no ``-0``.
 
     Args:
@@ -40,7 +39,7 @@ def format_number(value: Any, digits: int = 4) -> str:
     return str(value)
 
 
-def format_count(value: Any, digits: int = 1) -> str:
+def format_count(value: object, digits: int = 1) -> str:
     """A count (states, steps, answers): whole -> an integer; a mean over seeds keeps decimals.
 
     Args:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -19,17 +19,20 @@ from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.errors import AmuledError
 from amuled_ma.evaluate.readonly_feedback import ReadOnlyStore
 
+if TYPE_CHECKING:
+    from amuled_ma.deliberation.panel import MoralPanel
+
 
 class _Recorder(BeliefSource):
     """Pass requests to a source and keep every ``(request, result)`` pair."""
 
-    def __init__(self, inner: Any) -> None:
+    def __init__(self, inner: BeliefSource) -> None:
         self.inner = inner
         self.name = getattr(inner, "name", "source")
         self.pairs: list[tuple[BeliefRequest, BeliefResult]] = []
 
     @property
-    def needs_messages(self) -> bool:  # type: ignore[override]
+    def needs_messages(self) -> bool:  # type: ignore[override]  # property over an attribute
         return bool(getattr(self.inner, "needs_messages", True))
 
     def identity(self) -> dict[str, Any]:
@@ -73,7 +76,7 @@ class PanelAnswers:
 
 
 def ask_panel(
-    panel: Any,
+    panel: MoralPanel,
     obs: np.ndarray,
     prompt_vars: Sequence[Mapping[str, Any]] | None,
     store: ReadOnlyStore | None = None,
@@ -160,7 +163,7 @@ def ask_panel(
 
 
 def _raws_from_store(
-    source: Any,
+    source: BeliefSource,
     store: ReadOnlyStore,
     requests: list[list[BeliefRequest | None]],
     raws: list[list[str | None]],

@@ -13,10 +13,15 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from amuled_ma.beliefs.types import BeliefResult
 from amuled_ma.errors import AmuledError
+
+if TYPE_CHECKING:
+    from amuled_ma.beliefs.store_service import StoreItem
+    from amuled_ma.deliberation.feedback_base import Feedback
+    from amuled_ma.scenario import Scenario
 
 
 class ReadOnlyStore:
@@ -54,7 +59,7 @@ class ReadOnlyStore:
             return {}
         return self.store.get_many(keys, cacheable_only=False)
 
-    def put_many(self, items: Any) -> int:
+    def put_many(self, items: Sequence[StoreItem]) -> int:
         """Write nothing: count the answers a writable store would have kept."""
         self.not_written += len(list(items))
         return 0
@@ -66,7 +71,7 @@ class ReadOnlyStore:
 
 
 def open_feedback(
-    feedback_name: str, scenario: Any, run_dir: Path | None
+    feedback_name: str, scenario: Scenario, run_dir: Path | None
 ) -> tuple[Any, ReadOnlyStore]:
     """Build a variant's feedback as training does, with the run's store read-only.
 
@@ -96,7 +101,7 @@ def open_feedback(
         raise
 
 
-def describe_feedback(feedback: Any) -> str:
+def describe_feedback(feedback: Feedback | None) -> str:
     """Where a feedback's beliefs come from, in words (for headers)."""
     from amuled_ma.deliberation.summaries import describe_identity
 

@@ -161,7 +161,7 @@ class Results(BaseModel):
         return _clean(self.model_dump(exclude_unset=True))
 
 
-def _clean(value: Any) -> Any:
+def _clean(value: object) -> Any:
     if isinstance(value, float) and not math.isfinite(value):
         return None
     if isinstance(value, dict):

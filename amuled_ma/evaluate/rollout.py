@@ -24,13 +24,18 @@ does only the evaluation's own work.
 from __future__ import annotations
 
 from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 
 from amuled_ma.errors import ScenarioError
 from amuled_ma.learn.policies import action_log_probs
 from amuled_ma.tasks import make_task
+
+if TYPE_CHECKING:
+    from amuled_ma.scenario import Scenario
+    from amuled_ma.tasks.base import BatchedTask
 
 #: Action selection modes.
 MODES = ("greedy", "sampled")
@@ -39,8 +44,11 @@ SKIP = {"done", "return"}
 
 
 def evaluation_task(
-    scenario: Any, episodes: int, seed: int, task_factory: Callable[..., Any] | None = None
-) -> Any:
+    scenario: Scenario,
+    episodes: int,
+    seed: int,
+    task_factory: Callable[..., BatchedTask] | None = None,
+) -> BatchedTask:
     """The batched task of an evaluation: ``episodes`` copies, copy ``i`` seeded ``seed + i``.
 
     Args:
@@ -73,17 +81,17 @@ def choose_actions(logp: torch.Tensor, mode: str, generator: torch.Generator) ->
 class Observer:
     """Watches a rollout's steps; every method does nothing unless overridden."""
 
-    def start(self, task: Any, obs: torch.Tensor) -> None:
+    def start(self, task: BatchedTask, obs: torch.Tensor) -> None:
         """Called once after the reset, with the first observations ``[N, obs_dim]``."""
 
     def before_step(
-        self, task: Any, obs: torch.Tensor, logp: torch.Tensor, actions: torch.Tensor
+        self, task: BatchedTask, obs: torch.Tensor, logp: torch.Tensor, actions: torch.Tensor
     ) -> None:
         """Called before each step with the states, the policy's ``log pi`` and the actions."""
 
     def after_step(
         self,
-        task: Any,
+        task: BatchedTask,
         obs: torch.Tensor,
         terminated: torch.Tensor,
         truncated: torch.Tensor,
@@ -92,7 +100,7 @@ class Observer:
         """Called after each step with what the task returned (``obs`` after auto-reset)."""
 
 
-def _to_float(value: Any) -> float:
+def _to_float(value: float | torch.Tensor | np.generic) -> float:
     return float(value.item() if hasattr(value, "item") else value)
 
 
@@ -120,7 +128,7 @@ def step_events(
 
 def rollout(
     actor: torch.nn.Module,
-    scenario: Any,
+    scenario: Scenario,
     *,
     episodes: int,
     mode: str = "greedy",
@@ -215,21 +223,21 @@ class TrajectoryRecorder(Observer):
         self._done = False
         self._actions: torch.Tensor | None = None
 
-    def start(self, task: Any, obs: torch.Tensor) -> None:
+    def start(self, task: BatchedTask, obs: torch.Tensor) -> None:
         """Record the first observation (and FindMilk's babies)."""
         self.trajectory["obs"].append(obs[self.copy].tolist())
         if hasattr(task, "baby_positions"):
             self.trajectory["layout"] = task.baby_positions(self.copy)
 
     def before_step(
-        self, task: Any, obs: torch.Tensor, logp: torch.Tensor, actions: torch.Tensor
+        self, task: BatchedTask, obs: torch.Tensor, logp: torch.Tensor, actions: torch.Tensor
     ) -> None:
         """Keep the actions until the step is done."""
         self._actions = actions
 
     def after_step(
         self,
-        task: Any,
+        task: BatchedTask,
         obs: torch.Tensor,
         terminated: torch.Tensor,
         truncated: torch.Tensor,

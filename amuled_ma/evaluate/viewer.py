@@ -30,7 +30,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -40,6 +40,9 @@ from amuled_ma.evaluate.panel_answers import PanelAnswers, ask_panel
 from amuled_ma.evaluate.readonly_feedback import describe_feedback, open_feedback
 from amuled_ma.safe_files import check_write_target, write_text_atomic
 from amuled_ma.tasks.colors import COLORS, css_variables
+
+if TYPE_CHECKING:
+    from amuled_ma.scenario import Scenario
 
 #: Decimals kept for probabilities, weights and conflicts in the page.
 DECIMALS = 4
@@ -112,7 +115,7 @@ def _cut(text: str, limit: int) -> str:
     return f"{text[:limit]}\n[... {len(text) - limit} more characters, cut for the page]"
 
 
-def _round(values: Any, decimals: int = DECIMALS) -> Any:
+def _round(values: object, decimals: int = DECIMALS) -> Any:
     """Nested lists of floats rounded (``-0.0`` as ``0.0``) for JSON."""
     array = np.round(np.asarray(values, dtype=np.float64), decimals) + 0.0
     return array.tolist()
@@ -263,7 +266,7 @@ def _panel_entry(answers: PanelAnswers, texts: TextTable) -> dict[str, Any]:
     }
 
 
-def _live_entry(ep: trace.Episode, first: list[int], feedback: Any, texts: TextTable) -> dict:
+def _live_entry(ep: trace.Episode, first: list[int], feedback: object, texts: TextTable) -> dict:
     assert ep.live_beliefs is not None and ep.live_statuses is not None
     agent = str(getattr(feedback, "agent", getattr(feedback, "name", "feedback")))
     statuses = []
@@ -300,7 +303,7 @@ def _live_entry(ep: trace.Episode, first: list[int], feedback: Any, texts: TextT
 
 def build_view(
     run_dir: Path,
-    scenario: Any,
+    scenario: Scenario,
     variants: Sequence[trace.TrainedVariant],
     *,
     episode: int = 0,
@@ -436,7 +439,7 @@ def default_output(run_dir: Path, episode: int) -> Path:
 
 def write_view(
     run_dir: Path,
-    scenario: Any,
+    scenario: Scenario,
     variants: Sequence[trace.TrainedVariant],
     output: Path | None = None,
     *,

@@ -88,8 +88,8 @@ def resolve_workers(requested: int, jobs: Sequence[TrainJob]) -> int:
 def _asks_live(job: TrainJob) -> bool:
     """Whether a job's feedback asks an Ollama server or a person (any agent)."""
     feedback = job.scenario.feedback
-    kinds = {feedback.source}
-    kinds |= {str(spec.get("source")) for spec in feedback.agents.values()}
+    kinds: set[str] = {feedback.source}
+    kinds |= {spec.source for spec in feedback.agents.values()}
     return bool(kinds & {"ollama", "terminal"})
 
 

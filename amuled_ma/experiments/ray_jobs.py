@@ -49,7 +49,7 @@ import time
 import uuid
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
@@ -67,6 +67,12 @@ from amuled_ma.experiments.run_folder import (
 )
 from amuled_ma.experiments.third_party_log import ray_to_log
 from amuled_ma.learn.checkpoints import LAST
+
+if TYPE_CHECKING:
+    from types import FrameType
+
+    #: What ``signal.getsignal`` returns: a handler, ``SIG_DFL``/``SIG_IGN``, or None.
+    _Handler = Callable[[int, FrameType | None], object] | int | signal.Handlers | None
 
 #: In a job folder: the sweep whose attempt started it (a retry of the same sweep resumes).
 SWEEP_MARK = ".amuled-sweep"
@@ -115,7 +121,7 @@ def _first_line(error: BaseException) -> str:
     return line if len(line) <= 300 else line[:297] + "..."
 
 
-def _restore_sigterm(previous: Any) -> None:
+def _restore_sigterm(previous: _Handler) -> None:
     """Put back the SIGTERM handler ``ray.init`` replaced (our Ctrl-C-like stop).
 
     ``ray.init`` installs three in turn: one that calls ``sys.exit``, its local node's
@@ -135,7 +141,7 @@ class _SigtermCount:
         self.count = 0
         self.previous: Any = None
 
-    def __call__(self, signum: int, frame: Any) -> None:
+    def __call__(self, signum: int, frame: FrameType | None) -> None:
         self.count += 1
         if callable(self.previous):
             self.previous(signum, frame)
@@ -429,9 +435,10 @@ def _marked(job: TrainJob, sweep: str, node: str, *, announce: bool) -> TrainJob
     if not retry:
         return job
     # its checkpoint is this sweep's: continue it (the plan said new, or resume from earlier)
-    assert job.settings is not None
+    settings = job.settings
+    assert settings is not None
     job = dataclasses.replace(job, resume=True, force=False)
-    return dataclasses.replace(job, action=prepare_variant(job, job.settings))
+    return dataclasses.replace(job, action=prepare_variant(job, settings))
 
 
 def _ray_failure(name: str, error: BaseException) -> AmuledError:
@@ -559,7 +566,8 @@ def _sweep(
         driver_node = ray.get_runtime_context().get_node_id()
         # on the driver's node: an actor on a node that dies would take the bar with it
         here = NodeAffinitySchedulingStrategy(driver_node, soft=False)
-        board = SweepBoard.options(scheduling_strategy=here).remote()
+        # mypy types a @ray.remote class as the class, not Ray's ActorClass with .options
+        board = SweepBoard.options(scheduling_strategy=here).remote()  # type: ignore[attr-defined]
         stores = start_store_actors(
             j.store for j in jobs if j.variant.asks_panel and j.store is not None
         )

@@ -97,7 +97,9 @@ class RemoteStore:
 def start_store_actors(paths: Iterable[Path]) -> dict[str, Any]:
     """Start one :class:`BeliefStoreActor` per store file, on this (the driver's) node."""
     here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
+    # mypy types a @ray.remote class as the class, not Ray's ActorClass with .options
+    actor = BeliefStoreActor.options  # type: ignore[attr-defined]
     return {
-        str(path): BeliefStoreActor.options(scheduling_strategy=here).remote(str(path))
+        str(path): actor(scheduling_strategy=here).remote(str(path))
         for path in sorted(set(map(str, paths)))
     }

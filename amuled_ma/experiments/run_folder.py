@@ -49,6 +49,7 @@ from amuled_ma.scenario import MORAL_AGENT, Scenario
 from amuled_ma.variants import Variant
 
 if TYPE_CHECKING:
+    from amuled_ma.deliberation.feedback_base import Feedback
     from amuled_ma.deliberation.plan import PanelPlan
     from amuled_ma.learn.job_shape import JobShape
     from amuled_ma.learn.population import TrainOutcome
@@ -528,7 +529,7 @@ def variant_fields(
     training: dict[str, Any],
     *,
     base_checkpoint: Path | None = None,
-    feedback: Any = None,
+    feedback: Feedback | None = None,
 ) -> dict[str, Any]:
     """The record's fields of a variant folder about to train (:func:`write_config`'s extra).
 
@@ -567,7 +568,9 @@ def variant_fields(
     return {k: v for k, v in fields.items() if v is not None}
 
 
-def panel_of_training(variant: Variant, training: dict[str, Any], feedback: Any = None) -> Any:
+def panel_of_training(
+    variant: Variant, training: dict[str, Any], feedback: Feedback | None = None
+) -> PanelRecord:
     """The :class:`~amuled_ma.records.PanelRecord` of a fine-tune, from its settings.
 
     The members and rule follow the variant (``cluster:<name>`` and ``moral``: that agent

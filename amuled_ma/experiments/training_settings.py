@@ -115,7 +115,8 @@ def cluster_hashes(panel: PanelPlan) -> dict[str, str | None]:
     text changes what the LLM is told, so a resume compares these like a recording's hash.
     """
     out: dict[str, str | None] = {}
-    for cluster in [*panel.clusters, *panel.registry.panel()]:
+    described = panel.registry.panel() if panel.registry is not None else []
+    for cluster in [*panel.clusters, *described]:
         if cluster.path is not None and cluster.name not in out:
             out[cluster.name] = file_sha256(Path(cluster.path))
     return dict(sorted(out.items()))
@@ -140,7 +141,7 @@ def file_sha256(path: Path) -> str | None:
     return _sha256_of(str(path), info.st_size, info.st_mtime_ns)
 
 
-def differences(saved: Any, current: Any, prefix: str = "") -> list[str]:
+def differences(saved: object, current: object, prefix: str = "") -> list[str]:
     """``key: saved -> current`` for every leaf that differs between two JSON values."""
     if isinstance(saved, dict) and isinstance(current, dict):
         out = []
@@ -174,7 +175,9 @@ def without_keys_added_since(saved: dict[str, Any], training: dict[str, Any]) ->
     """
     defaults = Scenario().to_dict()
     out = {k: v for k, v in training.items() if k != "inputs" or "inputs" in saved}
-    saved_inputs = saved.get("inputs") if isinstance(saved.get("inputs"), dict) else {}
+    saved_inputs = saved.get("inputs")
+    if not isinstance(saved_inputs, dict):
+        saved_inputs = {}
     if isinstance(out.get("inputs"), dict) and not any(
         str(k).startswith("cluster_sha256[") for k in saved_inputs
     ):  # saved before cluster files were hashed

@@ -10,6 +10,7 @@ vectors; invalid rows raise ``ValueError`` naming the first offending index, e.g
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
 SUM_TOLERANCE = 1e-6
 """Largest accepted ``|sum(row) - 1|`` for a belief row or mass function."""
@@ -68,8 +69,8 @@ def check_rows(values: object, name: str = "beliefs", *, min_ndim: int = 2) -> n
 
 
 def _raise_first_bad_row(array: np.ndarray, sums: np.ndarray, name: str) -> None:
-    finite = np.isfinite(array).all(axis=-1)
-    nonneg = (array >= 0).all(axis=-1)
+    finite = np.asarray(np.isfinite(array).all(axis=-1))
+    nonneg = np.asarray((array >= 0).all(axis=-1))
     close = np.abs(sums - 1.0) <= SUM_TOLERANCE
     good = finite & nonneg & close
     index = tuple(int(i) for i in np.argwhere(~good)[0])
@@ -86,7 +87,7 @@ def _raise_first_bad_row(array: np.ndarray, sums: np.ndarray, name: str) -> None
 
 
 def check_weights(
-    weights: object, batch_shape: tuple[int, ...], name: str = "weights"
+    weights: npt.ArrayLike, batch_shape: tuple[int, ...], name: str = "weights"
 ) -> np.ndarray:
     """Return per-cluster weights broadcast to ``batch_shape``, or raise ``ValueError``.
 

@@ -67,9 +67,10 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
+import numpy.typing as npt
 
 from amuled_ma.fusion._validate import check_rows, check_weights
 from amuled_ma.fusion.xiao import FusionResult, _measures, bjs_dst, check_prior
@@ -194,12 +195,45 @@ def _generic_diagnostics(
     )
 
 
+@overload
 def fuse(
-    beliefs: Any,
+    beliefs: npt.ArrayLike,
+    rule: str = ...,
+    *,
+    weights: npt.ArrayLike | None = ...,
+    prior: npt.ArrayLike | None = ...,
+    return_diagnostics: Literal[False] = ...,
+) -> np.ndarray: ...
+
+
+@overload
+def fuse(
+    beliefs: npt.ArrayLike,
+    rule: str = ...,
+    *,
+    weights: npt.ArrayLike | None = ...,
+    prior: npt.ArrayLike | None = ...,
+    return_diagnostics: Literal[True],
+) -> FusionResult: ...
+
+
+@overload
+def fuse(
+    beliefs: npt.ArrayLike,
+    rule: str = ...,
+    *,
+    weights: npt.ArrayLike | None = ...,
+    prior: npt.ArrayLike | None = ...,
+    return_diagnostics: bool,
+) -> np.ndarray | FusionResult: ...
+
+
+def fuse(
+    beliefs: npt.ArrayLike,
     rule: str = "bjs-dst",
     *,
-    weights: Any = None,
-    prior: Any = None,
+    weights: npt.ArrayLike | None = None,
+    prior: npt.ArrayLike | None = None,
     return_diagnostics: bool = False,
 ) -> np.ndarray | FusionResult:
     """Fuse the beliefs of ``k`` moral clusters into one belief over the actions.

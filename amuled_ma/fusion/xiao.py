@@ -68,6 +68,7 @@ from collections.abc import Hashable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from amuled_ma.fusion._validate import check_rows, check_weights
 
@@ -272,15 +273,18 @@ def _columns_wae(t: np.ndarray, cap: np.ndarray | None, prior: np.ndarray | None
 
 def _power(r: np.ndarray, k: int) -> np.ndarray:
     """``r ** k`` for an integer ``k >= 1`` by repeated squaring (faster than ``np.power``)."""
-    result = None
     base = r
-    while True:
-        if k & 1:
-            result = base.copy() if result is None else result * base
-        k >>= 1
-        if not k:
-            return result
+    while not k & 1:
         base = base * base
+        k >>= 1
+    result = base.copy()
+    k >>= 1
+    while k:
+        base = base * base
+        if k & 1:
+            result = result * base
+        k >>= 1
+    return result
 
 
 def _columns_closed_form(wae: np.ndarray, k: int, diagnostics: bool):
@@ -463,7 +467,7 @@ def xiao_fusion(
     focal_sets: Iterable[Iterable[Hashable]],
     *,
     closed_form: bool | None = None,
-    prior: object = None,
+    prior: npt.ArrayLike | None = None,
 ) -> FusionResult:
     """Fuse ``k`` mass functions with Xiao (2019)'s BJS + belief-entropy + Dempster method.
 
@@ -545,7 +549,7 @@ def xiao_fusion(
     )
 
 
-def check_prior(prior: object, batch_shape: tuple[int, ...]) -> np.ndarray | None:
+def check_prior(prior: npt.ArrayLike | None, batch_shape: tuple[int, ...]) -> np.ndarray | None:
     """A member prior checked and broadcast to ``batch_shape`` ``(..., k)``, or None.
 
     None is returned for no prior and for a prior equal for every source of every state

@@ -28,7 +28,7 @@ from __future__ import annotations
 import copy
 import math
 from itertools import chain
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 from rsl_rl.algorithms import PPO
@@ -37,6 +37,12 @@ from tensordict import TensorDict
 from amuled_ma.learn.anchors import EpisodeWindowKL, per_sample_kl
 from amuled_ma.learn.distribution import orthogonal_init
 from amuled_ma.learn.ppo_options import EpochShuffledStorage, clip_jointly
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable
+
+    from rsl_rl.models import MLPModel
+    from rsl_rl.storage import RolloutStorage
 
 #: ``per_sample``: the paper's ``log pi(a|s) - log pi_base(a|s)`` of each step;
 #: ``window``: the authors' mean over the episode so far (:class:`EpisodeWindowKL`).
@@ -47,7 +53,7 @@ AnchorKind = Literal["per_sample", "window"]
 GradClip = Literal["per_network", "joint"]
 
 
-def adam(params: Any, lr: float, eps: float) -> torch.optim.Optimizer:
+def adam(params: Iterable[torch.nn.Parameter], lr: float, eps: float) -> torch.optim.Optimizer:
     """Adam as CleanRL builds it, with torch's fused kernel where the device has one.
 
     On CPU with small networks the per-parameter loop of the default implementation is a
@@ -86,9 +92,9 @@ class AnchoredPPO(PPO):
 
     def __init__(
         self,
-        actor: Any,
-        critic: Any,
-        storage: Any,
+        actor: MLPModel,
+        critic: MLPModel,
+        storage: RolloutStorage,
         *,
         lambda_kl: float = 0.0,
         anchor: AnchorKind = "per_sample",
@@ -122,7 +128,8 @@ class AnchoredPPO(PPO):
         if joint_norm is not None:
             clip_jointly(self.optimizer, joint_norm)
         self.bootstrap_time_outs = bool(bootstrap_time_outs)
-        self.lambda_kl = float(lambda_kl)
+        #: A float; a population's subclass holds one weight per row (a tensor).
+        self.lambda_kl: float | torch.Tensor = float(lambda_kl)
         self.anchor_kind: AnchorKind = anchor
         self.base_actor: Any | None = None
         self.window: EpisodeWindowKL | None = None

@@ -6,12 +6,14 @@ import contextlib
 import io
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
+_T = TypeVar("_T")
 
-def quiet(fn: Callable[[], Any]) -> Any:
+
+def quiet(fn: Callable[[], _T]) -> _T:
     """Call ``fn`` with its prints to stdout dropped (rsl-rl's runner prints when built)."""
     with contextlib.redirect_stdout(io.StringIO()):
         return fn()

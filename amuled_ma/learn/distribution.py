@@ -40,6 +40,17 @@ class CategoricalDistribution(Distribution):
         """Set the distribution from the MLP's logits."""
         self._log_probs = torch.log_softmax(mlp_output, dim=-1)
 
+    def _last_log_probs(self) -> torch.Tensor:
+        """The log-probabilities of the last :meth:`update`.
+
+        Raises:
+            RuntimeError: No forward pass has set the distribution yet.
+
+        """
+        if self._log_probs is None:
+            raise RuntimeError("CategoricalDistribution: read before update() set it")
+        return self._log_probs
+
     def sample(self) -> torch.Tensor:
         """Sample one action per row, returned one-hot (float).
 
@@ -47,7 +58,7 @@ class CategoricalDistribution(Distribution):
         cumulative probabilities below ``u`` (``P(k) = cdf_k - cdf_{k-1} = p_k``); on small
         batches on CPU it is about 3x cheaper than ``torch.multinomial``.
         """
-        probs = self._log_probs.exp()  # type: ignore[union-attr]
+        probs = self._last_log_probs().exp()
         cdf = probs.cumsum(-1)
         u = torch.rand((*cdf.shape[:-1], 1), dtype=cdf.dtype, device=cdf.device)
         index = (cdf < u).sum(-1, keepdim=True).clamp_max(self.output_dim - 1)
@@ -76,12 +87,12 @@ class CategoricalDistribution(Distribution):
     @property
     def probs(self) -> torch.Tensor:
         """Action probabilities, shape ``[..., output_dim]``."""
-        return self._log_probs.exp()  # type: ignore[union-attr]
+        return self._last_log_probs().exp()
 
     @property
     def logits(self) -> torch.Tensor:
         """Normalised log-probabilities, shape ``[..., output_dim]``."""
-        return self._log_probs  # type: ignore[return-value]
+        return self._last_log_probs()
 
     @property
     def mean(self) -> torch.Tensor:
@@ -97,17 +108,17 @@ class CategoricalDistribution(Distribution):
     @property
     def entropy(self) -> torch.Tensor:
         """Entropy ``-sum p log p`` per row."""
-        log_p = self._log_probs
-        return -(log_p.exp() * log_p).sum(dim=-1)  # type: ignore[union-attr]
+        log_p = self._last_log_probs()
+        return -(log_p.exp() * log_p).sum(dim=-1)
 
     @property
     def params(self) -> tuple[torch.Tensor, ...]:
         """The normalised log-probabilities (stored by rsl-rl for its KL schedule)."""
-        return (self._log_probs,)  # type: ignore[return-value]
+        return (self._last_log_probs(),)
 
     def log_prob(self, outputs: torch.Tensor) -> torch.Tensor:
         """Log-probability of one-hot actions, ``sum(one_hot * log p)`` per row."""
-        return (outputs * self._log_probs).sum(dim=-1)
+        return (outputs * self._last_log_probs()).sum(dim=-1)
 
     def kl_divergence(
         self, old_params: tuple[torch.Tensor, ...], new_params: tuple[torch.Tensor, ...]

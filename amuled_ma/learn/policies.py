@@ -9,7 +9,7 @@ the same configuration as in training (:func:`~amuled_ma.learn.config.rsl_rl_con
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import torch
 from tensordict import TensorDict
@@ -18,8 +18,13 @@ from amuled_ma.errors import CheckpointError
 from amuled_ma.learn.checkpoints import read_checkpoint
 from amuled_ma.learn.config import OBS_GROUP, rsl_rl_config
 
+if TYPE_CHECKING:
+    from rsl_rl.models import MLPModel
 
-def action_log_probs(actor: torch.nn.Module, obs: torch.Tensor) -> torch.Tensor:
+    from amuled_ma.scenario import PPOConfig, Scenario
+
+
+def action_log_probs(actor: MLPModel, obs: torch.Tensor) -> torch.Tensor:
     """Return ``log pi(.|s)`` ``[N, A]`` of an rsl-rl actor with our categorical head.
 
     A forward pass sets the head's distribution from the logits (deterministic passes
@@ -36,7 +41,7 @@ def action_log_probs(actor: torch.nn.Module, obs: torch.Tensor) -> torch.Tensor:
     return log_probs
 
 
-def build_model(ppo: Any, role: str, obs_dim: int, outputs: int) -> torch.nn.Module:
+def build_model(ppo: PPOConfig, role: str, obs_dim: int, outputs: int) -> MLPModel:
     """Build an untrained actor or critic of the scenario's network shape (rsl-rl ``MLPModel``).
 
     Args:
@@ -54,7 +59,7 @@ def build_model(ppo: Any, role: str, obs_dim: int, outputs: int) -> torch.nn.Mod
     return MLPModel(obs, {role: [OBS_GROUP]}, role, outputs, **cfg)
 
 
-def load_policy(checkpoint: Path, scenario: Any) -> torch.nn.Module:
+def load_policy(checkpoint: Path, scenario: Scenario) -> MLPModel:
     """Load the actor of a checkpoint for evaluation.
 
     Args:

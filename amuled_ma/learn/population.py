@@ -266,12 +266,12 @@ class PopulationTrainer:
     def _streams(self) -> list[torch.Tensor]:
         """Each member's random state (a lone job draws from torch's global generator)."""
         if self.stacked:
-            return self.alg.streams.get_states()  # type: ignore[union-attr]
+            return self.alg.streams.get_states()
         return [torch.get_rng_state()]
 
     def _set_streams(self, states: list[torch.Tensor]) -> None:
         if self.stacked:
-            self.alg.streams.set_states(states)  # type: ignore[union-attr]
+            self.alg.streams.set_states(states)
         else:
             torch.set_rng_state(states[0])
 
@@ -513,10 +513,11 @@ class PopulationTrainer:
                 losses[p], stats[p],
             )  # fmt: skip
             self.curves[p].append(row)
-            if writers[p] is not None:
+            writer = writers[p]
+            if writer is not None:
                 for key, value in row.items():
                     if key not in ("iteration", "env_steps") and value is not None:
-                        writers[p].add_scalar(key, value, row["env_steps"])
+                        writer.add_scalar(key, value, row["env_steps"])
 
     def _finish(self, member: int, path: Path, batch: int, wall: float) -> TrainOutcome:
         """Write member ``member``'s curve and feedback summary; its outcome."""
@@ -612,7 +613,7 @@ def _cpu(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     return {key: value.cpu() for key, value in state.items()}
 
 
-def _cloned(value: Any) -> Any:
+def _cloned(value: object) -> object:
     """``value`` with every tensor in its dicts and lists cloned (a state dict's copy)."""
     if torch.is_tensor(value):
         return value.clone()

@@ -206,7 +206,7 @@ class StackedMLP(nn.Sequential):
         super().__init__(*layers)
         self.population = int(population)
         # every child in order, an activation the lone MLP shares between layers included
-        self.steps = [(isinstance(m, StackedLinear), m) for m in layers]
+        self.steps: list[tuple[bool, Any]] = [(isinstance(m, StackedLinear), m) for m in layers]
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``[P * B, in] -> [P * B, out]``, block ``p`` through member ``p``'s layers."""
@@ -276,7 +276,7 @@ class PopulationMLPModel(MLPModel):
         self.population = int(population)
         # every member starts as the lone model rsl-rl just built; the trainer loads each
         # member's own weights
-        self.mlp = stack_layers(self.mlp, self.population)
+        self.mlp: StackedMLP = stack_layers(self.mlp, self.population)
         #: The output of the last forward pass (detached): the critic's values of the
         #: mini-batch being updated, read for each member's value loss.
         self.last_output: torch.Tensor | None = None

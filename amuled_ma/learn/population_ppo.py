@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Generator, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from rsl_rl.storage import RolloutStorage
@@ -50,6 +50,10 @@ from tensordict import TensorDict
 from amuled_ma.learn.anchored_ppo import AnchoredPPO
 from amuled_ma.learn.anchors import per_sample_kl
 from amuled_ma.learn.population_models import MemberStreams
+
+if TYPE_CHECKING:
+    from amuled_ma.learn.anchors import EpisodeWindowKL
+    from amuled_ma.learn.population_models import PopulationMLPModel
 
 #: Loss keys rsl-rl's update returns, in the order kept per member.
 LOSS_KEYS = ("value", "surrogate", "entropy")
@@ -128,7 +132,7 @@ class PopulationStorage(RolloutStorage):
         values = self.values.flatten(0, 1)
         returns = self.returns.flatten(0, 1)
         old_log_prob = self.actions_log_prob.flatten(0, 1)
-        old_params = tuple(p.flatten(0, 1) for p in self.distribution_params)  # type: ignore
+        old_params = tuple(p.flatten(0, 1) for p in self.distribution_params)
         advantages = returns - values  # rsl-rl's raw advantages, before its normalisation
         if not self.per_mini_batch:
             advantages = self._normalised_per_member_rollout(advantages)
@@ -143,7 +147,7 @@ class PopulationStorage(RolloutStorage):
                     batch_adv = _normalised_rows(batch_adv.reshape(self.population, -1))
                     batch_adv = batch_adv.reshape(-1, 1)
                 self.last_batch = RolloutStorage.Batch(
-                    observations=observations[index],  # type: ignore[arg-type]
+                    observations=observations[index],
                     actions=actions[index],
                     values=values[index],
                     advantages=batch_adv,
@@ -179,7 +183,7 @@ def _per_member(values: Any, population: int, name: str) -> list[Any]:
 class _CpuWindow:
     """The authors' window KL (a CPU tensor book) fed from another device's tensors."""
 
-    def __init__(self, window: Any, device: torch.device) -> None:
+    def __init__(self, window: EpisodeWindowKL, device: torch.device) -> None:
         self.window = window
         self.device = device
 
@@ -216,8 +220,8 @@ class PopulationPPO(AnchoredPPO):
 
     def __init__(
         self,
-        actor: Any,
-        critic: Any,
+        actor: PopulationMLPModel,
+        critic: PopulationMLPModel,
         storage: RolloutStorage,
         *,
         population: int,
@@ -382,7 +386,9 @@ class PopulationPPO(AnchoredPPO):
         """Members whose gradient was not finite in the last update."""
         return [int(p) for p in torch.nonzero(self.nonfinite).flatten().tolist()]
 
-    def before_step(self, optimizer: torch.optim.Optimizer, args: Any, kwargs: Any) -> None:
+    def before_step(
+        self, optimizer: torch.optim.Optimizer, args: tuple[Any, ...], kwargs: dict[str, Any]
+    ) -> None:
         """The optimiser's step pre-hook: each member's gradient, clip and losses.
 
         rsl-rl has computed the gradient of the mean loss over the ``P x B`` rows (and

@@ -22,10 +22,13 @@ extension points only (rsl-rl's update loop is not copied):
 from __future__ import annotations
 
 from collections.abc import Generator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from rsl_rl.storage import RolloutStorage
+
+if TYPE_CHECKING:
+    from torch.utils.hooks import RemovableHandle
 
 
 class EpochShuffledStorage(RolloutStorage):
@@ -79,7 +82,7 @@ def all_parameters(optimizer: torch.optim.Optimizer) -> list[torch.Tensor]:
     return [p for group in optimizer.param_groups for p in group["params"]]
 
 
-def clip_jointly(optimizer: torch.optim.Optimizer, max_norm: float) -> Any:
+def clip_jointly(optimizer: torch.optim.Optimizer, max_norm: float) -> RemovableHandle:
     """Clip the gradient of all of ``optimizer``'s parameters as one vector before each step.
 
     The norm is the 2-norm over every parameter's gradient together (actor and critic for
@@ -101,7 +104,7 @@ def clip_jointly(optimizer: torch.optim.Optimizer, max_norm: float) -> Any:
     if not 0 < max_norm < float("inf"):
         raise ValueError(f"max_norm: expected a positive finite number, got {max_norm!r}")
 
-    def hook(opt: torch.optim.Optimizer, args: Any, kwargs: Any) -> None:
+    def hook(opt: torch.optim.Optimizer, args: tuple[Any, ...], kwargs: dict[str, Any]) -> None:
         params = [p for p in all_parameters(opt) if p.grad is not None]
         if params:
             torch.nn.utils.clip_grad_norm_(params, max_norm)

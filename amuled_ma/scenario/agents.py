@@ -19,7 +19,7 @@ import datetime
 import typing
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Annotated, Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -27,6 +27,9 @@ from amuled_ma.errors import ScenarioError
 from amuled_ma.scenario.paths import find_recording
 from amuled_ma.scenario.ranges import field_range
 from amuled_ma.urls import normalize_host, normalize_hosts
+
+if TYPE_CHECKING:
+    from amuled_ma.scenario.model import Scenario
 
 #: Name of the unprompted moral agent (the ``moral`` variant; ``moral_agent`` in recordings).
 MORAL_AGENT = "moral_agent"
@@ -42,7 +45,7 @@ def norm(name: str) -> str:
     return "".join(ch for ch in name.lower() if ch.isalnum())
 
 
-def _found(value: Any) -> str:
+def _found(value: object) -> str:
     names = {bool: "boolean", int: "integer", float: "float", str: "string", list: "array",
              dict: "table"}  # fmt: skip
     return f"{names.get(type(value), type(value).__name__)} ({value!r})"
@@ -69,7 +72,7 @@ class _Spec(BaseModel):
         """
         return ""
 
-    def source_options(self, scenario: Any, head: str) -> dict[str, Any]:
+    def source_options(self, scenario: Scenario, head: str) -> dict[str, Any]:
         """The keyword arguments of this kind's source, ``[feedback]``'s values inherited.
 
         Args:
@@ -91,7 +94,7 @@ class ReplaySpec(_Spec):
         "", description="a recording file or name (default [feedback].recording)"
     )
 
-    def source_options(self, scenario: Any, head: str) -> dict[str, Any]:  # noqa: D102
+    def source_options(self, scenario: Scenario, head: str) -> dict[str, Any]:  # noqa: D102
         fb = scenario.feedback
         key = f"{head} recording" if self.recording else "[feedback].recording"
         path = find_recording(
@@ -152,7 +155,7 @@ class OllamaSpec(_Spec):
     check_timeout_s: float = Field(4.5, description=_OPTION)
     down_for_s: float = Field(5.0, description=_OPTION)
 
-    def source_options(self, scenario: Any, head: str) -> dict[str, Any]:  # noqa: D102
+    def source_options(self, scenario: Scenario, head: str) -> dict[str, Any]:  # noqa: D102
         fb = scenario.feedback
         rest = self.given()
         own_host, own_hosts = rest.pop("host", None), rest.pop("hosts", None)
@@ -186,7 +189,7 @@ class RulesSpec(_Spec):
         "'pkg.module:function' allowed with --allow-plugin",
     )
 
-    def source_options(self, scenario: Any, head: str) -> dict[str, Any]:  # noqa: D102
+    def source_options(self, scenario: Scenario, head: str) -> dict[str, Any]:  # noqa: D102
         return {"policy": self.policy}
 
 
@@ -197,7 +200,7 @@ class TerminalSpec(_Spec):
     person: str = Field("human", description="who answers (kept apart in the store)")
     attempts: int = Field(3, ge=1, le=100, description="answer lines read per state")
 
-    def source_options(self, scenario: Any, head: str) -> dict[str, Any]:  # noqa: D102
+    def source_options(self, scenario: Scenario, head: str) -> dict[str, Any]:  # noqa: D102
         return {"person": self.person, "attempts": self.attempts}
 
 
@@ -226,7 +229,7 @@ class EntryPointSpec(_Spec):
     def detail(self, options: Mapping[str, Any]) -> str:  # noqa: D102 - see _Spec
         return f", name {self.name!r}"
 
-    def source_options(self, scenario: Any, head: str) -> dict[str, Any]:  # noqa: D102
+    def source_options(self, scenario: Scenario, head: str) -> dict[str, Any]:  # noqa: D102
         return {"name": self.name, "options": dict(self.options)}
 
 
@@ -250,7 +253,7 @@ class PolicySpec(_Spec):
     def detail(self, options: Mapping[str, Any]) -> str:  # noqa: D102 - see _Spec
         return f", path {self.path!r}"
 
-    def source_options(self, scenario: Any, head: str) -> dict[str, Any]:  # noqa: D102
+    def source_options(self, scenario: Scenario, head: str) -> dict[str, Any]:  # noqa: D102
         return {
             "path": str(scenario.resolve(self.path)),
             "key": self.key,
@@ -324,7 +327,7 @@ def agent_keys(kind: str) -> dict[str, tuple[tuple[type, ...], str]]:
     }
 
 
-def _plain_problem(value: Any, key: str) -> str | None:
+def _plain_problem(value: object, key: str) -> str | None:
     """Why ``value`` is not plain JSON-able TOML data (a datetime, say), or None."""
     if isinstance(value, datetime.date | datetime.time):
         return f"key {key} expects a string, number, boolean, array or table, found {value!r}"
@@ -344,7 +347,7 @@ def _plain_problem(value: Any, key: str) -> str | None:
 
 
 def check_agent_table(
-    head: str, table: Any, *, default_source: str = "", default_model: str = ""
+    head: str, table: object, *, default_source: str = "", default_model: str = ""
 ) -> None:
     """Check one agent table (its kind, keys, types, ranges and required key).
 
@@ -403,7 +406,7 @@ def check_agent_table(
                 f"{head} key {k} expects a number in {left}{rng.low}, {rng.high}] ({rng.why}), "
                 f"found {value!r}"
             )
-        if k == "host" and value:
+        if k == "host" and isinstance(value, str) and value:
             normalize_host(value, where=f"{head} key host")
         if k == "hosts":
             normalize_hosts(value, where=f"{head} key hosts")
@@ -430,7 +433,7 @@ def check_agent_table(
 
 
 def check_agent_tables(
-    agents: Any,
+    agents: object,
     *,
     where: str,
     clusters: Sequence[str],

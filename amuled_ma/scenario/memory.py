@@ -64,7 +64,7 @@ def _bytes(n: float) -> str:
     raise AssertionError  # pragma: no cover
 
 
-def check_finite(key: str, value: Any, source: str) -> None:
+def check_finite(key: str, value: object, source: str) -> None:
     """Refuse NaN and infinities anywhere in a free-form value (``options``, ``ollama``)."""
     if isinstance(value, float) and not math.isfinite(value):
         raise ScenarioError(f"{source}: key {key} expects a finite number, found {value!r}")

@@ -30,7 +30,7 @@ BUILT_IN_CODE = "<scenario built in code>"
 
 
 # ------------------------------------------------------------------------ error messages
-def _type_name(tp: Any) -> str:
+def _type_name(tp: object) -> str:
     origin = typing.get_origin(tp)
     if origin is Annotated:
         return _type_name(typing.get_args(tp)[0])
@@ -54,7 +54,7 @@ def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", str(tp))
 
 
-def _number_type(annotation: Any) -> Any:
+def _number_type(annotation: object) -> object:
     """``int`` or ``float`` of a number key or a list of numbers (``list[Annotated[int, ...]]``)."""
     if typing.get_origin(annotation) is list:
         annotation = typing.get_args(annotation)[0]
@@ -66,7 +66,7 @@ def _number_type(annotation: Any) -> Any:
     return annotation
 
 
-def _float_for_int_hint(wants_int: bool, value: Any) -> str:
+def _float_for_int_hint(wants_int: bool, value: object) -> str:
     """Explain a float written where an integer is expected (TOML reads ``1e8`` as float)."""
     floats = [v for v in (value if isinstance(value, list) else [value]) if isinstance(v, float)]
     if not wants_int or not floats:
@@ -123,8 +123,8 @@ def _describe(error: Any, source: str, loc: tuple[Any, ...]) -> str:
             return f"{source}: key {head} expects string, {found}"
         return f"{source}: key {head}: {error['msg']}, {found}"
     section, model = str(head), SECTIONS[str(head)]
-    while len(loc) > 2 and _table_model(model, loc[1]) is not None:
-        model = _table_model(model, loc[1])  # a nested table: [feedback.distill]
+    while len(loc) > 2 and (nested := _table_model(model, loc[1])) is not None:
+        model = nested  # a nested table: [feedback.distill]
         section, loc = f"{section}.{loc[1]}", (loc[0], *loc[2:])
     if len(loc) == 1:
         if kind in ("model_type", "model_attributes_type", "dict_type"):
@@ -181,7 +181,7 @@ def _describe(error: Any, source: str, loc: tuple[Any, ...]) -> str:
     return f"{source}: key {where}{at}: {error['msg']}, {found}"
 
 
-def toml_syntax_error(value: Any) -> str | None:
+def toml_syntax_error(value: object) -> str | None:
     """Why ``value``, a text opening a TOML list or table (``[``, ``{``), is not TOML.
 
     Returns:
@@ -206,7 +206,7 @@ def toml_syntax_error(value: Any) -> str | None:
     return None
 
 
-def _table_model(model: type[BaseModel], key: Any) -> type[BaseModel] | None:
+def _table_model(model: type[BaseModel], key: object) -> type[BaseModel] | None:
     """The model of ``model``'s key when that key is a nested table, else None."""
     info = model.model_fields.get(str(key))
     tp = info.annotation if info is not None else None

@@ -20,7 +20,6 @@ from amuled_ma.scenario.sections import (
     PPOConfig,
     TaskConfig,
     _init,
-    _Section,
     _source,
     validate_model,
 )
@@ -59,7 +58,7 @@ class Scenario(BaseModel):
     evaluation: EvaluationConfig = Field(default_factory=EvaluationConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
 
-    def __init__(self, /, **data: Any) -> None:
+    def __init__(self, /, **data: object) -> None:
         _init(self, data, ())
 
     @field_validator("name")
@@ -151,7 +150,7 @@ class Scenario(BaseModel):
         """
         return self.model_dump(mode="json", exclude={"name", "path"})
 
-    def replace(self, section: str, **changes: Any) -> Scenario:
+    def replace(self, section: str, **changes: object) -> Scenario:
         """Return a copy with some keys of one section changed, validated like a file.
 
         Args:
@@ -208,7 +207,7 @@ class Scenario(BaseModel):
         return safe_child(root, self.name, what=f"{self.path or '<scenario>'}: key name")
 
 
-def _with_nested(table: BaseModel | dict[str, Any], key: str, value: Any) -> dict[str, Any]:
+def _with_nested(table: BaseModel | dict[str, Any], key: str, value: object) -> dict[str, Any]:
     """A nested table's keys as a dict, with ``key`` (dotted for deeper tables) set."""
     data = (
         {k: getattr(table, k) for k in type(table).model_fields}
@@ -223,7 +222,7 @@ def _with_nested(table: BaseModel | dict[str, Any], key: str, value: Any) -> dic
     return data
 
 
-def validate_section(section: str, values: dict[str, Any], source: str) -> _Section:
+def validate_section(section: str, values: dict[str, Any], source: str) -> BaseModel:
     """Validate one section's values as a file's table is validated, and build it.
 
     Types, choices, the declared ranges (:func:`field_range`), safe names, finite floats

@@ -21,7 +21,7 @@ import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Literal
+from typing import Final, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -29,7 +29,7 @@ from amuled_ma.errors import ScenarioError
 from amuled_ma.file_limits import read_bounded_bytes
 
 #: The version of the file's format.
-WEIGHTS_FORMAT = 1
+WEIGHTS_FORMAT: Final = 1
 #: Largest weights file read (a fitted one holds about 2,000 characters).
 MAX_WEIGHTS_BYTES = 1_000_000
 #: What the weights are, written into every fitted file.

@@ -131,7 +131,7 @@ def field_length(model: type[BaseModel], key: str) -> Range | None:
     return Range(low, high, why=info.description or "")
 
 
-def kind(number_type: Any, rng: Range) -> str:
+def kind(number_type: object, rng: Range) -> str:
     """What a key of ``number_type`` (``int`` or ``float``) in ``rng`` is, in words."""
     if number_type is int:
         if rng.low is not None and rng.low >= 1:
@@ -142,7 +142,7 @@ def kind(number_type: Any, rng: Range) -> str:
     return "a finite number"
 
 
-def found_name(value: Any) -> str:
+def found_name(value: object) -> str:
     """The TOML type name of a value (``integer``, ``table``, ...)."""
     return {
         bool: "boolean",

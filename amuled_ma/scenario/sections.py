@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from contextvars import ContextVar
-from typing import Annotated, Any, ClassVar, Literal, TypeVar
+from typing import Annotated, Any, ClassVar, Literal, TypeVar, get_args
 
 from pydantic import (
     BaseModel,
@@ -55,6 +55,7 @@ GradClip = Literal["per_network", "joint"]
 Activation = Literal["tanh", "relu", "elu", "selu", "lrelu", "sigmoid", "identity"]
 #: ``[evaluation].modes``: action selection of the evaluation episodes.
 EvaluationMode = Literal["greedy", "sampled"]
+EVALUATION_MODES: tuple[EvaluationMode, ...] = get_args(EvaluationMode)
 #: ``[feedback.distill].model``: the distilled reward model's kind.
 DistillModel = Literal["mlp"]
 #: ``[feedback.distill].selection``: which new states the budget spends on.
@@ -114,11 +115,11 @@ class _Section(BaseModel):
     #: The table's name in a scenario file (``task`` for ``[task]``).
     section: ClassVar[str] = ""
 
-    def __init__(self, /, **data: Any) -> None:
+    def __init__(self, /, **data: object) -> None:
         _init(self, data, (self.section,))
 
 
-def _finite_table(section: str, value: Any, info: ValidationInfo) -> Any:
+def _finite_table(section: str, value: object, info: ValidationInfo) -> object:
     """Refuse NaN and infinities anywhere in a free-form table, naming the nested key."""
     check_finite(f"[{section}].{info.field_name}", value, _source(info))
     return value
@@ -153,7 +154,7 @@ class TaskConfig(_Section):
 
     @field_validator("options")
     @classmethod
-    def _options_are_the_tasks(cls, value: Any, info: ValidationInfo) -> Any:
+    def _options_are_the_tasks(cls, value: dict[str, Any], info: ValidationInfo) -> dict[str, Any]:
         _finite_table("task", value, info)
         name = info.data.get("name")  # validated before: absent when it was refused
         if isinstance(name, str):  # before any folder: the task itself refuses them late
@@ -389,12 +390,12 @@ class DistillConfig(_Section):
     answer_misses: bool = False
     seed: int | None = Field(None, ge=0, le=MAX_SEED, description=_SEED_WHY)
 
-    def __init__(self, /, **data: Any) -> None:
+    def __init__(self, /, **data: object) -> None:
         _init(self, data, ("feedback", "distill"))
 
     @field_validator("budget", mode="before")
     @classmethod
-    def _budget_is_a_share_or_a_count(cls, value: Any, info: ValidationInfo) -> Any:
+    def _budget_is_a_share_or_a_count(cls, value: object, info: ValidationInfo) -> object:
         ok = not isinstance(value, bool) and (
             (isinstance(value, int) and value >= 1)
             or (isinstance(value, float) and math.isfinite(value) and 0 < value <= 1)
@@ -548,13 +549,13 @@ class FeedbackConfig(_Section):
 
     @field_validator("ollama")
     @classmethod
-    def _ollama_is_finite(cls, value: Any, info: ValidationInfo) -> Any:
+    def _ollama_is_finite(cls, value: dict[str, Any], info: ValidationInfo) -> object:
         check_ollama_table(value, _source(info))
         return _finite_table("feedback", value, info)
 
     @field_validator("agents", mode="before")
     @classmethod
-    def _agent_tables(cls, value: Any, info: ValidationInfo) -> Any:
+    def _agent_tables(cls, value: object, info: ValidationInfo) -> object:
         """Check the tables before their type, so that the messages name the table and fix."""
         _finite_table("feedback", value, info)
         if all(k in info.data for k in ("clusters", "source", "model")):  # else: reported
@@ -603,7 +604,7 @@ class EvaluationConfig(_Section):
         description="episodes run as parallel task copies (paper: 50); also checked against memory",
     )
     seed: int = Field(10_000, ge=0, le=MAX_SEED, description=_SEED_WHY)
-    modes: list[EvaluationMode] = Field(default_factory=lambda: ["greedy", "sampled"])
+    modes: list[EvaluationMode] = Field(default_factory=lambda: list(EVALUATION_MODES))
     confidence: float = Field(
         0.95,
         gt=0,
@@ -635,7 +636,7 @@ class OutputConfig(_Section):
 _M = TypeVar("_M", bound=BaseModel)
 
 
-def validate_model(model: type[_M], data: Any, source: str, loc: tuple[str, ...] = ()) -> _M:
+def validate_model(model: type[_M], data: object, source: str, loc: tuple[str, ...] = ()) -> _M:
     """Validate ``data`` into ``model`` as read from ``source`` (a file or an override).
 
     ``model.model_validate(data)`` with ``{"source": source}`` as the validation context

@@ -298,7 +298,7 @@ def agreement(study: Study, majority: dict[str, tuple[str, int, int]]) -> dict[s
                     row = out.setdefault(key, [0, 0])
                     row[0] += int(pref == top)
                     row[1] += 1
-        actions = {o.label: o.action for o in item.options}
+        actions: dict[str, int] = {o.label: o.action for o in item.options}
         for variant, action in item.policies.items():
             if action in actions.values():
                 row = out.setdefault(f"policy:{variant}", [0, 0])
@@ -388,7 +388,7 @@ def answers_csv(folder: Path) -> str:
     write(CSV_COLUMNS)
     for a in answers:
         item = study.item(a.item)
-        if item is None or item.kind == "expert":
+        if item is None or item.kind == "expert" or not item.options:
             continue
         oa, ob = item.options
         write(

@@ -303,4 +303,4 @@ def read_refusals(path: Path) -> list[tuple[str | None, str | None, str | None, 
         ).fetchall()
     finally:
         db.close()
-    return [tuple(r) for r in rows]  # type: ignore[misc]
+    return [tuple(r) for r in rows]

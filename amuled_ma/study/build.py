@@ -26,7 +26,7 @@ import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import torch
@@ -52,6 +52,9 @@ from amuled_ma.study.model import (
     write_study,
 )
 from amuled_ma.study.reasons import stated_reason
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 #: Evaluation episodes replayed per variant (states met) unless asked otherwise.
 EPISODES = 3
@@ -114,7 +117,7 @@ def resolve_variant(run_dir: Path, name: str) -> Path:
     )
 
 
-def _round(values: Any) -> list[Any]:
+def _round(values: ArrayLike) -> list[Any]:
     return np.round(np.asarray(values, dtype=np.float64), DECIMALS).tolist()
 
 
@@ -281,12 +284,12 @@ def build_study(
             panels.append((panel[0], panel[1], u) if panel is not None else None)
     rng = np.random.default_rng(seed)
     if mode == "expert":
-        built, pictures = _expert_items(states, actions, panels, action_names, rng, items)
+        expert, expert_pictures = _expert_items(states, actions, panels, action_names, rng, items)
         return _write(out, Study(
             mode="expert", seed=int(seed), runs=[str(r) for r in runs], variants=names,
             folders=folders, action_names=action_names, frameworks=_frameworks(),
-            items=built, candidates=len(states),
-        ), pictures)  # fmt: skip
+            items=expert, candidates=len(states),
+        ), expert_pictures)  # fmt: skip
     candidates = [
         (s, a, b)
         for s in range(len(states))
@@ -337,7 +340,7 @@ def build_study(
         built.append(
             Item(
                 id=item_id,
-                kind=kinds[slot],  # type: ignore[arg-type]
+                kind=kinds[slot],
                 run=state.run,
                 task=state.task,
                 episode=state.episode,
@@ -347,7 +350,7 @@ def build_study(
                 prompt=_prompt(state.task, state.prompt_vars),
                 picture=f"states/{item_id}.svg",
                 options=options,
-                expected=expected,  # type: ignore[arg-type]
+                expected=expected,
                 instruction=instruction,
                 policies=dict(actions[s]),
                 panel=panel_view,

@@ -93,7 +93,7 @@ def summarize(folder: Path, *, keep_inattentive: bool = False) -> dict[str, Any]
     rated = acceptability(study.variants, pairs, seed=study.seed)
     majority = majorities(pairs)
     agree = agreement(study, majority)
-    disagreements = []
+    disagreements: list[dict[str, Any]] = []
     for item_id, (top, n_top, n) in majority.items():
         item = study.item(item_id)
         if item is None or item.panel is None:

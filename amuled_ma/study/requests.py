@@ -60,9 +60,45 @@ def _scale(points: int) -> object:
     return Annotated[int, Field(strict=True, ge=1, le=points)]
 
 
+class Ratings(_Request):
+    """A pair's two ratings; `answer_models` bounds them to the study's scale."""
+
+    A: int
+    B: int
+
+
+class PairAnswer(_Request):
+    """``POST /api/answer`` for a pair; `answer_models` bounds it to the study's scales."""
+
+    participant: Text
+    token: Text
+    item: Text
+    choice: Literal["A", "B"]
+    ms: Time
+    ratings: Ratings
+
+
+class Judged(_Request):
+    """An expert's judgement of one action; `answer_models` bounds the framework."""
+
+    acceptable: bool
+    framework: str
+
+
+class ExpertAnswerRequest(_Request):
+    """``POST /api/answer`` for an expert; `answer_models` bounds it to the study's scales."""
+
+    participant: Text
+    token: Text
+    item: Text
+    ms: Time
+    actions: list[Judged] = Field(max_length=MAX_ACTIONS)
+    clarity: int | None = None
+
+
 def answer_models(
     rating_points: int, clarity_points: int, frameworks: list[str]
-) -> tuple[type[_Request], type[_Request]]:
+) -> tuple[type[PairAnswer], type[ExpertAnswerRequest]]:
     """The models of a pair's answer and of an expert's, on the study's scales.
 
     Args:
@@ -71,39 +107,30 @@ def answer_models(
         frameworks: The frameworks an expert may cite (``none`` included).
 
     Returns:
-        ``(PairAnswer, ExpertAnswerRequest)``; their fields are checked in the order
-        written, so the first error names the first field that does not fit.
+        Subclasses of `PairAnswer` and `ExpertAnswerRequest` whose fields are checked in the
+        order written, so the first error names the first field that does not fit.
 
     """
     rating_scale = _scale(rating_points)
     clarity_scale = _scale(clarity_points)
     cited = Literal[tuple(frameworks)]  # type: ignore[valid-type]
 
-    class Ratings(_Request):
+    class ScaledRatings(Ratings):
         A: rating_scale  # type: ignore[valid-type]
         B: rating_scale  # type: ignore[valid-type]
 
-    class PairAnswer(_Request):
-        participant: Text
-        token: Text
-        item: Text
-        choice: Literal["A", "B"]
-        ms: Time
-        ratings: Ratings
+    class ScaledPairAnswer(PairAnswer):
+        ratings: ScaledRatings
 
-    class Judged(_Request):
-        acceptable: bool
+    class CitedJudged(Judged):
         framework: cited  # type: ignore[valid-type]
 
-    class ExpertAnswerRequest(_Request):
-        participant: Text
-        token: Text
-        item: Text
-        ms: Time
-        actions: list[Judged] = Field(max_length=MAX_ACTIONS)
+    class ScaledExpertAnswer(ExpertAnswerRequest):
+        # A list of the subclass: list is invariant, the override is sound for a frozen model.
+        actions: list[CitedJudged] = Field(max_length=MAX_ACTIONS)  # type: ignore[assignment]
         clarity: clarity_scale | None = None  # type: ignore[valid-type]
 
-    return PairAnswer, ExpertAnswerRequest
+    return ScaledPairAnswer, ScaledExpertAnswer
 
 
 def first_error(error: ValidationError) -> tuple[tuple[str | int, ...], str, str]:

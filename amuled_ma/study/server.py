@@ -40,7 +40,7 @@ from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ValidationError
+from pydantic import ValidationError
 from starlette.applications import Starlette
 from starlette.requests import Request
 from starlette.responses import HTMLResponse, JSONResponse, Response
@@ -64,6 +64,7 @@ from amuled_ma.study.model import (
 )
 from amuled_ma.study.requests import (
     AnswerEnvelope,
+    ExpertAnswerRequest,
     SessionRequest,
     answer_models,
     expert_reason,
@@ -122,7 +123,7 @@ def placeholders(text: str) -> list[str]:
     Whitespace is compared loosely (a placeholder may be re-wrapped); a bracket the templates
     do not hold (``[1]``, a citation) is not one.
     """
-    found = set()
+    found: set[str] = set()
     for template in sorted(TEMPLATES.glob("*.html")):
         found.update(" ".join(p.split()) for p in re.findall(r"\[[^\[\]]+\]", template.read_text()))
     flat = " ".join(text.split())
@@ -365,7 +366,7 @@ class StudyApp:
             return JSONResponse({"error": f"item {item_id}: already answered"}, status_code=409)
         return JSONResponse({"stored": True})
 
-    def _expert_problem(self, form: BaseModel, item: Item) -> str | None:
+    def _expert_problem(self, form: ExpertAnswerRequest, item: Item) -> str | None:
         """Why a well-formed expert answer does not fit its state, None when it does."""
         if len(form.actions) != len(self.study.action_names.get(item.task, [])):
             return "expert: not one judgement per action"

@@ -521,7 +521,10 @@ def weights_file(
         low=r(result.low),
         high=r(result.high),
         temperature=round(result.learned.temperature, 6),
-        temperature_interval=tuple(round(t, 6) for t in result.temperature_interval),
+        temperature_interval=(
+            round(result.temperature_interval[0], 6),
+            round(result.temperature_interval[1], 6),
+        ),
         participants=len(data.participants),
         answers=len(data.answer_item),
         items=len(data.items),

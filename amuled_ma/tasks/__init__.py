@@ -37,6 +37,7 @@ from amuled_ma.tasks.names import (
 )
 
 if TYPE_CHECKING:
+    from amuled_ma.scenario import Scenario
     from amuled_ma.tasks.base import BatchedTask
     from amuled_ma.tasks.driving import Driving
     from amuled_ma.tasks.findmilk import FindMilk
@@ -169,7 +170,7 @@ def make_batched(name: str, num_envs: int = 1, **kwargs: Any) -> BatchedTask:
     return get_task(name)(num_envs, **kwargs)
 
 
-def make_task(scenario: Any, num_envs: int, *, shaping_coef: float, seed: int) -> BatchedTask:
+def make_task(scenario: Scenario, num_envs: int, *, shaping_coef: float, seed: int) -> BatchedTask:
     """Create ``num_envs`` copies of a scenario's task, on the CPU.
 
     Args:

@@ -142,24 +142,10 @@ class BatchedTask(abc.ABC):
             ValueError: An argument is out of range; the message names it.
 
         """
-        if isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral):
-            raise ValueError(f"num_envs: expected a positive integer, got {num_envs!r}")
-        if num_envs < 1:
-            raise ValueError(f"num_envs: expected a positive integer, got {num_envs}")
-        if isinstance(max_steps, bool) or not isinstance(max_steps, numbers.Integral):
-            raise ValueError(f"max_steps: expected a positive integer, got {max_steps!r}")
-        if max_steps < 1:
-            raise ValueError(f"max_steps: expected a positive integer, got {max_steps}")
-        if not isinstance(shaping_coef, numbers.Real) or isinstance(shaping_coef, bool):
-            raise ValueError(f"shaping_coef: expected a non-negative number, got {shaping_coef!r}")
-        if not math.isfinite(float(shaping_coef)) or shaping_coef < 0:
-            raise ValueError(
-                f"shaping_coef: expected a finite non-negative number, got {shaping_coef!r}"
-            )
-        self.num_envs = int(num_envs)
+        self.num_envs = _positive_int(num_envs, "num_envs")
+        self.max_steps = _positive_int(max_steps, "max_steps")
+        self.shaping_coef = _non_negative_float(shaping_coef, "shaping_coef")
         self.device = torch.device(device)
-        self.shaping_coef = float(shaping_coef)
-        self.max_steps = int(max_steps)
         self._seed = self._check_seed(seed, "seed")
         n, dev = self.num_envs, self.device
         self._keys: torch.Tensor | None = None
@@ -328,7 +314,7 @@ class BatchedTask(abc.ABC):
         info.update(events)
         return obs, reward, terminated, truncated, info
 
-    def prompt_variables(self, env_ids: Any = None) -> list[dict[str, Any]]:
+    def prompt_variables(self, env_ids: object = None) -> list[dict[str, Any]]:
         """Return the template variables of the state prompt of each selected copy.
 
         Args:
@@ -344,7 +330,7 @@ class BatchedTask(abc.ABC):
         extras = self._prompt_extras(ids)
         return [self.prompt_variables_from_obs(o, **e) for o, e in zip(obs, extras, strict=True)]
 
-    def state_prompts(self, env_ids: Any = None) -> list[str]:
+    def state_prompts(self, env_ids: object = None) -> list[str]:
         """Return the rendered state prompt of each selected copy (see `prompt_variables`)."""
         from amuled_ma.tasks.prompts import render_state_prompt
 
@@ -407,9 +393,9 @@ class BatchedTask(abc.ABC):
         """Return an RGB picture (uint8 ``[H, W, 3]``) of copy ``env_id``."""
 
     # ------------------------------------------------------------------ hooks
-    def _init_task(self, **task_options: Any) -> None:
+    def _init_task(self, *args: Any, **task_options: Any) -> None:
         """Create the task state tensors (subclasses; unknown options: TypeError)."""
-        if task_options:
+        if args or task_options:
             raise TypeError(f"{type(self).__name__}: unexpected option(s) {sorted(task_options)}")
 
     @abc.abstractmethod
@@ -459,7 +445,7 @@ class BatchedTask(abc.ABC):
         self._ctr[ids] += count
         return values
 
-    def _check_actions(self, actions: Any) -> torch.Tensor:
+    def _check_actions(self, actions: object) -> torch.Tensor:
         if not isinstance(actions, torch.Tensor):
             raise ValueError(
                 f"actions: expected a torch integer tensor of shape ({self.num_envs},), "
@@ -486,21 +472,21 @@ class BatchedTask(abc.ABC):
         return actions
 
     @staticmethod
-    def _check_seed(seed: Any, name: str) -> int | None:
+    def _check_seed(seed: object, name: str) -> int | None:
         if seed is None:
             return None
-        if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+        if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or int(seed) < 0:
             raise ValueError(f"{name}: expected a non-negative integer or None, got {seed!r}")
         return int(seed)
 
-    def _env_id(self, env_id: Any) -> int:
+    def _env_id(self, env_id: object) -> int:
         if isinstance(env_id, bool) or not isinstance(env_id, numbers.Integral):
             raise ValueError(f"env_id: expected an integer, got {env_id!r}")
-        if not 0 <= env_id < self.num_envs:
+        if not 0 <= int(env_id) < self.num_envs:
             raise ValueError(f"env_id: expected 0..{self.num_envs - 1}, got {env_id}")
         return int(env_id)
 
-    def _env_ids(self, env_ids: Any) -> torch.Tensor:
+    def _env_ids(self, env_ids: object) -> torch.Tensor:
         if env_ids is None:
             return torch.arange(self.num_envs, device=self.device)
         if isinstance(env_ids, numbers.Integral) and not isinstance(env_ids, bool):
@@ -515,3 +501,29 @@ class BatchedTask(abc.ABC):
             f"{type(self).__name__}(num_envs={self.num_envs}, device={str(self.device)!r}, "
             f"shaping_coef={self.shaping_coef}, max_steps={self.max_steps})"
         )
+
+
+def _positive_int(value: object, name: str) -> int:
+    """``value`` as an ``int`` >= 1 (an integral number; a bool is refused).
+
+    Raises:
+        ValueError: ``value`` is not a positive integer; the message names ``name``.
+
+    """
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < 1:
+        raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+    return int(value)
+
+
+def _non_negative_float(value: object, name: str) -> float:
+    """``value`` as a finite ``float`` >= 0 (a real number; a bool is refused).
+
+    Raises:
+        ValueError: ``value`` is not a finite non-negative number; the message names ``name``.
+
+    """
+    if not isinstance(value, numbers.Real) or isinstance(value, bool):
+        raise ValueError(f"{name}: expected a non-negative number, got {value!r}")
+    if not math.isfinite(float(value)) or float(value) < 0:
+        raise ValueError(f"{name}: expected a finite non-negative number, got {value!r}")
+    return float(value)

@@ -286,7 +286,7 @@ class Driving(BatchedTask):
         row = sum(1 << ((ln + 1) * width + k) for ln in range(NUM_LANES))
         return 1 << ((int(lane) + 1) * width + k), row
 
-    def place(self, kind: str, lane: int, distance: int, env_ids: Any = None) -> None:
+    def place(self, kind: str, lane: int, distance: int, env_ids: object = None) -> None:
         """Put an object on the road (for tests and hand-made states); updates ``obs``.
 
         The rules let at most one object of a kind appear per step, and all objects of a
@@ -316,14 +316,14 @@ class Driving(BatchedTask):
         road[ids] |= bit
         self._obs = self._observe()
 
-    def clear_road(self, env_ids: Any = None) -> None:
+    def clear_road(self, env_ids: object = None) -> None:
         """Remove every car and grandma from the selected copies; updates ``obs``."""
         ids = self._env_ids(env_ids)
         self._cars[ids] = 0
         self._gms[ids] = 0
         self._obs = self._observe()
 
-    def set_lane(self, lane: int, env_ids: Any = None) -> None:
+    def set_lane(self, lane: int, env_ids: object = None) -> None:
         """Move the agent's car to ``lane`` in the selected copies; updates ``obs``."""
         if isinstance(lane, bool) or not isinstance(lane, numbers.Integral):
             raise ValueError(f"lane: expected an integer 0..{NUM_LANES - 1}, got {lane!r}")

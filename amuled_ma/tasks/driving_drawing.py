@@ -8,11 +8,14 @@ the one-hot lane).
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from amuled_ma.tasks.colors import COLORS
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
 
 #: Events marked on the strip: ``{key: (marker, colour, size)}`` (the viewer's colours:
 #: a collision is "bad", a rescue "good", `COLORS`).
@@ -22,7 +25,7 @@ DRIVING_EVENTS = {
 }
 
 
-def draw_driving(ax: Any, name: str, trajectory: Mapping[str, Any], color: str = "k") -> None:
+def draw_driving(ax: Axes, name: str, trajectory: Mapping[str, Any], color: str = "k") -> None:
     """Draw one Driving episode on a matplotlib axes: the lane (0-4) per step, its events.
 
     Args:

@@ -155,8 +155,8 @@ class FindMilk(BatchedTask):
         move = []
         for c in range(_NCELLS):
             x, y = divmod(c, SIZE)
-            for dx, dy in _MOVES:
-                nx, ny = x + dx, y + dy
+            for step_x, step_y in _MOVES:
+                nx, ny = x + step_x, y + step_y
                 move.append(_cell(nx, ny) if 0 <= nx < SIZE and 0 <= ny < SIZE else c)
         self._move = torch.tensor(move, dtype=i64, device=dev)  # [(cell, action)] -> cell
         dx = xs[:, None] - xs[None, :]

@@ -8,11 +8,14 @@ evaluator's recorded episode (``{"obs", "actions", "events", "layout"}``) and
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from amuled_ma.tasks.colors import COLORS
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
 
 #: The grid's side (cells).
 SIZE = 8
@@ -53,7 +56,7 @@ def findmilk_subgoals(trajectory: Mapping[str, Any]) -> dict[str, Any]:
     }
 
 
-def _baby(ax: Any, x: int, y: int, kind: str, reached: bool) -> None:
+def _baby(ax: Axes, x: int, y: int, kind: str, reached: bool) -> None:
     """One baby: its kind's colour until reached, then its outcome's with a white glyph.
 
     A crying baby is a circle (``C``), pacified: green with ✓; a sleeping baby a square
@@ -71,7 +74,7 @@ def _baby(ax: Any, x: int, y: int, kind: str, reached: bool) -> None:
             color="white" if reached else COLORS["ink"], zorder=6)  # fmt: skip
 
 
-def draw_findmilk(ax: Any, name: str, trajectory: Mapping[str, Any], color: str = "k") -> None:
+def draw_findmilk(ax: Axes, name: str, trajectory: Mapping[str, Any], color: str = "k") -> None:
     """Draw one FindMilk episode on a matplotlib axes.
 
     The path in ``color`` (start: a white triangle, end: ✕), the milk (★), every crying

@@ -50,7 +50,8 @@ class TaskEnv(gym.Env[np.ndarray, np.int64]):
 
     """
 
-    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["ansi", "rgb_array"], "render_fps": 4}
+    # gymnasium.Env declares metadata as an instance attribute, so no ClassVar here.
+    metadata: dict[str, Any] = {"render_modes": ["ansi", "rgb_array"], "render_fps": 4}  # noqa: RUF012
     task_class: ClassVar[type[BatchedTask]]
 
     def __init__(self, render_mode: str | None = None, **task_kwargs: Any) -> None:
@@ -82,7 +83,7 @@ class TaskEnv(gym.Env[np.ndarray, np.int64]):
         self._episode_over = False
         return obs[0].cpu().numpy().copy(), {}
 
-    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+    def step(self, action: object) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Take one action; returns ``(obs, reward, terminated, truncated, info)``.
 
         Raises:

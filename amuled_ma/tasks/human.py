@@ -31,8 +31,6 @@ The weights are normalised to sum to 1.
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from amuled_ma.tasks.names import canonical_name
@@ -44,14 +42,14 @@ _GRID_MAX = 7.0
 _MAX_DISTANCE = 24.0
 
 
-def _as_obs(obs: Any, dim: int) -> np.ndarray:
+def _as_obs(obs: object, dim: int) -> np.ndarray:
     values = np.asarray(obs, dtype=np.float64)
     if values.ndim == 0 or values.shape[-1] != dim:
         raise ValueError(f"obs: expected shape (..., {dim}), got {values.shape}")
     return values
 
 
-def _findmilk(obs: np.ndarray, sleeping: Any = None) -> np.ndarray:
+def _findmilk(obs: np.ndarray, sleeping: object = None) -> np.ndarray:
     pos, milk, cry, sleep = obs[..., 0:2], obs[..., 2:4], obs[..., 4:6], obs[..., 6:8]
     nxt = np.clip(pos[..., None, :] + _MOVES, 0.0, _GRID_MAX)  # [..., 4, 2]
     if sleeping is None:
@@ -65,9 +63,9 @@ def _findmilk(obs: np.ndarray, sleeping: Any = None) -> np.ndarray:
             )
         present = (babies >= 0).all(-1)  # [..., K]
         same = (nxt[..., :, None, :] == babies[..., None, :, :]).all(-1)  # [..., 4, K]
-        on_sleep = (same & present[..., None, :]).any(-1)
+        on_sleep = (same & np.expand_dims(present, -2)).any(-1)
     on_milk = (nxt == milk[..., None, :]).all(-1)
-    crying = (cry != 0).any(-1)[..., None]
+    crying = (cry != 0).any(-1, keepdims=True)
     d = np.abs(nxt - cry[..., None, :]).sum(-1)
     toward_cry = np.where(
         crying & (d < _MAX_DISTANCE), 20.0 * (_MAX_DISTANCE - d) / _MAX_DISTANCE, 5.0
@@ -88,7 +86,7 @@ def _driving(obs: np.ndarray) -> np.ndarray:
     return weights / weights.sum(-1, keepdims=True)
 
 
-def human_belief(task_name: str, obs: Any, *, sleeping: Any = None) -> np.ndarray:
+def human_belief(task_name: str, obs: object, *, sleeping: object = None) -> np.ndarray:
     """Return the synthetic human belief over actions for each observation.
 
     Args:

@@ -21,7 +21,7 @@ import functools
 import operator
 import re
 import string
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -82,7 +82,7 @@ class StateTemplate:
     prompt: str
     fragments: dict[str, tuple[Fragment, ...]]
 
-    def render(self, variables: dict[str, Any]) -> str:
+    def render(self, variables: Mapping[str, Any]) -> str:
         """Fill the template with ``variables`` (see the module documentation).
 
         Raises:
@@ -91,7 +91,7 @@ class StateTemplate:
         """
         return self._fill(self.prompt, variables, depth=0)
 
-    def _fill(self, text: str, variables: dict[str, Any], depth: int) -> str:
+    def _fill(self, text: str, variables: Mapping[str, Any], depth: int) -> str:
         if depth > 8:
             raise PromptError(f"{self.path}: fragments nest too deeply")
         out: list[str] = []
@@ -116,7 +116,7 @@ class StateTemplate:
             out.append(format(value, spec or ""))
         return "".join(out)
 
-    def _select(self, group: str, field: str, value: Any) -> Fragment:
+    def _select(self, group: str, field: str, value: object) -> Fragment:
         for fragment in self.fragments[group]:
             if fragment.test(value):
                 return fragment
@@ -228,7 +228,7 @@ def load_template(task_name: str) -> StateTemplate:
     return _load_cached(path, path.stat().st_mtime_ns)
 
 
-def render_state_prompt(task_name: str, variables: dict[str, Any]) -> str:
+def render_state_prompt(task_name: str, variables: Mapping[str, Any]) -> str:
     """Render the state prompt of one state.
 
     Args:

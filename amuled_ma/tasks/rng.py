@@ -14,7 +14,8 @@ SplitMix64 of the project: the tasks and the synthetic human demonstrators
 
 from __future__ import annotations
 
-import numpy as np
+import secrets
+
 import torch
 
 __all__ = [
@@ -98,7 +99,7 @@ def copy_keys(seed: int, num_envs: int, device: torch.device) -> torch.Tensor:
 
 def entropy_seed() -> int:
     """Return a fresh seed from the operating system (used when no seed is given)."""
-    return int(np.random.SeedSequence().entropy) & ((1 << 63) - 1)
+    return secrets.randbits(63)
 
 
 def draw(keys: torch.Tensor, counters: torch.Tensor, offset: int = 0) -> torch.Tensor:

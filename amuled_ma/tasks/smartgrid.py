@@ -258,7 +258,7 @@ class SmartGrid(BatchedTask):
         for i, row in enumerate(obs.numpy()):
             old = self._live_keys[i]
             owner, copy_id = _LIVE.get(old, (None, -1)) if old is not None else (None, -1)
-            if owner is not None and owner() is self and copy_id == i:
+            if old is not None and owner is not None and owner() is self and copy_id == i:
                 del _LIVE[old]
             key = row.tobytes()
             _LIVE[key] = (me, i)

@@ -151,3 +151,12 @@ def test_rules_batch_call_and_per_request_fallback():
     results = RulesSource(single_only).beliefs([req(obs=(1.0, 0.0)), req(obs=(3.0, 0.0))])
     assert calls == [(2, 2), (2,), (2,)]
     assert np.allclose(results[1].belief, [0, 0.75, 0, 0.25])
+
+
+def test_a_batch_with_a_request_left_unanswered_is_refused_naming_the_source():
+    from amuled_ma.beliefs.types import BeliefResult, every_answer
+
+    one = BeliefResult(np.array([0.5, 0.5]), "ok", "rules")
+    assert every_answer([one, one], "rules") == [one, one]
+    with pytest.raises(RuntimeError, match=r"'rules' left 1 request\(s\) without a result"):
+        every_answer([one, None], "rules")

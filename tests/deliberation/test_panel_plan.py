@@ -170,3 +170,15 @@ def test_the_ollama_spec_declares_every_ollama_source_keyword():
     for name, default in keywords.items():
         if default is not None and name not in ("model", "options"):
             assert fields[name] == default, name
+
+
+def test_a_built_feedback_names_its_plan_and_a_hand_built_one_none():
+    from amuled_ma.deliberation.build import build_feedback
+    from amuled_ma.deliberation.feedback_base import CallableFeedback
+
+    scenario = load_scenario(ROOT / "scenarios" / "findmilk.toml")
+    plan = plan_panel("human:rules", scenario)
+    feedback = build_feedback(plan, store=None)
+    assert feedback.plan is plan
+    assert feedback.plan.variant == "human:rules"
+    assert CallableFeedback(lambda obs: obs, name="by hand").plan is None

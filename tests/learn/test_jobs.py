@@ -105,6 +105,14 @@ def test_check_order_and_workers():
         resolve_workers(-1, [a])
 
 
+def test_workers_auto_is_one_when_a_single_agent_asks_a_live_server():
+    sc = tiny_scenario()
+    base = TrainJob("a", sc, Path("r"), "base", Path("r/a"))
+    one_live = sc.replace("feedback", agents={"care": {"source": "ollama", "model": "tiny"}})
+    tune = TrainJob("b", one_live, Path("r"), "finetune:amuled", Path("r/b"), needs=("a",))
+    assert resolve_workers(0, [base, tune]) == 1
+
+
 def _learned(row: dict) -> dict:
     """A curve row without its wall-clock figures."""
     return {k: v for k, v in row.items() if k != "wall_s" and not k.startswith("time/")}

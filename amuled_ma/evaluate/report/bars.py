@@ -7,9 +7,9 @@ against lambda_KL, a feedback budget as metric against the budget.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -26,6 +26,10 @@ from amuled_ma.evaluate.report.plotting import (
 )
 from amuled_ma.evaluate.results import ModeResult, Results, Stat
 from amuled_ma.tasks.colors import COLORS
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
 
 #: Metrics left out of the bar charts (book-keeping, or the shaping the base never sees).
 NOT_PLOTTED = ("terminated", "return_shaping", "return")
@@ -58,8 +62,8 @@ def _whiskers(
 
 
 def _hbars(
-    ax: Any,
-    positions: Sequence[float],
+    ax: Axes,
+    positions: np.ndarray,
     stats: Sequence[Stat | None],
     colors: Sequence[str],
     *,
@@ -122,7 +126,7 @@ def bars_figure(
     mode: str,
     title: str = "",
     colors: dict[str, str] | None = None,
-) -> Any | None:
+) -> Figure | None:
     """The metrics bar figure (see `plot_bars`); None without that mode."""
     results = Results.of(results)
     variants = results.in_mode(mode)
@@ -156,7 +160,7 @@ def bars_figure(
     return fig
 
 
-def interval_words(results: Any) -> str:
+def interval_words(results: Iterable[ModeResult]) -> str:
     """What the bars' whiskers and dots are, for a figure's title."""
     counts = {r.n_seeds for r in results if r.replicas and r.n_seeds >= 2}
     if not counts:
@@ -195,7 +199,7 @@ def ablation_figure(
     what: str,
     colors: dict[str, str] | None = None,
     mode: str = "greedy",
-) -> Any | None:
+) -> Figure | None:
     """An ablation's own figure: its fine-tunes against AMULED on the paper's metrics.
 
     ``kl``: each paper metric against lambda_KL (one point per fine-tune, 95% CI). Other
@@ -229,8 +233,8 @@ def ablation_figure(
     ]
     metrics = metrics or _plotted_metrics(results, tunes)[:4]
     colors = colors or variant_colors(results.variants)
-    panels = {name: results.variants[name].panel for name in tunes}
-    lambdas = {name: p.lambda_kl if p is not None else None for name, p in panels.items()}
+    entries = {name: results.variants[name].panel for name in tunes}
+    lambdas = {name: p.lambda_kl if p is not None else None for name, p in entries.items()}
     plt = pyplot()
     if what == "kl" and all(isinstance(v, int | float) for v in lambdas.values()):
         order = sorted(tunes, key=lambda n: (lambdas[n], n))
@@ -356,7 +360,8 @@ def budget_points(
         the name of the AMULED fine-tune that asked every state (None without one).
 
     """
-    points, full = [], None
+    points: list[dict[str, Any]] = []
+    full: str | None = None
     for name, entry in Results.of(results).variants.items():
         settings = entry.panel.distill if entry.panel is not None else None
         if not settings:
@@ -374,7 +379,7 @@ def budget_points(
     return points, full
 
 
-def budget_figure(results: Results | Mapping[str, Any], mode: str = "greedy") -> Any | None:
+def budget_figure(results: Results | Mapping[str, Any], mode: str = "greedy") -> Figure | None:
     """The budget ablation's figure: each paper metric against the budget.
 
     One panel per paper metric and one for the model's held-out agreement with the
@@ -460,7 +465,7 @@ def _sort_key(stat: Stat | None) -> float:
     return mean if math.isfinite(mean) else -math.inf
 
 
-def _base_line(ax: Any, base: ModeResult | None, metric: str, *, vertical: bool) -> None:
+def _base_line(ax: Axes, base: ModeResult | None, metric: str, *, vertical: bool) -> None:
     value = mean_of(base.metrics.get(metric) if base is not None else None)
     if not math.isfinite(value):
         return

@@ -13,7 +13,7 @@ import math
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -28,6 +28,9 @@ from amuled_ma.evaluate.report.plotting import (
 )
 from amuled_ma.evaluate.stats import t_quantile
 from amuled_ma.safe_files import checked_read_path
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 #: Curve keys plotted per task (the first that exists in a curve is used).
 CURVE_KEYS = {
@@ -164,7 +167,7 @@ def curves_figure(
     keys: list[str],
     title: str,
     colors: dict[str, str] | None = None,
-) -> Any | None:
+) -> Figure | None:
     """The learning-curve figure (see `plot_curves`); None when nothing to draw."""
     keys = [k for k in keys if any(k in row for cs in curves.values() for c in cs for row in c)]
     if not keys or not curves:

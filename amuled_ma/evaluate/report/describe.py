@@ -12,13 +12,15 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from amuled_ma.evaluate.results import PanelEntry, Results
 from amuled_ma.records import PanelRecord, RunRecord
 from amuled_ma.variants import Variant
 
 #: The feedbacks of a demonstrator (no panel of LLM agents).
+#: The KL-anchor recipes a record names, by the text a panel entry holds.
+_RECIPES: dict[str, Literal["equation", "authors"]] = {"equation": "equation", "authors": "authors"}
 _DEMONSTRATORS = {"human": "the synthetic human", "human:rules": "our human rule"}
 
 
@@ -67,7 +69,7 @@ def _from_entry(name: str, panel: PanelEntry) -> RunRecord:
             agent_sources=dict(panel.agent_sources or {}),
             distill=panel.distill,
         ),
-        recipe=panel.recipe if panel.recipe in ("equation", "authors") else None,
+        recipe=_RECIPES.get(panel.recipe or ""),
         lambda_kl=panel.lambda_kl,
         base_checkpoint=panel.base_checkpoint,
         iterations_planned=panel.iterations,

@@ -10,19 +10,25 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
 
 from amuled_ma.evaluate.results import Stat
 from amuled_ma.safe_files import atomic_writer
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
 
 #: Two means closer than this are "equal" (the difference table and the equals-base note).
 EQUAL_TOL = 1e-9
 _DPI = 110
 
 
-def pyplot() -> Any:
+def pyplot() -> ModuleType:
     """Matplotlib's pyplot on the headless Agg backend."""
     import matplotlib
 
@@ -114,7 +120,7 @@ def variant_colors(names: Iterable[str]) -> dict[str, str]:
 
 
 def robust_ylim(
-    series: Sequence[Sequence[float]],
+    series: Sequence[npt.ArrayLike],
     *,
     skip: float = 0.1,
     percentiles: tuple[float, float] = (2.0, 98.0),
@@ -173,7 +179,9 @@ def robust_ylim(
     return low, high, f"{'early ' if early_only else ''}values {side} the range clipped"
 
 
-def grid_axes(plt: Any, n: int, cols: int, width: float, height: float, **kwargs: Any) -> tuple:
+def grid_axes(
+    plt: ModuleType, n: int, cols: int, width: float, height: float, **kwargs: Any
+) -> tuple[Figure, list[Axes]]:
     """A figure of ``n`` panels, ``cols`` wide: ``(figure, [axes])``."""
     cols = max(1, min(cols, n))
     rows = math.ceil(n / cols)
@@ -184,7 +192,7 @@ def grid_axes(plt: Any, n: int, cols: int, width: float, height: float, **kwargs
     return fig, list(axes.flat)
 
 
-def legend_below(fig: Any, handles: list, labels: list[str], spare: list) -> None:
+def legend_below(fig: Figure, handles: list, labels: list[str], spare: list) -> None:
     """The figure's one legend: in the first unused panel, else below the panels."""
     if not handles:
         return
@@ -197,7 +205,7 @@ def legend_below(fig: Any, handles: list, labels: list[str], spare: list) -> Non
     )  # fmt: skip
 
 
-def save_figure(fig: Any, path: Path) -> Path:
+def save_figure(fig: Figure, path: Path) -> Path:
     """Write a figure as PNG (`atomic_writer`) and close it.
 
     Raises:

@@ -22,7 +22,7 @@ from amuled_ma.evaluate.paper import (
 )
 from amuled_ma.evaluate.report.bars import budget_points
 from amuled_ma.evaluate.report.plotting import EQUAL_TOL, format_stat, mean_of
-from amuled_ma.evaluate.results import ModeResult, Results
+from amuled_ma.evaluate.results import ModeResult, Results, Stat
 from amuled_ma.evaluate.stats import t_quantile
 
 
@@ -161,7 +161,7 @@ def servers_table(results: Results | Mapping[str, Any]) -> str:
     return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head), *lines]) + "\n"
 
 
-def _tv(value: Any) -> str:
+def _tv(value: float | None) -> str:
     return "-" if value is None else f"{float(value):.3f}"
 
 
@@ -374,7 +374,7 @@ _PHRASES: dict[str, tuple[str, str]] = {
 }
 
 
-def _numbers(stat: Any) -> str:
+def _numbers(stat: Stat | None) -> str:
     mean = mean_of(stat)
     return "n/a" if not math.isfinite(mean) else f"{mean:g}"
 
@@ -429,7 +429,7 @@ def paper_table(
 
 
 def difference_ci(
-    mine: Any, base: Any, confidence: float = 0.95
+    mine: Stat | None, base: Stat | None, confidence: float = 0.95
 ) -> tuple[float, float, float] | None:
     """A variant's mean minus the base's, with a Welch interval of the difference.
 
@@ -451,16 +451,16 @@ def difference_ci(
     if mine is None or base is None:
         return None
     a, b = mean_of(mine), mean_of(base)
-    if not (math.isfinite(a) and math.isfinite(b)) or not mine.n or not base.n:
+    na, nb, sa, sb = mine.n, base.n, mine.std, base.std
+    if not (math.isfinite(a) and math.isfinite(b)) or not na or not nb:
         return None
-    if any(s.std is None or not math.isfinite(s.std) or s.n < 2 for s in (mine, base)):
+    if sa is None or sb is None or not (math.isfinite(sa) and math.isfinite(sb)) or min(na, nb) < 2:
         return None  # one value (or none): the spread is unknown, no interval is claimed
-    sa, sb = float(mine.std), float(base.std)
-    va, vb = sa**2 / mine.n, sb**2 / base.n
+    va, vb = sa**2 / na, sb**2 / nb
     diff = a - b
     if va + vb <= 0:
         return diff, diff, diff
-    df = (va + vb) ** 2 / (va**2 / (mine.n - 1) + vb**2 / (base.n - 1))  # Welch-Satterthwaite
+    df = (va + vb) ** 2 / (va**2 / (na - 1) + vb**2 / (nb - 1))  # Welch-Satterthwaite
     half = t_quantile(df, confidence) * math.sqrt(va + vb)
     return diff, diff - half, diff + half
 

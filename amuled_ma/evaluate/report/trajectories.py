@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from amuled_ma.evaluate.report.plotting import (
     grid_axes,
@@ -21,6 +21,9 @@ from amuled_ma.evaluate.report.plotting import (
 from amuled_ma.evaluate.results import Results
 from amuled_ma.tasks.driving_drawing import draw_driving, driving_legend
 from amuled_ma.tasks.findmilk_drawing import draw_findmilk, findmilk_legend
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 
 def _trajectories(results: Results | Mapping[str, Any], mode: str) -> dict[str, dict[str, Any]]:
@@ -36,7 +39,7 @@ def findmilk_figure(
     results: Results | Mapping[str, Any],
     mode: str = "greedy",
     colors: dict[str, str] | None = None,
-) -> Any | None:
+) -> Figure | None:
     """The FindMilk trajectories (see `plot_findmilk`); None without that mode."""
     variants = _trajectories(results, mode)
     if not variants:
@@ -83,7 +86,7 @@ def driving_figure(
     results: Results | Mapping[str, Any],
     mode: str = "greedy",
     colors: dict[str, str] | None = None,
-) -> Any | None:
+) -> Figure | None:
     """The Driving episodes (see `plot_driving`); None without that mode."""
     variants = _trajectories(results, mode)
     if not variants:

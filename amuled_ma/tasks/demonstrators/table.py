@@ -68,14 +68,14 @@ class DemonstratorCacheError(AmuledError, ValueError):
 
 
 # ---------------------------------------------------------------------- arguments
-def check_seed(seed: Any) -> int:
+def check_seed(seed: object) -> int:
     """Return ``seed`` as an ``int``, or raise ``ValueError`` unless a non-negative integer."""
     if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
         raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
     return int(seed)
 
 
-def check_count(value: Any, label: str, minimum: int) -> int:
+def check_count(value: object, label: str, minimum: int) -> int:
     """Return ``value`` as an ``int``, or raise ``ValueError`` unless an integer >= minimum."""
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
         raise ValueError(f"{label}: expected an integer >= {minimum}, got {value!r}")
@@ -116,7 +116,7 @@ def _encoder(task_name: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     )
 
 
-def encode_observations(task_name: str, obs: Any) -> tuple[torch.Tensor, torch.Tensor]:
+def encode_observations(task_name: str, obs: object) -> tuple[torch.Tensor, torch.Tensor]:
     """Return the exact integer key of each observation and whether it could be keyed.
 
     The key is the mixed-radix number of the entries, each shifted by its lower bound
@@ -152,7 +152,7 @@ def encode_observations(task_name: str, obs: Any) -> tuple[torch.Tensor, torch.T
 
 
 # ---------------------------------------------------------------------- counts -> belief
-def counts_to_belief(counts: Any) -> torch.Tensor:
+def counts_to_belief(counts: object) -> torch.Tensor:
     """Turn per-state action counts into beliefs (the authors' ``0.6 / 0.4`` rule).
 
     With ``n = sum(c)``: if ``n > 20`` the counts are rescaled to total 20; then
@@ -280,7 +280,7 @@ class DemonstratorBelief:
         """Number of actions of the task."""
         return int(self.counts.shape[1])
 
-    def lookup(self, obs: Any) -> tuple[torch.Tensor, torch.Tensor]:
+    def lookup(self, obs: object) -> tuple[torch.Tensor, torch.Tensor]:
         """Return the belief of each observation and whether the demonstrator met it.
 
         Args:
