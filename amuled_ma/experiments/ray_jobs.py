@@ -162,6 +162,56 @@ def _count_sigterms() -> _SigtermCount:
     return counter
 
 
+class SignalsSeen:
+    """The signals this process received in a ``with`` block, whatever their handlers did.
+
+    A Python signal handler's exception is lost where Python cannot raise it: in a fork's
+    after-fork hooks (``logging``'s, run each time Ray starts one of its processes), a
+    ``__del__`` or a weakref callback ("Exception ignored in ..."). A SIGTERM that lands
+    there while ``ray.init`` runs would stop nothing, and Python would print the lost
+    exception's traceback. ``signal.set_wakeup_fd`` has the interpreter's C-level handler
+    write each signal's number to a pipe, before any Python handler runs; :attr:`numbers`
+    reads it when the block ends. In the block, a lost ``SystemExit`` or
+    ``KeyboardInterrupt`` (what a signal handler raises) is not printed
+    (``sys.unraisablehook``; any other goes to the hook before). Main thread only (else
+    :attr:`numbers` stays empty).
+    """
+
+    def __init__(self) -> None:
+        self.numbers: set[int] = set()
+        self._pipe: tuple[int, int] | None = None
+        self._previous = -1
+        self._hook = sys.unraisablehook
+
+    def _unraisable(self, unraisable: Any) -> None:
+        if not isinstance(unraisable.exc_value, SystemExit | KeyboardInterrupt):
+            self._hook(unraisable)
+
+    def __enter__(self) -> SignalsSeen:
+        if threading.current_thread() is threading.main_thread():
+            read, write = os.pipe()
+            os.set_blocking(read, False)
+            os.set_blocking(write, False)
+            self._pipe = (read, write)
+            self._previous = signal.set_wakeup_fd(write, warn_on_full_buffer=False)
+            self._hook = sys.unraisablehook
+            sys.unraisablehook = self._unraisable
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        if self._pipe is None:
+            return
+        signal.set_wakeup_fd(self._previous)
+        sys.unraisablehook = self._hook
+        read, write = self._pipe
+        with contextlib.suppress(BlockingIOError):
+            while chunk := os.read(read, 512):
+                self.numbers.update(chunk)
+        os.close(read)
+        os.close(write)
+        self._pipe = None
+
+
 def connect(address: str | None, workers: int) -> bool:
     """Connect to Ray: start a local one with ``workers`` CPUs, or join ``address``.
 
@@ -203,31 +253,37 @@ def connect(address: str | None, workers: int) -> bool:
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if address is None else None
     previous_term = signal.getsignal(signal.SIGTERM)
     ray_to_log()  # Ray's own notices (token authentication, ...) go to the log
+    seen = SignalsSeen()
     try:
         try:
-            if address is None:
-                ray.init(num_cpus=workers, include_dashboard=False, **options)
-            else:
-                ray.init(address=address, **options)
+            with seen:
+                if address is None:
+                    ray.init(num_cpus=workers, include_dashboard=False, **options)
+                else:
+                    ray.init(address=address, **options)
         finally:
             _restore_sigterm(previous_term)
             if previous is not None:
                 signal.signal(signal.SIGINT, previous)
-    except (ConnectionError, RuntimeError, ValueError) as error:
+        stopped = None
+    except (ConnectionError, RuntimeError, ValueError, SystemExit, KeyboardInterrupt) as error:
+        stopped = error
+    # A SIGTERM while ray.init ran stops the command, whatever ray.init did after it: Ray's
+    # handlers for that time call sys.exit (a local node's after killing its processes,
+    # which may fail ray.init with a ConnectionError), or their exception was lost.
+    if signal.SIGTERM in seen.numbers and previous_term not in (signal.SIG_IGN, None):
+        stopped = SystemExit(signal.SIGTERM)
+    if isinstance(stopped, SystemExit | KeyboardInterrupt):
+        disconnect()
+        if isinstance(stopped, SystemExit):  # only Ray's SIGTERM handlers call sys.exit here
+            raise Terminated(signal.SIGTERM) from None
+        raise stopped
+    if stopped is not None:
         where = address or "a local Ray"
         raise AmuledError(
-            f"--ray {where}: cannot connect ({_first_line(error)}); start the cluster with "
+            f"--ray {where}: cannot connect ({_first_line(stopped)}); start the cluster with "
             "'ray start --head' on its head node, or give no address for a local Ray"
-        ) from error
-    except (SystemExit, KeyboardInterrupt) as stop:
-        # only Ray's SIGTERM handlers call sys.exit while ray.init runs
-        _restore_sigterm(previous_term)
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
-        disconnect()
-        if isinstance(stop, SystemExit):
-            raise Terminated(signal.SIGTERM) from None
-        raise
+        ) from stopped
     if address is None and not ipaddress.ip_address(ray.util.get_node_ip_address()).is_loopback:
         print(
             f"amuled: note: the local Ray listens on {ray.util.get_node_ip_address()} too, "
