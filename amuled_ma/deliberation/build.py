@@ -256,7 +256,10 @@ def build_members(plan: PanelPlan, *, build: Any = build_source) -> Members:
                 source.close()
         if len(problems) == 1:
             error, label = problems[0]
-            text = f"{where}: {label}: {_without(error, where)}"
+            # a label names a key of the scenario ("[feedback.agents.care] ..."), or the
+            # cluster file that holds the table ("clusters/care.toml: [source] ...")
+            place = f"{where}: " if label.startswith("[") else ""
+            text = f"{place}{label}: {_without(error, where)}"
             wrapped: BaseException = ScenarioError(text)
             if isinstance(error, AmuledError):
                 with contextlib.suppress(TypeError):  # an error class with another signature
