@@ -22,6 +22,7 @@ import math
 import numbers
 import os
 import zipfile
+import zlib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -128,7 +129,7 @@ def check_table_memory(path: Path, fix: str) -> None:
                         "demonstrator table may take (the authors' Driving table takes "
                         f"under 1 MB); it is not loaded; {fix}"
                     )
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as err:
         if isinstance(err, DemonstratorCacheError):
             raise
         reason = " ".join(str(err).split())[:200]
@@ -433,7 +434,8 @@ class DemonstratorBelief:
                 counts = data["counts"]
                 task = str(data["task"])
                 settings = json.loads(str(data["settings"]))
-        except (OSError, ValueError, KeyError, json.JSONDecodeError) as err:
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+            # a damaged member: a bad CRC (BadZipFile), a broken deflate stream (zlib.error)
             raise DemonstratorCacheError(
                 f"{path}: not a readable demonstrator cache ({err}); {fix}"
             ) from err
