@@ -5,9 +5,9 @@
 (``unshare -n -p -f --kill-child --mount-proc``: loopback only, so nothing leaves the
 machine and Ray cannot pick an external interface; and this script's Ray processes alone
 in sight). Each time it waits until the driver has started the local Ray's
-``gcs_server``, waits a further delay spread over Ray's start (0 to ``--spread`` seconds,
-stepped through the runs so each point of ``ray.init`` is hit), sends SIGTERM to the
-driver alone, and records its exit status (``hang`` when it has not exited within
+``gcs_server``, waits a further delay spread over Ray's start (0 to ``--spread``
+seconds, by the golden-ratio sequence, so the first runs already cover that time), sends
+SIGTERM to the driver alone, and records its exit status (``hang`` when it has not exited within
 ``--wait`` seconds; it is then killed), whether its stderr is the one line
 ``amuled: terminated (SIGTERM)`` (Ray's C++ core warning about a missing route out,
 which Ray prints before its logger is set, set aside), and whether a run folder was
@@ -140,7 +140,7 @@ def inside(count: int, spread: float, wait: float, work: Path) -> int:
     codes: collections.Counter[str] = collections.Counter()
     bad = 0
     for index in range(count):
-        delay = spread * index / max(count - 1, 1)
+        delay = spread * ((index * 0.6180339887) % 1.0)  # any first runs spread evenly
         result = one_run(work, index, delay, wait)
         ok = result["code"] == 143 and result.get("one_line") and not result.get("folder_left")
         bad += not ok

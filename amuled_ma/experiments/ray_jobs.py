@@ -56,7 +56,7 @@ from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from amuled_ma.clusters.plugins import allowed_plugins, set_allowed_plugins
 from amuled_ma.deliberation.plan import store_path
-from amuled_ma.errors import AmuledError, Terminated
+from amuled_ma.errors import AmuledError, Terminated, TerminatedWhileStarting
 from amuled_ma.experiments.population_jobs import population_failure, train_population_jobs
 from amuled_ma.experiments.ray_store import start_store_actors
 from amuled_ma.experiments.ray_switches import SINGLE_MACHINE_ENV
@@ -64,6 +64,7 @@ from amuled_ma.experiments.run_folder import JobResult, TrainJob, checkpoint_sta
 from amuled_ma.experiments.third_party_log import ray_to_log
 from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.config import planned_iterations
+from amuled_ma.safe_files import write_text_atomic
 
 #: In a job folder: the sweep whose attempt started it (a retry of the same sweep resumes).
 SWEEP_MARK = ".amuled-sweep"
@@ -237,8 +238,8 @@ def connect(address: str | None, workers: int) -> bool:
 
     Raises:
         AmuledError: No cluster answers at ``address``, naming it and the fix.
-        KeyboardInterrupt: SIGTERM (:class:`~amuled_ma.errors.Terminated`) or Ctrl-C while
-            connecting; what Ray had started is shut down.
+        KeyboardInterrupt: SIGTERM (:class:`~amuled_ma.errors.TerminatedWhileStarting`)
+            or Ctrl-C while connecting; what Ray had started is shut down.
 
     """
     if ray.is_initialized():
@@ -276,7 +277,7 @@ def connect(address: str | None, workers: int) -> bool:
     if isinstance(stopped, SystemExit | KeyboardInterrupt):
         disconnect()
         if isinstance(stopped, SystemExit):  # only Ray's SIGTERM handlers call sys.exit here
-            raise Terminated(signal.SIGTERM) from None
+            raise TerminatedWhileStarting(signal.SIGTERM) from None
         raise stopped
     if stopped is not None:
         where = address or "a local Ray"
@@ -469,7 +470,7 @@ def _marked(job: TrainJob, sweep: str, node: str, *, announce: bool) -> TrainJob
     mark = out_dir / SWEEP_MARK
     retry = mark.is_file() and mark.read_text() == sweep
     out_dir.mkdir(parents=True, exist_ok=True)
-    mark.write_text(sweep)
+    write_text_atomic(mark, sweep)
     if retry:
         state = checkpoint_state(out_dir / LAST) or {}
         print(
@@ -599,7 +600,7 @@ def _sweep(
     try:  # from here on a signal stops the jobs submitted so far, each with its checkpoint
         for run_dir in run_dirs:
             run_dir.mkdir(parents=True, exist_ok=True)
-            (run_dir / SHARED_TOKEN).write_text(token)
+            write_text_atomic(run_dir / SHARED_TOKEN, token)
         driver_node = ray.get_runtime_context().get_node_id()
         # on the driver's node: an actor on a node that dies would take the bar with it
         here = NodeAffinitySchedulingStrategy(driver_node, soft=False)
@@ -657,7 +658,7 @@ def _sweep(
         # before any cancel frees a CPU that Ray could give a queued task: the stop mark,
         # then the queued tasks (submitted last) first
         for run_dir in run_dirs:
-            (run_dir / STOP_MARK).write_text(sweep)
+            write_text_atomic(run_dir / STOP_MARK, sweep)
         for ref in reversed(waiting):
             ray.cancel(ref)
         for ref in waiting:
