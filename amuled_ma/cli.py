@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import errno
 import importlib
+import os
 import pkgutil
 import re
 import signal
@@ -28,6 +29,7 @@ from amuled_ma.errors import (
     EXIT_USAGE,
     AmuledError,
     Terminated,
+    TerminatedWhileStarting,
 )
 from amuled_ma.experiments.third_party_log import third_party_to_log
 
@@ -162,7 +164,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     checkpoint and the command exits with 143 (Ctrl-C: 130).
 
     Args:
-        argv: Arguments without the program name; ``None`` reads ``sys.argv``.
+        argv: Arguments without the program name; ``None`` reads ``sys.argv``: this
+            process's own command line, which a SIGTERM while Ray starts ends at once
+            (``os._exit(143)``) after its line.
 
     Returns:
         0 on success, 1 on a reported error, 2 on a usage error, 130 when interrupted,
@@ -180,7 +184,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         with third_party_to_log():  # other libraries' warnings: to the log, not the output
             return int(args.handler(args) or EXIT_OK)
     except FAILURES as error:
-        return report_failure(error, debug=args.debug)
+        code = report_failure(error, debug=args.debug)
+        if argv is None and isinstance(error, TerminatedWhileStarting):
+            # this process's own command line: end it now, past the interpreter's exit,
+            # which may hang or crash in what ray.init left half-built
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code)
+        return code
     finally:
         signal.signal(signal.SIGTERM, previous)
         sys.stdout.flush()

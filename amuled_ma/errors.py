@@ -88,6 +88,16 @@ class Terminated(KeyboardInterrupt):
     exit_code: ClassVar[int] = EXIT_TERMINATED
 
 
+class TerminatedWhileStarting(Terminated):
+    """SIGTERM while Ray started (``ray.init``), before any work of the command.
+
+    Nothing of the command is left to finish (no run folder, no checkpoint), while the
+    interpreter's own exit may wait on, or crash in, what ``ray.init`` left half-built
+    (its threads, its exit hooks): the command line ends the process at once after its
+    line (:func:`amuled_ma.cli.main`).
+    """
+
+
 class MemberFailed(AmuledError):
     """One member of a training population failed (a non-finite gradient, its feedback).
 

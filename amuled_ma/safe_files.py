@@ -37,8 +37,12 @@ class UnsafePathError(AmuledError, ValueError):
     """A path to write is not a regular file, or a file to read is a link or leaves its folder."""
 
 
-class FileWriteError(AmuledError):
-    """A file could not be written (a full disk, a read-only folder); the old file is kept."""
+class FileWriteError(AmuledError, OSError):
+    """A file could not be written (a full disk, a read-only folder); the old file is kept.
+
+    An :class:`OSError` too: code that goes on when a write fails (a job's state marked
+    failed on a full disk) goes on for this one line as for the system's error.
+    """
 
 
 #: ``st_mode`` file types, in words, for the refusals.
@@ -103,37 +107,61 @@ def check_write_targets(paths: Iterable[str | os.PathLike[str]]) -> None:
         check_write_target(path)
 
 
+def failure_fix(code: int | None, then: str, *, elsewhere: str | None = None) -> str:
+    """What to do about a write that failed with ``errno`` ``code``, ending ``then ...``.
+
+    Args:
+        code: The error's ``errno`` (None: unknown).
+        then: What to run once it is fixed (``"run the command again"``, ``"resume with
+            --resume"``).
+        elsewhere: Where else to write, said in brackets beside a full disk or a folder not
+            writable (``"write into another --run-dir"``); None says nothing.
+
+    Returns:
+        ``"free some disk space, then ..."`` (no space, a quota), ``"raise the file-size
+        limit (ulimit -f), then ..."``, ``"make the folder writable, then ..."`` (no
+        permission, a read-only file system), else ``"check the folder and the disk, then ..."``.
+
+    """
+    aside = f" (or {elsewhere})" if elsewhere else ""
+    if code in (errno.ENOSPC, errno.EDQUOT):
+        return f"free some disk space{aside}, then {then}"
+    if code == errno.EFBIG:
+        return f"raise the file-size limit (ulimit -f), then {then}"
+    if code in (errno.EACCES, errno.EPERM, errno.EROFS):
+        return f"make the folder writable{aside}, then {then}"
+    return f"check the folder and the disk, then {then}"
+
+
 def write_failure(
-    path: Path | str, error: OSError, fix: str | None = None, *, kept: str | None = None
+    path: Path | str,
+    error: OSError,
+    fix: str | None = None,
+    *,
+    kept: str | None = None,
+    what: str = "",
 ) -> str:
     """The one line of a file that could not be written.
 
     Args:
         path: The file (or what was written, in words, with ``kept`` given).
         error: What the system said.
-        fix: What to do, last; default: by the error's kind (free disk space, make the
-            folder writable, raise the file-size limit, check the folder).
+        fix: What to do, last; default: :func:`failure_fix` of the error, then run the
+            command again.
         kept: What is left on disk (default: ``the old file is kept`` when ``path`` is a
             file, else ``nothing was written``).
+        what: What the file is, before its path (``"checkpoint "``).
 
     Returns:
-        ``"cannot write PATH: WHY; KEPT; FIX"``.
+        ``"cannot write WHAT PATH: WHY; KEPT; FIX"``.
 
     """
-    code = error.errno
     why = " ".join((error.strerror or str(error)).split())[:200]
     if fix is None:
-        if code in (errno.ENOSPC, errno.EDQUOT):
-            fix = "free some disk space, then run the command again"
-        elif code == errno.EFBIG:
-            fix = "raise the file-size limit (ulimit -f), then run the command again"
-        elif code in (errno.EACCES, errno.EPERM, errno.EROFS):
-            fix = "make the folder writable, or write somewhere else"
-        else:
-            fix = "check the folder and the disk, then run the command again"
+        fix = failure_fix(error.errno, "run the command again")
     if kept is None:
         kept = "the old file is kept" if Path(path).is_file() else "nothing was written"
-    return f"cannot write {path}: {why}; {kept}; {fix}"
+    return f"cannot write {what}{path}: {why}; {kept}; {fix}"
 
 
 def _create_temp(path: Path) -> tuple[int, Path]:
@@ -270,6 +298,56 @@ def write_text_atomic(
     with atomic_writer(path, text=True, encoding=encoding, newline="", fix=fix) as handle:
         handle.write(text)
     return Path(path)
+
+
+def append_text(path: str | os.PathLike[str], text: str, *, fix: str | None = None) -> Path:
+    """Append ``text`` (UTF-8) to ``path``, creating it; never through a link.
+
+    For a file that grows a record at a time (a line cut short by a crash is its
+    reader's to skip). The target is checked (:func:`check_write_target`), then opened
+    with ``O_APPEND | O_CREAT | O_NOFOLLOW`` and checked again on the open file, so a link
+    or a FIFO put there in between is refused too.
+
+    Args:
+        path: The file; its folder must exist.
+        text: What to add at its end.
+        fix: The fix said when the write fails (default: by the error,
+            :func:`write_failure`).
+
+    Returns:
+        ``path``.
+
+    Raises:
+        UnsafePathError: ``path`` is not absent nor a regular file; nothing was written.
+        FileWriteError: The write failed (a full disk): one line naming ``path``.
+
+    """
+    path = check_write_target(path)
+    flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK
+    try:
+        fd = os.open(path, flags, 0o666)
+    except OSError as error:
+        if error.errno in (errno.ELOOP, errno.ENXIO):  # a link, a FIFO put there meanwhile
+            check_write_target(path)
+        raise FileWriteError(write_failure(path, error, fix, kept="nothing was written")) from error
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):  # put there between the check and the open
+            raise UnsafePathError(
+                f"{path}: is {_kind(path, mode)}, not a regular file; amuled writes only "
+                "regular files and never through a link; nothing was written; give the path "
+                "of a new or a regular file"
+            )
+        with os.fdopen(fd, "ab", closefd=False) as handle:
+            handle.write(text.encode("utf-8"))
+            handle.flush()
+    except OSError as error:
+        raise FileWriteError(
+            write_failure(path, error, fix, kept="what was written before is kept")
+        ) from error
+    finally:
+        os.close(fd)
+    return path
 
 
 def checked_read_path(folder: str | os.PathLike[str], name: str | os.PathLike[str]) -> Path:

@@ -413,3 +413,97 @@ def test_set_lists(key: str, value: str) -> None:
         apply()
     except AmuledError as error:
         assert "\n" not in str(error).strip()
+
+
+#: Bodies a study participant's browser could send: JSON-like values (dicts with the
+#: fields' names among their keys), raw bytes, and well-formed answers with generated fields.
+study_fields = st.sampled_from(["participant", "token", "item", "choice", "ms", "ratings",
+                                "prolific", "judged", "source"])  # fmt: skip
+study_bodies = st.one_of(
+    st.binary(max_size=80),
+    values.map(lambda v: json.dumps(v).encode("utf-8", "surrogatepass")),
+    st.dictionaries(study_fields, values, max_size=6).map(
+        lambda d: json.dumps(d).encode("utf-8", "surrogatepass")
+    ),
+)
+
+
+@pytest.fixture
+def study_client(tmp_path_factory):
+    """The real study app, started once, with one participant's session: ``(client, own)``."""
+    sys.path.insert(0, str(REPO / "tests" / "study"))
+    from starlette.testclient import TestClient
+    from study_fixtures import hand_study
+
+    from amuled_ma.study.server import StudyApp
+
+    study = StudyApp(hand_study(tmp_path_factory.mktemp("study") / "s"))
+    with TestClient(study.app, raise_server_exceptions=False) as client:
+        me = client.post("/api/session", json={}).json()
+        yield client, {"participant": me["participant"], "token": me["token"], "item": "q001"}
+
+
+@seed(24)
+@settings(FUZZ, max_examples=25)
+@given(path=st.sampled_from(["/api/session", "/api/answer"]), body=study_bodies,
+       fields=st.dictionaries(study_fields, values, max_size=4))  # fmt: skip
+def test_study_requests(study_client, path: str, body: bytes, fields: dict) -> None:
+    """A request to the real study app: 200 or a 4xx with a short error, never a 500."""
+    client, own = study_client
+    answer = {**own, "choice": "A", "ms": 5, "ratings": {"A": 1, "B": 2}, **fields}
+    for sent in (body, json.dumps(answer).encode("utf-8", "surrogatepass")):
+        reply = client.post(path, content=sent)
+        assert reply.status_code < 500, (sent[:80], reply.text[:200])
+        if reply.status_code >= 400:
+            error = reply.json()["error"]
+            assert isinstance(error, str) and 0 < len(error) < 500, error
+
+
+_TABLE: bytes | None = None
+
+
+def _npy(shape: tuple[int, ...], descr: str) -> bytes:
+    import io
+
+    buffer = io.BytesIO()
+    np.lib.format.write_array_header_2_0(
+        buffer, {"descr": descr, "fortran_order": False, "shape": shape}
+    )
+    return buffer.getvalue()
+
+
+@seed(24)
+@settings(FUZZ, max_examples=30)
+@given(flips=st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 255)), max_size=4),
+       shape=st.lists(st.integers(0, 2**62), min_size=0, max_size=3).map(tuple),
+       descr=st.sampled_from(["<i8", "<f4", "|O", "<U8", "|V16", "<i8,<i8", "x"]),
+       member=st.sampled_from(["states.npy", "counts.npy", "task.npy", "settings.npy"]),
+       tail=st.binary(max_size=64))  # fmt: skip
+def test_demonstrator_tables(tmp_path_factory, flips, shape, descr: str, member: str, tail) -> None:
+    """A demonstrator ``.npz``: a table, or one ``AmuledError`` line; never MemoryError."""
+    import zipfile
+
+    import torch
+
+    from amuled_ma.tasks.demonstrators import DemonstratorBelief
+
+    folder = tmp_path_factory.mktemp("npz")
+    global _TABLE
+    if _TABLE is None:  # one honest table's bytes (saving fsyncs: not once per example)
+        table = DemonstratorBelief(
+            "findmilk", torch.arange(3, dtype=torch.int64), torch.ones(3, 4, dtype=torch.int64),
+            {"task": "findmilk", "seed": 1, "episodes": 1},
+        )  # fmt: skip
+        _TABLE = table.save(folder / "honest.npz").read_bytes()
+    flipped = bytearray(_TABLE)
+    for at, byte in flips:
+        flipped[at % len(flipped)] = byte
+    (folder / "flipped.npz").write_bytes(bytes(flipped))
+    try:
+        header = _npy(shape, descr)
+    except ValueError:  # a dtype numpy cannot describe in a header
+        header = b"\x93NUMPY" + tail
+    with zipfile.ZipFile(folder / "claims.npz", "w") as archive:
+        archive.writestr(member, header + tail)
+    for name in ("flipped.npz", "claims.npz"):
+        _ok_or_amuled(lambda name=name: DemonstratorBelief.load(folder / name))

@@ -421,7 +421,10 @@ def build_members(plan: PanelPlan, *, build: Callable[..., BeliefSource] = build
                 source.close()
         if len(problems) == 1:
             first, label = problems[0]
-            text = f"{where}: {label}: {_without(first, where)}"
+            # a label names a key of the scenario ("[feedback.agents.care] ..."), or the
+            # cluster file that holds the table ("clusters/care.toml: [source] ...")
+            place = f"{where}: " if label.startswith("[") else ""
+            text = f"{place}{label}: {_without(first, where)}"
             wrapped: BaseException = ScenarioError(text)
             if isinstance(first, AmuledError):
                 with contextlib.suppress(TypeError):  # an error class with another signature

@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -236,6 +236,22 @@ def with_cluster_sources(scenario: Scenario, clusters: Sequence[Cluster]) -> Sce
     return scenario.replace("feedback", agents={**defaults, **tables})
 
 
+def cluster_source_files(scenario: Scenario, clusters: Sequence[Any]) -> dict[str, str]:
+    """The file of each cluster whose ``[source]`` :func:`with_cluster_sources` merges in.
+
+    Returns:
+        ``{cluster name: its file}``, for messages about that source (they name the file
+        that holds the table, not the scenario).
+
+    """
+    named = match_agents(list(scenario.feedback.agents), clusters)
+    return {
+        c.name: str(c.path)
+        for c in clusters
+        if getattr(c, "source", None) and c.name not in named and getattr(c, "path", None)
+    }
+
+
 def default_source(scenario: Scenario) -> SourcePlan:
     """The source of ``[feedback].source`` (what every agent without a table uses).
 
@@ -251,27 +267,38 @@ def default_source(scenario: Scenario) -> SourcePlan:
     return SourcePlan(fb.source, options, f"[feedback].source = {fb.source!r}{note}")
 
 
-def agent_source(scenario: Scenario, name: str, spec: AgentSpec) -> SourcePlan:
+def agent_source(
+    scenario: Scenario, name: str, spec: AgentSpec, file: str | None = None
+) -> SourcePlan:
     """The source of one ``[feedback.agents.<name>]`` spec, ``[feedback]``'s values inherited.
+
+    Args:
+        scenario: The scenario.
+        name: The agent's table name.
+        spec: Its spec.
+        file: The cluster file whose ``[source]`` the table is (None: the scenario's own);
+            the label then starts with that file (``"clusters/care.toml: [source] ..."``).
 
     Raises:
         ScenarioError: The agent's recording is not found.
 
     """
-    head = f"[feedback.agents.{name}]"
+    head = f"{file}: [source]" if file else f"[feedback.agents.{name}]"
     options = spec.source_options(scenario, head)
     detail = spec.detail(options) + (RULES_NOTE if spec.source == "rules" else "")
     return SourcePlan(spec.source, options, f"{head} (source {spec.source!r}{detail})")
 
 
 def plan_sources(
-    scenario: Scenario, agents: Sequence[str | Cluster]
+    scenario: Scenario, agents: Sequence[str | Cluster], files: Mapping[str, str] | None = None
 ) -> tuple[dict[str, SourcePlan], SourcePlan | None, list[tuple[BaseException, str]]]:
     """Each panel agent's source.
 
     Args:
         scenario: The scenario (with the cluster files' ``[source]`` tables merged in).
         agents: The panel's agents: names or cluster objects (see ``match_agents``).
+        files: :func:`cluster_source_files` of the scenario before the merge (the tables
+            that came from a cluster file, named by that file).
 
     Returns:
         ``({agent: source}`` for agents with a table, the default source (None when
@@ -284,12 +311,14 @@ def plan_sources(
     names = [a if isinstance(a, str) else a.name for a in agents]
     routes: dict[str, SourcePlan] = {}
     problems: list[tuple[BaseException, str]] = []
+    files = files or {}
     for agent, table in matched.items():
         try:
-            routes[agent] = agent_source(scenario, table, tables[table])
+            routes[agent] = agent_source(scenario, table, tables[table], files.get(table))
         except AmuledError as error:
             kind = tables[table].source
-            problems.append((error, f"[feedback.agents.{table}] (source {kind!r})"))
+            head = f"{files[table]}: [source]" if table in files else f"[feedback.agents.{table}]"
+            problems.append((error, f"{head} (source {kind!r})"))
     default = None
     others = [a for a in names if a not in matched]
     if others:
@@ -369,6 +398,7 @@ def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
         return dataclasses.replace(base, variant="human:rules" if arg == "rules" else variant)
     registry = cluster_registry(scenario)
     clusters, rule = panel_of(variant, scenario, registry)
+    files = cluster_source_files(scenario, clusters)
     scenario = with_cluster_sources(scenario, clusters)
     fused = _fused_only_recording(scenario)
     if fused is not None and match_agents(list(scenario.feedback.agents), clusters):
@@ -386,7 +416,7 @@ def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
                 'recording = "driving-llama-3_1-70b"'
             )
         return dataclasses.replace(base, fused_recording=fused)
-    routes, default, problems = plan_sources(scenario, clusters)
+    routes, default, problems = plan_sources(scenario, clusters, files)
     replays = any(p.kind == "replay" for p in [*routes.values(), default] if p is not None)
     return dataclasses.replace(
         base,

@@ -15,7 +15,8 @@ In the fine-tune's folder:
   the store (a cache hit) the next time it is visited.
 
 Nothing here is written into the belief store: the store holds exactly the panel's
-answers to the asked states.
+answers to the asked states. Both files are written and read back through
+:mod:`amuled_ma.safe_files`: never through a link, only regular files inside the folder.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from amuled_ma.errors import AmuledError
 from amuled_ma.file_limits import check_size, read_bounded_bytes, read_line
+from amuled_ma.safe_files import append_text, atomic_writer, checked_read_path
 
 #: File of the budget ledger and counters.
 LEDGER_FILE = "distill.json"
@@ -266,11 +268,13 @@ class StateFiles:
             AmuledError: It is larger than :data:`MAX_LEDGER_BYTES` (refused before it is
                 read) or not readable JSON of this format; the message names the file and
                 ``--force`` (start over).
+            UnsafePathError: It is a link or not a regular file (nothing is read).
 
         """
+        ledger = checked_read_path(self.folder, LEDGER_FILE)
         try:
             raw = read_bounded_bytes(
-                self.ledger,
+                ledger,
                 MAX_LEDGER_BYTES,
                 "budget state",
                 note="a budget of 1,000,000 asked states is about 740 MB",
@@ -292,25 +296,31 @@ class StateFiles:
         return data
 
     def save(self, data: Mapping[str, Any]) -> None:
-        """Write the ledger atomically (temporary file, flush, ``os.replace``)."""
+        """Write the ledger whole or not at all, never through a link.
+
+        Raises:
+            UnsafePathError: The ledger is a link or not a regular file; nothing written.
+            FileWriteError: The write failed (a full disk); the old ledger is kept.
+
+        """
         self.folder.mkdir(parents=True, exist_ok=True)
-        tmp = self.ledger.with_name(f".{self.ledger.name}.{os.getpid()}.tmp")
-        with tmp.open("w", encoding="utf-8") as handle:
+        with atomic_writer(self.ledger, text=True) as handle:
             json.dump({"format": FORMAT, **data}, handle, separators=(",", ":"))
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, self.ledger)
         self.saved_at = time.monotonic()
 
     def append(self, records: Iterable[Mapping[str, Any]]) -> None:
-        """Append training pairs, one JSON line each, and flush."""
+        """Append training pairs, one JSON line each, never through a link.
+
+        Raises:
+            UnsafePathError: The pairs file is a link or not a regular file.
+            FileWriteError: The write failed (a full disk); the pairs before are kept.
+
+        """
         lines = "".join(json.dumps(r, separators=(",", ":")) + "\n" for r in records)
         if not lines:
             return
         self.folder.mkdir(parents=True, exist_ok=True)
-        with self.examples.open("a", encoding="utf-8") as handle:
-            handle.write(lines)
-            handle.flush()
+        append_text(self.examples, lines)
 
     def read_examples(self) -> list[tuple[str, Example]]:
         """Every training pair written (a cut last line is skipped), with its ``FILE:LINE``.
@@ -320,9 +330,10 @@ class StateFiles:
                 not an :class:`Example` (a key, finite numbers, nothing else), the file is
                 larger than :data:`MAX_EXAMPLES_BYTES` or a line longer than
                 :data:`MAX_EXAMPLE_LINE_BYTES` (refused before it is read whole).
+            UnsafePathError: It is a link or not a regular file (nothing is read).
 
         """
-        if not self.examples.is_file():
+        if not checked_read_path(self.folder, EXAMPLES_FILE).is_file():
             return []
         fix = f"the file was edited or is not this run's; {_START_OVER}"
         out = []

@@ -55,7 +55,7 @@ import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from amuled_ma.clusters.plugins import allowed_plugins, set_allowed_plugins
-from amuled_ma.errors import AmuledError, Terminated
+from amuled_ma.errors import AmuledError, Terminated, TerminatedWhileStarting
 from amuled_ma.experiments.population_jobs import population_failure, train_population_jobs
 from amuled_ma.experiments.ray_store import start_store_actors
 from amuled_ma.experiments.ray_switches import SINGLE_MACHINE_ENV
@@ -67,6 +67,7 @@ from amuled_ma.experiments.run_folder import (
 )
 from amuled_ma.experiments.third_party_log import ray_to_log
 from amuled_ma.learn.checkpoints import LAST
+from amuled_ma.safe_files import write_text_atomic
 
 if TYPE_CHECKING:
     from types import FrameType
@@ -171,6 +172,56 @@ def _count_sigterms() -> _SigtermCount:
     return counter
 
 
+class SignalsSeen:
+    """The signals this process received in a ``with`` block, whatever their handlers did.
+
+    A Python signal handler's exception is lost where Python cannot raise it: in a fork's
+    after-fork hooks (``logging``'s, run each time Ray starts one of its processes), a
+    ``__del__`` or a weakref callback ("Exception ignored in ..."). A SIGTERM that lands
+    there while ``ray.init`` runs would stop nothing, and Python would print the lost
+    exception's traceback. ``signal.set_wakeup_fd`` has the interpreter's C-level handler
+    write each signal's number to a pipe, before any Python handler runs; :attr:`numbers`
+    reads it when the block ends. In the block, a lost ``SystemExit`` or
+    ``KeyboardInterrupt`` (what a signal handler raises) is not printed
+    (``sys.unraisablehook``; any other goes to the hook before). Main thread only (else
+    :attr:`numbers` stays empty).
+    """
+
+    def __init__(self) -> None:
+        self.numbers: set[int] = set()
+        self._pipe: tuple[int, int] | None = None
+        self._previous = -1
+        self._hook = sys.unraisablehook
+
+    def _unraisable(self, unraisable: Any) -> None:
+        if not isinstance(unraisable.exc_value, SystemExit | KeyboardInterrupt):
+            self._hook(unraisable)
+
+    def __enter__(self) -> SignalsSeen:
+        if threading.current_thread() is threading.main_thread():
+            read, write = os.pipe()
+            os.set_blocking(read, False)
+            os.set_blocking(write, False)
+            self._pipe = (read, write)
+            self._previous = signal.set_wakeup_fd(write, warn_on_full_buffer=False)
+            self._hook = sys.unraisablehook
+            sys.unraisablehook = self._unraisable
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        if self._pipe is None:
+            return
+        signal.set_wakeup_fd(self._previous)
+        sys.unraisablehook = self._hook
+        read, write = self._pipe
+        with contextlib.suppress(BlockingIOError):
+            while chunk := os.read(read, 512):
+                self.numbers.update(chunk)
+        os.close(read)
+        os.close(write)
+        self._pipe = None
+
+
 def connect(address: str | None, workers: int) -> bool:
     """Connect to Ray: start a local one with ``workers`` CPUs, or join ``address``.
 
@@ -196,8 +247,8 @@ def connect(address: str | None, workers: int) -> bool:
 
     Raises:
         AmuledError: No cluster answers at ``address``, naming it and the fix.
-        KeyboardInterrupt: SIGTERM (:class:`~amuled_ma.errors.Terminated`) or Ctrl-C while
-            connecting; what Ray had started is shut down.
+        KeyboardInterrupt: SIGTERM (:class:`~amuled_ma.errors.TerminatedWhileStarting`)
+            or Ctrl-C while connecting; what Ray had started is shut down.
 
     """
     if ray.is_initialized():
@@ -212,31 +263,37 @@ def connect(address: str | None, workers: int) -> bool:
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if address is None else None
     previous_term = signal.getsignal(signal.SIGTERM)
     ray_to_log()  # Ray's own notices (token authentication, ...) go to the log
+    seen = SignalsSeen()
     try:
         try:
-            if address is None:
-                ray.init(num_cpus=workers, include_dashboard=False, **options)
-            else:
-                ray.init(address=address, **options)
+            with seen:
+                if address is None:
+                    ray.init(num_cpus=workers, include_dashboard=False, **options)
+                else:
+                    ray.init(address=address, **options)
         finally:
             _restore_sigterm(previous_term)
             if previous is not None:
                 signal.signal(signal.SIGINT, previous)
-    except (ConnectionError, RuntimeError, ValueError) as error:
+        stopped = None
+    except (ConnectionError, RuntimeError, ValueError, SystemExit, KeyboardInterrupt) as error:
+        stopped = error
+    # A SIGTERM while ray.init ran stops the command, whatever ray.init did after it: Ray's
+    # handlers for that time call sys.exit (a local node's after killing its processes,
+    # which may fail ray.init with a ConnectionError), or their exception was lost.
+    if signal.SIGTERM in seen.numbers and previous_term not in (signal.SIG_IGN, None):
+        stopped = SystemExit(signal.SIGTERM)
+    if isinstance(stopped, SystemExit | KeyboardInterrupt):
+        disconnect()
+        if isinstance(stopped, SystemExit):  # only Ray's SIGTERM handlers call sys.exit here
+            raise TerminatedWhileStarting(signal.SIGTERM) from None
+        raise stopped
+    if stopped is not None:
         where = address or "a local Ray"
         raise AmuledError(
-            f"--ray {where}: cannot connect ({_first_line(error)}); start the cluster with "
+            f"--ray {where}: cannot connect ({_first_line(stopped)}); start the cluster with "
             "'ray start --head' on its head node, or give no address for a local Ray"
-        ) from error
-    except (SystemExit, KeyboardInterrupt) as stop:
-        # only Ray's SIGTERM handlers call sys.exit while ray.init runs
-        _restore_sigterm(previous_term)
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
-        disconnect()
-        if isinstance(stop, SystemExit):
-            raise Terminated(signal.SIGTERM) from None
-        raise
+        ) from stopped
     if address is None and not ipaddress.ip_address(ray.util.get_node_ip_address()).is_loopback:
         print(
             f"amuled: note: the local Ray listens on {ray.util.get_node_ip_address()} too, "
@@ -422,7 +479,7 @@ def _marked(job: TrainJob, sweep: str, node: str, *, announce: bool) -> TrainJob
     mark = out_dir / SWEEP_MARK
     retry = mark.is_file() and mark.read_text() == sweep
     out_dir.mkdir(parents=True, exist_ok=True)
-    mark.write_text(sweep)
+    write_text_atomic(mark, sweep)
     if retry:
         state = checkpoint_state(out_dir / LAST) or {}
         print(
@@ -562,7 +619,7 @@ def _sweep(
     try:  # from here on a signal stops the jobs submitted so far, each with its checkpoint
         for run_dir in run_dirs:
             run_dir.mkdir(parents=True, exist_ok=True)
-            (run_dir / SHARED_TOKEN).write_text(token)
+            write_text_atomic(run_dir / SHARED_TOKEN, token)
         driver_node = ray.get_runtime_context().get_node_id()
         # on the driver's node: an actor on a node that dies would take the bar with it
         here = NodeAffinitySchedulingStrategy(driver_node, soft=False)
@@ -621,7 +678,7 @@ def _sweep(
         # before any cancel frees a CPU that Ray could give a queued task: the stop mark,
         # then the queued tasks (submitted last) first
         for run_dir in run_dirs:
-            (run_dir / STOP_MARK).write_text(sweep)
+            write_text_atomic(run_dir / STOP_MARK, sweep)
         for ref in reversed(waiting):
             ray.cancel(ref)
         for ref in waiting:

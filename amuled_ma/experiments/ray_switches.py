@@ -22,6 +22,12 @@ SINGLE_MACHINE_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
 FAILURE_HANDLER_ENV = "RAY_DISABLE_FAILURE_SIGNAL_HANDLER"
 
 
+#: Ray's switch for how long a node started by this process drains on a SIGTERM before
+#: it kills its processes (default 30 s), read once, when Ray is imported
+#: (:func:`keep_sigterm`).
+DRAIN_ENV = "RAY_GRACEFUL_SHUTDOWN_DRAIN_TIMEOUT_S"
+
+
 def _restore(name: str, before: str | None) -> None:
     """Put environment variable ``name`` back to ``before`` (None: unset)."""
     if before is None:
@@ -40,15 +46,22 @@ def keep_sigterm() -> None:
     back. Sets the switch for the import of Ray only: Ray's processes (its workers) keep
     their handler, which prints a stack trace when they crash. A no-op once Ray is
     imported.
+
+    Also sets Ray's drain time to 0 (unless set already): the SIGTERM handler of the local
+    node ``ray.init`` starts would otherwise wait up to 30 s for the node to drain (for
+    Ray Serve's proxies; this run has none) before it stops Ray's processes and the
+    command exits.
     """
     if "ray" in sys.modules:
         return
-    before = os.environ.get(FAILURE_HANDLER_ENV)
+    before = {name: os.environ.get(name) for name in (FAILURE_HANDLER_ENV, DRAIN_ENV)}
     os.environ[FAILURE_HANDLER_ENV] = "1"
+    os.environ.setdefault(DRAIN_ENV, "0")
     try:
-        import ray  # noqa: F401 - read the switch now
+        import ray  # noqa: F401 - read the switches now
     finally:
-        _restore(FAILURE_HANDLER_ENV, before)
+        for name, value in before.items():
+            _restore(name, value)
 
 
 def prefer_loopback() -> None:

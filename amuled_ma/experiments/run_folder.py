@@ -45,6 +45,7 @@ from amuled_ma.experiments.training_settings import (
 )
 from amuled_ma.learn.checkpoints import LAST, checkpoint_infos
 from amuled_ma.records import PanelRecord, RunRecord, State
+from amuled_ma.safe_files import checked_read_path, write_text_atomic
 from amuled_ma.scenario import MORAL_AGENT, Scenario
 from amuled_ma.variants import Variant
 
@@ -416,13 +417,14 @@ def read_record(folder: Path, *, checkpoint: bool = True) -> RunRecord | None:
     Raises:
         AmuledError: ``config.json`` is not a run record, or is larger than
             :data:`MAX_RECORD_BYTES` (refused before it is read); the message names the file.
+        UnsafePathError: ``config.json`` is a link or not a regular file (nothing read).
 
     """
     from pydantic import ValidationError
 
     from amuled_ma.file_limits import read_bounded_bytes
 
-    path = Path(folder) / CONFIG
+    path = checked_read_path(folder, CONFIG)
     if not path.is_file():
         return None
     try:
@@ -466,18 +468,20 @@ def _with_checkpoint(folder: Path, record: RunRecord) -> RunRecord:
 
 
 def write_record(folder: Path, record: RunRecord) -> Path:
-    """Write a folder's ``config.json`` (atomically: a reader never sees half a file)."""
+    """Write a folder's ``config.json`` whole or not at all, never through a link.
+
+    Through :func:`~amuled_ma.safe_files.write_text_atomic` (a reader never sees half a
+    file; a full disk leaves the old file and no temporary one).
+
+    Raises:
+        UnsafePathError: ``config.json`` is a link or not a regular file; nothing written.
+        FileWriteError: The write failed (a full disk), naming the file; an ``OSError``
+            too, so a job marked failed on a full disk ends with its own error.
+
+    """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    path = folder / CONFIG
-    tmp = path.with_name(CONFIG + ".tmp")
-    try:
-        tmp.write_text(record.to_json())
-        tmp.replace(path)
-    except OSError:
-        tmp.unlink(missing_ok=True)  # a full disk leaves no half-written file behind
-        raise
-    return path
+    return write_text_atomic(folder / CONFIG, record.to_json())
 
 
 def mark_state(folder: Path, state: State, iterations: int | None = None) -> None:

@@ -26,13 +26,22 @@ from pathlib import Path
 from typing import Any
 
 from amuled_ma.errors import CheckpointError
-from amuled_ma.safe_files import fsync_folder
+from amuled_ma.safe_files import (
+    check_write_target,
+    checked_read_path,
+    failure_fix,
+    fsync_folder,
+    write_failure,
+)
 from amuled_ma.torch_files import load_weights_only
 
 
 class CheckpointWriteError(CheckpointError):
     """A checkpoint could not be written (full disk, ...); the last one on disk is kept."""
 
+
+#: Where else a checkpoint may go, said beside a full disk or a folder not writable.
+RUN_DIR_ELSEWHERE = "write into another --run-dir"
 
 #: Name of the newest checkpoint in a variant folder.
 LAST = "model_last.pt"
@@ -55,9 +64,11 @@ def read_checkpoint(path: str | Path, *, need: Iterable[str] = ("actor_state_dic
         CheckpointError: The file is missing, is not a weights-only checkpoint (it would
             need arbitrary code to load; nothing from it was run), is not a dict, or lacks
             a key in ``need``. The message names the file and what to do.
+        UnsafePathError: The file is a symbolic link or not a regular file
+            (:func:`~amuled_ma.safe_files.checked_read_path`); nothing is read.
 
     """
-    path = Path(path)
+    path = checked_read_path(Path(path).parent, Path(path).name)
     try:
         state = load_weights_only(path, "checkpoint")
     except CheckpointError as error:
@@ -115,9 +126,10 @@ def write_checkpoint(path: str | Path, write: Callable[[str], Any]) -> Path:
         CheckpointWriteError: The write failed (a full disk, a read-only or vanished folder, a
             file-size limit): one line naming the file, the cause, that the last
             checkpoint is kept, and the fix.
+        UnsafePathError: ``path`` is a link or not a regular file; nothing was written.
 
     """
-    path = Path(path)
+    path = check_write_target(path)
     tmp: str | None = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -163,7 +175,7 @@ def write_checkpoints(writes: Sequence[tuple[Path, Callable[[str], Any]]]) -> li
     path = Path()
     try:
         for path, write in writes:
-            path = Path(path)
+            path = check_write_target(path)
             path.parent.mkdir(parents=True, exist_ok=True)
             fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
             os.close(fd)
@@ -198,23 +210,21 @@ def _disk_full(folder: Path, *, margin: int = 1 << 20) -> bool:
 
 def _write_failure(path: Path, error: BaseException) -> str:
     """The one line of a checkpoint that could not be written."""
-    code = getattr(error, "errno", None)
-    text = str(error)
     if isinstance(error, OSError):
-        text = error.strerror or text
+        cause = error
     elif _disk_full(path.parent):
         # torch's zip writer names no cause ("unexpected pos 128 vs 0"): the disk says it
-        code, text = errno.ENOSPC, os.strerror(errno.ENOSPC)
-    text = " ".join(text.split())[:200]
-    if code in (errno.ENOSPC, errno.EDQUOT):
-        fix = "free some disk space (or write into another --run-dir), then resume with --resume"
-    elif code == errno.EFBIG:
-        fix = "raise the file-size limit (ulimit -f), then resume with --resume"
-    elif code in (errno.EACCES, errno.EPERM, errno.EROFS):
-        fix = "make the folder writable (or write into another --run-dir), then resume"
+        cause = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
     else:
-        fix = "check the folder and the disk, then resume with --resume"
+        cause = OSError(str(error))
+    then = "resume" if cause.errno in (errno.EACCES, errno.EPERM, errno.EROFS) else None
     kept = (
         f"the last checkpoint {path} is kept" if path.is_file() else "no earlier checkpoint exists"
     )
-    return f"cannot write checkpoint {path}: {text}; {kept}; {fix}"
+    return write_failure(
+        path,
+        cause,
+        failure_fix(cause.errno, then or "resume with --resume", elsewhere=RUN_DIR_ELSEWHERE),
+        kept=kept,
+        what="checkpoint ",
+    )

@@ -94,8 +94,12 @@ def test_a_cluster_files_source_table_runs_nothing(tmp_path, capsys):
     (folder / "care.toml").write_text(f"{care}\n[source]\n{source}")
     argv = ["finetune", "findmilk", "--run-dir", str(tmp_path / "run"), *TINY, *RULES]
     assert main([*argv, "--clusters-dir", str(folder)]) == 1
-    one_line(capsys.readouterr().err, "--allow-plugin subprocess:Popen")
+    line = one_line(capsys.readouterr().err, "--allow-plugin subprocess:Popen")
+    # the file that holds the import path is named, not the scenario that uses the cluster
+    assert line.startswith(f"amuled: error: {folder / 'care.toml'}: [source] "), line
+    assert "findmilk.toml" not in line, line
     assert not touched.exists()
+    assert not (tmp_path / "run").exists()  # refused before any run or variant folder
 
 
 def test_a_policy_sources_module_runs_nothing(tmp_path, capsys, marker):

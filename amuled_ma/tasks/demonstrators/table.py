@@ -21,6 +21,8 @@ import json
 import math
 import numbers
 import os
+import zipfile
+import zlib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -29,7 +31,8 @@ import numpy as np
 import torch
 
 from amuled_ma.errors import AmuledError
-from amuled_ma.safe_files import atomic_writer
+from amuled_ma.file_limits import check_size
+from amuled_ma.safe_files import atomic_writer, checked_read_path
 from amuled_ma.tasks import canonical_name, get_task
 
 __all__ = [
@@ -37,6 +40,7 @@ __all__ = [
     "DEFAULT_EPISODES",
     "DRIVING_COUNT_FROM",
     "MAX_STEPS",
+    "MAX_TABLE_BYTES",
     "DemonstratorBelief",
     "DemonstratorCacheError",
     "check_count",
@@ -58,6 +62,12 @@ AUTHORS_STATE_COUNTS: Mapping[str, int] = {"findmilk": 1120, "driving": 12_270}
 MAX_STEPS = 300
 """Time limit of an episode (both tasks, the authors' 300 steps)."""
 
+MAX_TABLE_BYTES = 2**30
+"""Most memory a demonstrator file's arrays may take when loaded [bytes, 1 GiB], and most
+bytes the file may be. A table holds a state key and a count per action for each distinct
+observation: the authors' Driving table of 12,270 states takes under 1 MB, and 10,000
+Driving episodes of 300 steps meet at most 3,000,000 states (about 150 MB)."""
+
 # counts -> belief (finetune_moral_human.py)
 COUNT_CAP = 20.0
 P_AGREE = 0.6
@@ -65,6 +75,67 @@ P_AGREE = 0.6
 
 class DemonstratorCacheError(AmuledError, ValueError):
     """A demonstrator cache file is unreadable, malformed or made with other settings."""
+
+
+def check_table_memory(path: Path, fix: str) -> None:
+    """Refuse a demonstrator ``.npz`` whose arrays would take more than :data:`MAX_TABLE_BYTES`.
+
+    Reads the file's size, its zip directory and each ``.npy`` member's header (shape and
+    dtype), never an array: ``np.load`` allocates what a header claims before it reads
+    the data, so a small file could claim terabytes.
+
+    Args:
+        path: The ``.npz`` file.
+        fix: What to do, said last.
+
+    Raises:
+        DemonstratorCacheError: The file is larger than :data:`MAX_TABLE_BYTES`, is not a
+            zip of ``.npy`` arrays, an array holds Python objects, an array claims more
+            bytes than its member holds, or the arrays together would take more than
+            :data:`MAX_TABLE_BYTES` (the array, its shape and dtype named).
+
+    """
+    total = 0
+    try:
+        check_size(
+            path,
+            MAX_TABLE_BYTES,
+            "demonstrator table",
+            error=DemonstratorCacheError,
+            note="the authors' Driving table is under 1 MB",
+            fix=fix,
+        )
+        with zipfile.ZipFile(path) as archive:
+            for info in archive.infolist():
+                with archive.open(info) as member:
+                    version = np.lib.format.read_magic(member)
+                    if version == (1, 0):
+                        shape, _, dtype = np.lib.format.read_array_header_1_0(member)
+                    else:
+                        shape, _, dtype = np.lib.format.read_array_header_2_0(member)
+                if dtype.hasobject:
+                    raise ValueError(f"array {info.filename} holds Python objects")
+                nbytes = math.prod(int(n) for n in shape) * dtype.itemsize  # exact, no overflow
+                name = f"{info.filename} (shape {tuple(shape)} of {dtype})"
+                if nbytes > info.file_size:
+                    raise ValueError(
+                        f"{name} claims {nbytes:,} bytes but its member holds {info.file_size:,}"
+                    )
+                total += nbytes
+                if total > MAX_TABLE_BYTES:
+                    raise DemonstratorCacheError(
+                        f"{path}: its arrays would take {total:,} bytes of memory or more "
+                        f"({name} alone {nbytes:,}), more than the {MAX_TABLE_BYTES:,} a "
+                        "demonstrator table may take (the authors' Driving table takes "
+                        f"under 1 MB); it is not loaded; {fix}"
+                    )
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+        if isinstance(err, DemonstratorCacheError):
+            raise
+        reason = " ".join(str(err).split())[:200]
+        raise DemonstratorCacheError(
+            f"{path}: not a readable demonstrator cache ({reason}); {fix}"
+        ) from err
 
 
 # ---------------------------------------------------------------------- arguments
@@ -348,19 +419,23 @@ class DemonstratorBelief:
             The belief table.
 
         Raises:
-            DemonstratorCacheError: The file cannot be read, is malformed, or was made with
-                other settings than ``expect`` (the message names the file and the fix).
+            DemonstratorCacheError: The file cannot be read, is malformed, its arrays would
+                take more than :data:`MAX_TABLE_BYTES` (from their headers, before any is
+                loaded), or it was made with other settings than ``expect`` (the message
+                names the file and the fix).
 
         """
-        path = Path(path)
+        path = checked_read_path(Path(path).parent, Path(path).name)
         fix = "delete it to rebuild the demonstrator"
+        check_table_memory(path, fix)
         try:
             with np.load(path, allow_pickle=False) as data:
                 states = data["states"]
                 counts = data["counts"]
                 task = str(data["task"])
                 settings = json.loads(str(data["settings"]))
-        except (OSError, ValueError, KeyError, json.JSONDecodeError) as err:
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+            # a damaged member: a bad CRC (BadZipFile), a broken deflate stream (zlib.error)
             raise DemonstratorCacheError(
                 f"{path}: not a readable demonstrator cache ({err}); {fix}"
             ) from err
