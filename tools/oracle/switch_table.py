@@ -8,8 +8,9 @@ Reads ``results.json`` of every ``OUT/<task>/<arm>`` (variant ``base``) and
 ``OUT/<task>/finetune-from-<label>`` (variant ``finetune-amuled``) and of the oracle's
 evaluated bases (``evaluate_base.py``'s ``OUT/eval-base-<task>/run``, or the same folder
 evaluated again). Per seed, the mean over the 50 episodes; per row, the mean over seeds with
-its 95% t-interval; each arm against the oracle with Welch's t (``scipy.stats.ttest_ind``,
-``equal_var=False``) on the per-seed means. Prints a Markdown table per mode; ``--json``
+its 95% t-interval; each arm against the oracle, and against the ``ours`` arm where it is
+there, with Welch's t (``scipy.stats.ttest_ind``, ``equal_var=False``) on the per-seed
+means, with the difference's 95% interval. Prints a Markdown table per mode; ``--json``
 writes every per-seed mean, the summaries and the tests.
 """
 
@@ -47,9 +48,18 @@ def summary(values: list[float]) -> tuple[float, float]:
 
 
 def welch(a: list[float], b: list[float]) -> dict[str, float]:
-    """Welch's t of a against b: t, its degrees of freedom and the two-sided p."""
+    """Welch's t of a against b: t, df, the two-sided p, and mean(a) - mean(b) with its 95% CI."""
     test = stats.ttest_ind(a, b, equal_var=False)
-    return {"t": float(test.statistic), "df": float(test.df), "p": float(test.pvalue)}
+    ci = test.confidence_interval(0.95)
+    diff = sum(a) / len(a) - sum(b) / len(b)
+    return {
+        "t": float(test.statistic),
+        "df": float(test.df),
+        "p": float(test.pvalue),
+        "diff": diff,
+        "low": float(ci.low),
+        "high": float(ci.high),
+    }
 
 
 def main() -> int:
@@ -82,6 +92,11 @@ def main() -> int:
                 theirs = [s[k] for s in oracle.values() if k in s]
                 if variant == "base" and name != "oracle (their ppo.py)" and len(theirs) > 1:
                     cell["welch_vs_oracle"] = welch(values, theirs)
+                if variant == "base" and name not in ("ours", "oracle (their ppo.py)"):
+                    ours_dir = args.out / args.task / "ours"
+                    if (ours_dir / "results.json").is_file():
+                        mine = per_seed(ours_dir / "results.json", "base", mode)
+                        cell["welch_vs_ours"] = welch(values, [m[k] for m in mine.values()])
                 row["metrics"][k] = cell
             seconds = folder / "seconds.json"
             if seconds.is_file():
@@ -104,6 +119,15 @@ def main() -> int:
                     text += f" (t {w['t']:.2f}, df {w['df']:.1f}, p {w['p']:.2f})"
                 cells.append(text)
             print(f"| {name} | {len(row['per_seed'])} | " + " | ".join(cells) + " |")
+        effects = [
+            f"- {name} - ours, {k}: {c['welch_vs_ours']['diff']:+.2f} "
+            f"[{c['welch_vs_ours']['low']:+.2f}, {c['welch_vs_ours']['high']:+.2f}] "
+            f"(t {c['welch_vs_ours']['t']:.2f}, p {c['welch_vs_ours']['p']:.2f})"
+            for name, row in table.items()
+            for k, c in row["metrics"].items()
+            if "welch_vs_ours" in c
+        ]
+        print("\n".join(effects))
         for name, row in table.items():
             for rep, m in row["per_seed"].items():
                 print(f"- {name} {rep}: " + " / ".join(f"{m[k]:.2f}" for k in metrics if k in m))
