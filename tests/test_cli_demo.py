@@ -41,6 +41,10 @@ DEMO_SETS = (
     "base.total_steps=131_072",
     "base.num_envs=64",
     "base.num_steps_per_env=32",
+    # rsl-rl's base loop at the demo's budget (scenarios/<task>-demo.toml says why)
+    'base.grad_clip="per_network"',
+    "base.reshuffle_each_epoch=false",
+    "base.bootstrap_time_outs=true",
     "finetune.iterations=100",
     "finetune.save_interval=25",
     "feedback.model=amuled-tiny",

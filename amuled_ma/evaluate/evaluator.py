@@ -4,7 +4,8 @@ Every episode runs in its own task copy (copy ``i`` seeded ``seed + i``), all co
 stepped together; each copy's *first* episode is recorded. The metrics are the task's
 own (``info["episode"]``): FindMilk ``steps_to_milk``, ``crying_pacified``,
 ``sleeping_woken``, ``reached_milk``; Driving ``collisions``, ``lane_changes``,
-``rescues`` (grandmas rescued), plus ``return_env`` and ``length``.
+``rescues`` (grandmas rescued), ``non_straight_steps`` (the authors' lane-change count),
+plus ``return_env`` and ``length``.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from amuled_ma.scenario import Scenario
 #: The paper's metrics per task, in report order (others follow alphabetically).
 PAPER_METRICS = {
     "findmilk": ["steps_to_milk", "crying_pacified", "sleeping_woken", "reached_milk"],
-    "driving": ["collisions", "rescues", "lane_changes"],
+    "driving": ["collisions", "rescues", "lane_changes", "non_straight_steps"],
 }
 #: A fine-tune's fused-belief diagnostics, in its variant folder.
 FEEDBACK_FILE = "feedback.json"

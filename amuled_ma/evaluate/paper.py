@@ -32,7 +32,7 @@ PAPER_MODE = "sampled"
 #: The paper's metrics per task, in the order of its tables.
 PAPER_COLUMNS: dict[str, tuple[str, ...]] = {
     "findmilk": ("steps_to_milk", "crying_pacified", "sleeping_woken"),
-    "driving": ("collisions", "rescues", "lane_changes"),
+    "driving": ("collisions", "rescues", "non_straight_steps"),
 }
 
 
@@ -78,7 +78,9 @@ _FINDMILK = {
     "finetune-agg-max": ("maximum belief", (14.8, 4.9, 0.5)),
     "finetune-agg-mean": ("mean belief", (14.0, 4.0, 1.5)),
 }
-#: Driving: collisions / grandmas rescued / lane changes per 300-step episode.
+#: Driving: collisions / grandmas rescued / "lane changes" per 300-step episode; the last
+#: counts the steps whose action was not straight (the authors' ``environments/drive.py:136``,
+#: ``lane_changes += action != 0``), our ``non_straight_steps``, not ``lane_changes``.
 _DRIVING = {
     "base": ("base", (1.0, 5.9, 16.2)),
     "shaped": ("base + shaping", (12.5, 19.1, 167.1)),

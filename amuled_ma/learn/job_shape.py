@@ -96,7 +96,12 @@ def job_shape(scenario: Scenario, variant: Variant, iterations: int | None = Non
         total = planned_iterations(scenario, finetune=False) if iterations is None else iterations
         lr, anneal = ppo.learning_rate, ppo.anneal_lr
         cfg = rsl_rl_config(
-            ppo, num_steps_per_env=base.num_steps_per_env, save_interval=base.save_interval
+            ppo,
+            num_steps_per_env=base.num_steps_per_env,
+            save_interval=base.save_interval,
+            grad_clip=base.grad_clip,
+            reshuffle_each_epoch=base.reshuffle_each_epoch,
+            bootstrap_time_outs=base.bootstrap_time_outs,
         )
         shaping = base.shaping_coef if variant.kind == "shaped" else 0.0
         task_weight = 1.0

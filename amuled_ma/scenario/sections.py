@@ -49,7 +49,7 @@ FeedbackSource = Literal["replay", "ollama", "rules"]
 MissPolicy = Literal["uniform", "fallback", "error", "zero"]
 #: ``[finetune].recipe``: how the KL anchor enters the fine-tuning reward.
 Recipe = Literal["equation", "authors"]
-#: ``[finetune].grad_clip``: rsl-rl's clipping of each network apart, or CleanRL's joint norm.
+#: ``[base]``, ``[finetune].grad_clip``: each network clipped apart (rsl-rl) or jointly (CleanRL).
 GradClip = Literal["per_network", "joint"]
 #: ``[ppo].activation``: rsl-rl's names of the hidden activation.
 Activation = Literal["tanh", "relu", "elu", "selu", "lrelu", "sigmoid", "identity"]
@@ -242,6 +242,14 @@ class BaseConfig(_Section):
         num_steps_per_env: Rollout length per copy and iteration.
         shaping_coef: ``c`` of the ``shaped`` variant (the ``base`` variant uses 0).
         save_interval: Iterations between checkpoints.
+        grad_clip: ``"per_network"`` (rsl-rl: the actor's and the critic's gradients are
+            each clipped to ``[ppo].max_grad_norm``) or ``"joint"`` (CleanRL, the authors'
+            ``algorithms/ppo.py``: one norm over both).
+        reshuffle_each_epoch: Draw a new mini-batch partition in every epoch (CleanRL)
+            instead of one per update, reused by every epoch (rsl-rl).
+        bootstrap_time_outs: Bootstrap the value at a truncation (rsl-rl adds
+            ``gamma * V(s)`` to the reward of a step that hits the time limit); False
+            closes a truncated episode like a terminated one (CleanRL).
 
     """
 
@@ -259,6 +267,9 @@ class BaseConfig(_Section):
         1.0, ge=0, description="weight c of the shaping reward (the tasks need c >= 0)"
     )
     save_interval: int = Field(100, ge=1, description=_SAVE_WHY)
+    grad_clip: GradClip = "per_network"
+    reshuffle_each_epoch: bool = False
+    bootstrap_time_outs: bool = True
 
     @model_validator(mode="after")
     def _rollouts_fit_in_memory(self, info: ValidationInfo) -> BaseConfig:

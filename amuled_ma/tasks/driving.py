@@ -47,9 +47,12 @@ The returned reward is ``r_env + c * r_shaping`` with ``c = shaping_coef``.
 ## Info
 
 Per step (``[num_envs]`` tensors): ``r_env``, ``r_shaping``, ``collisions`` and ``rescues``
-(int64, this step), ``lane_changes`` (bool, the lane changed), ``final_obs``; per episode
-(``info["episode"]``, read where ``done``): ``return``, ``return_env``, ``return_shaping``,
-``length``, ``collisions``, ``rescues`` (grandmas rescued), ``lane_changes``.
+(int64, this step), ``lane_changes`` (bool, the lane changed), ``non_straight_steps``
+(bool, the action was not ``straight``: the authors' "lane changes", ``drive.py:136``
+``lane_changes += action != 0``, which also counts a move against the road's edge that
+leaves the lane as it is), ``final_obs``; per episode (``info["episode"]``, read where
+``done``): ``return``, ``return_env``, ``return_shaping``, ``length``, ``collisions``,
+``rescues`` (grandmas rescued), ``lane_changes``, ``non_straight_steps``.
 
 ## Version History
 
@@ -109,7 +112,9 @@ class Driving(BatchedTask):
     )  # fmt: skip
     obs_low: ClassVar[tuple[float, ...]] = (-2.0,) * 6 + (0.0,) * NUM_LANES
     obs_high: ClassVar[tuple[float, ...]] = (float(SPAWN_DISTANCE),) * 6 + (1.0,) * NUM_LANES
-    metric_names: ClassVar[tuple[str, ...]] = ("collisions", "rescues", "lane_changes")
+    metric_names: ClassVar[tuple[str, ...]] = (
+        "collisions", "rescues", "lane_changes", "non_straight_steps",
+    )  # fmt: skip
     num_lanes: ClassVar[int] = NUM_LANES
     human_feedback: ClassVar[bool] = True
 
@@ -240,7 +245,12 @@ class Driving(BatchedTask):
         # (6) reward
         r_env = collisions * -20.0 + self._straight_bonus.index_select(0, idx)
         r_shaping = rescues * 400.0 + self._same_lane.index_select(0, idx)
-        events = {"collisions": collisions, "rescues": rescues, "lane_changes": changed}
+        events = {
+            "collisions": collisions,
+            "rescues": rescues,
+            "lane_changes": changed,
+            "non_straight_steps": actions != 0,  # action 0 is straight
+        }
         terminated = torch.zeros_like(changed)  # the road never ends early
         return r_env, r_shaping, terminated, events
 

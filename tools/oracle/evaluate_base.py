@@ -34,7 +34,7 @@ from pathlib import Path
 ENVS = {"findmilk": "FindMilk-v4", "driving": "Driving"}
 METRICS = {
     "findmilk": ["steps_to_milk", "crying_pacified", "sleeping_woken", "reached_milk"],
-    "driving": ["collisions", "rescues", "lane_changes"],
+    "driving": ["collisions", "rescues", "lane_changes", "non_straight_steps"],
 }
 MODES = ("greedy", "sampled")
 

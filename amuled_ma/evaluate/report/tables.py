@@ -371,6 +371,7 @@ _PHRASES: dict[str, tuple[str, str]] = {
     "collisions": ("has", "collisions"),
     "rescues": ("rescues", "grandmas"),
     "lane_changes": ("makes", "lane changes"),
+    "non_straight_steps": ("takes", "non-straight steps (the authors' lane-change count)"),
 }
 
 
