@@ -107,9 +107,9 @@ def test_check_order_and_workers():
 
 def test_workers_auto_is_one_when_a_single_agent_asks_a_live_server():
     sc = tiny_scenario()
-    base = TrainJob("a", sc, Path("r"), "base", Path("r/a"))
+    base = TrainJob("a", sc, Path("r"), Variant("base"), Path("r/a"))
     one_live = sc.replace("feedback", agents={"care": {"source": "ollama", "model": "tiny"}})
-    tune = TrainJob("b", one_live, Path("r"), "finetune:amuled", Path("r/b"), needs=("a",))
+    tune = TrainJob("b", one_live, Path("r"), Variant.finetune("amuled"), Path("r/b"), needs=("a",))
     assert resolve_workers(0, [base, tune]) == 1
 
 
