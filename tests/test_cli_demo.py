@@ -34,7 +34,7 @@ def test_demo_without_server_fails_fast_and_writes_nothing(tmp_path: Path, capsy
     assert not run_dir.exists()
 
 
-#: Each task's demo (issue 27): the authors' scenario (scenarios/<task>-authors.toml, their
+#: Each task's demo: the authors' scenario (scenarios/<task>-authors.toml, their
 #: recipe, replay of their gpt-4o-mini recording, 50 sampled episodes) with a demo-sized
 #: budget, and the live leg's model and reply options.
 DEMO_SETS = (

@@ -1,6 +1,6 @@
 """Every expected failure is one line on stderr, ``amuled: error: ...``, and no traceback.
 
-Each case is one of the attempts of the adversarial pass (issue 12, item 9), run through
+Each case is one of the attempts of the adversarial pass , run through
 the real command line (``amuled_ma.cli.main``, the console script's entry point) with the
 output captured; two cases run it as a child process, as a user does.
 """

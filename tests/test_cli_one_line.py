@@ -1,4 +1,4 @@
-"""Every expected failure of issue 24 prints one line, not a traceback.
+"""Every expected failure prints one line, not a traceback.
 
 Bad task options, a negative step limit, an unknown PPO key, a scenario or ``--set`` value
 nested 10,000 levels deep, ``beliefs import`` of a lone surrogate or into a damaged store,

@@ -1,4 +1,4 @@
-"""The shared size caps (issue 24): a file over its cap is refused from its size, unread.
+"""The shared size caps: a file over its cap is refused from its size, unread.
 
 Over-cap files are sparse (``truncate``): gigabytes that take no disk and no time.
 """

@@ -1,4 +1,4 @@
-"""Prompt files that are not UTF-8 are one line naming the file (docs/trust.md, issue 24).
+"""Prompt files that are not UTF-8 are one line naming the file (docs/trust.md).
 
 The last input of the trust table without a test of its failure line: ``system.md`` and a
 state prompt template, as a ``prompts/`` folder given in place of the shipped one.

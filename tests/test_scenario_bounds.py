@@ -1,6 +1,6 @@
 """Every number in a scenario has a range; names used as folders are one safe component.
 
-Issue 12, items 6 and 10: values that cannot work (NaN, ``save_interval = 0``, ``gamma =
+Values that cannot work (NaN, ``save_interval = 0``, ``gamma =
 5``, absurd sizes) and a ``name`` that escapes ``runs_dir`` must be refused on load, with
 an error naming the file, the key, the expected range and the value found.
 """

@@ -5,7 +5,7 @@ demonstrator (10,000 episodes, counted from episode 601; the uncounted ones are 
 played, see :mod:`amuled_ma.tasks.demonstrators`) with one torch thread, and prints the
 seconds (wall clock and CPU time of the process, best of ``--repeats``), the
 ``(observation, action)`` pairs counted and the distinct observations, beside the figures
-of the authors' notebook (1,120 FindMilk and 12,270 Driving states). Target (issue 13):
+of the authors' notebook (1,120 FindMilk and 12,270 Driving states). Target:
 the Driving demonstrator in under 60 s.
 """
 

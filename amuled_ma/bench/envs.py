@@ -6,7 +6,7 @@ steps the Gymnasium view (``gymnasium.make``, one copy) in a plain Python loop, 
 when an episode ends. Figures are env-steps per second (copies x steps / time), best of
 ``--repeats`` runs, in wall clock and in CPU time of the process (one thread,
 ``torch.set_num_threads(1)``; on a shared machine the CPU figure is the steadier one).
-Targets (issue 3): >= 1,000,000 env-steps/s per task at 4096 copies, and >= 20x the
+Targets: >= 1,000,000 env-steps/s per task at 4096 copies, and >= 20x the
 Gymnasium loop.
 """
 

@@ -7,7 +7,7 @@ frozensets, ``math.log2``), checks that both agree, and prints both throughputs 
 their ratio. Timings are the best of ``--repeats`` runs (3 for the reference), in wall
 clock and in CPU time of the process (one process, one thread: numpy's element-wise code
 is single-threaded; on a shared machine the CPU time is the steadier figure). Targets
-(issue 2): 100,000 matrices of 5 x 4 in under 0.5 s, and at least 100x the reference.
+(the target): 100,000 matrices of 5 x 4 in under 0.5 s, and at least 100x the reference.
 """
 
 from __future__ import annotations

@@ -8,12 +8,12 @@ so their ratio is measured side by side; ``--ray`` adds a column with ``--ray`` 
 started for each command, one CPU per core). ``--jobs 1`` trains in one process without
 Ray; ``--jobs N`` > 1 on a local Ray. The process pool that Ray replaced is measured with
 ``amuled bench compare --old REV pipeline ...`` against a revision that still has it.
-Target (issue 6): the whole of it, both tasks, in under 15 minutes; Ray's overhead under
-10% of the pipeline time (issue 16).
+Target: the whole of it, both tasks, in under 15 minutes; Ray's overhead under
+10% of the pipeline time.
 
 ``--recipe authors --seeds 5`` times the paper's full comparison as its authors ran it
 (1,000 fine-tuning iterations of 1 x 128 steps, five training seeds of every variant);
-target (issue 26): under 30 minutes on 2 cores, which only population training reaches
+target: under 30 minutes on 2 cores, which only population training reaches
 (every sweep trains as populations unless ``--no-population``; ``--no-population`` adds
 a column without them, about 3-4 hours on 2 cores).
 """
@@ -67,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=("equation", "authors"),
         default=None,
         help="passed to every stage: 'authors' runs the paper's comparison as its authors "
-        "ran it (scenarios/<task>-authors.toml; with --seeds 5 the issue-26 target)",
+        "ran it (scenarios/<task>-authors.toml; with --seeds 5 the 30-minute target)",
     )
     parser.add_argument(
         "--seeds",

@@ -19,7 +19,7 @@ feedback is the replayed recording of the scenario where it is found
 (``../shared/amuled-recordings/``), else the rule-based source; the output names it.
 Times are CPU seconds of this process (the machine may be shared), wall-clock figures
 beside them. One torch thread (the project's setting for small networks). Target
-(issue 26): at P = 32, at least 10x the one-by-one throughput on a 2-core machine.
+(the target): at P = 32, at least 10x the one-by-one throughput on a 2-core machine.
 
 ``--welch N`` measures agreement instead of speed: N seeds (42, 43, ...; lambda_KL 2.5)
 fine-tuned alone and the same N as one population, full runs, each final policy

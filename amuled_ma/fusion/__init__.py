@@ -32,10 +32,6 @@ xiao_fusion(masses, [{"A"}, {"B"}, {"C"}, {"A", "C"}])   # general focal element
   their sources are documented there).
 - :mod:`amuled_ma.fusion.reference`: a plain per-state pure-Python implementation with
   dicts of frozensets, used as a test oracle and as the benchmark's baseline.
-
-## Version History
-
-- v0: first version (issue 2).
 """
 
 from __future__ import annotations

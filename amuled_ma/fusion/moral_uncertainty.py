@@ -52,10 +52,6 @@ One member: ``mec`` returns its belief, ``nash-vote`` its argmax (shared among t
 belief (``sigma_i <= FLAT_SIGMA``) has ``z_i = 0`` and adds nothing to ``variance-vote``;
 when every member of positive credence is flat the result is uniform. One action: ``[1]``.
 Ties between actions are exact float equality, as in ``"vote"``.
-
-## Version History
-
-- v0: first version.
 """
 
 from __future__ import annotations

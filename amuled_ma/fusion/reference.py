@@ -9,10 +9,6 @@ and the benchmark (``amuled bench fusion``) measures how much faster the vectori
 It follows the same conventions for degenerate inputs (``0 log 0 = 0``; equal credibility
 when every divergence is 0; ``k = 1`` returns the mass function; ``ValueError`` at total
 conflict) but does not validate its input.
-
-## Version History
-
-- v0: first version (issue 2).
 """
 
 from __future__ import annotations

@@ -55,11 +55,6 @@ receives ``prior`` (``(..., k)`` or ``None``). It returns the fused ``(..., n)``
 :class:`~amuled_ma.fusion.xiao.FusionResult`. When diagnostics are requested and a rule
 returns a plain array, :func:`fuse` adds generic ones: uniform ``weights``, Xiao's
 ``credibility`` and ``entropy`` of the inputs, and no ``conflicts``.
-
-## Version History
-
-- v0: first version (issue 2).
-- v0.1: ``fuse(..., prior=rho)`` for ``bjs-dst`` (issue 28); no prior is unchanged.
 """
 
 from __future__ import annotations

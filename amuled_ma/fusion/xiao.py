@@ -56,10 +56,6 @@ CPU time on one core (see ``amuled bench fusion`` and ``docs/fusion.md``).
   raises ``ValueError`` naming the offending index (e.g. ``masses[3, 2]``). Valid rows
   are rescaled to sum to 1 when one is off by more than ``1e-12`` (rows that sum to 1 to
   rounding are used bit for bit, as the authors' code did). NaN is never returned.
-
-## Version History
-
-- v0: first version (issue 2).
 """
 
 from __future__ import annotations

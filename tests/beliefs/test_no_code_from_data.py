@@ -1,4 +1,4 @@
-"""Code runs only from code the user installed and named on the command line (issue 24, 1).
+"""Code runs only from code the user installed and named on the command line .
 
 Each route by which a data file once imported and called a ``module:Class`` string (an
 entry-point agent set with ``--set``, a cluster file's ``[source]`` read through

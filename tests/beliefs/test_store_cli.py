@@ -80,7 +80,7 @@ def test_missing_store_is_a_clear_error(tmp_path, capsys):
     assert "nope.jsonl: cannot read" in capsys.readouterr().err
 
 
-# -- read-only stores (issue 12, item 9) ----------------------------------------------
+# -- read-only stores ----------------------------------------------------------------
 
 
 def _drop_write_override():

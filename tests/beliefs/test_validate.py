@@ -1,4 +1,4 @@
-"""One belief rule, refused the same way at every door (issue 12, items 2 and 9).
+"""One belief rule, refused the same way at every door .
 
 A belief is one finite, non-negative number per action summing to 1 within 1e-6. Each
 bad vector below is refused by the validator itself, by a recording file, by a store

@@ -1,6 +1,6 @@
 """Cluster identities: names, credence labels and mixture credences never collide in silence.
 
-Issue 12, item 5: ``care.toml`` and ``CARE.toml`` in one directory, a second cluster
+``care.toml`` and ``CARE.toml`` in one directory, a second cluster
 labelled ``"Care Ethics"``, and mixture credences that do not sum to 1 or repeat a key in
 another case were all accepted. Each case here writes real TOML files and expects a
 ``ClusterDefinitionError`` naming the files or keys involved.

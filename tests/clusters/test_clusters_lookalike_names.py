@@ -1,4 +1,4 @@
-"""Cluster names that only look alike are one identity (issue 24, item 6).
+"""Cluster names that only look alike are one identity .
 
 A name that differs from another cluster's only by full-width letters, zero-width
 characters or Cyrillic/Greek look-alikes of Latin letters was accepted as a second

@@ -161,7 +161,7 @@ def test_merged_replicas_sum_each_agents_counts():
 
 
 # ---------------------------------------------------------------------------------------
-# Size caps (issue 24): a run folder's files over their cap are refused unread, one line
+# Size caps: a run folder's files over their cap are refused unread, one line
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Figures people can read (issue 27, item 5): each one rendered and looked at in numbers.
+"""Figures people can read: each one rendered and looked at in numbers.
 
 Every figure is written to a PNG here and read back: each panel must hold ink (pixels
 that are not white) and several colours. The seeds' spread must not fill a panel, an

@@ -413,7 +413,7 @@ def test_tiny_run_and_clusters_ablation_reference_every_figure_once(tmp_path, ca
 
 
 # ---------------------------------------------------------------------------------------
-# Size caps (issue 24): the files the report reads are refused unread over their cap
+# Size caps: the files the report reads are refused unread over their cap
 
 
 def test_a_curve_json_over_256_mib_is_refused_by_evaluate_with_one_line(tmp_path, capsys):

@@ -38,7 +38,7 @@ from amuled_ma.tasks import make_task
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path("/usr/bin/chromedriver")
-#: Targets of issue 17: a 300-step Driving episode with five agents.
+#: Targets: a 300-step Driving episode with five agents.
 MAX_BYTES = 3_000_000
 MAX_LOAD_S = 2.0
 

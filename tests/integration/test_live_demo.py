@@ -57,7 +57,7 @@ def demo_env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
         pytest.skip(missing)
 
 
-#: The demo's target (issue 27): under 3 minutes on this machine when it is quiet.
+#: The demo's target: under 3 minutes on this machine when it is quiet.
 TARGET_S = 180.0
 #: The 1-minute load average up to which the machine counts as quiet (2 cores).
 QUIET_LOAD = 2.5

@@ -1,4 +1,4 @@
-"""The switches of issue 25: each CleanRL habit of the authors' fine-tune, alone.
+"""The switches: each CleanRL habit of the authors' fine-tune, alone.
 
 Joint gradient clipping, a new mini-batch partition per epoch, no bootstrap at a
 truncation (``[finetune]`` keys, :mod:`amuled_ma.learn.ppo_options`) and FindMilk's random

@@ -244,7 +244,7 @@ def test_twenty_participants_a_kill_and_nothing_lost(study, tmp_path):
 
 
 # ---------------------------------------------------------------------------------------
-# Size caps (issue 24): the folder's files and the participants' bodies, bounded
+# Size caps: the folder's files and the participants' bodies, bounded
 
 
 def test_a_picture_or_consent_page_over_its_cap_stops_the_start_with_one_line(tmp_path, capsys):

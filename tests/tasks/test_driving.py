@@ -1,4 +1,4 @@
-"""Driving-and-Rescuing rules, written from the text of issue 3."""
+"""Driving-and-Rescuing rules, written from docs/tasks.md."""
 
 from __future__ import annotations
 

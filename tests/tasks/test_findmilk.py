@@ -1,4 +1,4 @@
-"""FindMilk rules, written from the text of issue 3."""
+"""FindMilk rules, written from docs/tasks.md."""
 
 from __future__ import annotations
 

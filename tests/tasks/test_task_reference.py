@@ -1,6 +1,6 @@
 """Differential tests: the vectorised cores against plain-Python rule books.
 
-The rule books below are written from the text of issue 3 with lists and sets (the way the
+The rule books below are written from docs/tasks.md with lists and sets (the way the
 authors' code keeps its state); they receive the same random numbers as the cores (the
 per-copy streams of :mod:`amuled_ma.tasks.rng`), so every observation and reward must agree.
 """
