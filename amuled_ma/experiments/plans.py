@@ -491,6 +491,13 @@ def ablation_variants(what: str, scenario: Scenario) -> list[tuple[Variant, Scen
     return jobs
 
 
+def _task_has_human_feedback(task: str) -> bool:
+    """``BatchedTask.human_feedback`` of a task that is not the paper's (imports its class)."""
+    from amuled_ma.tasks import get_task
+
+    return get_task(task).human_feedback
+
+
 def plan_run(
     scenario: Scenario,
     run_dir: Path,
@@ -508,9 +515,11 @@ def plan_run(
     (a finished variant folder such as the authors' imported ``runs/authors/findmilk/base``),
     all anchor to that one.
     """
-    from amuled_ma.tasks import get_task
+    from amuled_ma.tasks.names import TASK_NAMES
 
-    human = get_task(scenario.task.name).human_feedback
+    # the paper's tasks have it, known by name so a refused run imports no torch; another
+    # task's class says (importing it)
+    human = scenario.task.name in TASK_NAMES or _task_has_human_feedback(scenario.task.name)
     variants = [v for v in MAIN_VARIANTS if human or v != Variant.finetune("human")]
     run_dir = Path(run_dir)
     jobs = []

@@ -21,6 +21,7 @@ from amuled_ma.learn.population import PopulationTrainer
 from amuled_ma.learn.population_groups import MemberSpec
 from amuled_ma.learn.ppo_options import EpochShuffledStorage
 from amuled_ma.scenario import load_scenario
+from amuled_ma.variants import Variant
 
 TINY = """
 name = "tiny-base"
@@ -55,7 +56,7 @@ def trainer(tmp_path: Path, keys: str, members: int = 1) -> PopulationTrainer:
 
 
 def test_the_defaults_are_rsl_rl_s(tmp_path):
-    shape = job_shape(scenario_with(tmp_path, ""), "base")
+    shape = job_shape(scenario_with(tmp_path, ""), Variant("base"))
     for key in ("grad_clip", "reshuffle_each_epoch", "bootstrap_time_outs"):
         assert key not in shape.cfg["algorithm"]
     alg = trainer(tmp_path, "").alg

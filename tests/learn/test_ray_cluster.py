@@ -23,7 +23,11 @@ from pathlib import Path
 import pytest
 from netns import require_netns, run_sealed
 
+from amuled_ma.variants import AGGREGATIONS
+
 SCRIPT = Path(__file__).resolve().parent / "ray_cluster_netns.py"
+#: The aggregation ablation's fine-tunes: each other rule, and bjs-dst (``amuled``).
+FINE_TUNES = len(AGGREGATIONS) + 1
 
 
 @pytest.mark.slow
@@ -35,7 +39,7 @@ def test_two_node_cluster_loses_a_node_and_finishes_equal_to_one_process(tmp_pat
     context = f"{ {k: v for k, v in result.items() if k != 'tail'} }\n{result['tail']}"
     assert result["code"] == 0, context
     assert len(result["nodes"]) == 2, context  # jobs started on both nodes
-    assert result["fine_tunes"] == 4, context
+    assert result["fine_tunes"] == FINE_TUNES, context
     # the lost job resumed from a periodic checkpoint (every 25 of 150 iterations)
     assert result["resumed_from"], context
     assert all(0 < it < 150 and it % 25 == 0 for it in result["resumed_from"]), context
@@ -60,7 +64,7 @@ def test_a_node_without_the_driver_files_shares_the_sweep_belief_store(
     )
     context = f"{ {k: v for k, v in result.items() if k != 'tail'} }\n{result['tail']}"
     assert result["code"] == 0, context
-    assert len(result["nodes"]) == 2 and result["fine_tunes"] == 4, context
+    assert len(result["nodes"]) == 2 and result["fine_tunes"] == FINE_TUNES, context
     # the other node used the store actor: keys looked up, rows written
     (looked_up, _calls, written), *_ = result["served"]
     assert looked_up > 0 and written > 0, context
