@@ -152,11 +152,14 @@ def run(workdir: Path) -> dict[str, Any]:
         watcher.join(timeout=5)
         out["kill"] = kill
 
+        # the preflight's cost probe builds its own pool first (a warm-up and a timed
+        # request); the fine-tune's pool is the last one built
         used = [s for s in sources if len(s.hosts) == 2 and s.stats.attempts]
         out["pool_sources"] = len(used)
+        out["probe_attempts"] = [s.stats.attempts for s in used[:-1]]
         if used:
-            out["figures"] = used[0].server_stats()
-            out["stats"] = used[0].stats.as_dict()
+            out["figures"] = used[-1].server_stats()
+            out["stats"] = used[-1].stats.as_dict()
         out["written"] = written
 
         with contextlib.redirect_stdout(io.StringIO()) as said:

@@ -67,7 +67,8 @@ def test_two_servers_one_killed_mid_finetune_every_belief_answered_once(tmp_path
     assert kill["in_flight"] >= 1 and kill["before"][victim]["answered"] >= 1
 
     figures, stats = result["figures"], result["stats"]
-    assert result["pool_sources"] == 1
+    # one pool for the whole fine-tune, after the preflight's probe pool of two requests
+    assert result["pool_sources"] == 2 and result["probe_attempts"] == [2], context
     dead, alive = figures[victim], figures[survivor]
     # both servers got requests; the killed one's failures are recorded, every one of them
     # retried on the other server, which never failed
