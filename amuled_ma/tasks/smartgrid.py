@@ -120,10 +120,12 @@ def _profiles() -> Any:
 
 
 def _reward(value: str) -> Any:
-    import importlib
+    """A new instance of the package's reward class judging ``value`` (a key of `JUDGES`)."""
+    from smartgrid.rewards.numeric.differentiated import Equity, OverConsumption
+    from smartgrid.rewards.numeric.per_agent.comfort import Comfort
 
-    module, name = JUDGES[value]
-    return getattr(importlib.import_module(module), name)()
+    classes = {"Comfort": Comfort, "Equity": Equity, "OverConsumption": OverConsumption}
+    return classes[JUDGES[value][1]]()
 
 
 class SmartGrid(BatchedTask):
