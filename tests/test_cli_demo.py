@@ -12,12 +12,8 @@ import pytest
 
 from amuled_ma.beliefs.hosts import TINY_MODEL
 from amuled_ma.cli import main
-from amuled_ma.commands.demo import (
-    DEMO_NUM_PARALLEL,
-    LIVE_CLUSTERS,
-    LIVE_STATES,
-    demo_scenario,
-)
+from amuled_ma.commands._demo_live import LIVE_CLUSTERS, LIVE_STATES
+from amuled_ma.commands.demo import DEMO_NUM_PARALLEL, demo_scenario
 from amuled_ma.scenario import load_scenario
 from amuled_ma.scenario.overrides import parse_set
 
@@ -227,7 +223,7 @@ def test_a_warm_up_cut_short_by_the_servers_stop_is_said_plainly() -> None:
     """A second demo stops its server while the warm-up is still in flight: no raw error."""
     import socket
 
-    from amuled_ma.commands.demo import PrefixWarmup
+    from amuled_ma.commands._demo_live import PrefixWarmup
 
     listener = socket.create_server(("127.0.0.1", 0))  # accepts, never answers
     host = f"http://127.0.0.1:{listener.getsockname()[1]}"

@@ -136,7 +136,7 @@ def test_run_refuses_a_linked_report_before_training(
 def test_the_demo_live_section_replaces_the_old_one_and_follows_no_link(
     tmp_path: Path,
 ) -> None:
-    from amuled_ma.commands.demo import LIVE_HEADING, put_live_section
+    from amuled_ma.commands._demo_live import LIVE_HEADING, put_live_section
 
     run = tmp_path / "run"
     run.mkdir()

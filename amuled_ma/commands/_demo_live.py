@@ -1,0 +1,357 @@
+"""The demo's live leg: a few requests to a local Ollama model, its report section and timing.
+
+See :mod:`amuled_ma.commands.demo` for the demo as a whole.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from amuled_ma.safe_files import checked_read_path, write_text_atomic
+
+if TYPE_CHECKING:
+    from amuled_ma.beliefs.timing import CacheReuse, RequestTiming, TimingLog
+    from amuled_ma.scenario import Scenario
+
+
+def say(message: str) -> None:
+    """Print one ``[demo]`` line on stderr."""
+    print(f"[demo] {message}", file=sys.stderr, flush=True)
+
+
+#: The live leg: the first distinct states of the AMULED fine-tune's greedy evaluation
+#: episode asked of the live model, and the clusters asked about each: 2 x 2 = 4 requests
+#: (15-25 s each for the tiny model on a loaded 2-core machine, docs/ollama.md).
+LIVE_STATES = 2
+LIVE_CLUSTERS: tuple[str, ...] = ("care", "virtue")
+#: The live leg's folder in the run folder (its belief store and ``live.json``).
+LIVE_DIR = "live"
+#: How the report's live-leg section starts.
+LIVE_HEADING = "## Live leg: a few requests to a local model (its judgement is not meaningful)"
+
+
+def live_leg(
+    run_dir: Path,
+    scenario: Scenario,
+    *,
+    model: str,
+    host: str,
+    states: int = LIVE_STATES,
+    clusters: Sequence[str] = LIVE_CLUSTERS,
+) -> dict[str, Any]:
+    """Ask a live model about a few states of the AMULED fine-tune's episode, through a store.
+
+    The states are the first ``states`` distinct states of the fine-tune's greedy
+    evaluation episode 0 (replayed as ``amuled explain`` does); each is asked of every
+    cluster of ``clusters`` with the paper's prompts (``[feedback].source = "ollama"``,
+    the scenario's Ollama options), through the belief store ``RUN_DIR/live/beliefs.sqlite``,
+    and fused with the scenario's rule, as in training.
+
+    Args:
+        run_dir: The demo's run folder (its ``finetune-amuled`` is replayed).
+        scenario: The demo's scenario.
+        model: The live model.
+        host: Its server.
+        states: Distinct states asked.
+        clusters: The clusters asked about each.
+
+    Returns:
+        What ``live/live.json`` holds: the model, host, store, wall seconds, and per state
+        its prompt variables, each cluster's belief, status and weight, the fused belief
+        and Dempster's conflicts.
+
+    Raises:
+        AmuledError: The run has no AMULED fine-tune, or the panel cannot be built.
+
+    """
+    import numpy as np
+
+    from amuled_ma.beliefs.cached import requests_sent
+    from amuled_ma.deliberation.build import make_feedback
+    from amuled_ma.deliberation.panel_feedback import PanelFeedback
+    from amuled_ma.evaluate.episode_trace import replay_variant
+    from amuled_ma.evaluate.panel_answers import ask_panel
+    from amuled_ma.experiments.trained_variants import evaluated_episodes, trained_variant
+    from amuled_ma.tasks import get_task
+
+    trained = trained_variant(run_dir, run_dir / "finetune-amuled")
+    episode = replay_variant(
+        trained, episode=0, mode="greedy", episodes=evaluated_episodes(run_dir, scenario)
+    )
+    seen: set[tuple[float, ...]] = set()
+    picked: list[int] = []
+    for step in range(episode.length):
+        key = tuple(float(x) for x in np.asarray(episode.obs[step]).reshape(-1))
+        if key not in seen:
+            seen.add(key)
+            picked.append(step)
+        if len(picked) == states:
+            break
+    obs = np.stack([np.asarray(episode.obs[i], dtype=np.float64).reshape(-1) for i in picked])
+    prompt_vars = [dict(episode.prompt_vars[i]) for i in picked]
+    live = scenario.replace(
+        "feedback", source="ollama", model=model, host=host, clusters=list(clusters)
+    )
+    out = run_dir / LIVE_DIR
+    out.mkdir(parents=True, exist_ok=True)
+    feedback = make_feedback("amuled", live, out)
+    if not isinstance(feedback, PanelFeedback):  # an ollama source is always asked as a panel
+        feedback.close()
+        raise TypeError(f"the live panel's feedback is a {type(feedback).__name__}")
+    began = time.perf_counter()
+    try:
+        answers = ask_panel(feedback.panel, obs, prompt_vars)
+        sent = requests_sent(feedback.source) or 0  # the store answers those asked before
+    finally:
+        feedback.close()
+    wall = time.perf_counter() - began
+    actions = list(get_task(scenario.task.name).action_names)
+    return {
+        "model": model,
+        "host": host,
+        "store": str(out / Path(live.feedback.store).name),
+        "source": "ollama",
+        "meaningful": False,
+        "wall_s": wall,
+        "asked": len(picked) * len(answers.agents),
+        "requests": sent,
+        "actions": actions,
+        "agents": list(answers.agents),
+        "fusion": answers.rule,
+        "states": [
+            {
+                "step": int(step),
+                "obs": obs[u].tolist(),
+                "prompt_vars": {k: _plain(v) for k, v in prompt_vars[u].items()},
+                "beliefs": answers.beliefs[u].tolist(),
+                "statuses": answers.statuses[u].tolist(),
+                "weights": answers.weights[u].tolist(),
+                "fused": answers.fused[u].tolist(),
+                "conflicts": answers.conflicts[u].tolist(),
+            }
+            for u, step in enumerate(picked)
+        ],
+    }
+
+
+def _plain(value: object) -> Any:
+    """A prompt variable as JSON (numpy numbers as Python's)."""
+    return value.item() if hasattr(value, "item") else value
+
+
+def live_section(leg: dict[str, Any]) -> list[str]:
+    """The report's live-leg section (:data:`LIVE_HEADING`), from :func:`live_leg`'s data."""
+    actions = leg["actions"]
+    lines = [
+        LIVE_HEADING,
+        "",
+        f"**The model `{leg['model']}` was asked live; its moral judgement is not meaningful"
+        + (" (SmolLM2-135M, 135M parameters)" if leg["model"] == "amuled-tiny" else "")
+        + ": this leg only shows the live path** (the paper's prompts -> Ollama -> parsing -> "
+        "the belief store -> fusion). Nothing here trained a policy: every figure above "
+        "comes from the replayed recording.",
+        "",
+        f"{leg['requests']} requests to `{leg['model']}` at `{leg['host']}` in "
+        f"{leg['wall_s']:.1f} s, stored in `{LIVE_DIR}/{Path(leg['store']).name}` (belief "
+        f"source: `ollama`, model `{leg['model']}`); the states are the first distinct states "
+        "of `finetune-amuled`'s greedy evaluation episode 0; fusion "
+        f"`{leg['fusion']}`. Beliefs over {' / '.join(actions)}:",
+        "",
+        "| step | agent | source | status | belief | fusion weight |",
+        "|---|---|---|---|---|---|",
+    ]
+    for state in leg["states"]:
+        for k, agent in enumerate(leg["agents"]):
+            belief = " / ".join(f"{p:.2f}" for p in state["beliefs"][k])
+            lines.append(
+                f"| {state['step']} | {agent} | ollama `{leg['model']}` | "
+                f"{state['statuses'][k]} | {belief} | {state['weights'][k]:.3f} |"
+            )
+        fused = " / ".join(f"{p:.2f}" for p in state["fused"])
+        conflict = ", ".join(f"{c:.3f}" for c in state["conflicts"]) or "-"
+        lines.append(f"| {state['step']} | **fused** | - | Dempster's K {conflict} | {fused} | |")
+    return [*lines, ""]
+
+
+def write_live_leg(run_dir: Path, scenario: Scenario, *, model: str, host: str) -> bool:
+    """Run :func:`live_leg`, write ``live/live.json`` and append its section to ``report.md``.
+
+    Returns:
+        True when the leg ran (a failure is printed and the report says so).
+
+    """
+    import json
+
+    from amuled_ma.errors import AmuledError
+
+    say(
+        f"live leg: {LIVE_STATES} states x {len(LIVE_CLUSTERS)} clusters asked of {model} "
+        "(its judgement is not meaningful: it shows the live path)"
+    )
+    from amuled_ma.progress import Progress
+
+    try:
+        with Progress("live leg", None, bar=False, unit="batch"):  # never silent while asking
+            leg = live_leg(run_dir, scenario, model=model, host=host)
+    except (AmuledError, OSError, ValueError) as error:
+        say(f"live leg failed: {error}")
+        put_live_section(run_dir, [LIVE_HEADING, "", f"The live leg failed: {error}", ""])
+        return False
+    write_text_atomic(run_dir / LIVE_DIR / "live.json", json.dumps(leg, indent=1))
+    put_live_section(run_dir, live_section(leg))
+    stored = leg["asked"] - leg["requests"]
+    from_store = f", {stored} answered from {LIVE_DIR}/ without a request" if stored else ""
+    say(f"live leg: {leg['requests']} requests in {leg['wall_s']:.1f} s{from_store}")
+    return True
+
+
+def put_live_section(run_dir: Path, lines: list[str]) -> None:
+    """End ``report.md`` with the live leg's section, in place of an earlier one.
+
+    Read through :func:`~amuled_ma.safe_files.checked_read_path` and written back whole
+    (:func:`~amuled_ma.safe_files.write_text_atomic`); without a report, nothing is written.
+
+    Raises:
+        AmuledError: ``report.md`` is a link, not a regular file, over
+            :data:`~amuled_ma.evaluate.report.writing.MAX_REPORT_BYTES`, or could not be
+            written (a full disk); one line naming it.
+        UnicodeDecodeError: It is not UTF-8 text.
+    """
+    from amuled_ma.evaluate.report.writing import MAX_REPORT_BYTES
+    from amuled_ma.file_limits import read_bounded_bytes
+
+    report = checked_read_path(run_dir, "report.md")
+    if not report.is_file():
+        return
+    fix = f"is it the right folder? Write the report again with 'amuled evaluate {run_dir}'"
+    text = read_bounded_bytes(report, MAX_REPORT_BYTES, "report", fix=fix).decode("utf-8")
+    if LIVE_HEADING in text:  # a re-run: replace the old section
+        text = text[: text.index(LIVE_HEADING)]
+    write_text_atomic(report, text.rstrip("\n") + "\n\n" + "\n".join(lines))
+
+
+class PrefixWarmup:
+    """Evaluate the prompt prefix every request shares, on the private server, in the background.
+
+    All the demo's prompts start with the same system prompt and few-shot turns (about
+    3,300 of their 3,600 tokens); the server's first request must evaluate them (about
+    40 s on one thread), the later ones find them in its prefix cache. This sends one
+    chat with that prefix and an empty last user turn (one token generated, no belief)
+    while the policies train, so the first belief request finds the prefix cached. The
+    options that make Ollama reload a model (``num_ctx``...) are the run's, so the cache
+    survives; with overrides that change the prompt the warm-up is merely wasted.
+
+    Use :meth:`start`; the thread never raises (a failure is kept in :attr:`error`).
+
+    Attributes:
+        timing: Ollama's account of the warm-up (None until it is done, or on failure).
+        error: Why it failed, if it did.
+        cut: The demo stopped its server while the warm-up was still running (a demo whose
+            run and live answers were already there needs no prefix).
+
+    """
+
+    def __init__(self, host: str, model: str, messages: Sequence[tuple[str, str]], options: dict):
+        self.host, self.model = host, model
+        self.messages = [{"role": role, "content": text} for role, text in messages]
+        self.options = options
+        self.timing: RequestTiming | None = None
+        self.error: str | None = None
+        self.cut = False
+        self._thread = threading.Thread(target=self._run, name="amuled-warmup", daemon=True)
+
+    @classmethod
+    def start(cls, host: str, model: str, scenario: Scenario) -> PrefixWarmup | None:
+        """Start the warm-up for the run the demo is about to make (None if it cannot).
+
+        Args:
+            host: The private server.
+            model: The model the run asks.
+            scenario: The run's scenario (its prompts and Ollama options).
+
+        """
+        from amuled_ma.beliefs.ollama import OllamaSource
+        from amuled_ma.clusters import build_messages
+        from amuled_ma.deliberation.plan import cluster_registry, panel_of
+        from amuled_ma.errors import AmuledError
+
+        try:  # the run reports any error itself
+            registry = cluster_registry(scenario)
+            clusters, _ = panel_of("amuled", scenario, registry)
+            messages = build_messages(clusters[0], scenario.task.name, "", registry=registry)
+            source = OllamaSource(model, host=host, **dict(scenario.feedback.ollama))
+            source.close()
+        except (AmuledError, ValueError, TypeError, IndexError) as error:
+            say(f"no prefix warm-up: {error}")
+            return None
+        options = {**source.options, "num_predict": 1}
+        warmup = cls(host, model, [*messages[:-1], ("user", "")], options)
+        warmup._thread.start()
+        return warmup
+
+    def _run(self) -> None:
+        import ollama
+
+        began = time.perf_counter()
+        try:
+            with ollama.Client(host=self.host, timeout=600.0) as client:
+                reply = client.chat(model=self.model, messages=self.messages, options=self.options)
+        except Exception as error:  # a warm-up failure only costs time
+            self.error = f"{type(error).__name__}: {error}"
+            return
+        from amuled_ma.beliefs.timing import RequestTiming
+
+        self.timing = RequestTiming.from_reply(reply, time.perf_counter() - began)
+
+    def join(self, timeout: float = 5.0) -> None:
+        """Wait a little for the warm-up (it is long done when a run trained)."""
+        self._thread.join(timeout)
+
+    def running(self) -> bool:
+        """Whether the warm-up's request is still in flight."""
+        return self._thread.is_alive()
+
+    def describe(self) -> str:
+        """One line on what the warm-up did."""
+        if self.cut:
+            return (
+                "prefix warm-up: still running when the demo stopped its server, so cut short "
+                "(it only saves the first live request time; nothing depends on it)"
+            )
+        if self.timing is None:
+            return f"prefix warm-up: {self.error or 'not finished'}"
+        return (
+            f"prefix warm-up while the policies trained: {self.timing.prompt_tokens:,} shared "
+            f"prompt tokens (system prompt + few-shot turns) evaluated in "
+            f"{self.timing.prefill_s:.1f} s (not a belief; its chat call is in the prefix "
+            f"cache figures below)"
+        )
+
+
+def print_breakdown(
+    model: str, phases: list[tuple[str, TimingLog]], reuse: CacheReuse | None
+) -> None:
+    """Print where the demo's live requests spent their time (Ollama's own metrics).
+
+    Args:
+        model: The model asked.
+        phases: ``(name, log)`` of each phase that asked the model (the run's fine-tune,
+            the viewer's states the run never asked).
+        reuse: The private server's prefix-cache reuse (None: not our server).
+
+    """
+    from amuled_ma.beliefs.timing import timing_breakdown
+
+    timings = [t for _, log in phases for t in log.timings]
+    parts = [
+        f"{name} {len(log.timings)} in {log.span_s:.1f} s" for name, log in phases if log.timings
+    ]
+    say(f"live requests to {model}" + (f" ({', '.join(parts)})" if parts else "") + ":")
+    wall = sum(log.span_s for _, log in phases)
+    for line in timing_breakdown(timings, wall or None, reuse):
+        say(f"  {line}")
