@@ -16,7 +16,7 @@ network) the demo stops there with one line naming the manual route. ``--task
 driving`` runs ``scenarios/driving-demo.toml``, the same on Driving (the AMULED reward from
 their recorded fused beliefs, as ``scenarios/driving-authors.toml``).
 
-**The live leg** (:func:`live_leg`): a handful of real requests
+**The live leg** (`amuled_ma.commands._demo_live`): a handful of real requests
 (:data:`LIVE_STATES` states of the AMULED fine-tune's greedy episode x
 :data:`LIVE_CLUSTERS`) to a local Ollama model through a belief store
 (``RUN_DIR/live/beliefs.sqlite``), fused as in training; the answers are a labelled
