@@ -1,11 +1,4 @@
-"""Input checks shared by every fusion entry point (private).
-
-A belief row (or mass function) is valid when it is finite, non-negative and sums to 1
-within :data:`SUM_TOLERANCE`. Valid rows are rescaled to sum to 1 (to rounding) when any
-is off by more than :data:`RESCALE_THRESHOLD`, so every rule works on true probability
-vectors; invalid rows raise ``ValueError`` naming the first offending index, e.g.
-``beliefs[3, 2]``.
-"""
+"""Input checks shared by every fusion entry point (private)."""
 
 from __future__ import annotations
 
@@ -16,8 +9,7 @@ SUM_TOLERANCE = 1e-6
 """Largest accepted ``|sum(row) - 1|`` for a belief row or mass function."""
 
 RESCALE_THRESHOLD = 1e-12
-"""Rows are divided by their sums when some ``|sum(row) - 1|`` exceeds this; inputs that
-are probability vectors to rounding are used bit for bit (as the authors' code did)."""
+"""Rows are divided by their sums when some ``|sum(row) - 1|`` exceeds this (else used as is)."""
 
 
 def _index_text(name: str, index: tuple[int, ...]) -> str:
@@ -27,21 +19,13 @@ def _index_text(name: str, index: tuple[int, ...]) -> str:
 
 
 def check_rows(values: object, name: str = "beliefs", *, min_ndim: int = 2) -> np.ndarray:
-    """Return ``values`` as float64 rows that each sum to 1, or raise ``ValueError``.
+    """Return ``values`` (shape ``(..., n)``) as float64 rows rescaled to sum to 1.
 
-    Args:
-        values: array-like of shape ``(..., n)`` with ``ndim >= min_ndim``.
-        name: what to call the array in error messages.
-        min_ndim: the smallest accepted number of dimensions.
-
-    Returns:
-        A float64 array of the same shape whose rows sum to 1 (to within
-        :data:`RESCALE_THRESHOLD`); it may share memory with ``values``: do not modify it.
+    The result may share memory with ``values``: do not modify it.
 
     Raises:
-        ValueError: wrong shape, or a row with NaN/inf, a negative entry, or a sum farther
-            than :data:`SUM_TOLERANCE` from 1 (the message names the row's index).
-
+        ValueError: ``ndim < min_ndim``, an empty row, or a row with NaN/inf, a negative
+            entry or a sum farther than `SUM_TOLERANCE` from 1 (names the row's index).
     """
     try:
         array = np.asarray(values, dtype=np.float64)
@@ -89,19 +73,10 @@ def _raise_first_bad_row(array: np.ndarray, sums: np.ndarray, name: str) -> None
 def check_weights(
     weights: npt.ArrayLike, batch_shape: tuple[int, ...], name: str = "weights"
 ) -> np.ndarray:
-    """Return per-cluster weights broadcast to ``batch_shape``, or raise ``ValueError``.
-
-    Args:
-        weights: array-like broadcastable to ``batch_shape`` (``(..., n_clusters)``).
-        batch_shape: the shape ``beliefs.shape[:-1]``.
-        name: what to call the array in error messages (``weights``, ``prior``).
-
-    Returns:
-        A float64 array of shape ``batch_shape``.
+    """Return per-cluster ``weights`` broadcast to ``batch_shape`` as float64.
 
     Raises:
         ValueError: not broadcastable, NaN/inf, negative, or all zero for some leading index.
-
     """
     try:
         array = np.broadcast_to(np.asarray(weights, dtype=np.float64), batch_shape)

@@ -1,14 +1,7 @@
-"""A plain, per-state pure-Python Xiao (2019) fusion: the test oracle and benchmark baseline.
+"""A per-state pure-Python Xiao (2019) fusion: the test oracle and benchmark baseline.
 
-## Description
-
-This is the implementation a reader of the paper would write: one state at a time, each
-mass function a ``dict`` from ``frozenset`` focal element to mass, ``math.log2``, loops.
-It shares no code with :mod:`amuled_ma.fusion.xiao`; the tests check that the two agree
-and the benchmark (``amuled bench fusion``) measures how much faster the vectorized one is.
-It follows the same conventions for degenerate inputs (``0 log 0 = 0``; equal credibility
-when every divergence is 0; ``k = 1`` returns the mass function; ``ValueError`` at total
-conflict) but does not validate its input.
+Mass functions are dicts of frozensets; it shares no code with `amuled_ma.fusion.xiao`,
+keeps its degenerate-input conventions and does not validate its input.
 """
 
 from __future__ import annotations
@@ -43,12 +36,7 @@ def deng_entropy(m: Mass) -> float:
 
 
 def dempster(m1: Mass, m2: Mass) -> tuple[dict[frozenset, float], float]:
-    """Dempster's rule of combination; returns ``(combined, K)``.
-
-    Raises:
-        ValueError: total conflict (``K = 1``).
-
-    """
+    """Dempster's rule of combination; returns ``(combined, K)``; ``ValueError`` at ``K = 1``."""
     joint: dict[frozenset, float] = {}
     conflict = 0.0
     for a, x in m1.items():
@@ -65,15 +53,10 @@ def dempster(m1: Mass, m2: Mass) -> tuple[dict[frozenset, float], float]:
 
 
 def xiao_fuse(masses: Sequence[Mass]) -> tuple[dict[frozenset, float], dict[str, Any]]:
-    """Fuse ``k`` mass functions with Xiao (2019); returns ``(fused, diagnostics)``.
+    """Fuse ``k`` mass functions; returns ``(fused, diagnostics)``.
 
-    Args:
-        masses: the ``k`` mass functions, each ``{focal_set: mass}``.
-
-    Returns:
-        The fused mass function and a dict with lists ``weights``, ``credibility``,
-        ``entropy``, ``conflicts`` and the ``wae`` as a dict.
-
+    ``diagnostics`` holds lists ``weights``, ``credibility``, ``entropy``, ``conflicts`` and
+    the ``wae`` dict.
     """
     k = len(masses)
     # Step 1: credibility from the average BJS distance to the other sources.

@@ -1,60 +1,6 @@
 """Fusion rules by name: ``fuse(beliefs, rule)`` and the registry behind it.
 
-## Description
-
-A fusion rule turns the beliefs of ``k`` moral clusters over ``n`` actions, shape
-``(..., k, n)``, into one belief ``(..., n)`` per leading (batch) index. Every rule is a
-function registered by name with :func:`register_rule`; :func:`fuse` validates the input,
-looks the rule up and calls it once for the whole batch.
-
-## Rules
-
-- ``"bjs-dst"``: Xiao (2019) BJS divergence + Deng-entropy weighting + Dempster's rule
-  (see :mod:`amuled_ma.fusion.xiao`), the AMULED arbiter. Closed form
-  ``WAE^k / sum(WAE^k)`` for beliefs over actions (singleton focal elements). Takes an
-  optional member ``prior`` that multiplies Xiao's credibility (learned from people by
-  ``amuled study fit-weights``); no prior is the paper's rule, bit for bit.
-- ``"mean"``: weighted average ``sum_i w_i m_i / sum_i w_i`` (``weights`` default 1).
-  This is the paper's "weight_average" baseline.
-- ``"max"``: per-action maximum over clusters, renormalised:
-  ``max_i m_i(a) / sum_b max_i m_i(b)`` (the paper's "arg_max" baseline; the authors'
-  code skipped the renormalisation, we follow the paper's equation).
-- ``"vote"``: each cluster votes for its most believed action; the action(s) with the
-  most votes get the mass. **Ties**: a cluster whose belief has several equal maxima
-  splits its vote equally among them; when several actions tie for the most votes
-  (within ``1e-9`` of the total), the fused mass is split equally among them, e.g.
-  ``[0.5, 0.5, 0, 0]``. This keeps ``vote`` symmetric in actions and clusters (the
-  authors' code took the lowest index instead). ``weights`` scale the votes.
-- ``"single:<i>"``: cluster ``i``'s own belief (``i`` may be negative, Python style): the
-  per-cluster ablation.
-- ``"mec"``, ``"nash-vote"``, ``"variance-vote"``, ``"borda"``: the rules for acting under
-  moral uncertainty, the members' ``weights`` or ``prior`` as credences
-  (:mod:`amuled_ma.fusion.moral_uncertainty`).
-
-## Degenerate inputs
-
-Invalid rows (NaN/inf, negative, sum not within ``1e-6`` of 1) raise ``ValueError`` naming
-the index, e.g. ``beliefs[3, 2]``; valid rows are rescaled to sum to 1 when one is off by
-more than ``1e-12`` (rows that already sum to 1 to rounding are used bit for bit). An empty
-batch (a leading dimension of size 0) returns an empty result. See
-:mod:`amuled_ma.fusion.xiao` for identical beliefs, ``k = 1``, zeros and total conflict.
-
-## Writing a rule
-
-```python
-@register_rule("geometric")
-def geometric(beliefs, *, weights, param, diagnostics):
-    g = np.exp(np.log(beliefs + 1e-12).mean(axis=-2))
-    return g / g.sum(axis=-1, keepdims=True)
-```
-
-A rule receives the validated float64 ``beliefs`` ``(..., k, n)`` and the keywords
-``weights`` (``(..., k)`` or ``None``), ``param`` (the text after ``:`` in the rule name,
-or ``None``) and ``diagnostics`` (bool); a rule registered with ``takes_prior=True`` also
-receives ``prior`` (``(..., k)`` or ``None``). It returns the fused ``(..., n)`` array, or a
-:class:`~amuled_ma.fusion.xiao.FusionResult`. When diagnostics are requested and a rule
-returns a plain array, :func:`fuse` adds generic ones: uniform ``weights``, Xiao's
-``credibility`` and ``entropy`` of the inputs, and no ``conflicts``.
+The rules, their tie handling and the rule-writing contract are in docs/fusion.md.
 """
 
 from __future__ import annotations
@@ -81,17 +27,7 @@ RuleFunc = Callable[..., "np.ndarray | FusionResult"]
 
 @dataclass(frozen=True)
 class RuleSpec:
-    """A registered fusion rule.
-
-    Attributes:
-        name: the name used in ``fuse(..., rule=name)`` (before any ``:param``).
-        func: the rule function (see the module docstring for its contract).
-        takes_weights: whether the rule accepts ``weights``.
-        takes_param: whether the rule needs a ``:param`` suffix (``"single:2"``).
-        summary: first line of the function's docstring.
-        takes_prior: whether the rule accepts a member ``prior`` (``bjs-dst``).
-
-    """
+    """A registered fusion rule; ``summary`` is the first line of ``func``'s docstring."""
 
     name: str
     func: RuleFunc
@@ -118,20 +54,13 @@ def register_rule(
 
     Args:
         name: the rule's name (no ``:``).
-        takes_weights: the rule accepts per-cluster ``weights``; otherwise passing
-            weights to it is an error.
+        takes_weights: the rule accepts per-cluster ``weights``.
         takes_param: the rule is selected as ``"name:<param>"`` and needs the param.
         replace: allow replacing an existing rule of that name.
-        takes_prior: the rule accepts a member ``prior`` (it is then called with the
-            keyword ``prior``, a validated ``(..., k)`` array or None); otherwise passing
-            a prior to it is an error.
-
-    Returns:
-        The decorator; it returns the function unchanged.
+        takes_prior: the rule accepts a member ``prior`` (passed as keyword ``prior``).
 
     Raises:
         ValueError: bad name, or the name is taken and ``replace`` is false.
-
     """
     if not name or ":" in name or name != name.strip():
         raise ValueError(f"rule name {name!r} must be non-empty, without ':' or spaces around")
@@ -148,12 +77,7 @@ def register_rule(
 
 
 def unregister_rule(name: str) -> None:
-    """Remove a registered rule (mainly for tests and plug-in reloads).
-
-    Raises:
-        KeyError: no rule of that name.
-
-    """
+    """Remove a registered rule; raises ``KeyError`` when none has that name."""
     del _REGISTRY[name]
     forget_fusion_rule(name)
 
@@ -231,42 +155,24 @@ def fuse(
     prior: npt.ArrayLike | None = None,
     return_diagnostics: bool = False,
 ) -> np.ndarray | FusionResult:
-    """Fuse the beliefs of ``k`` moral clusters into one belief over the actions.
+    """Fuse the beliefs ``(..., k, n)`` of ``k`` moral clusters into one belief ``(..., n)``.
 
     Args:
-        beliefs: array-like ``(..., k, n)``: per leading index, ``k`` probability vectors
-            over ``n`` actions (non-negative, summing to 1 within ``1e-6``). Leading
-            dimensions are batch dimensions, fused in one vectorized call.
-        rule: a registered rule name: ``"bjs-dst"`` (default), ``"mean"``, ``"max"``,
-            ``"vote"``, ``"single:<i>"``, ``"mec"``, ``"nash-vote"``, ``"variance-vote"``,
-            ``"borda"``, or one added with :func:`register_rule`.
-        weights: optional per-cluster weights, broadcastable to ``(..., k)``
-            (the rules with ``takes_weights``: all but ``bjs-dst``, ``max`` and
-            ``single``); non-negative, not all zero.
-        prior: optional prior reliability ``rho`` of each cluster, broadcastable to
-            ``(..., k)`` (the rules with ``takes_prior``: ``bjs-dst`` and the
-            moral-uncertainty rules, which take it as the credences); non-negative, not
-            all zero, any scale. For ``bjs-dst`` it multiplies Xiao's adjusted
-            credibility, ``w_i ∝ rho_i · Crd_i · IV_i`` (``docs/fusion.md``, "A prior on
-            the members"). None, or a prior equal for every cluster, gives the paper's
-            fusion bit for bit.
-        return_diagnostics: return a :class:`~amuled_ma.fusion.xiao.FusionResult` with
-            ``fused`` and ``weights``, ``credibility``, ``entropy`` ``(..., k)`` and
-            ``conflicts`` ``(..., k - 1)`` (``bjs-dst``; empty for other rules).
-
-    Returns:
-        The fused beliefs ``(..., n)`` (float64, each a probability vector), or a
-        ``FusionResult`` when ``return_diagnostics`` is true.
+        beliefs: per leading (batch) index, ``k`` probability vectors over ``n`` actions.
+        rule: a name in `RULES`, e.g. ``"bjs-dst"``, ``"mean"``, ``"single:<i>"``.
+        weights: per-cluster weights broadcastable to ``(..., k)`` (rules with
+            ``takes_weights``); non-negative, not all zero.
+        prior: member reliability ``rho`` broadcastable to ``(..., k)``, any scale (rules
+            with ``takes_prior``); for ``bjs-dst`` ``w_i ∝ rho_i · Crd_i · IV_i``. None or
+            a constant prior gives the paper's fusion bit for bit.
+        return_diagnostics: return a `FusionResult` instead of the fused array.
 
     Raises:
-        ValueError: unknown rule; weights or a prior given to a rule that takes none;
-            a bad prior (negative, all zero, wrong shape); bad shape; a row
-            with NaN/inf or a negative entry or that does not sum to 1 (the message names
-            the index, e.g. ``beliefs[7, 2]``).
+        ValueError: unknown rule; weights or a prior to a rule that takes none; a bad
+            prior or shape; a row that is not a probability vector (names its index).
 
     Example:
-        Five clusters judge four actions (up, down, left, right); the fourth cluster is
-        an outlier and gets the least weight:
+        Five clusters judge four actions; the fourth, an outlier, gets the least weight:
 
         >>> import numpy as np
         >>> beliefs = np.array([
@@ -287,12 +193,8 @@ def fuse(
         >>> result = fuse(beliefs, return_diagnostics=True)
         >>> int(np.argmin(result.weights)), result.conflicts.shape
         (3, (4,))
-
-        A batch of 1000 states is one call:
-
         >>> fuse(np.broadcast_to(beliefs, (1000, 5, 4))).shape
         (1000, 4)
-
     """
     spec, param = _lookup(rule)
     m = check_rows(beliefs, "beliefs")
@@ -371,7 +273,7 @@ def _max_rule(beliefs, *, weights, param, diagnostics):
 
 @register_rule("vote", takes_weights=True)
 def _vote_rule(beliefs, *, weights, param, diagnostics):
-    """Majority vote of the clusters' argmax actions; ties split equally (see module doc)."""
+    """Majority vote of the clusters' argmax actions; tied actions share the mass equally."""
     is_top = (beliefs == beliefs.max(axis=-1, keepdims=True)).astype(np.float64)
     votes = is_top / is_top.sum(axis=-1, keepdims=True)
     if weights is not None:

@@ -1,61 +1,7 @@
-"""Xiao (2019) evidence fusion: BJS divergence, Deng entropy, Dempster's rule (vectorized).
+"""Xiao (2019) evidence fusion: BJS divergence, Deng entropy, Dempster's rule, batched.
 
-## Description
-
-F. Xiao, "Multi-sensor data fusion based on the belief divergence measure of
-evidences and the belief entropy", *Information Fusion* 46 (2019) 23-32, fuses ``k``
-mass functions ``m_1..m_k`` defined on the same focal elements ``A_1..A_n`` in three
-steps (log base 2 throughout, as in the paper and in the AMULED authors' code):
-
-1. **Credibility.** Belief Jensen-Shannon divergence between every pair,
-   ``BJS(m_i, m_j) = 1/2 sum_A [m_i(A) log2(2 m_i(A) / (m_i(A) + m_j(A)))
-   + m_j(A) log2(2 m_j(A) / (m_i(A) + m_j(A)))]`` (with ``0 log 0 = 0``); average
-   distance ``BJS_i = sum_{j != i} BJS(m_i, m_j) / (k - 1)``; support
-   ``Sup_i = 1 / BJS_i``; credibility ``Crd_i = Sup_i / sum_j Sup_j``.
-2. **Information volume.** Deng entropy
-   ``E_d(m_i) = -sum_A m_i(A) log2(m_i(A) / (2^|A| - 1))`` (Shannon entropy when every
-   focal element is a singleton); ``IV_i = exp(E_d(m_i))``, normalised to sum 1.
-3. **Combination.** Adjusted credibility ``ACrd_i = Crd_i * IV_i`` normalised to the
-   final weights ``w_i``; weighted average evidence ``WAE = sum_i w_i m_i``; Dempster's
-   rule combines ``WAE`` with itself ``k - 1`` times (conflict ``K_t`` at step ``t``).
-
-For singleton-only frames (a belief over actions) the ``k - 1`` combinations have the
-closed form ``fused = WAE^k / sum(WAE^k)`` (element-wise power) and
-``K_t = 1 - sum(WAE^{t+1}) / sum(WAE^t)``; :func:`xiao_fusion` uses it whenever every
-focal element is a singleton, and the tests check it against the general combination.
-
-Every function here is batched: leading dimensions of ``masses`` are batch dimensions,
-``masses`` has shape ``(..., k, n)`` and no Python loop runs over the states of the
-batch. Internally the batch is transposed to ``(k, n, B)`` so that each numpy call works
-on long contiguous rows, and the ``bjs-dst`` fast path walks it in cache-sized blocks of
-4096 states (each block fully vectorized): 100,000 fusions of 5 x 4 take about 0.07 s of
-CPU time on one core (see ``amuled bench fusion`` and ``docs/fusion.md``).
-
-## Degenerate inputs (defined behaviour, each one tested)
-
-- **All ``k`` mass functions identical.** Every ``BJS`` is 0 and ``1 / 0`` is undefined.
-  We use the limit of the formula: equal credibility, so ``WAE = m`` and the result is
-  Dempster's rule applied to ``m`` ``k - 1`` times (``m^k / sum(m^k)`` for singletons).
-  More generally, when some ``BJS_i`` are exactly 0 (which in exact arithmetic happens
-  only when all are), the credibility is shared equally among those sources.
-  *The AMULED authors' published code returned the raw belief ``m`` in this case* (the
-  recordings in ``shared/amuled-recordings`` show it); we deliberately do not.
-- **A single source (``k = 1``).** No divergence exists: credibility and weight are 1 and
-  the result is the mass function itself (the ``k = 1`` case of ``m^k / sum(m^k)``);
-  ``conflicts`` is empty.
-- **Zeros.** ``0 log 0 = 0`` in both BJS and Deng entropy. The authors' code replaced
-  zeros by ``1e-12`` first; the two agree to about ``1e-11`` (tested to ``1e-9``).
-- **Total conflict (``K = 1``).** Xiao's method never meets it: ``WAE`` combined with
-  itself always keeps the mass ``WAE(A)^2 > 0`` of some ``A`` with ``A ∩ A = A``, and
-  the closed form scales by ``max(WAE)`` so nothing underflows; sources that totally
-  conflict with each other (one-hot beliefs on different actions) are averaged by
-  ``WAE`` first. Dempster's rule itself (:func:`dempster_combine`) is undefined at
-  ``K = 1`` and raises ``ValueError`` naming the batch index (the authors' code
-  returned all-zero masses there; ``evidencelib`` raises ``TotalConflictError``).
-- **Invalid rows.** NaN/inf, a negative mass, or a row sum farther than ``1e-6`` from 1
-  raises ``ValueError`` naming the offending index (e.g. ``masses[3, 2]``). Valid rows
-  are rescaled to sum to 1 when one is off by more than ``1e-12`` (rows that sum to 1 to
-  rounding are used bit for bit, as the authors' code did). NaN is never returned.
+docs/fusion.md holds the steps, the closed form and the defined behaviour of every
+degenerate input (identical beliefs, ``k = 1``, zeros, total conflict, invalid rows).
 """
 
 from __future__ import annotations
@@ -81,25 +27,18 @@ FocalSets = tuple[frozenset, ...]
 
 @dataclass(frozen=True, eq=False)
 class FusionResult:
-    """The fused mass function of one or many fusions, with the diagnostics that explain it.
-
-    Leading dimensions ``...`` are the batch dimensions of the input; ``k`` is the number
-    of sources (moral clusters).
+    """The fused masses ``(..., n)`` of one or many fusions, with the diagnostics that explain them.
 
     Attributes:
-        fused: ``(..., n)`` fused masses (a probability vector per leading index), over
-            ``focal_sets`` when given, else over the input's columns (actions).
-        weights: ``(..., k)`` final weight of each source (for ``bjs-dst`` the normalised
-            adjusted credibility ``w_i``; for other rules, each source's share of the
-            fused mass, see :func:`amuled_ma.fusion.fuse`). Sums to 1.
-        credibility: ``(..., k)`` Xiao's credibility ``Crd_i`` (from BJS divergence).
-        entropy: ``(..., k)`` Deng entropy ``E_d(m_i)`` of each source, in bits.
-        conflicts: ``(..., k - 1)`` Dempster's conflict ``K`` at each of the ``k - 1``
-            combinations (empty last axis for rules that do not combine).
+        fused: a probability vector per leading index, over ``focal_sets`` or the actions.
+        weights: ``(..., k)`` each source's final weight (``bjs-dst``: ``w_i``; other rules:
+            its share of the fused mass); sums to 1.
+        credibility: ``(..., k)`` Xiao's ``Crd_i``.
+        entropy: ``(..., k)`` Deng entropy of each source, in bits.
+        conflicts: ``(..., k - 1)`` Dempster's ``K`` per combination (empty for other rules).
         focal_sets: the focal element of each column of ``fused`` (``xiao_fusion`` only).
         wae: ``(..., n)`` the weighted average evidence (``bjs-dst`` only).
         rule: the name of the rule that produced the result.
-
     """
 
     fused: np.ndarray
@@ -122,16 +61,7 @@ def _xlog2x(m: np.ndarray) -> np.ndarray:
 
 
 def bjs_divergence(m1: np.ndarray, m2: np.ndarray) -> np.ndarray:
-    """Belief Jensen-Shannon divergence (Xiao 2019, eq. 8), log base 2, over the last axis.
-
-    Args:
-        m1: masses ``(..., n)`` (broadcast against ``m2``).
-        m2: masses ``(..., n)``.
-
-    Returns:
-        ``BJS(m1, m2)`` of shape ``(...)``, in ``[0, 1]``; exactly 0 for identical rows.
-
-    """
+    """Belief Jensen-Shannon divergence (Xiao 2019, eq. 8), log2, over the last axis, in [0, 1]."""
     a = np.asarray(m1, dtype=np.float64)
     b = np.asarray(m2, dtype=np.float64)
     s = a + b
@@ -154,15 +84,9 @@ def _log2_capacity(focal_sets: FocalSets | None) -> np.ndarray | None:
 def deng_entropy(
     masses: np.ndarray, focal_sets: Iterable[Iterable[Hashable]] | None = None
 ) -> np.ndarray:
-    """Deng belief entropy ``E_d(m) = -sum_A m(A) log2(m(A) / (2^|A| - 1))`` in bits.
+    """Deng entropy ``E_d(m) = -sum_A m(A) log2(m(A) / (2^|A| - 1))`` in bits, over the last axis.
 
-    Args:
-        masses: ``(..., n)`` mass functions (not validated here).
-        focal_sets: the ``n`` focal elements; ``None`` means singletons (Shannon entropy).
-
-    Returns:
-        ``(...)`` entropies.
-
+    ``focal_sets`` None means singletons (Shannon entropy); ``masses`` are not validated.
     """
     m = np.asarray(masses, dtype=np.float64)
     cap = _log2_capacity(None if focal_sets is None else _as_focal_sets(focal_sets))
@@ -172,11 +96,8 @@ def deng_entropy(
     return value
 
 
-# Internal layout: "columns". A batch (..., k, n) is transposed once to a contiguous
-# (k, n, B) array (B = product of the batch dimensions) so that every numpy call below
-# works on long contiguous rows of length B and every reduction over clusters or
-# actions adds whole rows; Python loops run over clusters and powers only, never over
-# the batch. This is several times faster than reducing small trailing axes.
+# Internal layout: a batch (..., k, n) is transposed once to contiguous (k, n, B) "columns",
+# so numpy works on long rows of length B (several times faster than small trailing axes).
 
 _NEAR_ZERO_BJS = 1e-9  # pairs below this are compared element-wise for exact identity
 _BLOCK = 4096  # states per block in bjs_dst: keeps the temporaries in the CPU cache
@@ -245,9 +166,7 @@ def _columns_measures(t: np.ndarray, cap: np.ndarray | None):
 def _columns_wae(t: np.ndarray, cap: np.ndarray | None, prior: np.ndarray | None = None):
     """Run steps 1-3 on columns: ``(wae (n, B), weights, credibility, entropy)``.
 
-    ``prior`` ``(k, B)`` (non-negative, not all zero per column) multiplies the adjusted
-    credibility before it is normalised (see :func:`bjs_dst`); None leaves the paper's
-    weights untouched, bit for bit.
+    ``prior`` ``(k, B)`` multiplies the adjusted credibility before it is normalised.
     """
     credibility, entropy = _columns_measures(t, cap)
     # exp(E - max E) / sum: the normalised information volume, safe from overflow.
@@ -384,22 +303,12 @@ def dempster_combine(
     m2: np.ndarray,
     focal_sets2: Iterable[Iterable[Hashable]] | None = None,
 ) -> tuple[np.ndarray, FocalSets, np.ndarray]:
-    """Dempster's normalised rule of combination, batched over leading dimensions.
-
-    ``m(C) = sum_{A ∩ B = C} m1(A) m2(B) / (1 - K)`` with conflict
-    ``K = sum_{A ∩ B = ∅} m1(A) m2(B)``.
-
-    Args:
-        m1: ``(..., n1)`` masses over ``focal_sets1``.
-        focal_sets1: ``n1`` non-empty, distinct subsets of the frame.
-        m2: ``(..., n2)`` masses over ``focal_sets2`` (broadcast against ``m1``).
-        focal_sets2: ``n2`` subsets; default ``focal_sets1``.
+    """Dempster's rule ``m(C) = sum_{A ∩ B = C} m1(A) m2(B) / (1 - K)``, batched.
 
     Returns:
-        ``(masses, focal_sets, K)``: combined masses ``(..., n)`` over ``focal_sets``
-        (``focal_sets1`` in order, then the sets of ``focal_sets2`` not among them, then
-        new intersections in order of first appearance; sets that receive no mass have
-        0) and the conflict ``K`` of shape ``(...)``.
+        ``(masses, focal_sets, K)``: masses ``(..., n)`` over ``focal_sets`` (``focal_sets1``,
+        then the new sets of ``focal_sets2``, then new intersections in order of first
+        appearance) and the conflict ``K = sum_{A ∩ B = ∅} m1(A) m2(B)`` of shape ``(...)``.
 
     Raises:
         ValueError: invalid masses or focal sets, or total conflict (``K = 1``).
@@ -411,7 +320,6 @@ def dempster_combine(
         ... )
         >>> [sorted(s) for s in sets], np.round(m, 4).tolist(), float(k)
         ([['a'], ['a', 'b'], ['b']], [0.4286, 0.2857, 0.2857], 0.3)
-
     """
     sets1 = _as_focal_sets(focal_sets1)
     sets2 = sets1 if focal_sets2 is None else _as_focal_sets(focal_sets2)
@@ -465,27 +373,17 @@ def xiao_fusion(
     closed_form: bool | None = None,
     prior: npt.ArrayLike | None = None,
 ) -> FusionResult:
-    """Fuse ``k`` mass functions with Xiao (2019)'s BJS + belief-entropy + Dempster method.
-
-    The mass functions may have arbitrary focal elements (e.g. ``{A}``, ``{B}``, ``{C}``,
-    ``{A, C}``); see the module docstring for the steps and the degenerate cases.
+    """Fuse ``k`` mass functions ``(..., k, n)`` over arbitrary ``focal_sets`` by Xiao (2019).
 
     Args:
-        masses: ``(..., k, n)``: ``k`` mass functions over the ``n`` ``focal_sets`` per
-            leading index; every row non-negative and summing to 1 (within ``1e-6``).
-        focal_sets: ``n`` distinct non-empty subsets of the frame of discernment (any
-            iterables of hashable hypotheses; strings are rejected, write ``{"A"}``).
-        closed_form: use the singleton closed form ``WAE^k / sum(WAE^k)``; ``None``
-            (default) uses it exactly when every focal element is a singleton, ``False``
-            forces the general combination. ``True`` with non-singletons is an error.
-        prior: optional per-source prior ``rho`` broadcastable to ``(..., k)``
-            (non-negative, not all zero): it multiplies each source's adjusted credibility,
-            ``w_i ∝ rho_i · Crd_i · IV_i`` (see :func:`bjs_dst`). None, or a prior equal for
-            every source, is the paper's method bit for bit.
+        masses: ``k`` mass functions over the ``n`` ``focal_sets`` per leading index.
+        focal_sets: ``n`` distinct non-empty sets of hypotheses (a string is rejected).
+        closed_form: ``WAE^k / sum(WAE^k)``; None uses it exactly when every focal element
+            is a singleton, False forces the general combination, True needs singletons.
+        prior: per-source ``rho`` broadcastable to ``(..., k)``, ``w_i ∝ rho_i · Crd_i · IV_i``.
 
     Returns:
-        A :class:`FusionResult` whose ``fused`` covers ``focal_sets`` (input order) plus
-        any new intersections the combination produced, listed in ``.focal_sets``.
+        A `FusionResult`; ``.focal_sets`` lists ``focal_sets`` then any new intersections.
 
     Raises:
         ValueError: bad shapes, invalid rows (the message names the index) or focal sets.
@@ -508,9 +406,6 @@ def xiao_fusion(
         [0.9895, 0.0002, 0.0061, 0.0043]
         >>> int(np.argmin(result.weights))  # the outlier sensor m2 gets the least weight
         1
-        >>> result.conflicts.shape  # K of each of the k - 1 = 4 combinations
-        (4,)
-
     """
     sets = _as_focal_sets(focal_sets)
     m = check_rows(masses, "masses")
@@ -546,15 +441,12 @@ def xiao_fusion(
 
 
 def check_prior(prior: npt.ArrayLike | None, batch_shape: tuple[int, ...]) -> np.ndarray | None:
-    """A member prior checked and broadcast to ``batch_shape`` ``(..., k)``, or None.
+    """A member prior checked and broadcast to ``batch_shape``; None for none or a constant one.
 
-    None is returned for no prior and for a prior equal for every source of every state
-    (a constant factor cancels when the weights are normalised): the fusion then runs the
-    paper's arithmetic unchanged, bit for bit.
+    A constant prior cancels when the weights are normalised, so None keeps the paper's arithmetic.
 
     Raises:
         ValueError: not broadcastable, NaN/inf, negative, or all zero for some state.
-
     """
     if prior is None:
         return None
@@ -567,18 +459,10 @@ def check_prior(prior: npt.ArrayLike | None, batch_shape: tuple[int, ...]) -> np
 def bjs_dst(
     beliefs: np.ndarray, diagnostics: bool = False, prior: np.ndarray | None = None
 ) -> np.ndarray | FusionResult:
-    """Apply the ``bjs-dst`` rule to validated singleton beliefs ``(..., k, n)`` (closed form).
+    """Apply ``bjs-dst`` to validated singleton beliefs ``(..., k, n)`` by the closed form.
 
-    The flattened batch is processed in blocks of ``_BLOCK`` states so that every
-    temporary stays in the CPU cache (about 1.5x faster than one pass over 100,000
-    states, measured); each block is fully vectorized, there is no per-state loop.
-
-    ``prior`` (``(..., k)``, from :func:`check_prior`) is a prior reliability ``rho_i`` of
-    each source: the weights become ``w_i = rho_i ACrd_i / sum_j rho_j ACrd_j`` (Xiao's
-    adjusted credibility ``ACrd_i = Crd_i · IV_i`` times the prior), and ``WAE`` and
-    Dempster's combinations follow as before. Where the prior is 0 for every source with
-    credibility (possible only when some divergences are exactly 0), the weights are the
-    prior times the information volume.
+    ``prior`` (from `check_prior`) gives ``w_i = rho_i ACrd_i / sum_j rho_j ACrd_j``. The batch
+    is walked in blocks of ``_BLOCK`` states that fit the CPU cache (about 1.5x faster, measured).
     """
     batch = beliefs.shape[:-2]
     k, n = beliefs.shape[-2:]
