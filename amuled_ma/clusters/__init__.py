@@ -1,10 +1,4 @@
-"""Moral clusters as data: loading cluster files and building the prompts sent to them.
-
-See ``docs/clusters.md``. Typical use::
-
-    from amuled_ma.clusters import build_messages
-    messages = build_messages("care", "findmilk", state_prompt)
-"""
+"""Moral clusters as data: cluster files and the prompts sent to them (docs/clusters.md)."""
 
 from amuled_ma.clusters.loader import (
     CREDENCE_INSTRUCTION,

@@ -1,17 +1,6 @@
-"""Load and validate moral-cluster files (``prompts/clusters/<name>.toml``).
+"""Load and validate moral-cluster files ``prompts/clusters/<name>.toml`` (docs/clusters.md).
 
-A moral cluster is data, not code: one TOML file per cluster agent. Three kinds exist:
-
-- ``kind = "cluster"``: a moral cluster of the paper (focus, key principle, theories with
-  key concepts and decision factors). It is described in the system prompt and is one
-  coordinate of every credence vector. Its agent gets a one-hot credence on itself.
-- ``kind = "mixture"``: an agent with a mixed credence vector over the ``cluster`` files
-  (``credences = { consequentialist = 0.5, care = 0.5 }``); it adds nothing to the
-  system prompt.
-- ``kind = "unprompted"``: the paper's "moral agent" ablation: no credence vector, the
-  state prompt ends with the file's ``instruction`` instead.
-
-The full schema is in ``docs/clusters.md``. Every error names the file and the field.
+Every error names the file and the field.
 """
 
 from __future__ import annotations
@@ -31,18 +20,15 @@ from amuled_ma.scenario.names import identity_key, odd_character
 #: Kinds of cluster files.
 KINDS = ("cluster", "mixture", "unprompted")
 
-#: The paper's sentence asking for a credence-weighted answer (``{credences}`` is the
-#: comma-separated ``label: value`` list); word for word from the authors' code.
+#: The paper's credence sentence, word for word (``{credences}``: the ``label: value`` list).
 CREDENCE_INSTRUCTION = (
     "Behave as an agent that assigns the following credence values: {{{credences}}}. "
     "Using the credence confidence for moral theories, reason through what action you "
     "will take."
 )
 
-#: Largest accepted distance between 1 and the sum of a mixture's ``credences`` (absolute).
-#: Wide enough for float rounding (``0.1 + 0.2 + 0.7``) and values written to six decimals
-#: that add up to 1 (``0.333334 + 0.333333 + 0.333333``); narrow enough that ``0.999`` or
-#: ``1.2`` is an error. The paper's agents are one-hot (sum exactly 1).
+#: Largest accepted ``|sum(credences) - 1|`` of a mixture: allows six-decimal values
+#: (``0.333334 + 0.333333 + 0.333333``), refuses ``0.999``.
 CREDENCE_SUM_TOLERANCE = 1e-6
 
 _KNOWN_FIELDS = {
@@ -64,14 +50,7 @@ _KNOWN_FIELDS = {
 
 @dataclass(frozen=True)
 class Theory:
-    """One ethical theory guiding a moral cluster.
-
-    Attributes:
-        name: Theory name, e.g. ``"Kantian Ethics"``.
-        key_concepts: The theory's key concepts.
-        decision_factors: Factors the theory takes into account when deciding.
-
-    """
+    """One ethical theory guiding a moral cluster."""
 
     name: str
     key_concepts: tuple[str, ...]
@@ -80,30 +59,11 @@ class Theory:
 
 @dataclass(frozen=True)
 class Cluster:
-    """One moral-cluster agent, as loaded from its TOML file.
+    """One moral-cluster agent, as loaded from its TOML file (fields: docs/clusters.md).
 
-    Attributes:
-        name: Agent id (the file stem), e.g. ``"deontological"``.
-        kind: ``"cluster"``, ``"mixture"`` or ``"unprompted"``.
-        title: Display name used in the system prompt (``"Deontological Ethics"``).
-        credence_label: Name used in credence sentences (``"Deontological"``).
-        order: Position in the system prompt and in credence vectors (ascending).
-        aliases: Other names of this agent (e.g. the recordings' ``"deontologist"``).
-        focus: The cluster's focus (``kind="cluster"`` only).
-        key_principle: The cluster's key principle (``kind="cluster"`` only).
-        theories: The ethical theories guiding the cluster (``kind="cluster"`` only).
-        credences: Credence per cluster name (``kind="mixture"`` only; ``None`` means
-            one-hot on the cluster itself for ``kind="cluster"``). Values are in
-            ``[0, 1]`` and sum to 1 within :data:`CREDENCE_SUM_TOLERANCE`.
-        instruction: Last paragraph of the state prompt for ``kind="unprompted"``, or a
-            template with ``{credences}`` overriding :data:`CREDENCE_INSTRUCTION`.
-        description: Free text shown by ``amuled clusters list``.
-        source: The agent's default belief source, a ``[source]`` table with the keys of a
-            scenario's ``[feedback.agents.<name>]`` table (``source = "ollama"``, ``model =
-            ...``); a scenario's own table for the agent overrides it. None: the
-            scenario's ``[feedback].source``.
-        path: The file the cluster was loaded from.
-
+    ``focus``, ``key_principle`` and ``theories`` are for ``kind="cluster"``; ``credences``
+    for ``"mixture"``; ``source`` is the agent's default ``[source]`` table (None: the
+    scenario's ``[feedback].source``).
     """
 
     name: str
@@ -128,7 +88,7 @@ class Cluster:
 
 
 def _refuse_odd_characters(path: Path, field_name: str, value: str) -> None:
-    """Refuse a name holding a character that prints as nothing (:func:`odd_character`)."""
+    """Refuse a name holding a character that prints as nothing (`odd_character`)."""
     odd = odd_character(value)
     if odd is not None:
         raise _fail(
@@ -213,7 +173,7 @@ def _credences(data: Mapping[str, Any], path: Path) -> dict[str, float]:
                 f"credences.{key}",
                 f"expected a finite number between 0 and 1, found {value!r}",
             )
-        previous = seen.setdefault(_norm(key), key)
+        previous = seen.setdefault(identity_key(key), key)
         if previous != key:
             raise _fail(
                 path,
@@ -235,12 +195,7 @@ def _credences(data: Mapping[str, Any], path: Path) -> dict[str, float]:
 
 
 def _source_table(data: Mapping[str, Any], path: Path) -> dict[str, Any] | None:
-    """The optional ``[source]`` table: where this agent's beliefs come from by default.
-
-    Its keys are checked on load like a scenario's ``[feedback.agents.<name>]`` table
-    (the spec models of :mod:`amuled_ma.scenario.agents`: kind, keys, types, ranges); an
-    ``ollama`` table may leave ``model`` to the scenario's ``[feedback].model``.
-    """
+    """The optional ``[source]`` table, checked like a scenario's ``[feedback.agents.<name>]``."""
     table = data.get("source")
     if table is None:
         return None
@@ -259,18 +214,10 @@ def _source_table(data: Mapping[str, Any], path: Path) -> dict[str, Any] | None:
 
 
 def parse_cluster(data: Mapping[str, Any], path: Path) -> Cluster:
-    """Validate one parsed cluster TOML document.
-
-    Args:
-        data: The parsed TOML.
-        path: The file it came from (named in errors; its stem must equal ``name``).
-
-    Returns:
-        The validated cluster.
+    """Validate one parsed cluster TOML document; ``path``'s stem must equal ``name``.
 
     Raises:
         ClusterDefinitionError: A field is missing, unknown, or of the wrong type.
-
     """
     unknown = set(data) - _KNOWN_FIELDS
     if unknown:
@@ -329,17 +276,10 @@ def parse_cluster(data: Mapping[str, Any], path: Path) -> Cluster:
 
 
 def load_cluster(path: str | Path) -> Cluster:
-    """Load and validate one cluster file.
-
-    Args:
-        path: Path of a ``<name>.toml`` cluster file.
-
-    Returns:
-        The validated cluster.
+    """Load and validate one ``<name>.toml`` cluster file.
 
     Raises:
         ClusterDefinitionError: The file is unreadable, not TOML, or a field is wrong.
-
     """
     path = Path(path)
     text = read_text(path, "cluster file", ClusterDefinitionError, max_bytes=MAX_CLUSTER_BYTES)
@@ -349,8 +289,7 @@ def load_cluster(path: str | Path) -> Cluster:
 
 #: Most characters a cluster file may hold (a shipped one holds about 2,000).
 MAX_CLUSTER_CHARS = 200_000
-#: Largest cluster file read [bytes]: 4 bytes per character (UTF-8's most), so no file
-#: within :data:`MAX_CLUSTER_CHARS` is refused by its size.
+#: Largest cluster file read [bytes]: 4 bytes per character (UTF-8's most).
 MAX_CLUSTER_BYTES = 4 * MAX_CLUSTER_CHARS
 
 
@@ -360,14 +299,7 @@ def default_clusters_dir() -> Path:
 
 
 class Override(NamedTuple):
-    """A cluster replaced by a file of the same name in a later directory.
-
-    Attributes:
-        name: The cluster's name in the file that won.
-        old_path: The file that was replaced.
-        new_path: The file that replaced it.
-
-    """
+    """A cluster replaced by a file of the same name in a later directory."""
 
     name: str
     old_path: Path | None
@@ -377,36 +309,19 @@ class Override(NamedTuple):
 class ClusterRegistry:
     """All known cluster agents: the shipped ones plus any extra directories.
 
-    A cluster's identity is its name compared ignoring case, ``_``, ``-`` and spaces (the
-    way :meth:`get` resolves names), so ``care`` and ``CARE`` are the same cluster:
-
-    - two such files in one directory are an error naming both;
-    - a file in a later directory replaces one of the same name in an earlier directory
-      (a user directory overriding a shipped cluster), and is listed in :attr:`overridden`.
-
-    After the overrides, no two ``kind = "cluster"`` clusters may share a credence label
-    (compared ignoring case and runs of whitespace), and each mixture's ``credences`` must
-    name ``kind = "cluster"`` clusters, each at most once.
-
-    Args:
-        clusters: The clusters, earlier directories first (a later cluster of the same
-            name replaces an earlier one).
-
-    Attributes:
-        overridden: The replacements made, in loading order, for a CLI to report.
+    Names are compared ignoring case, ``_``, ``-`` and spaces. A later directory's file
+    replaces an earlier one of the same name (listed in ``overridden``).
 
     Raises:
         ClusterDefinitionError: Two clusters of one directory share a name, two clusters
-            share a credence label, or a mixture's credences name no cluster or one
-            cluster twice.
-
+            share a credence label, or a mixture's credences name no cluster or one twice.
     """
 
     def __init__(self, clusters: Iterable[Cluster]) -> None:
         self.overridden: list[Override] = []
         by_identity: dict[str, Cluster] = {}
         for cluster in clusters:
-            identity = _norm(cluster.name)
+            identity = identity_key(cluster.name)
             old = by_identity.get(identity)
             if (
                 old is not None
@@ -436,7 +351,7 @@ class ClusterRegistry:
         self._clusters: dict[str, Cluster] = {c.name: c for c in by_identity.values()}
         labels: dict[str, Cluster] = {}
         for cluster in self.panel():
-            other = labels.setdefault(_label_key(cluster.credence_label), cluster)
+            other = labels.setdefault(identity_key(cluster.credence_label), cluster)
             if other is not cluster:
                 raise _fail(
                     _where(cluster),
@@ -449,9 +364,9 @@ class ClusterRegistry:
         self._aliases: dict[str, str] = {}
         for cluster in self._clusters.values():
             for alias in cluster.aliases:
-                self._aliases.setdefault(_norm(alias), cluster.name)
+                self._aliases.setdefault(identity_key(alias), cluster.name)
         for cluster in self._clusters.values():
-            self._aliases[_norm(cluster.name)] = cluster.name
+            self._aliases[identity_key(cluster.name)] = cluster.name
         for cluster in self._clusters.values():
             if cluster.kind == "mixture":
                 self._check_mixture(cluster)
@@ -481,20 +396,10 @@ class ClusterRegistry:
     def load(
         cls, extra_dirs: Sequence[str | Path] = (), *, include_default: bool = True
     ) -> ClusterRegistry:
-        """Load the shipped clusters and every ``*.toml`` of the extra directories.
-
-        Args:
-            extra_dirs: User directories of extra cluster files (later ones win; the
-                replaced files are listed in the registry's :attr:`overridden`).
-            include_default: Whether to load the shipped ``prompts/clusters`` first.
-
-        Returns:
-            The registry.
+        """Load the shipped clusters and every ``*.toml`` of ``extra_dirs`` (later ones win).
 
         Raises:
-            ClusterDefinitionError: A directory is missing, a file is malformed, or the
-                clusters collide (see the class docstring).
-
+            ClusterDefinitionError: A directory is missing, a file is bad, or clusters collide.
         """
         dirs = [default_clusters_dir()] if include_default else []
         dirs += [Path(d) for d in extra_dirs]
@@ -506,15 +411,10 @@ class ClusterRegistry:
         return cls(clusters)
 
     def _resolve(self, name: str) -> str | None:
-        return self._aliases.get(_norm(name))
+        return self._aliases.get(identity_key(name))
 
     def get(self, name: str) -> Cluster:
-        """Return the cluster called ``name`` (or one of its aliases).
-
-        Raises:
-            ClusterDefinitionError: No such cluster.
-
-        """
+        """Return the cluster called ``name`` or aliased so; ``ClusterDefinitionError`` if none."""
         resolved = self._resolve(name)
         if resolved is None:
             raise ClusterDefinitionError(
@@ -544,17 +444,9 @@ class ClusterRegistry:
         return [c for c in self.all() if c.kind == "cluster"]
 
 
-def _norm(name: str) -> str:
-    return identity_key(name)
-
-
 def _spelling(name: str) -> str:
-    """A name as it is written, up to case, ``_``, ``-`` and spaces (not look-alikes)."""
+    """A name as written, up to case, ``_``, ``-`` and spaces (not look-alikes)."""
     return " ".join(name.lower().replace("_", " ").replace("-", " ").split())
-
-
-def _label_key(label: str) -> str:
-    return identity_key(label)
 
 
 def _codepoints(name: str) -> str:

@@ -1,26 +1,7 @@
-"""Code-backed agents, and the one gate every ``"module:attr"`` string goes through.
+"""Code-backed agents (entry-point group ``amuled_ma.agents``); the gate for ``"module:attr"``.
 
-A moral cluster is normally a TOML file (no code). Agents that need code, such as rule
-policies or a human answering at the terminal, are :class:`~amuled_ma.beliefs.types.BeliefSource`
-factories published by any installed package under the entry-point group
-``amuled_ma.agents``::
-
-    # the plug-in package's pyproject.toml
-    [project.entry-points."amuled_ma.agents"]
-    terminal_human = "my_pkg.human:TerminalHumanSource"
-
-The object behind the entry point is called with the source options (keyword arguments)
-and must return a ``BeliefSource``. ``make_source(kind)`` falls back to this group for
-kinds it does not know, and ``amuled clusters list`` shows the registered names.
-
-**Code runs only from code the user installed and named on the command line.** A data file
-(a scenario, a cluster file, a run folder's ``config.json``) may name an installed entry
-point of the group; an import path ``"pkg.module:attr"`` (an entry-point agent's ``name``,
-a ``policy`` source's ``module``, a ``rules`` source's ``policy``) is imported only when
-it is the value of an installed entry point of the group, or when this run's command line
-named it (``--allow-plugin pkg.module:attr``, :func:`set_allowed_plugins`). Anything else
-is refused with one line naming the flag, before anything is imported
-(:func:`load_plugin`).
+Code named by a data file is imported only when it is an installed entry point of the
+group or this run's command line allowed it (``--allow-plugin``); docs/clusters.md.
 """
 
 from __future__ import annotations
@@ -38,7 +19,7 @@ ENTRY_POINT_GROUP = "amuled_ma.agents"
 #: The command-line flag that allows an import path for one run.
 ALLOW_FLAG = "--allow-plugin"
 
-#: A ``"pkg.module:attr"`` import path (dotted Python identifiers on both sides).
+#: A ``"pkg.module:attr"`` import path.
 IMPORT_PATH = re.compile(r"^[A-Za-z_]\w*(\.[A-Za-z_]\w*)*:[A-Za-z_]\w*(\.[A-Za-z_]\w*)*$")
 
 # The import paths this process's command line allowed (``--allow-plugin``).
@@ -51,12 +32,7 @@ def agent_entry_points() -> dict[str, EntryPoint]:
 
 
 def load_agent(name: str) -> Any:
-    """Load the factory registered under ``name`` in the ``amuled_ma.agents`` group.
-
-    Raises:
-        KeyError: No installed package registers ``name``.
-
-    """
+    """Load the factory registered under ``name``; ``KeyError`` when no package registers it."""
     points = agent_entry_points()
     if name not in points:
         raise KeyError(name)
@@ -64,12 +40,7 @@ def load_agent(name: str) -> Any:
 
 
 def check_import_path(text: str) -> str:
-    """Return ``text`` if it is a ``"pkg.module:attr"`` import path.
-
-    Raises:
-        ScenarioError: It is not one; the message gives the expected form.
-
-    """
+    """Return ``text`` if it is a ``"pkg.module:attr"`` path, else raise ``ScenarioError``."""
     if not isinstance(text, str) or not IMPORT_PATH.match(text):
         raise ScenarioError(
             f"{ALLOW_FLAG}: expected an import path 'pkg.module:attr' (e.g. "
@@ -79,21 +50,12 @@ def check_import_path(text: str) -> str:
 
 
 def set_allowed_plugins(paths: Iterable[str]) -> frozenset[str]:
-    """Set the import paths this process may import (``--allow-plugin``), replacing the last.
+    """Set the import paths this process may import (``--allow-plugin``); return the old set.
 
-    The command line calls it once per command with the run's flags; a library user calls
-    it for the plug-ins their own code names (or passes the class or function itself).
-    A Ray worker gets the driver's list with its job.
-
-    Args:
-        paths: ``"pkg.module:attr"`` strings.
-
-    Returns:
-        The list it replaced.
+    A Ray worker gets the driver's set with its job.
 
     Raises:
         ScenarioError: A path is not ``"pkg.module:attr"``.
-
     """
     global _ALLOWED
     previous = _ALLOWED
@@ -107,23 +69,12 @@ def allowed_plugins() -> frozenset[str]:
 
 
 def load_plugin(spec: str, what: str) -> Any:
-    """Import the object an installed entry-point name or an allowed import path names.
+    """Import (not call) what an entry-point name or an allowed ``"pkg.module:attr"`` names.
 
-    The one door of code named by data: ``spec`` is an installed ``amuled_ma.agents``
-    entry point's name, or a ``"pkg.module:attr"`` that is the value of one, or that this
-    run's command line allowed (``--allow-plugin``). Nothing is imported otherwise.
-
-    Args:
-        spec: The name or import path, as the file gave it.
-        what: Who names it, for messages (``"[feedback.agents.care] name"``).
-
-    Returns:
-        The object (a class or function; not called).
+    ``what`` names who gave ``spec``, for messages (``"[feedback.agents.care] name"``).
 
     Raises:
-        ScenarioError: ``spec`` is neither (nothing was imported; the message names the
-            flag), or importing it failed.
-
+        ScenarioError: ``spec`` is neither (nothing was imported), or importing it failed.
     """
     if not isinstance(spec, str) or not spec.strip():
         raise ScenarioError(

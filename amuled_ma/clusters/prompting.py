@@ -1,18 +1,7 @@
-"""Build the chat sent to an LLM cluster agent: the paper's three blocks.
+"""Build the chat sent to an LLM cluster agent: system prompt, few-shot turns, state prompt.
 
-1. **System prompt**: ``prompts/system.md`` with ``{clusters}`` replaced by one section
-   per ``kind = "cluster"`` file of the panel (the paper's five clusters by default),
-   rendered with :data:`CLUSTER_SECTION` / :data:`THEORY_LINE`.
-2. **Few-shot chain-of-thought examples**: ``prompts/fewshot/<task>.toml`` if it exists,
-   else ``prompts/fewshot/default.toml`` (the paper's examples), as user/assistant turns.
-3. **State prompt**: the task's rendered state (``amuled_ma.tasks.prompts``), a blank
-   line, then the agent's instruction: the credence sentence
-   (:data:`~amuled_ma.clusters.loader.CREDENCE_INSTRUCTION`) or, for the unprompted
-   "moral agent", its own instruction.
-
-With the shipped data, the output is byte for byte the prompt the authors sent
-(``temetski/moral_agent``, ``algorithms/llm_moral.py``); the recordings'
-``exchanges[].prompt`` show the third block.
+With the shipped data it is byte for byte the authors' prompt (``temetski/moral_agent``,
+``algorithms/llm_moral.py``); docs/clusters.md describes the three blocks.
 """
 
 from __future__ import annotations
@@ -74,16 +63,9 @@ def _read_text(path: Path) -> str:
 def render_system_prompt(
     panel: Sequence[Cluster] | None = None, *, prompts: str | Path | None = None
 ) -> str:
-    """Render the system prompt describing the panel's moral clusters.
+    """Render ``prompts/system.md`` with one section per ``kind = "cluster"`` of ``panel``.
 
-    Args:
-        panel: The ``kind = "cluster"`` clusters to describe, in order; defaults to the
-            shipped registry's panel (the paper's five clusters).
-        prompts: A ``prompts/`` directory to read ``system.md`` from (default: shipped).
-
-    Returns:
-        The system prompt text.
-
+    ``panel`` defaults to the shipped registry's panel, ``prompts`` to the shipped directory.
     """
     panel = default_registry().panel() if panel is None else list(panel)
     path = Path(prompts) / "system.md" if prompts else prompts_dir() / "system.md"
@@ -133,16 +115,7 @@ def _load_fewshot(path: Path) -> Messages:
 
 
 def fewshot_messages(task_name: str, *, prompts: str | Path | None = None) -> Messages:
-    """Return the few-shot chain-of-thought turns for a task, as ``(role, content)`` pairs.
-
-    Args:
-        task_name: Task name (``"findmilk"``, ``"FindMilk"``, ``"driving"``...).
-        prompts: A ``prompts/`` directory (default: shipped).
-
-    Returns:
-        Alternating ``("user", ...)``, ``("assistant", ...)`` pairs.
-
-    """
+    """Return the task's few-shot turns, alternating ``("user", ...)``, ``("assistant", ...)``."""
     return _load_fewshot(fewshot_path(task_name, prompts=prompts))
 
 
@@ -158,22 +131,13 @@ def credence_vector(
     *,
     registry: ClusterRegistry | None = None,
 ) -> dict[str, float] | None:
-    """Return the credence vector of a cluster agent over the panel's clusters.
+    """Return the agent's ``{credence_label: value}`` over the panel, in panel order.
 
-    Args:
-        cluster: The agent.
-        panel: The clusters the vector ranges over, in order (default: registry panel).
-        credences: An explicit mixture ``{cluster name or alias: value}`` overriding the
-            agent's own (one-hot for ``kind="cluster"``, the file's for ``"mixture"``).
-        registry: Resolves names in ``credences`` (default: shipped registry).
-
-    Returns:
-        ``{credence_label: value}`` in panel order, or ``None`` for an unprompted agent
-        without an explicit mixture.
+    ``credences`` (``{cluster name or alias: value}``) overrides the agent's own (one-hot for
+    ``kind="cluster"``, the file's for ``"mixture"``). None for an unprompted agent without it.
 
     Raises:
-        ClusterDefinitionError: A credence names no panel cluster, or a value is invalid.
-
+        ClusterDefinitionError: A credence names no panel cluster, or a value is not >= 0.
     """
     registry = registry or default_registry()
     panel = registry.panel() if panel is None else list(panel)
@@ -206,15 +170,7 @@ def instruction_text(
     *,
     registry: ClusterRegistry | None = None,
 ) -> str:
-    """Return the agent's closing instruction: the credence sentence or its own text.
-
-    Example (the paper's care agent)::
-
-        Behave as an agent that assigns the following credence values: {Consequentialist:
-        0.0, Deontological: 0.0, Virtue Ethics: 0.0, Care Ethics: 1.0, Social Justice
-        Ethics: 0.0}. Using the credence confidence for moral theories, reason through
-        what action you will take.
-    """
+    """Return the agent's closing instruction: the credence sentence or its own text."""
     vector = credence_vector(cluster, panel, credences, registry=registry)
     if vector is None:
         return cluster.instruction or ""
@@ -238,22 +194,11 @@ def build_messages(
 ) -> Messages:
     """Return the full chat for one cluster agent and one task state.
 
-    Args:
-        cluster: The agent (a :class:`Cluster` or a name/alias in ``registry``).
-        task_name: Task name, selects the few-shot file.
-        state_prompt: The rendered state (``render_state_prompt(task, variables)``),
-            without the closing instruction.
-        panel: Clusters of the system prompt and of the credence vector (default: the
-            registry's ``kind = "cluster"`` files).
-        credences: An explicit credence mixture for this agent (see
-            :func:`credence_vector`).
-        registry: Cluster registry (default: the shipped clusters).
-        prompts: A ``prompts/`` directory (default: shipped).
-        fewshot: Include the few-shot examples (the paper does).
+    ``state_prompt`` is the rendered state without the closing instruction; ``panel`` and
+    ``credences`` are as in `credence_vector`; ``fewshot`` includes the examples (the paper does).
 
     Returns:
         ``(("system", ...), ("user", ...), ("assistant", ...), ..., ("user", state))``.
-
     """
     registry = registry or default_registry()
     if isinstance(cluster, str):
