@@ -1,26 +1,9 @@
-"""rsl-rl's PPO with the KL anchor of a fine-tune, plugged in by ``class_name``.
+"""rsl-rl's PPO with a fine-tune's KL anchor, plugged in by ``cfg["algorithm"]["class_name"]``.
 
-rsl-rl resolves ``cfg["algorithm"]["class_name"]`` (a ``"module:Class"`` string) and
-builds the algorithm with :meth:`~rsl_rl.algorithms.PPO.construct_algorithm`, passing the
-other keys of ``cfg["algorithm"]`` to the constructor; :class:`AnchoredPPO` is such a
-class. It subclasses :class:`~rsl_rl.algorithms.PPO` and overrides three of its public
-steps, each calling rsl-rl's own method:
-
-- :meth:`act` also evaluates the frozen base policy on the same observations and keeps
-  the anchor of the step (the recipe's KL term, :mod:`amuled_ma.learn.anchors`);
-- :meth:`process_env_step` subtracts ``lambda_KL * anchor`` from the environment's reward
-  (the deliberation MDP's actor reward, :func:`~amuled_ma.deliberation.mdp.actor_reward`)
-  before rsl-rl records the transition;
-- :meth:`compute_returns` closes the rollout (the authors' recipe empties its windows).
-
-Without a base policy (:meth:`anchor_to` never called: base training) it is rsl-rl's PPO
-with CleanRL's Adam (``eps = 1e-5``) and critic initialisation. Everything else (storage,
-returns, the update, checkpoints) is rsl-rl's, unchanged.
-
-Three options (off by default) switch an rsl-rl habit to the CleanRL loop the AMULED
-authors fine-tuned with (:mod:`amuled_ma.learn.ppo_options`): ``grad_clip = "joint"`` (one
-gradient norm over actor and critic), ``reshuffle_each_epoch`` (a new mini-batch partition
-in every epoch) and ``bootstrap_time_outs = False`` (no value bootstrap at a truncation).
+It overrides three public steps, each calling rsl-rl's own: `AnchoredPPO.act` also reads
+the frozen base policy, `AnchoredPPO.process_env_step` subtracts ``lambda_KL * anchor``
+from the reward, `AnchoredPPO.compute_returns` closes the authors' windows. Unanchored
+(base training) it is rsl-rl's PPO with CleanRL's Adam and critic initialisation.
 """
 
 from __future__ import annotations
@@ -44,21 +27,15 @@ if TYPE_CHECKING:
     from rsl_rl.models import MLPModel
     from rsl_rl.storage import RolloutStorage
 
-#: ``per_sample``: the paper's ``log pi(a|s) - log pi_base(a|s)`` of each step;
-#: ``window``: the authors' mean over the episode so far (:class:`EpisodeWindowKL`).
+#: ``per_sample``: the paper's ``log pi(a|s) - log pi_base(a|s)``; ``window``: the authors'.
 AnchorKind = Literal["per_sample", "window"]
 
-#: ``per_network``: rsl-rl clips the actor's and the critic's gradient norms apart;
-#: ``joint``: one norm over both (CleanRL, :func:`~amuled_ma.learn.ppo_options.clip_jointly`).
+#: ``per_network``: rsl-rl clips actor and critic apart; ``joint``: one norm (CleanRL).
 GradClip = Literal["per_network", "joint"]
 
 
 def adam(params: Iterable[torch.nn.Parameter], lr: float, eps: float) -> torch.optim.Optimizer:
-    """Adam as CleanRL builds it, with torch's fused kernel where the device has one.
-
-    On CPU with small networks the per-parameter loop of the default implementation is a
-    large part of an update; ``fused=True`` is torch's public option for one kernel.
-    """
+    """Adam as CleanRL builds it, with torch's fused kernel where the device has one."""
     params = list(params)
     try:
         return torch.optim.Adam(params, lr=lr, eps=eps, fused=True)
@@ -70,24 +47,20 @@ class AnchoredPPO(PPO):
     """PPO anchored to a frozen base policy by a KL term in the reward.
 
     Args:
-        actor: rsl-rl actor model (categorical head, :mod:`amuled_ma.learn.distribution`).
+        actor: rsl-rl actor model (categorical head).
         critic: rsl-rl critic model.
         storage: rsl-rl rollout storage.
         lambda_kl: Weight of the anchor in the reward.
-        anchor: Which KL term (:data:`AnchorKind`).
+        anchor: Which KL term (`AnchorKind`).
         adam_eps: Adam's ``eps`` (CleanRL: ``1e-5``; torch's default is ``1e-8``).
-        grad_clip: ``per_network`` (rsl-rl) or ``joint`` (CleanRL: ``max_grad_norm`` bounds
-            the norm of actor and critic gradients together; rsl-rl's own two clips are
-            handed ``inf`` and scale by exactly 1).
-        reshuffle_each_epoch: Draw a new mini-batch partition in every epoch (CleanRL)
-            instead of one per update (rsl-rl).
-        bootstrap_time_outs: Add ``gamma * V(s)`` to the reward of a step that ends by the
-            time limit (rsl-rl); False treats a truncation as a termination (CleanRL).
-        **kwargs: rsl-rl's :class:`~rsl_rl.algorithms.PPO` arguments.
+        grad_clip: ``per_network`` (rsl-rl) or ``joint`` (CleanRL: one norm over both).
+        reshuffle_each_epoch: A new mini-batch partition every epoch (CleanRL).
+        bootstrap_time_outs: Bootstrap ``gamma * V(s)`` at a time limit (rsl-rl); False
+            treats a truncation as a termination (CleanRL).
+        **kwargs: rsl-rl's ``PPO`` arguments.
 
     Raises:
         ValueError: ``anchor`` or ``grad_clip`` is not one of its choices.
-
     """
 
     def __init__(
@@ -139,13 +112,7 @@ class AnchoredPPO(PPO):
 
     # ----------------------------------------------------------------- anchoring
     def anchor_to(self, base_actor: torch.nn.Module) -> None:
-        """Anchor the policy to a frozen copy of ``base_actor`` (a fine-tune's base).
-
-        Args:
-            base_actor: An actor model of the same shape as :attr:`actor`, with the base
-                policy's weights; it is copied, frozen and put in eval mode.
-
-        """
+        """Anchor the policy to a frozen, eval-mode copy of ``base_actor`` (a fine-tune's base)."""
         base = copy.deepcopy(base_actor)
         base.eval()
         for p in base.parameters():
@@ -181,16 +148,7 @@ class AnchoredPPO(PPO):
         return actions
 
     def anchor_of(self, logp: torch.Tensor, logp_base: torch.Tensor) -> torch.Tensor:
-        """The recipe's anchor of this step, from the taken actions' log-probabilities.
-
-        Args:
-            logp: ``[N]`` log-probabilities under the fine-tuned policy.
-            logp_base: ``[N]`` the same actions under the base policy.
-
-        Returns:
-            ``[N]``: the authors' window KL (``anchor = "window"``) or the per-sample KL.
-
-        """
+        """The recipe's anchor ``[N]`` of this step from the taken actions' log-probabilities."""
         if self.window is not None:
             return self.window.step(logp, logp_base)
         return per_sample_kl(logp, logp_base)
@@ -204,8 +162,7 @@ class AnchoredPPO(PPO):
     ) -> None:
         """Subtract ``lambda_KL * anchor`` from the MDP's reward, then rsl-rl's step.
 
-        Without ``bootstrap_time_outs`` rsl-rl is not shown the ``time_outs`` of
-        ``extras``: a truncated step is then closed like a terminated one (CleanRL).
+        Without ``bootstrap_time_outs`` rsl-rl is not shown ``extras["time_outs"]``.
         """
         if not self.bootstrap_time_outs and "time_outs" in extras:
             extras = {k: v for k, v in extras.items() if k != "time_outs"}
@@ -229,17 +186,12 @@ class AnchoredPPO(PPO):
             self.window.start_iteration()
 
     def update(self) -> dict[str, float]:
-        """rsl-rl's update; the losses are also kept in :attr:`last_losses`."""
+        """rsl-rl's update; the losses are also kept in ``last_losses``."""
         self.last_losses = super().update()
         return self.last_losses
 
     def rollout_stats(self) -> dict[str, float]:
-        """Mean feedback ``f(B)[a]`` and anchor per step since the last call (fine-tunes).
-
-        Returns:
-            ``{"feedback_reward": ..., "kl": ...}``, or ``{}`` when nothing was anchored.
-
-        """
+        """Mean ``feedback_reward`` and ``kl`` per step since the last call (``{}``: none)."""
         total_fb, total_kl, count = self._stats.tolist()
         self._stats.zero_()
         if not count:

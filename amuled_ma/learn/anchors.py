@@ -1,36 +1,14 @@
-"""The KL anchor of fine-tuning, in two recipes: the paper's equation and the authors' code.
+"""The KL anchor of fine-tuning, ``r_t = f(B)[a_t] - lambda_KL * anchor_t``, in two recipes.
 
-Fine-tuning rewards ``f(B)[a_t] - lambda_KL * anchor_t``; the recipe
-(``[finetune].recipe``) decides the anchor.
-
-- ``"equation"`` (the paper's equation, our default): the per-sample estimator of
-  ``KL(pi || pi_base)``, ``anchor_t = log pi(a_t|s_t) - log pi_base(a_t|s_t)``
-  (:func:`per_sample_kl`). Its expectation over ``a_t ~ pi`` is the KL divergence, and it
-  tells PPO which actions move the policy away from the base.
-- ``"authors"`` (what the authors' scripts compute, ``algorithms/finetune_moral.py:153-177``
-  and ``kl_sensitivity.py:141-149`` of ``temetski/moral_agent``): the log-probabilities of
-  the *taken* actions since the window began, under the fine-tuned and under the frozen
-  base policy, are each passed through a log-softmax **over time**, and ``anchor_t`` is the
-  KL divergence between the two with PyTorch ``KLDivLoss(reduction="sum",
-  log_target=True)`` semantics, input the fine-tuned and target the base sequence::
-
-      p = log_softmax([log pi(a_k|s_k)      for k in window])
-      q = log_softmax([log pi_base(a_k|s_k) for k in window])
-      anchor_t = sum_k exp(q_k) * (q_k - p_k)          # KL(q || p) over time steps
-
-  The window is every step of the current episode **and** the current iteration: the
-  authors clear their lists when an episode ends and at the start of every rollout, so
-  the first step of a window always has ``anchor = 0`` (:class:`EpisodeWindowKL`). The
-  whole window is recomputed each step and charged to the current step. It is not a KL
-  between policies: it compares how the two policies rank the actions already taken.
+``"equation"`` (the paper's, default): the per-sample ``KL(pi || pi_base)`` estimator.
+``"authors"`` (``temetski/moral_agent``, ``finetune_moral.py:153-177``): a KL over time
+between log-softmaxes of the taken actions' log-probabilities since the window began (the
+episode and the iteration); docs/learning.md, "Two recipes".
 """
 
 from __future__ import annotations
 
 import torch
-
-#: The recipes of ``[finetune].recipe``.
-RECIPES = ("equation", "authors")
 
 
 def per_sample_kl(logp: torch.Tensor, logp_base: torch.Tensor) -> torch.Tensor:
@@ -39,18 +17,9 @@ def per_sample_kl(logp: torch.Tensor, logp_base: torch.Tensor) -> torch.Tensor:
 
 
 def window_kl(logp: torch.Tensor, logp_base: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """The authors' anchor for windows of steps, one window per row.
+    """The authors' anchor ``[N]`` for windows of steps ``[N, T]``, one window per row.
 
-    Args:
-        logp: ``[N, T]`` log-probabilities of the taken actions under the fine-tuned policy.
-        logp_base: ``[N, T]`` the same actions under the base policy.
-        mask: ``[N, T]`` bool, True where a step belongs to the row's window (every row
-            has at least one).
-
-    Returns:
-        ``[N]``: ``KLDivLoss(reduction="sum", log_target=True)(log_softmax(logp),
-        log_softmax(logp_base))`` over each row's masked steps.
-
+    ``mask`` is True where a step belongs to the row's window (at least one per row).
     """
     neg_inf = torch.tensor(float("-inf"), dtype=logp.dtype)
     p = torch.log_softmax(torch.where(mask, logp, neg_inf), dim=-1)
@@ -62,14 +31,9 @@ def window_kl(logp: torch.Tensor, logp_base: torch.Tensor, mask: torch.Tensor) -
 class EpisodeWindowKL:
     """The authors' anchor, step by step, for ``num_envs`` copies at once.
 
-    Call :meth:`start_iteration` before each rollout, :meth:`step` once per env step with
-    the taken actions' log-probabilities (it returns the anchor of that step), and
-    :meth:`end_episodes` with the step's done flags.
-
-    Args:
-        num_envs: Environment copies.
-        capacity: Longest window (the rollout length: windows never outlive an iteration).
-
+    Call `start_iteration` before each rollout, `step` once per env step (it returns that
+    step's anchor) and `end_episodes` with the step's done flags. ``capacity`` is the
+    rollout length: windows never outlive an iteration.
     """
 
     def __init__(self, num_envs: int, capacity: int) -> None:
@@ -87,8 +51,7 @@ class EpisodeWindowKL:
         """Append this step's log-probabilities; return the anchor ``[N]`` of the step.
 
         Raises:
-            RuntimeError: A window outgrew ``capacity`` (call :meth:`start_iteration`).
-
+            RuntimeError: A window outgrew ``capacity`` (call `start_iteration`).
         """
         if int(self.length.max()) >= self.logp.shape[1]:
             raise RuntimeError("a KL window outgrew the rollout; call start_iteration()")

@@ -1,18 +1,8 @@
-"""Read checkpoints without running code from them.
+"""Read and write checkpoints without running code from them (docs/trust.md).
 
-A PyTorch checkpoint is a pickle: loaded with ``weights_only`` off it may run any code
-its author put in it. Every checkpoint and policy this package reads goes through
-:func:`read_checkpoint`, which loads with ``torch.load(..., weights_only=True)`` (tensors,
-numbers, strings and builtin containers only; PyTorch's restricted unpickler refuses any
-other global before anything runs) and checks that the keys a caller needs are there.
-rsl-rl's own ``OnPolicyRunner.load`` loads with ``weights_only`` off, so we never call it:
-the trainer reads the state here and hands it to rsl-rl's public ``PPO.load``.
-
-Every checkpoint is written by :func:`write_checkpoint`: into a temporary file in the same
-folder, flushed to disk (``fsync``), then renamed over the old one, so a full disk, a write
-error or a kill mid-write leaves the last checkpoint as it was and no temporary file behind.
-
-See ``docs/trust.md`` for what each input file may do.
+Reads go through `read_checkpoint` (``torch.load(weights_only=True)``; rsl-rl's
+``OnPolicyRunner.load`` is never called, it loads with ``weights_only`` off). Writes go
+to a temporary file, ``fsync``, then a rename, so a failed write keeps the last checkpoint.
 """
 
 from __future__ import annotations
@@ -51,22 +41,12 @@ TRAINER_KEYS = ("actor_state_dict", "critic_state_dict", "optimizer_state_dict",
 
 
 def read_checkpoint(path: str | Path, *, need: Iterable[str] = ("actor_state_dict",)) -> dict:
-    """Load a checkpoint as plain data (``weights_only=True``) and check its keys.
-
-    Args:
-        path: The ``.pt`` file.
-        need: Top-level keys the caller reads; a missing one is an error.
-
-    Returns:
-        The checkpoint's dict.
+    """Load a checkpoint as plain data (``weights_only=True``) holding every key in ``need``.
 
     Raises:
-        CheckpointError: The file is missing, is not a weights-only checkpoint (it would
-            need arbitrary code to load; nothing from it was run), is not a dict, or lacks
-            a key in ``need``. The message names the file and what to do.
-        UnsafePathError: The file is a symbolic link or not a regular file
-            (:func:`~amuled_ma.safe_files.checked_read_path`); nothing is read.
-
+        CheckpointError: The file is missing, not a weights-only checkpoint (nothing from
+            it was run), not a dict, or lacks a key in ``need``.
+        UnsafePathError: The file is a symbolic link or not a regular file; nothing is read.
     """
     path = checked_read_path(Path(path).parent, Path(path).name)
     try:
@@ -98,7 +78,6 @@ def checkpoint_infos(path: str | Path) -> dict[str, Any] | None:
 
     Raises:
         CheckpointError: The file exists but cannot be read safely.
-
     """
     path = Path(path)
     if not path.is_file():
@@ -108,68 +87,20 @@ def checkpoint_infos(path: str | Path) -> dict[str, Any] | None:
 
 
 def write_checkpoint(path: str | Path, write: Callable[[str], Any]) -> Path:
-    """Write a checkpoint atomically: the old file stays valid until the new one is whole.
-
-    ``write(temp)`` writes the checkpoint to ``temp`` (rsl-rl's ``runner.save``, say), a
-    hidden file in ``path``'s folder; it is then flushed to disk and renamed over ``path``
-    (an atomic replace on POSIX), and the folder entry is flushed too. On any failure the
-    temporary file is removed and ``path`` is left as it was.
-
-    Args:
-        path: The checkpoint to (re)write.
-        write: Writes a whole checkpoint to the path it is given.
-
-    Returns:
-        ``path``.
+    """Write a checkpoint by ``write(temp)``; the old file stays until the new one is whole.
 
     Raises:
-        CheckpointWriteError: The write failed (a full disk, a read-only or vanished folder, a
-            file-size limit): one line naming the file, the cause, that the last
-            checkpoint is kept, and the fix.
+        CheckpointWriteError: The write failed; the message names the file, the cause and the fix.
         UnsafePathError: ``path`` is a link or not a regular file; nothing was written.
-
     """
-    path = check_write_target(path)
-    tmp: str | None = None
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        os.close(fd)
-        write(tmp)
-        with open(tmp, "rb+") as handle:
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-        tmp = None
-        fsync_folder(path.parent)
-    except (OSError, RuntimeError) as error:
-        # torch's zip writer reports a failed write as RuntimeError ("file write failed")
-        raise CheckpointWriteError(_write_failure(path, error)) from error
-    finally:
-        if tmp is not None:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-    return path
+    return write_checkpoints([(Path(path), write)])[0]
 
 
 def write_checkpoints(writes: Sequence[tuple[Path, Callable[[str], Any]]]) -> list[Path]:
-    """Write several checkpoints as one set: every old file stays until all new ones are whole.
-
-    Each ``write(temp)`` writes its checkpoint to a hidden file in its folder, flushed to
-    disk; only when every one is whole are they renamed over their paths, one after the
-    other (atomic replaces of microseconds). A population's members thus keep checkpoints of
-    one iteration: a process killed or a disk filled while they are written leaves every
-    member at its previous checkpoint.
-
-    Args:
-        writes: ``(path, write)`` per checkpoint, as :func:`write_checkpoint` takes them.
-
-    Returns:
-        The paths, in order.
+    """Write ``(path, write)`` checkpoints as one set: old files stay until all new are whole.
 
     Raises:
-        CheckpointWriteError: A write failed (named as :func:`write_checkpoint` names it);
-            every temporary file is removed and every old checkpoint kept.
-
+        CheckpointWriteError: A write failed; every temporary file is removed, every old kept.
     """
     temps: list[tuple[str, Path]] = []
     path = Path()

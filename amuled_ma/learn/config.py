@@ -1,8 +1,6 @@
 """Build rsl-rl's training configuration (its 5.x dict schema) from a scenario.
 
-rsl-rl's :class:`~rsl_rl.runners.OnPolicyRunner` mutates the dict it is given
-(``obs_groups`` is resolved in place, ``multi_gpu`` is added), so callers pass
-``copy.deepcopy(cfg)`` and save the original with the run.
+rsl-rl's ``OnPolicyRunner`` mutates the dict it is given, so pass it a deep copy.
 """
 
 from __future__ import annotations
@@ -20,8 +18,7 @@ ANCHORED_PPO = "amuled_ma.learn.anchored_ppo:AnchoredPPO"
 #: ``module:Class`` name of our categorical distribution, resolved by rsl-rl.
 CATEGORICAL = "amuled_ma.learn.distribution:CategoricalDistribution"
 
-#: :class:`AnchoredPPO`'s CleanRL options and their defaults (rsl-rl's behaviour); a
-#: configuration names one only when it differs, so the defaults' configs stay as they were.
+#: ``AnchoredPPO``'s CleanRL options and their defaults (rsl-rl's behaviour).
 PPO_OPTION_DEFAULTS: dict[str, Any] = {
     "grad_clip": "per_network",
     "reshuffle_each_epoch": False,
@@ -42,24 +39,12 @@ def rsl_rl_config(
 ) -> dict[str, Any]:
     """Return an rsl-rl 5.x ``train_cfg`` dict for a 2-layer categorical actor-critic.
 
-    Args:
-        ppo: PPO hyperparameters of the scenario.
-        num_steps_per_env: Rollout length per environment copy.
-        learning_rate: Overrides ``ppo.learning_rate`` (fine-tuning has its own).
-        num_learning_epochs: Overrides ``ppo.num_learning_epochs``.
-        save_interval: Iterations between checkpoints.
-        lambda_kl: Weight of a fine-tune's KL anchor (:class:`AnchoredPPO`).
-        anchor: The anchor's KL term, ``per_sample`` or ``window`` (the authors' recipe).
-        **ppo_options: :data:`PPO_OPTION_DEFAULTS`' keys (``grad_clip``,
-            ``reshuffle_each_epoch``, ``bootstrap_time_outs``); a value equal to its
-            default is left out of the configuration.
-
-    Returns:
-        The configuration dict (pass a deep copy to rsl-rl).
+    ``learning_rate`` and ``num_learning_epochs`` override ``ppo``'s; ``anchor`` is
+    ``per_sample`` or ``window``; ``ppo_options`` are keys of `PPO_OPTION_DEFAULTS`, left
+    out of the dict when equal to the default.
 
     Raises:
         TypeError: An unknown key in ``ppo_options``.
-
     """
     unknown = sorted(set(ppo_options) - set(PPO_OPTION_DEFAULTS))
     if unknown:

@@ -33,17 +33,10 @@ def curve_row(
     losses: dict,
     extra: dict,
 ) -> dict[str, Any]:
-    """One row of a learning curve (``curve.json``), as a lone job and a population write it.
+    """One ``curve.json`` row for iteration ``it`` (1-based) of ``batch`` env steps each.
 
-    Args:
-        it: The iteration just finished (1-based).
-        batch: Environment steps per iteration.
-        wall_s: Seconds of training so far.
-        lr: The learning rate of the iteration.
-        episodes: The episodes that ended in it (their sums).
-        losses: rsl-rl's losses of its update.
-        extra: The feedback's figures of its rollout (``feedback/...``).
-
+    ``episodes`` are the sums of the episodes that ended in it, ``losses`` rsl-rl's losses,
+    ``extra`` the feedback's figures of its rollout.
     """
     row: dict[str, Any] = {
         "iteration": it,

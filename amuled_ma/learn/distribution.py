@@ -1,17 +1,7 @@
 """A categorical action distribution for rsl-rl (which ships only continuous ones).
 
-rsl-rl's :class:`~rsl_rl.models.MLPModel` builds its output distribution from a
-``distribution_cfg`` whose ``class_name`` is a ``"module:Class"`` string, so this
-class plugs in without forking rsl-rl::
-
-    "distribution_cfg": {"class_name": "amuled_ma.learn.distribution:CategoricalDistribution"}
-
-rsl-rl stores actions as float tensors of shape ``[num_envs, num_actions]`` (its
-rollout storage is allocated with ``env.num_actions`` columns). We therefore
-represent a discrete action as a **one-hot vector**: :meth:`sample` and
-:meth:`deterministic_output` return one-hot rows, :meth:`log_prob` takes one-hot
-rows, and the environment bridge turns them back into indices with ``argmax``. The
-MLP's output is the vector of logits.
+rsl-rl stores actions as float rows of ``num_actions`` columns, so an action is a one-hot
+row here; the MLP's output is the logits.
 """
 
 from __future__ import annotations
@@ -24,11 +14,7 @@ from rsl_rl.modules.distribution import Distribution
 class CategoricalDistribution(Distribution):
     """Categorical distribution over ``output_dim`` actions, one-hot encoded.
 
-    Args:
-        output_dim: Number of discrete actions.
-        init_last_layer_std: Orthogonal-init gain of the logits layer (CleanRL: 0.01,
-            which starts the policy near uniform); hidden layers get ``sqrt(2)``.
-
+    ``init_last_layer_std`` is the logits layer's orthogonal gain (CleanRL: 0.01, near uniform).
     """
 
     def __init__(self, output_dim: int, init_last_layer_std: float = 0.01) -> None:
@@ -41,23 +27,13 @@ class CategoricalDistribution(Distribution):
         self._log_probs = torch.log_softmax(mlp_output, dim=-1)
 
     def _last_log_probs(self) -> torch.Tensor:
-        """The log-probabilities of the last :meth:`update`.
-
-        Raises:
-            RuntimeError: No forward pass has set the distribution yet.
-
-        """
+        """The log-probabilities of the last `update`; ``RuntimeError`` before any."""
         if self._log_probs is None:
             raise RuntimeError("CategoricalDistribution: read before update() set it")
         return self._log_probs
 
     def sample(self) -> torch.Tensor:
-        """Sample one action per row, returned one-hot (float).
-
-        Inverse-CDF sampling: with ``u ~ U[0, 1)`` per row, the action is the number of
-        cumulative probabilities below ``u`` (``P(k) = cdf_k - cdf_{k-1} = p_k``); on small
-        batches on CPU it is about 3x cheaper than ``torch.multinomial``.
-        """
+        """Sample one action per row, one-hot, by inverse CDF (3x cheaper than multinomial)."""
         probs = self._last_log_probs().exp()
         cdf = probs.cumsum(-1)
         u = torch.rand((*cdf.shape[:-1], 1), dtype=cdf.dtype, device=cdf.device)
@@ -65,12 +41,7 @@ class CategoricalDistribution(Distribution):
         return torch.zeros_like(probs).scatter_(-1, index, 1.0)
 
     def deterministic_output(self, mlp_output: torch.Tensor) -> torch.Tensor:
-        """Return the most likely action, one-hot.
-
-        Like :meth:`update`, it sets the distribution from the logits, so the model's
-        ``output_distribution_params`` and ``get_output_log_prob`` describe its last forward
-        pass, deterministic or not (no sample is drawn to read a policy's probabilities).
-        """
+        """Return the most likely action, one-hot; it also sets the distribution, like `update`."""
         self.update(mlp_output)
         index = mlp_output.argmax(dim=-1)
         return torch.nn.functional.one_hot(index, self.output_dim).to(mlp_output.dtype)
@@ -148,13 +119,7 @@ class _ArgmaxOneHot(nn.Module):
 
 
 def orthogonal_init(mlp: nn.Module, last_std: float = 1.0) -> None:
-    """Initialise an MLP as CleanRL does (used for the critic, ``last_std = 1``).
-
-    Args:
-        mlp: The network (rsl-rl :class:`~rsl_rl.modules.MLP`).
-        last_std: Gain of the output layer.
-
-    """
+    """Initialise an MLP as CleanRL does: gain ``sqrt(2)``, ``last_std`` for the output layer."""
     linears = [m for m in mlp.modules() if isinstance(m, nn.Linear)]
     for i, layer in enumerate(linears):
         nn.init.orthogonal_(layer.weight, gain=last_std if i == len(linears) - 1 else 2**0.5)

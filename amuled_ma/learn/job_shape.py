@@ -1,9 +1,4 @@
-"""The shape of one training job: copies, rollout, iterations, learning rate, rsl-rl config.
-
-The one derivation from a scenario and a variant, used where a job is built
-(:func:`~amuled_ma.learn.population_state.lone_start`) and, without building anything,
-where jobs are grouped by what they share (:mod:`amuled_ma.learn.population_groups`).
-"""
+"""The shape of one training job: copies, rollout, iterations, learning rate, rsl-rl config."""
 
 from __future__ import annotations
 
@@ -20,17 +15,8 @@ from amuled_ma.variants import Variant
 class JobShape:
     """What a job's scenario and variant decide about its training loop.
 
-    Attributes:
-        finetuning: A fine-tune (feedback, KL anchor) rather than base training.
-        num_envs: Task copies.
-        steps_per_env: Rollout length per copy.
-        total_iterations: PPO iterations the job trains to.
-        learning_rate: Adam's step size (before annealing).
-        anneal: CleanRL's linear annealing of the learning rate to 0.
-        shaping_coef: ``c`` of the task reward ``r_env + c * r_shaping``.
-        task_weight: Weight of the task reward in the actor's reward.
-        cfg: rsl-rl's training config (pass a deep copy to rsl-rl).
-
+    ``task_weight`` weighs the task reward in the actor's reward; ``cfg`` is rsl-rl's config
+    (pass a deep copy).
     """
 
     finetuning: bool

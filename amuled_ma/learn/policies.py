@@ -1,9 +1,6 @@
 """Trained policies outside training: load an actor from a checkpoint, read its probabilities.
 
-Evaluation, the viewer and the authors' importer use these without importing the
-trainer. Both go through rsl-rl's public model API only: an actor is an rsl-rl
-``MLPModel`` with our categorical head (:mod:`amuled_ma.learn.distribution`), built from
-the same configuration as in training (:func:`~amuled_ma.learn.config.rsl_rl_config`).
+Through rsl-rl's public model API only, so evaluation need not import the trainer.
 """
 
 from __future__ import annotations
@@ -25,32 +22,14 @@ if TYPE_CHECKING:
 
 
 def action_log_probs(actor: MLPModel, obs: torch.Tensor) -> torch.Tensor:
-    """Return ``log pi(.|s)`` ``[N, A]`` of an rsl-rl actor with our categorical head.
-
-    A forward pass sets the head's distribution from the logits (deterministic passes
-    too, see :meth:`~amuled_ma.learn.distribution.CategoricalDistribution.deterministic_output`);
-    its parameters are the normalised log-probabilities.
-
-    Args:
-        actor: An rsl-rl ``MLPModel`` reading the observation group ``"policy"``.
-        obs: Observations ``[N, obs_dim]``.
-
-    """
+    """Return ``log pi(.|s)`` ``[N, A]`` of an rsl-rl actor with our categorical head."""
     actor(TensorDict({OBS_GROUP: obs}, batch_size=[obs.shape[0]], device=obs.device))
     (log_probs,) = actor.output_distribution_params
     return log_probs
 
 
 def build_model(ppo: PPOConfig, role: str, obs_dim: int, outputs: int) -> MLPModel:
-    """Build an untrained actor or critic of the scenario's network shape (rsl-rl ``MLPModel``).
-
-    Args:
-        ppo: The scenario's ``[ppo]`` settings (hidden sizes, activation).
-        role: ``"actor"`` (our categorical head) or ``"critic"``.
-        obs_dim: Observation size.
-        outputs: Number of actions (actor) or 1 (critic).
-
-    """
+    """Build an untrained ``"actor"`` or ``"critic"`` ``MLPModel`` of the scenario's shape."""
     from rsl_rl.models import MLPModel
 
     cfg = dict(rsl_rl_config(ppo, num_steps_per_env=1)[role])

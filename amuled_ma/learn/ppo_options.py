@@ -1,22 +1,8 @@
-"""Two CleanRL habits of the PPO update, as options of our PPO (``AnchoredPPO``).
+"""Two CleanRL habits of the PPO update (``finetune_moral.py``), as options of ``AnchoredPPO``.
 
-The AMULED authors fine-tuned with CleanRL's ``ppo.py`` loop (``finetune_moral.py``), whose
-update differs from rsl-rl's in two places that this module reproduces through public
-extension points only (rsl-rl's update loop is not copied):
-
-- **Gradient clipping over actor and critic together.** CleanRL clips one norm over all
-  the agent's parameters (``nn.utils.clip_grad_norm_(agent.parameters(), 0.5)``,
-  ``finetune_moral.py:321``); rsl-rl clips the actor and the critic apart, each to
-  ``max_grad_norm``. :func:`clip_jointly` registers a step pre-hook
-  (:meth:`torch.optim.Optimizer.register_step_pre_hook`) that clips every parameter of
-  the optimiser as one vector just before Adam's step; :class:`AnchoredPPO` then hands
-  rsl-rl ``max_grad_norm = inf``, which makes its two clips multiply by exactly 1.
-- **A new mini-batch partition in every epoch.** CleanRL shuffles the batch's indices
-  at the start of every epoch (``np.random.shuffle(b_inds)``, ``finetune_moral.py:277``);
-  rsl-rl's :meth:`~rsl_rl.storage.RolloutStorage.mini_batch_generator` draws one
-  permutation per update and walks it ``num_epochs`` times. :class:`EpochShuffledStorage`
-  calls rsl-rl's own generator once per epoch, for one epoch, so each epoch draws its
-  own permutation.
+Joint gradient clipping over actor and critic (`clip_jointly`, where rsl-rl clips them
+apart) and a new mini-batch partition every epoch (`EpochShuffledStorage`, where rsl-rl
+walks one permutation ``num_epochs`` times); both through public extension points.
 """
 
 from __future__ import annotations
@@ -32,25 +18,11 @@ if TYPE_CHECKING:
 
 
 class EpochShuffledStorage(RolloutStorage):
-    """rsl-rl's rollout storage whose mini-batches are re-partitioned in every epoch.
-
-    Each epoch is one call of rsl-rl's :meth:`RolloutStorage.mini_batch_generator` with
-    ``num_epochs = 1``: a fresh ``torch.randperm`` of the batch, cut into
-    ``num_mini_batches`` mini-batches that cover every transition once.
-    """
+    """rsl-rl's rollout storage whose mini-batches are re-partitioned in every epoch."""
 
     @classmethod
     def like(cls, storage: RolloutStorage) -> EpochShuffledStorage:
-        """An empty storage of the same kind and shape as ``storage`` (rsl-rl's, unused yet).
-
-        Args:
-            storage: The storage rsl-rl's ``construct_algorithm`` built.
-
-        Returns:
-            A new storage with the same training type, copies, rollout length,
-            observation groups (shapes and dtypes), action shape and device.
-
-        """
+        """An empty storage of the same kind and shape as ``storage`` (the one rsl-rl built)."""
         return cls(
             storage.training_type,
             storage.num_envs,
@@ -63,16 +35,7 @@ class EpochShuffledStorage(RolloutStorage):
     def mini_batch_generator(
         self, num_mini_batches: int, num_epochs: int = 8
     ) -> Generator[RolloutStorage.Batch, None, None]:
-        """Yield ``num_epochs`` epochs of mini-batches, each epoch with a new partition.
-
-        Args:
-            num_mini_batches: Mini-batches per epoch.
-            num_epochs: Epochs.
-
-        Yields:
-            rsl-rl's mini-batches, ``num_mini_batches`` per epoch.
-
-        """
+        """Yield ``num_epochs`` epochs of mini-batches, each epoch a new partition."""
         for _ in range(num_epochs):
             yield from super().mini_batch_generator(num_mini_batches, 1)
 
@@ -83,22 +46,12 @@ def all_parameters(optimizer: torch.optim.Optimizer) -> list[torch.Tensor]:
 
 
 def clip_jointly(optimizer: torch.optim.Optimizer, max_norm: float) -> RemovableHandle:
-    """Clip the gradient of all of ``optimizer``'s parameters as one vector before each step.
+    """Clip all of ``optimizer``'s gradients as one vector before each step, as CleanRL does.
 
-    The norm is the 2-norm over every parameter's gradient together (actor and critic for
-    :class:`~amuled_ma.learn.anchored_ppo.AnchoredPPO`), as CleanRL's
-    ``clip_grad_norm_(agent.parameters(), max_norm)``.
-
-    Args:
-        optimizer: The optimiser whose steps are clipped.
-        max_norm: Largest joint gradient norm (> 0).
-
-    Returns:
-        The hook's handle (``handle.remove()`` undoes it).
+    Returns the hook's handle (``handle.remove()`` undoes it).
 
     Raises:
         ValueError: ``max_norm`` is not a positive finite number.
-
     """
     max_norm = float(max_norm)
     if not 0 < max_norm < float("inf"):

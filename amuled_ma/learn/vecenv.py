@@ -1,14 +1,4 @@
-"""The learner's view of the deliberation MDP: rsl-rl's :class:`~rsl_rl.env.VecEnv`.
-
-The learner trains in :class:`~amuled_ma.deliberation.mdp.BatchedDeliberation`, the same
-MDP as the PettingZoo view; this wrapper only converts formats for rsl-rl and keeps
-per-episode book-keeping. rsl-rl expects observations as a :class:`~tensordict.TensorDict`
-of observation groups (we expose one group, ``"policy"``), ``dones`` as one tensor,
-truncations under ``extras["time_outs"]`` (so PPO bootstraps the value of a timed-out
-state) and metrics to log under ``extras["log"]`` with ``"/"``-prefixed keys. The task
-auto-resets finished copies; the trainer drains the finished episodes (return of the
-environment reward, length, task metrics) once per iteration for its learning curves.
-"""
+"""The learner's view of the deliberation MDP as rsl-rl's ``VecEnv``, with episode totals."""
 
 from __future__ import annotations
 
@@ -21,29 +11,17 @@ from tensordict import TensorDict
 from amuled_ma.deliberation.mdp import BatchedDeliberation, as_tensor
 from amuled_ma.learn.config import OBS_GROUP
 
-#: Per-episode totals the bridge keeps itself, for tasks that do not report them.
-FALLBACK_KEYS = ("return_env", "length", "return_shaping")
-
 
 def episode_table(
     info: dict[str, Any], done_ids: torch.Tensor, num_envs: int, fallback: dict[str, torch.Tensor]
 ) -> tuple[list[str], torch.Tensor]:
     """The totals of the episodes that ended in one task step, as one table.
 
-    The task (:mod:`amuled_ma.tasks.base`) reports the episode accumulators of *every*
-    copy, read before the reset, with a ``done`` mask, under ``info["episode"]``; a
-    ``fallback`` column is used for a key the task does not report.
-
-    Args:
-        info: The ``info`` dict of one task step.
-        done_ids: Indices of the copies whose episode finished in this step.
-        num_envs: Number of copies.
-        fallback: ``{key: [num_envs] tensor}`` for keys the task may lack.
+    Columns come from ``info["episode"]`` (every copy's accumulators), else from ``fallback``.
 
     Returns:
         The column names and a float64 table ``[len(done_ids), len(keys) + 1]`` whose last
         column is the copy index (float64 holds every float32, int < 2**53 and bool exactly).
-
     """
     keys: list[str] = []
     columns: list[torch.Tensor] = []
@@ -64,14 +42,7 @@ def episode_table(
 
 
 class DeliberationVecEnv(VecEnv):
-    """Expose a :class:`~amuled_ma.deliberation.mdp.BatchedDeliberation` as an rsl-rl ``VecEnv``.
-
-    Args:
-        mdp: The batched deliberation MDP (task copies, feedback, actor reward).
-        max_episode_length: Step limit reported to rsl-rl (informational).
-        cfg: Configuration recorded by rsl-rl's logger.
-
-    """
+    """Expose a ``BatchedDeliberation`` as an rsl-rl ``VecEnv`` with one observation group."""
 
     def __init__(
         self, mdp: BatchedDeliberation, max_episode_length: int = 1000, cfg: dict | None = None
@@ -99,11 +70,7 @@ class DeliberationVecEnv(VecEnv):
         return TensorDict({OBS_GROUP: obs}, batch_size=[self.num_envs], device=self.device)
 
     def state_dict(self) -> dict[str, Any] | None:
-        """The copies' state, for exact resumes (None: the task cannot save its own).
-
-        The task's (:meth:`~amuled_ma.tasks.base.BatchedTask.state_dict`), the current
-        observations and the running episodes' lengths and sums.
-        """
+        """The task's state, obs and episode sums for exact resumes (None: unsupported)."""
         if not callable(getattr(self.task, "state_dict", None)):
             return None
         return {
@@ -115,11 +82,10 @@ class DeliberationVecEnv(VecEnv):
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore a :meth:`state_dict` of an env built with the same settings.
+        """Restore a `state_dict` of an env built with the same settings.
 
         Raises:
             ValueError: It does not fit this env (another task or number of copies).
-
         """
         self.task.load_state_dict(state["task"])
         for name, mine in (
@@ -156,11 +122,9 @@ class DeliberationVecEnv(VecEnv):
         """Step every copy with the given actions (one-hot rows or indices).
 
         Returns:
-            Observations, the actor's rewards ``[N]``, dones ``[N]`` (terminated or
-            truncated) and extras with ``time_outs``, ``log``, the task's raw ``info``, the
-            taken ``actions`` and, with feedback, ``feedback`` (the fused belief of each
-            taken action).
-
+            Observations, the actor's rewards ``[N]``, dones ``[N]`` and extras with
+            ``time_outs``, ``log``, the task's ``info``, the taken ``actions`` and, with
+            feedback, ``feedback`` (the fused belief of each taken action).
         """
         index = self.to_indices(actions)
         if index.device != self.device:
@@ -190,11 +154,7 @@ class DeliberationVecEnv(VecEnv):
         return self._wrap(out.obs), out.reward, dones.float(), extras
 
     def _finish(self, info: dict[str, Any], dones: torch.Tensor, extras: dict[str, Any]) -> None:
-        """Keep the totals of the episodes that ended at this step; reset the accumulators.
-
-        The totals stay one tensor per step until :meth:`drain_episodes` (once per
-        iteration) turns them into dicts.
-        """
+        """Keep the totals of the episodes that ended at this step; reset their accumulators."""
         done_ids = dones.nonzero(as_tuple=False).squeeze(-1)
         fallback = {
             "return_env": self._ep_return,
@@ -210,12 +170,7 @@ class DeliberationVecEnv(VecEnv):
         self.episode_length_buf[done_ids] = 0
 
     def drain_episodes(self) -> list[dict]:
-        """Return and forget the episodes finished since the last call.
-
-        Returns:
-            One ``{metric: float, "env_id": int}`` dict per episode, in the order they ended.
-
-        """
+        """Pop the episodes finished since the last call (``{metric, "env_id"}``)."""
         finished: list[dict] = []
         for keys, table in self._pending:
             for row in table.tolist():
