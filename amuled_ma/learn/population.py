@@ -1,33 +1,9 @@
 """Training: every job trains here, P jobs of one shape together, each as it trains alone.
 
-A job alone (``amuled train``, ``finetune``, ``--no-population``) is a population of one.
-A fine-tune with the authors' recipe (1 copy x 128 steps x 1,000 iterations, 8 epochs of
-4 mini-batches) is made of tiny tensors: its cost is Python and kernel launches, not
-arithmetic. :class:`PopulationTrainer` trains ``P`` such jobs (:class:`~amuled_ma.learn.
-population_groups.MemberSpec`) in one process, through rsl-rl's own runner
-(``runner.learn(1)`` per iteration, the learning-rate schedule, curves, checkpoints):
-
-- one batched task of ``P x E`` copies (member ``p`` owns copies ``p*E .. p*E + E - 1``),
-  in one deliberation MDP whose feedback asks each member's own feedback about its
-  copies (:class:`~amuled_ma.deliberation.mdp.MemberFeedback`; the belief store behind
-  them may be one);
-- one stacked actor, critic and base actor (:mod:`amuled_ma.learn.population_models`),
-  plugged into rsl-rl by ``class_name``, and :class:`~amuled_ma.learn.population_ppo.
-  PopulationPPO`, which keeps each member's update its own (mini-batches, advantage
-  normalisation, gradient clipping, loss scale) and each member's random stream its own.
-  A population of one on the CPU trains on the lone job's own classes (rsl-rl's
-  ``MLPModel``, :class:`~amuled_ma.learn.anchored_ppo.AnchoredPPO`, torch's global
-  random generator): the same numbers, with nothing spent on members.
-
-Each member **starts where its lone run starts** (:func:`~amuled_ma.learn.
-population_state.lone_start`: its seed, its base policy or its checkpoint when resumed).
-Each member **ends as a lone job ends**: its ``model_last.pt`` (resume, evaluation, the
-report and the viewer read it), ``curve.json``, ``train_cfg.json`` (its lone config),
-``feedback.json`` and TensorBoard events, in its own folder. A stop inside an iteration
-writes the state after the last whole one (:attr:`PopulationTrainer.snapshot`), so a
-resume is exact. ``tests/learn/test_population.py`` trains members together and with the
-lone loop kept as the oracle (``tests/learn/lone_trainer.py``) from the same seeds and
-compares losses, parameters and curves.
+A job alone is a population of one, on the lone job's own classes (``MLPModel``,
+``AnchoredPPO``, torch's global generator): the lone loop bit for bit. Each member starts
+and ends as its lone run would (checkpoint, curve, config, feedback, TensorBoard in its
+folder); docs/learning.md, "Population training".
 """
 
 from __future__ import annotations
@@ -78,19 +54,7 @@ __all__ = ["LAST", "PopulationMember", "PopulationTrainer", "TrainOutcome", "tra
 
 @dataclass
 class TrainOutcome:
-    """What training one job produced.
-
-    Attributes:
-        out_dir: The job's folder (checkpoints, curve, TensorBoard).
-        checkpoint: Path of the final checkpoint.
-        iterations: Iterations completed in total.
-        env_steps: Environment steps in total.
-        wall_s: Wall-clock seconds of this call.
-        completed: False when interrupted.
-        curve: Per-iteration rows (learning curve).
-        feedback: Feedback diagnostics (fine-tuning only).
-
-    """
+    """What training one job produced; ``completed`` is False when interrupted."""
 
     out_dir: Path
     checkpoint: Path
@@ -103,14 +67,7 @@ class TrainOutcome:
 
 
 class PopulationMember:
-    """One member of a training population, as its ``on_iteration`` callback sees it.
-
-    Attributes:
-        population: The :class:`PopulationTrainer`.
-        index: The member's index.
-        spec: Its job.
-
-    """
+    """One member of a training population, as its ``on_iteration`` callback sees it."""
 
     def __init__(self, population: PopulationTrainer, index: int) -> None:
         self.population = population
@@ -133,18 +90,13 @@ class PopulationMember:
 
 
 class PopulationTrainer:
-    """Train ``P`` jobs of one :func:`population_key` together, each as it trains alone.
+    """Train ``P`` jobs of one `population_key` together, each as it trains alone.
 
-    Args:
-        specs: The jobs (:class:`MemberSpec`), at least one.
-        device: Where the networks and PPO's buffers live (``cpu`` or ``cuda``); the
-            task copies stay on the CPU (:func:`~amuled_ma.tasks.make_task`).
-        progress: Show one tqdm bar for the population (else plain lines past 10 s,
-            `amuled_ma.progress.Progress`).
+    ``device`` holds the networks and PPO's buffers; the task copies stay on the CPU.
+    ``progress`` shows one tqdm bar (else plain lines past 10 s).
 
     Raises:
         ValueError: No jobs, or jobs that cannot train together (another key).
-
     """
 
     def __init__(
@@ -203,11 +155,7 @@ class PopulationTrainer:
         self.before = self.snapshot
 
     def _population_env(self, starts: list[MemberStart]) -> DeliberationVecEnv:
-        """One task of ``P x E`` copies, each member's copies in the state its run left them.
-
-        A task without ``state_dict`` (a test's) cannot take its members' states: its
-        copies then start as built with the first member's seed.
-        """
+        """One task of ``P x E`` copies in the states the members' runs left them (if saved)."""
         first = self.specs[0]
         factory = first.task_factory or make_task
         self.task = factory(
@@ -254,11 +202,11 @@ class PopulationTrainer:
 
     # ------------------------------------------------- stacked, or one member alone
     def _stack(self, states: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
-        """The model state of the members' lone states (:func:`stack_states`)."""
+        """The model state of the members' lone states (`stack_states`)."""
         return stack_states(states) if self.stacked else dict(states[0])
 
     def _member(self, state: dict[str, torch.Tensor], member: int) -> dict[str, torch.Tensor]:
-        """Member ``member``'s lone model state (:func:`member_state`)."""
+        """Member ``member``'s lone model state (`member_state`)."""
         if self.stacked:
             return member_state(state, member)
         return {key: value.clone() for key, value in state.items()}
@@ -304,13 +252,7 @@ class PopulationTrainer:
     ) -> dict[str, Any]:
         """Member ``member``'s checkpoint, in the format of a job alone.
 
-        Args:
-            member: Which member.
-            completed: Whether its training finished.
-            shared: The population's state read once for several members
-                (:meth:`population_state`, or the :attr:`snapshot` of the last whole
-                iteration); default: read now.
-
+        ``shared`` is the population's state read once for several members (default: read now).
         """
         spec, (obs_dim, num_actions) = self.specs[member], self.sizes[member]
         state = shared or self.population_state()
@@ -348,13 +290,8 @@ class PopulationTrainer:
     def population_state(self, *, copy_now: bool = False) -> dict[str, Any]:
         """Everything a member's checkpoint holds, read once for all members.
 
-        The actor, critic, Adam and env states, the iteration, each member's random
-        stream, wall time and number of curve rows.
-
-        Args:
-            copy_now: Clone every tensor (a :attr:`snapshot` that training does not
-                change); else the live tensors, for a checkpoint written at once.
-
+        ``copy_now`` clones every tensor (a `snapshot` training does not change); else the live
+        tensors, for a checkpoint written at once.
         """
         state = {
             "actor": self.alg.actor.state_dict(),
@@ -382,29 +319,15 @@ class PopulationTrainer:
         completed: bool,
         shared: dict[str, Any] | None = None,
     ) -> list[Path]:
-        """Write the checkpoints of ``members``, the population's state read once.
-
-        Args:
-            members: Which members.
-            completed: Whether their training finished.
-            shared: The state to write (default: :meth:`population_state` now).
-
-        """
+        """Write the checkpoints of ``members``, the population's state read once."""
         return self.save_states([(p, shared) for p in members], completed=completed)
 
     def save_states(
         self, members: Sequence[tuple[int, dict[str, Any] | None]], *, completed: bool
     ) -> list[Path]:
-        """Write members' checkpoints as one set, each from its state.
+        """Write ``(member, state)`` checkpoints as one set (a None state is read now, once).
 
-        Every member's old checkpoint stays until all new ones are whole
-        (:func:`~amuled_ma.learn.checkpoints.write_checkpoints`): a stop or a full disk
-        while they are written leaves the members at one iteration.
-
-        Args:
-            members: ``(member, state)`` pairs; a state None is read now (once).
-            completed: Whether their training finished.
-
+        A stop or a full disk while they are written leaves every member at one iteration.
         """
         if not members:
             return []
@@ -420,21 +343,14 @@ class PopulationTrainer:
 
     # ----------------------------------------------------------------- training
     def iterate(self) -> None:
-        """One iteration of every member: rsl-rl's rollout and update (``runner.learn(1)``).
-
-        The runner leaves its iteration counter at the iteration it ran; :meth:`train`
-        advances it.
-        """
+        """One iteration of every member: rsl-rl's rollout and update (``runner.learn(1)``)."""
         self.runner.learn(1)
 
     def train(self) -> list[TrainOutcome]:
-        """Run (or continue) every member to its configured number of iterations.
+        """Run (or continue) every member to its configured iterations; each member's outcome.
 
-        Returns:
-            Each member's outcome, in order. On Ctrl-C, SIGTERM or a feedback that stays
-            down, every member's checkpoint is written, each resume command printed, and
-            the exception re-raised.
-
+        On Ctrl-C, SIGTERM or a feedback that stays down, every member's checkpoint is written,
+        each resume command printed, and the exception re-raised.
         """
         writers: list[TensorBoardLog | None] = [None] * self.size
         for p, spec in enumerate(self.specs):
@@ -538,7 +454,7 @@ class PopulationTrainer:
         )
 
     def _check_members(self) -> None:
-        """Raise :class:`MemberFailed` for the first member whose feedback or gradient failed."""
+        """Raise `MemberFailed` for the first member whose feedback or gradient failed."""
         feedback = self.mdp.feedback
         failures = dict(feedback.failures) if isinstance(feedback, MemberFeedback) else {}
         for member in self._failed_members():
@@ -548,12 +464,7 @@ class PopulationTrainer:
             raise MemberFailed(member, failures[member])
 
     def _member_failed(self, failed: MemberFailed) -> MemberFailed:
-        """Write every member's checkpoint; the failure, naming the member's folder.
-
-        The failed member's is its state before the iteration that failed
-        (:attr:`before`: nothing of that iteration is written); the others' their state
-        now. A job alone (a population of one) prints its resume command.
-        """
+        """Write every member's checkpoint (the failed one's before the iteration); the failure."""
         member = failed.member
         others = [p for p in range(self.size) if p != member]
         pairs = [(p, self.snapshot) for p in others] + [(member, self.before)]
@@ -605,7 +516,7 @@ class PopulationTrainer:
 
 
 def _saver(checkpoint: dict[str, Any]) -> Callable[[str], None]:
-    """Writes ``checkpoint`` to the path it is given (:func:`torch.save`)."""
+    """Writes ``checkpoint`` to the path it is given (`torch.save`)."""
     return lambda tmp: torch.save(checkpoint, tmp)
 
 
@@ -631,17 +542,10 @@ def train_population(
     progress: bool = False,
     announce: bool = True,
 ) -> list[TrainOutcome | MemberFailed]:
-    """Train ``specs`` as one population (:class:`PopulationTrainer`); each member's outcome.
+    """Train ``specs`` as one population; per job a `TrainOutcome` or the `MemberFailed`.
 
-    A member that fails (its gradient not finite, its feedback failing) stops alone: the
-    others' checkpoints are written, one line naming the member is printed (with
-    ``announce``; a Ray worker leaves it to the driver), and the others go on from their
-    checkpoints as a population without it (resumed as any run is).
-
-    Returns:
-        Per job, in order: its :class:`TrainOutcome`, or the
-        :class:`~amuled_ma.errors.MemberFailed` that stopped it.
-
+    A failed member stops alone: the others' checkpoints are written, one line names it
+    (with ``announce``), and the others go on as a population without it.
     """
     specs = list(specs)
     results: dict[int, TrainOutcome | MemberFailed] = {}

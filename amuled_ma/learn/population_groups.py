@@ -1,17 +1,7 @@
 """Which training jobs train together as one population, and how many fit in memory.
 
-A job is a :class:`MemberSpec` (its scenario, folder, variant, feedback, base). Jobs
-train as one population (:class:`~amuled_ma.learn.population.PopulationTrainer`) when
-their :func:`population_key` is equal: the same task (all of ``[task]`` but the seed), the
-same network and PPO settings, the same run shape (copies, rollout, epochs, mini-batches,
-iterations, learning rate and its schedule, reward weights) and, when resumed, the same
-iteration (one Adam step counter and one runner serve them all). They may differ in seed,
-feedback (source, clusters, fusion rule, recording), KL weight and recipe, base policy,
-folders and checkpoint cadence.
-
-:func:`split_populations` groups a list of jobs by that key and cuts each group into
-populations whose estimated memory (:func:`member_memory_bytes` per member) fits a budget;
-:func:`population_config` is rsl-rl's config of a population from its members' own.
+Jobs of equal `population_key` may train together: they differ only in seed, feedback,
+KL weight and recipe, base policy, folders and checkpoint cadence.
 """
 
 from __future__ import annotations
@@ -52,8 +42,8 @@ FLOAT = 4
 #: iterations (about 0.5 MiB); the memo keeps growing with the distinct states answered.
 MEMBER_OVERHEAD_BYTES = 2**20
 
-#: Bytes of one member's feedback object as built today: each job's replay source loads
-#: its recording (3.4 MiB measured for ``findmilk-gpt-4o-mini``); the caller builds it.
+#: Bytes of one member's feedback object: its replay source loads its recording (3.4 MiB
+#: measured for ``findmilk-gpt-4o-mini``).
 FEEDBACK_BYTES = 4 * 2**20
 
 
@@ -61,21 +51,9 @@ FEEDBACK_BYTES = 4 * 2**20
 class MemberSpec:
     """One training job, a member of a population (a job alone: a population of one).
 
-    Attributes:
-        scenario: The scenario.
-        out_dir: The job's folder (its checkpoints, curve, config as a lone job's).
-        variant: ``base``, ``shaped`` or ``finetune:<feedback>``.
-        feedback: A fine-tune's feedback (its own; the belief store may be shared).
-        base_checkpoint: A fine-tune's base policy.
-        resume: Continue from ``out_dir/model_last.pt`` when present.
-        seed: Overrides the scenario's seed.
-        iterations: Overrides the number of iterations.
-        resume_hint: The command that resumes this job (printed on Ctrl-C).
-        on_iteration: Called as ``fn(member, iteration)`` after every iteration, with the
-            member's :class:`~amuled_ma.learn.population.PopulationMember`.
-        task_factory: Replaces :func:`~amuled_ma.tasks.make_task` (same signature).
-        planned_shape: Its shape as its plan carries it (None: derived from the scenario).
-
+    ``variant`` is ``base``, ``shaped`` or ``finetune:<feedback>``; ``on_iteration`` is
+    called as ``fn(member, iteration)``; ``task_factory`` replaces `make_task`;
+    ``planned_shape`` None derives the shape from the scenario.
     """
 
     scenario: Scenario
@@ -100,7 +78,7 @@ class MemberSpec:
         return self.scenario.task.seed if self.seed is None else int(self.seed)
 
     def shape(self) -> JobShape:
-        """The job's shape: its plan's, else :func:`~amuled_ma.learn.job_shape.job_shape`."""
+        """The job's shape: its plan's, else `job_shape`."""
         if self.planned_shape is not None:
             return self.planned_shape
         return job_shape(self.scenario, self.variant, self.iterations)
@@ -136,12 +114,7 @@ def shared_config(cfg: dict[str, Any]) -> dict[str, Any]:
 
 
 def population_key(spec: MemberSpec) -> str:
-    """What jobs of one population share (equal keys: they may train together).
-
-    The task without its seed, the finetuning flag, the job's shape without the member
-    settings (:func:`shared_config`), the learning-rate schedule, the start iteration and
-    the task factory.
-    """
+    """What jobs of one population share: task without seed, shape, schedule, start, factory."""
     shape = spec.shape()
     task = spec.scenario.task.model_dump(mode="json")
     task.pop("seed", None)
@@ -175,23 +148,10 @@ def member_memory_bytes(
 ) -> int:
     """Estimated memory of one member of a population [bytes].
 
-    Its tensors: actor and critic parameters with their gradients and Adam's two moments,
-    the frozen base actor, its share of the rollout storage (observation, one-hot action,
-    the distribution's log-probabilities, reward, done, value, log-probability, return,
-    advantage per transition) and of a mini-batch's activations and gathered copies,
-    the authors' window KL; plus, on the CPU, :data:`MEMBER_OVERHEAD_BYTES` (its Python
-    objects, memo and curves) and its feedback object (:data:`FEEDBACK_BYTES` for a
-    fine-tune). ``obs_dim`` and ``num_actions`` default to the generous bounds of
-    :mod:`amuled_ma.scenario.memory`.
-
-    Args:
-        shape: The job's shape.
-        obs_dim: Observation length.
-        num_actions: Actions.
-        device: Where the tensors live (``cuda``: the estimate is of the device's memory;
-            the Python objects stay on the CPU).
-        feedback_bytes: A fine-tune's feedback object (default :data:`FEEDBACK_BYTES`).
-
+    Its tensors (networks, gradients, Adam moments, base actor, its share of the rollout
+    storage and mini-batches, window KL) plus, on the CPU, `MEMBER_OVERHEAD_BYTES` and its
+    feedback (``feedback_bytes``, default `FEEDBACK_BYTES` for a fine-tune). ``obs_dim`` and
+    ``num_actions`` default to the bounds of `amuled_ma.scenario.memory`.
     """
     hidden = list(shape.cfg["actor"]["hidden_dims"])
 
@@ -229,25 +189,15 @@ def split_populations(
     min_count: int = 1,
     device: str = "cpu",
 ) -> list[list[int]]:
-    """Group jobs into populations: equal :func:`population_key`, within a memory budget.
+    """Group jobs into populations of equal `population_key` within ``memory_budget`` bytes.
 
-    Args:
-        specs: The jobs.
-        memory_budget: Bytes one population may use (default: :func:`memory_budget_bytes`).
-        max_size: At most this many members per population (None: no limit but memory).
-        min_count: Cut each group into at least this many populations (as many as it
-            has jobs at most): one per worker, so that ``min_count`` cores train at once
-            (two populations of ``P/2`` do more than one of ``P`` on two cores).
-        device: Where the populations train (the estimate's device).
+    ``min_count`` cuts each group into at least that many populations (one per worker).
 
     Returns:
-        Populations as lists of indices into ``specs``, in the order of their first job;
-        jobs keep their order inside a population. A job alone in its key is a
-        population of one.
+        Populations as lists of indices into ``specs``, in the order of their first job.
 
     Raises:
         ValueError: ``memory_budget`` or ``max_size`` is below 1.
-
     """
     budget = memory_budget_bytes() if memory_budget is None else int(memory_budget)
     if budget < 1 or (max_size is not None and max_size < 1) or min_count < 1:
@@ -273,14 +223,10 @@ def split_populations(
 
 
 def population_config(cfgs: Sequence[dict[str, Any]]) -> dict[str, Any]:
-    """rsl-rl's config of a population from its members' lone configs.
-
-    The population's model, distribution and algorithm classes, the population size, and
-    each member's KL weight and anchor as lists.
+    """rsl-rl's config of a population from its members' lone configs (KL weights as lists).
 
     Raises:
         ValueError: The members' configs differ in a setting they must share.
-
     """
     shared = shared_config(cfgs[0])
     for p, cfg in enumerate(cfgs):

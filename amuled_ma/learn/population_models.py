@@ -1,18 +1,8 @@
 """A population's actor and critic: P networks of one shape, stacked, as rsl-rl models.
 
-rsl-rl builds its actor and critic from ``cfg["actor"]`` / ``cfg["critic"]`` by
-``class_name``; :class:`PopulationMLPModel` is such a class. It is rsl-rl's
-:class:`~rsl_rl.models.MLPModel` whose MLP is replaced by the same layers stacked over
-``population`` members: each ``nn.Linear(in, out)`` becomes a :class:`StackedLinear` with
-weight ``[P, out, in]`` and bias ``[P, out]`` under the same name, so the model's
-``state_dict`` is the lone model's with a leading member axis (:func:`stack_states`,
-:func:`member_state`). A batch is **member-major**: its ``P x B`` rows are ``P`` blocks of
-``B`` rows, block ``p`` member ``p``'s; one batched matmul (:func:`torch.baddbmm`) per
-layer evaluates every member on its own block.
-
-:class:`PopulationCategoricalDistribution` is our categorical head whose samples come from
-one random stream per member (:class:`MemberStreams`), so member ``p`` draws exactly what
-it draws alone (the lone run draws from torch's global generator).
+Each ``nn.Linear`` becomes a `StackedLinear` (weight ``[P, out, in]``) under the same name,
+so the state dict is the lone model's with a leading member axis. A batch is member-major:
+``P`` blocks of ``B`` rows, block ``p`` member ``p``'s, one ``torch.baddbmm`` per layer.
 """
 
 from __future__ import annotations
@@ -31,16 +21,9 @@ from amuled_ma.learn.distribution import CategoricalDistribution
 class MemberStreams:
     """One CPU random generator per member: the population's stand-in for torch's global one.
 
-    A lone run draws its action samples (``torch.rand``) and its mini-batch permutations
-    (``torch.randperm``) from torch's global CPU generator, seeded by the trainer. Member
-    ``p`` of a population draws the same calls, in the same order, from generator ``p``,
-    whose state is set from the lone run's (:meth:`set_states`), so it draws the same
-    numbers. The generators stay on the CPU on every device (the draws are moved), so a
-    member's stream, and the ``torch_rng`` its checkpoint keeps, are those of a lone run.
-
-    Args:
-        population: Number of members.
-
+    Member ``p`` draws a lone run's calls (``torch.rand`` samples, ``torch.randperm``
+    mini-batches), in the same order, from generator ``p`` set to the lone run's state, so it
+    draws the same numbers. The generators stay on the CPU on every device.
     """
 
     def __init__(self, population: int) -> None:
@@ -66,12 +49,10 @@ class MemberStreams:
             generator.set_state(state)
 
     def reserve(self, each: int, calls: int, dtype: torch.dtype, device: torch.device) -> None:
-        """Draw the next ``calls`` calls of :meth:`uniform` (``each`` per member) at once.
+        """Draw the next ``calls`` calls of `uniform` (``each`` per member) at once.
 
-        One ``torch.rand`` of ``calls x each`` per member instead of ``calls``: torch's CPU
-        generator fills a tensor element by element, so the numbers (and the generator's
-        state after) are those of the ``calls`` draws one by one (a rollout: one call per
-        step). Nothing else may draw from the streams until they are used up.
+        torch's CPU generator fills element by element, so the numbers equal ``calls`` draws one
+        by one. Nothing else may draw from the streams until they are used up.
         """
         blocks = [torch.rand((calls, each, 1), dtype=dtype, generator=g) for g in self.generators]
         self.reserved = torch.stack(blocks, dim=1).reshape(calls, -1, 1).to(device)
@@ -82,8 +63,7 @@ class MemberStreams:
 
         Raises:
             ValueError: ``rows`` is not a multiple of the population.
-            RuntimeError: Another draw than the one :meth:`reserve` drew ahead.
-
+            RuntimeError: Another draw than the one `reserve` drew ahead.
         """
         each, rest = divmod(rows, self.population)
         if rest:
@@ -105,7 +85,6 @@ class MemberStreams:
 
         Raises:
             RuntimeError: Uniforms reserved ahead are not used up (they come first).
-
         """
         if self.reserved is not None:
             raise RuntimeError("a permutation drawn before the uniforms reserved ahead")
@@ -115,10 +94,7 @@ class MemberStreams:
 class PopulationCategoricalDistribution(CategoricalDistribution):
     """The categorical head (one-hot actions), sampling each member from its own stream.
 
-    Set :attr:`streams` before the first sample (:class:`~amuled_ma.learn.population_ppo.
-    PopulationPPO` does). Sampling is the inverse CDF of
-    :meth:`CategoricalDistribution.sample`, with member ``p``'s uniforms drawn by
-    generator ``p`` in the shape a lone run draws them.
+    Set ``streams`` before the first sample (``PopulationPPO`` does).
     """
 
     def __init__(self, output_dim: int, init_last_layer_std: float = 0.01) -> None:
@@ -129,8 +105,7 @@ class PopulationCategoricalDistribution(CategoricalDistribution):
         """One action per row, one-hot; row block ``p`` drawn from member ``p``'s stream.
 
         Raises:
-            RuntimeError: No :attr:`streams` were set.
-
+            RuntimeError: No ``streams`` were set.
         """
         if self.streams is None:
             raise RuntimeError("PopulationCategoricalDistribution: set .streams before sampling")
@@ -142,18 +117,7 @@ class PopulationCategoricalDistribution(CategoricalDistribution):
 
 
 class StackedLinear(nn.Module):
-    """``population`` linear layers of one shape, applied to their member-major row blocks.
-
-    Args:
-        population: Number of members ``P``.
-        in_features: Inputs of each layer.
-        out_features: Outputs of each layer.
-
-    Attributes:
-        weight: ``[P, out, in]``; ``weight[p]`` is member ``p``'s ``nn.Linear.weight``.
-        bias: ``[P, out]``.
-
-    """
+    """``population`` linear layers of one shape; ``weight[p]`` is member ``p``'s weight."""
 
     def __init__(self, population: int, in_features: int, out_features: int) -> None:
         super().__init__()
@@ -190,17 +154,7 @@ class StackedLinear(nn.Module):
 
 
 class StackedMLP(nn.Sequential):
-    """An MLP of :class:`StackedLinear` layers, run on ``[P, B, features]`` blocks throughout.
-
-    The same children, under the same indices, as the lone MLP it stacks (so the state
-    dict's names are the lone model's); the rows are split into member blocks once, at
-    the input, and joined once, at the output.
-
-    Args:
-        population: Number of members ``P``.
-        *layers: The layers, :class:`StackedLinear` or parameter-free (activations).
-
-    """
+    """An MLP of `StackedLinear` layers on ``[P, B, features]`` blocks, the lone MLP's indices."""
 
     def __init__(self, population: int, *layers: nn.Module) -> None:
         super().__init__(*layers)
@@ -219,11 +173,8 @@ class StackedMLP(nn.Sequential):
 def stack_layers(mlp: nn.Sequential, population: int) -> StackedMLP:
     """The same sequence with each ``nn.Linear`` replaced by ``population`` stacked copies.
 
-    Modules keep their index, so parameter names are unchanged (``"0.weight"``, ...).
-
     Raises:
         ValueError: A module other than ``nn.Linear`` has parameters.
-
     """
     layers = []
     # every child, the activation rsl-rl's MLP shares between its layers included, by index
@@ -244,19 +195,11 @@ def stack_layers(mlp: nn.Sequential, population: int) -> StackedMLP:
 class PopulationMLPModel(MLPModel):
     """rsl-rl's MLP model for ``population`` members at once (plugged in by ``class_name``).
 
-    Args:
-        obs: Observations (rsl-rl passes them to size the input).
-        obs_groups: Observation groups per set.
-        obs_set: ``"actor"`` or ``"critic"``.
-        output_dim: Actions (actor) or 1 (critic).
-        population: Number of members ``P``; every batch has ``P x B`` member-major rows.
-        **kwargs: rsl-rl's :class:`~rsl_rl.models.MLPModel` arguments (``hidden_dims``,
-            ``activation``, ``distribution_cfg``).
+    Every batch has ``P x B`` member-major rows; ``kwargs`` are rsl-rl's ``MLPModel``'s.
 
     Raises:
         ValueError: ``obs_normalization`` is on (its statistics would be shared by the
             members), or ``population`` is below 1.
-
     """
 
     def __init__(
@@ -289,17 +232,10 @@ class PopulationMLPModel(MLPModel):
 
 
 def stack_states(states: Sequence[Mapping[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
-    """The state dict of a population model from its members' lone state dicts.
-
-    Args:
-        states: One rsl-rl ``MLPModel`` state dict per member, same keys and shapes.
-
-    Returns:
-        ``{key: [P, ...]}``.
+    """The state dict ``{key: [P, ...]}`` of a population model from its members' lone ones.
 
     Raises:
         ValueError: The members' keys or shapes differ.
-
     """
     keys = list(states[0])
     for p, state in enumerate(states):

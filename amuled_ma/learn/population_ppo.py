@@ -1,40 +1,11 @@
 """rsl-rl's PPO for a population: P members in one update, each updated as it would be alone.
 
-:class:`PopulationPPO` subclasses :class:`~amuled_ma.learn.anchored_ppo.AnchoredPPO`
-(rsl-rl's PPO with the KL anchor) over the stacked models of
-:mod:`amuled_ma.learn.population_models`, on ``P x E`` task copies (member ``p`` owns
-copies ``p*E .. p*E+E-1``). rsl-rl's rollout, returns and update run unchanged; five of its
-steps would mix the members, and each is made per member at a public extension point:
-
-1. **Mini-batches.** rsl-rl's :meth:`~rsl_rl.storage.RolloutStorage.mini_batch_generator`
-   draws one permutation of all ``P x E x T`` transitions. :class:`PopulationStorage`
-   overrides it: each member draws its own permutation of its ``E x T`` transitions from
-   its own stream (:class:`~amuled_ma.learn.population_models.MemberStreams`), and
-   mini-batch ``k`` is every member's ``k``-th mini-batch, member-major.
-2. **Advantage normalisation** (rsl-rl: over the whole rollout, or over each whole
-   mini-batch) is done per member by the same generator, from ``returns - values``
-   (exactly rsl-rl's raw advantages); rsl-rl's own is switched off.
-3. **Gradient clipping.** rsl-rl clips one norm over all the actor's parameters (all
-   members). It is handed ``max_grad_norm = inf`` (its clips multiply by exactly 1) and a
-   step pre-hook of the optimiser (:meth:`torch.optim.Optimizer.register_step_pre_hook`)
-   clips each member's actor and critic gradients apart (or jointly, ``grad_clip =
-   "joint"``) before Adam's step.
-4. **Loss scale.** rsl-rl's loss is a mean over the ``P x B`` rows of a mini-batch, i.e.
-   ``1/P`` of the sum of the members' losses; the same hook multiplies the gradients by
-   ``P``, so each member receives the gradient of its own loss (Adam is not scale-free:
-   ``eps`` is added to the root of its second moment).
-5. **Random numbers.** A lone run samples its actions (rollout and each mini-batch's
-   forward pass) and permutes its mini-batches from torch's global generator. Here each
-   member draws the same calls from its own stream (``MemberStreams``, set to the state
-   the lone run leaves the global one in); :meth:`PopulationPPO.act` draws a rollout's
-   uniforms at its first step, one call per member (the same numbers as one per step).
-
-Adam itself is elementwise, so one Adam over the stacked parameters is each member's Adam
-exactly, as long as the members share the learning rate and its schedule (the population
-groups only such jobs, :mod:`amuled_ma.learn.population_groups`). The per-member losses for
-the learning curves are computed in the hook from the same tensors (rsl-rl reports their
-mean over members). Per-member feedback and anchor statistics, the KL weight and the
-recipe's anchor are per copy.
+rsl-rl's rollout, returns and update run unchanged; each of its steps that would mix the
+members is made per member at a public extension point: mini-batch permutations
+(`PopulationStorage`), advantage normalisation, gradient clipping and the ``P`` loss scale
+(an optimiser step pre-hook), and random numbers (`MemberStreams`). Adam is elementwise,
+so one Adam over the stacked parameters is each member's Adam while they share the
+learning-rate schedule. docs/learning.md, "Population training".
 """
 
 from __future__ import annotations
@@ -62,14 +33,8 @@ LOSS_KEYS = ("value", "surrogate", "entropy")
 class PopulationStorage(RolloutStorage):
     """rsl-rl's rollout storage whose mini-batches and advantages are per member.
 
-    Args:
-        like: The storage rsl-rl built (its shape, observation groups, device).
-        population: Number of members ``P`` (``like.num_envs`` is ``P x E``).
-        streams: The members' random streams (their permutations).
-        per_mini_batch: Normalise advantages per member and mini-batch (else per member
-            over its rollout).
-        reshuffle_each_epoch: A new permutation per epoch (else one per update, rsl-rl's).
-
+    ``like`` is the storage rsl-rl built (``like.num_envs`` is ``P x E``); ``per_mini_batch``
+    normalises advantages per member and mini-batch (else per member over its rollout).
     """
 
     def __init__(
@@ -102,8 +67,7 @@ class PopulationStorage(RolloutStorage):
     def member_rows(self, used: int) -> torch.Tensor:
         """``[P, used]`` flat storage rows: each member's own permutation of its transitions.
 
-        A lone run of ``E`` copies permutes its rows ``t * E + e``; member ``p``'s row
-        ``t * E + e`` is the population's ``t * (P * E) + p * E + e``.
+        Member ``p``'s lone row ``t * E + e`` is the population's ``t * (P * E) + p * E + e``.
         """
         local = self.streams.permutations(used, torch.device(self.device))
         offsets = torch.arange(self.population, device=local.device).unsqueeze(1) * self.copies
@@ -112,17 +76,7 @@ class PopulationStorage(RolloutStorage):
     def mini_batch_generator(
         self, num_mini_batches: int, num_epochs: int = 8
     ) -> Generator[RolloutStorage.Batch, None, None]:
-        """Yield each epoch's mini-batches: every member's ``k``-th, member-major.
-
-        Args:
-            num_mini_batches: Mini-batches per epoch (of each member's transitions).
-            num_epochs: Epochs.
-
-        Yields:
-            rsl-rl's mini-batches of ``P x mini_batch_size`` rows, advantages normalised
-            per member.
-
-        """
+        """Yield each epoch's mini-batches: every member's ``k``-th, member-major."""
         if self.training_type != "rl":
             raise ValueError("This function is only available for reinforcement learning.")
         size = self.copies * self.num_transitions_per_env // num_mini_batches
@@ -200,22 +154,9 @@ class _CpuWindow:
 class PopulationPPO(AnchoredPPO):
     """rsl-rl's PPO (anchored) over a population, each member updated as it is alone.
 
-    Args:
-        actor: :class:`~amuled_ma.learn.population_models.PopulationMLPModel` with the
-            :class:`~amuled_ma.learn.population_models.PopulationCategoricalDistribution`.
-        critic: :class:`~amuled_ma.learn.population_models.PopulationMLPModel`.
-        storage: rsl-rl's storage of the ``P x E`` copies (replaced by a
-            :class:`PopulationStorage` of the same shape).
-        population: Number of members ``P``.
-        lambda_kl: Each member's KL weight (one value: all members).
-        anchor: Each member's anchor, ``per_sample`` or ``window`` (one value: all).
-        max_grad_norm: Each member's gradient-norm clip.
-        grad_clip: ``per_network`` (actor and critic apart, rsl-rl) or ``joint``.
-        normalize_advantage_per_mini_batch: Per member and mini-batch, or per member
-            over its rollout.
-        reshuffle_each_epoch: A new permutation per member in every epoch.
-        **kwargs: :class:`AnchoredPPO` and rsl-rl's PPO arguments.
-
+    ``lambda_kl``, ``anchor`` and ``max_grad_norm`` are one value for all members or a list
+    of one per member; ``storage`` is replaced by a `PopulationStorage` of the same shape;
+    ``kwargs`` are `AnchoredPPO`'s and rsl-rl's PPO arguments.
     """
 
     def __init__(
@@ -286,11 +227,7 @@ class PopulationPPO(AnchoredPPO):
 
     # ----------------------------------------------------------------- rsl-rl steps
     def act(self, obs: TensorDict) -> torch.Tensor:
-        """:class:`AnchoredPPO`'s ``act``; a rollout's first step draws its samples' uniforms.
-
-        Each member's stream draws the rollout's ``T`` calls of ``E`` uniforms at once
-        (:meth:`MemberStreams.reserve`: the same numbers as one call per step).
-        """
+        """`AnchoredPPO`'s ``act``; a rollout's first step reserves its samples' uniforms."""
         if self.storage.step == 0:
             self.streams.reserve(
                 self.copies,
@@ -324,7 +261,7 @@ class PopulationPPO(AnchoredPPO):
         dones: torch.Tensor,
         extras: dict[str, Any],
     ) -> None:
-        """Count each member's feedback and anchor; then :class:`AnchoredPPO`'s step."""
+        """Count each member's feedback and anchor; then `AnchoredPPO`'s step."""
         anchor = self.step_anchor
         if anchor is not None:
             feedback = extras.get("feedback")
@@ -336,7 +273,7 @@ class PopulationPPO(AnchoredPPO):
         super().process_env_step(obs, rewards, dones, extras)
 
     def member_rollout_stats(self) -> list[dict[str, float]]:
-        """Each member's :meth:`AnchoredPPO.rollout_stats` since the last call."""
+        """Each member's `AnchoredPPO.rollout_stats` since the last call."""
         self.rollout_stats()  # AnchoredPPO's totals over all members: reset, unused
         if not self.step_sums:
             return [{} for _ in range(self.population)]
@@ -351,12 +288,7 @@ class PopulationPPO(AnchoredPPO):
 
     # ----------------------------------------------------------------- the update
     def update(self) -> dict[str, float]:
-        """rsl-rl's update; each member's mean losses are kept in :attr:`member_losses`.
-
-        Returns:
-            rsl-rl's losses (their mean over the members).
-
-        """
+        """rsl-rl's update (losses averaged over members); each member's in ``member_losses``."""
         self.member_loss_sums.zero_()
         self.nonfinite.zero_()
         losses = super().update()
@@ -370,10 +302,8 @@ class PopulationPPO(AnchoredPPO):
     def keep_members_finite(self, grad: torch.Tensor) -> torch.Tensor:
         """A parameter's gradient hook: a member's non-finite gradient rows become zeros.
 
-        rsl-rl clips with one norm over all members (``clip_grad_norm_``, here by a factor
-        of 1): a NaN in one member's rows would make every member's gradient NaN. The
-        member is marked in :attr:`nonfinite` (the trainer stops it after the update,
-        :class:`~amuled_ma.errors.MemberFailed`) and its rows do not move the others.
+        rsl-rl's one norm over all members would spread one member's NaN to all; the member is
+        marked in ``nonfinite`` (the trainer stops it after the update).
         """
         if torch.isfinite(grad.sum()):  # the usual case, in one reduction (no copy)
             return grad
@@ -389,13 +319,10 @@ class PopulationPPO(AnchoredPPO):
     def before_step(
         self, optimizer: torch.optim.Optimizer, args: tuple[Any, ...], kwargs: dict[str, Any]
     ) -> None:
-        """The optimiser's step pre-hook: each member's gradient, clip and losses.
+        """The optimiser's step pre-hook: each member's gradient times ``P``, clipped; its losses.
 
-        rsl-rl has computed the gradient of the mean loss over the ``P x B`` rows (and
-        clipped it by a factor of exactly 1). Each member's gradients are scaled by ``P``
-        (the gradient of its own mean loss) and clipped by the norm of its own actor and
-        critic gradients, as ``clip_grad_norm_`` clips a lone run's; then its losses on
-        this mini-batch are added to :attr:`member_loss_sums`.
+        rsl-rl's gradient is of the mean loss over ``P x B`` rows; times ``P`` it is each member's
+        own; each member is clipped by its own norm, as a lone run's ``clip_grad_norm_``.
         """
         with torch.no_grad():
             actor = [p.grad for p in self.actor.parameters() if p.grad is not None]
@@ -420,13 +347,7 @@ class PopulationPPO(AnchoredPPO):
             g.mul_(scale.reshape(members, *([1] * (g.dim() - 1))))
 
     def _add_member_losses(self) -> None:
-        """Each member's value, surrogate and entropy loss on the current mini-batch.
-
-        The terms of rsl-rl's loss (``PPO.update``), evaluated per member on the same
-        tensors: the mini-batch the storage yielded, the actor's distribution of this
-        forward pass and the critic's values. Their mean over members is rsl-rl's own
-        figure (``tests/learn/test_population.py`` checks it).
-        """
+        """Each member's value, surrogate and entropy loss (rsl-rl's terms) on this mini-batch."""
         batch = self.storage.last_batch
         if batch is None or self.critic.last_output is None:
             return

@@ -1,20 +1,8 @@
 """A population's training state, to and from its members' lone states.
 
-A member's checkpoint is a lone job's (the same format:
-its actor, critic and Adam state, its task copies' state, its random stream), so
-evaluation, the viewer, the report and a lone ``--resume`` read it unchanged. These
-functions stack members' lone states into the population's and slice a member's back out:
-
-- Adam's state (:func:`stack_optimizer_states`, :func:`member_optimizer_state`): each
-  parameter's moments gain a leading member axis; the step counter is shared;
-- the task copies' state (:func:`stack_env_states`, :func:`member_env_state`), the dict of
-  :meth:`~amuled_ma.learn.vecenv.DeliberationVecEnv.state_dict`: a tensor whose leading
-  axis counts copies is concatenated member after member, a table shared by all copies
-  (the same shape in a member's state and in the population's) is kept once;
-- finished episodes (:func:`split_episodes`), each to its member with its own copy index.
-
-A member starts where its lone run starts (:func:`lone_start`: its lone runner built from
-its seed, its checkpoint or base loaded, :class:`MemberStart`).
+A member's checkpoint is a lone job's, so evaluation, the viewer, the report and a lone
+``--resume`` read it unchanged. Per-copy tensors are concatenated member after member;
+tables shared by all copies are kept once; Adam's step counter is shared.
 """
 
 from __future__ import annotations
@@ -45,23 +33,10 @@ from amuled_ma.tasks import make_task
 
 @dataclass
 class MemberStart:
-    """Where a member starts: its lone job's state once built (:func:`lone_start`).
+    """Where a member starts: its lone job's state once built (`lone_start`).
 
-    Attributes:
-        cfg: Its lone rsl-rl config (``train_cfg.json``).
-        actor: Actor state dict.
-        critic: Critic state dict.
-        optimizer: Adam's state dict.
-        base_actor: The frozen base actor's state dict (fine-tunes), else None.
-        iteration: The iteration it starts at.
-        torch_rng: torch's global random state after construction (its stream).
-        env_state: Its task copies' state (None: the task cannot save it).
-        curve: Its learning curve so far (resumed).
-        wall_s: Its training time so far [s].
-        total_iterations: Iterations it trains to.
-        obs_dim: Observation length.
-        num_actions: Actions.
-
+    ``torch_rng`` is torch's global random state after construction (its stream);
+    ``env_state`` None: the task cannot save it; ``wall_s`` in seconds.
     """
 
     cfg: dict[str, Any]
@@ -82,22 +57,18 @@ class MemberStart:
 def lone_start(spec: MemberSpec) -> tuple[MemberStart, OnPolicyRunner, DeliberationVecEnv]:
     """Where the member starts: the state its job has when it is built alone.
 
-    The job's own rsl-rl runner (:class:`~amuled_ma.learn.anchored_ppo.AnchoredPPO` over
-    its ``E`` copies) is built after ``torch.manual_seed(seed)`` and
-    ``numpy.random.seed(seed)``, so its weights are drawn as a lone job draws them; then a
-    resumed job loads its ``model_last.pt`` (weights, Adam, iteration, curve, torch's
-    random state, task copies) and a new fine-tune its base checkpoint (the actor, and the
-    critic unless ``[finetune].reinit_critic``).
+    The job's own runner is built after seeding torch and numpy; then a resumed job loads its
+    ``model_last.pt`` and a new fine-tune its base (the actor, and the critic unless
+    ``[finetune].reinit_critic``).
 
     Returns:
-        The start, and the member's lone runner (at its start iteration, not yet anchored
-        to its base) and env: a job alone trains on them.
+        The start, and the member's lone runner (at its start iteration, not yet anchored)
+        and env: a job alone trains on them.
 
     Raises:
         ValueError: A fine-tune without feedback.
         CheckpointError: The base checkpoint is missing, or a checkpoint does not fit the
             scenario's networks or task copies.
-
     """
     torch.set_num_threads(1)
     scenario, shape = spec.scenario, spec.shape()
@@ -167,11 +138,7 @@ def lone_start(spec: MemberSpec) -> tuple[MemberStart, OnPolicyRunner, Deliberat
 
 
 def _load(alg: AnchoredPPO, path: Path, load_cfg: dict | None, what: str) -> dict:
-    """Load a checkpoint (read weights-only) into rsl-rl's PPO through its public ``load``.
-
-    ``OnPolicyRunner.load`` unpickles with ``weights_only`` off; the file is read with
-    :func:`read_checkpoint` and handed to ``PPO.load``, the runner's own step.
-    """
+    """Load a checkpoint read weights-only into rsl-rl's PPO through its public ``load``."""
     state = read_checkpoint(path, need=TRAINER_KEYS)
     try:
         alg.load(state, load_cfg, True)
@@ -184,19 +151,10 @@ def _load(alg: AnchoredPPO, path: Path, load_cfg: dict | None, what: str) -> dic
 
 
 def stack_optimizer_states(states: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-    """The state dict of one optimiser over stacked parameters from the members' own.
-
-    Args:
-        states: Each member's ``optimizer.state_dict()`` (Adam over the lone parameters).
-
-    Returns:
-        A state dict for the same optimiser over the ``[P, ...]`` parameters; the groups'
-        settings are member 0's.
+    """One optimiser's state dict over stacked parameters from the members' (member 0's groups).
 
     Raises:
-        ValueError: The members' states differ in parameters or in step count (a
-            population steps its members together).
-
+        ValueError: The members' states differ in parameters or in step count.
     """
     first = states[0]
     per_param = first["state"]
@@ -220,8 +178,7 @@ def stack_optimizer_states(states: Sequence[Mapping[str, Any]]) -> dict[str, Any
 def member_optimizer_state(state: Mapping[str, Any], member: int | None) -> dict[str, Any]:
     """Member ``member``'s lone optimiser state dict from the population's (on the CPU).
 
-    ``member`` None: the state is a lone optimiser's already (a population of one on the
-    lone classes); a copy of it.
+    ``member`` None: the state is a lone optimiser's already; a copy of it.
     """
     out: dict[Any, dict[str, Any]] = {}
     for index, entry in state["state"].items():
@@ -239,19 +196,11 @@ def member_optimizer_state(state: Mapping[str, Any], member: int | None) -> dict
 def stack_env_states(
     states: Sequence[Mapping[str, Any]], population_state: Mapping[str, Any]
 ) -> dict[str, Any]:
-    """The population env's state from its members' lone env states.
-
-    Args:
-        states: Each member's env state (lone :meth:`DeliberationVecEnv.state_dict`).
-        population_state: The population env's own state (for the shapes).
-
-    Returns:
-        A state for the population env's ``load_state_dict``.
+    """The population env's state from its members' lone env states (``population_state``: shapes).
 
     Raises:
         ValueError: A tensor is neither per copy nor shared, or a shared table differs
-            between members (they would need other tasks).
-
+            between members.
     """
     members = len(states)
     out: dict[str, Any] = {}
@@ -282,15 +231,7 @@ def stack_env_states(
 def member_env_state(
     state: Mapping[str, Any], template: Mapping[str, Any], member: int
 ) -> dict[str, Any]:
-    """Member ``member``'s lone env state from the population's.
-
-    Args:
-        state: The population env's state.
-        template: A lone member's env state (its shapes tell per-copy tensors from
-            shared tables).
-        member: Which member.
-
-    """
+    """Member ``member``'s lone env state from the population's (``template``: lone shapes)."""
     out: dict[str, Any] = {}
     for key, value in state.items():
         like = template[key]
