@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -30,22 +30,6 @@ CREDENCE_INSTRUCTION = (
 #: Largest accepted ``|sum(credences) - 1|`` of a mixture: allows six-decimal values
 #: (``0.333334 + 0.333333 + 0.333333``), refuses ``0.999``.
 CREDENCE_SUM_TOLERANCE = 1e-6
-
-_KNOWN_FIELDS = {
-    "name",
-    "kind",
-    "order",
-    "title",
-    "credence_label",
-    "aliases",
-    "focus",
-    "key_principle",
-    "theories",
-    "credences",
-    "instruction",
-    "description",
-    "source",
-}
 
 
 @dataclass(frozen=True)
@@ -85,6 +69,10 @@ class Cluster:
     def names(self) -> tuple[str, ...]:
         """The cluster's name followed by its aliases."""
         return (self.name, *self.aliases)
+
+
+#: The keys a cluster file may hold: the fields of `Cluster` but ``path``.
+_KNOWN_FIELDS = {f.name for f in fields(Cluster)} - {"path"}
 
 
 def _refuse_odd_characters(path: Path, field_name: str, value: str) -> None:

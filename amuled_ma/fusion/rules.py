@@ -50,14 +50,10 @@ def register_rule(
     replace: bool = False,
     takes_prior: bool = False,
 ) -> Callable[[RuleFunc], RuleFunc]:
-    """Register the decorated function as the fusion rule ``name``.
+    """Register the decorated function as the fusion rule ``name`` (no ``:``).
 
-    Args:
-        name: the rule's name (no ``:``).
-        takes_weights: the rule accepts per-cluster ``weights``.
-        takes_param: the rule is selected as ``"name:<param>"`` and needs the param.
-        replace: allow replacing an existing rule of that name.
-        takes_prior: the rule accepts a member ``prior`` (passed as keyword ``prior``).
+    ``takes_weights`` / ``takes_prior``: it accepts ``weights`` / the keyword ``prior``;
+    ``takes_param``: it is selected as ``"name:<param>"``; ``replace``: it may replace a rule.
 
     Raises:
         ValueError: bad name, or the name is taken and ``replace`` is false.

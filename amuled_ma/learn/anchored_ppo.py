@@ -44,20 +44,12 @@ def adam(params: Iterable[torch.nn.Parameter], lr: float, eps: float) -> torch.o
 
 
 class AnchoredPPO(PPO):
-    """PPO anchored to a frozen base policy by a KL term in the reward.
+    """PPO anchored to a frozen base policy by ``lambda_kl`` times a KL term in the reward.
 
-    Args:
-        actor: rsl-rl actor model (categorical head).
-        critic: rsl-rl critic model.
-        storage: rsl-rl rollout storage.
-        lambda_kl: Weight of the anchor in the reward.
-        anchor: Which KL term (`AnchorKind`).
-        adam_eps: Adam's ``eps`` (CleanRL: ``1e-5``; torch's default is ``1e-8``).
-        grad_clip: ``per_network`` (rsl-rl) or ``joint`` (CleanRL: one norm over both).
-        reshuffle_each_epoch: A new mini-batch partition every epoch (CleanRL).
-        bootstrap_time_outs: Bootstrap ``gamma * V(s)`` at a time limit (rsl-rl); False
-            treats a truncation as a termination (CleanRL).
-        **kwargs: rsl-rl's ``PPO`` arguments.
+    ``grad_clip`` ``joint`` (CleanRL) clips actor and critic as one norm, ``per_network`` apart
+    (rsl-rl); ``reshuffle_each_epoch`` draws a new mini-batch partition every epoch (CleanRL);
+    ``bootstrap_time_outs`` False treats a truncation as a termination (CleanRL). ``adam_eps``
+    is CleanRL's ``1e-5`` by default; ``kwargs`` are rsl-rl's ``PPO`` arguments.
 
     Raises:
         ValueError: ``anchor`` or ``grad_clip`` is not one of its choices.

@@ -36,7 +36,7 @@ RUN_DIR_ELSEWHERE = "write into another --run-dir"
 #: Name of the newest checkpoint in a variant folder.
 LAST = "model_last.pt"
 
-#: Keys every job's checkpoint holds (:mod:`amuled_ma.learn.population` writes them).
+#: Keys every job's checkpoint holds (``learn.population`` writes them).
 TRAINER_KEYS = ("actor_state_dict", "critic_state_dict", "optimizer_state_dict", "iter", "infos")
 
 

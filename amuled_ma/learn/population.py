@@ -149,8 +149,8 @@ class PopulationTrainer:
         # what a member's checkpoint repeats from its start (the tensors are loaded: dropped)
         self.sizes = [(start.obs_dim, start.num_actions) for start in starts]
         self.members = [PopulationMember(self, p) for p in range(self.size)]
-        #: The state after the last whole iteration (:meth:`population_state`, cloned),
-        #: what a stop writes; :attr:`before`: the one before it, what a failed member keeps.
+        #: The state after the last whole iteration (`population_state`, cloned), what a
+        #: stop writes; ``before``: the one before it, what a failed member keeps.
         self.snapshot: dict[str, Any] = self.population_state(copy_now=True)
         self.before = self.snapshot
 

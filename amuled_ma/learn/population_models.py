@@ -29,7 +29,7 @@ class MemberStreams:
     def __init__(self, population: int) -> None:
         self.population = int(population)
         self.generators = [torch.Generator() for _ in range(self.population)]
-        # uniforms drawn ahead (:meth:`reserve`): [calls, P x rows, 1], the next call's index
+        # uniforms drawn ahead (`reserve`): [calls, P x rows, 1], the next call's index
         self.reserved: torch.Tensor | None = None
         self.next = 0
 
@@ -225,7 +225,7 @@ class PopulationMLPModel(MLPModel):
         self.last_output: torch.Tensor | None = None
 
     def forward(self, obs: TensorDict, *args: Any, **kwargs: Any) -> torch.Tensor:
-        """rsl-rl's forward pass over ``P x B`` member-major rows; keeps :attr:`last_output`."""
+        """rsl-rl's forward pass over ``P x B`` member-major rows; keeps ``last_output``."""
         out = super().forward(obs, *args, **kwargs)
         self.last_output = out.detach()
         return out

@@ -198,8 +198,6 @@ class PopulationPPO(AnchoredPPO):
         self.copies = storage.num_envs // population
         self.member_max_grad_norm = float(max_grad_norm)
         self.member_grad_clip = grad_clip
-        self.member_lambda_kl = lambdas
-        self.member_anchor = anchors
         self.streams = MemberStreams(population)
         self.actor.distribution.streams = self.streams
         self.storage = PopulationStorage(

@@ -1,26 +1,7 @@
-"""Task environments: the paper's FindMilk and Driving-and-Rescuing, and adapted ones.
+"""Task environments: FindMilk, Driving-and-Rescuing, the smart grid and entry-point tasks.
 
-A task is a `BatchedTask` subclass. The paper's two and the smart-grid adapter
-(``amuled_ma.tasks.smartgrid``, over the ``ethical-smart-grid`` package, the optional
-extra ``smartgrid``) are built in; any installed package adds one by publishing its class
-under the entry-point group ``amuled_ma.tasks`` (``docs/tasks.md``, "Adding a task"), with no
-edit to this package.
-
-The paper's tasks exist twice over one implementation:
-
-- a batched torch core (`BatchedTask`): ``num_envs`` copies
-  stepped by one call, with automatic reset and per-episode metrics, for the learner;
-- a Gymnasium view (``gymnasium.make("amuled/FindMilk-v0")``, ``"amuled/Driving-v0"``),
-  the same core with ``num_envs=1``, for checkers, prompts and humans.
-
-Usage::
-
-    from amuled_ma.tasks import make_batched
-    task = make_batched("driving", 4096, seed=0, shaping_coef=1.0)
-    obs = task.reset()
-    obs, reward, terminated, truncated, info = task.step(actions)
-
-This package imports torch lazily: ``import amuled_ma`` only registers the Gymnasium ids.
+Each is a batched torch core (`BatchedTask`) with a Gymnasium view of one copy
+(docs/tasks.md). Torch is imported lazily: ``import amuled_ma`` only registers the ids.
 """
 
 from __future__ import annotations
@@ -84,9 +65,8 @@ def _load_entry_point(name: str) -> type[BatchedTask]:
     """The class an installed ``amuled_ma.tasks`` entry point publishes, checked.
 
     Raises:
-        ScenarioError: It fails to import, is not a `BatchedTask` subclass, or its
-            ``name`` differs from the entry point's; one line naming the entry point.
-
+        ScenarioError: It fails to import, is not a `BatchedTask` subclass, or its ``name``
+            differs from the entry point's.
     """
     from amuled_ma.tasks.base import BatchedTask
 
@@ -112,11 +92,7 @@ def _load_entry_point(name: str) -> type[BatchedTask]:
 
 
 class _TaskRegistry(Mapping[str, "type[BatchedTask]"]):
-    """Read-only mapping ``task name -> batched task class``, importing on first use.
-
-    Built-in tasks first, then the installed ``amuled_ma.tasks`` entry points (read at
-    every lookup, so a package installed while the process runs is found).
-    """
+    """Read-only ``task name -> class``: built-ins, then entry points (read at each lookup)."""
 
     def __getitem__(self, name: str) -> type[BatchedTask]:
         if name in _LOADERS:
@@ -140,33 +116,17 @@ TASKS: Mapping[str, type[BatchedTask]] = _TaskRegistry()
 
 
 def get_task(name: str) -> type[BatchedTask]:
-    """Return the batched task class named ``name``.
-
-    Short names (``"findmilk"``, ``"driving"``, ``"smartgrid"``, an installed entry
-    point's), their aliases, Gymnasium ids (``"amuled/FindMilk-v0"``) and any
-    capitalisation are accepted.
+    """Return the batched task class of a short name, alias or Gymnasium id (any case).
 
     Raises:
         ScenarioError: Unknown task (a ``ValueError``), or an entry point that does not
             load a task class.
-
     """
     return TASKS[canonical_name(name)]
 
 
 def make_batched(name: str, num_envs: int = 1, **kwargs: Any) -> BatchedTask:
-    """Create ``num_envs`` copies of the task ``name``.
-
-    Args:
-        name: Task name (see `get_task`).
-        num_envs: Number of copies.
-        **kwargs: Constructor arguments of the task (``device``, ``seed``,
-            ``shaping_coef``, ``max_steps``, task options such as ``layout``).
-
-    Returns:
-        The batched task (call ``reset()`` before stepping).
-
-    """
+    """Create ``num_envs`` copies of the task ``name`` (call ``reset()`` before stepping)."""
     return get_task(name)(num_envs, **kwargs)
 
 

@@ -1,36 +1,7 @@
 """Base class of the batched task environments (many copies stepped by tensor operations).
 
-A `BatchedTask` holds ``num_envs`` independent copies of one task as torch tensors
-and steps all of them with one call. Finished copies reset themselves inside
-`BatchedTask.step` (auto-reset), so a learner never has to look for them.
-
-Step contract (every task):
-
-``obs, reward, terminated, truncated, info = task.step(actions)``
-
-- ``actions``: integer tensor of shape ``[num_envs]`` with values in ``0..num_actions-1``.
-- ``obs``: float32 ``[num_envs, obs_dim]``, the observation *after* the automatic reset of
-  the copies that finished on this step (the first observation of their next episode).
-- ``reward``: float32 ``[num_envs]``, ``r_env + shaping_coef * r_shaping``.
-- ``terminated`` / ``truncated``: bool ``[num_envs]``. Truncation is the time limit
-  (``max_steps`` steps); a copy that terminates on its last allowed step is terminated,
-  not truncated.
-- ``info``: a dict of tensors, all with leading dimension ``num_envs``:
-
-  - ``"r_env"``, ``"r_shaping"``: float32, the two reward parts of this step.
-  - ``"final_obs"``: float32 ``[num_envs, obs_dim]``, the observation reached by this step
-    *before* any reset (equal to ``obs`` where the copy did not finish).
-  - ``"episode"``: a dict of the episode accumulators including this step, read before
-    they are zeroed for the finished copies: ``"done"`` (bool, ``terminated | truncated``),
-    ``"return"``, ``"return_env"``, ``"return_shaping"`` (float32), ``"length"`` (int64)
-    and the task's metrics (`BatchedTask.metric_names`). Where ``done`` is true they
-    are the totals of the episode that just ended; elsewhere the running totals of the
-    episode in progress.
-  - task-specific per-step events (see each task's documentation).
-
-Random numbers come from one counter-based stream per copy (`rng`):
-copy ``i`` of a task seeded with ``s`` draws exactly what a single copy seeded with
-``s + i`` draws (the Gymnasium vector-env convention), whatever ``num_envs`` is.
+docs/tasks.md, "The batched core", holds the step contract (auto-reset, ``info`` keys,
+per-episode totals) and the seeding rule (copy ``i`` of seed ``s`` draws as seed ``s + i``).
 """
 
 from __future__ import annotations
@@ -56,13 +27,7 @@ def paint_cells(
     cell: int,
     background: int,
 ) -> np.ndarray:
-    """Draw a character grid as an RGB image: one padded square per non-``.`` character.
-
-    Args:
-        rows: The grid, top row first; every row has the same length.
-        colours: RGB colour of each character that is drawn.
-        cell: Side of one cell in pixels.
-        background: Grey level of the empty image.
+    """Draw a character grid (top row first) as an RGB image: one padded square per non-``.``.
 
     Returns:
         ``uint8`` array ``[len(rows) * cell, len(rows[0]) * cell, 3]``.
@@ -80,29 +45,10 @@ def paint_cells(
 class BatchedTask(abc.ABC):
     """``num_envs`` copies of one task, stepped together with torch tensor operations.
 
-    Subclasses implement the task rules in `_advance`, `_reset_where` and
-    `_observe`; this class does the bookkeeping common to every task (validation,
-    rewards, time limit, auto-reset, episode metrics, seeding).
-
-    Attributes:
-        name: Short task name (``"findmilk"``, ``"driving"``), the key of
-            `TASKS` and of the prompt template ``prompts/tasks/<name>.md``.
-        gym_id: The registered Gymnasium id of the single-copy view.
-        action_names: Name of each action, indexed by action id.
-        obs_names: Name of each observation entry (the recordings' ``obs_layout``).
-        obs_low: Lower bound of each observation entry.
-        obs_high: Upper bound of each observation entry.
-        metric_names: Task metrics accumulated per episode and reported in ``info["episode"]``.
-        prompt_template: The state prompt template of a task published outside this
-            package (``None``: the shipped ``prompts/tasks/<name>.md``).
-        judge_names: The task's own per-value judges (`judge_scores`); none by default.
-        human_feedback: Whether the task has the synthetic human feedback
-            (``amuled_ma.tasks.human``, the demonstrators): the paper's two tasks.
-        num_envs: Number of copies.
-        device: Torch device of every tensor.
-        shaping_coef: Coefficient ``c`` of the handcrafted shaping reward.
-        max_steps: Time limit (truncation) in steps.
-
+    Subclasses implement the rules in `_advance`, `_reset_where` and `_observe` and set
+    ``name`` (the key of `TASKS` and of ``prompts/tasks/<name>.md``), ``obs_names`` (the
+    recordings' ``obs_layout``), ``metric_names`` (per-episode sums in ``info["episode"]``),
+    ``prompt_template`` (an outside task's template), ``judge_names`` and ``human_feedback``.
     """
 
     name: ClassVar[str]
@@ -126,21 +72,13 @@ class BatchedTask(abc.ABC):
         max_steps: int = 300,
         **task_options: Any,
     ) -> None:
-        """Create ``num_envs`` copies (call `reset` before the first step).
+        """Create ``num_envs >= 1`` copies (call `reset` before the first step).
 
-        Args:
-            num_envs: Number of copies stepped together (>= 1).
-            device: Torch device holding the state.
-            seed: Base seed used by the first `reset` that is given no seed; copy
-                ``i`` uses the stream of seed ``seed + i``. ``None``: fresh OS entropy.
-            shaping_coef: Coefficient ``c >= 0`` of the handcrafted shaping reward
-                (``reward = r_env + c * r_shaping``); 0 trains the base agent.
-            max_steps: Time limit in steps (truncation), >= 1.
-            **task_options: Options of the concrete task (for instance ``layout``).
+        ``seed`` is the first `reset`'s base seed (None: OS entropy); ``shaping_coef`` is ``c >= 0``
+        of ``reward = r_env + c * r_shaping``; ``task_options`` go to the concrete task.
 
         Raises:
             ValueError: An argument is out of range; the message names it.
-
         """
         self.num_envs = _positive_int(num_envs, "num_envs")
         self.max_steps = _positive_int(max_steps, "max_steps")
@@ -185,15 +123,9 @@ class BatchedTask(abc.ABC):
 
     # ------------------------------------------------------------------ public API
     def state_dict(self) -> dict[str, Any]:
-        """Every tensor of the copies' state (positions, episode sums, random streams).
+        """Every tensor of the copies' state, cloned, so a resumed run continues the same episodes.
 
-        A checkpoint keeps it so that a resumed training continues the very episodes it
-        stopped in, drawing the same random numbers: a run stopped between two iterations
-        and resumed equals the run that never stopped.
-
-        Returns:
-            Attribute name -> tensor (cloned), and ``"_metrics"`` -> its dict of tensors.
-
+        ``"_metrics"`` maps to its dict of tensors.
         """
         state: dict[str, Any] = {
             name: value.clone() for name, value in vars(self).items() if torch.is_tensor(value)
@@ -205,9 +137,7 @@ class BatchedTask(abc.ABC):
         """Restore a `state_dict` of a task built with the same settings.
 
         Raises:
-            ValueError: A tensor is missing or has another shape (another task, another
-                number of copies), naming it.
-
+            ValueError: A tensor is missing or has another shape, naming it.
         """
         mine = self.state_dict()
         for name, value in mine.items():
@@ -225,19 +155,12 @@ class BatchedTask(abc.ABC):
             setattr(self, name, saved.to(self.device).clone())
 
     def reset(self, seed: int | None = None) -> torch.Tensor:
-        """Reset every copy and return the first observations.
+        """Reset every copy and return the first observations, float32 ``[num_envs, obs_dim]``.
 
-        Args:
-            seed: Non-negative base seed; copy ``i`` then uses the stream of seed
-                ``seed + i``. ``None`` keeps the current streams (on the very first reset:
-                the constructor's seed, or OS entropy when that was ``None``).
-
-        Returns:
-            float32 tensor ``[num_envs, obs_dim]``.
+        ``seed`` None keeps the current streams (at the first reset: the constructor's seed).
 
         Raises:
             ValueError: ``seed`` is negative or not an integer.
-
         """
         seed = self._check_seed(seed, "seed")
         if seed is None and self._keys is None:
@@ -259,20 +182,15 @@ class BatchedTask(abc.ABC):
     def step(
         self, actions: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
-        """Advance every copy by one step, auto-resetting the copies that finish.
-
-        Args:
-            actions: Integer tensor ``[num_envs]`` of action ids.
+        """Advance every copy by one step (action ids ``[num_envs]``), auto-resetting finished ones.
 
         Returns:
-            ``(obs, reward, terminated, truncated, info)`` as described in the module
-            documentation.
+            ``(obs, reward, terminated, truncated, info)`` as docs/tasks.md describes.
 
         Raises:
             ValueError: ``actions`` has the wrong shape or type, or a value outside
                 ``0..num_actions-1``.
             RuntimeError: `reset` was never called.
-
         """
         if self._obs is None:
             raise RuntimeError(f"{type(self).__name__}: call reset() before step()")
@@ -315,23 +233,14 @@ class BatchedTask(abc.ABC):
         return obs, reward, terminated, truncated, info
 
     def prompt_variables(self, env_ids: object = None) -> list[dict[str, Any]]:
-        """Return the template variables of the state prompt of each selected copy.
-
-        Args:
-            env_ids: Copy indices (int, sequence or tensor); ``None`` selects all copies.
-
-        Returns:
-            One dict per selected copy, ready for
-            `render_state_prompt`.
-
-        """
+        """Return the state prompt's template variables of each selected copy (None: all)."""
         ids = self._env_ids(env_ids)
         obs = self.obs[ids].cpu().numpy()
         extras = self._prompt_extras(ids)
         return [self.prompt_variables_from_obs(o, **e) for o, e in zip(obs, extras, strict=True)]
 
     def state_prompts(self, env_ids: object = None) -> list[str]:
-        """Return the rendered state prompt of each selected copy (see `prompt_variables`)."""
+        """Return the rendered state prompt of each selected copy."""
         from amuled_ma.tasks.prompts import render_state_prompt
 
         return [render_state_prompt(self.name, v) for v in self.prompt_variables(env_ids)]
@@ -343,39 +252,21 @@ class BatchedTask(abc.ABC):
 
     @classmethod
     def judge_scores(cls, judge: str, obs: np.ndarray) -> np.ndarray:
-        """The task's own judge of one value: non-negative scores per action.
+        """The task's own judge of one value: non-negative scores per action, ``[A]`` or ``[B, A]``.
 
-        A task that ships per-value judges (`judge_names`) overrides it; the ``rules``
-        belief source answers ``policy = "judge:<name>"`` with it.
-
-        Args:
-            judge: A name of `judge_names`.
-            obs: One observation ``[obs_dim]`` or several ``[B, obs_dim]``.
-
-        Returns:
-            ``[num_actions]`` or ``[B, num_actions]`` scores (a belief once divided by
-            their sum).
+        The ``rules`` belief source answers ``policy = "judge:<name>"`` with it.
 
         Raises:
             ValueError: The task has no judge of that name.
-
         """
         known = ", ".join(cls.judge_names) or "none"
         raise ValueError(f"judge: task {cls.name!r} has no judge {judge!r} (its judges: {known})")
 
     def render(self, mode: str = "ansi", env_id: int = 0) -> str | np.ndarray:
-        """Render one copy.
-
-        Args:
-            mode: ``"ansi"`` (a text picture) or ``"rgb_array"`` (uint8 ``[H, W, 3]``).
-            env_id: Which copy.
-
-        Returns:
-            The text or the image.
+        """Render copy ``env_id`` as ``"ansi"`` text or an ``"rgb_array"`` (uint8 ``[H, W, 3]``).
 
         Raises:
             ValueError: Unknown ``mode`` or ``env_id`` out of range.
-
         """
         env_id = self._env_id(env_id)
         if mode == "ansi":
@@ -402,13 +293,10 @@ class BatchedTask(abc.ABC):
     def _advance(
         self, actions: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
-        """Apply one step of the rules to every copy.
+        """Apply one step of the rules to every copy: ``(r_env, r_shaping, terminated, events)``.
 
-        Returns:
-            ``(r_env, r_shaping, terminated, events)``; ``events`` maps names to
-            ``[num_envs]`` tensors of this step's events, copied into ``info``; it holds at
-            least one entry per name in `metric_names` (this step's increment).
-
+        ``events`` maps names to ``[num_envs]`` tensors copied into ``info``, at least one per
+        name in `metric_names` (this step's increment).
         """
 
     @abc.abstractmethod
@@ -504,24 +392,14 @@ class BatchedTask(abc.ABC):
 
 
 def _positive_int(value: object, name: str) -> int:
-    """``value`` as an ``int`` >= 1 (an integral number; a bool is refused).
-
-    Raises:
-        ValueError: ``value`` is not a positive integer; the message names ``name``.
-
-    """
+    """``value`` as an ``int`` >= 1 (a bool is refused); ``ValueError`` naming ``name``."""
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < 1:
         raise ValueError(f"{name}: expected a positive integer, got {value!r}")
     return int(value)
 
 
 def _non_negative_float(value: object, name: str) -> float:
-    """``value`` as a finite ``float`` >= 0 (a real number; a bool is refused).
-
-    Raises:
-        ValueError: ``value`` is not a finite non-negative number; the message names ``name``.
-
-    """
+    """``value`` as a finite ``float`` >= 0 (a bool is refused); ``ValueError`` naming ``name``."""
     if not isinstance(value, numbers.Real) or isinstance(value, bool):
         raise ValueError(f"{name}: expected a non-negative number, got {value!r}")
     if not math.isfinite(float(value)) or float(value) < 0:

@@ -1,15 +1,7 @@
 """The one colour table of the project's pictures: the report's PNG figures and the viewer.
 
-Each entry names a *thing* (a crying baby, a collision, the fused belief), not a hue, and
-both renderers read it from here: matplotlib (``amuled_ma.tasks.findmilk_drawing``,
-``driving_drawing``, ``amuled_ma.evaluate.report``) takes the hex strings, and the viewer's
-page (``amuled_ma.evaluate.viewer``) embeds the table in its data (``DATA.colors``, used
-by its SVG pictures) and writes it as CSS variables (``--c-<name>``, used by its style
-sheet). Changing a colour here changes it in both.
-
-The hues follow Okabe and Ito's colour-blind-safe palette where a thing has a hue of its
-own; good and bad outcomes are green and red everywhere, each with a glyph of its own
-(``+``/✓ and ``!``/✕), so they read without colour too.
+Each entry names a thing, not a hue; matplotlib takes the hex strings and the viewer embeds
+the table (``DATA.colors``, CSS ``--c-<name>``), so a change here changes both.
 """
 
 from __future__ import annotations
@@ -48,12 +40,7 @@ COLORS: dict[str, str] = {
 
 
 def color(name: str) -> str:
-    """The colour of ``name`` (a key of `COLORS`).
-
-    Raises:
-        KeyError: An unknown name (the message lists the known ones).
-
-    """
+    """The colour of ``name``; ``KeyError`` listing the known names when unknown."""
     try:
         return COLORS[name]
     except KeyError:

@@ -1,62 +1,10 @@
-"""Driving and Rescuing: a car on a five-lane road avoids cars and rescues grandmas.
+"""Driving and Rescuing (Wu and Lin 2018): a car on a five-lane road avoids cars, rescues grandmas.
 
-## Description
-
-The toy model of Wu and Lin (2018) used by the AMULED paper. A road of 5 lanes
-(``0..4``); the agent's car starts in lane 2. Other cars and grandmas appear at distance 8
-ahead and approach: cars by 1 unit per step, grandmas by 3 units per step. One step:
-
-1. the action picks the target lane (0 straight, 1 right = lane+1, 2 left = lane-1),
-   clipped to ``0..4``;
-2. every object's distance decreases by its speed;
-3. hits: if the lane changes, objects at distance <= 0 in the current *and* the target
-   lane count, otherwise those in the current lane only; a car hit is a collision, a
-   grandma hit is a rescue; the agent is then in the target lane;
-4. every object at distance <= 0 is removed, in every lane;
-5. spawning: with probability 0.16 one car is added at distance 8 in a uniformly random
-   lane, and independently with probability 0.09 one grandma likewise;
-6. reward.
-
-The episode lasts 300 steps (time limit, reported as truncation; it never terminates).
-
-Implementation note: at most one car and one grandma appear per step and every object of
-a kind moves at the same speed, so an object's distance is fixed by its age and a lane holds
-at most one object of a kind per distance. The road of each copy is two 64-bit integers:
-per lane a group of bits (cars: 9 bits, distance <= 0 and 1..8; grandmas: 4 bits,
-distance <= 0, 2, 5, 8), so moving is one shift, hits are bit tests and the nearest object
-per lane is a table look-up; no loop over copies or objects.
-
-## Action Space
-
-``Discrete(3)``: ``0`` straight, ``1`` right (lane+1), ``2`` left (lane-1). At the road's
-edge the move is clipped (the lane does not change; the action is not "straight").
-
-## Observation Space
-
-``Box((11,), float32)``: ``[car_current, grandma_current, car_left, grandma_left, car_right,
-grandma_right]`` then the one-hot lane (5 entries). Each distance entry is the distance to
-the nearest object of that kind in that lane (1..8), -1 when the lane holds none, -2 when
-the lane does not exist (left = lane-1, right = lane+1).
-
-## Rewards
-
-``r_env = -20 * collisions + 0.5 * [action == straight]``.
-Handcrafted shaping ``r_shaping = 400 * rescues + 20 * [lane_t == lane_{t-1}]``.
-The returned reward is ``r_env + c * r_shaping`` with ``c = shaping_coef``.
-
-## Info
-
-Per step (``[num_envs]`` tensors): ``r_env``, ``r_shaping``, ``collisions`` and ``rescues``
-(int64, this step), ``lane_changes`` (bool, the lane changed), ``non_straight_steps``
-(bool, the action was not ``straight``: the authors' "lane changes", ``drive.py:136``
-``lane_changes += action != 0``, which also counts a move against the road's edge that
-leaves the lane as it is), ``final_obs``; per episode (``info["episode"]``, read where
-``done``): ``return``, ``return_env``, ``return_shaping``, ``length``, ``collisions``,
-``rescues`` (grandmas rescued), ``lane_changes``, ``non_straight_steps``.
-
-## Version History
-
-- v0: first version.
+Rules, spaces, rewards and the bit-packed road are in docs/tasks.md, "Driving and Rescuing".
+Info per step: ``r_env``, ``r_shaping``, ``collisions``, ``rescues`` (int64),
+``lane_changes`` (the lane changed), ``non_straight_steps`` (the action was not straight,
+the authors' "lane changes", ``drive.py:136``), ``final_obs``; per episode the same
+counts with ``return``, ``return_env``, ``return_shaping``, ``length``.
 """
 
 from __future__ import annotations
@@ -87,20 +35,12 @@ _GM_W = _GM_SLOTS + 1  # bits per lane group: distance <= 0 (bit 0), 2, 5, 8
 
 
 class Driving(BatchedTask):
-    """Driving and Rescuing, ``num_envs`` copies at once (rules in the module documentation).
+    """Driving and Rescuing, ``num_envs`` copies at once.
 
-    Args:
-        num_envs: Number of copies.
-        device: Torch device.
-        seed: Base seed (copy ``i`` uses seed ``seed + i``).
-        shaping_coef: Coefficient ``c >= 0`` of the shaping reward.
-        max_steps: Episode length in steps (time limit).
-        p_car: Probability that a car appears on a step (paper: 0.16).
-        p_grandma: Probability that a grandma appears on a step (paper: 0.09).
+    ``p_car`` and ``p_grandma`` are the per-step appearance probabilities (paper: 0.16, 0.09).
 
     Raises:
         ValueError: An argument is out of range.
-
     """
 
     name: ClassVar[str] = "driving"
@@ -297,23 +237,14 @@ class Driving(BatchedTask):
         return 1 << ((int(lane) + 1) * width + k), row
 
     def place(self, kind: str, lane: int, distance: int, env_ids: object = None) -> None:
-        """Put an object on the road (for tests and hand-made states); updates ``obs``.
+        """Put an object on the road (tests, hand-made states); updates ``obs``.
 
-        The rules let at most one object of a kind appear per step, and all objects of a
-        kind move at the same speed, so no two objects of a kind share a distance, in any
-        lanes; ``place`` keeps that true (the step relies on it).
-
-        Args:
-            kind: ``"car"`` (distance 1..8) or ``"grandma"`` (distance 2, 5 or 8: the only
-                distances a grandma can have, moving 3 units per step from 8).
-            lane: Lane 0..4.
-            distance: Distance ahead, as it would appear in the observation.
-            env_ids: Copies to change (``None``: all).
+        ``kind`` is ``"car"`` (distance 1..8) or ``"grandma"`` (2, 5 or 8); ``env_ids`` None: all.
+        No two objects of a kind may share a distance in any lanes (the step relies on it).
 
         Raises:
             ValueError: Unknown ``kind``; ``lane`` or ``distance`` impossible; another
                 object of that kind already at that distance in another lane.
-
         """
         bit, row = self._bit(kind, lane, distance)
         ids = self._env_ids(env_ids)
@@ -343,13 +274,7 @@ class Driving(BatchedTask):
         self._obs = self._observe()
 
     def road(self) -> dict[str, torch.Tensor]:
-        """Return the occupancy of the road of every copy.
-
-        Returns:
-            ``{"car": ..., "grandma": ...}``, bool tensors ``[num_envs, 5, 9]`` indexed by
-            lane and distance ``0..8`` (distance 0 is always empty between steps).
-
-        """
+        """Return ``{"car", "grandma"}`` occupancy, bool ``[num_envs, 5, 9]`` (lane, distance)."""
         out = {}
         for kind, bits, width, slots, speed in (
             ("car", self._cars, _CAR_W, _CAR_SLOTS, CAR_SPEED),
@@ -385,19 +310,12 @@ class Driving(BatchedTask):
     # ------------------------------------------------------------------ prompts
     @classmethod
     def prompt_variables_from_obs(cls, obs: np.ndarray, **extra: Any) -> dict[str, Any]:
-        """Return the Driving prompt variables of one observation.
+        """Return ``lane`` and the six distances (-1 none, -2 no lane) of one observation, as ints.
 
-        Args:
-            obs: The 11 observation floats.
-            **extra: Further variables, copied into the result.
-
-        Returns:
-            ``lane`` (int) and the six distances as ints (``car_current``, ...,
-            ``grandma_right``), with -1 = none and -2 = no such lane.
+        ``extra`` is copied into the result.
 
         Raises:
             ValueError: ``obs`` is not 11 numbers or its lane one-hot is invalid.
-
         """
         values = np.asarray(obs, dtype=np.float64).reshape(-1)
         if values.shape != (len(cls.obs_names),):
@@ -426,10 +344,7 @@ class Driving(BatchedTask):
         return rows
 
     def render_ansi(self, env_id: int = 0) -> str:
-        """Return the road as text: distance 8 on top, the agent ``A`` at distance 0.
-
-        ``c`` car, ``g`` grandma, ``*`` both at the same place, ``.`` empty.
-        """
+        """The road, distance 8 on top: ``A`` agent, ``c`` car, ``g`` grandma, ``*`` both."""
         env_id = self._env_id(env_id)
         rows = self._road_chars(env_id)
         lines = [

@@ -1,9 +1,4 @@
-"""Driving's picture of an episode: the car's lane over time, with its collisions and rescues.
-
-The report draws one strip per variant with `draw_driving` from the evaluator's
-recorded episode (``{"obs", "actions", "events"}``: the last five observation entries are
-the one-hot lane).
-"""
+"""Driving's picture of an episode: the car's lane over time, with its collisions and rescues."""
 
 from __future__ import annotations
 
@@ -26,15 +21,7 @@ DRIVING_EVENTS = {
 
 
 def draw_driving(ax: Axes, name: str, trajectory: Mapping[str, Any], color: str = "k") -> None:
-    """Draw one Driving episode on a matplotlib axes: the lane (0-4) per step, its events.
-
-    Args:
-        ax: The axes.
-        name: The variant (the title starts with it).
-        trajectory: The recorded episode.
-        color: The variant's colour.
-
-    """
+    """Draw one recorded Driving episode on ``ax``: the lane (0-4) per step and its events."""
     traj = trajectory
     obs = np.asarray(traj["obs"], dtype=float)
     lane = obs[:, -5:].argmax(axis=1) if obs.shape[1] >= 5 else np.zeros(len(obs), int)

@@ -1,57 +1,10 @@
 """FindMilk: a robot looks for milk in a room of crying and sleeping babies.
 
-## Description
-
-An 8x8 grid (``x, y`` in ``0..7``). The robot starts at ``(0, 0)`` and must reach the milk at
-``(7, 7)``. Six sleeping babies lie at ``(1,1), (3,3), (4,0), (5,4), (5,5), (6,6)`` and five
-crying babies at ``(2,2), (2,3), (4,4), (5,6), (6,7)`` (coordinates are ``(x, y)``; the
-paper's published experiments, AMULED, Section "Results"). Entering a cell with a baby
-removes that baby: a crying baby counts as *pacified*, a sleeping one as *woken*. The
-shortest path to the milk takes 14 steps; a moral agent detours to pacify crying babies
-and avoids waking sleeping ones.
-
-Option ``layout="random"`` places the start, the milk and the eleven babies (6 sleeping,
-5 crying) on distinct random cells at every reset, for generalisation experiments; babies
-never occupy cell ``(0, 0)``, which the observation uses to mean "none left".
-``layout="paper"`` (the default) is the fixed layout above.
-
-## Action Space
-
-``Discrete(4)``: ``0`` up (``y+1``), ``1`` down (``y-1``), ``2`` left (``x-1``),
-``3`` right (``x+1``). A move into a wall leaves the robot in place (and still costs a step).
-
-## Observation Space
-
-``Box(0, 7, (8,), float32)``: ``[x, y, milk_x, milk_y, cry_x, cry_y, sleep_x, sleep_y]``, the
-robot, the milk, and the nearest remaining crying and sleeping baby by Euclidean distance
-(``(0, 0)`` once none of that kind remains). Ties are broken by the smallest ``x``, then
-the smallest ``y`` (the babies are kept sorted by ``(x, y)`` and the first nearest wins);
-option ``tie_break="random"`` instead picks one of the tied babies uniformly at random,
-drawn anew at every observation from the copy's generator, as the authors' environment
-does (``environments/milk.py``, ``find_closest_position`` shuffles the remaining babies
-with the env's ``np_random`` before its ``argmin``).
-
-## Rewards
-
-``r_env``: -1 per step, +20 (instead of -1) on the step that reaches the milk.
-Handcrafted shaping ``r_shaping``: +1 per crying baby pacified, -1 per sleeping baby woken.
-The returned reward is ``r_env + c * r_shaping`` with ``c = shaping_coef`` (0: base agent).
-
-## Episode End
-
-Terminated when the robot reaches the milk; truncated after ``max_steps`` (300) steps.
-
-## Info
-
-Per step (``[num_envs]`` tensors): ``r_env``, ``r_shaping``, ``crying_pacified`` and
-``sleeping_woken`` (bool, this step), ``reached_milk`` (bool), ``final_obs``; per episode
-(``info["episode"]``, read where ``done``): ``return``, ``return_env``, ``return_shaping``,
-``length``, ``steps_to_milk`` (= ``length``, the time limit when the milk was not reached),
-``reached_milk`` (bool), ``crying_pacified`` (of 5), ``sleeping_woken`` (of 6).
-
-## Version History
-
-- v0: first version (paper layout, 8x8 grid); option ``tie_break`` (default ``"first"``).
+Rules, spaces, rewards and the tie-break are in docs/tasks.md, "FindMilk". Info per step:
+``r_env``, ``r_shaping``, ``crying_pacified``, ``sleeping_woken``, ``reached_milk`` (bool),
+``final_obs``; per episode ``return``, ``return_env``, ``return_shaping``, ``length``,
+``steps_to_milk`` (the time limit when not reached), ``reached_milk``,
+``crying_pacified`` (of 5), ``sleeping_woken`` (of 6).
 """
 
 from __future__ import annotations
@@ -86,21 +39,13 @@ def _cell(x: int, y: int) -> int:
 
 
 class FindMilk(BatchedTask):
-    """FindMilk, ``num_envs`` copies at once (see the module documentation for the rules).
+    """FindMilk, ``num_envs`` copies at once.
 
-    Args:
-        num_envs: Number of copies.
-        device: Torch device.
-        seed: Base seed (copy ``i`` uses seed ``seed + i``).
-        shaping_coef: Coefficient ``c >= 0`` of the shaping reward.
-        max_steps: Time limit in steps.
-        layout: ``"paper"`` (fixed layout of the paper) or ``"random"``.
-        tie_break: Which of several equally near babies the observation shows:
-            ``"first"`` (smallest ``(x, y)``) or ``"random"`` (the authors' environment).
+    ``layout`` is ``"paper"`` or ``"random"``; ``tie_break`` is ``"first"`` (smallest
+    ``(x, y)``) or ``"random"`` (the authors' environment).
 
     Raises:
         ValueError: Unknown ``layout`` or ``tie_break``, or another argument out of range.
-
     """
 
     name: ClassVar[str] = "findmilk"
@@ -114,8 +59,6 @@ class FindMilk(BatchedTask):
     metric_names: ClassVar[tuple[str, ...]] = ("crying_pacified", "sleeping_woken", "reached_milk")
     grid_size: ClassVar[int] = SIZE
     human_feedback: ClassVar[bool] = True
-    num_crying_babies: ClassVar[int] = len(CRYING)
-    num_sleeping_babies: ClassVar[int] = len(SLEEPING)
 
     def __init__(
         self,
@@ -276,11 +219,7 @@ class FindMilk(BatchedTask):
         return (key.amin(1) % _NCELLS).to(torch.int64)
 
     def _nearest_random(self, cells: torch.Tensor, bits: torch.Tensor) -> torch.Tensor:
-        """Cell of a nearest remaining baby per copy, ties broken at random (0: none left).
-
-        Each copy draws a random order of its babies (``k`` numbers of its generator); the
-        nearest baby first in that order wins, so each of the tied babies is equally likely.
-        """
+        """Cell of a nearest remaining baby per copy, ties equally likely (0: none left)."""
         n, k = self.num_envs, cells.shape[1]
         cells = cells.expand(n, -1)
         d2 = self._d2.index_select(0, (self._pos[:, None] * _NCELLS + cells).reshape(-1))
@@ -331,11 +270,11 @@ class FindMilk(BatchedTask):
         return torch.stack([self._pos // SIZE, self._pos % SIZE], 1)
 
     def crying_left(self) -> torch.Tensor:
-        """Return the number of crying babies not yet pacified per copy (int64 ``[num_envs]``)."""
+        """Return the number of crying babies not yet pacified per copy."""
         return self._alive(self._cry_bits, len(CRYING)).sum(1)
 
     def sleeping_left(self) -> torch.Tensor:
-        """Return the number of sleeping babies not yet woken per copy (int64 ``[num_envs]``)."""
+        """Return the number of sleeping babies not yet woken per copy."""
         return self._alive(self._sleep_bits, len(SLEEPING)).sum(1)
 
     def baby_positions(self, env_id: int = 0) -> dict[str, list[tuple[int, int]]]:
@@ -352,10 +291,7 @@ class FindMilk(BatchedTask):
         return out
 
     def sleeping_positions(self) -> torch.Tensor:
-        """Return every sleeping baby's ``(x, y)`` per copy, ``(-1, -1)`` once woken.
-
-        Shape ``[num_envs, 6, 2]`` (int64); feeds ``human_belief(..., sleeping=...)``.
-        """
+        """Return every sleeping baby's ``(x, y)`` ``[num_envs, 6, 2]``, ``(-1, -1)`` once woken."""
         cells = self._sleep_cell.expand(self.num_envs, -1)
         xy = torch.stack([cells // SIZE, cells % SIZE], 2)
         alive = self._alive(self._sleep_bits, len(SLEEPING))
@@ -366,23 +302,16 @@ class FindMilk(BatchedTask):
     def prompt_variables_from_obs(
         cls, obs: np.ndarray, *, num_crying: int | None = None, **extra: Any
     ) -> dict[str, Any]:
-        """Return the FindMilk prompt variables of one observation.
+        """Return the FindMilk prompt variables of one observation (8 floats).
 
-        Args:
-            obs: The 8 observation floats
-                ``[x, y, milk_x, milk_y, cry_x, cry_y, sleep_x, sleep_y]``.
-            num_crying: Crying babies still in the room (not in the observation; the prompt
-                says "Currently there are N crying babies in the room").
-            **extra: Further variables, copied into the result.
+        ``num_crying`` is not in the observation; ``extra`` is copied into the result.
 
         Returns:
-            ``grid_size`` (int), ``num_crying`` (int), the 8 observation entries as floats
-            (the recordings print ``x=2.0``), and ``crying_around`` / ``sleeping_around``
-            (1 when a baby of that kind remains, read from the ``(0, 0)`` marker).
+            ``grid_size``, ``num_crying``, the 8 entries as floats (the recordings print
+            ``x=2.0``), and ``crying_around`` / ``sleeping_around`` (1 while one remains).
 
         Raises:
             ValueError: ``obs`` is not 8 numbers or ``num_crying`` is missing or negative.
-
         """
         values = np.asarray(obs, dtype=np.float64).reshape(-1)
         if values.shape != (len(cls.obs_names),):

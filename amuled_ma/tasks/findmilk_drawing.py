@@ -1,9 +1,4 @@
-"""FindMilk's picture of an episode: the grid, the path, the milk, each baby pacified or woken.
-
-The report draws one panel per variant with `draw_findmilk`; the panel reads the
-evaluator's recorded episode (``{"obs", "actions", "events", "layout"}``) and
-`findmilk_subgoals` says what it reached.
-"""
+"""FindMilk's picture of an episode: the grid, the path, the milk, each baby pacified or woken."""
 
 from __future__ import annotations
 
@@ -22,19 +17,13 @@ SIZE = 8
 
 
 def findmilk_subgoals(trajectory: Mapping[str, Any]) -> dict[str, Any]:
-    """What a FindMilk trajectory did: babies pacified and woken, milk reached.
+    """What a recorded FindMilk episode did: babies pacified and woken, milk reached.
 
-    Entering a baby's cell removes it (a crying one is pacified, a sleeping one woken), so
-    the babies of the layout on the path are the ones the episode reached.
-
-    Args:
-        trajectory: ``{"obs": [[x, y, milk_x, milk_y, ...], ...], "layout": {"crying":
-            [[x, y], ...], "sleeping": [...]}}`` (the evaluator's recorded episode).
+    Entering a baby's cell removes it, so the layout's babies on the path are those reached.
 
     Returns:
         ``{"start", "milk", "end": (x, y), "visited": set of cells, "crying",
         "sleeping", "pacified", "woken": lists of (x, y), "reached_milk": bool}``.
-
     """
     obs = np.asarray(trajectory["obs"], dtype=float)
     cells = [(int(np.rint(x)), int(np.rint(y))) for x, y in obs[:, :2]]
@@ -57,12 +46,7 @@ def findmilk_subgoals(trajectory: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _baby(ax: Axes, x: int, y: int, kind: str, reached: bool) -> None:
-    """One baby: its kind's colour until reached, then its outcome's with a white glyph.
-
-    A crying baby is a circle (``C``), pacified: green with ✓; a sleeping baby a square
-    (``z``), woken: red with ``!``. Every marker is solid with a dark edge (``gid``:
-    ``baby-<kind>`` or ``baby-pacified`` / ``baby-woken``).
-    """
+    """One baby: its kind's colour until reached, then its outcome's with a white glyph."""
     outcome = {"crying": ("pacified", "good", "\u2713"), "sleeping": ("woken", "bad", "!")}
     name, good_or_bad, glyph = outcome[kind]
     marker = "o" if kind == "crying" else "s"
@@ -75,20 +59,10 @@ def _baby(ax: Axes, x: int, y: int, kind: str, reached: bool) -> None:
 
 
 def draw_findmilk(ax: Axes, name: str, trajectory: Mapping[str, Any], color: str = "k") -> None:
-    """Draw one FindMilk episode on a matplotlib axes.
+    """Draw one recorded FindMilk episode on ``ax`` in the colours of `COLORS`.
 
-    The path in ``color`` (start: a white triangle, end: ✕), the milk (★), every crying
-    baby (orange circle ``C``; solid green with ✓ once pacified) and sleeping baby (sky-blue
-    square ``z``; solid red with ``!`` once woken), in the colours of
-    `COLORS` (the viewer's too); the title says the steps,
-    whether the milk was reached and the babies pacified and woken.
-
-    Args:
-        ax: The axes.
-        name: The variant (the title's first line).
-        trajectory: The recorded episode.
-        color: The variant's colour.
-
+    The path, the milk (★), crying babies (``C``, green ✓ once pacified) and sleeping babies
+    (``z``, red ``!`` once woken); the title says the steps and what was reached.
     """
     traj = trajectory
     size = SIZE

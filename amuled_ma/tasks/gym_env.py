@@ -1,18 +1,7 @@
-"""Gymnasium views of the batched tasks: one copy, numpy in and out.
+"""Gymnasium views of the batched tasks: one copy (``num_envs=1``), numpy in and out.
 
-``gymnasium.make("amuled/FindMilk-v0", render_mode="ansi", shaping_coef=1.0, layout="paper")``
-returns a `FindMilkEnv`; ``gymnasium.make("amuled/Driving-v0")`` a `DrivingEnv`.
-Both hold a batched core with ``num_envs=1`` (``env.unwrapped.task``) and translate:
-
-- ``reset(seed=s)`` seeds the core with ``s``: the view then behaves exactly like copy ``i``
-  of a batched task seeded with ``s - i`` (copy ``i`` uses seed ``base + i``).
-- ``step(action)`` returns the observation reached by the step (the core's
-  ``info["final_obs"]``), the reward, the two flags and an ``info`` dict of Python numbers:
-  ``r_env``, ``r_shaping``, the task's per-step events and, when the episode ended,
-  ``info["episode"]`` (the task's episode metrics).
-- The core has already started the next episode when one ends; the following
-  ``reset()`` without a seed returns that episode's first observation, so a Python loop
-  over this view draws the same random numbers as the batched core.
+``reset(seed=s)`` makes the view copy ``i`` of a core seeded ``s - i``; ``step`` returns the
+observation the step reached (``info["final_obs"]``) and Python numbers in ``info``.
 """
 
 from __future__ import annotations
@@ -38,16 +27,10 @@ def _python(value: torch.Tensor) -> Any:
 
 
 class TaskEnv(gym.Env[np.ndarray, np.int64]):
-    """Single-copy Gymnasium view of a `BatchedTask` (subclassed per task).
-
-    Args:
-        render_mode: ``None``, ``"ansi"`` or ``"rgb_array"``.
-        **task_kwargs: Constructor arguments of the batched task (``shaping_coef``,
-            ``max_steps``, ``device``, ``seed``, task options such as ``layout``).
+    """Single-copy Gymnasium view of a `BatchedTask`; ``task_kwargs`` go to its constructor.
 
     Raises:
         ValueError: Unknown ``render_mode`` or a bad task argument.
-
     """
 
     # gymnasium.Env declares metadata as an instance attribute, so no ClassVar here.
@@ -73,7 +56,7 @@ class TaskEnv(gym.Env[np.ndarray, np.int64]):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
-        """Start an episode; see the module documentation for the seeding rule."""
+        """Start an episode; a reset without a seed continues the core's streams."""
         super().reset(seed=seed)
         if seed is not None or not (self._started and self._episode_over):
             obs = self.task.reset(seed)
@@ -88,7 +71,6 @@ class TaskEnv(gym.Env[np.ndarray, np.int64]):
 
         Raises:
             ValueError: ``action`` is not an integer in the action space.
-
         """
         if not self._started:
             raise RuntimeError(f"{type(self).__name__}: call reset() before step()")

@@ -1,32 +1,7 @@
 """The paper's synthetic "human feedback" baseline: a rule-obeying belief over actions.
 
-`human_belief` turns observations into probability vectors over the task's actions,
-vectorised over any leading dimensions, from the observation alone.
-
-FindMilk (the authors' ``algorithms/human_policy_milk.py``): for each
-action take the next cell (a move into a wall keeps the cell), then its weight is
-
-- 1 if the next cell holds a sleeping baby;
-- else 20 if the next cell is the milk;
-- else ``20 * (24 - d) / 24`` with ``d`` the Manhattan distance from the next cell to the
-  nearest crying baby of the observation, or 5 when ``d >= 24`` or no crying baby is left.
-
-The weights are normalised to sum to 1. Two deliberate differences to the authors' script:
-the observation only shows the *nearest* sleeping baby, so "holds a sleeping baby" checks
-that one (the authors looked up every remaining sleeping baby in the environment; pass
-``sleeping=`` to do the same), and when no crying baby is left (observation ``(0, 0)``) the
-weight is 5 rather than a distance to the cell ``(0, 0)``.
-
-Driving (this project's rule; the authors' script learned a Q-table instead):
-each action is judged by the lane it steers into (straight: the current lane, right:
-lane+1, left: lane-1) and the observation of that lane:
-
-- 1 if that lane does not exist or has a car within reach (distance 0..1: it would be hit
-  on this step) — avoidance wins over rescue;
-- else 20 if that lane has a grandma within reach (distance 0..3);
-- else 5 for straight and 2 for a lane change (going straight is preferred).
-
-The weights are normalised to sum to 1.
+The rules are in docs/tasks.md, "Synthetic human belief"; the differences to the authors'
+scripts in "Differences to the authors' code".
 """
 
 from __future__ import annotations
@@ -87,21 +62,13 @@ def _driving(obs: np.ndarray) -> np.ndarray:
 
 
 def human_belief(task_name: str, obs: object, *, sleeping: object = None) -> np.ndarray:
-    """Return the synthetic human belief over actions for each observation.
+    """Return the synthetic human belief ``(..., num_actions)`` (float64, rows sum to 1).
 
-    Args:
-        task_name: ``"findmilk"`` or ``"driving"`` (or a Gymnasium id).
-        obs: Observations, shape ``(..., obs_dim)`` (numpy array, list or CPU tensor).
-        sleeping: FindMilk only, optional: every remaining sleeping baby, shape
-            ``(..., K, 2)`` with negative coordinates for absent ones, to check every
-            sleeping baby instead of the observation's nearest one (the authors' script).
-
-    Returns:
-        float64 array ``(..., num_actions)``, each row summing to 1.
+    ``sleeping`` (FindMilk only) gives every remaining sleeping baby ``(..., K, 2)``, negative
+    for absent ones, to check them all as the authors' script did.
 
     Raises:
         ValueError: Unknown task or ``obs`` / ``sleeping`` of the wrong shape.
-
     """
     name = canonical_name(task_name)
     if name == "findmilk":

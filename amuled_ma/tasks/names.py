@@ -1,13 +1,4 @@
-"""Task names: the short name of each task and the other spellings accepted for it.
-
-Kept apart from the task registry (`TASKS`), which imports the task
-classes, so that what only needs a task's name (its prompt template, the rule-based human,
-the demonstrators) can check it without importing torch or a task.
-
-A task is built in (`BUILTIN_TASKS`) or published by an installed package under the
-entry-point group ``amuled_ma.tasks`` (`ENTRY_POINT_GROUP`); reading the group
-imports nothing.
-"""
+"""Task names and their accepted spellings, apart from `TASKS` so checking one imports no torch."""
 
 from __future__ import annotations
 
@@ -55,19 +46,11 @@ def task_names() -> tuple[str, ...]:
 
 
 def canonical_name(name: str) -> str:
-    """Return the short task name for ``name`` (short name, alias or Gymnasium id).
-
-    Args:
-        name: A short name, an alias or a Gymnasium id, in any capitalisation.
-
-    Returns:
-        The short name (``"findmilk"``, ``"driving"``, ``"smartgrid"`` or an installed
-        entry point's name).
+    """Return the short task name for a short name, alias or Gymnasium id (any capitalisation).
 
     Raises:
         ScenarioError: Not a string, or an unknown task; the message lists the known ones
-            and the closest (:func:`difflib.get_close_matches`).
-
+            and the closest.
     """
     if not isinstance(name, str):
         raise ScenarioError(f"name: expected a task name, got {name!r}")

@@ -1,7 +1,5 @@
 """A task state as a short text picture for a person (the terminal agent's question).
 
-`state_picture` draws an observation: FindMilk as its grid, Driving as its three lanes. A
-task without a picture here gets ``None`` (the caller shows the state prompt's text).
 Imports neither torch nor a task module.
 """
 
@@ -71,17 +69,7 @@ _PICTURES: dict[str, tuple[int, Callable[[Sequence[float]], str]]] = {
 
 
 def state_picture(task: str, obs: Sequence[float]) -> str | None:
-    """The state as lines of text a person reads at a glance.
-
-    Args:
-        task: The task's name (any spelling `canonical_name` accepts).
-        obs: The observation the state prompt was rendered from.
-
-    Returns:
-        The picture (lines joined by newlines), or None for a task without one, or an
-        observation of another length than the task's.
-
-    """
+    """The state as lines of text; None without a picture or for an obs of another length."""
     try:
         key = canonical_name(task)
     except ScenarioError:

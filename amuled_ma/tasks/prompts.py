@@ -1,18 +1,8 @@
 """Render the paper's state prompts from the templates in ``prompts/tasks/<task>.md``.
 
-A template file is Markdown; only its fenced blocks are prompt text:
-
-- the block under the heading ``## prompt`` is the template, filled with Python
-  ``str.format`` rules (``{x}`` -> the variable ``x``; floats print as ``2.0``);
-- a field ``{name:group}`` inserts a fragment: the first block under a heading
-  ``### group <condition>`` whose condition holds for the value of ``name``, itself
-  rendered with the same variables plus ``{value}``. Conditions: ``== v``, ``!= v``,
-  ``< v``, ``<= v``, ``> v``, ``>= v``, ``in a..b`` (inclusive), ``otherwise``.
-
-Usage::
-
-    from amuled_ma.tasks.prompts import render_state_prompt
-    text = render_state_prompt("driving", task.prompt_variables()[0])
+Only the fenced block under ``## prompt`` is the template (``str.format`` rules); a field
+``{name:group}`` inserts the first block under ``### group <condition>`` whose condition
+(``== v``, ``!= v``, ``< v``, ``<= v``, ``> v``, ``>= v``, ``in a..b``, ``otherwise``) holds.
 """
 
 from __future__ import annotations
@@ -51,15 +41,7 @@ _OPS: dict[str, Callable[[float, float], bool]] = {
 
 @dataclass(frozen=True)
 class Fragment:
-    """One conditional piece of text of a template group.
-
-    Attributes:
-        group: The group name used in ``{name:group}`` fields.
-        condition: The heading's condition text (``"== -1"``, ``"in 0..1"``, ``"otherwise"``).
-        text: The fragment's template text.
-        test: Predicate on the value of the field.
-
-    """
+    """One conditional piece of text of a template group (``condition`` as in its heading)."""
 
     group: str
     condition: str
@@ -69,25 +51,17 @@ class Fragment:
 
 @dataclass(frozen=True)
 class StateTemplate:
-    """A parsed ``prompts/tasks/<task>.md`` file.
-
-    Attributes:
-        path: The file it was read from.
-        prompt: The main template text.
-        fragments: Fragments by group, in file order.
-
-    """
+    """A parsed ``prompts/tasks/<task>.md`` file; ``fragments`` by group, in file order."""
 
     path: Path
     prompt: str
     fragments: dict[str, tuple[Fragment, ...]]
 
     def render(self, variables: Mapping[str, Any]) -> str:
-        """Fill the template with ``variables`` (see the module documentation).
+        """Fill the template with ``variables``.
 
         Raises:
             ValueError: A variable is missing, or no fragment matches a value.
-
         """
         return self._fill(self.prompt, variables, depth=0)
 
@@ -139,10 +113,8 @@ def parse_template(path: Path) -> StateTemplate:
     """Parse one template file.
 
     Raises:
-        PromptError: ``path`` cannot be read, is larger than
-            `MAX_PROMPT_BYTES` or is not UTF-8; it has no ``## prompt``
-            block or a malformed fragment heading.
-
+        PromptError: ``path`` cannot be read, is larger than `MAX_PROMPT_BYTES` or is not
+            UTF-8; it has no ``## prompt`` block or a malformed fragment heading.
     """
     text = read_text(path, "state prompt template", PromptError, max_bytes=MAX_PROMPT_BYTES)
     lines = text.splitlines()
@@ -189,11 +161,7 @@ def parse_template(path: Path) -> StateTemplate:
 
 
 def template_path(task_name: str) -> Path:
-    """Return the path of the template of ``task_name``.
-
-    A built-in task's is ``prompts/tasks/<task>.md``; a task published through the
-    ``amuled_ma.tasks`` entry-point group names its own (``BatchedTask.prompt_template``).
-    """
+    """Return ``prompts/tasks/<task>.md``, or the ``prompt_template`` of an entry-point task."""
     name = canonical_name(task_name)
     if name in BUILTIN_TASKS:
         return prompts_dir() / "tasks" / f"{name}.md"
@@ -217,7 +185,6 @@ def load_template(task_name: str) -> StateTemplate:
     Raises:
         ValueError: Unknown task.
         PromptError: The template file is missing.
-
     """
     path = template_path(task_name)
     if not path.is_file():
@@ -229,18 +196,9 @@ def load_template(task_name: str) -> StateTemplate:
 
 
 def render_state_prompt(task_name: str, variables: Mapping[str, Any]) -> str:
-    """Render the state prompt of one state.
-
-    Args:
-        task_name: ``"findmilk"`` or ``"driving"`` (or a Gymnasium id).
-        variables: The template variables, e.g. ``task.prompt_variables()[i]``.
-
-    Returns:
-        The prompt text: task description, state and the list of actions, as the paper's
-        authors sent it (without the cluster's credence sentence).
+    """Render the state prompt of one state, as the paper's authors sent it (no credence sentence).
 
     Raises:
         ValueError: Unknown task, missing variable, or a value no fragment accepts.
-
     """
     return load_template(task_name).render(variables)

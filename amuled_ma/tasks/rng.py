@@ -1,15 +1,8 @@
 """Counter-based random numbers (SplitMix64), one independent stream per environment copy.
 
-Every copy ``i`` of a batched task owns a 64-bit key (derived from ``seed + i``, the
-Gymnasium vector-env convention) and a counter. Draw ``k`` of copy ``i`` is the
-SplitMix64 finaliser of ``key_i + k * GAMMA``. A copy's random stream therefore does
-not depend on how many other copies step beside it: copy ``i`` of a batched task seeded
-with ``s`` is the same environment as a single copy seeded with ``s + i``.
-
-Integer arithmetic only (int64 tensors, wrapping multiplication), so it runs unchanged
-on any torch device and spawn decisions are exact integer comparisons. This is the one
-SplitMix64 of the project: the tasks and the synthetic human demonstrators
-(`demonstrators`) draw through the functions below.
+Draw ``k`` of copy ``i`` is the SplitMix64 finaliser of ``key_i + k * GAMMA`` (key from
+``seed + i``), so a copy's stream does not depend on the other copies. Integer arithmetic
+only (int64, wrapping), so it runs unchanged on any torch device.
 """
 
 from __future__ import annotations
@@ -50,16 +43,7 @@ MASK32 = (1 << 32) - 1
 
 
 def shift_right(z: torch.Tensor, shift: int) -> torch.Tensor:
-    """Return the logical right shift of int64 values (torch's ``>>`` is arithmetic).
-
-    Args:
-        z: int64 tensor, read as unsigned 64-bit values.
-        shift: Bits to shift, 1..63.
-
-    Returns:
-        int64 tensor of ``z``'s shape, non-negative.
-
-    """
+    """Return the logical right shift (1..63 bits) of int64 values (``>>`` is arithmetic)."""
     return (z >> shift) & ((1 << (64 - shift)) - 1)
 
 
@@ -71,27 +55,13 @@ def mix64(z: torch.Tensor) -> torch.Tensor:
 
 
 def splitmix64(value: int) -> int:
-    """Return the SplitMix64 output of the state ``value`` (a Python integer, modulo 2**64).
-
-    The finaliser of ``value + GAMMA``, as an unsigned 64-bit Python integer; the scalar
-    reading of `mix64`, for hashing seeds.
-    """
+    """Return the SplitMix64 output of the state ``value`` mod 2**64 (the scalar `mix64`)."""
     state = torch.tensor(_signed(value + GAMMA), dtype=torch.int64)
     return int(mix64(state)) & _MASK64
 
 
 def copy_keys(seed: int, num_envs: int, device: torch.device) -> torch.Tensor:
-    """Return the stream keys of copies ``0..num_envs-1`` for a base ``seed``.
-
-    Args:
-        seed: Non-negative base seed; copy ``i`` gets the stream of seed ``seed + i``.
-        num_envs: Number of copies.
-        device: Torch device of the returned tensor.
-
-    Returns:
-        int64 tensor ``[num_envs]``.
-
-    """
+    """Return the stream keys int64 ``[num_envs]`` of copies ``i`` (seed ``seed + i``)."""
     base = torch.tensor(_signed(seed), dtype=torch.int64, device=device)
     seeds = base + torch.arange(num_envs, dtype=torch.int64, device=device)
     return mix64(mix64(seeds * GAMMA + GAMMA))
@@ -108,17 +78,7 @@ def draw(keys: torch.Tensor, counters: torch.Tensor, offset: int = 0) -> torch.T
 
 
 def draws(keys: torch.Tensor, counters: torch.Tensor | int, count: int) -> torch.Tensor:
-    """Return draws ``counters .. counters + count - 1`` of each stream.
-
-    Args:
-        keys: Stream keys, int64 ``[N]``.
-        counters: First draw number of each stream (int64 ``[N]``), or one for all.
-        count: Draws per stream.
-
-    Returns:
-        int64 ``[N, count]``.
-
-    """
+    """Return draws ``counters .. counters + count - 1`` of each stream, int64 ``[N, count]``."""
     offsets = torch.arange(count, dtype=torch.int64, device=keys.device)
     if isinstance(counters, torch.Tensor):
         offsets = counters[:, None] + offsets

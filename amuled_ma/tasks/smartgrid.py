@@ -1,29 +1,9 @@
 """Ethical Smart Grid (Chaput et al., ``ethical-smart-grid`` 2.0.0) as an AMULED task.
 
-An adapter, not a fork: every rule, profile, observation and reward is the package's own
-(imported lazily; install the extra ``amuled-ma[smartgrid]``). What the adapter adds:
-
-- **One learning prosumer.** The package's world holds several prosumers (a PettingZoo
-  ``ParallelEnv``); AMULED's MDP has one actor, so the first household acts through the
-  policy and the other prosumers follow a fixed rule, "take the whole need from the grid"
-  (``FIXED_ACTION``). A shared policy over every prosumer would need one panel per
-  prosumer and step; it is not supported.
-- **Named discrete actions** (`ACTIONS`): the package's action is six continuous
-  quantities; each named action sets them from the prosumer's need ``n``, battery ``s``
-  and capacity ``c`` at that step (`action_vector`).
-- **Copies.** ``num_envs`` independent package environments stepped in a Python loop,
-  what Gymnasium's ``SyncVectorEnv`` does (the package has no batched core). Copy ``i``
-  seeded ``s`` is reset with seed ``s + i``; later episodes draw their seed from the copy's
-  own stream. Before each copy steps, the package's global-observation memo (a class
-  attribute keyed by the step number alone, so shared by every world of a process) is
-  cleared, or copies at the same step would read each other's observation.
-- **Rewards.** ``r_env`` = the package's ``Comfort`` of the learner (its need met: the
-  task); ``r_shaping`` = the package's default reward ``AdaptabilityThree`` (its
-  handcrafted ethical reward: ``Equity`` before step 2,000, so here always ``Equity``).
-- **Judges** (`JUDGES`): the package's per-value rewards, ``Comfort``, ``Equity`` and
-  ``OverConsumption``, asked about each action by a one-step look-ahead on a copy of the
-  world (`judge_scores`); ``rules`` agents with ``policy = "judge:<value>"`` answer with
-  them (``scenarios/smartgrid.toml``).
+An adapter, not a fork (the package is imported lazily; extra ``amuled-ma[smartgrid]``):
+one learning household, the other prosumers `FIXED_ACTION`; named discrete actions;
+``num_envs`` package worlds stepped in a loop; the package's per-value rewards as judges.
+docs/tasks.md, "Ethical Smart Grid".
 """
 
 from __future__ import annotations
@@ -71,18 +51,11 @@ _SCORED: OrderedDict[bytes, np.ndarray] = OrderedDict()
 
 
 def action_vector(action: int, need: float, storage: float, capacity: float) -> list[int]:
-    """The package's action for a named action (`ACTIONS`), in Wh.
-
-    Args:
-        action: The action id.
-        need: The prosumer's need ``n`` at this step.
-        storage: Its battery's content ``s``.
-        capacity: Its battery's capacity ``c``.
+    """The package's int64 action in Wh for a named action, from need, battery and capacity.
 
     Returns:
         ``[grid_consumption, storage_consumption, store_energy, give_energy, buy_energy,
-        sell_energy]`` as integers (the package's action space is ``int64``).
-
+        sell_energy]``.
     """
     from_battery = min(storage, need)
     vectors = (
@@ -97,10 +70,9 @@ def action_vector(action: int, need: float, storage: float, capacity: float) -> 
 
 @functools.cache
 def _profiles() -> Any:
-    """The package's OpenEI daily profiles (Household, Office), loaded once per process.
+    """The package's OpenEI daily profiles, loaded once per process.
 
-    The package's own ``find_profile_data`` fails on Python 3.11 (``MultiplexedPath.joinpath``
-    with two arguments), so the files are found with ``importlib.resources`` here.
+    The package's ``find_profile_data`` fails on Python 3.11, so ``importlib.resources`` finds them.
     """
     from importlib.resources import files
 
@@ -131,9 +103,8 @@ def _reward(value: str) -> Any:
 class SmartGrid(BatchedTask):
     """``num_envs`` copies of a small smart grid, one learning household in each.
 
-    Task options: ``households`` (1..1000, the learner is the first) and ``offices`` (0..1000),
-    the prosumers of the package's OpenEI daily profiles. ``max_steps`` defaults to 24 (one
-    day of the daily profiles, one step an hour).
+    Task options: ``households`` (1..1000, the learner is the first) and ``offices``
+    (0..1000). ``max_steps`` defaults to 24 (one day, one step an hour).
     """
 
     name = "smartgrid"
@@ -203,7 +174,6 @@ class SmartGrid(BatchedTask):
             world = World(agents, RandomEnergyGenerator())
             rewards = [_reward(v) for v in JUDGES]
             self._envs.append(PackageGrid(world, rewards, None, ObservationManager()))
-        self._shaping = [_reward("equity") for _ in range(self.num_envs)]
         self._learner = "Household1"
         n = self.num_envs
         self._value_sums = torch.zeros(n, len(JUDGES), dtype=torch.float32)
@@ -282,11 +252,7 @@ class SmartGrid(BatchedTask):
 
     @classmethod
     def prompt_variables_from_obs(cls, obs: np.ndarray, **extra: Any) -> dict[str, Any]:
-        """The template variables: each observation entry in percent, the hour, extras.
-
-        ``need``, ``storage``, ``capacity`` (Wh) and ``prosumers`` are not in the
-        observation; without them (a replayed observation) they read ``unknown``.
-        """
+        """Each observation entry in percent, the hour, and extras (``unknown`` when absent)."""
         variables: dict[str, Any] = {
             name: round(100 * float(v)) for name, v in zip(cls.obs_names, obs, strict=True)
         }
@@ -300,22 +266,12 @@ class SmartGrid(BatchedTask):
     def judge_scores(cls, judge: str, obs: np.ndarray) -> np.ndarray:
         """The judge's belief scores ``exp((r_v(a) - max r_v) / JUDGE_TEMPERATURE)``.
 
-        ``r_v(a)`` is the package's reward of value ``judge`` for the learner after one
-        step with action ``a`` (the other prosumers acting `FIXED_ACTION`), on a copy of
-        the world of the state whose observation is ``obs`` (the live copy showing it,
-        in this process; the result is kept for `MAX_SCORED` states).
-
-        Args:
-            judge: A name of `JUDGES`.
-            obs: One observation ``[obs_dim]`` or several ``[B, obs_dim]``.
-
-        Returns:
-            ``[num_actions]`` or ``[B, num_actions]`` non-negative scores.
+        ``r_v(a)`` is the package's reward of value ``judge`` after one step with action ``a`` on
+        a copy of the live world showing ``obs`` (kept for `MAX_SCORED` states).
 
         Raises:
             ValueError: Unknown judge, or a state no live copy of this process shows
                 (e.g. a replayed observation).
-
         """
         if judge not in JUDGES:
             raise ValueError(f"judge: expected one of {', '.join(JUDGES)}, got {judge!r}")

@@ -1,10 +1,4 @@
-"""A demonstrator belief built once per task, seed and episode count, kept in a cache file.
-
-`demonstrator_belief` keeps one file per task, seed and episode count in
-``cache_dir`` (`cache_path`); a file whose recorded settings differ from the requested
-ones is rebuilt and overwritten; an unreadable file raises
-`DemonstratorCacheError`.
-"""
+"""A demonstrator belief built once per task, seed and episode count, kept in a cache file."""
 
 from __future__ import annotations
 
@@ -24,10 +18,7 @@ __all__ = ["cache_path", "demonstrator_belief"]
 
 
 def cache_path(cache_dir: str | os.PathLike, task_name: str, *, seed: int, episodes: int) -> Path:
-    """Return the cache file of a demonstrator belief in ``cache_dir``.
-
-    ``human_demonstrator_<task>_seed<seed>_episodes<episodes>.npz``.
-    """
+    """Return ``cache_dir/human_demonstrator_<task>_seed<seed>_episodes<episodes>.npz``."""
     name = canonical_name(task_name)
     return Path(cache_dir) / f"human_demonstrator_{name}_seed{seed}_episodes{episodes}.npz"
 
@@ -40,24 +31,15 @@ def demonstrator_belief(
     cache_dir: str | os.PathLike | None = None,
     progress: bool = False,
 ) -> DemonstratorBelief:
-    """Build the authors' synthetic human belief of a task, or load it from the cache.
+    """Build the authors' synthetic human belief table of a task, or load it from the cache.
 
-    Args:
-        task_name: ``"findmilk"`` or ``"driving"`` (or an alias).
-        seed: The demonstrator's seed.
-        episodes: Episodes played (``None``: the authors' 1,000 / 10,000). Driving counts
-            from episode 601, so it needs more than 601.
-        cache_dir: Folder of the cache file (`cache_path`); ``None``: no cache. A file
-            made with other settings is rebuilt and overwritten.
-        progress: Show a progress bar while playing.
-
-    Returns:
-        The belief table.
+    ``episodes`` None plays the authors' 1,000 (FindMilk) or 10,000 (Driving, which counts
+    from episode 601); ``cache_dir`` None keeps no file; a file made with other settings is
+    rebuilt and overwritten.
 
     Raises:
         ValueError: An argument is out of range.
         DemonstratorCacheError: The cache file exists but cannot be read.
-
     """
     settings = demonstrator_settings(task_name, seed=seed, episodes=episodes)
     name, episodes = settings["task"], settings["episodes"]

@@ -1,19 +1,9 @@
 """The authors' Driving demonstrator (``algorithms/human_policy_drive.py``), batched.
 
-A tabular SARSA-style Q-learner whose table is *empty at the start of every episode*.
-``Q(s, a)`` of an unseen observation is drawn from a standard normal (the three actions of a
-new observation together); the policy is Boltzmann, ``p(a) ∝ exp(Q(s, a) / 0.7)``; after the
-next action ``a'`` is drawn in ``s'``, ``Q(s, a) += 0.1 * (r + 0.99 * Q(s', a') - Q(s, a))``,
-and after the last step ``Q(s, a) += 0.1 * (r - Q(s, a))``. The reward is the authors'
-"human-preference" one, ``r = 20 * rescues - collisions + 0.5 * [straight]``, computed from
-the task's per-step ``info`` (the task's own reward is not used). 10,000 episodes of 300
-steps; pairs are counted from episode index 601 on (the authors' ``if cnt > 600``: episodes
-601..9999).
-
-Because the Q table is reset every episode and every episode has its own streams
-(`play`), an episode that is not counted cannot change
-any count; only the counted episodes 601..9999 are played (the authors played 0..600 too
-and threw them away, which also only advanced their random generator).
+A tabular SARSA-style Q-learner whose table is empty at every episode's start: unseen
+``Q(s, .) ~ N(0, 1)``, policy ``p(a) ∝ exp(Q(s, a) / 0.7)``, reward `driving_human_reward`.
+Episodes 601..9999 are counted (the authors' ``if cnt > 600``); the earlier ones cannot
+change a count (fresh table, own streams), so they are not played.
 """
 
 from __future__ import annotations
@@ -65,40 +55,13 @@ def sarsa_update(
     learning_rate: float = LEARNING_RATE,
     discount: float = DISCOUNT,
 ) -> Any:
-    """Return the updated ``Q(s, a)`` of the authors' SARSA-style step.
-
-    ``Q(s, a) + lr * (r + discount * Q(s', a') - Q(s, a))``, or without the bootstrap term
-    after the last step (``q_next=None``): ``Q(s, a) + lr * (r - Q(s, a))``.
-
-    Args:
-        q_prev: ``Q(s, a)`` (number or tensor).
-        reward: The reward ``r`` of that step.
-        q_next: ``Q(s', a')`` of the next state and the action drawn there; ``None`` after
-            the episode's last step.
-        learning_rate: Step size (the authors: 0.1).
-        discount: Discount (the authors: 0.99).
-
-    Returns:
-        The new ``Q(s, a)`` (same kind as the inputs).
-
-    """
+    """Return the new ``Q(s, a)`` of the authors' SARSA step (``q_next`` None after the last)."""
     target = reward if q_next is None else reward + discount * q_next
-    return q_prev + learning_rate * (target - q_prev)
+    return q_prev + learning_rate * (target - q_prev)  # Q += lr (r + gamma Q(s', a') - Q)
 
 
 def driving_human_reward(info: Mapping[str, torch.Tensor], actions: torch.Tensor) -> torch.Tensor:
-    """Return the authors' human-preference Driving reward of one step.
-
-    ``20 * rescues - collisions + 0.5 * [action == straight]`` (their ``ishuman_p``).
-
-    Args:
-        info: The ``info`` of `Driving.step` (``rescues``, ``collisions``).
-        actions: The actions of that step.
-
-    Returns:
-        float64 ``[num_envs]``.
-
-    """
+    """Return the authors' ``ishuman_p`` reward float64 ``[num_envs]`` of one step."""
     return (
         REWARD_RESCUE * info["rescues"].to(torch.float64)
         + REWARD_COLLISION * info["collisions"].to(torch.float64)
@@ -160,26 +123,13 @@ def play_driving(
     batch_size: int = 2500,
     progress: bool = False,
 ) -> DemonstratorBelief:
-    """Play the Driving Q-learning demonstrator and count ``(observation, action)`` pairs.
+    """Play the Driving Q-learning demonstrator; count ``(observation, action)`` pairs.
 
-    Episodes ``count_from..episodes-1`` are played (each with a fresh Q table and its own
-    random streams) and counted; the earlier ones could not change a count and are skipped.
-
-    Args:
-        seed: Non-negative seed (episode ``e`` has its own streams, see
-            `play`).
-        episodes: Episode indices run to ``episodes - 1`` (the authors: 10,000).
-        count_from: First counted episode index (the authors: 601).
-        max_steps: Steps per episode (the authors: 300; the road never ends early).
-        batch_size: Episodes played side by side (does not change the result).
-        progress: Show a progress bar.
-
-    Returns:
-        The counts and beliefs.
+    Episodes ``count_from..episodes-1`` are played and counted; ``batch_size`` episodes play
+    side by side without changing the result.
 
     Raises:
         ValueError: An argument is out of range.
-
     """
     seed = check_seed(seed)
     episodes = check_count(episodes, "episodes", 1)

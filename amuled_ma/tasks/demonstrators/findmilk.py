@@ -1,12 +1,7 @@
 """The authors' FindMilk demonstrator (``algorithms/human_policy_milk.py``), batched.
 
-A rule-driven *sampled* policy. For each action take the next cell (a move into a wall keeps
-the cell); its weight is 1 if that cell is one of the six *original* sleeping-baby cells
-(woken or not), else 20 if it is the milk, else ``(24 - d) / 24 * 20`` with ``d`` the
-Manhattan distance from the next cell to the crying baby of the observation (``(0, 0)``
-once none is left, as the authors did), else 5 (``d >= 24``, impossible on 8x8). The action
-is drawn with probabilities ``w / sum(w)``. 1,000 episodes, each until the milk or the
-300-step time limit; every step is counted.
+A rule-driven sampled policy, action drawn with ``w / sum(w)`` (`findmilk_weights`); 1,000
+episodes, each until the milk or the 300-step limit, every step counted.
 """
 
 from __future__ import annotations
@@ -42,19 +37,11 @@ _MOVES = ((0, 1), (0, -1), (-1, 0), (1, 0))  # up, down, left, right
 
 
 def findmilk_weights(obs: torch.Tensor) -> torch.Tensor:
-    """Return the FindMilk demonstrator's unnormalised weights of the four actions.
+    """Return the FindMilk demonstrator's unnormalised weights float64 ``[N, 4]`` of the actions.
 
-    Per action (up, down, left, right) the next cell, clipped to the grid, weighs 1 if it is
-    one of the six original sleeping-baby cells, else 20 if it is the milk, else
-    ``(24 - d) / 24 * 20`` with ``d`` the Manhattan distance to the observed crying baby
-    (``(0, 0)`` when none is left), else 5.
-
-    Args:
-        obs: FindMilk observations ``[N, 8]``.
-
-    Returns:
-        float64 ``[N, 4]``.
-
+    Per action the next cell (clipped to the grid) weighs 1 on one of the six original
+    sleeping-baby cells, else 20 on the milk, else ``(24 - d) / 24 * 20`` (``d``: Manhattan
+    distance to the observed crying baby, ``(0, 0)`` when none is left), else 5.
     """
     obs = obs.to(torch.float64)
     moves = torch.tensor(_MOVES, dtype=torch.float64, device=obs.device)
@@ -77,20 +64,10 @@ def play_findmilk(
 ) -> DemonstratorBelief:
     """Play the FindMilk rule demonstrator and count every ``(observation, action)``.
 
-    Args:
-        seed: Non-negative seed (episode ``e`` has its own streams, see
-            `play`).
-        episodes: Episodes to play (the authors: 1,000), each until the milk or the limit.
-        max_steps: Time limit of an episode.
-        batch_size: Episodes played side by side (does not change the result).
-        progress: Show a progress bar.
-
-    Returns:
-        The counts and beliefs.
+    ``batch_size`` episodes play side by side without changing the result.
 
     Raises:
         ValueError: An argument is out of range.
-
     """
     seed = check_seed(seed)
     episodes = check_count(episodes, "episodes", 1)

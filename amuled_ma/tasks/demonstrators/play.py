@@ -1,10 +1,7 @@
 """What both demonstrators' play shares: per-episode streams, action draws, pair counting.
 
-Episode ``e`` of a demonstrator seeded ``s`` plays on the task copy seeded ``b_s + e`` and
-draws its own choices from the counter-based stream (`rng`) of seed
-``c_s + e``, where ``b_s`` and ``c_s`` are two hashes of ``s`` (so the episodes of seeds ``s``
-and ``s + 1`` share no stream). The counts therefore depend on ``seed`` and the episode
-indices only, not on how many episodes are played side by side.
+Episode ``e`` of seed ``s`` plays the task seeded ``b_s + e`` and draws from the stream of
+``c_s + e`` (``b_s``, ``c_s``: hashes of ``s``), so the counts do not depend on batching.
 """
 
 from __future__ import annotations
@@ -22,80 +19,35 @@ _TASK_STREAMS, _CHOICE_STREAMS = 0, 1  # purposes of the per-episode random stre
 def _base_seed(seed: int, purpose: int) -> int:
     """Base of the per-episode seeds of ``seed`` for one purpose (0 task, 1 choices).
 
-    Episode ``e`` uses ``base + e``. The base is a hash of ``seed``, so the episodes of seeds
-    ``s`` and ``s + 1`` do not share streams (``seed + e`` would shift them by one).
+    A hash, so seeds ``s`` and ``s + 1`` share no stream (``seed + e`` would shift them by one).
     """
     return rng.splitmix64(rng.splitmix64(seed) ^ purpose) >> 2
 
 
 def task_seed(seed: int, first: int) -> int:
-    """Return the seed of a task whose copy ``i`` plays episode ``first + i``.
-
-    Args:
-        seed: The demonstrator's seed.
-        first: Index of the episode copy 0 plays.
-
-    Returns:
-        The task's base seed (copy ``i`` is the task of seed ``task_seed + i``).
-
-    """
+    """Return the base seed of a task whose copy ``i`` plays episode ``first + i``."""
     return _base_seed(seed, _TASK_STREAMS) + first
 
 
 def episode_streams(seed: int, first: int, count: int, device: torch.device) -> torch.Tensor:
-    """Return the keys of the choice streams of episodes ``first..first+count-1``.
-
-    Args:
-        seed: The demonstrator's seed.
-        first: Index of the first episode.
-        count: Number of episodes.
-        device: Torch device of the keys.
-
-    Returns:
-        int64 ``[count]``, for `uniforms`.
-
-    """
+    """Return the choice-stream keys int64 ``[count]`` of episodes ``first..first+count-1``."""
     return rng.copy_keys(_base_seed(seed, _CHOICE_STREAMS) + first, count, device)
 
 
 def uniforms(keys: torch.Tensor, start: int, count: int) -> torch.Tensor:
-    """Return draws ``start..start+count-1`` of each stream as float64 in ``[0, 1)``.
-
-    Args:
-        keys: Stream keys (`episode_streams`), int64 ``[N]``.
-        start: First draw number.
-        count: Draws per stream.
-
-    Returns:
-        float64 ``[N, count]``.
-
-    """
+    """Return draws ``start..start+count-1`` of each stream, float64 ``[N, count]`` in [0, 1)."""
     return rng.uniform53(rng.draws(keys, start, count))
 
 
 def sample(weights: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-    """Draw one action per row with probability ``weights / weights.sum()`` (inverse CDF).
-
-    Args:
-        weights: Non-negative weights ``[N, num_actions]``.
-        u: One uniform in ``[0, 1)`` per row, ``[N]``.
-
-    Returns:
-        int64 actions ``[N]``.
-
-    """
+    """Draw one action per row with probability ``weights / weights.sum()`` (inverse CDF)."""
     cdf = weights.cumsum(1)
     picked = (cdf <= (u * cdf[:, -1])[:, None]).sum(1)
     return picked.clamp_(max=weights.shape[1] - 1)
 
 
 class PairCounter:
-    """Accumulates ``(observation key, action)`` pairs, deduplicating now and then.
-
-    Args:
-        num_actions: The task's number of actions.
-
-    """
+    """Accumulates ``(observation key, action)`` pairs, deduplicating now and then."""
 
     _COMPACT_AT = 4_000_000
 

@@ -1,17 +1,8 @@
 """A demonstrator's counts as a belief table: observation keys, the 0.6 / 0.4 rule, the file.
 
-Counts to belief (the authors' ``finetune_moral_human.py``): per observation, ``c_a`` the
-count of action ``a`` and ``n = sum(c)``; if ``n > 20`` the counts are rescaled to total 20;
-then ``p(a) ∝ 0.6**c_a * 0.4**(n - c_a)``, normalised (computed in log space; it equals
-``softmax(c_a * ln 1.5)``). An observation the demonstrator never met has no belief: the
-authors' fine-tuning gives reward 0 there.
-
-Observations are keyed exactly: every entry must be an integer within the task's
-observation bounds (``obs_low``/``obs_high``); the key is the mixed-radix number of the
-entries. Anything else (a fraction, out of bounds, NaN) is reported unseen.
-
-`DemonstratorBelief.save` writes the counts to an ``.npz`` file (no pickle: it loads
-with ``allow_pickle=False``) with the settings (`demonstrator_settings`) as JSON.
+An observation is keyed exactly (integer entries within the task's bounds, a mixed-radix
+number); anything else, and any observation never met, has no belief (reward 0 in the
+authors' fine-tuning). The ``.npz`` file loads with ``allow_pickle=False``.
 """
 
 from __future__ import annotations
@@ -78,22 +69,14 @@ class DemonstratorCacheError(AmuledError, ValueError):
 
 
 def check_table_memory(path: Path, fix: str) -> None:
-    """Refuse a demonstrator ``.npz`` whose arrays would take more than :data:`MAX_TABLE_BYTES`.
+    """Refuse a demonstrator ``.npz`` whose arrays would take more than `MAX_TABLE_BYTES`.
 
-    Reads the file's size, its zip directory and each ``.npy`` member's header (shape and
-    dtype), never an array: ``np.load`` allocates what a header claims before it reads
-    the data, so a small file could claim terabytes.
-
-    Args:
-        path: The ``.npz`` file.
-        fix: What to do, said last.
+    Reads only the zip directory and the ``.npy`` headers: ``np.load`` allocates what a header
+    claims before it reads, so a small file could claim terabytes. ``fix`` is said last.
 
     Raises:
-        DemonstratorCacheError: The file is larger than :data:`MAX_TABLE_BYTES`, is not a
-            zip of ``.npy`` arrays, an array holds Python objects, an array claims more
-            bytes than its member holds, or the arrays together would take more than
-            :data:`MAX_TABLE_BYTES` (the array, its shape and dtype named).
-
+        DemonstratorCacheError: The file is too large, not a zip of ``.npy`` arrays, holds
+            Python objects, or claims more bytes than it holds or than `MAX_TABLE_BYTES`.
     """
     total = 0
     try:
@@ -155,15 +138,7 @@ def check_count(value: object, label: str, minimum: int) -> int:
 
 # ---------------------------------------------------------------------- observation keys
 def observation_bounds(task_name: str) -> list[list[int]]:
-    """Return, per observation entry, the integer ``[low, high]`` of the task's bounds.
-
-    Args:
-        task_name: ``"findmilk"`` or ``"driving"`` (canonical name).
-
-    Returns:
-        ``[[low, high], ...]``, one pair per entry (the keys' radixes are ``high - low + 1``).
-
-    """
+    """Return the integer ``[low, high]`` of each observation entry (the keys' radixes)."""
     cls = get_task(task_name)
     return [
         [math.floor(lo), math.ceil(hi)] for lo, hi in zip(cls.obs_low, cls.obs_high, strict=True)
@@ -188,23 +163,14 @@ def _encoder(task_name: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
 
 
 def encode_observations(task_name: str, obs: object) -> tuple[torch.Tensor, torch.Tensor]:
-    """Return the exact integer key of each observation and whether it could be keyed.
+    """Return each observation's exact key and whether it has one, int64 and bool ``[N]``.
 
-    The key is the mixed-radix number of the entries, each shifted by its lower bound
-    (``obs_low``) with radix ``obs_high - obs_low + 1``. It is unique for integer-valued
-    observations within the bounds; any other row gets key ``-1`` and ``valid`` false.
+    Keys are on ``obs``'s device (CPU for non-tensors).
 
-    Args:
-        task_name: ``"findmilk"`` or ``"driving"`` (or an alias).
-        obs: Observations ``[N, obs_dim]`` (tensor, array or nested list).
-
-    Returns:
-        ``(keys, valid)``: int64 ``[N]`` and bool ``[N]``, on the device of ``obs``
-        (CPU for non-tensors).
+    Rows that are not integer-valued within the bounds get key ``-1`` and ``valid`` false.
 
     Raises:
         ValueError: ``obs`` is not ``[N, obs_dim]``.
-
     """
     name = canonical_name(task_name)
     low, high, weight = _encoder(name)
@@ -224,40 +190,18 @@ def encode_observations(task_name: str, obs: object) -> tuple[torch.Tensor, torc
 
 # ---------------------------------------------------------------------- counts -> belief
 def counts_to_belief(counts: object) -> torch.Tensor:
-    """Turn per-state action counts into beliefs (the authors' ``0.6 / 0.4`` rule).
-
-    With ``n = sum(c)``: if ``n > 20`` the counts are rescaled to total 20; then
-    ``p(a) ∝ 0.6**c_a * 0.4**(n - c_a)``, normalised, computed in log space.
-
-    Args:
-        counts: Non-negative counts ``[..., num_actions]``.
-
-    Returns:
-        float64 beliefs of the same shape, each row summing to 1.
-
-    """
+    """Turn action counts ``[..., A]`` into float64 beliefs (``finetune_moral_human.py``)."""
     c = torch.as_tensor(counts).to(torch.float64)
     n = c.sum(-1, keepdim=True)
     c = torch.where(n > COUNT_CAP, c * COUNT_CAP / n, c)
     n = c.sum(-1, keepdim=True)
-    log_p = c * math.log(P_AGREE) + (n - c) * math.log(1.0 - P_AGREE)
+    log_p = c * math.log(P_AGREE) + (n - c) * math.log(1.0 - P_AGREE)  # 0.6**c_a 0.4**(n-c_a)
     return torch.softmax(log_p, -1)
 
 
 # ---------------------------------------------------------------------- settings
 def demonstrator_settings(task_name: str, *, seed: int, episodes: int | None = None) -> dict:
-    """Return the settings a demonstrator belief of the authors' recipe is built with.
-
-    Args:
-        task_name: ``"findmilk"`` or ``"driving"`` (or an alias).
-        seed: The demonstrator's seed.
-        episodes: Episodes played (``None``: the authors' 1,000 / 10,000).
-
-    Returns:
-        A JSON-ready dict: ``format``, ``task``, ``demonstrator`` (``"rules"`` or
-        ``"sarsa"``), ``seed``, ``episodes``, ``count_from``, ``max_steps``, ``encoding``.
-
-    """
+    """Return the JSON-ready settings a demonstrator belief of the authors' recipe is built with."""
     name = canonical_name(task_name)
     seed = check_seed(seed)
     episodes = DEFAULT_EPISODES[name] if episodes is None else episodes
@@ -275,16 +219,7 @@ def demonstrator_settings(task_name: str, *, seed: int, episodes: int | None = N
 
 
 def settings_differences(found: Mapping[str, Any], expect: Mapping[str, Any]) -> str:
-    """Describe the keys of ``expect`` whose value in ``found`` differs (empty: none).
-
-    Args:
-        found: The settings of a file.
-        expect: The settings wanted.
-
-    Returns:
-        ``"key: file X, wanted Y, ..."``, or ``""`` when every key of ``expect`` agrees.
-
-    """
+    """Describe the keys of ``expect`` whose value in ``found`` differs (``""``: none)."""
     return ", ".join(
         f"{k}: file {found.get(k)!r}, wanted {v!r}" for k, v in expect.items() if found.get(k) != v
     )
@@ -294,24 +229,11 @@ def settings_differences(found: Mapping[str, Any], expect: Mapping[str, Any]) ->
 class DemonstratorBelief:
     """Counts of a played demonstrator and the beliefs they give, keyed by observation.
 
-    Args:
-        task_name: ``"findmilk"`` or ``"driving"``.
-        states: Observation keys (`encode_observations`), int64 ``[S]``, strictly
-            increasing.
-        counts: Action counts per state, int64 ``[S, num_actions]``, every row summing to
-            at least 1.
-        settings: How the counts were made (`demonstrator_settings`).
-
-    Attributes:
-        task_name: The task's short name.
-        states: The sorted observation keys.
-        counts: The counts.
-        beliefs: float64 ``[S, num_actions]`` (`counts_to_belief`).
-        settings: The settings.
+    ``states`` are strictly increasing keys int64 ``[S]``; ``counts`` int64 ``[S, A]``, every
+    row summing to at least 1.
 
     Raises:
         ValueError: The arrays are malformed; the message says which.
-
     """
 
     def __init__(
@@ -352,19 +274,12 @@ class DemonstratorBelief:
         return int(self.counts.shape[1])
 
     def lookup(self, obs: object) -> tuple[torch.Tensor, torch.Tensor]:
-        """Return the belief of each observation and whether the demonstrator met it.
+        """Return ``(beliefs, seen)``: float32 ``[N, A]`` (zero rows where unseen) and bool ``[N]``.
 
-        Args:
-            obs: Observations ``[N, obs_dim]`` (tensor, array or list), matched exactly.
-
-        Returns:
-            ``(beliefs, seen)``: float32 ``[N, num_actions]`` (rows of unseen observations
-            are all 0, not a distribution) and bool ``[N]``, on the device of ``obs``
-            (CPU for non-tensors).
+        Observations are matched exactly; the result is on ``obs``'s device.
 
         Raises:
             ValueError: ``obs`` is not ``[N, obs_dim]``.
-
         """
         device = obs.device if isinstance(obs, torch.Tensor) else torch.device("cpu")
         keys, valid = encode_observations(self.task_name, obs)
@@ -379,18 +294,11 @@ class DemonstratorBelief:
         return beliefs.to(device=device, dtype=torch.float32), seen.to(device)
 
     def save(self, path: str | os.PathLike) -> Path:
-        """Write the counts and settings to ``path`` (``.npz``, no pickle), atomically.
-
-        Args:
-            path: The file to write (its folder is created).
-
-        Returns:
-            The path written.
+        """Write the counts and settings to ``path`` (``.npz``, no pickle) atomically; return it.
 
         Raises:
             UnsafePathError: ``path`` is a link or not a regular file.
             FileWriteError: It could not be written (a full disk); the old file is kept.
-
         """
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -408,22 +316,11 @@ class DemonstratorBelief:
     def load(
         cls, path: str | os.PathLike, *, expect: Mapping[str, Any] | None = None
     ) -> DemonstratorBelief:
-        """Read a file written by `save`.
-
-        Args:
-            path: The ``.npz`` file.
-            expect: Settings the file must have been made with (every key compared);
-                ``None`` accepts any.
-
-        Returns:
-            The belief table.
+        """Read a file written by `save`, made with ``expect``'s settings (None: any).
 
         Raises:
             DemonstratorCacheError: The file cannot be read, is malformed, its arrays would
-                take more than :data:`MAX_TABLE_BYTES` (from their headers, before any is
-                loaded), or it was made with other settings than ``expect`` (the message
-                names the file and the fix).
-
+                take more than `MAX_TABLE_BYTES`, or it was made with other settings.
         """
         path = checked_read_path(Path(path).parent, Path(path).name)
         fix = "delete it to rebuild the demonstrator"
