@@ -155,7 +155,7 @@ class PopulationTrainer:
         self.before = self.snapshot
 
     def _population_env(self, starts: list[MemberStart]) -> DeliberationVecEnv:
-        """One task of ``P x E`` copies in the states the members' runs left them (if saved)."""
+        """One task of ``P x E`` copies in the states the members' runs left (if it saves them)."""
         first = self.specs[0]
         factory = first.task_factory or make_task
         self.task = factory(

@@ -252,7 +252,10 @@ class SmartGrid(BatchedTask):
 
     @classmethod
     def prompt_variables_from_obs(cls, obs: np.ndarray, **extra: Any) -> dict[str, Any]:
-        """Each observation entry in percent, the hour, and extras (``unknown`` when absent)."""
+        """Each observation entry in percent, the hour, and four values of ``extra``.
+
+        ``need``, ``storage``, ``capacity`` (Wh) and ``prosumers`` read ``unknown`` when absent.
+        """
         variables: dict[str, Any] = {
             name: round(100 * float(v)) for name, v in zip(cls.obs_names, obs, strict=True)
         }

@@ -54,10 +54,8 @@ MAX_STEPS = 300
 """Time limit of an episode (both tasks, the authors' 300 steps)."""
 
 MAX_TABLE_BYTES = 2**30
-"""Most memory a demonstrator file's arrays may take when loaded [bytes, 1 GiB], and most
-bytes the file may be. A table holds a state key and a count per action for each distinct
-observation: the authors' Driving table of 12,270 states takes under 1 MB, and 10,000
-Driving episodes of 300 steps meet at most 3,000,000 states (about 150 MB)."""
+"""Most bytes a demonstrator file, and its arrays once loaded, may take (1 GiB): 10,000 Driving
+episodes of 300 steps meet at most 3,000,000 states (about 150 MB)."""
 
 # counts -> belief (finetune_moral_human.py)
 COUNT_CAP = 20.0
