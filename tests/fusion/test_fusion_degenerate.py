@@ -1,4 +1,4 @@
-"""Defined behaviour for every degenerate input (see the docstring of amuled_ma.fusion.xiao)."""
+"""Defined behaviour for every degenerate input (docs/fusion.md, "Degenerate inputs")."""
 
 from __future__ import annotations
 
