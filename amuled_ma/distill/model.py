@@ -23,15 +23,11 @@ _WINDOW = 25
 
 @dataclass(frozen=True)
 class FitSettings:
-    """How the ensemble is built and fitted.
+    """How the ensemble is built and fitted (Adam steps, full batch).
 
-    Attributes:
-        ensemble: Networks in the ensemble (1: no disagreement, the novelty term alone).
-        hidden: Units of each of the two hidden tanh layers.
-        steps: Most full-batch Adam steps per fit.
-        learning_rate: Adam's step size.
-        weight_decay: L2 penalty on the weights, divided by the number of training states
-            (a prior that weakens as answers arrive; 0.25 measured in docs/distill.md).
+    ``ensemble`` 1 has no disagreement (the novelty term alone); ``weight_decay`` is an L2 penalty
+    on the weights divided by the training states, a prior that weakens as answers arrive
+    (0.25 measured in docs/distill.md).
     """
 
     ensemble: int = 5
@@ -78,11 +74,8 @@ class EnsembleModel:
     def fit(self, obs: np.ndarray, beliefs: np.ndarray, mask: np.ndarray, seed: int) -> FitReport:
         """Fit every network from scratch to the members' beliefs (gradients on in inference mode).
 
-        Args:
-            obs: ``(N, D)`` observations.
-            beliefs: ``(N, K, A)`` each member's belief (any values where ``mask`` is false).
-            mask: ``(N, K)`` whether the member answered that state.
-            seed: Seed of the initial weights and the Poisson(1) bootstrap.
+        ``obs`` ``(N, D)``, ``beliefs`` ``(N, K, A)`` and ``mask`` ``(N, K)`` (whether the member
+        answered); ``seed`` seeds the weights and the Poisson(1) bootstrap.
 
         Raises:
             ValueError: Shapes that do not match the model's members and actions.

@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-from typing import Literal
-
 import numpy as np
 
 #: The selection rules of ``[feedback.distill].selection``.
-Selection = Literal["uncertainty", "random"]
 SELECTIONS: tuple[str, ...] = ("uncertainty", "random")
 
 

@@ -42,6 +42,7 @@ from amuled_ma.distill.selection import (
 )
 from amuled_ma.distill.state import (
     SAVE_EVERY_S,
+    START_OVER,
     StateFiles,
     check_counters,
     check_ledger_rest,
@@ -61,16 +62,11 @@ MISS_STATUSES = frozenset({"replay_miss", "abstained"})
 
 @dataclass
 class DistillStats:
-    """Counters of a `DistilledSource` (kept across a resume).
+    """Counters of a `DistilledSource`, kept across a resume.
 
-    Attributes:
-        requests_forwarded: Requests handed to the panel's source (an asked state's, once
-            per process).
-        requests_sent: Of those, the ones its belief store did not hold.
-        model_answers: Beliefs the model gave for states not asked (again after each refit).
-        miss_answers: Beliefs the model gave instead of a replay miss or an abstention.
-        unasked_answers: Beliefs of states not asked that the model could not give.
-        refits: Fits of the model.
+    ``requests_forwarded`` counts requests handed to the panel's source (once per process per
+    asked state), ``requests_sent`` those its store did not hold; ``model_answers``,
+    ``miss_answers`` and ``unasked_answers`` count beliefs the model gave or could not give.
     """
 
     requests_forwarded: int = 0
@@ -107,20 +103,12 @@ class _Example:
 class DistilledSource(BeliefSource):
     """The panel's source behind a budget and a distilled model.
 
-    Args:
-        source: The panel's source (its store answers asked states again for free).
-        budget: A share of distinct visited states in ``(0, 1]`` (float) or a count ``>= 1``.
-        selection: ``"uncertainty"`` or ``"random"``.
-        ensemble: Networks of the model.
-        hidden: Units of each hidden layer.
-        refit_every: Newly answered asked states between two refits.
-        holdout: Share of asked states kept out of the fit, in ``[0, 0.5]``.
-        answer_misses: Answer an asked state's replay misses and abstentions by the model.
-        seed: Seed of the fits and of the random selection.
-        fusion_rule: The panel's fusion rule (for the fused agreement on held-out states).
-        state_dir: Folder of the state files (None: nothing is kept on disk).
-        resume: Load the state files of ``state_dir``; otherwise they are removed.
-        fit_steps: Most Adam steps per fit.
+    ``budget`` is a share of distinct visited states in ``(0, 1]`` (float) or a count ``>= 1``;
+    ``selection`` ``"uncertainty"`` or ``"random"``; ``refit_every`` newly answered asked states
+    between two refits; ``holdout`` the share of asked states kept out of the fit, in
+    ``[0, 0.5]``; ``answer_misses`` answers an asked state's replay misses and abstentions by the
+    model; ``fusion_rule`` fuses the held-out agreement; ``state_dir`` None keeps nothing on disk,
+    and without ``resume`` its state files are removed.
 
     Raises:
         AmuledError: A setting out of range, or ``resume`` with state files written with
@@ -630,7 +618,7 @@ class DistilledSource(BeliefSource):
         if diffs:
             raise AmuledError(
                 f"{where} was written with other [feedback.distill] settings (saved -> now: "
-                f"{'; '.join(diffs)}); start the fine-tune over with --force"
+                f"{'; '.join(diffs)}); {START_OVER}"
             )
         # the scenario's budget is the budget: the ledger's must be the same
         self.ledger = BudgetLedger.from_dict(data.get("ledger"), where, budget=self.budget)
@@ -640,7 +628,7 @@ class DistilledSource(BeliefSource):
         if type(generation) is not int or not 0 <= generation <= asked:
             raise AmuledError(
                 f"{where}: generation is {generation!r}, expected an integer in [0, {asked}] "
-                "(at most one fit per asked state); start the fine-tune over with --force"
+                f"(at most one fit per asked state); {START_OVER}"
             )
         check_state_keys(self.ledger.visited, "ledger.visited", where)
         check_state_keys(self.ledger.asked, "ledger.asked", where)
@@ -654,8 +642,7 @@ class DistilledSource(BeliefSource):
             self._rng.bit_generator.state = rest.rng.model_dump()
         if set(self._asked_obs) != set(self.ledger.asked):
             raise AmuledError(
-                f"{where}: asked_obs and ledger.asked name different states; start the "
-                "fine-tune over with --force"
+                f"{where}: asked_obs and ledger.asked name different states; {START_OVER}"
             )
         order = {key: n for n, key in enumerate(self.ledger.asked)}
         a = len(self.actions or ())
@@ -664,13 +651,12 @@ class DistilledSource(BeliefSource):
             if key not in order:  # written only after the ledger charged it: edited
                 raise AmuledError(
                     f"{line}: answers of state {key[:16]}, which {where} never "
-                    "asked (one of the files was edited); start the fine-tune over with --force"
+                    f"asked (one of the files was edited); {START_OVER}"
                 )
             if len(record.obs) != self.obs_dim:
                 raise AmuledError(
                     f"{line}: obs has {len(record.obs)} values, but {where} says obs_dim "
-                    f"{self.obs_dim} (one of the files was edited); start the fine-tune over "
-                    "with --force"
+                    f"{self.obs_dim} (one of the files was edited); {START_OVER}"
                 )
             beliefs = {}
             for member, values in record.beliefs.items():
@@ -681,10 +667,7 @@ class DistilledSource(BeliefSource):
                         if belief is None
                         else (f"a belief of {member!r}, not a member of {where}")
                     )
-                    raise AmuledError(
-                        f"{line}: {what} (one of the files was edited); start the fine-tune "
-                        "over with --force"
-                    )
+                    raise AmuledError(f"{line}: {what} (one of the files was edited); {START_OVER}")
                 beliefs[member] = belief
             obs = np.asarray(record.obs, dtype=np.float64)
             self._examples[key] = _Example(key, obs, beliefs, self._is_holdout(order[key]))

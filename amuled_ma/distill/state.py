@@ -41,7 +41,7 @@ MAX_EXAMPLES_BYTES = 2**31
 #: Longest line of the training-pairs file [bytes] (a fine-tune writes about 1 KB).
 MAX_EXAMPLE_LINE_BYTES = 2**20
 #: The fix of every refusal of a state file: they are this run's own files.
-_START_OVER = "start the fine-tune over with --force"
+START_OVER = "start the fine-tune over with --force"
 #: A state's key as a fine-tune writes it: a 128-bit BLAKE2b digest in hexadecimal.
 STATE_KEY = re.compile(r"[0-9a-f]{32}")
 #: Most values of one observation (the tasks' have 2 to 16).
@@ -120,7 +120,7 @@ def check_ledger_rest(data: Mapping[str, Any], where: str) -> LedgerRest:
         return LedgerRest.model_validate(dict(data))
     except ValidationError as error:
         raise AmuledError(
-            f"{where}: {_first_error(error)}; the file was edited or damaged; {_START_OVER}"
+            f"{where}: {_first_error(error)}; the file was edited or damaged; {START_OVER}"
         ) from None
 
 
@@ -130,7 +130,7 @@ def check_state_keys(keys: Iterable[str], field: str, where: str) -> None:
         if not STATE_KEY.fullmatch(key):
             raise AmuledError(
                 f"{where}: {field} holds {key[:40]!r}, not a state key (32 hexadecimal "
-                f"digits, as a fine-tune writes them); the file was edited; {_START_OVER}"
+                f"digits, as a fine-tune writes them); the file was edited; {START_OVER}"
             )
 
 
@@ -150,7 +150,7 @@ def check_example(record: object, where: str) -> Example:
         return Example.model_validate(record)
     except ValidationError as error:
         raise AmuledError(
-            f"{where}: {_first_error(error)}; the file was edited or damaged; {_START_OVER}"
+            f"{where}: {_first_error(error)}; the file was edited or damaged; {START_OVER}"
         ) from None
 
 
@@ -164,7 +164,7 @@ def check_counters(
             requests sent than forwarded, or more refits than ``asked`` states.
     """
     names = list(names)
-    fix = f"the file was edited or damaged; {_START_OVER}"
+    fix = f"the file was edited or damaged; {START_OVER}"
     if not isinstance(counters, Mapping) or set(counters) != set(names):
         raise AmuledError(f"{where}: 'counters' must hold {', '.join(names)}; {fix}")
     for name in names:
@@ -206,12 +206,10 @@ class StateFiles:
             path.unlink(missing_ok=True)
 
     def load(self) -> dict[str, Any]:
-        """Read the ledger.
+        """Read the ledger (UnsafePathError on a link).
 
         Raises:
-            AmuledError: It is larger than `MAX_LEDGER_BYTES` (refused unread) or not JSON of
-                this format.
-            UnsafePathError: It is a link or not a regular file (nothing is read).
+            AmuledError: Over `MAX_LEDGER_BYTES` (refused unread) or not JSON of this format.
         """
         ledger = checked_read_path(self.folder, LEDGER_FILE)
         try:
@@ -220,18 +218,18 @@ class StateFiles:
                 MAX_LEDGER_BYTES,
                 "budget state",
                 note="a budget of 1,000,000 asked states is about 740 MB",
-                fix=f"the file was edited or is not this run's; {_START_OVER}",
+                fix=f"the file was edited or is not this run's; {START_OVER}",
             )
             data = json.loads(raw)
         except (OSError, ValueError, RecursionError) as error:
             if isinstance(error, RecursionError):
                 error = ValueError("nested deeper than Python's JSON reader can follow")
             raise AmuledError(
-                f"{self.ledger}: not a readable budget state ({error}); {_START_OVER}"
+                f"{self.ledger}: not a readable budget state ({error}); {START_OVER}"
             ) from error
         if not isinstance(data, dict) or data.get("format") != FORMAT:
             raise AmuledError(
-                f"{self.ledger}: not a budget state of format {FORMAT!r}; {_START_OVER}"
+                f"{self.ledger}: not a budget state of format {FORMAT!r}; {START_OVER}"
             )
         return data
 
@@ -254,13 +252,12 @@ class StateFiles:
         """Every training pair written (a cut last line is skipped), with its ``FILE:LINE``.
 
         Raises:
-            AmuledError: A line other than the last is not JSON or not an `Example`, or the file
-                or a line is over `MAX_EXAMPLES_BYTES` / `MAX_EXAMPLE_LINE_BYTES`.
-            UnsafePathError: It is a link or not a regular file (nothing is read).
+            AmuledError: A line other than the last not JSON or not an `Example`, or a size over
+                `MAX_EXAMPLES_BYTES` / `MAX_EXAMPLE_LINE_BYTES`.
         """
         if not checked_read_path(self.folder, EXAMPLES_FILE).is_file():
             return []
-        fix = f"the file was edited or is not this run's; {_START_OVER}"
+        fix = f"the file was edited or is not this run's; {START_OVER}"
         out = []
         try:
             check_size(
@@ -286,12 +283,12 @@ class StateFiles:
                         if not line.endswith(b"\n") or not handle.peek(1):
                             break  # the last line, cut short by a crash while it was written
                         raise AmuledError(
-                            f"{self.examples}:{number}: not JSON ({error}); {_START_OVER}"
+                            f"{self.examples}:{number}: not JSON ({error}); {START_OVER}"
                         ) from None
                     where = f"{self.examples}:{number}"
                     out.append((where, check_example(record, where)))
         except OSError as error:
             raise AmuledError(
-                f"{self.examples}: cannot read the training pairs ({error}); {_START_OVER}"
+                f"{self.examples}: cannot read the training pairs ({error}); {START_OVER}"
             ) from error
         return out
