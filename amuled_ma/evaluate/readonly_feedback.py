@@ -16,10 +16,7 @@ if TYPE_CHECKING:
 
 
 class ReadOnlyStore:
-    """The run's belief store (SQLite ``mode=ro``; a missing file reads empty) behind a feedback.
-
-    Answers to states the run never asked are not written (counted in `not_written`).
-    """
+    """The run's belief store (SQLite ``mode=ro``; a missing file reads empty) behind a feedback."""
 
     def __init__(self, path: str | Path | None) -> None:
         from amuled_ma.beliefs.store import BeliefStore
@@ -30,8 +27,6 @@ class ReadOnlyStore:
             if self.path is not None and self.path.is_file()
             else None
         )
-        #: Answers not written to the run's store.
-        self.not_written = 0
 
     def lookup(self, keys: Sequence[str]) -> dict[str, BeliefResult]:
         """Cached answers (``ok``/``repaired`` rows) of ``keys`` in the run's store."""
@@ -44,8 +39,7 @@ class ReadOnlyStore:
         return self.store.get_many(keys, cacheable_only=False)
 
     def put_many(self, items: Sequence[StoreItem]) -> int:
-        """Write nothing: count the answers a writable store would have kept."""
-        self.not_written += len(list(items))
+        """Write nothing (looking at a run never changes it)."""
         return 0
 
     def close(self) -> None:

@@ -201,11 +201,10 @@ def _objective(
 
 @dataclass(frozen=True)
 class Fit:
-    """One maximum-likelihood fit: prior (sums to 1), ``tau``, unpenalised log-likelihood, ``x``."""
+    """One maximum-likelihood fit: the prior (sums to 1), ``tau``, all parameters ``x``."""
 
     prior: np.ndarray
     temperature: float
-    log_likelihood: float
     x: np.ndarray
 
 
@@ -241,10 +240,7 @@ def fit(
         x[mask] = result.x
     x[:k] = np.clip(x[:k], -LOGIT_BOUND, LOGIT_BOUND)
     x[k] = np.clip(x[k], *LOG_TEMPERATURE_BOUNDS)
-    prior, tau = _softmax(x[:k]), math.exp(x[k])
-    p = choice_probability(data, prior, tau)
-    loglik = float(n_a @ np.log(p) + n_b @ np.log1p(-p))
-    return Fit(prior, tau, loglik, x)
+    return Fit(_softmax(x[:k]), math.exp(x[k]), x)
 
 
 def _answer_loglik(data: ChoiceData, model: Fit) -> np.ndarray:
