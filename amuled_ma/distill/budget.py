@@ -1,34 +1,9 @@
 """The budget of asked states: which distinct states were visited and asked, how many more may be.
 
-The budget counts *distinct states*, not requests: asking the panel about one state costs
-one request per panel member, and a state asked once is never charged again (its answers
-are in the belief store). Two forms (``[feedback.distill].budget``):
-
-- a **share** ``b`` in ``(0, 1]`` (a float): after ``v`` distinct states were visited, at
-  most ``cap(v) = max(1, floor(b * v))`` of them may have been asked;
-- a **count** ``n >= 1`` (an integer): at most ``n`` distinct states are ever asked.
-
-The invariant, checked by :meth:`BudgetLedger.ask` and property-tested over random visit
-orders, batch sizes and resumes (``tests/distill/test_budget.py``), holds after every
-batch: ``asked <= cap(visited)``. For a share that is ``asked <= b * visited``, except
-that the very first state may be asked while ``b * visited < 1`` (``asked == 1``): the
-model needs one answer before it can answer anything. ``b`` is taken as the decimal it
-is written as (``0.3`` is exactly 3/10, :func:`exact_share`) and the product is exact, so
-neither binary rounding of ``0.3`` (slightly below 3/10) takes a state away nor float
-rounding of a product lets one more in. States of a batch are visited before any of them
-is asked, so a batch of new states raises the cap before the selection admits its share
-of them.
-
-A resumed ledger credits the cap only with states it can vouch for: the states asked
-(charged, so a made-up one only spends budget) and the states visited in this process. The
-visited states read from a state file are kept (a state seen before is not new) but raise
-the cap only when they are visited again, so a state file cannot grow the budget the
-scenario sets: edited to hold made-up visited states, it holds no more than the honest file
-would (the cap of a resumed run starts lower and climbs back as the states are seen again).
-
-Pure Python; :class:`BudgetLedger` is what :class:`~amuled_ma.distill.source.DistilledSource`
-consults and what its state file keeps, so a resumed run starts with the budget it
-already spent.
+The budget counts distinct states (a state asked once is never charged again); the invariant
+``asked <= cap(visited)`` holds after every batch. A resumed ledger credits the cap only with
+the states asked and the states visited in this process, so an edited state file cannot grow
+the budget the scenario sets.
 """
 
 from __future__ import annotations
@@ -48,16 +23,8 @@ class BudgetExceeded(AmuledError, RuntimeError):
 def check_budget(budget: object, where: str = "[feedback.distill].budget") -> float | int:
     """Return ``budget`` if it is a share in ``(0, 1]`` (float) or a count ``>= 1`` (int).
 
-    Args:
-        budget: The setting.
-        where: What to name in the error.
-
-    Returns:
-        The setting, unchanged.
-
     Raises:
-        AmuledError: Anything else (a bool, a string, 0, 1.5, NaN, -3).
-
+        AmuledError: Anything else (a bool, a string, 0, 1.5, NaN, -3), naming ``where``.
     """
     if isinstance(budget, bool) or not isinstance(budget, int | float):
         raise AmuledError(
@@ -74,44 +41,19 @@ def check_budget(budget: object, where: str = "[feedback.distill].budget") -> fl
 
 
 def exact_share(share: float) -> Fraction:
-    """A share as the decimal it is written as: ``0.3`` -> ``Fraction(3, 10)``.
-
-    ``repr`` of a float is the shortest decimal that reads back as the same float, i.e.
-    what a scenario file says; the binary value of ``0.3`` is slightly below 3/10.
-    """
+    """A share as the decimal it is written: ``0.3`` -> ``Fraction(3, 10)`` (not binary)."""
     return Fraction(repr(float(share)))
 
 
 def budget_cap(budget: float | int, visited: int) -> int:
-    """Most distinct states that may have been asked after ``visited`` were visited.
-
-    Args:
-        budget: A share in ``(0, 1]`` (float) or a count ``>= 1`` (int).
-        visited: Distinct states visited so far.
-
-    Returns:
-        ``budget`` for a count; ``max(1, floor(budget * visited))`` for a share (exact
-        arithmetic on the decimal written, :func:`exact_share`).
-
-    """
+    """Most distinct states that may have been asked after ``visited`` were visited."""
     if isinstance(budget, int) and not isinstance(budget, bool):
         return budget
     return max(1, math.floor(exact_share(budget) * visited))
 
 
 class BudgetLedger:
-    """The distinct states a run visited and asked, against its budget.
-
-    Args:
-        budget: A share in ``(0, 1]`` (float) or a count ``>= 1`` (int); see the module.
-
-    Attributes:
-        budget: The setting.
-        visited: Keys of every distinct state visited (a state file's included).
-        credited: Keys of the states the cap counts: asked, or visited by this process.
-        asked: Keys of the states asked, in the order they were asked.
-
-    """
+    """The distinct states a run visited, credited (asked, or visited by this process) and asked."""
 
     def __init__(self, budget: float | int) -> None:
         self.budget = check_budget(budget)
@@ -131,7 +73,7 @@ class BudgetLedger:
         return len(self.asked)
 
     def cap(self) -> int:
-        """Most states that may be asked now (:func:`budget_cap` of the credited count)."""
+        """Most states that may be asked now (`budget_cap` of the credited count)."""
         return budget_cap(self.budget, len(self.credited))
 
     def allowed(self) -> int:
@@ -155,13 +97,9 @@ class BudgetLedger:
     def ask(self, keys: Iterable[str]) -> None:
         """Record states as asked, within the budget.
 
-        Args:
-            keys: Visited states not asked yet.
-
         Raises:
-            BudgetExceeded: A key was not visited or was already asked, or there are more
-                keys than :meth:`allowed`; nothing is recorded then.
-
+            BudgetExceeded: A key was not visited or was already asked, or there are more keys
+                than `allowed`; nothing is recorded then.
         """
         keys = list(keys)
         if len(set(keys)) != len(keys):
@@ -189,24 +127,13 @@ class BudgetLedger:
         where: str = "budget state",
         budget: float | int | None = None,
     ) -> BudgetLedger:
-        """Rebuild a ledger from :meth:`to_dict`, under the scenario's budget.
+        """Rebuild a ledger from `to_dict` under the scenario's ``budget`` (None: the ledger's own).
 
-        Args:
-            data: What :meth:`to_dict` gave (read from a state file).
-            where: What to name in an error (the file).
-            budget: The scenario's budget: the ledger's must be the same (a state file
-                edited to raise it is refused). None: the ledger's own (tests).
-
-        Returns:
-            The ledger; its cap credits the asked states only (see the module), until the
-            visited ones are visited again.
+        The cap credits the asked states only, until the visited ones are visited again.
 
         Raises:
-            AmuledError: The data is malformed (keys not strings, a budget of another
-                value or type than the scenario's) or breaks the invariant (an asked state
-                not visited, asked twice, or more asked than the budget allows of the
-                file's visited states): ``where`` is named, and ``--force``.
-
+            AmuledError: Malformed data, a budget other than the scenario's, or a broken invariant
+                (an asked state not visited, asked twice, or more asked than the cap allows).
         """
         if not isinstance(data, Mapping):
             raise AmuledError(f"{where}: 'ledger' is not a table; start over with --force")

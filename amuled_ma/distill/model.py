@@ -1,22 +1,9 @@
 """The distilled reward model: an ensemble of small MLPs predicting each panel member's belief.
 
-Input: the task's observation vector (standardised with the training set's mean and
-standard deviation). Output: one head per panel member, a softmax over the task's
-actions. Each of the ``E`` networks (two hidden tanh layers of ``hidden`` units) is fitted
-to the members' beliefs with the cross-entropy ``-sum_a p(a) log q(a)`` (the KL divergence
-up to the target's entropy), counting only the members that answered a state; the
-networks differ by their initial weights and by a bootstrap resample of the states
-(Poisson(1) counts), so their disagreement grows where the data is thin.
-
-Why per member, not the fused belief: the panel's fusion (BJS weights, then Dempster's
-rule) is nonlinear in the members' beliefs, and the ablations (one cluster alone, other
-aggregation rules) reuse the members, so the model learns the members and the real
-fusion combines its predictions (:class:`~amuled_ma.distill.source.DistilledSource`).
-
-A fit is deterministic given its seed: the weights are drawn from the model's own
-:class:`torch.Generator` (never the global RNG, which the PPO learner owns), and the fit
-is full-batch Adam on CPU for at most ``steps`` steps with an early stop on the loss; two
-fits on the same data with the same seed give bit-identical predictions.
+Per member, not the fused belief: the fusion is nonlinear in the members' beliefs and the
+ablations reuse the members, so the real fusion combines the model's predictions. A fit is
+deterministic given its seed: it draws from its own `torch.Generator` (the PPO learner owns
+the global RNG).
 """
 
 from __future__ import annotations
@@ -28,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-#: Largest share by which the loss must fall over :data:`_WINDOW` steps to keep fitting.
+#: Largest share by which the loss must fall over `_WINDOW` steps to keep fitting.
 _TOLERANCE = 1e-3
 #: Steps between two early-stop checks.
 _WINDOW = 25
@@ -36,19 +23,11 @@ _WINDOW = 25
 
 @dataclass(frozen=True)
 class FitSettings:
-    """How the ensemble is built and fitted.
+    """How the ensemble is built and fitted (Adam steps, full batch).
 
-    Attributes:
-        ensemble: Networks in the ensemble (1: no disagreement, the novelty term alone).
-        hidden: Units of each of the two hidden layers.
-        steps: Most full-batch Adam steps per fit.
-        learning_rate: Adam's step size.
-        weight_decay: L2 penalty on the weights (not the biases), divided by the number
-            of training states and added to the mean cross-entropy: a prior that weakens as
-            answers arrive. 0.25 kept the fit at least as close to held-out panel answers
-            as their mean belief with 25 training states, and closer from 100 on
-            (FindMilk, gpt-4o-mini recording; ``docs/distill.md``).
-
+    ``ensemble`` 1 has no disagreement (the novelty term alone); ``weight_decay`` is an L2 penalty
+    on the weights divided by the training states, a prior that weakens as answers arrive
+    (0.25 measured in docs/distill.md).
     """
 
     ensemble: int = 5
@@ -68,17 +47,11 @@ class FitReport:
 
 
 class EnsembleModel:
-    """An ensemble of MLPs, one softmax head per panel member.
-
-    Args:
-        members: The panel's members (cluster names), in head order.
-        num_actions: Actions of the task.
-        settings: Size and fit settings.
+    """An ensemble of MLPs, one softmax head per panel member (``members`` in head order).
 
     Attributes:
-        trained: ``(K,)`` bool, the members that had at least one answer in the last fit
-            (the model answers only for them).
-
+        trained: ``(K,)`` bool, the members that had an answer in the last fit (the model
+            answers only for them).
     """
 
     def __init__(
@@ -94,28 +67,18 @@ class EnsembleModel:
 
     @property
     def fitted(self) -> bool:
-        """Whether :meth:`fit` ran with at least one answer."""
+        """Whether `fit` ran with at least one answer."""
         return self._params is not None and bool(self.trained.any())
 
     # ------------------------------------------------------------------ fitting
     def fit(self, obs: np.ndarray, beliefs: np.ndarray, mask: np.ndarray, seed: int) -> FitReport:
-        """Fit every network from scratch to the members' beliefs.
+        """Fit every network from scratch to the members' beliefs (gradients on in inference mode).
 
-        Called from inside the learner's rollout (``torch.inference_mode``), so gradients
-        are switched back on here.
-
-        Args:
-            obs: ``(N, D)`` observations.
-            beliefs: ``(N, K, A)`` each member's belief (any values where ``mask`` is false).
-            mask: ``(N, K)`` whether the member answered that state.
-            seed: Seed of the initial weights and the bootstrap.
-
-        Returns:
-            The fit's report.
+        ``obs`` ``(N, D)``, ``beliefs`` ``(N, K, A)`` and ``mask`` ``(N, K)`` (whether the member
+        answered); ``seed`` seeds the weights and the Poisson(1) bootstrap.
 
         Raises:
             ValueError: Shapes that do not match the model's members and actions.
-
         """
         with torch.inference_mode(False), torch.enable_grad():
             return self._fit(obs, beliefs, mask, seed)
@@ -159,7 +122,7 @@ class EnsembleModel:
         for step in range(1, s.steps + 1):
             optimiser.zero_grad(set_to_none=True)
             logp = _forward(params, x).reshape(s.ensemble, n, k, a).log_softmax(-1)
-            ce = -(target[None] * logp).sum(-1)  # (E, N, K)
+            ce = -(target[None] * logp).sum(-1)  # -sum_a p(a) log q(a), (E, N, K)
             loss = ((ce * weight).sum((1, 2)) / norm).sum()
             loss = loss + decay * sum((w * w).sum() for w in params[0::2])
             loss.backward()
@@ -175,12 +138,7 @@ class EnsembleModel:
 
     # ------------------------------------------------------------------ predicting
     def predict_ensemble(self, obs: np.ndarray) -> np.ndarray:
-        """Every network's beliefs, ``(E, N, K, A)`` float64 (each row sums to 1).
-
-        Raises:
-            RuntimeError: Before the first :meth:`fit`.
-
-        """
+        """Every network's beliefs ``(E, N, K, A)`` float64; RuntimeError before the first `fit`."""
         if self._params is None or self._mean is None or self._std is None:
             raise RuntimeError("the distilled model was never fitted")
         obs = np.asarray(obs, dtype=np.float64)

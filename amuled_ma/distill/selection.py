@@ -1,43 +1,17 @@
-"""Which new states to ask, when the budget admits fewer than arrived.
-
-- ``uncertainty``: a state's score is the ensemble's **disagreement** (for each member the
-  model answers, the mean total-variation distance of the networks' beliefs to their
-  mean, averaged over those members; 1, the largest, before the first fit) plus its
-  **novelty** ``1 - exp(-d / sqrt(D))``, where ``d`` is the Euclidean distance of its
-  standardised observation to the nearest state already asked (or chosen earlier in the
-  same batch) and ``D`` the observation's length (1 when nothing was asked yet). Both terms
-  lie in ``[0, 1]``. States are chosen one at a time, best score first (the earliest in
-  the batch on a tie), each choice making its neighbours less novel, so one batch does
-  not spend its share on near-duplicates.
-- ``random``: a uniform sample without replacement from a seeded generator (the
-  baseline of the budget ablation); its state is kept with the budget, so a resumed run
-  draws what an uninterrupted one would.
-
-Pure numpy; the ensemble's predictions are passed in.
-"""
+"""Which new states to ask when the budget admits fewer than arrived (pure numpy)."""
 
 from __future__ import annotations
-
-from typing import Literal
 
 import numpy as np
 
 #: The selection rules of ``[feedback.distill].selection``.
-Selection = Literal["uncertainty", "random"]
 SELECTIONS: tuple[str, ...] = ("uncertainty", "random")
 
 
 def disagreement(predictions: np.ndarray, members: np.ndarray | None = None) -> np.ndarray:
-    """The ensemble's disagreement per state, in ``[0, 1]``.
+    """Per state, the mean over members and networks of ``0.5 * sum_a |p_e(a) - mean_e p(a)|``.
 
-    Args:
-        predictions: ``(E, N, K, A)`` every network's belief per state and member.
-        members: ``(K,)`` bool, the members to average over (default: all).
-
-    Returns:
-        ``(N,)``: mean over the chosen members and the networks of the total-variation
-        distance ``0.5 * sum_a |p_e(a) - mean_e p(a)|``.
-
+    ``members``: ``(K,)`` bool, the members to average over (default all; none: 1 each).
     """
     predictions = np.asarray(predictions, dtype=np.float64)
     mean = predictions.mean(0, keepdims=True)
@@ -67,17 +41,10 @@ def choose_uncertain(
     asked: np.ndarray,
     spread: np.ndarray | None = None,
 ) -> list[int]:
-    """Pick ``count`` states by disagreement plus novelty (see the module).
+    """Pick ``count`` candidates greedily by disagreement plus novelty; indices in chosen order.
 
-    Args:
-        candidates: ``(N, D)`` observations of the states that may be asked.
-        count: How many to pick (at most ``N``).
-        asked: ``(M, D)`` observations of the states asked before.
-        spread: ``(N,)`` the ensemble's disagreement; None before the first fit (1 each).
-
-    Returns:
-        Indices into ``candidates``, in the order chosen.
-
+    Novelty is ``1 - exp(-d / sqrt(D))``, ``d`` the standardised distance to the nearest state
+    asked or chosen earlier in the batch; ``spread`` is None before the first fit (1 each).
     """
     candidates = np.asarray(candidates, dtype=np.float64)
     n = len(candidates)

@@ -1,35 +1,12 @@
-"""``DistilledSource``: the panel asked only where a distilled reward model is unsure.
+"""`DistilledSource`: the panel asked only where a distilled reward model is unsure.
 
-:class:`DistilledSource` wraps the panel's belief source (the
-:class:`~amuled_ma.beliefs.cached.CachedSource` or
-:class:`~amuled_ma.beliefs.routing.RoutedSource` that
-:func:`amuled_ma.deliberation.build.make_source` builds) and is itself a
-:class:`~amuled_ma.beliefs.types.BeliefSource`. The moral panel hands it one batch of
-requests, one per (state, member). For a batch it
-
-1. groups the requests by state (the observation, and the chat when there is one: on
-   FindMilk the crying babies left are in the prompt, not the observation) and records
-   every state as visited (:class:`~amuled_ma.distill.budget.BudgetLedger`);
-2. answers the states asked before: in this process from the answers kept when they
-   were asked, after a resume by forwarding their requests once more (the belief store
-   answers them: no new request, except for a failed answer, which the store never
-   serves);
-3. lets the selection rank the new states (:mod:`amuled_ma.distill.selection`) and the
-   budget admit the best ones; writes the spent budget to the state file, then forwards
-   their requests to the panel's source, which asks the LLMs and stores the answers;
-4. keeps the answers as training pairs and refits the model when due: after 1, 2, 4, ...
-   asked states with answers, then every ``refit_every`` (earlier fits make the first
-   states' neighbours answerable at once); every ``1 / holdout``-th asked state is kept
-   out of the fit and measures the model's agreement with the panel;
-5. answers every other state with the model (status ``"distilled"``), or, for a member
-   of which no asked state has an answer yet, not at all (``"unasked"``, a failure: that
-   member abstains);
-6. with ``answer_misses``, replaces a replay miss or an abstention of an asked state by
-   the model's belief (status ``"distilled_miss"``).
-
-The model's answers never reach the belief store (they are made above it), so the store
-holds exactly the asked states' answers. Answers of the model count as answers in the
-fusion and are reported apart from the panel's (:meth:`DistilledSource.report`).
+Per batch: group the requests by state (observation and chat) and record them as visited;
+answer states asked before (from this process's answers, or after a resume through the
+store); let the selection and budget admit new states, save the spent budget, then forward
+them to the panel; refit when due (after 1, 2, 4, ... answered states, then every
+``refit_every``); answer every other state with the model (``distilled``, or ``unasked`` for
+a member with no answer yet). The model's answers are made above the belief store, so the
+store holds exactly the asked states' answers.
 """
 
 from __future__ import annotations
@@ -65,6 +42,7 @@ from amuled_ma.distill.selection import (
 )
 from amuled_ma.distill.state import (
     SAVE_EVERY_S,
+    START_OVER,
     StateFiles,
     check_counters,
     check_ledger_rest,
@@ -75,10 +53,8 @@ from amuled_ma.errors import AmuledError
 if TYPE_CHECKING:
     from amuled_ma.scenario import DistillConfig
 
-#: Status of a belief the model gave for a state that was not asked (``"distilled"``), and
-#: of the model's belief in place of an asked state's replay miss or abstention
-#: (``"distilled_miss"``); :data:`~amuled_ma.beliefs.types.UNASKED` (``"unasked"``): a
-#: state not asked whose member the model cannot answer yet (a failure).
+#: Statuses of the model's belief for a state not asked, and in place of an asked state's
+#: replay miss or abstention.
 DISTILLED, DISTILLED_MISS = MODEL_STATUSES
 #: Inner statuses the model answers instead with ``answer_misses``.
 MISS_STATUSES = frozenset({"replay_miss", "abstained"})
@@ -86,20 +62,11 @@ MISS_STATUSES = frozenset({"replay_miss", "abstained"})
 
 @dataclass
 class DistillStats:
-    """Counters of a :class:`DistilledSource` (kept across a resume).
+    """Counters of a `DistilledSource`, kept across a resume.
 
-    Attributes:
-        requests_forwarded: Requests handed to the panel's source: an asked state's, once
-            per process (again after a resume, then mostly answered by the store).
-        requests_sent: Of those, the ones its belief store did not hold, which went to
-            the LLMs (or the recording); the forwarded count when the source keeps no
-            store.
-        model_answers: Beliefs the model gave for states not asked (one per member and
-            state answered; again after each refit).
-        miss_answers: Beliefs the model gave instead of a replay miss or an abstention.
-        unasked_answers: Beliefs of states not asked that the model could not give.
-        refits: Fits of the model.
-
+    ``requests_forwarded`` counts requests handed to the panel's source (once per process per
+    asked state), ``requests_sent`` those its store did not hold; ``model_answers``,
+    ``miss_answers`` and ``unasked_answers`` count beliefs the model gave or could not give.
     """
 
     requests_forwarded: int = 0
@@ -110,7 +77,7 @@ class DistillStats:
     refits: int = 0
 
 
-#: The counters of :class:`DistillStats` (a state file holds exactly these).
+#: The counters of `DistillStats` (a state file holds exactly these).
 _COUNTERS = tuple(DistillStats.__dataclass_fields__)
 
 
@@ -134,32 +101,18 @@ class _Example:
 
 
 class DistilledSource(BeliefSource):
-    """The panel's source behind a budget and a distilled model (see the module).
+    """The panel's source behind a budget and a distilled model.
 
-    Args:
-        source: The panel's source (its store answers asked states again for free); the
-            attribute ``source``, as :class:`~amuled_ma.beliefs.cached.CachedSource` names
-            its wrapped source.
-        budget: A share of distinct visited states in ``(0, 1]`` (float) or a count
-            ``>= 1`` (int) of states the panel may be asked.
-        selection: ``"uncertainty"`` or ``"random"``.
-        ensemble: Networks of the model.
-        hidden: Units of each hidden layer.
-        refit_every: Newly answered asked states between two refits (after the first
-            1, 2, 4, ... states).
-        holdout: Share of asked states kept out of the fit, in ``[0, 0.5]``.
-        answer_misses: Answer an asked state's replay misses and abstentions by the model.
-        seed: Seed of the fits and of the random selection.
-        fusion_rule: The panel's fusion rule (for the fused agreement on held-out states).
-        state_dir: Folder of the state files (None: nothing is kept on disk).
-        resume: Load the state files of ``state_dir`` (the budget already spent, the
-            training pairs); otherwise they are removed and the budget starts afresh.
-        fit_steps: Most Adam steps per fit.
+    ``budget`` is a share of distinct visited states in ``(0, 1]`` (float) or a count ``>= 1``;
+    ``selection`` ``"uncertainty"`` or ``"random"``; ``refit_every`` newly answered asked states
+    between two refits; ``holdout`` the share of asked states kept out of the fit, in
+    ``[0, 0.5]``; ``answer_misses`` answers an asked state's replay misses and abstentions by the
+    model; ``fusion_rule`` fuses the held-out agreement; ``state_dir`` None keeps nothing on disk,
+    and without ``resume`` its state files are removed.
 
     Raises:
         AmuledError: A setting out of range, or ``resume`` with state files written with
-            other settings or damaged (the message names the file and ``--force``).
-
+            other settings or damaged.
     """
 
     name = "distilled"
@@ -294,16 +247,9 @@ class DistilledSource(BeliefSource):
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
         """Forward asked states to the panel's source, answer the others by the model.
 
-        Args:
-            requests: One batch (several members per state).
-
-        Returns:
-            One result per request, in order.
-
         Raises:
             RuntimeError: The panel's source answered a different number of results.
             AmuledError: The requests change task, actions or observation length.
-
         """
         if not requests:
             return []
@@ -338,16 +284,10 @@ class DistilledSource(BeliefSource):
 
     # -- accounting --------------------------------------------------------------------
     def report(self) -> dict[str, Any]:
-        """The honest accounting, JSON-ready (``feedback.json``, ``results.json``).
+        """The accounting, JSON-ready: settings, state counts, counters, held-out agreement.
 
-        Returns:
-            The settings; ``visited_states``, ``asked_states``, ``asked_share``, ``cap``
-            (most states the budget allows now), ``model_states`` (visited, not asked:
-            answered by the model); the :class:`DistillStats` counters; ``members``;
-            ``holdout_states`` and ``holdout_tv`` (per member) and ``holdout_tv_fused``:
-            the mean total-variation distance between the model's and the panel's beliefs
-            on the held-out asked states at the last fit (None before one).
-
+        ``holdout_tv`` (per member) and ``holdout_tv_fused`` are the mean total-variation distance
+        between the model's and the panel's beliefs on the held-out states at the last fit.
         """
         ledger = self.ledger
         visited, asked = ledger.visited_count, ledger.asked_count
@@ -492,11 +432,7 @@ class DistilledSource(BeliefSource):
             self._measure([e for e in self._ordered_examples() if e.holdout and e.beliefs])
 
     def _recall(self, states: list[_State], results: list) -> None:
-        """The panel's answers to states asked earlier in this process, again (copies).
-
-        A state is forwarded to the panel's source once per process: its answers, failures
-        included, are kept; the store would serve the answers but ask a failure again.
-        """
+        """Copies of the panel's answers (failures included) to states asked in this process."""
         for s in states:
             kept = self._answers[s.key]
             for member, positions in s.positions.items():
@@ -682,7 +618,7 @@ class DistilledSource(BeliefSource):
         if diffs:
             raise AmuledError(
                 f"{where} was written with other [feedback.distill] settings (saved -> now: "
-                f"{'; '.join(diffs)}); start the fine-tune over with --force"
+                f"{'; '.join(diffs)}); {START_OVER}"
             )
         # the scenario's budget is the budget: the ledger's must be the same
         self.ledger = BudgetLedger.from_dict(data.get("ledger"), where, budget=self.budget)
@@ -692,7 +628,7 @@ class DistilledSource(BeliefSource):
         if type(generation) is not int or not 0 <= generation <= asked:
             raise AmuledError(
                 f"{where}: generation is {generation!r}, expected an integer in [0, {asked}] "
-                "(at most one fit per asked state); start the fine-tune over with --force"
+                f"(at most one fit per asked state); {START_OVER}"
             )
         check_state_keys(self.ledger.visited, "ledger.visited", where)
         check_state_keys(self.ledger.asked, "ledger.asked", where)
@@ -706,8 +642,7 @@ class DistilledSource(BeliefSource):
             self._rng.bit_generator.state = rest.rng.model_dump()
         if set(self._asked_obs) != set(self.ledger.asked):
             raise AmuledError(
-                f"{where}: asked_obs and ledger.asked name different states; start the "
-                "fine-tune over with --force"
+                f"{where}: asked_obs and ledger.asked name different states; {START_OVER}"
             )
         order = {key: n for n, key in enumerate(self.ledger.asked)}
         a = len(self.actions or ())
@@ -716,13 +651,12 @@ class DistilledSource(BeliefSource):
             if key not in order:  # written only after the ledger charged it: edited
                 raise AmuledError(
                     f"{line}: answers of state {key[:16]}, which {where} never "
-                    "asked (one of the files was edited); start the fine-tune over with --force"
+                    f"asked (one of the files was edited); {START_OVER}"
                 )
             if len(record.obs) != self.obs_dim:
                 raise AmuledError(
                     f"{line}: obs has {len(record.obs)} values, but {where} says obs_dim "
-                    f"{self.obs_dim} (one of the files was edited); start the fine-tune over "
-                    "with --force"
+                    f"{self.obs_dim} (one of the files was edited); {START_OVER}"
                 )
             beliefs = {}
             for member, values in record.beliefs.items():
@@ -733,10 +667,7 @@ class DistilledSource(BeliefSource):
                         if belief is None
                         else (f"a belief of {member!r}, not a member of {where}")
                     )
-                    raise AmuledError(
-                        f"{line}: {what} (one of the files was edited); start the fine-tune "
-                        "over with --force"
-                    )
+                    raise AmuledError(f"{line}: {what} (one of the files was edited); {START_OVER}")
                 beliefs[member] = belief
             obs = np.asarray(record.obs, dtype=np.float64)
             self._examples[key] = _Example(key, obs, beliefs, self._is_holdout(order[key]))

@@ -1,22 +1,9 @@
 """The files that keep a distilled fine-tune's budget and training pairs across a resume.
 
-In the fine-tune's folder:
-
-- ``distill.json``: the settings, the budget ledger (every distinct state visited, the
-  states asked in order, their observations), the panel members and actions, the number
-  of refits, the counters and the random selection's generator. Written whole to a
-  temporary file and moved over the old one (``os.replace``), so a crash leaves the old
-  or the new file, never half of one. It is written **before** a batch's asked states are
-  sent to the panel (the budget is spent first), after a batch that changed anything at
-  most every :data:`SAVE_EVERY_S` seconds, and when the feedback is closed.
-- ``distill-examples.jsonl``: the training pairs, one JSON line per asked state as its
-  answers arrive (observation, each member's belief; appended, never rewritten). A line
-  cut short by a crash is the last one and is ignored; the state is asked again from
-  the store (a cache hit) the next time it is visited.
-
-Nothing here is written into the belief store: the store holds exactly the panel's
-answers to the asked states. Both files are written and read back through
-:mod:`amuled_ma.safe_files`: never through a link, only regular files inside the folder.
+``distill.json`` (the ledger, counters and generator) is replaced whole, and written before
+a batch's asked states are sent, so the budget is spent first; ``distill-examples.jsonl``
+gets one appended line per asked state (a line cut by a crash is ignored). Nothing here goes
+into the belief store, which holds exactly the panel's answers.
 """
 
 from __future__ import annotations
@@ -39,31 +26,25 @@ from amuled_ma.safe_files import append_text, atomic_writer, checked_read_path
 LEDGER_FILE = "distill.json"
 #: File of the training pairs (JSON Lines).
 EXAMPLES_FILE = "distill-examples.jsonl"
-#: Format tag of :data:`LEDGER_FILE`.
+#: Format tag of `LEDGER_FILE`.
 FORMAT = "amuled-distill/1"
 #: Seconds between two writes of the ledger when no state was asked.
 SAVE_EVERY_S = 5.0
 #: Largest counter a state file may hold (2**53: exact in JSON's doubles).
 MAX_COUNTER = 2**53
-#: Largest ledger read [bytes, 1 GiB]. It grows with the states: 35 bytes a distinct state
-#: visited, and 70 bytes plus about 20 an observation value a state asked (measured), so
-#: a budget of 1,000,000 states asked of 10,000,000 visited, of 16-value observations, is
-#: about 740 MB; it is read whole, and the run held the same in memory.
+#: Largest ledger read [bytes]: 35 a state visited, 70 + 20 an observation value a state
+#: asked (measured); 1,000,000 asked of 10,000,000 visited is about 740 MB.
 MAX_LEDGER_BYTES = 2**30
-#: Largest training-pairs file read [bytes, 2 GiB]: one line a state asked, about 130
-#: bytes for a 2-value observation and 2 members of 4 actions, 1 KB for 16 values and 5
-#: members of 5 actions: a budget of 1,000,000 asked states is about 1 GB. It is read a
-#: line at a time.
+#: Largest training-pairs file read [bytes]: a line a state asked, 130 bytes to 1 KB;
+#: 1,000,000 asked states is about 1 GB.
 MAX_EXAMPLES_BYTES = 2**31
-#: Longest line of the training-pairs file [bytes]: one state's observation and each
-#: member's belief, about 1 KB (above); a longer line was not written by a fine-tune.
+#: Longest line of the training-pairs file [bytes] (a fine-tune writes about 1 KB).
 MAX_EXAMPLE_LINE_BYTES = 2**20
 #: The fix of every refusal of a state file: they are this run's own files.
-_START_OVER = "start the fine-tune over with --force"
+START_OVER = "start the fine-tune over with --force"
 #: A state's key as a fine-tune writes it: a 128-bit BLAKE2b digest in hexadecimal.
 STATE_KEY = re.compile(r"[0-9a-f]{32}")
-#: Most values of one observation (the tasks' have 2 to 16; a request holds the whole
-#: observation, so a larger one is not a fine-tune's).
+#: Most values of one observation (the tasks' have 2 to 16).
 MAX_OBS_DIM = 4096
 #: Most panel members and actions a state file may name (a panel has a few of each).
 MAX_NAMES = 256
@@ -91,12 +72,7 @@ class RngState(_Strict):
 
 
 class LedgerRest(BaseModel):
-    """The fields of ``distill.json`` besides the settings, ledger, counters and generation.
-
-    Each observation is a list of :data:`MAX_OBS_DIM` finite numbers at most, all of
-    length ``obs_dim``; the members and actions are distinct names; the generator's words
-    are numpy's ranges. :func:`check_ledger_rest` turns a failure into one line.
-    """
+    """The fields of ``distill.json`` besides the settings, ledger, counters and generation."""
 
     model_config = ConfigDict(strict=True, extra="ignore", frozen=True)
 
@@ -135,41 +111,31 @@ def _first_error(error: ValidationError) -> str:
 
 
 def check_ledger_rest(data: Mapping[str, Any], where: str) -> LedgerRest:
-    """The observations, names, sizes and generator of a ledger, checked (:class:`LedgerRest`).
+    """The observations, names, sizes and generator of a ledger, checked (`LedgerRest`).
 
     Raises:
         AmuledError: One line naming ``where``, the field, what was found and ``--force``.
-
     """
     try:
         return LedgerRest.model_validate(dict(data))
     except ValidationError as error:
         raise AmuledError(
-            f"{where}: {_first_error(error)}; the file was edited or damaged; {_START_OVER}"
+            f"{where}: {_first_error(error)}; the file was edited or damaged; {START_OVER}"
         ) from None
 
 
 def check_state_keys(keys: Iterable[str], field: str, where: str) -> None:
-    """Refuse a ledger entry that is not a state key as a fine-tune writes it (32 hex digits).
-
-    Raises:
-        AmuledError: One line naming ``where``, ``field``, the entry and ``--force``.
-
-    """
+    """Refuse a ledger entry that is not a state key (32 hex digits), naming ``where``."""
     for key in keys:
         if not STATE_KEY.fullmatch(key):
             raise AmuledError(
                 f"{where}: {field} holds {key[:40]!r}, not a state key (32 hexadecimal "
-                f"digits, as a fine-tune writes them); the file was edited; {_START_OVER}"
+                f"digits, as a fine-tune writes them); the file was edited; {START_OVER}"
             )
 
 
 class Example(BaseModel):
-    """One line of ``distill-examples.jsonl``: a state's key, observation and beliefs.
-
-    The lengths and the beliefs' sums are checked by the reader, which knows the task
-    (:meth:`amuled_ma.distill.source.DistilledSource` through :func:`check_example`).
-    """
+    """One line of ``distill-examples.jsonl``; lengths and sums are checked by `DistilledSource`."""
 
     model_config = ConfigDict(strict=True, extra="forbid", frozen=True)
 
@@ -179,43 +145,26 @@ class Example(BaseModel):
 
 
 def check_example(record: object, where: str) -> Example:
-    """One training pair, checked (:class:`Example`).
-
-    Raises:
-        AmuledError: One line naming ``where`` (``FILE:LINE``), the field and ``--force``.
-
-    """
+    """One training pair, checked (`Example`); AmuledError naming ``where`` (``FILE:LINE``)."""
     try:
         return Example.model_validate(record)
     except ValidationError as error:
         raise AmuledError(
-            f"{where}: {_first_error(error)}; the file was edited or damaged; {_START_OVER}"
+            f"{where}: {_first_error(error)}; the file was edited or damaged; {START_OVER}"
         ) from None
 
 
 def check_counters(
     counters: object, names: Iterable[str], asked: int, where: str
 ) -> dict[str, int]:
-    """The ``counters`` of a state file, checked: integers in ``[0, 2**53]``, consistent.
-
-    Args:
-        counters: The file's ``counters`` table.
-        names: The counters expected (:class:`~amuled_ma.distill.source.DistillStats`).
-        asked: States asked (the ledger's): no more refits than that.
-        where: The file, named in an error.
-
-    Returns:
-        The counters.
+    """The ``counters`` of a state file, checked against ``names``; returns them.
 
     Raises:
-        AmuledError: A counter missing, unknown, not an integer (a string, a float, a
-            bool), negative or above :data:`MAX_COUNTER`, more requests sent than
-            forwarded, or more refits than asked states: one line naming the file and
-            ``--force``.
-
+        AmuledError: A counter missing, unknown, not an int in ``[0, MAX_COUNTER]``, more
+            requests sent than forwarded, or more refits than ``asked`` states.
     """
     names = list(names)
-    fix = "the file was edited or damaged; start the fine-tune over with --force"
+    fix = f"the file was edited or damaged; {START_OVER}"
     if not isinstance(counters, Mapping) or set(counters) != set(names):
         raise AmuledError(f"{where}: 'counters' must hold {', '.join(names)}; {fix}")
     for name in names:
@@ -239,12 +188,7 @@ def check_counters(
 
 
 class StateFiles:
-    """The two state files of one fine-tune folder.
-
-    Args:
-        folder: The fine-tune's folder (created on the first write).
-
-    """
+    """The two state files of one fine-tune folder (created on the first write)."""
 
     def __init__(self, folder: str | os.PathLike[str]) -> None:
         self.folder = Path(folder)
@@ -262,14 +206,10 @@ class StateFiles:
             path.unlink(missing_ok=True)
 
     def load(self) -> dict[str, Any]:
-        """Read the ledger.
+        """Read the ledger (UnsafePathError on a link).
 
         Raises:
-            AmuledError: It is larger than :data:`MAX_LEDGER_BYTES` (refused before it is
-                read) or not readable JSON of this format; the message names the file and
-                ``--force`` (start over).
-            UnsafePathError: It is a link or not a regular file (nothing is read).
-
+            AmuledError: Over `MAX_LEDGER_BYTES` (refused unread) or not JSON of this format.
         """
         ledger = checked_read_path(self.folder, LEDGER_FILE)
         try:
@@ -278,44 +218,30 @@ class StateFiles:
                 MAX_LEDGER_BYTES,
                 "budget state",
                 note="a budget of 1,000,000 asked states is about 740 MB",
-                fix=f"the file was edited or is not this run's; {_START_OVER}",
+                fix=f"the file was edited or is not this run's; {START_OVER}",
             )
             data = json.loads(raw)
         except (OSError, ValueError, RecursionError) as error:
             if isinstance(error, RecursionError):
                 error = ValueError("nested deeper than Python's JSON reader can follow")
             raise AmuledError(
-                f"{self.ledger}: not a readable budget state ({error}); start the fine-tune "
-                "over with --force"
+                f"{self.ledger}: not a readable budget state ({error}); {START_OVER}"
             ) from error
         if not isinstance(data, dict) or data.get("format") != FORMAT:
             raise AmuledError(
-                f"{self.ledger}: not a budget state of format {FORMAT!r}; start the "
-                "fine-tune over with --force"
+                f"{self.ledger}: not a budget state of format {FORMAT!r}; {START_OVER}"
             )
         return data
 
     def save(self, data: Mapping[str, Any]) -> None:
-        """Write the ledger whole or not at all, never through a link.
-
-        Raises:
-            UnsafePathError: The ledger is a link or not a regular file; nothing written.
-            FileWriteError: The write failed (a full disk); the old ledger is kept.
-
-        """
+        """Write the ledger whole or not at all (UnsafePathError on a link; FileWriteError)."""
         self.folder.mkdir(parents=True, exist_ok=True)
         with atomic_writer(self.ledger, text=True) as handle:
             json.dump({"format": FORMAT, **data}, handle, separators=(",", ":"))
         self.saved_at = time.monotonic()
 
     def append(self, records: Iterable[Mapping[str, Any]]) -> None:
-        """Append training pairs, one JSON line each, never through a link.
-
-        Raises:
-            UnsafePathError: The pairs file is a link or not a regular file.
-            FileWriteError: The write failed (a full disk); the pairs before are kept.
-
-        """
+        """Append training pairs, one JSON line each (UnsafePathError on a link, FileWriteError)."""
         lines = "".join(json.dumps(r, separators=(",", ":")) + "\n" for r in records)
         if not lines:
             return
@@ -326,16 +252,12 @@ class StateFiles:
         """Every training pair written (a cut last line is skipped), with its ``FILE:LINE``.
 
         Raises:
-            AmuledError: A line other than the last is not JSON (the file was edited) or
-                not an :class:`Example` (a key, finite numbers, nothing else), the file is
-                larger than :data:`MAX_EXAMPLES_BYTES` or a line longer than
-                :data:`MAX_EXAMPLE_LINE_BYTES` (refused before it is read whole).
-            UnsafePathError: It is a link or not a regular file (nothing is read).
-
+            AmuledError: A line other than the last not JSON or not an `Example`, or a size over
+                `MAX_EXAMPLES_BYTES` / `MAX_EXAMPLE_LINE_BYTES`.
         """
         if not checked_read_path(self.folder, EXAMPLES_FILE).is_file():
             return []
-        fix = f"the file was edited or is not this run's; {_START_OVER}"
+        fix = f"the file was edited or is not this run's; {START_OVER}"
         out = []
         try:
             check_size(
@@ -361,12 +283,12 @@ class StateFiles:
                         if not line.endswith(b"\n") or not handle.peek(1):
                             break  # the last line, cut short by a crash while it was written
                         raise AmuledError(
-                            f"{self.examples}:{number}: not JSON ({error}); {_START_OVER}"
+                            f"{self.examples}:{number}: not JSON ({error}); {START_OVER}"
                         ) from None
                     where = f"{self.examples}:{number}"
                     out.append((where, check_example(record, where)))
         except OSError as error:
             raise AmuledError(
-                f"{self.examples}: cannot read the training pairs ({error}); {_START_OVER}"
+                f"{self.examples}: cannot read the training pairs ({error}); {START_OVER}"
             ) from error
         return out

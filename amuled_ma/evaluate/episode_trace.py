@@ -1,15 +1,7 @@
 """One evaluation episode, step by step: what the policy saw, did and would have done.
 
-The viewer (`viewer`, ``amuled view``) and ``amuled explain
---state-from`` replay evaluation episode ``K`` of a trained variant with the evaluator's
-own rollout (`rollout`: the same ``N`` task copies, the
-same seeds, the same action draws), watching copy ``K``: in greedy and in sampled mode the
-episode shown is the episode ``amuled evaluate`` scored. Per step it records the
-observation, the prompt variables, the policy's probabilities and action, the base policy's,
-the task's events, the reward and a small picture of the state (`Episode`).
-
-Which variant, scenario and checkpoints are the caller's to resolve (the commands read
-them from the run's records): `TrainedVariant` carries them here.
+Episode ``K`` is replayed with the evaluator's own rollout (same ``N`` copies, seeds and
+action draws), so it is the episode ``amuled evaluate`` scored, in greedy and sampled mode.
 """
 
 from __future__ import annotations
@@ -56,13 +48,7 @@ __all__ = [
 class TrainedVariant:
     """A trained variant as the viewer and ``amuled explain`` need it (resolved by the caller).
 
-    Attributes:
-        name: Its folder's name (shown on the page).
-        checkpoint: Its policy (``<folder>/model_last.pt``).
-        scenario: The scenario it was trained with.
-        variant: What it trained (from its run record; None when not recorded).
-        base_checkpoint: The base policy it was fine-tuned from (None: none found).
-
+    ``variant`` is None when not recorded; ``base_checkpoint`` None when none was found.
     """
 
     name: str
@@ -81,35 +67,13 @@ class TrainedVariant:
 
 @dataclass
 class Episode:
-    """One evaluation episode of one policy (copy ``K`` of the evaluation), step by step.
+    """One evaluation episode of one policy (copy ``K`` of ``episodes``), step by step.
 
-    ``T`` is the number of steps taken; state ``t`` is the state step ``t`` was taken in
-    (state ``T`` is the last one reached).
-
-    Attributes:
-        task: Task name.
-        episode: Evaluation episode index ``K``.
-        seed: The task copy's seed, ``[evaluation].seed + K``.
-        mode: ``greedy`` or ``sampled``.
-        action_names: The task's action names.
-        obs: ``[T + 1, obs_dim]`` observations of states ``0..T``.
-        prompt_vars: ``T`` dicts, the prompt variables of states ``0..T-1``.
-        actions: ``[T]`` the policy's actions.
-        probs: ``[T, A]`` the policy's action probabilities.
-        base_actions: ``[T]`` the base policy's greedy action in the same states (None
-            without a base policy).
-        base_probs: ``[T, A]`` the base policy's probabilities (None without one).
-        events: Per-step task events (``[T]`` each: ``collisions``, ``rescues``,
-            ``crying_pacified``, ...).
-        rewards: ``[T]`` the environment reward ``r_env`` of each step.
-        frames: ``T + 1`` pictures of the states (task-specific, see `frame_of`).
-        layout: What stays fixed over the episode (FindMilk: milk and babies at the start).
-        terminated: The episode ended by the task (not by the time limit).
-        metrics: The task's episode metrics (``info["episode"]`` at the end).
-        live_beliefs: ``[T, A]`` a non-panel feedback's belief per step (None otherwise).
-        live_statuses: ``T`` tuples of ``(agent, status)`` of that feedback.
-        episodes: ``N``, the copies of the evaluation it is episode ``K`` of.
-
+    ``T`` steps; state ``t`` is the state step ``t`` was taken in (state ``T`` the last one
+    reached). ``obs`` and ``frames`` hold ``T + 1`` states, ``prompt_vars``, ``actions``,
+    ``probs`` ``[T, A]``, ``events`` and ``rewards`` (``r_env``) ``T`` steps; ``base_*`` are the
+    base policy's (None without one), ``live_*`` a non-panel feedback's (None otherwise);
+    ``seed`` is ``[evaluation].seed + K``; ``terminated`` means ended by the task, not the limit.
     """
 
     task: str
@@ -139,13 +103,7 @@ class Episode:
         return len(self.actions)
 
     def unique_states(self) -> tuple[list[int], np.ndarray]:
-        """The distinct states of steps ``0..T-1`` (observation and prompt variables).
-
-        Returns:
-            ``(first, index)``: the first step of each distinct state, and for every step
-            the position of its state in ``first``.
-
-        """
+        """``(first, index)``: each distinct state's first step, and each step's position in it."""
         first: list[int] = []
         seen: dict[bytes, int] = {}
         index = np.empty(self.length, dtype=np.int64)
@@ -161,11 +119,7 @@ class Episode:
 
 
 def frame_of(task: BatchedTask, copy: int = 0) -> Any:
-    """A small, JSON-ready picture of one copy of a task.
-
-    FindMilk: the robot's ``[x, y]``. Driving: ``[lane, [lane, distance] of each car,
-    [lane, distance] of each grandma]``. Any other task: its ``render_ansi`` text.
-    """
+    """A small, JSON-ready picture of one task copy (FindMilk: the robot's ``[x, y]``)."""
     if isinstance(task, FindMilk):
         x, y = (int(v) for v in task.position[copy].tolist())
         return [x, y]
@@ -192,12 +146,7 @@ def layout_of(task: BatchedTask, obs: torch.Tensor, copy: int = 0) -> dict[str, 
 
 
 def _final_frame(task: BatchedTask, previous: Any, final_obs: torch.Tensor) -> Any:
-    """The picture of the last state, after the task reset the copy.
-
-    FindMilk: the robot's position is in the final observation. Driving: the lane is in
-    the final observation's one-hot; the objects are those of the previous picture moved
-    one step closer (the road's rules), without the ones that reached the agent.
-    """
+    """The picture of the last state, after the task reset the copy (from the final observation)."""
     if task.name == "findmilk":
         return [int(final_obs[0]), int(final_obs[1])]
     if task.name == "driving":
@@ -396,17 +345,9 @@ def replay_variant(
 ) -> Episode:
     """Replay evaluation episode ``episode`` of a trained variant, its base policy beside it.
 
-    Args:
-        trained: The variant (policy, scenario, base checkpoint).
-        episode: Evaluation episode ``K``.
-        mode: ``greedy`` or ``sampled``.
-        episodes: ``N`` of the evaluation (default ``[evaluation].episodes``).
-        live_feedback: A feedback asked about every state as the episode runs.
-
     Raises:
         CheckpointError: A policy is missing or does not fit the scenario.
-        ScenarioError: See `replay_episode`.
-
+        ScenarioError: As `replay_episode`.
     """
     scenario = trained.scenario
     actor = load_actor(trained.checkpoint, scenario)

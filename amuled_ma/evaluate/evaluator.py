@@ -1,11 +1,7 @@
 """Evaluate trained policies: N episodes, greedy and sampled, paper metrics with 95% CIs.
 
-Every episode runs in its own task copy (copy ``i`` seeded ``seed + i``), all copies
-stepped together; each copy's *first* episode is recorded. The metrics are the task's
-own (``info["episode"]``): FindMilk ``steps_to_milk``, ``crying_pacified``,
-``sleeping_woken``, ``reached_milk``; Driving ``collisions``, ``lane_changes``,
-``rescues`` (grandmas rescued), ``non_straight_steps`` (the authors' lane-change count),
-plus ``return_env`` and ``length``.
+Every episode runs in its own task copy (copy ``i`` seeded ``seed + i``), all stepped
+together; each copy's first episode is recorded with the task's own ``info["episode"]``.
 """
 
 from __future__ import annotations
@@ -37,27 +33,15 @@ PAPER_METRICS = {
 }
 #: A fine-tune's fused-belief diagnostics, in its variant folder.
 FEEDBACK_FILE = "feedback.json"
-#: Largest ``feedback.json`` read [bytes]: a fine-tune's is about 4 KB (its counts per
-#: member and status, whatever the run's length); 16 MiB is 4,000 times that, and the
-#: file is read whole, one per variant folder.
+#: Largest ``feedback.json`` read [bytes] (a fine-tune's is about 4 KB).
 MAX_FEEDBACK_BYTES = 16 * 2**20
 
 
 def read_feedback(folder: Path) -> dict[str, Any] | None:
-    """A variant folder's ``feedback.json`` (a fine-tune's diagnostics), None without one.
-
-    Args:
-        folder: A variant folder.
-
-    Returns:
-        The diagnostics as written by the trainer, or None when the folder has none.
+    """A variant folder's ``feedback.json``, None without one.
 
     Raises:
-        AmuledError: The file is larger than `MAX_FEEDBACK_BYTES` (refused from its
-            size, before it is read), a link or not a regular file
-            (`checked_read_path`), cannot be read, or is not a
-            JSON object; one line naming the file.
-
+        AmuledError: Over `MAX_FEEDBACK_BYTES`, refused by `checked_read_path`, or not JSON.
     """
     from amuled_ma.file_limits import read_bounded_json
 
@@ -126,20 +110,11 @@ def summarize(records: list[dict[str, float]], confidence: float = 0.95) -> dict
 def combine_replicas(
     replicas: list[tuple[str, list[dict[str, float]], dict[str, Any]]], confidence: float
 ) -> dict[str, Any]:
-    """One variant's evaluation over its seed replicas.
+    """One variant's evaluation over its seed replicas (``(folder, records, trajectory)``).
 
-    With one replica the intervals are over its episodes. With several, each metric is the
-    mean of the per-seed means and its interval is over the seeds (n = seeds): the spread
-    of training runs, not only of episodes. The trajectory and episode records are the
-    first replica's; every replica's own summary is kept under ``"replicas"``.
-
-    Args:
-        replicas: ``(folder, episode records, trajectory)`` per seed replica.
-        confidence: Two-sided confidence level.
-
-    Returns:
-        ``{"metrics", "ci_over", "n_seeds", "trajectory", "episodes"[, "replicas"]}``.
-
+    With several replicas each metric is the mean of the per-seed means, its interval over the
+    seeds; trajectory and episodes are the first replica's, each replica's summary under
+    ``"replicas"``.
     """
     _first, records, trajectory = replicas[0]
     entry: dict[str, Any] = {
@@ -162,11 +137,7 @@ def combine_replicas(
 
 
 def merge_feedback(summaries: list[dict[str, Any]]) -> dict[str, Any]:
-    """Fused-belief diagnostics of several seed replicas: means, with statuses summed.
-
-    Each LLM server's figures (``llm_servers``) are added up with
-    `merge_host_stats`.
-    """
+    """Fused-belief diagnostics of several seed replicas: means; statuses and servers summed."""
     if len(summaries) == 1:
         return summaries[0]
     statuses: dict[str, int] = {}
@@ -227,11 +198,7 @@ _DISTILL_SUMS = (
 
 
 def merge_distill(reports: list[dict[str, Any]]) -> dict[str, Any]:
-    """The budget accounting (``feedback["distill"]``) of several seed replicas.
-
-    Counts are summed (``asked_share`` recomputed from the sums), the held-out distances
-    averaged over the replicas that measured them, the settings taken from the first.
-    """
+    """Several seed replicas' budget accounting: counts summed, held-out distances averaged."""
     if len(reports) == 1:
         return reports[0]
     out = {k: v for k, v in reports[0].items() if k not in _DISTILL_SUMS}
@@ -390,12 +357,7 @@ def evaluate_run(
 
 
 def panel_entry(record: RunRecord) -> dict[str, Any] | None:
-    """What a fine-tune's feedback was, as ``results.json`` keeps it under ``"panel"``.
-
-    From the variant folder's record: the variant's feedback, the recipe, lambda_KL, the
-    planned iterations and seed, and (from its ``training`` settings) the agents, their
-    sources, the recording and the fusion rule; None for a folder that is no fine-tune.
-    """
+    """A fine-tune's feedback as ``results.json`` keeps it under ``"panel"``; None if none."""
     variant = record.variant
     if variant is None or not variant.finetuning:
         return None

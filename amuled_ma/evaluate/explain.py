@@ -1,14 +1,6 @@
 """One state explained: each agent's belief, weight and reasoning, and the fusion's workings.
 
-``amuled explain`` (:mod:`amuled_ma.commands.explain`) parses the command line and prints;
-this module does the rest. A state comes from an evaluation episode
-(:func:`state_of_step`) or is given by hand (:func:`state_by_hand`);
-:func:`explain_lines` asks the variant's feedback about it
-(:func:`~amuled_ma.evaluate.panel_answers.ask_panel`) and writes each agent's belief,
-status, fusion weight and raw reply, then the fusion's intermediate quantities recomputed
-with :mod:`amuled_ma.fusion` (:func:`fusion_breakdown`: pairwise BJS divergences, average
-divergence, credibility, Deng entropy, information volume, weights, the weighted average
-evidence and Dempster's conflict ``K`` of each combination) and the fused belief.
+``amuled explain`` parses and prints; this module builds the lines.
 """
 
 from __future__ import annotations
@@ -62,18 +54,7 @@ _UNPRINTABLE = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u206
 
 
 def printable(text: str) -> str:
-    r"""Text safe to print on a terminal: each control character written as an escape.
-
-    ``"\x1b]52;c;...\x07"`` (an OSC clipboard write) prints as ``\x1b]52;c;...\x07``:
-    the reader sees what the reply held, and the terminal runs nothing.
-
-    Args:
-        text: A reply, a reason, a name: text from outside the program.
-
-    Returns:
-        The text with every character of :data:`_UNPRINTABLE` as ``\xNN`` / ``\uNNNN``.
-
-    """
+    r"""Outside text safe to print on a terminal: control characters as ``\xNN``/``\uNNNN``."""
     return _UNPRINTABLE.sub(_escape, text)
 
 
@@ -101,10 +82,7 @@ def parse_obs(text: str, task_cls: type[BatchedTask]) -> np.ndarray:
     """``"1,2,3"`` -> float array, checked against the task's observation length.
 
     Raises:
-        ScenarioError: Not numbers, a number that is not finite as a 32-bit float (``nan``,
-            ``inf``, ``1e400``, ``1e39``: observations are float32), or the wrong count
-            (the message lists the entries).
-
+        ScenarioError: Not numbers, not finite as float32, or the wrong count.
     """
     tokens = [x for x in text.replace(" ", "").split(",") if x != ""]
     try:
@@ -156,9 +134,8 @@ def parse_prompt_vars(items: Sequence[str]) -> dict[str, Any]:
     """``["num_crying=4", ...]`` -> ``{"num_crying": 4}`` (values in TOML syntax).
 
     Raises:
-        ScenarioError: Not ``NAME=VALUE``, a value nested deeper than Python reads, or a
-            number that is not finite or beyond 2^53 (:data:`MAX_PROMPT_INT`).
-
+        ScenarioError: Not ``NAME=VALUE``, nested too deep, or a number not finite or beyond
+            `MAX_PROMPT_INT`.
     """
     out: dict[str, Any] = {}
     for item in items:
@@ -180,16 +157,7 @@ def parse_prompt_vars(items: Sequence[str]) -> dict[str, Any]:
 
 @dataclass
 class State:
-    """The state to explain.
-
-    Attributes:
-        obs: ``(obs_dim,)`` its observation.
-        prompt_vars: Its prompt variables (None where the task cannot make them).
-        context: Lines saying where the state comes from.
-        live_belief: ``(A,)`` the belief of a feedback that is not a panel (None for a
-            panel).
-
-    """
+    """The state to explain; ``live_belief`` is a non-panel feedback's belief (None for a panel)."""
 
     obs: np.ndarray
     prompt_vars: dict[str, Any] | None
@@ -198,17 +166,7 @@ class State:
 
 
 def state_of_step(ep: Episode, step: int, where: str) -> State:
-    """State ``step`` of a replayed evaluation episode, with what both policies did there.
-
-    Args:
-        ep: The episode (:func:`~amuled_ma.evaluate.episode_trace.replay_episode`).
-        step: The step ``0 <= step < T``.
-        where: The variant, in words (``runs/findmilk/finetune-amuled``).
-
-    Raises:
-        ScenarioError: The episode has no such step (the message gives its length).
-
-    """
+    """State ``step`` of a replayed episode and what both policies did; ScenarioError if none."""
     if not 0 <= step < ep.length:
         raise ScenarioError(
             f"--step {step}: episode {ep.episode} of {where} has {ep.length} steps "
@@ -239,18 +197,9 @@ def state_by_hand(
 ) -> State:
     """A state given by hand: its prompt variables and, for a non-panel feedback, its belief.
 
-    Args:
-        task_cls: The task's class (observation names, prompt variables).
-        feedback: The feedback asked about it.
-        feedback_name: Its name (for messages).
-        obs: The observation (:func:`parse_obs`).
-        extras: Prompt variables the observation lacks (:func:`parse_prompt_vars`).
-        where: Where the scenario comes from, in words.
-
     Raises:
         ScenarioError: The panel reads prompts and a variable is missing, or the feedback
-            needs the live task (the message names ``--prompt-var`` or ``--state-from``).
-
+            needs the live task.
     """
     import torch
 
@@ -285,23 +234,11 @@ def state_by_hand(
 
 @dataclass
 class FusionBreakdown:
-    """The fusion of one state, with its intermediate quantities (``k`` answering agents).
+    """The fusion of one state over its ``k`` answering agents, with its intermediate quantities.
 
-    Attributes:
-        rule: The fusion rule.
-        agents: The agents that answered (fused), in order.
-        left_out: The agents that did not answer (weight 0), with their statuses.
-        beliefs: ``(k, A)`` their beliefs.
-        bjs: ``(k, k)`` pairwise BJS divergences.
-        bjs_mean: ``(k,)`` average divergence of each agent from the others.
-        credibility: ``(k,)`` Xiao's ``Crd_i``.
-        entropy: ``(k,)`` Deng entropy in bits.
-        volume: ``(k,)`` information volume ``exp(E_d)``, normalised to sum 1.
-        weights: ``(k,)`` final weights.
-        wae: ``(A,)`` weighted average evidence (``bjs-dst``; None otherwise).
-        conflicts: ``(k - 1,)`` Dempster's conflict at each combination.
-        fused: ``(A,)`` the fused belief.
-
+    ``bjs`` ``(k, k)``, ``credibility`` Xiao's ``Crd_i``, ``entropy`` Deng's in bits,
+    ``volume`` ``exp(E_d)`` normalised, ``wae`` the weighted average evidence (``bjs-dst`` only),
+    ``conflicts`` ``(k - 1,)`` Dempster's ``K`` at each combination.
     """
 
     rule: str
@@ -326,12 +263,7 @@ def fusion_breakdown(
     rule: str,
     prior: Sequence[float] | None = None,
 ) -> FusionBreakdown | None:
-    """Recompute one state's fusion over the agents that answered, with diagnostics.
-
-    As the panel fuses (:meth:`~amuled_ma.deliberation.panel.MoralPanel.fused`): an agent
-    without an answer abstains (left out, weight 0); with the panel's member ``prior``
-    (``[feedback].weights``), that of the agents that answered. None when no agent answered.
-    """
+    """Recompute one state's fusion as the panel fuses (non-answers left out); None if none."""
     from amuled_ma.fusion import bjs_divergence, fuse
 
     beliefs = np.asarray(beliefs, dtype=np.float64)
@@ -479,15 +411,7 @@ def explain_lines(
 
 
 def breakdown_lines(b: FusionBreakdown, actions: list[str], panel_fused: np.ndarray) -> list[str]:
-    """The fusion's intermediate quantities of one state, as lines of text.
-
-    Args:
-        b: The breakdown (:func:`fusion_breakdown`).
-        actions: The action names.
-        panel_fused: The panel's own fused belief (a note is added if the recomputation
-            differs).
-
-    """
+    """The fusion's intermediate quantities as lines, noting where ``panel_fused`` differs."""
     out: list[str] = []
     say = out.append
     answered = len(b.agents)

@@ -1,8 +1,4 @@
-"""One HTML file served on this machine, for a browser that cannot open files.
-
-``amuled view --serve``: the page at ``/`` and under its own name, everything else 404,
-nothing logged.
-"""
+"""``amuled view --serve``: one HTML file at ``/`` and its own name, all else 404, unlogged."""
 
 from __future__ import annotations
 
@@ -12,9 +8,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-#: Largest page served [bytes]: the page is held in memory and sent whole. A viewer page
-#: is about 0.2 MB (the demo's), about 3 MB for a 300-step Driving episode with five
-#: agents; 64 MiB is 20 times that.
+#: Largest page served, held in memory [bytes] (3 MB for a 300-step Driving episode).
 MAX_PAGE_BYTES = 64 * 2**20
 
 
@@ -41,21 +35,11 @@ class _OneFileHandler(http.server.BaseHTTPRequestHandler):
 
 
 def make_server(path: Path, host: str = "127.0.0.1", port: int = 0) -> http.server.HTTPServer:
-    """An HTTP server for one file on ``host`` (a free port when ``port`` is 0).
-
-    Args:
-        path: The HTML file, read once (before the address is bound).
-        host: Address to listen on.
-        port: Port (0: a free one).
-
-    Returns:
-        The server, bound, not yet serving.
+    """An HTTP server for one file (read once, before binding); ``port`` 0 picks a free one.
 
     Raises:
         OSError: The file cannot be read, or the address cannot be bound.
-        AmuledError: The file is larger than `MAX_PAGE_BYTES` (refused from its
-            size, before it is read); one line naming it.
-
+        AmuledError: The file is larger than `MAX_PAGE_BYTES` (refused unread).
     """
     from amuled_ma.file_limits import read_bounded_bytes
 
@@ -78,20 +62,7 @@ def serve(
     seconds: float | None = None,
     say: Callable[[str], None] = print,
 ) -> None:
-    """Serve one page until Ctrl-C (or ``seconds``), printing its URL.
-
-    Args:
-        path: The HTML file.
-        host: Address to listen on (default: this machine only).
-        port: Port (0: a free one).
-        seconds: Stop after this many seconds (None: until Ctrl-C).
-        say: Where the URL is printed.
-
-    Raises:
-        OSError: The page cannot be read, or the address cannot be bound.
-        AmuledError: The page is larger than `MAX_PAGE_BYTES` (`make_server`).
-
-    """
+    """Serve one page until Ctrl-C (or ``seconds``), telling ``say`` its URL (as `make_server`)."""
     server = make_server(path, host, port)
     url = f"http://{host}:{server.server_address[1]}/"
     thread = threading.Thread(target=server.serve_forever, daemon=True)

@@ -1,11 +1,4 @@
-"""What a moral panel says about states, each agent's raw reply kept beside the numbers.
-
-`ask_panel` asks a `MoralPanel` about distinct
-states with one `fused` call, as training
-makes it, and keeps each agent's raw reply (the belief store's row, or the replayed
-recording's ``exchanges``): `PanelAnswers`, what the viewer draws and ``amuled
-explain`` prints.
-"""
+"""What a moral panel says about states, each agent's raw reply kept beside the numbers."""
 
 from __future__ import annotations
 
@@ -48,19 +41,9 @@ class _Recorder(BeliefSource):
 class PanelAnswers:
     """What a panel said about ``U`` states (``K`` agents, ``A`` actions).
 
-    Attributes:
-        agents: The agents, in fusion order.
-        rule: The fusion rule.
-        beliefs: ``(U, K, A)`` each agent's belief (uniform where it did not answer).
-        weights: ``(U, K)`` fusion weights (0 for an agent that abstained).
-        statuses: ``(U, K)`` statuses (``ok``, ``abstained``, ``replay_miss``...).
-        conflicts: ``(U, K - 1)`` Dempster's conflict at each combination.
-        fused: ``(U, A)`` the fused belief.
-        raws: ``U`` lists of ``K`` raw replies (None where neither the store nor the
-            recording kept one).
-        reasons: ``U`` lists of ``K`` notes on a failed answer (miss reason, error).
-        prompts: ``U`` rendered state prompts.
-
+    ``beliefs`` ``(U, K, A)`` (uniform where not answered), ``weights``/``statuses`` ``(U, K)``,
+    ``conflicts`` ``(U, K - 1)``, ``fused`` ``(U, A)``; ``raws`` None where no reply was kept;
+    ``reasons`` notes on failed answers.
     """
 
     agents: list[str]
@@ -81,22 +64,9 @@ def ask_panel(
     prompt_vars: Sequence[Mapping[str, Any]] | None,
     store: ReadOnlyStore | None = None,
 ) -> PanelAnswers:
-    """Ask a moral panel about distinct states and keep each agent's raw reply.
+    """Ask a moral panel about distinct states with one `fused` call, as training does.
 
-    One `fused` call, as training makes it;
-    the source's answers carry the raw replies (a stored row's ``raw``, a replayed
-    recording's ``exchanges``). An agent whose answer has none (an abstention answered
-    again as a miss, say) gets the raw reply of its row in the run's store, if any.
-
-    Args:
-        panel: The moral panel.
-        obs: ``(U, obs_dim)`` distinct states.
-        prompt_vars: Their prompt variables (None when the source reads no prompts).
-        store: The run's store, read-only, for the raw replies of non-answers.
-
-    Returns:
-        The `PanelAnswers`.
-
+    An agent whose answer carries no raw reply gets the one of its row in the run's ``store``.
     """
     from amuled_ma.tasks.prompts import render_state_prompt
 

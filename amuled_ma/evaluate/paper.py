@@ -1,17 +1,8 @@
 """The AMULED paper's reported figures, as data: the row a report puts beside ours.
 
-Source: the paper (Dubey, Dailisan, Mahajan, "Addressing moral uncertainty using
-large language models for ethical decision-making"), its results tables for the two
-simulation studies, as printed by the authors' notebook ``notebooks/data_plots.ipynb``
-(temetski/moral_agent at df3750f): the **sampled** policy, 50 episodes with environment
-seeds 42-91, one training seed, 1,000 fine-tuning iterations with gpt-4o-mini beliefs
-(the cluster and aggregation ablations included). ``docs/reproduction.md`` ("As the
-authors ran it", the *paper (their notebook)* column) holds the same figures with ours
-beside them.
-
-The paper's figures were produced by the authors' scripts, i.e. the ``authors`` recipe
-(``[finetune].recipe``, ``docs/learning.md``); a run with the ``equation`` recipe is
-compared with them too, and the report says which recipe each side used.
+From the authors' notebook ``notebooks/data_plots.ipynb`` (temetski/moral_agent at df3750f):
+the sampled policy, 50 episodes (seeds 42-91), one training seed, 1,000 fine-tuning
+iterations with gpt-4o-mini beliefs, the ``authors`` recipe (docs/reproduction.md).
 """
 
 from __future__ import annotations
@@ -38,15 +29,7 @@ PAPER_COLUMNS: dict[str, tuple[str, ...]] = {
 
 @dataclass(frozen=True)
 class PaperRow:
-    """One row of the paper's results table.
-
-    Attributes:
-        task: ``findmilk`` or ``driving``.
-        variant: Our variant folder it corresponds to (``base``, ``finetune-amuled``, ...).
-        label: The paper's name of the row.
-        values: ``{metric: value}`` in the units of our metrics (per episode).
-
-    """
+    """One row of the paper's results table; ``values`` in our metrics' units (per episode)."""
 
     task: str
     variant: str
@@ -105,16 +88,6 @@ PAPER_ROWS: dict[str, dict[str, PaperRow]] = {
 
 
 def paper_row(task: str, variant: str) -> PaperRow | None:
-    """The paper's row of a variant (a seed replica ``<variant>.seed<k>`` maps to it).
-
-    Args:
-        task: ``findmilk`` or ``driving``.
-        variant: Our variant folder (``finetune-amuled``); a label suffix such as
-            ``finetune-amuled-live`` has no row.
-
-    Returns:
-        The row, or None where the paper has none.
-
-    """
+    """The paper's row of a variant folder (a seed replica maps to it), or None."""
     name = variant.split(".seed", 1)[0]
     return PAPER_ROWS.get(task, {}).get(name)

@@ -1,13 +1,4 @@
-"""A variant's feedback opened to look at a run, with the run's belief store read-only.
-
-``amuled view`` and ``amuled explain`` ask a fine-tune's feedback about states as training
-asked it: `open_feedback` builds it with
-`make_feedback` (same agents, fusion rule, sources
-and store keys), the store it is given being one `ReadOnlyStore` over the run's
-file, so looking at a run never writes to it (an Ollama source still asks its server about
-states the run never asked). `describe_feedback` says in words where its beliefs
-come from.
-"""
+"""A variant's feedback opened to look at a run, with the run's belief store read-only."""
 
 from __future__ import annotations
 
@@ -25,17 +16,7 @@ if TYPE_CHECKING:
 
 
 class ReadOnlyStore:
-    """The run's belief store behind a feedback, opened read-only.
-
-    Stands in for the `BeliefStore` of a
-    `CachedSource`: lookups read the run's file (SQLite
-    ``mode=ro``), answers to states the run never asked are not written (counted in
-    `not_written`), so looking at a run never changes it.
-
-    Args:
-        path: The store file; a missing file reads as empty.
-
-    """
+    """The run's belief store (SQLite ``mode=ro``; a missing file reads empty) behind a feedback."""
 
     def __init__(self, path: str | Path | None) -> None:
         from amuled_ma.beliefs.store import BeliefStore
@@ -46,8 +27,6 @@ class ReadOnlyStore:
             if self.path is not None and self.path.is_file()
             else None
         )
-        #: Answers not written to the run's store.
-        self.not_written = 0
 
     def lookup(self, keys: Sequence[str]) -> dict[str, BeliefResult]:
         """Cached answers (``ok``/``repaired`` rows) of ``keys`` in the run's store."""
@@ -60,8 +39,7 @@ class ReadOnlyStore:
         return self.store.get_many(keys, cacheable_only=False)
 
     def put_many(self, items: Sequence[StoreItem]) -> int:
-        """Write nothing: count the answers a writable store would have kept."""
-        self.not_written += len(list(items))
+        """Write nothing (looking at a run never changes it)."""
         return 0
 
     def close(self) -> None:

@@ -1,11 +1,6 @@
 """The evaluation's results as typed data: ``results.json`` and ``results.csv``.
 
-`Results` is what `evaluate_run` returns and
-the report reads: per variant (`VariantResult`) and mode (`ModeResult`) each
-metric's mean and interval (`Stat`), the first episode's trajectory, the fused-belief
-diagnostics of a fine-tune (`FeedbackSummary`) and what it was trained on
-(`PanelEntry`). ``results.json`` is written and read through it: keys left unset are
-left out, so a run writes the same file as before the model existed.
+Keys left unset are left out of ``results.json``.
 """
 
 from __future__ import annotations
@@ -29,10 +24,8 @@ from amuled_ma.safe_files import (
 
 #: The action selection modes a variant is evaluated in.
 MODES = ("greedy", "sampled")
-#: Largest ``results.json`` read [bytes]: about 140 bytes an episode of each variant and
-#: mode, plus about 30 KB for its first episode's trajectory (the demo's 50 episodes of 3
-#: variants in 2 modes: 0.6 MB); 256 MiB holds 100,000 episodes of 8 variants in 2 modes.
-#: The file is read whole (``view``, ``explain``).
+#: Largest ``results.json`` read [bytes]: 140 an episode plus 30 KB a trajectory per variant
+#: and mode (the demo's: 0.6 MB).
 MAX_RESULTS_BYTES = 256 * 2**20
 
 
@@ -178,17 +171,11 @@ RESULTS_FILES = ("results.json", "results.csv")
 
 
 def write_results(run_dir: Path, results: Results | Mapping[str, Any]) -> tuple[Path, Path]:
-    """Write ``results.json`` (everything) and ``results.csv`` (a row per variant/mode/metric).
-
-    Both through `atomic_writer` (UTF-8).
-
-    Returns:
-        The two paths.
+    """Write ``results.json`` and ``results.csv`` (a row per variant, mode, metric) atomically.
 
     Raises:
         UnsafePathError: Either is a link or not a regular file; neither is written.
-        FileWriteError: A file could not be written (a full disk); one line naming it.
-
+        FileWriteError: A file could not be written.
     """
     results = Results.of(results)
     run_dir = Path(run_dir)
@@ -218,17 +205,9 @@ def _cell(value: float | None) -> float:
 def read_results(run_dir: Path) -> Results:
     """Read a run's ``results.json``.
 
-    Args:
-        run_dir: The run directory.
-
-    Returns:
-        The results.
-
     Raises:
-        AmuledError: Missing, not in the shape of `Results`, larger than
-            `MAX_RESULTS_BYTES` (refused from its size, before it is read), or a
-            link or not a regular file (`checked_read_path`).
-
+        AmuledError: Missing, not of `Results`' shape, over `MAX_RESULTS_BYTES` (refused
+            unread), or refused by `checked_read_path`.
     """
     from pydantic import ValidationError
 

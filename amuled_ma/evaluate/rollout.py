@@ -1,24 +1,9 @@
 """One rollout of evaluation episodes: the loop the evaluator and the episode trace share.
 
-Evaluation episode ``K`` of a policy is what copy ``K`` of one batched task plays, and
-nothing else:
-
-- **task**: ``make_task(scenario, N, shaping_coef=0.0, seed=seed)``, ``N`` copies, copy
-  ``K`` on the stream of seed ``seed + K`` (`evaluation_task`);
-- **actions**: every step, for all ``N`` copies at once (`choose_actions`): greedy
-  takes each copy's most probable action; sampled draws one ``torch.multinomial`` over the
-  ``[N, A]`` probabilities from one generator seeded ``seed``. A sampled draw of copy ``K``
-  therefore depends on ``N``: the episode ``K`` of an evaluation of ``N`` episodes is
-  replayed by this same ``N``-copy rollout, never by one copy alone;
-- **boundaries**: all copies step together (a finished copy resets itself and keeps
-  stepping, so the draws stay those of the batch) until the copies asked for
-  (`rollout`'s ``until``: all of them for the evaluator) have ended their first
-  episode, at most ``max_steps + 1`` steps; each copy's first episode is recorded.
-
-What else a caller wants to see of the steps, it asks for with an `Observer`: the
-evaluator's picture of copy 0 (`TrajectoryRecorder`), the viewer's step-by-step
-record of copy ``K`` (`episode_trace`). A rollout without observers
-does only the evaluation's own work.
+Evaluation episode ``K`` is what copy ``K`` of one ``N``-copy task plays (seed ``seed + K``).
+A sampled draw is one multinomial over the ``[N, A]`` batch from one generator, so it depends
+on ``N``: episode ``K`` is replayed by the same ``N``-copy rollout, never by one copy alone.
+A finished copy resets and keeps stepping until the copies asked for end their first episode.
 """
 
 from __future__ import annotations
@@ -62,17 +47,7 @@ def evaluation_task(
 
 
 def choose_actions(logp: torch.Tensor, mode: str, generator: torch.Generator) -> torch.Tensor:
-    """Every copy's action from the policy's log-probabilities ``[N, A]``.
-
-    Args:
-        logp: ``log pi(. | s)`` of each copy.
-        mode: ``greedy`` (argmax) or ``sampled`` (one multinomial draw over the batch).
-        generator: The rollout's generator (sampled mode draws from it).
-
-    Returns:
-        ``[N]`` actions.
-
-    """
+    """``[N]`` actions from ``logp`` ``[N, A]``: argmax, or one multinomial draw."""
     if mode == "greedy":
         return logp.argmax(dim=-1)
     return torch.multinomial(logp.exp(), 1, generator=generator).squeeze(-1)
@@ -107,18 +82,7 @@ def _to_float(value: float | torch.Tensor | np.generic) -> float:
 def step_events(
     info: Mapping[str, Any], copy: int, copies: int, skip: Collection[str] = ()
 ) -> Iterator[tuple[str, float]]:
-    """The per-copy values a step's ``info`` holds for one copy, as ``(key, value)``.
-
-    Args:
-        info: What the task's ``step`` returned as its info.
-        copy: The copy whose values to read.
-        copies: How many copies the task runs (a per-copy tensor has that many values).
-        skip: Keys left out besides ``final_obs`` and ``episode``.
-
-    Yields:
-        Each key of a one-dimensional tensor of ``copies`` values, with the copy's value.
-
-    """
+    """``(key, value)`` of copy ``copy`` for each 1-D ``copies``-tensor of a step's ``info``."""
     for key, value in info.items():
         if key in ("final_obs", "episode") or key in skip or not torch.is_tensor(value):
             continue
@@ -210,11 +174,7 @@ def rollout(
 class TrajectoryRecorder(Observer):
     """The first episode of one copy for pictures: observations, actions, events, layout.
 
-    Attributes:
-        trajectory: ``{"obs": [T + 1 rows], "actions": [T], "events": {key: [T]}[,
-            "layout"]}``; the last observation is the episode's final one (before the
-            copy's reset).
-
+    ``trajectory``'s last observation is the episode's final one (before the copy's reset).
     """
 
     def __init__(self, copy: int = 0) -> None:

@@ -10,33 +10,16 @@ from scipy import stats
 
 
 def t_quantile(df: float, confidence: float = 0.95) -> float:
-    """Two-sided Student-t critical value ``t_{(1 + confidence) / 2, df}``.
-
-    Args:
-        df: Degrees of freedom, whole or fractional (Welch's).
-        confidence: Two-sided confidence level.
-
-    Returns:
-        The quantile; NaN for ``df < 1``.
-
-    """
+    """Two-sided Student-t critical value ``t_{(1 + confidence) / 2, df}`` (NaN for df < 1)."""
     if df < 1:
         return math.nan
     return float(stats.t.ppf(0.5 + confidence / 2, df))
 
 
 def mean_ci(values: Sequence[float], confidence: float = 0.95) -> dict[str, float]:
-    """Mean, standard deviation and a ``confidence`` interval of the mean.
+    """Mean, std and ``confidence`` interval: ``mean, std, n, ci_low, ci_high, half_width``.
 
-    Args:
-        values: Per-episode values.
-        confidence: Two-sided confidence level.
-
-    Returns:
-        ``{"mean", "std", "n", "ci_low", "ci_high", "half_width"}``; with one value the
-        spread and the interval are undefined (NaN: one episode says nothing about the
-        variability, so no "± 0" is claimed), with none every figure is NaN.
-
+    With one value the spread and interval are NaN (no "± 0" is claimed); with none, all is NaN.
     """
     n = len(values)
     nan = math.nan

@@ -1,23 +1,7 @@
-"""``amuled view``: one self-contained HTML page to see why a fine-tuned agent acts.
+"""``amuled view``: one self-contained HTML page showing why a fine-tuned agent acts.
 
-For evaluation episode ``K`` of each chosen variant of a run, the page shows step by step
-the task (FindMilk grid with the path so far and the babies pacified or woken; Driving road
-with cars and grandmas, collisions and rescues marked), each panel agent's belief over the
-actions, its fusion weight and status (an agent that did not answer abstains, weight 0),
-its raw reply when the run's belief store or the replayed recording kept one, Dempster's
-conflict ``K``, the fused belief, the action the fine-tuned policy took and the one the base
-policy would take (flagged where they differ), and a timeline of conflict and
-disagreements to jump to. Keyboard: ArrowLeft/ArrowRight, Home/End, PageUp/PageDown,
-``[``/``]`` (previous/next disagreement).
-
-The page is one file: its CSS, script and data are inline, and a strict
-Content-Security-Policy (``default-src 'none'``, the inline script and style allowed by
-their SHA-256 hashes) lets it load nothing and send nothing, so it works from a
-``file://`` URL offline. `serve` shows it on
-``127.0.0.1`` when a browser cannot open files.
-
-The data are compact: probabilities rounded to 4 decimals, each distinct state's beliefs
-once (steps point at their state), each text (raw reply, state prompt) once.
+CSS, script and data are inline under a strict Content-Security-Policy (hash-allowed inline
+script and style), so the page loads and sends nothing and works from ``file://`` offline.
 """
 
 from __future__ import annotations
@@ -59,15 +43,7 @@ ASSETS = Path(__file__).resolve().parent
 
 @dataclass
 class ViewResult:
-    """What `write_view` wrote.
-
-    Attributes:
-        path: The HTML file.
-        size: Its size in bytes.
-        variants: ``(name, steps, distinct states)`` per variant shown.
-        seconds: Time taken to build it.
-
-    """
+    """What `write_view` wrote: file, bytes, ``(name, steps, states)`` per variant, seconds."""
 
     path: Path
     size: int
@@ -95,12 +71,7 @@ class TextTable:
         return found
 
     def fit(self, budget: int = TEXT_BUDGET) -> bool:
-        """Cut every text to an equal share of ``budget`` characters when they exceed it.
-
-        Returns:
-            True when texts were cut.
-
-        """
+        """Cut every text to an equal share of ``budget`` characters when over it; True if cut."""
         total = sum(len(t) for t in self.texts)
         if total <= budget or not self.texts:
             return False
@@ -134,20 +105,7 @@ def variant_view(
     mode: str = "greedy",
     episodes: int | None = None,
 ) -> dict[str, Any]:
-    """Replay one variant's evaluation episode and gather what the page shows of it.
-
-    Args:
-        run_dir: The run folder (its belief store, read-only).
-        trained: The variant (policy, scenario, feedback, base policy).
-        texts: The page's text table (raw replies and prompts are added to it).
-        episode: Evaluation episode ``K``.
-        mode: ``greedy`` or ``sampled``.
-        episodes: ``N`` of the evaluation (default ``[evaluation].episodes``).
-
-    Returns:
-        The variant's entry of the page's data.
-
-    """
+    """Replay one variant's evaluation episode: its entry of the page's data."""
     run_dir = Path(run_dir)
     base_path = trained.base_checkpoint
     feedback_name = trained.feedback
@@ -392,10 +350,10 @@ def _csp_hash(text: str) -> str:
 
 
 def render_html(data: dict[str, Any]) -> str:
-    """The page: the data, the viewer's script and style, all inline, under a strict CSP.
+    """The page: data, script and style inline under a strict CSP.
 
-    The JSON is written with ``<``, ``>``, ``&`` and the line separators escaped, so no
-    text in it (an LLM's reply, say) can end the script element.
+    ``<``, ``>``, ``&`` and the line separators are escaped in the JSON, so no text in it can
+    end the script element.
     """
     script = (ASSETS / "viewer.js").read_text(encoding="utf-8")
     # the colour table of the figures as CSS variables (--c-good, ...), then the style sheet

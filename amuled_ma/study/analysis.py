@@ -1,12 +1,7 @@
 """The numbers of a pairs study: win rates, Bradley-Terry, acceptability, reliability, agreement.
 
-Each function takes plain data (the study and its answers) and returns plain numbers;
-:mod:`amuled_ma.study.report` writes them down. Libraries do the statistics: ``choix``
-(Bradley-Terry by iterative Luce spectral ranking, Maystre and Grossglauser 2015),
-``krippendorff`` (Krippendorff's alpha); the intervals are Wilson's (win rates) and a
-bootstrap over participants (strengths, and the mean acceptability ratings: a participant's
-ratings are not independent of each other, so participants are resampled, not ratings).
-The expert mode's numbers are in :mod:`amuled_ma.study.expert`.
+Libraries do the statistics (``choix``, ``krippendorff``); ratings are resampled by
+participant, since one participant's ratings are not independent of each other.
 """
 
 from __future__ import annotations
@@ -26,11 +21,8 @@ from amuled_ma.study.answers import Answer, read_answers, read_expert_answers
 from amuled_ma.study.model import ANSWERS_FILE, Item, Study, StudyError, read_study
 
 Z95 = 1.959963984540054
-#: Fewer participants (experts) than this and the report warns that its intervals are
-#: unreliable: the intervals are percentile bootstraps over people, and n people have only
-#: C(2n - 1, n) distinct resamples (126 for n = 5, 92,378 for n = 10); below about 10 the
-#: percentile interval is known to be too narrow (it undercovers: Davison and Hinkley 1997,
-#: section 5.3; Efron and Tibshirani 1993, ch. 13), and one person moves every estimate.
+#: Below this many participants the report warns: a percentile bootstrap over so few people
+#: undercovers (Davison and Hinkley 1997, section 5.3).
 MIN_PARTICIPANTS = 10
 
 
@@ -98,8 +90,7 @@ def bradley_terry(
 ) -> np.ndarray:
     """Bradley-Terry log-strengths (mean zero) by ``choix.ilsr_pairwise``.
 
-    ``P(i beats j) = exp(s_i) / (exp(s_i) + exp(s_j))``. ``alpha`` adds choix's
-    regularisation (needed when a variant never loses: its strength is infinite).
+    ``alpha`` is choix's regularisation (needed when a variant never loses).
     """
     import choix
 
@@ -136,7 +127,7 @@ def bootstrap_strengths(
 
 
 def few_people(people: int, who: str = "participants") -> str | None:
-    """The warning when ``people`` is under :data:`MIN_PARTICIPANTS`, None otherwise."""
+    """The warning when ``people`` is under `MIN_PARTICIPANTS`, None otherwise."""
     if people >= MIN_PARTICIPANTS:
         return None
     return (
@@ -149,9 +140,7 @@ def few_people(people: int, who: str = "participants") -> str | None:
 def alpha_unavailable(values: dict[tuple[str, str], float]) -> str | None:
     """Why Krippendorff's alpha of ``{(rater, unit): value}`` is undefined, None when it is not.
 
-    Alpha compares the disagreement observed between raters on a unit with the one
-    expected by chance; it needs two raters on a unit, and values that vary (with a single
-    value in the whole data both disagreements are 0 and alpha is 0/0).
+    It needs two raters on a unit and values that vary (else it is 0/0).
     """
     raters = {r for r, _ in values}
     if len(raters) < 2:
@@ -165,10 +154,7 @@ def alpha_unavailable(values: dict[tuple[str, str], float]) -> str | None:
 
 
 def nominal_alpha(values: dict[tuple[str, str], float]) -> float:
-    """Krippendorff's alpha (nominal) of ``{(rater, unit): value}``.
-
-    Returns nan where it is undefined (:func:`alpha_unavailable` says why).
-    """
+    """Krippendorff's alpha (nominal) of ``{(rater, unit): value}``; nan where undefined."""
     import krippendorff
 
     raters = sorted({r for r, _ in values})
@@ -187,7 +173,7 @@ def nominal_alpha(values: dict[tuple[str, str], float]) -> float:
 
 
 def choice_values(pairs: Sequence[tuple[Answer, Item]]) -> dict[tuple[str, str], float]:
-    """``{(participant, item): 0 for A, 1 for B}``: the data of :func:`reliability`."""
+    """``{(participant, item): 0 for A, 1 for B}``: the data of `reliability`."""
     return {(a.participant, i.id): 0.0 if a.choice == "A" else 1.0 for a, i in pairs}
 
 
@@ -198,16 +184,7 @@ def reliability(pairs: Sequence[tuple[Answer, Item]]) -> float:
 
 @dataclass(frozen=True)
 class MeanInterval:
-    """A mean of ratings with its 95% bootstrap interval over the people who gave them.
-
-    Attributes:
-        mean: The mean of all the ratings (nan without any).
-        low: 2.5th percentile of the resampled means (nan with fewer than two people).
-        high: 97.5th percentile.
-        n: Ratings.
-        people: People who gave them.
-
-    """
+    """A mean of ``n`` ratings by ``people`` and 95% bootstrap interval (nan below 2 people)."""
 
     mean: float
     low: float
@@ -219,10 +196,9 @@ class MeanInterval:
 def bootstrap_mean(
     by_person: dict[str, list[float]], *, resamples: int = 2000, seed: int = 0
 ) -> MeanInterval:
-    """The mean of everyone's ratings and its 95% percentile bootstrap interval.
+    """The mean of everyone's ratings and its 95% percentile bootstrap interval over people.
 
-    Each resample draws as many people as there are, with replacement, and takes the mean
-    of all the ratings of the people drawn (a person drawn twice counts twice).
+    A person drawn twice counts twice.
     """
     people = sorted(p for p, values in by_person.items() if values)
     sums = np.array([float(np.sum(by_person[p])) for p in people])
@@ -242,11 +218,7 @@ def bootstrap_mean(
 def acceptability(
     variants: Sequence[str], pairs: Sequence[tuple[Answer, Item]], *, seed: int = 0
 ) -> dict[str, MeanInterval]:
-    """Each variant's mean acceptability rating, with :func:`bootstrap_mean`'s interval.
-
-    A rating counts for the variant that took the rated option; answers stored without
-    ratings (before ratings were asked) are left out.
-    """
+    """Each variant's mean acceptability rating (options it took), `bootstrap_mean`'s interval."""
     ratings: dict[str, dict[str, list[float]]] = {v: defaultdict(list) for v in variants}
     for answer, item in pairs:
         for option in item.options:
@@ -278,11 +250,10 @@ def _prefers(belief: Sequence[float], item: Item) -> str | None:
 
 
 def agreement(study: Study, majority: dict[str, tuple[str, int, int]]) -> dict[str, list]:
-    """Agreement with the majority: ``{who: [agree, counted]}``.
+    """Agreement with the majority, ``{who: [agree, counted]}`` (ties, third actions: neither).
 
-    A panel member (or the fused belief) prefers the option whose action it believes more
-    (a tie counts for neither); a policy agrees when its action in the state is the
-    majority's option's action (a third action counts for neither).
+    A panel member (or the fused belief) prefers the option whose action it believes more; a
+    policy agrees when its action is the majority option's.
     """
     out: dict[str, list] = {}
     for item_id, (top, _, _) in majority.items():
@@ -308,12 +279,7 @@ def agreement(study: Study, majority: dict[str, tuple[str, int, int]]) -> dict[s
 
 
 def load(folder: Path) -> tuple[Study, list[Answer]]:
-    """A study and its answers.
-
-    Raises:
-        StudyError: No study, or no answers file yet.
-
-    """
+    """A study and its answers; StudyError without a study or an answers file."""
     study = read_study(folder)
     path = Path(folder) / ANSWERS_FILE
     if not path.is_file():
@@ -340,10 +306,8 @@ FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
 def safe_cell(value: object) -> object:
     r"""A CSV cell a spreadsheet shows as text, never runs (OWASP's CSV-injection rule).
 
-    Text starting with one of :data:`FORMULA_STARTS` gets a leading ``'``; then every
-    control character (Unicode category ``Cc``: tabs, newlines, escape, delete, C1) is
-    written as ``\xNN`` (``\x1b`` for escape), so no cell holds one. Numbers and
-    None pass (None as an empty cell).
+    Text starting with one of `FORMULA_STARTS` gets a leading ``'``; every control character
+    is written as ``\xNN``. Numbers pass; None is an empty cell.
     """
     if value is None:
         return ""
@@ -354,19 +318,13 @@ def safe_cell(value: object) -> object:
 
 
 def _csv_writer(buffer: io.StringIO) -> Callable[[Sequence[object]], None]:
-    """A CSV row writer that puts every cell through :func:`safe_cell`."""
+    """A CSV row writer that puts every cell through `safe_cell`."""
     writer = csv.writer(buffer, lineterminator="\n")
     return lambda row: writer.writerow([safe_cell(cell) for cell in row])
 
 
 def answers_csv(folder: Path) -> str:
-    """Every answer, one row each, with what was shown (for R, pandas, spreadsheets).
-
-    A pairs study: one row per answer, with both ratings (empty where none was stored). An
-    expert study: one row per expert, state and action (:data:`EXPERT_CSV_COLUMNS`). Every
-    cell goes through :func:`safe_cell` (a participant's id like ``=HYPERLINK(...)`` is
-    written ``'=HYPERLINK(...)``).
-    """
+    """Every answer as CSV rows via `safe_cell` (one per answer, or per expert, state, action)."""
     study, answers = load(folder)
     buffer = io.StringIO()
     write = _csv_writer(buffer)

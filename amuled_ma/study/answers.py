@@ -1,17 +1,9 @@
 """The participants' answers: one SQLite file (WAL) in the study folder.
 
-Every answer is committed before the server replies (``synchronous=FULL``), so an answer
-the participant saw accepted survives the server being killed. A participant answers an
-item once: the table's primary key ``(participant, item)`` refuses a second answer, and
-the refusal is kept in ``refusals`` (with the reason), as is every tampered form.
-
-A pair's answer holds the choice and the two acceptability ratings (``rating_a``,
-``rating_b``) in one row. An expert's answer is one row of ``expert_answers`` (the clarity
-of the panel's reasons) and one row of ``expert_actions`` per action, written in one
-transaction. Schema versions (``PRAGMA user_version``): 0 or 1, the first (no ratings, no
-expert tables); 2, this one. Opening a store migrates a file of version 1 in place (the
-columns and tables are added, the rows kept); reading one that was never migrated gives
-its answers with no ratings and no expert answers.
+Every answer is committed (``synchronous=FULL``) before the server replies; the primary key
+``(participant, item)`` refuses a second answer, and every refusal is kept with its reason.
+Schema version 2; a version 1 file is migrated in place on open, and reads without
+ratings or expert answers when never migrated.
 """
 
 from __future__ import annotations
@@ -74,11 +66,7 @@ RATING_COLUMNS = (("rating_a", "INTEGER"), ("rating_b", "INTEGER"))
 
 @dataclass(frozen=True)
 class Answer:
-    """One stored answer to a pair or attention check (a row of ``answers``).
-
-    ``rating_a`` and ``rating_b`` are the acceptability ratings of options A and B (None:
-    stored before ratings were asked).
-    """
+    """One stored answer to a pair or attention check; ratings None where none was asked."""
 
     participant: str
     item: str
@@ -102,10 +90,7 @@ class Judgement:
 
 @dataclass(frozen=True)
 class ExpertAnswer:
-    """One expert's answer about a state (a row of ``expert_answers`` and its actions).
-
-    ``clarity`` is how clear the panel's reasons were (None where none was stated).
-    """
+    """One expert's answer about a state; ``clarity`` None where the panel stated no reason."""
 
     participant: str
     item: str
@@ -120,7 +105,7 @@ def _columns(db: sqlite3.Connection, table: str) -> set[str]:
 
 
 def _migrate(db: sqlite3.Connection) -> None:
-    """Bring a file of an earlier schema to :data:`VERSION` (its rows kept)."""
+    """Bring a file of an earlier schema to `VERSION` (its rows kept)."""
     have = _columns(db, "answers")
     for name, kind in RATING_COLUMNS:
         if name not in have:
@@ -129,12 +114,7 @@ def _migrate(db: sqlite3.Connection) -> None:
 
 
 class AnswerStore:
-    """The study's answers in SQLite (WAL), safe from several threads of one server.
-
-    Args:
-        path: The SQLite file (created with its tables when absent).
-
-    """
+    """The study's answers in SQLite (created when absent), safe from one server's threads."""
 
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
@@ -154,8 +134,8 @@ class AnswerStore:
     def participant(self, wanted: str | None, source: str) -> tuple[str, str]:
         """A participant's ``(id, token)``: a new id, or the one brought in the URL.
 
-        An id brought from a recruiting platform gets the same token each time it comes
-        back (the platform's id is the credential); an assigned id is a fresh random one.
+        A platform's id gets the same token each time (the id is the credential); an assigned
+        id is a fresh random one.
         """
         with self._lock:
             if wanted:
@@ -209,11 +189,7 @@ class AnswerStore:
             return True
 
     def add_expert(self, answer: ExpertAnswer) -> bool:
-        """Store an expert's answer and its judgements in one transaction.
-
-        Committed before returning; False when the expert has answered that state already
-        (then nothing is stored).
-        """
+        """Store an expert's answer and judgements in one transaction; False if answered already."""
         with self._lock:
             self._db.execute("BEGIN IMMEDIATE")
             try:
@@ -248,10 +224,7 @@ class AnswerStore:
 
 
 def read_answers(path: Path) -> list[Answer]:
-    """Every stored answer of a study's file, read-only (participant, then item order).
-
-    A file of schema version 1 (no rating columns) reads with no ratings.
-    """
+    """Every stored answer of a study's file, read-only (participant, then item order)."""
     db = sqlite3.connect(f"file:{Path(path)}?mode=ro", uri=True)
     try:
         have = _columns(db, "answers")
@@ -266,10 +239,7 @@ def read_answers(path: Path) -> list[Answer]:
 
 
 def read_expert_answers(path: Path) -> list[ExpertAnswer]:
-    """Every expert answer of a study's file, read-only (participant, then item order).
-
-    A file without the expert tables (schema version 1) has none.
-    """
+    """Every expert answer of a study's file, read-only (none in a version 1 file)."""
     db = sqlite3.connect(f"file:{Path(path)}?mode=ro", uri=True)
     try:
         if not _columns(db, "expert_answers"):

@@ -1,22 +1,10 @@
 """``amuled study build``: a study folder from trained runs.
 
-Items are states the compared policies met: evaluation episodes ``0..E-1`` of each compared
-variant are replayed with the evaluator's own rollout
-(:func:`~amuled_ma.evaluate.episode_trace.replay_episode`, greedy, the run's evaluation
-``N``), every distinct state is kept, and each compared variant's greedy action in it is read
-from its policy. A candidate is a state and a pair of variants whose actions there differ
-(where both take the same action there is nothing to choose). ``items`` candidates are drawn
-with NumPy's ``default_rng(seed)``; each shows its two decisions in a random order (``A`` /
-``B``), with no variant name. Attention checks (an instructed answer on a real state) are
-put at random places. Where a compared variant was fine-tuned on a panel, the panel's
-beliefs about each item's state are read from the run's belief store (read-only, as the
-viewer reads them) and kept for the analysis, with each member's stated reason
-(:mod:`amuled_ma.study.reasons`). The same runs, variants, items and seed give the same bytes.
-
-In expert mode (``mode="expert"``) an item is a state, drawn from every distinct state the
-compared variants met: the expert sees all the task's actions and the panel's beliefs and
-reasons, and judges each action (acceptable or not, which framework justifies it) and how
-clear the reasons are. No attention checks are asked of experts.
+Items are states the compared variants met in their replayed evaluation episodes (greedy);
+a pair item is a state where two variants' actions differ, shown as ``A``/``B`` in random
+order without names, with attention checks at random places; an expert item is a state with
+all the task's actions. A panel's beliefs and reasons come from the run's belief store,
+read-only. The same runs, variants, items and seed give the same bytes.
 """
 
 from __future__ import annotations
@@ -83,15 +71,12 @@ class _State:
 
 
 def resolve_variant(run_dir: Path, name: str) -> Path:
-    """The variant folder of a run that ``name`` means.
+    """The variant folder of a run that ``name`` means (folder, ``finetune-<name>`` or feedback).
 
-    ``name`` is a folder (``base``, ``finetune-amuled``), ``finetune-<name>``, or a
-    fine-tune's feedback (``amuled``; ``human`` for ``human:rules``, ...) as its record
-    says. Seed replicas (``<name>.seed<k>``) are left out unless named.
+    Seed replicas (``<name>.seed<k>``) are left out unless named.
 
     Raises:
         StudyError: No variant, or several, fit; the message lists the run's variants.
-
     """
     run_dir = Path(run_dir)
     found = variant_dirs(run_dir)
@@ -232,32 +217,25 @@ def build_study(
     force: bool = False,
     mode: Literal["pairs", "expert"] = "pairs",
 ) -> Study:
-    """Build a study folder (see the module docstring).
+    """Build a study folder.
 
     Args:
         runs: Run folders (``amuled run`` / ``train`` + ``finetune``).
-        variants: At least two variants to compare (``amuled``, ``base``, ``human``, or
-            folder names), present in every run; in expert mode one is enough (the
-            states they met are the items).
+        variants: Variants present in every run: at least two (one in expert mode).
         out: The study folder to write.
-        items: Pairs to ask about (fewer when the policies differ in fewer states); in
+        items: Pairs to ask about (fewer where the policies differ in fewer states); in
             expert mode, states.
         seed: The draw's seed.
-        attention: Attention checks (default: one per ten pairs, at least one; none in
+        attention: Attention checks (default one per ten pairs, at least one; none in
             expert mode).
         episodes: Evaluation episodes replayed per variant to find states.
-        force: Replace an existing study's ``study.json`` and pictures (an edited
-            ``consent.html`` is kept either way).
+        force: Replace an existing study (an edited ``consent.html`` is kept either way).
         mode: ``pairs`` (people choose and rate) or ``expert`` (experts judge every action).
-
-    Returns:
-        The :class:`Study` written.
 
     Raises:
         StudyError: A run folder missing, too few variants, a variant not found, no state
-            where two variants differ (pairs), attention checks asked in expert mode, an
-            unknown mode, or ``out`` holds a study and ``force`` is not set.
-
+            where two variants differ, attention checks in expert mode, an unknown mode,
+            or ``out`` holds a study and ``force`` is not set.
     """
     names = list(dict.fromkeys(variants))
     check_run_folders([Path(r) for r in runs])

@@ -1,13 +1,7 @@
 """A state drawn as a small, self-contained SVG (what a participant sees of an item).
 
-The pictures follow the report's and the viewer's conventions (``tasks/findmilk_drawing.py``,
-``evaluate/viewer.js``) in the colours of their one table, :data:`amuled_ma.tasks.colors.COLORS`:
-FindMilk is the grid with ``y`` growing upwards, the robot (a dark square), the milk (a gold
-star), the crying babies (orange discs marked ``C``) and the sleeping babies (sky-blue squares
-marked ``z``) still in the room; Driving is the five-lane road seen from behind the car, with
-the other cars (vermillion) and the grandmas (bluish green) ahead at their distance, the
-agent's car dark. The text is deterministic (fixed number formats, no ids from a counter), so
-a rebuilt study has the same bytes.
+The conventions and `amuled_ma.tasks.colors.COLORS` are the report's and the viewer's; the
+text is deterministic, so a rebuilt study has the same bytes.
 """
 
 from __future__ import annotations

@@ -1,21 +1,7 @@
 """The numbers of an expert study: frameworks cited, the panel against the experts, clarity.
 
-An expert judges every action of a state: acceptable or not, and the framework that
-justifies it (one of the study's frameworks, or ``none``); and how clear the panel's stated
-reasons are, where any was recorded. From those answers:
-
-- **Citations**: how often each framework is cited, over all the judgements, on actions the
-  expert found acceptable, and for which actions.
-- **The experts' acceptable set** of a state: the actions more than half of the experts who
-  judged the state found acceptable.
-- **Agreement with the experts**: a panel member (or the fused belief) agrees on a state when
-  its top action (the one it believes most; a tie at the top counts for neither) is in the
-  experts' acceptable set; a policy when its greedy action there is.
-- **Clarity**: the mean rating with a 95% bootstrap interval over experts
-  (:func:`~amuled_ma.study.analysis.bootstrap_mean`); states without a stated reason are not
-  rated, and are counted.
-- **Reliability**: Krippendorff's alpha (nominal) of the acceptability judgements, units being
-  (state, action) and raters the experts; the same for the frameworks cited.
+A state's acceptable set holds the actions more than half of its experts found acceptable;
+reliability is Krippendorff's alpha (nominal) over (state, action) units.
 """
 
 from __future__ import annotations
@@ -33,16 +19,7 @@ from amuled_ma.study.model import Study
 
 @dataclass(frozen=True)
 class Citation:
-    """How often one framework was cited.
-
-    Attributes:
-        framework: Its name (``none``: no framework, or another).
-        cited: Judgements citing it.
-        share: ``cited`` / all judgements.
-        acceptable: Of those, the judgements that found the action acceptable.
-        by_action: Citations per action name.
-
-    """
+    """How often one framework was cited (``share`` of all judgements, ``by_action`` per action)."""
 
     framework: str
     cited: int
@@ -83,10 +60,7 @@ def framework_citations(study: Study, answers: Sequence[ExpertAnswer]) -> list[C
 
 
 def acceptable_sets(answers: Sequence[ExpertAnswer]) -> dict[str, tuple[frozenset[int], int]]:
-    """Per state, the experts' acceptable set and how many experts judged the state.
-
-    The set holds the actions more than half of those experts found acceptable.
-    """
+    """Per state, the experts' acceptable set and how many experts judged the state."""
     yes: dict[str, Counter[int]] = defaultdict(Counter)
     experts: Counter[str] = Counter()
     for answer in answers:
@@ -111,8 +85,8 @@ def expert_agreement(
 ) -> dict[str, list[int]]:
     """Agreement with the experts' acceptable sets: ``{who: [agree, counted]}``.
 
-    ``cluster:<name>`` and ``fused``: the top action is acceptable to the experts (a tie at
-    the top is not counted); ``policy:<variant>``: the policy's action is.
+    ``cluster:<name>`` and ``fused`` agree when their top action is acceptable (a tie at the
+    top is not counted); ``policy:<variant>`` when its action is.
     """
     out: dict[str, list[int]] = {}
     for item_id, (accepted, _) in sets.items():

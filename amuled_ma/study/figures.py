@@ -1,13 +1,4 @@
-"""The study report's figures (PNG, matplotlib on the headless Agg backend).
-
-- ``strengths.png`` (a pairs study): the Bradley-Terry strengths and the mean acceptability
-  ratings of the variants, each with its 95% interval;
-- ``expert.png`` (an expert study): how often each framework was cited (on actions found
-  acceptable, and not), and how often each panel member, the fused belief and each policy
-  picks an action the experts find acceptable, with Wilson's 95% interval.
-
-Each figure is drawn from the report's summary (``summary.json``'s data), nothing else.
-"""
+"""The study report's figures (PNG, Agg backend), drawn from ``summary.json``'s data only."""
 
 from __future__ import annotations
 

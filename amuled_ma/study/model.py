@@ -1,15 +1,7 @@
-"""The study folder's format as typed data: ``study.json`` read and written here only.
+"""The study folder's format as typed data: ``study.json`` is read and written here only.
 
-A study folder (``amuled study build``) holds:
-
-- ``study.json``: :class:`Study`, every item with its state, its two options and which
-  variant each option is (the participant never sees that part, see :func:`public_item`),
-  or, in expert mode, the state with the panel's beliefs and stated reasons;
-- ``states/<item>.svg``: the state of each item drawn (:mod:`amuled_ma.study.drawing`);
-- ``consent.html``: the instructions and consent page, from a template the researcher edits
-  (a rebuild keeps an edited one);
-- ``answers.sqlite``: the participants' answers, written by ``amuled study serve``
-  (:mod:`amuled_ma.study.answers`).
+A study folder holds ``study.json``, ``states/<item>.svg``, ``consent.html`` (the researcher
+may edit it; a rebuild keeps it) and ``answers.sqlite`` (written by ``amuled study serve``).
 """
 
 from __future__ import annotations
@@ -30,22 +22,17 @@ STUDY_FILE = "study.json"
 CONSENT_FILE = "consent.html"
 #: The answer store.
 ANSWERS_FILE = "answers.sqlite"
-#: Largest ``study.json`` read [bytes]: about 3 KB an item (a pair's state, options and
-#: every policy's action; an expert item's panel with its reasons about as much), so the
-#: default 40 items are about 120 KB; 64 MiB holds some 20,000 items. It is read whole.
+#: Largest ``study.json`` read [bytes]: about 3 KB an item, so some 20,000 items.
 MAX_STUDY_BYTES = 64 * 2**20
-#: The version of the folder format (2: acceptability ratings and expert mode; a format 1
-#: study, built before them, reads as a pairs study with the default rating scale).
+#: The folder format (a format 1 study reads as pairs with the default rating scale).
 FORMAT = 2
 #: What a participant is asked about a pair.
 QUESTION = "Which decision is the more morally acceptable one in this situation?"
 #: What a participant is asked about each decision of a pair, on the rating scale.
 RATING_QUESTION = "How morally acceptable is each decision?"
-#: Points of the acceptability scale (1 = completely unacceptable ... 7 = completely
-#: acceptable, a 7-point Likert scale).
+#: Points of the acceptability scale (1 = completely unacceptable ... 7 = completely acceptable).
 RATING_POINTS = 7
-#: Points of the expert's scale of how clear the panel's reasons are (1 = not clear at all
-#: ... 5 = very clear).
+#: Points of the expert's clarity scale (1 = not clear at all ... 5 = very clear).
 CLARITY_POINTS = 5
 #: The expert's framework answer when none of the panel's clusters justifies an action.
 NO_FRAMEWORK = "none"
@@ -70,28 +57,14 @@ def read_folder_file(
     note: str,
     fix: str,
 ) -> str:
-    """A regular UTF-8 file inside a study folder, never a link or another file of the machine.
+    """A regular UTF-8 file inside a study folder, of at most ``limit`` bytes.
 
-    The path is opened with ``O_NOFOLLOW`` (a link as the last part is refused, not
-    followed) and must resolve inside the folder (a linked ``states/`` leaving it is
-    refused); the open file must be a regular file of at most ``limit`` bytes.
-
-    Args:
-        folder: The study folder.
-        relative: The file's path inside it (``consent.html``, ``states/q001.svg``).
-        limit: The most bytes it may hold.
-        noun: What it is, for the message.
-        note: Why the cap is that number.
-        fix: What to do when it is too large.
-
-    Returns:
-        Its text (newlines as :meth:`pathlib.Path.read_text` reads them).
+    Opened with ``O_NOFOLLOW`` and checked to resolve inside ``folder``, so a study folder
+    cannot make the server send other files; ``noun``, ``note`` and ``fix`` word the refusal.
 
     Raises:
-        NotInFolder: The file is a symbolic link, not a regular file, or resolves outside
-            the folder; one line naming it.
-        StudyError: It is over ``limit`` bytes, unreadable or not UTF-8; one line.
-
+        NotInFolder: A symbolic link, not a regular file, or outside the folder.
+        StudyError: Over ``limit`` bytes, unreadable or not UTF-8.
     """
     from amuled_ma.file_limits import decode_text, too_large
 
@@ -134,12 +107,7 @@ def _file_kind(mode: int) -> str:
 
 
 def check_run_folders(runs: list[Path]) -> None:
-    """Refuse a run folder that does not exist, before anything is read or imported.
-
-    Raises:
-        StudyError: A run is not a folder; one line naming it.
-
-    """
+    """Refuse a run folder that does not exist (StudyError), before anything is read."""
     for run in runs:
         if not Path(run).is_dir():
             what = "is not a folder" if Path(run).exists() else "does not exist"
@@ -154,16 +122,7 @@ class _Model(BaseModel):
 
 
 class Option(_Model):
-    """One shown decision of an item.
-
-    Attributes:
-        label: ``A`` or ``B`` (what the participant sees; the order is random).
-        variant: The variant that took it (hidden from the participant); None for an
-            attention check.
-        action: The action index.
-        action_name: The task's name of the action.
-
-    """
+    """One shown decision of an item; ``variant`` is hidden, None for an attention check."""
 
     label: Literal["A", "B"]
     variant: str | None
@@ -174,17 +133,8 @@ class Option(_Model):
 class PanelView(_Model):
     """What the run's panel said about an item's state (from its belief store).
 
-    Attributes:
-        feedback: The variant whose panel answered (``amuled``, ...).
-        agents: The panel members, in fusion order.
-        rule: The fusion rule.
-        beliefs: ``[K][A]`` each member's belief over the actions.
-        statuses: ``[K]`` ``ok`` or why a member did not answer.
-        fused: ``[A]`` the fused belief.
-        reasons: ``[K]`` each member's stated reason (the reply's ``reasoning``, or the
-            reply's text), None where neither the store nor the recording kept a reply
-            (a rules member, a recording of beliefs only); empty in a format 1 study.
-
+    ``beliefs`` ``[K][A]``, ``statuses`` ``[K]``, ``fused`` ``[A]``; ``reasons`` ``[K]`` each
+    member's stated reason, None where no reply was kept; empty in a format 1 study.
     """
 
     feedback: str
@@ -200,36 +150,18 @@ class PanelView(_Model):
         return any(self.reasons)
 
 
-#: What an item's ``picture`` may be: an SVG file directly in the study's ``states/``
-#: (never ``..``, an absolute path or another folder: a study.json from elsewhere must not
-#: make ``study serve`` send other files of the machine to its participants).
+#: An item's ``picture``: an SVG directly in ``states/``, so a foreign study.json cannot make
+#: ``study serve`` send other files of the machine.
 PICTURE_PATTERN = r"^states/[A-Za-z0-9_-]+\.svg$"
 
 
 class Item(_Model):
     """One question of the study.
 
-    Attributes:
-        id: ``q001``, ... (stable, in the study's order).
-        kind: ``pair`` (two variants' decisions), ``attention`` (an instructed answer) or
-            ``expert`` (a state with all the task's actions, for an expert to judge).
-        run: Index into :attr:`Study.runs`.
-        task: The task's name.
-        episode: The evaluation episode the state was met in.
-        step: Its step in that episode.
-        met_by: The variant whose episode met the state.
-        obs: The observation.
-        prompt: The state in words (the task's prompt), None when it cannot be rendered.
-        picture: ``states/<id>.svg``: a file of the study folder's ``states/`` (the server
-            sends it to every participant, so no other path is accepted).
-        options: The two options, in the order shown (none for an expert item: the expert
-            judges every action of the task).
-        expected: The label an attentive participant picks (attention checks only).
-        instruction: The attention check's instruction (shown instead of the question).
-        policies: Every studied variant's action in this state (the policies' agreement
-            with the participants is read from it).
-        panel: The run's panel about the state (None: no panel variant or no store).
-
+    ``kind``: ``pair`` (two variants' decisions), ``attention`` (an instructed answer, ``expected``)
+    or ``expert`` (a state with all the task's actions, no ``options``). ``picture`` is
+    ``states/<id>.svg``, sent to every participant; ``policies`` each studied variant's action;
+    ``panel`` None without a panel variant or store.
     """
 
     id: str
@@ -261,26 +193,9 @@ class Item(_Model):
 class Study(_Model):
     """A built study: ``study.json``.
 
-    Attributes:
-        format: :data:`FORMAT`.
-        mode: ``pairs`` (people choose between two variants' decisions and rate each one's
-            acceptability) or ``expert`` (experts judge every action of a state).
-        seed: The seed it was built with (same runs, variants, items and seed: same bytes).
-        runs: The run folders, as given.
-        variants: The compared variants (the names asked for).
-        folders: ``[run][variant]`` the variant folders they resolved to.
-        action_names: ``{task: [names]}``.
-        question: What a pair asks.
-        rating_question: What a pair asks about each decision, on the rating scale.
-        rating_points: Points of the acceptability scale (1 to ``rating_points``).
-        clarity_points: Points of the expert's clarity scale (1 to ``clarity_points``).
-        frameworks: ``[name, title]`` of the moral frameworks an expert may cite (the
-            shipped clusters; expert mode), besides :data:`NO_FRAMEWORK`.
-        items: The questions, pairs and attention checks (or expert states), in the
-            study's order.
-        candidates: How many distinct (state, pair of variants that differ) were found
-            (expert mode: distinct states met).
-
+    ``mode`` ``pairs`` (choose between two decisions, rate each) or ``expert``; the same runs,
+    variants, items and ``seed`` give the same bytes; ``folders`` ``[run][variant]``;
+    ``candidates`` the distinct states (pairs: with differing variants) found.
     """
 
     format: int = FORMAT
@@ -299,7 +214,7 @@ class Study(_Model):
     candidates: int = Field(ge=0)
 
     def framework_names(self) -> list[str]:
-        """The frameworks an expert may cite, :data:`NO_FRAMEWORK` last."""
+        """The frameworks an expert may cite, `NO_FRAMEWORK` last."""
         return [name for name, _ in self.frameworks] + [NO_FRAMEWORK]
 
     def item(self, item_id: str) -> Item | None:
@@ -321,18 +236,9 @@ def write_study(folder: Path, study: Study) -> Path:
 def read_study(folder: Path) -> Study:
     """Read a study folder's ``study.json``.
 
-    Args:
-        folder: The study folder.
-
-    Returns:
-        The study.
-
     Raises:
-        StudyError: No such file, a link or not a regular file (:func:`read_folder_file`),
-            larger than :data:`MAX_STUDY_BYTES` (refused from its size, before it is read),
-            not UTF-8, not JSON (nested deeper than pydantic's parser follows, 200 levels,
-            included), or it does not fit the format (the message names the key).
-
+        StudyError: No such file, a link, over `MAX_STUDY_BYTES` (refused unread), not
+            UTF-8 or JSON, or not of the format (the message names the key).
     """
     path = Path(folder) / STUDY_FILE
     if not path.is_file() and not path.is_symlink():
@@ -370,11 +276,10 @@ LEGENDS = {
 
 
 def public_item(item: Item, svg: str, action_names: list[str] | None = None) -> dict[str, Any]:
-    """What the participant's page gets of an item: no variant, no expected answer.
+    """What the participant's page gets of an item: never the variant or the expected answer.
 
-    An expert item also gets every action of the task (``action_names``) and the panel:
-    each member's name, belief and stated reason (None: no stated reason recorded), and
-    the fused belief; never the variant the panel belongs to.
+    An expert item also gets the task's actions and the panel's members, beliefs, reasons
+    and fused belief.
     """
     shown: dict[str, Any] = {
         "id": item.id,

@@ -57,14 +57,7 @@ def _rates(counts: dict[str, list[int]]) -> dict[str, dict[str, Any]]:
 
 
 def _agreement_table(rates: dict[str, dict[str, Any]]) -> list[str]:
-    """The Markdown table of who agrees how often, one row per name in sorted order.
-
-    Args:
-        rates: for each panel member, belief or policy, its ``_rates`` entry.
-
-    Returns:
-        The table's lines: header, separator and one row each.
-    """
+    """The Markdown lines of who agrees how often (header, separator, a row per sorted name)."""
     lines = [
         "| who | agrees | counted | rate | 95% interval (Wilson) |",
         "|---|---:|---:|---:|---|",
@@ -227,28 +220,15 @@ def write_analysis(
     keep_inattentive: bool = False,
     warn: Callable[[str], None] | None = None,
 ) -> Path:
-    """Write ``<study>/analysis/report.md``, ``summary.json`` and the figure.
+    """Write ``<study>/analysis/report.md``, ``summary.json`` and the figure; return the report.
 
-    Args:
-        folder: The study folder.
-        keep_inattentive: Keep the answers of participants who failed an attention check.
-        warn: Told each warning of the report (too few participants,
-            :data:`~amuled_ma.study.analysis.MIN_PARTICIPANTS`), one line each.
-
-    Returns:
-        The report's path.
-
+    ``warn`` is told each warning of the report (too few participants), one line each.
     """
     folder = Path(folder)
     if read_study(folder).mode == "expert":
         return _write_expert(folder, warn)
     data = summarize(folder, keep_inattentive=keep_inattentive)
-    for line in data["warnings"]:
-        if warn is not None:
-            warn(line)
-    out = folder / "analysis"
-    out.mkdir(exist_ok=True)
-    (out / "summary.json").write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+    out = _write_summary(folder, data, warn)
     strengths_figure(data, out / "strengths.png")
     lines = [
         f"# Study {folder.name}: what people chose",
@@ -332,15 +312,21 @@ def write_analysis(
     return path
 
 
-def _write_expert(folder: Path, warn: Callable[[str], None] | None) -> Path:
-    """The expert study's ``report.md``, ``summary.json`` and ``expert.png``."""
-    data = summarize_expert(folder)
+def _write_summary(folder: Path, data: dict[str, Any], warn: Callable[[str], None] | None) -> Path:
+    """Tell ``warn`` the summary's warnings, write ``analysis/summary.json``; the folder."""
     for line in data["warnings"]:
         if warn is not None:
             warn(line)
     out = folder / "analysis"
     out.mkdir(exist_ok=True)
     (out / "summary.json").write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+    return out
+
+
+def _write_expert(folder: Path, warn: Callable[[str], None] | None) -> Path:
+    """The expert study's ``report.md``, ``summary.json`` and ``expert.png``."""
+    data = summarize_expert(folder)
+    out = _write_summary(folder, data, warn)
     expert_figure(data, out / "expert.png")
     no_reason = data["states_without_reason"]
     lines = [

@@ -1,16 +1,8 @@
-r"""The study server's request bodies as pydantic models: every field bounded at the edge.
+r"""The study server's request bodies as strict pydantic models: every field bounded at the edge.
 
-A body is parsed by pydantic's own JSON parser (``model_validate_json``), which refuses
-invalid UTF-8, lone surrogates (``"\ud800"``), integers of more than 4,300 digits and
-nesting deeper than it follows, as a validation error, not an exception of the server.
-Every model is strict (no ``"5"`` for 5, no ``true`` for 1) and, but for the envelope,
-forbids unknown fields.
-
-An answer is read in two steps: :class:`AnswerEnvelope` (who, with which token, about which
-item) before the token and the item are checked, then the item's own model from
-:func:`answer_models` (a pair's choice and ratings, or an expert's judgements), whose scales
-are the study's: the integers ``1..rating_points`` and ``1..clarity_points``, and the enum
-of the frameworks the study names.
+Parsed by ``model_validate_json``, so invalid UTF-8, lone surrogates, huge integers and deep
+nesting are validation errors, not server exceptions. An answer is read in two steps: the
+`AnswerEnvelope` (who, token, item) first, then the item's model from `answer_models`.
 """
 
 from __future__ import annotations
@@ -99,17 +91,10 @@ class ExpertAnswerRequest(_Request):
 def answer_models(
     rating_points: int, clarity_points: int, frameworks: list[str]
 ) -> tuple[type[PairAnswer], type[ExpertAnswerRequest]]:
-    """The models of a pair's answer and of an expert's, on the study's scales.
+    """The models of a pair's answer and an expert's, on the study's scales and ``frameworks``.
 
-    Args:
-        rating_points: Points of the acceptability scale.
-        clarity_points: Points of the clarity scale.
-        frameworks: The frameworks an expert may cite (``none`` included).
-
-    Returns:
-        Subclasses of `PairAnswer` and `ExpertAnswerRequest` whose fields are checked in the
-        order written, so the first error names the first field that does not fit.
-
+    Their fields are checked in the order written, so the first error names the first
+    field that does not fit.
     """
     rating_scale = _scale(rating_points)
     clarity_scale = _scale(clarity_points)

@@ -1,29 +1,8 @@
 """``amuled study serve``: the study's participant page and its answer API (Starlette).
 
-Routes (all served from this process; the page loads nothing from the network):
-
-- ``GET /``: the participant page (jsPsych 7, shipped in ``amuled_ma/study/static``); a
-  recruiting platform's id comes in the URL (``?PROLIFIC_PID=``, ``?workerId=``,
-  ``?participant=``);
-- ``GET /consent``: the study folder's ``consent.html`` (the researcher's text; 404 where it
-  became a link or not a regular file);
-- ``POST /api/session``: ``{"participant", "token", "source"}`` (all optional) gives the
-  participant's id and token and the items left, in the participant's own order (drawn
-  from the study's seed and the id, so a reload shows the same order);
-- ``POST /api/answer``: a pair's ``{"participant", "token", "item", "choice", "ms",
-  "ratings": {"A": r, "B": r}}`` (``r`` an integer of the study's acceptability scale, one per
-  shown option), or an expert state's ``{"participant", "token", "item", "ms", "actions":
-  [{"acceptable": true, "framework": "care"}, ...] (one per action of the task), "clarity": c}``
-  (``c`` on the clarity scale, ``null`` where the panel stated no reason); stored at once
-  (200), or refused: a wrong token (403), a body that does not fit its model
-  (:mod:`amuled_ma.study.requests`: an unknown item, choice, time, a rating outside the
-  scale or for an option not shown, a judgement that does not fit; 400), an item
-  already answered by that participant (409), a body over :data:`MAX_BODY_BYTES` (413, on
-  both POST routes, not read further). Every refusal is kept with its reason.
-- ``GET /api/health``: ``{"ok": true, "items": n}``.
-
-:func:`serve` listens on 127.0.0.1 unless told ``public``, and checks the folder's files and
-binds the port before it says where it serves.
+Routes ``GET /`` (the page, jsPsych shipped in ``static/``; nothing loaded from the network),
+``GET /consent``, ``POST /api/session``, ``POST /api/answer`` (stored at once, or refused
+with 400/403/409/413 and the reason kept; docs/study.md lists them) and ``GET /api/health``.
 """
 
 from __future__ import annotations
@@ -76,27 +55,20 @@ from amuled_ma.study.requests import (
 STATIC = Path(__file__).parent / "static"
 #: The consent page templates ``amuled study build`` writes into a study folder.
 TEMPLATES = Path(__file__).parent / "templates"
-#: URL parameters a recruiting platform puts the participant's id in.
-ID_PARAMETERS = ("PROLIFIC_PID", "workerId", "participant")
-#: Largest state picture read [bytes] (``states/<item>.svg``, each sent to every
-#: participant): a drawn state is about 3 KB; 4 MiB is over 1,000 times that.
+#: Largest state picture read [bytes] (a drawn state is about 3 KB).
 MAX_PICTURE_BYTES = 4 * 2**20
-#: Largest consent page read [bytes] (``consent.html``, the researcher's text, read at
-#: start and at each request so an edit shows at once): the shipped templates are about
-#: 2 KB; 16 MiB leaves room for pictures inlined as ``data:`` URLs.
+#: Largest consent page read [bytes] (templates are about 2 KB; room for inlined pictures).
 MAX_CONSENT_BYTES = 16 * 2**20
-#: Largest request body read [bytes]: an answer is a few hundred bytes (an expert's, one
-#: judgement per action, under 1 KB); a longer body is refused (413) unread.
+#: Largest request body read [bytes] (an answer is under 1 KB); a longer one gets 413.
 MAX_BODY_BYTES = 64 * 2**10
 #: What the page shows without a consent file.
 NO_CONSENT = "<p>(no consent page)</p>"
-#: What a participant is shown when the consent file is refused (the reason goes to the
-#: server's stderr, not to the participant).
+#: What a participant is shown when the consent file is refused (the reason goes to stderr).
 CONSENT_REFUSED = "<p>(the consent page cannot be shown; please tell the researcher)</p>"
 
 
 class _BodyTooLarge(Exception):
-    """A request body over :data:`MAX_BODY_BYTES` (answered 413, not read further)."""
+    """A request body over `MAX_BODY_BYTES` (answered 413, not read further)."""
 
 
 def _too_large() -> JSONResponse:
@@ -118,11 +90,7 @@ def _said(error: ValidationError) -> str:
 
 
 def placeholders(text: str) -> list[str]:
-    """The shipped consent templates' ``[...]`` placeholders that ``text`` still holds.
-
-    Whitespace is compared loosely (a placeholder may be re-wrapped); a bracket the templates
-    do not hold (``[1]``, a citation) is not one.
-    """
+    """The shipped consent templates' ``[...]`` placeholders that ``text`` still holds."""
     found: set[str] = set()
     for template in sorted(TEMPLATES.glob("*.html")):
         found.update(" ".join(p.split()) for p in re.findall(r"\[[^\[\]]+\]", template.read_text()))
@@ -141,23 +109,9 @@ def participant_order(study: Study, participant: str) -> list[str]:
 class StudyApp:
     """The server's state: the study, its pictures and its answer store.
 
-    Every file of the folder it reads (``study.json``, the state pictures,
-    ``consent.html``) is read by :func:`~amuled_ma.study.model.read_folder_file`: a
-    regular file inside the folder, never a link.
-
-    Args:
-        folder: The study folder (``amuled study build``).
-        allow_placeholder_consent: Serve a ``consent.html`` that still holds the template's
-            placeholders (a trial run).
-
     Raises:
-        StudyError: The folder holds no study, or its ``study.json``, a state picture or
-            ``consent.html`` is a link, not a regular file, outside the folder, over its
-            cap (:data:`~amuled_ma.study.model.MAX_STUDY_BYTES`, :data:`MAX_PICTURE_BYTES`,
-            :data:`MAX_CONSENT_BYTES`), unreadable or not UTF-8, or ``consent.html`` holds
-            the template's placeholders; one line naming the file, before anything is
-            served.
-
+        StudyError: A folder file refused by `read_folder_file`, or a ``consent.html`` with
+            the template's placeholders without ``allow_placeholder_consent``.
     """
 
     def __init__(self, folder: Path, *, allow_placeholder_consent: bool = False) -> None:
@@ -209,14 +163,7 @@ class StudyApp:
         return HTMLResponse((STATIC / "study.html").read_text(encoding="utf-8"))
 
     def consent_text(self) -> str:
-        """The study folder's ``consent.html`` (:data:`NO_CONSENT` without one).
-
-        Raises:
-            NotInFolder: It is a link, not a regular file, or outside the folder.
-            StudyError: It is larger than :data:`MAX_CONSENT_BYTES` (refused from its size,
-                before it is read), unreadable or not UTF-8; one line naming it.
-
-        """
+        """The study folder's ``consent.html`` (`NO_CONSENT` without one), by `read_folder_file`."""
         path = self.folder / CONSENT_FILE
         if not path.exists() and not path.is_symlink():
             return NO_CONSENT
@@ -230,17 +177,15 @@ class StudyApp:
         )
 
     async def consent(self, request: Request) -> Response:
-        """The researcher's consent and instructions fragment.
+        """The consent fragment; a refusal goes to stderr, never the folder's path to the page.
 
-        A file refused (edited since the start) is said in one line on the server's stderr;
-        the participant gets 404 where it became a link or not a regular file (nothing is
-        sent of it), :data:`CONSENT_REFUSED` with 500 otherwise, never the folder's path.
+        404 where it became a link or not a regular file, `CONSENT_REFUSED` with 500 otherwise.
         """
         try:
             return HTMLResponse(self.consent_text())
         except NotInFolder as refused:
             print(f"amuled study serve: {refused}", file=sys.stderr, flush=True)
-            return HTMLResponse("<p>(no consent page)</p>", status_code=404)
+            return HTMLResponse(NO_CONSENT, status_code=404)
         except StudyError as refused:
             print(f"amuled study serve: {refused}", file=sys.stderr, flush=True)
             return HTMLResponse(CONSENT_REFUSED, status_code=500)
@@ -250,13 +195,7 @@ class StudyApp:
         return JSONResponse({"ok": True, "items": len(self.items)})
 
     async def _body(self, request: Request) -> bytes:
-        """The request's body, at most :data:`MAX_BODY_BYTES`.
-
-        Raises:
-            _BodyTooLarge: The body is over :data:`MAX_BODY_BYTES` (declared or sent); it
-                is not read further.
-
-        """
+        """The request's body; `_BodyTooLarge` (not read further) over `MAX_BODY_BYTES`."""
         declared = request.headers.get("content-length", "")
         if declared.isdigit() and int(declared) > MAX_BODY_BYTES:
             raise _BodyTooLarge
@@ -270,7 +209,7 @@ class StudyApp:
         return b"".join(chunks)
 
     async def session(self, request: Request) -> Response:
-        """A participant's id, token and the items left (:class:`SessionRequest`)."""
+        """A participant's id, token and the items left, in the participant's own order."""
         try:
             body = SessionRequest.model_validate_json(await self._body(request))
         except _BodyTooLarge:
@@ -320,9 +259,8 @@ class StudyApp:
     async def answer(self, request: Request) -> Response:
         """Store one answer at once, or refuse it (the reason is kept).
 
-        The body is read as an :class:`~amuled_ma.study.requests.AnswerEnvelope` (who,
-        which item), the token and the item are checked, then the whole body is read by
-        the item's model (a pair's or an expert's, on the study's scales).
+        The envelope (who, which item) and token are checked first, then the whole body by the
+        item's model (a pair's or an expert's, on the study's scales).
         """
         try:
             envelope = AnswerEnvelope.model_validate_json(await self._body(request))
@@ -406,13 +344,7 @@ class StudyApp:
 
 
 def make_app(folder: Path, *, allow_placeholder_consent: bool = False) -> Starlette:
-    """The ASGI application of a study folder.
-
-    Raises:
-        StudyError: The folder holds no study, or one of its files is refused
-            (:class:`StudyApp`).
-
-    """
+    """The ASGI application of a study folder (StudyError as `StudyApp`)."""
     return StudyApp(folder, allow_placeholder_consent=allow_placeholder_consent).app
 
 
@@ -427,14 +359,7 @@ def is_loopback(host: str) -> bool:
 
 
 def check_host(host: str, *, public: bool) -> None:
-    """Refuse an address other machines can reach unless ``public`` is set.
-
-    Raises:
-        StudyError: ``host`` is not a loopback address (``""`` and ``0.0.0.0``, every
-            interface, included) and ``public`` is not set; one line naming ``--host``
-            and the fix.
-
-    """
+    """Refuse (StudyError) a non-loopback ``host`` (``""``, ``0.0.0.0`` too) unless ``public``."""
     if not public and not is_loopback(host):
         shown = host or repr(host)
         raise StudyError(
@@ -447,20 +372,9 @@ def check_host(host: str, *, public: bool) -> None:
 def listen_socket(host: str, port: int, *, public: bool = False) -> socket.socket:
     """The bound socket the study is served on (bound here, so a refusal is one line).
 
-    Args:
-        host: The address; a non-loopback one (``""`` and ``0.0.0.0``, every interface,
-            included) needs ``public``.
-        port: The port.
-        public: Allow an address other machines can reach.
-
-    Returns:
-        The socket, bound (uvicorn listens on it).
-
     Raises:
-        StudyError: A non-loopback address without ``public``, an address that is not
-            this machine's, or a port in use or not allowed; one line naming the argument
-            and the fix.
-
+        StudyError: A non-loopback address without ``public``, an address not this
+            machine's, or a port in use or not allowed.
     """
     check_host(host, public=public)
     try:
@@ -503,22 +417,8 @@ def serve(
 ) -> None:
     """Serve a study until interrupted (uvicorn, one process).
 
-    The folder's files are checked and the socket bound before ``say`` is told the
-    address, so every refusal comes first, as one line.
-
-    Args:
-        folder: The study folder.
-        host: The address (127.0.0.1: this machine only).
-        port: The port.
-        public: Allow a non-loopback ``host`` (a warning line goes to stderr).
-        allow_placeholder_consent: Serve a consent page that holds the template's
-            placeholders.
-        say: Where the ``serving on`` line goes.
-
-    Raises:
-        StudyError: The folder holds no study, one of its files is refused
-            (:class:`StudyApp`), or the address is refused (:func:`listen_socket`).
-
+    The files are checked and the socket bound before ``say`` is told the address, so
+    every refusal (StudyError, as `StudyApp` and `listen_socket`) comes first.
     """
     import uvicorn
 

@@ -1,49 +1,8 @@
 """Panel weights learned from people: the member prior whose fusion best predicts their choices.
 
-``amuled study fit-weights STUDY`` fits one weight per panel member from a study's answers
-and writes ``STUDY/analysis/weights.json`` (:class:`~amuled_ma.scenario.panel_weights.
-PanelWeights`), the file a scenario names as ``[feedback].weights``.
-
-## The model
-
-The weights are a prior ``rho`` on the members (non-negative, summing to 1) that multiplies
-Xiao's adjusted credibility in the ``bjs-dst`` fusion, ``w_i ∝ rho_i · Crd_i · IV_i``
-(:func:`amuled_ma.fusion.fuse` with ``prior=rho``); ``rho`` uniform is the paper's fusion.
-On an item the panel's fused belief ``f = fuse(beliefs, prior=rho)`` is read at the two
-shown decisions' actions ``a`` (option A) and ``b`` (option B), and a participant picks A
-with probability (Luce's choice rule on ``f``, with a temperature ``tau`` and a floor)::
-
-    P(A) = eps + (1 - 2 eps) · f_a^tau / (f_a^tau + f_b^tau),    eps = FLOOR = 0.001
-
-``tau`` is fitted with the weights: the ``bjs-dst`` belief is sharp (Dempster's rule raises
-the weighted average to the power ``k``), and people choose less surely than it says, so
-without it the weights would be bent to make the fusion as unsure as the people. ``eps``
-keeps every answer possible (a belief of exactly 0 in a chosen action would otherwise
-make the likelihood 0). ``tau = 1, eps = 0`` is the plain Luce rule ``f_a / (f_a + f_b)``;
-``--temperature 1`` fixes ``tau`` there instead of fitting it.
-
-Computed, for singleton beliefs, from the closed form of ``bjs-dst``: with ``w0`` the
-weights of the fusion without a prior (:func:`~amuled_ma.fusion.fuse`'s diagnostics, 0 for
-a member that did not answer) and ``k`` the members who answered,
-``f_a / f_b = (sum_i rho_i w0_i m_i(a) / sum_i rho_i w0_i m_i(b))^k`` (the normalisations
-cancel). The tests check it against ``fuse(..., prior=rho)``.
-
-## The fit
-
-- **Maximum likelihood** over the pair answers of the attentive participants (those who
-  failed an attention check are left out, as in ``amuled study analyze``), on items whose
-  panel used ``bjs-dst``; ``rho = softmax(theta)``, BFGS (SciPy) with the exact gradient,
-  and a weak ridge ``RIDGE/2 · sum (theta_i - mean theta)^2`` that fixes softmax's free
-  constant and keeps a member that explains nothing at a finite, small weight.
-- **Intervals**: 95% percentile intervals of every weight and of ``tau`` from ``bootstrap``
-  resamples of the participants (with replacement), each refitted.
-- **Held-out log-likelihood**: the participants are split into ``folds`` folds; each fold's
-  answers are scored by the model fitted on the other folds, with the learned weights and
-  with the fixed, uniform ones (the paper's; ``tau`` fitted in both), and the difference
-  ``learned - fixed`` gets a 95% interval by resampling the participants' held-out sums.
-
-Random numbers come from ``numpy.random.default_rng(seed)``: the same study, answers and
-seed give the same file.
+The choice model (Luce's rule on the ``bjs-dst`` fused belief with a temperature and a floor),
+the fit and its intervals are described in docs/study.md, "Panel weights learned from people".
+Random numbers come from ``numpy.random.default_rng(seed)``: the same inputs give the same file.
 """
 
 from __future__ import annotations
@@ -66,7 +25,7 @@ from amuled_ma.study.model import STUDY_FILE, Study, StudyError
 
 #: The choice model's floor ``eps``: the least probability of either option.
 FLOOR = 1e-3
-#: The ridge on the softmax logits (see the module docstring).
+#: The ridge ``RIDGE/2 sum (theta_i - mean theta)^2`` on the softmax logits.
 RIDGE = 0.01
 #: Bounds of the fitted logits and of ``log tau``.
 LOGIT_BOUND = 20.0
@@ -78,23 +37,12 @@ _TINY = 1e-300
 
 @dataclass(frozen=True)
 class ChoiceData:
-    """A study's panel items and the participants' answers about them, as arrays.
+    """A study's ``bjs-dst`` pair items and the answers about them, as arrays.
 
-    ``N`` items, ``K`` members, ``M`` answers, ``P`` participants.
-
-    Attributes:
-        members: The members (the union of the items' panels, in order of appearance).
-        items: The item ids.
-        base: ``(N, K)`` the ``bjs-dst`` weights without a prior of the members who answered
-            the item (0 for the others).
-        mass_a: ``(N, K)`` each member's belief in option A's action.
-        mass_b: ``(N, K)`` the same for option B.
-        size: ``(N,)`` the members who answered (the ``k`` of Dempster's combinations).
-        participants: The participants' ids.
-        answer_participant: ``(M,)`` index of each answer's participant.
-        answer_item: ``(M,)`` index of its item.
-        answer_a: ``(M,)`` whether option A was chosen.
-
+    ``N`` items, ``K`` members, ``M`` answers: ``base`` ``(N, K)`` the fusion's weights without a
+    prior (0 for a member that did not answer), ``mass_a``/``mass_b`` ``(N, K)`` each member's
+    belief in option A's/B's action, ``size`` ``(N,)`` the members who answered; ``answer_*``
+    ``(M,)`` each answer's participant index, item index and whether A was chosen.
     """
 
     members: tuple[str, ...]
@@ -109,16 +57,7 @@ class ChoiceData:
     answer_a: np.ndarray
 
     def counts(self, per_participant: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Per item, the (weighted) answers for A and for B.
-
-        Args:
-            per_participant: ``(P,)`` how many times each participant counts (a bootstrap
-                resample, a fold's mask); None: once each.
-
-        Returns:
-            ``(n_a, n_b)``, each ``(N,)``.
-
-        """
+        """Per item, the answers for A and for B (``p`` weighted ``per_participant[p]``)."""
         weight = np.ones(len(self.answer_item))
         if per_participant is not None:
             weight = np.asarray(per_participant, dtype=np.float64)[self.answer_participant]
@@ -131,20 +70,10 @@ class ChoiceData:
 def choice_data(
     study: Study, answers: Sequence[Answer], *, keep_inattentive: bool = False
 ) -> ChoiceData:
-    """The arrays of :class:`ChoiceData` from a study and its answers.
-
-    Args:
-        study: The study.
-        answers: Its answers.
-        keep_inattentive: Keep participants who failed an attention check.
-
-    Returns:
-        The :class:`ChoiceData`.
+    """The `ChoiceData` of a study and its answers.
 
     Raises:
-        StudyError: No item carries a ``bjs-dst`` panel, or no attentive participant
-            answered one; the message says how to get them.
-
+        StudyError: No item carries a ``bjs-dst`` panel, or no kept participant answered one.
     """
     items = [
         i
@@ -217,23 +146,14 @@ def _sigmoid(z: np.ndarray) -> np.ndarray:
 
 
 def choice_probability(data: ChoiceData, prior: np.ndarray, temperature: float) -> np.ndarray:
-    """``P(A)`` of every item under a member prior and a temperature (module docstring).
-
-    Args:
-        data: The items.
-        prior: ``(K,)`` non-negative member weights (any scale).
-        temperature: ``tau > 0``.
-
-    Returns:
-        ``(N,)`` probabilities in ``[FLOOR, 1 - FLOOR]``.
-
-    """
+    """``P(A)`` of every item under a member prior (any scale) and a temperature ``tau > 0``."""
     z = temperature * _log_odds(data, np.asarray(prior, dtype=np.float64))[0]
-    return FLOOR + (1.0 - 2.0 * FLOOR) * _sigmoid(z)
+    return FLOOR + (1.0 - 2.0 * FLOOR) * _sigmoid(z)  # eps + (1-2eps) f_a^tau/(f_a^tau+f_b^tau)
 
 
 def _log_odds(data: ChoiceData, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``log f_a - log f_b`` per item, and the two weighted sums it is made of."""
+    # bjs-dst's closed form: f_a / f_b = (sum_i rho_i w0_i m_i(a) / sum_i rho_i w0_i m_i(b))^k
     v = data.base * rho
     s_a = (v * data.mass_a).sum(axis=1) + _TINY
     s_b = (v * data.mass_b).sum(axis=1) + _TINY
@@ -248,10 +168,9 @@ def _objective(
     n_a: np.ndarray,
     n_b: np.ndarray,
 ) -> tuple[float, np.ndarray]:
-    """Negative penalised log-likelihood and its gradient in the free parameters.
+    """Negative penalised log-likelihood and its gradient in the ``mask``-ed parameters of ``full``.
 
-    The parameters are ``x = (theta_1..theta_K, log tau)``; ``full`` holds all of them and
-    ``mask`` says which are fitted (``free``, in order), the others keep their values.
+    The parameters are ``x = (theta_1..theta_K, log tau)``; those not in ``mask`` keep their values.
     """
     x = full.copy()
     x[mask] = free
@@ -282,19 +201,10 @@ def _objective(
 
 @dataclass(frozen=True)
 class Fit:
-    """One maximum-likelihood fit.
-
-    Attributes:
-        prior: ``(K,)`` the members' weights, summing to 1 (uniform for a fixed fit).
-        temperature: ``tau``.
-        log_likelihood: The log-likelihood of the fitted answers (no penalty).
-        x: All the parameters ``(theta..., log tau)`` (a warm start for refits).
-
-    """
+    """One maximum-likelihood fit: the prior (sums to 1), ``tau``, all parameters ``x``."""
 
     prior: np.ndarray
     temperature: float
-    log_likelihood: float
     x: np.ndarray
 
 
@@ -307,19 +217,9 @@ def fit(
     temperature: float | None = None,
     start: np.ndarray | None = None,
 ) -> Fit:
-    """Fit the member prior (``learn``) and the temperature by maximum likelihood.
+    """Fit the member prior (``learn``; else uniform) and ``tau`` (if None) by maximum likelihood.
 
-    Args:
-        data: The items.
-        n_a: ``(N,)`` answers for A per item (weights allowed).
-        n_b: ``(N,)`` answers for B.
-        learn: Fit the prior; False: the fixed, uniform prior (the paper's weights).
-        temperature: A fixed ``tau`` (1: the plain Luce rule); None: fitted.
-        start: Starting parameters (a previous fit's ``x``; the fixed ones are reset).
-
-    Returns:
-        The :class:`Fit`.
-
+    ``n_a``/``n_b`` are the (weighted) answers per item; ``start`` a previous fit's ``x``.
     """
     from scipy.optimize import minimize
 
@@ -340,10 +240,7 @@ def fit(
         x[mask] = result.x
     x[:k] = np.clip(x[:k], -LOGIT_BOUND, LOGIT_BOUND)
     x[k] = np.clip(x[k], *LOG_TEMPERATURE_BOUNDS)
-    prior, tau = _softmax(x[:k]), math.exp(x[k])
-    p = choice_probability(data, prior, tau)
-    loglik = float(n_a @ np.log(p) + n_b @ np.log1p(-p))
-    return Fit(prior, tau, loglik, x)
+    return Fit(_softmax(x[:k]), math.exp(x[k]), x)
 
 
 def _answer_loglik(data: ChoiceData, model: Fit) -> np.ndarray:
@@ -358,19 +255,7 @@ def _percentiles(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass(frozen=True)
 class WeightsFit:
-    """What :func:`fit_study` found.
-
-    Attributes:
-        data: The items and answers fitted.
-        learned: The fit on every answer.
-        fixed: The fit with the uniform prior (the temperature alone).
-        low: ``(K,)`` 2.5% bootstrap percentile of each weight.
-        high: ``(K,)`` 97.5% percentile.
-        temperature_interval: The temperature's 95% bootstrap interval.
-        held_out: The K-fold comparison of learned and fixed weights.
-        draws: ``(B, K)`` the bootstrap's weights.
-
-    """
+    """What `fit_study` found: both fits, 95% bootstrap intervals, the held-out comparison."""
 
     data: ChoiceData
     learned: Fit
@@ -393,21 +278,8 @@ def fit_study(
 ) -> WeightsFit:
     """Fit the weights, their bootstrap intervals and the held-out comparison.
 
-    Args:
-        data: The items and answers (:func:`choice_data`).
-        bootstrap: Resamples of the participants for the intervals (at least 1).
-        folds: Folds of participants for the held-out log-likelihood (2 to the number
-            of participants).
-        seed: The seed of the folds and the resamples.
-        temperature: A fixed choice temperature (1: the plain Luce rule); None: fitted.
-        progress: Show a progress bar (on stderr).
-
-    Returns:
-        The :class:`WeightsFit`.
-
     Raises:
         StudyError: ``bootstrap`` below 1, or ``folds`` outside 2..participants.
-
     """
     people = len(data.participants)
     if bootstrap < 1:
@@ -495,20 +367,7 @@ def weights_file(
     keep_inattentive: bool,
     temperature: float | None = None,
 ) -> PanelWeights:
-    """The :class:`~amuled_ma.scenario.panel_weights.PanelWeights` of a fit.
-
-    Args:
-        result: The fit.
-        study: The study folder (its ``study.json`` is hashed).
-        seed: The fit's seed.
-        bootstrap: Its resamples.
-        keep_inattentive: Whether inattentive participants were kept.
-        temperature: The fixed temperature, if it was fixed.
-
-    Returns:
-        The file's content.
-
-    """
+    """The `PanelWeights` of a fit, with its provenance (``study``'s ``study.json`` is hashed)."""
     from amuled_ma.file_hash import sha256_file
 
     def r(values: np.ndarray) -> list[float]:
@@ -552,25 +411,11 @@ def fit_weights(
     out: Path | None = None,
     progress: bool = False,
 ) -> tuple[PanelWeights, Path]:
-    """``amuled study fit-weights``: fit a study's panel weights and write the file.
-
-    Args:
-        folder: The study folder.
-        bootstrap: Bootstrap resamples of the participants.
-        folds: Folds of the held-out log-likelihood.
-        seed: Seed of the folds and resamples.
-        keep_inattentive: Keep participants who failed an attention check.
-        temperature: A fixed choice temperature (1: the plain Luce rule); None: fitted.
-        out: The file to write (default ``STUDY/analysis/weights.json``).
-        progress: Show a progress bar.
-
-    Returns:
-        The weights and the file written.
+    """``amuled study fit-weights``: fit a study's panel weights, write ``out`` (or `WEIGHTS_FILE`).
 
     Raises:
-        StudyError: No study or answers, no item with a ``bjs-dst`` panel, or bad
-            ``bootstrap``/``folds``; checked before any fit.
-
+        StudyError: No study or answers, no ``bjs-dst`` item, or bad ``bootstrap``, ``folds``
+            or ``temperature``; checked before any fit.
     """
     if bootstrap < 1:
         raise StudyError(f"--bootstrap {bootstrap}: give at least 1 resample (200 is usual)")
@@ -602,15 +447,7 @@ def fit_weights(
 
 
 def summary_lines(weights: PanelWeights) -> list[str]:
-    """What ``amuled study fit-weights`` prints: the weights, the temperature, held out.
-
-    Args:
-        weights: A fitted weights file (:func:`fit_weights`).
-
-    Returns:
-        The lines, without line ends.
-
-    """
+    """What ``amuled study fit-weights`` prints: the weights, the temperature, held out."""
     rows = [f"  {'member':<20} {'weight':>7}  95% interval"]
     low = weights.low or [math.nan] * len(weights.members)
     high = weights.high or [math.nan] * len(weights.members)

@@ -1,15 +1,4 @@
-"""The run report: ``report.md`` with PNG figures (matplotlib, headless).
-
-- `writing`: `write_report`, the viewer line;
-- `describe`: what each variant is, from the run records
-  (settings, each fine-tune's panel, imported policies, interrupted training);
-- `tables`: metrics, differences to base, diagnostics,
-  agents' answers, LLM servers, the feedback budget;
-- `plotting`: numbers, colours, panels, PNG files;
-- `curves`, `bars`,
-  `trajectories`: the figures (each task's episode drawn by
-  `findmilk_drawing` and `driving_drawing`).
-"""
+"""The run report: ``report.md`` with PNG figures (matplotlib, headless)."""
 
 from __future__ import annotations
 

@@ -1,8 +1,4 @@
-"""Bar figures: the metrics per variant, and an ablation's own figure.
-
-An ablation's figure shows its fine-tunes against AMULED, a lambda_KL sweep as metric
-against lambda_KL, a feedback budget as metric against the budget.
-"""
+"""Bar figures: the metrics per variant, and an ablation's own figure."""
 
 from __future__ import annotations
 
@@ -72,10 +68,9 @@ def _hbars(
 ) -> None:
     """Horizontal bars with whiskers, each seed's mean as a dot, and value labels.
 
-    The whisker is the 95% CI, or with 2-4 training seeds the range of the seeds' means
-    (`FEW_SEEDS`); each seed's mean is a black dot on its bar (``gid="seed-dot"``).
-    A bar of height 0 would be invisible: it is drawn as a thick tick of its colour at 0
-    (``gid="zero-bar"``) with its label ``0``; a missing mean is labelled ``n/a``.
+    The whisker is the 95% CI, or with 2-4 seeds the range of the seeds' means (`FEW_SEEDS`).
+    A bar of height 0 is drawn as a thick tick at 0 (``gid="zero-bar"``); a missing mean is
+    labelled ``n/a``.
     """
     means = np.array([mean_of(s) for s in stats], dtype=float)
     seeds = list(seeds) if seeds is not None else [[] for _ in stats]
@@ -177,19 +172,7 @@ def plot_bars(
     title: str = "",
     colors: dict[str, str] | None = None,
 ) -> Path | None:
-    """Bar chart per metric, one horizontal bar per variant, 95% CI whiskers, value labels.
-
-    Args:
-        results: The evaluation results.
-        mode: ``greedy`` or ``sampled``.
-        path: The PNG to write.
-        title: The figure's title (default: scenario, mode).
-        colors: ``{variant: colour}`` (default: `variant_colors` of the variants).
-
-    Returns:
-        ``path``, or None when no variant was evaluated in ``mode``.
-
-    """
+    """Bar chart per metric, one bar per variant in ``mode``; ``path``, or None without it."""
     fig = bars_figure(results, mode, title, colors)
     return None if fig is None else save_figure(fig, path)
 
@@ -200,24 +183,10 @@ def ablation_figure(
     colors: dict[str, str] | None = None,
     mode: str = "greedy",
 ) -> Figure | None:
-    """An ablation's own figure: its fine-tunes against AMULED on the paper's metrics.
+    """An ablation's own figure: fine-tunes against AMULED on the paper's metrics; None without.
 
-    ``kl``: each paper metric against lambda_KL (one point per fine-tune, 95% CI). Other
-    ablations: one panel per paper metric that differs between the fine-tunes, in
-    ``mode`` and then in the run's other modes (`varying_panels`; the title names
-    the metrics left out as equal), the fine-tunes as horizontal bars sorted by their mean
-    (largest on top), AMULED outlined in black. The base policy is a dashed line in every
-    panel.
-
-    Args:
-        results: The ablation's evaluation results.
-        what: ``clusters``, ``aggregation``, ``models`` or ``kl``.
-        colors: ``{variant: colour}``.
-        mode: Which policy mode.
-
-    Returns:
-        The figure, or None without a fine-tune.
-
+    ``kl``: each metric against lambda_KL. Other ablations: a panel per metric that differs
+    (`varying_panels`), bars sorted by mean, AMULED outlined, the base policy dashed.
     """
     if what == "budget":
         return budget_figure(results, mode)
@@ -305,21 +274,10 @@ def ablation_figure(
 def varying_panels(
     results: Results, metrics: Sequence[str], mode: str = "greedy"
 ) -> tuple[list[tuple[str, str]], dict[str, list[str]]]:
-    """The ``(mode, metric)`` panels of an ablation figure: the metrics that differ.
+    """The ``(mode, metric)`` panels of an ablation figure and ``{mode: [metric left out]}``.
 
-    A metric whose mean is the same for every fine-tune (a deterministic greedy policy
-    that always reaches the milk, say) draws identical bars and is left out; the other
-    modes the run was evaluated in (``sampled``) add the metrics that differ there. When
-    no metric differs in any mode, every metric of ``mode`` is shown.
-
-    Args:
-        results: The ablation's evaluation results.
-        metrics: The metrics in their order.
-        mode: The figure's first mode.
-
-    Returns:
-        ``([(mode, metric), ...], {mode: [metric left out, ...]})``.
-
+    A metric equal for every fine-tune is left out; the run's other modes add the metrics that
+    differ there; when none differs, every metric of ``mode`` is shown.
     """
     tunes = [n for n in results.variants if n not in ("base", "shaped")]
     modes = sorted({m for n in tunes for m in results.variants[n].modes()}, key=lambda m: m != mode)
@@ -351,14 +309,10 @@ SELECTION_COLORS = {"uncertainty": "tab:blue", "random": "tab:orange"}
 def budget_points(
     results: Results | Mapping[str, Any],
 ) -> tuple[list[dict[str, Any]], str | None]:
-    """The budget ablation's fine-tunes as points, and its full-feedback fine-tune.
+    """The budget ablation's distilled fine-tunes as points, and the full-feedback one.
 
-    Returns:
-        ``([{"variant", "budget", "selection", "distill"}...], full)``: one point per
-        fine-tune with ``[feedback.distill]`` (``budget``: the share of distinct states
-        it may ask; for a count, the share it asked), sorted by selection and budget; and
-        the name of the AMULED fine-tune that asked every state (None without one).
-
+    ``budget`` is the share of distinct states a point may ask (for a count, the share asked);
+    the full-feedback name is None without one.
     """
     points: list[dict[str, Any]] = []
     full: str | None = None
@@ -380,18 +334,10 @@ def budget_points(
 
 
 def budget_figure(results: Results | Mapping[str, Any], mode: str = "greedy") -> Figure | None:
-    """The budget ablation's figure: each paper metric against the budget.
+    """The budget ablation's figure: each paper metric against the budget (None: none distilled).
 
-    One panel per paper metric and one for the model's held-out agreement with the
-    panel (total-variation distance of the fused beliefs): x is the budget (share of the
-    distinct states asked, log scale), one colour per selection (`SELECTION_COLORS`;
-    the 100% point, where nothing is selected, starts both lines), 95% CIs as error bars;
-    the fine-tune that asked every state without a model is a grey band (its 95% CI) with
-    its mean as a line, the base policy a dashed line.
-
-    Returns:
-        The figure, or None without a distilled fine-tune.
-
+    Also a panel of the model's held-out fused TV; x is the share asked (log scale), one colour
+    per selection; the full-feedback fine-tune is a grey band, the base a dashed line.
     """
     results = Results.of(results)
     points, full = budget_points(results)

@@ -1,10 +1,8 @@
 """Learning curves: each variant's ``curve.json``, a rolling mean, its seeds readable.
 
-How the spread is drawn depends on the seeds (`MAX_SEED_LINES`): with one seed the
-raw values are a faint line behind the rolling mean; with 2 to 5 seeds every seed's rolling
-mean is a thin faint line behind the mean over the seeds (a t-interval over 2 to 5 seeds is
-too wide to read: with 2 seeds its quantile is 12.7); with more, a light 95% band over the
-seeds, cut to the panel.
+With one seed the raw values are faint behind the rolling mean; with 2 to 5 seeds
+(`MAX_SEED_LINES`) each seed's line is faint behind the mean (a t-interval over so few is too
+wide to read); with more, a 95% band over the seeds.
 """
 
 from __future__ import annotations
@@ -46,9 +44,7 @@ MAX_SEED_LINES = 5
 #: Opacity of a seed's line (and of one seed's raw values) and of a band over the seeds.
 SPREAD_ALPHA = 0.3
 BAND_ALPHA = 0.15
-#: Largest ``curve.json`` read [bytes]: about 590 bytes an iteration (1,000 iterations,
-#: the paper's fine-tune: 0.6 MB), so 256 MiB holds some 450,000 iterations; every
-#: variant's is read whole for the report.
+#: Largest ``curve.json`` read [bytes]: about 590 an iteration, so some 450,000 iterations.
 MAX_CURVE_BYTES = 256 * 2**20
 
 
@@ -71,22 +67,13 @@ def _rolling_band(values: list[float | None], window: int) -> tuple[np.ndarray, 
 def load_curves(
     run_dir: Path, names: Mapping[str, str] | None = None
 ) -> dict[str, list[list[dict]]]:
-    """Read every variant's ``curve.json``, seed replicas grouped under their variant.
+    """Read every variant's ``curve.json`` as ``{variant: [replica curve, ...]}``.
 
-    Args:
-        run_dir: The run directory.
-        names: ``{folder: variant name}`` from the folders' records (a seed replica's
-            folder names its variant); a folder not in it is a variant of its own name.
-
-    Returns:
-        ``{variant: [replica curve, ...]}``.
+    ``names`` maps a folder to its variant (a seed replica's names its variant).
 
     Raises:
-        AmuledError: A ``curve.json`` is larger than `MAX_CURVE_BYTES` (refused from
-            its size, before it is read), a link, not a regular file or outside
-            ``run_dir`` (`checked_read_path`), cannot be read
-            or is not JSON; one line naming it.
-
+        AmuledError: A ``curve.json`` over `MAX_CURVE_BYTES` (refused unread), refused by
+            `checked_read_path`, unreadable or not JSON.
     """
     names = names or {}
     curves: dict[str, list[list[dict]]] = {}
@@ -99,19 +86,7 @@ def load_curves(
 
 
 def read_curve(path: Path) -> list[dict]:
-    """One variant folder's ``curve.json``: one row per training iteration.
-
-    Args:
-        path: The file.
-
-    Returns:
-        Its rows, as the trainer wrote them.
-
-    Raises:
-        AmuledError: Larger than `MAX_CURVE_BYTES` (refused from its size, before it
-            is read), unreadable or not JSON; one line naming the file.
-
-    """
+    """One variant folder's ``curve.json`` rows; AmuledError as `load_curves`."""
     from amuled_ma.file_limits import read_bounded_json
 
     fix = (
@@ -126,9 +101,8 @@ def read_curve(path: Path) -> list[dict]:
 def curve_band(replicas: list[list[dict]], key: str) -> tuple[np.ndarray, ...]:
     """x, mean and 95% half-width of one metric over a variant's replicas.
 
-    Each replica's curve is first smoothed by a rolling mean over 5% of its iterations.
-    One replica: the band is the t-interval over that window. Several: the mean over the
-    seeds and the t-interval over the seeds (curves cut to the shortest).
+    Each curve is smoothed by a rolling mean over 5% of its iterations; one replica: the
+    t-interval over that window; several: the t-interval over the seeds (cut to the shortest).
     """
     n = min(len(c) for c in replicas)
     x = np.array([row["env_steps"] for row in replicas[0][:n]], dtype=float)
@@ -149,10 +123,7 @@ def curve_band(replicas: list[list[dict]], key: str) -> tuple[np.ndarray, ...]:
 
 
 def seed_lines(replicas: list[list[dict]], key: str) -> tuple[np.ndarray, list[np.ndarray]]:
-    """The steps and each replica's rolling mean of one metric (over 5% of its iterations).
-
-    One replica: its raw values instead (the faint line behind its rolling mean).
-    """
+    """Steps and each replica's rolling mean of one metric (one replica: its raw values)."""
     n = min(len(c) for c in replicas)
     x = np.array([row["env_steps"] for row in replicas[0][:n]], dtype=float)
     rows = [[row.get(key) for row in c[:n]] for c in replicas]
@@ -248,21 +219,6 @@ def plot_curves(
     title: str,
     colors: dict[str, str] | None = None,
 ) -> Path | None:
-    """Plot one panel per key, one line (rolling mean) per variant, its seeds' spread faint.
-
-    The y-range of each panel is `robust_ylim` of its lines (the panel's title says
-    when values are clipped); x ticks are compact (``20k``).
-
-    Args:
-        curves: ``{variant: [replica curve, ...]}`` (`load_curves`).
-        keys: Curve keys, one panel each (missing ones are skipped).
-        path: The PNG to write.
-        title: The figure's title.
-        colors: ``{variant: colour}`` (default: `variant_colors` of the curves).
-
-    Returns:
-        ``path``, or None when no key has data.
-
-    """
+    """Plot one panel per key, one line per variant; ``path``, or None without data."""
     fig = curves_figure(curves, keys, title, colors)
     return None if fig is None else save_figure(fig, path)

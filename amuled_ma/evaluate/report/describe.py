@@ -1,12 +1,4 @@
-"""What the report says each variant is, from the run records: settings, panels, imports.
-
-Every statement here comes from a `RunRecord`: the run's own
-(``seeds``, ``ablation``, the scenario) and each variant's (its variant, panel, recipe,
-lambda_KL, iterations done and planned, state, base checkpoint, inputs, and for a policy
-imported from the paper's authors its file and checkpoint iteration). A variant evaluated
-without a record (results made by hand, a folder trained outside a run) is described from
-its ``results.json`` entry.
-"""
+"""What the report says each variant is, from the run records (or ``results.json`` without one)."""
 
 from __future__ import annotations
 
@@ -27,17 +19,7 @@ _DEMONSTRATORS = {"human": "the synthetic human", "human:rules": "our human rule
 def variant_records(
     results: Results, records: Mapping[str, RunRecord] | None = None
 ) -> dict[str, RunRecord | None]:
-    """``{variant: record}`` of every evaluated variant.
-
-    A variant's record is its first seed's folder's (the folder of the variant's name,
-    else any of its replicas); without one, a record is made from its ``results.json``
-    ``panel`` entry (None for a variant that has neither).
-
-    Args:
-        results: The evaluation results.
-        records: ``{folder name: record}`` of the run's variant folders.
-
-    """
+    """``{variant: record}``: its first seed folder's, else one from its ``panel`` entry or None."""
     records = records or {}
     out: dict[str, RunRecord | None] = {}
     for name, entry in results.variants.items():
@@ -265,21 +247,8 @@ def settings_table(
 ) -> str:
     """The report's header: what was run, as a two-column Markdown table.
 
-    Rows: task and scenario, evaluation (episodes, seeds, confidence), training seeds,
-    base training steps, the imported policies, the fine-tunes' recipe, lambda_KL and
-    iterations (an interrupted one says so), the panel (agents, fusion; a replay of fused
-    beliefs only says so), where its beliefs came from, and each recording read with its
-    SHA-256. Fine-tune settings come from each fine-tune's record (several values:
-    ``(per variant)``); recipe and lambda_KL only for fine-tunes trained here.
-
-    Args:
-        results: The evaluation results.
-        run: The run's record (its ``config.json``; may be None).
-        records: ``{folder name: record}`` of the variant folders.
-
-    Returns:
-        The table.
-
+    Fine-tune settings come from each fine-tune's record (``(per variant)`` when they differ);
+    recipe and lambda_KL only for fine-tunes trained here. ``run`` may be None.
     """
     results = Results.of(results)
     if run is not None and not isinstance(run, RunRecord):

@@ -1,9 +1,4 @@
-"""The report's figures' common ground: numbers, colours, panels, the PNG files.
-
-One colour per variant in every figure (`variant_colors`), learning curves' y-range
-robust to early spikes (`robust_ylim`), compact tick and bar labels, a grid of
-panels with one legend, and the statistics' means and half widths as figures draw them.
-"""
+"""The report's figures' common ground: numbers, colours, panels, the PNG files."""
 
 from __future__ import annotations
 
@@ -50,10 +45,7 @@ def as_stat(stat: Stat | Mapping[str, Any] | None) -> Stat | None:
 
 
 def format_stat(stat: Stat | Mapping[str, Any] | None, digits: int = 2) -> str:
-    """``mean ± half width`` of a `mean_ci` summary.
-
-    ``n/a`` without a mean; ``± n/a (n = 1)`` where the interval is undefined.
-    """
+    """``mean ± half width`` of a `mean_ci` summary (``n/a``; ``± n/a (n = 1)``)."""
     stat = as_stat(stat)
     mean = mean_of(stat)
     if stat is None or not math.isfinite(mean):
@@ -65,15 +57,7 @@ def format_stat(stat: Stat | Mapping[str, Any] | None, digits: int = 2) -> str:
 
 
 def compact_number(value: float) -> str:
-    """A tick label that stays short: ``950``, ``10k``, ``12.5k``, ``1.25M``.
-
-    Args:
-        value: The tick's value.
-
-    Returns:
-        The label (at most 3 significant digits past the first thousand).
-
-    """
+    """A tick label that stays short: ``950``, ``10k``, ``12.5k``, ``1.25M``."""
     magnitude = abs(value)
     for scale, suffix in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
         if magnitude >= scale:
@@ -94,18 +78,9 @@ def short_label(value: float) -> str:
 
 
 def variant_colors(names: Iterable[str]) -> dict[str, str]:
-    """One fixed colour per variant: the sorted names take matplotlib's tab10 in turn.
+    """One fixed colour ``#rrggbb`` per variant whatever their order: sorted names take tab10.
 
-    The same names give the same colours whatever their order, so a report's figures
-    (curves, bars, trajectories, the ablation's) all draw a variant in one colour. Past
-    ten variants the palette is tab20 with its ten dark shades first, then the light ones.
-
-    Args:
-        names: The variants (repeats are ignored).
-
-    Returns:
-        ``{name: "#rrggbb"}``.
-
+    Past ten variants, tab20 with its dark shades first.
     """
     from matplotlib import colormaps
     from matplotlib.colors import to_hex
@@ -127,27 +102,12 @@ def robust_ylim(
     reach: float = 1.0,
     pad: float = 0.08,
 ) -> tuple[float, float, str] | None:
-    """A y-range for learning curves that early spikes do not squash.
+    """A y-range for learning curves that early spikes do not squash; None without a finite value.
 
-    The core range is the 2nd to 98th percentile (nearest value) of all series' values
-    after their first 10% of points: the first 5% and the 5% rolling window that carries
-    them into the smoothed line. It is widened to every value (early ones too) within one
-    core range of it, so a curve's genuine ramp or late extreme stays in view and only a far
-    outlier (a spike of the first iterations) is left out; then a margin of 8% is added.
-
-    Args:
-        series: The plotted lines (NaN points are ignored).
-        skip: Share of each series' first points left out of the percentiles.
-        percentiles: Lower and upper percentile of the core range.
-        reach: Values within ``reach`` core ranges of it are kept in view (a flat core
-            counts as ``max(0.1 * |value|, 0.5)`` wide).
-        pad: Margin on each side, as a share of the range.
-
-    Returns:
-        ``(low, high, note)``: ``note`` says which values fall outside and are clipped
-        (``"early values above the range clipped"``, ``"values below the range
-        clipped"``, ...), or is ``""``. None without a finite value.
-
+    The core range is the ``percentiles`` of the values after each series' first ``skip``
+    share, widened to every value within ``reach`` core ranges (a flat core counts as
+    ``max(0.1 * |value|, 0.5)``), plus ``pad`` on each side. Returns ``(low, high, note)``,
+    ``note`` saying which values are clipped, or ``""``.
     """
     arrays = [np.asarray(s, dtype=float) for s in series]
     starts = [math.floor(skip * len(a)) for a in arrays]
@@ -206,12 +166,7 @@ def legend_below(fig: Figure, handles: list, labels: list[str], spare: list) -> 
 
 
 def save_figure(fig: Figure, path: Path) -> Path:
-    """Write a figure as PNG (`atomic_writer`) and close it.
-
-    Raises:
-        UnsafePathError: ``path`` is a link or not a regular file.
-        FileWriteError: It could not be written (a full disk); one line naming it.
-    """
+    """Write a figure as PNG by `atomic_writer` (UnsafePathError, FileWriteError) and close it."""
     plt = pyplot()
     try:
         with atomic_writer(path) as handle:

@@ -1,8 +1,4 @@
-"""The report's tables of results.
-
-Metrics, differences to base, the fused-belief diagnostics, each panel agent's answers,
-the LLM servers and the feedback budget, each a Markdown table.
-"""
+"""The report's Markdown tables of results."""
 
 from __future__ import annotations
 
@@ -27,14 +23,9 @@ from amuled_ma.evaluate.stats import t_quantile
 
 
 def diagnostics_table(results: Results | Mapping[str, Any], finetunes: int | None = None) -> str:
-    """Markdown table of mean per-cluster weight, mean conflict and miss rate per variant.
+    """Mean per-cluster weight, conflict and miss rate per variant.
 
-    Args:
-        results: The evaluation results.
-        finetunes: How many fine-tunes the run lists (default: the variants with
-            diagnostics): with fine-tunes but no diagnostics, the table says so instead of
-            claiming there is no fine-tune.
-
+    With ``finetunes`` but no diagnostics, the table says so.
     """
     results = Results.of(results)
     rows = {k: v.feedback for k, v in results.variants.items() if v.feedback is not None}
@@ -80,18 +71,10 @@ _MODEL_COLUMNS = (
 
 
 def agents_table(results: Results | Mapping[str, Any]) -> str:
-    """Markdown table: per fine-tune and panel agent, the share of each belief status.
+    """Per fine-tune and panel agent, the share of each belief status; ``""`` without counts.
 
-    From ``feedback["agents"]`` (counts per rewarded step): the number of beliefs, the
-    share repaired (answered after a repair), abstained, missed by the replay, timed out
-    and failed with an error, and the share not answered (every status but ``ok`` and
-    ``repaired`` and the distilled model's answers: the fused reward went on without that
-    agent). With a distilled feedback (``[feedback.distill]``) three more columns: the
-    share the model answered for states not asked, instead of a miss, and could not.
-
-    Returns:
-        The table, or ``""`` when no variant recorded per-agent counts.
-
+    Not answered: every status but ``ok``, ``repaired`` and the model's answers (the fused
+    reward went on without that agent). A distilled feedback adds the model's three columns.
     """
     lines = []
     rows = [
@@ -122,17 +105,9 @@ def agents_table(results: Results | Mapping[str, Any]) -> str:
 
 
 def servers_table(results: Results | Mapping[str, Any]) -> str:
-    """Markdown table: per fine-tune and LLM server, what the server was asked and did.
+    """Per fine-tune and LLM server, what it was asked and did (`llm_server_stats`); ``""`` if none.
 
-    From ``feedback["llm_servers"]`` (`llm_server_stats`):
-    requests sent (every attempt: retries and probes included), answered, failed with the
-    kinds of failure, requests retried on another host after failing there, times the
-    server was taken out of the pool and put back, and the mean and 95th-percentile
-    latency of its answered requests.
-
-    Returns:
-        The table, or ``""`` when no variant asked an LLM server.
-
+    Requests sent count every attempt (retries and probes); latency is of answered requests.
     """
     lines = []
     for name, entry in Results.of(results).variants.items():
@@ -166,19 +141,7 @@ def _tv(value: float | None) -> str:
 
 
 def budget_table(results: Results | Mapping[str, Any]) -> str:
-    """Markdown table: the feedback budget's accounting of every distilled fine-tune.
-
-    From ``feedback["distill"]`` (`DistilledSource.report`): the
-    budget and selection, the distinct states visited, asked (and their share), answered
-    by the model, the misses the model answered, the requests forwarded to the panel's
-    source and of those sent to the LLMs (the rest were in the belief store), the refits,
-    and the model's agreement with the panel on the held-out asked states (mean
-    total-variation distance, fused and per member).
-
-    Returns:
-        The table, or ``""`` when no fine-tune was distilled.
-
-    """
+    """The budget accounting of every distilled fine-tune (`DistilledSource.report`), or ``""``."""
     lines = []
     for name, entry in Results.of(results).variants.items():
         d = entry.feedback.distill if entry.feedback is not None else None
@@ -210,16 +173,7 @@ def budget_table(results: Results | Mapping[str, Any]) -> str:
 
 
 def budget_ablation_table(results: Results | Mapping[str, Any], mode: str = "greedy") -> str:
-    """Markdown table of the budget ablation: the paper's metrics against the budget.
-
-    One row per distilled fine-tune (selection, budget, states asked, requests sent, the
-    model's held-out fused TV) and one for the AMULED fine-tune that asked every state,
-    each with the paper's metrics (``mean ± half-width``, ``mode`` policy).
-
-    Returns:
-        The table, or ``""`` without a distilled fine-tune.
-
-    """
+    """The budget ablation's paper metrics against the budget, or ``""`` without one."""
     results = Results.of(results)
     points, full = budget_points(results)
     if not points:
@@ -279,18 +233,7 @@ def metrics_table(results: Results | Mapping[str, Any], mode: str) -> str:
 def base_differences(
     results: Results | Mapping[str, Any], mode: str, base: str = "base"
 ) -> dict[str, dict[str, float]]:
-    """Each variant's mean minus the base policy's mean, per metric both have.
-
-    Args:
-        results: The evaluation results.
-        mode: ``greedy`` or ``sampled``.
-        base: The reference variant.
-
-    Returns:
-        ``{variant: {metric: difference}}`` for every variant but ``base`` (metrics
-        without a finite mean on either side are left out); ``{}`` without ``base``.
-
-    """
+    """``{variant: {metric: mean - base mean}}`` where both are finite; ``{}`` without ``base``."""
     variants = Results.of(results).in_mode(mode)
     if base not in variants:
         return {}
@@ -313,18 +256,10 @@ def same_as_base(
     mode: str = "greedy",
     finetunes: Iterable[str] | None = None,
 ) -> list[str]:
-    """The fine-tunes whose every metric equals the base policy's within 1e-9.
+    """The fine-tunes whose every metric equals the base's within 1e-9, in results order.
 
-    Args:
-        results: The evaluation results.
-        mode: ``greedy`` or ``sampled``.
-        finetunes: The fine-tunes' names (from their records; default: the variants with
-            a ``panel`` entry or named ``finetune*``).
-
-    Returns:
-        Variant names, in results order; a variant sharing no metric with base is not
-        listed.
-
+    ``finetunes`` defaults to the variants with a ``panel`` entry or named ``finetune*``; a
+    variant sharing no metric with base is not listed.
     """
     results = Results.of(results)
     if finetunes is None:
@@ -375,29 +310,14 @@ _PHRASES: dict[str, tuple[str, str]] = {
 }
 
 
-def _numbers(stat: Stat | None) -> str:
-    mean = mean_of(stat)
-    return "n/a" if not math.isfinite(mean) else f"{mean:g}"
-
-
 def paper_table(
     results: Results | Mapping[str, Any],
     recipes: Mapping[str, str | None] | None = None,
 ) -> str:
-    """Markdown table: the paper's row beside ours for every variant the paper reports.
+    """The paper's row (`PAPER_ROWS`, sampled policy) beside ours, or ``""`` without one.
 
-    The paper's figures (`PAPER_ROWS`) are of the sampled
-    policy; ours are in the same mode when it was evaluated (else greedy, and the column
-    says so), ``mean ± half-width`` of the 95% interval.
-
-    Args:
-        results: The evaluation results.
-        recipes: ``{variant: recipe}`` of the fine-tunes trained here (``authors``,
-            ``equation``); a variant without one (a base, an imported policy) shows ``-``.
-
-    Returns:
-        The table and its source line, or ``""`` when the paper has no row for any variant.
-
+    Ours are sampled when evaluated so (else greedy, said in the column); ``recipes`` gives
+    each fine-tune's recipe (``-`` for the others).
     """
     results = Results.of(results)
     columns = PAPER_COLUMNS.get(results.task)
@@ -432,22 +352,11 @@ def paper_table(
 def difference_ci(
     mine: Stat | None, base: Stat | None, confidence: float = 0.95
 ) -> tuple[float, float, float] | None:
-    """A variant's mean minus the base's, with a Welch interval of the difference.
+    """A variant's mean minus the base's with a Welch interval; None without means, counts, spreads.
 
-    The interval is the one of ``scipy.stats.ttest_ind(equal_var=False)``, from the two
-    summaries (``ttest_ind_from_stats`` returns neither the degrees of freedom nor an
-    interval, so the Welch-Satterthwaite ``df`` is written out here).
-
-    Args:
-        mine: The variant's `Stat`.
-        base: The base's.
-        confidence: Two-sided confidence level.
-
-    Returns:
-        ``(difference, low, high)``; the interval is the difference itself when neither
-        side varies (a deterministic greedy policy); None without both means, counts and
-        spreads (a single value has no spread).
-
+    The interval is the one of ``scipy.stats.ttest_ind(equal_var=False)``, which does not return
+    it, so the Welch-Satterthwaite ``df`` is written out; with no spread on either side it is
+    the difference itself.
     """
     if mine is None or base is None:
         return None
@@ -472,22 +381,10 @@ def movement_sentence(
     mode: str = "sampled",
     label: str = "AMULED",
 ) -> str:
-    """One sentence: did the fine-tune move away from the base, and which way.
+    """One sentence: did the fine-tune move from the base beyond noise, which way (``""``: no data).
 
-    A metric moved when the interval of its difference to the base
-    (`difference_ci`) excludes 0: ``AMULED wakes 2.10 fewer sleeping babies than
-    the base (95% CI 1.62 to 2.58 fewer)``; with none, ``did not move from the base beyond
-    noise``. A fine-tune that misses the goal in some episodes (FindMilk's milk) says so.
-
-    Args:
-        results: The evaluation results.
-        variant: The fine-tune (a variant of the results).
-        mode: ``greedy`` or ``sampled``.
-        label: How the sentence names it.
-
-    Returns:
-        The sentence, or ``""`` without the variant or the base in ``mode``.
-
+    A metric moved when `difference_ci` excludes 0; a fine-tune that misses the goal in some
+    episodes says so.
     """
     results = Results.of(results)
     modes = results.in_mode(mode)

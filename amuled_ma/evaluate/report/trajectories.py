@@ -1,9 +1,4 @@
-"""Trajectory figures: one recorded greedy episode per variant, drawn by its task.
-
-FindMilk: a grid per variant (`draw_findmilk`);
-Driving: a strip of lanes and events per variant
-(`draw_driving`).
-"""
+"""Trajectory figures: one recorded greedy episode per variant, drawn by its task."""
 
 from __future__ import annotations
 
@@ -66,18 +61,7 @@ def plot_findmilk(
     mode: str = "greedy",
     colors: dict[str, str] | None = None,
 ) -> Path | None:
-    """One FindMilk trajectory per variant, one grid per panel, sub-goals marked.
-
-    Args:
-        results: The evaluation results.
-        path: The PNG to write.
-        mode: ``greedy`` or ``sampled``.
-        colors: ``{variant: colour}``.
-
-    Returns:
-        ``path``, or None without that mode.
-
-    """
+    """One FindMilk trajectory per variant, a grid each, sub-goals marked; ``path``, or None."""
     fig = findmilk_figure(results, mode, colors)
     return None if fig is None else save_figure(fig, path)
 
@@ -113,17 +97,6 @@ def plot_driving(
     mode: str = "greedy",
     colors: dict[str, str] | None = None,
 ) -> Path | None:
-    """One Driving episode per variant: a strip of its lane over time with its events.
-
-    Args:
-        results: The evaluation results.
-        path: The PNG to write.
-        mode: ``greedy`` or ``sampled``.
-        colors: ``{variant: colour}``.
-
-    Returns:
-        ``path``, or None without that mode.
-
-    """
+    """One Driving episode per variant: its lane over time with its events; ``path``, or None."""
     fig = driving_figure(results, mode, colors)
     return None if fig is None else save_figure(fig, path)

@@ -1,11 +1,4 @@
-"""``report.md``: the run's settings, tables and figures, written into the run folder.
-
-The report opens with the run's settings (`describe`: task,
-recipe, lambda_KL, iterations, seeds, the panel and its sources, the recording and its
-SHA-256, the policies imported from the paper's authors, variants interrupted) and a link to
-the step-by-step viewer (``amuled view``); then the metric tables, each fine-tune's
-feedback, the diagnostics (`tables`) and the figures.
-"""
+"""``report.md``: the run's settings, tables and figures, written into the run folder."""
 
 from __future__ import annotations
 
@@ -52,9 +45,7 @@ FIGURE_NAMES = (
 VIEWER_PAGE = "view-episode0.html"
 #: How the report's viewer line starts (`link_viewer` finds it by this).
 VIEWER_PREFIX = "**Step by step:**"
-#: Largest ``report.md`` read back [bytes] (`link_viewer` rewrites one line of it):
-#: a report is about 10 KB (the demo's: 9 KB; a sweep of many variants a few times that);
-#: 16 MiB is 1,600 times that, and the file is read whole.
+#: Largest ``report.md`` read back by `link_viewer` [bytes] (a report is about 10 KB).
 MAX_REPORT_BYTES = 16 * 2**20
 
 
@@ -74,20 +65,11 @@ def viewer_line(run_dir: Path) -> str:
 
 
 def link_viewer(run_dir: Path) -> bool:
-    """Rewrite ``report.md``'s viewer line (`viewer_line`) now the page may exist.
-
-    Args:
-        run_dir: The run directory (its ``report.md``).
-
-    Returns:
-        True when the report had a viewer line (it now links the page if it exists).
+    """Rewrite ``report.md``'s viewer line (`viewer_line`); True when it had one.
 
     Raises:
-        AmuledError: ``report.md`` is larger than `MAX_REPORT_BYTES` (refused from
-            its size, before it is read), unreadable or not text; a link or not a regular
-            file (`checked_read_path`); it cannot be written
-            back (`write_text_atomic`); one line naming it.
-
+        AmuledError: ``report.md`` over `MAX_REPORT_BYTES` (refused unread), refused by
+            `checked_read_path`, unreadable, or not writable back.
     """
     from amuled_ma.file_limits import read_bounded_bytes
 
@@ -121,13 +103,7 @@ def link_viewer(run_dir: Path) -> bool:
 
 
 def evaluation_outputs(run_dir: Path) -> list[Path]:
-    """The files an evaluation and its report write or remove in ``run_dir``.
-
-    `RESULTS_FILES`, ``report.md``, `FIGURE_NAMES`
-    and every ``ablation_*.png`` there. ``amuled evaluate`` and the pipeline check them
-    (`check_write_targets`) before the first episode, so a
-    refused one costs no work.
-    """
+    """The files an evaluation and its report write or remove in ``run_dir``."""
     run_dir = Path(run_dir)
     return [
         *(run_dir / name for name in RESULTS_FILES),
@@ -146,31 +122,12 @@ def write_report(
     run: RunRecord | None = None,
     records: Mapping[str, RunRecord] | None = None,
 ) -> Path:
-    """Write ``report.md`` and its PNG figures into ``run_dir``.
-
-    A figure of `FIGURE_NAMES` (or an ``ablation_*.png``) left from an earlier
-    report that this one does not draw is removed, so every PNG of the folder is one the
-    report shows.
-
-    Args:
-        run_dir: The run directory (curves are read from its variant folders).
-        results: The evaluation results (`evaluate_run`).
-        title: Report title.
-        ablation: The ablation this folder holds (``clusters``, ``aggregation``,
-            ``models``, ``kl``, ``budget``; default: the run record's): adds its figure
-            ``ablation_<what>.png``.
-        run: The run's record (its ``config.json``: seeds, ablation, scenario).
-        records: ``{folder name: record}`` of the variant folders: what each variant is
-            (trained here or imported, its panel, iterations and state).
-
-    Returns:
-        Path of ``report.md``.
+    """Write ``report.md`` and its PNG figures into ``run_dir``, removing figures not drawn now.
 
     Raises:
         UnsafePathError: One of `evaluation_outputs` is a link or not a regular file;
             refused before any figure is drawn.
-        FileWriteError: A file could not be written (a full disk); one line naming it.
-
+        FileWriteError: A file could not be written.
     """
     run_dir = Path(run_dir)
     check_write_targets(evaluation_outputs(run_dir))
@@ -397,16 +354,7 @@ def write_report(
 
 
 def readings_lines(results: Results) -> list[str]:
-    """Markdown bullets ``- **variant**: sentence``: each fine-tune's feedback readings.
-
-    Args:
-        results: The run's results; a variant without ``feedback.json`` gives none.
-
-    Returns:
-        One bullet per sentence of :func:`~amuled_ma.deliberation.summaries.readings`, in
-        variant order; empty when no figure calls for one.
-
-    """
+    """Markdown bullets ``- **variant**: sentence``, one per feedback reading (`readings`)."""
     from amuled_ma.deliberation.summaries import readings
 
     return [
@@ -418,12 +366,7 @@ def readings_lines(results: Results) -> list[str]:
 
 
 def _paper_lines(results: Results, described: Mapping[str, RunRecord | None]) -> list[str]:
-    """The section that answers the question: did AMULED move, and where is the paper.
-
-    One sentence per mode on the AMULED fine-tune against the base (with the interval of
-    the difference), then the paper's row beside ours for every variant it reports, with
-    the recipe each side used.
-    """
+    """The section on whether AMULED moved from the base, and the paper's row beside ours."""
     lines: list[str] = []
     amuled = [n for n in results.variants if n.split(".seed", 1)[0] == "finetune-amuled"]
     sentences = [
