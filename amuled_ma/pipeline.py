@@ -13,7 +13,7 @@ arguments into the request and print the :class:`PipelineOutcome`. The steps:
    preflight, run shape, settings, base checkpoint, new / resume / skip) before any folder
    is made, so a missing recording, base checkpoint or feedback source, or a folder
    trained with other settings, stops the run and leaves nothing;
-3. hold the run folder's lock (:func:`~amuled_ma.run_lock.run_folder_lock`), write
+3. hold the run folder's lock (:func:`~amuled_ma.files.run_lock.run_folder_lock`), write
    ``config.json`` and train the graph (:func:`~amuled_ma.experiments.jobs.run_jobs`: in this
    process or on Ray), one line per finished job (:func:`describe_job`);
 4. evaluate every variant (:func:`~amuled_ma.evaluate.evaluator.evaluate_run`) and write
@@ -51,9 +51,9 @@ from amuled_ma.experiments.run_folder import (
     split_replica,
     write_config,
 )
-from amuled_ma.run_lock import run_folder_lock
+from amuled_ma.files.run_lock import run_folder_lock
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import Scenario
-from amuled_ma.variants import Variant
 
 if TYPE_CHECKING:
     from amuled_ma.evaluate.results import Results
@@ -226,7 +226,7 @@ def run_pipeline(
     # after the checks: a refused run answers before torch and matplotlib are imported
     from amuled_ma.evaluate.evaluator import evaluate_run, variant_dirs
     from amuled_ma.evaluate.report import evaluation_outputs, write_report
-    from amuled_ma.safe_files import check_write_targets
+    from amuled_ma.files.safe import check_write_targets
 
     check_write_targets(evaluation_outputs(plan.out_dir))  # before training, as the inputs
     workers = resolve_workers(request.jobs, plan.jobs)

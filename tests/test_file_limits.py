@@ -13,7 +13,7 @@ import pytest
 from sparse_files import sparse
 
 from amuled_ma.errors import AmuledError, PromptError
-from amuled_ma.file_limits import (
+from amuled_ma.files.limits import (
     check_size,
     read_bounded_bytes,
     read_bounded_text,

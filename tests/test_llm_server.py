@@ -1,4 +1,4 @@
-"""Unit tests of amuled_ma.llm_server and ``amuled ollama``, with a fake ``ollama`` executable.
+"""amuled_ma.servers.local_server and ``amuled ollama``, with a fake ``ollama`` executable.
 
 The fake is a small Python HTTP server answering ``/api/version`` and ``/api/tags`` on
 ``$OLLAMA_HOST``, so start/stop/state logic is tested in about a second without the real
@@ -18,10 +18,10 @@ from pathlib import Path
 
 import pytest
 
-from amuled_ma import llm_server
-from amuled_ma.beliefs.hosts import preflight
 from amuled_ma.cli import main
 from amuled_ma.errors import BackendUnavailable, ModelNotFound
+from amuled_ma.servers import local_server as llm_server
+from amuled_ma.servers.hosts import preflight
 
 FAKE_OLLAMA = r'''#!{python}
 """Fake ollama: 'serve' answers /api/version and /api/tags; 'create' records the model."""

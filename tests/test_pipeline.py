@@ -68,8 +68,8 @@ def test_ablate_reaches_the_pipeline_with_its_ablation(requests, tmp_path, capsy
 
 
 def test_demo_reaches_the_pipeline_with_its_scenario_file(requests, tmp_path, monkeypatch, capsys):
-    from amuled_ma.beliefs import hosts
     from amuled_ma.commands import demo
+    from amuled_ma.servers import hosts
 
     monkeypatch.setattr(hosts, "preflight", lambda host, model: None)
     monkeypatch.setattr(demo, "write_demo_view", lambda run_dir: None)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import io
 import time
 
-from amuled_ma.progress import Progress, duration
+from amuled_ma.monitor.progress import Progress, duration
 
 
 class Clock:
@@ -61,7 +61,7 @@ def test_the_watcher_writes_while_one_step_takes_long() -> None:
 
 
 def test_held_keeps_the_lines_still_while_a_person_is_asked() -> None:
-    from amuled_ma.progress import held
+    from amuled_ma.monitor.progress import held
 
     clock, out = Clock(), io.StringIO()
     progress = Progress("findmilk/amuled", 4, bar=False, clock=clock, stream=out, watch=False)
@@ -73,7 +73,7 @@ def test_held_keeps_the_lines_still_while_a_person_is_asked() -> None:
 
 
 def test_plain_line_pattern_matches_the_lines_and_not_an_error() -> None:
-    from amuled_ma.progress import PLAIN_LINE
+    from amuled_ma.monitor.progress import PLAIN_LINE
 
     clock = Clock()
     progress = Progress("findmilk/amuled", 20, bar=False, clock=clock, watch=False)
@@ -90,8 +90,8 @@ def test_durations() -> None:
 
 def test_a_training_run_without_bars_prints_plain_lines(tmp_path, monkeypatch, capsys) -> None:
     """``amuled train --no-progress``, its lines due at once: one per iteration, on stderr."""
-    from amuled_ma import progress
     from amuled_ma.cli import main
+    from amuled_ma.monitor import progress
 
     monkeypatch.setattr(progress, "FIRST_LINE_S", 0.0)
     monkeypatch.setattr(progress, "PLAIN_EVERY_S", 0.0)

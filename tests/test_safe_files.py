@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from small_disk import small_disk
 
-from amuled_ma.safe_files import (
+from amuled_ma.files.safe import (
     FileWriteError,
     UnsafePathError,
     atomic_writer,

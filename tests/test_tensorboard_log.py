@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 from small_disk import small_disk
 
-from amuled_ma.safe_files import FileWriteError
-from amuled_ma.tensorboard_log import TensorBoardLog
+from amuled_ma.files.safe import FileWriteError
+from amuled_ma.monitor.tensorboard_log import TensorBoardLog
 
 #: Scalars written until the disk is full (about 50 bytes each: ten times 16 KiB).
 SCALARS = 3_000

@@ -161,7 +161,7 @@ def add_overrides_argument(parser: argparse.ArgumentParser) -> None:
 
 def load(args: argparse.Namespace) -> Scenario:
     """Load the scenario named on the command line and apply ``--set`` overrides."""
-    from amuled_ma.resources import scenarios_dir
+    from amuled_ma.files.resources import scenarios_dir
     from amuled_ma.scenario import load_scenario
 
     name = str(args.scenario)

@@ -8,8 +8,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from amuled_ma.commands import _experiment as common
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import Scenario, check_path_component
-from amuled_ma.variants import Variant
 
 if TYPE_CHECKING:
     from amuled_ma.experiments.run_folder import Rerun

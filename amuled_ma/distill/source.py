@@ -1,8 +1,8 @@
 """``DistilledSource``: the panel asked only where a distilled reward model is unsure.
 
 :class:`DistilledSource` wraps the panel's belief source (the
-:class:`~amuled_ma.beliefs.cached.CachedSource` or
-:class:`~amuled_ma.beliefs.routing.RoutedSource` that
+:class:`~amuled_ma.beliefs.store.cached.CachedSource` or
+:class:`~amuled_ma.beliefs.sources.routing.RoutedSource` that
 :func:`amuled_ma.deliberation.build.make_source` builds) and is itself a
 :class:`~amuled_ma.beliefs.types.BeliefSource`. The moral panel hands it one batch of
 requests, one per (state, member). For a batch it
@@ -45,8 +45,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from amuled_ma.beliefs.cached import requests_sent
-from amuled_ma.beliefs.rows import CACHEABLE
+from amuled_ma.beliefs.replies.validate import check_belief, uniform_belief
+from amuled_ma.beliefs.store.cached import requests_sent
+from amuled_ma.beliefs.store.rows import CACHEABLE
 from amuled_ma.beliefs.types import (
     MODEL_STATUSES,
     UNASKED,
@@ -54,7 +55,6 @@ from amuled_ma.beliefs.types import (
     BeliefResult,
     BeliefSource,
 )
-from amuled_ma.beliefs.validate import check_belief, uniform_belief
 from amuled_ma.distill.budget import BudgetLedger, check_budget
 from amuled_ma.distill.model import EnsembleModel, FitSettings
 from amuled_ma.distill.selection import (
@@ -138,7 +138,7 @@ class DistilledSource(BeliefSource):
 
     Args:
         source: The panel's source (its store answers asked states again for free); the
-            attribute ``source``, as :class:`~amuled_ma.beliefs.cached.CachedSource` names
+            attribute ``source``, as :class:`~amuled_ma.beliefs.store.cached.CachedSource` names
             its wrapped source.
         budget: A share of distinct visited states in ``(0, 1]`` (float) or a count
             ``>= 1`` (int) of states the panel may be asked.

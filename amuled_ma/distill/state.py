@@ -16,7 +16,7 @@ In the fine-tune's folder:
 
 Nothing here is written into the belief store: the store holds exactly the panel's
 answers to the asked states. Both files are written and read back through
-:mod:`amuled_ma.safe_files`: never through a link, only regular files inside the folder.
+:mod:`amuled_ma.files.safe`: never through a link, only regular files inside the folder.
 """
 
 from __future__ import annotations
@@ -32,8 +32,8 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from amuled_ma.errors import AmuledError
-from amuled_ma.file_limits import check_size, read_bounded_bytes, read_line
-from amuled_ma.safe_files import append_text, atomic_writer, checked_read_path
+from amuled_ma.files.limits import check_size, read_bounded_bytes, read_line
+from amuled_ma.files.safe import append_text, atomic_writer, checked_read_path
 
 #: File of the budget ledger and counters.
 LEDGER_FILE = "distill.json"

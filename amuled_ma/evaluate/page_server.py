@@ -57,7 +57,7 @@ def make_server(path: Path, host: str = "127.0.0.1", port: int = 0) -> http.serv
             size, before it is read); one line naming it.
 
     """
-    from amuled_ma.file_limits import read_bounded_bytes
+    from amuled_ma.files.limits import read_bounded_bytes
 
     body = read_bounded_bytes(
         path,

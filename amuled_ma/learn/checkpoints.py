@@ -26,14 +26,14 @@ from pathlib import Path
 from typing import Any
 
 from amuled_ma.errors import CheckpointError
-from amuled_ma.safe_files import (
+from amuled_ma.files.safe import (
     check_write_target,
     checked_read_path,
     failure_fix,
     fsync_folder,
     write_failure,
 )
-from amuled_ma.torch_files import load_weights_only
+from amuled_ma.files.torch_load import load_weights_only
 
 
 class CheckpointWriteError(CheckpointError):
@@ -65,7 +65,7 @@ def read_checkpoint(path: str | Path, *, need: Iterable[str] = ("actor_state_dic
             need arbitrary code to load; nothing from it was run), is not a dict, or lacks
             a key in ``need``. The message names the file and what to do.
         UnsafePathError: The file is a symbolic link or not a regular file
-            (:func:`~amuled_ma.safe_files.checked_read_path`); nothing is read.
+            (:func:`~amuled_ma.files.safe.checked_read_path`); nothing is read.
 
     """
     path = checked_read_path(Path(path).parent, Path(path).name)

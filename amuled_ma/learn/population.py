@@ -52,6 +52,7 @@ from rsl_rl.runners import OnPolicyRunner
 
 from amuled_ma.deliberation.mdp import BatchedDeliberation, MemberFeedback
 from amuled_ma.errors import AmuledError, MemberFailed, Terminated
+from amuled_ma.files.safe import FileWriteError, write_text_atomic
 from amuled_ma.learn.anchored_ppo import AnchoredPPO
 from amuled_ma.learn.checkpoints import LAST, CheckpointWriteError, write_checkpoints
 from amuled_ma.learn.curves import curve_row, quiet
@@ -68,10 +69,9 @@ from amuled_ma.learn.population_state import (
     stack_optimizer_states,
 )
 from amuled_ma.learn.vecenv import DeliberationVecEnv
-from amuled_ma.progress import Progress
-from amuled_ma.safe_files import FileWriteError, write_text_atomic
+from amuled_ma.monitor.progress import Progress
+from amuled_ma.monitor.tensorboard_log import TensorBoardLog
 from amuled_ma.tasks import make_task
-from amuled_ma.tensorboard_log import TensorBoardLog
 
 __all__ = ["LAST", "PopulationMember", "PopulationTrainer", "TrainOutcome", "train_population"]
 
@@ -140,7 +140,7 @@ class PopulationTrainer:
         device: Where the networks and PPO's buffers live (``cpu`` or ``cuda``); the
             task copies stay on the CPU (:func:`~amuled_ma.tasks.make_task`).
         progress: Show one tqdm bar for the population (else plain lines past 10 s,
-            `amuled_ma.progress.Progress`).
+            `amuled_ma.monitor.progress.Progress`).
 
     Raises:
         ValueError: No jobs, or jobs that cannot train together (another key).

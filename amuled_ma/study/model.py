@@ -93,7 +93,7 @@ def read_folder_file(
         StudyError: It is over ``limit`` bytes, unreadable or not UTF-8; one line.
 
     """
-    from amuled_ma.file_limits import decode_text, too_large
+    from amuled_ma.files.limits import decode_text, too_large
 
     path = Path(folder) / relative
     refuse = f"{path}: the {noun} must be a regular file inside the study folder, "

@@ -509,7 +509,7 @@ def weights_file(
         The file's content.
 
     """
-    from amuled_ma.file_hash import sha256_file
+    from amuled_ma.files.hashing import sha256_file
 
     def r(values: np.ndarray) -> list[float]:
         return [round(float(v), 6) for v in values]

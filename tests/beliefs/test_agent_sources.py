@@ -11,7 +11,7 @@ import torch
 from job_settings import settings
 
 from amuled_ma.beliefs import BeliefRequest, make_source
-from amuled_ma.beliefs.routing import RoutedSource
+from amuled_ma.beliefs.sources.routing import RoutedSource
 from amuled_ma.clusters import plugins
 from amuled_ma.deliberation.build import make_feedback
 from amuled_ma.deliberation.build import make_source as feedback_source

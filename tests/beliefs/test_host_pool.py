@@ -10,8 +10,8 @@ import time
 
 import pytest
 
-from amuled_ma.beliefs.host_pool import HostPool, host_lines, merge_host_stats, percentile
 from amuled_ma.errors import BackendUnavailable
+from amuled_ma.servers.pool import HostPool, host_lines, merge_host_stats, percentile
 
 A, B, C = "http://a:1", "http://b:2", "http://c:3"
 

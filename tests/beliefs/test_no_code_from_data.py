@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from amuled_ma.beliefs import BeliefRequest, make_source
-from amuled_ma.beliefs.policy import PolicySource
+from amuled_ma.beliefs.sources.policy import PolicySource
 from amuled_ma.cli import main
 from amuled_ma.clusters import default_clusters_dir, plugins
 from amuled_ma.commands._experiment import command_line

@@ -16,9 +16,10 @@ import pytest
 from fake_ollama import GOOD, chat_reply
 
 from amuled_ma.beliefs import BeliefRequest, ScriptedSource, make_source
-from amuled_ma.beliefs.ollama import OllamaSource, resolve_host
+from amuled_ma.beliefs.sources.ollama import OllamaSource
 from amuled_ma.clusters import build_messages
 from amuled_ma.errors import BackendUnavailable, ModelNotFound
+from amuled_ma.servers.hosts import resolve_host
 
 MILK = ("up", "down", "left", "right")
 
@@ -238,8 +239,8 @@ def test_host_resolution(monkeypatch):
 
 
 def test_make_source_and_cached_store_second_run_sends_nothing(tmp_path):
-    from amuled_ma.beliefs.cached import CachedSource
-    from amuled_ma.beliefs.store import BeliefStore
+    from amuled_ma.beliefs.store.cached import CachedSource
+    from amuled_ma.beliefs.store.database import BeliefStore
 
     server = FakeServer()
     ollama = make_source("ollama", host="http://fake:11434", transport=httpx.MockTransport(server))

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from amuled_ma.beliefs import BeliefRequest
-from amuled_ma.beliefs.ollama import OllamaSource
+from amuled_ma.beliefs.sources.ollama import OllamaSource
 from amuled_ma.clusters import build_messages
 from amuled_ma.errors import ModelNotFound
 

@@ -19,9 +19,9 @@ import pytest
 from fake_ollama import GOOD, chat_reply
 
 from amuled_ma.beliefs import BeliefRequest
-from amuled_ma.beliefs.cached import CachedSource
-from amuled_ma.beliefs.ollama import OllamaSource
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.sources.ollama import OllamaSource
+from amuled_ma.beliefs.store.cached import CachedSource
+from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.errors import BackendUnavailable, ModelNotFound, ScenarioError
 
 MILK = ("up", "down", "left", "right")
@@ -278,7 +278,7 @@ def test_agent_tables_take_hosts(tmp_path) -> None:
 
 # -- reporting ---------------------------------------------------------------------------
 def test_figures_reach_the_summary_results_and_report(tmp_path) -> None:
-    from amuled_ma.beliefs.routing import RoutedSource
+    from amuled_ma.beliefs.sources.routing import RoutedSource
     from amuled_ma.deliberation.summaries import llm_server_stats, summary_lines
     from amuled_ma.evaluate.evaluator import merge_feedback
     from amuled_ma.evaluate.report import servers_table

@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from amuled_ma.beliefs.parsing import REPAIRS, belief_schema, parse_belief
-from amuled_ma.beliefs.reply_objects import candidate_objects
+from amuled_ma.beliefs.replies.objects import candidate_objects
+from amuled_ma.beliefs.replies.parsing import REPAIRS, belief_schema, parse_belief
 
 MILK = ("up", "down", "left", "right")
 DRIVE = ("straight", "right", "left")

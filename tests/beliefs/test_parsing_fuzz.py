@@ -10,7 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from amuled_ma.beliefs.parsing import PARSE_STATUSES, parse_belief
+from amuled_ma.beliefs.replies.parsing import PARSE_STATUSES, parse_belief
 
 MILK = ("up", "down", "left", "right")
 FAST = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])

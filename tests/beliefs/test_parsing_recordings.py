@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from amuled_ma.beliefs.parsing import parse_belief
+from amuled_ma.beliefs.replies.parsing import parse_belief
 
 FILES = [
     "driving-llama-3_1-70b.json",

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from amuled_ma.beliefs import BeliefRequest, make_source
-from amuled_ma.beliefs.policy import PolicySource
+from amuled_ma.beliefs.sources.policy import PolicySource
 from amuled_ma.errors import ScenarioError
 
 MILK = ("up", "down", "left", "right")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from amuled_ma.beliefs import BeliefRequest, ScriptedSource, make_source
-from amuled_ma.beliefs.replay import ReplaySource, obs_key
+from amuled_ma.beliefs.sources.replay import ReplaySource, obs_key
 from amuled_ma.errors import ReplayMiss, ScenarioError
 
 MILK = ("up", "down", "left", "right")
@@ -134,9 +134,10 @@ def test_miss_policy_fallback(tiny_recording):
         "replay",
         paths=tiny_recording,
         miss_policy="fallback",
-        fallback={"kind": "scripted", "beliefs": {"*": [1, 0, 0, 0]}},
+        fallback={"kind": "rules", "policy": "human"},
     )
-    assert np.allclose(built.beliefs([request("care", [9, 9])])[0].belief, [1, 0, 0, 0])
+    (built_miss,) = built.beliefs([request("care", [9, 9])])
+    assert built_miss.source == "rules" and built_miss.extra["replay_miss"] is True
 
 
 def test_bad_configuration(tiny_recording, tmp_path):

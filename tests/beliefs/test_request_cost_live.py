@@ -13,9 +13,9 @@ import pytest
 from ollama_server_fixture import ollama_host, ollama_model  # noqa: F401
 
 from amuled_ma.beliefs import BeliefRequest
-from amuled_ma.beliefs.keys import request_key
-from amuled_ma.beliefs.ollama import OllamaSource
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.sources.ollama import OllamaSource
+from amuled_ma.beliefs.store.database import BeliefStore
+from amuled_ma.beliefs.store.keys import request_key
 from amuled_ma.deliberation.build import request_cost
 
 pytestmark = pytest.mark.ollama

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from amuled_ma.beliefs import BeliefRequest, BeliefResult, BeliefSource
-from amuled_ma.beliefs.cached import CachedSource
-from amuled_ma.beliefs.routing import RoutedSource
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.sources.routing import RoutedSource
+from amuled_ma.beliefs.store.cached import CachedSource
+from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.deliberation.build import build_members
 from amuled_ma.deliberation.plan import PanelPlan
 from amuled_ma.deliberation.plan import SourcePlan as SourceSpec

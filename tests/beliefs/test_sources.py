@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import json
 import sys
 import types
 from importlib.metadata import EntryPoint
+from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from amuled_ma.beliefs import (
     BeliefRequest,
@@ -18,8 +21,11 @@ from amuled_ma.beliefs import (
     register_source,
     source_kinds,
 )
-from amuled_ma.beliefs.rules import to_belief
+from amuled_ma.beliefs.sources.registry import BUILT_IN
+from amuled_ma.beliefs.sources.rules import to_belief
+from amuled_ma.clusters import plugins
 from amuled_ma.errors import ScenarioError
+from amuled_ma.scenario import AGENT_SPECS
 
 MILK = ("up", "down", "left", "right")
 
@@ -29,15 +35,56 @@ def req(cluster="care", obs=(1.0, 2.0), task="findmilk"):
 
 
 def test_builtin_kinds():
-    assert {"ollama", "replay", "rules", "scripted"} <= set(source_kinds())
+    assert set(AGENT_SPECS) <= set(source_kinds())
     with pytest.raises(ScenarioError, match="unknown belief source kind 'psychic'"):
         make_source("psychic")
     with pytest.raises(ScenarioError, match="bad options"):
-        make_source("scripted", colour="blue")
+        make_source("rules", colour="blue")
+    # scripted answers are built in code (ScriptedSource), never named by a scenario
+    with pytest.raises(ScenarioError, match="unknown belief source kind 'scripted'"):
+        make_source("scripted")
+
+
+def kind_options(kind: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> dict:
+    """Options that build each kind a scenario may name, from files made here."""
+    if kind == "replay":
+        recording = {
+            "task": "FindMilk", "model": "test", "clusters": ["care"], "actions": list(MILK),
+            "obs_layout": [], "states": [{"obs": [1.0, 2.0], "beliefs": {"care": [0, 1, 0, 0]}}],
+        }  # fmt: skip
+        (tmp_path / "rec.json").write_text(json.dumps(recording))
+        return {"paths": str(tmp_path / "rec.json")}
+    if kind == "policy":
+        torch.save(torch.nn.Sequential(torch.nn.Linear(2, 4)).state_dict(), tmp_path / "p.pt")
+        return {"path": str(tmp_path / "p.pt")}
+    if kind == "entry-point":
+        module = types.ModuleType("amuled_test_kinds")
+        module.Fixed = lambda: ScriptedSource({"*": [0, 0, 1, 0]})
+        monkeypatch.setitem(sys.modules, "amuled_test_kinds", module)
+        monkeypatch.setattr(plugins, "_ALLOWED", frozenset({"amuled_test_kinds:Fixed"}))
+        return {"name": "amuled_test_kinds:Fixed"}
+    return {
+        "ollama": {"model": "amuled-tiny", "host": "http://127.0.0.1:9"},
+        "rules": {"policy": "human"},
+        "terminal": {"person": "ana"},
+    }[kind]
+
+
+@pytest.mark.parametrize("kind", sorted(AGENT_SPECS))
+def test_every_kind_a_scenario_may_name_is_built(kind, tmp_path, monkeypatch):
+    source = make_source(kind, **kind_options(kind, tmp_path, monkeypatch))
+    assert isinstance(source, BeliefSource)
+    # the entry-point kind builds the plug-in's own source; every other kind its namesake
+    assert source.name == ("scripted" if kind == "entry-point" else kind)
+    source.close()
+
+
+def test_every_built_in_source_can_be_named():
+    assert set(BUILT_IN) == set(AGENT_SPECS.values())
 
 
 def test_scripted_table_and_function():
-    source = make_source("scripted", beliefs={"care": [0, 2, 0, 0], "*": [1, 1, 1, 1]})
+    source = ScriptedSource({"care": [0, 2, 0, 0], "*": [1, 1, 1, 1]})
     care, other = source.beliefs([req("care"), req("virtue")])
     assert np.allclose(care.belief, [0, 1, 0, 0]) and care.status == "ok"
     assert np.allclose(other.belief, 0.25)
@@ -68,7 +115,6 @@ def test_to_belief_projection(values, status):
 
 
 def test_rules_with_a_callable_and_a_module_path(monkeypatch):
-    from amuled_ma.clusters import plugins
 
     monkeypatch.setattr(
         plugins, "_ALLOWED", frozenset({"amuled_test_rules:rule", "no_such_module_xyz:rule"})

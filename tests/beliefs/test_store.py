@@ -12,10 +12,10 @@ import textwrap
 import numpy as np
 import pytest
 
-from amuled_ma.beliefs.interchange import export_jsonl, import_jsonl, row_json
-from amuled_ma.beliefs.keys import canonical_json, request_key
-from amuled_ma.beliefs.rows import BeliefStoreError
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.store.database import BeliefStore
+from amuled_ma.beliefs.store.interchange import export_jsonl, import_jsonl, row_json
+from amuled_ma.beliefs.store.keys import canonical_json, request_key
+from amuled_ma.beliefs.store.rows import BeliefStoreError
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
 
 ACTIONS = ("up", "down", "left", "right")
@@ -253,8 +253,8 @@ def test_not_a_store(tmp_path):
 _WRITER = textwrap.dedent(
     """
     import sys, numpy as np
-    from amuled_ma.beliefs.keys import request_key
-    from amuled_ma.beliefs.store import BeliefStore
+    from amuled_ma.beliefs.store.keys import request_key
+    from amuled_ma.beliefs.store.database import BeliefStore
     from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
     path, wid, n = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
     ident = {"source": "scripted"}
@@ -309,15 +309,15 @@ def test_a_forked_child_reopens_its_own_connection(store):
 
 
 def test_the_value_cap_holds_every_line_an_import_accepts():
-    from amuled_ma.beliefs import interchange, store
+    from amuled_ma.beliefs.store import database, interchange
 
-    assert store.MAX_VALUE_BYTES == 4 * interchange.MAX_LINE_CHARS == 2**26  # 64 MiB
+    assert database.MAX_VALUE_BYTES == 4 * interchange.MAX_LINE_CHARS == 2**26  # 64 MiB
 
 
 def test_a_value_over_the_cap_is_refused_unread_naming_store_and_key(tmp_path, monkeypatch):
     import sqlite3
 
-    from amuled_ma.beliefs import store as store_module
+    from amuled_ma.beliefs.store import database as store_module
 
     monkeypatch.setattr(store_module, "MAX_VALUE_BYTES", 10_000)
     path = tmp_path / "b.sqlite"

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from amuled_ma.beliefs.interchange import row_json
-from amuled_ma.beliefs.keys import request_key
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.store.database import BeliefStore
+from amuled_ma.beliefs.store.interchange import row_json
+from amuled_ma.beliefs.store.keys import request_key
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
 from amuled_ma.cli import main
 
@@ -188,7 +188,7 @@ def test_read_only_open_of_a_read_only_file_in_a_writable_folder(tmp_path):
 
 
 def test_read_only_store_in_process(tmp_path):
-    from amuled_ma.beliefs.rows import BeliefStoreError
+    from amuled_ma.beliefs.store.rows import BeliefStoreError
 
     missing = tmp_path / "sub" / "none.sqlite"
     with pytest.raises(
@@ -245,7 +245,7 @@ def test_import_cli_refuses_nan_with_file_and_line(tmp_path, capsys):
 
 
 def test_import_reads_a_line_up_to_the_cap_and_refuses_a_longer_one(tmp_path, capsys, monkeypatch):
-    from amuled_ma.beliefs import interchange
+    from amuled_ma.beliefs.store import interchange
 
     gpu, dump = tmp_path / "gpu.sqlite", tmp_path / "b.jsonl"
     fill(gpu, 2)

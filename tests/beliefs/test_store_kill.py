@@ -12,7 +12,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.store.database import BeliefStore
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="needs SIGKILL")
 
@@ -25,8 +25,8 @@ BATCH = 40
 _CHILD = textwrap.dedent(
     """
     import sys, time, numpy as np
-    from amuled_ma.beliefs.keys import request_key
-    from amuled_ma.beliefs.store import BeliefStore, _UPSERT
+    from amuled_ma.beliefs.store.keys import request_key
+    from amuled_ma.beliefs.store.database import BeliefStore, _UPSERT
     from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
     path, mode, batch = sys.argv[1], sys.argv[2], int(sys.argv[3])
     ident = {"source": "scripted", "model": "m"}

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from amuled_ma.beliefs import BeliefRequest, make_source
-from amuled_ma.beliefs.cached import CachedSource
-from amuled_ma.beliefs.store import BeliefStore
-from amuled_ma.beliefs.terminal import TerminalSource, parse_answer
+from amuled_ma.beliefs.sources.terminal import TerminalSource, parse_answer
+from amuled_ma.beliefs.store.cached import CachedSource
+from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.errors import ScenarioError
 
 MILK = ("up", "down", "left", "right")
@@ -28,7 +28,7 @@ PROGRAM = textwrap.dedent(
     """
     import json
     from amuled_ma.beliefs import BeliefRequest
-    from amuled_ma.beliefs.terminal import TerminalSource
+    from amuled_ma.beliefs.sources.terminal import TerminalSource
 
     actions = ("up", "down", "left", "right")
     chat = (("system", "You are a moral agent."),

@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 
 from amuled_ma.beliefs import BeliefRequest, BeliefResult
-from amuled_ma.beliefs.rows import BeliefStoreError
-from amuled_ma.beliefs.store import BeliefStore
-from amuled_ma.beliefs.terminal import TerminalSource
+from amuled_ma.beliefs.sources.terminal import TerminalSource
+from amuled_ma.beliefs.store.database import BeliefStore
+from amuled_ma.beliefs.store.rows import BeliefStoreError
 
 REPO = Path(__file__).resolve().parents[2]
 MILK = ("up", "down", "left", "right")
@@ -31,9 +31,9 @@ PROGRAM = textwrap.dedent(
     """
     import json, sys
     from amuled_ma.beliefs import BeliefRequest
-    from amuled_ma.beliefs.cached import CachedSource
-    from amuled_ma.beliefs.store import BeliefStore
-    from amuled_ma.beliefs.terminal import TerminalSource
+    from amuled_ma.beliefs.store.cached import CachedSource
+    from amuled_ma.beliefs.store.database import BeliefStore
+    from amuled_ma.beliefs.sources.terminal import TerminalSource
 
     actions = ("up", "down", "left", "right")
     requests = [BeliefRequest("findmilk", "care", (float(i), 2.0), actions) for i in range(2)]

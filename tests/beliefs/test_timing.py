@@ -1,4 +1,4 @@
-"""Per-request timings of the Ollama source (``amuled_ma.beliefs.timing``), without a server.
+"""Per-request timings of the Ollama source (``amuled_ma.servers.timing``), without a server.
 
 Ollama's metrics come from a mocked ``/api/chat`` (``httpx.MockTransport``); the real tiny
 model's figures are checked by ``tests/integration/test_live_demo.py``.
@@ -13,9 +13,9 @@ import httpx
 import pytest
 
 from amuled_ma.beliefs import BeliefRequest
-from amuled_ma.beliefs.ollama import OllamaSource
-from amuled_ma.beliefs.store import BeliefStore
-from amuled_ma.beliefs.timing import (
+from amuled_ma.beliefs.sources.ollama import OllamaSource
+from amuled_ma.beliefs.store.database import BeliefStore
+from amuled_ma.servers.timing import (
     CacheReuse,
     RequestTiming,
     cache_reuse,

@@ -19,13 +19,7 @@ import numpy as np
 import pytest
 
 from amuled_ma.beliefs import BeliefRequest, BeliefResult, BeliefSource
-from amuled_ma.beliefs.cached import CachedSource
-from amuled_ma.beliefs.interchange import export_jsonl, import_jsonl
-from amuled_ma.beliefs.keys import request_key
-from amuled_ma.beliefs.replay import ReplaySource
-from amuled_ma.beliefs.rows import BeliefStoreError
-from amuled_ma.beliefs.store import BeliefStore
-from amuled_ma.beliefs.validate import (
+from amuled_ma.beliefs.replies.validate import (
     SUM_TOLERANCE,
     InvalidBeliefError,
     check_belief,
@@ -33,6 +27,12 @@ from amuled_ma.beliefs.validate import (
     checked_result,
     validate_belief,
 )
+from amuled_ma.beliefs.sources.replay import ReplaySource
+from amuled_ma.beliefs.store.cached import CachedSource
+from amuled_ma.beliefs.store.database import BeliefStore
+from amuled_ma.beliefs.store.interchange import export_jsonl, import_jsonl
+from amuled_ma.beliefs.store.keys import request_key
+from amuled_ma.beliefs.store.rows import BeliefStoreError
 from amuled_ma.errors import AmuledError, ScenarioError
 
 MILK = ("up", "down", "left", "right")
@@ -387,8 +387,8 @@ def test_ollama_never_answers_ok_with_an_invalid_belief(monkeypatch):
     invalid vector through as "ok" (standing in for a parser bug) must still end as
     "abstained", after the documented re-ask.
     """
-    from amuled_ma.beliefs import ollama as ollama_module
-    from amuled_ma.beliefs.parsing import ParsedBelief
+    from amuled_ma.beliefs.replies.parsing import ParsedBelief
+    from amuled_ma.beliefs.sources import ollama as ollama_module
 
     replies = iter(
         [
