@@ -95,18 +95,9 @@ def read_bounded_bytes(
 ) -> bytes:
     """A file's bytes, refused when it holds more than ``limit`` (never read past the cap).
 
-    The size is checked on the open file before it is read; a file that reports a smaller
-    size than it holds (``/proc``, a file written to meanwhile) is read up to ``limit + 1``
-    bytes and refused the same way.
-
-    Args:
-        path: The file.
-        limit: The most bytes it may hold.
-        noun: What it is, for the message.
-        error: The error raised for an over-large file.
-        head: The message's start (default ``"PATH: the NOUN"``).
-        note: Why the cap is that number, said after it.
-        fix: What to do, last in the message.
+    The size is checked on the open file; a file that reports less than it holds (``/proc``,
+    a file written to meanwhile) is read up to ``limit + 1`` bytes and refused the same way.
+    Arguments as :func:`check_size`.
 
     Returns:
         Its bytes (at most ``limit``).
@@ -142,19 +133,10 @@ def read_bounded_text(
 ) -> str:
     """A UTF-8 text file, refused with one line when over ``limit`` bytes, unreadable or not UTF-8.
 
-    Newlines are read as :meth:`pathlib.Path.read_text` reads them (CR LF and a lone CR
-    become LF).
-
-    Args:
-        path: The file.
-        limit: The most bytes it may hold.
-        noun: What it is, for the message (``"scenario"``, ``"system prompt"``).
-        error: The error raised (an :class:`~amuled_ma.errors.AmuledError` subclass).
-        note: Why the cap is that number, said after it.
-        fix: What to do when it is too large, last in the message.
+    Arguments as :func:`check_size`.
 
     Returns:
-        Its text.
+        Its text, newlines as :func:`decode_text` reads them.
 
     Raises:
         Exception: ``error``: the file is over ``limit`` bytes, cannot be read, or is
@@ -200,12 +182,7 @@ def read_bounded_json(
 ) -> Any:
     """A JSON file read whole, refused with one line when over ``limit``, unreadable or not JSON.
 
-    Args:
-        path: The file.
-        limit: The most bytes it may hold.
-        noun: What it is, for the message (``"learning curve"``).
-        note: Why the cap is that number, said after it.
-        fix: What to do, last in every message.
+    Arguments as :func:`check_size` (``fix`` ends every message).
 
     Returns:
         The parsed JSON value.

@@ -23,7 +23,7 @@ from amuled_ma.beliefs.sources.terminal import TerminalSource
 from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.beliefs.store.rows import BeliefStoreError
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 MILK = ("up", "down", "left", "right")
 
 #: A TerminalSource on the real stdin, behind a real store; prints each result as JSON.

@@ -20,7 +20,7 @@ from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.errors import ScenarioError
 
 MILK = ("up", "down", "left", "right")
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 #: A tiny program: a TerminalSource on the real sys.stdin answers two requests and
 #: prints, on stdout, each result's status, belief and reason.

@@ -25,7 +25,7 @@ from amuled_ma.commands._experiment import command_line
 from amuled_ma.errors import ScenarioError
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(HERE.parents[1]))
 from tiny_cli import TINY  # noqa: E402
 
 #: A module whose import leaves a mark: proof that a refused name was never imported.
