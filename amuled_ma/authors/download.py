@@ -354,7 +354,7 @@ def ensure_authors_base(
     """The authors' published base policy of ``task`` as a run folder; fetched when missing.
 
     The folder is ``<runs>/authors/<task>/base`` (what ``amuled import authors`` writes, and
-    where :func:`~amuled_ma.pipeline.run_pipeline` finds the base of a ``recipe = "authors"``
+    where `run_pipeline` finds the base of a ``recipe = "authors"``
     run). Found there (its ``model_last.pt``), it is returned as is; else the pinned policy
     file is fetched (:func:`fetch_pinned`, unless cached) and converted by
     :func:`~amuled_ma.authors.checkout.import_authors`.

@@ -14,8 +14,8 @@ if TYPE_CHECKING:
     from collections.abc import Callable
 
     from amuled_ma.evaluate.results import Results
+    from amuled_ma.experiments.pipeline import PipelineOutcome, PipelineRequest
     from amuled_ma.experiments.run_folder import Rerun
-    from amuled_ma.pipeline import PipelineOutcome, PipelineRequest
     from amuled_ma.scenario import Scenario
 
 
@@ -270,8 +270,8 @@ def say_outcome(request: PipelineRequest, outcome: PipelineOutcome, seconds: flo
     """Print the end of ``amuled run``/``ablate``/``demo``: the summary and the report's path.
 
     Args:
-        request: The :class:`~amuled_ma.pipeline.PipelineRequest`.
-        outcome: Its :class:`~amuled_ma.pipeline.PipelineOutcome`.
+        request: The :class:`~amuled_ma.experiments.pipeline.PipelineRequest`.
+        outcome: Its :class:`~amuled_ma.experiments.pipeline.PipelineOutcome`.
         seconds: The command's wall time so far.
 
     """

@@ -34,7 +34,7 @@ the probabilities alone. At the end the demo prints where the live requests' tim
 
 The demo adds only what depends on its command line (the server, another model, the
 report's title) to its scenario and runs it through the same library function as
-``amuled run``, :func:`amuled_ma.pipeline.run_pipeline`.
+``amuled run``, :func:`amuled_ma.experiments.pipeline.run_pipeline`.
 """
 
 from __future__ import annotations
@@ -463,8 +463,8 @@ def _run_pipeline(
     scenario: Scenario, run_dir: Path, hint: str, args: argparse.Namespace, debug: bool
 ) -> int:
     """Run the demo's main comparison through the pipeline; its exit code (failures printed)."""
-    from amuled_ma import pipeline
     from amuled_ma.cli import FAILURES, report_failure
+    from amuled_ma.experiments import pipeline
 
     request = pipeline.PipelineRequest(
         scenario=scenario,

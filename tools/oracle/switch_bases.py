@@ -34,8 +34,8 @@ import time
 from pathlib import Path
 
 from amuled_ma.experiments.jobs import run_jobs
+from amuled_ma.experiments.pipeline import describe_job
 from amuled_ma.experiments.run_folder import TrainJob, replica_folder, write_config
-from amuled_ma.pipeline import describe_job
 from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import load_scenario
 

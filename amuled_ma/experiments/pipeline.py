@@ -1,30 +1,7 @@
-"""The pipeline as a library: plan, check, train, evaluate and report one experiment.
+"""One experiment as one call: `run_pipeline` plans, checks, trains, evaluates and reports.
 
-``amuled run`` (the paper's main comparison), ``amuled ablate`` (one of its ablations) and
-``amuled demo`` (the main comparison, demo-sized, on a live model) are each one call of
-:func:`run_pipeline` with a :class:`PipelineRequest`; the commands only parse their
-arguments into the request and print the :class:`PipelineOutcome`. The steps:
-
-1. plan the job graph (:func:`~amuled_ma.experiments.plans.plan_run` or
-   :func:`~amuled_ma.experiments.plans.plan_ablation`: a fine-tune needs its seed's base),
-   and fetch the paper authors' recordings its fine-tunes replay that are found nowhere on
-   this machine (:func:`fetch_recordings`; not with ``offline``);
-2. plan every job once (:func:`~amuled_ma.experiments.plans.plan_jobs`: its panel plan and
-   preflight, run shape, settings, base checkpoint, new / resume / skip) before any folder
-   is made, so a missing recording, base checkpoint or feedback source, or a folder
-   trained with other settings, stops the run and leaves nothing;
-3. hold the run folder's lock (:func:`~amuled_ma.files.run_lock.run_folder_lock`), write
-   ``config.json`` and train the graph (:func:`~amuled_ma.experiments.jobs.run_jobs`: in this
-   process or on Ray), one line per finished job (:func:`describe_job`);
-4. evaluate every variant (:func:`~amuled_ma.evaluate.evaluator.evaluate_run`) and write
-   ``report.md`` (:func:`~amuled_ma.evaluate.report.write_report`).
-
-``amuled train`` and ``amuled finetune`` are one job through steps 2 and 3
-(:func:`train_alone`).
-
-A Ctrl-C or SIGTERM (:class:`~amuled_ma.errors.Terminated`) leaves :func:`run_pipeline` as
-``KeyboardInterrupt`` once every running job wrote its checkpoint; the resume command
-printed then is the request's ``hint`` with ``--resume``.
+The steps, one call each, are drawn in ``docs/design.md`` ("The path of a run"); `train_alone`
+is one job through the same checks, lock and record, not evaluated.
 """
 
 from __future__ import annotations

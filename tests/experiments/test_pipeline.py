@@ -14,12 +14,12 @@ from pathlib import Path
 import pytest
 from tiny_cli import RULES, TINY
 
-from amuled_ma import pipeline
 from amuled_ma.cli import main
 from amuled_ma.evaluate.results import Results
+from amuled_ma.experiments import pipeline
 from amuled_ma.experiments.jobs import JobsOutcome, RayTarget
 
-COMMANDS = Path(__file__).resolve().parents[1] / "amuled_ma" / "commands"
+COMMANDS = Path(__file__).resolve().parents[2] / "amuled_ma" / "commands"
 
 
 @pytest.fixture
