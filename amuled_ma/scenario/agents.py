@@ -4,7 +4,7 @@ Each table is one of the spec models below, a pydantic discriminated union on ``
 (:data:`AgentSpec`); :data:`AGENT_SPECS` is the one registry of the kinds a table may
 name. A new built-in source is its module in :mod:`amuled_ma.beliefs.sources`, its spec
 model here (one line in :data:`AGENT_SPECS`) and one line in
-:data:`amuled_ma.beliefs.sources.registry.BUILT_IN`.
+:func:`amuled_ma.beliefs.sources.registry.built_in`.
 
 The models are pure description: they import no domain package. Each turns itself into
 the keyword arguments of its source (:meth:`_Spec.source_options`), given the values of

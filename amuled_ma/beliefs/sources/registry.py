@@ -1,28 +1,21 @@
 """Belief sources built by kind: ``make_source(kind, **options)``.
 
 The kinds a scenario may name are `amuled_ma.scenario.agents.AGENT_SPECS`, the one table of
-kinds; `BUILT_IN` gives each of its spec models the source class that answers. Other kinds
+kinds; `built_in` gives each of its spec models the source class that answers. Other kinds
 come from the ``amuled_ma.agents`` entry-point group or `register_source`.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Mapping
-from typing import Any
-
-from pydantic import BaseModel
+from typing import TYPE_CHECKING, Any
 
 from amuled_ma.beliefs.types import BeliefSource
 from amuled_ma.errors import ScenarioError
-from amuled_ma.scenario.agents import (
-    AGENT_SPECS,
-    EntryPointSpec,
-    OllamaSpec,
-    PolicySpec,
-    ReplaySpec,
-    RulesSpec,
-    TerminalSpec,
-)
+
+if TYPE_CHECKING:
+    from pydantic import BaseModel
 
 Factory = Callable[..., BeliefSource]
 
@@ -63,15 +56,24 @@ def _entry_point() -> Factory:
     return entry_point_source
 
 
-#: The source of each spec model of ``AGENT_SPECS`` (spec model -> the function importing it).
-BUILT_IN: dict[type[BaseModel], Callable[[], Factory]] = {
-    OllamaSpec: _ollama,
-    ReplaySpec: _replay,
-    RulesSpec: _rules,
-    TerminalSpec: _terminal,
-    PolicySpec: _policy,
-    EntryPointSpec: _entry_point,
-}
+@functools.cache
+def built_in() -> dict[type[BaseModel], Callable[[], Factory]]:
+    """The source of each spec model of ``AGENT_SPECS``: spec model -> the function importing it.
+
+    Built on first use: the scenario models (pydantic) are not needed to import this package.
+    """
+    from amuled_ma.scenario import agents
+
+    return {
+        agents.OllamaSpec: _ollama,
+        agents.ReplaySpec: _replay,
+        agents.RulesSpec: _rules,
+        agents.TerminalSpec: _terminal,
+        agents.PolicySpec: _policy,
+        agents.EntryPointSpec: _entry_point,
+    }
+
+
 _REGISTERED: dict[str, Callable[..., BeliefSource]] = {}
 
 
@@ -89,6 +91,7 @@ def register_source(kind: str, factory: Callable[..., BeliefSource]) -> None:
 def source_kinds() -> list[str]:
     """Return every kind `make_source` knows (built-in, registered, entry points)."""
     from amuled_ma.clusters.plugins import agent_entry_points
+    from amuled_ma.scenario.agents import AGENT_SPECS
 
     return sorted({*AGENT_SPECS, *_REGISTERED, *agent_entry_points()})
 
@@ -96,8 +99,10 @@ def source_kinds() -> list[str]:
 def _factory(kind: str) -> Callable[..., BeliefSource]:
     if kind in _REGISTERED:
         return _REGISTERED[kind]
+    from amuled_ma.scenario.agents import AGENT_SPECS
+
     if kind in AGENT_SPECS:
-        return BUILT_IN[AGENT_SPECS[kind]]()
+        return built_in()[AGENT_SPECS[kind]]()
     from amuled_ma.clusters.plugins import agent_entry_points
 
     points = agent_entry_points()

@@ -69,29 +69,9 @@ class BeliefStoreError(AmuledError, RuntimeError):
 
 @dataclass
 class StoredBelief:
-    """One row of the store, as read back.
+    """One row of the store, as read back: the columns of ``docs/store.md``, parsed.
 
-    Attributes:
-        key: The row's key.
-        source: Source name.
-        identity: The source identity (parsed JSON).
-        task: Task name.
-        cluster: Cluster name.
-        obs: The observation.
-        action_names: Action names.
-        messages: The chat, ``((role, content), ...)``; ``None`` when not read (see
-            `get_many`).
-        raw: The raw reply.
-        belief: The belief vector (float64).
-        status: Answer status.
-        latency_s: Seconds the original request took.
-        prompt_tokens: Prompt tokens, if reported.
-        completion_tokens: Completion tokens, if reported.
-        extra: Free-form diagnostics.
-        attempts: How many answers were written for this key.
-        created_at: Unix time of the first write.
-        updated_at: Unix time of the last write.
-
+    ``messages`` is ``None`` when not read (`get_many`); ``belief`` is float64.
     """
 
     key: str
@@ -165,23 +145,9 @@ def encode_row(
 ) -> tuple[Row, dict[str, str]]:
     """Turn one answer into a ``beliefs`` row and the message bodies it refers to.
 
-    The belief must already be checked (`check_belief`).
-
-    Args:
-        key: The row's key.
-        identity: The source identity as `identity_json` text.
-        request: The request answered (its messages become ``[[role, text_hash], ...]``).
-        belief: The checked belief.
-        source: Source name.
-        status: Answer status.
-        raw: The raw reply.
-        latency_s: Seconds the request took.
-        prompt_tokens: Prompt tokens, if reported.
-        completion_tokens: Completion tokens, if reported.
-        extra: Diagnostics (`extra_json`).
-        attempts: Answers counted for this key.
-        created_at: Unix time of the first write.
-        updated_at: Unix time of this write.
+    The belief must already be checked (`check_belief`). The arguments are the row's
+    columns (``docs/store.md``): ``identity`` as `identity_json` text, ``extra`` through
+    `extra_json`, ``request``'s messages as ``[[role, text_hash], ...]``.
 
     Returns:
         The row (`COLUMNS` order) and ``{text_hash: body}`` for table ``texts``.

@@ -21,7 +21,7 @@ from amuled_ma.beliefs import (
     register_source,
     source_kinds,
 )
-from amuled_ma.beliefs.sources.registry import BUILT_IN
+from amuled_ma.beliefs.sources.registry import built_in
 from amuled_ma.beliefs.sources.rules import to_belief
 from amuled_ma.clusters import plugins
 from amuled_ma.errors import ScenarioError
@@ -80,7 +80,7 @@ def test_every_kind_a_scenario_may_name_is_built(kind, tmp_path, monkeypatch):
 
 
 def test_every_built_in_source_can_be_named():
-    assert set(BUILT_IN) == set(AGENT_SPECS.values())
+    assert set(built_in()) == set(AGENT_SPECS.values())
 
 
 def test_scripted_table_and_function():
