@@ -22,28 +22,12 @@ KEY_VERSION = 1
 
 
 def canonical_json(value: object) -> str:
-    """Serialise ``value`` as canonical JSON: sorted keys, no spaces, UTF-8 text.
-
-    Args:
-        value: JSON-compatible data (dicts, lists, str, int, float, bool, None).
-
-    Returns:
-        The JSON text; equal data always gives the same text.
-
-    """
+    """``value`` as canonical JSON: sorted keys, no spaces, UTF-8; equal data, equal text."""
     return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
 
 
 def jsonable(value: object) -> Any:
-    """Convert numpy scalars/arrays and tuples (at any depth) into plain JSON data.
-
-    Args:
-        value: Data that may hold numpy values, tuples and non-string mapping keys.
-
-    Returns:
-        The same data as dicts, lists and Python scalars.
-
-    """
+    """``value`` with numpy values, tuples and non-string keys (any depth) as plain JSON data."""
     if isinstance(value, Mapping):
         return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
@@ -56,20 +40,15 @@ def jsonable(value: object) -> Any:
 
 
 def identity_json(identity: Mapping[str, Any]) -> str:
-    """Canonical JSON of a source's `identity`.
-
-    Args:
-        identity: The identity dict.
-
-    Returns:
-        Its canonical JSON text (the form hashed into keys and kept in the store).
-
-    """
+    """The canonical JSON of a source's ``identity()``: the form hashed into keys and stored."""
     return canonical_json(jsonable(identity))
 
 
 def request_key(identity: Mapping[str, Any] | str, request: BeliefRequest) -> str:
-    """Return the store key of one request to one source (see the module docstring).
+    """The store key of one request to one source.
+
+    ``sha256(canonical_json({"identity": identity, "request": {"actions", "cluster",
+    "messages": [[role, content], ...], "obs", "task"}, "v": KEY_VERSION}))``, in hex.
 
     Args:
         identity: The source's ``identity()`` dict, or its `identity_json` text
@@ -100,15 +79,7 @@ def request_key(identity: Mapping[str, Any] | str, request: BeliefRequest) -> st
 
 
 def floats_json(values: Sequence[float]) -> str:
-    """Return ``canonical_json([float(x) for x in values])``, fast for finite floats.
-
-    Args:
-        values: Numbers (an observation, a belief).
-
-    Returns:
-        The JSON list text.
-
-    """
+    """``canonical_json([float(x) for x in values])``, fast for finite floats."""
     floats = [float(x) for x in values]
     if all(math.isfinite(x) for x in floats):
         return "[" + ",".join(map(float.__repr__, floats)) + "]"
@@ -117,29 +88,13 @@ def floats_json(values: Sequence[float]) -> str:
 
 @functools.lru_cache(maxsize=16384)
 def string_json(text: str) -> str:
-    """JSON-encode a string (memoised: prompt blocks and roles repeat across requests).
-
-    Args:
-        text: Any string.
-
-    Returns:
-        Its JSON text, non-ASCII kept as is.
-
-    """
+    """``text`` as JSON, non-ASCII kept (memoised: prompt blocks and roles repeat)."""
     return json.dumps(text, ensure_ascii=False)
 
 
 @functools.lru_cache(maxsize=256)
 def names_json(names: tuple[str, ...]) -> str:
-    """Canonical JSON list of action names (memoised: one list per task).
-
-    Args:
-        names: The action names.
-
-    Returns:
-        The JSON list text.
-
-    """
+    """The canonical JSON list of action names (memoised: one list per task)."""
     return canonical_json(list(names))
 
 
