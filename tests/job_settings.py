@@ -6,8 +6,8 @@ from typing import Any
 
 from amuled_ma.deliberation.plan import plan_panel
 from amuled_ma.experiments.training_settings import training_config
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import Scenario
-from amuled_ma.variants import Variant
 
 
 def settings(scenario: Scenario, text: str, **options: Any) -> dict[str, Any]:

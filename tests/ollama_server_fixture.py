@@ -23,9 +23,9 @@ from collections.abc import Callable, Iterator
 import httpx
 import pytest
 
-from amuled_ma import llm_server
-from amuled_ma.beliefs.hosts import preflight
 from amuled_ma.errors import AmuledError
+from amuled_ma.servers import local_server as llm_server
+from amuled_ma.servers.hosts import preflight
 
 #: Model the ``ollama`` tests use (``$AMULED_TEST_MODEL`` overrides it).
 TEST_MODEL = os.environ.get("AMULED_TEST_MODEL", llm_server.TINY_MODEL)
@@ -70,7 +70,7 @@ def start_private_server(
 
     Args:
         workdir: Directory for the server's files (default: a temporary one).
-        **kwargs: More :class:`~amuled_ma.llm_server.OllamaServer` arguments.
+        **kwargs: More :class:`~amuled_ma.servers.local_server.OllamaServer` arguments.
 
     Returns:
         The running server.

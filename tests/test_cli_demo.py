@@ -10,12 +10,12 @@ from pathlib import Path
 
 import pytest
 
-from amuled_ma.beliefs.hosts import TINY_MODEL
 from amuled_ma.cli import main
 from amuled_ma.commands._demo_live import LIVE_CLUSTERS, LIVE_STATES
 from amuled_ma.commands.demo import DEMO_NUM_PARALLEL, demo_scenario
 from amuled_ma.scenario import load_scenario
 from amuled_ma.scenario.overrides import parse_set
+from amuled_ma.servers.hosts import TINY_MODEL
 
 
 def test_demo_without_server_fails_fast_and_writes_nothing(tmp_path: Path, capsys) -> None:
@@ -138,8 +138,8 @@ def test_mini_batches_of_one_transition_are_refused_with_the_keys_named(tmp_path
 
 def test_demo_with_a_real_model_looks_at_the_default_install(monkeypatch, capsys) -> None:
     """No host and a non-tiny model: the user's own server, not a private one."""
-    from amuled_ma import llm_server
-    from amuled_ma.beliefs import hosts
+    from amuled_ma.servers import hosts
+    from amuled_ma.servers import local_server as llm_server
 
     monkeypatch.delenv("OLLAMA_HOST", raising=False)
     monkeypatch.setattr(hosts, "DEFAULT_HOST", "http://127.0.0.1:1")

@@ -17,7 +17,7 @@ import pytest
 import torch
 
 from amuled_ma.cli import main
-from amuled_ma.progress import PLAIN_LINE
+from amuled_ma.monitor.progress import PLAIN_LINE
 
 AMULED = [sys.executable, "-m", "amuled_ma"]
 ENV = {**os.environ, "GIT_PYTHON_REFRESH": "quiet"}
@@ -75,7 +75,7 @@ def run_dir(tmp_path_factory) -> Path:
 
 def _store(path: Path, belief: str) -> Path:
     """A belief store with one row whose belief column holds ``belief`` (raw SQL)."""
-    from amuled_ma.beliefs.store import BeliefStore
+    from amuled_ma.beliefs.store.database import BeliefStore
     from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
 
     request = BeliefRequest("findmilk", "care", (0.0,) * 8, ("up", "down", "left", "right"))

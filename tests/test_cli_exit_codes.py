@@ -14,9 +14,9 @@ from pathlib import Path
 import pytest
 from tiny_cli import one_line
 
-from amuled_ma.beliefs.hosts import TINY_MODEL, preflight
 from amuled_ma.cli import main, report_failure
 from amuled_ma.errors import BackendUnavailable, ScenarioError, Terminated
+from amuled_ma.servers.hosts import TINY_MODEL, preflight
 from amuled_ma.tasks import canonical_name
 
 REPO = Path(__file__).resolve().parents[1]

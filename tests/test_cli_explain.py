@@ -9,7 +9,7 @@ import pytest
 import tiny_cli
 import torch
 
-from amuled_ma.beliefs.replay import ReplaySource
+from amuled_ma.beliefs.sources.replay import ReplaySource
 from amuled_ma.beliefs.types import BeliefRequest
 from amuled_ma.cli import main
 from amuled_ma.deliberation.build import make_feedback

@@ -61,7 +61,7 @@ def test_view_serve_seconds_beyond_what_a_timer_holds_is_a_usage_error(capsys) -
 
 def _store_with_rows(path: Path, n: int = 200) -> None:
     from amuled_ma.beliefs import BeliefRequest, BeliefResult
-    from amuled_ma.beliefs.store import BeliefStore
+    from amuled_ma.beliefs.store.database import BeliefStore
 
     with BeliefStore(path) as store:
         for i in range(n):
@@ -107,7 +107,7 @@ def test_a_10_gb_recording_is_refused_unread(tmp_path: Path) -> None:
     big = tmp_path / "big.json"
     subprocess.run(["truncate", "-s", "10G", str(big)], check=True)  # sparse: no disk used
     program = (
-        "import sys\nfrom amuled_ma.beliefs.replay import Recording\n"
+        "import sys\nfrom amuled_ma.beliefs.sources.replay import Recording\n"
         "from amuled_ma.errors import ScenarioError\n"
         "try:\n    Recording(sys.argv[1])\nexcept ScenarioError as e:\n    print(e)\n"
     )
@@ -123,7 +123,7 @@ def test_a_10_gb_recording_is_refused_unread(tmp_path: Path) -> None:
 
 
 def test_a_2_gb_line_of_jsonl_is_refused_unread_with_file_and_line(tmp_path: Path) -> None:
-    from amuled_ma.beliefs.interchange import MAX_LINE_CHARS
+    from amuled_ma.beliefs.store.interchange import MAX_LINE_CHARS
 
     big = tmp_path / "big.jsonl"
     big.write_text("\n")  # line 1: blank (skipped); line 2: 2 GB of zeros, no newline

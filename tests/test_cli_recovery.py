@@ -34,8 +34,8 @@ from amuled_ma.experiments.run_folder import (
     settings_refusal,
 )
 from amuled_ma.experiments.third_party_log import ray_to_log, third_party_to_log
-from amuled_ma.run_lock import LOCK_NAME, run_folder_lock
-from amuled_ma.variants import Variant
+from amuled_ma.files.run_lock import LOCK_NAME, run_folder_lock
+from amuled_ma.records.variants import Variant
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"

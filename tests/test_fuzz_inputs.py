@@ -96,7 +96,7 @@ def test_scenario_files(tmp_path_factory, text: str) -> None:
 @FUZZ
 @given(data=values, raw=st.binary(max_size=64))
 def test_recordings(tmp_path_factory, data, raw: bytes) -> None:
-    from amuled_ma.beliefs.replay import Recording
+    from amuled_ma.beliefs.sources.replay import Recording
 
     folder = tmp_path_factory.mktemp("recording")
     as_json = folder / "r.json"
@@ -114,7 +114,7 @@ def test_recordings(tmp_path_factory, data, raw: bytes) -> None:
                         "belief", "status", "raw", "messages", "extra", "attempts")
 }))  # fmt: skip
 def test_jsonl_rows(row: dict) -> None:
-    from amuled_ma.beliefs.interchange import parse_line
+    from amuled_ma.beliefs.store.interchange import parse_line
 
     line = json.dumps(row)
     _ok_or_amuled(lambda: parse_line(line, "fuzz.jsonl:1", verify=True))

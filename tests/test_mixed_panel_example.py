@@ -16,7 +16,7 @@ from pathlib import Path
 
 from mixed_panel import TINY
 
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.cli import main
 from amuled_ma.scenario import load_scenario
 

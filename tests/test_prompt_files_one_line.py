@@ -11,7 +11,7 @@ from sparse_files import sparse
 
 from amuled_ma.clusters.prompting import fewshot_messages, render_system_prompt
 from amuled_ma.errors import ClusterDefinitionError, PromptError
-from amuled_ma.resources import MAX_PROMPT_BYTES
+from amuled_ma.files.resources import MAX_PROMPT_BYTES
 from amuled_ma.tasks.prompts import parse_template
 
 

@@ -16,9 +16,9 @@ import pytest
 
 from amuled_ma.distill.state import EXAMPLES_FILE, LEDGER_FILE, StateFiles
 from amuled_ma.experiments.run_folder import CONFIG, read_record, write_record
+from amuled_ma.files.safe import UnsafePathError, append_text
 from amuled_ma.learn.checkpoints import LAST, read_checkpoint, write_checkpoint
-from amuled_ma.records import RunRecord
-from amuled_ma.safe_files import UnsafePathError, append_text
+from amuled_ma.records.run_record import RunRecord
 
 
 @pytest.fixture

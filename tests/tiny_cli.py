@@ -11,7 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from amuled_ma.progress import PLAIN_LINE
+from amuled_ma.monitor.progress import PLAIN_LINE
 
 TINY = [
     "--set", "base.total_steps=1024",

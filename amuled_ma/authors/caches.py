@@ -10,7 +10,7 @@ raw replies under ``response`` (``{prompt: reply}``). ``PickleCacheAndBaseModels
 holds an older Driving cache with the fused belief only.
 
 :func:`convert_cache` turns one such file into the recording format read by
-:class:`~amuled_ma.beliefs.replay.Recording` (see ``docs/authors.md``)::
+:class:`~amuled_ma.beliefs.sources.replay.Recording` (see ``docs/authors.md``)::
 
     {"task": "FindMilk", "model": "gpt-4o-mini", "clusters": [...], "actions": [...],
      "obs_layout": [...],
@@ -21,7 +21,7 @@ holds an older Driving cache with the fused belief only.
 States keep the file's order. No value is changed: numbers are written as the float64
 value of the pickled numpy scalar. A state whose fused belief is all zero (the authors'
 fusion found total conflict) is kept, with ``"total_conflict": true``; a cluster belief
-that is not a probability vector (:func:`~amuled_ma.beliefs.validate.check_belief`) is
+that is not a probability vector (:func:`~amuled_ma.beliefs.replies.validate.check_belief`) is
 written as ``null`` (not recorded) with the reason under ``"invalid_beliefs"``, so the file
 always loads.
 """
@@ -356,7 +356,7 @@ def _checked(
     vector: list[float] | None, n: int, invalid: dict[str, str], agent: str
 ) -> list[float] | None:
     """``vector`` if it is a probability vector over ``n`` actions; else None, noting why."""
-    from amuled_ma.beliefs.validate import check_belief
+    from amuled_ma.beliefs.replies.validate import check_belief
 
     if vector is None:
         return None

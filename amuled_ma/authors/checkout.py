@@ -38,9 +38,9 @@ from amuled_ma.authors.policies import (
     write_variant,
 )
 from amuled_ma.errors import AuthorsImportError
-from amuled_ma.file_hash import sha256_file
-from amuled_ma.safe_files import check_write_targets, write_text_atomic
-from amuled_ma.variants import Variant
+from amuled_ma.files.hashing import sha256_file
+from amuled_ma.files.safe import check_write_targets, write_text_atomic
+from amuled_ma.records.variants import Variant
 
 if TYPE_CHECKING:
     from amuled_ma.scenario import Scenario

@@ -36,7 +36,7 @@ from amuled_ma.authors.pinned import (
     PinnedFile,
 )
 from amuled_ma.errors import AuthorsFetchError
-from amuled_ma.file_hash import sha256_file
+from amuled_ma.files.hashing import sha256_file
 
 if TYPE_CHECKING:
     from amuled_ma.scenario import Scenario
@@ -45,7 +45,8 @@ if TYPE_CHECKING:
 OFFLINE_ENV = "AMULED_OFFLINE"
 #: Replaces :data:`~amuled_ma.authors.pinned.RAW_BASE` (a mirror; the tests' loopback server).
 URL_ENV = "AMULED_AUTHORS_URL"
-#: Replaces the cache root (shared with the Ollama server's state, :mod:`amuled_ma.llm_server`).
+#: Replaces the cache root (shared with the Ollama server's state,
+#: :mod:`amuled_ma.servers.local_server`).
 CACHE_ENV = "AMULED_CACHE"
 #: Seconds to connect, and between two reads of a download, before it is abandoned.
 CONNECT_TIMEOUT_S = 10.0
@@ -353,7 +354,7 @@ def ensure_authors_base(
     """The authors' published base policy of ``task`` as a run folder; fetched when missing.
 
     The folder is ``<runs>/authors/<task>/base`` (what ``amuled import authors`` writes, and
-    where :func:`~amuled_ma.pipeline.run_pipeline` finds the base of a ``recipe = "authors"``
+    where `run_pipeline` finds the base of a ``recipe = "authors"``
     run). Found there (its ``model_last.pt``), it is returned as is; else the pinned policy
     file is fetched (:func:`fetch_pinned`, unless cached) and converted by
     :func:`~amuled_ma.authors.checkout.import_authors`.

@@ -30,9 +30,9 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from amuled_ma.errors import CheckpointError
-from amuled_ma.safe_files import atomic_writer, write_text_atomic
-from amuled_ma.torch_files import load_weights_only
-from amuled_ma.variants import Variant
+from amuled_ma.files.safe import atomic_writer, write_text_atomic
+from amuled_ma.files.torch_load import load_weights_only
+from amuled_ma.records.variants import Variant
 
 if TYPE_CHECKING:
     from rsl_rl.models import MLPModel
@@ -328,7 +328,7 @@ def write_variant(
 
     from amuled_ma.experiments.run_folder import write_config
     from amuled_ma.learn.checkpoints import LAST
-    from amuled_ma.records import RunRecord
+    from amuled_ma.records.run_record import RunRecord
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -1,22 +1,20 @@
-"""Belief sources (Ollama, replay, rules), reply parsing, the belief check, and the store.
+"""Where a belief comes from: `sources`, `replies` (parsing, the one check), `store`.
 
-See ``docs/beliefs.md``. The Ollama source is imported on demand
-(``make_source("ollama", ...)`` or ``amuled_ma.beliefs.ollama``) so that importing this
-package stays light.
+See ``docs/beliefs.md``. The Ollama source is imported on demand (``make_source("ollama")``).
 """
 
-from amuled_ma.beliefs.parsing import ParsedBelief, belief_schema, parse_belief, uniform
-from amuled_ma.beliefs.replay import ReplaySource
-from amuled_ma.beliefs.rules import RulesSource, ScriptedSource
-from amuled_ma.beliefs.sources import make_source, register_source, source_kinds
-from amuled_ma.beliefs.types import STATUSES, BeliefRequest, BeliefResult, BeliefSource
-from amuled_ma.beliefs.validate import (
+from amuled_ma.beliefs.replies.parsing import ParsedBelief, belief_schema, parse_belief, uniform
+from amuled_ma.beliefs.replies.validate import (
     SUM_TOLERANCE,
     InvalidBeliefError,
     check_belief,
     checked_result,
     validate_belief,
 )
+from amuled_ma.beliefs.sources.registry import make_source, register_source, source_kinds
+from amuled_ma.beliefs.sources.replay import ReplaySource
+from amuled_ma.beliefs.sources.rules import RulesSource, ScriptedSource
+from amuled_ma.beliefs.types import STATUSES, BeliefRequest, BeliefResult, BeliefSource
 
 __all__ = [
     "STATUSES",

@@ -1,9 +1,4 @@
-"""The small interface every belief source implements.
-
-A *belief* is a probability vector over a task's actions, given by one moral-cluster
-agent for one task state. Sources (Ollama, replay of a recording, rules) answer
-batches of `BeliefRequest` with `BeliefResult` in the same order.
-"""
+"""The interface of every belief source: `BeliefRequest` batches in, `BeliefResult` out in order."""
 
 from __future__ import annotations
 

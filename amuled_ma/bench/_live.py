@@ -2,8 +2,8 @@
 
 For each concurrency level, the same batch of distinct belief requests (the paper's
 prompts: system prompt with the five clusters, few-shot examples, a Driving state that
-varies per request) is answered twice through :class:`~amuled_ma.beliefs.cached.CachedSource`
-over :class:`~amuled_ma.beliefs.ollama.OllamaSource`:
+varies per request) is answered twice through :class:`~amuled_ma.beliefs.store.cached.CachedSource`
+over :class:`~amuled_ma.beliefs.sources.ollama.OllamaSource`:
 
 - **first run**: an empty belief store, every request goes to the server;
 - **second run**: a new source and store handle on the same file (as a new process
@@ -24,9 +24,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from amuled_ma.beliefs.cached import CachedSource
-from amuled_ma.beliefs.ollama import OllamaSource
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.sources.ollama import OllamaSource
+from amuled_ma.beliefs.store.cached import CachedSource
+from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.beliefs.types import BeliefRequest
 
 #: Actions of the Driving task (index = action id).

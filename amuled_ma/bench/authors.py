@@ -36,8 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     """Run the benchmark and print the figures; returns 0 (a benchmark, not a test)."""
     from amuled_ma.experiments.plans import train_variant
+    from amuled_ma.records.variants import Variant
     from amuled_ma.scenario import load_scenario
-    from amuled_ma.variants import Variant
 
     rows = []
     with output_folder(args.out, "amuled-bench-authors-") as out:

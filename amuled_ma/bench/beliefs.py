@@ -144,9 +144,9 @@ def _replay(args: argparse.Namespace) -> int:
 
     import torch
 
-    from amuled_ma.beliefs.cached import CachedSource
-    from amuled_ma.beliefs.replay import ReplaySource
-    from amuled_ma.beliefs.store import BeliefStore
+    from amuled_ma.beliefs.sources.replay import ReplaySource
+    from amuled_ma.beliefs.store.cached import CachedSource
+    from amuled_ma.beliefs.store.database import BeliefStore
     from amuled_ma.deliberation import MoralPanel
     from amuled_ma.deliberation.panel_feedback import PanelFeedback
     from amuled_ma.errors import AmuledError

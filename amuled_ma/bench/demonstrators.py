@@ -19,7 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
-from amuled_ma.safe_files import write_text_atomic
+from amuled_ma.files.safe import write_text_atomic
 
 _Out = TypeVar("_Out")
 

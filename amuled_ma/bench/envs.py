@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from amuled_ma.safe_files import write_text_atomic
+from amuled_ma.files.safe import write_text_atomic
 
 TARGET_STEPS_PER_S = 1_000_000
 TARGET_RATIO = 20.0

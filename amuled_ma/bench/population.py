@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING, Any
 from amuled_ma.bench._output import output_folder
 
 if TYPE_CHECKING:
-    from amuled_ma.beliefs.store_service import StoreService
+    from amuled_ma.beliefs.store.service import StoreService
     from amuled_ma.learn import population as learn_population
     from amuled_ma.learn.population import TrainOutcome
     from amuled_ma.learn.population_groups import MemberSpec
@@ -165,7 +165,7 @@ def _jobs(
     """``count`` fine-tune jobs of the base: seeds 42.., lambda_KL in turn, own feedback."""
     from amuled_ma.deliberation.build import make_feedback
     from amuled_ma.learn.population_groups import MemberSpec
-    from amuled_ma.variants import Variant
+    from amuled_ma.records.variants import Variant
 
     jobs: list[MemberSpec] = []
     for k in range(count):

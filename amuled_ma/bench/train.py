@@ -140,8 +140,8 @@ def bench_finetune(out: Path, base_ckpt: Path | None, quick: bool) -> dict[str, 
     """Time a fine-tune of the paper's length with replayed AMULED feedback."""
     from amuled_ma.experiments.plans import train_variant
     from amuled_ma.learn.checkpoints import LAST
+    from amuled_ma.records.variants import Variant
     from amuled_ma.scenario import load_scenario
-    from amuled_ma.variants import Variant
 
     sc = load_scenario("findmilk").replace("output", tensorboard=False)
     if not sc.recording_path().exists():

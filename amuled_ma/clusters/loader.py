@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from amuled_ma.errors import ClusterDefinitionError, ScenarioError
-from amuled_ma.resources import prompts_dir, read_text
+from amuled_ma.files.resources import prompts_dir, read_text
 from amuled_ma.scenario.agents import check_agent_table
 from amuled_ma.scenario.loading import parse_toml
 from amuled_ma.scenario.names import identity_key, odd_character

@@ -18,7 +18,7 @@ from amuled_ma.clusters.loader import (
     default_registry,
 )
 from amuled_ma.errors import ClusterDefinitionError, PromptError
-from amuled_ma.resources import MAX_PROMPT_BYTES, prompts_dir, read_text
+from amuled_ma.files.resources import MAX_PROMPT_BYTES, prompts_dir, read_text
 
 #: One cluster's section of the system prompt (the authors' wording).
 CLUSTER_SECTION = (

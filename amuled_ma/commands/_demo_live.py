@@ -12,11 +12,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from amuled_ma.safe_files import checked_read_path, write_text_atomic
+from amuled_ma.files.safe import checked_read_path, write_text_atomic
 
 if TYPE_CHECKING:
-    from amuled_ma.beliefs.timing import CacheReuse, RequestTiming, TimingLog
     from amuled_ma.scenario import Scenario
+    from amuled_ma.servers.timing import CacheReuse, RequestTiming, TimingLog
 
 
 def say(message: str) -> None:
@@ -71,7 +71,7 @@ def live_leg(
     """
     import numpy as np
 
-    from amuled_ma.beliefs.cached import requests_sent
+    from amuled_ma.beliefs.store.cached import requests_sent
     from amuled_ma.deliberation.build import make_feedback
     from amuled_ma.deliberation.panel_feedback import PanelFeedback
     from amuled_ma.evaluate.episode_trace import replay_variant
@@ -193,7 +193,7 @@ def write_live_leg(run_dir: Path, scenario: Scenario, *, model: str, host: str) 
         f"live leg: {LIVE_STATES} states x {len(LIVE_CLUSTERS)} clusters asked of {model} "
         "(its judgement is not meaningful: it shows the live path)"
     )
-    from amuled_ma.progress import Progress
+    from amuled_ma.monitor.progress import Progress
 
     try:
         with Progress("live leg", None, bar=False, unit="batch"):  # never silent while asking
@@ -213,8 +213,8 @@ def write_live_leg(run_dir: Path, scenario: Scenario, *, model: str, host: str) 
 def put_live_section(run_dir: Path, lines: list[str]) -> None:
     """End ``report.md`` with the live leg's section, in place of an earlier one.
 
-    Read through :func:`~amuled_ma.safe_files.checked_read_path` and written back whole
-    (:func:`~amuled_ma.safe_files.write_text_atomic`); without a report, nothing is written.
+    Read through :func:`~amuled_ma.files.safe.checked_read_path` and written back whole
+    (:func:`~amuled_ma.files.safe.write_text_atomic`); without a report, nothing is written.
 
     Raises:
         AmuledError: ``report.md`` is a link, not a regular file, over
@@ -223,7 +223,7 @@ def put_live_section(run_dir: Path, lines: list[str]) -> None:
         UnicodeDecodeError: It is not UTF-8 text.
     """
     from amuled_ma.evaluate.report.writing import MAX_REPORT_BYTES
-    from amuled_ma.file_limits import read_bounded_bytes
+    from amuled_ma.files.limits import read_bounded_bytes
 
     report = checked_read_path(run_dir, "report.md")
     if not report.is_file():
@@ -275,7 +275,7 @@ class PrefixWarmup:
             scenario: The run's scenario (its prompts and Ollama options).
 
         """
-        from amuled_ma.beliefs.ollama import OllamaSource
+        from amuled_ma.beliefs.sources.ollama import OllamaSource
         from amuled_ma.clusters import build_messages
         from amuled_ma.deliberation.plan import cluster_registry, panel_of
         from amuled_ma.errors import AmuledError
@@ -304,7 +304,7 @@ class PrefixWarmup:
         except Exception as error:  # a warm-up failure only costs time
             self.error = f"{type(error).__name__}: {error}"
             return
-        from amuled_ma.beliefs.timing import RequestTiming
+        from amuled_ma.servers.timing import RequestTiming
 
         self.timing = RequestTiming.from_reply(reply, time.perf_counter() - began)
 
@@ -345,7 +345,7 @@ def print_breakdown(
         reuse: The private server's prefix-cache reuse (None: not our server).
 
     """
-    from amuled_ma.beliefs.timing import timing_breakdown
+    from amuled_ma.servers.timing import timing_breakdown
 
     timings = [t for _, log in phases for t in log.timings]
     parts = [

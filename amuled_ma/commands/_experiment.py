@@ -14,8 +14,8 @@ if TYPE_CHECKING:
     from collections.abc import Callable
 
     from amuled_ma.evaluate.results import Results
+    from amuled_ma.experiments.pipeline import PipelineOutcome, PipelineRequest
     from amuled_ma.experiments.run_folder import Rerun
-    from amuled_ma.pipeline import PipelineOutcome, PipelineRequest
     from amuled_ma.scenario import Scenario
 
 
@@ -161,7 +161,7 @@ def add_overrides_argument(parser: argparse.ArgumentParser) -> None:
 
 def load(args: argparse.Namespace) -> Scenario:
     """Load the scenario named on the command line and apply ``--set`` overrides."""
-    from amuled_ma.resources import scenarios_dir
+    from amuled_ma.files.resources import scenarios_dir
     from amuled_ma.scenario import load_scenario
 
     name = str(args.scenario)
@@ -270,8 +270,8 @@ def say_outcome(request: PipelineRequest, outcome: PipelineOutcome, seconds: flo
     """Print the end of ``amuled run``/``ablate``/``demo``: the summary and the report's path.
 
     Args:
-        request: The :class:`~amuled_ma.pipeline.PipelineRequest`.
-        outcome: Its :class:`~amuled_ma.pipeline.PipelineOutcome`.
+        request: The :class:`~amuled_ma.experiments.pipeline.PipelineRequest`.
+        outcome: Its :class:`~amuled_ma.experiments.pipeline.PipelineOutcome`.
         seconds: The command's wall time so far.
 
     """

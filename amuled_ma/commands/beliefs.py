@@ -8,7 +8,7 @@ importing it there::
     laptop$ amuled beliefs stats
 
 The store file is ``--store``, else ``$AMULED_BELIEF_STORE``, else
-``~/.cache/amuled/beliefs.sqlite`` (see :func:`amuled_ma.beliefs.store.default_store_path`).
+``~/.cache/amuled/beliefs.sqlite`` (:func:`~amuled_ma.beliefs.store.database.default_store_path`).
 ``stats`` and ``export`` open it read-only (SQLite ``mode=ro``, else ``immutable=1``), so
 they also work on a store you may only read. Export writes standard JSON only, and import
 refuses anything else (``NaN``, invalid beliefs), naming the file and line.
@@ -22,11 +22,11 @@ import os
 import sys
 from pathlib import Path
 
-from amuled_ma.beliefs.interchange import export_jsonl, import_jsonl
-from amuled_ma.beliefs.rows import BeliefStoreError
-from amuled_ma.beliefs.store import BeliefStore, default_store_path
+from amuled_ma.beliefs.store.database import BeliefStore, default_store_path
+from amuled_ma.beliefs.store.interchange import export_jsonl, import_jsonl
+from amuled_ma.beliefs.store.rows import BeliefStoreError
 from amuled_ma.beliefs.types import STATUSES
-from amuled_ma.safe_files import atomic_writer
+from amuled_ma.files.safe import atomic_writer
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

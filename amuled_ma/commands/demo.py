@@ -34,7 +34,7 @@ the probabilities alone. At the end the demo prints where the live requests' tim
 
 The demo adds only what depends on its command line (the server, another model, the
 report's title) to its scenario and runs it through the same library function as
-``amuled run``, :func:`amuled_ma.pipeline.run_pipeline`.
+``amuled run``, :func:`amuled_ma.experiments.pipeline.run_pipeline`.
 """
 
 from __future__ import annotations
@@ -55,11 +55,11 @@ from amuled_ma.commands._demo_live import (
     write_live_leg,
 )
 from amuled_ma.commands._demo_live import say as _say
-from amuled_ma.safe_files import write_text_atomic
+from amuled_ma.files.safe import write_text_atomic
 
 if TYPE_CHECKING:
-    from amuled_ma.beliefs.timing import CacheReuse, TimingLog
     from amuled_ma.scenario import Scenario
+    from amuled_ma.servers.timing import CacheReuse, TimingLog
 
 #: The demo's tasks; each runs the shipped scenario ``<task>-demo``
 #: (``scenarios/<task>-demo.toml``, :func:`demo_scenario`).
@@ -129,10 +129,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def demo_command(args: argparse.Namespace) -> int:
     """Run ``amuled demo``; return the exit code of the pipeline."""
-    from amuled_ma import llm_server
-    from amuled_ma.beliefs.hosts import DEFAULT_HOST, TINY_MODEL, preflight
-    from amuled_ma.beliefs.timing import cache_reuse, record_timings
     from amuled_ma.cli import FAILURES, report_failure
+    from amuled_ma.servers import local_server as llm_server
+    from amuled_ma.servers.hosts import DEFAULT_HOST, TINY_MODEL, preflight
+    from amuled_ma.servers.timing import cache_reuse, record_timings
 
     start = time.perf_counter()
     missing = missing_recording(args.task, offline=args.offline)
@@ -410,7 +410,7 @@ def put_summary(run_dir: Path, scenario: Scenario) -> None:
     import json
 
     from amuled_ma.evaluate.report.writing import MAX_REPORT_BYTES
-    from amuled_ma.file_limits import read_bounded_bytes
+    from amuled_ma.files.limits import read_bounded_bytes
 
     report, results = run_dir / "report.md", run_dir / "results.json"
     if not (report.is_file() and results.is_file()):
@@ -463,8 +463,8 @@ def _run_pipeline(
     scenario: Scenario, run_dir: Path, hint: str, args: argparse.Namespace, debug: bool
 ) -> int:
     """Run the demo's main comparison through the pipeline; its exit code (failures printed)."""
-    from amuled_ma import pipeline
     from amuled_ma.cli import FAILURES, report_failure
+    from amuled_ma.experiments import pipeline
 
     request = pipeline.PipelineRequest(
         scenario=scenario,

@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 from amuled_ma.commands import _experiment as common
-from amuled_ma.run_lock import run_folder_lock
+from amuled_ma.files.run_lock import run_folder_lock
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -57,7 +57,7 @@ def evaluate_command(args: argparse.Namespace) -> int:
     scenario = common.customise(scenario, clusters_dirs=args.clusters_dir)
     from amuled_ma.evaluate.evaluator import evaluate_run, variant_dirs  # torch, matplotlib
     from amuled_ma.evaluate.report import evaluation_outputs, write_report
-    from amuled_ma.safe_files import check_write_targets
+    from amuled_ma.files.safe import check_write_targets
 
     check_write_targets(evaluation_outputs(run_dir))  # a link or a device: refused before work
     with run_folder_lock(run_dir):

@@ -7,8 +7,8 @@ import json
 import sys
 from pathlib import Path
 
-from amuled_ma import llm_server
 from amuled_ma.commands._experiment import bounded_int, positive_float
+from amuled_ma.servers import local_server as llm_server
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -1,7 +1,7 @@
 """``amuled run`` (the paper's main comparison) and ``amuled ablate`` (its ablations).
 
-Both parse their arguments into a :class:`~amuled_ma.pipeline.PipelineRequest`, call
-:func:`~amuled_ma.pipeline.run_pipeline` (plan, input checks, training, evaluation,
+Both parse their arguments into a :class:`~amuled_ma.experiments.pipeline.PipelineRequest`, call
+:func:`~amuled_ma.experiments.pipeline.run_pipeline` (plan, input checks, training, evaluation,
 report) and print its outcome.
 """
 
@@ -17,7 +17,7 @@ from amuled_ma.errors import AmuledError
 
 if TYPE_CHECKING:
     from amuled_ma.experiments.jobs import RayTarget
-    from amuled_ma.pipeline import PipelineRequest
+    from amuled_ma.experiments.pipeline import PipelineRequest
     from amuled_ma.scenario import Scenario
 
 
@@ -234,8 +234,8 @@ def ray_target(args: argparse.Namespace) -> RayTarget | None:
 
 
 def request_of(args: argparse.Namespace, command: str, *extra: str) -> PipelineRequest:
-    """The :class:`~amuled_ma.pipeline.PipelineRequest` of ``amuled run`` or ``ablate``."""
-    from amuled_ma.pipeline import PipelineRequest
+    """The `~amuled_ma.experiments.pipeline.PipelineRequest` of ``amuled run`` or ``ablate``."""
+    from amuled_ma.experiments.pipeline import PipelineRequest
 
     scenario = common.load(args)
     weights = getattr(args, "weights", None)
@@ -275,7 +275,7 @@ def request_of(args: argparse.Namespace, command: str, *extra: str) -> PipelineR
 
 def run_command(args: argparse.Namespace) -> int:
     """Run ``amuled run``: the pipeline of the paper's main comparison, then its summary."""
-    from amuled_ma import pipeline
+    from amuled_ma.experiments import pipeline
 
     start = time.perf_counter()
     request = request_of(args, "run")
@@ -288,7 +288,7 @@ def run_command(args: argparse.Namespace) -> int:
 
 def ablate_command(args: argparse.Namespace) -> int:
     """Run ``amuled ablate``: the pipeline of one ablation."""
-    from amuled_ma import pipeline
+    from amuled_ma.experiments import pipeline
 
     start = time.perf_counter()
     extra = ["--what", args.what]

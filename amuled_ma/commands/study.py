@@ -229,7 +229,7 @@ def _export(args: argparse.Namespace) -> int:
     if args.output is None:
         sys.stdout.write(text)
     else:
-        from amuled_ma.safe_files import write_text_atomic
+        from amuled_ma.files.safe import write_text_atomic
 
         write_text_atomic(args.output, text)
         common.say(f"study {args.study}: answers written to {args.output}")

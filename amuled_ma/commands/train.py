@@ -8,8 +8,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from amuled_ma.commands import _experiment as common
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import Scenario, check_path_component
-from amuled_ma.variants import Variant
 
 if TYPE_CHECKING:
     from amuled_ma.experiments.run_folder import Rerun
@@ -71,7 +71,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def train_command(args: argparse.Namespace) -> int:
     """Run ``amuled train``: a one-job request through the pipeline (checks, lock, record)."""
-    from amuled_ma.pipeline import train_alone
+    from amuled_ma.experiments.pipeline import train_alone
 
     scenario = common.load(args)
     run_dir = common.run_dir_of(args, scenario)
@@ -91,7 +91,7 @@ def train_command(args: argparse.Namespace) -> int:
 
 def finetune_command(args: argparse.Namespace) -> int:
     """Run ``amuled finetune``: a one-job request through the pipeline (checks, lock, record)."""
-    from amuled_ma.pipeline import train_alone
+    from amuled_ma.experiments.pipeline import train_alone
 
     scenario = common.load(args)
     run_dir = common.run_dir_of(args, scenario)
@@ -117,7 +117,7 @@ def finetune_command(args: argparse.Namespace) -> int:
 
 def _request(scenario: Scenario, run_dir: Path, args: argparse.Namespace, rerun: Rerun) -> Any:
     """The pipeline request of one job from the command line (seed, resume, force)."""
-    from amuled_ma.pipeline import PipelineRequest
+    from amuled_ma.experiments.pipeline import PipelineRequest
 
     return PipelineRequest(
         scenario,

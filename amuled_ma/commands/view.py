@@ -111,7 +111,7 @@ def view_command(args: argparse.Namespace) -> int:
     from amuled_ma.evaluate.page_server import serve
     from amuled_ma.evaluate.viewer import write_view
     from amuled_ma.experiments.trained_variants import run_to_view
-    from amuled_ma.safe_files import check_write_target
+    from amuled_ma.files.safe import check_write_target
 
     if args.output is not None:
         check_write_target(args.output)  # a link or a device is refused before any work

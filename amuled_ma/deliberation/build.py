@@ -26,12 +26,12 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
-from amuled_ma.beliefs.cached import CachedSource
-from amuled_ma.beliefs.replay import ReplaySource
-from amuled_ma.beliefs.routing import RoutedSource
-from amuled_ma.beliefs.sources import make_source as build_source
-from amuled_ma.beliefs.store import BeliefStore
-from amuled_ma.beliefs.store_service import StoreItem, StoreService
+from amuled_ma.beliefs.sources.registry import make_source as build_source
+from amuled_ma.beliefs.sources.replay import ReplaySource
+from amuled_ma.beliefs.sources.routing import RoutedSource
+from amuled_ma.beliefs.store.cached import CachedSource
+from amuled_ma.beliefs.store.database import BeliefStore
+from amuled_ma.beliefs.store.service import StoreItem, StoreService
 from amuled_ma.beliefs.types import BeliefResult, BeliefSource
 from amuled_ma.deliberation.plan import (
     PanelPlan,
@@ -80,14 +80,14 @@ def request_cost(store: Path | None, model: str) -> RequestCost:
 
     Returns:
         The median of the store's recorded seconds per answered request to ``model``
-        (:meth:`~amuled_ma.beliefs.store.BeliefStore.request_seconds`) when it holds at
+        (:meth:`~amuled_ma.beliefs.store.database.BeliefStore.request_seconds`) when it holds at
         least :data:`MIN_TIMED_REQUESTS`, basis ``"measured here: median of N recorded
         requests"``; else :data:`TINY_SECONDS_PER_REQUEST`, basis ``"the docs' figure for
         the tiny model, not measured here"``.
 
     """
     if store is not None and Path(store).is_file():
-        from amuled_ma.beliefs.store import BeliefStore
+        from amuled_ma.beliefs.store.database import BeliefStore
 
         with BeliefStore(store, read_only=True) as held:
             seconds = held.request_seconds(model)
@@ -651,7 +651,7 @@ def _count_questions(distilled: Any, plan: PanelPlan) -> None:
     person answering for ``m`` agents is asked ``(budget - states already asked) x m``
     questions; a budget given as a share of the states visited has no total ahead.
     """
-    from amuled_ma.beliefs.terminal import TerminalSource
+    from amuled_ma.beliefs.sources.terminal import TerminalSource
 
     if plan.distill is None:
         return
@@ -678,7 +678,7 @@ def run_store(path: Path) -> StoreService:
     The preflight runs before the store's file exists; a feedback that never asks a
     member (the demonstrator, a fused-only recording) never opens it.
     """
-    from amuled_ma.beliefs.store_service import open_store
+    from amuled_ma.beliefs.store.service import open_store
 
     return _Lazy(lambda: open_store(path))
 

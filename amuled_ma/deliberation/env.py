@@ -229,7 +229,7 @@ class DeliberationEnv(ParallelEnv):
     def _prompt_charset(self) -> frozenset[str]:
         chars = set(string.printable)
         try:
-            from amuled_ma.resources import prompts_dir
+            from amuled_ma.files.resources import prompts_dir
 
             template = prompts_dir() / "tasks" / f"{self.task_name}.md"
             if template.is_file():

@@ -16,7 +16,7 @@ Variants (``--feedback``):
 - ``cluster:<name>``: one moral cluster alone;
 - ``moral``: the unprompted "behave as a moral agent" agent;
 - ``agg:<rule>``: the five clusters fused with another rule
-  (:data:`amuled_ma.variants.AGGREGATIONS`).
+  (:data:`amuled_ma.records.variants.AGGREGATIONS`).
 
 Every call counts, per agent (cluster), the status of the belief each rewarded step was
 given: ``ok`` / ``repaired`` (an answer), ``abstained`` / ``timeout`` / ``error`` (a

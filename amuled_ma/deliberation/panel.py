@@ -25,8 +25,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
+from amuled_ma.beliefs.replies.validate import check_belief, check_beliefs, show_values
 from amuled_ma.beliefs.types import FUSED_STATUSES, BeliefRequest, BeliefResult, BeliefSource
-from amuled_ma.beliefs.validate import check_belief, check_beliefs, show_values
 from amuled_ma.deliberation.state_key import freeze
 
 if TYPE_CHECKING:  # torch and the cluster files are loaded by what hands them in
@@ -407,7 +407,7 @@ class MoralPanel:
                 else:
                     out[j] = belief
             statuses[j] = result.status
-        # one vectorised check of the package's rule (amuled_ma.beliefs.validate)
+        # one vectorised check of the package's rule (amuled_ma.beliefs.replies.validate)
         out, reasons = check_beliefs(out)
         bad = [j for j, reason in enumerate(reasons) if reason is not None]
         st = self.stats

@@ -18,7 +18,7 @@ from amuled_ma.deliberation.summaries import describe_identity, llm_server_stats
 from amuled_ma.errors import ScenarioError
 
 if TYPE_CHECKING:
-    from amuled_ma.beliefs.replay import Recording
+    from amuled_ma.beliefs.sources.replay import Recording
     from amuled_ma.beliefs.types import BeliefSource
     from amuled_ma.deliberation.panel import MoralPanel
 

@@ -21,16 +21,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from amuled_ma.errors import AmuledError, ClusterDefinitionError, ScenarioError
+from amuled_ma.records.variants import parse_feedback
 from amuled_ma.scenario import AGENT_SPECS, MORAL_AGENT, Scenario
 from amuled_ma.scenario.agents import match_agents
 from amuled_ma.scenario.panel_weights import member_prior, read_panel_weights
-from amuled_ma.variants import parse_feedback
 
 if TYPE_CHECKING:
     from amuled_ma.scenario.agents import AgentSpec
 
 if TYPE_CHECKING:  # loaded by the functions that use them (a plan is made before any read)
-    from amuled_ma.beliefs.replay import Recording
+    from amuled_ma.beliefs.sources.replay import Recording
     from amuled_ma.clusters import Cluster, ClusterRegistry
     from amuled_ma.scenario import DistillConfig
 
@@ -339,7 +339,7 @@ def plan_sources(
 
 def user_clusters(clusters: Sequence[Any]) -> list[str]:
     """The names of the clusters read from a user's folder (not a shipped cluster file)."""
-    from amuled_ma.resources import prompts_dir
+    from amuled_ma.files.resources import prompts_dir
 
     shipped = (prompts_dir() / "clusters").resolve()
     out = []
@@ -464,6 +464,6 @@ def recording_of(path: Path) -> Recording:
 
 @functools.lru_cache(maxsize=4)
 def _recording_cached(path: str, mtime_ns: int) -> Recording:
-    from amuled_ma.beliefs.replay import Recording
+    from amuled_ma.beliefs.sources.replay import Recording
 
     return Recording(path)

@@ -59,7 +59,7 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
     lines += [f"  reading: {sentence}" for sentence in readings(summary)]
     servers = summary.get("llm_servers") or {}
     if servers:
-        from amuled_ma.beliefs.host_pool import host_lines
+        from amuled_ma.servers.pool import host_lines
 
         lines.append(f"LLM servers ({len(servers)}):")
         lines += [f"  {line}" for line in host_lines(servers)]
@@ -214,7 +214,7 @@ def llm_server_stats(source: BeliefSource | None) -> dict[str, dict[str, Any]]:
     ]
     if not found:
         return {}
-    from amuled_ma.beliefs.host_pool import merge_host_stats
+    from amuled_ma.servers.pool import merge_host_stats
 
     return merge_host_stats(found)
 
@@ -227,7 +227,7 @@ def store_stats(source: BeliefSource | None) -> dict[str, int]:
     batch), ``store_hits`` and ``asked`` (sent to the source behind the
     store: for an LLM, the requests it was sent).
     """
-    from amuled_ma.beliefs.cached import CacheStats
+    from amuled_ma.beliefs.store.cached import CacheStats
 
     total = {"requests": 0, "unique": 0, "store_hits": 0, "asked": 0}
     for obj in nested_sources(source):

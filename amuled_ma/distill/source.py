@@ -22,8 +22,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from amuled_ma.beliefs.cached import requests_sent
-from amuled_ma.beliefs.rows import CACHEABLE
+from amuled_ma.beliefs.replies.validate import check_belief, uniform_belief
+from amuled_ma.beliefs.store.cached import requests_sent
+from amuled_ma.beliefs.store.rows import CACHEABLE
 from amuled_ma.beliefs.types import (
     MODEL_STATUSES,
     UNASKED,
@@ -31,7 +32,6 @@ from amuled_ma.beliefs.types import (
     BeliefResult,
     BeliefSource,
 )
-from amuled_ma.beliefs.validate import check_belief, uniform_belief
 from amuled_ma.distill.budget import BudgetLedger, check_budget
 from amuled_ma.distill.model import EnsembleModel, FitSettings
 from amuled_ma.distill.selection import (

@@ -19,8 +19,8 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from amuled_ma.errors import AmuledError
-from amuled_ma.file_limits import check_size, read_bounded_bytes, read_line
-from amuled_ma.safe_files import append_text, atomic_writer, checked_read_path
+from amuled_ma.files.limits import check_size, read_bounded_bytes, read_line
+from amuled_ma.files.safe import append_text, atomic_writer, checked_read_path
 
 #: File of the budget ledger and counters.
 LEDGER_FILE = "distill.json"

@@ -20,9 +20,9 @@ from amuled_ma.errors import CheckpointError, ScenarioError
 from amuled_ma.evaluate.rollout import MODES, Observer, rollout, step_events
 from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.policies import action_log_probs, load_policy
+from amuled_ma.records.variants import Variant
 from amuled_ma.tasks.driving import Driving
 from amuled_ma.tasks.findmilk import FindMilk
-from amuled_ma.variants import Variant
 
 if TYPE_CHECKING:
     from rsl_rl.models import MLPModel

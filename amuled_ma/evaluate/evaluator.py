@@ -19,11 +19,11 @@ from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError
 from amuled_ma.evaluate.results import RESULTS_FILES, Results, write_results
 from amuled_ma.evaluate.rollout import TrajectoryRecorder, rollout
 from amuled_ma.evaluate.stats import mean_ci
+from amuled_ma.files.safe import check_write_targets, checked_read_path
 from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.policies import load_policy
-from amuled_ma.progress import Progress
-from amuled_ma.records import RunRecord
-from amuled_ma.safe_files import check_write_targets, checked_read_path
+from amuled_ma.monitor.progress import Progress
+from amuled_ma.records.run_record import RunRecord
 from amuled_ma.scenario import Scenario
 
 #: The paper's metrics per task, in report order (others follow alphabetically).
@@ -43,7 +43,7 @@ def read_feedback(folder: Path) -> dict[str, Any] | None:
     Raises:
         AmuledError: Over `MAX_FEEDBACK_BYTES`, refused by `checked_read_path`, or not JSON.
     """
-    from amuled_ma.file_limits import read_bounded_json
+    from amuled_ma.files.limits import read_bounded_json
 
     path = checked_read_path(folder, FEEDBACK_FILE)
     if not path.is_file():
@@ -149,7 +149,7 @@ def merge_feedback(summaries: list[dict[str, Any]]) -> dict[str, Any]:
     servers = [s["llm_servers"] for s in summaries if s.get("llm_servers")]
     extra: dict[str, Any] = {}
     if servers:
-        from amuled_ma.beliefs.host_pool import merge_host_stats
+        from amuled_ma.servers.pool import merge_host_stats
 
         extra["llm_servers"] = merge_host_stats(servers)
     distills = [s["distill"] for s in summaries if s.get("distill")]

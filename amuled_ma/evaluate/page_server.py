@@ -41,7 +41,7 @@ def make_server(path: Path, host: str = "127.0.0.1", port: int = 0) -> http.serv
         OSError: The file cannot be read, or the address cannot be bound.
         AmuledError: The file is larger than `MAX_PAGE_BYTES` (refused unread).
     """
-    from amuled_ma.file_limits import read_bounded_bytes
+    from amuled_ma.files.limits import read_bounded_bytes
 
     body = read_bounded_bytes(
         path,

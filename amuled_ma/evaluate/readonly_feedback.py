@@ -10,7 +10,7 @@ from amuled_ma.beliefs.types import BeliefResult
 from amuled_ma.errors import AmuledError
 
 if TYPE_CHECKING:
-    from amuled_ma.beliefs.store_service import StoreItem
+    from amuled_ma.beliefs.store.service import StoreItem
     from amuled_ma.deliberation.feedback_base import Feedback
     from amuled_ma.scenario import Scenario
 
@@ -19,7 +19,7 @@ class ReadOnlyStore:
     """The run's belief store (SQLite ``mode=ro``; a missing file reads empty) behind a feedback."""
 
     def __init__(self, path: str | Path | None) -> None:
-        from amuled_ma.beliefs.store import BeliefStore
+        from amuled_ma.beliefs.store.database import BeliefStore
 
         self.path = Path(path) if path else None
         self.store = (

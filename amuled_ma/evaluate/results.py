@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
-from amuled_ma.safe_files import (
+from amuled_ma.files.safe import (
     atomic_writer,
     check_write_targets,
     checked_read_path,
@@ -212,7 +212,7 @@ def read_results(run_dir: Path) -> Results:
     from pydantic import ValidationError
 
     from amuled_ma.errors import AmuledError
-    from amuled_ma.file_limits import read_bounded_bytes
+    from amuled_ma.files.limits import read_bounded_bytes
 
     path = checked_read_path(run_dir, "results.json")
     try:

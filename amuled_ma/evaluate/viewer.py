@@ -22,7 +22,7 @@ from amuled_ma.errors import AmuledError
 from amuled_ma.evaluate import episode_trace as trace
 from amuled_ma.evaluate.panel_answers import PanelAnswers, ask_panel
 from amuled_ma.evaluate.readonly_feedback import describe_feedback, open_feedback
-from amuled_ma.safe_files import check_write_target, write_text_atomic
+from amuled_ma.files.safe import check_write_target, write_text_atomic
 from amuled_ma.tasks.colors import COLORS, css_variables
 
 if TYPE_CHECKING:

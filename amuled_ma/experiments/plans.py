@@ -36,11 +36,11 @@ from amuled_ma.experiments.run_folder import (
 from amuled_ma.experiments.training_settings import training_config
 from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.job_shape import job_shape
+from amuled_ma.records.variants import AGGREGATIONS, Variant
 from amuled_ma.scenario import Scenario
-from amuled_ma.variants import AGGREGATIONS, Variant
 
 if TYPE_CHECKING:
-    from amuled_ma.beliefs.store_service import StoreService
+    from amuled_ma.beliefs.store.service import StoreService
     from amuled_ma.deliberation.feedback_base import Feedback
     from amuled_ma.learn.population import TrainOutcome
     from amuled_ma.learn.population_groups import MemberSpec

@@ -66,8 +66,8 @@ from amuled_ma.experiments.run_folder import (
     prepare_variant,
 )
 from amuled_ma.experiments.third_party_log import ray_to_log
+from amuled_ma.files.safe import write_text_atomic
 from amuled_ma.learn.checkpoints import LAST
-from amuled_ma.safe_files import write_text_atomic
 
 if TYPE_CHECKING:
     from types import FrameType

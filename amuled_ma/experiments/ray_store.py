@@ -10,7 +10,7 @@ open the file itself (SQLite WAL is safe across the processes of one machine).
 
 Why this design (docs/scale.md): no server to install (PostgreSQL would be one more
 service to run and secure), the same rows and keys as every other run (the actor holds
-the very :class:`~amuled_ma.beliefs.store.BeliefStore`), and a state asked once anywhere
+the very :class:`~amuled_ma.beliefs.store.database.BeliefStore`), and a state asked once anywhere
 in the sweep is a store hit everywhere after, as on one machine. Per-node stores merged
 at the end of each stage would let the fine-tunes of one stage, which visit mostly the
 same states, each ask them again.
@@ -25,7 +25,7 @@ from typing import Any
 import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.errors import AmuledError
 
 

@@ -43,11 +43,11 @@ from amuled_ma.experiments.training_settings import (
     learned_only,
     without_keys_added_since,
 )
+from amuled_ma.files.safe import checked_read_path, write_text_atomic
 from amuled_ma.learn.checkpoints import LAST, checkpoint_infos
-from amuled_ma.records import PanelRecord, RunRecord, State
-from amuled_ma.safe_files import checked_read_path, write_text_atomic
+from amuled_ma.records.run_record import PanelRecord, RunRecord, State
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import MORAL_AGENT, Scenario
-from amuled_ma.variants import Variant
 
 if TYPE_CHECKING:
     from amuled_ma.deliberation.feedback_base import Feedback
@@ -404,7 +404,7 @@ MAX_RECORD_BYTES = 4_000_000
 
 
 def read_record(folder: Path, *, checkpoint: bool = True) -> RunRecord | None:
-    """A folder's ``config.json`` as a :class:`~amuled_ma.records.RunRecord`.
+    """A folder's ``config.json`` as a :class:`~amuled_ma.records.run_record.RunRecord`.
 
     Args:
         folder: A run directory or a variant folder.
@@ -422,7 +422,7 @@ def read_record(folder: Path, *, checkpoint: bool = True) -> RunRecord | None:
     """
     from pydantic import ValidationError
 
-    from amuled_ma.file_limits import read_bounded_bytes
+    from amuled_ma.files.limits import read_bounded_bytes
 
     path = checked_read_path(folder, CONFIG)
     if not path.is_file():
@@ -470,7 +470,7 @@ def _with_checkpoint(folder: Path, record: RunRecord) -> RunRecord:
 def write_record(folder: Path, record: RunRecord) -> Path:
     """Write a folder's ``config.json`` whole or not at all, never through a link.
 
-    Through :func:`~amuled_ma.safe_files.write_text_atomic` (a reader never sees half a
+    Through :func:`~amuled_ma.files.safe.write_text_atomic` (a reader never sees half a
     file; a full disk leaves the old file and no temporary one).
 
     Raises:
@@ -500,7 +500,7 @@ def write_config(run_dir: Path, scenario: Scenario, extra: dict[str, Any] | None
     Args:
         run_dir: The run directory or variant folder.
         scenario: The scenario.
-        extra: More fields of :class:`~amuled_ma.records.RunRecord` (``variants``,
+        extra: More fields of :class:`~amuled_ma.records.run_record.RunRecord` (``variants``,
             ``seeds``, ``training``, ``panel``, ...).
 
     Returns:
@@ -575,7 +575,7 @@ def variant_fields(
 def panel_of_training(
     variant: Variant, training: dict[str, Any], feedback: Feedback | None = None
 ) -> PanelRecord:
-    """The :class:`~amuled_ma.records.PanelRecord` of a fine-tune, from its settings.
+    """The :class:`~amuled_ma.records.run_record.PanelRecord` of a fine-tune, from its settings.
 
     The members and rule follow the variant (``cluster:<name>`` and ``moral``: that agent
     alone, averaged; ``agg:<rule>``: the panel with that rule); a feedback replaying a

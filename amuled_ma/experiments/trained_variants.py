@@ -3,7 +3,7 @@
 ``amuled view`` and ``amuled explain --state-from`` show a variant's evaluation episode;
 the library that replays it (:mod:`amuled_ma.evaluate.episode_trace`) takes a
 :class:`~amuled_ma.evaluate.episode_trace.TrainedVariant`, resolved here from the run
-folder: the scenario and :class:`~amuled_ma.variants.Variant` the variant's record
+folder: the scenario and :class:`~amuled_ma.records.variants.Variant` the variant's record
 (``config.json``, :func:`~amuled_ma.experiments.run_folder.read_record`) names, its policy,
 the base policy it was fine-tuned from, and the number of episodes the run was evaluated
 with (a sampled episode depends on it).

@@ -14,10 +14,10 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from amuled_ma.file_hash import sha256_file
+from amuled_ma.files.hashing import sha256_file
 from amuled_ma.learn.config import planned_iterations
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import Scenario
-from amuled_ma.variants import Variant
 
 if TYPE_CHECKING:
     from amuled_ma.deliberation.plan import PanelPlan

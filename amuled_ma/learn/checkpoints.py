@@ -16,14 +16,14 @@ from pathlib import Path
 from typing import Any
 
 from amuled_ma.errors import CheckpointError
-from amuled_ma.safe_files import (
+from amuled_ma.files.safe import (
     check_write_target,
     checked_read_path,
     failure_fix,
     fsync_folder,
     write_failure,
 )
-from amuled_ma.torch_files import load_weights_only
+from amuled_ma.files.torch_load import load_weights_only
 
 
 class CheckpointWriteError(CheckpointError):

@@ -7,8 +7,8 @@ from typing import Any
 
 from amuled_ma.errors import ScenarioError
 from amuled_ma.learn.config import planned_iterations, rsl_rl_config
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import Scenario
-from amuled_ma.variants import Variant
 
 
 @dataclass(frozen=True)

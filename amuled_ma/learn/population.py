@@ -28,6 +28,7 @@ from rsl_rl.runners import OnPolicyRunner
 
 from amuled_ma.deliberation.mdp import BatchedDeliberation, MemberFeedback
 from amuled_ma.errors import AmuledError, MemberFailed, Terminated
+from amuled_ma.files.safe import FileWriteError, write_text_atomic
 from amuled_ma.learn.anchored_ppo import AnchoredPPO
 from amuled_ma.learn.checkpoints import LAST, CheckpointWriteError, write_checkpoints
 from amuled_ma.learn.curves import curve_row, quiet
@@ -44,10 +45,9 @@ from amuled_ma.learn.population_state import (
     stack_optimizer_states,
 )
 from amuled_ma.learn.vecenv import DeliberationVecEnv
-from amuled_ma.progress import Progress
-from amuled_ma.safe_files import FileWriteError, write_text_atomic
+from amuled_ma.monitor.progress import Progress
+from amuled_ma.monitor.tensorboard_log import TensorBoardLog
 from amuled_ma.tasks import make_task
-from amuled_ma.tensorboard_log import TensorBoardLog
 
 __all__ = ["LAST", "PopulationMember", "PopulationTrainer", "TrainOutcome", "train_population"]
 

@@ -17,9 +17,9 @@ from typing import Any
 
 from amuled_ma.learn.checkpoints import LAST, checkpoint_infos
 from amuled_ma.learn.job_shape import JobShape, job_shape
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import Scenario
 from amuled_ma.scenario.memory import MEMORY_FRACTION, physical_memory_bytes
-from amuled_ma.variants import Variant
 
 #: ``module:Class`` names rsl-rl resolves for a population.
 POPULATION_MODEL = "amuled_ma.learn.population_models:PopulationMLPModel"

@@ -2,9 +2,9 @@
 
 Each table is one of the spec models below, a pydantic discriminated union on ``source``
 (:data:`AgentSpec`); :data:`AGENT_SPECS` is the one registry of the kinds a table may
-name. A new built-in source is its module in :mod:`amuled_ma.beliefs`, one line in
-:func:`amuled_ma.beliefs.sources.make_source`'s registry, and its spec model here (one line
-in :data:`AGENT_SPECS`).
+name. A new built-in source is its module in :mod:`amuled_ma.beliefs.sources`, its spec
+model here (one line in :data:`AGENT_SPECS`) and one line in
+:func:`amuled_ma.beliefs.sources.registry.built_in`.
 
 The models are pure description: they import no domain package. Each turns itself into
 the keyword arguments of its source (:meth:`_Spec.source_options`), given the values of
@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from amuled_ma.errors import ScenarioError
 from amuled_ma.scenario.paths import find_recording
 from amuled_ma.scenario.ranges import field_range
-from amuled_ma.urls import normalize_host, normalize_hosts
+from amuled_ma.servers.urls import normalize_host, normalize_hosts
 
 if TYPE_CHECKING:
     from amuled_ma.scenario.model import Scenario

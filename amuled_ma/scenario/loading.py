@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from amuled_ma.errors import ScenarioError
-from amuled_ma.resources import read_text, scenarios_dir
+from amuled_ma.files.resources import read_text, scenarios_dir
 from amuled_ma.scenario.messages import did_you_mean, unknown_top_level
 from amuled_ma.scenario.model import Scenario
 from amuled_ma.scenario.panel_weights import member_prior, read_panel_weights

@@ -26,7 +26,7 @@ from typing import Final, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from amuled_ma.errors import ScenarioError
-from amuled_ma.file_limits import read_bounded_bytes
+from amuled_ma.files.limits import read_bounded_bytes
 
 #: The version of the file's format.
 WEIGHTS_FORMAT: Final = 1

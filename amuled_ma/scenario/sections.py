@@ -38,7 +38,7 @@ from amuled_ma.scenario.panel_checks import check_clusters, check_fusion, prior_
 from amuled_ma.scenario.paths import check_path_component
 from amuled_ma.scenario.ranges import found_name as _found_name
 from amuled_ma.scenario.task_options import check_task_options
-from amuled_ma.urls import normalize_host, normalize_hosts
+from amuled_ma.servers.urls import normalize_host, normalize_hosts
 
 #: The five moral clusters of the paper (Table 1), in the recordings' order.
 PAPER_CLUSTERS = ("consequentialist", "deontological", "virtue", "care", "social_justice")
@@ -429,11 +429,11 @@ class FeedbackConfig(_Section):
         recording: Recording file replayed by the ``replay`` source.
         model: LLM name for the ``ollama`` source.
         host: Ollama server URL; empty: ``$OLLAMA_HOST``, else ``http://127.0.0.1:11434``.
-            Checked on load by :func:`amuled_ma.urls.normalize_host`.
+            Checked on load by :func:`amuled_ma.servers.urls.normalize_host`.
         hosts: A pool of Ollama server URLs instead of ``host`` (each request goes to the
             least-busy live one, a dead one is left out and its requests retried on
             another; ``docs/ollama.md``, "A pool of servers"). Checked on load by
-            :func:`amuled_ma.urls.normalize_hosts`; not with ``host``.
+            :func:`amuled_ma.servers.urls.normalize_hosts`; not with ``host``.
         concurrency: Requests in flight at once.
         timeout_s: Seconds before one request is abandoned.
         miss_policy: What a replay miss gives: ``uniform``, ``fallback``, ``error``, or
@@ -458,7 +458,7 @@ class FeedbackConfig(_Section):
             planned (:mod:`amuled_ma.scenario.panel_weights`: the file's members must be
             the panel's).
         ollama: Further keyword arguments of
-            :class:`~amuled_ma.beliefs.ollama.OllamaSource` (``num_predict``, ``num_ctx``,
+            :class:`~amuled_ma.beliefs.sources.ollama.OllamaSource` (``num_predict``, ``num_ctx``,
             ``reasoning``, ``seed``, ``retries``, ...), checked against its signature.
         agents: A belief source per panel member, ``{agent: table}`` from the
             ``[feedback.agents.<agent>]`` tables: ``source`` = ``replay``, ``ollama``,

@@ -66,7 +66,7 @@ def read_folder_file(
         NotInFolder: A symbolic link, not a regular file, or outside the folder.
         StudyError: Over ``limit`` bytes, unreadable or not UTF-8.
     """
-    from amuled_ma.file_limits import decode_text, too_large
+    from amuled_ma.files.limits import decode_text, too_large
 
     path = Path(folder) / relative
     refuse = f"{path}: the {noun} must be a regular file inside the study folder, "

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from collections.abc import Sequence
 
-from amuled_ma.beliefs.parsing import parse_belief
+from amuled_ma.beliefs.replies.parsing import parse_belief
 
 #: Longest reason kept, in characters (the rest is cut, and the cut is said).
 MAX_REASON_CHARS = 3000

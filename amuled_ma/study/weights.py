@@ -368,7 +368,7 @@ def weights_file(
     temperature: float | None = None,
 ) -> PanelWeights:
     """The `PanelWeights` of a fit, with its provenance (``study``'s ``study.json`` is hashed)."""
-    from amuled_ma.file_hash import sha256_file
+    from amuled_ma.files.hashing import sha256_file
 
     def r(values: np.ndarray) -> list[float]:
         return [round(float(v), 6) for v in values]

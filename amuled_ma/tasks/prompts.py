@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from amuled_ma.errors import PromptError
-from amuled_ma.resources import MAX_PROMPT_BYTES, prompts_dir, read_text
+from amuled_ma.files.resources import MAX_PROMPT_BYTES, prompts_dir, read_text
 from amuled_ma.tasks.names import BUILTIN_TASKS, canonical_name, task_entry_points
 
 __all__ = ["Fragment", "StateTemplate", "load_template", "render_state_prompt", "template_path"]

@@ -18,7 +18,7 @@ from amuled_ma.authors.caches import (
     model_slug,
     recording_file_name,
 )
-from amuled_ma.beliefs.replay import Recording, obs_key
+from amuled_ma.beliefs.sources.replay import Recording, obs_key
 from amuled_ma.errors import AuthorsImportError
 
 

@@ -17,8 +17,8 @@ from amuled_ma.errors import CheckpointError
 from amuled_ma.experiments.plans import train_variant
 from amuled_ma.learn.checkpoints import LAST, TRAINER_KEYS, read_checkpoint
 from amuled_ma.learn.policies import action_log_probs, load_policy
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import load_scenario
-from amuled_ma.variants import Variant
 
 BASE = Variant("base")
 

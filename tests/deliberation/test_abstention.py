@@ -91,7 +91,7 @@ def test_mixed_rows_fuse_each_over_its_own_answers():
 
 def test_a_cluster_missing_from_the_recording_gains_no_weight(recordings_dir, tmp_path):
     """A sixth cluster nobody recorded: before, it got the largest weight (0.193)."""
-    from amuled_ma.beliefs.replay import ReplaySource
+    from amuled_ma.beliefs.sources.replay import ReplaySource
 
     source = ReplaySource(recordings_dir / "findmilk-gpt-4o-mini.json", miss_policy="uniform")
     names = ["consequentialist", "deontological", "virtue", "care", "social_justice"]

@@ -7,8 +7,8 @@ from collections.abc import Sequence
 import numpy as np
 import pytest
 
-from amuled_ma.beliefs.cached import CachedSource
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.store.cached import CachedSource
+from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.deliberation import MoralPanel
 
@@ -188,7 +188,7 @@ def test_bad_arguments():
 
 def test_replay_of_recording_through_the_panel(load_recording, recordings_dir):
     """The panel on the authors' gpt-4o-mini recording returns the recorded beliefs."""
-    from amuled_ma.beliefs.replay import ReplaySource
+    from amuled_ma.beliefs.sources.replay import ReplaySource
     from amuled_ma.fusion import fuse
 
     rec = load_recording("findmilk-gpt-4o-mini.json")

@@ -156,7 +156,7 @@ def test_an_ollama_model_that_is_not_there_stops_the_command(tmp_path, capsys, o
 def test_the_ollama_spec_declares_every_ollama_source_keyword():
     import inspect
 
-    from amuled_ma.beliefs.ollama import OllamaSource
+    from amuled_ma.beliefs.sources.ollama import OllamaSource
     from amuled_ma.scenario import OllamaSpec
 
     keywords = {

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from amuled_ma.beliefs.keys import request_key
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.store.database import BeliefStore
+from amuled_ma.beliefs.store.keys import request_key
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
 from amuled_ma.deliberation.build import request_cost
 

@@ -17,8 +17,8 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from amuled_ma.beliefs.cached import CachedSource
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.store.cached import CachedSource
+from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.distill import BudgetExceeded, BudgetLedger, DistilledSource, budget_cap
 from amuled_ma.errors import AmuledError

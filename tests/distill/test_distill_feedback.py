@@ -18,8 +18,8 @@ from amuled_ma.distill import DistilledSource
 from amuled_ma.errors import ScenarioError
 from amuled_ma.experiments.plans import ablation_variants, plan_jobs
 from amuled_ma.experiments.run_folder import TrainJob
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import load_scenario
-from amuled_ma.variants import Variant
 
 torch.set_num_threads(1)
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from amuled_ma.beliefs.validate import validate_belief
+from amuled_ma.beliefs.replies.validate import validate_belief
 from amuled_ma.distill import EnsembleModel, FitSettings
 
 torch.set_num_threads(1)

@@ -15,7 +15,7 @@ from fractions import Fraction
 import torch
 from tiny_cli import TINY
 
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.cli import main
 
 torch.set_num_threads(1)

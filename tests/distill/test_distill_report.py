@@ -11,7 +11,7 @@ from amuled_ma.evaluate.report import (
     write_report,
 )
 from amuled_ma.evaluate.stats import mean_ci
-from amuled_ma.records import RunRecord
+from amuled_ma.records.run_record import RunRecord
 
 #: A two-step FindMilk episode on the paper's layout (for the trajectory figure).
 TRAJECTORY = {

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from amuled_ma.beliefs.cached import CachedSource
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.store.cached import CachedSource
+from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource
 from amuled_ma.distill import DistilledSource
 from amuled_ma.distill.state import EXAMPLES_FILE, LEDGER_FILE

@@ -14,8 +14,8 @@ import torch
 from sparse_files import sparse
 from test_distill_source import MEMBERS, Panel, requests, source
 
-from amuled_ma.beliefs.cached import CachedSource
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.store.cached import CachedSource
+from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.distill.state import (
     EXAMPLES_FILE,
     LEDGER_FILE,

@@ -12,8 +12,8 @@ from amuled_ma.evaluate.report import write_report
 from amuled_ma.learn.policies import load_policy
 from amuled_ma.learn.population import train_population
 from amuled_ma.learn.population_groups import MemberSpec
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import scenario_from_dict
-from amuled_ma.variants import Variant
 
 
 def train(sc, out_dir, variant: str = "base"):

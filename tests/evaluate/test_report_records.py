@@ -13,9 +13,9 @@ from sparse_files import sparse
 
 from amuled_ma.evaluate.report import panels_table, settings_table, write_report
 from amuled_ma.experiments.run_folder import read_record, variant_fields, write_config
-from amuled_ma.records import RunRecord
+from amuled_ma.records.run_record import RunRecord
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import Scenario
-from amuled_ma.variants import Variant
 
 SHA = "0f" * 32
 PAPER = ["consequentialist", "deontological", "virtue", "care", "social_justice"]
@@ -83,7 +83,7 @@ def test_an_interrupted_fine_tune_is_shown_interrupted_with_its_iteration(tmp_pa
 
 
 def test_a_recording_of_fused_beliefs_only_is_named_as_such(tmp_path, recordings_dir):
-    from amuled_ma.beliefs.replay import Recording
+    from amuled_ma.beliefs.sources.replay import Recording
     from amuled_ma.deliberation.panel_feedback import FusedReplayFeedback
 
     recording = Recording(recordings_dir / "driving-gpt-4o-mini.json")

@@ -18,7 +18,7 @@ from tiny_cli import RULES, TINY
 
 from amuled_ma.cli import main
 from amuled_ma.evaluate.report.curves import load_curves
-from amuled_ma.safe_files import UnsafePathError
+from amuled_ma.files.safe import UnsafePathError
 
 
 @pytest.fixture(scope="module")

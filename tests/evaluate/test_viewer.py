@@ -392,7 +392,7 @@ def test_browser_steps_bars_flags_keys_and_screenshot(browser, findmilk_run, tmp
 def test_browser_shows_replayed_reasoning_and_abstentions(
     browser, findmilk_run, recordings_dir, tmp_path
 ):
-    from amuled_ma.beliefs.replay import ReplaySource
+    from amuled_ma.beliefs.sources.replay import ReplaySource
     from amuled_ma.beliefs.types import BeliefRequest
 
     variant = findmilk_run / "finetune-replay"

@@ -13,8 +13,8 @@ from amuled_ma.errors import AmuledError
 from amuled_ma.experiments.plans import train_variant
 from amuled_ma.experiments.run_folder import training_differences
 from amuled_ma.experiments.training_settings import training_config
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import load_scenario
-from amuled_ma.variants import Variant
 
 TINY = {
     "base": {"total_steps": 1024, "num_envs": 16, "num_steps_per_env": 16},

@@ -284,7 +284,7 @@ def test_a_unanimous_panel_keeps_the_argmax(one, k, rule):
 def test_a_scenario_may_weigh_the_members_of_a_moral_uncertainty_rule(tmp_path):
     """``[feedback].weights`` with ``fusion = "mec"``: accepted, the credences of the panel."""
     from amuled_ma.deliberation.plan import plan_panel
-    from amuled_ma.resources import scenarios_dir
+    from amuled_ma.files.resources import scenarios_dir
     from amuled_ma.scenario import PAPER_CLUSTERS, load_scenario
 
     weights = {"care": 2.0, "virtue": 1.0, "consequentialist": 4.0, "deontological": 2.0,

@@ -43,10 +43,10 @@ def _stop(signum: int, frame: Any) -> None:
 
 def run(workdir: Path) -> dict[str, Any]:
     """Do the run; return what the outer test checks."""
-    from amuled_ma import llm_server
-    from amuled_ma.beliefs import ollama as ollama_module
-    from amuled_ma.beliefs.store import BeliefStore
+    from amuled_ma.beliefs.sources import ollama as ollama_module
+    from amuled_ma.beliefs.store.database import BeliefStore
     from amuled_ma.cli import main as cli
+    from amuled_ma.servers import local_server as llm_server
 
     t0 = time.monotonic()
     out: dict[str, Any] = {"interfaces": sorted(name for _, name in socket.if_nameindex())}

@@ -16,9 +16,9 @@ import ollama
 from _live_helpers import OPTIONS, TASKS, chat
 
 from amuled_ma.beliefs import BeliefRequest, belief_schema, parse_belief
-from amuled_ma.beliefs.cached import CachedSource
-from amuled_ma.beliefs.ollama import OllamaSource
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.sources.ollama import OllamaSource
+from amuled_ma.beliefs.store.cached import CachedSource
+from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.clusters import build_messages, default_registry
 
 

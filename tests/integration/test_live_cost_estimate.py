@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 import torch
 
-from amuled_ma.beliefs.keys import request_key
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.store.database import BeliefStore
+from amuled_ma.beliefs.store.keys import request_key
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
 from amuled_ma.deliberation.build import MIN_TIMED_REQUESTS, live_costs, make_feedback
 from amuled_ma.deliberation.plan import plan_panel

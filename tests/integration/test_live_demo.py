@@ -26,12 +26,12 @@ from pathlib import Path
 import pytest
 from ollama_server_fixture import in_ci
 
-from amuled_ma import llm_server
-from amuled_ma.beliefs.store import BeliefStore
-from amuled_ma.beliefs.timing import RequestTiming
+from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.cli import main
 from amuled_ma.commands.demo import SUMMARY_HEADING
 from amuled_ma.errors import AmuledError
+from amuled_ma.servers import local_server as llm_server
+from amuled_ma.servers.timing import RequestTiming
 
 NUMBER = r"([\d,]+(?:\.\d+)?)"
 

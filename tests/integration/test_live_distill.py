@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.cli import main
 
 CLUSTERS = ("care", "virtue")

@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 from _live_helpers import OPTIONS, TASKS, DelayProxy, wait_until
 
-from amuled_ma import llm_server
 from amuled_ma.beliefs import BeliefRequest, ScriptedSource
-from amuled_ma.beliefs.cached import CachedSource
-from amuled_ma.beliefs.ollama import OllamaSource
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.sources.ollama import OllamaSource
+from amuled_ma.beliefs.store.cached import CachedSource
+from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.errors import BackendUnavailable, ModelNotFound
+from amuled_ma.servers import local_server as llm_server
 
 
 def _requests(n: int, task: str = "driving") -> list[BeliefRequest]:

@@ -18,8 +18,8 @@ from pathlib import Path
 import pytest
 from _live_helpers import DelayProxy, wait_until
 
-from amuled_ma import llm_server
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.store.database import BeliefStore
+from amuled_ma.servers import local_server as llm_server
 
 
 @pytest.mark.slow

@@ -25,8 +25,8 @@ from pathlib import Path
 import pytest
 from netns import require_netns, run_sealed, unavailable
 
-from amuled_ma import llm_server
 from amuled_ma.errors import AmuledError
+from amuled_ma.servers import local_server as llm_server
 
 SCRIPT = Path(__file__).resolve().parent / "host_pool_netns.py"
 #: Seconds allowed for the whole run in the namespace (the script stops itself at 480).

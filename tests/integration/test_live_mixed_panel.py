@@ -14,7 +14,7 @@ import sys
 
 from mixed_panel import TINY, mixed_scenario
 
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.cli import main
 
 

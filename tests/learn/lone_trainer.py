@@ -65,9 +65,9 @@ from amuled_ma.learn.curves import curve_row, quiet
 from amuled_ma.learn.job_shape import job_shape
 from amuled_ma.learn.population import TrainOutcome
 from amuled_ma.learn.vecenv import DeliberationVecEnv
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import Scenario
 from amuled_ma.tasks import make_task
-from amuled_ma.variants import Variant
 
 __all__ = ["LAST", "TrainOutcome", "Trainer"]
 
@@ -78,7 +78,7 @@ class Trainer:
     Args:
         scenario: The scenario.
         out_dir: Folder of this variant (created).
-        variant: What to train (a :class:`~amuled_ma.variants.Variant` or its text,
+        variant: What to train (a :class:`~amuled_ma.records.variants.Variant` or its text,
             ``base``, ``shaped`` or ``finetune:<feedback>``).
         feedback: Feedback of a fine-tune (None for base training).
         base_checkpoint: The base policy a fine-tune starts from and is anchored to.

@@ -20,8 +20,8 @@ from amuled_ma.learn.job_shape import job_shape
 from amuled_ma.learn.population import PopulationTrainer
 from amuled_ma.learn.population_groups import MemberSpec
 from amuled_ma.learn.ppo_options import EpochShuffledStorage
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import load_scenario
-from amuled_ma.variants import Variant
 
 TINY = """
 name = "tiny-base"

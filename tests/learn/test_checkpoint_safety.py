@@ -109,7 +109,7 @@ def test_a_checkpoint_over_1_gib_is_refused_unread_with_one_line(tmp_path, monke
     import time
 
     from amuled_ma.authors.policies import read_cleanrl
-    from amuled_ma.torch_files import MAX_TORCH_FILE_BYTES
+    from amuled_ma.files.torch_load import MAX_TORCH_FILE_BYTES
 
     assert MAX_TORCH_FILE_BYTES == 2**30
     path = tmp_path / name
@@ -130,7 +130,7 @@ def test_a_checkpoint_over_1_gib_is_refused_unread_with_one_line(tmp_path, monke
 
 
 def test_a_checkpoint_at_the_cap_is_handed_to_torch(tmp_path, monkeypatch):
-    from amuled_ma.torch_files import MAX_TORCH_FILE_BYTES
+    from amuled_ma.files.torch_load import MAX_TORCH_FILE_BYTES
 
     path = tmp_path / "model_last.pt"
     sparse(path, MAX_TORCH_FILE_BYTES)
@@ -142,7 +142,7 @@ def test_a_checkpoint_at_the_cap_is_handed_to_torch(tmp_path, monkeypatch):
 
 
 def test_evaluate_refuses_a_checkpoint_over_1_gib_with_one_line(trained, tmp_path, capsys):
-    from amuled_ma.torch_files import MAX_TORCH_FILE_BYTES
+    from amuled_ma.files.torch_load import MAX_TORCH_FILE_BYTES
 
     run_dir = tmp_path / "run"
     shutil.copytree(trained, run_dir)

@@ -11,8 +11,8 @@ from amuled_ma.deliberation.panel_feedback import PanelFeedback
 from amuled_ma.deliberation.summaries import summary_lines
 from amuled_ma.errors import ScenarioError
 from amuled_ma.experiments.plans import ablation_variants
+from amuled_ma.records.variants import Variant, parse_feedback
 from amuled_ma.scenario import scenario_from_dict
-from amuled_ma.variants import Variant, parse_feedback
 
 MILK = ("up", "down", "left", "right")
 
@@ -156,8 +156,8 @@ class _Answers(BeliefSource):
 
 
 def _panel_feedback(tmp_path, table, clusters=("care", "virtue")):
-    from amuled_ma.beliefs.cached import CachedSource
-    from amuled_ma.beliefs.store import BeliefStore
+    from amuled_ma.beliefs.store.cached import CachedSource
+    from amuled_ma.beliefs.store.database import BeliefStore
     from amuled_ma.deliberation import MoralPanel
 
     store = BeliefStore(tmp_path / "beliefs.sqlite")

@@ -10,8 +10,8 @@ from amuled_ma.deliberation.build import make_feedback
 from amuled_ma.deliberation.panel_feedback import FusedReplayFeedback, PanelFeedback
 from amuled_ma.errors import ScenarioError
 from amuled_ma.experiments.plans import train_variant
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import load_scenario
-from amuled_ma.variants import Variant
 
 STRAIGHT = [-1.0] * 6 + [0.0, 0.0, 1.0, 0.0, 0.0]  # empty road, lane 2
 CAR_AHEAD = [3.0, -1.0, -1.0, -1.0, -1.0, -1.0, 0.0, 0.0, 1.0, 0.0, 0.0]

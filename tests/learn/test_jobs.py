@@ -27,8 +27,8 @@ from amuled_ma.experiments.run_folder import (
     replica_folder,
     split_replica,
 )
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import load_scenario
-from amuled_ma.variants import Variant
 
 TINY = {
     "base": {"total_steps": 1024, "num_envs": 16, "num_steps_per_env": 16},
@@ -125,7 +125,7 @@ sys.path[:0] = [sys.argv[2], str(Path(sys.argv[2]).parent)]  # tests/learn, test
 from test_jobs import tiny_scenario
 from amuled_ma.experiments.jobs import job_groups, run_jobs
 from amuled_ma.experiments.plans import plan_jobs, plan_run
-from amuled_ma.variants import Variant
+from amuled_ma.records.variants import Variant
 runs, workers_used, groups = {}, {}, {}
 CONFIGS = (("1", 1, False), ("2", 2, False), ("p1", 1, True), ("p2", 2, True))
 for label, workers, population in CONFIGS:

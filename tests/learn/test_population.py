@@ -21,8 +21,8 @@ from amuled_ma.errors import MemberFailed
 from amuled_ma.learn.checkpoints import LAST, TRAINER_KEYS, read_checkpoint
 from amuled_ma.learn.population import PopulationTrainer, train_population
 from amuled_ma.learn.population_groups import MemberSpec
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import scenario_from_dict
-from amuled_ma.variants import Variant
 
 #: Float tolerance: the members' float32 networks after a few Adam steps.
 ATOL = 1e-5

@@ -17,8 +17,8 @@ from amuled_ma.learn.population_groups import (
     population_key,
     split_populations,
 )
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import load_scenario
-from amuled_ma.variants import Variant
 
 #: (scenario, variant) -> (copies, rollout, learning rate, annealed, shaping c, task weight),
 #: read from the scenario files' own lines (scenarios/*.toml), not from the code.

@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 from netns import require_netns, run_sealed
 
-from amuled_ma.variants import AGGREGATIONS
+from amuled_ma.records.variants import AGGREGATIONS
 
 SCRIPT = Path(__file__).resolve().parent / "ray_cluster_netns.py"
 #: The aggregation ablation's fine-tunes: each other rule, and bjs-dst (``amuled``).

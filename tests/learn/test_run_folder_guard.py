@@ -9,8 +9,8 @@ import time
 from pathlib import Path
 
 from amuled_ma.cli import main
+from amuled_ma.files.run_lock import LOCK_NAME, RunFolderBusy, run_folder_lock
 from amuled_ma.learn.checkpoints import checkpoint_infos
-from amuled_ma.run_lock import LOCK_NAME, RunFolderBusy, run_folder_lock
 
 AMULED = [sys.executable, "-m", "amuled_ma"]
 ENV = {**os.environ, "GIT_PYTHON_REFRESH": "quiet"}
@@ -86,7 +86,7 @@ def test_second_writer_is_refused_then_sigterm_checkpoints_and_resumes(tmp_path,
 def test_lock_is_reentrant_in_one_process_and_exclusive_across(tmp_path):
     folder = tmp_path / "f"
     code = (
-        "import sys; from amuled_ma.run_lock import run_folder_lock\n"
+        "import sys; from amuled_ma.files.run_lock import run_folder_lock\n"
         "with run_folder_lock(sys.argv[1], 'amuled other'):\n"
         "    print('held', flush=True); sys.stdin.read()\n"
     )

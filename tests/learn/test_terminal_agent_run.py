@@ -18,7 +18,7 @@ from pathlib import Path
 
 from mixed_panel import TINY, mixed_scenario
 
-from amuled_ma.beliefs.store import BeliefStore
+from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.cli import main
 
 

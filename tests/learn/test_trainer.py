@@ -12,7 +12,7 @@ from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.policies import action_log_probs, load_policy
 from amuled_ma.learn.population import PopulationTrainer
 from amuled_ma.learn.population_groups import MemberSpec
-from amuled_ma.variants import Variant
+from amuled_ma.records.variants import Variant
 
 
 def Trainer(scenario, out_dir, **job) -> PopulationTrainer:  # noqa: N802 - the job's trainer

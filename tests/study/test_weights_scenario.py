@@ -22,9 +22,9 @@ from amuled_ma.cli import main
 from amuled_ma.deliberation.plan import plan_panel
 from amuled_ma.errors import AmuledError, ScenarioError
 from amuled_ma.experiments.plans import ablation_variants, train_variant
-from amuled_ma.resources import scenarios_dir
+from amuled_ma.files.resources import scenarios_dir
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import PAPER_CLUSTERS, load_scenario
-from amuled_ma.variants import Variant
 
 #: Written in another order than [feedback].clusters, on another scale than 1.
 WEIGHTS = {"care": 2.0, "virtue": 1.0, "consequentialist": 4.0, "deontological": 2.0,

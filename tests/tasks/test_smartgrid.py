@@ -14,7 +14,7 @@ pytest.importorskip("smartgrid")  # .ci/setup installs the extra; a bare install
 
 from smartgrid.agents.profile.comfort import flexible_comfort_profile
 
-from amuled_ma.beliefs.rules import RulesSource
+from amuled_ma.beliefs.sources.rules import RulesSource
 from amuled_ma.beliefs.types import BeliefRequest
 from amuled_ma.errors import ScenarioError
 from amuled_ma.scenario import load_scenario

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from amuled_ma.beliefs.rules import RulesSource
+from amuled_ma.beliefs.sources.rules import RulesSource
 from amuled_ma.beliefs.types import BeliefRequest
 from amuled_ma.errors import ScenarioError
 from amuled_ma.tasks import TASKS, canonical_name, get_task, make_batched

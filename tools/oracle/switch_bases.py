@@ -34,10 +34,10 @@ import time
 from pathlib import Path
 
 from amuled_ma.experiments.jobs import run_jobs
+from amuled_ma.experiments.pipeline import describe_job
 from amuled_ma.experiments.run_folder import TrainJob, replica_folder, write_config
-from amuled_ma.pipeline import describe_job
+from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import load_scenario
-from amuled_ma.variants import Variant
 
 OURS = {"grad_clip": "per_network", "reshuffle_each_epoch": False, "bootstrap_time_outs": True}
 ARMS: dict[str, dict[str, object]] = {

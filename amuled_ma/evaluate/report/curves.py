@@ -25,7 +25,7 @@ from amuled_ma.evaluate.report.plotting import (
     variant_colors,
 )
 from amuled_ma.evaluate.stats import t_quantile
-from amuled_ma.safe_files import checked_read_path
+from amuled_ma.files.safe import checked_read_path
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -87,7 +87,7 @@ def load_curves(
 
 def read_curve(path: Path) -> list[dict]:
     """One variant folder's ``curve.json`` rows; AmuledError as `load_curves`."""
-    from amuled_ma.file_limits import read_bounded_json
+    from amuled_ma.files.limits import read_bounded_json
 
     fix = (
         "is it the right folder? It is written by 'amuled train' and 'amuled finetune'; "

@@ -7,8 +7,8 @@ from pathlib import Path
 from typing import Any, Literal
 
 from amuled_ma.evaluate.results import PanelEntry, Results
-from amuled_ma.records import PanelRecord, RunRecord
-from amuled_ma.variants import Variant
+from amuled_ma.records.run_record import PanelRecord, RunRecord
+from amuled_ma.records.variants import Variant
 
 #: The feedbacks of a demonstrator (no panel of LLM agents).
 #: The KL-anchor recipes a record names, by the text a panel entry holds.

@@ -12,7 +12,7 @@ import numpy as np
 import numpy.typing as npt
 
 from amuled_ma.evaluate.results import Stat
-from amuled_ma.safe_files import atomic_writer
+from amuled_ma.files.safe import atomic_writer
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes

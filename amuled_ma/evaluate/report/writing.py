@@ -32,8 +32,8 @@ from amuled_ma.evaluate.report.tables import (
 )
 from amuled_ma.evaluate.report.trajectories import plot_driving, plot_findmilk
 from amuled_ma.evaluate.results import RESULTS_FILES, Results
-from amuled_ma.records import RunRecord
-from amuled_ma.safe_files import check_write_targets, checked_read_path, write_text_atomic
+from amuled_ma.files.safe import check_write_targets, checked_read_path, write_text_atomic
+from amuled_ma.records.run_record import RunRecord
 
 #: The figures `write_report` writes; one of these it did not write this time is a
 #: stale one from an earlier report and is removed, so every PNG is the report's.
@@ -71,7 +71,7 @@ def link_viewer(run_dir: Path) -> bool:
         AmuledError: ``report.md`` over `MAX_REPORT_BYTES` (refused unread), refused by
             `checked_read_path`, unreadable, or not writable back.
     """
-    from amuled_ma.file_limits import read_bounded_bytes
+    from amuled_ma.files.limits import read_bounded_bytes
 
     report = checked_read_path(run_dir, "report.md")
     if not report.is_file():

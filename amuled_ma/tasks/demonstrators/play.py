@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from amuled_ma.progress import Progress
+from amuled_ma.monitor.progress import Progress
 from amuled_ma.tasks import rng
 
 __all__ = ["PairCounter", "episode_streams", "progress_bar", "sample", "task_seed", "uniforms"]

@@ -22,8 +22,8 @@ import numpy as np
 import torch
 
 from amuled_ma.errors import AmuledError
-from amuled_ma.file_limits import check_size
-from amuled_ma.safe_files import atomic_writer, checked_read_path
+from amuled_ma.files.limits import check_size
+from amuled_ma.files.safe import atomic_writer, checked_read_path
 from amuled_ma.tasks import canonical_name, get_task
 
 __all__ = [

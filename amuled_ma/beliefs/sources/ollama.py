@@ -1,0 +1,578 @@
+"""``ollama``: cluster beliefs from Ollama servers, through the official client.
+
+Deterministic options, structured output, a pool of hosts, retries, fallback and the preflight
+are described in ``docs/beliefs.md`` (`ollama`) and ``docs/ollama.md``.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import httpx
+import ollama
+
+from amuled_ma.beliefs.replies.parsing import belief_schema, parse_belief, uniform
+from amuled_ma.beliefs.replies.validate import (
+    ANSWER_STATUSES,
+    check_belief,
+    checked_result,
+    show_values,
+)
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, every_answer
+from amuled_ma.errors import AmuledError, BackendUnavailable, ModelNotFound, ScenarioError
+from amuled_ma.servers.hosts import (
+    ServerCheck,
+    model_missing_error,
+    pool_hosts,
+    preflight,
+    unreachable_error,
+    up_command,
+)
+from amuled_ma.servers.pool import HostPool
+from amuled_ma.servers.timing import RequestTiming, publish_timing
+
+log = logging.getLogger(__name__)
+
+#: HTTP statuses worth retrying.
+RETRY_STATUSES = frozenset({408, 429, 500, 502, 503, 504})
+
+
+@dataclass
+class OllamaStats:
+    """Counters of an :class:`OllamaSource` (``stats.as_dict()`` for logging).
+
+    Attributes:
+        requests: Requests received (duplicates included).
+        sent: Distinct requests sent (first attempts).
+        deduplicated: Requests answered by an identical request of the same batch.
+        attempts: HTTP chat calls made (retries included).
+        retries: Retries after a transient failure.
+        parse_retries: Re-asks after an abstained parse.
+        timeouts: Requests that timed out (every attempt counted).
+        errors: Requests that failed with a non-timeout error in the end.
+        fallbacks: Requests answered by the fallback source or a uniform belief.
+        failovers: Calls retried on another host of the pool after a connection failure
+            or a timeout.
+        ok: Answers parsed as is.
+        repaired: Answers parsed after repairs.
+        abstained: Answers the parser gave up on (uniform).
+        prompt_tokens: Prompt tokens reported by the server.
+        completion_tokens: Completion tokens reported by the server.
+
+    """
+
+    requests: int = 0
+    sent: int = 0
+    deduplicated: int = 0
+    attempts: int = 0
+    retries: int = 0
+    parse_retries: int = 0
+    timeouts: int = 0
+    errors: int = 0
+    fallbacks: int = 0
+    failovers: int = 0
+    ok: int = 0
+    repaired: int = 0
+    abstained: int = 0
+    prompt_tokens: int = 0
+    completion_tokens: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        """Return the counters as a plain dict."""
+        return asdict(self)
+
+
+class _FailureError(Exception):
+    def __init__(self, status: str, message: str, host: str = "") -> None:
+        super().__init__(message)
+        self.status = status
+        self.host = host
+
+
+#: The pool's failure kind of each :class:`_FailureError` status.
+_FAILURE_KINDS = {"timeout": "timeout", "unreachable": "connection", "error": "server_error"}
+
+
+class OllamaSource(BeliefSource):
+    """Beliefs from a local Ollama server.
+
+    Args:
+        model: Model name on the server (``"amuled-tiny"`` is the test model).
+        host: Server URL (default ``$OLLAMA_HOST``, then ``http://127.0.0.1:11434``).
+        hosts: A pool of server URLs instead of ``host`` (see the module's docstring);
+            ``host`` alone is a pool of one, with the retries below.
+        structured: Ask for the JSON schema of :func:`belief_schema` via ``format``.
+        reasoning: Include the short ``reasoning`` string in the schema.
+        reasoning_max_chars: Maximum length of that string.
+        temperature: Sampling temperature (0: greedy).
+        seed: Sampling seed.
+        num_ctx: Context window in tokens (must hold the system prompt, few-shot
+            examples, state prompt and reply: about 4k tokens for the paper's prompts).
+        num_predict: Maximum reply tokens (the authors used 1024).
+        options: Extra Ollama ``options`` (merged over the above).
+        concurrency: Requests in flight at once (across clusters and env copies).
+        timeout_s: Seconds allowed per request.
+        retries: Retries of a transient failure.
+        retry_timeouts: Whether a timeout counts as transient (it is retried).
+        backoff_s: First retry delay; doubled each retry.
+        backoff_max_s: Longest retry delay.
+        parse_retries: Re-asks (with ``seed + attempt``) after an abstained parse.
+        fallback: Source asked for requests that fail in the end (else uniform).
+        keep_alive: Ollama ``keep_alive`` (how long the model stays loaded).
+        check_timeout_s: Seconds allowed for the server/model check.
+        down_for_s: In a pool of several hosts, seconds a host that failed (connection,
+            timeout) stays out before a request probes it again.
+        transport: An ``httpx`` transport (tests use ``httpx.MockTransport``; one for
+            every host: it sees the host in each request's URL).
+
+    """
+
+    name = "ollama"
+    needs_messages = True
+
+    def __init__(
+        self,
+        model: str = "amuled-tiny",
+        *,
+        host: str | None = None,
+        hosts: Sequence[str] | None = None,
+        structured: bool = True,
+        reasoning: bool = True,
+        reasoning_max_chars: int = 400,
+        temperature: float = 0.0,
+        seed: int = 42,
+        num_ctx: int = 8192,
+        num_predict: int = 1024,
+        options: Mapping[str, Any] | None = None,
+        concurrency: int = 2,
+        timeout_s: float = 120.0,
+        retries: int = 2,
+        retry_timeouts: bool = False,
+        backoff_s: float = 0.5,
+        backoff_max_s: float = 8.0,
+        parse_retries: int = 1,
+        fallback: BeliefSource | None = None,
+        keep_alive: str | float | None = None,
+        check_timeout_s: float = 4.5,
+        down_for_s: float = 5.0,
+        transport: httpx.BaseTransport | None = None,
+    ) -> None:
+        if concurrency < 1:
+            raise ScenarioError(f"ollama concurrency: expected >= 1, found {concurrency}")
+        if retries < 0 or parse_retries < 0:
+            raise ScenarioError("ollama retries and parse_retries must be >= 0")
+        if not (float(down_for_s) >= 0 and float(down_for_s) < float("inf")):
+            raise ScenarioError(f"ollama down_for_s: expected a number >= 0, found {down_for_s}")
+        self.model = model
+        #: The server URLs (one, or a pool).
+        self.hosts = pool_hosts(host, hosts)
+        #: The first server (the only one without a pool).
+        self.host = self.hosts[0]
+        self.structured = structured
+        self.reasoning = reasoning
+        self.reasoning_max_chars = reasoning_max_chars
+        self.options: dict[str, Any] = {
+            "temperature": float(temperature),
+            "seed": int(seed),
+            "num_ctx": int(num_ctx),
+            "num_predict": int(num_predict),
+            **dict(options or {}),
+        }
+        self.concurrency = int(concurrency)
+        self.timeout_s = float(timeout_s)
+        self.retries = int(retries)
+        self.retry_timeouts = retry_timeouts
+        self.backoff_s = float(backoff_s)
+        self.backoff_max_s = float(backoff_max_s)
+        self.parse_retries = int(parse_retries)
+        self.fallback = fallback
+        self.keep_alive = keep_alive
+        self.check_timeout_s = float(check_timeout_s)
+        self._transport = transport
+        self._clients = {
+            url: ollama.Client(
+                host=url,
+                timeout=httpx.Timeout(
+                    self.timeout_s, connect=min(self.check_timeout_s, self.timeout_s)
+                ),
+                transport=transport,
+            )
+            for url in self.hosts
+        }
+        self.down_for_s = float(down_for_s)
+        #: Which host takes each call, and each host's figures (:meth:`server_stats`).
+        self.host_pool = HostPool(
+            self.hosts,
+            down_for_s=self.down_for_s,
+            fix=(
+                "start the servers again, or remove the dead ones from the pool "
+                "([feedback].hosts, or the agent's hosts); 'amuled ollama status' shows a "
+                "private server"
+            ),
+        )
+        self._digest: str | None = None
+        self._checked = False
+        self._lock = threading.Lock()
+        self._pool: ThreadPoolExecutor | None = None
+        self.stats = OllamaStats()
+
+    # -- setup -------------------------------------------------------------------------
+    def check(self) -> str:
+        """Check that the server answers and has the model; return the model's digest.
+
+        Runs :func:`~amuled_ma.servers.hosts.preflight` once per host (later calls return
+        the digest). A pool fails loudly at the start: every host must answer and have the
+        model with one digest (the same weights), so that any host's answer is the answer
+        of the source's :meth:`identity`.
+
+        Raises:
+            BackendUnavailable: No server answers at a host (within ``check_timeout_s``);
+                for a pool, naming each such host and the fix (start it, or remove it
+                from the pool).
+            ModelNotFound: A server lacks the model, or two servers of the pool have
+                different digests of it (naming both hosts and digests).
+
+        """
+        if self._checked:
+            return self._digest or ""
+        if len(self.hosts) == 1:
+            found = preflight(
+                self.host, self.model, self.check_timeout_s, transport=self._transport
+            )
+            self._digest = found.digest or ""
+        else:
+            self._digest = self._check_pool()
+        self._checked = True
+        return self._digest
+
+    def _check_pool(self) -> str:
+        """Preflight every host of the pool; return the one digest of the model."""
+        found: dict[str, ServerCheck] = {}
+        problems: list[tuple[str, AmuledError]] = []
+        for url in self.hosts:
+            try:
+                found[url] = preflight(
+                    url, self.model, self.check_timeout_s, transport=self._transport
+                )
+            except (BackendUnavailable, ModelNotFound) as error:
+                problems.append((url, error))
+        if problems:
+            lines = "; ".join(str(error) for _, error in problems)
+            urls = ", ".join(url for url, _ in problems)
+            kind = (
+                BackendUnavailable
+                if any(isinstance(e, BackendUnavailable) for _, e in problems)
+                else ModelNotFound
+            )
+            raise kind(
+                f"{len(problems)} of the {len(self.hosts)} Ollama servers of the pool cannot "
+                f"serve model {self.model!r}: {lines}; or remove {urls} from the pool "
+                "([feedback].hosts, or the agent's hosts)"
+            ) from problems[0][1]
+        digests = {url: check.digest or "" for url, check in found.items()}
+        first = self.hosts[0]
+        for url, digest in digests.items():
+            if digest != digests[first]:
+                raise ModelNotFound(
+                    f"model {self.model!r} differs between the Ollama servers of the pool: "
+                    f"{first} has digest {digests[first] or '(none)'!r}, {url} has "
+                    f"{digest or '(none)'!r}; the servers of one pool must hold the same "
+                    f"weights (their answers share store keys): make them equal with "
+                    f"'ollama pull {self.model}' (or the same 'ollama create') on each, or "
+                    f"remove {url} from the pool"
+                )
+        return digests[first]
+
+    def server_stats(self) -> dict[str, dict[str, Any]]:
+        """Each host's figures: requests sent, answered, failed by kind, latencies.
+
+        Returns:
+            :meth:`~amuled_ma.servers.pool.HostPool.as_dict` of the pool (one host
+            without a pool).
+
+        """
+        return self.host_pool.as_dict()
+
+    def identity(self) -> dict[str, Any]:
+        """Return the model name and digest, the options and the output format.
+
+        Never the host(s): the same model (same digest, checked on every host of a pool)
+        gives the same answers on any server, so a run resumed on other servers finds its
+        answers in the store.
+
+        Raises:
+            BackendUnavailable: As :meth:`check`.
+            ModelNotFound: As :meth:`check`.
+
+        """
+        digest = self.check()
+        return {
+            "source": self.name,
+            "model": self.model,
+            "digest": digest,
+            "options": dict(sorted(self.options.items())),
+            "format": {
+                "structured": self.structured,
+                "reasoning": self.reasoning,
+                "reasoning_max_chars": self.reasoning_max_chars if self.reasoning else None,
+            },
+            "parse_retries": self.parse_retries,
+        }
+
+    def schema(self, action_names: Sequence[str]) -> dict[str, Any] | None:
+        """Return the ``format`` sent for a task (``None`` without structured output)."""
+        if not self.structured:
+            return None
+        return belief_schema(
+            action_names, reasoning=self.reasoning, reasoning_max_chars=self.reasoning_max_chars
+        )
+
+    # -- one request -------------------------------------------------------------------
+    def _count(self, **increments: int) -> None:
+        with self._lock:
+            for key, value in increments.items():
+                setattr(self.stats, key, getattr(self.stats, key) + value)
+
+    def _chat(self, request: BeliefRequest, seed: int) -> tuple[Any, str]:
+        """One chat call with retries; return ``(reply, host)`` or raise :class:`_FailureError`.
+
+        Each call goes to a host of the pool. In a pool of several hosts, a connection
+        failure or a timeout takes the host out and the call is retried at once on another
+        host, at most ``len(hosts)`` times. Otherwise (one host, or an HTTP 408/429/5xx)
+        a transient failure is retried ``retries`` times with exponential backoff.
+
+        Raises:
+            _FailureError: The call failed in the end.
+            ModelNotFound: A host lacks the model.
+            BackendUnavailable: Every host of the pool is down (from the pool).
+
+        """
+        messages = [{"role": role, "content": content} for role, content in request.messages]
+        options = {**self.options, "seed": seed}
+        pool = self.host_pool
+        several = len(self.hosts) > 1
+        failed_on: list[str] = []
+        retries = failovers = 0
+        while True:
+            with pool.acquire(avoid=failed_on) as lease:
+                host = lease.host
+                self._count(attempts=1)
+                try:
+                    reply = self._clients[host].chat(
+                        model=self.model,
+                        messages=messages,
+                        format=self.schema(request.action_names),
+                        options=options,
+                        keep_alive=self.keep_alive,
+                    )
+                except httpx.TimeoutException as error:
+                    self._count(timeouts=1)
+                    where = f" at {host}" if several else ""
+                    failure = _FailureError(
+                        "timeout", f"timed out after {self.timeout_s} s{where}: {error!r}", host
+                    )
+                    transient = self.retry_timeouts
+                except ollama.ResponseError as error:
+                    if error.status_code == 404 and "not found" in str(error.error).lower():
+                        lease.fail("model_missing", str(error))
+                        raise model_missing_error(self.model, host) from error
+                    where = f" at {host}" if several else ""
+                    failure = _FailureError("error", f"server error{where}: {error}", host)
+                    transient = error.status_code in RETRY_STATUSES
+                except (ConnectionError, httpx.TransportError) as error:
+                    failure = _FailureError("unreachable", f"{type(error).__name__}: {error}", host)
+                    transient = True
+                else:
+                    return reply, host
+                lease.fail(_FAILURE_KINDS[failure.status], str(failure))
+            if several and failure.status in ("timeout", "unreachable"):
+                if failovers >= len(self.hosts):
+                    raise failure
+                failovers += 1
+                failed_on.append(host)
+                pool.retried(host)
+                self._count(failovers=1)
+                log.warning(
+                    "ollama %s at %s for cluster %s: retried on another host (%s)",
+                    failure.status, host, request.cluster, pool.describe(),
+                )  # fmt: skip
+                continue
+            if not transient or retries >= self.retries:
+                raise failure
+            self._count(retries=1)
+            time.sleep(min(self.backoff_max_s, self.backoff_s * 2**retries))
+            retries += 1
+
+    def _answer(self, request: BeliefRequest) -> BeliefResult:
+        """Ask, parse, re-ask on abstention; never raises except for a dead server."""
+        n = request.num_actions
+        if not request.messages:
+            self._count(errors=1)
+            return BeliefResult(
+                uniform(n), "error", self.name, extra={"error": "request has no messages"}
+            )
+        start = time.perf_counter()
+        base_seed = int(self.options["seed"])
+        reply = None
+        parsed = None
+        host = self.host
+        status, belief, invalid = "abstained", uniform(n), None
+        timing = RequestTiming()
+        for attempt in range(self.parse_retries + 1):
+            if attempt:
+                self._count(parse_retries=1)
+            asked = time.perf_counter()
+            try:
+                reply, host = self._chat(request, base_seed + attempt)
+            except _FailureError as failure:
+                if failure.status == "unreachable":
+                    raise self._unreachable(failure) from failure
+                if failure.status != "timeout":
+                    self._count(errors=1)
+                log.warning(
+                    "ollama %s for cluster %s: %s", failure.status, request.cluster, failure
+                )
+                return self._failed(request, failure, time.perf_counter() - start)
+            timing += RequestTiming.from_reply(reply, time.perf_counter() - asked)
+            content = reply.message.content if reply.message is not None else None
+            self._count(
+                prompt_tokens=int(reply.prompt_eval_count or 0),
+                completion_tokens=int(reply.eval_count or 0),
+            )
+            parsed = parse_belief(content, request.action_names, structured=self.structured)
+            status, belief, invalid = parsed.status, parsed.belief, None
+            checked, reason = check_belief(parsed.belief, n)
+            if checked is not None:
+                belief = checked
+            elif status in ANSWER_STATUSES:  # the parser let an invalid belief through
+                invalid = f"the reply gave an invalid belief: it {reason}"
+                status, belief = "abstained", uniform(n)
+            else:
+                belief = uniform(n)
+            if status != "abstained":
+                break
+        assert reply is not None and parsed is not None
+        self._count(**{status if status in ("ok", "repaired") else "abstained": 1})
+        error = "; ".join(e for e in (invalid, parsed.error) if e) or None
+        if status == "abstained":
+            log.warning("ollama reply abstained for cluster %s: %s", request.cluster, error)
+        extra: dict[str, Any] = {
+            "attempts": attempt + 1,
+            "model": self.model,
+            "timing": timing.as_dict(),
+        }
+        if len(self.hosts) > 1:
+            extra["host"] = host  # the host of the answer (not part of the store key)
+        publish_timing(timing, start, time.perf_counter())
+        if parsed.repairs:
+            extra["repairs"] = list(parsed.repairs)
+        if parsed.reasoning:
+            extra["reasoning"] = parsed.reasoning
+        if error:
+            extra["error"] = error
+        if invalid:
+            extra["invalid_belief"] = show_values(parsed.belief)
+        return BeliefResult(
+            belief=belief,
+            status=status,
+            source=self.name,
+            raw=reply.message.content if reply.message is not None else None,
+            latency_s=time.perf_counter() - start,
+            prompt_tokens=reply.prompt_eval_count,
+            completion_tokens=reply.eval_count,
+            extra=extra,
+        )
+
+    def _unreachable(self, failure: _FailureError) -> BackendUnavailable:
+        """The error of a call no host answered: the host (or every host of the pool)."""
+        if len(self.hosts) == 1:
+            return unreachable_error(self.host, failure, self.model)
+        return BackendUnavailable(
+            f"no Ollama server of the pool answers (last at {failure.host}: {failure}); the "
+            f"hosts: {self.host_pool.describe()}; start them again or remove the dead ones "
+            "from the pool ([feedback].hosts, or the agent's hosts); "
+            f"'{up_command(self.model)}' starts a private server"
+        )
+
+    def _failed(
+        self, request: BeliefRequest, failure: _FailureError, latency: float
+    ) -> BeliefResult:
+        self._count(fallbacks=1)
+        if self.fallback is not None:
+            result = checked_result(self.fallback.beliefs([request])[0], request.num_actions)
+            result.extra = {**result.extra, "ollama_failure": failure.status, "error": str(failure)}
+            return result
+        return BeliefResult(
+            belief=uniform(request.num_actions),
+            status=failure.status,
+            source=self.name,
+            latency_s=latency,
+            extra={"error": str(failure)},
+        )
+
+    # -- batches -----------------------------------------------------------------------
+    def _executor(self) -> ThreadPoolExecutor:
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(self.concurrency, thread_name_prefix="amuled-ollama")
+        return self._pool
+
+    def iter_beliefs(self, requests: Sequence[BeliefRequest]) -> Iterator[tuple[int, BeliefResult]]:
+        """Yield ``(index, result)`` for every request as answers complete.
+
+        Identical requests are sent once and their answer yielded for each index.
+
+        Raises:
+            BackendUnavailable: The server is not reachable (checked first).
+            ModelNotFound: The server lacks the model.
+
+        """
+        self.check()
+        groups: dict[tuple[Any, ...], list[int]] = {}
+        for i, request in enumerate(requests):
+            groups.setdefault((request.messages, request.action_names), []).append(i)
+        self._count(requests=len(requests), deduplicated=len(requests) - len(groups))
+        if not groups:
+            return
+        # Submit grouped by system prompt (then by the rest), so shared prefixes are adjacent.
+        order = sorted(groups, key=lambda k: (k[0][0][1] if k[0] else "", k[0][1:], k[1]))
+        self._count(sent=len(order))
+        pool = self._executor()
+        pending: dict[Future[BeliefResult], tuple[Any, ...]] = {}
+        queue = list(reversed(order))
+        try:
+            while queue or pending:
+                while queue and len(pending) < 2 * self.concurrency:
+                    key = queue.pop()
+                    pending[pool.submit(self._answer, requests[groups[key][0]])] = key
+                done, _ = wait(pending, return_when=FIRST_COMPLETED)
+                for future in done:
+                    key = pending.pop(future)
+                    result = future.result()
+                    for j, index in enumerate(groups[key]):
+                        yield index, result if j == 0 else result.copy()
+        finally:
+            for future in pending:
+                future.cancel()
+
+    def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
+        """Answer every request (concurrently, deduplicated), in order."""
+        out: list[BeliefResult | None] = [None] * len(requests)
+        for index, result in self.iter_beliefs(requests):
+            out[index] = result
+        return every_answer(out, self.name)
+
+    def close(self) -> None:
+        """Stop the worker threads and close the HTTP clients."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+        for client in self._clients.values():
+            client.close()
+        if self.fallback is not None:
+            self.fallback.close()

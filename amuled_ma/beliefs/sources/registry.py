@@ -1,0 +1,215 @@
+"""Belief sources built by kind: ``make_source(kind, **options)``.
+
+The kinds a scenario may name are `amuled_ma.scenario.agents.AGENT_SPECS`, the one table of
+kinds; `built_in` gives each of its spec models the source class that answers. Other kinds
+come from the ``amuled_ma.agents`` entry-point group or `register_source`.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any
+
+from amuled_ma.beliefs.types import BeliefSource
+from amuled_ma.errors import ScenarioError
+
+if TYPE_CHECKING:
+    from pydantic import BaseModel
+
+Factory = Callable[..., BeliefSource]
+
+
+# Each built-in kind is imported on first use: the Ollama client and torch (policy) are
+# heavy, and most runs use one kind.
+def _ollama() -> Factory:
+    from amuled_ma.beliefs.sources.ollama import OllamaSource
+
+    return OllamaSource
+
+
+def _replay() -> Factory:
+    from amuled_ma.beliefs.sources.replay import ReplaySource
+
+    return ReplaySource
+
+
+def _rules() -> Factory:
+    from amuled_ma.beliefs.sources.rules import RulesSource
+
+    return RulesSource
+
+
+def _terminal() -> Factory:
+    from amuled_ma.beliefs.sources.terminal import TerminalSource
+
+    return TerminalSource
+
+
+def _policy() -> Factory:
+    from amuled_ma.beliefs.sources.policy import PolicySource
+
+    return PolicySource
+
+
+def _entry_point() -> Factory:
+    return entry_point_source
+
+
+@functools.cache
+def built_in() -> dict[type[BaseModel], Callable[[], Factory]]:
+    """The source of each spec model of ``AGENT_SPECS``: spec model -> the function importing it.
+
+    Built on first use: the scenario models (pydantic) are not needed to import this package.
+    """
+    from amuled_ma.scenario import agents
+
+    return {
+        agents.OllamaSpec: _ollama,
+        agents.ReplaySpec: _replay,
+        agents.RulesSpec: _rules,
+        agents.TerminalSpec: _terminal,
+        agents.PolicySpec: _policy,
+        agents.EntryPointSpec: _entry_point,
+    }
+
+
+_REGISTERED: dict[str, Callable[..., BeliefSource]] = {}
+
+
+def register_source(kind: str, factory: Callable[..., BeliefSource]) -> None:
+    """Register (or replace) a source kind at run time.
+
+    Args:
+        kind: The name used with `make_source`.
+        factory: Called with the options; returns a `BeliefSource`.
+
+    """
+    _REGISTERED[kind] = factory
+
+
+def source_kinds() -> list[str]:
+    """Return every kind `make_source` knows (built-in, registered, entry points)."""
+    from amuled_ma.clusters.plugins import agent_entry_points
+    from amuled_ma.scenario.agents import AGENT_SPECS
+
+    return sorted({*AGENT_SPECS, *_REGISTERED, *agent_entry_points()})
+
+
+def _factory(kind: str) -> Callable[..., BeliefSource]:
+    if kind in _REGISTERED:
+        return _REGISTERED[kind]
+    from amuled_ma.scenario.agents import AGENT_SPECS
+
+    if kind in AGENT_SPECS:
+        return built_in()[AGENT_SPECS[kind]]()
+    from amuled_ma.clusters.plugins import agent_entry_points
+
+    points = agent_entry_points()
+    if kind in points:
+        return points[kind].load()
+    raise ScenarioError(
+        f"unknown belief source kind {kind!r}; known: {', '.join(source_kinds())} "
+        "(code-backed agents register under the 'amuled_ma.agents' entry-point group)"
+    )
+
+
+def load_agent_factory(name: str) -> Callable[..., BeliefSource]:
+    """Resolve a plug-in agent: an ``amuled_ma.agents`` entry-point name or ``"module:Class"``.
+
+    Through the one door of code named by data
+    (`load_plugin`): an installed entry point's name (or
+    value), or a ``"module:Class"`` this run's command line allowed with
+    ``--allow-plugin module:Class``. Any other import path is refused before it is
+    imported: a scenario, a cluster file or a run folder never runs code of its own.
+
+    Args:
+        name: An installed entry point's name (``terminal_human``), or an importable
+            ``"pkg.module:Class"`` (any callable returning a `BeliefSource`).
+
+    Returns:
+        The factory.
+
+    Raises:
+        ScenarioError: No entry point has the name, the ``module:Class`` string is not
+            allowed (the message names ``--allow-plugin``) or does not import.
+
+    """
+    from amuled_ma.clusters.plugins import load_plugin
+
+    if not isinstance(name, str) or not name.strip():
+        raise ScenarioError(
+            f"entry-point agent: name expects an entry-point name or 'module:Class', found {name!r}"
+        )
+    factory = load_plugin(name, f"entry-point agent {name!r}")
+    if not callable(factory):
+        raise ScenarioError(
+            f"entry-point agent {name!r}: it names {type(factory).__name__}, not a class or "
+            "function; fix the name"
+        )
+    return factory
+
+
+def entry_point_source(name: str, options: Mapping[str, Any] | None = None) -> BeliefSource:
+    """Build a plug-in agent's source: ``load_agent_factory(name)(**options)``.
+
+    Args:
+        name: See `load_agent_factory`.
+        options: The factory's keyword arguments.
+
+    Returns:
+        The source.
+
+    Raises:
+        ScenarioError: The name does not resolve, the factory refuses the options or
+            fails, or it does not return a `BeliefSource`.
+
+    """
+    factory = load_agent_factory(name)
+    options = dict(options or {})
+    try:
+        source = factory(**options)
+    except Exception as error:
+        raise ScenarioError(
+            f"entry-point agent {name!r}: building it with options {sorted(options)} "
+            f"failed: {error!r}; fix its options"
+        ) from error
+    if not isinstance(source, BeliefSource):
+        raise ScenarioError(
+            f"entry-point agent {name!r} built {type(source).__name__}, expected an "
+            "amuled_ma.beliefs.BeliefSource; fix the plug-in"
+        )
+    return source
+
+
+def make_source(kind: str, **options: Any) -> BeliefSource:
+    """Build a belief source by kind.
+
+    Args:
+        kind: A kind of ``AGENT_SPECS``, a registered kind, or an ``amuled_ma.agents``
+            entry-point name.
+        **options: The source's keyword arguments.
+
+    Returns:
+        The source.
+
+    Raises:
+        ScenarioError: Unknown kind, or options the source does not accept.
+
+    """
+    fallback = options.get("fallback")
+    if isinstance(fallback, Mapping):
+        spec = dict(fallback)
+        if "kind" not in spec:
+            raise ScenarioError("fallback source: missing 'kind'")
+        options["fallback"] = make_source(spec.pop("kind"), **spec)
+    factory = _factory(kind)
+    try:
+        source = factory(**options)
+    except TypeError as error:
+        raise ScenarioError(
+            f"belief source {kind!r}: bad options {sorted(options)}: {error}"
+        ) from error
+    if not isinstance(source, BeliefSource):
+        raise ScenarioError(f"belief source {kind!r} did not build a BeliefSource: {source!r}")
+    return source

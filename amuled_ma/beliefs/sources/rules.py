@@ -1,0 +1,231 @@
+"""``rules`` and `ScriptedSource`: belief sources that need no LLM.
+
+A rule answers scores, divided by their sum and checked by `check_belief`; an invalid answer
+becomes a uniform ``"error"``, so a buggy rule never feeds fusion or the store an invalid belief.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from amuled_ma.beliefs.replies.parsing import uniform
+from amuled_ma.beliefs.replies.validate import check_belief, show_values
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, every_answer
+from amuled_ma.errors import ScenarioError
+
+BeliefFn = Callable[[str, np.ndarray], Sequence[float]]
+
+
+def resolve_callable(
+    spec: str | Callable[..., Any], what: str = "rules policy"
+) -> Callable[..., Any]:
+    """Return ``spec`` itself if callable, else load it from a ``"module:attr"`` string.
+
+    A string goes through the one door of code named by data,
+    `load_plugin`: an installed ``amuled_ma.agents``
+    entry point, or an import path this run's command line allowed (``--allow-plugin``);
+    anything else is refused before it is imported.
+
+    Args:
+        spec: A callable, or its import path.
+        what: Who names it, for messages.
+
+    Raises:
+        ScenarioError: The string is malformed, not allowed, or names nothing importable
+            or callable.
+
+    """
+    from amuled_ma.clusters.plugins import load_plugin
+
+    if callable(spec):
+        return spec
+    if not isinstance(spec, str) or ":" not in spec:
+        raise ScenarioError(
+            f"{what}: expected a callable or a 'module:function' string, found {spec!r}"
+        )
+    target = load_plugin(spec, what)
+    if not callable(target):
+        raise ScenarioError(f"{what}: {spec!r} is not callable")
+    return target
+
+
+def to_belief(values: object, n_actions: int) -> tuple[np.ndarray, str]:
+    """Turn a rule's scores into a belief (divided by their sum), or a uniform ``"error"``.
+
+    Returns:
+        ``(belief, status)``; status ``"ok"``, or ``"error"`` with a uniform belief when
+        the answer has the wrong length, a non-finite or negative entry, or a sum of 0
+        or an overflowing one.
+
+    """
+    belief, _ = _checked(values, n_actions)
+    return (uniform(n_actions), "error") if belief is None else (belief, "ok")
+
+
+def _checked(values: object, n_actions: int) -> tuple[np.ndarray | None, str | None]:
+    if isinstance(values, np.ndarray) and values.ndim != 1:
+        values = values.reshape(-1)  # a (1, A) row of a batched rule is one answer
+    return check_belief(values, n_actions, scores=True)
+
+
+def _result(values: object, n_actions: int, source: str) -> BeliefResult:
+    """A rule's answer as a result: ``"ok"``, or a uniform ``"error"`` with the reason."""
+    belief, reason = _checked(values, n_actions)
+    if belief is None:
+        return BeliefResult(
+            belief=uniform(n_actions),
+            status="error",
+            source=source,
+            extra={
+                "error": f"{source} gave an invalid belief: it {reason}",
+                "invalid_belief": show_values(values),
+            },
+        )
+    return BeliefResult(belief=belief, status="ok", source=source)
+
+
+def _human_belief(task: str, obs: np.ndarray) -> Any:
+    from amuled_ma.tasks.human import human_belief  # lazy: the tasks package is heavy
+
+    return human_belief(task, obs)
+
+
+#: Prefix of a ``rules`` policy that names one of the task's own judges.
+JUDGE_PREFIX = "judge:"
+
+
+def _task_judge(judge: str) -> BeliefFn:
+    """The rule ``(task, obs) -> scores`` of the task's own judge ``judge``."""
+
+    def rule(task: str, obs: np.ndarray) -> Any:
+        from amuled_ma.tasks import get_task  # lazy: the tasks package is heavy
+
+        return get_task(task).judge_scores(judge, obs)
+
+    return rule
+
+
+class RulesSource(BeliefSource):
+    """The synthetic human-feedback policies, or any rule ``(task, obs) -> belief``.
+
+    Args:
+        policy: ``"human"`` (the task's synthetic human feedback), ``"judge:<value>"``
+            (the task's own judge of that value, ``BatchedTask.judge_scores``), a callable
+            ``(task, obs) -> belief``, or a ``"module:function"`` string: the value of an
+            installed ``amuled_ma.agents`` entry point, or one this run's command line
+            allowed (``--allow-plugin module:function``); any other is refused unimported.
+
+    """
+
+    name = "rules"
+    needs_messages = False
+
+    def __init__(self, policy: str | BeliefFn = "human") -> None:
+        self.policy_name = policy if isinstance(policy, str) else _qualname(policy)
+        if policy == "human":
+            self._fn: BeliefFn = _human_belief
+        elif isinstance(policy, str) and policy.startswith(JUDGE_PREFIX):
+            self._fn = _task_judge(policy.removeprefix(JUDGE_PREFIX))
+        else:
+            self._fn = resolve_callable(policy, "rules source: key policy")
+
+    def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
+        """Answer each request with the rule; a failing rule gives a uniform ``"error"``.
+
+        Requests of one task with observations of one length are answered by a single
+        batched call (the tasks' policies accept ``(batch, obs_dim)``); if that call
+        fails or returns the wrong shape, each request is asked on its own.
+        """
+        out: list[BeliefResult | None] = [None] * len(requests)
+        groups: dict[tuple[str, int, int], list[int]] = {}
+        for i, request in enumerate(requests):
+            key = (request.task, len(request.obs), request.num_actions)
+            groups.setdefault(key, []).append(i)
+        for (task, _, n), indices in groups.items():
+            if len(indices) > 1:
+                try:
+                    obs = np.asarray([requests[i].obs for i in indices], dtype=np.float64)
+                    batch = np.asarray(self._fn(task, obs), dtype=np.float64)
+                except Exception:
+                    batch = None
+                if batch is not None and batch.shape == (len(indices), n):
+                    for i, row in zip(indices, batch, strict=True):
+                        out[i] = _result(row, n, self.name)
+                    continue
+            for i in indices:
+                out[i] = self._one(requests[i])
+        return every_answer(out, self.name)
+
+    def _one(self, request: BeliefRequest) -> BeliefResult:
+        try:
+            raw = self._fn(request.task, np.asarray(request.obs, dtype=np.float64))
+        except Exception as error:  # a rule bug must not stop training
+            return BeliefResult(
+                belief=uniform(request.num_actions),
+                status="error",
+                source=self.name,
+                extra={"error": repr(error)},
+            )
+        return _result(raw, request.num_actions, self.name)
+
+    def identity(self) -> dict[str, Any]:
+        """Return the source kind and the policy's name."""
+        return {"source": self.name, "policy": self.policy_name}
+
+
+class ScriptedSource(BeliefSource):
+    """Fixed or computed beliefs, per cluster.
+
+    Args:
+        beliefs: ``{cluster: belief vector}`` (``"*"`` matches any other cluster), or a
+            callable ``(request) -> belief``. Clusters without an entry get a uniform
+            belief.
+        label: Name of the script in `identity` (cache keys).
+
+    """
+
+    name = "scripted"
+    needs_messages = False
+
+    def __init__(
+        self,
+        beliefs: Mapping[str, Sequence[float]] | Callable[[BeliefRequest], Any] | None = None,
+        *,
+        label: str = "scripted",
+    ) -> None:
+        self._table = None if callable(beliefs) else dict(beliefs or {})
+        self._fn = beliefs if callable(beliefs) else None
+        self.label = label
+
+    def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
+        """Answer each request from the table or the function."""
+        out = []
+        for request in requests:
+            n = request.num_actions
+            try:
+                if self._fn is not None:
+                    raw = self._fn(request)
+                else:
+                    assert self._table is not None
+                    raw = self._table.get(request.cluster, self._table.get("*", uniform(n)))
+            except Exception as error:  # a script bug must not stop training
+                out.append(
+                    BeliefResult(uniform(n), "error", self.name, extra={"error": repr(error)})
+                )
+                continue
+            out.append(_result(raw, n, self.name))
+        return out
+
+    def identity(self) -> dict[str, Any]:
+        """Return the source kind, the label and (for a table) its content."""
+        ident: dict[str, Any] = {"source": self.name, "label": self.label}
+        if self._table is not None:
+            ident["table"] = {k: [float(x) for x in v] for k, v in sorted(self._table.items())}
+        return ident
+
+
+def _qualname(fn: Callable[..., Any]) -> str:
+    return f"{getattr(fn, '__module__', '?')}:{getattr(fn, '__qualname__', repr(fn))}"

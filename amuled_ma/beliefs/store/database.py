@@ -1,0 +1,775 @@
+"""The belief store: one SQLite row (WAL, busy timeout) per belief request ever answered.
+
+Only `CACHEABLE` rows are served and never overwritten; other rows are kept and asked again.
+A read-only open uses ``mode=ro``, else ``immutable=1`` where no ``-shm`` can be written.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import sqlite3
+import threading
+import time
+import urllib.parse
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from amuled_ma.beliefs.replies.validate import RULE, check_belief, show_values
+from amuled_ma.beliefs.store.keys import identity_json
+from amuled_ma.beliefs.store.rows import (
+    CACHEABLE,
+    COLUMNS,
+    SCHEMA,
+    SCHEMA_VERSION,
+    BeliefStoreError,
+    Row,
+    StoredBelief,
+    check_storable,
+    damaged_row,
+    decode_row,
+    encode_row,
+    load_belief,
+    load_column,
+    load_extra,
+    message_refs,
+    unstorable_text,
+)
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
+
+#: Environment variable naming the default store file.
+STORE_ENV = "AMULED_BELIEF_STORE"
+
+_SQL_CHUNK = 500  # keys per ``IN (...)`` query, well under SQLite's variable limit
+
+#: Longest value (a reply, a chat message, a row's JSON columns) and row SQLite reads or
+#: writes in a store [bytes, 64 MiB; ``SQLITE_LIMIT_LENGTH``, SQLite's own default is
+#: 1,000,000,000]: 4 bytes (UTF-8's most) a character of the longest line ``amuled beliefs
+#: import`` reads (`MAX_LINE_CHARS`, 16 Mi), so every
+#: imported row fits; an answer with its chat is about 20 KB. SQLite refuses a longer
+#: value without reading it into memory.
+MAX_VALUE_BYTES = 2**26
+
+
+def _too_long(detail: str = "") -> str:
+    """How every refusal of a too-long store value says it (``detail``: SQLite's words)."""
+    why = f"{detail}; " if detail else ""
+    return (
+        f"longer than the {MAX_VALUE_BYTES:,} bytes a stored value may be ({why}an answer "
+        "with its chat is about 20 KB)"
+    )
+
+
+class _ValueTooBig(BeliefStoreError):
+    """A read met a value longer than `MAX_VALUE_BYTES` (SQLite's "too big")."""
+
+
+# Insert, or replace a row that holds no answer yet; an ok/repaired row is never replaced.
+_UPSERT = f"""
+INSERT INTO beliefs ({COLUMNS}) VALUES ({", ".join("?" * 18)})
+ON CONFLICT (key) DO UPDATE SET
+    raw = excluded.raw, belief = excluded.belief, status = excluded.status,
+    latency_s = excluded.latency_s, prompt_tokens = excluded.prompt_tokens,
+    completion_tokens = excluded.completion_tokens, extra = excluded.extra,
+    attempts = beliefs.attempts + excluded.attempts, updated_at = excluded.updated_at
+WHERE beliefs.status NOT IN ('ok', 'repaired')
+"""
+
+
+def default_store_path() -> Path:
+    """Where the store lives when none is named.
+
+    Returns:
+        ``$AMULED_BELIEF_STORE`` if set, else ``$XDG_CACHE_HOME/amuled/beliefs.sqlite``
+        (``~/.cache/amuled/beliefs.sqlite``).
+
+    """
+    env = os.environ.get(STORE_ENV)
+    if env:
+        return Path(env)
+    cache = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(cache) / "amuled" / "beliefs.sqlite"
+
+
+class BeliefStore:
+    """A SQLite file of belief answers, shared safely by threads and processes.
+
+    Args:
+        path: The database file (created with its folder when missing); ``":memory:"``
+            for a private in-memory store (tests).
+        timeout_s: How long a writer waits for another process's lock before failing.
+        synchronous: SQLite ``synchronous`` level, ``"NORMAL"`` (crash-safe for the
+            process) or ``"FULL"`` (also power-loss safe).
+        read_only: Open an existing file for reading only (SQLite ``mode=ro``, else
+            ``immutable=1`` where ``mode=ro`` cannot open it; see the module doc):
+            nothing is created or written, and every write raises.
+
+    Raises:
+        BeliefStoreError: The file cannot be opened or is not a belief store.
+
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        timeout_s: float = 60.0,
+        synchronous: str = "NORMAL",
+        read_only: bool = False,
+    ) -> None:
+        self.path = str(path)
+        self.timeout_s = float(timeout_s)
+        if synchronous.upper() not in {"OFF", "NORMAL", "FULL", "EXTRA"}:
+            raise BeliefStoreError(f"synchronous must be NORMAL or FULL, got {synchronous!r}")
+        self.synchronous = synchronous.upper()
+        self.read_only = bool(read_only)
+        #: How the file is open: ``"read-write"``, ``"read-only"`` or ``"immutable"``.
+        self.open_mode = "read-only" if self.read_only else "read-write"
+        self._lock = threading.RLock()
+        self._conn: sqlite3.Connection | None = None
+        self._pid = -1
+        self._messages_seen: set[str] = set()
+        self._text_cache: dict[str, str] = {}
+        self._width: dict[str, int] = {}  # ``actions`` column text -> action count
+        self._connect()
+
+    # -- connection ------------------------------------------------------------------
+    def _connect(self) -> sqlite3.Connection:
+        """Open (or, after a ``fork``, re-open) this process's connection."""
+        if self._conn is not None and self._pid == os.getpid():
+            return self._conn
+        if self.read_only:
+            return self._connect_read_only()
+        if self.path != ":memory:":
+            Path(self.path).parent.mkdir(parents=True, exist_ok=True)
+        try:
+            conn = sqlite3.connect(
+                self.path, timeout=self.timeout_s, isolation_level=None, check_same_thread=False
+            )
+            conn.execute(f"PRAGMA busy_timeout = {int(self.timeout_s * 1000)}")
+            conn.setlimit(sqlite3.SQLITE_LIMIT_LENGTH, MAX_VALUE_BYTES)
+            if self.path != ":memory:":
+                mode = self._journal_wal(conn)
+                if str(mode).lower() != "wal":
+                    raise BeliefStoreError(f"{self.path}: cannot switch to WAL mode (got {mode})")
+            conn.execute(f"PRAGMA synchronous = {self.synchronous}")
+            self._conn, self._pid = conn, os.getpid()
+            self._messages_seen = set()
+            self._write(lambda c: self._create_schema(c))
+        except sqlite3.DatabaseError as error:
+            self._conn = None
+            raise BeliefStoreError(f"{self.path}: cannot open belief store: {error}") from error
+        except BeliefStoreError as error:
+            self._conn = None
+            cause = error.__cause__
+            if isinstance(cause, sqlite3.DatabaseError):  # creating the tables failed
+                raise BeliefStoreError(f"{self.path}: cannot open belief store: {cause}") from cause
+            raise
+        return conn
+
+    def _journal_wal(self, conn: sqlite3.Connection) -> str:
+        """Switch to WAL mode, waiting up to ``timeout_s`` for other processes' locks.
+
+        SQLite does not call the busy handler for this switch, so several processes
+        creating one new store at once (parallel seeds) would otherwise fail at once
+        with "database is locked".
+        """
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            try:
+                return str(conn.execute("PRAGMA journal_mode = WAL").fetchone()[0])
+            except sqlite3.OperationalError as error:
+                if "locked" not in str(error) or time.monotonic() > deadline:
+                    raise
+                time.sleep(0.05)
+
+    def _connect_read_only(self) -> sqlite3.Connection:
+        """Open an existing file with ``mode=ro``, else ``immutable=1``; create nothing."""
+        path = Path(self.path)
+        if self.path == ":memory:" or not path.is_file():
+            raise BeliefStoreError(
+                f"no belief store at {self.path} to open read-only (give --store PATH or set "
+                f"{STORE_ENV})"
+            )
+        quoted = urllib.parse.quote(str(path.resolve()))
+        failures = []
+        for mode in ("mode=ro", "immutable=1"):
+            conn = None
+            try:
+                conn = sqlite3.connect(
+                    f"file:{quoted}?{mode}",
+                    uri=True,
+                    timeout=self.timeout_s,
+                    isolation_level=None,
+                    check_same_thread=False,
+                )
+                conn.execute(f"PRAGMA busy_timeout = {int(self.timeout_s * 1000)}")
+                conn.setlimit(sqlite3.SQLITE_LIMIT_LENGTH, MAX_VALUE_BYTES)
+                self._check_schema(conn)
+            except sqlite3.DatabaseError as error:
+                if conn is not None:
+                    conn.close()
+                failures.append(f"{mode}: {error}")
+                if "not a database" in str(error) or "no such table" in str(error):
+                    break  # the file itself is wrong: immutable=1 cannot help
+                continue
+            self._conn, self._pid = conn, os.getpid()
+            self.open_mode = "read-only" if mode == "mode=ro" else "immutable"
+            return conn
+        raise BeliefStoreError(
+            f"{self.path}: cannot open belief store read-only ({'; '.join(failures)}); "
+            "check that the file is a belief store and readable"
+        )
+
+    @staticmethod
+    def _check_schema(conn: sqlite3.Connection) -> None:
+        row = conn.execute("SELECT value FROM meta WHERE name = 'schema_version'").fetchone()
+        if row is None or int(row[0]) != SCHEMA_VERSION:
+            found = "none" if row is None else row[0]
+            raise BeliefStoreError(
+                f"belief store schema version {found}, this amuled-ma reads {SCHEMA_VERSION}"
+            )
+
+    @staticmethod
+    def _create_schema(conn: sqlite3.Connection) -> None:
+        for statement in SCHEMA.split(";"):
+            if statement.strip():
+                conn.execute(statement)
+        row = conn.execute("SELECT value FROM meta WHERE name = 'schema_version'").fetchone()
+        if row is None:
+            conn.execute(
+                "INSERT INTO meta (name, value) VALUES ('schema_version', ?)",
+                (str(SCHEMA_VERSION),),
+            )
+        elif int(row[0]) != SCHEMA_VERSION:
+            raise BeliefStoreError(
+                f"belief store schema version {row[0]}, this amuled-ma reads {SCHEMA_VERSION}"
+            )
+
+    def _write(self, body: Any) -> Any:
+        """Run ``body(conn)`` in one ``BEGIN IMMEDIATE`` transaction."""
+        if self.read_only:
+            raise BeliefStoreError(
+                f"{self.path}: the belief store is open read-only; open it without "
+                "read_only=True (and with write access to the file and its folder) to write"
+            )
+        with self._lock:
+            conn = self._conn if self._pid == os.getpid() else self._connect()
+            assert conn is not None
+            try:
+                conn.execute("BEGIN IMMEDIATE")
+                try:
+                    out = body(conn)
+                except BaseException:
+                    with contextlib.suppress(sqlite3.Error):
+                        conn.execute("ROLLBACK")
+                    raise
+                conn.execute("COMMIT")
+            except sqlite3.DataError as error:  # "string or blob too big"
+                raise BeliefStoreError(
+                    f"{self.path}: cannot write the belief store: a value is "
+                    f"{_too_long(str(error))}; nothing of this batch was written"
+                ) from error
+            except sqlite3.DatabaseError as error:
+                # a damaged file ("database disk image is malformed"), a full disk
+                raise BeliefStoreError(
+                    f"{self.path}: cannot write the belief store: {error}; nothing of this "
+                    "batch was written; if the disk is full, free some space; if the file "
+                    "is damaged, move it away and rebuild it from an export ('amuled "
+                    "beliefs import'), or delete it (every belief is then asked again)"
+                ) from error
+            return out
+
+    def _read(self, sql: str, params: Sequence[Any] = ()) -> list[tuple[Any, ...]]:
+        with self._lock:
+            try:
+                return self._connect().execute(sql, params).fetchall()
+            except sqlite3.DataError as error:  # "string or blob too big": not read
+                raise _ValueTooBig(
+                    str(
+                        damaged_row(
+                            str(self.path),
+                            None,
+                            f"a row holds a value {_too_long(str(error))}; it is not read",
+                        )
+                    )
+                ) from error
+            except sqlite3.DatabaseError as error:
+                raise BeliefStoreError(
+                    f"{self.path}: cannot read the belief store: {error}; if the file is "
+                    "damaged, restore it from an export ('amuled beliefs import') or delete "
+                    "it (every belief is then asked again)"
+                ) from error
+
+    def _read_keys(self, sql: str, keys: Sequence[str]) -> list[tuple[Any, ...]]:
+        """`_read` of ``sql`` (one ``key IN (?, ...)``), naming the key of a too-long value.
+
+        Raises:
+            BeliefStoreError: A row of ``keys`` holds a value longer than
+                `MAX_VALUE_BYTES`: the store and the row's key, found by asking the
+                keys one at a time (each refused without reading it).
+
+        """
+        try:
+            return self._read(sql, keys)
+        except _ValueTooBig:
+            one = re.sub(r"key IN \([?,]+\)", "key IN (?)", sql)
+            for key in keys:
+                try:
+                    self._read(one, [key])
+                except _ValueTooBig:
+                    raise damaged_row(
+                        f"{self.path}: row {key}",
+                        key,
+                        f"a value {_too_long()}; it is not read",
+                    ) from None
+            raise
+
+    def close(self) -> None:
+        """Close this process's connection (the file stays)."""
+        with self._lock:
+            if self._conn is not None and self._pid == os.getpid():
+                self._conn.close()
+            self._conn = None
+
+    def __enter__(self) -> BeliefStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- reads -----------------------------------------------------------------------
+    def get_many(
+        self, keys: Iterable[str], *, cacheable_only: bool = True, with_messages: bool = False
+    ) -> dict[str, StoredBelief]:
+        """Read the rows of ``keys`` that exist.
+
+        Args:
+            keys: Keys to look up (duplicates allowed).
+            cacheable_only: Return only rows served as answers (``ok``/``repaired``).
+            with_messages: Also read each row's chat (slower; ``messages`` is ``None``
+                otherwise).
+
+        Returns:
+            ``{key: row}`` for the keys found.
+
+        """
+        wanted = list(dict.fromkeys(keys))
+        found: dict[str, StoredBelief] = {}
+        status_filter = " AND status IN ('ok', 'repaired')" if cacheable_only else ""
+        for start in range(0, len(wanted), _SQL_CHUNK):
+            chunk = wanted[start : start + _SQL_CHUNK]
+            sql = (
+                f"SELECT {COLUMNS} FROM beliefs "
+                f"WHERE key IN ({','.join('?' * len(chunk))}){status_filter}"
+            )
+            rows = self._read_keys(sql, chunk)
+            texts = self._texts(rows) if with_messages else None
+            for row in rows:
+                stored = decode_row(row, texts, self.path)
+                found[stored.key] = stored
+        return found
+
+    def _texts(self, rows: Sequence[Sequence[Any]]) -> dict[str, str]:
+        """Fetch the message bodies referenced by ``rows``."""
+        hashes = {h for row in rows if row[7] for _, h in message_refs(row, self.path)}
+        texts: dict[str, str] = {}
+        todo = [h for h in hashes if h not in self._text_cache]
+        for start in range(0, len(todo), _SQL_CHUNK):
+            chunk = todo[start : start + _SQL_CHUNK]
+            sql = f"SELECT hash, body FROM texts WHERE hash IN ({','.join('?' * len(chunk))})"
+            texts.update(self._read(sql, chunk))
+        for h in hashes:
+            if h in self._text_cache:
+                texts[h] = self._text_cache[h]
+        if len(self._text_cache) > 4096:
+            self._text_cache.clear()
+        # keep the bodies shared by many rows (system prompt, few-shot turns) at hand
+        for h, body in texts.items():
+            if len(body) > 2000:
+                self._text_cache[h] = body
+        return texts
+
+    def lookup(self, keys: Iterable[str]) -> dict[str, BeliefResult]:
+        """Read the answers (``ok``/``repaired`` rows) of ``keys`` as cache-hit results.
+
+        The fast path of `CachedSource`: only the columns
+        of a `BeliefResult` are read and parsed.
+
+        Args:
+            keys: Keys to look up (duplicates allowed).
+
+        Returns:
+            ``{key: result}`` (``cached=True``, ``latency_s=0``, the original latency in
+            ``extra["stored_latency_s"]``) for the keys found.
+
+        """
+        wanted = list(dict.fromkeys(keys))
+        found: dict[str, BeliefResult] = {}
+        width = self._width
+        for start in range(0, len(wanted), _SQL_CHUNK):
+            chunk = wanted[start : start + _SQL_CHUNK]
+            sql = (
+                "SELECT key, source, raw, belief, status, latency_s, prompt_tokens, "
+                "completion_tokens, extra, actions FROM beliefs "
+                f"WHERE key IN ({','.join('?' * len(chunk))}) AND status IN ('ok', 'repaired')"
+            )
+            for (
+                key,
+                source,
+                raw,
+                belief,
+                status,
+                lat,
+                ptok,
+                ctok,
+                extra,
+                actions,
+            ) in self._read_keys(sql, chunk):
+                where = f"{self.path}: row {key}"
+                n = width.get(actions)
+                if n is None:
+                    names = load_column(actions, "actions", where, key)
+                    if not isinstance(names, list) or not names:
+                        problem = f"actions is not a list of names: {actions!r}"
+                        raise damaged_row(where, key, problem)
+                    n = width[actions] = len(names)
+                info = load_extra(extra, where, key)
+                info["stored_latency_s"] = lat
+                found[key] = BeliefResult(
+                    belief=load_belief(belief, n, where, key),
+                    status=status,
+                    source=source,
+                    raw=raw,
+                    cached=True,
+                    latency_s=0.0,
+                    prompt_tokens=ptok,
+                    completion_tokens=ctok,
+                    extra=info,
+                )
+        return found
+
+    def get(
+        self, key: str, *, cacheable_only: bool = True, with_messages: bool = True
+    ) -> StoredBelief | None:
+        """Read one row, chat included by default, or ``None`` (see `get_many`)."""
+        rows = self.get_many([key], cacheable_only=cacheable_only, with_messages=with_messages)
+        return rows.get(key)
+
+    def iter_rows(
+        self, *, status: Sequence[str] | None = None, task: str | None = None
+    ) -> Iterator[StoredBelief]:
+        """Iterate over every row, oldest first (the export order).
+
+        Args:
+            status: Only these statuses (all when ``None``).
+            task: Only this task (all when ``None``).
+
+        Yields:
+            The rows.
+
+        """
+        where: list[str] = []
+        params: list[str] = []
+        if status:
+            where.append(f"status IN ({','.join('?' * len(status))})")
+            params.extend(status)
+        if task:
+            where.append("task = ?")
+            params.append(task)
+        sql = (
+            f"SELECT {COLUMNS} FROM beliefs"
+            + (f" WHERE {' AND '.join(where)}" if where else "")
+            + " ORDER BY created_at, rowid"
+        )
+        rows = self._read(sql, params)
+        for start in range(0, len(rows), _SQL_CHUNK):
+            chunk = rows[start : start + _SQL_CHUNK]
+            texts = self._texts(chunk)
+            for row in chunk:
+                yield decode_row(row, texts, self.path)
+
+    def identities(self) -> list[dict[str, Any]]:
+        """Return each distinct source identity in the store with its row count.
+
+        Returns:
+            ``[{"identity": {...}, "rows": n, "answers": m}, ...]``, most rows first; pass
+            an ``identity`` to `CachedSource` to replay the
+            store without the source's backend.
+
+        """
+        rows = self._read(
+            "SELECT identity, COUNT(*), SUM(status IN ('ok', 'repaired')) FROM beliefs "
+            "GROUP BY identity ORDER BY 2 DESC"
+        )
+        out = []
+        for ident, n, m in rows:
+            where = f"{self.path}: identity {ident[:60]!r}"
+            identity = load_column(ident, "identity", where, None)
+            out.append({"identity": identity, "rows": n, "answers": int(m or 0)})
+        return out
+
+    def request_seconds(self, model: str) -> list[float]:
+        """The recorded seconds of each answered live request to ``model``, oldest first.
+
+        Args:
+            model: The model name as the source's identity holds it (``"model"``).
+
+        Returns:
+            ``latency_s`` of the ``ok``/``repaired`` rows whose identity names ``model`` and
+            whose latency is above 0 (a row answered from a replay or a cache records 0).
+
+        """
+        rows = self._read(
+            "SELECT identity, latency_s FROM beliefs WHERE status IN ('ok', 'repaired') "
+            "AND latency_s > 0 ORDER BY created_at, rowid"
+        )
+        models: dict[str, object] = {}
+        out = []
+        for ident, latency in rows:
+            if ident not in models:
+                where = f"{self.path}: identity {ident[:60]!r}"
+                identity = load_column(ident, "identity", where, None)
+                models[ident] = identity.get("model") if isinstance(identity, dict) else None
+            if models[ident] == model:
+                out.append(float(latency))
+        return out
+
+    def __len__(self) -> int:
+        return int(self._read("SELECT COUNT(*) FROM beliefs")[0][0])
+
+    def __contains__(self, key: object) -> bool:
+        return bool(self._read("SELECT 1 FROM beliefs WHERE key = ?", (key,)))
+
+    # -- writes ----------------------------------------------------------------------
+    def put_many(
+        self, items: Iterable[tuple[str, Mapping[str, Any] | str, BeliefRequest, BeliefResult]]
+    ) -> int:
+        """Write answers in one transaction.
+
+        An existing ``ok``/``repaired`` row is kept as it is; any other existing row is
+        replaced and its ``attempts`` counted up.
+
+        Every belief, whatever its status, must be valid for the request's action count
+        (`validate`); it is written divided by its sum.
+
+        Args:
+            items: ``(key, identity, request, result)`` tuples; ``identity`` is the
+                source's ``identity()`` dict or its `identity_json` text.
+
+        Returns:
+            The number of rows inserted or replaced.
+
+        Raises:
+            BeliefStoreError: A belief is invalid (nothing of the batch is written).
+
+        """
+        now = time.time()
+        rows: list[Row] = []
+        texts: dict[str, str] = {}
+        for key, identity, request, result in items:
+            belief, reason = check_belief(result.belief, len(request.action_names))
+            if belief is None:
+                raise BeliefStoreError(
+                    f"{self.path}: refusing to write row {key} ({request.task} / "
+                    f"{request.cluster}, status {result.status!r}, source {result.source!r}): "
+                    f"belief {show_values(result.belief)} {reason}; {RULE}; pass a source's "
+                    "answers through CachedSource (or amuled_ma.beliefs.replies.validate."
+                    "checked_result), which turns an invalid answer into status 'error' with "
+                    "a uniform fallback"
+                )
+            ident = identity if isinstance(identity, str) else identity_json(identity)
+            try:
+                row, bodies = encode_row(
+                    key,
+                    ident,
+                    request,
+                    belief,
+                    source=result.source,
+                    status=result.status,
+                    raw=result.raw,
+                    latency_s=result.latency_s,
+                    prompt_tokens=result.prompt_tokens,
+                    completion_tokens=result.completion_tokens,
+                    extra=result.extra,
+                    attempts=1,
+                    created_at=now,
+                    updated_at=now,
+                )
+            except UnicodeEncodeError:
+                raise self._unstorable(key, request, result.raw, result.extra) from None
+            rows.append(row)
+            texts.update((h, b) for h, b in bodies.items() if h not in self._messages_seen)
+        return self._put_rows(rows, texts)
+
+    def put(
+        self,
+        key: str,
+        identity: Mapping[str, Any] | str,
+        request: BeliefRequest,
+        result: BeliefResult,
+    ) -> int:
+        """Write one answer (see `put_many`)."""
+        return self.put_many([(key, identity, request, result)])
+
+    def put_rows(self, records: Iterable[StoredBelief]) -> int:
+        """Write whole rows as read from another store, in one transaction.
+
+        The rule of `put_many` holds (an existing answer is never replaced; another
+        row is replaced and ``attempts`` adds up); unlike it, each row keeps its own
+        ``attempts``, timestamps and identity
+        (`import_jsonl` uses it).
+
+        Args:
+            records: The rows, chat included (``messages`` ``None`` counts as no chat).
+
+        Returns:
+            The number of rows inserted or replaced.
+
+        Raises:
+            BeliefStoreError: A belief is invalid (nothing of the batch is written).
+
+        """
+        rows: list[Row] = []
+        texts: dict[str, str] = {}
+        for record in records:
+            belief, reason = check_belief(record.belief, len(record.action_names))
+            if belief is None:
+                raise BeliefStoreError(
+                    f"{self.path}: refusing to write row {record.key}: belief "
+                    f"{show_values(record.belief)} {reason}; {RULE}"
+                )
+            try:
+                row, bodies = encode_row(
+                    record.key,
+                    identity_json(record.identity),
+                    record.request(),
+                    belief,
+                    source=record.source,
+                    status=record.status,
+                    raw=record.raw,
+                    latency_s=record.latency_s,
+                    prompt_tokens=record.prompt_tokens,
+                    completion_tokens=record.completion_tokens,
+                    extra=record.extra,
+                    attempts=record.attempts,
+                    created_at=record.created_at,
+                    updated_at=record.updated_at,
+                )
+            except UnicodeEncodeError:
+                raise self._unstorable(
+                    record.key, record.request(), record.raw, record.extra
+                ) from None
+            rows.append(row)
+            texts.update(bodies)
+        return self._put_rows(rows, texts)
+
+    def _put_rows(self, rows: list[Row], texts: dict[str, str]) -> int:
+        if not rows:
+            return 0
+
+        def body(conn: sqlite3.Connection) -> int:
+            conn.executemany(
+                "INSERT OR IGNORE INTO texts (hash, body) VALUES (?, ?)", list(texts.items())
+            )
+            before = conn.total_changes
+            conn.executemany(_UPSERT, rows)
+            return conn.total_changes - before
+
+        for row in rows:  # a lone surrogate would fail mid-transaction in SQLite
+            reason = check_storable(row, {})
+            if reason is not None:
+                raise self._refuse(str(row[0]), reason)
+        for text in texts.values():
+            reason = unstorable_text(text, "a message")
+            if reason is not None:
+                raise self._refuse("of this batch", reason)
+        changed = self._write(body)
+        self._messages_seen.update(texts)
+        return int(changed)
+
+    def _refuse(self, key: str, reason: str) -> BeliefStoreError:
+        """The one line of a row whose text cannot be stored (nothing of the batch is)."""
+        return BeliefStoreError(
+            f"{self.path}: refusing to write row {key}: {reason}; nothing of this batch was "
+            "written (fix the text at its source: a file or a reply that is not UTF-8)"
+        )
+
+    def _unstorable(
+        self, key: str, request: BeliefRequest, raw: Any, extra: Any
+    ) -> BeliefStoreError:
+        """The error of a row whose request or answer holds text UTF-8 cannot encode."""
+        fields = {
+            "task": request.task,
+            "cluster": request.cluster,
+            "actions": list(request.action_names),
+            "messages": [list(m) for m in request.messages],
+            "raw": raw,
+            "extra": extra,
+        }
+        return self._refuse(key, unstorable_text(fields) or "a text is not valid Unicode")
+
+    # -- maintenance -----------------------------------------------------------------
+    def integrity_check(self) -> list[str]:
+        """Run SQLite's ``PRAGMA integrity_check``.
+
+        Returns:
+            ``["ok"]`` for a sound file, else SQLite's list of problems.
+
+        """
+        return [str(r[0]) for r in self._read("PRAGMA integrity_check")]
+
+    def checkpoint(self) -> None:
+        """Fold the WAL into the main file (``PRAGMA wal_checkpoint(TRUNCATE)``)."""
+        self._read("PRAGMA wal_checkpoint(TRUNCATE)")
+
+    def stats(self) -> dict[str, Any]:
+        """Count rows and sum latencies and tokens (``amuled beliefs stats``).
+
+        Returns:
+            A JSON-compatible dict: rows, rows per status / source+model / task+cluster,
+            latency and token totals, file sizes.
+
+        """
+        total = len(self)
+        by_status = dict(self._read("SELECT status, COUNT(*) FROM beliefs GROUP BY status"))
+        by_model = [
+            {"source": s, "model": m, "rows": n}
+            for s, m, n in self._read(
+                "SELECT source, json_extract(identity, '$.model'), COUNT(*) FROM beliefs "
+                "GROUP BY 1, 2 ORDER BY 3 DESC"
+            )
+        ]
+        by_cluster = [
+            {"task": t, "cluster": c, "rows": n}
+            for t, c, n in self._read(
+                "SELECT task, cluster, COUNT(*) FROM beliefs GROUP BY 1, 2 ORDER BY 1, 2"
+            )
+        ]
+        lat = self._read(
+            "SELECT COUNT(latency_s), AVG(latency_s), SUM(latency_s), SUM(prompt_tokens), "
+            "SUM(completion_tokens), SUM(attempts) FROM beliefs"
+        )[0]
+        files = {}
+        if self.path != ":memory:":
+            for suffix in ("", "-wal"):
+                p = Path(self.path + suffix)
+                files[p.name] = p.stat().st_size if p.exists() else 0
+        return {
+            "path": self.path,
+            "open_mode": self.open_mode,
+            "schema_version": SCHEMA_VERSION,
+            "rows": total,
+            "cacheable_rows": sum(n for s, n in by_status.items() if s in CACHEABLE),
+            "by_status": by_status,
+            "by_model": by_model,
+            "by_task_cluster": by_cluster,
+            "latency_s": {"count": lat[0], "mean": lat[1], "total": lat[2]},
+            "tokens": {"prompt": lat[3] or 0, "completion": lat[4] or 0},
+            "attempts": lat[5] or 0,
+            "distinct_texts": int(self._read("SELECT COUNT(*) FROM texts")[0][0]),
+            "identities": self.identities(),
+            "file_bytes": files,
+        }

@@ -1,0 +1,518 @@
+"""A belief-store row: the table layout (schema version 1), the row record, every value checked.
+
+The columns are listed in ``docs/store.md``; a row whose belief is invalid is refused on
+write and on read (`damaged_row` names the key and how to delete it).
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from amuled_ma.beliefs.replies.validate import RULE, check_belief, show_values
+from amuled_ma.beliefs.store.keys import canonical_json, floats_json, names_json, string_json
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
+from amuled_ma.errors import AmuledError
+
+#: Statuses whose rows are served back as cached answers.
+CACHEABLE = frozenset({"ok", "repaired"})
+#: Version of the table layout written into ``meta``.
+SCHEMA_VERSION = 1
+
+#: The tables (``CREATE ... IF NOT EXISTS``, so running it again changes nothing).
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS texts (hash TEXT PRIMARY KEY, body TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS beliefs (
+    key TEXT PRIMARY KEY,
+    source TEXT NOT NULL,
+    identity TEXT NOT NULL,
+    task TEXT NOT NULL,
+    cluster TEXT NOT NULL,
+    obs TEXT NOT NULL,
+    actions TEXT NOT NULL,
+    messages TEXT,
+    raw TEXT,
+    belief TEXT NOT NULL,
+    status TEXT NOT NULL,
+    latency_s REAL,
+    prompt_tokens INTEGER,
+    completion_tokens INTEGER,
+    extra TEXT,
+    attempts INTEGER NOT NULL DEFAULT 1,
+    created_at REAL NOT NULL,
+    updated_at REAL NOT NULL
+);
+CREATE INDEX IF NOT EXISTS beliefs_task_cluster ON beliefs (task, cluster);
+"""
+
+#: The columns of a ``beliefs`` row, in the order of `encode_row`'s tuples.
+COLUMNS = (
+    "key, source, identity, task, cluster, obs, actions, messages, raw, belief, status, "
+    "latency_s, prompt_tokens, completion_tokens, extra, attempts, created_at, updated_at"
+)
+
+#: A ``beliefs`` row as a tuple of column values (`COLUMNS` order).
+Row = tuple[Any, ...]
+
+
+class BeliefStoreError(AmuledError, RuntimeError):
+    """The belief store file cannot be opened, or a row read or imported is malformed."""
+
+
+@dataclass
+class StoredBelief:
+    """One row of the store, as read back: the columns of ``docs/store.md``, parsed.
+
+    ``messages`` is ``None`` when not read (`get_many`); ``belief`` is float64.
+    """
+
+    key: str
+    source: str
+    identity: dict[str, Any]
+    task: str
+    cluster: str
+    obs: tuple[float, ...]
+    action_names: tuple[str, ...]
+    messages: tuple[tuple[str, str], ...] | None
+    raw: str | None
+    belief: np.ndarray
+    status: str
+    latency_s: float | None
+    prompt_tokens: int | None
+    completion_tokens: int | None
+    extra: dict[str, Any]
+    attempts: int
+    created_at: float
+    updated_at: float
+
+    @property
+    def cacheable(self) -> bool:
+        """True when the row is an answer served back as a cache hit."""
+        return self.status in CACHEABLE
+
+    def to_result(self) -> BeliefResult:
+        """Return the row as a cache-hit `BeliefResult` (``cached=True``, latency 0)."""
+        extra = dict(self.extra)
+        extra["stored_latency_s"] = self.latency_s
+        return BeliefResult(
+            belief=self.belief.copy(),
+            status=self.status,
+            source=self.source,
+            raw=self.raw,
+            cached=True,
+            latency_s=0.0,
+            prompt_tokens=self.prompt_tokens,
+            completion_tokens=self.completion_tokens,
+            extra=extra,
+        )
+
+    def request(self) -> BeliefRequest:
+        """Return the request this row answers."""
+        return BeliefRequest(
+            task=self.task,
+            cluster=self.cluster,
+            obs=self.obs,
+            action_names=self.action_names,
+            messages=self.messages or (),
+        )
+
+
+# -- encoding ------------------------------------------------------------------------
+def encode_row(
+    key: str,
+    identity: str,
+    request: BeliefRequest,
+    belief: np.ndarray,
+    *,
+    source: str,
+    status: str,
+    raw: str | None,
+    latency_s: float | None,
+    prompt_tokens: int | None,
+    completion_tokens: int | None,
+    extra: Mapping[str, Any] | None,
+    attempts: int,
+    created_at: float,
+    updated_at: float,
+) -> tuple[Row, dict[str, str]]:
+    """Turn one answer into a ``beliefs`` row and the message bodies it refers to.
+
+    The belief must already be checked (`check_belief`). The arguments are the row's
+    columns (``docs/store.md``): ``identity`` as `identity_json` text, ``extra`` through
+    `extra_json`, ``request``'s messages as ``[[role, text_hash], ...]``.
+
+    Returns:
+        The row (`COLUMNS` order) and ``{text_hash: body}`` for table ``texts``.
+
+    """
+    messages_ref, bodies = split_messages(request.messages)
+    row = (
+        key,
+        source,
+        identity,
+        request.task,
+        request.cluster,
+        floats_json(request.obs),
+        names_json(tuple(request.action_names)),
+        messages_ref,
+        raw,
+        floats_json(belief.tolist()),
+        status,
+        float(latency_s) if latency_s is not None else None,
+        prompt_tokens,
+        completion_tokens,
+        extra_json(extra),
+        attempts,
+        created_at,
+        updated_at,
+    )
+    return row, bodies
+
+
+#: The column names of `COLUMNS`, in order.
+COLUMN_NAMES = tuple(name.strip() for name in COLUMNS.split(","))
+
+
+def unstorable_text(value: object, where: str = "") -> str | None:
+    r"""Why a value holds text SQLite cannot store as UTF-8, or None when it can.
+
+    Python strings may hold lone surrogates (``"\udcff"``: a byte that was not UTF-8,
+    read with ``surrogateescape``, or a ``\ud800`` escape in JSON) that no UTF-8 file can
+    hold; writing one would fail in the middle of a transaction.
+
+    Args:
+        value: A string, or JSON-like data (dicts, lists, tuples) holding strings.
+        where: The value's name, for the reason (``raw``, ``extra.error``).
+
+    Returns:
+        ``"<where> holds ... at character N"``, or None.
+
+    """
+    stack: list[tuple[Any, str]] = [(value, where)]
+    while stack:
+        item, name = stack.pop()
+        if isinstance(item, str):
+            try:
+                item.encode("utf-8")
+            except UnicodeEncodeError as error:
+                bad = item[error.start : error.end].encode("utf-8", "backslashreplace")
+                return (
+                    f"{name or 'a value'} holds {bad.decode('ascii')} at character "
+                    f"{error.start}, which is not valid Unicode text (a lone surrogate: a "
+                    "byte that was not UTF-8, or a \\ud800-\\udfff escape)"
+                )
+        elif isinstance(item, Mapping):
+            stack.extend((k, f"{name}.<key>") for k in item)
+            stack.extend((v, f"{name}.{k}" if name else str(k)) for k, v in item.items())
+        elif isinstance(item, list | tuple):
+            stack.extend((v, f"{name}[{i}]") for i, v in enumerate(item))
+    return None
+
+
+def check_storable(row: Row, bodies: Mapping[str, str]) -> str | None:
+    """Why a row from `encode_row` cannot be written as UTF-8 text, or None."""
+    for name, value in zip(COLUMN_NAMES, row, strict=False):
+        reason = unstorable_text(value, name)
+        if reason is not None:
+            return reason
+    for body in bodies.values():
+        reason = unstorable_text(body, "a message")
+        if reason is not None:
+            return reason
+    return None
+
+
+def extra_json(extra: Mapping[str, Any] | None) -> str:
+    """Serialise diagnostics as standard JSON.
+
+    Anything JSON cannot hold is written as its repr (an exception...), and so is a
+    non-finite float (``"nan"``, ``"inf"``), so no row ever holds a non-standard ``NaN``.
+
+    Args:
+        extra: The diagnostics.
+
+    Returns:
+        The JSON text (``"{}"`` when empty).
+
+    """
+    if not extra:
+        return "{}"
+    plain = _plain(extra)
+    try:
+        return canonical_json(plain)
+    except (TypeError, ValueError):
+        return json.dumps(plain, sort_keys=True, default=repr)
+
+
+def _plain(value: Any) -> Any:
+    """Plain JSON data, with non-finite floats written as their repr (``"nan"``)."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _plain(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return repr(value)
+    return value
+
+
+@functools.lru_cache(maxsize=4096)
+def _text_hash_cached(text: str) -> str:
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _text_hash(text: str) -> str:
+    """SHA-256 of a message body, memoising the long ones (shared prompt blocks)."""
+    if len(text) < 256:
+        return hashlib.sha256(text.encode("utf-8")).hexdigest()
+    return _text_hash_cached(text)
+
+
+def split_messages(
+    messages: Sequence[tuple[str, str]],
+) -> tuple[str | None, dict[str, str]]:
+    """Return the ``messages`` column (``[[role, text_hash], ...]``) and the bodies.
+
+    Args:
+        messages: The chat, ``((role, content), ...)``.
+
+    Returns:
+        The column text (``None`` for no messages) and ``{text_hash: body}``.
+
+    """
+    if not messages:
+        return None, {}
+    refs, bodies = [], {}
+    for role, content in messages:
+        h = _text_hash(content)
+        refs.append(f'[{string_json(role)},"{h}"]')  # == canonical_json([[role, h], ...])
+        bodies[h] = content
+    return "[" + ",".join(refs) + "]", bodies
+
+
+# -- decoding and its checks ---------------------------------------------------------
+def damaged_row(where: str, key: str | None, problem: str) -> BeliefStoreError:
+    """The error of a damaged store row: where, what was found, how to remove the row.
+
+    Args:
+        where: The store and row (``"STORE: row KEY"``).
+        key: The row's key (``None`` when the problem is not one row's).
+        problem: What was found.
+
+    Returns:
+        The error to raise.
+
+    """
+    fix = (
+        f"delete the row (SQL: DELETE FROM beliefs WHERE key = '{key}') so the next run asks "
+        "again, or rebuild the store from an export"
+        if key
+        else "rebuild the store from an export"
+    )
+    return BeliefStoreError(
+        f"{where}: {problem}; the row is damaged (edited by hand, or written by another "
+        f"program or an older amuled-ma); {fix}"
+    )
+
+
+def why_not_json(error: BaseException) -> str:
+    """Say why a JSON text could not be read (deep nesting named in words).
+
+    Args:
+        error: The error of `json.loads`.
+
+    Returns:
+        The reason, for an error message.
+
+    """
+    if isinstance(error, RecursionError):
+        return "nested deeper than Python's JSON reader can follow"
+    return str(error)
+
+
+def load_column(text: Any, column: str, where: str, key: str | None) -> Any:
+    """Parse one JSON column of a stored row; a parse failure names the row.
+
+    Args:
+        text: The column's text.
+        column: The column's name.
+        where: The store and row, for the error.
+        key: The row's key, for the error's fix.
+
+    Returns:
+        The parsed value.
+
+    Raises:
+        BeliefStoreError: The text is not JSON (`damaged_row`).
+
+    """
+    try:
+        return json.loads(text)
+    except (TypeError, ValueError, RecursionError) as error:
+        raise damaged_row(
+            where,
+            key,
+            f"column {column!r} is not JSON ({why_not_json(error)}): {show_values(text, 80)}",
+        ) from None
+
+
+def load_extra(text: str | None, where: str, key: str) -> dict[str, Any]:
+    """Parse the ``extra`` column (non-finite floats become ``"nan"``/``"inf"`` text).
+
+    Args:
+        text: The column's text.
+        where: The store and row, for the error.
+        key: The row's key.
+
+    Returns:
+        The diagnostics.
+
+    Raises:
+        BeliefStoreError: Not a JSON object.
+
+    """
+    if not text or text == "{}":
+        return {}
+    value = load_column(text, "extra", where, key)
+    if not isinstance(value, dict):
+        raise damaged_row(
+            where, key, f"column 'extra' is not a JSON object: {show_values(text, 80)}"
+        )
+    # rows of an older amuled-ma may hold NaN/Infinity (this one writes "nan"/"inf" text)
+    return _plain(value) if "NaN" in text or "Infinity" in text else value
+
+
+def load_belief(text: str, n_actions: int, where: str, key: str) -> np.ndarray:
+    """Parse and check a stored belief; an invalid one names the row and the fix.
+
+    Args:
+        text: The ``belief`` column's text.
+        n_actions: The row's action count.
+        where: The store and row, for the error.
+        key: The row's key.
+
+    Returns:
+        The belief (float64).
+
+    Raises:
+        BeliefStoreError: Not JSON, or not a valid belief of ``n_actions`` values.
+
+    """
+    values = load_column(text, "belief", where, key)
+    belief, reason = check_belief(values, n_actions)
+    if belief is None:
+        raise damaged_row(where, key, f"belief {show_values(values)} {reason}; {RULE}")
+    return belief
+
+
+def message_refs(row: Sequence[Any], path: str) -> list[tuple[str, str]]:
+    """The ``[[role, text_hash], ...]`` of a row's ``messages`` column, checked.
+
+    Args:
+        row: A row in `COLUMNS` order.
+        path: The store, for the error.
+
+    Returns:
+        ``[(role, text_hash), ...]``.
+
+    Raises:
+        BeliefStoreError: The column is not such a list.
+
+    """
+    key = row[0]
+    refs = load_column(row[7], "messages", f"{path}: row {key}", key)
+    if not isinstance(refs, list) or not all(
+        isinstance(r, list) and len(r) == 2 and all(isinstance(x, str) for x in r) for r in refs
+    ):
+        raise damaged_row(
+            f"{path}: row {key}", key, f"column 'messages' is not [[role, hash], ...]: {row[7]!r}"
+        )
+    return [(r, h) for r, h in refs]
+
+
+def decode_row(
+    row: Sequence[Any], texts: Mapping[str, str] | None, path: str = "<store>"
+) -> StoredBelief:
+    """Turn a ``beliefs`` row back into a `StoredBelief`, checking every column.
+
+    Args:
+        row: A row in `COLUMNS` order.
+        texts: ``{text_hash: body}`` holding the row's messages; ``None`` leaves
+            ``messages`` unread (``None``).
+        path: The store, for errors.
+
+    Returns:
+        The record.
+
+    Raises:
+        BeliefStoreError: A column is damaged (`damaged_row`).
+
+    """
+    (
+        key,
+        source,
+        identity,
+        task,
+        cluster,
+        obs,
+        actions,
+        messages_ref,
+        raw,
+        belief,
+        status,
+        latency,
+        ptok,
+        ctok,
+        extra,
+        attempts,
+        created,
+        updated,
+    ) = row
+    where = f"{path}: row {key}"
+    messages: tuple[tuple[str, str], ...] | None = None
+    if texts is not None:
+        refs = message_refs(row, path) if messages_ref else []
+        missing = [h for _, h in refs if h not in texts]
+        if missing:
+            raise damaged_row(where, key, f"message text {missing[0]} is not in table 'texts'")
+        messages = tuple((r, texts[h]) for r, h in refs)
+    obs_values = load_column(obs, "obs", where, key)
+    names = load_column(actions, "actions", where, key)
+    if not isinstance(names, list) or not names or not all(isinstance(a, str) for a in names):
+        raise damaged_row(where, key, f"column 'actions' is not a list of names: {actions!r}")
+    if not isinstance(obs_values, list) or not all(
+        isinstance(x, int | float) and not isinstance(x, bool) for x in obs_values
+    ):
+        raise damaged_row(where, key, f"column 'obs' is not a list of numbers: {obs!r}")
+    ident = load_column(identity, "identity", where, key)
+    return StoredBelief(
+        key=key,
+        source=source,
+        identity=ident,
+        task=task,
+        cluster=cluster,
+        obs=tuple(obs_values),
+        action_names=tuple(names),
+        messages=messages,
+        raw=raw,
+        belief=load_belief(belief, len(names), where, key),
+        status=status,
+        latency_s=latency,
+        prompt_tokens=ptok,
+        completion_tokens=ctok,
+        extra=load_extra(extra, where, key),
+        attempts=int(attempts),
+        created_at=float(created),
+        updated_at=float(updated),
+    )

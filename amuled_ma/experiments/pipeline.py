@@ -1,0 +1,476 @@
+"""One experiment as one call: `run_pipeline` plans, checks, trains, evaluates and reports.
+
+The steps, one call each, are drawn in ``docs/design.md`` ("The path of a run"); `train_alone`
+is one job through the same checks, lock and record, not evaluated.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from amuled_ma.errors import AmuledError, ScenarioError
+from amuled_ma.experiments.jobs import (
+    JobsOutcome,
+    RayTarget,
+    ray_connection,
+    resolve_workers,
+    run_jobs,
+)
+from amuled_ma.experiments.run_folder import (
+    JobResult,
+    Rerun,
+    TrainJob,
+    split_replica,
+    write_config,
+)
+from amuled_ma.files.run_lock import run_folder_lock
+from amuled_ma.records.variants import Variant
+from amuled_ma.scenario import Scenario
+
+if TYPE_CHECKING:
+    from amuled_ma.evaluate.results import Results
+
+
+def say_line(message: str) -> None:
+    """Print one progress line on stdout at once (stderr stays free for errors)."""
+    print(message, flush=True)
+
+
+@dataclass(frozen=True)
+class PipelineRequest:
+    """One experiment to run: what to plan, where, and how to train it.
+
+    Attributes:
+        scenario: The scenario, with every override already applied.
+        run_dir: The run folder (an ablation writes into ``run_dir/ablate-<what>/``).
+        ablation: None for the paper's main comparison (``amuled run``), else the ablation
+            (``clusters``, ``aggregation``, ``models``, ``kl``, ``budget`` or ``weights``).
+        seed: The first training seed (None: ``[task].seed``).
+        seeds: Training replicas of every variant (seeds ``seed``, ``seed + 1``, ...).
+        episodes: Evaluation episodes per policy (None: ``[evaluation].episodes``).
+        base: A finished base folder every fine-tune starts from (main comparison only);
+            None: each seed's own base, or with ``[finetune].recipe = "authors"`` the
+            authors' imported base ``<runs_dir>/authors/<task>/base`` when it is there.
+        resume: Continue unfinished variants, skip finished ones.
+        force: Start over even where checkpoints exist.
+        retrain: Variant folders (or job names) to retrain from scratch while every other
+            variant is resumed (:func:`~amuled_ma.experiments.plans.retrain_jobs`).
+        jobs: Jobs at once (0: one per core, or 1 with live feedback; 1: in this process).
+        ray: Train on Ray (a local one, or a cluster's address); None: as ``jobs`` says.
+        population: Train jobs of one shape together as populations (one Ray task each);
+            False (``--no-population``): every job alone.
+        progress: Show progress bars.
+        hint: The shell command that re-runs this request; printed with ``--resume`` when a
+            job stops early, and in the message of a folder that clashes (default: the
+            line of ``rerun``).
+        rerun: The same command as fields: a folder trained with other settings is
+            refused naming the command that trains beside it or retrains it
+            (:func:`~amuled_ma.experiments.run_folder.recovery_commands`).
+        title: The report's title (None: the plan's, e.g. the paper's main comparison).
+        offline: Never fetch the authors' recordings (``--offline``; also
+            ``$AMULED_OFFLINE=1``): one found nowhere stops the run with the manual route.
+
+    Raises:
+        ScenarioError: An unknown ablation.
+        AmuledError: ``base`` given with an ablation.
+
+    """
+
+    scenario: Scenario
+    run_dir: Path
+    ablation: str | None = None
+    seed: int | None = None
+    seeds: int = 1
+    episodes: int | None = None
+    base: Path | None = None
+    resume: bool = False
+    force: bool = False
+    retrain: tuple[str, ...] = ()
+    jobs: int = 0
+    ray: RayTarget | None = None
+    population: bool = True
+    progress: bool = True
+    hint: str = ""
+    rerun: Rerun | None = None
+    title: str | None = None
+    offline: bool = False
+
+    def __post_init__(self) -> None:
+        if self.rerun is not None and not self.hint:
+            object.__setattr__(self, "hint", self.rerun.line(self.run_dir))
+        from amuled_ma.experiments.plans import ABLATIONS  # here: it imports torch
+
+        if self.ablation is not None and self.ablation not in ABLATIONS:
+            raise ScenarioError(
+                f"unknown ablation {self.ablation!r}; expected one of {', '.join(ABLATIONS)}"
+            )
+        if self.ablation is not None and self.base is not None:
+            raise AmuledError(
+                "a base folder applies to the main comparison (amuled run --base), not to "
+                "an ablation: drop it, an ablation fine-tunes the run's own bases"
+            )
+
+
+@dataclass(frozen=True)
+class PipelineOutcome:
+    """What :func:`run_pipeline` did.
+
+    Attributes:
+        out_dir: The folder of the results and the report (the run folder, or its
+            ``ablate-<what>/``).
+        variants: The variants planned (``base``, ..., or the ablation's fine-tune folders).
+        seeds: The training seeds.
+        training: The job graph's outcome (one result per job, wall time, workers).
+        results: The evaluation results, as written to ``results.json``.
+        report: The path of ``report.md``.
+        wall_s: Seconds from the request to the report.
+
+    """
+
+    out_dir: Path
+    variants: tuple[str, ...]
+    seeds: tuple[int, ...]
+    training: JobsOutcome
+    results: Results = field(repr=False)
+    report: Path
+    wall_s: float
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """The planned graph of a request and what is written and said about it."""
+
+    jobs: list[TrainJob]
+    out_dir: Path
+    variants: tuple[str, ...]
+    config: dict[str, Any]
+    announce: str
+    title: str
+    extra_dirs: list[Path]
+
+
+def run_pipeline(
+    request: PipelineRequest, *, say: Callable[[str], None] = say_line
+) -> PipelineOutcome:
+    """Plan, check, train, evaluate and report one experiment (``amuled run``/``ablate``/``demo``).
+
+    Args:
+        request: What to run.
+        say: Prints a progress line (default: stdout, flushed).
+
+    Returns:
+        The outcome: where the report is, the results, the training jobs.
+
+    Raises:
+        AmuledError: An input a job needs is missing (before any folder is made; an
+            authors' recording found nowhere that cannot be fetched among them), a folder
+            clashes with an old checkpoint, another process writes the run folder, or a
+            job failed; the message names what and the fix.
+        KeyboardInterrupt: Ctrl-C or SIGTERM, after every running job wrote its checkpoint.
+
+    """
+    from amuled_ma.experiments.plans import training_seeds
+    from amuled_ma.experiments.run_folder import read_record, variant_records
+    from amuled_ma.scenario.memory import check_seed_replicas
+
+    start = time.perf_counter()
+    check_seed_replicas(request.seeds, variants=1)  # before a job per seed is planned
+    first = request.scenario.task.seed if request.seed is None else request.seed
+    seeds = training_seeds(first, request.seeds)
+    if request.ablation == "models":  # it plans one fine-tune per recording found beside
+        from amuled_ma.authors.download import models_ablation_recordings
+
+        fetch_recordings(request, models_ablation_recordings(request.scenario), say)
+    if request.ablation is None:
+        plan = _plan_main(request, seeds, say)
+    else:
+        plan = _plan_ablation(request, seeds)
+    fetch_recordings(request, _replayed(plan.jobs), say)
+    if request.retrain:
+        from amuled_ma.experiments.plans import retrain_jobs
+
+        plan = dataclasses.replace(plan, jobs=retrain_jobs(plan.jobs, request.retrain))
+    from amuled_ma.experiments.plans import plan_jobs  # here: it imports torch
+
+    # before the lock: a refused run makes no folder
+    plan = dataclasses.replace(plan, jobs=plan_jobs(plan.jobs, request.hint, request.rerun))
+    say_live_costs(plan.jobs, say)
+    # after the checks: a refused run answers before torch and matplotlib are imported
+    from amuled_ma.evaluate.evaluator import evaluate_run, variant_dirs
+    from amuled_ma.evaluate.report import evaluation_outputs, write_report
+    from amuled_ma.files.safe import check_write_targets
+
+    check_write_targets(evaluation_outputs(plan.out_dir))  # before training, as the inputs
+    workers = resolve_workers(request.jobs, plan.jobs)
+    with run_folder_lock(request.run_dir):
+        say(plan.announce)
+        # Ray first: a SIGTERM while it starts leaves no run folder (the lock removes it)
+        with ray_connection(plan.jobs, workers=workers, ray=request.ray):
+            write_config(plan.out_dir, request.scenario, plan.config)
+            training = train_jobs(plan.jobs, request, say)
+        records = variant_records([*variant_dirs(plan.out_dir), *plan.extra_dirs])
+        results = evaluate_run(
+            plan.out_dir,
+            request.scenario,
+            episodes=request.episodes,
+            progress=request.progress,
+            extra_dirs=plan.extra_dirs or None,
+            records=records,
+        )
+        report = write_report(
+            plan.out_dir,
+            results,
+            title=request.title or plan.title,
+            ablation=request.ablation,
+            run=read_record(plan.out_dir),
+            records=records,
+        )
+    return PipelineOutcome(
+        out_dir=plan.out_dir,
+        variants=plan.variants,
+        seeds=tuple(seeds),
+        training=training,
+        results=results,
+        report=report,
+        wall_s=time.perf_counter() - start,
+    )
+
+
+def say_live_costs(jobs: Sequence[TrainJob], say: Callable[[str], None]) -> None:
+    """Print each live model's cost per request here, and in all, once per distinct line.
+
+    The lines of `amuled_ma.deliberation.build.live_costs` for every fine-tune (the
+    store's recorded times, or one request timed now).
+    """
+    from amuled_ma.deliberation.build import live_costs
+
+    said: set[str] = set()
+    for job in jobs:
+        if job.panel is None or job.store is None:
+            continue  # a base, or a fine-tune whose feedback asks no panel
+        lines = live_costs(job.panel, job.store, lambda text: say(f"  {text}"))
+        for line in lines:
+            if line not in said:
+                said.add(line)
+                say(f"  {line}")
+
+
+def _replayed(jobs: Sequence[TrainJob]) -> list[str]:
+    """The recordings the fine-tunes of a graph replay, each once."""
+    from amuled_ma.authors.download import replayed_recordings
+
+    values = [
+        v for job in jobs if job.variant.finetuning for v in replayed_recordings(job.scenario)
+    ]
+    return list(dict.fromkeys(values))
+
+
+def fetch_recordings(
+    request: PipelineRequest, values: Sequence[str], say: Callable[[str], None] = say_line
+) -> None:
+    """Fetch and convert the paper authors' recordings among ``values`` found nowhere here.
+
+    :func:`~amuled_ma.authors.download.ensure_recordings` with the request's scenario and
+    ``offline``: a recording found locally (``$AMULED_RECORDINGS``, the user data folder,
+    ``../shared`` beside the checkout) is never fetched.
+
+    Raises:
+        AuthorsFetchError: Offline, or the fetch failed or was refused (one line).
+
+    """
+    from amuled_ma.authors.download import ensure_recordings
+
+    ensure_recordings(request.scenario, values, offline=request.offline, say=say)
+
+
+def train_alone(
+    request: PipelineRequest,
+    variant: Variant,
+    *,
+    base_variant: str = "base",
+    base_dir: Path | None = None,
+    config: dict[str, Any] | None = None,
+) -> JobResult:
+    """Train one job (``amuled train`` / ``finetune``): the pipeline's steps 2 and 3 for it.
+
+    The job is planned before any folder is made
+    (:func:`~amuled_ma.experiments.plans.plan_jobs`: its inputs, then its folder), the run
+    folder's lock is held, ``config.json`` written (with ``config``), and the job trained
+    by the executor of every graph (:func:`~amuled_ma.experiments.jobs.run_jobs`, a group
+    of one); nothing is evaluated.
+
+    Args:
+        request: The run folder, seed, resume / force, progress bars and resume command
+            (its other fields are not used).
+        variant: What to train.
+        base_variant: A fine-tune's base folder in ``base_dir``.
+        base_dir: The run folder holding the base (default: the request's).
+        config: Run-level ``config.json`` fields to write (None: the file is left alone).
+
+    Returns:
+        The job's result (trained, or skipped when already finished).
+
+    Raises:
+        AmuledError: An input is missing or the folder clashes (before any folder is
+            made), another process writes the run folder, or the job failed.
+        KeyboardInterrupt: Ctrl-C or SIGTERM, after the job wrote its checkpoint.
+
+    """
+    from amuled_ma.experiments.plans import plan_jobs  # here: it imports torch
+
+    run_dir = Path(request.run_dir)
+    job = TrainJob(
+        name=variant.folder,
+        scenario=request.scenario,
+        run_dir=run_dir,
+        variant=variant,
+        out_dir=run_dir / variant.folder,
+        seed=request.seed,
+        base_variant=base_variant,
+        resume=request.resume,
+        force=request.force,
+        base_dir=base_dir,
+    )
+    # before the lock: a refused job makes no folder
+    jobs = plan_jobs([job], request.hint, request.rerun)
+    say_live_costs(jobs, say_line)
+    with run_folder_lock(run_dir):
+        if config is not None:
+            write_config(run_dir, request.scenario, config)
+        outcome = run_jobs(
+            jobs, progress=request.progress, hint=request.hint, describe=describe_job
+        )
+    return outcome.results[0]
+
+
+def _plan_main(request: PipelineRequest, seeds: list[int], say: Callable[[str], None]) -> _Plan:
+    """The main comparison: :data:`~amuled_ma.experiments.plans.MAIN_VARIANTS` per seed."""
+    from amuled_ma.experiments.plans import MAIN_VARIANTS, plan_run
+
+    scenario, run_dir = request.scenario, Path(request.run_dir)
+    base = request.base
+    imported = Path(scenario.output.runs_dir) / "authors" / scenario.task.name / "base"
+    if base is None and scenario.finetune.recipe == "authors":
+        if (imported / "model_last.pt").is_file():
+            base = imported
+            say(f"  fine-tunes start from the authors' imported base {imported}")
+        else:
+            say(
+                f"  fine-tunes start from this run's own bases (no imported authors' base "
+                f"at {imported}; 'amuled import authors PATH' makes one)"
+            )
+    jobs = plan_run(scenario, run_dir, seeds, resume=request.resume, force=request.force, base=base)
+    variants = tuple(str(v) for v in MAIN_VARIANTS)
+    return _Plan(
+        jobs=jobs,
+        out_dir=run_dir,
+        variants=variants,
+        config={"variants": list(variants), "seeds": seeds},
+        announce=f"run {scenario.name} -> {run_dir}",
+        title=f"{scenario.name}: the paper's main comparison",
+        extra_dirs=[],
+    )
+
+
+def _plan_ablation(request: PipelineRequest, seeds: list[int]) -> _Plan:
+    """One ablation: the run's bases, then the ablation's fine-tunes in ``ablate-<what>/``."""
+    from amuled_ma.experiments.plans import ablation_variants, plan_ablation
+
+    scenario, run_dir, what = request.scenario, Path(request.run_dir), request.ablation
+    assert what is not None
+    out = run_dir / f"ablate-{what}"
+    variants = tuple(variant.folder for variant, _ in ablation_variants(what, scenario))
+    jobs = plan_ablation(what, scenario, run_dir, seeds, resume=request.resume, force=request.force)
+    # the run's folders an ablation evaluates with its own: the bases, and fine-tunes the
+    # run already finished with the same settings (not trained again)
+    shared = [job.out_dir.name for job in jobs if job.out_dir.parent == run_dir]
+    return _Plan(
+        jobs=jobs,
+        out_dir=out,
+        variants=variants,
+        config={"ablation": what, "variants": list(variants), "seeds": seeds, "shared": shared},
+        announce=(
+            f"ablate {scenario.name} --what {what}: {len(variants)} fine-tunes x "
+            f"{len(seeds)} seed(s) -> {out}"
+        ),
+        title=f"{scenario.name}: ablation of {what}",
+        extra_dirs=[run_dir / name for name in shared],
+    )
+
+
+def train_jobs(
+    jobs: Sequence[TrainJob],
+    request: PipelineRequest,
+    say: Callable[[str], None] = say_line,
+) -> JobsOutcome:
+    """Train a planned graph as the request says (``jobs``, ``ray``), one line per job.
+
+    Args:
+        jobs: The graph, planned (:func:`~amuled_ma.experiments.plans.plan_jobs`).
+        request: Where and how the jobs run, the progress bars and the resume command.
+        say: Prints a progress line.
+
+    Returns:
+        The outcome of :func:`~amuled_ma.experiments.jobs.run_jobs`.
+
+    """
+    workers = resolve_workers(request.jobs, jobs)
+    ray = request.ray
+    where = "" if ray is None else f" on Ray ({ray.address or 'local'})"
+    say(f"  {len(jobs)} training jobs, {workers} at a time{where}")
+    outcome = run_jobs(
+        jobs,
+        workers=workers,
+        progress=request.progress,
+        hint=request.hint,
+        describe=describe_job,
+        ray=ray,
+        population=request.population,
+    )
+    say(f"  training done in {outcome.wall_s:.1f} s on {outcome.workers} worker(s)")
+    return outcome
+
+
+def describe_job(job: JobResult) -> str:
+    """One line about a finished training job (a seed replica's seed in brackets).
+
+    Args:
+        job: The job's result: skipped (already trained), or trained with its outcome.
+
+    Returns:
+        The line, with the feedback's figures and the agents that left states unanswered
+        on lines of their own.
+
+    """
+    from amuled_ma.deliberation.summaries import distill_line, summary_lines
+
+    seed = split_replica(Path(job.out_dir).name)[1]
+    name = job.variant if seed is None else f"{job.variant} [seed {seed}]"
+    out = job.outcome
+    if job.skipped or out is None:
+        return f"  = {name}: already trained ({job.out_dir})"
+    rate = out.env_steps / max(out.wall_s, 1e-9)
+    line = (
+        f"  ✓ {name}: {out.iterations} iterations, {out.env_steps:,} env steps in "
+        f"{out.wall_s:.1f} s ({rate:,.0f} steps/s)"
+    )
+    if out.feedback:
+        line += f", {out.feedback['unique_states']} distinct states"
+        line += f", replay miss rate {100 * out.feedback['miss_rate']:.2f}%"
+        line += f", not answered {100 * out.feedback.get('failure_rate', 0.0):.2f}%"
+        if out.feedback.get("distill"):
+            line += "\n  " + distill_line(out.feedback["distill"])
+        # per agent, the agents that left states unanswered (abstained, errors, misses)
+        failing = {
+            name: row
+            for name, row in (out.feedback.get("agents") or {}).items()
+            if row.get("failed")
+        }
+        shown = summary_lines({**out.feedback, "agents": failing, "distill": None})[1:]
+        line += "".join("\n    " + text for text in shown)
+    return line

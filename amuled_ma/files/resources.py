@@ -1,0 +1,78 @@
+"""The shipped ``prompts/`` and ``scenarios/``: in ``amuled_ma/_data/``, else the checkout's."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+_PACKAGE_DIR = Path(__file__).resolve().parents[1]  # amuled_ma/
+
+#: Largest prompt file read (``prompts/system.md``, ``prompts/tasks/*.md``,
+#: ``prompts/fewshot/*.toml``) [bytes]: the shipped ones hold at most 9,684 bytes (the
+#: few-shot examples), so 1 MB is 100 times that; every byte of them is sent to the LLM
+#: with each request, so a larger file is a wrong file, not a longer prompt.
+MAX_PROMPT_BYTES = 1_000_000
+
+
+def data_dir(name: str) -> Path:
+    """Return the directory of a shipped data folder.
+
+    Args:
+        name: ``"prompts"`` or ``"scenarios"``.
+
+    Returns:
+        The existing directory holding that data.
+
+    Raises:
+        FileNotFoundError: Neither the installed nor the source-tree location exists.
+    """
+    for candidate in (_PACKAGE_DIR / "_data" / name, _PACKAGE_DIR.parent / name):
+        if candidate.is_dir():
+            return candidate
+    raise FileNotFoundError(
+        f"amuled-ma data folder {name!r} not found under {_PACKAGE_DIR / '_data'} "
+        f"or {_PACKAGE_DIR.parent}; reinstall the package"
+    )
+
+
+def prompts_dir() -> Path:
+    """Return the shipped ``prompts/`` directory."""
+    return data_dir("prompts")
+
+
+def scenarios_dir() -> Path:
+    """Return the shipped ``scenarios/`` directory."""
+    return data_dir("scenarios")
+
+
+def read_text(
+    path: Path,
+    what: str,
+    error_class: type[Exception] | None = None,
+    *,
+    max_bytes: int,
+    note: str = "",
+) -> str:
+    """Read a UTF-8 text file the user gave or the package ships, with a clear error.
+
+    Args:
+        path: The file.
+        what: What the file is, for the message (``"scenario"``, ``"cluster file"``, ...).
+        error_class: The :class:`~amuled_ma.errors.AmuledError` subclass to raise
+            (default: ``AmuledError``).
+        max_bytes: The most bytes the file may hold: a larger one is refused from its size,
+            before it is read (:func:`amuled_ma.files.limits.read_bounded_text`).
+        note: Why the cap is that number, said after it in the refusal.
+
+    Returns:
+        Its text.
+
+    Raises:
+        AmuledError: (or ``error_class``) The file cannot be read, is larger than
+            ``max_bytes`` or is not UTF-8 text; the message names the file, the problem
+            and the fix.
+
+    """
+    from amuled_ma.errors import AmuledError
+    from amuled_ma.files.limits import read_bounded_text
+
+    return read_bounded_text(path, max_bytes, what, error=error_class or AmuledError, note=note)

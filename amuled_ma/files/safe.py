@@ -1,0 +1,380 @@
+"""Files written whole and never through a link; run-folder files read only when regular and inside.
+
+A run folder is data someone may hand over: a link in it could make a report quote, or the
+viewer serve, any file the reader can read (``docs/trust.md``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import secrets
+import stat
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import IO, Any, Literal, overload
+
+from amuled_ma.errors import AmuledError
+
+
+class UnsafePathError(AmuledError, ValueError):
+    """A path to write is not a regular file, or a file to read is a link or leaves its folder."""
+
+
+class FileWriteError(AmuledError, OSError):
+    """A file could not be written (a full disk, a read-only folder); the old file is kept.
+
+    An :class:`OSError` too: code that goes on when a write fails (a job's state marked
+    failed on a full disk) goes on for this one line as for the system's error.
+    """
+
+
+#: ``st_mode`` file types, in words, for the refusals.
+_KINDS = (
+    (stat.S_ISLNK, "a symbolic link"),
+    (stat.S_ISDIR, "a folder"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISFIFO, "a FIFO (named pipe)"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def _kind(path: Path, mode: int) -> str:
+    """What a non-regular file is, in words (a link says where it points)."""
+    for test, words in _KINDS:
+        if test(mode):
+            if words == "a symbolic link":
+                with contextlib.suppress(OSError):
+                    return f"{words} (to {os.readlink(path)})"
+            return words
+    return "not a regular file"
+
+
+def check_write_target(path: str | os.PathLike[str]) -> Path:
+    """Refuse a path to write that exists and is not a regular file; follows no link.
+
+    Args:
+        path: The file about to be written.
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path` (absent or a regular file).
+
+    Raises:
+        UnsafePathError: ``path`` is a symbolic link (to anything), a device, a FIFO, a
+            socket or a folder; one line naming it, what it is, and the fix.
+        OSError: ``path`` cannot be examined (a part of it is a file, no permission).
+
+    """
+    path = Path(path)
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return path
+    if stat.S_ISREG(mode):
+        return path
+    if stat.S_ISLNK(mode):
+        fix = "remove the link (a new file is then written in its place), or write elsewhere"
+    elif stat.S_ISDIR(mode):
+        fix = "give the path of a file, not a folder"
+    else:
+        fix = "give the path of a new or a regular file"
+    raise UnsafePathError(
+        f"{path}: is {_kind(path, mode)}, not a regular file; amuled writes only regular "
+        f"files and never through a link; nothing was written; {fix}"
+    )
+
+
+def check_write_targets(paths: Iterable[str | os.PathLike[str]]) -> None:
+    """:func:`check_write_target` on each path, before any work that would end in writing them."""
+    for path in paths:
+        check_write_target(path)
+
+
+def failure_fix(code: int | None, then: str, *, elsewhere: str | None = None) -> str:
+    """What to do about a write that failed with ``errno`` ``code``, ending ``then ...``.
+
+    Args:
+        code: The error's ``errno`` (None: unknown).
+        then: What to run once it is fixed (``"run the command again"``, ``"resume with
+            --resume"``).
+        elsewhere: Where else to write, said in brackets beside a full disk or a folder not
+            writable (``"write into another --run-dir"``); None says nothing.
+
+    Returns:
+        ``"free some disk space, then ..."`` (no space, a quota), ``"raise the file-size
+        limit (ulimit -f), then ..."``, ``"make the folder writable, then ..."`` (no
+        permission, a read-only file system), else ``"check the folder and the disk, then ..."``.
+
+    """
+    aside = f" (or {elsewhere})" if elsewhere else ""
+    if code in (errno.ENOSPC, errno.EDQUOT):
+        return f"free some disk space{aside}, then {then}"
+    if code == errno.EFBIG:
+        return f"raise the file-size limit (ulimit -f), then {then}"
+    if code in (errno.EACCES, errno.EPERM, errno.EROFS):
+        return f"make the folder writable{aside}, then {then}"
+    return f"check the folder and the disk, then {then}"
+
+
+def write_failure(
+    path: Path | str,
+    error: OSError,
+    fix: str | None = None,
+    *,
+    kept: str | None = None,
+    what: str = "",
+) -> str:
+    """The one line of a file that could not be written.
+
+    Args:
+        path: The file (or what was written, in words, with ``kept`` given).
+        error: What the system said.
+        fix: What to do, last; default: :func:`failure_fix` of the error, then run the
+            command again.
+        kept: What is left on disk (default: ``the old file is kept`` when ``path`` is a
+            file, else ``nothing was written``).
+        what: What the file is, before its path (``"checkpoint "``).
+
+    Returns:
+        ``"cannot write WHAT PATH: WHY; KEPT; FIX"``.
+
+    """
+    why = " ".join((error.strerror or str(error)).split())[:200]
+    if fix is None:
+        fix = failure_fix(error.errno, "run the command again")
+    if kept is None:
+        kept = "the old file is kept" if Path(path).is_file() else "nothing was written"
+    return f"cannot write {what}{path}: {why}; {kept}; {fix}"
+
+
+def _create_temp(path: Path) -> tuple[int, Path]:
+    """A new, empty file beside ``path`` (``.NAME.RANDOM.tmp``), opened for writing.
+
+    ``O_EXCL`` with ``O_NOFOLLOW``: it fails rather than open anything that exists, a link
+    included. Its mode is the target's when the target exists, else ``0o666`` less the
+    umask (as ``open(path, "w")`` would create it).
+    """
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
+    while True:
+        tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
+        try:
+            fd = os.open(tmp, flags, 0o666)
+        except FileExistsError:
+            continue
+        with contextlib.suppress(OSError):
+            os.fchmod(fd, stat.S_IMODE(os.stat(path, follow_symlinks=False).st_mode))
+        return fd, tmp
+
+
+def fsync_folder(folder: Path) -> None:
+    """Flush a folder's entries (the rename) to disk; a no-op where folders cannot be opened."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        with contextlib.suppress(OSError):
+            os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+@overload
+def atomic_writer(
+    path: str | os.PathLike[str],
+    *,
+    text: Literal[False] = ...,
+    encoding: str = ...,
+    newline: str | None = ...,
+    fix: str | None = ...,
+) -> contextlib.AbstractContextManager[IO[bytes]]: ...
+@overload
+def atomic_writer(
+    path: str | os.PathLike[str],
+    *,
+    text: Literal[True],
+    encoding: str = ...,
+    newline: str | None = ...,
+    fix: str | None = ...,
+) -> contextlib.AbstractContextManager[IO[str]]: ...
+@contextlib.contextmanager
+def atomic_writer(
+    path: str | os.PathLike[str],
+    *,
+    text: bool = False,
+    encoding: str = "utf-8",
+    newline: str | None = None,
+    fix: str | None = None,
+) -> Iterator[IO[Any]]:
+    """A file object whose contents replace ``path`` when the block ends without error.
+
+    For writers that need a file object (``fig.savefig(handle, format="png")``,
+    ``torch.save(state, handle)``, ``np.savez(handle, ...)``, ``csv.writer(handle)``).
+    The target is checked (:func:`check_write_target`) before the temporary file is made
+    and again before the rename; the temporary file is flushed to disk (``fsync``) before
+    it is renamed over ``path``.
+
+    Args:
+        path: The file to (re)write; its folder must exist.
+        text: A text file object (``encoding``, ``newline`` as :func:`open` takes them)
+            instead of a binary one.
+        encoding: The text encoding.
+        newline: As :func:`open`'s ``newline`` (``""`` for the :mod:`csv` module).
+        fix: The fix said when the write fails (default: by the error, see
+            :func:`write_failure`).
+
+    Yields:
+        The open temporary file.
+
+    Raises:
+        UnsafePathError: ``path`` is not absent nor a regular file (see
+            :func:`check_write_target`); nothing was written.
+        FileWriteError: Writing, flushing or renaming failed (an ``OSError`` raised inside
+            the block counts as such a failure): one line naming ``path``; ``path`` is as
+            it was and no temporary file is left.
+
+    """
+    path = check_write_target(path)
+    tmp: Path | None = None
+    try:
+        fd, tmp = _create_temp(path)
+        handle: IO[bytes] | IO[str]
+        if text:
+            handle = os.fdopen(fd, "w", encoding=encoding, newline=newline)
+        else:
+            handle = os.fdopen(fd, "wb")
+        with handle:
+            yield handle
+            handle.flush()
+            os.fsync(handle.fileno())
+        check_write_target(path)
+        os.replace(tmp, path)
+        tmp = None
+        fsync_folder(path.parent)
+    except UnsafePathError:
+        raise
+    except OSError as error:
+        raise FileWriteError(write_failure(path, error, fix)) from error
+    finally:
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+
+
+def write_bytes_atomic(
+    path: str | os.PathLike[str], data: bytes, *, fix: str | None = None
+) -> Path:
+    """Write ``data`` as the whole of ``path`` through :func:`atomic_writer`; returns ``path``."""
+    with atomic_writer(path, fix=fix) as handle:
+        handle.write(data)
+    return Path(path)
+
+
+def write_text_atomic(
+    path: str | os.PathLike[str],
+    text: str,
+    *,
+    encoding: str = "utf-8",
+    fix: str | None = None,
+) -> Path:
+    """Write ``text`` as the whole of ``path`` through :func:`atomic_writer`; returns ``path``."""
+    with atomic_writer(path, text=True, encoding=encoding, newline="", fix=fix) as handle:
+        handle.write(text)
+    return Path(path)
+
+
+def append_text(path: str | os.PathLike[str], text: str, *, fix: str | None = None) -> Path:
+    """Append ``text`` (UTF-8) to ``path``, creating it; never through a link.
+
+    For a file that grows a record at a time (a line cut short by a crash is its
+    reader's to skip). The target is checked (:func:`check_write_target`), then opened
+    with ``O_APPEND | O_CREAT | O_NOFOLLOW`` and checked again on the open file, so a link
+    or a FIFO put there in between is refused too.
+
+    Args:
+        path: The file; its folder must exist.
+        text: What to add at its end.
+        fix: The fix said when the write fails (default: by the error,
+            :func:`write_failure`).
+
+    Returns:
+        ``path``.
+
+    Raises:
+        UnsafePathError: ``path`` is not absent nor a regular file; nothing was written.
+        FileWriteError: The write failed (a full disk): one line naming ``path``.
+
+    """
+    path = check_write_target(path)
+    flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK
+    try:
+        fd = os.open(path, flags, 0o666)
+    except OSError as error:
+        if error.errno in (errno.ELOOP, errno.ENXIO):  # a link, a FIFO put there meanwhile
+            check_write_target(path)
+        raise FileWriteError(write_failure(path, error, fix, kept="nothing was written")) from error
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):  # put there between the check and the open
+            raise UnsafePathError(
+                f"{path}: is {_kind(path, mode)}, not a regular file; amuled writes only "
+                "regular files and never through a link; nothing was written; give the path "
+                "of a new or a regular file"
+            )
+        with os.fdopen(fd, "ab", closefd=False) as handle:
+            handle.write(text.encode("utf-8"))
+            handle.flush()
+    except OSError as error:
+        raise FileWriteError(
+            write_failure(path, error, fix, kept="what was written before is kept")
+        ) from error
+    finally:
+        os.close(fd)
+    return path
+
+
+def checked_read_path(folder: str | os.PathLike[str], name: str | os.PathLike[str]) -> Path:
+    """``folder / name``, refused if reading it would follow a link or leave ``folder``.
+
+    A missing file is returned as it is (the caller's read reports it, or the caller
+    treats it as absent). The check reads no byte of the file.
+
+    Args:
+        folder: The run folder (or a variant folder in it) the file belongs to.
+        name: The file's name, or a path relative to ``folder``.
+
+    Returns:
+        ``folder / name``: absent, or a regular file inside ``folder``.
+
+    Raises:
+        UnsafePathError: It is a symbolic link, not a regular file (a FIFO, a device, a
+            folder), or resolves outside ``folder`` (through ``..`` or a linked
+            subfolder); one line naming it, what it is, and the fix.
+        OSError: It cannot be examined.
+
+    """
+    folder = Path(folder)
+    path = folder / name
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return path
+    if stat.S_ISLNK(mode):
+        raise UnsafePathError(
+            f"{path}: is {_kind(path, mode)}; amuled does not follow links in a run folder; "
+            "put the file itself there (cp --remove-destination TARGET LINK) or remove the link"
+        )
+    if not stat.S_ISREG(mode):
+        raise UnsafePathError(
+            f"{path}: is {_kind(path, mode)}, not a regular file; it is not read; remove it, "
+            "is it the right folder?"
+        )
+    real, base = path.resolve(), folder.resolve()
+    if not real.is_relative_to(base):
+        raise UnsafePathError(
+            f"{path}: resolves to {real}, outside its folder {base}; it is not read; put the "
+            "file itself in the folder"
+        )
+    return path

@@ -1,0 +1,1 @@
+"""A long phase watched: its progress on the terminal and scalars in TensorBoard."""

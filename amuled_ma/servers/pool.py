@@ -1,0 +1,437 @@
+"""`HostPool`: the live server with the fewest requests in flight takes the next; per-host figures.
+
+A host failing with `DOWN_FAILURES` is out for ``down_for_s``, then probed; with all down
+`HostPool.acquire` waits ``wait_s`` then raises (``docs/ollama.md``, "A pool of servers").
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from amuled_ma.errors import BackendUnavailable
+
+#: Failure kinds that take a host out of the pool until it is probed again.
+DOWN_FAILURES = frozenset({"connection", "timeout"})
+
+#: Counters of a host in :meth:`HostPool.as_dict`, summed by :func:`merge_host_stats`.
+COUNTS = ("sent", "answered", "failed", "retried_from", "went_down", "came_back")
+
+
+def percentile(values: Sequence[float], q: float) -> float | None:
+    """The ``q``-th percentile of ``values`` by the nearest-rank method (None if empty).
+
+    The smallest value with at least ``q`` percent of the values at or below it:
+    the value at rank ``ceil(q / 100 * n)`` of the sorted values (``q`` = 95 of 20
+    values is the 19th smallest).
+
+    Args:
+        values: The sample.
+        q: The percentile, in (0, 100].
+
+    """
+    if not values:
+        return None
+    ordered = sorted(values)
+    rank = max(1, math.ceil(q / 100 * len(ordered)))
+    return float(ordered[rank - 1])
+
+
+@dataclass
+class HostStats:
+    """What happened at one host of a pool.
+
+    Attributes:
+        host: The host's URL.
+        sent: Requests sent to it (every attempt, a retry or a probe included).
+        answered: Requests it answered.
+        failures: Failed requests by kind (``connection``, ``timeout``, ``server_error``,
+            ...).
+        retried_from: Requests that failed here and were retried on another host.
+        went_down: Times it was taken out of the pool.
+        came_back: Times it was put back after being taken out.
+        latencies: Seconds of each answered request (from the host being chosen to the
+            answer).
+
+    """
+
+    host: str
+    sent: int = 0
+    answered: int = 0
+    failures: dict[str, int] = field(default_factory=dict)
+    retried_from: int = 0
+    went_down: int = 0
+    came_back: int = 0
+    latencies: list[float] = field(default_factory=list)
+
+    @property
+    def failed(self) -> int:
+        """Failed requests of every kind."""
+        return sum(self.failures.values())
+
+    def as_dict(self) -> dict[str, Any]:
+        """The figures as plain JSON data (latencies as mean and 95th percentile)."""
+        n = len(self.latencies)
+        return {
+            "sent": self.sent,
+            "answered": self.answered,
+            "failed": self.failed,
+            "failures": dict(sorted(self.failures.items())),
+            "retried_from": self.retried_from,
+            "went_down": self.went_down,
+            "came_back": self.came_back,
+            "mean_latency_s": sum(self.latencies) / n if n else None,
+            "p95_latency_s": percentile(self.latencies, 95),
+        }
+
+
+class Lease:
+    """One request's use of a host, from :meth:`HostPool.acquire`.
+
+    Attributes:
+        host: The host chosen.
+        started: When it was chosen (the pool's clock).
+        failure: The failure kind given to :meth:`fail` (``None``: the request went well).
+        detail: What failed, for messages.
+        probe: Whether this request probes a host that was down.
+
+    """
+
+    def __init__(self, host: str, started: float, probe: bool) -> None:
+        self.host = host
+        self.started = started
+        self.probe = probe
+        self.failure: str | None = None
+        self.detail = ""
+
+    def fail(self, kind: str, detail: str = "") -> None:
+        """Mark the request as failed (released as such when the ``with`` block ends).
+
+        Args:
+            kind: The failure kind; a kind of :data:`DOWN_FAILURES` takes the host out.
+            detail: What happened, for the all-down error message.
+
+        """
+        self.failure = kind
+        self.detail = detail
+
+
+class HostPool:
+    """Choose a live, least-busy host for each request and keep each host's figures.
+
+    Args:
+        hosts: The host URLs, in order of preference on ties (at least one, no repeats).
+        down_for_s: Seconds a failed host stays out before the next request probes it.
+        wait_s: Seconds :meth:`acquire` waits when no host is live and none is due for a
+            probe; default ``2 * down_for_s`` (so that every host is probed at least once
+            before the pool gives up).
+        fix: What to do when every host is down, the end of that error's message.
+        clock: The time source (tests give a fake one).
+
+    Raises:
+        ValueError: No host, a repeated host, or a negative or non-finite time.
+
+    """
+
+    def __init__(
+        self,
+        hosts: Sequence[str],
+        *,
+        down_for_s: float = 5.0,
+        wait_s: float | None = None,
+        fix: str = "",
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        hosts = tuple(hosts)
+        if not hosts:
+            raise ValueError("a host pool needs at least one host")
+        repeated = sorted({h for h in hosts if hosts.count(h) > 1})
+        if repeated:
+            raise ValueError(f"a host pool lists {', '.join(repeated)} more than once")
+        wait = 2 * float(down_for_s) if wait_s is None else float(wait_s)
+        for name, value in (("down_for_s", float(down_for_s)), ("wait_s", wait)):
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"host pool {name}: expected a finite number >= 0, found {value}")
+        self.hosts = hosts
+        self.down_for_s = float(down_for_s)
+        self.wait_s = wait
+        self.fix = fix
+        self._clock = clock
+        self._cond = threading.Condition()
+        self._in_flight = dict.fromkeys(hosts, 0)
+        self._down_until: dict[str, float] = {}
+        self._down_why: dict[str, str] = {}
+        self._probing: set[str] = set()
+        self._stats = {h: HostStats(h) for h in hosts}
+
+    # -- state ---------------------------------------------------------------------------
+    def live(self) -> list[str]:
+        """The hosts in the pool now (not taken out), in list order."""
+        with self._cond:
+            return [h for h in self.hosts if h not in self._down_until]
+
+    def in_flight(self, host: str) -> int:
+        """Requests in flight at ``host`` now."""
+        with self._cond:
+            return self._in_flight[host]
+
+    def stats(self, host: str) -> HostStats:
+        """A copy of ``host``'s figures."""
+        with self._cond:
+            s = self._stats[host]
+            return HostStats(s.host, s.sent, s.answered, dict(s.failures), s.retried_from,
+                             s.went_down, s.came_back, list(s.latencies))  # fmt: skip
+
+    # -- choosing ------------------------------------------------------------------------
+    def _choose(self, avoid: Iterable[str], now: float) -> tuple[str, bool] | None:
+        """``(host, is a probe)`` by the rules of the module, or None; holds the lock."""
+        avoided = set(avoid)
+        for skip in (avoided, set()):  # a host failed before only when there is no other
+            due = [
+                h
+                for h in self.hosts
+                if h in self._down_until
+                and self._down_until[h] <= now
+                and h not in self._probing
+                and h not in skip
+            ]
+            if due:
+                return min(due, key=lambda h: (self._down_until[h], self.hosts.index(h))), True
+            live = [h for h in self.hosts if h not in self._down_until and h not in skip]
+            if live:
+                return min(live, key=lambda h: (self._in_flight[h], self._stats[h].sent,
+                                                 self.hosts.index(h))), False  # fmt: skip
+        return None
+
+    def take(self, avoid: Iterable[str] = ()) -> Lease:
+        """Choose a host for one request and count it as sent and in flight.
+
+        Prefer :meth:`acquire`, which releases the host however the request ends.
+
+        Args:
+            avoid: Hosts this request already failed on: used only when no other host
+                is live or due for a probe.
+
+        Returns:
+            The lease (``lease.host`` is the host).
+
+        Raises:
+            BackendUnavailable: No host is live or due for a probe within ``wait_s``
+                seconds; the message names every host, why it is down, and ``fix``.
+
+        """
+        avoid = tuple(avoid)
+        with self._cond:
+            now = self._clock()
+            deadline = now + self.wait_s
+            while True:
+                chosen = self._choose(avoid, now)
+                if chosen is not None:
+                    host, probe = chosen
+                    if probe:
+                        self._probing.add(host)
+                    self._in_flight[host] += 1
+                    self._stats[host].sent += 1
+                    return Lease(host, now, probe)
+                left = deadline - now
+                if left <= 0:
+                    raise self._all_down_error()
+                waiting = [u - now for h, u in self._down_until.items() if h not in self._probing]
+                step = min([left, *(w for w in waiting if w > 0)])
+                self._cond.wait(timeout=max(step, 0.001))
+                now = self._clock()
+
+    @contextlib.contextmanager
+    def acquire(self, avoid: Iterable[str] = ()) -> Iterator[Lease]:
+        """Use a host for one request: ``with pool.acquire() as lease: ... lease.host``.
+
+        The host is released when the block ends: as answered, unless the block called
+        ``lease.fail(kind)`` or raised (then as failed, kind ``"error"`` unless given).
+
+        Args:
+            avoid: As :meth:`take`.
+
+        Yields:
+            The lease.
+
+        Raises:
+            BackendUnavailable: As :meth:`take`.
+
+        """
+        lease = self.take(avoid)
+        try:
+            yield lease
+        except BaseException:
+            self.release(lease.host, False, self._clock() - lease.started,
+                         lease.failure or "error", detail=lease.detail)  # fmt: skip
+            raise
+        self.release(
+            lease.host,
+            lease.failure is None,
+            self._clock() - lease.started,
+            lease.failure,
+            detail=lease.detail,
+        )
+
+    def release(
+        self,
+        host: str,
+        ok: bool,
+        latency_s: float,
+        failure: str | None = None,
+        *,
+        detail: str = "",
+    ) -> None:
+        """Record how a request at ``host`` ended.
+
+        Args:
+            host: The host of the request.
+            ok: Whether it was answered.
+            latency_s: Its seconds (kept for answered requests).
+            failure: The failure kind when not ``ok`` (default ``"error"``); a kind of
+                :data:`DOWN_FAILURES` takes the host out for ``down_for_s`` (not in a
+                pool of one). Any other outcome shows the host answers: a host that was
+                out is put back.
+            detail: What failed, for messages.
+
+        """
+        with self._cond:
+            self._in_flight[host] -= 1
+            self._probing.discard(host)
+            stats = self._stats[host]
+            kind = None if ok else (failure or "error")
+            if kind is None:
+                stats.answered += 1
+                stats.latencies.append(float(latency_s))
+            else:
+                stats.failures[kind] = stats.failures.get(kind, 0) + 1
+            if kind in DOWN_FAILURES and len(self.hosts) > 1:
+                if host not in self._down_until:
+                    stats.went_down += 1
+                self._down_until[host] = self._clock() + self.down_for_s
+                self._down_why[host] = f"{kind}{': ' + detail if detail else ''}"
+            elif host in self._down_until:
+                del self._down_until[host]
+                self._down_why.pop(host, None)
+                stats.came_back += 1
+            self._cond.notify_all()
+
+    def retried(self, host: str) -> None:
+        """Count a request that failed at ``host`` and is retried on another host."""
+        with self._cond:
+            self._stats[host].retried_from += 1
+
+    # -- reporting -----------------------------------------------------------------------
+    def _all_down_error(self) -> BackendUnavailable:
+        now = self._clock()
+        parts = []
+        for host in self.hosts:
+            if host in self._probing:
+                parts.append(f"{host} (being probed)")
+            elif host in self._down_until:
+                back = max(0.0, self._down_until[host] - now)
+                parts.append(f"{host} ({self._down_why.get(host, 'down')}; probed again in "
+                             f"{back:.1f} s)")  # fmt: skip
+            else:
+                parts.append(f"{host} (live)")
+        fix = f"; {self.fix}" if self.fix else ""
+        return BackendUnavailable(
+            f"no LLM server of the pool answers: every one of the {len(self.hosts)} hosts is "
+            f"down after waiting {self.wait_s:g} s for one to come back: "
+            f"{', '.join(parts)}{fix}"
+        )
+
+    def describe(self) -> str:
+        """Each host and its state, e.g. ``http://a:1 (live), http://b:2 (down: ...)``."""
+        with self._cond:
+            states = {h: f"down: {self._down_why.get(h, '')}" for h in self._down_until}
+            return ", ".join(f"{h} ({states.get(h, 'live')})" for h in self.hosts)
+
+    def as_dict(self) -> dict[str, dict[str, Any]]:
+        """Every host's figures, JSON-ready: ``{host: {"sent": n, "answered": n, ...}}``.
+
+        Each host's entry is :meth:`HostStats.as_dict` plus ``"live"`` (in the pool now).
+        The hosts are in list order.
+        """
+        with self._cond:
+            return {
+                h: {**self._stats[h].as_dict(), "live": h not in self._down_until}
+                for h in self.hosts
+            }
+
+
+def merge_host_stats(reports: Iterable[Mapping[str, Mapping[str, Any]]]) -> dict[str, Any]:
+    """Add up several :meth:`HostPool.as_dict` reports, host by host.
+
+    Counts and failure kinds are summed; the mean latency is the mean over every answered
+    request (each report's mean weighted by its ``answered``); the 95th percentile is the
+    largest of the reports' (an upper bound: percentiles do not add up); ``live`` is true
+    when the host was live in every report.
+
+    Args:
+        reports: ``{host: figures}`` dicts (a pool's, or earlier merges).
+
+    Returns:
+        ``{host: figures}``, hosts in order of first appearance.
+
+    """
+    out: dict[str, dict[str, Any]] = {}
+    weights: dict[str, float] = {}
+    for report in reports:
+        for host, row in report.items():
+            merged = out.setdefault(
+                host,
+                {**dict.fromkeys(COUNTS, 0), "failures": {}, "mean_latency_s": None,
+                 "p95_latency_s": None, "live": True},
+            )  # fmt: skip
+            for key in COUNTS:
+                merged[key] += int(row.get(key, 0) or 0)
+            for kind, n in (row.get("failures") or {}).items():
+                merged["failures"][kind] = merged["failures"].get(kind, 0) + int(n)
+            answered = float(row.get("answered", 0) or 0)
+            mean = row.get("mean_latency_s")
+            if mean is not None and answered:
+                total = weights.get(host, 0.0) + answered
+                previous = merged["mean_latency_s"] or 0.0
+                merged["mean_latency_s"] = previous + (float(mean) - previous) * answered / total
+                weights[host] = total
+            p95 = row.get("p95_latency_s")
+            if p95 is not None:
+                merged["p95_latency_s"] = max(float(p95), merged["p95_latency_s"] or 0.0)
+            merged["live"] = bool(merged["live"] and row.get("live", True))
+    for row in out.values():
+        row["failures"] = dict(sorted(row["failures"].items()))
+    return out
+
+
+def _seconds(value: float | None) -> str:
+    return "-" if value is None else f"{float(value):.2f} s"
+
+
+def host_lines(stats: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """Write a pool's figures for people, one line per host.
+
+    Args:
+        stats: ``{host: figures}`` (:meth:`HostPool.as_dict`, :func:`merge_host_stats`).
+
+    Returns:
+        Lines such as ``http://127.0.0.1:4001: sent 9, answered 8, failed 1 (connection 1),
+        retried from 1, latency mean 2.10 s, p95 3.40 s, down 1x, back 0x``.
+
+    """
+    lines = []
+    for host, row in stats.items():
+        kinds = ", ".join(f"{k} {n:,}" for k, n in (row.get("failures") or {}).items())
+        failed = f"failed {int(row.get('failed', 0)):,}" + (f" ({kinds})" if kinds else "")
+        lines.append(
+            f"{host}: sent {int(row.get('sent', 0)):,}, answered {int(row.get('answered', 0)):,}, "
+            f"{failed}, retried from {int(row.get('retried_from', 0)):,}, latency mean "
+            f"{_seconds(row.get('mean_latency_s'))}, p95 {_seconds(row.get('p95_latency_s'))}, "
+            f"down {int(row.get('went_down', 0))}x, back {int(row.get('came_back', 0))}x"
+        )
+    return lines
