@@ -1,19 +1,8 @@
 """One belief store for a sweep on Ray: the driver's SQLite file, served by an actor.
 
-A job on another machine must not ask a state another job already asked, and must not
-open the driver's SQLite file (it may not see it; over a network file system SQLite's
-locks are not safe). :class:`BeliefStoreActor` opens the store on the driver's node (Ray
-pins it there) and answers ``lookup`` / ``put_many``; :class:`RemoteStore` is the
-stand-in a job on another node is given instead of the file (the ``store`` argument of
-:func:`amuled_ma.experiments.plans.train_variant`). Jobs on the driver's node
-open the file itself (SQLite WAL is safe across the processes of one machine).
-
-Why this design (docs/scale.md): no server to install (PostgreSQL would be one more
-service to run and secure), the same rows and keys as every other run (the actor holds
-the very :class:`~amuled_ma.beliefs.store.BeliefStore`), and a state asked once anywhere
-in the sweep is a store hit everywhere after, as on one machine. Per-node stores merged
-at the end of each stage would let the fine-tunes of one stage, which visit mostly the
-same states, each ask them again.
+A job on another node must not open the driver's SQLite file (it may not see it, and SQLite
+locks are unsafe over a network file system), yet a state asked once anywhere must be a
+hit everywhere; an actor pinned to the driver's node needs no extra server.
 """
 
 from __future__ import annotations
@@ -63,9 +52,7 @@ class BeliefStoreActor:
 class RemoteStore:
     """A job's stand-in for the driver's store: each call goes to the store's actor.
 
-    A lost actor (its node's agent died, the driver's node went away) raises
-    :class:`~amuled_ma.errors.AmuledError` with one line: the job then stops as on a
-    belief backend that stays down, keeping its checkpoint.
+    A lost actor raises a one-line `AmuledError`; the job stops, keeping its checkpoint.
     """
 
     def __init__(self, actor: Any) -> None:

@@ -1,14 +1,6 @@
 """Third-party warnings and log records go to a log file, not into a command's output.
 
-The command line (:func:`amuled_ma.cli.main`) calls :func:`third_party_to_log` around each
-command: Python warnings (``warnings.warn`` of torch, Gymnasium, ...) are captured by
-:mod:`logging` (``logging.captureWarnings``) and, with every record that reaches the root
-logger, written to the log (``$AMULED_LOG``, else ``<user data folder>/amuled.log``,
-created only when something is written). Ray sets up its own ``"ray"`` logger with a
-terminal handler when it is imported; :func:`ray_to_log`, called before ``ray.init``, gives
-that logger the same file instead (Ray's token-authentication notice, for one). Only
-logging configuration: no library function is replaced. Used as a library (no command
-line), nothing here is active and every library logs as it is configured to.
+Only logging configuration; used as a library, nothing here is active.
 """
 
 from __future__ import annotations
@@ -49,14 +41,10 @@ class _LazyFileHandler(logging.FileHandler):
 
 @contextlib.contextmanager
 def third_party_to_log(path: Path | None = None) -> Iterator[Path]:
-    """Send warnings and third-party log records to the log for the ``with`` block.
-
-    Args:
-        path: The log file (default :func:`log_path`).
+    """Send warnings and third-party log records to ``path`` for the ``with`` block.
 
     Yields:
         The log file's path (written only if something is logged).
-
     """
     global _HANDLER
     path = Path(path) if path is not None else log_path()
@@ -87,11 +75,7 @@ def third_party_to_log(path: Path | None = None) -> Iterator[Path]:
 
 
 def ray_to_log() -> None:
-    """Give Ray's ``"ray"`` logger the command's log instead of its terminal handler.
-
-    Call it after importing Ray, before ``ray.init`` (which keeps the handlers it finds).
-    Without a command line (:func:`third_party_to_log` not active) it does nothing.
-    """
+    """Give Ray's logger the command's log; call after importing Ray, before ``ray.init``."""
     if _HANDLER is None:
         return
     ray_logger = logging.getLogger("ray")
