@@ -1,21 +1,10 @@
 """Import everything usable from a checkout of the authors' repository ``temetski/moral_agent``.
 
-What is read (paths relative to the checkout):
-
-- LLM caches ``models/<Env>_42/<model>_llm_cache.pickle`` and
-  ``PickleCacheAndBaseModels/<Env>/<model>_llm_cache.pickle`` -> recordings
-  ``<task>-<model slug>.json`` in the recordings folder (default: the user data folder,
-  :func:`~amuled_ma.scenario.user_recordings_dir`). When both folders hold a cache of the
-  same task and model, the one under ``models/`` keeps the plain name and the other one is
-  written as ``<task>-<model slug>-fused-only.json`` (it holds fused beliefs only);
-- CleanRL policies ``models/<Env>_42/base.cleanrl_model`` -> ``<runs>/authors/<task>/base``
-  and ``models/<Env>_42/moral_llm_<model>/ppo_<N>.cleanrl_model`` (the highest ``N``) ->
-  ``<runs>/authors/<task>/amuled-<model slug>``, plus the run's ``config.json``, so that
-  ``amuled evaluate <runs>/authors/<task>`` evaluates them.
-
-Everything is converted and checked before anything is written. An output that already
-exists is left alone when it came from the same source (same content, or a checkpoint
-recording the same source SHA-256) and is otherwise refused unless ``force``.
+LLM caches become recordings; a cache under ``PickleCacheAndBaseModels/`` beside one of the
+same task and model under ``models/`` is written as ``<task>-<slug>-fused-only.json``. CleanRL
+policies become ``<runs>/authors/<task>/{base,amuled-<slug>}``. Everything is converted and
+checked before anything is written; an output from the same source is left alone, another
+refused unless ``force``.
 """
 
 from __future__ import annotations
@@ -63,10 +52,8 @@ class Output:
         kind: ``recording`` or ``policy``.
         source: The authors' file, relative to the checkout.
         target: What is written.
-        status: ``new``, ``unchanged`` (already there from the same source), ``replaced``
-            (``force``) or ``conflict`` (something else is there).
+        status: ``new``, ``unchanged`` (same source), ``replaced`` (``force``) or ``conflict``.
         detail: One line about the content.
-
     """
 
     kind: str
@@ -78,7 +65,7 @@ class Output:
 
 @dataclass
 class ImportReport:
-    """What :func:`import_authors` did.
+    """What `import_authors` did.
 
     Attributes:
         checkout: The authors' checkout.
@@ -86,7 +73,6 @@ class ImportReport:
         runs_dir: ``<runs>/authors``.
         outputs: Every output, in order.
         notes: Files seen but not converted, and why.
-
     """
 
     checkout: Path
@@ -125,7 +111,6 @@ class PolicySource:
         path: The ``.cleanrl_model`` file.
         iteration: The authors' PPO iterations (``N`` of ``ppo_<N>``; base: their run's).
         model: The LLM of a fine-tune (None for the base).
-
     """
 
     task: str
@@ -136,13 +121,7 @@ class PolicySource:
 
 
 def find_policies(checkout: Path, notes: list[str] | None = None) -> list[PolicySource]:
-    """The base and last fine-tuned policy of every ``models/<Env>_42`` run of a checkout.
-
-    Args:
-        checkout: The authors' checkout.
-        notes: Receives a line for every policy file seen but not converted.
-
-    """
+    """The base and last fine-tuned policy of every run; ``notes`` gets the others."""
     checkout = Path(checkout)
     out: list[PolicySource] = []
     seen: set[Path] = set()
@@ -314,27 +293,15 @@ def import_authors(
 ) -> ImportReport:
     """Convert the authors' LLM caches and CleanRL policies of a checkout.
 
-    Args:
-        checkout: A checkout of ``temetski/moral_agent``.
-        to: Folder of the recordings (default: the user data folder's ``recordings/``).
-        runs: Folder of runs; policies go to ``<runs>/authors/<task>/``.
-        force: Replace outputs that exist with other content.
-        recordings: Convert the LLM caches.
-        policies: Convert the CleanRL policies.
-        only: Convert only the caches at these paths (relative to ``checkout``, as
-            ``models/FindMilk-v4_42/gpt-4o-mini_llm_cache.pickle``); None: every cache.
-
-    Returns:
-        What was written (and what was already there).
+    ``only``: convert only the caches at these paths relative to ``checkout`` (None: all).
 
     Raises:
-        AuthorsImportError: The folder holds none of the authors' files, a file is not in
-            their format, or an output exists with other content (nothing was written).
-        UnsafePathError: An output's place holds a link or a device (nothing was written).
-        FileWriteError: An output could not be written (a full disk); one line naming it.
+        AuthorsImportError: No authors' files, a file not in their format, or an output that
+            exists with other content (nothing written).
+        UnsafePathError: An output's place holds a link or a device (nothing written).
+        FileWriteError: An output could not be written (a full disk).
         UnsafePickleError: A cache names a global outside the allow-list (nothing ran).
         CheckpointError: A policy cannot be read as weights only, or has another layout.
-
     """
     from amuled_ma.learn.checkpoints import LAST
     from amuled_ma.scenario import user_recordings_dir

@@ -1,14 +1,7 @@
-"""The second pass of :func:`amuled_ma.authors.unpickle.load_pickle`: a small bounded reader.
+"""The second pass of `load_pickle`: a small bounded pickle reader.
 
-It builds a pickle's values from :func:`pickletools.genops` (each opcode with its argument
-already decoded, nothing called) and interprets only the opcodes an LLM cache uses:
-constants (``None``, booleans, integers, floats, strings, bytes), tuples, lists, dicts,
-sets and frozensets, the memo, marks, ``GLOBAL``/``STACK_GLOBAL`` of
-:data:`ALLOWED_GLOBALS`, ``REDUCE`` of those globals and ``BUILD`` of arrays and dtypes.
-Any other opcode (``OBJ``, ``INST``, ``NEWOBJ``, persistent ids, extension codes, buffers,
-Python 2 strings, ...) is refused. The loop is pure Python, so a signal handler (the
-command line's SIGTERM) runs between two opcodes, and every step is bounded (the checks
-are listed in :mod:`amuled_ma.authors.unpickle`).
+It interprets only the opcodes an LLM cache uses, from `pickletools.genops` (nothing
+called), and refuses any other. Pure Python, so a SIGTERM handler runs between opcodes.
 """
 
 from __future__ import annotations
@@ -229,15 +222,13 @@ class BoundedReader:
     """Builds one pickle's values, opcode by opcode, with the allow-list and the bounds.
 
     Args:
-        data: The pickle's bytes (already scanned: well formed, allowed globals only).
-        max_array_bytes: Most bytes of all arrays together (the file's size: an array's
-            data is in the file); also the most items ``set()``/``frozenset()`` calls may
-            hash, all together.
-        max_memory: Most bytes the process's resident memory may grow by (None: no limit);
-            looked at every :data:`MEMORY_CHECK_EVERY` opcodes.
-        max_opcodes: Most opcodes read (checked every :data:`MEMORY_CHECK_EVERY`).
-        max_key_work: Most key work (:data:`MAX_KEY_WORK`), checked at every key.
-
+        data: The pickle's bytes (already scanned).
+        max_array_bytes: Most bytes of all arrays together; also the most items ``set()`` /
+            ``frozenset()`` calls may hash, all together.
+        max_memory: Most bytes resident memory may grow by (None: no limit), looked at every
+            `MEMORY_CHECK_EVERY` opcodes.
+        max_opcodes: Most opcodes read.
+        max_key_work: Most key work (`MAX_KEY_WORK`), checked at every key.
     """
 
     def __init__(
@@ -312,7 +303,6 @@ class BoundedReader:
             PickleRefused: Something outside the allow-list.
             PickleUnbounded: Something that would take unbounded time or memory.
             ValueError: A malformed pickle (``IndexError``, ``KeyError`` too).
-
         """
         handlers = self.handlers
         start = _resident_bytes() if self.max_memory is not None else 0
