@@ -1,9 +1,4 @@
-"""``amuled run`` (the paper's main comparison) and ``amuled ablate`` (its ablations).
-
-Both parse their arguments into a :class:`~amuled_ma.pipeline.PipelineRequest`, call
-:func:`~amuled_ma.pipeline.run_pipeline` (plan, input checks, training, evaluation,
-report) and print its outcome.
-"""
+"""``amuled run`` (the paper's main comparison) and ``amuled ablate`` (its ablations)."""
 
 from __future__ import annotations
 
@@ -222,7 +217,6 @@ def ray_target(args: argparse.Namespace) -> RayTarget | None:
 
     Raises:
         AmuledError: ``--ray-resource`` without ``--ray``.
-
     """
     from amuled_ma.experiments.jobs import RayTarget
 
