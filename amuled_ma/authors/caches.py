@@ -47,19 +47,11 @@ _CREDENCES = re.compile(r"credence values:\s*\{([^{}]*)\}", re.IGNORECASE)
 
 @dataclass
 class ConvertedCache:
-    """One converted cache.
+    """One converted cache and its counts.
 
-    Attributes:
-        source: The pickle.
-        task: Our task name (``findmilk``, ``driving``).
-        model: The model name as the authors spelled it (``llama-3.1-70B``).
-        recording: The recording (JSON data).
-        fused_only: True when no entry holds cluster beliefs.
-        errors: States the authors flagged ``error`` (their parser repaired an answer).
-        exchanges: States with raw replies kept.
-        total_conflicts: States whose fused belief is all zero.
-        invalid: Cluster beliefs written as ``null`` because they are not probabilities.
-        ignored_keys: Entry keys outside the authors' format (not converted).
+    ``fused_only``: no entry holds cluster beliefs; ``errors``: states the authors flagged
+    (their parser repaired an answer); ``invalid``: cluster beliefs written as ``null``;
+    ``ignored_keys``: entry keys outside the authors' format.
     """
 
     source: Path

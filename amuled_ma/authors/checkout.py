@@ -46,15 +46,7 @@ FUSED_ONLY_SUFFIX = "-fused-only"
 
 @dataclass
 class Output:
-    """One file or folder the import writes.
-
-    Attributes:
-        kind: ``recording`` or ``policy``.
-        source: The authors' file, relative to the checkout.
-        target: What is written.
-        status: ``new``, ``unchanged`` (same source), ``replaced`` (``force``) or ``conflict``.
-        detail: One line about the content.
-    """
+    """One file or folder the import writes (``status``: new, unchanged, replaced, conflict)."""
 
     kind: str
     source: str
@@ -65,15 +57,7 @@ class Output:
 
 @dataclass
 class ImportReport:
-    """What `import_authors` did.
-
-    Attributes:
-        checkout: The authors' checkout.
-        recordings_dir: Where recordings were written.
-        runs_dir: ``<runs>/authors``.
-        outputs: Every output, in order.
-        notes: Files seen but not converted, and why.
-    """
+    """What `import_authors` did: every output in order, and notes on files not converted."""
 
     checkout: Path
     recordings_dir: Path
@@ -103,15 +87,7 @@ def find_caches(checkout: Path) -> list[Path]:
 
 @dataclass
 class PolicySource:
-    """One CleanRL policy to convert.
-
-    Attributes:
-        task: Our task name.
-        folder: The variant folder it becomes (``base``, ``amuled-<model slug>``).
-        path: The ``.cleanrl_model`` file.
-        iteration: The authors' PPO iterations (``N`` of ``ppo_<N>``; base: their run's).
-        model: The LLM of a fine-tune (None for the base).
-    """
+    """One CleanRL policy to convert (``iteration``: ``N`` of ``ppo_<N>``; ``model`` None: base)."""
 
     task: str
     folder: str

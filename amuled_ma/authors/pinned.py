@@ -18,14 +18,7 @@ RAW_BASE = "https://raw.githubusercontent.com/temetski/moral_agent"
 
 @dataclass(frozen=True)
 class PinnedFile:
-    """One file of the authors' repository at `COMMIT`.
-
-    Attributes:
-        path: Its path in the repository.
-        sha256: SHA-256 of its bytes (hex).
-        size: Its size in bytes.
-        recording: The recording it becomes (no ``.json``); for a base policy, its run folder.
-    """
+    """One file of the authors' repository at `COMMIT`; ``recording``: what it becomes."""
 
     path: str
     sha256: str

@@ -104,13 +104,9 @@ def _depth(item: object) -> int:
 
 @dataclass
 class PickleScan:
-    """What a pickle holds, read from its opcodes alone.
+    """What a pickle holds, read from its opcodes alone: globals named, depth and opcodes read.
 
-    Attributes:
-        globals: ``module.name`` of every global it names, in order (``copyreg extension N``
-            and ``persistent id`` for those opcodes).
-        depth: How deep its values nest (stopped at ``MAX_DEPTH + 1``).
-        opcodes: Opcodes read (stopped at ``max_opcodes + 1``).
+    Counting stops at ``MAX_DEPTH + 1`` and ``max_opcodes + 1``.
     """
 
     globals: list[str]

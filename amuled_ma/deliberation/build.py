@@ -268,10 +268,8 @@ def _replay_problem(
 class Members(NamedTuple):
     """A plan's member sources, each distinct one built once, checked and open.
 
-    Attributes:
-        routes: ``{agent: source}`` of the members with their own table.
-        default: The source of every other member (None: each has a table).
-        plans: ``{id(source): its SourcePlan}``.
+    ``routes`` maps agents with their own table to a source; ``default`` serves the others;
+    ``plans`` maps ``id(source)`` to its `SourcePlan`.
     """
 
     routes: dict[str, BeliefSource]
@@ -458,15 +456,10 @@ def build_feedback(
 ) -> Feedback:
     """Build the feedback of a plan, its panel's members behind ``store`` (the caller owns it).
 
-    Args:
-        plan: The plan (`plan_panel`).
-        store: The belief store every member's answers go through (unused without a panel).
-        members: Sources from `checked_members`, handed over (default: built here).
-        state_dir: The fine-tune's folder; with ``[feedback.distill].enabled`` the panel is
-            distilled there. Without it the panel answers every state.
-        resume: Continue the distillation budget kept in ``state_dir``.
-        seed: The distilled model's seed unless ``[feedback.distill].seed`` is set.
-        cache_dir: Folder caching the demonstrator's counts.
+    ``members`` from `checked_members` are handed over (default: built here). With
+    ``[feedback.distill].enabled`` the panel is distilled in ``state_dir`` (``resume`` continues
+    its budget); without it the panel answers every state. ``seed`` seeds the distilled model
+    unless ``[feedback.distill].seed`` is set.
 
     Raises:
         AmuledError: A member's source cannot be built or checked.

@@ -55,20 +55,9 @@ def project_to_simplex(v: npt.ArrayLike) -> np.ndarray:
 class DeliberationEnv(ParallelEnv):
     """The actor and the moral clusters around one task (see the module docstring).
 
-    Args:
-        task_name: A task of `tasks` (``"findmilk"``, ``"driving"``).
-        clusters: Cluster agent names (default: the shipped panel).
-        fusion_rule: A rule of `fuse`.
-        r_env_weight: Weight of the task reward in the actor's reward.
-        feedback_coef: Coefficient ``c`` of the fused belief of the action taken.
-        shaping_coef: The task's shaping coefficient (0: none).
-        max_steps: The task's time limit; ``None`` keeps the task's default.
-        seed: Seed used by the first ``reset`` given none.
-        render_mode: ``None``, ``"ansi"`` or ``"rgb_array"``.
-        prompt_max_length: ``max_length`` of the prompt ``Text`` space.
-        render_state_prompt: ``(task_name, variables) -> str``.
-        task_options: Extra keyword arguments of the task (e.g. ``layout``).
-        clusters_dirs: Folders of user cluster files, overriding the shipped ones.
+    ``render_mode``: ``None``, ``"ansi"`` or ``"rgb_array"``; ``max_steps`` None keeps the
+    task's limit; ``clusters`` defaults to the shipped panel; ``clusters_dirs`` are folders of
+    user cluster files, overriding the shipped ones; ``task_options`` go to the task.
     """
 
     metadata: dict[str, Any] = {  # noqa: RUF012 - PettingZoo convention

@@ -52,17 +52,10 @@ def as_tensor(
 
 @dataclass
 class DeliberationStep:
-    """What one batched step returns.
+    """What one batched step returns (``[N]`` per copy; ``obs`` after the task's automatic reset).
 
-    Attributes:
-        obs: Next observations ``[N, obs_dim]`` (after the task's automatic reset).
-        reward: The actor's reward ``[N]``.
-        terminated: ``[N]`` bool.
-        truncated: ``[N]`` bool.
-        info: The task's info.
-        r_task: The task reward ``[N]``.
-        fused: Fused beliefs of the states acted in ``[N, A]``, or None without feedback.
-        feedback: ``fused[a]`` per copy ``[N]``, or None without feedback.
+    ``fused`` ``[N, A]`` are the beliefs of the states acted in and ``feedback`` = ``fused[a]``;
+    both None without feedback.
     """
 
     obs: torch.Tensor

@@ -32,16 +32,11 @@ Messages = tuple[tuple[str, str], ...]
 
 @dataclass
 class PanelOutput:
-    """The panel's answer for a batch of ``N`` env copies, ``K`` clusters, ``A`` actions.
+    """The panel's answer for ``N`` env copies, ``K`` clusters, ``A`` actions.
 
-    Attributes:
-        fused: ``(N, A)`` fused belief per env copy.
-        beliefs: ``(N, K, A)`` each cluster's (sanitised) belief.
-        weights: ``(N, K)`` each cluster's fusion weight (sums to 1 per row).
-        conflict: ``(N,)`` Dempster's conflict ``K`` of the first combination (0 if none).
-        conflicts: ``(N, K - 1)`` conflict at each combination (empty for other rules).
-        statuses: ``(N, K)`` status of each belief.
-        unique: Number of distinct states in the batch.
+    ``fused`` ``(N, A)``, ``beliefs`` ``(N, K, A)``, ``weights`` and ``statuses`` ``(N, K)``,
+    ``conflict`` ``(N,)`` (Dempster's ``K`` of the first combination, 0 if none), ``conflicts``
+    ``(N, K - 1)``, ``unique``: distinct states in the batch.
     """
 
     fused: np.ndarray
@@ -62,16 +57,9 @@ class PanelOutput:
 class PanelStats:
     """Counters of a `MoralPanel` since creation.
 
-    Attributes:
-        calls: Calls to `MoralPanel.fused`.
-        copies: Env copies seen.
-        unique: Distinct states seen (per call).
-        requests: Belief requests sent to the source (K per new state).
-        fallbacks: Beliefs that were not answers.
-        by_status: Count of each status among answered requests.
-        invalid: Beliefs that were not valid probability vectors (made uniform ``"error"``).
-        invalid_reasons: The first few of them, ``"cluster: values: reason"``.
-        no_answer: Distinct states no agent answered (fused to the uniform fallback).
+    ``requests`` are sent to the source (K per new state); ``fallbacks`` are beliefs that were
+    not answers; ``invalid`` were not probability vectors (made uniform ``"error"``, the first
+    few reasons kept); ``no_answer`` counts states fused to the uniform fallback.
     """
 
     calls: int = 0
@@ -92,18 +80,9 @@ _KEEP_REASONS = 10
 class MoralPanel:
     """Ask every moral cluster about every env copy's state and fuse the answers.
 
-    Args:
-        task_name: Task name (``"findmilk"``, ``"driving"``).
-        clusters: The panel's agents, names or `Cluster` objects, in fusion order.
-        source: Where beliefs come from (typically a `CachedSource`).
-        fusion_rule: A rule name of `fuse`.
-        action_names: The task's action names (default: the task class's).
-        with_messages: Render prompts and chats (default: the source's ``needs_messages``).
-        render_state_prompt: ``(task_name, variables) -> str``.
-        build_messages: ``(cluster, task_name, state_prompt) -> messages``.
-        prior: A prior weight per cluster, in fusion order, for a rule that takes one
-            (``bjs-dst``); a state fuses the prior of the clusters that answered. None: the
-            rule's own weights.
+    ``clusters`` are in fusion order; ``with_messages`` defaults to the source's
+    ``needs_messages``. ``prior``: a weight per cluster for a rule that takes one
+    (``bjs-dst``); a state fuses the prior of the clusters that answered. None: the rule's own.
     """
 
     def __init__(

@@ -30,13 +30,7 @@ RULES_NOTE = ", the task's rule: the cluster's text is not read"
 
 @dataclass(frozen=True)
 class SourcePlan:
-    """What `make_source` builds for some agents.
-
-    Attributes:
-        kind: The ``make_source`` kind.
-        options: Its keyword arguments (plain data).
-        label: How messages name it.
-    """
+    """What `make_source` builds for some agents: its kind, keyword arguments and message label."""
 
     kind: str
     options: dict[str, Any]
@@ -53,25 +47,15 @@ class PanelPlan:
     """A feedback variant resolved from a scenario: everything building it needs.
 
     Attributes:
-        variant: The feedback (``amuled``, ``cluster:care``, ``human``, ...).
-        kind: Its kind (`parse_feedback`).
-        task: The task's name.
         where: The scenario file (or name), first in messages.
-        seed: ``[task].seed``.
         clusters: The members, cluster objects in panel order (empty without a panel).
-        registry: The cluster registry they came from.
-        rule: The fusion rule.
         routes: ``{agent: source}`` of the members with their own table.
         default: The source of every other member (None: each has a table).
         problems: ``[(error, label)]`` of sources that could not be planned.
         fused_recording: The fused-only recording, when the panel replays one.
-        miss_policy: ``[feedback].miss_policy``.
         miss_zero: A state every member missed rewards 0 (the authors' scripts).
-        distill: ``[feedback.distill]``.
-        max_abstention: ``[feedback].max_abstention``.
         prior: The members' prior weights (``[feedback].weights``, ``amuled`` only, sum 1);
             None: the paper's fixed weights.
-        weights_file: The weights file the prior was read from.
     """
 
     variant: str

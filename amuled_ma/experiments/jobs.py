@@ -21,12 +21,7 @@ from amuled_ma.experiments.run_folder import JobResult, TrainJob
 
 @dataclass(frozen=True)
 class RayTarget:
-    """Where ``--ray`` sends the jobs.
-
-    Attributes:
-        address: A Ray cluster's address; None starts a local Ray for the run.
-        resource: A custom resource each job needs one unit of (``--ray-resource``).
-    """
+    """Where ``--ray`` sends the jobs (``address`` None: a local Ray) and ``--ray-resource``."""
 
     address: str | None = None
     resource: str | None = None
@@ -34,13 +29,7 @@ class RayTarget:
 
 @dataclass
 class JobsOutcome:
-    """What `run_jobs` did.
-
-    Attributes:
-        results: One `JobResult` per job, in job order.
-        wall_s: Wall-clock seconds of the whole graph.
-        workers: Worker processes used (1: this process).
-    """
+    """What `run_jobs` did: results in job order, wall seconds, workers used (1: this process)."""
 
     results: list[JobResult] = field(default_factory=list)
     wall_s: float = 0.0

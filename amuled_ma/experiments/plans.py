@@ -143,13 +143,7 @@ def plan_jobs(
 
 @dataclass
 class PreparedJob:
-    """A planned job ready to train: its folder's record written, its feedback built.
-
-    Attributes:
-        job: The planned job.
-        feedback: A fine-tune's feedback (open: `close` it), else None.
-        resume_hint: The command that resumes it (printed on Ctrl-C).
-    """
+    """A planned job ready to train: its record written, its feedback built (open: `close` it)."""
 
     job: TrainJob
     feedback: Feedback | None

@@ -67,12 +67,7 @@ def population_groups(
 
 @dataclass
 class GroupOutcome:
-    """What `train_population_jobs` did.
-
-    Attributes:
-        results: Job name -> result, for the jobs that finished (trained or skipped).
-        failures: One line per job that failed alone (the others went on).
-    """
+    """What `train_population_jobs` did: results of the jobs that finished, a line per failure."""
 
     results: dict[str, JobResult] = field(default_factory=dict)
     failures: list[str] = field(default_factory=list)

@@ -64,11 +64,7 @@ Action = Literal["new", "resume", "skip"]
 class Rerun:
     """The command that re-runs a graph, as fields: ``amuled COMMAND ARGS --run-dir DIR OPTIONS``.
 
-    Attributes:
-        command: ``run``, ``ablate``, ``train`` or ``finetune``.
-        args: The words before ``--run-dir`` (the scenario first).
-        options: The words after it, ``--name`` aside.
-        name: A fine-tune's ``--name`` (None: not given).
+    ``options`` leaves ``--name`` aside; ``name`` is a fine-tune's ``--name`` (None: not given).
     """
 
     command: str
@@ -88,28 +84,11 @@ class Rerun:
 class TrainJob:
     """One job of a run: what it trains and where, planned once and carried to its trainer.
 
-    `plan_run` sets the first fields; `plan_job` fills the planned ones (``action`` set:
-    planned), which every later stage reads instead of deriving them again.
-
-    Attributes:
-        name: Unique name of the job in its graph.
-        scenario: The scenario it trains on.
-        run_dir: The run directory (belief store, default folders).
-        variant: What it trains.
-        out_dir: Its folder.
-        seed: Training seed (None: the scenario's).
-        base_variant: Folder (under ``base_dir``) of the base a fine-tune anchors to.
-        needs: Names of the jobs that must finish first.
-        resume: Continue an unfinished checkpoint; skip a finished one.
-        force: Start over even where a checkpoint exists.
-        base_dir: The folder holding ``base_variant`` (default: ``run_dir``).
-        iterations: An override of the planned number of iterations.
-        panel: A fine-tune's panel plan (planned).
-        shape: Its run shape (planned).
-        settings: What decides what it learns, with the inputs' hashes (planned).
-        base_checkpoint: A fine-tune's base checkpoint (planned).
-        store: A fine-tune's belief store file (planned).
-        action: What it does with its folder (planned).
+    `plan_run` sets the first fields; `plan_job` fills the planned ones (``panel``, ``shape``,
+    ``settings``, ``base_checkpoint``, ``store``, ``action``; ``action`` set: planned), which every
+    later stage reads instead of deriving them again. ``base_variant`` is the folder under
+    ``base_dir`` (default ``run_dir``) of the base a fine-tune anchors to; ``iterations``
+    overrides the planned number.
     """
 
     name: str
@@ -139,14 +118,7 @@ class TrainJob:
 
 @dataclass
 class JobResult:
-    """One trained (or skipped) variant.
-
-    Attributes:
-        variant: What was trained.
-        out_dir: Its folder.
-        skipped: True when a completed checkpoint was already there.
-        outcome: The training outcome (None when skipped).
-    """
+    """One trained (or skipped: a completed checkpoint was there, ``outcome`` None) variant."""
 
     variant: Variant
     out_dir: Path

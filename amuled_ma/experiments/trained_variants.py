@@ -118,13 +118,7 @@ def evaluated_episodes(run_dir: Path, scenario: Scenario) -> int:
 
 @dataclass(frozen=True)
 class RunToView:
-    """What the viewer needs of a run.
-
-    Attributes:
-        scenario: The run's scenario.
-        variants: The variants to show, resolved.
-        episodes: The episodes per policy of the run's evaluation.
-    """
+    """What the viewer needs of a run: its scenario, the variants, the evaluation's episodes."""
 
     scenario: Scenario
     variants: list[TrainedVariant]

@@ -26,21 +26,11 @@ from amuled_ma.scenario.sections import (
 
 
 class Scenario(BaseModel):
-    """A whole experiment setup.
+    """A whole experiment setup: one section model per table, plus ``name`` and ``path``.
 
     Built in code it is validated like a file (failure: `ScenarioError`);
-    ``model_copy(update=...)`` copies without validating, `replace` validates.
-
-    Attributes:
-        name: Scenario name (the file stem unless set); one safe path component (`NAME_RULE`).
-        path: The file it was loaded from (None when built in code).
-        task: `TaskConfig`.
-        ppo: `PPOConfig`.
-        base: `BaseConfig`.
-        finetune: `FinetuneConfig`.
-        feedback: `FeedbackConfig`.
-        evaluation: `EvaluationConfig`.
-        output: `OutputConfig`.
+    ``model_copy(update=...)`` copies without validating, `replace` validates. ``name`` names the
+    run folder, so it is one safe path component (`NAME_RULE`).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True)

@@ -36,15 +36,9 @@ class _Model(BaseModel):
 class HeldOut(_Model):
     """Held-out log-likelihood of the participants' choices, K folds over participants.
 
-    Attributes:
-        folds: Folds (each participant's answers are held out once).
-        answers: Answers scored.
-        fixed: Sum of held-out log-likelihoods with the fixed (uniform) prior.
-        learned: The same with the weights fitted on the other folds.
-        fixed_per_answer: ``fixed / answers``.
-        learned_per_answer: ``learned / answers``.
-        difference_low: 2.5% percentile of ``learned - fixed`` over resampled participants.
-        difference_high: 97.5% percentile of the same.
+    ``fixed`` uses the uniform prior, ``learned`` the weights fitted on the other folds;
+    ``difference_low``/``high`` are the 2.5/97.5% percentiles of ``learned - fixed`` over
+    resampled participants.
     """
 
     folds: int = Field(ge=2)
@@ -58,18 +52,7 @@ class HeldOut(_Model):
 
 
 class WeightsProvenance(_Model):
-    """Where fitted weights came from.
-
-    Attributes:
-        study: The study folder, as given.
-        study_sha256: SHA-256 of its ``study.json``.
-        answers_sha256: SHA-256 of the answers used (sorted ``participant,item,choice`` lines).
-        seed: Seed of the bootstrap and the folds.
-        bootstrap: Bootstrap resamples of the participants.
-        keep_inattentive: Whether participants who failed an attention check were kept.
-        fixed_temperature: The choice temperature, when fixed (None: fitted).
-        command: The command that wrote the file.
-    """
+    """Where fitted weights came from (``fixed_temperature`` None: the temperature was fitted)."""
 
     study: str
     study_sha256: str
@@ -82,23 +65,10 @@ class WeightsProvenance(_Model):
 
 
 class PanelWeights(_Model):
-    """A panel weights file (JSON).
+    """A panel weights file (JSON): one non-negative weight per member, not all zero, any scale.
 
-    Attributes:
-        format: `WEIGHTS_FORMAT`.
-        rule: The fusion rule the weights are a prior of (``bjs-dst`` only).
-        meaning: What the weights are, in words.
-        members: The panel members, by name.
-        weights: One non-negative weight per member, not all zero (any scale).
-        low: 2.5% bootstrap percentile of each weight (fitted files).
-        high: 97.5% bootstrap percentile of each weight (fitted files).
-        temperature: The choice model's fitted temperature.
-        temperature_interval: Its 95% bootstrap interval.
-        participants: Participants whose answers were fitted.
-        answers: Pair answers fitted.
-        items: Items with a panel those answers were about.
-        held_out: Held-out log-likelihood, fixed against learned weights.
-        provenance: Where the weights came from.
+    ``low``/``high`` are 2.5/97.5% bootstrap percentiles of fitted weights; ``rule`` is
+    ``bjs-dst`` only.
     """
 
     format: Literal[1] = WEIGHTS_FORMAT

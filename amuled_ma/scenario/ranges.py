@@ -14,14 +14,7 @@ from pydantic import BaseModel
 class Range:
     """The allowed values of a numeric scenario key, read back from its ``Field`` bounds.
 
-    NaN and infinities are never allowed.
-
-    Attributes:
-        low: Smallest allowed value (None: no lower end).
-        high: Largest allowed value (None: no upper end).
-        low_open: Exclude ``low`` itself.
-        high_open: Exclude ``high`` itself.
-        why: The reason for the range, quoted in errors and docs.
+    NaN and infinities are never allowed; ``why`` is quoted in errors and docs.
     """
 
     low: float | None = None

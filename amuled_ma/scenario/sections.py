@@ -119,14 +119,7 @@ def _finite_table(section: str, value: object, info: ValidationInfo) -> object:
 
 
 class TaskConfig(_Section):
-    """The task environment.
-
-    Attributes:
-        name: Task name of `get_task`; also a file name, so one safe path component.
-        seed: Base random seed of the run.
-        max_steps: Episode step limit; 0 keeps the task's own default.
-        options: Keyword options of the task constructor, checked by `task_options`.
-    """
+    """The task: its name, base seed, ``max_steps`` (0: the task's default) and ``options``."""
 
     section: ClassVar[str] = "task"
 
@@ -155,20 +148,8 @@ class TaskConfig(_Section):
 class PPOConfig(_Section):
     """PPO hyperparameters shared by base training and fine-tuning (CleanRL ``ppo.py`` defaults).
 
-    Attributes:
-        hidden_dims: Hidden layer widths of the actor and the critic MLPs.
-        activation: Hidden activation (rsl-rl name).
-        learning_rate: Adam learning rate.
-        anneal_lr: Linearly anneal the learning rate to 0 over the run.
-        gamma: Discount factor.
-        lam: GAE lambda.
-        clip_param: PPO clipping coefficient.
-        entropy_coef: Entropy bonus coefficient.
-        value_loss_coef: Value loss coefficient.
-        max_grad_norm: Gradient clipping norm.
-        num_learning_epochs: Optimisation epochs per iteration.
-        num_mini_batches: Mini-batches per epoch.
-        normalize_advantage_per_mini_batch: Per mini-batch (CleanRL) rather than per rollout.
+    ``activation`` is an rsl-rl name; ``normalize_advantage_per_mini_batch``: per mini-batch
+    (CleanRL) rather than per rollout.
     """
 
     section: ClassVar[str] = "ppo"
@@ -222,14 +203,10 @@ class PPOConfig(_Section):
 
 
 class BaseConfig(_Section):
-    """Base training: ``r = r_env + c * r_shaping``.
+    """Base training: ``r = r_env + c * r_shaping``, ``c`` = ``shaping_coef`` (``base`` uses 0).
 
     Attributes:
         total_steps: Environment steps of the whole run (all copies together).
-        num_envs: Parallel environment copies.
-        num_steps_per_env: Rollout length per copy and iteration.
-        shaping_coef: ``c`` of the ``shaped`` variant (``base`` uses 0).
-        save_interval: Iterations between checkpoints.
         grad_clip: ``"per_network"`` (rsl-rl: actor and critic clipped apart) or ``"joint"``
             (CleanRL, the authors' scripts: one norm over both).
         reshuffle_each_epoch: A new mini-batch partition every epoch (CleanRL), else one per
@@ -265,22 +242,13 @@ class BaseConfig(_Section):
 class FinetuneConfig(_Section):
     """Fine-tuning on fused feedback: ``r = -lambda_kl * KL(pi || pi_base) + f(B)[a]``.
 
+    Epochs, learning rate and annealing override ``[ppo]``; the last three keys are as in
+    ``[base]``.
+
     Attributes:
-        lambda_kl: Weight of the KL anchor to the base policy.
-        iterations: PPO iterations.
-        num_envs: Parallel environment copies.
-        num_steps_per_env: Rollout length per copy and iteration.
-        num_learning_epochs: Optimisation epochs per iteration (overrides ``[ppo]``).
-        learning_rate: Adam learning rate (overrides ``[ppo]``).
-        anneal_lr: Anneal the learning rate (overrides ``[ppo]``).
-        reinit_critic: Re-initialise the critic before fine-tuning.
         env_reward_coef: Weight of the task reward kept in the reward (paper: 0).
-        save_interval: Iterations between checkpoints.
         recipe: The KL anchor: ``"equation"`` (the paper's per-sample
             ``log pi(a|s) - log pi_base(a|s)``) or ``"authors"`` (their scripts'; `learn.anchors`).
-        grad_clip: As ``[base].grad_clip``.
-        reshuffle_each_epoch: As ``[base].reshuffle_each_epoch``.
-        bootstrap_time_outs: As ``[base].bootstrap_time_outs``.
     """
 
     section: ClassVar[str] = "finetune"
@@ -319,12 +287,9 @@ class DistillConfig(_Section):
     """``[feedback.distill]``: LLM feedback on a budget (``docs/distill.md``).
 
     Attributes:
-        enabled: Distil at all (off: the panel answers every state).
         budget: A float in ``(0, 1]``: at most ``max(1, floor(budget x visited))`` distinct
             states are asked; an integer ``>= 1``: at most that many.
-        model: The model's kind (``"mlp"``: an ensemble of MLPs, one softmax head per member).
-        ensemble: Networks in the ensemble (their disagreement is the uncertainty).
-        hidden: Units of each hidden layer.
+        model: ``"mlp"``: an ensemble of ``ensemble`` MLPs, one softmax head per member.
         selection: ``"uncertainty"`` or ``"random"`` (the baseline).
         refit_every: Newly answered states between two refits (first fits after 1, 2, 4, ...).
         holdout: Share of asked states kept out of the fit to measure agreement.
@@ -388,32 +353,21 @@ class FeedbackConfig(_Section):
     """Where beliefs come from and how they are fused.
 
     Attributes:
-        source: Belief source kind: ``replay``, ``ollama`` or ``rules``.
-        recording: Recording file replayed by the ``replay`` source.
-        model: LLM name for the ``ollama`` source.
         host: Ollama server URL; empty: ``$OLLAMA_HOST``, else ``http://127.0.0.1:11434``.
         hosts: A pool of Ollama server URLs instead of ``host`` (``docs/ollama.md``).
-        concurrency: Requests in flight at once.
-        timeout_s: Seconds before one request is abandoned.
         miss_policy: What a replay miss gives: ``uniform``, ``fallback``, ``error`` or
             ``zero`` (reward 0, as the authors' scripts; counted as a miss).
         cluster_recording: The recording the ``clusters`` and ``aggregation`` ablations replay
             when ``recording`` keeps only fused beliefs; empty: ``recording``.
-        store: SQLite belief store (cache of every answer).
-        clusters: Moral clusters of the panel.
-        fusion: Fusion rule of the ``amuled`` variant, a name of `fusion.RULES` (a string:
-            rules can be registered at run time and take a parameter after ``:``).
+        fusion: A name of `fusion.RULES` (a string: rules can be registered at run time).
         weights: A panel weights file (relative to the scenario file): a prior on the
-            ``amuled`` variant's members (`panel_weights`). Empty: the paper's fixed weights.
+            ``amuled`` variant's members. Empty: the paper's fixed weights.
         ollama: Further keyword arguments of `OllamaSource`, checked against its signature.
-        agents: ``{agent: table}`` from ``[feedback.agents.<agent>]``, typed by `AGENT_SPECS`;
-            an agent without a table uses ``source``.
-        clusters_dirs: Folders of user cluster files (relative to the scenario file), loaded
-            after the shipped ones.
+        agents: ``{agent: table}`` from ``[feedback.agents.<agent>]``; an agent without a
+            table uses ``source``.
         max_abstention: The largest share of rewarded steps one agent may leave unanswered
             (judged after 20 distinct states); beyond it the run stops.
         name: The fine-tune's variant name (folder ``finetune-<name>``); empty: the feedback's.
-        distill: ``[feedback.distill]`` (off by default).
     """
 
     section: ClassVar[str] = "feedback"
@@ -533,14 +487,7 @@ class FeedbackConfig(_Section):
 
 
 class EvaluationConfig(_Section):
-    """Evaluation protocol.
-
-    Attributes:
-        episodes: Episodes per policy and mode.
-        seed: Seed of the evaluation episodes (distinct from training seeds).
-        modes: ``greedy`` and/or ``sampled`` action selection.
-        confidence: Confidence level of the reported intervals.
-    """
+    """Evaluation protocol: episodes per policy and mode, seed, modes, confidence level."""
 
     section: ClassVar[str] = "evaluation"
 
@@ -566,12 +513,7 @@ class EvaluationConfig(_Section):
 
 
 class OutputConfig(_Section):
-    """Where runs go.
-
-    Attributes:
-        runs_dir: Folder holding one sub-folder per run.
-        tensorboard: Write TensorBoard event files.
-    """
+    """Where runs go (``runs_dir``, a sub-folder per run); whether TensorBoard files are written."""
 
     section: ClassVar[str] = "output"
 

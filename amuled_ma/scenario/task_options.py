@@ -26,12 +26,10 @@ class _Options(BaseModel):
 
 
 class FindMilkOptions(_Options):
-    """Options of FindMilk.
+    """Options of FindMilk: ``layout`` (``"paper"`` or ``"random"`` each episode), ``tie_break``.
 
-    Attributes:
-        layout: ``"paper"`` (the paper's fixed layout) or ``"random"`` (every episode).
-        tie_break: Which of several equally near babies the observation shows: ``"first"``
-            (smallest ``(x, y)``) or ``"random"`` (the authors' environment).
+    ``tie_break``: which of several equally near babies the observation shows, ``"first"``
+    (smallest ``(x, y)``) or ``"random"`` (the authors' environment).
     """
 
     layout: Literal["paper", "random"] = "paper"
@@ -39,24 +37,14 @@ class FindMilkOptions(_Options):
 
 
 class DrivingOptions(_Options):
-    """Options of Driving-and-Rescuing.
-
-    Attributes:
-        p_car: Probability that a car appears on a step (paper: 0.16).
-        p_grandma: Probability that a grandma appears on a step (paper: 0.09).
-    """
+    """Options of Driving: per-step chances of a car (paper 0.16) and a grandma (paper 0.09)."""
 
     p_car: float = Field(0.16, ge=0, le=1, description="a probability per step")
     p_grandma: float = Field(0.09, ge=0, le=1, description="a probability per step")
 
 
 class SmartGridOptions(_Options):
-    """Options of the smart grid.
-
-    Attributes:
-        households: Households of the grid, the learner first (OpenEI daily profile).
-        offices: Offices of the grid (OpenEI daily profile).
-    """
+    """Options of the smart grid: households (the learner first) and offices (OpenEI profiles)."""
 
     households: int = Field(3, ge=1, le=1000, description="a count of prosumers")
     offices: int = Field(1, ge=0, le=1000, description="a count of prosumers")
