@@ -53,10 +53,7 @@ def base_url() -> str:
 
 
 def cache_folder() -> Path:
-    """Where fetched files are kept: ``<cache root>/authors/<first 12 of the commit>/``.
-
-    The cache root is ``$AMULED_CACHE``, else platformdirs' user cache folder of ``amuled-ma``.
-    """
+    """Where fetched files are kept: ``<cache root>/authors/<commit[:12]>/``."""
     env = os.environ.get(CACHE_ENV)
     if env:
         root = Path(env).expanduser()

@@ -104,10 +104,7 @@ def _depth(item: object) -> int:
 
 @dataclass
 class PickleScan:
-    """What a pickle holds, read from its opcodes alone: globals named, depth and opcodes read.
-
-    Counting stops at ``MAX_DEPTH + 1`` and ``max_opcodes + 1``.
-    """
+    """What a pickle holds, read from its opcodes alone: globals, depth, opcodes read."""
 
     globals: list[str]
     depth: int

@@ -339,10 +339,7 @@ def welch(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
 
 
 def welch_t(a: list[float], b: list[float]) -> tuple[float, float | None]:
-    """Welch's t of ``mean(b) - mean(a)`` and its two-sided p (``scipy.stats.ttest_ind``).
-
-    Without any variance the p is None (the difference is 0 or infinitely many standard errors).
-    """
+    """Welch's t of ``mean(b) - mean(a)`` and its two-sided p (None without variance)."""
     from scipy import stats
 
     if max(a) == min(a) and max(b) == min(b):

@@ -1,7 +1,4 @@
-"""``amuled beliefs stats|export|import``: inspect and move the persistent belief store.
-
-``stats`` and ``export`` open the store read-only; import refuses non-standard JSON.
-"""
+"""``amuled beliefs stats|export|import``: inspect and move the persistent belief store."""
 
 from __future__ import annotations
 

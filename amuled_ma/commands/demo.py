@@ -215,10 +215,7 @@ def demo_scenario(
 
 
 def missing_recording(task: str, *, offline: bool = False) -> str | None:
-    """One line when the demo's recording is missing here (after trying to fetch it), else None.
-
-    Nothing is fetched with ``offline`` or ``$AMULED_OFFLINE=1``.
-    """
+    """One line when the demo's recording is missing and cannot be fetched, else None."""
     from amuled_ma.authors.download import ensure_recordings, replayed_recordings
     from amuled_ma.errors import AmuledError
     from amuled_ma.scenario import load_scenario
@@ -243,10 +240,7 @@ def missing_recording(task: str, *, offline: bool = False) -> str | None:
 
 
 def fetch_authors_base(task: str, *, offline: bool = False) -> Path | None:
-    """The authors' published base the demo's fine-tunes start from; fetched when missing.
-
-    None (said in one line) when it cannot be had: the fine-tunes start from the run's own base.
-    """
+    """The authors' base for the demo's fine-tunes, fetched if missing (None: the run's)."""
     from amuled_ma.authors.download import ensure_authors_base
     from amuled_ma.errors import AmuledError
     from amuled_ma.scenario import load_scenario
@@ -415,10 +409,7 @@ def _run_pipeline(
 
 
 def write_demo_view(run_dir: Path) -> Path | None:
-    """Write ``RUN_DIR/view-episode0.html`` of the AMULED fine-tune and link it from the report.
-
-    Returns None when it could not be written (the reason is printed).
-    """
+    """Write ``view-episode0.html`` of the AMULED fine-tune, linked from the report."""
     from amuled_ma.errors import AmuledError
     from amuled_ma.evaluate.report import link_viewer
     from amuled_ma.evaluate.viewer import write_view

@@ -1,8 +1,4 @@
-"""``amuled explain``: one state in the terminal, the panel's beliefs and how they were fused.
-
-The command parses and prints; the explanation is `evaluate.explain`'s. Without
-``--run-dir`` nothing is written.
-"""
+"""``amuled explain``: one state, the panel's beliefs and how they were fused."""
 
 from __future__ import annotations
 

@@ -1,7 +1,4 @@
-"""Feedback built from a panel plan behind a given belief store; the preflight of a plan.
-
-`preflight` builds and checks every member's source without a store and writes nothing.
-"""
+"""Feedback built from a panel plan behind a given belief store; the plan's preflight."""
 
 from __future__ import annotations
 

@@ -33,10 +33,7 @@ ACTOR = "actor"
 
 
 def project_to_simplex(v: npt.ArrayLike) -> np.ndarray:
-    """Euclidean projection onto the probability simplex (Wang & Carreira-Perpiñán 2013).
-
-    A vector with NaN or inf maps to the uniform belief (a broken policy must not crash the env).
-    """
+    """Euclidean projection onto the probability simplex; NaN or inf gives uniform."""
     v = np.asarray(v, dtype=np.float64).reshape(-1)
     n = v.size
     if n == 0:

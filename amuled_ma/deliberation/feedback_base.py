@@ -253,10 +253,7 @@ class Feedback(ABC):
         return (total - answered) / total if total else 0.0
 
     def summary(self) -> dict[str, Any]:
-        """Diagnostics so far, JSON-ready (``feedback.json``, ``results.json``).
-
-        ``mean_entropy_share`` per agent is the Shannon entropy of its belief / log2(action count).
-        """
+        """Diagnostics so far, JSON-ready (``feedback.json``, ``results.json``)."""
         total = sum(self.statuses.values())
         n = max(1, self._diag_count)
         out = {

@@ -111,10 +111,7 @@ class BatchedDeliberation:
     def step(
         self, actions: torch.Tensor, fused: npt.ArrayLike | torch.Tensor | None = None
     ) -> DeliberationStep:
-        """Read the fused beliefs of the current states, step the task, reward the actor.
-
-        ``fused`` given by the caller replaces asking `feedback`.
-        """
+        """Read the fused beliefs (``fused``, else asked), step the task, reward."""
         if fused is None:
             fused = self.beliefs()
         elif not isinstance(fused, torch.Tensor):

@@ -143,10 +143,7 @@ class PanelFeedback(Feedback):
 
 
 def entropy_shares(beliefs: np.ndarray) -> np.ndarray:
-    """Each belief's Shannon entropy as a share of the largest possible (1 uniform, 0 one action).
-
-    Over singletons Deng entropy is Shannon entropy, so this is what the fusion weighs.
-    """
+    """Each belief's Shannon entropy / log2(A): 1 for uniform, 0 for one action."""
     p = np.clip(np.asarray(beliefs, dtype=np.float64), 0.0, None)
     logs = np.log2(p, out=np.zeros_like(p), where=p > 0)
     return -(p * logs).sum(axis=-1) / np.log2(p.shape[-1])

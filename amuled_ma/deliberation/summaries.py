@@ -62,11 +62,7 @@ FLAT_ENTROPY = 0.95
 
 
 def readings(summary: Mapping[str, Any]) -> list[str]:
-    """One sentence on what each figure of a feedback summary means for the result.
-
-    Each sentence is present exactly when its condition holds (`REPAIRED_MAJORITY`,
-    `TV_CLOSE`, `TV_FAR`, `FLAT_ENTROPY`).
-    """
+    """One sentence per figure of a feedback summary that tells about the result."""
     out: list[str] = []
     for agent, row in (summary.get("agents") or {}).items():
         answered = row.get("ok", 0) + row.get("repaired", 0)

@@ -1,9 +1,4 @@
-"""Run a graph of training jobs, in this process or on Ray.
-
-One worker and no ``--ray``: one job after the other in this process; otherwise on Ray.
-Every job is single-threaded, so ``workers`` = CPU cores fills the machine; fine-tunes share
-the SQLite belief store (WAL: safe across one machine's processes).
-"""
+"""Run a graph of training jobs, in this process (one worker, no ``--ray``) or on Ray."""
 
 from __future__ import annotations
 

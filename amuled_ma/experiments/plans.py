@@ -1,8 +1,4 @@
-"""Experiments: the paper's pipeline and ablations, as resumable jobs over a run directory.
-
-`plan_run` and `plan_ablation` list the jobs, `plan_jobs` plans each once before any folder
-exists, `prepare_job` builds a planned job's feedback and writes its record.
-"""
+"""Experiments: the paper's pipeline and ablations as resumable, planned jobs."""
 
 from __future__ import annotations
 

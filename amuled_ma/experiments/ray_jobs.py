@@ -94,10 +94,7 @@ def _first_line(error: BaseException) -> str:
 
 
 def _restore_sigterm(previous: _Handler) -> None:
-    """Put back the SIGTERM handler ``ray.init`` replaced, at the C level.
-
-    Ray's core worker handler would abort (exit 134) with no checkpoint.
-    """
+    """Put back the SIGTERM handler ``ray.init`` replaced (Ray's aborts, no checkpoint)."""
     if previous is None or threading.current_thread() is not threading.main_thread():
         return  # not set from Python (nothing to put back), or not ours to set
     signal.signal(signal.SIGTERM, previous)

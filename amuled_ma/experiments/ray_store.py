@@ -50,10 +50,7 @@ class BeliefStoreActor:
 
 
 class RemoteStore:
-    """A job's stand-in for the driver's store: each call goes to the store's actor.
-
-    A lost actor raises a one-line `AmuledError`; the job stops, keeping its checkpoint.
-    """
+    """A job's stand-in for the driver's store; a lost actor is a one-line `AmuledError`."""
 
     def __init__(self, actor: Any) -> None:
         self.actor = actor

@@ -1,7 +1,4 @@
-"""Ray's import-time switches: a local Ray on loopback only, the driver's SIGTERM kept.
-
-Ray reads both environment variables once, when it is imported.
-"""
+"""Ray's import-time switches: a local Ray on loopback only, the driver's SIGTERM kept."""
 
 from __future__ import annotations
 

@@ -62,10 +62,7 @@ Action = Literal["new", "resume", "skip"]
 
 @dataclass(frozen=True)
 class Rerun:
-    """The command that re-runs a graph, as fields: ``amuled COMMAND ARGS --run-dir DIR OPTIONS``.
-
-    ``options`` leaves ``--name`` aside; ``name`` is a fine-tune's ``--name`` (None: not given).
-    """
+    """The command that re-runs a graph: ``amuled COMMAND ARGS --run-dir DIR OPTIONS``."""
 
     command: str
     args: tuple[str, ...]

@@ -1,7 +1,4 @@
-"""Third-party warnings and log records go to a log file, not into a command's output.
-
-Only logging configuration; used as a library, nothing here is active.
-"""
+"""Third-party warnings and log records go to a log file, not a command's output."""
 
 from __future__ import annotations
 
@@ -41,11 +38,7 @@ class _LazyFileHandler(logging.FileHandler):
 
 @contextlib.contextmanager
 def third_party_to_log(path: Path | None = None) -> Iterator[Path]:
-    """Send warnings and third-party log records to ``path`` for the ``with`` block.
-
-    Yields:
-        The log file's path (written only if something is logged).
-    """
+    """Send warnings and third-party records to ``path`` for the block; yields that path."""
     global _HANDLER
     path = Path(path) if path is not None else log_path()
     handler = _LazyFileHandler(path, delay=True, encoding="utf-8")

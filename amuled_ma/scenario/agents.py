@@ -1,8 +1,4 @@
-"""``[feedback.agents.<name>]`` and a cluster file's ``[source]``: typed agent source specs.
-
-A pydantic discriminated union on ``source``; `AGENT_SPECS` is the one registry of the
-kinds a table may name. The models import no domain package.
-"""
+"""``[feedback.agents.<name>]`` and cluster ``[source]`` tables as typed source specs."""
 
 from __future__ import annotations
 

@@ -107,10 +107,7 @@ MAX_TOML_DEPTH = 32
 
 
 def nesting_depth(text: str) -> int:
-    """The deepest nesting of ``[``/``{`` in TOML text, outside strings and comments.
-
-    Linear-time and rough, to refuse a deeply nested file before the TOML reader recurses.
-    """
+    """The deepest ``[``/``{`` nesting of TOML text outside strings (rough, linear)."""
     depth = deepest = 0
     quote = ""
     i, n = 0, len(text)

@@ -1,7 +1,4 @@
-"""Error rendering: pydantic's ``ValidationError`` as one scenario error line.
-
-The section models register themselves in `SECTIONS` (this module imports no model).
-"""
+"""Error rendering: pydantic's ``ValidationError`` as one scenario error line."""
 
 from __future__ import annotations
 

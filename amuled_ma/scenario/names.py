@@ -1,8 +1,4 @@
-"""Names people choose (moral clusters, credence labels): which characters, which identity.
-
-`odd_character` refuses characters that print as nothing or change another's look;
-`identity_key` compares names by their UTS #39 skeleton.
-"""
+"""Names people choose (clusters, credence labels): allowed characters and identity."""
 
 from __future__ import annotations
 

@@ -12,10 +12,7 @@ from pydantic import BaseModel
 
 @dataclass(frozen=True)
 class Range:
-    """The allowed values of a numeric scenario key, read back from its ``Field`` bounds.
-
-    NaN and infinities are never allowed; ``why`` is quoted in errors and docs.
-    """
+    """The allowed values of a numeric scenario key (never NaN or inf)."""
 
     low: float | None = None
     high: float | None = None
@@ -82,10 +79,7 @@ def _item_field(annotation: Any) -> Any:
 
 
 def field_range(model: type[BaseModel], key: str) -> Range | None:
-    """The range of a numeric key (of each entry, for a list), its ``description`` as the reason.
-
-    None for a key without bounds.
-    """
+    """The range of a numeric key (each entry's, for a list); None without bounds."""
     info = model.model_fields[key]
     item = _item_field(info.annotation)
     if item is not None:

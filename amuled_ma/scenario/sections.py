@@ -1,7 +1,4 @@
-"""The sections of a scenario file, one frozen, strict pydantic v2 model per table.
-
-Ranges are declared on each field; errors become one line by `scenario_error`.
-"""
+"""The sections of a scenario file, one frozen, strict pydantic v2 model per table."""
 
 from __future__ import annotations
 
