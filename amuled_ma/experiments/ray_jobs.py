@@ -338,10 +338,6 @@ def train_group(
 
     ``inputs`` are packed folders for a node without the driver's files (None: a local Ray);
     ``stores`` map belief store paths to their actors on the driver's node.
-
-    Returns:
-        The results by name, the node id, whether it sees the driver's files, the folders
-        packed when shipped, and a line per job that failed alone in its population.
     """
     import torch
 
