@@ -28,7 +28,7 @@ from amuled_ma.scenario import MORAL_AGENT  # our field (and exchange agent) for
 AUTHORS_CLUSTERS = ("consequentialist", "deontologist", "virtue", "care", "social justice")
 #: The authors' key of the unprompted "behave as a moral agent" answer.
 MORAL_KEY = "moral"
-#: Keys a cache entry may hold besides the clusters and :data:`MORAL_KEY`.
+#: Keys a cache entry may hold besides the clusters and `MORAL_KEY`.
 ENTRY_KEYS = ("rewards", "error", "response")
 #: Our task name -> the name written in a recording's ``task``.
 TASK_TITLES = {"findmilk": "FindMilk", "driving": "Driving"}

@@ -31,9 +31,9 @@ if TYPE_CHECKING:
 
 #: Set to 1 (or true, yes, on) to never fetch, as ``--offline``.
 OFFLINE_ENV = "AMULED_OFFLINE"
-#: Replaces :data:`~amuled_ma.authors.pinned.RAW_BASE` (a mirror; the tests' loopback server).
+#: Replaces `RAW_BASE` (a mirror; the tests' loopback server).
 URL_ENV = "AMULED_AUTHORS_URL"
-#: Replaces the cache root (shared with the Ollama server's state, :mod:`amuled_ma.llm_server`).
+#: Replaces the cache root (shared with the Ollama server's state, `amuled_ma.llm_server`).
 CACHE_ENV = "AMULED_CACHE"
 #: Seconds to connect, and between two reads of a download, before it is abandoned.
 CONNECT_TIMEOUT_S = 10.0
@@ -158,7 +158,7 @@ class _CappedFile:
 
 
 def _downloader(pin: PinnedFile) -> Callable[[str, str, object], None]:
-    """Pooch's HTTP downloader, writing through :class:`_CappedFile` (``pin.size`` at most)."""
+    """Pooch's HTTP downloader, writing through `_CappedFile` (``pin.size`` at most)."""
     import pooch
 
     http = pooch.HTTPDownloader(progressbar=False, timeout=(CONNECT_TIMEOUT_S, READ_TIMEOUT_S))

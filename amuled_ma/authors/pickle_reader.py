@@ -17,10 +17,10 @@ from typing import Any, NoReturn, TypeVar
 import numpy as np
 
 #: Most memory the values read from one file may take [bytes per byte of the file], plus
-#: :data:`MEMORY_SLACK_BYTES`: the 1.95 MB cache grows the process by about 57 MB (29 per
-#: byte); checked on the resident set every :data:`MEMORY_CHECK_EVERY` opcodes.
+#: `MEMORY_SLACK_BYTES`: the 1.95 MB cache grows the process by about 57 MB (29 per
+#: byte); checked on the resident set every `MEMORY_CHECK_EVERY` opcodes.
 MEMORY_PER_BYTE = 64
-#: Memory allowed on top of :data:`MEMORY_PER_BYTE` times the file's size [bytes].
+#: Memory allowed on top of `MEMORY_PER_BYTE` times the file's size [bytes].
 MEMORY_SLACK_BYTES = 64 * 2**20
 #: Opcodes between two looks at the process's resident memory (and at the opcode budget).
 MEMORY_CHECK_EVERY = 2**15
@@ -104,7 +104,7 @@ def _ndarray(*_args: object) -> NoReturn:
 
 
 def _checked_dtype(dtype: object) -> np.dtype:
-    """``dtype`` if it is a plain numeric dtype (:data:`ALLOWED_DTYPE_KINDS`), else refuse."""
+    """``dtype`` if it is a plain numeric dtype (`ALLOWED_DTYPE_KINDS`), else refuse."""
     if not isinstance(dtype, np.dtype):
         raise PickleRefused(f"a dtype that is not a numpy dtype ({type(dtype).__name__})")
     if (
@@ -178,7 +178,7 @@ def _check_key(key: object) -> None:
 
 
 class _KeyWork:
-    """The key work left to one file (:data:`MAX_KEY_WORK`), spent before a key is hashed."""
+    """The key work left to one file (`MAX_KEY_WORK`), spent before a key is hashed."""
 
     __slots__ = ("left", "limit")
 
@@ -196,7 +196,7 @@ class _KeyWork:
 
 
 class _HashCounter:
-    """Keys of one dict or set by hash value: refuses more than :data:`MAX_EQUAL_HASHES`."""
+    """Keys of one dict or set by hash value: refuses more than `MAX_EQUAL_HASHES`."""
 
     __slots__ = ("counts", "owner", "work")
 
@@ -582,7 +582,7 @@ def too_many_opcodes(limit: int) -> str:
 
 
 def _nothing(_arg: object) -> None:
-    """``FRAME``: framing only groups opcodes; :func:`pickletools.genops` reads through it."""
+    """``FRAME``: framing only groups opcodes; `pickletools.genops` reads through it."""
 
 
 def _resident_bytes() -> int:

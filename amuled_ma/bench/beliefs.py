@@ -68,7 +68,7 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _live(args: argparse.Namespace) -> int:
-    """Measure a live Ollama server (the hook: :func:`amuled_ma.bench._live.run_live`)."""
+    """Measure a live Ollama server (the hook: `amuled_ma.bench._live.run_live`)."""
     from amuled_ma.bench._live import run_live
 
     host = args.host or os.environ.get("OLLAMA_HOST") or "http://127.0.0.1:11434"

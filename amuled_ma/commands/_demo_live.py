@@ -142,7 +142,7 @@ def _plain(value: object) -> Any:
 
 
 def live_section(leg: dict[str, Any]) -> list[str]:
-    """The report's live-leg section (:data:`LIVE_HEADING`), from :func:`live_leg`'s data."""
+    """The report's live-leg section (`LIVE_HEADING`), from `live_leg`'s data."""
     actions = leg["actions"]
     lines = [
         LIVE_HEADING,

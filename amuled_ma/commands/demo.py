@@ -30,7 +30,7 @@ if TYPE_CHECKING:
     from amuled_ma.scenario import Scenario
 
 #: The demo's tasks; each runs the shipped scenario ``<task>-demo``
-#: (``scenarios/<task>-demo.toml``, :func:`demo_scenario`).
+#: (``scenarios/<task>-demo.toml``, `demo_scenario`).
 DEMO_TASKS: tuple[str, ...] = ("driving", "findmilk")
 
 #: Request slots of the demo's private server (``OLLAMA_NUM_PARALLEL``). Each slot keeps
@@ -260,7 +260,7 @@ def fetch_authors_base(task: str, *, offline: bool = False) -> Path | None:
         return None
 
 
-#: How the report's summary of every variant against the paper starts (:func:`put_summary`).
+#: How the report's summary of every variant against the paper starts (`put_summary`).
 SUMMARY_HEADING = "## Every variant beside the paper"
 
 

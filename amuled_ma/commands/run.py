@@ -107,7 +107,7 @@ QUICK_SUFFIX = "-quick"
 
 
 def add_quick_arg(parser: argparse.ArgumentParser) -> None:
-    """Add ``--quick``: the short form of the experiment (:data:`QUICK_SETTINGS`)."""
+    """Add ``--quick``: the short form of the experiment (`QUICK_SETTINGS`)."""
     base, iterations = (
         QUICK_SETTINGS[("base", "total_steps")],
         QUICK_SETTINGS[("finetune", "iterations")],
@@ -228,7 +228,7 @@ def ray_target(args: argparse.Namespace) -> RayTarget | None:
 
 
 def request_of(args: argparse.Namespace, command: str, *extra: str) -> PipelineRequest:
-    """The :class:`~amuled_ma.pipeline.PipelineRequest` of ``amuled run`` or ``ablate``."""
+    """The `PipelineRequest` of ``amuled run`` or ``ablate``."""
     from amuled_ma.pipeline import PipelineRequest
 
     scenario = common.load(args)

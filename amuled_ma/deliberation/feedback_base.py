@@ -45,7 +45,7 @@ class Feedback(ABC):
 
     #: Variant name (``amuled``, ``human``, ``cluster:care``, ...).
     name: str = "feedback"
-    #: The panel plan it was built from (:func:`~amuled_ma.deliberation.build.build_feedback`
+    #: The panel plan it was built from (`build_feedback`
     #: sets it); None for a feedback built directly.
     plan: PanelPlan | None = None
 

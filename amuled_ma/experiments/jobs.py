@@ -62,7 +62,7 @@ def _asks_live(job: TrainJob) -> bool:
 
 
 def check_order(jobs: Sequence[TrainJob]) -> None:
-    """Raise :class:`AmuledError` on duplicate names or a need that is not in the graph."""
+    """Raise `AmuledError` on duplicate names or a need that is not in the graph."""
     names = [j.name for j in jobs]
     if len(set(names)) != len(names):
         raise AmuledError(f"duplicate job names in {names}")
@@ -76,7 +76,7 @@ def check_order(jobs: Sequence[TrainJob]) -> None:
 
 # ------------------------------------------------------------------ parent side
 def uses_ray(jobs: Sequence[TrainJob], workers: int, ray: RayTarget | None) -> bool:
-    """Whether :func:`run_jobs` trains ``jobs`` on Ray (else in this process)."""
+    """Whether `run_jobs` trains ``jobs`` on Ray (else in this process)."""
     return not (ray is None and (workers <= 1 or len(jobs) <= 1))
 
 

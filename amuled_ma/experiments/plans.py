@@ -51,7 +51,7 @@ LEARNED_WEIGHTS_LABEL = "amuled-learned-weights"
 KL_SWEEP = (0.0, 0.5, 1.0, 2.5, 5.0, 10.0)
 #: The budgets of the ``budget`` ablation: shares of the distinct states visited that the
 #: panel is asked about (``[feedback.distill].budget``); 100% is asked once, the others
-#: with each of :data:`BUDGET_SELECTIONS`.
+#: with each of `BUDGET_SELECTIONS`.
 BUDGET_SWEEP = (1.0, 0.3, 0.1, 0.03)
 #: The selections of the ``budget`` ablation (``[feedback.distill].selection``).
 BUDGET_SELECTIONS = ("uncertainty", "random")

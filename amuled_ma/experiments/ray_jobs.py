@@ -262,7 +262,7 @@ def pack(folder: Path) -> bytes:
 
 
 def unpack(data: bytes, folder: Path) -> None:
-    """Write the files of a :func:`pack` archive into ``folder`` (created if needed)."""
+    """Write the files of a `pack` archive into ``folder`` (created if needed)."""
     folder.mkdir(parents=True, exist_ok=True)
     with tarfile.open(fileobj=io.BytesIO(data), mode="r") as archive:
         archive.extractall(folder, filter="data")
@@ -317,7 +317,7 @@ def _report(board: Any) -> Callable[[Any, int], None]:
     return on_iteration
 
 
-#: What :func:`train_group` returns: results by job name, node id, whether the node sees
+#: What `train_group` returns: results by job name, node id, whether the node sees
 #: the driver's files, the packed folders, the lines of jobs that failed alone.
 GroupReturn = tuple[dict[str, JobResult], str, bool, dict[str, bytes], list[str]]
 
@@ -485,7 +485,7 @@ def _sweep(
     resource: str | None,
     ship_files: bool | None,
 ) -> dict[str, JobResult]:
-    """:func:`run_on_ray` once connected: submit, wait, stop on a signal, clean up."""
+    """`run_on_ray` once connected: submit, wait, stop on a signal, clean up."""
     from tqdm.auto import tqdm
 
     terms = _count_sigterms()

@@ -28,13 +28,13 @@ class BeliefStoreActor:
         self.calls = {"lookup": 0, "put_many": 0, "keys_looked_up": 0, "rows_written": 0}
 
     def lookup(self, keys: list[str]) -> dict[str, Any]:
-        """:meth:`BeliefStore.lookup` of ``keys``."""
+        """`BeliefStore.lookup` of ``keys``."""
         self.calls["lookup"] += 1
         self.calls["keys_looked_up"] += len(keys)
         return self.store.lookup(keys)
 
     def put_many(self, items: list[tuple]) -> int:
-        """:meth:`BeliefStore.put_many` of ``items``; return the rows written."""
+        """`BeliefStore.put_many` of ``items``; return the rows written."""
         written = self.store.put_many(items)
         self.calls["put_many"] += 1
         self.calls["rows_written"] += written
@@ -79,7 +79,7 @@ class RemoteStore:
 
 
 def start_store_actors(paths: Iterable[Path]) -> dict[str, Any]:
-    """Start one :class:`BeliefStoreActor` per store file, on this (the driver's) node."""
+    """Start one `BeliefStoreActor` per store file, on this (the driver's) node."""
     here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
     # mypy types a @ray.remote class as the class, not Ray's ActorClass with .options
     actor = BeliefStoreActor.options  # type: ignore[attr-defined]

@@ -8,18 +8,18 @@ import sys
 from collections.abc import Iterator
 
 #: Ray's switch between a one-machine Ray, whose processes listen on loopback only, and a
-#: cluster node; Ray reads it once, when it is imported (:func:`prefer_loopback`).
+#: cluster node; Ray reads it once, when it is imported (`prefer_loopback`).
 SINGLE_MACHINE_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
 
 
 #: Ray's switch for its C++ failure-signal handler, read once, when Ray is imported
-#: (:func:`keep_sigterm`).
+#: (`keep_sigterm`).
 FAILURE_HANDLER_ENV = "RAY_DISABLE_FAILURE_SIGNAL_HANDLER"
 
 
 #: Ray's switch for how long a node started by this process drains on a SIGTERM before
 #: it kills its processes (default 30 s), read once, when Ray is imported
-#: (:func:`keep_sigterm`).
+#: (`keep_sigterm`).
 DRAIN_ENV = "RAY_GRACEFUL_SHUTDOWN_DRAIN_TIMEOUT_S"
 
 

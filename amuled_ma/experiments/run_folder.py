@@ -70,7 +70,7 @@ class Rerun:
     name: str | None = None
 
     def line(self, run_dir: Path, *more: str, name: str | None = None) -> str:
-        """The shell command into ``run_dir`` (``name`` instead of :attr:`name`), ``more`` added."""
+        """The shell command into ``run_dir`` (``name`` instead of `name`), ``more`` added."""
         name = name or self.name
         named = ("--name", name) if name else ()
         words = ["amuled", self.command, *self.args, "--run-dir", str(run_dir)]

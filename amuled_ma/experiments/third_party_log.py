@@ -14,7 +14,7 @@ LOG_ENV = "AMULED_LOG"
 
 #: The file handler of the command running now (None: no command line, leave logging be).
 _HANDLER: logging.Handler | None = None
-#: Ray's terminal handlers :func:`ray_to_log` took away, given back after the command.
+#: Ray's terminal handlers `ray_to_log` took away, given back after the command.
 _RAY_HANDLERS: list[logging.Handler] = []
 
 

@@ -15,7 +15,7 @@ from amuled_ma.variants import Variant
 if TYPE_CHECKING:
     from amuled_ma.deliberation.plan import PanelPlan
 
-#: Scenario keys left out of :func:`training_config`: paths, logging and service keys, the
+#: Scenario keys left out of `training_config`: paths, logging and service keys, the
 #: seed (the job's own seed is kept) and the run's length (kept as ``"iterations"``: a
 #: resume may lengthen a run).
 NOT_LEARNED = {

@@ -99,7 +99,7 @@ def check_weights_file(scenario: Scenario) -> tuple[float, ...] | None:
 #: Most characters a scenario file may hold (a shipped one holds about 10,000).
 MAX_SCENARIO_CHARS = 1_000_000
 #: Largest scenario file read [bytes]: UTF-8 holds a character in at most 4 bytes, so no
-#: file within :data:`MAX_SCENARIO_CHARS` is refused by its size, and a 2 GB file is
+#: file within `MAX_SCENARIO_CHARS` is refused by its size, and a 2 GB file is
 #: refused before it is read.
 MAX_SCENARIO_BYTES = 4 * MAX_SCENARIO_CHARS
 #: Most levels of ``[`` / ``{`` nesting a scenario value may have.

@@ -17,7 +17,7 @@ MAX_ENV_STEPS = 10**10
 MEMORY_FRACTION = 0.5
 
 #: Estimated bytes of one stored rollout transition: the observation (up to
-#: :data:`ASSUMED_OBS_DIM` floats), PPO's per-step buffers (action, reward, done, value,
+#: `ASSUMED_OBS_DIM` floats), PPO's per-step buffers (action, reward, done, value,
 #: log-probability, return, advantage, the action distribution), the fused beliefs of
 #: fine-tuning and a mini-batch's forward and backward activations, times a safety factor.
 BYTES_PER_TRANSITION = 4096

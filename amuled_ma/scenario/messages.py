@@ -16,7 +16,7 @@ from amuled_ma.scenario.ranges import found_name as _found_name
 from amuled_ma.scenario.ranges import kind as _kind
 
 #: The section models by table name, in the order of a scenario file (filled by
-#: :mod:`amuled_ma.scenario.sections`).
+#: `amuled_ma.scenario.sections`).
 SECTIONS: dict[str, type[BaseModel]] = {}
 
 

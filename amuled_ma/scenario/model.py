@@ -1,4 +1,4 @@
-"""The whole scenario (:class:`Scenario`): its sections, its paths, its overrides."""
+"""The whole scenario (`Scenario`): its sections, its paths, its overrides."""
 
 from __future__ import annotations
 

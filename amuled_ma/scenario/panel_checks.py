@@ -11,8 +11,8 @@ from amuled_ma.errors import ScenarioError
 from amuled_ma.scenario.names import identity_key, odd_character
 
 #: The fusion rules a scenario may name, and whether each takes a parameter after ``:``:
-#: the rules :mod:`amuled_ma.fusion` ships, and every rule registered since
-#: (:func:`amuled_ma.fusion.register_rule` calls :func:`allow_fusion_rule`;
+#: the rules `amuled_ma.fusion` ships, and every rule registered since
+#: (`amuled_ma.fusion.register_rule` calls `allow_fusion_rule`;
 #: ``tests/test_scenario_panel_checks.py`` holds the two equal).
 _FUSION_RULES: dict[str, bool] = {
     "bjs-dst": False,
@@ -26,7 +26,7 @@ _FUSION_RULES: dict[str, bool] = {
     "borda": False,
 }
 FUSION_RULES: Mapping[str, bool] = MappingProxyType(_FUSION_RULES)
-#: The rules of :data:`FUSION_RULES` that take a member prior (``[feedback].weights``):
+#: The rules of `FUSION_RULES` that take a member prior (``[feedback].weights``):
 #: ``bjs-dst`` multiplies Xiao's credibility by it, the moral-uncertainty rules read it as
 #: their credences (registered with ``takes_prior``; the same test holds the two equal).
 _PRIOR_RULES: set[str] = {"bjs-dst", "mec", "nash-vote", "variance-vote", "borda"}
@@ -50,7 +50,7 @@ def forget_fusion_rule(name: str) -> None:
 
 
 def prior_rules() -> tuple[str, ...]:
-    """The fusion rules that take a member prior, in the order of :data:`FUSION_RULES`."""
+    """The fusion rules that take a member prior, in the order of `FUSION_RULES`."""
     return tuple(n for n in FUSION_RULES if n in _PRIOR_RULES)
 
 

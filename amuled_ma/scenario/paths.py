@@ -12,7 +12,7 @@ from amuled_ma.scenario.ranges import found_name as _found_name
 #: Longest name accepted as a path component.
 MAX_NAME_LENGTH = 100
 
-#: What :func:`check_path_component` allows, quoted in its errors.
+#: What `check_path_component` allows, quoted in its errors.
 NAME_RULE = (
     f"1 to {MAX_NAME_LENGTH} characters; no '/', '\\', ':' or '..'; no control "
     "characters; not starting with '.' or '-'; no leading or trailing space"

@@ -68,8 +68,8 @@ _WEIGHT_WHY = "a weight; negative flips the term's sign"
 
 #: The validation context (``{"source": <file or override>}``) of the scenario being
 #: validated. pydantic passes ``model_validate``'s context to validators but calls a model's
-#: own ``__init__`` (the section models have one) without it, so :func:`validate_model` also
-#: sets it here for :func:`_init` to pass on (the pattern of pydantic's documentation,
+#: own ``__init__`` (the section models have one) without it, so `validate_model` also
+#: sets it here for `_init` to pass on (the pattern of pydantic's documentation,
 #: "Using validation context with BaseModel initialization").
 _CONTEXT: ContextVar[dict[str, str] | None] = ContextVar("amuled_scenario_context", default=None)
 
