@@ -239,8 +239,8 @@ class BaseConfig(_Section):
 class FinetuneConfig(_Section):
     """Fine-tuning on fused feedback: ``r = -lambda_kl * KL(pi || pi_base) + f(B)[a]``.
 
-    Epochs, learning rate and annealing override ``[ppo]``; the last three keys are as in
-    ``[base]``.
+    Epochs, learning rate and annealing override ``[ppo]``; ``grad_clip``,
+    ``reshuffle_each_epoch`` and ``bootstrap_time_outs`` are as in ``[base]``.
 
     Attributes:
         env_reward_coef: Weight of the task reward kept in the reward (paper: 0).
