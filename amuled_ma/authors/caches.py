@@ -1,29 +1,10 @@
-"""Convert the authors' LLM-cache pickles into our recording JSON format.
+"""Convert the authors' LLM-cache pickles into our recording JSON format (``docs/authors.md``).
 
-The AMULED authors (``temetski/moral_agent``) cached every LLM answer of their fine-tuning
-runs in ``models/<Env>_42/<model>_llm_cache.pickle``: a dict keyed by the flattened
-observation (a tuple of numpy scalars) whose values hold one belief array per moral
-cluster (``consequentialist``, ``deontologist``, ``virtue``, ``care``, ``social justice``),
-the unprompted ``moral`` answer, the fused belief ``rewards`` (``{frozenset({'0'}): p0,
-...}``) and, where their reply parser had to repair an answer, ``error: True`` with the six
-raw replies under ``response`` (``{prompt: reply}``). ``PickleCacheAndBaseModels/Drive``
-holds an older Driving cache with the fused belief only.
-
-:func:`convert_cache` turns one such file into the recording format read by
-:class:`~amuled_ma.beliefs.sources.replay.Recording` (see ``docs/authors.md``)::
-
-    {"task": "FindMilk", "model": "gpt-4o-mini", "clusters": [...], "actions": [...],
-     "obs_layout": [...],
-     "states": [{"obs": [...], "beliefs": {cluster: [...]} | null, "moral_agent": [...] | null,
-                 "fused_by_reference": [...], "error": false,
-                 "exchanges": [{"agent", "prompt", "response"}]}]}   # only with raw replies
-
-States keep the file's order. No value is changed: numbers are written as the float64
-value of the pickled numpy scalar. A state whose fused belief is all zero (the authors'
-fusion found total conflict) is kept, with ``"total_conflict": true``; a cluster belief
-that is not a probability vector (:func:`~amuled_ma.beliefs.replies.validate.check_belief`) is
-written as ``null`` (not recorded) with the reason under ``"invalid_beliefs"``, so the file
-always loads.
+The authors' cache is keyed by the flattened observation; each value holds a belief per
+moral cluster, the unprompted ``moral`` answer, the fused ``rewards`` and, where their parser
+repaired an answer, ``error: True`` with the raw replies. No value is changed (float64 of the
+pickled scalar); an all-zero fused belief is kept with ``"total_conflict": true``; a cluster
+belief that is not a probability vector is written as ``null`` with its reason.
 """
 
 from __future__ import annotations
@@ -47,7 +28,7 @@ from amuled_ma.scenario import MORAL_AGENT  # our field (and exchange agent) for
 AUTHORS_CLUSTERS = ("consequentialist", "deontologist", "virtue", "care", "social justice")
 #: The authors' key of the unprompted "behave as a moral agent" answer.
 MORAL_KEY = "moral"
-#: Keys a cache entry may hold besides the clusters and :data:`MORAL_KEY`.
+#: Keys a cache entry may hold besides the clusters and `MORAL_KEY`.
 ENTRY_KEYS = ("rewards", "error", "response")
 #: Our task name -> the name written in a recording's ``task``.
 TASK_TITLES = {"findmilk": "FindMilk", "driving": "Driving"}
@@ -66,20 +47,11 @@ _CREDENCES = re.compile(r"credence values:\s*\{([^{}]*)\}", re.IGNORECASE)
 
 @dataclass
 class ConvertedCache:
-    """One converted cache.
+    """One converted cache and its counts.
 
-    Attributes:
-        source: The pickle.
-        task: Our task name (``findmilk``, ``driving``).
-        model: The model name as the authors spelled it (``llama-3.1-70B``).
-        recording: The recording (JSON data).
-        fused_only: True when no entry holds cluster beliefs.
-        errors: States the authors flagged ``error`` (their parser repaired an answer).
-        exchanges: States with raw replies kept.
-        total_conflicts: States whose fused belief is all zero.
-        invalid: Cluster beliefs written as ``null`` because they are not probabilities.
-        ignored_keys: Entry keys that are not part of the authors' format (not converted).
-
+    ``fused_only``: no entry holds cluster beliefs; ``errors``: states the authors flagged
+    (their parser repaired an answer); ``invalid``: cluster beliefs written as ``null``;
+    ``ignored_keys``: entry keys outside the authors' format.
     """
 
     source: Path
@@ -104,21 +76,14 @@ class ConvertedCache:
 
 
 def model_slug(model: str) -> str:
-    """File-name form of a model name: lower case, ``.`` -> ``_`` (``llama-3_1-70b``).
-
-    Characters other than letters, digits, ``_`` and ``-`` become ``-``.
-    """
+    """File-name form of a model name: lower case, ``.`` -> ``_``, other odd characters ``-``."""
     slug = model.strip().lower().replace(".", "_")
     slug = re.sub(r"[^a-z0-9_-]+", "-", slug).strip("-")
     return slug or "model"
 
 
 def recording_file_name(task: str, model: str) -> str:
-    """Our file name of a recording: ``<task>-<model slug>.json``.
-
-    ``("findmilk", "gpt-4o-mini")`` gives ``findmilk-gpt-4o-mini.json``, ``("driving",
-    "llama-3.1-8B")`` gives ``driving-llama-3_1-8b.json``.
-    """
+    """Our file name of a recording: ``<task>-<model slug>.json``."""
     return f"{task}-{model_slug(model)}.json"
 
 
@@ -183,19 +148,10 @@ def _fused(rewards: object, n: int) -> list[float] | None:
 
 
 def exchange_agent(prompt: str, position: int) -> str:
-    """The agent a raw reply belongs to, from its prompt's credence sentence.
+    """The agent a raw reply belongs to: the theory at credence 1.0 in its prompt.
 
-    A prompt with ``credence values: {Consequentialist: 1.0, ...}`` belongs to the one theory
-    at 1.0; one without a credence sentence to the unprompted moral agent. Otherwise the
-    authors' call order is used: the five clusters, then the moral agent.
-
-    Args:
-        prompt: The prompt (the key of the authors' ``response`` dict).
-        position: Its position in that dict.
-
-    Returns:
-        An authors' cluster name or :data:`MORAL_AGENT`.
-
+    A prompt without a credence sentence is the moral agent's; otherwise the authors' call
+    order (the five clusters, then the moral agent) by ``position``.
     """
     match = _CREDENCES.search(prompt)
     if match is None:
@@ -223,21 +179,13 @@ def convert_cache(
 ) -> ConvertedCache:
     """Read one authors' LLM cache (safely) and convert it to a recording.
 
-    Args:
-        path: The ``<model>_llm_cache.pickle`` file.
-        task: Our task name; default: from the folder name (``FindMilk-v4_42``,
-            ``Driving_42``, ``Drive``), else from the observation length (8 FindMilk,
-            11 Driving).
-        model: The model name; default: from the file name.
-
-    Returns:
-        The converted cache.
+    ``task`` defaults to the folder name's, else the observation length's (8 FindMilk, 11
+    Driving); ``model`` to the file name's.
 
     Raises:
         UnsafePickleError: The pickle names a global outside the allow-list.
-        AuthorsImportError: The file is not in the authors' cache format (the message names
-            the file, the state and what was found), or its task cannot be told.
-
+        AuthorsImportError: Not the authors' cache format (naming file, state and what was
+            found), or its task cannot be told.
     """
     path = Path(path)
     cache = load_pickle(path)

@@ -1,21 +1,10 @@
 """Import everything usable from a checkout of the authors' repository ``temetski/moral_agent``.
 
-What is read (paths relative to the checkout):
-
-- LLM caches ``models/<Env>_42/<model>_llm_cache.pickle`` and
-  ``PickleCacheAndBaseModels/<Env>/<model>_llm_cache.pickle`` -> recordings
-  ``<task>-<model slug>.json`` in the recordings folder (default: the user data folder,
-  :func:`~amuled_ma.scenario.user_recordings_dir`). When both folders hold a cache of the
-  same task and model, the one under ``models/`` keeps the plain name and the other one is
-  written as ``<task>-<model slug>-fused-only.json`` (it holds fused beliefs only);
-- CleanRL policies ``models/<Env>_42/base.cleanrl_model`` -> ``<runs>/authors/<task>/base``
-  and ``models/<Env>_42/moral_llm_<model>/ppo_<N>.cleanrl_model`` (the highest ``N``) ->
-  ``<runs>/authors/<task>/amuled-<model slug>``, plus the run's ``config.json``, so that
-  ``amuled evaluate <runs>/authors/<task>`` evaluates them.
-
-Everything is converted and checked before anything is written. An output that already
-exists is left alone when it came from the same source (same content, or a checkpoint
-recording the same source SHA-256) and is otherwise refused unless ``force``.
+LLM caches become recordings; a cache under ``PickleCacheAndBaseModels/`` beside one of the
+same task and model under ``models/`` is written as ``<task>-<slug>-fused-only.json``. CleanRL
+policies become ``<runs>/authors/<task>/{base,amuled-<slug>}``. Everything is converted and
+checked before anything is written; an output from the same source is left alone, another
+refused unless ``force``.
 """
 
 from __future__ import annotations
@@ -57,17 +46,7 @@ FUSED_ONLY_SUFFIX = "-fused-only"
 
 @dataclass
 class Output:
-    """One file or folder the import writes.
-
-    Attributes:
-        kind: ``recording`` or ``policy``.
-        source: The authors' file, relative to the checkout.
-        target: What is written.
-        status: ``new``, ``unchanged`` (already there from the same source), ``replaced``
-            (``force``) or ``conflict`` (something else is there).
-        detail: One line about the content.
-
-    """
+    """One file or folder the import writes (``status``: new, unchanged, replaced, conflict)."""
 
     kind: str
     source: str
@@ -78,16 +57,7 @@ class Output:
 
 @dataclass
 class ImportReport:
-    """What :func:`import_authors` did.
-
-    Attributes:
-        checkout: The authors' checkout.
-        recordings_dir: Where recordings were written.
-        runs_dir: ``<runs>/authors``.
-        outputs: Every output, in order.
-        notes: Files seen but not converted, and why.
-
-    """
+    """What `import_authors` did: every output in order, and notes on files not converted."""
 
     checkout: Path
     recordings_dir: Path
@@ -117,16 +87,7 @@ def find_caches(checkout: Path) -> list[Path]:
 
 @dataclass
 class PolicySource:
-    """One CleanRL policy to convert.
-
-    Attributes:
-        task: Our task name.
-        folder: The variant folder it becomes (``base``, ``amuled-<model slug>``).
-        path: The ``.cleanrl_model`` file.
-        iteration: The authors' PPO iterations (``N`` of ``ppo_<N>``; base: their run's).
-        model: The LLM of a fine-tune (None for the base).
-
-    """
+    """One CleanRL policy to convert (``iteration``: ``N`` of ``ppo_<N>``; ``model`` None: base)."""
 
     task: str
     folder: str
@@ -136,13 +97,7 @@ class PolicySource:
 
 
 def find_policies(checkout: Path, notes: list[str] | None = None) -> list[PolicySource]:
-    """The base and last fine-tuned policy of every ``models/<Env>_42`` run of a checkout.
-
-    Args:
-        checkout: The authors' checkout.
-        notes: Receives a line for every policy file seen but not converted.
-
-    """
+    """The base and last fine-tuned policy of every run; ``notes`` gets the others."""
     checkout = Path(checkout)
     out: list[PolicySource] = []
     seen: set[Path] = set()
@@ -314,27 +269,15 @@ def import_authors(
 ) -> ImportReport:
     """Convert the authors' LLM caches and CleanRL policies of a checkout.
 
-    Args:
-        checkout: A checkout of ``temetski/moral_agent``.
-        to: Folder of the recordings (default: the user data folder's ``recordings/``).
-        runs: Folder of runs; policies go to ``<runs>/authors/<task>/``.
-        force: Replace outputs that exist with other content.
-        recordings: Convert the LLM caches.
-        policies: Convert the CleanRL policies.
-        only: Convert only the caches at these paths (relative to ``checkout``, as
-            ``models/FindMilk-v4_42/gpt-4o-mini_llm_cache.pickle``); None: every cache.
-
-    Returns:
-        What was written (and what was already there).
+    ``only``: convert only the caches at these paths relative to ``checkout`` (None: all).
 
     Raises:
-        AuthorsImportError: The folder holds none of the authors' files, a file is not in
-            their format, or an output exists with other content (nothing was written).
-        UnsafePathError: An output's place holds a link or a device (nothing was written).
-        FileWriteError: An output could not be written (a full disk); one line naming it.
+        AuthorsImportError: No authors' files, a file not in their format, or an output that
+            exists with other content (nothing written).
+        UnsafePathError: An output's place holds a link or a device (nothing written).
+        FileWriteError: An output could not be written (a full disk).
         UnsafePickleError: A cache names a global outside the allow-list (nothing ran).
         CheckpointError: A policy cannot be read as weights only, or has another layout.
-
     """
     from amuled_ma.learn.checkpoints import LAST
     from amuled_ma.scenario import user_recordings_dir

@@ -1,21 +1,9 @@
 """Fetch the paper authors' pinned files on first use; convert them as ``amuled import authors``.
 
-A scenario that replays one of the authors' recordings (``findmilk-gpt-4o-mini``, ...) and
-finds it in none of the places of :func:`~amuled_ma.scenario.paths.find_recording` gets it
-here: :func:`ensure_recordings` fetches the LLM cache it is made from
-(:data:`~amuled_ma.authors.pinned.PINNED`) from the authors' repository at the pinned commit
-with pooch, which streams each file to a temporary file beside its place in the cache folder
-and moves it there only when its SHA-256 is the pinned one (else the temporary file is
-deleted and nothing stays). The cache folder (:func:`cache_folder`) then holds the files at
-their paths in the repository, like a partial checkout, and
-:func:`~amuled_ma.authors.checkout.import_authors` converts them into the user data folder's
-``recordings/``, where the lookup finds them from then on. A file found locally is never
-fetched; with ``offline`` (``--offline``, ``$AMULED_OFFLINE=1``) nothing is fetched and a
-missing file is one line naming the manual route.
-
-Environment: ``$AMULED_AUTHORS_URL`` replaces :data:`~amuled_ma.authors.pinned.RAW_BASE` (a
-mirror, or the tests' loopback server; the URL of a file is ``<base>/<commit>/<path>``),
-``$AMULED_CACHE`` the cache root (default: platformdirs' user cache folder of ``amuled-ma``).
+pooch fetches each file at the pinned commit and keeps it only when its SHA-256 matches. A
+file found locally is never fetched; offline (``--offline``, ``$AMULED_OFFLINE=1``) a missing
+file is one line naming the manual route. ``$AMULED_AUTHORS_URL`` replaces `RAW_BASE`,
+``$AMULED_CACHE`` the cache root.
 """
 
 from __future__ import annotations
@@ -43,10 +31,9 @@ if TYPE_CHECKING:
 
 #: Set to 1 (or true, yes, on) to never fetch, as ``--offline``.
 OFFLINE_ENV = "AMULED_OFFLINE"
-#: Replaces :data:`~amuled_ma.authors.pinned.RAW_BASE` (a mirror; the tests' loopback server).
+#: Replaces `RAW_BASE` (a mirror; the tests' loopback server).
 URL_ENV = "AMULED_AUTHORS_URL"
-#: Replaces the cache root (shared with the Ollama server's state,
-#: :mod:`amuled_ma.servers.local_server`).
+#: Replaces the cache root (shared with the Ollama server's state, `servers.local_server`).
 CACHE_ENV = "AMULED_CACHE"
 #: Seconds to connect, and between two reads of a download, before it is abandoned.
 CONNECT_TIMEOUT_S = 10.0
@@ -66,11 +53,7 @@ def base_url() -> str:
 
 
 def cache_folder() -> Path:
-    """Where fetched files are kept: ``<cache root>/authors/<first 12 of the commit>/``.
-
-    The cache root is ``$AMULED_CACHE``, else ``platformdirs.user_cache_dir("amuled-ma")``
-    (``~/.cache/amuled-ma`` on Linux, ``$XDG_CACHE_HOME`` respected).
-    """
+    """Where fetched files are kept: ``<cache root>/authors/<commit[:12]>/``."""
     env = os.environ.get(CACHE_ENV)
     if env:
         root = Path(env).expanduser()
@@ -175,7 +158,7 @@ class _CappedFile:
 
 
 def _downloader(pin: PinnedFile) -> Callable[[str, str, object], None]:
-    """Pooch's HTTP downloader, writing through :class:`_CappedFile` (``pin.size`` at most)."""
+    """Pooch's HTTP downloader, writing through `_CappedFile` (``pin.size`` at most)."""
     import pooch
 
     http = pooch.HTTPDownloader(progressbar=False, timeout=(CONNECT_TIMEOUT_S, READ_TIMEOUT_S))
@@ -211,22 +194,11 @@ def fetch_pinned(
     """Fetch the pinned files not already in the cache, each checked against its SHA-256.
 
     Says one line first (what, from where, how large, under whose terms) when anything is
-    fetched; a file already in the cache with its pinned SHA-256 is not fetched again.
-
-    Args:
-        pins: The files.
-        cache: The cache folder (default :func:`cache_folder`).
-        base: The URL base (default :func:`base_url`); a file is ``<base>/<commit>/<path>``.
-        say: Prints the line.
-
-    Returns:
-        The cache folder, holding each file at its path in the repository.
+    fetched. Returns the cache folder.
 
     Raises:
-        AuthorsFetchError: A file could not be fetched (network, HTTP status, disk), or it
-            was refused (its SHA-256 is not the pinned one, or it is larger); the message
-            names the file, the URL and the manual route. Nothing partial stays in the cache.
-
+        AuthorsFetchError: A file could not be fetched or was refused (SHA-256, size); names
+            the file, the URL and the manual route. Nothing partial stays.
     """
     import pooch
     import requests
@@ -351,31 +323,13 @@ def ensure_authors_base(
     cache: Path | None = None,
     base: str | None = None,
 ) -> Path | None:
-    """The authors' published base policy of ``task`` as a run folder; fetched when missing.
+    """The authors' base policy of ``task`` as ``<runs>/authors/<task>/base``; fetched when missing.
 
-    The folder is ``<runs>/authors/<task>/base`` (what ``amuled import authors`` writes, and
-    where `run_pipeline` finds the base of a ``recipe = "authors"``
-    run). Found there (its ``model_last.pt``), it is returned as is; else the pinned policy
-    file is fetched (:func:`fetch_pinned`, unless cached) and converted by
-    :func:`~amuled_ma.authors.checkout.import_authors`.
-
-    Args:
-        task: The task (``findmilk``); a task without a pinned base returns None.
-        runs: The folder of runs (the scenario's ``[output].runs_dir``).
-        offline: Never fetch (also when ``$AMULED_OFFLINE`` is set).
-        say: Prints the fetch's line and the conversion's.
-        pinned: The pinned base policies by task (the tests pass their own).
-        cache: The cache folder (default :func:`cache_folder`).
-        base: The URL base (default :func:`base_url`).
-
-    Returns:
-        The base folder, or None when ``task`` has no pinned base.
+    Returns None for a task without a pinned base.
 
     Raises:
-        AuthorsFetchError: Offline with the file not cached (one line naming the routes), or
-            the fetch failed (:func:`fetch_pinned`).
+        AuthorsFetchError: Offline with the file not cached, or the fetch failed.
         AuthorsImportError: The conversion refused the file.
-
     """
     from amuled_ma.learn.checkpoints import LAST
 

@@ -1,14 +1,7 @@
-"""The second pass of :func:`amuled_ma.authors.unpickle.load_pickle`: a small bounded reader.
+"""The second pass of `load_pickle`: a small bounded pickle reader.
 
-It builds a pickle's values from :func:`pickletools.genops` (each opcode with its argument
-already decoded, nothing called) and interprets only the opcodes an LLM cache uses:
-constants (``None``, booleans, integers, floats, strings, bytes), tuples, lists, dicts,
-sets and frozensets, the memo, marks, ``GLOBAL``/``STACK_GLOBAL`` of
-:data:`ALLOWED_GLOBALS`, ``REDUCE`` of those globals and ``BUILD`` of arrays and dtypes.
-Any other opcode (``OBJ``, ``INST``, ``NEWOBJ``, persistent ids, extension codes, buffers,
-Python 2 strings, ...) is refused. The loop is pure Python, so a signal handler (the
-command line's SIGTERM) runs between two opcodes, and every step is bounded (the checks
-are listed in :mod:`amuled_ma.authors.unpickle`).
+It interprets only the opcodes an LLM cache uses, from `pickletools.genops` (nothing
+called), and refuses any other. Pure Python, so a SIGTERM handler runs between opcodes.
 """
 
 from __future__ import annotations
@@ -24,10 +17,10 @@ from typing import Any, NoReturn, TypeVar
 import numpy as np
 
 #: Most memory the values read from one file may take [bytes per byte of the file], plus
-#: :data:`MEMORY_SLACK_BYTES`: the 1.95 MB cache grows the process by about 57 MB (29 per
-#: byte); checked on the resident set every :data:`MEMORY_CHECK_EVERY` opcodes.
+#: `MEMORY_SLACK_BYTES`: the 1.95 MB cache grows the process by about 57 MB (29 per
+#: byte); checked on the resident set every `MEMORY_CHECK_EVERY` opcodes.
 MEMORY_PER_BYTE = 64
-#: Memory allowed on top of :data:`MEMORY_PER_BYTE` times the file's size [bytes].
+#: Memory allowed on top of `MEMORY_PER_BYTE` times the file's size [bytes].
 MEMORY_SLACK_BYTES = 64 * 2**20
 #: Opcodes between two looks at the process's resident memory (and at the opcode budget).
 MEMORY_CHECK_EVERY = 2**15
@@ -111,7 +104,7 @@ def _ndarray(*_args: object) -> NoReturn:
 
 
 def _checked_dtype(dtype: object) -> np.dtype:
-    """``dtype`` if it is a plain numeric dtype (:data:`ALLOWED_DTYPE_KINDS`), else refuse."""
+    """``dtype`` if it is a plain numeric dtype (`ALLOWED_DTYPE_KINDS`), else refuse."""
     if not isinstance(dtype, np.dtype):
         raise PickleRefused(f"a dtype that is not a numpy dtype ({type(dtype).__name__})")
     if (
@@ -185,7 +178,7 @@ def _check_key(key: object) -> None:
 
 
 class _KeyWork:
-    """The key work left to one file (:data:`MAX_KEY_WORK`), spent before a key is hashed."""
+    """The key work left to one file (`MAX_KEY_WORK`), spent before a key is hashed."""
 
     __slots__ = ("left", "limit")
 
@@ -203,7 +196,7 @@ class _KeyWork:
 
 
 class _HashCounter:
-    """Keys of one dict or set by hash value: refuses more than :data:`MAX_EQUAL_HASHES`."""
+    """Keys of one dict or set by hash value: refuses more than `MAX_EQUAL_HASHES`."""
 
     __slots__ = ("counts", "owner", "work")
 
@@ -229,15 +222,13 @@ class BoundedReader:
     """Builds one pickle's values, opcode by opcode, with the allow-list and the bounds.
 
     Args:
-        data: The pickle's bytes (already scanned: well formed, allowed globals only).
-        max_array_bytes: Most bytes of all arrays together (the file's size: an array's
-            data is in the file); also the most items ``set()``/``frozenset()`` calls may
-            hash, all together.
-        max_memory: Most bytes the process's resident memory may grow by (None: no limit);
-            looked at every :data:`MEMORY_CHECK_EVERY` opcodes.
-        max_opcodes: Most opcodes read (checked every :data:`MEMORY_CHECK_EVERY`).
-        max_key_work: Most key work (:data:`MAX_KEY_WORK`), checked at every key.
-
+        data: The pickle's bytes (already scanned).
+        max_array_bytes: Most bytes of all arrays together; also the most items ``set()`` /
+            ``frozenset()`` calls may hash, all together.
+        max_memory: Most bytes resident memory may grow by (None: no limit), looked at every
+            `MEMORY_CHECK_EVERY` opcodes.
+        max_opcodes: Most opcodes read.
+        max_key_work: Most key work (`MAX_KEY_WORK`), checked at every key.
     """
 
     def __init__(
@@ -312,7 +303,6 @@ class BoundedReader:
             PickleRefused: Something outside the allow-list.
             PickleUnbounded: Something that would take unbounded time or memory.
             ValueError: A malformed pickle (``IndexError``, ``KeyError`` too).
-
         """
         handlers = self.handlers
         start = _resident_bytes() if self.max_memory is not None else 0
@@ -592,7 +582,7 @@ def too_many_opcodes(limit: int) -> str:
 
 
 def _nothing(_arg: object) -> None:
-    """``FRAME``: framing only groups opcodes; :func:`pickletools.genops` reads through it."""
+    """``FRAME``: framing only groups opcodes; `pickletools.genops` reads through it."""
 
 
 def _resident_bytes() -> int:

@@ -1,15 +1,7 @@
 """The paper authors' files that ``amuled`` fetches on first use, pinned by commit and SHA-256.
 
-Each entry is one LLM cache of ``temetski/moral_agent`` at :data:`COMMIT` and the recording
-``amuled import authors`` makes of it (:mod:`amuled_ma.authors.checkout`). The SHA-256 and
-size were computed from that commit's blobs; a download that differs is refused
-(:mod:`amuled_ma.authors.download`). The repository has no licence file: the files are
-fetched from it for the user, never shipped with this package.
-
-The two caches over 4 MiB (``models/Driving_42/{gpt-4o-mini, mistral-nemo}_llm_cache.pickle``)
-are not pinned: with the first of them beside the ``Drive`` cache the import names that one
-``driving-gpt-4o-mini-fused-only.json``, and the shipped Driving scenarios replay the
-``Drive`` cache under the plain name.
+The repository has no licence file: the files are fetched for the user, never shipped. The
+two caches over 4 MiB (``models/Driving_42``) are not pinned.
 """
 
 from __future__ import annotations
@@ -26,16 +18,7 @@ RAW_BASE = "https://raw.githubusercontent.com/temetski/moral_agent"
 
 @dataclass(frozen=True)
 class PinnedFile:
-    """One file of the authors' repository at :data:`COMMIT`.
-
-    Attributes:
-        path: Its path in the repository.
-        sha256: SHA-256 of its bytes (hex).
-        size: Its size in bytes.
-        recording: The recording ``amuled import authors`` writes from it (no ``.json``);
-            for a policy of :data:`BASE_POLICIES`, the run folder it writes under ``<runs>``.
-
-    """
+    """One file of the authors' repository at `COMMIT`; ``recording``: what it becomes."""
 
     path: str
     sha256: str

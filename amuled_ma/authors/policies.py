@@ -1,23 +1,8 @@
 """Convert the authors' CleanRL policies into our run folders.
 
-The authors saved ``torch.save(agent.state_dict())`` of CleanRL's ``Agent``
-(``models/<Env>_42/base.cleanrl_model`` and
-``models/<Env>_42/moral_llm_<model>/ppo_<N>.cleanrl_model``): two separate MLPs
-``actor`` and ``critic``, ``Linear -> Tanh -> Linear -> Tanh -> Linear`` (keys
-``{actor,critic}.{0,2,4}.{weight,bias}``, 64-64 hidden units), the actor's output being the
-logits of a categorical policy. Our checkpoints
-(:meth:`~amuled_ma.learn.population.PopulationTrainer.save`) hold rsl-rl's ``MLPModel``
-actor and critic (``mlp.{0,2,4}.{weight,bias}``), built from the scenario's ``[ppo]``
-settings, plus an optimizer state and our ``infos``.
-
-:func:`build_checkpoint` builds our actor and critic the way the trainer does
-(:func:`~amuled_ma.learn.config.rsl_rl_config`), copies the authors' weights layer by layer
-(the k-th ``Linear`` of theirs into the k-th ``Linear`` of ours) and checks that both
-networks give the same logits on random observations. :func:`write_variant` writes a
-normal, completed variant folder (``model_last.pt``, ``config.json``, ``train_cfg.json``)
-that ``amuled evaluate`` reads and a fine-tune can start from.
-
-Files are read with ``torch.load(..., weights_only=True)``: tensors only, no code.
+Their ``Agent`` holds two MLPs ``{actor,critic}.{0,2,4}`` (64-64 Tanh); ours are rsl-rl's
+``mlp.{0,2,4}``. Weights are copied layer by layer and both actors are checked to give the
+same logits. Files are read with ``weights_only=True``: tensors only, no code.
 """
 
 from __future__ import annotations
@@ -78,18 +63,11 @@ def last_checkpoint(folder: Path) -> tuple[Path, int] | None:
 
 
 def read_cleanrl(path: str | Path) -> dict[str, torch.Tensor]:
-    """Load a CleanRL ``Agent`` state dict (weights only) and check its layout.
-
-    Args:
-        path: A ``.cleanrl_model`` file.
-
-    Returns:
-        The state dict (float32 tensors on the CPU).
+    """Load a CleanRL ``Agent`` state dict (weights only, float32 on the CPU) and check its layout.
 
     Raises:
-        CheckpointError: The file is missing, needs code to load (refused; nothing ran),
-            or does not hold the keys and shapes of the authors' ``Agent``.
-
+        CheckpointError: Missing, needs code to load (refused; nothing ran), or not the keys
+            and shapes of the authors' ``Agent``.
     """
     path = Path(path)
     state = load_weights_only(path, "the CleanRL policy")
@@ -118,7 +96,6 @@ def cleanrl_shape(
 
     Raises:
         CheckpointError: A shape does not chain (naming ``where``).
-
     """
     for net, out in (("actor", None), ("critic", 1)):
         weights = [state[f"{net}.{i}.weight"] for i in CLEANRL_LINEARS]
@@ -162,7 +139,6 @@ def copy_weights(state: Mapping[str, torch.Tensor], net: str, model: torch.nn.Mo
 
     Raises:
         CheckpointError: Our network has another number or shape of layers.
-
     """
     ours = _linears(model)
     if len(ours) != len(CLEANRL_LINEARS):
@@ -284,8 +260,7 @@ def check_equivalent(
     """Check that our actor gives the CleanRL actor's logits on random observations.
 
     Raises:
-        CheckpointError: The logits differ by more than :data:`LOGIT_TOLERANCE`.
-
+        CheckpointError: The logits differ by more than `LOGIT_TOLERANCE`.
     """
     obs_dim = int(state["actor.0.weight"].shape[1])
     gen = torch.Generator().manual_seed(0)

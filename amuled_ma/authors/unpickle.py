@@ -1,48 +1,14 @@
 """Read the authors' LLM-cache pickles without running code from them.
 
-A pickle is a program: ``pickle.load`` calls whatever global the file names (``os.system``,
-say) with arguments from the file. The authors' caches only need numpy arrays and scalars
-inside builtin containers (tuples, dicts and frozensets come from pickle's own opcodes),
-so :func:`load_pickle` allows exactly these globals, :data:`ALLOWED_GLOBALS`, and refuses
-a file that names any other one:
-
-1. a *scan* of the file's opcodes (:func:`scan_pickle`, with :mod:`pickletools`: nothing
-   is built, nothing is called) lists every global the file names and measures how deep
-   its values nest;
-2. a file naming a global outside the allow-list (or a copyreg extension code, or a
-   persistent id) is refused with :class:`~amuled_ma.errors.UnsafePickleError`
-   naming the file and every such global (``posix.system``), before anything from it runs;
-   so is a file nested deeper than :data:`MAX_DEPTH` (hashing a tuple nested a million
-   deep, a 1 MB file, crashes CPython's unpickler with a stack overflow);
-3. otherwise the real pass builds the values with the same allow-list (a second guard) in
-   our own small reader, :class:`~amuled_ma.authors.pickle_reader.BoundedReader`: it
-   interprets the opcodes :func:`pickletools.genops` decodes, only those an LLM cache uses
-   (constants, tuples, lists, dicts, sets, the memo, allowed globals, ``REDUCE`` of them,
-   ``BUILD``), and refuses any other. It is pure Python, so that a signal handler (the
-   command line's SIGTERM) runs between two opcodes, never blocked by one long C call, and
-   it is bounded in time and memory:
-
-   - the allowed globals resolve to checked functions, never to numpy's own: plain
-     numeric dtypes only (no object, void, structured or string dtypes), arrays only
-     through ``_reconstruct`` and a checked ``BUILD`` state whose data is in the file (so
-     ``numpy.ndarray`` cannot be called on a buffer with a forged shape), at most
-     :data:`MAX_ARRAY_ITEMS` entries per array and, all arrays together, no more bytes
-     than the file has; ``set()`` and ``frozenset()`` calls hash, all together, no more
-     items than the file has bytes;
-   - dict keys and set items are strings, numbers (integers within +-(2**61 - 2)), or flat
-     tuples or frozensets of at most :data:`MAX_KEY_ITEMS` of them, and at most
-     :data:`MAX_EQUAL_HASHES` keys of one dict share a hash value (colliding keys make
-     Python's dicts quadratic); checking and hashing them costs, all together, at most
-     :data:`~amuled_ma.authors.pickle_reader.MAX_KEY_WORK` units (one a key and one a
-     value of a tuple key: a memoized tuple used again is hashed again);
-   - ``BUILD`` sets the state of arrays and dtypes only; ``OBJ``, ``INST`` and ``NEWOBJ``
-     are refused, and so is any opcode a cache does not use;
-   - the process's memory may grow by :data:`MEMORY_PER_BYTE` bytes per byte of the file
-     plus :data:`MEMORY_SLACK_BYTES`.
-
-The file is at most :data:`MAX_PICKLE_BYTES` and :data:`MAX_OPCODES` opcodes (both passes
-cost time per opcode: the scan stops counting there and refuses the file). Callers check
-the structure they expect (:mod:`amuled_ma.authors.caches`).
+A pickle is a program: ``pickle.load`` calls whatever global the file names. `load_pickle`
+first scans the opcodes (`scan_pickle`, nothing built) and refuses a file naming a global
+outside `ALLOWED_GLOBALS`, or nested deeper than `MAX_DEPTH` (deep tuples crash CPython's
+unpickler); then `BoundedReader` builds the values with the same allow-list. The bounds:
+plain numeric dtypes only, arrays only through checked ``_reconstruct``/``BUILD`` with their
+data in the file, at most `MAX_ARRAY_ITEMS` per array; flat keys of at most `MAX_KEY_ITEMS`
+items and at most `MAX_EQUAL_HASHES` equal hashes per dict (colliding keys make dicts
+quadratic); memory growth of `MEMORY_PER_BYTE` per file byte plus `MEMORY_SLACK_BYTES`; at
+most `MAX_PICKLE_BYTES` and `MAX_OPCODES` opcodes.
 """
 
 from __future__ import annotations
@@ -138,15 +104,7 @@ def _depth(item: object) -> int:
 
 @dataclass
 class PickleScan:
-    """What a pickle holds, read from its opcodes alone.
-
-    Attributes:
-        globals: ``module.name`` of every global it names, in order of appearance
-            (``copyreg extension N`` and ``persistent id`` for those opcodes).
-        depth: How deep its values nest (stopped at ``MAX_DEPTH + 1``).
-        opcodes: Opcodes read (stopped at ``max_opcodes + 1``).
-
-    """
+    """What a pickle holds, read from its opcodes alone: globals, depth, opcodes read."""
 
     globals: list[str]
     depth: int
@@ -156,23 +114,13 @@ class PickleScan:
 def scan_pickle(
     data: bytes, *, max_depth: int = MAX_DEPTH, max_opcodes: int = MAX_OPCODES
 ) -> PickleScan:
-    """Read a pickle's opcodes (nothing is built or called): its globals and its depth.
+    """Read a pickle's opcodes (nothing built or called): its globals and its depth.
 
-    The stack is followed abstractly: each entry is its nesting depth, or the text of a
-    string the file pushed (so that ``STACK_GLOBAL`` can name its module and name).
-
-    Args:
-        data: The pickle's bytes.
-        max_depth: Stop reading once the depth exceeds it.
-        max_opcodes: Stop reading once more opcodes than this were read (a pass costs
-            time per opcode).
-
-    Returns:
-        The globals named, the depth reached and the opcodes read.
+    The stack is followed abstractly (each entry its depth, or a pushed string for
+    ``STACK_GLOBAL``); reading stops past ``max_depth`` or ``max_opcodes``.
 
     Raises:
         ValueError: The bytes are not a well-formed pickle.
-
     """
     stack: list[Any] = []
     marks: list[int] = []
@@ -242,7 +190,6 @@ def pickle_globals(data: bytes) -> list[str]:
 
     Raises:
         ValueError: The bytes are not a well-formed pickle.
-
     """
     return scan_pickle(data).globals
 
@@ -250,19 +197,10 @@ def pickle_globals(data: bytes) -> list[str]:
 def load_pickle(path: str | Path, *, max_bytes: int = MAX_PICKLE_BYTES) -> Any:
     """Load a pickle that may only hold numpy arrays/scalars in builtin containers.
 
-    Args:
-        path: The pickle file.
-        max_bytes: Largest file accepted.
-
-    Returns:
-        The unpickled object.
-
     Raises:
-        UnsafePickleError: The file names a global outside :data:`ALLOWED_GLOBALS`; the
-            message names the file and every such global. Nothing from the file ran.
-        AuthorsImportError: The file is missing, too large, a Git LFS pointer, or not a
-            readable pickle.
-
+        UnsafePickleError: The file names a global outside `ALLOWED_GLOBALS` (all named);
+            nothing from it ran.
+        AuthorsImportError: Missing, too large, a Git LFS pointer, or not a readable pickle.
     """
     path = Path(path)
     try:

@@ -1,18 +1,9 @@
 """Live belief throughput against a real Ollama server (``amuled bench beliefs --live``).
 
-For each concurrency level, the same batch of distinct belief requests (the paper's
-prompts: system prompt with the five clusters, few-shot examples, a Driving state that
-varies per request) is answered twice through :class:`~amuled_ma.beliefs.store.cached.CachedSource`
-over :class:`~amuled_ma.beliefs.sources.ollama.OllamaSource`:
-
-- **first run**: an empty belief store, every request goes to the server;
-- **second run**: a new source and store handle on the same file (as a new process
-  would), so every cacheable answer is a store hit and nothing is sent.
-
-Requests per second = requests / wall-clock seconds of the batch. The server's
-``OLLAMA_NUM_PARALLEL`` bounds how many requests it computes at once (2 for
-``amuled ollama up``); higher client concurrency only queues. Not auto-discovered (the
-leading underscore): the ``beliefs`` benchmark calls :func:`run_live`.
+Per concurrency level the same distinct requests (the paper's Driving prompts) are answered
+twice through a `CachedSource`: first on an empty store, then by a new source on the same
+file (every cacheable answer a hit). Requests/s = requests / wall seconds; the server's
+``OLLAMA_NUM_PARALLEL`` bounds the work done at once.
 """
 
 from __future__ import annotations
@@ -48,17 +39,7 @@ DRIVING_STATE = (
 
 
 def live_requests(n: int, cluster: str = "care") -> list[BeliefRequest]:
-    """Return ``n`` distinct Driving belief requests with the paper's full prompt.
-
-    Args:
-        n: Number of requests (distinct states).
-        cluster: The moral cluster asked.
-
-    Returns:
-        Requests sharing the system prompt and few-shot examples (one prefix), differing
-        in the state.
-
-    """
+    """``n`` distinct Driving belief requests sharing the paper's full prompt prefix."""
     from amuled_ma.clusters import build_messages
 
     out = []
@@ -116,23 +97,13 @@ def run_live(
 ) -> dict[str, Any]:
     """Measure live belief throughput at each concurrency, first run and cached second run.
 
-    Args:
-        host: Ollama server URL (e.g. the one ``amuled ollama up --tiny`` prints).
-        model: Model name on the server (``amuled-tiny`` for the tiny model).
-        concurrencies: Client concurrency levels to measure.
-        n_requests: Distinct requests per batch.
-        num_predict: Reply token limit per request (bounds the work per request).
-        num_ctx: Context window (must hold the paper's ~3k-token prompt).
-        timeout_s: Per-request timeout.
-        workdir: Directory for the belief stores (default: a temporary one).
-        echo: Called with each output line (``None``: silent).
+    ``num_ctx`` must hold the paper's ~3k-token prompt; ``workdir`` holds the stores (default:
+    a temporary folder); ``echo`` gets each output line.
 
     Returns:
-        ``{"host", "model", "n_requests", "warmup_s", "levels": [{"concurrency",
-        "first": {...}, "second": {...}}, ...]}`` where each run has ``seconds``,
-        ``req_per_s``, ``hit_rate``, ``sent``, ``timeouts``, ``statuses`` and
-        ``mean_latency_s``.
-
+        ``{"host", "model", "n_requests", "warmup_s", "levels": [{"concurrency", "first",
+        "second"}]}``, each run with ``seconds``, ``req_per_s``, ``hit_rate``, ``sent``,
+        ``timeouts``, ``statuses`` and ``mean_latency_s``.
     """
     say = echo or (lambda line: None)
     requests = live_requests(n_requests)

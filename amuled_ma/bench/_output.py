@@ -10,16 +10,7 @@ from pathlib import Path
 
 @contextmanager
 def output_folder(out: Path | None, prefix: str) -> Iterator[Path]:
-    """Yield ``out`` (created) or a temporary folder named ``prefix...`` (deleted after).
-
-    Args:
-        out: The folder given with ``--out``, or None.
-        prefix: Name prefix of the temporary folder.
-
-    Yields:
-        The folder to write the benchmark's runs into.
-
-    """
+    """Yield ``out`` (created) or a temporary folder named ``prefix...`` (deleted after)."""
     if out is not None:
         Path(out).mkdir(parents=True, exist_ok=True)
         yield Path(out)

@@ -1,12 +1,8 @@
 """Time of a 1,000-iteration fine-tune with the authors' recipe, beside their ~6 minutes.
 
-Trains a short base policy of the task (``--base-steps``, the authors' base shape: 8 copies
-x 128 steps), then fine-tunes it exactly as ``scenarios/<task>-authors.toml`` does (1 copy
-x 128 steps, 1,000 iterations, 8 epochs, their window KL, replayed gpt-4o-mini feedback)
-with one torch thread, and prints the seconds beside the authors' figure: their
-``finetune_moral.py`` took about 6 minutes (2.7-2.9 iterations/s) on this kind of machine
-(measured earlier with their published code, ``amuled bench train``'s reference).
-The Driving demonstrator of the synthetic human is timed by ``amuled bench demonstrators``.
+Trains a short base, then fine-tunes it as ``scenarios/<task>-authors.toml`` does (1 copy x
+128 steps, 1,000 iterations, replayed gpt-4o-mini feedback) on one torch thread. Their
+``finetune_moral.py`` took about 6 minutes (2.7-2.9 iterations/s) on this kind of machine.
 """
 
 from __future__ import annotations

@@ -1,30 +1,10 @@
 """Belief lookups per second through the full path (render prompt, store lookup, parse, fuse).
 
-Replay mode (default): ``--copies`` env copies (4096) draw their states from a recording of
-the authors' real LLM answers (``../shared/amuled-recordings/``; ``--recording`` or
-``$AMULED_RECORDINGS``), and one :class:`~amuled_ma.deliberation.MoralPanel` call answers
-them all: dedup of the copies' states, prompt variables and state prompt of each distinct
-state (:func:`amuled_ma.tasks.prompts.render_state_prompt`), each cluster's full chat
-(:func:`amuled_ma.clusters.build_messages`), the store key (SHA-256 of the chat and the
-source identity), the SQLite lookup and JSON parse of the stored belief, and the bjs-dst
-fusion of every copy. A *lookup* is one (env copy, cluster) belief, so one call makes
-``copies x clusters`` lookups. Runs, each timed on its own:
-
-1. **cold**: an empty belief store; every distinct request goes to the replay source and
-   is written to the store;
-2. **second run**: a new source, store handle and panel on the same file (what a re-run
-   of the experiment in a new process sees): target 100% store hits and 0 requests sent;
-3. **warm feedback**: the second run's panel behind the learner's feedback
-   (:class:`~amuled_ma.deliberation.panel_feedback.PanelFeedback`), called once to fill its
-   memo, then timed: the steady-state cost of a learner step over states already seen,
-   answered by the one in-memory cache (``docs/beliefs.md``, "Caches").
-
-Each of ``--repeats`` trials (3) runs the three on a fresh store; the fastest time of each
-run is printed (the least disturbed by other jobs on the machine), and any trial missing
-the second-run target is printed as it was.
-
-``--live`` measures requests per second against a real Ollama server instead (at
-concurrency 1, 2, 4, first run and cached second run): see :mod:`amuled_ma.bench._live`.
+``--copies`` env copies draw states from the authors' recording and one `MoralPanel` call
+answers them all; a lookup is one (copy, cluster) belief. Timed: **cold** (empty store),
+**second run** (a new process's view of the same file: target 100% hits, 0 sent) and **warm
+feedback** (the learner's memo). Fastest of ``--repeats`` trials. ``--live`` measures an
+Ollama server instead.
 """
 
 from __future__ import annotations
@@ -81,19 +61,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    """Run the benchmark and print its figures.
-
-    Returns:
-        0 when the second run met its target (100% store hits, nothing sent), else 1.
-
-    """
+    """Run the benchmark; 0 when the second run had 100% store hits and sent nothing, else 1."""
     if args.live:
         return _live(args)
     return _replay(args)
 
 
 def _live(args: argparse.Namespace) -> int:
-    """Measure a live Ollama server (the hook: :func:`amuled_ma.bench._live.run_live`)."""
+    """Measure a live Ollama server (the hook: `amuled_ma.bench._live.run_live`)."""
     from amuled_ma.bench._live import run_live
 
     host = args.host or os.environ.get("OLLAMA_HOST") or "http://127.0.0.1:11434"

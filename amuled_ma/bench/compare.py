@@ -1,15 +1,9 @@
 """Another benchmark, run on two versions of the code side by side, interleaved.
 
-``amuled bench compare --old REV train --skip fusion`` checks out ``REV`` of this git
-repository into a temporary worktree and runs ``amuled bench train --skip fusion`` with
-the old code and with this checkout's code, alternately (old, new, old, new, ... for
-``--rounds`` rounds), in fresh processes with the same interpreter. Each run's figures are
-read from the table the benchmark prints (``figure  ours  reference  target``), and a table
-of every figure per round is printed, with the ratio of the first number of each figure
-(old mean / new mean: above 1 means the new code is faster when the figure is a time).
-
-Interleaving puts the two versions under the same machine load; absolute times still move
-with the machine, ratios much less.
+``amuled bench compare --old REV train`` runs the benchmark with ``REV`` (a temporary
+worktree) and this checkout alternately for ``--rounds`` rounds, and prints each figure per
+round with the ratio old mean / new mean (above 1: the new code is faster for a time).
+Interleaving puts both under the same machine load.
 """
 
 from __future__ import annotations
@@ -48,12 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def parse_table(output: str) -> dict[str, str]:
-    """``{figure: ours}`` from a benchmark's printed table (rows after the dashed rule).
-
-    Args:
-        output: The benchmark's standard output.
-
-    """
+    """``{figure: ours}`` from a benchmark's printed table (rows after the dashed rule)."""
     rows: dict[str, str] = {}
     lines = output.splitlines()
     for i, line in enumerate(lines):

@@ -1,12 +1,8 @@
 """Time of the authors' synthetic human demonstrators and the distinct states they meet.
 
-Plays the FindMilk rule demonstrator (1,000 episodes) and the Driving Q-learning
-demonstrator (10,000 episodes, counted from episode 601; the uncounted ones are not
-played, see :mod:`amuled_ma.tasks.demonstrators`) with one torch thread, and prints the
-seconds (wall clock and CPU time of the process, best of ``--repeats``), the
-``(observation, action)`` pairs counted and the distinct observations, beside the figures
-of the authors' notebook (1,120 FindMilk and 12,270 Driving states). Target:
-the Driving demonstrator in under 60 s.
+FindMilk's rule demonstrator (1,000 episodes) and Driving's Q-learning one (10,000, counted
+from episode 601) on one torch thread, best of ``--repeats``, beside the authors' notebook
+(1,120 FindMilk and 12,270 Driving states). Target: Driving in under 60 s.
 """
 
 from __future__ import annotations

@@ -1,13 +1,8 @@
 """Steps per second of the task environments: batched torch core vs the Gymnasium view.
 
-For each task (FindMilk, Driving) steps the batched core at ``--copies`` copies (default
-1, 64, 1024, 4096) with random actions (drawn beforehand, not timed), and in the same run
-steps the Gymnasium view (``gymnasium.make``, one copy) in a plain Python loop, resetting
-when an episode ends. Figures are env-steps per second (copies x steps / time), best of
-``--repeats`` runs, in wall clock and in CPU time of the process (one thread,
-``torch.set_num_threads(1)``; on a shared machine the CPU figure is the steadier one).
-Targets: >= 1,000,000 env-steps/s per task at 4096 copies, and >= 20x the
-Gymnasium loop.
+Random actions at ``--copies`` copies against a one-copy ``gymnasium.make`` loop; env-steps
+per second, best of ``--repeats``, wall and CPU time on one thread. Targets: >= 1,000,000
+env-steps/s per task at 4096 copies, and >= 20x the Gymnasium loop.
 """
 
 from __future__ import annotations

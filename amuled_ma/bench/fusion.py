@@ -1,13 +1,8 @@
-"""Throughput of the bjs-dst fusion arbiter: vectorized numpy vs a per-state pure-Python reference.
+"""Throughput of the bjs-dst fusion: vectorized numpy vs the per-state pure-Python reference.
 
-Fuses ``--n`` random belief matrices (``--clusters`` x ``--actions``, float64, Dirichlet(1)
-rows) in one :func:`amuled_ma.fusion.fuse` call, and in the same run fuses the first
-``--sample`` of them one at a time with :mod:`amuled_ma.fusion.reference` (dicts of
-frozensets, ``math.log2``), checks that both agree, and prints both throughputs and
-their ratio. Timings are the best of ``--repeats`` runs (3 for the reference), in wall
-clock and in CPU time of the process (one process, one thread: numpy's element-wise code
-is single-threaded; on a shared machine the CPU time is the steadier figure). Targets
-(the target): 100,000 matrices of 5 x 4 in under 0.5 s, and at least 100x the reference.
+``--n`` Dirichlet(1) belief matrices in one `fuse` call against ``--sample`` of them through
+`fusion.reference`, checked equal; best of ``--repeats``, wall and CPU time. Targets:
+100,000 matrices of 5 x 4 in under 0.5 s, and at least 100x the reference.
 """
 
 from __future__ import annotations

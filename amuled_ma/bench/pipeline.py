@@ -1,21 +1,9 @@
 """The paper's whole offline pipeline, timed: run + ablate clusters + ablate aggregation.
 
-For each task (FindMilk, Driving) and each ``--jobs`` setting, in a fresh run directory:
-``amuled run TASK``, ``amuled ablate TASK --what clusters``, ``amuled ablate TASK --what
-aggregation`` with the shipped scenarios (replay source), each stage timed. Several
-``--jobs`` values (e.g. ``--jobs 1,0``) run one after the other in the same invocation,
-so their ratio is measured side by side; ``--ray`` adds a column with ``--ray`` (a local Ray
-started for each command, one CPU per core). ``--jobs 1`` trains in one process without
-Ray; ``--jobs N`` > 1 on a local Ray. The process pool that Ray replaced is measured with
-``amuled bench compare --old REV pipeline ...`` against a revision that still has it.
-Target: the whole of it, both tasks, in under 15 minutes; Ray's overhead under
-10% of the pipeline time.
-
-``--recipe authors --seeds 5`` times the paper's full comparison as its authors ran it
-(1,000 fine-tuning iterations of 1 x 128 steps, five training seeds of every variant);
-target: under 30 minutes on 2 cores, which only population training reaches
-(every sweep trains as populations unless ``--no-population``; ``--no-population`` adds
-a column without them, about 3-4 hours on 2 cores).
+Each task and ``--jobs`` setting (``--ray`` adds a column) in a fresh run directory, each
+stage timed. Target: both tasks in under 15 minutes, Ray's overhead under 10%. ``--recipe
+authors --seeds 5`` times the paper's full comparison: target under 30 minutes on 2 cores
+(populations; ``--no-population`` adds a column without them).
 """
 
 from __future__ import annotations
@@ -136,10 +124,8 @@ def time_pipeline(
 ) -> dict[tuple[str, str], float]:
     """Run every stage of every task into ``out/<task>``; return seconds per (task, stage).
 
-    ``jobs`` is a ``--jobs`` count, ``"ray"`` for ``--ray`` (a local Ray, every core), or
-    ``"alone"`` for ``--no-population`` (one job per core); ``extra`` are more arguments of
-    every stage (``--recipe``, ``--seeds``); ``run`` runs one ``amuled`` command (default:
-    in this process) and gives its CPU seconds when it measured them, kept in ``cpu``.
+    ``jobs`` is a ``--jobs`` count, ``"ray"`` or ``"alone"`` (``--no-population``); ``run`` runs
+    one ``amuled`` command and gives its CPU seconds when measured, kept in ``cpu``.
     """
     from amuled_ma.errors import AmuledError
 
@@ -167,12 +153,7 @@ def time_pipeline(
 def time_tasks_at_once(
     tasks: list[str], jobs: int | str, out: Path, overrides: list[str], extra: Sequence[str]
 ) -> tuple[dict[tuple[str, str], float], float]:
-    """:func:`time_pipeline` of every task at the same time, each in processes of its own.
-
-    Returns:
-        Seconds per (task, stage), and the wall clock of the whole.
-
-    """
+    """`time_pipeline` of every task at once, each in its own processes; also the total wall."""
     seconds: dict[tuple[str, str], float] = {}
     cpu: dict[tuple[str, str], float] = {}
     failures: list[BaseException] = []

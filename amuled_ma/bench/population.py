@@ -1,31 +1,11 @@
 """Fine-tunes per hour: populations of P = 1, 8, 32, 128 beside the same jobs one by one.
 
-For each task, with the authors' recipe (``scenarios/<task>-authors.toml``: 1 copy x 128
-steps, 8 epochs of 4 mini-batches, their window KL, 1,000 iterations): a short base
-policy is trained (``--base-steps``), then fine-tunes of it (``finetune:amuled``, seeds
-42, 43, ..., lambda_KL cycling through 0.5, 1, 2.5, 5) are timed
-
-- one by one, each a population of one (``--lone`` of them, the mean is used), timed
-  right before each population (a shared machine's load drifts), and
-- as populations of P members (``amuled_ma.learn.population.PopulationTrainer``),
-
-side by side in one run. Each measurement times a few iterations (``--warmup`` then
-``--iterations``) and **extrapolates to the recipe's 1,000 iterations**: a job's time is
-its setup + the warm-up iterations (when the feedback's memo is cold and most states are
-new: on FindMilk about 90 of a run's 110 distinct states come in its first 5 iterations)
-+ (1,000 - warm-up) x the mean of the measured iterations after them (10: two of the
-recipe's checkpoints every 5); fine-tunes per hour = P x 3,600 s / that time. The
-feedback is the replayed recording of the scenario where it is found
-(``../shared/amuled-recordings/``), else the rule-based source; the output names it.
-Times are CPU seconds of this process (the machine may be shared), wall-clock figures
-beside them. One torch thread (the project's setting for small networks). Target
-(the target): at P = 32, at least 10x the one-by-one throughput on a 2-core machine.
-
-``--welch N`` measures agreement instead of speed: N seeds (42, 43, ...; lambda_KL 2.5)
-fine-tuned alone and the same N as one population, full runs, each final policy
-evaluated (``[evaluation].episodes``, sampled and greedy, evaluation seed 42) and the
-training's last 100 iterations summarised; per metric, the mean and standard deviation of
-each group over the seeds and Welch's t (and its two-sided p) of the difference.
+With the authors' recipe, fine-tunes of a short base (seeds 42, 43, ...; lambda_KL cycling
+0.5, 1, 2.5, 5) are timed alone and as populations for ``--warmup`` + ``--iterations`` and
+extrapolated to 1,000 iterations: setup + warm-up + (1,000 - warm-up) x steady mean;
+fine-tunes per hour = P x 3,600 s / that. CPU seconds, one torch thread. Target: at P = 32,
+at least 10x the one-by-one throughput on 2 cores. ``--welch N`` compares N seeds alone and
+as one population instead (Welch's t per metric).
 """
 
 from __future__ import annotations
@@ -93,11 +73,7 @@ def _rss_mib() -> float:
 
 
 class Stopwatch:
-    """Wall-clock and CPU times of a training call's iterations, from its ``on_iteration``.
-
-    The machine may be shared: the CPU time of this process (one torch thread) is what
-    the code costs, the wall-clock time what it took beside the other load.
-    """
+    """Wall-clock and CPU times of a training call's iterations, from its ``on_iteration``."""
 
     def __init__(self) -> None:
         self.marks: list[tuple[float, float]] = []
@@ -117,17 +93,7 @@ class Stopwatch:
         self.marks.append(self.now())
 
     def extrapolate(self, setup: tuple[float, float], warmup: int) -> dict[str, float]:
-        """Seconds of a 1,000-iteration run and per steady iteration, wall and CPU.
-
-        Args:
-            setup: ``(wall, cpu)`` seconds of building the trainer.
-            warmup: Iterations counted as warm-up.
-
-        Returns:
-            ``wall_s``, ``cpu_s`` (the whole run), ``wall_it``, ``cpu_it`` (per steady
-            iteration).
-
-        """
+        """Seconds of a 1,000-iteration run and per steady iteration, wall and CPU."""
         out = {}
         for clock, name in enumerate(("wall", "cpu")):
             first = self.marks[warmup - 1][clock] if warmup else self.start[clock]
@@ -373,11 +339,7 @@ def welch(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
 
 
 def welch_t(a: list[float], b: list[float]) -> tuple[float, float | None]:
-    """Welch's t of ``mean(b) - mean(a)`` and its two-sided p (``scipy.stats.ttest_ind``).
-
-    Without any variance (every value of each group equal) scipy's t is undefined: the
-    difference is then 0, or infinitely many standard errors, and the p is None.
-    """
+    """Welch's t of ``mean(b) - mean(a)`` and its two-sided p (None without variance)."""
     from scipy import stats
 
     if max(a) == min(a) and max(b) == min(b):

@@ -1,17 +1,8 @@
 """Training speed and quality: our figures beside the reference (the paper authors' code).
 
-Measures, with the shipped scenarios:
-
-- FindMilk base training: wall-clock and env steps until the greedy policy is first
-  optimal (14 steps to the milk in 100% of the evaluation episodes), and the full run;
-- Driving base training: the full run, and the greedy policy's collisions, grandmas
-  rescued and lane changes per episode (50 episodes);
-- a fine-tuning run of the paper's length (1,000 iterations x 128 steps) with the replay
-  source (AMULED feedback), in iterations per second;
-- the cost of fusing one state's five beliefs (``bjs-dst``), batched as in training.
-
-Reference figures were measured on this kind of machine (2 cores, no GPU) with the
-paper authors' published code (CleanRL PPO, SyncVectorEnv, per-state Python fusion).
+FindMilk base training (time until the greedy policy is first optimal), Driving base
+training (collisions, rescues, lane changes), a 1,000-iteration replay fine-tune, and
+batched ``bjs-dst`` fusion. References were measured on 2 cores, no GPU.
 """
 
 from __future__ import annotations

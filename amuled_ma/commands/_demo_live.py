@@ -1,7 +1,4 @@
-"""The demo's live leg: a few requests to a local Ollama model, its report section and timing.
-
-See :mod:`amuled_ma.commands.demo` for the demo as a whole.
-"""
+"""The demo's live leg: a few requests to a local Ollama model, its report section and timing."""
 
 from __future__ import annotations
 
@@ -145,7 +142,7 @@ def _plain(value: object) -> Any:
 
 
 def live_section(leg: dict[str, Any]) -> list[str]:
-    """The report's live-leg section (:data:`LIVE_HEADING`), from :func:`live_leg`'s data."""
+    """The report's live-leg section (`LIVE_HEADING`), from `live_leg`'s data."""
     actions = leg["actions"]
     lines = [
         LIVE_HEADING,
@@ -213,13 +210,9 @@ def write_live_leg(run_dir: Path, scenario: Scenario, *, model: str, host: str) 
 def put_live_section(run_dir: Path, lines: list[str]) -> None:
     """End ``report.md`` with the live leg's section, in place of an earlier one.
 
-    Read through :func:`~amuled_ma.files.safe.checked_read_path` and written back whole
-    (:func:`~amuled_ma.files.safe.write_text_atomic`); without a report, nothing is written.
-
     Raises:
-        AmuledError: ``report.md`` is a link, not a regular file, over
-            :data:`~amuled_ma.evaluate.report.writing.MAX_REPORT_BYTES`, or could not be
-            written (a full disk); one line naming it.
+        AmuledError: ``report.md`` is a link, not a regular file, over `MAX_REPORT_BYTES`, or
+            could not be written.
         UnicodeDecodeError: It is not UTF-8 text.
     """
     from amuled_ma.evaluate.report.writing import MAX_REPORT_BYTES
@@ -238,22 +231,14 @@ def put_live_section(run_dir: Path, lines: list[str]) -> None:
 class PrefixWarmup:
     """Evaluate the prompt prefix every request shares, on the private server, in the background.
 
-    All the demo's prompts start with the same system prompt and few-shot turns (about
-    3,300 of their 3,600 tokens); the server's first request must evaluate them (about
-    40 s on one thread), the later ones find them in its prefix cache. This sends one
-    chat with that prefix and an empty last user turn (one token generated, no belief)
-    while the policies train, so the first belief request finds the prefix cached. The
-    options that make Ollama reload a model (``num_ctx``...) are the run's, so the cache
-    survives; with overrides that change the prompt the warm-up is merely wasted.
-
-    Use :meth:`start`; the thread never raises (a failure is kept in :attr:`error`).
+    The shared system prompt and few-shot turns (~3,300 of 3,600 tokens) take ~40 s on one
+    thread; warming them while the policies train lets the first belief request find them in
+    the server's prefix cache. The thread never raises.
 
     Attributes:
-        timing: Ollama's account of the warm-up (None until it is done, or on failure).
+        timing: Ollama's account of the warm-up (None until done, or on failure).
         error: Why it failed, if it did.
-        cut: The demo stopped its server while the warm-up was still running (a demo whose
-            run and live answers were already there needs no prefix).
-
+        cut: The demo stopped its server while the warm-up was still running.
     """
 
     def __init__(self, host: str, model: str, messages: Sequence[tuple[str, str]], options: dict):
@@ -336,15 +321,7 @@ class PrefixWarmup:
 def print_breakdown(
     model: str, phases: list[tuple[str, TimingLog]], reuse: CacheReuse | None
 ) -> None:
-    """Print where the demo's live requests spent their time (Ollama's own metrics).
-
-    Args:
-        model: The model asked.
-        phases: ``(name, log)`` of each phase that asked the model (the run's fine-tune,
-            the viewer's states the run never asked).
-        reuse: The private server's prefix-cache reuse (None: not our server).
-
-    """
+    """Print where the demo's live requests spent their time (Ollama's own metrics), per phase."""
     from amuled_ma.servers.timing import timing_breakdown
 
     timings = [t for _, log in phases for t in log.timings]

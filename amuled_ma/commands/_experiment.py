@@ -20,10 +20,7 @@ if TYPE_CHECKING:
 
 
 def bounded_int(low: int, high: int | None = None) -> Callable[[str], int]:
-    """An argparse ``type``: an integer in ``[low, high]`` (no upper bound if ``high`` is None).
-
-    A value outside is a usage error naming the range, e.g. ``--seed -5``.
-    """
+    """An argparse ``type``: an integer in ``[low, high]`` (``high`` None: no upper bound)."""
 
     def parse(text: str) -> int:
         try:
@@ -127,11 +124,7 @@ def allow_plugin_path(text: str) -> str:
 
 
 def add_allow_plugin_argument(parser: argparse.ArgumentParser) -> None:
-    """Add the repeatable ``--allow-plugin pkg.module:attr`` (code a data file may name).
-
-    The command line (:func:`amuled_ma.cli.main`) hands the list to
-    :func:`amuled_ma.clusters.plugins.set_allowed_plugins` before the command runs.
-    """
+    """Add the repeatable ``--allow-plugin pkg.module:attr`` (code a data file may name)."""
     parser.add_argument(
         "--allow-plugin",
         dest="allow_plugin",
@@ -218,14 +211,7 @@ def run_dir_of(args: argparse.Namespace, scenario: Scenario) -> Path:
 
 
 def rerun_of(name: str, args: argparse.Namespace, *extra: str) -> Rerun:
-    """The command that re-runs a job, as fields (its run folder and ``--name`` apart).
-
-    Args:
-        name: The command (``run``, ``ablate``, ``train``, ``finetune``).
-        args: Its parsed arguments.
-        extra: Its own arguments, before ``--run-dir`` (``--variant base``).
-
-    """
+    """The command that re-runs a job, as fields (``extra``: arguments before ``--run-dir``)."""
     from amuled_ma.experiments.run_folder import Rerun
 
     options: list[str] = []
@@ -267,14 +253,7 @@ def say(message: str) -> None:
 
 
 def say_outcome(request: PipelineRequest, outcome: PipelineOutcome, seconds: float) -> None:
-    """Print the end of ``amuled run``/``ablate``/``demo``: the summary and the report's path.
-
-    Args:
-        request: The :class:`~amuled_ma.experiments.pipeline.PipelineRequest`.
-        outcome: Its :class:`~amuled_ma.experiments.pipeline.PipelineOutcome`.
-        seconds: The command's wall time so far.
-
-    """
+    """Print the end of ``amuled run``/``ablate``/``demo``: the summary and the report's path."""
     name, done = request.scenario.name, f"{len(outcome.seeds)} seed(s) done in {seconds:.1f} s"
     if request.ablation is not None:
         say(

@@ -1,18 +1,4 @@
-"""``amuled beliefs stats|export|import``: inspect and move the persistent belief store.
-
-A recording made on a GPU box is replayed on a laptop by exporting it to JSON Lines and
-importing it there::
-
-    gpu$    amuled beliefs export -o beliefs.jsonl          # every row, chats included
-    laptop$ amuled beliefs import beliefs.jsonl             # verified keys, never overwrites
-    laptop$ amuled beliefs stats
-
-The store file is ``--store``, else ``$AMULED_BELIEF_STORE``, else
-``~/.cache/amuled/beliefs.sqlite`` (:func:`~amuled_ma.beliefs.store.database.default_store_path`).
-``stats`` and ``export`` open it read-only (SQLite ``mode=ro``, else ``immutable=1``), so
-they also work on a store you may only read. Export writes standard JSON only, and import
-refuses anything else (``NaN``, invalid beliefs), naming the file and line.
-"""
+"""``amuled beliefs stats|export|import``: inspect and move the persistent belief store."""
 
 from __future__ import annotations
 

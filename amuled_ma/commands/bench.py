@@ -1,4 +1,4 @@
-"""``amuled bench NAME``: benchmarks that print figures, discovered from :mod:`amuled_ma.bench`."""
+"""``amuled bench NAME``: benchmarks that print figures, discovered from `amuled_ma.bench`."""
 
 from __future__ import annotations
 

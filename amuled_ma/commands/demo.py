@@ -1,40 +1,8 @@
 """``amuled demo``: AMULED working on FindMilk (or Driving) in minutes, then a short live leg.
 
-**The comparison** (``scenarios/findmilk-demo.toml``): the paper's FindMilk comparison
-(base, base + shaping, "human" feedback, AMULED) with the moral clusters' beliefs
-**replayed** from the paper authors' own gpt-4o-mini recording, with their fine-tuning
-recipe (``--recipe authors``), the fine-tunes starting from the authors' published base
-policy (:func:`fetch_authors_base`), at a demo-sized budget chosen by measuring (300
-fine-tuning iterations, one seed); ``report.md`` opens with every variant beside the
-paper's row (:func:`put_summary`, :mod:`amuled_ma.evaluate.paper`), and the step-by-step
-viewer of the AMULED fine-tune (``view-episode0.html``, as ``amuled view``) is written.
-The recording is found by name (``$AMULED_RECORDINGS``, the user data folder of ``amuled
-import authors``, or ``../shared/amuled-recordings`` beside the checkout); found nowhere, it
-is fetched once from the authors' repository at a pinned commit, checked and converted
-(:mod:`amuled_ma.authors.download`), before anything starts; with ``--offline`` (or no
-network) the demo stops there with one line naming the manual route. ``--task
-driving`` runs ``scenarios/driving-demo.toml``, the same on Driving (the AMULED reward from
-their recorded fused beliefs, as ``scenarios/driving-authors.toml``).
-
-**The live leg** (`amuled_ma.commands._demo_live`): a handful of real requests
-(:data:`LIVE_STATES` states of the AMULED fine-tune's greedy episode x
-:data:`LIVE_CLUSTERS`) to a local Ollama model through a belief store
-(``RUN_DIR/live/beliefs.sqlite``), fused as in training; the answers are a labelled
-section of ``report.md`` and ``live/live.json``. With no server given the demo starts a
-private one (``amuled ollama up --tiny``) and stops it afterwards. The tiny model
-(SmolLM2-135M) only exercises the live path: **its moral judgement is not meaningful**,
-and the report says so. Point it at a real model with ``--model llama3.1:8b``.
-
-What makes the live leg fast on a small CPU (``docs/ollama.md``, "Where a request's time
-goes"): the private server runs one request slot (``OLLAMA_NUM_PARALLEL=1``: the shared
-prompt is evaluated once, then reused from the server's prefix cache), the shared prompt is
-evaluated while the policies train (:class:`PrefixWarmup`), and the tiny model answers with
-the probabilities alone. At the end the demo prints where the live requests' time went
-(:func:`print_breakdown`).
-
-The demo adds only what depends on its command line (the server, another model, the
-report's title) to its scenario and runs it through the same library function as
-``amuled run``, :func:`amuled_ma.experiments.pipeline.run_pipeline`.
+The comparison replays the authors' gpt-4o-mini recording with their recipe from their
+published base (``scenarios/<task>-demo.toml``); the live leg asks a local Ollama model a few
+states. The tiny model only exercises the live path: its moral judgement is not meaningful.
 """
 
 from __future__ import annotations
@@ -62,7 +30,7 @@ if TYPE_CHECKING:
     from amuled_ma.servers.timing import CacheReuse, TimingLog
 
 #: The demo's tasks; each runs the shipped scenario ``<task>-demo``
-#: (``scenarios/<task>-demo.toml``, :func:`demo_scenario`).
+#: (``scenarios/<task>-demo.toml``, `demo_scenario`).
 DEMO_TASKS: tuple[str, ...] = ("driving", "findmilk")
 
 #: Request slots of the demo's private server (``OLLAMA_NUM_PARALLEL``). Each slot keeps
@@ -226,27 +194,12 @@ def demo_scenario(
 ) -> Scenario:
     """The scenario of a demo run: ``scenarios/<task>-demo.toml`` on the demo's server.
 
-    The file holds every setting of the demo (its budget, the tiny model and its reply
-    options, the private server's one request slot); this adds what the command line
-    decides: the server (``[feedback].host``), another model (which keeps the Ollama
-    options of the task's own scenario, ``scenarios/<task>.toml``: the file's are the
-    tiny model's), :data:`SHARED_SERVER_CONCURRENCY` requests in flight on a server the
-    demo did not start; then the user's ``--clusters-dir`` folders and ``--set`` overrides.
-
-    Args:
-        task: ``findmilk`` or ``driving``.
-        model: The Ollama model asked.
-        host: The server's URL.
-        private: Whether the demo started that server (its one slot).
-        clusters_dirs: ``--clusters-dir`` folders.
-        overrides: ``--set SECTION.KEY=VALUE`` texts, applied last.
-
-    Returns:
-        The validated scenario.
+    Adds what the command line decides: the server, another model (with the Ollama options of
+    ``scenarios/<task>.toml``), `SHARED_SERVER_CONCURRENCY` on a server the demo did not
+    start; then ``--clusters-dir`` folders and ``--set`` overrides.
 
     Raises:
         ScenarioError: A bad override (the message names it).
-
     """
     from amuled_ma.scenario import load_scenario
 
@@ -262,20 +215,7 @@ def demo_scenario(
 
 
 def missing_recording(task: str, *, offline: bool = False) -> str | None:
-    """One line when the demo's scenario replays a recording this machine lacks (else None).
-
-    A pinned recording of the paper authors found nowhere here is first fetched and
-    converted (:func:`amuled_ma.authors.download.ensure_recordings`, its lines said with
-    ``[demo]``), unless ``offline`` or ``$AMULED_OFFLINE=1``.
-
-    Args:
-        task: ``findmilk`` or ``driving``.
-        offline: Never fetch.
-
-    Returns:
-        The error line (a failed or refused fetch, or offline: the routes), or None.
-
-    """
+    """One line when the demo's recording is missing and cannot be fetched, else None."""
     from amuled_ma.authors.download import ensure_recordings, replayed_recordings
     from amuled_ma.errors import AmuledError
     from amuled_ma.scenario import load_scenario
@@ -300,23 +240,7 @@ def missing_recording(task: str, *, offline: bool = False) -> str | None:
 
 
 def fetch_authors_base(task: str, *, offline: bool = False) -> Path | None:
-    """The authors' published base the demo's fine-tunes start from; fetched when missing.
-
-    A ``recipe = "authors"`` demo scenario fine-tunes from the paper authors' published base
-    policy, ``<runs_dir>/authors/<task>/base`` (where the pipeline finds it); missing, it is
-    fetched from their repository and converted
-    (:func:`amuled_ma.authors.download.ensure_authors_base`, its lines said with ``[demo]``).
-    When it cannot be had (offline, no network, a refused download) the demo says why in
-    one line and its fine-tunes start from the run's own base; the report says which.
-
-    Args:
-        task: ``findmilk`` or ``driving`` (a task without a pinned base: None).
-        offline: Never fetch.
-
-    Returns:
-        The base folder, or None (the run's own base).
-
-    """
+    """The authors' base for the demo's fine-tunes, fetched if missing (None: the run's)."""
     from amuled_ma.authors.download import ensure_authors_base
     from amuled_ma.errors import AmuledError
     from amuled_ma.scenario import load_scenario
@@ -336,7 +260,7 @@ def fetch_authors_base(task: str, *, offline: bool = False) -> Path | None:
         return None
 
 
-#: How the report's summary of every variant against the paper starts (:func:`put_summary`).
+#: How the report's summary of every variant against the paper starts (`put_summary`).
 SUMMARY_HEADING = "## Every variant beside the paper"
 
 
@@ -485,18 +409,7 @@ def _run_pipeline(
 
 
 def write_demo_view(run_dir: Path) -> Path | None:
-    """Write the viewer page of the demo's AMULED fine-tune and link it from the report.
-
-    The page is ``RUN_DIR/view-episode0.html`` (:func:`amuled_ma.evaluate.viewer.write_view`,
-    variant ``finetune-amuled``, greedy evaluation episode 0).
-
-    Args:
-        run_dir: The demo's run folder.
-
-    Returns:
-        The page's path, or None when it could not be written (the reason is printed).
-
-    """
+    """Write ``view-episode0.html`` of the AMULED fine-tune, linked from the report."""
     from amuled_ma.errors import AmuledError
     from amuled_ma.evaluate.report import link_viewer
     from amuled_ma.evaluate.viewer import write_view

@@ -1,24 +1,4 @@
-"""``amuled explain``: one state in the terminal, the panel's beliefs and how they were fused.
-
-The command parses and prints; the explanation is :mod:`amuled_ma.evaluate.explain`'s.
-
-Either a state given by hand::
-
-    amuled explain findmilk --obs 2,3,7,7,2,2,1,1 --prompt-var num_crying=4
-    amuled explain driving --obs 6,5,-1,-1,-1,-1,0,0,1,0,0 --run-dir runs/driving
-
-or a state of an evaluation episode, replayed as ``amuled view`` replays it::
-
-    amuled explain --state-from runs/findmilk --variant finetune-amuled --step 12
-
-prints each agent's belief, status, fusion weight and reasoning (its raw reply, when the
-run's belief store or the replayed recording kept it), then the fusion's intermediate
-quantities from :mod:`amuled_ma.fusion` (pairwise BJS divergences, average divergence,
-credibility, Deng entropy, information volume, weights, the weighted average evidence and
-Dempster's conflict ``K`` of each combination) and the fused belief. Without ``--run-dir``
-the shipped scenario of TASK is used (its recording found by name, see
-:meth:`~amuled_ma.scenario.Scenario.recording_path`) and nothing is written anywhere.
-"""
+"""``amuled explain``: one state, the panel's beliefs and how they were fused."""
 
 from __future__ import annotations
 

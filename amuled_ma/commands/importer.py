@@ -1,17 +1,4 @@
-"""``amuled import authors PATH``: convert the AMULED authors' published artefacts.
-
-A clone of the authors' repository is all a user needs::
-
-    git clone https://github.com/temetski/moral_agent
-    amuled import authors moral_agent                 # recordings + policies
-    amuled run findmilk                               # finds findmilk-gpt-4o-mini by name
-    amuled evaluate runs/authors/findmilk             # the authors' own policies
-
-Their LLM caches become recordings in the user data folder (``--to`` overrides), their
-CleanRL policies become run folders under ``<runs>/authors/<task>/`` (``--runs``). Pickles
-are read with an allow-list unpickler and policies as weights only: nothing in the files
-can run code. See ``docs/authors.md``.
-"""
+"""``amuled import authors PATH``: convert the AMULED authors' published artefacts."""
 
 from __future__ import annotations
 

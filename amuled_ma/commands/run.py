@@ -1,9 +1,4 @@
-"""``amuled run`` (the paper's main comparison) and ``amuled ablate`` (its ablations).
-
-Both parse their arguments into a :class:`~amuled_ma.experiments.pipeline.PipelineRequest`, call
-:func:`~amuled_ma.experiments.pipeline.run_pipeline` (plan, input checks, training, evaluation,
-report) and print its outcome.
-"""
+"""``amuled run`` (the paper's main comparison) and ``amuled ablate`` (its ablations)."""
 
 from __future__ import annotations
 
@@ -112,7 +107,7 @@ QUICK_SUFFIX = "-quick"
 
 
 def add_quick_arg(parser: argparse.ArgumentParser) -> None:
-    """Add ``--quick``: the short form of the experiment (:data:`QUICK_SETTINGS`)."""
+    """Add ``--quick``: the short form of the experiment (`QUICK_SETTINGS`)."""
     base, iterations = (
         QUICK_SETTINGS[("base", "total_steps")],
         QUICK_SETTINGS[("finetune", "iterations")],
@@ -222,7 +217,6 @@ def ray_target(args: argparse.Namespace) -> RayTarget | None:
 
     Raises:
         AmuledError: ``--ray-resource`` without ``--ray``.
-
     """
     from amuled_ma.experiments.jobs import RayTarget
 
@@ -234,7 +228,7 @@ def ray_target(args: argparse.Namespace) -> RayTarget | None:
 
 
 def request_of(args: argparse.Namespace, command: str, *extra: str) -> PipelineRequest:
-    """The `~amuled_ma.experiments.pipeline.PipelineRequest` of ``amuled run`` or ``ablate``."""
+    """The `PipelineRequest` of ``amuled run`` or ``ablate``."""
     from amuled_ma.experiments.pipeline import PipelineRequest
 
     scenario = common.load(args)

@@ -1,16 +1,4 @@
-r"""``amuled study build|serve|analyze|export|fit-weights``: people judge the trained agents.
-
-::
-
-    amuled study build runs/findmilk --variants amuled,base,human --items 40 --seed 7 \\
-        --out studies/findmilk
-    amuled study serve studies/findmilk            # http://127.0.0.1:8765/
-    amuled study analyze studies/findmilk          # studies/findmilk/analysis/report.md
-    amuled study export studies/findmilk -o answers.csv
-    amuled study fit-weights studies/findmilk      # studies/findmilk/analysis/weights.json
-
-See ``docs/study.md``.
-"""
+"""``amuled study build|serve|analyze|export|fit-weights``: people judge the trained agents."""
 
 from __future__ import annotations
 

@@ -87,7 +87,7 @@ MAX_SERVE_SECONDS = 10_000_000
 
 
 def serve_seconds(text: str) -> float:
-    """An argparse ``type``: a finite number of seconds in (0, :data:`MAX_SERVE_SECONDS`]."""
+    """An argparse ``type``: a finite number of seconds in (0, `MAX_SERVE_SECONDS`]."""
     value = common.positive_float(text)
     if value > MAX_SERVE_SECONDS:
         raise argparse.ArgumentTypeError(

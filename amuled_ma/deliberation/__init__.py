@@ -1,14 +1,4 @@
-"""Deliberation: the moral panel the learner asks every step, and the PettingZoo env.
-
-- `MoralPanel`: batched beliefs of every moral cluster
-  for every env copy, fused per copy (what the learner calls; see ``docs/deliberation.md``).
-- `DeliberationEnv`: a native PettingZoo ``ParallelEnv``
-  with an ``"actor"`` and one agent per cluster; as PettingZoo's env modules offer theirs::
-
-      from amuled_ma.deliberation import env
-      parallel = env.parallel_env("findmilk")  # the ParallelEnv
-      aec = env.env("findmilk")  # its AEC form
-"""
+"""Deliberation: the moral panel the learner asks every step, and the PettingZoo env."""
 
 from __future__ import annotations
 

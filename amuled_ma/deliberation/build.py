@@ -1,18 +1,4 @@
-"""Feedback built from a panel plan, the belief store passed in; the preflight of a plan.
-
-`build_feedback` is the one function that turns a
-`PanelPlan` into a
-`Feedback`: the demonstrator, the human rule,
-the authors' fused beliefs, or a `MoralPanel` over
-its members' sources, each behind the store it is given (a
-`CachedSource` per distinct source, one
-`RoutedSource` over them). `preflight` checks a plan
-without a store: every member's source is built and checked (a replay recording holds the
-member's cluster and the task, an Ollama server answers and has the model, a plug-in
-loads), or one error names the member and the ways to give it beliefs. Nothing is written.
-`checked_members` is the preflight that keeps the sources it built and checked
-(`Members`), for `build_feedback` to use instead of building them again.
-"""
+"""Feedback built from a panel plan behind a given belief store; the plan's preflight."""
 
 from __future__ import annotations
 
@@ -72,19 +58,11 @@ class RequestCost(NamedTuple):
 
 
 def request_cost(store: Path | None, model: str) -> RequestCost:
-    """What one live request to ``model`` costs on this machine.
-
-    Args:
-        store: The run's belief store (``None`` or absent: nothing recorded).
-        model: The Ollama model name.
+    """What one live request to ``model`` costs here.
 
     Returns:
-        The median of the store's recorded seconds per answered request to ``model``
-        (:meth:`~amuled_ma.beliefs.store.database.BeliefStore.request_seconds`) when it holds at
-        least :data:`MIN_TIMED_REQUESTS`, basis ``"measured here: median of N recorded
-        requests"``; else :data:`TINY_SECONDS_PER_REQUEST`, basis ``"the docs' figure for
-        the tiny model, not measured here"``.
-
+        The median of the store's recorded seconds per request when it holds at least
+        `MIN_TIMED_REQUESTS`, else `TINY_SECONDS_PER_REQUEST` (the docs' figure).
     """
     if store is not None and Path(store).is_file():
         from amuled_ma.beliefs.store.database import BeliefStore
@@ -106,23 +84,10 @@ _PROBED: dict[str, RequestCost] = {}
 
 
 def probe_cost(source: Any, plan: PanelPlan, agent: str) -> RequestCost:
-    """Time one live request to ``source`` on this machine, after one warm-up request.
+    """Time one live request to ``source`` after one warm-up request; nothing is stored.
 
-    The warm-up (the task's first state) loads the model and fills the server's prompt
-    cache with the chat's shared prefix (system prompt, few-shot examples), as the first
-    requests of a run do; the timed request asks about the next state, as every later
-    request of a run does. Nothing is written to the belief store.
-
-    Args:
-        source: The member's source, built and checked (its ``beliefs``).
-        plan: The panel plan (task, seed, cluster registry).
-        agent: The agent whose chat is sent.
-
-    Returns:
-        The timed request's wall seconds, basis ``"measured here: 1 request timed after a
-        warm-up"``; a request that fails gives the docs' figure, basis ``"not measured: the
-        probe failed (...)"``.
-
+    The warm-up loads the model and fills the server's prompt cache with the chat's shared
+    prefix, as a run's first requests do. A failed request gives the docs' figure.
     """
     import torch
 
@@ -177,24 +142,10 @@ def live_cost_lines(
     members: Members,
     say: Callable[[str], None] | None = None,
 ) -> list[str]:
-    """One line per live (Ollama) member source: its cost per request here and in all.
+    """One line per live (Ollama) member source: its cost per request and in all.
 
-    The cost is `request_cost` (the store's recorded median for the model) when the
-    store holds enough timed requests, else `probe_cost` (cached per model and options
-    in this process).
-
-    Args:
-        plan: The panel plan.
-        store: The run's belief store file (absent: nothing recorded).
-        members: The plan's sources, built and checked (`checked_members`).
-        say: Told before a probe is sent (it takes a request's time, or a model's load).
-
-    Returns:
-        E.g. ``live feedback: social_justice asked of amuled-tiny: 4.2 s a request
-        (measured here: median of 12 recorded requests) x 12 requests on the budget (12
-        states) = ~50 s`` (requests one at a time);
-        without an integer budget the total is the cost per new state the fine-tune visits.
-
+    Uses `request_cost` when the store holds enough timed requests, else `probe_cost`
+    (cached per model and options in this process); ``say`` is told before a probe is sent.
     """
     lines = []
     budget = plan.distill.budget if plan.distill is not None and plan.distill.enabled else None
@@ -237,17 +188,10 @@ def live_cost_lines(
 
 
 def live_costs(plan: PanelPlan, store: Path, say: Callable[[str], None] | None = None) -> list[str]:
-    """`live_cost_lines` of a fine-tune's planned panel; no source is built without a live member.
-
-    Args:
-        plan: The fine-tune's panel plan (a job's ``panel``).
-        store: Its belief store file (a job's ``store``); its recorded times are read.
-        say: See `live_cost_lines`.
+    """`live_cost_lines` of a fine-tune's panel; no source is built without a live member.
 
     Raises:
-        AmuledError: As `build_members` (the preflight has passed, so only a server
-            that went away since).
-
+        AmuledError: As `build_members`.
     """
     if not plan.asks_panel or plan.fused_recording is not None:
         return []
@@ -262,20 +206,7 @@ def live_costs(plan: PanelPlan, store: Path, say: Callable[[str], None] | None =
 
 
 def options_line(missing: Sequence[str], states: int, distill: DistillConfig | None = None) -> str:
-    """The ways to give members without beliefs an answer, short, as ``--set`` options.
-
-    Args:
-        missing: The members no source answers (user clusters not in the recording).
-        states: Distinct states a fine-tune of the task asks about (the recording's).
-        distill: ``[feedback.distill]`` (its budget, when on, is the cost to quote).
-
-    Returns:
-        One clause: the ``--set`` of a person at the terminal with the number of answers
-        (states x members; on the budget of ``[feedback.distill]``, or
-        `SUGGESTED_BUDGET`, with the distilled model), dropping the members, and
-        where a live model and the other sources are described (docs/clusters.md).
-
-    """
+    """The ways to give members without beliefs an answer, as one clause of ``--set`` options."""
     n = len(missing)
     asks = states * n
     budget = SUGGESTED_BUDGET
@@ -332,13 +263,10 @@ def _replay_problem(
 
 
 class Members(NamedTuple):
-    """A plan's member sources, each distinct one built once and checked, open.
+    """A plan's member sources, each distinct one built once, checked and open.
 
-    Attributes:
-        routes: ``{agent: source}`` of the members with their own table.
-        default: The source of every other member (None: each has a table).
-        plans: ``{id(source): its SourcePlan}``.
-
+    ``routes`` maps agents with their own table to a source; ``default`` serves the others;
+    ``plans`` maps ``id(source)`` to its `SourcePlan`.
     """
 
     routes: dict[str, BeliefSource]
@@ -358,26 +286,14 @@ class Members(NamedTuple):
 
 
 def build_members(plan: PanelPlan, *, build: Callable[..., BeliefSource] = build_source) -> Members:
-    """Build every distinct member source of a plan once and check it; nothing is asked.
+    """Build and check every distinct member source of a plan once; nothing is asked.
 
-    The preflight, per distinct source: building it (a replay recording is read and
-    checked, a policy file loaded, a plug-in resolved and built), then ``check()`` where
-    the source has one (Ollama: the server answers and has the model), then, for a
-    replay member, that its recording is of the task and holds every member it serves.
-
-    Args:
-        plan: The plan.
-        build: ``(kind, **options) -> BeliefSource`` (default ``beliefs.make_source``).
-
-    Returns:
-        The `Members` (``routes``, ``default``, ``plans``); agents with equal plans
-        share one object, and so do an agent and the default.
+    Agents with equal plans share one source object. A replay member's recording must be of the
+    task and hold every member it serves.
 
     Raises:
-        AmuledError: One problem: the member's own error class, its message prefixed
-            with the agent's table and source; several: a `ScenarioError`
-            listing each, one per line. Every source built is closed first.
-
+        AmuledError: One problem: its own class, prefixed with the agent and source; several:
+            a `ScenarioError` listing each. Every source built is closed first.
     """
     where = plan.where
     default = plan.default
@@ -443,12 +359,8 @@ def build_members(plan: PanelPlan, *, build: Callable[..., BeliefSource] = build
 def preflight(plan: PanelPlan) -> None:
     """Check that every member of a plan can answer, before any training or folder.
 
-    `checked_members`, the sources it built closed again.
-
     Raises:
-        AmuledError: One line naming the member, its source and the ways to give it
-            beliefs (several problems: one line each).
-
+        AmuledError: One line per problem, naming the member, its source and the fixes.
     """
     members = checked_members(plan)
     if members is not None:
@@ -458,18 +370,12 @@ def preflight(plan: PanelPlan) -> None:
 def checked_members(plan: PanelPlan) -> Members | None:
     """The preflight of a plan, its member sources kept open for `build_feedback`.
 
-    A panel's sources are built and checked (`build_members`); a fused-only
-    recording must be of the task, and not be asked to distil.
-
     Returns:
-        The members, built and checked (the caller closes them, or hands them to
-        `build_feedback`); None when the feedback asks no member source (the
-        demonstrator, the human rule, a fused-only recording).
+        The members (the caller closes them or hands them on); None when the feedback asks no
+        member source.
 
     Raises:
-        AmuledError: One line naming the member, its source and the ways to give it
-            beliefs (several problems: one line each); nothing is left open.
-
+        AmuledError: As `preflight`; nothing is left open.
     """
     if not plan.asks_panel:
         return None
@@ -489,8 +395,7 @@ def check_distillable(plan: PanelPlan) -> None:
     """Refuse ``[feedback.distill]`` on a recording that keeps only the fused belief.
 
     Raises:
-        ScenarioError: The message names the file and the fix.
-
+        ScenarioError: Naming the file and the fix.
     """
     if plan.fused_recording is None or plan.distill is None or not plan.distill.enabled:
         return
@@ -507,20 +412,11 @@ def panel_source(
 ) -> CachedSource | RoutedSource:
     """The belief source of a plan's panel, every member behind ``store``.
 
-    Args:
-        plan: The plan (a panel that is not fused-only).
-        store: The belief store (`BeliefStore`, or
-            anything with its ``lookup`` / ``put_many`` / ``close``).
-        members: The plan's sources, already built and checked
-            (`checked_members`); default: built here.
-
     Returns:
-        One ``CachedSource`` when every member shares one source, else a ``RoutedSource``
-        of them.
+        One ``CachedSource`` when every member shares one source, else a ``RoutedSource``.
 
     Raises:
         AmuledError: As `build_members` (nothing is written then).
-
     """
     routes, default, plans = members if members is not None else build_members(plan)
     if not routes:
@@ -555,29 +451,15 @@ def build_feedback(
     seed: int | None = None,
     cache_dir: Path | None = None,
 ) -> Feedback:
-    """Build the feedback of a plan, its panel's members behind ``store``.
+    """Build the feedback of a plan, its panel's members behind ``store`` (the caller owns it).
 
-    Args:
-        plan: The plan (`plan_panel`).
-        store: The belief store every member's answers go through (unused without a
-            panel); the caller owns it.
-        members: The plan's member sources as the preflight built and checked them
-            (`checked_members`), handed over: the feedback closes them with
-            itself. Default: built here (and checked).
-        state_dir: The fine-tune's folder. With ``[feedback.distill].enabled``, panel
-            feedback is distilled there (its budget kept in the folder's state files);
-            without a folder the panel answers every state (the viewer, explain).
-        resume: Continue the budget kept in ``state_dir``.
-        seed: The job's training seed, the distilled model's seed unless
-            ``[feedback.distill].seed`` is set (default: ``[task].seed``).
-        cache_dir: Folder caching the demonstrator's counts (the run folder).
-
-    Returns:
-        The feedback, ready to be called every step; its ``plan`` attribute is ``plan``.
+    ``members`` from `checked_members` are handed over (default: built here). With
+    ``[feedback.distill].enabled`` the panel is distilled in ``state_dir`` (``resume`` continues
+    its budget); without it the panel answers every state. ``seed`` seeds the distilled model
+    unless ``[feedback.distill].seed`` is set.
 
     Raises:
         AmuledError: A member's source cannot be built or checked.
-
     """
     feedback = _build(plan, store, members, state_dir, resume, seed, cache_dir)
     feedback.plan = plan
@@ -647,9 +529,8 @@ def _build(
 def _count_questions(distilled: Any, plan: PanelPlan) -> None:
     """Tell each person at the terminal how many states they will be asked.
 
-    On an integer budget (``[feedback.distill].budget``: that many distinct states), a
-    person answering for ``m`` agents is asked ``(budget - states already asked) x m``
-    questions; a budget given as a share of the states visited has no total ahead.
+    On an integer budget a person answering for ``m`` agents is asked
+    ``(budget - states already asked) x m`` questions; a fractional budget has no total ahead.
     """
     from amuled_ma.beliefs.sources.terminal import TerminalSource
 
@@ -673,11 +554,7 @@ def _count_questions(distilled: Any, plan: PanelPlan) -> None:
 
 
 def run_store(path: Path) -> StoreService:
-    """The belief store at ``path`` (a run's: ``Scenario.store_path``), opened on first use.
-
-    The preflight runs before the store's file exists; a feedback that never asks a
-    member (the demonstrator, a fused-only recording) never opens it.
-    """
+    """The belief store at ``path``, opened on first use (never, if no member is asked)."""
     from amuled_ma.beliefs.store.service import open_store
 
     return _Lazy(lambda: open_store(path))

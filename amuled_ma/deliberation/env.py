@@ -1,48 +1,11 @@
-"""``DeliberationEnv``: one task, an actor and a panel of moral-cluster agents (PettingZoo).
+"""``DeliberationEnv``: one task, an actor and a panel of moral-cluster agents (PettingZoo, v0).
 
-## Description
-
-A `pettingzoo.ParallelEnv` over one copy of a task env (``num_envs=1``): agents
-``"actor"`` and one per moral cluster. Each step every cluster states a belief over the
-task's actions, they are fused (`fuse`), the task steps with the actor's action, and the
-actor is rewarded with the fused belief of that action. The LLMs live outside the env
-(`MoralPanel` is one policy for the cluster agents).
-
-## Action Space
-
-- ``"actor"``: ``Discrete(n_actions)``, the task action.
-- each cluster: ``Box(0, 1, (n_actions,), float32)``, a belief, projected onto the simplex
-  (`project_to_simplex`); a missing cluster action counts as uniform.
-
-## Observation Space
-
-- ``"actor"``: the task observation, ``Box(obs_low, obs_high, (obs_dim,), float32)``.
-- each cluster: ``Dict({"prompt": Text, "obs": Box})``: the state prompt
-  (`render_state_prompt`, at most ``prompt_max_length`` characters) and the observation.
-
-## Rewards
-
-- actor: ``r_env_weight * r_task + feedback_coef * fused[a]`` (`actor_reward`, as in
-  training: this env is `BatchedDeliberation` with one copy).
-- each cluster: its credibility weight in the fusion (``FusionResult.weights``, summing to
-  1 over the clusters); a record only, the clusters are not trained.
-
-## Infos
-
-Every agent's info holds ``"fused"`` (the fused vector), ``"beliefs"`` (each cluster's
-projected belief), ``"weights"`` (``{cluster: weight}``), ``"conflict"`` (Dempster's ``K``
-of the first combination; 0 for rules that do not combine), ``"conflicts"`` (``K`` at each
-combination), ``"r_env"``, ``"r_shaping"`` and ``"r_feedback"``.
-
-## Episode end
-
-When the task terminates or truncates (``max_steps``), every agent is done at once and
-``agents`` becomes empty; that step returns the final observations, with an empty
-``prompt``.
-
-## Version History
-
-- v0: initial version.
+Agents: ``"actor"`` (``Discrete(n_actions)``, observes the task) and one per cluster (acts a
+belief ``Box(0, 1, (n_actions,))``, projected onto the simplex, missing = uniform; observes
+``{"prompt": Text, "obs": Box}``). Each step the beliefs are fused, the task steps with the
+actor's action, the actor gets `actor_reward` and each cluster its fusion weight (a record;
+clusters are not trained). Infos hold ``fused``, ``beliefs``, ``weights``, ``conflict``,
+``conflicts``, ``r_env``, ``r_shaping``, ``r_feedback``. At the task's end every agent is done.
 """
 
 from __future__ import annotations
@@ -70,25 +33,7 @@ ACTOR = "actor"
 
 
 def project_to_simplex(v: npt.ArrayLike) -> np.ndarray:
-    """Euclidean projection of a vector onto the probability simplex.
-
-    Returns ``argmin_x ||x - v||_2`` subject to ``x >= 0`` and ``sum(x) = 1``, by the sort
-    algorithm of Wang & Carreira-Perpiñán (2013), "Projection onto the probability
-    simplex: an efficient algorithm with a simple proof" (arXiv:1309.1541)::
-
-        u = sort(v, descending); rho = max{j : u_j + (1 - sum_{i<=j} u_i) / j > 0}
-        theta = (1 - sum_{i<=rho} u_i) / rho;  x = max(v + theta, 0)
-
-    A vector already on the simplex is returned unchanged; a vector with NaN or inf maps to
-    the uniform belief (a broken policy must not crash the env).
-
-    Args:
-        v: A 1-D array-like.
-
-    Returns:
-        The projection (float64), non-negative and summing to 1.
-
-    """
+    """Euclidean projection onto the probability simplex; NaN or inf gives uniform."""
     v = np.asarray(v, dtype=np.float64).reshape(-1)
     n = v.size
     if n == 0:
@@ -107,25 +52,9 @@ def project_to_simplex(v: npt.ArrayLike) -> np.ndarray:
 class DeliberationEnv(ParallelEnv):
     """The actor and the moral clusters around one task (see the module docstring).
 
-    Args:
-        task_name: A task of `tasks` (``"findmilk"``, ``"driving"``).
-        clusters: Cluster agent names (default: the shipped panel, the paper's five).
-        fusion_rule: A rule of `fuse`.
-        r_env_weight: Weight of the task reward in the actor's reward.
-        feedback_coef: Coefficient ``c`` of the fused belief of the action taken.
-        shaping_coef: The task's handcrafted shaping coefficient (0: none).
-        max_steps: The task's time limit; ``None`` keeps the task's default.
-        seed: Seed used by the first ``reset`` given none.
-        render_mode: ``None``, ``"ansi"`` (the task as text, with the last step's beliefs,
-            weights and fused belief under it) or ``"rgb_array"`` (the task's picture).
-        prompt_max_length: ``max_length`` of the prompt ``Text`` space.
-        render_state_prompt: ``(task_name, variables) -> str``; default
-            `render_state_prompt`.
-        task_options: Extra keyword arguments of the task (e.g. ``layout``).
-        clusters_dirs: Folders of user cluster files, loaded after the shipped ones (a file
-            overrides a shipped cluster of its name); the default panel and the names in
-            ``clusters`` are resolved against them.
-
+    ``render_mode``: ``None``, ``"ansi"`` or ``"rgb_array"``; ``max_steps`` None keeps the
+    task's limit; ``clusters`` defaults to the shipped panel; ``clusters_dirs`` are folders of
+    user cluster files, overriding the shipped ones; ``task_options`` go to the task.
     """
 
     metadata: dict[str, Any] = {  # noqa: RUF012 - PettingZoo convention
@@ -268,17 +197,10 @@ class DeliberationEnv(ParallelEnv):
     def step(self, actions: Mapping[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         """Fuse the cluster beliefs, step the task with the actor's action, reward everyone.
 
-        Args:
-            actions: ``{"actor": int, cluster: belief vector, ...}``.
-
-        Returns:
-            ``observations, rewards, terminations, truncations, infos``, keyed by agent.
-
         Raises:
             RuntimeError: ``step`` after the episode ended (call ``reset``).
             KeyError: The actor's action is missing.
             ValueError: The actor's action is out of range.
-
         """
         if not self.agents:
             raise RuntimeError("step() called with no live agents; call reset() first")
@@ -331,21 +253,10 @@ class DeliberationEnv(ParallelEnv):
         return observations, rewards, term, trunc, infos
 
     def panel_actions(self, panel: MoralPanel) -> dict[str, np.ndarray]:
-        """Return every cluster agent's action as answered by a moral panel.
-
-        The LLM side of the PettingZoo convention: the panel (a
-        `MoralPanel` over any belief source) answers for the
-        current state; add the actor's action and pass the dict to `step`.
-
-        Args:
-            panel: A moral panel whose ``clusters`` include this env's cluster agents.
-
-        Returns:
-            ``{cluster: belief}`` for every live cluster agent.
+        """Every live cluster agent's belief as answered by ``panel`` for the current state.
 
         Raises:
             KeyError: A cluster agent of this env is not in the panel.
-
         """
         names = list(getattr(panel, "clusters", []))
         missing = [c for c in self.cluster_names if c not in names]
@@ -363,13 +274,7 @@ class DeliberationEnv(ParallelEnv):
         return self._obs.copy()
 
     def render(self) -> str | np.ndarray | None:
-        """Render the env in its ``render_mode``; nothing without one.
-
-        ``"ansi"``: the task as text and, after a step, that step's panel under it: each
-        cluster's belief over the actions and its fusion weight, the fused belief,
-        Dempster's conflict ``K`` and the actor's action. ``"rgb_array"``: the task's
-        picture (uint8 ``[H, W, 3]``).
-        """
+        """Render in ``render_mode``: ``"ansi"`` text with the last step's panel, or RGB uint8."""
         if self.render_mode == "rgb_array":
             return self.task.render_rgb(0)
         if self.render_mode != "ansi":
@@ -431,16 +336,8 @@ def _row(obs: npt.ArrayLike | torch.Tensor) -> np.ndarray:
 def parallel_env(task_name: str = "findmilk", **kwargs: Any) -> DeliberationEnv:
     """The deliberation env of ``task_name``, as PettingZoo's env modules offer it.
 
-    Args:
-        task_name: A task of `tasks` (``"findmilk"``, ``"driving"``).
-        **kwargs: The other `DeliberationEnv` arguments.
-
-    Returns:
-        The env (call ``reset`` first).
-
     Raises:
         ScenarioError: Unknown task; the message lists the known ones.
-
     """
     return DeliberationEnv(task_name, **kwargs)
 

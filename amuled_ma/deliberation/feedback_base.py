@@ -1,32 +1,9 @@
 """Feedback for fine-tuning: a belief over actions for every environment copy, each step.
 
-The fine-tuning reward is ``f(B)[a_t]``, the feedback's probability of the action the
-agent took (paper, eq. "feedback"). A `Feedback` answers a whole batch (all
-environment copies at once) and memoises by observation, so a repeated state costs one
-dictionary lookup; underneath, panel feedback goes through the belief store, so a state
-seen in an earlier run costs no LLM call either.
-
-Variants (``--feedback``):
-
-- ``amuled``: the five moral clusters fused with ``bjs-dst`` (or the scenario's rule);
-- ``human``: the authors' synthetic human, a demonstrator's action counts
-  (`DemonstratorFeedback`, `demonstrators`);
-- ``human:rules``: our rule-based human source (`human_belief`,
-  through `CallableFeedback`);
-- ``cluster:<name>``: one moral cluster alone;
-- ``moral``: the unprompted "behave as a moral agent" agent;
-- ``agg:<rule>``: the five clusters fused with another rule
-  (:data:`amuled_ma.records.variants.AGGREGATIONS`).
-
-Every call counts, per agent (cluster), the status of the belief each rewarded step was
-given: ``ok`` / ``repaired`` (an answer), ``abstained`` / ``timeout`` / ``error`` (a
-failure: the fused reward used a uniform fallback for that agent) and ``replay_miss``;
-with ``[feedback.distill]`` also ``distilled`` / ``distilled_miss`` (the distilled
-model's answers, reported apart from the panel's) and ``unasked`` (a failure).
-`Feedback.summary` holds them (``"agents"``, JSON-ready, for ``feedback.json`` and
-``results.json``), `Feedback.agent_report` returns them on their own, and
-`summary_lines` prints them, so a server that always fails or answers NaN reads
-"error 100.00%", not "miss rate 0.00%".
+The fine-tuning reward is ``f(B)[a_t]``. A `Feedback` answers a whole batch and memoises by
+observation. It counts, per agent, the status of each rewarded step's belief (``ok``,
+``repaired``, ``abstained``, ``timeout``, ``error``, ``replay_miss``, ``distilled``, ...) so a
+server that always fails reads "error 100.00%", not "miss rate 0.00%".
 """
 
 from __future__ import annotations
@@ -68,7 +45,7 @@ class Feedback(ABC):
 
     #: Variant name (``amuled``, ``human``, ``cluster:care``, ...).
     name: str = "feedback"
-    #: The panel plan it was built from (:func:`~amuled_ma.deliberation.build.build_feedback`
+    #: The panel plan it was built from (`build_feedback`
     #: sets it); None for a feedback built directly.
     plan: PanelPlan | None = None
 
@@ -123,14 +100,7 @@ class Feedback(ABC):
     def __call__(
         self, obs: torch.Tensor, task: object, env_ids: Sequence[int] | None = None
     ) -> np.ndarray:
-        """Return beliefs ``[N, A]`` for a batch of observations (one row per copy).
-
-        Args:
-            obs: Observations ``[N, obs_dim]`` (the states the actions were taken in).
-            task: The batched task (for prompt variables or the human rule).
-            env_ids: The copies the rows belong to (default: ``range(N)``).
-
-        """
+        """Beliefs ``[N, A]`` for observations ``[N, obs_dim]``, one row per copy (``env_ids``)."""
         array = obs.detach().cpu().numpy().astype(np.float32, copy=False)
         ids = list(range(len(array))) if env_ids is None else list(env_ids)
         prompt_vars = None
@@ -210,23 +180,13 @@ class Feedback(ABC):
             self._conflict_sum += conflict
 
     def agent_report(self, *, per: str = "steps") -> dict[str, dict[str, Any]]:
-        """Per agent: how many beliefs had each status, and the share that failed.
+        """Per agent: the count of each status, ``total``, ``failed`` and ``failure_rate``.
 
-        Args:
-            per: ``"steps"`` (each rewarded env step counts: the share of the reward
-                built on fallbacks) or ``"states"`` (each distinct state asked counts once).
-
-        Returns:
-            ``{agent: {"ok": n, "repaired": n, "abstained": n, "timeout": n, "error": n,
-            "replay_miss": n, (any other status), "total": n, "failed": n,
-            "failure_rate": failed / total}}``, agents in the order first seen. ``failed``
-            counts every status but the answers (`ANSWERED`: ``ok``, ``repaired``
-            and the distilled model's ``distilled``, ``distilled_miss``); a future
-            stopping threshold can compare ``failure_rate`` with a limit.
+        ``per``: ``"steps"`` (each rewarded step counts) or ``"states"`` (each distinct state once).
+        ``failed`` counts every status outside `ANSWERED`.
 
         Raises:
             ValueError: ``per`` is neither ``"steps"`` nor ``"states"``.
-
         """
         if per not in ("steps", "states"):
             raise ValueError(f"per must be 'steps' or 'states', got {per!r}")
@@ -248,16 +208,10 @@ class Feedback(ABC):
     def check_abstention(self) -> None:
         """Stop when an agent left too much of the reward without its answer.
 
-        The share is over rewarded steps (how much of the feedback the agent's failures
-        touched), judged once the agent was asked `MIN_STATES_JUDGED` distinct
-        states: a few rarely visited states the agent could not answer do not stop a run,
-        an agent that fails on the states the policy keeps visiting does.
+        Judged over rewarded steps once the agent was asked `MIN_STATES_JUDGED` distinct states.
 
         Raises:
-            AbstentionError: An agent failed to answer (abstained, timeout, error, replay
-                miss) on more than `max_abstention` of the rewarded steps; the
-                message names the agent, its source, the counts and the fix.
-
+            AbstentionError: An agent failed on more than `max_abstention` of the rewarded steps.
         """
         from amuled_ma.errors import AbstentionError
 
@@ -299,20 +253,7 @@ class Feedback(ABC):
         return (total - answered) / total if total else 0.0
 
     def summary(self) -> dict[str, Any]:
-        """Diagnostics so far, JSON-ready (``feedback.json``, ``results.json``).
-
-        Returns:
-            ``feedback`` (variant), ``steps``, ``unique_states``, ``mean_weight`` and
-            ``mean_conflict`` (fusion), ``mean_entropy_share`` (per agent, over the rewarded
-            steps it answered: the Shannon entropy of its belief / log2 of the action
-            count, 1 for a uniform belief; empty when the feedback reports no beliefs per
-            agent), ``statuses`` (all agents, per step),
-            ``miss_rate`` (replay misses / beliefs), ``failure_rate`` (beliefs that were
-            not answers / beliefs), ``agents`` (`agent_report` per step),
-            ``agents_per_state`` (per distinct state) and, for a distilled feedback,
-            ``distill`` (`distill_report`: the budget's accounting).
-
-        """
+        """Diagnostics so far, JSON-ready (``feedback.json``, ``results.json``)."""
         total = sum(self.statuses.values())
         n = max(1, self._diag_count)
         out = {
@@ -344,12 +285,8 @@ class Feedback(ABC):
 def _prepare(diag: dict[str, Any], default_agent: str = "feedback") -> tuple:
     """Return ``(((agent, status), ...), ((cluster, weight), ...) or None, conflict, entropies)``.
 
-    ``entropies`` is ``((agent, entropy share), ...)`` from ``diag["entropy_share"]``, or None.
-
-    The agents are ``diag["agents"]`` (one name per status), else the weights' names when
-    they match the statuses one to one, else ``default_agent`` (the variant's name).
-    Done once per distinct state, so the per-row accounting of every step is a few
-    additions, in the same order and with the same floats as reading the dict each time.
+    Agents are ``diag["agents"]``, else the weights' names when they match the statuses one to
+    one, else ``default_agent``. Done once per distinct state.
     """
     weights = diag.get("weights")
     pairs = tuple((name, float(value)) for name, value in weights.items()) if weights else None
@@ -383,18 +320,10 @@ class CallableFeedback(Feedback):
 
 
 class DemonstratorFeedback(Feedback):
-    """The authors' synthetic human (Wu & Lin 2018 style): a demonstrator's action counts.
+    """The authors' synthetic human: a demonstrator's action counts.
 
-    A simulated demonstrator played the task and every (observation, action) it took was
-    counted (`demonstrators`); a state's belief is
-    ``p(a) ∝ 0.6^c_a 0.4^(n - c_a)``. A state the demonstrator never visited rewards 0
-    (the authors' ``finetune_moral_human.py``), counted as ``unseen``.
-
-    Args:
-        task_name: The task.
-        seed: Seed of the demonstrator's episodes.
-        cache_dir: Folder caching the counts (the run folder).
-
+    A state's belief is ``p(a) ∝ 0.6^c_a 0.4^(n - c_a)``; a state the demonstrator never
+    visited rewards 0 (the authors' ``finetune_moral_human.py``), counted as ``unseen``.
     """
 
     name = "human"

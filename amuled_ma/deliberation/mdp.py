@@ -1,18 +1,7 @@
 """The deliberation MDP, batched: N task copies, a panel, and the actor's reward, defined once.
 
-Both views of a deliberation step run through `BatchedDeliberation`:
-
-- the learner (`DeliberationVecEnv`, rsl-rl's ``VecEnv``)
-  trains in it with ``N`` copies; its feedback (a moral panel over a belief source, a
-  replay, a demonstrator, ...) answers for all ``N`` states in one call;
-- the PettingZoo `DeliberationEnv` is the same MDP with
-  one copy, where the cluster agents' actions are the beliefs and its arbiter fuses them.
-
-Each step, the fused belief of the state the action is taken in is read *before* the task
-steps, then the task steps, then `actor_reward` turns the task reward and the fused
-belief of the taken action into the actor's reward. The KL anchor to the base policy is
-not part of the MDP: it needs the policies, so the learner adds it
-(`AnchoredPPO`).
+The learner and the PettingZoo `DeliberationEnv` (one copy) both step `BatchedDeliberation`.
+The KL anchor to the base policy is not part of the MDP; the learner adds it (`AnchoredPPO`).
 """
 
 from __future__ import annotations
@@ -44,22 +33,8 @@ def actor_reward(
 ) -> torch.Tensor:
     """The actor's reward: ``task_weight * r_task + feedback_coef * fused[a]``.
 
-    The one definition used by training and by the PettingZoo view. ``r_task`` is the
-    task's reward, ``r_env + shaping_coef * r_shaping`` (the task computes that sum), and
-    ``fused[a]`` the fused belief of the action taken in the state it was taken in. Base
-    training has no feedback (``fused_taken`` is None) and is rewarded ``task_weight *
-    r_task``.
-
-    Args:
-        r_task: Task reward per copy ``[N]``.
-        fused_taken: Fused belief of each copy's action ``[N]``, or None (no feedback).
-        task_weight: Weight of the task reward (``[finetune] env_reward_coef`` when
-            fine-tuning, 1 in base training, ``r_env_weight`` in the PettingZoo env).
-        feedback_coef: Weight ``c`` of the feedback term.
-
-    Returns:
-        The reward ``[N]``, in the dtype of the inputs.
-
+    ``fused_taken`` None (base training) gives ``task_weight * r_task``. Returns ``[N]`` in the
+    inputs' dtype.
     """
     if fused_taken is None:
         return task_weight * r_task
@@ -77,19 +52,10 @@ def as_tensor(
 
 @dataclass
 class DeliberationStep:
-    """What one batched step returns.
+    """What one batched step returns (``[N]`` per copy; ``obs`` after the task's automatic reset).
 
-    Attributes:
-        obs: Next observations ``[N, obs_dim]`` (after the task's automatic reset).
-        reward: The actor's reward ``[N]`` (`actor_reward`).
-        terminated: ``[N]`` bool.
-        truncated: ``[N]`` bool.
-        info: The task's info (``r_env``, ``r_shaping``, ``final_obs``, ``episode``, ...).
-        r_task: The task reward ``[N]``.
-        fused: The fused beliefs of the states the actions were taken in ``[N, A]``, or
-            None without feedback.
-        feedback: ``fused[a]`` per copy ``[N]``, or None without feedback.
-
+    ``fused`` ``[N, A]`` are the beliefs of the states acted in and ``feedback`` = ``fused[a]``;
+    both None without feedback.
     """
 
     obs: torch.Tensor
@@ -105,15 +71,8 @@ class DeliberationStep:
 class BatchedDeliberation:
     """``N`` copies of a task, the feedback that answers for them, and the actor's reward.
 
-    Call `reset` before the first `step`.
-
-    Args:
-        task: A batched task (`tasks`), any number of copies.
-        feedback: Answers the fused beliefs of all copies' states in one call; None for base
-            training or when the caller passes the fused beliefs to `step` itself.
-        task_weight: Weight of the task reward in the actor's reward.
-        feedback_coef: Weight of the fused belief of the action taken.
-
+    Call `reset` before the first `step`. ``feedback`` None: base training, or the caller
+    passes the fused beliefs to `step`.
     """
 
     def __init__(
@@ -152,18 +111,7 @@ class BatchedDeliberation:
     def step(
         self, actions: torch.Tensor, fused: npt.ArrayLike | torch.Tensor | None = None
     ) -> DeliberationStep:
-        """Read the fused beliefs of the current states, step the task, reward the actor.
-
-        Args:
-            actions: Action index per copy ``[N]`` (long).
-            fused: The fused beliefs ``[N, A]`` of the current states, when the caller has
-                them (the PettingZoo view fuses its cluster agents' actions); None asks
-                `feedback` (or gives no feedback term when there is none).
-
-        Returns:
-            The step (`DeliberationStep`).
-
-        """
+        """Read the fused beliefs (``fused``, else asked), step the task, reward."""
         if fused is None:
             fused = self.beliefs()
         elif not isinstance(fused, torch.Tensor):
@@ -192,19 +140,8 @@ class BatchedDeliberation:
 class CopiesView:
     """Copies ``start .. start + count - 1`` of a batched task, seen as a task of ``count``.
 
-    What a population member's feedback is handed (`MemberFeedback`): its copies
-    numbered from 0, as in a lone run, so ``prompt_variables(ids)`` (and
-    ``state_prompts``) reads copy ``start + id`` of the population's task and ``obs`` is
-    the member's rows. Every other attribute is the task's.
-
-    Args:
-        task: The population's batched task.
-        start: First copy.
-        count: Number of copies.
-        variables: Reads the prompt variables of copies by their indices in ``task``
-            (default: ``task.prompt_variables``); `MemberFeedback` hands its
-            once-per-step reading of every copy.
-
+    A population member's feedback sees its copies numbered from 0, as in a lone run; every
+    other attribute is the task's.
     """
 
     _LOCAL_IDS = ("prompt_variables", "state_prompts")
@@ -239,25 +176,11 @@ class CopiesView:
 
 
 class MemberFeedback:
-    """A population's feedback: member ``p``'s feedback answers for member ``p``'s copies.
+    """A population's feedback: member ``p``'s feedback answers for its ``E`` copies.
 
-    A population of ``P`` members trains in one task of ``P x E`` copies, member ``p``
-    owning copies ``p*E .. p*E + E - 1``; each member's feedback (its own panel, fusion
-    rule, memo) is called on its rows with its copies as a task of ``E``
-    (`CopiesView`), exactly as in a lone run, and the answers are stacked. The
-    prompt variables of the states (read by a feedback keyed by prompt) are read for
-    every copy at once, on the first request of a step, and served to each member.
-
-    A member whose feedback fails (an `AmuledError`, a belief
-    that is not finite) is not asked again: the reason is kept in `failures`, its
-    rows get zeros that nothing learns from (the population trainer stops the member after
-    the iteration and keeps its last checkpoint), and the other members' iteration runs
-    exactly as it would have.
-
-    Args:
-        feedbacks: One feedback per member (`FeedbackFn`).
-        copies: Copies per member ``E``.
-
+    Prompt variables are read for every copy once per step. A member whose feedback fails
+    (an `AmuledError`, a non-finite belief) is not asked again: the reason is kept in
+    `failures` and its rows get zeros; the other members run exactly as they would have.
     """
 
     def __init__(self, feedbacks: Sequence[FeedbackFn], copies: int) -> None:

@@ -1,18 +1,8 @@
 """The moral panel: one belief per (env copy, cluster), fused per env copy.
 
-`MoralPanel.fused` takes a batch of env copies and
-
-1. asks each distinct state (observation bytes + prompt variables) once;
-2. renders its prompt (`render_state_prompt`) and each cluster's chat (`build_messages`),
-   unless the source reads no messages;
-3. sends all (state, cluster) requests in one batch to the source;
-4. checks every belief (`validate`); an invalid one becomes status ``"error"`` (counted
-   in `PanelStats.invalid`), so no invalid belief is fused;
-5. fuses with `fuse`: an agent without an answer abstains (left out, weight 0); a state
-   nobody answered gets the uniform fallback, counted. A distilled model's belief
-   (`MODEL_STATUSES`) is an answer.
-
-The panel keeps no cache; `Feedback` memoises in front of it (``docs/beliefs.md``, "Caches").
+Each distinct state (observation + prompt variables) is asked once, all (state, cluster)
+requests in one batch; an invalid belief becomes status ``"error"`` and is never fused. The
+panel keeps no cache; `Feedback` memoises in front of it.
 """
 
 from __future__ import annotations
@@ -42,18 +32,11 @@ Messages = tuple[tuple[str, str], ...]
 
 @dataclass
 class PanelOutput:
-    """The panel's answer for a batch of ``N`` env copies, ``K`` clusters, ``A`` actions.
+    """The panel's answer for ``N`` env copies, ``K`` clusters, ``A`` actions.
 
-    Attributes:
-        fused: ``(N, A)`` fused belief per env copy.
-        beliefs: ``(N, K, A)`` each cluster's (sanitised) belief.
-        weights: ``(N, K)`` each cluster's weight in the fusion (sums to 1 per row).
-        conflict: ``(N,)`` Dempster's conflict ``K`` of the first combination (``bjs-dst``;
-            0 for rules that do not combine).
-        conflicts: ``(N, K - 1)`` conflict at each combination (empty for other rules).
-        statuses: ``(N, K)`` status of each belief (``"ok"``, ``"repaired"``, ...).
-        unique: Number of distinct states in the batch.
-
+    ``fused`` ``(N, A)``, ``beliefs`` ``(N, K, A)``, ``weights`` and ``statuses`` ``(N, K)``,
+    ``conflict`` ``(N,)`` (Dempster's ``K`` of the first combination, 0 if none), ``conflicts``
+    ``(N, K - 1)``, ``unique``: distinct states in the batch.
     """
 
     fused: np.ndarray
@@ -65,15 +48,7 @@ class PanelOutput:
     unique: int = 0
 
     def reward(self, actions: npt.ArrayLike | torch.Tensor) -> np.ndarray:
-        """Return ``fused[i, actions[i]]``: the shaping reward of the actions taken.
-
-        Args:
-            actions: ``(N,)`` integer actions (array-like or a CPU tensor).
-
-        Returns:
-            ``(N,)`` float64.
-
-        """
+        """``fused[i, actions[i]]`` as ``(N,)`` float64: the shaping reward of the actions taken."""
         a = np.asarray(actions, dtype=np.int64).reshape(-1)
         return self.fused[np.arange(len(a)), a]
 
@@ -82,18 +57,9 @@ class PanelOutput:
 class PanelStats:
     """Counters of a `MoralPanel` since creation.
 
-    Attributes:
-        calls: Calls to `MoralPanel.fused`.
-        copies: Env copies seen.
-        unique: Distinct states seen (per call).
-        requests: Belief requests sent to the source (K per new state).
-        fallbacks: Beliefs that were not answers (status other than ``ok``/``repaired``
-            and a distilled model's ``distilled``/``distilled_miss``).
-        by_status: Count of each status among answered requests.
-        invalid: Beliefs that were not valid probability vectors (made uniform ``"error"``).
-        invalid_reasons: The first few of them, ``"cluster: values: reason"``.
-        no_answer: Distinct states no agent answered (fused to the uniform fallback).
-
+    ``requests`` are sent to the source (K per new state); ``fallbacks`` are beliefs that were
+    not answers; ``invalid`` were not probability vectors (made uniform ``"error"``, the first
+    few reasons kept); ``no_answer`` counts states fused to the uniform fallback.
     """
 
     calls: int = 0
@@ -114,27 +80,9 @@ _KEEP_REASONS = 10
 class MoralPanel:
     """Ask every moral cluster about every env copy's state and fuse the answers.
 
-    Args:
-        task_name: Task name (``"findmilk"``, ``"driving"``), passed to the prompt
-            renderer, the message builder and each request.
-        clusters: The panel's agents, as names or
-            `Cluster` objects, in fusion order.
-        source: Where beliefs come from (typically a
-            `CachedSource`).
-        fusion_rule: A rule name of `fuse`.
-        action_names: The task's action names; default: the task class's
-            ``action_names``.
-        with_messages: Render prompts and build chats; default: the source's
-            ``needs_messages`` attribute (True when it has none).
-        render_state_prompt: ``(task_name, variables) -> str``; default
-            `render_state_prompt`.
-        build_messages: ``(cluster, task_name, state_prompt) -> messages``; default
-            `build_messages`.
-        prior: A prior weight per cluster, in fusion order (``[feedback].weights``), for a
-            rule that takes one (``bjs-dst``: it multiplies each cluster's credibility);
-            a state fuses the prior of the clusters that answered it. None: the rule's
-            own weights.
-
+    ``clusters`` are in fusion order; ``with_messages`` defaults to the source's
+    ``needs_messages``. ``prior``: a weight per cluster for a rule that takes one
+    (``bjs-dst``); a state fuses the prior of the clusters that answered. None: the rule's own.
     """
 
     def __init__(
@@ -206,9 +154,8 @@ class MoralPanel:
     def messages(self, cluster_index: int, state_prompt: str) -> Messages:
         """Build the chat of one cluster for one state prompt.
 
-        The chat of each cluster is built once with a placeholder state and the placeholder
-        is then replaced by each state prompt; a self-check at first use falls back to
-        calling the message builder every time if that would change a single byte.
+        Each cluster's chat is built once with a placeholder state that each prompt replaces; a
+        self-check at first use falls back to the builder if that would change a single byte.
         """
         if self._build is None:
             from amuled_ma.clusters import build_messages
@@ -251,18 +198,9 @@ class MoralPanel:
     ) -> PanelOutput:
         """Ask every cluster about every env copy and fuse per copy.
 
-        Args:
-            obs_batch: ``(N, obs_dim)`` observations (numpy or a CPU torch tensor).
-            prompt_vars: ``N`` dicts of the task's prompt variables (the task env's
-                ``prompt_variables()``); may be ``None`` when the source reads no messages.
-
-        Returns:
-            The fused beliefs and diagnostics, see `PanelOutput`.
-
         Raises:
-            ValueError: ``prompt_vars`` is missing or of the wrong length while messages
-                are needed, or ``obs_batch`` is not 2-D.
-
+            ValueError: ``prompt_vars`` is missing or of the wrong length while messages are
+                needed, or ``obs_batch`` is not 2-D.
         """
         obs = _as_numpy(obs_batch)
         if obs.ndim != 2:
@@ -345,24 +283,11 @@ class MoralPanel:
     def _fuse_answers(
         self, beliefs: np.ndarray, statuses: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Fuse each state's answers; an agent that did not answer abstains.
+        """Fuse each state's answers; an agent that did not answer abstains (weight 0).
 
-        An agent whose belief is not an answer (status other than ``ok``/``repaired`` and
-        the distilled model's: abstained, timeout, error, replay miss, unasked) is left
-        out of that state's fusion: the
-        rule runs over the agents that answered, and the absent agent's weight is 0. It
-        is never fed as a uniform belief, which BJS weighting would favour (a uniform
-        belief is close to every other one). A state no agent answered gets the
-        documented fallback, the uniform belief, counted in `PanelStats.no_answer`.
-
-        Args:
-            beliefs: ``(U, K, A)`` each agent's checked belief.
-            statuses: ``(U, K)`` their statuses.
-
-        Returns:
-            ``fused (U, A)``, ``weights (U, K)``, ``conflicts (U, K - 1)`` (the conflicts
-            of the answering agents' combinations first, zeros after).
-
+        An absent agent is never fed as a uniform belief, which BJS weighting would favour. A state
+        no agent answered gets the uniform belief, counted in `PanelStats.no_answer`. Conflicts of
+        the answering agents come first, zeros after.
         """
         u_count, k, a = beliefs.shape
         answered = np.isin(statuses.astype(str), list(FUSED_STATUSES))

@@ -1,10 +1,4 @@
-"""Panel feedback: a panel's fused beliefs, or the authors' recorded fused beliefs.
-
-`PanelFeedback` asks a `MoralPanel` (through
-its belief source, perhaps distilled); `FusedReplayFeedback` replays a recording
-that keeps only the fused belief per state. Both are built from a
-`PanelPlan` by `build`.
-"""
+"""Panel feedback: a panel's fused beliefs, or the authors' recorded fused beliefs."""
 
 from __future__ import annotations
 
@@ -123,14 +117,7 @@ class PanelFeedback(Feedback):
         return results
 
     def summary(self) -> dict[str, Any]:
-        """As `Feedback.summary`, plus the belief store's figures and the servers'.
-
-        ``store`` is `store_stats`: beliefs wanted, found in memory or in the store,
-        and asked of the source.
-
-        ``llm_servers`` is ``{host: figures}`` (`llm_server_stats`): requests sent,
-        answered and failed (by kind), retried from, latencies, per server.
-        """
+        """As `Feedback.summary`, plus ``store`` and ``llm_servers`` figures."""
         out = super().summary()
         servers = llm_server_stats(self.source)
         if servers:
@@ -156,18 +143,7 @@ class PanelFeedback(Feedback):
 
 
 def entropy_shares(beliefs: np.ndarray) -> np.ndarray:
-    """Each belief's Shannon entropy as a share of the largest possible.
-
-    Over singletons Deng entropy (Xiao's information volume) is Shannon entropy, so this is
-    what the fusion weighs: 1 for a uniform belief, 0 for one action alone.
-
-    Args:
-        beliefs: ``(..., A)`` probabilities, ``A >= 2``.
-
-    Returns:
-        ``(...)``: ``-sum_a p_a log2 p_a / log2 A`` (terms with ``p_a = 0`` count 0).
-
-    """
+    """Each belief's Shannon entropy / log2(A): 1 for uniform, 0 for one action."""
     p = np.clip(np.asarray(beliefs, dtype=np.float64), 0.0, None)
     logs = np.log2(p, out=np.zeros_like(p), where=p > 0)
     return -(p * logs).sum(axis=-1) / np.log2(p.shape[-1])
@@ -180,18 +156,10 @@ def _all_missed(statuses: Sequence[str]) -> bool:
 class FusedReplayFeedback(Feedback):
     """The AMULED feedback replayed from a recording that keeps only the fused belief.
 
-    The authors' Driving cache of gpt-4o-mini stored, per state, only the fused belief
-    their AMULED agent was trained on (``fused_by_reference``); the five clusters'
-    beliefs are lost, so this feedback *is* that fused belief, not a fusion of ours. A
-    state missing from the recording follows ``miss_policy`` (``zero``: reward 0, as the
-    authors' scripts; ``uniform``; ``error``), counted as ``replay_miss``; a recorded
-    all-zero belief (their fusion's total conflict) rewards 0 and is counted as
-    ``total_conflict``.
-
-    Args:
-        recording: The fused-only `Recording`.
-        miss_policy: ``zero``, ``uniform`` or ``error``.
-
+    The authors' Driving cache of gpt-4o-mini kept only the fused belief per state, so this
+    feedback is that belief, not a fusion of ours. A missing state follows ``miss_policy``
+    (``zero``, ``uniform``, ``error``), counted as ``replay_miss``; a recorded all-zero belief
+    (total conflict) rewards 0, counted as ``total_conflict``.
     """
 
     name = "amuled"

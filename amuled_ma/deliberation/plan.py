@@ -1,14 +1,4 @@
-"""The panel plan: a scenario and a feedback variant resolved once into who answers how.
-
-`plan_panel` reads the scenario once: the panel's members (cluster objects, from the
-shipped cluster files and ``[feedback].clusters_dirs``), the fusion rule, each member's
-source (its ``[feedback.agents.<name>]`` spec, its cluster file's ``[source]``, or
-``[feedback].source``) as a `SourcePlan` of keyword arguments, the fused-only
-recording when the authors kept only the fused belief, the distillation settings and the
-miss policy. `build` builds the feedback from a plan (the belief store passed in) and
-checks it before training (`preflight`). `PanelPlan.describe` is the plan as plain JSON
-for a run's record.
-"""
+"""The panel plan: a scenario and a feedback variant resolved once into who answers how."""
 
 from __future__ import annotations
 
@@ -40,15 +30,7 @@ RULES_NOTE = ", the task's rule: the cluster's text is not read"
 
 @dataclass(frozen=True)
 class SourcePlan:
-    """What `make_source` builds for some agents.
-
-    Attributes:
-        kind: The ``make_source`` kind.
-        options: Its keyword arguments (plain data).
-        label: How messages name it (``"[feedback.agents.care] (source 'ollama', model
-            'llama3.1:8b')"``).
-
-    """
+    """What `make_source` builds for some agents: its kind, keyword arguments and message label."""
 
     kind: str
     options: dict[str, Any]
@@ -65,29 +47,15 @@ class PanelPlan:
     """A feedback variant resolved from a scenario: everything building it needs.
 
     Attributes:
-        variant: The feedback (``amuled``, ``cluster:care``, ``human``, ...).
-        kind: Its kind (`parse_feedback`).
-        task: The task's name.
         where: The scenario file (or name), first in messages.
-        seed: ``[task].seed`` (the demonstrator's episodes).
         clusters: The members, cluster objects in panel order (empty without a panel).
-        registry: The cluster registry they came from (for the prompts).
-        rule: The fusion rule.
         routes: ``{agent: source}`` of the members with their own table.
         default: The source of every other member (None: each has a table).
-        problems: ``[(error, label)]`` of sources that could not be planned (a recording
-            not found); the preflight reports them with the others.
-        fused_recording: The recording that keeps only the fused belief, when the panel
-            replays it (the whole feedback is then that fused belief).
-        miss_policy: ``[feedback].miss_policy``.
+        problems: ``[(error, label)]`` of sources that could not be planned.
+        fused_recording: The fused-only recording, when the panel replays one.
         miss_zero: A state every member missed rewards 0 (the authors' scripts).
-        distill: ``[feedback.distill]``.
-        max_abstention: ``[feedback].max_abstention``.
-        prior: The members' prior weights in panel order (``[feedback].weights``, the
-            ``amuled`` variant only; summing to 1), handed to the ``bjs-dst`` fusion; None:
-            the paper's fixed weights.
-        weights_file: The weights file the prior was read from.
-
+        prior: The members' prior weights (``[feedback].weights``, ``amuled`` only, sum 1);
+            None: the paper's fixed weights.
     """
 
     variant: str
@@ -124,15 +92,7 @@ class PanelPlan:
         return self.routes.get(agent, self.default)
 
     def describe(self) -> dict[str, Any]:
-        """The plan as plain JSON: members with their source, rule, recording, fused-only.
-
-        Returns:
-            ``{"feedback", "members": [{"agent", "source", "label"}], "fusion",
-            "recording", "fused_only", "distill"}``; ``recording`` is the file name of the
-            replayed recording (None without one). With a member prior, also
-            ``"weights": {"file", "prior": {agent: weight}}``.
-
-        """
+        """The plan as plain JSON: members and sources, rule, recording, fused-only, weights."""
         if not self.asks_panel:
             source = "rules" if self.variant == "human:rules" else "demonstrator"
             return {

@@ -1,11 +1,7 @@
 """What makes two task states the same state for a moral panel.
 
-A state is its observation *and* the prompt variables its state prompt is rendered from:
-on FindMilk the number of crying babies still to pacify is in the prompt but not in the
-observation, so two copies at one position with different counts are two states. The panel
-(`MoralPanel`) and the fine-tuning feedback's
-in-process memo (`Feedback`) key states with
-`freeze` alike, as the belief store does with the rendered prompt.
+A state is its observation *and* its prompt variables: on FindMilk the number of crying
+babies is in the prompt but not in the observation.
 """
 
 from __future__ import annotations

@@ -1,9 +1,4 @@
-"""Feedback diagnostics in words and figures: statuses per agent, the budget, the store, servers.
-
-`summary_lines` prints a `summary`
-for people; `store_stats` and `llm_server_stats` add up the figures of every
-source inside a panel's source (`nested_sources`).
-"""
+"""Feedback diagnostics in words and figures: statuses per agent, the budget, the store, servers."""
 
 from __future__ import annotations
 
@@ -18,21 +13,7 @@ if TYPE_CHECKING:
 
 
 def summary_lines(summary: dict[str, Any]) -> list[str]:
-    """Format a `Feedback.summary` for people: one headline, one line per agent.
-
-    Works on summaries written before per-agent counts existed (headline only).
-
-    Args:
-        summary: The dict of `Feedback.summary` (or a ``feedback.json``).
-
-    Returns:
-        Lines without trailing newlines, e.g.::
-
-            beliefs not answered: 50.00% of 800 (abstained 0, timeout 0, error 400, ...)
-              care: ok 400, repaired 0, abstained 0, timeout 0, error 0, replay_miss 0
-              virtue: ok 0, repaired 0, abstained 0, timeout 0, error 400 (100.00%), ...
-
-    """
+    """Format a `Feedback.summary` for people: a headline, then a line per agent."""
     statuses = summary.get("statuses") or {}
     total = sum(statuses.values())
     failed = total - sum(n for s, n in statuses.items() if s in ANSWERED)
@@ -81,22 +62,7 @@ FLAT_ENTROPY = 0.95
 
 
 def readings(summary: Mapping[str, Any]) -> list[str]:
-    """One sentence on what each figure of a feedback summary means for the result.
-
-    Args:
-        summary: A :meth:`Feedback.summary` (or ``feedback.json``): ``agents`` (per-agent
-            status counts), ``statuses``, ``distill`` (``holdout_tv_fused``), ``mean_weight``
-            and, where known, ``mean_entropy_share`` (per agent: mean Deng entropy of its
-            beliefs / log2 of the action count).
-
-    Returns:
-        Sentences, each present exactly when its condition holds: an agent repaired on more
-        than :data:`REPAIRED_MAJORITY` of its answers; the distilled model's held-out TV
-        (close up to :data:`TV_CLOSE`, far above :data:`TV_FAR`); the share of beliefs
-        the distilled model gave (when above 0); an agent at or above
-        :data:`FLAT_ENTROPY` that carries the largest mean weight.
-
-    """
+    """One sentence per figure of a feedback summary that tells about the result."""
     out: list[str] = []
     for agent, row in (summary.get("agents") or {}).items():
         answered = row.get("ok", 0) + row.get("repaired", 0)
@@ -146,12 +112,7 @@ def readings(summary: Mapping[str, Any]) -> list[str]:
 
 
 def distill_line(report: Mapping[str, Any]) -> str:
-    """One line of a distilled feedback's accounting (``Feedback.summary()["distill"]``).
-
-    E.g. ``feedback budget 10%: asked 13 of 131 distinct states (9.9%), the model
-    answered 118; 65 requests sent; 4 refits; held-out TV to the panel 0.123 (fused,
-    4 states)``.
-    """
+    """One line of a distilled feedback's accounting (``Feedback.summary()["distill"]``)."""
     budget = report.get("budget")
     shown = f"{100 * budget:g}%" if isinstance(budget, float) else f"{budget} states"
     visited, asked = report.get("visited_states", 0), report.get("asked_states", 0)
@@ -171,11 +132,7 @@ def distill_line(report: Mapping[str, Any]) -> str:
 
 
 def nested_sources(source: BeliefSource | None) -> list[Any]:
-    """A belief source and every source inside it, each once.
-
-    Walks a `CachedSource` (``.source``), a
-    `RoutedSource` (``.members``), fallbacks and defaults.
-    """
+    """A belief source and every source inside it, each once."""
     found: list[Any] = []
     seen: set[int] = set()
 
@@ -195,18 +152,7 @@ def nested_sources(source: BeliefSource | None) -> list[Any]:
 
 
 def llm_server_stats(source: BeliefSource | None) -> dict[str, dict[str, Any]]:
-    """Each LLM server's figures over a belief source and the sources inside it.
-
-    Adds up every ``server_stats()`` found (`OllamaSource`)
-    among `nested_sources` with `merge_host_stats`.
-
-    Args:
-        source: The belief source (``None``: no figures).
-
-    Returns:
-        ``{host: figures}``; empty without an LLM server.
-
-    """
+    """``{host: figures}`` of every LLM server inside ``source``; empty without one."""
     found = [
         obj.server_stats()
         for obj in nested_sources(source)
@@ -220,13 +166,7 @@ def llm_server_stats(source: BeliefSource | None) -> dict[str, dict[str, Any]]:
 
 
 def store_stats(source: BeliefSource | None) -> dict[str, int]:
-    """The belief store's figures over a source: requests, hits, and those asked.
-
-    Adds up the `CacheStats` of every cached source among
-    `nested_sources`: ``requests`` (beliefs wanted), ``unique`` (distinct ones per
-    batch), ``store_hits`` and ``asked`` (sent to the source behind the
-    store: for an LLM, the requests it was sent).
-    """
+    """The belief store's figures over a source: requests, unique, store_hits, asked."""
     from amuled_ma.beliefs.store.cached import CacheStats
 
     total = {"requests": 0, "unique": 0, "store_hits": 0, "asked": 0}
@@ -241,10 +181,7 @@ def store_stats(source: BeliefSource | None) -> dict[str, int]:
 
 
 def describe_identity(identity: Mapping[str, Any]) -> str:
-    """``replay (findmilk-gpt-4o-mini.json)``, ``ollama (llama3.1:8b)``: a source in words.
-
-    A ``rules`` source says it is the task's rule and that no cluster's text is read.
-    """
+    """A source in words: ``replay (findmilk-gpt-4o-mini.json)``, ``ollama (llama3.1:8b)``."""
     kind = str(identity.get("source", "source"))
     if kind == "rules":  # never a model's name: the rule answers, no cluster text is read
         policy = identity.get("policy") or "human"

@@ -1,22 +1,4 @@
-"""Run a graph of training jobs, in this process or on Ray.
-
-An experiment (``amuled run``, ``amuled ablate``) is a list of :class:`TrainJob`, each
-naming the jobs it needs first (a fine-tune needs its base). :func:`run_jobs` checks every
-job's folder before anything starts (so a clash with an old checkpoint fails at once),
-then trains them:
-
-- one worker and no ``--ray``: one after the other in this process, each with its own
-  progress bar (debuggable, no start-up cost);
-- otherwise on Ray (:mod:`amuled_ma.experiments.ray_jobs`): a local Ray with one CPU per worker,
-  or the cluster at ``--ray ADDRESS``; one progress bar counts the iterations of all jobs.
-
-Every job is single-threaded (``torch.set_num_threads(1)``), so ``workers`` = CPU cores
-fills the machine. Fine-tunes of one run share the SQLite belief store, which is safe
-across processes of one machine (WAL).
-
-A caller that writes a run folder connects first (:func:`ray_connection`, around the
-writing and the training): a SIGTERM while Ray starts then leaves no folder behind.
-"""
+"""Run a graph of training jobs, in this process (one worker, no ``--ray``) or on Ray."""
 
 from __future__ import annotations
 
@@ -34,13 +16,7 @@ from amuled_ma.experiments.run_folder import JobResult, TrainJob
 
 @dataclass(frozen=True)
 class RayTarget:
-    """Where ``--ray`` sends the jobs.
-
-    Attributes:
-        address: A Ray cluster's address; None starts a local Ray for the run.
-        resource: A custom resource each job needs one unit of (``--ray-resource``).
-
-    """
+    """Where ``--ray`` sends the jobs (``address`` None: a local Ray) and ``--ray-resource``."""
 
     address: str | None = None
     resource: str | None = None
@@ -48,14 +24,7 @@ class RayTarget:
 
 @dataclass
 class JobsOutcome:
-    """What :func:`run_jobs` did.
-
-    Attributes:
-        results: One :class:`~amuled_ma.experiments.run_folder.JobResult` per job, in job order.
-        wall_s: Wall-clock seconds of the whole graph.
-        workers: Worker processes used (1: this process).
-
-    """
+    """What `run_jobs` did: results in job order, wall seconds, workers used (1: this process)."""
 
     results: list[JobResult] = field(default_factory=list)
     wall_s: float = 0.0
@@ -71,11 +40,10 @@ def available_cpus() -> int:
 
 
 def resolve_workers(requested: int, jobs: Sequence[TrainJob]) -> int:
-    """Jobs at once: ``requested``, or with 0 one per core (1 when live).
+    """Jobs at once: ``requested``, or with 0 one per core (1 when a job asks a live source).
 
-    A live Ollama server is itself the bottleneck and uses every core, and a person at the
-    terminal answers only in this process, so ``0`` (auto) keeps fine-tunes that ask either
-    (for any agent) in this process; replay and rules feedback scale with cores.
+    A live Ollama server is itself the bottleneck and a person at the terminal answers only in
+    this process.
     """
     if requested < 0:
         raise AmuledError(f"--jobs must be 0 (auto) or a positive count, got {requested}")
@@ -94,7 +62,7 @@ def _asks_live(job: TrainJob) -> bool:
 
 
 def check_order(jobs: Sequence[TrainJob]) -> None:
-    """Raise :class:`AmuledError` on duplicate names or a need that is not in the graph."""
+    """Raise `AmuledError` on duplicate names or a need that is not in the graph."""
     names = [j.name for j in jobs]
     if len(set(names)) != len(names):
         raise AmuledError(f"duplicate job names in {names}")
@@ -108,7 +76,7 @@ def check_order(jobs: Sequence[TrainJob]) -> None:
 
 # ------------------------------------------------------------------ parent side
 def uses_ray(jobs: Sequence[TrainJob], workers: int, ray: RayTarget | None) -> bool:
-    """Whether :func:`run_jobs` trains ``jobs`` on Ray (else in this process)."""
+    """Whether `run_jobs` trains ``jobs`` on Ray (else in this process)."""
     return not (ray is None and (workers <= 1 or len(jobs) <= 1))
 
 
@@ -116,23 +84,14 @@ def uses_ray(jobs: Sequence[TrainJob], workers: int, ray: RayTarget | None) -> b
 def ray_connection(
     jobs: Sequence[TrainJob], *, workers: int, ray: RayTarget | None = None
 ) -> Iterator[None]:
-    """Connect to the Ray :func:`run_jobs` will train ``jobs`` on, for the ``with`` block.
+    """Connect to the Ray `run_jobs` will use, for the ``with`` block (nothing without Ray).
 
-    Enter it before the run folder is written: a SIGTERM (or Ctrl-C) while Ray starts or
-    connects then ends the command (exit 143, or 130) with nothing written, and the run
-    folder's lock removes the folder it made. Without Ray (one worker, no ``--ray``) it
-    does nothing. Ray is shut down (or disconnected from a cluster) when the block ends.
-
-    Args:
-        jobs: The jobs :func:`run_jobs` will get.
-        workers: Its ``workers``.
-        ray: Its ``ray``.
+    Enter it before the run folder is written: a SIGTERM or Ctrl-C while Ray starts then ends
+    the command with nothing written.
 
     Raises:
         AmuledError: No cluster answers at the address.
-        KeyboardInterrupt: SIGTERM (:class:`~amuled_ma.errors.Terminated`) or Ctrl-C
-            while connecting; Ray is shut down first.
-
+        KeyboardInterrupt: SIGTERM (`Terminated`) or Ctrl-C while connecting; Ray is shut down.
     """
     if not uses_ray(jobs, workers, ray):
         yield
@@ -159,30 +118,15 @@ def run_jobs(
     ray: RayTarget | None = None,
     population: bool = True,
 ) -> JobsOutcome:
-    """Train a graph of jobs.
+    """Train a graph of planned jobs (an unplanned graph is planned here).
 
-    Args:
-        jobs: The jobs, each after the jobs it needs, planned
-            (:func:`~amuled_ma.experiments.plans.plan_jobs`; an unplanned graph is
-            planned here).
-        workers: Jobs at once; 1 (without ``ray``) trains in this process, more on a
-            local Ray with that many CPUs.
-        progress: Show progress bars.
-        hint: The command that re-runs the graph (its ``--resume`` form is printed on stops).
-        describe: Turns each finished :class:`~amuled_ma.experiments.run_folder.JobResult`
-            into the line printed about it.
-        ray: Train on Ray even with one worker, at this cluster (``--ray [ADDRESS]``).
-        population: Train jobs of one shape together as populations
-            (:mod:`~amuled_ma.experiments.population_jobs`; ``--no-population``: False).
-
-    Returns:
-        The outcome, results in job order.
+    ``workers`` 1 without ``ray`` trains in this process; ``population`` trains jobs of one
+    shape together.
 
     Raises:
-        AmuledError: A job's folder clashes with an old checkpoint (before anything runs),
-            or a job failed (after the running ones finished).
+        AmuledError: A job's folder clashes (before anything runs), or a job failed (after the
+            running ones finished).
         KeyboardInterrupt: Ctrl-C, after every running job wrote its checkpoint.
-
     """
     check_order(jobs)
     if any(job.action is None for job in jobs):
@@ -220,12 +164,7 @@ def run_jobs(
 
 
 def job_groups(jobs: Sequence[TrainJob], *, workers: int, population: bool) -> list[list[TrainJob]]:
-    """The planned jobs to train (not skipped) as groups that train together, needs first.
-
-    With ``population``, :func:`~amuled_ma.experiments.population_jobs.population_groups`
-    (jobs of one shape together, a level cut into as few populations as fill the
-    workers); else one job a group.
-    """
+    """The planned jobs to train (not skipped) as groups that train together, needs first."""
     if not population:
         return [[job] for job in jobs if job.action != "skip"]
     from amuled_ma.experiments.population_jobs import population_groups  # here: torch
@@ -240,15 +179,10 @@ def _train_groups(
     hint: str,
     describe: Callable[[Any], str],
 ) -> dict[str, JobResult]:
-    """Train groups one after the other in this process; results by job name.
-
-    Every group trains as populations (a group of one: a population of one). Jobs that
-    failed alone in a population stop the graph once their group has finished.
+    """Train groups one after the other in this process, each as populations; results by job name.
 
     Raises:
-        AmuledError: A job failed (the others of its group finished first; a lone job's
-            own error).
-
+        AmuledError: A job failed (the others of its group finished first).
     """
     from amuled_ma.experiments.population_jobs import (  # here: torch
         population_failure,

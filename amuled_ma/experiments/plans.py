@@ -1,13 +1,4 @@
-"""Experiments: the paper's pipeline and ablations, as resumable jobs over a run directory.
-
-:func:`plan_run` and :func:`plan_ablation` list the jobs of ``amuled run`` and ``amuled
-ablate`` (:class:`~amuled_ma.experiments.run_folder.TrainJob`: a fine-tune needs its seed's
-base); :func:`plan_jobs` plans each once (:func:`plan_job`: its panel plan and preflight,
-run shape, settings, base checkpoint, new / resume / skip) before any folder exists;
-:func:`prepare_job` builds a planned job's feedback and writes its record; and
-:func:`train_variant` plans, prepares and trains one variant alone.
-:mod:`amuled_ma.experiments.jobs` trains a planned graph.
-"""
+"""Experiments: the paper's pipeline and ablations as resumable, planned jobs."""
 
 from __future__ import annotations
 
@@ -60,18 +51,17 @@ LEARNED_WEIGHTS_LABEL = "amuled-learned-weights"
 KL_SWEEP = (0.0, 0.5, 1.0, 2.5, 5.0, 10.0)
 #: The budgets of the ``budget`` ablation: shares of the distinct states visited that the
 #: panel is asked about (``[feedback.distill].budget``); 100% is asked once, the others
-#: with each of :data:`BUDGET_SELECTIONS`.
+#: with each of `BUDGET_SELECTIONS`.
 BUDGET_SWEEP = (1.0, 0.3, 0.1, 0.03)
 #: The selections of the ``budget`` ablation (``[feedback.distill].selection``).
 BUDGET_SELECTIONS = ("uncertainty", "random")
 
 
 def training_seeds(first: int, count: int = 1) -> list[int]:
-    """The training seeds of a run: ``count`` consecutive seeds from ``first``.
+    """``count`` consecutive training seeds from ``first``.
 
     Raises:
         AmuledError: ``count`` is below 1.
-
     """
     if count < 1:
         raise AmuledError(f"--seeds must be at least 1, got {count}")
@@ -86,35 +76,13 @@ def plan_job(
     rerun: Rerun | None = None,
     check_panel: bool = True,
 ) -> TrainJob:
-    """Plan a job once: its panel plan, run shape, settings, base checkpoint and start.
+    """Plan a job once: panel plan, run shape, settings, base checkpoint, start; writes nothing.
 
-    A fine-tune's feedback variant is resolved into its panel plan
-    (:func:`~amuled_ma.deliberation.plan.plan_panel`: known clusters, shipped or in
-    ``[feedback].clusters_dirs``, their sources) and its base checkpoint is found
-    finished, unless the base is trained earlier in the same plan (``planned``); its
-    settings (:func:`~amuled_ma.experiments.training_settings.training_config`, with the
-    inputs' hashes) decide its folder's start
-    (:func:`~amuled_ma.experiments.run_folder.prepare_variant`: new, resume or skip).
-    With ``check_panel`` the panel's preflight runs
-    (:func:`~amuled_ma.deliberation.build.preflight`: a recording holds the member's
-    cluster and the task, a server has the model, a plug-in loads; its sources closed
-    again). Nothing is written.
-
-    Args:
-        job: The job as the plan lists it.
-        hint: The command that re-runs the job (named in a refusal).
-        planned: The folder names the same plan trains (a base among them is not
-            looked for yet).
-        rerun: The command that re-runs the job, as fields (a refusal's recovery commands).
-        check_panel: Run the panel's preflight (False: :func:`prepare_job` checks the
-            sources it builds).
-
-    Returns:
-        The job with its planned fields set.
+    A base in ``planned`` (trained earlier in the same plan) is not looked for yet. With
+    ``check_panel`` the panel's `preflight` runs.
 
     Raises:
         AmuledError: The first thing missing or clashing, in one line naming the fix.
-
     """
     variant, scenario = job.variant, job.scenario
     panel = plan_panel(variant.feedback, scenario) if variant.feedback is not None else None
@@ -143,20 +111,10 @@ def plan_job(
 def plan_jobs(
     jobs: Sequence[TrainJob], hint: str = "", rerun: Rerun | None = None
 ) -> list[TrainJob]:
-    """Plan every job of a graph with its preflight (:func:`plan_job`), before any folder is made.
-
-    Args:
-        jobs: The graph, each job after the jobs it needs.
-        hint: The command that re-runs the graph (named in a refusal).
-        rerun: The same command as fields (a refusal's recovery commands).
-
-    Returns:
-        The planned jobs, in order.
+    """Plan every job of a graph with its preflight (`plan_job`), before any folder is made.
 
     Raises:
-        AmuledError: One problem as it was raised; several as one message listing each
-            distinct problem once (``N of M jobs cannot start, nothing was trained``).
-
+        AmuledError: One problem as raised; several as one message listing each once.
     """
     names = {job.out_dir.name for job in jobs}
     out: list[TrainJob] = []
@@ -181,14 +139,7 @@ def plan_jobs(
 
 @dataclass
 class PreparedJob:
-    """A planned job ready to train: its folder's record written, its feedback built.
-
-    Attributes:
-        job: The planned job.
-        feedback: A fine-tune's feedback (open: :meth:`close` it), else None.
-        resume_hint: The command that resumes it (printed on Ctrl-C).
-
-    """
+    """A planned job ready to train: its record written, its feedback built (open: `close` it)."""
 
     job: TrainJob
     feedback: Feedback | None
@@ -214,14 +165,7 @@ class PreparedJob:
         on_iteration: Callable[[Any, int], None] | None = None,
         task_factory: Callable[..., Any] | None = None,
     ) -> MemberSpec:
-        """The population member that trains it (its feedback, base, resume).
-
-        Args:
-            on_iteration: Called as ``fn(member, iteration)`` after every iteration
-                (:class:`~amuled_ma.learn.population.PopulationMember`).
-            task_factory: Replaces the task constructor (tests).
-
-        """
+        """The population member that trains it (its feedback, base, resume)."""
         from amuled_ma.learn.population_groups import MemberSpec  # here: it imports torch
 
         job = self.job
@@ -250,25 +194,11 @@ def prepare_job(
 ) -> PreparedJob | JobResult:
     """Build a planned job's feedback and write its folder's record.
 
-    A fine-tune's member sources are built and checked from its panel plan
-    (:func:`~amuled_ma.deliberation.build.checked_members`) and its feedback is built of
-    them; its base, when the same plan trained it, is checked finished.
-
-    Args:
-        job: The job, planned (:func:`plan_job`).
-        hint: The command that re-runs the job (printed with ``--resume`` on a stop).
-        store: The belief store of the fine-tune's panel (default: the run's file,
-            ``[feedback].store``, opened on first use,
-            :func:`~amuled_ma.deliberation.build.run_store`).
-        feedback_factory: ``variant -> Feedback``, replaces the feedback built from the
-            plan (tests).
-
     Returns:
         The prepared job, or the result of a job planned as ``skip``.
 
     Raises:
         AmuledError: A member cannot answer, or the base the plan trained is unfinished.
-
     """
     assert job.action is not None and job.settings is not None, "prepare_job takes a planned job"
     if job.action == "skip":
@@ -540,24 +470,12 @@ def plan_run(
 
 
 def retrain_jobs(jobs: Sequence[TrainJob], names: Collection[str]) -> list[TrainJob]:
-    """The plan with ``names`` retrained from scratch and every other job resumed.
+    """The plan with ``names`` retrained from scratch and every other job resumed (``--retrain``).
 
-    ``amuled run/ablate --retrain NAME``: the one command that retrains a variant whose
-    settings changed and rewrites the report, while the run's other variants are kept
-    (resumed, or skipped where finished). A job that needs a retrained one (a fine-tune of
-    a retrained base) is retrained too: its anchor changed.
-
-    Args:
-        jobs: The planned jobs.
-        names: Job names (``finetune-amuled``, ``ablate-clusters/finetune-care``,
-            ``base.seed43``) or variant folder names (``finetune-care``).
-
-    Returns:
-        The jobs with ``force`` / ``resume`` set per job.
+    A job that needs a retrained one is retrained too (its anchor changed).
 
     Raises:
         AmuledError: A name that is no job of the plan; the message lists the plan's jobs.
-
     """
     import dataclasses
 

@@ -1,19 +1,7 @@
 """The jobs of a sweep trained as populations (``amuled run`` / ``ablate``).
 
-:func:`population_groups` cuts a job graph into groups that train together: jobs at the
-same depth of the graph (bases first, then the fine-tunes that need them) whose
-:func:`~amuled_ma.learn.population_groups.population_key` is equal, each group within a
-share of this machine's memory. A population costs a fixed ~0.26 s of CPU per iteration
-whatever its size (rsl-rl's rollout loop, the task, the anchor; ``docs/learning.md``), so a
-level is cut into as few populations as fill the workers: its shapes, each cut only when
-there are fewer shapes than workers.
-
-:func:`train_population_jobs` trains one group: each job is checked and prepared as a lone
-job is (:func:`~amuled_ma.experiments.plans.prepare_job`: its record,
-its feedback), the group trains as one population
-(:func:`~amuled_ma.learn.population.train_population`), and each job's record is marked
-as a lone job's. A group is one Ray task (:mod:`amuled_ma.experiments.ray_jobs`) or runs
-in this process (:func:`~amuled_ma.experiments.jobs.run_jobs`).
+A population costs a fixed ~0.26 s of CPU per iteration whatever its size, so a level of the
+graph is cut into as few populations as fill the workers.
 """
 
 from __future__ import annotations
@@ -53,22 +41,11 @@ def population_groups(
     workers: int = 1,
     memory_budget: int | None = None,
 ) -> list[list[TrainJob]]:
-    """Group the jobs to train (not ``skip``) into populations, in an order that trains needs first.
+    """Group the jobs to train into populations, needs in earlier groups.
 
-    Args:
-        jobs: The graph, planned (:func:`~amuled_ma.experiments.plans.plan_jobs`), each
-            job after the jobs it needs.
-        workers: Populations that train at once: a level of the graph is cut into at
-            least this many populations (when it has the jobs; its shapes first, each
-            shape cut only when there are fewer shapes than workers), each within its
-            share of the memory budget.
-        memory_budget: Bytes all running populations may use (default: half of this
-            machine's memory, :func:`~amuled_ma.learn.population_groups.memory_budget_bytes`).
-
-    Returns:
-        Groups of jobs; a job's needs are in earlier groups (or skipped). A group of one
-        is a lone job.
-
+    A level of the graph is cut into at least ``workers`` populations when it has the jobs
+    (shapes first, a shape cut only when there are fewer shapes than workers), each within its
+    share of ``memory_budget`` (default: half this machine's memory). A group of one is a lone job.
     """
     todo = [job for job in jobs if job.action != "skip"]
     depth: dict[str, int] = {}
@@ -90,13 +67,7 @@ def population_groups(
 
 @dataclass
 class GroupOutcome:
-    """What :func:`train_population_jobs` did.
-
-    Attributes:
-        results: Job name -> result, for the jobs that finished (trained or skipped).
-        failures: One line per job that failed alone (the others went on).
-
-    """
+    """What `train_population_jobs` did: results of the jobs that finished, a line per failure."""
 
     results: dict[str, JobResult] = field(default_factory=dict)
     failures: list[str] = field(default_factory=list)
@@ -113,30 +84,13 @@ def train_population_jobs(
 ) -> GroupOutcome:
     """Train a group of jobs as populations, each job ending as a lone job ends.
 
-    Each planned job is prepared (:func:`~amuled_ma.experiments.plans.prepare_job`; one
-    planned as ``skip`` is skipped); the prepared jobs are split by
-    :func:`~amuled_ma.learn.population_groups.population_key` (a retried group may hold
-    jobs resumed at other iterations) and each part trains as one population. A job
-    that fails alone (its feedback, a gradient that is not finite) is marked ``failed``;
-    the others finish.
-
-    Args:
-        jobs: The group, planned.
-        progress: Show a progress bar per population.
-        hint: The command that re-runs the sweep (its ``--resume`` form is printed on a stop).
-        on_iteration: Called as ``fn(member, iteration)`` for every member after every
-            iteration (:class:`~amuled_ma.learn.population.PopulationMember`).
-        store_for: The belief store of a job's panel (default: the run's file).
-        announce: Print a line naming a job when it fails (a Ray worker leaves it to
-            the driver, which prints the group's :attr:`GroupOutcome.failures`).
-
-    Returns:
-        The finished jobs' results and the failures' lines.
+    Jobs are split by `population_key` (a retried group may hold jobs at other iterations). A
+    job that fails alone is marked ``failed``; the others finish. ``announce``: print a line
+    when a job fails (a Ray worker leaves it to the driver).
 
     Raises:
         AmuledError: A job's inputs are missing (before anything trains).
         KeyboardInterrupt: Ctrl-C or SIGTERM, after every member wrote its checkpoint.
-
     """
     from amuled_ma.learn.population import train_population  # here: it imports torch
 
@@ -180,12 +134,7 @@ def train_population_jobs(
 
 
 def population_failure(failures: Sequence[str], hint: str) -> AmuledError:
-    """The sweep's closing error for jobs that failed alone (each was named in its own line).
-
-    It names how many, not the jobs again: each failure's line was printed when it
-    happened (:func:`~amuled_ma.learn.population.train_population`) or when its group
-    came back from Ray.
-    """
+    """The sweep's closing error for jobs that failed alone (each named when it failed)."""
     count = f"{len(failures)} jobs" if len(failures) > 1 else "a job"
     then = f"; after fixing it, continue with: {hint} --resume" if hint else ""
     return AmuledError(

@@ -1,35 +1,10 @@
 """Train a job graph on Ray: a local Ray started for the run, or a cluster at an address.
 
-:func:`run_on_ray` submits one Ray task per group of jobs (:func:`train_group`, one CPU
-each): a lone job, or a population of jobs of one shape
-(:mod:`amuled_ma.experiments.population_jobs`). A fine-tune's task takes its base's task
-as an argument, so Ray itself holds it back until the base is trained (the graph is Ray's
-own dependencies, nothing scheduled by hand).
-
-- **Where the files go.** With a shared file system (every node sees the driver's run folder,
-  always so on one machine) each task writes its job folder in place. A node that does not
-  see the folder (found with a token file the driver writes into it) gets the folders its job
-  needs (its own partial checkpoint, its base) packed into the task's arguments, trains into
-  its own copy, and returns the job folder packed; the driver writes it (:func:`pack`,
-  :func:`unpack`).
-- **A worker or node that dies** (``kill -9``, a lost machine): Ray runs the task again
-  (``max_retries``), on any node with room; the job finds the checkpoint its first attempt
-  left (same sweep: the mark file :data:`SWEEP_MARK` in its folder) and resumes from it.
-- **Ctrl-C (or SIGTERM) on the driver**: every task is cancelled
-  (:func:`ray.cancel`, which raises :class:`KeyboardInterrupt` in a running task); each
-  running job writes its checkpoint as on a Ctrl-C of its own; the driver prints the
-  ``--resume`` command and re-raises. A local Ray dies with its driver (``kill -9``
-  included), so no process outlives it. A SIGTERM while ``ray.init`` runs is turned back
-  into the same stop, once what Ray had started is shut down (:func:`connect`).
-- **Progress**: the tasks send their iteration counts to an actor (:class:`SweepBoard`);
-  one bar on the driver counts them.
-- **Network**: a local Ray listens on loopback only (:func:`connect`); a cluster is
-  secured by Ray's token authentication (``RAY_AUTH_MODE=token``, docs/scale.md).
-- **A lost actor** (the store or the board, when the driver's node agent dies) ends in
-  one line (:class:`~amuled_ma.errors.AmuledError`), never a traceback.
-
-Results are bit-identical to ``--jobs 1``: every job is single-threaded and seeded by its
-own settings, wherever it runs (``tests/learn/test_jobs.py``).
+One Ray task per group of jobs; a fine-tune's task takes its base's task as an argument, so
+Ray holds it back. A node without the driver's files gets its folders packed in and returns
+them packed. A dead worker's task is retried and resumes its checkpoint (`SWEEP_MARK`).
+Ctrl-C or SIGTERM cancels every task, each writing its checkpoint. A local Ray listens on
+loopback only. Results are bit-identical to ``--jobs 1``.
 """
 
 from __future__ import annotations
@@ -90,12 +65,8 @@ REPORT_EVERY_S = 0.25
 def check_address(address: str, timeout_s: float = 5.0) -> None:
     """Fail at once, naming the fix, when no Ray head listens at ``HOST:PORT``.
 
-    ``ray.init`` would otherwise retry for minutes. ``auto`` and ``ray://`` addresses are
-    left to Ray.
-
     Raises:
         AmuledError: The address is malformed or nothing accepts a connection there.
-
     """
     if address == "auto" or "://" in address:
         return
@@ -123,13 +94,7 @@ def _first_line(error: BaseException) -> str:
 
 
 def _restore_sigterm(previous: _Handler) -> None:
-    """Put back the SIGTERM handler ``ray.init`` replaced (our Ctrl-C-like stop).
-
-    ``ray.init`` installs three in turn: one that calls ``sys.exit``, its local node's
-    (kill Ray's processes, exit 1), and its C++ core worker's fatal-signal handler, which
-    prints "SIGTERM received" and aborts (exit 134) with no checkpoint. ``signal.signal``
-    replaces all three at the C level.
-    """
+    """Put back the SIGTERM handler ``ray.init`` replaced (Ray's aborts, no checkpoint)."""
     if previous is None or threading.current_thread() is not threading.main_thread():
         return  # not set from Python (nothing to put back), or not ours to set
     signal.signal(signal.SIGTERM, previous)
@@ -158,10 +123,8 @@ class _SigtermCount:
 def _count_sigterms() -> _SigtermCount:
     """Count SIGTERMs while a sweep runs (chained to the handler before).
 
-    Ray's waits turn any exception a signal handler raises into a bare
-    :class:`KeyboardInterrupt`; the count tells a SIGTERM (exit 143) from a Ctrl-C (130).
-    A SIGTERM that stopped no one before (the default) now stops the sweep as Ctrl-C does;
-    one that was ignored stays ignored.
+    Ray turns a handler's exception into a bare ``KeyboardInterrupt``; the count tells a
+    SIGTERM (exit 143) from a Ctrl-C (130). An ignored SIGTERM stays ignored.
     """
     counter = _SigtermCount()
     if threading.current_thread() is threading.main_thread():
@@ -175,16 +138,9 @@ def _count_sigterms() -> _SigtermCount:
 class SignalsSeen:
     """The signals this process received in a ``with`` block, whatever their handlers did.
 
-    A Python signal handler's exception is lost where Python cannot raise it: in a fork's
-    after-fork hooks (``logging``'s, run each time Ray starts one of its processes), a
-    ``__del__`` or a weakref callback ("Exception ignored in ..."). A SIGTERM that lands
-    there while ``ray.init`` runs would stop nothing, and Python would print the lost
-    exception's traceback. ``signal.set_wakeup_fd`` has the interpreter's C-level handler
-    write each signal's number to a pipe, before any Python handler runs; :attr:`numbers`
-    reads it when the block ends. In the block, a lost ``SystemExit`` or
-    ``KeyboardInterrupt`` (what a signal handler raises) is not printed
-    (``sys.unraisablehook``; any other goes to the hook before). Main thread only (else
-    :attr:`numbers` stays empty).
+    A handler's exception is lost in after-fork hooks, ``__del__`` or weakref callbacks, which
+    ``ray.init`` triggers; ``signal.set_wakeup_fd`` records each signal number before any Python
+    handler runs. Lost ``SystemExit``/``KeyboardInterrupt`` are not printed. Main thread only.
     """
 
     def __init__(self) -> None:
@@ -225,31 +181,15 @@ class SignalsSeen:
 def connect(address: str | None, workers: int) -> bool:
     """Connect to Ray: start a local one with ``workers`` CPUs, or join ``address``.
 
-    A local Ray listens on loopback only (when Ray was imported after
-    :func:`amuled_ma.experiments.ray_switches.prefer_loopback`); Ray's token authentication is
-    Ray's default for it (the token in ``RAY_AUTH_TOKEN``, else ``~/.ray/auth_token``). On a
-    cluster the token is the cluster's (``RAY_AUTH_MODE=token``, ``RAY_AUTH_TOKEN``). Either
-    way this process's SIGTERM handler is kept (``ray.init`` replaces it).
-
-    Args:
-        address: A cluster's address (``HOST:PORT``, ``ray://...``, or ``auto``); None
-            starts a local Ray for this run.
-        workers: CPUs of the local Ray (one job per CPU); ignored with an address.
-
-    A SIGTERM while ``ray.init`` runs ends the command as a SIGTERM does elsewhere: Ray's
-    handlers for that time exit (``sys.exit(15)``; a local Ray's node kills its processes
-    and exits 1), which is turned back into :class:`~amuled_ma.errors.Terminated` once
-    what Ray started is shut down (its C++ core worker's handler, which would abort, is
-    kept out by :func:`amuled_ma.experiments.ray_switches.keep_sigterm`).
+    A local Ray listens on loopback only; this process's SIGTERM handler is kept. A SIGTERM
+    while ``ray.init`` runs becomes `Terminated` once what Ray started is shut down.
 
     Returns:
-        True when this call connected (and :func:`ray.shutdown` is ours to call).
+        True when this call connected (and ``ray.shutdown`` is ours to call).
 
     Raises:
         AmuledError: No cluster answers at ``address``, naming it and the fix.
-        KeyboardInterrupt: SIGTERM (:class:`~amuled_ma.errors.TerminatedWhileStarting`)
-            or Ctrl-C while connecting; what Ray had started is shut down.
-
+        KeyboardInterrupt: SIGTERM or Ctrl-C while connecting; what Ray started is shut down.
     """
     if ray.is_initialized():
         return False
@@ -305,11 +245,7 @@ def connect(address: str | None, workers: int) -> bool:
 
 
 def disconnect() -> None:
-    """Shut down the Ray this process started, or leave the cluster it joined.
-
-    Whatever state ``ray.init`` left (a SIGTERM may have stopped it half-way): Ray's own
-    errors while shutting down are left to its log.
-    """
+    """Shut down the Ray this process started, or leave the cluster it joined."""
     with contextlib.suppress(Exception):
         ray.shutdown()
 
@@ -326,7 +262,7 @@ def pack(folder: Path) -> bytes:
 
 
 def unpack(data: bytes, folder: Path) -> None:
-    """Write the files of a :func:`pack` archive into ``folder`` (created if needed)."""
+    """Write the files of a `pack` archive into ``folder`` (created if needed)."""
     folder.mkdir(parents=True, exist_ok=True)
     with tarfile.open(fileobj=io.BytesIO(data), mode="r") as archive:
         archive.extractall(folder, filter="data")
@@ -344,8 +280,7 @@ def _sees_driver_files(job: TrainJob, token: str) -> bool:
 class SweepBoard:
     """Ray actor shared by a sweep's tasks: their iteration counts, for the driver's bar.
 
-    Tasks only send to it (never wait on it: a task blocked in ``ray.get`` lends its CPU
-    to another task, and the machine would run more jobs than it has cores).
+    Tasks never wait on it: a task blocked in ``ray.get`` lends its CPU to another task.
     """
 
     def __init__(self) -> None:
@@ -382,7 +317,7 @@ def _report(board: Any) -> Callable[[Any, int], None]:
     return on_iteration
 
 
-#: What :func:`train_group` returns: results by job name, node id, whether the node sees
+#: What `train_group` returns: results by job name, node id, whether the node sees
 #: the driver's files, the packed folders, the lines of jobs that failed alone.
 GroupReturn = tuple[dict[str, JobResult], str, bool, dict[str, bytes], list[str]]
 
@@ -399,29 +334,10 @@ def train_group(
     *needed: GroupReturn,
     plugins: tuple[str, ...] = (),
 ) -> GroupReturn:
-    """Ray task: train a group of jobs (one job, or a population; ``needed``: done groups).
+    """Ray task: train a group of jobs (one alone, more as a population) after ``needed``.
 
-    Args:
-        group: The jobs (absolute paths): one trains as a lone job, more as populations
-            (:func:`~amuled_ma.experiments.population_jobs.train_population_jobs`).
-        sweep: This sweep's id: a job folder marked with it was started by an earlier
-            attempt of this task, whose checkpoint the job resumes.
-        token: The driver's token in the run folder (read back: shared file system).
-        inputs: Folders (path -> :func:`pack` archive) a node without the driver's files
-            needs: the jobs' own partial folders, bases trained before this sweep; None
-            when files are not shipped (a local Ray: one machine).
-        board: The sweep's :class:`SweepBoard` (iteration counts).
-        stores: Belief store path -> its :class:`~amuled_ma.experiments.ray_store.BeliefStoreActor`
-            on the driver's node; a job on another node opens these instead of the files.
-        driver_node: The driver's node id.
-        *needed: What the groups this one needs returned.
-        plugins: The import paths the driver's command line allowed (``--allow-plugin``).
-
-    Returns:
-        The finished jobs' results by name, the id of the node that trained them, whether
-        that node sees the driver's files, their folders packed when files are shipped
-        (else empty), and a line per job that failed alone in its population.
-
+    ``inputs`` are packed folders for a node without the driver's files (None: a local Ray);
+    ``stores`` map belief store paths to their actors on the driver's node.
     """
     import torch
 
@@ -523,12 +439,7 @@ def _absolute(job: TrainJob) -> TrainJob:
 
 
 def _inputs(group: Sequence[TrainJob], in_sweep: set[str]) -> dict[str, bytes]:
-    """Folders a node without the driver's files needs for a group's jobs, packed.
-
-    Each job's own folder (a partial checkpoint to resume), and for a fine-tune whose base
-    is not trained in this sweep, the base's folder (a base trained in the sweep reaches
-    the fine-tune with the base task's result).
-    """
+    """Folders a node without the driver's files needs for a group's jobs, packed."""
     folders: list[Path] = []
     for job in group:
         folders.append(Path(job.out_dir))
@@ -548,25 +459,14 @@ def run_on_ray(
     resource: str | None = None,
     ship_files: bool | None = None,
 ) -> dict[str, JobResult]:
-    """Train groups of jobs (each after the jobs it needs) as Ray tasks; results by name.
+    """Train groups of jobs (each after the groups it needs) as Ray tasks; results by name.
 
-    Args:
-        groups: The jobs to train (skipped ones left out), a Ray task per group (a lone
-            job, or a population), each group after the groups its jobs need.
-        address: The Ray cluster, or None for a local Ray with ``workers`` CPUs.
-        workers: CPUs of a local Ray.
-        progress: Show one progress bar of all jobs' iterations.
-        hint: The command that re-runs the graph (printed with ``--resume`` on a stop).
-        describe: Turns each finished result into the line printed about it.
-        resource: A custom Ray resource each job needs one unit of (nodes started with
-            ``--resources '{"NAME": k}'`` take k jobs at once; others take none).
-        ship_files: Pack the folders a job needs into its task, for nodes without the
-            driver's file system (default: only with an ``address``).
+    ``resource``: a custom Ray resource each job needs one unit of. ``ship_files``: pack the
+    folders a job needs into its task (default: only with an ``address``).
 
     Raises:
         AmuledError: A job failed (after the running ones finished), or Ray is unreachable.
         KeyboardInterrupt: Ctrl-C, after every running job wrote its checkpoint.
-
     """
     ours = connect(address, workers)
     try:
@@ -585,7 +485,7 @@ def _sweep(
     resource: str | None,
     ship_files: bool | None,
 ) -> dict[str, JobResult]:
-    """:func:`run_on_ray` once connected: submit, wait, stop on a signal, clean up."""
+    """`run_on_ray` once connected: submit, wait, stop on a signal, clean up."""
     from tqdm.auto import tqdm
 
     terms = _count_sigterms()

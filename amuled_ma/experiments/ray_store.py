@@ -1,19 +1,8 @@
 """One belief store for a sweep on Ray: the driver's SQLite file, served by an actor.
 
-A job on another machine must not ask a state another job already asked, and must not
-open the driver's SQLite file (it may not see it; over a network file system SQLite's
-locks are not safe). :class:`BeliefStoreActor` opens the store on the driver's node (Ray
-pins it there) and answers ``lookup`` / ``put_many``; :class:`RemoteStore` is the
-stand-in a job on another node is given instead of the file (the ``store`` argument of
-:func:`amuled_ma.experiments.plans.train_variant`). Jobs on the driver's node
-open the file itself (SQLite WAL is safe across the processes of one machine).
-
-Why this design (docs/scale.md): no server to install (PostgreSQL would be one more
-service to run and secure), the same rows and keys as every other run (the actor holds
-the very :class:`~amuled_ma.beliefs.store.database.BeliefStore`), and a state asked once anywhere
-in the sweep is a store hit everywhere after, as on one machine. Per-node stores merged
-at the end of each stage would let the fine-tunes of one stage, which visit mostly the
-same states, each ask them again.
+A job on another node must not open the driver's SQLite file (it may not see it, and SQLite
+locks are unsafe over a network file system), yet a state asked once anywhere must be a
+hit everywhere; an actor pinned to the driver's node needs no extra server.
 """
 
 from __future__ import annotations
@@ -39,13 +28,13 @@ class BeliefStoreActor:
         self.calls = {"lookup": 0, "put_many": 0, "keys_looked_up": 0, "rows_written": 0}
 
     def lookup(self, keys: list[str]) -> dict[str, Any]:
-        """:meth:`BeliefStore.lookup` of ``keys``."""
+        """`BeliefStore.lookup` of ``keys``."""
         self.calls["lookup"] += 1
         self.calls["keys_looked_up"] += len(keys)
         return self.store.lookup(keys)
 
     def put_many(self, items: list[tuple]) -> int:
-        """:meth:`BeliefStore.put_many` of ``items``; return the rows written."""
+        """`BeliefStore.put_many` of ``items``; return the rows written."""
         written = self.store.put_many(items)
         self.calls["put_many"] += 1
         self.calls["rows_written"] += written
@@ -61,12 +50,7 @@ class BeliefStoreActor:
 
 
 class RemoteStore:
-    """A job's stand-in for the driver's store: each call goes to the store's actor.
-
-    A lost actor (its node's agent died, the driver's node went away) raises
-    :class:`~amuled_ma.errors.AmuledError` with one line: the job then stops as on a
-    belief backend that stays down, keeping its checkpoint.
-    """
+    """A job's stand-in for the driver's store; a lost actor is a one-line `AmuledError`."""
 
     def __init__(self, actor: Any) -> None:
         self.actor = actor
@@ -95,7 +79,7 @@ class RemoteStore:
 
 
 def start_store_actors(paths: Iterable[Path]) -> dict[str, Any]:
-    """Start one :class:`BeliefStoreActor` per store file, on this (the driver's) node."""
+    """Start one `BeliefStoreActor` per store file, on this (the driver's) node."""
     here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
     # mypy types a @ray.remote class as the class, not Ray's ActorClass with .options
     actor = BeliefStoreActor.options  # type: ignore[attr-defined]

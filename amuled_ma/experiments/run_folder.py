@@ -1,29 +1,10 @@
 """The run folder: what a run directory holds, and the state of each variant folder in it.
 
-A run directory holds one folder per trained variant::
-
-    runs/findmilk/
-      config.json                 the fully resolved scenario and the command
-      base/ shaped/               base training (c = 0, c = 1)
-      finetune-human/ finetune-amuled/
-      base.seed1/ finetune-amuled.seed1/ ...       seed replicas (``.seed<k>``)
-      ablate-clusters/finetune-cluster-care/ ...   ablations (anchored to ../base)
-      results.json results.csv report.md *.png
-
-Each variant folder holds ``model_last.pt`` (rsl-rl checkpoint; ``infos["completed"]``
-tells whether it finished), ``config.json`` (the resolved scenario it was trained with and,
-under ``"training"``, the settings that decide what it learns: a resume or a skip checks
-them against the current ones), ``train_cfg.json`` (the rsl-rl config as given, before
-rsl-rl mutates its copy), ``curve.json``, TensorBoard events under ``tb/`` and, for
-fine-tunes, ``feedback.json`` (fused-belief diagnostics).
-
-This module names the replica folders (:func:`replica_folder`,
-:func:`split_replica`), records a job and its result (:class:`TrainJob`,
-:class:`JobResult`), and decides what a job does with its folder: start, resume or skip
-(:func:`prepare_variant`, :func:`finished_with`, :func:`base_checkpoint`; the settings
-compared are :func:`~amuled_ma.experiments.training_settings.training_config`). The
-planner (:mod:`amuled_ma.experiments.plans`) and the job runner
-(:mod:`amuled_ma.experiments.jobs`) both build on it.
+A run directory holds ``config.json``, one folder per variant (``base/``, ``finetune-amuled/``,
+seed replicas ``<name>.seed<k>``, ``ablate-<what>/...``) and the report. A variant folder
+holds ``model_last.pt`` (``infos["completed"]``: finished), ``config.json`` (the scenario and,
+under ``"training"``, the settings a resume or skip compares), ``train_cfg.json``,
+``curve.json``, ``tb/`` and, for fine-tunes, ``feedback.json``.
 """
 
 from __future__ import annotations
@@ -81,15 +62,7 @@ Action = Literal["new", "resume", "skip"]
 
 @dataclass(frozen=True)
 class Rerun:
-    """The command that re-runs a graph, as fields: ``amuled COMMAND ARGS --run-dir DIR OPTIONS``.
-
-    Attributes:
-        command: ``run``, ``ablate``, ``train`` or ``finetune``.
-        args: The words before ``--run-dir`` (the scenario first).
-        options: The words after it, ``--name`` aside.
-        name: A fine-tune's ``--name`` (None: not given).
-
-    """
+    """The command that re-runs a graph: ``amuled COMMAND ARGS --run-dir DIR OPTIONS``."""
 
     command: str
     args: tuple[str, ...]
@@ -97,7 +70,7 @@ class Rerun:
     name: str | None = None
 
     def line(self, run_dir: Path, *more: str, name: str | None = None) -> str:
-        """The shell command into ``run_dir`` (``name`` instead of :attr:`name`), ``more`` added."""
+        """The shell command into ``run_dir`` (``name`` instead of `name`), ``more`` added."""
         name = name or self.name
         named = ("--name", name) if name else ()
         words = ["amuled", self.command, *self.args, "--run-dir", str(run_dir)]
@@ -108,33 +81,11 @@ class Rerun:
 class TrainJob:
     """One job of a run: what it trains and where, planned once and carried to its trainer.
 
-    The first fields say what to train (:func:`~amuled_ma.experiments.plans.plan_run`);
-    :func:`~amuled_ma.experiments.plans.plan_job` fills the planned ones (``action`` set:
-    planned), and every later stage reads them instead of deriving them again.
-
-    Attributes:
-        name: Unique name of the job in its graph (shown in messages).
-        scenario: The scenario it trains on.
-        run_dir: The run directory (belief store, default folders).
-        variant: What it trains.
-        out_dir: Its folder.
-        seed: Training seed (None: the scenario's).
-        base_variant: Folder (under ``base_dir``) of the base checkpoint a fine-tune anchors to.
-        needs: Names of the jobs that must finish first.
-        resume: Continue an unfinished checkpoint; skip a finished one.
-        force: Start over even where a checkpoint exists.
-        base_dir: The folder holding ``base_variant`` (default: ``run_dir``), e.g. the
-            authors' imported base, ``runs/authors/findmilk``.
-        iterations: An override of the planned number of iterations (tests, benchmarks).
-        panel: A fine-tune's panel plan (planned).
-        shape: Its run shape (planned).
-        settings: What decides what it learns, with the inputs' hashes (planned;
-            :func:`~amuled_ma.experiments.training_settings.training_config`).
-        base_checkpoint: A fine-tune's base checkpoint (planned).
-        store: A fine-tune's belief store file (planned;
-            :meth:`~amuled_ma.scenario.Scenario.store_path`).
-        action: What it does with its folder (planned).
-
+    `plan_run` sets the first fields; `plan_job` fills the planned ones (``panel``, ``shape``,
+    ``settings``, ``base_checkpoint``, ``store``, ``action``; ``action`` set: planned), which every
+    later stage reads instead of deriving them again. ``base_variant`` is the folder under
+    ``base_dir`` (default ``run_dir``) of the base a fine-tune anchors to; ``iterations``
+    overrides the planned number.
     """
 
     name: str
@@ -164,15 +115,7 @@ class TrainJob:
 
 @dataclass
 class JobResult:
-    """One trained (or skipped) variant.
-
-    Attributes:
-        variant: What was trained.
-        out_dir: Its folder.
-        skipped: True when a completed checkpoint was already there.
-        outcome: The training outcome (None when skipped).
-
-    """
+    """One trained (or skipped: a completed checkpoint was there, ``outcome`` None) variant."""
 
     variant: Variant
     out_dir: Path
@@ -187,15 +130,10 @@ def checkpoint_state(path: Path) -> dict[str, Any] | None:
 
 
 def base_checkpoint(base_folder: Path, scenario_name: str) -> Path:
-    """Return the completed base checkpoint a fine-tune is anchored to.
-
-    Args:
-        base_folder: The base's variant folder.
-        scenario_name: The scenario file or name, for the command that makes the base.
+    """The completed base checkpoint a fine-tune is anchored to.
 
     Raises:
         CheckpointError: Missing or unfinished, naming the command that makes it.
-
     """
     path = Path(base_folder) / LAST
     state = checkpoint_state(path)
@@ -214,27 +152,20 @@ def base_checkpoint(base_folder: Path, scenario_name: str) -> Path:
 
 
 def saved_training_config(out_dir: Path) -> dict[str, Any] | None:
-    """The ``"training"`` settings a variant folder's record (``config.json``) holds, if any.
-
-    Returns:
-        The settings, or None for a folder without them (none trained yet).
+    """The ``"training"`` settings of a variant folder's ``config.json``, or None without them.
 
     Raises:
         AmuledError: ``config.json`` exists but is not a run record.
-
     """
     record = read_record(out_dir, checkpoint=False)
     return None if record is None else record.training
 
 
 def training_differences(out_dir: Path, training: dict[str, Any]) -> list[str]:
-    """``key: saved -> now`` for each setting a variant folder was trained with and now lacks.
-
-    Empty when they match, or when the folder saved none (an older version's).
+    """``key: saved -> now`` for each setting that differs; empty when none (or none saved).
 
     Raises:
         AmuledError: ``config.json`` exists but is not a run record.
-
     """
     saved = saved_training_config(out_dir)
     if saved is None:
@@ -250,19 +181,7 @@ def training_differences(out_dir: Path, training: dict[str, Any]) -> list[str]:
 def settings_refusal(
     job: TrainJob, diffs: list[str], rerun: Rerun | None = None, hint: str = ""
 ) -> str:
-    """The one-line refusal of a variant folder trained with other settings than now.
-
-    It names the differing keys (saved -> now) and the one command for each thing the
-    user may have meant (:func:`recovery_commands`): train the new settings beside the
-    old folder, or retrain that folder alone.
-
-    Args:
-        job: The job whose folder was trained with other settings.
-        diffs: Its differences (:func:`training_differences`).
-        rerun: The command that was run, as fields (None: the options are named).
-        hint: That command's text (for a ``--force`` without ``rerun``).
-
-    """
+    """The one-line refusal of a folder trained with other settings, with the fixes."""
     out_dir = job.out_dir
     keys = ", ".join(d.split(":", 1)[0] for d in diffs[:8])
     keys += f" and {len(diffs) - 8} more" if len(diffs) > 8 else ""
@@ -286,21 +205,11 @@ def _tag(diffs: list[str]) -> str:
 def recovery_commands(
     job: TrainJob, diffs: list[str], rerun: Rerun | None = None, hint: str = ""
 ) -> tuple[str, str]:
-    """The commands that do what the user meant when a folder's settings changed.
+    """``(beside, again)``: the commands that train the new settings beside, or retrain that folder.
 
-    Args:
-        job: The job whose folder was trained with other settings.
-        diffs: Its differences (:func:`training_differences`).
-        rerun: The command that was run, as fields (None: the options are named).
-        hint: That command's text (``--force`` is added to it without ``rerun``).
-
-    Returns:
-        ``(beside, again)``: a fine-tune under a new name (``--name``; another
-        ``--run-dir`` for a base or a whole run), and that variant alone retrained
-        (``--force`` for ``finetune``/``train``; for ``run``/``ablate`` the same command with
-        ``--retrain`` and the job's name, which resumes the other variants and rewrites the
-        report).
-
+    ``beside`` is a fine-tune under a new ``--name`` (another ``--run-dir`` for a base or a
+    run); ``again`` adds ``--force`` (``finetune``/``train``) or ``--retrain NAME``
+    (``run``/``ablate``, resuming the other variants).
     """
     if rerun is None:
         again = f"{hint} --force" if hint else "--force"
@@ -321,18 +230,7 @@ def recovery_commands(
 
 
 def finished_with(out_dir: Path, training: dict[str, Any]) -> bool:
-    """Whether a folder holds a finished checkpoint trained with exactly ``training``.
-
-    Args:
-        out_dir: A variant folder.
-        training: A :func:`~amuled_ma.experiments.training_settings.training_config`
-            (its number of iterations included).
-
-    Returns:
-        True when ``model_last.pt`` is finished and ``config.json`` records the same
-        settings; False otherwise (also for folders written before settings were recorded).
-
-    """
+    """Whether ``model_last.pt`` is finished and ``config.json`` records exactly ``training``."""
     state = checkpoint_state(Path(out_dir) / LAST)
     if not (state and state.get("completed")):
         return False
@@ -352,21 +250,12 @@ def prepare_variant(
 ) -> Action:
     """Decide what a job does with its folder: ``new``, ``resume`` or ``skip``.
 
-    Args:
-        job: The job (its folder, ``resume`` and ``force``).
-        training: The job's :func:`~amuled_ma.experiments.training_settings.training_config`;
-            a resume or a skip requires the folder's saved settings to match it, and a
-            finished checkpoint is skipped only when it trained to the job's number of
-            iterations (fewer: it is resumed to that number).
-        hint: The command that re-runs the job (for the error message).
-        rerun: The same command as fields (the recovery commands of a refusal).
+    A resume or skip needs the saved settings to match ``training``; a finished checkpoint of
+    fewer iterations is resumed to the job's number.
 
     Raises:
-        AmuledError: It holds a checkpoint and neither ``resume`` nor ``force`` is set (the
-            message names both options), or ``resume`` is set and the checkpoint was
-            trained with other settings (:func:`settings_refusal`) or past the job's
-            number of iterations.
-
+        AmuledError: A checkpoint without ``resume`` or ``force``, or ``resume`` over other
+            settings (`settings_refusal`) or past the job's iterations.
     """
     out_dir = job.out_dir
     state = checkpoint_state(Path(out_dir) / LAST)
@@ -404,21 +293,13 @@ MAX_RECORD_BYTES = 4_000_000
 
 
 def read_record(folder: Path, *, checkpoint: bool = True) -> RunRecord | None:
-    """A folder's ``config.json`` as a :class:`~amuled_ma.records.run_record.RunRecord`.
+    """A folder's ``config.json`` as a `RunRecord`, or None without one.
 
-    Args:
-        folder: A run directory or a variant folder.
-        checkpoint: Take the iterations done and the state from the folder's checkpoint
-            (``model_last.pt``: the truth of how far it trained), when it has one.
-
-    Returns:
-        The record, or None when the folder has no ``config.json``.
+    With ``checkpoint`` the iterations done and state come from ``model_last.pt``.
 
     Raises:
-        AmuledError: ``config.json`` is not a run record, or is larger than
-            :data:`MAX_RECORD_BYTES` (refused before it is read); the message names the file.
-        UnsafePathError: ``config.json`` is a link or not a regular file (nothing read).
-
+        AmuledError: Not a run record, or larger than `MAX_RECORD_BYTES` (not read).
+        UnsafePathError: ``config.json`` is a link or not a regular file.
     """
     from pydantic import ValidationError
 
@@ -468,16 +349,11 @@ def _with_checkpoint(folder: Path, record: RunRecord) -> RunRecord:
 
 
 def write_record(folder: Path, record: RunRecord) -> Path:
-    """Write a folder's ``config.json`` whole or not at all, never through a link.
-
-    Through :func:`~amuled_ma.files.safe.write_text_atomic` (a reader never sees half a
-    file; a full disk leaves the old file and no temporary one).
+    """Write a folder's ``config.json`` atomically, never through a link.
 
     Raises:
         UnsafePathError: ``config.json`` is a link or not a regular file; nothing written.
-        FileWriteError: The write failed (a full disk), naming the file; an ``OSError``
-            too, so a job marked failed on a full disk ends with its own error.
-
+        FileWriteError: The write failed (a full disk), naming the file.
     """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -535,21 +411,7 @@ def variant_fields(
     base_checkpoint: Path | None = None,
     feedback: Feedback | None = None,
 ) -> dict[str, Any]:
-    """The record's fields of a variant folder about to train (:func:`write_config`'s extra).
-
-    Args:
-        variant: What it trains.
-        out_dir: Its folder (a seed replica ``<name>.seed<k>`` is named ``<name>``).
-        training: Its :func:`~amuled_ma.experiments.training_settings.training_config`.
-        base_checkpoint: The base a fine-tune starts from.
-        feedback: The fine-tune's feedback (a replay of fused beliefs only is said so).
-
-    Returns:
-        ``{"variant", "label", "name", "seed", "training", "iterations_planned", "state",
-        "panel", "recipe", "lambda_kl", "base_checkpoint"}`` (the fine-tune keys for a
-        fine-tune only).
-
-    """
+    """The record's fields of a variant folder about to train (`write_config`'s ``extra``)."""
     fields: dict[str, Any] = {
         "variant": str(variant),
         "label": variant.label,
@@ -575,12 +437,7 @@ def variant_fields(
 def panel_of_training(
     variant: Variant, training: dict[str, Any], feedback: Feedback | None = None
 ) -> PanelRecord:
-    """The :class:`~amuled_ma.records.run_record.PanelRecord` of a fine-tune, from its settings.
-
-    The members and rule follow the variant (``cluster:<name>`` and ``moral``: that agent
-    alone, averaged; ``agg:<rule>``: the panel with that rule); a feedback replaying a
-    recording of fused beliefs only has no members and no fusion of ours.
-    """
+    """The `PanelRecord` of a fine-tune, from its settings; a fused-only replay has no members."""
     from amuled_ma.deliberation.panel_feedback import FusedReplayFeedback
 
     settings = training.get("feedback") or {}
@@ -625,9 +482,7 @@ def scenario_of_run(run_dir: Path) -> Scenario:
     """Rebuild the scenario a run (or a variant folder) was made with, from its record.
 
     Raises:
-        AmuledError: The folder has no ``config.json`` with a scenario; the message names
-            the commands that make a run.
-
+        AmuledError: No ``config.json`` with a scenario; names the commands that make a run.
     """
     from amuled_ma.scenario import scenario_from_dict
 

@@ -1,15 +1,4 @@
-"""Third-party warnings and log records go to a log file, not into a command's output.
-
-The command line (:func:`amuled_ma.cli.main`) calls :func:`third_party_to_log` around each
-command: Python warnings (``warnings.warn`` of torch, Gymnasium, ...) are captured by
-:mod:`logging` (``logging.captureWarnings``) and, with every record that reaches the root
-logger, written to the log (``$AMULED_LOG``, else ``<user data folder>/amuled.log``,
-created only when something is written). Ray sets up its own ``"ray"`` logger with a
-terminal handler when it is imported; :func:`ray_to_log`, called before ``ray.init``, gives
-that logger the same file instead (Ray's token-authentication notice, for one). Only
-logging configuration: no library function is replaced. Used as a library (no command
-line), nothing here is active and every library logs as it is configured to.
-"""
+"""Third-party warnings and log records go to a log file, not a command's output."""
 
 from __future__ import annotations
 
@@ -25,7 +14,7 @@ LOG_ENV = "AMULED_LOG"
 
 #: The file handler of the command running now (None: no command line, leave logging be).
 _HANDLER: logging.Handler | None = None
-#: Ray's terminal handlers :func:`ray_to_log` took away, given back after the command.
+#: Ray's terminal handlers `ray_to_log` took away, given back after the command.
 _RAY_HANDLERS: list[logging.Handler] = []
 
 
@@ -49,15 +38,7 @@ class _LazyFileHandler(logging.FileHandler):
 
 @contextlib.contextmanager
 def third_party_to_log(path: Path | None = None) -> Iterator[Path]:
-    """Send warnings and third-party log records to the log for the ``with`` block.
-
-    Args:
-        path: The log file (default :func:`log_path`).
-
-    Yields:
-        The log file's path (written only if something is logged).
-
-    """
+    """Send warnings and third-party records to ``path`` for the block; yields that path."""
     global _HANDLER
     path = Path(path) if path is not None else log_path()
     handler = _LazyFileHandler(path, delay=True, encoding="utf-8")
@@ -87,11 +68,7 @@ def third_party_to_log(path: Path | None = None) -> Iterator[Path]:
 
 
 def ray_to_log() -> None:
-    """Give Ray's ``"ray"`` logger the command's log instead of its terminal handler.
-
-    Call it after importing Ray, before ``ray.init`` (which keeps the handlers it finds).
-    Without a command line (:func:`third_party_to_log` not active) it does nothing.
-    """
+    """Give Ray's logger the command's log; call after importing Ray, before ``ray.init``."""
     if _HANDLER is None:
         return
     ray_logger = logging.getLogger("ray")

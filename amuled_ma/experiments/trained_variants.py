@@ -1,13 +1,4 @@
-"""A run's trained variants, resolved from its records for looking at them.
-
-``amuled view`` and ``amuled explain --state-from`` show a variant's evaluation episode;
-the library that replays it (:mod:`amuled_ma.evaluate.episode_trace`) takes a
-:class:`~amuled_ma.evaluate.episode_trace.TrainedVariant`, resolved here from the run
-folder: the scenario and :class:`~amuled_ma.records.variants.Variant` the variant's record
-(``config.json``, :func:`~amuled_ma.experiments.run_folder.read_record`) names, its policy,
-the base policy it was fine-tuned from, and the number of episodes the run was evaluated
-with (a sampled episode depends on it).
-"""
+"""A run's trained variants, resolved from its records for ``amuled view`` and ``explain``."""
 
 from __future__ import annotations
 
@@ -24,14 +15,11 @@ from amuled_ma.scenario import Scenario
 
 
 def trained_variant(run_dir: Path, variant_dir: Path) -> TrainedVariant:
-    """A variant folder of a run, as the viewer and ``amuled explain`` take it.
-
-    The scenario is the variant's own record's, else the run's.
+    """A variant folder of a run as a `TrainedVariant` (its record's scenario, else the run's).
 
     Raises:
-        CheckpointError: The folder holds no trained policy (the message names the run).
+        CheckpointError: The folder holds no trained policy.
         AmuledError: Neither folder holds a record with a scenario.
-
     """
     run_dir, variant_dir = Path(run_dir), Path(variant_dir)
     if not (variant_dir / LAST).is_file():
@@ -51,11 +39,10 @@ def trained_variant(run_dir: Path, variant_dir: Path) -> TrainedVariant:
 
 
 def base_checkpoint_of(run_dir: Path, variant_dir: Path) -> Path | None:
-    """The base policy a fine-tune started from and was anchored to, if it can be found.
+    """The base policy a fine-tune was anchored to, or None.
 
-    The record's ``base_checkpoint`` (else the checkpoint's ``infos["base_checkpoint"]``):
-    as given, else its folder name inside the run; then the run's ``base`` folder (a seed
-    replica ``<name>.seed<k>`` looks for ``base.seed<k>`` first). None when there is none.
+    The record's ``base_checkpoint`` (else the checkpoint's), as given or by folder name in the
+    run; then the run's ``base`` folder (``base.seed<k>`` first for a replica).
     """
     run_dir, variant_dir = Path(run_dir), Path(variant_dir)
     record = read_record(variant_dir, checkpoint=False)
@@ -81,15 +68,10 @@ def base_checkpoint_of(run_dir: Path, variant_dir: Path) -> Path | None:
 
 
 def choose_variants(run_dir: Path, names: Sequence[str] | None = None) -> list[Path]:
-    """The variant folders to show: the named ones, else every fine-tuned variant.
-
-    Without names, a variant's seed replicas (``<name>.seed<k>``) are left out (its first
-    replica is shown); name a replica folder to see it.
+    """The variant folders to show: the named ones, else every fine-tuned variant's first replica.
 
     Raises:
-        CheckpointError: A named folder has no checkpoint, or the run has no fine-tuned
-            variant; the message lists the variants found.
-
+        CheckpointError: A named folder has no checkpoint, or the run has no fine-tuned variant.
     """
     run_dir = Path(run_dir)
     found = variant_dirs(run_dir)
@@ -136,14 +118,7 @@ def evaluated_episodes(run_dir: Path, scenario: Scenario) -> int:
 
 @dataclass(frozen=True)
 class RunToView:
-    """What the viewer needs of a run: its scenario, the variants, the evaluation's ``N``.
-
-    Attributes:
-        scenario: The run's scenario.
-        variants: The variants to show, resolved.
-        episodes: The episodes per policy of the run's evaluation.
-
-    """
+    """What the viewer needs of a run: its scenario, the variants, the evaluation's episodes."""
 
     scenario: Scenario
     variants: list[TrainedVariant]
@@ -155,16 +130,9 @@ def run_to_view(
 ) -> RunToView:
     """Resolve a run for ``amuled view`` (or the demo's page).
 
-    Args:
-        run_dir: The run folder.
-        names: Variant folders to show (default: every fine-tuned variant,
-            :func:`choose_variants`).
-        episodes: The evaluation's ``N`` (default :func:`evaluated_episodes`).
-
     Raises:
         AmuledError: The folder is no run (no record with a scenario).
-        CheckpointError: See :func:`choose_variants`.
-
+        CheckpointError: See `choose_variants`.
     """
     run_dir = Path(run_dir)
     scenario = scenario_of_run(run_dir)

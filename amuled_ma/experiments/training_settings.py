@@ -1,11 +1,4 @@
-"""The settings that decide what a variant learns, and their comparison before a resume.
-
-:func:`training_config` reads them from the validated scenario (with the SHA-256 of every
-input file the panel reads: recordings and cluster files); a variant folder's record keeps
-a copy, and :mod:`amuled_ma.experiments.run_folder` compares the two
-(:func:`differences`, after :func:`learned_only` and :func:`without_keys_added_since`)
-before it resumes or skips the folder.
-"""
+"""The settings that decide what a variant learns, and their comparison before a resume."""
 
 from __future__ import annotations
 
@@ -22,7 +15,7 @@ from amuled_ma.scenario import Scenario
 if TYPE_CHECKING:
     from amuled_ma.deliberation.plan import PanelPlan
 
-#: Scenario keys left out of :func:`training_config`: paths, logging and service keys, the
+#: Scenario keys left out of `training_config`: paths, logging and service keys, the
 #: seed (the job's own seed is kept) and the run's length (kept as ``"iterations"``: a
 #: resume may lengthen a run).
 NOT_LEARNED = {
@@ -109,11 +102,7 @@ def training_config(
 
 
 def cluster_hashes(panel: PanelPlan) -> dict[str, str | None]:
-    """SHA-256 of the file of each cluster the panel's prompts are made of.
-
-    The panel's members and the clusters the system prompt describes: editing a cluster's
-    text changes what the LLM is told, so a resume compares these like a recording's hash.
-    """
+    """SHA-256 of the file of each cluster the panel's prompts are made of."""
     out: dict[str, str | None] = {}
     described = panel.registry.panel() if panel.registry is not None else []
     for cluster in [*panel.clusters, *described]:
@@ -128,12 +117,7 @@ def _sha256_of(path: str, size: int, mtime_ns: int) -> str:
 
 
 def file_sha256(path: Path) -> str | None:
-    """SHA-256 of a file's content (memoised while its size and mtime stay), None if absent.
-
-    The identity of an input such as a recording: a file replaced under the same name has
-    another hash, and a resume compares it
-    (:func:`~amuled_ma.experiments.run_folder.prepare_variant`).
-    """
+    """SHA-256 of a file's content (memoised while its size and mtime stay), None if absent."""
     try:
         info = path.stat()
     except OSError:
@@ -153,11 +137,7 @@ def differences(saved: object, current: object, prefix: str = "") -> list[str]:
 
 
 def learned_only(saved: dict[str, Any]) -> dict[str, Any]:
-    """A saved training config without the keys :data:`NOT_LEARNED` now leaves out.
-
-    A folder saved when such a key was still recorded (a service key like
-    ``max_abstention``) is compared on what decides learning only.
-    """
+    """A saved training config without the keys `NOT_LEARNED` now leaves out."""
     out = dict(saved)
     for section, keys in NOT_LEARNED.items():
         if isinstance(out.get(section), dict):
@@ -168,10 +148,8 @@ def learned_only(saved: dict[str, Any]) -> dict[str, Any]:
 def without_keys_added_since(saved: dict[str, Any], training: dict[str, Any]) -> dict[str, Any]:
     """Drop from ``training`` what a folder saved by an older version could not record.
 
-    The input hashes (``inputs``; the cluster files' hashes of a folder that has none) and
-    any scenario key added since, when it holds its default value (the old version behaved
-    as that default); a key added since but set to another value stays, so the difference
-    is reported.
+    The input hashes it lacks, and keys added since that hold their default; a key added since
+    but set otherwise stays, so the difference is reported.
     """
     defaults = Scenario().to_dict()
     out = {k: v for k, v in training.items() if k != "inputs" or "inputs" in saved}

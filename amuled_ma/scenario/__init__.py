@@ -1,32 +1,8 @@
 """Scenarios: everything one experiment needs, read from a TOML file and validated.
 
-A scenario file has one table per concern (``[task]``, ``[ppo]``, ``[base]``,
-``[finetune]``, ``[feedback]``, ``[evaluation]``, ``[output]``); each maps onto a frozen
-pydantic v2 model (:class:`TaskConfig`, :class:`PPOConfig`, ...), and the whole file onto
-:class:`Scenario`. Keys left out take defaults that follow the paper (Dubey, Dailisan,
-Mahajan, "AMULED") and CleanRL's PPO.
-
-pydantic validates every key, on load (:func:`load_scenario`, :func:`scenario_from_dict`),
-on ``--set`` overrides (:meth:`Scenario.replace`) and on construction in code: types are
-strict, unknown keys are refused (``extra="forbid"``), choices are ``Literal`` types and
-every number has a range declared on its field (:func:`field_range` reads it back). NaN
-and infinities are always refused; so are sizes whose buffers would not fit in
-:data:`MEMORY_FRACTION` of the machine's memory and runs longer than :data:`MAX_ENV_STEPS`.
-Each ``[feedback.agents.<name>]`` table is a typed source spec, a discriminated union on
-``source`` (:mod:`amuled_ma.scenario.agents`). Any failure is one
-:class:`~amuled_ma.errors.ScenarioError` line naming the file, the ``[section].key``,
-what was expected and what was found (:func:`scenario_error`).
-
-The package, one job per module (it imports no domain package):
-
-- :mod:`~amuled_ma.scenario.sections`: the section models;
-- :mod:`~amuled_ma.scenario.agents`: the agent source specs and their registry;
-- :mod:`~amuled_ma.scenario.model`: :class:`Scenario`, paths resolved against its file;
-- :mod:`~amuled_ma.scenario.loading`: :func:`load_scenario` and friends;
-- :mod:`~amuled_ma.scenario.paths`: safe folder names, the user data folder, recordings;
-- :mod:`~amuled_ma.scenario.memory`: memory estimates and the run-length cap;
-- :mod:`~amuled_ma.scenario.ranges` and :mod:`~amuled_ma.scenario.messages`: declared
-  ranges and error rendering.
+One frozen pydantic model per table, the whole file a `Scenario`; defaults follow the paper
+and CleanRL's PPO. Validation runs on load, on ``--set`` and in code; any failure is one
+`ScenarioError` line. The package imports no domain package.
 """
 
 from __future__ import annotations

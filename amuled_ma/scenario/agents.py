@@ -1,17 +1,4 @@
-"""``[feedback.agents.<name>]`` and a cluster file's ``[source]``: typed agent source specs.
-
-Each table is one of the spec models below, a pydantic discriminated union on ``source``
-(:data:`AgentSpec`); :data:`AGENT_SPECS` is the one registry of the kinds a table may
-name. A new built-in source is its module in :mod:`amuled_ma.beliefs.sources`, its spec
-model here (one line in :data:`AGENT_SPECS`) and one line in
-:func:`amuled_ma.beliefs.sources.registry.built_in`.
-
-The models are pure description: they import no domain package. Each turns itself into
-the keyword arguments of its source (:meth:`_Spec.source_options`), given the values of
-``[feedback]`` it inherits. :func:`check_agent_tables` checks the raw tables first, so
-that every message names the file, the table, what was expected, what was found and the
-fix (``docs/beliefs.md``, "Per-agent sources").
-"""
+"""``[feedback.agents.<name>]`` and cluster ``[source]`` tables as typed source specs."""
 
 from __future__ import annotations
 
@@ -64,12 +51,7 @@ class _Spec(BaseModel):
         return self.model_dump(exclude_unset=True, exclude={"source"})
 
     def detail(self, options: Mapping[str, Any]) -> str:
-        """What names this member in messages, after its kind (``, model 'x'``).
-
-        Args:
-            options: Its source's options (:meth:`source_options`).
-
-        """
+        """What names this member in messages, after its kind (``, model 'x'``)."""
         return ""
 
     def source_options(self, scenario: Scenario, head: str) -> dict[str, Any]:
@@ -114,11 +96,10 @@ class ReplaySpec(_Spec):
 
 
 class OllamaSpec(_Spec):
-    """``source = "ollama"``: an LLM on an Ollama server (keys: ``OllamaSource``'s keywords).
+    """``source = "ollama"``: an LLM on an Ollama server.
 
-    A key left out takes ``[feedback]``'s value (``model``, ``host``/``hosts``,
-    ``concurrency``, ``timeout_s``, the ``[feedback.ollama]`` table), then the source's own
-    default; only the keys a table sets are passed on.
+    A key left out takes ``[feedback]``'s value, then the source's default; only keys a table
+    sets are passed on.
     """
 
     required = ("model", 'model = "llama3.1:8b" (an Ollama model name)')
@@ -177,10 +158,7 @@ class OllamaSpec(_Spec):
 
 
 class RulesSpec(_Spec):
-    """``source = "rules"``: a rule in Python.
-
-    The synthetic human, a task's own judge ``judge:<value>``, or ``module:function``.
-    """
+    """``source = "rules"``: the synthetic human, ``judge:<value>``, or ``module:function``."""
 
     source: Literal["rules"]
     policy: str = Field(
@@ -207,9 +185,8 @@ class TerminalSpec(_Spec):
 class EntryPointSpec(_Spec):
     """``source = "entry-point"``: a plug-in agent (installed name or ``module:Class``).
 
-    A ``module:Class`` is code: it is imported only when the run's command line allows it
-    (``--allow-plugin module:Class``); an installed ``amuled_ma.agents`` entry point's name
-    needs no flag (:func:`amuled_ma.clusters.plugins.load_plugin`).
+    A ``module:Class`` is imported only with ``--allow-plugin module:Class``; an installed
+    ``amuled_ma.agents`` entry point needs no flag.
     """
 
     required = (
@@ -281,7 +258,6 @@ def check_ollama_table(table: Mapping[str, Any], where: str) -> None:
 
     Raises:
         ScenarioError: Naming the file, the table, the unknown keys and the allowed ones.
-
     """
     allowed = set(OllamaSpec.model_fields) - {"source", *FEEDBACK_OLLAMA_KEYS}
     unknown = sorted(set(table) - allowed)
@@ -349,18 +325,13 @@ def _plain_problem(value: object, key: str) -> str | None:
 def check_agent_table(
     head: str, table: object, *, default_source: str = "", default_model: str = ""
 ) -> None:
-    """Check one agent table (its kind, keys, types, ranges and required key).
+    """Check one agent table: its kind, keys, types, ranges and required key.
 
-    Args:
-        head: ``"<file>: [feedback.agents.care]"``, the start of every message.
-        table: The table as read from TOML.
-        default_source: ``[feedback].source`` (an ``ollama`` table without ``model`` takes
-            ``[feedback].model`` only when this is ``"ollama"``).
-        default_model: ``[feedback].model``.
+    ``head`` starts every message; an ``ollama`` table without ``model`` takes
+    ``default_model`` only when ``default_source`` is ``"ollama"``.
 
     Raises:
         ScenarioError: Naming the table, what was expected, what was found and the fix.
-
     """
     kinds = ", ".join(AGENT_SOURCE_KINDS)
     if isinstance(table, BaseModel):
@@ -442,17 +413,8 @@ def check_agent_tables(
 ) -> None:
     """Check ``[feedback.agents]``: every table, key, type, range and agent name.
 
-    Args:
-        agents: ``{agent name: table}`` as read from TOML.
-        where: The scenario file (or override), for messages.
-        clusters: ``[feedback].clusters`` (the names tables may use, with ``moral_agent``).
-        default_source: ``[feedback].source``.
-        default_model: ``[feedback].model``.
-
     Raises:
-        ScenarioError: Naming the file, the ``[feedback.agents.<name>]`` table, what was
-            expected, what was found and the fix.
-
+        ScenarioError: Naming the file, the table, what was expected, what was found and the fix.
     """
     if not isinstance(agents, Mapping):
         raise ScenarioError(
@@ -485,19 +447,10 @@ def check_agent_tables(
 
 
 def match_agents(names: Sequence[str], agents: Sequence[Any]) -> dict[str, str]:
-    """Map panel agents to the ``[feedback.agents]`` table naming each.
+    """``{agent name: table name}`` for every panel agent some ``[feedback.agents]`` table names.
 
-    Names are compared ignoring case, ``_``, ``-`` and spaces (``social-justice`` is
-    ``social_justice``); an agent given as a cluster object also matches a table named
-    after one of its aliases (``deontologist``).
-
-    Args:
-        names: The table names.
-        agents: The panel's agents: names, or cluster objects (``.name``, ``.names``).
-
-    Returns:
-        ``{agent name: table name}`` for every agent some table names.
-
+    Names compare ignoring case, ``_``, ``-`` and spaces; a cluster object also matches a
+    table named after one of its aliases.
     """
     by_norm = {norm(n): n for n in names}
     out: dict[str, str] = {}

@@ -17,19 +17,10 @@ from amuled_ma.scenario.sections import validate_model
 
 
 def scenario_from_dict(data: dict[str, Any], *, path: Path | None = None) -> Scenario:
-    """Build and validate a :class:`Scenario` from parsed TOML data.
-
-    Args:
-        data: The parsed TOML document (or :meth:`Scenario.to_dict` without ``path``).
-        path: The file it came from (used in errors and to resolve relative paths).
-
-    Returns:
-        The validated scenario.
+    """Build and validate a `Scenario` from parsed TOML data (``path``: its file, for errors).
 
     Raises:
-        ScenarioError: Unknown section or key, a value of the wrong type or out of its
-            range (see :func:`field_range`), or a name that is no safe folder name.
-
+        ScenarioError: Unknown section or key, a bad value, or an unsafe name.
     """
     source = str(path) if path is not None else "<scenario>"
     if "path" in data:  # a field of Scenario, but never a key of a scenario file
@@ -44,17 +35,10 @@ def scenario_from_dict(data: dict[str, Any], *, path: Path | None = None) -> Sce
 
 
 def resolve_scenario_path(name_or_path: str | os.PathLike[str]) -> Path:
-    """Find a scenario file from a path or the name of a shipped scenario.
-
-    Args:
-        name_or_path: A path to a TOML file, or a shipped scenario's name (``findmilk``).
-
-    Returns:
-        The absolute path of the file.
+    """The absolute path of a scenario file, from a path or a shipped scenario's name.
 
     Raises:
         ScenarioError: Neither an existing file nor a shipped scenario.
-
     """
     path = Path(name_or_path).expanduser()
     if path.is_file():
@@ -74,17 +58,9 @@ def resolve_scenario_path(name_or_path: str | os.PathLike[str]) -> Path:
 def load_scenario(name_or_path: str | os.PathLike[str]) -> Scenario:
     """Load and validate a scenario from a TOML file or a shipped scenario's name.
 
-    Args:
-        name_or_path: File path or shipped name (``findmilk``, ``driving``).
-
-    Returns:
-        The validated scenario.
-
     Raises:
-        ScenarioError: The file is missing, is not valid TOML, or fails validation; or its
-            ``[feedback].weights`` file is missing, malformed or weighs other members than
-            ``[feedback].clusters``.
-
+        ScenarioError: The file is missing, not valid TOML, fails validation, or its
+            ``[feedback].weights`` file is bad.
     """
     path = resolve_scenario_path(name_or_path)
     text = read_text(path, "scenario", ScenarioError, max_bytes=MAX_SCENARIO_BYTES)
@@ -123,7 +99,7 @@ def check_weights_file(scenario: Scenario) -> tuple[float, ...] | None:
 #: Most characters a scenario file may hold (a shipped one holds about 10,000).
 MAX_SCENARIO_CHARS = 1_000_000
 #: Largest scenario file read [bytes]: UTF-8 holds a character in at most 4 bytes, so no
-#: file within :data:`MAX_SCENARIO_CHARS` is refused by its size, and a 2 GB file is
+#: file within `MAX_SCENARIO_CHARS` is refused by its size, and a 2 GB file is
 #: refused before it is read.
 MAX_SCENARIO_BYTES = 4 * MAX_SCENARIO_CHARS
 #: Most levels of ``[`` / ``{`` nesting a scenario value may have.
@@ -131,18 +107,7 @@ MAX_TOML_DEPTH = 32
 
 
 def nesting_depth(text: str) -> int:
-    """The deepest nesting of ``[``/``{`` in TOML text, outside strings and comments.
-
-    A rough, linear-time count (a table header ``[a]`` counts as one level), enough to
-    refuse a file nested thousands of levels deep before the TOML reader recurses into it.
-
-    Args:
-        text: The TOML text.
-
-    Returns:
-        The largest number of brackets open at once.
-
-    """
+    """The deepest ``[``/``{`` nesting of TOML text outside strings (rough, linear)."""
     depth = deepest = 0
     quote = ""
     i, n = 0, len(text)
@@ -176,22 +141,11 @@ def nesting_depth(text: str) -> int:
 def parse_toml(
     text: str, path: Path, what: str, error_class: type[Exception], max_chars: int
 ) -> dict[str, Any]:
-    """Parse a TOML file's text, refusing a file too long or nested too deep, with one line.
-
-    Args:
-        text: The file's text.
-        path: The file, for messages.
-        what: What the file is (``"scenario"``, ``"cluster file"``), for messages.
-        error_class: The error raised (:class:`ScenarioError`, ``ClusterDefinitionError``).
-        max_chars: The most characters such a file may hold.
-
-    Returns:
-        The parsed document.
+    """Parse a TOML file's text, refusing a file too long or nested too deep.
 
     Raises:
         Exception: ``error_class``: longer than ``max_chars``, nested deeper than
-            :data:`MAX_TOML_DEPTH`, or not valid TOML.
-
+            `MAX_TOML_DEPTH`, or not valid TOML.
     """
     if len(text) > max_chars:
         raise error_class(

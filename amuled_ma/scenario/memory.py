@@ -1,8 +1,4 @@
-"""Size checks of a scenario: memory estimates of its buffers, the run-length cap, finite values.
-
-Model validators of :mod:`amuled_ma.scenario.sections` call :func:`check_budget` (across the keys
-of one section) and :func:`check_finite` (inside free tables).
-"""
+"""Size checks of a scenario: memory estimates of its buffers, the run-length cap, finite values."""
 
 from __future__ import annotations
 
@@ -21,7 +17,7 @@ MAX_ENV_STEPS = 10**10
 MEMORY_FRACTION = 0.5
 
 #: Estimated bytes of one stored rollout transition: the observation (up to
-#: :data:`ASSUMED_OBS_DIM` floats), PPO's per-step buffers (action, reward, done, value,
+#: `ASSUMED_OBS_DIM` floats), PPO's per-step buffers (action, reward, done, value,
 #: log-probability, return, advantage, the action distribution), the fused beliefs of
 #: fine-tuning and a mini-batch's forward and backward activations, times a safety factor.
 BYTES_PER_TRANSITION = 4096
@@ -156,13 +152,7 @@ ASSUMED_DISTILL_STATES = 4096
 
 
 def distill_bytes(ensemble: int, hidden: int, members: int, budget: float | int) -> int:
-    """Memory one fit of the distilled model takes [bytes], estimated.
-
-    ``E x P x 16`` for the parameters (``P = D·H + H + H·H + H + H·(K·A) + K·A`` per
-    network of two hidden layers, ``D`` = :data:`ASSUMED_OBS_DIM` inputs, ``K`` members,
-    ``A`` = :data:`ASSUMED_NUM_ACTIONS`) plus ``E x N x (2H + K·A) x 12`` for the full
-    batch's activations (``N`` the budget's count, or :data:`ASSUMED_DISTILL_STATES`).
-    """
+    """Memory one fit of the distilled model takes [bytes], estimated."""
     outputs = members * ASSUMED_NUM_ACTIONS
     per_network = ASSUMED_OBS_DIM * hidden + hidden + hidden * hidden + hidden
     per_network += hidden * outputs + outputs
@@ -178,10 +168,7 @@ def check_distill_memory(
     """Refuse a ``[feedback.distill]`` model whose fit needs more than the memory allows.
 
     Raises:
-        ScenarioError: :func:`distill_bytes` above :data:`MEMORY_FRACTION` of this
-            machine's memory; the line names ``ensemble``, ``hidden``, the members, the
-            budget's states, the memory needed and what fits.
-
+        ScenarioError: `distill_bytes` above `MEMORY_FRACTION` of this machine's memory.
     """
     memory = physical_memory_bytes()
     allowed = MEMORY_FRACTION * memory
@@ -214,18 +201,11 @@ MAX_SEEDS = 10_000
 
 
 def check_seed_replicas(seeds: int, variants: int, source: str = "the command line") -> None:
-    """Refuse ``--seeds`` beyond :data:`MAX_SEEDS` or planned jobs beyond the memory.
-
-    Args:
-        seeds: Replicas of each variant.
-        variants: Variants of the run (jobs per seed).
-        source: What to name first in the error.
+    """Refuse ``--seeds`` beyond `MAX_SEEDS` or planned jobs beyond the memory, before planning.
 
     Raises:
-        ScenarioError: More than :data:`MAX_SEEDS`, or ``seeds x variants`` jobs of
-            :data:`BYTES_PER_PLANNED_JOB` beyond :data:`MEMORY_FRACTION` of the memory;
-            checked before any job is planned.
-
+        ScenarioError: More than `MAX_SEEDS`, or ``seeds x variants`` jobs of
+            `BYTES_PER_PLANNED_JOB` beyond `MEMORY_FRACTION` of the memory.
     """
     if seeds > MAX_SEEDS:
         raise ScenarioError(

@@ -1,9 +1,4 @@
-"""Error rendering: pydantic's :class:`~pydantic.ValidationError` as one scenario error line.
-
-:func:`scenario_error` names the file, the ``[section].key``, what was expected (and why, for
-a range) and what was found. The section models register themselves in :data:`SECTIONS`
-(this module imports no model).
-"""
+"""Error rendering: pydantic's ``ValidationError`` as one scenario error line."""
 
 from __future__ import annotations
 
@@ -21,7 +16,7 @@ from amuled_ma.scenario.ranges import found_name as _found_name
 from amuled_ma.scenario.ranges import kind as _kind
 
 #: The section models by table name, in the order of a scenario file (filled by
-#: :mod:`amuled_ma.scenario.sections`).
+#: `amuled_ma.scenario.sections`).
 SECTIONS: dict[str, type[BaseModel]] = {}
 
 
@@ -182,13 +177,7 @@ def _describe(error: Any, source: str, loc: tuple[Any, ...]) -> str:
 
 
 def toml_syntax_error(value: object) -> str | None:
-    """Why ``value``, a text opening a TOML list or table (``[``, ``{``), is not TOML.
-
-    Returns:
-        tomllib's message (``Unclosed array (at line 1, column 10)``, the column counted in
-        ``value``), or None when ``value`` does not open a list or table or parses.
-
-    """
+    """Why ``value``, opening a TOML list or table, is not TOML; None if it parses."""
     if not isinstance(value, str) or not value.lstrip().startswith(("[", "{")):
         return None
     text = value.strip()
@@ -214,24 +203,11 @@ def _table_model(model: type[BaseModel], key: object) -> type[BaseModel] | None:
 
 
 def scenario_error(error: ValidationError, source: str, loc: tuple[str, ...] = ()) -> ScenarioError:
-    """Turn pydantic's :class:`~pydantic.ValidationError` into one scenario error line.
+    """Turn pydantic's ``ValidationError`` into one line: ``source``, key, expected and found.
 
-    The first problem pydantic found (in the order of the file's sections and keys) is
-    described from its ``loc`` (section, key, list index), ``type`` (which check failed),
-    ``input`` (the value found) and ``ctx``, with the key's declared range and reason
-    (:func:`field_range`) or choices; an unknown key names the close match. A validator's
-    own :class:`~amuled_ma.errors.ScenarioError` (a safe name, the agent tables, memory)
-    is returned as it is. Further problems are counted at the end.
-
-    Args:
-        error: The error of ``model_validate`` (or of a model's construction).
-        source: The file (or ``--set`` override) validated, named first in the message.
-        loc: Where the validated model sits in a scenario: ``("ppo",)`` for a section
-            model, ``()`` for a whole :class:`Scenario`.
-
-    Returns:
-        ``ScenarioError("<source>: key [section].key expects <what>, found <value>")``.
-
+    The first problem is described with the key's declared range and reason, or its choices;
+    an unknown key names the close match; a validator's own `ScenarioError` is returned as it
+    is; further problems are counted. ``loc`` is where the model sits (``("ppo",)`` or ``()``).
     """
     problems = error.errors(include_url=False)
     first = problems[0]

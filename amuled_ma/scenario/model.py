@@ -1,4 +1,4 @@
-"""The whole scenario (:class:`Scenario`): its sections, its paths, its overrides."""
+"""The whole scenario (`Scenario`): its sections, its paths, its overrides."""
 
 from __future__ import annotations
 
@@ -26,24 +26,11 @@ from amuled_ma.scenario.sections import (
 
 
 class Scenario(BaseModel):
-    """A whole experiment setup.
+    """A whole experiment setup: one section model per table, plus ``name`` and ``path``.
 
-    Built in code (``Scenario(name="x")``) it is validated like a file; a failure raises
-    :class:`~amuled_ma.errors.ScenarioError`. ``model_copy(update=...)`` copies without
-    validating; :meth:`replace` validates.
-
-    Attributes:
-        name: Scenario name (the file stem unless ``name`` is set at top level); it names
-            the run folder, so it must be one safe path component (:data:`NAME_RULE`).
-        path: The file it was loaded from (None when built in code).
-        task: See :class:`TaskConfig`.
-        ppo: See :class:`PPOConfig`.
-        base: See :class:`BaseConfig`.
-        finetune: See :class:`FinetuneConfig`.
-        feedback: See :class:`FeedbackConfig`.
-        evaluation: See :class:`EvaluationConfig`.
-        output: See :class:`OutputConfig`.
-
+    Built in code it is validated like a file (failure: `ScenarioError`);
+    ``model_copy(update=...)`` copies without validating, `replace` validates. ``name`` names the
+    run folder, so it is one safe path component (`NAME_RULE`).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
@@ -77,41 +64,19 @@ class Scenario(BaseModel):
         return path if path.is_absolute() else (self.base_dir / path).resolve()
 
     def store_path(self, run_dir: Path | None = None) -> Path:
-        """The belief store file of a run: ``[feedback].store``.
-
-        A relative path is resolved against the run folder (or this scenario's folder
-        without one).
-        """
+        """The belief store file; a relative path is against the run folder (else this file's)."""
         path = Path(self.feedback.store)
         return path if path.is_absolute() else (run_dir or self.base_dir) / path
 
     def recording_path(self, *, required: bool = False) -> Path:
-        """Find the replayed recording ``[feedback].recording``, by path or by name.
+        """Find the replayed recording ``[feedback].recording``, by path or by bare name.
 
-        ``recording`` is a path (``"../data/findmilk-gpt-4o-mini.json"``) or a bare name
-        (``"findmilk-gpt-4o-mini"``, ``.json`` optional). Each place is searched for its file
-        name, then (unless it ends in ``.json``) that name with ``.json`` added. The first
-        existing file wins:
-
-        1. the value as given, relative to the scenario file;
-        2. ``$AMULED_RECORDINGS/<name>.json``;
-        3. the user data folder, :func:`user_recordings_dir` (where
-           ``amuled import authors PATH`` writes);
-        4. ``../shared/amuled-recordings/<name>.json`` beside the repository checkout
-           (the nearest folder with ``.git``) that holds the current directory.
-
-        Args:
-            required: Raise when no place holds the file. Without it the value as given
-                (resolved) is returned, as before this lookup existed, so callers that
-                test ``.exists()`` keep working.
-
-        Returns:
-            The recording file.
+        First existing wins: the value relative to the scenario file; ``$AMULED_RECORDINGS``;
+        `user_recordings_dir`; ``../shared/amuled-recordings`` beside the repository checkout.
+        Without ``required`` a missing file gives the value as given (resolved).
 
         Raises:
-            ScenarioError: ``required`` and nothing was found (or the value is empty); the
-                message lists every place looked and names ``amuled import authors PATH``.
-
+            ScenarioError: ``required`` and nothing was found; lists every place looked.
         """
         return find_recording(
             self.feedback.recording,
@@ -121,49 +86,24 @@ class Scenario(BaseModel):
         )
 
     def to_dict(self) -> dict[str, Any]:
-        """Return the fully resolved scenario as plain data (for ``config.json``).
-
-        Every section's keys (defaults filled in), the ``name`` and the ``path`` (a string,
-        or None). :func:`scenario_from_dict` builds the scenario back from it once ``path``
-        is taken out.
-        """
+        """The fully resolved scenario as plain data (``config.json``; `scenario_from_dict`)."""
         data = self.model_dump()
         data["path"] = str(self.path) if self.path else None
         return data
 
     def settings(self) -> dict[str, Any]:
-        """Return the validated settings as plain JSON data, for comparing two scenarios.
+        """The validated settings as JSON ``{section: {key: value}}``, for comparing scenarios.
 
-        ``{section: {key: value}}`` for the seven sections (``task``, ``ppo``, ``base``,
-        ``finetune``, ``feedback``, ``evaluation``, ``output``), every key present with
-        defaults filled in, values as JSON types (``model_dump(mode="json")``: lists, not
-        tuples; floats stay floats, so ``lambda_kl = 3`` and ``3.0`` compare equal). Left
-        out: ``name`` and ``path``, which say where a scenario lives and where its runs go,
-        not what a run learns. Paths inside the sections (``recording``, ``store``,
-        ``runs_dir``) are kept as written, not resolved. Two scenarios with equal
-        ``settings()`` train and evaluate alike; a resume check compares the saved
-        ``settings()`` (or the part of it a variant depends on) with the current one.
-
-        Returns:
-            A new dict of JSON-serialisable data (``json.dumps`` takes it as it is).
-
+        ``name`` and ``path`` are left out (where a scenario lives, not what a run learns); paths
+        inside sections are kept as written. Equal ``settings()`` train and evaluate alike.
         """
         return self.model_dump(mode="json", exclude={"name", "path"})
 
     def replace(self, section: str, **changes: object) -> Scenario:
-        """Return a copy with some keys of one section changed, validated like a file.
-
-        Args:
-            section: The section (``"finetune"``).
-            **changes: New values by key (``lambda_kl=1.0``).
-
-        Returns:
-            The new scenario; this one is unchanged.
+        """A copy with some keys of one section changed, validated like a file.
 
         Raises:
-            ScenarioError: An unknown section or key, or a value of the wrong type or out of
-                its range; the message names ``<file> (override of [section])``.
-
+            ScenarioError: An unknown section or key, or a bad value; names the override.
         """
         source = f"{self.path or self.name} (override of [{section}])"
         model = SECTIONS.get(section)
@@ -190,18 +130,10 @@ class Scenario(BaseModel):
         return self.model_copy(update={section: new_section})
 
     def default_run_dir(self, runs_dir: str | os.PathLike[str] | None = None) -> Path:
-        """Return ``<runs_dir>/<name>``, guaranteed to lie directly inside ``runs_dir``.
-
-        Args:
-            runs_dir: The folder of runs (default: ``[output].runs_dir``, relative to the
-                current directory as before).
-
-        Returns:
-            The run directory, relative when ``runs_dir`` is.
+        """``<runs_dir>/<name>``, guaranteed to lie directly inside ``runs_dir``.
 
         Raises:
-            ScenarioError: The name is not a safe path component (see :func:`safe_child`).
-
+            ScenarioError: The name is not a safe path component.
         """
         root = self.output.runs_dir if runs_dir is None else runs_dir
         return safe_child(root, self.name, what=f"{self.path or '<scenario>'}: key name")
@@ -223,25 +155,11 @@ def _with_nested(table: BaseModel | dict[str, Any], key: str, value: object) -> 
 
 
 def validate_section(section: str, values: dict[str, Any], source: str) -> BaseModel:
-    """Validate one section's values as a file's table is validated, and build it.
-
-    Types, choices, the declared ranges (:func:`field_range`), safe names, finite floats
-    (also inside free tables), the memory estimates and the run-length cap: everything
-    the section model checks.
-
-    Args:
-        section: Section name (``ppo``).
-        values: Keys of the section, by name (keys left out take their defaults).
-        source: The file (or ``--set`` override) the values came from, for errors.
-
-    Returns:
-        The section model (:class:`PPOConfig` for ``ppo``).
+    """Validate one section's values as a file's table is validated, and build its model.
 
     Raises:
-        ScenarioError: An unknown section or key, or a value of the wrong type or out of
-            range; the message names the file, the ``[section].key``, what was expected
-            (the range and why) and the value found.
-
+        ScenarioError: An unknown section or key, or a value of the wrong type or out of range;
+            names the file, the ``[section].key``, what was expected and what was found.
     """
     model = SECTIONS.get(section)
     if model is None:

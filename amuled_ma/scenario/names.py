@@ -1,19 +1,4 @@
-"""Names people choose (moral clusters, credence labels): which characters, which identity.
-
-Two rules, one for each way a name can deceive:
-
-- :func:`odd_character` refuses the characters that print as nothing or change another
-  character's look: format characters (Unicode category ``Cf``: zero-width spaces and
-  joiners, bidirectional controls, the tag characters U+E0000-U+E007F), controls, private
-  use, unassigned and surrogate code points, line and paragraph separators, variation
-  selectors and the combining grapheme joiner (``Mn`` marks that alter no letter's
-  meaning), and the blank characters of other categories (U+2800 braille blank, the Hangul
-  fillers, U+3164, U+FFA0). Combining accents stay allowed (``café`` written with U+0301).
-- :func:`identity_key` is the identity two names are compared by: the UTS #39 skeleton
-  (through the ``confusable-homoglyphs`` package), after NFKC and case folding, with the
-  small capital letters (``ᴄᴀʀᴇ``), which confusables.txt does not map, read as their
-  letters.
-"""
+"""Names people choose (clusters, credence labels): allowed characters and identity."""
 
 from __future__ import annotations
 
@@ -46,12 +31,11 @@ _SKELETON_ROUNDS = 3
 
 
 def odd_character(name: str) -> str | None:
-    """The first character of ``name`` a name may not hold, as ``U+2800 (BRAILLE ...)``.
+    """The first character a name may not hold, as ``U+2800 (BRAILLE ...)``; None if all may.
 
-    Returns:
-        None when every character may be in a name; otherwise the code point and its
-        Unicode name (or category, for one without a name).
-
+    Refused: format (``Cf``), control, private-use, unassigned and surrogate code points, line
+    and paragraph separators, variation selectors, the combining grapheme joiner and blank
+    characters (U+2800, Hangul fillers). Combining accents stay allowed.
     """
     for char in name:
         category = unicodedata.category(char)
@@ -73,11 +57,8 @@ def _homoglyphs(char: str) -> list[str]:
 def _prototype(char: str) -> str:
     """The prototype UTS #39 maps ``char`` to (``ս`` -> ``u``, ``0`` -> ``O``, ``m`` -> ``rn``).
 
-    ``confusable_homoglyphs`` holds Unicode's ``confusables.txt`` as a graph: a character
-    that has a prototype lists that one alone; a prototype lists the characters mapped to
-    it. A prototype with a single such character reads like one, so of such a pair both
-    map to the smaller: the key is the same either way. A small capital letter, which the
-    data leaves alone, maps to its letter.
+    Of a prototype with a single such character both map to the smaller; a small capital
+    letter, which the data leaves alone, maps to its letter.
     """
     small = _SMALL_CAPITAL.fullmatch(unicodedata.name(char, ""))
     if small:
@@ -100,15 +81,9 @@ def _fold(text: str) -> str:
 def identity_key(name: str) -> str:
     """The identity a cluster name (or a credence label) is compared by.
 
-    NFKC (full-width, mathematical and other compatibility forms become plain letters),
-    invisible characters and variation selectors removed, case folded, and every character
-    replaced by its prototype of Unicode's confusables (the skeleton of UTS #39, "Unicode
-    Security Mechanisms", from the ``confusable_homoglyphs`` package): Cyrillic, Greek,
-    Armenian, Cherokee and other look-alikes of Latin letters become those letters (and
-    ``0`` becomes ``O``, ``1`` and ``I`` become ``l``, ``m`` becomes ``rn``, as UTS #39
-    says), small capitals their letters; ``_``, ``-`` and runs of spaces count as one
-    space. ``care``, ``CARE``, ``ｃａｒｅ``, ``ca\u200bre``, ``cаre`` (a Cyrillic ``а``),
-    ``ᏟᎪᏒᎬ`` (Cherokee) and ``ᴄᴀʀᴇ`` (small capitals) are one identity.
+    NFKC, invisible characters removed, case folded, each character replaced by its UTS #39
+    prototype (``confusable_homoglyphs``), small capitals by their letters; ``_``, ``-`` and
+    runs of spaces are one space. ``care``, ``CARE``, ``cаre`` (Cyrillic) and ``ᴄᴀʀᴇ`` are one.
     """
     text = _fold(name)
     for _ in range(_SKELETON_ROUNDS):

@@ -1,10 +1,4 @@
-"""``--set SECTION.KEY=VALUE``: one override of a scenario, parsed and its section checked.
-
-The value is TOML (``1e-3``, ``true``, ``"text"``, ``['care', 'virtue']``); a bare word
-that is not TOML is a string (``--set feedback.source=ollama``). A value that opens a TOML
-list or table (``[``, ``{``) and does not parse is refused with TOML's reason: it is never
-taken for a string.
-"""
+"""``--set SECTION.KEY=VALUE``: one override of a scenario, parsed and its section checked."""
 
 from __future__ import annotations
 
@@ -16,21 +10,14 @@ from amuled_ma.scenario.messages import SECTIONS, did_you_mean, toml_syntax_erro
 
 
 def parse_set(text: str) -> tuple[str, str, Any]:
-    """Parse one ``--set`` text into ``(section, key, value)``.
+    """Parse one ``--set`` text into ``(section, key, value)``; ``KEY`` may be dotted.
 
-    Args:
-        text: ``SECTION.KEY=VALUE`` as typed (``KEY`` may be dotted:
-            ``feedback.distill.budget=20``).
-
-    Returns:
-        The section (a table of :data:`~amuled_ma.scenario.messages.SECTIONS`), the key
-        and the value read as TOML (a bare word: the word).
+    The value is read as TOML; a bare word that is not TOML is a string, but text opening a
+    list or table (``[``, ``{``) must parse.
 
     Raises:
-        ScenarioError: No ``=`` or no ``.``; an unknown section (the closest one and the
-            list of sections named); a list or table that is not TOML (TOML's reason and
-            column); a value nested deeper than Python's TOML reader follows.
-
+        ScenarioError: No ``=`` or no ``.``; an unknown section (the closest named); a list or
+            table that is not TOML (TOML's reason); a value nested too deep.
     """
     key, sep, raw = text.partition("=")
     section, dot, name = key.strip().partition(".")

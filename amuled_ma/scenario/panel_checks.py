@@ -1,11 +1,4 @@
-"""``[feedback].clusters`` and ``[feedback].fusion``: checked when the scenario is read.
-
-The panel is a non-empty list of distinct cluster names (compared by their identity,
-:func:`amuled_ma.scenario.names.identity_key`: ``care``, ``CARE`` and ``ᴄᴀʀᴇ`` are one),
-each of visible characters; the fusion rule is a name of :data:`FUSION_RULES`, with an
-index into the panel after ``single:``. Each failure is one line naming the key, what was
-found and the valid choices (the closest, by :func:`difflib.get_close_matches`, first).
-"""
+"""``[feedback].clusters`` and ``[feedback].fusion``: checked when the scenario is read."""
 
 from __future__ import annotations
 
@@ -18,8 +11,8 @@ from amuled_ma.errors import ScenarioError
 from amuled_ma.scenario.names import identity_key, odd_character
 
 #: The fusion rules a scenario may name, and whether each takes a parameter after ``:``:
-#: the rules :mod:`amuled_ma.fusion` ships, and every rule registered since
-#: (:func:`amuled_ma.fusion.register_rule` calls :func:`allow_fusion_rule`;
+#: the rules `amuled_ma.fusion` ships, and every rule registered since
+#: (`amuled_ma.fusion.register_rule` calls `allow_fusion_rule`;
 #: ``tests/test_scenario_panel_checks.py`` holds the two equal).
 _FUSION_RULES: dict[str, bool] = {
     "bjs-dst": False,
@@ -33,7 +26,7 @@ _FUSION_RULES: dict[str, bool] = {
     "borda": False,
 }
 FUSION_RULES: Mapping[str, bool] = MappingProxyType(_FUSION_RULES)
-#: The rules of :data:`FUSION_RULES` that take a member prior (``[feedback].weights``):
+#: The rules of `FUSION_RULES` that take a member prior (``[feedback].weights``):
 #: ``bjs-dst`` multiplies Xiao's credibility by it, the moral-uncertainty rules read it as
 #: their credences (registered with ``takes_prior``; the same test holds the two equal).
 _PRIOR_RULES: set[str] = {"bjs-dst", "mec", "nash-vote", "variance-vote", "borda"}
@@ -42,14 +35,7 @@ MAX_CLUSTER_NAME = 100
 
 
 def allow_fusion_rule(name: str, takes_param: bool = False, takes_prior: bool = False) -> None:
-    """Let scenarios name a fusion rule registered in code (``name`` or ``name:<param>``).
-
-    Args:
-        name: The rule's name.
-        takes_param: The rule is named ``name:<param>``.
-        takes_prior: The rule takes a member prior, so ``[feedback].weights`` may go with it.
-
-    """
+    """Let scenarios name a fusion rule registered in code (``name``, or ``name:<param>``)."""
     _FUSION_RULES[name] = takes_param
     if takes_prior:
         _PRIOR_RULES.add(name)
@@ -64,7 +50,7 @@ def forget_fusion_rule(name: str) -> None:
 
 
 def prior_rules() -> tuple[str, ...]:
-    """The fusion rules that take a member prior, in the order of :data:`FUSION_RULES`."""
+    """The fusion rules that take a member prior, in the order of `FUSION_RULES`."""
     return tuple(n for n in FUSION_RULES if n in _PRIOR_RULES)
 
 
@@ -81,10 +67,8 @@ def check_clusters(value: list[str], source: str) -> list[str]:
     """Return ``[feedback].clusters`` if it is a panel: non-empty, distinct, visible names.
 
     Raises:
-        ScenarioError: An empty list, a name empty, too long or holding a character that
-            prints as nothing (:func:`~amuled_ma.scenario.names.odd_character`), or two
-            names of one identity (``care`` and ``CARE``, ``care`` and ``ᴄᴀʀᴇ``).
-
+        ScenarioError: An empty list, a name empty, too long or with an `odd_character`, or two
+            names of one `identity_key`.
     """
     head = f"{source}: key [feedback].clusters"
     if not value:
@@ -117,18 +101,13 @@ def check_clusters(value: list[str], source: str) -> list[str]:
 
 
 def check_fusion(value: str, clusters: Sequence[str] | None, source: str) -> str:
-    """Return ``[feedback].fusion`` if it names a rule of :data:`FUSION_RULES` as it takes.
+    """Return ``[feedback].fusion`` if it names a rule of `FUSION_RULES` as it takes.
 
-    Args:
-        value: The rule (``bjs-dst``, ``single:2``).
-        clusters: The panel (``single:<i>`` indexes it; negative from the end); None when
-            the panel itself was refused.
-        source: The file or override, named in the error.
+    ``single:<i>`` indexes ``clusters`` (negative from the end).
 
     Raises:
-        ScenarioError: An unknown or malformed name, a parameter missing or given to a
-            rule without one, or a ``single`` index that is not an integer of the panel.
-
+        ScenarioError: An unknown or malformed name, a parameter missing or unexpected, or a
+            ``single`` index that is not an integer of the panel.
     """
     head = f"{source}: key [feedback].fusion"
     name, sep, param = value.partition(":")

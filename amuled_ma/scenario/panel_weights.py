@@ -1,18 +1,7 @@
-"""A panel weights file: one prior weight per panel member, named by ``[feedback].weights``.
+"""A panel weights file: one prior weight ``rho`` per panel member, named by ``[feedback].weights``.
 
-``amuled study fit-weights STUDY`` writes it (``STUDY/analysis/weights.json``); a person may
-also write one by hand with ``members`` and ``weights`` only. A scenario names it::
-
-    [feedback]
-    fusion = "bjs-dst"
-    weights = "../studies/findmilk/analysis/weights.json"   # relative to the scenario file
-
-The weights are a prior ``rho`` on the members: the ``bjs-dst`` fusion multiplies Xiao's
-adjusted credibility of each member by it (``w_i ∝ rho_i · Crd_i · IV_i``, see
-:func:`amuled_ma.fusion.fuse`); their scale does not matter. This module only describes
-and checks the file (:class:`PanelWeights`, :func:`read_panel_weights`,
-:func:`member_prior`); ``amuled_ma.study.weights`` fits and writes it, and the panel plan
-(``amuled_ma.deliberation.plan``) carries the prior to the fusion.
+``bjs-dst`` multiplies each member's credibility by it (``w_i ∝ rho_i · Crd_i · IV_i``), so
+scale does not matter. ``amuled study fit-weights`` writes it; this module reads and checks it.
 """
 
 from __future__ import annotations
@@ -47,17 +36,9 @@ class _Model(BaseModel):
 class HeldOut(_Model):
     """Held-out log-likelihood of the participants' choices, K folds over participants.
 
-    Attributes:
-        folds: Folds (each participant's answers are held out once).
-        answers: Answers scored (every attentive pair answer of a panel item).
-        fixed: Sum of held-out log-likelihoods with the fixed (uniform) prior, the paper's
-            weights (the choice temperature fitted on the other folds).
-        learned: The same with the weights fitted on the other folds.
-        fixed_per_answer: ``fixed / answers``.
-        learned_per_answer: ``learned / answers``.
-        difference_low: 2.5% percentile of ``learned - fixed`` over participants resampled.
-        difference_high: 97.5% percentile of the same.
-
+    ``fixed`` uses the uniform prior, ``learned`` the weights fitted on the other folds;
+    ``difference_low``/``high`` are the 2.5/97.5% percentiles of ``learned - fixed`` over
+    resampled participants.
     """
 
     folds: int = Field(ge=2)
@@ -71,19 +52,7 @@ class HeldOut(_Model):
 
 
 class WeightsProvenance(_Model):
-    """Where fitted weights came from.
-
-    Attributes:
-        study: The study folder, as given.
-        study_sha256: SHA-256 of its ``study.json``.
-        answers_sha256: SHA-256 of the answers used (``participant,item,choice`` lines, sorted).
-        seed: Seed of the bootstrap and the folds.
-        bootstrap: Bootstrap resamples of the participants.
-        keep_inattentive: Whether participants who failed an attention check were kept.
-        fixed_temperature: The choice temperature, when it was fixed (None: fitted).
-        command: The command that wrote the file.
-
-    """
+    """Where fitted weights came from (``fixed_temperature`` None: the temperature was fitted)."""
 
     study: str
     study_sha256: str
@@ -96,25 +65,10 @@ class WeightsProvenance(_Model):
 
 
 class PanelWeights(_Model):
-    """A panel weights file (JSON).
+    """A panel weights file (JSON): one non-negative weight per member, not all zero, any scale.
 
-    Attributes:
-        format: :data:`WEIGHTS_FORMAT`.
-        rule: The fusion rule the weights are a prior of (``bjs-dst`` only).
-        meaning: What the weights are, in words.
-        members: The panel members, by name.
-        weights: One non-negative weight per member (not all zero; normalised to sum 1
-            when fitted, any scale when written by hand).
-        low: 2.5% bootstrap percentile of each weight (fitted files).
-        high: 97.5% bootstrap percentile of each weight (fitted files).
-        temperature: The choice model's temperature fitted with the weights.
-        temperature_interval: Its 95% bootstrap interval.
-        participants: Participants whose answers were fitted.
-        answers: Pair answers fitted.
-        items: Items with a panel those answers were about.
-        held_out: Held-out log-likelihood, fixed against learned weights.
-        provenance: Where the weights came from.
-
+    ``low``/``high`` are 2.5/97.5% bootstrap percentiles of fitted weights; ``rule`` is
+    ``bjs-dst`` only.
     """
 
     format: Literal[1] = WEIGHTS_FORMAT
@@ -166,20 +120,10 @@ class PanelWeights(_Model):
 
 
 def read_panel_weights(path: Path, *, where: str) -> PanelWeights:
-    """Read and check a panel weights file.
-
-    Args:
-        path: The file (already resolved).
-        where: The scenario file and key, first in messages
-            (``"scenarios/x.toml: key [feedback].weights"``).
-
-    Returns:
-        The weights.
+    """Read and check a panel weights file (``where``: the scenario file and key, for messages).
 
     Raises:
-        ScenarioError: No such file, too large, not JSON, or a key that does not fit
-            :class:`PanelWeights`; one line naming the file, the key and the fix.
-
+        ScenarioError: No such file, too large, not JSON, or a key that does not fit.
     """
     fix = "write it with 'amuled study fit-weights STUDY' (docs/study.md)"
     try:
@@ -209,21 +153,11 @@ def read_panel_weights(path: Path, *, where: str) -> PanelWeights:
 def member_prior(
     weights: PanelWeights, members: Sequence[str], *, where: str, path: Path
 ) -> tuple[float, ...]:
-    """The weights in the panel's order, after checking they name exactly its members.
-
-    Args:
-        weights: The file's weights.
-        members: The panel's members, in fusion order.
-        where: The scenario file and key, first in messages.
-        path: The weights file, for messages.
-
-    Returns:
-        One weight per member, in ``members``' order, scaled to sum 1.
+    """One weight per member in ``members``' order, scaled to sum 1.
 
     Raises:
-        ScenarioError: A member of the panel without a weight, a weight for a member not
-            in the panel, or no weight above 0 among the panel's members; one line.
-
+        ScenarioError: A panel member without a weight, a weight for a non-member, or no
+            weight above 0 among the members.
     """
     known = weights.normalised()
     missing = [m for m in members if m not in known]

@@ -12,7 +12,7 @@ from amuled_ma.scenario.ranges import found_name as _found_name
 #: Longest name accepted as a path component.
 MAX_NAME_LENGTH = 100
 
-#: What :func:`check_path_component` allows, quoted in its errors.
+#: What `check_path_component` allows, quoted in its errors.
 NAME_RULE = (
     f"1 to {MAX_NAME_LENGTH} characters; no '/', '\\', ':' or '..'; no control "
     "characters; not starting with '.' or '-'; no leading or trailing space"
@@ -25,11 +25,7 @@ USER_DATA_NAME = "amuled-ma"
 
 
 def user_data_dir() -> Path:
-    """The user data folder: ``$AMULED_DATA``, else ``$XDG_DATA_HOME/amuled-ma``.
-
-    ``$XDG_DATA_HOME`` defaults to ``~/.local/share``. Imported recordings live in its
-    ``recordings/`` sub-folder (:func:`user_recordings_dir`).
-    """
+    """The user data folder: ``$AMULED_DATA``, else ``$XDG_DATA_HOME/amuled-ma``."""
     env = os.environ.get("AMULED_DATA")
     if env:
         return Path(os.path.expanduser(env))
@@ -65,20 +61,11 @@ def _component_problem(name: str) -> str | None:
 
 
 def check_path_component(name: object, where: str) -> str:
-    """Check that ``name`` can be used as one folder name, and return it.
-
-    Args:
-        name: The value (a scenario name, a task name).
-        where: File and key, for the error (``"s.toml: key name"``).
-
-    Returns:
-        ``name`` unchanged.
+    """Return ``name`` if it can be used as one folder name (``where``: file and key, for errors).
 
     Raises:
-        ScenarioError: ``name`` is not a string, or is empty, too long, or holds a path
-            separator, ``..``, a colon, a control character, a leading ``.``/``-`` or
-            a leading or trailing space.
-
+        ScenarioError: Not a string, empty, too long, or holding a path separator, ``..``, a
+            colon, a control character, a leading ``.``/``-`` or edge spaces.
     """
     if not isinstance(name, str):
         raise ScenarioError(f"{where} expects string, found {_found_name(name)} ({name!r})")
@@ -92,23 +79,13 @@ def check_path_component(name: object, where: str) -> str:
 
 
 def safe_child(root: str | os.PathLike[str], name: str, *, what: str = "name") -> Path:
-    """Return ``root / name`` after checking that it lies directly inside ``root``.
+    """``root / name`` after checking that it lies directly inside ``root``.
 
-    ``name`` must pass :func:`check_path_component`; the joined path is then normalised
-    (without following symbolic links, so a run folder the user linked elsewhere on
-    purpose keeps working) and must have ``root`` as its parent.
-
-    Args:
-        root: The folder the child must stay in (``[output].runs_dir``).
-        name: The child's name.
-        what: File and key of ``name``, for the error.
-
-    Returns:
-        ``Path(root) / name``, relative when ``root`` is.
+    The path is normalised without following symbolic links (a run folder linked elsewhere on
+    purpose keeps working).
 
     Raises:
         ScenarioError: ``name`` is unsafe, or the path would leave ``root``.
-
     """
     check_path_component(name, what)
     child = Path(root) / name
@@ -129,22 +106,10 @@ def find_recording(
     required: bool = False,
     key: str = "[feedback].recording",
 ) -> Path:
-    """Find a recording file by path or by name (see :meth:`Scenario.recording_path`).
-
-    Args:
-        value: The path or bare name (``"findmilk-gpt-4o-mini"``, ``.json`` optional).
-        resolve: Resolves a path against the scenario file's folder.
-        where: The scenario file (or name), first in messages.
-        required: Raise when no place holds the file (else the value as given, resolved).
-        key: The key that named it, for messages.
-
-    Returns:
-        The recording file.
+    """Find a recording file by path or by name (see `Scenario.recording_path`).
 
     Raises:
-        ScenarioError: ``required`` and nothing was found (or the value is empty); the
-            message lists every place looked and names ``amuled import authors PATH``.
-
+        ScenarioError: ``required`` and nothing was found; lists every place looked.
     """
     as_given = resolve(value)
     if not value.strip():

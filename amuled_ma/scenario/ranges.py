@@ -12,20 +12,7 @@ from pydantic import BaseModel
 
 @dataclass(frozen=True)
 class Range:
-    """The allowed values of a numeric scenario key; NaN and infinities never are.
-
-    A section model declares its ranges as pydantic ``Field`` bounds; :func:`field_range`
-    and :func:`field_length` read them back as a ``Range``, which describes them in
-    errors and in ``docs/learning.md``.
-
-    Attributes:
-        low: Smallest allowed value (None: no lower end).
-        high: Largest allowed value (None: no upper end).
-        low_open: Exclude ``low`` itself.
-        high_open: Exclude ``high`` itself.
-        why: The reason for the range, quoted in errors and docs.
-
-    """
+    """The allowed values of a numeric scenario key (never NaN or inf)."""
 
     low: float | None = None
     high: float | None = None
@@ -92,18 +79,7 @@ def _item_field(annotation: Any) -> Any:
 
 
 def field_range(model: type[BaseModel], key: str) -> Range | None:
-    """The range of a numeric key, as declared by its ``Field`` bounds and description.
-
-    Args:
-        model: A section model (:class:`PPOConfig`).
-        key: The key (``gamma``); for a list of numbers (``hidden_dims``), the range of
-            each entry.
-
-    Returns:
-        The range, with the field's ``description`` as the reason; None for a key without
-        bounds (a string, a flag, a free table).
-
-    """
+    """The range of a numeric key (each entry's, for a list); None without bounds."""
     info = model.model_fields[key]
     item = _item_field(info.annotation)
     if item is not None:
@@ -112,17 +88,7 @@ def field_range(model: type[BaseModel], key: str) -> Range | None:
 
 
 def field_length(model: type[BaseModel], key: str) -> Range | None:
-    """The allowed length of a list key (``min_length``/``max_length``), if it has one.
-
-    Args:
-        model: A section model (:class:`PPOConfig`).
-        key: The key (``hidden_dims``).
-
-    Returns:
-        The range of the number of entries, with the field's ``description`` as the
-        reason; None when the length is free.
-
-    """
+    """The allowed number of entries of a list key, or None when the length is free."""
     info = model.model_fields[key]
     low = next((m.min_length for m in info.metadata if hasattr(m, "min_length")), None)
     high = next((m.max_length for m in info.metadata if hasattr(m, "max_length")), None)

@@ -1,10 +1,4 @@
-"""The sections of a scenario file, one frozen pydantic v2 model per table.
-
-``[task]``, ``[ppo]``, ``[base]``, ``[finetune]``, ``[feedback]`` (with ``[feedback.distill]``
-and the typed ``[feedback.agents.<name>]`` specs of :mod:`amuled_ma.scenario.agents`),
-``[evaluation]`` and ``[output]``; strict types, ``extra="forbid"``, ranges declared on
-each field. Errors become one line by :func:`amuled_ma.scenario.messages.scenario_error`.
-"""
+"""The sections of a scenario file, one frozen, strict pydantic v2 model per table."""
 
 from __future__ import annotations
 
@@ -74,18 +68,14 @@ _WEIGHT_WHY = "a weight; negative flips the term's sign"
 
 #: The validation context (``{"source": <file or override>}``) of the scenario being
 #: validated. pydantic passes ``model_validate``'s context to validators but calls a model's
-#: own ``__init__`` (the section models have one) without it, so :func:`validate_model` also
-#: sets it here for :func:`_init` to pass on (the pattern of pydantic's documentation,
+#: own ``__init__`` (the section models have one) without it, so `validate_model` also
+#: sets it here for `_init` to pass on (the pattern of pydantic's documentation,
 #: "Using validation context with BaseModel initialization").
 _CONTEXT: ContextVar[dict[str, str] | None] = ContextVar("amuled_scenario_context", default=None)
 
 
 def _init(model: BaseModel, data: dict[str, Any], loc: tuple[str, ...]) -> None:
-    """Validate ``data`` into ``model``, the ``__init__`` of the scenario models.
-
-    Inside the validation of a file (:func:`validate_model`) pydantic's error is left to it, to
-    be reported with the file's name; built in code, it is converted here.
-    """
+    """Validate ``data`` into ``model`` (the models' ``__init__``; errors: `ScenarioError`)."""
     context = _CONTEXT.get()
     try:
         model.__pydantic_validator__.validate_python(data, self_instance=model, context=context)
@@ -106,8 +96,8 @@ def _source(info: ValidationInfo) -> str:
 class _Section(BaseModel):
     """Base of the section models: strict, frozen, no unknown keys, no NaN.
 
-    Built in code (``TaskConfig(seed=-1)``), a section is validated like a file and a
-    failure raises :class:`~amuled_ma.errors.ScenarioError`, not pydantic's error.
+    Built in code (``TaskConfig(seed=-1)``) a section is validated like a file; a failure
+    raises `ScenarioError`, not pydantic's error.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
@@ -126,17 +116,7 @@ def _finite_table(section: str, value: object, info: ValidationInfo) -> object:
 
 
 class TaskConfig(_Section):
-    """The task environment.
-
-    Attributes:
-        name: Task name known to :func:`amuled_ma.tasks.get_task` (``findmilk``, ``driving``);
-            also a file name (prompt templates), so one safe path component.
-        seed: Base random seed of the run.
-        max_steps: Episode step limit; 0 keeps the task's own default.
-        options: Extra keyword options passed to the task constructor, checked against
-            the task's option model (:mod:`amuled_ma.scenario.task_options`).
-
-    """
+    """The task: its name, base seed, ``max_steps`` (0: the task's default) and ``options``."""
 
     section: ClassVar[str] = "task"
 
@@ -165,22 +145,8 @@ class TaskConfig(_Section):
 class PPOConfig(_Section):
     """PPO hyperparameters shared by base training and fine-tuning (CleanRL ``ppo.py`` defaults).
 
-    Attributes:
-        hidden_dims: Hidden layer widths of the actor and the critic MLPs.
-        activation: Hidden activation (rsl-rl name).
-        learning_rate: Adam learning rate.
-        anneal_lr: Linearly anneal the learning rate to 0 over the run.
-        gamma: Discount factor.
-        lam: GAE lambda.
-        clip_param: PPO clipping coefficient.
-        entropy_coef: Entropy bonus coefficient.
-        value_loss_coef: Value loss coefficient.
-        max_grad_norm: Gradient clipping norm.
-        num_learning_epochs: Optimisation epochs per iteration.
-        num_mini_batches: Mini-batches per epoch.
-        normalize_advantage_per_mini_batch: Normalise advantages per mini-batch (CleanRL)
-            rather than per rollout.
-
+    ``activation`` is an rsl-rl name; ``normalize_advantage_per_mini_batch``: per mini-batch
+    (CleanRL) rather than per rollout.
     """
 
     section: ClassVar[str] = "ppo"
@@ -234,23 +200,16 @@ class PPOConfig(_Section):
 
 
 class BaseConfig(_Section):
-    """Base training (paper, Simulation Studies): ``r = r_env + c * r_shaping``.
+    """Base training: ``r = r_env + c * r_shaping``, ``c`` = ``shaping_coef`` (``base`` uses 0).
 
     Attributes:
         total_steps: Environment steps of the whole run (all copies together).
-        num_envs: Parallel environment copies.
-        num_steps_per_env: Rollout length per copy and iteration.
-        shaping_coef: ``c`` of the ``shaped`` variant (the ``base`` variant uses 0).
-        save_interval: Iterations between checkpoints.
-        grad_clip: ``"per_network"`` (rsl-rl: the actor's and the critic's gradients are
-            each clipped to ``[ppo].max_grad_norm``) or ``"joint"`` (CleanRL, the authors'
-            ``algorithms/ppo.py``: one norm over both).
-        reshuffle_each_epoch: Draw a new mini-batch partition in every epoch (CleanRL)
-            instead of one per update, reused by every epoch (rsl-rl).
-        bootstrap_time_outs: Bootstrap the value at a truncation (rsl-rl adds
-            ``gamma * V(s)`` to the reward of a step that hits the time limit); False
-            closes a truncated episode like a terminated one (CleanRL).
-
+        grad_clip: ``"per_network"`` (rsl-rl: actor and critic clipped apart) or ``"joint"``
+            (CleanRL, the authors' scripts: one norm over both).
+        reshuffle_each_epoch: A new mini-batch partition every epoch (CleanRL), else one per
+            update (rsl-rl).
+        bootstrap_time_outs: Add ``gamma * V(s)`` at a truncation (rsl-rl); False closes it
+            like a termination (CleanRL).
     """
 
     section: ClassVar[str] = "base"
@@ -280,31 +239,13 @@ class BaseConfig(_Section):
 class FinetuneConfig(_Section):
     """Fine-tuning on fused feedback: ``r = -lambda_kl * KL(pi || pi_base) + f(B)[a]``.
 
-    Attributes:
-        lambda_kl: Weight of the per-sample KL anchor to the base policy.
-        iterations: PPO iterations.
-        num_envs: Parallel environment copies.
-        num_steps_per_env: Rollout length per copy and iteration.
-        num_learning_epochs: Optimisation epochs per iteration (overrides ``[ppo]``).
-        learning_rate: Adam learning rate (overrides ``[ppo]``).
-        anneal_lr: Anneal the learning rate (overrides ``[ppo]``).
-        reinit_critic: Re-initialise the critic before fine-tuning.
-        env_reward_coef: Weight of the task reward kept in the fine-tuning reward (paper: 0).
-        save_interval: Iterations between checkpoints.
-        recipe: How the KL anchor enters the reward: ``"equation"`` (the paper's equation,
-            the per-sample ``log pi(a|s) - log pi_base(a|s)``) or ``"authors"`` (what the
-            authors' scripts compute: the KL between the log-softmax over time of the
-            taken actions' log-probabilities since the episode, or the iteration, began;
-            see :mod:`amuled_ma.learn.anchors`).
-        grad_clip: ``"per_network"`` (rsl-rl: the actor's and the critic's gradients are
-            each clipped to ``[ppo].max_grad_norm``) or ``"joint"`` (CleanRL, the authors'
-            scripts: one norm over both; :mod:`amuled_ma.learn.ppo_options`).
-        reshuffle_each_epoch: Draw a new mini-batch partition in every epoch (CleanRL)
-            instead of one per update, reused by every epoch (rsl-rl).
-        bootstrap_time_outs: Bootstrap the value at a truncation (rsl-rl adds
-            ``gamma * V(s)`` to the reward of a step that hits the time limit); False
-            closes a truncated episode like a terminated one (CleanRL).
+    Epochs, learning rate and annealing override ``[ppo]``; ``grad_clip``,
+    ``reshuffle_each_epoch`` and ``bootstrap_time_outs`` are as in ``[base]``.
 
+    Attributes:
+        env_reward_coef: Weight of the task reward kept in the reward (paper: 0).
+        recipe: The KL anchor: ``"equation"`` (the paper's per-sample
+            ``log pi(a|s) - log pi_base(a|s)``) or ``"authors"`` (their scripts'; `learn.anchors`).
     """
 
     section: ClassVar[str] = "finetune"
@@ -342,31 +283,15 @@ class FinetuneConfig(_Section):
 class DistillConfig(_Section):
     """``[feedback.distill]``: LLM feedback on a budget (``docs/distill.md``).
 
-    A small ensemble of networks learns each panel member's belief from the states the
-    panel was asked; during fine-tuning a new state is asked (panel and belief store, as
-    without this table) or answered by the model, and the panel is asked about at most
-    ``budget`` of the distinct states visited.
-
     Attributes:
-        enabled: Distil at all (off: the panel answers every state).
-        budget: A float in ``(0, 1]``: at most that share of the distinct states the
-            fine-tune visits is asked (``max(1, floor(budget x visited))`` at any time);
-            an integer ``>= 1``: at most that many distinct states. ``1.0`` is every
-            state, ``1`` is one state.
-        model: The model's kind: ``"mlp"`` (an ensemble of two-hidden-layer MLPs on the
-            observation, one softmax head per member).
-        ensemble: Networks in the ensemble (their disagreement is the uncertainty).
-        hidden: Units of each hidden layer.
-        selection: ``"uncertainty"`` (ask where the ensemble disagrees most or the state
-            is far from every asked one) or ``"random"`` (the baseline).
-        refit_every: Newly answered asked states between two refits (the first fits come
-            after 1, 2, 4, ... states).
-        holdout: Share of asked states kept out of the fit to measure the model's
-            agreement with the panel.
-        answer_misses: Answer an asked state's replay misses and abstentions by the model
-            (status ``distilled_miss``, counted apart).
+        budget: A float in ``(0, 1]``: at most ``max(1, floor(budget x visited))`` distinct
+            states are asked; an integer ``>= 1``: at most that many.
+        model: ``"mlp"``: an ensemble of ``ensemble`` MLPs, one softmax head per member.
+        selection: ``"uncertainty"`` or ``"random"`` (the baseline).
+        refit_every: Newly answered states between two refits (first fits after 1, 2, 4, ...).
+        holdout: Share of asked states kept out of the fit to measure agreement.
+        answer_misses: Answer replay misses and abstentions by the model (``distilled_miss``).
         seed: Seed of the fits and the random selection; unset: the job's training seed.
-
     """
 
     section: ClassVar[str] = "feedback.distill"
@@ -425,58 +350,21 @@ class FeedbackConfig(_Section):
     """Where beliefs come from and how they are fused.
 
     Attributes:
-        source: Belief source kind: ``replay``, ``ollama`` or ``rules``.
-        recording: Recording file replayed by the ``replay`` source.
-        model: LLM name for the ``ollama`` source.
         host: Ollama server URL; empty: ``$OLLAMA_HOST``, else ``http://127.0.0.1:11434``.
-            Checked on load by :func:`amuled_ma.servers.urls.normalize_host`.
-        hosts: A pool of Ollama server URLs instead of ``host`` (each request goes to the
-            least-busy live one, a dead one is left out and its requests retried on
-            another; ``docs/ollama.md``, "A pool of servers"). Checked on load by
-            :func:`amuled_ma.servers.urls.normalize_hosts`; not with ``host``.
-        concurrency: Requests in flight at once.
-        timeout_s: Seconds before one request is abandoned.
-        miss_policy: What a replay miss gives: ``uniform``, ``fallback``, ``error``, or
-            ``zero`` (reward 0 for a state missing from the recording, as the authors'
-            scripts did; counted as a miss).
-        cluster_recording: The recording the ``clusters`` and ``aggregation`` ablations
-            replay when ``recording`` keeps only fused beliefs (the paper's Driving
-            gpt-4o-mini cache); empty: ``recording``.
-        store: SQLite belief store (cache of every answer).
-        clusters: Moral clusters of the panel.
-        fusion: Fusion rule of the ``amuled`` variant, a name of
-            :data:`amuled_ma.fusion.RULES` (``bjs-dst``, ``mean``, ``single:2``, ...). A
-            plain string, not a ``Literal``: rules can be registered at run time
-            (:func:`amuled_ma.fusion.register_rule`) and take a parameter after ``:``.
-        weights: A panel weights file (``amuled study fit-weights``; relative to the
-            scenario file, or absolute): a prior on the members of the ``amuled``
-            variant's fusion, which ``bjs-dst`` multiplies into their credibility and the
-            moral-uncertainty rules (``mec``, ``nash-vote``, ``variance-vote``, ``borda``)
-            take as their credences; other rules take none (the ``cluster:``, ``moral``
-            and ``agg:`` baselines ignore it). Empty: the paper's
-            fixed weights. Checked when the scenario file is loaded and when the panel is
-            planned (:mod:`amuled_ma.scenario.panel_weights`: the file's members must be
-            the panel's).
-        ollama: Further keyword arguments of
-            :class:`~amuled_ma.beliefs.sources.ollama.OllamaSource` (``num_predict``, ``num_ctx``,
-            ``reasoning``, ``seed``, ``retries``, ...), checked against its signature.
-        agents: A belief source per panel member, ``{agent: table}`` from the
-            ``[feedback.agents.<agent>]`` tables: ``source`` = ``replay``, ``ollama``,
-            ``rules``, ``terminal``, ``entry-point`` or ``policy`` and that kind's keys
-            (a spec model of :data:`amuled_ma.scenario.agents.AGENT_SPECS`, typed on load;
-            messages by :func:`amuled_ma.scenario.agents.check_agent_tables`); an agent
-            without a table uses ``source`` (see ``docs/beliefs.md``).
-        clusters_dirs: Folders of user cluster files (relative to the scenario file),
-            loaded after the shipped ones; a file overrides a shipped cluster of its name.
-        max_abstention: The largest share of rewarded steps one panel agent may leave
-            unanswered (abstained, timeout, error, replay miss); beyond it the run stops
-            with an error naming the agent, its source and the fix (judged once the agent
-            was asked 20 distinct states).
-        name: The fine-tune's variant name (folder ``finetune-<name>``); empty: named
-            after the feedback (``finetune-amuled``).
-        distill: ``[feedback.distill]``, the panel asked on a budget and a distilled
-            reward model for the rest (:class:`DistillConfig`; off by default).
-
+        hosts: A pool of Ollama server URLs instead of ``host`` (``docs/ollama.md``).
+        miss_policy: What a replay miss gives: ``uniform``, ``fallback``, ``error`` or
+            ``zero`` (reward 0, as the authors' scripts; counted as a miss).
+        cluster_recording: The recording the ``clusters`` and ``aggregation`` ablations replay
+            when ``recording`` keeps only fused beliefs; empty: ``recording``.
+        fusion: A name of `fusion.RULES` (a string: rules can be registered at run time).
+        weights: A panel weights file (relative to the scenario file): a prior on the
+            ``amuled`` variant's members. Empty: the paper's fixed weights.
+        ollama: Further keyword arguments of `OllamaSource`, checked against its signature.
+        agents: ``{agent: table}`` from ``[feedback.agents.<agent>]``; an agent without a
+            table uses ``source``.
+        max_abstention: The largest share of rewarded steps one agent may leave unanswered
+            (judged after 20 distinct states); beyond it the run stops.
+        name: The fine-tune's variant name (folder ``finetune-<name>``); empty: the feedback's.
     """
 
     section: ClassVar[str] = "feedback"
@@ -596,15 +484,7 @@ class FeedbackConfig(_Section):
 
 
 class EvaluationConfig(_Section):
-    """Evaluation protocol.
-
-    Attributes:
-        episodes: Episodes per policy and mode.
-        seed: Seed of the evaluation episodes (distinct from training seeds).
-        modes: ``greedy`` and/or ``sampled`` action selection.
-        confidence: Confidence level of the reported intervals.
-
-    """
+    """Evaluation protocol: episodes per policy and mode, seed, modes, confidence level."""
 
     section: ClassVar[str] = "evaluation"
 
@@ -630,13 +510,7 @@ class EvaluationConfig(_Section):
 
 
 class OutputConfig(_Section):
-    """Where runs go.
-
-    Attributes:
-        runs_dir: Folder holding one sub-folder per run.
-        tensorboard: Write TensorBoard event files.
-
-    """
+    """Where runs go (``runs_dir``, a sub-folder per run); whether TensorBoard files are written."""
 
     section: ClassVar[str] = "output"
 
@@ -650,24 +524,10 @@ _M = TypeVar("_M", bound=BaseModel)
 def validate_model(model: type[_M], data: object, source: str, loc: tuple[str, ...] = ()) -> _M:
     """Validate ``data`` into ``model`` as read from ``source`` (a file or an override).
 
-    ``model.model_validate(data)`` with ``{"source": source}`` as the validation context
-    (also in :data:`_CONTEXT`, for the models' own ``__init__``), so every error names
-    where the value came from.
-
-    Args:
-        model: The pydantic model to build (a section model or the whole scenario).
-        data: The values to validate, as parsed from TOML.
-        source: The file or override the values came from, named in errors.
-        loc: Where the model sits in a scenario: ``("ppo",)`` for a section model, ``()``
-            for a whole :class:`~amuled_ma.scenario.model.Scenario`.
-
-    Returns:
-        The validated model.
+    ``loc`` is where the model sits in a scenario (``("ppo",)``; ``()`` for a whole one).
 
     Raises:
-        ScenarioError: ``data`` does not validate: one line naming ``source``, the first
-            problem and how many more (:func:`~amuled_ma.scenario.messages.scenario_error`).
-
+        ScenarioError: One line naming ``source``, the first problem and how many more.
     """
     context = {"source": source}
     token = _CONTEXT.set(context)

@@ -1,14 +1,8 @@
 """``[task].options``: each task's keyword options, checked when the scenario is read.
 
-A task takes its own options (FindMilk ``layout``, Driving ``p_car``); the task refuses a
-bad one when it is built, which is after the run folder exists and Ray has started. So the
-scenario checks them first, against one model per task (:data:`TASK_OPTIONS`): a bad
-value, an unknown option, or an option the run sets itself (:data:`RESERVED`) is one line
-naming ``[task].options`` before any folder is made. The models mirror the tasks'
-constructors (``amuled_ma.tasks``); ``tests/test_task_options.py`` holds them equal
-(names, defaults, accepted values), so a new option of a task must be declared here too.
-
-This module imports no domain package (the scenario layer describes; the tasks sit above).
+A task refuses a bad option only when built, after the run folder exists, so the scenario
+checks them first against one model per task (`TASK_OPTIONS`); tests hold the models equal
+to the tasks' constructors.
 """
 
 from __future__ import annotations
@@ -32,13 +26,10 @@ class _Options(BaseModel):
 
 
 class FindMilkOptions(_Options):
-    """Options of FindMilk (``amuled_ma.tasks.findmilk.FindMilk``).
+    """Options of FindMilk: ``layout`` (``"paper"`` or ``"random"`` each episode), ``tie_break``.
 
-    Attributes:
-        layout: ``"paper"`` (the paper's fixed layout) or ``"random"`` (every episode).
-        tie_break: Which of several equally near babies the observation shows:
-            ``"first"`` (smallest ``(x, y)``) or ``"random"`` (the authors' environment).
-
+    ``tie_break``: which of several equally near babies the observation shows, ``"first"``
+    (smallest ``(x, y)``) or ``"random"`` (the authors' environment).
     """
 
     layout: Literal["paper", "random"] = "paper"
@@ -46,26 +37,14 @@ class FindMilkOptions(_Options):
 
 
 class DrivingOptions(_Options):
-    """Options of Driving-and-Rescuing (``amuled_ma.tasks.driving.Driving``).
-
-    Attributes:
-        p_car: Probability that a car appears on a step (paper: 0.16).
-        p_grandma: Probability that a grandma appears on a step (paper: 0.09).
-
-    """
+    """Options of Driving: per-step chances of a car (paper 0.16) and a grandma (paper 0.09)."""
 
     p_car: float = Field(0.16, ge=0, le=1, description="a probability per step")
     p_grandma: float = Field(0.09, ge=0, le=1, description="a probability per step")
 
 
 class SmartGridOptions(_Options):
-    """Options of the smart grid (``amuled_ma.tasks.smartgrid.SmartGrid``).
-
-    Attributes:
-        households: Households of the grid, the learner first (OpenEI daily profile).
-        offices: Offices of the grid (OpenEI daily profile).
-
-    """
+    """Options of the smart grid: households (the learner first) and offices (OpenEI profiles)."""
 
     households: int = Field(3, ge=1, le=1000, description="a count of prosumers")
     offices: int = Field(1, ge=0, le=1000, description="a count of prosumers")
@@ -103,16 +82,10 @@ def _accepted(model: type[_Options]) -> str:
 def check_task_options(task: str, options: Mapping[str, Any], where: str) -> None:
     """Refuse ``[task].options`` the task would refuse, in one line naming the key.
 
-    Args:
-        task: ``[task].name``.
-        options: ``[task].options``.
-        where: The scenario file (or ``--set`` override), named first in the message.
+    A task without a model here is left to the task itself.
 
     Raises:
-        ScenarioError: An option the run sets itself, an unknown option, or a value the
-            task does not accept; the message names the option, what the task accepts and
-            what was found. A task without a model here is left to the task itself.
-
+        ScenarioError: An option the run sets itself, an unknown option, or a bad value.
     """
     head = f"{where}: key [task].options"
     reserved = sorted(set(options) & set(RESERVED))
