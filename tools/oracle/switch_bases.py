@@ -21,7 +21,9 @@ shipped ``<task>-authors`` scenario) from each seed's base in RUN (``base`` for 
 seed, ``base.seed<S>``: an arm's folder, or the oracle's imported bases of
 ``evaluate_base.py``), all seeds as one population, into
 ``OUT/<task>/finetune-from-LABEL``, then evaluates them: the AMULED row of
-``amuled run <task> --recipe authors --seeds N`` from those bases.
+``amuled run <task> --recipe authors --seeds N`` from those bases. ``--finetune-rollout N``
+sets the fine-tunes' steps per iteration (``[finetune].num_steps_per_env``; their
+``finetune_moral.py:54``: "note it is 64 for Milk").
 """
 
 from __future__ import annotations
@@ -87,6 +89,12 @@ def main() -> int:
     ap.add_argument("--finetune-from", nargs="*", default=[], metavar="LABEL=RUN")
     ap.add_argument("--total-steps", type=int, default=None, help="shortened bases (a smoke run)")
     ap.add_argument("--iterations", type=int, default=None, help="shortened fine-tunes")
+    ap.add_argument(
+        "--finetune-rollout",
+        type=int,
+        default=None,
+        help="fine-tune steps per iteration (finetune_moral.py:54: 'note it is 64 for Milk')",
+    )
     ap.add_argument("--amuled", default=str(Path(sys.executable).parent / "amuled"))
     args = ap.parse_args()
     shipped = load_scenario(f"{args.task}-authors")
@@ -94,6 +102,8 @@ def main() -> int:
         shipped = shipped.replace("base", total_steps=args.total_steps)
     if args.iterations is not None:
         shipped = shipped.replace("finetune", iterations=args.iterations)
+    if args.finetune_rollout is not None:
+        shipped = shipped.replace("finetune", num_steps_per_env=args.finetune_rollout)
     first = args.seeds[0]
     for arm in args.arms:
         scenario = shipped.replace("base", **{**OURS, **ARMS[arm]})
