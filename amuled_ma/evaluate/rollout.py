@@ -3,7 +3,7 @@
 Evaluation episode ``K`` of a policy is what copy ``K`` of one batched task plays, and
 nothing else:
 
-- **task**: ``make_task(scenario, N, shaping_coef=0.0, seed=seed)``, ``N`` copies, copy
+- **task**: ``make_task(task_config, N, shaping_coef=0.0, seed=seed)``, ``N`` copies, copy
   ``K`` on the stream of seed ``seed + K`` (`evaluation_task`);
 - **actions**: every step, for all ``N`` copies at once (`choose_actions`): greedy
   takes each copy's most probable action; sampled draws one ``torch.multinomial`` over the
@@ -34,7 +34,7 @@ from amuled_ma.learn.policies import action_log_probs
 from amuled_ma.tasks import make_task
 
 if TYPE_CHECKING:
-    from amuled_ma.scenario import Scenario
+    from amuled_ma.scenario import TaskConfig
     from amuled_ma.tasks.base import BatchedTask
 
 #: Action selection modes.
@@ -44,7 +44,7 @@ SKIP = {"done", "return"}
 
 
 def evaluation_task(
-    scenario: Scenario,
+    task_config: TaskConfig,
     episodes: int,
     seed: int,
     task_factory: Callable[..., BatchedTask] | None = None,
@@ -52,13 +52,16 @@ def evaluation_task(
     """The batched task of an evaluation: ``episodes`` copies, copy ``i`` seeded ``seed + i``.
 
     Args:
-        scenario: The scenario (task and options).
+        task_config: The ``[task]`` section.
         episodes: Number of copies ``N``.
         seed: Seed of copy 0.
         task_factory: Replaces `make_task`.
 
+    Returns:
+        The batched task.
+
     """
-    return (task_factory or make_task)(scenario, episodes, shaping_coef=0.0, seed=seed)
+    return (task_factory or make_task)(task_config, episodes, shaping_coef=0.0, seed=seed)
 
 
 def choose_actions(logp: torch.Tensor, mode: str, generator: torch.Generator) -> torch.Tensor:
@@ -128,7 +131,7 @@ def step_events(
 
 def rollout(
     actor: torch.nn.Module,
-    scenario: Scenario,
+    task_config: TaskConfig,
     *,
     episodes: int,
     mode: str = "greedy",
@@ -141,7 +144,7 @@ def rollout(
 
     Args:
         actor: An rsl-rl actor with our categorical head.
-        scenario: The scenario (task and options).
+        task_config: The ``[task]`` section.
         episodes: Number of task copies ``N``.
         mode: ``greedy`` or ``sampled`` (see the module docstring).
         seed: Seed of copy 0 (copy ``i`` gets ``seed + i``); also seeds action sampling.
@@ -168,7 +171,7 @@ def rollout(
     # machine a 50-row forward pass took 11.5 ms with 2 threads, 0.36 ms with 1; the
     # results are the same bits)
     torch.set_num_threads(1)
-    task = evaluation_task(scenario, episodes, seed, task_factory)
+    task = evaluation_task(task_config, episodes, seed, task_factory)
     obs = torch.as_tensor(task.reset()).float()
     gen = torch.Generator().manual_seed(seed)
     done_once = torch.zeros(episodes, dtype=torch.bool)
