@@ -181,8 +181,9 @@ def test_the_summary_puts_every_variant_beside_the_paper_first(tmp_path: Path, m
     (tmp_path / "results.json").write_text(json.dumps(results))
     (tmp_path / "report.md").write_text("# title\n\n## What AMULED did\n\ntext\n")
     scenario = load_scenario("findmilk-demo")
-    put_summary(tmp_path, scenario)
-    put_summary(tmp_path, scenario)  # a re-run replaces the section, never adds a second
+    budget = (scenario.task.name, scenario.base.total_steps, scenario.finetune.iterations)
+    put_summary(tmp_path, *budget, None)
+    put_summary(tmp_path, *budget, None)  # a re-run replaces the section, never adds a second
     lines = (tmp_path / "report.md").read_text().splitlines()
     assert lines[:3] == ["# title", "", SUMMARY_HEADING]
     assert lines.count(SUMMARY_HEADING) == 1 and "## What AMULED did" in lines
@@ -228,7 +229,9 @@ def test_a_warm_up_cut_short_by_the_servers_stop_is_said_plainly() -> None:
     listener = socket.create_server(("127.0.0.1", 0))  # accepts, never answers
     host = f"http://127.0.0.1:{listener.getsockname()[1]}"
     scenario = demo_scenario("findmilk", model=TINY_MODEL, host=host, private=True)
-    warmup = PrefixWarmup.start(host, TINY_MODEL, scenario)
+    warmup = PrefixWarmup.start(
+        host, TINY_MODEL, scenario.task.name, scenario.feedback, scenario.resolve
+    )
     assert warmup is not None
     warmup.join(0.2)
     assert warmup.running()

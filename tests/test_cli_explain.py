@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import tiny_cli
 import torch
+from scenario_feedback import make_feedback
 
 from amuled_ma.beliefs.sources.replay import ReplaySource
 from amuled_ma.beliefs.types import BeliefRequest
 from amuled_ma.cli import main
-from amuled_ma.deliberation.build import make_feedback
 from amuled_ma.experiments.run_folder import scenario_of_run
 from amuled_ma.fusion import bjs_divergence, fuse
 from amuled_ma.learn.policies import action_log_probs, load_policy
@@ -116,8 +116,8 @@ def test_explain_state_from_an_episode_of_a_run(tmp_path, capsys):
     out = capsys.readouterr().out
     # the same state computed here: the greedy evaluation episode, then the panel
     scenario = scenario_of_run(run)
-    actor = load_policy(run / "finetune-amuled" / "model_last.pt", scenario)
-    task = make_task(scenario, 1, shaping_coef=0.0, seed=scenario.evaluation.seed)
+    actor = load_policy(run / "finetune-amuled" / "model_last.pt", scenario.ppo)
+    task = make_task(scenario.task, 1, shaping_coef=0.0, seed=scenario.evaluation.seed)
     obs = torch.as_tensor(task.reset()).float()
     for _ in range(step):
         obs, *_ = task.step(action_log_probs(actor, obs).argmax(-1))

@@ -3,7 +3,7 @@
 from pathlib import Path
 
 from amuled_ma.clusters import ClusterRegistry
-from amuled_ma.deliberation.plan import panel_of
+from amuled_ma.deliberation.plan import cluster_registry, panel_of
 from amuled_ma.scenario import TerminalSpec, load_scenario
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -18,7 +18,8 @@ def test_example_cluster_joins_the_registry_without_overriding():
 
 def test_mixed_panel_scenario_gives_each_agent_its_source():
     scenario = load_scenario(EXAMPLES / "mixed_panel.toml")
-    agents, rule = panel_of("amuled", scenario)
+    registry = cluster_registry(scenario.feedback, scenario.resolve)
+    agents, rule = panel_of("amuled", scenario.feedback, registry)
     assert [a.name for a in agents][-1] == "animal_welfare" and rule == "bjs-dst"
     assert scenario.feedback.agents["animal_welfare"] == TerminalSpec(source="terminal")
     assert scenario.feedback.agents["social_justice"].source == "ollama"

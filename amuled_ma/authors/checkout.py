@@ -9,7 +9,7 @@ refused unless ``force``.
 
 from __future__ import annotations
 
-from collections.abc import Collection
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -19,7 +19,7 @@ from amuled_ma.authors.policies import (
     AUTHORS_BASE_ITERATIONS,
     AUTHORS_SEED,
     TRAIN_CFG,
-    authors_scenario,
+    authors_changes,
     build_checkpoint,
     cleanrl_shape,
     last_checkpoint,
@@ -32,7 +32,7 @@ from amuled_ma.files.safe import check_write_targets, write_text_atomic
 from amuled_ma.records.variants import Variant
 
 if TYPE_CHECKING:
-    from amuled_ma.scenario import Scenario
+    pass
 
 #: The authors' repository.
 AUTHORS_REPO = "https://github.com/temetski/moral_agent"
@@ -186,7 +186,7 @@ def _policy_outputs(
     for source in sources:
         state = read_cleanrl(source.path)
         _obs_dim, hidden, _actions = cleanrl_shape(state, source.path)
-        run_scenario = authors_scenario(load_scenario(source.task), hidden)
+        run_scenario = load_scenario(source.task).changed(authors_changes(hidden))
         scenario = run_scenario
         run_dir = runs / source.task
         out_dir = run_dir / source.folder
@@ -203,7 +203,9 @@ def _policy_outputs(
             base = (run_dir / "base" / LAST).resolve() if source.task in bases else None
         checkpoint = build_checkpoint(
             state,
-            scenario,
+            scenario.ppo,
+            scenario.finetune,
+            scenario_name=scenario.name,
             variant=variant,
             iteration=source.iteration,
             base_checkpoint=base,
@@ -341,15 +343,18 @@ def import_authors(
         report.outputs.append(output)
         if output.status != "unchanged":
             write_variant(
-                output.target, item["checkpoint"], item["scenario"], training=item["training"]
+                output.target,
+                item["checkpoint"],
+                item["scenario"].to_dict(),
+                training=item["training"],
             )
     for run_dir, scenario in run_configs.items():
         if config_status[run_dir] != "unchanged":
-            _write_run_config(run_dir, scenario, checkout)
+            _write_run_config(run_dir, scenario.to_dict(), checkout)
     return report
 
 
-def _write_run_config(run_dir: Path, scenario: Scenario, checkout: Path) -> None:
+def _write_run_config(run_dir: Path, scenario: Mapping[str, Any], checkout: Path) -> None:
     """The run's ``config.json`` (what ``amuled evaluate`` reads), with the base scenario."""
     from amuled_ma.experiments.run_folder import write_config
 

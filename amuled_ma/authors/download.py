@@ -27,7 +27,7 @@ from amuled_ma.errors import AuthorsFetchError
 from amuled_ma.files.hashing import sha256_file
 
 if TYPE_CHECKING:
-    from amuled_ma.scenario import Scenario
+    from amuled_ma.scenario import FeedbackConfig
 
 #: Set to 1 (or true, yes, on) to never fetch, as ``--offline``.
 OFFLINE_ENV = "AMULED_OFFLINE"
@@ -76,14 +76,21 @@ def pinned_recording(value: str, pinned: Sequence[PinnedFile] = PINNED) -> Pinne
     return next((pin for pin in pinned if pin.recording == name), None)
 
 
-def replayed_recordings(scenario: Scenario) -> list[str]:
-    """The recordings a fine-tune of ``scenario`` replays (``[feedback]`` and its agents' tables).
+def replayed_recordings(feedback: FeedbackConfig) -> list[str]:
+    """The recordings a fine-tune replays (``[feedback]`` and its agents' tables).
 
     ``[feedback].recording`` when ``[feedback].source`` is ``replay``, and each
     ``[feedback.agents.<agent>]`` table of ``source = "replay"`` (its ``recording``, else
     ``[feedback].recording``); each value once, in that order.
+
+    Args:
+        feedback: The ``[feedback]`` section.
+
+    Returns:
+        The recording values (names or paths).
+
     """
-    fb = scenario.feedback
+    fb = feedback
     values = [fb.recording] if fb.source == "replay" else []
     for spec in fb.agents.values():
         if spec.source == "replay":
@@ -91,27 +98,36 @@ def replayed_recordings(scenario: Scenario) -> list[str]:
     return list(dict.fromkeys(v for v in values if v.strip()))
 
 
-def models_ablation_recordings(scenario: Scenario) -> list[str]:
+def models_ablation_recordings(
+    feedback: FeedbackConfig, task: str, resolve: Callable[[str], Path]
+) -> list[str]:
     """The recordings to fetch before the ``models`` ablation is planned.
 
     That ablation fine-tunes on every recording of the task beside the scenario's own. When
     the scenario replays a pinned recording found nowhere here, every pinned recording of
     its task (they are then converted side by side); else none (it compares those found).
+
+    Args:
+        feedback: The ``[feedback]`` section (source, recording).
+        task: The task's name.
+        resolve: Resolves a path against the scenario file's folder.
+
+    Returns:
+        The pinned recordings' names.
+
     """
-    own = scenario.feedback.recording
-    if scenario.feedback.source != "replay" or pinned_recording(own) is None:
+    own = feedback.recording
+    if feedback.source != "replay" or pinned_recording(own) is None:
         return []
-    if _found_locally(scenario, own):
+    if _found_locally(resolve, own):
         return []
-    task = scenario.task.name
     return [pin.recording for pin in PINNED if pin.recording.startswith(f"{task}-")]
 
 
-def _found_locally(scenario: Scenario, value: str) -> bool:
+def _found_locally(resolve: Callable[[str], Path], value: str) -> bool:
     from amuled_ma.scenario.paths import find_recording
 
-    where = str(scenario.path or scenario.name)
-    return find_recording(value, scenario.resolve, where=where).is_file()
+    return find_recording(value, resolve, where="[feedback].recording").is_file()
 
 
 def _cached(pin: PinnedFile, cache: Path) -> bool:
@@ -249,7 +265,7 @@ def fetch_pinned(
 
 
 def ensure_recordings(
-    scenario: Scenario,
+    resolve: Callable[[str], Path],
     values: Sequence[str],
     *,
     offline: bool = False,
@@ -268,7 +284,7 @@ def ensure_recordings(
     :func:`~amuled_ma.authors.checkout.import_authors` into ``to``.
 
     Args:
-        scenario: Resolves the values (its folder, its name for messages).
+        resolve: Resolves a value against the scenario file's folder.
         values: Recording values (names or paths), e.g. :func:`replayed_recordings`.
         offline: Never fetch (also when ``$AMULED_OFFLINE`` is set).
         say: Prints the fetch's line and the conversion's.
@@ -289,7 +305,7 @@ def ensure_recordings(
     pins: list[PinnedFile] = []
     for value in values:
         pin = pinned_recording(value, pinned)
-        if pin is not None and pin not in pins and not _found_locally(scenario, value):
+        if pin is not None and pin not in pins and not _found_locally(resolve, value):
             pins.append(pin)
     if not pins:
         return []

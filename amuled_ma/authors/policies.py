@@ -22,7 +22,7 @@ from amuled_ma.records.variants import Variant
 if TYPE_CHECKING:
     from rsl_rl.models import MLPModel
 
-    from amuled_ma.scenario import Scenario
+    from amuled_ma.scenario import Changes, FinetuneConfig, PPOConfig
 
 #: Layer indices of CleanRL's ``nn.Sequential`` (Linear, Tanh, Linear, Tanh, Linear).
 CLEANRL_LINEARS = (0, 2, 4)
@@ -124,13 +124,23 @@ def _linears(module: torch.nn.Module) -> list[torch.nn.Linear]:
     return [m for m in module.modules() if isinstance(m, torch.nn.Linear)]
 
 
-def build_networks(scenario: Scenario, obs_dim: int, num_actions: int) -> tuple[MLPModel, MLPModel]:
-    """Our actor and critic (rsl-rl ``MLPModel``) as the trainer builds them for a scenario."""
+def build_networks(ppo: PPOConfig, obs_dim: int, num_actions: int) -> tuple[MLPModel, MLPModel]:
+    """Our actor and critic (rsl-rl ``MLPModel``) as the trainer builds them.
+
+    Args:
+        ppo: The ``[ppo]`` section (network shape).
+        obs_dim: Observation size.
+        num_actions: Number of actions.
+
+    Returns:
+        ``(actor, critic)``.
+
+    """
     from amuled_ma.learn.policies import build_model
 
     return (
-        build_model(scenario.ppo, "actor", obs_dim, num_actions),
-        build_model(scenario.ppo, "critic", obs_dim, 1),
+        build_model(ppo, "actor", obs_dim, num_actions),
+        build_model(ppo, "critic", obs_dim, 1),
     )
 
 
@@ -157,20 +167,28 @@ def copy_weights(state: Mapping[str, torch.Tensor], net: str, model: torch.nn.Mo
             layer.bias.copy_(bias)
 
 
-def authors_scenario(scenario: Scenario, hidden: list[int]) -> Scenario:
-    """The scenario with the authors' network (``hidden`` units, tanh) and seed."""
-    if (
-        list(scenario.ppo.hidden_dims) != list(hidden)
-        or scenario.ppo.activation != CLEANRL_ACTIVATION
-    ):
-        scenario = scenario.replace("ppo", hidden_dims=list(hidden), activation=CLEANRL_ACTIVATION)
-    return scenario.replace("task", seed=AUTHORS_SEED)
+def authors_changes(hidden: list[int]) -> Changes:
+    """The authors' network (``hidden`` units, tanh) and seed, as changes to a scenario.
+
+    Args:
+        hidden: The hidden layers' units of their policy (:func:`cleanrl_shape`).
+
+    Returns:
+        The changes (:meth:`~amuled_ma.scenario.Scenario.changed`).
+
+    """
+    return (
+        ("ppo", {"hidden_dims": list(hidden), "activation": CLEANRL_ACTIVATION}),
+        ("task", {"seed": AUTHORS_SEED}),
+    )
 
 
 def build_checkpoint(
     state: Mapping[str, torch.Tensor],
-    scenario: Scenario,
+    ppo: PPOConfig,
+    finetune: FinetuneConfig,
     *,
+    scenario_name: str,
     variant: Variant,
     iteration: int,
     base_checkpoint: Path | None = None,
@@ -180,8 +198,10 @@ def build_checkpoint(
 
     Args:
         state: The CleanRL state dict (:func:`read_cleanrl`).
-        scenario: The scenario whose ``[ppo]`` network matches the policy
-            (:func:`authors_scenario`).
+        ppo: The ``[ppo]`` section whose network matches the policy
+            (:func:`authors_changes`).
+        finetune: The ``[finetune]`` section (a fine-tune's learning rate).
+        scenario_name: The scenario's name (for ``infos``).
         variant: ``base`` or ``finetune:amuled``.
         iteration: The authors' PPO iterations of this policy (``N`` of ``ppo_<N>``).
         base_checkpoint: The base a fine-tune started from (for ``infos``).
@@ -191,7 +211,7 @@ def build_checkpoint(
         ``{"actor_state_dict", "critic_state_dict", "optimizer_state_dict", "iter", "infos"}``.
 
     Raises:
-        CheckpointError: The scenario's networks do not fit the policy, or the converted
+        CheckpointError: The ``[ppo]`` networks do not fit the policy, or the converted
             actor's logits differ from the CleanRL actor's.
 
     """
@@ -199,24 +219,23 @@ def build_checkpoint(
     from amuled_ma.learn.config import rsl_rl_config
 
     obs_dim, _hidden, num_actions = cleanrl_shape(state)
-    actor, critic = build_networks(scenario, obs_dim, num_actions)
+    actor, critic = build_networks(ppo, obs_dim, num_actions)
     copy_weights(state, "actor", actor)
     copy_weights(state, "critic", critic)
     check_equivalent(state, actor)
     optimizer = adam(
-        [*actor.parameters(), *critic.parameters()], lr=_lr(scenario, variant), eps=1e-5
+        [*actor.parameters(), *critic.parameters()], lr=_lr(ppo, finetune, variant), eps=1e-5
     )
-    finetune = variant.finetuning
     train_cfg = rsl_rl_config(
-        scenario.ppo,
+        ppo,
         num_steps_per_env=AUTHORS_FINETUNE_STEPS,
-        learning_rate=_lr(scenario, variant),
+        learning_rate=_lr(ppo, finetune, variant),
         save_interval=5,
-        num_learning_epochs=8 if finetune else None,
+        num_learning_epochs=8 if variant.finetuning else None,
     )
     infos = {
         "variant": str(variant),
-        "scenario": scenario.name,
+        "scenario": scenario_name,
         "iteration": iteration,
         "total_iterations": iteration,
         "completed": True,
@@ -238,10 +257,10 @@ def build_checkpoint(
     }
 
 
-def _lr(scenario: Scenario, variant: Variant) -> float:
+def _lr(ppo: PPOConfig, finetune: FinetuneConfig, variant: Variant) -> float:
     if variant.finetuning:
-        return float(scenario.finetune.learning_rate)
-    return float(scenario.ppo.learning_rate)
+        return float(finetune.learning_rate)
+    return float(ppo.learning_rate)
 
 
 def cleanrl_logits(state: Mapping[str, torch.Tensor], obs: torch.Tensor) -> torch.Tensor:
@@ -279,7 +298,7 @@ def check_equivalent(
 def write_variant(
     out_dir: Path,
     checkpoint: Mapping[str, Any],
-    scenario: Scenario,
+    scenario: Mapping[str, Any],
     *,
     training: Mapping[str, Any],
 ) -> Path:
@@ -291,7 +310,7 @@ def write_variant(
     Args:
         out_dir: The variant folder (created).
         checkpoint: From :func:`build_checkpoint`.
-        scenario: The scenario written into ``config.json``.
+        scenario: The scenario as plain data (``Scenario.to_dict``), for ``config.json``.
         training: The ``"training"`` record of ``config.json`` (the authors' settings, so
             that a resume into this folder with other settings is refused).
 

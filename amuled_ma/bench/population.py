@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     from amuled_ma.learn import population as learn_population
     from amuled_ma.learn.population import TrainOutcome
     from amuled_ma.learn.population_groups import MemberSpec
-    from amuled_ma.scenario import Scenario
+    from amuled_ma.scenario import EvaluationConfig, PPOConfig, Scenario, TaskConfig
 
 #: The authors' recipe's fine-tune length, to which the measured iterations extrapolate.
 RECIPE_ITERATIONS = 1000
@@ -128,8 +128,22 @@ def _scenario(task: str, base_steps: int) -> tuple[Any, str]:
 def _jobs(
     scenario: Scenario, run: Path, base: Path, count: int, tag: str, store: StoreService
 ) -> list[MemberSpec]:
-    """``count`` fine-tune jobs of the base: seeds 42.., lambda_KL in turn, own feedback."""
-    from amuled_ma.deliberation.build import make_feedback
+    """``count`` fine-tune jobs of the base: seeds 42.., lambda_KL in turn, own feedback.
+
+    Args:
+        scenario: The benchmark's scenario (each job's is it at its lambda_KL).
+        run: The run folder (the feedback's cache).
+        base: The base checkpoint every job anchors to.
+        count: How many jobs.
+        tag: The jobs' folder under ``run``.
+        store: The belief store every job's feedback shares.
+
+    Returns:
+        The jobs' specs, each with its feedback built.
+
+    """
+    from amuled_ma.deliberation.build import build_feedback
+    from amuled_ma.deliberation.plan import plan_panel
     from amuled_ma.learn.population_groups import MemberSpec
     from amuled_ma.records.variants import Variant
 
@@ -138,7 +152,8 @@ def _jobs(
         seed = 42 + k
         job = scenario.replace("finetune", lambda_kl=LAMBDAS[k % len(LAMBDAS)])
         out = run / tag / f"finetune-amuled.seed{seed}"
-        feedback = make_feedback("amuled", job, run, state_dir=out, seed=seed, store=store)
+        plan = plan_panel("amuled", job)
+        feedback = build_feedback(plan, store, state_dir=out, seed=seed, cache_dir=run)
         jobs.append(
             MemberSpec(
                 job, out, variant=Variant.finetune("amuled"), feedback=feedback,
@@ -268,20 +283,22 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_metrics(outcome: TrainOutcome, scenario: Scenario) -> dict[str, float]:
+def _run_metrics(
+    outcome: TrainOutcome, task_config: TaskConfig, evaluation: EvaluationConfig, ppo: PPOConfig
+) -> dict[str, float]:
     """A finished fine-tune's figures: its evaluation and its last 100 iterations."""
     from amuled_ma.evaluate.evaluator import run_episodes
     from amuled_ma.learn.policies import load_policy
 
-    actor = load_policy(outcome.checkpoint, scenario)
+    actor = load_policy(outcome.checkpoint, ppo)
     out: dict[str, float] = {}
     for mode in ("sampled", "greedy"):
         records, _ = run_episodes(
             actor,
-            scenario,
-            episodes=scenario.evaluation.episodes,
+            task_config,
+            episodes=evaluation.episodes,
             mode=mode,
-            seed=scenario.evaluation.seed,
+            seed=evaluation.seed,
             record_trajectory=False,
         )
         for key in sorted({k for r in records for k in r}):
@@ -322,7 +339,9 @@ def welch(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
         job.iterations = args.welch_iterations
         outcome = _alone(job).train()[0]
         job.feedback.close()
-        groups["alone"].append(_run_metrics(outcome, scenario))
+        groups["alone"].append(
+            _run_metrics(outcome, scenario.task, scenario.evaluation, scenario.ppo)
+        )
         print(f"  {task}: seed {job.training_seed} alone done", flush=True)
     times["alone"] = time.process_time() - start
     jobs = _jobs(scenario, run, base, args.welch, "population", store)
@@ -334,7 +353,9 @@ def welch(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
     times["population"] = time.process_time() - start
     for job, outcome in zip(jobs, outcomes, strict=True):
         job.feedback.close()
-        groups["population"].append(_run_metrics(outcome, scenario))
+        groups["population"].append(
+            _run_metrics(outcome, scenario.task, scenario.evaluation, scenario.ppo)
+        )
     return {"task": task, "source": source, "groups": groups, "cpu_s": times}
 
 

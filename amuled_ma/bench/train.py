@@ -15,12 +15,9 @@ from typing import TYPE_CHECKING, Any
 from amuled_ma.bench._output import output_folder
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
-
     from rsl_rl.models import MLPModel
 
-    from amuled_ma.learn import population as learn_population
-    from amuled_ma.scenario import Scenario
+    from amuled_ma.scenario import TaskConfig
 
 #: Reference figures (the authors' code) and our targets, per measured figure.
 REFERENCE: dict[str, tuple[str, str]] = {
@@ -54,28 +51,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _eval(actor: MLPModel, scenario: Scenario, episodes: int) -> list[dict]:
+def _eval(actor: MLPModel, task_config: TaskConfig, episodes: int) -> list[dict]:
     from amuled_ma.evaluate.evaluator import run_episodes
 
     records, _ = run_episodes(
-        actor, scenario, episodes=episodes, mode="greedy", record_trajectory=False
+        actor, task_config, episodes=episodes, mode="greedy", record_trajectory=False
     )
     return records
 
 
-def _lone(
-    scenario: Scenario, out_dir: Path, on_iteration: Callable[[Any, int], None] | None = None
-) -> learn_population.PopulationTrainer:
-    """One base-training job alone: a population of one (``PopulationTrainer``)."""
-    from amuled_ma.learn.population import PopulationTrainer
-    from amuled_ma.learn.population_groups import MemberSpec
-
-    return PopulationTrainer([MemberSpec(scenario, out_dir, on_iteration=on_iteration)])
-
-
 def bench_findmilk(out: Path, quick: bool) -> dict[str, Any]:
     """FindMilk base training: time to the first optimal greedy policy, and the full run."""
-    from amuled_ma.learn.population import PopulationMember
+    from amuled_ma.learn.population import PopulationMember, PopulationTrainer
+    from amuled_ma.learn.population_groups import MemberSpec
     from amuled_ma.scenario import load_scenario
 
     sc = load_scenario("findmilk").replace("output", tensorboard=False)
@@ -89,18 +77,18 @@ def bench_findmilk(out: Path, quick: bool) -> dict[str, Any]:
         if first:
             return
         t0 = time.perf_counter()
-        records = _eval(member.policy(), sc, 10)
+        records = _eval(member.policy(), sc.task, 10)
         eval_time[0] += time.perf_counter() - t0
         if all(r["reached_milk"] and r["steps_to_milk"] == 14 for r in records):
             first["iteration"] = it
             first["steps"] = it * sc.base.num_envs * sc.base.num_steps_per_env
             first["wall_s"] = time.perf_counter() - start[0] - eval_time[0]
 
-    trainer = _lone(sc, out / "findmilk-base", on_iteration=check)
+    trainer = PopulationTrainer([MemberSpec(sc, out / "findmilk-base", on_iteration=check)])
     start[0] = time.perf_counter()
     outcome = trainer.train()[0]
     wall = time.perf_counter() - start[0] - eval_time[0]
-    final = _eval(trainer.member_policy(0), sc, 50)
+    final = _eval(trainer.member_policy(0), sc.task, 50)
     return {
         "steps": outcome.env_steps,
         "full_s": wall,
@@ -114,16 +102,18 @@ def bench_findmilk(out: Path, quick: bool) -> dict[str, Any]:
 def bench_driving(out: Path, quick: bool) -> dict[str, Any]:
     """Driving base training: the full run and the greedy policy's metrics."""
     from amuled_ma.evaluate.evaluator import summarize
+    from amuled_ma.learn.population import PopulationTrainer
+    from amuled_ma.learn.population_groups import MemberSpec
     from amuled_ma.scenario import load_scenario
 
     sc = load_scenario("driving").replace("output", tensorboard=False)
     if quick:
         sc = sc.replace("base", total_steps=sc.base.total_steps // 10)
-    trainer = _lone(sc, out / "driving-base")
+    trainer = PopulationTrainer([MemberSpec(sc, out / "driving-base")])
     t0 = time.perf_counter()
     outcome = trainer.train()[0]
     wall = time.perf_counter() - t0
-    stats = summarize(_eval(trainer.member_policy(0), sc, 50))
+    stats = summarize(_eval(trainer.member_policy(0), sc.task, 50))
     return {"steps": outcome.env_steps, "full_s": wall, "metrics": stats}
 
 
@@ -131,6 +121,8 @@ def bench_finetune(out: Path, base_ckpt: Path | None, quick: bool) -> dict[str, 
     """Time a fine-tune of the paper's length with replayed AMULED feedback."""
     from amuled_ma.experiments.plans import train_variant
     from amuled_ma.learn.checkpoints import LAST
+    from amuled_ma.learn.population import PopulationTrainer
+    from amuled_ma.learn.population_groups import MemberSpec
     from amuled_ma.records.variants import Variant
     from amuled_ma.scenario import load_scenario
 
@@ -140,7 +132,9 @@ def bench_finetune(out: Path, base_ckpt: Path | None, quick: bool) -> dict[str, 
     run = out / "finetune-run"
     (run / "base").mkdir(parents=True, exist_ok=True)
     if base_ckpt is None or not Path(base_ckpt).is_file():
-        _lone(sc.replace("base", total_steps=100_000), run / "base").train()
+        PopulationTrainer(
+            [MemberSpec(sc.replace("base", total_steps=100_000), run / "base")]
+        ).train()
     else:
         (run / "base" / LAST).write_bytes(Path(base_ckpt).read_bytes())
     iterations = sc.finetune.iterations // (10 if quick else 1)

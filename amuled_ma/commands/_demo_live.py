@@ -12,7 +12,10 @@ from typing import TYPE_CHECKING, Any
 from amuled_ma.files.safe import checked_read_path, write_text_atomic
 
 if TYPE_CHECKING:
-    from amuled_ma.scenario import Scenario
+    from collections.abc import Callable
+
+    from amuled_ma.deliberation.plan import PanelPlan
+    from amuled_ma.scenario import FeedbackConfig, Scenario
     from amuled_ma.servers.timing import CacheReuse, RequestTiming, TimingLog
 
 
@@ -34,28 +37,29 @@ LIVE_HEADING = "## Live leg: a few requests to a local model (its judgement is n
 
 def live_leg(
     run_dir: Path,
-    scenario: Scenario,
+    plan: PanelPlan,
+    store: str,
     *,
+    episodes: int,
     model: str,
     host: str,
     states: int = LIVE_STATES,
-    clusters: Sequence[str] = LIVE_CLUSTERS,
 ) -> dict[str, Any]:
     """Ask a live model about a few states of the AMULED fine-tune's episode, through a store.
 
     The states are the first ``states`` distinct states of the fine-tune's greedy
     evaluation episode 0 (replayed as ``amuled explain`` does); each is asked of every
-    cluster of ``clusters`` with the paper's prompts (``[feedback].source = "ollama"``,
-    the scenario's Ollama options), through the belief store ``RUN_DIR/live/beliefs.sqlite``,
-    and fused with the scenario's rule, as in training.
+    member of the live panel with the paper's prompts, through the belief store
+    ``RUN_DIR/live/<store>``, and fused with the panel's rule, as in training.
 
     Args:
         run_dir: The demo's run folder (its ``finetune-amuled`` is replayed).
-        scenario: The demo's scenario.
+        plan: The live panel's plan (``[feedback].source = "ollama"``, :func:`write_live_leg`).
+        store: ``[feedback].store``, the store file (relative to ``RUN_DIR/live``).
+        episodes: The episodes per policy of the run's evaluation (sampled draws depend on it).
         model: The live model.
         host: Its server.
         states: Distinct states asked.
-        clusters: The clusters asked about each.
 
     Returns:
         What ``live/live.json`` holds: the model, host, store, wall seconds, and per state
@@ -69,16 +73,19 @@ def live_leg(
     import numpy as np
 
     from amuled_ma.beliefs.store.cached import requests_sent
-    from amuled_ma.deliberation.build import make_feedback
+    from amuled_ma.deliberation.build import build_feedback, run_store
     from amuled_ma.deliberation.panel_feedback import PanelFeedback
     from amuled_ma.evaluate.episode_trace import replay_variant
     from amuled_ma.evaluate.panel_answers import ask_panel
-    from amuled_ma.experiments.trained_variants import evaluated_episodes, trained_variant
+    from amuled_ma.experiments.trained_variants import trained_variant
     from amuled_ma.tasks import get_task
 
     trained = trained_variant(run_dir, run_dir / "finetune-amuled")
     episode = replay_variant(
-        trained, episode=0, mode="greedy", episodes=evaluated_episodes(run_dir, scenario)
+        trained,
+        episode=0,
+        mode="greedy",
+        episodes=episodes,
     )
     seen: set[tuple[float, ...]] = set()
     picked: list[int] = []
@@ -91,12 +98,9 @@ def live_leg(
             break
     obs = np.stack([np.asarray(episode.obs[i], dtype=np.float64).reshape(-1) for i in picked])
     prompt_vars = [dict(episode.prompt_vars[i]) for i in picked]
-    live = scenario.replace(
-        "feedback", source="ollama", model=model, host=host, clusters=list(clusters)
-    )
     out = run_dir / LIVE_DIR
     out.mkdir(parents=True, exist_ok=True)
-    feedback = make_feedback("amuled", live, out)
+    feedback = build_feedback(plan, run_store(out / store), cache_dir=out)
     if not isinstance(feedback, PanelFeedback):  # an ollama source is always asked as a panel
         feedback.close()
         raise TypeError(f"the live panel's feedback is a {type(feedback).__name__}")
@@ -107,11 +111,11 @@ def live_leg(
     finally:
         feedback.close()
     wall = time.perf_counter() - began
-    actions = list(get_task(scenario.task.name).action_names)
+    actions = list(get_task(plan.task).action_names)
     return {
         "model": model,
         "host": host,
-        "store": str(out / Path(live.feedback.store).name),
+        "store": str(out / Path(store).name),
         "source": "ollama",
         "meaningful": False,
         "wall_s": wall,
@@ -176,7 +180,17 @@ def live_section(leg: dict[str, Any]) -> list[str]:
 
 
 def write_live_leg(run_dir: Path, scenario: Scenario, *, model: str, host: str) -> bool:
-    """Run :func:`live_leg`, write ``live/live.json`` and append its section to ``report.md``.
+    """Plan the live panel, run :func:`live_leg`, write ``live/live.json``, report it.
+
+    The live panel is the scenario's with ``[feedback].source = "ollama"``, ``model`` at
+    ``host`` and the clusters :data:`LIVE_CLUSTERS`; its section is appended to
+    ``report.md``.
+
+    Args:
+        run_dir: The demo's run folder.
+        scenario: The demo's scenario.
+        model: The live model.
+        host: Its server.
 
     Returns:
         True when the leg ran (a failure is printed and the report says so).
@@ -184,7 +198,9 @@ def write_live_leg(run_dir: Path, scenario: Scenario, *, model: str, host: str) 
     """
     import json
 
+    from amuled_ma.deliberation.plan import plan_panel
     from amuled_ma.errors import AmuledError
+    from amuled_ma.experiments.trained_variants import evaluated_episodes
 
     say(
         f"live leg: {LIVE_STATES} states x {len(LIVE_CLUSTERS)} clusters asked of {model} "
@@ -194,7 +210,17 @@ def write_live_leg(run_dir: Path, scenario: Scenario, *, model: str, host: str) 
 
     try:
         with Progress("live leg", None, bar=False, unit="batch"):  # never silent while asking
-            leg = live_leg(run_dir, scenario, model=model, host=host)
+            live = scenario.replace(
+                "feedback", source="ollama", model=model, host=host, clusters=list(LIVE_CLUSTERS)
+            )
+            leg = live_leg(
+                run_dir,
+                plan_panel("amuled", live),
+                live.feedback.store,
+                episodes=evaluated_episodes(run_dir, scenario.evaluation.episodes),
+                model=model,
+                host=host,
+            )
     except (AmuledError, OSError, ValueError) as error:
         say(f"live leg failed: {error}")
         put_live_section(run_dir, [LIVE_HEADING, "", f"The live leg failed: {error}", ""])
@@ -251,13 +277,25 @@ class PrefixWarmup:
         self._thread = threading.Thread(target=self._run, name="amuled-warmup", daemon=True)
 
     @classmethod
-    def start(cls, host: str, model: str, scenario: Scenario) -> PrefixWarmup | None:
+    def start(
+        cls,
+        host: str,
+        model: str,
+        task_name: str,
+        feedback: FeedbackConfig,
+        resolve: Callable[[str], Path],
+    ) -> PrefixWarmup | None:
         """Start the warm-up for the run the demo is about to make (None if it cannot).
 
         Args:
             host: The private server.
             model: The model the run asks.
-            scenario: The run's scenario (its prompts and Ollama options).
+            task_name: The run's task (its prompts).
+            feedback: The run's ``[feedback]`` section (clusters, Ollama options).
+            resolve: Resolves a path against the scenario file's folder.
+
+        Returns:
+            The started warm-up, or None.
 
         """
         from amuled_ma.beliefs.sources.ollama import OllamaSource
@@ -266,10 +304,10 @@ class PrefixWarmup:
         from amuled_ma.errors import AmuledError
 
         try:  # the run reports any error itself
-            registry = cluster_registry(scenario)
-            clusters, _ = panel_of("amuled", scenario, registry)
-            messages = build_messages(clusters[0], scenario.task.name, "", registry=registry)
-            source = OllamaSource(model, host=host, **dict(scenario.feedback.ollama))
+            registry = cluster_registry(feedback, resolve)
+            clusters, _ = panel_of("amuled", feedback, registry)
+            messages = build_messages(clusters[0], task_name, "", registry=registry)
+            source = OllamaSource(model, host=host, **dict(feedback.ollama))
             source.close()
         except (AmuledError, ValueError, TypeError, IndexError) as error:
             say(f"no prefix warm-up: {error}")

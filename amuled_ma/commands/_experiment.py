@@ -200,14 +200,9 @@ def customise(
     if scenario.feedback.clusters_dirs:
         from amuled_ma.deliberation.plan import cluster_registry
 
-        for o in cluster_registry(scenario).overridden:
+        for o in cluster_registry(scenario.feedback, scenario.resolve).overridden:
             say(f"note: {o.new_path} overrides the cluster {o.name!r} of {o.old_path}")
     return scenario
-
-
-def run_dir_of(args: argparse.Namespace, scenario: Scenario) -> Path:
-    """Return the run directory: ``--run-dir`` or the scenario's default."""
-    return Path(args.run_dir) if args.run_dir else scenario.default_run_dir()
 
 
 def rerun_of(name: str, args: argparse.Namespace, *extra: str) -> Rerun:

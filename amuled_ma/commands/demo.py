@@ -26,7 +26,8 @@ from amuled_ma.commands._demo_live import say as _say
 from amuled_ma.files.safe import write_text_atomic
 
 if TYPE_CHECKING:
-    from amuled_ma.scenario import Scenario
+    from amuled_ma.experiments.pipeline import PipelineRequest
+    from amuled_ma.scenario import FeedbackConfig, FinetuneConfig, Scenario
     from amuled_ma.servers.timing import CacheReuse, TimingLog
 
 #: The demo's tasks; each runs the shipped scenario ``<task>-demo``
@@ -151,13 +152,36 @@ def demo_command(args: argparse.Namespace) -> int:
             code = report_failure(error, debug=debug)
         else:
             if started_dir is not None:  # our own idle server: evaluate the shared prompt now
-                warmup = PrefixWarmup.start(host, model, scenario)
+                warmup = PrefixWarmup.start(
+                    host, model, scenario.task.name, scenario.feedback, scenario.resolve
+                )
             with record_timings() as run_log:
-                code = _run_pipeline(scenario, run_dir, demo_hint(args, run_dir), args, debug)
+                from amuled_ma.experiments.pipeline import PipelineRequest
+
+                request = PipelineRequest(
+                    scenario=scenario,
+                    run_dir=run_dir,
+                    resume=True,
+                    progress=not args.no_progress,
+                    hint=demo_hint(args, run_dir),
+                    title=demo_title(
+                        scenario.name, scenario.task.name, scenario.feedback, scenario.finetune
+                    ),
+                    offline=args.offline,
+                )
+                code = _run_pipeline(request, debug)
             if run_log.timings:
                 phases.append(("fine-tune", run_log))
         if code == 0:
-            put_summary(run_dir, scenario)
+            imported = Path(scenario.output.runs_dir) / "authors" / scenario.task.name / "base"
+            authors = scenario.finetune.recipe == "authors"
+            put_summary(
+                run_dir,
+                scenario.task.name,
+                scenario.base.total_steps,
+                scenario.finetune.iterations,
+                imported if authors else None,
+            )
         if code == 0:  # while the server still runs
             with record_timings() as live_log:
                 write_live_leg(run_dir, scenario, model=model, host=host)
@@ -224,7 +248,9 @@ def missing_recording(task: str, *, offline: bool = False) -> str | None:
         scenario = load_scenario(f"{task}-demo")
         if scenario.feedback.source != "replay":
             return None
-        ensure_recordings(scenario, replayed_recordings(scenario), offline=offline, say=_say)
+        ensure_recordings(
+            scenario.resolve, replayed_recordings(scenario.feedback), offline=offline, say=_say
+        )
     except AmuledError as error:
         return str(error)
     try:
@@ -269,7 +295,9 @@ def _cell(metrics: dict[str, Any], name: str) -> str:
     return f"{value['mean']:.2f} ± {value['half_width']:.2f}"
 
 
-def summary_lines(scenario: Scenario, results: dict[str, Any], base: str | None) -> list[str]:
+def summary_lines(
+    task: str, base_steps: int, iterations: int, results: dict[str, Any], base: str | None
+) -> list[str]:
     """The report's first section: each main variant, sampled, beside the paper's row.
 
     One sentence per variant of the paper's main comparison found in ``results``: its paper
@@ -277,7 +305,9 @@ def summary_lines(scenario: Scenario, results: dict[str, Any], base: str | None)
     and on FindMilk the share of greedy episodes that reach the milk.
 
     Args:
-        scenario: The demo's scenario (its task and budget).
+        task: The demo's task.
+        base_steps: ``[base].total_steps`` of the run's own base and shaped policies.
+        iterations: ``[finetune].iterations``.
         results: ``results.json`` of the run.
         base: The folder the fine-tunes started from (None: the run's own base).
 
@@ -287,7 +317,6 @@ def summary_lines(scenario: Scenario, results: dict[str, Any], base: str | None)
     """
     from amuled_ma.evaluate.paper import PAPER_COLUMNS, paper_row
 
-    task, ft = scenario.task.name, scenario.finetune
     columns = PAPER_COLUMNS[task]
     names = " / ".join(c.replace("_", " ") for c in columns)
     start = (
@@ -299,8 +328,8 @@ def summary_lines(scenario: Scenario, results: dict[str, Any], base: str | None)
     lines = [
         SUMMARY_HEADING,
         "",
-        f"Demo-sized: {ft.iterations:,} fine-tuning iterations (the paper: 1,000), one "
-        f"training seed, {scenario.base.total_steps:,} steps for the run's own base and "
+        f"Demo-sized: {iterations:,} fine-tuning iterations (the paper: 1,000), one "
+        f"training seed, {base_steps:,} steps for the run's own base and "
         f"shaped policies; the fine-tunes start from {start}. Sampled policy (the paper's "
         f"metric), {names}, mean ± 95% interval over the evaluation episodes:",
         "",
@@ -321,11 +350,21 @@ def summary_lines(scenario: Scenario, results: dict[str, Any], base: str | None)
     return [*lines, ""]
 
 
-def put_summary(run_dir: Path, scenario: Scenario) -> None:
+def put_summary(
+    run_dir: Path, task: str, base_steps: int, iterations: int, authors_base: Path | None
+) -> None:
     """Put :func:`summary_lines` right under ``report.md``'s title (replacing an earlier one).
 
     Read and written as :func:`put_live_section` does; without a report or results, nothing
     is written.
+
+    Args:
+        run_dir: The demo's run folder.
+        task: The demo's task.
+        base_steps: ``[base].total_steps``.
+        iterations: ``[finetune].iterations``.
+        authors_base: The imported authors' base folder the fine-tunes start from under
+            the ``authors`` recipe (named when it holds a policy), else None.
 
     Raises:
         AmuledError: As :func:`put_live_section`.
@@ -343,27 +382,36 @@ def put_summary(run_dir: Path, scenario: Scenario) -> None:
     text = read_bounded_bytes(report, MAX_REPORT_BYTES, "report", fix=fix).decode("utf-8")
     data = json.loads(read_bounded_bytes(results, MAX_REPORT_BYTES, "results", fix=fix))
     base = None
-    if scenario.finetune.recipe == "authors":
-        imported = Path(scenario.output.runs_dir) / "authors" / scenario.task.name / "base"
-        base = str(imported) if (imported / "model_last.pt").is_file() else None
+    if authors_base is not None and (authors_base / "model_last.pt").is_file():
+        base = str(authors_base)
     title, _, rest = text.partition("\n")
     if rest.lstrip("\n").startswith(SUMMARY_HEADING):  # a re-run: replace the old one
         rest = rest.lstrip("\n")
         rest = rest[rest.find("\n## ", 1) + 1 :] if "\n## " in rest else ""
-    section = "\n".join(summary_lines(scenario, data, base))
+    section = "\n".join(summary_lines(task, base_steps, iterations, data, base))
     write_text_atomic(report, f"{title}\n\n{section}\n{rest.lstrip(chr(10))}")
 
 
-def demo_title(scenario: Scenario) -> str:
-    """The report's title: what the demo's run is, and that it is demo-sized."""
-    fb, ft = scenario.feedback, scenario.finetune
+def demo_title(name: str, task: str, fb: FeedbackConfig, ft: FinetuneConfig) -> str:
+    """The report's title: what the demo's run is, and that it is demo-sized.
+
+    Args:
+        name: The scenario's name.
+        task: Its task.
+        fb: Its ``[feedback]`` section (where the beliefs come from).
+        ft: Its ``[finetune]`` section (recipe, iterations).
+
+    Returns:
+        The title.
+
+    """
     where = (
         f"beliefs replayed from `{Path(fb.recording).name}`"
         if fb.source == "replay"
         else f"beliefs asked live of `{fb.model}`"
     )
     return (
-        f"{scenario.name}: the paper's {scenario.task.name} comparison, demo-sized "
+        f"{name}: the paper's {task} comparison, demo-sized "
         f"({where}, {ft.recipe} recipe, {ft.iterations:,} fine-tuning iterations; "
         "the paper: 1,000)"
     )
@@ -383,22 +431,11 @@ def demo_hint(args: argparse.Namespace, run_dir: Path) -> str:
     return shlex.join(parts)
 
 
-def _run_pipeline(
-    scenario: Scenario, run_dir: Path, hint: str, args: argparse.Namespace, debug: bool
-) -> int:
+def _run_pipeline(request: PipelineRequest, debug: bool) -> int:
     """Run the demo's main comparison through the pipeline; its exit code (failures printed)."""
     from amuled_ma.cli import FAILURES, report_failure
     from amuled_ma.experiments import pipeline
 
-    request = pipeline.PipelineRequest(
-        scenario=scenario,
-        run_dir=run_dir,
-        resume=True,
-        progress=not args.no_progress,
-        hint=hint,
-        title=demo_title(scenario),
-        offline=args.offline,
-    )
     start = time.perf_counter()
     try:
         outcome = pipeline.run_pipeline(request, say=common.say)
@@ -418,7 +455,15 @@ def write_demo_view(run_dir: Path) -> Path | None:
     _say("writing the step-by-step viewer of finetune-amuled")
     try:
         view = run_to_view(run_dir, ["finetune-amuled"])
-        result = write_view(run_dir, view.scenario, view.variants, episodes=view.episodes, say=_say)
+        result = write_view(
+            run_dir,
+            view.variants,
+            scenario_name=view.scenario.name,
+            task_name=view.scenario.task.name,
+            evaluation=view.scenario.evaluation,
+            episodes=view.episodes,
+            say=_say,
+        )
     except AmuledError as error:
         _say(f"no viewer written: {error}")
         return None

@@ -67,7 +67,10 @@ def evaluate_command(args: argparse.Namespace) -> int:
         records = variant_records([*variant_dirs(run_dir), *(extra or [])])
         results = evaluate_run(
             run_dir,
-            scenario,
+            scenario_name=scenario.name,
+            task_config=scenario.task,
+            evaluation=scenario.evaluation,
+            ppo=scenario.ppo,
             episodes=args.episodes,
             modes=args.modes,
             variants=args.variants,

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -15,7 +14,7 @@ if TYPE_CHECKING:
     from amuled_ma.deliberation.feedback_base import Feedback
     from amuled_ma.evaluate import explain
     from amuled_ma.evaluate.readonly_feedback import ReadOnlyStore
-    from amuled_ma.scenario import Scenario
+    from amuled_ma.scenario import TaskConfig
 
 #: Characters of a raw reply printed without ``--full``.
 REPLY_CHARS = 1200
@@ -115,19 +114,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(handler=explain_command)
 
 
-def with_overrides(
-    scenario: Scenario, overrides: Sequence[str], clusters_dirs: Sequence[Path] = ()
-) -> Scenario:
-    """A run's scenario with ``--clusters-dir`` and ``--set`` applied (as for a shipped one).
-
-    Raises:
-        ScenarioError: A malformed override or an unknown section or key.
-        ClusterDefinitionError: A ``--clusters-dir`` folder is missing or malformed.
-
-    """
-    return common.customise(scenario, clusters_dirs=clusters_dirs, overrides=overrides)
-
-
 def explain_command(args: argparse.Namespace) -> int:
     """Run ``amuled explain``."""
     from amuled_ma.deliberation.plan import plan_panel
@@ -148,19 +134,29 @@ def explain_command(args: argparse.Namespace) -> int:
         from amuled_ma.experiments.trained_variants import evaluated_episodes, trained_variant
 
         trained = trained_variant(run_dir, run_dir / args.variant)
-        scenario = with_overrides(trained.scenario, args.overrides, args.clusters_dir)
+        scenario = common.customise(
+            trained.scenario, clusters_dirs=args.clusters_dir, overrides=args.overrides
+        )
         trained = dataclasses.replace(trained, scenario=scenario)
         feedback_name = args.feedback or trained.feedback or "amuled"
-        plan_panel(feedback_name, scenario)  # an unknown cluster: one line, nothing opened
-        episodes = args.episodes or evaluated_episodes(run_dir, run_scenario)
-        feedback, store = open_feedback(feedback_name, scenario, run_dir)
+        plan = plan_panel(feedback_name, scenario)  # an unknown cluster: one line, nothing opened
+        episodes = args.episodes or evaluated_episodes(run_dir, run_scenario.evaluation.episodes)
+        feedback, store = open_feedback(plan, scenario.feedback.store, run_dir)
         try:
             live = feedback if getattr(feedback, "panel", None) is None else None
             ep = replay_variant(
                 trained, episode=args.episode, mode=args.mode, episodes=episodes, live_feedback=live
             )
             state = explain.state_of_step(ep, args.step, f"{run_dir}/{args.variant}")
-            _print(args, scenario, feedback, store, feedback_name, state)
+            _print(
+                args,
+                scenario.task,
+                scenario.feedback.cluster_recording,
+                feedback,
+                store,
+                feedback_name,
+                state,
+            )
         finally:
             feedback.close()
             store.close()
@@ -172,8 +168,10 @@ def explain_command(args: argparse.Namespace) -> int:
             "--state-from RUN --variant V --step N"
         )
     if args.run_dir is not None:
-        scenario = with_overrides(
-            scenario_of_run(Path(args.run_dir)), args.overrides, args.clusters_dir
+        scenario = common.customise(
+            scenario_of_run(Path(args.run_dir)),
+            clusters_dirs=args.clusters_dir,
+            overrides=args.overrides,
         )
         if args.scenario and args.scenario not in (scenario.task.name, scenario.name):
             raise ScenarioError(
@@ -185,15 +183,23 @@ def explain_command(args: argparse.Namespace) -> int:
     else:
         scenario = common.load(args)
     feedback_name = args.feedback or "amuled"
-    plan_panel(feedback_name, scenario)  # an unknown cluster: one line, before torch
+    plan = plan_panel(feedback_name, scenario)  # an unknown cluster: one line, before torch
     task_cls = get_task(scenario.task.name)
     obs = explain.parse_obs(args.obs, task_cls)
     extras = explain.parse_prompt_vars(args.prompt_vars)
-    feedback, store = open_feedback(feedback_name, scenario, args.run_dir)
+    feedback, store = open_feedback(plan, scenario.feedback.store, args.run_dir)
     try:
         where = f"run {args.run_dir}" if args.run_dir else f"scenario {scenario.name} (shipped)"
         state = explain.state_by_hand(task_cls, feedback, feedback_name, obs, extras, where)
-        _print(args, scenario, feedback, store, feedback_name, state)
+        _print(
+            args,
+            scenario.task,
+            scenario.feedback.cluster_recording,
+            feedback,
+            store,
+            feedback_name,
+            state,
+        )
     finally:
         feedback.close()
         store.close()
@@ -202,7 +208,8 @@ def explain_command(args: argparse.Namespace) -> int:
 
 def _print(
     args: argparse.Namespace,
-    scenario: Scenario,
+    scenario_task: TaskConfig,
+    cluster_recording: str,
     feedback: Feedback,
     store: ReadOnlyStore,
     feedback_name: str,
@@ -212,8 +219,9 @@ def _print(
     from amuled_ma.tasks import get_task
 
     lines = explain_lines(
-        scenario,
-        get_task(scenario.task.name),
+        scenario_task.name,
+        cluster_recording,
+        get_task(scenario_task.name),
         feedback,
         store,
         feedback_name,

@@ -13,7 +13,7 @@ from amuled_ma.errors import AmuledError
 if TYPE_CHECKING:
     from amuled_ma.experiments.jobs import RayTarget
     from amuled_ma.experiments.pipeline import PipelineRequest
-    from amuled_ma.scenario import Scenario
+    from amuled_ma.scenario import Changes
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -122,31 +122,41 @@ def add_quick_arg(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def quick_scenario(scenario: Scenario, overrides: list[str]) -> Scenario:
-    """``scenario`` at the quick form's budget, but for the keys ``overrides`` sets.
+def quick_changes(overrides: list[str]) -> Changes:
+    """The quick form's budget (:data:`QUICK_SETTINGS`), but for the keys ``overrides`` sets.
 
     Args:
-        scenario: The loaded scenario, ``--set`` already applied.
         overrides: The ``--set SECTION.KEY=VALUE`` texts (a key they name keeps its value).
 
     Returns:
-        The scenario with :data:`QUICK_SETTINGS` applied.
+        The changes to the scenario (:meth:`~amuled_ma.scenario.Scenario.changed`).
 
     """
     from amuled_ma.scenario.overrides import parse_set
 
     named = {parse_set(text)[:2] for text in overrides}
-    for (section, key), value in QUICK_SETTINGS.items():
-        if (section, key) not in named:
-            scenario = scenario.replace(section, **{key: value})
-    return scenario
+    return tuple(
+        (section, {key: value})
+        for (section, key), value in QUICK_SETTINGS.items()
+        if (section, key) not in named
+    )
 
 
-def quick_note(scenario: Scenario, episodes: int) -> str:
-    """The quick form's warning, for the output and the report's title."""
+def quick_note(base_steps: int, iterations: int, episodes: int) -> str:
+    """The quick form's warning, for the output and the report's title.
+
+    Args:
+        base_steps: ``[base].total_steps``.
+        iterations: ``[finetune].iterations``.
+        episodes: Evaluation episodes per policy.
+
+    Returns:
+        The warning, one line.
+
+    """
     return (
-        f"quick form: {scenario.base.total_steps:,} base env steps, "
-        f"{scenario.finetune.iterations:,} fine-tuning iterations, {episodes} evaluation "
+        f"quick form: {base_steps:,} base env steps, "
+        f"{iterations:,} fine-tuning iterations, {episodes} evaluation "
         "episodes; NOT the paper's length (500,000 / 1,000 / 50): a check that the pipeline "
         "runs, its figures are not the paper's"
     )
@@ -235,16 +245,17 @@ def request_of(args: argparse.Namespace, command: str, *extra: str) -> PipelineR
     weights = getattr(args, "weights", None)
     if weights is not None:  # a path from this directory, as any file on the command line
         scenario = scenario.replace("feedback", weights=str(Path(weights).resolve()))
-    run_dir = common.run_dir_of(args, scenario)
+    run_dir = Path(args.run_dir) if args.run_dir else scenario.default_run_dir()
     episodes, title = args.episodes, None
     if args.quick:
-        scenario = quick_scenario(scenario, args.overrides)
+        scenario = scenario.changed(quick_changes(args.overrides))
         episodes = episodes or QUICK_EPISODES
         if args.run_dir is None:
             run_dir = run_dir.with_name(run_dir.name + QUICK_SUFFIX)
         what = f"ablation of {args.what}" if command == "ablate" else "the paper's main comparison"
-        title = f"{scenario.name}: {what}, {quick_note(scenario, episodes)}"
-        common.say(quick_note(scenario, episodes))
+        note = quick_note(scenario.base.total_steps, scenario.finetune.iterations, episodes)
+        title = f"{scenario.name}: {what}, {note}"
+        common.say(note)
         extra = (*extra, "--quick")
     return PipelineRequest(
         scenario=scenario,
@@ -276,7 +287,13 @@ def run_command(args: argparse.Namespace) -> int:
     outcome = pipeline.run_pipeline(request, say=common.say)
     common.say_outcome(request, outcome, time.perf_counter() - start)
     if args.quick:
-        common.say(quick_note(request.scenario, request.episodes or QUICK_EPISODES))
+        common.say(
+            quick_note(
+                request.scenario.base.total_steps,
+                request.scenario.finetune.iterations,
+                request.episodes or QUICK_EPISODES,
+            )
+        )
     return 0
 
 
@@ -292,5 +309,11 @@ def ablate_command(args: argparse.Namespace) -> int:
     outcome = pipeline.run_pipeline(request, say=common.say)
     common.say_outcome(request, outcome, time.perf_counter() - start)
     if args.quick:
-        common.say(quick_note(request.scenario, request.episodes or QUICK_EPISODES))
+        common.say(
+            quick_note(
+                request.scenario.base.total_steps,
+                request.scenario.finetune.iterations,
+                request.episodes or QUICK_EPISODES,
+            )
+        )
     return 0

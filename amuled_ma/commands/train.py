@@ -9,10 +9,10 @@ from typing import TYPE_CHECKING, Any
 
 from amuled_ma.commands import _experiment as common
 from amuled_ma.records.variants import Variant
-from amuled_ma.scenario import Scenario, check_path_component
+from amuled_ma.scenario import check_path_component
 
 if TYPE_CHECKING:
-    from amuled_ma.experiments.run_folder import Rerun
+    pass
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -71,14 +71,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def train_command(args: argparse.Namespace) -> int:
     """Run ``amuled train``: a one-job request through the pipeline (checks, lock, record)."""
-    from amuled_ma.experiments.pipeline import train_alone
+    from amuled_ma.experiments.pipeline import PipelineRequest, train_alone
 
     scenario = common.load(args)
-    run_dir = common.run_dir_of(args, scenario)
+    run_dir = Path(args.run_dir) if args.run_dir else scenario.default_run_dir()
     rerun = common.rerun_of("train", args, "--variant", args.variant)
     start = time.perf_counter()
     job = train_alone(
-        _request(scenario, run_dir, args, rerun),
+        PipelineRequest(scenario, run_dir, rerun=rerun, **_options(args)),
         Variant.parse(args.variant),
         config={"variant": args.variant},
     )
@@ -91,10 +91,10 @@ def train_command(args: argparse.Namespace) -> int:
 
 def finetune_command(args: argparse.Namespace) -> int:
     """Run ``amuled finetune``: a one-job request through the pipeline (checks, lock, record)."""
-    from amuled_ma.experiments.pipeline import train_alone
+    from amuled_ma.experiments.pipeline import PipelineRequest, train_alone
 
     scenario = common.load(args)
-    run_dir = common.run_dir_of(args, scenario)
+    run_dir = Path(args.run_dir) if args.run_dir else scenario.default_run_dir()
     start = time.perf_counter()
     base: dict = {}
     if args.name is not None:
@@ -106,7 +106,8 @@ def finetune_command(args: argparse.Namespace) -> int:
         base.update(base_dir=args.base.parent, base_variant=args.base.name)
     rerun = common.rerun_of("finetune", args, "--feedback", args.feedback)
     # the preflight (every panel member can answer, the base exists) runs before any folder
-    job = train_alone(_request(scenario, run_dir, args, rerun), variant, **base)
+    request = PipelineRequest(scenario, run_dir, rerun=rerun, **_options(args))
+    job = train_alone(request, variant, **base)
     common.say(
         f"finetune {scenario.name}/{job.out_dir.name}: done in "
         f"{time.perf_counter() - start:.1f} s; "
@@ -115,16 +116,11 @@ def finetune_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def _request(scenario: Scenario, run_dir: Path, args: argparse.Namespace, rerun: Rerun) -> Any:
-    """The pipeline request of one job from the command line (seed, resume, force)."""
-    from amuled_ma.experiments.pipeline import PipelineRequest
-
-    return PipelineRequest(
-        scenario,
-        run_dir,
-        seed=args.seed,
-        resume=args.resume,
-        force=args.force,
-        progress=not args.no_progress,
-        rerun=rerun,
-    )
+def _options(args: argparse.Namespace) -> dict[str, Any]:
+    """A one-job pipeline request's options from the command line (seed, resume, force)."""
+    return {
+        "seed": args.seed,
+        "resume": args.resume,
+        "force": args.force,
+        "progress": not args.no_progress,
+    }

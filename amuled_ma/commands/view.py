@@ -119,9 +119,11 @@ def view_command(args: argparse.Namespace) -> int:
     common.say(f"view {run_dir}: episode {args.episode} of {view.episodes}, {args.mode} actions")
     result = write_view(
         run_dir,
-        view.scenario,
         view.variants,
         args.output,
+        scenario_name=view.scenario.name,
+        task_name=view.scenario.task.name,
+        evaluation=view.scenario.evaluation,
         episode=args.episode,
         mode=args.mode,
         episodes=view.episodes,

@@ -19,20 +19,13 @@ from amuled_ma.beliefs.store.cached import CachedSource
 from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.beliefs.store.service import StoreItem, StoreService
 from amuled_ma.beliefs.types import BeliefResult, BeliefSource
-from amuled_ma.deliberation.plan import (
-    PanelPlan,
-    SourcePlan,
-    plan_panel,
-    plan_sources,
-    recording_of,
-)
+from amuled_ma.deliberation.plan import PanelPlan, SourcePlan, recording_of
 from amuled_ma.errors import AmuledError, ScenarioError
-from amuled_ma.scenario import AGENT_SOURCE_KINDS, MORAL_AGENT, Scenario
+from amuled_ma.scenario import AGENT_SOURCE_KINDS
 from amuled_ma.scenario.agents import norm
 
 if TYPE_CHECKING:  # the feedback classes import torch: loaded when a feedback is built,
     # so that the preflight's errors come before any heavy import
-    from amuled_ma.clusters import Cluster
     from amuled_ma.deliberation.feedback_base import Feedback
     from amuled_ma.scenario import DistillConfig
 
@@ -558,81 +551,6 @@ def run_store(path: Path) -> StoreService:
     from amuled_ma.beliefs.store.service import open_store
 
     return _Lazy(lambda: open_store(path))
-
-
-def make_feedback(
-    variant: str,
-    scenario: Scenario,
-    run_dir: Path | None = None,
-    *,
-    state_dir: Path | None = None,
-    resume: bool = False,
-    seed: int | None = None,
-    store: StoreService | None = None,
-) -> Feedback:
-    """Plan a variant's panel and build its feedback: `plan_panel` + `build_feedback`.
-
-    Args:
-        variant: The feedback (see `parse_feedback`).
-        scenario: The scenario.
-        run_dir: Run directory holding the belief store (and the demonstrator's counts).
-        state_dir: See `build_feedback`.
-        resume: See `build_feedback`.
-        seed: See `build_feedback`.
-        store: The belief store to use (default: the run's, `run_store`, opened
-            only when a member is asked).
-
-    Returns:
-        The feedback.
-
-    """
-    plan = plan_panel(variant, scenario)
-    if store is None:
-        store = run_store(scenario.store_path(run_dir))
-    return build_feedback(
-        plan, store, state_dir=state_dir, resume=resume, seed=seed, cache_dir=run_dir
-    )
-
-
-def make_source(
-    scenario: Scenario,
-    run_dir: Path | None = None,
-    *,
-    agents: Sequence[str | Cluster] | None = None,
-) -> CachedSource | RoutedSource:
-    """The belief source of a panel of ``agents`` behind the run's store (tests, tools).
-
-    Args:
-        scenario: The scenario.
-        run_dir: Run directory (a relative store path is resolved against it).
-        agents: The panel's agents (names or cluster objects); default
-            ``[feedback].clusters`` and ``moral_agent``.
-
-    """
-    fb = scenario.feedback
-    if agents is None:
-        agents = [*fb.clusters, *([MORAL_AGENT] if MORAL_AGENT not in fb.clusters else [])]
-    names = [a if isinstance(a, str) else a.name for a in agents]
-    routes, default, problems = plan_sources(scenario, list(agents))
-    plan = PanelPlan(
-        variant="amuled",
-        kind="amuled",
-        task=scenario.task.name,
-        where=str(scenario.path or scenario.name),
-        seed=scenario.task.seed,
-        clusters=tuple(_Named(n) for n in names),
-        routes=routes,
-        default=default,
-        problems=tuple(problems),
-    )
-    return panel_source(plan, run_store(scenario.store_path(run_dir)))
-
-
-class _Named:
-    """A member known by name only (`make_source`)."""
-
-    def __init__(self, name: str) -> None:
-        self.name = name
 
 
 class _Lazy:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -15,6 +15,7 @@ from amuled_ma.records.variants import parse_feedback
 from amuled_ma.scenario import AGENT_SPECS, MORAL_AGENT, Scenario
 from amuled_ma.scenario.agents import match_agents
 from amuled_ma.scenario.panel_weights import member_prior, read_panel_weights
+from amuled_ma.scenario.paths import find_recording
 
 if TYPE_CHECKING:
     from amuled_ma.scenario.agents import AgentSpec
@@ -22,7 +23,7 @@ if TYPE_CHECKING:
 if TYPE_CHECKING:  # loaded by the functions that use them (a plan is made before any read)
     from amuled_ma.beliefs.sources.replay import Recording
     from amuled_ma.clusters import Cluster, ClusterRegistry
-    from amuled_ma.scenario import DistillConfig
+    from amuled_ma.scenario import DistillConfig, FeedbackConfig
 
 #: What every label of a ``rules`` source says: it answers with the task's rule.
 RULES_NOTE = ", the task's rule: the cluster's text is not read"
@@ -132,14 +133,21 @@ class PanelPlan:
         return described
 
 
-def cluster_registry(scenario: Scenario) -> ClusterRegistry:
-    """The shipped clusters plus the scenario's ``[feedback].clusters_dirs`` (later win).
+def cluster_registry(feedback: FeedbackConfig, resolve: Callable[[str], Path]) -> ClusterRegistry:
+    """The shipped clusters plus ``[feedback].clusters_dirs`` (later win).
+
+    Args:
+        feedback: The ``[feedback]`` section.
+        resolve: Resolves a path against the scenario file's folder.
+
+    Returns:
+        The registry.
 
     Raises:
         ClusterDefinitionError: A folder is missing or a file is malformed or collides.
 
     """
-    dirs = [scenario.resolve(d) for d in scenario.feedback.clusters_dirs]
+    dirs = [resolve(d) for d in feedback.clusters_dirs]
     return _registry_cached(tuple(str(d) for d in dirs))
 
 
@@ -151,9 +159,17 @@ def _registry_cached(dirs: tuple[str, ...]) -> ClusterRegistry:
 
 
 def panel_of(
-    variant: str, scenario: Scenario, registry: ClusterRegistry | None = None
+    variant: str, feedback: FeedbackConfig, registry: ClusterRegistry
 ) -> tuple[list[Cluster], str]:
     """The panel of a feedback variant: its agents (cluster objects) and fusion rule.
+
+    Args:
+        variant: The feedback variant (``amuled``, ``cluster:care``, ``moral``, ...).
+        feedback: The ``[feedback]`` section (clusters, fusion).
+        registry: The loaded clusters (`cluster_registry`).
+
+    Returns:
+        ``(clusters, fusion rule)``.
 
     Raises:
         ClusterDefinitionError: A named cluster is in no loaded cluster file; the message
@@ -161,8 +177,7 @@ def panel_of(
 
     """
     kind, arg = parse_feedback(variant)
-    registry = registry or cluster_registry(scenario)
-    names, rule = list(scenario.feedback.clusters), scenario.feedback.fusion
+    names, rule = list(feedback.clusters), feedback.fusion
     if kind == "cluster" and arg:
         names, rule = [arg], "mean"
     elif kind == "moral":
@@ -172,7 +187,7 @@ def panel_of(
     clusters = []
     for name in names:
         if name not in registry:
-            dirs = ", ".join(scenario.feedback.clusters_dirs) or "none"
+            dirs = ", ".join(feedback.clusters_dirs) or "none"
             raise ClusterDefinitionError(
                 f"feedback {variant!r}: no moral cluster {name!r} in the shipped cluster files "
                 f"or the user folders ({dirs}); known: {', '.join(registry.names())}; put its "
@@ -182,29 +197,41 @@ def panel_of(
     return clusters, rule
 
 
-def with_cluster_sources(scenario: Scenario, clusters: Sequence[Cluster]) -> Scenario:
-    """The scenario with each cluster file's default ``[source]`` as an agent table.
+def cluster_sources(
+    agents: Mapping[str, AgentSpec], clusters: Sequence[Cluster]
+) -> dict[str, dict[str, Any]]:
+    """Each cluster file's ``[source]`` for a member without its own agent table.
 
     A cluster file may name where its beliefs come from (``[source]``); the scenario's own
     ``[feedback.agents.<name>]`` table for that agent wins.
+
+    Args:
+        agents: ``[feedback.agents]``.
+        clusters: The panel's clusters.
+
+    Returns:
+        ``{cluster name: its [source] table}``, to merge under ``[feedback.agents]``.
+
     """
-    tables = dict(scenario.feedback.agents)
-    named = match_agents(list(tables), clusters)
-    defaults = {c.name: dict(c.source) for c in clusters if c.source and c.name not in named}
-    if not defaults:
-        return scenario
-    return scenario.replace("feedback", agents={**defaults, **tables})
+    named = match_agents(list(agents), clusters)
+    return {c.name: dict(c.source) for c in clusters if c.source and c.name not in named}
 
 
-def cluster_source_files(scenario: Scenario, clusters: Sequence[Any]) -> dict[str, str]:
-    """The file of each cluster whose ``[source]`` :func:`with_cluster_sources` merges in.
+def cluster_source_files(
+    agents: Mapping[str, AgentSpec], clusters: Sequence[Any]
+) -> dict[str, str]:
+    """The file of each cluster whose ``[source]`` :func:`cluster_sources` merges in.
+
+    Args:
+        agents: ``[feedback.agents]``.
+        clusters: The panel's clusters.
 
     Returns:
         ``{cluster name: its file}``, for messages about that source (they name the file
         that holds the table, not the scenario).
 
     """
-    named = match_agents(list(scenario.feedback.agents), clusters)
+    named = match_agents(list(agents), clusters)
     return {
         c.name: str(c.path)
         for c in clusters
@@ -212,53 +239,80 @@ def cluster_source_files(scenario: Scenario, clusters: Sequence[Any]) -> dict[st
     }
 
 
-def default_source(scenario: Scenario) -> SourcePlan:
+def default_source(
+    feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str
+) -> SourcePlan:
     """The source of ``[feedback].source`` (what every agent without a table uses).
+
+    Args:
+        feedback: The ``[feedback]`` section.
+        resolve: Resolves a path against the scenario file's folder.
+        where: The scenario, for messages (its file, or ``scenario 'name'``).
+
+    Returns:
+        The source's plan.
 
     Raises:
         ScenarioError: The replayed recording is not found.
 
     """
-    fb = scenario.feedback
+    fb = feedback
     model = AGENT_SPECS.get(fb.source)  # a kind registered at run time takes no options
     spec = model.model_validate({"source": fb.source}) if model is not None else None
-    options = spec.source_options(scenario, "[feedback]") if spec is not None else {}
+    options = spec.source_options(fb, resolve, where, "[feedback]") if spec is not None else {}
     note = f" ({RULES_NOTE.removeprefix(', ')})" if fb.source == "rules" else ""
     return SourcePlan(fb.source, options, f"[feedback].source = {fb.source!r}{note}")
 
 
 def agent_source(
-    scenario: Scenario, name: str, spec: AgentSpec, file: str | None = None
+    feedback: FeedbackConfig,
+    resolve: Callable[[str], Path],
+    where: str,
+    name: str,
+    spec: AgentSpec,
+    file: str | None = None,
 ) -> SourcePlan:
     """The source of one ``[feedback.agents.<name>]`` spec, ``[feedback]``'s values inherited.
 
     Args:
-        scenario: The scenario.
+        feedback: The ``[feedback]`` section.
+        resolve: Resolves a path against the scenario file's folder.
+        where: The scenario, for messages (its file, or ``scenario 'name'``).
         name: The agent's table name.
         spec: Its spec.
         file: The cluster file whose ``[source]`` the table is (None: the scenario's own);
             the label then starts with that file (``"clusters/care.toml: [source] ..."``).
+
+    Returns:
+        The source's plan.
 
     Raises:
         ScenarioError: The agent's recording is not found.
 
     """
     head = f"{file}: [source]" if file else f"[feedback.agents.{name}]"
-    options = spec.source_options(scenario, head)
+    options = spec.source_options(feedback, resolve, where, head)
     detail = spec.detail(options) + (RULES_NOTE if spec.source == "rules" else "")
     return SourcePlan(spec.source, options, f"{head} (source {spec.source!r}{detail})")
 
 
 def plan_sources(
-    scenario: Scenario, agents: Sequence[str | Cluster], files: Mapping[str, str] | None = None
+    feedback: FeedbackConfig,
+    resolve: Callable[[str], Path],
+    where: str,
+    agents: Sequence[str | Cluster],
+    files: Mapping[str, str] | None = None,
 ) -> tuple[dict[str, SourcePlan], SourcePlan | None, list[tuple[BaseException, str]]]:
     """Each panel agent's source.
 
     Args:
-        scenario: The scenario (with the cluster files' ``[source]`` tables merged in).
+        feedback: The ``[feedback]`` section (the cluster files' ``[source]`` tables
+            merged into its agents).
+        resolve: Resolves a path against the scenario file's folder.
+        where: The scenario, for messages (its file, or ``scenario 'name'``).
         agents: The panel's agents: names or cluster objects (see ``match_agents``).
-        files: :func:`cluster_source_files` of the scenario before the merge (the tables
-            that came from a cluster file, named by that file).
+        files: :func:`cluster_source_files` before the merge (the tables that came from a
+            cluster file, named by that file).
 
     Returns:
         ``({agent: source}`` for agents with a table, the default source (None when
@@ -266,7 +320,7 @@ def plan_sources(
         not be planned``)``.
 
     """
-    tables = dict(scenario.feedback.agents)
+    tables = dict(feedback.agents)
     matched = match_agents(list(tables), agents)
     names = [a if isinstance(a, str) else a.name for a in agents]
     routes: dict[str, SourcePlan] = {}
@@ -274,7 +328,9 @@ def plan_sources(
     files = files or {}
     for agent, table in matched.items():
         try:
-            routes[agent] = agent_source(scenario, table, tables[table], files.get(table))
+            routes[agent] = agent_source(
+                feedback, resolve, where, table, tables[table], files.get(table)
+            )
         except AmuledError as error:
             kind = tables[table].source
             head = f"{files[table]}: [source]" if table in files else f"[feedback.agents.{table}]"
@@ -283,12 +339,12 @@ def plan_sources(
     others = [a for a in names if a not in matched]
     if others:
         try:
-            default = default_source(scenario)
+            default = default_source(feedback, resolve, where)
             default = dataclasses.replace(
                 default, label=f"{default.label} (agents {', '.join(others)})"
             )
         except AmuledError as error:
-            label = f"[feedback].source = {scenario.feedback.source!r}"
+            label = f"[feedback].source = {feedback.source!r}"
             problems.append((error, f"{label} (agents {', '.join(others)})"))
     if default is not None and default.kind == "rules":
         users = user_clusters([a for a in agents if not isinstance(a, str) and a.name in others])
@@ -356,16 +412,21 @@ def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
     )
     if kind == "human":
         return dataclasses.replace(base, variant="human:rules" if arg == "rules" else variant)
-    registry = cluster_registry(scenario)
-    clusters, rule = panel_of(variant, scenario, registry)
-    files = cluster_source_files(scenario, clusters)
-    scenario = with_cluster_sources(scenario, clusters)
-    fused = _fused_only_recording(scenario)
+    registry = cluster_registry(fb, scenario.resolve)
+    clusters, rule = panel_of(variant, fb, registry)
+    files = cluster_source_files(fb.agents, clusters)
+    defaults = cluster_sources(fb.agents, clusters)
+    if defaults:
+        scenario = scenario.replace("feedback", agents={**defaults, **fb.agents})
+    where = str(scenario.path or f"scenario {scenario.name!r}")
+    fused = _fused_only_recording(scenario.feedback, scenario.resolve, where)
     if fused is not None and match_agents(list(scenario.feedback.agents), clusters):
         fused = None  # agents with their own source: a panel (the preflight refuses replay)
     base = dataclasses.replace(base, clusters=tuple(clusters), registry=registry, rule=rule)
     if kind == "amuled" and fb.weights.strip():
-        prior, weights_file = _member_prior(scenario, [c.name for c in clusters], fused)
+        prior, weights_file = _member_prior(
+            fb.weights, scenario.resolve, base.where, [c.name for c in clusters], fused
+        )
         base = dataclasses.replace(base, prior=prior, weights_file=weights_file)
     if fused is not None:
         if kind != "amuled" or fb.fusion != "bjs-dst":
@@ -376,7 +437,9 @@ def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
                 'recording = "driving-llama-3_1-70b"'
             )
         return dataclasses.replace(base, fused_recording=fused)
-    routes, default, problems = plan_sources(scenario, clusters, files)
+    routes, default, problems = plan_sources(
+        scenario.feedback, scenario.resolve, where, clusters, files
+    )
     replays = any(p.kind == "replay" for p in [*routes.values(), default] if p is not None)
     return dataclasses.replace(
         base,
@@ -388,17 +451,27 @@ def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
 
 
 def _member_prior(
-    scenario: Scenario, members: list[str], fused: Path | None
+    weights: str, resolve: Callable[[str], Path], where: str, members: list[str], fused: Path | None
 ) -> tuple[tuple[float, ...], Path]:
     """``(prior, weights_file)`` of the ``amuled`` variant from ``[feedback].weights``.
+
+    Args:
+        weights: ``[feedback].weights``, the file's path.
+        resolve: Resolves a path against the scenario file's folder.
+        where: The scenario (its file or name), for messages.
+        members: The panel's members, in order.
+        fused: The replayed recording when it holds fused beliefs only.
+
+    Returns:
+        The members' prior weights and the file's resolved path.
 
     Raises:
         ScenarioError: The file is missing or malformed, names other members, or the panel
             replays a recording of fused beliefs only (there is no member to weigh).
 
     """
-    where = f"{scenario.path or scenario.name}: key [feedback].weights"
-    path = scenario.resolve(scenario.feedback.weights)
+    where = f"{where}: key [feedback].weights"
+    path = resolve(weights)
     if fused is not None:
         raise ScenarioError(
             f"{where}: {fused} keeps only the authors' fused belief per state, so there are no "
@@ -409,11 +482,18 @@ def _member_prior(
     return prior, path
 
 
-def _fused_only_recording(scenario: Scenario) -> Path | None:
-    """The scenario's replayed recording when it holds only fused beliefs, else None."""
-    if scenario.feedback.source != "replay":
+def _fused_only_recording(
+    feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str
+) -> Path | None:
+    """``[feedback].recording`` when it is replayed and holds only fused beliefs, else None.
+
+    Raises:
+        ScenarioError: The recording is not found.
+
+    """
+    if feedback.source != "replay":
         return None
-    path = scenario.recording_path(required=True)
+    path = find_recording(feedback.recording, resolve, where=where, required=True)
     return path if recording_of(path).fused_only else None
 
 

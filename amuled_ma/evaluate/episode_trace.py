@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from rsl_rl.models import MLPModel
 
     from amuled_ma.deliberation.feedback_base import Feedback
-    from amuled_ma.scenario import Scenario
+    from amuled_ma.scenario import EvaluationConfig, PPOConfig, Scenario, TaskConfig
     from amuled_ma.tasks.base import BatchedTask
 
 __all__ = [
@@ -240,7 +240,8 @@ class _Tracer(Observer):
 
 def replay_episode(
     actor: torch.nn.Module,
-    scenario: Scenario,
+    task_config: TaskConfig,
+    evaluation: EvaluationConfig,
     *,
     episode: int = 0,
     mode: str = "greedy",
@@ -258,7 +259,8 @@ def replay_episode(
 
     Args:
         actor: The policy (an rsl-rl actor with our categorical head).
-        scenario: The scenario (task, options, evaluation seed and episodes).
+        task_config: The ``[task]`` section.
+        evaluation: The ``[evaluation]`` section (seed, episodes).
         episode: Evaluation episode index ``0 <= K < episodes``.
         mode: ``greedy`` (argmax) or ``sampled``.
         episodes: ``N``, the evaluation's number of episodes (default
@@ -277,17 +279,17 @@ def replay_episode(
     """
     if mode not in MODES:
         raise ScenarioError(f"mode: expected one of {', '.join(MODES)}, found {mode!r}")
-    n = int(scenario.evaluation.episodes if episodes is None else episodes)
+    n = int(evaluation.episodes if episodes is None else episodes)
     if not 0 <= episode < n:
         raise ScenarioError(
             f"episode: expected an evaluation episode 0..{n - 1} (the evaluation plays {n} "
             f"episodes, [evaluation].episodes or --episodes), found {episode}"
         )
-    seed = int(scenario.evaluation.seed)
+    seed = int(evaluation.seed)
     tracer = _Tracer(int(episode), base_actor, live_feedback)
     rollout(
         actor,
-        scenario,
+        task_config,
         episodes=n,
         mode=mode,
         seed=seed,
@@ -320,11 +322,18 @@ def replay_episode(
     )
 
 
-def load_actor(checkpoint: Path, scenario: Scenario) -> torch.nn.Module:
+def load_actor(checkpoint: Path, ppo: PPOConfig) -> torch.nn.Module:
     """Load a policy for replay (`load_policy`).
 
+    Args:
+        checkpoint: The policy's checkpoint.
+        ppo: The ``[ppo]`` section it was trained with (network shape).
+
+    Returns:
+        The actor in eval mode.
+
     Raises:
-        CheckpointError: The checkpoint is missing or does not fit the scenario.
+        CheckpointError: The checkpoint is missing or does not fit the network.
 
     """
     if not Path(checkpoint).is_file():
@@ -332,7 +341,7 @@ def load_actor(checkpoint: Path, scenario: Scenario) -> torch.nn.Module:
             f"no policy at {checkpoint}; train the variant first ('amuled run' or "
             "'amuled finetune') or name another with --variant"
         )
-    return load_policy(Path(checkpoint), scenario)
+    return load_policy(Path(checkpoint), ppo)
 
 
 def replay_variant(
@@ -350,12 +359,13 @@ def replay_variant(
         ScenarioError: As `replay_episode`.
     """
     scenario = trained.scenario
-    actor = load_actor(trained.checkpoint, scenario)
+    actor = load_actor(trained.checkpoint, scenario.ppo)
     base = trained.base_checkpoint
-    base_actor = load_actor(base, scenario) if base is not None else None
+    base_actor = load_actor(base, scenario.ppo) if base is not None else None
     return replay_episode(
         actor,
-        scenario,
+        scenario.task,
+        scenario.evaluation,
         episode=episode,
         mode=mode,
         episodes=episodes,

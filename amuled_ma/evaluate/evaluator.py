@@ -24,7 +24,7 @@ from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.policies import load_policy
 from amuled_ma.monitor.progress import Progress
 from amuled_ma.records.run_record import RunRecord
-from amuled_ma.scenario import Scenario
+from amuled_ma.scenario import EvaluationConfig, PPOConfig, TaskConfig
 
 #: The paper's metrics per task, in report order (others follow alphabetically).
 PAPER_METRICS = {
@@ -62,7 +62,7 @@ def read_feedback(folder: Path) -> dict[str, Any] | None:
 
 def run_episodes(
     actor: torch.nn.Module,
-    scenario: Scenario,
+    task_config: TaskConfig,
     *,
     episodes: int,
     mode: str = "greedy",
@@ -74,7 +74,7 @@ def run_episodes(
 
     Args:
         actor: An rsl-rl actor with our categorical head.
-        scenario: The scenario (task and options).
+        task_config: The ``[task]`` section.
         episodes: Number of episodes (= task copies).
         mode: ``greedy`` (argmax) or ``sampled``.
         seed: Seed of copy 0 (copy ``i`` gets ``seed + i``); also seeds action sampling.
@@ -89,7 +89,7 @@ def run_episodes(
     recorder = TrajectoryRecorder(0) if record_trajectory else None
     records = rollout(
         actor,
-        scenario,
+        task_config,
         episodes=episodes,
         mode=mode,
         seed=seed,
@@ -250,8 +250,11 @@ def variant_dirs(run_dir: Path) -> list[Path]:
 
 def evaluate_run(
     run_dir: Path,
-    scenario: Scenario,
     *,
+    scenario_name: str,
+    task_config: TaskConfig,
+    evaluation: EvaluationConfig,
+    ppo: PPOConfig,
     episodes: int | None = None,
     modes: list[str] | None = None,
     variants: list[str] | None = None,
@@ -264,9 +267,12 @@ def evaluate_run(
 
     Args:
         run_dir: The run directory (one sub-folder per variant).
-        scenario: The run's scenario.
-        episodes: Episodes per variant and mode (default: the scenario's).
-        modes: ``greedy`` and/or ``sampled`` (default: the scenario's).
+        scenario_name: The scenario's name (``results.json``, the message naming the fix).
+        task_config: The ``[task]`` section.
+        evaluation: The ``[evaluation]`` section (episodes, modes, seed, confidence).
+        ppo: The ``[ppo]`` section (the policies' network shape).
+        episodes: Episodes per variant and mode (default: ``evaluation.episodes``).
+        modes: ``greedy`` and/or ``sampled`` (default: ``evaluation.modes``).
         variants: Only these variants (their names; a name takes its seed replicas along).
         task_factory: Replaces `make_task`.
         progress: Show a progress bar.
@@ -290,7 +296,7 @@ def evaluate_run(
     run_dir = Path(run_dir)
     check_write_targets(run_dir / name for name in RESULTS_FILES)  # before any episode
     records = records or {}
-    ev = scenario.evaluation
+    ev = evaluation
     episodes = ev.episodes if episodes is None else episodes
     if episodes < 1:
         raise ScenarioError(
@@ -310,11 +316,11 @@ def evaluate_run(
     if not dirs:
         raise CheckpointError(
             f"no trained variant (*/{LAST}) in {run_dir}; train one with "
-            f"'amuled train {scenario.name} --run-dir {run_dir}'"
+            f"'amuled train {scenario_name} --run-dir {run_dir}'"
         )
     results: dict[str, Any] = {
-        "scenario": scenario.name,
-        "task": scenario.task.name,
+        "scenario": scenario_name,
+        "task": task_config.name,
         "episodes": episodes,
         "confidence": ev.confidence,
         "seed": ev.seed,
@@ -329,10 +335,10 @@ def evaluate_run(
     runs: dict[tuple[str, str], list[tuple[str, list, dict]]] = {}
     with Progress("evaluate", len(jobs), bar=progress, unit="policy") as bar:
         for name, vdir, mode in jobs:
-            actor = load_policy(vdir / LAST, scenario)
+            actor = load_policy(vdir / LAST, ppo)
             records_, trajectory = run_episodes(
                 actor,
-                scenario,
+                task_config,
                 episodes=episodes,
                 mode=mode,
                 seed=ev.seed,

@@ -25,7 +25,6 @@ if TYPE_CHECKING:
     from amuled_ma.deliberation.feedback_base import Feedback
     from amuled_ma.evaluate.episode_trace import Episode
     from amuled_ma.evaluate.readonly_feedback import ReadOnlyStore
-    from amuled_ma.scenario import Scenario
     from amuled_ma.tasks.base import BatchedTask
 
 # ---------------------------------------------------------------------------------------
@@ -305,7 +304,8 @@ def fusion_breakdown(
 
 
 def explain_lines(
-    scenario: Scenario,
+    task_name: str,
+    cluster_recording: str,
     task_cls: type[BatchedTask],
     feedback: Feedback,
     store: ReadOnlyStore,
@@ -318,7 +318,9 @@ def explain_lines(
     """The explanation of one state: the panel's answers, the fusion, the replies.
 
     Args:
-        scenario: The scenario (task, feedback settings).
+        task_name: The task (``[task].name``).
+        cluster_recording: ``[feedback].cluster_recording``, named as the fix when the
+            feedback replays fused beliefs only.
         task_cls: The task's class (observation and action names).
         feedback: The feedback (:func:`~amuled_ma.evaluate.readonly_feedback.open_feedback`).
         store: The run's store, read-only (the raw replies of non-answers).
@@ -338,7 +340,7 @@ def explain_lines(
     obs, prompt_vars = state.obs, state.prompt_vars
     actions = list(task_cls.action_names)
     shown = ", ".join(f"{n}={_num(v)}" for n, v in zip(task_cls.obs_names, obs, strict=True))
-    say(f"explain {scenario.task.name}: {shown}")
+    say(f"explain {task_name}: {shown}")
     if prompt_vars is not None:
         extra = {k: v for k, v in prompt_vars.items() if k not in task_cls.obs_names}
         if extra:
@@ -356,10 +358,10 @@ def explain_lines(
             f"  this feedback is not a panel of agents ({type(feedback).__name__}): its belief "
             "is the reward, with no agents, weights or reasoning to show"
         )
-        if getattr(feedback, "recording", None) is not None and scenario.feedback.cluster_recording:
+        if getattr(feedback, "recording", None) is not None and cluster_recording:
             say(
                 "  for the clusters' own beliefs, replay the recording with them: --set "
-                f'feedback.recording="{scenario.feedback.cluster_recording}"'
+                f'feedback.recording="{cluster_recording}"'
             )
         say("")
         say(table(["", *actions], [["feedback belief", *state.live_belief.tolist()]]))
@@ -404,7 +406,7 @@ def explain_lines(
     if show_prompt and prompt_vars is not None:
         say("")
         say("state prompt:")
-        for line in render_state_prompt(scenario.task.name, prompt_vars).splitlines():
+        for line in render_state_prompt(task_name, prompt_vars).splitlines():
             say("    " + line)
     # replies, reasons and names come from outside: no terminal control sequence is printed
     return [printable(line) for line in out]

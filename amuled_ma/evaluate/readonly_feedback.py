@@ -12,7 +12,7 @@ from amuled_ma.errors import AmuledError
 if TYPE_CHECKING:
     from amuled_ma.beliefs.store.service import StoreItem
     from amuled_ma.deliberation.feedback_base import Feedback
-    from amuled_ma.scenario import Scenario
+    from amuled_ma.deliberation.plan import PanelPlan
 
 
 class ReadOnlyStore:
@@ -49,18 +49,17 @@ class ReadOnlyStore:
 
 
 def open_feedback(
-    feedback_name: str, scenario: Scenario, run_dir: Path | None
-) -> tuple[Any, ReadOnlyStore]:
+    plan: PanelPlan, store: str, run_dir: Path | None
+) -> tuple[Feedback, ReadOnlyStore]:
     """Build a variant's feedback as training does, with the run's store read-only.
 
-    `make_feedback` builds it (same agents, fusion
-    rule, sources and store keys) over one `ReadOnlyStore` of the run's file
-    (`Scenario.store_path`), which is never opened for writing
-    (an Ollama source still asks its server about states the run never asked).
+    `build_feedback` builds it from the plan over one `ReadOnlyStore` of the run's file,
+    which is never opened for writing (an Ollama source still asks its server about
+    states the run never asked).
 
     Args:
-        feedback_name: ``amuled``, ``human``, ``cluster:care``, ...
-        scenario: The variant's scenario.
+        plan: The variant's panel plan (`plan_panel`).
+        store: ``[feedback].store``, the store file (relative to ``run_dir``).
         run_dir: The run folder holding the store and the demonstrator's counts (None: no
             store, nothing cached).
 
@@ -68,14 +67,14 @@ def open_feedback(
         ``(feedback, store)``.
 
     """
-    from amuled_ma.deliberation.build import make_feedback
+    from amuled_ma.deliberation.build import build_feedback
 
     run = Path(run_dir) if run_dir is not None else None
-    store = ReadOnlyStore(scenario.store_path(run) if run is not None else None)
+    read_only = ReadOnlyStore(run / store if run is not None else None)  # an absolute store wins
     try:
-        return make_feedback(feedback_name, scenario, run, store=store), store
+        return build_feedback(plan, read_only, cache_dir=run), read_only
     except BaseException:
-        store.close()
+        read_only.close()
         raise
 
 

@@ -19,7 +19,7 @@ from amuled_ma.learn.policies import action_log_probs
 from amuled_ma.tasks import make_task
 
 if TYPE_CHECKING:
-    from amuled_ma.scenario import Scenario
+    from amuled_ma.scenario import TaskConfig
     from amuled_ma.tasks.base import BatchedTask
 
 #: Action selection modes.
@@ -29,7 +29,7 @@ SKIP = {"done", "return"}
 
 
 def evaluation_task(
-    scenario: Scenario,
+    task_config: TaskConfig,
     episodes: int,
     seed: int,
     task_factory: Callable[..., BatchedTask] | None = None,
@@ -37,13 +37,16 @@ def evaluation_task(
     """The batched task of an evaluation: ``episodes`` copies, copy ``i`` seeded ``seed + i``.
 
     Args:
-        scenario: The scenario (task and options).
+        task_config: The ``[task]`` section.
         episodes: Number of copies ``N``.
         seed: Seed of copy 0.
         task_factory: Replaces `make_task`.
 
+    Returns:
+        The batched task.
+
     """
-    return (task_factory or make_task)(scenario, episodes, shaping_coef=0.0, seed=seed)
+    return (task_factory or make_task)(task_config, episodes, shaping_coef=0.0, seed=seed)
 
 
 def choose_actions(logp: torch.Tensor, mode: str, generator: torch.Generator) -> torch.Tensor:
@@ -92,7 +95,7 @@ def step_events(
 
 def rollout(
     actor: torch.nn.Module,
-    scenario: Scenario,
+    task_config: TaskConfig,
     *,
     episodes: int,
     mode: str = "greedy",
@@ -105,7 +108,7 @@ def rollout(
 
     Args:
         actor: An rsl-rl actor with our categorical head.
-        scenario: The scenario (task and options).
+        task_config: The ``[task]`` section.
         episodes: Number of task copies ``N``.
         mode: ``greedy`` or ``sampled`` (see the module docstring).
         seed: Seed of copy 0 (copy ``i`` gets ``seed + i``); also seeds action sampling.
@@ -132,7 +135,7 @@ def rollout(
     # machine a 50-row forward pass took 11.5 ms with 2 threads, 0.36 ms with 1; the
     # results are the same bits)
     torch.set_num_threads(1)
-    task = evaluation_task(scenario, episodes, seed, task_factory)
+    task = evaluation_task(task_config, episodes, seed, task_factory)
     obs = torch.as_tensor(task.reset()).float()
     gen = torch.Generator().manual_seed(seed)
     done_once = torch.zeros(episodes, dtype=torch.bool)

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from amuled_ma.deliberation.plan import plan_panel
 from amuled_ma.errors import AmuledError
 from amuled_ma.evaluate import episode_trace as trace
 from amuled_ma.evaluate.panel_answers import PanelAnswers, ask_panel
@@ -26,7 +27,7 @@ from amuled_ma.files.safe import check_write_target, write_text_atomic
 from amuled_ma.tasks.colors import COLORS, css_variables
 
 if TYPE_CHECKING:
-    from amuled_ma.scenario import Scenario
+    from amuled_ma.scenario import EvaluationConfig
 
 #: Decimals kept for probabilities, weights and conflicts in the page.
 DECIMALS = 4
@@ -111,7 +112,8 @@ def variant_view(
     feedback_name = trained.feedback
     feedback = store = None
     if feedback_name is not None:
-        feedback, store = open_feedback(feedback_name, trained.scenario, run_dir)
+        plan = plan_panel(feedback_name, trained.scenario)
+        feedback, store = open_feedback(plan, trained.scenario.feedback.store, run_dir)
     try:
         panel = getattr(feedback, "panel", None)
         live = feedback if feedback is not None and panel is None else None
@@ -261,9 +263,11 @@ def _live_entry(ep: trace.Episode, first: list[int], feedback: object, texts: Te
 
 def build_view(
     run_dir: Path,
-    scenario: Scenario,
     variants: Sequence[trace.TrainedVariant],
     *,
+    scenario_name: str,
+    task_name: str,
+    evaluation: EvaluationConfig,
     episode: int = 0,
     mode: str = "greedy",
     episodes: int | None = None,
@@ -273,8 +277,10 @@ def build_view(
 
     Args:
         run_dir: The run folder.
-        scenario: The run's scenario (the page's header).
         variants: The variants to show, resolved by the caller.
+        scenario_name: The run's scenario name (the page's header).
+        task_name: The run's task.
+        evaluation: The run's ``[evaluation]`` section (seed, episodes).
         episode: Evaluation episode ``K`` (seed ``[evaluation].seed + K``).
         mode: ``greedy`` (the policy's most probable action) or ``sampled``.
         episodes: ``N``, the episodes of the run's evaluation (default
@@ -288,7 +294,7 @@ def build_view(
     from amuled_ma import __version__
 
     run_dir = Path(run_dir)
-    episodes = int(scenario.evaluation.episodes if episodes is None else episodes)
+    episodes = int(evaluation.episodes if episodes is None else episodes)
     texts = TextTable()
     entries = []
     for trained in variants:
@@ -305,7 +311,7 @@ def build_view(
             f"  texts cut to fit {TEXT_BUDGET:,} characters in all "
             "(amuled explain --full prints them whole)"
         )
-    seed = scenario.evaluation.seed + episode
+    seed = evaluation.seed + episode
     how = (
         "greedy: each step the policy's most probable action (as amuled evaluate's greedy mode)"
         if mode == "greedy"
@@ -314,10 +320,10 @@ def build_view(
     )
     return {
         "version": 1,
-        "title": f"AMULED viewer: {scenario.name}, evaluation episode {episode}",
+        "title": f"AMULED viewer: {scenario_name}, evaluation episode {episode}",
         "subtitle": (
-            f"run {run_dir} · task {scenario.task.name} · episode {episode} (seed {seed} = "
-            f"[evaluation].seed {scenario.evaluation.seed} + {episode}) · {how}"
+            f"run {run_dir} · task {task_name} · episode {episode} (seed {seed} = "
+            f"[evaluation].seed {evaluation.seed} + {episode}) · {how}"
         ),
         "footer": (
             f"Written by amuled-ma {__version__} (amuled view). Beliefs from the run's belief "
@@ -325,13 +331,13 @@ def build_view(
             f"{DECIMALS} decimals. This page loads nothing from the network."
         ),
         "run": str(run_dir),
-        "scenario": scenario.name,
-        "task": scenario.task.name,
+        "scenario": scenario_name,
+        "task": task_name,
         "episode": episode,
         "seed": seed,
         "mode": mode,
         "episodes": episodes,
-        "actions": _action_names(scenario.task.name),
+        "actions": _action_names(task_name),
         "colors": dict(COLORS),
         "texts": texts.texts,
         "variants": entries,
@@ -397,10 +403,12 @@ def default_output(run_dir: Path, episode: int) -> Path:
 
 def write_view(
     run_dir: Path,
-    scenario: Scenario,
     variants: Sequence[trace.TrainedVariant],
     output: Path | None = None,
     *,
+    scenario_name: str,
+    task_name: str,
+    evaluation: EvaluationConfig,
     episode: int = 0,
     mode: str = "greedy",
     episodes: int | None = None,
@@ -410,9 +418,11 @@ def write_view(
 
     Args:
         run_dir: The run folder.
-        scenario: The run's scenario.
         variants: The variants to show.
         output: The HTML file (default `default_output`).
+        scenario_name: The run's scenario name.
+        task_name: The run's task.
+        evaluation: The run's ``[evaluation]`` section.
         episode: Evaluation episode ``K``.
         mode: ``greedy`` or ``sampled``.
         episodes: ``N`` of the run's evaluation (default ``[evaluation].episodes``).
@@ -430,7 +440,15 @@ def write_view(
     start = time.perf_counter()
     path = check_write_target(output if output is not None else default_output(run_dir, episode))
     data = build_view(
-        run_dir, scenario, variants, episode=episode, mode=mode, episodes=episodes, say=say
+        run_dir,
+        variants,
+        scenario_name=scenario_name,
+        task_name=task_name,
+        evaluation=evaluation,
+        episode=episode,
+        mode=mode,
+        episodes=episodes,
+        say=say,
     )
     page = render_html(data)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -185,7 +185,13 @@ def run_pipeline(
     if request.ablation == "models":  # it plans one fine-tune per recording found beside
         from amuled_ma.authors.download import models_ablation_recordings
 
-        fetch_recordings(request, models_ablation_recordings(request.scenario), say)
+        fetch_recordings(
+            request,
+            models_ablation_recordings(
+                request.scenario.feedback, request.scenario.task.name, request.scenario.resolve
+            ),
+            say,
+        )
     if request.ablation is None:
         plan = _plan_main(request, seeds, say)
     else:
@@ -211,12 +217,15 @@ def run_pipeline(
         say(plan.announce)
         # Ray first: a SIGTERM while it starts leaves no run folder (the lock removes it)
         with ray_connection(plan.jobs, workers=workers, ray=request.ray):
-            write_config(plan.out_dir, request.scenario, plan.config)
+            write_config(plan.out_dir, request.scenario.to_dict(), plan.config)
             training = train_jobs(plan.jobs, request, say)
         records = variant_records([*variant_dirs(plan.out_dir), *plan.extra_dirs])
         results = evaluate_run(
             plan.out_dir,
-            request.scenario,
+            scenario_name=request.scenario.name,
+            task_config=request.scenario.task,
+            evaluation=request.scenario.evaluation,
+            ppo=request.scenario.ppo,
             episodes=request.episodes,
             progress=request.progress,
             extra_dirs=plan.extra_dirs or None,
@@ -265,7 +274,10 @@ def _replayed(jobs: Sequence[TrainJob]) -> list[str]:
     from amuled_ma.authors.download import replayed_recordings
 
     values = [
-        v for job in jobs if job.variant.finetuning for v in replayed_recordings(job.scenario)
+        v
+        for job in jobs
+        if job.variant.finetuning
+        for v in replayed_recordings(job.scenario.feedback)
     ]
     return list(dict.fromkeys(values))
 
@@ -285,7 +297,7 @@ def fetch_recordings(
     """
     from amuled_ma.authors.download import ensure_recordings
 
-    ensure_recordings(request.scenario, values, offline=request.offline, say=say)
+    ensure_recordings(request.scenario.resolve, values, offline=request.offline, say=say)
 
 
 def train_alone(
@@ -341,7 +353,7 @@ def train_alone(
     say_live_costs(jobs, say_line)
     with run_folder_lock(run_dir):
         if config is not None:
-            write_config(run_dir, request.scenario, config)
+            write_config(run_dir, request.scenario.to_dict(), config)
         outcome = run_jobs(
             jobs, progress=request.progress, hint=request.hint, describe=describe_job
         )
@@ -384,7 +396,14 @@ def _plan_ablation(request: PipelineRequest, seeds: list[int]) -> _Plan:
     scenario, run_dir, what = request.scenario, Path(request.run_dir), request.ablation
     assert what is not None
     out = run_dir / f"ablate-{what}"
-    variants = tuple(variant.folder for variant, _ in ablation_variants(what, scenario))
+    listed = ablation_variants(
+        what,
+        scenario.feedback,
+        scenario.task.name,
+        scenario.resolve,
+        str(scenario.path or scenario.name),
+    )
+    variants = tuple(variant.folder for variant, _ in listed)
     jobs = plan_ablation(what, scenario, run_dir, seeds, resume=request.resume, force=request.force)
     # the run's folders an ablation evaluates with its own: the bases, and fine-tunes the
     # run already finished with the same settings (not trained again)

@@ -28,7 +28,8 @@ from amuled_ma.experiments.training_settings import training_config
 from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.job_shape import job_shape
 from amuled_ma.records.variants import AGGREGATIONS, Variant
-from amuled_ma.scenario import Scenario
+from amuled_ma.scenario import Changes, FeedbackConfig, Scenario
+from amuled_ma.scenario.paths import find_recording
 
 if TYPE_CHECKING:
     from amuled_ma.beliefs.store.service import StoreService
@@ -93,14 +94,19 @@ def plan_job(
         base = job.base_folder / LAST
         if job.base_variant not in planned:
             base = base_checkpoint(job.base_folder, str(scenario.path or scenario.name))
-    settings = training_config(
-        scenario, variant, panel=panel, seed=job.seed, iterations=job.iterations
-    )
+    settings = training_config(job, panel)
     action = prepare_variant(job, settings, hint=hint, rerun=rerun)
     return dataclasses.replace(
         job,
         panel=panel,
-        shape=job_shape(scenario, variant, job.iterations),
+        shape=job_shape(
+            scenario.ppo,
+            scenario.base,
+            scenario.finetune,
+            variant,
+            job.iterations,
+            where=str(scenario.path or scenario.name),
+        ),
         settings=settings,
         base_checkpoint=base,
         store=scenario.store_path(job.run_dir) if variant.finetuning else None,
@@ -236,7 +242,7 @@ def prepare_job(
                 base_checkpoint=job.base_checkpoint,
                 feedback=feedback,
             )
-            write_config(job.out_dir, job.scenario, fields)
+            write_config(job.out_dir, job.scenario.to_dict(), fields)
     except BaseException:
         if feedback is not None:
             feedback.close()
@@ -332,8 +338,10 @@ def train_variant(
         prepared.close()
 
 
-def ablation_variants(what: str, scenario: Scenario) -> list[tuple[Variant, Scenario]]:
-    """List the fine-tunes of one ablation: ``(variant, scenario)``.
+def ablation_variants(
+    what: str, feedback: FeedbackConfig, task: str, resolve: Callable[[str], Path], where: str
+) -> list[tuple[Variant, Changes]]:
+    """List the fine-tunes of one ablation: ``(variant, changes to the scenario)``.
 
     ``budget``: AMULED with ``[feedback.distill]`` at each budget of
     :data:`BUDGET_SWEEP` (100% once, the others with each selection of
@@ -348,74 +356,75 @@ def ablation_variants(what: str, scenario: Scenario) -> list[tuple[Variant, Scen
 
     Args:
         what: ``clusters``, ``aggregation``, ``models``, ``kl``, ``budget`` or ``weights``.
-        scenario: The base scenario.
+        feedback: The base scenario's ``[feedback]`` section.
+        task: The task's name.
+        resolve: Resolves a path against the scenario file's folder (the recording).
+        where: The scenario (its file or name), for messages.
 
     Returns:
-        The jobs, each with the (possibly modified) scenario it runs on.
+        The jobs, each with the changes (:data:`Changes`) of the scenario it runs on.
 
     Raises:
         AmuledError: ``weights`` without ``[feedback].weights``.
 
     """
-    if what == "weights" and not scenario.feedback.weights.strip():
+    if what == "weights" and not feedback.weights.strip():
         raise AmuledError(
-            f"{scenario.path or scenario.name}: ablate --what weights compares the paper's "
+            f"{where}: ablate --what weights compares the paper's "
             "fixed weights with learned ones, but [feedback].weights names no file; pass "
             "--weights FILE (written by 'amuled study fit-weights STUDY') or set "
             "[feedback].weights"
         )
+    base: Changes = ()
     needs_members = ("clusters", "aggregation", "budget", "weights")
-    if what in needs_members and scenario.feedback.cluster_recording:
+    if what in needs_members and feedback.cluster_recording:
         # these need each cluster's belief: a fused-only recording cannot serve them
-        scenario = scenario.replace("feedback", recording=scenario.feedback.cluster_recording)
+        base = (("feedback", {"recording": feedback.cluster_recording}),)
+    jobs: list[tuple[Variant, Changes]]
     if what == "clusters":
-        jobs = [(Variant.finetune(f"cluster:{c}"), scenario) for c in scenario.feedback.clusters]
-        jobs.append((Variant.finetune("moral"), scenario))
-        jobs.append((Variant.finetune("amuled"), scenario))
+        jobs = [(Variant.finetune(f"cluster:{c}"), base) for c in feedback.clusters]
+        jobs.append((Variant.finetune("moral"), base))
+        jobs.append((Variant.finetune("amuled"), base))
     elif what == "aggregation":
-        jobs = [(Variant.finetune(f"agg:{rule}"), scenario) for rule in AGGREGATIONS]
-        jobs.append((Variant.finetune("amuled"), scenario))
+        jobs = [(Variant.finetune(f"agg:{rule}"), base) for rule in AGGREGATIONS]
+        jobs.append((Variant.finetune("amuled"), base))
     elif what == "weights":
-        fixed = scenario.replace("feedback", weights="")
         jobs = [
-            (Variant.finetune("amuled"), fixed),
-            (Variant.finetune("amuled", label=LEARNED_WEIGHTS_LABEL), scenario),
+            (Variant.finetune("amuled"), (*base, ("feedback", {"weights": ""}))),
+            (Variant.finetune("amuled", label=LEARNED_WEIGHTS_LABEL), base),
         ]
     elif what == "kl":
         jobs = [
             (
                 Variant.finetune("amuled", label=f"amuled-kl{lam:g}"),
-                scenario.replace("finetune", lambda_kl=lam),
+                (*base, ("finetune", {"lambda_kl": lam})),
             )
             for lam in KL_SWEEP
         ]
     elif what == "budget":
-        full = scenario.replace("feedback", **{"distill.enabled": False})
         jobs = []
         for budget in BUDGET_SWEEP:
             for selection in BUDGET_SELECTIONS[: 1 if budget == 1.0 else None]:
                 label = f"amuled-budget{budget:g}" + ("" if budget == 1.0 else f"-{selection}")
-                sc = scenario.replace(
-                    "feedback",
-                    **{"distill.enabled": True, "distill.budget": budget,
-                       "distill.selection": selection},
-                )  # fmt: skip
-                jobs.append((Variant.finetune("amuled", label=label), sc))
+                distill = {"distill.enabled": True, "distill.budget": budget,
+                           "distill.selection": selection}  # fmt: skip
+                jobs.append(
+                    (Variant.finetune("amuled", label=label), (*base, ("feedback", distill)))
+                )
+        full = (*base, ("feedback", {"distill.enabled": False}))
         jobs.append((Variant.finetune("amuled"), full))
     elif what == "models":
         jobs = []
-        if scenario.feedback.source == "replay":
-            rec = scenario.recording_path()
-            task = scenario.task.name
+        if feedback.source == "replay":
+            rec = find_recording(feedback.recording, resolve, where=where)
             for path in sorted(rec.parent.glob(f"{task}-*.json")):
                 model = path.stem[len(task) + 1 :]
-                sc = scenario.replace("feedback", recording=str(path), model=model)
-                jobs.append((Variant.finetune("amuled", label=f"amuled-{model}"), sc))
+                changes: Changes = (("feedback", {"recording": str(path), "model": model}),)
+                jobs.append((Variant.finetune("amuled", label=f"amuled-{model}"), changes))
         else:
-            label = f"amuled-{scenario.feedback.model}"
-            jobs.append((Variant.finetune("amuled", label=label), scenario))
+            jobs.append((Variant.finetune("amuled", label=f"amuled-{feedback.model}"), ()))
         if not jobs:
-            raise AmuledError(f"no recordings for task {scenario.task.name!r} next to {rec}")
+            raise AmuledError(f"no recordings for task {task!r} next to {rec}")
     else:
         raise ScenarioError(f"unknown ablation {what!r}; expected one of {', '.join(ABLATIONS)}")
     return jobs
@@ -444,6 +453,18 @@ def plan_run(
     (and anchor to) that seed's base policy, or, with ``base``
     (a finished variant folder such as the authors' imported ``runs/authors/findmilk/base``),
     all anchor to that one.
+
+    Args:
+        scenario: The run's scenario.
+        run_dir: The run directory.
+        seeds: The training seeds (the first seed's folders carry no suffix).
+        resume: Continue unfinished checkpoints, skip finished ones.
+        force: Start over even where checkpoints exist.
+        base: A finished base folder every fine-tune anchors to (None: each seed's own).
+
+    Returns:
+        The job graph (bases before the fine-tunes that need them).
+
     """
     from amuled_ma.tasks.names import TASK_NAMES
 
@@ -515,10 +536,31 @@ def plan_ablation(
     fine-tune that ``amuled run`` already finished with exactly the same settings (its
     AMULED fine-tune, :func:`finished_with`): that job points at the run's folder and is
     skipped, so the same policy is not trained twice.
+
+    Args:
+        what: The ablation (:data:`ABLATIONS`).
+        scenario: The run's scenario; each job's is it with its changes
+            (:func:`ablation_variants`).
+        run_dir: The run directory.
+        seeds: The training seeds.
+        resume: Continue unfinished checkpoints, skip finished ones.
+        force: Start over even where checkpoints exist.
+
+    Returns:
+        The job graph.
+
+    Raises:
+        AmuledError: See :func:`ablation_variants`.
+
     """
     run_dir = Path(run_dir)
     out = run_dir / f"ablate-{what}"
-    variants = ablation_variants(what, scenario)
+    where = str(scenario.path or scenario.name)
+    variants = []
+    for variant, changes in ablation_variants(
+        what, scenario.feedback, scenario.task.name, scenario.resolve, where
+    ):
+        variants.append((variant, scenario.changed(changes)))
     jobs = []
     for seed in seeds:
         base = replica_folder("base", seed, seeds[0])
@@ -548,5 +590,5 @@ def _finished_in_run(job: TrainJob, trained: Path) -> bool:
         panel = plan_panel(job.variant.feedback, job.scenario)
     except AmuledError:
         return False  # plan_jobs names the problem
-    settings = training_config(job.scenario, job.variant, panel=panel, seed=job.seed)
+    settings = training_config(job, panel)
     return finished_with(trained, settings)

@@ -14,6 +14,7 @@ import re
 import shlex
 import sys
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -370,12 +371,14 @@ def mark_state(folder: Path, state: State, iterations: int | None = None) -> Non
         write_record(folder, record.model_copy(update=update))
 
 
-def write_config(run_dir: Path, scenario: Scenario, extra: dict[str, Any] | None = None) -> Path:
+def write_config(
+    run_dir: Path, scenario: Mapping[str, Any], extra: dict[str, Any] | None = None
+) -> Path:
     """Write ``config.json``: the resolved scenario, the command line and the record's fields.
 
     Args:
         run_dir: The run directory or variant folder.
-        scenario: The scenario.
+        scenario: The resolved scenario as plain data (``Scenario.to_dict``).
         extra: More fields of :class:`~amuled_ma.records.run_record.RunRecord` (``variants``,
             ``seeds``, ``training``, ``panel``, ...).
 
@@ -386,7 +389,7 @@ def write_config(run_dir: Path, scenario: Scenario, extra: dict[str, Any] | None
     import torch  # here: reading a run folder needs no torch
 
     data: dict[str, Any] = {
-        "scenario": json.loads(json.dumps(scenario.to_dict(), default=str)),
+        "scenario": json.loads(json.dumps(dict(scenario), default=str)),
         "command": list(sys.argv),
         "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "torch": torch.__version__,

@@ -101,11 +101,16 @@ def choose_variants(run_dir: Path, names: Sequence[str] | None = None) -> list[P
     return chosen
 
 
-def evaluated_episodes(run_dir: Path, scenario: Scenario) -> int:
+def evaluated_episodes(run_dir: Path, planned: int) -> int:
     """The episodes per policy of the run's evaluation (a sampled episode depends on it).
 
-    The run's ``results.json`` says; a run not evaluated yet takes the scenario's
-    ``[evaluation].episodes``.
+    Args:
+        run_dir: The run folder.
+        planned: ``[evaluation].episodes``, for a run not evaluated yet.
+
+    Returns:
+        The run's ``results.json``'s episodes, else ``planned``.
+
     """
     from amuled_ma.evaluate.results import read_results
 
@@ -113,7 +118,7 @@ def evaluated_episodes(run_dir: Path, scenario: Scenario) -> int:
         episodes = read_results(Path(run_dir)).episodes
         if episodes is not None:
             return int(episodes)
-    return int(scenario.evaluation.episodes)
+    return int(planned)
 
 
 @dataclass(frozen=True)
@@ -137,5 +142,9 @@ def run_to_view(
     run_dir = Path(run_dir)
     scenario = scenario_of_run(run_dir)
     chosen = [trained_variant(run_dir, d) for d in choose_variants(run_dir, names)]
-    n = episodes if episodes is not None else evaluated_episodes(run_dir, scenario)
+    n = (
+        episodes
+        if episodes is not None
+        else evaluated_episodes(run_dir, scenario.evaluation.episodes)
+    )
     return RunToView(scenario, chosen, n)

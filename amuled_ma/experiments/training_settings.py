@@ -9,11 +9,11 @@ from typing import TYPE_CHECKING, Any
 
 from amuled_ma.files.hashing import sha256_file
 from amuled_ma.learn.config import planned_iterations
-from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import Scenario
 
 if TYPE_CHECKING:
     from amuled_ma.deliberation.plan import PanelPlan
+    from amuled_ma.experiments.run_folder import TrainJob
 
 #: Scenario keys left out of `training_config`: paths, logging and service keys, the
 #: seed (the job's own seed is kept) and the run's length (kept as ``"iterations"``: a
@@ -26,14 +26,7 @@ NOT_LEARNED = {
 }
 
 
-def training_config(
-    scenario: Scenario,
-    variant: Variant,
-    *,
-    panel: PanelPlan | None = None,
-    seed: int | None = None,
-    iterations: int | None = None,
-) -> dict[str, Any]:
+def training_config(job: TrainJob, panel: PanelPlan | None = None) -> dict[str, Any]:
     """The settings that decide what a variant learns, as plain JSON data.
 
     A folder's saved copy (``config.json``, key ``"training"``) is compared with the current
@@ -49,13 +42,10 @@ def training_config(
     kept apart, as the number of PPO iterations the job trains to.
 
     Args:
-        scenario: The scenario of the job.
-        variant: What the job trains.
+        job: The job (its scenario, variant, seed and iterations override).
         panel: A panel fine-tune's plan (:func:`~amuled_ma.deliberation.plan.plan_panel`):
             the files of its clusters are hashed; None for base training and the
             demonstrator.
-        seed: The job's training seed (default: ``[task].seed``).
-        iterations: An override of the number of iterations, if any.
 
     Returns:
         ``{"variant", "seed", "iterations", section: {key: value}, ...}``.
@@ -64,13 +54,14 @@ def training_config(
         ValueError: A fine-tune that asks a panel, without its plan.
 
     """
+    scenario, variant, seed, iterations = job.scenario, job.variant, job.seed, job.iterations
     if variant.asks_panel and (panel is None or not panel.asks_panel):
         raise ValueError(f"the settings of {variant} need its panel plan")
     data = scenario.settings()
     sections: tuple[str, ...] = ("task", "ppo", "finetune" if variant.finetuning else "base")
     if variant.asks_panel:
         sections += ("feedback",)
-    total = planned_iterations(scenario, finetune=variant.finetuning)
+    total = planned_iterations(scenario.finetune if variant.finetuning else scenario.base)
     out: dict[str, Any] = {
         "variant": str(variant),
         "seed": scenario.task.seed if seed is None else seed,

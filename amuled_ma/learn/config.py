@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from amuled_ma.scenario import PPOConfig, Scenario
+from amuled_ma.scenario import BaseConfig, FinetuneConfig, PPOConfig
 
 #: Name of the single observation group handed to rsl-rl.
 OBS_GROUP = "policy"
@@ -92,19 +92,20 @@ def rsl_rl_config(
     }
 
 
-def planned_iterations(scenario: Scenario, *, finetune: bool) -> int:
-    """Number of PPO iterations of a scenario's base run or fine-tune (the one derivation).
+def planned_iterations(run: BaseConfig | FinetuneConfig) -> int:
+    """Number of PPO iterations of a base run or a fine-tune (the one derivation).
 
     A base run lasts ``[base] total_steps`` environment steps, rounded down to whole
     iterations of ``num_envs x num_steps_per_env`` (at least one); a fine-tune lasts
     ``[finetune] iterations``.
 
     Args:
-        scenario: The scenario.
-        finetune: The fine-tune's count instead of the base run's.
+        run: The ``[base]`` or the ``[finetune]`` section.
+
+    Returns:
+        The number of iterations.
 
     """
-    if finetune:
-        return int(scenario.finetune.iterations)
-    base = scenario.base
-    return max(1, base.total_steps // (base.num_envs * base.num_steps_per_env))
+    if isinstance(run, FinetuneConfig):
+        return int(run.iterations)
+    return max(1, run.total_steps // (run.num_envs * run.num_steps_per_env))

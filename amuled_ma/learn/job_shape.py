@@ -8,7 +8,7 @@ from typing import Any
 from amuled_ma.errors import ScenarioError
 from amuled_ma.learn.config import planned_iterations, rsl_rl_config
 from amuled_ma.records.variants import Variant
-from amuled_ma.scenario import Scenario
+from amuled_ma.scenario import BaseConfig, FinetuneConfig, PPOConfig
 
 
 @dataclass(frozen=True)
@@ -41,13 +41,24 @@ class JobShape:
         return self.learning_rate
 
 
-def job_shape(scenario: Scenario, variant: Variant, iterations: int | None = None) -> JobShape:
-    """The shape of training ``variant`` on ``scenario``.
+def job_shape(
+    ppo: PPOConfig,
+    base: BaseConfig,
+    finetune: FinetuneConfig,
+    variant: Variant,
+    iterations: int | None = None,
+    *,
+    where: str,
+) -> JobShape:
+    """The shape of training ``variant``.
 
     Args:
-        scenario: The scenario.
+        ppo: The ``[ppo]`` section.
+        base: The ``[base]`` section (a base or shaped job).
+        finetune: The ``[finetune]`` section (a fine-tune).
         variant: What the job trains.
         iterations: Overrides the planned number of iterations (tests, benchmarks).
+        where: The scenario (its file or name), for messages.
 
     Returns:
         The job's shape.
@@ -57,11 +68,10 @@ def job_shape(scenario: Scenario, variant: Variant, iterations: int | None = Non
             advantage normalisation (one sample normalises to NaN).
 
     """
-    ppo = scenario.ppo
     if variant.finetuning:
-        ft = scenario.finetune
+        ft = finetune
         num_envs, steps = ft.num_envs, ft.num_steps_per_env
-        total = planned_iterations(scenario, finetune=True) if iterations is None else iterations
+        total = planned_iterations(ft) if iterations is None else iterations
         lr, anneal = ft.learning_rate, ft.anneal_lr
         cfg = rsl_rl_config(
             ppo,
@@ -77,9 +87,8 @@ def job_shape(scenario: Scenario, variant: Variant, iterations: int | None = Non
         )
         shaping, task_weight = 0.0, ft.env_reward_coef
     else:
-        base = scenario.base
         num_envs, steps = base.num_envs, base.num_steps_per_env
-        total = planned_iterations(scenario, finetune=False) if iterations is None else iterations
+        total = planned_iterations(base) if iterations is None else iterations
         lr, anneal = ppo.learning_rate, ppo.anneal_lr
         cfg = rsl_rl_config(
             ppo,
@@ -95,7 +104,7 @@ def job_shape(scenario: Scenario, variant: Variant, iterations: int | None = Non
     minibatch = num_envs * steps // ppo.num_mini_batches
     if ppo.normalize_advantage_per_mini_batch and minibatch < 2:
         raise ScenarioError(
-            f"{scenario.path or scenario.name}: [{section}] num_envs x num_steps_per_env = "
+            f"{where}: [{section}] num_envs x num_steps_per_env = "
             f"{num_envs * steps} transitions split into "
             f"[ppo] num_mini_batches = {ppo.num_mini_batches} gives mini-batches of "
             f"{minibatch}; per-mini-batch advantage normalisation needs at least 2 "

@@ -18,7 +18,7 @@ from amuled_ma.learn.config import OBS_GROUP, rsl_rl_config
 if TYPE_CHECKING:
     from rsl_rl.models import MLPModel
 
-    from amuled_ma.scenario import PPOConfig, Scenario
+    from amuled_ma.scenario import PPOConfig
 
 
 def action_log_probs(actor: MLPModel, obs: torch.Tensor) -> torch.Tensor:
@@ -38,12 +38,12 @@ def build_model(ppo: PPOConfig, role: str, obs_dim: int, outputs: int) -> MLPMod
     return MLPModel(obs, {role: [OBS_GROUP]}, role, outputs, **cfg)
 
 
-def load_policy(checkpoint: Path, scenario: Scenario) -> MLPModel:
+def load_policy(checkpoint: Path, ppo: PPOConfig) -> MLPModel:
     """Load the actor of a checkpoint for evaluation.
 
     Args:
         checkpoint: A job's checkpoint (:mod:`amuled_ma.learn.population`).
-        scenario: The scenario it was trained on (network shape).
+        ppo: The ``[ppo]`` section it was trained with (network shape).
 
     Returns:
         The actor in eval mode; call :func:`action_log_probs` on observations.
@@ -60,7 +60,7 @@ def load_policy(checkpoint: Path, scenario: Scenario) -> MLPModel:
             infos.get("obs_dim") or next(v for k, v in weights.items() if "weight" in k).shape[1]
         )
         num_actions = infos.get("num_actions") or list(weights.values())[-1].shape[0]
-        actor = build_model(scenario.ppo, "actor", int(obs_dim), int(num_actions))
+        actor = build_model(ppo, "actor", int(obs_dim), int(num_actions))
         actor.load_state_dict(weights)
     except (AttributeError, IndexError, RuntimeError, StopIteration, TypeError) as error:
         raise CheckpointError(

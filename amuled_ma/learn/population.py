@@ -159,7 +159,7 @@ class PopulationTrainer:
         first = self.specs[0]
         factory = first.task_factory or make_task
         self.task = factory(
-            first.scenario,
+            first.scenario.task,
             self.size * self.copies,
             shaping_coef=self.shape.shaping_coef,
             seed=first.training_seed,

@@ -81,7 +81,15 @@ class MemberSpec:
         """The job's shape: its plan's, else `job_shape`."""
         if self.planned_shape is not None:
             return self.planned_shape
-        return job_shape(self.scenario, self.variant, self.iterations)
+        sc = self.scenario
+        return job_shape(
+            sc.ppo,
+            sc.base,
+            sc.finetune,
+            self.variant,
+            self.iterations,
+            where=str(sc.path or sc.name),
+        )
 
     def start_iteration(self) -> int:
         """The iteration the job starts at: its checkpoint's when resumed, else 0."""

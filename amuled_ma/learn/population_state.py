@@ -82,7 +82,7 @@ def lone_start(spec: MemberSpec) -> tuple[MemberStart, OnPolicyRunner, Deliberat
     torch.manual_seed(seed)
     np.random.seed(seed % (2**32))
     task = (spec.task_factory or make_task)(
-        scenario, shape.num_envs, shaping_coef=shape.shaping_coef, seed=seed
+        scenario.task, shape.num_envs, shaping_coef=shape.shaping_coef, seed=seed
     )
     mdp = BatchedDeliberation(task, spec.feedback, task_weight=shape.task_weight, feedback_coef=1.0)
     env = DeliberationVecEnv(mdp, cfg={"scenario": scenario.name, "variant": str(spec.variant)})

@@ -33,7 +33,7 @@ from amuled_ma.scenario.memory import (
     physical_memory_bytes,
 )
 from amuled_ma.scenario.messages import BUILT_IN_CODE, scenario_error
-from amuled_ma.scenario.model import Scenario, validate_section
+from amuled_ma.scenario.model import Changes, Scenario, validate_section
 from amuled_ma.scenario.paths import (
     MAX_NAME_LENGTH,
     NAME_RULE,
@@ -84,6 +84,7 @@ __all__ = [
     "Activation",
     "AgentSpec",
     "BaseConfig",
+    "Changes",
     "DistillConfig",
     "DistillModel",
     "DistillSelection",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import datetime
 import typing
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 
@@ -16,7 +16,7 @@ from amuled_ma.scenario.ranges import field_range
 from amuled_ma.servers.urls import normalize_host, normalize_hosts
 
 if TYPE_CHECKING:
-    from amuled_ma.scenario.model import Scenario
+    from amuled_ma.scenario.sections import FeedbackConfig
 
 #: Name of the unprompted moral agent (the ``moral`` variant; ``moral_agent`` in recordings).
 MORAL_AGENT = "moral_agent"
@@ -54,12 +54,19 @@ class _Spec(BaseModel):
         """What names this member in messages, after its kind (``, model 'x'``)."""
         return ""
 
-    def source_options(self, scenario: Scenario, head: str) -> dict[str, Any]:
+    def source_options(
+        self, feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str, head: str
+    ) -> dict[str, Any]:
         """The keyword arguments of this kind's source, ``[feedback]``'s values inherited.
 
         Args:
-            scenario: The :class:`~amuled_ma.scenario.Scenario` (``[feedback]``, paths).
+            feedback: The ``[feedback]`` section.
+            resolve: Resolves a path against the scenario file's folder.
+            where: The scenario, for messages (its file, or ``scenario 'name'``).
             head: The table (``[feedback.agents.care]``), for messages.
+
+        Returns:
+            The source's keyword arguments.
 
         Raises:
             ScenarioError: A file the table names is not found.
@@ -76,13 +83,15 @@ class ReplaySpec(_Spec):
         "", description="a recording file or name (default [feedback].recording)"
     )
 
-    def source_options(self, scenario: Scenario, head: str) -> dict[str, Any]:  # noqa: D102
-        fb = scenario.feedback
+    def source_options(  # noqa: D102 - see _Spec
+        self, feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str, head: str
+    ) -> dict[str, Any]:
+        fb = feedback
         key = f"{head} recording" if self.recording else "[feedback].recording"
         path = find_recording(
             self.recording or fb.recording,
-            scenario.resolve,
-            where=str(scenario.path or f"scenario {scenario.name!r}"),
+            resolve,
+            where=where,
             required=True,
             key=key,
         )
@@ -136,8 +145,10 @@ class OllamaSpec(_Spec):
     check_timeout_s: float = Field(4.5, description=_OPTION)
     down_for_s: float = Field(5.0, description=_OPTION)
 
-    def source_options(self, scenario: Scenario, head: str) -> dict[str, Any]:  # noqa: D102
-        fb = scenario.feedback
+    def source_options(  # noqa: D102 - see _Spec
+        self, feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str, head: str
+    ) -> dict[str, Any]:
+        fb = feedback
         rest = self.given()
         own_host, own_hosts = rest.pop("host", None), rest.pop("hosts", None)
         if not own_host and not own_hosts:  # the table names no server: [feedback]'s
@@ -167,7 +178,9 @@ class RulesSpec(_Spec):
         "'pkg.module:function' allowed with --allow-plugin",
     )
 
-    def source_options(self, scenario: Scenario, head: str) -> dict[str, Any]:  # noqa: D102
+    def source_options(  # noqa: D102 - see _Spec
+        self, feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str, head: str
+    ) -> dict[str, Any]:
         return {"policy": self.policy}
 
 
@@ -178,7 +191,9 @@ class TerminalSpec(_Spec):
     person: str = Field("human", description="who answers (kept apart in the store)")
     attempts: int = Field(3, ge=1, le=100, description="answer lines read per state")
 
-    def source_options(self, scenario: Scenario, head: str) -> dict[str, Any]:  # noqa: D102
+    def source_options(  # noqa: D102 - see _Spec
+        self, feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str, head: str
+    ) -> dict[str, Any]:
         return {"person": self.person, "attempts": self.attempts}
 
 
@@ -206,7 +221,9 @@ class EntryPointSpec(_Spec):
     def detail(self, options: Mapping[str, Any]) -> str:  # noqa: D102 - see _Spec
         return f", name {self.name!r}"
 
-    def source_options(self, scenario: Scenario, head: str) -> dict[str, Any]:  # noqa: D102
+    def source_options(  # noqa: D102 - see _Spec
+        self, feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str, head: str
+    ) -> dict[str, Any]:
         return {"name": self.name, "options": dict(self.options)}
 
 
@@ -230,9 +247,11 @@ class PolicySpec(_Spec):
     def detail(self, options: Mapping[str, Any]) -> str:  # noqa: D102 - see _Spec
         return f", path {self.path!r}"
 
-    def source_options(self, scenario: Scenario, head: str) -> dict[str, Any]:  # noqa: D102
+    def source_options(  # noqa: D102 - see _Spec
+        self, feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str, head: str
+    ) -> dict[str, Any]:
         return {
-            "path": str(scenario.resolve(self.path)),
+            "path": str(resolve(self.path)),
             "key": self.key,
             "module": self.module,
             "kwargs": dict(self.kwargs),

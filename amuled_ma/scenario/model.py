@@ -24,6 +24,10 @@ from amuled_ma.scenario.sections import (
     validate_model,
 )
 
+#: Changes to a scenario: ``(section, {key: value})`` pairs, applied in order
+#: (:meth:`Scenario.changed`).
+Changes = tuple[tuple[str, dict[str, Any]], ...]
+
 
 class Scenario(BaseModel):
     """A whole experiment setup: one section model per table, plus ``name`` and ``path``.
@@ -128,6 +132,18 @@ class Scenario(BaseModel):
             merged[head] = _with_nested(table, rest, value)
         new_section = validate_model(model, merged, source, (section,))
         return self.model_copy(update={section: new_section})
+
+    def changed(self, changes: Changes) -> Scenario:
+        """Return a copy with each ``(section, {key: value})`` applied in order (:meth:`replace`).
+
+        Raises:
+            ScenarioError: As :meth:`replace`.
+
+        """
+        scenario = self
+        for section, values in changes:
+            scenario = scenario.replace(section, **values)
+        return scenario
 
     def default_run_dir(self, runs_dir: str | os.PathLike[str] | None = None) -> Path:
         """``<runs_dir>/<name>``, guaranteed to lie directly inside ``runs_dir``.

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 import torch
 
+from amuled_ma.deliberation.plan import plan_panel
 from amuled_ma.deliberation.state_key import freeze
 from amuled_ma.evaluate import episode_trace as trace
 from amuled_ma.evaluate.evaluator import variant_dirs
@@ -121,14 +122,16 @@ def _states_of_run(
     """Distinct states the variants met, each variant's greedy action in them, the panel."""
     trained = [trained_variant(run_dir, folder) for folder in folders]
     scenario = trained[0].scenario
-    n = evaluated_episodes(run_dir, scenario)
-    actors = [trace.load_actor(t.checkpoint, t.scenario) for t in trained]
+    n = evaluated_episodes(run_dir, scenario.evaluation.episodes)
+    actors = [trace.load_actor(t.checkpoint, t.scenario.ppo) for t in trained]
     states: list[_State] = []
     seen: set[bytes] = set()
     action_names: list[str] = []
     for name, actor, tv in zip(names, actors, trained, strict=True):
         for k in range(min(episodes, n)):
-            ep = trace.replay_episode(actor, tv.scenario, episode=k, episodes=n)
+            ep = trace.replay_episode(
+                actor, tv.scenario.task, tv.scenario.evaluation, episode=k, episodes=n
+            )
             action_names = list(ep.action_names)
             for t in range(ep.length):
                 obs = np.asarray(ep.obs[t], dtype=np.float64)
@@ -147,11 +150,12 @@ def _states_of_run(
     panel = None
     for tv in trained:
         if tv.variant is not None and tv.variant.asks_panel and tv.feedback is not None:
-            feedback, store = open_feedback(tv.feedback, tv.scenario, run_dir)
+            plan = plan_panel(tv.feedback, tv.scenario)
+            feedback, store = open_feedback(plan, tv.scenario.feedback.store, run_dir)
             try:
-                if getattr(feedback, "panel", None) is not None:
+                if (asked := getattr(feedback, "panel", None)) is not None:
                     answers = ask_panel(
-                        feedback.panel,
+                        asked,
                         np.stack([s.obs for s in states]),
                         [s.prompt_vars for s in states],
                         store,

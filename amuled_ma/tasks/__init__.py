@@ -18,7 +18,7 @@ from amuled_ma.tasks.names import (
 )
 
 if TYPE_CHECKING:
-    from amuled_ma.scenario import Scenario
+    from amuled_ma.scenario import TaskConfig
     from amuled_ma.tasks.base import BatchedTask
     from amuled_ma.tasks.driving import Driving
     from amuled_ma.tasks.findmilk import FindMilk
@@ -130,11 +130,11 @@ def make_batched(name: str, num_envs: int = 1, **kwargs: Any) -> BatchedTask:
     return get_task(name)(num_envs, **kwargs)
 
 
-def make_task(scenario: Scenario, num_envs: int, *, shaping_coef: float, seed: int) -> BatchedTask:
-    """Create ``num_envs`` copies of a scenario's task, on the CPU.
+def make_task(task: TaskConfig, num_envs: int, *, shaping_coef: float, seed: int) -> BatchedTask:
+    """Create ``num_envs`` copies of the ``[task]`` section's task, on the CPU.
 
     Args:
-        scenario: The scenario (its ``[task]`` section: name, options, ``max_steps``).
+        task: The ``[task]`` section (name, options, ``max_steps``).
         num_envs: Number of copies.
         shaping_coef: ``c`` of the reward ``r_env + c * r_shaping``.
         seed: Seed of the task's RNG.
@@ -142,8 +142,11 @@ def make_task(scenario: Scenario, num_envs: int, *, shaping_coef: float, seed: i
     Returns:
         The batched task.
 
+    Raises:
+        ScenarioError: A task option is reserved, unknown or invalid.
+
     """
-    options = dict(scenario.task.options)
+    options = dict(task.options)
     reserved = sorted(set(options) & {"device", "seed", "shaping_coef", "max_steps"})
     if reserved:
         raise ScenarioError(
@@ -151,11 +154,11 @@ def make_task(scenario: Scenario, num_envs: int, *, shaping_coef: float, seed: i
             "by the run: [task].seed, [task].max_steps, the reward's shaping); remove it"
         )
     kwargs: dict[str, Any] = dict(options)
-    if scenario.task.max_steps:
-        kwargs["max_steps"] = scenario.task.max_steps
+    if task.max_steps:
+        kwargs["max_steps"] = task.max_steps
     try:
         return make_batched(
-            scenario.task.name,
+            task.name,
             num_envs,
             device="cpu",
             seed=seed,
@@ -166,7 +169,7 @@ def make_task(scenario: Scenario, num_envs: int, *, shaping_coef: float, seed: i
         # a task refuses an unknown or invalid option: one line naming the key
         shown = ", ".join(f"{k}={v!r}" for k, v in options.items()) or "none"
         raise ScenarioError(
-            f"key [task].options of task {scenario.task.name!r} ({shown}): {error}; see "
+            f"key [task].options of task {task.name!r} ({shown}): {error}; see "
             "docs/tasks.md for the options of each task"
         ) from None
 

@@ -52,7 +52,7 @@ def test_import_writes_recordings_and_run_folders(tmp_path, capsys):
     config = json.loads((run / "amuled-gpt-4o-mini" / "config.json").read_text())
     assert config["scenario"]["feedback"]["recording"] == "findmilk-gpt-4o-mini"
     scenario = scenario_from_dict({k: v for k, v in config["scenario"].items() if k != "path"})
-    actor = load_policy(run / "amuled-gpt-4o-mini" / "model_last.pt", scenario)
+    actor = load_policy(run / "amuled-gpt-4o-mini" / "model_last.pt", scenario.ppo)
     agent = made["agents"]["models/FindMilk-v4_42/moral_llm_gpt-4o-mini/ppo_100.cleanrl_model"]
     obs = torch.rand(200, 8, generator=torch.Generator().manual_seed(3)) * 8
     with torch.no_grad():

@@ -5,7 +5,7 @@ import torch
 from authors_fakes import CleanRLAgent, save_agent
 
 from amuled_ma.authors.policies import (
-    authors_scenario,
+    authors_changes,
     build_checkpoint,
     build_networks,
     cleanrl_shape,
@@ -26,11 +26,13 @@ BASE = Variant("base")
 def convert(tmp_path, agent, task, variant=BASE, iteration=7):
     source = save_agent(tmp_path / "src" / "base.cleanrl_model", agent)
     state = read_cleanrl(source)
-    scenario = authors_scenario(load_scenario(task), cleanrl_shape(state)[1])
-    checkpoint = build_checkpoint(state, scenario, variant=variant, iteration=iteration,
+    scenario = load_scenario(task).changed(authors_changes(cleanrl_shape(state)[1]))
+    checkpoint = build_checkpoint(state, scenario.ppo, scenario.finetune,
+                                  scenario_name=scenario.name, variant=variant,
+                                  iteration=iteration,
                                   source={"file": "base.cleanrl_model"})  # fmt: skip
     out = tmp_path / "runs" / task / "base"
-    path = write_variant(out, checkpoint, scenario, training={"variant": str(variant)})
+    path = write_variant(out, checkpoint, scenario.to_dict(), training={"variant": str(variant)})
     return path, scenario
 
 
@@ -40,7 +42,7 @@ def convert(tmp_path, agent, task, variant=BASE, iteration=7):
 def test_converted_policy_acts_like_the_cleanrl_one(tmp_path, task, obs_dim, num_actions):
     agent = CleanRLAgent(obs_dim, num_actions, seed=5)
     path, scenario = convert(tmp_path, agent, task)
-    actor = load_policy(path, scenario)
+    actor = load_policy(path, scenario.ppo)
     obs = torch.rand(1000, obs_dim, generator=torch.Generator().manual_seed(1)) * 11 - 2
     with torch.no_grad():
         theirs = torch.distributions.Categorical(logits=agent.actor(obs))
@@ -49,7 +51,7 @@ def test_converted_policy_acts_like_the_cleanrl_one(tmp_path, task, obs_dim, num
     torch.testing.assert_close(ours, theirs.logits, rtol=0, atol=1e-5)
     # the critic too, loaded into the network the trainer builds
     state = read_checkpoint(path, need=TRAINER_KEYS)
-    _actor, critic = build_networks(scenario, obs_dim, num_actions)
+    _actor, critic = build_networks(scenario.ppo, obs_dim, num_actions)
     critic.load_state_dict(state["critic_state_dict"])
     with torch.no_grad():
         torch.testing.assert_close(critic.mlp(obs), agent.critic(obs), rtol=0, atol=1e-5)

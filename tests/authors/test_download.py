@@ -38,7 +38,7 @@ from amuled_ma.authors.download import (
     replayed_recordings,
 )
 from amuled_ma.authors.pinned import BASE_POLICIES, COMMIT, PINNED, PinnedFile
-from amuled_ma.authors.policies import authors_scenario
+from amuled_ma.authors.policies import authors_changes
 from amuled_ma.cli import main
 from amuled_ma.errors import AuthorsFetchError
 from amuled_ma.learn.policies import action_log_probs, load_policy
@@ -117,10 +117,10 @@ def test_fetched_once_checked_then_converted_as_the_import_does(
     data, pin = fake
     served.files[f"/authors/{COMMIT}/{PATH}"] = data
     cache, lines = tmp_path / "cache", []
-    assert replayed_recordings(scenario) == [NAME]
+    assert replayed_recordings(scenario.feedback) == [NAME]
 
     written = ensure_recordings(
-        scenario, [NAME], pinned=[pin], cache=cache, base=base, say=lines.append
+        scenario.resolve, [NAME], pinned=[pin], cache=cache, base=base, say=lines.append
     )
     target = user_recordings_dir() / f"{NAME}.json"
     assert written == [target]
@@ -134,12 +134,12 @@ def test_fetched_once_checked_then_converted_as_the_import_does(
     assert scenario.recording_path(required=True) == target
 
     # found locally now: nothing is asked, nothing said
-    assert ensure_recordings(scenario, [NAME], pinned=[pin], cache=cache, base=base) == []
+    assert ensure_recordings(scenario.resolve, [NAME], pinned=[pin], cache=cache, base=base) == []
     # the recording gone, the cached file (its SHA-256 checked) is converted again, not fetched
     target.unlink()
     lines.clear()
     again = ensure_recordings(
-        scenario, [NAME], pinned=[pin], cache=cache, base=base, say=lines.append
+        scenario.resolve, [NAME], pinned=[pin], cache=cache, base=base, say=lines.append
     )
     assert again == [target] and target.is_file()
     assert len(served.asked) == 1 and not lines[0].startswith("fetching")
@@ -155,7 +155,7 @@ def test_a_tampered_file_is_refused_and_nothing_stays(
     served.files[f"/authors/{COMMIT}/{PATH}"] = bad
     cache = tmp_path / "cache"
     with pytest.raises(AuthorsFetchError) as info:
-        ensure_recordings(scenario, [NAME], pinned=[pin], cache=cache, base=base, say=print)
+        ensure_recordings(scenario.resolve, [NAME], pinned=[pin], cache=cache, base=base, say=print)
     message = str(info.value)
     assert "\n" not in message and message.startswith("refusing ")
     assert ("SHA-256" in message) if tamper == "one byte changed" else ("more than" in message)
@@ -172,7 +172,7 @@ def test_offline_names_both_routes_at_once(tmp_path, server, fake, scenario, mon
     monkeypatch.setenv(OFFLINE_ENV, "1")
     start = time.monotonic()
     with pytest.raises(AuthorsFetchError) as info:
-        ensure_recordings(scenario, [NAME], pinned=[pin], cache=tmp_path / "c", base=base)
+        ensure_recordings(scenario.resolve, [NAME], pinned=[pin], cache=tmp_path / "c", base=base)
     assert time.monotonic() - start < 2.0
     message = str(info.value)
     assert "\n" not in message and NAME in message
@@ -185,7 +185,7 @@ def test_an_unreachable_server_is_one_line_within_seconds(tmp_path, online, fake
     start = time.monotonic()
     with pytest.raises(AuthorsFetchError) as info:
         ensure_recordings(
-            scenario, [NAME], pinned=[pin], cache=tmp_path / "c", base="http://127.0.0.1:1"
+            scenario.resolve, [NAME], pinned=[pin], cache=tmp_path / "c", base="http://127.0.0.1:1"
         )
     assert time.monotonic() - start < 2.0
     message = str(info.value)
@@ -197,7 +197,9 @@ def test_found_locally_or_unknown_is_never_fetched(tmp_path, server, online, fak
     base, served = server
     _data, pin = fake
     (tmp_path / "scenarios" / f"{NAME}.json").write_text("{}")  # beside the scenario file
-    assert ensure_recordings(scenario, [NAME, "findmilk-other"], pinned=[pin], base=base) == []
+    assert (
+        ensure_recordings(scenario.resolve, [NAME, "findmilk-other"], pinned=[pin], base=base) == []
+    )
     assert served.asked == []
 
 
@@ -242,14 +244,14 @@ def test_the_models_ablation_fetches_every_recording_of_the_task_only_when_its_o
     (folder / "s.toml").write_text(text)
     monkeypatch.chdir(tmp_path)
     scenario = load_scenario(folder / "s.toml")
-    assert models_ablation_recordings(scenario) == [
+    assert models_ablation_recordings(scenario.feedback, scenario.task.name, scenario.resolve) == [
         "findmilk-gpt-4o-mini",
         "findmilk-llama-3_1-70b",
         "findmilk-llama-3_1-8b",
         "findmilk-mistral-nemo",
     ]
     (folder / "findmilk-gpt-4o-mini.json").write_text("{}")  # found: compare those found
-    assert models_ablation_recordings(scenario) == []
+    assert models_ablation_recordings(scenario.feedback, scenario.task.name, scenario.resolve) == []
 
 
 MIRROR_ENV = "AMULED_AUTHORS_MIRROR"
@@ -279,7 +281,7 @@ def test_the_pins_are_the_authors_files_and_convert_to_the_shared_recording(
     base, served = server
     pin = min(PINNED, key=lambda p: p.size)  # findmilk-mistral-nemo, 75 KB
     served.files[f"/authors/{COMMIT}/{pin.path}"] = mirror_blob(mirror, pin.path)
-    written = ensure_recordings(scenario, [pin.recording], cache=tmp_path / "c", base=base)
+    written = ensure_recordings(scenario.resolve, [pin.recording], cache=tmp_path / "c", base=base)
     assert written[0].read_bytes() == (recordings_dir / f"{pin.recording}.json").read_bytes()
 
 
@@ -311,10 +313,10 @@ def test_the_authors_base_is_fetched_once_and_converted_into_the_runs_folder(
     assert lines[0].startswith(f"fetching 1 file(s), {len(data) / 1e3:.0f} kB: {BASE_PATH}")
     assert "under their terms" in lines[0] and lines[-1] == f"converted to {folder}"
     # the converted policy acts as the served one (its actor's logits)
-    scenario = authors_scenario(load_scenario("findmilk"), [64, 64])
+    scenario = load_scenario("findmilk").changed(authors_changes([64, 64]))
     obs = torch.rand(200, 8, generator=torch.Generator().manual_seed(2)) * 8
     with torch.no_grad():
-        ours = action_log_probs(load_policy(folder / "model_last.pt", scenario), obs)
+        ours = action_log_probs(load_policy(folder / "model_last.pt", scenario.ppo), obs)
         theirs = torch.log_softmax(agent.actor(obs), dim=-1)
     torch.testing.assert_close(ours, theirs, rtol=0, atol=1e-5)
     # there now: never fetched again, even offline; a task without a pinned base: None

@@ -7,16 +7,16 @@ import json
 import numpy as np
 import pytest
 import torch
-from job_settings import settings
+from job_settings import ablation_jobs, settings
+from scenario_feedback import make_feedback
 from test_distill_source import ACTIONS, MEMBERS, Panel
 
 from amuled_ma.deliberation import MoralPanel
-from amuled_ma.deliberation.build import make_feedback
 from amuled_ma.deliberation.panel_feedback import PanelFeedback
 from amuled_ma.deliberation.summaries import summary_lines
 from amuled_ma.distill import DistilledSource
 from amuled_ma.errors import ScenarioError
-from amuled_ma.experiments.plans import ablation_variants, plan_jobs
+from amuled_ma.experiments.plans import plan_jobs
 from amuled_ma.experiments.run_folder import TrainJob
 from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import load_scenario
@@ -116,7 +116,7 @@ def test_a_fused_only_recording_is_refused_before_any_work(tmp_path):
 
 def test_the_budget_ablation_plans_each_budget_and_selection_and_the_full_run():
     scenario = load_scenario("findmilk")
-    jobs = ablation_variants("budget", scenario)
+    jobs = ablation_jobs("budget", scenario)
     folders = [variant.folder for variant, _ in jobs]
     assert folders == [
         "finetune-amuled-budget1",
@@ -136,7 +136,7 @@ def test_the_budget_ablation_plans_each_budget_and_selection_and_the_full_run():
         scenario, Variant.finetune("amuled")
     )
     # Driving: the fused-only recording is swapped for the per-cluster one
-    driving = ablation_variants("budget", load_scenario("driving"))
+    driving = ablation_jobs("budget", load_scenario("driving"))
     assert {sc.feedback.recording for _, sc in driving} == {"driving-llama-3_1-70b"}
 
 

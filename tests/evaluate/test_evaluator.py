@@ -38,12 +38,14 @@ def scenario():
 def test_run_episodes_one_record_per_copy(tmp_path):
     sc = scenario()
     out = train(sc, tmp_path / "base")
-    actor = load_policy(out.checkpoint, sc)
-    records, traj = run_episodes(actor, sc, episodes=5, mode="sampled", task_factory=grid_factory)
+    actor = load_policy(out.checkpoint, sc.ppo)
+    records, traj = run_episodes(
+        actor, sc.task, episodes=5, mode="sampled", task_factory=grid_factory
+    )
     assert len(records) == 5
     assert {"steps_to_milk", "reached_milk", "terminated"} <= set(records[0])
     assert len(traj["obs"]) == len(traj["actions"]) + 1
-    greedy, _ = run_episodes(actor, sc, episodes=3, mode="greedy", task_factory=grid_factory)
+    greedy, _ = run_episodes(actor, sc.task, episodes=3, mode="greedy", task_factory=grid_factory)
     # a deterministic task and a greedy policy: every copy plays the same episode
     assert len({r["steps_to_milk"] for r in greedy}) == 1
 
@@ -52,7 +54,14 @@ def test_evaluate_run_writes_results_and_report(tmp_path):
     sc = scenario()
     train(sc, tmp_path / "base")
     train(sc, tmp_path / "shaped", "shaped")
-    results = evaluate_run(tmp_path, sc, task_factory=grid_factory)
+    results = evaluate_run(
+        tmp_path,
+        scenario_name=sc.name,
+        task_config=sc.task,
+        evaluation=sc.evaluation,
+        ppo=sc.ppo,
+        task_factory=grid_factory,
+    )
     assert set(results.variants) == {"base", "shaped"}
     stats = results.variants["base"].greedy.metrics["steps_to_milk"]
     assert stats.n == 6 and stats.ci_low <= stats.mean <= stats.ci_high

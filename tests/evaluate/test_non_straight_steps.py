@@ -46,11 +46,11 @@ def always(action: int, scenario) -> torch.nn.Module:
 
 def test_the_evaluator_reports_both_counts():
     scenario = scenario_from_dict({"task": {"name": "driving"}})
-    records, _ = run_episodes(always(RIGHT, scenario), scenario, episodes=1, mode="greedy")
+    records, _ = run_episodes(always(RIGHT, scenario), scenario.task, episodes=1, mode="greedy")
     for record in records:
         # 300 steps to the right: lane 2 -> 3 -> 4, then clipped at the edge
         assert record["non_straight_steps"] == 300 and record["lane_changes"] == 2
-    records, _ = run_episodes(always(STRAIGHT, scenario), scenario, episodes=1, mode="greedy")
+    records, _ = run_episodes(always(STRAIGHT, scenario), scenario.task, episodes=1, mode="greedy")
     assert all(r["non_straight_steps"] == 0 and r["lane_changes"] == 0 for r in records)
 
 

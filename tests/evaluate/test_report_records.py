@@ -53,7 +53,7 @@ def training(**feedback) -> dict:
 def test_an_interrupted_fine_tune_is_shown_interrupted_with_its_iteration(tmp_path):
     folder = tmp_path / "finetune-amuled"
     fields = variant_fields(Variant.parse("finetune:amuled"), folder, training())
-    write_config(folder, Scenario(), fields)
+    write_config(folder, Scenario().to_dict(), fields)
     # its checkpoint: stopped before its first iteration of 20
     infos = {"iteration": 0, "total_iterations": 20, "completed": False}
     torch.save({"infos": infos}, folder / "model_last.pt")
@@ -134,7 +134,7 @@ def test_a_config_json_over_4_mb_is_refused_unread_with_one_line(tmp_path):
     assert MAX_RECORD_BYTES == 4_000_000
     folder = tmp_path / "finetune-amuled"
     fields = variant_fields(Variant.parse("finetune:amuled"), folder, training())
-    write_config(folder, Scenario(), fields)
+    write_config(folder, Scenario().to_dict(), fields)
     path = folder / "config.json"
     assert read_record(folder) is not None and path.stat().st_size < 20_000  # about 6 KB
     sparse(path, 10**10)

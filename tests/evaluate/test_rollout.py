@@ -43,9 +43,9 @@ def evaluated_run(request, tmp_path_factory) -> Path:
 def by_hand(run: Path, mode: str, n: int = N):
     """Every copy's first episode, from the evaluator's definition, written out here."""
     scenario = scenario_of_run(run)
-    actor = load_policy(run / "base" / "model_last.pt", scenario)
+    actor = load_policy(run / "base" / "model_last.pt", scenario.ppo)
     seed = scenario.evaluation.seed
-    task = make_task(scenario, n, shaping_coef=0.0, seed=seed)
+    task = make_task(scenario.task, n, shaping_coef=0.0, seed=seed)
     obs = torch.as_tensor(task.reset()).float()
     gen = torch.Generator().manual_seed(seed)
     actions: list[list[int]] = [[] for _ in range(n)]
@@ -113,12 +113,12 @@ def test_the_viewers_episode_is_the_evaluated_episode(evaluated_run, mode, tmp_p
 def test_a_sampled_episode_needs_the_whole_batch(evaluated_run):
     """One copy with its own generator (the viewer before one rollout) plays other episodes."""
     scenario = scenario_of_run(evaluated_run)
-    actor = load_policy(evaluated_run / "base" / "model_last.pt", scenario)
+    actor = load_policy(evaluated_run / "base" / "model_last.pt", scenario.ppo)
     actions, _ = by_hand(evaluated_run, "sampled")
     differ = 0
     for k in range(N):
         seed = scenario.evaluation.seed + k
-        task = make_task(scenario, 1, shaping_coef=0.0, seed=seed)
+        task = make_task(scenario.task, 1, shaping_coef=0.0, seed=seed)
         obs = torch.as_tensor(task.reset()).float()
         gen = torch.Generator().manual_seed(seed)
         alone = []
@@ -138,11 +138,11 @@ def test_rollout_checks_its_arguments(evaluated_run):
     from amuled_ma.errors import ScenarioError
 
     scenario = scenario_of_run(evaluated_run)
-    actor = load_policy(evaluated_run / "base" / "model_last.pt", scenario)
+    actor = load_policy(evaluated_run / "base" / "model_last.pt", scenario.ppo)
     with pytest.raises(ScenarioError, match="mode: expected one of greedy, sampled"):
-        rollout(actor, scenario, episodes=2, mode="softmax", seed=0)
+        rollout(actor, scenario.task, episodes=2, mode="softmax", seed=0)
     with pytest.raises(ScenarioError, match=r"until: expected copies in 0\.\.1"):
-        rollout(actor, scenario, episodes=2, seed=0, until=[2])
+        rollout(actor, scenario.task, episodes=2, seed=0, until=[2])
     trained = trained_variant(evaluated_run, evaluated_run / "base")
     with pytest.raises(ScenarioError, match=r"evaluation episode 0\.\.5 .* found 6"):
         replay_variant(trained, episode=N, episodes=N)

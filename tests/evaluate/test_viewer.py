@@ -23,11 +23,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from scenario_feedback import make_feedback
 from sparse_files import sparse
 from tiny_cli import RULES, TINY
 
 from amuled_ma.cli import main
-from amuled_ma.deliberation.build import make_feedback
 from amuled_ma.evaluate import episode_trace as trace
 from amuled_ma.evaluate import page_server, viewer
 from amuled_ma.evaluate.readonly_feedback import ReadOnlyStore
@@ -131,9 +131,9 @@ def page_data(path: Path) -> dict:
 def expected_episode(run: Path, variant: str, episode: int = 0):
     """The greedy evaluation episode computed here, independently of the viewer."""
     scenario = scenario_of_run(run)
-    actor = load_policy(run / variant / "model_last.pt", scenario)
-    base = load_policy(run / "base" / "model_last.pt", scenario)
-    task = make_task(scenario, 1, shaping_coef=0.0, seed=scenario.evaluation.seed + episode)
+    actor = load_policy(run / variant / "model_last.pt", scenario.ppo)
+    base = load_policy(run / "base" / "model_last.pt", scenario.ppo)
+    task = make_task(scenario.task, 1, shaping_coef=0.0, seed=scenario.evaluation.seed + episode)
     obs = torch.as_tensor(task.reset()).float()
     rows, prompt_vars, actions, base_actions = [], [], [], []
     with torch.inference_mode():
@@ -397,13 +397,15 @@ def test_browser_shows_replayed_reasoning_and_abstentions(
 
     variant = findmilk_run / "finetune-replay"
     scenario = trained_variant(findmilk_run, variant).scenario
-    actor = trace.load_actor(variant / "model_last.pt", scenario)
+    actor = trace.load_actor(variant / "model_last.pt", scenario.ppo)
     path = recordings_dir / "findmilk-gpt-4o-mini.json"
     source = ReplaySource(path, miss_policy="uniform")
     clusters = list(scenario.feedback.clusters)
     found = None
     for k in range(20):  # the first sampled episode visiting a state whose reply was kept
-        ep = trace.replay_episode(actor, scenario, episode=k, mode="sampled")
+        ep = trace.replay_episode(
+            actor, scenario.task, scenario.evaluation, episode=k, mode="sampled"
+        )
         for t in range(ep.length):
             for cluster in clusters:
                 request = BeliefRequest("findmilk", cluster, tuple(ep.obs[t].tolist()),

@@ -6,7 +6,7 @@ import hashlib
 import json
 
 import pytest
-from job_settings import settings
+from job_settings import job_of, settings
 
 from amuled_ma.clusters import default_clusters_dir
 from amuled_ma.errors import AmuledError
@@ -46,7 +46,7 @@ def test_resume_refuses_an_edited_cluster_file(tmp_path):
     assert "inputs" not in settings(sc, "base")  # no panel, no clusters
     # the hashes come from the job's panel plan: settings without it are refused
     with pytest.raises(ValueError, match="panel plan"):
-        training_config(sc, Variant.finetune("amuled"))
+        training_config(job_of(sc, Variant.finetune("amuled")))
 
     run_dir = tmp_path / "run"
     train_variant(sc, run_dir, Variant("base"))

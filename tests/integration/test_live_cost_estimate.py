@@ -15,11 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from scenario_feedback import make_feedback
 
 from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.beliefs.store.keys import request_key
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
-from amuled_ma.deliberation.build import MIN_TIMED_REQUESTS, live_costs, make_feedback
+from amuled_ma.deliberation.build import MIN_TIMED_REQUESTS, live_costs
 from amuled_ma.deliberation.plan import plan_panel
 from amuled_ma.scenario import scenario_from_dict
 from amuled_ma.tasks import make_batched

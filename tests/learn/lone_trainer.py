@@ -48,6 +48,7 @@ import torch
 
 os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
+from job_settings import job_shape_of
 from rsl_rl.runners import OnPolicyRunner
 
 from amuled_ma.deliberation.feedback_base import Feedback
@@ -62,7 +63,6 @@ from amuled_ma.learn.checkpoints import (
     write_checkpoint,
 )
 from amuled_ma.learn.curves import curve_row, quiet
-from amuled_ma.learn.job_shape import job_shape
 from amuled_ma.learn.population import TrainOutcome
 from amuled_ma.learn.vecenv import DeliberationVecEnv
 from amuled_ma.records.variants import Variant
@@ -125,7 +125,7 @@ class Trainer:
                 raise CheckpointError(f"base checkpoint not found: {base_checkpoint}")
         # copies, rollout, iterations, learning rate, rsl-rl config: one derivation, shared
         # with the population learner (learn.job_shape)
-        shape = job_shape(scenario, self.variant, iterations)
+        shape = job_shape_of(scenario, self.variant, iterations)
         self.num_envs, self.steps_per_env = shape.num_envs, shape.steps_per_env
         self.total_iterations = shape.total_iterations
         self.lr, self.anneal = shape.learning_rate, shape.anneal
@@ -134,7 +134,7 @@ class Trainer:
         torch.manual_seed(self.seed)
         np.random.seed(self.seed % (2**32))
         self.task = (task_factory or make_task)(
-            scenario, self.num_envs, shaping_coef=shaping, seed=self.seed
+            scenario.task, self.num_envs, shaping_coef=shaping, seed=self.seed
         )
         # the deliberation MDP: a fine-tune's feedback answers for all copies at once
         self.mdp = BatchedDeliberation(

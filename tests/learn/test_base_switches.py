@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 import torch
+from job_settings import job_shape_of
 from tensordict import TensorDict
 
-from amuled_ma.learn.job_shape import job_shape
 from amuled_ma.learn.population import PopulationTrainer
 from amuled_ma.learn.population_groups import MemberSpec
 from amuled_ma.learn.ppo_options import EpochShuffledStorage
@@ -56,7 +56,7 @@ def trainer(tmp_path: Path, keys: str, members: int = 1) -> PopulationTrainer:
 
 
 def test_the_defaults_are_rsl_rl_s(tmp_path):
-    shape = job_shape(scenario_with(tmp_path, ""), Variant("base"))
+    shape = job_shape_of(scenario_with(tmp_path, ""), Variant("base"))
     for key in ("grad_clip", "reshuffle_each_epoch", "bootstrap_time_outs"):
         assert key not in shape.cfg["algorithm"]
     alg = trainer(tmp_path, "").alg

@@ -4,13 +4,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+from job_settings import ablation_jobs
 
 from amuled_ma.beliefs.types import BeliefResult, BeliefSource
 from amuled_ma.deliberation.feedback_base import CallableFeedback
 from amuled_ma.deliberation.panel_feedback import PanelFeedback
 from amuled_ma.deliberation.summaries import summary_lines
 from amuled_ma.errors import ScenarioError
-from amuled_ma.experiments.plans import ablation_variants
 from amuled_ma.records.variants import Variant, parse_feedback
 from amuled_ma.scenario import scenario_from_dict
 
@@ -87,10 +87,10 @@ def test_parse_feedback_rejects(name):
 
 def test_ablation_lists():
     sc = scenario_from_dict({})
-    clusters = ablation_variants("clusters", sc)
+    clusters = ablation_jobs("clusters", sc)
     assert [str(v) for v, _ in clusters][-2:] == ["finetune:moral", "finetune:amuled"]
     assert len(clusters) == len(sc.feedback.clusters) + 2
-    assert [v.folder for v, _ in ablation_variants("aggregation", sc)] == [
+    assert [v.folder for v, _ in ablation_jobs("aggregation", sc)] == [
         "finetune-agg-mean",
         "finetune-agg-max",
         "finetune-agg-vote",
@@ -100,18 +100,19 @@ def test_ablation_lists():
         "finetune-agg-borda",
         "finetune-amuled",
     ]
-    kl = ablation_variants("kl", sc)
+    kl = ablation_jobs("kl", sc)
     assert [s.finetune.lambda_kl for _, s in kl] == [0.0, 0.5, 1.0, 2.5, 5.0, 10.0]
     assert [v.folder for v, _ in kl][1] == "finetune-amuled-kl0.5"
     assert Variant.parse("finetune:cluster:care").folder == "finetune-cluster-care"
     with pytest.raises(ScenarioError):
-        ablation_variants("nope", sc)
+        ablation_jobs("nope", sc)
 
 
 def test_make_source_preflight_fails_before_writing(tmp_path):
+    from scenario_feedback import make_source
+
     from amuled_ma.beliefs import register_source
     from amuled_ma.beliefs.types import BeliefSource
-    from amuled_ma.deliberation.build import make_source
     from amuled_ma.errors import BackendUnavailable
 
     class Down(BeliefSource):

@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 import torch
+from scenario_feedback import make_feedback
 
-from amuled_ma.deliberation.build import make_feedback
 from amuled_ma.deliberation.panel_feedback import FusedReplayFeedback, PanelFeedback
 from amuled_ma.errors import ScenarioError
 from amuled_ma.experiments.plans import train_variant

@@ -173,7 +173,8 @@ def test_named_variant_with_a_user_cluster_sits_beside_amuled(tmp_path, capsys):
 
 
 def test_a_cluster_file_names_its_default_source_and_the_scenario_overrides_it(tmp_path):
-    from amuled_ma.deliberation.build import make_feedback
+    from scenario_feedback import make_feedback
+
     from amuled_ma.scenario import load_scenario
 
     clusters = tmp_path / "clusters"

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from job_settings import job_shape_of
 
 from amuled_ma.deliberation.mdp import CopiesView, MemberFeedback
-from amuled_ma.learn.job_shape import job_shape
 from amuled_ma.learn.population_groups import (
     MEMBER_OVERHEAD_BYTES,
     MemberSpec,
@@ -34,7 +34,7 @@ SHAPES = {
 def test_job_shape_reads_the_scenarios_run_shape(name, variant) -> None:
     """The one derivation ``Trainer`` and the population learner both use."""
     scenario = load_scenario(name)
-    shape = job_shape(scenario, Variant.parse(variant))
+    shape = job_shape_of(scenario, Variant.parse(variant))
     envs, steps, lr, anneal, shaping, task_weight = SHAPES[(name, variant)]
     assert (shape.num_envs, shape.steps_per_env) == (envs, steps)
     assert (shape.learning_rate, shape.anneal) == (lr, anneal)
@@ -43,7 +43,7 @@ def test_job_shape_reads_the_scenarios_run_shape(name, variant) -> None:
     if variant.startswith("finetune"):
         assert shape.total_iterations == 1000  # finetune_moral.py: 1000 x 128 / 128
         assert shape.cfg["algorithm"]["num_learning_epochs"] == 8
-    assert job_shape(scenario, Variant.parse(variant), iterations=7).total_iterations == 7
+    assert job_shape_of(scenario, Variant.parse(variant), iterations=7).total_iterations == 7
 
 
 def jobs(tmp_path: Path, count: int, **finetune) -> list[MemberSpec]:
@@ -100,10 +100,13 @@ def test_memory_per_member_grows_with_the_rollout_and_the_network(tmp_path) -> N
     (spec,) = jobs(tmp_path, 1)
     small = member_memory_bytes(spec.shape(), device="cuda")
     wide = spec.scenario.replace("ppo", hidden_dims=[256, 256])
-    assert member_memory_bytes(job_shape(wide, Variant.finetune("amuled")), device="cuda") > small
+    assert (
+        member_memory_bytes(job_shape_of(wide, Variant.finetune("amuled")), device="cuda") > small
+    )
     long = spec.scenario.replace("finetune", num_envs=64)
     assert (
-        member_memory_bytes(job_shape(long, Variant.finetune("amuled")), device="cuda") > 10 * small
+        member_memory_bytes(job_shape_of(long, Variant.finetune("amuled")), device="cuda")
+        > 10 * small
     )
 
 

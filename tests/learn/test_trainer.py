@@ -91,7 +91,7 @@ def test_finetune_moves_policy_towards_feedback_and_anchors(tmp_path, tiny_scena
         task_factory=factory,
     )
     # starts as a copy of the base policy
-    base_actor = load_policy(base.checkpoint, scenario)
+    base_actor = load_policy(base.checkpoint, scenario.ppo)
     obs = torch.tensor([[0.0, 0.0, 4.0, 4.0], [2.0, 2.0, 4.0, 4.0]])
     torch.testing.assert_close(
         action_log_probs(trainer.member_policy(0), obs), action_log_probs(base_actor, obs)
@@ -99,7 +99,7 @@ def test_finetune_moves_policy_towards_feedback_and_anchors(tmp_path, tiny_scena
     [out] = trainer.train()
     assert out.feedback["steps"] == 15 * 2 * 16
     assert out.feedback["unique_states"] <= 25
-    p_left = action_log_probs(load_policy(out.checkpoint, scenario), obs).exp()[:, 2]
+    p_left = action_log_probs(load_policy(out.checkpoint, scenario.ppo), obs).exp()[:, 2]
     p_left_base = action_log_probs(base_actor, obs).exp()[:, 2]
     assert torch.all(p_left > p_left_base)
     assert out.curve[-1]["feedback/feedback_reward"] > out.curve[0]["feedback/feedback_reward"]

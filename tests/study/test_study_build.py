@@ -46,7 +46,7 @@ def test_items_are_the_policies_greedy_actions_in_states_they_met(run, tmp_path)
     scenario = scenario_of_run(run)
     folders = {"amuled": "finetune-amuled", "base": "base", "human": "finetune-human-rules"}
     assert study.folders == [folders]
-    policies = {v: load_policy(run / f / "model_last.pt", scenario) for v, f in folders.items()}
+    policies = {v: load_policy(run / f / "model_last.pt", scenario.ppo) for v, f in folders.items()}
     pairs = [i for i in study.items if i.kind == "pair"]
     checks = [i for i in study.items if i.kind == "attention"]
     assert len(pairs) == 12 and len(checks) == 1

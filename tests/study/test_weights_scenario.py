@@ -15,13 +15,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from job_settings import settings
+from job_settings import ablation_jobs, settings
 from tiny_cli import TINY
 
 from amuled_ma.cli import main
 from amuled_ma.deliberation.plan import plan_panel
 from amuled_ma.errors import AmuledError, ScenarioError
-from amuled_ma.experiments.plans import ablation_variants, train_variant
+from amuled_ma.experiments.plans import train_variant
 from amuled_ma.files.resources import scenarios_dir
 from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import PAPER_CLUSTERS, load_scenario
@@ -63,7 +63,7 @@ def test_the_prior_reaches_the_panel_in_the_panel_s_order(tmp_path):
 def test_the_feedback_s_panel_gets_the_prior(tmp_path):
     """The feedback built from the plan hands the prior to its panel (which fuses with it,
     tests/fusion/test_prior.py)."""
-    from amuled_ma.deliberation.build import make_feedback
+    from scenario_feedback import make_feedback
 
     weights_file(tmp_path / "w.json")
     scenario = load_scenario(scenario_file(tmp_path, "w.json"))
@@ -138,7 +138,7 @@ def test_another_rule_or_a_fused_only_recording_is_refused(tmp_path):
         plan_panel("amuled", driving)
     assert "keeps only the authors' fused belief" in str(info.value)
     # the ablation replays the per-cluster recording instead
-    ((fixed, fixed_sc), (learned, learned_sc)) = ablation_variants("weights", driving)
+    ((fixed, fixed_sc), (learned, learned_sc)) = ablation_jobs("weights", driving)
     assert plan_panel("amuled", learned_sc).prior is not None
     assert fixed_sc.feedback.weights == "" and learned.folder == "finetune-amuled-learned-weights"
     assert fixed.folder == "finetune-amuled"

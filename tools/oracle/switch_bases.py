@@ -53,7 +53,7 @@ ARMS: dict[str, dict[str, object]] = {
 
 def evaluate(amuled: str, run_dir: Path, scenario, seeds: list[int]) -> None:
     """Write the run's config.json (its seeds) and evaluate it greedy and sampled, 50 episodes."""
-    write_config(run_dir, scenario, {"seeds": seeds})
+    write_config(run_dir, scenario.to_dict(), {"seeds": seeds})
     subprocess.run(
         [
             amuled,

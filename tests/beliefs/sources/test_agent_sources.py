@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import torch
 from job_settings import settings
+from scenario_feedback import make_feedback
+from scenario_feedback import make_source as feedback_source
 
 from amuled_ma.beliefs import BeliefRequest, make_source
 from amuled_ma.beliefs.sources.routing import RoutedSource
 from amuled_ma.clusters import plugins
-from amuled_ma.deliberation.build import make_feedback
-from amuled_ma.deliberation.build import make_source as feedback_source
 from amuled_ma.errors import ScenarioError
 from amuled_ma.fusion.reference import fuse_beliefs
 from amuled_ma.scenario import OllamaSpec, TerminalSpec, load_scenario, scenario_from_dict

@@ -234,7 +234,7 @@ def test_scenario_hosts_key_and_its_errors(tmp_path) -> None:
     )
     scenario = load_scenario(path)
     assert scenario.feedback.hosts == ["gpu1", "http://gpu2:11434"]
-    spec = default_source(scenario)
+    spec = default_source(scenario.feedback, scenario.resolve, scenario.name)
     assert spec.options["hosts"] == ["gpu1", "http://gpu2:11434"]
     assert spec.options["host"] is None
     path.write_text('[feedback]\nhost = "gpu0"\nhosts = ["gpu1"]\n')
@@ -260,11 +260,25 @@ def test_agent_tables_take_hosts(tmp_path) -> None:
     care = {"source": "ollama", "model": "m", "hosts": ["http://c:3", "http://d:4"]}
     scenario = base.replace("feedback", agents={"care": care, "virtue": {"source": "ollama",
                                                                         "model": "m"}})  # fmt: skip
-    own = agent_source(scenario, "care", scenario.feedback.agents["care"])
+    own = agent_source(
+        scenario.feedback, scenario.resolve, scenario.name, "care", scenario.feedback.agents["care"]
+    )
     assert own.options["hosts"] == ["http://c:3", "http://d:4"] and own.options["host"] is None
-    inherited = agent_source(scenario, "virtue", scenario.feedback.agents["virtue"])
+    inherited = agent_source(
+        scenario.feedback,
+        scenario.resolve,
+        scenario.name,
+        "virtue",
+        scenario.feedback.agents["virtue"],
+    )
     assert inherited.options["hosts"] == ["http://a:1", "http://b:2"]
-    one = agent_source(scenario, "care", OllamaSpec(source="ollama", model="m", host="http://e:5"))
+    one = agent_source(
+        scenario.feedback,
+        scenario.resolve,
+        scenario.name,
+        "care",
+        OllamaSpec(source="ollama", model="m", host="http://e:5"),
+    )
     assert one.options["host"] == "http://e:5" and one.options["hosts"] is None
     for table, message in (
         ({**care, "host": "http://e:5"}, "sets both host and hosts"),

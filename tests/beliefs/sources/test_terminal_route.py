@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import io
 
+from scenario_feedback import make_feedback
+
 from amuled_ma.beliefs import BeliefRequest
 from amuled_ma.beliefs.sources.terminal import TerminalSource, action_by_name, parse_answer
-from amuled_ma.deliberation.build import make_feedback
 from amuled_ma.deliberation.summaries import nested_sources
 from amuled_ma.scenario import scenario_from_dict
 
