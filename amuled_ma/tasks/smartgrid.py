@@ -354,21 +354,36 @@ class SmartGrid(BatchedTask):
 
 
 def _step(env: Any, learner: str, action: int) -> tuple[dict[str, float], float]:
-    """Step one package environment; the learner's rewards by judge, the over-consumption."""
-    world = env.world
-    actions = {}
+    """Step one package environment; the learner's rewards by judge, the over-consumption.
+
+    The package's own rules (``World.step``) and rewards (the environment's
+    ``reward_calculator``, the learner's alone), what ``SmartGrid.step`` computes for the
+    learner without the other prosumers' observations and rewards, which nothing reads.
+    """
+    rewards = _step_world(env.world, env.reward_calculator, learner, action)
+    env.observation_manager.reset()  # the package's memo is shared by every world
+    over = env.observation_manager.compute_global(env.world).over_consumption
+    env.observation_manager.reset()
+    return rewards, float(over)
+
+
+def _step_world(world: Any, calculator: Any, learner: str, action: int) -> dict[str, float]:
+    """Step a package world, the learner doing ``action``; its rewards by judge."""
+    from smartgrid.agents import Action
+
     for agent in world.agents:
         chosen = action if agent.name == learner else FIXED_ACTION
-        actions[agent.name] = action_vector(
-            chosen, agent.need, agent.state.storage, agent.profile.max_storage
-        )
-    env.observation_manager.reset()  # the package's memo is shared by every world
-    _, rewards, _, _, _ = env.step(actions)
-    env.observation_manager.reset()
-    over = env.observation_manager.compute_global(world).over_consumption
-    env.observation_manager.reset()
-    learner_rewards = rewards[learner]  # by the reward's name, its class name
-    return {v: float(learner_rewards[JUDGES[v][1]]) for v in JUDGES}, float(over)
+        vector = action_vector(chosen, agent.need, agent.state.storage, agent.profile.max_storage)
+        agent.intended_action = Action(*vector)
+    world.step()
+    rewards = calculator.compute(world, world.agents_by_name[learner])  # by class name
+    return {v: float(rewards[JUDGES[v][1]]) for v in JUDGES}
+
+
+def _world_copy(world: Any) -> Any:
+    """A deep copy of a package world that shares its agents' profiles (read-only data)."""
+    memo: dict[int, Any] = {id(agent.profile): agent.profile for agent in world.agents}
+    return copy.deepcopy(world, memo)
 
 
 def _scores(key: bytes) -> np.ndarray:
@@ -385,9 +400,9 @@ def _scores(key: bytes) -> np.ndarray:
             "be judged)"
         )
     out = np.zeros((len(JUDGES), len(ACTIONS)))
+    env = task._envs[copy_id]
     for a in range(len(ACTIONS)):
-        trial = copy.deepcopy(task._envs[copy_id])
-        rewards, _ = _step(trial, task._learner, a)
+        rewards = _step_world(_world_copy(env.world), env.reward_calculator, task._learner, a)
         out[:, a] = [rewards[v] for v in JUDGES]
     _SCORED[key] = out
     if len(_SCORED) > MAX_SCORED:
