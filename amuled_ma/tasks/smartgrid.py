@@ -64,8 +64,9 @@ JUDGE_TEMPERATURE = 0.1
 #: Judge scores kept per process, by observation (a state asked twice is computed once).
 MAX_SCORED = 65_536
 
-# observation bytes (float32) -> (task, copy) whose current state it is
-_LIVE: dict[bytes, tuple[weakref.ref[SmartGrid], int]] = {}
+# observation bytes (float32) -> every (task, copy) whose current state it is (copies of
+# tasks seeded alike, e.g. a population's seed replicas, show the same states)
+_LIVE: dict[bytes, list[tuple[weakref.ref[SmartGrid], int]]] = {}
 # observation bytes -> judge rewards [judge, action]
 _SCORED: OrderedDict[bytes, np.ndarray] = OrderedDict()
 
@@ -259,11 +260,14 @@ class SmartGrid(BatchedTask):
         me = weakref.ref(self)
         for i, row in enumerate(obs.numpy()):
             old = self._live_keys[i]
-            owner, copy_id = _LIVE.get(old, (None, -1)) if old is not None else (None, -1)
-            if old is not None and owner is not None and owner() is self and copy_id == i:
-                del _LIVE[old]
+            if old is not None:
+                holders = [h for h in _LIVE.get(old, []) if h[1] != i or h[0]() is not self]
+                if holders:
+                    _LIVE[old] = holders
+                else:
+                    _LIVE.pop(old, None)
             key = row.tobytes()
-            _LIVE[key] = (me, i)
+            _LIVE.setdefault(key, []).append((me, i))
             self._live_keys[i] = key
 
     def _prompt_extras(self, ids: torch.Tensor) -> list[dict[str, Any]]:
@@ -391,8 +395,8 @@ def _scores(key: bytes) -> np.ndarray:
     if key in _SCORED:
         _SCORED.move_to_end(key)
         return _SCORED[key]
-    task_ref, copy_id = _LIVE.get(key, (None, -1))
-    task = task_ref() if task_ref is not None else None
+    live = [(task, i) for ref, i in _LIVE.get(key, []) if (task := ref()) is not None]
+    task, copy_id = live[0] if live else (None, -1)
     if task is None:
         raise ValueError(
             "smartgrid judge: no live smart-grid copy in this process shows this observation "
@@ -413,5 +417,9 @@ def _scores(key: bytes) -> np.ndarray:
 def _forget(keys: list[bytes | None]) -> None:
     """Drop a garbage-collected task's live observations."""
     for key in keys:
-        if key is not None:
-            _LIVE.pop(key, None)
+        if key is not None and key in _LIVE:
+            holders = [h for h in _LIVE[key] if h[0]() is not None]
+            if holders:
+                _LIVE[key] = holders
+            else:
+                del _LIVE[key]

@@ -144,3 +144,14 @@ def test_the_step_and_the_look_ahead_are_the_packages_own_step():
         assert float(info["r_env"][0]) == pytest.approx(reward[action]["Comfort"], abs=1e-6)
         assert float(info["r_shaping"][0]) == pytest.approx(reward[action]["Equity"], abs=1e-6)
         np.testing.assert_array_equal(info["final_obs"][0].numpy(), reward[action]["obs"])
+
+
+def test_a_state_two_tasks_show_stays_judgeable_when_one_moves_on():
+    """Seed replicas of a population share copies (copy 1 seeded 5 is copy 0 seeded 6)."""
+    first = make_batched("smartgrid", 2, seed=5)
+    second = make_batched("smartgrid", 2, seed=6)
+    shown = first.reset()[1].numpy()
+    np.testing.assert_array_equal(second.reset()[0].numpy(), shown)
+    second.step(torch.tensor([4, 4]))
+    scores = SmartGrid.judge_scores("equity", shown)  # first's copy 1 still shows it
+    assert scores.shape == (5,) and scores.max() == 1.0
