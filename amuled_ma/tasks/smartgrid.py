@@ -44,8 +44,9 @@ JUDGE_TEMPERATURE = 0.1
 #: Judge scores kept per process, by observation (a state asked twice is computed once).
 MAX_SCORED = 65_536
 
-# observation bytes (float32) -> (task, copy) whose current state it is
-_LIVE: dict[bytes, tuple[weakref.ref[SmartGrid], int]] = {}
+# observation bytes (float32) -> every (task, copy) whose current state it is (copies of
+# tasks seeded alike, e.g. a population's seed replicas, show the same states)
+_LIVE: dict[bytes, list[tuple[weakref.ref[SmartGrid], int]]] = {}
 # observation bytes -> judge rewards [judge, action]
 _SCORED: OrderedDict[bytes, np.ndarray] = OrderedDict()
 
@@ -229,11 +230,14 @@ class SmartGrid(BatchedTask):
         me = weakref.ref(self)
         for i, row in enumerate(obs.numpy()):
             old = self._live_keys[i]
-            owner, copy_id = _LIVE.get(old, (None, -1)) if old is not None else (None, -1)
-            if old is not None and owner is not None and owner() is self and copy_id == i:
-                del _LIVE[old]
+            if old is not None:
+                holders = [h for h in _LIVE.get(old, []) if h[1] != i or h[0]() is not self]
+                if holders:
+                    _LIVE[old] = holders
+                else:
+                    _LIVE.pop(old, None)
             key = row.tobytes()
-            _LIVE[key] = (me, i)
+            _LIVE.setdefault(key, []).append((me, i))
             self._live_keys[i] = key
 
     def _prompt_extras(self, ids: torch.Tensor) -> list[dict[str, Any]]:
@@ -313,21 +317,36 @@ class SmartGrid(BatchedTask):
 
 
 def _step(env: Any, learner: str, action: int) -> tuple[dict[str, float], float]:
-    """Step one package environment; the learner's rewards by judge, the over-consumption."""
-    world = env.world
-    actions = {}
+    """Step one package environment; the learner's rewards by judge, the over-consumption.
+
+    The package's own rules (``World.step``) and rewards (the environment's
+    ``reward_calculator``, the learner's alone), what ``SmartGrid.step`` computes for the
+    learner without the other prosumers' observations and rewards, which nothing reads.
+    """
+    rewards = _step_world(env.world, env.reward_calculator, learner, action)
+    env.observation_manager.reset()  # the package's memo is shared by every world
+    over = env.observation_manager.compute_global(env.world).over_consumption
+    env.observation_manager.reset()
+    return rewards, float(over)
+
+
+def _step_world(world: Any, calculator: Any, learner: str, action: int) -> dict[str, float]:
+    """Step a package world, the learner doing ``action``; its rewards by judge."""
+    from smartgrid.agents import Action
+
     for agent in world.agents:
         chosen = action if agent.name == learner else FIXED_ACTION
-        actions[agent.name] = action_vector(
-            chosen, agent.need, agent.state.storage, agent.profile.max_storage
-        )
-    env.observation_manager.reset()  # the package's memo is shared by every world
-    _, rewards, _, _, _ = env.step(actions)
-    env.observation_manager.reset()
-    over = env.observation_manager.compute_global(world).over_consumption
-    env.observation_manager.reset()
-    learner_rewards = rewards[learner]  # by the reward's name, its class name
-    return {v: float(learner_rewards[JUDGES[v][1]]) for v in JUDGES}, float(over)
+        vector = action_vector(chosen, agent.need, agent.state.storage, agent.profile.max_storage)
+        agent.intended_action = Action(*vector)
+    world.step()
+    rewards = calculator.compute(world, world.agents_by_name[learner])  # by class name
+    return {v: float(rewards[JUDGES[v][1]]) for v in JUDGES}
+
+
+def _world_copy(world: Any) -> Any:
+    """A deep copy of a package world that shares its agents' profiles (read-only data)."""
+    memo: dict[int, Any] = {id(agent.profile): agent.profile for agent in world.agents}
+    return copy.deepcopy(world, memo)
 
 
 def _scores(key: bytes) -> np.ndarray:
@@ -335,8 +354,8 @@ def _scores(key: bytes) -> np.ndarray:
     if key in _SCORED:
         _SCORED.move_to_end(key)
         return _SCORED[key]
-    task_ref, copy_id = _LIVE.get(key, (None, -1))
-    task = task_ref() if task_ref is not None else None
+    live = [(task, i) for ref, i in _LIVE.get(key, []) if (task := ref()) is not None]
+    task, copy_id = live[0] if live else (None, -1)
     if task is None:
         raise ValueError(
             "smartgrid judge: no live smart-grid copy in this process shows this observation "
@@ -344,9 +363,9 @@ def _scores(key: bytes) -> np.ndarray:
             "be judged)"
         )
     out = np.zeros((len(JUDGES), len(ACTIONS)))
+    env = task._envs[copy_id]
     for a in range(len(ACTIONS)):
-        trial = copy.deepcopy(task._envs[copy_id])
-        rewards, _ = _step(trial, task._learner, a)
+        rewards = _step_world(_world_copy(env.world), env.reward_calculator, task._learner, a)
         out[:, a] = [rewards[v] for v in JUDGES]
     _SCORED[key] = out
     if len(_SCORED) > MAX_SCORED:
@@ -357,5 +376,9 @@ def _scores(key: bytes) -> np.ndarray:
 def _forget(keys: list[bytes | None]) -> None:
     """Drop a garbage-collected task's live observations."""
     for key in keys:
-        if key is not None:
-            _LIVE.pop(key, None)
+        if key is not None and key in _LIVE:
+            holders = [h for h in _LIVE[key] if h[0]() is not None]
+            if holders:
+                _LIVE[key] = holders
+            else:
+                del _LIVE[key]

@@ -6,6 +6,8 @@ curve), from a single copy against a batch (the seeding convention), and by hand
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -98,3 +100,58 @@ def test_the_shipped_scenario_and_bad_options():
         make_batched("smartgrid", 1, households=0)
     with pytest.raises(ScenarioError, match="option households"):
         load_scenario("smartgrid").replace("task", options={"households": 0})
+
+
+def _package_step(env, action: int) -> dict:
+    """The package's own ``SmartGrid.step`` on ``env``: the learner ``action``, others grid."""
+    actions = {
+        agent.name: action_vector(
+            action if agent.name == "Household1" else 0,
+            agent.need,
+            agent.state.storage,
+            agent.profile.max_storage,
+        )
+        for agent in env.world.agents
+    }
+    env.observation_manager.reset()  # the package's memo is keyed by the step alone
+    obs, rewards, _, _, _ = env.step(actions)
+    env.observation_manager.reset()
+    return {"obs": np.asarray(np.asarray(obs["Household1"]), np.float32), **rewards["Household1"]}
+
+
+def test_the_step_and_the_look_ahead_are_the_packages_own_step():
+    """Each step's rewards and observation, and each judge's look-ahead reward of every action,
+    equal what the package's ``SmartGrid.step`` returns on a deep copy of the same world."""
+    task = make_batched("smartgrid", 1, seed=11, max_steps=24)
+    obs = task.reset()
+    env = task._envs[0]  # the adapter's package environment, read only
+    rng = np.random.default_rng(1)
+    for _ in range(6):
+        reward = {a: _package_step(copy.deepcopy(env), a) for a in range(5)}
+        for judge, name in (("comfort", "Comfort"), ("equity", "Equity")):
+            expected = np.array([reward[a][name] for a in range(5)])
+            scores = SmartGrid.judge_scores(judge, obs[0].numpy())
+            np.testing.assert_allclose(
+                JUDGE_TEMPERATURE * np.log(scores), expected - expected.max(), atol=1e-9
+            )
+        expected = np.array([reward[a]["OverConsumption"] for a in range(5)])
+        scores = SmartGrid.judge_scores("over_consumption", obs[0].numpy())
+        np.testing.assert_allclose(
+            JUDGE_TEMPERATURE * np.log(scores), expected - expected.max(), atol=1e-9
+        )
+        action = int(rng.integers(0, 5))
+        obs, _, _, _, info = task.step(torch.tensor([action]))
+        assert float(info["r_env"][0]) == pytest.approx(reward[action]["Comfort"], abs=1e-6)
+        assert float(info["r_shaping"][0]) == pytest.approx(reward[action]["Equity"], abs=1e-6)
+        np.testing.assert_array_equal(info["final_obs"][0].numpy(), reward[action]["obs"])
+
+
+def test_a_state_two_tasks_show_stays_judgeable_when_one_moves_on():
+    """Seed replicas of a population share copies (copy 1 seeded 5 is copy 0 seeded 6)."""
+    first = make_batched("smartgrid", 2, seed=5)
+    second = make_batched("smartgrid", 2, seed=6)
+    shown = first.reset()[1].numpy()
+    np.testing.assert_array_equal(second.reset()[0].numpy(), shown)
+    second.step(torch.tensor([4, 4]))
+    scores = SmartGrid.judge_scores("equity", shown)  # first's copy 1 still shows it
+    assert scores.shape == (5,) and scores.max() == 1.0
