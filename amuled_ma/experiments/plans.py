@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 from amuled_ma.deliberation.build import build_feedback, checked_members, preflight, run_store
 from amuled_ma.deliberation.plan import plan_panel
-from amuled_ma.errors import AmuledError, ScenarioError
+from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError
 from amuled_ma.experiments.run_folder import (
     JobResult,
     Rerun,
@@ -125,6 +125,7 @@ def plan_job(
         base = job.base_folder / LAST
         if job.base_variant not in planned:
             base = base_checkpoint(job.base_folder, str(scenario.path or scenario.name))
+            check_base_fits(base, scenario)
     settings = training_config(
         scenario, variant, panel=panel, seed=job.seed, iterations=job.iterations
     )
@@ -239,6 +240,35 @@ class PreparedJob:
             task_factory=task_factory,
             planned_shape=job.shape,
         )
+
+
+def check_base_fits(base: Path, scenario: Scenario) -> None:
+    """Refuse a base whose actor does not fit the scenario's networks, before any folder.
+
+    The fine-tune loads the base into networks of ``[ppo].hidden_dims``; a base trained
+    with other dims (or for another task) would fail there, after its variant folder was
+    made. Loading its actor here (:func:`~amuled_ma.learn.policies.load_policy`) finds it
+    while nothing is written.
+
+    Raises:
+        CheckpointError: The actor does not fit; one line naming the base, the dims and
+            the fix.
+
+    """
+    from amuled_ma.learn.policies import load_policy
+
+    try:
+        load_policy(base, scenario)
+    except CheckpointError as error:
+        if "does not fit" not in str(error):
+            raise  # unreadable: the checkpoint's own line
+        raise CheckpointError(
+            f"base checkpoint {base}: its networks do not fit this scenario's "
+            f"([ppo].hidden_dims = {list(scenario.ppo.hidden_dims)}, task "
+            f"{scenario.task.name!r}); fine-tune with the [ppo] settings and task the base was "
+            f"trained with (its record: {base.parent / 'config.json'}), or train a base with "
+            "these; nothing was written"
+        ) from None
 
 
 def prepare_job(
