@@ -338,6 +338,8 @@ def fetch_authors_base(task: str, *, offline: bool = False) -> Path | None:
 
 #: How the report's summary of every variant against the paper starts (:func:`put_summary`).
 SUMMARY_HEADING = "## Every variant beside the paper"
+#: The paper's main comparison, in the order of its table.
+MAIN_VARIANTS = ("base", "shaped", "finetune-human", "finetune-amuled")
 
 
 def _cell(metrics: dict[str, Any], name: str) -> str:
@@ -345,17 +347,26 @@ def _cell(metrics: dict[str, Any], name: str) -> str:
     return f"{value['mean']:.2f} ± {value['half_width']:.2f}"
 
 
-def summary_lines(scenario: Scenario, results: dict[str, Any], base: str | None) -> list[str]:
+def summary_lines(
+    scenario: Scenario,
+    results: dict[str, Any],
+    base: str | None,
+    base_results: dict[str, Any] | None = None,
+) -> list[str]:
     """The report's first section: each main variant, sampled, beside the paper's row.
 
     One sentence per variant of the paper's main comparison found in ``results``: its paper
     metrics (sampled policy, mean ± half-width of the 95% interval), the paper's figures,
-    and on FindMilk the share of greedy episodes that reach the milk.
+    and on FindMilk the share of greedy episodes that reach the milk. When the fine-tunes
+    started from the authors' published base, that base is the base row (``base_results``,
+    measured by our evaluator) and the run's own base follows it, named as such.
 
     Args:
         scenario: The demo's scenario (its task and budget).
         results: ``results.json`` of the run.
         base: The folder the fine-tunes started from (None: the run's own base).
+        base_results: That folder's evaluation (``{"sampled": ..., "greedy": ...}`` as a
+            variant of ``results.json``); None: no base row of its own.
 
     Returns:
         The section's lines, its heading first.
@@ -381,14 +392,20 @@ def summary_lines(scenario: Scenario, results: dict[str, Any], base: str | None)
         f"metric), {names}, mean ± 95% interval over the evaluation episodes:",
         "",
     ]
-    for variant in ("base", "shaped", "finetune-human", "finetune-amuled"):
-        found = results.get("variants", {}).get(variant)
+    rows = [(v, results.get("variants", {}).get(v), "") for v in MAIN_VARIANTS]
+    if base and base_results:
+        own = f"this run's own base, {scenario.base.total_steps:,} steps, the shaped policy's twin"
+        rows[0] = ("base", rows[0][1], own)
+        start_row = ("base", base_results, "the authors' published base the fine-tunes start from")
+        rows.insert(0, start_row)
+    for variant, found, words in rows:
         row = paper_row(task, variant)
         if not found or not found.get("sampled") or row is None:
             continue
         ours = " / ".join(_cell(found["sampled"]["metrics"], c) for c in columns)
         paper = " / ".join(f"{row.values[c]:g}" for c in columns)
-        sentence = f"- **{row.label}** (`{variant}`): {ours}; the paper {paper}"
+        name = f"`{variant}`" if not words else f"`{variant}`: {words}"
+        sentence = f"- **{row.label}** ({name}): {ours}; the paper {paper}"
         greedy = (found.get("greedy") or {}).get("metrics", {})
         if "reached_milk" in greedy:
             share = greedy["reached_milk"]["mean"]
@@ -418,16 +435,50 @@ def put_summary(run_dir: Path, scenario: Scenario) -> None:
     fix = f"is it the right folder? Write the report again with 'amuled evaluate {run_dir}'"
     text = read_bounded_bytes(report, MAX_REPORT_BYTES, "report", fix=fix).decode("utf-8")
     data = json.loads(read_bounded_bytes(results, MAX_REPORT_BYTES, "results", fix=fix))
-    base = None
+    base, base_results = None, None
     if scenario.finetune.recipe == "authors":
         imported = Path(scenario.output.runs_dir) / "authors" / scenario.task.name / "base"
-        base = str(imported) if (imported / "model_last.pt").is_file() else None
+        if (imported / "model_last.pt").is_file():
+            base, base_results = str(imported), evaluate_folder(imported, scenario)
     title, _, rest = text.partition("\n")
     if rest.lstrip("\n").startswith(SUMMARY_HEADING):  # a re-run: replace the old one
         rest = rest.lstrip("\n")
         rest = rest[rest.find("\n## ", 1) + 1 :] if "\n## " in rest else ""
-    section = "\n".join(summary_lines(scenario, data, base))
+    section = "\n".join(summary_lines(scenario, data, base, base_results))
     write_text_atomic(report, f"{title}\n\n{section}\n{rest.lstrip(chr(10))}")
+
+
+def evaluate_folder(folder: Path, scenario: Scenario) -> dict[str, Any]:
+    """One policy folder's evaluation, as a variant of ``results.json`` holds it.
+
+    The scenario's evaluation (episodes, seed, confidence) in each of its modes, by the
+    evaluator that wrote the run's results, so the rows compare like with like.
+
+    Args:
+        folder: A variant folder holding ``model_last.pt``.
+        scenario: The run's scenario.
+
+    Returns:
+        ``{mode: {"metrics": {metric: {"mean", "half_width", ...}}}}``.
+
+    Raises:
+        CheckpointError: The checkpoint cannot be loaded (one line naming it).
+
+    """
+    from amuled_ma.evaluate.evaluator import run_episodes, summarize
+    from amuled_ma.learn.checkpoints import LAST
+    from amuled_ma.learn.policies import load_policy
+
+    ev = scenario.evaluation
+    actor = load_policy(folder / LAST, scenario)
+    entry: dict[str, Any] = {}
+    for mode in ev.modes:
+        records, _ = run_episodes(
+            actor, scenario, episodes=ev.episodes, mode=mode, seed=ev.seed,
+            record_trajectory=False,
+        )  # fmt: skip
+        entry[mode] = {"metrics": summarize(records, ev.confidence)}
+    return entry
 
 
 def demo_title(scenario: Scenario) -> str:
