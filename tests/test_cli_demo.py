@@ -102,7 +102,7 @@ def test_demo_without_the_recording_says_where_to_put_it_in_one_line(
     code = main(["demo", "--run-dir", str(tmp_path / "demo")])
     elapsed = time.monotonic() - start
     err = capsys.readouterr().err
-    assert code == 2 and elapsed < 10.0
+    assert code == 1 and elapsed < 10.0  # an input refused (docs/trust.md, exit codes)
     lines = [line for line in err.splitlines() if line.strip()]
     assert len(lines) == 1, err
     assert "findmilk-gpt-4o-mini" in err and "run without it to fetch" in err

@@ -133,12 +133,13 @@ def demo_command(args: argparse.Namespace) -> int:
     from amuled_ma.beliefs.hosts import DEFAULT_HOST, TINY_MODEL, preflight
     from amuled_ma.beliefs.timing import cache_reuse, record_timings
     from amuled_ma.cli import FAILURES, report_failure
+    from amuled_ma.errors import EXIT_REFUSED
 
     start = time.perf_counter()
     missing = missing_recording(args.task, offline=args.offline)
-    if missing:
+    if missing:  # an input refused, as every command's (not a usage error)
         print(f"amuled: error: {missing}", file=sys.stderr)
-        return 2
+        return EXIT_REFUSED
     fetch_authors_base(args.task, offline=args.offline)
     model = args.model or TINY_MODEL
     host = args.host or os.environ.get("OLLAMA_HOST")
