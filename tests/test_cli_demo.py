@@ -102,7 +102,7 @@ def test_demo_without_the_recording_says_where_to_put_it_in_one_line(
     code = main(["demo", "--run-dir", str(tmp_path / "demo")])
     elapsed = time.monotonic() - start
     err = capsys.readouterr().err
-    assert code == 2 and elapsed < 10.0
+    assert code == 1 and elapsed < 10.0  # an input refused (docs/trust.md, exit codes)
     lines = [line for line in err.splitlines() if line.strip()]
     assert len(lines) == 1, err
     assert "findmilk-gpt-4o-mini" in err and "run without it to fetch" in err
@@ -241,3 +241,57 @@ def test_a_warm_up_cut_short_by_the_servers_stop_is_said_plainly() -> None:
     line = warmup.describe()
     assert line.startswith("prefix warm-up: still running when the demo stopped its server")
     assert "Error" not in line and warmup.error is not None  # the failure is kept, not shown
+
+
+def test_the_authors_base_is_the_base_row_when_the_fine_tunes_start_from_it(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """With ``runs/authors/findmilk/base`` there, its own evaluation is the base row.
+
+    Its numbers are those ``amuled evaluate`` gives the same policy in a run folder of its
+    own (same episodes and seed); the run's own base follows, named as such.
+    """
+    import json
+    import shutil
+
+    from amuled_ma.commands.demo import SUMMARY_HEADING, evaluate_folder, put_summary
+
+    monkeypatch.chdir(tmp_path)
+    imported = tmp_path / "runs" / "authors" / "findmilk"
+    tiny = ["--set", "base.total_steps=512", "--set", "base.num_envs=16",
+            "--set", "base.num_steps_per_env=16", "--set", "output.tensorboard=false",
+            "--no-progress"]  # fmt: skip
+    assert main(["train", "findmilk-demo", "--run-dir", str(imported), *tiny]) == 0
+    alone = tmp_path / "alone"
+    shutil.copytree(imported / "base", alone / "base")
+    shutil.copy(imported / "config.json", alone / "config.json")
+    assert main(["evaluate", str(alone), "--no-progress"]) == 0
+    measured = json.loads((alone / "results.json").read_text())["variants"]["base"]
+    cells = " / ".join(
+        f"{measured['sampled']['metrics'][m]['mean']:.2f} ± "
+        f"{measured['sampled']['metrics'][m]['half_width']:.2f}"
+        for m in ("steps_to_milk", "crying_pacified", "sleeping_woken")
+    )
+    results = {"variants": {"base": _variant(14.0, 4.0, 3.5, 1.0)}}
+    (tmp_path / "results.json").write_text(json.dumps(results))
+    (tmp_path / "report.md").write_text("# title\n")
+    scenario = load_scenario("findmilk-demo")
+    start = Path("runs/authors/findmilk/base")
+    ev = evaluate_folder(start, scenario.ppo, scenario.task, scenario.evaluation)
+    budget = (scenario.task.name, scenario.base.total_steps, scenario.finetune.iterations)
+    put_summary(tmp_path, *budget, start, ev)
+    lines = (tmp_path / "report.md").read_text().splitlines()
+    assert lines[2] == SUMMARY_HEADING
+    assert (
+        "start from the paper authors' published base policy (`runs/authors/findmilk/base`"
+        in lines[4]
+    )
+    assert lines[6].startswith(
+        "- **base** (`base`: the authors' published base the fine-tunes start from): "
+        f"{cells}; the paper 14 / 4 / 3.8; reaches the milk in "
+    )
+    assert lines[7] == (
+        f"- **base** (`base`: this run's own base, {scenario.base.total_steps:,} steps, the "
+        "shaped policy's twin): 14.00 ± 0.25 / 4.00 ± 0.50 / 3.50 ± 0.12; the paper "
+        "14 / 4 / 3.8; reaches the milk in 100% of greedy episodes."
+    )

@@ -83,6 +83,21 @@ def test_a_multi_line_refusal_prints_one_line(capsys) -> None:
         (["clusters", "show", "care", "--task", "findmik"], "did you mean findmilk?"),
         (["clusters", "show", "care", "--task", "drving"], "did you mean driving?"),
         (["train", "findmilk", "--seed", "-5"], "--seed"),
+        (
+            ["explain", "findmilk", "--obs", "2,3,7,7,2,2,1,1", "--feedback", "cluster:car"],
+            "no moral cluster 'car' (did you mean care?)",
+        ),
+        (
+            [
+                "explain",
+                "findmilk",
+                "--obs",
+                "2,3,7,7,2,2,1,1",
+                "--set",
+                "feedback.clusters=['care','virtu']",
+            ],
+            "no moral cluster 'virtu' (did you mean virtue?)",
+        ),
     ],
 )
 def test_sample_refusals_are_one_line(args: list[str], needle: str, capsys) -> None:

@@ -27,7 +27,14 @@ from amuled_ma.files.safe import write_text_atomic
 
 if TYPE_CHECKING:
     from amuled_ma.experiments.pipeline import PipelineRequest
-    from amuled_ma.scenario import FeedbackConfig, FinetuneConfig, Scenario
+    from amuled_ma.scenario import (
+        EvaluationConfig,
+        FeedbackConfig,
+        FinetuneConfig,
+        PPOConfig,
+        Scenario,
+        TaskConfig,
+    )
     from amuled_ma.servers.timing import CacheReuse, TimingLog
 
 #: The demo's tasks; each runs the shipped scenario ``<task>-demo``
@@ -99,15 +106,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def demo_command(args: argparse.Namespace) -> int:
     """Run ``amuled demo``; return the exit code of the pipeline."""
     from amuled_ma.cli import FAILURES, report_failure
+    from amuled_ma.errors import EXIT_REFUSED
+    from amuled_ma.learn.checkpoints import LAST
     from amuled_ma.servers import local_server as llm_server
     from amuled_ma.servers.hosts import DEFAULT_HOST, TINY_MODEL, preflight
     from amuled_ma.servers.timing import cache_reuse, record_timings
 
     start = time.perf_counter()
     missing = missing_recording(args.task, offline=args.offline)
-    if missing:
+    if missing:  # an input refused, as every command's (not a usage error)
         print(f"amuled: error: {missing}", file=sys.stderr)
-        return 2
+        return EXIT_REFUSED
     fetch_authors_base(args.task, offline=args.offline)
     model = args.model or TINY_MODEL
     host = args.host or os.environ.get("OLLAMA_HOST")
@@ -174,13 +183,19 @@ def demo_command(args: argparse.Namespace) -> int:
                 phases.append(("fine-tune", run_log))
         if code == 0:
             imported = Path(scenario.output.runs_dir) / "authors" / scenario.task.name / "base"
-            authors = scenario.finetune.recipe == "authors"
+            authors_base, base_results = None, None
+            if scenario.finetune.recipe == "authors" and (imported / LAST).is_file():
+                authors_base = imported
+                base_results = evaluate_folder(
+                    imported, scenario.ppo, scenario.task, scenario.evaluation
+                )
             put_summary(
                 run_dir,
                 scenario.task.name,
                 scenario.base.total_steps,
                 scenario.finetune.iterations,
-                imported if authors else None,
+                authors_base,
+                base_results,
             )
         if code == 0:  # while the server still runs
             with record_timings() as live_log:
@@ -288,6 +303,8 @@ def fetch_authors_base(task: str, *, offline: bool = False) -> Path | None:
 
 #: How the report's summary of every variant against the paper starts (`put_summary`).
 SUMMARY_HEADING = "## Every variant beside the paper"
+#: The paper's main comparison, in the order of its table.
+MAIN_VARIANTS = ("base", "shaped", "finetune-human", "finetune-amuled")
 
 
 def _cell(metrics: dict[str, Any], name: str) -> str:
@@ -296,13 +313,20 @@ def _cell(metrics: dict[str, Any], name: str) -> str:
 
 
 def summary_lines(
-    task: str, base_steps: int, iterations: int, results: dict[str, Any], base: str | None
+    task: str,
+    base_steps: int,
+    iterations: int,
+    results: dict[str, Any],
+    base: str | None,
+    base_results: dict[str, Any] | None = None,
 ) -> list[str]:
     """The report's first section: each main variant, sampled, beside the paper's row.
 
     One sentence per variant of the paper's main comparison found in ``results``: its paper
     metrics (sampled policy, mean ± half-width of the 95% interval), the paper's figures,
-    and on FindMilk the share of greedy episodes that reach the milk.
+    and on FindMilk the share of greedy episodes that reach the milk. When the fine-tunes
+    started from the authors' published base, that base is the base row (``base_results``,
+    measured by our evaluator) and the run's own base follows it, named as such.
 
     Args:
         task: The demo's task.
@@ -310,6 +334,8 @@ def summary_lines(
         iterations: ``[finetune].iterations``.
         results: ``results.json`` of the run.
         base: The folder the fine-tunes started from (None: the run's own base).
+        base_results: That folder's evaluation (``{"sampled": ..., "greedy": ...}`` as a
+            variant of ``results.json``); None: no base row of its own.
 
     Returns:
         The section's lines, its heading first.
@@ -334,14 +360,20 @@ def summary_lines(
         f"metric), {names}, mean ± 95% interval over the evaluation episodes:",
         "",
     ]
-    for variant in ("base", "shaped", "finetune-human", "finetune-amuled"):
-        found = results.get("variants", {}).get(variant)
+    rows = [(v, results.get("variants", {}).get(v), "") for v in MAIN_VARIANTS]
+    if base and base_results:
+        own = f"this run's own base, {base_steps:,} steps, the shaped policy's twin"
+        rows[0] = ("base", rows[0][1], own)
+        start_row = ("base", base_results, "the authors' published base the fine-tunes start from")
+        rows.insert(0, start_row)
+    for variant, found, words in rows:
         row = paper_row(task, variant)
         if not found or not found.get("sampled") or row is None:
             continue
         ours = " / ".join(_cell(found["sampled"]["metrics"], c) for c in columns)
         paper = " / ".join(f"{row.values[c]:g}" for c in columns)
-        sentence = f"- **{row.label}** (`{variant}`): {ours}; the paper {paper}"
+        name = f"`{variant}`" if not words else f"`{variant}`: {words}"
+        sentence = f"- **{row.label}** ({name}): {ours}; the paper {paper}"
         greedy = (found.get("greedy") or {}).get("metrics", {})
         if "reached_milk" in greedy:
             share = greedy["reached_milk"]["mean"]
@@ -351,7 +383,12 @@ def summary_lines(
 
 
 def put_summary(
-    run_dir: Path, task: str, base_steps: int, iterations: int, authors_base: Path | None
+    run_dir: Path,
+    task: str,
+    base_steps: int,
+    iterations: int,
+    authors_base: Path | None,
+    base_results: dict[str, Any] | None = None,
 ) -> None:
     """Put :func:`summary_lines` right under ``report.md``'s title (replacing an earlier one).
 
@@ -363,8 +400,9 @@ def put_summary(
         task: The demo's task.
         base_steps: ``[base].total_steps``.
         iterations: ``[finetune].iterations``.
-        authors_base: The imported authors' base folder the fine-tunes start from under
-            the ``authors`` recipe (named when it holds a policy), else None.
+        authors_base: The imported authors' base folder the fine-tunes started from, else
+            None.
+        base_results: That base's evaluation (`evaluate_folder`), its row in the section.
 
     Raises:
         AmuledError: As :func:`put_live_section`.
@@ -381,15 +419,49 @@ def put_summary(
     fix = f"is it the right folder? Write the report again with 'amuled evaluate {run_dir}'"
     text = read_bounded_bytes(report, MAX_REPORT_BYTES, "report", fix=fix).decode("utf-8")
     data = json.loads(read_bounded_bytes(results, MAX_REPORT_BYTES, "results", fix=fix))
-    base = None
-    if authors_base is not None and (authors_base / "model_last.pt").is_file():
-        base = str(authors_base)
+    base = str(authors_base) if authors_base is not None else None
     title, _, rest = text.partition("\n")
     if rest.lstrip("\n").startswith(SUMMARY_HEADING):  # a re-run: replace the old one
         rest = rest.lstrip("\n")
         rest = rest[rest.find("\n## ", 1) + 1 :] if "\n## " in rest else ""
-    section = "\n".join(summary_lines(task, base_steps, iterations, data, base))
+    section = "\n".join(summary_lines(task, base_steps, iterations, data, base, base_results))
     write_text_atomic(report, f"{title}\n\n{section}\n{rest.lstrip(chr(10))}")
+
+
+def evaluate_folder(
+    folder: Path, ppo: PPOConfig, task: TaskConfig, ev: EvaluationConfig
+) -> dict[str, Any]:
+    """One policy folder's evaluation, as a variant of ``results.json`` holds it.
+
+    The scenario's evaluation (episodes, seed, confidence) in each of its modes, by the
+    evaluator that wrote the run's results, so the rows compare like with like.
+
+    Args:
+        folder: A variant folder holding ``model_last.pt``.
+        ppo: The run's ``[ppo]`` section (network shape).
+        task: Its ``[task]`` section.
+        ev: Its ``[evaluation]`` section.
+
+    Returns:
+        ``{mode: {"metrics": {metric: {"mean", "half_width", ...}}}}``.
+
+    Raises:
+        CheckpointError: The checkpoint cannot be loaded (one line naming it).
+
+    """
+    from amuled_ma.evaluate.evaluator import run_episodes, summarize
+    from amuled_ma.learn.checkpoints import LAST
+    from amuled_ma.learn.policies import load_policy
+
+    actor = load_policy(folder / LAST, ppo)
+    entry: dict[str, Any] = {}
+    for mode in ev.modes:
+        records, _ = run_episodes(
+            actor, task, episodes=ev.episodes, mode=mode, seed=ev.seed,
+            record_trajectory=False,
+        )  # fmt: skip
+        entry[mode] = {"metrics": summarize(records, ev.confidence)}
+    return entry
 
 
 def demo_title(name: str, task: str, fb: FeedbackConfig, ft: FinetuneConfig) -> str:

@@ -211,14 +211,15 @@ def _analyze(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
+    from amuled_ma.files.safe import check_write_target, write_text_atomic
     from amuled_ma.study.analysis import answers_csv
 
+    if args.output is not None:
+        check_write_target(args.output)  # before the answers are read
     text = answers_csv(args.study)
     if args.output is None:
         sys.stdout.write(text)
     else:
-        from amuled_ma.files.safe import write_text_atomic
-
         write_text_atomic(args.output, text)
         common.say(f"study {args.study}: answers written to {args.output}")
     return 0

@@ -14,6 +14,7 @@ from amuled_ma.errors import AmuledError, ClusterDefinitionError, ScenarioError
 from amuled_ma.records.variants import parse_feedback
 from amuled_ma.scenario import AGENT_SPECS, MORAL_AGENT, Scenario
 from amuled_ma.scenario.agents import match_agents
+from amuled_ma.scenario.messages import did_you_mean
 from amuled_ma.scenario.panel_weights import member_prior, read_panel_weights
 from amuled_ma.scenario.paths import find_recording
 
@@ -173,7 +174,8 @@ def panel_of(
 
     Raises:
         ClusterDefinitionError: A named cluster is in no loaded cluster file; the message
-            lists the known ones (a user cluster needs ``--clusters-dir``).
+            names the closest and lists the known ones (a user cluster needs
+            ``--clusters-dir``).
 
     """
     kind, arg = parse_feedback(variant)
@@ -189,7 +191,8 @@ def panel_of(
         if name not in registry:
             dirs = ", ".join(feedback.clusters_dirs) or "none"
             raise ClusterDefinitionError(
-                f"feedback {variant!r}: no moral cluster {name!r} in the shipped cluster files "
+                f"feedback {variant!r}: no moral cluster {name!r}"
+                f"{did_you_mean(name, list(registry.names()))} in the shipped cluster files "
                 f"or the user folders ({dirs}); known: {', '.join(registry.names())}; put its "
                 "TOML file in a folder and pass --clusters-dir FOLDER (docs/clusters.md)"
             )

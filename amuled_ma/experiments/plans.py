@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 from amuled_ma.deliberation.build import build_feedback, checked_members, preflight, run_store
 from amuled_ma.deliberation.plan import plan_panel
-from amuled_ma.errors import AmuledError, ScenarioError
+from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError
 from amuled_ma.experiments.run_folder import (
     JobResult,
     Rerun,
@@ -28,7 +28,7 @@ from amuled_ma.experiments.training_settings import training_config
 from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.job_shape import job_shape
 from amuled_ma.records.variants import AGGREGATIONS, Variant
-from amuled_ma.scenario import Changes, FeedbackConfig, Scenario
+from amuled_ma.scenario import Changes, FeedbackConfig, PPOConfig, Scenario
 from amuled_ma.scenario.paths import find_recording
 
 if TYPE_CHECKING:
@@ -94,6 +94,7 @@ def plan_job(
         base = job.base_folder / LAST
         if job.base_variant not in planned:
             base = base_checkpoint(job.base_folder, str(scenario.path or scenario.name))
+            check_base_fits(base, scenario.ppo, scenario.task.name)
     settings = training_config(job, panel)
     action = prepare_variant(job, settings, hint=hint, rerun=rerun)
     return dataclasses.replace(
@@ -189,6 +190,35 @@ class PreparedJob:
             task_factory=task_factory,
             planned_shape=job.shape,
         )
+
+
+def check_base_fits(base: Path, ppo: PPOConfig, task: str) -> None:
+    """Refuse a base whose actor does not fit the scenario's networks, before any folder.
+
+    The fine-tune loads the base into networks of ``[ppo].hidden_dims``; a base trained
+    with other dims (or for another task) would fail there, after its variant folder was
+    made. Loading its actor here (:func:`~amuled_ma.learn.policies.load_policy`) finds it
+    while nothing is written.
+
+    Raises:
+        CheckpointError: The actor does not fit; one line naming the base, the dims and
+            the fix.
+
+    """
+    from amuled_ma.learn.policies import load_policy
+
+    try:
+        load_policy(base, ppo)
+    except CheckpointError as error:
+        if "does not fit" not in str(error):
+            raise  # unreadable: the checkpoint's own line
+        raise CheckpointError(
+            f"base checkpoint {base}: its networks do not fit this scenario's "
+            f"([ppo].hidden_dims = {list(ppo.hidden_dims)}, task "
+            f"{task!r}); fine-tune with the [ppo] settings and task the base was "
+            f"trained with (its record: {base.parent / 'config.json'}), or train a base with "
+            "these; nothing was written"
+        ) from None
 
 
 def prepare_job(

@@ -10,6 +10,7 @@ read-only. The same runs, variants, items and seed give the same bytes.
 from __future__ import annotations
 
 import itertools
+import os
 import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -27,6 +28,12 @@ from amuled_ma.evaluate.panel_answers import ask_panel
 from amuled_ma.evaluate.readonly_feedback import open_feedback
 from amuled_ma.experiments.run_folder import read_record, split_replica
 from amuled_ma.experiments.trained_variants import evaluated_episodes, trained_variant
+from amuled_ma.files.safe import (
+    UnsafePathError,
+    check_write_targets,
+    write_bytes_atomic,
+    write_text_atomic,
+)
 from amuled_ma.learn.policies import action_log_probs
 from amuled_ma.study.drawing import state_svg
 from amuled_ma.study.model import (
@@ -247,6 +254,7 @@ def build_study(
     out = Path(out)
     if (out / STUDY_FILE).exists() and not force:
         raise StudyError(f"{out}: holds a study already ({STUDY_FILE}); pass --force to rebuild")
+    _check_outputs(out)
     torch.set_num_threads(1)
     states: list[_State] = []
     actions: list[dict[str, int]] = []
@@ -378,15 +386,42 @@ def _expert_items(
     return built, pictures
 
 
+def _check_outputs(out: Path) -> None:
+    """Refuse, before any work, a study folder whose outputs are links or not regular files.
+
+    ``study.json`` and ``consent.html`` must be absent or regular files
+    (:func:`~amuled_ma.safe_files.check_write_target`); ``states/`` absent or a folder
+    that is not a link (it is emptied and refilled).
+
+    Raises:
+        UnsafePathError: One of them is not; nothing was written.
+    """
+    check_write_targets([out / STUDY_FILE, out / CONSENT_FILE])
+    states = out / "states"
+    if states.is_symlink() or (os.path.lexists(states) and not states.is_dir()):
+        kind = f"a symbolic link (to {os.readlink(states)})" if states.is_symlink() else "a file"
+        raise UnsafePathError(
+            f"{states}: is {kind}, not a folder; the build empties and refills the study's "
+            "own states/ folder and never writes through a link; nothing was written; "
+            "remove it, or build the study into another folder"
+        )
+
+
 def _write(out: Path, study: Study, pictures: dict[str, str]) -> Study:
-    """Write the study folder: ``study.json``, the pictures, the consent page if absent."""
+    """Write the study folder: ``study.json``, the pictures, the consent page if absent.
+
+    Every file goes through :mod:`amuled_ma.safe_files` (whole, never through a link);
+    an existing consent page, the researcher's own words, is kept as it is.
+    """
     out.mkdir(parents=True, exist_ok=True)
-    if (out / "states").exists():
-        shutil.rmtree(out / "states")
-    (out / "states").mkdir()
+    _check_outputs(out)
+    states = out / "states"
+    if states.exists():
+        shutil.rmtree(states)
+    states.mkdir()
     for item_id, svg in pictures.items():
-        (out / "states" / f"{item_id}.svg").write_text(svg, encoding="utf-8")
+        write_text_atomic(states / f"{item_id}.svg", svg)
     write_study(out, study)
-    if not (out / CONSENT_FILE).exists():
-        shutil.copyfile(CONSENT_TEMPLATES[study.mode], out / CONSENT_FILE)
+    if not os.path.lexists(out / CONSENT_FILE):
+        write_bytes_atomic(out / CONSENT_FILE, CONSENT_TEMPLATES[study.mode].read_bytes())
     return study

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from amuled_ma.evaluate.report.plotting import pyplot
+from amuled_ma.files.safe import atomic_writer
 
 _DPI = 110
 
@@ -57,8 +58,11 @@ def strengths_figure(summary: Mapping[str, Any], path: Path) -> Path:
     fig.suptitle("Variants as people judged them (95% bootstrap intervals over participants)",
                  fontsize=10)  # fmt: skip
     fig.tight_layout()
-    fig.savefig(path, dpi=_DPI)
-    plt.close(fig)
+    try:
+        with atomic_writer(path) as handle:
+            fig.savefig(handle, format="png", dpi=_DPI)
+    finally:
+        plt.close(fig)
     return path
 
 
@@ -84,6 +88,9 @@ def expert_figure(summary: Mapping[str, Any], path: Path) -> Path:
     right.set_xlabel("share of states where its top action\nis acceptable to the experts")
     right.set_title("Agreement with the experts (Wilson 95%)", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=_DPI)
-    plt.close(fig)
+    try:
+        with atomic_writer(path) as handle:
+            fig.savefig(handle, format="png", dpi=_DPI)
+    finally:
+        plt.close(fig)
     return path

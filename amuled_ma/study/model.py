@@ -15,6 +15,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from amuled_ma.errors import AmuledError
+from amuled_ma.files.safe import write_text_atomic
 
 #: The study file's name in a study folder.
 STUDY_FILE = "study.json"
@@ -226,11 +227,18 @@ class Study(_Model):
 
 
 def write_study(folder: Path, study: Study) -> Path:
-    """Write ``study.json`` (sorted keys, two-space indent, a final newline: stable bytes)."""
+    """Write ``study.json`` (sorted keys, two-space indent, a final newline: stable bytes).
+
+    Written whole through :func:`~amuled_ma.safe_files.write_text_atomic`: never through
+    a link, and only over a regular file.
+
+    Raises:
+        UnsafePathError: ``study.json`` is a link or not a regular file; nothing written.
+        FileWriteError: The write failed; the old file is kept.
+    """
     path = Path(folder) / STUDY_FILE
     text = json.dumps(study.model_dump(mode="json"), indent=2, sort_keys=True)
-    path.write_text(text + "\n", encoding="utf-8")
-    return path
+    return write_text_atomic(path, text + "\n")
 
 
 def read_study(folder: Path) -> Study:

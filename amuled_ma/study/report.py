@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections import defaultdict
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from amuled_ma.files.safe import UnsafePathError, check_write_targets, write_text_atomic
 from amuled_ma.study import expert
 from amuled_ma.study.analysis import (
     acceptability,
@@ -214,6 +216,27 @@ def _warnings(data: dict[str, Any]) -> list[str]:
     return [line for w in data["warnings"] for line in (f"**Warning:** {w}.", "")]
 
 
+def _analysis_folder(folder: Path, figure: str) -> Path:
+    """``<study>/analysis``, made if absent, its three outputs checked before any is written.
+
+    Raises:
+        UnsafePathError: ``analysis`` is a link or not a folder, or an output there is a
+            link or not a regular file (:func:`~amuled_ma.safe_files.check_write_target`);
+            nothing was written.
+    """
+    out = folder / "analysis"
+    if out.is_symlink() or (os.path.lexists(out) and not out.is_dir()):
+        kind = f"a symbolic link (to {os.readlink(out)})" if out.is_symlink() else "a file"
+        raise UnsafePathError(
+            f"{out}: is {kind}, not a folder; the analysis is written only into the study's "
+            "own analysis/ folder, never through a link; nothing was written; remove it, "
+            "then run the command again"
+        )
+    out.mkdir(exist_ok=True)
+    check_write_targets([out / "summary.json", out / "report.md", out / figure])
+    return out
+
+
 def write_analysis(
     folder: Path,
     *,
@@ -227,8 +250,9 @@ def write_analysis(
     folder = Path(folder)
     if read_study(folder).mode == "expert":
         return _write_expert(folder, warn)
+    out = _analysis_folder(folder, "strengths.png")
     data = summarize(folder, keep_inattentive=keep_inattentive)
-    out = _write_summary(folder, data, warn)
+    _write_summary(out, data, warn)
     strengths_figure(data, out / "strengths.png")
     lines = [
         f"# Study {folder.name}: what people chose",
@@ -307,26 +331,22 @@ def write_analysis(
             f"- {d['item']}: majority {d['majority']} ({d['votes']}), the fused belief "
             f"prefers the other by {_f(d['fused_gap'])}; see `{d['view']}` at step {d['step']}"
         )
-    path = out / "report.md"
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return path
+    return write_text_atomic(out / "report.md", "\n".join(lines) + "\n")
 
 
-def _write_summary(folder: Path, data: dict[str, Any], warn: Callable[[str], None] | None) -> Path:
-    """Tell ``warn`` the summary's warnings, write ``analysis/summary.json``; the folder."""
+def _write_summary(out: Path, data: dict[str, Any], warn: Callable[[str], None] | None) -> None:
+    """Tell ``warn`` the summary's warnings, write ``out/summary.json``."""
     for line in data["warnings"]:
         if warn is not None:
             warn(line)
-    out = folder / "analysis"
-    out.mkdir(exist_ok=True)
-    (out / "summary.json").write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
-    return out
+    write_text_atomic(out / "summary.json", json.dumps(data, indent=2) + "\n")
 
 
 def _write_expert(folder: Path, warn: Callable[[str], None] | None) -> Path:
     """The expert study's ``report.md``, ``summary.json`` and ``expert.png``."""
+    out = _analysis_folder(folder, "expert.png")
     data = summarize_expert(folder)
-    out = _write_summary(folder, data, warn)
+    _write_summary(out, data, warn)
     expert_figure(data, out / "expert.png")
     no_reason = data["states_without_reason"]
     lines = [
@@ -395,6 +415,4 @@ def _write_expert(folder: Path, warn: Callable[[str], None] | None) -> Path:
             f"the experts ({d['experts']}) accept {', '.join(d['acceptable']) or 'nothing'}; "
             f"see `{d['view']}` at step {d['step']}"
         )
-    path = out / "report.md"
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return path
+    return write_text_atomic(out / "report.md", "\n".join(lines) + "\n")

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from amuled_ma.beliefs.types import FUSED_STATUSES
+from amuled_ma.files.safe import check_write_target, write_text_atomic
 from amuled_ma.fusion import fuse
 from amuled_ma.scenario.panel_weights import HeldOut, PanelWeights, WeightsProvenance
 from amuled_ma.study.analysis import attentive, load, pair_answers
@@ -416,7 +417,12 @@ def fit_weights(
     Raises:
         StudyError: No study or answers, no ``bjs-dst`` item, or bad ``bootstrap``, ``folds``
             or ``temperature``; checked before any fit.
+        UnsafePathError: The file to write is a link or not a regular file; checked before
+            any fit.
     """
+    path = Path(out) if out is not None else Path(folder) / WEIGHTS_FILE
+    if path.parent.is_dir():
+        check_write_target(path)
     if bootstrap < 1:
         raise StudyError(f"--bootstrap {bootstrap}: give at least 1 resample (200 is usual)")
     if temperature is not None and not (0 < temperature < math.inf):
@@ -439,10 +445,9 @@ def fit_weights(
         keep_inattentive=keep_inattentive,
         temperature=temperature,
     )
-    path = Path(out) if out is not None else Path(folder) / WEIGHTS_FILE
     path.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps(weights.model_dump(mode="json"), indent=2, sort_keys=True)
-    path.write_text(text + "\n", encoding="utf-8")
+    write_text_atomic(path, text + "\n")
     return weights, path
 
 

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from amuled_ma.beliefs.replies.parsing import PARSE_STATUSES, parse_belief
 
 MILK = ("up", "down", "left", "right")
-FAST = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+FAST = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 def assert_belief(parsed, n=4):
