@@ -390,7 +390,7 @@ def _check_outputs(out: Path) -> None:
     """Refuse, before any work, a study folder whose outputs are links or not regular files.
 
     ``study.json`` and ``consent.html`` must be absent or regular files
-    (:func:`~amuled_ma.safe_files.check_write_target`); ``states/`` absent or a folder
+    (:func:`~amuled_ma.files.safe.check_write_target`); ``states/`` absent or a folder
     that is not a link (it is emptied and refilled).
 
     Raises:
@@ -410,7 +410,7 @@ def _check_outputs(out: Path) -> None:
 def _write(out: Path, study: Study, pictures: dict[str, str]) -> Study:
     """Write the study folder: ``study.json``, the pictures, the consent page if absent.
 
-    Every file goes through :mod:`amuled_ma.safe_files` (whole, never through a link);
+    Every file goes through :mod:`amuled_ma.files.safe` (whole, never through a link);
     an existing consent page, the researcher's own words, is kept as it is.
     """
     out.mkdir(parents=True, exist_ok=True)

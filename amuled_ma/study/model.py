@@ -229,7 +229,7 @@ class Study(_Model):
 def write_study(folder: Path, study: Study) -> Path:
     """Write ``study.json`` (sorted keys, two-space indent, a final newline: stable bytes).
 
-    Written whole through :func:`~amuled_ma.safe_files.write_text_atomic`: never through
+    Written whole through :func:`~amuled_ma.files.safe.write_text_atomic`: never through
     a link, and only over a regular file.
 
     Raises:

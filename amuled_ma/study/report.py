@@ -221,7 +221,7 @@ def _analysis_folder(folder: Path, figure: str) -> Path:
 
     Raises:
         UnsafePathError: ``analysis`` is a link or not a folder, or an output there is a
-            link or not a regular file (:func:`~amuled_ma.safe_files.check_write_target`);
+            link or not a regular file (:func:`~amuled_ma.files.safe.check_write_target`);
             nothing was written.
     """
     out = folder / "analysis"
