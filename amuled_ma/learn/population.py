@@ -396,6 +396,7 @@ class PopulationTrainer:
             self._stopped(stop)
             raise
         finally:
+            bar.close()  # whatever ends the loop: no watcher thread outlives it
             stopping = sys.exc_info()[0] is not None
             for writer in writers:
                 if writer is not None:
@@ -406,7 +407,6 @@ class PopulationTrainer:
                         else contextlib.nullcontext()
                     ):
                         writer.close()
-        bar.close()
         wall = time.perf_counter() - t0
         paths = self.save_members(range(self.size), completed=True)
         return [self._finish(p, path, batch, wall) for p, path in enumerate(paths)]

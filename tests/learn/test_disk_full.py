@@ -97,3 +97,28 @@ def test_disk_full_during_a_finetune_keeps_the_last_checkpoint(
     monkeypatch.setattr(population_mod.PopulationTrainer, "iterate", original)
     assert main([*finetune, "--resume"]) == 0
     assert checkpoint_state(checkpoint)["completed"] is True
+
+
+def test_no_progress_watcher_outlives_a_training_that_fails(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Whatever ends the loop (here an unexpected error), the progress watcher thread stops."""
+    import threading
+
+    from amuled_ma.learn import population as population_mod
+
+    def fails(self):
+        raise RuntimeError("an unexpected failure inside an iteration")
+
+    monkeypatch.setattr(population_mod.PopulationTrainer, "iterate", fails)
+    before = {t.ident for t in threading.enumerate() if t.name == "progress"}
+    try:
+        code = main(["train", "findmilk", "--run-dir", str(tmp_path / "run"), *tiny_cli.TINY])
+    except RuntimeError:
+        code = -1
+    assert code != 0
+    left = [
+        t for t in threading.enumerate()
+        if t.name == "progress" and t.is_alive() and t.ident not in before
+    ]  # fmt: skip
+    assert left == []
