@@ -92,6 +92,18 @@ def check_write_targets(paths: Iterable[str | os.PathLike[str]]) -> None:
         check_write_target(path)
 
 
+def check_own_folder(folder: Path, why: str) -> None:
+    """Refuse ``folder`` when it is a symbolic link or exists and is not a folder.
+
+    Raises:
+        UnsafePathError: One line naming the folder, what it is, ``why`` (what is written
+            there and the fix) and that nothing was written.
+    """
+    if folder.is_symlink() or (os.path.lexists(folder) and not folder.is_dir()):
+        kind = f"a symbolic link (to {os.readlink(folder)})" if folder.is_symlink() else "a file"
+        raise UnsafePathError(f"{folder}: is {kind}, not a folder; {why}")
+
+
 def failure_fix(code: int | None, then: str, *, elsewhere: str | None = None) -> str:
     """What to do about a write that failed with ``errno`` ``code``, ending ``then ...``.
 

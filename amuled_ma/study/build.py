@@ -29,7 +29,7 @@ from amuled_ma.evaluate.readonly_feedback import open_feedback
 from amuled_ma.experiments.run_folder import read_record, split_replica
 from amuled_ma.experiments.trained_variants import evaluated_episodes, trained_variant
 from amuled_ma.files.safe import (
-    UnsafePathError,
+    check_own_folder,
     check_write_targets,
     write_bytes_atomic,
     write_text_atomic,
@@ -397,14 +397,12 @@ def _check_outputs(out: Path) -> None:
         UnsafePathError: One of them is not; nothing was written.
     """
     check_write_targets([out / STUDY_FILE, out / CONSENT_FILE])
-    states = out / "states"
-    if states.is_symlink() or (os.path.lexists(states) and not states.is_dir()):
-        kind = f"a symbolic link (to {os.readlink(states)})" if states.is_symlink() else "a file"
-        raise UnsafePathError(
-            f"{states}: is {kind}, not a folder; the build empties and refills the study's "
-            "own states/ folder and never writes through a link; nothing was written; "
-            "remove it, or build the study into another folder"
-        )
+    check_own_folder(
+        out / "states",
+        "the build empties and refills the study's own states/ folder and never writes "
+        "through a link; nothing was written; remove it, or build the study into another "
+        "folder",
+    )
 
 
 def _write(out: Path, study: Study, pictures: dict[str, str]) -> Study:

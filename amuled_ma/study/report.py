@@ -8,13 +8,12 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from collections import defaultdict
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from amuled_ma.files.safe import UnsafePathError, check_write_targets, write_text_atomic
+from amuled_ma.files.safe import check_own_folder, check_write_targets, write_text_atomic
 from amuled_ma.study import expert
 from amuled_ma.study.analysis import (
     acceptability,
@@ -225,13 +224,11 @@ def _analysis_folder(folder: Path, figure: str) -> Path:
             nothing was written.
     """
     out = folder / "analysis"
-    if out.is_symlink() or (os.path.lexists(out) and not out.is_dir()):
-        kind = f"a symbolic link (to {os.readlink(out)})" if out.is_symlink() else "a file"
-        raise UnsafePathError(
-            f"{out}: is {kind}, not a folder; the analysis is written only into the study's "
-            "own analysis/ folder, never through a link; nothing was written; remove it, "
-            "then run the command again"
-        )
+    check_own_folder(
+        out,
+        "the analysis is written only into the study's own analysis/ folder, never through "
+        "a link; nothing was written; remove it, then run the command again",
+    )
     out.mkdir(exist_ok=True)
     check_write_targets([out / "summary.json", out / "report.md", out / figure])
     return out
