@@ -15,6 +15,7 @@ import pkgutil
 import re
 import signal
 import sys
+import threading
 import traceback
 from collections.abc import Sequence
 from typing import NoReturn
@@ -115,6 +116,34 @@ def _raise_terminated(signum: int, _frame: object) -> None:
     raise Terminated(signum)
 
 
+class _SignalsNotLost:
+    """While a command runs: a Ctrl-C or SIGTERM whose exception Python drops is sent again.
+
+    A signal's handler runs in whatever the main thread is running, a finalizer (``__del__``,
+    a weakref callback) included, where Python drops its exception ("Exception ignored in
+    ..."); the signal is sent again 0.1 s later, from a timer thread, so that its handler runs
+    after this hook has returned (in the hook its exception would be dropped too), until it
+    lands where the command can stop.
+    """
+
+    def __enter__(self) -> None:
+        self.previous = sys.unraisablehook
+        sys.unraisablehook = self._send_again
+
+    def __exit__(self, *_exc: object) -> None:
+        sys.unraisablehook = self.previous
+
+    def _send_again(self, unraisable: sys.UnraisableHookArgs) -> None:
+        error = unraisable.exc_value
+        if isinstance(error, KeyboardInterrupt):  # Terminated is one too
+            number = signal.SIGTERM if isinstance(error, Terminated) else signal.SIGINT
+            again = threading.Timer(0.1, os.kill, args=(os.getpid(), number))
+            again.daemon = True
+            again.start()
+        else:
+            self.previous(unraisable)
+
+
 #: What a command may raise that the command line reports as one line and an exit status.
 FAILURES = (KeyboardInterrupt, AmuledError, OSError, UnicodeDecodeError)
 
@@ -181,7 +210,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     set_allowed_plugins(getattr(args, "allow_plugin", None) or ())
     previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
-        with third_party_to_log():  # other libraries' warnings: to the log, not the output
+        with third_party_to_log(), _SignalsNotLost():
             return int(args.handler(args) or EXIT_OK)
     except FAILURES as error:
         code = report_failure(error, debug=args.debug)

@@ -139,3 +139,46 @@ def test_view_of_a_missing_folder_imports_neither_torch_nor_matplotlib(tmp_path:
     )
     assert done.stdout.split() == ["1", "False", "False"], done.stderr
     assert "is not a run directory" in one_line(done.stderr)
+
+
+#: A command whose SIGTERM lands inside a finalizer (``__del__``), where Python drops the
+#: handler's exception ("Exception ignored in ..."), then works on for 20 s.
+LOST_IN_A_FINALIZER = """
+import argparse, os, signal, sys, time
+from amuled_ma import cli
+
+class Finalized:
+    def __del__(self):
+        os.kill(os.getpid(), signal.{name})
+        for _ in range(100_000):  # the handler runs in here; its exception is dropped
+            pass
+
+def command(_args):
+    Finalized()  # dropped at once: __del__ runs now
+    end = time.monotonic() + 20
+    while time.monotonic() < end:
+        time.sleep(0.01)
+    print("worked on")
+    return 0
+
+parser = argparse.ArgumentParser()
+parser.set_defaults(handler=command, debug=False)
+cli.build_parser = lambda: parser
+sys.exit(cli.main([]))
+"""
+
+
+@pytest.mark.parametrize(
+    ("name", "meaning"), [("SIGTERM", "terminated"), ("SIGINT", "interrupted")]
+)
+def test_a_signal_whose_exception_a_finalizer_drops_still_stops_the_command(
+    name: str, meaning: str
+) -> None:
+    script = LOST_IN_A_FINALIZER.replace("{name}", name)
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, cwd=REPO
+    )
+    assert "worked on" not in done.stdout
+    assert done.returncode == documented_codes()[meaning]
+    line = {"terminated": "amuled: terminated (SIGTERM)", "interrupted": "amuled: interrupted"}
+    assert done.stderr.splitlines() == [line[meaning]], done.stderr

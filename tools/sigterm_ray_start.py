@@ -11,7 +11,8 @@ SIGTERM to the driver alone, and records its exit status (``hang`` when it has n
 ``--wait`` seconds; it is then killed), whether its stderr is the one line
 ``amuled: terminated (SIGTERM)`` (Ray's C++ core warning about a missing route out,
 which Ray prints before its logger is set, set aside), and whether a run folder was
-left. It ends the namespace's leftover Ray processes before the next run.
+left and how many of Ray's processes outlived the driver by 3 s (then ended, before the next
+run).
 
 Prints one line per run and a summary of the exit-status counts; exits 0 when every run
 exited 143 with one line and left no folder. Needs root (or ``CAP_SYS_ADMIN``) for the
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import json
 import os
 import re
@@ -66,25 +68,43 @@ def _has_child(pid: int, name: str) -> bool:
     return any(ppid == pid and comm.startswith(name) for ppid, comm in _processes().values())
 
 
-def _end_leftovers() -> int:
-    """SIGKILL every process in this namespace but this one (Ray's orphans); how many."""
+def _state(pid: int) -> str:
+    """A process's state letter (``Z``: exited, not yet reaped); ``"-"`` once it is gone."""
+    try:
+        text = (Path("/proc") / str(pid) / "stat").read_text()
+    except OSError:
+        return "-"
+    return text[text.rindex(")") + 2]
+
+
+def _reap() -> None:
+    """Reap exited children (this script is PID 1 here: Ray's orphans are its children)."""
+    with contextlib.suppress(ChildProcessError):
+        while os.waitpid(-1, os.WNOHANG) != (0, 0):
+            pass
+
+
+def _live_others() -> list[int]:
+    """Live processes in this namespace but this one (exited, unreaped ones are gone)."""
     me = os.getpid()
-    count = 0
-    for pid in _processes():
-        if pid != me:
-            try:
-                os.kill(pid, signal.SIGKILL)
-                count += 1
-            except ProcessLookupError:
-                pass
+    return [pid for pid in _processes() if pid != me and _state(pid) not in ("Z", "-")]
+
+
+def _end_leftovers(grace: float = 3.0) -> int:
+    """How many of Ray's processes outlived the driver by ``grace`` s; SIGKILL those."""
+    deadline = time.monotonic() + grace
+    while (left := _live_others()) and time.monotonic() < deadline:
+        _reap()
+        time.sleep(0.05)
+    for pid in left:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
     deadline = time.monotonic() + 10
-    while time.monotonic() < deadline:
-        try:  # reap them (this script is PID 1 here: orphans are its children)
-            if os.waitpid(-1, os.WNOHANG) == (0, 0):
-                time.sleep(0.05)
-        except ChildProcessError:
-            break
-    return count
+    while _live_others() and time.monotonic() < deadline:
+        _reap()
+        time.sleep(0.05)
+    _reap()
+    return len(left)
 
 
 def one_run(work: Path, index: int, delay: float, wait: float) -> dict:
