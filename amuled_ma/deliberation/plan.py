@@ -17,6 +17,7 @@ from amuled_ma.scenario.agents import match_agents
 from amuled_ma.scenario.messages import did_you_mean
 from amuled_ma.scenario.panel_weights import member_prior, read_panel_weights
 from amuled_ma.scenario.paths import find_recording
+from amuled_ma.tasks.names import TASK_NAMES
 
 if TYPE_CHECKING:
     from amuled_ma.scenario.agents import AgentSpec
@@ -383,6 +384,34 @@ def rules_by_name(agents: Sequence[str]) -> str:
     )
 
 
+class NoHumanRule(ScenarioError):
+    """A ``rules`` source asked for the synthetic human on a task that has none."""
+
+
+def _no_human_rule(
+    task: str, plans: Sequence[SourcePlan | None]
+) -> list[tuple[BaseException, str]]:
+    """The ``rules`` sources with policy ``human`` when ``task`` has no synthetic human."""
+    human = [
+        p for p in plans if p is not None and p.kind == "rules" and p.options["policy"] == "human"
+    ]
+    if not human or task in TASK_NAMES:  # the paper's tasks have it (no import of the task)
+        return []
+    from amuled_ma.tasks import get_task  # here: it imports torch
+
+    task_class = get_task(task)
+    if task_class.human_feedback:
+        return []
+    judges = ", ".join(f'"judge:{j}"' for j in task_class.judge_names) or "none"
+    error = NoHumanRule(
+        f"the rules source's policy 'human' is the synthetic human feedback of a task that "
+        f"has one (the paper's two); task {task!r} has none, so it would answer no state; give "
+        f"the agent one of the task's judges (policy = one of {judges}), or a live model or a "
+        'person ([feedback.agents.<name>] source = "ollama" or "terminal"; docs/clusters.md)'
+    )
+    return [(error, p.label) for p in human]
+
+
 def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
     """Resolve a feedback variant of a scenario into its `PanelPlan`, once.
 
@@ -443,6 +472,7 @@ def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
     routes, default, problems = plan_sources(
         scenario.feedback, scenario.resolve, where, clusters, files
     )
+    problems += _no_human_rule(scenario.task.name, [*routes.values(), default])
     replays = any(p.kind == "replay" for p in [*routes.values(), default] if p is not None)
     return dataclasses.replace(
         base,

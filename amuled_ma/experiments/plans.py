@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import sys
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from amuled_ma.deliberation.build import build_feedback, checked_members, preflight, run_store
-from amuled_ma.deliberation.plan import plan_panel
+from amuled_ma.deliberation.plan import NoHumanRule, plan_panel
 from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError
 from amuled_ma.experiments.run_folder import (
     JobResult,
@@ -590,7 +591,10 @@ def plan_ablation(
     for variant, changes in ablation_variants(
         what, scenario.feedback, scenario.task.name, scenario.resolve, where
     ):
-        variants.append((variant, scenario.changed(changes)))
+        changed = scenario.changed(changes)
+        if variant == Variant.finetune("moral") and _no_moral_agent(changed):
+            continue
+        variants.append((variant, changed))
     jobs = []
     for seed in seeds:
         base = replica_folder("base", seed, seeds[0])
@@ -611,6 +615,23 @@ def plan_ablation(
                 )
             jobs.append(job)
     return jobs
+
+
+def _no_moral_agent(scenario: Scenario) -> bool:
+    """Whether the unprompted moral agent would be the synthetic human of a task without one.
+
+    The clusters ablation then leaves its row out, as ``amuled run`` leaves out ``human``,
+    and says so on stderr.
+    """
+    problems = plan_panel("moral", scenario).problems
+    missing = [error for error, _ in problems if isinstance(error, NoHumanRule)]
+    if missing:
+        print(
+            f"amuled: note: no 'moral' row: the unprompted moral agent's source is the rules "
+            f"source, and {missing[0]}",
+            file=sys.stderr,
+        )
+    return bool(missing)
 
 
 def _finished_in_run(job: TrainJob, trained: Path) -> bool:

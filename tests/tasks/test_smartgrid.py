@@ -155,3 +155,27 @@ def test_a_state_two_tasks_show_stays_judgeable_when_one_moves_on():
     second.step(torch.tensor([4, 4]))
     scores = SmartGrid.judge_scores("equity", shown)  # first's copy 1 still shows it
     assert scores.shape == (5,) and scores.max() == 1.0
+
+
+def test_a_moral_agent_on_the_synthetic_human_is_refused_and_left_out_of_the_ablation(
+    tmp_path, capsys
+):
+    from amuled_ma.deliberation.plan import NoHumanRule, plan_panel
+    from amuled_ma.experiments.plans import plan_ablation
+
+    scenario = load_scenario("smartgrid")  # [feedback].source = "rules": the moral agent's too
+    problems = plan_panel("moral", scenario).problems
+    assert [type(error) for error, _ in problems] == [NoHumanRule]
+    assert '"judge:comfort"' in str(problems[0][0])  # the fix names the task's judges
+    assert plan_panel("amuled", scenario).problems == ()  # every value has its judge
+    assert (
+        plan_panel("moral", load_scenario("findmilk").replace("feedback", source="rules")).problems
+        == ()
+    )  # the paper's task has its human
+    jobs = plan_ablation("clusters", scenario, tmp_path, [1])
+    folders = sorted(job.out_dir.name for job in jobs)
+    assert folders == [
+        "base", "finetune-amuled", "finetune-cluster-comfort", "finetune-cluster-equity",
+        "finetune-cluster-over_consumption",
+    ]  # fmt: skip
+    assert "no 'moral' row" in capsys.readouterr().err
