@@ -10,9 +10,10 @@ seconds, by the golden-ratio sequence, so the first runs already cover that time
 SIGTERM to the driver alone, and records its exit status (``hang`` when it has not exited within
 ``--wait`` seconds; it is then killed), whether its stderr is the one line
 ``amuled: terminated (SIGTERM)`` (Ray's C++ core warning about a missing route out,
-which Ray prints before its logger is set, set aside), and whether a run folder was
-left and how many of Ray's processes outlived the driver by 3 s (then ended, before the next
-run).
+which Ray prints before its logger is set, set aside), whether a run folder (more than its
+lock) was left, which of Ray's processes outlived the driver by 3 s (then ended, before the
+next run), and of a run that hangs, every thread's Python stack (``py-spy dump``, when
+installed).
 
 Prints one line per run and a summary of the exit-status counts; exits 0 when every run
 exited 143, and each whose SIGTERM came before the driver wrote its run folder (that is,
@@ -29,6 +30,7 @@ import contextlib
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -48,6 +50,8 @@ TINY = [
 #: Ray's C++ core warning, printed by Ray before its logger reads any setting.
 RAY_CORE_LOG = re.compile(r"^\[\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3} [WI] \d+ \d+\] \w+\.cc:\d+: ")
 ONE_LINE = ["amuled: terminated (SIGTERM)"]
+#: The run folder's lock, made before Ray starts and removed when the command ends.
+LOCK = ".amuled.lock"
 
 
 def _processes() -> dict[int, tuple[int, str]]:
@@ -110,6 +114,15 @@ def _end_leftovers(grace: float = 3.0) -> list[str]:
     return names
 
 
+def _python_stacks(pid: int) -> str:
+    """Every thread's Python stack of a hung driver, from py-spy when it is installed."""
+    spy = shutil.which("py-spy") or str(Path(sys.executable).with_name("py-spy"))
+    if not Path(spy).exists():
+        return "(py-spy not installed: pip install py-spy for the stacks of a hung run)"
+    done = subprocess.run([spy, "dump", "--pid", str(pid)], capture_output=True, text=True)
+    return (done.stdout + done.stderr)[-6000:]
+
+
 def one_run(work: Path, index: int, delay: float, wait: float) -> dict:
     """Start the run, SIGTERM it ``delay`` s after its ``gcs_server`` appears."""
     runs = work / f"runs-{index}"
@@ -129,14 +142,16 @@ def one_run(work: Path, index: int, delay: float, wait: float) -> dict:
         return {"run": index, "code": "early", "stderr": err_path.read_text()[-2000:]}
     time.sleep(delay)
     early = proc.poll() is not None  # ray.init finished and the run ended (not expected)
-    # the driver writes its run folder once Ray has started
-    started = runs.exists() and any(runs.rglob("*"))
+    # the driver writes its run folder (more than its lock) once Ray has started
+    started = any(p.name != LOCK for p in runs.rglob("*") if p.is_file())
     os.kill(proc.pid, signal.SIGTERM)
     sent = time.monotonic()
+    stack = ""
     try:
         code: int | str = proc.wait(timeout=wait)
     except subprocess.TimeoutExpired:
         code = "hang"
+        stack = _python_stacks(proc.pid)
         proc.kill()
         proc.wait()
     seconds = round(time.monotonic() - sent, 2)
@@ -144,7 +159,7 @@ def one_run(work: Path, index: int, delay: float, wait: float) -> dict:
         code = 128 - code  # killed by signal -code, as a shell reports it
     stderr = err_path.read_text()
     lines = [line for line in stderr.splitlines() if line.strip() and not RAY_CORE_LOG.match(line)]
-    left = runs.exists() and any(runs.rglob("*"))
+    left = any(p.name != LOCK for p in runs.rglob("*") if p.is_file())
     leftovers = _end_leftovers()
     return {
         "run": index,
@@ -157,6 +172,7 @@ def one_run(work: Path, index: int, delay: float, wait: float) -> dict:
         "early": early,
         "after_start": started,
         "stderr": "" if lines == ONE_LINE else stderr[-2000:],
+        "stack": stack,
     }
 
 
