@@ -26,6 +26,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import psutil
 import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
@@ -203,6 +204,7 @@ def connect(address: str | None, workers: int) -> bool:
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if address is None else None
     previous_term = signal.getsignal(signal.SIGTERM)
     ray_to_log()  # Ray's own notices (token authentication, ...) go to the log
+    before = {child.pid for child in psutil.Process().children(recursive=True)}
     seen = SignalsSeen()
     try:
         try:
@@ -224,7 +226,9 @@ def connect(address: str | None, workers: int) -> bool:
     if signal.SIGTERM in seen.numbers and previous_term not in (signal.SIG_IGN, None):
         stopped = SystemExit(signal.SIGTERM)
     if isinstance(stopped, SystemExit | KeyboardInterrupt):
+        started = [p for p in psutil.Process().children(recursive=True) if p.pid not in before]
         disconnect()
+        _end_processes(started)
         if isinstance(stopped, SystemExit):  # only Ray's SIGTERM handlers call sys.exit here
             raise TerminatedWhileStarting(signal.SIGTERM) from None
         raise stopped
@@ -242,6 +246,19 @@ def connect(address: str | None, workers: int) -> bool:
             file=sys.stderr,
         )
     return True
+
+
+def _end_processes(processes: list[psutil.Process], grace: float = 3.0) -> None:
+    """SIGKILL those of ``processes`` still running ``grace`` s after ``ray.shutdown``.
+
+    A start that a signal cut short leaves the raylet's agents running after the shutdown
+    (the dashboard and runtime-env agents); ``psutil`` finds them by the process tree.
+    """
+    _gone, alive = psutil.wait_procs(processes, timeout=grace)
+    for process in alive:
+        with contextlib.suppress(psutil.Error):
+            process.kill()
+    psutil.wait_procs(alive, timeout=grace)
 
 
 def disconnect() -> None:
