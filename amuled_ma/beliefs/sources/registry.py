@@ -8,8 +8,9 @@ come from the ``amuled_ma.agents`` entry-point group or `register_source`.
 from __future__ import annotations
 
 import functools
+import importlib
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from amuled_ma.beliefs.types import BeliefSource
 from amuled_ma.errors import ScenarioError
@@ -20,40 +21,9 @@ if TYPE_CHECKING:
 Factory = Callable[..., BeliefSource]
 
 
-# Each built-in kind is imported on first use: the Ollama client and torch (policy) are
-# heavy, and most runs use one kind.
-def _ollama() -> Factory:
-    from amuled_ma.beliefs.sources.ollama import OllamaSource
-
-    return OllamaSource
-
-
-def _replay() -> Factory:
-    from amuled_ma.beliefs.sources.replay import ReplaySource
-
-    return ReplaySource
-
-
-def _rules() -> Factory:
-    from amuled_ma.beliefs.sources.rules import RulesSource
-
-    return RulesSource
-
-
-def _terminal() -> Factory:
-    from amuled_ma.beliefs.sources.terminal import TerminalSource
-
-    return TerminalSource
-
-
-def _policy() -> Factory:
-    from amuled_ma.beliefs.sources.policy import PolicySource
-
-    return PolicySource
-
-
-def _entry_point() -> Factory:
-    return entry_point_source
+def _importer(module: str, name: str) -> Callable[[], Factory]:
+    """A function importing ``module.name`` on first use (the Ollama client and torch are heavy)."""
+    return lambda: cast("Factory", getattr(importlib.import_module(module), name))
 
 
 @functools.cache
@@ -64,13 +34,14 @@ def built_in() -> dict[type[BaseModel], Callable[[], Factory]]:
     """
     from amuled_ma.scenario import agents
 
+    here = "amuled_ma.beliefs.sources"
     return {
-        agents.OllamaSpec: _ollama,
-        agents.ReplaySpec: _replay,
-        agents.RulesSpec: _rules,
-        agents.TerminalSpec: _terminal,
-        agents.PolicySpec: _policy,
-        agents.EntryPointSpec: _entry_point,
+        agents.OllamaSpec: _importer(f"{here}.ollama", "OllamaSource"),
+        agents.ReplaySpec: _importer(f"{here}.replay", "ReplaySource"),
+        agents.RulesSpec: _importer(f"{here}.rules", "RulesSource"),
+        agents.TerminalSpec: _importer(f"{here}.terminal", "TerminalSource"),
+        agents.PolicySpec: _importer(f"{here}.policy", "PolicySource"),
+        agents.EntryPointSpec: lambda: entry_point_source,
     }
 
 

@@ -17,6 +17,8 @@ from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from amuled_ma.beliefs.replies.validate import RULE, check_belief, show_values
 from amuled_ma.beliefs.store.keys import identity_json
 from amuled_ma.beliefs.store.rows import (
@@ -581,25 +583,7 @@ class BeliefStore:
                     "a uniform fallback"
                 )
             ident = identity if isinstance(identity, str) else identity_json(identity)
-            try:
-                row, bodies = encode_row(
-                    key,
-                    ident,
-                    request,
-                    belief,
-                    source=result.source,
-                    status=result.status,
-                    raw=result.raw,
-                    latency_s=result.latency_s,
-                    prompt_tokens=result.prompt_tokens,
-                    completion_tokens=result.completion_tokens,
-                    extra=result.extra,
-                    attempts=1,
-                    created_at=now,
-                    updated_at=now,
-                )
-            except UnicodeEncodeError:
-                raise self._unstorable(key, request, result.raw, result.extra) from None
+            row, bodies = self._encode(key, ident, request, belief, result, 1, now, now)
             rows.append(row)
             texts.update((h, b) for h, b in bodies.items() if h not in self._messages_seen)
         return self._put_rows(rows, texts)
@@ -641,30 +625,51 @@ class BeliefStore:
                     f"{self.path}: refusing to write row {record.key}: belief "
                     f"{show_values(record.belief)} {reason}; {RULE}"
                 )
-            try:
-                row, bodies = encode_row(
-                    record.key,
-                    identity_json(record.identity),
-                    record.request(),
-                    belief,
-                    source=record.source,
-                    status=record.status,
-                    raw=record.raw,
-                    latency_s=record.latency_s,
-                    prompt_tokens=record.prompt_tokens,
-                    completion_tokens=record.completion_tokens,
-                    extra=record.extra,
-                    attempts=record.attempts,
-                    created_at=record.created_at,
-                    updated_at=record.updated_at,
-                )
-            except UnicodeEncodeError:
-                raise self._unstorable(
-                    record.key, record.request(), record.raw, record.extra
-                ) from None
+            row, bodies = self._encode(
+                record.key,
+                identity_json(record.identity),
+                record.request(),
+                belief,
+                record,
+                record.attempts,
+                record.created_at,
+                record.updated_at,
+            )
             rows.append(row)
             texts.update(bodies)
         return self._put_rows(rows, texts)
+
+    def _encode(
+        self,
+        key: str,
+        ident: str,
+        request: BeliefRequest,
+        belief: np.ndarray,
+        answer: BeliefResult | StoredBelief,
+        attempts: int,
+        created_at: float,
+        updated_at: float,
+    ) -> tuple[Row, dict[str, str]]:
+        """`encode_row` of one answer; text that is not UTF-8 raises `_unstorable`'s error."""
+        try:
+            return encode_row(
+                key,
+                ident,
+                request,
+                belief,
+                source=answer.source,
+                status=answer.status,
+                raw=answer.raw,
+                latency_s=answer.latency_s,
+                prompt_tokens=answer.prompt_tokens,
+                completion_tokens=answer.completion_tokens,
+                extra=answer.extra,
+                attempts=attempts,
+                created_at=created_at,
+                updated_at=updated_at,
+            )
+        except UnicodeEncodeError:
+            raise self._unstorable(key, request, answer.raw, answer.extra) from None
 
     def _put_rows(self, rows: list[Row], texts: dict[str, str]) -> int:
         if not rows:
