@@ -107,15 +107,7 @@ class BeliefSource(ABC):
 
     @abstractmethod
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
-        """Answer every request, in order; never raise for one bad reply.
-
-        Args:
-            requests: The batch of requests.
-
-        Returns:
-            One result per request, in the same order.
-
-        """
+        """Answer every request, one result each in order; never raise for one bad reply."""
 
     def identity(self) -> dict[str, Any]:
         """Describe what determines this source's answers (model, digest, options).
@@ -130,16 +122,7 @@ class BeliefSource(ABC):
 
 
 def every_answer(results: Sequence[BeliefResult | None], source: str) -> list[BeliefResult]:
-    """The results of a batch, once every request holds one.
-
-    Args:
-        results: One slot per request, filled by a source.
-        source: The source's name, for the message.
-
-    Raises:
-        RuntimeError: A request was left without a result (a bug of ``source``).
-
-    """
+    """A batch's results; a request left without one raises `RuntimeError` naming ``source``."""
     answered = [r for r in results if r is not None]
     if len(answered) != len(results):
         missing = len(results) - len(answered)

@@ -68,10 +68,8 @@ def _depths(steps: np.ndarray) -> np.ndarray:
 def candidate_spans(text: str) -> tuple[list[tuple[int, int]], int]:
     """``(start, end)`` of the balanced ``{...}`` spans, the one ending last first.
 
-    Returns:
-        The first `MAX_CANDIDATES` spans of at most `MAX_OBJECT_CHARS`
-        characters, and how many longer spans were left out.
-
+    Returns the first `MAX_CANDIDATES` spans of at most `MAX_OBJECT_CHARS` characters, and
+    how many longer spans were left out.
     """
     if "{" not in text or "}" not in text:
         return [], 0
@@ -219,15 +217,9 @@ def _lenient_pairs(body: str, budget: ReadBudget) -> dict[str, Any]:
 def decode_candidate(candidate: str, budget: ReadBudget) -> tuple[dict[str, Any], tuple[str, ...]]:
     """Decode one ``{...}`` span, repairing the usual faults; linear in its length.
 
-    Strict JSON first, then a Python literal (within ``budget.literal``), then the
-    repairs (quotes, unquoted keys, trailing commas), then the lenient ``key: number`` scan.
-
-    Args:
-        candidate: The span, from ``{`` to ``}``.
-        budget: What is left to spend on the reply (updated in place).
-
-    Returns:
-        ``(object, repairs)``: the decoded object and the names of the repairs applied.
+    Strict JSON first, then a Python literal (within ``budget.literal``), then the repairs
+    (quotes, unquoted keys, trailing commas), then the lenient ``key: number`` scan; ``budget``
+    is updated in place. Returns ``(object, names of the repairs applied)``.
 
     Raises:
         UnreadableObjectError: Nothing could be read, the span is nested deeper than

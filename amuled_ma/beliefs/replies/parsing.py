@@ -83,16 +83,10 @@ def uniform(n_actions: int) -> np.ndarray:
 def belief_schema(
     action_names: Sequence[str], *, reasoning: bool = True, reasoning_max_chars: int = 400
 ) -> dict[str, Any]:
-    """JSON schema of a structured reply, for Ollama's ``format`` argument.
+    """JSON schema of a reply over ``action_names`` (index = property key), for ``format``.
 
-    Args:
-        action_names: The task's action names; index = action id = property key.
-        reasoning: Put a short ``"reasoning"`` string before the probabilities.
-        reasoning_max_chars: Maximum length of the reasoning string.
-
-    Returns:
-        ``{"type": "object", "properties": {"reasoning": ..., "0": ..., ...}, ...}``.
-
+    ``reasoning`` puts a ``"reasoning"`` string of at most ``reasoning_max_chars`` before the
+    probabilities.
     """
     properties: dict[str, Any] = {}
     if reasoning:
@@ -204,14 +198,7 @@ def _value(value: object, repairs: set[str]) -> float:
 def belief_from_mapping(
     obj: Mapping[str, Any], action_names: Sequence[str]
 ) -> tuple[np.ndarray, tuple[str, ...], str | None]:
-    """Turn one decoded object into a belief.
-
-    Args:
-        obj: The decoded JSON object.
-        action_names: The task's action names.
-
-    Returns:
-        ``(belief, repairs, reasoning)``.
+    """Turn one decoded JSON object into ``(belief, repairs, reasoning)``.
 
     Raises:
         UnreadableObjectError: The object names no action, holds an invalid probability,
@@ -286,18 +273,10 @@ def _key_count(obj: Mapping[str, Any]) -> int:
 def parse_belief(
     text: str | None, action_names: Sequence[str], *, structured: bool = False
 ) -> ParsedBelief:
-    """Parse one LLM reply into a belief over the task's actions; never raises.
+    """Parse one LLM reply (``None`` or empty abstains) into a `ParsedBelief`; never raises.
 
-    The cost is linear in ``len(text)`` (see the module's docstring for the limits).
-
-    Args:
-        text: The raw reply (``None`` or empty abstains).
-        action_names: The task's action names; index = action id.
-        structured: The reply was requested with `belief_schema` as format.
-
-    Returns:
-        The parsed belief with its status and repairs.
-
+    ``structured``: the reply was requested with `belief_schema` as format. The cost is linear
+    in ``len(text)`` (see the module's docstring for the limits).
     """
     n = len(action_names)
     if n == 0:

@@ -96,19 +96,12 @@ def _sums_to_one(items: list[Any], n_actions: int) -> bool:
 def check_belief(
     values: object, n_actions: int, *, scores: bool = False
 ) -> tuple[np.ndarray | None, str | None]:
-    """Check one belief; never raises.
+    """Check one belief of ``n_actions`` values (list, tuple or 1-D array); never raises.
 
-    Args:
-        values: The candidate (list, tuple or 1-D array).
-        n_actions: The task's action count.
-        scores: Accept any positive finite sum and divide by it (rule-based sources,
-            whose answers are documented as scores), instead of requiring a sum of 1.
-
-    Returns:
-        ``(belief, None)`` with ``belief`` a float64 array (divided by its sum unless that
-        is 1 within `ROUNDING`; a new array unless ``values`` was a float64 array
-        already kept as is), or ``(None, reason)`` with a one-line reason (what was found).
-
+    ``scores`` accepts any positive finite sum and divides by it (rule-based sources, whose
+    answers are documented as scores) instead of requiring a sum of 1. Returns ``(belief,
+    None)``, ``belief`` float64 divided by its sum unless that is 1 within `ROUNDING` (a new
+    array unless ``values`` was a float64 array kept as is), or ``(None, reason)``.
     """
     if not scores:  # the common case, a valid belief: plain Python, no numpy reductions
         items = values.tolist() if _is_float_vector(values) else values
@@ -145,23 +138,11 @@ def check_belief(
 def validate_belief(
     values: object, n_actions: int, *, where: str, fix: str | None = None, scores: bool = False
 ) -> np.ndarray:
-    """Return ``values`` as a valid belief (divided by its sum), or raise.
+    """Return ``values`` as a valid float64 belief of ``n_actions`` (divided by its sum), or raise.
 
-    Args:
-        values: The candidate.
-        n_actions: The task's action count.
-        where: What holds it, for the message (``"rec.json: states[3] 'care'"``,
-            ``"dump.jsonl:12 (key 3fa0...)"``).
-        fix: How to fix it, appended to the message (a generic hint by default).
-        scores: As in `check_belief`.
-
-    Returns:
-        The belief, float64, shape ``(n_actions,)``.
-
-    Raises:
-        InvalidBeliefError: The message names ``where``, the reason, the values found,
-            the rule and the fix.
-
+    ``where`` names what holds it (``"rec.json: states[3] 'care'"``); ``fix`` is appended to
+    the message (a generic hint by default); ``scores`` as in `check_belief`. Raises
+    `InvalidBeliefError` naming ``where``, the reason, the values found, the rule and the fix.
     """
     belief, reason = check_belief(values, n_actions, scores=scores)
     if belief is None:
@@ -175,17 +156,9 @@ def validate_belief(
 def check_beliefs(matrix: np.ndarray) -> tuple[np.ndarray, list[str | None]]:
     """Check the rows of an ``(m, A)`` float array at once (the panel's batch path).
 
-    Same rule as `check_belief`, vectorised: rows are expected to be float already
-    (a row that could not be made one is passed in as NaN).
-
-    Args:
-        matrix: ``(m, A)`` candidate beliefs.
-
-    Returns:
-        ``(beliefs, reasons)``: valid rows divided by their sum (unless that is 1 within
-        `ROUNDING`), invalid rows left as they were; ``reasons[i]`` is ``None`` for
-        a valid row, else why it is invalid.
-
+    Same rule as `check_belief`, vectorised (a row that could not be made float is passed in
+    as NaN). Returns ``(beliefs, reasons)``: valid rows divided by their sum (unless that is
+    1 within `ROUNDING`), invalid rows as they were; ``reasons[i]`` None for a valid row.
     """
     out = np.array(matrix, dtype=np.float64, copy=True)
     with np.errstate(invalid="ignore", over="ignore"):
@@ -213,22 +186,11 @@ def uniform_belief(n_actions: int) -> np.ndarray:
 def checked_result(result: BeliefResult, n_actions: int, *, status: str = "error") -> BeliefResult:
     """Make a source's answer safe to store and fuse; the door for every live answer.
 
-    A result whose belief is valid gets it as `check_belief` returns it (float64,
-    summing to 1 within rounding).
-    A result whose belief is invalid gets a uniform belief instead; an ``"ok"`` or
-    ``"repaired"`` one also gets ``status`` (``"error"`` by default: the source broke its
-    contract), the reason in ``extra["error"]`` and the values found (as text) in
-    ``extra["invalid_belief"]``. The result is changed in place and returned.
-
-    Args:
-        result: A `BeliefResult`.
-        n_actions: The request's action count.
-        status: Status given to an answer whose belief is invalid (``"error"`` or
-            ``"abstained"``).
-
-    Returns:
-        ``result``; a status in `ANSWER_STATUSES` now always holds a valid belief.
-
+    A valid belief becomes `check_belief`'s (float64, summing to 1 within rounding). An
+    invalid one becomes uniform; an ``"ok"`` or ``"repaired"`` result also gets ``status``
+    (``"error"`` by default: the source broke its contract; or ``"abstained"``), the reason in
+    ``extra["error"]`` and the values found (as text) in ``extra["invalid_belief"]``. Returns
+    ``result``, changed in place: a status in `ANSWER_STATUSES` now always holds a valid belief.
     """
     belief, reason = check_belief(result.belief, n_actions)
     if belief is not None:

@@ -290,13 +290,7 @@ class OllamaSource(BeliefSource):
         return digests[first]
 
     def server_stats(self) -> dict[str, dict[str, Any]]:
-        """Each host's figures: requests sent, answered, failed by kind, latencies.
-
-        Returns:
-            :meth:`~amuled_ma.servers.pool.HostPool.as_dict` of the pool (one host
-            without a pool).
-
-        """
+        """Each host's figures (sent, answered, failed by kind, latencies): `HostPool.as_dict`."""
         return self.host_pool.as_dict()
 
     def identity(self) -> dict[str, Any]:

@@ -39,14 +39,7 @@ _FIX = (
 
 
 def load_weights(path: str | Path, key: str = "") -> dict[str, Any]:
-    """Load a state dict with ``torch.load(..., weights_only=True)``.
-
-    Args:
-        path: The file.
-        key: Dotted path of the state dict inside the loaded dict (``""``: the top).
-
-    Returns:
-        ``{name: tensor}``.
+    """Load the state dict at dotted ``key`` (``""``: the top) of a file, ``weights_only=True``.
 
     Raises:
         ScenarioError: The file is missing, needs Python objects to load (refused:
@@ -93,19 +86,10 @@ def load_weights(path: str | Path, key: str = "") -> dict[str, Any]:
 def infer_mlp(
     weights: Mapping[str, Any], activation: str = "tanh", *, where: str = "policy"
 ) -> Any:
-    """Build the MLP a state dict of linear layers describes, with the weights loaded.
+    """The eval-mode ``Sequential`` MLP ``weights`` describe, loaded, ``activation`` between layers.
 
-    Args:
-        weights: ``{"<prefix><i>.weight": (out, in), "<prefix><i>.bias": (out,), ...}``.
-        activation: A key of `ACTIVATIONS`, put between the layers.
-        where: The file, for errors.
-
-    Returns:
-        A ``torch.nn.Sequential`` in eval mode.
-
-    Raises:
-        ScenarioError: The weights are not the linear layers of one MLP.
-
+    ``weights`` is ``{"<prefix><i>.weight": (out, in), "<prefix><i>.bias": (out,), ...}``;
+    anything else raises `ScenarioError` naming ``where``.
     """
     import torch
 

@@ -8,8 +8,9 @@ come from the ``amuled_ma.agents`` entry-point group or `register_source`.
 from __future__ import annotations
 
 import functools
+import importlib
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from amuled_ma.beliefs.types import BeliefSource
 from amuled_ma.errors import ScenarioError
@@ -20,40 +21,9 @@ if TYPE_CHECKING:
 Factory = Callable[..., BeliefSource]
 
 
-# Each built-in kind is imported on first use: the Ollama client and torch (policy) are
-# heavy, and most runs use one kind.
-def _ollama() -> Factory:
-    from amuled_ma.beliefs.sources.ollama import OllamaSource
-
-    return OllamaSource
-
-
-def _replay() -> Factory:
-    from amuled_ma.beliefs.sources.replay import ReplaySource
-
-    return ReplaySource
-
-
-def _rules() -> Factory:
-    from amuled_ma.beliefs.sources.rules import RulesSource
-
-    return RulesSource
-
-
-def _terminal() -> Factory:
-    from amuled_ma.beliefs.sources.terminal import TerminalSource
-
-    return TerminalSource
-
-
-def _policy() -> Factory:
-    from amuled_ma.beliefs.sources.policy import PolicySource
-
-    return PolicySource
-
-
-def _entry_point() -> Factory:
-    return entry_point_source
+def _importer(module: str, name: str) -> Callable[[], Factory]:
+    """A function importing ``module.name`` on first use (the Ollama client and torch are heavy)."""
+    return lambda: cast("Factory", getattr(importlib.import_module(module), name))
 
 
 @functools.cache
@@ -64,13 +34,14 @@ def built_in() -> dict[type[BaseModel], Callable[[], Factory]]:
     """
     from amuled_ma.scenario import agents
 
+    here = "amuled_ma.beliefs.sources"
     return {
-        agents.OllamaSpec: _ollama,
-        agents.ReplaySpec: _replay,
-        agents.RulesSpec: _rules,
-        agents.TerminalSpec: _terminal,
-        agents.PolicySpec: _policy,
-        agents.EntryPointSpec: _entry_point,
+        agents.OllamaSpec: _importer(f"{here}.ollama", "OllamaSource"),
+        agents.ReplaySpec: _importer(f"{here}.replay", "ReplaySource"),
+        agents.RulesSpec: _importer(f"{here}.rules", "RulesSource"),
+        agents.TerminalSpec: _importer(f"{here}.terminal", "TerminalSource"),
+        agents.PolicySpec: _importer(f"{here}.policy", "PolicySource"),
+        agents.EntryPointSpec: lambda: entry_point_source,
     }
 
 
@@ -78,13 +49,7 @@ _REGISTERED: dict[str, Callable[..., BeliefSource]] = {}
 
 
 def register_source(kind: str, factory: Callable[..., BeliefSource]) -> None:
-    """Register (or replace) a source kind at run time.
-
-    Args:
-        kind: The name used with `make_source`.
-        factory: Called with the options; returns a `BeliefSource`.
-
-    """
+    """Register (or replace) ``kind`` for `make_source`; ``factory(**options)`` builds it."""
     _REGISTERED[kind] = factory
 
 
@@ -117,23 +82,12 @@ def _factory(kind: str) -> Callable[..., BeliefSource]:
 def load_agent_factory(name: str) -> Callable[..., BeliefSource]:
     """Resolve a plug-in agent: an ``amuled_ma.agents`` entry-point name or ``"module:Class"``.
 
-    Through the one door of code named by data
-    (`load_plugin`): an installed entry point's name (or
-    value), or a ``"module:Class"`` this run's command line allowed with
-    ``--allow-plugin module:Class``. Any other import path is refused before it is
-    imported: a scenario, a cluster file or a run folder never runs code of its own.
-
-    Args:
-        name: An installed entry point's name (``terminal_human``), or an importable
-            ``"pkg.module:Class"`` (any callable returning a `BeliefSource`).
-
-    Returns:
-        The factory.
-
-    Raises:
-        ScenarioError: No entry point has the name, the ``module:Class`` string is not
-            allowed (the message names ``--allow-plugin``) or does not import.
-
+    Through the one door of code named by data (`load_plugin`): an installed entry point's
+    name (``terminal_human``) or value, or a ``"module:Class"`` (any callable returning a
+    `BeliefSource`) this run's command line allowed with ``--allow-plugin module:Class``. Any
+    other import path is refused before it is imported: a scenario, a cluster file or a run
+    folder never runs code of its own; such a name, or one that does not import, raises
+    `ScenarioError`.
     """
     from amuled_ma.clusters.plugins import load_plugin
 
@@ -153,17 +107,8 @@ def load_agent_factory(name: str) -> Callable[..., BeliefSource]:
 def entry_point_source(name: str, options: Mapping[str, Any] | None = None) -> BeliefSource:
     """Build a plug-in agent's source: ``load_agent_factory(name)(**options)``.
 
-    Args:
-        name: See `load_agent_factory`.
-        options: The factory's keyword arguments.
-
-    Returns:
-        The source.
-
-    Raises:
-        ScenarioError: The name does not resolve, the factory refuses the options or
-            fails, or it does not return a `BeliefSource`.
-
+    Raises `ScenarioError` when the name does not resolve, the factory refuses the options or
+    fails, or it does not return a `BeliefSource`.
     """
     factory = load_agent_factory(name)
     options = dict(options or {})
@@ -183,19 +128,9 @@ def entry_point_source(name: str, options: Mapping[str, Any] | None = None) -> B
 
 
 def make_source(kind: str, **options: Any) -> BeliefSource:
-    """Build a belief source by kind.
+    """Build a belief source of ``kind`` (of ``AGENT_SPECS``, registered, or an entry point).
 
-    Args:
-        kind: A kind of ``AGENT_SPECS``, a registered kind, or an ``amuled_ma.agents``
-            entry-point name.
-        **options: The source's keyword arguments.
-
-    Returns:
-        The source.
-
-    Raises:
-        ScenarioError: Unknown kind, or options the source does not accept.
-
+    An unknown kind, or options the source does not accept, raise `ScenarioError`.
     """
     fallback = options.get("fallback")
     if isinstance(fallback, Mapping):

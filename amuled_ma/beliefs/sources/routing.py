@@ -96,16 +96,8 @@ class RoutedSource(BeliefSource):
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
         """Send each member its requests in one call; return the answers in order.
 
-        Args:
-            requests: The batch (any mix of agents).
-
-        Returns:
-            One result per request, in order.
-
-        Raises:
-            ScenarioError: A request's agent has no source.
-            RuntimeError: A member answered a different number of results.
-
+        Raises `ScenarioError` for a request whose agent has no source, `RuntimeError` when a
+        member answers a different number of results.
         """
         out: list[BeliefResult | None] = [None] * len(requests)
         for source, indices in self._split(requests):

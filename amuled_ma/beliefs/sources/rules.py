@@ -53,13 +53,10 @@ def resolve_callable(
 
 
 def to_belief(values: object, n_actions: int) -> tuple[np.ndarray, str]:
-    """Turn a rule's scores into a belief (divided by their sum), or a uniform ``"error"``.
+    """A rule's scores as ``(belief divided by their sum, "ok")``, or ``(uniform, "error")``.
 
-    Returns:
-        ``(belief, status)``; status ``"ok"``, or ``"error"`` with a uniform belief when
-        the answer has the wrong length, a non-finite or negative entry, or a sum of 0
-        or an overflowing one.
-
+    An error is an answer of the wrong length, a non-finite or negative entry, or a sum of 0
+    or an overflowing one.
     """
     belief, _ = _checked(values, n_actions)
     return (uniform(n_actions), "error") if belief is None else (belief, "ok")

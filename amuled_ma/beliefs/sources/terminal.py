@@ -72,17 +72,10 @@ def _cut(token: str) -> str:
 
 
 def action_by_name(text: str, action_names: Sequence[str]) -> tuple[int | None, list[str]]:
-    """The action a typed name stands for: its whole name or the start of one, any case.
+    """The action typed ``text`` stands for: its whole name or the start of one, any case.
 
-    Args:
-        text: The typed text (surrounding whitespace ignored).
-        action_names: The task's actions, index = action id.
-
-    Returns:
-        ``(index, [])`` for one action (a whole name wins over a longer name it starts);
-        ``(None, names)`` with the actions it starts when more than one; ``(None, [])``
-        when it names none.
-
+    Returns ``(index, [])`` for one action (a whole name wins over a longer name it starts);
+    ``(None, names)`` with the actions it starts when more than one; ``(None, [])`` for none.
     """
     typed = text.strip().casefold()
     if not typed:
@@ -99,18 +92,10 @@ def action_by_name(text: str, action_names: Sequence[str]) -> tuple[int | None, 
 def parse_answer(
     line: str, n_actions: int, action_names: Sequence[str] = ()
 ) -> tuple[np.ndarray | None, str | None]:
-    """Read one typed answer.
+    """Read one typed answer (``action_names`` empty: an action is given by index only).
 
-    Args:
-        line: The line as typed (surrounding whitespace ignored).
-        n_actions: The task's action count.
-        action_names: The task's action names (empty: an action is given by index only).
-
-    Returns:
-        ``(belief, None)`` for a belief, ``(None, None)`` for ``skip``, or
-        ``(None, reason)`` for an answer that is refused (the reason says what was found
-        and what is expected).
-
+    Returns ``(belief, None)``, ``(None, None)`` for ``skip``, or ``(None, reason)`` for an
+    answer that is refused (the reason says what was found and what is expected).
     """
     text = line.strip()
     if text.lower() == SKIP:
@@ -229,15 +214,7 @@ class TerminalSource(BeliefSource):
         return every_answer(out, self.name)
 
     def iter_beliefs(self, requests: Sequence[BeliefRequest]) -> Iterator[tuple[int, BeliefResult]]:
-        """Yield ``(index, result)`` as each answer is typed (identical requests asked once).
-
-        Args:
-            requests: The batch.
-
-        Yields:
-            One pair per request; duplicates get copies of the first answer.
-
-        """
+        """Yield ``(index, result)`` as each answer is typed; duplicates get copies of the first."""
         groups: dict[BeliefRequest, list[int]] = {}
         for i, request in enumerate(requests):
             groups.setdefault(request, []).append(i)

@@ -138,15 +138,9 @@ class CachedSource(BeliefSource):
         return [request_key(ident, r) for r in requests]
 
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
-        """Answer from the store, then the wrapped source (misses only).
+        """Answer from the store, then the wrapped source (misses only), one result a request.
 
-        Args:
-            requests: The batch.
-
-        Returns:
-            One result per request, in order; hits have ``cached=True``. A request
-            repeated in the batch gets its own copy.
-
+        Hits have ``cached=True``; a request repeated in the batch gets its own copy.
         """
         ident = self._ident()
         keys = [request_key(ident, r) for r in requests]

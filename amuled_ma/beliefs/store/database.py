@@ -17,6 +17,8 @@ from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from amuled_ma.beliefs.replies.validate import RULE, check_belief, show_values
 from amuled_ma.beliefs.store.keys import identity_json
 from amuled_ma.beliefs.store.rows import (
@@ -79,13 +81,7 @@ WHERE beliefs.status NOT IN ('ok', 'repaired')
 
 
 def default_store_path() -> Path:
-    """Where the store lives when none is named.
-
-    Returns:
-        ``$AMULED_BELIEF_STORE`` if set, else ``$XDG_CACHE_HOME/amuled/beliefs.sqlite``
-        (``~/.cache/amuled/beliefs.sqlite``).
-
-    """
+    """``$AMULED_BELIEF_STORE``, else ``$XDG_CACHE_HOME/amuled/beliefs.sqlite`` (``~/.cache``)."""
     env = os.environ.get(STORE_ENV)
     if env:
         return Path(env)
@@ -344,17 +340,10 @@ class BeliefStore:
     def get_many(
         self, keys: Iterable[str], *, cacheable_only: bool = True, with_messages: bool = False
     ) -> dict[str, StoredBelief]:
-        """Read the rows of ``keys`` that exist.
+        """Read the rows of ``keys`` that exist as ``{key: row}`` (duplicate keys allowed).
 
-        Args:
-            keys: Keys to look up (duplicates allowed).
-            cacheable_only: Return only rows served as answers (``ok``/``repaired``).
-            with_messages: Also read each row's chat (slower; ``messages`` is ``None``
-                otherwise).
-
-        Returns:
-            ``{key: row}`` for the keys found.
-
+        ``cacheable_only`` returns only answers (``ok``/``repaired``); ``with_messages`` also reads
+        each row's chat (slower; ``messages`` is ``None`` otherwise).
         """
         wanted = list(dict.fromkeys(keys))
         found: dict[str, StoredBelief] = {}
@@ -395,16 +384,9 @@ class BeliefStore:
     def lookup(self, keys: Iterable[str]) -> dict[str, BeliefResult]:
         """Read the answers (``ok``/``repaired`` rows) of ``keys`` as cache-hit results.
 
-        The fast path of `CachedSource`: only the columns
-        of a `BeliefResult` are read and parsed.
-
-        Args:
-            keys: Keys to look up (duplicates allowed).
-
-        Returns:
-            ``{key: result}`` (``cached=True``, ``latency_s=0``, the original latency in
-            ``extra["stored_latency_s"]``) for the keys found.
-
+        The fast path of `CachedSource`: only the columns of a `BeliefResult` are read. Each
+        result has ``cached=True``, ``latency_s=0`` and the original latency in
+        ``extra["stored_latency_s"]``.
         """
         wanted = list(dict.fromkeys(keys))
         found: dict[str, BeliefResult] = {}
@@ -461,16 +443,7 @@ class BeliefStore:
     def iter_rows(
         self, *, status: Sequence[str] | None = None, task: str | None = None
     ) -> Iterator[StoredBelief]:
-        """Iterate over every row, oldest first (the export order).
-
-        Args:
-            status: Only these statuses (all when ``None``).
-            task: Only this task (all when ``None``).
-
-        Yields:
-            The rows.
-
-        """
+        """Iterate over the rows of ``status`` and ``task`` (all when None), oldest first."""
         where: list[str] = []
         params: list[str] = []
         if status:
@@ -492,13 +465,10 @@ class BeliefStore:
                 yield decode_row(row, texts, self.path)
 
     def identities(self) -> list[dict[str, Any]]:
-        """Return each distinct source identity in the store with its row count.
+        """Each distinct source identity with its counts, most rows first.
 
-        Returns:
-            ``[{"identity": {...}, "rows": n, "answers": m}, ...]``, most rows first; pass
-            an ``identity`` to `CachedSource` to replay the
-            store without the source's backend.
-
+        ``[{"identity": {...}, "rows": n, "answers": m}, ...]``; pass an ``identity`` to
+        `CachedSource` to replay the store without the source's backend.
         """
         rows = self._read(
             "SELECT identity, COUNT(*), SUM(status IN ('ok', 'repaired')) FROM beliefs "
@@ -512,15 +482,9 @@ class BeliefStore:
         return out
 
     def request_seconds(self, model: str) -> list[float]:
-        """The recorded seconds of each answered live request to ``model``, oldest first.
+        """``latency_s`` of each answer whose identity's ``"model"`` is ``model``, oldest first.
 
-        Args:
-            model: The model name as the source's identity holds it (``"model"``).
-
-        Returns:
-            ``latency_s`` of the ``ok``/``repaired`` rows whose identity names ``model`` and
-            whose latency is above 0 (a row answered from a replay or a cache records 0).
-
+        Only latencies above 0 count (a row answered from a replay or a cache records 0).
         """
         rows = self._read(
             "SELECT identity, latency_s FROM beliefs WHERE status IN ('ok', 'repaired') "
@@ -547,24 +511,13 @@ class BeliefStore:
     def put_many(
         self, items: Iterable[tuple[str, Mapping[str, Any] | str, BeliefRequest, BeliefResult]]
     ) -> int:
-        """Write answers in one transaction.
+        """Write ``(key, identity, request, result)`` answers in one transaction; return the count.
 
-        An existing ``ok``/``repaired`` row is kept as it is; any other existing row is
-        replaced and its ``attempts`` counted up.
-
-        Every belief, whatever its status, must be valid for the request's action count
-        (`validate`); it is written divided by its sum.
-
-        Args:
-            items: ``(key, identity, request, result)`` tuples; ``identity`` is the
-                source's ``identity()`` dict or its `identity_json` text.
-
-        Returns:
-            The number of rows inserted or replaced.
-
-        Raises:
-            BeliefStoreError: A belief is invalid (nothing of the batch is written).
-
+        ``identity`` is the source's ``identity()`` dict or its `identity_json` text. An existing
+        ``ok``/``repaired`` row is kept as it is; any other existing row is replaced and its
+        ``attempts`` counted up. Every belief, whatever its status, must be valid for the
+        request's action count (`validate`) and is written divided by its sum; else
+        `BeliefStoreError` and nothing of the batch is written.
         """
         now = time.time()
         rows: list[Row] = []
@@ -581,25 +534,7 @@ class BeliefStore:
                     "a uniform fallback"
                 )
             ident = identity if isinstance(identity, str) else identity_json(identity)
-            try:
-                row, bodies = encode_row(
-                    key,
-                    ident,
-                    request,
-                    belief,
-                    source=result.source,
-                    status=result.status,
-                    raw=result.raw,
-                    latency_s=result.latency_s,
-                    prompt_tokens=result.prompt_tokens,
-                    completion_tokens=result.completion_tokens,
-                    extra=result.extra,
-                    attempts=1,
-                    created_at=now,
-                    updated_at=now,
-                )
-            except UnicodeEncodeError:
-                raise self._unstorable(key, request, result.raw, result.extra) from None
+            row, bodies = self._encode(key, ident, request, belief, result, 1, now, now)
             rows.append(row)
             texts.update((h, b) for h, b in bodies.items() if h not in self._messages_seen)
         return self._put_rows(rows, texts)
@@ -615,22 +550,11 @@ class BeliefStore:
         return self.put_many([(key, identity, request, result)])
 
     def put_rows(self, records: Iterable[StoredBelief]) -> int:
-        """Write whole rows as read from another store, in one transaction.
+        """Write whole rows read from another store (`import_jsonl`) in one transaction.
 
-        The rule of `put_many` holds (an existing answer is never replaced; another
-        row is replaced and ``attempts`` adds up); unlike it, each row keeps its own
-        ``attempts``, timestamps and identity
-        (`import_jsonl` uses it).
-
-        Args:
-            records: The rows, chat included (``messages`` ``None`` counts as no chat).
-
-        Returns:
-            The number of rows inserted or replaced.
-
-        Raises:
-            BeliefStoreError: A belief is invalid (nothing of the batch is written).
-
+        The rule of `put_many` holds; unlike it, each row keeps its own ``attempts``, timestamps
+        and identity (``messages`` ``None`` counts as no chat). Returns the rows inserted or
+        replaced; an invalid belief raises `BeliefStoreError` (nothing of the batch is written).
         """
         rows: list[Row] = []
         texts: dict[str, str] = {}
@@ -641,30 +565,51 @@ class BeliefStore:
                     f"{self.path}: refusing to write row {record.key}: belief "
                     f"{show_values(record.belief)} {reason}; {RULE}"
                 )
-            try:
-                row, bodies = encode_row(
-                    record.key,
-                    identity_json(record.identity),
-                    record.request(),
-                    belief,
-                    source=record.source,
-                    status=record.status,
-                    raw=record.raw,
-                    latency_s=record.latency_s,
-                    prompt_tokens=record.prompt_tokens,
-                    completion_tokens=record.completion_tokens,
-                    extra=record.extra,
-                    attempts=record.attempts,
-                    created_at=record.created_at,
-                    updated_at=record.updated_at,
-                )
-            except UnicodeEncodeError:
-                raise self._unstorable(
-                    record.key, record.request(), record.raw, record.extra
-                ) from None
+            row, bodies = self._encode(
+                record.key,
+                identity_json(record.identity),
+                record.request(),
+                belief,
+                record,
+                record.attempts,
+                record.created_at,
+                record.updated_at,
+            )
             rows.append(row)
             texts.update(bodies)
         return self._put_rows(rows, texts)
+
+    def _encode(
+        self,
+        key: str,
+        ident: str,
+        request: BeliefRequest,
+        belief: np.ndarray,
+        answer: BeliefResult | StoredBelief,
+        attempts: int,
+        created_at: float,
+        updated_at: float,
+    ) -> tuple[Row, dict[str, str]]:
+        """`encode_row` of one answer; text that is not UTF-8 raises `_unstorable`'s error."""
+        try:
+            return encode_row(
+                key,
+                ident,
+                request,
+                belief,
+                source=answer.source,
+                status=answer.status,
+                raw=answer.raw,
+                latency_s=answer.latency_s,
+                prompt_tokens=answer.prompt_tokens,
+                completion_tokens=answer.completion_tokens,
+                extra=answer.extra,
+                attempts=attempts,
+                created_at=created_at,
+                updated_at=updated_at,
+            )
+        except UnicodeEncodeError:
+            raise self._unstorable(key, request, answer.raw, answer.extra) from None
 
     def _put_rows(self, rows: list[Row], texts: dict[str, str]) -> int:
         if not rows:
@@ -713,12 +658,7 @@ class BeliefStore:
 
     # -- maintenance -----------------------------------------------------------------
     def integrity_check(self) -> list[str]:
-        """Run SQLite's ``PRAGMA integrity_check``.
-
-        Returns:
-            ``["ok"]`` for a sound file, else SQLite's list of problems.
-
-        """
+        """SQLite's ``PRAGMA integrity_check``: ``["ok"]`` for a sound file, else its problems."""
         return [str(r[0]) for r in self._read("PRAGMA integrity_check")]
 
     def checkpoint(self) -> None:
@@ -726,12 +666,9 @@ class BeliefStore:
         self._read("PRAGMA wal_checkpoint(TRUNCATE)")
 
     def stats(self) -> dict[str, Any]:
-        """Count rows and sum latencies and tokens (``amuled beliefs stats``).
+        """Counts and sums for ``amuled beliefs stats``, as a JSON-compatible dict.
 
-        Returns:
-            A JSON-compatible dict: rows, rows per status / source+model / task+cluster,
-            latency and token totals, file sizes.
-
+        Rows, rows per status / source+model / task+cluster, latency and token totals, file sizes.
         """
         total = len(self)
         by_status = dict(self._read("SELECT status, COUNT(*) FROM beliefs GROUP BY status"))

@@ -35,15 +35,7 @@ _REQUIRED = ("key", "source", "identity", "task", "cluster", "obs", "actions", "
 
 
 def row_json(row: StoredBelief) -> dict[str, Any]:
-    """Return a row as one JSON object (the export format, one line per row).
-
-    Args:
-        row: A row read with its chat (`iter_rows`).
-
-    Returns:
-        The JSON-compatible dict.
-
-    """
+    """A row read with its chat (`iter_rows`) as one JSON object, one line of the export."""
     return {
         "key": row.key,
         "source": row.source,
@@ -73,20 +65,10 @@ def export_jsonl(
     status: Sequence[str] | None = None,
     task: str | None = None,
 ) -> int:
-    """Write a store's rows as JSON Lines, one object per row (`row_json`).
+    """Write a store's rows of ``status`` and ``task`` (all when None) as JSON Lines.
 
-    Args:
-        store: The store (read-only is enough).
-        fp: A text file open for writing.
-        status: Only these statuses (all when ``None``).
-        task: Only this task (all when ``None``).
-
-    Returns:
-        The number of rows written.
-
-    Raises:
-        BeliefStoreError: A row is damaged, or holds a value standard JSON cannot.
-
+    Returns the number of rows written; a damaged row, or a value standard JSON cannot hold,
+    raises `BeliefStoreError`.
     """
     count = 0
     for row in store.iter_rows(status=status, task=task):
@@ -109,19 +91,11 @@ def import_jsonl(
     verify: bool = True,
     batch: int = 500,
 ) -> dict[str, int]:
-    """Read rows written by `export_jsonl` (from this or another machine) into a store.
+    """Read rows written by `export_jsonl` into a store; an existing answer is never replaced.
 
-    Rows follow the store's rule: an existing answer is never replaced.
-
-    Args:
-        store: The store to write (not read-only).
-        fp: A text file open for reading.
-        name: The file's name, for error messages.
-        verify: Recompute each key from the row's content and refuse a mismatch.
-        batch: Rows per transaction (the rows of batches before a bad line are kept).
-
-    Returns:
-        ``{"read": n, "written": m}`` (``m < n`` when answers were already there).
+    ``name`` is the file's name for errors; ``verify`` recomputes each key from the row and
+    refuses a mismatch; ``batch`` rows go in one transaction (the batches before a bad line
+    are kept). Returns ``{"read": n, "written": m}`` (``m < n`` when answers were there).
 
     Raises:
         BeliefStoreError: A line is not a valid row (names the file and line): longer
@@ -178,20 +152,10 @@ def _reject_constant(name: str) -> Any:
 
 
 def parse_line(line: str, where: str, verify: bool = True) -> StoredBelief:
-    """Validate one exported JSON line and turn it into a row.
+    """Validate one exported JSON line into a row, chat included (``verify``: as `import_jsonl`).
 
-    Args:
-        line: One line of an export file.
-        where: ``FILE:LINE``, for errors.
-        verify: Recompute the key from the row's content and refuse a mismatch.
-
-    Returns:
-        The row, chat included.
-
-    Raises:
-        BeliefStoreError: The line is not a valid row; the message names ``where``, the
-            key when known, what was found and the fix.
-
+    An invalid line raises `BeliefStoreError` naming ``where`` (``FILE:LINE``), the key when
+    known, what was found and the fix.
     """
     try:
         obj = json.loads(line, parse_constant=_reject_constant)

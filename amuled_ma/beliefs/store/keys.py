@@ -50,14 +50,8 @@ def request_key(identity: Mapping[str, Any] | str, request: BeliefRequest) -> st
     ``sha256(canonical_json({"identity": identity, "request": {"actions", "cluster",
     "messages": [[role, content], ...], "obs", "task"}, "v": KEY_VERSION}))``, in hex.
 
-    Args:
-        identity: The source's ``identity()`` dict, or its `identity_json` text
-            (faster when hashing many requests to one source).
-        request: The request.
-
-    Returns:
-        64 hex characters.
-
+    ``identity`` is the source's ``identity()`` dict, or its `identity_json` text (faster for
+    many requests to one source). Returns 64 hex characters.
     """
     ident = identity if isinstance(identity, str) else identity_json(identity)
     # Byte for byte canonical_json({"identity": ..., "request": {...}, "v": KEY_VERSION}),

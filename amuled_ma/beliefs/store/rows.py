@@ -182,19 +182,11 @@ COLUMN_NAMES = tuple(name.strip() for name in COLUMNS.split(","))
 
 
 def unstorable_text(value: object, where: str = "") -> str | None:
-    r"""Why a value holds text SQLite cannot store as UTF-8, or None when it can.
+    r"""Why ``value`` (text, or JSON-like data holding text) cannot be stored as UTF-8, or None.
 
-    Python strings may hold lone surrogates (``"\udcff"``: a byte that was not UTF-8,
-    read with ``surrogateescape``, or a ``\ud800`` escape in JSON) that no UTF-8 file can
-    hold; writing one would fail in the middle of a transaction.
-
-    Args:
-        value: A string, or JSON-like data (dicts, lists, tuples) holding strings.
-        where: The value's name, for the reason (``raw``, ``extra.error``).
-
-    Returns:
-        ``"<where> holds ... at character N"``, or None.
-
+    Python strings may hold lone surrogates (``"\udcff"``: a byte that was not UTF-8, read
+    with ``surrogateescape``, or a ``\ud800`` escape in JSON) that no UTF-8 file can hold.
+    The reason reads ``"<where> holds ... at character N"`` (``where``: ``raw``, ``extra.error``).
     """
     stack: list[tuple[Any, str]] = [(value, where)]
     while stack:
@@ -231,17 +223,9 @@ def check_storable(row: Row, bodies: Mapping[str, str]) -> str | None:
 
 
 def extra_json(extra: Mapping[str, Any] | None) -> str:
-    """Serialise diagnostics as standard JSON.
+    """Diagnostics as standard JSON (``"{}"`` when empty), what it cannot hold as its repr.
 
-    Anything JSON cannot hold is written as its repr (an exception...), and so is a
-    non-finite float (``"nan"``, ``"inf"``), so no row ever holds a non-standard ``NaN``.
-
-    Args:
-        extra: The diagnostics.
-
-    Returns:
-        The JSON text (``"{}"`` when empty).
-
+    So is a non-finite float (``"nan"``, ``"inf"``): no row ever holds a non-standard ``NaN``.
     """
     if not extra:
         return "{}"
@@ -282,15 +266,7 @@ def _text_hash(text: str) -> str:
 def split_messages(
     messages: Sequence[tuple[str, str]],
 ) -> tuple[str | None, dict[str, str]]:
-    """Return the ``messages`` column (``[[role, text_hash], ...]``) and the bodies.
-
-    Args:
-        messages: The chat, ``((role, content), ...)``.
-
-    Returns:
-        The column text (``None`` for no messages) and ``{text_hash: body}``.
-
-    """
+    """The ``messages`` column (``[[role, text_hash], ...]``, or None) and ``{hash: body}``."""
     if not messages:
         return None, {}
     refs, bodies = [], {}
@@ -303,17 +279,7 @@ def split_messages(
 
 # -- decoding and its checks ---------------------------------------------------------
 def damaged_row(where: str, key: str | None, problem: str) -> BeliefStoreError:
-    """The error of a damaged store row: where, what was found, how to remove the row.
-
-    Args:
-        where: The store and row (``"STORE: row KEY"``).
-        key: The row's key (``None`` when the problem is not one row's).
-        problem: What was found.
-
-    Returns:
-        The error to raise.
-
-    """
+    """The error of a damaged row at ``where`` (``"STORE: row KEY"``), with how to remove it."""
     fix = (
         f"delete the row (SQL: DELETE FROM beliefs WHERE key = '{key}') so the next run asks "
         "again, or rebuild the store from an export"
@@ -327,36 +293,14 @@ def damaged_row(where: str, key: str | None, problem: str) -> BeliefStoreError:
 
 
 def why_not_json(error: BaseException) -> str:
-    """Say why a JSON text could not be read (deep nesting named in words).
-
-    Args:
-        error: The error of `json.loads`.
-
-    Returns:
-        The reason, for an error message.
-
-    """
+    """Why `json.loads` failed, for an error message (deep nesting named in words)."""
     if isinstance(error, RecursionError):
         return "nested deeper than Python's JSON reader can follow"
     return str(error)
 
 
 def load_column(text: Any, column: str, where: str, key: str | None) -> Any:
-    """Parse one JSON column of a stored row; a parse failure names the row.
-
-    Args:
-        text: The column's text.
-        column: The column's name.
-        where: The store and row, for the error.
-        key: The row's key, for the error's fix.
-
-    Returns:
-        The parsed value.
-
-    Raises:
-        BeliefStoreError: The text is not JSON (`damaged_row`).
-
-    """
+    """Parse one JSON column of a stored row; text that is not JSON raises `damaged_row`."""
     try:
         return json.loads(text)
     except (TypeError, ValueError, RecursionError) as error:
@@ -368,20 +312,7 @@ def load_column(text: Any, column: str, where: str, key: str | None) -> Any:
 
 
 def load_extra(text: str | None, where: str, key: str) -> dict[str, Any]:
-    """Parse the ``extra`` column (non-finite floats become ``"nan"``/``"inf"`` text).
-
-    Args:
-        text: The column's text.
-        where: The store and row, for the error.
-        key: The row's key.
-
-    Returns:
-        The diagnostics.
-
-    Raises:
-        BeliefStoreError: Not a JSON object.
-
-    """
+    """Parse the ``extra`` column (a JSON object, else `damaged_row`); NaN becomes ``"nan"``."""
     if not text or text == "{}":
         return {}
     value = load_column(text, "extra", where, key)
@@ -394,21 +325,7 @@ def load_extra(text: str | None, where: str, key: str) -> dict[str, Any]:
 
 
 def load_belief(text: str, n_actions: int, where: str, key: str) -> np.ndarray:
-    """Parse and check a stored belief; an invalid one names the row and the fix.
-
-    Args:
-        text: The ``belief`` column's text.
-        n_actions: The row's action count.
-        where: The store and row, for the error.
-        key: The row's key.
-
-    Returns:
-        The belief (float64).
-
-    Raises:
-        BeliefStoreError: Not JSON, or not a valid belief of ``n_actions`` values.
-
-    """
+    """Parse and check a stored belief of ``n_actions`` values; else `damaged_row`."""
     values = load_column(text, "belief", where, key)
     belief, reason = check_belief(values, n_actions)
     if belief is None:
@@ -417,19 +334,7 @@ def load_belief(text: str, n_actions: int, where: str, key: str) -> np.ndarray:
 
 
 def message_refs(row: Sequence[Any], path: str) -> list[tuple[str, str]]:
-    """The ``[[role, text_hash], ...]`` of a row's ``messages`` column, checked.
-
-    Args:
-        row: A row in `COLUMNS` order.
-        path: The store, for the error.
-
-    Returns:
-        ``[(role, text_hash), ...]``.
-
-    Raises:
-        BeliefStoreError: The column is not such a list.
-
-    """
+    """The ``[(role, text_hash), ...]`` of a row's ``messages`` column; else `damaged_row`."""
     key = row[0]
     refs = load_column(row[7], "messages", f"{path}: row {key}", key)
     if not isinstance(refs, list) or not all(
@@ -444,20 +349,10 @@ def message_refs(row: Sequence[Any], path: str) -> list[tuple[str, str]]:
 def decode_row(
     row: Sequence[Any], texts: Mapping[str, str] | None, path: str = "<store>"
 ) -> StoredBelief:
-    """Turn a ``beliefs`` row back into a `StoredBelief`, checking every column.
+    """Turn a ``beliefs`` row (`COLUMNS` order) into a `StoredBelief`, checking every column.
 
-    Args:
-        row: A row in `COLUMNS` order.
-        texts: ``{text_hash: body}`` holding the row's messages; ``None`` leaves
-            ``messages`` unread (``None``).
-        path: The store, for errors.
-
-    Returns:
-        The record.
-
-    Raises:
-        BeliefStoreError: A column is damaged (`damaged_row`).
-
+    ``texts`` (``{text_hash: body}``) holds the row's messages; ``None`` leaves ``messages``
+    unread. A damaged column raises `damaged_row`'s `BeliefStoreError`, naming ``path``.
     """
     (
         key,

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 from typing import Any, Protocol
 
 from amuled_ma.beliefs.store.database import BeliefStore
@@ -32,14 +31,5 @@ class StoreService(Protocol):
 
 
 def open_store(path: str | os.PathLike[str]) -> BeliefStore:
-    """Open the belief store file at ``path``, creating its folder.
-
-    Args:
-        path: The store file.
-
-    Returns:
-        The `BeliefStore`.
-
-    """
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    """Open (creating it and its folder) the `BeliefStore` file at ``path``."""
     return BeliefStore(path)
