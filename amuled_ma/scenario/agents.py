@@ -70,18 +70,11 @@ class _Spec(BaseModel):
     ) -> dict[str, Any]:
         """The keyword arguments of this kind's source, ``[feedback]``'s values inherited.
 
-        Args:
-            feedback: The ``[feedback]`` section.
-            resolve: Resolves a path against the scenario file's folder.
-            where: The scenario, for messages (its file, or ``scenario 'name'``).
-            head: The table (``[feedback.agents.care]``), for messages.
-
-        Returns:
-            The source's keyword arguments.
+        ``resolve`` resolves a path against the scenario file's folder; ``where`` (the
+        scenario) and ``head`` (the table, ``[feedback.agents.care]``) name it in messages.
 
         Raises:
             ScenarioError: A file the table names is not found.
-
         """
         return self.model_dump(exclude={"source"})
 
