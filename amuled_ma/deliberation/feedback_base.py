@@ -160,10 +160,8 @@ class Feedback(ABC):
     def _account(self, prepared: tuple) -> None:
         """Add one row's diagnostics (as `_prepare` returns them) to the totals."""
         pairs, weights, conflict, entropies = prepared
-        statuses, agent_statuses = self.statuses, self.agent_statuses
-        for pair in pairs:
-            agent_statuses[pair] += 1
-            statuses[pair[1]] += 1
+        self.agent_statuses.update(pairs)
+        self.statuses.update(status for _, status in pairs)
         if entropies:
             entropy_sum = self._entropy_sum
             for name, share in entropies:
