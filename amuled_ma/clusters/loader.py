@@ -9,7 +9,9 @@ import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Annotated, Any, Literal, NamedTuple
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from amuled_ma.errors import ClusterDefinitionError, ScenarioError
 from amuled_ma.files.resources import prompts_dir, read_text
@@ -74,6 +76,73 @@ class Cluster:
 #: The keys a cluster file may hold: the fields of `Cluster` but ``path``.
 _KNOWN_FIELDS = {f.name for f in fields(Cluster)} - {"path"}
 
+_TEXT = "a non-empty string"
+_SOURCE_TABLE = (
+    'a table with a \'source\' kind, e.g. [source] source = "ollama", model = "llama3.1:8b"'
+)
+_NonEmpty = Annotated[str, Field(pattern=r"\S", description=_TEXT)]
+_Strings = Annotated[
+    list[_NonEmpty],
+    Field(min_length=1, description="a non-empty list of non-empty strings"),
+]
+
+
+class _TheoryFile(BaseModel):
+    """One ``[[theories]]`` table as written."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    name: _NonEmpty
+    key_concepts: _Strings
+    decision_factors: _Strings
+
+
+class _ClusterFile(BaseModel):
+    """A cluster file's keys and types; `parse_cluster` checks what joins keys."""
+
+    model_config = ConfigDict(strict=True, allow_inf_nan=False)
+
+    name: _NonEmpty
+    kind: Literal["cluster", "mixture", "unprompted"] = Field(
+        "cluster", description="one of " + ", ".join(KINDS)
+    )
+    title: _NonEmpty
+    order: int = Field(1000, description="an integer")
+    aliases: list[Annotated[str, Field(min_length=1)]] = Field(
+        default_factory=list, description="a list of strings"
+    )
+    instruction: _NonEmpty | None = None
+    description: str = Field("", description="a string")
+    credence_label: _NonEmpty | None = None
+    focus: _NonEmpty | None = None
+    key_principle: _NonEmpty | None = None
+    theories: Annotated[list[_TheoryFile], Field(min_length=1)] | None = Field(
+        None, description="one or more [[theories]] tables"
+    )
+    credences: (
+        Annotated[dict[str, Annotated[float, Field(ge=0, le=1)]], Field(min_length=1)] | None
+    ) = Field(None, description="a table name = value")
+    source: dict[str, Any] | None = Field(None, description=_SOURCE_TABLE)
+
+
+def _what(loc: tuple[str | int, ...]) -> str:
+    """What a key at ``loc`` expects, from the models' descriptions."""
+    if loc[0] == "credences" and len(loc) > 1:
+        return "a finite number between 0 and 1"
+    if loc[0] == "theories" and len(loc) == 2:
+        return "a table"
+    if loc[0] == "theories" and len(loc) > 2:
+        return _TheoryFile.model_fields[str(loc[2])].description or _TEXT
+    return _ClusterFile.model_fields[str(loc[0])].description or _TEXT
+
+
+def _field(loc: tuple[str | int, ...]) -> str:
+    """``("theories", 0, "name")`` as ``theories[0].name``."""
+    text = str(loc[0])
+    for part in loc[1:]:
+        text += f"[{part}]" if isinstance(part, int) else f".{part}"
+    return text
+
 
 def _refuse_odd_characters(path: Path, field_name: str, value: str) -> None:
     """Refuse a name holding a character that prints as nothing (`odd_character`)."""
@@ -91,76 +160,10 @@ def _fail(path: Path, field_name: str, problem: str) -> ClusterDefinitionError:
     return ClusterDefinitionError(f"{path}: field {field_name!r}: {problem}")
 
 
-def _string(data: Mapping[str, Any], key: str, path: Path, *, required: bool) -> str:
-    if key not in data:
-        if required:
-            raise _fail(path, key, "missing (expected a non-empty string)")
-        return ""
-    value = data[key]
-    if not isinstance(value, str) or (required and not value.strip()):
-        raise _fail(path, key, f"expected a non-empty string, found {value!r}")
-    return value
-
-
-def _string_list(value: object, path: Path, key: str) -> tuple[str, ...]:
-    if (
-        not isinstance(value, list)
-        or not value
-        or not all(isinstance(v, str) and v.strip() for v in value)
-    ):
-        raise _fail(path, key, f"expected a non-empty list of non-empty strings, found {value!r}")
-    return tuple(value)
-
-
-def _theories(data: Mapping[str, Any], path: Path) -> tuple[Theory, ...]:
-    if "theories" not in data:
-        raise _fail(path, "theories", "missing (expected one or more [[theories]] tables)")
-    raw = data["theories"]
-    if not isinstance(raw, list) or not raw:
-        raise _fail(path, "theories", f"expected one or more [[theories]] tables, found {raw!r}")
-    theories = []
-    for i, item in enumerate(raw):
-        where = f"theories[{i}]"
-        if not isinstance(item, dict):
-            raise _fail(path, where, f"expected a table, found {item!r}")
-        for key in ("name", "key_concepts", "decision_factors"):
-            if key not in item:
-                raise _fail(path, f"{where}.{key}", "missing")
-        unknown = set(item) - {"name", "key_concepts", "decision_factors"}
-        if unknown:
-            raise _fail(path, f"{where}.{sorted(unknown)[0]}", "unknown field")
-        name = item["name"]
-        if not isinstance(name, str) or not name.strip():
-            raise _fail(path, f"{where}.name", f"expected a non-empty string, found {name!r}")
-        theories.append(
-            Theory(
-                name=name,
-                key_concepts=_string_list(item["key_concepts"], path, f"{where}.key_concepts"),
-                decision_factors=_string_list(
-                    item["decision_factors"], path, f"{where}.decision_factors"
-                ),
-            )
-        )
-    return tuple(theories)
-
-
-def _credences(data: Mapping[str, Any], path: Path) -> dict[str, float]:
-    raw = data.get("credences")
-    if not isinstance(raw, dict) or not raw:
-        raise _fail(
-            path, "credences", f"missing or empty (expected a table name = value), found {raw!r}"
-        )
-    out: dict[str, float] = {}
+def _check_credences(credences: Mapping[str, float], path: Path) -> None:
+    """Refuse a cluster named twice (up to case and spacing) or credences not summing to 1."""
     seen: dict[str, str] = {}
-    for key, value in raw.items():
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise _fail(path, f"credences.{key}", f"expected a number, found {value!r}")
-        if not math.isfinite(value) or not 0 <= value <= 1:
-            raise _fail(
-                path,
-                f"credences.{key}",
-                f"expected a finite number between 0 and 1, found {value!r}",
-            )
+    for key in credences:
         previous = seen.setdefault(identity_key(key), key)
         if previous != key:
             raise _fail(
@@ -169,8 +172,7 @@ def _credences(data: Mapping[str, Any], path: Path) -> dict[str, float]:
                 f"expected each cluster once, found both {previous!r} and {key!r} (keys are "
                 "compared ignoring case, '_', '-' and spaces); keep one of them",
             )
-        out[key] = float(value)
-    total = math.fsum(out.values())
+    total = math.fsum(credences.values())
     if abs(total - 1.0) > CREDENCE_SUM_TOLERANCE:
         fix = f"divide each value by {total:.12g}" if total > 0 else "give one a value above 0"
         raise _fail(
@@ -179,26 +181,27 @@ def _credences(data: Mapping[str, Any], path: Path) -> dict[str, float]:
             f"expected values summing to 1 (within {CREDENCE_SUM_TOLERANCE:g}), found a sum of "
             f"{total:.12g}; fix the values so they add up to 1 ({fix})",
         )
-    return out
 
 
-def _source_table(data: Mapping[str, Any], path: Path) -> dict[str, Any] | None:
+def _source_table(table: dict[str, Any] | None, path: Path) -> dict[str, Any] | None:
     """The optional ``[source]`` table, checked like a scenario's ``[feedback.agents.<name>]``."""
-    table = data.get("source")
     if table is None:
         return None
-    if not isinstance(table, dict) or not isinstance(table.get("source"), str):
-        raise _fail(
-            path,
-            "source",
-            f"expected a table with a 'source' kind, e.g. [source] source = \"ollama\", "
-            f'model = "llama3.1:8b"; found {table!r}',
-        )
+    if not isinstance(table.get("source"), str):
+        raise _fail(path, "source", f"expected {_SOURCE_TABLE}; found {table!r}")
     try:
         check_agent_table(f"{path}: [source]", table, default_source="ollama", default_model="*")
     except ScenarioError as error:
         raise ClusterDefinitionError(str(error)) from None
     return dict(table)
+
+
+#: The keys each kind needs besides ``name`` and ``title``.
+_REQUIRED = {
+    "cluster": ("credence_label", "focus", "key_principle", "theories"),
+    "mixture": ("credences",),
+    "unprompted": ("instruction",),
+}
 
 
 def parse_cluster(data: Mapping[str, Any], path: Path) -> Cluster:
@@ -212,55 +215,43 @@ def parse_cluster(data: Mapping[str, Any], path: Path) -> Cluster:
         raise _fail(
             path, sorted(unknown)[0], f"unknown field (known: {', '.join(sorted(_KNOWN_FIELDS))})"
         )
-    name = _string(data, "name", path, required=True)
-    _refuse_odd_characters(path, "name", name)
-    if name != path.stem:
-        raise _fail(path, "name", f"must equal the file name {path.stem!r}, found {name!r}")
-    kind = data.get("kind", "cluster")
-    if kind not in KINDS:
-        raise _fail(path, "kind", f"expected one of {', '.join(KINDS)}, found {kind!r}")
-    title = _string(data, "title", path, required=True)
-    order = data.get("order", 1000)
-    if isinstance(order, bool) or not isinstance(order, int):
-        raise _fail(path, "order", f"expected an integer, found {order!r}")
-    aliases = data.get("aliases", [])
-    if not isinstance(aliases, list) or not all(isinstance(a, str) and a for a in aliases):
-        raise _fail(path, "aliases", f"expected a list of strings, found {aliases!r}")
-    for alias in aliases:
-        _refuse_odd_characters(path, "aliases", alias)
-    instruction = data.get("instruction")
-    if instruction is not None and (not isinstance(instruction, str) or not instruction.strip()):
-        raise _fail(path, "instruction", f"expected a non-empty string, found {instruction!r}")
-    fields: dict[str, Any] = {
-        "name": name,
-        "kind": kind,
-        "title": title,
-        "order": order,
-        "aliases": tuple(aliases),
-        "instruction": instruction,
-        "description": _string(data, "description", path, required=False),
-        "source": _source_table(data, path),
-        "path": path,
-        "credence_label": title,
-    }
-    if kind == "cluster":
-        fields["credence_label"] = _string(data, "credence_label", path, required=True)
-        _refuse_odd_characters(path, "credence_label", fields["credence_label"])
-        fields["focus"] = _string(data, "focus", path, required=True)
-        fields["key_principle"] = _string(data, "key_principle", path, required=True)
-        fields["theories"] = _theories(data, path)
-        if "credences" in data:
-            raise _fail(path, "credences", "only allowed with kind = 'mixture'")
-        if instruction is not None and "{credences}" not in instruction:
-            raise _fail(path, "instruction", "a cluster's instruction must contain {credences}")
-    elif kind == "mixture":
-        fields["credences"] = _credences(data, path)
-        if instruction is not None and "{credences}" not in instruction:
-            raise _fail(path, "instruction", "a mixture's instruction must contain {credences}")
-    else:  # unprompted
-        if instruction is None:
-            raise _fail(path, "instruction", "missing (an unprompted agent needs its instruction)")
-    return Cluster(**fields)
+    try:
+        file = _ClusterFile.model_validate(data)
+    except ValidationError as error:
+        first = error.errors()[0]
+        loc = first["loc"]
+        if first["type"] == "extra_forbidden":
+            raise _fail(path, _field(loc), "unknown field") from None
+        if first["type"] == "missing":
+            raise _fail(path, _field(loc), f"missing (expected {_what(loc)})") from None
+        problem = f"expected {_what(loc)}, found {first['input']!r}"
+        raise _fail(path, _field(loc), problem) from None
+    for key, value in (("name", file.name), *(("aliases", a) for a in file.aliases)):
+        _refuse_odd_characters(path, key, value)
+    if file.name != path.stem:
+        raise _fail(path, "name", f"must equal the file name {path.stem!r}, found {file.name!r}")
+    for key in _REQUIRED[file.kind]:
+        if getattr(file, key) is None:
+            raise _fail(path, key, f"missing (expected {_what((key,))}; kind = {file.kind!r})")
+    if file.kind != "mixture" and file.credences is not None:
+        raise _fail(path, "credences", "only allowed with kind = 'mixture'")
+    if file.kind != "unprompted" and file.instruction and "{credences}" not in file.instruction:
+        raise _fail(path, "instruction", f"a {file.kind}'s instruction must contain {{credences}}")
+    values = file.model_dump(include={"name", "kind", "title", "order", "description"})
+    values.update(aliases=tuple(file.aliases), instruction=file.instruction, path=path)
+    values.update(credence_label=file.title, source=_source_table(file.source, path))
+    if file.kind == "cluster" and file.credence_label and file.theories:
+        _refuse_odd_characters(path, "credence_label", file.credence_label)
+        values.update(
+            credence_label=file.credence_label, focus=file.focus, key_principle=file.key_principle
+        )
+        values["theories"] = tuple(
+            Theory(t.name, tuple(t.key_concepts), tuple(t.decision_factors)) for t in file.theories
+        )
+    elif file.kind == "mixture" and file.credences is not None:
+        _check_credences(file.credences, path)
+        values["credences"] = dict(file.credences)
+    return Cluster(**values)
 
 
 def load_cluster(path: str | Path) -> Cluster:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import functools
 import string
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -312,16 +312,8 @@ class _StepInfo:
     r_feedback: float
 
     def as_dict(self) -> dict[str, Any]:
-        return {
-            "fused": self.fused.copy(),
-            "beliefs": self.beliefs.copy(),
-            "weights": dict(self.weights),
-            "conflict": self.conflict,
-            "conflicts": self.conflicts.copy(),
-            "r_env": self.r_env,
-            "r_shaping": self.r_shaping,
-            "r_feedback": self.r_feedback,
-        }
+        """The fields as a dict of copies (each agent's info owns its arrays)."""
+        return asdict(self)
 
 
 def _row(obs: npt.ArrayLike | torch.Tensor) -> np.ndarray:

@@ -54,7 +54,6 @@ class Feedback(ABC):
         self._memo: dict[bytes, tuple[np.ndarray, dict[str, Any], tuple]] = {}
         self.steps = 0
         self.calls = 0
-        self.lookups = 0
         self.statuses: Counter[str] = Counter()
         #: ``(agent, status)`` -> rewarded steps whose belief of that agent had that status.
         self.agent_statuses: Counter[tuple[str, str]] = Counter()
@@ -129,7 +128,6 @@ class Feedback(ABC):
                 [ids[i] for i in rows],
                 None if prompt_vars is None else [prompt_vars[i] for i in rows],
             )
-            self.lookups += len(rows)
             for key, result in zip(missing, results, strict=True):
                 diag = result[1]
                 prepared = _prepare(diag, self.name)
@@ -162,10 +160,8 @@ class Feedback(ABC):
     def _account(self, prepared: tuple) -> None:
         """Add one row's diagnostics (as `_prepare` returns them) to the totals."""
         pairs, weights, conflict, entropies = prepared
-        statuses, agent_statuses = self.statuses, self.agent_statuses
-        for pair in pairs:
-            agent_statuses[pair] += 1
-            statuses[pair[1]] += 1
+        self.agent_statuses.update(pairs)
+        self.statuses.update(status for _, status in pairs)
         if entropies:
             entropy_sum = self._entropy_sum
             for name, share in entropies:

@@ -136,14 +136,7 @@ class PanelPlan:
 
 
 def cluster_registry(feedback: FeedbackConfig, resolve: Callable[[str], Path]) -> ClusterRegistry:
-    """The shipped clusters plus ``[feedback].clusters_dirs`` (later win).
-
-    Args:
-        feedback: The ``[feedback]`` section.
-        resolve: Resolves a path against the scenario file's folder.
-
-    Returns:
-        The registry.
+    """The shipped clusters plus ``[feedback].clusters_dirs`` (later win), resolved by ``resolve``.
 
     Raises:
         ClusterDefinitionError: A folder is missing or a file is malformed or collides.
@@ -207,15 +200,8 @@ def cluster_sources(
     """Each cluster file's ``[source]`` for a member without its own agent table.
 
     A cluster file may name where its beliefs come from (``[source]``); the scenario's own
-    ``[feedback.agents.<name>]`` table for that agent wins.
-
-    Args:
-        agents: ``[feedback.agents]``.
-        clusters: The panel's clusters.
-
-    Returns:
-        ``{cluster name: its [source] table}``, to merge under ``[feedback.agents]``.
-
+    ``[feedback.agents.<name>]`` table for that agent wins. Returns ``{cluster name: its
+    [source] table}``, to merge under ``[feedback.agents]``.
     """
     named = match_agents(list(agents), clusters)
     return {c.name: dict(c.source) for c in clusters if c.source and c.name not in named}
@@ -224,17 +210,7 @@ def cluster_sources(
 def cluster_source_files(
     agents: Mapping[str, AgentSpec], clusters: Sequence[Any]
 ) -> dict[str, str]:
-    """The file of each cluster whose ``[source]`` :func:`cluster_sources` merges in.
-
-    Args:
-        agents: ``[feedback.agents]``.
-        clusters: The panel's clusters.
-
-    Returns:
-        ``{cluster name: its file}``, for messages about that source (they name the file
-        that holds the table, not the scenario).
-
-    """
+    """``{cluster name: its file}`` of each ``[source]`` `cluster_sources` merges in."""
     named = match_agents(list(agents), clusters)
     return {
         c.name: str(c.path)
@@ -246,15 +222,10 @@ def cluster_source_files(
 def default_source(
     feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str
 ) -> SourcePlan:
-    """The source of ``[feedback].source`` (what every agent without a table uses).
+    """The plan of ``[feedback].source`` (what every agent without a table uses).
 
-    Args:
-        feedback: The ``[feedback]`` section.
-        resolve: Resolves a path against the scenario file's folder.
-        where: The scenario, for messages (its file, or ``scenario 'name'``).
-
-    Returns:
-        The source's plan.
+    ``resolve`` resolves a path against the scenario file's folder; ``where`` names the
+    scenario in messages (its file, or ``scenario 'name'``).
 
     Raises:
         ScenarioError: The replayed recording is not found.
@@ -276,19 +247,10 @@ def agent_source(
     spec: AgentSpec,
     file: str | None = None,
 ) -> SourcePlan:
-    """The source of one ``[feedback.agents.<name>]`` spec, ``[feedback]``'s values inherited.
+    """The plan of agent ``name``'s ``spec``, ``[feedback]``'s values inherited.
 
-    Args:
-        feedback: The ``[feedback]`` section.
-        resolve: Resolves a path against the scenario file's folder.
-        where: The scenario, for messages (its file, or ``scenario 'name'``).
-        name: The agent's table name.
-        spec: Its spec.
-        file: The cluster file whose ``[source]`` the table is (None: the scenario's own);
-            the label then starts with that file (``"clusters/care.toml: [source] ..."``).
-
-    Returns:
-        The source's plan.
+    ``file``: the cluster file whose ``[source]`` the table is (None: the scenario's own);
+    the label then starts with that file (``"clusters/care.toml: [source] ..."``).
 
     Raises:
         ScenarioError: The agent's recording is not found.

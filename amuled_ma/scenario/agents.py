@@ -27,6 +27,17 @@ _PLAIN = (str, int, float, bool, list, dict)
 _OPTION = "an OllamaSource option"
 
 
+#: ``concurrency`` of ``[feedback]`` and of an ``ollama`` table.
+Concurrency = Annotated[
+    int, Field(ge=1, le=1024, description="LLM requests in flight, one connection each")
+]
+#: ``timeout_s`` of ``[feedback]`` and of an ``ollama`` table.
+TimeoutS = Annotated[
+    float,
+    Field(gt=0, le=86_400, description="seconds per LLM request: 0 fails all, above a day hangs"),
+]
+
+
 def norm(name: str) -> str:
     """A name compared ignoring case, ``_``, ``-`` and spaces (``social-justice``)."""
     return "".join(ch for ch in name.lower() if ch.isalnum())
@@ -59,20 +70,13 @@ class _Spec(BaseModel):
     ) -> dict[str, Any]:
         """The keyword arguments of this kind's source, ``[feedback]``'s values inherited.
 
-        Args:
-            feedback: The ``[feedback]`` section.
-            resolve: Resolves a path against the scenario file's folder.
-            where: The scenario, for messages (its file, or ``scenario 'name'``).
-            head: The table (``[feedback.agents.care]``), for messages.
-
-        Returns:
-            The source's keyword arguments.
+        ``resolve`` resolves a path against the scenario file's folder; ``where`` (the
+        scenario) and ``head`` (the table, ``[feedback.agents.care]``) name it in messages.
 
         Raises:
             ScenarioError: A file the table names is not found.
-
         """
-        return self.given()
+        return self.model_dump(exclude={"source"})
 
 
 class ReplaySpec(_Spec):
@@ -119,15 +123,8 @@ class OllamaSpec(_Spec):
     hosts: list[str] = Field(
         default_factory=list, description="a pool of Ollama server URLs (instead of host)"
     )
-    concurrency: int = Field(
-        2, ge=1, le=1024, description="LLM requests in flight, one connection each"
-    )
-    timeout_s: float = Field(
-        120.0,
-        gt=0,
-        le=86_400,
-        description="seconds per LLM request: 0 fails all, above a day hangs",
-    )
+    concurrency: Concurrency = 2
+    timeout_s: TimeoutS = 120.0
     structured: bool = Field(True, description=_OPTION)
     reasoning: bool = Field(True, description=_OPTION)
     reasoning_max_chars: int = Field(400, description=_OPTION)
@@ -178,11 +175,6 @@ class RulesSpec(_Spec):
         "'pkg.module:function' allowed with --allow-plugin",
     )
 
-    def source_options(  # noqa: D102 - see _Spec
-        self, feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str, head: str
-    ) -> dict[str, Any]:
-        return {"policy": self.policy}
-
 
 class TerminalSpec(_Spec):
     """``source = "terminal"``: a person typing beliefs at the terminal."""
@@ -190,11 +182,6 @@ class TerminalSpec(_Spec):
     source: Literal["terminal"]
     person: str = Field("human", description="who answers (kept apart in the store)")
     attempts: int = Field(3, ge=1, le=100, description="answer lines read per state")
-
-    def source_options(  # noqa: D102 - see _Spec
-        self, feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str, head: str
-    ) -> dict[str, Any]:
-        return {"person": self.person, "attempts": self.attempts}
 
 
 class EntryPointSpec(_Spec):
@@ -221,11 +208,6 @@ class EntryPointSpec(_Spec):
     def detail(self, options: Mapping[str, Any]) -> str:  # noqa: D102 - see _Spec
         return f", name {self.name!r}"
 
-    def source_options(  # noqa: D102 - see _Spec
-        self, feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str, head: str
-    ) -> dict[str, Any]:
-        return {"name": self.name, "options": dict(self.options)}
-
 
 class PolicySpec(_Spec):
     """``source = "policy"``: a saved torch policy's action distribution."""
@@ -250,13 +232,7 @@ class PolicySpec(_Spec):
     def source_options(  # noqa: D102 - see _Spec
         self, feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str, head: str
     ) -> dict[str, Any]:
-        return {
-            "path": str(resolve(self.path)),
-            "key": self.key,
-            "module": self.module,
-            "kwargs": dict(self.kwargs),
-            "activation": self.activation,
-        }
+        return {**self.model_dump(exclude={"source"}), "path": str(resolve(self.path))}
 
 
 #: The one registry of the source kinds an agent table may name: kind -> spec model.

@@ -19,7 +19,13 @@ from pydantic import (
 )
 
 from amuled_ma.errors import ScenarioError
-from amuled_ma.scenario.agents import AgentSpec, check_agent_tables, check_ollama_table
+from amuled_ma.scenario.agents import (
+    AgentSpec,
+    Concurrency,
+    TimeoutS,
+    check_agent_tables,
+    check_ollama_table,
+)
 from amuled_ma.scenario.memory import (
     MAX_ENV_STEPS,
     MAX_SEED,
@@ -108,6 +114,12 @@ class _Section(BaseModel):
     def __init__(self, /, **data: object) -> None:
         _init(self, data, (self.section,))
 
+    @model_validator(mode="after")
+    def _within_budget(self, info: ValidationInfo) -> _Section:
+        """Checks across keys (memory estimates, the run-length cap; `check_budget`)."""
+        check_budget(self.section, dict(self), _source(info))
+        return self
+
 
 def _finite_table(section: str, value: object, info: ValidationInfo) -> object:
     """Refuse NaN and infinities anywhere in a free-form table, naming the nested key."""
@@ -193,11 +205,6 @@ class PPOConfig(_Section):
     )
     normalize_advantage_per_mini_batch: bool = True
 
-    @model_validator(mode="after")
-    def _networks_fit_in_memory(self, info: ValidationInfo) -> PPOConfig:
-        check_budget("ppo", dict(self), _source(info))
-        return self
-
 
 class BaseConfig(_Section):
     """Base training: ``r = r_env + c * r_shaping``, ``c`` = ``shaping_coef`` (``base`` uses 0).
@@ -229,11 +236,6 @@ class BaseConfig(_Section):
     grad_clip: GradClip = "per_network"
     reshuffle_each_epoch: bool = False
     bootstrap_time_outs: bool = True
-
-    @model_validator(mode="after")
-    def _rollouts_fit_in_memory(self, info: ValidationInfo) -> BaseConfig:
-        check_budget("base", dict(self), _source(info))
-        return self
 
 
 class FinetuneConfig(_Section):
@@ -273,11 +275,6 @@ class FinetuneConfig(_Section):
     grad_clip: GradClip = "per_network"
     reshuffle_each_epoch: bool = False
     bootstrap_time_outs: bool = True
-
-    @model_validator(mode="after")
-    def _rollouts_fit_and_run_is_capped(self, info: ValidationInfo) -> FinetuneConfig:
-        check_budget("finetune", dict(self), _source(info))
-        return self
 
 
 class DistillConfig(_Section):
@@ -374,15 +371,8 @@ class FeedbackConfig(_Section):
     model: str = ""
     host: str = ""
     hosts: list[str] = Field(default_factory=list)
-    concurrency: int = Field(
-        4, ge=1, le=1024, description="LLM requests in flight, one connection each"
-    )
-    timeout_s: float = Field(
-        120.0,
-        gt=0,
-        le=86_400,
-        description="seconds per LLM request: 0 fails all, above a day hangs",
-    )
+    concurrency: Concurrency = 4
+    timeout_s: TimeoutS = 120.0
     miss_policy: MissPolicy = "uniform"
     cluster_recording: str = ""
     store: str = "beliefs.sqlite"
@@ -502,11 +492,6 @@ class EvaluationConfig(_Section):
         lt=1,
         description="two-sided confidence level; 1 would need an infinite interval",
     )
-
-    @model_validator(mode="after")
-    def _episodes_fit_in_memory(self, info: ValidationInfo) -> EvaluationConfig:
-        check_budget("evaluation", dict(self), _source(info))
-        return self
 
 
 class OutputConfig(_Section):
