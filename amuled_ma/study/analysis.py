@@ -16,24 +16,22 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import binomtest
 
 from amuled_ma.study.answers import Answer, read_answers, read_expert_answers
 from amuled_ma.study.model import ANSWERS_FILE, Item, Study, StudyError, read_study
 
-Z95 = 1.959963984540054
 #: Below this many participants the report warns: a percentile bootstrap over so few people
 #: undercovers (Davison and Hinkley 1997, section 5.3).
 MIN_PARTICIPANTS = 10
 
 
-def wilson(wins: int, n: int, z: float = Z95) -> tuple[float, float]:
-    """Wilson's score interval of a proportion ``wins / n`` (``(nan, nan)`` for ``n = 0``)."""
+def wilson(wins: int, n: int) -> tuple[float, float]:
+    """Wilson's 95% score interval of a proportion ``wins / n`` (``(nan, nan)`` for ``n = 0``)."""
     if n == 0:
         return math.nan, math.nan
-    p = wins / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return centre - half, centre + half
+    interval = binomtest(wins, n).proportion_ci(method="wilson")
+    return float(interval.low), float(interval.high)
 
 
 def attentive(study: Study, answers: Sequence[Answer]) -> set[str]:
@@ -44,12 +42,8 @@ def attentive(study: Study, answers: Sequence[Answer]) -> set[str]:
 
 def pair_answers(study: Study, answers: Sequence[Answer]) -> list[tuple[Answer, Item]]:
     """The answers to pairs (not attention checks), with their items."""
-    out = []
-    for answer in answers:
-        item = study.item(answer.item)
-        if item is not None and item.kind == "pair":
-            out.append((answer, item))
-    return out
+    items = ((answer, study.item(answer.item)) for answer in answers)
+    return [(answer, item) for answer, item in items if item is not None and item.kind == "pair"]
 
 
 def comparisons(pairs: Sequence[tuple[Answer, Item]]) -> list[tuple[str, str]]:
@@ -242,6 +236,13 @@ def majorities(pairs: Sequence[tuple[Answer, Item]]) -> dict[str, tuple[str, int
     return out
 
 
+def tally(counts: dict[str, list[int]], who: str, agrees: bool) -> None:
+    """Count one judgement of ``who`` in ``counts[who] = [agree, counted]``."""
+    row = counts.setdefault(who, [0, 0])
+    row[0] += int(agrees)
+    row[1] += 1
+
+
 def _prefers(belief: Sequence[float], item: Item) -> str | None:
     a, b = (float(belief[o.action]) for o in item.options)
     if a == b:
@@ -249,13 +250,13 @@ def _prefers(belief: Sequence[float], item: Item) -> str | None:
     return "A" if a > b else "B"
 
 
-def agreement(study: Study, majority: dict[str, tuple[str, int, int]]) -> dict[str, list]:
+def agreement(study: Study, majority: dict[str, tuple[str, int, int]]) -> dict[str, list[int]]:
     """Agreement with the majority, ``{who: [agree, counted]}`` (ties, third actions: neither).
 
     A panel member (or the fused belief) prefers the option whose action it believes more; a
     policy agrees when its action is the majority option's.
     """
-    out: dict[str, list] = {}
+    out: dict[str, list[int]] = {}
     for item_id, (top, _, _) in majority.items():
         item = study.item(item_id)
         if item is None:
@@ -266,15 +267,11 @@ def agreement(study: Study, majority: dict[str, tuple[str, int, int]]) -> dict[s
                 key = name if name == "fused" else f"cluster:{name}"
                 pref = _prefers(belief, item)
                 if pref is not None:
-                    row = out.setdefault(key, [0, 0])
-                    row[0] += int(pref == top)
-                    row[1] += 1
+                    tally(out, key, pref == top)
         actions: dict[str, int] = {o.label: o.action for o in item.options}
         for variant, action in item.policies.items():
             if action in actions.values():
-                row = out.setdefault(f"policy:{variant}", [0, 0])
-                row[0] += int(action == actions[top])
-                row[1] += 1
+                tally(out, f"policy:{variant}", action == actions[top])
     return out
 
 

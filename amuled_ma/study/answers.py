@@ -12,7 +12,8 @@ import secrets
 import sqlite3
 import threading
 import time
-from dataclasses import dataclass
+from contextlib import closing
+from dataclasses import astuple, dataclass
 from pathlib import Path
 
 SCHEMA = """
@@ -180,10 +181,8 @@ class AnswerStore:
                 self._db.execute(
                     "INSERT INTO answers (participant, item, choice, variant, correct, ms, "
                     "received, rating_a, rating_b) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                    (answer.participant, answer.item, answer.choice, answer.variant,
-                     answer.correct, answer.ms, answer.received, answer.rating_a,
-                     answer.rating_b),
-                )  # fmt: skip
+                    astuple(answer),  # the fields in the columns' order
+                )
             except sqlite3.IntegrityError:
                 return False
             return True
@@ -191,27 +190,23 @@ class AnswerStore:
     def add_expert(self, answer: ExpertAnswer) -> bool:
         """Store an expert's answer and judgements in one transaction; False if answered already."""
         with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
             try:
-                self._db.execute(
-                    "INSERT INTO expert_answers (participant, item, clarity, ms, received) "
-                    "VALUES (?, ?, ?, ?, ?)",
-                    (answer.participant, answer.item, answer.clarity, answer.ms,
-                     answer.received),
-                )  # fmt: skip
-                self._db.executemany(
-                    "INSERT INTO expert_actions (participant, item, action, acceptable, "
-                    "framework) VALUES (?, ?, ?, ?, ?)",
-                    [(answer.participant, answer.item, j.action, int(j.acceptable), j.framework)
-                     for j in answer.judgements],
-                )  # fmt: skip
+                with self._db:  # committed, or rolled back on any exception
+                    self._db.execute("BEGIN IMMEDIATE")
+                    self._db.execute(
+                        "INSERT INTO expert_answers (participant, item, clarity, ms, received) "
+                        "VALUES (?, ?, ?, ?, ?)",
+                        (answer.participant, answer.item, answer.clarity, answer.ms,
+                         answer.received),
+                    )  # fmt: skip
+                    self._db.executemany(
+                        "INSERT INTO expert_actions (participant, item, action, acceptable, "
+                        "framework) VALUES (?, ?, ?, ?, ?)",
+                        [(answer.participant, answer.item, j.action, int(j.acceptable),
+                          j.framework) for j in answer.judgements],
+                    )  # fmt: skip
             except sqlite3.IntegrityError:
-                self._db.execute("ROLLBACK")
                 return False
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
-            self._db.execute("COMMIT")
             return True
 
     def refuse(self, participant: str | None, item: str | None, choice: str | None, reason: str):
@@ -223,25 +218,26 @@ class AnswerStore:
             )
 
 
+def _read_only(path: Path) -> closing[sqlite3.Connection]:
+    """A read-only connection to an answer file, closed on leaving its ``with``."""
+    return closing(sqlite3.connect(f"file:{Path(path)}?mode=ro", uri=True))
+
+
 def read_answers(path: Path) -> list[Answer]:
     """Every stored answer of a study's file, read-only (participant, then item order)."""
-    db = sqlite3.connect(f"file:{Path(path)}?mode=ro", uri=True)
-    try:
+    with _read_only(path) as db:
         have = _columns(db, "answers")
         ratings = ", ".join(n if n in have else "NULL" for n, _ in RATING_COLUMNS)
         rows = db.execute(
             f"SELECT participant, item, choice, variant, correct, ms, received, {ratings} "
             "FROM answers ORDER BY participant, item"
         ).fetchall()
-    finally:
-        db.close()
     return [Answer(*row) for row in rows]
 
 
 def read_expert_answers(path: Path) -> list[ExpertAnswer]:
     """Every expert answer of a study's file, read-only (none in a version 1 file)."""
-    db = sqlite3.connect(f"file:{Path(path)}?mode=ro", uri=True)
-    try:
+    with _read_only(path) as db:
         if not _columns(db, "expert_answers"):
             return []
         rows = db.execute(
@@ -256,8 +252,6 @@ def read_expert_answers(path: Path) -> list[ExpertAnswer]:
             judged.setdefault((pid, item), []).append(
                 Judgement(int(action), bool(acceptable), str(framework))
             )
-    finally:
-        db.close()
     return [
         ExpertAnswer(pid, item, clarity, tuple(judged.get((pid, item), ())), ms, received)
         for pid, item, clarity, ms, received in rows
@@ -266,11 +260,8 @@ def read_expert_answers(path: Path) -> list[ExpertAnswer]:
 
 def read_refusals(path: Path) -> list[tuple[str | None, str | None, str | None, str]]:
     """Every refused answer ``(participant, item, choice, reason)``."""
-    db = sqlite3.connect(f"file:{Path(path)}?mode=ro", uri=True)
-    try:
+    with _read_only(path) as db:
         rows = db.execute(
             "SELECT participant, item, choice, reason FROM refusals ORDER BY received"
         ).fetchall()
-    finally:
-        db.close()
     return [tuple(r) for r in rows]

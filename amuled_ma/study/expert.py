@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from amuled_ma.study.analysis import MeanInterval, bootstrap_mean, nominal_alpha
+from amuled_ma.study.analysis import MeanInterval, bootstrap_mean, nominal_alpha, tally
 from amuled_ma.study.answers import ExpertAnswer
 from amuled_ma.study.model import Study
 
@@ -99,13 +99,9 @@ def expert_agreement(
             for who, belief in [*named, ("fused", item.panel.fused)]:
                 top = top_action(belief)
                 if top is not None:
-                    row = out.setdefault(who, [0, 0])
-                    row[0] += int(top in accepted)
-                    row[1] += 1
+                    tally(out, who, top in accepted)
         for variant, action in item.policies.items():
-            row = out.setdefault(f"policy:{variant}", [0, 0])
-            row[0] += int(action in accepted)
-            row[1] += 1
+            tally(out, f"policy:{variant}", action in accepted)
     return out
 
 

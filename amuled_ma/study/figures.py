@@ -7,10 +7,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from amuled_ma.evaluate.report.plotting import pyplot
-from amuled_ma.files.safe import atomic_writer
-
-_DPI = 110
+from amuled_ma.evaluate.report.plotting import pyplot, save_figure
 
 
 def _interval_bars(ax: Any, names: Sequence[str], rows: Sequence[Mapping[str, Any]],
@@ -58,12 +55,7 @@ def strengths_figure(summary: Mapping[str, Any], path: Path) -> Path:
     fig.suptitle("Variants as people judged them (95% bootstrap intervals over participants)",
                  fontsize=10)  # fmt: skip
     fig.tight_layout()
-    try:
-        with atomic_writer(path) as handle:
-            fig.savefig(handle, format="png", dpi=_DPI)
-    finally:
-        plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def expert_figure(summary: Mapping[str, Any], path: Path) -> Path:
@@ -88,9 +80,4 @@ def expert_figure(summary: Mapping[str, Any], path: Path) -> Path:
     right.set_xlabel("share of states where its top action\nis acceptable to the experts")
     right.set_title("Agreement with the experts (Wilson 95%)", fontsize=10)
     fig.tight_layout()
-    try:
-        with atomic_writer(path) as handle:
-            fig.savefig(handle, format="png", dpi=_DPI)
-    finally:
-        plt.close(fig)
-    return path
+    return save_figure(fig, path)

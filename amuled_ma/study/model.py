@@ -220,10 +220,7 @@ class Study(_Model):
 
     def item(self, item_id: str) -> Item | None:
         """The item of that id, None when the study has none."""
-        for item in self.items:
-            if item.id == item_id:
-                return item
-        return None
+        return next((item for item in self.items if item.id == item_id), None)
 
 
 def write_study(folder: Path, study: Study) -> Path:

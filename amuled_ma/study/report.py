@@ -34,7 +34,7 @@ from amuled_ma.study.analysis import (
 )
 from amuled_ma.study.answers import read_expert_answers
 from amuled_ma.study.figures import expert_figure, strengths_figure
-from amuled_ma.study.model import ANSWERS_FILE, NO_REASON, read_study
+from amuled_ma.study.model import ANSWERS_FILE, NO_REASON, Item, Study, read_study
 
 #: choix's regularisation in the report (a variant that never loses keeps a finite strength).
 ALPHA = 0.01
@@ -47,6 +47,24 @@ def _f(value: float | None, digits: int = 3) -> str:
 def _num(value: float) -> float | None:
     """A number for ``summary.json``: None for nan (JSON has no nan)."""
     return None if value is None or math.isnan(value) else float(value)
+
+
+def _row(*cells: object) -> str:
+    """A Markdown table row of ``cells``."""
+    return "| " + " | ".join(str(cell) for cell in cells) + " |"
+
+
+def _span(row: dict[str, Any], digits: int = 3) -> str:
+    """A row's interval as the report says it: ``low to high``."""
+    return f"{_f(row['low'], digits)} to {_f(row['high'], digits)}"
+
+
+def _view(study: Study, item: Item) -> str:
+    """The ``amuled view`` command that replays the episode an item's state comes from."""
+    return (
+        f"amuled view {study.runs[item.run]} --variant "
+        f"{study.folders[item.run][item.met_by]} --episode {item.episode}"
+    )
 
 
 def _rates(counts: dict[str, list[int]]) -> dict[str, dict[str, Any]]:
@@ -63,12 +81,9 @@ def _agreement_table(rates: dict[str, dict[str, Any]]) -> list[str]:
         "| who | agrees | counted | rate | 95% interval (Wilson) |",
         "|---|---:|---:|---:|---|",
     ]
-    for who, a in sorted(rates.items()):
-        lines.append(
-            f"| {who} | {a['agree']} | {a['n']} | {_f(a['rate'])} | {_f(a['low'])} to "
-            f"{_f(a['high'])} |"
-        )
-    return lines
+    return lines + [
+        _row(w, a["agree"], a["n"], _f(a["rate"]), _span(a)) for w, a in sorted(rates.items())
+    ]
 
 
 def summarize(folder: Path, *, keep_inattentive: bool = False) -> dict[str, Any]:
@@ -102,8 +117,7 @@ def summarize(folder: Path, *, keep_inattentive: bool = False) -> dict[str, Any]
                     "majority": top,
                     "votes": f"{n_top}/{n}",
                     "fused_gap": gap,
-                    "view": f"amuled view {study.runs[item.run]} --variant "
-                    f"{study.folders[item.run][item.met_by]} --episode {item.episode}",
+                    "view": _view(study, item),
                     "step": item.step,
                 }
             )
@@ -163,8 +177,7 @@ def summarize_expert(folder: Path) -> dict[str, Any]:
                     "fused": item.panel.fused[top],
                     "acceptable": [names[a] for a in sorted(accepted)],
                     "experts": n,
-                    "view": f"amuled view {study.runs[item.run]} --variant "
-                    f"{study.folders[item.run][item.met_by]} --episode {item.episode}",
+                    "view": _view(study, item),
                     "step": item.step,
                 }
             )
@@ -264,11 +277,9 @@ def write_analysis(
         "| variant | wins | shown | rate | 95% interval |",
         "|---|---:|---:|---:|---|",
     ]
-    for w in data["win_rates"]:
-        lines.append(
-            f"| {w['variant']} | {w['wins']} | {w['n']} | {_f(w['rate'])} | "
-            f"{_f(w['low'])} to {_f(w['high'])} |"
-        )
+    lines += [
+        _row(w["variant"], w["wins"], w["n"], _f(w["rate"]), _span(w)) for w in data["win_rates"]
+    ]
     lines += [
         "",
         "## Bradley-Terry strengths (log scale, mean 0; choix, regularisation "
@@ -277,10 +288,7 @@ def write_analysis(
         "| variant | strength | 95% interval |",
         "|---|---:|---|",
     ]
-    for b in data["bradley_terry"]:
-        lines.append(
-            f"| {b['variant']} | {_f(b['strength'])} | {_f(b['low'])} to {_f(b['high'])} |"
-        )
+    lines += [_row(b["variant"], _f(b["strength"]), _span(b)) for b in data["bradley_terry"]]
     points = data["rating_points"]
     lines += [
         "",
@@ -301,11 +309,10 @@ def write_analysis(
             "| variant | mean | 95% interval | ratings | participants |",
             "|---|---:|---|---:|---:|",
         ]
-        for r in data["acceptability"]:
-            lines.append(
-                f"| {r['variant']} | {_f(r['mean'], 2)} | {_f(r['low'], 2)} to "
-                f"{_f(r['high'], 2)} | {r['ratings']} | {r['participants']} |"
-            )
+        lines += [
+            _row(r["variant"], _f(r["mean"], 2), _span(r, 2), r["ratings"], r["participants"])
+            for r in data["acceptability"]
+        ]
     lines += [
         "",
         "![Bradley-Terry strengths and acceptability](strengths.png)",
@@ -321,13 +328,11 @@ def write_analysis(
     ]
     lines += _agreement_table(data["agreement"])
     lines += ["", "## Where people and the fused belief disagree most", ""]
-    if not data["disagreements"]:
-        lines.append("None: the fused belief sides with the majority on every item.")
-    for d in data["disagreements"]:
-        lines.append(
-            f"- {d['item']}: majority {d['majority']} ({d['votes']}), the fused belief "
-            f"prefers the other by {_f(d['fused_gap'])}; see `{d['view']}` at step {d['step']}"
-        )
+    lines += [
+        f"- {d['item']}: majority {d['majority']} ({d['votes']}), the fused belief prefers "
+        f"the other by {_f(d['fused_gap'])}; see `{d['view']}` at step {d['step']}"
+        for d in data["disagreements"]
+    ] or ["None: the fused belief sides with the majority on every item."]
     return write_text_atomic(out / "report.md", "\n".join(lines) + "\n")
 
 
@@ -360,9 +365,7 @@ def _write_expert(folder: Path, warn: Callable[[str], None] | None) -> Path:
     ]
     for c in data["frameworks"]:
         actions = ", ".join(f"{a} {k}" for a, k in c["by_action"].items()) or "-"
-        lines.append(
-            f"| {c['title']} | {c['cited']} | {_f(c['share'], 2)} | {c['acceptable']} | {actions} |"
-        )
+        lines.append(_row(c["title"], c["cited"], _f(c["share"], 2), c["acceptable"], actions))
     clear = data["clarity"]
     lines += [
         "",
@@ -378,9 +381,8 @@ def _write_expert(folder: Path, warn: Callable[[str], None] | None) -> Path:
         "",
         f"## Clarity of the panel's reasons (1 to {clear['points']})",
         "",
-        f"Mean {_f(clear['mean'], 2)}, 95% interval {_f(clear['low'], 2)} to "
-        f"{_f(clear['high'], 2)} (bootstrap over experts, 2000 resamples), from "
-        f"{clear['ratings']} ratings by {clear['experts']} experts.",
+        f"Mean {_f(clear['mean'], 2)}, 95% interval {_span(clear, 2)} (bootstrap over "
+        f"experts, 2000 resamples), from {clear['ratings']} ratings by {clear['experts']} experts.",
         "",
     ]
     if no_reason:
@@ -404,12 +406,10 @@ def _write_expert(folder: Path, warn: Callable[[str], None] | None) -> Path:
         "## Where the fused belief's top action is unacceptable to the experts",
         "",
     ]
-    if not data["fused_unacceptable"]:
-        lines.append("None: the fused belief's top action is acceptable on every state judged.")
-    for d in data["fused_unacceptable"]:
-        lines.append(
-            f"- {d['item']}: the fused belief prefers {d['fused_top']} ({_f(d['fused'])}); "
-            f"the experts ({d['experts']}) accept {', '.join(d['acceptable']) or 'nothing'}; "
-            f"see `{d['view']}` at step {d['step']}"
-        )
+    lines += [
+        f"- {d['item']}: the fused belief prefers {d['fused_top']} ({_f(d['fused'])}); "
+        f"the experts ({d['experts']}) accept {', '.join(d['acceptable']) or 'nothing'}; "
+        f"see `{d['view']}` at step {d['step']}"
+        for d in data["fused_unacceptable"]
+    ] or ["None: the fused belief's top action is acceptable on every state judged."]
     return write_text_atomic(out / "report.md", "\n".join(lines) + "\n")

@@ -7,9 +7,18 @@ nesting are validation errors, not server exceptions. An answer is read in two s
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints, ValidationError
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    ValidationError,
+    create_model,
+)
 
 #: The longest participant id, item id, token or source accepted [characters].
 MAX_TEXT = 200
@@ -47,13 +56,8 @@ class AnswerEnvelope(BaseModel):
     choice: Text | None = None
 
 
-def _scale(points: int) -> object:
-    """The points ``1..points`` of a scale: a strict integer (never a bool, a float or text)."""
-    return Annotated[int, Field(strict=True, ge=1, le=points)]
-
-
 class Ratings(_Request):
-    """A pair's two ratings; `answer_models` bounds them to the study's scale."""
+    """A pair's two ratings; `answer_models` bounds them to the study's scale (strict integers)."""
 
     A: int
     B: int
@@ -90,32 +94,32 @@ class ExpertAnswerRequest(_Request):
 
 def answer_models(
     rating_points: int, clarity_points: int, frameworks: list[str]
-) -> tuple[type[PairAnswer], type[ExpertAnswerRequest]]:
-    """The models of a pair's answer and an expert's, on the study's scales and ``frameworks``.
+) -> tuple[type[PairAnswer], Callable[[int, bool], type[ExpertAnswerRequest]]]:
+    """The model of a pair's answer, and of an expert's by its state, on the study's scales.
 
-    Their fields are checked in the order written, so the first error names the first
+    The expert's model of a state with ``actions`` actions holds one judgement per action,
+    each citing one of ``frameworks``, and a clarity exactly when the panel stated a
+    ``reason``. Fields are checked in the order written, so the first error names the first
     field that does not fit.
     """
-    rating_scale = _scale(rating_points)
-    clarity_scale = _scale(clarity_points)
+    rating = (int, Field(strict=True, ge=1, le=rating_points))
+    ratings = create_model("ScaledRatings", __base__=Ratings, A=rating, B=rating)
+    pair_model = create_model("ScaledPairAnswer", __base__=PairAnswer, ratings=(ratings, ...))
     cited = Literal[tuple(frameworks)]  # type: ignore[valid-type]
-
-    class ScaledRatings(Ratings):
-        A: rating_scale  # type: ignore[valid-type]
-        B: rating_scale  # type: ignore[valid-type]
-
-    class ScaledPairAnswer(PairAnswer):
-        ratings: ScaledRatings
 
     class CitedJudged(Judged):
         framework: cited  # type: ignore[valid-type]
 
-    class ScaledExpertAnswer(ExpertAnswerRequest):
-        # A list of the subclass: list is invariant, the override is sound for a frozen model.
-        actions: list[CitedJudged] = Field(max_length=MAX_ACTIONS)  # type: ignore[assignment]
-        clarity: clarity_scale | None = None  # type: ignore[valid-type]
+    @functools.cache
+    def expert_model(actions: int, reason: bool) -> type[ExpertAnswerRequest]:
+        return create_model(
+            "ScaledExpertAnswer",
+            __base__=ExpertAnswerRequest,
+            actions=(list[CitedJudged], Field(min_length=actions, max_length=actions)),
+            clarity=(int, Field(strict=True, ge=1, le=clarity_points)) if reason else (None, None),
+        )
 
-    return ScaledPairAnswer, ScaledExpertAnswer
+    return pair_model, expert_model
 
 
 def first_error(error: ValidationError) -> tuple[tuple[str | int, ...], str, str]:
@@ -151,7 +155,11 @@ def expert_reason(loc: tuple[str | int, ...], kind: str) -> str:
     if head == "ms":
         return "bad time"
     if head == "clarity":
-        return "clarity outside the scale"
+        return (
+            "clarity without a stated reason"
+            if kind == "none_required"
+            else ("clarity outside the scale")
+        )
     if head == "actions":
         if len(loc) == 1:
             return "expert: not one judgement per action"

@@ -32,7 +32,6 @@ from amuled_ma.study.model import (
     CONSENT_FILE,
     NO_FRAMEWORK,
     NO_REASON,
-    STUDY_FILE,
     Item,
     NotInFolder,
     Study,
@@ -43,7 +42,6 @@ from amuled_ma.study.model import (
 )
 from amuled_ma.study.requests import (
     AnswerEnvelope,
-    ExpertAnswerRequest,
     SessionRequest,
     answer_models,
     expert_reason,
@@ -304,34 +302,21 @@ class StudyApp:
             return JSONResponse({"error": f"item {item_id}: already answered"}, status_code=409)
         return JSONResponse({"stored": True})
 
-    def _expert_problem(self, form: ExpertAnswerRequest, item: Item) -> str | None:
-        """Why a well-formed expert answer does not fit its state, None when it does."""
-        if len(form.actions) != len(self.study.action_names.get(item.task, [])):
-            return "expert: not one judgement per action"
-        if item.panel is not None and item.panel.has_reasons():
-            if form.clarity is None:
-                return "clarity outside the scale"
-        elif form.clarity is not None:
-            return "clarity without a stated reason"
-        return None
-
     def _expert_answer(self, fields: dict[str, object], item: Item, pid: str) -> Response:
         """Store an expert's judgements of a state, or refuse them (the reason is kept)."""
-        problem = None
+        actions = len(self.study.action_names.get(item.task, []))
+        reason = item.panel is not None and item.panel.has_reasons()
         try:
-            form = self.expert_model.model_validate(fields)
+            form = self.expert_model(actions, reason).model_validate(fields)
         except ValidationError as refused:
             loc, kind, _ = first_error(refused)
-            problem, said = expert_reason(loc, kind), f" ({_said(refused)})"
-        else:
-            problem, said = self._expert_problem(form, item), ""
-        if problem is not None:
+            problem = expert_reason(loc, kind)
             self.store.refuse(pid, item.id, None, problem)
             return _bad(
-                f"{problem}{said}; expected 'ms': a time in ms, 'actions': one {{'acceptable': "
-                f"true|false, 'framework': one of {self.study.framework_names()}}} per "
-                f"action, 'clarity': 1 to {self.study.clarity_points} (null where the panel "
-                "stated no reason)"
+                f"{problem} ({_said(refused)}); expected 'ms': a time in ms, 'actions': one "
+                f"{{'acceptable': true|false, 'framework': one of "
+                f"{self.study.framework_names()}}} per action, 'clarity': 1 to "
+                f"{self.study.clarity_points} (null where the panel stated no reason)"
             )
         judgements = tuple(
             Judgement(a, j.acceptable, j.framework) for a, j in enumerate(form.actions)
@@ -341,11 +326,6 @@ class StudyApp:
             self.store.refuse(pid, item.id, None, "already answered")
             return JSONResponse({"error": f"item {item.id}: already answered"}, status_code=409)
         return JSONResponse({"stored": True})
-
-
-def make_app(folder: Path, *, allow_placeholder_consent: bool = False) -> Starlette:
-    """The ASGI application of a study folder (StudyError as `StudyApp`)."""
-    return StudyApp(folder, allow_placeholder_consent=allow_placeholder_consent).app
 
 
 def is_loopback(host: str) -> bool:
@@ -422,11 +402,8 @@ def serve(
     """
     import uvicorn
 
-    folder = Path(folder)
-    if not (folder / STUDY_FILE).exists() and not (folder / STUDY_FILE).is_symlink():
-        raise StudyError(f"{folder}: no {STUDY_FILE}; build it with 'amuled study build'")
     check_host(host, public=public)
-    app = make_app(folder, allow_placeholder_consent=allow_placeholder_consent)
+    app = StudyApp(folder, allow_placeholder_consent=allow_placeholder_consent).app
     sock = listen_socket(host, port, public=public)
     if not is_loopback(host):
         print(

@@ -250,10 +250,6 @@ def _answer_loglik(data: ChoiceData, model: Fit) -> np.ndarray:
     return np.where(data.answer_a, np.log(p), np.log1p(-p))
 
 
-def _percentiles(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return np.percentile(values, 2.5, axis=0), np.percentile(values, 97.5, axis=0)
-
-
 @dataclass(frozen=True)
 class WeightsFit:
     """What `fit_study` found: both fits, 95% bootstrap intervals, the held-out comparison."""
@@ -324,9 +320,9 @@ def fit_study(
             bar.update()
     diff = held_learned - held_fixed
     resampled = [diff[rng.integers(people, size=people)].sum() for _ in range(bootstrap)]
-    d_low, d_high = _percentiles(np.array(resampled))
-    low, high = _percentiles(np.array(draws))
-    t_low, t_high = _percentiles(np.array(temperatures))
+    d_low, d_high = np.percentile(resampled, [2.5, 97.5])
+    low, high = np.percentile(draws, [2.5, 97.5], axis=0)
+    t_low, t_high = np.percentile(temperatures, [2.5, 97.5])
     answers = len(data.answer_item)
     held_out = HeldOut(
         folds=folds,
