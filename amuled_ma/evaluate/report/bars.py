@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -16,7 +15,6 @@ from amuled_ma.evaluate.report.plotting import (
     half_of,
     mean_of,
     pyplot,
-    save_figure,
     short_label,
     variant_colors,
 )
@@ -122,7 +120,7 @@ def bars_figure(
     title: str = "",
     colors: dict[str, str] | None = None,
 ) -> Figure | None:
-    """The metrics bar figure (see `plot_bars`); None without that mode."""
+    """Bar chart per metric, one bar per variant in ``mode``; None without that mode."""
     results = Results.of(results)
     variants = results.in_mode(mode)
     if not variants:
@@ -163,18 +161,6 @@ def interval_words(results: Iterable[ModeResult]) -> str:
     few = min(counts) < FEW_SEEDS
     whisker = "95% CI, or the seeds' range where fewer than 5 seeds" if few else "95% CI"
     return f"mean, {whisker}; dots: each training seed"
-
-
-def plot_bars(
-    results: Results | Mapping[str, Any],
-    mode: str,
-    path: Path,
-    title: str = "",
-    colors: dict[str, str] | None = None,
-) -> Path | None:
-    """Bar chart per metric, one bar per variant in ``mode``; ``path``, or None without it."""
-    fig = bars_figure(results, mode, title, colors)
-    return None if fig is None else save_figure(fig, path)
 
 
 def ablation_figure(
@@ -419,14 +405,3 @@ def _base_line(ax: Axes, base: ModeResult | None, metric: str, *, vertical: bool
         ax.axvline(value, color=COLORS["reference"], ls="--", lw=1.1, zorder=5, gid="base-line")
     else:
         ax.axhline(value, color=COLORS["reference"], ls="--", lw=1.1, zorder=0, gid="base-line")
-
-
-def plot_ablation(
-    results: Results | Mapping[str, Any],
-    what: str,
-    path: Path,
-    colors: dict[str, str] | None = None,
-) -> Path | None:
-    """Write `ablation_figure` to ``path`` (None when there is no fine-tune)."""
-    fig = ablation_figure(results, what, colors)
-    return None if fig is None else save_figure(fig, path)

@@ -165,8 +165,15 @@ def legend_below(fig: Figure, handles: list, labels: list[str], spare: list) -> 
     )  # fmt: skip
 
 
-def save_figure(fig: Figure, path: Path) -> Path:
-    """Write a figure as PNG by `atomic_writer` (UnsafePathError, FileWriteError) and close it."""
+def save_figure(fig: Figure | None, path: Path) -> Path | None:
+    """Write a figure as PNG by `atomic_writer` (UnsafePathError, FileWriteError) and close it.
+
+    Returns:
+        ``path``; None, writing nothing, when ``fig`` is None (no data to draw).
+
+    """
+    if fig is None:
+        return None
     plt = pyplot()
     try:
         with atomic_writer(path) as handle:
