@@ -71,16 +71,9 @@ def run_episodes(
     task_factory: Callable[..., Any] | None = None,
     record_trajectory: bool = True,
 ) -> tuple[list[dict[str, float]], dict[str, Any]]:
-    """Run ``episodes`` episodes of a policy (`rollout`).
+    """Run ``episodes`` episodes of a policy (`rollout`, whose arguments these are).
 
-    Args:
-        actor: An rsl-rl actor with our categorical head.
-        task_config: The ``[task]`` section.
-        episodes: Number of episodes (= task copies).
-        mode: ``greedy`` (argmax) or ``sampled``.
-        seed: Seed of copy 0 (copy ``i`` gets ``seed + i``); also seeds action sampling.
-        task_factory: Replaces `make_task`.
-        record_trajectory: Record copy 0's first episode for pictures.
+    ``record_trajectory`` records copy 0's first episode for pictures.
 
     Returns:
         One metrics dict per episode and the trajectory of copy 0 (empty lists without
