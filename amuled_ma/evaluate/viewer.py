@@ -229,10 +229,7 @@ def _panel_entry(answers: PanelAnswers, texts: TextTable) -> dict[str, Any]:
 def _live_entry(ep: trace.Episode, first: list[int], feedback: object, texts: TextTable) -> dict:
     assert ep.live_beliefs is not None and ep.live_statuses is not None
     agent = str(getattr(feedback, "agent", getattr(feedback, "name", "feedback")))
-    statuses = []
-    for t in first:
-        pairs = ep.live_statuses[t]
-        statuses.append(pairs[0][1] if pairs else "ok")
+    statuses = [pairs[0][1] if (pairs := ep.live_statuses[t]) else "ok" for t in first]
     names = sorted(set(statuses))
     code = {name: i for i, name in enumerate(names)}
     beliefs = ep.live_beliefs[first]

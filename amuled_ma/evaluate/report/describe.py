@@ -11,9 +11,9 @@ from amuled_ma.evaluate.results import PanelEntry, Results
 from amuled_ma.records.run_record import PanelRecord, RunRecord
 from amuled_ma.records.variants import Variant
 
-#: The feedbacks of a demonstrator (no panel of LLM agents).
 #: The KL-anchor recipes a record names, by the text a panel entry holds.
 _RECIPES: dict[str, Literal["equation", "authors"]] = {"equation": "equation", "authors": "authors"}
+#: The feedbacks of a demonstrator (no panel of LLM agents).
 _DEMONSTRATORS = {"human": "the synthetic human", "human:rules": "our human rule"}
 
 
@@ -210,11 +210,7 @@ def panels_table(described: Mapping[str, RunRecord | None]) -> str:
 
 
 def _distinct(values: Iterable[Any]) -> list[Any]:
-    out: list[Any] = []
-    for value in values:
-        if value is not None and value != "" and value not in out:
-            out.append(value)
-    return out
+    return list(dict.fromkeys(v for v in values if v is not None and v != ""))
 
 
 def _joined(values: Iterable[Any], several: str = " (per variant)") -> str:
@@ -241,14 +237,10 @@ def _recordings(records: list[RunRecord]) -> list[str]:
                 name = f"{(panel.agent_sources.get(agent) or {}).get('recording', '?')} ({agent})"
             else:
                 continue
-            text = f"`{name}` sha256 `{digest}`".replace(" ``", "")
-            if text not in out:
-                out.append(text)
+            out.append(f"`{name}` sha256 `{digest}`".replace(" ``", ""))
         if panel.source == "replay" and "recording_sha256" not in inputs:
-            text = f"`{panel.recording}` (no hash recorded)"
-            if text not in out:
-                out.append(text)
-    return out
+            out.append(f"`{panel.recording}` (no hash recorded)")
+    return list(dict.fromkeys(out))
 
 
 def settings_table(
