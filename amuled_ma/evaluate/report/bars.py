@@ -114,6 +114,16 @@ def _plotted_metrics(results: Results, variants: Mapping[str, ModeResult]) -> li
     return [m for m in metrics if m not in NOT_PLOTTED]
 
 
+def _paper_metrics(results: Results, tunes: Mapping[str, ModeResult]) -> list[str]:
+    """The paper's metrics any of ``tunes`` has, else the first four plotted."""
+    found = [
+        m
+        for m in PAPER_METRICS.get(results.task, [])
+        if any(m in v.metrics for v in tunes.values())
+    ]
+    return found or _plotted_metrics(results, tunes)[:4]
+
+
 def bars_figure(
     results: Results | Mapping[str, Any],
     mode: str,
@@ -143,8 +153,6 @@ def bars_figure(
         ax.set_yticks(positions, names, fontsize=8)
         ax.tick_params(axis="x", labelsize=7)
         ax.grid(axis="x", alpha=0.3)
-    for ax in axes[len(metrics) :]:
-        ax.axis("off")
     fig.suptitle(
         title or f"{results.scenario}: {mode} policy, {interval_words(variants.values())} "
         "(a bar of height 0: a thick tick at 0)",
@@ -182,11 +190,7 @@ def ablation_figure(
     tunes = {k: v for k, v in variants.items() if k != "shaped"}
     if not tunes:
         return None
-    task = results.task
-    metrics = [
-        m for m in PAPER_METRICS.get(task, []) if any(m in v.metrics for v in tunes.values())
-    ]
-    metrics = metrics or _plotted_metrics(results, tunes)[:4]
+    metrics = _paper_metrics(results, tunes)
     colors = colors or variant_colors(results.variants)
     entries = {name: results.variants[name].panel for name in tunes}
     lambdas = {name: p.lambda_kl if p is not None else None for name, p in entries.items()}
@@ -211,8 +215,6 @@ def ablation_figure(
             ax.set_xlabel("lambda_KL", fontsize=8)
             ax.set_title(metric.replace("_", " "), fontsize=9)
             ax.grid(alpha=0.3)
-        for ax in axes[len(metrics) :]:
-            ax.axis("off")
         fig.suptitle(
             f"Ablation of lambda_KL: {mode} mean and 95% CI per fine-tune; dashed: base",
             fontsize=9,
@@ -239,8 +241,6 @@ def ablation_figure(
         ax.set_title(title if panel_mode == mode else f"{title} ({panel_mode})", fontsize=9)
         ax.tick_params(axis="x", labelsize=7)
         ax.grid(axis="x", alpha=0.3)
-    for ax in axes[len(panels) :]:
-        ax.axis("off")
     shown = sorted({m for m, _ in panels}, key=lambda m: m != mode)
     note = ""
     if equal:
@@ -332,13 +332,7 @@ def budget_figure(results: Results | Mapping[str, Any], mode: str = "greedy") ->
         return None
     variants = results.variants
     tunes = {p["variant"]: variants[p["variant"]].mode(mode) or ModeResult() for p in points}
-    metrics = [
-        m for m in PAPER_METRICS.get(results.task, [])
-        if any(m in v.metrics for v in tunes.values())
-    ]  # fmt: skip
-    if not metrics:
-        metrics = _plotted_metrics(results, {k: v for k, v in tunes.items() if v.metrics})[:4]
-    panels = [*metrics, "holdout_tv_fused"]
+    panels = [*_paper_metrics(results, tunes), "holdout_tv_fused"]
     plt = pyplot()
     fig, axes = grid_axes(plt, len(panels), 2, 4.6, 3.2)
     base = variants["base"].mode(mode) if "base" in variants else None
@@ -381,8 +375,6 @@ def budget_figure(results: Results | Mapping[str, Any], mode: str = "greedy") ->
         ax.minorticks_off()
         ax.set_xlabel("budget (share of distinct states asked)", fontsize=8)
         ax.grid(alpha=0.3)
-    for ax in axes[len(panels) :]:
-        ax.axis("off")
     axes[0].legend(fontsize=7, title="selection", title_fontsize=7)
     fig.suptitle(
         f"Ablation of the feedback budget: {mode} mean and 95% CI per fine-tune; grey band: "

@@ -190,8 +190,6 @@ def curves_figure(
         ax.tick_params(labelsize=8)
         ax.grid(alpha=0.3)
     spare = axes[len(keys) :]
-    for ax in spare:
-        ax.axis("off")
     fig.suptitle(f"{title}: rolling mean over 5% of iterations; {_spread_note(curves)}",
                  fontsize=9)  # fmt: skip
     legend_below(fig, list(legend.values()), list(legend), spare)

@@ -142,13 +142,15 @@ def robust_ylim(
 def grid_axes(
     plt: ModuleType, n: int, cols: int, width: float, height: float, **kwargs: Any
 ) -> tuple[Figure, list[Axes]]:
-    """A figure of ``n`` panels, ``cols`` wide: ``(figure, [axes])``."""
+    """A figure of ``n`` panels, ``cols`` wide: ``(figure, [axes])``, spare axes past ``n`` off."""
     cols = max(1, min(cols, n))
     rows = math.ceil(n / cols)
     fig, axes = plt.subplots(
         rows, cols, figsize=(width * cols, height * rows), squeeze=False,
         layout="constrained", **kwargs,
     )  # fmt: skip
+    for ax in axes.flat[n:]:
+        ax.axis("off")
     return fig, list(axes.flat)
 
 

@@ -44,8 +44,6 @@ def findmilk_figure(
     for ax, (name, traj) in zip(axes, variants.items(), strict=False):
         draw_findmilk(ax, name, traj, colors.get(name, "k"))
     spare = axes[len(variants) :]
-    for ax in spare:
-        ax.axis("off")
     handles, labels = findmilk_legend()
     fig.suptitle(f"FindMilk {mode} trajectory, one per variant (path in the variant's colour)",
                  fontsize=9)  # fmt: skip
