@@ -274,11 +274,9 @@ def replay_episode(
         The recorded `Episode`.
 
     Raises:
-        ScenarioError: Unknown ``mode``, or ``episode`` outside ``0..N-1``.
+        ScenarioError: Unknown ``mode`` (by `rollout`), or ``episode`` outside ``0..N-1``.
 
     """
-    if mode not in MODES:
-        raise ScenarioError(f"mode: expected one of {', '.join(MODES)}, found {mode!r}")
     n = int(evaluation.episodes if episodes is None else episodes)
     if not 0 <= episode < n:
         raise ScenarioError(
@@ -323,19 +321,7 @@ def replay_episode(
 
 
 def load_actor(checkpoint: Path, ppo: PPOConfig) -> torch.nn.Module:
-    """Load a policy for replay (`load_policy`).
-
-    Args:
-        checkpoint: The policy's checkpoint.
-        ppo: The ``[ppo]`` section it was trained with (network shape).
-
-    Returns:
-        The actor in eval mode.
-
-    Raises:
-        CheckpointError: The checkpoint is missing or does not fit the network.
-
-    """
+    """The actor in eval mode (`load_policy`); CheckpointError: missing, or not of ``ppo``'s net."""
     if not Path(checkpoint).is_file():
         raise CheckpointError(
             f"no policy at {checkpoint}; train the variant first ('amuled run' or "

@@ -7,6 +7,7 @@ together; each copy's first episode is recorded with the task's own ``info["epis
 from __future__ import annotations
 
 import re
+from collections import Counter
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -70,16 +71,9 @@ def run_episodes(
     task_factory: Callable[..., Any] | None = None,
     record_trajectory: bool = True,
 ) -> tuple[list[dict[str, float]], dict[str, Any]]:
-    """Run ``episodes`` episodes of a policy (`rollout`).
+    """Run ``episodes`` episodes of a policy (`rollout`, whose arguments these are).
 
-    Args:
-        actor: An rsl-rl actor with our categorical head.
-        task_config: The ``[task]`` section.
-        episodes: Number of episodes (= task copies).
-        mode: ``greedy`` (argmax) or ``sampled``.
-        seed: Seed of copy 0 (copy ``i`` gets ``seed + i``); also seeds action sampling.
-        task_factory: Replaces `make_task`.
-        record_trajectory: Record copy 0's first episode for pictures.
+    ``record_trajectory`` records copy 0's first episode for pictures.
 
     Returns:
         One metrics dict per episode and the trajectory of copy 0 (empty lists without
@@ -140,10 +134,9 @@ def merge_feedback(summaries: list[dict[str, Any]]) -> dict[str, Any]:
     """Fused-belief diagnostics of several seed replicas: means; statuses and servers summed."""
     if len(summaries) == 1:
         return summaries[0]
-    statuses: dict[str, int] = {}
+    statuses: Counter[str] = Counter()
     for s in summaries:
-        for key, count in (s.get("statuses") or {}).items():
-            statuses[key] = statuses.get(key, 0) + count
+        statuses.update(s.get("statuses") or {})
     conflicts = [s["mean_conflict"] for s in summaries if s.get("mean_conflict") is not None]
     total = sum(statuses.values())
     servers = [s["llm_servers"] for s in summaries if s.get("llm_servers")]
@@ -164,7 +157,7 @@ def merge_feedback(summaries: list[dict[str, Any]]) -> dict[str, Any]:
         "mean_weight": _mean_per_agent(summaries, "mean_weight"),
         "mean_entropy_share": _mean_per_agent(summaries, "mean_entropy_share"),
         "mean_conflict": float(np.mean(conflicts)) if conflicts else None,
-        "statuses": statuses,
+        "statuses": dict(statuses),
         "miss_rate": statuses.get("replay_miss", 0) / total if total else 0.0,
         "failure_rate": (total - answered) / total if total else 0.0,
         "agents": _sum_agents([s.get("agents") or {} for s in summaries]),
@@ -208,11 +201,7 @@ def merge_distill(reports: list[dict[str, Any]]) -> dict[str, Any]:
     out["asked_share"] = out["asked_states"] / visited if visited else 0.0
     fused = [r["holdout_tv_fused"] for r in reports if r.get("holdout_tv_fused") is not None]
     out["holdout_tv_fused"] = float(np.mean(fused)) if fused else None
-    members = sorted({m for r in reports for m in (r.get("holdout_tv") or {})})
-    out["holdout_tv"] = {
-        m: float(np.mean([r["holdout_tv"][m] for r in reports if m in (r.get("holdout_tv") or {})]))
-        for m in members
-    }
+    out["holdout_tv"] = _mean_per_agent(reports, "holdout_tv")
     out["replicas"] = len(reports)
     return out
 

@@ -423,23 +423,10 @@ def breakdown_lines(b: FusionBreakdown, actions: list[str], panel_fused: np.ndar
             "  left out (weight 0): "
             + ", ".join(f"{name} ({status})" for name, status in b.left_out)
         )
-    rows = [
-        [
-            name,
-            float(b.bjs_mean[i]),
-            float(b.credibility[i]),
-            float(b.entropy[i]),
-            float(b.volume[i]),
-            float(b.weights[i]),
-        ]
-        for i, name in enumerate(b.agents)
-    ]
-    say(
-        table(
-            ["agent", "avg BJS", "credibility", "Deng H (bits)", "info volume", "weight"],
-            rows,
-        )
-    )
+    columns = np.column_stack([b.bjs_mean, b.credibility, b.entropy, b.volume, b.weights])
+    rows = [[name, *values] for name, values in zip(b.agents, columns.tolist(), strict=True)]
+    head = ["agent", "avg BJS", "credibility", "Deng H (bits)", "info volume", "weight"]
+    say(table(head, rows))
     if answered > 1:
         say("")
         say("pairwise BJS divergence:")

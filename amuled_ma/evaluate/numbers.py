@@ -3,8 +3,15 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Sequence
 
 import numpy as np
+
+
+def markdown_table(head: Sequence[str], rows: Iterable[Sequence[str]]) -> str:
+    """A Markdown table: the ``head`` row, its rule, one line per row; ends in a newline."""
+    first, *rest = ["| " + " | ".join(cells) + " |" for cells in (head, *rows)]
+    return "\n".join([first, "|" + "---|" * len(head), *rest]) + "\n"
 
 
 def format_number(value: object, digits: int = 4) -> str:

@@ -229,10 +229,7 @@ def _panel_entry(answers: PanelAnswers, texts: TextTable) -> dict[str, Any]:
 def _live_entry(ep: trace.Episode, first: list[int], feedback: object, texts: TextTable) -> dict:
     assert ep.live_beliefs is not None and ep.live_statuses is not None
     agent = str(getattr(feedback, "agent", getattr(feedback, "name", "feedback")))
-    statuses = []
-    for t in first:
-        pairs = ep.live_statuses[t]
-        statuses.append(pairs[0][1] if pairs else "ok")
+    statuses = [pairs[0][1] if (pairs := ep.live_statuses[t]) else "ok" for t in first]
     names = sorted(set(statuses))
     code = {name: i for i, name in enumerate(names)}
     beliefs = ep.live_beliefs[first]
@@ -258,89 +255,6 @@ def _live_entry(ep: trace.Episode, first: list[int], feedback: object, texts: Te
             "why": None,
             "q": prompts,
         },
-    }
-
-
-def build_view(
-    run_dir: Path,
-    variants: Sequence[trace.TrainedVariant],
-    *,
-    scenario_name: str,
-    task_name: str,
-    evaluation: EvaluationConfig,
-    episode: int = 0,
-    mode: str = "greedy",
-    episodes: int | None = None,
-    say: Callable[[str], None] | None = None,
-) -> dict[str, Any]:
-    """Gather the page's data: every chosen variant's episode and beliefs.
-
-    Args:
-        run_dir: The run folder.
-        variants: The variants to show, resolved by the caller.
-        scenario_name: The run's scenario name (the page's header).
-        task_name: The run's task.
-        evaluation: The run's ``[evaluation]`` section (seed, episodes).
-        episode: Evaluation episode ``K`` (seed ``[evaluation].seed + K``).
-        mode: ``greedy`` (the policy's most probable action) or ``sampled``.
-        episodes: ``N``, the episodes of the run's evaluation (default
-            ``[evaluation].episodes``): episode ``K`` is the ``K``-th of them.
-        say: Called with a progress line per variant.
-
-    Returns:
-        The JSON-ready data of the page.
-
-    """
-    from amuled_ma import __version__
-
-    run_dir = Path(run_dir)
-    episodes = int(evaluation.episodes if episodes is None else episodes)
-    texts = TextTable()
-    entries = []
-    for trained in variants:
-        start = time.perf_counter()
-        entry = variant_view(run_dir, trained, texts, episode=episode, mode=mode, episodes=episodes)
-        entries.append(entry)
-        if say is not None:
-            say(
-                f"  {trained.name}: {entry['T']} steps, {entry['distinct_states']} distinct "
-                f"states, {entry.get('kind')} feedback ({time.perf_counter() - start:.1f} s)"
-            )
-    if texts.fit(TEXT_BUDGET) and say is not None:
-        say(
-            f"  texts cut to fit {TEXT_BUDGET:,} characters in all "
-            "(amuled explain --full prints them whole)"
-        )
-    seed = evaluation.seed + episode
-    how = (
-        "greedy: each step the policy's most probable action (as amuled evaluate's greedy mode)"
-        if mode == "greedy"
-        else "sampled: actions drawn from the policy with amuled evaluate's own draws (the "
-        f"episode {episode} of its {episodes})"
-    )
-    return {
-        "version": 1,
-        "title": f"AMULED viewer: {scenario_name}, evaluation episode {episode}",
-        "subtitle": (
-            f"run {run_dir} · task {task_name} · episode {episode} (seed {seed} = "
-            f"[evaluation].seed {evaluation.seed} + {episode}) · {how}"
-        ),
-        "footer": (
-            f"Written by amuled-ma {__version__} (amuled view). Beliefs from the run's belief "
-            "store (read-only) or the variant's source; probabilities rounded to "
-            f"{DECIMALS} decimals. This page loads nothing from the network."
-        ),
-        "run": str(run_dir),
-        "scenario": scenario_name,
-        "task": task_name,
-        "episode": episode,
-        "seed": seed,
-        "mode": mode,
-        "episodes": episodes,
-        "actions": _action_names(task_name),
-        "colors": dict(COLORS),
-        "texts": texts.texts,
-        "variants": entries,
     }
 
 
@@ -414,18 +328,19 @@ def write_view(
     episodes: int | None = None,
     say: Callable[[str], None] | None = None,
 ) -> ViewResult:
-    """Build the page of a run's episode and write it (see `build_view`).
+    """Build the page of a run's episode (every chosen variant's episode and beliefs) and write it.
 
     Args:
         run_dir: The run folder.
-        variants: The variants to show.
+        variants: The variants to show, resolved by the caller.
         output: The HTML file (default `default_output`).
-        scenario_name: The run's scenario name.
+        scenario_name: The run's scenario name (the page's header).
         task_name: The run's task.
-        evaluation: The run's ``[evaluation]`` section.
-        episode: Evaluation episode ``K``.
-        mode: ``greedy`` or ``sampled``.
-        episodes: ``N`` of the run's evaluation (default ``[evaluation].episodes``).
+        evaluation: The run's ``[evaluation]`` section (seed, episodes).
+        episode: Evaluation episode ``K`` (seed ``[evaluation].seed + K``).
+        mode: ``greedy`` (the policy's most probable action) or ``sampled``.
+        episodes: ``N``, the episodes of the run's evaluation (default
+            ``[evaluation].episodes``): episode ``K`` is the ``K``-th of them.
         say: Called with a progress line per variant.
 
     Returns:
@@ -437,21 +352,60 @@ def write_view(
         FileWriteError: It could not be written (a full disk); one line naming it.
 
     """
+    from amuled_ma import __version__
+
     start = time.perf_counter()
     path = check_write_target(output if output is not None else default_output(run_dir, episode))
-    data = build_view(
-        run_dir,
-        variants,
-        scenario_name=scenario_name,
-        task_name=task_name,
-        evaluation=evaluation,
-        episode=episode,
-        mode=mode,
-        episodes=episodes,
-        say=say,
+    episodes = int(evaluation.episodes if episodes is None else episodes)
+    texts = TextTable()
+    entries = []
+    for trained in variants:
+        began = time.perf_counter()
+        entry = variant_view(run_dir, trained, texts, episode=episode, mode=mode, episodes=episodes)
+        entries.append(entry)
+        if say is not None:
+            say(
+                f"  {trained.name}: {entry['T']} steps, {entry['distinct_states']} distinct "
+                f"states, {entry.get('kind')} feedback ({time.perf_counter() - began:.1f} s)"
+            )
+    if texts.fit(TEXT_BUDGET) and say is not None:
+        say(
+            f"  texts cut to fit {TEXT_BUDGET:,} characters in all "
+            "(amuled explain --full prints them whole)"
+        )
+    seed = evaluation.seed + episode
+    how = (
+        "greedy: each step the policy's most probable action (as amuled evaluate's greedy mode)"
+        if mode == "greedy"
+        else "sampled: actions drawn from the policy with amuled evaluate's own draws (the "
+        f"episode {episode} of its {episodes})"
     )
+    data = {
+        "version": 1,
+        "title": f"AMULED viewer: {scenario_name}, evaluation episode {episode}",
+        "subtitle": (
+            f"run {run_dir} · task {task_name} · episode {episode} (seed {seed} = "
+            f"[evaluation].seed {evaluation.seed} + {episode}) · {how}"
+        ),
+        "footer": (
+            f"Written by amuled-ma {__version__} (amuled view). Beliefs from the run's belief "
+            "store (read-only) or the variant's source; probabilities rounded to "
+            f"{DECIMALS} decimals. This page loads nothing from the network."
+        ),
+        "run": str(run_dir),
+        "scenario": scenario_name,
+        "task": task_name,
+        "episode": episode,
+        "seed": seed,
+        "mode": mode,
+        "episodes": episodes,
+        "actions": _action_names(task_name),
+        "colors": dict(COLORS),
+        "texts": texts.texts,
+        "variants": entries,
+    }
     page = render_html(data)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(path, page)
-    shown = [(v["name"], int(v["T"]), int(v.get("distinct_states", 0))) for v in data["variants"]]
+    shown = [(v["name"], int(v["T"]), int(v.get("distinct_states", 0))) for v in entries]
     return ViewResult(path, path.stat().st_size, shown, time.perf_counter() - start)

@@ -7,10 +7,8 @@ from amuled_ma.evaluate.report.bars import (
     bars_figure,
     budget_figure,
     budget_points,
-    plot_ablation,
-    plot_bars,
 )
-from amuled_ma.evaluate.report.curves import curve_band, curves_figure, load_curves, plot_curves
+from amuled_ma.evaluate.report.curves import curve_band, curves_figure, load_curves
 from amuled_ma.evaluate.report.describe import imported_table, panels_table, settings_table
 from amuled_ma.evaluate.report.plotting import (
     compact_number,
@@ -32,8 +30,6 @@ from amuled_ma.evaluate.report.tables import (
 from amuled_ma.evaluate.report.trajectories import (
     driving_figure,
     findmilk_figure,
-    plot_driving,
-    plot_findmilk,
 )
 from amuled_ma.evaluate.report.writing import (
     FIGURE_NAMES,
@@ -52,7 +48,6 @@ __all__ = [
     "budget_table", "compact_number", "curve_band", "curves_figure", "diagnostics_table",
     "differences_table", "driving_figure", "evaluation_outputs", "findmilk_figure",
     "findmilk_subgoals", "format_stat", "imported_table", "link_viewer", "load_curves",
-    "metrics_table", "panels_table", "plot_ablation", "plot_bars", "plot_curves", "plot_driving",
-    "plot_findmilk", "robust_ylim", "same_as_base", "servers_table", "settings_table",
-    "variant_colors", "viewer_line", "write_report",
+    "metrics_table", "panels_table", "robust_ylim", "same_as_base", "servers_table",
+    "settings_table", "variant_colors", "viewer_line", "write_report",
 ]  # fmt: skip

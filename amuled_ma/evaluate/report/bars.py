@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -16,7 +15,6 @@ from amuled_ma.evaluate.report.plotting import (
     half_of,
     mean_of,
     pyplot,
-    save_figure,
     short_label,
     variant_colors,
 )
@@ -116,13 +114,23 @@ def _plotted_metrics(results: Results, variants: Mapping[str, ModeResult]) -> li
     return [m for m in metrics if m not in NOT_PLOTTED]
 
 
+def _paper_metrics(results: Results, tunes: Mapping[str, ModeResult]) -> list[str]:
+    """The paper's metrics any of ``tunes`` has, else the first four plotted."""
+    found = [
+        m
+        for m in PAPER_METRICS.get(results.task, [])
+        if any(m in v.metrics for v in tunes.values())
+    ]
+    return found or _plotted_metrics(results, tunes)[:4]
+
+
 def bars_figure(
     results: Results | Mapping[str, Any],
     mode: str,
     title: str = "",
     colors: dict[str, str] | None = None,
 ) -> Figure | None:
-    """The metrics bar figure (see `plot_bars`); None without that mode."""
+    """Bar chart per metric, one bar per variant in ``mode``; None without that mode."""
     results = Results.of(results)
     variants = results.in_mode(mode)
     if not variants:
@@ -145,8 +153,6 @@ def bars_figure(
         ax.set_yticks(positions, names, fontsize=8)
         ax.tick_params(axis="x", labelsize=7)
         ax.grid(axis="x", alpha=0.3)
-    for ax in axes[len(metrics) :]:
-        ax.axis("off")
     fig.suptitle(
         title or f"{results.scenario}: {mode} policy, {interval_words(variants.values())} "
         "(a bar of height 0: a thick tick at 0)",
@@ -163,18 +169,6 @@ def interval_words(results: Iterable[ModeResult]) -> str:
     few = min(counts) < FEW_SEEDS
     whisker = "95% CI, or the seeds' range where fewer than 5 seeds" if few else "95% CI"
     return f"mean, {whisker}; dots: each training seed"
-
-
-def plot_bars(
-    results: Results | Mapping[str, Any],
-    mode: str,
-    path: Path,
-    title: str = "",
-    colors: dict[str, str] | None = None,
-) -> Path | None:
-    """Bar chart per metric, one bar per variant in ``mode``; ``path``, or None without it."""
-    fig = bars_figure(results, mode, title, colors)
-    return None if fig is None else save_figure(fig, path)
 
 
 def ablation_figure(
@@ -196,11 +190,7 @@ def ablation_figure(
     tunes = {k: v for k, v in variants.items() if k != "shaped"}
     if not tunes:
         return None
-    task = results.task
-    metrics = [
-        m for m in PAPER_METRICS.get(task, []) if any(m in v.metrics for v in tunes.values())
-    ]
-    metrics = metrics or _plotted_metrics(results, tunes)[:4]
+    metrics = _paper_metrics(results, tunes)
     colors = colors or variant_colors(results.variants)
     entries = {name: results.variants[name].panel for name in tunes}
     lambdas = {name: p.lambda_kl if p is not None else None for name, p in entries.items()}
@@ -225,8 +215,6 @@ def ablation_figure(
             ax.set_xlabel("lambda_KL", fontsize=8)
             ax.set_title(metric.replace("_", " "), fontsize=9)
             ax.grid(alpha=0.3)
-        for ax in axes[len(metrics) :]:
-            ax.axis("off")
         fig.suptitle(
             f"Ablation of lambda_KL: {mode} mean and 95% CI per fine-tune; dashed: base",
             fontsize=9,
@@ -253,8 +241,6 @@ def ablation_figure(
         ax.set_title(title if panel_mode == mode else f"{title} ({panel_mode})", fontsize=9)
         ax.tick_params(axis="x", labelsize=7)
         ax.grid(axis="x", alpha=0.3)
-    for ax in axes[len(panels) :]:
-        ax.axis("off")
     shown = sorted({m for m, _ in panels}, key=lambda m: m != mode)
     note = ""
     if equal:
@@ -346,13 +332,7 @@ def budget_figure(results: Results | Mapping[str, Any], mode: str = "greedy") ->
         return None
     variants = results.variants
     tunes = {p["variant"]: variants[p["variant"]].mode(mode) or ModeResult() for p in points}
-    metrics = [
-        m for m in PAPER_METRICS.get(results.task, [])
-        if any(m in v.metrics for v in tunes.values())
-    ]  # fmt: skip
-    if not metrics:
-        metrics = _plotted_metrics(results, {k: v for k, v in tunes.items() if v.metrics})[:4]
-    panels = [*metrics, "holdout_tv_fused"]
+    panels = [*_paper_metrics(results, tunes), "holdout_tv_fused"]
     plt = pyplot()
     fig, axes = grid_axes(plt, len(panels), 2, 4.6, 3.2)
     base = variants["base"].mode(mode) if "base" in variants else None
@@ -395,8 +375,6 @@ def budget_figure(results: Results | Mapping[str, Any], mode: str = "greedy") ->
         ax.minorticks_off()
         ax.set_xlabel("budget (share of distinct states asked)", fontsize=8)
         ax.grid(alpha=0.3)
-    for ax in axes[len(panels) :]:
-        ax.axis("off")
     axes[0].legend(fontsize=7, title="selection", title_fontsize=7)
     fig.suptitle(
         f"Ablation of the feedback budget: {mode} mean and 95% CI per fine-tune; grey band: "
@@ -419,14 +397,3 @@ def _base_line(ax: Axes, base: ModeResult | None, metric: str, *, vertical: bool
         ax.axvline(value, color=COLORS["reference"], ls="--", lw=1.1, zorder=5, gid="base-line")
     else:
         ax.axhline(value, color=COLORS["reference"], ls="--", lw=1.1, zorder=0, gid="base-line")
-
-
-def plot_ablation(
-    results: Results | Mapping[str, Any],
-    what: str,
-    path: Path,
-    colors: dict[str, str] | None = None,
-) -> Path | None:
-    """Write `ablation_figure` to ``path`` (None when there is no fine-tune)."""
-    fig = ablation_figure(results, what, colors)
-    return None if fig is None else save_figure(fig, path)

@@ -21,7 +21,6 @@ from amuled_ma.evaluate.report.plotting import (
     legend_below,
     pyplot,
     robust_ylim,
-    save_figure,
     variant_colors,
 )
 from amuled_ma.evaluate.stats import t_quantile
@@ -139,7 +138,7 @@ def curves_figure(
     title: str,
     colors: dict[str, str] | None = None,
 ) -> Figure | None:
-    """The learning-curve figure (see `plot_curves`); None when nothing to draw."""
+    """One panel per key, one line per variant; None when nothing to draw."""
     keys = [k for k in keys if any(k in row for cs in curves.values() for c in cs for row in c)]
     if not keys or not curves:
         return None
@@ -191,8 +190,6 @@ def curves_figure(
         ax.tick_params(labelsize=8)
         ax.grid(alpha=0.3)
     spare = axes[len(keys) :]
-    for ax in spare:
-        ax.axis("off")
     fig.suptitle(f"{title}: rolling mean over 5% of iterations; {_spread_note(curves)}",
                  fontsize=9)  # fmt: skip
     legend_below(fig, list(legend.values()), list(legend), spare)
@@ -210,15 +207,3 @@ def _spread_note(curves: dict[str, list[list[dict]]]) -> str:
     if any(k > MAX_SEED_LINES for k in seeds):
         parts.append("band: 95% interval over seeds")
     return "; ".join(parts)
-
-
-def plot_curves(
-    curves: dict[str, list[list[dict]]],
-    keys: list[str],
-    path: Path,
-    title: str,
-    colors: dict[str, str] | None = None,
-) -> Path | None:
-    """Plot one panel per key, one line per variant; ``path``, or None without data."""
-    fig = curves_figure(curves, keys, title, colors)
-    return None if fig is None else save_figure(fig, path)

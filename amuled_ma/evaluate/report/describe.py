@@ -6,13 +6,14 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, Literal
 
+from amuled_ma.evaluate.numbers import markdown_table
 from amuled_ma.evaluate.results import PanelEntry, Results
 from amuled_ma.records.run_record import PanelRecord, RunRecord
 from amuled_ma.records.variants import Variant
 
-#: The feedbacks of a demonstrator (no panel of LLM agents).
 #: The KL-anchor recipes a record names, by the text a panel entry holds.
 _RECIPES: dict[str, Literal["equation", "authors"]] = {"equation": "equation", "authors": "authors"}
+#: The feedbacks of a demonstrator (no panel of LLM agents).
 _DEMONSTRATORS = {"human": "the synthetic human", "human:rules": "our human rule"}
 
 
@@ -107,16 +108,12 @@ def imported_table(described: Mapping[str, RunRecord | None]) -> str:
         if iteration is None:
             iteration = record.iterations_done
         rows.append(
-            f"| {name} | {what} | `{record.authors.file}` | {iteration} | "
-            f"`{record.authors.sha256}` |"
+            [name, what, f"`{record.authors.file}`", str(iteration), f"`{record.authors.sha256}`"]
         )
     if not rows:
         return ""
-    head = (
-        "| variant | what | the authors' file | checkpoint iteration | sha256 |\n"
-        "|---|---|---|---|---|"
-    )
-    return head + "\n" + "\n".join(rows) + "\n"
+    head = ["variant", "what", "the authors' file", "checkpoint iteration", "sha256"]
+    return markdown_table(head, rows)
 
 
 def _base_label(checkpoint: str | None) -> str:
@@ -184,26 +181,36 @@ def panels_table(described: Mapping[str, RunRecord | None]) -> str:
             continue
         panel = record.panel
         rows.append(
-            f"| {name} | {panel.feedback} | {record.recipe or '-'} | "
-            f"{'-' if record.lambda_kl is None else f'{record.lambda_kl:g}'} | "
-            f"{iterations_text(record)} | {agents_text(panel)} | {source_text(panel) or '-'} | "
-            f"{fusion_text(panel)} | {_base_label(record.base_checkpoint)} |"
+            [
+                name,
+                panel.feedback,
+                record.recipe or "-",
+                "-" if record.lambda_kl is None else f"{record.lambda_kl:g}",
+                iterations_text(record),
+                agents_text(panel),
+                source_text(panel) or "-",
+                fusion_text(panel),
+                _base_label(record.base_checkpoint),
+            ]
         )
     if not rows:
         return ""
-    head = (
-        "| variant | feedback | recipe | lambda_KL | iterations | agents | source | fusion | "
-        "base |\n|---|---|---|---|---|---|---|---|---|"
-    )
-    return head + "\n" + "\n".join(rows) + "\n"
+    head = [
+        "variant",
+        "feedback",
+        "recipe",
+        "lambda_KL",
+        "iterations",
+        "agents",
+        "source",
+        "fusion",
+        "base",
+    ]
+    return markdown_table(head, rows)
 
 
 def _distinct(values: Iterable[Any]) -> list[Any]:
-    out: list[Any] = []
-    for value in values:
-        if value is not None and value != "" and value not in out:
-            out.append(value)
-    return out
+    return list(dict.fromkeys(v for v in values if v is not None and v != ""))
 
 
 def _joined(values: Iterable[Any], several: str = " (per variant)") -> str:
@@ -230,14 +237,10 @@ def _recordings(records: list[RunRecord]) -> list[str]:
                 name = f"{(panel.agent_sources.get(agent) or {}).get('recording', '?')} ({agent})"
             else:
                 continue
-            text = f"`{name}` sha256 `{digest}`".replace(" ``", "")
-            if text not in out:
-                out.append(text)
+            out.append(f"`{name}` sha256 `{digest}`".replace(" ``", ""))
         if panel.source == "replay" and "recording_sha256" not in inputs:
-            text = f"`{panel.recording}` (no hash recorded)"
-            if text not in out:
-                out.append(text)
-    return out
+            out.append(f"`{panel.recording}` (no hash recorded)")
+    return list(dict.fromkeys(out))
 
 
 def settings_table(
@@ -323,6 +326,4 @@ def settings_table(
             rows.append(("recording", "; ".join(recordings)))
         elif not replayed:
             rows.append(("recording", "none (no fine-tune replayed a recording)"))
-    lines = ["| setting | value |", "|---|---|"]
-    lines += [f"| {label} | {value} |" for label, value in rows]
-    return "\n".join(lines) + "\n"
+    return markdown_table(["setting", "value"], rows)

@@ -142,13 +142,15 @@ def robust_ylim(
 def grid_axes(
     plt: ModuleType, n: int, cols: int, width: float, height: float, **kwargs: Any
 ) -> tuple[Figure, list[Axes]]:
-    """A figure of ``n`` panels, ``cols`` wide: ``(figure, [axes])``."""
+    """A figure of ``n`` panels, ``cols`` wide: ``(figure, [axes])``, spare axes past ``n`` off."""
     cols = max(1, min(cols, n))
     rows = math.ceil(n / cols)
     fig, axes = plt.subplots(
         rows, cols, figsize=(width * cols, height * rows), squeeze=False,
         layout="constrained", **kwargs,
     )  # fmt: skip
+    for ax in axes.flat[n:]:
+        ax.axis("off")
     return fig, list(axes.flat)
 
 
@@ -165,8 +167,15 @@ def legend_below(fig: Figure, handles: list, labels: list[str], spare: list) -> 
     )  # fmt: skip
 
 
-def save_figure(fig: Figure, path: Path) -> Path:
-    """Write a figure as PNG by `atomic_writer` (UnsafePathError, FileWriteError) and close it."""
+def save_figure(fig: Figure | None, path: Path) -> Path | None:
+    """Write a figure as PNG by `atomic_writer` (UnsafePathError, FileWriteError) and close it.
+
+    Returns:
+        ``path``; None, writing nothing, when ``fig`` is None (no data to draw).
+
+    """
+    if fig is None:
+        return None
     plt = pyplot()
     try:
         with atomic_writer(path) as handle:

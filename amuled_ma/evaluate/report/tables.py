@@ -8,7 +8,7 @@ from typing import Any
 
 from amuled_ma.beliefs.types import FUSED_STATUSES
 from amuled_ma.evaluate.evaluator import PAPER_METRICS, metric_order
-from amuled_ma.evaluate.numbers import format_count
+from amuled_ma.evaluate.numbers import format_count, markdown_table
 from amuled_ma.evaluate.paper import (
     PAPER_COLUMNS,
     PAPER_MODE,
@@ -38,7 +38,7 @@ def diagnostics_table(results: Results | Mapping[str, Any], finetunes: int | Non
         return "_No fine-tuned variant in this run._\n"
     clusters = sorted({c for fb in rows.values() for c in fb.mean_weight})
     head = ["variant", *clusters, "mean conflict", "replay miss rate", "unique states"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines = []
     for name, fb in rows.items():
         weights = fb.mean_weight
         conflict = fb.mean_conflict
@@ -47,8 +47,8 @@ def diagnostics_table(results: Results | Mapping[str, Any], finetunes: int | Non
         cells.append("" if conflict is None else f"{conflict:.3f}")
         cells.append(f"{100 * fb.miss_rate:.1f}%")
         cells.append("" if fb.unique_states is None else format_count(fb.unique_states))
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+        lines.append(cells)
+    return markdown_table(head, lines)
 
 
 #: Columns of `agents_table`: (status key, heading).
@@ -97,11 +97,11 @@ def agents_table(results: Results | Mapping[str, Any]) -> str:
         if failed is None:
             failed = total - sum(row.get(key, 0) for key in FUSED_STATUSES)
         cells.append(_percent(failed, total))
-        lines.append("| " + " | ".join(cells) + " |")
+        lines.append(cells)
     if not lines:
         return ""
     head = ["variant", "agent", "beliefs", *(h for _, h in columns), "not answered"]
-    return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head), *lines]) + "\n"
+    return markdown_table(head, lines)
 
 
 def servers_table(results: Results | Mapping[str, Any]) -> str:
@@ -128,12 +128,12 @@ def servers_table(results: Results | Mapping[str, Any]) -> str:
                     for key in ("mean_latency_s", "p95_latency_s")
                 ),
             ]
-            lines.append("| " + " | ".join(cells) + " |")
+            lines.append(cells)
     if not lines:
         return ""
     head = ["variant", "server", "sent", "answered", "failed", "retried elsewhere",
             "out / back", "mean latency (s)", "p95 latency (s)"]  # fmt: skip
-    return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head), *lines]) + "\n"
+    return markdown_table(head, lines)
 
 
 def _tv(value: float | None) -> str:
@@ -163,13 +163,13 @@ def budget_table(results: Results | Mapping[str, Any]) -> str:
             f"{_tv(d.get('holdout_tv_fused'))} ({int(d.get('holdout_states', 0))} states)",
             members or "-",
         ]
-        lines.append("| " + " | ".join(cells) + " |")
+        lines.append(cells)
     if not lines:
         return ""
     head = ["variant", "budget", "selection", "states visited", "asked", "answered by the model",
             "misses by the model", "requests forwarded / sent", "refits",
             "held-out TV, fused", "held-out TV per member"]  # fmt: skip
-    return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head), *lines]) + "\n"
+    return markdown_table(head, lines)
 
 
 def budget_ablation_table(results: Results | Mapping[str, Any], mode: str = "greedy") -> str:
@@ -185,7 +185,7 @@ def budget_ablation_table(results: Results | Mapping[str, Any], mode: str = "gre
                if any(m in v.metrics for v in data.values())]  # fmt: skip
     head = ["selection", "budget", "variant", "asked", "requests sent", "held-out TV, fused",
             *metrics]  # fmt: skip
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines = []
     for p in points:
         d = p["distill"]
         budget = p["budget"]
@@ -198,12 +198,12 @@ def budget_ablation_table(results: Results | Mapping[str, Any], mode: str = "gre
             _tv(d.get("holdout_tv_fused")),
         ]
         cells += [format_stat(data[p["variant"]].metrics.get(m)) for m in metrics]
-        lines.append("| " + " | ".join(cells) + " |")
+        lines.append(cells)
     if full:
         stats = data[full].metrics
         cells = ["full feedback", "100%", full, "every state", "-", "-"]
-        lines.append("| " + " | ".join(cells + [format_stat(stats.get(m)) for m in metrics]) + " |")
-    return "\n".join(lines) + "\n"
+        lines.append(cells + [format_stat(stats.get(m)) for m in metrics])
+    return markdown_table(head, lines)
 
 
 def _percent(count: float, total: float) -> str:
@@ -222,12 +222,11 @@ def metrics_table(results: Results | Mapping[str, Any], mode: str) -> str:
     if not variants:
         return ""
     metrics = _table_metrics(results, variants)
-    head = "| variant | seeds | " + " | ".join(metrics) + " |"
-    lines = [head, "|---|---|" + "---|" * len(metrics)]
-    for name, data in variants.items():
-        cells = [format_stat(data.metrics.get(m)) for m in metrics]
-        lines.append(f"| {name} | {data.n_seeds} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+    rows = [
+        [name, str(data.n_seeds), *(format_stat(data.metrics.get(m)) for m in metrics)]
+        for name, data in variants.items()
+    ]
+    return markdown_table(["variant", "seeds", *metrics], rows)
 
 
 def base_differences(
@@ -284,14 +283,17 @@ def differences_table(results: Results | Mapping[str, Any], mode: str) -> str:
         return ""
     variants = results.in_mode(mode)
     metrics = _table_metrics(results, variants)
-    lines = ["| variant | " + " | ".join(metrics) + " |", "|---|" + "---|" * len(metrics)]
-    for name, row in diffs.items():
-        cells = [
-            "" if m not in row else "=" if abs(row[m]) <= EQUAL_TOL else f"{row[m]:+.2f}"
-            for m in metrics
+    rows = [
+        [
+            name,
+            *(
+                "" if m not in row else "=" if abs(row[m]) <= EQUAL_TOL else f"{row[m]:+.2f}"
+                for m in metrics
+            ),
         ]
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+        for name, row in diffs.items()
+    ]
+    return markdown_table(["variant", *metrics], rows)
 
 
 # ---------------------------------------------------------------------------------------
@@ -333,19 +335,19 @@ def paper_table(
         paper = " / ".join(f"{row.values[m]:.1f}" for m in columns)
         mine = " / ".join(format_stat(data.metrics.get(m)) for m in columns)
         recipe = (recipes or {}).get(name) or "-"
-        lines.append(f"| {name} | {row.label} | {paper} | {mine} | {recipe} |")
+        lines.append([name, row.label, paper, mine, recipe])
     if not lines:
         return ""
-    head = (
-        f"| variant | the paper's row | the paper ({PAPER_RECIPE}' recipe, {PAPER_MODE}) | "
-        f"ours ({mode}, mean ± 95% CI) | our recipe |\n|---|---|---|---|---|"
-    )
+    head = [
+        "variant",
+        "the paper's row",
+        f"the paper ({PAPER_RECIPE}' recipe, {PAPER_MODE})",
+        f"ours ({mode}, mean ± 95% CI)",
+        "our recipe",
+    ]
     return (
         f"Columns: {' / '.join(columns)}. The paper's figures: {PAPER_SOURCE}.\n\n"
-        + head
-        + "\n"
-        + "\n".join(lines)
-        + "\n"
+        + markdown_table(head, lines)
     )
 
 

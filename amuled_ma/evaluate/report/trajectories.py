@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from amuled_ma.evaluate.report.plotting import (
     grid_axes,
     legend_below,
     pyplot,
-    save_figure,
     variant_colors,
 )
 from amuled_ma.evaluate.results import Results
@@ -35,7 +33,7 @@ def findmilk_figure(
     mode: str = "greedy",
     colors: dict[str, str] | None = None,
 ) -> Figure | None:
-    """The FindMilk trajectories (see `plot_findmilk`); None without that mode."""
+    """One FindMilk trajectory per variant, a grid each, sub-goals marked; None without ``mode``."""
     variants = _trajectories(results, mode)
     if not variants:
         return None
@@ -46,8 +44,6 @@ def findmilk_figure(
     for ax, (name, traj) in zip(axes, variants.items(), strict=False):
         draw_findmilk(ax, name, traj, colors.get(name, "k"))
     spare = axes[len(variants) :]
-    for ax in spare:
-        ax.axis("off")
     handles, labels = findmilk_legend()
     fig.suptitle(f"FindMilk {mode} trajectory, one per variant (path in the variant's colour)",
                  fontsize=9)  # fmt: skip
@@ -55,23 +51,12 @@ def findmilk_figure(
     return fig
 
 
-def plot_findmilk(
-    results: Results | Mapping[str, Any],
-    path: Path,
-    mode: str = "greedy",
-    colors: dict[str, str] | None = None,
-) -> Path | None:
-    """One FindMilk trajectory per variant, a grid each, sub-goals marked; ``path``, or None."""
-    fig = findmilk_figure(results, mode, colors)
-    return None if fig is None else save_figure(fig, path)
-
-
 def driving_figure(
     results: Results | Mapping[str, Any],
     mode: str = "greedy",
     colors: dict[str, str] | None = None,
 ) -> Figure | None:
-    """The Driving episodes (see `plot_driving`); None without that mode."""
+    """One Driving episode per variant: its lane over time, events; None without ``mode``."""
     variants = _trajectories(results, mode)
     if not variants:
         return None
@@ -89,14 +74,3 @@ def driving_figure(
     fig.suptitle(f"Driving {mode} episode per variant: lane (0-4) over time, with events",
                  fontsize=9, x=0.02, ha="left")  # fmt: skip
     return fig
-
-
-def plot_driving(
-    results: Results | Mapping[str, Any],
-    path: Path,
-    mode: str = "greedy",
-    colors: dict[str, str] | None = None,
-) -> Path | None:
-    """One Driving episode per variant: its lane over time with its events; ``path``, or None."""
-    fig = driving_figure(results, mode, colors)
-    return None if fig is None else save_figure(fig, path)

@@ -7,8 +7,8 @@ from pathlib import Path
 from typing import Any
 
 from amuled_ma.errors import AmuledError
-from amuled_ma.evaluate.report.bars import plot_ablation, plot_bars
-from amuled_ma.evaluate.report.curves import CURVE_KEYS, FT_KEYS, load_curves, plot_curves
+from amuled_ma.evaluate.report.bars import ablation_figure, bars_figure
+from amuled_ma.evaluate.report.curves import CURVE_KEYS, FT_KEYS, curves_figure, load_curves
 from amuled_ma.evaluate.report.describe import (
     finetune_names,
     imported_table,
@@ -17,7 +17,7 @@ from amuled_ma.evaluate.report.describe import (
     unfinished_lines,
     variant_records,
 )
-from amuled_ma.evaluate.report.plotting import variant_colors
+from amuled_ma.evaluate.report.plotting import save_figure, variant_colors
 from amuled_ma.evaluate.report.tables import (
     agents_table,
     budget_ablation_table,
@@ -30,7 +30,7 @@ from amuled_ma.evaluate.report.tables import (
     same_as_base,
     servers_table,
 )
-from amuled_ma.evaluate.report.trajectories import plot_driving, plot_findmilk
+from amuled_ma.evaluate.report.trajectories import driving_figure, findmilk_figure
 from amuled_ma.evaluate.results import RESULTS_FILES, Results
 from amuled_ma.files.safe import check_write_targets, checked_read_path, write_text_atomic
 from amuled_ma.records.run_record import RunRecord
@@ -144,25 +144,26 @@ def write_report(
     base_curves = {k: v for k, v in curves.items() if k not in tuned}
     ft_curves = {k: v for k, v in curves.items() if k in tuned}
     figures: list[tuple[str, str, Path | None]] = []
-    if ablation == "budget":
-        figures.append((
-            "Ablation of the feedback budget",
+    if ablation:
+        ablation_note = (
             "Each paper metric (greedy) and the distilled model's held-out agreement with the "
             "panel against the budget, the share of distinct states the panel was asked "
             "(log scale), one colour per selection; the grey band is the 95% CI of the "
             "fine-tune that asked every state without a model, the dashed line the base "
-            "policy.",
-            plot_ablation(results, ablation, run_dir / f"ablation_{ablation}.png", colors),
-        ))  # fmt: skip
-    elif ablation:
-        figures.append((
-            f"Ablation of {ablation}",
-            "Each fine-tune of the ablation against AMULED on the paper's metrics that differ "
-            "between the fine-tunes (greedy, then sampled; the title names those left out as "
-            "equal), "
+            "policy."
+            if ablation == "budget"
+            else "Each fine-tune of the ablation against AMULED on the paper's metrics that "
+            "differ between the fine-tunes (greedy, then sampled; the title names those left "
+            "out as equal), "
             + ("against lambda_KL." if ablation == "kl" else "sorted by the metric's mean.")
-            + " The dashed line is the base policy.",
-            plot_ablation(results, ablation, run_dir / f"ablation_{ablation}.png", colors),
+            + " The dashed line is the base policy."
+        )
+        heading = "the feedback budget" if ablation == "budget" else ablation
+        figures.append((
+            f"Ablation of {heading}",
+            ablation_note,
+            save_figure(ablation_figure(results, ablation, colors),
+                        run_dir / f"ablation_{ablation}.png"),
         ))  # fmt: skip
     curve_note = (
         "A panel's y-range is the 2nd-98th percentile of its lines after their first 10% of "
@@ -171,29 +172,28 @@ def write_report(
     )
     figures += [
         ("Base training curves", curve_note,
-         plot_curves(base_curves, CURVE_KEYS.get(task, ["episode/return_env"]),
-                     run_dir / "curves_base.png", "base training", colors)),
+         save_figure(curves_figure(base_curves, CURVE_KEYS.get(task, ["episode/return_env"]),
+                                   "base training", colors), run_dir / "curves_base.png")),
         ("Fine-tuning curves", curve_note,
-         plot_curves(ft_curves, FT_KEYS + CURVE_KEYS.get(task, [])[1:],
-                     run_dir / "curves_finetune.png", "fine-tuning", colors)),
+         save_figure(curves_figure(ft_curves, FT_KEYS + CURVE_KEYS.get(task, [])[1:],
+                                   "fine-tuning", colors), run_dir / "curves_finetune.png")),
     ]  # fmt: skip
     for mode in ("greedy", "sampled"):
         figures.append((
             f"Metrics, {mode} policy",
             "Mean and 95% CI per variant; a thick tick at 0 marks a mean of 0.",
-            plot_bars(results, mode, run_dir / f"metrics_{mode}.png", colors=colors),
+            save_figure(bars_figure(results, mode, colors=colors), run_dir / f"metrics_{mode}.png"),
         ))  # fmt: skip
-    if task == "findmilk":
+    episode_figures = {
+        "findmilk": ("A FindMilk trajectory per variant", findmilk_figure, "trajectory_findmilk"),
+        "driving": ("A Driving episode per variant", driving_figure, "episode_driving"),
+    }
+    if task in episode_figures:
+        heading, draw, stem = episode_figures[task]
         figures.append((
-            "A FindMilk trajectory per variant",
+            heading,
             "The first greedy evaluation episode of each variant.",
-            plot_findmilk(results, run_dir / "trajectory_findmilk.png", colors=colors),
-        ))  # fmt: skip
-    elif task == "driving":
-        figures.append((
-            "A Driving episode per variant",
-            "The first greedy evaluation episode of each variant.",
-            plot_driving(results, run_dir / "episode_driving.png", colors=colors),
+            save_figure(draw(results, colors=colors), run_dir / f"{stem}.png"),
         ))  # fmt: skip
     written = {path.name for _, _, path in figures if path is not None}
     _remove_stale_figures(run_dir, written)
