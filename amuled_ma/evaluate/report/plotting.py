@@ -6,7 +6,7 @@ import math
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from types import ModuleType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, overload
 
 import numpy as np
 import numpy.typing as npt
@@ -167,6 +167,10 @@ def legend_below(fig: Figure, handles: list, labels: list[str], spare: list) -> 
     )  # fmt: skip
 
 
+@overload
+def save_figure(fig: Figure, path: Path) -> Path: ...
+@overload
+def save_figure(fig: Figure | None, path: Path) -> Path | None: ...
 def save_figure(fig: Figure | None, path: Path) -> Path | None:
     """Write a figure as PNG by `atomic_writer` (UnsafePathError, FileWriteError) and close it.
 
