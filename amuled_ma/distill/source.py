@@ -195,13 +195,7 @@ class DistilledSource(BeliefSource):
         own = getattr(config, "seed", None)
         return cls(
             source,
-            budget=config.budget,
-            selection=config.selection,
-            ensemble=config.ensemble,
-            hidden=config.hidden,
-            refit_every=config.refit_every,
-            holdout=config.holdout,
-            answer_misses=config.answer_misses,
+            **config.model_dump(exclude={"enabled", "model", "seed"}),
             seed=seed if own is None else own,
             fusion_rule=fusion_rule,
             state_dir=state_dir,
