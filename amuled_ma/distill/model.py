@@ -71,6 +71,8 @@ class EnsembleModel:
         return self._params is not None and bool(self.trained.any())
 
     # ------------------------------------------------------------------ fitting
+    @torch.inference_mode(False)
+    @torch.enable_grad()
     def fit(self, obs: np.ndarray, beliefs: np.ndarray, mask: np.ndarray, seed: int) -> FitReport:
         """Fit every network from scratch to the members' beliefs (gradients on in inference mode).
 
@@ -80,10 +82,6 @@ class EnsembleModel:
         Raises:
             ValueError: Shapes that do not match the model's members and actions.
         """
-        with torch.inference_mode(False), torch.enable_grad():
-            return self._fit(obs, beliefs, mask, seed)
-
-    def _fit(self, obs: np.ndarray, beliefs: np.ndarray, mask: np.ndarray, seed: int) -> FitReport:
         obs = np.asarray(obs, dtype=np.float64)
         beliefs = np.asarray(beliefs, dtype=np.float64)
         mask = np.asarray(mask, dtype=bool)

@@ -43,10 +43,11 @@ from amuled_ma.distill.selection import (
 from amuled_ma.distill.state import (
     SAVE_EVERY_S,
     START_OVER,
+    LedgerRest,
     StateFiles,
     check_counters,
-    check_ledger_rest,
     check_state_keys,
+    checked,
 )
 from amuled_ma.errors import AmuledError
 
@@ -194,13 +195,7 @@ class DistilledSource(BeliefSource):
         own = getattr(config, "seed", None)
         return cls(
             source,
-            budget=config.budget,
-            selection=config.selection,
-            ensemble=config.ensemble,
-            hidden=config.hidden,
-            refit_every=config.refit_every,
-            holdout=config.holdout,
-            answer_misses=config.answer_misses,
+            **config.model_dump(exclude={"enabled", "model", "seed"}),
             seed=seed if own is None else own,
             fusion_rule=fusion_rule,
             state_dir=state_dir,
@@ -602,7 +597,7 @@ class DistilledSource(BeliefSource):
             "obs_dim": self.obs_dim,
             "generation": self.generation,
             "counters": asdict(self.stats),
-            "rng": _jsonable_rng(self._rng.bit_generator.state),
+            "rng": self._rng.bit_generator.state,  # PCG64 gives plain ints
         })  # fmt: skip
         self._changed = False
 
@@ -632,7 +627,7 @@ class DistilledSource(BeliefSource):
             )
         check_state_keys(self.ledger.visited, "ledger.visited", where)
         check_state_keys(self.ledger.asked, "ledger.asked", where)
-        rest = check_ledger_rest(data, where)
+        rest = checked(LedgerRest, dict(data), where)
         self._asked_obs = {k: tuple(v) for k, v in rest.asked_obs.items()}
         self.members = list(rest.members)
         self.task = rest.task
@@ -679,15 +674,3 @@ def fit_seed(seed: int, generation: int) -> int:
     """The seed of the ``generation``-th fit of a run seeded ``seed`` (a 63-bit integer)."""
     words = np.random.SeedSequence([int(seed) % 2**64, int(generation)]).generate_state(2)
     return (int(words[0]) << 31 ^ int(words[1])) % 2**63
-
-
-def _jsonable_rng(state: Mapping[str, Any]) -> dict[str, Any]:
-    """A numpy bit generator's state as plain JSON data."""
-    out: dict[str, Any] = {}
-    for key, value in state.items():
-        if isinstance(value, Mapping):
-            value = _jsonable_rng(value)
-        elif isinstance(value, np.integer):
-            value = int(value)
-        out[key] = value
-    return out

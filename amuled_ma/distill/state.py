@@ -14,7 +14,7 @@ import re
 import time
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -51,6 +51,7 @@ MAX_NAMES = 256
 
 _Finite = Annotated[float, Field(allow_inf_nan=False)]
 _Name = Annotated[str, Field(min_length=1, max_length=200)]
+_M = TypeVar("_M", bound=BaseModel)
 
 
 class _Strict(BaseModel):
@@ -110,14 +111,14 @@ def _first_error(error: ValidationError) -> str:
     return f"{head}{message}" + ("" if first["type"] == "value_error" else f", found {found}")
 
 
-def check_ledger_rest(data: Mapping[str, Any], where: str) -> LedgerRest:
-    """The observations, names, sizes and generator of a ledger, checked (`LedgerRest`).
+def checked(model: type[_M], data: object, where: str) -> _M:
+    """``data`` validated as ``model`` (`LedgerRest`, `Example`).
 
     Raises:
         AmuledError: One line naming ``where``, the field, what was found and ``--force``.
     """
     try:
-        return LedgerRest.model_validate(dict(data))
+        return model.model_validate(data)
     except ValidationError as error:
         raise AmuledError(
             f"{where}: {_first_error(error)}; the file was edited or damaged; {START_OVER}"
@@ -142,16 +143,6 @@ class Example(BaseModel):
     key: str = Field(pattern=STATE_KEY.pattern)
     obs: list[_Finite] = Field(max_length=MAX_OBS_DIM)
     beliefs: dict[_Name, list[_Finite]] = Field(max_length=MAX_NAMES)
-
-
-def check_example(record: object, where: str) -> Example:
-    """One training pair, checked (`Example`); AmuledError naming ``where`` (``FILE:LINE``)."""
-    try:
-        return Example.model_validate(record)
-    except ValidationError as error:
-        raise AmuledError(
-            f"{where}: {_first_error(error)}; the file was edited or damaged; {START_OVER}"
-        ) from None
 
 
 def check_counters(
@@ -286,7 +277,7 @@ class StateFiles:
                             f"{self.examples}:{number}: not JSON ({error}); {START_OVER}"
                         ) from None
                     where = f"{self.examples}:{number}"
-                    out.append((where, check_example(record, where)))
+                    out.append((where, checked(Example, record, where)))
         except OSError as error:
             raise AmuledError(
                 f"{self.examples}: cannot read the training pairs ({error}); {START_OVER}"

@@ -6,6 +6,9 @@ choiceworthiness ``W_i(a) = b_i(a)``; docs/fusion.md gives the sources and deriv
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+
 import numpy as np
 
 from amuled_ma.fusion.rules import _generic_diagnostics, register_rule
@@ -38,69 +41,63 @@ def credences(
     return w / w.sum(axis=-1, keepdims=True)
 
 
-def _result(
-    beliefs: np.ndarray, fused: np.ndarray, share: np.ndarray, rule: str, diagnostics: bool
-) -> np.ndarray | FusionResult:
-    """``fused``, or with diagnostics whose ``weights`` are each member's share of the mass."""
-    if not diagnostics:
-        return fused
-    return _generic_diagnostics(beliefs, fused, share, rule)
+#: A rule's computation: beliefs ``(..., k, n)`` and credences ``(..., k)`` to the fused
+#: belief ``(..., n)`` and each member's share of its mass ``(..., k)`` (the diagnostics' weights).
+CredenceRule = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
-@register_rule("mec", takes_weights=True, takes_prior=True)
-def _mec_rule(
-    beliefs: np.ndarray,
-    *,
-    weights: np.ndarray | None,
-    param: str | None,
-    diagnostics: bool,
-    prior: np.ndarray | None = None,
-) -> np.ndarray | FusionResult:
+def _credence_rule(name: str) -> Callable[[CredenceRule], CredenceRule]:
+    """Register ``name`` as a rule taking weights or a prior as the members' `credences`."""
+
+    def decorator(compute: CredenceRule) -> CredenceRule:
+        @functools.wraps(compute)
+        def rule(
+            beliefs: np.ndarray,
+            *,
+            weights: np.ndarray | None,
+            param: str | None,
+            diagnostics: bool,
+            prior: np.ndarray | None = None,
+        ) -> np.ndarray | FusionResult:
+            fused, share = compute(beliefs, credences(beliefs, weights, prior))
+            return _generic_diagnostics(beliefs, fused, share, name) if diagnostics else fused
+
+        register_rule(name, takes_weights=True, takes_prior=True)(rule)
+        return compute
+
+    return decorator
+
+
+@_credence_rule("mec")
+def _mec_rule(beliefs: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Maximise expected choiceworthiness (MacAskill & Ord 2020): sum_i c_i b_i."""
-    c = credences(beliefs, weights, prior)
     # MEC: EC(a) = sum_i C(T_i) W_i(a), W_i = b_i (MacAskill & Ord 2020)
     fused = (c[..., :, None] * beliefs).sum(axis=-2)
     fused = fused / fused.sum(axis=-1, keepdims=True)
-    return _result(beliefs, fused, c, "mec", diagnostics)
+    return fused, c
 
 
-@register_rule("nash-vote", takes_weights=True, takes_prior=True)
-def _nash_vote_rule(
-    beliefs: np.ndarray,
-    *,
-    weights: np.ndarray | None,
-    param: str | None,
-    diagnostics: bool,
-    prior: np.ndarray | None = None,
-) -> np.ndarray | FusionResult:
+@_credence_rule("nash-vote")
+def _nash_vote_rule(beliefs: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Nash voting (Ecoffet & Lehman 2021): the vote shares of its one-state equilibrium.
 
     Every voter's dominant strategy puts its whole budget on its argmax (split among ties).
     """
-    c = credences(beliefs, weights, prior)
     top = (beliefs == beliefs.max(axis=-1, keepdims=True)).astype(np.float64)
     allocation = top / top.sum(axis=-1, keepdims=True)  # each voter's budget share per action
     # votes = sum_i c_i v_i (freeform_voter.py NashEnv.step), p(a) = votes(a) / sum(votes)
     fused = (c[..., :, None] * allocation).sum(axis=-2)
     fused = fused / fused.sum(axis=-1, keepdims=True)
-    return _result(beliefs, fused, c, "nash-vote", diagnostics)
+    return fused, c
 
 
-@register_rule("variance-vote", takes_weights=True, takes_prior=True)
-def _variance_vote_rule(
-    beliefs: np.ndarray,
-    *,
-    weights: np.ndarray | None,
-    param: str | None,
-    diagnostics: bool,
-    prior: np.ndarray | None = None,
-) -> np.ndarray | FusionResult:
+@_credence_rule("variance-vote")
+def _variance_vote_rule(beliefs: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Variance voting (Cotton-Barratt, MacAskill & Ord 2020; Ecoffet & Lehman 2021).
 
     ``sigma_i`` is the state's own (not averaged over visited states), so a state's reward
     does not depend on the states it was fused with.
     """
-    c = credences(beliefs, weights, prior)
     centred = beliefs - beliefs.mean(axis=-1, keepdims=True)
     sigma = np.sqrt((centred**2).mean(axis=-1, keepdims=True))  # np.std(b_i), ddof = 0
     flat = sigma <= FLAT_SIGMA
@@ -112,27 +109,16 @@ def _variance_vote_rule(
     total = votes.sum(axis=-1, keepdims=True)
     n = beliefs.shape[-1]
     fused = np.where(total > 0, votes / np.where(total > 0, total, 1.0), 1.0 / n)
-    if not diagnostics:
-        return fused
-    mass = part.sum(axis=-1)
-    share = np.where(total > 0, mass / np.where(total > 0, total, 1.0), c)
-    return _generic_diagnostics(beliefs, fused, share, "variance-vote")
+    share = np.where(total > 0, part.sum(axis=-1) / np.where(total > 0, total, 1.0), c)
+    return fused, share
 
 
-@register_rule("borda", takes_weights=True, takes_prior=True)
-def _borda_rule(
-    beliefs: np.ndarray,
-    *,
-    weights: np.ndarray | None,
-    param: str | None,
-    diagnostics: bool,
-    prior: np.ndarray | None = None,
-) -> np.ndarray | FusionResult:
+@_credence_rule("borda")
+def _borda_rule(beliefs: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Credence-weighted Borda count (MacAskill 2016) of the members' rankings of the actions."""
-    c = credences(beliefs, weights, prior)
     n = beliefs.shape[-1]
     if n == 1:
-        return _result(beliefs, np.ones((*beliefs.shape[:-2], 1)), c, "borda", diagnostics)
+        return np.ones((*beliefs.shape[:-2], 1)), c
     mine, other = beliefs[..., :, None], beliefs[..., None, :]  # (..., k, a, b)
     below = (other < mine).sum(axis=-1)
     equal = (other == mine).sum(axis=-1) - 1  # the action itself excluded
@@ -140,4 +126,4 @@ def _borda_rule(
     # credence-weighted Borda (MacAskill 2016): sum_i c_i s_i(a) / (n (n - 1) / 2)
     fused = (c[..., :, None] * points).sum(axis=-2) / (n * (n - 1) / 2)
     fused = fused / fused.sum(axis=-1, keepdims=True)
-    return _result(beliefs, fused, c, "borda", diagnostics)
+    return fused, c

@@ -470,30 +470,27 @@ def bjs_dst(
     size = flat.shape[0]
     flat_prior = None if prior is None else np.broadcast_to(prior, (*batch, k)).reshape(-1, k)
     fused = np.empty((size, n))
-    if diagnostics:
-        wae_out, conflicts_out = np.empty((size, n)), np.empty((size, k - 1))
-        weights_out, crd_out, entropy_out = (np.empty((size, k)) for _ in range(3))
-    for start in range(0, size, _BLOCK):
+    blocks = []  # (wae, weights, crd, entropy, conflicts) columns of each block, diagnostics only
+    for start in range(0, max(size, 1), _BLOCK):
         stop = min(start + _BLOCK, size)
         rho = None if flat_prior is None else _prior_columns(flat_prior[start:stop])
         wae, weights, crd, entropy = _columns_wae(_to_columns(flat[start:stop]), None, rho)
         block, conflicts = _columns_closed_form(wae, k, diagnostics)
         fused[start:stop] = block.T
         if diagnostics:
-            wae_out[start:stop] = wae.T
-            weights_out[start:stop] = weights.T
-            crd_out[start:stop] = crd.T
-            entropy_out[start:stop] = entropy.T
-            conflicts_out[start:stop] = conflicts.T
+            blocks.append((wae, weights, crd, entropy, conflicts))
     fused = fused.reshape(*batch, n)
     if not diagnostics:
         return fused
+    wae, weights, crd, entropy, conflicts = (
+        np.concatenate(c, axis=1).T for c in zip(*blocks, strict=True)
+    )
     return FusionResult(
         fused=fused,
-        weights=weights_out.reshape(*batch, k),
-        credibility=crd_out.reshape(*batch, k),
-        entropy=entropy_out.reshape(*batch, k),
-        conflicts=conflicts_out.reshape(*batch, k - 1),
-        wae=wae_out.reshape(*batch, n),
+        weights=weights.reshape(*batch, k),
+        credibility=crd.reshape(*batch, k),
+        entropy=entropy.reshape(*batch, k),
+        conflicts=conflicts.reshape(*batch, k - 1),
+        wae=wae.reshape(*batch, n),
         rule="bjs-dst",
     )

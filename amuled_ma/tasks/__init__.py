@@ -6,7 +6,8 @@ Each is a batched torch core (`BatchedTask`) with a Gymnasium view of one copy
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Mapping
+import importlib
+from collections.abc import Iterator, Mapping
 from typing import TYPE_CHECKING, Any
 
 from amuled_ma.errors import ScenarioError
@@ -35,29 +36,11 @@ __all__ = [
 ]
 
 
-def _findmilk() -> type[BatchedTask]:
-    from amuled_ma.tasks.findmilk import FindMilk  # here: a task module imports torch
-
-    return FindMilk
-
-
-def _driving() -> type[BatchedTask]:
-    from amuled_ma.tasks.driving import Driving  # here: a task module imports torch
-
-    return Driving
-
-
-def _smartgrid() -> type[BatchedTask]:
-    from amuled_ma.tasks.smartgrid import SmartGrid  # here: imports torch; the package lazily
-
-    return SmartGrid
-
-
-# built-in task name -> the function importing its batched core
-_LOADERS: dict[str, Callable[[], type[BatchedTask]]] = {
-    "findmilk": _findmilk,
-    "driving": _driving,
-    "smartgrid": _smartgrid,
+#: Built-in task name -> the module and class of its batched core (imported at lookup: torch).
+_BUILTINS: dict[str, tuple[str, str]] = {
+    "findmilk": ("amuled_ma.tasks.findmilk", "FindMilk"),
+    "driving": ("amuled_ma.tasks.driving", "Driving"),
+    "smartgrid": ("amuled_ma.tasks.smartgrid", "SmartGrid"),
 }
 
 
@@ -95,8 +78,9 @@ class _TaskRegistry(Mapping[str, "type[BatchedTask]"]):
     """Read-only ``task name -> class``: built-ins, then entry points (read at each lookup)."""
 
     def __getitem__(self, name: str) -> type[BatchedTask]:
-        if name in _LOADERS:
-            return _LOADERS[name]()
+        if name in _BUILTINS:
+            module, cls = _BUILTINS[name]
+            return getattr(importlib.import_module(module), cls)
         if name in task_entry_points():
             return _load_entry_point(name)
         raise KeyError(name)
@@ -131,20 +115,12 @@ def make_batched(name: str, num_envs: int = 1, **kwargs: Any) -> BatchedTask:
 
 
 def make_task(task: TaskConfig, num_envs: int, *, shaping_coef: float, seed: int) -> BatchedTask:
-    """Create ``num_envs`` copies of the ``[task]`` section's task, on the CPU.
+    """Create ``num_envs`` copies of the ``[task]`` section's task on the CPU, seeded ``seed``.
 
-    Args:
-        task: The ``[task]`` section (name, options, ``max_steps``).
-        num_envs: Number of copies.
-        shaping_coef: ``c`` of the reward ``r_env + c * r_shaping``.
-        seed: Seed of the task's RNG.
-
-    Returns:
-        The batched task.
+    ``shaping_coef`` is ``c`` of the reward ``r_env + c * r_shaping``.
 
     Raises:
         ScenarioError: A task option is reserved, unknown or invalid.
-
     """
     options = dict(task.options)
     reserved = sorted(set(options) & {"device", "seed", "shaping_coef", "max_steps"})

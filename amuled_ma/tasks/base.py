@@ -170,11 +170,8 @@ class BatchedTask(abc.ABC):
             self._ctr.zero_()
         everyone = torch.ones(self.num_envs, dtype=torch.bool, device=self.device)
         self._reset_where(everyone)
-        self._t.zero_()
-        self._ret.zero_()
-        self._ret_env.zero_()
-        self._ret_shaping.zero_()
-        for value in self._metrics.values():
+        totals = (self._t, self._ret, self._ret_env, self._ret_shaping, *self._metrics.values())
+        for value in totals:
             value.zero_()
         self._obs = self._observe()
         return self._obs

@@ -32,6 +32,8 @@ _CAR_SLOTS = math.ceil(SPAWN_DISTANCE / CAR_SPEED)  # 8 steps alive
 _GM_SLOTS = math.ceil(SPAWN_DISTANCE / GRANDMA_SPEED)  # 3 steps alive
 _CAR_W = _CAR_SLOTS + 1  # bits per lane group: distance <= 0 (bit 0) and 1..8
 _GM_W = _GM_SLOTS + 1  # bits per lane group: distance <= 0 (bit 0), 2, 5, 8
+#: Object kind -> (bits per lane group, slots, speed).
+_KINDS = {"car": (_CAR_W, _CAR_SLOTS, CAR_SPEED), "grandma": (_GM_W, _GM_SLOTS, GRANDMA_SPEED)}
 
 
 class Driving(BatchedTask):
@@ -219,16 +221,10 @@ class Driving(BatchedTask):
 
     def _bit(self, kind: str, lane: int, distance: int) -> tuple[int, int]:
         """Return the bit of an object and the bits of that distance in every lane."""
-        if kind == "car":
-            width, slots, speed = _CAR_W, _CAR_SLOTS, CAR_SPEED
-        elif kind == "grandma":
-            width, slots, speed = _GM_W, _GM_SLOTS, GRANDMA_SPEED
-        else:
+        if kind not in _KINDS:
             raise ValueError(f"kind: expected 'car' or 'grandma', got {kind!r}")
-        if isinstance(lane, bool) or not isinstance(lane, numbers.Integral):
-            raise ValueError(f"lane: expected an integer 0..{NUM_LANES - 1}, got {lane!r}")
-        if not 0 <= lane < NUM_LANES:
-            raise ValueError(f"lane: expected 0..{NUM_LANES - 1}, got {lane!r}")
+        width, slots, speed = _KINDS[kind]
+        _check_lane(lane)
         allowed = [SPAWN_DISTANCE - speed * (slots - k) for k in range(1, slots + 1)]
         if distance not in allowed:
             raise ValueError(f"distance: a {kind} can only be at {allowed}, got {distance!r}")
@@ -266,20 +262,15 @@ class Driving(BatchedTask):
 
     def set_lane(self, lane: int, env_ids: object = None) -> None:
         """Move the agent's car to ``lane`` in the selected copies; updates ``obs``."""
-        if isinstance(lane, bool) or not isinstance(lane, numbers.Integral):
-            raise ValueError(f"lane: expected an integer 0..{NUM_LANES - 1}, got {lane!r}")
-        if not 0 <= lane < NUM_LANES:
-            raise ValueError(f"lane: expected 0..{NUM_LANES - 1}, got {lane!r}")
+        _check_lane(lane)
         self._lane[self._env_ids(env_ids)] = int(lane)
         self._obs = self._observe()
 
     def road(self) -> dict[str, torch.Tensor]:
         """Return ``{"car", "grandma"}`` occupancy, bool ``[num_envs, 5, 9]`` (lane, distance)."""
         out = {}
-        for kind, bits, width, slots, speed in (
-            ("car", self._cars, _CAR_W, _CAR_SLOTS, CAR_SPEED),
-            ("grandma", self._gms, _GM_W, _GM_SLOTS, GRANDMA_SPEED),
-        ):
+        for kind, bits in (("car", self._cars), ("grandma", self._gms)):
+            width, slots, speed = _KINDS[kind]
             grid = torch.zeros(
                 self.num_envs, NUM_LANES, SPAWN_DISTANCE + 1, dtype=torch.bool, device=self.device
             )
@@ -295,10 +286,8 @@ class Driving(BatchedTask):
         """Return ``{"car": [(lane, distance), ...], "grandma": [...]}`` of one copy."""
         env_id = self._env_id(env_id)
         out: dict[str, list[tuple[int, int]]] = {}
-        for kind, bits, width, slots, speed in (
-            ("car", int(self._cars[env_id]), _CAR_W, _CAR_SLOTS, CAR_SPEED),
-            ("grandma", int(self._gms[env_id]), _GM_W, _GM_SLOTS, GRANDMA_SPEED),
-        ):
+        for kind, bits in (("car", int(self._cars[env_id])), ("grandma", int(self._gms[env_id]))):
+            width, slots, speed = _KINDS[kind]
             out[kind] = [
                 (lane, SPAWN_DISTANCE - speed * (slots - k))
                 for lane in range(NUM_LANES)
@@ -367,3 +356,11 @@ class Driving(BatchedTask):
         img = paint_cells(rows[::-1], colours, cell, background=110)  # distance 8 on top
         img[:, ::cell] = (240, 240, 240)
         return img
+
+
+def _check_lane(lane: object) -> None:
+    """Refuse a ``lane`` that is not an integer in ``0..NUM_LANES - 1`` (ValueError)."""
+    if isinstance(lane, bool) or not isinstance(lane, numbers.Integral):
+        raise ValueError(f"lane: expected an integer 0..{NUM_LANES - 1}, got {lane!r}")
+    if not 0 <= int(lane) < NUM_LANES:
+        raise ValueError(f"lane: expected 0..{NUM_LANES - 1}, got {lane!r}")

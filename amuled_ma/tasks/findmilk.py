@@ -214,7 +214,7 @@ class FindMilk(BatchedTask):
         d2 = self._d2.index_select(0, (self._pos[:, None] * _NCELLS + cells).reshape(-1))
         # int32: torch's int64 min-reduction over a short last dimension is very slow
         key = (d2.reshape(n, k) * _NCELLS + cells).to(torch.int32)
-        alive = (bits[:, None] >> torch.arange(k, device=self.device)) & 1 == 1
+        alive = self._alive(bits, k)
         key = torch.where(alive, key, _NONE_KEY)
         return (key.amin(1) % _NCELLS).to(torch.int64)
 
@@ -226,7 +226,7 @@ class FindMilk(BatchedTask):
         ids = torch.arange(n, device=self.device)
         rank = self._draw_many(ids, k).argsort(dim=1).argsort(dim=1)  # a random order
         key = d2.reshape(n, k) * k + rank
-        alive = (bits[:, None] >> torch.arange(k, device=self.device)) & 1 == 1
+        alive = self._alive(bits, k)
         key = torch.where(alive, key, torch.iinfo(torch.int64).max)
         nearest = cells.gather(1, key.argmin(1, keepdim=True)).squeeze(1)
         return torch.where(alive.any(1), nearest, torch.zeros_like(nearest))

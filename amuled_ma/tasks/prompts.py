@@ -69,7 +69,8 @@ class StateTemplate:
         if depth > 8:
             raise PromptError(f"{self.path}: fragments nest too deeply")
         out: list[str] = []
-        for literal, field, spec, conversion in string.Formatter().parse(text):
+        formatter = string.Formatter()
+        for literal, field, spec, conversion in formatter.parse(text):
             out.append(literal)
             if field is None:
                 continue
@@ -83,11 +84,7 @@ class StateTemplate:
                 fragment = self._select(spec, field, value)
                 out.append(self._fill(fragment.text, {**variables, "value": value}, depth + 1))
                 continue
-            if conversion == "r":
-                value = repr(value)
-            elif conversion == "s":
-                value = str(value)
-            out.append(format(value, spec or ""))
+            out.append(format(formatter.convert_field(value, conversion), spec or ""))
         return "".join(out)
 
     def _select(self, group: str, field: str, value: object) -> Fragment:

@@ -79,11 +79,8 @@ def draw(keys: torch.Tensor, counters: torch.Tensor, offset: int = 0) -> torch.T
 
 def draws(keys: torch.Tensor, counters: torch.Tensor | int, count: int) -> torch.Tensor:
     """Return draws ``counters .. counters + count - 1`` of each stream, int64 ``[N, count]``."""
-    offsets = torch.arange(count, dtype=torch.int64, device=keys.device)
-    if isinstance(counters, torch.Tensor):
-        offsets = counters[:, None] + offsets
-    else:
-        offsets = offsets + counters
+    first = torch.as_tensor(counters, dtype=torch.int64, device=keys.device)[..., None]
+    offsets = first + torch.arange(count, dtype=torch.int64, device=keys.device)
     return mix64(keys[:, None] + offsets * GAMMA)
 
 

@@ -305,13 +305,10 @@ class SmartGrid(BatchedTask):
     def render_rgb(self, env_id: int = 0, cell: int = 32) -> np.ndarray:
         """One column per prosumer, its battery filled in tenths (the learner in blue)."""
         agents = list(self._envs[env_id].world.agents)
-        rows = []
-        for level in range(10, 0, -1):
-            row = ""
-            for agent in agents:
-                full = agent.storage_ratio * 10 >= level - 0.5
-                row += ("L" if agent.name == self._learner else "P") if full else "."
-            rows.append(row)
+        bars = [(a.storage_ratio * 10, "L" if a.name == self._learner else "P") for a in agents]
+        rows = [
+            "".join(m if f >= level - 0.5 else "." for f, m in bars) for level in range(10, 0, -1)
+        ]
         colours = {"L": (31, 119, 180), "P": (127, 127, 127)}
         return paint_cells(rows, colours, cell, 255)
 
