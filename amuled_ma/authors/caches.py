@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from amuled_ma.authors.pickle_reader import short_repr
 from amuled_ma.authors.unpickle import load_pickle
 from amuled_ma.errors import AuthorsImportError
 from amuled_ma.scenario import MORAL_AGENT  # our field (and exchange agent) for that answer
@@ -250,7 +251,7 @@ def convert_cache(
             if vector is None:
                 raise AuthorsImportError(
                     f"{where}: {agent!r} must be {n} numbers (one per action), found "
-                    f"{_describe(entry[agent])}"
+                    f"{short_repr(entry[agent])}"
                 )
             beliefs[agent] = vector
         ignored.update(
@@ -279,7 +280,7 @@ def convert_cache(
             ):
                 raise AuthorsImportError(
                     f"{where}: 'response' must map prompts to reply texts, found "
-                    f"{_describe(replies)}"
+                    f"{short_repr(replies)}"
                 )
             state["exchanges"] = [
                 {"agent": exchange_agent(q, j), "prompt": q, "response": r}
@@ -313,8 +314,3 @@ def _checked(
         invalid[agent] = f"{vector} {reason}"
         return None
     return vector
-
-
-def _describe(value: object) -> str:
-    text = repr(value)
-    return text if len(text) <= 80 else text[:77] + "..."

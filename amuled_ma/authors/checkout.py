@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from amuled_ma.authors.caches import ConvertedCache, convert_cache, model_slug, task_of_folder
 from amuled_ma.authors.policies import (
@@ -30,9 +30,6 @@ from amuled_ma.errors import AuthorsImportError
 from amuled_ma.files.hashing import sha256_file
 from amuled_ma.files.safe import check_write_targets, write_text_atomic
 from amuled_ma.records.variants import Variant
-
-if TYPE_CHECKING:
-    pass
 
 #: The authors' repository.
 AUTHORS_REPO = "https://github.com/temetski/moral_agent"
@@ -71,10 +68,7 @@ class ImportReport:
 
 
 def _rel(path: Path, root: Path) -> str:
-    try:
-        return str(path.relative_to(root))
-    except ValueError:  # pragma: no cover - a glob always stays below its root
-        return str(path)
+    return str(path.relative_to(root))  # a glob's match, always below its root
 
 
 def find_caches(checkout: Path) -> list[Path]:

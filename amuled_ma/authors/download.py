@@ -71,8 +71,7 @@ def _mb(size: int) -> str:
 
 def pinned_recording(value: str, pinned: Sequence[PinnedFile] = PINNED) -> PinnedFile | None:
     """The pinned file a recording value (a name or a path, ``.json`` optional) comes from."""
-    name = Path(value).name
-    name = name.removesuffix(".json")
+    name = Path(value).name.removesuffix(".json")
     return next((pin for pin in pinned if pin.recording == name), None)
 
 
@@ -81,14 +80,7 @@ def replayed_recordings(feedback: FeedbackConfig) -> list[str]:
 
     ``[feedback].recording`` when ``[feedback].source`` is ``replay``, and each
     ``[feedback.agents.<agent>]`` table of ``source = "replay"`` (its ``recording``, else
-    ``[feedback].recording``); each value once, in that order.
-
-    Args:
-        feedback: The ``[feedback]`` section.
-
-    Returns:
-        The recording values (names or paths).
-
+    ``[feedback].recording``); each value (a name or a path) once, in that order.
     """
     fb = feedback
     values = [fb.recording] if fb.source == "replay" else []
@@ -106,15 +98,7 @@ def models_ablation_recordings(
     That ablation fine-tunes on every recording of the task beside the scenario's own. When
     the scenario replays a pinned recording found nowhere here, every pinned recording of
     its task (they are then converted side by side); else none (it compares those found).
-
-    Args:
-        feedback: The ``[feedback]`` section (source, recording).
-        task: The task's name.
-        resolve: Resolves a path against the scenario file's folder.
-
-    Returns:
-        The pinned recordings' names.
-
+    ``resolve`` resolves a path against the scenario file's folder.
     """
     own = feedback.recording
     if feedback.source != "replay" or pinned_recording(own) is None:
@@ -281,26 +265,14 @@ def ensure_recordings(
     as given, ``$AMULED_RECORDINGS``, the user data folder, ``../shared`` beside the checkout)
     or not among ``pinned`` is left alone (an unknown one is the lookup's error later). The
     others' files are fetched (:func:`fetch_pinned`) unless already cached, then converted by
-    :func:`~amuled_ma.authors.checkout.import_authors` into ``to``.
-
-    Args:
-        resolve: Resolves a value against the scenario file's folder.
-        values: Recording values (names or paths), e.g. :func:`replayed_recordings`.
-        offline: Never fetch (also when ``$AMULED_OFFLINE`` is set).
-        say: Prints the fetch's line and the conversion's.
-        pinned: The pinned files (the tests pass their own).
-        cache: The cache folder (default :func:`cache_folder`).
-        base: The URL base (default :func:`base_url`).
-        to: Where recordings are written (default the user data folder's ``recordings/``).
-
-    Returns:
-        The recordings written (empty: nothing was missing).
+    :func:`~amuled_ma.authors.checkout.import_authors` into ``to`` (default the user data
+    folder's ``recordings/``); ``cache`` and ``base`` as :func:`fetch_pinned`. Returns the
+    recordings written (empty: nothing was missing).
 
     Raises:
         AuthorsFetchError: Offline with a file not cached (one line naming the routes), or
             the fetch failed (:func:`fetch_pinned`).
         AuthorsImportError: The conversion refused a file.
-
     """
     pins: list[PinnedFile] = []
     for value in values:

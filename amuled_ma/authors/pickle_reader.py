@@ -16,38 +16,30 @@ from typing import Any, NoReturn, TypeVar
 
 import numpy as np
 
-#: Most memory the values read from one file may take [bytes per byte of the file], plus
-#: `MEMORY_SLACK_BYTES`: the 1.95 MB cache grows the process by about 57 MB (29 per
-#: byte); checked on the resident set every `MEMORY_CHECK_EVERY` opcodes.
+#: Most memory the values of one file may take [bytes per byte of the file, plus
+#: `MEMORY_SLACK_BYTES`]: the 1.95 MB cache takes about 57 MB (29 per byte).
 MEMORY_PER_BYTE = 64
 #: Memory allowed on top of `MEMORY_PER_BYTE` times the file's size [bytes].
 MEMORY_SLACK_BYTES = 64 * 2**20
 #: Opcodes between two looks at the process's resident memory (and at the opcode budget).
 MEMORY_CHECK_EVERY = 2**15
-#: Most opcodes read from one file: reading costs time per opcode (about 1.5 us here), not
-#: per byte, and a file of one-byte opcodes (16 MiB of ``MARK`` or ``EMPTY_SET``) took
-#: 28-39 s. The published caches have at most 896,093 (0.46 per byte of the file); this
-#: is 2.3 times that, read in about 3 s.
+#: Most opcodes read from one file: reading costs time per opcode (about 1.5 us), and 16 MiB
+#: of one-byte opcodes took 28-39 s; 2.3 times the published caches' most (896,093).
 MAX_OPCODES = 2**21
 #: Most entries of one array (the authors' arrays hold one value per action).
 MAX_ARRAY_ITEMS = 2**20
-#: Most keys of one dict (or items of one set) that may share one hash value. Python's
-#: dicts insert keys of equal hash in quadratic time (a 2 MB file of colliding integer keys
-#: took over 13 minutes); distinct keys of equal hash do not occur in the caches.
+#: Most keys of one dict or set sharing one hash value: dicts insert those in quadratic time
+#: (a 2 MB file of colliding integer keys took over 13 minutes); the caches have none.
 MAX_EQUAL_HASHES = 8
-#: Most work of hashing and checking dict keys and set items, all together [units: one a
-#: key, plus one a value of a tuple or frozenset key]. Each opcode may make the reader hash
-#: up to 65 values (a memoized 64-value tuple used again as a key, or ``set()`` of a
-#: memoized list of such tuples), so the opcode cap alone let a 16 MiB file spend minutes of
-#: CPU on keys; the published caches need at most 147,488 units (53,632 keys), this is 7.1
-#: times that, read in about 0.2 s at its most costly (numpy scalars in 64-value tuples).
+#: Most work hashing dict keys and set items, all together [units: one a key, plus one a
+#: value of a tuple or frozenset key]: an opcode may hash 65 values (a memoized 64-value
+#: tuple reused), so the opcode cap alone let a file spend minutes on keys; 7.1 times the
+#: published caches' most (147,488).
 MAX_KEY_WORK = 2**20
-#: Most items of a tuple or frozenset used as a dict key or set item (the caches' keys are
-#: observations of 8 or 11 numbers; a key is hashed again on every use).
+#: Most items of a tuple or frozenset key (the caches' keys are observations of 8 or 11).
 MAX_KEY_ITEMS = 64
-#: Largest integer (in absolute value) accepted in a dict key or set item: below
-#: ``sys.hash_info.modulus`` (2**61 - 1), where integers hash to themselves (the caches'
-#: keys hold no integers at all).
+#: Largest integer (absolute) in a key: below ``sys.hash_info.modulus``, integers hash to
+#: themselves (the caches' keys hold none).
 MAX_KEY_INT = 2**61 - 2
 #: numpy dtype kinds a cache may hold: bool, signed and unsigned integers, floats, complex
 #: numbers. Void (``V``), object (``O``), structured, string and datetime dtypes are refused.
@@ -132,7 +124,7 @@ def _check_dtype_state(state: object) -> None:
         and state[2:5] == (None, None, None)
         and state[5:] == (-1, -1, 0)
     ):
-        raise PickleRefused(f"a dtype state {_short(state)} (only plain numeric dtypes)")
+        raise PickleRefused(f"a dtype state {short_repr(state)} (only plain numeric dtypes)")
 
 
 def _shape(shape: object) -> tuple[int, ...]:
@@ -141,7 +133,7 @@ def _shape(shape: object) -> tuple[int, ...]:
         and len(shape) <= 32
         and all(type(n) is int and 0 <= n <= MAX_ARRAY_ITEMS for n in shape)
     ):
-        raise PickleRefused(f"array of shape {_short(shape)}")
+        raise PickleRefused(f"array of shape {short_repr(shape)}")
     if math.prod(shape) > MAX_ARRAY_ITEMS:
         raise PickleRefused(f"array of shape {shape!r} (more than {MAX_ARRAY_ITEMS:,} entries)")
     return shape
@@ -221,14 +213,9 @@ class _HashCounter:
 class BoundedReader:
     """Builds one pickle's values, opcode by opcode, with the allow-list and the bounds.
 
-    Args:
-        data: The pickle's bytes (already scanned).
-        max_array_bytes: Most bytes of all arrays together; also the most items ``set()`` /
-            ``frozenset()`` calls may hash, all together.
-        max_memory: Most bytes resident memory may grow by (None: no limit), looked at every
-            `MEMORY_CHECK_EVERY` opcodes.
-        max_opcodes: Most opcodes read.
-        max_key_work: Most key work (`MAX_KEY_WORK`), checked at every key.
+    ``max_array_bytes``: most bytes of all arrays, and most items ``set()``/``frozenset()``
+    calls may hash, all together; ``max_memory``: most bytes resident memory may grow by
+    (None: no limit), looked at every `MEMORY_CHECK_EVERY` opcodes.
     """
 
     def __init__(
@@ -597,6 +584,7 @@ def _resident_bytes() -> int:
 _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
 
 
-def _short(value: object) -> str:
+def short_repr(value: object) -> str:
+    """``repr(value)``, cut to 80 characters."""
     text = repr(value)
     return text if len(text) <= 80 else text[:77] + "..."

@@ -79,7 +79,7 @@ def read_cleanrl(path: str | Path) -> dict[str, torch.Tensor]:
             f"{path}: not the authors' CleanRL Agent (expected the keys "
             f"{{actor,critic}}.{{0,2,4}}.{{weight,bias}}, found {keys})"
         )
-    state = {k: v for k, v in state.items()}
+    state = dict(state)
     for key, tensor in state.items():
         if not (isinstance(tensor, torch.Tensor) and tensor.is_floating_point()):
             raise CheckpointError(f"{path}: {key} is not a float tensor")
@@ -125,17 +125,7 @@ def _linears(module: torch.nn.Module) -> list[torch.nn.Linear]:
 
 
 def build_networks(ppo: PPOConfig, obs_dim: int, num_actions: int) -> tuple[MLPModel, MLPModel]:
-    """Our actor and critic (rsl-rl ``MLPModel``) as the trainer builds them.
-
-    Args:
-        ppo: The ``[ppo]`` section (network shape).
-        obs_dim: Observation size.
-        num_actions: Number of actions.
-
-    Returns:
-        ``(actor, critic)``.
-
-    """
+    """Our ``(actor, critic)`` (rsl-rl ``MLPModel``) of ``ppo``'s shape, as training builds them."""
     from amuled_ma.learn.policies import build_model
 
     return (
@@ -170,12 +160,7 @@ def copy_weights(state: Mapping[str, torch.Tensor], net: str, model: torch.nn.Mo
 def authors_changes(hidden: list[int]) -> Changes:
     """The authors' network (``hidden`` units, tanh) and seed, as changes to a scenario.
 
-    Args:
-        hidden: The hidden layers' units of their policy (:func:`cleanrl_shape`).
-
-    Returns:
-        The changes (:meth:`~amuled_ma.scenario.Scenario.changed`).
-
+    ``hidden`` from :func:`cleanrl_shape`; for :meth:`~amuled_ma.scenario.Scenario.changed`.
     """
     return (
         ("ppo", {"hidden_dims": list(hidden), "activation": CLEANRL_ACTIVATION}),
@@ -196,24 +181,13 @@ def build_checkpoint(
 ) -> dict[str, Any]:
     """Our checkpoint (the dict a trained job's ``model_last.pt`` holds) holding a CleanRL policy.
 
-    Args:
-        state: The CleanRL state dict (:func:`read_cleanrl`).
-        ppo: The ``[ppo]`` section whose network matches the policy
-            (:func:`authors_changes`).
-        finetune: The ``[finetune]`` section (a fine-tune's learning rate).
-        scenario_name: The scenario's name (for ``infos``).
-        variant: ``base`` or ``finetune:amuled``.
-        iteration: The authors' PPO iterations of this policy (``N`` of ``ppo_<N>``).
-        base_checkpoint: The base a fine-tune started from (for ``infos``).
-        source: What it was converted from (kept under ``infos["authors"]``).
-
-    Returns:
-        ``{"actor_state_dict", "critic_state_dict", "optimizer_state_dict", "iter", "infos"}``.
+    ``state`` from :func:`read_cleanrl`; ``ppo`` of a matching network
+    (:func:`authors_changes`); ``iteration`` is ``N`` of ``ppo_<N>``; ``source`` is kept
+    under ``infos["authors"]``.
 
     Raises:
         CheckpointError: The ``[ppo]`` networks do not fit the policy, or the converted
             actor's logits differ from the CleanRL actor's.
-
     """
     from amuled_ma.learn.anchored_ppo import adam
     from amuled_ma.learn.config import rsl_rl_config
@@ -258,9 +232,7 @@ def build_checkpoint(
 
 
 def _lr(ppo: PPOConfig, finetune: FinetuneConfig, variant: Variant) -> float:
-    if variant.finetuning:
-        return float(finetune.learning_rate)
-    return float(ppo.learning_rate)
+    return float(finetune.learning_rate if variant.finetuning else ppo.learning_rate)
 
 
 def cleanrl_logits(state: Mapping[str, torch.Tensor], obs: torch.Tensor) -> torch.Tensor:
@@ -305,18 +277,8 @@ def write_variant(
     """Write a completed variant folder: ``model_last.pt``, ``config.json``, ``train_cfg.json``.
 
     Its record (``config.json``) says what the policy is: imported (the authors' file, its
-    SHA-256 and checkpoint iteration), its iterations, complete.
-
-    Args:
-        out_dir: The variant folder (created).
-        checkpoint: From :func:`build_checkpoint`.
-        scenario: The scenario as plain data (``Scenario.to_dict``), for ``config.json``.
-        training: The ``"training"`` record of ``config.json`` (the authors' settings, so
-            that a resume into this folder with other settings is refused).
-
-    Returns:
-        The checkpoint's path.
-
+    SHA-256 and checkpoint iteration), its iterations, complete; ``training`` (the authors'
+    settings) makes a resume into it with other settings refused. Returns the checkpoint's path.
     """
     import json
 

@@ -19,14 +19,8 @@ from pathlib import Path
 from typing import Any, cast
 
 from amuled_ma.authors.pickle_reader import (
-    ALLOWED_DTYPE_KINDS,
     ALLOWED_GLOBALS,
-    MAX_ARRAY_ITEMS,
-    MAX_EQUAL_HASHES,
-    MAX_KEY_INT,
-    MAX_KEY_ITEMS,
     MAX_OPCODES,
-    MEMORY_CHECK_EVERY,
     MEMORY_PER_BYTE,
     MEMORY_SLACK_BYTES,
     BoundedReader,
@@ -35,25 +29,6 @@ from amuled_ma.authors.pickle_reader import (
     too_many_opcodes,
 )
 from amuled_ma.errors import AuthorsImportError, UnsafePickleError
-
-__all__ = [
-    "ALLOWED_DTYPE_KINDS",
-    "ALLOWED_GLOBALS",
-    "MAX_ARRAY_ITEMS",
-    "MAX_DEPTH",
-    "MAX_EQUAL_HASHES",
-    "MAX_KEY_INT",
-    "MAX_KEY_ITEMS",
-    "MAX_OPCODES",
-    "MAX_PICKLE_BYTES",
-    "MEMORY_CHECK_EVERY",
-    "MEMORY_PER_BYTE",
-    "MEMORY_SLACK_BYTES",
-    "PickleScan",
-    "load_pickle",
-    "pickle_globals",
-    "scan_pickle",
-]
 
 #: Largest pickle read [bytes]: 8 times the largest published cache (1.95 MB, Driving
 #: llama-3.1-70B, read in about 4 s); reading is linear in the file's size.

@@ -7,20 +7,6 @@ from pathlib import Path
 
 
 def sha256_file(path: str | Path) -> str:
-    """SHA-256 of a file's bytes, read in blocks of 1 MiB.
-
-    Args:
-        path: The file.
-
-    Returns:
-        The hex digest.
-
-    Raises:
-        OSError: The file cannot be read.
-
-    """
-    digest = hashlib.sha256()
+    """The hex SHA-256 of a file's bytes (``hashlib.file_digest``); OSError when unreadable."""
     with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+        return hashlib.file_digest(handle, "sha256").hexdigest()

@@ -24,18 +24,8 @@ def _a(noun: str) -> str:
 def too_large(head: str, size: int, limit: int, noun: str, *, note: str = "", fix: str) -> str:
     """The one-line refusal of a file over its cap.
 
-    Args:
-        head: What comes before ``is N bytes``: ``"runs/x/config.json: the run record"``.
-        size: The file's size in bytes.
-        limit: The cap in bytes.
-        noun: What such a file is, for ``"more than the CAP a NOUN may be"``.
-        note: Said in parentheses after the cap (why the cap is that number), or empty.
-        fix: What to do, last.
-
-    Returns:
-        ``"HEAD is 2,000,000 bytes, more than the 1,000,000 a NOUN may be (NOTE); it is
-        not read; FIX"``.
-
+    ``"HEAD is SIZE bytes, more than the LIMIT a NOUN may be (NOTE); it is not read; FIX"``,
+    ``HEAD`` e.g. ``"runs/x/config.json: the run record"``, `` (NOTE)`` only when given.
     """
     why = f" ({note})" if note else ""
     return (
@@ -59,22 +49,12 @@ def check_size(
     For files handed whole to another reader (``torch.load``); read the file with
     :func:`read_bounded_bytes` where we read it ourselves.
 
-    Args:
-        path: The file.
-        limit: The most bytes it may hold.
-        noun: What it is, for the message (``"checkpoint"``).
-        error: The error raised (an :class:`~amuled_ma.errors.AmuledError` subclass).
-        head: The message's start (default ``"PATH: the NOUN"``).
-        note: Why the cap is that number, said after it.
-        fix: What to do, last in the message.
-
-    Returns:
-        The file's size in bytes.
+    ``error`` (an :class:`~amuled_ma.errors.AmuledError` subclass) is raised with the line of
+    :func:`too_large`, ``head`` defaulting to ``"PATH: the NOUN"`` (``noun`` e.g.
+    ``"checkpoint"``). Returns the file's size in bytes.
 
     Raises:
         OSError: The file cannot be examined (the caller words that).
-        Exception: ``error``, one line by :func:`too_large`: the file is over ``limit``.
-
     """
     size = os.stat(path).st_size
     if size > limit:
@@ -97,15 +77,7 @@ def read_bounded_bytes(
 
     The size is checked on the open file; a file that reports less than it holds (``/proc``,
     a file written to meanwhile) is read up to ``limit + 1`` bytes and refused the same way.
-    Arguments as :func:`check_size`.
-
-    Returns:
-        Its bytes (at most ``limit``).
-
-    Raises:
-        OSError: The file cannot be opened or read (the caller words that).
-        Exception: ``error``: the file holds more than ``limit`` bytes.
-
+    Arguments and errors as :func:`check_size`.
     """
     head = f"{path}: the {noun}" if head is None else head
     with open(path, "rb") as handle:
@@ -131,17 +103,10 @@ def read_bounded_text(
     note: str = "",
     fix: str = RIGHT_FILE,
 ) -> str:
-    """A UTF-8 text file, refused with one line when over ``limit`` bytes, unreadable or not UTF-8.
+    """A UTF-8 text file (:func:`decode_text`), refused when over ``limit`` bytes or unreadable.
 
-    Arguments as :func:`check_size`.
-
-    Returns:
-        Its text, newlines as :func:`decode_text` reads them.
-
-    Raises:
-        Exception: ``error``: the file is over ``limit`` bytes, cannot be read, or is
-            not UTF-8 text; one line naming the file, the problem and the fix.
-
+    Arguments as :func:`check_size`; every refusal is ``error``, one line naming the file,
+    the problem and the fix.
     """
     try:
         data = read_bounded_bytes(path, limit, noun, error=error, note=note, fix=fix)
@@ -159,8 +124,7 @@ def decode_text(
 ) -> str:
     """``data`` read from ``path`` as UTF-8 text, newlines as ``Path.read_text`` reads them.
 
-    Raises:
-        Exception: ``error``: not UTF-8 text; one line naming the file and the byte.
+    Not UTF-8 text is ``error``, one line naming the file and the byte.
     """
     try:
         text = data.decode("utf-8")
@@ -184,14 +148,10 @@ def read_bounded_json(
 
     Arguments as :func:`check_size` (``fix`` ends every message).
 
-    Returns:
-        The parsed JSON value.
-
     Raises:
         AmuledError: ``"PATH: ... FIX"``: the file is over ``limit`` bytes (refused from its
             size, before it is read), cannot be read (``cannot read it``) or is not JSON
             (``not JSON``: malformed, not UTF-8, nested deeper than Python can follow).
-
     """
     try:
         return json.loads(read_bounded_bytes(path, limit, noun, note=note, fix=fix))
@@ -210,24 +170,11 @@ def read_line(
     unit: str = "characters",
     fix: str,
 ) -> AnyStr:
-    """The next line of an open file, refused when longer than ``limit`` (never read whole).
+    """The next line of ``handle`` with its newline ("" at the end), refused when longer.
 
-    Args:
-        handle: A file open for reading (text or binary).
-        limit: The most characters (text) or bytes (binary) a line may hold, its newline
-            not counted.
-        where: ``FILE:LINE``, first in the message.
-        error: The error raised.
-        unit: ``"characters"`` or ``"bytes"``, for the message.
-        fix: What to do, last in the message.
-
-    Returns:
-        The line with its newline; empty at the end of the file.
-
-    Raises:
-        Exception: ``error``: ``"FILE:LINE: a line longer than the N characters a line
-            may be ...; FIX"``.
-
+    ``limit`` counts characters (text) or bytes (binary, ``unit="bytes"``), the newline
+    not counted; a longer line is ``error``: ``"WHERE: a line longer than the N characters a
+    line may be ...; FIX"``, ``where`` being ``FILE:LINE``.
     """
     line = handle.readline(limit + 1)
     if len(line) > limit and not (len(line) == limit + 1 and line[-1:] in ("\n", b"\n")):

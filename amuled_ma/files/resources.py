@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from amuled_ma.errors import AmuledError
+from amuled_ma.files.limits import read_bounded_text
+
 _PACKAGE_DIR = Path(__file__).resolve().parents[1]  # amuled_ma/
 
 #: Largest prompt file read (``prompts/system.md``, ``prompts/tasks/*.md``,
@@ -14,13 +17,7 @@ MAX_PROMPT_BYTES = 1_000_000
 
 
 def data_dir(name: str) -> Path:
-    """Return the directory of a shipped data folder.
-
-    Args:
-        name: ``"prompts"`` or ``"scenarios"``.
-
-    Returns:
-        The existing directory holding that data.
+    """Return the directory of the shipped data folder ``name`` (``"prompts"``, ``"scenarios"``).
 
     Raises:
         FileNotFoundError: Neither the installed nor the source-tree location exists.
@@ -54,25 +51,7 @@ def read_text(
 ) -> str:
     """Read a UTF-8 text file the user gave or the package ships, with a clear error.
 
-    Args:
-        path: The file.
-        what: What the file is, for the message (``"scenario"``, ``"cluster file"``, ...).
-        error_class: The :class:`~amuled_ma.errors.AmuledError` subclass to raise
-            (default: ``AmuledError``).
-        max_bytes: The most bytes the file may hold: a larger one is refused from its size,
-            before it is read (:func:`amuled_ma.files.limits.read_bounded_text`).
-        note: Why the cap is that number, said after it in the refusal.
-
-    Returns:
-        Its text.
-
-    Raises:
-        AmuledError: (or ``error_class``) The file cannot be read, is larger than
-            ``max_bytes`` or is not UTF-8 text; the message names the file, the problem
-            and the fix.
-
+    :func:`~amuled_ma.files.limits.read_bounded_text` with ``what`` as its noun
+    (``"scenario"``) and ``error_class`` (default ``AmuledError``) as its error.
     """
-    from amuled_ma.errors import AmuledError
-    from amuled_ma.files.limits import read_bounded_text
-
     return read_bounded_text(path, max_bytes, what, error=error_class or AmuledError, note=note)

@@ -42,18 +42,12 @@ def _holder(fd: int) -> str:
 def run_folder_lock(folder: str | Path, command: str | None = None) -> Iterator[Path]:
     """Hold the write lock of a run folder (created if needed) for the ``with`` block.
 
-    Args:
-        folder: The run folder.
-        command: The command line recorded for other writers (default: ``sys.argv``).
-
-    Yields:
-        The lock file's path.
+    ``command`` is recorded for other writers (default: ``sys.argv``); yields the lock's path.
 
     Raises:
         RunFolderBusy: Another process holds the lock; the message names its pid, start
             time and command, and what to do.
         AmuledError: The folder cannot be created or the lock file cannot be written.
-
     """
     folder = Path(folder)
     made = _missing_ancestors(folder)  # removed again if the command fails and leaves nothing

@@ -53,19 +53,12 @@ def _kind(path: Path, mode: int) -> str:
 
 
 def check_write_target(path: str | os.PathLike[str]) -> Path:
-    """Refuse a path to write that exists and is not a regular file; follows no link.
-
-    Args:
-        path: The file about to be written.
-
-    Returns:
-        ``path`` as a :class:`~pathlib.Path` (absent or a regular file).
+    """Return ``path`` (absent or a regular file); refuse one that is not; follows no link.
 
     Raises:
         UnsafePathError: ``path`` is a symbolic link (to anything), a device, a FIFO, a
             socket or a folder; one line naming it, what it is, and the fix.
         OSError: ``path`` cannot be examined (a part of it is a file, no permission).
-
     """
     path = Path(path)
     try:
@@ -74,13 +67,18 @@ def check_write_target(path: str | os.PathLike[str]) -> Path:
         return path
     if stat.S_ISREG(mode):
         return path
+    raise _not_regular(path, mode)
+
+
+def _not_regular(path: Path, mode: int) -> UnsafePathError:
+    """The refusal to write ``path``, a file of type ``mode`` that is not regular."""
     if stat.S_ISLNK(mode):
         fix = "remove the link (a new file is then written in its place), or write elsewhere"
     elif stat.S_ISDIR(mode):
         fix = "give the path of a file, not a folder"
     else:
         fix = "give the path of a new or a regular file"
-    raise UnsafePathError(
+    return UnsafePathError(
         f"{path}: is {_kind(path, mode)}, not a regular file; amuled writes only regular "
         f"files and never through a link; nothing was written; {fix}"
     )
@@ -105,20 +103,10 @@ def check_own_folder(folder: Path, why: str) -> None:
 
 
 def failure_fix(code: int | None, then: str, *, elsewhere: str | None = None) -> str:
-    """What to do about a write that failed with ``errno`` ``code``, ending ``then ...``.
+    """What to do about a write that failed with ``errno`` ``code``, ending ``then THEN``.
 
-    Args:
-        code: The error's ``errno`` (None: unknown).
-        then: What to run once it is fixed (``"run the command again"``, ``"resume with
-            --resume"``).
-        elsewhere: Where else to write, said in brackets beside a full disk or a folder not
-            writable (``"write into another --run-dir"``); None says nothing.
-
-    Returns:
-        ``"free some disk space, then ..."`` (no space, a quota), ``"raise the file-size
-        limit (ulimit -f), then ..."``, ``"make the folder writable, then ..."`` (no
-        permission, a read-only file system), else ``"check the folder and the disk, then ..."``.
-
+    ``elsewhere`` (``"write into another --run-dir"``) is said in brackets beside a full disk
+    or a folder not writable.
     """
     aside = f" (or {elsewhere})" if elsewhere else ""
     if code in (errno.ENOSPC, errno.EDQUOT):
@@ -138,20 +126,10 @@ def write_failure(
     kept: str | None = None,
     what: str = "",
 ) -> str:
-    """The one line of a file that could not be written.
+    """The line of a file that could not be written: ``"cannot write WHAT PATH: WHY; KEPT; FIX"``.
 
-    Args:
-        path: The file (or what was written, in words, with ``kept`` given).
-        error: What the system said.
-        fix: What to do, last; default: :func:`failure_fix` of the error, then run the
-            command again.
-        kept: What is left on disk (default: ``the old file is kept`` when ``path`` is a
-            file, else ``nothing was written``).
-        what: What the file is, before its path (``"checkpoint "``).
-
-    Returns:
-        ``"cannot write WHAT PATH: WHY; KEPT; FIX"``.
-
+    ``fix`` defaults to :func:`failure_fix` of the error, ``kept`` to ``the old file is
+    kept`` when ``path`` is a file, else ``nothing was written``.
     """
     why = " ".join((error.strerror or str(error)).split())[:200]
     if fix is None:
@@ -226,19 +204,8 @@ def atomic_writer(
     ``torch.save(state, handle)``, ``np.savez(handle, ...)``, ``csv.writer(handle)``).
     The target is checked (:func:`check_write_target`) before the temporary file is made
     and again before the rename; the temporary file is flushed to disk (``fsync``) before
-    it is renamed over ``path``.
-
-    Args:
-        path: The file to (re)write; its folder must exist.
-        text: A text file object (``encoding``, ``newline`` as :func:`open` takes them)
-            instead of a binary one.
-        encoding: The text encoding.
-        newline: As :func:`open`'s ``newline`` (``""`` for the :mod:`csv` module).
-        fix: The fix said when the write fails (default: by the error, see
-            :func:`write_failure`).
-
-    Yields:
-        The open temporary file.
+    it is renamed over ``path``. ``text``: a text file object (``encoding``, ``newline`` as
+    :func:`open` takes them); ``fix``: as :func:`write_failure`.
 
     Raises:
         UnsafePathError: ``path`` is not absent nor a regular file (see
@@ -246,7 +213,6 @@ def atomic_writer(
         FileWriteError: Writing, flushing or renaming failed (an ``OSError`` raised inside
             the block counts as such a failure): one line naming ``path``; ``path`` is as
             it was and no temporary file is left.
-
     """
     path = check_write_target(path)
     tmp: Path | None = None
@@ -303,21 +269,11 @@ def append_text(path: str | os.PathLike[str], text: str, *, fix: str | None = No
     For a file that grows a record at a time (a line cut short by a crash is its
     reader's to skip). The target is checked (:func:`check_write_target`), then opened
     with ``O_APPEND | O_CREAT | O_NOFOLLOW`` and checked again on the open file, so a link
-    or a FIFO put there in between is refused too.
-
-    Args:
-        path: The file; its folder must exist.
-        text: What to add at its end.
-        fix: The fix said when the write fails (default: by the error,
-            :func:`write_failure`).
-
-    Returns:
-        ``path``.
+    or a FIFO put there in between is refused too. Returns ``path``.
 
     Raises:
         UnsafePathError: ``path`` is not absent nor a regular file; nothing was written.
         FileWriteError: The write failed (a full disk): one line naming ``path``.
-
     """
     path = check_write_target(path)
     flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK
@@ -330,11 +286,7 @@ def append_text(path: str | os.PathLike[str], text: str, *, fix: str | None = No
     try:
         mode = os.fstat(fd).st_mode
         if not stat.S_ISREG(mode):  # put there between the check and the open
-            raise UnsafePathError(
-                f"{path}: is {_kind(path, mode)}, not a regular file; amuled writes only "
-                "regular files and never through a link; nothing was written; give the path "
-                "of a new or a regular file"
-            )
+            raise _not_regular(path, mode)
         with os.fdopen(fd, "ab", closefd=False) as handle:
             handle.write(text.encode("utf-8"))
             handle.flush()
@@ -350,22 +302,14 @@ def append_text(path: str | os.PathLike[str], text: str, *, fix: str | None = No
 def checked_read_path(folder: str | os.PathLike[str], name: str | os.PathLike[str]) -> Path:
     """``folder / name``, refused if reading it would follow a link or leave ``folder``.
 
-    A missing file is returned as it is (the caller's read reports it, or the caller
-    treats it as absent). The check reads no byte of the file.
-
-    Args:
-        folder: The run folder (or a variant folder in it) the file belongs to.
-        name: The file's name, or a path relative to ``folder``.
-
-    Returns:
-        ``folder / name``: absent, or a regular file inside ``folder``.
+    A missing file is returned as it is (its reader reports it or treats it as absent). The
+    check reads no byte of the file.
 
     Raises:
         UnsafePathError: It is a symbolic link, not a regular file (a FIFO, a device, a
             folder), or resolves outside ``folder`` (through ``..`` or a linked
             subfolder); one line naming it, what it is, and the fix.
         OSError: It cannot be examined.
-
     """
     folder = Path(folder)
     path = folder / name

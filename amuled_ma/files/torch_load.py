@@ -23,18 +23,12 @@ MAX_TORCH_FILE_BYTES = 2**30
 def load_weights_only(path: str | Path, what: str = "checkpoint") -> Any:
     """``torch.load(path, map_location="cpu", weights_only=True)``, with a clear error.
 
-    Args:
-        path: The file.
-        what: What the file is, for the message (``"checkpoint"``, ``"policy file"``).
-
-    Returns:
-        The loaded object (plain data and tensors).
+    ``what`` names the file in the message (``"checkpoint"``, ``"policy file"``).
 
     Raises:
         CheckpointError: The file is missing, larger than :data:`MAX_TORCH_FILE_BYTES`
             (refused from its size, before it is read), needs a global to load (named;
             refused, so nothing from it ran), or is not a readable PyTorch file.
-
     """
     import torch
 

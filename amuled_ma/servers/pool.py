@@ -7,6 +7,7 @@ A host failing with `DOWN_FAILURES` is out for ``down_for_s``, then probed; with
 from __future__ import annotations
 
 import contextlib
+import copy
 import math
 import threading
 import time
@@ -24,50 +25,30 @@ COUNTS = ("sent", "answered", "failed", "retried_from", "went_down", "came_back"
 
 
 def percentile(values: Sequence[float], q: float) -> float | None:
-    """The ``q``-th percentile of ``values`` by the nearest-rank method (None if empty).
+    """The ``q``-th percentile, ``q`` in (0, 100], of ``values`` by nearest rank (None if empty).
 
-    The smallest value with at least ``q`` percent of the values at or below it:
-    the value at rank ``ceil(q / 100 * n)`` of the sorted values (``q`` = 95 of 20
-    values is the 19th smallest).
-
-    Args:
-        values: The sample.
-        q: The percentile, in (0, 100].
-
+    The smallest value with at least ``q`` percent of the values at or below it (``q`` = 95
+    of 20 values is the 19th smallest).
     """
     if not values:
         return None
     ordered = sorted(values)
-    rank = max(1, math.ceil(q / 100 * len(ordered)))
+    rank = max(1, math.ceil(q / 100 * len(ordered)))  # ceil(q / 100 * n)
     return float(ordered[rank - 1])
 
 
 @dataclass
 class HostStats:
-    """What happened at one host of a pool.
-
-    Attributes:
-        host: The host's URL.
-        sent: Requests sent to it (every attempt, a retry or a probe included).
-        answered: Requests it answered.
-        failures: Failed requests by kind (``connection``, ``timeout``, ``server_error``,
-            ...).
-        retried_from: Requests that failed here and were retried on another host.
-        went_down: Times it was taken out of the pool.
-        came_back: Times it was put back after being taken out.
-        latencies: Seconds of each answered request (from the host being chosen to the
-            answer).
-
-    """
+    """What happened at one host of a pool."""
 
     host: str
-    sent: int = 0
+    sent: int = 0  # every attempt, a retry or a probe included
     answered: int = 0
-    failures: dict[str, int] = field(default_factory=dict)
-    retried_from: int = 0
-    went_down: int = 0
-    came_back: int = 0
-    latencies: list[float] = field(default_factory=list)
+    failures: dict[str, int] = field(default_factory=dict)  # by kind (``connection``, ...)
+    retried_from: int = 0  # failed here and retried on another host
+    went_down: int = 0  # times taken out of the pool
+    came_back: int = 0  # times put back
+    latencies: list[float] = field(default_factory=list)  # seconds, chosen to answer
 
     @property
     def failed(self) -> int:
@@ -93,13 +74,8 @@ class HostStats:
 class Lease:
     """One request's use of a host, from :meth:`HostPool.acquire`.
 
-    Attributes:
-        host: The host chosen.
-        started: When it was chosen (the pool's clock).
-        failure: The failure kind given to :meth:`fail` (``None``: the request went well).
-        detail: What failed, for messages.
-        probe: Whether this request probes a host that was down.
-
+    ``started`` is the pool's clock when ``host`` was chosen; ``probe``: the host was down;
+    ``failure`` and ``detail``: as given to :meth:`fail` (``None``: the request went well).
     """
 
     def __init__(self, host: str, started: float, probe: bool) -> None:
@@ -110,13 +86,7 @@ class Lease:
         self.detail = ""
 
     def fail(self, kind: str, detail: str = "") -> None:
-        """Mark the request as failed (released as such when the ``with`` block ends).
-
-        Args:
-            kind: The failure kind; a kind of :data:`DOWN_FAILURES` takes the host out.
-            detail: What happened, for the all-down error message.
-
-        """
+        """Mark the request failed: ``kind`` of :data:`DOWN_FAILURES` takes the host out."""
         self.failure = kind
         self.detail = detail
 
@@ -127,15 +97,13 @@ class HostPool:
     Args:
         hosts: The host URLs, in order of preference on ties (at least one, no repeats).
         down_for_s: Seconds a failed host stays out before the next request probes it.
-        wait_s: Seconds :meth:`acquire` waits when no host is live and none is due for a
-            probe; default ``2 * down_for_s`` (so that every host is probed at least once
-            before the pool gives up).
+        wait_s: Seconds :meth:`acquire` waits when no host is live or due for a probe;
+            default ``2 * down_for_s`` (every host is probed at least once before giving up).
         fix: What to do when every host is down, the end of that error's message.
-        clock: The time source (tests give a fake one).
+        clock: The time source.
 
     Raises:
         ValueError: No host, a repeated host, or a negative or non-finite time.
-
     """
 
     def __init__(
@@ -183,9 +151,7 @@ class HostPool:
     def stats(self, host: str) -> HostStats:
         """A copy of ``host``'s figures."""
         with self._cond:
-            s = self._stats[host]
-            return HostStats(s.host, s.sent, s.answered, dict(s.failures), s.retried_from,
-                             s.went_down, s.came_back, list(s.latencies))  # fmt: skip
+            return copy.deepcopy(self._stats[host])
 
     # -- choosing ------------------------------------------------------------------------
     def _choose(self, avoid: Iterable[str], now: float) -> tuple[str, bool] | None:
@@ -209,21 +175,14 @@ class HostPool:
         return None
 
     def take(self, avoid: Iterable[str] = ()) -> Lease:
-        """Choose a host for one request and count it as sent and in flight.
+        """Choose a host for one request, counted as sent and in flight (prefer :meth:`acquire`).
 
-        Prefer :meth:`acquire`, which releases the host however the request ends.
-
-        Args:
-            avoid: Hosts this request already failed on: used only when no other host
-                is live or due for a probe.
-
-        Returns:
-            The lease (``lease.host`` is the host).
+        ``avoid``: hosts this request already failed on, used only when no other is live or
+        due for a probe.
 
         Raises:
-            BackendUnavailable: No host is live or due for a probe within ``wait_s``
-                seconds; the message names every host, why it is down, and ``fix``.
-
+            BackendUnavailable: No host is live or due for a probe within ``wait_s`` seconds;
+                the message names every host, why it is down, and ``fix``.
         """
         avoid = tuple(avoid)
         with self._cond:
@@ -252,31 +211,17 @@ class HostPool:
 
         The host is released when the block ends: as answered, unless the block called
         ``lease.fail(kind)`` or raised (then as failed, kind ``"error"`` unless given).
-
-        Args:
-            avoid: As :meth:`take`.
-
-        Yields:
-            The lease.
-
-        Raises:
-            BackendUnavailable: As :meth:`take`.
-
+        ``avoid`` and errors as :meth:`take`.
         """
         lease = self.take(avoid)
+        raised = True
         try:
             yield lease
-        except BaseException:
-            self.release(lease.host, False, self._clock() - lease.started,
-                         lease.failure or "error", detail=lease.detail)  # fmt: skip
-            raise
-        self.release(
-            lease.host,
-            lease.failure is None,
-            self._clock() - lease.started,
-            lease.failure,
-            detail=lease.detail,
-        )
+            raised = False
+        finally:
+            ok = not raised and lease.failure is None
+            latency = self._clock() - lease.started
+            self.release(lease.host, ok, latency, lease.failure, detail=lease.detail)
 
     def release(
         self,
@@ -287,18 +232,11 @@ class HostPool:
         *,
         detail: str = "",
     ) -> None:
-        """Record how a request at ``host`` ended.
+        """Record how a request at ``host`` ended (``latency_s`` kept when ``ok``).
 
-        Args:
-            host: The host of the request.
-            ok: Whether it was answered.
-            latency_s: Its seconds (kept for answered requests).
-            failure: The failure kind when not ``ok`` (default ``"error"``); a kind of
-                :data:`DOWN_FAILURES` takes the host out for ``down_for_s`` (not in a
-                pool of one). Any other outcome shows the host answers: a host that was
-                out is put back.
-            detail: What failed, for messages.
-
+        ``failure``: the kind when not ``ok`` (default ``"error"``); one of
+        :data:`DOWN_FAILURES` takes the host out for ``down_for_s`` (not in a pool of one);
+        any other outcome puts a host that was out back.
         """
         with self._cond:
             self._in_flight[host] -= 1
@@ -353,11 +291,7 @@ class HostPool:
             return ", ".join(f"{h} ({states.get(h, 'live')})" for h in self.hosts)
 
     def as_dict(self) -> dict[str, dict[str, Any]]:
-        """Every host's figures, JSON-ready: ``{host: {"sent": n, "answered": n, ...}}``.
-
-        Each host's entry is :meth:`HostStats.as_dict` plus ``"live"`` (in the pool now).
-        The hosts are in list order.
-        """
+        """Every host's figures in list order: :meth:`HostStats.as_dict` plus ``"live"``."""
         with self._cond:
             return {
                 h: {**self._stats[h].as_dict(), "live": h not in self._down_until}
@@ -371,14 +305,7 @@ def merge_host_stats(reports: Iterable[Mapping[str, Mapping[str, Any]]]) -> dict
     Counts and failure kinds are summed; the mean latency is the mean over every answered
     request (each report's mean weighted by its ``answered``); the 95th percentile is the
     largest of the reports' (an upper bound: percentiles do not add up); ``live`` is true
-    when the host was live in every report.
-
-    Args:
-        reports: ``{host: figures}`` dicts (a pool's, or earlier merges).
-
-    Returns:
-        ``{host: figures}``, hosts in order of first appearance.
-
+    when the host was live in every report. Hosts in order of first appearance.
     """
     out: dict[str, dict[str, Any]] = {}
     weights: dict[str, float] = {}
@@ -414,15 +341,10 @@ def _seconds(value: float | None) -> str:
 
 
 def host_lines(stats: Mapping[str, Mapping[str, Any]]) -> list[str]:
-    """Write a pool's figures for people, one line per host.
+    """A pool's figures (:meth:`HostPool.as_dict`, :func:`merge_host_stats`), a line a host.
 
-    Args:
-        stats: ``{host: figures}`` (:meth:`HostPool.as_dict`, :func:`merge_host_stats`).
-
-    Returns:
-        Lines such as ``http://127.0.0.1:4001: sent 9, answered 8, failed 1 (connection 1),
-        retried from 1, latency mean 2.10 s, p95 3.40 s, down 1x, back 0x``.
-
+    E.g. ``http://127.0.0.1:4001: sent 9, answered 8, failed 1 (connection 1), retried from
+    1, latency mean 2.10 s, p95 3.40 s, down 1x, back 0x``.
     """
     lines = []
     for host, row in stats.items():

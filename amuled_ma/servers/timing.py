@@ -23,37 +23,20 @@ class RequestTiming:
     Ollama's ``prompt_eval_count`` is the whole prompt sent, cached part included;
     ``prompt_eval_duration`` is the time spent evaluating the part that was not in the
     server's prefix cache. Decoding is grammar-constrained when ``format`` is a schema.
-
-    Attributes:
-        calls: Chat calls answered (more than 1 when an abstention was re-asked).
-        load_s: Seconds spent loading the model (``load_duration``).
-        prompt_tokens: Prompt tokens sent (``prompt_eval_count``).
-        prefill_s: Seconds evaluating the prompt (``prompt_eval_duration``).
-        decode_tokens: Tokens generated (``eval_count``).
-        decode_s: Seconds generating them (``eval_duration``).
-        total_s: The server's seconds for the calls (``total_duration``).
-        wall_s: The client's seconds for the calls (HTTP and queueing included).
-
     """
 
-    calls: int = 0
-    load_s: float = 0.0
-    prompt_tokens: int = 0
-    prefill_s: float = 0.0
-    decode_tokens: int = 0
-    decode_s: float = 0.0
-    total_s: float = 0.0
-    wall_s: float = 0.0
+    calls: int = 0  # chat calls answered (more than 1 when an abstention was re-asked)
+    load_s: float = 0.0  # ``load_duration``
+    prompt_tokens: int = 0  # ``prompt_eval_count``
+    prefill_s: float = 0.0  # ``prompt_eval_duration``
+    decode_tokens: int = 0  # ``eval_count``
+    decode_s: float = 0.0  # ``eval_duration``
+    total_s: float = 0.0  # the server's seconds (``total_duration``)
+    wall_s: float = 0.0  # the client's seconds (HTTP and queueing included)
 
     @classmethod
     def from_reply(cls, reply: object, wall_s: float) -> RequestTiming:
-        """Read the metrics of one ``chat`` response (absent ones count 0).
-
-        Args:
-            reply: The ``ollama.ChatResponse`` (or anything with its metric attributes).
-            wall_s: Seconds the client waited for it.
-
-        """
+        """Read the metrics of one ``ollama.ChatResponse`` waited ``wall_s`` for (absent: 0)."""
 
         def seconds(name: str) -> float:
             return float(getattr(reply, name, None) or 0) / 1e9
@@ -93,18 +76,11 @@ class RequestTiming:
 
 @dataclass
 class TimingLog:
-    """The timings collected by `record_timings`, and when their requests ran.
-
-    Attributes:
-        timings: One `RequestTiming` per answered request, in order of completion.
-        first_start: ``time.perf_counter()`` when the first of them was asked (None: none).
-        last_end: ``time.perf_counter()`` when the last of them was answered.
-
-    """
+    """The timings collected by `record_timings` (in order of completion), and when they ran."""
 
     timings: list[RequestTiming] = field(default_factory=list)
-    first_start: float | None = None
-    last_end: float | None = None
+    first_start: float | None = None  # perf_counter() of the first asked (None: none)
+    last_end: float | None = None  # perf_counter() of the last answered
 
     @property
     def span_s(self) -> float:
@@ -128,15 +104,9 @@ _logs_lock = threading.Lock()
 def record_timings() -> Iterator[TimingLog]:
     """Collect the `RequestTiming` of every request answered in this process.
 
-    Every `OllamaSource` of the process adds to the
-    yielded log while the block runs (thread-safe), one entry per answered request (the
-    chat calls of a re-asked abstention summed into one). Requests that failed (timeout,
-    error) have no server metrics and are not listed. Requests made in other processes
-    (``amuled run --jobs N`` workers) are not seen.
-
-    Yields:
-        The `TimingLog` the timings are added to.
-
+    Every `OllamaSource` of the process adds to the yielded `TimingLog` while the block
+    runs (thread-safe), one entry per answered request (a re-asked abstention's calls summed).
+    Failed requests have no server metrics; requests of other processes are not seen.
     """
     log = TimingLog()
     with _logs_lock:
@@ -149,14 +119,7 @@ def record_timings() -> Iterator[TimingLog]:
 
 
 def publish_timing(timing: RequestTiming, start: float, end: float) -> None:
-    """Add one request's timing to every log opened by `record_timings`.
-
-    Args:
-        timing: The request's timing.
-        start: ``time.perf_counter()`` when it was asked.
-        end: ``time.perf_counter()`` when it was answered.
-
-    """
+    """Add one request's timing (asked, answered at ``start``, ``end``) to every open log."""
     with _logs_lock:
         for log in _logs:
             log.add(timing, start, end)
@@ -168,18 +131,11 @@ _CACHE_SLOT = re.compile(r'msg="loading cache slot".*?\bprompt=(\d+)\b.*?\bused=
 
 @dataclass(frozen=True)
 class CacheReuse:
-    """Prefix-cache reuse of a server's chat calls, from its debug log.
+    """Prefix-cache reuse of a server's chat calls, from its debug log."""
 
-    Attributes:
-        calls: ``loading cache slot`` lines read (one per chat call).
-        prompt_tokens: Prompt tokens sent.
-        reused_tokens: Of those, tokens found in the server's prefix cache (not evaluated).
-
-    """
-
-    calls: int = 0
+    calls: int = 0  # ``loading cache slot`` lines read (one per chat call)
     prompt_tokens: int = 0
-    reused_tokens: int = 0
+    reused_tokens: int = 0  # found in the prefix cache (not evaluated)
 
     @property
     def evaluated_tokens(self) -> int:
@@ -188,15 +144,9 @@ class CacheReuse:
 
 
 def cache_reuse(log: str | Path, offset: int = 0) -> CacheReuse | None:
-    """Read the prefix-cache lookups of a server log written with ``OLLAMA_DEBUG=1``.
+    """Sum the prefix-cache lookups of an ``OLLAMA_DEBUG=1`` server log past ``offset`` bytes.
 
-    Args:
-        log: The server's log file.
-        offset: Bytes of the log to skip (its size before the calls of interest).
-
-    Returns:
-        The sums, or None when the log is missing or has no such line (no debug log).
-
+    Returns None when the log is missing or has no such line (no debug log).
     """
     try:
         with open(log, "rb") as handle:
@@ -226,20 +176,13 @@ def timing_breakdown(
 ) -> list[str]:
     """Summarise where the requests' time went, one line per figure.
 
-    Args:
-        timings: One `RequestTiming` per answered request.
-        wall_s: Wall-clock seconds while they ran, from the first asked to the last
-            answered (summed over phases; None: not shown).
-        reuse: The server's prefix-cache reuse over the same calls (None: not known).
-
-    Returns:
-        Lines of text (one saying so when there were no requests).
-
+    ``wall_s``: wall-clock seconds from the first asked to the last answered (None: not
+    shown); ``reuse``: the server's prefix-cache reuse over the same calls (None: not known).
     """
     if not timings:
         return ["no live requests (every belief came from the belief store)"]
-    calls = sum(t.calls for t in timings)
-    lines = [f"requests {len(timings)} ({calls} chat calls, re-asks included)"]
+    total = sum(timings, RequestTiming())
+    lines = [f"requests {len(timings)} ({total.calls} chat calls, re-asks included)"]
     lines.append(
         "prompt tokens per request: "
         + _stats([t.prompt_tokens for t in timings], "", 0)
@@ -262,11 +205,8 @@ def timing_breakdown(
         )
     else:
         lines.append("prefix cache: not known (the server's debug log is not ours to read)")
-    load = sum(t.load_s for t in timings)
-    server = sum(t.total_s for t in timings)
-    client = sum(t.wall_s for t in timings)
-    prefill = sum(t.prefill_s for t in timings)
-    decode = sum(t.decode_s for t in timings)
+    load, server, client = total.load_s, total.total_s, total.wall_s
+    prefill, decode = total.prefill_s, total.decode_s
     lines.append(
         f"request seconds summed: {client:.1f} s at the client, {server:.1f} s at the server "
         f"= prefill {prefill:.1f} + decode {decode:.1f} + model load {load:.1f} "

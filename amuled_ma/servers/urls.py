@@ -15,18 +15,10 @@ DEFAULT_PORT = 11434
 
 
 def normalize_host(host: str, *, where: str = "Ollama host") -> str:
-    """Return ``host`` as ``scheme://host:port`` (no trailing slash), checked.
-
-    Args:
-        host: ``HOST``, ``HOST:PORT`` or a full ``http(s)://HOST:PORT[/path]`` URL.
-        where: Where the value came from, for the error message.
-
-    Returns:
-        The URL with scheme and port.
+    """Return ``host`` (``HOST[:PORT]``, ``http(s)://HOST:PORT[/path]``) as ``scheme://host:port``.
 
     Raises:
-        ScenarioError: No host name, a scheme other than http(s), or a bad port.
-
+        ScenarioError: No host name, a scheme other than http(s), or a bad port; names ``where``.
     """
     raw = host.strip().rstrip("/")
     text = raw if "://" in raw else "http://" + raw
@@ -54,19 +46,11 @@ def normalize_host(host: str, *, where: str = "Ollama host") -> str:
 
 
 def normalize_hosts(hosts: object, *, where: str = "Ollama hosts") -> tuple[str, ...]:
-    """Return a pool's list of server addresses, each checked by :func:`normalize_host`.
-
-    Args:
-        hosts: A list of addresses (``["http://gpu1:11434", "gpu2"]``).
-        where: Where the list came from, for the error message (``key [feedback].hosts``).
-
-    Returns:
-        The normalised URLs, in the order given.
+    """Return a pool's list of server addresses, each normalised by :func:`normalize_host`.
 
     Raises:
         ScenarioError: Not a list of strings, an empty list, a malformed address, or the
             same server twice (after normalisation: ``gpu1`` is ``http://gpu1:11434``).
-
     """
     example = 'hosts = ["http://gpu1:11434", "http://gpu2:11434"]'
     if isinstance(hosts, str | bytes) or not isinstance(hosts, Sequence):
