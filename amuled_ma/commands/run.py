@@ -280,32 +280,23 @@ def request_of(args: argparse.Namespace, command: str, *extra: str) -> PipelineR
 
 def run_command(args: argparse.Namespace) -> int:
     """Run ``amuled run``: the pipeline of the paper's main comparison, then its summary."""
-    from amuled_ma.experiments import pipeline
-
-    start = time.perf_counter()
-    request = request_of(args, "run")
-    outcome = pipeline.run_pipeline(request, say=common.say)
-    common.say_outcome(request, outcome, time.perf_counter() - start)
-    if args.quick:
-        common.say(
-            quick_note(
-                request.scenario.base.total_steps,
-                request.scenario.finetune.iterations,
-                request.episodes or QUICK_EPISODES,
-            )
-        )
-    return 0
+    return _run_pipeline(args, "run")
 
 
 def ablate_command(args: argparse.Namespace) -> int:
     """Run ``amuled ablate``: the pipeline of one ablation."""
-    from amuled_ma.experiments import pipeline
-
-    start = time.perf_counter()
     extra = ["--what", args.what]
     if args.weights is not None:
         extra += ["--weights", str(args.weights.resolve())]
-    request = request_of(args, "ablate", *extra)
+    return _run_pipeline(args, "ablate", *extra)
+
+
+def _run_pipeline(args: argparse.Namespace, command: str, *extra: str) -> int:
+    """Run the pipeline `request_of` builds, then say its outcome (and the quick note)."""
+    from amuled_ma.experiments import pipeline
+
+    start = time.perf_counter()
+    request = request_of(args, command, *extra)
     outcome = pipeline.run_pipeline(request, say=common.say)
     common.say_outcome(request, outcome, time.perf_counter() - start)
     if args.quick:
