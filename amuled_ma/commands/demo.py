@@ -448,18 +448,7 @@ def evaluate_folder(
 
 
 def demo_title(name: str, task: str, fb: FeedbackConfig, ft: FinetuneConfig) -> str:
-    """The report's title: what the demo's run is, and that it is demo-sized.
-
-    Args:
-        name: The scenario's name.
-        task: Its task.
-        fb: Its ``[feedback]`` section (where the beliefs come from).
-        ft: Its ``[finetune]`` section (recipe, iterations).
-
-    Returns:
-        The title.
-
-    """
+    """The report's title: what the demo's run is, and that it is demo-sized."""
     where = (
         f"beliefs replayed from `{Path(fb.recording).name}`"
         if fb.source == "replay"

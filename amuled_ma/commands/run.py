@@ -125,12 +125,7 @@ def add_quick_arg(parser: argparse.ArgumentParser) -> None:
 def quick_changes(overrides: list[str]) -> Changes:
     """The quick form's budget (:data:`QUICK_SETTINGS`), but for the keys ``overrides`` sets.
 
-    Args:
-        overrides: The ``--set SECTION.KEY=VALUE`` texts (a key they name keeps its value).
-
-    Returns:
-        The changes to the scenario (:meth:`~amuled_ma.scenario.Scenario.changed`).
-
+    Returns the changes to the scenario (:meth:`~amuled_ma.scenario.Scenario.changed`).
     """
     from amuled_ma.scenario.overrides import parse_set
 
@@ -143,17 +138,7 @@ def quick_changes(overrides: list[str]) -> Changes:
 
 
 def quick_note(base_steps: int, iterations: int, episodes: int) -> str:
-    """The quick form's warning, for the output and the report's title.
-
-    Args:
-        base_steps: ``[base].total_steps``.
-        iterations: ``[finetune].iterations``.
-        episodes: Evaluation episodes per policy.
-
-    Returns:
-        The warning, one line.
-
-    """
+    """The quick form's one-line warning, for the output and the report's title."""
     return (
         f"quick form: {base_steps:,} base env steps, "
         f"{iterations:,} fine-tuning iterations, {episodes} evaluation "
