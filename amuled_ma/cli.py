@@ -9,9 +9,7 @@ from __future__ import annotations
 
 import argparse
 import errno
-import importlib
 import os
-import pkgutil
 import re
 import signal
 import sys
@@ -70,10 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="on an error, print the Python traceback as well as the one-line message",
     )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
-        if info.name.startswith("_"):
-            continue
-        module = importlib.import_module(f"{commands.__name__}.{info.name}")
+    for _, module in commands.public_modules(commands):
         module.register(subparsers)
     return parser
 

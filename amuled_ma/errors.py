@@ -42,10 +42,6 @@ class PromptError(AmuledError, ValueError):
     """A prompt file (state template, system prompt, few-shot examples) is missing or malformed."""
 
 
-class BeliefParseError(AmuledError, ValueError):
-    """An LLM reply could not be turned into a belief vector."""
-
-
 class BackendUnavailable(AmuledError, RuntimeError):
     """A belief backend (an Ollama server, say) cannot be reached."""
 

@@ -1,11 +1,18 @@
-"""The output folder of a benchmark: the one asked for, or a temporary one removed after."""
+"""What the benchmarks share: their output folder, best-of timing and the ``--json`` figures."""
 
 from __future__ import annotations
 
+import json
 import tempfile
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TypeVar
+
+from amuled_ma.files.safe import write_text_atomic
+
+_Out = TypeVar("_Out")
 
 
 @contextmanager
@@ -17,3 +24,21 @@ def output_folder(out: Path | None, prefix: str) -> Iterator[Path]:
         return
     with tempfile.TemporaryDirectory(prefix=prefix) as tmp:
         yield Path(tmp)
+
+
+def best_time(func: Callable[[], _Out], repeats: int) -> tuple[_Out, float, float]:
+    """Result of the last call, best wall-clock and best CPU seconds over ``repeats`` calls."""
+    wall, cpu = float("inf"), float("inf")
+    for _ in range(max(repeats, 1)):
+        start_wall, start_cpu = time.perf_counter(), time.process_time()
+        result = func()
+        cpu = min(cpu, time.process_time() - start_cpu)
+        wall = min(wall, time.perf_counter() - start_wall)
+    return result, wall, cpu
+
+
+def write_figures(path: Path | None, figures: object) -> None:
+    """Write ``figures`` as indented JSON to ``path`` and say so; nothing when ``path`` is None."""
+    if path:
+        write_text_atomic(path, json.dumps(figures, indent=2))
+        print(f"\nfigures written to {path}")

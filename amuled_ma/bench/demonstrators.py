@@ -8,16 +8,11 @@ from episode 601) on one torch thread, best of ``--repeats``, beside the authors
 from __future__ import annotations
 
 import argparse
-import json
 import platform
-import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
-from amuled_ma.files.safe import write_text_atomic
-
-_Out = TypeVar("_Out")
+from amuled_ma.bench._output import best_time, write_figures
 
 TARGET_DRIVING_S = 60.0
 
@@ -42,17 +37,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--repeats", type=int, default=1, help="timed runs (best is kept)")
     parser.add_argument("--json", type=Path, help="also write the figures to this JSON file")
-
-
-def _timed(func: Callable[[], _Out], repeats: int) -> tuple[_Out, float, float]:
-    """Result of the last call, best wall-clock and best CPU seconds over ``repeats`` calls."""
-    wall, cpu = float("inf"), float("inf")
-    for _ in range(max(repeats, 1)):
-        start_wall, start_cpu = time.perf_counter(), time.process_time()
-        result = func()
-        cpu = min(cpu, time.process_time() - start_cpu)
-        wall = min(wall, time.perf_counter() - start_wall)
-    return result, wall, cpu
 
 
 def main(args: argparse.Namespace) -> int:
@@ -91,7 +75,7 @@ def main(args: argparse.Namespace) -> int:
         else:
             print(f"unknown task {name!r}: expected findmilk or driving")
             return 2
-        table, wall, cpu = _timed(run, args.repeats)
+        table, wall, cpu = best_time(run, args.repeats)
         rows[name] = {
             "episodes": episodes,
             "episodes_played": played,
@@ -117,7 +101,5 @@ def main(args: argparse.Namespace) -> int:
             f"  target: Driving 10,000 episodes in < {TARGET_DRIVING_S:.0f} s "
             f"{'met' if ok else 'MISSED'}"
         )
-    if args.json:
-        write_text_atomic(args.json, json.dumps(rows, indent=2))
-        print(f"\nfigures written to {args.json}")
+    write_figures(args.json, rows)
     return 0

@@ -8,16 +8,13 @@ env-steps/s per task at 4096 copies, and >= 20x the Gymnasium loop.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from amuled_ma.files.safe import write_text_atomic
+from amuled_ma.bench._output import best_time, write_figures
 
 TARGET_STEPS_PER_S = 1_000_000
 TARGET_RATIO = 20.0
@@ -46,17 +43,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, help="also write the figures to this JSON file")
 
 
-def _best(func: Callable[[], object], repeats: int) -> tuple[float, float]:
-    """Best wall-clock and best process CPU time over ``repeats`` calls of ``func``."""
-    wall, cpu = float("inf"), float("inf")
-    for _ in range(max(repeats, 1)):
-        start_wall, start_cpu = time.perf_counter(), time.process_time()
-        func()
-        cpu = min(cpu, time.process_time() - start_cpu)
-        wall = min(wall, time.perf_counter() - start_wall)
-    return wall, cpu
-
-
 def _options(name: str, layout: str) -> dict[str, Any]:
     return {"layout": layout} if name == "findmilk" else {}
 
@@ -82,7 +68,7 @@ def bench_core(
         if task.device.type == "cuda":
             torch.cuda.synchronize(task.device)
 
-    wall, cpu = _best(run, repeats)
+    _, wall, cpu = best_time(run, repeats)
     n = copies * steps
     return {"copies": copies, "steps_per_s": n / wall, "cpu_steps_per_s": n / max(cpu, 1e-9)}
 
@@ -107,7 +93,7 @@ def bench_gym(name: str, steps: int, repeats: int, layout: str, seed: int) -> di
             if term or trunc:
                 env.reset()
 
-    wall, cpu = _best(run, repeats)
+    _, wall, cpu = best_time(run, repeats)
     return {"steps_per_s": steps / wall, "cpu_steps_per_s": steps / max(cpu, 1e-9)}
 
 
@@ -153,7 +139,5 @@ def main(args: argparse.Namespace) -> int:
             f"{'met' if ok_rate else 'MISSED'}, >= {TARGET_RATIO:.0f}x the loop "
             f"{'met' if ok_ratio else 'MISSED'}"
         )
-    if args.json:
-        write_text_atomic(args.json, json.dumps(results, indent=2))
-        print(f"\nfigures written to {args.json}")
+    write_figures(args.json, results)
     return 0

@@ -10,16 +10,12 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import time
-from collections.abc import Callable
-from typing import TypeVar
 
 import numpy as np
 
+from amuled_ma.bench._output import best_time
 from amuled_ma.fusion import fuse
 from amuled_ma.fusion.reference import fuse_beliefs
-
-_Out = TypeVar("_Out")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -39,17 +35,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed of the beliefs")
 
 
-def _best(func: Callable[[], _Out], repeats: int) -> tuple[float, float, _Out]:
-    """Best wall-clock and best CPU (process) time over ``repeats`` calls, and the output."""
-    wall, cpu = float("inf"), float("inf")
-    for _ in range(max(repeats, 1)):
-        start_wall, start_cpu = time.perf_counter(), time.process_time()
-        out = func()
-        cpu = min(cpu, time.process_time() - start_cpu)
-        wall = min(wall, time.perf_counter() - start_wall)
-    return wall, cpu, out
-
-
 def main(args: argparse.Namespace) -> int:
     """Run the benchmark and print the figures; returns 0 (a benchmark, not a test)."""
     rng = np.random.default_rng(args.seed)
@@ -58,8 +43,8 @@ def main(args: argparse.Namespace) -> int:
     sample_lists = sample.tolist()
 
     fuse(beliefs[:100])  # warm-up
-    vec_wall, vec_cpu, fused = _best(lambda: fuse(beliefs, "bjs-dst"), args.repeats)
-    ref_wall, ref_cpu, ref = _best(lambda: [fuse_beliefs(b) for b in sample_lists], 3)
+    fused, vec_wall, vec_cpu = best_time(lambda: fuse(beliefs, "bjs-dst"), args.repeats)
+    ref, ref_wall, ref_cpu = best_time(lambda: [fuse_beliefs(b) for b in sample_lists], 3)
     diff = float(np.max(np.abs(np.asarray(ref) - fused[: len(sample_lists)])))
 
     n_ref = len(sample_lists)

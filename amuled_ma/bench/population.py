@@ -15,13 +15,13 @@ import math
 import os
 import time
 from pathlib import Path
+from statistics import mean, stdev
 from typing import TYPE_CHECKING, Any
 
 from amuled_ma.bench._output import output_folder
 
 if TYPE_CHECKING:
     from amuled_ma.beliefs.store.service import StoreService
-    from amuled_ma.learn import population as learn_population
     from amuled_ma.learn.population import TrainOutcome
     from amuled_ma.learn.population_groups import MemberSpec
     from amuled_ma.scenario import EvaluationConfig, PPOConfig, Scenario, TaskConfig
@@ -128,19 +128,9 @@ def _scenario(task: str, base_steps: int) -> tuple[Any, str]:
 def _jobs(
     scenario: Scenario, run: Path, base: Path, count: int, tag: str, store: StoreService
 ) -> list[MemberSpec]:
-    """``count`` fine-tune jobs of the base: seeds 42.., lambda_KL in turn, own feedback.
+    """``count`` fine-tune jobs of ``base`` in ``run/tag``: seeds 42.., lambda_KL in turn.
 
-    Args:
-        scenario: The benchmark's scenario (each job's is it at its lambda_KL).
-        run: The run folder (the feedback's cache).
-        base: The base checkpoint every job anchors to.
-        count: How many jobs.
-        tag: The jobs' folder under ``run``.
-        store: The belief store every job's feedback shares.
-
-    Returns:
-        The jobs' specs, each with its feedback built.
-
+    Each job's feedback is built on ``store`` (shared), cached in ``run``.
     """
     from amuled_ma.deliberation.build import build_feedback
     from amuled_ma.deliberation.plan import plan_panel
@@ -173,7 +163,7 @@ def measure_task(task: str, args: argparse.Namespace, out: Path) -> dict[str, An
     scenario, source = _scenario(task, args.base_steps)
     run = out / task
     t0 = time.perf_counter()
-    base = _alone(MemberSpec(scenario, run / "base")).train()[0].checkpoint
+    base = PopulationTrainer([MemberSpec(scenario, run / "base")]).train()[0].checkpoint
     base_s = time.perf_counter() - t0
     store = run_store(scenario.store_path(run))
     its = args.warmup + args.iterations
@@ -186,7 +176,7 @@ def measure_task(task: str, args: argparse.Namespace, out: Path) -> dict[str, An
             job.iterations = its
             watch = Stopwatch()
             job.on_iteration = watch
-            trainer = _alone(job)
+            trainer = PopulationTrainer([job])  # alone: a population of one
             setup = _since(watch.start)
             watch.restart()
             trainer.train()
@@ -231,16 +221,17 @@ def main(args: argparse.Namespace) -> int:
     import torch
 
     torch.set_num_threads(1)
-    if args.welch:
-        with output_folder(args.out, "amuled-bench-population-") as out:
-            for task in [t.strip() for t in args.tasks.split(",") if t.strip()]:
-                print_welch(task, welch(task, args, out))
-        return 0
+    tasks = [t.strip() for t in args.tasks.split(",") if t.strip()]
     results = []
     with output_folder(args.out, "amuled-bench-population-") as out:
-        for task in [t.strip() for t in args.tasks.split(",") if t.strip()]:
+        for task in tasks:
+            if args.welch:
+                print_welch(task, welch(task, args, out))
+                continue
             print(f"{task}: base policy, {args.lone} fine-tunes alone, populations ...", flush=True)
             results.append(measure_task(task, args, out))
+    if args.welch:
+        return 0
     print()
     print(
         f"Fine-tunes per hour, authors' recipe ({RECIPE_ITERATIONS:,} iterations x 128 steps, "
@@ -312,13 +303,6 @@ def _run_metrics(
     return out
 
 
-def _alone(job: MemberSpec) -> learn_population.PopulationTrainer:
-    """A job trained alone: a population of one (the lone job's rsl-rl classes)."""
-    from amuled_ma.learn.population import PopulationTrainer
-
-    return PopulationTrainer([job])
-
-
 def welch(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
     """Train ``args.welch`` seeds alone and as one population; each run's figures."""
     from amuled_ma.deliberation.build import run_store
@@ -328,7 +312,7 @@ def welch(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
     scenario, source = _scenario(task, args.base_steps)
     scenario = scenario.replace("finetune", lambda_kl=2.5)
     run = out / task
-    base = _alone(MemberSpec(scenario, run / "base")).train()[0].checkpoint
+    base = PopulationTrainer([MemberSpec(scenario, run / "base")]).train()[0].checkpoint
     store = run_store(scenario.store_path(run))
     groups: dict[str, list[dict[str, float]]] = {"alone": [], "population": []}
     times: dict[str, float] = {}
@@ -337,7 +321,7 @@ def welch(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
     for job in jobs:
         job.scenario = scenario  # lambda_KL 2.5 for every seed
         job.iterations = args.welch_iterations
-        outcome = _alone(job).train()[0]
+        outcome = PopulationTrainer([job]).train()[0]
         job.feedback.close()
         groups["alone"].append(
             _run_metrics(outcome, scenario.task, scenario.evaluation, scenario.ppo)
@@ -385,11 +369,6 @@ def print_welch(task: str, result: dict[str, Any]) -> None:
         a = [run[key] for run in alone]
         b = [run[key] for run in together]
         t, p = welch_t(a, b)
-
-        def stat(values: list[float]) -> str:
-            mean = sum(values) / len(values)
-            sd = (sum((x - mean) ** 2 for x in values) / (len(values) - 1)) ** 0.5
-            return f"{mean:.3f} ± {sd:.3f}"
-
+        stat_a, stat_b = (f"{mean(v):.3f} ± {stdev(v):.3f}" for v in (a, b))
         shown_p = "-" if p is None else f"{p:.2f}"
-        print(f"{key:<34} {stat(a):>17} {stat(b):>17} {t:>8.2f} {shown_p:>6}")
+        print(f"{key:<34} {stat_a:>17} {stat_b:>17} {t:>8.2f} {shown_p:>6}")

@@ -17,12 +17,13 @@ from amuled_ma.bench._output import output_folder
 if TYPE_CHECKING:
     from rsl_rl.models import MLPModel
 
-    from amuled_ma.scenario import TaskConfig
+    from amuled_ma.scenario import Scenario, TaskConfig
 
 #: Reference figures (the authors' code) and our targets, per measured figure.
 REFERENCE: dict[str, tuple[str, str]] = {
     "findmilk_optimal_s": ("~51k steps (~16 s at 3,100 steps/s)", "< 10 s"),
     "findmilk_full_s": ("~160 s (~3,100 steps/s)", "< 30 s"),
+    "final_optimal": ("100%", "100%"),
     "driving_full_s": ("~185 s", "< 40 s"),
     "driving_collisions": ("0.7", "<= 0.7"),
     "driving_grandmas": ("5.1", "-"),
@@ -60,15 +61,20 @@ def _eval(actor: MLPModel, task_config: TaskConfig, episodes: int) -> list[dict]
     return records
 
 
+def _base_scenario(name: str, quick: bool) -> Scenario:
+    """The shipped scenario ``name`` without TensorBoard; ``quick``: a tenth of its base steps."""
+    from amuled_ma.scenario import load_scenario
+
+    sc = load_scenario(name).replace("output", tensorboard=False)
+    return sc.replace("base", total_steps=sc.base.total_steps // 10) if quick else sc
+
+
 def bench_findmilk(out: Path, quick: bool) -> dict[str, Any]:
     """FindMilk base training: time to the first optimal greedy policy, and the full run."""
     from amuled_ma.learn.population import PopulationMember, PopulationTrainer
     from amuled_ma.learn.population_groups import MemberSpec
-    from amuled_ma.scenario import load_scenario
 
-    sc = load_scenario("findmilk").replace("output", tensorboard=False)
-    if quick:
-        sc = sc.replace("base", total_steps=sc.base.total_steps // 10)
+    sc = _base_scenario("findmilk", quick)
     first: dict[str, Any] = {}
     eval_time = [0.0]
     start = [0.0]
@@ -104,11 +110,8 @@ def bench_driving(out: Path, quick: bool) -> dict[str, Any]:
     from amuled_ma.evaluate.evaluator import summarize
     from amuled_ma.learn.population import PopulationTrainer
     from amuled_ma.learn.population_groups import MemberSpec
-    from amuled_ma.scenario import load_scenario
 
-    sc = load_scenario("driving").replace("output", tensorboard=False)
-    if quick:
-        sc = sc.replace("base", total_steps=sc.base.total_steps // 10)
+    sc = _base_scenario("driving", quick)
     trainer = PopulationTrainer([MemberSpec(sc, out / "driving-base")])
     t0 = time.perf_counter()
     outcome = trainer.train()[0]
@@ -197,78 +200,56 @@ def _measure(args: argparse.Namespace, out: Path) -> list[tuple[str, str, str, s
     from amuled_ma.evaluate.report import format_stat  # here: it imports torch
 
     rows: list[tuple[str, str, str, str]] = []
+
+    def add(figure: str, ours: str, reference: str) -> None:
+        rows.append((figure, ours, *REFERENCE[reference]))
+
     fm: dict[str, Any] = {}
     if "findmilk" not in args.skip:
         print("FindMilk base training ...", flush=True)
         fm = bench_findmilk(out, args.quick)
         opt = fm["optimal"]
         first = f"{opt['steps']:,} steps, {opt['wall_s']:.1f} s" if opt else "not reached"
-        rows.append(
-            (
-                "FindMilk greedy first optimal (14 steps, 100%)",
-                first,
-                *REFERENCE["findmilk_optimal_s"],
-            )
-        )
-        rows.append((
+        add("FindMilk greedy first optimal (14 steps, 100%)", first, "findmilk_optimal_s")
+        add(
             f"FindMilk base run ({fm['steps']:,} steps)",
             f"{fm['full_s']:.1f} s ({fm['steps_per_s']:,.0f} steps/s)",
-            *REFERENCE["findmilk_full_s"],
-        ))  # fmt: skip
-        rows.append(
-            (
-                "FindMilk final greedy optimal",
-                f"{100 * fm['final_optimal_frac']:.0f}%",
-                "100%",
-                "100%",
-            )
+            "findmilk_full_s",
+        )
+        add(
+            "FindMilk final greedy optimal",
+            f"{100 * fm['final_optimal_frac']:.0f}%",
+            "final_optimal",
         )
     if "driving" not in args.skip:
         print("Driving base training ...", flush=True)
         dr = bench_driving(out, args.quick)
-        m = dr["metrics"]
-        rows.append(
-            (
-                f"Driving base run ({dr['steps']:,} steps)",
-                f"{dr['full_s']:.1f} s",
-                *REFERENCE["driving_full_s"],
-            )
-        )
-        pairs = (
+        add(f"Driving base run ({dr['steps']:,} steps)", f"{dr['full_s']:.1f} s", "driving_full_s")
+        for key, ref in (
             ("collisions", "driving_collisions"),
             ("rescues", "driving_grandmas"),
             ("lane_changes", "driving_lane_changes"),
-        )
-        for key, ref in pairs:
-            if key in m:
-                s = m[key]
-                rows.append(
-                    (
-                        f"Driving greedy {key} / episode",
-                        format_stat(s),
-                        *REFERENCE[ref],
-                    )
-                )
+        ):
+            if key in dr["metrics"]:
+                add(f"Driving greedy {key} / episode", format_stat(dr["metrics"][key]), ref)
     if "finetune" not in args.skip:
         print("Fine-tuning with replayed AMULED feedback ...", flush=True)
         ft = bench_finetune(out, fm.get("checkpoint"), args.quick)
         if "skipped" in ft:
-            rows.append(
-                ("Fine-tune, 1,000 it x 128 steps", ft["skipped"], *REFERENCE["finetune_s"])
-            )
+            add("Fine-tune, 1,000 it x 128 steps", ft["skipped"], "finetune_s")
         else:
-            rows.append((
+            add(
                 f"Fine-tune, {ft['iterations']:,} it x "
                 f"{ft['transitions_per_iteration']} steps (replay)",
                 f"{ft['wall_s']:.1f} s ({ft['it_per_s']:.1f} it/s, miss rate "
                 f"{100 * (ft['miss_rate'] or 0):.2f}%)",
-                *REFERENCE["finetune_s"],
-            ))  # fmt: skip
+                "finetune_s",
+            )
     if "fusion" not in args.skip:
         fu = bench_fusion()
-        rows.append((
+        add(
             "bjs-dst fusion of 5 beliefs, per state",
             f"{fu['batched_ms']:.4f} ms batched, {fu['single_ms']:.3f} ms alone",
-            *REFERENCE["fusion_ms"],
-        ))  # fmt: skip
+            "fusion_ms",
+        )
     return rows

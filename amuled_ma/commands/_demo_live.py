@@ -57,7 +57,7 @@ def live_leg(
         plan: The live panel's plan (``[feedback].source = "ollama"``, :func:`write_live_leg`).
         store: ``[feedback].store``, the store file (relative to ``RUN_DIR/live``).
         episodes: The episodes per policy of the run's evaluation (sampled draws depend on it).
-        model: The live model.
+        model: The live model, at ``host``.
         host: Its server.
         states: Distinct states asked.
 
@@ -68,7 +68,6 @@ def live_leg(
 
     Raises:
         AmuledError: The run has no AMULED fine-tune, or the panel cannot be built.
-
     """
     import numpy as np
 
@@ -184,17 +183,7 @@ def write_live_leg(run_dir: Path, scenario: Scenario, *, model: str, host: str) 
 
     The live panel is the scenario's with ``[feedback].source = "ollama"``, ``model`` at
     ``host`` and the clusters :data:`LIVE_CLUSTERS`; its section is appended to
-    ``report.md``.
-
-    Args:
-        run_dir: The demo's run folder.
-        scenario: The demo's scenario.
-        model: The live model.
-        host: Its server.
-
-    Returns:
-        True when the leg ran (a failure is printed and the report says so).
-
+    ``report.md``. True when the leg ran (a failure is printed and the report says so).
     """
     import json
 

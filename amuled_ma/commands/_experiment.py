@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -176,19 +175,11 @@ def customise(
 ) -> Scenario:
     """Apply ``--clusters-dir`` folders, then ``--set`` overrides, to a loaded scenario.
 
+    ``clusters_dirs`` add to ``[feedback].clusters_dirs``; ``overrides`` apply in order.
     Prints a note for every user cluster file that overrides a cluster of its name.
-
-    Args:
-        scenario: The scenario as loaded.
-        clusters_dirs: Folders of user cluster files (added to ``[feedback].clusters_dirs``).
-        overrides: ``SECTION.KEY=VALUE`` texts, applied in order.
-
-    Returns:
-        The new scenario.
 
     Raises:
         ScenarioError: An override of an unknown section or key, or a bad value.
-
     """
     user_dirs = [str(Path(d).resolve()) for d in clusters_dirs]
     if user_dirs:
@@ -236,15 +227,9 @@ def rerun_of(name: str, args: argparse.Namespace, *extra: str) -> Rerun:
     return Rerun(name, (str(args.scenario), *extra), tuple(options), name_option)
 
 
-def command_line(name: str, args: argparse.Namespace, run_dir: Path, *extra: str) -> str:
-    """Return the shell command that re-runs a job (used for resume hints)."""
-    return rerun_of(name, args, *extra).line(run_dir)
-
-
 def say(message: str) -> None:
     """Print a status line (stderr stays free for errors)."""
     print(message, flush=True)
-    sys.stdout.flush()
 
 
 def say_outcome(request: PipelineRequest, outcome: PipelineOutcome, seconds: float) -> None:

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import importlib
-import pkgutil
 
 from amuled_ma import bench
+from amuled_ma.commands import public_modules
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -17,13 +16,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Benchmarks print throughput figures measured side by side in one run.",
     )
     names = parser.add_subparsers(dest="bench", metavar="NAME")
-    for info in sorted(pkgutil.iter_modules(bench.__path__), key=lambda m: m.name):
-        if info.name.startswith("_"):
-            continue
-        module = importlib.import_module(f"{bench.__name__}.{info.name}")
+    for name, module in public_modules(bench):
         doc = (module.__doc__ or "").strip()
         sub = names.add_parser(
-            info.name,
+            name,
             help=doc.splitlines()[0] if doc else None,
             description=doc or None,
             formatter_class=argparse.RawDescriptionHelpFormatter,

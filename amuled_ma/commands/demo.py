@@ -334,12 +334,10 @@ def summary_lines(
         iterations: ``[finetune].iterations``.
         results: ``results.json`` of the run.
         base: The folder the fine-tunes started from (None: the run's own base).
-        base_results: That folder's evaluation (``{"sampled": ..., "greedy": ...}`` as a
-            variant of ``results.json``); None: no base row of its own.
+        base_results: That folder's `evaluate_folder` (None: no base row of its own).
 
     Returns:
         The section's lines, its heading first.
-
     """
     from amuled_ma.evaluate.paper import PAPER_COLUMNS, paper_row
 
@@ -393,20 +391,11 @@ def put_summary(
     """Put :func:`summary_lines` right under ``report.md``'s title (replacing an earlier one).
 
     Read and written as :func:`put_live_section` does; without a report or results, nothing
-    is written.
-
-    Args:
-        run_dir: The demo's run folder.
-        task: The demo's task.
-        base_steps: ``[base].total_steps``.
-        iterations: ``[finetune].iterations``.
-        authors_base: The imported authors' base folder the fine-tunes started from, else
-            None.
-        base_results: That base's evaluation (`evaluate_folder`), its row in the section.
+    is written. ``authors_base``: the imported authors' base the fine-tunes started from
+    (None: the run's own), ``base_results`` its `evaluate_folder`.
 
     Raises:
         AmuledError: As :func:`put_live_section`.
-
     """
     import json
 
@@ -434,20 +423,14 @@ def evaluate_folder(
     """One policy folder's evaluation, as a variant of ``results.json`` holds it.
 
     The scenario's evaluation (episodes, seed, confidence) in each of its modes, by the
-    evaluator that wrote the run's results, so the rows compare like with like.
-
-    Args:
-        folder: A variant folder holding ``model_last.pt``.
-        ppo: The run's ``[ppo]`` section (network shape).
-        task: Its ``[task]`` section.
-        ev: Its ``[evaluation]`` section.
+    evaluator that wrote the run's results (without writing any), so the rows compare
+    like with like.
 
     Returns:
         ``{mode: {"metrics": {metric: {"mean", "half_width", ...}}}}``.
 
     Raises:
         CheckpointError: The checkpoint cannot be loaded (one line naming it).
-
     """
     from amuled_ma.evaluate.evaluator import run_episodes, summarize
     from amuled_ma.learn.checkpoints import LAST
@@ -465,18 +448,7 @@ def evaluate_folder(
 
 
 def demo_title(name: str, task: str, fb: FeedbackConfig, ft: FinetuneConfig) -> str:
-    """The report's title: what the demo's run is, and that it is demo-sized.
-
-    Args:
-        name: The scenario's name.
-        task: Its task.
-        fb: Its ``[feedback]`` section (where the beliefs come from).
-        ft: Its ``[finetune]`` section (recipe, iterations).
-
-    Returns:
-        The title.
-
-    """
+    """The report's title: what the demo's run is, and that it is demo-sized."""
     where = (
         f"beliefs replayed from `{Path(fb.recording).name}`"
         if fb.source == "replay"

@@ -11,10 +11,9 @@ from amuled_ma.commands import _experiment as common
 from amuled_ma.errors import ScenarioError
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from amuled_ma.deliberation.feedback_base import Feedback
-    from amuled_ma.evaluate import explain
-    from amuled_ma.evaluate.readonly_feedback import ReadOnlyStore
-    from amuled_ma.scenario import TaskConfig
 
 #: Characters of a raw reply printed without ``--full``.
 REPLY_CHARS = 1200
@@ -118,116 +117,87 @@ def explain_command(args: argparse.Namespace) -> int:
     """Run ``amuled explain``."""
     from amuled_ma.deliberation.plan import plan_panel
     from amuled_ma.evaluate import explain
+    from amuled_ma.evaluate.explain import explain_lines
     from amuled_ma.evaluate.readonly_feedback import open_feedback
     from amuled_ma.experiments.run_folder import scenario_of_run
     from amuled_ma.tasks import get_task
 
+    state_of: Callable[[Feedback], explain.State]
     if args.state_from is not None:
         if args.variant is None or args.step is None:
             raise ScenarioError(
                 "--state-from needs --variant V (a variant folder of the run) and --step N"
             )
-        run_dir = Path(args.state_from)
-        run_scenario = scenario_of_run(run_dir)  # a clear error when it is no run
+        store_dir = Path(args.state_from)
+        run_scenario = scenario_of_run(store_dir)  # a clear error when it is no run
         # here: the episode's replay imports torch, after the checks that need none
         from amuled_ma.evaluate.episode_trace import replay_variant
         from amuled_ma.experiments.trained_variants import evaluated_episodes, trained_variant
 
-        trained = trained_variant(run_dir, run_dir / args.variant)
+        trained = trained_variant(store_dir, store_dir / args.variant)
         scenario = common.customise(
             trained.scenario, clusters_dirs=args.clusters_dir, overrides=args.overrides
         )
         trained = dataclasses.replace(trained, scenario=scenario)
         feedback_name = args.feedback or trained.feedback or "amuled"
         plan = plan_panel(feedback_name, scenario)  # an unknown cluster: one line, nothing opened
-        episodes = args.episodes or evaluated_episodes(run_dir, run_scenario.evaluation.episodes)
-        feedback, store = open_feedback(plan, scenario.feedback.store, run_dir)
-        try:
+        episodes = args.episodes or evaluated_episodes(store_dir, run_scenario.evaluation.episodes)
+
+        def state_of(feedback: Feedback) -> explain.State:
             live = feedback if getattr(feedback, "panel", None) is None else None
             ep = replay_variant(
                 trained, episode=args.episode, mode=args.mode, episodes=episodes, live_feedback=live
             )
-            state = explain.state_of_step(ep, args.step, f"{run_dir}/{args.variant}")
-            _print(
-                args,
-                scenario.task,
-                scenario.feedback.cluster_recording,
-                feedback,
-                store,
-                feedback_name,
-                state,
-            )
-        finally:
-            feedback.close()
-            store.close()
-        return 0
+            return explain.state_of_step(ep, args.step, f"{store_dir}/{args.variant}")
 
-    if args.obs is None:
-        raise ScenarioError(
-            "give a state: TASK --obs V1,V2,... (and --prompt-var NAME=VALUE), or "
-            "--state-from RUN --variant V --step N"
-        )
-    if args.run_dir is not None:
-        scenario = common.customise(
-            scenario_of_run(Path(args.run_dir)),
-            clusters_dirs=args.clusters_dir,
-            overrides=args.overrides,
-        )
-        if args.scenario and args.scenario not in (scenario.task.name, scenario.name):
-            raise ScenarioError(
-                f"TASK {args.scenario!r} does not match the run {args.run_dir} (task "
-                f"{scenario.task.name}, scenario {scenario.name}); leave TASK out or match it"
-            )
-    elif args.scenario is None:
-        raise ScenarioError("name TASK (findmilk, driving, ...) or give --run-dir RUN")
     else:
-        scenario = common.load(args)
-    feedback_name = args.feedback or "amuled"
-    plan = plan_panel(feedback_name, scenario)  # an unknown cluster: one line, before torch
-    task_cls = get_task(scenario.task.name)
-    obs = explain.parse_obs(args.obs, task_cls)
-    extras = explain.parse_prompt_vars(args.prompt_vars)
-    feedback, store = open_feedback(plan, scenario.feedback.store, args.run_dir)
-    try:
+        if args.obs is None:
+            raise ScenarioError(
+                "give a state: TASK --obs V1,V2,... (and --prompt-var NAME=VALUE), or "
+                "--state-from RUN --variant V --step N"
+            )
+        store_dir = args.run_dir
+        if args.run_dir is not None:
+            scenario = common.customise(
+                scenario_of_run(Path(args.run_dir)),
+                clusters_dirs=args.clusters_dir,
+                overrides=args.overrides,
+            )
+            if args.scenario and args.scenario not in (scenario.task.name, scenario.name):
+                raise ScenarioError(
+                    f"TASK {args.scenario!r} does not match the run {args.run_dir} (task "
+                    f"{scenario.task.name}, scenario {scenario.name}); leave TASK out or match it"
+                )
+        elif args.scenario is None:
+            raise ScenarioError("name TASK (findmilk, driving, ...) or give --run-dir RUN")
+        else:
+            scenario = common.load(args)
+        feedback_name = args.feedback or "amuled"
+        plan = plan_panel(feedback_name, scenario)  # an unknown cluster: one line, before torch
+        task_cls = get_task(scenario.task.name)
+        obs = explain.parse_obs(args.obs, task_cls)
+        extras = explain.parse_prompt_vars(args.prompt_vars)
         where = f"run {args.run_dir}" if args.run_dir else f"scenario {scenario.name} (shipped)"
-        state = explain.state_by_hand(task_cls, feedback, feedback_name, obs, extras, where)
-        _print(
-            args,
-            scenario.task,
+
+        def state_of(feedback: Feedback) -> explain.State:
+            return explain.state_by_hand(task_cls, feedback, feedback_name, obs, extras, where)
+
+    feedback, store = open_feedback(plan, scenario.feedback.store, store_dir)
+    try:
+        lines = explain_lines(
+            scenario.task.name,
             scenario.feedback.cluster_recording,
+            get_task(scenario.task.name),
             feedback,
             store,
             feedback_name,
-            state,
+            state_of(feedback),
+            reply_chars=None if args.full else REPLY_CHARS,
+            show_prompt=args.prompt,
         )
+        for line in lines:
+            common.say(line)
     finally:
         feedback.close()
         store.close()
     return 0
-
-
-def _print(
-    args: argparse.Namespace,
-    scenario_task: TaskConfig,
-    cluster_recording: str,
-    feedback: Feedback,
-    store: ReadOnlyStore,
-    feedback_name: str,
-    state: explain.State,
-) -> None:
-    from amuled_ma.evaluate.explain import explain_lines
-    from amuled_ma.tasks import get_task
-
-    lines = explain_lines(
-        scenario_task.name,
-        cluster_recording,
-        get_task(scenario_task.name),
-        feedback,
-        store,
-        feedback_name,
-        state,
-        reply_chars=None if args.full else REPLY_CHARS,
-        show_prompt=args.prompt,
-    )
-    for line in lines:
-        common.say(line)

@@ -125,12 +125,7 @@ def add_quick_arg(parser: argparse.ArgumentParser) -> None:
 def quick_changes(overrides: list[str]) -> Changes:
     """The quick form's budget (:data:`QUICK_SETTINGS`), but for the keys ``overrides`` sets.
 
-    Args:
-        overrides: The ``--set SECTION.KEY=VALUE`` texts (a key they name keeps its value).
-
-    Returns:
-        The changes to the scenario (:meth:`~amuled_ma.scenario.Scenario.changed`).
-
+    Returns the changes to the scenario (:meth:`~amuled_ma.scenario.Scenario.changed`).
     """
     from amuled_ma.scenario.overrides import parse_set
 
@@ -143,17 +138,7 @@ def quick_changes(overrides: list[str]) -> Changes:
 
 
 def quick_note(base_steps: int, iterations: int, episodes: int) -> str:
-    """The quick form's warning, for the output and the report's title.
-
-    Args:
-        base_steps: ``[base].total_steps``.
-        iterations: ``[finetune].iterations``.
-        episodes: Evaluation episodes per policy.
-
-    Returns:
-        The warning, one line.
-
-    """
+    """The quick form's one-line warning, for the output and the report's title."""
     return (
         f"quick form: {base_steps:,} base env steps, "
         f"{iterations:,} fine-tuning iterations, {episodes} evaluation "
@@ -280,32 +265,23 @@ def request_of(args: argparse.Namespace, command: str, *extra: str) -> PipelineR
 
 def run_command(args: argparse.Namespace) -> int:
     """Run ``amuled run``: the pipeline of the paper's main comparison, then its summary."""
-    from amuled_ma.experiments import pipeline
-
-    start = time.perf_counter()
-    request = request_of(args, "run")
-    outcome = pipeline.run_pipeline(request, say=common.say)
-    common.say_outcome(request, outcome, time.perf_counter() - start)
-    if args.quick:
-        common.say(
-            quick_note(
-                request.scenario.base.total_steps,
-                request.scenario.finetune.iterations,
-                request.episodes or QUICK_EPISODES,
-            )
-        )
-    return 0
+    return _run_pipeline(args, "run")
 
 
 def ablate_command(args: argparse.Namespace) -> int:
     """Run ``amuled ablate``: the pipeline of one ablation."""
-    from amuled_ma.experiments import pipeline
-
-    start = time.perf_counter()
     extra = ["--what", args.what]
     if args.weights is not None:
         extra += ["--weights", str(args.weights.resolve())]
-    request = request_of(args, "ablate", *extra)
+    return _run_pipeline(args, "ablate", *extra)
+
+
+def _run_pipeline(args: argparse.Namespace, command: str, *extra: str) -> int:
+    """Run the pipeline `request_of` builds, then say its outcome (and the quick note)."""
+    from amuled_ma.experiments import pipeline
+
+    start = time.perf_counter()
+    request = request_of(args, command, *extra)
     outcome = pipeline.run_pipeline(request, say=common.say)
     common.say_outcome(request, outcome, time.perf_counter() - start)
     if args.quick:

@@ -21,7 +21,7 @@ from amuled_ma.beliefs import BeliefRequest, make_source
 from amuled_ma.beliefs.sources.policy import PolicySource
 from amuled_ma.cli import main
 from amuled_ma.clusters import default_clusters_dir, plugins
-from amuled_ma.commands._experiment import command_line
+from amuled_ma.commands._experiment import rerun_of
 from amuled_ma.errors import ScenarioError
 
 HERE = Path(__file__).resolve().parent
@@ -162,7 +162,7 @@ def test_allow_plugin_is_a_checked_flag_and_the_resume_hint_restates_it(tmp_path
     args = build_parser().parse_args(
         ["run", "findmilk", "--allow-plugin", "my_pkg.agents:Agent", "--set", "x.y=1"]
     )
-    hint = command_line("run", args, tmp_path, "--resume")
+    hint = rerun_of("run", args, "--resume").line(tmp_path)
     assert "--allow-plugin my_pkg.agents:Agent" in hint
 
 
