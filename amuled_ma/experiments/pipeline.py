@@ -159,12 +159,7 @@ def run_pipeline(
 ) -> PipelineOutcome:
     """Plan, check, train, evaluate and report one experiment (``amuled run``/``ablate``/``demo``).
 
-    Args:
-        request: What to run.
-        say: Prints a progress line (default: stdout, flushed).
-
-    Returns:
-        The outcome: where the report is, the results, the training jobs.
+    ``say`` prints a progress line (default: stdout, flushed).
 
     Raises:
         AmuledError: An input a job needs is missing (before any folder is made; an
@@ -314,18 +309,10 @@ def train_alone(
     (:func:`~amuled_ma.experiments.plans.plan_jobs`: its inputs, then its folder), the run
     folder's lock is held, ``config.json`` written (with ``config``), and the job trained
     by the executor of every graph (:func:`~amuled_ma.experiments.jobs.run_jobs`, a group
-    of one); nothing is evaluated.
-
-    Args:
-        request: The run folder, seed, resume / force, progress bars and resume command
-            (its other fields are not used).
-        variant: What to train.
-        base_variant: A fine-tune's base folder in ``base_dir``.
-        base_dir: The run folder holding the base (default: the request's).
-        config: Run-level ``config.json`` fields to write (None: the file is left alone).
-
-    Returns:
-        The job's result (trained, or skipped when already finished).
+    of one); nothing is evaluated. Of ``request`` it uses the run folder, seed, resume /
+    force, progress bars and resume command; ``base_variant`` is a fine-tune's base folder in
+    ``base_dir`` (default: the request's run folder); ``config`` holds run-level
+    ``config.json`` fields to write (None: the file is left alone). A finished job is skipped.
 
     Raises:
         AmuledError: An input is missing or the folder clashes (before any folder is
@@ -427,17 +414,7 @@ def train_jobs(
     request: PipelineRequest,
     say: Callable[[str], None] = say_line,
 ) -> JobsOutcome:
-    """Train a planned graph as the request says (``jobs``, ``ray``), one line per job.
-
-    Args:
-        jobs: The graph, planned (:func:`~amuled_ma.experiments.plans.plan_jobs`).
-        request: Where and how the jobs run, the progress bars and the resume command.
-        say: Prints a progress line.
-
-    Returns:
-        The outcome of :func:`~amuled_ma.experiments.jobs.run_jobs`.
-
-    """
+    """Train a graph planned by `plan_jobs` as the request says, one line per job."""
     workers = resolve_workers(request.jobs, jobs)
     ray = request.ray
     where = "" if ray is None else f" on Ray ({ray.address or 'local'})"
@@ -456,15 +433,10 @@ def train_jobs(
 
 
 def describe_job(job: JobResult) -> str:
-    """One line about a finished training job (a seed replica's seed in brackets).
+    """One line about a skipped or trained job (a seed replica's seed in brackets).
 
-    Args:
-        job: The job's result: skipped (already trained), or trained with its outcome.
-
-    Returns:
-        The line, with the feedback's figures and the agents that left states unanswered
-        on lines of their own.
-
+    The feedback's figures and the agents that left states unanswered follow on lines of
+    their own.
     """
     from amuled_ma.deliberation.summaries import distill_line, summary_lines
 
