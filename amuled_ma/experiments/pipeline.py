@@ -7,6 +7,7 @@ is one job through the same checks, lock and record, not evaluated.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -169,6 +170,7 @@ def run_pipeline(
         KeyboardInterrupt: Ctrl-C or SIGTERM, after every running job wrote its checkpoint.
 
     """
+    from amuled_ma.authors.download import ensure_recordings, models_ablation_recordings
     from amuled_ma.experiments.plans import training_seeds
     from amuled_ma.experiments.run_folder import read_record, variant_records
     from amuled_ma.scenario.memory import check_seed_replicas
@@ -177,21 +179,16 @@ def run_pipeline(
     check_seed_replicas(request.seeds, variants=1)  # before a job per seed is planned
     first = request.scenario.task.seed if request.seed is None else request.seed
     seeds = training_seeds(first, request.seeds)
+    sc = request.scenario
+    # the authors' recordings found nowhere here are fetched (never with ``offline``)
+    fetch = functools.partial(ensure_recordings, sc.resolve, offline=request.offline, say=say)
     if request.ablation == "models":  # it plans one fine-tune per recording found beside
-        from amuled_ma.authors.download import models_ablation_recordings
-
-        fetch_recordings(
-            request,
-            models_ablation_recordings(
-                request.scenario.feedback, request.scenario.task.name, request.scenario.resolve
-            ),
-            say,
-        )
+        fetch(models_ablation_recordings(sc.feedback, sc.task.name, sc.resolve))
     if request.ablation is None:
         plan = _plan_main(request, seeds, say)
     else:
         plan = _plan_ablation(request, seeds)
-    fetch_recordings(request, _replayed(plan.jobs), say)
+    fetch(_replayed(plan.jobs))
     if request.retrain:
         from amuled_ma.experiments.plans import retrain_jobs
 
@@ -275,24 +272,6 @@ def _replayed(jobs: Sequence[TrainJob]) -> list[str]:
         for v in replayed_recordings(job.scenario.feedback)
     ]
     return list(dict.fromkeys(values))
-
-
-def fetch_recordings(
-    request: PipelineRequest, values: Sequence[str], say: Callable[[str], None] = say_line
-) -> None:
-    """Fetch and convert the paper authors' recordings among ``values`` found nowhere here.
-
-    :func:`~amuled_ma.authors.download.ensure_recordings` with the request's scenario and
-    ``offline``: a recording found locally (``$AMULED_RECORDINGS``, the user data folder,
-    ``../shared`` beside the checkout) is never fetched.
-
-    Raises:
-        AuthorsFetchError: Offline, or the fetch failed or was refused (one line).
-
-    """
-    from amuled_ma.authors.download import ensure_recordings
-
-    ensure_recordings(request.scenario.resolve, values, offline=request.offline, say=say)
 
 
 def train_alone(
