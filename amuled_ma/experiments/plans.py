@@ -173,23 +173,29 @@ class PreparedJob:
         task_factory: Callable[..., Any] | None = None,
     ) -> MemberSpec:
         """The population member that trains it (its feedback, base, resume)."""
-        from amuled_ma.learn.population_groups import MemberSpec  # here: it imports torch
-
-        job = self.job
-        return MemberSpec(
-            job.scenario,
-            job.out_dir,
-            variant=job.variant,
+        return dataclasses.replace(
+            member_spec(self.job),
             feedback=self.feedback,
-            base_checkpoint=job.base_checkpoint,
-            resume=job.action == "resume",
-            seed=job.seed,
-            iterations=job.iterations,
+            base_checkpoint=self.job.base_checkpoint,
             resume_hint=self.resume_hint,
             on_iteration=on_iteration,
             task_factory=task_factory,
-            planned_shape=job.shape,
         )
+
+
+def member_spec(job: TrainJob) -> MemberSpec:
+    """The population member of a planned job before it is prepared (for grouping only)."""
+    from amuled_ma.learn.population_groups import MemberSpec  # here: it imports torch
+
+    return MemberSpec(
+        job.scenario,
+        job.out_dir,
+        variant=job.variant,
+        seed=job.seed,
+        iterations=job.iterations,
+        resume=job.action == "resume",
+        planned_shape=job.shape,
+    )
 
 
 def check_base_fits(base: Path, ppo: PPOConfig, task: str) -> None:
