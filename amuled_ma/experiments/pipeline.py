@@ -7,6 +7,7 @@ is one job through the same checks, lock and record, not evaluated.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -159,12 +160,7 @@ def run_pipeline(
 ) -> PipelineOutcome:
     """Plan, check, train, evaluate and report one experiment (``amuled run``/``ablate``/``demo``).
 
-    Args:
-        request: What to run.
-        say: Prints a progress line (default: stdout, flushed).
-
-    Returns:
-        The outcome: where the report is, the results, the training jobs.
+    ``say`` prints a progress line (default: stdout, flushed).
 
     Raises:
         AmuledError: An input a job needs is missing (before any folder is made; an
@@ -174,6 +170,7 @@ def run_pipeline(
         KeyboardInterrupt: Ctrl-C or SIGTERM, after every running job wrote its checkpoint.
 
     """
+    from amuled_ma.authors.download import ensure_recordings, models_ablation_recordings
     from amuled_ma.experiments.plans import training_seeds
     from amuled_ma.experiments.run_folder import read_record, variant_records
     from amuled_ma.scenario.memory import check_seed_replicas
@@ -182,21 +179,16 @@ def run_pipeline(
     check_seed_replicas(request.seeds, variants=1)  # before a job per seed is planned
     first = request.scenario.task.seed if request.seed is None else request.seed
     seeds = training_seeds(first, request.seeds)
+    sc = request.scenario
+    # the authors' recordings found nowhere here are fetched (never with ``offline``)
+    fetch = functools.partial(ensure_recordings, sc.resolve, offline=request.offline, say=say)
     if request.ablation == "models":  # it plans one fine-tune per recording found beside
-        from amuled_ma.authors.download import models_ablation_recordings
-
-        fetch_recordings(
-            request,
-            models_ablation_recordings(
-                request.scenario.feedback, request.scenario.task.name, request.scenario.resolve
-            ),
-            say,
-        )
+        fetch(models_ablation_recordings(sc.feedback, sc.task.name, sc.resolve))
     if request.ablation is None:
         plan = _plan_main(request, seeds, say)
     else:
         plan = _plan_ablation(request, seeds)
-    fetch_recordings(request, _replayed(plan.jobs), say)
+    fetch(_replayed(plan.jobs))
     if request.retrain:
         from amuled_ma.experiments.plans import retrain_jobs
 
@@ -282,24 +274,6 @@ def _replayed(jobs: Sequence[TrainJob]) -> list[str]:
     return list(dict.fromkeys(values))
 
 
-def fetch_recordings(
-    request: PipelineRequest, values: Sequence[str], say: Callable[[str], None] = say_line
-) -> None:
-    """Fetch and convert the paper authors' recordings among ``values`` found nowhere here.
-
-    :func:`~amuled_ma.authors.download.ensure_recordings` with the request's scenario and
-    ``offline``: a recording found locally (``$AMULED_RECORDINGS``, the user data folder,
-    ``../shared`` beside the checkout) is never fetched.
-
-    Raises:
-        AuthorsFetchError: Offline, or the fetch failed or was refused (one line).
-
-    """
-    from amuled_ma.authors.download import ensure_recordings
-
-    ensure_recordings(request.scenario.resolve, values, offline=request.offline, say=say)
-
-
 def train_alone(
     request: PipelineRequest,
     variant: Variant,
@@ -314,18 +288,10 @@ def train_alone(
     (:func:`~amuled_ma.experiments.plans.plan_jobs`: its inputs, then its folder), the run
     folder's lock is held, ``config.json`` written (with ``config``), and the job trained
     by the executor of every graph (:func:`~amuled_ma.experiments.jobs.run_jobs`, a group
-    of one); nothing is evaluated.
-
-    Args:
-        request: The run folder, seed, resume / force, progress bars and resume command
-            (its other fields are not used).
-        variant: What to train.
-        base_variant: A fine-tune's base folder in ``base_dir``.
-        base_dir: The run folder holding the base (default: the request's).
-        config: Run-level ``config.json`` fields to write (None: the file is left alone).
-
-    Returns:
-        The job's result (trained, or skipped when already finished).
+    of one); nothing is evaluated. Of ``request`` it uses the run folder, seed, resume /
+    force, progress bars and resume command; ``base_variant`` is a fine-tune's base folder in
+    ``base_dir`` (default: the request's run folder); ``config`` holds run-level
+    ``config.json`` fields to write (None: the file is left alone). A finished job is skipped.
 
     Raises:
         AmuledError: An input is missing or the folder clashes (before any folder is
@@ -427,17 +393,7 @@ def train_jobs(
     request: PipelineRequest,
     say: Callable[[str], None] = say_line,
 ) -> JobsOutcome:
-    """Train a planned graph as the request says (``jobs``, ``ray``), one line per job.
-
-    Args:
-        jobs: The graph, planned (:func:`~amuled_ma.experiments.plans.plan_jobs`).
-        request: Where and how the jobs run, the progress bars and the resume command.
-        say: Prints a progress line.
-
-    Returns:
-        The outcome of :func:`~amuled_ma.experiments.jobs.run_jobs`.
-
-    """
+    """Train a graph planned by `plan_jobs` as the request says, one line per job."""
     workers = resolve_workers(request.jobs, jobs)
     ray = request.ray
     where = "" if ray is None else f" on Ray ({ray.address or 'local'})"
@@ -456,15 +412,10 @@ def train_jobs(
 
 
 def describe_job(job: JobResult) -> str:
-    """One line about a finished training job (a seed replica's seed in brackets).
+    """One line about a skipped or trained job (a seed replica's seed in brackets).
 
-    Args:
-        job: The job's result: skipped (already trained), or trained with its outcome.
-
-    Returns:
-        The line, with the feedback's figures and the agents that left states unanswered
-        on lines of their own.
-
+    The feedback's figures and the agents that left states unanswered follow on lines of
+    their own.
     """
     from amuled_ma.deliberation.summaries import distill_line, summary_lines
 

@@ -174,23 +174,29 @@ class PreparedJob:
         task_factory: Callable[..., Any] | None = None,
     ) -> MemberSpec:
         """The population member that trains it (its feedback, base, resume)."""
-        from amuled_ma.learn.population_groups import MemberSpec  # here: it imports torch
-
-        job = self.job
-        return MemberSpec(
-            job.scenario,
-            job.out_dir,
-            variant=job.variant,
+        return dataclasses.replace(
+            member_spec(self.job),
             feedback=self.feedback,
-            base_checkpoint=job.base_checkpoint,
-            resume=job.action == "resume",
-            seed=job.seed,
-            iterations=job.iterations,
+            base_checkpoint=self.job.base_checkpoint,
             resume_hint=self.resume_hint,
             on_iteration=on_iteration,
             task_factory=task_factory,
-            planned_shape=job.shape,
         )
+
+
+def member_spec(job: TrainJob) -> MemberSpec:
+    """The population member of a planned job before it is prepared (for grouping only)."""
+    from amuled_ma.learn.population_groups import MemberSpec  # here: it imports torch
+
+    return MemberSpec(
+        job.scenario,
+        job.out_dir,
+        variant=job.variant,
+        seed=job.seed,
+        iterations=job.iterations,
+        resume=job.action == "resume",
+        planned_shape=job.shape,
+    )
 
 
 def check_base_fits(base: Path, ppo: PPOConfig, task: str) -> None:
@@ -306,29 +312,12 @@ def train_variant(
     alone, as a population of one (:class:`~amuled_ma.learn.population.PopulationTrainer`:
     the one training loop of every job); its record says complete or failed.
 
-    Args:
-        scenario: The scenario.
-        run_dir: The run directory.
-        variant: What to train.
-        resume: Continue an unfinished checkpoint.
-        force: Start over even when a checkpoint exists.
-        progress: Show a progress bar.
-        hint: The command that re-runs this job (for messages and Ctrl-C).
-        iterations: Override the number of iterations.
-        seed: Override the scenario's seed.
-        out_dir: Folder of the variant (default ``run_dir/<variant folder>``).
-        base_dir: Run directory holding the base checkpoint (default ``run_dir``).
-        base_variant: Folder of the base checkpoint in ``base_dir`` (a seed replica's base).
-        on_iteration: Called as ``fn(member, iteration)`` after every iteration.
-        task_factory: Replaces the task constructor (tests).
-        feedback_factory: ``variant -> Feedback``, replaces the feedback built from the
-            plan (tests).
-        store: The belief store of the fine-tune's panel (default: the run's file,
-            ``[feedback].store``, opened on first use,
-            :func:`~amuled_ma.deliberation.build.run_store`).
-
-    Returns:
-        The job result.
+    ``hint`` is the command that re-runs it (messages, Ctrl-C); ``out_dir`` defaults to
+    ``run_dir/<variant folder>``; the base checkpoint is folder ``base_variant`` of
+    ``base_dir`` (default ``run_dir``); ``on_iteration(member, iteration)`` runs after each
+    iteration; ``task_factory`` and ``feedback_factory`` (``variant -> Feedback``) replace
+    the task and the plan's feedback (tests); ``store`` is the panel's belief store
+    (default: the run's ``[feedback].store``, opened on first use by `run_store`).
 
     Raises:
         AmuledError: An input is missing or the folder clashes (nothing written).
@@ -383,21 +372,11 @@ def ablation_variants(
     ``weights``: AMULED with the paper's fixed weights (``[feedback].weights`` emptied; shared
     with ``amuled run`` when it finished there with the same settings) and AMULED with the
     learned weights of ``[feedback].weights`` (folder ``finetune-amuled-learned-weights``),
-    on the same seeds.
-
-    Args:
-        what: ``clusters``, ``aggregation``, ``models``, ``kl``, ``budget`` or ``weights``.
-        feedback: The base scenario's ``[feedback]`` section.
-        task: The task's name.
-        resolve: Resolves a path against the scenario file's folder (the recording).
-        where: The scenario (its file or name), for messages.
-
-    Returns:
-        The jobs, each with the changes (:data:`Changes`) of the scenario it runs on.
+    on the same seeds. ``resolve`` resolves the recording's path against the scenario
+    file's folder; ``where`` names the scenario in messages.
 
     Raises:
         AmuledError: ``weights`` without ``[feedback].weights``.
-
     """
     if what == "weights" and not feedback.weights.strip():
         raise AmuledError(
@@ -483,19 +462,8 @@ def plan_run(
     (``BatchedTask.human_feedback``: the paper's two tasks). Each seed's fine-tunes need
     (and anchor to) that seed's base policy, or, with ``base``
     (a finished variant folder such as the authors' imported ``runs/authors/findmilk/base``),
-    all anchor to that one.
-
-    Args:
-        scenario: The run's scenario.
-        run_dir: The run directory.
-        seeds: The training seeds (the first seed's folders carry no suffix).
-        resume: Continue unfinished checkpoints, skip finished ones.
-        force: Start over even where checkpoints exist.
-        base: A finished base folder every fine-tune anchors to (None: each seed's own).
-
-    Returns:
-        The job graph (bases before the fine-tunes that need them).
-
+    all anchor to that one. The first seed's folders carry no suffix; bases come before the
+    fine-tunes that need them.
     """
     from amuled_ma.tasks.names import TASK_NAMES
 
@@ -529,8 +497,6 @@ def retrain_jobs(jobs: Sequence[TrainJob], names: Collection[str]) -> list[Train
     Raises:
         AmuledError: A name that is no job of the plan; the message lists the plan's jobs.
     """
-    import dataclasses
-
     if not names:
         return list(jobs)
     chosen = set()
@@ -540,11 +506,9 @@ def retrain_jobs(jobs: Sequence[TrainJob], names: Collection[str]) -> list[Train
             known = ", ".join(job.name for job in jobs)
             raise AmuledError(f"--retrain {name}: not a variant of this run; its variants: {known}")
         chosen |= hits
-    grew = True
-    while grew:  # a job that needs a retrained one is retrained too
-        more = {job.name for job in jobs if chosen.intersection(job.needs)} - chosen
+    # a job that needs a retrained one is retrained too
+    while more := {job.name for job in jobs if chosen.intersection(job.needs)} - chosen:
         chosen |= more
-        grew = bool(more)
     return [
         dataclasses.replace(job, force=job.name in chosen, resume=job.name not in chosen)
         for job in jobs
@@ -566,35 +530,22 @@ def plan_ablation(
     with ``amuled run``); the fine-tunes go to ``<run_dir>/ablate-<what>/``, except a
     fine-tune that ``amuled run`` already finished with exactly the same settings (its
     AMULED fine-tune, :func:`finished_with`): that job points at the run's folder and is
-    skipped, so the same policy is not trained twice.
-
-    Args:
-        what: The ablation (:data:`ABLATIONS`).
-        scenario: The run's scenario; each job's is it with its changes
-            (:func:`ablation_variants`).
-        run_dir: The run directory.
-        seeds: The training seeds.
-        resume: Continue unfinished checkpoints, skip finished ones.
-        force: Start over even where checkpoints exist.
-
-    Returns:
-        The job graph.
+    skipped, so the same policy is not trained twice. Each job's scenario is the run's with
+    its changes (:func:`ablation_variants`).
 
     Raises:
         AmuledError: See :func:`ablation_variants`.
-
     """
     run_dir = Path(run_dir)
     out = run_dir / f"ablate-{what}"
     where = str(scenario.path or scenario.name)
-    variants = []
-    for variant, changes in ablation_variants(
-        what, scenario.feedback, scenario.task.name, scenario.resolve, where
-    ):
-        changed = scenario.changed(changes)
-        if variant == Variant.finetune("moral") and _no_moral_agent(changed):
-            continue
-        variants.append((variant, changed))
+    listed = ablation_variants(what, scenario.feedback, scenario.task.name, scenario.resolve, where)
+    variants = [(variant, scenario.changed(changes)) for variant, changes in listed]
+    variants = [
+        (variant, changed)
+        for variant, changed in variants
+        if variant != Variant.finetune("moral") or not _no_moral_agent(changed)
+    ]
     jobs = []
     for seed in seeds:
         base = replica_folder("base", seed, seeds[0])

@@ -12,27 +12,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from amuled_ma.errors import AmuledError
-from amuled_ma.experiments.plans import PreparedJob, prepare_job
+from amuled_ma.experiments.plans import PreparedJob, member_spec, prepare_job
 from amuled_ma.experiments.run_folder import JobResult, TrainJob
 from amuled_ma.learn.population_groups import (
-    MemberSpec,
     memory_budget_bytes,
     population_key,
     split_populations,
 )
-
-
-def member_spec(job: TrainJob) -> MemberSpec:
-    """The population member of a planned job before it is prepared (for grouping only)."""
-    return MemberSpec(
-        job.scenario,
-        job.out_dir,
-        variant=job.variant,
-        seed=job.seed,
-        iterations=job.iterations,
-        resume=job.action == "resume",
-        planned_shape=job.shape,
-    )
 
 
 def population_groups(

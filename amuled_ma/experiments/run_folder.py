@@ -374,17 +374,10 @@ def mark_state(folder: Path, state: State, iterations: int | None = None) -> Non
 def write_config(
     run_dir: Path, scenario: Mapping[str, Any], extra: dict[str, Any] | None = None
 ) -> Path:
-    """Write ``config.json``: the resolved scenario, the command line and the record's fields.
+    """Write a run's or variant folder's ``config.json`` and return its path.
 
-    Args:
-        run_dir: The run directory or variant folder.
-        scenario: The resolved scenario as plain data (``Scenario.to_dict``).
-        extra: More fields of :class:`~amuled_ma.records.run_record.RunRecord` (``variants``,
-            ``seeds``, ``training``, ``panel``, ...).
-
-    Returns:
-        The file's path.
-
+    It holds ``scenario`` (``Scenario.to_dict``), the command line and ``extra``: more
+    `RunRecord` fields (``variants``, ``seeds``, ``training``, ``panel``, ...).
     """
     import torch  # here: reading a run folder needs no torch
 

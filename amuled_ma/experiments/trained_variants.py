@@ -104,13 +104,7 @@ def choose_variants(run_dir: Path, names: Sequence[str] | None = None) -> list[P
 def evaluated_episodes(run_dir: Path, planned: int) -> int:
     """The episodes per policy of the run's evaluation (a sampled episode depends on it).
 
-    Args:
-        run_dir: The run folder.
-        planned: ``[evaluation].episodes``, for a run not evaluated yet.
-
-    Returns:
-        The run's ``results.json``'s episodes, else ``planned``.
-
+    The run's ``results.json``'s episodes, else ``planned`` (``[evaluation].episodes``).
     """
     from amuled_ma.evaluate.results import read_results
 

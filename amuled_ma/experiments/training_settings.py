@@ -39,20 +39,12 @@ def training_config(job: TrainJob, panel: PanelPlan | None = None) -> dict[str, 
     recordings replayed, of each cluster file the panel's prompts are made of and of the
     ``[feedback].weights`` file (``weights_sha256``; its file name stays, its folder goes,
     and only the ``amuled`` variant, the one that uses it, keeps it). The run's length is
-    kept apart, as the number of PPO iterations the job trains to.
-
-    Args:
-        job: The job (its scenario, variant, seed and iterations override).
-        panel: A panel fine-tune's plan (:func:`~amuled_ma.deliberation.plan.plan_panel`):
-            the files of its clusters are hashed; None for base training and the
-            demonstrator.
-
-    Returns:
-        ``{"variant", "seed", "iterations", section: {key: value}, ...}``.
+    kept apart, as the number of PPO iterations the job trains to. ``panel`` is a panel
+    fine-tune's plan (`plan_panel`; its clusters' files are hashed), None for base training
+    and the demonstrator. Returns ``{"variant", "seed", "iterations", section: {...}, ...}``.
 
     Raises:
         ValueError: A fine-tune that asks a panel, without its plan.
-
     """
     scenario, variant, seed, iterations = job.scenario, job.variant, job.seed, job.iterations
     if variant.asks_panel and (panel is None or not panel.asks_panel):

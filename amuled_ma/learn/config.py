@@ -98,13 +98,6 @@ def planned_iterations(run: BaseConfig | FinetuneConfig) -> int:
     A base run lasts ``[base] total_steps`` environment steps, rounded down to whole
     iterations of ``num_envs x num_steps_per_env`` (at least one); a fine-tune lasts
     ``[finetune] iterations``.
-
-    Args:
-        run: The ``[base]`` or the ``[finetune]`` section.
-
-    Returns:
-        The number of iterations.
-
     """
     if isinstance(run, FinetuneConfig):
         return int(run.iterations)

@@ -50,56 +50,44 @@ def job_shape(
     *,
     where: str,
 ) -> JobShape:
-    """The shape of training ``variant``.
+    """The shape of training ``variant`` by the ``[ppo]``, ``[base]`` and ``[finetune]`` sections.
 
-    Args:
-        ppo: The ``[ppo]`` section.
-        base: The ``[base]`` section (a base or shaped job).
-        finetune: The ``[finetune]`` section (a fine-tune).
-        variant: What the job trains.
-        iterations: Overrides the planned number of iterations (tests, benchmarks).
-        where: The scenario (its file or name), for messages.
-
-    Returns:
-        The job's shape.
+    ``iterations`` overrides the planned number (tests, benchmarks); ``where`` names the
+    scenario in messages.
 
     Raises:
         ScenarioError: Mini-batches of fewer than 2 transitions with per-mini-batch
             advantage normalisation (one sample normalises to NaN).
 
     """
+    ft = finetune
+    run: BaseConfig | FinetuneConfig = ft if variant.finetuning else base
+    num_envs, steps = run.num_envs, run.num_steps_per_env
+    total = planned_iterations(run) if iterations is None else iterations
+    lr, anneal = (
+        (ft.learning_rate, ft.anneal_lr)
+        if variant.finetuning
+        else (ppo.learning_rate, ppo.anneal_lr)
+    )
+    own: dict[str, Any] = {}
     if variant.finetuning:
-        ft = finetune
-        num_envs, steps = ft.num_envs, ft.num_steps_per_env
-        total = planned_iterations(ft) if iterations is None else iterations
-        lr, anneal = ft.learning_rate, ft.anneal_lr
-        cfg = rsl_rl_config(
-            ppo,
-            num_steps_per_env=ft.num_steps_per_env,
-            learning_rate=ft.learning_rate,
-            num_learning_epochs=ft.num_learning_epochs,
-            save_interval=ft.save_interval,
-            lambda_kl=ft.lambda_kl,
-            anchor="window" if ft.recipe == "authors" else "per_sample",
-            grad_clip=ft.grad_clip,
-            reshuffle_each_epoch=ft.reshuffle_each_epoch,
-            bootstrap_time_outs=ft.bootstrap_time_outs,
-        )
-        shaping, task_weight = 0.0, ft.env_reward_coef
-    else:
-        num_envs, steps = base.num_envs, base.num_steps_per_env
-        total = planned_iterations(base) if iterations is None else iterations
-        lr, anneal = ppo.learning_rate, ppo.anneal_lr
-        cfg = rsl_rl_config(
-            ppo,
-            num_steps_per_env=base.num_steps_per_env,
-            save_interval=base.save_interval,
-            grad_clip=base.grad_clip,
-            reshuffle_each_epoch=base.reshuffle_each_epoch,
-            bootstrap_time_outs=base.bootstrap_time_outs,
-        )
-        shaping = base.shaping_coef if variant.kind == "shaped" else 0.0
-        task_weight = 1.0
+        own = {
+            "learning_rate": ft.learning_rate,
+            "num_learning_epochs": ft.num_learning_epochs,
+            "lambda_kl": ft.lambda_kl,
+            "anchor": "window" if ft.recipe == "authors" else "per_sample",
+        }
+    cfg = rsl_rl_config(
+        ppo,
+        num_steps_per_env=steps,
+        save_interval=run.save_interval,
+        grad_clip=run.grad_clip,
+        reshuffle_each_epoch=run.reshuffle_each_epoch,
+        bootstrap_time_outs=run.bootstrap_time_outs,
+        **own,
+    )
+    shaping = base.shaping_coef if variant.kind == "shaped" else 0.0
+    task_weight = ft.env_reward_coef if variant.finetuning else 1.0
     section = "finetune" if variant.finetuning else "base"
     minibatch = num_envs * steps // ppo.num_mini_batches
     if ppo.normalize_advantage_per_mini_batch and minibatch < 2:

@@ -39,18 +39,10 @@ def build_model(ppo: PPOConfig, role: str, obs_dim: int, outputs: int) -> MLPMod
 
 
 def load_policy(checkpoint: Path, ppo: PPOConfig) -> MLPModel:
-    """Load the actor of a checkpoint for evaluation.
-
-    Args:
-        checkpoint: A job's checkpoint (:mod:`amuled_ma.learn.population`).
-        ppo: The ``[ppo]`` section it was trained with (network shape).
-
-    Returns:
-        The actor in eval mode; call :func:`action_log_probs` on observations.
+    """The actor of a job's checkpoint in eval mode, shaped by the ``[ppo]`` it was trained with.
 
     Raises:
         CheckpointError: The file is missing or unreadable, or its actor does not fit.
-
     """
     state = read_checkpoint(checkpoint)
     infos = state.get("infos") or {}

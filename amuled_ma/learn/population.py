@@ -256,11 +256,9 @@ class PopulationTrainer:
         """
         spec, (obs_dim, num_actions) = self.specs[member], self.sizes[member]
         state = shared or self.population_state()
-        env_state = state["env"]
-        if env_state is not None and self.env_template is not None:
-            env_state = member_env_state(env_state, self.env_template, member)
-        else:
-            env_state = None
+        env_state = None
+        if state["env"] is not None and self.env_template is not None:
+            env_state = member_env_state(state["env"], self.env_template, member)
         iteration = state["iteration"]
         infos = {
             "variant": str(spec.variant),
