@@ -87,6 +87,54 @@ def check_address(address: str, timeout_s: float = 5.0) -> None:
         ) from error
 
 
+class RayProcesses:
+    """The local Ray's processes: what ``ray.init`` starts under this driver, and theirs.
+
+    While ``ray.init`` runs, a thread reads this process's tree every 50 ms, so that the
+    raylet's agents are known even when Ray's own SIGTERM handler ends the raylet and
+    orphans them (they carry nothing else that names their driver). Children this
+    process had before are not Ray's.
+    """
+
+    def __init__(self) -> None:
+        self.seen: dict[int, psutil.Process] = {}
+        self._before = {child.pid for child in psutil.Process().children(recursive=True)}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._watch, name="ray-processes", daemon=True)
+
+    def _watch(self) -> None:
+        while not self._stop.wait(0.05):
+            self.add(psutil.Process())
+
+    def add(self, parent: psutil.Process) -> None:
+        """Add ``parent``'s descendants that are not the driver's own earlier children."""
+        with contextlib.suppress(psutil.Error):
+            for child in parent.children(recursive=True):
+                if child.pid not in self._before:
+                    self.seen.setdefault(child.pid, child)
+
+    def __enter__(self) -> RayProcesses:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.add(psutil.Process())
+
+    def end(self, grace: float = 3.0) -> None:
+        """SIGKILL those still running ``grace`` s from now (after ``ray.shutdown``)."""
+        _gone, alive = psutil.wait_procs(list(self.seen.values()), timeout=grace)
+        for process in alive:
+            with contextlib.suppress(psutil.Error):
+                process.kill()
+        psutil.wait_procs(alive, timeout=grace)
+
+
+#: The processes of the local Ray this driver started (None: no local Ray of its own).
+_local_ray: RayProcesses | None = None
+
+
 def _first_line(error: BaseException) -> str:
     """The first line of an error's message (Ray's carry tracebacks and actor details)."""
     text = str(error).strip()
@@ -204,11 +252,12 @@ def connect(address: str | None, workers: int) -> bool:
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if address is None else None
     previous_term = signal.getsignal(signal.SIGTERM)
     ray_to_log()  # Ray's own notices (token authentication, ...) go to the log
-    before = {child.pid for child in psutil.Process().children(recursive=True)}
+    global _local_ray
+    processes = _local_ray = RayProcesses() if address is None else None
     seen = SignalsSeen()
     try:
         try:
-            with seen:
+            with seen, processes or contextlib.nullcontext():
                 if address is None:
                     ray.init(num_cpus=workers, include_dashboard=False, **options)
                 else:
@@ -226,9 +275,7 @@ def connect(address: str | None, workers: int) -> bool:
     if signal.SIGTERM in seen.numbers and previous_term not in (signal.SIG_IGN, None):
         stopped = SystemExit(signal.SIGTERM)
     if isinstance(stopped, SystemExit | KeyboardInterrupt):
-        started = [p for p in psutil.Process().children(recursive=True) if p.pid not in before]
         disconnect()
-        _end_processes(started)
         if isinstance(stopped, SystemExit):  # only Ray's SIGTERM handlers call sys.exit here
             raise TerminatedWhileStarting(signal.SIGTERM) from None
         raise stopped
@@ -248,23 +295,21 @@ def connect(address: str | None, workers: int) -> bool:
     return True
 
 
-def _end_processes(processes: list[psutil.Process], grace: float = 3.0) -> None:
-    """SIGKILL those of ``processes`` still running ``grace`` s after ``ray.shutdown``.
-
-    A start that a signal cut short leaves the raylet's agents running after the shutdown
-    (the dashboard and runtime-env agents); ``psutil`` finds them by the process tree.
-    """
-    _gone, alive = psutil.wait_procs(processes, timeout=grace)
-    for process in alive:
-        with contextlib.suppress(psutil.Error):
-            process.kill()
-    psutil.wait_procs(alive, timeout=grace)
-
-
 def disconnect() -> None:
-    """Shut down the Ray this process started, or leave the cluster it joined."""
+    """Shut down the Ray this process started, or leave the cluster it joined.
+
+    ``ray.shutdown`` after a start that a signal cut short leaves the raylet's agents
+    running (dashboard, runtime env): what is left of `RayProcesses` is ended.
+    """
+    global _local_ray
+    if _local_ray is not None:
+        for process in list(_local_ray.seen.values()):
+            _local_ray.add(process)  # workers started since, under the raylet
     with contextlib.suppress(Exception):
         ray.shutdown()
+    if _local_ray is not None:
+        _local_ray.end()
+        _local_ray = None
 
 
 def pack(folder: Path) -> bytes:
