@@ -70,6 +70,16 @@ _VALUES = frozenset(
 )  # fmt: skip
 #: Opcodes that instantiate arbitrary classes: refused with their own line.
 _OBJECTS = frozenset({"OBJ", "INST", "NEWOBJ", "NEWOBJ_EX"})
+#: Opcodes that push a constant or a new empty container: what makes it.
+_NEW: dict[str, Callable[[], object]] = {
+    "NONE": lambda: None,
+    "NEWTRUE": lambda: True,
+    "NEWFALSE": bool,
+    "EMPTY_TUPLE": tuple,
+    "EMPTY_LIST": list,
+    "EMPTY_DICT": dict,
+    "EMPTY_SET": set,
+}
 _Items = TypeVar("_Items", bound=Collection[Any])
 
 
@@ -246,33 +256,28 @@ class BoundedReader:
             "frozenset": _Allowed("frozenset", self._frozenset),
             "set": _Allowed("set", self._set),
         }
-        self.handlers: dict[str, Callable[[Any], None]] = {
+        push = self._push
+        self.handlers: dict[str, Callable[[Any], object]] = {
             "PROTO": self._proto,
             "FRAME": _nothing,
-            "NONE": lambda _: self.stack.append(None),
-            "NEWTRUE": lambda _: self.stack.append(True),
-            "NEWFALSE": lambda _: self.stack.append(False),
             "MARK": self._mark,
             "POP": self._pop,
-            "POP_MARK": self._pop_mark_opcode,
-            "DUP": lambda _: self.stack.append(self.stack[-1]),
+            "POP_MARK": lambda _: self._pop_mark(),
+            "DUP": lambda _: push(self.stack[-1]),
             "MEMOIZE": self._memoize,
-            "EMPTY_TUPLE": lambda _: self.stack.append(()),
-            "TUPLE": self._tuple_mark,
+            # the items above a mark are popped before `push` reads self.stack again
+            "TUPLE": lambda _: push(tuple(self._pop_mark())),
             "TUPLE1": lambda _: self._tuple(1),
             "TUPLE2": lambda _: self._tuple(2),
             "TUPLE3": lambda _: self._tuple(3),
-            "EMPTY_LIST": lambda _: self.stack.append([]),
-            "LIST": self._list,
+            "LIST": lambda _: push(self._pop_mark()),
             "APPEND": self._append,
             "APPENDS": self._appends,
-            "EMPTY_DICT": lambda _: self.stack.append({}),
-            "DICT": self._dict,
+            "DICT": lambda _: push(self._into_dict({}, self._pop_mark())),
             "SETITEM": self._setitem,
             "SETITEMS": self._setitems,
-            "EMPTY_SET": lambda _: self.stack.append(set()),
             "ADDITEMS": self._additems,
-            "FROZENSET": self._frozenset_opcode,
+            "FROZENSET": lambda _: push(frozenset(self._admitted(self._pop_mark()))),
             "GLOBAL": self._global,
             "STACK_GLOBAL": self._stack_global,
             "REDUCE": self._reduce,
@@ -281,7 +286,7 @@ class BoundedReader:
         for name in ("PUT", "BINPUT", "LONG_BINPUT"):
             self.handlers[name] = self._put
         for name in ("GET", "BINGET", "LONG_BINGET"):
-            self.handlers[name] = self._get
+            self.handlers[name] = lambda arg: push(self.memo[arg])
 
     def read(self) -> Any:
         """The pickle's value.
@@ -298,6 +303,8 @@ class BoundedReader:
             name = op.name
             if name in _VALUES:
                 self.stack.append(arg)
+            elif name in _NEW:
+                self.stack.append(_NEW[name]())
             elif name == "STOP":
                 return self.stack.pop()
             else:
@@ -340,9 +347,6 @@ class BoundedReader:
         self.stack = self.metastack.pop()
         return items
 
-    def _pop_mark_opcode(self, _arg: None) -> None:
-        self._pop_mark()
-
     def _pop(self, _arg: None) -> None:
         if self.stack:
             self.stack.pop()
@@ -354,21 +358,13 @@ class BoundedReader:
             raise ValueError("negative PUT argument")
         self.memo[arg] = self.stack[-1]
 
-    def _get(self, arg: int) -> None:
-        self.stack.append(self.memo[arg])
-
     def _memoize(self, _arg: None) -> None:
         self.memo[len(self.memo)] = self.stack[-1]
 
+    def _push(self, value: object) -> None:
+        self.stack.append(value)
+
     # -- containers (items above a mark: popped before self.stack is read again) ----------
-    def _tuple_mark(self, _arg: None) -> None:
-        items = tuple(self._pop_mark())
-        self.stack.append(items)
-
-    def _list(self, _arg: None) -> None:
-        items = self._pop_mark()
-        self.stack.append(items)
-
     def _tuple(self, n: int) -> None:
         stack = self.stack
         if len(stack) < n:
@@ -397,7 +393,7 @@ class BoundedReader:
             counter = self.counters[id(container)] = _HashCounter(container, self.key_work)
         return counter
 
-    def _into_dict(self, target: object, items: list[Any]) -> None:
+    def _into_dict(self, target: object, items: list[Any]) -> object:
         if type(target) is not dict:
             raise PickleRefused(f"SETITEM on a {type(target).__name__}")
         if len(items) % 2:
@@ -406,12 +402,7 @@ class BoundedReader:
         for i in range(0, len(items), 2):
             counter.admit(items[i])
             target[items[i]] = items[i + 1]
-
-    def _dict(self, _arg: None) -> None:
-        items = self._pop_mark()
-        target: dict[Any, Any] = {}
-        self._into_dict(target, items)
-        self.stack.append(target)
+        return target
 
     def _setitem(self, _arg: None) -> None:
         stack = self.stack
@@ -425,17 +416,15 @@ class BoundedReader:
 
     def _additems(self, _arg: None) -> None:
         items = self._pop_mark()
-        target = self.stack[-1]
+        self._into_set(self.stack[-1], items)
+
+    def _into_set(self, target: object, items: Collection[Any]) -> None:
         if type(target) is not set:
             raise PickleRefused(f"ADDITEMS on a {type(target).__name__}")
         counter = self._counter(target)
         for item in items:
             counter.admit(item)
             target.add(item)
-
-    def _frozenset_opcode(self, _arg: None) -> None:
-        items = self._pop_mark()
-        self.stack.append(frozenset(self._admitted(items)))
 
     def _admitted(self, items: _Items) -> _Items:
         counter = _HashCounter(None, self.key_work)
@@ -509,13 +498,8 @@ class BoundedReader:
         return frozenset(self._admitted(self._set_items(items)))
 
     def _set(self, items: object = ()) -> set[Any]:
-        counter = _HashCounter(None, self.key_work)
-        checked = self._set_items(items)
-        for item in checked:
-            counter.admit(item)
-        result = set(checked)
-        counter.owner = result  # ADDITEMS on it goes on counting
-        self.counters[id(result)] = counter
+        result: set[Any] = set()
+        self._into_set(result, self._set_items(items))  # ADDITEMS on it goes on counting
         return result
 
     def _set_items(self, items: object) -> Collection[Any]:
