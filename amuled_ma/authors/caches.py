@@ -71,6 +71,18 @@ class ConvertedCache:
         """Number of states."""
         return len(self.recording["states"])
 
+    @property
+    def detail(self) -> str:
+        """The states and every nonzero count, for the import's report."""
+        counts = (
+            (self.fused_only, "fused beliefs only"),
+            (self.exchanges, f"{self.exchanges} with raw replies"),
+            (self.total_conflicts, f"{self.total_conflicts} all-zero (total conflict, flagged)"),
+            (self.invalid, f"{self.invalid} invalid beliefs written as null"),
+            (self.ignored_keys, f"keys not converted: {', '.join(self.ignored_keys)}"),
+        )
+        return ", ".join([f"{self.states} states", *(text for on, text in counts if on)])
+
     def to_json(self) -> str:
         """The recording as JSON text (standard JSON: no NaN), in the shared files' style."""
         return json.dumps(self.recording, allow_nan=False)

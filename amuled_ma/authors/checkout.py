@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from amuled_ma.authors.caches import ConvertedCache, convert_cache, model_slug, task_of_folder
+from amuled_ma.authors.pinned import REPOSITORY
 from amuled_ma.authors.policies import (
     AUTHORS_BASE_ITERATIONS,
     AUTHORS_SEED,
@@ -31,8 +32,6 @@ from amuled_ma.files.hashing import sha256_file
 from amuled_ma.files.safe import check_write_targets, write_text_atomic
 from amuled_ma.records.variants import Variant
 
-#: The authors' repository.
-AUTHORS_REPO = "https://github.com/temetski/moral_agent"
 #: Sub-folder of ``--runs`` that receives the converted policies.
 RUNS_SUBDIR = "authors"
 #: Where caches are looked for, relative to the checkout (``models/`` first).
@@ -65,6 +64,11 @@ class ImportReport:
     def of_kind(self, kind: str) -> list[Output]:
         """The outputs of one kind (``recording``, ``policy``)."""
         return [o for o in self.outputs if o.kind == kind]
+
+
+def _status(same: bool, force: bool) -> str:
+    """An existing output's status: ``unchanged`` (``same`` content), else by ``force``."""
+    return "unchanged" if same else "replaced" if force else "conflict"
 
 
 def _rel(path: Path, root: Path) -> str:
@@ -122,15 +126,15 @@ def find_policies(checkout: Path, notes: list[str] | None = None) -> list[Policy
 
 def _recording_outputs(
     checkout: Path, to: Path, force: bool, notes: list[str], only: Collection[str] | None
-) -> list[tuple[Output, ConvertedCache | None]]:
-    planned: list[tuple[Output, ConvertedCache | None]] = []
+) -> list[tuple[Output, ConvertedCache]]:
+    planned: list[tuple[Output, ConvertedCache]] = []
     taken: set[str] = set()
     for path in find_caches(checkout):
         if only is not None and _rel(path, checkout) not in only:
             continue
         converted = convert_cache(path)
         name = f"{converted.task}-{model_slug(converted.model)}"
-        if f"{name}.json" in taken:
+        if name in taken:
             if not converted.fused_only:
                 notes.append(
                     f"not converted: {_rel(path, checkout)} (a second cache for "
@@ -138,23 +142,14 @@ def _recording_outputs(
                 )
                 continue
             name += FUSED_ONLY_SUFFIX
-        taken.add(f"{name}.json")
-        detail = f"{converted.states} states"
-        if converted.fused_only:
-            detail += ", fused beliefs only"
-        if converted.exchanges:
-            detail += f", {converted.exchanges} with raw replies"
-        if converted.total_conflicts:
-            detail += f", {converted.total_conflicts} all-zero (total conflict, flagged)"
-        if converted.invalid:
-            detail += f", {converted.invalid} invalid beliefs written as null"
-        if converted.ignored_keys:
-            detail += f", keys not converted: {', '.join(converted.ignored_keys)}"
-        output = Output("recording", _rel(path, checkout), to / f"{name}.json", detail=detail)
+        taken.add(name)
+        output = Output(
+            "recording", _rel(path, checkout), to / f"{name}.json", detail=converted.detail
+        )
         if output.target.exists():
             new = converted.to_json().encode()
             same = output.target.is_file() and output.target.read_bytes() == new
-            output.status = "unchanged" if same else "replaced" if force else "conflict"
+            output.status = _status(same, force)
         planned.append((output, converted))
     return planned
 
@@ -204,7 +199,7 @@ def _policy_outputs(
             iteration=source.iteration,
             base_checkpoint=base,
             source={
-                "repository": AUTHORS_REPO,
+                "repository": REPOSITORY,
                 "file": rel,
                 "sha256": sha,
                 "checkpoint": source.iteration if source.model is not None else None,
@@ -215,7 +210,7 @@ def _policy_outputs(
             "variant": str(variant),
             "seed": AUTHORS_SEED,
             "iterations": source.iteration,
-            "trained_by": f"the authors' CleanRL scripts ({AUTHORS_REPO})",
+            "trained_by": f"the authors' CleanRL scripts ({REPOSITORY})",
             "authors_file": rel,
             "authors_sha256": sha,
         }
@@ -225,8 +220,7 @@ def _policy_outputs(
             what = f"AMULED fine-tune with {source.model}, ppo_{source.iteration}"
         output = Output("policy", rel, out_dir, detail=what)
         if (out_dir / LAST).exists():
-            same = _existing_source(out_dir) == sha
-            output.status = "unchanged" if same else "replaced" if force else "conflict"
+            output.status = _status(_existing_source(out_dir) == sha, force)
         item = {
             "checkpoint": checkpoint,
             "scenario": scenario,
@@ -248,9 +242,7 @@ def _run_config_status(run_dir: Path, force: bool) -> str:
         saved = read_record(run_dir, checkpoint=False)
     except AmuledError:
         saved = None
-    if saved is not None and saved.authors is not None:
-        return "unchanged"
-    return "replaced" if force else "conflict"
+    return _status(saved is not None and saved.authors is not None, force)
 
 
 def import_authors(
@@ -281,7 +273,7 @@ def import_authors(
     checkout = Path(checkout).expanduser()
     if not checkout.is_dir():
         raise AuthorsImportError(
-            f"{checkout}: not a folder; give a checkout of {AUTHORS_REPO} "
+            f"{checkout}: not a folder; give a checkout of {REPOSITORY} "
             "(git clone it, then 'amuled import authors PATH')"
         )
     report = ImportReport(
@@ -304,7 +296,7 @@ def import_authors(
             ]
         raise AuthorsImportError(
             f"{checkout}: none of the authors' files found (looked for {', '.join(wanted)}); "
-            f"give the root of a checkout of {AUTHORS_REPO}"
+            f"give the root of a checkout of {REPOSITORY}"
         )
     run_configs: dict[Path, Any] = {}
     for output, item in nets:
@@ -329,10 +321,9 @@ def import_authors(
     check_write_targets(o.target / name for o, _ in nets for name in (LAST, TRAIN_CFG))
     for output, converted in caches:
         report.outputs.append(output)
-        if output.status == "unchanged" or converted is None:
-            continue
-        output.target.parent.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(output.target, converted.to_json())
+        if output.status != "unchanged":
+            output.target.parent.mkdir(parents=True, exist_ok=True)
+            write_text_atomic(output.target, converted.to_json())
     for output, item in nets:
         report.outputs.append(output)
         if output.status != "unchanged":
@@ -356,7 +347,7 @@ def _write_run_config(run_dir: Path, scenario: Mapping[str, Any], checkout: Path
         run_dir,
         scenario,
         {
-            "authors": {"repository": AUTHORS_REPO, "checkout": str(checkout.resolve())},
+            "authors": {"repository": REPOSITORY, "checkout": str(checkout.resolve())},
             "seeds": [AUTHORS_SEED],
         },
     )

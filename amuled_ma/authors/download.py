@@ -261,12 +261,9 @@ def ensure_recordings(
 ) -> list[Path]:
     """Fetch and convert the authors' recordings among ``values`` that are found nowhere here.
 
-    A value found by the scenario's lookup (:func:`~amuled_ma.scenario.paths.find_recording`:
-    as given, ``$AMULED_RECORDINGS``, the user data folder, ``../shared`` beside the checkout)
-    or not among ``pinned`` is left alone (an unknown one is the lookup's error later). The
-    others' files are fetched (:func:`fetch_pinned`) unless already cached, then converted by
-    :func:`~amuled_ma.authors.checkout.import_authors` into ``to`` (default the user data
-    folder's ``recordings/``); ``cache`` and ``base`` as :func:`fetch_pinned`. Returns the
+    A value the scenario's lookup (:func:`~amuled_ma.scenario.paths.find_recording`) finds,
+    or not among ``pinned``, is left alone. The others are fetched (:func:`fetch_pinned`) and
+    converted into ``to`` (default the user data folder's ``recordings/``). Returns the
     recordings written (empty: nothing was missing).
 
     Raises:

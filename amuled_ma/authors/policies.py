@@ -97,8 +97,9 @@ def cleanrl_shape(
     Raises:
         CheckpointError: A shape does not chain (naming ``where``).
     """
+    layers: dict[str, list[torch.Tensor]] = {}
     for net, out in (("actor", None), ("critic", 1)):
-        weights = [state[f"{net}.{i}.weight"] for i in CLEANRL_LINEARS]
+        weights = layers[net] = [state[f"{net}.{i}.weight"] for i in CLEANRL_LINEARS]
         biases = [state[f"{net}.{i}.bias"] for i in CLEANRL_LINEARS]
         ok = all(w.dim() == 2 for w in weights) and all(
             b.dim() == 1 and b.shape[0] == w.shape[0] for w, b in zip(weights, biases, strict=True)
@@ -112,16 +113,11 @@ def cleanrl_shape(
                 for i, w in zip(CLEANRL_LINEARS, weights, strict=True)
             }
             raise CheckpointError(f"{where}: the {net}'s layer shapes do not chain: {shapes}")
-    actor = [state[f"actor.{i}.weight"] for i in CLEANRL_LINEARS]
-    critic = [state[f"critic.{i}.weight"] for i in CLEANRL_LINEARS]
+    actor, critic = layers["actor"], layers["critic"]
     hidden = [int(w.shape[0]) for w in actor[:-1]]
     if [int(w.shape[0]) for w in critic[:-1]] != hidden or critic[0].shape[1] != actor[0].shape[1]:
         raise CheckpointError(f"{where}: actor and critic have different shapes")
     return int(actor[0].shape[1]), hidden, int(actor[-1].shape[0])
-
-
-def _linears(module: torch.nn.Module) -> list[torch.nn.Linear]:
-    return [m for m in module.modules() if isinstance(m, torch.nn.Linear)]
 
 
 def build_networks(ppo: PPOConfig, obs_dim: int, num_actions: int) -> tuple[MLPModel, MLPModel]:
@@ -140,7 +136,7 @@ def copy_weights(state: Mapping[str, torch.Tensor], net: str, model: torch.nn.Mo
     Raises:
         CheckpointError: Our network has another number or shape of layers.
     """
-    ours = _linears(model)
+    ours = [m for m in model.modules() if isinstance(m, torch.nn.Linear)]
     if len(ours) != len(CLEANRL_LINEARS):
         raise CheckpointError(
             f"our {net} has {len(ours)} Linear layers, the authors' {len(CLEANRL_LINEARS)}"
@@ -197,13 +193,12 @@ def build_checkpoint(
     copy_weights(state, "actor", actor)
     copy_weights(state, "critic", critic)
     check_equivalent(state, actor)
-    optimizer = adam(
-        [*actor.parameters(), *critic.parameters()], lr=_lr(ppo, finetune, variant), eps=1e-5
-    )
+    lr = float(finetune.learning_rate if variant.finetuning else ppo.learning_rate)
+    optimizer = adam([*actor.parameters(), *critic.parameters()], lr=lr, eps=1e-5)
     train_cfg = rsl_rl_config(
         ppo,
         num_steps_per_env=AUTHORS_FINETUNE_STEPS,
-        learning_rate=_lr(ppo, finetune, variant),
+        learning_rate=lr,
         save_interval=5,
         num_learning_epochs=8 if variant.finetuning else None,
     )
@@ -229,10 +224,6 @@ def build_checkpoint(
         "iter": iteration,
         "infos": infos,
     }
-
-
-def _lr(ppo: PPOConfig, finetune: FinetuneConfig, variant: Variant) -> float:
-    return float(finetune.learning_rate if variant.finetuning else ppo.learning_rate)
 
 
 def cleanrl_logits(state: Mapping[str, torch.Tensor], obs: torch.Tensor) -> torch.Tensor:
@@ -306,5 +297,5 @@ def write_variant(
     if variant is not None and variant.finetuning:  # the authors' panel's feedback, this LLM
         fields["panel"] = {"feedback": variant.feedback, "model": infos["authors"].get("model")}
     write_config(out_dir, scenario, fields)
-    write_text_atomic(out_dir / TRAIN_CFG, json.dumps(checkpoint["infos"]["train_cfg"], indent=2))
+    write_text_atomic(out_dir / TRAIN_CFG, json.dumps(infos["train_cfg"], indent=2))
     return path

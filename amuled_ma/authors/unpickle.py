@@ -43,6 +43,8 @@ _LFS_POINTER = b"version https://git-lfs"
 #: Opcodes that add values to the container below them on the stack (which keeps its depth).
 _MODIFY = frozenset({"APPEND", "APPENDS", "SETITEM", "SETITEMS", "ADDITEMS", "BUILD"})
 _PUT, _MEMOIZE, _GET, _MARK, _PUSH, _NOTHING, _OTHER = range(7)
+_MEMO_KINDS = {"PUT": _PUT, "BINPUT": _PUT, "LONG_BINPUT": _PUT, "MEMOIZE": _MEMOIZE, "MARK": _MARK}
+_MEMO_KINDS |= {"GET": _GET, "BINGET": _GET, "LONG_BINGET": _GET}
 
 
 def _opcode_table() -> dict[str, tuple[int, bool, int, int, bool]]:
@@ -51,14 +53,8 @@ def _opcode_table() -> dict[str, tuple[int, bool, int, int, bool]]:
     table = {}
     for op in pickletools.opcodes:
         before, after = op.stack_before, op.stack_after
-        if op.name in ("PUT", "BINPUT", "LONG_BINPUT"):
-            kind = _PUT
-        elif op.name == "MEMOIZE":
-            kind = _MEMOIZE
-        elif op.name in ("GET", "BINGET", "LONG_BINGET"):
-            kind = _GET
-        elif op.name == "MARK":
-            kind = _MARK
+        if op.name in _MEMO_KINDS:
+            kind = _MEMO_KINDS[op.name]
         elif not before and len(after) == 1 and not op.name.startswith(("EXT", "PERSID")):
             kind = _PUSH
         elif not before and not after:
@@ -110,20 +106,15 @@ def scan_pickle(
             kind, to_mark, fixed, pushed, modifies = _OPCODES[op.name]
             if kind == _PUSH:
                 stack.append(arg if type(arg) is str else 1)
-                continue
-            if kind == _PUT:  # the PUT and GET opcodes' argument is the memo index
+            elif kind == _PUT:  # the PUT and GET opcodes' argument is the memo index
                 memo[cast(int, arg)] = stack[-1]
-                continue
-            if kind == _GET:
+            elif kind == _GET:
                 stack.append(memo[cast(int, arg)])
-                continue
-            if kind == _MEMOIZE:
+            elif kind == _MEMOIZE:
                 memo[len(memo)] = stack[-1]
-                continue
-            if kind == _MARK:
+            elif kind == _MARK:
                 marks.append(len(stack))
-                continue
-            if kind == _NOTHING:
+            if kind != _OTHER:  # _NOTHING too: PROTO, FRAME
                 continue
             items: list[Any] = []
             if to_mark:
