@@ -253,9 +253,7 @@ def convert_cache(
                 f"{where}: 'rewards' must map frozenset({{'0'}}) .. frozenset({{'{n - 1}'}}) to "
                 f"finite numbers ({n} actions: {', '.join(actions)})"
             )
-        state: dict[str, Any] = {"obs": obs}
-        beliefs: dict[str, list[float] | None] = {}
-        invalid: dict[str, str] = {}
+        beliefs: dict[str, list[float]] = {}
         for agent in (*AUTHORS_CLUSTERS, MORAL_KEY):
             if agent not in entry:
                 continue
@@ -269,16 +267,17 @@ def convert_cache(
         ignored.update(
             str(k) for k in entry if k not in (*AUTHORS_CLUSTERS, MORAL_KEY, *ENTRY_KEYS)
         )
-        clusters = {a: v for a, v in beliefs.items() if a != MORAL_KEY}
-        any_cluster = any_cluster or bool(clusters)
-        moral = beliefs.get(MORAL_KEY)
-        checked = {a: _checked(v, n, invalid, a) for a, v in clusters.items()}
-        state["beliefs"] = checked or None
-        state[MORAL_AGENT] = _checked(moral, n, invalid, MORAL_AGENT) if moral else None
-        state["fused_by_reference"] = fused
-        state["error"] = bool(entry.get("error", False))
-        if state["error"]:
-            out.errors += 1
+        moral = beliefs.pop(MORAL_KEY, None)
+        any_cluster = any_cluster or bool(beliefs)
+        invalid: dict[str, str] = {}
+        state: dict[str, Any] = {
+            "obs": obs,
+            "beliefs": {a: _checked(v, n, invalid, a) for a, v in beliefs.items()} or None,
+            MORAL_AGENT: _checked(moral, n, invalid, MORAL_AGENT) if moral else None,
+            "fused_by_reference": fused,
+            "error": bool(entry.get("error", False)),
+        }
+        out.errors += state["error"]
         if not any(fused):
             state["total_conflict"] = True
             out.total_conflicts += 1
@@ -314,13 +313,11 @@ def convert_cache(
 
 
 def _checked(
-    vector: list[float] | None, n: int, invalid: dict[str, str], agent: str
+    vector: list[float], n: int, invalid: dict[str, str], agent: str
 ) -> list[float] | None:
     """``vector`` if it is a probability vector over ``n`` actions; else None, noting why."""
     from amuled_ma.beliefs.replies.validate import check_belief
 
-    if vector is None:
-        return None
     belief, reason = check_belief(vector, n)
     if belief is None:
         invalid[agent] = f"{vector} {reason}"

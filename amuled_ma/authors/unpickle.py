@@ -75,7 +75,7 @@ def _depth(item: object) -> int:
 
 @dataclass
 class PickleScan:
-    """What a pickle holds, read from its opcodes alone: globals, depth, opcodes read."""
+    """What a pickle holds, from its opcodes alone: globals named (in order), depth, opcodes."""
 
     globals: list[str]
     depth: int
@@ -149,15 +149,6 @@ def scan_pickle(
     except (IndexError, KeyError) as error:
         raise ValueError(f"malformed pickle ({type(error).__name__})") from error
     return PickleScan(globals=found, depth=deepest, opcodes=count)
-
-
-def pickle_globals(data: bytes) -> list[str]:
-    """Every global a pickle names, in order of appearance, found without running any.
-
-    Raises:
-        ValueError: The bytes are not a well-formed pickle.
-    """
-    return scan_pickle(data).globals
 
 
 def load_pickle(path: str | Path, *, max_bytes: int = MAX_PICKLE_BYTES) -> Any:
