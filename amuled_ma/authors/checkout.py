@@ -9,7 +9,7 @@ refused unless ``force``.
 
 from __future__ import annotations
 
-from collections.abc import Collection, Mapping
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -94,7 +94,7 @@ class PolicySource:
     model: str | None = None
 
 
-def find_policies(checkout: Path, notes: list[str] | None = None) -> list[PolicySource]:
+def find_policies(checkout: Path, notes: list[str]) -> list[PolicySource]:
     """The base and last fine-tuned policy of every run; ``notes`` gets the others."""
     checkout = Path(checkout)
     out: list[PolicySource] = []
@@ -114,13 +114,12 @@ def find_policies(checkout: Path, notes: list[str] | None = None) -> list[Policy
             model = folder.name[len("moral_llm_") :]
             out.append(PolicySource(task, f"amuled-{model_slug(model)}", last[0], last[1], model))
             seen.update(folder.glob("ppo_*.cleanrl_model"))
-    if notes is not None:
-        for path in sorted(checkout.glob("**/*.cleanrl_model")):
-            if path not in seen:
-                notes.append(
-                    f"not converted: {_rel(path, checkout)} (not a published base or a "
-                    "moral_llm_<model>/ppo_<N> fine-tune)"
-                )
+    for path in sorted(checkout.glob("**/*.cleanrl_model")):
+        if path not in seen:
+            notes.append(
+                f"not converted: {_rel(path, checkout)} (not a published base or a "
+                "moral_llm_<model>/ppo_<N> fine-tune)"
+            )
     return out
 
 
@@ -181,9 +180,10 @@ def _policy_outputs(
         out_dir = run_dir / source.folder
         rel = _rel(source.path, checkout)
         sha = sha256_file(source.path)
-        variant = Variant("base") if source.model is None else Variant.finetune("amuled")
-        base = None
+        variant, base, what = Variant("base"), None, "base policy"
         if source.model is not None:
+            variant = Variant.finetune("amuled")
+            what = f"AMULED fine-tune with {source.model}, ppo_{source.iteration}"
             scenario = scenario.replace(
                 "feedback",
                 recording=f"{source.task}-{model_slug(source.model)}",
@@ -214,10 +214,6 @@ def _policy_outputs(
             "authors_file": rel,
             "authors_sha256": sha,
         }
-        if source.model is None:
-            what = "base policy"
-        else:
-            what = f"AMULED fine-tune with {source.model}, ppo_{source.iteration}"
         output = Output("policy", rel, out_dir, detail=what)
         if (out_dir / LAST).exists():
             output.status = _status(_existing_source(out_dir) == sha, force)
@@ -267,6 +263,7 @@ def import_authors(
         UnsafePickleError: A cache names a global outside the allow-list (nothing ran).
         CheckpointError: A policy cannot be read as weights only, or has another layout.
     """
+    from amuled_ma.experiments.run_folder import write_config
     from amuled_ma.learn.checkpoints import LAST
     from amuled_ma.scenario import user_recordings_dir
 
@@ -333,21 +330,9 @@ def import_authors(
                 item["scenario"].to_dict(),
                 training=item["training"],
             )
+    # each run's config.json (what ``amuled evaluate`` reads) holds the base scenario
+    source = {"repository": REPOSITORY, "checkout": str(checkout.resolve())}
     for run_dir, scenario in run_configs.items():
         if config_status[run_dir] != "unchanged":
-            _write_run_config(run_dir, scenario.to_dict(), checkout)
+            write_config(run_dir, scenario.to_dict(), {"authors": source, "seeds": [AUTHORS_SEED]})
     return report
-
-
-def _write_run_config(run_dir: Path, scenario: Mapping[str, Any], checkout: Path) -> None:
-    """The run's ``config.json`` (what ``amuled evaluate`` reads), with the base scenario."""
-    from amuled_ma.experiments.run_folder import write_config
-
-    write_config(
-        run_dir,
-        scenario,
-        {
-            "authors": {"repository": REPOSITORY, "checkout": str(checkout.resolve())},
-            "seeds": [AUTHORS_SEED],
-        },
-    )

@@ -12,6 +12,7 @@ import pickle
 import pickletools
 import resource
 from collections.abc import Callable, Collection
+from dataclasses import dataclass
 from typing import Any, NoReturn, TypeVar
 
 import numpy as np
@@ -91,14 +92,12 @@ class PickleUnbounded(Exception):
     """A value that would cost unbounded time or memory."""
 
 
+@dataclass(frozen=True, slots=True)
 class _Allowed:
     """What an allowed global resolves to: a checked function, callable by ``REDUCE`` only."""
 
-    __slots__ = ("call", "name")
-
-    def __init__(self, name: str, call: Callable[..., Any]) -> None:
-        self.name = name
-        self.call = call
+    name: str
+    call: Callable[..., Any]
 
 
 def _ndarray(*_args: object) -> NoReturn:
@@ -259,7 +258,7 @@ class BoundedReader:
         push = self._push
         self.handlers: dict[str, Callable[[Any], object]] = {
             "PROTO": self._proto,
-            "FRAME": _nothing,
+            "FRAME": lambda _: None,  # framing only groups opcodes; genops reads through it
             "MARK": self._mark,
             "POP": self._pop,
             "POP_MARK": lambda _: self._pop_mark(),
@@ -550,10 +549,6 @@ def too_many_opcodes(limit: int) -> str:
         f"more than {limit:,} opcodes (the published caches have at most 896,093; reading "
         "takes time per opcode, so a longer file would take minutes)"
     )
-
-
-def _nothing(_arg: object) -> None:
-    """``FRAME``: framing only groups opcodes; `pickletools.genops` reads through it."""
 
 
 def _resident_bytes() -> int:
