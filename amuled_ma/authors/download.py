@@ -76,12 +76,7 @@ def pinned_recording(value: str, pinned: Sequence[PinnedFile] = PINNED) -> Pinne
 
 
 def replayed_recordings(feedback: FeedbackConfig) -> list[str]:
-    """The recordings a fine-tune replays (``[feedback]`` and its agents' tables).
-
-    ``[feedback].recording`` when ``[feedback].source`` is ``replay``, and each
-    ``[feedback.agents.<agent>]`` table of ``source = "replay"`` (its ``recording``, else
-    ``[feedback].recording``); each value (a name or a path) once, in that order.
-    """
+    """The recordings a fine-tune replays, each once: ``[feedback]``'s, then its agents' tables'."""
     fb = feedback
     values = [fb.recording] if fb.source == "replay" else []
     for spec in fb.agents.values():
@@ -95,10 +90,8 @@ def models_ablation_recordings(
 ) -> list[str]:
     """The recordings to fetch before the ``models`` ablation is planned.
 
-    That ablation fine-tunes on every recording of the task beside the scenario's own. When
-    the scenario replays a pinned recording found nowhere here, every pinned recording of
-    its task (they are then converted side by side); else none (it compares those found).
-    ``resolve`` resolves a path against the scenario file's folder.
+    When the scenario replays a pinned recording found nowhere here, every pinned recording
+    of its task (converted side by side); else none (the ablation compares those found).
     """
     own = feedback.recording
     if feedback.source != "replay" or pinned_recording(own) is None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping
+from itertools import pairwise
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -104,9 +105,7 @@ def cleanrl_shape(
         ok = all(w.dim() == 2 for w in weights) and all(
             b.dim() == 1 and b.shape[0] == w.shape[0] for w, b in zip(weights, biases, strict=True)
         )
-        ok = ok and all(
-            weights[k + 1].shape[1] == weights[k].shape[0] for k in range(len(weights) - 1)
-        )
+        ok = ok and all(nxt.shape[1] == w.shape[0] for w, nxt in pairwise(weights))
         if not ok or (out is not None and weights[-1].shape[0] != out):
             shapes = {
                 f"{net}.{i}.weight": tuple(w.shape)
@@ -177,9 +176,8 @@ def build_checkpoint(
 ) -> dict[str, Any]:
     """Our checkpoint (the dict a trained job's ``model_last.pt`` holds) holding a CleanRL policy.
 
-    ``state`` from :func:`read_cleanrl`; ``ppo`` of a matching network
-    (:func:`authors_changes`); ``iteration`` is ``N`` of ``ppo_<N>``; ``source`` is kept
-    under ``infos["authors"]``.
+    ``ppo`` of a matching network (:func:`authors_changes`); ``source`` is kept under
+    ``infos["authors"]``.
 
     Raises:
         CheckpointError: The ``[ppo]`` networks do not fit the policy, or the converted

@@ -3,12 +3,8 @@
 A pickle is a program: ``pickle.load`` calls whatever global the file names. `load_pickle`
 first scans the opcodes (`scan_pickle`, nothing built) and refuses a file naming a global
 outside `ALLOWED_GLOBALS`, or nested deeper than `MAX_DEPTH` (deep tuples crash CPython's
-unpickler); then `BoundedReader` builds the values with the same allow-list. The bounds:
-plain numeric dtypes only, arrays only through checked ``_reconstruct``/``BUILD`` with their
-data in the file, at most `MAX_ARRAY_ITEMS` per array; flat keys of at most `MAX_KEY_ITEMS`
-items and at most `MAX_EQUAL_HASHES` equal hashes per dict (colliding keys make dicts
-quadratic); memory growth of `MEMORY_PER_BYTE` per file byte plus `MEMORY_SLACK_BYTES`; at
-most `MAX_PICKLE_BYTES` and `MAX_OPCODES` opcodes.
+unpickler); then `BoundedReader` builds the values within the bounds of
+`amuled_ma.authors.pickle_reader` (tabled in docs/authors.md).
 """
 
 from __future__ import annotations
