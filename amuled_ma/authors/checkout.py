@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from amuled_ma.authors.caches import ConvertedCache, convert_cache, model_slug, task_of_folder
 from amuled_ma.authors.pinned import REPOSITORY
@@ -31,6 +31,9 @@ from amuled_ma.errors import AuthorsImportError
 from amuled_ma.files.hashing import sha256_file
 from amuled_ma.files.safe import check_write_targets, write_text_atomic
 from amuled_ma.records.variants import Variant
+
+if TYPE_CHECKING:
+    from amuled_ma.scenario import Scenario
 
 #: Sub-folder of ``--runs`` that receives the converted policies.
 RUNS_SUBDIR = "authors"
@@ -162,13 +165,22 @@ def _existing_source(folder: Path) -> str | None:
     return authors.get("sha256") if isinstance(authors, dict) else None
 
 
+class _Converted(NamedTuple):
+    """A converted policy: its checkpoint, variant scenario, run scenario, training record."""
+
+    checkpoint: dict[str, Any]
+    scenario: Scenario
+    run_scenario: Scenario
+    training: dict[str, Any]
+
+
 def _policy_outputs(
     checkout: Path, runs: Path, force: bool, notes: list[str]
-) -> list[tuple[Output, dict[str, Any]]]:
+) -> list[tuple[Output, _Converted]]:
     from amuled_ma.learn.checkpoints import LAST
     from amuled_ma.scenario import load_scenario
 
-    planned: list[tuple[Output, dict[str, Any]]] = []
+    planned: list[tuple[Output, _Converted]] = []
     sources = find_policies(checkout, notes)
     bases = {s.task for s in sources if s.model is None}
     for source in sources:
@@ -217,13 +229,7 @@ def _policy_outputs(
         output = Output("policy", rel, out_dir, detail=what)
         if (out_dir / LAST).exists():
             output.status = _status(_existing_source(out_dir) == sha, force)
-        item = {
-            "checkpoint": checkpoint,
-            "scenario": scenario,
-            "run_scenario": run_scenario,
-            "training": training,
-        }
-        planned.append((output, item))
+        planned.append((output, _Converted(checkpoint, scenario, run_scenario, training)))
     return planned
 
 
@@ -295,9 +301,9 @@ def import_authors(
             f"{checkout}: none of the authors' files found (looked for {', '.join(wanted)}); "
             f"give the root of a checkout of {REPOSITORY}"
         )
-    run_configs: dict[Path, Any] = {}
+    run_configs: dict[Path, Scenario] = {}
     for output, item in nets:
-        run_configs.setdefault(output.target.parent, item["run_scenario"])
+        run_configs.setdefault(output.target.parent, item.run_scenario)
     config_status = {d: _run_config_status(d, force) for d in run_configs}
     conflicts = [o for o, _ in [*caches, *nets] if o.status == "conflict"]
     conflicts += [
@@ -316,19 +322,15 @@ def import_authors(
     # a link or a device in an output's place is refused before anything is written
     check_write_targets(o.target for o, _ in caches)
     check_write_targets(o.target / name for o, _ in nets for name in (LAST, TRAIN_CFG))
+    report.outputs += [output for output, _ in [*caches, *nets]]
     for output, converted in caches:
-        report.outputs.append(output)
         if output.status != "unchanged":
             output.target.parent.mkdir(parents=True, exist_ok=True)
             write_text_atomic(output.target, converted.to_json())
     for output, item in nets:
-        report.outputs.append(output)
         if output.status != "unchanged":
             write_variant(
-                output.target,
-                item["checkpoint"],
-                item["scenario"].to_dict(),
-                training=item["training"],
+                output.target, item.checkpoint, item.scenario.to_dict(), training=item.training
             )
     # each run's config.json (what ``amuled evaluate`` reads) holds the base scenario
     source = {"repository": REPOSITORY, "checkout": str(checkout.resolve())}
