@@ -102,18 +102,13 @@ def recording_file_name(task: str, model: str) -> str:
 
 def task_of_folder(name: str) -> str | None:
     """Our task of an authors' run folder (``FindMilk-v4_42``, ``Driving_42``, ``Drive``)."""
-    lower = name.lower()
-    for prefix, task in FOLDER_TASKS:
-        if lower.startswith(prefix):
-            return task
-    return None
+    return next((task for prefix, task in FOLDER_TASKS if name.lower().startswith(prefix)), None)
 
 
 def model_of_file(path: Path) -> str:
     """The model name of a cache file ``<model>_llm_cache.pickle``."""
-    name = path.name
     suffix = "_llm_cache.pickle"
-    return name[: -len(suffix)] if name.endswith(suffix) else path.stem
+    return path.name.removesuffix(suffix) if path.name.endswith(suffix) else path.stem
 
 
 def _task_spec(task: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
