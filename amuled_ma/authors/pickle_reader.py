@@ -297,8 +297,7 @@ class BoundedReader:
         """
         handlers = self.handlers
         start = _resident_bytes() if self.max_memory is not None else 0
-        count = read = 0
-        for op, arg, _pos in pickletools.genops(self.data):
+        for read, (op, arg, _pos) in enumerate(pickletools.genops(self.data), 1):
             name = op.name
             if name in _VALUES:
                 self.stack.append(arg)
@@ -315,10 +314,7 @@ class BoundedReader:
                         else f"the opcode {name} (caches need none)"
                     )
                 handler(arg)
-            count += 1
-            if count == MEMORY_CHECK_EVERY:
-                count = 0
-                read += MEMORY_CHECK_EVERY
+            if read % MEMORY_CHECK_EVERY == 0:
                 if read > self.max_opcodes:
                     raise PickleUnbounded(too_many_opcodes(self.max_opcodes))
                 self._check_memory(start)
