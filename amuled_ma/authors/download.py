@@ -201,10 +201,9 @@ def fetch_pinned(
     wanted = [pin for pin in pins if not _cached(pin, cache)]
     if not wanted:
         return cache
-    names = ", ".join(pin.path for pin in wanted)
-    total = sum(pin.size for pin in wanted)
     say(
-        f"fetching {len(wanted)} file(s), {_mb(total)}: {names} from {base}/{COMMIT[:12]}/ "
+        f"fetching {len(wanted)} file(s), {_mb(sum(pin.size for pin in wanted))}: "
+        f"{', '.join(pin.path for pin in wanted)} from {base}/{COMMIT[:12]}/ "
         f"(pinned commit, each checked against its SHA-256) into {cache}; {TERMS}"
     )
     pup = pooch.create(
