@@ -46,16 +46,12 @@ _PPO_FILE = re.compile(r"^ppo_(\d+)\.cleanrl_model$")
 TRAIN_CFG = "train_cfg.json"
 
 
-def checkpoint_number(path: Path) -> int | None:
-    """``N`` of ``ppo_<N>.cleanrl_model`` (the authors' PPO iteration), None otherwise."""
-    match = _PPO_FILE.match(Path(path).name)
-    return int(match.group(1)) if match else None
-
-
 def last_checkpoint(folder: Path) -> tuple[Path, int] | None:
-    """The ``ppo_<N>.cleanrl_model`` of a folder with the highest ``N``, if any."""
+    """The ``ppo_<N>.cleanrl_model`` of a folder with the highest ``N`` (above 0), and ``N``."""
     found = [
-        (n, p) for p in Path(folder).glob("ppo_*.cleanrl_model") if (n := checkpoint_number(p))
+        (int(m.group(1)), p)
+        for p in Path(folder).glob("ppo_*.cleanrl_model")
+        if (m := _PPO_FILE.match(p.name)) and int(m.group(1))
     ]
     if not found:
         return None
