@@ -71,6 +71,18 @@ class ConvertedCache:
         """Number of states."""
         return len(self.recording["states"])
 
+    @property
+    def detail(self) -> str:
+        """The states and every nonzero count, for the import's report."""
+        counts = (
+            (self.fused_only, "fused beliefs only"),
+            (self.exchanges, f"{self.exchanges} with raw replies"),
+            (self.total_conflicts, f"{self.total_conflicts} all-zero (total conflict, flagged)"),
+            (self.invalid, f"{self.invalid} invalid beliefs written as null"),
+            (self.ignored_keys, f"keys not converted: {', '.join(self.ignored_keys)}"),
+        )
+        return ", ".join([f"{self.states} states", *(text for on, text in counts if on)])
+
     def to_json(self) -> str:
         """The recording as JSON text (standard JSON: no NaN), in the shared files' style."""
         return json.dumps(self.recording, allow_nan=False)
@@ -90,18 +102,13 @@ def recording_file_name(task: str, model: str) -> str:
 
 def task_of_folder(name: str) -> str | None:
     """Our task of an authors' run folder (``FindMilk-v4_42``, ``Driving_42``, ``Drive``)."""
-    lower = name.lower()
-    for prefix, task in FOLDER_TASKS:
-        if lower.startswith(prefix):
-            return task
-    return None
+    return next((task for prefix, task in FOLDER_TASKS if name.lower().startswith(prefix)), None)
 
 
 def model_of_file(path: Path) -> str:
     """The model name of a cache file ``<model>_llm_cache.pickle``."""
-    name = path.name
     suffix = "_llm_cache.pickle"
-    return name[: -len(suffix)] if name.endswith(suffix) else path.stem
+    return path.name.removesuffix(suffix) if path.name.endswith(suffix) else path.stem
 
 
 def _task_spec(task: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
@@ -241,9 +248,7 @@ def convert_cache(
                 f"{where}: 'rewards' must map frozenset({{'0'}}) .. frozenset({{'{n - 1}'}}) to "
                 f"finite numbers ({n} actions: {', '.join(actions)})"
             )
-        state: dict[str, Any] = {"obs": obs}
-        beliefs: dict[str, list[float] | None] = {}
-        invalid: dict[str, str] = {}
+        beliefs: dict[str, list[float]] = {}
         for agent in (*AUTHORS_CLUSTERS, MORAL_KEY):
             if agent not in entry:
                 continue
@@ -257,16 +262,17 @@ def convert_cache(
         ignored.update(
             str(k) for k in entry if k not in (*AUTHORS_CLUSTERS, MORAL_KEY, *ENTRY_KEYS)
         )
-        clusters = {a: v for a, v in beliefs.items() if a != MORAL_KEY}
-        any_cluster = any_cluster or bool(clusters)
-        moral = beliefs.get(MORAL_KEY)
-        checked = {a: _checked(v, n, invalid, a) for a, v in clusters.items()}
-        state["beliefs"] = checked or None
-        state[MORAL_AGENT] = _checked(moral, n, invalid, MORAL_AGENT) if moral else None
-        state["fused_by_reference"] = fused
-        state["error"] = bool(entry.get("error", False))
-        if state["error"]:
-            out.errors += 1
+        moral = beliefs.pop(MORAL_KEY, None)
+        any_cluster = any_cluster or bool(beliefs)
+        invalid: dict[str, str] = {}
+        state: dict[str, Any] = {
+            "obs": obs,
+            "beliefs": {a: _checked(v, n, invalid, a) for a, v in beliefs.items()} or None,
+            MORAL_AGENT: _checked(moral, n, invalid, MORAL_AGENT) if moral else None,
+            "fused_by_reference": fused,
+            "error": bool(entry.get("error", False)),
+        }
+        out.errors += state["error"]
         if not any(fused):
             state["total_conflict"] = True
             out.total_conflicts += 1
@@ -302,13 +308,11 @@ def convert_cache(
 
 
 def _checked(
-    vector: list[float] | None, n: int, invalid: dict[str, str], agent: str
+    vector: list[float], n: int, invalid: dict[str, str], agent: str
 ) -> list[float] | None:
     """``vector`` if it is a probability vector over ``n`` actions; else None, noting why."""
     from amuled_ma.beliefs.replies.validate import check_belief
 
-    if vector is None:
-        return None
     belief, reason = check_belief(vector, n)
     if belief is None:
         invalid[agent] = f"{vector} {reason}"

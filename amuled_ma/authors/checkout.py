@@ -9,12 +9,13 @@ refused unless ``force``.
 
 from __future__ import annotations
 
-from collections.abc import Collection, Mapping
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from amuled_ma.authors.caches import ConvertedCache, convert_cache, model_slug, task_of_folder
+from amuled_ma.authors.pinned import REPOSITORY
 from amuled_ma.authors.policies import (
     AUTHORS_BASE_ITERATIONS,
     AUTHORS_SEED,
@@ -31,8 +32,9 @@ from amuled_ma.files.hashing import sha256_file
 from amuled_ma.files.safe import check_write_targets, write_text_atomic
 from amuled_ma.records.variants import Variant
 
-#: The authors' repository.
-AUTHORS_REPO = "https://github.com/temetski/moral_agent"
+if TYPE_CHECKING:
+    from amuled_ma.scenario import Scenario
+
 #: Sub-folder of ``--runs`` that receives the converted policies.
 RUNS_SUBDIR = "authors"
 #: Where caches are looked for, relative to the checkout (``models/`` first).
@@ -67,6 +69,11 @@ class ImportReport:
         return [o for o in self.outputs if o.kind == kind]
 
 
+def _status(same: bool, force: bool) -> str:
+    """An existing output's status: ``unchanged`` (``same`` content), else by ``force``."""
+    return "unchanged" if same else "replaced" if force else "conflict"
+
+
 def _rel(path: Path, root: Path) -> str:
     return str(path.relative_to(root))  # a glob's match, always below its root
 
@@ -90,7 +97,7 @@ class PolicySource:
     model: str | None = None
 
 
-def find_policies(checkout: Path, notes: list[str] | None = None) -> list[PolicySource]:
+def find_policies(checkout: Path, notes: list[str]) -> list[PolicySource]:
     """The base and last fine-tuned policy of every run; ``notes`` gets the others."""
     checkout = Path(checkout)
     out: list[PolicySource] = []
@@ -110,27 +117,26 @@ def find_policies(checkout: Path, notes: list[str] | None = None) -> list[Policy
             model = folder.name[len("moral_llm_") :]
             out.append(PolicySource(task, f"amuled-{model_slug(model)}", last[0], last[1], model))
             seen.update(folder.glob("ppo_*.cleanrl_model"))
-    if notes is not None:
-        for path in sorted(checkout.glob("**/*.cleanrl_model")):
-            if path not in seen:
-                notes.append(
-                    f"not converted: {_rel(path, checkout)} (not a published base or a "
-                    "moral_llm_<model>/ppo_<N> fine-tune)"
-                )
+    for path in sorted(checkout.glob("**/*.cleanrl_model")):
+        if path not in seen:
+            notes.append(
+                f"not converted: {_rel(path, checkout)} (not a published base or a "
+                "moral_llm_<model>/ppo_<N> fine-tune)"
+            )
     return out
 
 
 def _recording_outputs(
     checkout: Path, to: Path, force: bool, notes: list[str], only: Collection[str] | None
-) -> list[tuple[Output, ConvertedCache | None]]:
-    planned: list[tuple[Output, ConvertedCache | None]] = []
+) -> list[tuple[Output, ConvertedCache]]:
+    planned: list[tuple[Output, ConvertedCache]] = []
     taken: set[str] = set()
     for path in find_caches(checkout):
         if only is not None and _rel(path, checkout) not in only:
             continue
         converted = convert_cache(path)
         name = f"{converted.task}-{model_slug(converted.model)}"
-        if f"{name}.json" in taken:
+        if name in taken:
             if not converted.fused_only:
                 notes.append(
                     f"not converted: {_rel(path, checkout)} (a second cache for "
@@ -138,23 +144,14 @@ def _recording_outputs(
                 )
                 continue
             name += FUSED_ONLY_SUFFIX
-        taken.add(f"{name}.json")
-        detail = f"{converted.states} states"
-        if converted.fused_only:
-            detail += ", fused beliefs only"
-        if converted.exchanges:
-            detail += f", {converted.exchanges} with raw replies"
-        if converted.total_conflicts:
-            detail += f", {converted.total_conflicts} all-zero (total conflict, flagged)"
-        if converted.invalid:
-            detail += f", {converted.invalid} invalid beliefs written as null"
-        if converted.ignored_keys:
-            detail += f", keys not converted: {', '.join(converted.ignored_keys)}"
-        output = Output("recording", _rel(path, checkout), to / f"{name}.json", detail=detail)
+        taken.add(name)
+        output = Output(
+            "recording", _rel(path, checkout), to / f"{name}.json", detail=converted.detail
+        )
         if output.target.exists():
             new = converted.to_json().encode()
             same = output.target.is_file() and output.target.read_bytes() == new
-            output.status = "unchanged" if same else "replaced" if force else "conflict"
+            output.status = _status(same, force)
         planned.append((output, converted))
     return planned
 
@@ -168,13 +165,22 @@ def _existing_source(folder: Path) -> str | None:
     return authors.get("sha256") if isinstance(authors, dict) else None
 
 
+class _Converted(NamedTuple):
+    """A converted policy: its checkpoint, variant scenario, run scenario, training record."""
+
+    checkpoint: dict[str, Any]
+    scenario: Scenario
+    run_scenario: Scenario
+    training: dict[str, Any]
+
+
 def _policy_outputs(
     checkout: Path, runs: Path, force: bool, notes: list[str]
-) -> list[tuple[Output, dict[str, Any]]]:
+) -> list[tuple[Output, _Converted]]:
     from amuled_ma.learn.checkpoints import LAST
     from amuled_ma.scenario import load_scenario
 
-    planned: list[tuple[Output, dict[str, Any]]] = []
+    planned: list[tuple[Output, _Converted]] = []
     sources = find_policies(checkout, notes)
     bases = {s.task for s in sources if s.model is None}
     for source in sources:
@@ -186,9 +192,10 @@ def _policy_outputs(
         out_dir = run_dir / source.folder
         rel = _rel(source.path, checkout)
         sha = sha256_file(source.path)
-        variant = Variant("base") if source.model is None else Variant.finetune("amuled")
-        base = None
+        variant, base, what = Variant("base"), None, "base policy"
         if source.model is not None:
+            variant = Variant.finetune("amuled")
+            what = f"AMULED fine-tune with {source.model}, ppo_{source.iteration}"
             scenario = scenario.replace(
                 "feedback",
                 recording=f"{source.task}-{model_slug(source.model)}",
@@ -204,7 +211,7 @@ def _policy_outputs(
             iteration=source.iteration,
             base_checkpoint=base,
             source={
-                "repository": AUTHORS_REPO,
+                "repository": REPOSITORY,
                 "file": rel,
                 "sha256": sha,
                 "checkpoint": source.iteration if source.model is not None else None,
@@ -215,25 +222,14 @@ def _policy_outputs(
             "variant": str(variant),
             "seed": AUTHORS_SEED,
             "iterations": source.iteration,
-            "trained_by": f"the authors' CleanRL scripts ({AUTHORS_REPO})",
+            "trained_by": f"the authors' CleanRL scripts ({REPOSITORY})",
             "authors_file": rel,
             "authors_sha256": sha,
         }
-        if source.model is None:
-            what = "base policy"
-        else:
-            what = f"AMULED fine-tune with {source.model}, ppo_{source.iteration}"
         output = Output("policy", rel, out_dir, detail=what)
         if (out_dir / LAST).exists():
-            same = _existing_source(out_dir) == sha
-            output.status = "unchanged" if same else "replaced" if force else "conflict"
-        item = {
-            "checkpoint": checkpoint,
-            "scenario": scenario,
-            "run_scenario": run_scenario,
-            "training": training,
-        }
-        planned.append((output, item))
+            output.status = _status(_existing_source(out_dir) == sha, force)
+        planned.append((output, _Converted(checkpoint, scenario, run_scenario, training)))
     return planned
 
 
@@ -248,9 +244,7 @@ def _run_config_status(run_dir: Path, force: bool) -> str:
         saved = read_record(run_dir, checkpoint=False)
     except AmuledError:
         saved = None
-    if saved is not None and saved.authors is not None:
-        return "unchanged"
-    return "replaced" if force else "conflict"
+    return _status(saved is not None and saved.authors is not None, force)
 
 
 def import_authors(
@@ -275,13 +269,14 @@ def import_authors(
         UnsafePickleError: A cache names a global outside the allow-list (nothing ran).
         CheckpointError: A policy cannot be read as weights only, or has another layout.
     """
+    from amuled_ma.experiments.run_folder import write_config
     from amuled_ma.learn.checkpoints import LAST
     from amuled_ma.scenario import user_recordings_dir
 
     checkout = Path(checkout).expanduser()
     if not checkout.is_dir():
         raise AuthorsImportError(
-            f"{checkout}: not a folder; give a checkout of {AUTHORS_REPO} "
+            f"{checkout}: not a folder; give a checkout of {REPOSITORY} "
             "(git clone it, then 'amuled import authors PATH')"
         )
     report = ImportReport(
@@ -304,11 +299,11 @@ def import_authors(
             ]
         raise AuthorsImportError(
             f"{checkout}: none of the authors' files found (looked for {', '.join(wanted)}); "
-            f"give the root of a checkout of {AUTHORS_REPO}"
+            f"give the root of a checkout of {REPOSITORY}"
         )
-    run_configs: dict[Path, Any] = {}
+    run_configs: dict[Path, Scenario] = {}
     for output, item in nets:
-        run_configs.setdefault(output.target.parent, item["run_scenario"])
+        run_configs.setdefault(output.target.parent, item.run_scenario)
     config_status = {d: _run_config_status(d, force) for d in run_configs}
     conflicts = [o for o, _ in [*caches, *nets] if o.status == "conflict"]
     conflicts += [
@@ -327,36 +322,19 @@ def import_authors(
     # a link or a device in an output's place is refused before anything is written
     check_write_targets(o.target for o, _ in caches)
     check_write_targets(o.target / name for o, _ in nets for name in (LAST, TRAIN_CFG))
+    report.outputs += [output for output, _ in [*caches, *nets]]
     for output, converted in caches:
-        report.outputs.append(output)
-        if output.status == "unchanged" or converted is None:
-            continue
-        output.target.parent.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(output.target, converted.to_json())
+        if output.status != "unchanged":
+            output.target.parent.mkdir(parents=True, exist_ok=True)
+            write_text_atomic(output.target, converted.to_json())
     for output, item in nets:
-        report.outputs.append(output)
         if output.status != "unchanged":
             write_variant(
-                output.target,
-                item["checkpoint"],
-                item["scenario"].to_dict(),
-                training=item["training"],
+                output.target, item.checkpoint, item.scenario.to_dict(), training=item.training
             )
+    # each run's config.json (what ``amuled evaluate`` reads) holds the base scenario
+    source = {"repository": REPOSITORY, "checkout": str(checkout.resolve())}
     for run_dir, scenario in run_configs.items():
         if config_status[run_dir] != "unchanged":
-            _write_run_config(run_dir, scenario.to_dict(), checkout)
+            write_config(run_dir, scenario.to_dict(), {"authors": source, "seeds": [AUTHORS_SEED]})
     return report
-
-
-def _write_run_config(run_dir: Path, scenario: Mapping[str, Any], checkout: Path) -> None:
-    """The run's ``config.json`` (what ``amuled evaluate`` reads), with the base scenario."""
-    from amuled_ma.experiments.run_folder import write_config
-
-    write_config(
-        run_dir,
-        scenario,
-        {
-            "authors": {"repository": AUTHORS_REPO, "checkout": str(checkout.resolve())},
-            "seeds": [AUTHORS_SEED],
-        },
-    )

@@ -76,12 +76,7 @@ def pinned_recording(value: str, pinned: Sequence[PinnedFile] = PINNED) -> Pinne
 
 
 def replayed_recordings(feedback: FeedbackConfig) -> list[str]:
-    """The recordings a fine-tune replays (``[feedback]`` and its agents' tables).
-
-    ``[feedback].recording`` when ``[feedback].source`` is ``replay``, and each
-    ``[feedback.agents.<agent>]`` table of ``source = "replay"`` (its ``recording``, else
-    ``[feedback].recording``); each value (a name or a path) once, in that order.
-    """
+    """The recordings a fine-tune replays, each once: ``[feedback]``'s, then its agents' tables'."""
     fb = feedback
     values = [fb.recording] if fb.source == "replay" else []
     for spec in fb.agents.values():
@@ -95,10 +90,8 @@ def models_ablation_recordings(
 ) -> list[str]:
     """The recordings to fetch before the ``models`` ablation is planned.
 
-    That ablation fine-tunes on every recording of the task beside the scenario's own. When
-    the scenario replays a pinned recording found nowhere here, every pinned recording of
-    its task (they are then converted side by side); else none (it compares those found).
-    ``resolve`` resolves a path against the scenario file's folder.
+    When the scenario replays a pinned recording found nowhere here, every pinned recording
+    of its task (converted side by side); else none (the ablation compares those found).
     """
     own = feedback.recording
     if feedback.source != "replay" or pinned_recording(own) is None:
@@ -208,10 +201,9 @@ def fetch_pinned(
     wanted = [pin for pin in pins if not _cached(pin, cache)]
     if not wanted:
         return cache
-    names = ", ".join(pin.path for pin in wanted)
-    total = sum(pin.size for pin in wanted)
     say(
-        f"fetching {len(wanted)} file(s), {_mb(total)}: {names} from {base}/{COMMIT[:12]}/ "
+        f"fetching {len(wanted)} file(s), {_mb(sum(pin.size for pin in wanted))}: "
+        f"{', '.join(pin.path for pin in wanted)} from {base}/{COMMIT[:12]}/ "
         f"(pinned commit, each checked against its SHA-256) into {cache}; {TERMS}"
     )
     pup = pooch.create(
@@ -261,12 +253,9 @@ def ensure_recordings(
 ) -> list[Path]:
     """Fetch and convert the authors' recordings among ``values`` that are found nowhere here.
 
-    A value found by the scenario's lookup (:func:`~amuled_ma.scenario.paths.find_recording`:
-    as given, ``$AMULED_RECORDINGS``, the user data folder, ``../shared`` beside the checkout)
-    or not among ``pinned`` is left alone (an unknown one is the lookup's error later). The
-    others' files are fetched (:func:`fetch_pinned`) unless already cached, then converted by
-    :func:`~amuled_ma.authors.checkout.import_authors` into ``to`` (default the user data
-    folder's ``recordings/``); ``cache`` and ``base`` as :func:`fetch_pinned`. Returns the
+    A value the scenario's lookup (:func:`~amuled_ma.scenario.paths.find_recording`) finds,
+    or not among ``pinned``, is left alone. The others are fetched (:func:`fetch_pinned`) and
+    converted into ``to`` (default the user data folder's ``recordings/``). Returns the
     recordings written (empty: nothing was missing).
 
     Raises:

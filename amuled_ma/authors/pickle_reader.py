@@ -12,6 +12,7 @@ import pickle
 import pickletools
 import resource
 from collections.abc import Callable, Collection
+from dataclasses import dataclass
 from typing import Any, NoReturn, TypeVar
 
 import numpy as np
@@ -70,6 +71,16 @@ _VALUES = frozenset(
 )  # fmt: skip
 #: Opcodes that instantiate arbitrary classes: refused with their own line.
 _OBJECTS = frozenset({"OBJ", "INST", "NEWOBJ", "NEWOBJ_EX"})
+#: Opcodes that push a constant or a new empty container: what makes it.
+_NEW: dict[str, Callable[[], object]] = {
+    "NONE": lambda: None,
+    "NEWTRUE": lambda: True,
+    "NEWFALSE": bool,
+    "EMPTY_TUPLE": tuple,
+    "EMPTY_LIST": list,
+    "EMPTY_DICT": dict,
+    "EMPTY_SET": set,
+}
 _Items = TypeVar("_Items", bound=Collection[Any])
 
 
@@ -81,14 +92,12 @@ class PickleUnbounded(Exception):
     """A value that would cost unbounded time or memory."""
 
 
+@dataclass(frozen=True, slots=True)
 class _Allowed:
     """What an allowed global resolves to: a checked function, callable by ``REDUCE`` only."""
 
-    __slots__ = ("call", "name")
-
-    def __init__(self, name: str, call: Callable[..., Any]) -> None:
-        self.name = name
-        self.call = call
+    name: str
+    call: Callable[..., Any]
 
 
 def _ndarray(*_args: object) -> NoReturn:
@@ -246,33 +255,28 @@ class BoundedReader:
             "frozenset": _Allowed("frozenset", self._frozenset),
             "set": _Allowed("set", self._set),
         }
-        self.handlers: dict[str, Callable[[Any], None]] = {
+        push = self._push
+        self.handlers: dict[str, Callable[[Any], object]] = {
             "PROTO": self._proto,
-            "FRAME": _nothing,
-            "NONE": lambda _: self.stack.append(None),
-            "NEWTRUE": lambda _: self.stack.append(True),
-            "NEWFALSE": lambda _: self.stack.append(False),
+            "FRAME": lambda _: None,  # framing only groups opcodes; genops reads through it
             "MARK": self._mark,
             "POP": self._pop,
-            "POP_MARK": self._pop_mark_opcode,
-            "DUP": lambda _: self.stack.append(self.stack[-1]),
+            "POP_MARK": lambda _: self._pop_mark(),
+            "DUP": lambda _: push(self.stack[-1]),
             "MEMOIZE": self._memoize,
-            "EMPTY_TUPLE": lambda _: self.stack.append(()),
-            "TUPLE": self._tuple_mark,
+            # the items above a mark are popped before `push` reads self.stack again
+            "TUPLE": lambda _: push(tuple(self._pop_mark())),
             "TUPLE1": lambda _: self._tuple(1),
             "TUPLE2": lambda _: self._tuple(2),
             "TUPLE3": lambda _: self._tuple(3),
-            "EMPTY_LIST": lambda _: self.stack.append([]),
-            "LIST": self._list,
+            "LIST": lambda _: push(self._pop_mark()),
             "APPEND": self._append,
             "APPENDS": self._appends,
-            "EMPTY_DICT": lambda _: self.stack.append({}),
-            "DICT": self._dict,
+            "DICT": lambda _: push(self._into_dict({}, self._pop_mark())),
             "SETITEM": self._setitem,
             "SETITEMS": self._setitems,
-            "EMPTY_SET": lambda _: self.stack.append(set()),
             "ADDITEMS": self._additems,
-            "FROZENSET": self._frozenset_opcode,
+            "FROZENSET": lambda _: push(frozenset(self._admitted(self._pop_mark()))),
             "GLOBAL": self._global,
             "STACK_GLOBAL": self._stack_global,
             "REDUCE": self._reduce,
@@ -281,7 +285,7 @@ class BoundedReader:
         for name in ("PUT", "BINPUT", "LONG_BINPUT"):
             self.handlers[name] = self._put
         for name in ("GET", "BINGET", "LONG_BINGET"):
-            self.handlers[name] = self._get
+            self.handlers[name] = lambda arg: push(self.memo[arg])
 
     def read(self) -> Any:
         """The pickle's value.
@@ -293,11 +297,12 @@ class BoundedReader:
         """
         handlers = self.handlers
         start = _resident_bytes() if self.max_memory is not None else 0
-        count = read = 0
-        for op, arg, _pos in pickletools.genops(self.data):
+        for read, (op, arg, _pos) in enumerate(pickletools.genops(self.data), 1):
             name = op.name
             if name in _VALUES:
                 self.stack.append(arg)
+            elif name in _NEW:
+                self.stack.append(_NEW[name]())
             elif name == "STOP":
                 return self.stack.pop()
             else:
@@ -309,10 +314,7 @@ class BoundedReader:
                         else f"the opcode {name} (caches need none)"
                     )
                 handler(arg)
-            count += 1
-            if count == MEMORY_CHECK_EVERY:
-                count = 0
-                read += MEMORY_CHECK_EVERY
+            if read % MEMORY_CHECK_EVERY == 0:
                 if read > self.max_opcodes:
                     raise PickleUnbounded(too_many_opcodes(self.max_opcodes))
                 self._check_memory(start)
@@ -340,9 +342,6 @@ class BoundedReader:
         self.stack = self.metastack.pop()
         return items
 
-    def _pop_mark_opcode(self, _arg: None) -> None:
-        self._pop_mark()
-
     def _pop(self, _arg: None) -> None:
         if self.stack:
             self.stack.pop()
@@ -354,21 +353,13 @@ class BoundedReader:
             raise ValueError("negative PUT argument")
         self.memo[arg] = self.stack[-1]
 
-    def _get(self, arg: int) -> None:
-        self.stack.append(self.memo[arg])
-
     def _memoize(self, _arg: None) -> None:
         self.memo[len(self.memo)] = self.stack[-1]
 
+    def _push(self, value: object) -> None:
+        self.stack.append(value)
+
     # -- containers (items above a mark: popped before self.stack is read again) ----------
-    def _tuple_mark(self, _arg: None) -> None:
-        items = tuple(self._pop_mark())
-        self.stack.append(items)
-
-    def _list(self, _arg: None) -> None:
-        items = self._pop_mark()
-        self.stack.append(items)
-
     def _tuple(self, n: int) -> None:
         stack = self.stack
         if len(stack) < n:
@@ -397,7 +388,7 @@ class BoundedReader:
             counter = self.counters[id(container)] = _HashCounter(container, self.key_work)
         return counter
 
-    def _into_dict(self, target: object, items: list[Any]) -> None:
+    def _into_dict(self, target: object, items: list[Any]) -> object:
         if type(target) is not dict:
             raise PickleRefused(f"SETITEM on a {type(target).__name__}")
         if len(items) % 2:
@@ -406,12 +397,7 @@ class BoundedReader:
         for i in range(0, len(items), 2):
             counter.admit(items[i])
             target[items[i]] = items[i + 1]
-
-    def _dict(self, _arg: None) -> None:
-        items = self._pop_mark()
-        target: dict[Any, Any] = {}
-        self._into_dict(target, items)
-        self.stack.append(target)
+        return target
 
     def _setitem(self, _arg: None) -> None:
         stack = self.stack
@@ -425,17 +411,15 @@ class BoundedReader:
 
     def _additems(self, _arg: None) -> None:
         items = self._pop_mark()
-        target = self.stack[-1]
+        self._into_set(self.stack[-1], items)
+
+    def _into_set(self, target: object, items: Collection[Any]) -> None:
         if type(target) is not set:
             raise PickleRefused(f"ADDITEMS on a {type(target).__name__}")
         counter = self._counter(target)
         for item in items:
             counter.admit(item)
             target.add(item)
-
-    def _frozenset_opcode(self, _arg: None) -> None:
-        items = self._pop_mark()
-        self.stack.append(frozenset(self._admitted(items)))
 
     def _admitted(self, items: _Items) -> _Items:
         counter = _HashCounter(None, self.key_work)
@@ -509,13 +493,8 @@ class BoundedReader:
         return frozenset(self._admitted(self._set_items(items)))
 
     def _set(self, items: object = ()) -> set[Any]:
-        counter = _HashCounter(None, self.key_work)
-        checked = self._set_items(items)
-        for item in checked:
-            counter.admit(item)
-        result = set(checked)
-        counter.owner = result  # ADDITEMS on it goes on counting
-        self.counters[id(result)] = counter
+        result: set[Any] = set()
+        self._into_set(result, self._set_items(items))  # ADDITEMS on it goes on counting
         return result
 
     def _set_items(self, items: object) -> Collection[Any]:
@@ -566,10 +545,6 @@ def too_many_opcodes(limit: int) -> str:
         f"more than {limit:,} opcodes (the published caches have at most 896,093; reading "
         "takes time per opcode, so a longer file would take minutes)"
     )
-
-
-def _nothing(_arg: object) -> None:
-    """``FRAME``: framing only groups opcodes; `pickletools.genops` reads through it."""
 
 
 def _resident_bytes() -> int:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping
+from itertools import pairwise
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -45,16 +46,12 @@ _PPO_FILE = re.compile(r"^ppo_(\d+)\.cleanrl_model$")
 TRAIN_CFG = "train_cfg.json"
 
 
-def checkpoint_number(path: Path) -> int | None:
-    """``N`` of ``ppo_<N>.cleanrl_model`` (the authors' PPO iteration), None otherwise."""
-    match = _PPO_FILE.match(Path(path).name)
-    return int(match.group(1)) if match else None
-
-
 def last_checkpoint(folder: Path) -> tuple[Path, int] | None:
-    """The ``ppo_<N>.cleanrl_model`` of a folder with the highest ``N``, if any."""
+    """The ``ppo_<N>.cleanrl_model`` of a folder with the highest ``N`` (above 0), and ``N``."""
     found = [
-        (n, p) for p in Path(folder).glob("ppo_*.cleanrl_model") if (n := checkpoint_number(p))
+        (int(m.group(1)), p)
+        for p in Path(folder).glob("ppo_*.cleanrl_model")
+        if (m := _PPO_FILE.match(p.name)) and int(m.group(1))
     ]
     if not found:
         return None
@@ -97,31 +94,25 @@ def cleanrl_shape(
     Raises:
         CheckpointError: A shape does not chain (naming ``where``).
     """
+    layers: dict[str, list[torch.Tensor]] = {}
     for net, out in (("actor", None), ("critic", 1)):
-        weights = [state[f"{net}.{i}.weight"] for i in CLEANRL_LINEARS]
+        weights = layers[net] = [state[f"{net}.{i}.weight"] for i in CLEANRL_LINEARS]
         biases = [state[f"{net}.{i}.bias"] for i in CLEANRL_LINEARS]
         ok = all(w.dim() == 2 for w in weights) and all(
             b.dim() == 1 and b.shape[0] == w.shape[0] for w, b in zip(weights, biases, strict=True)
         )
-        ok = ok and all(
-            weights[k + 1].shape[1] == weights[k].shape[0] for k in range(len(weights) - 1)
-        )
+        ok = ok and all(nxt.shape[1] == w.shape[0] for w, nxt in pairwise(weights))
         if not ok or (out is not None and weights[-1].shape[0] != out):
             shapes = {
                 f"{net}.{i}.weight": tuple(w.shape)
                 for i, w in zip(CLEANRL_LINEARS, weights, strict=True)
             }
             raise CheckpointError(f"{where}: the {net}'s layer shapes do not chain: {shapes}")
-    actor = [state[f"actor.{i}.weight"] for i in CLEANRL_LINEARS]
-    critic = [state[f"critic.{i}.weight"] for i in CLEANRL_LINEARS]
+    actor, critic = layers["actor"], layers["critic"]
     hidden = [int(w.shape[0]) for w in actor[:-1]]
     if [int(w.shape[0]) for w in critic[:-1]] != hidden or critic[0].shape[1] != actor[0].shape[1]:
         raise CheckpointError(f"{where}: actor and critic have different shapes")
     return int(actor[0].shape[1]), hidden, int(actor[-1].shape[0])
-
-
-def _linears(module: torch.nn.Module) -> list[torch.nn.Linear]:
-    return [m for m in module.modules() if isinstance(m, torch.nn.Linear)]
 
 
 def build_networks(ppo: PPOConfig, obs_dim: int, num_actions: int) -> tuple[MLPModel, MLPModel]:
@@ -140,7 +131,7 @@ def copy_weights(state: Mapping[str, torch.Tensor], net: str, model: torch.nn.Mo
     Raises:
         CheckpointError: Our network has another number or shape of layers.
     """
-    ours = _linears(model)
+    ours = [m for m in model.modules() if isinstance(m, torch.nn.Linear)]
     if len(ours) != len(CLEANRL_LINEARS):
         raise CheckpointError(
             f"our {net} has {len(ours)} Linear layers, the authors' {len(CLEANRL_LINEARS)}"
@@ -181,9 +172,8 @@ def build_checkpoint(
 ) -> dict[str, Any]:
     """Our checkpoint (the dict a trained job's ``model_last.pt`` holds) holding a CleanRL policy.
 
-    ``state`` from :func:`read_cleanrl`; ``ppo`` of a matching network
-    (:func:`authors_changes`); ``iteration`` is ``N`` of ``ppo_<N>``; ``source`` is kept
-    under ``infos["authors"]``.
+    ``ppo`` of a matching network (:func:`authors_changes`); ``source`` is kept under
+    ``infos["authors"]``.
 
     Raises:
         CheckpointError: The ``[ppo]`` networks do not fit the policy, or the converted
@@ -197,13 +187,12 @@ def build_checkpoint(
     copy_weights(state, "actor", actor)
     copy_weights(state, "critic", critic)
     check_equivalent(state, actor)
-    optimizer = adam(
-        [*actor.parameters(), *critic.parameters()], lr=_lr(ppo, finetune, variant), eps=1e-5
-    )
+    lr = float(finetune.learning_rate if variant.finetuning else ppo.learning_rate)
+    optimizer = adam([*actor.parameters(), *critic.parameters()], lr=lr, eps=1e-5)
     train_cfg = rsl_rl_config(
         ppo,
         num_steps_per_env=AUTHORS_FINETUNE_STEPS,
-        learning_rate=_lr(ppo, finetune, variant),
+        learning_rate=lr,
         save_interval=5,
         num_learning_epochs=8 if variant.finetuning else None,
     )
@@ -229,10 +218,6 @@ def build_checkpoint(
         "iter": iteration,
         "infos": infos,
     }
-
-
-def _lr(ppo: PPOConfig, finetune: FinetuneConfig, variant: Variant) -> float:
-    return float(finetune.learning_rate if variant.finetuning else ppo.learning_rate)
 
 
 def cleanrl_logits(state: Mapping[str, torch.Tensor], obs: torch.Tensor) -> torch.Tensor:
@@ -306,5 +291,5 @@ def write_variant(
     if variant is not None and variant.finetuning:  # the authors' panel's feedback, this LLM
         fields["panel"] = {"feedback": variant.feedback, "model": infos["authors"].get("model")}
     write_config(out_dir, scenario, fields)
-    write_text_atomic(out_dir / TRAIN_CFG, json.dumps(checkpoint["infos"]["train_cfg"], indent=2))
+    write_text_atomic(out_dir / TRAIN_CFG, json.dumps(infos["train_cfg"], indent=2))
     return path

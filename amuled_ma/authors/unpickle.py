@@ -3,12 +3,8 @@
 A pickle is a program: ``pickle.load`` calls whatever global the file names. `load_pickle`
 first scans the opcodes (`scan_pickle`, nothing built) and refuses a file naming a global
 outside `ALLOWED_GLOBALS`, or nested deeper than `MAX_DEPTH` (deep tuples crash CPython's
-unpickler); then `BoundedReader` builds the values with the same allow-list. The bounds:
-plain numeric dtypes only, arrays only through checked ``_reconstruct``/``BUILD`` with their
-data in the file, at most `MAX_ARRAY_ITEMS` per array; flat keys of at most `MAX_KEY_ITEMS`
-items and at most `MAX_EQUAL_HASHES` equal hashes per dict (colliding keys make dicts
-quadratic); memory growth of `MEMORY_PER_BYTE` per file byte plus `MEMORY_SLACK_BYTES`; at
-most `MAX_PICKLE_BYTES` and `MAX_OPCODES` opcodes.
+unpickler); then `BoundedReader` builds the values within the bounds of
+`amuled_ma.authors.pickle_reader` (tabled in docs/authors.md).
 """
 
 from __future__ import annotations
@@ -43,6 +39,8 @@ _LFS_POINTER = b"version https://git-lfs"
 #: Opcodes that add values to the container below them on the stack (which keeps its depth).
 _MODIFY = frozenset({"APPEND", "APPENDS", "SETITEM", "SETITEMS", "ADDITEMS", "BUILD"})
 _PUT, _MEMOIZE, _GET, _MARK, _PUSH, _NOTHING, _OTHER = range(7)
+_MEMO_KINDS = {"PUT": _PUT, "BINPUT": _PUT, "LONG_BINPUT": _PUT, "MEMOIZE": _MEMOIZE, "MARK": _MARK}
+_MEMO_KINDS |= {"GET": _GET, "BINGET": _GET, "LONG_BINGET": _GET}
 
 
 def _opcode_table() -> dict[str, tuple[int, bool, int, int, bool]]:
@@ -51,14 +49,8 @@ def _opcode_table() -> dict[str, tuple[int, bool, int, int, bool]]:
     table = {}
     for op in pickletools.opcodes:
         before, after = op.stack_before, op.stack_after
-        if op.name in ("PUT", "BINPUT", "LONG_BINPUT"):
-            kind = _PUT
-        elif op.name == "MEMOIZE":
-            kind = _MEMOIZE
-        elif op.name in ("GET", "BINGET", "LONG_BINGET"):
-            kind = _GET
-        elif op.name == "MARK":
-            kind = _MARK
+        if op.name in _MEMO_KINDS:
+            kind = _MEMO_KINDS[op.name]
         elif not before and len(after) == 1 and not op.name.startswith(("EXT", "PERSID")):
             kind = _PUSH
         elif not before and not after:
@@ -79,7 +71,7 @@ def _depth(item: object) -> int:
 
 @dataclass
 class PickleScan:
-    """What a pickle holds, read from its opcodes alone: globals, depth, opcodes read."""
+    """What a pickle holds, from its opcodes alone: globals named (in order), depth, opcodes."""
 
     globals: list[str]
     depth: int
@@ -110,20 +102,15 @@ def scan_pickle(
             kind, to_mark, fixed, pushed, modifies = _OPCODES[op.name]
             if kind == _PUSH:
                 stack.append(arg if type(arg) is str else 1)
-                continue
-            if kind == _PUT:  # the PUT and GET opcodes' argument is the memo index
+            elif kind == _PUT:  # the PUT and GET opcodes' argument is the memo index
                 memo[cast(int, arg)] = stack[-1]
-                continue
-            if kind == _GET:
+            elif kind == _GET:
                 stack.append(memo[cast(int, arg)])
-                continue
-            if kind == _MEMOIZE:
+            elif kind == _MEMOIZE:
                 memo[len(memo)] = stack[-1]
-                continue
-            if kind == _MARK:
+            elif kind == _MARK:
                 marks.append(len(stack))
-                continue
-            if kind == _NOTHING:
+            if kind != _OTHER:  # _NOTHING too: PROTO, FRAME
                 continue
             items: list[Any] = []
             if to_mark:
@@ -158,15 +145,6 @@ def scan_pickle(
     except (IndexError, KeyError) as error:
         raise ValueError(f"malformed pickle ({type(error).__name__})") from error
     return PickleScan(globals=found, depth=deepest, opcodes=count)
-
-
-def pickle_globals(data: bytes) -> list[str]:
-    """Every global a pickle names, in order of appearance, found without running any.
-
-    Raises:
-        ValueError: The bytes are not a well-formed pickle.
-    """
-    return scan_pickle(data).globals
 
 
 def load_pickle(path: str | Path, *, max_bytes: int = MAX_PICKLE_BYTES) -> Any:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from authors_fakes import findmilk_cache, write_pickle
 
-from amuled_ma.authors.unpickle import load_pickle, pickle_globals, scan_pickle
+from amuled_ma.authors.unpickle import load_pickle, scan_pickle
 from amuled_ma.errors import AuthorsImportError, UnsafePickleError
 
 
@@ -52,7 +52,7 @@ def test_exploit_refused_naming_file_and_global_nothing_runs(tmp_path):
 def test_globals_are_listed_without_running_any(tmp_path):
     marker = tmp_path / "marker"
     data = pickle.dumps([np.float32(1.0), TouchMarker(marker)], protocol=4)
-    found = pickle_globals(data)
+    found = scan_pickle(data).globals
     assert found == ["numpy._core.multiarray.scalar", "numpy.dtype", "posix.system"]
     assert not marker.exists()
 
@@ -71,7 +71,7 @@ def test_numpy_values_load_in_both_numpy_spellings(tmp_path):
     # the authors' files name numpy.core.multiarray (numpy < 2): rewrite our pickle so
     old = old_numpy_spelling(pickle.dumps({(np.float32(3.0),): np.array([0.25, 0.75])}, 4))
     (tmp_path / "old.pickle").write_bytes(old)
-    assert pickle_globals(old)[0] == "numpy.core.multiarray.scalar"
+    assert scan_pickle(old).globals[0] == "numpy.core.multiarray.scalar"
     loaded = load_pickle(tmp_path / "old.pickle")
     np.testing.assert_array_equal(loaded[(3.0,)], [0.25, 0.75])
 
@@ -91,7 +91,7 @@ def old_numpy_spelling(data: bytes) -> bytes:
 
 def test_object_arrays_refused_although_their_globals_are_allowed(tmp_path):
     path = write_pickle(tmp_path / "obj.pickle", {"a": np.array([1, "x"], dtype=object)})
-    assert set(pickle_globals(path.read_bytes())) <= {
+    assert set(scan_pickle(path.read_bytes()).globals) <= {
         "numpy._core.multiarray._reconstruct",
         "numpy.ndarray",
         "numpy.dtype",
