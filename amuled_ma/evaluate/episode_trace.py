@@ -17,8 +17,7 @@ import torch
 
 from amuled_ma.deliberation.state_key import freeze
 from amuled_ma.errors import CheckpointError, ScenarioError
-from amuled_ma.evaluate.rollout import MODES, Observer, episode_metrics, rollout, step_events
-from amuled_ma.learn.checkpoints import LAST
+from amuled_ma.evaluate.rollout import Observer, episode_metrics, rollout, step_events
 from amuled_ma.learn.policies import action_log_probs, load_policy
 from amuled_ma.records.variants import Variant
 from amuled_ma.tasks.driving import Driving
@@ -30,18 +29,6 @@ if TYPE_CHECKING:
     from amuled_ma.deliberation.feedback_base import Feedback
     from amuled_ma.scenario import EvaluationConfig, PPOConfig, Scenario, TaskConfig
     from amuled_ma.tasks.base import BatchedTask
-
-__all__ = [
-    "LAST",
-    "MODES",
-    "Episode",
-    "TrainedVariant",
-    "frame_of",
-    "layout_of",
-    "load_actor",
-    "replay_episode",
-    "replay_variant",
-]
 
 
 @dataclass(frozen=True)
