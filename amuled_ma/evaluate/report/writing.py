@@ -274,17 +274,12 @@ def write_report(
         "fine-tuning steps (which cluster drove the agent), and the replay miss rate.",
         diagnostics_table(results, len(tunes)),
     )
-    read = readings_lines(results)
-    if read:
-        lines += [
-            "## What the figures mean",
-            "",
-            "One sentence per figure that changes how the result reads (the thresholds are "
-            "in amuled_ma/deliberation/summaries.py, `readings`).",
-            "",
-            *read,
-            "",
-        ]
+    lines += _section(
+        "What the figures mean",
+        "One sentence per figure that changes how the result reads (the thresholds are "
+        "in amuled_ma/deliberation/summaries.py, `readings`).",
+        "".join(f"{line}\n" for line in readings_lines(results)),
+    )
     lines += _section(
         "Answers of each panel agent",
         "Per fine-tune and agent, over the rewarded fine-tuning steps: how many beliefs "
