@@ -17,8 +17,7 @@ import torch
 
 from amuled_ma.deliberation.state_key import freeze
 from amuled_ma.errors import CheckpointError, ScenarioError
-from amuled_ma.evaluate.rollout import MODES, Observer, rollout, step_events
-from amuled_ma.learn.checkpoints import LAST
+from amuled_ma.evaluate.rollout import Observer, episode_metrics, rollout, step_events
 from amuled_ma.learn.policies import action_log_probs, load_policy
 from amuled_ma.records.variants import Variant
 from amuled_ma.tasks.driving import Driving
@@ -30,18 +29,6 @@ if TYPE_CHECKING:
     from amuled_ma.deliberation.feedback_base import Feedback
     from amuled_ma.scenario import EvaluationConfig, PPOConfig, Scenario, TaskConfig
     from amuled_ma.tasks.base import BatchedTask
-
-__all__ = [
-    "LAST",
-    "MODES",
-    "Episode",
-    "TrainedVariant",
-    "frame_of",
-    "layout_of",
-    "load_actor",
-    "replay_episode",
-    "replay_variant",
-]
 
 
 @dataclass(frozen=True)
@@ -230,10 +217,7 @@ class _Tracer(Observer):
             return
         self.done = True
         self.terminated = bool(terminated[k])
-        for key, value in (info.get("episode") or {}).items():
-            tensor = torch.as_tensor(value)
-            if key != "done" and tensor.numel() == n:
-                self.metrics[key] = float(tensor.reshape(-1)[k])
+        self.metrics = episode_metrics(info.get("episode") or {}, k, n, skip=("done",))
         # the task has reset the copy: the last picture is drawn from the final obs
         self.frames.append(_final_frame(task, self.frames[-1], final[k]))
 
@@ -250,32 +234,16 @@ def replay_episode(
     live_feedback: Feedback | None = None,
     task_factory: Callable[..., Any] | None = None,
 ) -> Episode:
-    """Play evaluation episode ``episode`` of a policy and record every step.
+    """Play evaluation episode ``K = episode`` of a policy and record every step.
 
-    The evaluator's rollout of ``episodes`` copies (seeded ``[evaluation].seed``, copy
-    ``K`` on seed ``[evaluation].seed + K``) runs until copy ``K`` has ended its first
-    episode: the episode ``amuled evaluate`` plays as its episode ``K``, with the same
-    actions in ``greedy`` and in ``sampled`` mode.
-
-    Args:
-        actor: The policy (an rsl-rl actor with our categorical head).
-        task_config: The ``[task]`` section.
-        evaluation: The ``[evaluation]`` section (seed, episodes).
-        episode: Evaluation episode index ``0 <= K < episodes``.
-        mode: ``greedy`` (argmax) or ``sampled``.
-        episodes: ``N``, the evaluation's number of episodes (default
-            ``[evaluation].episodes``); sampled draws depend on it.
-        base_actor: The base policy, asked in the same states (its greedy action).
-        live_feedback: A feedback that needs the live task (human, fused-only replay):
-            asked about every state as the episode runs.
-        task_factory: Replaces `make_task`.
-
-    Returns:
-        The recorded `Episode`.
+    The evaluator's rollout of ``episodes`` copies (default ``[evaluation].episodes``; sampled
+    draws depend on it) runs until copy ``K`` has ended its first episode: the episode
+    ``amuled evaluate`` plays as its episode ``K``, with the same actions in either mode.
+    ``base_actor`` is asked in the same states; ``live_feedback`` (one that needs the live task:
+    human, fused-only replay) about every state as the episode runs.
 
     Raises:
         ScenarioError: Unknown ``mode`` (by `rollout`), or ``episode`` outside ``0..N-1``.
-
     """
     n = int(evaluation.episodes if episodes is None else episodes)
     if not 0 <= episode < n:

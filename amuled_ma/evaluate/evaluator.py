@@ -254,33 +254,17 @@ def evaluate_run(
 ) -> Results:
     """Evaluate every trained variant of a run; write ``results.json`` and ``results.csv``.
 
-    Args:
-        run_dir: The run directory (one sub-folder per variant).
-        scenario_name: The scenario's name (``results.json``, the message naming the fix).
-        task_config: The ``[task]`` section.
-        evaluation: The ``[evaluation]`` section (episodes, modes, seed, confidence).
-        ppo: The ``[ppo]`` section (the policies' network shape).
-        episodes: Episodes per variant and mode (default: ``evaluation.episodes``).
-        modes: ``greedy`` and/or ``sampled`` (default: ``evaluation.modes``).
-        variants: Only these variants (their names; a name takes its seed replicas along).
-        task_factory: Replaces `make_task`.
-        progress: Show a progress bar.
-        extra_dirs: Further variant folders evaluated alongside (an ablation's base).
-        records: ``{folder name: record}`` of the variant folders
-            (`variant_records`): a folder's
-            variant name (its seed replicas grouped under it) and, for a fine-tune, what it
-            was trained on come from its record; a folder without one is named by itself.
-
-    Returns:
-        The results (`Results`).
+    ``episodes`` and ``modes`` default to ``evaluation``'s; ``variants`` keeps only those names
+    (each with its seed replicas); ``extra_dirs`` are further variant folders evaluated alongside
+    (an ablation's base). ``records`` (`variant_records`, by folder name) gives a folder its
+    variant name (seed replicas grouped under it) and a fine-tune what it was trained on; a folder
+    without one is named by itself. ``task_factory`` replaces `make_task`.
 
     Raises:
         CheckpointError: The run has no trained variant.
-        AmuledError: A variant's ``feedback.json`` is over `MAX_FEEDBACK_BYTES`,
-            not JSON, or a link (`read_feedback`); ``results.json`` or
-            ``results.csv`` is a link or not a regular file; each checked before any
-            episode is run.
-
+        AmuledError: A variant's ``feedback.json`` is over `MAX_FEEDBACK_BYTES`, not JSON, or a
+            link (`read_feedback`); ``results.json`` or ``results.csv`` is a link or not a
+            regular file; each checked before any episode is run.
     """
     run_dir = Path(run_dir)
     check_write_targets(run_dir / name for name in RESULTS_FILES)  # before any episode

@@ -315,23 +315,12 @@ def explain_lines(
     reply_chars: int | None = None,
     show_prompt: bool = False,
 ) -> list[str]:
-    """The explanation of one state: the panel's answers, the fusion, the replies.
+    """The lines explaining one state: the panel's answers, the fusion, the raw replies.
 
-    Args:
-        task_name: The task (``[task].name``).
-        cluster_recording: ``[feedback].cluster_recording``, named as the fix when the
-            feedback replays fused beliefs only.
-        task_cls: The task's class (observation and action names).
-        feedback: The feedback (:func:`~amuled_ma.evaluate.readonly_feedback.open_feedback`).
-        store: The run's store, read-only (the raw replies of non-answers).
-        feedback_name: The feedback's name.
-        state: The state (:func:`state_of_step` or :func:`state_by_hand`).
-        reply_chars: Characters of a raw reply written (None: whole replies).
-        show_prompt: Add the state prompt.
-
-    Returns:
-        The lines to print.
-
+    ``cluster_recording`` (``[feedback].cluster_recording``) is named as the fix when the feedback
+    replays fused beliefs only; ``store`` is the run's store, read-only (the raw replies of
+    non-answers); ``reply_chars`` cuts each raw reply (None: whole); ``show_prompt`` adds the
+    state prompt.
     """
     from amuled_ma.tasks.prompts import render_state_prompt
 

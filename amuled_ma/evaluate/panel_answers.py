@@ -58,6 +58,16 @@ class PanelAnswers:
     prompts: list[str | None] = field(default_factory=list)
 
 
+def state_prompt(task_name: str, prompt_vars: Mapping[str, Any]) -> str | None:
+    """The task's state prompt for these variables; None where they do not make one."""
+    from amuled_ma.tasks.prompts import render_state_prompt
+
+    try:
+        return render_state_prompt(task_name, dict(prompt_vars))
+    except (AmuledError, KeyError, ValueError):
+        return None
+
+
 def ask_panel(
     panel: MoralPanel,
     obs: np.ndarray,
@@ -68,8 +78,6 @@ def ask_panel(
 
     An agent whose answer carries no raw reply gets the one of its row in the run's ``store``.
     """
-    from amuled_ma.tasks.prompts import render_state_prompt
-
     obs = np.asarray(obs, dtype=np.float64).reshape(len(obs), -1)
     recorder = _Recorder(panel.source)
     original = panel.source
@@ -108,15 +116,10 @@ def ask_panel(
             reasons[u][c] = extra.get("miss_reason") or extra.get("error")
     if store is not None and store.store is not None:
         _raws_from_store(original, store, requests, raws)
-    prompts: list[str | None] = []
-    for u in range(len(obs)):
-        text = None
-        if prompt_vars is not None:
-            try:
-                text = render_state_prompt(panel.task_name, dict(prompt_vars[u]))
-            except (AmuledError, KeyError, ValueError):
-                text = None
-        prompts.append(text)
+    prompts = [
+        None if prompt_vars is None else state_prompt(panel.task_name, prompt_vars[u])
+        for u in range(len(obs))
+    ]
     conflicts = np.asarray(out.conflicts, dtype=np.float64).reshape(len(obs), -1)
     return PanelAnswers(
         agents=agents,

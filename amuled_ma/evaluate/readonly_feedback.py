@@ -51,21 +51,11 @@ class ReadOnlyStore:
 def open_feedback(
     plan: PanelPlan, store: str, run_dir: Path | None
 ) -> tuple[Feedback, ReadOnlyStore]:
-    """Build a variant's feedback as training does, with the run's store read-only.
+    """``(feedback, store)``: a variant's feedback built as training does, its store read-only.
 
-    `build_feedback` builds it from the plan over one `ReadOnlyStore` of the run's file,
-    which is never opened for writing (an Ollama source still asks its server about
-    states the run never asked).
-
-    Args:
-        plan: The variant's panel plan (`plan_panel`).
-        store: ``[feedback].store``, the store file (relative to ``run_dir``).
-        run_dir: The run folder holding the store and the demonstrator's counts (None: no
-            store, nothing cached).
-
-    Returns:
-        ``(feedback, store)``.
-
+    `build_feedback` builds it from the plan (`plan_panel`) over one `ReadOnlyStore` of the
+    ``[feedback].store`` file (relative to ``run_dir``, None: no store, nothing cached), never
+    opened for writing; an Ollama source still asks its server about states the run never asked.
     """
     from amuled_ma.deliberation.build import build_feedback
 

@@ -34,18 +34,7 @@ def evaluation_task(
     seed: int,
     task_factory: Callable[..., BatchedTask] | None = None,
 ) -> BatchedTask:
-    """The batched task of an evaluation: ``episodes`` copies, copy ``i`` seeded ``seed + i``.
-
-    Args:
-        task_config: The ``[task]`` section.
-        episodes: Number of copies ``N``.
-        seed: Seed of copy 0.
-        task_factory: Replaces `make_task`.
-
-    Returns:
-        The batched task.
-
-    """
+    """The batched task of an evaluation: ``episodes`` copies, copy ``i`` seeded ``seed + i``."""
     return (task_factory or make_task)(task_config, episodes, shaping_coef=0.0, seed=seed)
 
 
@@ -93,6 +82,18 @@ def step_events(
             yield key, _to_float(value[copy])
 
 
+def episode_metrics(
+    episode: Mapping[str, Any], copy: int, copies: int, skip: Collection[str] = SKIP
+) -> dict[str, float]:
+    """Copy ``copy``'s value of each ``copies``-element entry of ``info["episode"]`` not skipped."""
+    out = {}
+    for key, value in episode.items():
+        tensor = torch.as_tensor(value)
+        if key not in skip and tensor.dim() >= 1 and tensor.numel() == copies:
+            out[key] = _to_float(tensor.reshape(-1)[copy])
+    return out
+
+
 def rollout(
     actor: torch.nn.Module,
     task_config: TaskConfig,
@@ -104,19 +105,11 @@ def rollout(
     observers: Sequence[Observer] = (),
     until: Sequence[int] | None = None,
 ) -> list[dict[str, float] | None]:
-    """Play the first episode of ``episodes`` task copies with a policy.
+    """Play the first episode of ``episodes`` task copies with a policy (an rsl-rl actor).
 
-    Args:
-        actor: An rsl-rl actor with our categorical head.
-        task_config: The ``[task]`` section.
-        episodes: Number of task copies ``N``.
-        mode: ``greedy`` or ``sampled`` (see the module docstring).
-        seed: Seed of copy 0 (copy ``i`` gets ``seed + i``); also seeds action sampling.
-        task_factory: Replaces `make_task`.
-        observers: Told about every step (`Observer`).
-        until: Stop once these copies have ended their first episode (default: all).
-
-    Torch runs single-threaded from here on (``torch.set_num_threads(1)``, as the trainer).
+    Copy ``i`` is seeded ``seed + i``; ``seed`` also seeds action sampling. ``observers`` are
+    told about every step; ``until`` stops once those copies have ended their first episode
+    (default: all). Torch runs single-threaded from here on, as the trainer.
 
     Returns:
         Per copy, the metrics of its first episode (``info["episode"]`` without
@@ -124,7 +117,6 @@ def rollout(
 
     Raises:
         ScenarioError: Unknown ``mode``, or a copy in ``until`` outside ``0..N-1``.
-
     """
     if mode not in MODES:
         raise ScenarioError(f"mode: expected one of {', '.join(MODES)}, found {mode!r}")
@@ -159,15 +151,8 @@ def rollout(
             if bool(new.any()):
                 episode = info.get("episode", {})
                 for i in new.nonzero().squeeze(-1).tolist():
-                    rec: dict[str, float] = {}
-                    for key, value in episode.items():
-                        if key in SKIP:
-                            continue
-                        tensor = torch.as_tensor(value)
-                        if tensor.dim() >= 1 and tensor.numel() == episodes:
-                            rec[key] = _to_float(tensor[i])
-                    rec["terminated"] = float(bool(terminated[i]))
-                    records[i] = rec
+                    metrics = episode_metrics(episode, i, episodes)
+                    records[i] = {**metrics, "terminated": float(bool(terminated[i]))}
                 done_once |= new
             if bool((done_once if watched is None else done_once[watched]).all()):
                 break

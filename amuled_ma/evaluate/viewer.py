@@ -19,9 +19,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from amuled_ma.deliberation.plan import plan_panel
-from amuled_ma.errors import AmuledError
 from amuled_ma.evaluate import episode_trace as trace
-from amuled_ma.evaluate.panel_answers import PanelAnswers, ask_panel
+from amuled_ma.evaluate.panel_answers import PanelAnswers, ask_panel, state_prompt
 from amuled_ma.evaluate.readonly_feedback import describe_feedback, open_feedback
 from amuled_ma.files.safe import check_write_target, write_text_atomic
 from amuled_ma.tasks.colors import COLORS, css_variables
@@ -206,56 +205,59 @@ def _episode_entry(ep: trace.Episode, name: str) -> dict[str, Any]:
     }
 
 
-def _panel_entry(answers: PanelAnswers, texts: TextTable) -> dict[str, Any]:
-    names = sorted(set(answers.statuses.reshape(-1).tolist()))
+def _states_entry(
+    agents: list[str],
+    rule: str | None,
+    statuses: list[list[str]],
+    b: object,
+    w: object,
+    **st: object,
+) -> dict[str, Any]:
+    """The page's per-distinct-state data: statuses coded by their index in ``statuses``."""
+    names = sorted({s for row in statuses for s in row})
     code = {name: i for i, name in enumerate(names)}
+    coded = [[code[s] for s in row] for row in statuses]
     return {
-        "agents": answers.agents,
-        "rule": answers.rule,
+        "agents": agents,
+        "rule": rule,
         "statuses": names,
-        "st": {
-            "b": _round(answers.beliefs),
-            "w": _round(answers.weights),
-            "s": [[code[s] for s in row] for row in answers.statuses.tolist()],
-            "k": _round(answers.conflicts),
-            "f": _round(answers.fused),
-            "x": [[texts.add(r) for r in row] for row in answers.raws],
-            "why": [[texts.add(r) for r in row] for row in answers.reasons],
-            "q": [texts.add(p) for p in answers.prompts],
-        },
+        "st": {"b": b, "w": w, "s": coded, **st},
     }
+
+
+def _panel_entry(answers: PanelAnswers, texts: TextTable) -> dict[str, Any]:
+    return _states_entry(
+        answers.agents,
+        answers.rule,
+        answers.statuses.tolist(),
+        b=_round(answers.beliefs),
+        w=_round(answers.weights),
+        k=_round(answers.conflicts),
+        f=_round(answers.fused),
+        x=[[texts.add(r) for r in row] for row in answers.raws],
+        why=[[texts.add(r) for r in row] for row in answers.reasons],
+        q=[texts.add(p) for p in answers.prompts],
+    )
 
 
 def _live_entry(ep: trace.Episode, first: list[int], feedback: object, texts: TextTable) -> dict:
     assert ep.live_beliefs is not None and ep.live_statuses is not None
     agent = str(getattr(feedback, "agent", getattr(feedback, "name", "feedback")))
-    statuses = [pairs[0][1] if (pairs := ep.live_statuses[t]) else "ok" for t in first]
-    names = sorted(set(statuses))
-    code = {name: i for i, name in enumerate(names)}
+    statuses = [[pairs[0][1] if (pairs := ep.live_statuses[t]) else "ok"] for t in first]
     beliefs = ep.live_beliefs[first]
-    from amuled_ma.tasks.prompts import render_state_prompt
-
-    prompts = []
-    for t in first:
-        try:
-            prompts.append(texts.add(render_state_prompt(ep.task, ep.prompt_vars[t])))
-        except (AmuledError, KeyError, ValueError):
-            prompts.append(-1)
-    return {
-        "agents": [agent],
-        "rule": None,
-        "statuses": names,
-        "st": {
-            "b": _round(beliefs[:, None, :]),
-            "w": None,
-            "s": [[code[s]] for s in statuses],
-            "k": None,
-            "f": _round(beliefs),
-            "x": None,
-            "why": None,
-            "q": prompts,
-        },
-    }
+    prompts = [texts.add(state_prompt(ep.task, ep.prompt_vars[t])) for t in first]
+    return _states_entry(
+        [agent],
+        None,
+        statuses,
+        b=_round(beliefs[:, None, :]),
+        w=None,
+        k=None,
+        f=_round(beliefs),
+        x=None,
+        why=None,
+        q=prompts,
+    )
 
 
 def _action_names(task_name: str) -> list[str]:
@@ -330,27 +332,14 @@ def write_view(
 ) -> ViewResult:
     """Build the page of a run's episode (every chosen variant's episode and beliefs) and write it.
 
-    Args:
-        run_dir: The run folder.
-        variants: The variants to show, resolved by the caller.
-        output: The HTML file (default `default_output`).
-        scenario_name: The run's scenario name (the page's header).
-        task_name: The run's task.
-        evaluation: The run's ``[evaluation]`` section (seed, episodes).
-        episode: Evaluation episode ``K`` (seed ``[evaluation].seed + K``).
-        mode: ``greedy`` (the policy's most probable action) or ``sampled``.
-        episodes: ``N``, the episodes of the run's evaluation (default
-            ``[evaluation].episodes``): episode ``K`` is the ``K``-th of them.
-        say: Called with a progress line per variant.
-
-    Returns:
-        The `ViewResult`.
+    ``output`` defaults to `default_output`; episode ``K = episode`` is the ``K``-th of the
+    evaluation's ``episodes`` (default ``[evaluation].episodes``), seeded
+    ``[evaluation].seed + K``; ``say`` gets a progress line per variant.
 
     Raises:
         UnsafePathError: The output is a link, a device, a FIFO or a folder; refused
             before the episode is replayed.
         FileWriteError: It could not be written (a full disk); one line naming it.
-
     """
     from amuled_ma import __version__
 

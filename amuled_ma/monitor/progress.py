@@ -57,20 +57,13 @@ def duration(seconds: float) -> str:
 
 
 class Progress:
-    """The progress of one phase: ``update`` after each step, ``close`` at its end.
+    """The progress of one phase (``findmilk/amuled``): ``update`` each step, ``close`` at the end.
 
-    Args:
-        phase: What runs (``findmilk/amuled``, ``evaluate``).
-        total: Steps in all (None: not known ahead; no ETA).
-        bar: Draw a tqdm bar (else plain lines).
-        initial: Steps already done (a resumed run); the ETA counts only steps done here.
-        unit: What a step is (``it``, ``policy``).
-        first: Seconds before the first plain line (default `FIRST_LINE_S`).
-        every: Longest silence between plain lines (default `PLAIN_EVERY_S`).
-        clock: Seconds, monotonic (``time.monotonic``; a test passes its own).
-        stream: Where the lines go (default ``sys.stderr``, looked up when written).
-        watch: Start the watcher thread (a test that drives `check` itself passes False).
-
+    ``total`` None: not known ahead, no ETA. ``bar``: a tqdm bar, else plain lines (the first
+    after ``first`` s, then at most ``every`` s apart). ``initial`` steps were done before (a
+    resumed run; the ETA counts only steps done here). ``stream`` defaults to ``sys.stderr``,
+    looked up when written; a test passes its own ``clock`` and, to drive `check` itself,
+    ``watch=False`` (no watcher thread).
     """
 
     def __init__(

@@ -36,13 +36,8 @@ def _install_quiet_hook() -> None:
 class TensorBoardLog:
     """A ``SummaryWriter`` for scalars; a failed write raises one line naming the folder.
 
-    Args:
-        log_dir: The folder of the event files (a variant's ``tb/``).
-        flush_secs: How often TensorBoard's thread flushes [s].
-
-    Attributes:
-        log_dir: The folder of the event files.
-        failed: Whether a failed write was raised (the log is then incomplete).
+    ``log_dir`` is a variant's ``tb/``; ``failed`` says a failed write was raised (the log is then
+    incomplete).
 
     Raises:
         FileWriteError: The folder or its first event file cannot be made.

@@ -16,14 +16,9 @@ State = Literal["complete", "interrupted", "failed"]
 class Provenance(BaseModel):
     """Where an imported policy (or an imported run) came from.
 
-    Attributes:
-        repository: The authors' repository.
-        checkout: The checkout it was imported from (the run's record).
-        file: The policy file, relative to the checkout.
-        sha256: The SHA-256 of that file.
-        checkpoint: The authors' PPO iteration of a fine-tune (``N`` of ``ppo_<N>``).
-        model: The LLM of the fine-tune's feedback.
-
+    ``checkout`` is the checkout it was imported from, ``file`` the policy file relative to it;
+    ``checkpoint`` the authors' PPO iteration of a fine-tune (``N`` of ``ppo_<N>``), ``model``
+    the LLM of its feedback.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -37,23 +32,15 @@ class Provenance(BaseModel):
 
 
 class PanelRecord(BaseModel):
-    """Who gave a fine-tune its feedback, in plain terms.
+    """Who gave a fine-tune its feedback (``amuled``, ``cluster:care``, ``human``, ...).
 
-    Attributes:
-        feedback: The feedback variant (``amuled``, ``cluster:care``, ``human``, ...).
-        members: The panel's agents (empty for a demonstrator or a fused-only recording).
-        source: Where the members' beliefs come from by default (``replay``, ``ollama``,
-            ``rules``, ...).
-        model: The LLM of the beliefs (an Ollama model, or the recording's).
-        recording: The replayed recording's file name.
-        fused_only: The recording keeps only the authors' fused belief per state: it was
-            replayed as it is, no panel was asked and no fusion of ours ran.
-        fusion: The fusion rule (None where nothing is fused).
-        agent_sources: Members with a source of their own (``[feedback.agents]``).
-        distill: The ``[feedback.distill]`` settings, when the panel was asked on a budget.
-        weights: The file name of the members' prior weights (``[feedback].weights``) the
-            ``bjs-dst`` fusion used; None: the paper's fixed weights.
-
+    ``members`` is empty for a demonstrator or a fused-only recording; ``source`` is where the
+    members' beliefs come from by default (``replay``, ``ollama``, ``rules``, ...), and
+    ``agent_sources`` the members with a source of their own. ``fused_only``: the recording keeps
+    only the authors' fused belief per state, replayed as it is (no panel asked, no fusion of
+    ours; ``fusion`` None). ``distill``: the ``[feedback.distill]`` settings of a panel asked on a
+    budget. ``weights``: the file of the members' prior weights ``bjs-dst`` used (None: the
+    paper's fixed weights).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -73,33 +60,15 @@ class PanelRecord(BaseModel):
 class RunRecord(BaseModel):
     """One ``config.json``: a run's (``variants``, ``seeds``, ...) or a variant folder's.
 
-    Attributes:
-        scenario: The fully resolved scenario, as plain data.
-        command: The command line that wrote it.
-        time: When it was written.
-        torch: torch's version.
-        rsl_rl: rsl-rl-lib's version.
-        variant: What the folder trains (a run made by ``amuled train``: what it trained).
-        label: The fine-tune's folder label (:attr:`Variant.label`).
-        name: The variant's name in the run's results: its first seed's folder
-            (``finetune-amuled`` also for ``finetune-amuled.seed2``).
-        seed: The training seed.
-        training: The settings that decide what it learns and the inputs' hashes, compared
-            before a resume or a skip (:func:`~amuled_ma.experiments.run_folder.
-            training_config`).
-        panel: Who gave a fine-tune its feedback.
-        recipe: The fine-tune's KL anchor (``equation`` or ``authors``).
-        lambda_kl: The fine-tune's KL coefficient.
-        base_checkpoint: The checkpoint a fine-tune started from and is anchored to.
-        iterations_done: PPO iterations in its checkpoint.
-        iterations_planned: PPO iterations it was asked to train.
-        state: ``complete``, ``interrupted`` (stopped, or still to resume) or ``failed``.
-        authors: Where an imported policy or run came from.
-        variants: A run's variants.
-        seeds: A run's training seeds.
-        ablation: An ablation folder's ablation.
-        shared: The run's folders an ablation is evaluated with.
-
+    ``variant`` is what the folder trains, ``label`` its fine-tune label (`Variant.label`);
+    ``name`` is the variant's name in the run's results, its first seed's folder
+    (``finetune-amuled`` also for ``finetune-amuled.seed2``). ``training`` holds the settings that
+    decide what it learns and the inputs' hashes, compared before a resume or a skip
+    (`training_config`). ``recipe`` and ``lambda_kl`` are a fine-tune's KL anchor and
+    coefficient, ``base_checkpoint`` the checkpoint it started from; ``state`` is ``interrupted``
+    when stopped or still to resume. ``authors``: where an imported policy or run came from;
+    ``ablation`` and ``shared``: an ablation folder's ablation and the run's folders it is
+    evaluated with.
     """
 
     model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=True)

@@ -16,18 +16,11 @@ Kind = Literal["base", "shaped", "finetune"]
 
 
 def parse_feedback(feedback: str) -> tuple[str, str | None]:
-    """Split and check a feedback variant name (``amuled``, ``cluster:care``, ...).
-
-    Args:
-        feedback: ``amuled``, ``human``, ``human:rules``, ``moral``, ``cluster:<name>`` or
-            ``agg:<rule>``.
-
-    Returns:
-        ``(kind, argument)``.
+    """``(kind, argument)`` of a feedback variant name (``amuled``, ``cluster:care``, ...).
 
     Raises:
-        ScenarioError: The name is not one of the above.
-
+        ScenarioError: Not ``amuled``, ``human``, ``human:rules``, ``moral``, ``cluster:<name>``
+            or ``agg:<rule>``.
     """
     kind, _, arg = feedback.partition(":")
     if kind in ("amuled", "human", "moral") and not arg:
@@ -51,18 +44,13 @@ def folder_name(text: str) -> str:
 
 @dataclass(frozen=True)
 class Variant:
-    """One thing to train.
+    """One thing to train: ``base``, ``shaped`` or ``finetune`` (on ``feedback``).
 
-    Attributes:
-        kind: ``base`` (the task's reward), ``shaped`` (plus handcrafted shaping) or
-            ``finetune`` (a copy of the base on feedback, anchored to it).
-        feedback: The feedback of a fine-tune (see the module docstring; a library user's own
-            :class:`~amuled_ma.deliberation.feedback_base.Feedback` may carry any name,
-            checked only when :attr:`feedback_kind` is asked); None otherwise.
-        label: A name for the fine-tune's folder instead of the feedback's
-            (``finetune-<label>``), e.g. ``[feedback].name`` or an ablation's
-            ``amuled-kl0.5``; None: the folder is named after the variant.
-
+    ``base`` learns the task's reward, ``shaped`` adds handcrafted shaping, ``finetune`` is a copy
+    of the base on feedback, anchored to it. A library user's own `Feedback` may carry any name,
+    checked only when `feedback_kind` is asked. ``label`` names the fine-tune's folder
+    ``finetune-<label>`` instead of the feedback (``[feedback].name``, an ablation's
+    ``amuled-kl0.5``).
     """
 
     kind: Kind
@@ -84,13 +72,8 @@ class Variant:
     def parse(cls, text: str | Variant, label: str | None = None) -> Variant:
         """Read ``base``, ``shaped`` or ``finetune:<feedback>`` (a Variant passes through).
 
-        Args:
-            text: The variant's text.
-            label: The fine-tune's folder label (see :attr:`label`).
-
         Raises:
             ScenarioError: Not a known variant; the message lists the forms.
-
         """
         if isinstance(text, Variant):
             return text if label is None else cls(text.kind, text.feedback, label)

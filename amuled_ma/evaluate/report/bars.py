@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -109,9 +109,12 @@ def _hbars(
         ax.margins(x=0.25)
 
 
-def _plotted_metrics(results: Results, variants: Mapping[str, ModeResult]) -> list[str]:
+def shown_metrics(
+    results: Results, variants: Mapping[str, ModeResult], skip: Collection[str] = NOT_PLOTTED
+) -> list[str]:
+    """The metrics any of ``variants`` has, in `metric_order`, but ``skip``."""
     metrics = metric_order(results.task, sorted({m for v in variants.values() for m in v.metrics}))
-    return [m for m in metrics if m not in NOT_PLOTTED]
+    return [m for m in metrics if m not in skip]
 
 
 def _paper_metrics(results: Results, tunes: Mapping[str, ModeResult]) -> list[str]:
@@ -121,7 +124,7 @@ def _paper_metrics(results: Results, tunes: Mapping[str, ModeResult]) -> list[st
         for m in PAPER_METRICS.get(results.task, [])
         if any(m in v.metrics for v in tunes.values())
     ]
-    return found or _plotted_metrics(results, tunes)[:4]
+    return found or shown_metrics(results, tunes)[:4]
 
 
 def bars_figure(
@@ -135,7 +138,7 @@ def bars_figure(
     variants = results.in_mode(mode)
     if not variants:
         return None
-    metrics = _plotted_metrics(results, variants)
+    metrics = shown_metrics(results, variants)
     if not metrics:
         return None
     names = list(variants)

@@ -36,7 +36,6 @@ def variant_records(
 def _from_entry(name: str, panel: PanelEntry) -> RunRecord:
     """A record of what ``results.json`` says of a fine-tune (no ``config.json`` given)."""
     feedback = panel.feedback or "amuled"
-    members = list(panel.agents or [])
     return RunRecord(
         variant=Variant.finetune(feedback),
         name=name,
@@ -44,13 +43,9 @@ def _from_entry(name: str, panel: PanelEntry) -> RunRecord:
         training={"inputs": panel.inputs} if panel.inputs else None,
         panel=PanelRecord(
             feedback=feedback,
-            members=members,
-            source=panel.source,
-            model=panel.model,
-            recording=panel.recording,
-            fusion=panel.fusion,
+            members=list(panel.agents or []),
             agent_sources=dict(panel.agent_sources or {}),
-            distill=panel.distill,
+            **panel.model_dump(include={"source", "model", "recording", "fusion", "distill"}),
         ),
         recipe=_RECIPES.get(panel.recipe or ""),
         lambda_kl=panel.lambda_kl,

@@ -7,7 +7,7 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 from amuled_ma.beliefs.types import FUSED_STATUSES
-from amuled_ma.evaluate.evaluator import PAPER_METRICS, metric_order
+from amuled_ma.evaluate.evaluator import PAPER_METRICS
 from amuled_ma.evaluate.numbers import format_count, markdown_table
 from amuled_ma.evaluate.paper import (
     PAPER_COLUMNS,
@@ -16,7 +16,7 @@ from amuled_ma.evaluate.paper import (
     PAPER_SOURCE,
     paper_row,
 )
-from amuled_ma.evaluate.report.bars import budget_points
+from amuled_ma.evaluate.report.bars import budget_points, shown_metrics
 from amuled_ma.evaluate.report.plotting import EQUAL_TOL, format_stat, mean_of
 from amuled_ma.evaluate.results import ModeResult, Results, Stat
 from amuled_ma.evaluate.stats import t_quantile
@@ -210,9 +210,8 @@ def _percent(count: float, total: float) -> str:
     return f"{100 * count / total:.1f}%" if total else "-"
 
 
-def _table_metrics(results: Results, variants: Mapping[str, ModeResult]) -> list[str]:
-    metrics = metric_order(results.task, sorted({m for v in variants.values() for m in v.metrics}))
-    return [m for m in metrics if m not in ("terminated", "return")]
+#: Metrics left out of the tables (``return_shaping`` stays, unlike in the figures).
+_NOT_TABULATED = ("terminated", "return")
 
 
 def metrics_table(results: Results | Mapping[str, Any], mode: str) -> str:
@@ -221,7 +220,7 @@ def metrics_table(results: Results | Mapping[str, Any], mode: str) -> str:
     variants = results.in_mode(mode)
     if not variants:
         return ""
-    metrics = _table_metrics(results, variants)
+    metrics = shown_metrics(results, variants, _NOT_TABULATED)
     rows = [
         [name, str(data.n_seeds), *(format_stat(data.metrics.get(m)) for m in metrics)]
         for name, data in variants.items()
@@ -282,7 +281,7 @@ def differences_table(results: Results | Mapping[str, Any], mode: str) -> str:
     if not diffs:
         return ""
     variants = results.in_mode(mode)
-    metrics = _table_metrics(results, variants)
+    metrics = shown_metrics(results, variants, _NOT_TABULATED)
     rows = [
         [
             name,
