@@ -282,16 +282,12 @@ def train_alone(
     base_dir: Path | None = None,
     config: dict[str, Any] | None = None,
 ) -> JobResult:
-    """Train one job (``amuled train`` / ``finetune``): the pipeline's steps 2 and 3 for it.
+    """Train one job (``amuled train`` / ``finetune``): planned, locked, trained; not evaluated.
 
-    The job is planned before any folder is made
-    (:func:`~amuled_ma.experiments.plans.plan_jobs`: its inputs, then its folder), the run
-    folder's lock is held, ``config.json`` written (with ``config``), and the job trained
-    by the executor of every graph (:func:`~amuled_ma.experiments.jobs.run_jobs`, a group
-    of one); nothing is evaluated. Of ``request`` it uses the run folder, seed, resume /
-    force, progress bars and resume command; ``base_variant`` is a fine-tune's base folder in
+    Planned (`plan_jobs`) before any folder is made, then trained by `run_jobs` under the run
+    folder's lock; a finished job is skipped. ``base_variant`` is a fine-tune's base folder in
     ``base_dir`` (default: the request's run folder); ``config`` holds run-level
-    ``config.json`` fields to write (None: the file is left alone). A finished job is skipped.
+    ``config.json`` fields to write (None: the file is left alone).
 
     Raises:
         AmuledError: An input is missing or the folder clashes (before any folder is

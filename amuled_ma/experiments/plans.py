@@ -200,17 +200,10 @@ def member_spec(job: TrainJob) -> MemberSpec:
 
 
 def check_base_fits(base: Path, ppo: PPOConfig, task: str) -> None:
-    """Refuse a base whose actor does not fit the scenario's networks, before any folder.
-
-    The fine-tune loads the base into networks of ``[ppo].hidden_dims``; a base trained
-    with other dims (or for another task) would fail there, after its variant folder was
-    made. Loading its actor here (:func:`~amuled_ma.learn.policies.load_policy`) finds it
-    while nothing is written.
+    """Refuse a base whose actor does not fit ``[ppo].hidden_dims``, before any folder is made.
 
     Raises:
-        CheckpointError: The actor does not fit; one line naming the base, the dims and
-            the fix.
-
+        CheckpointError: The actor does not fit, naming the base, the dims and the fix.
     """
     from amuled_ma.learn.policies import load_policy
 
@@ -308,9 +301,8 @@ def train_variant(
 ) -> JobResult:
     """Train one variant (``base``, ``shaped`` or ``finetune:<feedback>``) into the run.
 
-    The job is planned (:func:`plan_job`), prepared (:func:`prepare_job`) and trained
-    alone, as a population of one (:class:`~amuled_ma.learn.population.PopulationTrainer`:
-    the one training loop of every job); its record says complete or failed.
+    Planned (`plan_job`), prepared (`prepare_job`) and trained as a population of one; its
+    record says complete or failed.
 
     ``hint`` is the command that re-runs it (messages, Ctrl-C); ``out_dir`` defaults to
     ``run_dir/<variant folder>``; the base checkpoint is folder ``base_variant`` of
