@@ -355,17 +355,11 @@ def ablation_variants(
 ) -> list[tuple[Variant, Changes]]:
     """List the fine-tunes of one ablation: ``(variant, changes to the scenario)``.
 
-    ``budget``: AMULED with ``[feedback.distill]`` at each budget of
-    :data:`BUDGET_SWEEP` (100% once, the others with each selection of
-    :data:`BUDGET_SELECTIONS`; folders ``finetune-amuled-budget0.1-uncertainty``), and
-    AMULED with every state asked (the full-feedback run, shared with ``amuled run`` when
-    it finished there with the same settings).
-
-    ``weights``: AMULED with the paper's fixed weights (``[feedback].weights`` emptied; shared
-    with ``amuled run`` when it finished there with the same settings) and AMULED with the
-    learned weights of ``[feedback].weights`` (folder ``finetune-amuled-learned-weights``),
-    on the same seeds. ``resolve`` resolves the recording's path against the scenario
-    file's folder; ``where`` names the scenario in messages.
+    ``budget``: AMULED at each budget of :data:`BUDGET_SWEEP` (100% once, the others with
+    each of :data:`BUDGET_SELECTIONS`), and AMULED with every state asked. ``weights``:
+    AMULED with the paper's fixed weights and with the learned ``[feedback].weights``
+    (`LEARNED_WEIGHTS_LABEL`). ``resolve`` resolves the recording's path against the
+    scenario file's folder; ``where`` names the scenario in messages.
 
     Raises:
         AmuledError: ``weights`` without ``[feedback].weights``.
