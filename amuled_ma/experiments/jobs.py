@@ -140,27 +140,25 @@ def run_jobs(
     for result in skipped.values():
         print(describe(result), flush=True)
     groups = job_groups(jobs, workers=workers if on_ray else 1, population=population)
-    if not on_ray:
-        ran = _train_groups(groups, progress=progress, hint=hint, describe=describe)
-        results_by_name = {**skipped, **ran}
-        return JobsOutcome([results_by_name[j.name] for j in jobs], time.perf_counter() - start, 1)
-    target = ray or RayTarget()
-    with ray_switches(target.address is None):
-        from amuled_ma.experiments.ray_jobs import run_on_ray  # here: importing Ray takes a second
+    if on_ray:
+        target = ray or RayTarget()
+        with ray_switches(target.address is None):
+            from amuled_ma.experiments.ray_jobs import run_on_ray  # here: importing Ray: 1 s
 
-        ran = run_on_ray(
-            groups,
-            address=target.address,
-            workers=workers,
-            progress=progress,
-            hint=hint,
-            describe=describe,
-            resource=target.resource,
-        )
-    results_by_name = {**skipped, **ran}
-    return JobsOutcome(
-        [results_by_name[j.name] for j in jobs], time.perf_counter() - start, workers
-    )
+            ran = run_on_ray(
+                groups,
+                address=target.address,
+                workers=workers,
+                progress=progress,
+                hint=hint,
+                describe=describe,
+                resource=target.resource,
+            )
+    else:
+        ran = _train_groups(groups, progress=progress, hint=hint, describe=describe)
+    by_name = {**skipped, **ran}
+    wall = time.perf_counter() - start
+    return JobsOutcome([by_name[j.name] for j in jobs], wall, workers if on_ray else 1)
 
 
 def job_groups(jobs: Sequence[TrainJob], *, workers: int, population: bool) -> list[list[TrainJob]]:

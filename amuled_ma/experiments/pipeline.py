@@ -66,12 +66,9 @@ class PipelineRequest:
         population: Train jobs of one shape together as populations (one Ray task each);
             False (``--no-population``): every job alone.
         progress: Show progress bars.
-        hint: The shell command that re-runs this request; printed with ``--resume`` when a
-            job stops early, and in the message of a folder that clashes (default: the
-            line of ``rerun``).
-        rerun: The same command as fields: a folder trained with other settings is
-            refused naming the command that trains beside it or retrains it
-            (:func:`~amuled_ma.experiments.run_folder.recovery_commands`).
+        hint: The shell command that re-runs this request, for messages (default: the line
+            of ``rerun``).
+        rerun: The same command as fields (`recovery_commands` of a clashing folder).
         title: The report's title (None: the plan's, e.g. the paper's main comparison).
         offline: Never fetch the authors' recordings (``--offline``; also
             ``$AMULED_OFFLINE=1``): one found nowhere stops the run with the manual route.
@@ -171,7 +168,7 @@ def run_pipeline(
 
     """
     from amuled_ma.authors.download import ensure_recordings, models_ablation_recordings
-    from amuled_ma.experiments.plans import training_seeds
+    from amuled_ma.experiments.plans import plan_jobs, retrain_jobs, training_seeds
     from amuled_ma.experiments.run_folder import read_record, variant_records
     from amuled_ma.scenario.memory import check_seed_replicas
 
@@ -190,11 +187,7 @@ def run_pipeline(
         plan = _plan_ablation(request, seeds)
     fetch(_replayed(plan.jobs))
     if request.retrain:
-        from amuled_ma.experiments.plans import retrain_jobs
-
         plan = dataclasses.replace(plan, jobs=retrain_jobs(plan.jobs, request.retrain))
-    from amuled_ma.experiments.plans import plan_jobs  # here: it imports torch
-
     # before the lock: a refused run makes no folder
     plan = dataclasses.replace(plan, jobs=plan_jobs(plan.jobs, request.hint, request.rerun))
     say_live_costs(plan.jobs, say)
@@ -282,16 +275,12 @@ def train_alone(
     base_dir: Path | None = None,
     config: dict[str, Any] | None = None,
 ) -> JobResult:
-    """Train one job (``amuled train`` / ``finetune``): the pipeline's steps 2 and 3 for it.
+    """Train one job (``amuled train`` / ``finetune``): planned, locked, trained; not evaluated.
 
-    The job is planned before any folder is made
-    (:func:`~amuled_ma.experiments.plans.plan_jobs`: its inputs, then its folder), the run
-    folder's lock is held, ``config.json`` written (with ``config``), and the job trained
-    by the executor of every graph (:func:`~amuled_ma.experiments.jobs.run_jobs`, a group
-    of one); nothing is evaluated. Of ``request`` it uses the run folder, seed, resume /
-    force, progress bars and resume command; ``base_variant`` is a fine-tune's base folder in
+    Planned (`plan_jobs`) before any folder is made, then trained by `run_jobs` under the run
+    folder's lock; a finished job is skipped. ``base_variant`` is a fine-tune's base folder in
     ``base_dir`` (default: the request's run folder); ``config`` holds run-level
-    ``config.json`` fields to write (None: the file is left alone). A finished job is skipped.
+    ``config.json`` fields to write (None: the file is left alone).
 
     Raises:
         AmuledError: An input is missing or the folder clashes (before any folder is

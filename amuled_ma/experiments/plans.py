@@ -200,17 +200,10 @@ def member_spec(job: TrainJob) -> MemberSpec:
 
 
 def check_base_fits(base: Path, ppo: PPOConfig, task: str) -> None:
-    """Refuse a base whose actor does not fit the scenario's networks, before any folder.
-
-    The fine-tune loads the base into networks of ``[ppo].hidden_dims``; a base trained
-    with other dims (or for another task) would fail there, after its variant folder was
-    made. Loading its actor here (:func:`~amuled_ma.learn.policies.load_policy`) finds it
-    while nothing is written.
+    """Refuse a base whose actor does not fit ``[ppo].hidden_dims``, before any folder is made.
 
     Raises:
-        CheckpointError: The actor does not fit; one line naming the base, the dims and
-            the fix.
-
+        CheckpointError: The actor does not fit, naming the base, the dims and the fix.
     """
     from amuled_ma.learn.policies import load_policy
 
@@ -308,9 +301,8 @@ def train_variant(
 ) -> JobResult:
     """Train one variant (``base``, ``shaped`` or ``finetune:<feedback>``) into the run.
 
-    The job is planned (:func:`plan_job`), prepared (:func:`prepare_job`) and trained
-    alone, as a population of one (:class:`~amuled_ma.learn.population.PopulationTrainer`:
-    the one training loop of every job); its record says complete or failed.
+    Planned (`plan_job`), prepared (`prepare_job`) and trained as a population of one; its
+    record says complete or failed.
 
     ``hint`` is the command that re-runs it (messages, Ctrl-C); ``out_dir`` defaults to
     ``run_dir/<variant folder>``; the base checkpoint is folder ``base_variant`` of
@@ -363,17 +355,11 @@ def ablation_variants(
 ) -> list[tuple[Variant, Changes]]:
     """List the fine-tunes of one ablation: ``(variant, changes to the scenario)``.
 
-    ``budget``: AMULED with ``[feedback.distill]`` at each budget of
-    :data:`BUDGET_SWEEP` (100% once, the others with each selection of
-    :data:`BUDGET_SELECTIONS`; folders ``finetune-amuled-budget0.1-uncertainty``), and
-    AMULED with every state asked (the full-feedback run, shared with ``amuled run`` when
-    it finished there with the same settings).
-
-    ``weights``: AMULED with the paper's fixed weights (``[feedback].weights`` emptied; shared
-    with ``amuled run`` when it finished there with the same settings) and AMULED with the
-    learned weights of ``[feedback].weights`` (folder ``finetune-amuled-learned-weights``),
-    on the same seeds. ``resolve`` resolves the recording's path against the scenario
-    file's folder; ``where`` names the scenario in messages.
+    ``budget``: AMULED at each budget of :data:`BUDGET_SWEEP` (100% once, the others with
+    each of :data:`BUDGET_SELECTIONS`), and AMULED with every state asked. ``weights``:
+    AMULED with the paper's fixed weights and with the learned ``[feedback].weights``
+    (`LEARNED_WEIGHTS_LABEL`). ``resolve`` resolves the recording's path against the
+    scenario file's folder; ``where`` names the scenario in messages.
 
     Raises:
         AmuledError: ``weights`` without ``[feedback].weights``.

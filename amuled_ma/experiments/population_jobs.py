@@ -81,7 +81,7 @@ def train_population_jobs(
     from amuled_ma.learn.population import train_population  # here: it imports torch
 
     outcome = GroupOutcome()
-    prepared: list[tuple[TrainJob, PreparedJob]] = []
+    prepared: list[PreparedJob] = []
     done: dict[str, JobResult] = {}
     try:
         for job in jobs:
@@ -91,8 +91,8 @@ def train_population_jobs(
             if isinstance(ready, JobResult):
                 done[job.name] = ready
             else:
-                prepared.append((job, ready))
-        specs = [ready.member(on_iteration) for _job, ready in prepared]
+                prepared.append(ready)
+        specs = [ready.member(on_iteration) for ready in prepared]
         alone = len(jobs) == 1  # a lone job: its failure is the group's error
         for members in split_populations(specs, memory_budget_bytes()):
             try:
@@ -103,17 +103,17 @@ def train_population_jobs(
                     raise trained[0]
             except Exception:
                 for i in members:
-                    prepared[i][1].failed()
+                    prepared[i].failed()
                 raise
             for i, result in zip(members, trained, strict=True):
-                job, ready = prepared[i]
+                ready = prepared[i]
                 if isinstance(result, BaseException):
                     ready.failed()
                     outcome.failures.append(str(result))
                 else:
-                    done[job.name] = ready.finished(result)
+                    done[ready.job.name] = ready.finished(result)
     finally:
-        for _job, ready in prepared:
+        for ready in prepared:
             ready.close()
     outcome.results = {job.name: done[job.name] for job in jobs if job.name in done}
     return outcome

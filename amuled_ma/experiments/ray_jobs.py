@@ -38,12 +38,11 @@ from amuled_ma.experiments.ray_switches import SINGLE_MACHINE_ENV
 from amuled_ma.experiments.run_folder import (
     JobResult,
     TrainJob,
-    checkpoint_state,
     prepare_variant,
 )
 from amuled_ma.experiments.third_party_log import ray_to_log
 from amuled_ma.files.safe import write_text_atomic
-from amuled_ma.learn.checkpoints import LAST
+from amuled_ma.learn.checkpoints import LAST, checkpoint_infos
 
 if TYPE_CHECKING:
     from types import FrameType
@@ -330,10 +329,10 @@ def unpack(data: bytes, folder: Path) -> None:
         archive.extractall(folder, filter="data")
 
 
-def _sees_driver_files(job: TrainJob, token: str) -> bool:
-    mark = Path(job.run_dir) / SHARED_TOKEN
+def _run_mark_is(job: TrainJob, mark: str, text: str) -> bool:
+    """Whether the run folder's ``mark`` file reads ``text`` (`SHARED_TOKEN`, `STOP_MARK`)."""
     try:
-        return mark.read_text() == token
+        return (Path(job.run_dir) / mark).read_text() == text
     except OSError:
         return False
 
@@ -356,14 +355,6 @@ class SweepBoard:
         """Return and reset the iterations reported since the last call."""
         total, self.counts = sum(self.counts), []
         return total
-
-
-def _stopping(job: TrainJob, sweep: str) -> bool:
-    """Whether the driver is stopping this sweep (its mark in the run folder)."""
-    try:
-        return (Path(job.run_dir) / STOP_MARK).read_text() == sweep
-    except OSError:
-        return False
 
 
 def _report(board: Any) -> Callable[[Any, int], None]:
@@ -407,14 +398,14 @@ def train_group(
         # ray.cancel interrupts a task as a SIGINT would: Python's handler must be set
         signal.signal(signal.SIGINT, signal.default_int_handler)
     first = group[0]
-    if _stopping(first, sweep):  # queued before a Ctrl-C: do not begin
+    if _run_mark_is(first, STOP_MARK, sweep):  # queued before a Ctrl-C: do not begin
         raise KeyboardInterrupt
     from amuled_ma.experiments.ray_store import RemoteStore
 
     os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
     torch.set_num_threads(1)
     set_allowed_plugins(plugins)  # the driver's --allow-plugin: a worker allows no more
-    shared = _sees_driver_files(first, token)
+    shared = _run_mark_is(first, SHARED_TOKEN, token)
     if not shared:
         if inputs is None:
             raise AmuledError(
@@ -459,7 +450,7 @@ def _marked(job: TrainJob, sweep: str, node: str, *, announce: bool) -> TrainJob
     out_dir.mkdir(parents=True, exist_ok=True)
     write_text_atomic(mark, sweep)
     if retry:
-        state = checkpoint_state(out_dir / LAST) or {}
+        state = checkpoint_infos(out_dir / LAST) or {}
         print(
             f"{job.name}: run again after its worker or node was lost; resuming from "
             f"iteration {state.get('iteration', 0)} on Ray node {node[:8]}",
@@ -486,8 +477,6 @@ def _ray_failure(name: str, error: BaseException) -> AmuledError:
 
 def _absolute(job: TrainJob) -> TrainJob:
     """The job with absolute folders (a worker's working directory is not the driver's)."""
-    import dataclasses
-
     return dataclasses.replace(
         job,
         run_dir=Path(job.run_dir).resolve(),
@@ -655,13 +644,11 @@ def _sweep(
         for run_dir in run_dirs:
             for mark in (SHARED_TOKEN, STOP_MARK):
                 (run_dir / mark).unlink(missing_ok=True)
-    if isinstance(failure, KeyboardInterrupt):
-        if hint:
-            print(f"resume with: {hint} --resume", file=sys.stderr)
-        raise failure
     if failure is not None:
         if hint:
-            print(f"after fixing it, continue with: {hint} --resume", file=sys.stderr)
+            stopped = isinstance(failure, KeyboardInterrupt)
+            then = "resume with" if stopped else "after fixing it, continue with"
+            print(f"{then}: {hint} --resume", file=sys.stderr)
         raise failure
     return done
 

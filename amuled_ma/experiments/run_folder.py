@@ -9,6 +9,8 @@ under ``"training"``, the settings a resume or skip compares), ``train_cfg.json`
 
 from __future__ import annotations
 
+import contextlib
+import importlib.metadata
 import json
 import re
 import shlex
@@ -125,11 +127,6 @@ class JobResult:
 
 
 # -- the state of a variant folder --------------------------------------------------
-def checkpoint_state(path: Path) -> dict[str, Any] | None:
-    """Return a checkpoint's ``infos`` (None when there is no checkpoint)."""
-    return checkpoint_infos(path)
-
-
 def base_checkpoint(base_folder: Path, scenario_name: str) -> Path:
     """The completed base checkpoint a fine-tune is anchored to.
 
@@ -137,7 +134,7 @@ def base_checkpoint(base_folder: Path, scenario_name: str) -> Path:
         CheckpointError: Missing or unfinished, naming the command that makes it.
     """
     path = Path(base_folder) / LAST
-    state = checkpoint_state(path)
+    state = checkpoint_infos(path)
     make = (
         f"amuled train {scenario_name} --variant {Path(base_folder).name} "
         f"--run-dir {Path(base_folder).parent}"
@@ -184,9 +181,9 @@ def settings_refusal(
 ) -> str:
     """The one-line refusal of a folder trained with other settings, with the fixes."""
     out_dir = job.out_dir
-    keys = ", ".join(d.split(":", 1)[0] for d in diffs[:8])
-    keys += f" and {len(diffs) - 8} more" if len(diffs) > 8 else ""
-    shown = "; ".join(diffs[:8]) + (f"; and {len(diffs) - 8} more" if len(diffs) > 8 else "")
+    more = f" and {len(diffs) - 8} more" if len(diffs) > 8 else ""
+    keys = ", ".join(d.split(":", 1)[0] for d in diffs[:8]) + more
+    shown = "; ".join(diffs[:8]) + (f";{more}" if more else "")
     beside, again = recovery_commands(job, diffs, rerun, hint)
     return (
         f"{out_dir} was trained with other settings or inputs than now ({keys} differ; "
@@ -232,7 +229,7 @@ def recovery_commands(
 
 def finished_with(out_dir: Path, training: dict[str, Any]) -> bool:
     """Whether ``model_last.pt`` is finished and ``config.json`` records exactly ``training``."""
-    state = checkpoint_state(Path(out_dir) / LAST)
+    state = checkpoint_infos(Path(out_dir) / LAST)
     if not (state and state.get("completed")):
         return False
     try:
@@ -259,7 +256,7 @@ def prepare_variant(
             settings (`settings_refusal`) or past the job's iterations.
     """
     out_dir = job.out_dir
-    state = checkpoint_state(Path(out_dir) / LAST)
+    state = checkpoint_infos(Path(out_dir) / LAST)
     if state is None or job.force:
         return "new"
     diffs = training_differences(out_dir, training)
@@ -387,14 +384,8 @@ def write_config(
         "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "torch": torch.__version__,
     }
-    try:
-        from importlib.metadata import version
-
-        import rsl_rl  # noqa: F401
-
-        data["rsl_rl"] = version("rsl-rl-lib")
-    except Exception:  # pragma: no cover - metadata missing
-        pass
+    with contextlib.suppress(importlib.metadata.PackageNotFoundError):
+        data["rsl_rl"] = importlib.metadata.version("rsl-rl-lib")
     data.update(extra or {})
     return write_record(run_dir, RunRecord.model_validate(data))
 
@@ -466,12 +457,8 @@ def panel_of_training(
 
 def variant_records(folders: list[Path]) -> dict[str, RunRecord]:
     """``{folder name: record}`` of the variant folders that hold one (for the evaluation)."""
-    out = {}
-    for folder in folders:
-        record = read_record(folder)
-        if record is not None:
-            out[Path(folder).name] = record
-    return out
+    records = {Path(folder).name: read_record(folder) for folder in folders}
+    return {name: record for name, record in records.items() if record is not None}
 
 
 def scenario_of_run(run_dir: Path) -> Scenario:

@@ -136,9 +136,6 @@ def run_to_view(
     run_dir = Path(run_dir)
     scenario = scenario_of_run(run_dir)
     chosen = [trained_variant(run_dir, d) for d in choose_variants(run_dir, names)]
-    n = (
-        episodes
-        if episodes is not None
-        else evaluated_episodes(run_dir, scenario.evaluation.episodes)
-    )
-    return RunToView(scenario, chosen, n)
+    if episodes is None:
+        episodes = evaluated_episodes(run_dir, scenario.evaluation.episodes)
+    return RunToView(scenario, chosen, episodes)

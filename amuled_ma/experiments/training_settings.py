@@ -27,21 +27,15 @@ NOT_LEARNED = {
 
 
 def training_config(job: TrainJob, panel: PanelPlan | None = None) -> dict[str, Any]:
-    """The settings that decide what a variant learns, as plain JSON data.
+    """The settings that decide what a variant learns, as plain JSON data (``Scenario.settings``).
 
-    A folder's saved copy (``config.json``, key ``"training"``) is compared with the current
-    one before a resume or a skip, so that a run never continues, or passes off as
-    finished, a variant trained with other settings. They are read from the validated
-    scenario (:meth:`~amuled_ma.scenario.Scenario.settings`). Left out: paths, logging and service
-    keys (:data:`NOT_LEARNED`), the recording's folder (its file name stays), the
-    ``[feedback.distill]`` table when it is off, and the feedback section for base
-    training and for the rule-based human feedback. ``inputs`` holds the SHA-256 of the
-    recordings replayed, of each cluster file the panel's prompts are made of and of the
-    ``[feedback].weights`` file (``weights_sha256``; its file name stays, its folder goes,
-    and only the ``amuled`` variant, the one that uses it, keeps it). The run's length is
-    kept apart, as the number of PPO iterations the job trains to. ``panel`` is a panel
-    fine-tune's plan (`plan_panel`; its clusters' files are hashed), None for base training
-    and the demonstrator. Returns ``{"variant", "seed", "iterations", section: {...}, ...}``.
+    A folder's saved copy (``config.json``, key ``"training"``) is compared with them before a
+    resume or a skip. Left out: :data:`NOT_LEARNED`, the recording's folder (its file name
+    stays), ``[feedback.distill]`` when off, and ``[feedback]`` for base training and the
+    rule-based human. ``inputs`` holds the SHA-256 of the recordings replayed, of each
+    cluster file of ``panel`` (a panel fine-tune's `plan_panel`, else None) and, for the
+    ``amuled`` variant, of the ``[feedback].weights`` file (its file name stays). Returns
+    ``{"variant", "seed", "iterations" (the PPO iterations trained to), section: {...}, ...}``.
 
     Raises:
         ValueError: A fine-tune that asks a panel, without its plan.

@@ -34,11 +34,14 @@ class CategoricalDistribution(Distribution):
 
     def sample(self) -> torch.Tensor:
         """Sample one action per row, one-hot, by inverse CDF (3x cheaper than multinomial)."""
-        probs = self._last_log_probs().exp()
-        cdf = probs.cumsum(-1)
+        cdf = self.probs.cumsum(-1)
         u = torch.rand((*cdf.shape[:-1], 1), dtype=cdf.dtype, device=cdf.device)
+        return self._action_at(cdf, u)
+
+    def _action_at(self, cdf: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """The one-hot action of each row whose CDF interval holds ``u`` ``[..., 1]``."""
         index = (cdf < u).sum(-1, keepdim=True).clamp_max(self.output_dim - 1)
-        return torch.zeros_like(probs).scatter_(-1, index, 1.0)
+        return torch.zeros_like(cdf).scatter_(-1, index, 1.0)
 
     def deterministic_output(self, mlp_output: torch.Tensor) -> torch.Tensor:
         """Return the most likely action, one-hot; it also sets the distribution, like `update`."""
@@ -100,12 +103,8 @@ class CategoricalDistribution(Distribution):
         return (old.exp() * (old - new)).sum(dim=-1)
 
     def init_mlp_weights(self, mlp: nn.Module) -> None:
-        """Orthogonal init as CleanRL: gain ``sqrt(2)`` for hidden layers, small for logits."""
-        linears = [m for m in mlp.modules() if isinstance(m, nn.Linear)]
-        for i, layer in enumerate(linears):
-            last = i == len(linears) - 1
-            nn.init.orthogonal_(layer.weight, gain=self.init_last_layer_std if last else 2**0.5)
-            nn.init.zeros_(layer.bias)
+        """`orthogonal_init` with the logits layer's gain ``init_last_layer_std``."""
+        orthogonal_init(mlp, self.init_last_layer_std)
 
 
 class _ArgmaxOneHot(nn.Module):

@@ -11,11 +11,12 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
+import functools
 import json
 import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,7 +27,7 @@ os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
 from rsl_rl.runners import OnPolicyRunner
 
-from amuled_ma.deliberation.mdp import BatchedDeliberation, MemberFeedback
+from amuled_ma.deliberation.mdp import MemberFeedback
 from amuled_ma.errors import AmuledError, MemberFailed, Terminated
 from amuled_ma.files.safe import FileWriteError, write_text_atomic
 from amuled_ma.learn.anchored_ppo import AnchoredPPO
@@ -38,6 +39,7 @@ from amuled_ma.learn.population_ppo import PopulationPPO
 from amuled_ma.learn.population_state import (
     MemberStart,
     lone_start,
+    member_env,
     member_env_state,
     member_optimizer_state,
     split_episodes,
@@ -47,7 +49,6 @@ from amuled_ma.learn.population_state import (
 from amuled_ma.learn.vecenv import DeliberationVecEnv
 from amuled_ma.monitor.progress import Progress
 from amuled_ma.monitor.tensorboard_log import TensorBoardLog
-from amuled_ma.tasks import make_task
 
 __all__ = ["LAST", "PopulationMember", "PopulationTrainer", "TrainOutcome", "train_population"]
 
@@ -139,7 +140,7 @@ class PopulationTrainer:
             )
         else:  # the lone runner as built, its weights, state and random stream loaded
             self.env, self.runner = env, runner
-            self.mdp, self.env_template = env.mdp, starts[0].env_state
+        self.mdp, self.env_template = self.env.mdp, starts[0].env_state
         self.alg: PopulationPPO | AnchoredPPO = self.runner.alg
         if self.stacked:
             self._load_members(starts)
@@ -157,24 +158,12 @@ class PopulationTrainer:
     def _population_env(self, starts: list[MemberStart]) -> DeliberationVecEnv:
         """One task of ``P x E`` copies in the states the members' runs left (if it saves them)."""
         first = self.specs[0]
-        factory = first.task_factory or make_task
-        self.task = factory(
-            first.scenario.task,
-            self.size * self.copies,
-            shaping_coef=self.shape.shaping_coef,
-            seed=first.training_seed,
-        )
         feedback = None
         if self.finetuning:
             feedback = MemberFeedback([spec.feedback for spec in self.specs], self.copies)
-        self.mdp = BatchedDeliberation(
-            self.task, feedback, task_weight=self.shape.task_weight, feedback_coef=1.0
-        )
-        env = DeliberationVecEnv(
-            self.mdp, cfg={"scenario": first.scenario.name, "population": self.size}
-        )
+        cfg = {"scenario": first.scenario.name, "population": self.size}
+        env = member_env(first, self.size * self.copies, feedback, cfg)
         states = [start.env_state for start in starts]
-        self.env_template = states[0]
         own = env.state_dict()
         if own is not None and all(state is not None for state in states):
             env.load_state_dict(stack_env_states(states, own))  # type: ignore[arg-type]
@@ -303,12 +292,8 @@ class PopulationTrainer:
         }
         if copy_now:
             for key in ("actor", "critic", "optimizer"):
-                state[key] = _cloned(state[key])
+                state[key] = copy.deepcopy(state[key])
         return state
-
-    def save(self, member: int, *, completed: bool, shared: dict[str, Any] | None = None) -> Path:
-        """Write member ``member``'s ``model_last.pt`` (atomically, as a lone job's)."""
-        return self.save_members([member], completed=completed, shared=shared)[0]
 
     def save_members(
         self,
@@ -336,7 +321,7 @@ class PopulationTrainer:
                 now = now or self.population_state()
                 state = now
             checkpoint = self.member_checkpoint(p, completed=completed, shared=state)
-            writes.append((self.specs[p].out_dir / LAST, _saver(checkpoint)))
+            writes.append((self.specs[p].out_dir / LAST, functools.partial(torch.save, checkpoint)))
         return write_checkpoints(writes)
 
     # ----------------------------------------------------------------- training
@@ -513,24 +498,8 @@ class PopulationTrainer:
             print(f"resume with: {hint}", file=sys.stderr)
 
 
-def _saver(checkpoint: dict[str, Any]) -> Callable[[str], None]:
-    """Writes ``checkpoint`` to the path it is given (`torch.save`)."""
-    return lambda tmp: torch.save(checkpoint, tmp)
-
-
 def _cpu(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     return {key: value.cpu() for key, value in state.items()}
-
-
-def _cloned(value: object) -> object:
-    """``value`` with every tensor in its dicts and lists cloned (a state dict's copy)."""
-    if torch.is_tensor(value):
-        return value.clone()
-    if isinstance(value, dict):
-        return {key: _cloned(item) for key, item in value.items()}
-    if isinstance(value, list):
-        return [_cloned(item) for item in value]
-    return value
 
 
 def train_population(

@@ -98,19 +98,6 @@ class MemberSpec:
         infos = checkpoint_infos(self.out_dir / LAST)
         return int((infos or {}).get("iteration", 0))
 
-    def lone_kwargs(self) -> dict[str, Any]:
-        """The job as keyword arguments (of the lone loop ``tests/learn`` checks against)."""
-        return {
-            "variant": self.variant,
-            "feedback": self.feedback,
-            "base_checkpoint": self.base_checkpoint,
-            "resume": self.resume,
-            "seed": self.seed,
-            "iterations": self.iterations,
-            "resume_hint": self.resume_hint,
-            "task_factory": self.task_factory,
-        }
-
 
 def shared_config(cfg: dict[str, Any]) -> dict[str, Any]:
     """An rsl-rl config without what may differ between members (KL weight, recipe, cadence)."""

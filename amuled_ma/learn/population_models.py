@@ -109,11 +109,8 @@ class PopulationCategoricalDistribution(CategoricalDistribution):
         """
         if self.streams is None:
             raise RuntimeError("PopulationCategoricalDistribution: set .streams before sampling")
-        probs = self.probs
-        cdf = probs.cumsum(-1)
-        u = self.streams.uniform(cdf.shape[0], cdf.dtype, cdf.device)
-        index = (cdf < u).sum(-1, keepdim=True).clamp_max(self.output_dim - 1)
-        return torch.zeros_like(probs).scatter_(-1, index, 1.0)
+        cdf = self.probs.cumsum(-1)
+        return self._action_at(cdf, self.streams.uniform(cdf.shape[0], cdf.dtype, cdf.device))
 
 
 class StackedLinear(nn.Module):

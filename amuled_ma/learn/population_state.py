@@ -21,7 +21,7 @@ os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
 from rsl_rl.runners import OnPolicyRunner
 
-from amuled_ma.deliberation.mdp import BatchedDeliberation
+from amuled_ma.deliberation.mdp import BatchedDeliberation, FeedbackFn
 from amuled_ma.errors import CheckpointError
 from amuled_ma.learn.anchored_ppo import AnchoredPPO
 from amuled_ma.learn.checkpoints import LAST, TRAINER_KEYS, read_checkpoint
@@ -81,11 +81,8 @@ def lone_start(spec: MemberSpec) -> tuple[MemberStart, OnPolicyRunner, Deliberat
     seed = spec.training_seed
     torch.manual_seed(seed)
     np.random.seed(seed % (2**32))
-    task = (spec.task_factory or make_task)(
-        scenario.task, shape.num_envs, shaping_coef=shape.shaping_coef, seed=seed
-    )
-    mdp = BatchedDeliberation(task, spec.feedback, task_weight=shape.task_weight, feedback_coef=1.0)
-    env = DeliberationVecEnv(mdp, cfg={"scenario": scenario.name, "variant": str(spec.variant)})
+    cfg = {"scenario": scenario.name, "variant": str(spec.variant)}
+    env = member_env(spec, shape.num_envs, spec.feedback, cfg)
     # rsl-rl mutates the dict it is given: hand it a copy
     runner = quiet(
         lambda: OnPolicyRunner(env, copy.deepcopy(shape.cfg), log_dir=None, device="cpu")
@@ -135,6 +132,18 @@ def lone_start(spec: MemberSpec) -> tuple[MemberStart, OnPolicyRunner, Deliberat
         num_actions=int(env.num_actions),
     )
     return start, runner, env
+
+
+def member_env(
+    spec: MemberSpec, copies: int, feedback: FeedbackFn | None, cfg: dict[str, Any]
+) -> DeliberationVecEnv:
+    """The learner's env of ``copies`` copies of ``spec``'s task (its seed), with ``feedback``."""
+    shape = spec.shape()
+    task = (spec.task_factory or make_task)(
+        spec.scenario.task, copies, shaping_coef=shape.shaping_coef, seed=spec.training_seed
+    )
+    mdp = BatchedDeliberation(task, feedback, task_weight=shape.task_weight, feedback_coef=1.0)
+    return DeliberationVecEnv(mdp, cfg=cfg)
 
 
 def _load(alg: AnchoredPPO, path: Path, load_cfg: dict | None, what: str) -> dict:

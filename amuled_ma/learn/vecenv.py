@@ -69,17 +69,20 @@ class DeliberationVecEnv(VecEnv):
     def _wrap(self, obs: torch.Tensor) -> TensorDict:
         return TensorDict({OBS_GROUP: obs}, batch_size=[self.num_envs], device=self.device)
 
+    def _sums(self) -> dict[str, torch.Tensor]:
+        """The per-copy accumulators of the episodes running, by their `state_dict` keys."""
+        return {
+            "episode_length": self.episode_length_buf,
+            "episode_return": self._ep_return,
+            "episode_shaping": self._ep_shaping,
+        }
+
     def state_dict(self) -> dict[str, Any] | None:
         """The task's state, obs and episode sums for exact resumes (None: unsupported)."""
         if not callable(getattr(self.task, "state_dict", None)):
             return None
-        return {
-            "task": self.task.state_dict(),
-            "obs": self.mdp.obs.clone(),
-            "episode_length": self.episode_length_buf.clone(),
-            "episode_return": self._ep_return.clone(),
-            "episode_shaping": self._ep_shaping.clone(),
-        }
+        sums = {name: value.clone() for name, value in self._sums().items()}
+        return {"task": self.task.state_dict(), "obs": self.mdp.obs.clone(), **sums}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a `state_dict` of an env built with the same settings.
@@ -88,12 +91,7 @@ class DeliberationVecEnv(VecEnv):
             ValueError: It does not fit this env (another task or number of copies).
         """
         self.task.load_state_dict(state["task"])
-        for name, mine in (
-            ("obs", self.mdp.obs),
-            ("episode_length", self.episode_length_buf),
-            ("episode_return", self._ep_return),
-            ("episode_shaping", self._ep_shaping),
-        ):
+        for name, mine in {"obs": self.mdp.obs, **self._sums()}.items():
             saved = state.get(name)
             if not torch.is_tensor(saved) or saved.shape != mine.shape:
                 raise ValueError(f"env state: {name} of shape {tuple(mine.shape)} expected")
@@ -106,9 +104,8 @@ class DeliberationVecEnv(VecEnv):
     def reset(self) -> TensorDict:
         """Reset every copy and return the first observations."""
         obs = self.mdp.reset()
-        self.episode_length_buf.zero_()
-        self._ep_return.zero_()
-        self._ep_shaping.zero_()
+        for value in self._sums().values():
+            value.zero_()
         return self._wrap(obs)
 
     @staticmethod
@@ -165,9 +162,8 @@ class DeliberationVecEnv(VecEnv):
         self._pending.append((keys, table))
         means = table[:, :-1].mean(0).tolist()
         extras["log"] = {f"/episode/{key}": m for key, m in zip(keys, means, strict=True)}
-        self._ep_return[done_ids] = 0.0
-        self._ep_shaping[done_ids] = 0.0
-        self.episode_length_buf[done_ids] = 0
+        for value in self._sums().values():
+            value[done_ids] = 0
 
     def drain_episodes(self) -> list[dict]:
         """Pop the episodes finished since the last call (``{metric, "env_id"}``)."""

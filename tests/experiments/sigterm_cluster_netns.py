@@ -78,9 +78,9 @@ def curve(folder: Path) -> list[dict]:
 
 def progress(path: Path) -> dict | None:
     """A checkpoint's iteration and whether it is complete (None: no checkpoint)."""
-    from amuled_ma.experiments.run_folder import checkpoint_state
+    from amuled_ma.learn.checkpoints import checkpoint_infos
 
-    state = checkpoint_state(path)
+    state = checkpoint_infos(path)
     if state is None:
         return None
     return {"iteration": int(state["iteration"]), "completed": bool(state.get("completed"))}

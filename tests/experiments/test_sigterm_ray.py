@@ -24,7 +24,7 @@ import pytest
 from netns import require_netns
 from tiny_cli import RULES, TINY
 
-from amuled_ma.experiments.run_folder import checkpoint_state
+from amuled_ma.learn.checkpoints import checkpoint_infos
 
 AMULED = [sys.executable, "-m", "amuled_ma"]
 ENV = {**os.environ, "GIT_PYTHON_REFRESH": "quiet"}
@@ -115,7 +115,7 @@ def test_sigterm_to_a_ray_run_checkpoints_every_job_and_resumes_to_the_same_resu
     assert err.count("resume with: amuled run findmilk") == 1, err
     assert "amuled: terminated (SIGTERM)" in err
     assert seconds < 60, seconds
-    stopped = {t: checkpoint_state(run_dir / t / "model_last.pt") for t in TUNES}
+    stopped = {t: checkpoint_infos(run_dir / t / "model_last.pt") for t in TUNES}
     assert all(s is not None and not s["completed"] for s in stopped.values()), stopped
     assert all(100 <= s["iteration"] < 4000 for s in stopped.values()), stopped
 
@@ -136,7 +136,7 @@ def test_sigterm_to_a_ray_run_checkpoints_every_job_and_resumes_to_the_same_resu
     for tune in TUNES:
         curve, expected = _curve(run_dir / tune), _curve(reference / tune)
         assert [row["iteration"] for row in curve] == list(range(1, target + 1)), tune
-        assert checkpoint_state(run_dir / tune / "model_last.pt")["completed"], tune
+        assert checkpoint_infos(run_dir / tune / "model_last.pt")["completed"], tune
         # every iteration the stopped job had finished is the uninterrupted run's; the
         # SIGTERM lands inside an iteration, whose rollout the resume collects again
         # (docs/learning.md, exact resume), so the rows after it may differ

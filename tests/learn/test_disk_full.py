@@ -15,8 +15,12 @@ import tiny_cli
 from small_disk import small_disk as mounted_disk
 
 from amuled_ma.cli import main
-from amuled_ma.experiments.run_folder import checkpoint_state
-from amuled_ma.learn.checkpoints import CheckpointWriteError, read_checkpoint, write_checkpoint
+from amuled_ma.learn.checkpoints import (
+    CheckpointWriteError,
+    checkpoint_infos,
+    read_checkpoint,
+    write_checkpoint,
+)
 
 
 @pytest.fixture
@@ -90,13 +94,13 @@ def test_disk_full_during_a_finetune_keeps_the_last_checkpoint(
     assert "resume with: amuled finetune findmilk" in err
     # the checkpoint of iteration 1 is whole and safe to read; nothing half-written is left
     read_checkpoint(checkpoint)
-    assert checkpoint_state(checkpoint)["iteration"] == 1
+    assert checkpoint_infos(checkpoint)["iteration"] == 1
     assert leftovers(run_dir) == []
 
     calls["filler"].unlink()
     monkeypatch.setattr(population_mod.PopulationTrainer, "iterate", original)
     assert main([*finetune, "--resume"]) == 0
-    assert checkpoint_state(checkpoint)["completed"] is True
+    assert checkpoint_infos(checkpoint)["completed"] is True
 
 
 def test_no_progress_watcher_outlives_a_training_that_fails(

@@ -21,12 +21,8 @@ from netns import require_netns, run_sealed
 from amuled_ma.errors import AmuledError
 from amuled_ma.experiments.jobs import check_order, resolve_workers, run_jobs
 from amuled_ma.experiments.plans import plan_ablation, plan_run, training_seeds
-from amuled_ma.experiments.run_folder import (
-    TrainJob,
-    checkpoint_state,
-    replica_folder,
-    split_replica,
-)
+from amuled_ma.experiments.run_folder import TrainJob, replica_folder, split_replica
+from amuled_ma.learn.checkpoints import checkpoint_infos
 from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import load_scenario
 
@@ -281,7 +277,7 @@ def test_parallel_stops_on_ctrl_c_with_checkpoints_then_resumes(tmp_path, popula
     _wait_for([t / "model_last.pt" for t in tunes], proc)
     time.sleep(1.0)
     _ctrl_c(proc)
-    stopped = [checkpoint_state(t / "model_last.pt") for t in tunes]
+    stopped = [checkpoint_infos(t / "model_last.pt") for t in tunes]
     assert all(s is not None and not s["completed"] for s in stopped), stopped
     assert all(0 < s["iteration"] < 4000 for s in stopped)
     if not population:  # queued behind the two running ones: never started
@@ -291,7 +287,7 @@ def test_parallel_stops_on_ctrl_c_with_checkpoints_then_resumes(tmp_path, popula
     last = max(s["iteration"] for s in stopped)
     _resume_to(run_dir, last + 3, tunes)
     for tune in tunes:
-        assert checkpoint_state(tune / "model_last.pt")["iteration"] == last + 3
+        assert checkpoint_infos(tune / "model_last.pt")["iteration"] == last + 3
 
 
 def test_ctrl_c_while_the_workers_start_the_finetunes_then_resume(tmp_path):
@@ -302,9 +298,9 @@ def test_ctrl_c_while_the_workers_start_the_finetunes_then_resume(tmp_path):
     _wait_for([t / "config.json" for t in tunes], proc)
     _ctrl_c(proc)
     # whatever a job had reached is kept (a checkpoint of an unfinished run, or nothing yet)
-    stopped = [checkpoint_state(t / "model_last.pt") for t in tunes]
+    stopped = [checkpoint_infos(t / "model_last.pt") for t in tunes]
     assert all(s is None or not s["completed"] for s in stopped), stopped
-    assert checkpoint_state(run_dir / "base" / "model_last.pt")["completed"]
+    assert checkpoint_infos(run_dir / "base" / "model_last.pt")["completed"]
 
     target = 3 + max((s["iteration"] for s in stopped if s), default=0)
     _resume_to(run_dir, target, _tunes(run_dir, "mean", "max", "vote"))
@@ -375,7 +371,7 @@ def test_a_killed_driver_leaves_no_process_and_resumes_from_its_checkpoints(tmp_
         time.sleep(0.5)
     lingering = {pid: _cmdline(pid) for pid in below if _running(pid)}
     assert not lingering
-    stopped = [checkpoint_state(t / "model_last.pt") for t in tunes]
+    stopped = [checkpoint_infos(t / "model_last.pt") for t in tunes]
     assert all(not s["completed"] and 100 <= s["iteration"] < 4000 for s in stopped), stopped
     assert all(s["iteration"] % 100 == 0 for s in stopped), stopped  # periodic checkpoints
 

@@ -84,8 +84,19 @@ def specs(root: Path, base: Path, scenario=None, members=MEMBERS) -> list[Member
     return out
 
 
+LONE_KEYS = (
+    "variant", "feedback", "base_checkpoint", "resume", "seed", "iterations", "resume_hint",
+    "task_factory",
+)  # fmt: skip
+
+
+def lone_kwargs(spec: MemberSpec) -> dict:
+    """The job as keyword arguments of the lone loop (``lone_trainer.Trainer``)."""
+    return {key: getattr(spec, key) for key in LONE_KEYS}
+
+
 def lone(spec: MemberSpec):
-    return Trainer(spec.scenario, spec.out_dir, **spec.lone_kwargs()).train()
+    return Trainer(spec.scenario, spec.out_dir, **lone_kwargs(spec)).train()
 
 
 def assert_rows_close(alone: list[dict], together: list[dict]) -> None:
@@ -163,7 +174,7 @@ def test_first_update_matches_alone_loss_by_loss(tmp_path, base) -> None:
         mean = sum(member[key] for member in together) / len(together)
         assert mean == pytest.approx(rsl_rl[key], abs=1e-6)
     for job, member in zip(jobs, together, strict=True):
-        trainer = Trainer(job.scenario, tmp_path / "lone" / job.out_dir.name, **job.lone_kwargs())
+        trainer = Trainer(job.scenario, tmp_path / "lone" / job.out_dir.name, **lone_kwargs(job))
         trainer.train()
         for key, value in trainer.alg.last_losses.items():
             assert member[key] == pytest.approx(value, abs=1e-6), key

@@ -14,8 +14,8 @@ from amuled_ma.errors import AmuledError
 from amuled_ma.experiments import plans
 from amuled_ma.experiments.jobs import run_jobs
 from amuled_ma.experiments.plans import plan_ablation
-from amuled_ma.experiments.run_folder import checkpoint_state, read_record
-from amuled_ma.learn.checkpoints import LAST
+from amuled_ma.experiments.run_folder import read_record
+from amuled_ma.learn.checkpoints import LAST, checkpoint_infos
 from amuled_ma.scenario import load_scenario
 
 STEPS = 8  # feedback calls per iteration: one per step of the rollout
@@ -76,13 +76,13 @@ def test_a_sweep_member_that_fails_is_named_once_and_the_others_finish(
     assert "a job of a population failed alone" in str(stop.value)
     assert str(stop.value).endswith("amuled ablate findmilk --what aggregation --resume")
     # its last checkpoint before the failure is kept; the record says failed
-    kept = checkpoint_state(bad.out_dir / LAST)
+    kept = checkpoint_infos(bad.out_dir / LAST)
     assert kept is not None and kept["iteration"] == 2 and not kept["completed"]
     assert read_record(bad.out_dir).state == "failed"
     others = [j for j in tunes if j is not bad]
     assert len(others) == 7  # the other aggregation rules and bjs-dst
     for job in others:
-        state = checkpoint_state(job.out_dir / LAST)
+        state = checkpoint_infos(job.out_dir / LAST)
         assert state is not None and state["iteration"] == 4 and state["completed"], job.name
         assert read_record(job.out_dir).state == "complete", job.name
     # fixed, the sweep resumes the failed member alone from its checkpoint
@@ -90,7 +90,7 @@ def test_a_sweep_member_that_fails_is_named_once_and_the_others_finish(
     monkeypatch.setattr(plans, "build_feedback", real)
     resumed = plan_ablation("aggregation", _scenario(), tmp_path, [1], resume=True)
     run_jobs(resumed, workers=1)
-    state = checkpoint_state(bad.out_dir / LAST)
+    state = checkpoint_infos(bad.out_dir / LAST)
     assert state["iteration"] == 4 and state["completed"]
     assert read_record(bad.out_dir).state == "complete"
     for job in others:  # the finished ones are skipped, not trained again

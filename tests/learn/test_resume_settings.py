@@ -10,7 +10,7 @@ from job_settings import settings
 from amuled_ma.errors import AmuledError
 from amuled_ma.experiments.jobs import run_jobs
 from amuled_ma.experiments.plans import plan_run, train_variant
-from amuled_ma.experiments.run_folder import checkpoint_state
+from amuled_ma.learn.checkpoints import checkpoint_infos
 from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import load_scenario
 
@@ -89,7 +89,7 @@ def test_resume_refuses_other_settings_skips_same_and_lengthens(tmp_path):
     # more iterations: the finished fine-tunes continue from 3 to 5, the bases are skipped
     outcome = run_jobs(plan_run(tiny(iterations=5), run_dir, [1], resume=True), describe=str)
     assert [r.skipped for r in outcome.results] == [True, True, False, False]
-    assert checkpoint_state(tune / "model_last.pt")["iteration"] == 5
+    assert checkpoint_infos(tune / "model_last.pt")["iteration"] == 5
     curve = json.loads((tune / "curve.json").read_text())
     assert [row["iteration"] for row in curve] == [1, 2, 3, 4, 5]
 
@@ -102,7 +102,7 @@ def test_resume_refuses_other_settings_skips_same_and_lengthens(tmp_path):
     assert (
         json.loads((tune / "config.json").read_text())["training"]["finetune"]["lambda_kl"] == 0.5
     )
-    assert checkpoint_state(tune / "model_last.pt")["iteration"] == 3
+    assert checkpoint_infos(tune / "model_last.pt")["iteration"] == 3
 
 
 def test_unreadable_saved_settings_name_the_file(tmp_path):
@@ -151,4 +151,4 @@ def test_resume_refuses_a_recording_replaced_under_the_same_name(tmp_path, recor
     data["states"][0]["beliefs"]["care"] = [0.1, 0.0, 0.0, 0.9]
     recording.write_text(json.dumps(data))
     train_variant(longer, run_dir, Variant.finetune("amuled"), resume=True)
-    assert checkpoint_state(tune / "model_last.pt")["iteration"] == 5
+    assert checkpoint_infos(tune / "model_last.pt")["iteration"] == 5

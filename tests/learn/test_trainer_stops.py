@@ -9,7 +9,7 @@ import tiny_cli
 
 from amuled_ma.cli import main
 from amuled_ma.errors import BackendUnavailable, ScenarioError
-from amuled_ma.experiments.run_folder import checkpoint_state
+from amuled_ma.learn.checkpoints import checkpoint_infos
 
 # the shared tiny run, with no periodic checkpoint and rule-based beliefs
 TINY = [*tiny_cli.TINY, "--set", "finetune.save_interval=100", *tiny_cli.RULES]
@@ -45,7 +45,7 @@ def test_backend_down_mid_finetune_writes_checkpoint_and_resume_command(
 
     monkeypatch.setattr(population_mod.PopulationTrainer, "iterate", original)
     assert main([*finetune, "--resume"]) == 0
-    state = checkpoint_state(run_dir / "finetune-human" / "model_last.pt")
+    state = checkpoint_infos(run_dir / "finetune-human" / "model_last.pt")
     assert state["completed"] is True and calls["n"] == 2  # resumed with the original rollout
 
 
@@ -105,7 +105,7 @@ def test_a_run_stopped_between_iterations_and_resumed_equals_the_run_that_never_
         patch.setattr(population_mod.PopulationTrainer, "__init__", with_stop)
         assert finetune("stopped") == 130  # the command line's Ctrl-C exit
         stopped = tmp_path / "stopped" / "finetune-amuled" / "model_last.pt"
-        assert checkpoint_state(stopped)["iteration"] == 3
+        assert checkpoint_infos(stopped)["iteration"] == 3
         assert finetune("stopped", "--resume") == 0
 
     def learned(out: str) -> list[dict]:
