@@ -141,6 +141,10 @@ def _first_line(error: BaseException) -> str:
     return line if len(line) <= 300 else line[:297] + "..."
 
 
+#: The signals that stop a command (Ctrl-C and SIGTERM).
+_STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+
+
 def _restore_sigterm(previous: _Handler) -> None:
     """Put back the SIGTERM handler ``ray.init`` replaced (Ray's aborts, no checkpoint)."""
     if previous is None or threading.current_thread() is not threading.main_thread():
@@ -254,13 +258,23 @@ def connect(address: str | None, workers: int) -> bool:
     global _local_ray
     processes = _local_ray = RayProcesses() if address is None else None
     seen = SignalsSeen()
+    # Joining a cluster, a signal taken inside ray.init's native code left it waiting for ever:
+    # the join runs with SIGTERM and SIGINT blocked (as do the threads it starts, which inherit
+    # the mask), and a signal sent meanwhile is taken as the mask is restored. A local start
+    # keeps them open: the processes it starts would inherit the mask.
+    joining = address is not None and threading.current_thread() is threading.main_thread()
     try:
         try:
             with seen, processes or contextlib.nullcontext():
-                if address is None:
-                    ray.init(num_cpus=workers, include_dashboard=False, **options)
-                else:
-                    ray.init(address=address, **options)
+                held = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS) if joining else None
+                try:
+                    if address is None:
+                        ray.init(num_cpus=workers, include_dashboard=False, **options)
+                    else:
+                        ray.init(address=address, **options)
+                finally:
+                    if held is not None:
+                        signal.pthread_sigmask(signal.SIG_SETMASK, held)
         finally:
             _restore_sigterm(previous_term)
             if previous is not None:

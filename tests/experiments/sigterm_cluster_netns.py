@@ -62,12 +62,27 @@ def sigterm(proc: subprocess.Popen, log: Path) -> dict:
     """SIGTERM to the driver alone; its exit status, stderr and seconds to exit."""
     sent = time.monotonic()
     os.kill(proc.pid, signal.SIGTERM)
-    code = proc.wait(timeout=300)
+    try:
+        code = proc.wait(timeout=300)
+    except subprocess.TimeoutExpired:
+        stacks = _stacks(proc.pid)
+        proc.kill()
+        raise RuntimeError(f"no exit 300 s after SIGTERM; its threads:\n{stacks}") from None
     return {
         "code": code,
         "seconds": round(time.monotonic() - sent, 1),
         "stderr": log.with_suffix(".err").read_text(),
     }
+
+
+def _stacks(pid: int) -> str:
+    """Every thread's Python stack of a hung process (``py-spy dump``, when installed)."""
+    spy = Path(sys.executable).with_name("py-spy")
+    if not spy.exists():
+        return "(py-spy not installed)"
+    done = subprocess.run([str(spy), "dump", "--pid", str(pid)], capture_output=True,
+                          text=True, timeout=60)  # fmt: skip
+    return done.stdout + done.stderr
 
 
 def curve(folder: Path) -> list[dict]:
