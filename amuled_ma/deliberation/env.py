@@ -10,10 +10,10 @@ clusters are not trained). Infos hold ``fused``, ``beliefs``, ``weights``, ``con
 
 from __future__ import annotations
 
+import copy
 import functools
 import string
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -119,7 +119,7 @@ class DeliberationEnv(ParallelEnv):
         self.agents: list[str] = []
         self._obs = np.zeros(self.task.obs_dim, dtype=np.float32)
         self._prompt = ""
-        self._last: tuple[int, _StepInfo] | None = None  # the last step, for render()
+        self._last: tuple[int, dict[str, Any]] | None = None  # the last step, for render()
         # Fail now, not at the first step, on an unknown rule.
         k, a = len(self.cluster_names), len(self.action_names)
         fuse(np.full((k, a), 1.0 / a), fusion_rule, return_diagnostics=True)
@@ -231,18 +231,18 @@ class DeliberationEnv(ParallelEnv):
         rewards = {ACTOR: float(out.reward[0])}
         for k, name in enumerate(self.cluster_names):
             rewards[name] = float(weights[k])
-        common = _StepInfo(
-            fused=fused,
-            beliefs=beliefs,
-            weights=dict(zip(self.cluster_names, weights.tolist(), strict=True)),
-            conflict=float(conflicts[0]) if conflicts.size else 0.0,
-            conflicts=conflicts,
-            r_env=float(info["r_env"][0]) if "r_env" in info else r_task,
-            r_shaping=float(info["r_shaping"][0]) if "r_shaping" in info else 0.0,
-            r_feedback=r_feedback,
-        )
+        common = {
+            "fused": fused,
+            "beliefs": beliefs,
+            "weights": dict(zip(self.cluster_names, weights.tolist(), strict=True)),
+            "conflict": float(conflicts[0]) if conflicts.size else 0.0,
+            "conflicts": conflicts,
+            "r_env": float(info["r_env"][0]) if "r_env" in info else r_task,
+            "r_shaping": float(info["r_shaping"][0]) if "r_shaping" in info else 0.0,
+            "r_feedback": r_feedback,
+        }
         self._last = (a, common)
-        infos = {agent: common.as_dict() for agent in self.agents}
+        infos = {agent: copy.deepcopy(common) for agent in self.agents}  # each owns its arrays
         term = dict.fromkeys(self.agents, bool(terminated[0]))
         trunc = dict.fromkeys(self.agents, bool(truncated[0]) and not bool(terminated[0]))
         # No cluster is asked about a finished episode: its final prompt is empty.
@@ -286,34 +286,18 @@ class DeliberationEnv(ParallelEnv):
         width = max(len(name) for name in (*self.cluster_names, "fused"))
         cols = [name[:7].rjust(7) for name in self.action_names]
         lines = [
-            f"last step: actor {self.action_names[action]}, conflict K {info.conflict:.3f}",
+            f"last step: actor {self.action_names[action]}, conflict K {info['conflict']:.3f}",
             f"{'':<{width}}  {' '.join(cols)}   weight",
         ]
         for k, name in enumerate(self.cluster_names):
-            row = " ".join(f"{v:7.3f}" for v in info.beliefs[k])
-            lines.append(f"{name:<{width}}  {row}   {info.weights[name]:6.3f}")
-        row = " ".join(f"{v:7.3f}" for v in info.fused)
+            row = " ".join(f"{v:7.3f}" for v in info["beliefs"][k])
+            lines.append(f"{name:<{width}}  {row}   {info['weights'][name]:6.3f}")
+        row = " ".join(f"{v:7.3f}" for v in info["fused"])
         lines.append(f"{'fused':<{width}}  {row}")
         return text + "\n".join(lines) + "\n"
 
     def close(self) -> None:
         """Nothing to release."""
-
-
-@dataclass
-class _StepInfo:
-    fused: np.ndarray
-    beliefs: np.ndarray
-    weights: dict[str, float]
-    conflict: float
-    conflicts: np.ndarray
-    r_env: float
-    r_shaping: float
-    r_feedback: float
-
-    def as_dict(self) -> dict[str, Any]:
-        """The fields as a dict of copies (each agent's info owns its arrays)."""
-        return asdict(self)
 
 
 def _row(obs: npt.ArrayLike | torch.Tensor) -> np.ndarray:
