@@ -18,11 +18,7 @@ from amuled_ma.scenario.sections import validate_model
 
 
 def scenario_from_dict(data: dict[str, Any], *, path: Path | None = None) -> Scenario:
-    """Build and validate a `Scenario` from parsed TOML data (``path``: its file, for errors).
-
-    Raises:
-        ScenarioError: Unknown section or key, a bad value, or an unsafe name.
-    """
+    """Build and validate a `Scenario` from parsed TOML data (``path``: its file, for errors)."""
     source = str(path) if path is not None else "<scenario>"
     if "path" in data:  # a field of Scenario, but never a key of a scenario file
         raise ScenarioError(unknown_top_level("path", source))
@@ -36,11 +32,7 @@ def scenario_from_dict(data: dict[str, Any], *, path: Path | None = None) -> Sce
 
 
 def resolve_scenario_path(name_or_path: str | os.PathLike[str]) -> Path:
-    """The absolute path of a scenario file, from a path or a shipped scenario's name.
-
-    Raises:
-        ScenarioError: Neither an existing file nor a shipped scenario.
-    """
+    """The absolute path of a scenario file or a shipped scenario's name (else `ScenarioError`)."""
     path = Path(name_or_path).expanduser()
     if path.is_file():
         return path.resolve()

@@ -7,7 +7,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from amuled_ma.errors import ScenarioError
-from amuled_ma.scenario.ranges import found_name as _found_name
+from amuled_ma.scenario.ranges import found
 
 #: Longest name accepted as a path component.
 MAX_NAME_LENGTH = 100
@@ -68,7 +68,7 @@ def check_path_component(name: object, where: str) -> str:
             colon, a control character, a leading ``.``/``-`` or edge spaces.
     """
     if not isinstance(name, str):
-        raise ScenarioError(f"{where} expects string, found {_found_name(name)} ({name!r})")
+        raise ScenarioError(f"{where} expects string, found {found(name)}")
     problem = _component_problem(name)
     if problem:
         raise ScenarioError(
@@ -106,11 +106,7 @@ def find_recording(
     required: bool = False,
     key: str = "[feedback].recording",
 ) -> Path:
-    """Find a recording file by path or by name (see `Scenario.recording_path`).
-
-    Raises:
-        ScenarioError: ``required`` and nothing was found; lists every place looked.
-    """
+    """Find a recording file by path or by name (see `Scenario.recording_path`)."""
     as_given = resolve(value)
     if not value.strip():
         if required:
