@@ -51,12 +51,7 @@ class RequestCost(NamedTuple):
 
 
 def request_cost(store: Path | None, model: str) -> RequestCost:
-    """What one live request to ``model`` costs here.
-
-    Returns:
-        The median of the store's recorded seconds per request when it holds at least
-        `MIN_TIMED_REQUESTS`, else `TINY_SECONDS_PER_REQUEST` (the docs' figure).
-    """
+    """One request to ``model``: the store's median seconds, else `TINY_SECONDS_PER_REQUEST`."""
     if store is not None and Path(store).is_file():
         from amuled_ma.beliefs.store.database import BeliefStore
 
@@ -77,10 +72,10 @@ _PROBED: dict[str, RequestCost] = {}
 
 
 def probe_cost(source: Any, plan: PanelPlan, agent: str) -> RequestCost:
-    """Time one live request to ``source`` after one warm-up request; nothing is stored.
+    """Time one live request to ``source`` after a warm-up; nothing is stored.
 
-    The warm-up loads the model and fills the server's prompt cache with the chat's shared
-    prefix, as a run's first requests do. A failed request gives the docs' figure.
+    The warm-up loads the model and fills the server's prompt cache, as a run's first requests
+    do. A failed request gives the docs' figure.
     """
     import torch
 
@@ -257,14 +252,9 @@ class Members(NamedTuple):
 
     def close(self) -> None:
         """Close every distinct source once."""
-        closed: set[int] = set()
-        for source in [
-            *self.routes.values(),
-            *([self.default] if self.default is not None else []),
-        ]:
-            if id(source) not in closed:
-                closed.add(id(source))
-                source.close()
+        sources = [*self.routes.values(), *([self.default] if self.default is not None else [])]
+        for source in {id(source): source for source in sources}.values():
+            source.close()
 
 
 def build_members(plan: PanelPlan, *, build: Callable[..., BeliefSource] = build_source) -> Members:
@@ -336,11 +326,7 @@ def build_members(plan: PanelPlan, *, build: Callable[..., BeliefSource] = build
 
 
 def preflight(plan: PanelPlan) -> None:
-    """Check that every member of a plan can answer, before any training or folder.
-
-    Raises:
-        AmuledError: One line per problem, naming the member, its source and the fixes.
-    """
+    """Check that every member of a plan can answer, before any work (else `AmuledError`)."""
     members = checked_members(plan)
     if members is not None:
         members.close()
@@ -485,10 +471,9 @@ def build_feedback(
 
 
 def _count_questions(distilled: Any, plan: PanelPlan) -> None:
-    """Tell each person at the terminal how many states they will be asked.
+    """Tell each person at the terminal the questions ahead on an integer budget.
 
-    On an integer budget a person answering for ``m`` agents is asked
-    ``(budget - states already asked) x m`` questions; a fractional budget has no total ahead.
+    A person answering for ``m`` agents is asked ``(budget - states already asked) x m``.
     """
     from amuled_ma.beliefs.sources.terminal import TerminalSource
 

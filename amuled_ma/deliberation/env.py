@@ -109,8 +109,6 @@ class DeliberationEnv(ParallelEnv):
         self.action_names = tuple(task_cls.action_names)
         self.cluster_names = tuple(clusters)
         self.fusion_rule = fusion_rule
-        self.r_env_weight = float(r_env_weight)
-        self.feedback_coef = float(feedback_coef)
         self.render_mode = render_mode
         self.prompt_max_length = int(prompt_max_length)
         self._render_prompt = render_state_prompt
@@ -253,11 +251,7 @@ class DeliberationEnv(ParallelEnv):
         return observations, rewards, term, trunc, infos
 
     def panel_actions(self, panel: MoralPanel) -> dict[str, np.ndarray]:
-        """Every live cluster agent's belief as answered by ``panel`` for the current state.
-
-        Raises:
-            KeyError: A cluster agent of this env is not in the panel.
-        """
+        """Every live cluster agent's belief answered by ``panel`` now (`KeyError`: not in it)."""
         names = list(getattr(panel, "clusters", []))
         missing = [c for c in self.cluster_names if c not in names]
         if missing:
@@ -310,11 +304,7 @@ def _row(obs: npt.ArrayLike | torch.Tensor) -> np.ndarray:
 
 
 def parallel_env(task_name: str = "findmilk", **kwargs: Any) -> DeliberationEnv:
-    """The deliberation env of ``task_name``, as PettingZoo's env modules offer it.
-
-    Raises:
-        ScenarioError: Unknown task; the message lists the known ones.
-    """
+    """The deliberation env of ``task_name``, as PettingZoo's env modules offer it."""
     return DeliberationEnv(task_name, **kwargs)
 
 
