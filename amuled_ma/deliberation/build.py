@@ -127,12 +127,8 @@ def probe_cost(source: Any, plan: PanelPlan, agent: str) -> RequestCost:
 def live_costs(plan: PanelPlan, store: Path, say: Callable[[str], None] | None = None) -> list[str]:
     """One line per live (Ollama) member source of a fine-tune's panel: its cost per request, total.
 
-    The cost is `request_cost` when the store holds enough timed requests, else `probe_cost`
-    (cached per model and options in this process; ``say`` is told first). No source is built
-    without a live member.
-
-    Raises:
-        AmuledError: As `build_members`.
+    The cost is `request_cost`, else `probe_cost` (once per model and options in this process;
+    ``say`` is told first). Raises as `build_members`.
     """
     if not plan.asks_panel or plan.fused_recording is not None:
         return []
@@ -333,12 +329,9 @@ def preflight(plan: PanelPlan) -> None:
 
 
 def checked_members(plan: PanelPlan) -> Members | None:
-    """The preflight of a plan, its member sources kept open for `build_feedback`.
+    """The preflight of a plan (raising as `preflight`), its member sources kept open.
 
-    Returns None when the feedback asks no member source; else the caller owns the members.
-
-    Raises:
-        AmuledError: As `preflight`; nothing is left open.
+    None when the feedback asks no member source; else the caller owns the members.
     """
     if not plan.asks_panel:
         return None
@@ -369,12 +362,9 @@ def check_distillable(plan: PanelPlan) -> None:
 def panel_source(
     plan: PanelPlan, store: StoreService, members: Members | None = None
 ) -> CachedSource | RoutedSource:
-    """The belief source of a plan's panel, every member behind ``store``.
+    """The belief source of a plan's panel, members behind ``store`` (raises as `build_members`).
 
     One ``CachedSource`` when every member shares one source, else a ``RoutedSource``.
-
-    Raises:
-        AmuledError: As `build_members` (nothing is written then).
     """
     routes, default, plans = members if members is not None else build_members(plan)
     if not routes:

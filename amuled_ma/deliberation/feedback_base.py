@@ -1,9 +1,7 @@
 """Feedback for fine-tuning: a belief over actions for every environment copy, each step.
 
-The fine-tuning reward is ``f(B)[a_t]``. A `Feedback` answers a whole batch and memoises by
-observation. It counts, per agent, the status of each rewarded step's belief (``ok``,
-``repaired``, ``abstained``, ``timeout``, ``error``, ``replay_miss``, ``distilled``, ...) so a
-server that always fails reads "error 100.00%", not "miss rate 0.00%".
+The fine-tuning reward is ``f(B)[a_t]``. A `Feedback` answers a whole batch, memoises by
+observation and counts, per agent, the status of each rewarded step's belief.
 """
 
 from __future__ import annotations

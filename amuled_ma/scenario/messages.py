@@ -198,9 +198,8 @@ def _table_model(model: type[BaseModel], key: object) -> type[BaseModel] | None:
 def scenario_error(error: ValidationError, source: str, loc: tuple[str, ...] = ()) -> ScenarioError:
     """Turn pydantic's ``ValidationError`` into one line: ``source``, key, expected and found.
 
-    The first problem is described with the key's declared range and reason, or its choices;
-    an unknown key names the close match; a validator's own `ScenarioError` is returned as it
-    is; further problems are counted. ``loc`` is where the model sits (``("ppo",)`` or ``()``).
+    A validator's own `ScenarioError` is returned as it is; further problems are counted.
+    ``loc`` is where the model sits (``("ppo",)`` or ``()``).
     """
     problems = error.errors(include_url=False)
     first = problems[0]

@@ -32,9 +32,8 @@ Changes = tuple[tuple[str, dict[str, Any]], ...]
 class Scenario(BaseModel):
     """A whole experiment setup: one section model per table, plus ``name`` and ``path``.
 
-    Built in code it is validated like a file (failure: `ScenarioError`);
-    ``model_copy(update=...)`` copies without validating, `replace` validates. ``name`` names the
-    run folder, so it is one safe path component (`NAME_RULE`).
+    Built in code it is validated like a file (`ScenarioError`); ``model_copy(update=...)``
+    copies without validating, `replace` validates. ``name`` is one safe path component.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True)

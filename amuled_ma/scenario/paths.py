@@ -79,13 +79,9 @@ def check_path_component(name: object, where: str) -> str:
 
 
 def safe_child(root: str | os.PathLike[str], name: str, *, what: str = "name") -> Path:
-    """``root / name`` after checking that it lies directly inside ``root``.
+    """``root / name`` after checking that it lies directly inside ``root`` (`ScenarioError`).
 
-    The path is normalised without following symbolic links (a run folder linked elsewhere on
-    purpose keeps working).
-
-    Raises:
-        ScenarioError: ``name`` is unsafe, or the path would leave ``root``.
+    Symbolic links are not followed: a run folder linked elsewhere on purpose keeps working.
     """
     check_path_component(name, what)
     child = Path(root) / name
