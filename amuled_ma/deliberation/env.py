@@ -10,6 +10,7 @@ clusters are not trained). Infos hold ``fused``, ``beliefs``, ``weights``, ``con
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import functools
 import string
@@ -154,15 +155,12 @@ class DeliberationEnv(ParallelEnv):
             raise KeyError(f"unknown agent {agent!r}; agents: {self.possible_agents}")
 
     def _prompt_charset(self) -> frozenset[str]:
-        chars = set(string.printable)
-        try:
-            from amuled_ma.files.resources import prompts_dir
+        from amuled_ma.files.resources import prompts_dir
 
-            template = prompts_dir() / "tasks" / f"{self.task_name}.md"
-            if template.is_file():
-                chars |= set(template.read_text(encoding="utf-8"))
-        except (ImportError, OSError):
-            pass
+        chars = set(string.printable)
+        template = prompts_dir() / "tasks" / f"{self.task_name}.md"
+        with contextlib.suppress(OSError):  # a task without a shipped template
+            chars |= set(template.read_text(encoding="utf-8"))
         return frozenset(chars)
 
     # -- prompts ---------------------------------------------------------------------

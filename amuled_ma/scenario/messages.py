@@ -126,9 +126,7 @@ def _describe(error: Any, source: str, loc: tuple[Any, ...]) -> str:
             f"of: {', '.join(names)}"
         )
     where = f"[{section}].{key}"
-    info = model.model_fields.get(key)
-    if info is None:  # pragma: no cover - pydantic reports only keys of the model
-        return f"{source}: key {where}: {error['msg']}, {found_it}"
+    info = model.model_fields[key]  # pydantic reports only keys of the model
     index = rest[0] if rest and isinstance(rest[0], int) else None
     at = f" at index {index}" if index is not None else ""
     if kind in RANGE_ERRORS:
