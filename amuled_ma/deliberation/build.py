@@ -51,12 +51,7 @@ class RequestCost(NamedTuple):
 
 
 def request_cost(store: Path | None, model: str) -> RequestCost:
-    """What one live request to ``model`` costs here.
-
-    Returns:
-        The median of the store's recorded seconds per request when it holds at least
-        `MIN_TIMED_REQUESTS`, else `TINY_SECONDS_PER_REQUEST` (the docs' figure).
-    """
+    """One request to ``model``: the store's median seconds, else `TINY_SECONDS_PER_REQUEST`."""
     if store is not None and Path(store).is_file():
         from amuled_ma.beliefs.store.database import BeliefStore
 
@@ -77,10 +72,10 @@ _PROBED: dict[str, RequestCost] = {}
 
 
 def probe_cost(source: Any, plan: PanelPlan, agent: str) -> RequestCost:
-    """Time one live request to ``source`` after one warm-up request; nothing is stored.
+    """Time one live request to ``source`` after a warm-up; nothing is stored.
 
-    The warm-up loads the model and fills the server's prompt cache with the chat's shared
-    prefix, as a run's first requests do. A failed request gives the docs' figure.
+    The warm-up loads the model and fills the server's prompt cache, as a run's first requests
+    do. A failed request gives the docs' figure.
     """
     import torch
 
@@ -129,62 +124,11 @@ def probe_cost(source: Any, plan: PanelPlan, agent: str) -> RequestCost:
     return RequestCost(seconds, "measured here: 1 request timed after a warm-up")
 
 
-def live_cost_lines(
-    plan: PanelPlan,
-    store: Path | None,
-    members: Members,
-    say: Callable[[str], None] | None = None,
-) -> list[str]:
-    """One line per live (Ollama) member source: its cost per request and in all.
-
-    Uses `request_cost` when the store holds enough timed requests, else `probe_cost`
-    (cached per model and options in this process); ``say`` is told before a probe is sent.
-    """
-    lines = []
-    budget = plan.distill.budget if plan.distill is not None and plan.distill.enabled else None
-    for source_id, spec in members.plans.items():
-        if spec.kind != "ollama":
-            continue
-        agents = [
-            c.name
-            for c in plan.clusters
-            if id(members.routes.get(c.name, members.default)) == source_id
-        ]
-        if not agents:
-            continue
-        source = members.routes.get(agents[0], members.default)
-        model = str(spec.options.get("model", getattr(source, "model", "")))
-        cost = request_cost(store, model)
-        if not cost.basis.startswith("measured here"):
-            if spec.key not in _PROBED:
-                if say is not None:
-                    say(
-                        f"live feedback: timing a request to {model} here (the belief store "
-                        f"holds fewer than {MIN_TIMED_REQUESTS} timed requests) ..."
-                    )
-                _PROBED[spec.key] = probe_cost(source, plan, agents[0])
-            cost = _PROBED[spec.key]
-        per = f"{cost.seconds:.1f} s a request ({cost.basis})"
-        who = f"{', '.join(agents)} asked of {model}"
-        if isinstance(budget, int) and not isinstance(budget, bool):
-            asks = budget * len(agents)
-            lines.append(
-                f"live feedback: {who}: {per} x {asks:,} requests on the budget "
-                f"({budget:,} states) = ~{asks * cost.seconds:,.0f} s"
-            )
-        else:
-            lines.append(
-                f"live feedback: {who}: {per} x {len(agents)} per new state the fine-tune "
-                "visits (no integer budget: the total is not known ahead)"
-            )
-    return lines
-
-
 def live_costs(plan: PanelPlan, store: Path, say: Callable[[str], None] | None = None) -> list[str]:
-    """`live_cost_lines` of a fine-tune's panel; no source is built without a live member.
+    """One line per live (Ollama) member source of a fine-tune's panel: its cost per request, total.
 
-    Raises:
-        AmuledError: As `build_members`.
+    The cost is `request_cost`, else `probe_cost` (once per model and options in this process;
+    ``say`` is told first). Raises as `build_members`.
     """
     if not plan.asks_panel or plan.fused_recording is not None:
         return []
@@ -193,7 +137,44 @@ def live_costs(plan: PanelPlan, store: Path, say: Callable[[str], None] | None =
         return []
     members = build_members(plan)
     try:
-        return live_cost_lines(plan, store, members, say)
+        lines = []
+        budget = plan.distill.budget if plan.distill is not None and plan.distill.enabled else None
+        for source_id, spec in members.plans.items():
+            if spec.kind != "ollama":
+                continue
+            agents = [
+                c.name
+                for c in plan.clusters
+                if id(members.routes.get(c.name, members.default)) == source_id
+            ]
+            if not agents:
+                continue
+            source = members.routes.get(agents[0], members.default)
+            model = str(spec.options.get("model", getattr(source, "model", "")))
+            cost = request_cost(store, model)
+            if not cost.basis.startswith("measured here"):
+                if spec.key not in _PROBED:
+                    if say is not None:
+                        say(
+                            f"live feedback: timing a request to {model} here (the belief store "
+                            f"holds fewer than {MIN_TIMED_REQUESTS} timed requests) ..."
+                        )
+                    _PROBED[spec.key] = probe_cost(source, plan, agents[0])
+                cost = _PROBED[spec.key]
+            per = f"{cost.seconds:.1f} s a request ({cost.basis})"
+            who = f"{', '.join(agents)} asked of {model}"
+            if isinstance(budget, int) and not isinstance(budget, bool):
+                asks = budget * len(agents)
+                lines.append(
+                    f"live feedback: {who}: {per} x {asks:,} requests on the budget "
+                    f"({budget:,} states) = ~{asks * cost.seconds:,.0f} s"
+                )
+            else:
+                lines.append(
+                    f"live feedback: {who}: {per} x {len(agents)} per new state the fine-tune "
+                    "visits (no integer budget: the total is not known ahead)"
+                )
+        return lines
     finally:
         members.close()
 
@@ -258,8 +239,7 @@ def _replay_problem(
 class Members(NamedTuple):
     """A plan's member sources, each distinct one built once, checked and open.
 
-    ``routes`` maps agents with their own table to a source; ``default`` serves the others;
-    ``plans`` maps ``id(source)`` to its `SourcePlan`.
+    ``routes`` and ``default`` as in `PanelPlan`; ``plans`` maps ``id(source)`` to its plan.
     """
 
     routes: dict[str, BeliefSource]
@@ -268,21 +248,13 @@ class Members(NamedTuple):
 
     def close(self) -> None:
         """Close every distinct source once."""
-        closed: set[int] = set()
-        for source in [
-            *self.routes.values(),
-            *([self.default] if self.default is not None else []),
-        ]:
-            if id(source) not in closed:
-                closed.add(id(source))
-                source.close()
+        sources = [*self.routes.values(), *([self.default] if self.default is not None else [])]
+        for source in {id(source): source for source in sources}.values():
+            source.close()
 
 
 def build_members(plan: PanelPlan, *, build: Callable[..., BeliefSource] = build_source) -> Members:
-    """Build and check every distinct member source of a plan once; nothing is asked.
-
-    Agents with equal plans share one source object. A replay member's recording must be of the
-    task and hold every member it serves.
+    """Build and check every distinct member source of a plan once (equal plans share one).
 
     Raises:
         AmuledError: One problem: its own class, prefixed with the agent and source; several:
@@ -350,25 +322,16 @@ def build_members(plan: PanelPlan, *, build: Callable[..., BeliefSource] = build
 
 
 def preflight(plan: PanelPlan) -> None:
-    """Check that every member of a plan can answer, before any training or folder.
-
-    Raises:
-        AmuledError: One line per problem, naming the member, its source and the fixes.
-    """
+    """Check that every member of a plan can answer, before any work (else `AmuledError`)."""
     members = checked_members(plan)
     if members is not None:
         members.close()
 
 
 def checked_members(plan: PanelPlan) -> Members | None:
-    """The preflight of a plan, its member sources kept open for `build_feedback`.
+    """The preflight of a plan (raising as `preflight`), its member sources kept open.
 
-    Returns:
-        The members (the caller closes them or hands them on); None when the feedback asks no
-        member source.
-
-    Raises:
-        AmuledError: As `preflight`; nothing is left open.
+    None when the feedback asks no member source; else the caller owns the members.
     """
     if not plan.asks_panel:
         return None
@@ -385,11 +348,7 @@ def checked_members(plan: PanelPlan) -> Members | None:
 
 
 def check_distillable(plan: PanelPlan) -> None:
-    """Refuse ``[feedback.distill]`` on a recording that keeps only the fused belief.
-
-    Raises:
-        ScenarioError: Naming the file and the fix.
-    """
+    """Refuse ``[feedback.distill]`` on a recording of fused beliefs only (`ScenarioError`)."""
     if plan.fused_recording is None or plan.distill is None or not plan.distill.enabled:
         return
     raise ScenarioError(
@@ -403,13 +362,9 @@ def check_distillable(plan: PanelPlan) -> None:
 def panel_source(
     plan: PanelPlan, store: StoreService, members: Members | None = None
 ) -> CachedSource | RoutedSource:
-    """The belief source of a plan's panel, every member behind ``store``.
+    """The belief source of a plan's panel, members behind ``store`` (raises as `build_members`).
 
-    Returns:
-        One ``CachedSource`` when every member shares one source, else a ``RoutedSource``.
-
-    Raises:
-        AmuledError: As `build_members` (nothing is written then).
+    One ``CachedSource`` when every member shares one source, else a ``RoutedSource``.
     """
     routes, default, plans = members if members is not None else build_members(plan)
     if not routes:
@@ -448,26 +403,11 @@ def build_feedback(
 
     ``members`` from `checked_members` are handed over (default: built here). With
     ``[feedback.distill].enabled`` the panel is distilled in ``state_dir`` (``resume`` continues
-    its budget); without it the panel answers every state. ``seed`` seeds the distilled model
-    unless ``[feedback.distill].seed`` is set.
+    its budget); ``seed`` seeds the distilled model unless ``[feedback.distill].seed`` is set.
 
     Raises:
         AmuledError: A member's source cannot be built or checked.
     """
-    feedback = _build(plan, store, members, state_dir, resume, seed, cache_dir)
-    feedback.plan = plan
-    return feedback
-
-
-def _build(
-    plan: PanelPlan,
-    store: StoreService,
-    members: Members | None,
-    state_dir: Path | None,
-    resume: bool,
-    seed: int | None,
-    cache_dir: Path | None,
-) -> Feedback:
     from amuled_ma.deliberation.feedback_base import CallableFeedback, DemonstratorFeedback
     from amuled_ma.deliberation.panel_feedback import FusedReplayFeedback, PanelFeedback
 
@@ -475,55 +415,55 @@ def _build(
         from amuled_ma.tasks.human import human_belief
 
         task = plan.task
-        return CallableFeedback(
+        feedback: Feedback = CallableFeedback(
             lambda obs: np.asarray(human_belief(task, obs)).reshape(len(obs), -1),
             name="human:rules",
         )
-    if not plan.asks_panel:
-        return DemonstratorFeedback(plan.task, seed=plan.seed, cache_dir=cache_dir)
-    if plan.fused_recording is not None:
+    elif not plan.asks_panel:
+        feedback = DemonstratorFeedback(plan.task, seed=plan.seed, cache_dir=cache_dir)
+    elif plan.fused_recording is not None:
         check_distillable(plan)
-        fused = FusedReplayFeedback(recording_of(plan.fused_recording), plan.miss_policy)
-        fused.max_abstention = plan.max_abstention
-        return fused
-    from amuled_ma.clusters import build_messages
-    from amuled_ma.deliberation.panel import MoralPanel
+        feedback = FusedReplayFeedback(recording_of(plan.fused_recording), plan.miss_policy)
+    else:
+        from amuled_ma.clusters import build_messages
+        from amuled_ma.deliberation.panel import MoralPanel
 
-    source: BeliefSource = panel_source(plan, store, members)
-    if plan.distill is not None and plan.distill.enabled and state_dir is not None:
-        from amuled_ma.distill import DistilledSource
+        source: BeliefSource = panel_source(plan, store, members)
+        if plan.distill is not None and plan.distill.enabled and state_dir is not None:
+            from amuled_ma.distill import DistilledSource
 
-        try:
-            source = DistilledSource.from_config(
-                source,
-                plan.distill,
-                seed=plan.seed if seed is None else seed,
-                fusion_rule=plan.rule,
-                state_dir=state_dir,
-                resume=resume,
-            )
-        except BaseException:
-            source.close()
-            raise
-        _count_questions(source, plan)
-    panel = MoralPanel(
-        plan.task,
-        list(plan.clusters),
-        source,
-        plan.rule,
-        build_messages=functools.partial(build_messages, registry=plan.registry),
-        prior=plan.prior,
-    )
-    feedback = PanelFeedback(plan.variant, panel, source, miss_zero=plan.miss_zero)
-    feedback.max_abstention = plan.max_abstention
+            try:
+                source = DistilledSource.from_config(
+                    source,
+                    plan.distill,
+                    seed=plan.seed if seed is None else seed,
+                    fusion_rule=plan.rule,
+                    state_dir=state_dir,
+                    resume=resume,
+                )
+            except BaseException:
+                source.close()
+                raise
+            _count_questions(source, plan)
+        panel = MoralPanel(
+            plan.task,
+            list(plan.clusters),
+            source,
+            plan.rule,
+            build_messages=functools.partial(build_messages, registry=plan.registry),
+            prior=plan.prior,
+        )
+        feedback = PanelFeedback(plan.variant, panel, source, miss_zero=plan.miss_zero)
+    if plan.asks_panel:  # the demonstrator and the human rule always answer
+        feedback.max_abstention = plan.max_abstention
+    feedback.plan = plan
     return feedback
 
 
 def _count_questions(distilled: Any, plan: PanelPlan) -> None:
-    """Tell each person at the terminal how many states they will be asked.
+    """Tell each person at the terminal the questions ahead on an integer budget.
 
-    On an integer budget a person answering for ``m`` agents is asked
-    ``(budget - states already asked) x m`` questions; a fractional budget has no total ahead.
+    A person answering for ``m`` agents is asked ``(budget - states already asked) x m``.
     """
     from amuled_ma.beliefs.sources.terminal import TerminalSource
 

@@ -10,10 +10,11 @@ clusters are not trained). Infos hold ``fused``, ``beliefs``, ``weights``, ``con
 
 from __future__ import annotations
 
+import contextlib
+import copy
 import functools
 import string
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -109,8 +110,6 @@ class DeliberationEnv(ParallelEnv):
         self.action_names = tuple(task_cls.action_names)
         self.cluster_names = tuple(clusters)
         self.fusion_rule = fusion_rule
-        self.r_env_weight = float(r_env_weight)
-        self.feedback_coef = float(feedback_coef)
         self.render_mode = render_mode
         self.prompt_max_length = int(prompt_max_length)
         self._render_prompt = render_state_prompt
@@ -119,7 +118,7 @@ class DeliberationEnv(ParallelEnv):
         self.agents: list[str] = []
         self._obs = np.zeros(self.task.obs_dim, dtype=np.float32)
         self._prompt = ""
-        self._last: tuple[int, _StepInfo] | None = None  # the last step, for render()
+        self._last: tuple[int, dict[str, Any]] | None = None  # the last step, for render()
         # Fail now, not at the first step, on an unknown rule.
         k, a = len(self.cluster_names), len(self.action_names)
         fuse(np.full((k, a), 1.0 / a), fusion_rule, return_diagnostics=True)
@@ -156,15 +155,12 @@ class DeliberationEnv(ParallelEnv):
             raise KeyError(f"unknown agent {agent!r}; agents: {self.possible_agents}")
 
     def _prompt_charset(self) -> frozenset[str]:
-        chars = set(string.printable)
-        try:
-            from amuled_ma.files.resources import prompts_dir
+        from amuled_ma.files.resources import prompts_dir
 
-            template = prompts_dir() / "tasks" / f"{self.task_name}.md"
-            if template.is_file():
-                chars |= set(template.read_text(encoding="utf-8"))
-        except (ImportError, OSError):
-            pass
+        chars = set(string.printable)
+        template = prompts_dir() / "tasks" / f"{self.task_name}.md"
+        with contextlib.suppress(OSError):  # a task without a shipped template
+            chars |= set(template.read_text(encoding="utf-8"))
         return frozenset(chars)
 
     # -- prompts ---------------------------------------------------------------------
@@ -231,18 +227,18 @@ class DeliberationEnv(ParallelEnv):
         rewards = {ACTOR: float(out.reward[0])}
         for k, name in enumerate(self.cluster_names):
             rewards[name] = float(weights[k])
-        common = _StepInfo(
-            fused=fused,
-            beliefs=beliefs,
-            weights=dict(zip(self.cluster_names, weights.tolist(), strict=True)),
-            conflict=float(conflicts[0]) if conflicts.size else 0.0,
-            conflicts=conflicts,
-            r_env=float(info["r_env"][0]) if "r_env" in info else r_task,
-            r_shaping=float(info["r_shaping"][0]) if "r_shaping" in info else 0.0,
-            r_feedback=r_feedback,
-        )
+        common = {
+            "fused": fused,
+            "beliefs": beliefs,
+            "weights": dict(zip(self.cluster_names, weights.tolist(), strict=True)),
+            "conflict": float(conflicts[0]) if conflicts.size else 0.0,
+            "conflicts": conflicts,
+            "r_env": float(info["r_env"][0]) if "r_env" in info else r_task,
+            "r_shaping": float(info["r_shaping"][0]) if "r_shaping" in info else 0.0,
+            "r_feedback": r_feedback,
+        }
         self._last = (a, common)
-        infos = {agent: common.as_dict() for agent in self.agents}
+        infos = {agent: copy.deepcopy(common) for agent in self.agents}  # each owns its arrays
         term = dict.fromkeys(self.agents, bool(terminated[0]))
         trunc = dict.fromkeys(self.agents, bool(truncated[0]) and not bool(terminated[0]))
         # No cluster is asked about a finished episode: its final prompt is empty.
@@ -253,11 +249,7 @@ class DeliberationEnv(ParallelEnv):
         return observations, rewards, term, trunc, infos
 
     def panel_actions(self, panel: MoralPanel) -> dict[str, np.ndarray]:
-        """Every live cluster agent's belief as answered by ``panel`` for the current state.
-
-        Raises:
-            KeyError: A cluster agent of this env is not in the panel.
-        """
+        """Every live cluster agent's belief answered by ``panel`` now (`KeyError`: not in it)."""
         names = list(getattr(panel, "clusters", []))
         missing = [c for c in self.cluster_names if c not in names]
         if missing:
@@ -286,34 +278,18 @@ class DeliberationEnv(ParallelEnv):
         width = max(len(name) for name in (*self.cluster_names, "fused"))
         cols = [name[:7].rjust(7) for name in self.action_names]
         lines = [
-            f"last step: actor {self.action_names[action]}, conflict K {info.conflict:.3f}",
+            f"last step: actor {self.action_names[action]}, conflict K {info['conflict']:.3f}",
             f"{'':<{width}}  {' '.join(cols)}   weight",
         ]
         for k, name in enumerate(self.cluster_names):
-            row = " ".join(f"{v:7.3f}" for v in info.beliefs[k])
-            lines.append(f"{name:<{width}}  {row}   {info.weights[name]:6.3f}")
-        row = " ".join(f"{v:7.3f}" for v in info.fused)
+            row = " ".join(f"{v:7.3f}" for v in info["beliefs"][k])
+            lines.append(f"{name:<{width}}  {row}   {info['weights'][name]:6.3f}")
+        row = " ".join(f"{v:7.3f}" for v in info["fused"])
         lines.append(f"{'fused':<{width}}  {row}")
         return text + "\n".join(lines) + "\n"
 
     def close(self) -> None:
         """Nothing to release."""
-
-
-@dataclass
-class _StepInfo:
-    fused: np.ndarray
-    beliefs: np.ndarray
-    weights: dict[str, float]
-    conflict: float
-    conflicts: np.ndarray
-    r_env: float
-    r_shaping: float
-    r_feedback: float
-
-    def as_dict(self) -> dict[str, Any]:
-        """The fields as a dict of copies (each agent's info owns its arrays)."""
-        return asdict(self)
 
 
 def _row(obs: npt.ArrayLike | torch.Tensor) -> np.ndarray:
@@ -326,11 +302,7 @@ def _row(obs: npt.ArrayLike | torch.Tensor) -> np.ndarray:
 
 
 def parallel_env(task_name: str = "findmilk", **kwargs: Any) -> DeliberationEnv:
-    """The deliberation env of ``task_name``, as PettingZoo's env modules offer it.
-
-    Raises:
-        ScenarioError: Unknown task; the message lists the known ones.
-    """
+    """The deliberation env of ``task_name``, as PettingZoo's env modules offer it."""
     return DeliberationEnv(task_name, **kwargs)
 
 

@@ -1,9 +1,7 @@
 """Feedback for fine-tuning: a belief over actions for every environment copy, each step.
 
-The fine-tuning reward is ``f(B)[a_t]``. A `Feedback` answers a whole batch and memoises by
-observation. It counts, per agent, the status of each rewarded step's belief (``ok``,
-``repaired``, ``abstained``, ``timeout``, ``error``, ``replay_miss``, ``distilled``, ...) so a
-server that always fails reads "error 100.00%", not "miss rate 0.00%".
+The fine-tuning reward is ``f(B)[a_t]``. A `Feedback` answers a whole batch, memoises by
+observation and counts, per agent, the status of each rewarded step's belief.
 """
 
 from __future__ import annotations
@@ -19,6 +17,7 @@ import torch
 
 from amuled_ma.beliefs.types import MODEL_STATUSES, UNASKED
 from amuled_ma.deliberation.state_key import freeze
+from amuled_ma.errors import AbstentionError
 
 if TYPE_CHECKING:
     from amuled_ma.deliberation.plan import PanelPlan
@@ -176,13 +175,9 @@ class Feedback(ABC):
             self._conflict_sum += conflict
 
     def agent_report(self, *, per: str = "steps") -> dict[str, dict[str, Any]]:
-        """Per agent: the count of each status, ``total``, ``failed`` and ``failure_rate``.
+        """Per agent: each status's count, ``total``, ``failed`` (not `ANSWERED`), ``failure_rate``.
 
         ``per``: ``"steps"`` (each rewarded step counts) or ``"states"`` (each distinct state once).
-        ``failed`` counts every status outside `ANSWERED`.
-
-        Raises:
-            ValueError: ``per`` is neither ``"steps"`` nor ``"states"``.
         """
         if per not in ("steps", "states"):
             raise ValueError(f"per must be 'steps' or 'states', got {per!r}")
@@ -202,15 +197,10 @@ class Feedback(ABC):
         return self.name
 
     def check_abstention(self) -> None:
-        """Stop when an agent left too much of the reward without its answer.
+        """Raise `AbstentionError` when an agent failed on over `max_abstention` of its steps.
 
-        Judged over rewarded steps once the agent was asked `MIN_STATES_JUDGED` distinct states.
-
-        Raises:
-            AbstentionError: An agent failed on more than `max_abstention` of the rewarded steps.
+        Judged once the agent was asked `MIN_STATES_JUDGED` distinct states.
         """
-        from amuled_ma.errors import AbstentionError
-
         limit = self.max_abstention
         if limit is None:
             return

@@ -198,9 +198,8 @@ class MoralPanel:
     ) -> PanelOutput:
         """Ask every cluster about every env copy and fuse per copy.
 
-        Raises:
-            ValueError: ``prompt_vars`` is missing or of the wrong length while messages are
-                needed, or ``obs_batch`` is not 2-D.
+        Raises ``ValueError`` when ``obs_batch`` is not 2-D or messages need ``prompt_vars``
+        (one per copy) that are missing.
         """
         obs = _as_numpy(obs_batch)
         if obs.ndim != 2:
@@ -212,22 +211,17 @@ class MoralPanel:
 
         # 1. distinct states of this batch
         rows = np.ascontiguousarray(obs, dtype=np.float64)
-        keys: list[bytes] = []
-        if self.with_messages:
-            assert prompt_vars is not None
-            for i in range(n):
-                keys.append(rows[i].tobytes() + freeze(prompt_vars[i]))
-        else:
-            keys = [rows[i].tobytes() for i in range(n)]
-        first: dict[bytes, int] = {}
-        first_index: list[int] = []  # a representative env copy of each distinct state
-        inverse = np.empty(n, dtype=np.int64)
+        keys = [rows[i].tobytes() for i in range(n)]
+        if prompt_vars is not None and self.with_messages:
+            keys = [
+                key + freeze(variables) for key, variables in zip(keys, prompt_vars, strict=True)
+            ]
+        first: dict[bytes, int] = {}  # a representative env copy of each distinct state
         for i, key in enumerate(keys):
-            u = first.get(key)
-            if u is None:
-                u = first[key] = len(first_index)
-                first_index.append(i)
-            inverse[i] = u
+            first.setdefault(key, i)
+        first_index = list(first.values())
+        ordinal = {key: u for u, key in enumerate(first)}
+        inverse = np.array([ordinal[key] for key in keys], dtype=np.int64)
         u_count = len(first_index)
 
         # 2. one batch of requests, one per (distinct state, cluster)

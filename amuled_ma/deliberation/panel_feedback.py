@@ -76,40 +76,23 @@ class PanelFeedback(Feedback):
     ) -> list[tuple]:
         out = self.panel.fused(obs, prompt_vars)
         fused = np.asarray(out.fused, dtype=np.float64).reshape(len(obs), -1)
-        clusters = list(
-            getattr(self.panel, "cluster_names", None) or getattr(self.panel, "clusters", [])
-        )
+        clusters = tuple(self.panel.cluster_names)
+        beliefs = getattr(out, "beliefs", None)  # (N, K, A)
+        shares = None if beliefs is None else entropy_shares(beliefs)
         results = []
-        weights = getattr(out, "weights", None)
-        conflict = getattr(out, "conflict", None)
-        statuses = getattr(out, "statuses", None)
-        beliefs = getattr(out, "beliefs", None)
-        shares = None
-        if beliefs is not None and statuses is not None:
-            per_agent = np.asarray(beliefs, dtype=np.float64)
-            if per_agent.ndim == 3 and per_agent.shape[:2] == (len(obs), len(clusters)):
-                shares = entropy_shares(per_agent)
         for i in range(len(obs)):
-            diag: dict[str, Any] = {}
-            if weights is not None:
-                row = np.asarray(weights[i], dtype=np.float64).reshape(-1)
-                names = clusters if len(clusters) == len(row) else [str(j) for j in range(len(row))]
-                diag["weights"] = dict(zip(names, row.tolist(), strict=True))
-            if conflict is not None:
-                diag["conflict"] = float(np.asarray(conflict).reshape(-1)[i])
-            if statuses is not None:
-                row_status = statuses[i]
-                diag["statuses"] = (
-                    (row_status,) if isinstance(row_status, str) else tuple(row_status)
-                )
-                if len(clusters) == len(diag["statuses"]):
-                    diag["agents"] = tuple(clusters)
-                    if shares is not None:
-                        diag["entropy_share"] = {
-                            name: float(shares[i, j])
-                            for j, name in enumerate(clusters)
-                            if diag["statuses"][j] in ANSWERED
-                        }
+            diag: dict[str, Any] = {
+                "weights": dict(zip(clusters, np.asarray(out.weights[i]).tolist(), strict=True)),
+                "conflict": float(out.conflict[i]),
+                "statuses": tuple(out.statuses[i]),
+                "agents": clusters,
+            }
+            if shares is not None:
+                diag["entropy_share"] = {
+                    name: float(shares[i, j])
+                    for j, name in enumerate(clusters)
+                    if diag["statuses"][j] in ANSWERED
+                }
             if self.miss_zero and _all_missed(diag.get("statuses", ())):
                 results.append((np.zeros_like(fused[i]), diag))
                 continue

@@ -14,18 +14,16 @@ from amuled_ma.errors import AmuledError, ClusterDefinitionError, ScenarioError
 from amuled_ma.records.variants import parse_feedback
 from amuled_ma.scenario import AGENT_SPECS, MORAL_AGENT, Scenario
 from amuled_ma.scenario.agents import match_agents
+from amuled_ma.scenario.loading import weights_prior
 from amuled_ma.scenario.messages import did_you_mean
-from amuled_ma.scenario.panel_weights import member_prior, read_panel_weights
 from amuled_ma.scenario.paths import find_recording
 from amuled_ma.tasks.names import TASK_NAMES
-
-if TYPE_CHECKING:
-    from amuled_ma.scenario.agents import AgentSpec
 
 if TYPE_CHECKING:  # loaded by the functions that use them (a plan is made before any read)
     from amuled_ma.beliefs.sources.replay import Recording
     from amuled_ma.clusters import Cluster, ClusterRegistry
     from amuled_ma.scenario import DistillConfig, FeedbackConfig
+    from amuled_ma.scenario.agents import AgentSpec
 
 #: What every label of a ``rules`` source says: it answers with the task's rule.
 RULES_NOTE = ", the task's rule: the cluster's text is not read"
@@ -49,16 +47,9 @@ class SourcePlan:
 class PanelPlan:
     """A feedback variant resolved from a scenario: everything building it needs.
 
-    Attributes:
-        where: The scenario file (or name), first in messages.
-        clusters: The members, cluster objects in panel order (empty without a panel).
-        routes: ``{agent: source}`` of the members with their own table.
-        default: The source of every other member (None: each has a table).
-        problems: ``[(error, label)]`` of sources that could not be planned.
-        fused_recording: The fused-only recording, when the panel replays one.
-        miss_zero: A state every member missed rewards 0 (the authors' scripts).
-        prior: The members' prior weights (``[feedback].weights``, ``amuled`` only, sum 1);
-            None: the paper's fixed weights.
+    ``routes``: the sources of members with their own table, ``default``: of the others;
+    ``problems``: ``[(error, label)]`` of sources not planned; ``miss_zero``: a state every
+    member missed rewards 0; ``prior``: ``[feedback].weights`` (``amuled`` only, sum 1).
     """
 
     variant: str
@@ -140,7 +131,6 @@ def cluster_registry(feedback: FeedbackConfig, resolve: Callable[[str], Path]) -
 
     Raises:
         ClusterDefinitionError: A folder is missing or a file is malformed or collides.
-
     """
     dirs = [resolve(d) for d in feedback.clusters_dirs]
     return _registry_cached(tuple(str(d) for d in dirs))
@@ -156,21 +146,10 @@ def _registry_cached(dirs: tuple[str, ...]) -> ClusterRegistry:
 def panel_of(
     variant: str, feedback: FeedbackConfig, registry: ClusterRegistry
 ) -> tuple[list[Cluster], str]:
-    """The panel of a feedback variant: its agents (cluster objects) and fusion rule.
-
-    Args:
-        variant: The feedback variant (``amuled``, ``cluster:care``, ``moral``, ...).
-        feedback: The ``[feedback]`` section (clusters, fusion).
-        registry: The loaded clusters (`cluster_registry`).
-
-    Returns:
-        ``(clusters, fusion rule)``.
+    """``(clusters, fusion rule)`` of a feedback variant (``amuled``, ``cluster:care``, ...).
 
     Raises:
-        ClusterDefinitionError: A named cluster is in no loaded cluster file; the message
-            names the closest and lists the known ones (a user cluster needs
-            ``--clusters-dir``).
-
+        ClusterDefinitionError: A named cluster is in no loaded cluster file.
     """
     kind, arg = parse_feedback(variant)
     names, rule = list(feedback.clusters), feedback.fusion
@@ -194,29 +173,18 @@ def panel_of(
     return clusters, rule
 
 
-def cluster_sources(
+def cluster_tables(
     agents: Mapping[str, AgentSpec], clusters: Sequence[Cluster]
-) -> dict[str, dict[str, Any]]:
-    """Each cluster file's ``[source]`` for a member without its own agent table.
+) -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
+    """Each cluster file's ``[source]`` for a member without its own agent table, and its file.
 
-    A cluster file may name where its beliefs come from (``[source]``); the scenario's own
-    ``[feedback.agents.<name>]`` table for that agent wins. Returns ``{cluster name: its
-    [source] table}``, to merge under ``[feedback.agents]``.
+    Returns ``({cluster name: its [source] table}, {cluster name: its file})``; the tables
+    merge under ``[feedback.agents]`` (the scenario's own table for an agent wins).
     """
     named = match_agents(list(agents), clusters)
-    return {c.name: dict(c.source) for c in clusters if c.source and c.name not in named}
-
-
-def cluster_source_files(
-    agents: Mapping[str, AgentSpec], clusters: Sequence[Any]
-) -> dict[str, str]:
-    """``{cluster name: its file}`` of each ``[source]`` `cluster_sources` merges in."""
-    named = match_agents(list(agents), clusters)
-    return {
-        c.name: str(c.path)
-        for c in clusters
-        if getattr(c, "source", None) and c.name not in named and getattr(c, "path", None)
-    }
+    own = {c.name: c for c in clusters if c.source and c.name not in named}
+    tables = {name: dict(c.source or {}) for name, c in own.items()}
+    return tables, {name: str(c.path) for name, c in own.items() if c.path}
 
 
 def default_source(
@@ -224,12 +192,8 @@ def default_source(
 ) -> SourcePlan:
     """The plan of ``[feedback].source`` (what every agent without a table uses).
 
-    ``resolve`` resolves a path against the scenario file's folder; ``where`` names the
-    scenario in messages (its file, or ``scenario 'name'``).
-
     Raises:
         ScenarioError: The replayed recording is not found.
-
     """
     fb = feedback
     model = AGENT_SPECS.get(fb.source)  # a kind registered at run time takes no options
@@ -247,14 +211,10 @@ def agent_source(
     spec: AgentSpec,
     file: str | None = None,
 ) -> SourcePlan:
-    """The plan of agent ``name``'s ``spec``, ``[feedback]``'s values inherited.
-
-    ``file``: the cluster file whose ``[source]`` the table is (None: the scenario's own);
-    the label then starts with that file (``"clusters/care.toml: [source] ..."``).
+    """The plan of agent ``name``'s ``spec``; ``file``: the cluster file the table is from.
 
     Raises:
         ScenarioError: The agent's recording is not found.
-
     """
     head = f"{file}: [source]" if file else f"[feedback.agents.{name}]"
     options = spec.source_options(feedback, resolve, where, head)
@@ -269,22 +229,9 @@ def plan_sources(
     agents: Sequence[str | Cluster],
     files: Mapping[str, str] | None = None,
 ) -> tuple[dict[str, SourcePlan], SourcePlan | None, list[tuple[BaseException, str]]]:
-    """Each panel agent's source.
+    """Each panel agent's source: ``(routes, default, problems)`` as in `PanelPlan`.
 
-    Args:
-        feedback: The ``[feedback]`` section (the cluster files' ``[source]`` tables
-            merged into its agents).
-        resolve: Resolves a path against the scenario file's folder.
-        where: The scenario, for messages (its file, or ``scenario 'name'``).
-        agents: The panel's agents: names or cluster objects (see ``match_agents``).
-        files: :func:`cluster_source_files` before the merge (the tables that came from a
-            cluster file, named by that file).
-
-    Returns:
-        ``({agent: source}`` for agents with a table, the default source (None when
-        every agent has a table), the problems ``[(error, label)]`` of sources that could
-        not be planned``)``.
-
+    ``files``: the tables that came from a cluster file (`cluster_tables`), by that file.
     """
     tables = dict(feedback.agents)
     matched = match_agents(list(tables), agents)
@@ -375,22 +322,14 @@ def _no_human_rule(
 
 
 def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
-    """Resolve a feedback variant of a scenario into its `PanelPlan`, once.
+    """Resolve a feedback variant (``amuled``, ``human:rules``, ``cluster:care``, ...) once.
 
-    Args:
-        variant: The feedback (``amuled``, ``human``, ``human:rules``, ``cluster:care``,
-            ``moral``, ``agg:mean``).
-        scenario: The scenario.
-
-    Returns:
-        The plan (sources not built, nothing asked, no file written).
+    Sources are not built, nothing is asked and no file is written.
 
     Raises:
         ClusterDefinitionError: A member is in no loaded cluster file.
-        ScenarioError: A fused-only recording asked for another variant or fusion rule;
-            a ``[feedback].weights`` file that is missing or malformed, that weighs other
-            members than the panel's, or that would apply to a fused-only recording.
-
+        ScenarioError: A fused-only recording asked for another variant or fusion rule, or
+            with ``[feedback].weights``; a weights file that is bad or weighs other members.
     """
     kind, arg = parse_feedback(variant)
     fb = scenario.feedback
@@ -408,8 +347,7 @@ def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
         return dataclasses.replace(base, variant="human:rules" if arg == "rules" else variant)
     registry = cluster_registry(fb, scenario.resolve)
     clusters, rule = panel_of(variant, fb, registry)
-    files = cluster_source_files(fb.agents, clusters)
-    defaults = cluster_sources(fb.agents, clusters)
+    defaults, files = cluster_tables(fb.agents, clusters)
     if defaults:
         scenario = scenario.replace("feedback", agents={**defaults, **fb.agents})
     where = str(scenario.path or f"scenario {scenario.name!r}")
@@ -418,10 +356,15 @@ def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
         fused = None  # agents with their own source: a panel (the preflight refuses replay)
     base = dataclasses.replace(base, clusters=tuple(clusters), registry=registry, rule=rule)
     if kind == "amuled" and fb.weights.strip():
-        prior, weights_file = _member_prior(
-            fb.weights, scenario.resolve, base.where, [c.name for c in clusters], fused
-        )
-        base = dataclasses.replace(base, prior=prior, weights_file=weights_file)
+        if fused is not None:
+            raise ScenarioError(
+                f"{base.where}: key [feedback].weights: {fused} keeps only the authors' fused "
+                "belief per state, so there are no members' beliefs to weigh; replay a "
+                'recording with per-cluster beliefs (e.g. recording = "driving-llama-3_1-70b") '
+                "or drop weights"
+            )
+        weighted = weights_prior(fb.weights, base.agents, scenario.resolve, base.where)
+        base = dataclasses.replace(base, prior=weighted[0], weights_file=weighted[1])
     if fused is not None:
         if kind != "amuled" or fb.fusion != "bjs-dst":
             raise ScenarioError(
@@ -445,38 +388,6 @@ def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
     )
 
 
-def _member_prior(
-    weights: str, resolve: Callable[[str], Path], where: str, members: list[str], fused: Path | None
-) -> tuple[tuple[float, ...], Path]:
-    """``(prior, weights_file)`` of the ``amuled`` variant from ``[feedback].weights``.
-
-    Args:
-        weights: ``[feedback].weights``, the file's path.
-        resolve: Resolves a path against the scenario file's folder.
-        where: The scenario (its file or name), for messages.
-        members: The panel's members, in order.
-        fused: The replayed recording when it holds fused beliefs only.
-
-    Returns:
-        The members' prior weights and the file's resolved path.
-
-    Raises:
-        ScenarioError: The file is missing or malformed, names other members, or the panel
-            replays a recording of fused beliefs only (there is no member to weigh).
-
-    """
-    where = f"{where}: key [feedback].weights"
-    path = resolve(weights)
-    if fused is not None:
-        raise ScenarioError(
-            f"{where}: {fused} keeps only the authors' fused belief per state, so there are no "
-            "members' beliefs to weigh; replay a recording with per-cluster beliefs (e.g. "
-            'recording = "driving-llama-3_1-70b") or drop weights'
-        )
-    prior = member_prior(read_panel_weights(path, where=where), members, where=where, path=path)
-    return prior, path
-
-
 def _fused_only_recording(
     feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str
 ) -> Path | None:
@@ -484,7 +395,6 @@ def _fused_only_recording(
 
     Raises:
         ScenarioError: The recording is not found.
-
     """
     if feedback.source != "replay":
         return None

@@ -10,8 +10,6 @@ import json
 from collections.abc import Mapping
 from typing import Any
 
-import numpy as np
-
 
 def freeze(variables: Mapping[str, Any]) -> bytes:
     """Return a byte string identifying a dict of prompt variables (order-free)."""
@@ -21,10 +19,4 @@ def freeze(variables: Mapping[str, Any]) -> bytes:
 
 
 def _json_default(value: object) -> Any:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if hasattr(value, "tolist"):
-        return value.tolist()
-    return repr(value)
+    return value.tolist() if hasattr(value, "tolist") else repr(value)  # numpy: Python values

@@ -8,11 +8,11 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from amuled_ma.errors import ScenarioError
 from amuled_ma.scenario.paths import find_recording
-from amuled_ma.scenario.ranges import field_range
+from amuled_ma.scenario.ranges import RANGE_ERRORS, TOML_NAMES, field_range, found
 from amuled_ma.servers.urls import normalize_host, normalize_hosts
 
 if TYPE_CHECKING:
@@ -21,8 +21,6 @@ if TYPE_CHECKING:
 #: Name of the unprompted moral agent (the ``moral`` variant; ``moral_agent`` in recordings).
 MORAL_AGENT = "moral_agent"
 
-_TYPE_NAMES = {str: "string", int: "integer", float: "float", bool: "boolean", dict: "table",
-               list: "array"}  # fmt: skip
 _PLAIN = (str, int, float, bool, list, dict)
 _OPTION = "an OllamaSource option"
 
@@ -41,12 +39,6 @@ TimeoutS = Annotated[
 def norm(name: str) -> str:
     """A name compared ignoring case, ``_``, ``-`` and spaces (``social-justice``)."""
     return "".join(ch for ch in name.lower() if ch.isalnum())
-
-
-def _found(value: object) -> str:
-    names = {bool: "boolean", int: "integer", float: "float", str: "string", list: "array",
-             dict: "table"}  # fmt: skip
-    return f"{names.get(type(value), type(value).__name__)} ({value!r})"
 
 
 class _Spec(BaseModel):
@@ -70,8 +62,7 @@ class _Spec(BaseModel):
     ) -> dict[str, Any]:
         """The keyword arguments of this kind's source, ``[feedback]``'s values inherited.
 
-        ``resolve`` resolves a path against the scenario file's folder; ``where`` (the
-        scenario) and ``head`` (the table, ``[feedback.agents.care]``) name it in messages.
+        ``where`` (the scenario) and ``head`` (the table) name it in messages.
 
         Raises:
             ScenarioError: A file the table names is not found.
@@ -90,18 +81,13 @@ class ReplaySpec(_Spec):
     def source_options(  # noqa: D102 - see _Spec
         self, feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str, head: str
     ) -> dict[str, Any]:
-        fb = feedback
         key = f"{head} recording" if self.recording else "[feedback].recording"
         path = find_recording(
-            self.recording or fb.recording,
-            resolve,
-            where=where,
-            required=True,
-            key=key,
+            self.recording or feedback.recording, resolve, where=where, required=True, key=key
         )
         # "zero" is applied to the fused reward (the panel feedback's miss_zero); the
         # source answers a miss with a uniform belief, counted as replay_miss
-        policy = "uniform" if fb.miss_policy == "zero" else fb.miss_policy
+        policy = "uniform" if feedback.miss_policy == "zero" else feedback.miss_policy
         return {"paths": str(path), "miss_policy": policy}
 
     def detail(self, options: Mapping[str, Any]) -> str:  # noqa: D102 - see _Spec
@@ -249,11 +235,7 @@ FEEDBACK_OLLAMA_KEYS = ("model", "host", "hosts", "concurrency", "timeout_s")
 
 
 def check_ollama_table(table: Mapping[str, Any], where: str) -> None:
-    """Refuse keys of ``[feedback.ollama]`` that are no ``OllamaSource`` keyword.
-
-    Raises:
-        ScenarioError: Naming the file, the table, the unknown keys and the allowed ones.
-    """
+    """Refuse keys of ``[feedback.ollama]`` that no ``OllamaSource`` takes: `ScenarioError`."""
     allowed = set(OllamaSpec.model_fields) - {"source", *FEEDBACK_OLLAMA_KEYS}
     unknown = sorted(set(table) - allowed)
     if unknown:
@@ -288,16 +270,6 @@ def _types(annotation: Any) -> tuple[type, ...]:
     return (annotation,)
 
 
-def agent_keys(kind: str) -> dict[str, tuple[tuple[type, ...], str]]:
-    """The keys a table of ``kind`` may hold besides ``source``: ``{key: (types, what)}``."""
-    model = AGENT_SPECS[kind]
-    return {
-        key: (_types(info.annotation), info.description or "")
-        for key, info in model.model_fields.items()
-        if key != "source"
-    }
-
-
 def _plain_problem(value: object, key: str) -> str | None:
     """Why ``value`` is not plain JSON-able TOML data (a datetime, say), or None."""
     if isinstance(value, datetime.date | datetime.time):
@@ -317,66 +289,69 @@ def _plain_problem(value: object, key: str) -> str | None:
     return None
 
 
+def _agent_problem(model: type[_Spec], table: Mapping[str, Any], error: ValidationError) -> str:
+    """The first problem pydantic found in an agent table, as the agent table messages say it."""
+    first = error.errors(include_url=False)[0]
+    key = str(first["loc"][0])
+    kind = table["source"]
+    if first["type"] == "extra_forbidden":
+        keys = ", ".join(["source", *sorted(k for k in model.model_fields if k != "source")])
+        return (
+            f"unknown key {key!r} for source = {kind!r}; expected some of {keys}; fix or "
+            "remove the key"
+        )
+    value = table.get(key)
+    info = model.model_fields[key]
+    rng = field_range(model, key)
+    if first["type"] in RANGE_ERRORS and rng is not None:
+        left = "(" if rng.low_open else "["
+        return (
+            f"key {key} expects a number in {left}{rng.low}, {rng.high}] ({rng.why}), "
+            f"found {value!r}"
+        )
+    names = " or ".join(TOML_NAMES[t] for t in _types(info.annotation))
+    return (
+        f"key {key} expects {names} ({info.description or ''}), found {found(value)}; fix the value"
+    )
+
+
 def check_agent_table(
     head: str, table: object, *, default_source: str = "", default_model: str = ""
-) -> None:
-    """Check one agent table: its kind, keys, types, ranges and required key.
+) -> BaseModel:
+    """Validate one agent table into its spec (``head`` starts every message).
 
-    ``head`` starts every message; an ``ollama`` table without ``model`` takes
-    ``default_model`` only when ``default_source`` is ``"ollama"``.
+    An ``ollama`` table without ``model`` takes ``default_model`` if ``default_source`` is ollama.
 
     Raises:
         ScenarioError: Naming the table, what was expected, what was found and the fix.
     """
     kinds = ", ".join(AGENT_SOURCE_KINDS)
     if isinstance(table, BaseModel):
-        return
+        return table
     if not isinstance(table, Mapping):
         raise ScenarioError(
-            f'{head} expects a table such as {{ source = "rules" }}, found {_found(table)}'
+            f'{head} expects a table such as {{ source = "rules" }}, found {found(table)}'
         )
     kind = table.get("source")
     if kind is None:
         raise ScenarioError(f"{head} has no key source; add source = one of {kinds}")
     if kind not in AGENT_SPECS:
         raise ScenarioError(
-            f"{head} key source expects one of {kinds}, found {_found(kind)}; fix source "
+            f"{head} key source expects one of {kinds}, found {found(kind)}; fix source "
             '(a plug-in agent is source = "entry-point" with name = an installed '
             'amuled_ma.agents name, or "pkg.module:Class" and --allow-plugin pkg.module:Class)'
         )
     model = AGENT_SPECS[kind]
-    allowed = agent_keys(kind)
-    for k, value in table.items():
-        if k == "source":
-            continue
-        if k not in allowed:
-            raise ScenarioError(
-                f"{head} unknown key {k!r} for source = {kind!r}; expected some of "
-                f"{', '.join(['source', *sorted(allowed)])}; fix or remove the key"
-            )
+    for k, value in table.items():  # pydantic takes a date inside a free-form table
         problem = _plain_problem(value, k)
         if problem:
             raise ScenarioError(f"{head} {problem}")
-        types, what = allowed[k]
-        if value is not None and (
-            not isinstance(value, types) or (isinstance(value, bool) and bool not in types)
-        ):
-            names = " or ".join(_TYPE_NAMES[t] for t in types)
-            raise ScenarioError(
-                f"{head} key {k} expects {names} ({what}), found {_found(value)}; fix the value"
-            )
-        rng = field_range(model, k)
-        if rng is not None and not isinstance(value, bool) and value not in rng:
-            left = "(" if rng.low_open else "["
-            raise ScenarioError(
-                f"{head} key {k} expects a number in {left}{rng.low}, {rng.high}] ({rng.why}), "
-                f"found {value!r}"
-            )
-        if k == "host" and isinstance(value, str) and value:
-            normalize_host(value, where=f"{head} key host")
-        if k == "hosts":
-            normalize_hosts(value, where=f"{head} key hosts")
-    if kind == "ollama" and table.get("host") and table.get("hosts"):
+    host, hosts = table.get("host"), table.get("hosts")
+    if kind == "ollama" and isinstance(host, str) and host:
+        normalize_host(host, where=f"{head} key host")
+    if kind == "ollama" and isinstance(hosts, list):
+        normalize_hosts(hosts, where=f"{head} key hosts")
+    if kind == "ollama" and host and hosts:
         raise ScenarioError(
             f"{head} sets both host and hosts; keep host for one server, or hosts = "
             "[...] for a pool (list that server there too)"
@@ -384,9 +359,8 @@ def check_agent_table(
     if model.required is not None:
         required, example = model.required
         given = table.get(required)
-        if kind == "ollama" and not given and default_source == "ollama" and default_model:
-            return
-        if not isinstance(given, str) or not given.strip():
+        inherits = kind == "ollama" and default_source == "ollama" and bool(default_model)
+        if not (inherits and not given) and (not isinstance(given, str) or not given.strip()):
             also = (
                 " and [feedback].source is not 'ollama' (so [feedback].model is not an "
                 "Ollama model)"
@@ -396,6 +370,10 @@ def check_agent_table(
             raise ScenarioError(
                 f"{head} (source = {kind!r}) has no {required}{also}; add {example}"
             )
+    try:
+        return model.model_validate(table)
+    except ValidationError as error:
+        raise ScenarioError(f"{head} {_agent_problem(model, table, error)}") from None
 
 
 def check_agent_tables(
@@ -405,25 +383,22 @@ def check_agent_tables(
     clusters: Sequence[str],
     default_source: str,
     default_model: str,
-) -> None:
-    """Check ``[feedback.agents]``: every table, key, type, range and agent name.
-
-    Raises:
-        ScenarioError: Naming the file, the table, what was expected, what was found and the fix.
-    """
+) -> dict[str, BaseModel]:
+    """Validate ``[feedback.agents]`` into ``{name: spec}``, checking every agent name."""
     if not isinstance(agents, Mapping):
         raise ScenarioError(
             f"{where}: key [feedback].agents expects a table of [feedback.agents.<name>] "
-            f"tables, found {_found(agents)}"
+            f"tables, found {found(agents)}"
         )
     known = {norm(c): c for c in (*clusters, MORAL_AGENT)}
     seen: dict[str, str] = {}
+    specs: dict[str, BaseModel] = {}
     for name, table in agents.items():
         head = f"{where}: [feedback.agents.{name}]"
         if not isinstance(table, Mapping | BaseModel):
             raise ScenarioError(
                 f'{head} expects a table such as {{ source = "rules" }}, found '
-                f"{_found(table)}; write it as a [feedback.agents.{name}] table"
+                f"{found(table)}; write it as a [feedback.agents.{name}] table"
             )
         key = norm(str(name))
         if key not in known:
@@ -438,14 +413,16 @@ def check_agent_tables(
                 f"{known[key]!r}; keep one of the two tables"
             )
         seen[key] = str(name)
-        check_agent_table(head, table, default_source=default_source, default_model=default_model)
+        specs[name] = check_agent_table(
+            head, table, default_source=default_source, default_model=default_model
+        )
+    return specs
 
 
 def match_agents(names: Sequence[str], agents: Sequence[Any]) -> dict[str, str]:
     """``{agent name: table name}`` for every panel agent some ``[feedback.agents]`` table names.
 
-    Names compare ignoring case, ``_``, ``-`` and spaces; a cluster object also matches a
-    table named after one of its aliases.
+    Names compare by `norm`; a cluster object also matches a table named after an alias.
     """
     by_norm = {norm(n): n for n in names}
     out: dict[str, str] = {}

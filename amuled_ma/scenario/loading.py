@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -14,15 +14,11 @@ from amuled_ma.scenario.messages import did_you_mean, unknown_top_level
 from amuled_ma.scenario.model import Scenario
 from amuled_ma.scenario.panel_weights import member_prior, read_panel_weights
 from amuled_ma.scenario.paths import check_path_component
-from amuled_ma.scenario.sections import FeedbackConfig, validate_model
+from amuled_ma.scenario.sections import validate_model
 
 
 def scenario_from_dict(data: dict[str, Any], *, path: Path | None = None) -> Scenario:
-    """Build and validate a `Scenario` from parsed TOML data (``path``: its file, for errors).
-
-    Raises:
-        ScenarioError: Unknown section or key, a bad value, or an unsafe name.
-    """
+    """Build and validate a `Scenario` from parsed TOML data (``path``: its file, for errors)."""
     source = str(path) if path is not None else "<scenario>"
     if "path" in data:  # a field of Scenario, but never a key of a scenario file
         raise ScenarioError(unknown_top_level("path", source))
@@ -36,11 +32,7 @@ def scenario_from_dict(data: dict[str, Any], *, path: Path | None = None) -> Sce
 
 
 def resolve_scenario_path(name_or_path: str | os.PathLike[str]) -> Path:
-    """The absolute path of a scenario file, from a path or a shipped scenario's name.
-
-    Raises:
-        ScenarioError: Neither an existing file nor a shipped scenario.
-    """
+    """The absolute path of a scenario file or a shipped scenario's name (else `ScenarioError`)."""
     path = Path(name_or_path).expanduser()
     if path.is_file():
         return path.resolve()
@@ -70,35 +62,24 @@ def load_scenario(name_or_path: str | os.PathLike[str]) -> Scenario:
         scenario = scenario_from_dict(data, path=path)
     except RecursionError:
         raise ScenarioError(_too_deep(path, None, "scenario")) from None
-    check_weights_file(scenario.feedback, scenario.resolve, str(scenario.path or scenario.name))
+    feedback = scenario.feedback
+    if feedback.weights.strip():
+        weights_prior(feedback.weights, feedback.clusters, scenario.resolve, str(path))
     return scenario
 
 
-def check_weights_file(
-    feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str
-) -> tuple[float, ...] | None:
-    """Check the ``[feedback].weights`` file against the panel, if it names one.
-
-    Args:
-        feedback: The ``[feedback]`` section (weights, clusters).
-        resolve: Resolves a path against the scenario file's folder.
-        where: The scenario (its file or name), for messages.
-
-    Returns:
-        The prior in ``[feedback].clusters`` order (summing to 1), or None without a file.
+def weights_prior(
+    weights: str, members: Sequence[str], resolve: Callable[[str], Path], where: str
+) -> tuple[tuple[float, ...], Path]:
+    """``(prior in members' order, file)`` of a ``[feedback].weights`` file (``where``: scenario).
 
     Raises:
-        ScenarioError: The file is missing, malformed, or names other members than
-            ``[feedback].clusters``; one line naming the scenario, the file and the member.
-
+        ScenarioError: The file is missing, malformed, or names other members than ``members``.
     """
-    value = feedback.weights
-    if not value.strip():
-        return None
     where = f"{where}: key [feedback].weights"
-    path = resolve(value)
-    weights = read_panel_weights(path, where=where)
-    return member_prior(weights, feedback.clusters, where=where, path=path)
+    path = resolve(weights)
+    prior = member_prior(read_panel_weights(path, where=where), members, where=where, path=path)
+    return prior, path
 
 
 #: Most characters a scenario file may hold (a shipped one holds about 10,000).

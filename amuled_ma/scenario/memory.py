@@ -165,11 +165,7 @@ def distill_bytes(ensemble: int, hidden: int, members: int, budget: float | int)
 def check_distill_memory(
     ensemble: int, hidden: int, members: int, budget: float | int, source: str
 ) -> None:
-    """Refuse a ``[feedback.distill]`` model whose fit needs more than the memory allows.
-
-    Raises:
-        ScenarioError: `distill_bytes` above `MEMORY_FRACTION` of this machine's memory.
-    """
+    """Refuse a distilled model whose `distill_bytes` exceed `MEMORY_FRACTION` of the memory."""
     memory = physical_memory_bytes()
     allowed = MEMORY_FRACTION * memory
     need = distill_bytes(ensemble, hidden, members, budget)

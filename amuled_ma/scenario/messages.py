@@ -11,8 +11,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ValidationError
 
 from amuled_ma.errors import ScenarioError
-from amuled_ma.scenario.ranges import Range, field_length, field_range
-from amuled_ma.scenario.ranges import found_name as _found_name
+from amuled_ma.scenario.ranges import RANGE_ERRORS, Range, field_length, field_range, found
 from amuled_ma.scenario.ranges import kind as _kind
 
 #: The section models by table name, in the order of a scenario file (filled by
@@ -98,33 +97,27 @@ def unknown_section(section: str, source: str) -> str:
     )
 
 
-#: pydantic error types of a number outside its declared bounds (or NaN, infinite).
-_RANGE_ERRORS = frozenset(
-    {"greater_than", "greater_than_equal", "less_than", "less_than_equal", "finite_number"}
-)
-
-
 def _describe(error: Any, source: str, loc: tuple[Any, ...]) -> str:
     """One pydantic error (``loc`` from the scenario's top) as a scenario message."""
     kind, value = error["type"], error.get("input")
-    found = f"found {_found_name(value)} ({value!r})"
+    found_it = f"found {found(value)}"
     if not loc:
-        return f"{source}: {error['msg']}, {found}"
+        return f"{source}: {error['msg']}, {found_it}"
     head = loc[0]
     if head not in SECTIONS:  # a top-level key: name, or no key of a scenario file
         if kind == "extra_forbidden":
             return unknown_top_level(head, source)
         if kind == "string_type":
-            return f"{source}: key {head} expects string, {found}"
-        return f"{source}: key {head}: {error['msg']}, {found}"
+            return f"{source}: key {head} expects string, {found_it}"
+        return f"{source}: key {head}: {error['msg']}, {found_it}"
     section, model = str(head), SECTIONS[str(head)]
     while len(loc) > 2 and (nested := _table_model(model, loc[1])) is not None:
         model = nested  # a nested table: [feedback.distill]
         section, loc = f"{section}.{loc[1]}", (loc[0], *loc[2:])
     if len(loc) == 1:
         if kind in ("model_type", "model_attributes_type", "dict_type"):
-            return f"{source}: key {section} expects table, {found}"
-        return f"{source}: key [{section}]: {error['msg']}, {found}"
+            return f"{source}: key {section} expects table, {found_it}"
+        return f"{source}: key [{section}]: {error['msg']}, {found_it}"
     key, rest = str(loc[1]), loc[2:]
     names = list(model.model_fields)
     if kind == "extra_forbidden" and not rest:
@@ -133,12 +126,10 @@ def _describe(error: Any, source: str, loc: tuple[Any, ...]) -> str:
             f"of: {', '.join(names)}"
         )
     where = f"[{section}].{key}"
-    info = model.model_fields.get(key)
-    if info is None:  # pragma: no cover - pydantic reports only keys of the model
-        return f"{source}: key {where}: {error['msg']}, {found}"
+    info = model.model_fields[key]  # pydantic reports only keys of the model
     index = rest[0] if rest and isinstance(rest[0], int) else None
     at = f" at index {index}" if index is not None else ""
-    if kind in _RANGE_ERRORS:
+    if kind in RANGE_ERRORS:
         rng = field_range(model, key) or Range()
         number_type = _number_type(info.annotation)
         if index is not None:
@@ -170,10 +161,10 @@ def _describe(error: Any, source: str, loc: tuple[Any, ...]) -> str:
             )
         wants_int = kind == "int_type"
         return (
-            f"{source}: key {where} expects {_type_name(info.annotation)}, {found}{at}"
+            f"{source}: key {where} expects {_type_name(info.annotation)}, {found_it}{at}"
             f"{_float_for_int_hint(wants_int, value)}"
         )
-    return f"{source}: key {where}{at}: {error['msg']}, {found}"
+    return f"{source}: key {where}{at}: {error['msg']}, {found_it}"
 
 
 def toml_syntax_error(value: object) -> str | None:
@@ -205,9 +196,8 @@ def _table_model(model: type[BaseModel], key: object) -> type[BaseModel] | None:
 def scenario_error(error: ValidationError, source: str, loc: tuple[str, ...] = ()) -> ScenarioError:
     """Turn pydantic's ``ValidationError`` into one line: ``source``, key, expected and found.
 
-    The first problem is described with the key's declared range and reason, or its choices;
-    an unknown key names the close match; a validator's own `ScenarioError` is returned as it
-    is; further problems are counted. ``loc`` is where the model sits (``("ppo",)`` or ``()``).
+    A validator's own `ScenarioError` is returned as it is; further problems are counted.
+    ``loc`` is where the model sits (``("ppo",)`` or ``()``).
     """
     problems = error.errors(include_url=False)
     first = problems[0]

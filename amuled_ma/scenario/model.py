@@ -32,9 +32,8 @@ Changes = tuple[tuple[str, dict[str, Any]], ...]
 class Scenario(BaseModel):
     """A whole experiment setup: one section model per table, plus ``name`` and ``path``.
 
-    Built in code it is validated like a file (failure: `ScenarioError`);
-    ``model_copy(update=...)`` copies without validating, `replace` validates. ``name`` names the
-    run folder, so it is one safe path component (`NAME_RULE`).
+    Built in code it is validated like a file (`ScenarioError`); ``model_copy(update=...)``
+    copies without validating, `replace` validates. ``name`` is one safe path component.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
@@ -77,10 +76,7 @@ class Scenario(BaseModel):
 
         First existing wins: the value relative to the scenario file; ``$AMULED_RECORDINGS``;
         `user_recordings_dir`; ``../shared/amuled-recordings`` beside the repository checkout.
-        Without ``required`` a missing file gives the value as given (resolved).
-
-        Raises:
-            ScenarioError: ``required`` and nothing was found; lists every place looked.
+        Not found: ``required`` raises `ScenarioError` (every place looked), else the value.
         """
         return find_recording(
             self.feedback.recording,
@@ -104,14 +100,9 @@ class Scenario(BaseModel):
         return self.model_dump(mode="json", exclude={"name", "path"})
 
     def replace(self, section: str, **changes: object) -> Scenario:
-        """A copy with some keys of one section changed, validated like a file.
-
-        Raises:
-            ScenarioError: An unknown section or key, or a bad value; names the override.
-        """
+        """A copy with some keys of one section changed, validated like a file (`ScenarioError`)."""
         source = f"{self.path or self.name} (override of [{section}])"
-        model = SECTIONS.get(section)
-        if model is None:
+        if section not in SECTIONS:
             raise ScenarioError(unknown_section(section, source))
         current = getattr(self, section)
         merged = {key: getattr(current, key) for key in type(current).model_fields}
@@ -130,27 +121,17 @@ class Scenario(BaseModel):
                 )
                 raise ScenarioError(f"{source}: key [{section}].{key}: {where}")
             merged[head] = _with_nested(table, rest, value)
-        new_section = validate_model(model, merged, source, (section,))
-        return self.model_copy(update={section: new_section})
+        return self.model_copy(update={section: validate_section(section, merged, source)})
 
     def changed(self, changes: Changes) -> Scenario:
-        """Return a copy with each ``(section, {key: value})`` applied in order (:meth:`replace`).
-
-        Raises:
-            ScenarioError: As :meth:`replace`.
-
-        """
+        """Return a copy with each ``(section, {key: value})`` applied in order (`replace`)."""
         scenario = self
         for section, values in changes:
             scenario = scenario.replace(section, **values)
         return scenario
 
     def default_run_dir(self, runs_dir: str | os.PathLike[str] | None = None) -> Path:
-        """``<runs_dir>/<name>``, guaranteed to lie directly inside ``runs_dir``.
-
-        Raises:
-            ScenarioError: The name is not a safe path component.
-        """
+        """``<runs_dir>/<name>``, directly inside ``runs_dir`` (an unsafe name: `ScenarioError`)."""
         root = self.output.runs_dir if runs_dir is None else runs_dir
         return safe_child(root, self.name, what=f"{self.path or '<scenario>'}: key name")
 
@@ -174,8 +155,7 @@ def validate_section(section: str, values: dict[str, Any], source: str) -> BaseM
     """Validate one section's values as a file's table is validated, and build its model.
 
     Raises:
-        ScenarioError: An unknown section or key, or a value of the wrong type or out of range;
-            names the file, the ``[section].key``, what was expected and what was found.
+        ScenarioError: An unknown section or key, or a bad value; names file, key and fix.
     """
     model = SECTIONS.get(section)
     if model is None:

@@ -16,8 +16,7 @@ def parse_set(text: str) -> tuple[str, str, Any]:
     list or table (``[``, ``{``) must parse.
 
     Raises:
-        ScenarioError: No ``=`` or no ``.``; an unknown section (the closest named); a list or
-            table that is not TOML (TOML's reason); a value nested too deep.
+        ScenarioError: No ``=`` or ``.``, an unknown section, bad TOML, a value nested too deep.
     """
     key, sep, raw = text.partition("=")
     section, dot, name = key.strip().partition(".")

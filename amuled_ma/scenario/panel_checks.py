@@ -67,8 +67,7 @@ def check_clusters(value: list[str], source: str) -> list[str]:
     """Return ``[feedback].clusters`` if it is a panel: non-empty, distinct, visible names.
 
     Raises:
-        ScenarioError: An empty list, a name empty, too long or with an `odd_character`, or two
-            names of one `identity_key`.
+        ScenarioError: No name; a name empty, too long or odd; two of one `identity_key`.
     """
     head = f"{source}: key [feedback].clusters"
     if not value:
@@ -103,11 +102,9 @@ def check_clusters(value: list[str], source: str) -> list[str]:
 def check_fusion(value: str, clusters: Sequence[str] | None, source: str) -> str:
     """Return ``[feedback].fusion`` if it names a rule of `FUSION_RULES` as it takes.
 
-    ``single:<i>`` indexes ``clusters`` (negative from the end).
-
     Raises:
-        ScenarioError: An unknown or malformed name, a parameter missing or unexpected, or a
-            ``single`` index that is not an integer of the panel.
+        ScenarioError: An unknown rule, a parameter missing or unexpected, or a ``single:<i>``
+            index outside ``clusters`` (negative from the end).
     """
     head = f"{source}: key [feedback].fusion"
     name, sep, param = value.partition(":")

@@ -113,18 +113,9 @@ class PanelWeights(_Model):
                 raise ValueError(f"{key} has {len(values)} values for {len(self.members)} members")
         return self
 
-    def normalised(self) -> dict[str, float]:
-        """``{member: weight}`` scaled to sum 1."""
-        total = math.fsum(self.weights)
-        return {m: w / total for m, w in zip(self.members, self.weights, strict=True)}
-
 
 def read_panel_weights(path: Path, *, where: str) -> PanelWeights:
-    """Read and check a panel weights file (``where``: the scenario file and key, for messages).
-
-    Raises:
-        ScenarioError: No such file, too large, not JSON, or a key that does not fit.
-    """
+    """Read and check a panel weights file (``where``: scenario file and key; `ScenarioError`)."""
     fix = "write it with 'amuled study fit-weights STUDY' (docs/study.md)"
     try:
         raw = read_bounded_bytes(
@@ -159,7 +150,8 @@ def member_prior(
         ScenarioError: A panel member without a weight, a weight for a non-member, or no
             weight above 0 among the members.
     """
-    known = weights.normalised()
+    total = math.fsum(weights.weights)
+    known = {m: w / total for m, w in zip(weights.members, weights.weights, strict=True)}
     missing = [m for m in members if m not in known]
     extra = [m for m in known if m not in members]
     fix = (

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
-import math
 import typing
 from dataclasses import dataclass
 from typing import Annotated, Any
 
 from pydantic import BaseModel
+
+#: pydantic error types of a number outside its declared bounds (or NaN, infinite).
+RANGE_ERRORS = frozenset(
+    {"greater_than", "greater_than_equal", "less_than", "less_than_equal", "finite_number"}
+)
 
 
 @dataclass(frozen=True)
@@ -19,18 +23,6 @@ class Range:
     low_open: bool = False
     high_open: bool = False
     why: str = ""
-
-    def __contains__(self, value: object) -> bool:
-        """Whether ``value`` is a finite real number inside the range."""
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            return False
-        if not math.isfinite(value):
-            return False
-        if self.low is not None and (value < self.low or (self.low_open and value == self.low)):
-            return False
-        return not (
-            self.high is not None and (value > self.high or (self.high_open and value == self.high))
-        )
 
     def describe(self) -> str:
         """The range in words: ``in (0, 1]``, ``>= 1``, ``> 0``."""
@@ -108,13 +100,11 @@ def kind(number_type: object, rng: Range) -> str:
     return "a finite number"
 
 
-def found_name(value: object) -> str:
-    """The TOML type name of a value (``integer``, ``table``, ...)."""
-    return {
-        bool: "boolean",
-        int: "integer",
-        float: "float",
-        str: "string",
-        list: "array",
-        dict: "table",
-    }.get(type(value), type(value).__name__)
+#: The TOML name of each Python type a TOML value reads as.
+TOML_NAMES = {bool: "boolean", int: "integer", float: "float", str: "string", list: "array",
+              dict: "table"}  # fmt: skip
+
+
+def found(value: object) -> str:
+    """A value as messages show what was found: ``integer (3)``, ``table ({})``."""
+    return f"{TOML_NAMES.get(type(value), type(value).__name__)} ({value!r})"

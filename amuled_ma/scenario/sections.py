@@ -36,7 +36,7 @@ from amuled_ma.scenario.memory import (
 from amuled_ma.scenario.messages import BUILT_IN_CODE, SECTIONS, scenario_error
 from amuled_ma.scenario.panel_checks import check_clusters, check_fusion, prior_rules
 from amuled_ma.scenario.paths import check_path_component
-from amuled_ma.scenario.ranges import found_name as _found_name
+from amuled_ma.scenario.ranges import found
 from amuled_ma.scenario.task_options import check_task_options
 from amuled_ma.servers.urls import normalize_host, normalize_hosts
 
@@ -102,17 +102,16 @@ def _source(info: ValidationInfo) -> str:
 class _Section(BaseModel):
     """Base of the section models: strict, frozen, no unknown keys, no NaN.
 
-    Built in code (``TaskConfig(seed=-1)``) a section is validated like a file; a failure
-    raises `ScenarioError`, not pydantic's error.
+    Built in code (``TaskConfig(seed=-1)``) a section is validated like a file (`ScenarioError`).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
-    #: The table's name in a scenario file (``task`` for ``[task]``).
+    #: The table's name in a scenario file (``task`` for ``[task]``, ``feedback.distill``).
     section: ClassVar[str] = ""
 
     def __init__(self, /, **data: object) -> None:
-        _init(self, data, (self.section,))
+        _init(self, data, tuple(self.section.split(".")))
 
     @model_validator(mode="after")
     def _within_budget(self, info: ValidationInfo) -> _Section:
@@ -157,8 +156,7 @@ class TaskConfig(_Section):
 class PPOConfig(_Section):
     """PPO hyperparameters shared by base training and fine-tuning (CleanRL ``ppo.py`` defaults).
 
-    ``activation`` is an rsl-rl name; ``normalize_advantage_per_mini_batch``: per mini-batch
-    (CleanRL) rather than per rollout.
+    ``normalize_advantage_per_mini_batch``: per mini-batch (CleanRL) rather than per rollout.
     """
 
     section: ClassVar[str] = "ppo"
@@ -209,14 +207,9 @@ class PPOConfig(_Section):
 class BaseConfig(_Section):
     """Base training: ``r = r_env + c * r_shaping``, ``c`` = ``shaping_coef`` (``base`` uses 0).
 
-    Attributes:
-        total_steps: Environment steps of the whole run (all copies together).
-        grad_clip: ``"per_network"`` (rsl-rl: actor and critic clipped apart) or ``"joint"``
-            (CleanRL, the authors' scripts: one norm over both).
-        reshuffle_each_epoch: A new mini-batch partition every epoch (CleanRL), else one per
-            update (rsl-rl).
-        bootstrap_time_outs: Add ``gamma * V(s)`` at a truncation (rsl-rl); False closes it
-            like a termination (CleanRL).
+    ``reshuffle_each_epoch``: a new mini-batch partition every epoch (CleanRL), else one per
+    update (rsl-rl); ``bootstrap_time_outs``: add ``gamma * V(s)`` at a truncation (rsl-rl),
+    else close it like a termination (CleanRL).
     """
 
     section: ClassVar[str] = "base"
@@ -241,13 +234,8 @@ class BaseConfig(_Section):
 class FinetuneConfig(_Section):
     """Fine-tuning on fused feedback: ``r = -lambda_kl * KL(pi || pi_base) + f(B)[a]``.
 
-    Epochs, learning rate and annealing override ``[ppo]``; ``grad_clip``,
-    ``reshuffle_each_epoch`` and ``bootstrap_time_outs`` are as in ``[base]``.
-
-    Attributes:
-        env_reward_coef: Weight of the task reward kept in the reward (paper: 0).
-        recipe: The KL anchor: ``"equation"`` (the paper's per-sample
-            ``log pi(a|s) - log pi_base(a|s)``) or ``"authors"`` (their scripts'; `learn.anchors`).
+    Epochs, learning rate and annealing override ``[ppo]``; ``recipe``: the KL anchor,
+    ``"equation"`` (the paper's ``log pi(a|s) - log pi_base(a|s)``) or ``"authors"``.
     """
 
     section: ClassVar[str] = "finetune"
@@ -280,15 +268,9 @@ class FinetuneConfig(_Section):
 class DistillConfig(_Section):
     """``[feedback.distill]``: LLM feedback on a budget (``docs/distill.md``).
 
-    Attributes:
-        budget: A float in ``(0, 1]``: at most ``max(1, floor(budget x visited))`` distinct
-            states are asked; an integer ``>= 1``: at most that many.
-        model: ``"mlp"``: an ensemble of ``ensemble`` MLPs, one softmax head per member.
-        selection: ``"uncertainty"`` or ``"random"`` (the baseline).
-        refit_every: Newly answered states between two refits (first fits after 1, 2, 4, ...).
-        holdout: Share of asked states kept out of the fit to measure agreement.
-        answer_misses: Answer replay misses and abstentions by the model (``distilled_miss``).
-        seed: Seed of the fits and the random selection; unset: the job's training seed.
+    ``budget``: a float in ``(0, 1]`` asks at most ``max(1, floor(budget x visited))`` distinct
+    states, an integer that many; ``answer_misses``: the model answers replay misses and
+    abstentions (``distilled_miss``); ``seed`` unset: the job's training seed.
     """
 
     section: ClassVar[str] = "feedback.distill"
@@ -323,9 +305,6 @@ class DistillConfig(_Section):
     answer_misses: bool = False
     seed: int | None = Field(None, ge=0, le=MAX_SEED, description=_SEED_WHY)
 
-    def __init__(self, /, **data: object) -> None:
-        _init(self, data, ("feedback", "distill"))
-
     @field_validator("budget", mode="before")
     @classmethod
     def _budget_is_a_share_or_a_count(cls, value: object, info: ValidationInfo) -> object:
@@ -338,30 +317,19 @@ class DistillConfig(_Section):
                 f"{_source(info)}: key [feedback.distill].budget expects a share in (0, 1] "
                 "written as a float (0.1: at most 10% of the distinct states visited are "
                 "asked) or a count >= 1 written as an integer (at most that many distinct "
-                f"states), found {_found_name(value)} ({value!r})"
+                f"states), found {found(value)}"
             )
         return value
 
 
 class FeedbackConfig(_Section):
-    """Where beliefs come from and how they are fused.
+    """Where beliefs come from and how they are fused (``docs/beliefs.md``, ``docs/ollama.md``).
 
-    Attributes:
-        host: Ollama server URL; empty: ``$OLLAMA_HOST``, else ``http://127.0.0.1:11434``.
-        hosts: A pool of Ollama server URLs instead of ``host`` (``docs/ollama.md``).
-        miss_policy: What a replay miss gives: ``uniform``, ``fallback``, ``error`` or
-            ``zero`` (reward 0, as the authors' scripts; counted as a miss).
-        cluster_recording: The recording the ``clusters`` and ``aggregation`` ablations replay
-            when ``recording`` keeps only fused beliefs; empty: ``recording``.
-        fusion: A name of `fusion.RULES` (a string: rules can be registered at run time).
-        weights: A panel weights file (relative to the scenario file): a prior on the
-            ``amuled`` variant's members. Empty: the paper's fixed weights.
-        ollama: Further keyword arguments of `OllamaSource`, checked against its signature.
-        agents: ``{agent: table}`` from ``[feedback.agents.<agent>]``; an agent without a
-            table uses ``source``.
-        max_abstention: The largest share of rewarded steps one agent may leave unanswered
-            (judged after 20 distinct states); beyond it the run stops.
-        name: The fine-tune's variant name (folder ``finetune-<name>``); empty: the feedback's.
+    ``host`` empty: ``$OLLAMA_HOST``, else ``http://127.0.0.1:11434``; ``cluster_recording``:
+    what the ``clusters`` and ``aggregation`` ablations replay when ``recording`` keeps only
+    fused beliefs; ``weights``: a panel weights file, a prior on the ``amuled`` variant's
+    members; ``agents``: ``[feedback.agents.<agent>]`` (an agent without one uses ``source``);
+    ``name``: the fine-tune's variant name (folder ``finetune-<name>``).
     """
 
     section: ClassVar[str] = "feedback"
@@ -445,17 +413,17 @@ class FeedbackConfig(_Section):
     @field_validator("agents", mode="before")
     @classmethod
     def _agent_tables(cls, value: object, info: ValidationInfo) -> object:
-        """Check the tables before their type, so that the messages name the table and fix."""
+        """Validate the tables here, once, so that the messages name the table and the fix."""
         _finite_table("feedback", value, info)
-        if all(k in info.data for k in ("clusters", "source", "model")):  # else: reported
-            check_agent_tables(
-                value,
-                where=_source(info),
-                clusters=info.data["clusters"],
-                default_source=info.data["source"],
-                default_model=info.data["model"],
-            )
-        return value
+        if not all(k in info.data for k in ("clusters", "source", "model")):
+            return value  # a problem already reported
+        return check_agent_tables(
+            value,
+            where=_source(info),
+            clusters=info.data["clusters"],
+            default_source=info.data["source"],
+            default_model=info.data["model"],
+        )
 
     @model_validator(mode="after")
     def _distilled_model_fits_in_memory(self, info: ValidationInfo) -> FeedbackConfig:
@@ -507,9 +475,7 @@ _M = TypeVar("_M", bound=BaseModel)
 
 
 def validate_model(model: type[_M], data: object, source: str, loc: tuple[str, ...] = ()) -> _M:
-    """Validate ``data`` into ``model`` as read from ``source`` (a file or an override).
-
-    ``loc`` is where the model sits in a scenario (``("ppo",)``; ``()`` for a whole one).
+    """Validate ``data`` into ``model`` as read from ``source``; ``loc``: where it sits.
 
     Raises:
         ScenarioError: One line naming ``source``, the first problem and how many more.

@@ -80,9 +80,7 @@ def _accepted(model: type[_Options]) -> str:
 
 
 def check_task_options(task: str, options: Mapping[str, Any], where: str) -> None:
-    """Refuse ``[task].options`` the task would refuse, in one line naming the key.
-
-    A task without a model here is left to the task itself.
+    """Refuse ``[task].options`` the task would refuse (a task without a model: left to it).
 
     Raises:
         ScenarioError: An option the run sets itself, an unknown option, or a bad value.
