@@ -81,10 +81,6 @@ class Feedback(ABC):
         """A value that changes when memoised model answers must be asked again (None: never)."""
         return None
 
-    def progress(self) -> dict[str, str]:
-        """Short fields for the training progress bar (none by default)."""
-        return {}
-
     @abstractmethod
     def _compute(
         self,

@@ -60,13 +60,6 @@ class PanelFeedback(Feedback):
         distilled = self.distilled
         return None if distilled is None else distilled.report()
 
-    def progress(self) -> dict[str, str]:
-        """``asked``: distinct states asked / visited, with a distilled source."""
-        distilled = self.distilled
-        if distilled is None:
-            return {}
-        return {"asked": f"{distilled.ledger.asked_count}/{distilled.ledger.visited_count}"}
-
     def _compute(
         self,
         obs: np.ndarray,
