@@ -197,9 +197,5 @@ def mean_of(stat: Stat | None) -> float:
 
 def half_of(stat: Stat | None) -> float:
     """A statistic's half width for an error bar (0 where the interval is undefined)."""
-    return finite_or_zero(None if stat is None else stat.half_width)
-
-
-def finite_or_zero(value: float | None) -> float:
-    """An error bar's half width; an undefined interval (one value) draws none."""
+    value = None if stat is None else stat.half_width
     return value if value is not None and math.isfinite(value) else 0.0
