@@ -328,11 +328,9 @@ def write_view(
     episodes: int | None = None,
     say: Callable[[str], None] | None = None,
 ) -> ViewResult:
-    """Build the page of a run's episode (every chosen variant's episode and beliefs) and write it.
+    """Write the page of evaluation episode ``episode`` of ``episodes`` (`replay_episode`).
 
-    ``output`` defaults to `default_output`; episode ``K = episode`` is the ``K``-th of the
-    evaluation's ``episodes`` (default ``[evaluation].episodes``), seeded
-    ``[evaluation].seed + K``; ``say`` gets a progress line per variant.
+    ``output`` defaults to `default_output`; ``say`` gets a progress line per variant.
 
     Raises:
         UnsafePathError: The output is a link, a device, a FIFO or a folder; refused

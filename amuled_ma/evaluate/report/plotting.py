@@ -174,9 +174,7 @@ def save_figure(fig: Figure | None, path: Path) -> Path | None: ...
 def save_figure(fig: Figure | None, path: Path) -> Path | None:
     """Write a figure as PNG by `atomic_writer` (UnsafePathError, FileWriteError) and close it.
 
-    Returns:
-        ``path``; None, writing nothing, when ``fig`` is None (no data to draw).
-
+    Returns ``path``; None, writing nothing, when ``fig`` is None (no data to draw).
     """
     if fig is None:
         return None
