@@ -234,11 +234,8 @@ def replay_episode(
     live_feedback: Feedback | None = None,
     task_factory: Callable[..., Any] | None = None,
 ) -> Episode:
-    """Play evaluation episode ``K = episode`` of a policy and record every step.
+    """Play evaluation episode ``K = episode`` of ``episodes`` (default ``[evaluation].episodes``).
 
-    The evaluator's rollout of ``episodes`` copies (default ``[evaluation].episodes``; sampled
-    draws depend on it) runs until copy ``K`` has ended its first episode: the episode
-    ``amuled evaluate`` plays as its episode ``K``, with the same actions in either mode.
     ``base_actor`` is asked in the same states; ``live_feedback`` (one that needs the live task:
     human, fused-only replay) about every state as the episode runs.
 

@@ -71,16 +71,11 @@ def run_episodes(
     task_factory: Callable[..., Any] | None = None,
     record_trajectory: bool = True,
 ) -> tuple[list[dict[str, float]], dict[str, Any]]:
-    """Run ``episodes`` episodes of a policy (`rollout`, whose arguments these are).
+    """Per-episode metrics of ``episodes`` episodes (`rollout`'s arguments) and copy 0's trajectory.
 
-    ``record_trajectory`` records copy 0's first episode for pictures.
-
-    Returns:
-        One metrics dict per episode and the trajectory of copy 0 (empty lists without
-        ``record_trajectory``).
-
+    The trajectory's lists are empty without ``record_trajectory``.
     """
-    recorder = TrajectoryRecorder(0) if record_trajectory else None
+    recorder = TrajectoryRecorder(0)  # not told of the steps: its lists stay empty
     records = rollout(
         actor,
         task_config,
@@ -88,11 +83,9 @@ def run_episodes(
         mode=mode,
         seed=seed,
         task_factory=task_factory,
-        observers=(recorder,) if recorder is not None else (),
+        observers=(recorder,) if record_trajectory else (),
     )
-    empty: dict[str, Any] = {"obs": [], "actions": [], "events": {}}
-    trajectory = recorder.trajectory if recorder is not None else empty
-    return [r for r in records if r is not None], trajectory
+    return [r for r in records if r is not None], recorder.trajectory
 
 
 def summarize(records: list[dict[str, float]], confidence: float = 0.95) -> dict[str, dict]:
@@ -254,17 +247,14 @@ def evaluate_run(
 ) -> Results:
     """Evaluate every trained variant of a run; write ``results.json`` and ``results.csv``.
 
-    ``episodes`` and ``modes`` default to ``evaluation``'s; ``variants`` keeps only those names
-    (each with its seed replicas); ``extra_dirs`` are further variant folders evaluated alongside
-    (an ablation's base). ``records`` (`variant_records`, by folder name) gives a folder its
-    variant name (seed replicas grouped under it) and a fine-tune what it was trained on; a folder
-    without one is named by itself. ``task_factory`` replaces `make_task`.
+    ``variants`` keeps only those names; ``extra_dirs`` are more variant folders (an ablation's
+    base); ``records`` (by folder) names a folder's variant (seed replicas grouped under it) and
+    what a fine-tune was trained on; ``task_factory`` replaces `make_task`.
 
     Raises:
         CheckpointError: The run has no trained variant.
-        AmuledError: A variant's ``feedback.json`` is over `MAX_FEEDBACK_BYTES`, not JSON, or a
-            link (`read_feedback`); ``results.json`` or ``results.csv`` is a link or not a
-            regular file; each checked before any episode is run.
+        AmuledError: A ``feedback.json`` refused by `read_feedback`, or ``results.json`` /
+            ``results.csv`` a link or not a regular file; both before any episode.
     """
     run_dir = Path(run_dir)
     check_write_targets(run_dir / name for name in RESULTS_FILES)  # before any episode

@@ -231,45 +231,27 @@ def state_by_hand(
 # The fusion of one state, explained
 
 
-@dataclass
-class FusionBreakdown:
-    """The fusion of one state over its ``k`` answering agents, with its intermediate quantities.
-
-    ``bjs`` ``(k, k)``, ``credibility`` Xiao's ``Crd_i``, ``entropy`` Deng's in bits,
-    ``volume`` ``exp(E_d)`` normalised, ``wae`` the weighted average evidence (``bjs-dst`` only),
-    ``conflicts`` ``(k - 1,)`` Dempster's ``K`` at each combination.
-    """
-
-    rule: str
-    agents: list[str]
-    left_out: list[tuple[str, str]]
-    beliefs: np.ndarray
-    bjs: np.ndarray
-    bjs_mean: np.ndarray
-    credibility: np.ndarray
-    entropy: np.ndarray
-    volume: np.ndarray
-    weights: np.ndarray
-    wae: np.ndarray | None
-    conflicts: np.ndarray
-    fused: np.ndarray
-
-
-def fusion_breakdown(
+def breakdown_lines(
     agents: Sequence[str],
     beliefs: np.ndarray,
     statuses: Sequence[str],
     rule: str,
-    prior: Sequence[float] | None = None,
-) -> FusionBreakdown | None:
-    """Recompute one state's fusion as the panel fuses (non-answers left out); None if none."""
+    prior: Sequence[float] | None,
+    actions: list[str],
+    panel_fused: np.ndarray,
+) -> list[str]:
+    """One state's fusion recomputed as the panel fuses (non-answers left out), as lines.
+
+    Per agent: mean BJS, Xiao's credibility, Deng's entropy (bits), ``exp(E_d)`` normalised, weight;
+    then pairwise BJS, WAE (``bjs-dst``), Dempster's ``K`` per combination, and the fused belief.
+    """
     from amuled_ma.fusion import bjs_divergence, fuse
 
     beliefs = np.asarray(beliefs, dtype=np.float64)
     answered = [i for i, s in enumerate(statuses) if str(s) in FUSED_STATUSES]
-    left_out = [(agents[i], str(statuses[i])) for i in range(len(agents)) if i not in answered]
     if not answered:
-        return None
+        return ["no agent answered: the fused belief is the uniform fallback"]
+    names = [agents[i] for i in answered]
     sub = beliefs[answered]
     k = len(answered)
     rho = None if prior is None else np.asarray(prior, dtype=np.float64)[answered]
@@ -277,26 +259,44 @@ def fusion_breakdown(
         rho = None  # as the panel: only agents without weight answered
     diag = fuse(sub[None], rule, prior=rho, return_diagnostics=True)
     pairwise = bjs_divergence(sub[:, None, :], sub[None, :, :])
-    bjs_mean = pairwise.sum(axis=1) / max(k - 1, 1)
     entropy = np.asarray(diag.entropy, dtype=np.float64)[0]
     volume = np.exp(entropy - entropy.max())
-    volume = volume / volume.sum()
     conflicts = np.asarray(diag.conflicts, dtype=np.float64).reshape(-1)
-    return FusionBreakdown(
-        rule=rule,
-        agents=[agents[i] for i in answered],
-        left_out=left_out,
-        beliefs=sub,
-        bjs=pairwise,
-        bjs_mean=bjs_mean,
-        credibility=np.asarray(diag.credibility, dtype=np.float64)[0],
-        entropy=entropy,
-        volume=volume,
-        weights=np.asarray(diag.weights, dtype=np.float64)[0],
-        wae=None if diag.wae is None else np.asarray(diag.wae, dtype=np.float64)[0],
-        conflicts=conflicts,
-        fused=np.asarray(diag.fused, dtype=np.float64)[0],
+    fused = np.asarray(diag.fused, dtype=np.float64)[0]
+    out = [f"fusion ({rule}) over the {k} agents that answered:"]
+    say = out.append
+    left_out = [f"{agents[i]} ({statuses[i]})" for i in range(len(agents)) if i not in answered]
+    if left_out:
+        say("  left out (weight 0): " + ", ".join(left_out))
+    columns = np.column_stack([
+        pairwise.sum(axis=1) / max(k - 1, 1),
+        np.asarray(diag.credibility, dtype=np.float64)[0],
+        entropy,
+        volume / volume.sum(),
+        np.asarray(diag.weights, dtype=np.float64)[0],
+    ])  # fmt: skip
+    rows = [[name, *values] for name, values in zip(names, columns.tolist(), strict=True)]
+    head = ["agent", "avg BJS", "credibility", "Deng H (bits)", "info volume", "weight"]
+    say(table(head, rows))
+    if k > 1:
+        say("")
+        say("pairwise BJS divergence:")
+        say(table(["", *names], [[names[i], *pairwise[i].tolist()] for i in range(k)]))
+    say("")
+    if diag.wae is not None:
+        wae = np.asarray(diag.wae, dtype=np.float64)[0].tolist()
+        say(table(["", *actions], [["WAE (weighted average evidence)", *wae]]))
+    if conflicts.size:
+        parts = "  ".join(f"K{t + 1}={c:.4f}" for t, c in enumerate(conflicts.tolist()))
+        say(f"Dempster's conflict at each of the {conflicts.size} combinations: {parts}")
+    else:
+        say("Dempster's conflict: none (this rule does not combine)")
+    agree = np.allclose(fused, panel_fused, atol=1e-9)
+    say(
+        table(["", *actions], [["fused (recomputed)", *fused.tolist()]])
+        + ("" if agree else "\n  note: the panel's fused belief differs from this recomputation")
     )
+    return out
 
 
 # ---------------------------------------------------------------------------------------
@@ -370,12 +370,9 @@ def explain_lines(
     ]
     rows.append([f"fused ({rule})", "", *answers.fused[0].tolist(), ""])
     say(table(["agent", "status", *actions, "weight"], rows))
-    breakdown = fusion_breakdown(agents, beliefs, statuses, rule, getattr(panel, "prior", None))
     say("")
-    if breakdown is None:
-        say("no agent answered: the fused belief is the uniform fallback")
-    else:
-        out += breakdown_lines(breakdown, actions, answers.fused[0])
+    prior = getattr(panel, "prior", None)
+    out += breakdown_lines(agents, beliefs, statuses, rule, prior, actions, answers.fused[0])
     say("")
     say("reasoning (raw replies):")
     for c, agent in enumerate(agents):
@@ -399,38 +396,3 @@ def explain_lines(
             say("    " + line)
     # replies, reasons and names come from outside: no terminal control sequence is printed
     return [printable(line) for line in out]
-
-
-def breakdown_lines(b: FusionBreakdown, actions: list[str], panel_fused: np.ndarray) -> list[str]:
-    """The fusion's intermediate quantities as lines, noting where ``panel_fused`` differs."""
-    out: list[str] = []
-    say = out.append
-    answered = len(b.agents)
-    say(f"fusion ({b.rule}) over the {answered} agents that answered:")
-    if b.left_out:
-        say(
-            "  left out (weight 0): "
-            + ", ".join(f"{name} ({status})" for name, status in b.left_out)
-        )
-    columns = np.column_stack([b.bjs_mean, b.credibility, b.entropy, b.volume, b.weights])
-    rows = [[name, *values] for name, values in zip(b.agents, columns.tolist(), strict=True)]
-    head = ["agent", "avg BJS", "credibility", "Deng H (bits)", "info volume", "weight"]
-    say(table(head, rows))
-    if answered > 1:
-        say("")
-        say("pairwise BJS divergence:")
-        say(table(["", *b.agents], [[b.agents[i], *b.bjs[i].tolist()] for i in range(answered)]))
-    say("")
-    if b.wae is not None:
-        say(table(["", *actions], [["WAE (weighted average evidence)", *b.wae.tolist()]]))
-    if b.conflicts.size:
-        parts = "  ".join(f"K{t + 1}={k:.4f}" for t, k in enumerate(b.conflicts.tolist()))
-        say(f"Dempster's conflict at each of the {b.conflicts.size} combinations: {parts}")
-    else:
-        say("Dempster's conflict: none (this rule does not combine)")
-    agree = np.allclose(b.fused, panel_fused, atol=1e-9)
-    say(
-        table(["", *actions], [["fused (recomputed)", *b.fused.tolist()]])
-        + ("" if agree else "\n  note: the panel's fused belief differs from this recomputation")
-    )
-    return out

@@ -9,9 +9,9 @@ import numpy as np
 
 
 def markdown_table(head: Sequence[str], rows: Iterable[Sequence[str]]) -> str:
-    """A Markdown table: the ``head`` row, its rule, one line per row; ends in a newline."""
+    """A Markdown table: ``head``, its rule, a line per row, a newline; ``""`` without rows."""
     first, *rest = ["| " + " | ".join(cells) + " |" for cells in (head, *rows)]
-    return "\n".join([first, "|" + "---|" * len(head), *rest]) + "\n"
+    return "\n".join([first, "|" + "---|" * len(head), *rest]) + "\n" if rest else ""
 
 
 def format_number(value: object, digits: int = 4) -> str:

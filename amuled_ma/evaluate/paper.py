@@ -1,9 +1,4 @@
-"""The AMULED paper's reported figures, as data: the row a report puts beside ours.
-
-From the authors' notebook ``notebooks/data_plots.ipynb`` (temetski/moral_agent at df3750f):
-the sampled policy, 50 episodes (seeds 42-91), one training seed, 1,000 fine-tuning
-iterations with gpt-4o-mini beliefs, the ``authors`` recipe (docs/reproduction.md).
-"""
+"""The AMULED paper's figures (`PAPER_SOURCE`; temetski/moral_agent at df3750f), as data."""
 
 from __future__ import annotations
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -140,11 +139,6 @@ class Results(BaseModel):
     seed: int | None = None
     variants: dict[str, VariantResult] = {}
 
-    @classmethod
-    def of(cls, results: Results | Mapping[str, Any]) -> Results:
-        """The results as a model (a dict in ``results.json``'s shape is validated)."""
-        return results if isinstance(results, Results) else cls.model_validate(results)
-
     def in_mode(self, mode: str) -> dict[str, ModeResult]:
         """``{variant: result}`` of the variants evaluated in ``mode``."""
         return {n: r for n, v in self.variants.items() if (r := v.mode(mode)) is not None}
@@ -170,14 +164,13 @@ def _clean(value: object) -> Any:
 RESULTS_FILES = ("results.json", "results.csv")
 
 
-def write_results(run_dir: Path, results: Results | Mapping[str, Any]) -> tuple[Path, Path]:
+def write_results(run_dir: Path, results: Results) -> tuple[Path, Path]:
     """Write ``results.json`` and ``results.csv`` (a row per variant, mode, metric) atomically.
 
     Raises:
         UnsafePathError: Either is a link or not a regular file; neither is written.
         FileWriteError: A file could not be written.
     """
-    results = Results.of(results)
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     json_path, csv_path = (run_dir / name for name in RESULTS_FILES)

@@ -105,15 +105,14 @@ def rollout(
     observers: Sequence[Observer] = (),
     until: Sequence[int] | None = None,
 ) -> list[dict[str, float] | None]:
-    """Play the first episode of ``episodes`` task copies with a policy (an rsl-rl actor).
+    """Play the first episode of ``episodes`` task copies with an rsl-rl actor.
 
-    Copy ``i`` is seeded ``seed + i``; ``seed`` also seeds action sampling. ``observers`` are
-    told about every step; ``until`` stops once those copies have ended their first episode
-    (default: all). Torch runs single-threaded from here on, as the trainer.
+    ``seed`` also seeds the action draws; ``until`` stops once those copies ended their first
+    episode (default: all). Torch runs single-threaded from here on, as the trainer.
 
     Returns:
-        Per copy, the metrics of its first episode (``info["episode"]`` without
-        book-keeping, plus ``terminated``), None for a copy still playing at the stop.
+        Per copy, its first episode's ``info["episode"]`` metrics and ``terminated``; None
+        for a copy still playing at the stop.
 
     Raises:
         ScenarioError: Unknown ``mode``, or a copy in ``until`` outside ``0..N-1``.

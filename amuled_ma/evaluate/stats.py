@@ -22,15 +22,10 @@ def mean_ci(values: Sequence[float], confidence: float = 0.95) -> dict[str, floa
     With one value the spread and interval are NaN (no "± 0" is claimed); with none, all is NaN.
     """
     n = len(values)
-    nan = math.nan
-    if n == 0:
-        return {"mean": nan, "std": nan, "n": 0, "ci_low": nan, "ci_high": nan, "half_width": nan}
     array = np.asarray(values, dtype=float)
-    mean = float(array.mean())
-    if n == 1:
-        return {"mean": mean, "std": nan, "n": 1, "ci_low": nan, "ci_high": nan, "half_width": nan}
-    std = float(array.std(ddof=1))
-    half = t_quantile(n - 1, confidence) * std / math.sqrt(n)  # t_{df=n-1} · s / sqrt(n)
+    mean = float(array.mean()) if n else math.nan
+    std = float(array.std(ddof=1)) if n > 1 else math.nan
+    half = t_quantile(n - 1, confidence) * std / math.sqrt(n) if n > 1 else math.nan  # t · s / √n
     return {
         "mean": mean,
         "std": std,

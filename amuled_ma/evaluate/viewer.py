@@ -171,20 +171,18 @@ def variant_view(
             store.close()
 
 
+#: The legend under a task's picture of a state.
+PICTURE_NOTES = {
+    "driving": "Vermillion: cars, green circles: grandmas, black: the agent's car at distance 0; "
+    "red ✕: a collision, green ★: a rescue on this step.",
+    "findmilk": "M milk, C crying baby (solid green ✓ once pacified), z sleeping baby (solid red "
+    "! once woken); the purple line is the path so far.",
+}
+
+
 def _episode_entry(ep: trace.Episode, name: str) -> dict[str, Any]:
     picture: dict[str, Any] = {"kind": ep.task if ep.layout is not None else "text"}
     picture.update(ep.layout or {})
-    note = ""
-    if ep.task == "driving":
-        note = (
-            "Vermillion: cars, green circles: grandmas, black: the agent's car at distance 0; "
-            "red ✕: a collision, green ★: a rescue on this step."
-        )
-    elif ep.task == "findmilk":
-        note = (
-            "M milk, C crying baby (solid green ✓ once pacified), z sleeping baby (solid red "
-            "! once woken); the purple line is the path so far."
-        )
     return {
         "name": name,
         "mode": ep.mode,
@@ -192,7 +190,7 @@ def _episode_entry(ep: trace.Episode, name: str) -> dict[str, Any]:
         "terminated": ep.terminated,
         "metrics": {k: _compact_number(v) for k, v in ep.metrics.items()},
         "picture": picture,
-        "picture_note": note,
+        "picture_note": PICTURE_NOTES.get(ep.task, ""),
         "frames": ep.frames,
         "a": ep.actions.tolist(),
         "b": ep.base_actions.tolist() if ep.base_actions is not None else None,
@@ -330,11 +328,9 @@ def write_view(
     episodes: int | None = None,
     say: Callable[[str], None] | None = None,
 ) -> ViewResult:
-    """Build the page of a run's episode (every chosen variant's episode and beliefs) and write it.
+    """Write the page of evaluation episode ``episode`` of ``episodes`` (`replay_episode`).
 
-    ``output`` defaults to `default_output`; episode ``K = episode`` is the ``K``-th of the
-    evaluation's ``episodes`` (default ``[evaluation].episodes``), seeded
-    ``[evaluation].seed + K``; ``say`` gets a progress line per variant.
+    ``output`` defaults to `default_output`; ``say`` gets a progress line per variant.
 
     Raises:
         UnsafePathError: The output is a link, a device, a FIFO or a folder; refused

@@ -72,7 +72,7 @@ def test_report_says_it() -> None:
         "mean_weight": {"rules": 0.29, "care": 0.24},
         "mean_entropy_share": {"rules": _share(FIXED["rules"]), "care": 0.8},
     }
-    results = Results.of({"variants": {"finetune-amuled": {"feedback": feedback}}})
+    results = Results.model_validate({"variants": {"finetune-amuled": {"feedback": feedback}}})
     (line,) = readings_lines(results)
     assert line.startswith("- **finetune-amuled**: rules's beliefs are nearly flat")
     assert "largest weight (0.29)" in line

@@ -82,7 +82,7 @@ def test_report_readings_per_variant() -> None:
     from amuled_ma.evaluate.report.writing import readings_lines
     from amuled_ma.evaluate.results import Results
 
-    results = Results.of(
+    results = Results.model_validate(
         {
             "variants": {
                 "base": {},

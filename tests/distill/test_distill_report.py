@@ -3,13 +3,10 @@
 from __future__ import annotations
 
 from amuled_ma.evaluate.evaluator import merge_feedback
-from amuled_ma.evaluate.report import (
-    agents_table,
-    budget_ablation_table,
-    budget_points,
-    budget_table,
-    write_report,
-)
+from amuled_ma.evaluate.report.bars import budget_points
+from amuled_ma.evaluate.report.tables import agents_table, budget_ablation_table, budget_table
+from amuled_ma.evaluate.report.writing import write_report
+from amuled_ma.evaluate.results import Results
 from amuled_ma.evaluate.stats import mean_ci
 from amuled_ma.records.run_record import RunRecord
 
@@ -49,24 +46,26 @@ def variant(budget, selection, sleeping, asked, tv):
     }  # fmt: skip
 
 
-def results() -> dict:
-    return {
-        "scenario": "findmilk",
-        "task": "findmilk",
-        "confidence": 0.95,
-        "variants": {
-            "base": {"greedy": stats({"steps_to_milk": [14] * 3, "sleeping_woken": [4, 4, 3]})},
-            "finetune-amuled": {
-                "greedy": stats({"steps_to_milk": [14] * 3, "sleeping_woken": [1, 2, 1]}),
-                "panel": {"feedback": "amuled"},
+def results() -> Results:
+    return Results.model_validate(
+        {
+            "scenario": "findmilk",
+            "task": "findmilk",
+            "confidence": 0.95,
+            "variants": {
+                "base": {"greedy": stats({"steps_to_milk": [14] * 3, "sleeping_woken": [4, 4, 3]})},
+                "finetune-amuled": {
+                    "greedy": stats({"steps_to_milk": [14] * 3, "sleeping_woken": [1, 2, 1]}),
+                    "panel": {"feedback": "amuled"},
+                },
+                "finetune-amuled-budget1": variant(1.0, "uncertainty", [1, 1, 2], 100, 0.1),
+                "finetune-amuled-budget0.1-uncertainty": variant(
+                    0.1, "uncertainty", [2, 2, 3], 10, 0.3
+                ),
+                "finetune-amuled-budget0.1-random": variant(0.1, "random", [3, 3, 3], 10, None),
             },
-            "finetune-amuled-budget1": variant(1.0, "uncertainty", [1, 1, 2], 100, 0.1),
-            "finetune-amuled-budget0.1-uncertainty": variant(
-                0.1, "uncertainty", [2, 2, 3], 10, 0.3
-            ),
-            "finetune-amuled-budget0.1-random": variant(0.1, "random", [3, 3, 3], 10, None),
-        },
-    }
+        }
+    )
 
 
 def test_budget_points_and_the_full_feedback_run():

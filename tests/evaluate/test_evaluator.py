@@ -8,7 +8,7 @@ from tiny_cli import TINY, one_line
 
 from amuled_ma.cli import main
 from amuled_ma.evaluate.evaluator import evaluate_run, run_episodes
-from amuled_ma.evaluate.report import write_report
+from amuled_ma.evaluate.report.writing import write_report
 from amuled_ma.learn.policies import load_policy
 from amuled_ma.learn.population import train_population
 from amuled_ma.learn.population_groups import MemberSpec
@@ -120,7 +120,7 @@ def test_seed_replicas_combine_over_seeds_by_hand():
 
 
 def test_learning_curve_band_over_seeds_by_hand():
-    from amuled_ma.evaluate.report import curve_band
+    from amuled_ma.evaluate.report.curves import curve_band
 
     def curve(values):
         return [{"env_steps": 100 * (i + 1), "r": v} for i, v in enumerate(values)]
@@ -139,7 +139,7 @@ def test_learning_curve_band_iteration_no_seed_logged_is_nan_without_warning():
 
     import numpy as np
 
-    from amuled_ma.evaluate.report import curve_band
+    from amuled_ma.evaluate.report.curves import curve_band
 
     # the metric is missing at the second row in both seeds (an episode metric that no
     # episode finished in that iteration): NaN there, one seed's value where only one has it

@@ -18,14 +18,11 @@ from matplotlib.colors import to_hex
 
 from amuled_ma.evaluate.explain import table
 from amuled_ma.evaluate.numbers import format_count, format_number
-from amuled_ma.evaluate.report import (
-    ablation_figure,
-    bars_figure,
-    curves_figure,
-    driving_figure,
-    findmilk_figure,
-)
+from amuled_ma.evaluate.report.bars import ablation_figure, bars_figure
+from amuled_ma.evaluate.report.curves import curves_figure
 from amuled_ma.evaluate.report.plotting import save_figure
+from amuled_ma.evaluate.report.trajectories import driving_figure, findmilk_figure
+from amuled_ma.evaluate.results import Results
 from amuled_ma.evaluate.viewer import ASSETS, render_html
 from amuled_ma.tasks.colors import COLORS, css_variables
 
@@ -160,7 +157,7 @@ def two_seed_bars(n_seeds: int) -> dict:
 
 @pytest.mark.parametrize("n_seeds", [2, 5])
 def test_bars_with_few_seeds_show_each_seed_and_their_range(n_seeds, tmp_path):
-    fig = bars_figure(two_seed_bars(n_seeds), "greedy")
+    fig = bars_figure(Results.model_validate(two_seed_bars(n_seeds)), "greedy")
     ax = fig.axes[0]
     dots = [line for line in ax.get_lines() if line.get_gid() == "seed-dot"]
     assert len(dots) == 2 and all(len(d.get_xdata()) == n_seeds for d in dots)
@@ -197,7 +194,7 @@ def deterministic_ablation() -> dict:
 
 
 def test_ablation_panels_are_the_metrics_that_differ_greedy_then_sampled(tmp_path):
-    fig = ablation_figure(deterministic_ablation(), "clusters")
+    fig = ablation_figure(Results.model_validate(deterministic_ablation()), "clusters")
     titles = [ax.get_title() for ax in fig.axes if ax.axison]
     assert titles == ["crying pacified", "steps to milk (sampled)", "sleeping woken (sampled)"]
     text = fig._suptitle.get_text()
@@ -221,7 +218,7 @@ def test_an_ablation_where_nothing_differs_shows_every_paper_metric():
     for v in res["variants"].values():
         v["greedy"] = entry({"steps_to_milk": 14.0, "crying_pacified": 1.0})
         del v["sampled"]
-    fig = ablation_figure(res, "clusters")
+    fig = ablation_figure(Results.model_validate(res), "clusters")
     assert [ax.get_title() for ax in fig.axes if ax.axison] == ["steps to milk", "crying pacified"]
 
 
@@ -232,7 +229,7 @@ def test_an_ablation_where_nothing_differs_shows_every_paper_metric():
 def test_babies_reached_are_solid_markers_in_the_outcome_colours(tmp_path):
     res = {"scenario": "findmilk", "task": "findmilk",
            "variants": {"base": {"greedy": entry({"steps_to_milk": 5.0})}}}  # fmt: skip
-    fig = findmilk_figure(res)
+    fig = findmilk_figure(Results.model_validate(res))
     ax = fig.axes[0]
     by_gid: dict[str, list] = {}
     for c in ax.collections:
@@ -258,14 +255,14 @@ def test_babies_reached_are_solid_markers_in_the_outcome_colours(tmp_path):
 
 def test_every_report_figure_renders_with_ink_in_each_panel(tmp_path):
     res = deterministic_ablation()
-    assert_readable(bars_figure(res, "greedy"), tmp_path / "bars.png")
-    assert_readable(findmilk_figure(res), tmp_path / "traj.png")
+    assert_readable(bars_figure(Results.model_validate(res), "greedy"), tmp_path / "bars.png")
+    assert_readable(findmilk_figure(Results.model_validate(res)), tmp_path / "traj.png")
     lane = [[0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0]] * 6 + [[0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0]] * 5
     events = {"collisions": [0, 1] + [0] * 8, "rescues": [0] * 7 + [1, 0, 0]}
     drive = {"obs": lane, "actions": [0] * 10, "layout": {}, "events": events}
     greedy = {"metrics": {"collisions": stat(1.0)}, "trajectory": drive}
     driving = {"scenario": "driving", "task": "driving", "variants": {"base": {"greedy": greedy}}}
-    fig = driving_figure(driving)
+    fig = driving_figure(Results.model_validate(driving))
     ax = fig.axes[0]
     events = {c.get_gid(): to_hex(c.get_facecolor()[0]) for c in ax.collections}
     assert events == {"event-collisions": COLORS["bad"], "event-rescues": COLORS["good"]}

@@ -12,6 +12,7 @@ import torch
 from amuled_ma.evaluate.evaluator import run_episodes
 from amuled_ma.evaluate.paper import paper_row
 from amuled_ma.evaluate.report.tables import paper_table
+from amuled_ma.evaluate.results import Results
 from amuled_ma.learn.policies import build_model
 from amuled_ma.scenario import scenario_from_dict
 from amuled_ma.tasks.driving import Driving
@@ -80,6 +81,6 @@ def test_the_papers_lane_changes_sit_beside_our_non_straight_steps():
         "seed": 42,
         "variants": {"finetune-amuled": {"sampled": entry}},
     }
-    table = paper_table(results)
+    table = paper_table(Results.model_validate(results))
     assert "Columns: collisions / rescues / non_straight_steps." in table
     assert "| 2.0 / 13.6 / 54.2 | 1.50 ± 0.00 / 12.00 ± 0.00 / 41.00 ± 0.00 |" in table

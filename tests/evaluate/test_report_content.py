@@ -19,23 +19,21 @@ from sparse_files import sparse
 from tiny_cli import RULES, TINY, one_line
 
 from amuled_ma.cli import main
-from amuled_ma.evaluate.report import (
-    ablation_figure,
+from amuled_ma.evaluate.report.bars import ablation_figure, bars_figure
+from amuled_ma.evaluate.report.curves import curves_figure
+from amuled_ma.evaluate.report.describe import settings_table
+from amuled_ma.evaluate.report.plotting import compact_number, robust_ylim, variant_colors
+from amuled_ma.evaluate.report.tables import (
     agents_table,
-    bars_figure,
     base_differences,
-    compact_number,
-    curves_figure,
     differences_table,
-    findmilk_figure,
-    findmilk_subgoals,
-    link_viewer,
-    robust_ylim,
     same_as_base,
-    settings_table,
-    variant_colors,
-    write_report,
 )
+from amuled_ma.evaluate.report.trajectories import findmilk_figure
+from amuled_ma.evaluate.report.writing import link_viewer, write_report
+from amuled_ma.evaluate.results import Results
+from amuled_ma.records.run_record import RunRecord
+from amuled_ma.tasks.findmilk_drawing import findmilk_subgoals
 
 SHA = "0f" * 32
 
@@ -156,7 +154,9 @@ CONFIG = {
 
 
 def test_settings_header_names_task_recipe_lambda_iterations_seeds_panel_and_recording():
-    rows = rows_of(settings_table(results(), CONFIG))
+    rows = rows_of(
+        settings_table(Results.model_validate(results()), RunRecord.model_validate(CONFIG))
+    )
     assert rows["task"] == ["`findmilk` (scenario `findmilk`)"]
     assert rows["evaluation"] == [
         "50 episodes per variant and mode, seeds from 42, 95% Student-t intervals"
@@ -176,18 +176,18 @@ def test_settings_header_names_task_recipe_lambda_iterations_seeds_panel_and_rec
 def test_settings_header_lists_each_lambda_when_the_fine_tunes_differ():
     res = results()
     res["variants"]["finetune-human"]["panel"]["lambda_kl"] = 10.0
-    rows = rows_of(settings_table(res, {}))
+    rows = rows_of(settings_table(Results.model_validate(res), RunRecord()))
     assert rows["lambda_KL"] == ["0.05, 10 (per variant)"]
     assert rows["training seeds"] == ["1"]  # no config.json: the most seeds of a variant
 
 
 def test_differences_to_base_are_mean_minus_base_mean():
     res = results(amuled=dict(BASE, crying_pacified=4.8))
-    diffs = base_differences(res, "greedy")
+    diffs = base_differences(Results.model_validate(res), "greedy")
     assert set(diffs) == {"finetune-amuled", "finetune-human"}
     assert diffs["finetune-human"]["steps_to_milk"] == pytest.approx(57.2)
     assert diffs["finetune-human"]["sleeping_woken"] == pytest.approx(-1.6)
-    rows = rows_of(differences_table(res, "greedy"))
+    rows = rows_of(differences_table(Results.model_validate(res), "greedy"))
     # columns: steps_to_milk, crying_pacified, sleeping_woken, reached_milk
     assert rows["finetune-human"] == ["+57.20", "+0.40", "-1.60", "-0.20"]
     assert rows["finetune-amuled"] == ["=", "+1.00", "=", "="]
@@ -197,23 +197,23 @@ def test_differences_to_base_are_mean_minus_base_mean():
 def test_equals_base_sentence_only_for_a_fine_tune_equal_to_base(tmp_path):
     res = results()  # finetune-amuled's greedy metrics are base's
     res["variants"]["finetune-amuled"]["greedy"]["metrics"]["steps_to_milk"]["mean"] += 1e-12
-    assert same_as_base(res) == ["finetune-amuled"]
-    text = write_report(tmp_path, res).read_text()
+    assert same_as_base(Results.model_validate(res)) == ["finetune-amuled"]
+    text = write_report(tmp_path, Results.model_validate(res)).read_text()
     assert "finetune-amuled behaves exactly as the base policy (greedy)" in text
     assert "finetune-human behaves exactly" not in text
 
     res = results(amuled=dict(BASE, steps_to_milk=14.000001))  # 1e-6 apart: not equal
-    assert same_as_base(res) == []
-    text = write_report(tmp_path, res).read_text()
+    assert same_as_base(Results.model_validate(res)) == []
+    text = write_report(tmp_path, Results.model_validate(res)).read_text()
     assert "behaves exactly as the base policy" not in text
 
 
 def test_agents_table_gives_each_agents_abstention_and_replay_miss_rates():
     rows = {
         tuple(line.strip("|").split("|")[:2]): [c.strip() for c in line.strip("|").split("|")]
-        for line in agents_table(results()).splitlines()[2:]
+        for line in agents_table(Results.model_validate(results())).splitlines()[2:]
     }
-    head = agents_table(results()).splitlines()[0]
+    head = agents_table(Results.model_validate(results())).splitlines()[0]
     assert head == (
         "| variant | agent | beliefs | repaired | abstained | replay miss | timeout | error "
         "| not answered |"
@@ -222,7 +222,7 @@ def test_agents_table_gives_each_agents_abstention_and_replay_miss_rates():
     assert care[2:] == ["40", "5.0%", "20.0%", "0.0%", "0.0%", "0.0%", "20.0%"]
     virtue = rows[(" finetune-amuled ", " virtue ")]
     assert virtue[2:] == ["40", "0.0%", "0.0%", "10.0%", "0.0%", "0.0%", "10.0%"]
-    assert agents_table({"variants": {"base": {"greedy": {}}}}) == ""
+    assert agents_table(Results.model_validate({"variants": {"base": {"greedy": {}}}})) == ""
 
 
 # ---------------------------------------------------------------------------------------
@@ -247,11 +247,11 @@ def test_a_variant_has_the_same_colour_in_bars_trajectories_and_curves():
         for name in res["variants"]
     }
     colors = variant_colors([*res["variants"], *curves])
-    bars = bars_figure(res, "greedy", colors=colors)
+    bars = bars_figure(Results.model_validate(res), "greedy", colors=colors)
     names = list(res["variants"])
     bar_colour = {n: to_hex(p.get_facecolor()) for n, p in zip(names, bars.axes[0].patches,
                                                                  strict=True)}  # fmt: skip
-    grid = findmilk_figure(res, colors=colors)
+    grid = findmilk_figure(Results.model_validate(res), colors=colors)
     path_colour = {
         ax.get_title().split("\n")[0]: to_hex(line.get_color())
         for ax in grid.axes
@@ -298,7 +298,7 @@ def test_compact_tick_labels():
 
 def test_a_zero_bar_gets_a_marker_and_every_bar_a_value_label():
     res = results(amuled=dict(HUMAN, crying_pacified=0.0))
-    fig = bars_figure(res, "greedy")
+    fig = bars_figure(Results.model_validate(res), "greedy")
     ax = next(a for a in fig.axes if a.get_title() == "crying pacified")
     markers = [line for line in ax.get_lines() if line.get_gid() == "zero-bar"]
     assert len(markers) == 1
@@ -313,7 +313,7 @@ def test_findmilk_subgoals_from_the_path():
     goals = findmilk_subgoals(trajectory([(0, 0), (1, 0), (1, 1), (2, 1), (2, 2)]))
     assert goals["woken"] == [(1, 1)] and goals["pacified"] == [(2, 2)]
     assert goals["reached_milk"] is False and goals["end"] == (2, 2)
-    grid = findmilk_figure(results())
+    grid = findmilk_figure(Results.model_validate(results()))
     human = next(a for a in grid.axes if a.get_title().startswith("finetune-human"))
     assert "pacified 1/5, woken 1/6" in human.get_title()
 
@@ -329,7 +329,7 @@ def test_ablation_figure_sorts_the_fine_tunes_and_draws_base():
             "finetune-moral": {"greedy": mode_entry(dict(BASE, crying_pacified=2.0))},
         },
     }
-    fig = ablation_figure(res, "clusters")
+    fig = ablation_figure(Results.model_validate(res), "clusters")
     ax = next(a for a in fig.axes if a.get_title() == "crying pacified")
     # bottom to top: smallest to largest mean
     assert [t.get_text() for t in ax.get_yticklabels()] == [
@@ -341,7 +341,11 @@ def test_ablation_figure_sorts_the_fine_tunes_and_draws_base():
     for name, lam in (("finetune-amuled", 2.5), ("finetune-cluster-care", 10.0),
                       ("finetune-moral", 0.0)):  # fmt: skip
         res["variants"][name]["panel"] = {"lambda_kl": lam}
-    ax = next(a for a in ablation_figure(res, "kl").axes if a.get_title() == "crying pacified")
+    ax = next(
+        a
+        for a in ablation_figure(Results.model_validate(res), "kl").axes
+        if a.get_title() == "crying pacified"
+    )
     assert [t.get_text() for t in ax.get_xticklabels()] == ["0", "2.5", "10"]
 
 
@@ -350,7 +354,7 @@ def test_ablation_figure_sorts_the_fine_tunes_and_draws_base():
 
 
 def test_report_points_at_the_viewer_and_links_it_once_written(tmp_path):
-    text = write_report(tmp_path, results()).read_text()
+    text = write_report(tmp_path, Results.model_validate(results())).read_text()
     # no page yet: the report names the command that writes it, never "open" a missing file
     assert f"run `amuled view {tmp_path}` to write `view-episode0.html`" in text
     assert "open `view-episode0.html`" not in text
@@ -361,7 +365,10 @@ def test_report_points_at_the_viewer_and_links_it_once_written(tmp_path):
     assert "open [`view-episode0.html`](view-episode0.html)" in text
     assert text.count("view-episode0.html") == 2  # one line: the link and its label
     # a report written when the page exists links it straight away
-    assert "](view-episode0.html)" in write_report(tmp_path, results()).read_text()
+    assert (
+        "](view-episode0.html)"
+        in write_report(tmp_path, Results.model_validate(results())).read_text()
+    )
 
 
 # ---------------------------------------------------------------------------------------

@@ -12,9 +12,9 @@ import math
 import pytest
 
 from amuled_ma.evaluate.paper import PAPER_ROWS, paper_row
-from amuled_ma.evaluate.report import write_report
 from amuled_ma.evaluate.report.tables import difference_ci, movement_sentence, paper_table
-from amuled_ma.evaluate.results import Stat
+from amuled_ma.evaluate.report.writing import write_report
+from amuled_ma.evaluate.results import Results, Stat
 from amuled_ma.evaluate.stats import mean_ci
 
 
@@ -22,25 +22,27 @@ def stat(mean: float, std: float, n: int = 10) -> dict:
     return {"mean": mean, "std": std, "n": n, "half_width": 0.0}
 
 
-def results(amuled: dict[str, dict], base: dict[str, dict]) -> dict:
+def results(amuled: dict[str, dict], base: dict[str, dict]) -> Results:
     def entry(metrics: dict[str, dict]) -> dict:
         return {"metrics": metrics, "ci_over": "episodes", "n_seeds": 1}
 
-    return {
-        "scenario": "findmilk-demo",
-        "task": "findmilk",
-        "episodes": 10,
-        "confidence": 0.95,
-        "seed": 42,
-        "variants": {
-            "base": {"sampled": entry(base), "greedy": entry(base)},
-            "finetune-amuled": {
-                "sampled": entry(amuled),
-                "greedy": entry(amuled),
-                "panel": {"feedback": "amuled", "recipe": "authors", "source": "replay"},
+    return Results.model_validate(
+        {
+            "scenario": "findmilk-demo",
+            "task": "findmilk",
+            "episodes": 10,
+            "confidence": 0.95,
+            "seed": 42,
+            "variants": {
+                "base": {"sampled": entry(base), "greedy": entry(base)},
+                "finetune-amuled": {
+                    "sampled": entry(amuled),
+                    "greedy": entry(amuled),
+                    "panel": {"feedback": "amuled", "recipe": "authors", "source": "replay"},
+                },
             },
-        },
-    }
+        }
+    )
 
 
 BASE = {

@@ -11,7 +11,9 @@ import torch
 from report_tables import rows_of
 from sparse_files import sparse
 
-from amuled_ma.evaluate.report import panels_table, settings_table, write_report
+from amuled_ma.evaluate.report.describe import panels_table, settings_table
+from amuled_ma.evaluate.report.writing import write_report
+from amuled_ma.evaluate.results import Results
 from amuled_ma.experiments.run_folder import read_record, variant_fields, write_config
 from amuled_ma.records.run_record import RunRecord
 from amuled_ma.records.variants import Variant
@@ -26,11 +28,13 @@ def stat(mean: float) -> dict:
             "ci_low": mean - 0.5, "ci_high": mean + 0.5}  # fmt: skip
 
 
-def results(*tunes: str) -> dict:
+def results(*tunes: str) -> Results:
     """base and the fine-tunes, every greedy metric equal to base's."""
     entry = {"greedy": {"metrics": {"rescues": stat(2.0), "collisions": stat(1.0)}}}
-    return {"scenario": "driving", "task": "driving", "episodes": 5, "confidence": 0.95,
-            "seed": 7, "variants": {"base": entry, **dict.fromkeys(tunes, entry)}}  # fmt: skip
+    return Results.model_validate(
+        {"scenario": "driving", "task": "driving", "episodes": 5, "confidence": 0.95,
+         "seed": 7, "variants": {"base": entry, **dict.fromkeys(tunes, entry)}}
+    )  # fmt: skip
 
 
 def training(**feedback) -> dict:

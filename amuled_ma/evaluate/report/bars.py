@@ -58,13 +58,14 @@ def _whiskers(
 def _hbars(
     ax: Axes,
     positions: np.ndarray,
+    names: Sequence[str],
     stats: Sequence[Stat | None],
     colors: Sequence[str],
     *,
     emphasise: Sequence[bool] | None = None,
     seeds: Sequence[Sequence[float]] | None = None,
 ) -> None:
-    """Horizontal bars with whiskers, each seed's mean as a dot, and value labels.
+    """Horizontal bars at ``positions`` named ``names``, with whiskers, seed dots and values.
 
     The whisker is the 95% CI, or with 2-4 seeds the range of the seeds' means (`FEW_SEEDS`).
     A bar of height 0 is drawn as a thick tick at 0 (``gid="zero-bar"``); a missing mean is
@@ -107,6 +108,9 @@ def _hbars(
         ax.set_xlim(-0.15, 1.0)
     else:
         ax.margins(x=0.25)
+    ax.set_yticks(positions, names, fontsize=8)
+    ax.tick_params(axis="x", labelsize=7)
+    ax.grid(axis="x", alpha=0.3)
 
 
 def shown_metrics(
@@ -128,13 +132,9 @@ def _paper_metrics(results: Results, tunes: Mapping[str, ModeResult]) -> list[st
 
 
 def bars_figure(
-    results: Results | Mapping[str, Any],
-    mode: str,
-    title: str = "",
-    colors: dict[str, str] | None = None,
+    results: Results, mode: str, title: str = "", colors: dict[str, str] | None = None
 ) -> Figure | None:
     """Bar chart per metric, one bar per variant in ``mode``; None without that mode."""
-    results = Results.of(results)
     variants = results.in_mode(mode)
     if not variants:
         return None
@@ -151,11 +151,8 @@ def bars_figure(
     for ax, metric in zip(axes, metrics, strict=False):
         stats = [variants[n].metrics.get(metric) for n in names]
         seeds = [seed_means(variants[n], metric) for n in names]
-        _hbars(ax, positions, stats, [colors[n] for n in names], seeds=seeds)
+        _hbars(ax, positions, names, stats, [colors[n] for n in names], seeds=seeds)
         ax.set_title(metric.replace("_", " "), fontsize=9)
-        ax.set_yticks(positions, names, fontsize=8)
-        ax.tick_params(axis="x", labelsize=7)
-        ax.grid(axis="x", alpha=0.3)
     fig.suptitle(
         title or f"{results.scenario}: {mode} policy, {interval_words(variants.values())} "
         "(a bar of height 0: a thick tick at 0)",
@@ -175,10 +172,7 @@ def interval_words(results: Iterable[ModeResult]) -> str:
 
 
 def ablation_figure(
-    results: Results | Mapping[str, Any],
-    what: str,
-    colors: dict[str, str] | None = None,
-    mode: str = "greedy",
+    results: Results, what: str, colors: dict[str, str] | None = None, mode: str = "greedy"
 ) -> Figure | None:
     """An ablation's own figure: fine-tunes against AMULED on the paper's metrics; None without.
 
@@ -187,7 +181,6 @@ def ablation_figure(
     """
     if what == "budget":
         return budget_figure(results, mode)
-    results = Results.of(results)
     variants = results.in_mode(mode)
     base = variants.pop("base", None)
     tunes = {k: v for k, v in variants.items() if k != "shaped"}
@@ -230,20 +223,16 @@ def ablation_figure(
         in_mode = {n: results.variants[n].mode(panel_mode) or ModeResult() for n in tunes}
         order = sorted(tunes, key=lambda n: (_sort_key(in_mode[n].metrics.get(metric)), n))
         stats = [in_mode[n].metrics.get(metric) for n in order]
-        positions = np.arange(len(order))
-        _hbars(ax, positions, stats, [colors[n] for n in order],
+        _hbars(ax, np.arange(len(order)), order, stats, [colors[n] for n in order],
                emphasise=[n == "finetune-amuled" for n in order],
                seeds=[seed_means(in_mode[n], metric) for n in order])  # fmt: skip
         base_mode = results.variants["base"].mode(panel_mode) if base is not None else None
         _base_line(ax, base_mode, metric, vertical=True)
-        ax.set_yticks(positions, order, fontsize=8)
         for label in ax.get_yticklabels():
             if label.get_text() == "finetune-amuled":
                 label.set_fontweight("bold")
         title = metric.replace("_", " ")
         ax.set_title(title if panel_mode == mode else f"{title} ({panel_mode})", fontsize=9)
-        ax.tick_params(axis="x", labelsize=7)
-        ax.grid(axis="x", alpha=0.3)
     shown = sorted({m for m, _ in panels}, key=lambda m: m != mode)
     note = ""
     if equal:
@@ -296,7 +285,7 @@ SELECTION_COLORS = {"uncertainty": "tab:blue", "random": "tab:orange"}
 
 
 def budget_points(
-    results: Results | Mapping[str, Any],
+    results: Results,
 ) -> tuple[list[dict[str, Any]], str | None]:
     """The budget ablation's distilled fine-tunes as points, and the full-feedback one.
 
@@ -305,7 +294,7 @@ def budget_points(
     """
     points: list[dict[str, Any]] = []
     full: str | None = None
-    for name, entry in Results.of(results).variants.items():
+    for name, entry in results.variants.items():
         settings = entry.panel.distill if entry.panel is not None else None
         if not settings:
             if entry.panel is not None and entry.panel.feedback == "amuled" and full is None:
@@ -322,13 +311,12 @@ def budget_points(
     return points, full
 
 
-def budget_figure(results: Results | Mapping[str, Any], mode: str = "greedy") -> Figure | None:
+def budget_figure(results: Results, mode: str = "greedy") -> Figure | None:
     """The budget ablation's figure: each paper metric against the budget (None: none distilled).
 
     Also a panel of the model's held-out fused TV; x is the share asked (log scale), one colour
     per selection; the full-feedback fine-tune is a grey band, the base a dashed line.
     """
-    results = Results.of(results)
     points, full = budget_points(results)
     points = [p for p in points if isinstance(p["budget"], int | float) and p["budget"] > 0]
     if not points:
@@ -394,9 +382,7 @@ def _sort_key(stat: Stat | None) -> float:
 
 def _base_line(ax: Axes, base: ModeResult | None, metric: str, *, vertical: bool) -> None:
     value = mean_of(base.metrics.get(metric) if base is not None else None)
-    if not math.isfinite(value):
-        return
-    if vertical:
-        ax.axvline(value, color=COLORS["reference"], ls="--", lw=1.1, zorder=5, gid="base-line")
-    else:
-        ax.axhline(value, color=COLORS["reference"], ls="--", lw=1.1, zorder=0, gid="base-line")
+    if math.isfinite(value):
+        line = ax.axvline if vertical else ax.axhline
+        z = 5 if vertical else 0
+        line(value, color=COLORS["reference"], ls="--", lw=1.1, zorder=z, gid="base-line")

@@ -1,9 +1,4 @@
-"""Learning curves: each variant's ``curve.json``, a rolling mean, its seeds readable.
-
-With one seed the raw values are faint behind the rolling mean; with 2 to 5 seeds
-(`MAX_SEED_LINES`) each seed's line is faint behind the mean (a t-interval over so few is too
-wide to read); with more, a 95% band over the seeds.
-"""
+"""Learning curves: each variant's ``curve.json``, a rolling mean, its seeds readable."""
 
 from __future__ import annotations
 
@@ -38,7 +33,8 @@ CURVE_KEYS = {
 }  # fmt: skip
 #: Curve keys of a fine-tune's feedback.
 FT_KEYS = ["feedback/feedback_reward", "feedback/kl"]
-#: Up to this many seeds a variant's seeds are drawn as lines; past it, a 95% band.
+#: Up to this many seeds a variant's seeds are faint lines behind the mean (a t-interval over so
+#: few is too wide to read); past it, a 95% band. One seed: its raw values, faint.
 MAX_SEED_LINES = 5
 #: Opacity of a seed's line (and of one seed's raw values) and of a band over the seeds.
 SPREAD_ALPHA = 0.3
@@ -66,9 +62,7 @@ def _rolling_band(values: list[float | None], window: int) -> tuple[np.ndarray, 
 def load_curves(
     run_dir: Path, names: Mapping[str, str] | None = None
 ) -> dict[str, list[list[dict]]]:
-    """Read every variant's ``curve.json`` as ``{variant: [replica curve, ...]}``.
-
-    ``names`` maps a folder to its variant (a seed replica's names its variant).
+    """Every variant's ``curve.json``: ``{variant: [replica, ...]}`` (``names``: folder -> variant).
 
     Raises:
         AmuledError: A ``curve.json`` over `MAX_CURVE_BYTES` (refused unread), refused by

@@ -105,8 +105,6 @@ def imported_table(described: Mapping[str, RunRecord | None]) -> str:
         rows.append(
             [name, what, f"`{record.authors.file}`", str(iteration), f"`{record.authors.sha256}`"]
         )
-    if not rows:
-        return ""
     head = ["variant", "what", "the authors' file", "checkpoint iteration", "sha256"]
     return markdown_table(head, rows)
 
@@ -188,8 +186,6 @@ def panels_table(described: Mapping[str, RunRecord | None]) -> str:
                 _base_label(record.base_checkpoint),
             ]
         )
-    if not rows:
-        return ""
     head = [
         "variant",
         "feedback",
@@ -239,18 +235,13 @@ def _recordings(records: list[RunRecord]) -> list[str]:
 
 
 def settings_table(
-    results: Results | Mapping[str, Any],
-    run: RunRecord | Mapping[str, Any] | None = None,
-    records: Mapping[str, RunRecord] | None = None,
+    results: Results, run: RunRecord | None = None, records: Mapping[str, RunRecord] | None = None
 ) -> str:
     """The report's header: what was run, as a two-column Markdown table.
 
     Fine-tune settings come from each fine-tune's record (``(per variant)`` when they differ);
     recipe and lambda_KL only for fine-tunes trained here. ``run`` may be None.
     """
-    results = Results.of(results)
-    if run is not None and not isinstance(run, RunRecord):
-        run = RunRecord.model_validate(run)
     described = variant_records(results, records)
     tunes = finetune_names(results, described)
     trained = [r for n in tunes if (r := described.get(n)) is not None and not r.imported]

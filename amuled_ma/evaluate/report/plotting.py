@@ -174,9 +174,7 @@ def save_figure(fig: Figure | None, path: Path) -> Path | None: ...
 def save_figure(fig: Figure | None, path: Path) -> Path | None:
     """Write a figure as PNG by `atomic_writer` (UnsafePathError, FileWriteError) and close it.
 
-    Returns:
-        ``path``; None, writing nothing, when ``fig`` is None (no data to draw).
-
+    Returns ``path``; None, writing nothing, when ``fig`` is None (no data to draw).
     """
     if fig is None:
         return None
@@ -197,9 +195,5 @@ def mean_of(stat: Stat | None) -> float:
 
 def half_of(stat: Stat | None) -> float:
     """A statistic's half width for an error bar (0 where the interval is undefined)."""
-    return finite_or_zero(None if stat is None else stat.half_width)
-
-
-def finite_or_zero(value: float | None) -> float:
-    """An error bar's half width; an undefined interval (one value) draws none."""
+    value = None if stat is None else stat.half_width
     return value if value is not None and math.isfinite(value) else 0.0

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping
-from typing import Any
 
 from amuled_ma.beliefs.types import FUSED_STATUSES
 from amuled_ma.evaluate.evaluator import PAPER_METRICS
@@ -22,12 +21,11 @@ from amuled_ma.evaluate.results import ModeResult, Results, Stat
 from amuled_ma.evaluate.stats import t_quantile
 
 
-def diagnostics_table(results: Results | Mapping[str, Any], finetunes: int | None = None) -> str:
+def diagnostics_table(results: Results, finetunes: int | None = None) -> str:
     """Mean per-cluster weight, conflict and miss rate per variant.
 
     With ``finetunes`` but no diagnostics, the table says so.
     """
-    results = Results.of(results)
     rows = {k: v.feedback for k, v in results.variants.items() if v.feedback is not None}
     if not rows:
         if finetunes:
@@ -70,7 +68,7 @@ _MODEL_COLUMNS = (
 )
 
 
-def agents_table(results: Results | Mapping[str, Any]) -> str:
+def agents_table(results: Results) -> str:
     """Per fine-tune and panel agent, the share of each belief status; ``""`` without counts.
 
     Not answered: every status but ``ok``, ``repaired`` and the model's answers (the fused
@@ -79,7 +77,7 @@ def agents_table(results: Results | Mapping[str, Any]) -> str:
     lines = []
     rows = [
         (name, agent, row)
-        for name, entry in Results.of(results).variants.items()
+        for name, entry in results.variants.items()
         if entry.feedback is not None
         for agent, row in entry.feedback.agents.items()
     ]
@@ -98,19 +96,17 @@ def agents_table(results: Results | Mapping[str, Any]) -> str:
             failed = total - sum(row.get(key, 0) for key in FUSED_STATUSES)
         cells.append(_percent(failed, total))
         lines.append(cells)
-    if not lines:
-        return ""
     head = ["variant", "agent", "beliefs", *(h for _, h in columns), "not answered"]
     return markdown_table(head, lines)
 
 
-def servers_table(results: Results | Mapping[str, Any]) -> str:
+def servers_table(results: Results) -> str:
     """Per fine-tune and LLM server, what it was asked and did (`llm_server_stats`); ``""`` if none.
 
     Requests sent count every attempt (retries and probes); latency is of answered requests.
     """
     lines = []
-    for name, entry in Results.of(results).variants.items():
+    for name, entry in results.variants.items():
         servers = entry.feedback.llm_servers if entry.feedback is not None else None
         for host, row in (servers or {}).items():
             kinds = ", ".join(f"{k} {n:,}" for k, n in (row.get("failures") or {}).items())
@@ -129,8 +125,6 @@ def servers_table(results: Results | Mapping[str, Any]) -> str:
                 ),
             ]
             lines.append(cells)
-    if not lines:
-        return ""
     head = ["variant", "server", "sent", "answered", "failed", "retried elsewhere",
             "out / back", "mean latency (s)", "p95 latency (s)"]  # fmt: skip
     return markdown_table(head, lines)
@@ -140,10 +134,10 @@ def _tv(value: float | None) -> str:
     return "-" if value is None else f"{float(value):.3f}"
 
 
-def budget_table(results: Results | Mapping[str, Any]) -> str:
+def budget_table(results: Results) -> str:
     """The budget accounting of every distilled fine-tune (`DistilledSource.report`), or ``""``."""
     lines = []
-    for name, entry in Results.of(results).variants.items():
+    for name, entry in results.variants.items():
         d = entry.feedback.distill if entry.feedback is not None else None
         if not d:
             continue
@@ -164,17 +158,14 @@ def budget_table(results: Results | Mapping[str, Any]) -> str:
             members or "-",
         ]
         lines.append(cells)
-    if not lines:
-        return ""
     head = ["variant", "budget", "selection", "states visited", "asked", "answered by the model",
             "misses by the model", "requests forwarded / sent", "refits",
             "held-out TV, fused", "held-out TV per member"]  # fmt: skip
     return markdown_table(head, lines)
 
 
-def budget_ablation_table(results: Results | Mapping[str, Any], mode: str = "greedy") -> str:
+def budget_ablation_table(results: Results, mode: str = "greedy") -> str:
     """The budget ablation's paper metrics against the budget, or ``""`` without one."""
-    results = Results.of(results)
     points, full = budget_points(results)
     if not points:
         return ""
@@ -214,9 +205,8 @@ def _percent(count: float, total: float) -> str:
 _NOT_TABULATED = ("terminated", "return")
 
 
-def metrics_table(results: Results | Mapping[str, Any], mode: str) -> str:
+def metrics_table(results: Results, mode: str) -> str:
     """Markdown table: one row per variant, one column per metric, ``mean ± 95% CI``."""
-    results = Results.of(results)
     variants = results.in_mode(mode)
     if not variants:
         return ""
@@ -229,10 +219,10 @@ def metrics_table(results: Results | Mapping[str, Any], mode: str) -> str:
 
 
 def base_differences(
-    results: Results | Mapping[str, Any], mode: str, base: str = "base"
+    results: Results, mode: str, base: str = "base"
 ) -> dict[str, dict[str, float]]:
     """``{variant: {metric: mean - base mean}}`` where both are finite; ``{}`` without ``base``."""
-    variants = Results.of(results).in_mode(mode)
+    variants = results.in_mode(mode)
     if base not in variants:
         return {}
     ref = variants[base].metrics
@@ -250,16 +240,13 @@ def base_differences(
 
 
 def same_as_base(
-    results: Results | Mapping[str, Any],
-    mode: str = "greedy",
-    finetunes: Iterable[str] | None = None,
+    results: Results, mode: str = "greedy", finetunes: Iterable[str] | None = None
 ) -> list[str]:
     """The fine-tunes whose every metric equals the base's within 1e-9, in results order.
 
     ``finetunes`` defaults to the variants with a ``panel`` entry or named ``finetune*``; a
     variant sharing no metric with base is not listed.
     """
-    results = Results.of(results)
     if finetunes is None:
         finetunes = [
             n
@@ -274,9 +261,8 @@ def same_as_base(
     ]
 
 
-def differences_table(results: Results | Mapping[str, Any], mode: str) -> str:
+def differences_table(results: Results, mode: str) -> str:
     """Markdown table of `base_differences`: ``+1.20``, ``-0.40``, ``=`` (equal)."""
-    results = Results.of(results)
     diffs = base_differences(results, mode)
     if not diffs:
         return ""
@@ -311,16 +297,12 @@ _PHRASES: dict[str, tuple[str, str]] = {
 }
 
 
-def paper_table(
-    results: Results | Mapping[str, Any],
-    recipes: Mapping[str, str | None] | None = None,
-) -> str:
+def paper_table(results: Results, recipes: Mapping[str, str | None] | None = None) -> str:
     """The paper's row (`PAPER_ROWS`, sampled policy) beside ours, or ``""`` without one.
 
     Ours are sampled when evaluated so (else greedy, said in the column); ``recipes`` gives
     each fine-tune's recipe (``-`` for the others).
     """
-    results = Results.of(results)
     columns = PAPER_COLUMNS.get(results.task)
     if not columns:
         return ""
@@ -335,8 +317,6 @@ def paper_table(
         mine = " / ".join(format_stat(data.metrics.get(m)) for m in columns)
         recipe = (recipes or {}).get(name) or "-"
         lines.append([name, row.label, paper, mine, recipe])
-    if not lines:
-        return ""
     head = [
         "variant",
         "the paper's row",
@@ -377,17 +357,13 @@ def difference_ci(
 
 
 def movement_sentence(
-    results: Results | Mapping[str, Any],
-    variant: str = "finetune-amuled",
-    mode: str = "sampled",
-    label: str = "AMULED",
+    results: Results, variant: str = "finetune-amuled", mode: str = "sampled", label: str = "AMULED"
 ) -> str:
     """One sentence: did the fine-tune move from the base beyond noise, which way (``""``: no data).
 
     A metric moved when `difference_ci` excludes 0; a fine-tune that misses the goal in some
     episodes says so.
     """
-    results = Results.of(results)
     modes = results.in_mode(mode)
     if variant not in modes or "base" not in modes:
         return ""

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from amuled_ma.evaluate.report.plotting import (
@@ -19,19 +18,17 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 
-def _trajectories(results: Results | Mapping[str, Any], mode: str) -> dict[str, dict[str, Any]]:
+def _trajectories(results: Results, mode: str) -> dict[str, dict[str, Any]]:
     """``{variant: recorded episode}`` in ``mode``, as plain data."""
     return {
         name: entry.trajectory.model_dump()
-        for name, entry in Results.of(results).in_mode(mode).items()
+        for name, entry in results.in_mode(mode).items()
         if entry.trajectory is not None
     }
 
 
 def findmilk_figure(
-    results: Results | Mapping[str, Any],
-    mode: str = "greedy",
-    colors: dict[str, str] | None = None,
+    results: Results, mode: str = "greedy", colors: dict[str, str] | None = None
 ) -> Figure | None:
     """One FindMilk trajectory per variant, a grid each, sub-goals marked; None without ``mode``."""
     variants = _trajectories(results, mode)
@@ -52,9 +49,7 @@ def findmilk_figure(
 
 
 def driving_figure(
-    results: Results | Mapping[str, Any],
-    mode: str = "greedy",
-    colors: dict[str, str] | None = None,
+    results: Results, mode: str = "greedy", colors: dict[str, str] | None = None
 ) -> Figure | None:
     """One Driving episode per variant: its lane over time, events; None without ``mode``."""
     variants = _trajectories(results, mode)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
 from amuled_ma.errors import AmuledError
 from amuled_ma.evaluate.report.bars import ablation_figure, bars_figure
@@ -115,7 +114,7 @@ def evaluation_outputs(run_dir: Path) -> list[Path]:
 
 def write_report(
     run_dir: Path,
-    results: Results | Mapping[str, Any],
+    results: Results,
     *,
     title: str | None = None,
     ablation: str | None = None,
@@ -131,7 +130,6 @@ def write_report(
     """
     run_dir = Path(run_dir)
     check_write_targets(evaluation_outputs(run_dir))
-    results = Results.of(results)
     task = results.task
     ablation = ablation or (run.ablation if run is not None else None)
     described = variant_records(results, records)
@@ -261,74 +259,73 @@ def write_report(
                 "probable actions; the sampled policy may still differ).",
                 "",
             ]
-    lines += _section(
-        "Feedback of each fine-tune",
-        "What each fine-tuned variant was trained on (its folder's `config.json`): the "
-        "recipe of the KL anchor, lambda_KL, the panel's agents and where their beliefs "
-        "came from.",
-        panels_table(described),
-    )
-    lines += _section(
-        "Fused-belief diagnostics",
-        "Mean weight of each cluster in the fusion and mean Dempster conflict over the "
-        "fine-tuning steps (which cluster drove the agent), and the replay miss rate.",
-        diagnostics_table(results, len(tunes)),
-    )
-    lines += _section(
-        "What the figures mean",
-        "One sentence per figure that changes how the result reads (the thresholds are "
-        "in amuled_ma/deliberation/summaries.py, `readings`).",
-        "".join(f"{line}\n" for line in readings_lines(results)),
-    )
-    lines += _section(
-        "Answers of each panel agent",
-        "Per fine-tune and agent, over the rewarded fine-tuning steps: how many beliefs "
-        "it gave and the share repaired (answered after the parser repaired the reply), "
-        "abstained, missed by the replay, timed out or failed. *Not answered* counts "
-        "every status but ok and repaired: there the agent abstained (weight 0) and the "
-        "fusion went on without it.",
-        agents_table(results),
-    )
-    lines += _section(
-        "Feedback budget",
-        "Fine-tunes whose panel was asked on a budget (`[feedback.distill]`, "
-        "docs/distill.md): of the distinct states visited, how many the panel was asked "
-        "(the budget caps them), how many the distilled model answered instead, the "
-        "misses and abstentions of asked states it answered, the requests handed to the "
-        "panel's source and how many of them were sent to the LLMs (the others were in "
-        "the belief store), the model's refits, and its agreement with the panel on the "
-        "held-out asked states (mean total-variation distance: 0 agrees, 1 disagrees "
-        "entirely) of the fused belief and of each member.",
-        budget_table(results),
-    )
-    if ablation == "budget":
-        lines += _section(
+    sections = [
+        (
+            "Feedback of each fine-tune",
+            "What each fine-tuned variant was trained on (its folder's `config.json`): the "
+            "recipe of the KL anchor, lambda_KL, the panel's agents and where their beliefs "
+            "came from.",
+            panels_table(described),
+        ),
+        (
+            "Fused-belief diagnostics",
+            "Mean weight of each cluster in the fusion and mean Dempster conflict over the "
+            "fine-tuning steps (which cluster drove the agent), and the replay miss rate.",
+            diagnostics_table(results, len(tunes)),
+        ),
+        (
+            "What the figures mean",
+            "One sentence per figure that changes how the result reads (the thresholds are "
+            "in amuled_ma/deliberation/summaries.py, `readings`).",
+            "".join(f"{line}\n" for line in readings_lines(results)),
+        ),
+        (
+            "Answers of each panel agent",
+            "Per fine-tune and agent, over the rewarded fine-tuning steps: how many beliefs "
+            "it gave and the share repaired (answered after the parser repaired the reply), "
+            "abstained, missed by the replay, timed out or failed. *Not answered* counts "
+            "every status but ok and repaired: there the agent abstained (weight 0) and the "
+            "fusion went on without it.",
+            agents_table(results),
+        ),
+        (
+            "Feedback budget",
+            "Fine-tunes whose panel was asked on a budget (`[feedback.distill]`, "
+            "docs/distill.md): of the distinct states visited, how many the panel was asked "
+            "(the budget caps them), how many the distilled model answered instead, the "
+            "misses and abstentions of asked states it answered, the requests handed to the "
+            "panel's source and how many of them were sent to the LLMs (the others were in "
+            "the belief store), the model's refits, and its agreement with the panel on the "
+            "held-out asked states (mean total-variation distance: 0 agrees, 1 disagrees "
+            "entirely) of the fused belief and of each member.",
+            budget_table(results),
+        ),
+        (
             "Metrics against the budget",
             "The paper's metrics (greedy, mean ± half-width of the 95% CI) of each distilled "
             "fine-tune by selection and budget, and of the fine-tune that asked the panel about "
             "every state.",
-            budget_ablation_table(results),
-        )
-    lines += _section(
-        "LLM servers",
-        "Per fine-tune and LLM server: requests sent (every attempt, retries and probes "
-        "included), answered, failed (by kind), retried on another server of the pool "
-        "after failing there, times taken out of the pool and put back, and the latency "
-        "of the answered requests (the 95th percentile over seed replicas is the largest "
-        "replica's). Each request went to the least-busy live server "
-        "(amuled-ma's docs/ollama.md, section 'A pool of servers').",
-        servers_table(results),
-    )
+            budget_ablation_table(results) if ablation == "budget" else "",
+        ),
+        (
+            "LLM servers",
+            "Per fine-tune and LLM server: requests sent (every attempt, retries and probes "
+            "included), answered, failed (by kind), retried on another server of the pool "
+            "after failing there, times taken out of the pool and put back, and the latency "
+            "of the answered requests (the 95th percentile over seed replicas is the largest "
+            "replica's). Each request went to the least-busy live server "
+            "(amuled-ma's docs/ollama.md, section 'A pool of servers').",
+            servers_table(results),
+        ),
+    ]
+    for heading, intro, body in sections:
+        if body:
+            lines += [f"## {heading}", "", intro, "", body]
     lines += ["## Figures", ""]
     for caption, note, path in figures:
         if path is not None:
             lines += [f"### {caption}", "", note, "", f"![{caption}]({path.name})", ""]
     return write_text_atomic(run_dir / "report.md", "\n".join(lines))
-
-
-def _section(heading: str, intro: str, body: str) -> list[str]:
-    """A report section: ``## heading``, its intro and ``body``; nothing when ``body`` is ``""``."""
-    return [f"## {heading}", "", intro, "", body] if body else []
 
 
 def readings_lines(results: Results) -> list[str]:

@@ -23,6 +23,7 @@ from amuled_ma.beliefs.sources.ollama import OllamaSource
 from amuled_ma.beliefs.store.cached import CachedSource
 from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.errors import BackendUnavailable, ModelNotFound, ScenarioError
+from amuled_ma.evaluate.results import Results
 
 MILK = ("up", "down", "left", "right")
 A, B = "http://gpu1:11434", "http://gpu2:11434"
@@ -295,7 +296,7 @@ def test_figures_reach_the_summary_results_and_report(tmp_path) -> None:
     from amuled_ma.beliefs.sources.routing import RoutedSource
     from amuled_ma.deliberation.summaries import llm_server_stats, summary_lines
     from amuled_ma.evaluate.evaluator import merge_feedback
-    from amuled_ma.evaluate.report import servers_table
+    from amuled_ma.evaluate.report.tables import servers_table
 
     servers = {A: Fake(), B: Fake()}
     source = pool_source(servers, concurrency=1)
@@ -314,8 +315,10 @@ def test_figures_reach_the_summary_results_and_report(tmp_path) -> None:
     assert lines[1] == "LLM servers (2):" and lines[2].startswith(f"  {A}: sent ")
     merged = merge_feedback([summary, summary])
     assert merged["llm_servers"][A]["sent"] == 2 * figures[A]["sent"]
-    table = servers_table({"variants": {"finetune-amuled": {"feedback": merged}}})
+    table = servers_table(
+        Results.model_validate({"variants": {"finetune-amuled": {"feedback": merged}}})
+    )
     assert table.splitlines()[0].startswith("| variant | server | sent | answered | failed |")
     assert f"| finetune-amuled | `{A}` | {2 * figures[A]['sent']} |" in table
-    assert servers_table({"variants": {"base": {}}}) == ""
+    assert servers_table(Results.model_validate({"variants": {"base": {}}})) == ""
     assert np.isfinite(figures[A]["mean_latency_s"])
