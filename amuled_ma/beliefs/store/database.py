@@ -17,8 +17,6 @@ from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from amuled_ma.beliefs.replies.validate import RULE, check_belief, show_values
 from amuled_ma.beliefs.store.keys import identity_json
 from amuled_ma.beliefs.store.rows import (
@@ -62,6 +60,12 @@ def _too_long(detail: str = "") -> str:
         f"longer than the {MAX_VALUE_BYTES:,} bytes a stored value may be ({why}an answer "
         "with its chat is about 20 KB)"
     )
+
+
+#: One row to write: key, identity, request, answer, attempts, created_at, updated_at.
+_Item = tuple[
+    str, Mapping[str, Any] | str, BeliefRequest, BeliefResult | StoredBelief, int, float, float
+]
 
 
 class _ValueTooBig(BeliefStoreError):
@@ -141,11 +145,7 @@ class BeliefStore:
         if self.path != ":memory:":
             Path(self.path).parent.mkdir(parents=True, exist_ok=True)
         try:
-            conn = sqlite3.connect(
-                self.path, timeout=self.timeout_s, isolation_level=None, check_same_thread=False
-            )
-            conn.execute(f"PRAGMA busy_timeout = {int(self.timeout_s * 1000)}")
-            conn.setlimit(sqlite3.SQLITE_LIMIT_LENGTH, MAX_VALUE_BYTES)
+            conn = self._sqlite(self.path)
             if self.path != ":memory:":
                 mode = self._journal_wal(conn)
                 if str(mode).lower() != "wal":
@@ -153,7 +153,7 @@ class BeliefStore:
             conn.execute(f"PRAGMA synchronous = {self.synchronous}")
             self._conn, self._pid = conn, os.getpid()
             self._messages_seen = set()
-            self._write(lambda c: self._create_schema(c))
+            self._write(self._create_schema)
         except sqlite3.DatabaseError as error:
             self._conn = None
             raise BeliefStoreError(f"{self.path}: cannot open belief store: {error}") from error
@@ -163,6 +163,15 @@ class BeliefStore:
             if isinstance(cause, sqlite3.DatabaseError):  # creating the tables failed
                 raise BeliefStoreError(f"{self.path}: cannot open belief store: {cause}") from cause
             raise
+        return conn
+
+    def _sqlite(self, target: str, *, uri: bool = False) -> sqlite3.Connection:
+        """A connection to ``target`` with the busy timeout and `MAX_VALUE_BYTES` set."""
+        conn = sqlite3.connect(
+            target, uri=uri, timeout=self.timeout_s, isolation_level=None, check_same_thread=False
+        )
+        conn.execute(f"PRAGMA busy_timeout = {int(self.timeout_s * 1000)}")
+        conn.setlimit(sqlite3.SQLITE_LIMIT_LENGTH, MAX_VALUE_BYTES)
         return conn
 
     def _journal_wal(self, conn: sqlite3.Connection) -> str:
@@ -194,15 +203,7 @@ class BeliefStore:
         for mode in ("mode=ro", "immutable=1"):
             conn = None
             try:
-                conn = sqlite3.connect(
-                    f"file:{quoted}?{mode}",
-                    uri=True,
-                    timeout=self.timeout_s,
-                    isolation_level=None,
-                    check_same_thread=False,
-                )
-                conn.execute(f"PRAGMA busy_timeout = {int(self.timeout_s * 1000)}")
-                conn.setlimit(sqlite3.SQLITE_LIMIT_LENGTH, MAX_VALUE_BYTES)
+                conn = self._sqlite(f"file:{quoted}?{mode}", uri=True)
                 self._check_schema(conn)
             except sqlite3.DatabaseError as error:
                 if conn is not None:
@@ -233,16 +234,11 @@ class BeliefStore:
         for statement in SCHEMA.split(";"):
             if statement.strip():
                 conn.execute(statement)
-        row = conn.execute("SELECT value FROM meta WHERE name = 'schema_version'").fetchone()
-        if row is None:
-            conn.execute(
-                "INSERT INTO meta (name, value) VALUES ('schema_version', ?)",
-                (str(SCHEMA_VERSION),),
-            )
-        elif int(row[0]) != SCHEMA_VERSION:
-            raise BeliefStoreError(
-                f"belief store schema version {row[0]}, this amuled-ma reads {SCHEMA_VERSION}"
-            )
+        conn.execute(
+            "INSERT OR IGNORE INTO meta (name, value) VALUES ('schema_version', ?)",
+            (str(SCHEMA_VERSION),),
+        )
+        BeliefStore._check_schema(conn)
 
     def _write(self, body: Any) -> Any:
         """Run ``body(conn)`` in one ``BEGIN IMMEDIATE`` transaction."""
@@ -520,24 +516,7 @@ class BeliefStore:
         `BeliefStoreError` and nothing of the batch is written.
         """
         now = time.time()
-        rows: list[Row] = []
-        texts: dict[str, str] = {}
-        for key, identity, request, result in items:
-            belief, reason = check_belief(result.belief, len(request.action_names))
-            if belief is None:
-                raise BeliefStoreError(
-                    f"{self.path}: refusing to write row {key} ({request.task} / "
-                    f"{request.cluster}, status {result.status!r}, source {result.source!r}): "
-                    f"belief {show_values(result.belief)} {reason}; {RULE}; pass a source's "
-                    "answers through CachedSource (or amuled_ma.beliefs.replies.validate."
-                    "checked_result), which turns an invalid answer into status 'error' with "
-                    "a uniform fallback"
-                )
-            ident = identity if isinstance(identity, str) else identity_json(identity)
-            row, bodies = self._encode(key, ident, request, belief, result, 1, now, now)
-            rows.append(row)
-            texts.update((h, b) for h, b in bodies.items() if h not in self._messages_seen)
-        return self._put_rows(rows, texts)
+        return self._put([(k, ident, req, res, 1, now, now) for k, ident, req, res in items])
 
     def put(
         self,
@@ -550,68 +529,42 @@ class BeliefStore:
         return self.put_many([(key, identity, request, result)])
 
     def put_rows(self, records: Iterable[StoredBelief]) -> int:
-        """Write whole rows read from another store (`import_jsonl`) in one transaction.
+        """Write whole rows read from another store (`import_jsonl`) as `put_many` does.
 
-        The rule of `put_many` holds; unlike it, each row keeps its own ``attempts``, timestamps
-        and identity (``messages`` ``None`` counts as no chat). Returns the rows inserted or
-        replaced; an invalid belief raises `BeliefStoreError` (nothing of the batch is written).
+        Each row keeps its own ``attempts``, timestamps and identity (``messages`` ``None``
+        counts as no chat).
         """
+        return self._put(
+            [
+                (r.key, r.identity, r.request(), r, r.attempts, r.created_at, r.updated_at)
+                for r in records
+            ]
+        )
+
+    def _put(self, items: list[_Item]) -> int:
+        """Check, encode and write ``items`` in one transaction; return the rows changed."""
         rows: list[Row] = []
         texts: dict[str, str] = {}
-        for record in records:
-            belief, reason = check_belief(record.belief, len(record.action_names))
+        for key, identity, request, answer, attempts, created_at, updated_at in items:
+            belief, reason = check_belief(answer.belief, len(request.action_names))
             if belief is None:
                 raise BeliefStoreError(
-                    f"{self.path}: refusing to write row {record.key}: belief "
-                    f"{show_values(record.belief)} {reason}; {RULE}"
+                    f"{self.path}: refusing to write row {key} ({request.task} / "
+                    f"{request.cluster}, status {answer.status!r}, source {answer.source!r}): "
+                    f"belief {show_values(answer.belief)} {reason}; {RULE}; pass a source's "
+                    "answers through CachedSource (or amuled_ma.beliefs.replies.validate."
+                    "checked_result), which turns an invalid answer into status 'error' with "
+                    "a uniform fallback"
                 )
-            row, bodies = self._encode(
-                record.key,
-                identity_json(record.identity),
-                record.request(),
-                belief,
-                record,
-                record.attempts,
-                record.created_at,
-                record.updated_at,
-            )
+            ident = identity if isinstance(identity, str) else identity_json(identity)
+            try:
+                row, bodies = encode_row(
+                    key, ident, request, belief, answer, attempts, created_at, updated_at
+                )
+            except UnicodeEncodeError:
+                raise self._unstorable(key, request, answer.raw, answer.extra) from None
             rows.append(row)
-            texts.update(bodies)
-        return self._put_rows(rows, texts)
-
-    def _encode(
-        self,
-        key: str,
-        ident: str,
-        request: BeliefRequest,
-        belief: np.ndarray,
-        answer: BeliefResult | StoredBelief,
-        attempts: int,
-        created_at: float,
-        updated_at: float,
-    ) -> tuple[Row, dict[str, str]]:
-        """`encode_row` of one answer; text that is not UTF-8 raises `_unstorable`'s error."""
-        try:
-            return encode_row(
-                key,
-                ident,
-                request,
-                belief,
-                source=answer.source,
-                status=answer.status,
-                raw=answer.raw,
-                latency_s=answer.latency_s,
-                prompt_tokens=answer.prompt_tokens,
-                completion_tokens=answer.completion_tokens,
-                extra=answer.extra,
-                attempts=attempts,
-                created_at=created_at,
-                updated_at=updated_at,
-            )
-        except UnicodeEncodeError:
-            raise self._unstorable(key, request, answer.raw, answer.extra) from None
-
-    def _put_rows(self, rows: list[Row], texts: dict[str, str]) -> int:
+            texts.update((h, b) for h, b in bodies.items() if h not in self._messages_seen)
         if not rows:
             return 0
 
@@ -624,7 +577,7 @@ class BeliefStore:
             return conn.total_changes - before
 
         for row in rows:  # a lone surrogate would fail mid-transaction in SQLite
-            reason = check_storable(row, {})
+            reason = check_storable(row)
             if reason is not None:
                 raise self._refuse(str(row[0]), reason)
         for text in texts.values():

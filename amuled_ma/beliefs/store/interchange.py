@@ -6,6 +6,7 @@ Standard JSON only; import checks every field, refuses a key that does not match
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -36,26 +37,12 @@ _REQUIRED = ("key", "source", "identity", "task", "cluster", "obs", "actions", "
 
 def row_json(row: StoredBelief) -> dict[str, Any]:
     """A row read with its chat (`iter_rows`) as one JSON object, one line of the export."""
-    return {
-        "key": row.key,
-        "source": row.source,
-        "identity": row.identity,
-        "task": row.task,
-        "cluster": row.cluster,
-        "obs": list(row.obs),
-        "actions": list(row.action_names),
-        "messages": [list(m) for m in row.messages or ()],
-        "raw": row.raw,
-        "belief": row.belief.tolist(),
-        "status": row.status,
-        "latency_s": row.latency_s,
-        "prompt_tokens": row.prompt_tokens,
-        "completion_tokens": row.completion_tokens,
-        "extra": row.extra,
-        "attempts": row.attempts,
-        "created_at": row.created_at,
-        "updated_at": row.updated_at,
+    out = {
+        "actions" if f.name == "action_names" else f.name: jsonable(getattr(row, f.name))
+        for f in dataclasses.fields(row)
     }
+    out["messages"] = out["messages"] or []
+    return out
 
 
 def export_jsonl(

@@ -26,16 +26,21 @@ def canonical_json(value: object) -> str:
     return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
 
 
-def jsonable(value: object) -> Any:
-    """``value`` with numpy values, tuples and non-string keys (any depth) as plain JSON data."""
+def jsonable(value: object, *, finite: bool = False) -> Any:
+    """``value`` with numpy values, tuples and non-string keys (any depth) as plain JSON data.
+
+    ``finite`` writes a non-finite float as its repr (``"nan"``), so standard JSON holds it.
+    """
     if isinstance(value, Mapping):
-        return {str(k): jsonable(v) for k, v in value.items()}
+        return {str(k): jsonable(v, finite=finite) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [jsonable(v) for v in value]
+        return [jsonable(v, finite=finite) for v in value]
     if isinstance(value, np.ndarray):
-        return value.tolist()
+        return jsonable(value.tolist(), finite=finite)
     if isinstance(value, np.generic):
-        return value.item()
+        value = value.item()
+    if finite and isinstance(value, float) and not math.isfinite(value):
+        return repr(value)
     return value
 
 
