@@ -44,12 +44,9 @@ STORE_ENV = "AMULED_BELIEF_STORE"
 
 _SQL_CHUNK = 500  # keys per ``IN (...)`` query, well under SQLite's variable limit
 
-#: Longest value (a reply, a chat message, a row's JSON columns) and row SQLite reads or
-#: writes in a store [bytes, 64 MiB; ``SQLITE_LIMIT_LENGTH``, SQLite's own default is
-#: 1,000,000,000]: 4 bytes (UTF-8's most) a character of the longest line ``amuled beliefs
-#: import`` reads (`MAX_LINE_CHARS`, 16 Mi), so every
-#: imported row fits; an answer with its chat is about 20 KB. SQLite refuses a longer
-#: value without reading it into memory.
+#: Longest value and row SQLite reads or writes in a store [bytes, 64 MiB;
+#: ``SQLITE_LIMIT_LENGTH``]: 4 bytes (UTF-8's most) per character of the longest imported line
+#: (`MAX_LINE_CHARS`, 16 Mi); SQLite refuses a longer value without reading it into memory.
 MAX_VALUE_BYTES = 2**26
 
 
@@ -96,19 +93,10 @@ def default_store_path() -> Path:
 class BeliefStore:
     """A SQLite file of belief answers, shared safely by threads and processes.
 
-    Args:
-        path: The database file (created with its folder when missing); ``":memory:"``
-            for a private in-memory store (tests).
-        timeout_s: How long a writer waits for another process's lock before failing.
-        synchronous: SQLite ``synchronous`` level, ``"NORMAL"`` (crash-safe for the
-            process) or ``"FULL"`` (also power-loss safe).
-        read_only: Open an existing file for reading only (SQLite ``mode=ro``, else
-            ``immutable=1`` where ``mode=ro`` cannot open it; see the module doc):
-            nothing is created or written, and every write raises.
-
-    Raises:
-        BeliefStoreError: The file cannot be opened or is not a belief store.
-
+    ``path`` is created with its folder (``":memory:"``: a private store); a writer waits
+    ``timeout_s`` for another process's lock; ``synchronous`` is ``"NORMAL"`` or ``"FULL"``
+    (also power-loss safe); ``read_only`` opens an existing file and never writes (see the
+    module doc). Raises `BeliefStoreError`: the file cannot be opened or is no belief store.
     """
 
     def __init__(
@@ -177,9 +165,7 @@ class BeliefStore:
     def _journal_wal(self, conn: sqlite3.Connection) -> str:
         """Switch to WAL mode, waiting up to ``timeout_s`` for other processes' locks.
 
-        SQLite does not call the busy handler for this switch, so several processes
-        creating one new store at once (parallel seeds) would otherwise fail at once
-        with "database is locked".
+        SQLite calls no busy handler here: processes creating one store at once would fail.
         """
         deadline = time.monotonic() + self.timeout_s
         while True:
@@ -296,13 +282,9 @@ class BeliefStore:
                 ) from error
 
     def _read_keys(self, sql: str, keys: Sequence[str]) -> list[tuple[Any, ...]]:
-        """`_read` of ``sql`` (one ``key IN (?, ...)``), naming the key of a too-long value.
+        """`_read` of ``sql`` (one ``key IN (?, ...)``); a too-long value's error names its row.
 
-        Raises:
-            BeliefStoreError: A row of ``keys`` holds a value longer than
-                `MAX_VALUE_BYTES`: the store and the row's key, found by asking the
-                keys one at a time (each refused without reading it).
-
+        The key is found by asking the keys one at a time (each refused without reading it).
         """
         try:
             return self._read(sql, keys)
@@ -378,11 +360,10 @@ class BeliefStore:
         return texts
 
     def lookup(self, keys: Iterable[str]) -> dict[str, BeliefResult]:
-        """Read the answers (``ok``/``repaired`` rows) of ``keys`` as cache-hit results.
+        """The answers (``ok``/``repaired`` rows) of ``keys`` as cache hits (`CachedSource`'s path).
 
-        The fast path of `CachedSource`: only the columns of a `BeliefResult` are read. Each
-        result has ``cached=True``, ``latency_s=0`` and the original latency in
-        ``extra["stored_latency_s"]``.
+        Only a `BeliefResult`'s columns are read; ``cached=True``, ``latency_s=0`` and the
+        original latency in ``extra["stored_latency_s"]``.
         """
         wanted = list(dict.fromkeys(keys))
         found: dict[str, BeliefResult] = {}

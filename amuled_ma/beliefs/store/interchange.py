@@ -26,10 +26,8 @@ from amuled_ma.beliefs.store.rows import (
 from amuled_ma.beliefs.types import STATUSES, BeliefRequest
 from amuled_ma.files.limits import read_line
 
-#: Longest line read by `import_jsonl` [characters, 16 Mi]: a line is one row with
-#: its whole chat, about 20,000 characters with the shipped prompts (system prompt,
-#: few-shot examples, state, reply); 16 Mi leaves room for a panel of many cluster files
-#: at their cap. A longer line is refused before it is read whole (a 2 GB line is not).
+#: Longest line read by `import_jsonl` [characters, 16 Mi]; a row with its chat is about
+#: 20,000; a longer line is refused before it is read whole.
 MAX_LINE_CHARS = 2**24
 
 _REQUIRED = ("key", "source", "identity", "task", "cluster", "obs", "actions", "belief")
@@ -80,16 +78,9 @@ def import_jsonl(
 ) -> dict[str, int]:
     """Read rows written by `export_jsonl` into a store; an existing answer is never replaced.
 
-    ``name`` is the file's name for errors; ``verify`` recomputes each key from the row and
-    refuses a mismatch; ``batch`` rows go in one transaction (the batches before a bad line
-    are kept). Returns ``{"read": n, "written": m}`` (``m < n`` when answers were there).
-
-    Raises:
-        BeliefStoreError: A line is not a valid row (names the file and line): longer
-            than `MAX_LINE_CHARS` (refused before it is read whole), not standard
-            JSON (``NaN``, ``Infinity``, nested too deeply), a missing field, an unknown
-            status, an invalid belief, a key that does not match.
-
+    ``name`` names the file in errors; ``verify`` recomputes each key from its row; ``batch``
+    rows go in one transaction (the batches before a bad line are kept). Returns ``{"read": n,
+    "written": m}``. `BeliefStoreError` names the file and line of one that is not a valid row.
     """
     read = written = 0
     rows: list[StoredBelief] = []

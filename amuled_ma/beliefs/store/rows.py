@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from amuled_ma.beliefs.replies.validate import RULE, check_belief, show_values
+from amuled_ma.beliefs.replies.validate import ANSWER_STATUSES, RULE, check_belief, show_values
 from amuled_ma.beliefs.store.keys import (
     canonical_json,
     floats_json,
@@ -27,7 +27,7 @@ from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
 from amuled_ma.errors import AmuledError
 
 #: Statuses whose rows are served back as cached answers.
-CACHEABLE = frozenset({"ok", "repaired"})
+CACHEABLE = ANSWER_STATUSES
 #: Version of the table layout written into ``meta``.
 SCHEMA_VERSION = 1
 
