@@ -95,9 +95,6 @@ def belief_schema(
     }
 
 
-# --------------------------------------------------------------------------- keys
-
-
 _NOT_WORD = re.compile(r"[^\w ]")
 _DIGITS = re.compile(r"\d+")
 _ACTION_NUMBER = re.compile(r"(?:action\s*)?(\d+)\b")
@@ -145,9 +142,6 @@ def _letter_index(key: str, n: int) -> int | None:
         return None
     i = ord(m.group(1).upper()) - ord("A")
     return i if i < n else None
-
-
-# --------------------------------------------------------------------------- values
 
 
 def _brief(value: object) -> str:
@@ -252,9 +246,6 @@ def _key_count(obj: Mapping[str, Any]) -> int:
     if len(obj) > MAX_KEYS:
         return len(obj)
     return len(obj) + sum(len(v) for v in obj.values() if isinstance(v, Mapping))
-
-
-# --------------------------------------------------------------------------- entry
 
 
 def parse_belief(

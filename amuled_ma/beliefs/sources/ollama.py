@@ -176,13 +176,11 @@ class OllamaSource(BeliefSource):
                 "private server"
             ),
         )
-        self._digest: str | None = None
-        self._checked = False
+        self._digest: str | None = None  # the model's, once checked
         self._lock = threading.Lock()
         self._pool: ThreadPoolExecutor | None = None
         self.stats = OllamaStats()
 
-    # -- setup -------------------------------------------------------------------------
     def check(self) -> str:
         """Preflight every host once; return the model's digest (later calls return it at once).
 
@@ -193,20 +191,12 @@ class OllamaSource(BeliefSource):
                 digests of it (their answers would share store keys).
 
         """
-        if self._checked:
-            return self._digest or ""
-        if len(self.hosts) == 1:
-            found = preflight(
-                self.host, self.model, self.check_timeout_s, transport=self._transport
-            )
-            self._digest = found.digest or ""
-        else:
-            self._digest = self._check_pool()
-        self._checked = True
+        if self._digest is None:
+            self._digest = self._check_hosts()
         return self._digest
 
-    def _check_pool(self) -> str:
-        """Preflight every host of the pool; return the one digest of the model."""
+    def _check_hosts(self) -> str:
+        """Preflight every host; return the one digest of the model."""
         found: dict[str, ServerCheck] = {}
         problems: list[tuple[str, AmuledError]] = []
         for url in self.hosts:
@@ -216,6 +206,8 @@ class OllamaSource(BeliefSource):
                 )
             except (BackendUnavailable, ModelNotFound) as error:
                 problems.append((url, error))
+        if problems and len(self.hosts) == 1:
+            raise problems[0][1]
         if problems:
             lines = "; ".join(str(error) for _, error in problems)
             urls = ", ".join(url for url, _ in problems)
@@ -274,7 +266,6 @@ class OllamaSource(BeliefSource):
             action_names, reasoning=self.reasoning, reasoning_max_chars=self.reasoning_max_chars
         )
 
-    # -- one request -------------------------------------------------------------------
     def _count(self, **increments: int) -> None:
         with self._lock:
             for key, value in increments.items():
@@ -397,22 +388,16 @@ class OllamaSource(BeliefSource):
         error = "; ".join(e for e in (invalid, parsed.error) if e) or None
         if status == "abstained":
             log.warning("ollama reply abstained for cluster %s: %s", request.cluster, error)
-        extra: dict[str, Any] = {
-            "attempts": attempt + 1,
-            "model": self.model,
-            "timing": timing.as_dict(),
-        }
-        if len(self.hosts) > 1:
-            extra["host"] = host  # the host of the answer (not part of the store key)
         publish_timing(timing, start, time.perf_counter())
-        if parsed.repairs:
-            extra["repairs"] = list(parsed.repairs)
-        if parsed.reasoning:
-            extra["reasoning"] = parsed.reasoning
-        if error:
-            extra["error"] = error
-        if invalid:
-            extra["invalid_belief"] = show_values(parsed.belief)
+        optional = {
+            "host": host if len(self.hosts) > 1 else None,  # not part of the store key
+            "repairs": list(parsed.repairs),
+            "reasoning": parsed.reasoning,
+            "error": error,
+            "invalid_belief": show_values(parsed.belief) if invalid else None,
+        }
+        extra = {"attempts": attempt + 1, "model": self.model, "timing": timing.as_dict()}
+        extra.update((key, value) for key, value in optional.items() if value)
         return BeliefResult(
             belief=belief,
             status=status,
@@ -451,7 +436,6 @@ class OllamaSource(BeliefSource):
             extra={"error": str(failure)},
         )
 
-    # -- batches -----------------------------------------------------------------------
     def _executor(self) -> ThreadPoolExecutor:
         if self._pool is None:
             self._pool = ThreadPoolExecutor(self.concurrency, thread_name_prefix="amuled-ollama")

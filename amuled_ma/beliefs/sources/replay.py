@@ -226,7 +226,6 @@ class ReplaySource(BeliefSource):
         self.misses_by_cluster: Counter[str] = Counter()
         self._agent_cache: dict[tuple[int, str], str | None] = {}
 
-    # -- lookup ----------------------------------------------------------------------
     def _recording_for(self, task: str) -> Recording | None:
         for recording in self.recordings:
             if _norm(recording.task) == _norm(task):
@@ -292,7 +291,6 @@ class ReplaySource(BeliefSource):
             return f"agent {agent!r} has no belief for state {list(request.obs)}"
         return answer
 
-    # -- BeliefSource ----------------------------------------------------------------
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
         """Answer every request from the recordings; misses follow ``miss_policy``."""
         pairs: list[tuple[int, BeliefResult]] = []

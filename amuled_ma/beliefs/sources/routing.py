@@ -13,7 +13,6 @@ from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, a
 from amuled_ma.errors import ScenarioError
 
 
-# ----------------------------------------------------------------------------- routing
 class RoutedSource(BeliefSource):
     """Answer each request with the source of its agent (``request.cluster``).
 

@@ -192,7 +192,6 @@ class TerminalSource(BeliefSource):
             ("asked", "answered", "skipped", "invalid", "gave_up", "eof"), 0
         )
 
-    # -- BeliefSource ----------------------------------------------------------------
     def identity(self) -> dict[str, Any]:
         """Return the kind and the person (what decides the answers)."""
         return {"source": self.name, "person": self.person}
@@ -210,7 +209,6 @@ class TerminalSource(BeliefSource):
             for j, index in enumerate(indices):
                 yield index, result if j == 0 else result.copy()
 
-    # -- internals -------------------------------------------------------------------
     def _write(self, text: str) -> None:
         stream = self._stdout if self._stdout is not None else sys.stderr
         stream.write(text)

@@ -80,7 +80,6 @@ class CachedSource(BeliefSource):
         self._identity = dict(identity) if identity is not None else None
         self._identity_json: str | None = None
 
-    # -- BeliefSource ----------------------------------------------------------------
     @property
     def name(self) -> str:  # type: ignore[override]  # property over an attribute
         """The wrapped source's name (a cache is transparent)."""
@@ -149,7 +148,6 @@ class CachedSource(BeliefSource):
         ]
         return in_order(pairs, len(requests), self.name)
 
-    # -- internals -------------------------------------------------------------------
     def _ask(self, ident: str, todo: list[tuple[str, BeliefRequest]]) -> dict[str, BeliefResult]:
         """Send the misses and write each answer as soon as it is back."""
         answers: dict[str, BeliefResult] = {}

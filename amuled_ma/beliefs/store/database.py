@@ -123,7 +123,6 @@ class BeliefStore:
         self._width: dict[str, int] = {}  # ``actions`` column text -> action count
         self._connect()
 
-    # -- connection ------------------------------------------------------------------
     def _connect(self) -> sqlite3.Connection:
         """Open (or, after a ``fork``, re-open) this process's connection."""
         if self._conn is not None and self._pid == os.getpid():
@@ -314,7 +313,6 @@ class BeliefStore:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    # -- reads -----------------------------------------------------------------------
     def get_many(
         self, keys: Iterable[str], *, cacheable_only: bool = True, with_messages: bool = False
     ) -> dict[str, StoredBelief]:
@@ -464,19 +462,11 @@ class BeliefStore:
         Only latencies above 0 count (a row answered from a replay or a cache records 0).
         """
         rows = self._read(
-            "SELECT identity, latency_s FROM beliefs WHERE status IN ('ok', 'repaired') "
-            "AND latency_s > 0 ORDER BY created_at, rowid"
+            "SELECT latency_s FROM beliefs WHERE status IN ('ok', 'repaired') AND latency_s > 0 "
+            "AND json_extract(identity, '$.model') = ? ORDER BY created_at, rowid",
+            (model,),
         )
-        models: dict[str, object] = {}
-        out = []
-        for ident, latency in rows:
-            if ident not in models:
-                where = f"{self.path}: identity {ident[:60]!r}"
-                identity = load_column(ident, "identity", where, None)
-                models[ident] = identity.get("model") if isinstance(identity, dict) else None
-            if models[ident] == model:
-                out.append(float(latency))
-        return out
+        return [float(latency) for (latency,) in rows]
 
     def __len__(self) -> int:
         return int(self._read("SELECT COUNT(*) FROM beliefs")[0][0])
@@ -484,7 +474,6 @@ class BeliefStore:
     def __contains__(self, key: object) -> bool:
         return bool(self._read("SELECT 1 FROM beliefs WHERE key = ?", (key,)))
 
-    # -- writes ----------------------------------------------------------------------
     def put_many(
         self, items: Iterable[tuple[str, Mapping[str, Any] | str, BeliefRequest, BeliefResult]]
     ) -> int:
@@ -590,7 +579,6 @@ class BeliefStore:
         }
         return self._refuse(key, unstorable_text(fields) or "a text is not valid Unicode")
 
-    # -- maintenance -----------------------------------------------------------------
     def integrity_check(self) -> list[str]:
         """SQLite's ``PRAGMA integrity_check``: ``["ok"]`` for a sound file, else its problems."""
         return [str(r[0]) for r in self._read("PRAGMA integrity_check")]

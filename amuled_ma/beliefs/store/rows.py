@@ -109,7 +109,6 @@ class StoredBelief:
         )
 
 
-# -- encoding ------------------------------------------------------------------------
 def encode_row(
     key: str,
     identity: str,
@@ -230,7 +229,6 @@ def split_messages(
     return "[" + ",".join(refs) + "]", bodies
 
 
-# -- decoding and its checks ---------------------------------------------------------
 def damaged_row(where: str, key: str | None, problem: str) -> BeliefStoreError:
     """The error of a damaged row at ``where`` (``"STORE: row KEY"``), with how to remove it."""
     fix = (
