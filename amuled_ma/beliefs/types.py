@@ -74,9 +74,8 @@ class BeliefResult:
 class BeliefSource(ABC):
     """Base class of belief sources; subclasses answer batches of requests.
 
-    Optional protocol: a source may also define ``iter_beliefs(requests)`` yielding
-    ``(index, result)`` pairs as answers complete (in any order); a caller such as
-    `CachedSource` then stores each answer on arrival.
+    A source may also define ``iter_beliefs(requests)``, yielding ``(index, result)`` as answers
+    complete; `CachedSource` then stores each on arrival.
     """
 
     #: Short registry name of the source kind (``"ollama"``, ``"replay"``, ``"rules"``).

@@ -1,8 +1,6 @@
 """The ``{...}`` objects of an LLM reply, found and read with repairs, in linear time.
 
-Linear whatever the reply: at most `MAX_CANDIDATES` spans of `MAX_OBJECT_CHARS`,
-`MAX_LITERAL_CHARS` through ``ast.literal_eval``, `MAX_KEYS` keys, `MAX_NESTING` levels
-(``docs/beliefs.md``, "Cost and limits").
+The limits below bound the cost whatever the reply (``docs/beliefs.md``, "Cost and limits").
 """
 
 from __future__ import annotations
@@ -163,12 +161,7 @@ class ReadBudget:
 
 
 def _lenient_pairs(body: str, budget: ReadBudget) -> dict[str, Any]:
-    """Scan ``key: number`` pairs (the last one of a key wins); linear in ``len(body)``.
-
-    Raises:
-        UnreadableObjectError: The budget's keys ran out (one per colon followed by a number).
-
-    """
+    """Scan ``key: number`` pairs (a key's last wins); `UnreadableObjectError`: keys ran out."""
     pairs: dict[str, Any] = {}
     end = 0
     for value in _VALUE.finditer(body):

@@ -72,11 +72,7 @@ class ParsedBelief:
 def belief_schema(
     action_names: Sequence[str], *, reasoning: bool = True, reasoning_max_chars: int = 400
 ) -> dict[str, Any]:
-    """JSON schema of a reply over ``action_names`` (index = property key), for ``format``.
-
-    ``reasoning`` puts a ``"reasoning"`` string of at most ``reasoning_max_chars`` before the
-    probabilities.
-    """
+    """JSON schema of a reply over ``action_names`` (index = key), with an optional reasoning."""
     properties: dict[str, Any] = {}
     if reasoning:
         properties["reasoning"] = {"type": "string", "maxLength": int(reasoning_max_chars)}
@@ -253,8 +249,7 @@ def parse_belief(
 ) -> ParsedBelief:
     """Parse one LLM reply (``None`` or empty abstains) into a `ParsedBelief`; never raises.
 
-    ``structured``: the reply was requested with `belief_schema` as format. The cost is linear
-    in ``len(text)`` (see the module's docstring for the limits).
+    ``structured``: the reply was requested with `belief_schema` as format; linear in the reply.
     """
     n = len(action_names)
     if n == 0:

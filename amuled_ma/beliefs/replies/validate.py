@@ -39,11 +39,7 @@ class InvalidBeliefError(AmuledError, ValueError):
 
 
 def show_values(values: object, limit: int = _MAX_SHOWN_CHARS) -> str:
-    """Return a short, plain-text rendering of ``values`` for messages and diagnostics.
-
-    Non-finite floats are written ``nan`` / ``inf`` (never JSON's non-standard ``NaN``),
-    and the text is cut at ``limit`` characters.
-    """
+    """``values`` as short plain text (``nan`` / ``inf``, never ``NaN``), cut at ``limit``."""
     try:
         if isinstance(values, np.ndarray):
             values = values.tolist()

@@ -182,14 +182,10 @@ class OllamaSource(BeliefSource):
         self.stats = OllamaStats()
 
     def check(self) -> str:
-        """Preflight every host once; return the model's digest (later calls return it at once).
+        """Preflight every host once; return the model's digest.
 
-        Raises:
-            BackendUnavailable: A host does not answer within ``check_timeout_s`` (a pool's
-                message names each such host and the fix).
-            ModelNotFound: A host lacks the model, or two hosts of a pool hold different
-                digests of it (their answers would share store keys).
-
+        `BackendUnavailable`: a host does not answer within ``check_timeout_s``;
+        `ModelNotFound`: a host lacks the model, or two hosts hold different digests of it.
         """
         if self._digest is None:
             self._digest = self._check_hosts()

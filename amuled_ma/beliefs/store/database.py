@@ -440,10 +440,9 @@ class BeliefStore:
                 yield decode_row(row, texts, self.path)
 
     def identities(self) -> list[dict[str, Any]]:
-        """Each distinct source identity with its counts, most rows first.
+        """``[{"identity": {...}, "rows": n, "answers": m}, ...]``, most rows first.
 
-        ``[{"identity": {...}, "rows": n, "answers": m}, ...]``; pass an ``identity`` to
-        `CachedSource` to replay the store without the source's backend.
+        An ``identity`` given to `CachedSource` replays the store without the source's backend.
         """
         rows = self._read(
             "SELECT identity, COUNT(*), SUM(status IN ('ok', 'repaired')) FROM beliefs "
@@ -479,10 +478,8 @@ class BeliefStore:
     ) -> int:
         """Write ``(key, identity, request, result)`` answers in one transaction; return the count.
 
-        ``identity`` is the source's ``identity()`` dict or its `identity_json` text. An existing
-        ``ok``/``repaired`` row is kept as it is; any other existing row is replaced and its
-        ``attempts`` counted up. Every belief, whatever its status, must be valid for the
-        request's action count (`validate`) and is written divided by its sum; else
+        ``identity``: ``identity()`` or its `identity_json` text. An ``ok``/``repaired`` row is
+        kept; another is replaced, its ``attempts`` counted up. An invalid belief raises
         `BeliefStoreError` and nothing of the batch is written.
         """
         now = time.time()

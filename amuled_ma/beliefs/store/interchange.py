@@ -50,10 +50,9 @@ def export_jsonl(
     status: Sequence[str] | None = None,
     task: str | None = None,
 ) -> int:
-    """Write a store's rows of ``status`` and ``task`` (all when None) as JSON Lines.
+    """Write a store's rows of ``status`` and ``task`` (all when None) as JSON Lines; the count.
 
-    Returns the number of rows written; a damaged row, or a value standard JSON cannot hold,
-    raises `BeliefStoreError`.
+    `BeliefStoreError`: a damaged row, or a value standard JSON cannot hold.
     """
     count = 0
     for row in store.iter_rows(status=status, task=task):

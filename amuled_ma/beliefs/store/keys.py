@@ -50,19 +50,14 @@ def identity_json(identity: Mapping[str, Any]) -> str:
 
 
 def request_key(identity: Mapping[str, Any] | str, request: BeliefRequest) -> str:
-    """The store key of one request to one source.
+    """The store key of one request to one source, 64 hex characters.
 
     ``sha256(canonical_json({"identity": identity, "request": {"actions", "cluster",
-    "messages": [[role, content], ...], "obs", "task"}, "v": KEY_VERSION}))``, in hex.
-
-    ``identity`` is the source's ``identity()`` dict, or its `identity_json` text (faster for
-    many requests to one source). Returns 64 hex characters.
+    "messages": [[role, content], ...], "obs", "task"}, "v": KEY_VERSION}))``; ``identity``
+    is the source's ``identity()`` or its `identity_json` text (faster for many requests).
     """
     ident = identity if isinstance(identity, str) else identity_json(identity)
-    # Byte for byte canonical_json({"identity": ..., "request": {...}, "v": KEY_VERSION}),
-    # hashed in two parts: the prefix up to the last message (identity, actions, cluster,
-    # system prompt, few-shot turns: shared by every request of one cluster) is hashed once
-    # per process and its SHA-256 state copied; only the state prompt and obs are new.
+    # the prefix up to the last message is shared by a cluster's requests: hashed once
     messages = request.messages
     head, last = (messages[:-1], messages[-1]) if messages else ((), None)
     digest = _prefix_state(ident, tuple(request.action_names), request.cluster, head).copy()
