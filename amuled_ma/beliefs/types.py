@@ -12,15 +12,11 @@ import numpy as np
 
 K = TypeVar("K")
 
-#: Parse / answer statuses a `BeliefResult` may carry.
+#: Parse / answer statuses a `BeliefResult` may carry (their meanings: ``docs/beliefs.md``).
 STATUSES = ("ok", "repaired", "abstained", "replay_miss", "timeout", "error")
-#: Statuses of beliefs a distilled reward model gave in the panel's place
-#: (`distill`): ``"distilled"`` (a state that was not asked) and
-#: ``"distilled_miss"`` (an asked state's replay miss or abstention, answered by the model).
-#: They are answers for the fusion, reported apart from the panel's, and never stored.
+#: Statuses of a distilled reward model's beliefs (`distill`): fused, never stored.
 MODEL_STATUSES = ("distilled", "distilled_miss")
-#: Status of a state that was not asked and whose agent the distilled model cannot answer
-#: yet (no asked state has that agent's answer): a failure, the agent abstains.
+#: Status of a state not asked whose agent the distilled model cannot answer yet: it abstains.
 UNASKED = "unasked"
 #: Statuses fused as an agent's answer: the panel's (``ok``, ``repaired``) and the model's.
 FUSED_STATUSES = frozenset({"ok", "repaired", *MODEL_STATUSES})

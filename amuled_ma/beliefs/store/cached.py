@@ -125,9 +125,8 @@ class CachedSource(BeliefSource):
         Hits have ``cached=True``; a request repeated in the batch gets its own copy.
         """
         ident = self._ident()
-        keys = [request_key(ident, r) for r in requests]
         positions: dict[str, list[int]] = {}
-        for i, key in enumerate(keys):
+        for i, key in enumerate(self.keys(requests)):
             positions.setdefault(key, []).append(i)
 
         stats = self.stats
