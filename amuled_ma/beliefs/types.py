@@ -4,21 +4,19 @@ from __future__ import annotations
 
 import dataclasses
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
-#: Parse / answer statuses a `BeliefResult` may carry.
+K = TypeVar("K")
+
+#: Parse / answer statuses a `BeliefResult` may carry (their meanings: ``docs/beliefs.md``).
 STATUSES = ("ok", "repaired", "abstained", "replay_miss", "timeout", "error")
-#: Statuses of beliefs a distilled reward model gave in the panel's place
-#: (`distill`): ``"distilled"`` (a state that was not asked) and
-#: ``"distilled_miss"`` (an asked state's replay miss or abstention, answered by the model).
-#: They are answers for the fusion, reported apart from the panel's, and never stored.
+#: Statuses of a distilled reward model's beliefs (`distill`): fused, never stored.
 MODEL_STATUSES = ("distilled", "distilled_miss")
-#: Status of a state that was not asked and whose agent the distilled model cannot answer
-#: yet (no asked state has that agent's answer): a failure, the agent abstains.
+#: Status of a state not asked whose agent the distilled model cannot answer yet: it abstains.
 UNASKED = "unasked"
 #: Statuses fused as an agent's answer: the panel's (``ok``, ``repaired``) and the model's.
 FUSED_STATUSES = frozenset({"ok", "repaired", *MODEL_STATUSES})
@@ -28,15 +26,8 @@ FUSED_STATUSES = frozenset({"ok", "repaired", *MODEL_STATUSES})
 class BeliefRequest:
     """One question to one moral-cluster agent about one task state.
 
-    Attributes:
-        task: Task name (``"findmilk"``, ``"driving"``).
-        cluster: Cluster (agent) name, e.g. ``"care"`` or ``"moral_agent"``.
-        obs: The task observation the belief is asked for (the replay key).
-        action_names: Names of the task's actions; index = action id.
-        messages: The full chat sent to an LLM (system, few-shot, state prompt) as
-            ``((role, content), ...)`` pairs (hashable, so identical requests in a batch
-            are recognised); empty for sources that need none.
-
+    ``obs`` is the replay key; ``messages`` the chat sent to an LLM as ``((role, content), ...)``
+    (hashable: identical requests of a batch are recognised), empty for sources needing none.
     """
 
     task: str
@@ -55,19 +46,8 @@ class BeliefRequest:
 class BeliefResult:
     """A source's answer to one `BeliefRequest`.
 
-    Attributes:
-        belief: Probability vector, shape ``(n_actions,)``, sums to 1.
-        status: One of `STATUSES` (or, from a distilled model, of
-            `MODEL_STATUSES` or `UNASKED`); anything but ``"ok"``/``"repaired"``
-            and the model's answers means the belief is a fallback (uniform, ...).
-        source: Name of the source that produced the belief.
-        raw: The raw reply text, when there was one.
-        cached: True when the answer came from the belief store without a request.
-        latency_s: Wall-clock seconds spent answering (0 for cache hits).
-        prompt_tokens: Prompt tokens reported by the backend, if any.
-        completion_tokens: Completion tokens reported by the backend, if any.
-        extra: Free-form diagnostics (retry count, error text, ...).
-
+    ``belief`` sums to 1; a status outside `FUSED_STATUSES` means a fallback (uniform, ...).
+    ``cached``: read from the store (``latency_s`` 0); ``extra``: diagnostics (retries, errors).
     """
 
     belief: np.ndarray
@@ -81,11 +61,7 @@ class BeliefResult:
     extra: dict[str, Any] = field(default_factory=dict)
 
     def copy(self, **changes: Any) -> BeliefResult:
-        """Return an independent copy (own belief array and extra dict), with ``changes``.
-
-        Duplicates of one request in a batch get copies, so that no two results share
-        an array a caller might modify.
-        """
+        """An independent copy (own belief array and extra dict) with ``changes``."""
         return dataclasses.replace(
             self, belief=self.belief.copy(), extra=dict(self.extra), **changes
         )
@@ -94,9 +70,8 @@ class BeliefResult:
 class BeliefSource(ABC):
     """Base class of belief sources; subclasses answer batches of requests.
 
-    Optional protocol: a source may also define ``iter_beliefs(requests)`` yielding
-    ``(index, result)`` pairs as answers complete (in any order); a caller such as
-    `CachedSource` then stores each answer on arrival.
+    A source may also define ``iter_beliefs(requests)``, yielding ``(index, result)`` as answers
+    complete; `CachedSource` then stores each on arrival.
     """
 
     #: Short registry name of the source kind (``"ollama"``, ``"replay"``, ``"rules"``).
@@ -110,21 +85,43 @@ class BeliefSource(ABC):
         """Answer every request, one result each in order; never raise for one bad reply."""
 
     def identity(self) -> dict[str, Any]:
-        """Describe what determines this source's answers (model, digest, options).
-
-        The belief store hashes it into the cache key, so two sources with the same
-        identity share cached answers and two different ones never do.
-        """
+        """What decides the answers (model, digest, options): hashed into the store key."""
         return {"source": self.name}
 
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release clients, threads or files held by the source."""
 
 
-def every_answer(results: Sequence[BeliefResult | None], source: str) -> list[BeliefResult]:
-    """A batch's results; a request left without one raises `RuntimeError` naming ``source``."""
-    answered = [r for r in results if r is not None]
-    if len(answered) != len(results):
-        missing = len(results) - len(answered)
+def indices_by(
+    requests: Sequence[BeliefRequest], key: Callable[[BeliefRequest], K]
+) -> dict[K, list[int]]:
+    """The indices of ``requests`` grouped by ``key(request)``, groups in order of first use."""
+    groups: dict[K, list[int]] = {}
+    for i, request in enumerate(requests):
+        groups.setdefault(key(request), []).append(i)
+    return groups
+
+
+def in_order(
+    pairs: Iterable[tuple[int, BeliefResult]], count: int, source: str
+) -> list[BeliefResult]:
+    """The results of ``(index, result)`` pairs by index; one missing raises `RuntimeError`."""
+    out: list[BeliefResult | None] = [None] * count
+    for index, result in pairs:
+        out[index] = result
+    answered = [r for r in out if r is not None]
+    if len(answered) != count:
+        missing = count - len(answered)
         raise RuntimeError(f"belief source {source!r} left {missing} request(s) without a result")
     return answered
+
+
+def ask(source: BeliefSource, batch: Sequence[BeliefRequest]) -> list[BeliefResult]:
+    """``source.beliefs(batch)``; `RuntimeError` when it answers another number of results."""
+    results = source.beliefs(batch)
+    if len(results) != len(batch):
+        raise RuntimeError(
+            f"belief source {getattr(source, 'name', '?')!r} answered {len(results)} results "
+            f"for {len(batch)} requests"
+        )
+    return results

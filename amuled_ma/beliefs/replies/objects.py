@@ -1,8 +1,6 @@
 """The ``{...}`` objects of an LLM reply, found and read with repairs, in linear time.
 
-Linear whatever the reply: at most `MAX_CANDIDATES` spans of `MAX_OBJECT_CHARS`,
-`MAX_LITERAL_CHARS` through ``ast.literal_eval``, `MAX_KEYS` keys, `MAX_NESTING` levels
-(``docs/beliefs.md``, "Cost and limits").
+The limits below bound the cost whatever the reply (``docs/beliefs.md``, "Cost and limits").
 """
 
 from __future__ import annotations
@@ -14,21 +12,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-
-__all__ = [
-    "EXAMINE_FACTOR",
-    "MAX_CANDIDATES",
-    "MAX_KEYS",
-    "MAX_LITERAL_CHARS",
-    "MAX_NESTING",
-    "MAX_OBJECT_CHARS",
-    "ReadBudget",
-    "UnreadableObjectError",
-    "candidate_objects",
-    "candidate_spans",
-    "decode_candidate",
-    "too_deep",
-]
 
 #: Longest candidate object examined (longer spans are skipped, keeping parsing fast).
 MAX_OBJECT_CHARS = 20_000
@@ -68,8 +51,9 @@ def _depths(steps: np.ndarray) -> np.ndarray:
 def candidate_spans(text: str) -> tuple[list[tuple[int, int]], int]:
     """``(start, end)`` of the balanced ``{...}`` spans, the one ending last first.
 
-    Returns the first `MAX_CANDIDATES` spans of at most `MAX_OBJECT_CHARS` characters, and
-    how many longer spans were left out.
+    Nested spans are all returned; braces in quoted strings are not special-cased. Returns the
+    first `MAX_CANDIDATES` spans of at most `MAX_OBJECT_CHARS` characters, and how many longer
+    spans were left out.
     """
     if "{" not in text or "}" not in text:
         return [], 0
@@ -95,18 +79,6 @@ def candidate_spans(text: str) -> tuple[list[tuple[int, int]], int]:
     last = np.flatnonzero(short)[::-1][:MAX_CANDIDATES]
     spans = list(zip(start[last].tolist(), (where[last] + 1).tolist(), strict=True))
     return spans, int(np.count_nonzero(closed & ~short))
-
-
-def candidate_objects(text: str) -> list[str]:
-    """Every balanced ``{...}`` span of the text, the one ending last first.
-
-    Nested spans are all returned (an outer object ends after its inner ones, so it
-    comes first). Braces inside quoted strings are not special-cased: replies rarely
-    hold them, and a failed outer candidate falls back to the inner ones. At most
-    `MAX_CANDIDATES` spans of at most `MAX_OBJECT_CHARS` characters are
-    returned; the cost is linear in the text's length.
-    """
-    return [text[a:b] for a, b in candidate_spans(text)[0]]
 
 
 def too_deep(text: str) -> bool:
@@ -175,14 +147,7 @@ def _pair_key(text: str, start: int, colon: int) -> str | None:
 
 @dataclass
 class ReadBudget:
-    """What is left to spend on one reply (see the module's docstring).
-
-    Attributes:
-        chars: Characters of candidates still to examine.
-        literal: Characters still to read with ``ast.literal_eval``.
-        keys: Keys and colons still to look at.
-
-    """
+    """What is left to spend on one reply (see the module's docstring)."""
 
     chars: int  # characters of candidates to examine
     literal: int = MAX_LITERAL_CHARS  # characters to read with ast.literal_eval
@@ -196,12 +161,7 @@ class ReadBudget:
 
 
 def _lenient_pairs(body: str, budget: ReadBudget) -> dict[str, Any]:
-    """Scan ``key: number`` pairs (the last one of a key wins); linear in ``len(body)``.
-
-    Raises:
-        UnreadableObjectError: The budget's keys ran out (one per colon followed by a number).
-
-    """
+    """Scan ``key: number`` pairs (a key's last wins); `UnreadableObjectError`: keys ran out."""
     pairs: dict[str, Any] = {}
     end = 0
     for value in _VALUE.finditer(body):
@@ -217,15 +177,9 @@ def _lenient_pairs(body: str, budget: ReadBudget) -> dict[str, Any]:
 def decode_candidate(candidate: str, budget: ReadBudget) -> tuple[dict[str, Any], tuple[str, ...]]:
     """Decode one ``{...}`` span, repairing the usual faults; linear in its length.
 
-    Strict JSON first, then a Python literal (within ``budget.literal``), then the repairs
-    (quotes, unquoted keys, trailing commas), then the lenient ``key: number`` scan; ``budget``
-    is updated in place. Returns ``(object, names of the repairs applied)``.
-
-    Raises:
-        UnreadableObjectError: Nothing could be read, the span is nested deeper than
-            `MAX_NESTING` levels, or the lenient scan would look at more than the
-            budget's keys.
-
+    Strict JSON, a Python literal (within ``budget.literal``), the repairs (quotes, unquoted
+    keys, trailing commas), then the lenient ``key: number`` scan; ``budget`` is spent in place.
+    Returns ``(object, repairs)``; `UnreadableObjectError` when nothing can be read.
     """
     if too_deep(candidate):
         raise UnreadableObjectError(f"nested deeper than {MAX_NESTING} levels")

@@ -28,27 +28,28 @@ from amuled_ma.beliefs.replies.objects import (
     too_deep,
 )
 from amuled_ma.beliefs.replies.validate import SUM_TOLERANCE
+from amuled_ma.beliefs.replies.validate import uniform_belief as uniform
 
 #: Statuses `parse_belief` returns.
 PARSE_STATUSES = ("ok", "repaired", "abstained")
 
-#: Repairs that may be listed in `ParsedBelief.repairs`.
-REPAIRS = {
-    "schema_ignored": "structured output was requested but the reply is not the schema's JSON",
-    "python_literal": "object read as a Python literal (single quotes, True/None, ...)",
-    "unquoted_keys": "keys or string values were not quoted; quotes added",
-    "trailing_comma": "a trailing comma before '}' was removed",
-    "lenient_pairs": "object read by scanning 'key: number' pairs",
-    "string_values": "probabilities given as strings were converted to numbers",
-    "percent": "probabilities given as percentages were divided by 100",
-    "key_names": "keys named actions ('up', 'Move Up', 'action 0', 'A') instead of indices",
-    "nested": "probabilities were found in a nested object",
-    "extra_keys": "keys that name no action were ignored",
-    "duplicate_keys": "several keys named the same action; the last one was kept",
-    "missing_actions": "actions missing from the object were given probability 0",
-    "renormalised": "probabilities did not sum to 1 and were renormalised",
-    "earlier_object": "the last JSON object was invalid; an earlier one was used",
-}
+#: Repairs that may be listed in `ParsedBelief.repairs` (their meanings: ``docs/beliefs.md``).
+REPAIRS = (
+    "schema_ignored",
+    "python_literal",
+    "unquoted_keys",
+    "trailing_comma",
+    "lenient_pairs",
+    "string_values",
+    "percent",
+    "key_names",
+    "nested",
+    "extra_keys",
+    "duplicate_keys",
+    "missing_actions",
+    "renormalised",
+    "earlier_object",
+)
 
 #: Keys that carry text, not probabilities (ignored without an ``extra_keys`` repair).
 TEXT_KEYS = frozenset({"reasoning", "reason", "explanation", "rationale", "thoughts", "analysis"})
@@ -56,16 +57,9 @@ TEXT_KEYS = frozenset({"reasoning", "reason", "explanation", "rationale", "thoug
 
 @dataclass(frozen=True)
 class ParsedBelief:
-    """The result of parsing one reply.
+    """One parsed reply (``belief``: finite, >= 0, sums to 1; ``status``: `PARSE_STATUSES`).
 
-    Attributes:
-        belief: Probability vector, shape ``(n_actions,)``: finite, >= 0, sums to 1.
-        status: ``"ok"`` (read as is), ``"repaired"`` (see ``repairs``) or
-            ``"abstained"`` (uniform; nothing usable in the reply).
-        repairs: Names of the repairs applied, keys of `REPAIRS`.
-        reasoning: The reply's ``"reasoning"`` field, when there was one.
-        error: Why the reply abstained (``None`` otherwise).
-
+    ``repairs``: those applied (`REPAIRS`); ``error``: why the reply abstained.
     """
 
     belief: np.ndarray
@@ -75,19 +69,10 @@ class ParsedBelief:
     error: str | None = None
 
 
-def uniform(n_actions: int) -> np.ndarray:
-    """Return the uniform belief over ``n_actions`` actions."""
-    return np.full(n_actions, 1.0 / n_actions)
-
-
 def belief_schema(
     action_names: Sequence[str], *, reasoning: bool = True, reasoning_max_chars: int = 400
 ) -> dict[str, Any]:
-    """JSON schema of a reply over ``action_names`` (index = property key), for ``format``.
-
-    ``reasoning`` puts a ``"reasoning"`` string of at most ``reasoning_max_chars`` before the
-    probabilities.
-    """
+    """JSON schema of a reply over ``action_names`` (index = key), with an optional reasoning."""
     properties: dict[str, Any] = {}
     if reasoning:
         properties["reasoning"] = {"type": "string", "maxLength": int(reasoning_max_chars)}
@@ -104,9 +89,6 @@ def belief_schema(
         "required": list(properties),
         "additionalProperties": False,
     }
-
-
-# --------------------------------------------------------------------------- keys
 
 
 _NOT_WORD = re.compile(r"[^\w ]")
@@ -158,9 +140,6 @@ def _letter_index(key: str, n: int) -> int | None:
     return i if i < n else None
 
 
-# --------------------------------------------------------------------------- values
-
-
 def _brief(value: object) -> str:
     """``repr(value)``, at most 80 characters (an error message never holds a whole reply)."""
     try:
@@ -198,12 +177,10 @@ def _value(value: object, repairs: set[str]) -> float:
 def belief_from_mapping(
     obj: Mapping[str, Any], action_names: Sequence[str]
 ) -> tuple[np.ndarray, tuple[str, ...], str | None]:
-    """Turn one decoded JSON object into ``(belief, repairs, reasoning)``.
+    """One decoded JSON object as ``(belief, repairs, reasoning)``.
 
-    Raises:
-        UnreadableObjectError: The object names no action, holds an invalid probability,
-            sums to 0, or has more than `MAX_KEYS` keys (nested objects' included).
-
+    `UnreadableObjectError`: no action named, an invalid probability, a sum of 0, or more than
+    `MAX_KEYS` keys (nested objects' included).
     """
     n = len(action_names)
     if _key_count(obj) > MAX_KEYS:
@@ -267,16 +244,12 @@ def _key_count(obj: Mapping[str, Any]) -> int:
     return len(obj) + sum(len(v) for v in obj.values() if isinstance(v, Mapping))
 
 
-# --------------------------------------------------------------------------- entry
-
-
 def parse_belief(
     text: str | None, action_names: Sequence[str], *, structured: bool = False
 ) -> ParsedBelief:
     """Parse one LLM reply (``None`` or empty abstains) into a `ParsedBelief`; never raises.
 
-    ``structured``: the reply was requested with `belief_schema` as format. The cost is linear
-    in ``len(text)`` (see the module's docstring for the limits).
+    ``structured``: the reply was requested with `belief_schema` as format; linear in the reply.
     """
     n = len(action_names)
     if n == 0:

@@ -39,11 +39,7 @@ class InvalidBeliefError(AmuledError, ValueError):
 
 
 def show_values(values: object, limit: int = _MAX_SHOWN_CHARS) -> str:
-    """Return a short, plain-text rendering of ``values`` for messages and diagnostics.
-
-    Non-finite floats are written ``nan`` / ``inf`` (never JSON's non-standard ``NaN``),
-    and the text is cut at ``limit`` characters.
-    """
+    """``values`` as short plain text (``nan`` / ``inf``, never ``NaN``), cut at ``limit``."""
     try:
         if isinstance(values, np.ndarray):
             values = values.tolist()
@@ -184,13 +180,11 @@ def uniform_belief(n_actions: int) -> np.ndarray:
 
 
 def checked_result(result: BeliefResult, n_actions: int, *, status: str = "error") -> BeliefResult:
-    """Make a source's answer safe to store and fuse; the door for every live answer.
+    """Make a source's answer safe to store and fuse (changed in place); the door of live answers.
 
-    A valid belief becomes `check_belief`'s (float64, summing to 1 within rounding). An
-    invalid one becomes uniform; an ``"ok"`` or ``"repaired"`` result also gets ``status``
-    (``"error"`` by default: the source broke its contract; or ``"abstained"``), the reason in
-    ``extra["error"]`` and the values found (as text) in ``extra["invalid_belief"]``. Returns
-    ``result``, changed in place: a status in `ANSWER_STATUSES` now always holds a valid belief.
+    A valid belief becomes `check_belief`'s; an invalid one becomes uniform, with the reason in
+    ``extra["error"]`` and the values in ``extra["invalid_belief"]``, and an answer's status
+    (`ANSWER_STATUSES`) becomes ``status`` (``"error"``: the source broke its contract).
     """
     belief, reason = check_belief(result.belief, n_actions)
     if belief is not None:

@@ -24,7 +24,7 @@ from amuled_ma.beliefs.replies.validate import (
     checked_result,
     show_values,
 )
-from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, every_answer
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, in_order, indices_by
 from amuled_ma.errors import AmuledError, BackendUnavailable, ModelNotFound, ScenarioError
 from amuled_ma.servers.hosts import (
     ServerCheck,
@@ -45,26 +45,14 @@ RETRY_STATUSES = frozenset({408, 429, 500, 502, 503, 504})
 
 @dataclass
 class OllamaStats:
-    """Counters of an :class:`OllamaSource` (``stats.as_dict()`` for logging).
+    """Counters of an `OllamaSource` (``stats.as_dict()`` for logging).
 
-    Attributes:
-        requests: Requests received (duplicates included).
-        sent: Distinct requests sent (first attempts).
-        deduplicated: Requests answered by an identical request of the same batch.
-        attempts: HTTP chat calls made (retries included).
-        retries: Retries after a transient failure.
-        parse_retries: Re-asks after an abstained parse.
-        timeouts: Requests that timed out (every attempt counted).
-        errors: Requests that failed with a non-timeout error in the end.
-        fallbacks: Requests answered by the fallback source or a uniform belief.
-        failovers: Calls retried on another host of the pool after a connection failure
-            or a timeout.
-        ok: Answers parsed as is.
-        repaired: Answers parsed after repairs.
-        abstained: Answers the parser gave up on (uniform).
-        prompt_tokens: Prompt tokens reported by the server.
-        completion_tokens: Completion tokens reported by the server.
-
+    ``requests`` received, ``sent`` (distinct, first attempts), ``deduplicated`` (answered by
+    an identical request of the batch), ``attempts`` (HTTP calls), ``retries`` (after a
+    transient failure), ``parse_retries`` (re-asks after an abstention), ``timeouts`` (every
+    attempt counted), ``errors`` (non-timeout failures in the end), ``fallbacks`` (answered by
+    the fallback source or uniform), ``failovers`` (retried on another host of the pool),
+    ``ok`` / ``repaired`` / ``abstained`` answers, and the server's token counts.
     """
 
     requests: int = 0
@@ -100,37 +88,9 @@ _FAILURE_KINDS = {"timeout": "timeout", "unreachable": "connection", "error": "s
 
 
 class OllamaSource(BeliefSource):
-    """Beliefs from a local Ollama server.
+    """Beliefs from an Ollama server or a pool of them; the options are in ``docs/beliefs.md``.
 
-    Args:
-        model: Model name on the server (``"amuled-tiny"`` is the test model).
-        host: Server URL (default ``$OLLAMA_HOST``, then ``http://127.0.0.1:11434``).
-        hosts: A pool of server URLs instead of ``host`` (see the module's docstring);
-            ``host`` alone is a pool of one, with the retries below.
-        structured: Ask for the JSON schema of :func:`belief_schema` via ``format``.
-        reasoning: Include the short ``reasoning`` string in the schema.
-        reasoning_max_chars: Maximum length of that string.
-        temperature: Sampling temperature (0: greedy).
-        seed: Sampling seed.
-        num_ctx: Context window in tokens (must hold the system prompt, few-shot
-            examples, state prompt and reply: about 4k tokens for the paper's prompts).
-        num_predict: Maximum reply tokens (the authors used 1024).
-        options: Extra Ollama ``options`` (merged over the above).
-        concurrency: Requests in flight at once (across clusters and env copies).
-        timeout_s: Seconds allowed per request.
-        retries: Retries of a transient failure.
-        retry_timeouts: Whether a timeout counts as transient (it is retried).
-        backoff_s: First retry delay; doubled each retry.
-        backoff_max_s: Longest retry delay.
-        parse_retries: Re-asks (with ``seed + attempt``) after an abstained parse.
-        fallback: Source asked for requests that fail in the end (else uniform).
-        keep_alive: Ollama ``keep_alive`` (how long the model stays loaded).
-        check_timeout_s: Seconds allowed for the server/model check.
-        down_for_s: In a pool of several hosts, seconds a host that failed (connection,
-            timeout) stays out before a request probes it again.
-        transport: An ``httpx`` transport (tests use ``httpx.MockTransport``; one for
-            every host: it sees the host in each request's URL).
-
+    ``transport``: an ``httpx`` transport for every host (tests use ``httpx.MockTransport``).
     """
 
     name = "ollama"
@@ -216,43 +176,23 @@ class OllamaSource(BeliefSource):
                 "private server"
             ),
         )
-        self._digest: str | None = None
-        self._checked = False
+        self._digest: str | None = None  # the model's, once checked
         self._lock = threading.Lock()
         self._pool: ThreadPoolExecutor | None = None
         self.stats = OllamaStats()
 
-    # -- setup -------------------------------------------------------------------------
     def check(self) -> str:
-        """Check that the server answers and has the model; return the model's digest.
+        """Preflight every host once; return the model's digest.
 
-        Runs :func:`~amuled_ma.servers.hosts.preflight` once per host (later calls return
-        the digest). A pool fails loudly at the start: every host must answer and have the
-        model with one digest (the same weights), so that any host's answer is the answer
-        of the source's :meth:`identity`.
-
-        Raises:
-            BackendUnavailable: No server answers at a host (within ``check_timeout_s``);
-                for a pool, naming each such host and the fix (start it, or remove it
-                from the pool).
-            ModelNotFound: A server lacks the model, or two servers of the pool have
-                different digests of it (naming both hosts and digests).
-
+        `BackendUnavailable`: a host does not answer within ``check_timeout_s``;
+        `ModelNotFound`: a host lacks the model, or two hosts hold different digests of it.
         """
-        if self._checked:
-            return self._digest or ""
-        if len(self.hosts) == 1:
-            found = preflight(
-                self.host, self.model, self.check_timeout_s, transport=self._transport
-            )
-            self._digest = found.digest or ""
-        else:
-            self._digest = self._check_pool()
-        self._checked = True
+        if self._digest is None:
+            self._digest = self._check_hosts()
         return self._digest
 
-    def _check_pool(self) -> str:
-        """Preflight every host of the pool; return the one digest of the model."""
+    def _check_hosts(self) -> str:
+        """Preflight every host; return the one digest of the model."""
         found: dict[str, ServerCheck] = {}
         problems: list[tuple[str, AmuledError]] = []
         for url in self.hosts:
@@ -262,6 +202,8 @@ class OllamaSource(BeliefSource):
                 )
             except (BackendUnavailable, ModelNotFound) as error:
                 problems.append((url, error))
+        if problems and len(self.hosts) == 1:
+            raise problems[0][1]
         if problems:
             lines = "; ".join(str(error) for _, error in problems)
             urls = ", ".join(url for url, _ in problems)
@@ -294,16 +236,9 @@ class OllamaSource(BeliefSource):
         return self.host_pool.as_dict()
 
     def identity(self) -> dict[str, Any]:
-        """Return the model name and digest, the options and the output format.
+        """The model name and digest, options and output format (raises as `check`).
 
-        Never the host(s): the same model (same digest, checked on every host of a pool)
-        gives the same answers on any server, so a run resumed on other servers finds its
-        answers in the store.
-
-        Raises:
-            BackendUnavailable: As :meth:`check`.
-            ModelNotFound: As :meth:`check`.
-
+        Never the host(s): the same model on another server keys the same answers.
         """
         digest = self.check()
         return {
@@ -327,25 +262,18 @@ class OllamaSource(BeliefSource):
             action_names, reasoning=self.reasoning, reasoning_max_chars=self.reasoning_max_chars
         )
 
-    # -- one request -------------------------------------------------------------------
     def _count(self, **increments: int) -> None:
         with self._lock:
             for key, value in increments.items():
                 setattr(self.stats, key, getattr(self.stats, key) + value)
 
     def _chat(self, request: BeliefRequest, seed: int) -> tuple[Any, str]:
-        """One chat call with retries; return ``(reply, host)`` or raise :class:`_FailureError`.
+        """One chat call with retries; return ``(reply, host)`` or raise `_FailureError`.
 
-        Each call goes to a host of the pool. In a pool of several hosts, a connection
-        failure or a timeout takes the host out and the call is retried at once on another
-        host, at most ``len(hosts)`` times. Otherwise (one host, or an HTTP 408/429/5xx)
-        a transient failure is retried ``retries`` times with exponential backoff.
-
-        Raises:
-            _FailureError: The call failed in the end.
-            ModelNotFound: A host lacks the model.
-            BackendUnavailable: Every host of the pool is down (from the pool).
-
+        In a pool of several hosts a connection failure or a timeout is retried at once on
+        another host (at most ``len(hosts)`` times); otherwise a transient failure is retried
+        ``retries`` times with exponential backoff. `ModelNotFound`: a host lacks the model;
+        `BackendUnavailable`: every host of the pool is down.
         """
         messages = [{"role": role, "content": content} for role, content in request.messages]
         options = {**self.options, "seed": seed}
@@ -456,22 +384,16 @@ class OllamaSource(BeliefSource):
         error = "; ".join(e for e in (invalid, parsed.error) if e) or None
         if status == "abstained":
             log.warning("ollama reply abstained for cluster %s: %s", request.cluster, error)
-        extra: dict[str, Any] = {
-            "attempts": attempt + 1,
-            "model": self.model,
-            "timing": timing.as_dict(),
-        }
-        if len(self.hosts) > 1:
-            extra["host"] = host  # the host of the answer (not part of the store key)
         publish_timing(timing, start, time.perf_counter())
-        if parsed.repairs:
-            extra["repairs"] = list(parsed.repairs)
-        if parsed.reasoning:
-            extra["reasoning"] = parsed.reasoning
-        if error:
-            extra["error"] = error
-        if invalid:
-            extra["invalid_belief"] = show_values(parsed.belief)
+        optional = {
+            "host": host if len(self.hosts) > 1 else None,  # not part of the store key
+            "repairs": list(parsed.repairs),
+            "reasoning": parsed.reasoning,
+            "error": error,
+            "invalid_belief": show_values(parsed.belief) if invalid else None,
+        }
+        extra = {"attempts": attempt + 1, "model": self.model, "timing": timing.as_dict()}
+        extra.update((key, value) for key, value in optional.items() if value)
         return BeliefResult(
             belief=belief,
             status=status,
@@ -510,26 +432,18 @@ class OllamaSource(BeliefSource):
             extra={"error": str(failure)},
         )
 
-    # -- batches -----------------------------------------------------------------------
     def _executor(self) -> ThreadPoolExecutor:
         if self._pool is None:
             self._pool = ThreadPoolExecutor(self.concurrency, thread_name_prefix="amuled-ollama")
         return self._pool
 
     def iter_beliefs(self, requests: Sequence[BeliefRequest]) -> Iterator[tuple[int, BeliefResult]]:
-        """Yield ``(index, result)`` for every request as answers complete.
+        """Yield ``(index, result)`` as answers complete; identical requests are sent once.
 
-        Identical requests are sent once and their answer yielded for each index.
-
-        Raises:
-            BackendUnavailable: The server is not reachable (checked first).
-            ModelNotFound: The server lacks the model.
-
+        Raises `BackendUnavailable` or `ModelNotFound` as `check`, which runs first.
         """
         self.check()
-        groups: dict[tuple[Any, ...], list[int]] = {}
-        for i, request in enumerate(requests):
-            groups.setdefault((request.messages, request.action_names), []).append(i)
+        groups = indices_by(requests, lambda r: (r.messages, r.action_names))
         self._count(requests=len(requests), deduplicated=len(requests) - len(groups))
         if not groups:
             return
@@ -556,10 +470,7 @@ class OllamaSource(BeliefSource):
 
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
         """Answer every request (concurrently, deduplicated), in order."""
-        out: list[BeliefResult | None] = [None] * len(requests)
-        for index, result in self.iter_beliefs(requests):
-            out[index] = result
-        return every_answer(out, self.name)
+        return in_order(self.iter_beliefs(requests), len(requests), self.name)
 
     def close(self) -> None:
         """Stop the worker threads and close the HTTP clients."""

@@ -15,7 +15,7 @@ import numpy as np
 
 from amuled_ma.beliefs.replies.parsing import uniform
 from amuled_ma.beliefs.replies.validate import check_belief, show_values
-from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, every_answer
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, in_order, indices_by
 from amuled_ma.errors import CheckpointError, ScenarioError
 from amuled_ma.files.hashing import sha256_file
 from amuled_ma.files.torch_load import load_weights_only
@@ -39,13 +39,10 @@ _FIX = (
 
 
 def load_weights(path: str | Path, key: str = "") -> dict[str, Any]:
-    """Load the state dict at dotted ``key`` (``""``: the top) of a file, ``weights_only=True``.
+    """The state dict at dotted ``key`` (``""``: the top) of a file, read ``weights_only=True``.
 
-    Raises:
-        ScenarioError: The file is missing, needs Python objects to load (refused:
-            nothing in it ran), is not a dict of tensors, or lacks ``key``; the message
-            names the file and the fix.
-
+    `ScenarioError` naming the file and the fix: missing, needs Python objects (refused, nothing
+    ran), not a dict of tensors, or no ``key``.
     """
     import torch
 
@@ -141,21 +138,10 @@ def infer_mlp(
 
 
 class PolicySource(BeliefSource):
-    """Beliefs from a saved torch policy: softmax of its logits for the task observation.
+    """Beliefs from a saved torch policy: the softmax of its logits (``docs/beliefs.md``, "policy").
 
-    Args:
-        path: The weights file (``torch.save`` of a state dict, or a checkpoint dict).
-        key: Dotted path of the state dict in the file (``"actor_state_dict"`` for a
-            trainer checkpoint); ``""``: the file is the state dict.
-        module: ``"pkg.module:Class"`` of a ``torch.nn.Module`` to load the weights into
-            (allowed with ``--allow-plugin``); ``""``: an MLP inferred from the weights.
-        kwargs: Keyword arguments of ``module``'s constructor.
-        activation: Activation between an inferred MLP's layers (`ACTIVATIONS`).
-
-    Raises:
-        ScenarioError: The file is missing, unsafe or not a state dict, or the network
-            cannot be built from it (the message names the file and the fix).
-
+    Raises `ScenarioError` naming the file and the fix: missing, unsafe, not a state dict, or
+    no network can be built from it.
     """
 
     name = "policy"
@@ -222,24 +208,20 @@ class PolicySource(BeliefSource):
 
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
         """One forward pass per (observation length, action count); softmax of the logits."""
-        out: list[BeliefResult | None] = [None] * len(requests)
-        groups: dict[tuple[int, int], list[int]] = {}
-        for i, request in enumerate(requests):
-            groups.setdefault((len(request.obs), request.num_actions), []).append(i)
-        for (_, n), indices in groups.items():
-            rows = [requests[i].obs for i in indices]
-            probs, error = self._forward(rows, n)
+        pairs: list[tuple[int, BeliefResult]] = []
+        for (_, n), indices in indices_by(requests, lambda r: (len(r.obs), r.num_actions)).items():
+            probs, error = self._forward([requests[i].obs for i in indices], n)
             for j, i in enumerate(indices):
                 if probs is None:
-                    out[i] = self._error(n, error or "no output")
+                    pairs.append((i, self._error(n, error or "no output")))
                     continue
                 belief, reason = check_belief(probs[j], n, scores=True)
-                out[i] = (
-                    BeliefResult(belief=belief, status="ok", source=self.name)
+                pairs.append(
+                    (i, BeliefResult(belief=belief, status="ok", source=self.name))
                     if belief is not None
-                    else self._error(n, f"the policy's belief {reason}")
+                    else (i, self._error(n, f"the policy's belief {reason}"))
                 )
-        return every_answer(out, self.name)
+        return in_order(pairs, len(requests), self.name)
 
     def _forward(
         self, rows: list[tuple[float, ...]], n: int

@@ -80,14 +80,10 @@ def _factory(kind: str) -> Callable[..., BeliefSource]:
 
 
 def load_agent_factory(name: str) -> Callable[..., BeliefSource]:
-    """Resolve a plug-in agent: an ``amuled_ma.agents`` entry-point name or ``"module:Class"``.
+    """A plug-in agent's factory: an ``amuled_ma.agents`` entry-point name or ``"module:Class"``.
 
-    Through the one door of code named by data (`load_plugin`): an installed entry point's
-    name (``terminal_human``) or value, or a ``"module:Class"`` (any callable returning a
-    `BeliefSource`) this run's command line allowed with ``--allow-plugin module:Class``. Any
-    other import path is refused before it is imported: a scenario, a cluster file or a run
-    folder never runs code of its own; such a name, or one that does not import, raises
-    `ScenarioError`.
+    Through `load_plugin`: a ``"module:Class"`` must be allowed with ``--allow-plugin``; a
+    name that is refused, does not import or is not callable raises `ScenarioError`.
     """
     from amuled_ma.clusters.plugins import load_plugin
 
@@ -105,11 +101,7 @@ def load_agent_factory(name: str) -> Callable[..., BeliefSource]:
 
 
 def entry_point_source(name: str, options: Mapping[str, Any] | None = None) -> BeliefSource:
-    """Build a plug-in agent's source: ``load_agent_factory(name)(**options)``.
-
-    Raises `ScenarioError` when the name does not resolve, the factory refuses the options or
-    fails, or it does not return a `BeliefSource`.
-    """
+    """``load_agent_factory(name)(**options)``; `ScenarioError` if that fails or is no source."""
     factory = load_agent_factory(name)
     options = dict(options or {})
     try:

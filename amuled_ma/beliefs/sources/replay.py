@@ -17,7 +17,7 @@ import numpy as np
 
 from amuled_ma.beliefs.replies.parsing import uniform
 from amuled_ma.beliefs.replies.validate import RULE, check_belief, checked_result, show_values
-from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, every_answer
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, in_order
 from amuled_ma.errors import ReplayMiss, ScenarioError
 from amuled_ma.files.limits import read_bounded_bytes
 
@@ -44,16 +44,10 @@ def obs_key(obs: Sequence[float], decimals: int) -> tuple[float, ...]:
 
 
 class Recording:
-    """One recording file, indexed by rounded observation, every belief checked.
+    """One recording file, indexed by observation rounded to ``decimals``, every belief checked.
 
-    Args:
-        path: The JSON file.
-        decimals: Decimals the observations are rounded to for lookup.
-
-    Raises:
-        ScenarioError: The file is missing, not in the recording format, or holds an
-            invalid belief (the message lists the first `SHOWN_PROBLEMS` and the count).
-
+    Raises `ScenarioError`: the file is missing, not a recording, or holds an invalid belief
+    (the first `SHOWN_PROBLEMS` listed, all counted).
     """
 
     def __init__(self, path: str | Path, *, decimals: int = 3) -> None:
@@ -153,22 +147,15 @@ class Recording:
     def fused_only(self) -> bool:
         """True when no state holds a per-agent belief, only the authors' fused one.
 
-        The authors' Driving cache of gpt-4o-mini kept only the fused belief per state
-        (``"beliefs": null``, ``"fused_by_reference"`` set): it can serve the AMULED
-        variant's feedback, not a single cluster or another fusion rule.
+        (The authors' Driving cache of gpt-4o-mini: it serves AMULED's feedback, no cluster.)
         """
         return bool(self.states) and not any(self._beliefs.values())
 
     def fused(self, obs: Sequence[float]) -> np.ndarray | None:
         """The recorded fused belief (``fused_by_reference``) of a state, if recorded.
 
-        An all-zero vector is returned as such: the authors' fusion met total conflict
-        there (``K = 1``) and their reward for every action was 0.
-
-        Raises:
-            ScenarioError: The recorded vector is not finite, non-negative and of the
-                task's action count.
-
+        All zeros where the authors' fusion met total conflict (``K = 1``). `ScenarioError`:
+        not finite, negative, or not one value per action.
         """
         state = self.states.get(obs_key(obs, self.decimals))
         if state is None or state.get("fused_by_reference") is None:
@@ -187,12 +174,7 @@ class Recording:
 
         The belief is the one checked at load (a copy), divided by its sum.
         """
-        return self._answer(obs_key(state["obs"], self.decimals), state, agent)
-
-    def _answer(
-        self, key: tuple[float, ...], state: Mapping[str, Any], agent: str
-    ) -> tuple[np.ndarray, str | None] | None:
-        vector = self._beliefs[key].get(agent)
+        vector = self._beliefs[obs_key(state["obs"], self.decimals)].get(agent)
         if vector is None:
             return None
         raw = None
@@ -203,19 +185,10 @@ class Recording:
 
 
 class ReplaySource(BeliefSource):
-    """Answers from one or more recording files, keyed by observation.
+    """Answers from one or more recording files (the options: ``docs/beliefs.md``, "replay").
 
-    Args:
-        paths: Recording file(s); several files may cover several tasks.
-        miss_policy: ``"error"``, ``"uniform"`` or ``"fallback"`` (see module doc).
-        fallback: The source asked on a miss with ``miss_policy="fallback"``.
-        decimals: Decimals the observations are rounded to for lookup.
-        cluster_names: Explicit ``{our cluster name: recording agent name}`` mapping.
-        registry: Cluster registry whose aliases map names (default: shipped clusters).
-
-    Raises:
-        ScenarioError: A bad policy, a missing fallback, or an unreadable file.
-
+    ``registry``: the clusters whose aliases map names (default: the shipped ones). Raises
+    `ScenarioError` for a bad policy, a missing fallback, or an unreadable file.
     """
 
     name = "replay"
@@ -253,7 +226,6 @@ class ReplaySource(BeliefSource):
         self.misses_by_cluster: Counter[str] = Counter()
         self._agent_cache: dict[tuple[int, str], str | None] = {}
 
-    # -- lookup ----------------------------------------------------------------------
     def _recording_for(self, task: str) -> Recording | None:
         for recording in self.recordings:
             if _norm(recording.task) == _norm(task):
@@ -311,21 +283,18 @@ class ReplaySource(BeliefSource):
                 f"cluster {request.cluster!r} is not in {recording.path.name} "
                 f"(recorded: {', '.join(recording.clusters)}, {MORAL_AGENT_FIELD})"
             )
-        key = obs_key(request.obs, recording.decimals)
-        state = recording.states.get(key)
+        state = recording.states.get(obs_key(request.obs, recording.decimals))
         if state is None:
             return f"state {list(request.obs)} not in {recording.path.name}"
-        answer = recording._answer(key, state, agent)
+        answer = recording.answer(state, agent)
         if answer is None:
             return f"agent {agent!r} has no belief for state {list(request.obs)}"
         return answer
 
-    # -- BeliefSource ----------------------------------------------------------------
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
         """Answer every request from the recordings; misses follow ``miss_policy``."""
-        results: list[BeliefResult | None] = [None] * len(requests)
-        missed: list[int] = []
-        reasons: dict[int, str] = {}
+        pairs: list[tuple[int, BeliefResult]] = []
+        missed: dict[int, str] = {}  # index -> why it is a miss
         for i, request in enumerate(requests):
             found = self.lookup(request)
             if isinstance(found, str):
@@ -336,29 +305,24 @@ class ReplaySource(BeliefSource):
                         f"replay miss: {found} (cluster {request.cluster!r}, task "
                         f"{request.task!r}); use miss_policy 'uniform' or 'fallback' to go on"
                     )
-                missed.append(i)
-                reasons[i] = found
+                missed[i] = found
                 continue
             self.hits += 1
             belief, raw = found  # checked when the recording was loaded
-            results[i] = BeliefResult(belief=belief, status="ok", source=self.name, raw=raw)
+            pairs.append((i, BeliefResult(belief=belief, status="ok", source=self.name, raw=raw)))
         if missed and self.miss_policy == "fallback":
             assert self.fallback is not None
             answers = self.fallback.beliefs([requests[i] for i in missed])
-            for i, answer in zip(missed, answers, strict=True):
+            for (i, reason), answer in zip(missed.items(), answers, strict=True):
                 checked_result(answer, requests[i].num_actions)
-                answer.extra = {**answer.extra, "replay_miss": True, "miss_reason": reasons[i]}
-                results[i] = answer
-        elif missed:
-            for i in missed:
-                n = requests[i].num_actions
-                results[i] = BeliefResult(
-                    belief=uniform(n),
-                    status="replay_miss",
-                    source=self.name,
-                    extra={"miss_reason": reasons[i]},
-                )
-        return every_answer(results, self.name)
+                answer.extra = {**answer.extra, "replay_miss": True, "miss_reason": reason}
+                pairs.append((i, answer))
+        else:
+            for i, reason in missed.items():
+                belief = uniform(requests[i].num_actions)
+                extra = {"miss_reason": reason}
+                pairs.append((i, BeliefResult(belief, "replay_miss", self.name, extra=extra)))
+        return in_order(pairs, len(requests), self.name)
 
     def identity(self) -> dict[str, Any]:
         """Return the recordings' content hashes, the rounding and the name mapping."""

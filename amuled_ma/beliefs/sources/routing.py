@@ -9,23 +9,15 @@ import dataclasses
 from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
-from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, every_answer
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, ask, in_order
 from amuled_ma.errors import ScenarioError
 
 
-# ----------------------------------------------------------------------------- routing
 class RoutedSource(BeliefSource):
     """Answer each request with the source of its agent (``request.cluster``).
 
-    Args:
-        routes: ``{agent name: source}``; the same source object may serve several agents
-            (it then gets their requests in one call).
-        default: The source of every agent without a route (``None``: such a request is
-            an error).
-
-    Raises:
-        ValueError: No route and no default.
-
+    ``routes``: ``{agent: source}`` (one source may serve several agents, in one call);
+    ``default``: the source of every other agent. `ValueError`: neither is given.
     """
 
     name = "routed"
@@ -54,12 +46,7 @@ class RoutedSource(BeliefSource):
         return any(bool(getattr(s, "needs_messages", True)) for s, _ in self.members)
 
     def source_for(self, agent: str) -> BeliefSource:
-        """Return the source answering ``agent``.
-
-        Raises:
-            ScenarioError: No route and no default source.
-
-        """
+        """The source answering ``agent``; `ScenarioError` when there is no route and no default."""
         source = self.routes.get(agent, self.default)
         if source is None:
             raise ScenarioError(
@@ -81,10 +68,9 @@ class RoutedSource(BeliefSource):
     def _sub_batch(
         source: BeliefSource, requests: Sequence[BeliefRequest], indices: list[int]
     ) -> list[BeliefRequest]:
-        """The member's requests; without messages for a member that reads none.
+        """The member's requests, without the chat for a member that reads none.
 
-        Dropping the chat for replay, rules and policy members keeps their store keys
-        the same as when they serve a whole panel alone (the panel sends no chat then).
+        So replay, rules and policy members key the store as when they serve a panel alone.
         """
         if getattr(source, "needs_messages", True):
             return [requests[i] for i in indices]
@@ -94,28 +80,13 @@ class RoutedSource(BeliefSource):
         ]
 
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
-        """Send each member its requests in one call; return the answers in order.
-
-        Raises `ScenarioError` for a request whose agent has no source, `RuntimeError` when a
-        member answers a different number of results.
-        """
-        out: list[BeliefResult | None] = [None] * len(requests)
-        for source, indices in self._split(requests):
-            results = source.beliefs(self._sub_batch(source, requests, indices))
-            if len(results) != len(indices):
-                raise RuntimeError(
-                    f"belief source {getattr(source, 'name', '?')!r} answered {len(results)} "
-                    f"results for {len(indices)} requests"
-                )
-            for i, result in zip(indices, results, strict=True):
-                out[i] = result
-        return every_answer(out, self.name)
+        """Send each member its requests in one call; the answers in order (`iter_beliefs`)."""
+        return in_order(self.iter_beliefs(requests), len(requests), self.name)
 
     def iter_beliefs(self, requests: Sequence[BeliefRequest]) -> Iterator[tuple[int, BeliefResult]]:
-        """Yield ``(index, result)`` member by member, as each member answers.
+        """Yield ``(index, result)`` member by member, as each answers (its ``iter_beliefs``).
 
-        A member with ``iter_beliefs`` yields as its answers arrive; any other member's
-        answers come after its one call.
+        `ScenarioError`: an agent without a source; `RuntimeError`: a member's count is wrong.
         """
         for source, indices in self._split(requests):
             batch = self._sub_batch(source, requests, indices)
@@ -124,8 +95,7 @@ class RoutedSource(BeliefSource):
                 for j, result in iterate(batch):
                     yield indices[j], result
             else:
-                for i, result in zip(indices, source.beliefs(batch), strict=True):
-                    yield i, result
+                yield from zip(indices, ask(source, batch), strict=True)
 
     def identity(self) -> dict[str, Any]:
         """Describe every member: ``{"routes": {agent: identity}, "default": identity}``."""

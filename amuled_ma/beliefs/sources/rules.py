@@ -13,7 +13,7 @@ import numpy as np
 
 from amuled_ma.beliefs.replies.parsing import uniform
 from amuled_ma.beliefs.replies.validate import check_belief, show_values
-from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, every_answer
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, in_order, indices_by
 from amuled_ma.errors import ScenarioError
 
 BeliefFn = Callable[[str, np.ndarray], Sequence[float]]
@@ -22,21 +22,10 @@ BeliefFn = Callable[[str, np.ndarray], Sequence[float]]
 def resolve_callable(
     spec: str | Callable[..., Any], what: str = "rules policy"
 ) -> Callable[..., Any]:
-    """Return ``spec`` itself if callable, else load it from a ``"module:attr"`` string.
+    """``spec`` itself if callable, else the ``"module:attr"`` it names, through `load_plugin`.
 
-    A string goes through the one door of code named by data,
-    `load_plugin`: an installed ``amuled_ma.agents``
-    entry point, or an import path this run's command line allowed (``--allow-plugin``);
-    anything else is refused before it is imported.
-
-    Args:
-        spec: A callable, or its import path.
-        what: Who names it, for messages.
-
-    Raises:
-        ScenarioError: The string is malformed, not allowed, or names nothing importable
-            or callable.
-
+    Raises `ScenarioError` (naming ``what``) for a malformed string, one this run does not allow
+    (an installed ``amuled_ma.agents`` entry point or ``--allow-plugin``), or nothing callable.
     """
     from amuled_ma.clusters.plugins import load_plugin
 
@@ -52,25 +41,11 @@ def resolve_callable(
     return target
 
 
-def to_belief(values: object, n_actions: int) -> tuple[np.ndarray, str]:
-    """A rule's scores as ``(belief divided by their sum, "ok")``, or ``(uniform, "error")``.
-
-    An error is an answer of the wrong length, a non-finite or negative entry, or a sum of 0
-    or an overflowing one.
-    """
-    belief, _ = _checked(values, n_actions)
-    return (uniform(n_actions), "error") if belief is None else (belief, "ok")
-
-
-def _checked(values: object, n_actions: int) -> tuple[np.ndarray | None, str | None]:
+def _result(values: object, n_actions: int, source: str) -> BeliefResult:
+    """A rule's scores divided by their sum (``"ok"``), or a uniform ``"error"`` with the reason."""
     if isinstance(values, np.ndarray) and values.ndim != 1:
         values = values.reshape(-1)  # a (1, A) row of a batched rule is one answer
-    return check_belief(values, n_actions, scores=True)
-
-
-def _result(values: object, n_actions: int, source: str) -> BeliefResult:
-    """A rule's answer as a result: ``"ok"``, or a uniform ``"error"`` with the reason."""
-    belief, reason = _checked(values, n_actions)
+    belief, reason = check_belief(values, n_actions, scores=True)
     if belief is None:
         return BeliefResult(
             belief=uniform(n_actions),
@@ -106,15 +81,10 @@ def _task_judge(judge: str) -> BeliefFn:
 
 
 class RulesSource(BeliefSource):
-    """The synthetic human-feedback policies, or any rule ``(task, obs) -> belief``.
+    """The synthetic human-feedback policies, or any rule ``(task, obs) -> scores``.
 
-    Args:
-        policy: ``"human"`` (the task's synthetic human feedback), ``"judge:<value>"``
-            (the task's own judge of that value, ``BatchedTask.judge_scores``), a callable
-            ``(task, obs) -> belief``, or a ``"module:function"`` string: the value of an
-            installed ``amuled_ma.agents`` entry point, or one this run's command line
-            allowed (``--allow-plugin module:function``); any other is refused unimported.
-
+    ``policy``: ``"human"``, ``"judge:<value>"`` (the task's own judge), a callable, or a
+    ``"module:function"`` allowed as `resolve_callable` says.
     """
 
     name = "rules"
@@ -132,15 +102,11 @@ class RulesSource(BeliefSource):
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
         """Answer each request with the rule; a failing rule gives a uniform ``"error"``.
 
-        Requests of one task with observations of one length are answered by a single
-        batched call (the tasks' policies accept ``(batch, obs_dim)``); if that call
-        fails or returns the wrong shape, each request is asked on its own.
+        One batched call per (task, obs length, action count); if it fails or returns the
+        wrong shape, each request is asked on its own.
         """
-        out: list[BeliefResult | None] = [None] * len(requests)
-        groups: dict[tuple[str, int, int], list[int]] = {}
-        for i, request in enumerate(requests):
-            key = (request.task, len(request.obs), request.num_actions)
-            groups.setdefault(key, []).append(i)
+        pairs: list[tuple[int, BeliefResult]] = []
+        groups = indices_by(requests, lambda r: (r.task, len(r.obs), r.num_actions))
         for (task, _, n), indices in groups.items():
             if len(indices) > 1:
                 try:
@@ -149,12 +115,11 @@ class RulesSource(BeliefSource):
                 except Exception:
                     batch = None
                 if batch is not None and batch.shape == (len(indices), n):
-                    for i, row in zip(indices, batch, strict=True):
-                        out[i] = _result(row, n, self.name)
+                    rows = zip(indices, batch, strict=True)
+                    pairs.extend((i, _result(row, n, self.name)) for i, row in rows)
                     continue
-            for i in indices:
-                out[i] = self._one(requests[i])
-        return every_answer(out, self.name)
+            pairs.extend((i, self._one(requests[i])) for i in indices)
+        return in_order(pairs, len(requests), self.name)
 
     def _one(self, request: BeliefRequest) -> BeliefResult:
         try:
@@ -174,14 +139,10 @@ class RulesSource(BeliefSource):
 
 
 class ScriptedSource(BeliefSource):
-    """Fixed or computed beliefs, per cluster.
+    """Fixed or computed beliefs, per cluster (a cluster without an entry: uniform).
 
-    Args:
-        beliefs: ``{cluster: belief vector}`` (``"*"`` matches any other cluster), or a
-            callable ``(request) -> belief``. Clusters without an entry get a uniform
-            belief.
-        label: Name of the script in `identity` (cache keys).
-
+    ``beliefs``: ``{cluster: vector}`` (``"*"`` for any other cluster) or a callable
+    ``(request) -> vector``; ``label`` names the script in `identity` (cache keys).
     """
 
     name = "scripted"

@@ -19,7 +19,7 @@ import numpy as np
 
 from amuled_ma.beliefs.replies.parsing import uniform
 from amuled_ma.beliefs.replies.validate import check_belief
-from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, every_answer
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, in_order, indices_by
 from amuled_ma.errors import ScenarioError
 from amuled_ma.monitor.progress import held
 from amuled_ma.tasks.pictures import state_picture
@@ -146,20 +146,11 @@ def parse_answer(
 
 
 class TerminalSource(BeliefSource):
-    """Beliefs typed by a person, one line per state.
+    """Beliefs typed by a person, one line per state (``docs/beliefs.md``, "terminal").
 
-    Args:
-        person: Who answers; part of :meth:`identity`, so two people's answers are kept
-            apart in the belief store.
-        attempts: Lines read per state before an invalid answer abstains (1 to
-            :data:`MAX_ATTEMPTS`).
-        stdin: Where answers are read (default ``sys.stdin``, looked up at each batch).
-        stdout: Where states and prompts are written (default ``sys.stderr``, so that
-            a program's standard output keeps only its results).
-
-    Raises:
-        ScenarioError: ``attempts`` out of range, or ``person`` empty.
-
+    ``person`` is part of `identity`; ``attempts`` lines (1 to `MAX_ATTEMPTS`) are read per
+    state; ``stdin`` / ``stdout`` default to ``sys.stdin`` / ``sys.stderr``. `ScenarioError`:
+    ``attempts`` out of range or ``person`` empty.
     """
 
     name = "terminal"
@@ -201,29 +192,23 @@ class TerminalSource(BeliefSource):
             ("asked", "answered", "skipped", "invalid", "gave_up", "eof"), 0
         )
 
-    # -- BeliefSource ----------------------------------------------------------------
     def identity(self) -> dict[str, Any]:
         """Return the kind and the person (what decides the answers)."""
         return {"source": self.name, "person": self.person}
 
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
         """Ask for every request in turn; see the module docstring."""
-        out: list[BeliefResult | None] = [None] * len(requests)
-        for index, result in self.iter_beliefs(requests):
-            out[index] = result
-        return every_answer(out, self.name)
+        return in_order(self.iter_beliefs(requests), len(requests), self.name)
 
     def iter_beliefs(self, requests: Sequence[BeliefRequest]) -> Iterator[tuple[int, BeliefResult]]:
         """Yield ``(index, result)`` as each answer is typed; duplicates get copies of the first."""
-        groups: dict[BeliefRequest, list[int]] = {}
-        for i, request in enumerate(requests):
-            groups.setdefault(request, []).append(i)
+        groups = indices_by(requests, lambda r: r)
         for position, (request, indices) in enumerate(groups.items(), start=1):
-            result = self._ask(request, len(groups) - position)
+            with held():  # no progress line or bar redraw over the question
+                result = self._question(request, len(groups) - position)
             for j, index in enumerate(indices):
                 yield index, result if j == 0 else result.copy()
 
-    # -- internals -------------------------------------------------------------------
     def _write(self, text: str) -> None:
         stream = self._stdout if self._stdout is not None else sys.stderr
         stream.write(text)
@@ -286,10 +271,6 @@ class TerminalSource(BeliefSource):
             latency_s=time.perf_counter() - start,
             extra={"error": reason, "person": self.person},
         )
-
-    def _ask(self, request: BeliefRequest, left: int) -> BeliefResult:
-        with held():  # no progress line or bar redraw over the question
-            return self._question(request, left)
 
     def _question(self, request: BeliefRequest, left: int) -> BeliefResult:
         start = time.perf_counter()

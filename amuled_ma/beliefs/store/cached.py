@@ -10,13 +10,11 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
-import numpy as np
-
 from amuled_ma.beliefs.replies.validate import checked_result
 from amuled_ma.beliefs.store.keys import identity_json, request_key
 from amuled_ma.beliefs.store.rows import CACHEABLE
 from amuled_ma.beliefs.store.service import StoreService
-from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, every_answer
+from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, ask, in_order
 
 #: Statuses never written to the store.
 NOT_STORED = frozenset({"replay_miss"})
@@ -26,17 +24,10 @@ NOT_STORED = frozenset({"replay_miss"})
 class CacheStats:
     """Counters of a `CachedSource` since creation (or `CachedSource.reset_stats`).
 
-    Attributes:
-        requests: Requests received (duplicates included).
-        unique: Distinct requests among them (per batch).
-        store_hits: Distinct requests answered from the SQLite store.
-        misses: Distinct requests not found (= requests sent to the wrapped source).
-        sent: Requests sent to the wrapped source.
-        written: Rows written to the store.
-        not_cached: Answers received with a status that is not served back later.
-        invalid: Answers whose belief was invalid (turned into status ``"error"``, or,
-            for a failure, given a uniform belief).
-
+    ``requests`` (duplicates included), ``unique`` (per batch), ``store_hits``, ``misses``
+    (distinct requests not found), ``sent`` (to the wrapped source), ``written`` (rows),
+    ``not_cached`` (answers not served back later), ``invalid`` (invalid beliefs, made
+    ``"error"`` or, for a failure, uniform).
     """
 
     requests: int = 0
@@ -66,18 +57,10 @@ class CacheStats:
 class CachedSource(BeliefSource):
     """A belief source that looks every request up in a store before sending it.
 
-    Args:
-        source: The wrapped source (Ollama, replay, rules, ...).
-        store: The persistent store (shared with other processes if you like).
-        chunk_size: Requests per call to a wrapped source without ``iter_beliefs``;
-            each chunk's answers are written before the next chunk is sent.
-        flush_every: With ``iter_beliefs``, answers per store transaction.
-        identity: The identity to key the store with, instead of asking the source. The
-            source's ``identity()`` may need its backend (the Ollama source asks the server
-            for the model digest); giving the identity recorded in the store
-            (`identities`) replays a store on a
-            machine without the backend: hits never touch the source, only misses do.
-
+    ``chunk_size``: requests per call to a source without ``iter_beliefs`` (each chunk written
+    before the next is sent); ``flush_every``: with ``iter_beliefs``, answers per transaction;
+    ``identity``: the identity recorded in the store (`identities`), to key it without asking
+    the source (whose ``identity()`` may need its backend): hits then never touch the source.
     """
 
     def __init__(
@@ -97,7 +80,6 @@ class CachedSource(BeliefSource):
         self._identity = dict(identity) if identity is not None else None
         self._identity_json: str | None = None
 
-    # -- BeliefSource ----------------------------------------------------------------
     @property
     def name(self) -> str:  # type: ignore[override]  # property over an attribute
         """The wrapped source's name (a cache is transparent)."""
@@ -143,9 +125,8 @@ class CachedSource(BeliefSource):
         Hits have ``cached=True``; a request repeated in the batch gets its own copy.
         """
         ident = self._ident()
-        keys = [request_key(ident, r) for r in requests]
         positions: dict[str, list[int]] = {}
-        for i, key in enumerate(keys):
+        for i, key in enumerate(self.keys(requests)):
             positions.setdefault(key, []).append(i)
 
         stats = self.stats
@@ -159,15 +140,13 @@ class CachedSource(BeliefSource):
         if missing:
             answers.update(self._ask(ident, [(k, requests[positions[k][0]]) for k in missing]))
 
-        out: list[BeliefResult | None] = [None] * len(requests)
-        for key, idx in positions.items():
-            result = answers[key]
-            out[idx[0]] = result
-            for j in idx[1:]:
-                out[j] = result.copy()
-        return every_answer(out, self.name)
+        pairs = [
+            (i, answers[key] if n == 0 else answers[key].copy())
+            for key, idx in positions.items()
+            for n, i in enumerate(idx)
+        ]
+        return in_order(pairs, len(requests), self.name)
 
-    # -- internals -------------------------------------------------------------------
     def _ask(self, ident: str, todo: list[tuple[str, BeliefRequest]]) -> dict[str, BeliefResult]:
         """Send the misses and write each answer as soon as it is back."""
         answers: dict[str, BeliefResult] = {}
@@ -187,11 +166,6 @@ class CachedSource(BeliefSource):
             checked_result(result, request.num_actions)
             if "invalid_belief" in result.extra:
                 self.stats.invalid += 1
-            # the invariant the store relies on: an answer always holds a valid belief
-            assert result.status not in CACHEABLE or (
-                result.belief.shape == (request.num_actions,)
-                and bool(np.isfinite(result.belief).all())
-            )
             answers[key] = result
             if result.status not in CACHEABLE:
                 self.stats.not_cached += 1
@@ -212,12 +186,7 @@ class CachedSource(BeliefSource):
                 for start in range(0, len(todo), self.chunk_size):
                     chunk = todo[start : start + self.chunk_size]
                     self.stats.sent += len(chunk)
-                    results = self.source.beliefs([r for _, r in chunk])
-                    if len(results) != len(chunk):
-                        raise RuntimeError(
-                            f"belief source {self.source.name!r} answered {len(results)} "
-                            f"results for {len(chunk)} requests"
-                        )
+                    results = ask(self.source, [r for _, r in chunk])
                     for (key, request), result in zip(chunk, results, strict=True):
                         take(key, request, result)
                     flush()

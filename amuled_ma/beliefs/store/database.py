@@ -17,8 +17,6 @@ from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from amuled_ma.beliefs.replies.validate import RULE, check_belief, show_values
 from amuled_ma.beliefs.store.keys import identity_json
 from amuled_ma.beliefs.store.rows import (
@@ -46,12 +44,9 @@ STORE_ENV = "AMULED_BELIEF_STORE"
 
 _SQL_CHUNK = 500  # keys per ``IN (...)`` query, well under SQLite's variable limit
 
-#: Longest value (a reply, a chat message, a row's JSON columns) and row SQLite reads or
-#: writes in a store [bytes, 64 MiB; ``SQLITE_LIMIT_LENGTH``, SQLite's own default is
-#: 1,000,000,000]: 4 bytes (UTF-8's most) a character of the longest line ``amuled beliefs
-#: import`` reads (`MAX_LINE_CHARS`, 16 Mi), so every
-#: imported row fits; an answer with its chat is about 20 KB. SQLite refuses a longer
-#: value without reading it into memory.
+#: Longest value and row SQLite reads or writes in a store [bytes, 64 MiB;
+#: ``SQLITE_LIMIT_LENGTH``]: 4 bytes (UTF-8's most) per character of the longest imported line
+#: (`MAX_LINE_CHARS`, 16 Mi); SQLite refuses a longer value without reading it into memory.
 MAX_VALUE_BYTES = 2**26
 
 
@@ -62,6 +57,12 @@ def _too_long(detail: str = "") -> str:
         f"longer than the {MAX_VALUE_BYTES:,} bytes a stored value may be ({why}an answer "
         "with its chat is about 20 KB)"
     )
+
+
+#: One row to write: key, identity, request, answer, attempts, created_at, updated_at.
+_Item = tuple[
+    str, Mapping[str, Any] | str, BeliefRequest, BeliefResult | StoredBelief, int, float, float
+]
 
 
 class _ValueTooBig(BeliefStoreError):
@@ -92,19 +93,10 @@ def default_store_path() -> Path:
 class BeliefStore:
     """A SQLite file of belief answers, shared safely by threads and processes.
 
-    Args:
-        path: The database file (created with its folder when missing); ``":memory:"``
-            for a private in-memory store (tests).
-        timeout_s: How long a writer waits for another process's lock before failing.
-        synchronous: SQLite ``synchronous`` level, ``"NORMAL"`` (crash-safe for the
-            process) or ``"FULL"`` (also power-loss safe).
-        read_only: Open an existing file for reading only (SQLite ``mode=ro``, else
-            ``immutable=1`` where ``mode=ro`` cannot open it; see the module doc):
-            nothing is created or written, and every write raises.
-
-    Raises:
-        BeliefStoreError: The file cannot be opened or is not a belief store.
-
+    ``path`` is created with its folder (``":memory:"``: a private store); a writer waits
+    ``timeout_s`` for another process's lock; ``synchronous`` is ``"NORMAL"`` or ``"FULL"``
+    (also power-loss safe); ``read_only`` opens an existing file and never writes (see the
+    module doc). Raises `BeliefStoreError`: the file cannot be opened or is no belief store.
     """
 
     def __init__(
@@ -131,7 +123,6 @@ class BeliefStore:
         self._width: dict[str, int] = {}  # ``actions`` column text -> action count
         self._connect()
 
-    # -- connection ------------------------------------------------------------------
     def _connect(self) -> sqlite3.Connection:
         """Open (or, after a ``fork``, re-open) this process's connection."""
         if self._conn is not None and self._pid == os.getpid():
@@ -141,11 +132,7 @@ class BeliefStore:
         if self.path != ":memory:":
             Path(self.path).parent.mkdir(parents=True, exist_ok=True)
         try:
-            conn = sqlite3.connect(
-                self.path, timeout=self.timeout_s, isolation_level=None, check_same_thread=False
-            )
-            conn.execute(f"PRAGMA busy_timeout = {int(self.timeout_s * 1000)}")
-            conn.setlimit(sqlite3.SQLITE_LIMIT_LENGTH, MAX_VALUE_BYTES)
+            conn = self._sqlite(self.path)
             if self.path != ":memory:":
                 mode = self._journal_wal(conn)
                 if str(mode).lower() != "wal":
@@ -153,7 +140,7 @@ class BeliefStore:
             conn.execute(f"PRAGMA synchronous = {self.synchronous}")
             self._conn, self._pid = conn, os.getpid()
             self._messages_seen = set()
-            self._write(lambda c: self._create_schema(c))
+            self._write(self._create_schema)
         except sqlite3.DatabaseError as error:
             self._conn = None
             raise BeliefStoreError(f"{self.path}: cannot open belief store: {error}") from error
@@ -165,12 +152,19 @@ class BeliefStore:
             raise
         return conn
 
+    def _sqlite(self, target: str, *, uri: bool = False) -> sqlite3.Connection:
+        """A connection to ``target`` with the busy timeout and `MAX_VALUE_BYTES` set."""
+        conn = sqlite3.connect(
+            target, uri=uri, timeout=self.timeout_s, isolation_level=None, check_same_thread=False
+        )
+        conn.execute(f"PRAGMA busy_timeout = {int(self.timeout_s * 1000)}")
+        conn.setlimit(sqlite3.SQLITE_LIMIT_LENGTH, MAX_VALUE_BYTES)
+        return conn
+
     def _journal_wal(self, conn: sqlite3.Connection) -> str:
         """Switch to WAL mode, waiting up to ``timeout_s`` for other processes' locks.
 
-        SQLite does not call the busy handler for this switch, so several processes
-        creating one new store at once (parallel seeds) would otherwise fail at once
-        with "database is locked".
+        SQLite calls no busy handler here: processes creating one store at once would fail.
         """
         deadline = time.monotonic() + self.timeout_s
         while True:
@@ -194,15 +188,7 @@ class BeliefStore:
         for mode in ("mode=ro", "immutable=1"):
             conn = None
             try:
-                conn = sqlite3.connect(
-                    f"file:{quoted}?{mode}",
-                    uri=True,
-                    timeout=self.timeout_s,
-                    isolation_level=None,
-                    check_same_thread=False,
-                )
-                conn.execute(f"PRAGMA busy_timeout = {int(self.timeout_s * 1000)}")
-                conn.setlimit(sqlite3.SQLITE_LIMIT_LENGTH, MAX_VALUE_BYTES)
+                conn = self._sqlite(f"file:{quoted}?{mode}", uri=True)
                 self._check_schema(conn)
             except sqlite3.DatabaseError as error:
                 if conn is not None:
@@ -233,16 +219,11 @@ class BeliefStore:
         for statement in SCHEMA.split(";"):
             if statement.strip():
                 conn.execute(statement)
-        row = conn.execute("SELECT value FROM meta WHERE name = 'schema_version'").fetchone()
-        if row is None:
-            conn.execute(
-                "INSERT INTO meta (name, value) VALUES ('schema_version', ?)",
-                (str(SCHEMA_VERSION),),
-            )
-        elif int(row[0]) != SCHEMA_VERSION:
-            raise BeliefStoreError(
-                f"belief store schema version {row[0]}, this amuled-ma reads {SCHEMA_VERSION}"
-            )
+        conn.execute(
+            "INSERT OR IGNORE INTO meta (name, value) VALUES ('schema_version', ?)",
+            (str(SCHEMA_VERSION),),
+        )
+        BeliefStore._check_schema(conn)
 
     def _write(self, body: Any) -> Any:
         """Run ``body(conn)`` in one ``BEGIN IMMEDIATE`` transaction."""
@@ -300,13 +281,9 @@ class BeliefStore:
                 ) from error
 
     def _read_keys(self, sql: str, keys: Sequence[str]) -> list[tuple[Any, ...]]:
-        """`_read` of ``sql`` (one ``key IN (?, ...)``), naming the key of a too-long value.
+        """`_read` of ``sql`` (one ``key IN (?, ...)``); a too-long value's error names its row.
 
-        Raises:
-            BeliefStoreError: A row of ``keys`` holds a value longer than
-                `MAX_VALUE_BYTES`: the store and the row's key, found by asking the
-                keys one at a time (each refused without reading it).
-
+        The key is found by asking the keys one at a time (each refused without reading it).
         """
         try:
             return self._read(sql, keys)
@@ -336,7 +313,6 @@ class BeliefStore:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    # -- reads -----------------------------------------------------------------------
     def get_many(
         self, keys: Iterable[str], *, cacheable_only: bool = True, with_messages: bool = False
     ) -> dict[str, StoredBelief]:
@@ -382,11 +358,10 @@ class BeliefStore:
         return texts
 
     def lookup(self, keys: Iterable[str]) -> dict[str, BeliefResult]:
-        """Read the answers (``ok``/``repaired`` rows) of ``keys`` as cache-hit results.
+        """The answers (``ok``/``repaired`` rows) of ``keys`` as cache hits (`CachedSource`'s path).
 
-        The fast path of `CachedSource`: only the columns of a `BeliefResult` are read. Each
-        result has ``cached=True``, ``latency_s=0`` and the original latency in
-        ``extra["stored_latency_s"]``.
+        Only a `BeliefResult`'s columns are read; ``cached=True``, ``latency_s=0`` and the
+        original latency in ``extra["stored_latency_s"]``.
         """
         wanted = list(dict.fromkeys(keys))
         found: dict[str, BeliefResult] = {}
@@ -465,10 +440,9 @@ class BeliefStore:
                 yield decode_row(row, texts, self.path)
 
     def identities(self) -> list[dict[str, Any]]:
-        """Each distinct source identity with its counts, most rows first.
+        """``[{"identity": {...}, "rows": n, "answers": m}, ...]``, most rows first.
 
-        ``[{"identity": {...}, "rows": n, "answers": m}, ...]``; pass an ``identity`` to
-        `CachedSource` to replay the store without the source's backend.
+        An ``identity`` given to `CachedSource` replays the store without the source's backend.
         """
         rows = self._read(
             "SELECT identity, COUNT(*), SUM(status IN ('ok', 'repaired')) FROM beliefs "
@@ -487,19 +461,11 @@ class BeliefStore:
         Only latencies above 0 count (a row answered from a replay or a cache records 0).
         """
         rows = self._read(
-            "SELECT identity, latency_s FROM beliefs WHERE status IN ('ok', 'repaired') "
-            "AND latency_s > 0 ORDER BY created_at, rowid"
+            "SELECT latency_s FROM beliefs WHERE status IN ('ok', 'repaired') AND latency_s > 0 "
+            "AND json_extract(identity, '$.model') = ? ORDER BY created_at, rowid",
+            (model,),
         )
-        models: dict[str, object] = {}
-        out = []
-        for ident, latency in rows:
-            if ident not in models:
-                where = f"{self.path}: identity {ident[:60]!r}"
-                identity = load_column(ident, "identity", where, None)
-                models[ident] = identity.get("model") if isinstance(identity, dict) else None
-            if models[ident] == model:
-                out.append(float(latency))
-        return out
+        return [float(latency) for (latency,) in rows]
 
     def __len__(self) -> int:
         return int(self._read("SELECT COUNT(*) FROM beliefs")[0][0])
@@ -507,37 +473,17 @@ class BeliefStore:
     def __contains__(self, key: object) -> bool:
         return bool(self._read("SELECT 1 FROM beliefs WHERE key = ?", (key,)))
 
-    # -- writes ----------------------------------------------------------------------
     def put_many(
         self, items: Iterable[tuple[str, Mapping[str, Any] | str, BeliefRequest, BeliefResult]]
     ) -> int:
         """Write ``(key, identity, request, result)`` answers in one transaction; return the count.
 
-        ``identity`` is the source's ``identity()`` dict or its `identity_json` text. An existing
-        ``ok``/``repaired`` row is kept as it is; any other existing row is replaced and its
-        ``attempts`` counted up. Every belief, whatever its status, must be valid for the
-        request's action count (`validate`) and is written divided by its sum; else
+        ``identity``: ``identity()`` or its `identity_json` text. An ``ok``/``repaired`` row is
+        kept; another is replaced, its ``attempts`` counted up. An invalid belief raises
         `BeliefStoreError` and nothing of the batch is written.
         """
         now = time.time()
-        rows: list[Row] = []
-        texts: dict[str, str] = {}
-        for key, identity, request, result in items:
-            belief, reason = check_belief(result.belief, len(request.action_names))
-            if belief is None:
-                raise BeliefStoreError(
-                    f"{self.path}: refusing to write row {key} ({request.task} / "
-                    f"{request.cluster}, status {result.status!r}, source {result.source!r}): "
-                    f"belief {show_values(result.belief)} {reason}; {RULE}; pass a source's "
-                    "answers through CachedSource (or amuled_ma.beliefs.replies.validate."
-                    "checked_result), which turns an invalid answer into status 'error' with "
-                    "a uniform fallback"
-                )
-            ident = identity if isinstance(identity, str) else identity_json(identity)
-            row, bodies = self._encode(key, ident, request, belief, result, 1, now, now)
-            rows.append(row)
-            texts.update((h, b) for h, b in bodies.items() if h not in self._messages_seen)
-        return self._put_rows(rows, texts)
+        return self._put([(k, ident, req, res, 1, now, now) for k, ident, req, res in items])
 
     def put(
         self,
@@ -550,68 +496,42 @@ class BeliefStore:
         return self.put_many([(key, identity, request, result)])
 
     def put_rows(self, records: Iterable[StoredBelief]) -> int:
-        """Write whole rows read from another store (`import_jsonl`) in one transaction.
+        """Write whole rows read from another store (`import_jsonl`) as `put_many` does.
 
-        The rule of `put_many` holds; unlike it, each row keeps its own ``attempts``, timestamps
-        and identity (``messages`` ``None`` counts as no chat). Returns the rows inserted or
-        replaced; an invalid belief raises `BeliefStoreError` (nothing of the batch is written).
+        Each row keeps its own ``attempts``, timestamps and identity (``messages`` ``None``
+        counts as no chat).
         """
+        return self._put(
+            [
+                (r.key, r.identity, r.request(), r, r.attempts, r.created_at, r.updated_at)
+                for r in records
+            ]
+        )
+
+    def _put(self, items: list[_Item]) -> int:
+        """Check, encode and write ``items`` in one transaction; return the rows changed."""
         rows: list[Row] = []
         texts: dict[str, str] = {}
-        for record in records:
-            belief, reason = check_belief(record.belief, len(record.action_names))
+        for key, identity, request, answer, attempts, created_at, updated_at in items:
+            belief, reason = check_belief(answer.belief, len(request.action_names))
             if belief is None:
                 raise BeliefStoreError(
-                    f"{self.path}: refusing to write row {record.key}: belief "
-                    f"{show_values(record.belief)} {reason}; {RULE}"
+                    f"{self.path}: refusing to write row {key} ({request.task} / "
+                    f"{request.cluster}, status {answer.status!r}, source {answer.source!r}): "
+                    f"belief {show_values(answer.belief)} {reason}; {RULE}; pass a source's "
+                    "answers through CachedSource (or amuled_ma.beliefs.replies.validate."
+                    "checked_result), which turns an invalid answer into status 'error' with "
+                    "a uniform fallback"
                 )
-            row, bodies = self._encode(
-                record.key,
-                identity_json(record.identity),
-                record.request(),
-                belief,
-                record,
-                record.attempts,
-                record.created_at,
-                record.updated_at,
-            )
+            ident = identity if isinstance(identity, str) else identity_json(identity)
+            try:
+                row, bodies = encode_row(
+                    key, ident, request, belief, answer, attempts, created_at, updated_at
+                )
+            except UnicodeEncodeError:
+                raise self._unstorable(key, request, answer.raw, answer.extra) from None
             rows.append(row)
-            texts.update(bodies)
-        return self._put_rows(rows, texts)
-
-    def _encode(
-        self,
-        key: str,
-        ident: str,
-        request: BeliefRequest,
-        belief: np.ndarray,
-        answer: BeliefResult | StoredBelief,
-        attempts: int,
-        created_at: float,
-        updated_at: float,
-    ) -> tuple[Row, dict[str, str]]:
-        """`encode_row` of one answer; text that is not UTF-8 raises `_unstorable`'s error."""
-        try:
-            return encode_row(
-                key,
-                ident,
-                request,
-                belief,
-                source=answer.source,
-                status=answer.status,
-                raw=answer.raw,
-                latency_s=answer.latency_s,
-                prompt_tokens=answer.prompt_tokens,
-                completion_tokens=answer.completion_tokens,
-                extra=answer.extra,
-                attempts=attempts,
-                created_at=created_at,
-                updated_at=updated_at,
-            )
-        except UnicodeEncodeError:
-            raise self._unstorable(key, request, answer.raw, answer.extra) from None
-
-    def _put_rows(self, rows: list[Row], texts: dict[str, str]) -> int:
+            texts.update((h, b) for h, b in bodies.items() if h not in self._messages_seen)
         if not rows:
             return 0
 
@@ -624,7 +544,7 @@ class BeliefStore:
             return conn.total_changes - before
 
         for row in rows:  # a lone surrogate would fail mid-transaction in SQLite
-            reason = check_storable(row, {})
+            reason = check_storable(row)
             if reason is not None:
                 raise self._refuse(str(row[0]), reason)
         for text in texts.values():
@@ -656,7 +576,6 @@ class BeliefStore:
         }
         return self._refuse(key, unstorable_text(fields) or "a text is not valid Unicode")
 
-    # -- maintenance -----------------------------------------------------------------
     def integrity_check(self) -> list[str]:
         """SQLite's ``PRAGMA integrity_check``: ``["ok"]`` for a sound file, else its problems."""
         return [str(r[0]) for r in self._read("PRAGMA integrity_check")]

@@ -6,6 +6,7 @@ Standard JSON only; import checks every field, refuses a key that does not match
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -25,10 +26,8 @@ from amuled_ma.beliefs.store.rows import (
 from amuled_ma.beliefs.types import STATUSES, BeliefRequest
 from amuled_ma.files.limits import read_line
 
-#: Longest line read by `import_jsonl` [characters, 16 Mi]: a line is one row with
-#: its whole chat, about 20,000 characters with the shipped prompts (system prompt,
-#: few-shot examples, state, reply); 16 Mi leaves room for a panel of many cluster files
-#: at their cap. A longer line is refused before it is read whole (a 2 GB line is not).
+#: Longest line read by `import_jsonl` [characters, 16 Mi]; a row with its chat is about
+#: 20,000; a longer line is refused before it is read whole.
 MAX_LINE_CHARS = 2**24
 
 _REQUIRED = ("key", "source", "identity", "task", "cluster", "obs", "actions", "belief")
@@ -36,26 +35,12 @@ _REQUIRED = ("key", "source", "identity", "task", "cluster", "obs", "actions", "
 
 def row_json(row: StoredBelief) -> dict[str, Any]:
     """A row read with its chat (`iter_rows`) as one JSON object, one line of the export."""
-    return {
-        "key": row.key,
-        "source": row.source,
-        "identity": row.identity,
-        "task": row.task,
-        "cluster": row.cluster,
-        "obs": list(row.obs),
-        "actions": list(row.action_names),
-        "messages": [list(m) for m in row.messages or ()],
-        "raw": row.raw,
-        "belief": row.belief.tolist(),
-        "status": row.status,
-        "latency_s": row.latency_s,
-        "prompt_tokens": row.prompt_tokens,
-        "completion_tokens": row.completion_tokens,
-        "extra": row.extra,
-        "attempts": row.attempts,
-        "created_at": row.created_at,
-        "updated_at": row.updated_at,
+    out = {
+        "actions" if f.name == "action_names" else f.name: jsonable(getattr(row, f.name))
+        for f in dataclasses.fields(row)
     }
+    out["messages"] = out["messages"] or []
+    return out
 
 
 def export_jsonl(
@@ -65,10 +50,9 @@ def export_jsonl(
     status: Sequence[str] | None = None,
     task: str | None = None,
 ) -> int:
-    """Write a store's rows of ``status`` and ``task`` (all when None) as JSON Lines.
+    """Write a store's rows of ``status`` and ``task`` (all when None) as JSON Lines; the count.
 
-    Returns the number of rows written; a damaged row, or a value standard JSON cannot hold,
-    raises `BeliefStoreError`.
+    `BeliefStoreError`: a damaged row, or a value standard JSON cannot hold.
     """
     count = 0
     for row in store.iter_rows(status=status, task=task):
@@ -93,16 +77,9 @@ def import_jsonl(
 ) -> dict[str, int]:
     """Read rows written by `export_jsonl` into a store; an existing answer is never replaced.
 
-    ``name`` is the file's name for errors; ``verify`` recomputes each key from the row and
-    refuses a mismatch; ``batch`` rows go in one transaction (the batches before a bad line
-    are kept). Returns ``{"read": n, "written": m}`` (``m < n`` when answers were there).
-
-    Raises:
-        BeliefStoreError: A line is not a valid row (names the file and line): longer
-            than `MAX_LINE_CHARS` (refused before it is read whole), not standard
-            JSON (``NaN``, ``Infinity``, nested too deeply), a missing field, an unknown
-            status, an invalid belief, a key that does not match.
-
+    ``name`` names the file in errors; ``verify`` recomputes each key from its row; ``batch``
+    rows go in one transaction (the batches before a bad line are kept). Returns ``{"read": n,
+    "written": m}``. `BeliefStoreError` names the file and line of one that is not a valid row.
     """
     read = written = 0
     rows: list[StoredBelief] = []

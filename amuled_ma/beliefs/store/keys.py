@@ -26,16 +26,21 @@ def canonical_json(value: object) -> str:
     return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
 
 
-def jsonable(value: object) -> Any:
-    """``value`` with numpy values, tuples and non-string keys (any depth) as plain JSON data."""
+def jsonable(value: object, *, finite: bool = False) -> Any:
+    """``value`` with numpy values, tuples and non-string keys (any depth) as plain JSON data.
+
+    ``finite`` writes a non-finite float as its repr (``"nan"``), so standard JSON holds it.
+    """
     if isinstance(value, Mapping):
-        return {str(k): jsonable(v) for k, v in value.items()}
+        return {str(k): jsonable(v, finite=finite) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [jsonable(v) for v in value]
+        return [jsonable(v, finite=finite) for v in value]
     if isinstance(value, np.ndarray):
-        return value.tolist()
+        return jsonable(value.tolist(), finite=finite)
     if isinstance(value, np.generic):
-        return value.item()
+        value = value.item()
+    if finite and isinstance(value, float) and not math.isfinite(value):
+        return repr(value)
     return value
 
 
@@ -45,19 +50,14 @@ def identity_json(identity: Mapping[str, Any]) -> str:
 
 
 def request_key(identity: Mapping[str, Any] | str, request: BeliefRequest) -> str:
-    """The store key of one request to one source.
+    """The store key of one request to one source, 64 hex characters.
 
     ``sha256(canonical_json({"identity": identity, "request": {"actions", "cluster",
-    "messages": [[role, content], ...], "obs", "task"}, "v": KEY_VERSION}))``, in hex.
-
-    ``identity`` is the source's ``identity()`` dict, or its `identity_json` text (faster for
-    many requests to one source). Returns 64 hex characters.
+    "messages": [[role, content], ...], "obs", "task"}, "v": KEY_VERSION}))``; ``identity``
+    is the source's ``identity()`` or its `identity_json` text (faster for many requests).
     """
     ident = identity if isinstance(identity, str) else identity_json(identity)
-    # Byte for byte canonical_json({"identity": ..., "request": {...}, "v": KEY_VERSION}),
-    # hashed in two parts: the prefix up to the last message (identity, actions, cluster,
-    # system prompt, few-shot turns: shared by every request of one cluster) is hashed once
-    # per process and its SHA-256 state copied; only the state prompt and obs are new.
+    # the prefix up to the last message is shared by a cluster's requests: hashed once
     messages = request.messages
     head, last = (messages[:-1], messages[-1]) if messages else ((), None)
     digest = _prefix_state(ident, tuple(request.action_names), request.cluster, head).copy()

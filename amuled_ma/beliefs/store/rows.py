@@ -9,20 +9,25 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from amuled_ma.beliefs.replies.validate import RULE, check_belief, show_values
-from amuled_ma.beliefs.store.keys import canonical_json, floats_json, names_json, string_json
+from amuled_ma.beliefs.replies.validate import ANSWER_STATUSES, RULE, check_belief, show_values
+from amuled_ma.beliefs.store.keys import (
+    canonical_json,
+    floats_json,
+    jsonable,
+    names_json,
+    string_json,
+)
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
 from amuled_ma.errors import AmuledError
 
 #: Statuses whose rows are served back as cached answers.
-CACHEABLE = frozenset({"ok", "repaired"})
+CACHEABLE = ANSWER_STATUSES
 #: Version of the table layout written into ``meta``.
 SCHEMA_VERSION = 1
 
@@ -93,27 +98,6 @@ class StoredBelief:
     created_at: float
     updated_at: float
 
-    @property
-    def cacheable(self) -> bool:
-        """True when the row is an answer served back as a cache hit."""
-        return self.status in CACHEABLE
-
-    def to_result(self) -> BeliefResult:
-        """Return the row as a cache-hit `BeliefResult` (``cached=True``, latency 0)."""
-        extra = dict(self.extra)
-        extra["stored_latency_s"] = self.latency_s
-        return BeliefResult(
-            belief=self.belief.copy(),
-            status=self.status,
-            source=self.source,
-            raw=self.raw,
-            cached=True,
-            latency_s=0.0,
-            prompt_tokens=self.prompt_tokens,
-            completion_tokens=self.completion_tokens,
-            extra=extra,
-        )
-
     def request(self) -> BeliefRequest:
         """Return the request this row answers."""
         return BeliefRequest(
@@ -125,51 +109,38 @@ class StoredBelief:
         )
 
 
-# -- encoding ------------------------------------------------------------------------
 def encode_row(
     key: str,
     identity: str,
     request: BeliefRequest,
     belief: np.ndarray,
-    *,
-    source: str,
-    status: str,
-    raw: str | None,
-    latency_s: float | None,
-    prompt_tokens: int | None,
-    completion_tokens: int | None,
-    extra: Mapping[str, Any] | None,
+    answer: BeliefResult | StoredBelief,
     attempts: int,
     created_at: float,
     updated_at: float,
 ) -> tuple[Row, dict[str, str]]:
-    """Turn one answer into a ``beliefs`` row and the message bodies it refers to.
+    """One answer as a ``beliefs`` row (`COLUMNS` order) and ``{text_hash: body}`` for ``texts``.
 
-    The belief must already be checked (`check_belief`). The arguments are the row's
-    columns (``docs/store.md``): ``identity`` as `identity_json` text, ``extra`` through
-    `extra_json`, ``request``'s messages as ``[[role, text_hash], ...]``.
-
-    Returns:
-        The row (`COLUMNS` order) and ``{text_hash: body}`` for table ``texts``.
-
+    ``belief`` is ``answer``'s, already checked (`check_belief`); ``identity`` is `identity_json`
+    text; the messages are stored as ``[[role, text_hash], ...]``.
     """
     messages_ref, bodies = split_messages(request.messages)
     row = (
         key,
-        source,
+        answer.source,
         identity,
         request.task,
         request.cluster,
         floats_json(request.obs),
         names_json(tuple(request.action_names)),
         messages_ref,
-        raw,
+        answer.raw,
         floats_json(belief.tolist()),
-        status,
-        float(latency_s) if latency_s is not None else None,
-        prompt_tokens,
-        completion_tokens,
-        extra_json(extra),
+        answer.status,
+        float(answer.latency_s) if answer.latency_s is not None else None,
+        answer.prompt_tokens,
+        answer.completion_tokens,
+        extra_json(answer.extra),
         attempts,
         created_at,
         updated_at,
@@ -209,14 +180,10 @@ def unstorable_text(value: object, where: str = "") -> str | None:
     return None
 
 
-def check_storable(row: Row, bodies: Mapping[str, str]) -> str | None:
+def check_storable(row: Row) -> str | None:
     """Why a row from `encode_row` cannot be written as UTF-8 text, or None."""
     for name, value in zip(COLUMN_NAMES, row, strict=False):
         reason = unstorable_text(value, name)
-        if reason is not None:
-            return reason
-    for body in bodies.values():
-        reason = unstorable_text(body, "a message")
         if reason is not None:
             return reason
     return None
@@ -229,26 +196,11 @@ def extra_json(extra: Mapping[str, Any] | None) -> str:
     """
     if not extra:
         return "{}"
-    plain = _plain(extra)
+    plain = jsonable(extra, finite=True)
     try:
         return canonical_json(plain)
     except (TypeError, ValueError):
         return json.dumps(plain, sort_keys=True, default=repr)
-
-
-def _plain(value: Any) -> Any:
-    """Plain JSON data, with non-finite floats written as their repr (``"nan"``)."""
-    if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _plain(value.tolist())
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return repr(value)
-    return value
 
 
 @functools.lru_cache(maxsize=4096)
@@ -277,7 +229,6 @@ def split_messages(
     return "[" + ",".join(refs) + "]", bodies
 
 
-# -- decoding and its checks ---------------------------------------------------------
 def damaged_row(where: str, key: str | None, problem: str) -> BeliefStoreError:
     """The error of a damaged row at ``where`` (``"STORE: row KEY"``), with how to remove it."""
     fix = (
@@ -321,7 +272,7 @@ def load_extra(text: str | None, where: str, key: str) -> dict[str, Any]:
             where, key, f"column 'extra' is not a JSON object: {show_values(text, 80)}"
         )
     # rows of an older amuled-ma may hold NaN/Infinity (this one writes "nan"/"inf" text)
-    return _plain(value) if "NaN" in text or "Infinity" in text else value
+    return jsonable(value, finite=True) if "NaN" in text or "Infinity" in text else value
 
 
 def load_belief(text: str, n_actions: int, where: str, key: str) -> np.ndarray:
@@ -354,30 +305,12 @@ def decode_row(
     ``texts`` (``{text_hash: body}``) holds the row's messages; ``None`` leaves ``messages``
     unread. A damaged column raises `damaged_row`'s `BeliefStoreError`, naming ``path``.
     """
-    (
-        key,
-        source,
-        identity,
-        task,
-        cluster,
-        obs,
-        actions,
-        messages_ref,
-        raw,
-        belief,
-        status,
-        latency,
-        ptok,
-        ctok,
-        extra,
-        attempts,
-        created,
-        updated,
-    ) = row
+    column = dict(zip(COLUMN_NAMES, row, strict=True))
+    key, obs, actions = column["key"], column["obs"], column["actions"]
     where = f"{path}: row {key}"
     messages: tuple[tuple[str, str], ...] | None = None
     if texts is not None:
-        refs = message_refs(row, path) if messages_ref else []
+        refs = message_refs(row, path) if column["messages"] else []
         missing = [h for _, h in refs if h not in texts]
         if missing:
             raise damaged_row(where, key, f"message text {missing[0]} is not in table 'texts'")
@@ -390,24 +323,23 @@ def decode_row(
         isinstance(x, int | float) and not isinstance(x, bool) for x in obs_values
     ):
         raise damaged_row(where, key, f"column 'obs' is not a list of numbers: {obs!r}")
-    ident = load_column(identity, "identity", where, key)
     return StoredBelief(
         key=key,
-        source=source,
-        identity=ident,
-        task=task,
-        cluster=cluster,
+        source=column["source"],
+        identity=load_column(column["identity"], "identity", where, key),
+        task=column["task"],
+        cluster=column["cluster"],
         obs=tuple(obs_values),
         action_names=tuple(names),
         messages=messages,
-        raw=raw,
-        belief=load_belief(belief, len(names), where, key),
-        status=status,
-        latency_s=latency,
-        prompt_tokens=ptok,
-        completion_tokens=ctok,
-        extra=load_extra(extra, where, key),
-        attempts=int(attempts),
-        created_at=float(created),
-        updated_at=float(updated),
+        raw=column["raw"],
+        belief=load_belief(column["belief"], len(names), where, key),
+        status=column["status"],
+        latency_s=column["latency_s"],
+        prompt_tokens=column["prompt_tokens"],
+        completion_tokens=column["completion_tokens"],
+        extra=load_extra(column["extra"], where, key),
+        attempts=int(column["attempts"]),
+        created_at=float(column["created_at"]),
+        updated_at=float(column["updated_at"]),
     )

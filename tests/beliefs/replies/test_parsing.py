@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from amuled_ma.beliefs.replies.objects import candidate_objects
+from amuled_ma.beliefs.replies.objects import candidate_spans
 from amuled_ma.beliefs.replies.parsing import REPAIRS, belief_schema, parse_belief
 
 MILK = ("up", "down", "left", "right")
@@ -111,8 +111,9 @@ def test_abstains_with_uniform(text):
     assert parsed.error
 
 
-def test_candidate_objects_order_and_nesting():
-    assert candidate_objects('a {"x": {"y": 1}} b {"z": 2}') == [
+def test_candidate_spans_order_and_nesting():
+    text = 'a {"x": {"y": 1}} b {"z": 2}'
+    assert [text[a:b] for a, b in candidate_spans(text)[0]] == [
         '{"z": 2}',
         '{"x": {"y": 1}}',
         '{"y": 1}',

@@ -214,7 +214,7 @@ def test_one_host_keeps_its_retries_with_backoff() -> None:
     server = Fake()
     server.dead = True
     source = OllamaSource(host=A, transport=router({A: server}), retries=2, backoff_s=0.001)
-    source._checked = True  # the server died after the start check
+    source._digest = ""  # the server died after the start check
     with pytest.raises(BackendUnavailable, match="no Ollama server answers at http://gpu1"):
         source.beliefs([req(0)])
     assert source.stats.attempts == 3 and source.stats.retries == 2

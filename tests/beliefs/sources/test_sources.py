@@ -22,7 +22,6 @@ from amuled_ma.beliefs import (
     source_kinds,
 )
 from amuled_ma.beliefs.sources.registry import built_in
-from amuled_ma.beliefs.sources.rules import to_belief
 from amuled_ma.clusters import plugins
 from amuled_ma.errors import ScenarioError
 from amuled_ma.scenario import AGENT_SPECS
@@ -108,8 +107,9 @@ def test_scripted_table_and_function():
         ("x", "error"),
     ],
 )
-def test_to_belief_projection(values, status):
-    belief, got = to_belief(values, 4)
+def test_scores_divided_by_their_sum_or_an_error(values, status):
+    result = ScriptedSource({"*": values}).beliefs([req()])[0]
+    belief, got = result.belief, result.status
     assert got == status
     assert belief.shape == (4,) and np.isclose(belief.sum(), 1) and np.all(belief >= 0)
 
@@ -200,9 +200,9 @@ def test_rules_batch_call_and_per_request_fallback():
 
 
 def test_a_batch_with_a_request_left_unanswered_is_refused_naming_the_source():
-    from amuled_ma.beliefs.types import BeliefResult, every_answer
+    from amuled_ma.beliefs.types import BeliefResult, in_order
 
     one = BeliefResult(np.array([0.5, 0.5]), "ok", "rules")
-    assert every_answer([one, one], "rules") == [one, one]
+    assert in_order([(1, one), (0, one)], 2, "rules") == [one, one]
     with pytest.raises(RuntimeError, match=r"'rules' left 1 request\(s\) without a result"):
-        every_answer([one, None], "rules")
+        in_order([(1, one)], 2, "rules")

@@ -105,7 +105,7 @@ def test_round_trip_all_fields(store):
     )
     assert store.put(key, IDENT, req(1), result) == 1
     row = store.get(key)
-    assert row is not None and row.cacheable
+    assert row is not None and row.status == "ok"
     np.testing.assert_array_equal(row.belief, [0.1, 0.2, 0.3, 0.4])
     assert (row.status, row.raw, row.latency_s, row.prompt_tokens, row.completion_tokens) == (
         "ok",
@@ -115,7 +115,7 @@ def test_round_trip_all_fields(store):
         7,
     )
     assert row.identity == IDENT and row.request() == req(1) and row.extra == {"retries": 1}
-    hit = row.to_result()
+    hit = store.lookup([key])[key]
     assert hit.cached and hit.latency_s == 0.0 and hit.extra["stored_latency_s"] == 1.5
     assert len(store) == 1 and key in store
 

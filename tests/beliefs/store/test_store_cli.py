@@ -202,7 +202,7 @@ def test_read_only_store_in_process(tmp_path):
         assert store.open_mode == "read-only" and len(store) == 3
         row = next(store.iter_rows())
         with pytest.raises(BeliefStoreError, match="open read-only"):
-            store.put(row.key, row.identity, row.request(), row.to_result())
+            store.put_rows([row])
     junk = tmp_path / "junk.sqlite"
     junk.write_bytes(b"not a database " * 100)
     with pytest.raises(BeliefStoreError, match=r"junk\.sqlite: cannot open belief store read-only"):
