@@ -60,8 +60,16 @@ def start_node(
     args += ["--node-ip-address=127.0.0.1", f"--num-cpus={cpus}", "--disable-usage-stats"]
     if resources:
         args += [f"--resources={json.dumps(dict(resources))}"]
-    done = subprocess.run(args, env=env, capture_output=True, text=True, timeout=180)
-    if done.returncode:
+    for attempt in (1, 2):
+        done = subprocess.run(args, env=env, capture_output=True, text=True, timeout=180)
+        if done.returncode == 0:
+            return
+        # Ray waits a fixed 30 s for a new raylet to register, which a loaded machine can
+        # miss ("Failed to get node info"): a head is stopped and started once more (a
+        # node is not: `ray stop` would stop the head beside it)
+        if head and attempt == 1 and "Failed to get node info" in done.stdout + done.stderr:
+            stop_cluster(env)
+            continue
         raise RuntimeError(f"{args} failed:\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}")
 
 
