@@ -64,11 +64,6 @@ class CategoricalDistribution(Distribution):
         return self._last_log_probs().exp()
 
     @property
-    def logits(self) -> torch.Tensor:
-        """Normalised log-probabilities, shape ``[..., output_dim]``."""
-        return self._last_log_probs()
-
-    @property
     def mean(self) -> torch.Tensor:
         """Mean of the one-hot vector, i.e. the action probabilities."""
         return self.probs

@@ -7,6 +7,7 @@ KL weight and recipe, base policy, folders and checkpoint cadence.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import itertools
 import json
 import math
@@ -111,26 +112,14 @@ def shared_config(cfg: dict[str, Any]) -> dict[str, Any]:
 def population_key(spec: MemberSpec) -> str:
     """What jobs of one population share: task without seed, shape, schedule, start, factory."""
     shape = spec.shape()
-    task = spec.scenario.task.model_dump(mode="json")
-    task.pop("seed", None)
     factory = spec.task_factory
-    return json.dumps(
-        {
-            "task": task,
-            "finetuning": shape.finetuning,
-            "num_envs": shape.num_envs,
-            "steps_per_env": shape.steps_per_env,
-            "iterations": shape.total_iterations,
-            "learning_rate": shape.learning_rate,
-            "anneal": shape.anneal,
-            "shaping_coef": shape.shaping_coef,
-            "task_weight": shape.task_weight,
-            "cfg": shared_config(shape.cfg),
-            "start": spec.start_iteration(),
-            "task_factory": None if factory is None else f"{factory.__module__}.{factory!r}",
-        },
-        sort_keys=True,
-    )
+    key = dataclasses.asdict(shape) | {
+        "task": spec.scenario.task.model_dump(mode="json", exclude={"seed"}),
+        "cfg": shared_config(shape.cfg),
+        "start": spec.start_iteration(),
+        "task_factory": None if factory is None else f"{factory.__module__}.{factory!r}",
+    }
+    return json.dumps(key, sort_keys=True)
 
 
 def member_memory_bytes(
