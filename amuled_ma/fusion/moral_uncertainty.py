@@ -23,9 +23,7 @@ FLAT_SIGMA = 1e-9
 def credences(
     beliefs: np.ndarray, weights: np.ndarray | None, prior: np.ndarray | None
 ) -> np.ndarray:
-    """Each member's credence ``c_i = w_i / sum_j w_j`` ``(..., k)`` from ``weights`` or ``prior``.
-
-    Uniform when neither is given.
+    """Each member's credence ``c_i = w_i / sum_j w_j`` ``(..., k)`` (uniform without either).
 
     Raises:
         ValueError: both ``weights`` and ``prior`` are given.
@@ -71,7 +69,6 @@ def _credence_rule(name: str) -> Callable[[CredenceRule], CredenceRule]:
 @_credence_rule("mec")
 def _mec_rule(beliefs: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Maximise expected choiceworthiness (MacAskill & Ord 2020): sum_i c_i b_i."""
-    # MEC: EC(a) = sum_i C(T_i) W_i(a), W_i = b_i (MacAskill & Ord 2020)
     fused = (c[..., :, None] * beliefs).sum(axis=-2)
     fused = fused / fused.sum(axis=-1, keepdims=True)
     return fused, c

@@ -50,10 +50,7 @@ def register_rule(
     replace: bool = False,
     takes_prior: bool = False,
 ) -> Callable[[RuleFunc], RuleFunc]:
-    """Register the decorated function as the fusion rule ``name`` (no ``:``).
-
-    ``takes_weights`` / ``takes_prior``: it accepts ``weights`` / the keyword ``prior``;
-    ``takes_param``: it is selected as ``"name:<param>"``; ``replace``: it may replace a rule.
+    """Register the decorated function as the fusion rule ``name`` (docs/fusion.md).
 
     Raises:
         ValueError: bad name, or the name is taken and ``replace`` is false.
@@ -130,17 +127,6 @@ def fuse(
     prior: npt.ArrayLike | None = ...,
     return_diagnostics: Literal[True],
 ) -> FusionResult: ...
-
-
-@overload
-def fuse(
-    beliefs: npt.ArrayLike,
-    rule: str = ...,
-    *,
-    weights: npt.ArrayLike | None = ...,
-    prior: npt.ArrayLike | None = ...,
-    return_diagnostics: bool,
-) -> np.ndarray | FusionResult: ...
 
 
 def fuse(
