@@ -87,6 +87,7 @@ class AnchoredPPO(PPO):
         self.base_actor: Any | None = None
         self.window: EpisodeWindowKL | None = None
         self.last_losses: dict[str, float] = {}
+        self.member_losses: list[dict[str, float]] = [{}]
         self._anchor: torch.Tensor | None = None
         self._stats = torch.zeros(3, dtype=torch.float64)  # feedback sum, anchor sum, count
 
@@ -166,9 +167,20 @@ class AnchoredPPO(PPO):
             self.window.start_iteration()
 
     def update(self) -> dict[str, float]:
-        """rsl-rl's update; the losses are also kept in ``last_losses``."""
+        """rsl-rl's update; its losses are also kept in ``last_losses`` and ``member_losses``."""
         self.last_losses = super().update()
+        self.member_losses = [self.last_losses]
         return self.last_losses
+
+    def failed_members(self) -> list[int]:
+        """``[0]`` when the last update made a weight not finite (a NaN or inf), else ``[]``."""
+        # a NaN or inf anywhere makes its parameter's sum not finite: one reduction each
+        sums = torch.stack([p.sum() for p in (*self.actor.parameters(), *self.critic.parameters())])
+        return [] if bool(torch.isfinite(sums).all()) else [0]
+
+    def member_rollout_stats(self) -> list[dict[str, float]]:
+        """`rollout_stats` as a list of one member's."""
+        return [self.rollout_stats()]
 
     def rollout_stats(self) -> dict[str, float]:
         """Mean ``feedback_reward`` and ``kl`` per step since the last call (``{}``: none)."""

@@ -86,21 +86,13 @@ def checkpoint_infos(path: str | Path) -> dict[str, Any] | None:
     return infos if isinstance(infos, dict) else {}
 
 
-def write_checkpoint(path: str | Path, write: Callable[[str], Any]) -> Path:
-    """Write a checkpoint by ``write(temp)``; the old file stays until the new one is whole.
-
-    Raises:
-        CheckpointWriteError: The write failed; the message names the file, the cause and the fix.
-        UnsafePathError: ``path`` is a link or not a regular file; nothing was written.
-    """
-    return write_checkpoints([(Path(path), write)])[0]
-
-
 def write_checkpoints(writes: Sequence[tuple[Path, Callable[[str], Any]]]) -> list[Path]:
-    """Write ``(path, write)`` checkpoints as one set: old files stay until all new are whole.
+    """Write ``(path, write(temp))`` checkpoints as one set: old files stay until all are whole.
 
     Raises:
-        CheckpointWriteError: A write failed; every temporary file is removed, every old kept.
+        CheckpointWriteError: A write failed (the message names the file, the cause and the
+            fix); every temporary file is removed, every old kept.
+        UnsafePathError: A path is a link or not a regular file; nothing was written.
     """
     temps: list[tuple[str, Path]] = []
     path = Path()

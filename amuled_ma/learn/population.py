@@ -136,7 +136,7 @@ class PopulationTrainer:
         else:  # the lone runner as built, its weights, state and random stream loaded
             self.env, self.runner = env, runner
         self.mdp, self.env_template = self.env.mdp, starts[0].env_state
-        self.alg: PopulationPPO | AnchoredPPO = self.runner.alg
+        self.alg: AnchoredPPO = self.runner.alg
         if self.stacked:
             self._load_members(starts)
         self._anchor(starts)
@@ -197,22 +197,6 @@ class PopulationTrainer:
         if isinstance(self.alg, PopulationPPO):
             return self.alg.streams.get_states()
         return [torch.get_rng_state()]
-
-    def _losses_and_stats(self) -> tuple[list[dict[str, float]], list[dict[str, float]]]:
-        """Each member's losses and feedback / anchor means of the last iteration."""
-        alg = self.alg
-        if isinstance(alg, PopulationPPO):
-            return alg.member_losses, alg.member_rollout_stats()
-        return [alg.last_losses], [alg.rollout_stats()]
-
-    def _failed_members(self) -> list[int]:
-        """Members whose weights the last update made not finite (their gradient)."""
-        alg = self.alg
-        if isinstance(alg, PopulationPPO):
-            return alg.failed_members()
-        # a NaN or inf anywhere makes its parameter's sum not finite: one reduction each
-        sums = torch.stack([p.sum() for p in (*alg.actor.parameters(), *alg.critic.parameters())])
-        return [] if bool(torch.isfinite(sums).all()) else [0]
 
     # ----------------------------------------------------------------- members
     def member_policy(self, member: int) -> torch.nn.Module:
@@ -369,7 +353,7 @@ class PopulationTrainer:
         writers: list[TensorBoardLog | None],
     ) -> None:
         """Each member's curve row of iteration ``it`` (and its TensorBoard scalars)."""
-        losses, stats = self._losses_and_stats()
+        losses, stats = self.alg.member_losses, self.alg.member_rollout_stats()
         episodes = split_episodes(self.env.drain_episodes(), self.size, self.copies)
         for p in range(self.size):
             self.wall_offsets[p] = walls[p] + elapsed
@@ -406,7 +390,7 @@ class PopulationTrainer:
         """Raise `MemberFailed` for the first member whose feedback or gradient failed."""
         feedback = self.mdp.feedback
         failures = dict(feedback.failures) if isinstance(feedback, MemberFeedback) else {}
-        for member in self._failed_members():
+        for member in self.alg.failed_members():
             failures.setdefault(member, "its gradient was not a finite number (NaN or inf)")
         if failures:
             member = min(failures)

@@ -20,7 +20,6 @@ from amuled_ma.learn.anchors import per_sample_kl
 from amuled_ma.learn.population_models import MemberStreams
 
 if TYPE_CHECKING:
-    from amuled_ma.learn.anchors import EpisodeWindowKL
     from amuled_ma.learn.population_models import PopulationMLPModel
 
 #: Loss keys rsl-rl's update returns, in the order kept per member.
@@ -117,23 +116,6 @@ def _normalised_rows(x: torch.Tensor) -> torch.Tensor:
     return (x - x.mean(dim=1, keepdim=True)) / (x.std(dim=1, keepdim=True) + 1e-8)
 
 
-class _CpuWindow:
-    """The authors' window KL (a CPU tensor book) fed from another device's tensors."""
-
-    def __init__(self, window: EpisodeWindowKL, device: torch.device) -> None:
-        self.window = window
-        self.device = device
-
-    def start_iteration(self) -> None:
-        self.window.start_iteration()
-
-    def step(self, logp: torch.Tensor, logp_base: torch.Tensor) -> torch.Tensor:
-        return self.window.step(logp.cpu(), logp_base.cpu()).to(self.device)
-
-    def end_episodes(self, dones: torch.Tensor) -> None:
-        self.window.end_episodes(dones.cpu())
-
-
 class PopulationPPO(AnchoredPPO):
     """rsl-rl's PPO (anchored) over a population, each member updated as it is alone.
 
@@ -209,13 +191,6 @@ class PopulationPPO(AnchoredPPO):
                 torch.device(self.device),
             )
         return super().act(obs)
-
-    # ----------------------------------------------------------------- anchoring
-    def anchor_to(self, base_actor: torch.nn.Module) -> None:
-        """Anchor each member to its base policy (a population model of the bases)."""
-        super().anchor_to(base_actor)
-        if self.window is not None and torch.device(self.device).type != "cpu":
-            self.window = _CpuWindow(self.window, torch.device(self.device))  # type: ignore[assignment]
 
     def anchor_of(self, logp: torch.Tensor, logp_base: torch.Tensor) -> torch.Tensor:
         """Each copy's anchor by its member's recipe (window KL or per-sample KL)."""
