@@ -1,7 +1,4 @@
-"""Load and validate moral-cluster files ``prompts/clusters/<name>.toml`` (docs/clusters.md).
-
-Every error names the file and the field.
-"""
+"""Load and validate moral-cluster files ``prompts/clusters/<name>.toml`` (docs/clusters.md)."""
 
 from __future__ import annotations
 

@@ -44,8 +44,7 @@ def check_import_path(text: str) -> str:
 def set_allowed_plugins(paths: Iterable[str]) -> frozenset[str]:
     """Set the import paths this process may import (``--allow-plugin``); return the old set.
 
-    Raises:
-        ScenarioError: A path is not ``"pkg.module:attr"``.
+    Raises ScenarioError: a path is not ``"pkg.module:attr"``.
     """
     global _ALLOWED
     previous = _ALLOWED
@@ -61,8 +60,7 @@ def allowed_plugins() -> frozenset[str]:
 def load_plugin(spec: str, what: str) -> Any:
     """Import (not call) what an entry-point name or an allowed ``"pkg.module:attr"`` names.
 
-    Raises:
-        ScenarioError: ``spec`` (given by ``what``) is neither, or importing it failed.
+    Raises ScenarioError: ``spec`` (given by ``what``) is neither, or importing it failed.
     """
     if not isinstance(spec, str) or not spec.strip():
         raise ScenarioError(

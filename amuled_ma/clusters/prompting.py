@@ -1,7 +1,4 @@
-"""Build the chat sent to an LLM cluster agent: system prompt, few-shot turns, state prompt.
-
-With the shipped data it is the authors' prompt byte for byte (docs/clusters.md).
-"""
+"""The chat sent to an LLM cluster agent: the authors' prompt byte for byte (docs/clusters.md)."""
 
 from __future__ import annotations
 
@@ -62,10 +59,7 @@ def _read_text(path: Path) -> str:
 def render_system_prompt(
     panel: Sequence[Cluster] | None = None, *, prompts: str | Path | None = None
 ) -> str:
-    """Render ``prompts/system.md`` with one section per ``kind = "cluster"`` of ``panel``.
-
-    ``panel`` defaults to the shipped registry's panel, ``prompts`` to the shipped directory.
-    """
+    """Render ``prompts/system.md`` (shipped by default) with a section per cluster of ``panel``."""
     panel = default_registry().panel() if panel is None else list(panel)
     path = Path(prompts) / "system.md" if prompts else prompts_dir() / "system.md"
     template = _read_text(path).rstrip("\n")

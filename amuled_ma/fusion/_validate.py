@@ -73,8 +73,7 @@ def check_weights(
 ) -> np.ndarray:
     """Return per-cluster ``weights`` broadcast to ``batch_shape`` as float64.
 
-    Raises:
-        ValueError: not broadcastable, NaN/inf, negative, or all zero for some leading index.
+    Raises ValueError: not broadcastable, NaN/inf, negative, or all zero for some leading index.
     """
     try:
         array = np.broadcast_to(np.asarray(weights, dtype=np.float64), batch_shape)

@@ -1,7 +1,6 @@
 """Rules for acting under moral uncertainty: ``mec``, ``nash-vote``, ``variance-vote``, ``borda``.
 
-Each member is a theory with credence ``c_i`` (its weight or prior, normalised) and
-choiceworthiness ``W_i(a) = b_i(a)``; docs/fusion.md gives the sources and derivations.
+A member is a theory of credence ``c_i`` (its weight or prior) and choiceworthiness ``b_i(a)``.
 """
 
 from __future__ import annotations
@@ -25,8 +24,7 @@ def credences(
 ) -> np.ndarray:
     """Each member's credence ``c_i = w_i / sum_j w_j`` ``(..., k)`` (uniform without either).
 
-    Raises:
-        ValueError: both ``weights`` and ``prior`` are given.
+    Raises ValueError: both ``weights`` and ``prior`` are given.
     """
     if weights is not None and prior is not None:
         raise ValueError(

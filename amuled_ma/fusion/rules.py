@@ -1,7 +1,4 @@
-"""Fusion rules by name: ``fuse(beliefs, rule)`` and the registry behind it.
-
-The rules, their tie handling and the rule-writing contract are in docs/fusion.md.
-"""
+"""Fusion rules by name: ``fuse(beliefs, rule)`` and the registry behind it (docs/fusion.md)."""
 
 from __future__ import annotations
 
@@ -52,8 +49,7 @@ def register_rule(
 ) -> Callable[[RuleFunc], RuleFunc]:
     """Register the decorated function as the fusion rule ``name`` (docs/fusion.md).
 
-    Raises:
-        ValueError: bad name, or the name is taken and ``replace`` is false.
+    Raises ValueError: bad name, or the name is taken and ``replace`` is false.
     """
     if not name or ":" in name or name != name.strip():
         raise ValueError(f"rule name {name!r} must be non-empty, without ':' or spaces around")
