@@ -1,9 +1,7 @@
 """The KL anchor of fine-tuning, ``r_t = f(B)[a_t] - lambda_KL * anchor_t``, in two recipes.
 
-``"equation"`` (the paper's, default): the per-sample ``KL(pi || pi_base)`` estimator.
-``"authors"`` (``temetski/moral_agent``, ``finetune_moral.py:153-177``): a KL over time
-between log-softmaxes of the taken actions' log-probabilities since the window began (the
-episode and the iteration); docs/learning.md, "Two recipes".
+``"equation"``: the paper's per-sample estimator; ``"authors"``: ``finetune_moral.py:153-177``'s
+KL over the episode's window (docs/learning.md, "Two recipes").
 """
 
 from __future__ import annotations

@@ -28,11 +28,7 @@ def curve_row(
     losses: dict,
     extra: dict,
 ) -> dict[str, Any]:
-    """One ``curve.json`` row for iteration ``it`` (1-based) of ``batch`` env steps each.
-
-    ``episodes`` are the sums of the episodes that ended in it, ``losses`` rsl-rl's losses,
-    ``extra`` the feedback's figures of its rollout.
-    """
+    """One ``curve.json`` row for iteration ``it`` (1-based): its episodes, losses, ``extra``."""
     row: dict[str, Any] = {
         "iteration": it,
         "env_steps": it * batch,

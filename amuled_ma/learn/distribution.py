@@ -1,8 +1,4 @@
-"""A categorical action distribution for rsl-rl (which ships only continuous ones).
-
-rsl-rl stores actions as float rows of ``num_actions`` columns, so an action is a one-hot
-row here; the MLP's output is the logits.
-"""
+"""A categorical action distribution for rsl-rl: one-hot action rows, the MLP's output logits."""
 
 from __future__ import annotations
 

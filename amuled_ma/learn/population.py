@@ -123,8 +123,8 @@ class PopulationTrainer:
             starts.append(start)
             if len(starts) == 1:  # the template of a member's lone actor
                 self.template = copy.deepcopy(runner.alg.get_policy()).cpu()
-        self.total_iterations = starts[0].total_iterations
-        self.cfgs = [start.cfg for start in starts]
+        self.total_iterations = self.shape.total_iterations
+        self.cfgs = [spec.shape().cfg for spec in self.specs]
         self.cfg = population_config(self.cfgs) if self.stacked else copy.deepcopy(self.cfgs[0])
         if self.stacked:
             self.env = self._population_env(starts)
@@ -133,13 +133,16 @@ class PopulationTrainer:
                     self.env, copy.deepcopy(self.cfg), log_dir=None, device=device
                 )
             )
+            self._load_members(starts)
         else:  # the lone runner as built, its weights, state and random stream loaded
             self.env, self.runner = env, runner
         self.mdp, self.env_template = self.env.mdp, starts[0].env_state
         self.alg: AnchoredPPO = self.runner.alg
-        if self.stacked:
-            self._load_members(starts)
-        self._anchor(starts)
+        if self.finetuning:  # every member's base actor, frozen
+            base = copy.deepcopy(self.alg.get_policy())
+            bases = [start.base_actor or {} for start in starts]
+            base.load_state_dict(stack_states(bases) if self.stacked else dict(bases[0]))
+            self.alg.anchor_to(base)
         self.curves = [list(start.curve) for start in starts]
         self.wall_offsets = [start.wall_s for start in starts]
         self.sizes = [(start.obs_dim, start.num_actions) for start in starts]
@@ -165,7 +168,7 @@ class PopulationTrainer:
 
     def _load_members(self, starts: list[MemberStart]) -> None:
         """Load every member's weights, Adam state, random stream and iteration."""
-        alg = self.alg
+        alg = self.runner.alg
         assert isinstance(alg, PopulationPPO)
         alg.actor.load_state_dict(stack_states([start.actor for start in starts]))
         alg.critic.load_state_dict(stack_states([start.critic for start in starts]))
@@ -174,18 +177,7 @@ class PopulationTrainer:
         alg.streams.set_states([start.torch_rng for start in starts])
         self.runner.current_learning_iteration = starts[0].iteration
 
-    def _anchor(self, starts: list[MemberStart]) -> None:
-        """A fine-tune's anchor: every member's base actor, frozen."""
-        if self.finetuning:
-            base = copy.deepcopy(self.alg.get_policy())
-            base.load_state_dict(self._stack([start.base_actor or {} for start in starts]))
-            self.alg.anchor_to(base)
-
     # ------------------------------------------------- stacked, or one member alone
-    def _stack(self, states: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
-        """The model state of the members' lone states (`stack_states`)."""
-        return stack_states(states) if self.stacked else dict(states[0])
-
     def _member(self, state: dict[str, torch.Tensor], member: int) -> dict[str, torch.Tensor]:
         """Member ``member``'s lone model state (`member_state`)."""
         if self.stacked:

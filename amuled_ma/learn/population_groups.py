@@ -1,8 +1,4 @@
-"""Which training jobs train together as one population, and how many fit in memory.
-
-Jobs of equal `population_key` may train together: they differ only in seed, feedback,
-KL weight and recipe, base policy, folders and checkpoint cadence.
-"""
+"""Which training jobs train together as one population (equal `population_key`), how many fit."""
 
 from __future__ import annotations
 
@@ -173,15 +169,10 @@ def split_populations(
     min_count: int = 1,
     device: str = "cpu",
 ) -> list[list[int]]:
-    """Group jobs into populations of equal `population_key` within ``memory_budget`` bytes.
+    """Indices into ``specs`` grouped by `population_key` within ``memory_budget`` bytes.
 
     ``min_count`` cuts each group into at least that many populations (one per worker).
-
-    Returns:
-        Populations as lists of indices into ``specs``, in the order of their first job.
-
-    Raises:
-        ValueError: ``memory_budget`` or ``max_size`` is below 1.
+    Raises ValueError: ``memory_budget``, ``max_size`` or ``min_count`` is below 1.
     """
     budget = memory_budget_bytes() if memory_budget is None else int(memory_budget)
     if budget < 1 or (max_size is not None and max_size < 1) or min_count < 1:
@@ -209,8 +200,7 @@ def split_populations(
 def population_config(cfgs: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """rsl-rl's config of a population from its members' lone configs (KL weights as lists).
 
-    Raises:
-        ValueError: The members' configs differ in a setting they must share.
+    Raises ValueError: the members' configs differ in a setting they must share.
     """
     shared = shared_config(cfgs[0])
     for p, cfg in enumerate(cfgs):

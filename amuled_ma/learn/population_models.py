@@ -78,8 +78,7 @@ class MemberStreams:
     def permutations(self, n: int, device: torch.device) -> torch.Tensor:
         """``[P, n]``: a random permutation of ``0..n-1`` from each member's stream.
 
-        Raises:
-            RuntimeError: Uniforms reserved ahead are not used up (they come first).
+        Raises RuntimeError: uniforms reserved ahead are not used up (they come first).
         """
         if self.reserved is not None:
             raise RuntimeError("a permutation drawn before the uniforms reserved ahead")

@@ -37,7 +37,6 @@ class MemberStart:
     ``torch_rng``: torch's global random state after construction; ``env_state`` None: unsaved.
     """
 
-    cfg: dict[str, Any]
     actor: dict[str, torch.Tensor]
     critic: dict[str, torch.Tensor]
     optimizer: dict[str, Any]
@@ -47,7 +46,6 @@ class MemberStart:
     env_state: dict[str, Any] | None
     curve: list[dict]
     wall_s: float
-    total_iterations: int
     obs_dim: int
     num_actions: int
 
@@ -108,7 +106,6 @@ def lone_start(spec: MemberSpec) -> tuple[MemberStart, OnPolicyRunner, Deliberat
     runner.current_learning_iteration = iteration
     saved = alg.save()
     start = MemberStart(
-        cfg=shape.cfg,
         actor=saved["actor_state_dict"],
         critic=saved["critic_state_dict"],
         optimizer=saved["optimizer_state_dict"],
@@ -118,7 +115,6 @@ def lone_start(spec: MemberSpec) -> tuple[MemberStart, OnPolicyRunner, Deliberat
         env_state=env.state_dict(),
         curve=curve,
         wall_s=wall_s,
-        total_iterations=shape.total_iterations,
         obs_dim=int(env.obs.shape[-1]),
         num_actions=int(env.num_actions),
     )
@@ -153,8 +149,7 @@ def _load(alg: AnchoredPPO, path: Path, load_cfg: dict | None, what: str) -> dic
 def stack_optimizer_states(states: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """One optimiser's state dict over stacked parameters from the members' (member 0's groups).
 
-    Raises:
-        ValueError: The members are at different Adam steps.
+    Raises ValueError: the members are at different Adam steps.
     """
     first = states[0]
     per_param = first["state"]

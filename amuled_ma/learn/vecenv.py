@@ -82,11 +82,7 @@ class DeliberationVecEnv(VecEnv):
         return {"task": self.task.state_dict(), "obs": self.mdp.obs.clone(), **sums}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore a `state_dict` of an env built with the same settings.
-
-        Raises:
-            ValueError: It does not fit this env (another task or number of copies).
-        """
+        """Restore a `state_dict`; ValueError: another task or number of copies."""
         self.task.load_state_dict(state["task"])
         for name, mine in {"obs": self.mdp.obs, **self._sums()}.items():
             saved = state.get(name)
@@ -106,12 +102,9 @@ class DeliberationVecEnv(VecEnv):
         return self._wrap(obs)
 
     def step(self, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
-        """Step every copy with the given actions (one-hot rows or indices).
+        """Step every copy (one-hot rows or indices): obs, rewards ``[N]``, dones ``[N]``, extras.
 
-        Returns:
-            Observations, the actor's rewards ``[N]``, dones ``[N]`` and extras with
-            ``time_outs``, ``log``, the task's ``info``, the taken ``actions`` and, with
-            feedback, ``feedback`` (the fused belief of each taken action).
+        extras: ``time_outs``, ``log``, the task's ``info``, ``actions`` (and ``feedback``).
         """
         index = actions.argmax(dim=-1) if actions.dim() == 2 else actions.long()
         if index.device != self.device:
