@@ -17,7 +17,7 @@ import pytest
 from amuled_ma.distill.state import EXAMPLES_FILE, LEDGER_FILE, StateFiles
 from amuled_ma.experiments.run_folder import CONFIG, read_record, write_record
 from amuled_ma.files.safe import UnsafePathError, append_text
-from amuled_ma.learn.checkpoints import LAST, read_checkpoint, write_checkpoint
+from amuled_ma.learn.checkpoints import LAST, read_checkpoint, write_checkpoints
 from amuled_ma.records.run_record import RunRecord
 
 
@@ -60,7 +60,7 @@ def test_a_checkpoint_is_written_and_read_never_through_a_link(
     tmp_path: Path, outside: Path
 ) -> None:
     link = linked(tmp_path / "run" / "base", LAST, outside)
-    refused(lambda: write_checkpoint(link, lambda tmp: Path(tmp).write_bytes(b"x")), link)
+    refused(lambda: write_checkpoints([(link, lambda tmp: Path(tmp).write_bytes(b"x"))]), link)
     refused(lambda: read_checkpoint(link), link)
     assert outside.read_bytes() == b"keep me"
     assert [p.name for p in link.parent.iterdir()] == [LAST]  # no temporary file left

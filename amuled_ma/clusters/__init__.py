@@ -11,7 +11,7 @@ from amuled_ma.clusters.loader import (
     load_cluster,
     parse_cluster,
 )
-from amuled_ma.clusters.plugins import ENTRY_POINT_GROUP, agent_entry_points, load_agent
+from amuled_ma.clusters.plugins import ENTRY_POINT_GROUP, agent_entry_points
 from amuled_ma.clusters.prompting import (
     build_messages,
     credence_vector,
@@ -37,7 +37,6 @@ __all__ = [
     "fewshot_messages",
     "fewshot_path",
     "instruction_text",
-    "load_agent",
     "load_cluster",
     "parse_cluster",
     "render_cluster_section",

@@ -1,7 +1,4 @@
-"""Load and validate moral-cluster files ``prompts/clusters/<name>.toml`` (docs/clusters.md).
-
-Every error names the file and the field.
-"""
+"""Load and validate moral-cluster files ``prompts/clusters/<name>.toml`` (docs/clusters.md)."""
 
 from __future__ import annotations
 
@@ -45,12 +42,7 @@ class Theory:
 
 @dataclass(frozen=True)
 class Cluster:
-    """One moral-cluster agent, as loaded from its TOML file (fields: docs/clusters.md).
-
-    ``focus``, ``key_principle`` and ``theories`` are for ``kind="cluster"``; ``credences``
-    for ``"mixture"``; ``source`` is the agent's default ``[source]`` table (None: the
-    scenario's ``[feedback].source``).
-    """
+    """One moral-cluster agent, as loaded from its TOML file (fields: docs/clusters.md)."""
 
     name: str
     kind: str
@@ -207,8 +199,7 @@ _REQUIRED = {
 def parse_cluster(data: Mapping[str, Any], path: Path) -> Cluster:
     """Validate one parsed cluster TOML document; ``path``'s stem must equal ``name``.
 
-    Raises:
-        ClusterDefinitionError: A field is missing, unknown, or of the wrong type.
+    Raises ClusterDefinitionError: a field is missing, unknown, or of the wrong type.
     """
     unknown = set(data) - _KNOWN_FIELDS
     if unknown:
@@ -257,8 +248,7 @@ def parse_cluster(data: Mapping[str, Any], path: Path) -> Cluster:
 def load_cluster(path: str | Path) -> Cluster:
     """Load and validate one ``<name>.toml`` cluster file.
 
-    Raises:
-        ClusterDefinitionError: The file is unreadable, not TOML, or a field is wrong.
+    Raises ClusterDefinitionError: the file is unreadable, not TOML, or a field is wrong.
     """
     path = Path(path)
     text = read_text(path, "cluster file", ClusterDefinitionError, max_bytes=MAX_CLUSTER_BYTES)
@@ -288,12 +278,11 @@ class Override(NamedTuple):
 class ClusterRegistry:
     """All known cluster agents: the shipped ones plus any extra directories.
 
-    Names are compared ignoring case, ``_``, ``-`` and spaces. A later directory's file
-    replaces an earlier one of the same name (listed in ``overridden``).
+    A later directory's file replaces an earlier one of the same name (``overridden``).
 
     Raises:
-        ClusterDefinitionError: Two clusters of one directory share a name, two clusters
-            share a credence label, or a mixture's credences name no cluster or one twice.
+        ClusterDefinitionError: Names or credence labels collide, or a mixture's credences
+            name no cluster or one twice.
     """
 
     def __init__(self, clusters: Iterable[Cluster]) -> None:
@@ -377,8 +366,7 @@ class ClusterRegistry:
     ) -> ClusterRegistry:
         """Load the shipped clusters and every ``*.toml`` of ``extra_dirs`` (later ones win).
 
-        Raises:
-            ClusterDefinitionError: A directory is missing, a file is bad, or clusters collide.
+        Raises ClusterDefinitionError: a directory is missing, a file is bad, or names collide.
         """
         dirs = [default_clusters_dir()] if include_default else []
         dirs += [Path(d) for d in extra_dirs]

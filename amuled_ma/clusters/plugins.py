@@ -1,7 +1,7 @@
 """Code-backed agents (entry-point group ``amuled_ma.agents``); the gate for ``"module:attr"``.
 
-Code named by a data file is imported only when it is an installed entry point of the
-group or this run's command line allowed it (``--allow-plugin``); docs/clusters.md.
+Code a data file names is imported only as an installed entry point or when this run's command
+line allowed it (``--allow-plugin``); docs/clusters.md.
 """
 
 from __future__ import annotations
@@ -31,14 +31,6 @@ def agent_entry_points() -> dict[str, EntryPoint]:
     return {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP)}
 
 
-def load_agent(name: str) -> Any:
-    """Load the factory registered under ``name``; ``KeyError`` when no package registers it."""
-    points = agent_entry_points()
-    if name not in points:
-        raise KeyError(name)
-    return points[name].load()
-
-
 def check_import_path(text: str) -> str:
     """Return ``text`` if it is a ``"pkg.module:attr"`` path, else raise ``ScenarioError``."""
     if not isinstance(text, str) or not IMPORT_PATH.match(text):
@@ -52,10 +44,7 @@ def check_import_path(text: str) -> str:
 def set_allowed_plugins(paths: Iterable[str]) -> frozenset[str]:
     """Set the import paths this process may import (``--allow-plugin``); return the old set.
 
-    A Ray worker gets the driver's set with its job.
-
-    Raises:
-        ScenarioError: A path is not ``"pkg.module:attr"``.
+    Raises ScenarioError: a path is not ``"pkg.module:attr"``.
     """
     global _ALLOWED
     previous = _ALLOWED
@@ -71,10 +60,7 @@ def allowed_plugins() -> frozenset[str]:
 def load_plugin(spec: str, what: str) -> Any:
     """Import (not call) what an entry-point name or an allowed ``"pkg.module:attr"`` names.
 
-    ``what`` names who gave ``spec``, for messages (``"[feedback.agents.care] name"``).
-
-    Raises:
-        ScenarioError: ``spec`` is neither (nothing was imported), or importing it failed.
+    Raises ScenarioError: ``spec`` (given by ``what``) is neither, or importing it failed.
     """
     if not isinstance(spec, str) or not spec.strip():
         raise ScenarioError(

@@ -1,8 +1,4 @@
-"""Build the chat sent to an LLM cluster agent: system prompt, few-shot turns, state prompt.
-
-With the shipped data it is byte for byte the authors' prompt (``temetski/moral_agent``,
-``algorithms/llm_moral.py``); docs/clusters.md describes the three blocks.
-"""
+"""The chat sent to an LLM cluster agent: the authors' prompt byte for byte (docs/clusters.md)."""
 
 from __future__ import annotations
 
@@ -63,10 +59,7 @@ def _read_text(path: Path) -> str:
 def render_system_prompt(
     panel: Sequence[Cluster] | None = None, *, prompts: str | Path | None = None
 ) -> str:
-    """Render ``prompts/system.md`` with one section per ``kind = "cluster"`` of ``panel``.
-
-    ``panel`` defaults to the shipped registry's panel, ``prompts`` to the shipped directory.
-    """
+    """Render ``prompts/system.md`` (shipped by default) with a section per cluster of ``panel``."""
     panel = default_registry().panel() if panel is None else list(panel)
     path = Path(prompts) / "system.md" if prompts else prompts_dir() / "system.md"
     template = _read_text(path).rstrip("\n")
@@ -76,14 +69,10 @@ def render_system_prompt(
     return template.replace(CLUSTERS_PLACEHOLDER, sections)
 
 
-def _task_key(task_name: str) -> str:
-    return "".join(ch for ch in task_name.lower() if ch.isalnum())
-
-
 def fewshot_path(task_name: str, *, prompts: str | Path | None = None) -> Path:
     """Return the few-shot file used for a task (its own, else ``default.toml``)."""
     base = (Path(prompts) if prompts else prompts_dir()) / "fewshot"
-    own = base / f"{_task_key(task_name)}.toml"
+    own = base / f"{''.join(ch for ch in task_name.lower() if ch.isalnum())}.toml"
     return own if own.is_file() else base / "default.toml"
 
 
@@ -119,11 +108,6 @@ def fewshot_messages(task_name: str, *, prompts: str | Path | None = None) -> Me
     return _load_fewshot(fewshot_path(task_name, prompts=prompts))
 
 
-def format_credence_value(value: float) -> str:
-    """Format one credence the way the authors did (``str`` of a float: ``1.0``, ``0.5``)."""
-    return str(float(value))
-
-
 def credence_vector(
     cluster: Cluster,
     panel: Sequence[Cluster] | None = None,
@@ -133,8 +117,7 @@ def credence_vector(
 ) -> dict[str, float] | None:
     """Return the agent's ``{credence_label: value}`` over the panel, in panel order.
 
-    ``credences`` (``{cluster name or alias: value}``) overrides the agent's own (one-hot for
-    ``kind="cluster"``, the file's for ``"mixture"``). None for an unprompted agent without it.
+    ``credences`` (``{name or alias: value}``) overrides the agent's own; None: unprompted.
 
     Raises:
         ClusterDefinitionError: A credence names no panel cluster, or a value is not >= 0.
@@ -174,7 +157,8 @@ def instruction_text(
     vector = credence_vector(cluster, panel, credences, registry=registry)
     if vector is None:
         return cluster.instruction or ""
-    listed = ", ".join(f"{label}: {format_credence_value(v)}" for label, v in vector.items())
+    # each value as the authors wrote it: ``str`` of a float (``1.0``, ``0.5``)
+    listed = ", ".join(f"{label}: {float(v)}" for label, v in vector.items())
     template = cluster.instruction if cluster.kind != "unprompted" and cluster.instruction else None
     if template is None:
         return CREDENCE_INSTRUCTION.format(credences=listed)
@@ -192,13 +176,9 @@ def build_messages(
     prompts: str | Path | None = None,
     fewshot: bool = True,
 ) -> Messages:
-    """Return the full chat for one cluster agent and one task state.
+    """Return ``(("system", ...), few-shot turns..., ("user", state + instruction))``.
 
-    ``state_prompt`` is the rendered state without the closing instruction; ``panel`` and
-    ``credences`` are as in `credence_vector`; ``fewshot`` includes the examples (the paper does).
-
-    Returns:
-        ``(("system", ...), ("user", ...), ("assistant", ...), ..., ("user", state))``.
+    ``state_prompt`` lacks the closing instruction; ``panel``, ``credences``: `credence_vector`.
     """
     registry = registry or default_registry()
     if isinstance(cluster, str):

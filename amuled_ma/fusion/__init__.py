@@ -1,7 +1,4 @@
-"""The fusion arbiter: ``k`` moral clusters' beliefs ``(..., k, n)`` in, one ``(..., n)`` out.
-
-Pure numpy, batched over leading dimensions; docs/fusion.md holds the maths and the rules.
-"""
+"""Fusion (numpy): beliefs ``(..., k, n)`` in, one ``(..., n)`` out (docs/fusion.md)."""
 
 from __future__ import annotations
 

@@ -19,9 +19,7 @@ def _index_text(name: str, index: tuple[int, ...]) -> str:
 
 
 def check_rows(values: object, name: str = "beliefs", *, min_ndim: int = 2) -> np.ndarray:
-    """Return ``values`` (shape ``(..., n)``) as float64 rows rescaled to sum to 1.
-
-    The result may share memory with ``values``: do not modify it.
+    """Return ``values`` (shape ``(..., n)``) as float64 rows rescaled to sum to 1 (read-only).
 
     Raises:
         ValueError: ``ndim < min_ndim``, an empty row, or a row with NaN/inf, a negative
@@ -75,8 +73,7 @@ def check_weights(
 ) -> np.ndarray:
     """Return per-cluster ``weights`` broadcast to ``batch_shape`` as float64.
 
-    Raises:
-        ValueError: not broadcastable, NaN/inf, negative, or all zero for some leading index.
+    Raises ValueError: not broadcastable, NaN/inf, negative, or all zero for some leading index.
     """
     try:
         array = np.broadcast_to(np.asarray(weights, dtype=np.float64), batch_shape)

@@ -1,7 +1,6 @@
 """Rules for acting under moral uncertainty: ``mec``, ``nash-vote``, ``variance-vote``, ``borda``.
 
-Each member is a theory with credence ``c_i`` (its weight or prior, normalised) and
-choiceworthiness ``W_i(a) = b_i(a)``; docs/fusion.md gives the sources and derivations.
+A member is a theory of credence ``c_i`` (its weight or prior) and choiceworthiness ``b_i(a)``.
 """
 
 from __future__ import annotations
@@ -23,12 +22,9 @@ FLAT_SIGMA = 1e-9
 def credences(
     beliefs: np.ndarray, weights: np.ndarray | None, prior: np.ndarray | None
 ) -> np.ndarray:
-    """Each member's credence ``c_i = w_i / sum_j w_j`` ``(..., k)`` from ``weights`` or ``prior``.
+    """Each member's credence ``c_i = w_i / sum_j w_j`` ``(..., k)`` (uniform without either).
 
-    Uniform when neither is given.
-
-    Raises:
-        ValueError: both ``weights`` and ``prior`` are given.
+    Raises ValueError: both ``weights`` and ``prior`` are given.
     """
     if weights is not None and prior is not None:
         raise ValueError(
@@ -71,7 +67,6 @@ def _credence_rule(name: str) -> Callable[[CredenceRule], CredenceRule]:
 @_credence_rule("mec")
 def _mec_rule(beliefs: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Maximise expected choiceworthiness (MacAskill & Ord 2020): sum_i c_i b_i."""
-    # MEC: EC(a) = sum_i C(T_i) W_i(a), W_i = b_i (MacAskill & Ord 2020)
     fused = (c[..., :, None] * beliefs).sum(axis=-2)
     fused = fused / fused.sum(axis=-1, keepdims=True)
     return fused, c

@@ -1,7 +1,6 @@
-"""A per-state pure-Python Xiao (2019) fusion: the test oracle and benchmark baseline.
+"""A per-state pure-Python Xiao (2019) fusion (test oracle, benchmark baseline), no shared code.
 
-Mass functions are dicts of frozensets; it shares no code with `amuled_ma.fusion.xiao`,
-keeps its degenerate-input conventions and does not validate its input.
+Mass functions are dicts of frozensets; the input is not validated.
 """
 
 from __future__ import annotations
@@ -53,11 +52,7 @@ def dempster(m1: Mass, m2: Mass) -> tuple[dict[frozenset, float], float]:
 
 
 def xiao_fuse(masses: Sequence[Mass]) -> tuple[dict[frozenset, float], dict[str, Any]]:
-    """Fuse ``k`` mass functions; returns ``(fused, diagnostics)``.
-
-    ``diagnostics`` holds lists ``weights``, ``credibility``, ``entropy``, ``conflicts`` and
-    the ``wae`` dict.
-    """
+    """Fuse ``k`` mass functions: ``(fused, diagnostics)`` (lists of `FusionResult`'s fields)."""
     k = len(masses)
     # Step 1: credibility from the average BJS distance to the other sources.
     if k == 1:

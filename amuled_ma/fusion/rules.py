@@ -1,7 +1,4 @@
-"""Fusion rules by name: ``fuse(beliefs, rule)`` and the registry behind it.
-
-The rules, their tie handling and the rule-writing contract are in docs/fusion.md.
-"""
+"""Fusion rules by name: ``fuse(beliefs, rule)`` and the registry behind it (docs/fusion.md)."""
 
 from __future__ import annotations
 
@@ -50,13 +47,9 @@ def register_rule(
     replace: bool = False,
     takes_prior: bool = False,
 ) -> Callable[[RuleFunc], RuleFunc]:
-    """Register the decorated function as the fusion rule ``name`` (no ``:``).
+    """Register the decorated function as the fusion rule ``name`` (docs/fusion.md).
 
-    ``takes_weights`` / ``takes_prior``: it accepts ``weights`` / the keyword ``prior``;
-    ``takes_param``: it is selected as ``"name:<param>"``; ``replace``: it may replace a rule.
-
-    Raises:
-        ValueError: bad name, or the name is taken and ``replace`` is false.
+    Raises ValueError: bad name, or the name is taken and ``replace`` is false.
     """
     if not name or ":" in name or name != name.strip():
         raise ValueError(f"rule name {name!r} must be non-empty, without ':' or spaces around")
@@ -130,17 +123,6 @@ def fuse(
     prior: npt.ArrayLike | None = ...,
     return_diagnostics: Literal[True],
 ) -> FusionResult: ...
-
-
-@overload
-def fuse(
-    beliefs: npt.ArrayLike,
-    rule: str = ...,
-    *,
-    weights: npt.ArrayLike | None = ...,
-    prior: npt.ArrayLike | None = ...,
-    return_diagnostics: bool,
-) -> np.ndarray | FusionResult: ...
 
 
 def fuse(

@@ -1,9 +1,6 @@
 """rsl-rl's PPO with a fine-tune's KL anchor, plugged in by ``cfg["algorithm"]["class_name"]``.
 
-It overrides three public steps, each calling rsl-rl's own: `AnchoredPPO.act` also reads
-the frozen base policy, `AnchoredPPO.process_env_step` subtracts ``lambda_KL * anchor``
-from the reward, `AnchoredPPO.compute_returns` closes the authors' windows. Unanchored
-(base training) it is rsl-rl's PPO with CleanRL's Adam and critic initialisation.
+Unanchored (base training) it is rsl-rl's PPO with CleanRL's Adam and critic initialisation.
 """
 
 from __future__ import annotations
@@ -46,13 +43,9 @@ def adam(params: Iterable[torch.nn.Parameter], lr: float, eps: float) -> torch.o
 class AnchoredPPO(PPO):
     """PPO anchored to a frozen base policy by ``lambda_kl`` times a KL term in the reward.
 
-    ``grad_clip`` ``joint`` (CleanRL) clips actor and critic as one norm, ``per_network`` apart
-    (rsl-rl); ``reshuffle_each_epoch`` draws a new mini-batch partition every epoch (CleanRL);
-    ``bootstrap_time_outs`` False treats a truncation as a termination (CleanRL). ``adam_eps``
-    is CleanRL's ``1e-5`` by default; ``kwargs`` are rsl-rl's ``PPO`` arguments.
-
-    Raises:
-        ValueError: ``anchor`` or ``grad_clip`` is not one of its choices.
+    ``reshuffle_each_epoch`` draws a new mini-batch partition every epoch and
+    ``bootstrap_time_outs`` False treats a truncation as a termination (both CleanRL's);
+    ``kwargs`` are rsl-rl's ``PPO`` arguments.
     """
 
     def __init__(
@@ -69,10 +62,6 @@ class AnchoredPPO(PPO):
         bootstrap_time_outs: bool = True,
         **kwargs: Any,
     ) -> None:
-        if anchor not in ("per_sample", "window"):
-            raise ValueError(f"anchor: expected 'per_sample' or 'window', got {anchor!r}")
-        if grad_clip not in ("per_network", "joint"):
-            raise ValueError(f"grad_clip: expected 'per_network' or 'joint', got {grad_clip!r}")
         joint_norm = None
         if grad_clip == "joint":
             joint_norm = float(kwargs.get("max_grad_norm", 1.0))  # rsl-rl's default: 1.0
@@ -80,8 +69,7 @@ class AnchoredPPO(PPO):
         if reshuffle_each_epoch:
             storage = EpochShuffledStorage.like(storage)
         super().__init__(actor, critic, storage, **kwargs)
-        # CleanRL's initialisation of the critic (rsl-rl's actor gets it from the
-        # distribution's init_mlp_weights) and CleanRL's Adam.
+        # CleanRL's critic initialisation (the actor's: the distribution's init_mlp_weights)
         orthogonal_init(self.critic, last_std=1.0)
         self.optimizer = adam(
             chain(self.actor.parameters(), self.critic.parameters()),
@@ -99,6 +87,7 @@ class AnchoredPPO(PPO):
         self.base_actor: Any | None = None
         self.window: EpisodeWindowKL | None = None
         self.last_losses: dict[str, float] = {}
+        self.member_losses: list[dict[str, float]] = [{}]
         self._anchor: torch.Tensor | None = None
         self._stats = torch.zeros(3, dtype=torch.float64)  # feedback sum, anchor sum, count
 
@@ -178,9 +167,20 @@ class AnchoredPPO(PPO):
             self.window.start_iteration()
 
     def update(self) -> dict[str, float]:
-        """rsl-rl's update; the losses are also kept in ``last_losses``."""
+        """rsl-rl's update; its losses are also kept in ``last_losses`` and ``member_losses``."""
         self.last_losses = super().update()
+        self.member_losses = [self.last_losses]
         return self.last_losses
+
+    def failed_members(self) -> list[int]:
+        """``[0]`` when the last update made a weight not finite (a NaN or inf), else ``[]``."""
+        # a NaN or inf anywhere makes its parameter's sum not finite: one reduction each
+        sums = torch.stack([p.sum() for p in (*self.actor.parameters(), *self.critic.parameters())])
+        return [] if bool(torch.isfinite(sums).all()) else [0]
+
+    def member_rollout_stats(self) -> list[dict[str, float]]:
+        """`rollout_stats` as a list of one member's."""
+        return [self.rollout_stats()]
 
     def rollout_stats(self) -> dict[str, float]:
         """Mean ``feedback_reward`` and ``kl`` per step since the last call (``{}``: none)."""

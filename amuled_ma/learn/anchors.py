@@ -1,9 +1,7 @@
 """The KL anchor of fine-tuning, ``r_t = f(B)[a_t] - lambda_KL * anchor_t``, in two recipes.
 
-``"equation"`` (the paper's, default): the per-sample ``KL(pi || pi_base)`` estimator.
-``"authors"`` (``temetski/moral_agent``, ``finetune_moral.py:153-177``): a KL over time
-between log-softmaxes of the taken actions' log-probabilities since the window began (the
-episode and the iteration); docs/learning.md, "Two recipes".
+``"equation"``: the paper's per-sample estimator; ``"authors"``: ``finetune_moral.py:153-177``'s
+KL over the episode's window (docs/learning.md, "Two recipes").
 """
 
 from __future__ import annotations
@@ -29,11 +27,10 @@ def window_kl(logp: torch.Tensor, logp_base: torch.Tensor, mask: torch.Tensor) -
 
 
 class EpisodeWindowKL:
-    """The authors' anchor, step by step, for ``num_envs`` copies at once.
+    """The authors' anchor, step by step, for ``num_envs`` copies at once (a CPU tensor book).
 
-    Call `start_iteration` before each rollout, `step` once per env step (it returns that
-    step's anchor) and `end_episodes` with the step's done flags. ``capacity`` is the
-    rollout length: windows never outlive an iteration.
+    Call `start_iteration` before each rollout, `step` once per env step and `end_episodes`
+    with its done flags; ``capacity`` is the rollout length.
     """
 
     def __init__(self, num_envs: int, capacity: int) -> None:
@@ -55,12 +52,12 @@ class EpisodeWindowKL:
         """
         if int(self.length.max()) >= self.logp.shape[1]:
             raise RuntimeError("a KL window outgrew the rollout; call start_iteration()")
-        self.logp[self._rows, self.length] = logp.to(torch.float64)
-        self.logp_base[self._rows, self.length] = logp_base.to(torch.float64)
+        self.logp[self._rows, self.length] = logp.to("cpu", torch.float64)
+        self.logp_base[self._rows, self.length] = logp_base.to("cpu", torch.float64)
         self.length += 1
         mask = self._positions.unsqueeze(0) < self.length.unsqueeze(1)
-        return window_kl(self.logp, self.logp_base, mask).to(logp.dtype)
+        return window_kl(self.logp, self.logp_base, mask).to(logp.device, logp.dtype)
 
     def end_episodes(self, dones: torch.Tensor) -> None:
         """Empty the windows of the copies whose episode ended at this step."""
-        self.length[dones.reshape(-1).bool()] = 0
+        self.length[dones.reshape(-1).bool().cpu()] = 0

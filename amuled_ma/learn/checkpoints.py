@@ -1,8 +1,6 @@
-"""Read and write checkpoints without running code from them (docs/trust.md).
+"""Read checkpoints weights-only (never rsl-rl's ``OnPolicyRunner.load``) and write them atomically.
 
-Reads go through `read_checkpoint` (``torch.load(weights_only=True)``; rsl-rl's
-``OnPolicyRunner.load`` is never called, it loads with ``weights_only`` off). Writes go
-to a temporary file, ``fsync``, then a rename, so a failed write keeps the last checkpoint.
+docs/trust.md: a failed write keeps the last checkpoint.
 """
 
 from __future__ import annotations
@@ -76,8 +74,7 @@ def read_checkpoint(path: str | Path, *, need: Iterable[str] = ("actor_state_dic
 def checkpoint_infos(path: str | Path) -> dict[str, Any] | None:
     """Return a checkpoint's ``infos`` (our book-keeping), None when there is no file.
 
-    Raises:
-        CheckpointError: The file exists but cannot be read safely.
+    Raises CheckpointError: the file exists but cannot be read safely.
     """
     path = Path(path)
     if not path.is_file():
@@ -86,21 +83,13 @@ def checkpoint_infos(path: str | Path) -> dict[str, Any] | None:
     return infos if isinstance(infos, dict) else {}
 
 
-def write_checkpoint(path: str | Path, write: Callable[[str], Any]) -> Path:
-    """Write a checkpoint by ``write(temp)``; the old file stays until the new one is whole.
-
-    Raises:
-        CheckpointWriteError: The write failed; the message names the file, the cause and the fix.
-        UnsafePathError: ``path`` is a link or not a regular file; nothing was written.
-    """
-    return write_checkpoints([(Path(path), write)])[0]
-
-
 def write_checkpoints(writes: Sequence[tuple[Path, Callable[[str], Any]]]) -> list[Path]:
-    """Write ``(path, write)`` checkpoints as one set: old files stay until all new are whole.
+    """Write ``(path, write(temp))`` checkpoints as one set: old files stay until all are whole.
 
     Raises:
-        CheckpointWriteError: A write failed; every temporary file is removed, every old kept.
+        CheckpointWriteError: A write failed (the message names the file, the cause and the
+            fix); every temporary file is removed, every old kept.
+        UnsafePathError: A path is a link or not a regular file; nothing was written.
     """
     temps: list[tuple[str, Path]] = []
     path = Path()

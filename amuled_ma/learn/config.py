@@ -39,12 +39,8 @@ def rsl_rl_config(
 ) -> dict[str, Any]:
     """Return an rsl-rl 5.x ``train_cfg`` dict for a 2-layer categorical actor-critic.
 
-    ``learning_rate`` and ``num_learning_epochs`` override ``ppo``'s; ``anchor`` is
-    ``per_sample`` or ``window``; ``ppo_options`` are keys of `PPO_OPTION_DEFAULTS`, left
-    out of the dict when equal to the default.
-
-    Raises:
-        TypeError: An unknown key in ``ppo_options``.
+    ``ppo_options`` are keys of `PPO_OPTION_DEFAULTS` (left out when equal to the default).
+    Raises TypeError: an unknown key in ``ppo_options``.
     """
     unknown = sorted(set(ppo_options) - set(PPO_OPTION_DEFAULTS))
     if unknown:
@@ -93,12 +89,7 @@ def rsl_rl_config(
 
 
 def planned_iterations(run: BaseConfig | FinetuneConfig) -> int:
-    """Number of PPO iterations of a base run or a fine-tune (the one derivation).
-
-    A base run lasts ``[base] total_steps`` environment steps, rounded down to whole
-    iterations of ``num_envs x num_steps_per_env`` (at least one); a fine-tune lasts
-    ``[finetune] iterations``.
-    """
+    """PPO iterations of a fine-tune, or of a base run's ``total_steps`` (whole, at least one)."""
     if isinstance(run, FinetuneConfig):
         return int(run.iterations)
     return max(1, run.total_steps // (run.num_envs * run.num_steps_per_env))

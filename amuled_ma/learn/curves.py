@@ -19,11 +19,6 @@ def quiet(fn: Callable[[], _T]) -> _T:
         return fn()
 
 
-def mean_or_none(values: list[float]) -> float | None:
-    """The mean of ``values``; None for none."""
-    return float(np.mean(values)) if values else None
-
-
 def curve_row(
     it: int,
     batch: int,
@@ -33,11 +28,7 @@ def curve_row(
     losses: dict,
     extra: dict,
 ) -> dict[str, Any]:
-    """One ``curve.json`` row for iteration ``it`` (1-based) of ``batch`` env steps each.
-
-    ``episodes`` are the sums of the episodes that ended in it, ``losses`` rsl-rl's losses,
-    ``extra`` the feedback's figures of its rollout.
-    """
+    """One ``curve.json`` row for iteration ``it`` (1-based): its episodes, losses, ``extra``."""
     row: dict[str, Any] = {
         "iteration": it,
         "env_steps": it * batch,
@@ -49,7 +40,8 @@ def curve_row(
     keys = sorted({k for e in episodes for k in e if k != "env_id"})
     row["charts/episodes"] = len(episodes)
     for key in keys:
-        row[f"episode/{key}"] = mean_or_none([e[key] for e in episodes if key in e])
+        values = [e[key] for e in episodes if key in e]
+        row[f"episode/{key}"] = float(np.mean(values)) if values else None
     for key, value in extra.items():
         row[f"feedback/{key}"] = value
     return row

@@ -1,8 +1,4 @@
-"""A categorical action distribution for rsl-rl (which ships only continuous ones).
-
-rsl-rl stores actions as float rows of ``num_actions`` columns, so an action is a one-hot
-row here; the MLP's output is the logits.
-"""
+"""A categorical action distribution for rsl-rl: one-hot action rows, the MLP's output logits."""
 
 from __future__ import annotations
 
@@ -62,11 +58,6 @@ class CategoricalDistribution(Distribution):
     def probs(self) -> torch.Tensor:
         """Action probabilities, shape ``[..., output_dim]``."""
         return self._last_log_probs().exp()
-
-    @property
-    def logits(self) -> torch.Tensor:
-        """Normalised log-probabilities, shape ``[..., output_dim]``."""
-        return self._last_log_probs()
 
     @property
     def mean(self) -> torch.Tensor:

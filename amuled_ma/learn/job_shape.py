@@ -52,13 +52,10 @@ def job_shape(
 ) -> JobShape:
     """The shape of training ``variant`` by the ``[ppo]``, ``[base]`` and ``[finetune]`` sections.
 
-    ``iterations`` overrides the planned number (tests, benchmarks); ``where`` names the
-    scenario in messages.
+    ``iterations`` overrides the planned number; ``where`` names the scenario in messages.
 
     Raises:
-        ScenarioError: Mini-batches of fewer than 2 transitions with per-mini-batch
-            advantage normalisation (one sample normalises to NaN).
-
+        ScenarioError: Per-mini-batch advantage normalisation of 1-transition mini-batches.
     """
     ft = finetune
     run: BaseConfig | FinetuneConfig = ft if variant.finetuning else base

@@ -1,7 +1,4 @@
-"""Trained policies outside training: load an actor from a checkpoint, read its probabilities.
-
-Through rsl-rl's public model API only, so evaluation need not import the trainer.
-"""
+"""Trained policies outside training (rsl-rl's public API): load an actor, read its log-probs."""
 
 from __future__ import annotations
 
@@ -41,8 +38,7 @@ def build_model(ppo: PPOConfig, role: str, obs_dim: int, outputs: int) -> MLPMod
 def load_policy(checkpoint: Path, ppo: PPOConfig) -> MLPModel:
     """The actor of a job's checkpoint in eval mode, shaped by the ``[ppo]`` it was trained with.
 
-    Raises:
-        CheckpointError: The file is missing or unreadable, or its actor does not fit.
+    Raises CheckpointError: the file is missing or unreadable, or its actor does not fit.
     """
     state = read_checkpoint(checkpoint)
     infos = state.get("infos") or {}

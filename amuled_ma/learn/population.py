@@ -1,9 +1,7 @@
 """Training: every job trains here, P jobs of one shape together, each as it trains alone.
 
-A job alone is a population of one, on the lone job's own classes (``MLPModel``,
-``AnchoredPPO``, torch's global generator): the lone loop bit for bit. Each member starts
-and ends as its lone run would (checkpoint, curve, config, feedback, TensorBoard in its
-folder); docs/learning.md, "Population training".
+A job alone is a population of one on the lone rsl-rl classes; each member starts and ends
+as its lone run would (docs/learning.md, "Population training").
 """
 
 from __future__ import annotations
@@ -93,11 +91,8 @@ class PopulationMember:
 class PopulationTrainer:
     """Train ``P`` jobs of one `population_key` together, each as it trains alone.
 
-    ``device`` holds the networks and PPO's buffers; the task copies stay on the CPU.
-    ``progress`` shows one tqdm bar (else plain lines past 10 s).
-
-    Raises:
-        ValueError: No jobs, or jobs that cannot train together (another key).
+    ``device`` holds the networks and PPO's buffers (the task copies stay on the CPU);
+    ``progress`` shows one tqdm bar. Raises ValueError: no jobs, or another key.
     """
 
     def __init__(
@@ -128,8 +123,8 @@ class PopulationTrainer:
             starts.append(start)
             if len(starts) == 1:  # the template of a member's lone actor
                 self.template = copy.deepcopy(runner.alg.get_policy()).cpu()
-        self.total_iterations = starts[0].total_iterations
-        self.cfgs = [start.cfg for start in starts]
+        self.total_iterations = self.shape.total_iterations
+        self.cfgs = [spec.shape().cfg for spec in self.specs]
         self.cfg = population_config(self.cfgs) if self.stacked else copy.deepcopy(self.cfgs[0])
         if self.stacked:
             self.env = self._population_env(starts)
@@ -138,16 +133,18 @@ class PopulationTrainer:
                     self.env, copy.deepcopy(self.cfg), log_dir=None, device=device
                 )
             )
+            self._load_members(starts)
         else:  # the lone runner as built, its weights, state and random stream loaded
             self.env, self.runner = env, runner
         self.mdp, self.env_template = self.env.mdp, starts[0].env_state
-        self.alg: PopulationPPO | AnchoredPPO = self.runner.alg
-        if self.stacked:
-            self._load_members(starts)
-        self._anchor(starts)
+        self.alg: AnchoredPPO = self.runner.alg
+        if self.finetuning:  # every member's base actor, frozen
+            base = copy.deepcopy(self.alg.get_policy())
+            bases = [start.base_actor or {} for start in starts]
+            base.load_state_dict(stack_states(bases) if self.stacked else dict(bases[0]))
+            self.alg.anchor_to(base)
         self.curves = [list(start.curve) for start in starts]
         self.wall_offsets = [start.wall_s for start in starts]
-        # what a member's checkpoint repeats from its start (the tensors are loaded: dropped)
         self.sizes = [(start.obs_dim, start.num_actions) for start in starts]
         self.members = [PopulationMember(self, p) for p in range(self.size)]
         #: The state after the last whole iteration (`population_state`, cloned), what a
@@ -170,30 +167,17 @@ class PopulationTrainer:
         return env
 
     def _load_members(self, starts: list[MemberStart]) -> None:
-        """Load every member's weights, Adam state, random stream, iteration and base."""
-        alg = self.alg
-        alg.actor.load_state_dict(self._stack([start.actor for start in starts]))
-        alg.critic.load_state_dict(self._stack([start.critic for start in starts]))
+        """Load every member's weights, Adam state, random stream and iteration."""
+        alg = self.runner.alg
+        assert isinstance(alg, PopulationPPO)
+        alg.actor.load_state_dict(stack_states([start.actor for start in starts]))
+        alg.critic.load_state_dict(stack_states([start.critic for start in starts]))
         if starts[0].optimizer["state"]:
-            optimizers = [start.optimizer for start in starts]
-            alg.optimizer.load_state_dict(
-                stack_optimizer_states(optimizers) if self.stacked else optimizers[0]
-            )
-        self._set_streams([start.torch_rng for start in starts])
+            alg.optimizer.load_state_dict(stack_optimizer_states([s.optimizer for s in starts]))
+        alg.streams.set_states([start.torch_rng for start in starts])
         self.runner.current_learning_iteration = starts[0].iteration
 
-    def _anchor(self, starts: list[MemberStart]) -> None:
-        """A fine-tune's anchor: every member's base actor, frozen."""
-        if self.finetuning:
-            base = copy.deepcopy(self.alg.get_policy())
-            base.load_state_dict(self._stack([start.base_actor or {} for start in starts]))
-            self.alg.anchor_to(base)
-
     # ------------------------------------------------- stacked, or one member alone
-    def _stack(self, states: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
-        """The model state of the members' lone states (`stack_states`)."""
-        return stack_states(states) if self.stacked else dict(states[0])
-
     def _member(self, state: dict[str, torch.Tensor], member: int) -> dict[str, torch.Tensor]:
         """Member ``member``'s lone model state (`member_state`)."""
         if self.stacked:
@@ -202,31 +186,9 @@ class PopulationTrainer:
 
     def _streams(self) -> list[torch.Tensor]:
         """Each member's random state (a lone job draws from torch's global generator)."""
-        if self.stacked:
+        if isinstance(self.alg, PopulationPPO):
             return self.alg.streams.get_states()
         return [torch.get_rng_state()]
-
-    def _set_streams(self, states: list[torch.Tensor]) -> None:
-        if self.stacked:
-            self.alg.streams.set_states(states)
-        else:
-            torch.set_rng_state(states[0])
-
-    def _losses_and_stats(self) -> tuple[list[dict[str, float]], list[dict[str, float]]]:
-        """Each member's losses and feedback / anchor means of the last iteration."""
-        alg = self.alg
-        if isinstance(alg, PopulationPPO):
-            return alg.member_losses, alg.member_rollout_stats()
-        return [alg.last_losses], [alg.rollout_stats()]
-
-    def _failed_members(self) -> list[int]:
-        """Members whose weights the last update made not finite (their gradient)."""
-        alg = self.alg
-        if isinstance(alg, PopulationPPO):
-            return alg.failed_members()
-        # a NaN or inf anywhere makes its parameter's sum not finite: one reduction each
-        sums = torch.stack([p.sum() for p in (*alg.actor.parameters(), *alg.critic.parameters())])
-        return [] if bool(torch.isfinite(sums).all()) else [0]
 
     # ----------------------------------------------------------------- members
     def member_policy(self, member: int) -> torch.nn.Module:
@@ -241,7 +203,7 @@ class PopulationTrainer:
     ) -> dict[str, Any]:
         """Member ``member``'s checkpoint, in the format of a job alone.
 
-        ``shared`` is the population's state read once for several members (default: read now).
+        ``shared``: the population's `population_state`, read once for several members.
         """
         spec, (obs_dim, num_actions) = self.specs[member], self.sizes[member]
         state = shared or self.population_state()
@@ -277,8 +239,7 @@ class PopulationTrainer:
     def population_state(self, *, copy_now: bool = False) -> dict[str, Any]:
         """Everything a member's checkpoint holds, read once for all members.
 
-        ``copy_now`` clones every tensor (a `snapshot` training does not change); else the live
-        tensors, for a checkpoint written at once.
+        ``copy_now`` clones every tensor (a `snapshot`); else the live tensors.
         """
         state = {
             "actor": self.alg.actor.state_dict(),
@@ -295,31 +256,12 @@ class PopulationTrainer:
                 state[key] = copy.deepcopy(state[key])
         return state
 
-    def save_members(
-        self,
-        members: Sequence[int],
-        *,
-        completed: bool,
-        shared: dict[str, Any] | None = None,
-    ) -> list[Path]:
-        """Write the checkpoints of ``members``, the population's state read once."""
-        return self.save_states([(p, shared) for p in members], completed=completed)
-
     def save_states(
-        self, members: Sequence[tuple[int, dict[str, Any] | None]], *, completed: bool
+        self, members: Sequence[tuple[int, dict[str, Any]]], *, completed: bool
     ) -> list[Path]:
-        """Write ``(member, state)`` checkpoints as one set (a None state is read now, once).
-
-        A stop or a full disk while they are written leaves every member at one iteration.
-        """
-        if not members:
-            return []
-        now: dict[str, Any] | None = None
+        """Write ``(member, population_state)`` checkpoints as one set (all or none replaced)."""
         writes = []
         for p, state in members:
-            if state is None:
-                now = now or self.population_state()
-                state = now
             checkpoint = self.member_checkpoint(p, completed=completed, shared=state)
             writes.append((self.specs[p].out_dir / LAST, functools.partial(torch.save, checkpoint)))
         return write_checkpoints(writes)
@@ -332,8 +274,7 @@ class PopulationTrainer:
     def train(self) -> list[TrainOutcome]:
         """Run (or continue) every member to its configured iterations; each member's outcome.
 
-        On Ctrl-C, SIGTERM or a feedback that stays down, every member's checkpoint is written,
-        each resume command printed, and the exception re-raised.
+        On Ctrl-C, SIGTERM or a feedback that stays down, every checkpoint is written and re-raised.
         """
         writers: list[TensorBoardLog | None] = [None] * self.size
         for p, spec in enumerate(self.specs):
@@ -370,7 +311,7 @@ class PopulationTrainer:
                     for p, cfg in enumerate(self.cfgs)
                     if (it + 1) % cfg["save_interval"] == 0 and it + 1 < self.total_iterations
                 ]
-                self.save_members(due, completed=False, shared=self.snapshot)
+                self.save_states([(p, self.snapshot) for p in due], completed=False)
         except MemberFailed as failed:
             bar.close()
             raise self._member_failed(failed) from failed
@@ -391,7 +332,8 @@ class PopulationTrainer:
                     ):
                         writer.close()
         wall = time.perf_counter() - t0
-        paths = self.save_members(range(self.size), completed=True)
+        now = self.population_state()
+        paths = self.save_states([(p, now) for p in range(self.size)], completed=True)
         return [self._finish(p, path, batch, wall) for p, path in enumerate(paths)]
 
     def _record(
@@ -403,7 +345,7 @@ class PopulationTrainer:
         writers: list[TensorBoardLog | None],
     ) -> None:
         """Each member's curve row of iteration ``it`` (and its TensorBoard scalars)."""
-        losses, stats = self._losses_and_stats()
+        losses, stats = self.alg.member_losses, self.alg.member_rollout_stats()
         episodes = split_episodes(self.env.drain_episodes(), self.size, self.copies)
         for p in range(self.size):
             self.wall_offsets[p] = walls[p] + elapsed
@@ -440,7 +382,7 @@ class PopulationTrainer:
         """Raise `MemberFailed` for the first member whose feedback or gradient failed."""
         feedback = self.mdp.feedback
         failures = dict(feedback.failures) if isinstance(feedback, MemberFeedback) else {}
-        for member in self._failed_members():
+        for member in self.alg.failed_members():
             failures.setdefault(member, "its gradient was not a finite number (NaN or inf)")
         if failures:
             member = min(failures)
@@ -480,9 +422,8 @@ class PopulationTrainer:
             if isinstance(stop, KeyboardInterrupt)
             else "stopped"
         )
-        # the state after the last whole iteration: a stop inside one (its rollout or
-        # update half done, its random numbers drawn) resumes as if it never began
-        self.save_members(range(self.size), completed=False, shared=self.snapshot)
+        # the state after the last whole iteration: a stop inside one resumes as if it never began
+        self.save_states([(p, self.snapshot) for p in range(self.size)], completed=False)
         first = self.specs[0].out_dir / LAST
         written = (
             f"checkpoints of {self.size} jobs written (first: {first})"

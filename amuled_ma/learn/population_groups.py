@@ -1,12 +1,9 @@
-"""Which training jobs train together as one population, and how many fit in memory.
-
-Jobs of equal `population_key` may train together: they differ only in seed, feedback,
-KL weight and recipe, base policy, folders and checkpoint cadence.
-"""
+"""Which training jobs train together as one population (equal `population_key`), how many fit."""
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import itertools
 import json
 import math
@@ -111,26 +108,14 @@ def shared_config(cfg: dict[str, Any]) -> dict[str, Any]:
 def population_key(spec: MemberSpec) -> str:
     """What jobs of one population share: task without seed, shape, schedule, start, factory."""
     shape = spec.shape()
-    task = spec.scenario.task.model_dump(mode="json")
-    task.pop("seed", None)
     factory = spec.task_factory
-    return json.dumps(
-        {
-            "task": task,
-            "finetuning": shape.finetuning,
-            "num_envs": shape.num_envs,
-            "steps_per_env": shape.steps_per_env,
-            "iterations": shape.total_iterations,
-            "learning_rate": shape.learning_rate,
-            "anneal": shape.anneal,
-            "shaping_coef": shape.shaping_coef,
-            "task_weight": shape.task_weight,
-            "cfg": shared_config(shape.cfg),
-            "start": spec.start_iteration(),
-            "task_factory": None if factory is None else f"{factory.__module__}.{factory!r}",
-        },
-        sort_keys=True,
-    )
+    key = dataclasses.asdict(shape) | {
+        "task": spec.scenario.task.model_dump(mode="json", exclude={"seed"}),
+        "cfg": shared_config(shape.cfg),
+        "start": spec.start_iteration(),
+        "task_factory": None if factory is None else f"{factory.__module__}.{factory!r}",
+    }
+    return json.dumps(key, sort_keys=True)
 
 
 def member_memory_bytes(
@@ -184,15 +169,10 @@ def split_populations(
     min_count: int = 1,
     device: str = "cpu",
 ) -> list[list[int]]:
-    """Group jobs into populations of equal `population_key` within ``memory_budget`` bytes.
+    """Indices into ``specs`` grouped by `population_key` within ``memory_budget`` bytes.
 
     ``min_count`` cuts each group into at least that many populations (one per worker).
-
-    Returns:
-        Populations as lists of indices into ``specs``, in the order of their first job.
-
-    Raises:
-        ValueError: ``memory_budget`` or ``max_size`` is below 1.
+    Raises ValueError: ``memory_budget``, ``max_size`` or ``min_count`` is below 1.
     """
     budget = memory_budget_bytes() if memory_budget is None else int(memory_budget)
     if budget < 1 or (max_size is not None and max_size < 1) or min_count < 1:
@@ -220,8 +200,7 @@ def split_populations(
 def population_config(cfgs: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """rsl-rl's config of a population from its members' lone configs (KL weights as lists).
 
-    Raises:
-        ValueError: The members' configs differ in a setting they must share.
+    Raises ValueError: the members' configs differ in a setting they must share.
     """
     shared = shared_config(cfgs[0])
     for p, cfg in enumerate(cfgs):

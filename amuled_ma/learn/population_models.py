@@ -1,8 +1,7 @@
 """A population's actor and critic: P networks of one shape, stacked, as rsl-rl models.
 
-Each ``nn.Linear`` becomes a `StackedLinear` (weight ``[P, out, in]``) under the same name,
-so the state dict is the lone model's with a leading member axis. A batch is member-major:
-``P`` blocks of ``B`` rows, block ``p`` member ``p``'s, one ``torch.baddbmm`` per layer.
+Each ``nn.Linear`` becomes a `StackedLinear` (weight ``[P, out, in]``) under the same name; a
+batch is member-major: ``P`` blocks of ``B`` rows, block ``p`` member ``p``'s.
 """
 
 from __future__ import annotations
@@ -21,9 +20,8 @@ from amuled_ma.learn.distribution import CategoricalDistribution
 class MemberStreams:
     """One CPU random generator per member: the population's stand-in for torch's global one.
 
-    Member ``p`` draws a lone run's calls (``torch.rand`` samples, ``torch.randperm``
-    mini-batches), in the same order, from generator ``p`` set to the lone run's state, so it
-    draws the same numbers. The generators stay on the CPU on every device.
+    Member ``p`` makes a lone run's calls in the same order from generator ``p``, set to the
+    lone run's state, so it draws the same numbers.
     """
 
     def __init__(self, population: int) -> None:
@@ -43,16 +41,13 @@ class MemberStreams:
 
     def set_states(self, states: Sequence[torch.Tensor]) -> None:
         """Set each generator's state (``torch.get_rng_state()`` of each lone run)."""
-        if len(states) != self.population:
-            raise ValueError(f"{len(states)} generator states for {self.population} members")
         for generator, state in zip(self.generators, states, strict=True):
             generator.set_state(state)
 
     def reserve(self, each: int, calls: int, dtype: torch.dtype, device: torch.device) -> None:
         """Draw the next ``calls`` calls of `uniform` (``each`` per member) at once.
 
-        torch's CPU generator fills element by element, so the numbers equal ``calls`` draws one
-        by one. Nothing else may draw from the streams until they are used up.
+        torch's CPU generator fills element by element: the numbers of ``calls`` draws.
         """
         blocks = [torch.rand((calls, each, 1), dtype=dtype, generator=g) for g in self.generators]
         self.reserved = torch.stack(blocks, dim=1).reshape(calls, -1, 1).to(device)
@@ -83,8 +78,7 @@ class MemberStreams:
     def permutations(self, n: int, device: torch.device) -> torch.Tensor:
         """``[P, n]``: a random permutation of ``0..n-1`` from each member's stream.
 
-        Raises:
-            RuntimeError: Uniforms reserved ahead are not used up (they come first).
+        Raises RuntimeError: uniforms reserved ahead are not used up (they come first).
         """
         if self.reserved is not None:
             raise RuntimeError("a permutation drawn before the uniforms reserved ahead")
@@ -92,23 +86,15 @@ class MemberStreams:
 
 
 class PopulationCategoricalDistribution(CategoricalDistribution):
-    """The categorical head (one-hot actions), sampling each member from its own stream.
-
-    Set ``streams`` before the first sample (``PopulationPPO`` does).
-    """
+    """The categorical head, sampling each member from its ``streams`` (set by `PopulationPPO`)."""
 
     def __init__(self, output_dim: int, init_last_layer_std: float = 0.01) -> None:
         super().__init__(output_dim, init_last_layer_std)
         self.streams: MemberStreams | None = None
 
     def sample(self) -> torch.Tensor:
-        """One action per row, one-hot; row block ``p`` drawn from member ``p``'s stream.
-
-        Raises:
-            RuntimeError: No ``streams`` were set.
-        """
-        if self.streams is None:
-            raise RuntimeError("PopulationCategoricalDistribution: set .streams before sampling")
+        """One action per row, one-hot; row block ``p`` drawn from member ``p``'s stream."""
+        assert self.streams is not None
         cdf = self.probs.cumsum(-1)
         return self._action_at(cdf, self.streams.uniform(cdf.shape[0], cdf.dtype, cdf.device))
 
@@ -168,11 +154,7 @@ class StackedMLP(nn.Sequential):
 
 
 def stack_layers(mlp: nn.Sequential, population: int) -> StackedMLP:
-    """The same sequence with each ``nn.Linear`` replaced by ``population`` stacked copies.
-
-    Raises:
-        ValueError: A module other than ``nn.Linear`` has parameters.
-    """
+    """The same sequence with each ``nn.Linear`` replaced by ``population`` stacked copies."""
     layers = []
     # every child, the activation rsl-rl's MLP shares between its layers included, by index
     children = [
@@ -183,21 +165,12 @@ def stack_layers(mlp: nn.Sequential, population: int) -> StackedMLP:
     for _, module in sorted(children, key=lambda item: item[0]):
         if isinstance(module, nn.Linear):
             module = StackedLinear.copies_of(module, population)
-        elif any(True for _ in module.parameters()):
-            raise ValueError(f"cannot stack {type(module).__name__} (it has parameters)")
         layers.append(module)
     return StackedMLP(population, *layers)
 
 
 class PopulationMLPModel(MLPModel):
-    """rsl-rl's MLP model for ``population`` members at once (plugged in by ``class_name``).
-
-    Every batch has ``P x B`` member-major rows; ``kwargs`` are rsl-rl's ``MLPModel``'s.
-
-    Raises:
-        ValueError: ``obs_normalization`` is on (its statistics would be shared by the
-            members), or ``population`` is below 1.
-    """
+    """rsl-rl's MLP model for ``population`` members at once (``P x B`` member-major rows)."""
 
     def __init__(
         self,
@@ -208,14 +181,8 @@ class PopulationMLPModel(MLPModel):
         population: int = 1,
         **kwargs: Any,
     ) -> None:
-        if kwargs.get("obs_normalization"):
-            raise ValueError("a population model has no observation normalisation (shared stats)")
-        if int(population) < 1:
-            raise ValueError(f"population: expected at least 1 member, got {population}")
         super().__init__(obs, obs_groups, obs_set, output_dim, **kwargs)
         self.population = int(population)
-        # every member starts as the lone model rsl-rl just built; the trainer loads each
-        # member's own weights
         self.mlp: StackedMLP = stack_layers(self.mlp, self.population)
         #: The output of the last forward pass (detached): the critic's values of the
         #: mini-batch being updated, read for each member's value loss.
@@ -229,16 +196,8 @@ class PopulationMLPModel(MLPModel):
 
 
 def stack_states(states: Sequence[Mapping[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
-    """The state dict ``{key: [P, ...]}`` of a population model from its members' lone ones.
-
-    Raises:
-        ValueError: The members' keys or shapes differ.
-    """
-    keys = list(states[0])
-    for p, state in enumerate(states):
-        if list(state) != keys:
-            raise ValueError(f"member {p}'s model has other parameters than member 0's")
-    return {key: torch.stack([state[key] for state in states]) for key in keys}
+    """The state dict ``{key: [P, ...]}`` of a population model from its members' lone ones."""
+    return {key: torch.stack([state[key] for state in states]) for key in states[0]}
 
 
 def member_state(state: Mapping[str, torch.Tensor], member: int) -> dict[str, torch.Tensor]:

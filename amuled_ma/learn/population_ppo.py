@@ -1,11 +1,8 @@
 """rsl-rl's PPO for a population: P members in one update, each updated as it would be alone.
 
-rsl-rl's rollout, returns and update run unchanged; each of its steps that would mix the
-members is made per member at a public extension point: mini-batch permutations
-(`PopulationStorage`), advantage normalisation, gradient clipping and the ``P`` loss scale
-(an optimiser step pre-hook), and random numbers (`MemberStreams`). Adam is elementwise,
-so one Adam over the stacked parameters is each member's Adam while they share the
-learning-rate schedule. docs/learning.md, "Population training".
+Each step of rsl-rl's that would mix the members is made per member at a public extension
+point (docs/learning.md, "Population training"); Adam is elementwise, so one Adam over the
+stacked parameters is each member's Adam.
 """
 
 from __future__ import annotations
@@ -23,7 +20,6 @@ from amuled_ma.learn.anchors import per_sample_kl
 from amuled_ma.learn.population_models import MemberStreams
 
 if TYPE_CHECKING:
-    from amuled_ma.learn.anchors import EpisodeWindowKL
     from amuled_ma.learn.population_models import PopulationMLPModel
 
 #: Loss keys rsl-rl's update returns, in the order kept per member.
@@ -31,10 +27,9 @@ LOSS_KEYS = ("value", "surrogate", "entropy")
 
 
 class PopulationStorage(RolloutStorage):
-    """rsl-rl's rollout storage whose mini-batches and advantages are per member.
+    """rsl-rl's rollout storage (``like``, of ``P x E`` copies) with per-member mini-batches.
 
-    ``like`` is the storage rsl-rl built (``like.num_envs`` is ``P x E``); ``per_mini_batch``
-    normalises advantages per member and mini-batch (else per member over its rollout).
+    ``per_mini_batch`` normalises advantages per member and mini-batch (else per rollout).
     """
 
     def __init__(
@@ -54,8 +49,6 @@ class PopulationStorage(RolloutStorage):
             like.actions_shape,
             like.device,
         )
-        if self.num_envs % population:
-            raise ValueError(f"{self.num_envs} copies do not split into {population} members")
         self.population = int(population)
         self.copies = self.num_envs // self.population
         self.streams = streams
@@ -77,8 +70,6 @@ class PopulationStorage(RolloutStorage):
         self, num_mini_batches: int, num_epochs: int = 8
     ) -> Generator[RolloutStorage.Batch, None, None]:
         """Yield each epoch's mini-batches: every member's ``k``-th, member-major."""
-        if self.training_type != "rl":
-            raise ValueError("This function is only available for reinforcement learning.")
         size = self.copies * self.num_transitions_per_env // num_mini_batches
         used = num_mini_batches * size
         observations = self.observations.flatten(0, 1)
@@ -125,38 +116,10 @@ def _normalised_rows(x: torch.Tensor) -> torch.Tensor:
     return (x - x.mean(dim=1, keepdim=True)) / (x.std(dim=1, keepdim=True) + 1e-8)
 
 
-def _per_member(values: Any, population: int, name: str) -> list[Any]:
-    """A setting given once (all members) or once per member, as a list of ``population``."""
-    if isinstance(values, list | tuple):
-        if len(values) != population:
-            raise ValueError(f"{name}: {len(values)} values for {population} members")
-        return list(values)
-    return [values] * population
-
-
-class _CpuWindow:
-    """The authors' window KL (a CPU tensor book) fed from another device's tensors."""
-
-    def __init__(self, window: EpisodeWindowKL, device: torch.device) -> None:
-        self.window = window
-        self.device = device
-
-    def start_iteration(self) -> None:
-        self.window.start_iteration()
-
-    def step(self, logp: torch.Tensor, logp_base: torch.Tensor) -> torch.Tensor:
-        return self.window.step(logp.cpu(), logp_base.cpu()).to(self.device)
-
-    def end_episodes(self, dones: torch.Tensor) -> None:
-        self.window.end_episodes(dones.cpu())
-
-
 class PopulationPPO(AnchoredPPO):
     """rsl-rl's PPO (anchored) over a population, each member updated as it is alone.
 
-    ``lambda_kl``, ``anchor`` and ``max_grad_norm`` are one value for all members or a list
-    of one per member; ``storage`` is replaced by a `PopulationStorage` of the same shape;
-    ``kwargs`` are `AnchoredPPO`'s and rsl-rl's PPO arguments.
+    ``lambda_kl`` and ``anchor`` hold one value per member; ``kwargs`` are `AnchoredPPO`'s.
     """
 
     def __init__(
@@ -166,8 +129,8 @@ class PopulationPPO(AnchoredPPO):
         storage: RolloutStorage,
         *,
         population: int,
-        lambda_kl: float | Sequence[float] = 0.0,
-        anchor: str | Sequence[str] = "per_sample",
+        lambda_kl: Sequence[float],
+        anchor: Sequence[str],
         max_grad_norm: float = 1.0,
         grad_clip: str = "per_network",
         normalize_advantage_per_mini_batch: bool = False,
@@ -175,19 +138,12 @@ class PopulationPPO(AnchoredPPO):
         **kwargs: Any,
     ) -> None:
         population = int(population)
-        lambdas = [float(v) for v in _per_member(lambda_kl, population, "lambda_kl")]
-        anchors = _per_member(anchor, population, "anchor")
-        for kind in anchors:
-            if kind not in ("per_sample", "window"):
-                raise ValueError(f"anchor: expected 'per_sample' or 'window', got {kind!r}")
-        if grad_clip not in ("per_network", "joint"):
-            raise ValueError(f"grad_clip: expected 'per_network' or 'joint', got {grad_clip!r}")
         super().__init__(
             actor,
             critic,
             storage,
             lambda_kl=0.0,
-            anchor="window" if "window" in anchors else "per_sample",
+            anchor="window" if "window" in anchor else "per_sample",
             # rsl-rl's clips and normalisation span all members: off (a factor of exactly
             # 1, no normalisation); the hook and the storage do them per member
             max_grad_norm=math.inf,
@@ -208,9 +164,10 @@ class PopulationPPO(AnchoredPPO):
             reshuffle_each_epoch=reshuffle_each_epoch,
         )
         device = torch.device(self.device)
-        self.lambda_kl = torch.tensor(lambdas, device=device).repeat_interleave(self.copies)
+        lambdas = torch.tensor([float(v) for v in lambda_kl], device=device)
+        self.lambda_kl = lambdas.repeat_interleave(self.copies)
         self.window_rows = torch.tensor(
-            [kind == "window" for kind in anchors], device=device
+            [kind == "window" for kind in anchor], device=device
         ).repeat_interleave(self.copies)
         self.step_anchor: torch.Tensor | None = None
         #: ``[2, P]`` sums of each member's feedback and anchor, one per step of the rollout
@@ -234,13 +191,6 @@ class PopulationPPO(AnchoredPPO):
                 torch.device(self.device),
             )
         return super().act(obs)
-
-    # ----------------------------------------------------------------- anchoring
-    def anchor_to(self, base_actor: torch.nn.Module) -> None:
-        """Anchor each member to its base policy (a population model of the bases)."""
-        super().anchor_to(base_actor)
-        if self.window is not None and torch.device(self.device).type != "cpu":
-            self.window = _CpuWindow(self.window, torch.device(self.device))  # type: ignore[assignment]
 
     def anchor_of(self, logp: torch.Tensor, logp_base: torch.Tensor) -> torch.Tensor:
         """Each copy's anchor by its member's recipe (window KL or per-sample KL)."""
@@ -298,10 +248,9 @@ class PopulationPPO(AnchoredPPO):
         return losses
 
     def keep_members_finite(self, grad: torch.Tensor) -> torch.Tensor:
-        """A parameter's gradient hook: a member's non-finite gradient rows become zeros.
+        """A gradient hook: a member's non-finite rows become zeros, the member ``nonfinite``.
 
-        rsl-rl's one norm over all members would spread one member's NaN to all; the member is
-        marked in ``nonfinite`` (the trainer stops it after the update).
+        rsl-rl's one norm over all members would spread one member's NaN to all.
         """
         if torch.isfinite(grad.sum()):  # the usual case, in one reduction (no copy)
             return grad
@@ -319,8 +268,7 @@ class PopulationPPO(AnchoredPPO):
     ) -> None:
         """The optimiser's step pre-hook: each member's gradient times ``P``, clipped; its losses.
 
-        rsl-rl's gradient is of the mean loss over ``P x B`` rows; times ``P`` it is each member's
-        own; each member is clipped by its own norm, as a lone run's ``clip_grad_norm_``.
+        rsl-rl's gradient is of the mean loss over ``P x B`` rows: times ``P``, each member's own.
         """
         with torch.no_grad():
             actor = [p.grad for p in self.actor.parameters() if p.grad is not None]

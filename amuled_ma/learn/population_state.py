@@ -1,8 +1,7 @@
-"""A population's training state, to and from its members' lone states.
+"""A population's training state, to and from its members' lone states (a lone job's format).
 
-A member's checkpoint is a lone job's, so evaluation, the viewer, the report and a lone
-``--resume`` read it unchanged. Per-copy tensors are concatenated member after member;
-tables shared by all copies are kept once; Adam's step counter is shared.
+Per-copy tensors are concatenated member after member; tables shared by all copies are kept
+once; Adam's step counter is shared.
 """
 
 from __future__ import annotations
@@ -35,11 +34,9 @@ from amuled_ma.tasks import make_task
 class MemberStart:
     """Where a member starts: its lone job's state once built (`lone_start`).
 
-    ``torch_rng`` is torch's global random state after construction (its stream);
-    ``env_state`` None: the task cannot save it; ``wall_s`` in seconds.
+    ``torch_rng``: torch's global random state after construction; ``env_state`` None: unsaved.
     """
 
-    cfg: dict[str, Any]
     actor: dict[str, torch.Tensor]
     critic: dict[str, torch.Tensor]
     optimizer: dict[str, Any]
@@ -49,26 +46,18 @@ class MemberStart:
     env_state: dict[str, Any] | None
     curve: list[dict]
     wall_s: float
-    total_iterations: int
     obs_dim: int
     num_actions: int
 
 
 def lone_start(spec: MemberSpec) -> tuple[MemberStart, OnPolicyRunner, DeliberationVecEnv]:
-    """Where the member starts: the state its job has when it is built alone.
+    """The member's start, lone runner (not yet anchored) and env, as its job builds them alone.
 
-    The job's own runner is built after seeding torch and numpy; then a resumed job loads its
-    ``model_last.pt`` and a new fine-tune its base (the actor, and the critic unless
-    ``[finetune].reinit_critic``).
-
-    Returns:
-        The start, and the member's lone runner (at its start iteration, not yet anchored)
-        and env: a job alone trains on them.
+    Seeded, then a resumed job loads its ``model_last.pt`` and a new fine-tune its base.
 
     Raises:
         ValueError: A fine-tune without feedback.
-        CheckpointError: The base checkpoint is missing, or a checkpoint does not fit the
-            scenario's networks or task copies.
+        CheckpointError: The base checkpoint is missing, or a checkpoint does not fit.
     """
     torch.set_num_threads(1)
     scenario, shape = spec.scenario, spec.shape()
@@ -117,7 +106,6 @@ def lone_start(spec: MemberSpec) -> tuple[MemberStart, OnPolicyRunner, Deliberat
     runner.current_learning_iteration = iteration
     saved = alg.save()
     start = MemberStart(
-        cfg=shape.cfg,
         actor=saved["actor_state_dict"],
         critic=saved["critic_state_dict"],
         optimizer=saved["optimizer_state_dict"],
@@ -127,7 +115,6 @@ def lone_start(spec: MemberSpec) -> tuple[MemberStart, OnPolicyRunner, Deliberat
         env_state=env.state_dict(),
         curve=curve,
         wall_s=wall_s,
-        total_iterations=shape.total_iterations,
         obs_dim=int(env.obs.shape[-1]),
         num_actions=int(env.num_actions),
     )
@@ -162,14 +149,10 @@ def _load(alg: AnchoredPPO, path: Path, load_cfg: dict | None, what: str) -> dic
 def stack_optimizer_states(states: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """One optimiser's state dict over stacked parameters from the members' (member 0's groups).
 
-    Raises:
-        ValueError: The members' states differ in parameters or in step count.
+    Raises ValueError: the members are at different Adam steps.
     """
     first = states[0]
     per_param = first["state"]
-    for p, state in enumerate(states):
-        if set(state["state"]) != set(per_param):
-            raise ValueError(f"member {p}'s optimiser state has other parameters than member 0's")
     stacked: dict[Any, dict[str, Any]] = {}
     for index, entry in per_param.items():
         stacked[index] = {}

@@ -1,9 +1,4 @@
-"""Two CleanRL habits of the PPO update (``finetune_moral.py``), as options of ``AnchoredPPO``.
-
-Joint gradient clipping over actor and critic (`clip_jointly`, where rsl-rl clips them
-apart) and a new mini-batch partition every epoch (`EpochShuffledStorage`, where rsl-rl
-walks one permutation ``num_epochs`` times); both through public extension points.
-"""
+"""Two CleanRL habits of the PPO update (``finetune_moral.py``) as options of ``AnchoredPPO``."""
 
 from __future__ import annotations
 
@@ -40,25 +35,17 @@ class EpochShuffledStorage(RolloutStorage):
             yield from super().mini_batch_generator(num_mini_batches, 1)
 
 
-def all_parameters(optimizer: torch.optim.Optimizer) -> list[torch.Tensor]:
-    """Every parameter the optimiser updates, in its groups' order."""
-    return [p for group in optimizer.param_groups for p in group["params"]]
-
-
 def clip_jointly(optimizer: torch.optim.Optimizer, max_norm: float) -> RemovableHandle:
-    """Clip all of ``optimizer``'s gradients as one vector before each step, as CleanRL does.
+    """Clip all of ``optimizer``'s gradients as one vector before each step; the hook's handle.
 
-    Returns the hook's handle (``handle.remove()`` undoes it).
-
-    Raises:
-        ValueError: ``max_norm`` is not a positive finite number.
+    Raises ValueError: ``max_norm`` is not a positive finite number.
     """
     max_norm = float(max_norm)
     if not 0 < max_norm < float("inf"):
         raise ValueError(f"max_norm: expected a positive finite number, got {max_norm!r}")
 
     def hook(opt: torch.optim.Optimizer, args: tuple[Any, ...], kwargs: dict[str, Any]) -> None:
-        params = [p for p in all_parameters(opt) if p.grad is not None]
+        params = [p for g in opt.param_groups for p in g["params"] if p.grad is not None]
         if params:
             torch.nn.utils.clip_grad_norm_(params, max_norm)
 

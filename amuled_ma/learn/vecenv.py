@@ -15,13 +15,10 @@ from amuled_ma.learn.config import OBS_GROUP
 def episode_table(
     info: dict[str, Any], done_ids: torch.Tensor, num_envs: int, fallback: dict[str, torch.Tensor]
 ) -> tuple[list[str], torch.Tensor]:
-    """The totals of the episodes that ended in one task step, as one table.
+    """The column names and float64 table ``[done, keys + copy index]`` of the ended episodes.
 
-    Columns come from ``info["episode"]`` (every copy's accumulators), else from ``fallback``.
-
-    Returns:
-        The column names and a float64 table ``[len(done_ids), len(keys) + 1]`` whose last
-        column is the copy index (float64 holds every float32, int < 2**53 and bool exactly).
+    Columns come from ``info["episode"]`` (every copy's accumulators), else from ``fallback``
+    (float64 holds every float32, int < 2**53 and bool exactly).
     """
     keys: list[str] = []
     columns: list[torch.Tensor] = []
@@ -85,11 +82,7 @@ class DeliberationVecEnv(VecEnv):
         return {"task": self.task.state_dict(), "obs": self.mdp.obs.clone(), **sums}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore a `state_dict` of an env built with the same settings.
-
-        Raises:
-            ValueError: It does not fit this env (another task or number of copies).
-        """
+        """Restore a `state_dict`; ValueError: another task or number of copies."""
         self.task.load_state_dict(state["task"])
         for name, mine in {"obs": self.mdp.obs, **self._sums()}.items():
             saved = state.get(name)
@@ -108,22 +101,12 @@ class DeliberationVecEnv(VecEnv):
             value.zero_()
         return self._wrap(obs)
 
-    @staticmethod
-    def to_indices(actions: torch.Tensor) -> torch.Tensor:
-        """Convert one-hot (or logit-like) rows to action indices; pass indices through."""
-        if actions.dim() == 2:
-            return actions.argmax(dim=-1)
-        return actions.long()
-
     def step(self, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
-        """Step every copy with the given actions (one-hot rows or indices).
+        """Step every copy (one-hot rows or indices): obs, rewards ``[N]``, dones ``[N]``, extras.
 
-        Returns:
-            Observations, the actor's rewards ``[N]``, dones ``[N]`` and extras with
-            ``time_outs``, ``log``, the task's ``info``, the taken ``actions`` and, with
-            feedback, ``feedback`` (the fused belief of each taken action).
+        extras: ``time_outs``, ``log``, the task's ``info``, ``actions`` (and ``feedback``).
         """
-        index = self.to_indices(actions)
+        index = actions.argmax(dim=-1) if actions.dim() == 2 else actions.long()
         if index.device != self.device:
             index = index.to(self.device)
         out = self.mdp.step(index)

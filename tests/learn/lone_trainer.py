@@ -60,7 +60,7 @@ from amuled_ma.learn.checkpoints import (
     TRAINER_KEYS,
     CheckpointWriteError,
     read_checkpoint,
-    write_checkpoint,
+    write_checkpoints,
 )
 from amuled_ma.learn.curves import curve_row, quiet
 from amuled_ma.learn.population import TrainOutcome
@@ -229,7 +229,7 @@ class Trainer:
             "obs_dim": int(self.env.obs.shape[-1]),
         }
         # a temp file in the same folder, fsync, atomic rename: a full disk keeps the last one
-        return write_checkpoint(path, lambda tmp: self.runner.save(tmp, infos=infos))
+        return write_checkpoints([(path, lambda tmp: self.runner.save(tmp, infos=infos))])[0]
 
     # ----------------------------------------------------------------- training
     def _set_lr(self, it: int) -> None:

@@ -19,7 +19,7 @@ from amuled_ma.learn.checkpoints import (
     CheckpointWriteError,
     checkpoint_infos,
     read_checkpoint,
-    write_checkpoint,
+    write_checkpoints,
 )
 
 
@@ -48,10 +48,10 @@ def leftovers(folder: Path) -> list[Path]:
 
 def test_write_checkpoint_on_a_full_disk_keeps_the_old_file(small_disk: Path) -> None:
     path = small_disk / "model_last.pt"
-    write_checkpoint(path, lambda tmp: Path(tmp).write_bytes(b"old checkpoint"))
+    write_checkpoints([(path, lambda tmp: Path(tmp).write_bytes(b"old checkpoint"))])
     filler = fill(small_disk)
     with pytest.raises(CheckpointWriteError) as caught:
-        write_checkpoint(path, lambda tmp: Path(tmp).write_bytes(b"x" * (1 << 20)))
+        write_checkpoints([(path, lambda tmp: Path(tmp).write_bytes(b"x" * (1 << 20)))])
     line = str(caught.value)
     assert "\n" not in line
     assert str(path) in line and "No space left on device" in line
