@@ -13,22 +13,17 @@ from typing import Any
 from amuled_ma.errors import CheckpointError
 from amuled_ma.files.limits import check_size
 
-#: Largest PyTorch file loaded [bytes, 1 GiB]. ``torch.load`` reads a file whole into
-#: memory; our checkpoints hold the networks, their optimiser state and a few counters
-#: (those of the shipped scenarios are under 1 MB, and a policy of 50 million float32 weights
-#: with Adam's two moments is 600 MB), so a larger file is not one we wrote.
+#: Largest PyTorch file loaded whole [bytes, 1 GiB]: the shipped scenarios' are under 1 MB, and
+#: 50 million float32 weights with Adam's two moments make 600 MB.
 MAX_TORCH_FILE_BYTES = 2**30
 
 
 def load_weights_only(path: str | Path, what: str = "checkpoint") -> Any:
-    """``torch.load(path, map_location="cpu", weights_only=True)``, with a clear error.
-
-    ``what`` names the file in the message (``"checkpoint"``, ``"policy file"``).
+    """``torch.load(path, map_location="cpu", weights_only=True)``; ``what`` names the file.
 
     Raises:
-        CheckpointError: The file is missing, larger than :data:`MAX_TORCH_FILE_BYTES`
-            (refused from its size, before it is read), needs a global to load (named;
-            refused, so nothing from it ran), or is not a readable PyTorch file.
+        CheckpointError: Missing, over :data:`MAX_TORCH_FILE_BYTES` (unread), needing a global
+            (named; nothing ran), or not a readable PyTorch file.
     """
     import torch
 
