@@ -1,7 +1,6 @@
 """The numbers of a pairs study: win rates, Bradley-Terry, acceptability, reliability, agreement.
 
-Libraries do the statistics (``choix``, ``krippendorff``); ratings are resampled by
-participant, since one participant's ratings are not independent of each other.
+Ratings are resampled by participant: one participant's ratings are not independent.
 """
 
 from __future__ import annotations
@@ -34,9 +33,9 @@ def wilson(wins: int, n: int) -> tuple[float, float]:
     return float(interval.low), float(interval.high)
 
 
-def attentive(study: Study, answers: Sequence[Answer]) -> set[str]:
-    """Participants who passed every attention check they answered."""
-    failed = {a.participant for a in answers if a.correct == 0}
+def attentive(answers: Sequence[Answer], *, keep_inattentive: bool = False) -> set[str]:
+    """Participants who passed every attention check they answered (or all who answered)."""
+    failed = set() if keep_inattentive else {a.participant for a in answers if a.correct == 0}
     return {a.participant for a in answers} - failed
 
 
@@ -167,13 +166,8 @@ def nominal_alpha(values: dict[tuple[str, str], float]) -> float:
 
 
 def choice_values(pairs: Sequence[tuple[Answer, Item]]) -> dict[tuple[str, str], float]:
-    """``{(participant, item): 0 for A, 1 for B}``: the data of `reliability`."""
+    """``{(participant, item): 0 for A, 1 for B}``: the data of the choices' alpha."""
     return {(a.participant, i.id): 0.0 if a.choice == "A" else 1.0 for a, i in pairs}
-
-
-def reliability(pairs: Sequence[tuple[Answer, Item]]) -> float:
-    """Krippendorff's alpha (nominal) of the participants' choices (A or B) over the pairs."""
-    return nominal_alpha(choice_values(pairs))
 
 
 @dataclass(frozen=True)
@@ -253,8 +247,7 @@ def _prefers(belief: Sequence[float], item: Item) -> str | None:
 def agreement(study: Study, majority: dict[str, tuple[str, int, int]]) -> dict[str, list[int]]:
     """Agreement with the majority, ``{who: [agree, counted]}`` (ties, third actions: neither).
 
-    A panel member (or the fused belief) prefers the option whose action it believes more; a
-    policy agrees when its action is the majority option's.
+    A member (or the fused belief) prefers the option whose action it believes more.
     """
     out: dict[str, list[int]] = {}
     for item_id, (top, _, _) in majority.items():
@@ -303,8 +296,7 @@ FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
 def safe_cell(value: object) -> object:
     r"""A CSV cell a spreadsheet shows as text, never runs (OWASP's CSV-injection rule).
 
-    Text starting with one of `FORMULA_STARTS` gets a leading ``'``; every control character
-    is written as ``\xNN``. Numbers pass; None is an empty cell.
+    `FORMULA_STARTS` get a leading ``'``; control characters are written ``\xNN``; None is "".
     """
     if value is None:
         return ""
