@@ -30,20 +30,15 @@ def load_weights_only(path: str | Path, what: str = "checkpoint") -> Any:
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{what} not found: {path}")
-    try:
-        check_size(
-            path,
-            MAX_TORCH_FILE_BYTES,
-            "PyTorch file",
-            error=CheckpointError,
-            head=f"cannot load {what} {path}: it",
-            note="those of the shipped scenarios are under 1 MB",
-            fix="it is not a file amuled or the authors' CleanRL wrote",
-        )
-    except CheckpointError:  # an OSError too (FileNotFoundError): the refusal, as it is
-        raise
-    except OSError as error:
-        raise CheckpointError(f"cannot load {what} {path}: {error.strerror or error}") from error
+    check_size(
+        path,
+        MAX_TORCH_FILE_BYTES,
+        "PyTorch file",
+        error=CheckpointError,
+        head=f"cannot load {what} {path}: it",
+        note="those of the shipped scenarios are under 1 MB",
+        fix="it is not a file amuled or the authors' CleanRL wrote",
+    )
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises many types for a bad or unsafe file

@@ -10,7 +10,7 @@ import io
 import math
 import unicodedata
 from collections import Counter, defaultdict
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -306,42 +306,36 @@ def safe_cell(value: object) -> object:
     return "".join(f"\\x{ord(c):02x}" if unicodedata.category(c) == "Cc" else c for c in text)
 
 
-def _csv_writer(buffer: io.StringIO) -> Callable[[Sequence[object]], None]:
-    """A CSV row writer that puts every cell through `safe_cell`."""
-    writer = csv.writer(buffer, lineterminator="\n")
-    return lambda row: writer.writerow([safe_cell(cell) for cell in row])
-
-
 def answers_csv(folder: Path) -> str:
     """Every answer as CSV rows via `safe_cell` (one per answer, or per expert, state, action)."""
     study, answers = load(folder)
-    buffer = io.StringIO()
-    write = _csv_writer(buffer)
+    rows: list[Sequence[object]] = []
     if study.mode == "expert":
-        write(EXPERT_CSV_COLUMNS)
+        rows.append(EXPERT_CSV_COLUMNS)
         for e in read_expert_answers(Path(folder) / ANSWERS_FILE):
             item = study.item(e.item)
             if item is None:
                 continue
             names = study.action_names.get(item.task, [])
-            for j in e.judgements:
-                write(
-                    [e.participant, e.item, j.action, names[j.action] if j.action < len(names)
-                     else "", int(j.acceptable), j.framework, e.clarity, f"{e.ms:.0f}",
-                     f"{e.received:.3f}", item.task, study.runs[item.run], item.episode,
-                     item.step]
-                )  # fmt: skip
-        return buffer.getvalue()
-    write(CSV_COLUMNS)
-    for a in answers:
-        item = study.item(a.item)
-        if item is None or item.kind == "expert" or not item.options:
-            continue
-        oa, ob = item.options
-        write(
-            [a.participant, a.item, item.kind, a.choice, a.variant or "", oa.variant or "",
-             ob.variant or "", oa.action_name, ob.action_name, a.correct,
-             f"{a.ms:.0f}", f"{a.received:.3f}", item.task, study.runs[item.run],
-             item.episode, item.step, a.rating_a, a.rating_b]
-        )  # fmt: skip
+            rows += [
+                [e.participant, e.item, j.action, names[j.action] if j.action < len(names)
+                 else "", int(j.acceptable), j.framework, e.clarity, f"{e.ms:.0f}",
+                 f"{e.received:.3f}", item.task, study.runs[item.run], item.episode, item.step]
+                for j in e.judgements
+            ]  # fmt: skip
+    else:
+        rows.append(CSV_COLUMNS)
+        for a in answers:
+            item = study.item(a.item)
+            if item is None or item.kind == "expert" or not item.options:
+                continue
+            oa, ob = item.options
+            rows.append(
+                [a.participant, a.item, item.kind, a.choice, a.variant or "", oa.variant or "",
+                 ob.variant or "", oa.action_name, ob.action_name, a.correct,
+                 f"{a.ms:.0f}", f"{a.received:.3f}", item.task, study.runs[item.run],
+                 item.episode, item.step, a.rating_a, a.rating_b]
+            )  # fmt: skip
+    buffer = io.StringIO()
+    csv.writer(buffer, lineterminator="\n").writerows([safe_cell(c) for c in r] for r in rows)
     return buffer.getvalue()

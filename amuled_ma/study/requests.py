@@ -133,40 +133,39 @@ def where(loc: tuple[str | int, ...]) -> str:
     return ".".join(str(part) for part in loc) or "body"
 
 
+#: The refusal's reason kept for a pair's answer whose first error is in this field.
+PAIR_REASONS = {"choice": "unknown choice", "ms": "bad time"}
+#: The same for a field of an expert's judgement (``actions.N.<field>``).
+JUDGEMENT_REASONS = {
+    "acceptable": "expert: acceptable not yes or no",
+    "framework": "expert: unknown framework",
+}
+
+
 def pair_reason(loc: tuple[str | int, ...], kind: str) -> str:
     """The refusal's reason kept for a pair's answer that does not fit its model."""
-    head = loc[0] if loc else ""
-    if head == "choice":
-        return "unknown choice"
-    if head == "ms":
-        return "bad time"
+    head = str(loc[0]) if loc else ""
     if head == "ratings":
         if len(loc) == 1 or kind == "missing":
             return "ratings missing"
         if kind == "extra_forbidden":
             return "rating for an option not shown"
         return "rating outside the scale"
-    return f"answer: unexpected or malformed field {where(loc)}"
+    return PAIR_REASONS.get(head, f"answer: unexpected or malformed field {where(loc)}")
 
 
 def expert_reason(loc: tuple[str | int, ...], kind: str) -> str:
     """The refusal's reason kept for an expert's answer that does not fit its model."""
-    head = loc[0] if loc else ""
-    if head == "ms":
-        return "bad time"
+    head = str(loc[0]) if loc else ""
     if head == "clarity":
-        return (
-            "clarity without a stated reason"
-            if kind == "none_required"
-            else ("clarity outside the scale")
-        )
+        if kind == "none_required":
+            return "clarity without a stated reason"
+        return "clarity outside the scale"
     if head == "actions":
         if len(loc) == 1:
             return "expert: not one judgement per action"
-        field = loc[2] if len(loc) > 2 else None
-        if field == "acceptable" and kind != "extra_forbidden":
-            return "expert: acceptable not yes or no"
-        if field == "framework" and kind != "extra_forbidden":
-            return "expert: unknown framework"
-        return "expert: judgement malformed"
+        field = str(loc[2]) if len(loc) > 2 and kind != "extra_forbidden" else ""
+        return JUDGEMENT_REASONS.get(field, "expert: judgement malformed")
+    if head == "ms":
+        return "bad time"
     return f"answer: unexpected or malformed field {where(loc)}"

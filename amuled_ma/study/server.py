@@ -216,15 +216,12 @@ class StudyApp:
             public_item(self.items[i], self.pictures[i], study.action_names.get(self.items[i].task))
             for i in order
         ]
+        shown = {"mode", "question", "rating_question", "rating_points", "clarity_points"}
         return JSONResponse(
             {
                 "participant": pid,
                 "token": token,
-                "mode": study.mode,
-                "question": study.question,
-                "rating_question": study.rating_question,
-                "rating_points": study.rating_points,
-                "clarity_points": study.clarity_points,
+                **study.model_dump(include=shown),
                 "frameworks": [
                     [name, titles.get(name, "none of these / other")]
                     for name in study.framework_names()
@@ -321,9 +318,8 @@ def check_host(host: str, *, public: bool) -> None:
         )
 
 
-def listen_socket(host: str, port: int, *, public: bool = False) -> socket.socket:
+def listen_socket(host: str, port: int) -> socket.socket:
     """The bound socket the study is served on; StudyError for an address or port refused."""
-    check_host(host, public=public)
     try:
         infos = socket.getaddrinfo(
             host or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
@@ -367,7 +363,7 @@ def serve(
 
     check_host(host, public=public)
     app = StudyApp(folder, allow_placeholder_consent=allow_placeholder_consent).app
-    sock = listen_socket(host, port, public=public)
+    sock = listen_socket(host, port)
     if not is_loopback(host):
         print(
             f"amuled: warning: serving on {host or 'every interface'}: any machine that can "
