@@ -1,7 +1,6 @@
 """Files written whole and never through a link; run-folder files read only when regular and inside.
 
-A run folder is data someone may hand over: a link in it could make a report quote, or the
-viewer serve, any file the reader can read (``docs/trust.md``).
+A link in a run folder someone hands over could make a report quote any file (docs/trust.md).
 """
 
 from __future__ import annotations

@@ -1,8 +1,4 @@
-"""Load a ``.pt`` file without running code from it (``torch.load(..., weights_only=True)``).
-
-PyTorch's restricted unpickler refuses any global besides tensors, numbers, strings and
-builtin containers before anything runs (``docs/trust.md``).
-"""
+"""Load a ``.pt`` file without running code from it (``torch.load(..., weights_only=True)``)."""
 
 from __future__ import annotations
 

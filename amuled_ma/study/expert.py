@@ -1,7 +1,6 @@
 """The numbers of an expert study: frameworks cited, the panel against the experts, clarity.
 
-A state's acceptable set holds the actions more than half of its experts found acceptable;
-reliability is Krippendorff's alpha (nominal) over (state, action) units.
+A state's acceptable set holds the actions more than half of its experts found acceptable.
 """
 
 from __future__ import annotations

@@ -1,8 +1,6 @@
 r"""The study server's request bodies as strict pydantic models: every field bounded at the edge.
 
-Parsed by ``model_validate_json``, so invalid UTF-8, lone surrogates, huge integers and deep
-nesting are validation errors, not server exceptions. An answer is read in two steps: the
-`AnswerEnvelope` (who, token, item) first, then the item's model from `answer_models`.
+An answer is read in two steps: the `AnswerEnvelope` first, then the item's `answer_models`.
 """
 
 from __future__ import annotations
@@ -95,12 +93,10 @@ class ExpertAnswerRequest(_Request):
 def answer_models(
     rating_points: int, clarity_points: int, frameworks: list[str]
 ) -> tuple[type[PairAnswer], Callable[[int, bool], type[ExpertAnswerRequest]]]:
-    """The model of a pair's answer, and of an expert's by its state, on the study's scales.
+    """The model of a pair's answer, and of an expert's by ``(actions, reason)``, on the scales.
 
-    The expert's model of a state with ``actions`` actions holds one judgement per action,
-    each citing one of ``frameworks``, and a clarity exactly when the panel stated a
-    ``reason``. Fields are checked in the order written, so the first error names the first
-    field that does not fit.
+    An expert's holds one judgement per action citing one of ``frameworks``, and a clarity
+    exactly when the panel stated a ``reason``.
     """
     rating = (int, Field(strict=True, ge=1, le=rating_points))
     ratings = create_model("ScaledRatings", __base__=Ratings, A=rating, B=rating)
