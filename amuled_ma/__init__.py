@@ -1,10 +1,7 @@
 """amuled-ma: ethical fine-tuning of RL agents with feedback from a panel of LLM moral clusters.
 
-Importing the package registers the task environments with Gymnasium,
-``amuled/FindMilk-v0`` and ``amuled/Driving-v0``: ``gymnasium.make`` builds them from their
-``module:Class`` entry points, so registering imports neither torch nor the task modules.
-The episode time limit is the environment's own (``max_steps``, default 300), so no
-``TimeLimit`` wrapper is added.
+Importing it registers ``amuled/FindMilk-v0`` and ``amuled/Driving-v0`` with Gymnasium by entry
+point (no torch import); the episode limit is the environment's ``max_steps``, no ``TimeLimit``.
 """
 
 from __future__ import annotations

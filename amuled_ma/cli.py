@@ -1,9 +1,4 @@
-"""The ``amuled`` command line.
-
-Each command group lives in its own module under :mod:`amuled_ma.commands` and
-exposes ``register(subparsers)``; this module only discovers and dispatches them,
-so adding a command never touches this file.
-"""
+"""The ``amuled`` command line: discovers and dispatches `amuled_ma.commands`' ``register``."""
 
 from __future__ import annotations
 
@@ -114,11 +109,8 @@ def _raise_terminated(signum: int, _frame: object) -> None:
 class _SignalsNotLost:
     """While a command runs: a Ctrl-C or SIGTERM whose exception Python drops is sent again.
 
-    A signal's handler runs in whatever the main thread is running, a finalizer (``__del__``,
-    a weakref callback) included, where Python drops its exception ("Exception ignored in
-    ..."); the signal is sent again 0.1 s later, from a timer thread, so that its handler runs
-    after this hook has returned (in the hook its exception would be dropped too), until it
-    lands where the command can stop.
+    A handler run in a finalizer (``__del__``) has its exception dropped ("Exception ignored
+    in ..."); a timer thread sends the signal again 0.1 s later, after this hook has returned.
     """
 
     def __enter__(self) -> None:
@@ -144,17 +136,10 @@ FAILURES = (KeyboardInterrupt, AmuledError, OSError, UnicodeDecodeError)
 
 
 def report_failure(error: BaseException, *, debug: bool = False) -> int:
-    """Print the one line of a failed command on stderr and return its exit status.
+    """Print the one line of a failed command (one of `FAILURES`); return its exit status.
 
-    Call it inside the ``except`` block (``debug`` prints the traceback being handled).
-
-    Args:
-        error: One of :data:`FAILURES` (a :class:`~amuled_ma.errors.Terminated` is SIGTERM).
-        debug: Print the Python traceback before the line (not for Ctrl-C or SIGTERM).
-
-    Returns:
-        The error class's ``exit_code`` (:mod:`amuled_ma.errors`: 143 for SIGTERM,
-        1 for an :class:`~amuled_ma.errors.AmuledError`); 130 for Ctrl-C, 1 for a file error.
+    Call it inside the ``except`` block; ``debug`` prints the traceback being handled first
+    (not for Ctrl-C or SIGTERM).
     """
     if isinstance(error, Terminated):
         print("amuled: terminated (SIGTERM)", file=sys.stderr)
@@ -180,21 +165,11 @@ def report_failure(error: BaseException, *, debug: bool = False) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the ``amuled`` command line and return its exit code.
+    """Run the ``amuled`` command line and return its exit status (:data:`EXIT_CODES_HELP`).
 
-    Every expected failure (our errors, a file that cannot be read or written, a file that
-    is not UTF-8 text) prints one line ``amuled: error: <what, where, fix>``; ``--debug``
-    adds the traceback. SIGTERM is handled like Ctrl-C: a training job writes its
-    checkpoint and the command exits with 143 (Ctrl-C: 130).
-
-    Args:
-        argv: Arguments without the program name; ``None`` reads ``sys.argv``: this
-            process's own command line, which a SIGTERM while Ray starts ends at once
-            (``os._exit(143)``) after its line.
-
-    Returns:
-        0 on success, 1 on a reported error, 2 on a usage error, 130 when interrupted,
-        143 when terminated.
+    Every expected failure prints one line ``amuled: error: <what, where, fix>`` (``--debug``:
+    with the traceback); SIGTERM is handled like Ctrl-C. ``argv`` None reads ``sys.argv``: this
+    process's own command line, which a SIGTERM while Ray starts ends at once after its line.
     """
     parser = build_parser()
     args = parser.parse_args(argv)

@@ -1,8 +1,4 @@
-"""One error hierarchy for the whole package (Gymnasium's ``error.py`` habit).
-
-Every error names what was wrong, where (file, key, argument, host) and what was
-expected, so a researcher can fix the input without reading our code.
-"""
+"""One error hierarchy for the whole package; each error names what, where, and the fix."""
 
 from __future__ import annotations
 
@@ -21,11 +17,7 @@ EXIT_TERMINATED = 143
 
 
 class AmuledError(Exception):
-    """Base class of every error raised on purpose by amuled-ma.
-
-    Attributes:
-        exit_code: The command line's exit status for this error.
-    """
+    """Base class of every error raised on purpose by amuled-ma; ``exit_code``: the CLI's."""
 
     exit_code: ClassVar[int] = EXIT_REFUSED
 
@@ -75,11 +67,7 @@ class CheckpointError(AmuledError, FileNotFoundError):
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised where the program runs so the Ctrl-C clean-up (checkpoints) runs too.
-
-    A subclass of :class:`KeyboardInterrupt`: every ``except KeyboardInterrupt`` that writes
-    a checkpoint handles it the same way; the command line then exits with 143.
-    """
+    """SIGTERM as a :class:`KeyboardInterrupt`, so the Ctrl-C clean-up (checkpoints) runs too."""
 
     exit_code: ClassVar[int] = EXIT_TERMINATED
 
@@ -87,23 +75,13 @@ class Terminated(KeyboardInterrupt):
 class TerminatedWhileStarting(Terminated):
     """SIGTERM while Ray started (``ray.init``), before any work of the command.
 
-    Nothing of the command is left to finish (no run folder, no checkpoint), while the
-    interpreter's own exit may wait on, or crash in, what ``ray.init`` left half-built
-    (its threads, its exit hooks): the command line ends the process at once after its
-    line (:func:`amuled_ma.cli.main`).
+    The command line ends the process at once after its line: the interpreter's exit may hang
+    in what ``ray.init`` left half-built.
     """
 
 
 class MemberFailed(AmuledError):
-    """One member of a training population failed (a non-finite gradient, its feedback).
-
-    The population writes the other members' checkpoints and goes on without it
-    (:func:`amuled_ma.learn.population.train_population`).
-
-    Attributes:
-        member: The member's index in its population.
-
-    """
+    """One ``member`` (its index) of a training population failed; the others go on."""
 
     def __init__(self, member: int, message: str) -> None:
         super().__init__(message)

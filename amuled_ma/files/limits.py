@@ -1,8 +1,4 @@
-"""Size caps on files read whole, refused from their size before a byte is read (``docs/trust.md``).
-
-A file whose size is not reported is cut at the cap + 1 byte; JSON Lines cap each line
-(`read_line`).
-"""
+"""Size caps on files read whole, refused from their size before a byte is read (docs/trust.md)."""
 
 from __future__ import annotations
 
@@ -22,11 +18,7 @@ def _a(noun: str) -> str:
 
 
 def too_large(head: str, size: int, limit: int, noun: str, *, note: str = "", fix: str) -> str:
-    """The one-line refusal of a file over its cap.
-
-    ``"HEAD is SIZE bytes, more than the LIMIT a NOUN may be (NOTE); it is not read; FIX"``,
-    ``HEAD`` e.g. ``"runs/x/config.json: the run record"``, `` (NOTE)`` only when given.
-    """
+    """``"HEAD is SIZE bytes, more than the LIMIT a NOUN may be (NOTE); it is not read; FIX"``."""
     why = f" ({note})" if note else ""
     return (
         f"{head} is {size:,} bytes, more than the {limit:,} {_a(noun)} may be{why}; "
@@ -44,17 +36,10 @@ def check_size(
     note: str = "",
     fix: str = RIGHT_FILE,
 ) -> int:
-    """Refuse a file larger than ``limit`` bytes from its size, before a byte is read.
+    """The file's size; ``error`` (:func:`too_large`'s line) over ``limit`` bytes, before a read.
 
-    For files handed whole to another reader (``torch.load``); read the file with
-    :func:`read_bounded_bytes` where we read it ourselves.
-
-    ``error`` (an :class:`~amuled_ma.errors.AmuledError` subclass) is raised with the line of
-    :func:`too_large`, ``head`` defaulting to ``"PATH: the NOUN"`` (``noun`` e.g.
-    ``"checkpoint"``). Returns the file's size in bytes.
-
-    Raises:
-        OSError: The file cannot be examined (the caller words that).
+    For files handed whole to another reader (``torch.load``); ``head`` defaults to
+    ``"PATH: the NOUN"``. An OSError when the file cannot be examined.
     """
     size = os.stat(path).st_size
     if size > limit:
@@ -73,11 +58,9 @@ def read_bounded_bytes(
     note: str = "",
     fix: str = RIGHT_FILE,
 ) -> bytes:
-    """A file's bytes, refused when it holds more than ``limit`` (never read past the cap).
+    """A file's bytes, refused (as :func:`check_size`) over ``limit``, never read past the cap.
 
-    The size is checked on the open file; a file that reports less than it holds (``/proc``,
-    a file written to meanwhile) is read up to ``limit + 1`` bytes and refused the same way.
-    Arguments and errors as :func:`check_size`.
+    A file that reports less than it holds (``/proc``) is read up to ``limit + 1`` bytes.
     """
     head = f"{path}: the {noun}" if head is None else head
     with open(path, "rb") as handle:
@@ -103,11 +86,7 @@ def read_bounded_text(
     note: str = "",
     fix: str = RIGHT_FILE,
 ) -> str:
-    """A UTF-8 text file (:func:`decode_text`), refused when over ``limit`` bytes or unreadable.
-
-    Arguments as :func:`check_size`; every refusal is ``error``, one line naming the file,
-    the problem and the fix.
-    """
+    """A UTF-8 text file (:func:`decode_text`); ``error`` over ``limit`` bytes or unreadable."""
     try:
         data = read_bounded_bytes(path, limit, noun, error=error, note=note, fix=fix)
     except OSError as failure:
@@ -122,10 +101,7 @@ def read_bounded_text(
 def decode_text(
     path: str | os.PathLike[str], data: bytes, noun: str, *, error: type[Exception] = AmuledError
 ) -> str:
-    """``data`` read from ``path`` as UTF-8 text, newlines as ``Path.read_text`` reads them.
-
-    Not UTF-8 text is ``error``, one line naming the file and the byte.
-    """
+    """``data`` of ``path`` as UTF-8 text, newlines as ``Path.read_text``'s; else ``error``."""
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as failure:
@@ -144,15 +120,7 @@ def read_bounded_json(
     note: str = "",
     fix: str = RIGHT_FILE,
 ) -> Any:
-    """A JSON file read whole, refused with one line when over ``limit``, unreadable or not JSON.
-
-    Arguments as :func:`check_size` (``fix`` ends every message).
-
-    Raises:
-        AmuledError: ``"PATH: ... FIX"``: the file is over ``limit`` bytes (refused from its
-            size, before it is read), cannot be read (``cannot read it``) or is not JSON
-            (``not JSON``: malformed, not UTF-8, nested deeper than Python can follow).
-    """
+    """A JSON file read whole; AmuledError (ending ``fix``) over ``limit``, unreadable, not JSON."""
     try:
         return json.loads(read_bounded_bytes(path, limit, noun, note=note, fix=fix))
     except OSError as err:
@@ -170,11 +138,9 @@ def read_line(
     unit: str = "characters",
     fix: str,
 ) -> AnyStr:
-    """The next line of ``handle`` with its newline ("" at the end), refused when longer.
+    """The next line of ``handle`` ("" at the end); ``error`` at ``where`` over ``limit`` ``unit``.
 
-    ``limit`` counts characters (text) or bytes (binary, ``unit="bytes"``), the newline
-    not counted; a longer line is ``error``: ``"WHERE: a line longer than the N characters a
-    line may be ...; FIX"``, ``where`` being ``FILE:LINE``.
+    The newline is not counted; ``where`` is ``FILE:LINE``.
     """
     line = handle.readline(limit + 1)
     if len(line) > limit and not (len(line) == limit + 1 and line[-1:] in ("\n", b"\n")):

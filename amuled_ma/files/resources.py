@@ -9,19 +9,13 @@ from amuled_ma.files.limits import read_bounded_text
 
 _PACKAGE_DIR = Path(__file__).resolve().parents[1]  # amuled_ma/
 
-#: Largest prompt file read (``prompts/system.md``, ``prompts/tasks/*.md``,
-#: ``prompts/fewshot/*.toml``) [bytes]: the shipped ones hold at most 9,684 bytes (the
-#: few-shot examples), so 1 MB is 100 times that; every byte of them is sent to the LLM
-#: with each request, so a larger file is a wrong file, not a longer prompt.
+#: Largest prompt file read [bytes]: 100 times the shipped ones (at most 9,684 bytes); every
+#: byte goes to the LLM with each request, so a larger file is a wrong file.
 MAX_PROMPT_BYTES = 1_000_000
 
 
 def data_dir(name: str) -> Path:
-    """Return the directory of the shipped data folder ``name`` (``"prompts"``, ``"scenarios"``).
-
-    Raises:
-        FileNotFoundError: Neither the installed nor the source-tree location exists.
-    """
+    """The shipped data folder ``name``; FileNotFoundError when neither location has it."""
     for candidate in (_PACKAGE_DIR / "_data" / name, _PACKAGE_DIR.parent / name):
         if candidate.is_dir():
             return candidate
@@ -49,9 +43,5 @@ def read_text(
     max_bytes: int,
     note: str = "",
 ) -> str:
-    """Read a UTF-8 text file the user gave or the package ships, with a clear error.
-
-    :func:`~amuled_ma.files.limits.read_bounded_text` with ``what`` as its noun
-    (``"scenario"``) and ``error_class`` (default ``AmuledError``) as its error.
-    """
+    """:func:`~amuled_ma.files.limits.read_bounded_text` with ``what`` as its noun."""
     return read_bounded_text(path, max_bytes, what, error=error_class or AmuledError, note=note)

@@ -40,13 +40,12 @@ def _holder(fd: int) -> str:
 
 @contextlib.contextmanager
 def run_folder_lock(folder: str | Path, command: str | None = None) -> Iterator[Path]:
-    """Hold the write lock of a run folder (created if needed) for the ``with`` block.
+    """Hold the write lock of a run folder (created if needed); yields the lock's path.
 
-    ``command`` is recorded for other writers (default: ``sys.argv``); yields the lock's path.
+    ``command`` is recorded for other writers (default: ``sys.argv``).
 
     Raises:
-        RunFolderBusy: Another process holds the lock; the message names its pid, start
-            time and command, and what to do.
+        RunFolderBusy: Another process holds it (named by pid, start time and command).
         AmuledError: The folder cannot be created or the lock file cannot be written.
     """
     folder = Path(folder)

@@ -1,7 +1,6 @@
 """Files written whole and never through a link; run-folder files read only when regular and inside.
 
-A run folder is data someone may hand over: a link in it could make a report quote, or the
-viewer serve, any file the reader can read (``docs/trust.md``).
+A link in a run folder someone hands over could make a report quote any file (docs/trust.md).
 """
 
 from __future__ import annotations
@@ -23,11 +22,7 @@ class UnsafePathError(AmuledError, ValueError):
 
 
 class FileWriteError(AmuledError, OSError):
-    """A file could not be written (a full disk, a read-only folder); the old file is kept.
-
-    An :class:`OSError` too: code that goes on when a write fails (a job's state marked
-    failed on a full disk) goes on for this one line as for the system's error.
-    """
+    """A file could not be written (a full disk); the old file is kept. An OSError too."""
 
 
 #: ``st_mode`` file types, in words, for the refusals.
@@ -41,7 +36,7 @@ _KINDS = (
 )
 
 
-def _kind(path: Path, mode: int) -> str:
+def file_kind(path: Path, mode: int) -> str:
     """What a non-regular file is, in words (a link says where it points)."""
     for test, words in _KINDS:
         if test(mode):
@@ -53,12 +48,11 @@ def _kind(path: Path, mode: int) -> str:
 
 
 def check_write_target(path: str | os.PathLike[str]) -> Path:
-    """Return ``path`` (absent or a regular file); refuse one that is not; follows no link.
+    """Return ``path`` (absent or a regular file); follows no link.
 
     Raises:
-        UnsafePathError: ``path`` is a symbolic link (to anything), a device, a FIFO, a
-            socket or a folder; one line naming it, what it is, and the fix.
-        OSError: ``path`` cannot be examined (a part of it is a file, no permission).
+        UnsafePathError: ``path`` is a link, a device, a FIFO, a socket or a folder.
+        OSError: ``path`` cannot be examined.
     """
     path = Path(path)
     try:
@@ -79,7 +73,7 @@ def _not_regular(path: Path, mode: int) -> UnsafePathError:
     else:
         fix = "give the path of a new or a regular file"
     return UnsafePathError(
-        f"{path}: is {_kind(path, mode)}, not a regular file; amuled writes only regular "
+        f"{path}: is {file_kind(path, mode)}, not a regular file; amuled writes only regular "
         f"files and never through a link; nothing was written; {fix}"
     )
 
@@ -91,23 +85,14 @@ def check_write_targets(paths: Iterable[str | os.PathLike[str]]) -> None:
 
 
 def check_own_folder(folder: Path, why: str) -> None:
-    """Refuse ``folder`` when it is a symbolic link or exists and is not a folder.
-
-    Raises:
-        UnsafePathError: One line naming the folder, what it is, ``why`` (what is written
-            there and the fix) and that nothing was written.
-    """
+    """Refuse (UnsafePathError, ending ``why``) a link, or an existing ``folder`` not a folder."""
     if folder.is_symlink() or (os.path.lexists(folder) and not folder.is_dir()):
         kind = f"a symbolic link (to {os.readlink(folder)})" if folder.is_symlink() else "a file"
         raise UnsafePathError(f"{folder}: is {kind}, not a folder; {why}")
 
 
 def failure_fix(code: int | None, then: str, *, elsewhere: str | None = None) -> str:
-    """What to do about a write that failed with ``errno`` ``code``, ending ``then THEN``.
-
-    ``elsewhere`` (``"write into another --run-dir"``) is said in brackets beside a full disk
-    or a folder not writable.
-    """
+    """What to do about a write that failed with ``errno`` ``code`` (``elsewhere``: an aside)."""
     aside = f" (or {elsewhere})" if elsewhere else ""
     if code in (errno.ENOSPC, errno.EDQUOT):
         return f"free some disk space{aside}, then {then}"
@@ -126,11 +111,7 @@ def write_failure(
     kept: str | None = None,
     what: str = "",
 ) -> str:
-    """The line of a file that could not be written: ``"cannot write WHAT PATH: WHY; KEPT; FIX"``.
-
-    ``fix`` defaults to :func:`failure_fix` of the error, ``kept`` to ``the old file is
-    kept`` when ``path`` is a file, else ``nothing was written``.
-    """
+    """The line ``"cannot write WHAT PATH: WHY; KEPT; FIX"`` (``fix``: :func:`failure_fix`'s)."""
     why = " ".join((error.strerror or str(error)).split())[:200]
     if fix is None:
         fix = failure_fix(error.errno, "run the command again")
@@ -140,11 +121,9 @@ def write_failure(
 
 
 def _create_temp(path: Path) -> tuple[int, Path]:
-    """A new, empty file beside ``path`` (``.NAME.RANDOM.tmp``), opened for writing.
+    """A new file ``.NAME.RANDOM.tmp`` beside ``path``, opened for writing, of the target's mode.
 
-    ``O_EXCL`` with ``O_NOFOLLOW``: it fails rather than open anything that exists, a link
-    included. Its mode is the target's when the target exists, else ``0o666`` less the
-    umask (as ``open(path, "w")`` would create it).
+    ``O_EXCL`` with ``O_NOFOLLOW``: it never opens anything that exists, a link included.
     """
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
     while True:
@@ -198,21 +177,15 @@ def atomic_writer(
     newline: str | None = None,
     fix: str | None = None,
 ) -> Iterator[IO[Any]]:
-    """A file object whose contents replace ``path`` when the block ends without error.
+    """A file object (``text``: as :func:`open`) whose contents replace ``path`` at the block's end.
 
-    For writers that need a file object (``fig.savefig(handle, format="png")``,
-    ``torch.save(state, handle)``, ``np.savez(handle, ...)``, ``csv.writer(handle)``).
-    The target is checked (:func:`check_write_target`) before the temporary file is made
-    and again before the rename; the temporary file is flushed to disk (``fsync``) before
-    it is renamed over ``path``. ``text``: a text file object (``encoding``, ``newline`` as
-    :func:`open` takes them); ``fix``: as :func:`write_failure`.
+    The target is checked (:func:`check_write_target`) before and after; the temporary file is
+    flushed to disk before it is renamed over ``path``. ``fix``: as :func:`write_failure`.
 
     Raises:
-        UnsafePathError: ``path`` is not absent nor a regular file (see
-            :func:`check_write_target`); nothing was written.
-        FileWriteError: Writing, flushing or renaming failed (an ``OSError`` raised inside
-            the block counts as such a failure): one line naming ``path``; ``path`` is as
-            it was and no temporary file is left.
+        UnsafePathError: ``path`` is not absent nor a regular file; nothing was written.
+        FileWriteError: Writing, flushing or renaming failed (an ``OSError`` in the block
+            too); ``path`` is as it was and no temporary file is left.
     """
     path = check_write_target(path)
     tmp: Path | None = None
@@ -264,12 +237,7 @@ def write_text_atomic(
 
 
 def append_text(path: str | os.PathLike[str], text: str, *, fix: str | None = None) -> Path:
-    """Append ``text`` (UTF-8) to ``path``, creating it; never through a link.
-
-    For a file that grows a record at a time (a line cut short by a crash is its
-    reader's to skip). The target is checked (:func:`check_write_target`), then opened
-    with ``O_APPEND | O_CREAT | O_NOFOLLOW`` and checked again on the open file, so a link
-    or a FIFO put there in between is refused too. Returns ``path``.
+    """Append ``text`` (UTF-8) to ``path``, creating it; never through a link; returns ``path``.
 
     Raises:
         UnsafePathError: ``path`` is not absent nor a regular file; nothing was written.
@@ -300,15 +268,10 @@ def append_text(path: str | os.PathLike[str], text: str, *, fix: str | None = No
 
 
 def checked_read_path(folder: str | os.PathLike[str], name: str | os.PathLike[str]) -> Path:
-    """``folder / name``, refused if reading it would follow a link or leave ``folder``.
-
-    A missing file is returned as it is (its reader reports it or treats it as absent). The
-    check reads no byte of the file.
+    """``folder / name`` (maybe missing), refused if reading it follows a link or leaves ``folder``.
 
     Raises:
-        UnsafePathError: It is a symbolic link, not a regular file (a FIFO, a device, a
-            folder), or resolves outside ``folder`` (through ``..`` or a linked
-            subfolder); one line naming it, what it is, and the fix.
+        UnsafePathError: A symbolic link, not a regular file, or outside ``folder``.
         OSError: It cannot be examined.
     """
     folder = Path(folder)
@@ -319,12 +282,12 @@ def checked_read_path(folder: str | os.PathLike[str], name: str | os.PathLike[st
         return path
     if stat.S_ISLNK(mode):
         raise UnsafePathError(
-            f"{path}: is {_kind(path, mode)}; amuled does not follow links in a run folder; "
+            f"{path}: is {file_kind(path, mode)}; amuled does not follow links in a run folder; "
             "put the file itself there (cp --remove-destination TARGET LINK) or remove the link"
         )
     if not stat.S_ISREG(mode):
         raise UnsafePathError(
-            f"{path}: is {_kind(path, mode)}, not a regular file; it is not read; remove it, "
+            f"{path}: is {file_kind(path, mode)}, not a regular file; it is not read; remove it, "
             "is it the right folder?"
         )
     real, base = path.resolve(), folder.resolve()

@@ -1,8 +1,4 @@
-"""Load a ``.pt`` file without running code from it (``torch.load(..., weights_only=True)``).
-
-PyTorch's restricted unpickler refuses any global besides tensors, numbers, strings and
-builtin containers before anything runs (``docs/trust.md``).
-"""
+"""Load a ``.pt`` file without running code from it (``torch.load(..., weights_only=True)``)."""
 
 from __future__ import annotations
 
@@ -13,42 +9,32 @@ from typing import Any
 from amuled_ma.errors import CheckpointError
 from amuled_ma.files.limits import check_size
 
-#: Largest PyTorch file loaded [bytes, 1 GiB]. ``torch.load`` reads a file whole into
-#: memory; our checkpoints hold the networks, their optimiser state and a few counters
-#: (those of the shipped scenarios are under 1 MB, and a policy of 50 million float32 weights
-#: with Adam's two moments is 600 MB), so a larger file is not one we wrote.
+#: Largest PyTorch file loaded whole [bytes, 1 GiB]: the shipped scenarios' are under 1 MB, and
+#: 50 million float32 weights with Adam's two moments make 600 MB.
 MAX_TORCH_FILE_BYTES = 2**30
 
 
 def load_weights_only(path: str | Path, what: str = "checkpoint") -> Any:
-    """``torch.load(path, map_location="cpu", weights_only=True)``, with a clear error.
-
-    ``what`` names the file in the message (``"checkpoint"``, ``"policy file"``).
+    """``torch.load(path, map_location="cpu", weights_only=True)``; ``what`` names the file.
 
     Raises:
-        CheckpointError: The file is missing, larger than :data:`MAX_TORCH_FILE_BYTES`
-            (refused from its size, before it is read), needs a global to load (named;
-            refused, so nothing from it ran), or is not a readable PyTorch file.
+        CheckpointError: Missing, over :data:`MAX_TORCH_FILE_BYTES` (unread), needing a global
+            (named; nothing ran), or not a readable PyTorch file.
     """
     import torch
 
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{what} not found: {path}")
-    try:
-        check_size(
-            path,
-            MAX_TORCH_FILE_BYTES,
-            "PyTorch file",
-            error=CheckpointError,
-            head=f"cannot load {what} {path}: it",
-            note="those of the shipped scenarios are under 1 MB",
-            fix="it is not a file amuled or the authors' CleanRL wrote",
-        )
-    except CheckpointError:  # an OSError too (FileNotFoundError): the refusal, as it is
-        raise
-    except OSError as error:
-        raise CheckpointError(f"cannot load {what} {path}: {error.strerror or error}") from error
+    check_size(
+        path,
+        MAX_TORCH_FILE_BYTES,
+        "PyTorch file",
+        error=CheckpointError,
+        head=f"cannot load {what} {path}: it",
+        note="those of the shipped scenarios are under 1 MB",
+        fix="it is not a file amuled or the authors' CleanRL wrote",
+    )
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises many types for a bad or unsafe file

@@ -30,10 +30,7 @@ _held_lock = threading.Lock()
 
 @contextlib.contextmanager
 def held() -> Iterator[None]:
-    """Keep every bar and plain line still meanwhile (a person reads and types a question).
-
-    The time held counts as elapsed; the next line is due `PLAIN_EVERY_S` after the last.
-    """
+    """Keep every bar and plain line still meanwhile (a person reads and types a question)."""
     global _held
     with _held_lock:
         _held += 1
@@ -59,11 +56,9 @@ def duration(seconds: float) -> str:
 class Progress:
     """The progress of one phase (``findmilk/amuled``): ``update`` each step, ``close`` at the end.
 
-    ``total`` None: not known ahead, no ETA. ``bar``: a tqdm bar, else plain lines (the first
-    after ``first`` s, then at most ``every`` s apart). ``initial`` steps were done before (a
-    resumed run; the ETA counts only steps done here). ``stream`` defaults to ``sys.stderr``,
-    looked up when written; a test passes its own ``clock`` and, to drive `check` itself,
-    ``watch=False`` (no watcher thread).
+    ``total`` None: no ETA. ``bar``: a tqdm bar, else plain lines (after ``first`` s, then at
+    most ``every`` s apart). ``initial``: steps done before (not in the ETA). ``watch=False``:
+    no watcher thread (a test calls `check`).
     """
 
     def __init__(

@@ -1,7 +1,6 @@
 """TensorBoard scalars whose failed write is one line naming the folder, not a thread's traceback.
 
-``SummaryWriter`` has no switch for its writer thread's ``OSError``, so an ``excepthook`` passes
-over it and the caller's next call raises `amuled_ma.files.safe.FileWriteError`.
+``SummaryWriter``'s thread's ``OSError`` is silenced by an ``excepthook``; the next call raises.
 """
 
 from __future__ import annotations
@@ -34,14 +33,7 @@ def _install_quiet_hook() -> None:
 
 
 class TensorBoardLog:
-    """A ``SummaryWriter`` for scalars; a failed write raises one line naming the folder.
-
-    ``log_dir`` is a variant's ``tb/``; ``failed`` says a failed write was raised (the log is then
-    incomplete).
-
-    Raises:
-        FileWriteError: The folder or its first event file cannot be made.
-    """
+    """A ``SummaryWriter`` for scalars; a failed write (``failed``) raises FileWriteError."""
 
     def __init__(self, log_dir: str | Path, *, flush_secs: float = 30) -> None:
         from torch.utils.tensorboard import SummaryWriter
@@ -69,24 +61,17 @@ class TensorBoardLog:
         )
 
     def add_scalar(self, key: str, value: float, step: int) -> None:
-        """Queue one scalar (``SummaryWriter.add_scalar``).
-
-        Raises:
-            FileWriteError: TensorBoard's thread failed to write an earlier event.
-        """
+        """Queue one scalar; FileWriteError when TensorBoard's thread failed an earlier event."""
         try:
             self._writer.add_scalar(key, value, step)
         except OSError as error:
             raise self._failure(error) from error
 
     def close(self) -> None:
-        """Write every queued event and close the file.
-
-        After a failure already raised (:attr:`failed`), it only closes, raising nothing.
+        """Write every queued event and close the file (after a raised failure: only close).
 
         Raises:
-            FileWriteError: An event could not be written (``flush`` raises what
-                TensorBoard's thread met); the file is closed all the same.
+            FileWriteError: An event could not be written; the file is closed all the same.
         """
         try:
             if not self.failed:

@@ -14,12 +14,7 @@ State = Literal["complete", "interrupted", "failed"]
 
 
 class Provenance(BaseModel):
-    """Where an imported policy (or an imported run) came from.
-
-    ``checkout`` is the checkout it was imported from, ``file`` the policy file relative to it;
-    ``checkpoint`` the authors' PPO iteration of a fine-tune (``N`` of ``ppo_<N>``), ``model``
-    the LLM of its feedback.
-    """
+    """Where an imported policy came from: ``file`` in ``checkout``, ``checkpoint``, ``model``."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -34,13 +29,8 @@ class Provenance(BaseModel):
 class PanelRecord(BaseModel):
     """Who gave a fine-tune its feedback (``amuled``, ``cluster:care``, ``human``, ...).
 
-    ``members`` is empty for a demonstrator or a fused-only recording; ``source`` is where the
-    members' beliefs come from by default (``replay``, ``ollama``, ``rules``, ...), and
-    ``agent_sources`` the members with a source of their own. ``fused_only``: the recording keeps
-    only the authors' fused belief per state, replayed as it is (no panel asked, no fusion of
-    ours; ``fusion`` None). ``distill``: the ``[feedback.distill]`` settings of a panel asked on a
-    budget. ``weights``: the file of the members' prior weights ``bjs-dst`` used (None: the
-    paper's fixed weights).
+    ``source``: the members' default source, ``agent_sources`` the others'; ``fused_only``: the
+    authors' fused beliefs replayed (``fusion`` None); ``weights``: the prior weights' file.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -60,15 +50,9 @@ class PanelRecord(BaseModel):
 class RunRecord(BaseModel):
     """One ``config.json``: a run's (``variants``, ``seeds``, ...) or a variant folder's.
 
-    ``variant`` is what the folder trains, ``label`` its fine-tune label (`Variant.label`);
-    ``name`` is the variant's name in the run's results, its first seed's folder
-    (``finetune-amuled`` also for ``finetune-amuled.seed2``). ``training`` holds the settings that
-    decide what it learns and the inputs' hashes, compared before a resume or a skip
-    (`training_config`). ``recipe`` and ``lambda_kl`` are a fine-tune's KL anchor and
-    coefficient, ``base_checkpoint`` the checkpoint it started from; ``state`` is ``interrupted``
-    when stopped or still to resume. ``authors``: where an imported policy or run came from;
-    ``ablation`` and ``shared``: an ablation folder's ablation and the run's folders it is
-    evaluated with.
+    ``name``: the variant in the run's results (its first seed's folder); ``training``: the
+    settings and inputs' hashes compared before a resume or a skip (`training_config`);
+    ``authors``: where an imported policy came from; ``shared``: an ablation's run folders.
     """
 
     model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=True)

@@ -16,12 +16,7 @@ Kind = Literal["base", "shaped", "finetune"]
 
 
 def parse_feedback(feedback: str) -> tuple[str, str | None]:
-    """``(kind, argument)`` of a feedback variant name (``amuled``, ``cluster:care``, ...).
-
-    Raises:
-        ScenarioError: Not ``amuled``, ``human``, ``human:rules``, ``moral``, ``cluster:<name>``
-            or ``agg:<rule>``.
-    """
+    """``(kind, argument)`` of a feedback variant name; ScenarioError for an unknown one."""
     kind, _, arg = feedback.partition(":")
     if kind in ("amuled", "human", "moral") and not arg:
         return kind, None
@@ -44,13 +39,9 @@ def folder_name(text: str) -> str:
 
 @dataclass(frozen=True)
 class Variant:
-    """One thing to train: ``base``, ``shaped`` or ``finetune`` (on ``feedback``).
+    """One thing to train: ``base``, ``shaped`` or ``finetune`` (on ``feedback``, any name).
 
-    ``base`` learns the task's reward, ``shaped`` adds handcrafted shaping, ``finetune`` is a copy
-    of the base on feedback, anchored to it. A library user's own `Feedback` may carry any name,
-    checked only when `feedback_kind` is asked. ``label`` names the fine-tune's folder
-    ``finetune-<label>`` instead of the feedback (``[feedback].name``, an ablation's
-    ``amuled-kl0.5``).
+    ``label`` names the fine-tune's folder ``finetune-<label>`` instead of the feedback.
     """
 
     kind: Kind
@@ -70,11 +61,7 @@ class Variant:
 
     @classmethod
     def parse(cls, text: str | Variant, label: str | None = None) -> Variant:
-        """Read ``base``, ``shaped`` or ``finetune:<feedback>`` (a Variant passes through).
-
-        Raises:
-            ScenarioError: Not a known variant; the message lists the forms.
-        """
+        """Read ``base``, ``shaped`` or ``finetune:<feedback>`` (or a Variant); ScenarioError."""
         if isinstance(text, Variant):
             return text if label is None else cls(text.kind, text.feedback, label)
         if text == "base":

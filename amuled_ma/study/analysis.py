@@ -1,7 +1,6 @@
 """The numbers of a pairs study: win rates, Bradley-Terry, acceptability, reliability, agreement.
 
-Libraries do the statistics (``choix``, ``krippendorff``); ratings are resampled by
-participant, since one participant's ratings are not independent of each other.
+Ratings are resampled by participant: one participant's ratings are not independent.
 """
 
 from __future__ import annotations
@@ -11,7 +10,7 @@ import io
 import math
 import unicodedata
 from collections import Counter, defaultdict
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,9 +33,9 @@ def wilson(wins: int, n: int) -> tuple[float, float]:
     return float(interval.low), float(interval.high)
 
 
-def attentive(study: Study, answers: Sequence[Answer]) -> set[str]:
-    """Participants who passed every attention check they answered."""
-    failed = {a.participant for a in answers if a.correct == 0}
+def attentive(answers: Sequence[Answer], *, keep_inattentive: bool = False) -> set[str]:
+    """Participants who passed every attention check they answered (or all who answered)."""
+    failed = set() if keep_inattentive else {a.participant for a in answers if a.correct == 0}
     return {a.participant for a in answers} - failed
 
 
@@ -167,13 +166,8 @@ def nominal_alpha(values: dict[tuple[str, str], float]) -> float:
 
 
 def choice_values(pairs: Sequence[tuple[Answer, Item]]) -> dict[tuple[str, str], float]:
-    """``{(participant, item): 0 for A, 1 for B}``: the data of `reliability`."""
+    """``{(participant, item): 0 for A, 1 for B}``: the data of the choices' alpha."""
     return {(a.participant, i.id): 0.0 if a.choice == "A" else 1.0 for a, i in pairs}
-
-
-def reliability(pairs: Sequence[tuple[Answer, Item]]) -> float:
-    """Krippendorff's alpha (nominal) of the participants' choices (A or B) over the pairs."""
-    return nominal_alpha(choice_values(pairs))
 
 
 @dataclass(frozen=True)
@@ -253,8 +247,7 @@ def _prefers(belief: Sequence[float], item: Item) -> str | None:
 def agreement(study: Study, majority: dict[str, tuple[str, int, int]]) -> dict[str, list[int]]:
     """Agreement with the majority, ``{who: [agree, counted]}`` (ties, third actions: neither).
 
-    A panel member (or the fused belief) prefers the option whose action it believes more; a
-    policy agrees when its action is the majority option's.
+    A member (or the fused belief) prefers the option whose action it believes more.
     """
     out: dict[str, list[int]] = {}
     for item_id, (top, _, _) in majority.items():
@@ -303,8 +296,7 @@ FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
 def safe_cell(value: object) -> object:
     r"""A CSV cell a spreadsheet shows as text, never runs (OWASP's CSV-injection rule).
 
-    Text starting with one of `FORMULA_STARTS` gets a leading ``'``; every control character
-    is written as ``\xNN``. Numbers pass; None is an empty cell.
+    `FORMULA_STARTS` get a leading ``'``; control characters are written ``\xNN``; None is "".
     """
     if value is None:
         return ""
@@ -314,42 +306,36 @@ def safe_cell(value: object) -> object:
     return "".join(f"\\x{ord(c):02x}" if unicodedata.category(c) == "Cc" else c for c in text)
 
 
-def _csv_writer(buffer: io.StringIO) -> Callable[[Sequence[object]], None]:
-    """A CSV row writer that puts every cell through `safe_cell`."""
-    writer = csv.writer(buffer, lineterminator="\n")
-    return lambda row: writer.writerow([safe_cell(cell) for cell in row])
-
-
 def answers_csv(folder: Path) -> str:
     """Every answer as CSV rows via `safe_cell` (one per answer, or per expert, state, action)."""
     study, answers = load(folder)
-    buffer = io.StringIO()
-    write = _csv_writer(buffer)
+    rows: list[Sequence[object]] = []
     if study.mode == "expert":
-        write(EXPERT_CSV_COLUMNS)
+        rows.append(EXPERT_CSV_COLUMNS)
         for e in read_expert_answers(Path(folder) / ANSWERS_FILE):
             item = study.item(e.item)
             if item is None:
                 continue
             names = study.action_names.get(item.task, [])
-            for j in e.judgements:
-                write(
-                    [e.participant, e.item, j.action, names[j.action] if j.action < len(names)
-                     else "", int(j.acceptable), j.framework, e.clarity, f"{e.ms:.0f}",
-                     f"{e.received:.3f}", item.task, study.runs[item.run], item.episode,
-                     item.step]
-                )  # fmt: skip
-        return buffer.getvalue()
-    write(CSV_COLUMNS)
-    for a in answers:
-        item = study.item(a.item)
-        if item is None or item.kind == "expert" or not item.options:
-            continue
-        oa, ob = item.options
-        write(
-            [a.participant, a.item, item.kind, a.choice, a.variant or "", oa.variant or "",
-             ob.variant or "", oa.action_name, ob.action_name, a.correct,
-             f"{a.ms:.0f}", f"{a.received:.3f}", item.task, study.runs[item.run],
-             item.episode, item.step, a.rating_a, a.rating_b]
-        )  # fmt: skip
+            rows += [
+                [e.participant, e.item, j.action, names[j.action] if j.action < len(names)
+                 else "", int(j.acceptable), j.framework, e.clarity, f"{e.ms:.0f}",
+                 f"{e.received:.3f}", item.task, study.runs[item.run], item.episode, item.step]
+                for j in e.judgements
+            ]  # fmt: skip
+    else:
+        rows.append(CSV_COLUMNS)
+        for a in answers:
+            item = study.item(a.item)
+            if item is None or item.kind == "expert" or not item.options:
+                continue
+            oa, ob = item.options
+            rows.append(
+                [a.participant, a.item, item.kind, a.choice, a.variant or "", oa.variant or "",
+                 ob.variant or "", oa.action_name, ob.action_name, a.correct,
+                 f"{a.ms:.0f}", f"{a.received:.3f}", item.task, study.runs[item.run],
+                 item.episode, item.step, a.rating_a, a.rating_b]
+            )  # fmt: skip
+    buffer = io.StringIO()
+    csv.writer(buffer, lineterminator="\n").writerows([safe_cell(c) for c in r] for r in rows)
     return buffer.getvalue()

@@ -1,9 +1,7 @@
-"""The participants' answers: one SQLite file (WAL) in the study folder.
+"""The participants' answers: one SQLite file (WAL, ``synchronous=FULL``) in the study folder.
 
-Every answer is committed (``synchronous=FULL``) before the server replies; the primary key
-``(participant, item)`` refuses a second answer, and every refusal is kept with its reason.
-Schema version 2; a version 1 file is migrated in place on open, and reads without
-ratings or expert answers when never migrated.
+``(participant, item)`` refuses a second answer; refusals are kept with their reason. Schema 2;
+a version 1 file is migrated on open, and reads without ratings or expert answers unmigrated.
 """
 
 from __future__ import annotations
@@ -133,11 +131,7 @@ class AnswerStore:
             self._db.close()
 
     def participant(self, wanted: str | None, source: str) -> tuple[str, str]:
-        """A participant's ``(id, token)``: a new id, or the one brought in the URL.
-
-        A platform's id gets the same token each time (the id is the credential); an assigned
-        id is a fresh random one.
-        """
+        """A participant's ``(id, token)``: a new random id, or the one brought (same token)."""
         with self._lock:
             if wanted:
                 row = self._db.execute(

@@ -1,10 +1,7 @@
-"""``amuled study build``: a study folder from trained runs.
+"""``amuled study build``: a study folder of the states variants met in replayed evaluations.
 
-Items are states the compared variants met in their replayed evaluation episodes (greedy);
-a pair item is a state where two variants' actions differ, shown as ``A``/``B`` in random
-order without names, with attention checks at random places; an expert item is a state with
-all the task's actions. A panel's beliefs and reasons come from the run's belief store,
-read-only. The same runs, variants, items and seed give the same bytes.
+A pair shows two variants' differing actions as ``A``/``B`` in random order; an expert item all
+the task's actions; panels come from the run's belief store, read-only. Same inputs, same bytes.
 """
 
 from __future__ import annotations
@@ -79,9 +76,7 @@ class _State:
 
 
 def resolve_variant(run_dir: Path, name: str) -> Path:
-    """The variant folder of a run that ``name`` means (folder, ``finetune-<name>`` or feedback).
-
-    Seed replicas (``<name>.seed<k>``) are left out unless named.
+    """The variant folder ``name`` means (folder, ``finetune-<name>``, feedback; no seed replica).
 
     Raises:
         StudyError: No variant, or several, fit; the message lists the run's variants.
@@ -228,25 +223,14 @@ def build_study(
     force: bool = False,
     mode: Literal["pairs", "expert"] = "pairs",
 ) -> Study:
-    """Build a study folder.
+    """Build a study folder ``out`` of ``items`` pairs (expert mode: states) of ``runs``.
 
-    Args:
-        runs: Run folders (``amuled run`` / ``train`` + ``finetune``).
-        variants: Variants present in every run: at least two (one in expert mode).
-        out: The study folder to write.
-        items: Pairs to ask about (fewer where the policies differ in fewer states); in
-            expert mode, states.
-        seed: The draw's seed.
-        attention: Attention checks (default one per ten pairs, at least one; none in
-            expert mode).
-        episodes: Evaluation episodes replayed per variant to find states.
-        force: Replace an existing study (an edited ``consent.html`` is kept either way).
-        mode: ``pairs`` (people choose and rate) or ``expert`` (experts judge every action).
+    ``attention`` checks default to one per ten pairs; ``force`` replaces a study (an edited
+    ``consent.html`` is kept either way).
 
     Raises:
-        StudyError: A run folder missing, too few variants, a variant not found, no state
-            where two variants differ, attention checks in expert mode, an unknown mode,
-            or ``out`` holds a study and ``force`` is not set.
+        StudyError: A run folder or variant missing, too few variants, no state where two
+            differ, attention checks in expert mode, or ``out`` holds a study without ``force``.
     """
     names = list(dict.fromkeys(variants))
     check_run_folders([Path(r) for r in runs])
@@ -274,12 +258,76 @@ def build_study(
             panels.append((panel[0], panel[1], u) if panel is not None else None)
     rng = np.random.default_rng(seed)
     if mode == "expert":
-        expert, expert_pictures = _expert_items(states, actions, panels, action_names, rng, items)
-        return _write(out, Study(
-            mode="expert", seed=int(seed), runs=[str(r) for r in runs], variants=names,
-            folders=folders, action_names=action_names, frameworks=_frameworks(),
-            items=expert, candidates=len(states),
-        ), expert_pictures)  # fmt: skip
+        slots: list[_Slot] = [
+            ("expert", s, (), None) for s in rng.permutation(len(states))[:items].tolist()
+        ]
+        candidates = len(states)
+    else:
+        slots, candidates = _pair_slots(states, actions, action_names, names, rng, items, attention)
+    built: list[Item] = []
+    pictures: dict[str, str] = {}
+    for position, (kind, s, options, expected) in enumerate(slots):
+        item_id = f"q{position + 1:03d}"
+        state = states[s]
+        built.append(
+            Item(
+                id=item_id,
+                kind=kind,
+                run=state.run,
+                task=state.task,
+                episode=state.episode,
+                step=state.step,
+                met_by=state.met_by,
+                obs=_round(state.obs),
+                prompt=_prompt(state.task, state.prompt_vars),
+                picture=f"states/{item_id}.svg",
+                options=options,
+                expected=expected,
+                instruction=None if expected is None else INSTRUCTION.format(expected),
+                policies=dict(actions[s]),
+                panel=None
+                if kind == "attention"
+                else _panel_view(panels[s], action_names[state.task]),
+            )
+        )
+        pictures[item_id] = state.svg
+    study = Study(
+        mode=mode,
+        seed=int(seed),
+        runs=[str(r) for r in runs],
+        variants=names,
+        folders=folders,
+        action_names=action_names,
+        frameworks=_frameworks() if mode == "expert" else [],
+        items=built,
+        candidates=candidates,
+    )
+    return _write(out, study, pictures)
+
+
+Kind = Literal["pair", "attention", "expert"]
+#: An item drawn: its kind, the state's index, its options and the attention check's answer.
+_Slot = tuple[Kind, int, tuple[Option, Option] | tuple[()], Literal["A", "B"] | None]
+#: What an attention check asks, given the option to choose.
+INSTRUCTION = (
+    "This question checks that you are reading: whatever the situation, please choose option {}."
+)
+
+
+def _pair_slots(
+    states: list[_State],
+    actions: list[dict[str, int]],
+    action_names: dict[str, list[str]],
+    names: list[str],
+    rng: np.random.Generator,
+    items: int,
+    attention: int | None,
+) -> tuple[list[_Slot], int]:
+    """Pairs where two variants' actions differ and attention checks, drawn; and the candidates.
+
+    Raises:
+        StudyError: The variants take the same action in every state.
+    """
     candidates = [
         (s, a, b)
         for s in range(len(states))
@@ -293,109 +341,32 @@ def build_study(
         )
     picks = rng.permutation(len(candidates))[: min(items, len(candidates))]
     n_att = max(1, len(picks) // 10) if attention is None else int(attention)
-    kinds = ["pair"] * len(picks) + ["attention"] * n_att
-    order = rng.permutation(len(kinds))
+    kinds: list[Kind] = ["pair"] * len(picks)
+    kinds += ["attention"] * n_att
     pairs = iter(picks.tolist())
-    built: list[Item] = []
-    pictures: dict[str, str] = {}
-    for position, slot in enumerate(order.tolist()):
-        item_id = f"q{position + 1:03d}"
+    slots: list[_Slot] = []
+    for slot in rng.permutation(len(kinds)).tolist():
+        expected: Literal["A", "B"] | None = None
         if kinds[slot] == "pair":
             s, a, b = candidates[next(pairs)]
-            first, second = (a, b) if rng.random() < 0.5 else (b, a)
-            state = states[s]
-            names_of = action_names[state.task]
-            options = (
-                Option(label="A", variant=first, action=actions[s][first],
-                       action_name=names_of[actions[s][first]]),
-                Option(label="B", variant=second, action=actions[s][second],
-                       action_name=names_of[actions[s][second]]),
-            )  # fmt: skip
-            expected = instruction = None
+            shown = (a, b) if rng.random() < 0.5 else (b, a)
+            (va, xa), (vb, xb) = ((v, actions[s][v]) for v in shown)
         else:
             s = int(rng.integers(len(states)))
-            state = states[s]
-            names_of = action_names[state.task]
-            two = rng.choice(len(names_of), size=2, replace=False).tolist()
-            options = (
-                Option(label="A", variant=None, action=two[0], action_name=names_of[two[0]]),
-                Option(label="B", variant=None, action=two[1], action_name=names_of[two[1]]),
-            )
+            va = vb = None
+            xa, xb = rng.choice(len(action_names[states[s].task]), size=2, replace=False).tolist()
             expected = "A" if rng.random() < 0.5 else "B"
-            instruction = (
-                f"This question checks that you are reading: whatever the situation, please "
-                f"choose option {expected}."
-            )
-        panel_view = _panel_view(panels[s], names_of) if kinds[slot] == "pair" else None
-        built.append(
-            Item(
-                id=item_id,
-                kind=kinds[slot],
-                run=state.run,
-                task=state.task,
-                episode=state.episode,
-                step=state.step,
-                met_by=state.met_by,
-                obs=_round(state.obs),
-                prompt=_prompt(state.task, state.prompt_vars),
-                picture=f"states/{item_id}.svg",
-                options=options,
-                expected=expected,
-                instruction=instruction,
-                policies=dict(actions[s]),
-                panel=panel_view,
-            )
+        names_of = action_names[states[s].task]
+        options = (
+            Option(label="A", variant=va, action=xa, action_name=names_of[xa]),
+            Option(label="B", variant=vb, action=xb, action_name=names_of[xb]),
         )
-        pictures[item_id] = state.svg
-    study = Study(
-        seed=int(seed),
-        runs=[str(r) for r in runs],
-        variants=names,
-        folders=folders,
-        action_names=action_names,
-        items=built,
-        candidates=len(candidates),
-    )
-    return _write(out, study, pictures)
-
-
-def _expert_items(
-    states: list[_State],
-    actions: list[dict[str, int]],
-    panels: list[tuple[str, Any, int] | None],
-    action_names: dict[str, list[str]],
-    rng: np.random.Generator,
-    items: int,
-) -> tuple[list[Item], dict[str, str]]:
-    """``items`` states drawn from those met, each with the panel's beliefs and reasons."""
-    built: list[Item] = []
-    pictures: dict[str, str] = {}
-    for position, s in enumerate(rng.permutation(len(states))[:items].tolist()):
-        item_id = f"q{position + 1:03d}"
-        state = states[s]
-        built.append(
-            Item(
-                id=item_id, kind="expert", run=state.run, task=state.task,
-                episode=state.episode, step=state.step, met_by=state.met_by,
-                obs=_round(state.obs), prompt=_prompt(state.task, state.prompt_vars),
-                picture=f"states/{item_id}.svg", policies=dict(actions[s]),
-                panel=_panel_view(panels[s], action_names[state.task]),
-            )
-        )  # fmt: skip
-        pictures[item_id] = state.svg
-    return built, pictures
+        slots.append((kinds[slot], s, options, expected))
+    return slots, len(candidates)
 
 
 def _check_outputs(out: Path) -> None:
-    """Refuse, before any work, a study folder whose outputs are links or not regular files.
-
-    ``study.json`` and ``consent.html`` must be absent or regular files
-    (:func:`~amuled_ma.files.safe.check_write_target`); ``states/`` absent or a folder
-    that is not a link (it is emptied and refilled).
-
-    Raises:
-        UnsafePathError: One of them is not; nothing was written.
-    """
+    """Refuse (UnsafePathError) outputs that are links or not regular files, ``states/`` a link."""
     check_write_targets([out / STUDY_FILE, out / CONSENT_FILE])
     check_own_folder(
         out / "states",
@@ -406,11 +377,7 @@ def _check_outputs(out: Path) -> None:
 
 
 def _write(out: Path, study: Study, pictures: dict[str, str]) -> Study:
-    """Write the study folder: ``study.json``, the pictures, the consent page if absent.
-
-    Every file goes through :mod:`amuled_ma.files.safe` (whole, never through a link);
-    an existing consent page, the researcher's own words, is kept as it is.
-    """
+    """Write ``study.json``, the pictures, and the consent page if absent (the researcher's)."""
     out.mkdir(parents=True, exist_ok=True)
     _check_outputs(out)
     states = out / "states"

@@ -1,8 +1,4 @@
-"""A state drawn as a small, self-contained SVG (what a participant sees of an item).
-
-The conventions and `amuled_ma.tasks.colors.COLORS` are the report's and the viewer's; the
-text is deterministic, so a rebuilt study has the same bytes.
-"""
+"""A state drawn as a small, self-contained, deterministic SVG in the viewer's `COLORS`."""
 
 from __future__ import annotations
 

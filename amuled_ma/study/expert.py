@@ -1,7 +1,6 @@
 """The numbers of an expert study: frameworks cited, the panel against the experts, clarity.
 
-A state's acceptable set holds the actions more than half of its experts found acceptable;
-reliability is Krippendorff's alpha (nominal) over (state, action) units.
+A state's acceptable set holds the actions more than half of its experts found acceptable.
 """
 
 from __future__ import annotations
@@ -12,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from amuled_ma.study.analysis import MeanInterval, bootstrap_mean, nominal_alpha, tally
+from amuled_ma.study.analysis import MeanInterval, bootstrap_mean, tally
 from amuled_ma.study.answers import ExpertAnswer
 from amuled_ma.study.model import Study
 
@@ -125,16 +124,6 @@ def framework_values(study: Study, answers: Sequence[ExpertAnswer]) -> dict[tupl
     index = {name: float(i) for i, name in enumerate(study.framework_names())}
     return {(a.participant, f"{a.item}/{j.action}"): index[j.framework]
             for a in answers for j in a.judgements if j.framework in index}  # fmt: skip
-
-
-def acceptability_alpha(answers: Sequence[ExpertAnswer]) -> float:
-    """Krippendorff's alpha (nominal) of acceptable / not over (state, action) units."""
-    return nominal_alpha(acceptability_values(answers))
-
-
-def framework_alpha(study: Study, answers: Sequence[ExpertAnswer]) -> float:
-    """Krippendorff's alpha (nominal) of the frameworks cited over (state, action) units."""
-    return nominal_alpha(framework_values(study, answers))
 
 
 def unreasoned_states(study: Study) -> list[str]:

@@ -1,7 +1,6 @@
 """The study folder's format as typed data: ``study.json`` is read and written here only.
 
-A study folder holds ``study.json``, ``states/<item>.svg``, ``consent.html`` (the researcher
-may edit it; a rebuild keeps it) and ``answers.sqlite`` (written by ``amuled study serve``).
+A study folder holds ``study.json``, ``states/<item>.svg``, ``consent.html`` and ``answers.sqlite``.
 """
 
 from __future__ import annotations
@@ -15,7 +14,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from amuled_ma.errors import AmuledError
-from amuled_ma.files.safe import write_text_atomic
+from amuled_ma.files.safe import file_kind, write_text_atomic
 
 #: The study file's name in a study folder.
 STUDY_FILE = "study.json"
@@ -58,10 +57,7 @@ def read_folder_file(
     note: str,
     fix: str,
 ) -> str:
-    """A regular UTF-8 file inside a study folder, of at most ``limit`` bytes.
-
-    Opened with ``O_NOFOLLOW`` and checked to resolve inside ``folder``, so a study folder
-    cannot make the server send other files; ``noun``, ``note`` and ``fix`` word the refusal.
+    """A regular UTF-8 file inside a study folder (no link), of at most ``limit`` bytes.
 
     Raises:
         NotInFolder: A symbolic link, not a regular file, or outside the folder.
@@ -85,7 +81,7 @@ def read_folder_file(
     with os.fdopen(fd, "rb") as handle:
         info = os.fstat(handle.fileno())
         if not stat.S_ISREG(info.st_mode):
-            raise NotInFolder(refuse + f"found {_file_kind(info.st_mode)}{redo}")
+            raise NotInFolder(refuse + f"found {file_kind(path, info.st_mode)}{redo}")
         if not inside:
             raise NotInFolder(refuse + f"it resolves to {path.resolve()}{redo}")
         if info.st_size > limit:
@@ -95,16 +91,6 @@ def read_folder_file(
     if len(data) > limit:
         raise StudyError(f"{path}: the {noun} holds more than the {limit:,} bytes it may; {fix}")
     return decode_text(path, data, noun, error=StudyError)
-
-
-def _file_kind(mode: int) -> str:
-    """``a directory``, ``a FIFO``, ...: what a non-regular file is, for a refusal."""
-    for test, name in ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO"),
-                       (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
-                       (stat.S_ISBLK, "a block device")):  # fmt: skip
-        if test(mode):
-            return name
-    return "not a regular file"
 
 
 def check_run_folders(runs: list[Path]) -> None:
@@ -132,11 +118,7 @@ class Option(_Model):
 
 
 class PanelView(_Model):
-    """What the run's panel said about an item's state (from its belief store).
-
-    ``beliefs`` ``[K][A]``, ``statuses`` ``[K]``, ``fused`` ``[A]``; ``reasons`` ``[K]`` each
-    member's stated reason, None where no reply was kept; empty in a format 1 study.
-    """
+    """What the run's panel said about a state: ``beliefs`` ``[K][A]``, ``reasons`` ``[K]``."""
 
     feedback: str
     agents: list[str]
@@ -157,12 +139,9 @@ PICTURE_PATTERN = r"^states/[A-Za-z0-9_-]+\.svg$"
 
 
 class Item(_Model):
-    """One question of the study.
+    """One question: a ``pair``, an ``attention`` check (``expected``) or an ``expert`` state.
 
-    ``kind``: ``pair`` (two variants' decisions), ``attention`` (an instructed answer, ``expected``)
-    or ``expert`` (a state with all the task's actions, no ``options``). ``picture`` is
-    ``states/<id>.svg``, sent to every participant; ``policies`` each studied variant's action;
-    ``panel`` None without a panel variant or store.
+    ``policies``: each studied variant's action; ``panel`` None without a panel variant or store.
     """
 
     id: str
@@ -192,12 +171,7 @@ class Item(_Model):
 
 
 class Study(_Model):
-    """A built study: ``study.json``.
-
-    ``mode`` ``pairs`` (choose between two decisions, rate each) or ``expert``; the same runs,
-    variants, items and ``seed`` give the same bytes; ``folders`` ``[run][variant]``;
-    ``candidates`` the distinct states (pairs: with differing variants) found.
-    """
+    """A built study: ``study.json``; ``folders`` ``[run][variant]``."""
 
     format: int = FORMAT
     mode: Literal["pairs", "expert"] = "pairs"
@@ -224,27 +198,14 @@ class Study(_Model):
 
 
 def write_study(folder: Path, study: Study) -> Path:
-    """Write ``study.json`` (sorted keys, two-space indent, a final newline: stable bytes).
-
-    Written whole through :func:`~amuled_ma.files.safe.write_text_atomic`: never through
-    a link, and only over a regular file.
-
-    Raises:
-        UnsafePathError: ``study.json`` is a link or not a regular file; nothing written.
-        FileWriteError: The write failed; the old file is kept.
-    """
+    """Write ``study.json`` (sorted keys, indent 2: stable bytes) by ``write_text_atomic``."""
     path = Path(folder) / STUDY_FILE
     text = json.dumps(study.model_dump(mode="json"), indent=2, sort_keys=True)
     return write_text_atomic(path, text + "\n")
 
 
 def read_study(folder: Path) -> Study:
-    """Read a study folder's ``study.json``.
-
-    Raises:
-        StudyError: No such file, a link, over `MAX_STUDY_BYTES` (refused unread), not
-            UTF-8 or JSON, or not of the format (the message names the key).
-    """
+    """Read a study folder's ``study.json``; StudyError naming the key where it does not fit."""
     path = Path(folder) / STUDY_FILE
     if not path.is_file() and not path.is_symlink():
         raise StudyError(
@@ -281,11 +242,7 @@ LEGENDS = {
 
 
 def public_item(item: Item, svg: str, action_names: list[str] | None = None) -> dict[str, Any]:
-    """What the participant's page gets of an item: never the variant or the expected answer.
-
-    An expert item also gets the task's actions and the panel's members, beliefs, reasons
-    and fused belief.
-    """
+    """What the participant's page gets of an item (an expert: the panel), never the variant."""
     shown: dict[str, Any] = {
         "id": item.id,
         "kind": item.kind,

@@ -12,10 +12,9 @@ MAX_REASON_CHARS = 3000
 
 
 def stated_reason(raw: str | None, action_names: Sequence[str]) -> str | None:
-    """The reason a member gave in its raw reply; None when it gave none or none was kept.
+    """A JSON reply's ``reasoning``, or a reply's text that is not only JSON; None without one.
 
-    The ``reasoning`` field of a JSON reply, else the reply's text when it is not only a JSON
-    object, cut at `MAX_REASON_CHARS` characters.
+    Cut at `MAX_REASON_CHARS` characters.
     """
     if not isinstance(raw, str) or not raw.strip():
         return None

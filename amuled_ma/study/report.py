@@ -1,8 +1,4 @@
-"""``amuled study analyze``: the study's report, its data and its figure.
-
-``analysis/report.md``, ``analysis/summary.json``, and ``analysis/strengths.png`` (a pairs
-study) or ``analysis/expert.png`` (an expert study).
-"""
+"""``amuled study analyze``: ``analysis/report.md``, ``summary.json`` and the study's figure."""
 
 from __future__ import annotations
 
@@ -16,6 +12,7 @@ from typing import Any
 from amuled_ma.files.safe import check_own_folder, check_write_targets, write_text_atomic
 from amuled_ma.study import expert
 from amuled_ma.study.analysis import (
+    MeanInterval,
     acceptability,
     agreement,
     alpha_unavailable,
@@ -27,8 +24,8 @@ from amuled_ma.study.analysis import (
     few_people,
     load,
     majorities,
+    nominal_alpha,
     pair_answers,
-    reliability,
     wilson,
     win_rates,
 )
@@ -47,6 +44,12 @@ def _f(value: float | None, digits: int = 3) -> str:
 def _num(value: float) -> float | None:
     """A number for ``summary.json``: None for nan (JSON has no nan)."""
     return None if value is None or math.isnan(value) else float(value)
+
+
+def _mean(m: MeanInterval, people: str) -> dict[str, Any]:
+    """A mean, its interval, its ratings and their ``people`` for ``summary.json``."""
+    numbers = {"mean": _num(m.mean), "low": _num(m.low), "high": _num(m.high)}
+    return {**numbers, "ratings": m.n, people: m.people}
 
 
 def _row(*cells: object) -> str:
@@ -90,7 +93,7 @@ def summarize(folder: Path, *, keep_inattentive: bool = False) -> dict[str, Any]
     """Every figure of the report, as JSON-ready data."""
     study, answers = load(folder)
     everyone = {a.participant for a in answers}
-    kept = everyone if keep_inattentive else attentive(study, answers)
+    kept = attentive(answers, keep_inattentive=keep_inattentive)
     used = [a for a in answers if a.participant in kept]
     pairs = pair_answers(study, used)
     games = comparisons(pairs)
@@ -136,18 +139,8 @@ def summarize(folder: Path, *, keep_inattentive: bool = False) -> dict[str, Any]
         ],
         "rating_points": study.rating_points,
         "answers_rated": sum(1 for a, _ in pairs if a.rating_a is not None),
-        "acceptability": [
-            {
-                "variant": v,
-                "mean": _num(m.mean),
-                "low": _num(m.low),
-                "high": _num(m.high),
-                "ratings": m.n,
-                "participants": m.people,
-            }
-            for v, m in rated.items()
-        ],
-        "krippendorff_alpha": reliability(pairs),
+        "acceptability": [{"variant": v, **_mean(m, "participants")} for v, m in rated.items()],
+        "krippendorff_alpha": nominal_alpha(choice_values(pairs)),
         "krippendorff_alpha_unavailable": alpha_unavailable(choice_values(pairs)),
         "agreement": _rates(agree),
         "disagreements": disagreements[:10],
@@ -202,16 +195,9 @@ def summarize_expert(folder: Path) -> dict[str, Any]:
             k: {"acceptable": sorted(v[0]), "experts": v[1]} for k, v in sorted(sets.items())
         },
         "agreement": _rates(expert.expert_agreement(study, sets)),
-        "clarity": {
-            "mean": _num(clear.mean),
-            "low": _num(clear.low),
-            "high": _num(clear.high),
-            "ratings": clear.n,
-            "experts": clear.people,
-            "points": study.clarity_points,
-        },
-        "alpha_acceptable": _num(expert.acceptability_alpha(answers)),
-        "alpha_framework": _num(expert.framework_alpha(study, answers)),
+        "clarity": {**_mean(clear, "experts"), "points": study.clarity_points},
+        "alpha_acceptable": _num(nominal_alpha(expert.acceptability_values(answers))),
+        "alpha_framework": _num(nominal_alpha(expert.framework_values(study, answers))),
         "alpha_acceptable_unavailable": alpha_unavailable(expert.acceptability_values(answers)),
         "alpha_framework_unavailable": alpha_unavailable(expert.framework_values(study, answers)),
         "fused_unacceptable": unacceptable[:10],
@@ -228,14 +214,20 @@ def _warnings(data: dict[str, Any]) -> list[str]:
     return [line for w in data["warnings"] for line in (f"**Warning:** {w}.", "")]
 
 
-def _analysis_folder(folder: Path, figure: str) -> Path:
-    """``<study>/analysis``, made if absent, its three outputs checked before any is written.
+def write_analysis(
+    folder: Path,
+    *,
+    keep_inattentive: bool = False,
+    warn: Callable[[str], None] | None = None,
+) -> Path:
+    """Write ``<study>/analysis/``'s report (returned), summary and figure; ``warn`` each warning.
 
     Raises:
-        UnsafePathError: ``analysis`` is a link or not a folder, or an output there is a
-            link or not a regular file (:func:`~amuled_ma.files.safe.check_write_target`);
-            nothing was written.
+        UnsafePathError: ``analysis`` or an output there is a link or not a folder or file.
     """
+    folder = Path(folder)
+    expert_mode = read_study(folder).mode == "expert"
+    figure = "expert.png" if expert_mode else "strengths.png"
     out = folder / "analysis"
     check_own_folder(
         out,
@@ -244,26 +236,25 @@ def _analysis_folder(folder: Path, figure: str) -> Path:
     )
     out.mkdir(exist_ok=True)
     check_write_targets([out / "summary.json", out / "report.md", out / figure])
-    return out
+    if expert_mode:
+        data = summarize_expert(folder)
+    else:
+        data = summarize(folder, keep_inattentive=keep_inattentive)
+    for line in data["warnings"]:
+        if warn is not None:
+            warn(line)
+    write_text_atomic(out / "summary.json", json.dumps(data, indent=2) + "\n")
+    if expert_mode:
+        expert_figure(data, out / figure)
+        lines = _expert_report(folder, data)
+    else:
+        strengths_figure(data, out / figure)
+        lines = _pairs_report(folder, data, keep_inattentive)
+    return write_text_atomic(out / "report.md", "\n".join(lines) + "\n")
 
 
-def write_analysis(
-    folder: Path,
-    *,
-    keep_inattentive: bool = False,
-    warn: Callable[[str], None] | None = None,
-) -> Path:
-    """Write ``<study>/analysis/report.md``, ``summary.json`` and the figure; return the report.
-
-    ``warn`` is told each warning of the report (too few participants), one line each.
-    """
-    folder = Path(folder)
-    if read_study(folder).mode == "expert":
-        return _write_expert(folder, warn)
-    out = _analysis_folder(folder, "strengths.png")
-    data = summarize(folder, keep_inattentive=keep_inattentive)
-    _write_summary(out, data, warn)
-    strengths_figure(data, out / "strengths.png")
+def _pairs_report(folder: Path, data: dict[str, Any], keep_inattentive: bool) -> list[str]:
+    """The lines of a pairs study's ``report.md``."""
     lines = [
         f"# Study {folder.name}: what people chose",
         "",
@@ -333,23 +324,11 @@ def write_analysis(
         f"the other by {_f(d['fused_gap'])}; see `{d['view']}` at step {d['step']}"
         for d in data["disagreements"]
     ] or ["None: the fused belief sides with the majority on every item."]
-    return write_text_atomic(out / "report.md", "\n".join(lines) + "\n")
+    return lines
 
 
-def _write_summary(out: Path, data: dict[str, Any], warn: Callable[[str], None] | None) -> None:
-    """Tell ``warn`` the summary's warnings, write ``out/summary.json``."""
-    for line in data["warnings"]:
-        if warn is not None:
-            warn(line)
-    write_text_atomic(out / "summary.json", json.dumps(data, indent=2) + "\n")
-
-
-def _write_expert(folder: Path, warn: Callable[[str], None] | None) -> Path:
-    """The expert study's ``report.md``, ``summary.json`` and ``expert.png``."""
-    out = _analysis_folder(folder, "expert.png")
-    data = summarize_expert(folder)
-    _write_summary(out, data, warn)
-    expert_figure(data, out / "expert.png")
+def _expert_report(folder: Path, data: dict[str, Any]) -> list[str]:
+    """The lines of an expert study's ``report.md``."""
     no_reason = data["states_without_reason"]
     lines = [
         f"# Study {folder.name}: what the experts judged",
@@ -412,4 +391,4 @@ def _write_expert(folder: Path, warn: Callable[[str], None] | None) -> Path:
         f"see `{d['view']}` at step {d['step']}"
         for d in data["fused_unacceptable"]
     ] or ["None: the fused belief's top action is acceptable on every state judged."]
-    return write_text_atomic(out / "report.md", "\n".join(lines) + "\n")
+    return lines

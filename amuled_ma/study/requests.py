@@ -1,8 +1,6 @@
 r"""The study server's request bodies as strict pydantic models: every field bounded at the edge.
 
-Parsed by ``model_validate_json``, so invalid UTF-8, lone surrogates, huge integers and deep
-nesting are validation errors, not server exceptions. An answer is read in two steps: the
-`AnswerEnvelope` (who, token, item) first, then the item's model from `answer_models`.
+An answer is read in two steps: the `AnswerEnvelope` first, then the item's `answer_models`.
 """
 
 from __future__ import annotations
@@ -95,12 +93,10 @@ class ExpertAnswerRequest(_Request):
 def answer_models(
     rating_points: int, clarity_points: int, frameworks: list[str]
 ) -> tuple[type[PairAnswer], Callable[[int, bool], type[ExpertAnswerRequest]]]:
-    """The model of a pair's answer, and of an expert's by its state, on the study's scales.
+    """The model of a pair's answer, and of an expert's by ``(actions, reason)``, on the scales.
 
-    The expert's model of a state with ``actions`` actions holds one judgement per action,
-    each citing one of ``frameworks``, and a clarity exactly when the panel stated a
-    ``reason``. Fields are checked in the order written, so the first error names the first
-    field that does not fit.
+    An expert's holds one judgement per action citing one of ``frameworks``, and a clarity
+    exactly when the panel stated a ``reason``.
     """
     rating = (int, Field(strict=True, ge=1, le=rating_points))
     ratings = create_model("ScaledRatings", __base__=Ratings, A=rating, B=rating)
@@ -133,40 +129,39 @@ def where(loc: tuple[str | int, ...]) -> str:
     return ".".join(str(part) for part in loc) or "body"
 
 
+#: The refusal's reason kept for a pair's answer whose first error is in this field.
+PAIR_REASONS = {"choice": "unknown choice", "ms": "bad time"}
+#: The same for a field of an expert's judgement (``actions.N.<field>``).
+JUDGEMENT_REASONS = {
+    "acceptable": "expert: acceptable not yes or no",
+    "framework": "expert: unknown framework",
+}
+
+
 def pair_reason(loc: tuple[str | int, ...], kind: str) -> str:
     """The refusal's reason kept for a pair's answer that does not fit its model."""
-    head = loc[0] if loc else ""
-    if head == "choice":
-        return "unknown choice"
-    if head == "ms":
-        return "bad time"
+    head = str(loc[0]) if loc else ""
     if head == "ratings":
         if len(loc) == 1 or kind == "missing":
             return "ratings missing"
         if kind == "extra_forbidden":
             return "rating for an option not shown"
         return "rating outside the scale"
-    return f"answer: unexpected or malformed field {where(loc)}"
+    return PAIR_REASONS.get(head, f"answer: unexpected or malformed field {where(loc)}")
 
 
 def expert_reason(loc: tuple[str | int, ...], kind: str) -> str:
     """The refusal's reason kept for an expert's answer that does not fit its model."""
-    head = loc[0] if loc else ""
-    if head == "ms":
-        return "bad time"
+    head = str(loc[0]) if loc else ""
     if head == "clarity":
-        return (
-            "clarity without a stated reason"
-            if kind == "none_required"
-            else ("clarity outside the scale")
-        )
+        if kind == "none_required":
+            return "clarity without a stated reason"
+        return "clarity outside the scale"
     if head == "actions":
         if len(loc) == 1:
             return "expert: not one judgement per action"
-        field = loc[2] if len(loc) > 2 else None
-        if field == "acceptable" and kind != "extra_forbidden":
-            return "expert: acceptable not yes or no"
-        if field == "framework" and kind != "extra_forbidden":
-            return "expert: unknown framework"
-        return "expert: judgement malformed"
+        field = str(loc[2]) if len(loc) > 2 and kind != "extra_forbidden" else ""
+        return JUDGEMENT_REASONS.get(field, "expert: judgement malformed")
+    if head == "ms":
+        return "bad time"
     return f"answer: unexpected or malformed field {where(loc)}"

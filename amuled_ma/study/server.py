@@ -1,9 +1,4 @@
-"""``amuled study serve``: the study's participant page and its answer API (Starlette).
-
-Routes ``GET /`` (the page, jsPsych shipped in ``static/``; nothing loaded from the network),
-``GET /consent``, ``POST /api/session``, ``POST /api/answer`` (stored at once, or refused
-with 400/403/409/413 and the reason kept; docs/study.md lists them) and ``GET /api/health``.
-"""
+"""``amuled study serve``: the participant page and its answer API (Starlette; docs/study.md)."""
 
 from __future__ import annotations
 
@@ -32,7 +27,6 @@ from amuled_ma.study.model import (
     CONSENT_FILE,
     NO_FRAMEWORK,
     NO_REASON,
-    Item,
     NotInFolder,
     Study,
     StudyError,
@@ -42,6 +36,8 @@ from amuled_ma.study.model import (
 )
 from amuled_ma.study.requests import (
     AnswerEnvelope,
+    ExpertAnswerRequest,
+    PairAnswer,
     SessionRequest,
     answer_models,
     expert_reason,
@@ -69,16 +65,13 @@ class _BodyTooLarge(Exception):
     """A request body over `MAX_BODY_BYTES` (answered 413, not read further)."""
 
 
-def _too_large() -> JSONResponse:
-    return JSONResponse(
-        {"error": f"the body is more than the {MAX_BODY_BYTES:,} bytes an answer may be"},
-        status_code=413,
-    )
+def _refused(status: int, error: str) -> JSONResponse:
+    """A refused request with its one-line reason."""
+    return JSONResponse({"error": error}, status_code=status)
 
 
-def _bad(error: str) -> JSONResponse:
-    """A refused request (400) with its one-line reason."""
-    return JSONResponse({"error": error}, status_code=400)
+#: The reply to a body over `MAX_BODY_BYTES`.
+TOO_LARGE = f"the body is more than the {MAX_BODY_BYTES:,} bytes an answer may be"
 
 
 def _said(error: ValidationError) -> str:
@@ -105,12 +98,7 @@ def participant_order(study: Study, participant: str) -> list[str]:
 
 
 class StudyApp:
-    """The server's state: the study, its pictures and its answer store.
-
-    Raises:
-        StudyError: A folder file refused by `read_folder_file`, or a ``consent.html`` with
-            the template's placeholders without ``allow_placeholder_consent``.
-    """
+    """The server's state; StudyError for a folder file refused or a placeholder consent page."""
 
     def __init__(self, folder: Path, *, allow_placeholder_consent: bool = False) -> None:
         self.folder = Path(folder)
@@ -175,10 +163,7 @@ class StudyApp:
         )
 
     async def consent(self, request: Request) -> Response:
-        """The consent fragment; a refusal goes to stderr, never the folder's path to the page.
-
-        404 where it became a link or not a regular file, `CONSENT_REFUSED` with 500 otherwise.
-        """
+        """The consent fragment; a refusal (404, 500) goes to stderr, never its path to the page."""
         try:
             return HTMLResponse(self.consent_text())
         except NotInFolder as refused:
@@ -211,18 +196,16 @@ class StudyApp:
         try:
             body = SessionRequest.model_validate_json(await self._body(request))
         except _BodyTooLarge:
-            return _too_large()
+            return _refused(413, TOO_LARGE)
         except ValidationError as refused:
-            return _bad(_said(refused))
+            return _refused(400, _said(refused))
         wanted, token = body.participant, body.token
         if wanted and token:
             if not self.store.token_ok(wanted, token):
                 self.store.refuse(wanted, None, None, "session: wrong token")
-                return JSONResponse({"error": "participant: wrong token"}, status_code=403)
+                return _refused(403, "participant: wrong token")
         elif wanted and wanted.startswith("p-"):  # ids the server assigned need the token
-            return JSONResponse(
-                {"error": "participant: an assigned id needs its token"}, status_code=403
-            )
+            return _refused(403, "participant: an assigned id needs its token")
         source = body.source or "participant"
         pid, token = self.store.participant(wanted, source if wanted else "assigned")
         done = set(self.store.answered(pid))
@@ -233,15 +216,12 @@ class StudyApp:
             public_item(self.items[i], self.pictures[i], study.action_names.get(self.items[i].task))
             for i in order
         ]
+        shown = {"mode", "question", "rating_question", "rating_points", "clarity_points"}
         return JSONResponse(
             {
                 "participant": pid,
                 "token": token,
-                "mode": study.mode,
-                "question": study.question,
-                "rating_question": study.rating_question,
-                "rating_points": study.rating_points,
-                "clarity_points": study.clarity_points,
+                **study.model_dump(include=shown),
                 "frameworks": [
                     [name, titles.get(name, "none of these / other")]
                     for name in study.framework_names()
@@ -255,76 +235,65 @@ class StudyApp:
         )
 
     async def answer(self, request: Request) -> Response:
-        """Store one answer at once, or refuse it (the reason is kept).
-
-        The envelope (who, which item) and token are checked first, then the whole body by the
-        item's model (a pair's or an expert's, on the study's scales).
-        """
+        """Store one answer (envelope, token, then the item's model checked), or refuse it."""
         try:
             envelope = AnswerEnvelope.model_validate_json(await self._body(request))
         except _BodyTooLarge:
             self.store.refuse(None, None, None, "answer: body too large")
-            return _too_large()
+            return _refused(413, TOO_LARGE)
         except ValidationError as refused:
             self.store.refuse(None, None, None, "answer: missing or malformed field")
-            return _bad(f"{_said(refused)}; expected participant, token, item: short strings")
+            return _refused(
+                400, f"{_said(refused)}; expected participant, token, item: short strings"
+            )
         pid, item_id, choice = envelope.participant, envelope.item, envelope.choice
         if not self.store.token_ok(pid, envelope.token):
             self.store.refuse(pid, item_id, choice, "wrong token")
-            return JSONResponse({"error": "participant: wrong token"}, status_code=403)
+            return _refused(403, "participant: wrong token")
         item = self.items.get(item_id)
         if item is None:
             self.store.refuse(pid, item_id, choice, "unknown item")
-            return JSONResponse({"error": f"item: unknown {item_id!r}"}, status_code=400)
-        fields = envelope.model_dump(exclude_unset=True)
+            return _refused(400, f"item: unknown {item_id!r}")
+        study = self.study
+        model: type[PairAnswer | ExpertAnswerRequest]
         if item.kind == "expert":
-            return self._expert_answer(fields, item, pid)
+            reasoned = item.panel is not None and item.panel.has_reasons()
+            model = self.expert_model(len(study.action_names.get(item.task, [])), reasoned)
+            reason_of, choice = expert_reason, None
+            expected = (
+                "'ms': a time in ms, 'actions': one {'acceptable': true|false, 'framework': one "
+                f"of {study.framework_names()}}} per action, 'clarity': 1 to "
+                f"{study.clarity_points} (null where the panel stated no reason)"
+            )
+        else:
+            model, reason_of = self.pair_model, pair_reason
+            expected = (
+                "'choice': 'A' or 'B', 'ms': a time in ms, 'ratings': {'A': r, 'B': r}, r an "
+                f"integer from 1 to {study.rating_points}"
+            )
         try:
-            form = self.pair_model.model_validate(fields)
+            form = model.model_validate(envelope.model_dump(exclude_unset=True))
         except ValidationError as refused:
-            loc, kind, _ = first_error(refused)
-            reason = pair_reason(loc, kind)
+            reason = reason_of(*first_error(refused)[:2])
             self.store.refuse(pid, item_id, choice, reason)
-            return _bad(
-                f"{reason} ({_said(refused)}); expected 'choice': 'A' or 'B', 'ms': a time in ms, "
-                f"'ratings': {{'A': r, 'B': r}}, r an integer from 1 to "
-                f"{self.study.rating_points}"
+            return _refused(400, f"{reason} ({_said(refused)}); expected {expected}")
+        if isinstance(form, ExpertAnswerRequest):
+            judged = tuple(
+                Judgement(a, j.acceptable, j.framework) for a, j in enumerate(form.actions)
             )
-        option = next(o for o in item.options if o.label == form.choice)
-        ratings = form.ratings
-        correct = None if item.expected is None else int(form.choice == item.expected)
-        answer = Answer(
-            pid, item_id, form.choice, option.variant, correct, float(form.ms), time.time(),
-            rating_a=ratings.A, rating_b=ratings.B,
-        )  # fmt: skip
-        if not self.store.add(answer):
+            expert = ExpertAnswer(pid, item_id, form.clarity, judged, float(form.ms), time.time())
+            stored = self.store.add_expert(expert)
+        else:
+            variant = next(o.variant for o in item.options if o.label == form.choice)
+            correct = None if item.expected is None else int(form.choice == item.expected)
+            ratings = form.ratings
+            stored = self.store.add(
+                Answer(pid, item_id, form.choice, variant, correct, float(form.ms), time.time(),
+                       rating_a=ratings.A, rating_b=ratings.B)
+            )  # fmt: skip
+        if not stored:
             self.store.refuse(pid, item_id, choice, "already answered")
-            return JSONResponse({"error": f"item {item_id}: already answered"}, status_code=409)
-        return JSONResponse({"stored": True})
-
-    def _expert_answer(self, fields: dict[str, object], item: Item, pid: str) -> Response:
-        """Store an expert's judgements of a state, or refuse them (the reason is kept)."""
-        actions = len(self.study.action_names.get(item.task, []))
-        reason = item.panel is not None and item.panel.has_reasons()
-        try:
-            form = self.expert_model(actions, reason).model_validate(fields)
-        except ValidationError as refused:
-            loc, kind, _ = first_error(refused)
-            problem = expert_reason(loc, kind)
-            self.store.refuse(pid, item.id, None, problem)
-            return _bad(
-                f"{problem} ({_said(refused)}); expected 'ms': a time in ms, 'actions': one "
-                f"{{'acceptable': true|false, 'framework': one of "
-                f"{self.study.framework_names()}}} per action, 'clarity': 1 to "
-                f"{self.study.clarity_points} (null where the panel stated no reason)"
-            )
-        judgements = tuple(
-            Judgement(a, j.acceptable, j.framework) for a, j in enumerate(form.actions)
-        )
-        answer = ExpertAnswer(pid, item.id, form.clarity, judgements, float(form.ms), time.time())
-        if not self.store.add_expert(answer):
-            self.store.refuse(pid, item.id, None, "already answered")
-            return JSONResponse({"error": f"item {item.id}: already answered"}, status_code=409)
+            return _refused(409, f"item {item_id}: already answered")
         return JSONResponse({"stored": True})
 
 
@@ -349,14 +318,8 @@ def check_host(host: str, *, public: bool) -> None:
         )
 
 
-def listen_socket(host: str, port: int, *, public: bool = False) -> socket.socket:
-    """The bound socket the study is served on (bound here, so a refusal is one line).
-
-    Raises:
-        StudyError: A non-loopback address without ``public``, an address not this
-            machine's, or a port in use or not allowed.
-    """
-    check_host(host, public=public)
+def listen_socket(host: str, port: int) -> socket.socket:
+    """The bound socket the study is served on; StudyError for an address or port refused."""
     try:
         infos = socket.getaddrinfo(
             host or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
@@ -395,16 +358,12 @@ def serve(
     allow_placeholder_consent: bool = False,
     say: Callable[[str], None] = print,
 ) -> None:
-    """Serve a study until interrupted (uvicorn, one process).
-
-    The files are checked and the socket bound before ``say`` is told the address, so
-    every refusal (StudyError, as `StudyApp` and `listen_socket`) comes first.
-    """
+    """Serve a study until interrupted (uvicorn); every refusal comes before ``say`` is told."""
     import uvicorn
 
     check_host(host, public=public)
     app = StudyApp(folder, allow_placeholder_consent=allow_placeholder_consent).app
-    sock = listen_socket(host, port, public=public)
+    sock = listen_socket(host, port)
     if not is_loopback(host):
         print(
             f"amuled: warning: serving on {host or 'every interface'}: any machine that can "

@@ -1,8 +1,6 @@
 """Panel weights learned from people: the member prior whose fusion best predicts their choices.
 
-The choice model (Luce's rule on the ``bjs-dst`` fused belief with a temperature and a floor),
-the fit and its intervals are described in docs/study.md, "Panel weights learned from people".
-Random numbers come from ``numpy.random.default_rng(seed)``: the same inputs give the same file.
+The choice model and the fit: docs/study.md, "Panel weights learned from people".
 """
 
 from __future__ import annotations
@@ -38,12 +36,10 @@ _TINY = 1e-300
 
 @dataclass(frozen=True)
 class ChoiceData:
-    """A study's ``bjs-dst`` pair items and the answers about them, as arrays.
+    """A study's ``bjs-dst`` pair items (``N``) and the answers (``M``) about them, as arrays.
 
-    ``N`` items, ``K`` members, ``M`` answers: ``base`` ``(N, K)`` the fusion's weights without a
-    prior (0 for a member that did not answer), ``mass_a``/``mass_b`` ``(N, K)`` each member's
-    belief in option A's/B's action, ``size`` ``(N,)`` the members who answered; ``answer_*``
-    ``(M,)`` each answer's participant index, item index and whether A was chosen.
+    ``base`` ``(N, K)``: the fusion's weights without a prior (0: no answer); ``mass_a``/``mass_b``
+    each member's belief in A's/B's action; ``size`` ``(N,)`` the members who answered.
     """
 
     members: tuple[str, ...]
@@ -112,8 +108,7 @@ def choice_data(
         mass_b.append(mb)
         size.append(len(answered))
     index = {item_id: n for n, item_id in enumerate(rows)}
-    everyone = {a.participant for a in answers}
-    kept = everyone if keep_inattentive else attentive(study, answers)
+    kept = attentive(answers, keep_inattentive=keep_inattentive)
     used = [(a, i) for a, i in pair_answers(study, answers) if a.participant in kept]
     used = [(a, i) for a, i in used if i.id in index]
     if not used:
@@ -256,7 +251,6 @@ class WeightsFit:
 
     data: ChoiceData
     learned: Fit
-    fixed: Fit
     low: np.ndarray
     high: np.ndarray
     temperature_interval: tuple[float, float]
@@ -276,11 +270,9 @@ def fit_study(
     """Fit the weights, their bootstrap intervals and the held-out comparison.
 
     Raises:
-        StudyError: ``bootstrap`` below 1, or ``folds`` outside 2..participants.
+        StudyError: ``folds`` outside 2..participants.
     """
     people = len(data.participants)
-    if bootstrap < 1:
-        raise StudyError(f"--bootstrap {bootstrap}: give at least 1 resample (200 is usual)")
     if not 2 <= folds <= people:
         raise StudyError(
             f"--folds {folds}: the held-out likelihood needs 2 to {people} folds, one "
@@ -292,7 +284,6 @@ def fit_study(
     rng = np.random.default_rng(seed)
     n_a, n_b = data.counts()
     learned = fit(data, n_a, n_b, temperature=temperature)
-    fixed = fit(data, n_a, n_b, learn=False, temperature=temperature, start=learned.x)
     bar = tqdm(total=bootstrap + folds, desc="fit-weights", unit="fit", disable=not progress)
     with bar:
         # held out: each fold scored by the models fitted on the others
@@ -337,7 +328,6 @@ def fit_study(
     return WeightsFit(
         data=data,
         learned=learned,
-        fixed=fixed,
         low=low,
         high=high,
         temperature_interval=(float(t_low), float(t_high)),
@@ -355,48 +345,6 @@ def answers_sha256(data: ChoiceData) -> str:
     return hashlib.sha256("\n".join(lines).encode("utf-8")).hexdigest()
 
 
-def weights_file(
-    result: WeightsFit,
-    *,
-    study: Path,
-    seed: int,
-    bootstrap: int,
-    keep_inattentive: bool,
-    temperature: float | None = None,
-) -> PanelWeights:
-    """The `PanelWeights` of a fit, with its provenance (``study``'s ``study.json`` is hashed)."""
-    from amuled_ma.files.hashing import sha256_file
-
-    def r(values: np.ndarray) -> list[float]:
-        return [round(float(v), 6) for v in values]
-
-    data = result.data
-    return PanelWeights(
-        members=list(data.members),
-        weights=r(result.learned.prior),
-        low=r(result.low),
-        high=r(result.high),
-        temperature=round(result.learned.temperature, 6),
-        temperature_interval=(
-            round(result.temperature_interval[0], 6),
-            round(result.temperature_interval[1], 6),
-        ),
-        participants=len(data.participants),
-        answers=len(data.answer_item),
-        items=len(data.items),
-        held_out=result.held_out,
-        provenance=WeightsProvenance(
-            study=str(study),
-            study_sha256=sha256_file(Path(study) / STUDY_FILE),
-            answers_sha256=answers_sha256(data),
-            seed=seed,
-            bootstrap=bootstrap,
-            keep_inattentive=keep_inattentive,
-            fixed_temperature=temperature,
-        ),
-    )
-
-
 def fit_weights(
     folder: Path,
     *,
@@ -411,18 +359,14 @@ def fit_weights(
     """``amuled study fit-weights``: fit a study's panel weights, write ``out`` (or `WEIGHTS_FILE`).
 
     Raises:
-        StudyError: No study or answers, no ``bjs-dst`` item, or bad ``bootstrap``, ``folds``
-            or ``temperature``; checked before any fit.
-        UnsafePathError: The file to write is a link or not a regular file; checked before
-            any fit.
+        StudyError: No study or answers, no ``bjs-dst`` item, or bad ``folds``; before any fit.
+        UnsafePathError: The file to write is a link or not a regular file; before any fit.
     """
+    from amuled_ma.files.hashing import sha256_file
+
     path = Path(out) if out is not None else Path(folder) / WEIGHTS_FILE
     if path.parent.is_dir():
         check_write_target(path)
-    if bootstrap < 1:
-        raise StudyError(f"--bootstrap {bootstrap}: give at least 1 resample (200 is usual)")
-    if temperature is not None and not (0 < temperature < math.inf):
-        raise StudyError(f"--temperature {temperature}: give a finite number > 0 (1: Luce's rule)")
     study, answers = load(folder)
     data = choice_data(study, answers, keep_inattentive=keep_inattentive)
     result = fit_study(
@@ -433,13 +377,30 @@ def fit_weights(
         temperature=temperature,
         progress=progress,
     )
-    weights = weights_file(
-        result,
-        study=folder,
-        seed=seed,
-        bootstrap=bootstrap,
-        keep_inattentive=keep_inattentive,
-        temperature=temperature,
+
+    def r(values: np.ndarray | tuple[float, ...] | float) -> list[float]:
+        return [round(float(v), 6) for v in np.atleast_1d(values)]
+
+    weights = PanelWeights(
+        members=list(data.members),
+        weights=r(result.learned.prior),
+        low=r(result.low),
+        high=r(result.high),
+        temperature=r(result.learned.temperature)[0],
+        temperature_interval=tuple(r(result.temperature_interval)),
+        participants=len(data.participants),
+        answers=len(data.answer_item),
+        items=len(data.items),
+        held_out=result.held_out,
+        provenance=WeightsProvenance(
+            study=str(folder),
+            study_sha256=sha256_file(Path(folder) / STUDY_FILE),
+            answers_sha256=answers_sha256(data),
+            seed=seed,
+            bootstrap=bootstrap,
+            keep_inattentive=keep_inattentive,
+            fixed_temperature=temperature,
+        ),
     )
     path.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps(weights.model_dump(mode="json"), indent=2, sort_keys=True)

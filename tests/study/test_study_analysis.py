@@ -61,7 +61,7 @@ def test_reliability_of_choices_by_hand():
     items = [item(f"q{i}", ("x", 0), ("y", 1)) for i in range(4)]
     pairs = [(answer("r1", it.id, c), it) for it, c in zip(items, "AABB", strict=True)]
     pairs += [(answer("r2", it.id, c), it) for it, c in zip(items, "ABBB", strict=True)]
-    assert analysis.reliability(pairs) == pytest.approx(8 / 15, abs=1e-12)
+    assert analysis.nominal_alpha(analysis.choice_values(pairs)) == pytest.approx(8 / 15, abs=1e-12)
 
 
 def mm_bradley_terry(n: int, games, iterations: int = 5000) -> np.ndarray:
@@ -132,16 +132,7 @@ def test_agreement_and_majority_by_hand():
 
 
 def test_attention_failures_are_left_out():
-    items = [item("q1", ("x", 0), ("y", 1))]
-    study = Study(
-        seed=0,
-        runs=["r"],
-        variants=["x", "y"],
-        folders=[{}],
-        action_names={},
-        items=items,
-        candidates=1,
-    )
     answers = [answer("p1", "q9", "A", correct=1), answer("p2", "q9", "B", correct=0),
                answer("p3", "q1", "A")]  # fmt: skip
-    assert analysis.attentive(study, answers) == {"p1", "p3"}
+    assert analysis.attentive(answers) == {"p1", "p3"}
+    assert analysis.attentive(answers, keep_inattentive=True) == {"p1", "p2", "p3"}

@@ -22,7 +22,7 @@ from study_fixtures import (
 )
 
 from amuled_ma.study import expert
-from amuled_ma.study.analysis import answers_csv
+from amuled_ma.study.analysis import answers_csv, nominal_alpha
 from amuled_ma.study.answers import ExpertAnswer, Judgement, read_refusals
 from amuled_ma.study.build import build_study
 from amuled_ma.study.model import Item, PanelView, Study, StudyError, public_item, read_study
@@ -98,10 +98,10 @@ def test_expert_numbers_by_hand(hand_study):
     # Krippendorff's alpha of acceptable (1) / not (0) over 8 (state, action) units, by the
     # coincidence matrix: o11 = 4, o00 = 8, o01 = o10 = 4; n1 = 8, n0 = 12, n = 20;
     # alpha = 1 - (n - 1) (o01 + o10) / (2 n0 n1) = 1 - 19 * 8 / 192 = 5/24
-    assert expert.acceptability_alpha(answers) == pytest.approx(5 / 24, abs=1e-12)
+    assert nominal_alpha(expert.acceptability_values(answers)) == pytest.approx(5 / 24, abs=1e-12)
     # experts who always cite the same framework per unit agree perfectly
     same = [judged(p, "e1", "YYNN", ["care", "virtue", "none", "none"], 3) for p in ("a", "b")]
-    assert expert.framework_alpha(study, same) == pytest.approx(1.0)
+    assert nominal_alpha(expert.framework_values(study, same)) == pytest.approx(1.0)
     assert expert.unreasoned_states(study) == ["e2"]
 
 
