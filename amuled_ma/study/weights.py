@@ -96,6 +96,8 @@ def choice_data(
         if not answered:
             continue  # nobody answered: the uniform fallback, the same for every prior
         beliefs = np.asarray(panel.beliefs, dtype=np.float64)[answered]
+        # the study file rounds beliefs (study.build): a row sums to 1 only within rounding
+        beliefs /= beliefs.sum(axis=1, keepdims=True)
         diag = fuse(beliefs, "bjs-dst", return_diagnostics=True)
         a, b = (o.action for o in item.options)
         w0, ma, mb = np.zeros(len(members)), np.zeros(len(members)), np.zeros(len(members))

@@ -173,6 +173,24 @@ def test_the_choice_probability_is_the_fusion_with_the_prior():
     assert data.size.tolist()[:8] == [5, 4, 5, 5, 5, 3, 5, 1]
 
 
+def test_beliefs_rounded_as_the_study_file_keeps_them_are_fitted():
+    """Rows of 6-decimal beliefs sum to 1 only within 2e-6, beyond fusion's 1e-6."""
+    rng = np.random.default_rng(4)
+    exact = rng.dirichlet(np.ones(4), size=(40, 5))
+    rounded = np.round(exact, 6)
+    assert np.abs(rounded.sum(axis=2) - 1).max() > 1e-6  # fuse() refuses such a row
+    exact_items = panel_items(exact, np.random.default_rng(1))
+    rounded_items = [
+        i.model_copy(update={"panel": i.panel.model_copy(update={"beliefs": r.tolist()})})
+        for i, r in zip(exact_items, rounded, strict=True)
+    ]
+    answers = [Answer("p1", i.id, "A", None, None, 1.0, 0.0) for i in exact_items]
+    rho = np.array([0.1, 0.5, 0.2, 0.15, 0.05])
+    want = sw.choice_probability(sw.choice_data(study_of(exact_items), answers), rho, 1.0)
+    got = sw.choice_probability(sw.choice_data(study_of(rounded_items), answers), rho, 1.0)
+    assert got == pytest.approx(want, abs=1e-5)
+
+
 def test_the_gradient_is_the_likelihood_s_slope():
     items = dirichlet_items(6, count=10)
     data = sw.choice_data(study_of(items), raters(items, SKEWED, people=5, seed=0))
