@@ -1,9 +1,6 @@
 """The distilled reward model: an ensemble of small MLPs predicting each panel member's belief.
 
-Per member, not the fused belief: the fusion is nonlinear in the members' beliefs and the
-ablations reuse the members, so the real fusion combines the model's predictions. A fit is
-deterministic given its seed: it draws from its own `torch.Generator` (the PPO learner owns
-the global RNG).
+A fit is deterministic given its seed (its own `torch.Generator`; docs/distill.md).
 """
 
 from __future__ import annotations
