@@ -80,8 +80,7 @@ def ray_connection(
 ) -> Iterator[None]:
     """Connect to the Ray `run_jobs` will use, for the ``with`` block (nothing without Ray).
 
-    Enter it before the run folder is written: a SIGTERM or Ctrl-C while Ray starts then ends
-    the command with nothing written.
+    Entered before the run folder is written, a SIGTERM while Ray starts leaves nothing.
 
     Raises:
         AmuledError: No cluster answers at the address.

@@ -185,9 +185,8 @@ def recovery_commands(
 ) -> tuple[str, str]:
     """``(beside, again)``: the commands that train the new settings beside, or retrain that folder.
 
-    ``beside`` is a fine-tune under a new ``--name`` (another ``--run-dir`` for a base or a
-    run); ``again`` adds ``--force`` (``finetune``/``train``) or ``--retrain NAME``
-    (``run``/``ablate``, resuming the other variants).
+    ``beside``: a new ``--name`` (fine-tune) or ``--run-dir``; ``again``: ``--force``, or
+    ``--retrain NAME`` for ``run``/``ablate``.
     """
     if rerun is None:
         again = f"{hint} --force" if hint else "--force"
