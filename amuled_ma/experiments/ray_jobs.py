@@ -47,6 +47,9 @@ from amuled_ma.learn.checkpoints import LAST, checkpoint_infos
 if TYPE_CHECKING:
     from types import FrameType
 
+    #: What ``signal.getsignal`` returns: a handler, ``SIG_DFL``/``SIG_IGN``, or None.
+    _Handler = Callable[[int, FrameType | None], object] | int | signal.Handlers | None
+
 #: In a job folder: the sweep whose attempt started it (a retry of the same sweep resumes).
 SWEEP_MARK = ".amuled-sweep"
 #: In the run folder: the driver's token (a node that reads it shares the file system).
@@ -134,6 +137,13 @@ def _first_line(error: BaseException) -> str:
     text = str(error).strip()
     line = text.splitlines()[0].strip() if text else type(error).__name__
     return line if len(line) <= 300 else line[:297] + "..."
+
+
+def _restore_sigterm(previous: _Handler) -> None:
+    """Put back the SIGTERM handler ``ray.init`` replaced (Ray's aborts, no checkpoint)."""
+    if previous is None or threading.current_thread() is not threading.main_thread():
+        return  # not set from Python (nothing to put back), or not ours to set
+    signal.signal(signal.SIGTERM, previous)
 
 
 class _SigtermCount:
@@ -240,9 +250,7 @@ def connect(address: str | None, workers: int) -> bool:
                 else:
                     ray.init(address=address, **options)
         finally:
-            # ray.init replaced it (Ray's aborts, no checkpoint); None: not set from Python
-            if previous_term is not None and threading.current_thread() is threading.main_thread():
-                signal.signal(signal.SIGTERM, previous_term)
+            _restore_sigterm(previous_term)
             if previous is not None:
                 signal.signal(signal.SIGINT, previous)
         stopped = None
