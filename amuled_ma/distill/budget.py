@@ -1,9 +1,7 @@
-"""The budget of asked states: which distinct states were visited and asked, how many more may be.
+"""The budget of asked states: the distinct states visited and asked, how many more may be.
 
-The budget counts distinct states (a state asked once is never charged again); the invariant
-``asked <= cap(visited)`` holds after every batch. A resumed ledger credits the cap only with
-the states asked and the states visited in this process, so an edited state file cannot grow
-the budget the scenario sets.
+``asked <= cap(visited)`` holds after every batch; a resumed ledger's cap credits only the
+states asked and those visited since (docs/distill.md).
 """
 
 from __future__ import annotations

@@ -1,9 +1,6 @@
 """The distilled reward model: an ensemble of small MLPs predicting each panel member's belief.
 
-Per member, not the fused belief: the fusion is nonlinear in the members' beliefs and the
-ablations reuse the members, so the real fusion combines the model's predictions. A fit is
-deterministic given its seed: it draws from its own `torch.Generator` (the PPO learner owns
-the global RNG).
+A fit is deterministic given its seed (its own `torch.Generator`; docs/distill.md).
 """
 
 from __future__ import annotations
@@ -37,15 +34,6 @@ class FitSettings:
     weight_decay: float = 0.25
 
 
-@dataclass(frozen=True)
-class FitReport:
-    """What one fit did: ``steps`` taken, final training ``loss``, ``examples`` used."""
-
-    steps: int
-    loss: float
-    examples: int
-
-
 class EnsembleModel:
     """An ensemble of MLPs, one softmax head per panel member (``members`` in head order).
 
@@ -73,7 +61,7 @@ class EnsembleModel:
     # ------------------------------------------------------------------ fitting
     @torch.inference_mode(False)
     @torch.enable_grad()
-    def fit(self, obs: np.ndarray, beliefs: np.ndarray, mask: np.ndarray, seed: int) -> FitReport:
+    def fit(self, obs: np.ndarray, beliefs: np.ndarray, mask: np.ndarray, seed: int) -> None:
         """Fit every network from scratch to the members' beliefs (gradients on in inference mode).
 
         ``obs`` ``(N, D)``, ``beliefs`` ``(N, K, A)`` and ``mask`` ``(N, K)`` (whether the member
@@ -114,9 +102,7 @@ class EnsembleModel:
         norm = weight.sum((1, 2)).clamp_min(1e-12)
         optimiser = torch.optim.Adam(params, lr=s.learning_rate)
         decay = s.weight_decay / max(n, 1)
-        loss_value = math.nan
         previous = math.inf
-        step = 0
         for step in range(1, s.steps + 1):
             optimiser.zero_grad(set_to_none=True)
             logp = _forward(params, x).reshape(s.ensemble, n, k, a).log_softmax(-1)
@@ -132,7 +118,6 @@ class EnsembleModel:
                 previous = loss_value
         self._params = [p.detach() for p in params]
         self.trained = np.asarray(mask.any(axis=0)) if n else np.zeros(k, dtype=bool)
-        return FitReport(steps=step, loss=loss_value, examples=n)
 
     # ------------------------------------------------------------------ predicting
     def predict_ensemble(self, obs: np.ndarray) -> np.ndarray:

@@ -4,9 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 
-#: The selection rules of ``[feedback.distill].selection``.
-SELECTIONS: tuple[str, ...] = ("uncertainty", "random")
-
 
 def disagreement(predictions: np.ndarray, members: np.ndarray | None = None) -> np.ndarray:
     """Per state, the mean over members and networks of ``0.5 * sum_a |p_e(a) - mean_e p(a)|``.

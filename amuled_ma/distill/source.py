@@ -35,7 +35,6 @@ from amuled_ma.beliefs.types import (
 from amuled_ma.distill.budget import BudgetLedger, check_budget
 from amuled_ma.distill.model import EnsembleModel, FitSettings
 from amuled_ma.distill.selection import (
-    SELECTIONS,
     choose_random,
     choose_uncertain,
     disagreement,
@@ -45,7 +44,6 @@ from amuled_ma.distill.state import (
     START_OVER,
     LedgerRest,
     StateFiles,
-    check_counters,
     check_state_keys,
     checked,
 )
@@ -65,9 +63,8 @@ MISS_STATUSES = frozenset({"replay_miss", "abstained"})
 class DistillStats:
     """Counters of a `DistilledSource`, kept across a resume.
 
-    ``requests_forwarded`` counts requests handed to the panel's source (once per process per
-    asked state), ``requests_sent`` those its store did not hold; ``model_answers``,
-    ``miss_answers`` and ``unasked_answers`` count beliefs the model gave or could not give.
+    ``requests_forwarded``: handed to the panel's source; ``requests_sent``: of those, not in its
+    store; the ``*_answers``: beliefs the model gave (or could not give).
     """
 
     requests_forwarded: int = 0
@@ -76,10 +73,6 @@ class DistillStats:
     miss_answers: int = 0
     unasked_answers: int = 0
     refits: int = 0
-
-
-#: The counters of `DistillStats` (a state file holds exactly these).
-_COUNTERS = tuple(DistillStats.__dataclass_fields__)
 
 
 @dataclass
@@ -104,16 +97,13 @@ class _Example:
 class DistilledSource(BeliefSource):
     """The panel's source behind a budget and a distilled model.
 
-    ``budget`` is a share of distinct visited states in ``(0, 1]`` (float) or a count ``>= 1``;
-    ``selection`` ``"uncertainty"`` or ``"random"``; ``refit_every`` newly answered asked states
-    between two refits; ``holdout`` the share of asked states kept out of the fit, in
-    ``[0, 0.5]``; ``answer_misses`` answers an asked state's replay misses and abstentions by the
-    model; ``fusion_rule`` fuses the held-out agreement; ``state_dir`` None keeps nothing on disk,
-    and without ``resume`` its state files are removed.
+    The settings are ``[feedback.distill]``'s (`DistillConfig`, checked there); ``fusion_rule``
+    fuses the held-out agreement; ``state_dir`` None keeps nothing on disk, and without
+    ``resume`` its state files are removed.
 
     Raises:
-        AmuledError: A setting out of range, or ``resume`` with state files written with
-            other settings or damaged.
+        AmuledError: A budget out of range, or ``resume`` with state files written with other
+            settings or damaged.
     """
 
     name = "distilled"
@@ -135,18 +125,6 @@ class DistilledSource(BeliefSource):
         resume: bool = False,
         fit_steps: int = 400,
     ) -> None:
-        if selection not in SELECTIONS:
-            raise AmuledError(
-                f"[feedback.distill].selection expects one of {', '.join(SELECTIONS)}, "
-                f"found {selection!r}"
-            )
-        if not 0.0 <= float(holdout) <= 0.5:
-            raise AmuledError(f"[feedback.distill].holdout expects [0, 0.5], found {holdout!r}")
-        if int(refit_every) < 1 or int(ensemble) < 1 or int(hidden) < 1:
-            raise AmuledError(
-                "[feedback.distill] refit_every, ensemble and hidden must be at least 1, found "
-                f"{refit_every!r}, {ensemble!r}, {hidden!r}"
-            )
         self.source = source
         self.budget = check_budget(budget)
         self.selection = selection
@@ -192,11 +170,10 @@ class DistilledSource(BeliefSource):
         resume: bool = False,
     ) -> DistilledSource:
         """Build from a ``[feedback.distill]`` section (its ``seed``, if set, wins)."""
-        own = getattr(config, "seed", None)
         return cls(
             source,
             **config.model_dump(exclude={"enabled", "model", "seed"}),
-            seed=seed if own is None else own,
+            seed=seed if config.seed is None else config.seed,
             fusion_rule=fusion_rule,
             state_dir=state_dir,
             resume=resume,
@@ -618,7 +595,6 @@ class DistilledSource(BeliefSource):
         # the scenario's budget is the budget: the ledger's must be the same
         self.ledger = BudgetLedger.from_dict(data.get("ledger"), where, budget=self.budget)
         asked = self.ledger.asked_count
-        self.stats = DistillStats(**check_counters(data.get("counters"), _COUNTERS, asked, where))
         generation = data.get("generation", 0)
         if type(generation) is not int or not 0 <= generation <= asked:
             raise AmuledError(
@@ -628,6 +604,12 @@ class DistilledSource(BeliefSource):
         check_state_keys(self.ledger.visited, "ledger.visited", where)
         check_state_keys(self.ledger.asked, "ledger.asked", where)
         rest = checked(LedgerRest, dict(data), where)
+        self.stats = DistillStats(**rest.counters.model_dump())
+        if self.stats.refits > asked:
+            raise AmuledError(
+                f"{where}: counters.refits ({self.stats.refits}) exceeds the {asked} states "
+                f"asked; the file was edited or damaged; {START_OVER}"
+            )
         self._asked_obs = {k: tuple(v) for k, v in rest.asked_obs.items()}
         self.members = list(rest.members)
         self.task = rest.task

@@ -50,6 +50,7 @@ MAX_OBS_DIM = 4096
 MAX_NAMES = 256
 
 _Finite = Annotated[float, Field(allow_inf_nan=False)]
+_Counter = Annotated[int, Field(ge=0, le=MAX_COUNTER)]
 _Name = Annotated[str, Field(min_length=1, max_length=200)]
 _M = TypeVar("_M", bound=BaseModel)
 
@@ -72,8 +73,28 @@ class RngState(_Strict):
     uinteger: int = Field(ge=0, lt=2**32)
 
 
+class Counters(_Strict):
+    """The counters of ``distill.json`` (those of ``DistillStats``)."""
+
+    requests_forwarded: _Counter
+    requests_sent: _Counter
+    model_answers: _Counter
+    miss_answers: _Counter
+    unasked_answers: _Counter
+    refits: _Counter
+
+    @model_validator(mode="after")
+    def _sent_were_forwarded(self) -> Counters:
+        if self.requests_sent > self.requests_forwarded:
+            raise ValueError(
+                f"counters.requests_sent ({self.requests_sent}) exceeds "
+                f"counters.requests_forwarded ({self.requests_forwarded})"
+            )
+        return self
+
+
 class LedgerRest(BaseModel):
-    """The fields of ``distill.json`` besides the settings, ledger, counters and generation."""
+    """The fields of ``distill.json`` besides the settings, ledger and generation."""
 
     model_config = ConfigDict(strict=True, extra="ignore", frozen=True)
 
@@ -83,6 +104,7 @@ class LedgerRest(BaseModel):
     actions: list[_Name] | None = Field(default=None, min_length=1, max_length=MAX_NAMES)
     obs_dim: int | None = Field(default=None, ge=1, le=MAX_OBS_DIM)
     rng: RngState | None = None
+    counters: Counters
 
     @model_validator(mode="after")
     def _consistent(self) -> LedgerRest:
@@ -143,39 +165,6 @@ class Example(BaseModel):
     key: str = Field(pattern=STATE_KEY.pattern)
     obs: list[_Finite] = Field(max_length=MAX_OBS_DIM)
     beliefs: dict[_Name, list[_Finite]] = Field(max_length=MAX_NAMES)
-
-
-def check_counters(
-    counters: object, names: Iterable[str], asked: int, where: str
-) -> dict[str, int]:
-    """The ``counters`` of a state file, checked against ``names``; returns them.
-
-    Raises:
-        AmuledError: A counter missing, unknown, not an int in ``[0, MAX_COUNTER]``, more
-            requests sent than forwarded, or more refits than ``asked`` states.
-    """
-    names = list(names)
-    fix = f"the file was edited or damaged; {START_OVER}"
-    if not isinstance(counters, Mapping) or set(counters) != set(names):
-        raise AmuledError(f"{where}: 'counters' must hold {', '.join(names)}; {fix}")
-    for name in names:
-        value = counters[name]
-        if type(value) is not int or not 0 <= value <= MAX_COUNTER:
-            raise AmuledError(
-                f"{where}: counters.{name} is {value!r}, expected an integer in "
-                f"[0, {MAX_COUNTER}]; {fix}"
-            )
-    if counters.get("requests_sent", 0) > counters.get("requests_forwarded", 0):
-        raise AmuledError(
-            f"{where}: counters.requests_sent ({counters['requests_sent']}) exceeds "
-            f"counters.requests_forwarded ({counters['requests_forwarded']}); {fix}"
-        )
-    if counters.get("refits", 0) > asked:
-        raise AmuledError(
-            f"{where}: counters.refits ({counters['refits']}) exceeds the {asked} states "
-            f"asked; {fix}"
-        )
-    return {name: int(counters[name]) for name in names}
 
 
 class StateFiles:

@@ -40,25 +40,19 @@ def available_cpus() -> int:
 
 
 def resolve_workers(requested: int, jobs: Sequence[TrainJob]) -> int:
-    """Jobs at once: ``requested``, or with 0 one per core (1 when a job asks a live source).
+    """Jobs at once: ``requested``, or with 0 one per core (1 when a job asks Ollama or a person).
 
-    A live Ollama server is itself the bottleneck and a person at the terminal answers only in
-    this process.
+    A live Ollama server is itself the bottleneck; a person answers only in this process.
     """
     if requested < 0:
         raise AmuledError(f"--jobs must be 0 (auto) or a positive count, got {requested}")
     if requested == 0:
-        live = any(j.variant.finetuning and _asks_live(j) for j in jobs)
-        requested = 1 if live else available_cpus()
+        feedbacks = [j.scenario.feedback for j in jobs if j.variant.finetuning]
+        kinds = {f.source for f in feedbacks} | {
+            spec.source for f in feedbacks for spec in f.agents.values()
+        }
+        requested = 1 if kinds & {"ollama", "terminal"} else available_cpus()
     return max(1, min(requested, len(jobs) or 1))
-
-
-def _asks_live(job: TrainJob) -> bool:
-    """Whether a job's feedback asks an Ollama server or a person (any agent)."""
-    feedback = job.scenario.feedback
-    kinds: set[str] = {feedback.source}
-    kinds |= {spec.source for spec in feedback.agents.values()}
-    return bool(kinds & {"ollama", "terminal"})
 
 
 def check_order(jobs: Sequence[TrainJob]) -> None:
@@ -86,8 +80,7 @@ def ray_connection(
 ) -> Iterator[None]:
     """Connect to the Ray `run_jobs` will use, for the ``with`` block (nothing without Ray).
 
-    Enter it before the run folder is written: a SIGTERM or Ctrl-C while Ray starts then ends
-    the command with nothing written.
+    Entered before the run folder is written, a SIGTERM while Ray starts leaves nothing.
 
     Raises:
         AmuledError: No cluster answers at the address.
@@ -130,7 +123,7 @@ def run_jobs(
     """
     check_order(jobs)
     if any(job.action is None for job in jobs):
-        from amuled_ma.experiments.plans import plan_jobs  # here: it imports torch
+        from amuled_ma.experiments.plans import plan_jobs  # here: a slow import
 
         jobs = plan_jobs(jobs, hint)
     start = time.perf_counter()
@@ -142,20 +135,28 @@ def run_jobs(
     groups = job_groups(jobs, workers=workers if on_ray else 1, population=population)
     if on_ray:
         target = ray or RayTarget()
-        with ray_switches(target.address is None):
-            from amuled_ma.experiments.ray_jobs import run_on_ray  # here: importing Ray: 1 s
+        with ray_connection(jobs, workers=workers, ray=target):
+            from amuled_ma.experiments.ray_jobs import run_on_ray  # imported by ray_connection
 
             ran = run_on_ray(
                 groups,
-                address=target.address,
-                workers=workers,
+                ship=target.address is not None,
                 progress=progress,
                 hint=hint,
                 describe=describe,
                 resource=target.resource,
             )
-    else:
-        ran = _train_groups(groups, progress=progress, hint=hint, describe=describe)
+    else:  # each group in turn, here
+        from amuled_ma.experiments.plans import population_failure, train_population_jobs
+
+        ran = {}
+        for group in groups:
+            outcome = train_population_jobs(group, progress=progress, hint=hint)
+            for name, result in outcome.results.items():
+                ran[name] = result
+                print(describe(result), flush=True)
+            if outcome.failures:  # the others of its group finished first
+                raise population_failure(outcome.failures, hint)
     by_name = {**skipped, **ran}
     wall = time.perf_counter() - start
     return JobsOutcome([by_name[j.name] for j in jobs], wall, workers if on_ray else 1)
@@ -165,34 +166,6 @@ def job_groups(jobs: Sequence[TrainJob], *, workers: int, population: bool) -> l
     """The planned jobs to train (not skipped) as groups that train together, needs first."""
     if not population:
         return [[job] for job in jobs if job.action != "skip"]
-    from amuled_ma.experiments.population_jobs import population_groups  # here: torch
+    from amuled_ma.experiments.plans import population_groups
 
     return population_groups(jobs, workers=workers)
-
-
-def _train_groups(
-    groups: Sequence[Sequence[TrainJob]],
-    *,
-    progress: bool,
-    hint: str,
-    describe: Callable[[Any], str],
-) -> dict[str, JobResult]:
-    """Train groups one after the other in this process, each as populations; results by job name.
-
-    Raises:
-        AmuledError: A job failed (the others of its group finished first).
-    """
-    from amuled_ma.experiments.population_jobs import (  # here: torch
-        population_failure,
-        train_population_jobs,
-    )
-
-    results: dict[str, JobResult] = {}
-    for group in groups:
-        outcome = train_population_jobs(group, progress=progress, hint=hint)
-        for name, result in outcome.results.items():
-            results[name] = result
-            print(describe(result), flush=True)
-        if outcome.failures:
-            raise population_failure(outcome.failures, hint)
-    return results

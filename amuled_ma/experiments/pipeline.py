@@ -1,7 +1,6 @@
 """One experiment as one call: `run_pipeline` plans, checks, trains, evaluates and reports.
 
-The steps, one call each, are drawn in ``docs/design.md`` ("The path of a run"); `train_alone`
-is one job through the same checks, lock and record, not evaluated.
+`train_alone` is one job through the same checks, lock and record, not evaluated.
 """
 
 from __future__ import annotations
@@ -46,37 +45,19 @@ def say_line(message: str) -> None:
 class PipelineRequest:
     """One experiment to run: what to plan, where, and how to train it.
 
-    Attributes:
-        scenario: The scenario, with every override already applied.
-        run_dir: The run folder (an ablation writes into ``run_dir/ablate-<what>/``).
-        ablation: None for the paper's main comparison (``amuled run``), else the ablation
-            (``clusters``, ``aggregation``, ``models``, ``kl``, ``budget`` or ``weights``).
-        seed: The first training seed (None: ``[task].seed``).
-        seeds: Training replicas of every variant (seeds ``seed``, ``seed + 1``, ...).
-        episodes: Evaluation episodes per policy (None: ``[evaluation].episodes``).
-        base: A finished base folder every fine-tune starts from (main comparison only);
-            None: each seed's own base, or with ``[finetune].recipe = "authors"`` the
-            authors' imported base ``<runs_dir>/authors/<task>/base`` when it is there.
-        resume: Continue unfinished variants, skip finished ones.
-        force: Start over even where checkpoints exist.
-        retrain: Variant folders (or job names) to retrain from scratch while every other
-            variant is resumed (:func:`~amuled_ma.experiments.plans.retrain_jobs`).
-        jobs: Jobs at once (0: one per core, or 1 with live feedback; 1: in this process).
-        ray: Train on Ray (a local one, or a cluster's address); None: as ``jobs`` says.
-        population: Train jobs of one shape together as populations (one Ray task each);
-            False (``--no-population``): every job alone.
-        progress: Show progress bars.
-        hint: The shell command that re-runs this request, for messages (default: the line
-            of ``rerun``).
-        rerun: The same command as fields (`recovery_commands` of a clashing folder).
-        title: The report's title (None: the plan's, e.g. the paper's main comparison).
-        offline: Never fetch the authors' recordings (``--offline``; also
-            ``$AMULED_OFFLINE=1``): one found nowhere stops the run with the manual route.
+    ``ablation`` None is the paper's main comparison (``amuled run``), else one of
+    `ABLATIONS`, written into ``run_dir/ablate-<what>/``; ``seed`` None is ``[task].seed``,
+    ``seeds`` the replicas of every variant; ``episodes`` None is ``[evaluation].episodes``;
+    ``base`` a finished base folder every fine-tune of the main comparison starts from (None:
+    each seed's own, or the authors' imported base with ``[finetune].recipe = "authors"``);
+    ``retrain`` the job names retrained while the others resume; ``jobs`` the jobs at once
+    (0: one per core, or 1 with live feedback); ``population`` False trains every job alone;
+    ``hint`` the shell command that re-runs it (default: ``rerun``'s line); ``offline``
+    never fetches the authors' recordings.
 
     Raises:
         ScenarioError: An unknown ablation.
         AmuledError: ``base`` given with an ablation.
-
     """
 
     scenario: Scenario
@@ -116,18 +97,9 @@ class PipelineRequest:
 
 @dataclass(frozen=True)
 class PipelineOutcome:
-    """What :func:`run_pipeline` did.
+    """What `run_pipeline` did: where the results and report are, what was trained, how long.
 
-    Attributes:
-        out_dir: The folder of the results and the report (the run folder, or its
-            ``ablate-<what>/``).
-        variants: The variants planned (``base``, ..., or the ablation's fine-tune folders).
-        seeds: The training seeds.
-        training: The job graph's outcome (one result per job, wall time, workers).
-        results: The evaluation results, as written to ``results.json``.
-        report: The path of ``report.md``.
-        wall_s: Seconds from the request to the report.
-
+    ``out_dir`` is the run folder or its ``ablate-<what>/``; ``variants`` the variants planned.
     """
 
     out_dir: Path
@@ -157,17 +129,18 @@ def run_pipeline(
 ) -> PipelineOutcome:
     """Plan, check, train, evaluate and report one experiment (``amuled run``/``ablate``/``demo``).
 
-    ``say`` prints a progress line (default: stdout, flushed).
+    ``say`` prints a progress line.
 
     Raises:
-        AmuledError: An input a job needs is missing (before any folder is made; an
-            authors' recording found nowhere that cannot be fetched among them), a folder
-            clashes with an old checkpoint, another process writes the run folder, or a
-            job failed; the message names what and the fix.
+        AmuledError: An input is missing or a folder clashes (before any folder is made),
+            another process writes the run folder, or a job failed.
         KeyboardInterrupt: Ctrl-C or SIGTERM, after every running job wrote its checkpoint.
-
     """
-    from amuled_ma.authors.download import ensure_recordings, models_ablation_recordings
+    from amuled_ma.authors.download import (
+        ensure_recordings,
+        models_ablation_recordings,
+        replayed_recordings,
+    )
     from amuled_ma.experiments.plans import plan_jobs, retrain_jobs, training_seeds
     from amuled_ma.experiments.run_folder import read_record, variant_records
     from amuled_ma.scenario.memory import check_seed_replicas
@@ -185,7 +158,8 @@ def run_pipeline(
         plan = _plan_main(request, seeds, say)
     else:
         plan = _plan_ablation(request, seeds)
-    fetch(_replayed(plan.jobs))
+    replayed = [job.scenario.feedback for job in plan.jobs if job.variant.finetuning]
+    fetch(list(dict.fromkeys(v for feedback in replayed for v in replayed_recordings(feedback))))
     if request.retrain:
         plan = dataclasses.replace(plan, jobs=retrain_jobs(plan.jobs, request.retrain))
     # before the lock: a refused run makes no folder
@@ -203,7 +177,18 @@ def run_pipeline(
         # Ray first: a SIGTERM while it starts leaves no run folder (the lock removes it)
         with ray_connection(plan.jobs, workers=workers, ray=request.ray):
             write_config(plan.out_dir, request.scenario.to_dict(), plan.config)
-            training = train_jobs(plan.jobs, request, say)
+            where = "" if request.ray is None else f" on Ray ({request.ray.address or 'local'})"
+            say(f"  {len(plan.jobs)} training jobs, {workers} at a time{where}")
+            training = run_jobs(
+                plan.jobs,
+                workers=workers,
+                progress=request.progress,
+                hint=request.hint,
+                describe=describe_job,
+                ray=request.ray,
+                population=request.population,
+            )
+            say(f"  training done in {training.wall_s:.1f} s on {training.workers} worker(s)")
         records = variant_records([*variant_dirs(plan.out_dir), *plan.extra_dirs])
         results = evaluate_run(
             plan.out_dir,
@@ -236,11 +221,7 @@ def run_pipeline(
 
 
 def say_live_costs(jobs: Sequence[TrainJob], say: Callable[[str], None]) -> None:
-    """Print each live model's cost per request here, and in all, once per distinct line.
-
-    The lines of `amuled_ma.deliberation.build.live_costs` for every fine-tune (the
-    store's recorded times, or one request timed now).
-    """
+    """Print each fine-tune's live model costs (`live_costs`), each distinct line once."""
     from amuled_ma.deliberation.build import live_costs
 
     said: set[str] = set()
@@ -254,19 +235,6 @@ def say_live_costs(jobs: Sequence[TrainJob], say: Callable[[str], None]) -> None
                 say(f"  {line}")
 
 
-def _replayed(jobs: Sequence[TrainJob]) -> list[str]:
-    """The recordings the fine-tunes of a graph replay, each once."""
-    from amuled_ma.authors.download import replayed_recordings
-
-    values = [
-        v
-        for job in jobs
-        if job.variant.finetuning
-        for v in replayed_recordings(job.scenario.feedback)
-    ]
-    return list(dict.fromkeys(values))
-
-
 def train_alone(
     request: PipelineRequest,
     variant: Variant,
@@ -277,18 +245,14 @@ def train_alone(
 ) -> JobResult:
     """Train one job (``amuled train`` / ``finetune``): planned, locked, trained; not evaluated.
 
-    Planned (`plan_jobs`) before any folder is made, then trained by `run_jobs` under the run
-    folder's lock; a finished job is skipped. ``base_variant`` is a fine-tune's base folder in
-    ``base_dir`` (default: the request's run folder); ``config`` holds run-level
-    ``config.json`` fields to write (None: the file is left alone).
+    ``base_variant`` is a fine-tune's base folder in ``base_dir`` (default: the run folder);
+    ``config`` holds run-level ``config.json`` fields to write (None: left alone).
 
     Raises:
-        AmuledError: An input is missing or the folder clashes (before any folder is
-            made), another process writes the run folder, or the job failed.
+        AmuledError: As `run_pipeline`.
         KeyboardInterrupt: Ctrl-C or SIGTERM, after the job wrote its checkpoint.
-
     """
-    from amuled_ma.experiments.plans import plan_jobs  # here: it imports torch
+    from amuled_ma.experiments.plans import plan_jobs  # here: a slow import
 
     run_dir = Path(request.run_dir)
     job = TrainJob(
@@ -377,35 +341,8 @@ def _plan_ablation(request: PipelineRequest, seeds: list[int]) -> _Plan:
     )
 
 
-def train_jobs(
-    jobs: Sequence[TrainJob],
-    request: PipelineRequest,
-    say: Callable[[str], None] = say_line,
-) -> JobsOutcome:
-    """Train a graph planned by `plan_jobs` as the request says, one line per job."""
-    workers = resolve_workers(request.jobs, jobs)
-    ray = request.ray
-    where = "" if ray is None else f" on Ray ({ray.address or 'local'})"
-    say(f"  {len(jobs)} training jobs, {workers} at a time{where}")
-    outcome = run_jobs(
-        jobs,
-        workers=workers,
-        progress=request.progress,
-        hint=request.hint,
-        describe=describe_job,
-        ray=ray,
-        population=request.population,
-    )
-    say(f"  training done in {outcome.wall_s:.1f} s on {outcome.workers} worker(s)")
-    return outcome
-
-
 def describe_job(job: JobResult) -> str:
-    """One line about a skipped or trained job (a seed replica's seed in brackets).
-
-    The feedback's figures and the agents that left states unanswered follow on lines of
-    their own.
-    """
+    """One line about a skipped or trained job, then the feedback's and failing agents' lines."""
     from amuled_ma.deliberation.summaries import distill_line, summary_lines
 
     seed = split_replica(Path(job.out_dir).name)[1]

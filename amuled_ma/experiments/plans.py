@@ -1,18 +1,23 @@
-"""Experiments: the paper's pipeline and ablations as resumable, planned jobs."""
+"""The jobs of a run: planned once (`plan_jobs`), prepared and trained in groups.
+
+A population costs a fixed ~0.26 s of CPU per iteration whatever its size, so a level of the
+graph is cut into as few populations as fill the workers (`population_groups`).
+"""
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 import sys
 from collections.abc import Callable, Collection, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from amuled_ma.deliberation.build import build_feedback, checked_members, preflight, run_store
 from amuled_ma.deliberation.plan import NoHumanRule, plan_panel
-from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError
+from amuled_ma.errors import AmuledError, CheckpointError
 from amuled_ma.experiments.run_folder import (
     JobResult,
     Rerun,
@@ -28,6 +33,12 @@ from amuled_ma.experiments.run_folder import (
 from amuled_ma.experiments.training_settings import training_config
 from amuled_ma.learn.checkpoints import LAST
 from amuled_ma.learn.job_shape import job_shape
+from amuled_ma.learn.population_groups import (
+    MemberSpec,
+    memory_budget_bytes,
+    population_key,
+    split_populations,
+)
 from amuled_ma.records.variants import AGGREGATIONS, Variant
 from amuled_ma.scenario import Changes, FeedbackConfig, PPOConfig, Scenario
 from amuled_ma.scenario.paths import find_recording
@@ -36,7 +47,6 @@ if TYPE_CHECKING:
     from amuled_ma.beliefs.store.service import StoreService
     from amuled_ma.deliberation.feedback_base import Feedback
     from amuled_ma.learn.population import TrainOutcome
-    from amuled_ma.learn.population_groups import MemberSpec
 
 #: The variants of the paper's main figure, in order.
 MAIN_VARIANTS = (
@@ -60,11 +70,7 @@ BUDGET_SELECTIONS = ("uncertainty", "random")
 
 
 def training_seeds(first: int, count: int = 1) -> list[int]:
-    """``count`` consecutive training seeds from ``first``.
-
-    Raises:
-        AmuledError: ``count`` is below 1.
-    """
+    """``count`` consecutive training seeds from ``first`` (AmuledError below 1)."""
     if count < 1:
         raise AmuledError(f"--seeds must be at least 1, got {count}")
     return [first + k for k in range(count)]
@@ -168,11 +174,7 @@ class PreparedJob:
         with contextlib.suppress(OSError):
             mark_state(self.job.out_dir, "failed")
 
-    def member(
-        self,
-        on_iteration: Callable[[Any, int], None] | None = None,
-        task_factory: Callable[..., Any] | None = None,
-    ) -> MemberSpec:
+    def member(self, on_iteration: Callable[[Any, int], None] | None = None) -> MemberSpec:
         """The population member that trains it (its feedback, base, resume)."""
         return dataclasses.replace(
             member_spec(self.job),
@@ -180,14 +182,11 @@ class PreparedJob:
             base_checkpoint=self.job.base_checkpoint,
             resume_hint=self.resume_hint,
             on_iteration=on_iteration,
-            task_factory=task_factory,
         )
 
 
 def member_spec(job: TrainJob) -> MemberSpec:
     """The population member of a planned job before it is prepared (for grouping only)."""
-    from amuled_ma.learn.population_groups import MemberSpec  # here: it imports torch
-
     return MemberSpec(
         job.scenario,
         job.out_dir,
@@ -226,7 +225,6 @@ def prepare_job(
     *,
     hint: str = "",
     store: StoreService | None = None,
-    feedback_factory: Callable[[str], Feedback] | None = None,
 ) -> PreparedJob | JobResult:
     """Build a planned job's feedback and write its folder's record.
 
@@ -249,20 +247,15 @@ def prepare_job(
             if members is not None:
                 members.close()
             raise
-        if feedback_factory is not None:
-            if members is not None:
-                members.close()
-            feedback = feedback_factory(job.variant.feedback)
-        else:
-            feedback = build_feedback(
-                job.panel,
-                store if store is not None else run_store(job.store),
-                members=members,  # handed over: the feedback closes them
-                state_dir=job.out_dir,
-                resume=job.action == "resume",
-                seed=job.seed,
-                cache_dir=job.run_dir,
-            )
+        feedback = build_feedback(
+            job.panel,
+            store if store is not None else run_store(job.store),
+            members=members,  # handed over: the feedback closes them
+            state_dir=job.out_dir,
+            resume=job.action == "resume",
+            seed=job.seed,
+            cache_dir=job.run_dir,
+        )
     try:
         if job.action == "new" or not (job.out_dir / "config.json").is_file():
             fields = variant_fields(
@@ -280,6 +273,112 @@ def prepare_job(
     return PreparedJob(job, feedback, f"{hint} --resume" if hint else None)
 
 
+def population_groups(
+    jobs: Sequence[TrainJob],
+    *,
+    workers: int = 1,
+    memory_budget: int | None = None,
+) -> list[list[TrainJob]]:
+    """Group the jobs to train into populations, needs in earlier groups.
+
+    Each level of the graph is cut into at least ``workers`` populations where it has the jobs,
+    each within its share of ``memory_budget`` (default: half this machine's memory).
+    """
+    todo = [job for job in jobs if job.action != "skip"]
+    depth: dict[str, int] = {}
+    for job in todo:  # graph order: a job's needs are numbered before it
+        depth[job.name] = 1 + max((depth[n] for n in job.needs if n in depth), default=-1)
+    budget = max(1, (memory_budget or memory_budget_bytes()) // max(1, workers))
+    groups: list[list[TrainJob]] = []
+    for level in sorted(set(depth.values())):
+        layer = [job for job in todo if depth[job.name] == level]
+        specs = [member_spec(job) for job in layer]
+        # a population costs a fixed ~0.26 s per iteration whatever its size: as few as
+        # fill the workers (the level's shapes first, each cut only when they are fewer)
+        shapes = len({population_key(spec) for spec in specs})
+        each = max(1, math.ceil(workers / max(1, shapes)))
+        for members in split_populations(specs, budget, min_count=each):
+            groups.append([layer[i] for i in members])
+    return groups
+
+
+@dataclass
+class GroupOutcome:
+    """What `train_population_jobs` did: results of the jobs that finished, a line per failure."""
+
+    results: dict[str, JobResult] = field(default_factory=dict)
+    failures: list[str] = field(default_factory=list)
+
+
+def train_population_jobs(
+    jobs: Sequence[TrainJob],
+    *,
+    progress: bool = False,
+    hint: str = "",
+    on_iteration: Callable[[Any, int], None] | None = None,
+    store_for: Callable[[TrainJob], Any] | None = None,
+    announce: bool = True,
+) -> GroupOutcome:
+    """Train a group of planned jobs as populations (split by `population_key`).
+
+    A job that fails alone is marked ``failed`` and the others finish; ``announce`` prints a
+    line when one fails (a Ray worker leaves it to the driver).
+
+    Raises:
+        AmuledError: A job's inputs are missing (before anything trains).
+        KeyboardInterrupt: Ctrl-C or SIGTERM, after every member wrote its checkpoint.
+    """
+    from amuled_ma.learn.population import train_population  # here: it imports torch
+
+    outcome = GroupOutcome()
+    prepared: list[PreparedJob] = []
+    done: dict[str, JobResult] = {}
+    try:
+        for job in jobs:
+            ready = prepare_job(
+                job, hint=hint, store=store_for(job) if store_for is not None else None
+            )
+            if isinstance(ready, JobResult):
+                done[job.name] = ready
+            else:
+                prepared.append(ready)
+        specs = [ready.member(on_iteration) for ready in prepared]
+        alone = len(jobs) == 1  # a lone job: its failure is the group's error
+        for members in split_populations(specs, memory_budget_bytes()):
+            try:
+                trained = train_population(
+                    [specs[i] for i in members], progress=progress, announce=announce and not alone
+                )
+                if alone and isinstance(trained[0], BaseException):
+                    raise trained[0]
+            except Exception:
+                for i in members:
+                    prepared[i].failed()
+                raise
+            for i, result in zip(members, trained, strict=True):
+                ready = prepared[i]
+                if isinstance(result, BaseException):
+                    ready.failed()
+                    outcome.failures.append(str(result))
+                else:
+                    done[ready.job.name] = ready.finished(result)
+    finally:
+        for ready in prepared:
+            ready.close()
+    outcome.results = {job.name: done[job.name] for job in jobs if job.name in done}
+    return outcome
+
+
+def population_failure(failures: Sequence[str], hint: str) -> AmuledError:
+    """The sweep's closing error for jobs that failed alone (each named when it failed)."""
+    count = f"{len(failures)} jobs" if len(failures) > 1 else "a job"
+    then = f"; after fixing it, continue with: {hint} --resume" if hint else ""
+    return AmuledError(
+        f"{count} of a population failed alone (named above; their last checkpoints are "
+        f"kept) and the other members finished{then}"
+    )
+
+
 def train_variant(
     scenario: Scenario,
     run_dir: Path,
@@ -287,35 +386,19 @@ def train_variant(
     *,
     resume: bool = False,
     force: bool = False,
-    progress: bool = False,
     hint: str = "",
     iterations: int | None = None,
-    seed: int | None = None,
-    out_dir: Path | None = None,
     base_dir: Path | None = None,
-    base_variant: str = "base",
-    on_iteration: Callable[[Any, int], None] | None = None,
-    task_factory: Callable[..., Any] | None = None,
-    feedback_factory: Callable[[str], Feedback] | None = None,
-    store: StoreService | None = None,
 ) -> JobResult:
-    """Train one variant (``base``, ``shaped`` or ``finetune:<feedback>``) into the run.
+    """Train one variant (``base``, ``shaped`` or ``finetune:<feedback>``) into the run, alone.
 
-    Planned (`plan_job`), prepared (`prepare_job`) and trained as a population of one; its
-    record says complete or failed.
-
-    ``hint`` is the command that re-runs it (messages, Ctrl-C); ``out_dir`` defaults to
-    ``run_dir/<variant folder>``; the base checkpoint is folder ``base_variant`` of
-    ``base_dir`` (default ``run_dir``); ``on_iteration(member, iteration)`` runs after each
-    iteration; ``task_factory`` and ``feedback_factory`` (``variant -> Feedback``) replace
-    the task and the plan's feedback (tests); ``store`` is the panel's belief store
-    (default: the run's ``[feedback].store``, opened on first use by `run_store`).
+    Planned (`plan_job`) and trained by `train_population_jobs`; a fine-tune anchors to the
+    ``base`` folder of ``base_dir`` (default ``run_dir``); ``hint`` re-runs it (messages).
 
     Raises:
         AmuledError: An input is missing or the folder clashes (nothing written).
         MemberFailed: Its feedback failed or its gradient was not finite (its checkpoint
             before that iteration is written).
-
     """
     run_dir = Path(run_dir)
     job = TrainJob(
@@ -323,43 +406,23 @@ def train_variant(
         scenario=scenario,
         run_dir=run_dir,
         variant=variant,
-        out_dir=Path(out_dir) if out_dir else run_dir / variant.folder,
-        seed=seed,
-        base_variant=base_variant,
+        out_dir=run_dir / variant.folder,
         resume=resume,
         force=force,
         base_dir=Path(base_dir) if base_dir else None,
         iterations=iterations,
     )
     planned = plan_job(job, hint, check_panel=False)  # prepare_job checks what it builds
-    prepared = prepare_job(planned, hint=hint, store=store, feedback_factory=feedback_factory)
-    if isinstance(prepared, JobResult):
-        return prepared
-    # after the checks: torch and rsl-rl load here, so that a refused job answers fast
-    from amuled_ma.learn.population import PopulationTrainer
-
-    try:
-        member = prepared.member(on_iteration, task_factory)
-        outcome = PopulationTrainer([member], progress=progress).train()[0]
-        return prepared.finished(outcome)
-    except Exception:
-        # not an interruption: the record says so
-        prepared.failed()
-        raise
-    finally:
-        prepared.close()
+    return train_population_jobs([planned], hint=hint).results[job.name]
 
 
 def ablation_variants(
     what: str, feedback: FeedbackConfig, task: str, resolve: Callable[[str], Path], where: str
 ) -> list[tuple[Variant, Changes]]:
-    """List the fine-tunes of one ablation: ``(variant, changes to the scenario)``.
+    """The fine-tunes of one ablation: ``(variant, changes to the scenario)``.
 
-    ``budget``: AMULED at each budget of :data:`BUDGET_SWEEP` (100% once, the others with
-    each of :data:`BUDGET_SELECTIONS`), and AMULED with every state asked. ``weights``:
-    AMULED with the paper's fixed weights and with the learned ``[feedback].weights``
-    (`LEARNED_WEIGHTS_LABEL`). ``resolve`` resolves the recording's path against the
-    scenario file's folder; ``where`` names the scenario in messages.
+    ``resolve`` resolves the recording's path against the scenario file's folder; ``where``
+    names the scenario in messages.
 
     Raises:
         AmuledError: ``weights`` without ``[feedback].weights``.
@@ -409,7 +472,7 @@ def ablation_variants(
                 )
         full = (*base, ("feedback", {"distill.enabled": False}))
         jobs.append((Variant.finetune("amuled"), full))
-    elif what == "models":
+    else:  # "models" (an unknown ablation is refused by `PipelineRequest` and the CLI)
         jobs = []
         if feedback.source == "replay":
             rec = find_recording(feedback.recording, resolve, where=where)
@@ -421,16 +484,7 @@ def ablation_variants(
             jobs.append((Variant.finetune("amuled", label=f"amuled-{feedback.model}"), ()))
         if not jobs:
             raise AmuledError(f"no recordings for task {task!r} next to {rec}")
-    else:
-        raise ScenarioError(f"unknown ablation {what!r}; expected one of {', '.join(ABLATIONS)}")
     return jobs
-
-
-def _task_has_human_feedback(task: str) -> bool:
-    """``BatchedTask.human_feedback`` of a task that is not the paper's (imports its class)."""
-    from amuled_ma.tasks import get_task
-
-    return get_task(task).human_feedback
 
 
 def plan_run(
@@ -442,20 +496,17 @@ def plan_run(
     force: bool = False,
     base: Path | None = None,
 ) -> list[TrainJob]:
-    """The jobs of ``amuled run``: :data:`MAIN_VARIANTS` for every seed.
+    """The jobs of ``amuled run``: `MAIN_VARIANTS` for every seed, bases first.
 
-    The ``human`` fine-tune is planned only for a task with synthetic human feedback
-    (``BatchedTask.human_feedback``: the paper's two tasks). Each seed's fine-tunes need
-    (and anchor to) that seed's base policy, or, with ``base``
-    (a finished variant folder such as the authors' imported ``runs/authors/findmilk/base``),
-    all anchor to that one. The first seed's folders carry no suffix; bases come before the
-    fine-tunes that need them.
+    ``human`` only for a task with synthetic human feedback (``BatchedTask.human_feedback``).
+    Each seed's fine-tunes anchor to that seed's base, or all to ``base`` (a finished variant
+    folder) when given. The first seed's folders carry no suffix.
     """
+    from amuled_ma.tasks import get_task
     from amuled_ma.tasks.names import TASK_NAMES
 
-    # the paper's tasks have it, known by name so a refused run imports no torch; another
-    # task's class says (importing it)
-    human = scenario.task.name in TASK_NAMES or _task_has_human_feedback(scenario.task.name)
+    # known by name for the paper's tasks, so that a refused run imports no torch
+    human = scenario.task.name in TASK_NAMES or get_task(scenario.task.name).human_feedback
     variants = [v for v in MAIN_VARIANTS if human or v != Variant.finetune("human")]
     run_dir = Path(run_dir)
     jobs = []
@@ -476,9 +527,7 @@ def plan_run(
 
 
 def retrain_jobs(jobs: Sequence[TrainJob], names: Collection[str]) -> list[TrainJob]:
-    """The plan with ``names`` retrained from scratch and every other job resumed (``--retrain``).
-
-    A job that needs a retrained one is retrained too (its anchor changed).
+    """The plan with ``names`` (and the jobs that need them) retrained, the others resumed.
 
     Raises:
         AmuledError: A name that is no job of the plan; the message lists the plan's jobs.
@@ -510,17 +559,13 @@ def plan_ablation(
     resume: bool = False,
     force: bool = False,
 ) -> list[TrainJob]:
-    """The jobs of ``amuled ablate --what WHAT``: each seed's base, then its fine-tunes.
+    """The jobs of ``amuled ablate --what WHAT``: each seed's base (resumed), then its fine-tunes.
 
-    A seed's base is trained only when its folder lacks a finished checkpoint (it is shared
-    with ``amuled run``); the fine-tunes go to ``<run_dir>/ablate-<what>/``, except a
-    fine-tune that ``amuled run`` already finished with exactly the same settings (its
-    AMULED fine-tune, :func:`finished_with`): that job points at the run's folder and is
-    skipped, so the same policy is not trained twice. Each job's scenario is the run's with
-    its changes (:func:`ablation_variants`).
+    The fine-tunes go to ``<run_dir>/ablate-<what>/``, except one ``amuled run`` finished with
+    exactly the same settings (`finished_with`): that job is the run's folder, skipped.
 
     Raises:
-        AmuledError: See :func:`ablation_variants`.
+        AmuledError: See `ablation_variants`.
     """
     run_dir = Path(run_dir)
     out = run_dir / f"ablate-{what}"
@@ -546,7 +591,12 @@ def plan_ablation(
                 out_dir=out / replica, seed=seed, base_variant=base, needs=(base,),
                 resume=resume, force=force,
             )  # fmt: skip
-            if _finished_in_run(job, run_dir / replica):
+            assert variant.feedback is not None
+            try:
+                settings = training_config(job, plan_panel(variant.feedback, sc))
+            except AmuledError:
+                settings = None  # plan_jobs names the problem
+            if settings is not None and finished_with(run_dir / replica, settings):
                 job = dataclasses.replace(
                     job, name=replica, out_dir=run_dir / replica, resume=True, force=False
                 )
@@ -555,11 +605,7 @@ def plan_ablation(
 
 
 def _no_moral_agent(scenario: Scenario) -> bool:
-    """Whether the unprompted moral agent would be the synthetic human of a task without one.
-
-    The clusters ablation then leaves its row out, as ``amuled run`` leaves out ``human``,
-    and says so on stderr.
-    """
+    """Whether ``moral`` is left out: its agent would be the missing human (a note on stderr)."""
     problems = plan_panel("moral", scenario).problems
     missing = [error for error, _ in problems if isinstance(error, NoHumanRule)]
     if missing:
@@ -569,14 +615,3 @@ def _no_moral_agent(scenario: Scenario) -> bool:
             file=sys.stderr,
         )
     return bool(missing)
-
-
-def _finished_in_run(job: TrainJob, trained: Path) -> bool:
-    """Whether the run's folder ``trained`` finished ``job`` with exactly its settings."""
-    assert job.variant.feedback is not None
-    try:
-        panel = plan_panel(job.variant.feedback, job.scenario)
-    except AmuledError:
-        return False  # plan_jobs names the problem
-    settings = training_config(job, panel)
-    return finished_with(trained, settings)

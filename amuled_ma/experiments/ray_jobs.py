@@ -32,7 +32,7 @@ from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from amuled_ma.clusters.plugins import allowed_plugins, set_allowed_plugins
 from amuled_ma.errors import AmuledError, Terminated, TerminatedWhileStarting
-from amuled_ma.experiments.population_jobs import population_failure, train_population_jobs
+from amuled_ma.experiments.plans import population_failure, train_population_jobs
 from amuled_ma.experiments.ray_store import start_store_actors
 from amuled_ma.experiments.ray_switches import SINGLE_MACHINE_ENV
 from amuled_ma.experiments.run_folder import (
@@ -89,10 +89,8 @@ def check_address(address: str, timeout_s: float = 5.0) -> None:
 class RayProcesses:
     """The local Ray's processes: what ``ray.init`` starts under this driver, and theirs.
 
-    While ``ray.init`` runs, a thread reads this process's tree every 50 ms, so that the
-    raylet's agents are known even when Ray's own SIGTERM handler ends the raylet and
-    orphans them (they carry nothing else that names their driver). Children this
-    process had before are not Ray's.
+    A thread reads this process's tree every 50 ms while ``ray.init`` runs: the raylet's agents
+    are known even when Ray's SIGTERM handler ends the raylet and orphans them.
     """
 
     def __init__(self) -> None:
@@ -153,11 +151,20 @@ def _restore_sigterm(previous: _Handler) -> None:
 
 
 class _SigtermCount:
-    """SIGTERMs received while a sweep waits on Ray, passed on to the handler before."""
+    """Count SIGTERMs while a sweep waits on Ray, chained to the handler before.
+
+    Ray turns a handler's exception into a bare ``KeyboardInterrupt``; the count tells a
+    SIGTERM (exit 143) from a Ctrl-C (130). An ignored SIGTERM stays ignored.
+    """
 
     def __init__(self) -> None:
         self.count = 0
         self.previous: Any = None
+        if threading.current_thread() is threading.main_thread():
+            previous = signal.getsignal(signal.SIGTERM)
+            if previous not in (signal.SIG_IGN, None):
+                self.previous = previous
+                signal.signal(signal.SIGTERM, self)
 
     def __call__(self, signum: int, frame: FrameType | None) -> None:
         self.count += 1
@@ -170,21 +177,6 @@ class _SigtermCount:
         if self.previous is not None:
             signal.signal(signal.SIGTERM, self.previous)
             self.previous = None
-
-
-def _count_sigterms() -> _SigtermCount:
-    """Count SIGTERMs while a sweep runs (chained to the handler before).
-
-    Ray turns a handler's exception into a bare ``KeyboardInterrupt``; the count tells a
-    SIGTERM (exit 143) from a Ctrl-C (130). An ignored SIGTERM stays ignored.
-    """
-    counter = _SigtermCount()
-    if threading.current_thread() is threading.main_thread():
-        previous = signal.getsignal(signal.SIGTERM)
-        if previous not in (signal.SIG_IGN, None):
-            counter.previous = previous
-            signal.signal(signal.SIGTERM, counter)
-    return counter
 
 
 class SignalsSeen:
@@ -231,13 +223,9 @@ class SignalsSeen:
 
 
 def connect(address: str | None, workers: int) -> bool:
-    """Connect to Ray: start a local one with ``workers`` CPUs, or join ``address``.
+    """Start a local Ray with ``workers`` CPUs, or join ``address``; True: ``disconnect`` is ours.
 
-    A local Ray listens on loopback only; this process's SIGTERM handler is kept. A SIGTERM
-    while ``ray.init`` runs becomes `Terminated` once what Ray started is shut down.
-
-    Returns:
-        True when this call connected (and ``ray.shutdown`` is ours to call).
+    This process's SIGTERM handler is kept.
 
     Raises:
         AmuledError: No cluster answers at ``address``, naming it and the fix.
@@ -516,45 +504,24 @@ def _inputs(group: Sequence[TrainJob], in_sweep: set[str]) -> dict[str, bytes]:
 def run_on_ray(
     groups: Sequence[Sequence[TrainJob]],
     *,
-    address: str | None,
-    workers: int,
+    ship: bool,
     progress: bool,
     hint: str,
     describe: Callable[[Any], str],
     resource: str | None = None,
-    ship_files: bool | None = None,
 ) -> dict[str, JobResult]:
-    """Train groups of jobs (each after the groups it needs) as Ray tasks; results by name.
+    """Train groups of jobs (each after the groups it needs) as Ray tasks on the connected Ray.
 
-    ``resource``: a custom Ray resource each job needs one unit of. ``ship_files``: pack the
-    folders a job needs into its task (default: only with an ``address``).
+    ``ship``: pack the folders a job needs into its task (a cluster's node may not see them);
+    ``resource``: a custom Ray resource each job needs one unit of. Returns results by name.
 
     Raises:
-        AmuledError: A job failed (after the running ones finished), or Ray is unreachable.
+        AmuledError: A job failed (after the running ones finished).
         KeyboardInterrupt: Ctrl-C, after every running job wrote its checkpoint.
     """
-    ours = connect(address, workers)
-    try:
-        return _sweep(groups, address, progress, hint, describe, resource, ship_files)
-    finally:
-        if ours:
-            disconnect()
-
-
-def _sweep(
-    groups: Sequence[Sequence[TrainJob]],
-    address: str | None,
-    progress: bool,
-    hint: str,
-    describe: Callable[[Any], str],
-    resource: str | None,
-    ship_files: bool | None,
-) -> dict[str, JobResult]:
-    """`run_on_ray` once connected: submit, wait, stop on a signal, clean up."""
     from tqdm.auto import tqdm
 
-    terms = _count_sigterms()
-    ship = address is not None if ship_files is None else ship_files
+    terms = _SigtermCount()
     sweep, token = uuid.uuid4().hex, uuid.uuid4().hex
     groups = [[_absolute(j) for j in group] for group in groups]
     jobs = [job for group in groups for job in group]

@@ -1,8 +1,7 @@
 """One belief store for a sweep on Ray: the driver's SQLite file, served by an actor.
 
-A job on another node must not open the driver's SQLite file (it may not see it, and SQLite
-locks are unsafe over a network file system), yet a state asked once anywhere must be a
-hit everywhere; an actor pinned to the driver's node needs no extra server.
+A job on another node must not open that file (SQLite locks are unsafe over a network file
+system), yet a state asked once anywhere must be a hit everywhere.
 """
 
 from __future__ import annotations

@@ -84,11 +84,8 @@ class Rerun:
 class TrainJob:
     """One job of a run: what it trains and where, planned once and carried to its trainer.
 
-    `plan_run` sets the first fields; `plan_job` fills the planned ones (``panel``, ``shape``,
-    ``settings``, ``base_checkpoint``, ``store``, ``action``; ``action`` set: planned), which every
-    later stage reads instead of deriving them again. ``base_variant`` is the folder under
-    ``base_dir`` (default ``run_dir``) of the base a fine-tune anchors to; ``iterations``
-    overrides the planned number.
+    `plan_job` fills the fields from ``panel`` on (``action`` set: planned). ``base_variant`` is
+    the folder under ``base_dir`` (default ``run_dir``) of the base a fine-tune anchors to.
     """
 
     name: str
@@ -149,26 +146,16 @@ def base_checkpoint(base_folder: Path, scenario_name: str) -> Path:
     return path
 
 
-def saved_training_config(out_dir: Path) -> dict[str, Any] | None:
-    """The ``"training"`` settings of a variant folder's ``config.json``, or None without them.
-
-    Raises:
-        AmuledError: ``config.json`` exists but is not a run record.
-    """
-    record = read_record(out_dir, checkpoint=False)
-    return None if record is None else record.training
-
-
 def training_differences(out_dir: Path, training: dict[str, Any]) -> list[str]:
     """``key: saved -> now`` for each setting that differs; empty when none (or none saved).
 
     Raises:
         AmuledError: ``config.json`` exists but is not a run record.
     """
-    saved = saved_training_config(out_dir)
-    if saved is None:
+    record = read_record(out_dir, checkpoint=False)
+    if record is None or record.training is None:
         return []
-    saved = learned_only(saved)
+    saved = learned_only(record.training)
     training = without_keys_added_since(saved, training)
     return differences(
         {k: v for k, v in saved.items() if k != "iterations"},
@@ -193,26 +180,20 @@ def settings_refusal(
     )
 
 
-def _tag(diffs: list[str]) -> str:
-    """A short folder-name tag from the first difference's new value (``ollama``)."""
-    now = diffs[0].rsplit(" -> ", 1)[-1] if diffs else ""
-    tag = re.sub(r"[^A-Za-z0-9]+", "-", now).strip("-").lower()[:24].strip("-")
-    return tag or "new"
-
-
 def recovery_commands(
     job: TrainJob, diffs: list[str], rerun: Rerun | None = None, hint: str = ""
 ) -> tuple[str, str]:
     """``(beside, again)``: the commands that train the new settings beside, or retrain that folder.
 
-    ``beside`` is a fine-tune under a new ``--name`` (another ``--run-dir`` for a base or a
-    run); ``again`` adds ``--force`` (``finetune``/``train``) or ``--retrain NAME``
-    (``run``/``ablate``, resuming the other variants).
+    ``beside``: a new ``--name`` (fine-tune) or ``--run-dir``; ``again``: ``--force``, or
+    ``--retrain NAME`` for ``run``/``ablate``.
     """
     if rerun is None:
         again = f"{hint} --force" if hint else "--force"
         return "another --run-dir (or --name NAME for a fine-tune)", again
-    tag = _tag(diffs)
+    # a short folder-name tag from the first difference's new value (``ollama``)
+    now = diffs[0].rsplit(" -> ", 1)[-1] if diffs else ""
+    tag = re.sub(r"[^A-Za-z0-9]+", "-", now).strip("-").lower()[:24].strip("-") or "new"
     if rerun.command == "finetune":
         label = split_replica(job.out_dir.name)[0].removeprefix("finetune-")
         beside = rerun.line(job.run_dir, name=f"{label}-{tag}")
@@ -233,12 +214,13 @@ def finished_with(out_dir: Path, training: dict[str, Any]) -> bool:
     if not (state and state.get("completed")):
         return False
     try:
-        saved = saved_training_config(out_dir)
+        record = read_record(out_dir, checkpoint=False)
     except AmuledError:
         return False
     return (
-        saved is not None
-        and learned_only(saved) == training
+        record is not None
+        and record.training is not None
+        and learned_only(record.training) == training
         and state.get("iteration") == training["iterations"]
     )
 
@@ -248,8 +230,7 @@ def prepare_variant(
 ) -> Action:
     """Decide what a job does with its folder: ``new``, ``resume`` or ``skip``.
 
-    A resume or skip needs the saved settings to match ``training``; a finished checkpoint of
-    fewer iterations is resumed to the job's number.
+    A resume or skip needs the saved settings to match ``training``.
 
     Raises:
         AmuledError: A checkpoint without ``resume`` or ``force``, or ``resume`` over other
@@ -427,15 +408,11 @@ def panel_of_training(
     """The `PanelRecord` of a fine-tune, from its settings; a fused-only replay has no members."""
     from amuled_ma.deliberation.panel_feedback import FusedReplayFeedback
 
-    settings = training.get("feedback") or {}
+    settings = training.get("feedback") or {}  # none for the human (it asks no panel)
     kind, arg = variant.feedback_kind
     members, rule = list(settings.get("clusters") or []), settings.get("fusion")
-    if kind == "human":
-        members, rule = [], None
-    elif kind == "cluster":
-        members, rule = [str(arg)], "mean"
-    elif kind == "moral":
-        members, rule = [MORAL_AGENT], "mean"
+    if kind in ("cluster", "moral"):
+        members, rule = [str(arg) if kind == "cluster" else MORAL_AGENT], "mean"
     elif kind == "agg":
         rule = arg
     fused_only = isinstance(feedback, FusedReplayFeedback)
@@ -444,9 +421,9 @@ def panel_of_training(
     return PanelRecord(
         feedback=str(variant.feedback),
         members=members,
-        source=settings.get("source") if kind != "human" else None,
-        model=settings.get("model") if kind != "human" else None,
-        recording=settings.get("recording") if kind != "human" else None,
+        source=settings.get("source"),
+        model=settings.get("model"),
+        recording=settings.get("recording"),
         fused_only=fused_only,
         fusion=rule,
         agent_sources=dict(settings.get("agents") or {}),

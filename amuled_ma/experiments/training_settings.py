@@ -27,15 +27,11 @@ NOT_LEARNED = {
 
 
 def training_config(job: TrainJob, panel: PanelPlan | None = None) -> dict[str, Any]:
-    """The settings that decide what a variant learns, as plain JSON data (``Scenario.settings``).
+    """The settings that decide what a variant learns, as JSON data; a resume compares them.
 
-    A folder's saved copy (``config.json``, key ``"training"``) is compared with them before a
-    resume or a skip. Left out: :data:`NOT_LEARNED`, the recording's folder (its file name
-    stays), ``[feedback.distill]`` when off, and ``[feedback]`` for base training and the
-    rule-based human. ``inputs`` holds the SHA-256 of the recordings replayed, of each
-    cluster file of ``panel`` (a panel fine-tune's `plan_panel`, else None) and, for the
-    ``amuled`` variant, of the ``[feedback].weights`` file (its file name stays). Returns
-    ``{"variant", "seed", "iterations" (the PPO iterations trained to), section: {...}, ...}``.
+    Left out: `NOT_LEARNED`, the folders of files (their names stay), ``[feedback.distill]``
+    when off, and ``[feedback]`` for a job that asks no panel. ``inputs`` holds the SHA-256 of
+    the recordings replayed, of each cluster file of ``panel`` and of ``amuled``'s weights file.
 
     Raises:
         ValueError: A fine-tune that asks a panel, without its plan.
@@ -72,20 +68,15 @@ def training_config(job: TrainJob, panel: PanelPlan | None = None) -> dict[str, 
         if spec.get("source") == "replay" and spec.get("recording"):
             path = scenario.replace("feedback", recording=spec["recording"]).recording_path()
             out.setdefault("inputs", {})[f"recording_sha256[{agent}]"] = file_sha256(path)
-    if panel is not None and panel.asks_panel:
-        for name, digest in cluster_hashes(panel).items():
+    if panel is not None and panel.asks_panel:  # the files the panel's prompts are made of
+        hashes: dict[str, str | None] = {}
+        described = panel.registry.panel() if panel.registry is not None else []
+        for cluster in [*panel.clusters, *described]:
+            if cluster.path is not None and cluster.name not in hashes:
+                hashes[cluster.name] = file_sha256(Path(cluster.path))
+        for name, digest in sorted(hashes.items()):
             out.setdefault("inputs", {})[f"cluster_sha256[{name}]"] = digest
     return json.loads(json.dumps(out, default=str))
-
-
-def cluster_hashes(panel: PanelPlan) -> dict[str, str | None]:
-    """SHA-256 of the file of each cluster the panel's prompts are made of."""
-    out: dict[str, str | None] = {}
-    described = panel.registry.panel() if panel.registry is not None else []
-    for cluster in [*panel.clusters, *described]:
-        if cluster.path is not None and cluster.name not in out:
-            out[cluster.name] = file_sha256(Path(cluster.path))
-    return dict(sorted(out.items()))
 
 
 @functools.lru_cache(maxsize=64)
