@@ -127,32 +127,11 @@ class SmartGrid(BatchedTask):
     obs_low = (0.0,) * 11
     obs_high = (1.0,) * 11
     metric_names = ("need_met", "grid_overloaded")
+    default_max_steps = 24
     judge_names: ClassVar[tuple[str, ...]] = tuple(JUDGES)
 
-    def __init__(
-        self,
-        num_envs: int = 1,
-        *,
-        device: str | torch.device = "cpu",
-        seed: int | None = None,
-        shaping_coef: float = 0.0,
-        max_steps: int = 24,
-        households: int = 3,
-        offices: int = 1,
-    ) -> None:
-        """Create the copies (see `BatchedTask`; options above)."""
-        super().__init__(
-            num_envs,
-            device=device,
-            seed=seed,
-            shaping_coef=shaping_coef,
-            max_steps=max_steps,
-            households=households,
-            offices=offices,
-        )
-
     # ------------------------------------------------------------------ hooks
-    def _init_task(self, *, households: int, offices: int) -> None:
+    def _init_task(self, households: int = 3, offices: int = 1) -> None:
         for option, value, low in (("households", households, 1), ("offices", offices, 0)):
             if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= 1000:
                 raise ValueError(f"{option}: expected an integer in {low}..1000, got {value!r}")
@@ -231,11 +210,7 @@ class SmartGrid(BatchedTask):
         for i, row in enumerate(obs.numpy()):
             old = self._live_keys[i]
             if old is not None:
-                holders = [h for h in _LIVE.get(old, []) if h[1] != i or h[0]() is not self]
-                if holders:
-                    _LIVE[old] = holders
-                else:
-                    _LIVE.pop(old, None)
+                _keep_live(old, self, i)
             key = row.tobytes()
             _LIVE.setdefault(key, []).append((me, i))
             self._live_keys[i] = key
@@ -273,8 +248,8 @@ class SmartGrid(BatchedTask):
     def judge_scores(cls, judge: str, obs: np.ndarray) -> np.ndarray:
         """The judge's belief scores ``exp((r_v(a) - max r_v) / JUDGE_TEMPERATURE)``.
 
-        ``r_v(a)`` is the package's reward of value ``judge`` after one step with action ``a`` on
-        a copy of the live world showing ``obs`` (kept for `MAX_SCORED` states).
+        ``r_v(a)``: the package's reward of ``judge`` one step after ``a`` on a copy of the live
+        world showing ``obs``.
 
         Raises:
             ValueError: Unknown judge, or a state no live copy of this process shows
@@ -370,12 +345,21 @@ def _scores(key: bytes) -> np.ndarray:
     return out
 
 
+def _keep_live(key: bytes, task: SmartGrid | None = None, copy_id: int = -1) -> None:
+    """Drop the holders of ``key`` in `_LIVE` collected or ``(task, copy_id)`` (none left: it)."""
+    holders = [
+        (ref, i)
+        for ref, i in _LIVE.get(key, [])
+        if (held := ref()) is not None and (held is not task or i != copy_id)
+    ]
+    if holders:
+        _LIVE[key] = holders
+    else:
+        _LIVE.pop(key, None)
+
+
 def _forget(keys: list[bytes | None]) -> None:
     """Drop a garbage-collected task's live observations."""
     for key in keys:
-        if key is not None and key in _LIVE:
-            holders = [h for h in _LIVE[key] if h[0]() is not None]
-            if holders:
-                _LIVE[key] = holders
-            else:
-                del _LIVE[key]
+        if key is not None:
+            _keep_live(key)
