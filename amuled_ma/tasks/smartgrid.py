@@ -168,10 +168,14 @@ class SmartGrid(BatchedTask):
         r_shaping = torch.zeros(n, dtype=torch.float32)
         overloaded = torch.zeros(n, dtype=torch.int64)
         for i, (env, action) in enumerate(zip(self._envs, actions.tolist(), strict=True)):
-            rewards, over = _step(env, self._learner, int(action))
+            # the package's step for the learner alone (the others' observations: never read)
+            rewards = _step_world(env.world, env.reward_calculator, self._learner, int(action))
+            manager = env.observation_manager
+            manager.reset()  # the package's memo is shared by every world
+            overloaded[i] = int(float(manager.compute_global(env.world).over_consumption) > 0)
+            manager.reset()
             values[i] = torch.tensor([rewards[v] for v in JUDGES])
             r_shaping[i] = rewards["equity"]
-            overloaded[i] = int(over > 0)
         self._value_sums += values
         comfort = values[:, 0]
         events = {"need_met": (comfort >= 0.9).to(torch.int64), "grid_overloaded": overloaded}
@@ -286,20 +290,6 @@ class SmartGrid(BatchedTask):
         ]
         colours = {"L": (31, 119, 180), "P": (127, 127, 127)}
         return paint_cells(rows, colours, cell, 255)
-
-
-def _step(env: Any, learner: str, action: int) -> tuple[dict[str, float], float]:
-    """Step one package environment; the learner's rewards by judge, the over-consumption.
-
-    The package's own rules (``World.step``) and rewards (the environment's
-    ``reward_calculator``, the learner's alone), what ``SmartGrid.step`` computes for the
-    learner without the other prosumers' observations and rewards, which nothing reads.
-    """
-    rewards = _step_world(env.world, env.reward_calculator, learner, action)
-    env.observation_manager.reset()  # the package's memo is shared by every world
-    over = env.observation_manager.compute_global(env.world).over_consumption
-    env.observation_manager.reset()
-    return rewards, float(over)
 
 
 def _step_world(world: Any, calculator: Any, learner: str, action: int) -> dict[str, float]:
