@@ -65,8 +65,8 @@ def test_the_options_a_task_accepts_still_load():
 
 # ------------------------------------------------- the models equal the tasks' constructors
 def _task_parameters(name: str) -> dict[str, inspect.Parameter]:
-    """The keyword options of a task: its constructor's parameters the run does not set."""
-    signature = inspect.signature(TASKS[name].__init__)
+    """The keyword options of a task: the parameters of its ``_init_task``."""
+    signature = inspect.signature(TASKS[name]._init_task)
     skip = {"self", "num_envs", *RESERVED}
     return {p: v for p, v in signature.parameters.items() if p not in skip}
 

@@ -95,11 +95,6 @@ def model_slug(model: str) -> str:
     return slug or "model"
 
 
-def recording_file_name(task: str, model: str) -> str:
-    """Our file name of a recording: ``<task>-<model slug>.json``."""
-    return f"{task}-{model_slug(model)}.json"
-
-
 def task_of_folder(name: str) -> str | None:
     """Our task of an authors' run folder (``FindMilk-v4_42``, ``Driving_42``, ``Drive``)."""
     return next((task for prefix, task in FOLDER_TASKS if name.lower().startswith(prefix)), None)
@@ -187,8 +182,7 @@ def convert_cache(
 ) -> ConvertedCache:
     """Read one authors' LLM cache (safely) and convert it to a recording.
 
-    ``task`` defaults to the folder name's, else the observation length's (8 FindMilk, 11
-    Driving); ``model`` to the file name's.
+    ``task`` None: the folder's, else by observation length; ``model`` None: the file name's.
 
     Raises:
         UnsafePickleError: The pickle names a global outside the allow-list.

@@ -78,14 +78,6 @@ def _rel(path: Path, root: Path) -> str:
     return str(path.relative_to(root))  # a glob's match, always below its root
 
 
-def find_caches(checkout: Path) -> list[Path]:
-    """The LLM caches of a checkout, ``models/`` before ``PickleCacheAndBaseModels/``."""
-    found: list[Path] = []
-    for pattern in CACHE_GLOBS:
-        found += sorted(p for p in Path(checkout).glob(pattern) if p.is_file())
-    return found
-
-
 @dataclass
 class PolicySource:
     """One CleanRL policy to convert (``iteration``: ``N`` of ``ppo_<N>``; ``model`` None: base)."""
@@ -131,7 +123,8 @@ def _recording_outputs(
 ) -> list[tuple[Output, ConvertedCache]]:
     planned: list[tuple[Output, ConvertedCache]] = []
     taken: set[str] = set()
-    for path in find_caches(checkout):
+    caches = [p for glob in CACHE_GLOBS for p in sorted(checkout.glob(glob)) if p.is_file()]
+    for path in caches:  # ``models/`` first
         if only is not None and _rel(path, checkout) not in only:
             continue
         converted = convert_cache(path)
@@ -257,9 +250,7 @@ def import_authors(
     policies: bool = True,
     only: Collection[str] | None = None,
 ) -> ImportReport:
-    """Convert the authors' LLM caches and CleanRL policies of a checkout.
-
-    ``only``: convert only the caches at these paths relative to ``checkout`` (None: all).
+    """Convert the authors' LLM caches (``only``: these paths in ``checkout``) and policies.
 
     Raises:
         AuthorsImportError: No authors' files, a file not in their format, or an output that

@@ -184,10 +184,9 @@ def fetch_pinned(
     base: str | None = None,
     say: Callable[[str], None] = print,
 ) -> Path:
-    """Fetch the pinned files not already in the cache, each checked against its SHA-256.
+    """Fetch the pinned files not in the cache, each checked by SHA-256; return the cache folder.
 
-    Says one line first (what, from where, how large, under whose terms) when anything is
-    fetched. Returns the cache folder.
+    Says one line first (what, from where, how large, under whose terms) when anything is fetched.
 
     Raises:
         AuthorsFetchError: A file could not be fetched or was refused (SHA-256, size); names
@@ -240,6 +239,30 @@ def fetch_pinned(
     return cache
 
 
+def _fetch_unless_offline(
+    pins: Sequence[PinnedFile],
+    missing: str,
+    route: str,
+    offline: bool,
+    cache: Path | None,
+    base: str | None,
+    say: Callable[[str], None],
+) -> Path:
+    """`fetch_pinned`; offline with a pin not cached: one line (``missing``, then ``route``).
+
+    Raises:
+        AuthorsFetchError: Offline with a file not cached, or the fetch failed.
+    """
+    cache = cache or cache_folder()
+    if offline_requested(offline) and not all(_cached(pin, cache) for pin in pins):
+        raise AuthorsFetchError(
+            f"the paper authors' {missing} and fetching is off (--offline or {OFFLINE_ENV}=1): "
+            f"run without it to fetch {_mb(sum(pin.size for pin in pins))} from {REPOSITORY} "
+            f"at {COMMIT[:12]} (checked), or {route}"
+        )
+    return fetch_pinned(pins, cache=cache, base=base, say=say)
+
+
 def ensure_recordings(
     resolve: Callable[[str], Path],
     values: Sequence[str],
@@ -251,12 +274,9 @@ def ensure_recordings(
     base: str | None = None,
     to: Path | None = None,
 ) -> list[Path]:
-    """Fetch and convert the authors' recordings among ``values`` that are found nowhere here.
+    """Fetch and convert (into ``to``, None: the user's) the ``pinned`` ``values`` not found here.
 
-    A value the scenario's lookup (:func:`~amuled_ma.scenario.paths.find_recording`) finds,
-    or not among ``pinned``, is left alone. The others are fetched (:func:`fetch_pinned`) and
-    converted into ``to`` (default the user data folder's ``recordings/``). Returns the
-    recordings written (empty: nothing was missing).
+    Returns the recordings written (empty: nothing was missing).
 
     Raises:
         AuthorsFetchError: Offline with a file not cached (one line naming the routes), or
@@ -270,16 +290,9 @@ def ensure_recordings(
             pins.append(pin)
     if not pins:
         return []
-    cache = cache or cache_folder()
-    if offline_requested(offline) and not all(_cached(pin, cache) for pin in pins):
-        names = [pin.recording for pin in pins]
-        size = _mb(sum(pin.size for pin in pins))
-        raise AuthorsFetchError(
-            f"the paper authors' recording {', '.join(names)} is not on this machine and "
-            f"fetching is off (--offline or {OFFLINE_ENV}=1): run without it to fetch "
-            f"{size} from {REPOSITORY} at {COMMIT[:12]} (checked), or {manual_route(names)}"
-        )
-    fetch_pinned(pins, cache=cache, base=base, say=say)
+    names = [pin.recording for pin in pins]
+    missing = f"recording {', '.join(names)} is not on this machine"
+    cache = _fetch_unless_offline(pins, missing, manual_route(names), offline, cache, base, say)
     from amuled_ma.authors.checkout import import_authors  # here: it imports torch
 
     report = import_authors(
@@ -300,9 +313,7 @@ def ensure_authors_base(
     cache: Path | None = None,
     base: str | None = None,
 ) -> Path | None:
-    """The authors' base policy of ``task`` as ``<runs>/authors/<task>/base``; fetched when missing.
-
-    Returns None for a task without a pinned base.
+    """The authors' base policy of ``task`` (None: none pinned) in ``<runs>/authors/<task>/base``.
 
     Raises:
         AuthorsFetchError: Offline with the file not cached, or the fetch failed.
@@ -316,14 +327,8 @@ def ensure_authors_base(
     folder = Path(runs) / pin.recording
     if (folder / LAST).is_file():
         return folder
-    cache = cache or cache_folder()
-    if offline_requested(offline) and not _cached(pin, cache):
-        raise AuthorsFetchError(
-            f"the paper authors' published {task} base policy is not in {folder} and fetching "
-            f"is off (--offline or {OFFLINE_ENV}=1): run without it to fetch {_mb(pin.size)} "
-            f"from {REPOSITORY} at {COMMIT[:12]} (checked), or {pin_route(pin)}"
-        )
-    fetch_pinned([pin], cache=cache, base=base, say=say)
+    missing = f"published {task} base policy is not in {folder}"
+    cache = _fetch_unless_offline([pin], missing, pin_route(pin), offline, cache, base, say)
     from amuled_ma.authors.checkout import import_authors  # here: it imports torch
 
     import_authors(cache, runs=runs, recordings=False, policies=True)

@@ -178,47 +178,6 @@ def _check_key(key: object) -> None:
     )
 
 
-class _KeyWork:
-    """The key work left to one file (`MAX_KEY_WORK`), spent before a key is hashed."""
-
-    __slots__ = ("left", "limit")
-
-    def __init__(self, limit: int) -> None:
-        self.left = self.limit = limit
-
-    def spend(self, key: object) -> None:
-        self.left -= 1 + len(key) if type(key) is tuple or type(key) is frozenset else 1
-        if self.left < 0:
-            raise PickleUnbounded(
-                f"more than {self.limit:,} units of work hashing dict keys and set items (one "
-                "a key and one a value of a tuple key; the published caches need at most "
-                "147,488)"
-            )
-
-
-class _HashCounter:
-    """Keys of one dict or set by hash value: refuses more than `MAX_EQUAL_HASHES`."""
-
-    __slots__ = ("counts", "owner", "work")
-
-    def __init__(self, owner: object, work: _KeyWork) -> None:
-        self.owner = owner  # kept alive, so that its id is not reused while counted
-        self.work = work
-        self.counts: dict[int, int] = {}
-
-    def admit(self, key: object) -> None:
-        _check_key(key)
-        self.work.spend(key)
-        h = hash(key)
-        n = self.counts.get(h, 0) + 1
-        if n > MAX_EQUAL_HASHES:
-            raise PickleUnbounded(
-                f"more than {MAX_EQUAL_HASHES} keys of one dict or set share one hash value "
-                "(keys crafted to collide make reading take quadratic time)"
-            )
-        self.counts[h] = n
-
-
 class BoundedReader:
     """Builds one pickle's values, opcode by opcode, with the allow-list and the bounds.
 
@@ -237,7 +196,7 @@ class BoundedReader:
         max_key_work: int = MAX_KEY_WORK,
     ) -> None:
         self.data = data
-        self.key_work = _KeyWork(max_key_work)
+        self.max_key_work = self.key_work_left = max_key_work
         self.max_opcodes = max_opcodes
         self.array_bytes_left = max_array_bytes
         self.set_items_left = max_array_bytes
@@ -245,7 +204,8 @@ class BoundedReader:
         self.stack: list[Any] = []
         self.metastack: list[list[Any]] = []
         self.memo: dict[int, Any] = {}
-        self.counters: dict[int, _HashCounter] = {}
+        # id of a dict or set -> (it, kept so that its id is not reused; its keys by hash)
+        self.counters: dict[int, tuple[object, dict[int, int]]] = {}
         self.ndarray = _Allowed("numpy.ndarray", _ndarray)
         self.targets = {
             "scalar": _Allowed("numpy scalar", self._scalar),
@@ -266,16 +226,16 @@ class BoundedReader:
             "MEMOIZE": self._memoize,
             # the items above a mark are popped before `push` reads self.stack again
             "TUPLE": lambda _: push(tuple(self._pop_mark())),
-            "TUPLE1": lambda _: self._tuple(1),
-            "TUPLE2": lambda _: self._tuple(2),
-            "TUPLE3": lambda _: self._tuple(3),
+            "TUPLE1": lambda _: push(tuple(self._pop_top(1))),
+            "TUPLE2": lambda _: push(tuple(self._pop_top(2))),
+            "TUPLE3": lambda _: push(tuple(self._pop_top(3))),
             "LIST": lambda _: push(self._pop_mark()),
-            "APPEND": self._append,
-            "APPENDS": self._appends,
-            "DICT": lambda _: push(self._into_dict({}, self._pop_mark())),
-            "SETITEM": self._setitem,
-            "SETITEMS": self._setitems,
-            "ADDITEMS": self._additems,
+            "APPEND": lambda _: self._into_list("APPEND", self._pop_top(1)),
+            "APPENDS": lambda _: self._into_list("APPENDS", self._pop_mark()),
+            "DICT": lambda _: push(self._into_dict(self._pop_mark(), {})),
+            "SETITEM": lambda _: self._into_dict(self._pop_top(2)),
+            "SETITEMS": lambda _: self._into_dict(self._pop_mark()),
+            "ADDITEMS": lambda _: self._into_set(self._pop_mark()),
             "FROZENSET": lambda _: push(frozenset(self._admitted(self._pop_mark()))),
             "GLOBAL": self._global,
             "STACK_GLOBAL": self._stack_global,
@@ -359,72 +319,74 @@ class BoundedReader:
     def _push(self, value: object) -> None:
         self.stack.append(value)
 
-    # -- containers (items above a mark: popped before self.stack is read again) ----------
-    def _tuple(self, n: int) -> None:
+    # -- containers: the items are popped (an argument) before the target is read ---------
+    def _pop_top(self, n: int) -> list[Any]:
         stack = self.stack
         if len(stack) < n:
             raise IndexError("stack underflow")
-        items = tuple(stack[-n:])
+        items = stack[-n:]
         del stack[-n:]
-        stack.append(items)
+        return items
 
-    def _append(self, _arg: None) -> None:
-        value = self.stack.pop()
-        self._list_below("APPEND").append(value)
-
-    def _appends(self, _arg: None) -> None:
-        items = self._pop_mark()
-        self._list_below("APPENDS").extend(items)
-
-    def _list_below(self, opcode: str) -> list[Any]:
+    def _into_list(self, opcode: str, items: list[Any]) -> None:
         target = self.stack[-1]
         if type(target) is not list:
             raise PickleRefused(f"{opcode} on a {type(target).__name__}")
-        return target
+        target.extend(items)
 
-    def _counter(self, container: object) -> _HashCounter:
-        counter = self.counters.get(id(container))
-        if counter is None or counter.owner is not container:
-            counter = self.counters[id(container)] = _HashCounter(container, self.key_work)
-        return counter
+    def _admit(self, counts: dict[int, int], key: object) -> None:
+        """Check a dict key or set item, spend its key work, count its hash in ``counts``."""
+        _check_key(key)
+        self.key_work_left -= 1 + len(key) if type(key) is tuple or type(key) is frozenset else 1
+        if self.key_work_left < 0:
+            raise PickleUnbounded(
+                f"more than {self.max_key_work:,} units of work hashing dict keys and set items "
+                "(one a key and one a value of a tuple key; the published caches need at most "
+                "147,488)"
+            )
+        h = hash(key)
+        n = counts.get(h, 0) + 1
+        if n > MAX_EQUAL_HASHES:
+            raise PickleUnbounded(
+                f"more than {MAX_EQUAL_HASHES} keys of one dict or set share one hash value "
+                "(keys crafted to collide make reading take quadratic time)"
+            )
+        counts[h] = n
 
-    def _into_dict(self, target: object, items: list[Any]) -> object:
+    def _counts(self, container: object) -> dict[int, int]:
+        """The hash counts of one dict or set, kept while the file is read."""
+        entry = self.counters.get(id(container))
+        if entry is None or entry[0] is not container:
+            entry = self.counters[id(container)] = (container, {})
+        return entry[1]
+
+    def _into_dict(self, items: list[Any], target: object = None) -> object:
+        """Add ``items`` (key, value, ...) to ``target`` (None: the dict on top of the stack)."""
+        target = self.stack[-1] if target is None else target
         if type(target) is not dict:
             raise PickleRefused(f"SETITEM on a {type(target).__name__}")
         if len(items) % 2:
             raise ValueError("odd number of items for a dict")
-        counter = self._counter(target)
+        counts = self._counts(target)
         for i in range(0, len(items), 2):
-            counter.admit(items[i])
+            self._admit(counts, items[i])
             target[items[i]] = items[i + 1]
         return target
 
-    def _setitem(self, _arg: None) -> None:
-        stack = self.stack
-        value = stack.pop()
-        key = stack.pop()
-        self._into_dict(stack[-1], [key, value])
-
-    def _setitems(self, _arg: None) -> None:
-        items = self._pop_mark()
-        self._into_dict(self.stack[-1], items)
-
-    def _additems(self, _arg: None) -> None:
-        items = self._pop_mark()
-        self._into_set(self.stack[-1], items)
-
-    def _into_set(self, target: object, items: Collection[Any]) -> None:
+    def _into_set(self, items: Collection[Any], target: object = None) -> None:
+        """Add ``items`` to ``target`` (None: the set on top of the stack)."""
+        target = self.stack[-1] if target is None else target
         if type(target) is not set:
             raise PickleRefused(f"ADDITEMS on a {type(target).__name__}")
-        counter = self._counter(target)
+        counts = self._counts(target)
         for item in items:
-            counter.admit(item)
+            self._admit(counts, item)
             target.add(item)
 
     def _admitted(self, items: _Items) -> _Items:
-        counter = _HashCounter(None, self.key_work)
+        counts: dict[int, int] = {}
         for item in items:
-            counter.admit(item)
+            self._admit(counts, item)
         return items
 
     # -- globals and the calls they allow ------------------------------------------------
@@ -494,7 +456,7 @@ class BoundedReader:
 
     def _set(self, items: object = ()) -> set[Any]:
         result: set[Any] = set()
-        self._into_set(result, self._set_items(items))  # ADDITEMS on it goes on counting
+        self._into_set(self._set_items(items), result)  # ADDITEMS on it goes on counting
         return result
 
     def _set_items(self, items: object) -> Collection[Any]:

@@ -170,10 +170,7 @@ def build_checkpoint(
     base_checkpoint: Path | None = None,
     source: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Our checkpoint (the dict a trained job's ``model_last.pt`` holds) holding a CleanRL policy.
-
-    ``ppo`` of a matching network (:func:`authors_changes`); ``source`` is kept under
-    ``infos["authors"]``.
+    """Our checkpoint (a ``model_last.pt``'s dict) of a CleanRL policy; ``source``: its ``authors``.
 
     Raises:
         CheckpointError: The ``[ppo]`` networks do not fit the policy, or the converted
@@ -220,16 +217,6 @@ def build_checkpoint(
     }
 
 
-def cleanrl_logits(state: Mapping[str, torch.Tensor], obs: torch.Tensor) -> torch.Tensor:
-    """Logits of the authors' actor (their ``Agent.actor``: Linear, tanh, Linear, tanh, Linear)."""
-    x = obs
-    for k, i in enumerate(CLEANRL_LINEARS):
-        x = torch.nn.functional.linear(x, state[f"actor.{i}.weight"], state[f"actor.{i}.bias"])
-        if k < len(CLEANRL_LINEARS) - 1:
-            x = torch.tanh(x)
-    return x
-
-
 def check_equivalent(
     state: Mapping[str, torch.Tensor], actor: MLPModel, samples: int = 256
 ) -> None:
@@ -242,7 +229,12 @@ def check_equivalent(
     gen = torch.Generator().manual_seed(0)
     obs = torch.randint(-2, 9, (samples, obs_dim), generator=gen).float()
     with torch.no_grad():
-        theirs = cleanrl_logits(state, obs)
+        theirs = obs  # their ``Agent.actor``: Linear, tanh, Linear, tanh, Linear
+        for k, i in enumerate(CLEANRL_LINEARS):
+            weight, bias = state[f"actor.{i}.weight"], state[f"actor.{i}.bias"]
+            theirs = torch.nn.functional.linear(theirs, weight, bias)
+            if k < len(CLEANRL_LINEARS) - 1:
+                theirs = torch.tanh(theirs)
         ours = actor.mlp(actor.obs_normalizer(obs))
     diff = float((theirs - ours).abs().max())
     if not diff <= LOGIT_TOLERANCE:
@@ -261,9 +253,7 @@ def write_variant(
 ) -> Path:
     """Write a completed variant folder: ``model_last.pt``, ``config.json``, ``train_cfg.json``.
 
-    Its record (``config.json``) says what the policy is: imported (the authors' file, its
-    SHA-256 and checkpoint iteration), its iterations, complete; ``training`` (the authors'
-    settings) makes a resume into it with other settings refused. Returns the checkpoint's path.
+    ``training`` (the authors' settings) makes a resume with others refused; returns the checkpoint.
     """
     import json
 

@@ -81,10 +81,9 @@ class PickleScan:
 def scan_pickle(
     data: bytes, *, max_depth: int = MAX_DEPTH, max_opcodes: int = MAX_OPCODES
 ) -> PickleScan:
-    """Read a pickle's opcodes (nothing built or called): its globals and its depth.
+    """Read a pickle's opcodes (nothing built; stops past ``max_depth``, ``max_opcodes``).
 
-    The stack is followed abstractly (each entry its depth, or a pushed string for
-    ``STACK_GLOBAL``); reading stops past ``max_depth`` or ``max_opcodes``.
+    The stack holds each entry's depth, or a pushed string for ``STACK_GLOBAL``.
 
     Raises:
         ValueError: The bytes are not a well-formed pickle.

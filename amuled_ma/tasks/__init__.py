@@ -117,33 +117,22 @@ def make_batched(name: str, num_envs: int = 1, **kwargs: Any) -> BatchedTask:
 def make_task(task: TaskConfig, num_envs: int, *, shaping_coef: float, seed: int) -> BatchedTask:
     """Create ``num_envs`` copies of the ``[task]`` section's task on the CPU, seeded ``seed``.
 
-    ``shaping_coef`` is ``c`` of the reward ``r_env + c * r_shaping``.
+    ``shaping_coef`` is ``c`` of the reward ``r_env + c * r_shaping``; the section refused
+    reserved options on load.
 
     Raises:
-        ScenarioError: A task option is reserved, unknown or invalid.
+        ScenarioError: The task refuses an option (one without an option model).
     """
-    options = dict(task.options)
-    reserved = sorted(set(options) & {"device", "seed", "shaping_coef", "max_steps"})
-    if reserved:
-        raise ScenarioError(
-            f"key [task].options: {', '.join(reserved)} cannot be a task option (it is set "
-            "by the run: [task].seed, [task].max_steps, the reward's shaping); remove it"
-        )
-    kwargs: dict[str, Any] = dict(options)
+    kwargs: dict[str, Any] = dict(task.options)
     if task.max_steps:
         kwargs["max_steps"] = task.max_steps
     try:
         return make_batched(
-            task.name,
-            num_envs,
-            device="cpu",
-            seed=seed,
-            shaping_coef=shaping_coef,
-            **kwargs,
+            task.name, num_envs, device="cpu", seed=seed, shaping_coef=shaping_coef, **kwargs
         )
     except (TypeError, ValueError) as error:
         # a task refuses an unknown or invalid option: one line naming the key
-        shown = ", ".join(f"{k}={v!r}" for k, v in options.items()) or "none"
+        shown = ", ".join(f"{k}={v!r}" for k, v in task.options.items()) or "none"
         raise ScenarioError(
             f"key [task].options of task {task.name!r} ({shown}): {error}; see "
             "docs/tasks.md for the options of each task"

@@ -45,10 +45,11 @@ def paint_cells(
 class BatchedTask(abc.ABC):
     """``num_envs`` copies of one task, stepped together with torch tensor operations.
 
-    Subclasses implement the rules in `_advance`, `_reset_where` and `_observe` and set
-    ``name`` (the key of `TASKS` and of ``prompts/tasks/<name>.md``), ``obs_names`` (the
-    recordings' ``obs_layout``), ``metric_names`` (per-episode sums in ``info["episode"]``),
-    ``prompt_template`` (an outside task's template), ``judge_names`` and ``human_feedback``.
+    Subclasses implement the rules in `_advance`, `_reset_where` and `_observe`, declare their
+    options as keyword defaults of `_init_task`, and set ``name`` (the key of `TASKS` and of
+    ``prompts/tasks/<name>.md``), ``obs_names`` (the recordings' ``obs_layout``),
+    ``metric_names`` (per-episode sums in ``info["episode"]``), ``prompt_template`` (an
+    outside task's template), ``judge_names``, ``human_feedback`` and ``default_max_steps``.
     """
 
     name: ClassVar[str]
@@ -61,6 +62,7 @@ class BatchedTask(abc.ABC):
     prompt_template: ClassVar[Path | None] = None
     judge_names: ClassVar[tuple[str, ...]] = ()
     human_feedback: ClassVar[bool] = False
+    default_max_steps: ClassVar[int] = 300
 
     def __init__(
         self,
@@ -69,19 +71,21 @@ class BatchedTask(abc.ABC):
         device: str | torch.device = "cpu",
         seed: int | None = None,
         shaping_coef: float = 0.0,
-        max_steps: int = 300,
+        max_steps: int | None = None,
         **task_options: Any,
     ) -> None:
         """Create ``num_envs >= 1`` copies (call `reset` before the first step).
 
         ``seed`` is the first `reset`'s base seed (None: OS entropy); ``shaping_coef`` is ``c >= 0``
-        of ``reward = r_env + c * r_shaping``; ``task_options`` go to the concrete task.
+        of ``reward = r_env + c * r_shaping``; ``max_steps`` None is ``default_max_steps``;
+        ``task_options`` go to `_init_task` (an unknown one: TypeError).
 
         Raises:
             ValueError: An argument is out of range; the message names it.
         """
         self.num_envs = _positive_int(num_envs, "num_envs")
-        self.max_steps = _positive_int(max_steps, "max_steps")
+        steps = self.default_max_steps if max_steps is None else max_steps
+        self.max_steps = _positive_int(steps, "max_steps")
         self.shaping_coef = _non_negative_float(shaping_coef, "shaping_coef")
         self.device = torch.device(device)
         self._seed = self._check_seed(seed, "seed")
@@ -96,6 +100,7 @@ class BatchedTask(abc.ABC):
             k: torch.zeros(n, dtype=torch.int64, device=dev) for k in self.metric_names
         }
         self._obs: torch.Tensor | None = None
+        self._initial_obs: torch.Tensor | None = None  # set: every reset copy observes it
         self._init_task(**task_options)
 
     # ------------------------------------------------------------------ properties
@@ -123,10 +128,7 @@ class BatchedTask(abc.ABC):
 
     # ------------------------------------------------------------------ public API
     def state_dict(self) -> dict[str, Any]:
-        """Every tensor of the copies' state, cloned, so a resumed run continues the same episodes.
-
-        ``"_metrics"`` maps to its dict of tensors.
-        """
+        """Every tensor of the copies' state, cloned (``"_metrics"``: its dict of tensors)."""
         state: dict[str, Any] = {
             name: value.clone() for name, value in vars(self).items() if torch.is_tensor(value)
         }
@@ -155,9 +157,7 @@ class BatchedTask(abc.ABC):
             setattr(self, name, saved.to(self.device).clone())
 
     def reset(self, seed: int | None = None) -> torch.Tensor:
-        """Reset every copy and return the first observations, float32 ``[num_envs, obs_dim]``.
-
-        ``seed`` None keeps the current streams (at the first reset: the constructor's seed).
+        """Reset every copy; return float32 ``[num_envs, obs_dim]`` (``seed`` None: same streams).
 
         Raises:
             ValueError: ``seed`` is negative or not an integer.
@@ -181,8 +181,7 @@ class BatchedTask(abc.ABC):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
         """Advance every copy by one step (action ids ``[num_envs]``), auto-resetting finished ones.
 
-        Returns:
-            ``(obs, reward, terminated, truncated, info)`` as docs/tasks.md describes.
+        Returns ``(obs, reward, terminated, truncated, info)`` as docs/tasks.md describes.
 
         Raises:
             ValueError: ``actions`` has the wrong shape or type, or a value outside
@@ -218,8 +217,8 @@ class BatchedTask(abc.ABC):
         self._ret_shaping = ret_shaping * keep
         self._metrics = {k: v * keep for k, v in metrics.items()}
         self._reset_where(done)
-        obs = self._observe_after_reset(final_obs, done)
-        self._obs = obs
+        fresh = self._observe() if self._initial_obs is None else self._initial_obs
+        obs = self._obs = torch.where(done[:, None], fresh, final_obs)
         info: dict[str, Any] = {
             "r_env": r_env,
             "r_shaping": r_shaping,
@@ -248,10 +247,18 @@ class BatchedTask(abc.ABC):
         """Return the prompt variables of one observation (plus task-specific extras)."""
 
     @classmethod
-    def judge_scores(cls, judge: str, obs: np.ndarray) -> np.ndarray:
-        """The task's own judge of one value: non-negative scores per action, ``[A]`` or ``[B, A]``.
+    def _obs_values(cls, obs: np.ndarray) -> np.ndarray:
+        """One observation as float64 ``[obs_dim]``; ValueError naming its shape otherwise."""
+        values = np.asarray(obs, dtype=np.float64).reshape(-1)
+        if values.shape != (len(cls.obs_names),):
+            raise ValueError(
+                f"obs: expected {len(cls.obs_names)} numbers, got shape {np.shape(obs)}"
+            )
+        return values
 
-        The ``rules`` belief source answers ``policy = "judge:<name>"`` with it.
+    @classmethod
+    def judge_scores(cls, judge: str, obs: np.ndarray) -> np.ndarray:
+        """The task's judge of a value (``policy = "judge:<name>"``): scores ``[A]`` or ``[B, A]``.
 
         Raises:
             ValueError: The task has no judge of that name.
@@ -282,7 +289,7 @@ class BatchedTask(abc.ABC):
 
     # ------------------------------------------------------------------ hooks
     def _init_task(self, *args: Any, **task_options: Any) -> None:
-        """Create the task state tensors (subclasses; unknown options: TypeError)."""
+        """Create the task state tensors; a subclass's keyword defaults are its options."""
         if args or task_options:
             raise TypeError(f"{type(self).__name__}: unexpected option(s) {sorted(task_options)}")
 
@@ -290,10 +297,9 @@ class BatchedTask(abc.ABC):
     def _advance(
         self, actions: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
-        """Apply one step of the rules to every copy: ``(r_env, r_shaping, terminated, events)``.
+        """Apply one step to every copy: ``(r_env, r_shaping, terminated, events)``.
 
-        ``events`` maps names to ``[num_envs]`` tensors copied into ``info``, at least one per
-        name in `metric_names` (this step's increment).
+        ``events``: ``[num_envs]`` tensors copied into ``info``, one per `metric_names` at least.
         """
 
     @abc.abstractmethod
@@ -303,10 +309,6 @@ class BatchedTask(abc.ABC):
     @abc.abstractmethod
     def _observe(self) -> torch.Tensor:
         """Return the observation of every copy from the current state."""
-
-    def _observe_after_reset(self, final_obs: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
-        """Return the observations after the reset of the ``done`` copies."""
-        return torch.where(done[:, None], self._observe(), final_obs)
 
     def _episode_extras(self, episode: dict[str, torch.Tensor]) -> None:  # noqa: B027
         """Add derived per-episode metrics to ``episode`` (in place; default: none)."""

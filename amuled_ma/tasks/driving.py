@@ -1,10 +1,7 @@
 """Driving and Rescuing (Wu and Lin 2018): a car on a five-lane road avoids cars, rescues grandmas.
 
-Rules, spaces, rewards and the bit-packed road are in docs/tasks.md, "Driving and Rescuing".
-Info per step: ``r_env``, ``r_shaping``, ``collisions``, ``rescues`` (int64),
-``lane_changes`` (the lane changed), ``non_straight_steps`` (the action was not straight,
-the authors' "lane changes", ``drive.py:136``), ``final_obs``; per episode the same
-counts with ``return``, ``return_env``, ``return_shaping``, ``length``.
+Rules, spaces, rewards, the bit-packed road and the ``info`` keys: docs/tasks.md, "Driving and
+Rescuing".
 """
 
 from __future__ import annotations
@@ -32,18 +29,18 @@ _CAR_SLOTS = math.ceil(SPAWN_DISTANCE / CAR_SPEED)  # 8 steps alive
 _GM_SLOTS = math.ceil(SPAWN_DISTANCE / GRANDMA_SPEED)  # 3 steps alive
 _CAR_W = _CAR_SLOTS + 1  # bits per lane group: distance <= 0 (bit 0) and 1..8
 _GM_W = _GM_SLOTS + 1  # bits per lane group: distance <= 0 (bit 0), 2, 5, 8
-#: Object kind -> (bits per lane group, slots, speed).
-_KINDS = {"car": (_CAR_W, _CAR_SLOTS, CAR_SPEED), "grandma": (_GM_W, _GM_SLOTS, GRANDMA_SPEED)}
+#: Object kind -> (bits per lane group, the distance of each slot 1..slots: ``[1, 2, ...]``).
+_KINDS = {
+    kind: (slots + 1, [SPAWN_DISTANCE - speed * (slots - k) for k in range(1, slots + 1)])
+    for kind, slots, speed in (
+        ("car", _CAR_SLOTS, CAR_SPEED),
+        ("grandma", _GM_SLOTS, GRANDMA_SPEED),
+    )
+}
 
 
 class Driving(BatchedTask):
-    """Driving and Rescuing, ``num_envs`` copies at once.
-
-    ``p_car`` and ``p_grandma`` are the per-step appearance probabilities (paper: 0.16, 0.09).
-
-    Raises:
-        ValueError: An argument is out of range.
-    """
+    """Driving and Rescuing, ``num_envs`` copies; ``p_car``, ``p_grandma``: appearance per step."""
 
     name: ClassVar[str] = "driving"
     gym_id: ClassVar[str] = "amuled/Driving-v0"
@@ -59,27 +56,6 @@ class Driving(BatchedTask):
     )  # fmt: skip
     num_lanes: ClassVar[int] = NUM_LANES
     human_feedback: ClassVar[bool] = True
-
-    def __init__(
-        self,
-        num_envs: int = 1,
-        *,
-        device: str | torch.device = "cpu",
-        seed: int | None = None,
-        shaping_coef: float = 0.0,
-        max_steps: int = 300,
-        p_car: float = P_CAR,
-        p_grandma: float = P_GRANDMA,
-    ) -> None:
-        super().__init__(
-            num_envs,
-            device=device,
-            seed=seed,
-            shaping_coef=shaping_coef,
-            max_steps=max_steps,
-            p_car=p_car,
-            p_grandma=p_grandma,
-        )
 
     def _init_task(self, p_car: float = P_CAR, p_grandma: float = P_GRANDMA) -> None:
         for label, p in (("p_car", p_car), ("p_grandma", p_grandma)):
@@ -137,22 +113,19 @@ class Driving(BatchedTask):
         )
 
     @staticmethod
-    def _group_distance(group: int, slots: int, speed: int) -> int:
+    def _group_distance(group: int, kind: str) -> int:
         """Observed distance of one lane group: nearest object, -1 none, -2 no lane."""
-        if group & 1:
-            return -2
-        for k in range(1, slots + 1):
-            if group >> k & 1:
-                return SPAWN_DISTANCE - speed * (slots - k)
-        return -1
+        distances = _KINDS[kind][1]
+        found = (d for k, d in enumerate(distances, 1) if group >> k & 1)
+        return -2 if group & 1 else next(found, -1)
 
     def _observation_table(self) -> torch.Tensor:
         """``[512 * 16, 2]``: (car group, grandma group) of a lane -> observed distances."""
         rows = []
         for g_car in range(1 << _CAR_W):
-            d_car = self._group_distance(g_car, _CAR_SLOTS, CAR_SPEED)
+            d_car = self._group_distance(g_car, "car")
             for g_gm in range(1 << _GM_W):
-                rows.append((d_car, self._group_distance(g_gm, _GM_SLOTS, GRANDMA_SPEED)))
+                rows.append((d_car, self._group_distance(g_gm, "grandma")))
         return torch.tensor(rows, dtype=torch.float32, device=self.device)
 
     # ------------------------------------------------------------------ rules
@@ -210,9 +183,6 @@ class Driving(BatchedTask):
         dists = self._lane_table.index_select(0, key.reshape(-1)).reshape(self.num_envs, 6)
         return torch.cat([dists, self._onehot.index_select(0, self._lane)], 1)
 
-    def _observe_after_reset(self, final_obs: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
-        return torch.where(done[:, None], self._initial_obs, final_obs)
-
     # ------------------------------------------------------------------ state access
     @property
     def lane(self) -> torch.Tensor:
@@ -223,9 +193,8 @@ class Driving(BatchedTask):
         """Return the bit of an object and the bits of that distance in every lane."""
         if kind not in _KINDS:
             raise ValueError(f"kind: expected 'car' or 'grandma', got {kind!r}")
-        width, slots, speed = _KINDS[kind]
+        width, allowed = _KINDS[kind]
         _check_lane(lane)
-        allowed = [SPAWN_DISTANCE - speed * (slots - k) for k in range(1, slots + 1)]
         if distance not in allowed:
             raise ValueError(f"distance: a {kind} can only be at {allowed}, got {distance!r}")
         k = allowed.index(distance) + 1
@@ -233,10 +202,9 @@ class Driving(BatchedTask):
         return 1 << ((int(lane) + 1) * width + k), row
 
     def place(self, kind: str, lane: int, distance: int, env_ids: object = None) -> None:
-        """Put an object on the road (tests, hand-made states); updates ``obs``.
+        """Put a ``"car"`` (distance 1..8) or ``"grandma"`` (2, 5, 8) on the road; updates ``obs``.
 
-        ``kind`` is ``"car"`` (distance 1..8) or ``"grandma"`` (2, 5 or 8); ``env_ids`` None: all.
-        No two objects of a kind may share a distance in any lanes (the step relies on it).
+        ``env_ids`` None: all. Two objects of a kind never share a distance (the step relies on it).
 
         Raises:
             ValueError: Unknown ``kind``; ``lane`` or ``distance`` impossible; another
@@ -270,15 +238,13 @@ class Driving(BatchedTask):
         """Return ``{"car", "grandma"}`` occupancy, bool ``[num_envs, 5, 9]`` (lane, distance)."""
         out = {}
         for kind, bits in (("car", self._cars), ("grandma", self._gms)):
-            width, slots, speed = _KINDS[kind]
+            width, distances = _KINDS[kind]
             grid = torch.zeros(
                 self.num_envs, NUM_LANES, SPAWN_DISTANCE + 1, dtype=torch.bool, device=self.device
             )
-            for k in range(1, slots + 1):
+            for k, d in enumerate(distances, 1):
                 shifts = torch.arange(1, NUM_LANES + 1, device=self.device) * width + k
-                grid[:, :, SPAWN_DISTANCE - speed * (slots - k)] = (
-                    bits[:, None] >> shifts
-                ) & 1 == 1
+                grid[:, :, d] = (bits[:, None] >> shifts) & 1 == 1
             out[kind] = grid
         return out
 
@@ -287,11 +253,11 @@ class Driving(BatchedTask):
         env_id = self._env_id(env_id)
         out: dict[str, list[tuple[int, int]]] = {}
         for kind, bits in (("car", int(self._cars[env_id])), ("grandma", int(self._gms[env_id]))):
-            width, slots, speed = _KINDS[kind]
+            width, distances = _KINDS[kind]
             out[kind] = [
-                (lane, SPAWN_DISTANCE - speed * (slots - k))
+                (lane, d)
                 for lane in range(NUM_LANES)
-                for k in range(1, slots + 1)
+                for k, d in enumerate(distances, 1)
                 if bits >> ((lane + 1) * width + k) & 1
             ]
         return out
@@ -299,18 +265,12 @@ class Driving(BatchedTask):
     # ------------------------------------------------------------------ prompts
     @classmethod
     def prompt_variables_from_obs(cls, obs: np.ndarray, **extra: Any) -> dict[str, Any]:
-        """Return ``lane`` and the six distances (-1 none, -2 no lane) of one observation, as ints.
-
-        ``extra`` is copied into the result.
+        """Return ``lane``, the six distances (-1 none, -2 no lane) as ints, and ``extra``.
 
         Raises:
             ValueError: ``obs`` is not 11 numbers or its lane one-hot is invalid.
         """
-        values = np.asarray(obs, dtype=np.float64).reshape(-1)
-        if values.shape != (len(cls.obs_names),):
-            raise ValueError(
-                f"obs: expected {len(cls.obs_names)} numbers, got shape {np.shape(obs)}"
-            )
+        values = cls._obs_values(obs)
         onehot = values[6:]
         if not (np.isin(onehot, (0.0, 1.0)).all() and onehot.sum() == 1):
             raise ValueError(

@@ -1,10 +1,6 @@
 """FindMilk: a robot looks for milk in a room of crying and sleeping babies.
 
-Rules, spaces, rewards and the tie-break are in docs/tasks.md, "FindMilk". Info per step:
-``r_env``, ``r_shaping``, ``crying_pacified``, ``sleeping_woken``, ``reached_milk`` (bool),
-``final_obs``; per episode ``return``, ``return_env``, ``return_shaping``, ``length``,
-``steps_to_milk`` (the time limit when not reached), ``reached_milk``,
-``crying_pacified`` (of 5), ``sleeping_woken`` (of 6).
+Rules, spaces, rewards, the tie-break and the ``info`` keys: docs/tasks.md, "FindMilk".
 """
 
 from __future__ import annotations
@@ -41,11 +37,8 @@ def _cell(x: int, y: int) -> int:
 class FindMilk(BatchedTask):
     """FindMilk, ``num_envs`` copies at once.
 
-    ``layout`` is ``"paper"`` or ``"random"``; ``tie_break`` is ``"first"`` (smallest
-    ``(x, y)``) or ``"random"`` (the authors' environment).
-
-    Raises:
-        ValueError: Unknown ``layout`` or ``tie_break``, or another argument out of range.
+    ``layout``: `LAYOUTS`; ``tie_break``: ``"first"`` (smallest ``(x, y)``) or ``"random"``
+    (the authors' environment); ValueError for another.
     """
 
     name: ClassVar[str] = "findmilk"
@@ -59,27 +52,6 @@ class FindMilk(BatchedTask):
     metric_names: ClassVar[tuple[str, ...]] = ("crying_pacified", "sleeping_woken", "reached_milk")
     grid_size: ClassVar[int] = SIZE
     human_feedback: ClassVar[bool] = True
-
-    def __init__(
-        self,
-        num_envs: int = 1,
-        *,
-        device: str | torch.device = "cpu",
-        seed: int | None = None,
-        shaping_coef: float = 0.0,
-        max_steps: int = 300,
-        layout: str = "paper",
-        tie_break: str = "first",
-    ) -> None:
-        super().__init__(
-            num_envs,
-            device=device,
-            seed=seed,
-            shaping_coef=shaping_coef,
-            max_steps=max_steps,
-            layout=layout,
-            tie_break=tie_break,
-        )
 
     def _init_task(self, layout: str = "paper", tie_break: str = "first") -> None:
         if layout not in LAYOUTS:
@@ -207,57 +179,40 @@ class FindMilk(BatchedTask):
             bits = torch.ones_like(cells) << torch.arange(cells.shape[1], device=self.device)
             table[(base + cells).reshape(-1)] = bits.reshape(-1)
 
-    def _nearest_search(self, cells: torch.Tensor, bits: torch.Tensor) -> torch.Tensor:
-        """Cell of the nearest remaining baby per copy, by search (0 when none is left)."""
+    def _nearest(self, cells: torch.Tensor, bits: torch.Tensor) -> torch.Tensor:
+        """Cell of a nearest remaining baby per copy, ties by ``tie_break`` (0: none left)."""
         n, k = self.num_envs, cells.shape[1]
         cells = cells.expand(n, -1)
         d2 = self._d2.index_select(0, (self._pos[:, None] * _NCELLS + cells).reshape(-1))
-        # int32: torch's int64 min-reduction over a short last dimension is very slow
-        key = (d2.reshape(n, k) * _NCELLS + cells).to(torch.int32)
+        d2 = d2.reshape(n, k)
         alive = self._alive(bits, k)
-        key = torch.where(alive, key, _NONE_KEY)
-        return (key.amin(1) % _NCELLS).to(torch.int64)
-
-    def _nearest_random(self, cells: torch.Tensor, bits: torch.Tensor) -> torch.Tensor:
-        """Cell of a nearest remaining baby per copy, ties equally likely (0: none left)."""
-        n, k = self.num_envs, cells.shape[1]
-        cells = cells.expand(n, -1)
-        d2 = self._d2.index_select(0, (self._pos[:, None] * _NCELLS + cells).reshape(-1))
+        if self.tie_break == "first":
+            # int32: torch's int64 min-reduction over a short last dimension is very slow
+            key = torch.where(alive, (d2 * _NCELLS + cells).to(torch.int32), _NONE_KEY)
+            return (key.amin(1) % _NCELLS).to(torch.int64)
         ids = torch.arange(n, device=self.device)
         rank = self._draw_many(ids, k).argsort(dim=1).argsort(dim=1)  # a random order
-        key = d2.reshape(n, k) * k + rank
-        alive = self._alive(bits, k)
-        key = torch.where(alive, key, torch.iinfo(torch.int64).max)
+        key = torch.where(alive, d2 * k + rank, torch.iinfo(torch.int64).max)
         nearest = cells.gather(1, key.argmin(1, keepdim=True)).squeeze(1)
         return torch.where(alive.any(1), nearest, torch.zeros_like(nearest))
 
     def _nearest_cells(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Cells of the nearest remaining crying and sleeping baby (0 = none left)."""
-        if self.tie_break == "random":
-            return (
-                self._nearest_random(self._cry_cell, self._cry_bits),
-                self._nearest_random(self._sleep_cell, self._sleep_bits),
-            )
-        if self.use_tables:
+        if self.use_tables and self.tie_break == "first":
             cry = self._near_cry.index_select(0, self._pos * (1 << len(CRYING)) + self._cry_bits)
             sleep = self._near_sleep.index_select(
                 0, self._pos * (1 << len(SLEEPING)) + self._sleep_bits
             )
             return cry, sleep
         return (
-            self._nearest_search(self._cry_cell, self._cry_bits),
-            self._nearest_search(self._sleep_cell, self._sleep_bits),
+            self._nearest(self._cry_cell, self._cry_bits),
+            self._nearest(self._sleep_cell, self._sleep_bits),
         )
 
     def _observe(self) -> torch.Tensor:
         cry, sleep = self._nearest_cells()
         cells = torch.stack([self._pos, self._milk, cry, sleep], 1).reshape(-1)
         return self._xy.index_select(0, cells).reshape(self.num_envs, 8)
-
-    def _observe_after_reset(self, final_obs: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
-        if self.layout != "paper":
-            return super()._observe_after_reset(final_obs, done)
-        return torch.where(done[:, None], self._initial_obs, final_obs)
 
     # ------------------------------------------------------------------ state access
     @staticmethod
@@ -302,22 +257,15 @@ class FindMilk(BatchedTask):
     def prompt_variables_from_obs(
         cls, obs: np.ndarray, *, num_crying: int | None = None, **extra: Any
     ) -> dict[str, Any]:
-        """Return the FindMilk prompt variables of one observation (8 floats).
+        """Return the FindMilk prompt variables of one observation (8 floats) and ``extra``.
 
-        ``num_crying`` is not in the observation; ``extra`` is copied into the result.
-
-        Returns:
-            ``grid_size``, ``num_crying``, the 8 entries as floats (the recordings print
-            ``x=2.0``), and ``crying_around`` / ``sleeping_around`` (1 while one remains).
+        ``grid_size``, ``num_crying``, the entries as floats (the recordings print ``x=2.0``),
+        ``crying_around`` / ``sleeping_around`` (1 while one remains).
 
         Raises:
             ValueError: ``obs`` is not 8 numbers or ``num_crying`` is missing or negative.
         """
-        values = np.asarray(obs, dtype=np.float64).reshape(-1)
-        if values.shape != (len(cls.obs_names),):
-            raise ValueError(
-                f"obs: expected {len(cls.obs_names)} numbers, got shape {np.shape(obs)}"
-            )
+        values = cls._obs_values(obs)
         if num_crying is None or int(num_crying) < 0:
             raise ValueError(
                 f"num_crying: expected the number of crying babies left (>= 0), got {num_crying!r}"

@@ -88,11 +88,7 @@ class TaskEnv(gym.Env[np.ndarray, np.int64]):
         actions = torch.tensor([int(a.reshape(-1)[0])], dtype=torch.int64, device=self.task.device)
         _, reward, terminated, truncated, tinfo = self.task.step(actions)
         term, trunc = bool(terminated[0]), bool(truncated[0])
-        info: dict[str, Any] = {}
-        for key, value in tinfo.items():
-            if key in ("final_obs", "episode"):
-                continue
-            info[key] = _python(value)
+        info = {k: _python(v) for k, v in tinfo.items() if k not in ("final_obs", "episode")}
         if term or trunc:
             info["episode"] = {k: _python(v) for k, v in tinfo["episode"].items() if k != "done"}
         self._episode_over = term or trunc

@@ -20,7 +20,7 @@ from amuled_ma.errors import PromptError
 from amuled_ma.files.resources import MAX_PROMPT_BYTES, prompts_dir, read_text
 from amuled_ma.tasks.names import BUILTIN_TASKS, canonical_name, task_entry_points
 
-__all__ = ["Fragment", "StateTemplate", "load_template", "render_state_prompt", "template_path"]
+__all__ = ["StateTemplate", "load_template", "render_state_prompt", "template_path"]
 
 _HEADING = re.compile(r"^(#{2,3})\s+(.+?)\s*$")
 _FENCE = re.compile(r"^```[\w-]*\s*$")
@@ -39,14 +39,8 @@ _OPS: dict[str, Callable[[float, float], bool]] = {
 }
 
 
-@dataclass(frozen=True)
-class Fragment:
-    """One conditional piece of text of a template group (``condition`` as in its heading)."""
-
-    group: str
-    condition: str
-    text: str
-    test: Callable[[Any], bool]
+#: A template group's conditional text: whether a value selects it, and the text.
+_Fragment = tuple[Callable[[Any], bool], str]
 
 
 @dataclass(frozen=True)
@@ -55,7 +49,7 @@ class StateTemplate:
 
     path: Path
     prompt: str
-    fragments: dict[str, tuple[Fragment, ...]]
+    fragments: dict[str, tuple[_Fragment, ...]]
 
     def render(self, variables: Mapping[str, Any]) -> str:
         """Fill the template with ``variables``.
@@ -82,15 +76,15 @@ class StateTemplate:
             value = variables[field]
             if spec and spec in self.fragments:
                 fragment = self._select(spec, field, value)
-                out.append(self._fill(fragment.text, {**variables, "value": value}, depth + 1))
+                out.append(self._fill(fragment, {**variables, "value": value}, depth + 1))
                 continue
             out.append(format(formatter.convert_field(value, conversion), spec or ""))
         return "".join(out)
 
-    def _select(self, group: str, field: str, value: object) -> Fragment:
-        for fragment in self.fragments[group]:
-            if fragment.test(value):
-                return fragment
+    def _select(self, group: str, field: str, value: object) -> str:
+        for test, text in self.fragments[group]:
+            if test(value):
+                return text
         raise PromptError(
             f"variables: {field}={value!r} matches no fragment of group {group!r} in {self.path}"
         )
@@ -116,7 +110,7 @@ def parse_template(path: Path) -> StateTemplate:
     text = read_text(path, "state prompt template", PromptError, max_bytes=MAX_PROMPT_BYTES)
     lines = text.splitlines()
     prompt: str | None = None
-    fragments: dict[str, list[Fragment]] = {}
+    fragments: dict[str, list[_Fragment]] = {}
     heading: str | None = None
     level = 0
     i = 0
@@ -143,11 +137,7 @@ def parse_template(path: Path) -> StateTemplate:
                         f"{path}: fragment heading {heading!r} is not '<group> <condition>' "
                         "(== v, != v, < v, <= v, > v, >= v, in a..b, otherwise)"
                     )
-                group = match["group"]
-                cond = heading[len(group) :].strip()
-                fragments.setdefault(group, []).append(
-                    Fragment(group, cond, body, _condition(match))
-                )
+                fragments.setdefault(match["group"], []).append((_condition(match), body))
             heading = None
             i = end + 1
             continue

@@ -127,32 +127,11 @@ class SmartGrid(BatchedTask):
     obs_low = (0.0,) * 11
     obs_high = (1.0,) * 11
     metric_names = ("need_met", "grid_overloaded")
+    default_max_steps = 24
     judge_names: ClassVar[tuple[str, ...]] = tuple(JUDGES)
 
-    def __init__(
-        self,
-        num_envs: int = 1,
-        *,
-        device: str | torch.device = "cpu",
-        seed: int | None = None,
-        shaping_coef: float = 0.0,
-        max_steps: int = 24,
-        households: int = 3,
-        offices: int = 1,
-    ) -> None:
-        """Create the copies (see `BatchedTask`; options above)."""
-        super().__init__(
-            num_envs,
-            device=device,
-            seed=seed,
-            shaping_coef=shaping_coef,
-            max_steps=max_steps,
-            households=households,
-            offices=offices,
-        )
-
     # ------------------------------------------------------------------ hooks
-    def _init_task(self, *, households: int, offices: int) -> None:
+    def _init_task(self, households: int = 3, offices: int = 1) -> None:
         for option, value, low in (("households", households, 1), ("offices", offices, 0)):
             if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= 1000:
                 raise ValueError(f"{option}: expected an integer in {low}..1000, got {value!r}")
@@ -189,10 +168,14 @@ class SmartGrid(BatchedTask):
         r_shaping = torch.zeros(n, dtype=torch.float32)
         overloaded = torch.zeros(n, dtype=torch.int64)
         for i, (env, action) in enumerate(zip(self._envs, actions.tolist(), strict=True)):
-            rewards, over = _step(env, self._learner, int(action))
+            # the package's step for the learner alone (the others' observations: never read)
+            rewards = _step_world(env.world, env.reward_calculator, self._learner, int(action))
+            manager = env.observation_manager
+            manager.reset()  # the package's memo is shared by every world
+            overloaded[i] = int(float(manager.compute_global(env.world).over_consumption) > 0)
+            manager.reset()
             values[i] = torch.tensor([rewards[v] for v in JUDGES])
             r_shaping[i] = rewards["equity"]
-            overloaded[i] = int(over > 0)
         self._value_sums += values
         comfort = values[:, 0]
         events = {"need_met": (comfort >= 0.9).to(torch.int64), "grid_overloaded": overloaded}
@@ -231,11 +214,7 @@ class SmartGrid(BatchedTask):
         for i, row in enumerate(obs.numpy()):
             old = self._live_keys[i]
             if old is not None:
-                holders = [h for h in _LIVE.get(old, []) if h[1] != i or h[0]() is not self]
-                if holders:
-                    _LIVE[old] = holders
-                else:
-                    _LIVE.pop(old, None)
+                _keep_live(old, self, i)
             key = row.tobytes()
             _LIVE.setdefault(key, []).append((me, i))
             self._live_keys[i] = key
@@ -273,8 +252,8 @@ class SmartGrid(BatchedTask):
     def judge_scores(cls, judge: str, obs: np.ndarray) -> np.ndarray:
         """The judge's belief scores ``exp((r_v(a) - max r_v) / JUDGE_TEMPERATURE)``.
 
-        ``r_v(a)`` is the package's reward of value ``judge`` after one step with action ``a`` on
-        a copy of the live world showing ``obs`` (kept for `MAX_SCORED` states).
+        ``r_v(a)``: the package's reward of ``judge`` one step after ``a`` on a copy of the live
+        world showing ``obs``.
 
         Raises:
             ValueError: Unknown judge, or a state no live copy of this process shows
@@ -311,20 +290,6 @@ class SmartGrid(BatchedTask):
         ]
         colours = {"L": (31, 119, 180), "P": (127, 127, 127)}
         return paint_cells(rows, colours, cell, 255)
-
-
-def _step(env: Any, learner: str, action: int) -> tuple[dict[str, float], float]:
-    """Step one package environment; the learner's rewards by judge, the over-consumption.
-
-    The package's own rules (``World.step``) and rewards (the environment's
-    ``reward_calculator``, the learner's alone), what ``SmartGrid.step`` computes for the
-    learner without the other prosumers' observations and rewards, which nothing reads.
-    """
-    rewards = _step_world(env.world, env.reward_calculator, learner, action)
-    env.observation_manager.reset()  # the package's memo is shared by every world
-    over = env.observation_manager.compute_global(env.world).over_consumption
-    env.observation_manager.reset()
-    return rewards, float(over)
 
 
 def _step_world(world: Any, calculator: Any, learner: str, action: int) -> dict[str, float]:
@@ -370,12 +335,21 @@ def _scores(key: bytes) -> np.ndarray:
     return out
 
 
+def _keep_live(key: bytes, task: SmartGrid | None = None, copy_id: int = -1) -> None:
+    """Drop the holders of ``key`` in `_LIVE` collected or ``(task, copy_id)`` (none left: it)."""
+    holders = [
+        (ref, i)
+        for ref, i in _LIVE.get(key, [])
+        if (held := ref()) is not None and (held is not task or i != copy_id)
+    ]
+    if holders:
+        _LIVE[key] = holders
+    else:
+        _LIVE.pop(key, None)
+
+
 def _forget(keys: list[bytes | None]) -> None:
     """Drop a garbage-collected task's live observations."""
     for key in keys:
-        if key is not None and key in _LIVE:
-            holders = [h for h in _LIVE[key] if h[0]() is not None]
-            if holders:
-                _LIVE[key] = holders
-            else:
-                del _LIVE[key]
+        if key is not None:
+            _keep_live(key)

@@ -16,14 +16,13 @@ from amuled_ma.authors.caches import (
     convert_cache,
     exchange_agent,
     model_slug,
-    recording_file_name,
 )
 from amuled_ma.beliefs.sources.replay import Recording, obs_key
 from amuled_ma.errors import AuthorsImportError
 
 
 def write_recording(tmp_path, converted):
-    path = tmp_path / recording_file_name(converted.task, converted.model)
+    path = tmp_path / f"{converted.task}-{model_slug(converted.model)}.json"
     path.write_text(converted.to_json())
     return path
 
@@ -136,10 +135,10 @@ def test_malformed_entries_named(tmp_path):
 
 
 def test_names_like_ours():
-    assert recording_file_name("findmilk", "gpt-4o-mini") == "findmilk-gpt-4o-mini.json"
-    assert recording_file_name("findmilk", "llama-3.1-70B") == "findmilk-llama-3_1-70b.json"
-    assert recording_file_name("driving", "llama-3.1-8B") == "driving-llama-3_1-8b.json"
-    assert recording_file_name("findmilk", "mistral-nemo") == "findmilk-mistral-nemo.json"
+    assert model_slug("gpt-4o-mini") == "gpt-4o-mini"
+    assert model_slug("llama-3.1-70B") == "llama-3_1-70b"
+    assert model_slug("llama-3.1-8B") == "llama-3_1-8b"
+    assert model_slug("mistral-nemo") == "mistral-nemo"
     assert model_slug("../evil name") == "__-evil-name"  # one safe file-name part
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from amuled_ma.authors.caches import convert_cache, recording_file_name
+from amuled_ma.authors.caches import convert_cache, model_slug
 
 MIRROR_ENV = "AMULED_AUTHORS_MIRROR"
 MIRROR = Path(os.environ[MIRROR_ENV]) if os.environ.get(MIRROR_ENV) else None
@@ -37,7 +37,7 @@ def test_real_findmilk_cache_equals_the_shared_recording(tmp_path, recordings_di
     if done.returncode != 0:
         pytest.skip(f"{CACHE} not in the mirror: {done.stderr.decode().strip()}")
     converted = convert_cache(target)
-    name = recording_file_name(converted.task, converted.model)
+    name = f"{converted.task}-{model_slug(converted.model)}.json"
     assert name == "findmilk-gpt-4o-mini.json"
     shared = (recordings_dir / name).read_text()
     ours = json.loads(converted.to_json())
@@ -95,6 +95,6 @@ def test_every_published_cache_fits_the_key_work_budget_with_room():
     for name, data in published_caches().items():
         reader = BoundedReader(data, max_array_bytes=len(data), max_memory=None)
         reader.read()
-        spent[name] = MAX_KEY_WORK - reader.key_work.left
+        spent[name] = MAX_KEY_WORK - reader.key_work_left
     assert max(spent.values()) == 147_488, spent  # the figure pickle_reader gives
     assert max(spent.values()) * 7 < pickle_reader.MAX_KEY_WORK

@@ -26,7 +26,7 @@ from tiny_cli import TINY
 from amuled_ma.authors.caches import (
     convert_cache,
     model_of_file,
-    recording_file_name,
+    model_slug,
     task_of_folder,
 )
 from amuled_ma.authors.download import (
@@ -231,7 +231,7 @@ def test_each_pin_names_the_recording_the_import_writes():
         path = Path(pin.path)
         task = task_of_folder(path.parent.name)
         assert task is not None
-        assert recording_file_name(task, model_of_file(path)) == f"{pin.recording}.json"
+        assert f"{task}-{model_slug(model_of_file(path))}" == pin.recording
     assert len({pin.recording for pin in PINNED}) == len(PINNED)
 
 

@@ -33,9 +33,8 @@ def demonstrator_belief(
 ) -> DemonstratorBelief:
     """Build the authors' synthetic human belief table of a task, or load it from the cache.
 
-    ``episodes`` None plays the authors' 1,000 (FindMilk) or 10,000 (Driving, which counts
-    from episode 601); ``cache_dir`` None keeps no file; a file made with other settings is
-    rebuilt and overwritten.
+    ``episodes`` None: the authors' (`DEFAULT_EPISODES`); ``cache_dir`` None keeps no file; a
+    file made with other settings is rebuilt and overwritten.
 
     Raises:
         ValueError: An argument is out of range.

@@ -123,10 +123,7 @@ def play_driving(
     batch_size: int = 2500,
     progress: bool = False,
 ) -> DemonstratorBelief:
-    """Play the Driving Q-learning demonstrator; count ``(observation, action)`` pairs.
-
-    Episodes ``count_from..episodes-1`` are played and counted; ``batch_size`` episodes play
-    side by side without changing the result.
+    """Play and count Driving episodes ``count_from..episodes-1``, ``batch_size`` side by side.
 
     Raises:
         ValueError: An argument is out of range.

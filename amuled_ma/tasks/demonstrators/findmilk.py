@@ -62,9 +62,7 @@ def play_findmilk(
     batch_size: int = 1000,
     progress: bool = False,
 ) -> DemonstratorBelief:
-    """Play the FindMilk rule demonstrator and count every ``(observation, action)``.
-
-    ``batch_size`` episodes play side by side without changing the result.
+    """Play the FindMilk rule demonstrator, ``batch_size`` episodes side by side; count each step.
 
     Raises:
         ValueError: An argument is out of range.

@@ -161,11 +161,9 @@ def _encoder(task_name: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
 
 
 def encode_observations(task_name: str, obs: object) -> tuple[torch.Tensor, torch.Tensor]:
-    """Return each observation's exact key and whether it has one, int64 and bool ``[N]``.
+    """Return each observation's exact key (``-1``: none) and whether it has one, ``[N]``.
 
-    Keys are on ``obs``'s device (CPU for non-tensors).
-
-    Rows that are not integer-valued within the bounds get key ``-1`` and ``valid`` false.
+    A row has a key when integer-valued within the bounds; on ``obs``'s device (CPU: not a tensor).
 
     Raises:
         ValueError: ``obs`` is not ``[N, obs_dim]``.
@@ -272,9 +270,9 @@ class DemonstratorBelief:
         return int(self.counts.shape[1])
 
     def lookup(self, obs: object) -> tuple[torch.Tensor, torch.Tensor]:
-        """Return ``(beliefs, seen)``: float32 ``[N, A]`` (zero rows where unseen) and bool ``[N]``.
+        """Return ``(beliefs, seen)``, exact matches: float32 ``[N, A]`` (0: unseen), bool ``[N]``.
 
-        Observations are matched exactly; the result is on ``obs``'s device.
+        On ``obs``'s device.
 
         Raises:
             ValueError: ``obs`` is not ``[N, obs_dim]``.
