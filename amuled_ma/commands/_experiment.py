@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -13,7 +14,7 @@ if TYPE_CHECKING:
     from collections.abc import Callable
 
     from amuled_ma.evaluate.results import Results
-    from amuled_ma.experiments.pipeline import PipelineOutcome, PipelineRequest
+    from amuled_ma.experiments.pipeline import PipelineRequest
     from amuled_ma.experiments.run_folder import Rerun
     from amuled_ma.scenario import Scenario
 
@@ -232,9 +233,14 @@ def say(message: str) -> None:
     print(message, flush=True)
 
 
-def say_outcome(request: PipelineRequest, outcome: PipelineOutcome, seconds: float) -> None:
-    """Print the end of ``amuled run``/``ablate``/``demo``: the summary and the report's path."""
-    name, done = request.scenario.name, f"{len(outcome.seeds)} seed(s) done in {seconds:.1f} s"
+def run_and_say(request: PipelineRequest) -> None:
+    """Run the pipeline of ``request``, then print its summary and the report's path."""
+    from amuled_ma.experiments import pipeline
+
+    start = time.perf_counter()
+    outcome = pipeline.run_pipeline(request, say=say)
+    name = request.scenario.name
+    done = f"{len(outcome.seeds)} seed(s) done in {time.perf_counter() - start:.1f} s"
     if request.ablation is not None:
         say(
             f"ablate {name} --what {request.ablation}: {len(outcome.variants)} variants x "

@@ -20,21 +20,15 @@ from amuled_ma.commands import _experiment as common
 from amuled_ma.commands._demo_live import (
     PrefixWarmup,
     print_breakdown,
+    read_report,
+    start_warmup,
     write_live_leg,
 )
 from amuled_ma.commands._demo_live import say as _say
 from amuled_ma.files.safe import write_text_atomic
 
 if TYPE_CHECKING:
-    from amuled_ma.experiments.pipeline import PipelineRequest
-    from amuled_ma.scenario import (
-        EvaluationConfig,
-        FeedbackConfig,
-        FinetuneConfig,
-        PPOConfig,
-        Scenario,
-        TaskConfig,
-    )
+    from amuled_ma.scenario import EvaluationConfig, PPOConfig, Scenario, TaskConfig
     from amuled_ma.servers.timing import CacheReuse, TimingLog
 
 #: The demo's tasks; each runs the shipped scenario ``<task>-demo``
@@ -107,6 +101,7 @@ def demo_command(args: argparse.Namespace) -> int:
     """Run ``amuled demo``; return the exit code of the pipeline."""
     from amuled_ma.cli import FAILURES, report_failure
     from amuled_ma.errors import EXIT_REFUSED
+    from amuled_ma.experiments.pipeline import PipelineRequest
     from amuled_ma.learn.checkpoints import LAST
     from amuled_ma.servers import local_server as llm_server
     from amuled_ma.servers.hosts import DEFAULT_HOST, TINY_MODEL, preflight
@@ -143,8 +138,6 @@ def demo_command(args: argparse.Namespace) -> int:
     phases: list[tuple[str, TimingLog]] = []
     reuse: CacheReuse | None = None
     warmup: PrefixWarmup | None = None
-    debug = getattr(args, "debug", False)
-    code = 1
     try:
         preflight(host, model)  # one clear error up front: no server or no model
         _say(f"beliefs from {model} at {host}")
@@ -157,30 +150,23 @@ def demo_command(args: argparse.Namespace) -> int:
                 clusters_dirs=args.clusters_dir,
                 overrides=args.overrides,
             )
-        except FAILURES as error:
-            code = report_failure(error, debug=debug)
-        else:
             if started_dir is not None:  # our own idle server: evaluate the shared prompt now
-                warmup = PrefixWarmup.start(
-                    host, model, scenario.task.name, scenario.feedback, scenario.resolve
-                )
+                warmup = start_warmup(host, model, scenario)
             with record_timings() as run_log:
-                from amuled_ma.experiments.pipeline import PipelineRequest
-
+                phases.append(("fine-tune", run_log))
                 request = PipelineRequest(
                     scenario=scenario,
                     run_dir=run_dir,
                     resume=True,
                     progress=not args.no_progress,
                     hint=demo_hint(args, run_dir),
-                    title=demo_title(
-                        scenario.name, scenario.task.name, scenario.feedback, scenario.finetune
-                    ),
+                    title=demo_title(scenario),
                     offline=args.offline,
                 )
-                code = _run_pipeline(request, debug)
-            if run_log.timings:
-                phases.append(("fine-tune", run_log))
+                common.run_and_say(request)
+            code = 0
+        except FAILURES as error:
+            code = report_failure(error, debug=getattr(args, "debug", False))
         if code == 0:
             imported = Path(scenario.output.runs_dir) / "authors" / scenario.task.name / "base"
             authors_base, base_results = None, None
@@ -197,8 +183,7 @@ def demo_command(args: argparse.Namespace) -> int:
                 authors_base,
                 base_results,
             )
-        if code == 0:  # while the server still runs
-            with record_timings() as live_log:
+            with record_timings() as live_log:  # while the server still runs
                 write_live_leg(run_dir, scenario, model=model, host=host)
             phases.append(("live leg", live_log))
             view = write_demo_view(run_dir)
@@ -206,8 +191,8 @@ def demo_command(args: argparse.Namespace) -> int:
             reuse = cache_reuse(server_log, log_offset)
     finally:
         if warmup is not None:
-            warmup.join()
-            warmup.cut = warmup.running()  # the server stops under it: not a failure
+            warmup.join(5.0)  # long done when a run trained
+            warmup.cut = warmup.is_alive()  # the server stops under it: not a failure
         if started_dir is not None:
             _say(llm_server.down(started_dir))
     if warmup is not None:
@@ -322,22 +307,10 @@ def summary_lines(
 ) -> list[str]:
     """The report's first section: each main variant, sampled, beside the paper's row.
 
-    One sentence per variant of the paper's main comparison found in ``results``: its paper
-    metrics (sampled policy, mean ± half-width of the 95% interval), the paper's figures,
-    and on FindMilk the share of greedy episodes that reach the milk. When the fine-tunes
-    started from the authors' published base, that base is the base row (``base_results``,
-    measured by our evaluator) and the run's own base follows it, named as such.
-
-    Args:
-        task: The demo's task.
-        base_steps: ``[base].total_steps`` of the run's own base and shaped policies.
-        iterations: ``[finetune].iterations``.
-        results: ``results.json`` of the run.
-        base: The folder the fine-tunes started from (None: the run's own base).
-        base_results: That folder's `evaluate_folder` (None: no base row of its own).
-
-    Returns:
-        The section's lines, its heading first.
+    Per variant of `MAIN_VARIANTS` in ``results`` (``results.json``): its sampled paper
+    metrics (mean ± 95% half-width), the paper's, and on FindMilk the greedy share that
+    reaches the milk. ``base``: the folder the fine-tunes started from (None: the run's own);
+    its `evaluate_folder` ``base_results``, when given, is the first row.
     """
     from amuled_ma.evaluate.paper import PAPER_COLUMNS, paper_row
 
@@ -390,41 +363,31 @@ def put_summary(
 ) -> None:
     """Put :func:`summary_lines` right under ``report.md``'s title (replacing an earlier one).
 
-    Read and written as :func:`put_live_section` does; without a report or results, nothing
-    is written. ``authors_base``: the imported authors' base the fine-tunes started from
-    (None: the run's own), ``base_results`` its `evaluate_folder`.
+    Nothing without a report or results. ``authors_base``: the authors' base the fine-tunes
+    started from (None: the run's own), ``base_results`` its `evaluate_folder`.
 
     Raises:
-        AmuledError: As :func:`put_live_section`.
+        AmuledError: As `read_report`.
     """
     import json
 
-    from amuled_ma.evaluate.report.writing import MAX_REPORT_BYTES
-    from amuled_ma.files.limits import read_bounded_bytes
-
-    report, results = run_dir / "report.md", run_dir / "results.json"
-    if not (report.is_file() and results.is_file()):
+    text, results = read_report(run_dir), read_report(run_dir, "results.json")
+    if text is None or results is None:
         return
-    fix = f"is it the right folder? Write the report again with 'amuled evaluate {run_dir}'"
-    text = read_bounded_bytes(report, MAX_REPORT_BYTES, "report", fix=fix).decode("utf-8")
-    data = json.loads(read_bounded_bytes(results, MAX_REPORT_BYTES, "results", fix=fix))
+    data = json.loads(results)
     base = str(authors_base) if authors_base is not None else None
     title, _, rest = text.partition("\n")
     if rest.lstrip("\n").startswith(SUMMARY_HEADING):  # a re-run: replace the old one
         rest = rest.lstrip("\n")
         rest = rest[rest.find("\n## ", 1) + 1 :] if "\n## " in rest else ""
     section = "\n".join(summary_lines(task, base_steps, iterations, data, base, base_results))
-    write_text_atomic(report, f"{title}\n\n{section}\n{rest.lstrip(chr(10))}")
+    write_text_atomic(run_dir / "report.md", f"{title}\n\n{section}\n{rest.lstrip(chr(10))}")
 
 
 def evaluate_folder(
     folder: Path, ppo: PPOConfig, task: TaskConfig, ev: EvaluationConfig
 ) -> dict[str, Any]:
-    """One policy folder's evaluation, as a variant of ``results.json`` holds it.
-
-    The scenario's evaluation (episodes, seed, confidence) in each of its modes, by the
-    evaluator that wrote the run's results (without writing any), so the rows compare
-    like with like.
+    """One policy folder's evaluation by the scenario's evaluator, as ``results.json`` holds it.
 
     Returns:
         ``{mode: {"metrics": {metric: {"mean", "half_width", ...}}}}``.
@@ -447,15 +410,16 @@ def evaluate_folder(
     return entry
 
 
-def demo_title(name: str, task: str, fb: FeedbackConfig, ft: FinetuneConfig) -> str:
+def demo_title(scenario: Scenario) -> str:
     """The report's title: what the demo's run is, and that it is demo-sized."""
+    fb, ft = scenario.feedback, scenario.finetune
     where = (
         f"beliefs replayed from `{Path(fb.recording).name}`"
         if fb.source == "replay"
         else f"beliefs asked live of `{fb.model}`"
     )
     return (
-        f"{name}: the paper's {task} comparison, demo-sized "
+        f"{scenario.name}: the paper's {scenario.task.name} comparison, demo-sized "
         f"({where}, {ft.recipe} recipe, {ft.iterations:,} fine-tuning iterations; "
         "the paper: 1,000)"
     )
@@ -473,20 +437,6 @@ def demo_hint(args: argparse.Namespace, run_dir: Path) -> str:
     for text in args.overrides:
         parts += ["--set", text]
     return shlex.join(parts)
-
-
-def _run_pipeline(request: PipelineRequest, debug: bool) -> int:
-    """Run the demo's main comparison through the pipeline; its exit code (failures printed)."""
-    from amuled_ma.cli import FAILURES, report_failure
-    from amuled_ma.experiments import pipeline
-
-    start = time.perf_counter()
-    try:
-        outcome = pipeline.run_pipeline(request, say=common.say)
-    except FAILURES as error:
-        return report_failure(error, debug=debug)
-    common.say_outcome(request, outcome, time.perf_counter() - start)
-    return 0
 
 
 def write_demo_view(run_dir: Path) -> Path | None:

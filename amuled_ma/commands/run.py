@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -27,14 +26,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             "report.md. Resumable with --resume."
         ),
     )
-    common.add_scenario_args(run)
-    add_quick_arg(run)
-    run.add_argument(
-        "--episodes",
-        type=common.bounded_int(1),
-        default=None,
-        help="evaluation episodes per policy",
-    )
+    add_pipeline_args(run)
     run.add_argument(
         "--base",
         type=Path,
@@ -44,10 +36,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "bases (default with --recipe authors: the authors' imported base, "
         "<runs_dir>/authors/<task>/base, when it is there)",
     )
-    add_parallel_args(run)
-    add_retrain_arg(run)
-    common.add_offline_argument(run)
-    run.set_defaults(handler=run_command)
 
     ablate = subparsers.add_parser(
         "ablate",
@@ -64,8 +52,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             "docs/study.md). Writes <run-dir>/ablate-<what>/ with a comparison table and plots."
         ),
     )
-    common.add_scenario_args(ablate)
-    add_quick_arg(ablate)
+    add_pipeline_args(ablate)
     ablate.add_argument(
         "--what",
         required=True,
@@ -81,13 +68,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "STUDY/analysis/weights.json): sets [feedback].weights; --what weights compares them "
         "with the paper's fixed weights",
     )
-    ablate.add_argument(
-        "--episodes", type=common.bounded_int(1), default=None, help="evaluation episodes"
-    )
-    add_parallel_args(ablate)
-    add_retrain_arg(ablate)
-    common.add_offline_argument(ablate)
-    ablate.set_defaults(handler=ablate_command)
 
 
 #: ``--ray`` without an address: a local Ray started for the run.
@@ -106,8 +86,9 @@ QUICK_EPISODES = 10
 QUICK_SUFFIX = "-quick"
 
 
-def add_quick_arg(parser: argparse.ArgumentParser) -> None:
-    """Add ``--quick``: the short form of the experiment (`QUICK_SETTINGS`)."""
+def add_pipeline_args(parser: argparse.ArgumentParser) -> None:
+    """Add what ``run`` and ``ablate`` share: the scenario's, ``--quick``, the jobs' options."""
+    common.add_scenario_args(parser)
     base, iterations = (
         QUICK_SETTINGS[("base", "total_steps")],
         QUICK_SETTINGS[("finetune", "iterations")],
@@ -120,35 +101,12 @@ def add_quick_arg(parser: argparse.ArgumentParser) -> None:
         f"<runs_dir>/<scenario name>{QUICK_SUFFIX}; NOT the paper's length (500,000 / 1,000 "
         "/ 50), the output and report.md say so; --set and --episodes still win",
     )
-
-
-def quick_changes(overrides: list[str]) -> Changes:
-    """The quick form's budget (:data:`QUICK_SETTINGS`), but for the keys ``overrides`` sets.
-
-    Returns the changes to the scenario (:meth:`~amuled_ma.scenario.Scenario.changed`).
-    """
-    from amuled_ma.scenario.overrides import parse_set
-
-    named = {parse_set(text)[:2] for text in overrides}
-    return tuple(
-        (section, {key: value})
-        for (section, key), value in QUICK_SETTINGS.items()
-        if (section, key) not in named
+    parser.add_argument(
+        "--episodes",
+        type=common.bounded_int(1),
+        default=None,
+        help="evaluation episodes per policy",
     )
-
-
-def quick_note(base_steps: int, iterations: int, episodes: int) -> str:
-    """The quick form's one-line warning, for the output and the report's title."""
-    return (
-        f"quick form: {base_steps:,} base env steps, "
-        f"{iterations:,} fine-tuning iterations, {episodes} evaluation "
-        "episodes; NOT the paper's length (500,000 / 1,000 / 50): a check that the pipeline "
-        "runs, its figures are not the paper's"
-    )
-
-
-def add_retrain_arg(parser: argparse.ArgumentParser) -> None:
-    """Add ``--retrain FOLDER``: retrain one variant, resume the others, rewrite the report."""
     parser.add_argument(
         "--retrain",
         action="append",
@@ -158,10 +116,6 @@ def add_retrain_arg(parser: argparse.ArgumentParser) -> None:
         "too if it is a base) and resume every other variant, then evaluate and report: "
         "the one command after a setting of one variant changed (repeatable)",
     )
-
-
-def add_parallel_args(parser: argparse.ArgumentParser) -> None:
-    """Add ``--seeds`` (training replicas), ``--jobs`` and ``--ray`` (where jobs run)."""
     parser.add_argument(
         "--seeds",
         type=common.bounded_int(1),
@@ -204,6 +158,33 @@ def add_parallel_args(parser: argparse.ArgumentParser) -> None:
         help="each job needs one unit of this custom Ray resource: only nodes started with "
         "--resources '{\"NAME\": k}' train jobs, k at a time (keeps jobs off the GPU "
         "nodes that serve Ollama)",
+    )
+    common.add_offline_argument(parser)
+    parser.set_defaults(handler=run_command)
+
+
+def quick_changes(overrides: list[str]) -> Changes:
+    """The quick form's budget (:data:`QUICK_SETTINGS`), but for the keys ``overrides`` sets.
+
+    Returns the changes to the scenario (:meth:`~amuled_ma.scenario.Scenario.changed`).
+    """
+    from amuled_ma.scenario.overrides import parse_set
+
+    named = {parse_set(text)[:2] for text in overrides}
+    return tuple(
+        (section, {key: value})
+        for (section, key), value in QUICK_SETTINGS.items()
+        if (section, key) not in named
+    )
+
+
+def quick_note(base_steps: int, iterations: int, episodes: int) -> str:
+    """The quick form's one-line warning, for the output and the report's title."""
+    return (
+        f"quick form: {base_steps:,} base env steps, "
+        f"{iterations:,} fine-tuning iterations, {episodes} evaluation "
+        "episodes; NOT the paper's length (500,000 / 1,000 / 50): a check that the pipeline "
+        "runs, its figures are not the paper's"
     )
 
 
@@ -264,26 +245,14 @@ def request_of(args: argparse.Namespace, command: str, *extra: str) -> PipelineR
 
 
 def run_command(args: argparse.Namespace) -> int:
-    """Run ``amuled run``: the pipeline of the paper's main comparison, then its summary."""
-    return _run_pipeline(args, "run")
-
-
-def ablate_command(args: argparse.Namespace) -> int:
-    """Run ``amuled ablate``: the pipeline of one ablation."""
-    extra = ["--what", args.what]
-    if args.weights is not None:
-        extra += ["--weights", str(args.weights.resolve())]
-    return _run_pipeline(args, "ablate", *extra)
-
-
-def _run_pipeline(args: argparse.Namespace, command: str, *extra: str) -> int:
-    """Run the pipeline `request_of` builds, then say its outcome (and the quick note)."""
-    from amuled_ma.experiments import pipeline
-
-    start = time.perf_counter()
-    request = request_of(args, command, *extra)
-    outcome = pipeline.run_pipeline(request, say=common.say)
-    common.say_outcome(request, outcome, time.perf_counter() - start)
+    """Run ``amuled run`` (the paper's main comparison) or, with ``--what``, ``amuled ablate``."""
+    extra = []
+    if getattr(args, "what", None) is not None:
+        extra = ["--what", args.what]
+        if args.weights is not None:
+            extra += ["--weights", str(args.weights.resolve())]
+    request = request_of(args, "ablate" if extra else "run", *extra)
+    common.run_and_say(request)
     if args.quick:
         common.say(
             quick_note(
