@@ -69,16 +69,11 @@ def live_leg(
 
     trained = trained_variant(run_dir, run_dir / "finetune-amuled")
     episode = replay_variant(trained, episode=0, mode="greedy", episodes=episodes)
-    seen: set[tuple[float, ...]] = set()
-    picked: list[int] = []
-    for step in range(episode.length):
-        key = tuple(float(x) for x in np.asarray(episode.obs[step]).reshape(-1))
-        if key not in seen:
-            seen.add(key)
-            picked.append(step)
-        if len(picked) == states:
-            break
-    obs = np.stack([np.asarray(episode.obs[i], dtype=np.float64).reshape(-1) for i in picked])
+    steps = np.asarray(episode.obs[: episode.length], dtype=np.float64)
+    steps = steps.reshape(episode.length, -1)
+    _, first = np.unique(steps, axis=0, return_index=True)  # each distinct state's first step
+    picked = sorted(first.tolist())[:states]
+    obs = steps[picked]
     prompt_vars = [dict(episode.prompt_vars[i]) for i in picked]
     out = run_dir / LIVE_DIR
     out.mkdir(parents=True, exist_ok=True)

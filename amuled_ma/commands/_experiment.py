@@ -197,33 +197,38 @@ def customise(
     return scenario
 
 
+#: ``--ray`` without an address: a local Ray started for the run.
+LOCAL_RAY = "local"
+#: ``(dest, option, default)`` of what a re-run repeats, in order; a list repeats its option,
+#: a default is left out, ``--ray`` alone and ``--no-population`` are flags.
+RERUN_OPTIONS: tuple[tuple[str, str, object], ...] = (
+    ("recipe", "--recipe", None),
+    ("clusters_dir", "--clusters-dir", None),
+    ("overrides", "--set", None),
+    ("allow_plugin", "--allow-plugin", None),  # a run folder never allows code by itself
+    ("seed", "--seed", None),
+    ("seeds", "--seeds", 1),
+    ("jobs", "--jobs", 0),
+    ("ray", "--ray", None),
+    ("ray_resource", "--ray-resource", None),
+    ("population", "--no-population", True),
+    ("base", "--base", None),  # a fine-tune's only
+)
+
+
 def rerun_of(name: str, args: argparse.Namespace, *extra: str) -> Rerun:
     """The command that re-runs a job, as fields (``extra``: arguments before ``--run-dir``)."""
     from amuled_ma.experiments.run_folder import Rerun
 
     options: list[str] = []
-    if getattr(args, "recipe", None):
-        options += ["--recipe", args.recipe]
-    for folder in getattr(args, "clusters_dir", []):
-        options += ["--clusters-dir", str(folder)]
-    for text in getattr(args, "overrides", []):
-        options += ["--set", text]
-    for path in getattr(args, "allow_plugin", []):
-        options += ["--allow-plugin", path]  # a run folder never allows code by itself
-    if getattr(args, "seed", None) is not None:
-        options += ["--seed", str(args.seed)]
-    if getattr(args, "seeds", 1) != 1:
-        options += ["--seeds", str(args.seeds)]
-    if getattr(args, "jobs", 0):
-        options += ["--jobs", str(args.jobs)]
-    if getattr(args, "ray", None) is not None:
-        options += ["--ray"] + ([] if args.ray == "local" else [args.ray])
-    if getattr(args, "ray_resource", None):
-        options += ["--ray-resource", args.ray_resource]
-    if not getattr(args, "population", True):
-        options.append("--no-population")
-    if getattr(args, "base", None) is not None and name == "finetune":
-        options += ["--base", str(args.base)]
+    for dest, option, default in RERUN_OPTIONS:
+        value = getattr(args, dest, default)
+        if dest == "base" and name != "finetune":
+            continue
+        for one in value if isinstance(value, list) else [value]:
+            if one != default:
+                flag = one is False or one == LOCAL_RAY
+                options += [option] if flag else [option, str(one)]
     name_option = getattr(args, "name", None) if name == "finetune" else None
     return Rerun(name, (str(args.scenario), *extra), tuple(options), name_option)
 

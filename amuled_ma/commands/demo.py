@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import os
 import shlex
-import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -100,7 +99,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def demo_command(args: argparse.Namespace) -> int:
     """Run ``amuled demo``; return the exit code of the pipeline."""
     from amuled_ma.cli import FAILURES, report_failure
-    from amuled_ma.errors import EXIT_REFUSED
     from amuled_ma.experiments.pipeline import PipelineRequest
     from amuled_ma.learn.checkpoints import LAST
     from amuled_ma.servers import local_server as llm_server
@@ -108,11 +106,7 @@ def demo_command(args: argparse.Namespace) -> int:
     from amuled_ma.servers.timing import cache_reuse, record_timings
 
     start = time.perf_counter()
-    missing = missing_recording(args.task, offline=args.offline)
-    if missing:  # an input refused, as every command's (not a usage error)
-        print(f"amuled: error: {missing}", file=sys.stderr)
-        return EXIT_REFUSED
-    fetch_authors_base(args.task, offline=args.offline)
+    fetch_inputs(args.task, offline=args.offline)
     model = args.model or TINY_MODEL
     host = args.host or os.environ.get("OLLAMA_HOST")
     if host is None and model != TINY_MODEL:
@@ -238,52 +232,46 @@ def demo_scenario(
     return common.customise(scenario, clusters_dirs=clusters_dirs, overrides=overrides)
 
 
-def missing_recording(task: str, *, offline: bool = False) -> str | None:
-    """One line when the demo's recording is missing and cannot be fetched, else None."""
-    from amuled_ma.authors.download import ensure_recordings, replayed_recordings
+def fetch_inputs(task: str, *, offline: bool = False) -> None:
+    """Fetch the demo's recording and the authors' base it starts from when missing.
+
+    Without the authors' base the fine-tunes start from the run's own (said on stderr).
+
+    Raises:
+        AmuledError: The recording is missing and cannot be fetched; the fixes named.
+    """
+    from amuled_ma.authors.download import (
+        ensure_authors_base,
+        ensure_recordings,
+        replayed_recordings,
+    )
     from amuled_ma.errors import AmuledError
     from amuled_ma.scenario import load_scenario
 
-    try:
-        scenario = load_scenario(f"{task}-demo")
-        if scenario.feedback.source != "replay":
-            return None
+    scenario = load_scenario(f"{task}-demo")
+    if scenario.feedback.source == "replay":
         ensure_recordings(
             scenario.resolve, replayed_recordings(scenario.feedback), offline=offline, say=_say
         )
-    except AmuledError as error:
-        return str(error)
-    try:
-        scenario.recording_path(required=True)
-    except AmuledError:
-        name = Path(scenario.feedback.recording).name
-        return (
-            f"amuled demo replays the paper authors' recording {name!r}, not found: set "
-            "AMULED_RECORDINGS=FOLDER, or run 'amuled import authors PATH' (a clone of "
-            "https://github.com/temetski/moral_agent)"
-        )
-    return None
-
-
-def fetch_authors_base(task: str, *, offline: bool = False) -> Path | None:
-    """The authors' base for the demo's fine-tunes, fetched if missing (None: the run's)."""
-    from amuled_ma.authors.download import ensure_authors_base
-    from amuled_ma.errors import AmuledError
-    from amuled_ma.scenario import load_scenario
-
-    try:
-        scenario = load_scenario(f"{task}-demo")
-        if scenario.finetune.recipe != "authors":
-            return None
-        return ensure_authors_base(
-            task, runs=Path(scenario.output.runs_dir), offline=offline, say=_say
-        )
-    except AmuledError as error:
-        _say(
-            f"the fine-tunes start from this run's own base, not the authors' published one "
-            f"(the figures will be further from the paper's): {error}"
-        )
-        return None
+        try:
+            scenario.recording_path(required=True)
+        except AmuledError:
+            name = Path(scenario.feedback.recording).name
+            raise AmuledError(
+                f"amuled demo replays the paper authors' recording {name!r}, not found: set "
+                "AMULED_RECORDINGS=FOLDER, or run 'amuled import authors PATH' (a clone of "
+                "https://github.com/temetski/moral_agent)"
+            ) from None
+    if scenario.finetune.recipe == "authors":
+        try:
+            ensure_authors_base(
+                task, runs=Path(scenario.output.runs_dir), offline=offline, say=_say
+            )
+        except AmuledError as error:
+            _say(
+                f"the fine-tunes start from this run's own base, not the authors' published one "
+                f"(the figures will be further from the paper's): {error}"
+            )
 
 
 #: How the report's summary of every variant against the paper starts (`put_summary`).
@@ -428,14 +416,9 @@ def demo_title(scenario: Scenario) -> str:
 def demo_hint(args: argparse.Namespace, run_dir: Path) -> str:
     """The command that continues this demo (printed with ``--resume`` when it stops)."""
     parts = ["amuled", "demo", "--task", args.task, "--run-dir", str(run_dir)]
-    if args.model:
-        parts += ["--model", args.model]
-    if args.host:
-        parts += ["--host", args.host]
-    for folder in args.clusters_dir:
-        parts += ["--clusters-dir", str(folder)]
-    for text in args.overrides:
-        parts += ["--set", text]
+    given = {"--model": [args.model], "--host": [args.host], "--clusters-dir": args.clusters_dir}
+    for option, values in {**given, "--set": args.overrides}.items():
+        parts += [word for value in values if value for word in (option, str(value))]
     return shlex.join(parts)
 
 

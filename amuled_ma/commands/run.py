@@ -70,9 +70,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
 
 
-#: ``--ray`` without an address: a local Ray started for the run.
-LOCAL_RAY = "local"
-
 #: The quick form's budget (``--quick``), ``(section, key): value``: about a minute for
 #: ``amuled run findmilk`` on 2 cores (docs/reproduction.md, "The quick form"); a ``--set`` of
 #: the same key wins.
@@ -136,7 +133,7 @@ def add_pipeline_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--ray",
         nargs="?",
-        const=LOCAL_RAY,
+        const=common.LOCAL_RAY,
         default=None,
         metavar="ADDRESS",
         help="train the jobs on Ray: alone, a local Ray with --jobs CPUs (even --jobs 1); "
@@ -200,7 +197,7 @@ def ray_target(args: argparse.Namespace) -> RayTarget | None:
         raise AmuledError("--ray-resource needs --ray: it names a resource of a Ray cluster")
     if args.ray is None:
         return None
-    return RayTarget(None if args.ray == LOCAL_RAY else args.ray, args.ray_resource)
+    return RayTarget(None if args.ray == common.LOCAL_RAY else args.ray, args.ray_resource)
 
 
 def request_of(args: argparse.Namespace, command: str, *extra: str) -> PipelineRequest:
