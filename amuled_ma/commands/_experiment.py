@@ -13,7 +13,6 @@ from amuled_ma.scenario.overrides import parse_set
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from amuled_ma.evaluate.results import Results
     from amuled_ma.experiments.pipeline import PipelineRequest
     from amuled_ma.experiments.run_folder import Rerun
     from amuled_ma.scenario import Scenario
@@ -244,7 +243,7 @@ def run_and_say(request: PipelineRequest) -> None:
 
     start = time.perf_counter()
     outcome = pipeline.run_pipeline(request, say=say)
-    name = request.scenario.name
+    name, task = request.scenario.name, request.scenario.task.name
     done = f"{len(outcome.seeds)} seed(s) done in {time.perf_counter() - start:.1f} s"
     if request.ablation is not None:
         say(
@@ -252,18 +251,13 @@ def run_and_say(request: PipelineRequest) -> None:
             f"{done}; report {outcome.report}"
         )
         return
-    say(greedy_line(request.scenario.task.name, outcome.results))
+    from amuled_ma.evaluate.evaluator import PAPER_METRICS  # after the run: it imports torch
+
+    parts = []  # the greedy means of the paper's metrics, per variant
+    for variant, result in outcome.results.variants.items():
+        metrics = result.greedy.metrics if result.greedy else {}
+        means = [(m, metrics[m].mean) for m in PAPER_METRICS.get(task, []) if m in metrics]
+        cells = [f"{m}={float('nan') if v is None else v:.2f}" for m, v in means]
+        parts.append(f"{variant}[{', '.join(cells)}]")
+    say("  greedy: " + "; ".join(parts))
     say(f"run {name}: {len(outcome.variants)} variants x {done}; report {outcome.report}")
-
-
-def greedy_line(task: str, results: Results) -> str:
-    """``  greedy: base[metric=mean, ...]; ...``: the greedy means of the paper's metrics."""
-    from amuled_ma.evaluate.evaluator import PAPER_METRICS
-
-    parts = []
-    for name, variant in results.variants.items():
-        metrics = variant.greedy.metrics if variant.greedy else {}
-        means = {m: metrics[m].mean for m in PAPER_METRICS.get(task, []) if m in metrics}
-        cells = [f"{m}={float('nan') if v is None else v:.2f}" for m, v in means.items()]
-        parts.append(f"{name}[{', '.join(cells)}]")
-    return "  greedy: " + "; ".join(parts)

@@ -8,11 +8,10 @@ from typing import TYPE_CHECKING
 
 from amuled_ma.commands import _experiment as common
 from amuled_ma.errors import AmuledError
+from amuled_ma.scenario.overrides import parse_set
 
 if TYPE_CHECKING:
-    from amuled_ma.experiments.jobs import RayTarget
     from amuled_ma.experiments.pipeline import PipelineRequest
-    from amuled_ma.scenario import Changes
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -160,21 +159,6 @@ def add_pipeline_args(parser: argparse.ArgumentParser) -> None:
     parser.set_defaults(handler=run_command)
 
 
-def quick_changes(overrides: list[str]) -> Changes:
-    """The quick form's budget (:data:`QUICK_SETTINGS`), but for the keys ``overrides`` sets.
-
-    Returns the changes to the scenario (:meth:`~amuled_ma.scenario.Scenario.changed`).
-    """
-    from amuled_ma.scenario.overrides import parse_set
-
-    named = {parse_set(text)[:2] for text in overrides}
-    return tuple(
-        (section, {key: value})
-        for (section, key), value in QUICK_SETTINGS.items()
-        if (section, key) not in named
-    )
-
-
 def quick_note(base_steps: int, iterations: int, episodes: int) -> str:
     """The quick form's one-line warning, for the output and the report's title."""
     return (
@@ -185,33 +169,31 @@ def quick_note(base_steps: int, iterations: int, episodes: int) -> str:
     )
 
 
-def ray_target(args: argparse.Namespace) -> RayTarget | None:
-    """The command line's ``--ray`` / ``--ray-resource`` as a ``RayTarget`` (None: no Ray).
+def request_of(args: argparse.Namespace) -> PipelineRequest:
+    """The `PipelineRequest` of ``amuled run``, or of ``amuled ablate`` (``args.what`` set).
 
     Raises:
         AmuledError: ``--ray-resource`` without ``--ray``.
     """
     from amuled_ma.experiments.jobs import RayTarget
+    from amuled_ma.experiments.pipeline import PipelineRequest
 
     if args.ray_resource and args.ray is None:
         raise AmuledError("--ray-resource needs --ray: it names a resource of a Ray cluster")
-    if args.ray is None:
-        return None
-    return RayTarget(None if args.ray == common.LOCAL_RAY else args.ray, args.ray_resource)
-
-
-def request_of(args: argparse.Namespace, command: str, *extra: str) -> PipelineRequest:
-    """The `PipelineRequest` of ``amuled run`` or ``ablate``."""
-    from amuled_ma.experiments.pipeline import PipelineRequest
-
     scenario = common.load(args)
-    weights = getattr(args, "weights", None)
-    if weights is not None:  # a path from this directory, as any file on the command line
-        scenario = scenario.replace("feedback", weights=str(Path(weights).resolve()))
+    command, extra = "run", []
+    if getattr(args, "what", None) is not None:
+        command, extra = "ablate", ["--what", args.what]
+        if args.weights is not None:  # a path from this directory, as any file on the command line
+            weights = str(args.weights.resolve())
+            scenario = scenario.replace("feedback", weights=weights)
+            extra += ["--weights", weights]
     run_dir = Path(args.run_dir) if args.run_dir else scenario.default_run_dir()
     episodes, title = args.episodes, None
-    if args.quick:
-        scenario = scenario.changed(quick_changes(args.overrides))
+    if args.quick:  # the quick budget but for the keys a --set names
+        named = {parse_set(text)[:2] for text in args.overrides}
+        quick = {key: value for key, value in QUICK_SETTINGS.items() if key not in named}
+        scenario = scenario.changed(tuple((section, {k: v}) for (section, k), v in quick.items()))
         episodes = episodes or QUICK_EPISODES
         if args.run_dir is None:
             run_dir = run_dir.with_name(run_dir.name + QUICK_SUFFIX)
@@ -219,7 +201,10 @@ def request_of(args: argparse.Namespace, command: str, *extra: str) -> PipelineR
         note = quick_note(scenario.base.total_steps, scenario.finetune.iterations, episodes)
         title = f"{scenario.name}: {what}, {note}"
         common.say(note)
-        extra = (*extra, "--quick")
+        extra.append("--quick")
+    ray = None
+    if args.ray is not None:
+        ray = RayTarget(None if args.ray == common.LOCAL_RAY else args.ray, args.ray_resource)
     return PipelineRequest(
         scenario=scenario,
         run_dir=run_dir,
@@ -232,7 +217,7 @@ def request_of(args: argparse.Namespace, command: str, *extra: str) -> PipelineR
         force=args.force,
         retrain=tuple(args.retrain),
         jobs=args.jobs,
-        ray=ray_target(args),
+        ray=ray,
         population=args.population,
         progress=not args.no_progress,
         rerun=common.rerun_of(command, args, *extra),
@@ -243,12 +228,7 @@ def request_of(args: argparse.Namespace, command: str, *extra: str) -> PipelineR
 
 def run_command(args: argparse.Namespace) -> int:
     """Run ``amuled run`` (the paper's main comparison) or, with ``--what``, ``amuled ablate``."""
-    extra = []
-    if getattr(args, "what", None) is not None:
-        extra = ["--what", args.what]
-        if args.weights is not None:
-            extra += ["--weights", str(args.weights.resolve())]
-    request = request_of(args, "ablate" if extra else "run", *extra)
+    request = request_of(args)
     common.run_and_say(request)
     if args.quick:
         common.say(
