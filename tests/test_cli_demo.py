@@ -224,18 +224,16 @@ def test_a_warm_up_cut_short_by_the_servers_stop_is_said_plainly() -> None:
     """A second demo stops its server while the warm-up is still in flight: no raw error."""
     import socket
 
-    from amuled_ma.commands._demo_live import PrefixWarmup
+    from amuled_ma.commands._demo_live import start_warmup
 
     listener = socket.create_server(("127.0.0.1", 0))  # accepts, never answers
     host = f"http://127.0.0.1:{listener.getsockname()[1]}"
     scenario = demo_scenario("findmilk", model=TINY_MODEL, host=host, private=True)
-    warmup = PrefixWarmup.start(
-        host, TINY_MODEL, scenario.task.name, scenario.feedback, scenario.resolve
-    )
+    warmup = start_warmup(host, TINY_MODEL, scenario)
     assert warmup is not None
     warmup.join(0.2)
-    assert warmup.running()
-    warmup.cut = warmup.running()
+    assert warmup.is_alive()
+    warmup.cut = warmup.is_alive()
     listener.close()  # as the server's stop: the request fails
     warmup.join(5.0)
     line = warmup.describe()

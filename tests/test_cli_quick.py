@@ -25,7 +25,7 @@ def test_help_shows_the_quick_form(command, capsys):
 def test_quick_budget_and_run_folder_and_title(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     args = build_parser().parse_args(["ablate", "findmilk", "--what", "kl", "--quick"])
-    request = request_of(args, "ablate", "--what", "kl")
+    request = request_of(args)
     # findmilk.toml: 500,000 base steps, 1,000 iterations, 50 episodes; the short form's own
     assert load_scenario("findmilk").base.total_steps == 500_000
     assert request.scenario.base.total_steps == 65_536
@@ -42,7 +42,7 @@ def test_a_set_and_episodes_win_over_the_quick_form(tmp_path):
         ["run", "findmilk", "--quick", "--set", "finetune.iterations=7", "--episodes", "4",
          "--run-dir", str(tmp_path / "r")]
     )  # fmt: skip
-    request = request_of(args, "run")
+    request = request_of(args)
     assert request.scenario.finetune.iterations == 7
     assert request.scenario.base.total_steps == 65_536
     assert request.episodes == 4

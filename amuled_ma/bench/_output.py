@@ -1,4 +1,4 @@
-"""What the benchmarks share: their output folder, best-of timing and the ``--json`` figures."""
+"""What the benchmarks share: output folder, best-of timing, ``--json`` figures, scenario."""
 
 from __future__ import annotations
 
@@ -8,9 +8,12 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 from amuled_ma.files.safe import write_text_atomic
+
+if TYPE_CHECKING:
+    from amuled_ma.scenario import Scenario
 
 _Out = TypeVar("_Out")
 
@@ -42,3 +45,15 @@ def write_figures(path: Path | None, figures: object) -> None:
     if path:
         write_text_atomic(path, json.dumps(figures, indent=2))
         print(f"\nfigures written to {path}")
+
+
+def authors_scenario(task: str, base_steps: int) -> Scenario:
+    """``<task>-authors`` with a base of ``base_steps``, no TensorBoard, no abstention stop.
+
+    A short base wanders into states the authors never asked: reward 0 there (their recipe),
+    without the abstention stop meant for real runs.
+    """
+    from amuled_ma.scenario import load_scenario
+
+    scenario = load_scenario(f"{task}-authors").replace("base", total_steps=base_steps)
+    return scenario.replace("output", tensorboard=False).replace("feedback", max_abstention=1.0)

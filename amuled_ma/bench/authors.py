@@ -11,7 +11,7 @@ import argparse
 import time
 from pathlib import Path
 
-from amuled_ma.bench._output import output_folder
+from amuled_ma.bench._output import authors_scenario, output_folder
 
 #: The authors' fine-tune time [s] (about 6 minutes, as in ``bench/train.py``'s reference).
 AUTHORS_FINETUNE_S = 6 * 60.0
@@ -33,17 +33,11 @@ def main(args: argparse.Namespace) -> int:
     """Run the benchmark and print the figures; returns 0 (a benchmark, not a test)."""
     from amuled_ma.experiments.plans import train_variant
     from amuled_ma.records.variants import Variant
-    from amuled_ma.scenario import load_scenario
 
     rows = []
     with output_folder(args.out, "amuled-bench-authors-") as out:
         for task in [t.strip() for t in args.tasks.split(",") if t.strip()]:
-            scenario = load_scenario(f"{task}-authors")
-            scenario = scenario.replace("base", total_steps=args.base_steps)
-            scenario = scenario.replace("output", tensorboard=False)
-            # a short base wanders into states the authors never asked: reward 0 there
-            # (their recipe), without the abstention stop meant for real runs
-            scenario = scenario.replace("feedback", max_abstention=1.0)
+            scenario = authors_scenario(task, args.base_steps)
             run_dir = out / task
             train_variant(scenario, run_dir, Variant("base"))
             start = time.perf_counter()

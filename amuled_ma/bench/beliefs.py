@@ -62,13 +62,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Run the benchmark; 0 when the second run had 100% store hits and sent nothing, else 1."""
-    if args.live:
-        return _live(args)
-    return _replay(args)
-
-
-def _live(args: argparse.Namespace) -> int:
-    """Measure a live Ollama server (the hook: `amuled_ma.bench._live.run_live`)."""
+    if not args.live:
+        return _replay(args)
     from amuled_ma.bench._live import run_live
 
     host = args.host or os.environ.get("OLLAMA_HOST") or "http://127.0.0.1:11434"
@@ -79,14 +74,6 @@ def _live(args: argparse.Namespace) -> int:
     )
     print(f"  second runs: {'100% hits, 0 sent (target met)' if ok else 'TARGET MISSED'}")
     return 0 if ok else 1
-
-
-def _recordings_dir() -> Path:
-    env = os.environ.get("AMULED_RECORDINGS")
-    if env:
-        return Path(env)
-    here = Path(__file__).resolve().parents[2]  # the checkout's root
-    return here.parent / "shared" / "amuled-recordings"
 
 
 def _prompt_vars(task_cls: type[BatchedTask], task: str, obs: np.ndarray) -> dict[str, Any]:
@@ -124,14 +111,16 @@ def _replay(args: argparse.Namespace) -> int:
     from amuled_ma.beliefs.store.database import BeliefStore
     from amuled_ma.deliberation import MoralPanel
     from amuled_ma.deliberation.panel_feedback import PanelFeedback
-    from amuled_ma.errors import AmuledError
+    from amuled_ma.scenario.paths import find_recording
     from amuled_ma.tasks import get_task
 
-    path = args.recording or _recordings_dir() / DEFAULT_RECORDINGS[args.task]
-    if not path.is_file():
-        raise AmuledError(
-            f"recording {path} not found (give --recording FILE or set AMULED_RECORDINGS)"
-        )
+    path = find_recording(
+        str(args.recording or DEFAULT_RECORDINGS[args.task]),
+        Path,
+        where="amuled bench beliefs",
+        required=True,
+        key="--recording",
+    )
     recording = json.loads(path.read_text())
     task_cls = get_task(args.task)
     clusters = ["consequentialist", "deontological", "virtue", "care", "social_justice"]

@@ -58,27 +58,22 @@ def main(args: argparse.Namespace) -> int:
         f"best of {args.repeats} run(s)"
     )
     rows: dict[str, dict[str, Any]] = {}
+    episodes = {"findmilk": args.findmilk_episodes, "driving": args.driving_episodes}
+    play = {
+        "findmilk": lambda: play_findmilk(seed=args.seed, episodes=args.findmilk_episodes),
+        "driving": lambda: play_driving(
+            seed=args.seed, episodes=args.driving_episodes, batch_size=args.batch_size
+        ),
+    }
     for name in tasks:
-        if name == "findmilk":
-            episodes, played = args.findmilk_episodes, args.findmilk_episodes
-
-            def run(episodes: int = episodes) -> Any:
-                return play_findmilk(seed=args.seed, episodes=episodes)
-
-        elif name == "driving":
-            episodes = args.driving_episodes
-            played = max(episodes - DRIVING_COUNT_FROM, 0)
-
-            def run(episodes: int = episodes) -> Any:
-                return play_driving(seed=args.seed, episodes=episodes, batch_size=args.batch_size)
-
-        else:
+        if name not in play:
             print(f"unknown task {name!r}: expected findmilk or driving")
             return 2
-        table, wall, cpu = best_time(run, args.repeats)
+        played = episodes[name] - (DRIVING_COUNT_FROM if name == "driving" else 0)
+        table, wall, cpu = best_time(play[name], args.repeats)
         rows[name] = {
-            "episodes": episodes,
-            "episodes_played": played,
+            "episodes": episodes[name],
+            "episodes_played": max(played, 0),
             "seconds": wall,
             "cpu_seconds": cpu,
             "pairs_counted": int(table.counts.sum()),

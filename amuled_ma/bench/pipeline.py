@@ -12,9 +12,9 @@ import argparse
 import os
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from amuled_ma.bench._output import output_folder
@@ -131,12 +131,9 @@ def time_pipeline(
 
     seconds: dict[tuple[str, str], float] = {}
     sets = [a for text in overrides for a in ("--set", text)]
+    where = {"ray": ["--ray"], "alone": ["--no-population"]}.get(str(jobs), ["--jobs", str(jobs)])
     for task in tasks:
-        for stage, argv in STAGES:
-            command, *rest = argv
-            where = {"ray": ["--ray"], "alone": ["--no-population"]}.get(
-                str(jobs), ["--jobs", str(jobs)]
-            )
+        for stage, (command, *rest) in STAGES:
             args = [command, task, *rest, "--run-dir", str(out / task), *where, *extra]
             args += ["--no-progress", *sets]
             print(f"[jobs={jobs}] amuled {' '.join(args)}", flush=True)
@@ -156,25 +153,16 @@ def time_tasks_at_once(
     """`time_pipeline` of every task at once, each in its own processes; also the total wall."""
     seconds: dict[tuple[str, str], float] = {}
     cpu: dict[tuple[str, str], float] = {}
-    failures: list[BaseException] = []
-
-    def one(task: str) -> None:
-        try:
-            seconds.update(
-                time_pipeline([task], jobs, out, overrides, extra, run=_subprocess_amuled, cpu=cpu)
-            )
-        except Exception as error:  # a stage that failed, or one that could not start
-            failures.append(error)
-
     t0 = time.perf_counter()
-    threads = [threading.Thread(target=one, args=(task,)) for task in tasks]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
+    with ThreadPoolExecutor(len(tasks)) as pool:  # a failed stage's error is raised here
+        for part in pool.map(
+            lambda task: time_pipeline(
+                [task], jobs, out, overrides, extra, run=_subprocess_amuled, cpu=cpu
+            ),
+            tasks,
+        ):
+            seconds.update(part)
     wall = time.perf_counter() - t0
-    if failures:
-        raise failures[0]
     per_task = {task: sum(v for (t, _), v in cpu.items() if t == task) for task in tasks}
     print(f"[jobs={jobs}] CPU seconds of each stage's process (user + system):", flush=True)
     for (task, stage), value in cpu.items():
@@ -212,14 +200,12 @@ def main(args: argparse.Namespace) -> int:
                 )
                 walls[jobs] = sum(timings[jobs].values())
     cpus = available_cpus()
-    labels = [
-        "--ray (local Ray)"
-        if j == "ray"
-        else "--no-population (every job alone, one per core)"
-        if j == "alone"
-        else f"--jobs {j}" + (" (one process)" if j == 1 else f" (Ray, {j or cpus} CPUs)")
-        for j in values
-    ]
+    named = {
+        "ray": "--ray (local Ray)",
+        "alone": "--no-population (every job alone, one per core)",
+        1: "--jobs 1 (one process)",
+    }
+    labels = [named.get(j, f"--jobs {j} (Ray, {j or cpus} CPUs)") for j in values]
     full = args.recipe == "authors" and args.seeds >= 5
     target = FULL_TARGET_S if full else TARGET_S
     print()

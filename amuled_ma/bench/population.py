@@ -18,7 +18,7 @@ from pathlib import Path
 from statistics import mean, stdev
 from typing import TYPE_CHECKING, Any
 
-from amuled_ma.bench._output import output_folder
+from amuled_ma.bench._output import authors_scenario, output_folder
 
 if TYPE_CHECKING:
     from amuled_ma.beliefs.store.service import StoreService
@@ -72,53 +72,43 @@ def _rss_mib() -> float:
     return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
-class Stopwatch:
-    """Wall-clock and CPU times of a training call's iterations, from its ``on_iteration``."""
-
-    def __init__(self) -> None:
-        self.marks: list[tuple[float, float]] = []
-        self.start = self.now()
-
-    @staticmethod
-    def now() -> tuple[float, float]:
-        """``(wall, cpu)`` seconds now."""
-        return time.perf_counter(), time.process_time()
-
-    def restart(self) -> None:
-        """Start timing here (after the setup)."""
-        self.start = self.now()
-
-    def __call__(self, _trainer: object, _iteration: int) -> None:
-        """Mark the end of an iteration (a trainer's ``on_iteration``)."""
-        self.marks.append(self.now())
-
-    def extrapolate(self, setup: tuple[float, float], warmup: int) -> dict[str, float]:
-        """Seconds of a 1,000-iteration run and per steady iteration, wall and CPU."""
-        out = {}
-        for clock, name in enumerate(("wall", "cpu")):
-            first = self.marks[warmup - 1][clock] if warmup else self.start[clock]
-            warm = first - self.start[clock]
-            steady = (self.marks[-1][clock] - first) / (len(self.marks) - warmup)
-            out[f"{name}_s"] = setup[clock] + warm + (RECIPE_ITERATIONS - warmup) * steady
-            out[f"{name}_it"] = steady
-        return out
+def _clocks() -> tuple[float, float]:
+    """``(wall, cpu)`` seconds now."""
+    return time.perf_counter(), time.process_time()
 
 
-def _since(start: tuple[float, float]) -> tuple[float, float]:
-    wall, cpu = Stopwatch.now()
-    return wall - start[0], cpu - start[1]
+def _timed(jobs: list[MemberSpec], args: argparse.Namespace, device: str) -> dict[str, Any]:
+    """Train ``jobs`` as one population for ``--warmup`` + ``--iterations``; its timing.
+
+    Returns ``wall_s``/``cpu_s`` of a `RECIPE_ITERATIONS` run (setup + warm-up + the rest at
+    the steady mean), ``wall_it``/``cpu_it`` per steady iteration, ``setup`` and ``rss_mib``.
+    """
+    from amuled_ma.learn.population import PopulationTrainer
+
+    marks: list[tuple[float, float]] = []
+    for job in jobs:
+        job.iterations = args.warmup + args.iterations
+    jobs[0].on_iteration = lambda _trainer, _iteration: marks.append(_clocks())
+    begin = _clocks()
+    population = PopulationTrainer(jobs, device=device)
+    start = _clocks()
+    setup = (start[0] - begin[0], start[1] - begin[1])
+    population.train()
+    out: dict[str, Any] = {"setup": setup, "rss_mib": _rss_mib()}
+    for job in jobs:
+        job.feedback.close()
+    for clock, name in enumerate(("wall", "cpu")):
+        first = marks[args.warmup - 1][clock] if args.warmup else start[clock]
+        steady = (marks[-1][clock] - first) / (len(marks) - args.warmup)
+        warm = first - start[clock]
+        out[f"{name}_s"] = setup[clock] + warm + (RECIPE_ITERATIONS - args.warmup) * steady
+        out[f"{name}_it"] = steady
+    return out
 
 
-def _scenario(task: str, base_steps: int) -> tuple[Any, str]:
+def _scenario(task: str, base_steps: int) -> tuple[Scenario, str]:
     """The task's authors' scenario for the bench, and the name of its feedback source."""
-    from amuled_ma.scenario import load_scenario
-
-    scenario = load_scenario(f"{task}-authors")
-    scenario = scenario.replace("base", total_steps=base_steps)
-    scenario = scenario.replace("output", tensorboard=False)
-    # a short base wanders into states the recording never asked: reward 0 there (the
-    # authors' recipe), without the abstention stop meant for real runs
-    scenario = scenario.replace("feedback", max_abstention=1.0)
+    scenario = authors_scenario(task, base_steps)
     recording = scenario.recording_path()
     if recording.exists():
         return scenario, f"replay of {recording.name}"
@@ -153,51 +143,37 @@ def _jobs(
     return jobs
 
 
-def measure_task(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
-    """Time the lone fine-tunes and every population size of one task."""
+def _base(scenario: Scenario, run: Path) -> tuple[Path, StoreService]:
+    """Train the short base policy in ``run/base``; its checkpoint and the run's store."""
     from amuled_ma.deliberation.build import run_store
     from amuled_ma.learn.population import PopulationTrainer
-    from amuled_ma.learn.population_groups import MemberSpec, member_memory_bytes
+    from amuled_ma.learn.population_groups import MemberSpec
+
+    base = PopulationTrainer([MemberSpec(scenario, run / "base")]).train()[0].checkpoint
+    return base, run_store(scenario.store_path(run))
+
+
+def measure_task(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
+    """Time the lone fine-tunes and every population size of one task."""
+    from amuled_ma.learn.population_groups import member_memory_bytes
     from amuled_ma.tasks import get_task
 
     scenario, source = _scenario(task, args.base_steps)
     run = out / task
     t0 = time.perf_counter()
-    base = PopulationTrainer([MemberSpec(scenario, run / "base")]).train()[0].checkpoint
+    base, store = _base(scenario, run)
     base_s = time.perf_counter() - t0
-    store = run_store(scenario.store_path(run))
-    its = args.warmup + args.iterations
     rows = []
     for size in [int(s) for s in args.sizes.split(",") if s.strip()]:
         # the same jobs one by one, timed right before the population (the load of a
         # shared machine drifts: each population is compared with its neighbours)
-        lone: list[dict[str, float]] = []
-        for job in _jobs(scenario, run, base, args.lone, f"lone{size}", store):
-            job.iterations = its
-            watch = Stopwatch()
-            job.on_iteration = watch
-            trainer = PopulationTrainer([job])  # alone: a population of one
-            setup = _since(watch.start)
-            watch.restart()
-            trainer.train()
-            job.feedback.close()
-            lone.append(watch.extrapolate(setup, args.warmup))
-        alone = {key: sum(t[key] for t in lone) / len(lone) for key in lone[0]}
-        jobs = _jobs(scenario, run, base, size, f"p{size}", store)
-        watch = Stopwatch()
-        for job in jobs:
-            job.iterations = its
-        jobs[0].on_iteration = watch
-        population = PopulationTrainer(jobs, device=args.device)
-        setup = _since(watch.start)
-        watch.restart()
-        population.train()
-        rss = _rss_mib()
-        times = watch.extrapolate(setup, args.warmup)
-        for job in jobs:
-            job.feedback.close()
-        del population
-        rows.append({"size": size, "setup": setup, "rss_mib": rss, "alone": alone, **times})
+        lone = [
+            _timed([job], args, "cpu")  # alone: a population of one
+            for job in _jobs(scenario, run, base, args.lone, f"lone{size}", store)
+        ]
+        alone = {key: mean(t[key] for t in lone) for key in ("wall_s", "cpu_s", "cpu_it")}
+        times = _timed(_jobs(scenario, run, base, size, f"p{size}", store), args, args.device)
+        rows.append({"size": size, "alone": alone, **times})
         print(
             f"  {task} P={size}: {size * 3600 / times['cpu_s']:.1f} fine-tunes/h, one by one "
             f"{3600 / alone['cpu_s']:.1f} (CPU time)",
@@ -305,41 +281,34 @@ def _run_metrics(
 
 def welch(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
     """Train ``args.welch`` seeds alone and as one population; each run's figures."""
-    from amuled_ma.deliberation.build import run_store
     from amuled_ma.learn.population import PopulationTrainer
-    from amuled_ma.learn.population_groups import MemberSpec
 
     scenario, source = _scenario(task, args.base_steps)
     scenario = scenario.replace("finetune", lambda_kl=2.5)
     run = out / task
-    base = PopulationTrainer([MemberSpec(scenario, run / "base")]).train()[0].checkpoint
-    store = run_store(scenario.store_path(run))
-    groups: dict[str, list[dict[str, float]]] = {"alone": [], "population": []}
+    base, store = _base(scenario, run)
+    groups: dict[str, list[dict[str, float]]] = {}
     times: dict[str, float] = {}
-    jobs = _jobs(scenario, run, base, args.welch, "alone", store)
-    start = time.process_time()
-    for job in jobs:
-        job.scenario = scenario  # lambda_KL 2.5 for every seed
-        job.iterations = args.welch_iterations
-        outcome = PopulationTrainer([job]).train()[0]
-        job.feedback.close()
-        groups["alone"].append(
+    for group in ("alone", "population"):
+        jobs = _jobs(scenario, run, base, args.welch, group, store)
+        for job in jobs:
+            job.scenario = scenario  # lambda_KL 2.5 for every seed
+            job.iterations = args.welch_iterations
+        start = time.process_time()
+        if group == "population":
+            outcomes = PopulationTrainer(jobs, device=args.device).train()
+        else:
+            outcomes = []
+            for job in jobs:
+                outcomes.append(PopulationTrainer([job]).train()[0])
+                print(f"  {task}: seed {job.training_seed} alone done", flush=True)
+        times[group] = time.process_time() - start
+        for job in jobs:
+            job.feedback.close()
+        groups[group] = [
             _run_metrics(outcome, scenario.task, scenario.evaluation, scenario.ppo)
-        )
-        print(f"  {task}: seed {job.training_seed} alone done", flush=True)
-    times["alone"] = time.process_time() - start
-    jobs = _jobs(scenario, run, base, args.welch, "population", store)
-    for job in jobs:
-        job.scenario = scenario
-        job.iterations = args.welch_iterations
-    start = time.process_time()
-    outcomes = PopulationTrainer(jobs, device=args.device).train()
-    times["population"] = time.process_time() - start
-    for job, outcome in zip(jobs, outcomes, strict=True):
-        job.feedback.close()
-        groups["population"].append(
-            _run_metrics(outcome, scenario.task, scenario.evaluation, scenario.ppo)
-        )
+            for outcome in outcomes
+        ]
     return {"task": task, "source": source, "groups": groups, "cpu_s": times}
 
 

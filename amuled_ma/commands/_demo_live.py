@@ -12,10 +12,8 @@ from typing import TYPE_CHECKING, Any
 from amuled_ma.files.safe import checked_read_path, write_text_atomic
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
-
     from amuled_ma.deliberation.plan import PanelPlan
-    from amuled_ma.scenario import FeedbackConfig, Scenario
+    from amuled_ma.scenario import Scenario
     from amuled_ma.servers.timing import CacheReuse, RequestTiming, TimingLog
 
 
@@ -47,19 +45,9 @@ def live_leg(
 ) -> dict[str, Any]:
     """Ask a live model about a few states of the AMULED fine-tune's episode, through a store.
 
-    The states are the first ``states`` distinct states of the fine-tune's greedy
-    evaluation episode 0 (replayed as ``amuled explain`` does); each is asked of every
-    member of the live panel with the paper's prompts, through the belief store
-    ``RUN_DIR/live/<store>``, and fused with the panel's rule, as in training.
-
-    Args:
-        run_dir: The demo's run folder (its ``finetune-amuled`` is replayed).
-        plan: The live panel's plan (``[feedback].source = "ollama"``, :func:`write_live_leg`).
-        store: ``[feedback].store``, the store file (relative to ``RUN_DIR/live``).
-        episodes: The episodes per policy of the run's evaluation (sampled draws depend on it).
-        model: The live model, at ``host``.
-        host: Its server.
-        states: Distinct states asked.
+    The first ``states`` distinct states of ``finetune-amuled``'s greedy evaluation episode 0
+    (``episodes``: the evaluation's episodes per policy) are asked of every member of ``plan``'s
+    panel through the store ``RUN_DIR/live/<store>`` and fused, as in training.
 
     Returns:
         What ``live/live.json`` holds: the model, host, store, wall seconds, and per state
@@ -80,22 +68,12 @@ def live_leg(
     from amuled_ma.tasks import get_task
 
     trained = trained_variant(run_dir, run_dir / "finetune-amuled")
-    episode = replay_variant(
-        trained,
-        episode=0,
-        mode="greedy",
-        episodes=episodes,
-    )
-    seen: set[tuple[float, ...]] = set()
-    picked: list[int] = []
-    for step in range(episode.length):
-        key = tuple(float(x) for x in np.asarray(episode.obs[step]).reshape(-1))
-        if key not in seen:
-            seen.add(key)
-            picked.append(step)
-        if len(picked) == states:
-            break
-    obs = np.stack([np.asarray(episode.obs[i], dtype=np.float64).reshape(-1) for i in picked])
+    episode = replay_variant(trained, episode=0, mode="greedy", episodes=episodes)
+    steps = np.asarray(episode.obs[: episode.length], dtype=np.float64)
+    steps = steps.reshape(episode.length, -1)
+    _, first = np.unique(steps, axis=0, return_index=True)  # each distinct state's first step
+    picked = sorted(first.tolist())[:states]
+    obs = steps[picked]
     prompt_vars = [dict(episode.prompt_vars[i]) for i in picked]
     out = run_dir / LIVE_DIR
     out.mkdir(parents=True, exist_ok=True)
@@ -127,7 +105,9 @@ def live_leg(
             {
                 "step": int(step),
                 "obs": obs[u].tolist(),
-                "prompt_vars": {k: _plain(v) for k, v in prompt_vars[u].items()},
+                "prompt_vars": {  # numpy numbers as Python's
+                    k: v.item() if hasattr(v, "item") else v for k, v in prompt_vars[u].items()
+                },
                 "beliefs": answers.beliefs[u].tolist(),
                 "statuses": answers.statuses[u].tolist(),
                 "weights": answers.weights[u].tolist(),
@@ -137,11 +117,6 @@ def live_leg(
             for u, step in enumerate(picked)
         ],
     }
-
-
-def _plain(value: object) -> Any:
-    """A prompt variable as JSON (numpy numbers as Python's)."""
-    return value.item() if hasattr(value, "item") else value
 
 
 def live_section(leg: dict[str, Any]) -> list[str]:
@@ -222,28 +197,35 @@ def write_live_leg(run_dir: Path, scenario: Scenario, *, model: str, host: str) 
     return True
 
 
-def put_live_section(run_dir: Path, lines: list[str]) -> None:
-    """End ``report.md`` with the live leg's section, in place of an earlier one.
+def read_report(run_dir: Path, name: str = "report.md") -> str | None:
+    """The text of ``run_dir/name`` (None when it is missing), bounded as a report.
 
     Raises:
-        AmuledError: ``report.md`` is a link, not a regular file, over `MAX_REPORT_BYTES`, or
-            could not be written.
+        AmuledError: It is a link, not a regular file, over `MAX_REPORT_BYTES`, or unreadable.
         UnicodeDecodeError: It is not UTF-8 text.
     """
     from amuled_ma.evaluate.report.writing import MAX_REPORT_BYTES
     from amuled_ma.files.limits import read_bounded_bytes
 
-    report = checked_read_path(run_dir, "report.md")
-    if not report.is_file():
-        return
+    path = checked_read_path(run_dir, name)
+    if not path.is_file():
+        return None
     fix = f"is it the right folder? Write the report again with 'amuled evaluate {run_dir}'"
-    text = read_bounded_bytes(report, MAX_REPORT_BYTES, "report", fix=fix).decode("utf-8")
+    noun = name.partition(".")[0]  # "report", "results"
+    return read_bounded_bytes(path, MAX_REPORT_BYTES, noun, fix=fix).decode("utf-8")
+
+
+def put_live_section(run_dir: Path, lines: list[str]) -> None:
+    """End ``report.md`` with the live leg's section, in place of an earlier one (`read_report`)."""
+    text = read_report(run_dir)
+    if text is None:
+        return
     if LIVE_HEADING in text:  # a re-run: replace the old section
         text = text[: text.index(LIVE_HEADING)]
-    write_text_atomic(report, text.rstrip("\n") + "\n\n" + "\n".join(lines))
+    write_text_atomic(run_dir / "report.md", text.rstrip("\n") + "\n\n" + "\n".join(lines))
 
 
-class PrefixWarmup:
+class PrefixWarmup(threading.Thread):
     """Evaluate the prompt prefix every request shares, on the private server, in the background.
 
     The shared system prompt and few-shot turns (~3,300 of 3,600 tokens) take ~40 s on one
@@ -263,50 +245,10 @@ class PrefixWarmup:
         self.timing: RequestTiming | None = None
         self.error: str | None = None
         self.cut = False
-        self._thread = threading.Thread(target=self._run, name="amuled-warmup", daemon=True)
+        super().__init__(name="amuled-warmup", daemon=True)
 
-    @classmethod
-    def start(
-        cls,
-        host: str,
-        model: str,
-        task_name: str,
-        feedback: FeedbackConfig,
-        resolve: Callable[[str], Path],
-    ) -> PrefixWarmup | None:
-        """Start the warm-up for the run the demo is about to make (None if it cannot).
-
-        Args:
-            host: The private server.
-            model: The model the run asks.
-            task_name: The run's task (its prompts).
-            feedback: The run's ``[feedback]`` section (clusters, Ollama options).
-            resolve: Resolves a path against the scenario file's folder.
-
-        Returns:
-            The started warm-up, or None.
-
-        """
-        from amuled_ma.beliefs.sources.ollama import OllamaSource
-        from amuled_ma.clusters import build_messages
-        from amuled_ma.deliberation.plan import cluster_registry, panel_of
-        from amuled_ma.errors import AmuledError
-
-        try:  # the run reports any error itself
-            registry = cluster_registry(feedback, resolve)
-            clusters, _ = panel_of("amuled", feedback, registry)
-            messages = build_messages(clusters[0], task_name, "", registry=registry)
-            source = OllamaSource(model, host=host, **dict(feedback.ollama))
-            source.close()
-        except (AmuledError, ValueError, TypeError, IndexError) as error:
-            say(f"no prefix warm-up: {error}")
-            return None
-        options = {**source.options, "num_predict": 1}
-        warmup = cls(host, model, [*messages[:-1], ("user", "")], options)
-        warmup._thread.start()
-        return warmup
-
-    def _run(self) -> None:
+    def run(self) -> None:
+        """Send the warm-up request; keep its timing, or why it failed (never raises)."""
         import ollama
 
         began = time.perf_counter()
@@ -319,14 +261,6 @@ class PrefixWarmup:
         from amuled_ma.servers.timing import RequestTiming
 
         self.timing = RequestTiming.from_reply(reply, time.perf_counter() - began)
-
-    def join(self, timeout: float = 5.0) -> None:
-        """Wait a little for the warm-up (it is long done when a run trained)."""
-        self._thread.join(timeout)
-
-    def running(self) -> bool:
-        """Whether the warm-up's request is still in flight."""
-        return self._thread.is_alive()
 
     def describe(self) -> str:
         """One line on what the warm-up did."""
@@ -343,6 +277,29 @@ class PrefixWarmup:
             f"{self.timing.prefill_s:.1f} s (not a belief; its chat call is in the prefix "
             f"cache figures below)"
         )
+
+
+def start_warmup(host: str, model: str, scenario: Scenario) -> PrefixWarmup | None:
+    """Start the warm-up for the run of ``scenario`` the demo is about to make (None: not)."""
+    from amuled_ma.beliefs.sources.ollama import OllamaSource
+    from amuled_ma.clusters import build_messages
+    from amuled_ma.deliberation.plan import cluster_registry, panel_of
+    from amuled_ma.errors import AmuledError
+
+    try:  # the run reports any error itself
+        feedback = scenario.feedback
+        registry = cluster_registry(feedback, scenario.resolve)
+        clusters, _ = panel_of("amuled", feedback, registry)
+        messages = build_messages(clusters[0], scenario.task.name, "", registry=registry)
+        source = OllamaSource(model, host=host, **dict(feedback.ollama))
+        source.close()
+    except (AmuledError, ValueError, TypeError, IndexError) as error:
+        say(f"no prefix warm-up: {error}")
+        return None
+    options = {**source.options, "num_predict": 1}
+    warmup = PrefixWarmup(host, model, [*messages[:-1], ("user", "")], options)
+    warmup.start()
+    return warmup
 
 
 def print_breakdown(

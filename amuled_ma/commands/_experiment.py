@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -12,8 +13,7 @@ from amuled_ma.scenario.overrides import parse_set
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from amuled_ma.evaluate.results import Results
-    from amuled_ma.experiments.pipeline import PipelineOutcome, PipelineRequest
+    from amuled_ma.experiments.pipeline import PipelineRequest
     from amuled_ma.experiments.run_folder import Rerun
     from amuled_ma.scenario import Scenario
 
@@ -196,33 +196,38 @@ def customise(
     return scenario
 
 
+#: ``--ray`` without an address: a local Ray started for the run.
+LOCAL_RAY = "local"
+#: ``(dest, option, default)`` of what a re-run repeats, in order; a list repeats its option,
+#: a default is left out, ``--ray`` alone and ``--no-population`` are flags.
+RERUN_OPTIONS: tuple[tuple[str, str, object], ...] = (
+    ("recipe", "--recipe", None),
+    ("clusters_dir", "--clusters-dir", None),
+    ("overrides", "--set", None),
+    ("allow_plugin", "--allow-plugin", None),  # a run folder never allows code by itself
+    ("seed", "--seed", None),
+    ("seeds", "--seeds", 1),
+    ("jobs", "--jobs", 0),
+    ("ray", "--ray", None),
+    ("ray_resource", "--ray-resource", None),
+    ("population", "--no-population", True),
+    ("base", "--base", None),  # a fine-tune's only
+)
+
+
 def rerun_of(name: str, args: argparse.Namespace, *extra: str) -> Rerun:
     """The command that re-runs a job, as fields (``extra``: arguments before ``--run-dir``)."""
     from amuled_ma.experiments.run_folder import Rerun
 
     options: list[str] = []
-    if getattr(args, "recipe", None):
-        options += ["--recipe", args.recipe]
-    for folder in getattr(args, "clusters_dir", []):
-        options += ["--clusters-dir", str(folder)]
-    for text in getattr(args, "overrides", []):
-        options += ["--set", text]
-    for path in getattr(args, "allow_plugin", []):
-        options += ["--allow-plugin", path]  # a run folder never allows code by itself
-    if getattr(args, "seed", None) is not None:
-        options += ["--seed", str(args.seed)]
-    if getattr(args, "seeds", 1) != 1:
-        options += ["--seeds", str(args.seeds)]
-    if getattr(args, "jobs", 0):
-        options += ["--jobs", str(args.jobs)]
-    if getattr(args, "ray", None) is not None:
-        options += ["--ray"] + ([] if args.ray == "local" else [args.ray])
-    if getattr(args, "ray_resource", None):
-        options += ["--ray-resource", args.ray_resource]
-    if not getattr(args, "population", True):
-        options.append("--no-population")
-    if getattr(args, "base", None) is not None and name == "finetune":
-        options += ["--base", str(args.base)]
+    for dest, option, default in RERUN_OPTIONS:
+        value = getattr(args, dest, default)
+        if dest == "base" and name != "finetune":
+            continue
+        for one in value if isinstance(value, list) else [value]:
+            if one != default:
+                flag = one is False or one == LOCAL_RAY
+                options += [option] if flag else [option, str(one)]
     name_option = getattr(args, "name", None) if name == "finetune" else None
     return Rerun(name, (str(args.scenario), *extra), tuple(options), name_option)
 
@@ -232,27 +237,27 @@ def say(message: str) -> None:
     print(message, flush=True)
 
 
-def say_outcome(request: PipelineRequest, outcome: PipelineOutcome, seconds: float) -> None:
-    """Print the end of ``amuled run``/``ablate``/``demo``: the summary and the report's path."""
-    name, done = request.scenario.name, f"{len(outcome.seeds)} seed(s) done in {seconds:.1f} s"
+def run_and_say(request: PipelineRequest) -> None:
+    """Run the pipeline of ``request``, then print its summary and the report's path."""
+    from amuled_ma.experiments import pipeline
+
+    start = time.perf_counter()
+    outcome = pipeline.run_pipeline(request, say=say)
+    name, task = request.scenario.name, request.scenario.task.name
+    done = f"{len(outcome.seeds)} seed(s) done in {time.perf_counter() - start:.1f} s"
     if request.ablation is not None:
         say(
             f"ablate {name} --what {request.ablation}: {len(outcome.variants)} variants x "
             f"{done}; report {outcome.report}"
         )
         return
-    say(greedy_line(request.scenario.task.name, outcome.results))
+    from amuled_ma.evaluate.evaluator import PAPER_METRICS  # after the run: it imports torch
+
+    parts = []  # the greedy means of the paper's metrics, per variant
+    for variant, result in outcome.results.variants.items():
+        metrics = result.greedy.metrics if result.greedy else {}
+        means = [(m, metrics[m].mean) for m in PAPER_METRICS.get(task, []) if m in metrics]
+        cells = [f"{m}={float('nan') if v is None else v:.2f}" for m, v in means]
+        parts.append(f"{variant}[{', '.join(cells)}]")
+    say("  greedy: " + "; ".join(parts))
     say(f"run {name}: {len(outcome.variants)} variants x {done}; report {outcome.report}")
-
-
-def greedy_line(task: str, results: Results) -> str:
-    """``  greedy: base[metric=mean, ...]; ...``: the greedy means of the paper's metrics."""
-    from amuled_ma.evaluate.evaluator import PAPER_METRICS
-
-    parts = []
-    for name, variant in results.variants.items():
-        metrics = variant.greedy.metrics if variant.greedy else {}
-        means = {m: metrics[m].mean for m in PAPER_METRICS.get(task, []) if m in metrics}
-        cells = [f"{m}={float('nan') if v is None else v:.2f}" for m, v in means.items()]
-        parts.append(f"{name}[{', '.join(cells)}]")
-    return "  greedy: " + "; ".join(parts)

@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import os
 import shlex
-import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -20,21 +19,15 @@ from amuled_ma.commands import _experiment as common
 from amuled_ma.commands._demo_live import (
     PrefixWarmup,
     print_breakdown,
+    read_report,
+    start_warmup,
     write_live_leg,
 )
 from amuled_ma.commands._demo_live import say as _say
 from amuled_ma.files.safe import write_text_atomic
 
 if TYPE_CHECKING:
-    from amuled_ma.experiments.pipeline import PipelineRequest
-    from amuled_ma.scenario import (
-        EvaluationConfig,
-        FeedbackConfig,
-        FinetuneConfig,
-        PPOConfig,
-        Scenario,
-        TaskConfig,
-    )
+    from amuled_ma.scenario import EvaluationConfig, PPOConfig, Scenario, TaskConfig
     from amuled_ma.servers.timing import CacheReuse, TimingLog
 
 #: The demo's tasks; each runs the shipped scenario ``<task>-demo``
@@ -106,18 +99,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def demo_command(args: argparse.Namespace) -> int:
     """Run ``amuled demo``; return the exit code of the pipeline."""
     from amuled_ma.cli import FAILURES, report_failure
-    from amuled_ma.errors import EXIT_REFUSED
+    from amuled_ma.experiments.pipeline import PipelineRequest
     from amuled_ma.learn.checkpoints import LAST
     from amuled_ma.servers import local_server as llm_server
     from amuled_ma.servers.hosts import DEFAULT_HOST, TINY_MODEL, preflight
     from amuled_ma.servers.timing import cache_reuse, record_timings
 
     start = time.perf_counter()
-    missing = missing_recording(args.task, offline=args.offline)
-    if missing:  # an input refused, as every command's (not a usage error)
-        print(f"amuled: error: {missing}", file=sys.stderr)
-        return EXIT_REFUSED
-    fetch_authors_base(args.task, offline=args.offline)
+    fetch_inputs(args.task, offline=args.offline)
     model = args.model or TINY_MODEL
     host = args.host or os.environ.get("OLLAMA_HOST")
     if host is None and model != TINY_MODEL:
@@ -143,8 +132,6 @@ def demo_command(args: argparse.Namespace) -> int:
     phases: list[tuple[str, TimingLog]] = []
     reuse: CacheReuse | None = None
     warmup: PrefixWarmup | None = None
-    debug = getattr(args, "debug", False)
-    code = 1
     try:
         preflight(host, model)  # one clear error up front: no server or no model
         _say(f"beliefs from {model} at {host}")
@@ -157,30 +144,23 @@ def demo_command(args: argparse.Namespace) -> int:
                 clusters_dirs=args.clusters_dir,
                 overrides=args.overrides,
             )
-        except FAILURES as error:
-            code = report_failure(error, debug=debug)
-        else:
             if started_dir is not None:  # our own idle server: evaluate the shared prompt now
-                warmup = PrefixWarmup.start(
-                    host, model, scenario.task.name, scenario.feedback, scenario.resolve
-                )
+                warmup = start_warmup(host, model, scenario)
             with record_timings() as run_log:
-                from amuled_ma.experiments.pipeline import PipelineRequest
-
+                phases.append(("fine-tune", run_log))
                 request = PipelineRequest(
                     scenario=scenario,
                     run_dir=run_dir,
                     resume=True,
                     progress=not args.no_progress,
                     hint=demo_hint(args, run_dir),
-                    title=demo_title(
-                        scenario.name, scenario.task.name, scenario.feedback, scenario.finetune
-                    ),
+                    title=demo_title(scenario),
                     offline=args.offline,
                 )
-                code = _run_pipeline(request, debug)
-            if run_log.timings:
-                phases.append(("fine-tune", run_log))
+                common.run_and_say(request)
+            code = 0
+        except FAILURES as error:
+            code = report_failure(error, debug=getattr(args, "debug", False))
         if code == 0:
             imported = Path(scenario.output.runs_dir) / "authors" / scenario.task.name / "base"
             authors_base, base_results = None, None
@@ -197,8 +177,7 @@ def demo_command(args: argparse.Namespace) -> int:
                 authors_base,
                 base_results,
             )
-        if code == 0:  # while the server still runs
-            with record_timings() as live_log:
+            with record_timings() as live_log:  # while the server still runs
                 write_live_leg(run_dir, scenario, model=model, host=host)
             phases.append(("live leg", live_log))
             view = write_demo_view(run_dir)
@@ -206,8 +185,8 @@ def demo_command(args: argparse.Namespace) -> int:
             reuse = cache_reuse(server_log, log_offset)
     finally:
         if warmup is not None:
-            warmup.join()
-            warmup.cut = warmup.running()  # the server stops under it: not a failure
+            warmup.join(5.0)  # long done when a run trained
+            warmup.cut = warmup.is_alive()  # the server stops under it: not a failure
         if started_dir is not None:
             _say(llm_server.down(started_dir))
     if warmup is not None:
@@ -253,52 +232,46 @@ def demo_scenario(
     return common.customise(scenario, clusters_dirs=clusters_dirs, overrides=overrides)
 
 
-def missing_recording(task: str, *, offline: bool = False) -> str | None:
-    """One line when the demo's recording is missing and cannot be fetched, else None."""
-    from amuled_ma.authors.download import ensure_recordings, replayed_recordings
+def fetch_inputs(task: str, *, offline: bool = False) -> None:
+    """Fetch the demo's recording and the authors' base it starts from when missing.
+
+    Without the authors' base the fine-tunes start from the run's own (said on stderr).
+
+    Raises:
+        AmuledError: The recording is missing and cannot be fetched; the fixes named.
+    """
+    from amuled_ma.authors.download import (
+        ensure_authors_base,
+        ensure_recordings,
+        replayed_recordings,
+    )
     from amuled_ma.errors import AmuledError
     from amuled_ma.scenario import load_scenario
 
-    try:
-        scenario = load_scenario(f"{task}-demo")
-        if scenario.feedback.source != "replay":
-            return None
+    scenario = load_scenario(f"{task}-demo")
+    if scenario.feedback.source == "replay":
         ensure_recordings(
             scenario.resolve, replayed_recordings(scenario.feedback), offline=offline, say=_say
         )
-    except AmuledError as error:
-        return str(error)
-    try:
-        scenario.recording_path(required=True)
-    except AmuledError:
-        name = Path(scenario.feedback.recording).name
-        return (
-            f"amuled demo replays the paper authors' recording {name!r}, not found: set "
-            "AMULED_RECORDINGS=FOLDER, or run 'amuled import authors PATH' (a clone of "
-            "https://github.com/temetski/moral_agent)"
-        )
-    return None
-
-
-def fetch_authors_base(task: str, *, offline: bool = False) -> Path | None:
-    """The authors' base for the demo's fine-tunes, fetched if missing (None: the run's)."""
-    from amuled_ma.authors.download import ensure_authors_base
-    from amuled_ma.errors import AmuledError
-    from amuled_ma.scenario import load_scenario
-
-    try:
-        scenario = load_scenario(f"{task}-demo")
-        if scenario.finetune.recipe != "authors":
-            return None
-        return ensure_authors_base(
-            task, runs=Path(scenario.output.runs_dir), offline=offline, say=_say
-        )
-    except AmuledError as error:
-        _say(
-            f"the fine-tunes start from this run's own base, not the authors' published one "
-            f"(the figures will be further from the paper's): {error}"
-        )
-        return None
+        try:
+            scenario.recording_path(required=True)
+        except AmuledError:
+            name = Path(scenario.feedback.recording).name
+            raise AmuledError(
+                f"amuled demo replays the paper authors' recording {name!r}, not found: set "
+                "AMULED_RECORDINGS=FOLDER, or run 'amuled import authors PATH' (a clone of "
+                "https://github.com/temetski/moral_agent)"
+            ) from None
+    if scenario.finetune.recipe == "authors":
+        try:
+            ensure_authors_base(
+                task, runs=Path(scenario.output.runs_dir), offline=offline, say=_say
+            )
+        except AmuledError as error:
+            _say(
+                f"the fine-tunes start from this run's own base, not the authors' published one "
+                f"(the figures will be further from the paper's): {error}"
+            )
 
 
 #: How the report's summary of every variant against the paper starts (`put_summary`).
@@ -322,22 +295,10 @@ def summary_lines(
 ) -> list[str]:
     """The report's first section: each main variant, sampled, beside the paper's row.
 
-    One sentence per variant of the paper's main comparison found in ``results``: its paper
-    metrics (sampled policy, mean ± half-width of the 95% interval), the paper's figures,
-    and on FindMilk the share of greedy episodes that reach the milk. When the fine-tunes
-    started from the authors' published base, that base is the base row (``base_results``,
-    measured by our evaluator) and the run's own base follows it, named as such.
-
-    Args:
-        task: The demo's task.
-        base_steps: ``[base].total_steps`` of the run's own base and shaped policies.
-        iterations: ``[finetune].iterations``.
-        results: ``results.json`` of the run.
-        base: The folder the fine-tunes started from (None: the run's own base).
-        base_results: That folder's `evaluate_folder` (None: no base row of its own).
-
-    Returns:
-        The section's lines, its heading first.
+    Per variant of `MAIN_VARIANTS` in ``results`` (``results.json``): its sampled paper
+    metrics (mean ± 95% half-width), the paper's, and on FindMilk the greedy share that
+    reaches the milk. ``base``: the folder the fine-tunes started from (None: the run's own);
+    its `evaluate_folder` ``base_results``, when given, is the first row.
     """
     from amuled_ma.evaluate.paper import PAPER_COLUMNS, paper_row
 
@@ -390,41 +351,31 @@ def put_summary(
 ) -> None:
     """Put :func:`summary_lines` right under ``report.md``'s title (replacing an earlier one).
 
-    Read and written as :func:`put_live_section` does; without a report or results, nothing
-    is written. ``authors_base``: the imported authors' base the fine-tunes started from
-    (None: the run's own), ``base_results`` its `evaluate_folder`.
+    Nothing without a report or results. ``authors_base``: the authors' base the fine-tunes
+    started from (None: the run's own), ``base_results`` its `evaluate_folder`.
 
     Raises:
-        AmuledError: As :func:`put_live_section`.
+        AmuledError: As `read_report`.
     """
     import json
 
-    from amuled_ma.evaluate.report.writing import MAX_REPORT_BYTES
-    from amuled_ma.files.limits import read_bounded_bytes
-
-    report, results = run_dir / "report.md", run_dir / "results.json"
-    if not (report.is_file() and results.is_file()):
+    text, results = read_report(run_dir), read_report(run_dir, "results.json")
+    if text is None or results is None:
         return
-    fix = f"is it the right folder? Write the report again with 'amuled evaluate {run_dir}'"
-    text = read_bounded_bytes(report, MAX_REPORT_BYTES, "report", fix=fix).decode("utf-8")
-    data = json.loads(read_bounded_bytes(results, MAX_REPORT_BYTES, "results", fix=fix))
+    data = json.loads(results)
     base = str(authors_base) if authors_base is not None else None
     title, _, rest = text.partition("\n")
     if rest.lstrip("\n").startswith(SUMMARY_HEADING):  # a re-run: replace the old one
         rest = rest.lstrip("\n")
         rest = rest[rest.find("\n## ", 1) + 1 :] if "\n## " in rest else ""
     section = "\n".join(summary_lines(task, base_steps, iterations, data, base, base_results))
-    write_text_atomic(report, f"{title}\n\n{section}\n{rest.lstrip(chr(10))}")
+    write_text_atomic(run_dir / "report.md", f"{title}\n\n{section}\n{rest.lstrip(chr(10))}")
 
 
 def evaluate_folder(
     folder: Path, ppo: PPOConfig, task: TaskConfig, ev: EvaluationConfig
 ) -> dict[str, Any]:
-    """One policy folder's evaluation, as a variant of ``results.json`` holds it.
-
-    The scenario's evaluation (episodes, seed, confidence) in each of its modes, by the
-    evaluator that wrote the run's results (without writing any), so the rows compare
-    like with like.
+    """One policy folder's evaluation by the scenario's evaluator, as ``results.json`` holds it.
 
     Returns:
         ``{mode: {"metrics": {metric: {"mean", "half_width", ...}}}}``.
@@ -447,15 +398,16 @@ def evaluate_folder(
     return entry
 
 
-def demo_title(name: str, task: str, fb: FeedbackConfig, ft: FinetuneConfig) -> str:
+def demo_title(scenario: Scenario) -> str:
     """The report's title: what the demo's run is, and that it is demo-sized."""
+    fb, ft = scenario.feedback, scenario.finetune
     where = (
         f"beliefs replayed from `{Path(fb.recording).name}`"
         if fb.source == "replay"
         else f"beliefs asked live of `{fb.model}`"
     )
     return (
-        f"{name}: the paper's {task} comparison, demo-sized "
+        f"{scenario.name}: the paper's {scenario.task.name} comparison, demo-sized "
         f"({where}, {ft.recipe} recipe, {ft.iterations:,} fine-tuning iterations; "
         "the paper: 1,000)"
     )
@@ -464,29 +416,10 @@ def demo_title(name: str, task: str, fb: FeedbackConfig, ft: FinetuneConfig) -> 
 def demo_hint(args: argparse.Namespace, run_dir: Path) -> str:
     """The command that continues this demo (printed with ``--resume`` when it stops)."""
     parts = ["amuled", "demo", "--task", args.task, "--run-dir", str(run_dir)]
-    if args.model:
-        parts += ["--model", args.model]
-    if args.host:
-        parts += ["--host", args.host]
-    for folder in args.clusters_dir:
-        parts += ["--clusters-dir", str(folder)]
-    for text in args.overrides:
-        parts += ["--set", text]
+    given = {"--model": [args.model], "--host": [args.host], "--clusters-dir": args.clusters_dir}
+    for option, values in {**given, "--set": args.overrides}.items():
+        parts += [word for value in values if value for word in (option, str(value))]
     return shlex.join(parts)
-
-
-def _run_pipeline(request: PipelineRequest, debug: bool) -> int:
-    """Run the demo's main comparison through the pipeline; its exit code (failures printed)."""
-    from amuled_ma.cli import FAILURES, report_failure
-    from amuled_ma.experiments import pipeline
-
-    start = time.perf_counter()
-    try:
-        outcome = pipeline.run_pipeline(request, say=common.say)
-    except FAILURES as error:
-        return report_failure(error, debug=debug)
-    common.say_outcome(request, outcome, time.perf_counter() - start)
-    return 0
 
 
 def write_demo_view(run_dir: Path) -> Path | None:

@@ -23,7 +23,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         ),
     )
     actions = parser.add_subparsers(dest="ollama_action", metavar="ACTION")
-    state_help = f"directory for the server's state, models and log (default {_default_dir()})"
+    home = str(llm_server.default_state_dir()).replace(str(Path.home()), "~", 1)
+    state_help = f"directory for the server's state, models and log (default {home})"
 
     up = actions.add_parser(
         "up",
@@ -62,10 +63,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     stat.set_defaults(handler=_status)
 
     parser.set_defaults(handler=lambda args: parser.print_help() or 2)
-
-
-def _default_dir() -> str:
-    return str(llm_server.default_state_dir()).replace(str(Path.home()), "~", 1)
 
 
 def _up(args: argparse.Namespace) -> int:

@@ -3,17 +3,15 @@
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from amuled_ma.commands import _experiment as common
 from amuled_ma.errors import AmuledError
+from amuled_ma.scenario.overrides import parse_set
 
 if TYPE_CHECKING:
-    from amuled_ma.experiments.jobs import RayTarget
     from amuled_ma.experiments.pipeline import PipelineRequest
-    from amuled_ma.scenario import Changes
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -27,14 +25,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             "report.md. Resumable with --resume."
         ),
     )
-    common.add_scenario_args(run)
-    add_quick_arg(run)
-    run.add_argument(
-        "--episodes",
-        type=common.bounded_int(1),
-        default=None,
-        help="evaluation episodes per policy",
-    )
+    add_pipeline_args(run)
     run.add_argument(
         "--base",
         type=Path,
@@ -44,10 +35,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "bases (default with --recipe authors: the authors' imported base, "
         "<runs_dir>/authors/<task>/base, when it is there)",
     )
-    add_parallel_args(run)
-    add_retrain_arg(run)
-    common.add_offline_argument(run)
-    run.set_defaults(handler=run_command)
 
     ablate = subparsers.add_parser(
         "ablate",
@@ -64,8 +51,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             "docs/study.md). Writes <run-dir>/ablate-<what>/ with a comparison table and plots."
         ),
     )
-    common.add_scenario_args(ablate)
-    add_quick_arg(ablate)
+    add_pipeline_args(ablate)
     ablate.add_argument(
         "--what",
         required=True,
@@ -81,17 +67,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "STUDY/analysis/weights.json): sets [feedback].weights; --what weights compares them "
         "with the paper's fixed weights",
     )
-    ablate.add_argument(
-        "--episodes", type=common.bounded_int(1), default=None, help="evaluation episodes"
-    )
-    add_parallel_args(ablate)
-    add_retrain_arg(ablate)
-    common.add_offline_argument(ablate)
-    ablate.set_defaults(handler=ablate_command)
 
-
-#: ``--ray`` without an address: a local Ray started for the run.
-LOCAL_RAY = "local"
 
 #: The quick form's budget (``--quick``), ``(section, key): value``: about a minute for
 #: ``amuled run findmilk`` on 2 cores (docs/reproduction.md, "The quick form"); a ``--set`` of
@@ -106,8 +82,9 @@ QUICK_EPISODES = 10
 QUICK_SUFFIX = "-quick"
 
 
-def add_quick_arg(parser: argparse.ArgumentParser) -> None:
-    """Add ``--quick``: the short form of the experiment (`QUICK_SETTINGS`)."""
+def add_pipeline_args(parser: argparse.ArgumentParser) -> None:
+    """Add what ``run`` and ``ablate`` share: the scenario's, ``--quick``, the jobs' options."""
+    common.add_scenario_args(parser)
     base, iterations = (
         QUICK_SETTINGS[("base", "total_steps")],
         QUICK_SETTINGS[("finetune", "iterations")],
@@ -120,35 +97,12 @@ def add_quick_arg(parser: argparse.ArgumentParser) -> None:
         f"<runs_dir>/<scenario name>{QUICK_SUFFIX}; NOT the paper's length (500,000 / 1,000 "
         "/ 50), the output and report.md say so; --set and --episodes still win",
     )
-
-
-def quick_changes(overrides: list[str]) -> Changes:
-    """The quick form's budget (:data:`QUICK_SETTINGS`), but for the keys ``overrides`` sets.
-
-    Returns the changes to the scenario (:meth:`~amuled_ma.scenario.Scenario.changed`).
-    """
-    from amuled_ma.scenario.overrides import parse_set
-
-    named = {parse_set(text)[:2] for text in overrides}
-    return tuple(
-        (section, {key: value})
-        for (section, key), value in QUICK_SETTINGS.items()
-        if (section, key) not in named
+    parser.add_argument(
+        "--episodes",
+        type=common.bounded_int(1),
+        default=None,
+        help="evaluation episodes per policy",
     )
-
-
-def quick_note(base_steps: int, iterations: int, episodes: int) -> str:
-    """The quick form's one-line warning, for the output and the report's title."""
-    return (
-        f"quick form: {base_steps:,} base env steps, "
-        f"{iterations:,} fine-tuning iterations, {episodes} evaluation "
-        "episodes; NOT the paper's length (500,000 / 1,000 / 50): a check that the pipeline "
-        "runs, its figures are not the paper's"
-    )
-
-
-def add_retrain_arg(parser: argparse.ArgumentParser) -> None:
-    """Add ``--retrain FOLDER``: retrain one variant, resume the others, rewrite the report."""
     parser.add_argument(
         "--retrain",
         action="append",
@@ -158,10 +112,6 @@ def add_retrain_arg(parser: argparse.ArgumentParser) -> None:
         "too if it is a base) and resume every other variant, then evaluate and report: "
         "the one command after a setting of one variant changed (repeatable)",
     )
-
-
-def add_parallel_args(parser: argparse.ArgumentParser) -> None:
-    """Add ``--seeds`` (training replicas), ``--jobs`` and ``--ray`` (where jobs run)."""
     parser.add_argument(
         "--seeds",
         type=common.bounded_int(1),
@@ -182,7 +132,7 @@ def add_parallel_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--ray",
         nargs="?",
-        const=LOCAL_RAY,
+        const=common.LOCAL_RAY,
         default=None,
         metavar="ADDRESS",
         help="train the jobs on Ray: alone, a local Ray with --jobs CPUs (even --jobs 1); "
@@ -205,35 +155,45 @@ def add_parallel_args(parser: argparse.ArgumentParser) -> None:
         "--resources '{\"NAME\": k}' train jobs, k at a time (keeps jobs off the GPU "
         "nodes that serve Ollama)",
     )
+    common.add_offline_argument(parser)
+    parser.set_defaults(handler=run_command)
 
 
-def ray_target(args: argparse.Namespace) -> RayTarget | None:
-    """The command line's ``--ray`` / ``--ray-resource`` as a ``RayTarget`` (None: no Ray).
+def quick_note(base_steps: int, iterations: int, episodes: int) -> str:
+    """The quick form's one-line warning, for the output and the report's title."""
+    return (
+        f"quick form: {base_steps:,} base env steps, "
+        f"{iterations:,} fine-tuning iterations, {episodes} evaluation "
+        "episodes; NOT the paper's length (500,000 / 1,000 / 50): a check that the pipeline "
+        "runs, its figures are not the paper's"
+    )
+
+
+def request_of(args: argparse.Namespace) -> PipelineRequest:
+    """The `PipelineRequest` of ``amuled run``, or of ``amuled ablate`` (``args.what`` set).
 
     Raises:
         AmuledError: ``--ray-resource`` without ``--ray``.
     """
     from amuled_ma.experiments.jobs import RayTarget
+    from amuled_ma.experiments.pipeline import PipelineRequest
 
     if args.ray_resource and args.ray is None:
         raise AmuledError("--ray-resource needs --ray: it names a resource of a Ray cluster")
-    if args.ray is None:
-        return None
-    return RayTarget(None if args.ray == LOCAL_RAY else args.ray, args.ray_resource)
-
-
-def request_of(args: argparse.Namespace, command: str, *extra: str) -> PipelineRequest:
-    """The `PipelineRequest` of ``amuled run`` or ``ablate``."""
-    from amuled_ma.experiments.pipeline import PipelineRequest
-
     scenario = common.load(args)
-    weights = getattr(args, "weights", None)
-    if weights is not None:  # a path from this directory, as any file on the command line
-        scenario = scenario.replace("feedback", weights=str(Path(weights).resolve()))
+    command, extra = "run", []
+    if getattr(args, "what", None) is not None:
+        command, extra = "ablate", ["--what", args.what]
+        if args.weights is not None:  # a path from this directory, as any file on the command line
+            weights = str(args.weights.resolve())
+            scenario = scenario.replace("feedback", weights=weights)
+            extra += ["--weights", weights]
     run_dir = Path(args.run_dir) if args.run_dir else scenario.default_run_dir()
     episodes, title = args.episodes, None
-    if args.quick:
-        scenario = scenario.changed(quick_changes(args.overrides))
+    if args.quick:  # the quick budget but for the keys a --set names
+        named = {parse_set(text)[:2] for text in args.overrides}
+        quick = {key: value for key, value in QUICK_SETTINGS.items() if key not in named}
+        scenario = scenario.changed(tuple((section, {k: v}) for (section, k), v in quick.items()))
         episodes = episodes or QUICK_EPISODES
         if args.run_dir is None:
             run_dir = run_dir.with_name(run_dir.name + QUICK_SUFFIX)
@@ -241,7 +201,10 @@ def request_of(args: argparse.Namespace, command: str, *extra: str) -> PipelineR
         note = quick_note(scenario.base.total_steps, scenario.finetune.iterations, episodes)
         title = f"{scenario.name}: {what}, {note}"
         common.say(note)
-        extra = (*extra, "--quick")
+        extra.append("--quick")
+    ray = None
+    if args.ray is not None:
+        ray = RayTarget(None if args.ray == common.LOCAL_RAY else args.ray, args.ray_resource)
     return PipelineRequest(
         scenario=scenario,
         run_dir=run_dir,
@@ -254,7 +217,7 @@ def request_of(args: argparse.Namespace, command: str, *extra: str) -> PipelineR
         force=args.force,
         retrain=tuple(args.retrain),
         jobs=args.jobs,
-        ray=ray_target(args),
+        ray=ray,
         population=args.population,
         progress=not args.no_progress,
         rerun=common.rerun_of(command, args, *extra),
@@ -264,26 +227,9 @@ def request_of(args: argparse.Namespace, command: str, *extra: str) -> PipelineR
 
 
 def run_command(args: argparse.Namespace) -> int:
-    """Run ``amuled run``: the pipeline of the paper's main comparison, then its summary."""
-    return _run_pipeline(args, "run")
-
-
-def ablate_command(args: argparse.Namespace) -> int:
-    """Run ``amuled ablate``: the pipeline of one ablation."""
-    extra = ["--what", args.what]
-    if args.weights is not None:
-        extra += ["--weights", str(args.weights.resolve())]
-    return _run_pipeline(args, "ablate", *extra)
-
-
-def _run_pipeline(args: argparse.Namespace, command: str, *extra: str) -> int:
-    """Run the pipeline `request_of` builds, then say its outcome (and the quick note)."""
-    from amuled_ma.experiments import pipeline
-
-    start = time.perf_counter()
-    request = request_of(args, command, *extra)
-    outcome = pipeline.run_pipeline(request, say=common.say)
-    common.say_outcome(request, outcome, time.perf_counter() - start)
+    """Run ``amuled run`` (the paper's main comparison) or, with ``--what``, ``amuled ablate``."""
+    request = request_of(args)
+    common.run_and_say(request)
     if args.quick:
         common.say(
             quick_note(

@@ -102,11 +102,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "-o", "--output", type=Path, default=None, help="CSV file (default: stdout)"
     )
     export.set_defaults(handler=_export)
-    _register_fit_weights(sub)
 
-
-def _register_fit_weights(sub: argparse._SubParsersAction) -> None:
-    """Add ``amuled study fit-weights`` (panel weights learned from the answers)."""
     fit = sub.add_parser(
         "fit-weights",
         help="learn a weight per panel member from the answers ([feedback].weights)",

@@ -5,14 +5,10 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
 
 from amuled_ma.commands import _experiment as common
 from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import check_path_component
-
-if TYPE_CHECKING:
-    pass
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -66,61 +62,49 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="the base policy's variant folder to fine-tune from and anchor to (default: "
         "<run-dir>/base), e.g. runs/authors/findmilk/base from 'amuled import authors'",
     )
-    finetune.set_defaults(handler=finetune_command)
+    finetune.set_defaults(handler=train_command)
 
 
 def train_command(args: argparse.Namespace) -> int:
-    """Run ``amuled train``: a one-job request through the pipeline (checks, lock, record)."""
+    """Run ``amuled train`` or ``finetune``: a one-job request through the pipeline.
+
+    The pipeline's preflight (every panel member can answer, the base exists) runs before
+    any folder is made.
+    """
     from amuled_ma.experiments.pipeline import PipelineRequest, train_alone
 
     scenario = common.load(args)
     run_dir = Path(args.run_dir) if args.run_dir else scenario.default_run_dir()
-    rerun = common.rerun_of("train", args, "--variant", args.variant)
     start = time.perf_counter()
+    base: Path | None = getattr(args, "base", None)
+    if args.command == "train":
+        variant, rerun = Variant.parse(args.variant), ("--variant", args.variant)
+    else:
+        if args.name is not None:
+            scenario = scenario.replace("feedback", name=args.name)
+        if scenario.feedback.name:
+            check_path_component(scenario.feedback.name, "--name (or [feedback].name)")
+        variant = Variant.finetune(args.feedback, label=scenario.feedback.name or None)
+        rerun = ("--feedback", args.feedback)
+    request = PipelineRequest(
+        scenario,
+        run_dir,
+        rerun=common.rerun_of(args.command, args, *rerun),
+        seed=args.seed,
+        resume=args.resume,
+        force=args.force,
+        progress=not args.no_progress,
+    )
     job = train_alone(
-        PipelineRequest(scenario, run_dir, rerun=rerun, **_options(args)),
-        Variant.parse(args.variant),
-        config={"variant": args.variant},
+        request,
+        variant,
+        base_dir=base.parent if base else None,
+        base_variant=base.name if base else "base",
+        config={"variant": args.variant} if args.command == "train" else None,
     )
+    shown = args.variant if args.command == "train" else job.out_dir.name
     common.say(
-        f"train {scenario.name}/{args.variant}: done in {time.perf_counter() - start:.1f} s; "
-        f"checkpoint {job.out_dir / 'model_last.pt'}"
+        f"{args.command} {scenario.name}/{shown}: done in "
+        f"{time.perf_counter() - start:.1f} s; checkpoint {job.out_dir / 'model_last.pt'}"
     )
     return 0
-
-
-def finetune_command(args: argparse.Namespace) -> int:
-    """Run ``amuled finetune``: a one-job request through the pipeline (checks, lock, record)."""
-    from amuled_ma.experiments.pipeline import PipelineRequest, train_alone
-
-    scenario = common.load(args)
-    run_dir = Path(args.run_dir) if args.run_dir else scenario.default_run_dir()
-    start = time.perf_counter()
-    base: dict = {}
-    if args.name is not None:
-        scenario = scenario.replace("feedback", name=args.name)
-    if scenario.feedback.name:
-        check_path_component(scenario.feedback.name, "--name (or [feedback].name)")
-    variant = Variant.finetune(args.feedback, label=scenario.feedback.name or None)
-    if args.base is not None:
-        base.update(base_dir=args.base.parent, base_variant=args.base.name)
-    rerun = common.rerun_of("finetune", args, "--feedback", args.feedback)
-    # the preflight (every panel member can answer, the base exists) runs before any folder
-    request = PipelineRequest(scenario, run_dir, rerun=rerun, **_options(args))
-    job = train_alone(request, variant, **base)
-    common.say(
-        f"finetune {scenario.name}/{job.out_dir.name}: done in "
-        f"{time.perf_counter() - start:.1f} s; "
-        f"checkpoint {job.out_dir / 'model_last.pt'}"
-    )
-    return 0
-
-
-def _options(args: argparse.Namespace) -> dict[str, Any]:
-    """A one-job pipeline request's options from the command line (seed, resume, force)."""
-    return {
-        "seed": args.seed,
-        "resume": args.resume,
-        "force": args.force,
-        "progress": not args.no_progress,
-    }

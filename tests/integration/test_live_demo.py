@@ -48,13 +48,14 @@ def demo_env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("AMULED_TINY_GGUF", str(gguf))
     monkeypatch.setenv("AMULED_CACHE", str(tmp_path / "cache"))  # not a user's demo server
     monkeypatch.delenv("OLLAMA_HOST", raising=False)  # the demo's own private server
-    from amuled_ma.commands.demo import missing_recording
+    from amuled_ma.commands.demo import fetch_inputs
 
-    missing = missing_recording("findmilk")
-    if missing:
+    try:
+        fetch_inputs("findmilk")
+    except AmuledError as error:
         if in_ci():
-            pytest.fail(missing)
-        pytest.skip(missing)
+            pytest.fail(str(error))
+        pytest.skip(str(error))
 
 
 #: The demo's target: under 3 minutes on this machine when it is quiet.
