@@ -229,7 +229,7 @@ def test_a_warm_up_cut_short_by_the_servers_stop_is_said_plainly() -> None:
     listener = socket.create_server(("127.0.0.1", 0))  # accepts, never answers
     host = f"http://127.0.0.1:{listener.getsockname()[1]}"
     scenario = demo_scenario("findmilk", model=TINY_MODEL, host=host, private=True)
-    warmup = start_warmup(host, TINY_MODEL, scenario)
+    warmup = start_warmup(host, TINY_MODEL, scenario.task.name, scenario.feedback, scenario.resolve)
     assert warmup is not None
     warmup.join(0.2)
     assert warmup.is_alive()

@@ -143,25 +143,24 @@ def _jobs(
     return jobs
 
 
-def _base(scenario: Scenario, run: Path) -> tuple[Path, StoreService]:
-    """Train the short base policy in ``run/base``; its checkpoint and the run's store."""
-    from amuled_ma.deliberation.build import run_store
+def train_base(spec: MemberSpec) -> Path:
+    """Train a base policy alone (a population of one); its final checkpoint."""
     from amuled_ma.learn.population import PopulationTrainer
-    from amuled_ma.learn.population_groups import MemberSpec
 
-    base = PopulationTrainer([MemberSpec(scenario, run / "base")]).train()[0].checkpoint
-    return base, run_store(scenario.store_path(run))
+    return PopulationTrainer([spec]).train()[0].checkpoint
 
 
 def measure_task(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
     """Time the lone fine-tunes and every population size of one task."""
-    from amuled_ma.learn.population_groups import member_memory_bytes
+    from amuled_ma.deliberation.build import run_store
+    from amuled_ma.learn.population_groups import MemberSpec, member_memory_bytes
     from amuled_ma.tasks import get_task
 
     scenario, source = _scenario(task, args.base_steps)
     run = out / task
     t0 = time.perf_counter()
-    base, store = _base(scenario, run)
+    base = train_base(MemberSpec(scenario, run / "base"))
+    store = run_store(scenario.store_path(run))
     base_s = time.perf_counter() - t0
     rows = []
     for size in [int(s) for s in args.sizes.split(",") if s.strip()]:
@@ -281,12 +280,15 @@ def _run_metrics(
 
 def welch(task: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
     """Train ``args.welch`` seeds alone and as one population; each run's figures."""
+    from amuled_ma.deliberation.build import run_store
     from amuled_ma.learn.population import PopulationTrainer
+    from amuled_ma.learn.population_groups import MemberSpec
 
     scenario, source = _scenario(task, args.base_steps)
     scenario = scenario.replace("finetune", lambda_kl=2.5)
     run = out / task
-    base, store = _base(scenario, run)
+    base = train_base(MemberSpec(scenario, run / "base"))
+    store = run_store(scenario.store_path(run))
     groups: dict[str, list[dict[str, float]]] = {}
     times: dict[str, float] = {}
     for group in ("alone", "population"):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -13,7 +13,7 @@ from amuled_ma.files.safe import checked_read_path, write_text_atomic
 
 if TYPE_CHECKING:
     from amuled_ma.deliberation.plan import PanelPlan
-    from amuled_ma.scenario import Scenario
+    from amuled_ma.scenario import FeedbackConfig, Scenario
     from amuled_ma.servers.timing import CacheReuse, RequestTiming, TimingLog
 
 
@@ -279,18 +279,22 @@ class PrefixWarmup(threading.Thread):
         )
 
 
-def start_warmup(host: str, model: str, scenario: Scenario) -> PrefixWarmup | None:
-    """Start the warm-up for the run of ``scenario`` the demo is about to make (None: not)."""
+def start_warmup(
+    host: str, model: str, task: str, feedback: FeedbackConfig, resolve: Callable[[str], Path]
+) -> PrefixWarmup | None:
+    """Start the warm-up for the run the demo is about to make (None: not).
+
+    ``resolve`` resolves a path of ``feedback`` against the scenario file's folder.
+    """
     from amuled_ma.beliefs.sources.ollama import OllamaSource
     from amuled_ma.clusters import build_messages
     from amuled_ma.deliberation.plan import cluster_registry, panel_of
     from amuled_ma.errors import AmuledError
 
     try:  # the run reports any error itself
-        feedback = scenario.feedback
-        registry = cluster_registry(feedback, scenario.resolve)
+        registry = cluster_registry(feedback, resolve)
         clusters, _ = panel_of("amuled", feedback, registry)
-        messages = build_messages(clusters[0], scenario.task.name, "", registry=registry)
+        messages = build_messages(clusters[0], task, "", registry=registry)
         source = OllamaSource(model, host=host, **dict(feedback.ollama))
         source.close()
     except (AmuledError, ValueError, TypeError, IndexError) as error:

@@ -27,7 +27,14 @@ from amuled_ma.commands._demo_live import say as _say
 from amuled_ma.files.safe import write_text_atomic
 
 if TYPE_CHECKING:
-    from amuled_ma.scenario import EvaluationConfig, PPOConfig, Scenario, TaskConfig
+    from amuled_ma.scenario import (
+        EvaluationConfig,
+        FeedbackConfig,
+        FinetuneConfig,
+        PPOConfig,
+        Scenario,
+        TaskConfig,
+    )
     from amuled_ma.servers.timing import CacheReuse, TimingLog
 
 #: The demo's tasks; each runs the shipped scenario ``<task>-demo``
@@ -145,7 +152,9 @@ def demo_command(args: argparse.Namespace) -> int:
                 overrides=args.overrides,
             )
             if started_dir is not None:  # our own idle server: evaluate the shared prompt now
-                warmup = start_warmup(host, model, scenario)
+                warmup = start_warmup(
+                    host, model, scenario.task.name, scenario.feedback, scenario.resolve
+                )
             with record_timings() as run_log:
                 phases.append(("fine-tune", run_log))
                 request = PipelineRequest(
@@ -154,7 +163,9 @@ def demo_command(args: argparse.Namespace) -> int:
                     resume=True,
                     progress=not args.no_progress,
                     hint=demo_hint(args, run_dir),
-                    title=demo_title(scenario),
+                    title=demo_title(
+                        scenario.name, scenario.task.name, scenario.feedback, scenario.finetune
+                    ),
                     offline=args.offline,
                 )
                 common.run_and_say(request)
@@ -398,16 +409,15 @@ def evaluate_folder(
     return entry
 
 
-def demo_title(scenario: Scenario) -> str:
+def demo_title(name: str, task: str, fb: FeedbackConfig, ft: FinetuneConfig) -> str:
     """The report's title: what the demo's run is, and that it is demo-sized."""
-    fb, ft = scenario.feedback, scenario.finetune
     where = (
         f"beliefs replayed from `{Path(fb.recording).name}`"
         if fb.source == "replay"
         else f"beliefs asked live of `{fb.model}`"
     )
     return (
-        f"{scenario.name}: the paper's {scenario.task.name} comparison, demo-sized "
+        f"{name}: the paper's {task} comparison, demo-sized "
         f"({where}, {ft.recipe} recipe, {ft.iterations:,} fine-tuning iterations; "
         "the paper: 1,000)"
     )
