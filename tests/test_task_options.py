@@ -1,8 +1,8 @@
 """``[task].options`` are checked when the scenario is read, before any run folder exists.
 
-Before: ``amuled run findmilk --set 'task.options={layout="evil"}'`` planned the run, made
-the run folder (``config.json``, ``beliefs.sqlite``, a job folder per variant), started a
-local Ray, and only the first job's task refused the option, 24 s later. The option models
+A bad option (``amuled run findmilk --set 'task.options={layout="evil"}'``) is refused
+before the run folder, the belief store or a local Ray exists, not by the first job's task
+seconds later. The option models
 of :mod:`amuled_ma.scenario.task_options` must stay equal to the tasks' constructors: the
 second half of this file holds them together.
 """

@@ -4,9 +4,10 @@ Each run is the command line in a network namespace the test makes (``unshare -n
 first with loopback only, the second with a second interface and a default route (the
 address Ray would pick for itself), so a port bound to every interface shows.
 
-Before: ``ray.init`` replaced the driver's SIGTERM handler (its C++ core worker's aborts:
-"SIGTERM received", exit 134, no checkpoint, no resume command), and every port of the
-local Ray listened on all interfaces (``*`` and the second interface's address).
+What could go wrong without the driver's own handling: ``ray.init`` replaces the driver's
+SIGTERM handler (its C++ core worker aborts: "SIGTERM received", exit 134, no checkpoint,
+no resume command), and the local Ray's ports listen on every interface (``*`` and the
+second interface's address).
 """
 
 from __future__ import annotations
@@ -209,7 +210,7 @@ ray.shutdown()
 
 
 def test_a_lost_belief_store_actor_is_one_line_not_a_traceback(tmp_path):
-    """Before: Ray's ``ActorDiedError`` (several lines) reached the command line."""
+    """Ray's ``ActorDiedError`` (several lines) is turned into one line naming the fix."""
     from netns import run_sealed
 
     require_netns()

@@ -9,10 +9,9 @@ interface and no traffic leaves the machine; and a PID namespace, so that the
   ``resume with:`` line and exits 143; that command, run as printed, finishes both to the
   planned iteration, keeping the iterations done before the stop.
 - SIGTERM inside ``ray.init`` (before any job): exit 143, one line, no traceback, no run
-  folder. Before: on the cluster Ray's handler for the time of ``ray.init`` ran
-  ``sys.exit(15)`` (exit 15, nothing said) or its C++ core worker aborted ("SIGTERM
-  received", exit 134); on a local Ray its node's handler exited 1; and the run folder
-  (``config.json``) was left behind.
+  folder. Left to Ray, its handler for the time of ``ray.init`` runs ``sys.exit(15)``
+  (exit 15, nothing said) or its C++ core worker aborts ("SIGTERM received", exit 134);
+  on a local Ray its node's handler exits 1; and the run folder (``config.json``) stays.
 """
 
 from __future__ import annotations

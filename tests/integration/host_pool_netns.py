@@ -7,7 +7,7 @@ the loopback interface up), as ``python host_pool_netns.py WORKDIR``; not a test
    reading the first's model directory), the tiny model registered once.
 2. A base policy (2,048 steps), then ``amuled finetune findmilk --feedback amuled`` in this
    process with ``--set feedback.hosts=[A, B]``: the five clusters asked live through the
-   pool (four copies x two steps, the tiny model's short reply, as ``amuled demo``).
+   pool (two copies x two steps, the tiny model's short reply, as ``amuled demo``).
 3. A watcher thread kills (``SIGKILL`` to the server's process group: server and model
    runner) the first server that has answered a request and has another in flight.
 4. ``amuled evaluate`` writes ``results.json`` and ``report.md``.
@@ -110,7 +110,7 @@ def run(workdir: Path) -> dict[str, Any]:
             "feedback.timeout_s=300.0",
             "feedback.ollama={reasoning = false, num_predict = 128}",
             "finetune.iterations=1",
-            "finetune.num_envs=4",
+            "finetune.num_envs=2",
             "finetune.num_steps_per_env=2",
             "finetune.save_interval=1",
             "output.tensorboard=false",

@@ -167,7 +167,7 @@ def _panel_feedback(tmp_path, table, clusters=("care", "virtue")):
 
 
 def test_a_source_that_answers_nan_is_reported_as_100_percent_errors(tmp_path):
-    # a server that always answers NaN used to read "miss rate 0.00%"
+    # a server that always answers NaN: every answer an error, not "miss rate 0.00%"
     fb, store = _panel_feedback(tmp_path, {"care": [np.nan] * 4, "virtue": [np.nan] * 4})
     obs = torch.tensor([[0.0, 1.0], [0.0, 1.0], [2.0, 3.0]])
     rewards = fb(obs, FakeTask())

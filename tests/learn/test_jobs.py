@@ -255,6 +255,11 @@ def _resume_to(run_dir: Path, iterations: int, tunes: list[Path]) -> None:
         _sealed([*AMULED, *resume]), capture_output=True, text=True, env=ENV, timeout=300
     )
     assert done.returncode == 0, done.stderr
+    _check_curves(iterations, tunes)
+
+
+def _check_curves(iterations: int, tunes: list[Path]) -> None:
+    """Each of ``tunes`` has a learning-curve row for every iteration up to ``iterations``."""
     for tune in tunes:
         curve = json.loads((tune / "curve.json").read_text())
         assert [row["iteration"] for row in curve] == list(range(1, iterations + 1))
@@ -319,12 +324,24 @@ def _children(pid: int) -> list[int]:
     return out
 
 
-def _running(pid: int) -> bool:
-    """Whether ``pid`` still runs (a zombie waiting to be reaped does not)."""
+def _started(pid: int) -> str | None:
+    """When ``pid`` started (``/proc`` field 22, in clock ticks; None: gone)."""
     try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
+    except OSError:
+        return None
+
+
+def _running(pid: int, started: str | None) -> bool:
+    """Whether the process ``pid`` that started at ``started`` still runs.
+
+    A zombie waiting to be reaped does not; nor does another process given the same pid.
+    """
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     except OSError:
         return False
+    return fields[0] != "Z" and fields[19] == started
 
 
 def _cmdline(pid: int) -> str:
@@ -359,23 +376,36 @@ def test_a_killed_driver_leaves_no_process_and_resumes_from_its_checkpoints(tmp_
     proc = _start(_ablate_args(run_dir, 4000))
     tunes = _tunes(run_dir, "mean", "max")
     _wait_for([t / "model_last.pt" for t in tunes], proc)
-    below = _descendants(proc.pid)
+    below = {pid: _started(pid) for pid in _descendants(proc.pid)}
     names = " ".join(_cmdline(pid) for pid in below)
     assert "raylet" in names and "gcs_server" in names, names  # a local Ray under the driver
     os.kill(proc.pid, signal.SIGKILL)
     proc.communicate(timeout=120)
     assert proc.returncode == -signal.SIGKILL
-    # the tasks end at once; Ray's two node agents notice the raylet is gone after ~60 s
-    deadline = time.monotonic() + 150
-    while any(_running(pid) for pid in below) and time.monotonic() < deadline:
-        time.sleep(0.5)
-    lingering = {pid: _cmdline(pid) for pid in below if _running(pid)}
-    assert not lingering
     stopped = [checkpoint_infos(t / "model_last.pt") for t in tunes]
     assert all(not s["completed"] and 100 <= s["iteration"] < 4000 for s in stopped), stopped
     assert all(s["iteration"] % 100 == 0 for s in stopped), stopped  # periodic checkpoints
 
-    _resume_to(run_dir, max(s["iteration"] for s in stopped) + 3, tunes)
+    # the resume (its own namespace and Ray) runs while the killed Ray's processes end
+    target = max(s["iteration"] for s in stopped) + 3
+    resume = subprocess.Popen(
+        _sealed([*AMULED, *_ablate_args(run_dir, target), "--resume"]),
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=ENV,
+    )  # fmt: skip
+    try:
+        # the tasks end at once; Ray's two node agents notice the raylet is gone after ~60 s
+        deadline = time.monotonic() + 150
+        while any(_running(*p) for p in below.items()) and time.monotonic() < deadline:
+            time.sleep(0.5)
+        lingering = {pid: _cmdline(pid) for pid in below if _running(pid, below[pid])}
+        assert not lingering
+        _, err = resume.communicate(timeout=300)
+    finally:
+        if resume.poll() is None:
+            resume.kill()
+            resume.wait()
+    assert resume.returncode == 0, err
+    _check_curves(target, tunes)
 
 
 def test_plan_ablation_reuses_the_runs_amuled_finetune_only_with_same_settings(tmp_path):

@@ -98,7 +98,7 @@ def test_scripted_table_and_function():
     ("values", "status"),
     [
         ([1, 1, 0, 0], "ok"),
-        ([-1, 1, 0, 0], "error"),  # negative scores are refused, no longer clipped
+        ([-1, 1, 0, 0], "error"),  # negative scores are refused, not clipped
         ([1e308, 1e308, 0, 0], "error"),  # the sum overflows to inf
         ([np.inf, 0, 0, 0], "error"),
         ([0, 0, 0, 0], "error"),
