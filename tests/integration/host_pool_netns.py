@@ -112,6 +112,7 @@ def run(workdir: Path) -> dict[str, Any]:
             "finetune.iterations=1",
             "finetune.num_envs=2",
             "finetune.num_steps_per_env=2",
+            "ppo.num_mini_batches=2",  # 4 transitions an iteration: 2 per mini-batch
             "finetune.save_interval=1",
             "output.tensorboard=false",
         ):
