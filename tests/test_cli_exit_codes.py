@@ -7,6 +7,7 @@ from the code under test.
 from __future__ import annotations
 
 import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -176,8 +177,11 @@ def test_a_signal_whose_exception_a_finalizer_drops_still_stops_the_command(
 ) -> None:
     script = LOST_IN_A_FINALIZER.replace("{name}", name)
     done = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, cwd=REPO
-    )
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, cwd=REPO,
+        # as a terminal's foreground command: a test run started in the background of a
+        # non-interactive shell would hand it SIGINT ignored, and Python would keep it so
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )  # fmt: skip
     assert "worked on" not in done.stdout
     assert done.returncode == documented_codes()[meaning]
     line = {"terminated": "amuled: terminated (SIGTERM)", "interrupted": "amuled: interrupted"}
