@@ -20,6 +20,15 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 os.environ["AMULED_OFFLINE"] = "1"
 
 
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Put the tests marked ``slow`` first, keeping the order within each group.
+
+    Handed out first (``--maxschedchunk`` in ``.ci/test``), the long tests spread over the
+    workers from the start instead of leaving one worker on a long test at the end.
+    """
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+
+
 def _recordings_path() -> Path:
     env = os.environ.get("AMULED_RECORDINGS")
     return Path(env) if env else REPO_ROOT.parent / "shared" / "amuled-recordings"

@@ -101,6 +101,7 @@ def test_help(command, capsys):
     assert "usage: amuled" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_ablate_aggregation_with_replay_two_seeds_in_parallel(tmp_path, capsys, recordings_dir):
     run_dir = tmp_path / "run"
     args = ["ablate", "findmilk", "--what", "aggregation", "--run-dir", str(run_dir)]

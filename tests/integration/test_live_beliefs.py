@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import ollama
+import pytest
 from _live_helpers import OPTIONS, TASKS, chat
 
 from amuled_ma.beliefs import BeliefRequest, belief_schema, parse_belief
@@ -74,6 +75,7 @@ def test_raw_client_structured_output_is_schema_valid_and_deterministic(
         assert np.isclose(parsed.belief.sum(), 1.0) and (parsed.belief >= 0).all()
 
 
+@pytest.mark.slow
 def test_every_cluster_of_both_tasks_then_the_store_answers_everything(
     ollama_host: str, ollama_model: str, tmp_path: Path
 ) -> None:

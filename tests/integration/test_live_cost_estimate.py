@@ -55,6 +55,7 @@ def _scenario(tmp_path: Path, host: str, model: str):
     )
 
 
+@pytest.mark.slow
 def test_estimate_within_a_factor_of_2_of_the_measured_time(
     tmp_path: Path, ollama_host: str, ollama_model: str
 ) -> None:

@@ -138,6 +138,7 @@ def test_slower_than_timeout_with_retries_backs_off_then_falls_back(
     assert 3.0 + 1.5 + 0.6 - 0.1 <= elapsed < 3.0 + 1.5 + 0.6 + 3.0, f"took {elapsed:.1f} s"
 
 
+@pytest.mark.slow
 def test_kill_9_mid_run_retries_with_backoff_then_resumes_without_asking_again(
     private_ollama_server, tmp_path: Path
 ) -> None:

@@ -12,12 +12,14 @@ import os
 import subprocess
 import sys
 
+import pytest
 from mixed_panel import TINY, mixed_scenario
 
 from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.cli import main
 
 
+@pytest.mark.slow
 def test_mixed_panel_fine_tunes_with_replay_ollama_and_terminal(
     ollama_host: str, ollama_model: str, recordings_dir, tmp_path
 ) -> None:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import re
 
+import pytest
+
 from amuled_ma.cli import main
 
 TINY = [
@@ -13,6 +15,7 @@ TINY = [
 ]  # fmt: skip
 
 
+@pytest.mark.slow
 def test_bench_pipeline_times_every_stage_side_by_side(tmp_path, capsys):
     argv = ["bench", "pipeline", "--tasks", "findmilk", "--jobs", "1,2", "--out", str(tmp_path)]
     argv.append("--ray")
@@ -56,6 +59,7 @@ def test_bench_authors_times_a_short_authors_recipe_fine_tune(capsys):
     assert cells[0] == "findmilk" and cells[1] == "3" and float(cells[3]) == 1.0  # 360 s x 3/1000
 
 
+@pytest.mark.slow
 def test_bench_pipeline_runs_the_tasks_at_once_and_counts_their_cpu(tmp_path, capsys):
     """``--tasks-at-once``: each task's stages in processes of its own, side by side."""
     argv = ["bench", "pipeline", "--tasks", "findmilk,driving", "--jobs", "1", "--tasks-at-once"]

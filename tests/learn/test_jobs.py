@@ -138,6 +138,7 @@ print("RESULT " + json.dumps({"runs": runs, "workers": workers_used, "groups": g
 """
 
 
+@pytest.mark.slow
 def test_parallel_training_is_bit_identical_to_sequential(tmp_path):
     """Worker processes change where a job runs, not what it learns; populations neither.
 
@@ -265,6 +266,7 @@ def _check_curves(iterations: int, tunes: list[Path]) -> None:
         assert [row["iteration"] for row in curve] == list(range(1, iterations + 1))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("population", [False, True], ids=["alone", "populations"])
 def test_parallel_stops_on_ctrl_c_with_checkpoints_then_resumes(tmp_path, population):
     """A real SIGINT to the whole process group, as a terminal's Ctrl-C sends it.
@@ -295,6 +297,7 @@ def test_parallel_stops_on_ctrl_c_with_checkpoints_then_resumes(tmp_path, popula
         assert checkpoint_infos(tune / "model_last.pt")["iteration"] == last + 3
 
 
+@pytest.mark.slow
 def test_ctrl_c_while_the_workers_start_the_finetunes_then_resume(tmp_path):
     """Ctrl-C as soon as the fine-tunes' folders appear, before either has iterated much."""
     run_dir = tmp_path / "run"
@@ -361,6 +364,7 @@ def _descendants(pid: int) -> list[int]:
     return found
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux /proc")
 def test_a_killed_driver_leaves_no_process_and_resumes_from_its_checkpoints(tmp_path):
     """A real ``kill -9`` of the driver: its local Ray (GCS, raylet, workers) goes with it.
