@@ -53,8 +53,6 @@ class RequestCost(NamedTuple):
 def request_cost(store: Path | None, model: str) -> RequestCost:
     """One request to ``model``: the store's median seconds, else `TINY_SECONDS_PER_REQUEST`."""
     if store is not None and Path(store).is_file():
-        from amuled_ma.beliefs.store.database import BeliefStore
-
         with BeliefStore(store, read_only=True) as held:
             seconds = held.request_seconds(model)
         if len(seconds) >= MIN_TIMED_REQUESTS:
@@ -132,35 +130,35 @@ def live_costs(plan: PanelPlan, store: Path, say: Callable[[str], None] | None =
     """
     if not plan.asks_panel or plan.fused_recording is not None:
         return []
-    specs = [*plan.routes.values(), *([plan.default] if plan.default is not None else [])]
-    if not any(spec.kind == "ollama" for spec in specs):
+    specs = [*([plan.default] if plan.default is not None else []), *plan.routes.values()]
+    served: dict[str, list[str]] = {spec.key: [] for spec in specs if spec.kind == "ollama"}
+    if not served:
         return []
+    for agent in plan.agents:  # the agents of each distinct Ollama source
+        spec = plan.source_of(agent)
+        if spec is not None and spec.key in served:
+            served[spec.key].append(agent)
     members = build_members(plan)
     try:
         lines = []
         budget = plan.distill.budget if plan.distill is not None and plan.distill.enabled else None
-        for source_id, spec in members.plans.items():
-            if spec.kind != "ollama":
-                continue
-            agents = [
-                c.name
-                for c in plan.clusters
-                if id(members.routes.get(c.name, members.default)) == source_id
-            ]
+        for key, agents in served.items():
             if not agents:
                 continue
+            spec = plan.source_of(agents[0])
+            assert spec is not None
             source = members.routes.get(agents[0], members.default)
             model = str(spec.options.get("model", getattr(source, "model", "")))
             cost = request_cost(store, model)
             if not cost.basis.startswith("measured here"):
-                if spec.key not in _PROBED:
+                if key not in _PROBED:
                     if say is not None:
                         say(
                             f"live feedback: timing a request to {model} here (the belief store "
                             f"holds fewer than {MIN_TIMED_REQUESTS} timed requests) ..."
                         )
-                    _PROBED[spec.key] = probe_cost(source, plan, agents[0])
-                cost = _PROBED[spec.key]
+                    _PROBED[key] = probe_cost(source, plan, agents[0])
+                cost = _PROBED[key]
             per = f"{cost.seconds:.1f} s a request ({cost.basis})"
             who = f"{', '.join(agents)} asked of {model}"
             if isinstance(budget, int) and not isinstance(budget, bool):
@@ -177,30 +175,6 @@ def live_costs(plan: PanelPlan, store: Path, say: Callable[[str], None] | None =
         return lines
     finally:
         members.close()
-
-
-def options_line(missing: Sequence[str], states: int, distill: DistillConfig | None = None) -> str:
-    """The ways to give members without beliefs an answer, as one clause of ``--set`` options."""
-    n = len(missing)
-    asks = states * n
-    budget = SUGGESTED_BUDGET
-    if distill is not None and distill.enabled:
-        value = distill.budget
-        budget = int(value) if isinstance(value, int) else max(1, int(value * states))
-    tables = ",".join(f'{m}={{source="terminal"}}' for m in missing)
-    them = "it" if n == 1 else "them"
-    return (
-        f"answer {them} at the terminal with --set 'feedback.agents={{{tables}}}' ({asks:,} "
-        f"answers, or {budget * n:,} with --set feedback.distill.enabled=true), or drop "
-        f"{them} from feedback.clusters; a live model and other "
-        "sources: docs/clusters.md#a-cluster-no-recording-holds"
-    )
-
-
-def _without(error: BaseException, where: str) -> str:
-    """The error's message without a leading ``"<where>: "`` (it is said once, first)."""
-    text = str(error)
-    return text[len(where) + 2 :] if text.startswith(f"{where}: ") else text
 
 
 def _replay_problem(
@@ -228,11 +202,20 @@ def _replay_problem(
     if not missing:
         return None
     names = ", ".join(f'"{a}"' for a in missing)
-    what = f"cluster {names} is" if len(missing) == 1 else f"clusters {names} are"
+    n, states = len(missing), len(recording.states)
+    what = f"cluster {names} is" if n == 1 else f"clusters {names} are"
+    budget = SUGGESTED_BUDGET
+    if distill is not None and distill.enabled:
+        value = distill.budget
+        budget = int(value) if isinstance(value, int) else max(1, int(value * states))
+    tables = ",".join(f'{m}={{source="terminal"}}' for m in missing)
+    them = "it" if n == 1 else "them"
     return (
         f"{what} not in recording {recording.path.stem} (it holds: "
-        f"{', '.join(recording.clusters)}); "
-        f"{options_line(missing, len(recording.states), distill)}"
+        f"{', '.join(recording.clusters)}); answer {them} at the terminal with --set "
+        f"'feedback.agents={{{tables}}}' ({states * n:,} answers, or {budget * n:,} with --set "
+        f"feedback.distill.enabled=true), or drop {them} from feedback.clusters; a live model "
+        "and other sources: docs/clusters.md#a-cluster-no-recording-holds"
     )
 
 
@@ -305,13 +288,15 @@ def build_members(plan: PanelPlan, *, build: Callable[..., BeliefSource] = build
             # a label names a key of the scenario ("[feedback.agents.care] ..."), or the
             # cluster file that holds the table ("clusters/care.toml: [source] ...")
             place = f"{where}: " if label.startswith("[") else ""
-            text = f"{place}{label}: {_without(first, where)}"
+            text = f"{place}{label}: {str(first).removeprefix(f'{where}: ')}"
             wrapped: BaseException = ScenarioError(text)
             if isinstance(first, AmuledError):
                 with contextlib.suppress(TypeError):  # an error class with another signature
                     wrapped = type(first)(text)
             raise wrapped from first
-        lines = "\n".join(f"  - {label}: {_without(e, where)}" for e, label in problems)
+        lines = "\n".join(
+            f"  - {label}: {str(e).removeprefix(f'{where}: ')}" for e, label in problems
+        )
         raise ScenarioError(
             f"{where}: {len(problems)} belief sources of the panel cannot be used; fix each "
             f"before training:\n{lines}"

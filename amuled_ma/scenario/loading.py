@@ -70,16 +70,15 @@ def load_scenario(name_or_path: str | os.PathLike[str]) -> Scenario:
 
 def weights_prior(
     weights: str, members: Sequence[str], resolve: Callable[[str], Path], where: str
-) -> tuple[tuple[float, ...], Path]:
-    """``(prior in members' order, file)`` of a ``[feedback].weights`` file (``where``: scenario).
+) -> tuple[float, ...]:
+    """The prior of a ``[feedback].weights`` file in members' order (``where``: scenario).
 
     Raises:
         ScenarioError: The file is missing, malformed, or names other members than ``members``.
     """
     where = f"{where}: key [feedback].weights"
     path = resolve(weights)
-    prior = member_prior(read_panel_weights(path, where=where), members, where=where, path=path)
-    return prior, path
+    return member_prior(read_panel_weights(path, where=where), members, where=where, path=path)
 
 
 #: Most characters a scenario file may hold (a shipped one holds about 10,000).
