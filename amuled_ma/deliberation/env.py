@@ -84,6 +84,7 @@ class DeliberationEnv(ParallelEnv):
         from amuled_ma.clusters import ClusterRegistry, default_registry
         from amuled_ma.fusion import fuse
         from amuled_ma.tasks import get_task
+        from amuled_ma.tasks.prompts import render_state_prompt as render
 
         if render_mode not in (None, "ansi", "rgb_array"):
             raise ValueError(
@@ -112,7 +113,7 @@ class DeliberationEnv(ParallelEnv):
         self.fusion_rule = fusion_rule
         self.render_mode = render_mode
         self.prompt_max_length = int(prompt_max_length)
-        self._render_prompt = render_state_prompt
+        self._render_prompt = render_state_prompt or render
         self._fuse = fuse
         self.possible_agents = [ACTOR, *self.cluster_names]
         self.agents: list[str] = []
@@ -163,14 +164,8 @@ class DeliberationEnv(ParallelEnv):
             chars |= set(template.read_text(encoding="utf-8"))
         return frozenset(chars)
 
-    # -- prompts ---------------------------------------------------------------------
     def _state_prompt(self) -> str:
-        if self._render_prompt is None:
-            from amuled_ma.tasks.prompts import render_state_prompt
-
-            self._render_prompt = render_state_prompt
-        variables = self.task.prompt_variables()[0]
-        return self._render_prompt(self.task_name, variables)
+        return self._render_prompt(self.task_name, self.task.prompt_variables()[0])
 
     def _observations(self) -> dict[str, Any]:
         obs: dict[str, Any] = {ACTOR: self._obs.copy()}
@@ -224,13 +219,12 @@ class DeliberationEnv(ParallelEnv):
         self._obs = _row(info["final_obs"] if done and "final_obs" in info else out.obs)
         r_task = float(out.r_task[0])
         r_feedback = float(fused[a])
-        rewards = {ACTOR: float(out.reward[0])}
-        for k, name in enumerate(self.cluster_names):
-            rewards[name] = float(weights[k])
+        named = dict(zip(self.cluster_names, weights.tolist(), strict=True))
+        rewards = {ACTOR: float(out.reward[0]), **named}
         common = {
             "fused": fused,
             "beliefs": beliefs,
-            "weights": dict(zip(self.cluster_names, weights.tolist(), strict=True)),
+            "weights": named,
             "conflict": float(conflicts[0]) if conflicts.size else 0.0,
             "conflicts": conflicts,
             "r_env": float(info["r_env"][0]) if "r_env" in info else r_task,

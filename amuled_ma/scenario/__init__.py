@@ -11,12 +11,7 @@ from amuled_ma.scenario.agents import (
     AGENT_SOURCE_KINDS,
     AGENT_SPECS,
     MORAL_AGENT,
-    AgentSpec,
-    EntryPointSpec,
     OllamaSpec,
-    PolicySpec,
-    ReplaySpec,
-    RulesSpec,
     TerminalSpec,
 )
 from amuled_ma.scenario.loading import load_scenario, resolve_scenario_path, scenario_from_dict
@@ -27,7 +22,6 @@ from amuled_ma.scenario.memory import (
     MEMORY_FRACTION,
     physical_memory_bytes,
 )
-from amuled_ma.scenario.messages import scenario_error
 from amuled_ma.scenario.model import Changes, Scenario, validate_section
 from amuled_ma.scenario.paths import (
     check_path_component,
@@ -57,20 +51,15 @@ __all__ = [
     "MEMORY_FRACTION",
     "MORAL_AGENT",
     "PAPER_CLUSTERS",
-    "AgentSpec",
     "BaseConfig",
     "Changes",
     "DistillConfig",
-    "EntryPointSpec",
     "EvaluationConfig",
     "FeedbackConfig",
     "FinetuneConfig",
     "OllamaSpec",
     "OutputConfig",
     "PPOConfig",
-    "PolicySpec",
-    "ReplaySpec",
-    "RulesSpec",
     "Scenario",
     "TaskConfig",
     "TerminalSpec",
@@ -81,7 +70,6 @@ __all__ = [
     "physical_memory_bytes",
     "resolve_scenario_path",
     "safe_child",
-    "scenario_error",
     "scenario_from_dict",
     "user_data_dir",
     "user_recordings_dir",
