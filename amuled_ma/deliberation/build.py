@@ -473,35 +473,32 @@ def _count_questions(distilled: Any, plan: PanelPlan) -> None:
 
 def run_store(path: Path) -> StoreService:
     """The belief store at ``path``, opened on first use (never, if no member is asked)."""
-    from amuled_ma.beliefs.store.service import open_store
-
-    return _Lazy(lambda: open_store(path))
+    return _Lazy(path)
 
 
 class _Lazy:
     """A store opened on first use: the preflight runs before its file is created."""
 
-    def __init__(self, opener: Callable[[], BeliefStore]) -> None:
-        self._opener = opener
-        self._store: BeliefStore | None = None
+    def __init__(self, path: Path) -> None:
+        self.path = path
 
-    def _get(self) -> BeliefStore:
-        if self._store is None:
-            self._store = self._opener()
-        return self._store
+    @functools.cached_property
+    def store(self) -> BeliefStore:
+        """The store, opened (and created) now."""
+        return BeliefStore(self.path)
 
     def lookup(self, keys: list[str]) -> dict[str, BeliefResult]:
         """The store's ``lookup``."""
-        return self._get().lookup(keys)
+        return self.store.lookup(keys)
 
     def put_many(self, items: Sequence[StoreItem]) -> int:
         """The store's ``put_many``."""
-        return self._get().put_many(items)
+        return self.store.put_many(items)
 
     def __getattr__(self, name: str) -> Any:
-        return getattr(self._get(), name)
+        return getattr(self.store, name)
 
     def close(self) -> None:
         """Close the store if it was opened."""
-        if self._store is not None:
-            self._store.close()
+        if "store" in self.__dict__:
+            self.store.close()

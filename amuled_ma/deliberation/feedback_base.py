@@ -22,6 +22,8 @@ from amuled_ma.errors import AbstentionError
 if TYPE_CHECKING:
     from amuled_ma.deliberation.plan import PanelPlan
 
+#: The prompt variables of each new state, or None (a feedback keyed by observation alone).
+PromptVars = Sequence[Mapping[str, Any]] | None
 #: Statuses reported per agent, in this order (any other status a source gives is added).
 REPORTED_STATUSES = ("ok", "repaired", "abstained", "timeout", "error", "replay_miss")
 #: Statuses that are answers (the panel's, and the distilled model's); every other one is a
@@ -82,13 +84,7 @@ class Feedback(ABC):
         return None
 
     @abstractmethod
-    def _compute(
-        self,
-        obs: np.ndarray,
-        task: object,
-        env_ids: Sequence[int],
-        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
-    ) -> list[tuple]:
+    def _compute(self, obs: np.ndarray, prompt_vars: PromptVars) -> list[tuple]:
         """Return ``(belief [A], diagnostics)`` for each new state (row of ``obs``)."""
 
     def __call__(
@@ -118,10 +114,7 @@ class Feedback(ABC):
         if missing:
             rows = list(missing.values())
             results = self._compute(
-                array[rows],
-                task,
-                [ids[i] for i in rows],
-                None if prompt_vars is None else [prompt_vars[i] for i in rows],
+                array[rows], None if prompt_vars is None else [prompt_vars[i] for i in rows]
             )
             for key, result in zip(missing, results, strict=True):
                 diag = result[1]
@@ -290,13 +283,7 @@ class CallableFeedback(Feedback):
         self.fn = fn
         self.name = name
 
-    def _compute(
-        self,
-        obs: np.ndarray,
-        task: object,
-        env_ids: Sequence[int],
-        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
-    ) -> list[tuple]:
+    def _compute(self, obs: np.ndarray, prompt_vars: PromptVars) -> list[tuple]:
         beliefs = np.asarray(self.fn(obs), dtype=np.float64)
         return [(b, {"statuses": ("ok",)}) for b in beliefs]
 
@@ -318,13 +305,7 @@ class DemonstratorFeedback(Feedback):
 
         self.table = demonstrator_belief(task_name, seed=seed, cache_dir=cache_dir)
 
-    def _compute(
-        self,
-        obs: np.ndarray,
-        task: object,
-        env_ids: Sequence[int],
-        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
-    ) -> list[tuple]:
+    def _compute(self, obs: np.ndarray, prompt_vars: PromptVars) -> list[tuple]:
         table_beliefs, seen = self.table.lookup(torch.as_tensor(obs))
         beliefs = np.asarray(table_beliefs, dtype=np.float64)
         return [

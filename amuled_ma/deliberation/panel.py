@@ -22,7 +22,6 @@ from amuled_ma.deliberation.state_key import freeze
 if TYPE_CHECKING:  # torch and the cluster files are loaded by what hands them in
     import torch
 
-    from amuled_ma.clusters import Cluster
 
 #: Marker substituted by the state prompt in a cluster's pre-built chat.
 _SENTINEL = "\x00AMULED_STATE_PROMPT\x00"
@@ -102,16 +101,22 @@ class MoralPanel:
             raise ValueError("a moral panel needs at least one cluster")
         self.task_name = task_name
         self._cluster_specs = list(clusters)
-        self.cluster_names = tuple(_cluster_name(c) for c in self._cluster_specs)
+        self.cluster_names = tuple(c if isinstance(c, str) else str(c.name) for c in clusters)
         #: Cluster names, in fusion order (the columns of ``weights``).
         self.clusters = list(self.cluster_names)
         if len(set(self.cluster_names)) != len(self.cluster_names):
             raise ValueError(f"duplicate cluster in panel: {self.cluster_names}")
         self.source = source
         self.fusion_rule = fusion_rule
-        self.action_names = tuple(
-            action_names if action_names is not None else _task_action_names(task_name)
-        )
+        if action_names is None:
+            from amuled_ma.tasks import get_task
+
+            action_names = getattr(get_task(task_name), "action_names", None)
+            if action_names is None:
+                raise ValueError(
+                    f"task {task_name!r} has no class attribute action_names; pass them"
+                )
+        self.action_names = tuple(action_names)
         if with_messages is None:
             with_messages = bool(getattr(source, "needs_messages", True))
         self.with_messages = with_messages
@@ -201,7 +206,7 @@ class MoralPanel:
         Raises ``ValueError`` when ``obs_batch`` is not 2-D or messages need ``prompt_vars``
         (one per copy) that are missing.
         """
-        obs = _as_numpy(obs_batch)
+        obs = np.asarray(obs_batch.detach().cpu() if hasattr(obs_batch, "detach") else obs_batch)
         if obs.ndim != 2:
             raise ValueError(f"obs_batch must be (N, obs_dim), got shape {obs.shape}")
         n, k, a = obs.shape[0], self.num_clusters, self.num_actions
@@ -343,22 +348,3 @@ class MoralPanel:
             if status not in FUSED_STATUSES:
                 st.fallbacks += n
         return out.reshape(count, k, a), statuses.reshape(count, k)
-
-
-def _cluster_name(cluster: str | Cluster) -> str:
-    return cluster if isinstance(cluster, str) else str(cluster.name)
-
-
-def _task_action_names(task_name: str) -> tuple[str, ...]:
-    from amuled_ma.tasks import get_task
-
-    names = getattr(get_task(task_name), "action_names", None)
-    if names is None:
-        raise ValueError(f"task {task_name!r} has no class attribute action_names; pass them")
-    return tuple(names)
-
-
-def _as_numpy(x: npt.ArrayLike | torch.Tensor) -> np.ndarray:
-    if hasattr(x, "detach"):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x)

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from amuled_ma.deliberation.feedback_base import ANSWERED, Feedback
+from amuled_ma.deliberation.feedback_base import ANSWERED, Feedback, PromptVars
 from amuled_ma.deliberation.summaries import describe_identity, llm_server_stats, store_stats
 from amuled_ma.errors import ScenarioError
 
@@ -60,13 +60,7 @@ class PanelFeedback(Feedback):
         distilled = self.distilled
         return None if distilled is None else distilled.report()
 
-    def _compute(
-        self,
-        obs: np.ndarray,
-        task: object,
-        env_ids: Sequence[int],
-        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
-    ) -> list[tuple]:
+    def _compute(self, obs: np.ndarray, prompt_vars: PromptVars) -> list[tuple]:
         out = self.panel.fused(obs, prompt_vars)
         fused = np.asarray(out.fused, dtype=np.float64).reshape(len(obs), -1)
         clusters = tuple(self.panel.cluster_names)
@@ -156,13 +150,7 @@ class FusedReplayFeedback(Feedback):
         """The fused-only recording."""
         return f"replay ({self.recording.path.name}, fused beliefs only)"
 
-    def _compute(
-        self,
-        obs: np.ndarray,
-        task: object,
-        env_ids: Sequence[int],
-        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
-    ) -> list[tuple]:
+    def _compute(self, obs: np.ndarray, prompt_vars: PromptVars) -> list[tuple]:
         from amuled_ma.errors import ReplayMiss
 
         n = len(self.recording.actions)

@@ -73,10 +73,8 @@ _WEIGHT_WHY = "a weight; negative flips the term's sign"
 
 
 #: The validation context (``{"source": <file or override>}``) of the scenario being
-#: validated. pydantic passes ``model_validate``'s context to validators but calls a model's
-#: own ``__init__`` (the section models have one) without it, so `validate_model` also
-#: sets it here for `_init` to pass on (the pattern of pydantic's documentation,
-#: "Using validation context with BaseModel initialization").
+#: validated: pydantic calls a model's own ``__init__`` without ``model_validate``'s context,
+#: so `validate_model` also sets it here for `_init` (pydantic's documented pattern).
 _CONTEXT: ContextVar[dict[str, str] | None] = ContextVar("amuled_scenario_context", default=None)
 
 
@@ -100,10 +98,7 @@ def _source(info: ValidationInfo) -> str:
 
 
 class _Section(BaseModel):
-    """Base of the section models: strict, frozen, no unknown keys, no NaN.
-
-    Built in code (``TaskConfig(seed=-1)``) a section is validated like a file (`ScenarioError`).
-    """
+    """Base of the section models: strict, frozen, no unknown keys, no NaN; validated when built."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
