@@ -124,7 +124,6 @@ class DeliberationEnv(ParallelEnv):
         k, a = len(self.cluster_names), len(self.action_names)
         fuse(np.full((k, a), 1.0 / a), fusion_rule, return_diagnostics=True)
 
-    # -- spaces (cached: PettingZoo requires the same object every time) -------------
     @functools.cache  # noqa: B019 - one env, a handful of agents
     def observation_space(self, agent: str) -> spaces.Space:
         """Return the observation space of ``agent`` (the same object every call)."""
@@ -137,9 +136,12 @@ class DeliberationEnv(ParallelEnv):
         if agent == ACTOR:
             return box
         self._check_agent(agent)
-        text = spaces.Text(
-            max_length=self.prompt_max_length, min_length=0, charset=self._prompt_charset()
-        )
+        from amuled_ma.files.resources import prompts_dir
+
+        chars = set(string.printable)  # and those of the task's shipped template, if any
+        with contextlib.suppress(OSError):
+            chars |= set((prompts_dir() / "tasks" / f"{self.task_name}.md").read_text("utf-8"))
+        text = spaces.Text(self.prompt_max_length, min_length=0, charset=frozenset(chars))
         return spaces.Dict({"prompt": text, "obs": box})
 
     @functools.cache  # noqa: B019
@@ -155,25 +157,15 @@ class DeliberationEnv(ParallelEnv):
         if agent not in self.possible_agents:
             raise KeyError(f"unknown agent {agent!r}; agents: {self.possible_agents}")
 
-    def _prompt_charset(self) -> frozenset[str]:
-        from amuled_ma.files.resources import prompts_dir
-
-        chars = set(string.printable)
-        template = prompts_dir() / "tasks" / f"{self.task_name}.md"
-        with contextlib.suppress(OSError):  # a task without a shipped template
-            chars |= set(template.read_text(encoding="utf-8"))
-        return frozenset(chars)
-
     def _state_prompt(self) -> str:
         return self._render_prompt(self.task_name, self.task.prompt_variables()[0])
 
     def _observations(self) -> dict[str, Any]:
-        obs: dict[str, Any] = {ACTOR: self._obs.copy()}
-        for name in self.cluster_names:
-            obs[name] = {"prompt": self._prompt, "obs": self._obs.copy()}
-        return obs
+        cluster = {
+            name: {"prompt": self._prompt, "obs": self._obs.copy()} for name in self.cluster_names
+        }
+        return {ACTOR: self._obs.copy(), **cluster}
 
-    # -- ParallelEnv -----------------------------------------------------------------
     def reset(
         self, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
@@ -290,9 +282,6 @@ def _row(obs: npt.ArrayLike | torch.Tensor) -> np.ndarray:
     if hasattr(obs, "detach"):
         obs = obs.detach().cpu().numpy()
     return np.asarray(obs, dtype=np.float32).reshape(-1).copy()
-
-
-# -- PettingZoo's module convention: parallel_env() and env() ---------------------------
 
 
 def parallel_env(task_name: str = "findmilk", **kwargs: Any) -> DeliberationEnv:

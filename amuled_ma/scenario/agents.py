@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import datetime
 import typing
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -11,6 +10,7 @@ from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from amuled_ma.errors import ScenarioError
+from amuled_ma.scenario.memory import leaves
 from amuled_ma.scenario.paths import find_recording
 from amuled_ma.scenario.ranges import RANGE_ERRORS, TOML_NAMES, field_range, found
 from amuled_ma.servers.urls import normalize_host, normalize_hosts
@@ -21,7 +21,6 @@ if TYPE_CHECKING:
 #: Name of the unprompted moral agent (the ``moral`` variant; ``moral_agent`` in recordings).
 MORAL_AGENT = "moral_agent"
 
-_PLAIN = (str, int, float, bool, list, dict)
 _OPTION = "an OllamaSource option"
 
 
@@ -270,25 +269,6 @@ def _types(annotation: Any) -> tuple[type, ...]:
     return (annotation,)
 
 
-def _plain_problem(value: object, key: str) -> str | None:
-    """Why ``value`` is not plain JSON-able TOML data (a datetime, say), or None."""
-    if isinstance(value, datetime.date | datetime.time):
-        return f"key {key} expects a string, number, boolean, array or table, found {value!r}"
-    if isinstance(value, dict):
-        for k, v in value.items():
-            problem = _plain_problem(v, f"{key}.{k}")
-            if problem:
-                return problem
-    elif isinstance(value, list):
-        for i, v in enumerate(value):
-            problem = _plain_problem(v, f"{key}[{i}]")
-            if problem:
-                return problem
-    elif not isinstance(value, _PLAIN) and value is not None:
-        return f"key {key} expects a string, number, boolean, array or table, found {value!r}"
-    return None
-
-
 def _agent_problem(model: type[_Spec], table: Mapping[str, Any], error: ValidationError) -> str:
     """The first problem pydantic found in an agent table, as the agent table messages say it."""
     first = error.errors(include_url=False)[0]
@@ -342,10 +322,13 @@ def check_agent_table(
             'amuled_ma.agents name, or "pkg.module:Class" and --allow-plugin pkg.module:Class)'
         )
     model = AGENT_SPECS[kind]
-    for k, value in table.items():  # pydantic takes a date inside a free-form table
-        problem = _plain_problem(value, k)
-        if problem:
-            raise ScenarioError(f"{head} {problem}")
+    for name, given in table.items():  # pydantic takes a date inside a free-form table
+        for key, value in leaves(str(name), given):
+            if value is not None and not isinstance(value, str | int | float | bool):
+                raise ScenarioError(
+                    f"{head} key {key} expects a string, number, boolean, array or table, "
+                    f"found {value!r}"
+                )
     host, hosts = table.get("host"), table.get("hosts")
     if kind == "ollama" and isinstance(host, str) and host:
         normalize_host(host, where=f"{head} key host")

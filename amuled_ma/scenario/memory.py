@@ -5,7 +5,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from amuled_ma.errors import ScenarioError
@@ -60,16 +60,23 @@ def _bytes(n: float) -> str:
     raise AssertionError  # pragma: no cover
 
 
-def check_finite(key: str, value: object, source: str) -> None:
-    """Refuse NaN and infinities anywhere in a free-form value (``options``, ``ollama``)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        raise ScenarioError(f"{source}: key {key} expects a finite number, found {value!r}")
+def leaves(key: str, value: object) -> Iterator[tuple[str, object]]:
+    """Every value inside tables and arrays of ``value``, with its key (``options.a[0]``)."""
     if isinstance(value, dict):
         for k, v in value.items():
-            check_finite(f"{key}.{k}", v, source)
+            yield from leaves(f"{key}.{k}", v)
     elif isinstance(value, list | tuple):
         for i, v in enumerate(value):
-            check_finite(f"{key}[{i}]", v, source)
+            yield from leaves(f"{key}[{i}]", v)
+    else:
+        yield key, value
+
+
+def check_finite(key: str, value: object, source: str) -> None:
+    """Refuse NaN and infinities anywhere in a free-form value (``options``, ``ollama``)."""
+    for where, leaf in leaves(key, value):
+        if isinstance(leaf, float) and not math.isfinite(leaf):
+            raise ScenarioError(f"{source}: key {where} expects a finite number, found {leaf!r}")
 
 
 def check_memory(
