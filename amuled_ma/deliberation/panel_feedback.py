@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -80,7 +79,8 @@ class PanelFeedback(Feedback):
                     for j, name in enumerate(clusters)
                     if diag["statuses"][j] in ANSWERED
                 }
-            if self.miss_zero and _all_missed(diag.get("statuses", ())):
+            missed = all(status == "replay_miss" for status in diag["statuses"])
+            if self.miss_zero and diag["statuses"] and missed:
                 results.append((np.zeros_like(fused[i]), diag))
                 continue
             results.append((fused[i], diag))
@@ -117,10 +117,6 @@ def entropy_shares(beliefs: np.ndarray) -> np.ndarray:
     p = np.clip(np.asarray(beliefs, dtype=np.float64), 0.0, None)
     logs = np.log2(p, out=np.zeros_like(p), where=p > 0)
     return -(p * logs).sum(axis=-1) / np.log2(p.shape[-1])
-
-
-def _all_missed(statuses: Sequence[str]) -> bool:
-    return bool(statuses) and all(status == "replay_miss" for status in statuses)
 
 
 class FusedReplayFeedback(Feedback):

@@ -229,21 +229,6 @@ AGENT_SPECS: dict[str, type[_Spec]] = {
     "entry-point": EntryPointSpec,
     "policy": PolicySpec,
 }
-#: Keys of an ``ollama`` table that ``[feedback]`` sets itself (not in ``[feedback.ollama]``).
-FEEDBACK_OLLAMA_KEYS = ("model", "host", "hosts", "concurrency", "timeout_s")
-
-
-def check_ollama_table(table: Mapping[str, Any], where: str) -> None:
-    """Refuse keys of ``[feedback.ollama]`` that no ``OllamaSource`` takes: `ScenarioError`."""
-    allowed = set(OllamaSpec.model_fields) - {"source", *FEEDBACK_OLLAMA_KEYS}
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise ScenarioError(
-            f"{where}: [feedback.ollama] unknown key(s) {', '.join(unknown)}; expected some of "
-            f"{', '.join(sorted(allowed))}"
-        )
-
-
 #: Source kinds a ``[feedback.agents.<name>]`` table may name, in the order of messages.
 AGENT_SOURCE_KINDS = tuple(AGENT_SPECS)
 #: An agent table: one of the spec models, chosen by its ``source``.

@@ -22,9 +22,9 @@ from amuled_ma.errors import ScenarioError
 from amuled_ma.scenario.agents import (
     AgentSpec,
     Concurrency,
+    OllamaSpec,
     TimeoutS,
     check_agent_tables,
-    check_ollama_table,
 )
 from amuled_ma.scenario.memory import (
     MAX_ENV_STEPS,
@@ -402,7 +402,15 @@ class FeedbackConfig(_Section):
     @field_validator("ollama")
     @classmethod
     def _ollama_is_finite(cls, value: dict[str, Any], info: ValidationInfo) -> object:
-        check_ollama_table(value, _source(info))
+        """Refuse keys no ``OllamaSource`` takes, or that ``[feedback]`` sets itself."""
+        own = {"source", "model", "host", "hosts", "concurrency", "timeout_s"}
+        allowed = set(OllamaSpec.model_fields) - own
+        unknown = sorted(set(value) - allowed)
+        if unknown:
+            raise ScenarioError(
+                f"{_source(info)}: [feedback.ollama] unknown key(s) {', '.join(unknown)}; "
+                f"expected some of {', '.join(sorted(allowed))}"
+            )
         return _finite_table("feedback", value, info)
 
     @field_validator("agents", mode="before")
