@@ -221,15 +221,10 @@ class Feedback(ABC):
                 "feedback.max_abstention=..."
             )
 
-    def failure_rate(self) -> float:
-        """Share of all agents' beliefs over rewarded steps that were not answers (0..1)."""
-        total = sum(self.statuses.values())
-        answered = sum(n for status, n in self.statuses.items() if status in ANSWERED)
-        return (total - answered) / total if total else 0.0
-
     def summary(self) -> dict[str, Any]:
         """Diagnostics so far, JSON-ready (``feedback.json``, ``results.json``)."""
         total = sum(self.statuses.values())
+        answered = sum(n for status, n in self.statuses.items() if status in ANSWERED)
         n = max(1, self._diag_count)
         out = {
             "feedback": self.name,
@@ -240,7 +235,7 @@ class Feedback(ABC):
             "mean_entropy_share": {k: v[0] / v[1] for k, v in self._entropy_sum.items()},
             "statuses": dict(self.statuses),
             "miss_rate": (self.statuses.get("replay_miss", 0) / total) if total else 0.0,
-            "failure_rate": self.failure_rate(),
+            "failure_rate": (total - answered) / total if total else 0.0,
             "agents": self.agent_report(per="steps"),
             "agents_per_state": self.agent_report(per="states"),
         }

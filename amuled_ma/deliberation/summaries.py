@@ -169,15 +169,10 @@ def store_stats(source: BeliefSource | None) -> dict[str, int]:
     """The belief store's figures over a source: requests, unique, store_hits, asked."""
     from amuled_ma.beliefs.store.cached import CacheStats
 
-    total = {"requests": 0, "unique": 0, "store_hits": 0, "asked": 0}
-    for obj in nested_sources(source):
-        stats = getattr(obj, "stats", None)
-        if isinstance(stats, CacheStats):
-            total["requests"] += stats.requests
-            total["unique"] += stats.unique
-            total["store_hits"] += stats.store_hits
-            total["asked"] += stats.misses
-    return total
+    found = [getattr(obj, "stats", None) for obj in nested_sources(source)]
+    stats = [s for s in found if isinstance(s, CacheStats)]
+    total = {k: sum(getattr(s, k) for s in stats) for k in ("requests", "unique", "store_hits")}
+    return {**total, "asked": sum(s.misses for s in stats)}
 
 
 def describe_identity(identity: Mapping[str, Any]) -> str:

@@ -96,11 +96,6 @@ def check_memory(
         )
 
 
-def _network_parameters(hidden_dims: list[int]) -> int:
-    dims = [ASSUMED_OBS_DIM, *hidden_dims, ASSUMED_NUM_ACTIONS]
-    return sum(a * b + b for a, b in itertools.pairwise(dims))
-
-
 def check_budget(section: str, values: dict[str, Any], source: str) -> None:
     """Checks across keys of one section: memory estimates and the run-length cap."""
     if section in ("base", "finetune"):
@@ -117,7 +112,7 @@ def check_budget(section: str, values: dict[str, Any], source: str) -> None:
             ),
         )
     if section == "finetune":
-        its, envs, steps = values["iterations"], values["num_envs"], values["num_steps_per_env"]
+        its = values["iterations"]
         total = its * envs * steps
         if total > MAX_ENV_STEPS:
             raise ScenarioError(
@@ -127,10 +122,11 @@ def check_budget(section: str, values: dict[str, Any], source: str) -> None:
                 f"28 hours at 100,000 steps/s), found iterations = {its!r}"
             )
     if section == "ppo":
+        dims = [ASSUMED_OBS_DIM, *values["hidden_dims"], ASSUMED_NUM_ACTIONS]
         check_memory(
             f"[ppo].hidden_dims = {values['hidden_dims']!r} (actor and critic, "
             f"{ASSUMED_OBS_DIM} inputs, {ASSUMED_NUM_ACTIONS} outputs assumed)",
-            _network_parameters(values["hidden_dims"]),
+            sum(a * b + b for a, b in itertools.pairwise(dims)),
             BYTES_PER_PARAMETER,
             "network parameters",
             source,
