@@ -14,8 +14,8 @@ from amuled_ma.errors import AmuledError, ClusterDefinitionError, ScenarioError
 from amuled_ma.records.variants import parse_feedback
 from amuled_ma.scenario import AGENT_SPECS, MORAL_AGENT, Scenario
 from amuled_ma.scenario.agents import match_agents
-from amuled_ma.scenario.loading import weights_prior
 from amuled_ma.scenario.messages import did_you_mean
+from amuled_ma.scenario.panel_weights import weights_prior
 from amuled_ma.scenario.paths import find_recording
 from amuled_ma.tasks.names import TASK_NAMES
 
