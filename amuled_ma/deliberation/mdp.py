@@ -102,19 +102,13 @@ class BatchedDeliberation:
         self.obs = self._as(obs, torch.float32)
         return self.obs
 
-    def beliefs(self) -> torch.Tensor | None:
-        """The feedback's fused beliefs ``[N, A]`` for the current states (None without)."""
-        if self.feedback is None:
-            return None
-        return self._as(self.feedback(self.obs, self.task), torch.float32)
-
     def step(
         self, actions: torch.Tensor, fused: npt.ArrayLike | torch.Tensor | None = None
     ) -> DeliberationStep:
         """Read the fused beliefs (``fused``, else asked), step the task, reward."""
-        if fused is None:
-            fused = self.beliefs()
-        elif not isinstance(fused, torch.Tensor):
+        if fused is None and self.feedback is not None:
+            fused = self._as(self.feedback(self.obs, self.task), torch.float32)
+        elif fused is not None and not isinstance(fused, torch.Tensor):
             fused = torch.as_tensor(np.asarray(fused), device=self.device)
         taken = None
         if fused is not None:

@@ -220,23 +220,18 @@ class PolicySpec(_Spec):
         return {**self.model_dump(exclude={"source"}), "path": str(resolve(self.path))}
 
 
-#: The one registry of the source kinds an agent table may name: kind -> spec model.
-AGENT_SPECS: dict[str, type[_Spec]] = {
-    "replay": ReplaySpec,
-    "ollama": OllamaSpec,
-    "rules": RulesSpec,
-    "terminal": TerminalSpec,
-    "entry-point": EntryPointSpec,
-    "policy": PolicySpec,
-}
-#: Source kinds a ``[feedback.agents.<name>]`` table may name, in the order of messages.
-AGENT_SOURCE_KINDS = tuple(AGENT_SPECS)
 #: An agent table: one of the spec models, chosen by its ``source``.
 AgentSpec = Annotated[
     ReplaySpec | OllamaSpec | RulesSpec | TerminalSpec | EntryPointSpec | PolicySpec,
     Field(discriminator="source"),
 ]
-assert set(typing.get_args(typing.get_args(AgentSpec)[0])) == set(AGENT_SPECS.values())
+#: The one registry of the source kinds an agent table may name: kind -> spec model.
+AGENT_SPECS: dict[str, type[_Spec]] = {
+    typing.get_args(spec.model_fields["source"].annotation)[0]: spec
+    for spec in typing.get_args(typing.get_args(AgentSpec)[0])
+}
+#: Source kinds a ``[feedback.agents.<name>]`` table may name, in the order of messages.
+AGENT_SOURCE_KINDS = tuple(AGENT_SPECS)
 
 
 def _types(annotation: Any) -> tuple[type, ...]:
