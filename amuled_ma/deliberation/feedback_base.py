@@ -51,8 +51,8 @@ class Feedback(ABC):
     plan: PanelPlan | None = None
 
     def __init__(self) -> None:
-        # observation bytes -> (belief, diagnostics, the diagnostics prepared for _account)
-        self._memo: dict[bytes, tuple[np.ndarray, dict[str, Any], tuple]] = {}
+        # state key -> (belief, its diagnostics as `_prepare` returns them)
+        self._memo: dict[bytes, tuple[np.ndarray, tuple]] = {}
         self.steps = 0
         self.calls = 0
         self.statuses: Counter[str] = Counter()
@@ -117,13 +117,12 @@ class Feedback(ABC):
                 array[rows], None if prompt_vars is None else [prompt_vars[i] for i in rows]
             )
             for key, result in zip(missing, results, strict=True):
-                diag = result[1]
-                prepared = _prepare(diag, self.name)
+                prepared = _prepare(result[1], self.name)
                 if key in stale:  # counted once per distinct state: drop the old answer's
                     stale.discard(key)
-                    self.agent_statuses_unique.subtract(memo[key][2][0])
+                    self.agent_statuses_unique.subtract(memo[key][1][0])
                     self.agent_statuses_unique = +self.agent_statuses_unique
-                memo[key] = (np.asarray(result[0], dtype=np.float64), diag, prepared)
+                memo[key] = (np.asarray(result[0], dtype=np.float64), prepared)
                 self.agent_statuses_unique.update(prepared[0])
                 if any(pair[1] in _VOLATILE for pair in prepared[0]):
                     self._volatile.add(key)
@@ -136,7 +135,7 @@ class Feedback(ABC):
         entries = [memo[key] for key in keys]
         out = np.stack([entry[0] for entry in entries]) if entries else np.empty((0, 0))
         for entry in entries:
-            self._account(entry[2])
+            self._account(entry[1])
         self.steps += len(array)
         # judged on new states, and every CHECK_EVERY calls (a policy that keeps visiting
         # states an agent cannot answer raises the share without asking anything new)

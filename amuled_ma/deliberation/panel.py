@@ -147,7 +147,6 @@ class MoralPanel:
         """Number of actions ``A``."""
         return len(self.action_names)
 
-    # -- prompts ---------------------------------------------------------------------
     def state_prompt(self, variables: Mapping[str, Any]) -> str:
         """Render one state prompt with the configured renderer."""
         if self._render is None:
@@ -195,7 +194,6 @@ class MoralPanel:
             templates.append(template)
         return templates
 
-    # -- the batch call --------------------------------------------------------------
     def fused(
         self,
         obs_batch: npt.ArrayLike | torch.Tensor,
@@ -243,17 +241,16 @@ class MoralPanel:
                 if self.with_messages:
                     assert prompt_vars is not None
                     state = self.state_prompt(prompt_vars[i])
-                for c in range(k):
-                    msgs = self.messages(c, state) if self.with_messages else ()
-                    requests.append(
-                        BeliefRequest(
-                            task=self.task_name,
-                            cluster=self.cluster_names[c],
-                            obs=obs_t,
-                            action_names=self.action_names,
-                            messages=msgs,
-                        )
+                requests += [
+                    BeliefRequest(
+                        self.task_name,
+                        name,
+                        obs_t,
+                        self.action_names,
+                        self.messages(c, state) if self.with_messages else (),
                     )
+                    for c, name in enumerate(self.cluster_names)
+                ]
             results = self.source.beliefs(requests)
             if len(results) != len(requests):
                 raise RuntimeError(
