@@ -21,8 +21,7 @@ from amuled_ma.beliefs.store.service import StoreItem, StoreService
 from amuled_ma.beliefs.types import BeliefResult, BeliefSource
 from amuled_ma.deliberation.plan import PanelPlan, SourcePlan, recording_of
 from amuled_ma.errors import AmuledError, ScenarioError
-from amuled_ma.scenario import AGENT_SOURCE_KINDS
-from amuled_ma.scenario.agents import norm
+from amuled_ma.scenario.agents import AGENT_SOURCE_KINDS, norm
 
 if TYPE_CHECKING:  # the feedback classes import torch: loaded when a feedback is built,
     # so that the preflight's errors come before any heavy import

@@ -7,21 +7,8 @@ and CleanRL's PPO. Validation runs on load, on ``--set`` and in code; any failur
 
 from __future__ import annotations
 
-from amuled_ma.scenario.agents import (
-    AGENT_SOURCE_KINDS,
-    AGENT_SPECS,
-    MORAL_AGENT,
-    OllamaSpec,
-    TerminalSpec,
-)
+from amuled_ma.scenario.agents import AGENT_SPECS, MORAL_AGENT, OllamaSpec, TerminalSpec
 from amuled_ma.scenario.loading import load_scenario, resolve_scenario_path, scenario_from_dict
-from amuled_ma.scenario.memory import (
-    BYTES_PER_TRANSITION,
-    FALLBACK_MEMORY_BYTES,
-    MAX_ENV_STEPS,
-    MEMORY_FRACTION,
-    physical_memory_bytes,
-)
 from amuled_ma.scenario.model import Changes, Scenario, validate_section
 from amuled_ma.scenario.paths import (
     check_path_component,
@@ -43,12 +30,7 @@ from amuled_ma.scenario.sections import (
 )
 
 __all__ = [
-    "AGENT_SOURCE_KINDS",
     "AGENT_SPECS",
-    "BYTES_PER_TRANSITION",
-    "FALLBACK_MEMORY_BYTES",
-    "MAX_ENV_STEPS",
-    "MEMORY_FRACTION",
     "MORAL_AGENT",
     "PAPER_CLUSTERS",
     "BaseConfig",
@@ -67,7 +49,6 @@ __all__ = [
     "field_length",
     "field_range",
     "load_scenario",
-    "physical_memory_bytes",
     "resolve_scenario_path",
     "safe_child",
     "scenario_from_dict",
