@@ -91,8 +91,7 @@ def cluster_registry(feedback: FeedbackConfig, resolve: Callable[[str], Path]) -
     Raises:
         ClusterDefinitionError: A folder is missing or a file is malformed or collides.
     """
-    dirs = [resolve(d) for d in feedback.clusters_dirs]
-    return _registry_cached(tuple(str(d) for d in dirs))
+    return _registry_cached(tuple(str(resolve(d)) for d in feedback.clusters_dirs))
 
 
 @functools.lru_cache(maxsize=8)
