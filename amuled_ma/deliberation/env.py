@@ -206,11 +206,9 @@ class DeliberationEnv(ParallelEnv):
             torch.tensor([a], dtype=torch.long), fused=torch.from_numpy(fused).reshape(1, n)
         )
         info = out.info
-        terminated, truncated = out.terminated, out.truncated
-        done = bool(terminated[0]) or bool(truncated[0])
+        terminated, truncated = bool(out.terminated[0]), bool(out.truncated[0])
+        done = terminated or truncated
         self._obs = _row(info["final_obs"] if done and "final_obs" in info else out.obs)
-        r_task = float(out.r_task[0])
-        r_feedback = float(fused[a])
         named = dict(zip(self.cluster_names, weights.tolist(), strict=True))
         rewards = {ACTOR: float(out.reward[0]), **named}
         common = {
@@ -219,14 +217,14 @@ class DeliberationEnv(ParallelEnv):
             "weights": named,
             "conflict": float(conflicts[0]) if conflicts.size else 0.0,
             "conflicts": conflicts,
-            "r_env": float(info["r_env"][0]) if "r_env" in info else r_task,
+            "r_env": float(info["r_env"][0]) if "r_env" in info else float(out.r_task[0]),
             "r_shaping": float(info["r_shaping"][0]) if "r_shaping" in info else 0.0,
-            "r_feedback": r_feedback,
+            "r_feedback": float(fused[a]),
         }
         self._last = (a, common)
         infos = {agent: copy.deepcopy(common) for agent in self.agents}  # each owns its arrays
-        term = dict.fromkeys(self.agents, bool(terminated[0]))
-        trunc = dict.fromkeys(self.agents, bool(truncated[0]) and not bool(terminated[0]))
+        term = dict.fromkeys(self.agents, terminated)
+        trunc = dict.fromkeys(self.agents, truncated and not terminated)
         # No cluster is asked about a finished episode: its final prompt is empty.
         self._prompt = "" if done else self._state_prompt()
         observations = self._observations()
