@@ -451,10 +451,8 @@ def _count_questions(distilled: Any, plan: PanelPlan) -> None:
     """
     from amuled_ma.beliefs.sources.terminal import TerminalSource
 
-    if plan.distill is None:
-        return
-    budget = plan.distill.budget
-    if isinstance(budget, bool) or not isinstance(budget, int):
+    budget = plan.distill.budget if plan.distill is not None else None
+    if not isinstance(budget, int):
         return
     states = max(0, budget - distilled.ledger.asked_count)
     panel = distilled.source

@@ -149,16 +149,13 @@ class Feedback(ABC):
         pairs, weights, conflict, entropies = prepared
         self.agent_statuses.update(pairs)
         self.statuses.update(status for _, status in pairs)
-        if entropies:
-            entropy_sum = self._entropy_sum
-            for name, share in entropies:
-                cell = entropy_sum.setdefault(name, [0.0, 0])
-                cell[0] += share
-                cell[1] += 1
+        for name, share in entropies or ():
+            cell = self._entropy_sum.setdefault(name, [0.0, 0])
+            cell[0] += share
+            cell[1] += 1
         if weights:
-            weight_sum = self._weight_sum
             for name, value in weights:
-                weight_sum[name] = weight_sum.get(name, 0.0) + value
+                self._weight_sum[name] = self._weight_sum.get(name, 0.0) + value
             self._diag_count += 1
             self._conflict_sum += conflict
 
@@ -193,18 +190,12 @@ class Feedback(ABC):
         if limit is None:
             return
         states = self.agent_report(per="states")
+        skip = ANSWERED | DOCUMENTED_ZERO | {"total", "failed", "failure_rate"}
         for agent, row in self.agent_report(per="steps").items():
             if states.get(agent, {}).get("total", 0) < MIN_STATES_JUDGED:
                 continue
             total = row["total"]
-            failures = {
-                status: n
-                for status, n in row.items()
-                if status not in ANSWERED
-                and status not in DOCUMENTED_ZERO
-                and status not in ("total", "failed", "failure_rate")
-                and n
-            }
+            failures = {status: n for status, n in row.items() if n and status not in skip}
             failed = sum(failures.values())
             if failed <= limit * total:
                 continue

@@ -29,13 +29,13 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
         cells = ", ".join(f"{s} {statuses.get(s, 0):,}" for s in MODEL_STATUSES)
         lines.append(f"  beliefs from the distilled model: {share:.2f}% of {total:,} ({cells})")
     for agent, row in (summary.get("agents") or {}).items():
-        agent_total = row.get("total") or 0
-        agent_cells: list[str] = []
-        for status, n in row.items():
-            if status in ("total", "failed", "failure_rate"):
-                continue
-            agent_share = f" ({100 * n / agent_total:.2f}%)" if n and agent_total else ""
-            agent_cells.append(f"{status} {n:,}{agent_share if status not in ANSWERED else ''}")
+        of = row.get("total") or 0
+        agent_cells = [
+            f"{status} {n:,}"
+            + (f" ({100 * n / of:.2f}%)" if n and of and status not in ANSWERED else "")
+            for status, n in row.items()
+            if status not in ("total", "failed", "failure_rate")
+        ]
         lines.append(f"  {agent}: {', '.join(agent_cells)}")
     lines += [f"  reading: {sentence}" for sentence in readings(summary)]
     servers = summary.get("llm_servers") or {}
