@@ -35,29 +35,18 @@ class PanelFeedback(Feedback):
         self.miss_zero = miss_zero
         # a source that reads no messages (replay, rules) needs no prompt variables
         self.keyed_by_prompt = bool(getattr(panel, "with_messages", True))
-        self._distilled_of: Any = object()
-        self._distilled: Any = None
+        from amuled_ma.distill import DistilledSource
 
-    @property
-    def distilled(self) -> Any:
-        """The `DistilledSource` of the panel, if it has one."""
-        source = self.source
-        if self._distilled_of is not source:  # looked up once per source, not every step
-            from amuled_ma.distill import DistilledSource
-
-            self._distilled_of = source
-            self._distilled = source if isinstance(source, DistilledSource) else None
-        return self._distilled
+        #: The panel's `DistilledSource`, if it has one.
+        self.distilled = source if isinstance(source, DistilledSource) else None
 
     def _memo_generation(self) -> Any:
         """The distilled source's number of refits (None without one)."""
-        distilled = self.distilled
-        return None if distilled is None else distilled.generation
+        return None if self.distilled is None else self.distilled.generation
 
     def distill_report(self) -> dict[str, Any] | None:
         """The distilled source's accounting (None when the panel answers every state)."""
-        distilled = self.distilled
-        return None if distilled is None else distilled.report()
+        return None if self.distilled is None else self.distilled.report()
 
     def _compute(self, obs: np.ndarray, prompt_vars: PromptVars) -> list[tuple]:
         out = self.panel.fused(obs, prompt_vars)
