@@ -170,8 +170,7 @@ class DeliberationEnv(ParallelEnv):
         self, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
         """Reset the task and return every agent's first observation and an empty info."""
-        obs = self.mdp.reset(seed=seed)
-        self._obs = _row(obs)
+        self._obs = _row(self.mdp.reset(seed=seed))
         self._prompt = self._state_prompt()
         self._last = None
         self.agents = list(self.possible_agents)

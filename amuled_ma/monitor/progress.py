@@ -123,7 +123,9 @@ class Progress:
             if since < (self._first if self._last_line is None else self._every):
                 return False
             self._last_line = now
-            self._write(self.line(now))
+            stream = self._stream if self._stream is not None else sys.stderr
+            stream.write(self.line(now) + "\n")
+            stream.flush()
         return True
 
     def line(self, now: float | None = None) -> str:
@@ -142,11 +144,6 @@ class Progress:
             f"{self.phase}: {self.done:,}/{total} {self.unit}, {duration(elapsed)} elapsed, "
             f"ETA {eta}"
         )
-
-    def _write(self, text: str) -> None:
-        stream = self._stream if self._stream is not None else sys.stderr
-        stream.write(text + "\n")
-        stream.flush()
 
     def _watch(self) -> None:
         plain = max(min(self._first, self._every) / 10, 0.01)

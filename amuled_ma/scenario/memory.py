@@ -159,8 +159,7 @@ def distill_bytes(ensemble: int, hidden: int, members: int, budget: float | int)
     outputs = members * ASSUMED_NUM_ACTIONS
     per_network = ASSUMED_OBS_DIM * hidden + hidden + hidden * hidden + hidden
     per_network += hidden * outputs + outputs
-    states = budget if isinstance(budget, int) and not isinstance(budget, bool) else 0
-    states = states or ASSUMED_DISTILL_STATES
+    states = budget if isinstance(budget, int) else ASSUMED_DISTILL_STATES
     parameters = ensemble * per_network * BYTES_PER_DISTILL_PARAMETER
     return parameters + ensemble * states * (2 * hidden + outputs) * BYTES_PER_DISTILL_ACTIVATION
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from contextvars import ContextVar
 from typing import Annotated, Any, ClassVar, Literal, TypeVar, get_args
 
@@ -91,10 +90,7 @@ def _init(model: BaseModel, data: dict[str, Any], loc: tuple[str, ...]) -> None:
 
 def _source(info: ValidationInfo) -> str:
     """The file (or override) being validated: the validation context's ``source``."""
-    context = info.context
-    if isinstance(context, Mapping) and isinstance(context.get("source"), str):
-        return context["source"]
-    return BUILT_IN_CODE
+    return str((info.context or {}).get("source", BUILT_IN_CODE))
 
 
 class _Section(BaseModel):
