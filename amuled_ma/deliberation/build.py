@@ -97,18 +97,15 @@ def probe_cost(source: Any, plan: PanelPlan, agent: str) -> RequestCost:
         if task.obs[0].tolist() != states[0][0]:
             break
     states.append((task.obs[0].tolist(), task.prompt_variables([0])[0]))
-    requests = [
-        BeliefRequest(
+    seconds = 0.0
+    for obs, variables in states:
+        request = BeliefRequest(
             plan.task,
             agent,
             tuple(float(x) for x in obs),
             panel.action_names,
             panel.messages(0, panel.state_prompt(variables)),
         )
-        for obs, variables in states
-    ]
-    seconds = 0.0
-    for request in requests:
         start = time.perf_counter()
         (result,) = source.beliefs([request])
         seconds = time.perf_counter() - start

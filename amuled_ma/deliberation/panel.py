@@ -117,9 +117,8 @@ class MoralPanel:
                     f"task {task_name!r} has no class attribute action_names; pass them"
                 )
         self.action_names = tuple(action_names)
-        if with_messages is None:
-            with_messages = bool(getattr(source, "needs_messages", True))
-        self.with_messages = with_messages
+        needs = bool(getattr(source, "needs_messages", True))
+        self.with_messages = needs if with_messages is None else with_messages
         self._render = render_state_prompt
         self._build = build_messages
         self._templates: list[Messages] | None = None
