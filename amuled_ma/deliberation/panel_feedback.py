@@ -8,7 +8,7 @@ import numpy as np
 
 from amuled_ma.deliberation.feedback_base import ANSWERED, Feedback, PromptVars
 from amuled_ma.deliberation.summaries import describe_identity, llm_server_stats, store_stats
-from amuled_ma.errors import ScenarioError
+from amuled_ma.errors import ReplayMiss, ScenarioError
 
 if TYPE_CHECKING:
     from amuled_ma.beliefs.sources.replay import Recording
@@ -136,8 +136,6 @@ class FusedReplayFeedback(Feedback):
         return f"replay ({self.recording.path.name}, fused beliefs only)"
 
     def _compute(self, obs: np.ndarray, prompt_vars: PromptVars) -> list[tuple]:
-        from amuled_ma.errors import ReplayMiss
-
         n = len(self.recording.actions)
         results = []
         for row in obs:

@@ -142,9 +142,7 @@ class OllamaSpec(_Spec):
             "concurrency": rest.pop("concurrency", fb.concurrency),
             "timeout_s": float(rest.pop("timeout_s", fb.timeout_s)),
         }
-        options.update(fb.ollama)
-        options.update(rest)
-        return options
+        return {**options, **fb.ollama, **rest}
 
     def detail(self, options: Mapping[str, Any]) -> str:  # noqa: D102 - see _Spec
         return f", model {options['model']!r}"
