@@ -26,6 +26,7 @@ from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
 from amuled_ma.deliberation.mdp import BatchedDeliberation
+from amuled_ma.files.resources import prompts_dir
 
 if TYPE_CHECKING:
     from amuled_ma.deliberation.panel import MoralPanel
@@ -136,8 +137,6 @@ class DeliberationEnv(ParallelEnv):
         if agent == ACTOR:
             return box
         self._check_agent(agent)
-        from amuled_ma.files.resources import prompts_dir
-
         chars = set(string.printable)  # and those of the task's shipped template, if any
         with contextlib.suppress(OSError):
             chars |= set((prompts_dir() / "tasks" / f"{self.task_name}.md").read_text("utf-8"))

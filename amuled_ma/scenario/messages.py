@@ -37,14 +37,12 @@ def _type_name(tp: object) -> str:
     if origin is list:
         (inner,) = typing.get_args(tp)
         return f"list of {_type_name(inner)}"
-    if origin is dict:
+    if origin is dict or (isinstance(tp, type) and issubclass(tp, BaseModel)):
         return "table"
     if origin is Literal:
         return f"string ({' or '.join(map(str, typing.get_args(tp)))})"
     if tp in (float, int, str, bool):
         return TOML_NAMES[tp]
-    if isinstance(tp, type) and issubclass(tp, BaseModel):
-        return "table"
     return getattr(tp, "__name__", str(tp))
 
 
