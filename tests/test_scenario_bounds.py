@@ -201,7 +201,7 @@ def test_memory_check_uses_the_stated_fraction_of_this_machine(monkeypatch):
     gib = 2**30
     monkeypatch.setattr(scenario_memory, "physical_memory_bytes", lambda: 4 * gib)
     # 50% of 4 GiB = 2 GiB = 524,288 transitions of 4 KiB
-    limit = int(scenario_mod.MEMORY_FRACTION * 4 * gib) // scenario_mod.BYTES_PER_TRANSITION
+    limit = int(scenario_memory.MEMORY_FRACTION * 4 * gib) // scenario_memory.BYTES_PER_TRANSITION
     assert limit == 524_288
     ok = scenario_from_dict({"base": {"num_envs": limit // 128, "num_steps_per_env": 128}})
     assert ok.base.num_envs == 4096
@@ -210,13 +210,13 @@ def test_memory_check_uses_the_stated_fraction_of_this_machine(monkeypatch):
 
 
 def test_memory_read_from_sysconf_with_a_fallback(monkeypatch):
-    assert scenario_mod.physical_memory_bytes() > 2**20
+    assert scenario_memory.physical_memory_bytes() > 2**20
 
     def no_sysconf(name):
         raise ValueError(name)
 
     monkeypatch.setattr(scenario_memory.os, "sysconf", no_sysconf)
-    assert scenario_mod.physical_memory_bytes() == scenario_mod.FALLBACK_MEMORY_BYTES
+    assert scenario_memory.physical_memory_bytes() == scenario_memory.FALLBACK_MEMORY_BYTES
 
 
 def test_network_and_episode_sizes_checked_against_memory():
@@ -238,7 +238,7 @@ def test_run_length_capped(tmp_path):
     with pytest.raises(ScenarioError, match=r"\[base\]\.total_steps.*10,000,000,000"):
         scenario_from_dict({"base": {"total_steps": 10**20}})
     assert scenario_from_dict(
-        {"base": {"total_steps": scenario_mod.MAX_ENV_STEPS}}
+        {"base": {"total_steps": scenario_memory.MAX_ENV_STEPS}}
     ).base.total_steps
     with pytest.raises(ScenarioError, match=r"\[finetune\]\.iterations.*MAX_ENV_STEPS"):
         scenario_from_dict({"finetune": {"iterations": 10**8, "num_steps_per_env": 128}})

@@ -21,8 +21,7 @@ from amuled_ma.beliefs.store.service import StoreItem, StoreService
 from amuled_ma.beliefs.types import BeliefResult, BeliefSource
 from amuled_ma.deliberation.plan import PanelPlan, SourcePlan, recording_of
 from amuled_ma.errors import AmuledError, ScenarioError
-from amuled_ma.scenario import AGENT_SOURCE_KINDS
-from amuled_ma.scenario.agents import norm
+from amuled_ma.scenario.agents import AGENT_SOURCE_KINDS, norm
 
 if TYPE_CHECKING:  # the feedback classes import torch: loaded when a feedback is built,
     # so that the preflight's errors come before any heavy import
@@ -53,8 +52,6 @@ class RequestCost(NamedTuple):
 def request_cost(store: Path | None, model: str) -> RequestCost:
     """One request to ``model``: the store's median seconds, else `TINY_SECONDS_PER_REQUEST`."""
     if store is not None and Path(store).is_file():
-        from amuled_ma.beliefs.store.database import BeliefStore
-
         with BeliefStore(store, read_only=True) as held:
             seconds = held.request_seconds(model)
         if len(seconds) >= MIN_TIMED_REQUESTS:
@@ -100,18 +97,15 @@ def probe_cost(source: Any, plan: PanelPlan, agent: str) -> RequestCost:
         if task.obs[0].tolist() != states[0][0]:
             break
     states.append((task.obs[0].tolist(), task.prompt_variables([0])[0]))
-    requests = [
-        BeliefRequest(
+    seconds = 0.0
+    for obs, variables in states:
+        request = BeliefRequest(
             plan.task,
             agent,
             tuple(float(x) for x in obs),
             panel.action_names,
             panel.messages(0, panel.state_prompt(variables)),
         )
-        for obs, variables in states
-    ]
-    seconds = 0.0
-    for request in requests:
         start = time.perf_counter()
         (result,) = source.beliefs([request])
         seconds = time.perf_counter() - start
@@ -132,35 +126,35 @@ def live_costs(plan: PanelPlan, store: Path, say: Callable[[str], None] | None =
     """
     if not plan.asks_panel or plan.fused_recording is not None:
         return []
-    specs = [*plan.routes.values(), *([plan.default] if plan.default is not None else [])]
-    if not any(spec.kind == "ollama" for spec in specs):
+    specs = [*([plan.default] if plan.default is not None else []), *plan.routes.values()]
+    served: dict[str, list[str]] = {spec.key: [] for spec in specs if spec.kind == "ollama"}
+    if not served:
         return []
+    for agent in plan.agents:  # the agents of each distinct Ollama source
+        spec = plan.source_of(agent)
+        if spec is not None and spec.key in served:
+            served[spec.key].append(agent)
     members = build_members(plan)
     try:
         lines = []
         budget = plan.distill.budget if plan.distill is not None and plan.distill.enabled else None
-        for source_id, spec in members.plans.items():
-            if spec.kind != "ollama":
-                continue
-            agents = [
-                c.name
-                for c in plan.clusters
-                if id(members.routes.get(c.name, members.default)) == source_id
-            ]
+        for key, agents in served.items():
             if not agents:
                 continue
+            spec = plan.source_of(agents[0])
+            assert spec is not None
             source = members.routes.get(agents[0], members.default)
             model = str(spec.options.get("model", getattr(source, "model", "")))
             cost = request_cost(store, model)
             if not cost.basis.startswith("measured here"):
-                if spec.key not in _PROBED:
+                if key not in _PROBED:
                     if say is not None:
                         say(
                             f"live feedback: timing a request to {model} here (the belief store "
                             f"holds fewer than {MIN_TIMED_REQUESTS} timed requests) ..."
                         )
-                    _PROBED[spec.key] = probe_cost(source, plan, agents[0])
-                cost = _PROBED[spec.key]
+                    _PROBED[key] = probe_cost(source, plan, agents[0])
+                cost = _PROBED[key]
             per = f"{cost.seconds:.1f} s a request ({cost.basis})"
             who = f"{', '.join(agents)} asked of {model}"
             if isinstance(budget, int) and not isinstance(budget, bool):
@@ -177,30 +171,6 @@ def live_costs(plan: PanelPlan, store: Path, say: Callable[[str], None] | None =
         return lines
     finally:
         members.close()
-
-
-def options_line(missing: Sequence[str], states: int, distill: DistillConfig | None = None) -> str:
-    """The ways to give members without beliefs an answer, as one clause of ``--set`` options."""
-    n = len(missing)
-    asks = states * n
-    budget = SUGGESTED_BUDGET
-    if distill is not None and distill.enabled:
-        value = distill.budget
-        budget = int(value) if isinstance(value, int) else max(1, int(value * states))
-    tables = ",".join(f'{m}={{source="terminal"}}' for m in missing)
-    them = "it" if n == 1 else "them"
-    return (
-        f"answer {them} at the terminal with --set 'feedback.agents={{{tables}}}' ({asks:,} "
-        f"answers, or {budget * n:,} with --set feedback.distill.enabled=true), or drop "
-        f"{them} from feedback.clusters; a live model and other "
-        "sources: docs/clusters.md#a-cluster-no-recording-holds"
-    )
-
-
-def _without(error: BaseException, where: str) -> str:
-    """The error's message without a leading ``"<where>: "`` (it is said once, first)."""
-    text = str(error)
-    return text[len(where) + 2 :] if text.startswith(f"{where}: ") else text
 
 
 def _replay_problem(
@@ -228,11 +198,20 @@ def _replay_problem(
     if not missing:
         return None
     names = ", ".join(f'"{a}"' for a in missing)
-    what = f"cluster {names} is" if len(missing) == 1 else f"clusters {names} are"
+    n, states = len(missing), len(recording.states)
+    what = f"cluster {names} is" if n == 1 else f"clusters {names} are"
+    budget = SUGGESTED_BUDGET
+    if distill is not None and distill.enabled:
+        value = distill.budget
+        budget = int(value) if isinstance(value, int) else max(1, int(value * states))
+    tables = ",".join(f'{m}={{source="terminal"}}' for m in missing)
+    them = "it" if n == 1 else "them"
     return (
         f"{what} not in recording {recording.path.stem} (it holds: "
-        f"{', '.join(recording.clusters)}); "
-        f"{options_line(missing, len(recording.states), distill)}"
+        f"{', '.join(recording.clusters)}); answer {them} at the terminal with --set "
+        f"'feedback.agents={{{tables}}}' ({states * n:,} answers, or {budget * n:,} with --set "
+        f"feedback.distill.enabled=true), or drop {them} from feedback.clusters; a live model "
+        "and other sources: docs/clusters.md#a-cluster-no-recording-holds"
     )
 
 
@@ -305,13 +284,15 @@ def build_members(plan: PanelPlan, *, build: Callable[..., BeliefSource] = build
             # a label names a key of the scenario ("[feedback.agents.care] ..."), or the
             # cluster file that holds the table ("clusters/care.toml: [source] ...")
             place = f"{where}: " if label.startswith("[") else ""
-            text = f"{place}{label}: {_without(first, where)}"
+            text = f"{place}{label}: {str(first).removeprefix(f'{where}: ')}"
             wrapped: BaseException = ScenarioError(text)
             if isinstance(first, AmuledError):
                 with contextlib.suppress(TypeError):  # an error class with another signature
                     wrapped = type(first)(text)
             raise wrapped from first
-        lines = "\n".join(f"  - {label}: {_without(e, where)}" for e, label in problems)
+        lines = "\n".join(
+            f"  - {label}: {str(e).removeprefix(f'{where}: ')}" for e, label in problems
+        )
         raise ScenarioError(
             f"{where}: {len(problems)} belief sources of the panel cannot be used; fix each "
             f"before training:\n{lines}"
@@ -467,10 +448,8 @@ def _count_questions(distilled: Any, plan: PanelPlan) -> None:
     """
     from amuled_ma.beliefs.sources.terminal import TerminalSource
 
-    if plan.distill is None:
-        return
-    budget = plan.distill.budget
-    if isinstance(budget, bool) or not isinstance(budget, int):
+    budget = plan.distill.budget if plan.distill is not None else None
+    if not isinstance(budget, int):
         return
     states = max(0, budget - distilled.ledger.asked_count)
     panel = distilled.source
@@ -488,35 +467,32 @@ def _count_questions(distilled: Any, plan: PanelPlan) -> None:
 
 def run_store(path: Path) -> StoreService:
     """The belief store at ``path``, opened on first use (never, if no member is asked)."""
-    from amuled_ma.beliefs.store.service import open_store
-
-    return _Lazy(lambda: open_store(path))
+    return _Lazy(path)
 
 
 class _Lazy:
     """A store opened on first use: the preflight runs before its file is created."""
 
-    def __init__(self, opener: Callable[[], BeliefStore]) -> None:
-        self._opener = opener
-        self._store: BeliefStore | None = None
+    def __init__(self, path: Path) -> None:
+        self.path = path
 
-    def _get(self) -> BeliefStore:
-        if self._store is None:
-            self._store = self._opener()
-        return self._store
+    @functools.cached_property
+    def store(self) -> BeliefStore:
+        """The store, opened (and created) now."""
+        return BeliefStore(self.path)
 
     def lookup(self, keys: list[str]) -> dict[str, BeliefResult]:
         """The store's ``lookup``."""
-        return self._get().lookup(keys)
+        return self.store.lookup(keys)
 
     def put_many(self, items: Sequence[StoreItem]) -> int:
         """The store's ``put_many``."""
-        return self._get().put_many(items)
+        return self.store.put_many(items)
 
     def __getattr__(self, name: str) -> Any:
-        return getattr(self._get(), name)
+        return getattr(self.store, name)
 
     def close(self) -> None:
         """Close the store if it was opened."""
-        if self._store is not None:
-            self._store.close()
+        if "store" in self.__dict__:
+            self.store.close()

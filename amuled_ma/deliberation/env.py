@@ -26,6 +26,7 @@ from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
 from amuled_ma.deliberation.mdp import BatchedDeliberation
+from amuled_ma.files.resources import prompts_dir
 
 if TYPE_CHECKING:
     from amuled_ma.deliberation.panel import MoralPanel
@@ -84,6 +85,7 @@ class DeliberationEnv(ParallelEnv):
         from amuled_ma.clusters import ClusterRegistry, default_registry
         from amuled_ma.fusion import fuse
         from amuled_ma.tasks import get_task
+        from amuled_ma.tasks.prompts import render_state_prompt as render
 
         if render_mode not in (None, "ansi", "rgb_array"):
             raise ValueError(
@@ -112,7 +114,7 @@ class DeliberationEnv(ParallelEnv):
         self.fusion_rule = fusion_rule
         self.render_mode = render_mode
         self.prompt_max_length = int(prompt_max_length)
-        self._render_prompt = render_state_prompt
+        self._render_prompt = render_state_prompt or render
         self._fuse = fuse
         self.possible_agents = [ACTOR, *self.cluster_names]
         self.agents: list[str] = []
@@ -123,7 +125,6 @@ class DeliberationEnv(ParallelEnv):
         k, a = len(self.cluster_names), len(self.action_names)
         fuse(np.full((k, a), 1.0 / a), fusion_rule, return_diagnostics=True)
 
-    # -- spaces (cached: PettingZoo requires the same object every time) -------------
     @functools.cache  # noqa: B019 - one env, a handful of agents
     def observation_space(self, agent: str) -> spaces.Space:
         """Return the observation space of ``agent`` (the same object every call)."""
@@ -136,9 +137,10 @@ class DeliberationEnv(ParallelEnv):
         if agent == ACTOR:
             return box
         self._check_agent(agent)
-        text = spaces.Text(
-            max_length=self.prompt_max_length, min_length=0, charset=self._prompt_charset()
-        )
+        chars = set(string.printable)  # and those of the task's shipped template, if any
+        with contextlib.suppress(OSError):
+            chars |= set((prompts_dir() / "tasks" / f"{self.task_name}.md").read_text("utf-8"))
+        text = spaces.Text(self.prompt_max_length, min_length=0, charset=frozenset(chars))
         return spaces.Dict({"prompt": text, "obs": box})
 
     @functools.cache  # noqa: B019
@@ -154,37 +156,20 @@ class DeliberationEnv(ParallelEnv):
         if agent not in self.possible_agents:
             raise KeyError(f"unknown agent {agent!r}; agents: {self.possible_agents}")
 
-    def _prompt_charset(self) -> frozenset[str]:
-        from amuled_ma.files.resources import prompts_dir
-
-        chars = set(string.printable)
-        template = prompts_dir() / "tasks" / f"{self.task_name}.md"
-        with contextlib.suppress(OSError):  # a task without a shipped template
-            chars |= set(template.read_text(encoding="utf-8"))
-        return frozenset(chars)
-
-    # -- prompts ---------------------------------------------------------------------
     def _state_prompt(self) -> str:
-        if self._render_prompt is None:
-            from amuled_ma.tasks.prompts import render_state_prompt
-
-            self._render_prompt = render_state_prompt
-        variables = self.task.prompt_variables()[0]
-        return self._render_prompt(self.task_name, variables)
+        return self._render_prompt(self.task_name, self.task.prompt_variables()[0])
 
     def _observations(self) -> dict[str, Any]:
-        obs: dict[str, Any] = {ACTOR: self._obs.copy()}
-        for name in self.cluster_names:
-            obs[name] = {"prompt": self._prompt, "obs": self._obs.copy()}
-        return obs
+        cluster = {
+            name: {"prompt": self._prompt, "obs": self._obs.copy()} for name in self.cluster_names
+        }
+        return {ACTOR: self._obs.copy(), **cluster}
 
-    # -- ParallelEnv -----------------------------------------------------------------
     def reset(
         self, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
         """Reset the task and return every agent's first observation and an empty info."""
-        obs = self.mdp.reset(seed=seed)
-        self._obs = _row(obs)
+        self._obs = _row(self.mdp.reset(seed=seed))
         self._prompt = self._state_prompt()
         self._last = None
         self.agents = list(self.possible_agents)
@@ -219,28 +204,25 @@ class DeliberationEnv(ParallelEnv):
             torch.tensor([a], dtype=torch.long), fused=torch.from_numpy(fused).reshape(1, n)
         )
         info = out.info
-        terminated, truncated = out.terminated, out.truncated
-        done = bool(terminated[0]) or bool(truncated[0])
+        terminated, truncated = bool(out.terminated[0]), bool(out.truncated[0])
+        done = terminated or truncated
         self._obs = _row(info["final_obs"] if done and "final_obs" in info else out.obs)
-        r_task = float(out.r_task[0])
-        r_feedback = float(fused[a])
-        rewards = {ACTOR: float(out.reward[0])}
-        for k, name in enumerate(self.cluster_names):
-            rewards[name] = float(weights[k])
+        named = dict(zip(self.cluster_names, weights.tolist(), strict=True))
+        rewards = {ACTOR: float(out.reward[0]), **named}
         common = {
             "fused": fused,
             "beliefs": beliefs,
-            "weights": dict(zip(self.cluster_names, weights.tolist(), strict=True)),
+            "weights": named,
             "conflict": float(conflicts[0]) if conflicts.size else 0.0,
             "conflicts": conflicts,
-            "r_env": float(info["r_env"][0]) if "r_env" in info else r_task,
+            "r_env": float(info["r_env"][0]) if "r_env" in info else float(out.r_task[0]),
             "r_shaping": float(info["r_shaping"][0]) if "r_shaping" in info else 0.0,
-            "r_feedback": r_feedback,
+            "r_feedback": float(fused[a]),
         }
         self._last = (a, common)
         infos = {agent: copy.deepcopy(common) for agent in self.agents}  # each owns its arrays
-        term = dict.fromkeys(self.agents, bool(terminated[0]))
-        trunc = dict.fromkeys(self.agents, bool(truncated[0]) and not bool(terminated[0]))
+        term = dict.fromkeys(self.agents, terminated)
+        trunc = dict.fromkeys(self.agents, truncated and not terminated)
         # No cluster is asked about a finished episode: its final prompt is empty.
         self._prompt = "" if done else self._state_prompt()
         observations = self._observations()
@@ -296,9 +278,6 @@ def _row(obs: npt.ArrayLike | torch.Tensor) -> np.ndarray:
     if hasattr(obs, "detach"):
         obs = obs.detach().cpu().numpy()
     return np.asarray(obs, dtype=np.float32).reshape(-1).copy()
-
-
-# -- PettingZoo's module convention: parallel_env() and env() ---------------------------
 
 
 def parallel_env(task_name: str = "findmilk", **kwargs: Any) -> DeliberationEnv:

@@ -22,6 +22,8 @@ from amuled_ma.errors import AbstentionError
 if TYPE_CHECKING:
     from amuled_ma.deliberation.plan import PanelPlan
 
+#: The prompt variables of each new state, or None (a feedback keyed by observation alone).
+PromptVars = Sequence[Mapping[str, Any]] | None
 #: Statuses reported per agent, in this order (any other status a source gives is added).
 REPORTED_STATUSES = ("ok", "repaired", "abstained", "timeout", "error", "replay_miss")
 #: Statuses that are answers (the panel's, and the distilled model's); every other one is a
@@ -49,8 +51,8 @@ class Feedback(ABC):
     plan: PanelPlan | None = None
 
     def __init__(self) -> None:
-        # observation bytes -> (belief, diagnostics, the diagnostics prepared for _account)
-        self._memo: dict[bytes, tuple[np.ndarray, dict[str, Any], tuple]] = {}
+        # state key -> (belief, its diagnostics as `_prepare` returns them)
+        self._memo: dict[bytes, tuple[np.ndarray, tuple]] = {}
         self.steps = 0
         self.calls = 0
         self.statuses: Counter[str] = Counter()
@@ -82,13 +84,7 @@ class Feedback(ABC):
         return None
 
     @abstractmethod
-    def _compute(
-        self,
-        obs: np.ndarray,
-        task: object,
-        env_ids: Sequence[int],
-        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
-    ) -> list[tuple]:
+    def _compute(self, obs: np.ndarray, prompt_vars: PromptVars) -> list[tuple]:
         """Return ``(belief [A], diagnostics)`` for each new state (row of ``obs``)."""
 
     def __call__(
@@ -118,19 +114,15 @@ class Feedback(ABC):
         if missing:
             rows = list(missing.values())
             results = self._compute(
-                array[rows],
-                task,
-                [ids[i] for i in rows],
-                None if prompt_vars is None else [prompt_vars[i] for i in rows],
+                array[rows], None if prompt_vars is None else [prompt_vars[i] for i in rows]
             )
             for key, result in zip(missing, results, strict=True):
-                diag = result[1]
-                prepared = _prepare(diag, self.name)
+                prepared = _prepare(result[1], self.name)
                 if key in stale:  # counted once per distinct state: drop the old answer's
                     stale.discard(key)
-                    self.agent_statuses_unique.subtract(memo[key][2][0])
+                    self.agent_statuses_unique.subtract(memo[key][1][0])
                     self.agent_statuses_unique = +self.agent_statuses_unique
-                memo[key] = (np.asarray(result[0], dtype=np.float64), diag, prepared)
+                memo[key] = (np.asarray(result[0], dtype=np.float64), prepared)
                 self.agent_statuses_unique.update(prepared[0])
                 if any(pair[1] in _VOLATILE for pair in prepared[0]):
                     self._volatile.add(key)
@@ -143,7 +135,7 @@ class Feedback(ABC):
         entries = [memo[key] for key in keys]
         out = np.stack([entry[0] for entry in entries]) if entries else np.empty((0, 0))
         for entry in entries:
-            self._account(entry[2])
+            self._account(entry[1])
         self.steps += len(array)
         # judged on new states, and every CHECK_EVERY calls (a policy that keeps visiting
         # states an agent cannot answer raises the share without asking anything new)
@@ -157,16 +149,13 @@ class Feedback(ABC):
         pairs, weights, conflict, entropies = prepared
         self.agent_statuses.update(pairs)
         self.statuses.update(status for _, status in pairs)
-        if entropies:
-            entropy_sum = self._entropy_sum
-            for name, share in entropies:
-                cell = entropy_sum.setdefault(name, [0.0, 0])
-                cell[0] += share
-                cell[1] += 1
+        for name, share in entropies or ():
+            cell = self._entropy_sum.setdefault(name, [0.0, 0])
+            cell[0] += share
+            cell[1] += 1
         if weights:
-            weight_sum = self._weight_sum
             for name, value in weights:
-                weight_sum[name] = weight_sum.get(name, 0.0) + value
+                self._weight_sum[name] = self._weight_sum.get(name, 0.0) + value
             self._diag_count += 1
             self._conflict_sum += conflict
 
@@ -201,18 +190,12 @@ class Feedback(ABC):
         if limit is None:
             return
         states = self.agent_report(per="states")
+        skip = ANSWERED | DOCUMENTED_ZERO | {"total", "failed", "failure_rate"}
         for agent, row in self.agent_report(per="steps").items():
             if states.get(agent, {}).get("total", 0) < MIN_STATES_JUDGED:
                 continue
             total = row["total"]
-            failures = {
-                status: n
-                for status, n in row.items()
-                if status not in ANSWERED
-                and status not in DOCUMENTED_ZERO
-                and status not in ("total", "failed", "failure_rate")
-                and n
-            }
+            failures = {status: n for status, n in row.items() if n and status not in skip}
             failed = sum(failures.values())
             if failed <= limit * total:
                 continue
@@ -228,15 +211,10 @@ class Feedback(ABC):
                 "feedback.max_abstention=..."
             )
 
-    def failure_rate(self) -> float:
-        """Share of all agents' beliefs over rewarded steps that were not answers (0..1)."""
-        total = sum(self.statuses.values())
-        answered = sum(n for status, n in self.statuses.items() if status in ANSWERED)
-        return (total - answered) / total if total else 0.0
-
     def summary(self) -> dict[str, Any]:
         """Diagnostics so far, JSON-ready (``feedback.json``, ``results.json``)."""
         total = sum(self.statuses.values())
+        answered = sum(n for status, n in self.statuses.items() if status in ANSWERED)
         n = max(1, self._diag_count)
         out = {
             "feedback": self.name,
@@ -247,7 +225,7 @@ class Feedback(ABC):
             "mean_entropy_share": {k: v[0] / v[1] for k, v in self._entropy_sum.items()},
             "statuses": dict(self.statuses),
             "miss_rate": (self.statuses.get("replay_miss", 0) / total) if total else 0.0,
-            "failure_rate": self.failure_rate(),
+            "failure_rate": (total - answered) / total if total else 0.0,
             "agents": self.agent_report(per="steps"),
             "agents_per_state": self.agent_report(per="states"),
         }
@@ -290,13 +268,7 @@ class CallableFeedback(Feedback):
         self.fn = fn
         self.name = name
 
-    def _compute(
-        self,
-        obs: np.ndarray,
-        task: object,
-        env_ids: Sequence[int],
-        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
-    ) -> list[tuple]:
+    def _compute(self, obs: np.ndarray, prompt_vars: PromptVars) -> list[tuple]:
         beliefs = np.asarray(self.fn(obs), dtype=np.float64)
         return [(b, {"statuses": ("ok",)}) for b in beliefs]
 
@@ -318,13 +290,7 @@ class DemonstratorFeedback(Feedback):
 
         self.table = demonstrator_belief(task_name, seed=seed, cache_dir=cache_dir)
 
-    def _compute(
-        self,
-        obs: np.ndarray,
-        task: object,
-        env_ids: Sequence[int],
-        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
-    ) -> list[tuple]:
+    def _compute(self, obs: np.ndarray, prompt_vars: PromptVars) -> list[tuple]:
         table_beliefs, seen = self.table.lookup(torch.as_tensor(obs))
         beliefs = np.asarray(table_beliefs, dtype=np.float64)
         return [

@@ -102,19 +102,13 @@ class BatchedDeliberation:
         self.obs = self._as(obs, torch.float32)
         return self.obs
 
-    def beliefs(self) -> torch.Tensor | None:
-        """The feedback's fused beliefs ``[N, A]`` for the current states (None without)."""
-        if self.feedback is None:
-            return None
-        return self._as(self.feedback(self.obs, self.task), torch.float32)
-
     def step(
         self, actions: torch.Tensor, fused: npt.ArrayLike | torch.Tensor | None = None
     ) -> DeliberationStep:
         """Read the fused beliefs (``fused``, else asked), step the task, reward."""
-        if fused is None:
-            fused = self.beliefs()
-        elif not isinstance(fused, torch.Tensor):
+        if fused is None and self.feedback is not None:
+            fused = self._as(self.feedback(self.obs, self.task), torch.float32)
+        elif fused is not None and not isinstance(fused, torch.Tensor):
             fused = torch.as_tensor(np.asarray(fused), device=self.device)
         taken = None
         if fused is not None:
@@ -152,14 +146,6 @@ class CopiesView:
         self.num_envs = int(count)
         self.variables = variables
 
-    def global_ids(self, env_ids: int | Sequence[int] | None = None) -> list[int]:
-        """The population's copy indices of local ``env_ids`` (None: all of this view)."""
-        if env_ids is None:
-            return list(range(self.start, self.start + self.num_envs))
-        if isinstance(env_ids, int | np.integer):
-            return [self.start + int(env_ids)]
-        return [self.start + int(i) for i in env_ids]
-
     def __getattr__(self, name: str) -> Any:
         value = getattr(self.task, name)
         if name == "obs":
@@ -168,8 +154,13 @@ class CopiesView:
             if name == "prompt_variables" and self.variables is not None:
                 value = self.variables
 
-            def local(env_ids: Any = None) -> Any:
-                return value(self.global_ids(env_ids))
+            def local(env_ids: int | Sequence[int] | None = None) -> Any:
+                """``value`` of the population's copies of local ``env_ids`` (None: this view's)."""
+                if env_ids is None:
+                    return value(list(range(self.start, self.start + self.num_envs)))
+                if isinstance(env_ids, int | np.integer):
+                    return value([self.start + int(env_ids)])
+                return value([self.start + int(i) for i in env_ids])
 
             return local
         return value
@@ -192,17 +183,6 @@ class MemberFeedback:
         #: member -> why its feedback failed (the trainer stops it after the iteration)
         self.failures: dict[int, str] = {}
 
-    def views(self, task: BatchedTask) -> list[CopiesView]:
-        """Each member's `CopiesView` of ``task`` (made once per task)."""
-        if not self._views or self._task is not task:
-            self._task = task
-            variables = self.prompt_variables if hasattr(task, "prompt_variables") else None
-            self._views = [
-                CopiesView(task, p * self.copies, self.copies, variables)
-                for p in range(len(self.feedbacks))
-            ]
-        return self._views
-
     def prompt_variables(self, env_ids: Sequence[int]) -> list[dict[str, Any]]:
         """The prompt variables of copies ``env_ids`` now (every copy read once a step)."""
         if self._variables is None:
@@ -211,12 +191,18 @@ class MemberFeedback:
 
     def __call__(self, obs: torch.Tensor, task: BatchedTask) -> np.ndarray:
         """The fused beliefs ``[P x E, A]`` of every copy, each from its member's feedback."""
-        views = self.views(task)
+        if not self._views or self._task is not task:  # each member's view, once per task
+            self._task = task
+            variables = self.prompt_variables if hasattr(task, "prompt_variables") else None
+            self._views = [
+                CopiesView(task, p * self.copies, self.copies, variables)
+                for p in range(len(self.feedbacks))
+            ]
         self._variables = None  # the states changed since the last step
         blocks = obs.split(self.copies)
         parts: list[np.ndarray] = []
         for member, (feedback, view, rows) in enumerate(
-            zip(self.feedbacks, views, blocks, strict=True)
+            zip(self.feedbacks, self._views, blocks, strict=True)
         ):
             part = None
             if member not in self.failures:

@@ -22,7 +22,6 @@ from amuled_ma.deliberation.state_key import freeze
 if TYPE_CHECKING:  # torch and the cluster files are loaded by what hands them in
     import torch
 
-    from amuled_ma.clusters import Cluster
 
 #: Marker substituted by the state prompt in a cluster's pre-built chat.
 _SENTINEL = "\x00AMULED_STATE_PROMPT\x00"
@@ -102,19 +101,24 @@ class MoralPanel:
             raise ValueError("a moral panel needs at least one cluster")
         self.task_name = task_name
         self._cluster_specs = list(clusters)
-        self.cluster_names = tuple(_cluster_name(c) for c in self._cluster_specs)
+        self.cluster_names = tuple(c if isinstance(c, str) else str(c.name) for c in clusters)
         #: Cluster names, in fusion order (the columns of ``weights``).
         self.clusters = list(self.cluster_names)
         if len(set(self.cluster_names)) != len(self.cluster_names):
             raise ValueError(f"duplicate cluster in panel: {self.cluster_names}")
         self.source = source
         self.fusion_rule = fusion_rule
-        self.action_names = tuple(
-            action_names if action_names is not None else _task_action_names(task_name)
-        )
-        if with_messages is None:
-            with_messages = bool(getattr(source, "needs_messages", True))
-        self.with_messages = with_messages
+        if action_names is None:
+            from amuled_ma.tasks import get_task
+
+            action_names = getattr(get_task(task_name), "action_names", None)
+            if action_names is None:
+                raise ValueError(
+                    f"task {task_name!r} has no class attribute action_names; pass them"
+                )
+        self.action_names = tuple(action_names)
+        needs = bool(getattr(source, "needs_messages", True))
+        self.with_messages = needs if with_messages is None else with_messages
         self._render = render_state_prompt
         self._build = build_messages
         self._templates: list[Messages] | None = None
@@ -142,7 +146,6 @@ class MoralPanel:
         """Number of actions ``A``."""
         return len(self.action_names)
 
-    # -- prompts ---------------------------------------------------------------------
     def state_prompt(self, variables: Mapping[str, Any]) -> str:
         """Render one state prompt with the configured renderer."""
         if self._render is None:
@@ -190,7 +193,6 @@ class MoralPanel:
             templates.append(template)
         return templates
 
-    # -- the batch call --------------------------------------------------------------
     def fused(
         self,
         obs_batch: npt.ArrayLike | torch.Tensor,
@@ -201,7 +203,7 @@ class MoralPanel:
         Raises ``ValueError`` when ``obs_batch`` is not 2-D or messages need ``prompt_vars``
         (one per copy) that are missing.
         """
-        obs = _as_numpy(obs_batch)
+        obs = np.asarray(obs_batch.detach().cpu() if hasattr(obs_batch, "detach") else obs_batch)
         if obs.ndim != 2:
             raise ValueError(f"obs_batch must be (N, obs_dim), got shape {obs.shape}")
         n, k, a = obs.shape[0], self.num_clusters, self.num_actions
@@ -238,17 +240,16 @@ class MoralPanel:
                 if self.with_messages:
                     assert prompt_vars is not None
                     state = self.state_prompt(prompt_vars[i])
-                for c in range(k):
-                    msgs = self.messages(c, state) if self.with_messages else ()
-                    requests.append(
-                        BeliefRequest(
-                            task=self.task_name,
-                            cluster=self.cluster_names[c],
-                            obs=obs_t,
-                            action_names=self.action_names,
-                            messages=msgs,
-                        )
+                requests += [
+                    BeliefRequest(
+                        self.task_name,
+                        name,
+                        obs_t,
+                        self.action_names,
+                        self.messages(c, state) if self.with_messages else (),
                     )
+                    for c, name in enumerate(self.cluster_names)
+                ]
             results = self.source.beliefs(requests)
             if len(results) != len(requests):
                 raise RuntimeError(
@@ -343,22 +344,3 @@ class MoralPanel:
             if status not in FUSED_STATUSES:
                 st.fallbacks += n
         return out.reshape(count, k, a), statuses.reshape(count, k)
-
-
-def _cluster_name(cluster: str | Cluster) -> str:
-    return cluster if isinstance(cluster, str) else str(cluster.name)
-
-
-def _task_action_names(task_name: str) -> tuple[str, ...]:
-    from amuled_ma.tasks import get_task
-
-    names = getattr(get_task(task_name), "action_names", None)
-    if names is None:
-        raise ValueError(f"task {task_name!r} has no class attribute action_names; pass them")
-    return tuple(names)
-
-
-def _as_numpy(x: npt.ArrayLike | torch.Tensor) -> np.ndarray:
-    if hasattr(x, "detach"):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x)

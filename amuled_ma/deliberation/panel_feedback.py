@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from amuled_ma.deliberation.feedback_base import ANSWERED, Feedback
+from amuled_ma.deliberation.feedback_base import ANSWERED, Feedback, PromptVars
 from amuled_ma.deliberation.summaries import describe_identity, llm_server_stats, store_stats
-from amuled_ma.errors import ScenarioError
+from amuled_ma.errors import ReplayMiss, ScenarioError
 
 if TYPE_CHECKING:
     from amuled_ma.beliefs.sources.replay import Recording
@@ -36,37 +35,20 @@ class PanelFeedback(Feedback):
         self.miss_zero = miss_zero
         # a source that reads no messages (replay, rules) needs no prompt variables
         self.keyed_by_prompt = bool(getattr(panel, "with_messages", True))
-        self._distilled_of: Any = object()
-        self._distilled: Any = None
+        from amuled_ma.distill import DistilledSource
 
-    @property
-    def distilled(self) -> Any:
-        """The `DistilledSource` of the panel, if it has one."""
-        source = self.source
-        if self._distilled_of is not source:  # looked up once per source, not every step
-            from amuled_ma.distill import DistilledSource
-
-            self._distilled_of = source
-            self._distilled = source if isinstance(source, DistilledSource) else None
-        return self._distilled
+        #: The panel's `DistilledSource`, if it has one.
+        self.distilled = source if isinstance(source, DistilledSource) else None
 
     def _memo_generation(self) -> Any:
         """The distilled source's number of refits (None without one)."""
-        distilled = self.distilled
-        return None if distilled is None else distilled.generation
+        return None if self.distilled is None else self.distilled.generation
 
     def distill_report(self) -> dict[str, Any] | None:
         """The distilled source's accounting (None when the panel answers every state)."""
-        distilled = self.distilled
-        return None if distilled is None else distilled.report()
+        return None if self.distilled is None else self.distilled.report()
 
-    def _compute(
-        self,
-        obs: np.ndarray,
-        task: object,
-        env_ids: Sequence[int],
-        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
-    ) -> list[tuple]:
+    def _compute(self, obs: np.ndarray, prompt_vars: PromptVars) -> list[tuple]:
         out = self.panel.fused(obs, prompt_vars)
         fused = np.asarray(out.fused, dtype=np.float64).reshape(len(obs), -1)
         clusters = tuple(self.panel.cluster_names)
@@ -86,7 +68,8 @@ class PanelFeedback(Feedback):
                     for j, name in enumerate(clusters)
                     if diag["statuses"][j] in ANSWERED
                 }
-            if self.miss_zero and _all_missed(diag.get("statuses", ())):
+            missed = all(status == "replay_miss" for status in diag["statuses"])
+            if self.miss_zero and diag["statuses"] and missed:
                 results.append((np.zeros_like(fused[i]), diag))
                 continue
             results.append((fused[i], diag))
@@ -125,10 +108,6 @@ def entropy_shares(beliefs: np.ndarray) -> np.ndarray:
     return -(p * logs).sum(axis=-1) / np.log2(p.shape[-1])
 
 
-def _all_missed(statuses: Sequence[str]) -> bool:
-    return bool(statuses) and all(status == "replay_miss" for status in statuses)
-
-
 class FusedReplayFeedback(Feedback):
     """The AMULED feedback replayed from a recording that keeps only the fused belief.
 
@@ -156,15 +135,7 @@ class FusedReplayFeedback(Feedback):
         """The fused-only recording."""
         return f"replay ({self.recording.path.name}, fused beliefs only)"
 
-    def _compute(
-        self,
-        obs: np.ndarray,
-        task: object,
-        env_ids: Sequence[int],
-        prompt_vars: Sequence[Mapping[str, Any]] | None = None,
-    ) -> list[tuple]:
-        from amuled_ma.errors import ReplayMiss
-
+    def _compute(self, obs: np.ndarray, prompt_vars: PromptVars) -> list[tuple]:
         n = len(self.recording.actions)
         results = []
         for row in obs:

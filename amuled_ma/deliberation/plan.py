@@ -14,8 +14,8 @@ from amuled_ma.errors import AmuledError, ClusterDefinitionError, ScenarioError
 from amuled_ma.records.variants import parse_feedback
 from amuled_ma.scenario import AGENT_SPECS, MORAL_AGENT, Scenario
 from amuled_ma.scenario.agents import match_agents
-from amuled_ma.scenario.loading import weights_prior
 from amuled_ma.scenario.messages import did_you_mean
+from amuled_ma.scenario.panel_weights import weights_prior
 from amuled_ma.scenario.paths import find_recording
 from amuled_ma.tasks.names import TASK_NAMES
 
@@ -69,7 +69,6 @@ class PanelPlan:
     distill: DistillConfig | None = None
     max_abstention: float | None = None
     prior: tuple[float, ...] | None = None
-    weights_file: Path | None = None
 
     @property
     def asks_panel(self) -> bool:
@@ -85,46 +84,6 @@ class PanelPlan:
         """The source answering ``agent`` (None: the fused-only recording, or no panel)."""
         return self.routes.get(agent, self.default)
 
-    def describe(self) -> dict[str, Any]:
-        """The plan as plain JSON: members and sources, rule, recording, fused-only, weights."""
-        if not self.asks_panel:
-            source = "rules" if self.variant == "human:rules" else "demonstrator"
-            return {
-                "feedback": self.variant,
-                "members": [{"agent": self.variant, "source": source, "label": source}],
-                "fusion": None,
-                "recording": None,
-                "fused_only": False,
-                "distill": False,
-            }
-        recordings = []
-        members = []
-        for agent in self.agents:
-            plan = self.source_of(agent)
-            if plan is None:
-                kind, label = "replay", "fused-only recording"
-            else:
-                kind, label = plan.kind, plan.label
-                if plan.kind == "replay":
-                    recordings.append(Path(plan.options["paths"]).name)
-            members.append({"agent": agent, "source": kind, "label": label})
-        if self.fused_recording is not None:
-            recordings = [self.fused_recording.name]
-        described: dict[str, Any] = {
-            "feedback": self.variant,
-            "members": members,
-            "fusion": self.rule,
-            "recording": recordings[0] if recordings else None,
-            "fused_only": self.fused_recording is not None,
-            "distill": bool(self.distill is not None and self.distill.enabled),
-        }
-        if self.prior is not None:
-            described["weights"] = {
-                "file": self.weights_file.name if self.weights_file is not None else None,
-                "prior": dict(zip(self.agents, self.prior, strict=True)),
-            }
-        return described
-
 
 def cluster_registry(feedback: FeedbackConfig, resolve: Callable[[str], Path]) -> ClusterRegistry:
     """The shipped clusters plus ``[feedback].clusters_dirs`` (later win), resolved by ``resolve``.
@@ -132,8 +91,7 @@ def cluster_registry(feedback: FeedbackConfig, resolve: Callable[[str], Path]) -
     Raises:
         ClusterDefinitionError: A folder is missing or a file is malformed or collides.
     """
-    dirs = [resolve(d) for d in feedback.clusters_dirs]
-    return _registry_cached(tuple(str(d) for d in dirs))
+    return _registry_cached(tuple(str(resolve(d)) for d in feedback.clusters_dirs))
 
 
 @functools.lru_cache(maxsize=8)
@@ -171,20 +129,6 @@ def panel_of(
             )
         clusters.append(registry.get(name))
     return clusters, rule
-
-
-def cluster_tables(
-    agents: Mapping[str, AgentSpec], clusters: Sequence[Cluster]
-) -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
-    """Each cluster file's ``[source]`` for a member without its own agent table, and its file.
-
-    Returns ``({cluster name: its [source] table}, {cluster name: its file})``; the tables
-    merge under ``[feedback.agents]`` (the scenario's own table for an agent wins).
-    """
-    named = match_agents(list(agents), clusters)
-    own = {c.name: c for c in clusters if c.source and c.name not in named}
-    tables = {name: dict(c.source or {}) for name, c in own.items()}
-    return tables, {name: str(c.path) for name, c in own.items() if c.path}
 
 
 def default_source(
@@ -231,11 +175,10 @@ def plan_sources(
 ) -> tuple[dict[str, SourcePlan], SourcePlan | None, list[tuple[BaseException, str]]]:
     """Each panel agent's source: ``(routes, default, problems)`` as in `PanelPlan`.
 
-    ``files``: the tables that came from a cluster file (`cluster_tables`), by that file.
+    ``files``: the tables that came from a cluster file, by that file.
     """
     tables = dict(feedback.agents)
     matched = match_agents(list(tables), agents)
-    names = [a if isinstance(a, str) else a.name for a in agents]
     routes: dict[str, SourcePlan] = {}
     problems: list[tuple[BaseException, str]] = []
     files = files or {}
@@ -249,76 +192,40 @@ def plan_sources(
             head = f"{files[table]}: [source]" if table in files else f"[feedback.agents.{table}]"
             problems.append((error, f"{head} (source {kind!r})"))
     default = None
-    others = [a for a in names if a not in matched]
+    others = [a for a in agents if (a if isinstance(a, str) else a.name) not in matched]
+    names = ", ".join(a if isinstance(a, str) else a.name for a in others)
     if others:
         try:
             default = default_source(feedback, resolve, where)
-            default = dataclasses.replace(
-                default, label=f"{default.label} (agents {', '.join(others)})"
-            )
+            default = dataclasses.replace(default, label=f"{default.label} (agents {names})")
         except AmuledError as error:
-            label = f"[feedback].source = {feedback.source!r}"
-            problems.append((error, f"{label} (agents {', '.join(others)})"))
+            problems.append((error, f"[feedback].source = {feedback.source!r} (agents {names})"))
     if default is not None and default.kind == "rules":
-        users = user_clusters([a for a in agents if not isinstance(a, str) and a.name in others])
+        from amuled_ma.files.resources import prompts_dir
+
+        shipped = (prompts_dir() / "clusters").resolve()
+        users = [
+            a.name
+            for a in others
+            if not isinstance(a, str) and a.path and Path(a.path).resolve().parent != shipped
+        ]
         if users:
-            problems.append((ScenarioError(rules_by_name(users)), default.label))
+            quoted = ", ".join(f'"{a}"' for a in users)
+            table = users[0] if len(users) == 1 else "<name>"
+            why = (
+                f"the rules source answers every agent with the task's rule and never reads a "
+                f"cluster's text, so it does not stand in for your cluster {quoted} by default; "
+                f'ask for it by name ([feedback.agents.{table}] source = "rules": the rule '
+                "answers, the text is not read), or give it a live model or a person on a "
+                'budget ([feedback.agents.<name>] source = "ollama" or "terminal", with '
+                "[feedback.distill]; docs/clusters.md)"
+            )
+            problems.append((ScenarioError(why), default.label))
     return routes, default, problems
-
-
-def user_clusters(clusters: Sequence[Any]) -> list[str]:
-    """The names of the clusters read from a user's folder (not a shipped cluster file)."""
-    from amuled_ma.files.resources import prompts_dir
-
-    shipped = (prompts_dir() / "clusters").resolve()
-    out = []
-    for cluster in clusters:
-        path = getattr(cluster, "path", None)
-        if path is not None and Path(path).resolve().parent != shipped:
-            out.append(cluster.name)
-    return out
-
-
-def rules_by_name(agents: Sequence[str]) -> str:
-    """Why ``[feedback].source = "rules"`` does not answer for a user's text cluster."""
-    names = ", ".join(f'"{a}"' for a in agents)
-    table = agents[0] if len(agents) == 1 else "<name>"
-    return (
-        f"the rules source answers every agent with the task's rule and never reads a "
-        f"cluster's text, so it does not stand in for your cluster {names} by default; ask "
-        f'for it by name ([feedback.agents.{table}] source = "rules": the rule answers, '
-        "the text is not read), or give it a live model or a person on a budget "
-        '([feedback.agents.<name>] source = "ollama" or "terminal", with [feedback.distill]; '
-        "docs/clusters.md)"
-    )
 
 
 class NoHumanRule(ScenarioError):
     """A ``rules`` source asked for the synthetic human on a task that has none."""
-
-
-def _no_human_rule(
-    task: str, plans: Sequence[SourcePlan | None]
-) -> list[tuple[BaseException, str]]:
-    """The ``rules`` sources with policy ``human`` when ``task`` has no synthetic human."""
-    human = [
-        p for p in plans if p is not None and p.kind == "rules" and p.options["policy"] == "human"
-    ]
-    if not human or task in TASK_NAMES:  # the paper's tasks have it (no import of the task)
-        return []
-    from amuled_ma.tasks import get_task  # here: it imports torch
-
-    task_class = get_task(task)
-    if task_class.human_feedback:
-        return []
-    judges = ", ".join(f'"judge:{j}"' for j in task_class.judge_names) or "none"
-    error = NoHumanRule(
-        f"the rules source's policy 'human' is the synthetic human feedback of a task that "
-        f"has one (the paper's two); task {task!r} has none, so it would answer no state; give "
-        f"the agent one of the task's judges (policy = one of {judges}), or a live model or a "
-        'person ([feedback.agents.<name>] source = "ollama" or "terminal"; docs/clusters.md)'
-    )
-    return [(error, p.label) for p in human]
 
 
 def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
@@ -347,13 +254,23 @@ def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
         return dataclasses.replace(base, variant="human:rules" if arg == "rules" else variant)
     registry = cluster_registry(fb, scenario.resolve)
     clusters, rule = panel_of(variant, fb, registry)
-    defaults, files = cluster_tables(fb.agents, clusters)
-    if defaults:
+    # a cluster file's [source] serves a member without its own table in the scenario
+    named = match_agents(list(fb.agents), clusters)
+    own = [c for c in clusters if c.source and c.name not in named]
+    files = {c.name: str(c.path) for c in own if c.path}
+    if own:
+        defaults = {c.name: dict(c.source or {}) for c in own}
         scenario = scenario.replace("feedback", agents={**defaults, **fb.agents})
     where = str(scenario.path or f"scenario {scenario.name!r}")
-    fused = _fused_only_recording(scenario.feedback, scenario.resolve, where)
-    if fused is not None and match_agents(list(scenario.feedback.agents), clusters):
-        fused = None  # agents with their own source: a panel (the preflight refuses replay)
+    fused = None
+    if scenario.feedback.source == "replay":
+        path = find_recording(
+            scenario.feedback.recording, scenario.resolve, where=where, required=True
+        )
+        if recording_of(path).fused_only and not match_agents(
+            list(scenario.feedback.agents), clusters
+        ):
+            fused = path  # (agents with their own source: a panel, the preflight refuses replay)
     base = dataclasses.replace(base, clusters=tuple(clusters), registry=registry, rule=rule)
     if kind == "amuled" and fb.weights.strip():
         if fused is not None:
@@ -363,8 +280,8 @@ def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
                 'recording with per-cluster beliefs (e.g. recording = "driving-llama-3_1-70b") '
                 "or drop weights"
             )
-        weighted = weights_prior(fb.weights, base.agents, scenario.resolve, base.where)
-        base = dataclasses.replace(base, prior=weighted[0], weights_file=weighted[1])
+        prior = weights_prior(fb.weights, base.agents, scenario.resolve, base.where)
+        base = dataclasses.replace(base, prior=prior)
     if fused is not None:
         if kind != "amuled" or fb.fusion != "bjs-dst":
             raise ScenarioError(
@@ -377,29 +294,29 @@ def plan_panel(variant: str, scenario: Scenario) -> PanelPlan:
     routes, default, problems = plan_sources(
         scenario.feedback, scenario.resolve, where, clusters, files
     )
-    problems += _no_human_rule(scenario.task.name, [*routes.values(), default])
-    replays = any(p.kind == "replay" for p in [*routes.values(), default] if p is not None)
+    plans = [p for p in [*routes.values(), default] if p is not None]
+    human = [p for p in plans if p.kind == "rules" and p.options["policy"] == "human"]
+    if human and scenario.task.name not in TASK_NAMES:  # the paper's tasks have one
+        from amuled_ma.tasks import get_task  # here: it imports torch
+
+        task_class = get_task(scenario.task.name)
+        if not task_class.human_feedback:
+            judges = ", ".join(f'"judge:{j}"' for j in task_class.judge_names) or "none"
+            error = NoHumanRule(
+                f"the rules source's policy 'human' is the synthetic human feedback of a task "
+                f"that has one (the paper's two); task {scenario.task.name!r} has none, so it "
+                f"would answer no state; give the agent one of the task's judges (policy = one "
+                f"of {judges}), or a live model or a person ([feedback.agents.<name>] source = "
+                '"ollama" or "terminal"; docs/clusters.md)'
+            )
+            problems += [(error, p.label) for p in human]
     return dataclasses.replace(
         base,
         routes=routes,
         default=default,
         problems=tuple(problems),
-        miss_zero=replays and fb.miss_policy == "zero",
+        miss_zero=any(p.kind == "replay" for p in plans) and fb.miss_policy == "zero",
     )
-
-
-def _fused_only_recording(
-    feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str
-) -> Path | None:
-    """``[feedback].recording`` when it is replayed and holds only fused beliefs, else None.
-
-    Raises:
-        ScenarioError: The recording is not found.
-    """
-    if feedback.source != "replay":
-        return None
-    path = find_recording(feedback.recording, resolve, where=where, required=True)
-    return path if recording_of(path).fused_only else None
 
 
 def recording_of(path: Path) -> Recording:

@@ -29,13 +29,13 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
         cells = ", ".join(f"{s} {statuses.get(s, 0):,}" for s in MODEL_STATUSES)
         lines.append(f"  beliefs from the distilled model: {share:.2f}% of {total:,} ({cells})")
     for agent, row in (summary.get("agents") or {}).items():
-        agent_total = row.get("total") or 0
-        agent_cells: list[str] = []
-        for status, n in row.items():
-            if status in ("total", "failed", "failure_rate"):
-                continue
-            agent_share = f" ({100 * n / agent_total:.2f}%)" if n and agent_total else ""
-            agent_cells.append(f"{status} {n:,}{agent_share if status not in ANSWERED else ''}")
+        of = row.get("total") or 0
+        agent_cells = [
+            f"{status} {n:,}"
+            + (f" ({100 * n / of:.2f}%)" if n and of and status not in ANSWERED else "")
+            for status, n in row.items()
+            if status not in ("total", "failed", "failure_rate")
+        ]
         lines.append(f"  {agent}: {', '.join(agent_cells)}")
     lines += [f"  reading: {sentence}" for sentence in readings(summary)]
     servers = summary.get("llm_servers") or {}
@@ -169,15 +169,10 @@ def store_stats(source: BeliefSource | None) -> dict[str, int]:
     """The belief store's figures over a source: requests, unique, store_hits, asked."""
     from amuled_ma.beliefs.store.cached import CacheStats
 
-    total = {"requests": 0, "unique": 0, "store_hits": 0, "asked": 0}
-    for obj in nested_sources(source):
-        stats = getattr(obj, "stats", None)
-        if isinstance(stats, CacheStats):
-            total["requests"] += stats.requests
-            total["unique"] += stats.unique
-            total["store_hits"] += stats.store_hits
-            total["asked"] += stats.misses
-    return total
+    found = [getattr(obj, "stats", None) for obj in nested_sources(source)]
+    stats = [s for s in found if isinstance(s, CacheStats)]
+    total = {k: sum(getattr(s, k) for s in stats) for k in ("requests", "unique", "store_hits")}
+    return {**total, "asked": sum(s.misses for s in stats)}
 
 
 def describe_identity(identity: Mapping[str, Any]) -> str:

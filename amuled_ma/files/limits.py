@@ -77,27 +77,6 @@ def read_bounded_bytes(
     return data
 
 
-def read_bounded_text(
-    path: str | os.PathLike[str],
-    limit: int,
-    noun: str,
-    *,
-    error: type[Exception] = AmuledError,
-    note: str = "",
-    fix: str = RIGHT_FILE,
-) -> str:
-    """A UTF-8 text file (:func:`decode_text`); ``error`` over ``limit`` bytes or unreadable."""
-    try:
-        data = read_bounded_bytes(path, limit, noun, error=error, note=note, fix=fix)
-    except OSError as failure:
-        if isinstance(failure, error):  # the refusal itself (an error class that is an OSError)
-            raise
-        raise error(
-            f"{path}: cannot read the {noun}: {failure.strerror or failure}; check the path"
-        ) from failure
-    return decode_text(path, data, noun, error=error)
-
-
 def decode_text(
     path: str | os.PathLike[str], data: bytes, noun: str, *, error: type[Exception] = AmuledError
 ) -> str:

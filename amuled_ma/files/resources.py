@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from amuled_ma.errors import AmuledError
-from amuled_ma.files.limits import read_bounded_text
+from amuled_ma.files.limits import decode_text, read_bounded_bytes
 
 _PACKAGE_DIR = Path(__file__).resolve().parents[1]  # amuled_ma/
 
@@ -43,5 +43,14 @@ def read_text(
     max_bytes: int,
     note: str = "",
 ) -> str:
-    """:func:`~amuled_ma.files.limits.read_bounded_text` with ``what`` as its noun."""
-    return read_bounded_text(path, max_bytes, what, error=error_class or AmuledError, note=note)
+    """A UTF-8 text file (`decode_text`); ``error_class`` over ``max_bytes`` or unreadable."""
+    error = error_class or AmuledError
+    try:
+        data = read_bounded_bytes(path, max_bytes, what, error=error, note=note)
+    except OSError as failure:
+        if isinstance(failure, error):  # the refusal itself (an error class that is an OSError)
+            raise
+        raise error(
+            f"{path}: cannot read the {what}: {failure.strerror or failure}; check the path"
+        ) from failure
+    return decode_text(path, data, what, error=error)

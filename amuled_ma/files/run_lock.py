@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import itertools
 import json
 import os
 import sys
@@ -49,7 +50,8 @@ def run_folder_lock(folder: str | Path, command: str | None = None) -> Iterator[
         AmuledError: The folder cannot be created or the lock file cannot be written.
     """
     folder = Path(folder)
-    made = _missing_ancestors(folder)  # removed again if the command fails and leaves nothing
+    # the folders made here, deepest first: removed again if the command fails and leaves nothing
+    made = list(itertools.takewhile(lambda p: not p.exists(), [folder, *folder.parents]))
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as error:
@@ -94,29 +96,13 @@ def run_folder_lock(folder: str | Path, command: str | None = None) -> Iterator[
         try:
             yield path
         except BaseException:
-            _remove_if_empty(path, made)  # a failed command leaves no empty run folder
+            with contextlib.suppress(OSError):  # a failed command leaves no empty run folder
+                if made and all(p.name == LOCK_NAME for p in made[0].iterdir()):
+                    path.unlink()
+                    for made_folder in made:
+                        made_folder.rmdir()
             raise
         finally:
             del _HELD[key]
     finally:
         os.close(fd)  # closing the last descriptor releases the flock
-
-
-def _missing_ancestors(folder: Path) -> list[Path]:
-    """``folder`` and those of its parents that do not exist yet, deepest first."""
-    out: list[Path] = []
-    for candidate in [folder, *folder.parents]:
-        if candidate.exists():
-            break
-        out.append(candidate)
-    return out
-
-
-def _remove_if_empty(lock: Path, made: list[Path]) -> None:
-    """Remove the lock file and the folders this command made, if they hold nothing else."""
-    with contextlib.suppress(OSError):
-        if not made or any(p.name != LOCK_NAME for p in made[0].iterdir()):
-            return
-        lock.unlink()
-        for folder in made:
-            folder.rmdir()

@@ -120,23 +120,6 @@ def write_failure(
     return f"cannot write {what}{path}: {why}; {kept}; {fix}"
 
 
-def _create_temp(path: Path) -> tuple[int, Path]:
-    """A new file ``.NAME.RANDOM.tmp`` beside ``path``, opened for writing, of the target's mode.
-
-    ``O_EXCL`` with ``O_NOFOLLOW``: it never opens anything that exists, a link included.
-    """
-    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
-    while True:
-        tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
-        try:
-            fd = os.open(tmp, flags, 0o666)
-        except FileExistsError:
-            continue
-        with contextlib.suppress(OSError):
-            os.fchmod(fd, stat.S_IMODE(os.stat(path, follow_symlinks=False).st_mode))
-        return fd, tmp
-
-
 def fsync_folder(folder: Path) -> None:
     """Flush a folder's entries (the rename) to disk; a no-op where folders cannot be opened."""
     try:
@@ -190,7 +173,16 @@ def atomic_writer(
     path = check_write_target(path)
     tmp: Path | None = None
     try:
-        fd, tmp = _create_temp(path)
+        # a new .NAME.RANDOM.tmp beside path, of the target's mode; O_EXCL with O_NOFOLLOW
+        # never opens anything that exists, a link included
+        flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
+        while tmp is None:
+            candidate = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
+            with contextlib.suppress(FileExistsError):
+                fd = os.open(candidate, flags, 0o666)
+                tmp = candidate
+        with contextlib.suppress(OSError):
+            os.fchmod(fd, stat.S_IMODE(os.stat(path, follow_symlinks=False).st_mode))
         handle: IO[bytes] | IO[str]
         if text:
             handle = os.fdopen(fd, "w", encoding=encoding, newline=newline)

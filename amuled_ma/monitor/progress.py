@@ -11,7 +11,6 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
-from types import TracebackType
 from typing import IO
 
 #: A plain progress line, as `Progress.line` writes it (tools that read stderr skip these).
@@ -124,7 +123,9 @@ class Progress:
             if since < (self._first if self._last_line is None else self._every):
                 return False
             self._last_line = now
-            self._write(self.line(now))
+            stream = self._stream if self._stream is not None else sys.stderr
+            stream.write(self.line(now) + "\n")
+            stream.flush()
         return True
 
     def line(self, now: float | None = None) -> str:
@@ -143,11 +144,6 @@ class Progress:
             f"{self.phase}: {self.done:,}/{total} {self.unit}, {duration(elapsed)} elapsed, "
             f"ETA {eta}"
         )
-
-    def _write(self, text: str) -> None:
-        stream = self._stream if self._stream is not None else sys.stderr
-        stream.write(text + "\n")
-        stream.flush()
 
     def _watch(self) -> None:
         plain = max(min(self._first, self._every) / 10, 0.01)
@@ -171,10 +167,5 @@ class Progress:
     def __enter__(self) -> Progress:
         return self
 
-    def __exit__(
-        self,
-        kind: type[BaseException] | None,
-        error: BaseException | None,
-        trace: TracebackType | None,
-    ) -> None:
+    def __exit__(self, *_exc: object) -> None:
         self.close()

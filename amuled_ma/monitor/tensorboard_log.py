@@ -23,22 +23,17 @@ def _quiet_hook(args: threading.ExceptHookArgs) -> None:
     _previous_hook(args)
 
 
-def _install_quiet_hook() -> None:
-    """Put :func:`_quiet_hook` in front of the process's ``threading.excepthook``, once."""
-    global _previous_hook
-    with _hook_lock:
-        if threading.excepthook is not _quiet_hook:
-            _previous_hook = threading.excepthook
-            threading.excepthook = _quiet_hook
-
-
 class TensorBoardLog:
     """A ``SummaryWriter`` for scalars; a failed write (``failed``) raises FileWriteError."""
 
     def __init__(self, log_dir: str | Path, *, flush_secs: float = 30) -> None:
         from torch.utils.tensorboard import SummaryWriter
 
-        _install_quiet_hook()
+        global _previous_hook
+        with _hook_lock:  # put _quiet_hook in front of the process's hook, once
+            if threading.excepthook is not _quiet_hook:
+                _previous_hook = threading.excepthook
+                threading.excepthook = _quiet_hook
         self.log_dir = Path(log_dir)
         self.failed = False
         try:

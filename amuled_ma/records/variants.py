@@ -32,11 +32,6 @@ def parse_feedback(feedback: str) -> tuple[str, str | None]:
     )
 
 
-def folder_name(text: str) -> str:
-    """A file-system-safe folder name for a variant's text (``:`` and ``/`` replaced)."""
-    return text.replace(":", "-").replace(" ", "_").replace("/", "_")
-
-
 @dataclass(frozen=True)
 class Variant:
     """One thing to train: ``base``, ``shaped`` or ``finetune`` (on ``feedback``, any name).
@@ -101,6 +96,5 @@ class Variant:
     @property
     def folder(self) -> str:
         """The variant's folder in a run directory (``finetune-cluster-care``, ``base``)."""
-        if self.label:
-            return folder_name(f"finetune-{self.label}")
-        return folder_name(str(self))
+        text = f"finetune-{self.label}" if self.label else str(self)
+        return text.replace(":", "-").replace(" ", "_").replace("/", "_")

@@ -7,27 +7,8 @@ and CleanRL's PPO. Validation runs on load, on ``--set`` and in code; any failur
 
 from __future__ import annotations
 
-from amuled_ma.scenario.agents import (
-    AGENT_SOURCE_KINDS,
-    AGENT_SPECS,
-    MORAL_AGENT,
-    AgentSpec,
-    EntryPointSpec,
-    OllamaSpec,
-    PolicySpec,
-    ReplaySpec,
-    RulesSpec,
-    TerminalSpec,
-)
+from amuled_ma.scenario.agents import AGENT_SPECS, MORAL_AGENT, OllamaSpec, TerminalSpec
 from amuled_ma.scenario.loading import load_scenario, resolve_scenario_path, scenario_from_dict
-from amuled_ma.scenario.memory import (
-    BYTES_PER_TRANSITION,
-    FALLBACK_MEMORY_BYTES,
-    MAX_ENV_STEPS,
-    MEMORY_FRACTION,
-    physical_memory_bytes,
-)
-from amuled_ma.scenario.messages import scenario_error
 from amuled_ma.scenario.model import Changes, Scenario, validate_section
 from amuled_ma.scenario.paths import (
     check_path_component,
@@ -49,28 +30,18 @@ from amuled_ma.scenario.sections import (
 )
 
 __all__ = [
-    "AGENT_SOURCE_KINDS",
     "AGENT_SPECS",
-    "BYTES_PER_TRANSITION",
-    "FALLBACK_MEMORY_BYTES",
-    "MAX_ENV_STEPS",
-    "MEMORY_FRACTION",
     "MORAL_AGENT",
     "PAPER_CLUSTERS",
-    "AgentSpec",
     "BaseConfig",
     "Changes",
     "DistillConfig",
-    "EntryPointSpec",
     "EvaluationConfig",
     "FeedbackConfig",
     "FinetuneConfig",
     "OllamaSpec",
     "OutputConfig",
     "PPOConfig",
-    "PolicySpec",
-    "ReplaySpec",
-    "RulesSpec",
     "Scenario",
     "TaskConfig",
     "TerminalSpec",
@@ -78,10 +49,8 @@ __all__ = [
     "field_length",
     "field_range",
     "load_scenario",
-    "physical_memory_bytes",
     "resolve_scenario_path",
     "safe_child",
-    "scenario_error",
     "scenario_from_dict",
     "user_data_dir",
     "user_recordings_dir",

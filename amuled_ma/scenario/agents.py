@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import datetime
 import typing
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -11,6 +10,7 @@ from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from amuled_ma.errors import ScenarioError
+from amuled_ma.scenario.memory import leaves
 from amuled_ma.scenario.paths import find_recording
 from amuled_ma.scenario.ranges import RANGE_ERRORS, TOML_NAMES, field_range, found
 from amuled_ma.servers.urls import normalize_host, normalize_hosts
@@ -21,7 +21,6 @@ if TYPE_CHECKING:
 #: Name of the unprompted moral agent (the ``moral`` variant; ``moral_agent`` in recordings).
 MORAL_AGENT = "moral_agent"
 
-_PLAIN = (str, int, float, bool, list, dict)
 _OPTION = "an OllamaSource option"
 
 
@@ -143,9 +142,7 @@ class OllamaSpec(_Spec):
             "concurrency": rest.pop("concurrency", fb.concurrency),
             "timeout_s": float(rest.pop("timeout_s", fb.timeout_s)),
         }
-        options.update(fb.ollama)
-        options.update(rest)
-        return options
+        return {**options, **fb.ollama, **rest}
 
     def detail(self, options: Mapping[str, Any]) -> str:  # noqa: D102 - see _Spec
         return f", model {options['model']!r}"
@@ -221,38 +218,18 @@ class PolicySpec(_Spec):
         return {**self.model_dump(exclude={"source"}), "path": str(resolve(self.path))}
 
 
-#: The one registry of the source kinds an agent table may name: kind -> spec model.
-AGENT_SPECS: dict[str, type[_Spec]] = {
-    "replay": ReplaySpec,
-    "ollama": OllamaSpec,
-    "rules": RulesSpec,
-    "terminal": TerminalSpec,
-    "entry-point": EntryPointSpec,
-    "policy": PolicySpec,
-}
-#: Keys of an ``ollama`` table that ``[feedback]`` sets itself (not in ``[feedback.ollama]``).
-FEEDBACK_OLLAMA_KEYS = ("model", "host", "hosts", "concurrency", "timeout_s")
-
-
-def check_ollama_table(table: Mapping[str, Any], where: str) -> None:
-    """Refuse keys of ``[feedback.ollama]`` that no ``OllamaSource`` takes: `ScenarioError`."""
-    allowed = set(OllamaSpec.model_fields) - {"source", *FEEDBACK_OLLAMA_KEYS}
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise ScenarioError(
-            f"{where}: [feedback.ollama] unknown key(s) {', '.join(unknown)}; expected some of "
-            f"{', '.join(sorted(allowed))}"
-        )
-
-
-#: Source kinds a ``[feedback.agents.<name>]`` table may name, in the order of messages.
-AGENT_SOURCE_KINDS = tuple(AGENT_SPECS)
 #: An agent table: one of the spec models, chosen by its ``source``.
 AgentSpec = Annotated[
     ReplaySpec | OllamaSpec | RulesSpec | TerminalSpec | EntryPointSpec | PolicySpec,
     Field(discriminator="source"),
 ]
-assert set(typing.get_args(typing.get_args(AgentSpec)[0])) == set(AGENT_SPECS.values())
+#: The one registry of the source kinds an agent table may name: kind -> spec model.
+AGENT_SPECS: dict[str, type[_Spec]] = {
+    typing.get_args(spec.model_fields["source"].annotation)[0]: spec
+    for spec in typing.get_args(typing.get_args(AgentSpec)[0])
+}
+#: Source kinds a ``[feedback.agents.<name>]`` table may name, in the order of messages.
+AGENT_SOURCE_KINDS = tuple(AGENT_SPECS)
 
 
 def _types(annotation: Any) -> tuple[type, ...]:
@@ -268,25 +245,6 @@ def _types(annotation: Any) -> tuple[type, ...]:
     if annotation is float:
         return (int, float)
     return (annotation,)
-
-
-def _plain_problem(value: object, key: str) -> str | None:
-    """Why ``value`` is not plain JSON-able TOML data (a datetime, say), or None."""
-    if isinstance(value, datetime.date | datetime.time):
-        return f"key {key} expects a string, number, boolean, array or table, found {value!r}"
-    if isinstance(value, dict):
-        for k, v in value.items():
-            problem = _plain_problem(v, f"{key}.{k}")
-            if problem:
-                return problem
-    elif isinstance(value, list):
-        for i, v in enumerate(value):
-            problem = _plain_problem(v, f"{key}[{i}]")
-            if problem:
-                return problem
-    elif not isinstance(value, _PLAIN) and value is not None:
-        return f"key {key} expects a string, number, boolean, array or table, found {value!r}"
-    return None
 
 
 def _agent_problem(model: type[_Spec], table: Mapping[str, Any], error: ValidationError) -> str:
@@ -342,10 +300,13 @@ def check_agent_table(
             'amuled_ma.agents name, or "pkg.module:Class" and --allow-plugin pkg.module:Class)'
         )
     model = AGENT_SPECS[kind]
-    for k, value in table.items():  # pydantic takes a date inside a free-form table
-        problem = _plain_problem(value, k)
-        if problem:
-            raise ScenarioError(f"{head} {problem}")
+    for name, given in table.items():  # pydantic takes a date inside a free-form table
+        for key, value in leaves(str(name), given):
+            if value is not None and not isinstance(value, str | int | float | bool):
+                raise ScenarioError(
+                    f"{head} key {key} expects a string, number, boolean, array or table, "
+                    f"found {value!r}"
+                )
     host, hosts = table.get("host"), table.get("hosts")
     if kind == "ollama" and isinstance(host, str) and host:
         normalize_host(host, where=f"{head} key host")

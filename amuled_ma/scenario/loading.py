@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import tomllib
-from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -12,7 +11,7 @@ from amuled_ma.errors import ScenarioError
 from amuled_ma.files.resources import read_text, scenarios_dir
 from amuled_ma.scenario.messages import did_you_mean, unknown_top_level
 from amuled_ma.scenario.model import Scenario
-from amuled_ma.scenario.panel_weights import member_prior, read_panel_weights
+from amuled_ma.scenario.panel_weights import weights_prior
 from amuled_ma.scenario.paths import check_path_component
 from amuled_ma.scenario.sections import validate_model
 
@@ -66,20 +65,6 @@ def load_scenario(name_or_path: str | os.PathLike[str]) -> Scenario:
     if feedback.weights.strip():
         weights_prior(feedback.weights, feedback.clusters, scenario.resolve, str(path))
     return scenario
-
-
-def weights_prior(
-    weights: str, members: Sequence[str], resolve: Callable[[str], Path], where: str
-) -> tuple[tuple[float, ...], Path]:
-    """``(prior in members' order, file)`` of a ``[feedback].weights`` file (``where``: scenario).
-
-    Raises:
-        ScenarioError: The file is missing, malformed, or names other members than ``members``.
-    """
-    where = f"{where}: key [feedback].weights"
-    path = resolve(weights)
-    prior = member_prior(read_panel_weights(path, where=where), members, where=where, path=path)
-    return prior, path
 
 
 #: Most characters a scenario file may hold (a shipped one holds about 10,000).

@@ -5,7 +5,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from amuled_ma.errors import ScenarioError
@@ -60,16 +60,23 @@ def _bytes(n: float) -> str:
     raise AssertionError  # pragma: no cover
 
 
-def check_finite(key: str, value: object, source: str) -> None:
-    """Refuse NaN and infinities anywhere in a free-form value (``options``, ``ollama``)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        raise ScenarioError(f"{source}: key {key} expects a finite number, found {value!r}")
+def leaves(key: str, value: object) -> Iterator[tuple[str, object]]:
+    """Every value inside tables and arrays of ``value``, with its key (``options.a[0]``)."""
     if isinstance(value, dict):
         for k, v in value.items():
-            check_finite(f"{key}.{k}", v, source)
+            yield from leaves(f"{key}.{k}", v)
     elif isinstance(value, list | tuple):
         for i, v in enumerate(value):
-            check_finite(f"{key}[{i}]", v, source)
+            yield from leaves(f"{key}[{i}]", v)
+    else:
+        yield key, value
+
+
+def check_finite(key: str, value: object, source: str) -> None:
+    """Refuse NaN and infinities anywhere in a free-form value (``options``, ``ollama``)."""
+    for where, leaf in leaves(key, value):
+        if isinstance(leaf, float) and not math.isfinite(leaf):
+            raise ScenarioError(f"{source}: key {where} expects a finite number, found {leaf!r}")
 
 
 def check_memory(
@@ -89,11 +96,6 @@ def check_memory(
         )
 
 
-def _network_parameters(hidden_dims: list[int]) -> int:
-    dims = [ASSUMED_OBS_DIM, *hidden_dims, ASSUMED_NUM_ACTIONS]
-    return sum(a * b + b for a, b in itertools.pairwise(dims))
-
-
 def check_budget(section: str, values: dict[str, Any], source: str) -> None:
     """Checks across keys of one section: memory estimates and the run-length cap."""
     if section in ("base", "finetune"):
@@ -110,7 +112,7 @@ def check_budget(section: str, values: dict[str, Any], source: str) -> None:
             ),
         )
     if section == "finetune":
-        its, envs, steps = values["iterations"], values["num_envs"], values["num_steps_per_env"]
+        its = values["iterations"]
         total = its * envs * steps
         if total > MAX_ENV_STEPS:
             raise ScenarioError(
@@ -120,10 +122,11 @@ def check_budget(section: str, values: dict[str, Any], source: str) -> None:
                 f"28 hours at 100,000 steps/s), found iterations = {its!r}"
             )
     if section == "ppo":
+        dims = [ASSUMED_OBS_DIM, *values["hidden_dims"], ASSUMED_NUM_ACTIONS]
         check_memory(
             f"[ppo].hidden_dims = {values['hidden_dims']!r} (actor and critic, "
             f"{ASSUMED_OBS_DIM} inputs, {ASSUMED_NUM_ACTIONS} outputs assumed)",
-            _network_parameters(values["hidden_dims"]),
+            sum(a * b + b for a, b in itertools.pairwise(dims)),
             BYTES_PER_PARAMETER,
             "network parameters",
             source,
@@ -156,8 +159,7 @@ def distill_bytes(ensemble: int, hidden: int, members: int, budget: float | int)
     outputs = members * ASSUMED_NUM_ACTIONS
     per_network = ASSUMED_OBS_DIM * hidden + hidden + hidden * hidden + hidden
     per_network += hidden * outputs + outputs
-    states = budget if isinstance(budget, int) and not isinstance(budget, bool) else 0
-    states = states or ASSUMED_DISTILL_STATES
+    states = budget if isinstance(budget, int) else ASSUMED_DISTILL_STATES
     parameters = ensemble * per_network * BYTES_PER_DISTILL_PARAMETER
     return parameters + ensemble * states * (2 * hidden + outputs) * BYTES_PER_DISTILL_ACTIVATION
 

@@ -11,7 +11,14 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ValidationError
 
 from amuled_ma.errors import ScenarioError
-from amuled_ma.scenario.ranges import RANGE_ERRORS, Range, field_length, field_range, found
+from amuled_ma.scenario.ranges import (
+    RANGE_ERRORS,
+    TOML_NAMES,
+    Range,
+    field_length,
+    field_range,
+    found,
+)
 from amuled_ma.scenario.ranges import kind as _kind
 
 #: The section models by table name, in the order of a scenario file (filled by
@@ -23,7 +30,6 @@ SECTIONS: dict[str, type[BaseModel]] = {}
 BUILT_IN_CODE = "<scenario built in code>"
 
 
-# ------------------------------------------------------------------------ error messages
 def _type_name(tp: object) -> str:
     origin = typing.get_origin(tp)
     if origin is Annotated:
@@ -31,20 +37,12 @@ def _type_name(tp: object) -> str:
     if origin is list:
         (inner,) = typing.get_args(tp)
         return f"list of {_type_name(inner)}"
-    if origin is dict:
+    if origin is dict or (isinstance(tp, type) and issubclass(tp, BaseModel)):
         return "table"
     if origin is Literal:
         return f"string ({' or '.join(map(str, typing.get_args(tp)))})"
-    if tp is float:
-        return "float"
-    if tp is int:
-        return "integer"
-    if tp is str:
-        return "string"
-    if tp is bool:
-        return "boolean"
-    if isinstance(tp, type) and issubclass(tp, BaseModel):
-        return "table"
+    if tp in (float, int, str, bool):
+        return TOML_NAMES[tp]
     return getattr(tp, "__name__", str(tp))
 
 

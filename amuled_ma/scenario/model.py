@@ -104,15 +104,10 @@ class Scenario(BaseModel):
         source = f"{self.path or self.name} (override of [{section}])"
         if section not in SECTIONS:
             raise ScenarioError(unknown_section(section, source))
-        current = getattr(self, section)
-        merged = {key: getattr(current, key) for key in type(current).model_fields}
+        merged: dict[str, Any] = dict(getattr(self, section))
         for key, value in changes.items():
-            head, dot, rest = key.partition(".")
-            if not dot:
-                merged[key] = value
-                continue
-            table = merged.get(head)
-            if not isinstance(table, BaseModel | dict):
+            head, dot, _ = key.partition(".")
+            if dot and not isinstance(merged.get(head), BaseModel | dict):
                 close = did_you_mean(head, list(merged))
                 where = (
                     f"[{section}].{head} is not a table"
@@ -120,7 +115,7 @@ class Scenario(BaseModel):
                     else f"no key [{section}].{head}{close}"
                 )
                 raise ScenarioError(f"{source}: key [{section}].{key}: {where}")
-            merged[head] = _with_nested(table, rest, value)
+            merged = _with_nested(merged, key, value)
         return self.model_copy(update={section: validate_section(section, merged, source)})
 
     def changed(self, changes: Changes) -> Scenario:
@@ -137,12 +132,8 @@ class Scenario(BaseModel):
 
 
 def _with_nested(table: BaseModel | dict[str, Any], key: str, value: object) -> dict[str, Any]:
-    """A nested table's keys as a dict, with ``key`` (dotted for deeper tables) set."""
-    data = (
-        {k: getattr(table, k) for k in type(table).model_fields}
-        if isinstance(table, BaseModel)
-        else dict(table)
-    )
+    """A table's keys as a dict, with ``key`` (dotted for nested tables) set."""
+    data = dict(table)
     head, dot, rest = key.partition(".")
     if dot and isinstance(data.get(head), BaseModel | dict):
         data[head] = _with_nested(data[head], rest, value)

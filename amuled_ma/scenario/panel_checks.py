@@ -54,15 +54,6 @@ def prior_rules() -> tuple[str, ...]:
     return tuple(n for n in FUSION_RULES if n in _PRIOR_RULES)
 
 
-def _choices() -> str:
-    return ", ".join(f"{n}:<i>" if p else n for n, p in FUSION_RULES.items())
-
-
-def _close(found: str, names: Sequence[str]) -> str:
-    close = difflib.get_close_matches(found, list(names), n=1)
-    return f" (did you mean {close[0]!r}?)" if close else ""
-
-
 def check_clusters(value: list[str], source: str) -> list[str]:
     """Return ``[feedback].clusters`` if it is a panel: non-empty, distinct, visible names.
 
@@ -110,10 +101,12 @@ def check_fusion(value: str, clusters: Sequence[str] | None, source: str) -> str
     name, sep, param = value.partition(":")
     takes = FUSION_RULES.get(name)
     if takes is None:
+        close = difflib.get_close_matches(name, list(FUSION_RULES), n=1)
+        rules = ", ".join(f"{n}:<i>" if p else n for n, p in FUSION_RULES.items())
         raise ScenarioError(
             f"{head} expects a fusion rule, found {value[:60]!r}"
-            f"{_close(name, list(FUSION_RULES))}; "
-            f"the rules: {_choices()} (docs/fusion.md)"
+            f"{f' (did you mean {close[0]!r}?)' if close else ''}; "
+            f"the rules: {rules} (docs/fusion.md)"
         )
     if takes and not sep:
         raise ScenarioError(f"{head} expects {name}:<i> (a member's index), found {value!r}")

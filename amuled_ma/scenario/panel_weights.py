@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Final, Literal
 
@@ -114,8 +114,17 @@ class PanelWeights(_Model):
         return self
 
 
-def read_panel_weights(path: Path, *, where: str) -> PanelWeights:
-    """Read and check a panel weights file (``where``: scenario file and key; `ScenarioError`)."""
+def weights_prior(
+    weights: str, members: Sequence[str], resolve: Callable[[str], Path], where: str
+) -> tuple[float, ...]:
+    """The prior of a ``[feedback].weights`` file in ``members``' order, scaled to sum 1.
+
+    Raises:
+        ScenarioError: The file is missing, not JSON or malformed; a panel member without a
+            weight, a weight for a non-member, or no weight above 0 among the members.
+    """
+    where = f"{where}: key [feedback].weights"
+    path = resolve(weights)
     fix = "write it with 'amuled study fit-weights STUDY' (docs/study.md)"
     try:
         raw = read_bounded_bytes(
@@ -133,25 +142,14 @@ def read_panel_weights(path: Path, *, where: str) -> PanelWeights:
         why = "nested deeper than Python can read" if isinstance(error, RecursionError) else error
         raise ScenarioError(f"{where}: weights file {path} is not JSON ({why}); {fix}") from None
     try:
-        return PanelWeights.model_validate(data)
+        panel = PanelWeights.model_validate(data)
     except ValidationError as error:
         first = error.errors()[0]
         key = ".".join(str(p) for p in first["loc"]) or "(the whole file)"
         message = str(first["msg"]).removeprefix("Value error, ")
         raise ScenarioError(f"{where}: weights file {path}: key {key}: {message}; {fix}") from None
-
-
-def member_prior(
-    weights: PanelWeights, members: Sequence[str], *, where: str, path: Path
-) -> tuple[float, ...]:
-    """One weight per member in ``members``' order, scaled to sum 1.
-
-    Raises:
-        ScenarioError: A panel member without a weight, a weight for a non-member, or no
-            weight above 0 among the members.
-    """
-    total = math.fsum(weights.weights)
-    known = {m: w / total for m, w in zip(weights.members, weights.weights, strict=True)}
+    total = math.fsum(panel.weights)
+    known = {m: w / total for m, w in zip(panel.members, panel.weights, strict=True)}
     missing = [m for m in members if m not in known]
     extra = [m for m in known if m not in members]
     fix = (

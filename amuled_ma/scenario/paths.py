@@ -19,7 +19,6 @@ NAME_RULE = (
 )
 
 
-# --------------------------------------------------------------------- user data
 #: Folder name of our files in the XDG data folder (``~/.local/share/amuled-ma``).
 USER_DATA_NAME = "amuled-ma"
 
@@ -38,7 +37,6 @@ def user_recordings_dir() -> Path:
     return user_data_dir() / "recordings"
 
 
-# --------------------------------------------------------------------- path components
 def _component_problem(name: str) -> str | None:
     """What makes ``name`` unsafe as one path component (None: nothing)."""
     if not name:

@@ -60,22 +60,15 @@ def _bounds(metadata: list[Any], why: str | None) -> Range | None:
     return Range(low, high, low_open, high_open, why or "")
 
 
-def _item_field(annotation: Any) -> Any:
-    """The ``Field`` of a list's items (``list[Annotated[int, Field(...)]]``), if any."""
-    if typing.get_origin(annotation) is not list:
-        return None
-    (item,) = typing.get_args(annotation)
-    if typing.get_origin(item) is not Annotated:
-        return None
-    return next((m for m in typing.get_args(item)[1:] if hasattr(m, "metadata")), None)
-
-
 def field_range(model: type[BaseModel], key: str) -> Range | None:
     """The range of a numeric key (each entry's, for a list); None without bounds."""
     info = model.model_fields[key]
-    item = _item_field(info.annotation)
-    if item is not None:
-        return _bounds(item.metadata, item.description)
+    if typing.get_origin(info.annotation) is list:  # list[Annotated[int, Field(...)]]
+        (entry,) = typing.get_args(info.annotation)
+        if typing.get_origin(entry) is Annotated:
+            item = next((m for m in typing.get_args(entry)[1:] if hasattr(m, "metadata")), None)
+            if item is not None:
+                return _bounds(item.metadata, item.description)
     return _bounds(info.metadata, info.description)
 
 

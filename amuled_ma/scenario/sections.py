@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from contextvars import ContextVar
 from typing import Annotated, Any, ClassVar, Literal, TypeVar, get_args
 
@@ -22,9 +21,9 @@ from amuled_ma.errors import ScenarioError
 from amuled_ma.scenario.agents import (
     AgentSpec,
     Concurrency,
+    OllamaSpec,
     TimeoutS,
     check_agent_tables,
-    check_ollama_table,
 )
 from amuled_ma.scenario.memory import (
     MAX_ENV_STEPS,
@@ -73,10 +72,8 @@ _WEIGHT_WHY = "a weight; negative flips the term's sign"
 
 
 #: The validation context (``{"source": <file or override>}``) of the scenario being
-#: validated. pydantic passes ``model_validate``'s context to validators but calls a model's
-#: own ``__init__`` (the section models have one) without it, so `validate_model` also
-#: sets it here for `_init` to pass on (the pattern of pydantic's documentation,
-#: "Using validation context with BaseModel initialization").
+#: validated: pydantic calls a model's own ``__init__`` without ``model_validate``'s context,
+#: so `validate_model` also sets it here for `_init` (pydantic's documented pattern).
 _CONTEXT: ContextVar[dict[str, str] | None] = ContextVar("amuled_scenario_context", default=None)
 
 
@@ -93,17 +90,11 @@ def _init(model: BaseModel, data: dict[str, Any], loc: tuple[str, ...]) -> None:
 
 def _source(info: ValidationInfo) -> str:
     """The file (or override) being validated: the validation context's ``source``."""
-    context = info.context
-    if isinstance(context, Mapping) and isinstance(context.get("source"), str):
-        return context["source"]
-    return BUILT_IN_CODE
+    return str((info.context or {}).get("source", BUILT_IN_CODE))
 
 
 class _Section(BaseModel):
-    """Base of the section models: strict, frozen, no unknown keys, no NaN.
-
-    Built in code (``TaskConfig(seed=-1)``) a section is validated like a file (`ScenarioError`).
-    """
+    """Base of the section models: strict, frozen, no unknown keys, no NaN; validated when built."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
@@ -407,7 +398,15 @@ class FeedbackConfig(_Section):
     @field_validator("ollama")
     @classmethod
     def _ollama_is_finite(cls, value: dict[str, Any], info: ValidationInfo) -> object:
-        check_ollama_table(value, _source(info))
+        """Refuse keys no ``OllamaSource`` takes, or that ``[feedback]`` sets itself."""
+        own = {"source", "model", "host", "hosts", "concurrency", "timeout_s"}
+        allowed = set(OllamaSpec.model_fields) - own
+        unknown = sorted(set(value) - allowed)
+        if unknown:
+            raise ScenarioError(
+                f"{_source(info)}: [feedback.ollama] unknown key(s) {', '.join(unknown)}; "
+                f"expected some of {', '.join(sorted(allowed))}"
+            )
         return _finite_table("feedback", value, info)
 
     @field_validator("agents", mode="before")

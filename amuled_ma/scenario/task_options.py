@@ -74,11 +74,6 @@ def options_model(task: str) -> type[_Options] | None:
     return TASK_OPTIONS.get(_ALIASES.get(key, key))
 
 
-def _accepted(model: type[_Options]) -> str:
-    """``layout, tie_break`` for a task's options, or ``none`` for a task without any."""
-    return ", ".join(model.model_fields) or "none"
-
-
 def check_task_options(task: str, options: Mapping[str, Any], where: str) -> None:
     """Refuse ``[task].options`` the task would refuse (a task without a model: left to it).
 
@@ -107,5 +102,5 @@ def check_task_options(task: str, options: Mapping[str, Any], where: str) -> Non
             problem = f"option {name} {said}, found {first.get('input')!r}"
         raise ScenarioError(
             f"{head} of task {task!r}: {problem}; the task's options are "
-            f"{_accepted(model)} (docs/tasks.md)"
+            f"{', '.join(model.model_fields) or 'none'} (docs/tasks.md)"
         ) from None

@@ -43,23 +43,28 @@ def test_the_plan_of_every_shipped_scenario_and_example(path, recordings_dir):
     recording = feedback.get("recording", "")
     scenario = load_scenario(path)
     plan = plan_panel("amuled", scenario)
-    described = plan.describe()
-    assert [m["agent"] for m in described["members"]] == clusters
-    assert described["fusion"] == feedback.get("fusion", "bjs-dst")
+    assert plan.agents == clusters
+    assert plan.rule == feedback.get("fusion", "bjs-dst")
     fused = (
         default == "replay"
         and not tables
         and _fused_only(recordings_dir / f"{Path(recording).stem}.json")
     )
-    assert described["fused_only"] is fused
-    for member in described["members"]:
-        expected = tables.get(member["agent"], {}).get("source", default)
-        assert member["source"] == expected, member
-        if member["agent"] in tables:
-            assert member["label"].startswith(f"[feedback.agents.{member['agent']}]")
+    assert (plan.fused_recording is not None) is fused
+    for agent in plan.agents:
+        source = plan.source_of(agent)
+        expected = tables.get(agent, {}).get("source", default)
+        assert (source.kind if source is not None else "replay") == expected, agent
+        if agent in tables:
+            assert source is not None
+            assert source.label.startswith(f"[feedback.agents.{agent}]")
     if default == "replay":
-        assert described["recording"] == f"{Path(recording).stem}.json"
-    json.dumps(described)  # plain JSON
+        replayed = [
+            plan.fused_recording or Path(s.options["paths"])
+            for s in [plan.source_of(a) for a in plan.agents]
+            if s is None or s.kind == "replay"
+        ]
+        assert replayed[0].name == f"{Path(recording).stem}.json"
 
 
 def _scenario(tmp_path: Path, feedback: str) -> Path:

@@ -16,10 +16,10 @@ from amuled_ma.errors import AmuledError, PromptError
 from amuled_ma.files.limits import (
     check_size,
     read_bounded_bytes,
-    read_bounded_text,
     read_line,
     too_large,
 )
+from amuled_ma.files.resources import read_text
 
 
 def test_the_refusal_is_one_line_with_file_size_cap_and_fix() -> None:
@@ -64,12 +64,12 @@ def test_a_file_that_reports_no_size_is_cut_at_the_cap() -> None:
 def test_text_is_utf8_with_newlines_as_read_text_reads_them(tmp_path: Path) -> None:
     path = tmp_path / "t.md"
     path.write_bytes("é\r\nb\rc\n".encode())
-    assert read_bounded_text(path, 100, "system prompt") == path.read_text(encoding="utf-8")
+    assert read_text(path, "system prompt", max_bytes=100) == path.read_text(encoding="utf-8")
     path.write_bytes(b"\xff")
     with pytest.raises(PromptError, match="the system prompt is not UTF-8 text"):
-        read_bounded_text(path, 100, "system prompt", error=PromptError)
+        read_text(path, "system prompt", PromptError, max_bytes=100)
     with pytest.raises(PromptError, match="cannot read the system prompt: No such file"):
-        read_bounded_text(tmp_path / "none.md", 100, "system prompt", error=PromptError)
+        read_text(tmp_path / "none.md", "system prompt", PromptError, max_bytes=100)
 
 
 def test_a_line_is_read_up_to_its_cap_and_a_longer_one_refused() -> None:

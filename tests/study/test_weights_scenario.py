@@ -53,8 +53,6 @@ def test_the_prior_reaches_the_panel_in_the_panel_s_order(tmp_path):
     plan = plan_panel("amuled", scenario)
     total = sum(WEIGHTS.values())
     assert plan.prior == pytest.approx([WEIGHTS[c] / total for c in PAPER_CLUSTERS], abs=1e-15)
-    assert plan.weights_file == tmp_path / "w.json"
-    assert plan.describe()["weights"]["file"] == "w.json"
     # the baselines keep their own rules: no prior
     for variant in ("cluster:care", "agg:mean", "moral", "human"):
         assert plan_panel(variant, scenario).prior is None
