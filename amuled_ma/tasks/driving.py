@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from amuled_ma.tasks import rng
-from amuled_ma.tasks.base import BatchedTask, paint_cells
+from amuled_ma.tasks.base import BatchedTask, check_int, paint_cells
 
 __all__ = ["Driving"]
 
@@ -194,7 +194,7 @@ class Driving(BatchedTask):
         if kind not in _KINDS:
             raise ValueError(f"kind: expected 'car' or 'grandma', got {kind!r}")
         width, allowed = _KINDS[kind]
-        _check_lane(lane)
+        lane = check_int(lane, "lane", 0, NUM_LANES - 1)
         if distance not in allowed:
             raise ValueError(f"distance: a {kind} can only be at {allowed}, got {distance!r}")
         k = allowed.index(distance) + 1
@@ -230,8 +230,7 @@ class Driving(BatchedTask):
 
     def set_lane(self, lane: int, env_ids: object = None) -> None:
         """Move the agent's car to ``lane`` in the selected copies; updates ``obs``."""
-        _check_lane(lane)
-        self._lane[self._env_ids(env_ids)] = int(lane)
+        self._lane[self._env_ids(env_ids)] = check_int(lane, "lane", 0, NUM_LANES - 1)
         self._obs = self._observe()
 
     def road(self) -> dict[str, torch.Tensor]:
@@ -316,11 +315,3 @@ class Driving(BatchedTask):
         img = paint_cells(rows[::-1], colours, cell, background=110)  # distance 8 on top
         img[:, ::cell] = (240, 240, 240)
         return img
-
-
-def _check_lane(lane: object) -> None:
-    """Refuse a ``lane`` that is not an integer in ``0..NUM_LANES - 1`` (ValueError)."""
-    if isinstance(lane, bool) or not isinstance(lane, numbers.Integral):
-        raise ValueError(f"lane: expected an integer 0..{NUM_LANES - 1}, got {lane!r}")
-    if not 0 <= int(lane) < NUM_LANES:
-        raise ValueError(f"lane: expected 0..{NUM_LANES - 1}, got {lane!r}")

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from amuled_ma.errors import ScenarioError
-from amuled_ma.tasks.base import BatchedTask, paint_cells
+from amuled_ma.tasks.base import BatchedTask, check_int, paint_cells
 
 __all__ = ["ACTIONS", "FIXED_ACTION", "JUDGES", "JUDGE_TEMPERATURE", "SmartGrid", "action_vector"]
 
@@ -132,9 +132,8 @@ class SmartGrid(BatchedTask):
 
     # ------------------------------------------------------------------ hooks
     def _init_task(self, households: int = 3, offices: int = 1) -> None:
-        for option, value, low in (("households", households, 1), ("offices", offices, 0)):
-            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= 1000:
-                raise ValueError(f"{option}: expected an integer in {low}..1000, got {value!r}")
+        households = check_int(households, "households", 1, 1000)
+        offices = check_int(offices, "offices", 0, 1000)
         try:
             from smartgrid import SmartGrid as PackageGrid
             from smartgrid import World

@@ -49,10 +49,8 @@ def demonstrator_belief(
             cached = DemonstratorBelief.load(path)
             if not settings_differences(cached.settings, settings) and cached.task_name == name:
                 return cached
-    if name == "findmilk":
-        belief = play_findmilk(seed=settings["seed"], episodes=episodes, progress=progress)
-    else:
-        belief = play_driving(seed=settings["seed"], episodes=episodes, progress=progress)
+    play = play_findmilk if name == "findmilk" else play_driving
+    belief = play(seed=settings["seed"], episodes=episodes, progress=progress)
     if path is not None:
         belief.save(path)
     return belief

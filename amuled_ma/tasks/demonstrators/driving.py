@@ -17,7 +17,7 @@ import torch
 from amuled_ma.tasks.demonstrators.play import (
     PairCounter,
     episode_streams,
-    progress_bar,
+    play_counted,
     sample,
     task_seed,
     uniforms,
@@ -27,9 +27,6 @@ from amuled_ma.tasks.demonstrators.table import (
     DRIVING_COUNT_FROM,
     MAX_STEPS,
     DemonstratorBelief,
-    check_count,
-    check_seed,
-    demonstrator_settings,
     encode_observations,
 )
 from amuled_ma.tasks.driving import Driving
@@ -128,24 +125,13 @@ def play_driving(
     Raises:
         ValueError: An argument is out of range.
     """
-    seed = check_seed(seed)
-    episodes = check_count(episodes, "episodes", 1)
-    count_from = check_count(count_from, "count_from", 0)
-    if count_from >= episodes:
-        raise ValueError(
-            f"count_from: expected less than episodes ({episodes}) so something is counted, "
-            f"got {count_from}"
-        )
-    max_steps = check_count(max_steps, "max_steps", 1)
-    batch_size = check_count(batch_size, "batch_size", 1)
-    counter = PairCounter(len(Driving.action_names))
-    with progress_bar(episodes - count_from, "driving demonstrator", progress) as bar:
-        for first in range(count_from, episodes, batch_size):
-            n = min(batch_size, episodes - first)
-            _play_wave(seed, first, n, max_steps, counter)
-            bar.update(n)
-    states, counts = counter.result()
-    settings = demonstrator_settings("driving", seed=seed, episodes=episodes)
-    settings["count_from"] = count_from
-    settings["max_steps"] = max_steps
-    return DemonstratorBelief("driving", states, counts, settings)
+    return play_counted(
+        "driving",
+        _play_wave,
+        seed=seed,
+        episodes=episodes,
+        count_from=count_from,
+        max_steps=max_steps,
+        batch_size=batch_size,
+        progress=progress,
+    )

@@ -11,7 +11,7 @@ import torch
 from amuled_ma.tasks.demonstrators.play import (
     PairCounter,
     episode_streams,
-    progress_bar,
+    play_counted,
     sample,
     task_seed,
     uniforms,
@@ -20,9 +20,6 @@ from amuled_ma.tasks.demonstrators.table import (
     DEFAULT_EPISODES,
     MAX_STEPS,
     DemonstratorBelief,
-    check_count,
-    check_seed,
-    demonstrator_settings,
     encode_observations,
 )
 from amuled_ma.tasks.findmilk import SIZE, SLEEPING, FindMilk
@@ -54,6 +51,23 @@ def findmilk_weights(obs: torch.Tensor) -> torch.Tensor:
     return torch.where(on_sleep, _SLEEPING_WEIGHT, torch.where(on_milk, _MILK_WEIGHT, toward))
 
 
+def _play_wave(seed: int, first: int, n: int, max_steps: int, counter: PairCounter) -> None:
+    """Play FindMilk episodes ``first..first+n-1`` side by side, each until it ends."""
+    task = FindMilk(n, seed=task_seed(seed, first), max_steps=max_steps)
+    obs = task.reset()
+    streams = episode_streams(seed, first, n, task.device)
+    active = torch.ones(n, dtype=torch.bool)
+    for t in range(max_steps):
+        u = uniforms(streams, t, 1)[:, 0]
+        actions = sample(findmilk_weights(obs), u)
+        keys, _ = encode_observations("findmilk", obs)
+        counter.add(keys[active], actions[active])
+        obs, _, terminated, truncated, _ = task.step(actions)
+        active &= ~(terminated | truncated)
+        if not bool(active.any()):
+            break
+
+
 def play_findmilk(
     *,
     seed: int,
@@ -67,29 +81,13 @@ def play_findmilk(
     Raises:
         ValueError: An argument is out of range.
     """
-    seed = check_seed(seed)
-    episodes = check_count(episodes, "episodes", 1)
-    max_steps = check_count(max_steps, "max_steps", 1)
-    batch_size = check_count(batch_size, "batch_size", 1)
-    counter = PairCounter(len(FindMilk.action_names))
-    with progress_bar(episodes, "findmilk demonstrator", progress) as bar:
-        for first in range(0, episodes, batch_size):
-            n = min(batch_size, episodes - first)
-            task = FindMilk(n, seed=task_seed(seed, first), max_steps=max_steps)
-            obs = task.reset()
-            streams = episode_streams(seed, first, n, task.device)
-            active = torch.ones(n, dtype=torch.bool)
-            for t in range(max_steps):
-                u = uniforms(streams, t, 1)[:, 0]
-                actions = sample(findmilk_weights(obs), u)
-                keys, _ = encode_observations("findmilk", obs)
-                counter.add(keys[active], actions[active])
-                obs, _, terminated, truncated, _ = task.step(actions)
-                active &= ~(terminated | truncated)
-                if not bool(active.any()):
-                    break
-            bar.update(n)
-    states, counts = counter.result()
-    settings = demonstrator_settings("findmilk", seed=seed, episodes=episodes)
-    settings["max_steps"] = max_steps
-    return DemonstratorBelief("findmilk", states, counts, settings)
+    return play_counted(
+        "findmilk",
+        _play_wave,
+        seed=seed,
+        episodes=episodes,
+        count_from=0,
+        max_steps=max_steps,
+        batch_size=batch_size,
+        progress=progress,
+    )

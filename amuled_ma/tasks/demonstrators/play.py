@@ -6,12 +6,16 @@ Episode ``e`` of seed ``s`` plays the task seeded ``b_s + e`` and draws from the
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 from amuled_ma.monitor.progress import Progress
-from amuled_ma.tasks import rng
+from amuled_ma.tasks import get_task, rng
+from amuled_ma.tasks.base import check_int
+from amuled_ma.tasks.demonstrators.table import DemonstratorBelief, demonstrator_settings
 
-__all__ = ["PairCounter", "episode_streams", "progress_bar", "sample", "task_seed", "uniforms"]
+__all__ = ["PairCounter", "episode_streams", "play_counted", "sample", "task_seed", "uniforms"]
 
 _TASK_STREAMS, _CHOICE_STREAMS = 0, 1  # purposes of the per-episode random streams
 
@@ -86,6 +90,44 @@ class PairCounter:
         return states, counts
 
 
-def progress_bar(total: int, desc: str, enabled: bool) -> Progress:
-    """The progress of ``total`` episodes: a bar when ``enabled``, else plain lines past 10 s."""
-    return Progress(desc, total, bar=enabled, unit="episode")
+#: Plays episodes ``first..first+n-1`` of one seed side by side, counting into the counter:
+#: ``wave(seed, first, n, max_steps, counter)``.
+Wave = Callable[[int, int, int, int, PairCounter], None]
+
+
+def play_counted(
+    task_name: str,
+    wave: Wave,
+    *,
+    seed: int,
+    episodes: int,
+    count_from: int,
+    max_steps: int,
+    batch_size: int,
+    progress: bool,
+) -> DemonstratorBelief:
+    """Play and count episodes ``count_from..episodes-1`` in waves of ``batch_size``.
+
+    Raises:
+        ValueError: An argument is out of range.
+    """
+    settings = demonstrator_settings(task_name, seed=seed, episodes=episodes)
+    seed, episodes = settings["seed"], settings["episodes"]
+    count_from = check_int(count_from, "count_from")
+    if count_from >= episodes:
+        raise ValueError(
+            f"count_from: expected less than episodes ({episodes}) so something is counted, "
+            f"got {count_from}"
+        )
+    settings["count_from"] = count_from
+    settings["max_steps"] = max_steps = check_int(max_steps, "max_steps", 1)
+    batch_size = check_int(batch_size, "batch_size", 1)
+    counter = PairCounter(len(get_task(task_name).action_names))
+    desc = f"{task_name} demonstrator"
+    with Progress(desc, episodes - count_from, bar=progress, unit="episode") as bar:
+        for first in range(count_from, episodes, batch_size):
+            n = min(batch_size, episodes - first)
+            wave(seed, first, n, max_steps, counter)
+            bar.update(n)
+    states, counts = counter.result()
+    return DemonstratorBelief(task_name, states, counts, settings)

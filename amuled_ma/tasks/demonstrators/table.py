@@ -10,7 +10,6 @@ from __future__ import annotations
 import functools
 import json
 import math
-import numbers
 import os
 import zipfile
 import zlib
@@ -25,6 +24,7 @@ from amuled_ma.errors import AmuledError
 from amuled_ma.files.limits import check_size
 from amuled_ma.files.safe import atomic_writer, checked_read_path
 from amuled_ma.tasks import canonical_name, get_task
+from amuled_ma.tasks.base import check_int
 
 __all__ = [
     "AUTHORS_STATE_COUNTS",
@@ -34,8 +34,6 @@ __all__ = [
     "MAX_TABLE_BYTES",
     "DemonstratorBelief",
     "DemonstratorCacheError",
-    "check_count",
-    "check_seed",
     "counts_to_belief",
     "demonstrator_settings",
     "encode_observations",
@@ -119,21 +117,6 @@ def check_table_memory(path: Path, fix: str) -> None:
         ) from err
 
 
-# ---------------------------------------------------------------------- arguments
-def check_seed(seed: object) -> int:
-    """Return ``seed`` as an ``int``, or raise ``ValueError`` unless a non-negative integer."""
-    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
-        raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
-    return int(seed)
-
-
-def check_count(value: object, label: str, minimum: int) -> int:
-    """Return ``value`` as an ``int``, or raise ``ValueError`` unless an integer >= minimum."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
-        raise ValueError(f"{label}: expected an integer >= {minimum}, got {value!r}")
-    return int(value)
-
-
 # ---------------------------------------------------------------------- observation keys
 def observation_bounds(task_name: str) -> list[list[int]]:
     """Return the integer ``[low, high]`` of each observation entry (the keys' radixes)."""
@@ -199,9 +182,8 @@ def counts_to_belief(counts: object) -> torch.Tensor:
 def demonstrator_settings(task_name: str, *, seed: int, episodes: int | None = None) -> dict:
     """Return the JSON-ready settings a demonstrator belief of the authors' recipe is built with."""
     name = canonical_name(task_name)
-    seed = check_seed(seed)
-    episodes = DEFAULT_EPISODES[name] if episodes is None else episodes
-    episodes = check_count(episodes, "episodes", 1)
+    seed = check_int(seed, "seed")
+    episodes = check_int(DEFAULT_EPISODES[name] if episodes is None else episodes, "episodes", 1)
     return {
         "format": FORMAT_VERSION,
         "task": name,
