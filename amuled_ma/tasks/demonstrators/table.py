@@ -26,21 +26,6 @@ from amuled_ma.files.safe import atomic_writer, checked_read_path
 from amuled_ma.tasks import canonical_name, get_task
 from amuled_ma.tasks.base import check_int
 
-__all__ = [
-    "AUTHORS_STATE_COUNTS",
-    "DEFAULT_EPISODES",
-    "DRIVING_COUNT_FROM",
-    "MAX_STEPS",
-    "MAX_TABLE_BYTES",
-    "DemonstratorBelief",
-    "DemonstratorCacheError",
-    "counts_to_belief",
-    "demonstrator_settings",
-    "encode_observations",
-    "observation_bounds",
-    "settings_differences",
-]
-
 FORMAT_VERSION = 1
 DEFAULT_EPISODES: Mapping[str, int] = {"findmilk": 1000, "driving": 10_000}
 """Episodes the authors played per task."""
