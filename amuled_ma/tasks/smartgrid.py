@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import importlib
 import weakref
 from collections import OrderedDict
 from typing import Any, ClassVar
@@ -94,11 +95,8 @@ def _profiles() -> Any:
 
 def _reward(value: str) -> Any:
     """A new instance of the package's reward class judging ``value`` (a key of `JUDGES`)."""
-    from smartgrid.rewards.numeric.differentiated import Equity, OverConsumption
-    from smartgrid.rewards.numeric.per_agent.comfort import Comfort
-
-    classes = {"Comfort": Comfort, "Equity": Equity, "OverConsumption": OverConsumption}
-    return classes[JUDGES[value][1]]()
+    module, name = JUDGES[value]
+    return getattr(importlib.import_module(module), name)()
 
 
 class SmartGrid(BatchedTask):

@@ -1,8 +1,8 @@
 """The paper authors' synthetic human feedback: played demonstrators and their count beliefs.
 
-One module per job: `.findmilk` and `.driving` (the demonstrators), `.play` (what both
-share), `.table` (counts to beliefs, the ``.npz`` file), and here the cached belief
-(`demonstrator_belief`); docs/tasks.md, "The authors' synthetic human demonstrators".
+`.play` (both demonstrators and what they share), `.table` (counts to beliefs, the ``.npz``
+file), and here the cached belief (`demonstrator_belief`); docs/tasks.md, "The authors'
+synthetic human demonstrators".
 """
 
 from __future__ import annotations
@@ -11,12 +11,13 @@ import os
 from pathlib import Path
 
 from amuled_ma.tasks import canonical_name
-from amuled_ma.tasks.demonstrators.driving import (
+from amuled_ma.tasks.demonstrators.play import (
     driving_human_reward,
+    findmilk_weights,
     play_driving,
+    play_findmilk,
     sarsa_update,
 )
-from amuled_ma.tasks.demonstrators.findmilk import findmilk_weights, play_findmilk
 from amuled_ma.tasks.demonstrators.table import (
     AUTHORS_STATE_COUNTS,
     DEFAULT_EPISODES,
