@@ -124,7 +124,6 @@ class BatchedTask(abc.ABC):
         self._initial_obs: torch.Tensor | None = None  # set: every reset copy observes it
         self._init_task(**task_options)
 
-    # ------------------------------------------------------------------ properties
     @property
     def num_actions(self) -> int:
         """Number of discrete actions."""
@@ -147,7 +146,6 @@ class BatchedTask(abc.ABC):
         """Steps taken so far in the current episode of each copy (int64 ``[num_envs]``)."""
         return self._t
 
-    # ------------------------------------------------------------------ public API
     def state_dict(self) -> dict[str, Any]:
         """Every tensor of the copies' state, cloned (``"_metrics"``: its dict of tensors)."""
         state: dict[str, Any] = {
@@ -308,7 +306,6 @@ class BatchedTask(abc.ABC):
     def render_rgb(self, env_id: int = 0, cell: int = 32) -> np.ndarray:
         """Return an RGB picture (uint8 ``[H, W, 3]``) of copy ``env_id``."""
 
-    # ------------------------------------------------------------------ hooks
     def _init_task(self, *args: Any, **task_options: Any) -> None:
         """Create the task state tensors; a subclass's keyword defaults are its options."""
         if args or task_options:
@@ -338,7 +335,6 @@ class BatchedTask(abc.ABC):
         """Return, per selected copy, prompt variables that the observation lacks."""
         return [{} for _ in range(len(ids))]
 
-    # ------------------------------------------------------------------ helpers
     def _draw(self) -> torch.Tensor:
         """Draw one 64-bit number (int64 ``[num_envs]``) per copy and advance every counter."""
         assert self._keys is not None

@@ -128,7 +128,6 @@ class Driving(BatchedTask):
                 rows.append((d_car, self._group_distance(g_gm, "grandma")))
         return torch.tensor(rows, dtype=torch.float32, device=self.device)
 
-    # ------------------------------------------------------------------ rules
     def _advance(
         self, actions: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
@@ -183,7 +182,6 @@ class Driving(BatchedTask):
         dists = self._lane_table.index_select(0, key.reshape(-1)).reshape(self.num_envs, 6)
         return torch.cat([dists, self._onehot.index_select(0, self._lane)], 1)
 
-    # ------------------------------------------------------------------ state access
     @property
     def lane(self) -> torch.Tensor:
         """Current lane of each copy (int64 ``[num_envs]``)."""
@@ -261,7 +259,6 @@ class Driving(BatchedTask):
             ]
         return out
 
-    # ------------------------------------------------------------------ prompts
     @classmethod
     def prompt_variables_from_obs(cls, obs: np.ndarray, **extra: Any) -> dict[str, Any]:
         """Return ``lane``, the six distances (-1 none, -2 no lane) as ints, and ``extra``.
@@ -280,7 +277,6 @@ class Driving(BatchedTask):
         out.update(extra)
         return out
 
-    # ------------------------------------------------------------------ rendering
     def _road_chars(self, env_id: int) -> list[list[str]]:
         rows = [["." for _ in range(NUM_LANES)] for _ in range(SPAWN_DISTANCE + 1)]  # [dist][lane]
         objs = self.objects(env_id)

@@ -128,7 +128,6 @@ class SmartGrid(BatchedTask):
     default_max_steps = 24
     judge_names: ClassVar[tuple[str, ...]] = tuple(JUDGES)
 
-    # ------------------------------------------------------------------ hooks
     def _init_task(self, households: int = 3, offices: int = 1) -> None:
         households = check_int(households, "households", 1, 1000)
         offices = check_int(offices, "offices", 0, 1000)
@@ -244,7 +243,6 @@ class SmartGrid(BatchedTask):
             variables[key] = extra.get(key, "unknown")
         return variables
 
-    # ------------------------------------------------------------------ judges
     @classmethod
     def judge_scores(cls, judge: str, obs: np.ndarray) -> np.ndarray:
         """The judge's belief scores ``exp((r_v(a) - max r_v) / JUDGE_TEMPERATURE)``.
@@ -264,7 +262,6 @@ class SmartGrid(BatchedTask):
         out = np.exp((out - out.max(axis=1, keepdims=True)) / JUDGE_TEMPERATURE)
         return out[0] if np.asarray(obs).ndim == 1 else out
 
-    # ------------------------------------------------------------------ pictures
     def render_ansi(self, env_id: int = 0) -> str:
         """One line per prosumer: need, battery, comfort (the learner marked ``*``)."""
         world = self._envs[env_id].world

@@ -149,7 +149,6 @@ def play_counted(
     return DemonstratorBelief(task_name, states, counts, settings)
 
 
-# ---------------------------------------------------------------------- FindMilk
 _MAX_DISTANCE = 24.0
 _SLEEPING_WEIGHT = 1.0
 _MILK_WEIGHT = 20.0
@@ -217,7 +216,6 @@ def play_findmilk(
     )
 
 
-# ---------------------------------------------------------------------- Driving
 TEMPERATURE = 0.7
 LEARNING_RATE = 0.1
 DISCOUNT = 0.99

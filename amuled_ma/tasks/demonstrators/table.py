@@ -102,7 +102,6 @@ def check_table_memory(path: Path, fix: str) -> None:
         ) from err
 
 
-# ---------------------------------------------------------------------- observation keys
 def observation_bounds(task_name: str) -> list[list[int]]:
     """Return the integer ``[low, high]`` of each observation entry (the keys' radixes)."""
     cls = get_task(task_name)
@@ -152,7 +151,6 @@ def encode_observations(task_name: str, obs: object) -> tuple[torch.Tensor, torc
     return torch.where(valid, keys, -1), valid
 
 
-# ---------------------------------------------------------------------- counts -> belief
 def counts_to_belief(counts: object) -> torch.Tensor:
     """Turn action counts ``[..., A]`` into float64 beliefs (``finetune_moral_human.py``)."""
     c = torch.as_tensor(counts).to(torch.float64)
@@ -163,7 +161,6 @@ def counts_to_belief(counts: object) -> torch.Tensor:
     return torch.softmax(log_p, -1)
 
 
-# ---------------------------------------------------------------------- settings
 def demonstrator_settings(task_name: str, *, seed: int, episodes: int | None = None) -> dict:
     """Return the JSON-ready settings a demonstrator belief of the authors' recipe is built with."""
     name = canonical_name(task_name)
@@ -188,7 +185,6 @@ def settings_differences(found: Mapping[str, Any], expect: Mapping[str, Any]) ->
     )
 
 
-# ---------------------------------------------------------------------- belief table
 class DemonstratorBelief:
     """Counts of a played demonstrator and the beliefs they give, keyed by observation.
 
