@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import functools
 import importlib
+import itertools
 import weakref
 from collections import OrderedDict
 from typing import Any, ClassVar
@@ -45,9 +46,10 @@ JUDGE_TEMPERATURE = 0.1
 #: Judge scores kept per process, by observation (a state asked twice is computed once).
 MAX_SCORED = 65_536
 
-# observation bytes (float32) -> every (task, copy) whose current state it is (copies of
-# tasks seeded alike, e.g. a population's seed replicas, show the same states)
-_LIVE: dict[bytes, list[tuple[weakref.ref[SmartGrid], int]]] = {}
+# every smart-grid task alive in this process, and a stamp for each copy's latest observation:
+# a judge looks ahead from the copy that shows a state and has shown it the longest
+_TASKS: weakref.WeakSet[SmartGrid] = weakref.WeakSet()
+_SHOWN = itertools.count()
 # observation bytes -> judge rewards [judge, action]
 _SCORED: OrderedDict[bytes, np.ndarray] = OrderedDict()
 
@@ -154,7 +156,8 @@ class SmartGrid(BatchedTask):
         n = self.num_envs
         self._value_sums = torch.zeros(n, len(JUDGES), dtype=torch.float32)
         self._live_keys: list[bytes | None] = [None] * n
-        weakref.finalize(self, _forget, self._live_keys)  # the list itself, kept current
+        self._shown_at = [0] * n
+        _TASKS.add(self)
 
     def _advance(
         self, actions: torch.Tensor
@@ -206,14 +209,9 @@ class SmartGrid(BatchedTask):
 
     def _remember(self, obs: torch.Tensor) -> None:
         """Mark each copy's observation as live, for the judges' look-ahead."""
-        me = weakref.ref(self)
         for i, row in enumerate(obs.numpy()):
-            old = self._live_keys[i]
-            if old is not None:
-                _keep_live(old, self, i)
-            key = row.tobytes()
-            _LIVE.setdefault(key, []).append((me, i))
-            self._live_keys[i] = key
+            self._live_keys[i] = row.tobytes()
+            self._shown_at[i] = next(_SHOWN)
 
     def _prompt_extras(self, ids: torch.Tensor) -> list[dict[str, Any]]:
         extras = []
@@ -310,14 +308,16 @@ def _scores(key: bytes) -> np.ndarray:
     if key in _SCORED:
         _SCORED.move_to_end(key)
         return _SCORED[key]
-    live = [(task, i) for ref, i in _LIVE.get(key, []) if (task := ref()) is not None]
-    task, copy_id = live[0] if live else (None, -1)
-    if task is None:
+    live = [
+        (t._shown_at[i], i, t) for t in list(_TASKS) for i, k in enumerate(t._live_keys) if k == key
+    ]
+    if not live:
         raise ValueError(
             "smartgrid judge: no live smart-grid copy in this process shows this observation "
             "(the judges look one step ahead from the world itself; a replayed state cannot "
             "be judged)"
         )
+    _, copy_id, task = min(live, key=lambda held: held[0])  # stamps are unique
     out = np.zeros((len(JUDGES), len(ACTIONS)))
     env = task._envs[copy_id]
     for a in range(len(ACTIONS)):
@@ -327,23 +327,3 @@ def _scores(key: bytes) -> np.ndarray:
     if len(_SCORED) > MAX_SCORED:
         _SCORED.popitem(last=False)
     return out
-
-
-def _keep_live(key: bytes, task: SmartGrid | None = None, copy_id: int = -1) -> None:
-    """Drop the holders of ``key`` in `_LIVE` collected or ``(task, copy_id)`` (none left: it)."""
-    holders = [
-        (ref, i)
-        for ref, i in _LIVE.get(key, [])
-        if (held := ref()) is not None and (held is not task or i != copy_id)
-    ]
-    if holders:
-        _LIVE[key] = holders
-    else:
-        _LIVE.pop(key, None)
-
-
-def _forget(keys: list[bytes | None]) -> None:
-    """Drop a garbage-collected task's live observations."""
-    for key in keys:
-        if key is not None:
-            _keep_live(key)
