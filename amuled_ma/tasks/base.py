@@ -359,12 +359,9 @@ class BatchedTask(abc.ABC):
             raise ValueError(
                 f"actions: expected shape ({self.num_envs},), got {tuple(actions.shape)}"
             )
-        if (
-            actions.dtype.is_floating_point
-            or actions.dtype.is_complex
-            or actions.dtype == torch.bool
-        ):
-            raise ValueError(f"actions: expected an integer tensor, got dtype {actions.dtype}")
+        dtype = actions.dtype
+        if dtype.is_floating_point or dtype.is_complex or dtype == torch.bool:
+            raise ValueError(f"actions: expected an integer tensor, got dtype {dtype}")
         actions = actions.to(device=self.device, dtype=torch.int64)
         low, high = torch.aminmax(actions)
         if int(low) < 0 or int(high) >= self.num_actions:
