@@ -46,8 +46,8 @@ JUDGE_TEMPERATURE = 0.1
 #: Judge scores kept per process, by observation (a state asked twice is computed once).
 MAX_SCORED = 65_536
 
-# every smart-grid task alive in this process, and a stamp for each copy's latest observation:
-# a judge looks ahead from the copy that shows a state and has shown it the longest
+# every smart-grid task alive in this process; a stamp orders the copies' latest observations,
+# and a judge looks ahead from the least recently observed copy that shows the state
 _TASKS: weakref.WeakSet[SmartGrid] = weakref.WeakSet()
 _SHOWN = itertools.count()
 # observation bytes -> judge rewards [judge, action]

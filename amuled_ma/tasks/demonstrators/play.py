@@ -1,14 +1,7 @@
-"""The authors' two demonstrators, batched, and what their play shares.
+"""The authors' two demonstrators, batched, and what their play shares (their rules: docs/tasks.md).
 
-FindMilk (``algorithms/human_policy_milk.py``): a rule-driven sampled policy, action drawn with
-``w / sum(w)`` (`findmilk_weights`); 1,000 episodes, each until the milk or the 300-step limit,
-every step counted. Driving (``algorithms/human_policy_drive.py``): a tabular SARSA-style
-Q-learner whose table is empty at every episode's start: unseen ``Q(s, .) ~ N(0, 1)``, policy
-``p(a) ∝ exp(Q(s, a) / 0.7)``, reward `driving_human_reward`; episodes 601..9999 are counted
-(the authors' ``if cnt > 600``), the earlier ones cannot change a count (fresh table, own
-streams), so they are not played. Episode ``e`` of seed ``s`` plays the task seeded ``b_s + e``
-and draws from the stream of ``c_s + e`` (``b_s``, ``c_s``: hashes of ``s``), so the counts do
-not depend on batching.
+Episode ``e`` of seed ``s`` plays the task seeded ``b_s + e`` and draws from the stream of
+``c_s + e`` (``b_s``, ``c_s``: hashes of ``s``), so the counts do not depend on batching.
 """
 
 from __future__ import annotations
