@@ -123,14 +123,12 @@ def _number(value: object) -> float | None:
 
 def _vector(value: object, n: int) -> list[float] | None:
     """A 1-D numeric array or list of ``n`` numbers as floats, else None."""
-    if isinstance(value, np.ndarray):
-        if value.ndim != 1 or value.dtype.kind not in "fiu" or value.shape[0] != n:
-            return None
-        return [float(x) for x in value]
-    if isinstance(value, list | tuple) and len(value) == n:
-        floats = [x for x in map(_number, value) if x is not None]
-        return floats if len(floats) == n else None
-    return None
+    if isinstance(value, np.ndarray) and (value.ndim != 1 or value.dtype.kind not in "fiu"):
+        return None
+    if not isinstance(value, np.ndarray | list | tuple) or len(value) != n:
+        return None
+    floats = [x for x in map(_number, value) if x is not None]
+    return floats if len(floats) == n else None
 
 
 def _fused(rewards: object, n: int) -> list[float] | None:

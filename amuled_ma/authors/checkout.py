@@ -78,21 +78,15 @@ def _rel(path: Path, root: Path) -> str:
     return str(path.relative_to(root))  # a glob's match, always below its root
 
 
-@dataclass
-class PolicySource:
-    """One CleanRL policy to convert (``iteration``: ``N`` of ``ppo_<N>``; ``model`` None: base)."""
-
-    task: str
-    folder: str
-    path: Path
-    iteration: int
-    model: str | None = None
+#: One CleanRL policy to convert: task, output folder, file, ``N`` of ``ppo_<N>``, model (None:
+#: the base).
+PolicyFile = tuple[str, str, Path, int, str | None]
 
 
-def find_policies(checkout: Path, notes: list[str]) -> list[PolicySource]:
+def find_policies(checkout: Path, notes: list[str]) -> list[PolicyFile]:
     """The base and last fine-tuned policy of every run; ``notes`` gets the others."""
     checkout = Path(checkout)
-    out: list[PolicySource] = []
+    out: list[PolicyFile] = []
     seen: set[Path] = set()
     for run in sorted(p for p in (checkout / "models").glob(f"*_{AUTHORS_SEED}") if p.is_dir()):
         task = task_of_folder(run.name)
@@ -100,14 +94,14 @@ def find_policies(checkout: Path, notes: list[str]) -> list[PolicySource]:
             continue
         base = run / "base.cleanrl_model"
         if base.is_file():
-            out.append(PolicySource(task, "base", base, AUTHORS_BASE_ITERATIONS))
+            out.append((task, "base", base, AUTHORS_BASE_ITERATIONS, None))
             seen.add(base)
         for folder in sorted(run.glob("moral_llm_*")):
             last = last_checkpoint(folder)
             if last is None:
                 continue
             model = folder.name[len("moral_llm_") :]
-            out.append(PolicySource(task, f"amuled-{model_slug(model)}", last[0], last[1], model))
+            out.append((task, f"amuled-{model_slug(model)}", last[0], last[1], model))
             seen.update(folder.glob("ppo_*.cleanrl_model"))
     for path in sorted(checkout.glob("**/*.cleanrl_model")):
         if path not in seen:
@@ -175,46 +169,46 @@ def _policy_outputs(
 
     planned: list[tuple[Output, _Converted]] = []
     sources = find_policies(checkout, notes)
-    bases = {s.task for s in sources if s.model is None}
-    for source in sources:
-        state = read_cleanrl(source.path)
-        _obs_dim, hidden, _actions = cleanrl_shape(state, source.path)
-        run_scenario = load_scenario(source.task).changed(authors_changes(hidden))
+    bases = {task for task, *_, model in sources if model is None}
+    for task, folder, path, iteration, model in sources:
+        state = read_cleanrl(path)
+        _obs_dim, hidden, _actions = cleanrl_shape(state, path)
+        run_scenario = load_scenario(task).changed(authors_changes(hidden))
         scenario = run_scenario
-        run_dir = runs / source.task
-        out_dir = run_dir / source.folder
-        rel = _rel(source.path, checkout)
-        sha = sha256_file(source.path)
+        run_dir = runs / task
+        out_dir = run_dir / folder
+        rel = _rel(path, checkout)
+        sha = sha256_file(path)
         variant, base, what = Variant("base"), None, "base policy"
-        if source.model is not None:
+        if model is not None:
             variant = Variant.finetune("amuled")
-            what = f"AMULED fine-tune with {source.model}, ppo_{source.iteration}"
+            what = f"AMULED fine-tune with {model}, ppo_{iteration}"
             scenario = scenario.replace(
                 "feedback",
-                recording=f"{source.task}-{model_slug(source.model)}",
-                model=source.model,
+                recording=f"{task}-{model_slug(model)}",
+                model=model,
             )
-            base = (run_dir / "base" / LAST).resolve() if source.task in bases else None
+            base = (run_dir / "base" / LAST).resolve() if task in bases else None
         checkpoint = build_checkpoint(
             state,
             scenario.ppo,
             scenario.finetune,
             scenario_name=scenario.name,
             variant=variant,
-            iteration=source.iteration,
+            iteration=iteration,
             base_checkpoint=base,
             source={
                 "repository": REPOSITORY,
                 "file": rel,
                 "sha256": sha,
-                "checkpoint": source.iteration if source.model is not None else None,
-                "model": source.model,
+                "checkpoint": iteration if model is not None else None,
+                "model": model,
             },
         )
         training = {
             "variant": str(variant),
             "seed": AUTHORS_SEED,
-            "iterations": source.iteration,
+            "iterations": iteration,
             "trained_by": f"the authors' CleanRL scripts ({REPOSITORY})",
             "authors_file": rel,
             "authors_sha256": sha,

@@ -42,16 +42,6 @@ READ_TIMEOUT_S = 60.0
 TERMS = "from the paper authors' own repository, under their terms (it has no licence file)"
 
 
-def offline_requested(flag: bool = False) -> bool:
-    """Whether fetching is off: ``flag`` (``--offline``) or ``$AMULED_OFFLINE`` set to 1/true."""
-    return flag or os.environ.get(OFFLINE_ENV, "").strip().lower() in ("1", "true", "yes", "on")
-
-
-def base_url() -> str:
-    """The base of every URL: ``$AMULED_AUTHORS_URL``, else raw GitHub's of the authors' repo."""
-    return (os.environ.get(URL_ENV) or RAW_BASE).rstrip("/")
-
-
 def cache_folder() -> Path:
     """Where fetched files are kept: ``<cache root>/authors/<commit[:12]>/``."""
     env = os.environ.get(CACHE_ENV)
@@ -77,11 +67,10 @@ def pinned_recording(value: str, pinned: Sequence[PinnedFile] = PINNED) -> Pinne
 
 def replayed_recordings(feedback: FeedbackConfig) -> list[str]:
     """The recordings a fine-tune replays, each once: ``[feedback]``'s, then its agents' tables'."""
-    fb = feedback
-    values = [fb.recording] if fb.source == "replay" else []
-    for spec in fb.agents.values():
+    values = [feedback.recording] if feedback.source == "replay" else []
+    for spec in feedback.agents.values():
         if spec.source == "replay":
-            values.append(getattr(spec, "recording", "") or fb.recording)
+            values.append(getattr(spec, "recording", "") or feedback.recording)
     return list(dict.fromkeys(v for v in values if v.strip()))
 
 
@@ -150,19 +139,6 @@ class _CappedFile:
         self.raw.flush()
 
 
-def _downloader(pin: PinnedFile) -> Callable[[str, str, object], None]:
-    """Pooch's HTTP downloader, writing through `_CappedFile` (``pin.size`` at most)."""
-    import pooch
-
-    http = pooch.HTTPDownloader(progressbar=False, timeout=(CONNECT_TIMEOUT_S, READ_TIMEOUT_S))
-
-    def download(url: str, output_file: str, pup: object) -> None:
-        with open(output_file, "wb") as raw:
-            http(url, _CappedFile(raw, pin.size, url), pup)
-
-    return download
-
-
 @contextlib.contextmanager
 def _quiet_pooch() -> Iterator[None]:
     """Pooch's own "Downloading file ..." lines off: the fetch says its one line itself."""
@@ -196,7 +172,7 @@ def fetch_pinned(
     import requests
 
     cache = cache or cache_folder()
-    base = (base or base_url()).rstrip("/")
+    base = (base or os.environ.get(URL_ENV) or RAW_BASE).rstrip("/")
     wanted = [pin for pin in pins if not _cached(pin, cache)]
     if not wanted:
         return cache
@@ -210,12 +186,18 @@ def fetch_pinned(
         base_url=f"{base}/{COMMIT}/",
         registry={pin.path: f"sha256:{pin.sha256}" for pin in pins},
     )
+    http = pooch.HTTPDownloader(progressbar=False, timeout=(CONNECT_TIMEOUT_S, READ_TIMEOUT_S))
     for pin in wanted:
         url = f"{base}/{COMMIT}/{pin.path}"
         route = pin_route(pin)
+
+        def download(url: str, output_file: str, pup: object, size: int = pin.size) -> None:
+            with open(output_file, "wb") as raw:  # written through `_CappedFile`: size at most
+                http(url, _CappedFile(raw, size, url), pup)
+
         try:
             with _quiet_pooch():
-                pup.fetch(pin.path, downloader=_downloader(pin))
+                pup.fetch(pin.path, downloader=download)
         except AuthorsFetchError as error:
             raise AuthorsFetchError(
                 f"{error}; nothing was kept in {cache}. Else: {route}"
@@ -254,7 +236,8 @@ def _fetch_unless_offline(
         AuthorsFetchError: Offline with a file not cached, or the fetch failed.
     """
     cache = cache or cache_folder()
-    if offline_requested(offline) and not all(_cached(pin, cache) for pin in pins):
+    off = offline or os.environ.get(OFFLINE_ENV, "").strip().lower() in ("1", "true", "yes", "on")
+    if off and not all(_cached(pin, cache) for pin in pins):
         raise AuthorsFetchError(
             f"the paper authors' {missing} and fetching is off (--offline or {OFFLINE_ENV}=1): "
             f"run without it to fetch {_mb(sum(pin.size for pin in pins))} from {REPOSITORY} "

@@ -288,7 +288,6 @@ class BoundedReader:
                 f"{MEMORY_SLACK_BYTES // 2**20} MiB)"
             )
 
-    # -- stack, marks, memo --------------------------------------------------------------
     def _proto(self, arg: int) -> None:
         if not 0 <= arg <= pickle.HIGHEST_PROTOCOL:
             raise ValueError(f"unsupported pickle protocol: {arg}")
@@ -319,7 +318,6 @@ class BoundedReader:
     def _push(self, value: object) -> None:
         self.stack.append(value)
 
-    # -- containers: the items are popped (an argument) before the target is read ---------
     def _pop_top(self, n: int) -> list[Any]:
         stack = self.stack
         if len(stack) < n:
@@ -389,7 +387,6 @@ class BoundedReader:
             self._admit(counts, item)
         return items
 
-    # -- globals and the calls they allow ------------------------------------------------
     def _find(self, module: str, name: str) -> _Allowed:
         if (module, name) not in ALLOWED_GLOBALS:
             raise PickleRefused(f"global {module}.{name} is not allowed")

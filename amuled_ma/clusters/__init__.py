@@ -9,16 +9,13 @@ from amuled_ma.clusters.loader import (
     default_clusters_dir,
     default_registry,
     load_cluster,
-    parse_cluster,
 )
 from amuled_ma.clusters.plugins import ENTRY_POINT_GROUP, agent_entry_points
 from amuled_ma.clusters.prompting import (
     build_messages,
     credence_vector,
     fewshot_messages,
-    fewshot_path,
     instruction_text,
-    render_cluster_section,
     render_system_prompt,
 )
 
@@ -35,10 +32,7 @@ __all__ = [
     "default_clusters_dir",
     "default_registry",
     "fewshot_messages",
-    "fewshot_path",
     "instruction_text",
     "load_cluster",
-    "parse_cluster",
-    "render_cluster_section",
     "render_system_prompt",
 ]

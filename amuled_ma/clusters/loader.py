@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
@@ -196,11 +197,15 @@ _REQUIRED = {
 }
 
 
-def parse_cluster(data: Mapping[str, Any], path: Path) -> Cluster:
-    """Validate one parsed cluster TOML document; ``path``'s stem must equal ``name``.
+def load_cluster(path: str | Path) -> Cluster:
+    """Load and validate one ``<name>.toml`` cluster file; its stem must equal ``name``.
 
-    Raises ClusterDefinitionError: a field is missing, unknown, or of the wrong type.
+    Raises ClusterDefinitionError: the file is unreadable, not TOML, or a field is missing,
+        unknown, or of the wrong type.
     """
+    path = Path(path)
+    text = read_text(path, "cluster file", ClusterDefinitionError, max_bytes=MAX_CLUSTER_BYTES)
+    data = parse_toml(text, path, "cluster file", ClusterDefinitionError, MAX_CLUSTER_CHARS)
     unknown = set(data) - _KNOWN_FIELDS
     if unknown:
         raise _fail(
@@ -243,17 +248,6 @@ def parse_cluster(data: Mapping[str, Any], path: Path) -> Cluster:
         _check_credences(file.credences, path)
         values["credences"] = dict(file.credences)
     return Cluster(**values)
-
-
-def load_cluster(path: str | Path) -> Cluster:
-    """Load and validate one ``<name>.toml`` cluster file.
-
-    Raises ClusterDefinitionError: the file is unreadable, not TOML, or a field is wrong.
-    """
-    path = Path(path)
-    text = read_text(path, "cluster file", ClusterDefinitionError, max_bytes=MAX_CLUSTER_BYTES)
-    data = parse_toml(text, path, "cluster file", ClusterDefinitionError, MAX_CLUSTER_CHARS)
-    return parse_cluster(data, path)
 
 
 #: Most characters a cluster file may hold (a shipped one holds about 2,000).
@@ -392,12 +386,6 @@ class ClusterRegistry:
     def __contains__(self, name: object) -> bool:
         return isinstance(name, str) and self._resolve(name) is not None
 
-    def __iter__(self):
-        return iter(self.all())
-
-    def __len__(self) -> int:
-        return len(self._clusters)
-
     def all(self) -> list[Cluster]:
         """Every cluster, sorted by ``(order, name)``."""
         return sorted(self._clusters.values(), key=lambda c: (c.order, c.name))
@@ -434,12 +422,7 @@ def _same_folder(a: Path | None, b: Path | None) -> bool:
     return a is not None and b is not None and a.parent.resolve() == b.parent.resolve()
 
 
-_DEFAULT: ClusterRegistry | None = None
-
-
+@functools.cache
 def default_registry() -> ClusterRegistry:
     """Return the registry of shipped clusters (loaded once)."""
-    global _DEFAULT
-    if _DEFAULT is None:
-        _DEFAULT = ClusterRegistry.load()
-    return _DEFAULT
+    return ClusterRegistry.load()

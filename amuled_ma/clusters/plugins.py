@@ -31,24 +31,20 @@ def agent_entry_points() -> dict[str, EntryPoint]:
     return {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP)}
 
 
-def check_import_path(text: str) -> str:
-    """Return ``text`` if it is a ``"pkg.module:attr"`` path, else raise ``ScenarioError``."""
-    if not isinstance(text, str) or not IMPORT_PATH.match(text):
-        raise ScenarioError(
-            f"{ALLOW_FLAG}: expected an import path 'pkg.module:attr' (e.g. "
-            f"my_pkg.agents:MyAgent), found {text!r}"
-        )
-    return text
-
-
 def set_allowed_plugins(paths: Iterable[str]) -> frozenset[str]:
     """Set the import paths this process may import (``--allow-plugin``); return the old set.
 
     Raises ScenarioError: a path is not ``"pkg.module:attr"``.
     """
     global _ALLOWED
-    previous = _ALLOWED
-    _ALLOWED = frozenset(check_import_path(p) for p in paths)
+    previous, paths = _ALLOWED, list(paths)
+    for text in paths:
+        if not isinstance(text, str) or not IMPORT_PATH.match(text):
+            raise ScenarioError(
+                f"{ALLOW_FLAG}: expected an import path 'pkg.module:attr' (e.g. "
+                f"my_pkg.agents:MyAgent), found {text!r}"
+            )
+    _ALLOWED = frozenset(paths)
     return previous
 
 

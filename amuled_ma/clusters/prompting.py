@@ -69,13 +69,6 @@ def render_system_prompt(
     return template.replace(CLUSTERS_PLACEHOLDER, sections)
 
 
-def fewshot_path(task_name: str, *, prompts: str | Path | None = None) -> Path:
-    """Return the few-shot file used for a task (its own, else ``default.toml``)."""
-    base = (Path(prompts) if prompts else prompts_dir()) / "fewshot"
-    own = base / f"{''.join(ch for ch in task_name.lower() if ch.isalnum())}.toml"
-    return own if own.is_file() else base / "default.toml"
-
-
 @functools.lru_cache(maxsize=32)
 def _load_fewshot(path: Path) -> Messages:
     try:
@@ -104,8 +97,10 @@ def _load_fewshot(path: Path) -> Messages:
 
 
 def fewshot_messages(task_name: str, *, prompts: str | Path | None = None) -> Messages:
-    """Return the task's few-shot turns, alternating ``("user", ...)``, ``("assistant", ...)``."""
-    return _load_fewshot(fewshot_path(task_name, prompts=prompts))
+    """Return the task's few-shot turns (its own file, else ``default.toml``), user first."""
+    base = (Path(prompts) if prompts else prompts_dir()) / "fewshot"
+    own = base / f"{''.join(ch for ch in task_name.lower() if ch.isalnum())}.toml"
+    return _load_fewshot(own if own.is_file() else base / "default.toml")
 
 
 def credence_vector(

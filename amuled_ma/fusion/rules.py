@@ -89,9 +89,8 @@ def _lookup(rule: str) -> tuple[RuleSpec, str | None]:
 def _generic_diagnostics(
     beliefs: np.ndarray, fused: np.ndarray, weights: np.ndarray | None, rule: str
 ) -> FusionResult:
-    k = beliefs.shape[-2]
     if weights is None:
-        weights = np.full(beliefs.shape[:-1], 1.0 / k)
+        weights = np.full(beliefs.shape[:-1], 1.0 / beliefs.shape[-2])
     credibility, entropy = _measures(beliefs)
     return FusionResult(
         fused=fused,
@@ -205,10 +204,6 @@ def fuse(
     if isinstance(out, FusionResult):
         return out
     return _generic_diagnostics(m, out, None, rule)
-
-
-# ---------------------------------------------------------------------------------------
-# Built-in rules
 
 
 def _share(fused: np.ndarray, contribution: np.ndarray) -> np.ndarray:

@@ -48,10 +48,6 @@ class FusionResult:
     rule: str = "bjs-dst"
 
 
-# ---------------------------------------------------------------------------------------
-# Measures
-
-
 def _xlog2x(m: np.ndarray) -> np.ndarray:
     """``m * log2(m)`` element-wise with ``0 log 0 = 0``."""
     return m * np.log2(np.where(m > 0, m, 1.0))
@@ -232,10 +228,6 @@ def _measures(m: np.ndarray, cap: np.ndarray | None = None) -> tuple[np.ndarray,
     return _from_columns(credibility, batch), _from_columns(entropy, batch)
 
 
-# ---------------------------------------------------------------------------------------
-# Dempster's rule
-
-
 def _as_focal_sets(focal_sets: Iterable[Iterable[Hashable]]) -> FocalSets:
     result = []
     for position, item in enumerate(focal_sets):
@@ -329,10 +321,6 @@ def dempster_combine(
     b = np.broadcast_to(b, shape + b.shape[-1:])
     masses, conflict = _combine(a, b, table, conflict_of)
     return masses, tuple(out), conflict
-
-
-# ---------------------------------------------------------------------------------------
-# Xiao (2019)
 
 
 def _general_self_combination(wae: np.ndarray, sets: FocalSets, k: int):

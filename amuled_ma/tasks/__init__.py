@@ -144,8 +144,6 @@ def __getattr__(attr: str) -> Any:
         from amuled_ma.tasks.base import BatchedTask
 
         return BatchedTask
-    if attr == "FindMilk":
-        return TASKS["findmilk"]
-    if attr == "Driving":
-        return TASKS["driving"]
+    if attr in ("FindMilk", "Driving"):
+        return TASKS[attr.lower()]
     raise AttributeError(f"module {__name__!r} has no attribute {attr!r}")

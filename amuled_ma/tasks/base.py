@@ -18,7 +18,23 @@ import torch
 
 from amuled_ma.tasks import rng
 
-__all__ = ["BatchedTask"]
+__all__ = ["BatchedTask", "check_int"]
+
+
+def check_int(value: object, name: str, low: int = 0, high: int | None = None) -> int:
+    """``value`` as an ``int`` in ``low..high`` (None: no top; a bool is refused).
+
+    Raises:
+        ValueError: It is not, naming ``name``.
+    """
+    if isinstance(value, numbers.Integral) and not isinstance(value, bool):
+        number = int(value)
+        if low <= number and (high is None or number <= high):
+            return number
+    wanted = {0: "a non-negative integer", 1: "a positive integer"}.get(low, f"an integer >= {low}")
+    if high is not None:
+        wanted = f"an integer in {low}..{high}"
+    raise ValueError(f"{name}: expected {wanted}, got {value!r}")
 
 
 def paint_cells(
@@ -83,12 +99,17 @@ class BatchedTask(abc.ABC):
         Raises:
             ValueError: An argument is out of range; the message names it.
         """
-        self.num_envs = _positive_int(num_envs, "num_envs")
+        self.num_envs = check_int(num_envs, "num_envs", 1)
         steps = self.default_max_steps if max_steps is None else max_steps
-        self.max_steps = _positive_int(steps, "max_steps")
-        self.shaping_coef = _non_negative_float(shaping_coef, "shaping_coef")
+        self.max_steps = check_int(steps, "max_steps", 1)
+        coef: object = shaping_coef
+        if isinstance(coef, bool) or not (
+            isinstance(coef, numbers.Real) and 0 <= float(coef) < math.inf
+        ):
+            raise ValueError(f"shaping_coef: expected a finite non-negative number, got {coef!r}")
+        self.shaping_coef = float(coef)
         self.device = torch.device(device)
-        self._seed = self._check_seed(seed, "seed")
+        self._seed = None if seed is None else check_int(seed, "seed")
         n, dev = self.num_envs, self.device
         self._keys: torch.Tensor | None = None
         self._ctr = torch.zeros(n, dtype=torch.int64, device=dev)
@@ -103,7 +124,6 @@ class BatchedTask(abc.ABC):
         self._initial_obs: torch.Tensor | None = None  # set: every reset copy observes it
         self._init_task(**task_options)
 
-    # ------------------------------------------------------------------ properties
     @property
     def num_actions(self) -> int:
         """Number of discrete actions."""
@@ -126,7 +146,6 @@ class BatchedTask(abc.ABC):
         """Steps taken so far in the current episode of each copy (int64 ``[num_envs]``)."""
         return self._t
 
-    # ------------------------------------------------------------------ public API
     def state_dict(self) -> dict[str, Any]:
         """Every tensor of the copies' state, cloned (``"_metrics"``: its dict of tensors)."""
         state: dict[str, Any] = {
@@ -162,7 +181,7 @@ class BatchedTask(abc.ABC):
         Raises:
             ValueError: ``seed`` is negative or not an integer.
         """
-        seed = self._check_seed(seed, "seed")
+        seed = None if seed is None else check_int(seed, "seed")
         if seed is None and self._keys is None:
             seed = self._seed if self._seed is not None else rng.entropy_seed()
         if seed is not None:
@@ -287,7 +306,6 @@ class BatchedTask(abc.ABC):
     def render_rgb(self, env_id: int = 0, cell: int = 32) -> np.ndarray:
         """Return an RGB picture (uint8 ``[H, W, 3]``) of copy ``env_id``."""
 
-    # ------------------------------------------------------------------ hooks
     def _init_task(self, *args: Any, **task_options: Any) -> None:
         """Create the task state tensors; a subclass's keyword defaults are its options."""
         if args or task_options:
@@ -317,7 +335,6 @@ class BatchedTask(abc.ABC):
         """Return, per selected copy, prompt variables that the observation lacks."""
         return [{} for _ in range(len(ids))]
 
-    # ------------------------------------------------------------------ helpers
     def _draw(self) -> torch.Tensor:
         """Draw one 64-bit number (int64 ``[num_envs]``) per copy and advance every counter."""
         assert self._keys is not None
@@ -342,12 +359,9 @@ class BatchedTask(abc.ABC):
             raise ValueError(
                 f"actions: expected shape ({self.num_envs},), got {tuple(actions.shape)}"
             )
-        if (
-            actions.dtype.is_floating_point
-            or actions.dtype.is_complex
-            or actions.dtype == torch.bool
-        ):
-            raise ValueError(f"actions: expected an integer tensor, got dtype {actions.dtype}")
+        dtype = actions.dtype
+        if dtype.is_floating_point or dtype.is_complex or dtype == torch.bool:
+            raise ValueError(f"actions: expected an integer tensor, got dtype {dtype}")
         actions = actions.to(device=self.device, dtype=torch.int64)
         low, high = torch.aminmax(actions)
         if int(low) < 0 or int(high) >= self.num_actions:
@@ -358,20 +372,8 @@ class BatchedTask(abc.ABC):
             )
         return actions
 
-    @staticmethod
-    def _check_seed(seed: object, name: str) -> int | None:
-        if seed is None:
-            return None
-        if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or int(seed) < 0:
-            raise ValueError(f"{name}: expected a non-negative integer or None, got {seed!r}")
-        return int(seed)
-
     def _env_id(self, env_id: object) -> int:
-        if isinstance(env_id, bool) or not isinstance(env_id, numbers.Integral):
-            raise ValueError(f"env_id: expected an integer, got {env_id!r}")
-        if not 0 <= int(env_id) < self.num_envs:
-            raise ValueError(f"env_id: expected 0..{self.num_envs - 1}, got {env_id}")
-        return int(env_id)
+        return check_int(env_id, "env_id", 0, self.num_envs - 1)
 
     def _env_ids(self, env_ids: object) -> torch.Tensor:
         if env_ids is None:
@@ -388,19 +390,3 @@ class BatchedTask(abc.ABC):
             f"{type(self).__name__}(num_envs={self.num_envs}, device={str(self.device)!r}, "
             f"shaping_coef={self.shaping_coef}, max_steps={self.max_steps})"
         )
-
-
-def _positive_int(value: object, name: str) -> int:
-    """``value`` as an ``int`` >= 1 (a bool is refused); ``ValueError`` naming ``name``."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < 1:
-        raise ValueError(f"{name}: expected a positive integer, got {value!r}")
-    return int(value)
-
-
-def _non_negative_float(value: object, name: str) -> float:
-    """``value`` as a finite ``float`` >= 0 (a bool is refused); ``ValueError`` naming ``name``."""
-    if not isinstance(value, numbers.Real) or isinstance(value, bool):
-        raise ValueError(f"{name}: expected a non-negative number, got {value!r}")
-    if not math.isfinite(float(value)) or float(value) < 0:
-        raise ValueError(f"{name}: expected a finite non-negative number, got {value!r}")
-    return float(value)

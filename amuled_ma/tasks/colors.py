@@ -39,14 +39,6 @@ COLORS: dict[str, str] = {
 }
 
 
-def color(name: str) -> str:
-    """The colour of ``name``; ``KeyError`` listing the known names when unknown."""
-    try:
-        return COLORS[name]
-    except KeyError:
-        raise KeyError(f"no colour named {name!r}; known: {', '.join(COLORS)}") from None
-
-
 def css_variables(colors: dict[str, str] | None = None) -> str:
     """The table as one CSS rule of custom properties: ``:root { --c-good: #1e8449; ... }``."""
     table = COLORS if colors is None else colors

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from amuled_ma.tasks import rng
-from amuled_ma.tasks.base import BatchedTask, paint_cells
+from amuled_ma.tasks.base import BatchedTask, check_int, paint_cells
 
 __all__ = ["Driving"]
 
@@ -128,7 +128,6 @@ class Driving(BatchedTask):
                 rows.append((d_car, self._group_distance(g_gm, "grandma")))
         return torch.tensor(rows, dtype=torch.float32, device=self.device)
 
-    # ------------------------------------------------------------------ rules
     def _advance(
         self, actions: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
@@ -183,7 +182,6 @@ class Driving(BatchedTask):
         dists = self._lane_table.index_select(0, key.reshape(-1)).reshape(self.num_envs, 6)
         return torch.cat([dists, self._onehot.index_select(0, self._lane)], 1)
 
-    # ------------------------------------------------------------------ state access
     @property
     def lane(self) -> torch.Tensor:
         """Current lane of each copy (int64 ``[num_envs]``)."""
@@ -194,7 +192,7 @@ class Driving(BatchedTask):
         if kind not in _KINDS:
             raise ValueError(f"kind: expected 'car' or 'grandma', got {kind!r}")
         width, allowed = _KINDS[kind]
-        _check_lane(lane)
+        lane = check_int(lane, "lane", 0, NUM_LANES - 1)
         if distance not in allowed:
             raise ValueError(f"distance: a {kind} can only be at {allowed}, got {distance!r}")
         k = allowed.index(distance) + 1
@@ -230,8 +228,7 @@ class Driving(BatchedTask):
 
     def set_lane(self, lane: int, env_ids: object = None) -> None:
         """Move the agent's car to ``lane`` in the selected copies; updates ``obs``."""
-        _check_lane(lane)
-        self._lane[self._env_ids(env_ids)] = int(lane)
+        self._lane[self._env_ids(env_ids)] = check_int(lane, "lane", 0, NUM_LANES - 1)
         self._obs = self._observe()
 
     def road(self) -> dict[str, torch.Tensor]:
@@ -262,7 +259,6 @@ class Driving(BatchedTask):
             ]
         return out
 
-    # ------------------------------------------------------------------ prompts
     @classmethod
     def prompt_variables_from_obs(cls, obs: np.ndarray, **extra: Any) -> dict[str, Any]:
         """Return ``lane``, the six distances (-1 none, -2 no lane) as ints, and ``extra``.
@@ -281,7 +277,6 @@ class Driving(BatchedTask):
         out.update(extra)
         return out
 
-    # ------------------------------------------------------------------ rendering
     def _road_chars(self, env_id: int) -> list[list[str]]:
         rows = [["." for _ in range(NUM_LANES)] for _ in range(SPAWN_DISTANCE + 1)]  # [dist][lane]
         objs = self.objects(env_id)
@@ -316,11 +311,3 @@ class Driving(BatchedTask):
         img = paint_cells(rows[::-1], colours, cell, background=110)  # distance 8 on top
         img[:, ::cell] = (240, 240, 240)
         return img
-
-
-def _check_lane(lane: object) -> None:
-    """Refuse a ``lane`` that is not an integer in ``0..NUM_LANES - 1`` (ValueError)."""
-    if isinstance(lane, bool) or not isinstance(lane, numbers.Integral):
-        raise ValueError(f"lane: expected an integer 0..{NUM_LANES - 1}, got {lane!r}")
-    if not 0 <= int(lane) < NUM_LANES:
-        raise ValueError(f"lane: expected 0..{NUM_LANES - 1}, got {lane!r}")

@@ -23,8 +23,7 @@ LAYOUTS = ("paper", "random")
 #: How a tie for the nearest baby is broken: first in ``(x, y)`` order, or at random.
 TIE_BREAKS = ("first", "random")
 
-# (dx, dy) of actions up, down, left, right
-_MOVES = ((0, 1), (0, -1), (-1, 0), (1, 0))
+_MOVES = ((0, 1), (0, -1), (-1, 0), (1, 0))  # (dx, dy) of up, down, left, right
 _NCELLS = SIZE * SIZE
 _NONE_KEY = 200 * _NCELLS  # larger than any d2 * 64 + cell; a multiple of 64 -> cell 0
 
@@ -126,7 +125,6 @@ class FindMilk(BatchedTask):
             best = torch.where((bits >> j) & 1 == 1, torch.minimum(best, key), best)
         return (best % _NCELLS).reshape(-1)
 
-    # ------------------------------------------------------------------ rules
     def _advance(
         self, actions: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
@@ -214,7 +212,6 @@ class FindMilk(BatchedTask):
         cells = torch.stack([self._pos, self._milk, cry, sleep], 1).reshape(-1)
         return self._xy.index_select(0, cells).reshape(self.num_envs, 8)
 
-    # ------------------------------------------------------------------ state access
     @staticmethod
     def _alive(bits: torch.Tensor, k: int) -> torch.Tensor:
         return (bits[:, None] >> torch.arange(k, device=bits.device)) & 1 == 1
@@ -252,7 +249,6 @@ class FindMilk(BatchedTask):
         alive = self._alive(self._sleep_bits, len(SLEEPING))
         return torch.where(alive[:, :, None], xy, -1)
 
-    # ------------------------------------------------------------------ prompts
     @classmethod
     def prompt_variables_from_obs(
         cls, obs: np.ndarray, *, num_crying: int | None = None, **extra: Any
@@ -280,7 +276,6 @@ class FindMilk(BatchedTask):
     def _prompt_extras(self, ids: torch.Tensor) -> list[dict[str, Any]]:
         return [{"num_crying": int(k)} for k in self.crying_left()[ids].tolist()]
 
-    # ------------------------------------------------------------------ rendering
     def _grid_chars(self, env_id: int) -> list[list[str]]:
         grid = [["." for _ in range(SIZE)] for _ in range(SIZE)]  # grid[y][x]
         babies = self.baby_positions(env_id)

@@ -10,13 +10,9 @@ from collections.abc import Callable, Sequence
 from amuled_ma.errors import ScenarioError
 from amuled_ma.tasks.names import canonical_name
 
-#: FindMilk's grid side (cells) and observation length.
+#: FindMilk's grid side (cells); Driving's lanes.
 _MILK_SIZE = 8
-_MILK_OBS = 8
-#: Driving's lanes, and its observation: six distances (current, left, right lane: car,
-#: grandma), then the one-hot lane.
 _DRIVING_LANES = 5
-_DRIVING_OBS = 6 + _DRIVING_LANES
 
 
 def _findmilk(obs: Sequence[float]) -> str:
@@ -62,9 +58,11 @@ def _driving(obs: Sequence[float]) -> str:
     return "\n".join(lines)
 
 
+#: Task -> (observation length, its picture): Driving's is six distances (current, left,
+#: right lane: car, grandma), then the one-hot lane.
 _PICTURES: dict[str, tuple[int, Callable[[Sequence[float]], str]]] = {
-    "findmilk": (_MILK_OBS, _findmilk),
-    "driving": (_DRIVING_OBS, _driving),
+    "findmilk": (8, _findmilk),
+    "driving": (6 + _DRIVING_LANES, _driving),
 }
 
 
@@ -74,7 +72,7 @@ def state_picture(task: str, obs: Sequence[float]) -> str | None:
         key = canonical_name(task)
     except ScenarioError:
         return None
-    length, draw = _PICTURES[key]
+    length, draw = _PICTURES.get(key, (-1, _findmilk))
     if len(obs) != length:
         return None
     try:

@@ -108,26 +108,24 @@ def parse_template(path: Path) -> StateTemplate:
             UTF-8; it has no ``## prompt`` block or a malformed fragment heading.
     """
     text = read_text(path, "state prompt template", PromptError, max_bytes=MAX_PROMPT_BYTES)
-    lines = text.splitlines()
+    rows = iter(text.splitlines())
     prompt: str | None = None
     fragments: dict[str, list[_Fragment]] = {}
     heading: str | None = None
     level = 0
-    i = 0
-    while i < len(lines):
-        line = lines[i]
+    for line in rows:
         found = _HEADING.match(line)
         if found:
             level, heading = len(found[1]), found[2]
-            i += 1
-            continue
-        if _FENCE.match(line) and heading is not None:
-            end = i + 1
-            while end < len(lines) and lines[end].rstrip() != "```":
-                end += 1
-            if end == len(lines):
+        elif _FENCE.match(line) and heading is not None:
+            block = []
+            for row in rows:
+                if row.rstrip() == "```":
+                    break
+                block.append(row)
+            else:
                 raise PromptError(f"{path}: unclosed code block under heading {heading!r}")
-            body = "\n".join(lines[i + 1 : end])
+            body = "\n".join(block)
             if level == 2 and heading.lower() == "prompt":
                 prompt = body
             elif level == 3:
@@ -139,9 +137,6 @@ def parse_template(path: Path) -> StateTemplate:
                     )
                 fragments.setdefault(match["group"], []).append((_condition(match), body))
             heading = None
-            i = end + 1
-            continue
-        i += 1
     if prompt is None:
         raise PromptError(f"{path}: no fenced block under a '## prompt' heading")
     return StateTemplate(path, prompt, {k: tuple(v) for k, v in fragments.items()})

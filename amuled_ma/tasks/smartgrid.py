@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import copy
 import functools
+import importlib
+import itertools
 import weakref
 from collections import OrderedDict
 from typing import Any, ClassVar
@@ -18,7 +20,7 @@ import numpy as np
 import torch
 
 from amuled_ma.errors import ScenarioError
-from amuled_ma.tasks.base import BatchedTask, paint_cells
+from amuled_ma.tasks.base import BatchedTask, check_int, paint_cells
 
 __all__ = ["ACTIONS", "FIXED_ACTION", "JUDGES", "JUDGE_TEMPERATURE", "SmartGrid", "action_vector"]
 
@@ -44,9 +46,10 @@ JUDGE_TEMPERATURE = 0.1
 #: Judge scores kept per process, by observation (a state asked twice is computed once).
 MAX_SCORED = 65_536
 
-# observation bytes (float32) -> every (task, copy) whose current state it is (copies of
-# tasks seeded alike, e.g. a population's seed replicas, show the same states)
-_LIVE: dict[bytes, list[tuple[weakref.ref[SmartGrid], int]]] = {}
+# every smart-grid task alive in this process; a stamp orders the copies' latest observations,
+# and a judge looks ahead from the least recently observed copy that shows the state
+_TASKS: weakref.WeakSet[SmartGrid] = weakref.WeakSet()
+_SHOWN = itertools.count()
 # observation bytes -> judge rewards [judge, action]
 _SCORED: OrderedDict[bytes, np.ndarray] = OrderedDict()
 
@@ -94,11 +97,8 @@ def _profiles() -> Any:
 
 def _reward(value: str) -> Any:
     """A new instance of the package's reward class judging ``value`` (a key of `JUDGES`)."""
-    from smartgrid.rewards.numeric.differentiated import Equity, OverConsumption
-    from smartgrid.rewards.numeric.per_agent.comfort import Comfort
-
-    classes = {"Comfort": Comfort, "Equity": Equity, "OverConsumption": OverConsumption}
-    return classes[JUDGES[value][1]]()
+    module, name = JUDGES[value]
+    return getattr(importlib.import_module(module), name)()
 
 
 class SmartGrid(BatchedTask):
@@ -130,11 +130,9 @@ class SmartGrid(BatchedTask):
     default_max_steps = 24
     judge_names: ClassVar[tuple[str, ...]] = tuple(JUDGES)
 
-    # ------------------------------------------------------------------ hooks
     def _init_task(self, households: int = 3, offices: int = 1) -> None:
-        for option, value, low in (("households", households, 1), ("offices", offices, 0)):
-            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= 1000:
-                raise ValueError(f"{option}: expected an integer in {low}..1000, got {value!r}")
+        households = check_int(households, "households", 1, 1000)
+        offices = check_int(offices, "offices", 0, 1000)
         try:
             from smartgrid import SmartGrid as PackageGrid
             from smartgrid import World
@@ -158,7 +156,8 @@ class SmartGrid(BatchedTask):
         n = self.num_envs
         self._value_sums = torch.zeros(n, len(JUDGES), dtype=torch.float32)
         self._live_keys: list[bytes | None] = [None] * n
-        weakref.finalize(self, _forget, self._live_keys)  # the list itself, kept current
+        self._shown_at = [0] * n
+        _TASKS.add(self)
 
     def _advance(
         self, actions: torch.Tensor
@@ -210,14 +209,9 @@ class SmartGrid(BatchedTask):
 
     def _remember(self, obs: torch.Tensor) -> None:
         """Mark each copy's observation as live, for the judges' look-ahead."""
-        me = weakref.ref(self)
         for i, row in enumerate(obs.numpy()):
-            old = self._live_keys[i]
-            if old is not None:
-                _keep_live(old, self, i)
-            key = row.tobytes()
-            _LIVE.setdefault(key, []).append((me, i))
-            self._live_keys[i] = key
+            self._live_keys[i] = row.tobytes()
+            self._shown_at[i] = next(_SHOWN)
 
     def _prompt_extras(self, ids: torch.Tensor) -> list[dict[str, Any]]:
         extras = []
@@ -247,7 +241,6 @@ class SmartGrid(BatchedTask):
             variables[key] = extra.get(key, "unknown")
         return variables
 
-    # ------------------------------------------------------------------ judges
     @classmethod
     def judge_scores(cls, judge: str, obs: np.ndarray) -> np.ndarray:
         """The judge's belief scores ``exp((r_v(a) - max r_v) / JUDGE_TEMPERATURE)``.
@@ -267,7 +260,6 @@ class SmartGrid(BatchedTask):
         out = np.exp((out - out.max(axis=1, keepdims=True)) / JUDGE_TEMPERATURE)
         return out[0] if np.asarray(obs).ndim == 1 else out
 
-    # ------------------------------------------------------------------ pictures
     def render_ansi(self, env_id: int = 0) -> str:
         """One line per prosumer: need, battery, comfort (the learner marked ``*``)."""
         world = self._envs[env_id].world
@@ -316,14 +308,16 @@ def _scores(key: bytes) -> np.ndarray:
     if key in _SCORED:
         _SCORED.move_to_end(key)
         return _SCORED[key]
-    live = [(task, i) for ref, i in _LIVE.get(key, []) if (task := ref()) is not None]
-    task, copy_id = live[0] if live else (None, -1)
-    if task is None:
+    live = [
+        (t._shown_at[i], i, t) for t in list(_TASKS) for i, k in enumerate(t._live_keys) if k == key
+    ]
+    if not live:
         raise ValueError(
             "smartgrid judge: no live smart-grid copy in this process shows this observation "
             "(the judges look one step ahead from the world itself; a replayed state cannot "
             "be judged)"
         )
+    _, copy_id, task = min(live, key=lambda held: held[0])  # stamps are unique
     out = np.zeros((len(JUDGES), len(ACTIONS)))
     env = task._envs[copy_id]
     for a in range(len(ACTIONS)):
@@ -333,23 +327,3 @@ def _scores(key: bytes) -> np.ndarray:
     if len(_SCORED) > MAX_SCORED:
         _SCORED.popitem(last=False)
     return out
-
-
-def _keep_live(key: bytes, task: SmartGrid | None = None, copy_id: int = -1) -> None:
-    """Drop the holders of ``key`` in `_LIVE` collected or ``(task, copy_id)`` (none left: it)."""
-    holders = [
-        (ref, i)
-        for ref, i in _LIVE.get(key, [])
-        if (held := ref()) is not None and (held is not task or i != copy_id)
-    ]
-    if holders:
-        _LIVE[key] = holders
-    else:
-        _LIVE.pop(key, None)
-
-
-def _forget(keys: list[bytes | None]) -> None:
-    """Drop a garbage-collected task's live observations."""
-    for key in keys:
-        if key is not None:
-            _keep_live(key)

@@ -287,7 +287,7 @@ def test_the_viewer_page_carries_the_figures_colour_table():
 
 
 def test_the_figures_use_the_table_for_the_things_the_viewer_draws():
-    from amuled_ma.tasks.driving_drawing import DRIVING_EVENTS
+    from amuled_ma.tasks.drawing import DRIVING_EVENTS
 
     assert DRIVING_EVENTS["collisions"][1] == COLORS["bad"]
     assert DRIVING_EVENTS["rescues"][1] == COLORS["good"]

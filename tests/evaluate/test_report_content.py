@@ -33,7 +33,7 @@ from amuled_ma.evaluate.report.trajectories import findmilk_figure
 from amuled_ma.evaluate.report.writing import link_viewer, write_report
 from amuled_ma.evaluate.results import Results
 from amuled_ma.records.run_record import RunRecord
-from amuled_ma.tasks.findmilk_drawing import findmilk_subgoals
+from amuled_ma.tasks.drawing import findmilk_subgoals
 
 SHA = "0f" * 32
 

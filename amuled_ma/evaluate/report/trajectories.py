@@ -11,8 +11,7 @@ from amuled_ma.evaluate.report.plotting import (
     variant_colors,
 )
 from amuled_ma.evaluate.results import Results
-from amuled_ma.tasks.driving_drawing import draw_driving, driving_legend
-from amuled_ma.tasks.findmilk_drawing import draw_findmilk, findmilk_legend
+from amuled_ma.tasks.drawing import draw_driving, draw_findmilk, driving_legend, findmilk_legend
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure

@@ -10,7 +10,6 @@ from __future__ import annotations
 import functools
 import json
 import math
-import numbers
 import os
 import zipfile
 import zlib
@@ -25,23 +24,7 @@ from amuled_ma.errors import AmuledError
 from amuled_ma.files.limits import check_size
 from amuled_ma.files.safe import atomic_writer, checked_read_path
 from amuled_ma.tasks import canonical_name, get_task
-
-__all__ = [
-    "AUTHORS_STATE_COUNTS",
-    "DEFAULT_EPISODES",
-    "DRIVING_COUNT_FROM",
-    "MAX_STEPS",
-    "MAX_TABLE_BYTES",
-    "DemonstratorBelief",
-    "DemonstratorCacheError",
-    "check_count",
-    "check_seed",
-    "counts_to_belief",
-    "demonstrator_settings",
-    "encode_observations",
-    "observation_bounds",
-    "settings_differences",
-]
+from amuled_ma.tasks.base import check_int
 
 FORMAT_VERSION = 1
 DEFAULT_EPISODES: Mapping[str, int] = {"findmilk": 1000, "driving": 10_000}
@@ -119,22 +102,6 @@ def check_table_memory(path: Path, fix: str) -> None:
         ) from err
 
 
-# ---------------------------------------------------------------------- arguments
-def check_seed(seed: object) -> int:
-    """Return ``seed`` as an ``int``, or raise ``ValueError`` unless a non-negative integer."""
-    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
-        raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
-    return int(seed)
-
-
-def check_count(value: object, label: str, minimum: int) -> int:
-    """Return ``value`` as an ``int``, or raise ``ValueError`` unless an integer >= minimum."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
-        raise ValueError(f"{label}: expected an integer >= {minimum}, got {value!r}")
-    return int(value)
-
-
-# ---------------------------------------------------------------------- observation keys
 def observation_bounds(task_name: str) -> list[list[int]]:
     """Return the integer ``[low, high]`` of each observation entry (the keys' radixes)."""
     cls = get_task(task_name)
@@ -184,7 +151,6 @@ def encode_observations(task_name: str, obs: object) -> tuple[torch.Tensor, torc
     return torch.where(valid, keys, -1), valid
 
 
-# ---------------------------------------------------------------------- counts -> belief
 def counts_to_belief(counts: object) -> torch.Tensor:
     """Turn action counts ``[..., A]`` into float64 beliefs (``finetune_moral_human.py``)."""
     c = torch.as_tensor(counts).to(torch.float64)
@@ -195,13 +161,11 @@ def counts_to_belief(counts: object) -> torch.Tensor:
     return torch.softmax(log_p, -1)
 
 
-# ---------------------------------------------------------------------- settings
 def demonstrator_settings(task_name: str, *, seed: int, episodes: int | None = None) -> dict:
     """Return the JSON-ready settings a demonstrator belief of the authors' recipe is built with."""
     name = canonical_name(task_name)
-    seed = check_seed(seed)
-    episodes = DEFAULT_EPISODES[name] if episodes is None else episodes
-    episodes = check_count(episodes, "episodes", 1)
+    seed = check_int(seed, "seed")
+    episodes = check_int(DEFAULT_EPISODES[name] if episodes is None else episodes, "episodes", 1)
     return {
         "format": FORMAT_VERSION,
         "task": name,
@@ -221,7 +185,6 @@ def settings_differences(found: Mapping[str, Any], expect: Mapping[str, Any]) ->
     )
 
 
-# ---------------------------------------------------------------------- belief table
 class DemonstratorBelief:
     """Counts of a played demonstrator and the beliefs they give, keyed by observation.
 
