@@ -21,7 +21,7 @@ from amuled_ma.deliberation.plan import plan_panel
 from amuled_ma.deliberation.state_key import freeze
 from amuled_ma.evaluate import episode_trace as trace
 from amuled_ma.evaluate.evaluator import variant_dirs
-from amuled_ma.evaluate.panel_answers import ask_panel
+from amuled_ma.evaluate.panel_answers import ask_panel, state_prompt
 from amuled_ma.evaluate.readonly_feedback import open_feedback
 from amuled_ma.experiments.run_folder import read_record, split_replica
 from amuled_ma.experiments.trained_variants import evaluated_episodes, trained_variant
@@ -107,15 +107,6 @@ def resolve_variant(run_dir: Path, name: str) -> Path:
 
 def _round(values: ArrayLike) -> list[Any]:
     return np.round(np.asarray(values, dtype=np.float64), DECIMALS).tolist()
-
-
-def _prompt(task: str, prompt_vars: dict[str, Any]) -> str | None:
-    from amuled_ma.tasks.prompts import render_state_prompt
-
-    try:
-        return render_state_prompt(task, dict(prompt_vars))
-    except (KeyError, ValueError, Exception):  # a task without a template: no words
-        return None
 
 
 def _states_of_run(
@@ -279,7 +270,7 @@ def build_study(
                 step=state.step,
                 met_by=state.met_by,
                 obs=_round(state.obs),
-                prompt=_prompt(state.task, state.prompt_vars),
+                prompt=state_prompt(state.task, state.prompt_vars),
                 picture=f"states/{item_id}.svg",
                 options=options,
                 expected=expected,

@@ -26,6 +26,7 @@ from amuled_ma.study.analysis import (
     majorities,
     nominal_alpha,
     pair_answers,
+    top_action,
     wilson,
     win_rates,
 )
@@ -104,7 +105,11 @@ def summarize(folder: Path, *, keep_inattentive: bool = False) -> dict[str, Any]
     low, high = bootstrap_strengths(study.variants, by_person, seed=study.seed, alpha=ALPHA)
     rated = acceptability(study.variants, pairs, seed=study.seed)
     majority = majorities(pairs)
-    agree = agreement(study, majority)
+    accepted = {
+        i: {o.action for o in item.options if o.label == top}
+        for i, (top, _, _) in majority.items()
+        if (item := study.item(i)) is not None
+    }
     disagreements: list[dict[str, Any]] = []
     for item_id, (top, n_top, n) in majority.items():
         item = study.item(item_id)
@@ -142,7 +147,7 @@ def summarize(folder: Path, *, keep_inattentive: bool = False) -> dict[str, Any]
         "acceptability": [{"variant": v, **_mean(m, "participants")} for v, m in rated.items()],
         "krippendorff_alpha": nominal_alpha(choice_values(pairs)),
         "krippendorff_alpha_unavailable": alpha_unavailable(choice_values(pairs)),
-        "agreement": _rates(agree),
+        "agreement": _rates(agreement(study, accepted, pairs=True)),
         "disagreements": disagreements[:10],
     }
 
@@ -160,7 +165,7 @@ def summarize_expert(folder: Path) -> dict[str, Any]:
         item = study.item(item_id)
         if item is None or item.panel is None:
             continue
-        top = expert.top_action(item.panel.fused)
+        top = top_action(item.panel.fused)
         if top is not None and top not in accepted:
             names = study.action_names.get(item.task, [])
             unacceptable.append(
@@ -194,7 +199,7 @@ def summarize_expert(folder: Path) -> dict[str, Any]:
         "acceptable_sets": {
             k: {"acceptable": sorted(v[0]), "experts": v[1]} for k, v in sorted(sets.items())
         },
-        "agreement": _rates(expert.expert_agreement(study, sets)),
+        "agreement": _rates(agreement(study, {k: v[0] for k, v in sets.items()})),
         "clarity": {**_mean(clear, "experts"), "points": study.clarity_points},
         "alpha_acceptable": _num(nominal_alpha(expert.acceptability_values(answers))),
         "alpha_framework": _num(nominal_alpha(expert.framework_values(study, answers))),

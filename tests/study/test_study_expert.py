@@ -22,7 +22,7 @@ from study_fixtures import (
 )
 
 from amuled_ma.study import expert
-from amuled_ma.study.analysis import answers_csv, nominal_alpha
+from amuled_ma.study.analysis import agreement, answers_csv, nominal_alpha
 from amuled_ma.study.answers import ExpertAnswer, Judgement, read_refusals
 from amuled_ma.study.build import build_study
 from amuled_ma.study.model import Item, PanelView, Study, StudyError, public_item, read_study
@@ -74,7 +74,7 @@ def test_expert_numbers_by_hand(hand_study):
     # than half)
     sets = expert.acceptable_sets(answers)
     assert sets == {"e1": (frozenset({0, 1}), 3), "e2": (frozenset({0}), 2)}
-    agree = expert.expert_agreement(study, sets)
+    agree = agreement(study, {k: v[0] for k, v in sets.items()})
     # care's top is down (in e1's set); virtue ties up and down (not counted); fused: down;
     # amuled takes down in e1, up in e2 (both acceptable); base right and left (neither)
     assert agree == {"cluster:care": [1, 1], "fused": [1, 1], "policy:amuled": [2, 2],
