@@ -237,10 +237,7 @@ def replay_episode(
     """Play evaluation episode ``K = episode`` of ``episodes`` (default ``[evaluation].episodes``).
 
     ``base_actor`` is asked in the same states; ``live_feedback`` (one that needs the live task:
-    human, fused-only replay) about every state as the episode runs.
-
-    Raises:
-        ScenarioError: Unknown ``mode`` (by `rollout`), or ``episode`` outside ``0..N-1``.
+    human, fused-only replay) about every state. ScenarioError: bad ``mode`` or ``episode``.
     """
     n = int(evaluation.episodes if episodes is None else episodes)
     if not 0 <= episode < n:
@@ -303,12 +300,7 @@ def replay_variant(
     episodes: int | None = None,
     live_feedback: Feedback | None = None,
 ) -> Episode:
-    """Replay evaluation episode ``episode`` of a trained variant, its base policy beside it.
-
-    Raises:
-        CheckpointError: A policy is missing or does not fit the scenario.
-        ScenarioError: As `replay_episode`.
-    """
+    """Replay an evaluation episode of a trained variant, its base policy beside it."""
     scenario = trained.scenario
     actor = load_actor(trained.checkpoint, scenario.ppo)
     base = trained.base_checkpoint

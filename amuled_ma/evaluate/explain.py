@@ -78,11 +78,7 @@ def _num(value: float) -> str:
 
 
 def parse_obs(text: str, task_cls: type[BatchedTask]) -> np.ndarray:
-    """``"1,2,3"`` -> float array, checked against the task's observation length.
-
-    Raises:
-        ScenarioError: Not numbers, not finite as float32, or the wrong count.
-    """
+    """``"1,2,3"`` -> float array; ScenarioError: not finite float32 numbers, or the wrong count."""
     tokens = [x for x in text.replace(" ", "").split(",") if x != ""]
     try:
         values = [float(x) for x in tokens]
@@ -130,11 +126,9 @@ def _check_prompt_value(name: str, value: object) -> None:
 
 
 def parse_prompt_vars(items: Sequence[str]) -> dict[str, Any]:
-    """``["num_crying=4", ...]`` -> ``{"num_crying": 4}`` (values in TOML syntax).
+    """``["num_crying=4", ...]`` -> ``{"num_crying": 4}`` (TOML values); ScenarioError if bad.
 
-    Raises:
-        ScenarioError: Not ``NAME=VALUE``, nested too deep, or a number not finite or beyond
-            `MAX_PROMPT_INT`.
+    Bad: not ``NAME=VALUE``, nested too deep, or a number not finite or beyond `MAX_PROMPT_INT`.
     """
     out: dict[str, Any] = {}
     for item in items:
@@ -196,9 +190,8 @@ def state_by_hand(
 ) -> State:
     """A state given by hand: its prompt variables and, for a non-panel feedback, its belief.
 
-    Raises:
-        ScenarioError: The panel reads prompts and a variable is missing, or the feedback
-            needs the live task.
+    ScenarioError: the panel reads prompts and a variable is missing, or the feedback needs the
+    live task.
     """
     import torch
 

@@ -37,9 +37,7 @@ class _OneFileHandler(http.server.BaseHTTPRequestHandler):
 def make_server(path: Path, host: str = "127.0.0.1", port: int = 0) -> http.server.HTTPServer:
     """An HTTP server for one file (read once, before binding); ``port`` 0 picks a free one.
 
-    Raises:
-        OSError: The file cannot be read, or the address cannot be bound.
-        AmuledError: The file is larger than `MAX_PAGE_BYTES` (refused unread).
+    OSError: the file cannot be read or the address bound; AmuledError: over `MAX_PAGE_BYTES`.
     """
     from amuled_ma.files.limits import read_bounded_bytes
 

@@ -331,11 +331,7 @@ def write_view(
     """Write the page of evaluation episode ``episode`` of ``episodes`` (`replay_episode`).
 
     ``output`` defaults to `default_output`; ``say`` gets a progress line per variant.
-
-    Raises:
-        UnsafePathError: The output is a link, a device, a FIFO or a folder; refused
-            before the episode is replayed.
-        FileWriteError: It could not be written (a full disk); one line naming it.
+    UnsafePathError (before any replay): the output is not a regular file; FileWriteError.
     """
     from amuled_ma import __version__
 

@@ -78,8 +78,7 @@ class _State:
 def resolve_variant(run_dir: Path, name: str) -> Path:
     """The variant folder ``name`` means (folder, ``finetune-<name>``, feedback; no seed replica).
 
-    Raises:
-        StudyError: No variant, or several, fit; the message lists the run's variants.
+    StudyError: no variant, or several, fit; the message lists the run's variants.
     """
     run_dir = Path(run_dir)
     found = variant_dirs(run_dir)
@@ -217,11 +216,9 @@ def build_study(
     """Build a study folder ``out`` of ``items`` pairs (expert mode: states) of ``runs``.
 
     ``attention`` checks default to one per ten pairs; ``force`` replaces a study (an edited
-    ``consent.html`` is kept either way).
-
-    Raises:
-        StudyError: A run folder or variant missing, too few variants, no state where two
-            differ, attention checks in expert mode, or ``out`` holds a study without ``force``.
+    ``consent.html`` is kept either way). StudyError: a run folder or variant missing, too few
+    variants, no state where two differ, attention checks in expert mode, or ``out`` holds a
+    study without ``force``.
     """
     names = list(dict.fromkeys(variants))
     check_run_folders([Path(r) for r in runs])
@@ -316,8 +313,7 @@ def _pair_slots(
 ) -> tuple[list[_Slot], int]:
     """Pairs where two variants' actions differ and attention checks, drawn; and the candidates.
 
-    Raises:
-        StudyError: The variants take the same action in every state.
+    StudyError: the variants take the same action in every state.
     """
     candidates = [
         (s, a, b)

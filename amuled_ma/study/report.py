@@ -227,8 +227,7 @@ def write_analysis(
 ) -> Path:
     """Write ``<study>/analysis/``'s report (returned), summary and figure; ``warn`` each warning.
 
-    Raises:
-        UnsafePathError: ``analysis`` or an output there is a link or not a folder or file.
+    UnsafePathError: ``analysis`` or an output there is a link or not a folder or file.
     """
     folder = Path(folder)
     expert_mode = read_study(folder).mode == "expert"

@@ -67,11 +67,7 @@ class ChoiceData:
 def choice_data(
     study: Study, answers: Sequence[Answer], *, keep_inattentive: bool = False
 ) -> ChoiceData:
-    """The `ChoiceData` of a study and its answers.
-
-    Raises:
-        StudyError: No item carries a ``bjs-dst`` panel, or no kept participant answered one.
-    """
+    """The `ChoiceData` of a study; StudyError: no ``bjs-dst`` item, or no kept answer to one."""
     items = [
         i
         for i in study.items
@@ -269,11 +265,7 @@ def fit_study(
     temperature: float | None = None,
     progress: bool = False,
 ) -> WeightsFit:
-    """Fit the weights, their bootstrap intervals and the held-out comparison.
-
-    Raises:
-        StudyError: ``folds`` outside 2..participants.
-    """
+    """The weights, bootstrap intervals and held-out comparison; StudyError: bad ``folds``."""
     people = len(data.participants)
     if not 2 <= folds <= people:
         raise StudyError(
@@ -360,9 +352,7 @@ def fit_weights(
 ) -> tuple[PanelWeights, Path]:
     """``amuled study fit-weights``: fit a study's panel weights, write ``out`` (or `WEIGHTS_FILE`).
 
-    Raises:
-        StudyError: No study or answers, no ``bjs-dst`` item, or bad ``folds``; before any fit.
-        UnsafePathError: The file to write is a link or not a regular file; before any fit.
+    Before any fit: StudyError as `choice_data` and `fit_study`; UnsafePathError for ``out``.
     """
     from amuled_ma.files.hashing import sha256_file
 

@@ -63,9 +63,7 @@ def load_curves(
 ) -> dict[str, list[list[dict]]]:
     """Every variant's ``curve.json``: ``{variant: [replica, ...]}`` (``names``: folder -> variant).
 
-    Raises:
-        AmuledError: A ``curve.json`` over `MAX_CURVE_BYTES` (refused unread), refused by
-            `checked_read_path`, unreadable or not JSON.
+    AmuledError: a ``curve.json`` over `MAX_CURVE_BYTES`, unsafe, unreadable or not JSON.
     """
     names = names or {}
     curves: dict[str, list[list[dict]]] = {}

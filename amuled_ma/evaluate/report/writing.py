@@ -66,9 +66,7 @@ def viewer_line(run_dir: Path) -> str:
 def link_viewer(run_dir: Path) -> bool:
     """Rewrite ``report.md``'s viewer line (`viewer_line`); True when it had one.
 
-    Raises:
-        AmuledError: ``report.md`` over `MAX_REPORT_BYTES` (refused unread), refused by
-            `checked_read_path`, unreadable, or not writable back.
+    AmuledError: ``report.md`` over `MAX_REPORT_BYTES`, unsafe, unreadable, or not writable.
     """
     from amuled_ma.files.limits import read_bounded_bytes
 
@@ -123,10 +121,8 @@ def write_report(
 ) -> Path:
     """Write ``report.md`` and its PNG figures into ``run_dir``, removing figures not drawn now.
 
-    Raises:
-        UnsafePathError: One of `evaluation_outputs` is a link or not a regular file;
-            refused before any figure is drawn.
-        FileWriteError: A file could not be written.
+    UnsafePathError (before any figure): one of `evaluation_outputs` is a link or not a regular
+    file; FileWriteError: a file could not be written.
     """
     run_dir = Path(run_dir)
     check_write_targets(evaluation_outputs(run_dir))
