@@ -27,9 +27,6 @@ if TYPE_CHECKING:
     from amuled_ma.evaluate.readonly_feedback import ReadOnlyStore
     from amuled_ma.tasks.base import BatchedTask
 
-# ---------------------------------------------------------------------------------------
-# Text tables
-
 
 def table(headers: Sequence[str], rows: Sequence[Sequence[Any]], indent: str = "  ") -> str:
     """Aligned columns: the first left-aligned, the others right-aligned."""
@@ -45,10 +42,9 @@ def table(headers: Sequence[str], rows: Sequence[Sequence[Any]], indent: str = "
     return "\n".join(lines)
 
 
-#: Characters a terminal would act on rather than show: C0 controls but tab and newline
-#: (ESC starts the sequences that clear the screen, write the clipboard, make links), DEL,
-#: the C1 controls (U+009B is a one-character CSI), the bidirectional overrides, and lone
-#: surrogates (not text: printing one would fail).
+#: Characters a terminal would act on rather than show: C0 controls but tab and newline (ESC
+#: starts escape sequences), DEL, the C1 controls (U+009B is a one-character CSI), the
+#: bidirectional overrides, and lone surrogates (not text: printing one would fail).
 _UNPRINTABLE = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069\ud800-\udfff]")
 
 
@@ -71,10 +67,6 @@ def _cell(value: object) -> str:
 def _num(value: float) -> str:
     value = float(value)
     return str(int(value)) if value.is_integer() else f"{value:g}"
-
-
-# ---------------------------------------------------------------------------------------
-# The state
 
 
 def parse_obs(text: str, task_cls: type[BatchedTask]) -> np.ndarray:
@@ -220,10 +212,6 @@ def state_by_hand(
     return State(obs, prompt_vars, [f"state given by hand, {where}"], live_belief)
 
 
-# ---------------------------------------------------------------------------------------
-# The fusion of one state, explained
-
-
 def breakdown_lines(
     agents: Sequence[str],
     beliefs: np.ndarray,
@@ -272,9 +260,8 @@ def breakdown_lines(
     head = ["agent", "avg BJS", "credibility", "Deng H (bits)", "info volume", "weight"]
     say(table(head, rows))
     if k > 1:
-        say("")
-        say("pairwise BJS divergence:")
-        say(table(["", *names], [[names[i], *pairwise[i].tolist()] for i in range(k)]))
+        rows = [[names[i], *pairwise[i].tolist()] for i in range(k)]
+        out += ["", "pairwise BJS divergence:", table(["", *names], rows)]
     say("")
     if diag.wae is not None:
         wae = np.asarray(diag.wae, dtype=np.float64)[0].tolist()
@@ -290,10 +277,6 @@ def breakdown_lines(
         + ("" if agree else "\n  note: the panel's fused belief differs from this recomputation")
     )
     return out
-
-
-# ---------------------------------------------------------------------------------------
-# The explanation, as lines of text
 
 
 def explain_lines(
@@ -345,8 +328,7 @@ def explain_lines(
                 "  for the clusters' own beliefs, replay the recording with them: --set "
                 f'feedback.recording="{cluster_recording}"'
             )
-        say("")
-        say(table(["", *actions], [["feedback belief", *state.live_belief.tolist()]]))
+        out += ["", table(["", *actions], [["feedback belief", *state.live_belief.tolist()]])]
         return [printable(line) for line in out]
     answers = ask_panel(
         panel, obs[None].astype(np.float64), [prompt_vars] if prompt_vars else None, store
@@ -355,19 +337,17 @@ def explain_lines(
     beliefs, weights = answers.beliefs[0], answers.weights[0]
     statuses = answers.statuses[0].tolist()
     say(f"  {len(agents)} agents, fusion rule {rule}; an agent that did not answer abstains")
-    say("")
-    say("beliefs:")
+    out += ["", "beliefs:"]
     rows = [
         [agent, statuses[c], *beliefs[c].tolist(), float(weights[c])]
         for c, agent in enumerate(agents)
     ]
     rows.append([f"fused ({rule})", "", *answers.fused[0].tolist(), ""])
     say(table(["agent", "status", *actions, "weight"], rows))
-    say("")
+    out.append("")
     prior = getattr(panel, "prior", None)
     out += breakdown_lines(agents, beliefs, statuses, rule, prior, actions, answers.fused[0])
-    say("")
-    say("reasoning (raw replies):")
+    out += ["", "reasoning (raw replies):"]
     for c, agent in enumerate(agents):
         raw = answers.raws[0][c]
         reason = answers.reasons[0][c]
@@ -383,9 +363,7 @@ def explain_lines(
         if text is not raw:
             say(f"    | [... {len(raw) - len(text)} more characters; --full prints them]")
     if show_prompt and prompt_vars is not None:
-        say("")
-        say("state prompt:")
-        for line in render_state_prompt(task_name, prompt_vars).splitlines():
-            say("    " + line)
+        out += ["", "state prompt:"]
+        out += ["    " + line for line in render_state_prompt(task_name, prompt_vars).splitlines()]
     # replies, reasons and names come from outside: no terminal control sequence is printed
     return [printable(line) for line in out]

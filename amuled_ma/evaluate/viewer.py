@@ -258,12 +258,6 @@ def _live_entry(ep: trace.Episode, first: list[int], feedback: object, texts: Te
     )
 
 
-def _action_names(task_name: str) -> list[str]:
-    from amuled_ma.tasks import get_task
-
-    return list(get_task(task_name).action_names)
-
-
 def _csp_hash(text: str) -> str:
     digest = hashlib.sha256(text.encode("utf-8")).digest()
     return "'sha256-" + base64.b64encode(digest).decode("ascii") + "'"
@@ -334,6 +328,7 @@ def write_view(
     UnsafePathError (before any replay): the output is not a regular file; FileWriteError.
     """
     from amuled_ma import __version__
+    from amuled_ma.tasks import get_task
 
     start = time.perf_counter()
     path = check_write_target(output if output is not None else default_output(run_dir, episode))
@@ -380,7 +375,7 @@ def write_view(
         "seed": seed,
         "mode": mode,
         "episodes": episodes,
-        "actions": _action_names(task_name),
+        "actions": list(get_task(task_name).action_names),
         "colors": dict(COLORS),
         "texts": texts.texts,
         "variants": entries,

@@ -237,12 +237,6 @@ def fit(
     return Fit(_softmax(x[:k]), math.exp(x[k]), x)
 
 
-def _answer_loglik(data: ChoiceData, model: Fit) -> np.ndarray:
-    """``(M,)`` log-probability of each answer under a fitted model."""
-    p = choice_probability(data, model.prior, model.temperature)[data.answer_item]
-    return np.where(data.answer_a, np.log(p), np.log1p(-p))
-
-
 @dataclass(frozen=True)
 class WeightsFit:
     """What `fit_study` found: both fits, 95% bootstrap intervals, the held-out comparison."""
@@ -292,7 +286,8 @@ def fit_study(
             on_fixed = fit(data, ta, tb, learn=False, temperature=temperature, start=learned.x)
             test = np.isin(data.answer_participant, fold)
             for model, out in ((on_learned, held_learned), (on_fixed, held_fixed)):
-                scores = _answer_loglik(data, model)
+                p = choice_probability(data, model.prior, model.temperature)[data.answer_item]
+                scores = np.where(data.answer_a, np.log(p), np.log1p(-p))
                 out += np.bincount(data.answer_participant[test], scores[test], minlength=people)
             bar.update()
         # intervals: participants resampled with replacement, refitted

@@ -65,27 +65,22 @@ def load_curves(
 
     AmuledError: a ``curve.json`` over `MAX_CURVE_BYTES`, unsafe, unreadable or not JSON.
     """
-    names = names or {}
-    curves: dict[str, list[list[dict]]] = {}
-    run_dir = Path(run_dir)
-    for path in sorted(run_dir.glob("*/curve.json")):
-        variant = names.get(path.parent.name, path.parent.name)
-        checked_read_path(run_dir, path.relative_to(run_dir))
-        curves.setdefault(variant, []).append(read_curve(path))
-    return curves
-
-
-def read_curve(path: Path) -> list[dict]:
-    """One variant folder's ``curve.json`` rows; AmuledError as `load_curves`."""
     from amuled_ma.files.limits import read_bounded_json
 
     fix = (
         "is it the right folder? It is written by 'amuled train' and 'amuled finetune'; "
         "retrain the variant with --force, or move its folder out of the run"
     )
-    return read_bounded_json(
-        path, MAX_CURVE_BYTES, "learning curve", note="about 590 bytes an iteration", fix=fix
-    )
+    names = names or {}
+    curves: dict[str, list[list[dict]]] = {}
+    run_dir = Path(run_dir)
+    for path in sorted(run_dir.glob("*/curve.json")):
+        variant = names.get(path.parent.name, path.parent.name)
+        checked_read_path(run_dir, path.relative_to(run_dir))
+        note = "about 590 bytes an iteration"
+        curve = read_bounded_json(path, MAX_CURVE_BYTES, "learning curve", note=note, fix=fix)
+        curves.setdefault(variant, []).append(curve)
+    return curves
 
 
 def curve_band(

@@ -281,10 +281,6 @@ def differences_table(results: Results, mode: str) -> str:
     return markdown_table(["variant", *metrics], rows)
 
 
-# ---------------------------------------------------------------------------------------
-# The paper beside us, and what the fine-tune did
-
-
 #: How a metric's difference to the base reads: (verb phrase before, noun after).
 _PHRASES: dict[str, tuple[str, str]] = {
     "steps_to_milk": ("takes", "steps to the milk"),

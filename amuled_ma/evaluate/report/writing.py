@@ -95,10 +95,6 @@ def link_viewer(run_dir: Path) -> bool:
     return found
 
 
-# ---------------------------------------------------------------------------------------
-# The report
-
-
 def evaluation_outputs(run_dir: Path) -> list[Path]:
     """The files an evaluation and its report write or remove in ``run_dir``."""
     run_dir = Path(run_dir)
