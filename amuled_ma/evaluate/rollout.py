@@ -145,7 +145,7 @@ class TrajectoryRecorder(Observer):
     def __init__(self, copy: int = 0) -> None:
         self.copy = copy
         self.trajectory: dict[str, Any] = {"obs": [], "actions": [], "events": {}}
-        self._done = False
+        self.done = False
         self._actions: torch.Tensor | None = None
 
     def start(self, task: BatchedTask, obs: torch.Tensor) -> None:
@@ -169,7 +169,7 @@ class TrajectoryRecorder(Observer):
         info: Mapping[str, Any],
     ) -> None:
         """Record the step of the copy, until its first episode has ended."""
-        if self._done:
+        if self.done:
             return
         k, n = self.copy, len(obs)
         assert self._actions is not None
@@ -179,4 +179,4 @@ class TrajectoryRecorder(Observer):
         events = self.trajectory["events"]
         for key, value in step_events(info, k, n):
             events.setdefault(key, []).append(value)
-        self._done = bool(terminated[k]) or bool(truncated[k])
+        self.done = bool(terminated[k]) or bool(truncated[k])

@@ -81,10 +81,7 @@ def win_rates(variants: Sequence[str], games: Sequence[tuple[str, str]]) -> list
 def bradley_terry(
     variants: Sequence[str], games: Sequence[tuple[str, str]], alpha: float = 0.0
 ) -> np.ndarray:
-    """Bradley-Terry log-strengths (mean zero) by ``choix.ilsr_pairwise``.
-
-    ``alpha`` is choix's regularisation (needed when a variant never loses).
-    """
+    """Bradley-Terry log-strengths (mean 0) by ``choix.ilsr_pairwise``, regularised by ``alpha``."""
     import choix
 
     index = {v: i for i, v in enumerate(variants)}
@@ -184,10 +181,7 @@ class MeanInterval:
 def bootstrap_mean(
     by_person: dict[str, list[float]], *, resamples: int = 2000, seed: int = 0
 ) -> MeanInterval:
-    """The mean of everyone's ratings and its 95% percentile bootstrap interval over people.
-
-    A person drawn twice counts twice.
-    """
+    """The mean of everyone's ratings and its 95% percentile bootstrap interval over people."""
     people = sorted(p for p, values in by_person.items() if values)
     sums = np.array([float(np.sum(by_person[p])) for p in people])
     counts = np.array([len(by_person[p]) for p in people], dtype=float)

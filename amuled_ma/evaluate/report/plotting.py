@@ -68,10 +68,7 @@ def short_label(value: float) -> str:
 
 
 def variant_colors(names: Iterable[str]) -> dict[str, str]:
-    """One fixed colour ``#rrggbb`` per variant whatever their order: sorted names take tab10.
-
-    Past ten variants, tab20 with its dark shades first.
-    """
+    """One ``#rrggbb`` per variant whatever their order: sorted names take tab10 (past 10 tab20)."""
     from matplotlib import colormaps
     from matplotlib.colors import to_hex
 

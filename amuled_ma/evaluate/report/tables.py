@@ -22,10 +22,7 @@ from amuled_ma.evaluate.stats import t_quantile
 
 
 def diagnostics_table(results: Results, finetunes: int | None = None) -> str:
-    """Mean per-cluster weight, conflict and miss rate per variant.
-
-    With ``finetunes`` but no diagnostics, the table says so.
-    """
+    """Mean per-cluster weight, conflict and miss rate per variant, or a note why there are none."""
     rows = {k: v.feedback for k, v in results.variants.items() if v.feedback is not None}
     if not rows:
         if finetunes:
