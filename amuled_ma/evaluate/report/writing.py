@@ -29,7 +29,7 @@ from amuled_ma.evaluate.report.tables import (
     same_as_base,
     servers_table,
 )
-from amuled_ma.evaluate.report.trajectories import driving_figure, findmilk_figure
+from amuled_ma.evaluate.report.trajectories import episode_figure
 from amuled_ma.evaluate.results import RESULTS_FILES, Results
 from amuled_ma.files.safe import check_write_targets, checked_read_path, write_text_atomic
 from amuled_ma.records.run_record import RunRecord
@@ -175,15 +175,15 @@ def write_report(
             save_figure(bars_figure(results, mode, colors=colors), run_dir / f"metrics_{mode}.png"),
         ))  # fmt: skip
     episode_figures = {
-        "findmilk": ("A FindMilk trajectory per variant", findmilk_figure, "trajectory_findmilk"),
-        "driving": ("A Driving episode per variant", driving_figure, "episode_driving"),
+        "findmilk": ("A FindMilk trajectory per variant", "trajectory_findmilk"),
+        "driving": ("A Driving episode per variant", "episode_driving"),
     }
     if task in episode_figures:
-        heading, draw, stem = episode_figures[task]
+        heading, stem = episode_figures[task]
         figures.append((
             heading,
             "The first greedy evaluation episode of each variant.",
-            save_figure(draw(results, colors=colors), run_dir / f"{stem}.png"),
+            save_figure(episode_figure(results, colors=colors), run_dir / f"{stem}.png"),
         ))  # fmt: skip
     written = {path.name for _, _, path in figures if path is not None}
     _remove_stale_figures(run_dir, written)
