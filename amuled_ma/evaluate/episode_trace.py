@@ -44,9 +44,7 @@ class TrainedVariant:
     @property
     def feedback(self) -> str | None:
         """The feedback of a fine-tune (``amuled``, ``human:rules``, ...), None otherwise."""
-        if self.variant is None or not self.variant.finetuning:
-            return None
-        return self.variant.feedback
+        return self.variant.feedback if self.variant and self.variant.finetuning else None
 
 
 @dataclass

@@ -59,9 +59,7 @@ def _escape(match: re.Match[str]) -> str:
 
 
 def _cell(value: object) -> str:
-    if value is None:
-        return "-"
-    return format_number(value, 4)  # -0.0000 printed as 0.0000
+    return "-" if value is None else format_number(value, 4)  # -0.0000 printed as 0.0000
 
 
 def _num(value: float) -> str:

@@ -34,9 +34,7 @@ class ReadOnlyStore:
 
     def rows(self, keys: Sequence[str]) -> dict[str, Any]:
         """Every row of ``keys``, answers or not (an abstention's raw reply is kept)."""
-        if self.store is None:
-            return {}
-        return self.store.get_many(keys, cacheable_only=False)
+        return {} if self.store is None else self.store.get_many(keys, cacheable_only=False)
 
     def put_many(self, items: Sequence[StoreItem]) -> int:
         """Write nothing (looking at a run never changes it)."""

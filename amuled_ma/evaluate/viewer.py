@@ -81,9 +81,8 @@ class TextTable:
 
 
 def _cut(text: str, limit: int) -> str:
-    if len(text) <= limit:
-        return text
-    return f"{text[:limit]}\n[... {len(text) - limit} more characters, cut for the page]"
+    cut = f"{text[:limit]}\n[... {len(text) - limit} more characters, cut for the page]"
+    return text if len(text) <= limit else cut
 
 
 def _round(values: object, decimals: int = DECIMALS) -> Any:
@@ -275,14 +274,7 @@ def render_html(data: dict[str, Any]) -> str:
         encoding="utf-8"
     )
     payload = json.dumps(data, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
-    for char, escape in (
-        ("<", "\\u003c"),
-        (">", "\\u003e"),
-        ("&", "\\u0026"),
-        ("\u2028", "\\u2028"),
-        ("\u2029", "\\u2029"),
-    ):
-        payload = payload.replace(char, escape)
+    payload = payload.translate({ord(c): f"\\u{ord(c):04x}" for c in "<>&\u2028\u2029"})
     csp = (
         f"default-src 'none'; script-src {_csp_hash(script)}; style-src {_csp_hash(style)}; "
         "img-src data:; base-uri 'none'; form-action 'none'"
