@@ -296,11 +296,6 @@ def render_html(data: dict[str, Any]) -> str:
     )
 
 
-def default_output(run_dir: Path, episode: int) -> Path:
-    """``<run>/view-episode<K>.html``."""
-    return Path(run_dir) / f"view-episode{episode}.html"
-
-
 def write_view(
     run_dir: Path,
     variants: Sequence[trace.TrainedVariant],
@@ -316,14 +311,14 @@ def write_view(
 ) -> ViewResult:
     """Write the page of evaluation episode ``episode`` of ``episodes`` (`replay_episode`).
 
-    ``output`` defaults to `default_output`; ``say`` gets a progress line per variant.
+    ``output`` defaults to ``<run>/view-episode<K>.html``; ``say`` gets a line per variant.
     UnsafePathError (before any replay): the output is not a regular file; FileWriteError.
     """
     from amuled_ma import __version__
     from amuled_ma.tasks import get_task
 
     start = time.perf_counter()
-    path = check_write_target(output if output is not None else default_output(run_dir, episode))
+    path = check_write_target(output or Path(run_dir) / f"view-episode{episode}.html")
     episodes = int(evaluation.episodes if episodes is None else episodes)
     texts = TextTable()
     entries = []

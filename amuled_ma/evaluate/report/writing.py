@@ -186,7 +186,9 @@ def write_report(
             save_figure(episode_figure(results, colors=colors), run_dir / f"{stem}.png"),
         ))  # fmt: skip
     written = {path.name for _, _, path in figures if path is not None}
-    _remove_stale_figures(run_dir, written)
+    for path in evaluation_outputs(run_dir):  # a figure of an earlier report not drawn now
+        if path.suffix == ".png" and path.name not in written and path.is_file():
+            path.unlink()
     lines = [
         f"# {title or 'Run report: ' + str(results.scenario)}",
         "",
@@ -351,12 +353,3 @@ def _paper_lines(results: Results, described: Mapping[str, RunRecord | None]) ->
     if table:
         lines += [table]
     return lines
-
-
-def _remove_stale_figures(run_dir: Path, written: set[str]) -> None:
-    """Remove this module's figures left in ``run_dir`` by an earlier report."""
-    stale = [run_dir / name for name in FIGURE_NAMES]
-    stale += list(run_dir.glob("ablation_*.png"))
-    for path in stale:
-        if path.name not in written and path.is_file():
-            path.unlink()
