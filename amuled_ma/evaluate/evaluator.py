@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from amuled_ma.beliefs.types import FUSED_STATUSES
-from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError
+from amuled_ma.errors import AmuledError, CheckpointError
 from amuled_ma.evaluate.results import RESULTS_FILES, Results, write_results
 from amuled_ma.evaluate.rollout import TrajectoryRecorder, rollout
 from amuled_ma.evaluate.stats import mean_ci
@@ -250,10 +250,6 @@ def evaluate_run(
     records = records or {}
     ev = evaluation
     episodes = ev.episodes if episodes is None else episodes
-    if episodes < 1:
-        raise ScenarioError(
-            f"episodes: expected at least 1 evaluation episode per policy, found {episodes}"
-        )
     modes = modes or list(ev.modes)
     dirs = variant_dirs(run_dir)
 

@@ -41,7 +41,6 @@ from amuled_ma.study.model import (
     PanelView,
     Study,
     StudyError,
-    check_run_folders,
     write_study,
 )
 from amuled_ma.study.reasons import stated_reason
@@ -59,8 +58,6 @@ CONSENT_TEMPLATES = {
     "pairs": TEMPLATES / "consent.html",
     "expert": TEMPLATES / "consent_expert.html",
 }
-#: The study's modes.
-MODES = ("pairs", "expert")
 
 
 @dataclass
@@ -183,17 +180,13 @@ def _frameworks() -> list[tuple[str, str]]:
     return [(c.name, c.title) for c in default_registry().panel()]
 
 
-def _check_arguments(names: list[str], items: int, mode: str, attention: int | None) -> None:
-    if mode not in MODES:
-        raise StudyError(f"--mode: expected one of {', '.join(MODES)}, found {mode!r}")
+def _check_arguments(names: list[str], mode: str, attention: int | None) -> None:
     least = 2 if mode == "pairs" else 1
     if len(names) < least:
         raise StudyError(
             f"--variants: expected at least {('one variant', 'two variants')[least - 1]} to "
             f"compare, found {names}; e.g. --variants amuled,base"
         )
-    if items < 1:
-        raise StudyError(f"--items: expected at least 1, found {items}")
     if mode == "expert" and attention:
         raise StudyError(
             f"--attention: expert mode asks no attention checks, found {attention}; "
@@ -221,8 +214,7 @@ def build_study(
     study without ``force``.
     """
     names = list(dict.fromkeys(variants))
-    check_run_folders([Path(r) for r in runs])
-    _check_arguments(names, items, mode, attention)
+    _check_arguments(names, mode, attention)
     out = Path(out)
     if (out / STUDY_FILE).exists() and not force:
         raise StudyError(f"{out}: holds a study already ({STUDY_FILE}); pass --force to rebuild")
