@@ -49,11 +49,9 @@ class ReadOnlyStore:
 def open_feedback(
     plan: PanelPlan, store: str, run_dir: Path | None
 ) -> tuple[Feedback, ReadOnlyStore]:
-    """``(feedback, store)``: a variant's feedback built as training does, its store read-only.
+    """``(feedback, store)``: a plan's feedback built as training does, the run's store read-only.
 
-    `build_feedback` builds it from the plan (`plan_panel`) over one `ReadOnlyStore` of the
-    ``[feedback].store`` file (relative to ``run_dir``, None: no store, nothing cached), never
-    opened for writing; an Ollama source still asks its server about states the run never asked.
+    ``store`` is relative to ``run_dir`` (None: no store); an Ollama source still asks its server.
     """
     from amuled_ma.deliberation.build import build_feedback
 

@@ -128,10 +128,7 @@ def few_people(people: int, who: str = "participants") -> str | None:
 
 
 def alpha_unavailable(values: dict[tuple[str, str], float]) -> str | None:
-    """Why Krippendorff's alpha of ``{(rater, unit): value}`` is undefined, None when it is not.
-
-    It needs two raters on a unit and values that vary (else it is 0/0).
-    """
+    """Why Krippendorff's alpha of ``{(rater, unit): value}`` is undefined, None when it is not."""
     raters = {r for r, _ in values}
     if len(raters) < 2:
         return f"fewer than 2 raters ({len(raters)})"

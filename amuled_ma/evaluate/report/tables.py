@@ -68,8 +68,7 @@ _MODEL_COLUMNS = (
 def agents_table(results: Results) -> str:
     """Per fine-tune and panel agent, the share of each belief status; ``""`` without counts.
 
-    Not answered: every status but ``ok``, ``repaired`` and the model's answers (the fused
-    reward went on without that agent). A distilled feedback adds the model's three columns.
+    Not answered: every status but the fused ones; a distilled feedback adds the model's columns.
     """
     lines = []
     rows = [
@@ -98,10 +97,7 @@ def agents_table(results: Results) -> str:
 
 
 def servers_table(results: Results) -> str:
-    """Per fine-tune and LLM server, what it was asked and did (`llm_server_stats`); ``""`` if none.
-
-    Requests sent count every attempt (retries and probes); latency is of answered requests.
-    """
+    """Per fine-tune and LLM server, what it was asked and did; ``""`` without servers."""
     lines = []
     for name, entry in results.variants.items():
         servers = entry.feedback.llm_servers if entry.feedback is not None else None
