@@ -186,9 +186,9 @@ def write_report(
             save_figure(episode_figure(results, colors=colors), run_dir / f"{stem}.png"),
         ))  # fmt: skip
     written = {path.name for _, _, path in figures if path is not None}
-    for path in evaluation_outputs(run_dir):  # a figure of an earlier report not drawn now
-        if path.suffix == ".png" and path.name not in written and path.is_file():
-            path.unlink()
+    for stale in evaluation_outputs(run_dir):  # a figure of an earlier report not drawn now
+        if stale.suffix == ".png" and stale.name not in written and stale.is_file():
+            stale.unlink()
     lines = [
         f"# {title or 'Run report: ' + str(results.scenario)}",
         "",
