@@ -62,16 +62,10 @@ def serve(
 ) -> None:
     """Serve one page until Ctrl-C (or ``seconds``), telling ``say`` its URL (as `make_server`)."""
     server = make_server(path, host, port)
-    url = f"http://{host}:{server.server_address[1]}/"
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    say(f"serving {path} at {url} (Ctrl-C stops)")
-    try:
-        if seconds is None:
-            while thread.is_alive():
-                thread.join(0.5)
-        else:
-            thread.join(seconds)
-    finally:
-        server.shutdown()
-        server.server_close()
+    say(f"serving {path} at http://{host}:{server.server_address[1]}/ (Ctrl-C stops)")
+    if seconds is not None:
+        timer = threading.Timer(seconds, server.shutdown)
+        timer.daemon = True  # Ctrl-C before it fires does not wait for it
+        timer.start()
+    with server:
+        server.serve_forever()
