@@ -165,11 +165,10 @@ class StudyApp:
         """The consent fragment; a refusal (404, 500) goes to stderr, never its path to the page."""
         try:
             return HTMLResponse(self.consent_text())
-        except NotInFolder as refused:
+        except StudyError as refused:  # NotInFolder: as if there were none
             print(f"amuled study serve: {refused}", file=sys.stderr, flush=True)
-            return HTMLResponse(NO_CONSENT, status_code=404)
-        except StudyError as refused:
-            print(f"amuled study serve: {refused}", file=sys.stderr, flush=True)
+            if isinstance(refused, NotInFolder):
+                return HTMLResponse(NO_CONSENT, status_code=404)
             return HTMLResponse(CONSENT_REFUSED, status_code=500)
 
     async def health(self, request: Request) -> Response:
