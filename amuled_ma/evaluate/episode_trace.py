@@ -17,7 +17,7 @@ import torch
 
 from amuled_ma.deliberation.state_key import freeze
 from amuled_ma.errors import CheckpointError, ScenarioError
-from amuled_ma.evaluate.rollout import Observer, episode_metrics, rollout, step_events
+from amuled_ma.evaluate.rollout import TrajectoryRecorder, episode_metrics, rollout
 from amuled_ma.learn.policies import action_log_probs, load_policy
 from amuled_ma.records.variants import Variant
 from amuled_ma.tasks.driving import Driving
@@ -33,10 +33,7 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class TrainedVariant:
-    """A trained variant as the viewer and ``amuled explain`` need it (resolved by the caller).
-
-    ``variant`` is None when not recorded; ``base_checkpoint`` None when none was found.
-    """
+    """A trained variant as the viewer and ``amuled explain`` need it (resolved by the caller)."""
 
     name: str
     checkpoint: Path
@@ -47,9 +44,7 @@ class TrainedVariant:
     @property
     def feedback(self) -> str | None:
         """The feedback of a fine-tune (``amuled``, ``human:rules``, ...), None otherwise."""
-        if self.variant is None or not self.variant.finetuning:
-            return None
-        return self.variant.feedback
+        return self.variant.feedback if self.variant and self.variant.finetuning else None
 
 
 @dataclass
@@ -144,24 +139,19 @@ def _final_frame(task: BatchedTask, previous: Any, final_obs: torch.Tensor) -> A
     return previous
 
 
-class _Tracer(Observer):
+class _Tracer(TrajectoryRecorder):
     """Records copy ``K`` of a rollout step by step, until its first episode ends."""
 
     def __init__(self, copy: int, base_actor: MLPModel, live_feedback: Feedback | None) -> None:
-        self.k = copy
+        super().__init__(copy)
         self.base_actor = base_actor
         self.live_feedback = live_feedback
-        self.done = False
         self.layout: dict[str, Any] | None = None
-        self.observations: list[np.ndarray] = []
         self.frames: list[Any] = []
         self.prompt_vars: list[dict[str, Any]] = []
-        self.actions: list[int] = []
         self.probs: list[np.ndarray] = []
         self.base_actions: list[int] = []
         self.base_probs: list[np.ndarray] = []
-        self.events: dict[str, list[float]] = {}
-        self.rewards: list[float] = []
         self.live: list[np.ndarray] = []
         self.live_statuses: list[tuple[tuple[str, str], ...]] = []
         self.metrics: dict[str, float] = {}
@@ -170,17 +160,18 @@ class _Tracer(Observer):
         self.action_names: tuple[str, ...] = ()
 
     def start(self, task: BatchedTask, obs: torch.Tensor) -> None:
+        super().start(task, obs)
         self.task_name, self.action_names = str(task.name), tuple(task.action_names)
-        self.layout = layout_of(task, obs, self.k)
-        self.observations.append(obs[self.k].numpy().copy())
-        self.frames.append(frame_of(task, self.k))
+        self.layout = layout_of(task, obs, self.copy)
+        self.frames.append(frame_of(task, self.copy))
 
     def before_step(
         self, task: BatchedTask, obs: torch.Tensor, logp: torch.Tensor, actions: torch.Tensor
     ) -> None:
+        super().before_step(task, obs, logp, actions)
         if self.done:
             return
-        k = self.k
+        k = self.copy
         row = obs[k : k + 1]
         self.prompt_vars.append(dict(task.prompt_variables([k])[0]))
         feedback = self.live_feedback
@@ -190,7 +181,6 @@ class _Tracer(Observer):
             after = Counter(feedback.agent_statuses)
             self.live_statuses.append(tuple((after - before).keys()))
         self.probs.append(logp[k].exp().numpy().copy())
-        self.actions.append(int(actions[k]))
         if self.base_actor is not None:
             base_logp = action_log_probs(self.base_actor, row)
             self.base_probs.append(base_logp[0].exp().numpy().copy())
@@ -206,20 +196,16 @@ class _Tracer(Observer):
     ) -> None:
         if self.done:
             return
-        k, n = self.k, len(obs)
-        final = torch.as_tensor(info.get("final_obs", obs)).float()
-        self.observations.append(final[k].numpy().copy())
-        self.rewards.append(float(torch.as_tensor(info["r_env"])[k]))
-        for key, value in step_events(info, k, n, skip=("r_env", "r_shaping")):
-            self.events.setdefault(key, []).append(value)
-        if not (bool(terminated[k]) or bool(truncated[k])):
+        super().after_step(task, obs, terminated, truncated, info)
+        k = self.copy
+        if not self.done:
             self.frames.append(frame_of(task, k))
             return
-        self.done = True
         self.terminated = bool(terminated[k])
-        self.metrics = episode_metrics(info.get("episode") or {}, k, n, skip=("done",))
+        self.metrics = episode_metrics(info.get("episode") or {}, k, len(obs), skip=("done",))
         # the task has reset the copy: the last picture is drawn from the final obs
-        self.frames.append(_final_frame(task, self.frames[-1], final[k]))
+        final = torch.as_tensor(info.get("final_obs", obs)).float()[k]
+        self.frames.append(_final_frame(task, self.frames[-1], final))
 
 
 def replay_episode(
@@ -237,10 +223,7 @@ def replay_episode(
     """Play evaluation episode ``K = episode`` of ``episodes`` (default ``[evaluation].episodes``).
 
     ``base_actor`` is asked in the same states; ``live_feedback`` (one that needs the live task:
-    human, fused-only replay) about every state as the episode runs.
-
-    Raises:
-        ScenarioError: Unknown ``mode`` (by `rollout`), or ``episode`` outside ``0..N-1``.
+    human, fused-only replay) about every state. ScenarioError: bad ``mode`` or ``episode``.
     """
     n = int(evaluation.episodes if episodes is None else episodes)
     if not 0 <= episode < n:
@@ -261,20 +244,23 @@ def replay_episode(
         until=(int(episode),),
     )
     num_actions = len(tracer.action_names)
+    events = {k: np.asarray(v) for k, v in tracer.trajectory["events"].items()}
+    rewards = events.pop("r_env")
+    events.pop("r_shaping", None)
     return Episode(
         task=tracer.task_name,
         episode=int(episode),
         seed=seed + int(episode),
         mode=mode,
         action_names=tracer.action_names,
-        obs=np.stack(tracer.observations),
+        obs=np.asarray(tracer.trajectory["obs"], dtype=np.float32),
         prompt_vars=tracer.prompt_vars,
-        actions=np.asarray(tracer.actions, dtype=np.int64),
+        actions=np.asarray(tracer.trajectory["actions"], dtype=np.int64),
         probs=np.stack(tracer.probs) if tracer.probs else np.empty((0, num_actions)),
         base_actions=np.asarray(tracer.base_actions, dtype=np.int64) if base_actor else None,
         base_probs=np.stack(tracer.base_probs) if base_actor is not None and tracer.probs else None,
-        events={k: np.asarray(v) for k, v in tracer.events.items()},
-        rewards=np.asarray(tracer.rewards),
+        events=events,
+        rewards=rewards,
         frames=tracer.frames,
         layout=tracer.layout,
         terminated=tracer.terminated,
@@ -303,12 +289,7 @@ def replay_variant(
     episodes: int | None = None,
     live_feedback: Feedback | None = None,
 ) -> Episode:
-    """Replay evaluation episode ``episode`` of a trained variant, its base policy beside it.
-
-    Raises:
-        CheckpointError: A policy is missing or does not fit the scenario.
-        ScenarioError: As `replay_episode`.
-    """
+    """Replay an evaluation episode of a trained variant, its base policy beside it."""
     scenario = trained.scenario
     actor = load_actor(trained.checkpoint, scenario.ppo)
     base = trained.base_checkpoint

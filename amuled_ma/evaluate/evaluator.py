@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from amuled_ma.beliefs.types import FUSED_STATUSES
-from amuled_ma.errors import AmuledError, CheckpointError, ScenarioError
+from amuled_ma.errors import AmuledError, CheckpointError
 from amuled_ma.evaluate.results import RESULTS_FILES, Results, write_results
 from amuled_ma.evaluate.rollout import TrajectoryRecorder, rollout
 from amuled_ma.evaluate.stats import mean_ci
@@ -39,11 +39,7 @@ MAX_FEEDBACK_BYTES = 16 * 2**20
 
 
 def read_feedback(folder: Path) -> dict[str, Any] | None:
-    """A variant folder's ``feedback.json``, None without one.
-
-    Raises:
-        AmuledError: Over `MAX_FEEDBACK_BYTES`, refused by `checked_read_path`, or not JSON.
-    """
+    """A variant folder's ``feedback.json`` or None; AmuledError: too large, unsafe, not JSON."""
     from amuled_ma.files.limits import read_bounded_json
 
     path = checked_read_path(folder, FEEDBACK_FILE)
@@ -71,11 +67,8 @@ def run_episodes(
     task_factory: Callable[..., Any] | None = None,
     record_trajectory: bool = True,
 ) -> tuple[list[dict[str, float]], dict[str, Any]]:
-    """Per-episode metrics of ``episodes`` episodes (`rollout`'s arguments) and copy 0's trajectory.
-
-    The trajectory's lists are empty without ``record_trajectory``.
-    """
-    recorder = TrajectoryRecorder(0)  # not told of the steps: its lists stay empty
+    """Per-episode metrics (`rollout`'s arguments) and copy 0's trajectory (if recorded)."""
+    recorder = TrajectoryRecorder(0)
     records = rollout(
         actor,
         task_config,
@@ -249,22 +242,14 @@ def evaluate_run(
 
     ``variants`` keeps only those names; ``extra_dirs`` are more variant folders (an ablation's
     base); ``records`` (by folder) names a folder's variant (seed replicas grouped under it) and
-    what a fine-tune was trained on; ``task_factory`` replaces `make_task`.
-
-    Raises:
-        CheckpointError: The run has no trained variant.
-        AmuledError: A ``feedback.json`` refused by `read_feedback`, or ``results.json`` /
-            ``results.csv`` a link or not a regular file; both before any episode.
+    what a fine-tune was trained on. Before any episode: CheckpointError without a trained
+    variant, AmuledError for a refused ``feedback.json`` or results file.
     """
     run_dir = Path(run_dir)
-    check_write_targets(run_dir / name for name in RESULTS_FILES)  # before any episode
+    check_write_targets(run_dir / name for name in RESULTS_FILES)
     records = records or {}
     ev = evaluation
     episodes = ev.episodes if episodes is None else episodes
-    if episodes < 1:
-        raise ScenarioError(
-            f"episodes: expected at least 1 evaluation episode per policy, found {episodes}"
-        )
     modes = modes or list(ev.modes)
     dirs = variant_dirs(run_dir)
 
@@ -292,7 +277,6 @@ def evaluate_run(
     groups: dict[str, list[Path]] = {}
     for vdir in dirs:
         groups.setdefault(name_of(vdir), []).append(vdir)
-    # the diagnostics first: a file refused costs no evaluation episode
     feedbacks = {vdir: read_feedback(vdir) for vdir in dirs}
     jobs = [(name, vdir, m) for name, members in groups.items() for vdir in members for m in modes]
     runs: dict[tuple[str, str], list[tuple[str, list, dict]]] = {}

@@ -27,9 +27,6 @@ if TYPE_CHECKING:
     from amuled_ma.evaluate.readonly_feedback import ReadOnlyStore
     from amuled_ma.tasks.base import BatchedTask
 
-# ---------------------------------------------------------------------------------------
-# Text tables
-
 
 def table(headers: Sequence[str], rows: Sequence[Sequence[Any]], indent: str = "  ") -> str:
     """Aligned columns: the first left-aligned, the others right-aligned."""
@@ -45,10 +42,9 @@ def table(headers: Sequence[str], rows: Sequence[Sequence[Any]], indent: str = "
     return "\n".join(lines)
 
 
-#: Characters a terminal would act on rather than show: C0 controls but tab and newline
-#: (ESC starts the sequences that clear the screen, write the clipboard, make links), DEL,
-#: the C1 controls (U+009B is a one-character CSI), the bidirectional overrides, and lone
-#: surrogates (not text: printing one would fail).
+#: Characters a terminal would act on rather than show: C0 controls but tab and newline (ESC
+#: starts escape sequences), DEL, the C1 controls (U+009B is a one-character CSI), the
+#: bidirectional overrides, and lone surrogates (not text: printing one would fail).
 _UNPRINTABLE = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069\ud800-\udfff]")
 
 
@@ -63,9 +59,7 @@ def _escape(match: re.Match[str]) -> str:
 
 
 def _cell(value: object) -> str:
-    if value is None:
-        return "-"
-    return format_number(value, 4)  # -0.0000 printed as 0.0000
+    return "-" if value is None else format_number(value, 4)  # -0.0000 printed as 0.0000
 
 
 def _num(value: float) -> str:
@@ -73,16 +67,8 @@ def _num(value: float) -> str:
     return str(int(value)) if value.is_integer() else f"{value:g}"
 
 
-# ---------------------------------------------------------------------------------------
-# The state
-
-
 def parse_obs(text: str, task_cls: type[BatchedTask]) -> np.ndarray:
-    """``"1,2,3"`` -> float array, checked against the task's observation length.
-
-    Raises:
-        ScenarioError: Not numbers, not finite as float32, or the wrong count.
-    """
+    """``"1,2,3"`` -> float array; ScenarioError: not finite float32 numbers, or the wrong count."""
     tokens = [x for x in text.replace(" ", "").split(",") if x != ""]
     try:
         values = [float(x) for x in tokens]
@@ -130,11 +116,9 @@ def _check_prompt_value(name: str, value: object) -> None:
 
 
 def parse_prompt_vars(items: Sequence[str]) -> dict[str, Any]:
-    """``["num_crying=4", ...]`` -> ``{"num_crying": 4}`` (values in TOML syntax).
+    """``["num_crying=4", ...]`` -> ``{"num_crying": 4}`` (TOML values); ScenarioError if bad.
 
-    Raises:
-        ScenarioError: Not ``NAME=VALUE``, nested too deep, or a number not finite or beyond
-            `MAX_PROMPT_INT`.
+    Bad: not ``NAME=VALUE``, nested too deep, or a number not finite or beyond `MAX_PROMPT_INT`.
     """
     out: dict[str, Any] = {}
     for item in items:
@@ -196,9 +180,8 @@ def state_by_hand(
 ) -> State:
     """A state given by hand: its prompt variables and, for a non-panel feedback, its belief.
 
-    Raises:
-        ScenarioError: The panel reads prompts and a variable is missing, or the feedback
-            needs the live task.
+    ScenarioError: the panel reads prompts and a variable is missing, or the feedback needs the
+    live task.
     """
     import torch
 
@@ -225,10 +208,6 @@ def state_by_hand(
                 "--variant V --step N"
             ) from None
     return State(obs, prompt_vars, [f"state given by hand, {where}"], live_belief)
-
-
-# ---------------------------------------------------------------------------------------
-# The fusion of one state, explained
 
 
 def breakdown_lines(
@@ -279,9 +258,8 @@ def breakdown_lines(
     head = ["agent", "avg BJS", "credibility", "Deng H (bits)", "info volume", "weight"]
     say(table(head, rows))
     if k > 1:
-        say("")
-        say("pairwise BJS divergence:")
-        say(table(["", *names], [[names[i], *pairwise[i].tolist()] for i in range(k)]))
+        rows = [[names[i], *pairwise[i].tolist()] for i in range(k)]
+        out += ["", "pairwise BJS divergence:", table(["", *names], rows)]
     say("")
     if diag.wae is not None:
         wae = np.asarray(diag.wae, dtype=np.float64)[0].tolist()
@@ -297,10 +275,6 @@ def breakdown_lines(
         + ("" if agree else "\n  note: the panel's fused belief differs from this recomputation")
     )
     return out
-
-
-# ---------------------------------------------------------------------------------------
-# The explanation, as lines of text
 
 
 def explain_lines(
@@ -352,8 +326,7 @@ def explain_lines(
                 "  for the clusters' own beliefs, replay the recording with them: --set "
                 f'feedback.recording="{cluster_recording}"'
             )
-        say("")
-        say(table(["", *actions], [["feedback belief", *state.live_belief.tolist()]]))
+        out += ["", table(["", *actions], [["feedback belief", *state.live_belief.tolist()]])]
         return [printable(line) for line in out]
     answers = ask_panel(
         panel, obs[None].astype(np.float64), [prompt_vars] if prompt_vars else None, store
@@ -362,19 +335,17 @@ def explain_lines(
     beliefs, weights = answers.beliefs[0], answers.weights[0]
     statuses = answers.statuses[0].tolist()
     say(f"  {len(agents)} agents, fusion rule {rule}; an agent that did not answer abstains")
-    say("")
-    say("beliefs:")
+    out += ["", "beliefs:"]
     rows = [
         [agent, statuses[c], *beliefs[c].tolist(), float(weights[c])]
         for c, agent in enumerate(agents)
     ]
     rows.append([f"fused ({rule})", "", *answers.fused[0].tolist(), ""])
     say(table(["agent", "status", *actions, "weight"], rows))
-    say("")
+    out.append("")
     prior = getattr(panel, "prior", None)
     out += breakdown_lines(agents, beliefs, statuses, rule, prior, actions, answers.fused[0])
-    say("")
-    say("reasoning (raw replies):")
+    out += ["", "reasoning (raw replies):"]
     for c, agent in enumerate(agents):
         raw = answers.raws[0][c]
         reason = answers.reasons[0][c]
@@ -390,9 +361,7 @@ def explain_lines(
         if text is not raw:
             say(f"    | [... {len(raw) - len(text)} more characters; --full prints them]")
     if show_prompt and prompt_vars is not None:
-        say("")
-        say("state prompt:")
-        for line in render_state_prompt(task_name, prompt_vars).splitlines():
-            say("    " + line)
+        out += ["", "state prompt:"]
+        out += ["    " + line for line in render_state_prompt(task_name, prompt_vars).splitlines()]
     # replies, reasons and names come from outside: no terminal control sequence is printed
     return [printable(line) for line in out]

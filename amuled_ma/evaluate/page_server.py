@@ -37,9 +37,7 @@ class _OneFileHandler(http.server.BaseHTTPRequestHandler):
 def make_server(path: Path, host: str = "127.0.0.1", port: int = 0) -> http.server.HTTPServer:
     """An HTTP server for one file (read once, before binding); ``port`` 0 picks a free one.
 
-    Raises:
-        OSError: The file cannot be read, or the address cannot be bound.
-        AmuledError: The file is larger than `MAX_PAGE_BYTES` (refused unread).
+    OSError: the file cannot be read or the address bound; AmuledError: over `MAX_PAGE_BYTES`.
     """
     from amuled_ma.files.limits import read_bounded_bytes
 
@@ -64,16 +62,10 @@ def serve(
 ) -> None:
     """Serve one page until Ctrl-C (or ``seconds``), telling ``say`` its URL (as `make_server`)."""
     server = make_server(path, host, port)
-    url = f"http://{host}:{server.server_address[1]}/"
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    say(f"serving {path} at {url} (Ctrl-C stops)")
-    try:
-        if seconds is None:
-            while thread.is_alive():
-                thread.join(0.5)
-        else:
-            thread.join(seconds)
-    finally:
-        server.shutdown()
-        server.server_close()
+    say(f"serving {path} at http://{host}:{server.server_address[1]}/ (Ctrl-C stops)")
+    if seconds is not None:
+        timer = threading.Timer(seconds, server.shutdown)
+        timer.daemon = True  # Ctrl-C before it fires does not wait for it
+        timer.start()
+    with server:
+        server.serve_forever()

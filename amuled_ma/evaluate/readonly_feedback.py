@@ -34,9 +34,7 @@ class ReadOnlyStore:
 
     def rows(self, keys: Sequence[str]) -> dict[str, Any]:
         """Every row of ``keys``, answers or not (an abstention's raw reply is kept)."""
-        if self.store is None:
-            return {}
-        return self.store.get_many(keys, cacheable_only=False)
+        return {} if self.store is None else self.store.get_many(keys, cacheable_only=False)
 
     def put_many(self, items: Sequence[StoreItem]) -> int:
         """Write nothing (looking at a run never changes it)."""
@@ -51,11 +49,9 @@ class ReadOnlyStore:
 def open_feedback(
     plan: PanelPlan, store: str, run_dir: Path | None
 ) -> tuple[Feedback, ReadOnlyStore]:
-    """``(feedback, store)``: a variant's feedback built as training does, its store read-only.
+    """``(feedback, store)``: a plan's feedback built as training does, the run's store read-only.
 
-    `build_feedback` builds it from the plan (`plan_panel`) over one `ReadOnlyStore` of the
-    ``[feedback].store`` file (relative to ``run_dir``, None: no store, nothing cached), never
-    opened for writing; an Ollama source still asks its server about states the run never asked.
+    ``store`` is relative to ``run_dir`` (None: no store); an Ollama source still asks its server.
     """
     from amuled_ma.deliberation.build import build_feedback
 

@@ -167,9 +167,7 @@ RESULTS_FILES = ("results.json", "results.csv")
 def write_results(run_dir: Path, results: Results) -> tuple[Path, Path]:
     """Write ``results.json`` and ``results.csv`` (a row per variant, mode, metric) atomically.
 
-    Raises:
-        UnsafePathError: Either is a link or not a regular file; neither is written.
-        FileWriteError: A file could not be written.
+    UnsafePathError: either is a link or not a regular file (neither written); FileWriteError.
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -196,12 +194,7 @@ def _cell(value: float | None) -> float:
 
 
 def read_results(run_dir: Path) -> Results:
-    """Read a run's ``results.json``.
-
-    Raises:
-        AmuledError: Missing, not of `Results`' shape, over `MAX_RESULTS_BYTES` (refused
-            unread), or refused by `checked_read_path`.
-    """
+    """Read a run's ``results.json``; AmuledError: missing, unsafe, too large or not `Results`."""
     from pydantic import ValidationError
 
     from amuled_ma.errors import AmuledError

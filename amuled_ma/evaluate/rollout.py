@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from amuled_ma.errors import ScenarioError
+from amuled_ma.evaluate.results import MODES
 from amuled_ma.learn.policies import action_log_probs
 from amuled_ma.tasks import make_task
 
@@ -22,27 +23,8 @@ if TYPE_CHECKING:
     from amuled_ma.scenario import TaskConfig
     from amuled_ma.tasks.base import BatchedTask
 
-#: Action selection modes.
-MODES = ("greedy", "sampled")
 #: Keys of ``info["episode"]`` that are book-keeping, not metrics.
 SKIP = {"done", "return"}
-
-
-def evaluation_task(
-    task_config: TaskConfig,
-    episodes: int,
-    seed: int,
-    task_factory: Callable[..., BatchedTask] | None = None,
-) -> BatchedTask:
-    """The batched task of an evaluation: ``episodes`` copies, copy ``i`` seeded ``seed + i``."""
-    return (task_factory or make_task)(task_config, episodes, shaping_coef=0.0, seed=seed)
-
-
-def choose_actions(logp: torch.Tensor, mode: str, generator: torch.Generator) -> torch.Tensor:
-    """``[N]`` actions from ``logp`` ``[N, A]``: argmax, or one multinomial draw."""
-    if mode == "greedy":
-        return logp.argmax(dim=-1)
-    return torch.multinomial(logp.exp(), 1, generator=generator).squeeze(-1)
 
 
 class Observer:
@@ -105,28 +87,21 @@ def rollout(
     observers: Sequence[Observer] = (),
     until: Sequence[int] | None = None,
 ) -> list[dict[str, float] | None]:
-    """Play the first episode of ``episodes`` task copies with an rsl-rl actor.
+    """Per copy of ``episodes`` (copy ``i`` seeded ``seed + i``), its first episode's metrics.
 
-    ``seed`` also seeds the action draws; ``until`` stops once those copies ended their first
-    episode (default: all). Torch runs single-threaded from here on, as the trainer.
-
-    Returns:
-        Per copy, its first episode's ``info["episode"]`` metrics and ``terminated``; None
-        for a copy still playing at the stop.
-
-    Raises:
-        ScenarioError: Unknown ``mode``, or a copy in ``until`` outside ``0..N-1``.
+    A copy's metrics are its ``info["episode"]`` entries and ``terminated``, None for a copy still
+    playing when the copies of ``until`` (default: all) have ended. ``seed`` also seeds the action
+    draws; torch runs single-threaded from here on, as the trainer. ScenarioError: unknown
+    ``mode``, or a copy in ``until`` outside ``0..N-1``.
     """
     if mode not in MODES:
         raise ScenarioError(f"mode: expected one of {', '.join(MODES)}, found {mode!r}")
     wanted = list(range(episodes)) if until is None else [int(i) for i in until]
     if any(not 0 <= i < episodes for i in wanted):
         raise ScenarioError(f"until: expected copies in 0..{episodes - 1}, found {wanted}")
-    # small nets on CPU, as the trainer: a second thread only contends (on a busy 2-core
-    # machine a 50-row forward pass took 11.5 ms with 2 threads, 0.36 ms with 1; the
-    # results are the same bits)
+    # small nets on CPU: a second thread only contends (a 50-row pass: 11.5 ms on 2, 0.36 ms on 1)
     torch.set_num_threads(1)
-    task = evaluation_task(task_config, episodes, seed, task_factory)
+    task = (task_factory or make_task)(task_config, episodes, shaping_coef=0.0, seed=seed)
     obs = torch.as_tensor(task.reset()).float()
     gen = torch.Generator().manual_seed(seed)
     done_once = torch.zeros(episodes, dtype=torch.bool)
@@ -138,7 +113,10 @@ def rollout(
     with torch.inference_mode():
         for _ in range(limit):
             logp = action_log_probs(actor, obs)
-            actions = choose_actions(logp, mode, gen)
+            if mode == "greedy":
+                actions = logp.argmax(dim=-1)
+            else:
+                actions = torch.multinomial(logp.exp(), 1, generator=gen).squeeze(-1)
             for observer in observers:
                 observer.before_step(task, obs, logp, actions)
             obs, _, terminated, truncated, info = task.step(actions)
@@ -167,7 +145,7 @@ class TrajectoryRecorder(Observer):
     def __init__(self, copy: int = 0) -> None:
         self.copy = copy
         self.trajectory: dict[str, Any] = {"obs": [], "actions": [], "events": {}}
-        self._done = False
+        self.done = False
         self._actions: torch.Tensor | None = None
 
     def start(self, task: BatchedTask, obs: torch.Tensor) -> None:
@@ -191,7 +169,7 @@ class TrajectoryRecorder(Observer):
         info: Mapping[str, Any],
     ) -> None:
         """Record the step of the copy, until its first episode has ended."""
-        if self._done:
+        if self.done:
             return
         k, n = self.copy, len(obs)
         assert self._actions is not None
@@ -201,4 +179,4 @@ class TrajectoryRecorder(Observer):
         events = self.trajectory["events"]
         for key, value in step_events(info, k, n):
             events.setdefault(key, []).append(value)
-        self._done = bool(terminated[k]) or bool(truncated[k])
+        self.done = bool(terminated[k]) or bool(truncated[k])

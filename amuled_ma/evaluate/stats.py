@@ -11,9 +11,7 @@ from scipy import stats
 
 def t_quantile(df: float, confidence: float = 0.95) -> float:
     """Two-sided Student-t critical value ``t_{(1 + confidence) / 2, df}`` (NaN for df < 1)."""
-    if df < 1:
-        return math.nan
-    return float(stats.t.ppf(0.5 + confidence / 2, df))
+    return math.nan if df < 1 else float(stats.t.ppf(0.5 + confidence / 2, df))
 
 
 def mean_ci(values: Sequence[float], confidence: float = 0.95) -> dict[str, float]:

@@ -81,9 +81,8 @@ class TextTable:
 
 
 def _cut(text: str, limit: int) -> str:
-    if len(text) <= limit:
-        return text
-    return f"{text[:limit]}\n[... {len(text) - limit} more characters, cut for the page]"
+    cut = f"{text[:limit]}\n[... {len(text) - limit} more characters, cut for the page]"
+    return text if len(text) <= limit else cut
 
 
 def _round(values: object, decimals: int = DECIMALS) -> Any:
@@ -258,12 +257,6 @@ def _live_entry(ep: trace.Episode, first: list[int], feedback: object, texts: Te
     )
 
 
-def _action_names(task_name: str) -> list[str]:
-    from amuled_ma.tasks import get_task
-
-    return list(get_task(task_name).action_names)
-
-
 def _csp_hash(text: str) -> str:
     digest = hashlib.sha256(text.encode("utf-8")).digest()
     return "'sha256-" + base64.b64encode(digest).decode("ascii") + "'"
@@ -281,14 +274,7 @@ def render_html(data: dict[str, Any]) -> str:
         encoding="utf-8"
     )
     payload = json.dumps(data, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
-    for char, escape in (
-        ("<", "\\u003c"),
-        (">", "\\u003e"),
-        ("&", "\\u0026"),
-        ("\u2028", "\\u2028"),
-        ("\u2029", "\\u2029"),
-    ):
-        payload = payload.replace(char, escape)
+    payload = payload.translate({ord(c): f"\\u{ord(c):04x}" for c in "<>&\u2028\u2029"})
     csp = (
         f"default-src 'none'; script-src {_csp_hash(script)}; style-src {_csp_hash(style)}; "
         "img-src data:; base-uri 'none'; form-action 'none'"
@@ -310,11 +296,6 @@ def render_html(data: dict[str, Any]) -> str:
     )
 
 
-def default_output(run_dir: Path, episode: int) -> Path:
-    """``<run>/view-episode<K>.html``."""
-    return Path(run_dir) / f"view-episode{episode}.html"
-
-
 def write_view(
     run_dir: Path,
     variants: Sequence[trace.TrainedVariant],
@@ -330,17 +311,14 @@ def write_view(
 ) -> ViewResult:
     """Write the page of evaluation episode ``episode`` of ``episodes`` (`replay_episode`).
 
-    ``output`` defaults to `default_output`; ``say`` gets a progress line per variant.
-
-    Raises:
-        UnsafePathError: The output is a link, a device, a FIFO or a folder; refused
-            before the episode is replayed.
-        FileWriteError: It could not be written (a full disk); one line naming it.
+    ``output`` defaults to ``<run>/view-episode<K>.html``; ``say`` gets a line per variant.
+    UnsafePathError (before any replay): the output is not a regular file; FileWriteError.
     """
     from amuled_ma import __version__
+    from amuled_ma.tasks import get_task
 
     start = time.perf_counter()
-    path = check_write_target(output if output is not None else default_output(run_dir, episode))
+    path = check_write_target(output or Path(run_dir) / f"view-episode{episode}.html")
     episodes = int(evaluation.episodes if episodes is None else episodes)
     texts = TextTable()
     entries = []
@@ -384,7 +362,7 @@ def write_view(
         "seed": seed,
         "mode": mode,
         "episodes": episodes,
-        "actions": _action_names(task_name),
+        "actions": list(get_task(task_name).action_names),
         "colors": dict(COLORS),
         "texts": texts.texts,
         "variants": entries,

@@ -10,7 +10,7 @@ import io
 import math
 import unicodedata
 from collections import Counter, defaultdict
-from collections.abc import Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -81,10 +81,7 @@ def win_rates(variants: Sequence[str], games: Sequence[tuple[str, str]]) -> list
 def bradley_terry(
     variants: Sequence[str], games: Sequence[tuple[str, str]], alpha: float = 0.0
 ) -> np.ndarray:
-    """Bradley-Terry log-strengths (mean zero) by ``choix.ilsr_pairwise``.
-
-    ``alpha`` is choix's regularisation (needed when a variant never loses).
-    """
+    """Bradley-Terry log-strengths (mean 0) by ``choix.ilsr_pairwise``, regularised by ``alpha``."""
     import choix
 
     index = {v: i for i, v in enumerate(variants)}
@@ -131,10 +128,7 @@ def few_people(people: int, who: str = "participants") -> str | None:
 
 
 def alpha_unavailable(values: dict[tuple[str, str], float]) -> str | None:
-    """Why Krippendorff's alpha of ``{(rater, unit): value}`` is undefined, None when it is not.
-
-    It needs two raters on a unit and values that vary (else it is 0/0).
-    """
+    """Why Krippendorff's alpha of ``{(rater, unit): value}`` is undefined, None when it is not."""
     raters = {r for r, _ in values}
     if len(raters) < 2:
         return f"fewer than 2 raters ({len(raters)})"
@@ -184,10 +178,7 @@ class MeanInterval:
 def bootstrap_mean(
     by_person: dict[str, list[float]], *, resamples: int = 2000, seed: int = 0
 ) -> MeanInterval:
-    """The mean of everyone's ratings and its 95% percentile bootstrap interval over people.
-
-    A person drawn twice counts twice.
-    """
+    """The mean of everyone's ratings and its 95% percentile bootstrap interval over people."""
     people = sorted(p for p, values in by_person.items() if values)
     sums = np.array([float(np.sum(by_person[p])) for p in people])
     counts = np.array([len(by_person[p]) for p in people], dtype=float)
@@ -230,41 +221,41 @@ def majorities(pairs: Sequence[tuple[Answer, Item]]) -> dict[str, tuple[str, int
     return out
 
 
-def tally(counts: dict[str, list[int]], who: str, agrees: bool) -> None:
-    """Count one judgement of ``who`` in ``counts[who] = [agree, counted]``."""
-    row = counts.setdefault(who, [0, 0])
-    row[0] += int(agrees)
-    row[1] += 1
+def top_action(belief: Sequence[float], among: Sequence[int] | None = None) -> int | None:
+    """The action believed most (of ``among``, default all); None when several share the top."""
+    actions = np.arange(len(belief)) if among is None else np.asarray(among)
+    values = np.asarray(belief, dtype=float)[actions]
+    best = np.flatnonzero(values == values.max())
+    return int(actions[best[0]]) if len(best) == 1 else None
 
 
-def _prefers(belief: Sequence[float], item: Item) -> str | None:
-    a, b = (float(belief[o.action]) for o in item.options)
-    if a == b:
-        return None
-    return "A" if a > b else "B"
+def agreement(
+    study: Study, accepted: Mapping[str, Collection[int]], *, pairs: bool = False
+) -> dict[str, list[int]]:
+    """Agreement with people's ``accepted`` actions per item: ``{who: [agree, counted]}``.
 
-
-def agreement(study: Study, majority: dict[str, tuple[str, int, int]]) -> dict[str, list[int]]:
-    """Agreement with the majority, ``{who: [agree, counted]}`` (ties, third actions: neither).
-
-    A member (or the fused belief) prefers the option whose action it believes more.
+    ``cluster:<name>`` and ``fused`` agree when their top action is accepted (a tie at the top is
+    not counted), ``policy:<variant>`` when its action is; with ``pairs`` only the item's two
+    options compete (a policy taking neither is not counted).
     """
     out: dict[str, list[int]] = {}
-    for item_id, (top, _, _) in majority.items():
+    for item_id, good in accepted.items():
         item = study.item(item_id)
         if item is None:
             continue
+        shown = [o.action for o in item.options] if pairs else None
+        judged: list[tuple[str, int | None]] = []
         if item.panel is not None:
-            named = list(zip(item.panel.agents, item.panel.beliefs, strict=True))
-            for name, belief in [*named, ("fused", item.panel.fused)]:
-                key = name if name == "fused" else f"cluster:{name}"
-                pref = _prefers(belief, item)
-                if pref is not None:
-                    tally(out, key, pref == top)
-        actions: dict[str, int] = {o.label: o.action for o in item.options}
-        for variant, action in item.policies.items():
-            if action in actions.values():
-                tally(out, f"policy:{variant}", action == actions[top])
+            named = zip(item.panel.agents, item.panel.beliefs, strict=True)
+            judged += [(f"cluster:{a}", top_action(b, shown)) for a, b in named]
+            judged.append(("fused", top_action(item.panel.fused, shown)))
+        policies = item.policies.items()
+        judged += [(f"policy:{v}", a) for v, a in policies if shown is None or a in shown]
+        for who, action in judged:
+            if action is not None:
+                row = out.setdefault(who, [0, 0])
+                row[0] += int(action in good)
+                row[1] += 1
     return out
 
 

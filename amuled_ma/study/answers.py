@@ -103,15 +103,6 @@ def _columns(db: sqlite3.Connection, table: str) -> set[str]:
     return {str(row[1]) for row in db.execute(f"PRAGMA table_info({table})")}
 
 
-def _migrate(db: sqlite3.Connection) -> None:
-    """Bring a file of an earlier schema to `VERSION` (its rows kept)."""
-    have = _columns(db, "answers")
-    for name, kind in RATING_COLUMNS:
-        if name not in have:
-            db.execute(f"ALTER TABLE answers ADD COLUMN {name} {kind}")
-    db.execute(f"PRAGMA user_version = {VERSION}")
-
-
 class AnswerStore:
     """The study's answers in SQLite (created when absent), safe from one server's threads."""
 
@@ -123,7 +114,11 @@ class AnswerStore:
         self._db.execute("PRAGMA synchronous=FULL")
         self._db.execute("PRAGMA busy_timeout=10000")
         self._db.executescript(SCHEMA)
-        _migrate(self._db)
+        have = _columns(self._db, "answers")  # a file of an earlier schema: its rows kept
+        for name, kind in RATING_COLUMNS:
+            if name not in have:
+                self._db.execute(f"ALTER TABLE answers ADD COLUMN {name} {kind}")
+        self._db.execute(f"PRAGMA user_version = {VERSION}")
 
     def close(self) -> None:
         """Close the connection."""

@@ -21,7 +21,7 @@ from amuled_ma.deliberation.plan import plan_panel
 from amuled_ma.deliberation.state_key import freeze
 from amuled_ma.evaluate import episode_trace as trace
 from amuled_ma.evaluate.evaluator import variant_dirs
-from amuled_ma.evaluate.panel_answers import ask_panel
+from amuled_ma.evaluate.panel_answers import ask_panel, state_prompt
 from amuled_ma.evaluate.readonly_feedback import open_feedback
 from amuled_ma.experiments.run_folder import read_record, split_replica
 from amuled_ma.experiments.trained_variants import evaluated_episodes, trained_variant
@@ -41,7 +41,6 @@ from amuled_ma.study.model import (
     PanelView,
     Study,
     StudyError,
-    check_run_folders,
     write_study,
 )
 from amuled_ma.study.reasons import stated_reason
@@ -59,8 +58,6 @@ CONSENT_TEMPLATES = {
     "pairs": TEMPLATES / "consent.html",
     "expert": TEMPLATES / "consent_expert.html",
 }
-#: The study's modes.
-MODES = ("pairs", "expert")
 
 
 @dataclass
@@ -78,8 +75,7 @@ class _State:
 def resolve_variant(run_dir: Path, name: str) -> Path:
     """The variant folder ``name`` means (folder, ``finetune-<name>``, feedback; no seed replica).
 
-    Raises:
-        StudyError: No variant, or several, fit; the message lists the run's variants.
+    StudyError: no variant, or several, fit; the message lists the run's variants.
     """
     run_dir = Path(run_dir)
     found = variant_dirs(run_dir)
@@ -107,15 +103,6 @@ def resolve_variant(run_dir: Path, name: str) -> Path:
 
 def _round(values: ArrayLike) -> list[Any]:
     return np.round(np.asarray(values, dtype=np.float64), DECIMALS).tolist()
-
-
-def _prompt(task: str, prompt_vars: dict[str, Any]) -> str | None:
-    from amuled_ma.tasks.prompts import render_state_prompt
-
-    try:
-        return render_state_prompt(task, dict(prompt_vars))
-    except (KeyError, ValueError, Exception):  # a task without a template: no words
-        return None
 
 
 def _states_of_run(
@@ -193,17 +180,13 @@ def _frameworks() -> list[tuple[str, str]]:
     return [(c.name, c.title) for c in default_registry().panel()]
 
 
-def _check_arguments(names: list[str], items: int, mode: str, attention: int | None) -> None:
-    if mode not in MODES:
-        raise StudyError(f"--mode: expected one of {', '.join(MODES)}, found {mode!r}")
+def _check_arguments(names: list[str], mode: str, attention: int | None) -> None:
     least = 2 if mode == "pairs" else 1
     if len(names) < least:
         raise StudyError(
             f"--variants: expected at least {('one variant', 'two variants')[least - 1]} to "
             f"compare, found {names}; e.g. --variants amuled,base"
         )
-    if items < 1:
-        raise StudyError(f"--items: expected at least 1, found {items}")
     if mode == "expert" and attention:
         raise StudyError(
             f"--attention: expert mode asks no attention checks, found {attention}; "
@@ -226,15 +209,12 @@ def build_study(
     """Build a study folder ``out`` of ``items`` pairs (expert mode: states) of ``runs``.
 
     ``attention`` checks default to one per ten pairs; ``force`` replaces a study (an edited
-    ``consent.html`` is kept either way).
-
-    Raises:
-        StudyError: A run folder or variant missing, too few variants, no state where two
-            differ, attention checks in expert mode, or ``out`` holds a study without ``force``.
+    ``consent.html`` is kept either way). StudyError: a run folder or variant missing, too few
+    variants, no state where two differ, attention checks in expert mode, or ``out`` holds a
+    study without ``force``.
     """
     names = list(dict.fromkeys(variants))
-    check_run_folders([Path(r) for r in runs])
-    _check_arguments(names, items, mode, attention)
+    _check_arguments(names, mode, attention)
     out = Path(out)
     if (out / STUDY_FILE).exists() and not force:
         raise StudyError(f"{out}: holds a study already ({STUDY_FILE}); pass --force to rebuild")
@@ -279,7 +259,7 @@ def build_study(
                 step=state.step,
                 met_by=state.met_by,
                 obs=_round(state.obs),
-                prompt=_prompt(state.task, state.prompt_vars),
+                prompt=state_prompt(state.task, state.prompt_vars),
                 picture=f"states/{item_id}.svg",
                 options=options,
                 expected=expected,
@@ -325,8 +305,7 @@ def _pair_slots(
 ) -> tuple[list[_Slot], int]:
     """Pairs where two variants' actions differ and attention checks, drawn; and the candidates.
 
-    Raises:
-        StudyError: The variants take the same action in every state.
+    StudyError: the variants take the same action in every state.
     """
     candidates = [
         (s, a, b)

@@ -9,9 +9,7 @@ from collections import Counter, defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-import numpy as np
-
-from amuled_ma.study.analysis import MeanInterval, bootstrap_mean, tally
+from amuled_ma.study.analysis import MeanInterval, bootstrap_mean
 from amuled_ma.study.answers import ExpertAnswer
 from amuled_ma.study.model import Study
 
@@ -70,38 +68,6 @@ def acceptable_sets(answers: Sequence[ExpertAnswer]) -> dict[str, tuple[frozense
         item: (frozenset(a for a, k in yes[item].items() if 2 * k > n), n)
         for item, n in experts.items()
     }
-
-
-def top_action(belief: Sequence[float]) -> int | None:
-    """The action believed most; None when several share the top."""
-    values = np.asarray(belief, dtype=float)
-    best = np.flatnonzero(values == values.max())
-    return int(best[0]) if len(best) == 1 else None
-
-
-def expert_agreement(
-    study: Study, sets: dict[str, tuple[frozenset[int], int]]
-) -> dict[str, list[int]]:
-    """Agreement with the experts' acceptable sets: ``{who: [agree, counted]}``.
-
-    ``cluster:<name>`` and ``fused`` agree when their top action is acceptable (a tie at the
-    top is not counted); ``policy:<variant>`` when its action is.
-    """
-    out: dict[str, list[int]] = {}
-    for item_id, (accepted, _) in sets.items():
-        item = study.item(item_id)
-        if item is None:
-            continue
-        if item.panel is not None:
-            named = [(f"cluster:{a}", b) for a, b in zip(item.panel.agents, item.panel.beliefs,
-                                                        strict=True)]  # fmt: skip
-            for who, belief in [*named, ("fused", item.panel.fused)]:
-                top = top_action(belief)
-                if top is not None:
-                    tally(out, who, top in accepted)
-        for variant, action in item.policies.items():
-            tally(out, f"policy:{variant}", action in accepted)
-    return out
 
 
 def clarity(answers: Sequence[ExpertAnswer], *, seed: int = 0) -> MeanInterval:

@@ -59,9 +59,8 @@ def read_folder_file(
 ) -> str:
     """A regular UTF-8 file inside a study folder (no link), of at most ``limit`` bytes.
 
-    Raises:
-        NotInFolder: A symbolic link, not a regular file, or outside the folder.
-        StudyError: Over ``limit`` bytes, unreadable or not UTF-8.
+    NotInFolder: a link, not a regular file, or outside; StudyError: too large, unreadable or
+    not UTF-8.
     """
     from amuled_ma.files.limits import decode_text, too_large
 

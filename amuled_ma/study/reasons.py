@@ -12,10 +12,7 @@ MAX_REASON_CHARS = 3000
 
 
 def stated_reason(raw: str | None, action_names: Sequence[str]) -> str | None:
-    """A JSON reply's ``reasoning``, or a reply's text that is not only JSON; None without one.
-
-    Cut at `MAX_REASON_CHARS` characters.
-    """
+    """A JSON reply's ``reasoning``, or its text if not only JSON, cut at `MAX_REASON_CHARS`."""
     if not isinstance(raw, str) or not raw.strip():
         return None
     parsed = parse_belief(raw, action_names)

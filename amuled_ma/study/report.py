@@ -1,14 +1,15 @@
-"""``amuled study analyze``: ``analysis/report.md``, ``summary.json`` and the study's figure."""
+"""``amuled study analyze``: ``analysis/report.md``, ``summary.json`` and the study's PNG figure."""
 
 from __future__ import annotations
 
 import json
 import math
 from collections import defaultdict
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from amuled_ma.evaluate.report.plotting import pyplot, save_figure
 from amuled_ma.files.safe import check_own_folder, check_write_targets, write_text_atomic
 from amuled_ma.study import expert
 from amuled_ma.study.analysis import (
@@ -26,11 +27,11 @@ from amuled_ma.study.analysis import (
     majorities,
     nominal_alpha,
     pair_answers,
+    top_action,
     wilson,
     win_rates,
 )
 from amuled_ma.study.answers import read_expert_answers
-from amuled_ma.study.figures import expert_figure, strengths_figure
 from amuled_ma.study.model import ANSWERS_FILE, NO_REASON, Item, Study, read_study
 
 #: choix's regularisation in the report (a variant that never loses keeps a finite strength).
@@ -104,7 +105,11 @@ def summarize(folder: Path, *, keep_inattentive: bool = False) -> dict[str, Any]
     low, high = bootstrap_strengths(study.variants, by_person, seed=study.seed, alpha=ALPHA)
     rated = acceptability(study.variants, pairs, seed=study.seed)
     majority = majorities(pairs)
-    agree = agreement(study, majority)
+    accepted = {
+        i: {o.action for o in item.options if o.label == top}
+        for i, (top, _, _) in majority.items()
+        if (item := study.item(i)) is not None
+    }
     disagreements: list[dict[str, Any]] = []
     for item_id, (top, n_top, n) in majority.items():
         item = study.item(item_id)
@@ -142,7 +147,7 @@ def summarize(folder: Path, *, keep_inattentive: bool = False) -> dict[str, Any]
         "acceptability": [{"variant": v, **_mean(m, "participants")} for v, m in rated.items()],
         "krippendorff_alpha": nominal_alpha(choice_values(pairs)),
         "krippendorff_alpha_unavailable": alpha_unavailable(choice_values(pairs)),
-        "agreement": _rates(agree),
+        "agreement": _rates(agreement(study, accepted, pairs=True)),
         "disagreements": disagreements[:10],
     }
 
@@ -160,7 +165,7 @@ def summarize_expert(folder: Path) -> dict[str, Any]:
         item = study.item(item_id)
         if item is None or item.panel is None:
             continue
-        top = expert.top_action(item.panel.fused)
+        top = top_action(item.panel.fused)
         if top is not None and top not in accepted:
             names = study.action_names.get(item.task, [])
             unacceptable.append(
@@ -194,7 +199,7 @@ def summarize_expert(folder: Path) -> dict[str, Any]:
         "acceptable_sets": {
             k: {"acceptable": sorted(v[0]), "experts": v[1]} for k, v in sorted(sets.items())
         },
-        "agreement": _rates(expert.expert_agreement(study, sets)),
+        "agreement": _rates(agreement(study, {k: v[0] for k, v in sets.items()})),
         "clarity": {**_mean(clear, "experts"), "points": study.clarity_points},
         "alpha_acceptable": _num(nominal_alpha(expert.acceptability_values(answers))),
         "alpha_framework": _num(nominal_alpha(expert.framework_values(study, answers))),
@@ -222,8 +227,7 @@ def write_analysis(
 ) -> Path:
     """Write ``<study>/analysis/``'s report (returned), summary and figure; ``warn`` each warning.
 
-    Raises:
-        UnsafePathError: ``analysis`` or an output there is a link or not a folder or file.
+    UnsafePathError: ``analysis`` or an output there is a link or not a folder or file.
     """
     folder = Path(folder)
     expert_mode = read_study(folder).mode == "expert"
@@ -392,3 +396,76 @@ def _expert_report(folder: Path, data: dict[str, Any]) -> list[str]:
         for d in data["fused_unacceptable"]
     ] or ["None: the fused belief's top action is acceptable on every state judged."]
     return lines
+
+
+def _interval_bars(ax: Any, names: Sequence[str], rows: Sequence[Mapping[str, Any]],
+                   key: str) -> None:  # fmt: skip
+    """Points with horizontal 95% intervals, one row per name (top to bottom)."""
+    ys = list(range(len(names)))[::-1]
+    for y, row in zip(ys, rows, strict=True):
+        value, low, high = row[key], row["low"], row["high"]
+        if value is None or not math.isfinite(value):
+            ax.text(0.02, y, "no data", va="center", transform=ax.get_yaxis_transform())
+            continue
+        if low is not None and math.isfinite(low) and math.isfinite(high):
+            ax.plot([low, high], [y, y], color="#555", lw=2, solid_capstyle="butt")
+        ax.plot([value], [y], "o", color="#1d3557", ms=7)
+        ax.annotate(f"{value:.2f}", (value, y), textcoords="offset points", xytext=(0, 7),
+                    ha="center", fontsize=8)  # fmt: skip
+    ax.set_yticks(ys, list(names))
+    ax.set_ylim(-0.7, len(names) - 0.3)
+    ax.grid(axis="x", color="#ddd")
+
+
+def strengths_figure(summary: Mapping[str, Any], path: Path) -> Path:
+    """``strengths.png``: Bradley-Terry strengths and mean acceptability, with intervals."""
+    plt = pyplot()
+    bt = summary["bradley_terry"]
+    acc = summary.get("acceptability") or []
+    panels = 2 if acc else 1
+    names = [row["variant"] for row in bt]
+    fig, axes = plt.subplots(1, panels, figsize=(4.4 * panels + 0.6, 0.55 * len(names) + 1.8),
+                             squeeze=False)  # fmt: skip
+    ax = axes[0][0]
+    _interval_bars(ax, names, bt, "strength")
+    ax.axvline(0.0, color="#999", lw=1, ls="--")
+    ax.set_xlabel("Bradley-Terry strength (log scale, mean 0)")
+    ax.set_title("Chosen as the more acceptable", fontsize=10)
+    if acc:
+        ax = axes[0][1]
+        _interval_bars(ax, [row["variant"] for row in acc], acc, "mean")
+        points = int(summary.get("rating_points") or 7)
+        ax.set_xlim(0.5, points + 0.5)
+        ax.set_xticks(range(1, points + 1))
+        ax.set_xlabel(f"mean rating (1: completely unacceptable,\n{points}: completely "
+                      "acceptable)")  # fmt: skip
+        ax.set_title("Rated acceptability", fontsize=10)
+    fig.suptitle("Variants as people judged them (95% bootstrap intervals over participants)",
+                 fontsize=10)  # fmt: skip
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def expert_figure(summary: Mapping[str, Any], path: Path) -> Path:
+    """``expert.png``: frameworks cited, and agreement with the experts' acceptable sets."""
+    plt = pyplot()
+    cites = summary["frameworks"]
+    agree = summary["agreement"]
+    who = sorted(agree)
+    height = max(len(cites), len(who)) * 0.45 + 1.8
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10.5, height))
+    names = [c["framework"] for c in cites][::-1]
+    yes = [c["acceptable"] for c in cites][::-1]
+    no = [c["cited"] - c["acceptable"] for c in cites][::-1]
+    left.barh(names, yes, color="#2a9d8f", label="action found acceptable")
+    left.barh(names, no, left=yes, color="#e76f51", label="found unacceptable")
+    left.set_xlabel("judgements citing the framework")
+    left.set_title("Frameworks the experts cite", fontsize=10)
+    left.legend(fontsize=8, loc="lower right")
+    rows = [agree[w] for w in who]
+    _interval_bars(right, who, rows, "rate")
+    right.set_xlim(-0.02, 1.02)
+    right.set_xlabel("share of states where its top action\nis acceptable to the experts")
+    right.set_title("Agreement with the experts (Wilson 95%)", fontsize=10)
+    fig.tight_layout()
+    return save_figure(fig, path)

@@ -129,30 +129,29 @@ def where(loc: tuple[str | int, ...]) -> str:
     return ".".join(str(part) for part in loc) or "body"
 
 
-#: The refusal's reason kept for a pair's answer whose first error is in this field.
-PAIR_REASONS = {"choice": "unknown choice", "ms": "bad time"}
-#: The same for a field of an expert's judgement (``actions.N.<field>``).
-JUDGEMENT_REASONS = {
+#: The refusal's reason kept for an answer whose first error is in this field (an expert's
+#: judgement: ``actions.N.<field>``).
+REASONS = {
+    "choice": "unknown choice",
+    "ms": "bad time",
     "acceptable": "expert: acceptable not yes or no",
     "framework": "expert: unknown framework",
 }
 
 
-def pair_reason(loc: tuple[str | int, ...], kind: str) -> str:
-    """The refusal's reason kept for a pair's answer that does not fit its model."""
+def refusal_reason(loc: tuple[str | int, ...], kind: str) -> str:
+    """The refusal's reason kept for an answer that does not fit its item's model."""
     head = str(loc[0]) if loc else ""
+    if head not in ("ratings", "clarity", "actions", "choice", "ms") or (
+        len(loc) == 1 and kind == "extra_forbidden"  # a field of the other kind of item
+    ):
+        return f"answer: unexpected or malformed field {where(loc)}"
     if head == "ratings":
         if len(loc) == 1 or kind == "missing":
             return "ratings missing"
         if kind == "extra_forbidden":
             return "rating for an option not shown"
         return "rating outside the scale"
-    return PAIR_REASONS.get(head, f"answer: unexpected or malformed field {where(loc)}")
-
-
-def expert_reason(loc: tuple[str | int, ...], kind: str) -> str:
-    """The refusal's reason kept for an expert's answer that does not fit its model."""
-    head = str(loc[0]) if loc else ""
     if head == "clarity":
         if kind == "none_required":
             return "clarity without a stated reason"
@@ -161,7 +160,5 @@ def expert_reason(loc: tuple[str | int, ...], kind: str) -> str:
         if len(loc) == 1:
             return "expert: not one judgement per action"
         field = str(loc[2]) if len(loc) > 2 and kind != "extra_forbidden" else ""
-        return JUDGEMENT_REASONS.get(field, "expert: judgement malformed")
-    if head == "ms":
-        return "bad time"
-    return f"answer: unexpected or malformed field {where(loc)}"
+        return REASONS.get(field, "expert: judgement malformed")
+    return REASONS[head]

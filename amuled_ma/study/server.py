@@ -40,9 +40,8 @@ from amuled_ma.study.requests import (
     PairAnswer,
     SessionRequest,
     answer_models,
-    expert_reason,
     first_error,
-    pair_reason,
+    refusal_reason,
     where,
 )
 
@@ -166,11 +165,10 @@ class StudyApp:
         """The consent fragment; a refusal (404, 500) goes to stderr, never its path to the page."""
         try:
             return HTMLResponse(self.consent_text())
-        except NotInFolder as refused:
+        except StudyError as refused:  # NotInFolder: as if there were none
             print(f"amuled study serve: {refused}", file=sys.stderr, flush=True)
-            return HTMLResponse(NO_CONSENT, status_code=404)
-        except StudyError as refused:
-            print(f"amuled study serve: {refused}", file=sys.stderr, flush=True)
+            if isinstance(refused, NotInFolder):
+                return HTMLResponse(NO_CONSENT, status_code=404)
             return HTMLResponse(CONSENT_REFUSED, status_code=500)
 
     async def health(self, request: Request) -> Response:
@@ -259,14 +257,14 @@ class StudyApp:
         if item.kind == "expert":
             reasoned = item.panel is not None and item.panel.has_reasons()
             model = self.expert_model(len(study.action_names.get(item.task, [])), reasoned)
-            reason_of, choice = expert_reason, None
+            choice = None
             expected = (
                 "'ms': a time in ms, 'actions': one {'acceptable': true|false, 'framework': one "
                 f"of {study.framework_names()}}} per action, 'clarity': 1 to "
                 f"{study.clarity_points} (null where the panel stated no reason)"
             )
         else:
-            model, reason_of = self.pair_model, pair_reason
+            model = self.pair_model
             expected = (
                 "'choice': 'A' or 'B', 'ms': a time in ms, 'ratings': {'A': r, 'B': r}, r an "
                 f"integer from 1 to {study.rating_points}"
@@ -274,7 +272,7 @@ class StudyApp:
         try:
             form = model.model_validate(envelope.model_dump(exclude_unset=True))
         except ValidationError as refused:
-            reason = reason_of(*first_error(refused)[:2])
+            reason = refusal_reason(*first_error(refused)[:2])
             self.store.refuse(pid, item_id, choice, reason)
             return _refused(400, f"{reason} ({_said(refused)}); expected {expected}")
         if isinstance(form, ExpertAnswerRequest):

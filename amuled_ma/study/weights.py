@@ -67,11 +67,7 @@ class ChoiceData:
 def choice_data(
     study: Study, answers: Sequence[Answer], *, keep_inattentive: bool = False
 ) -> ChoiceData:
-    """The `ChoiceData` of a study and its answers.
-
-    Raises:
-        StudyError: No item carries a ``bjs-dst`` panel, or no kept participant answered one.
-    """
+    """The `ChoiceData` of a study; StudyError: no ``bjs-dst`` item, or no kept answer to one."""
     items = [
         i
         for i in study.items
@@ -241,12 +237,6 @@ def fit(
     return Fit(_softmax(x[:k]), math.exp(x[k]), x)
 
 
-def _answer_loglik(data: ChoiceData, model: Fit) -> np.ndarray:
-    """``(M,)`` log-probability of each answer under a fitted model."""
-    p = choice_probability(data, model.prior, model.temperature)[data.answer_item]
-    return np.where(data.answer_a, np.log(p), np.log1p(-p))
-
-
 @dataclass(frozen=True)
 class WeightsFit:
     """What `fit_study` found: both fits, 95% bootstrap intervals, the held-out comparison."""
@@ -269,11 +259,7 @@ def fit_study(
     temperature: float | None = None,
     progress: bool = False,
 ) -> WeightsFit:
-    """Fit the weights, their bootstrap intervals and the held-out comparison.
-
-    Raises:
-        StudyError: ``folds`` outside 2..participants.
-    """
+    """The weights, bootstrap intervals and held-out comparison; StudyError: bad ``folds``."""
     people = len(data.participants)
     if not 2 <= folds <= people:
         raise StudyError(
@@ -300,7 +286,8 @@ def fit_study(
             on_fixed = fit(data, ta, tb, learn=False, temperature=temperature, start=learned.x)
             test = np.isin(data.answer_participant, fold)
             for model, out in ((on_learned, held_learned), (on_fixed, held_fixed)):
-                scores = _answer_loglik(data, model)
+                p = choice_probability(data, model.prior, model.temperature)[data.answer_item]
+                scores = np.where(data.answer_a, np.log(p), np.log1p(-p))
                 out += np.bincount(data.answer_participant[test], scores[test], minlength=people)
             bar.update()
         # intervals: participants resampled with replacement, refitted
@@ -360,9 +347,7 @@ def fit_weights(
 ) -> tuple[PanelWeights, Path]:
     """``amuled study fit-weights``: fit a study's panel weights, write ``out`` (or `WEIGHTS_FILE`).
 
-    Raises:
-        StudyError: No study or answers, no ``bjs-dst`` item, or bad ``folds``; before any fit.
-        UnsafePathError: The file to write is a link or not a regular file; before any fit.
+    Before any fit: StudyError as `choice_data` and `fit_study`; UnsafePathError for ``out``.
     """
     from amuled_ma.files.hashing import sha256_file
 

@@ -126,11 +126,11 @@ def test_learning_curve_band_over_seeds_by_hand():
         return [{"env_steps": 100 * (i + 1), "r": v} for i, v in enumerate(values)]
 
     # 3 rows: the rolling window is 1 row, so each seed's curve is its raw values
-    x, mean, half = curve_band([curve([1, 2, 3]), curve([3, 4, 5])], "r")
+    x, mean, half, _ = curve_band([curve([1, 2, 3]), curve([3, 4, 5])], "r")
     assert x.tolist() == [100, 200, 300] and mean.tolist() == [2, 3, 4]
     # two seeds differing by 2: std sqrt(2), half = t_{0.975,1} * sqrt(2) / sqrt(2) = 12.7062
     assert all(abs(h - 12.7062) < 1e-4 for h in half)
-    x, mean, half = curve_band([curve([1, 2, 3]), curve([3, 4])], "r")  # cut to the shortest
+    x, mean, half, _ = curve_band([curve([1, 2, 3]), curve([3, 4])], "r")  # cut to the shortest
     assert x.tolist() == [100, 200] and all(abs(h - 12.7062) < 1e-4 for h in half)
 
 
@@ -147,7 +147,7 @@ def test_learning_curve_band_iteration_no_seed_logged_is_nan_without_warning():
     b = [{"env_steps": 1, "r": 3.0}, {"env_steps": 2}, {"env_steps": 3}]
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        _x, mean, half = curve_band([a, b], "r")
+        _x, mean, half, _ = curve_band([a, b], "r")
     assert mean[0] == 2.0 and abs(half[0] - 12.7062) < 1e-4
     assert np.isnan(mean[1]) and half[1] == 0.0
     assert mean[2] == 5.0 and half[2] == 0.0

@@ -21,7 +21,7 @@ from amuled_ma.evaluate.numbers import format_count, format_number
 from amuled_ma.evaluate.report.bars import ablation_figure, bars_figure
 from amuled_ma.evaluate.report.curves import curves_figure
 from amuled_ma.evaluate.report.plotting import save_figure
-from amuled_ma.evaluate.report.trajectories import driving_figure, findmilk_figure
+from amuled_ma.evaluate.report.trajectories import episode_figure
 from amuled_ma.evaluate.results import Results
 from amuled_ma.evaluate.viewer import ASSETS, render_html
 from amuled_ma.tasks.colors import COLORS, css_variables
@@ -229,7 +229,7 @@ def test_an_ablation_where_nothing_differs_shows_every_paper_metric():
 def test_babies_reached_are_solid_markers_in_the_outcome_colours(tmp_path):
     res = {"scenario": "findmilk", "task": "findmilk",
            "variants": {"base": {"greedy": entry({"steps_to_milk": 5.0})}}}  # fmt: skip
-    fig = findmilk_figure(Results.model_validate(res))
+    fig = episode_figure(Results.model_validate(res))
     ax = fig.axes[0]
     by_gid: dict[str, list] = {}
     for c in ax.collections:
@@ -256,13 +256,13 @@ def test_babies_reached_are_solid_markers_in_the_outcome_colours(tmp_path):
 def test_every_report_figure_renders_with_ink_in_each_panel(tmp_path):
     res = deterministic_ablation()
     assert_readable(bars_figure(Results.model_validate(res), "greedy"), tmp_path / "bars.png")
-    assert_readable(findmilk_figure(Results.model_validate(res)), tmp_path / "traj.png")
+    assert_readable(episode_figure(Results.model_validate(res)), tmp_path / "traj.png")
     lane = [[0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0]] * 6 + [[0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0]] * 5
     events = {"collisions": [0, 1] + [0] * 8, "rescues": [0] * 7 + [1, 0, 0]}
     drive = {"obs": lane, "actions": [0] * 10, "layout": {}, "events": events}
     greedy = {"metrics": {"collisions": stat(1.0)}, "trajectory": drive}
     driving = {"scenario": "driving", "task": "driving", "variants": {"base": {"greedy": greedy}}}
-    fig = driving_figure(Results.model_validate(driving))
+    fig = episode_figure(Results.model_validate(driving))
     ax = fig.axes[0]
     events = {c.get_gid(): to_hex(c.get_facecolor()[0]) for c in ax.collections}
     assert events == {"event-collisions": COLORS["bad"], "event-rescues": COLORS["good"]}

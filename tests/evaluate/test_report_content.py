@@ -29,7 +29,7 @@ from amuled_ma.evaluate.report.tables import (
     differences_table,
     same_as_base,
 )
-from amuled_ma.evaluate.report.trajectories import findmilk_figure
+from amuled_ma.evaluate.report.trajectories import episode_figure
 from amuled_ma.evaluate.report.writing import link_viewer, write_report
 from amuled_ma.evaluate.results import Results
 from amuled_ma.records.run_record import RunRecord
@@ -251,7 +251,7 @@ def test_a_variant_has_the_same_colour_in_bars_trajectories_and_curves():
     names = list(res["variants"])
     bar_colour = {n: to_hex(p.get_facecolor()) for n, p in zip(names, bars.axes[0].patches,
                                                                  strict=True)}  # fmt: skip
-    grid = findmilk_figure(Results.model_validate(res), colors=colors)
+    grid = episode_figure(Results.model_validate(res), colors=colors)
     path_colour = {
         ax.get_title().split("\n")[0]: to_hex(line.get_color())
         for ax in grid.axes
@@ -313,7 +313,7 @@ def test_findmilk_subgoals_from_the_path():
     goals = findmilk_subgoals(trajectory([(0, 0), (1, 0), (1, 1), (2, 1), (2, 2)]))
     assert goals["woken"] == [(1, 1)] and goals["pacified"] == [(2, 2)]
     assert goals["reached_milk"] is False and goals["end"] == (2, 2)
-    grid = findmilk_figure(Results.model_validate(results()))
+    grid = episode_figure(Results.model_validate(results()))
     human = next(a for a in grid.axes if a.get_title().startswith("finetune-human"))
     assert "pacified 1/5, woken 1/6" in human.get_title()
 

@@ -120,7 +120,8 @@ def test_agreement_and_majority_by_hand():
     pairs = analysis.pair_answers(study, answers)
     majority = analysis.majorities(pairs)
     assert majority == {"q1": ("A", 2, 3), "q2": ("A", 3, 3)}
-    agree = analysis.agreement(study, majority)
+    accepted = {"q1": {0}, "q2": {2}}  # the majority's option's action
+    agree = analysis.agreement(study, accepted, pairs=True)
     # q1: majority A (action 0): fused agrees; q2: majority A (action 2): fused prefers 1
     assert agree["fused"] == [1, 2] and agree["cluster:care"] == [1, 2]
     # x: q1 takes 0 (agree), q2 takes 1 (the other option); y: q1 disagrees, q2 agrees;

@@ -20,7 +20,7 @@ from amuled_ma.study.answers import Answer, AnswerStore, read_answers, read_expe
 from amuled_ma.study.model import Item, Option, Study
 from amuled_ma.study.reasons import stated_reason
 from amuled_ma.study.report import write_analysis
-from amuled_ma.study.requests import answer_models, first_error, pair_reason
+from amuled_ma.study.requests import answer_models, first_error, refusal_reason
 
 
 def pair(item_id: str, a: tuple[str, int], b: tuple[str, int]) -> Item:
@@ -97,7 +97,7 @@ def rating_problem(ratings: object, points: int) -> str | None:
     try:
         pair_answer.model_validate(form)
     except ValidationError as refused:
-        return pair_reason(*first_error(refused)[:2])
+        return refusal_reason(*first_error(refused)[:2])
     return None
 
 

@@ -42,19 +42,6 @@ def seed_means(result: ModeResult | None, metric: str) -> list[float]:
     return [v for v in values if math.isfinite(v)]
 
 
-def _whiskers(
-    means: np.ndarray, stats: Sequence[Stat | None], seeds: Sequence[Sequence[float]]
-) -> np.ndarray:
-    """``[2, n]`` left and right whisker lengths: a 95% CI, or the range of few seeds."""
-    left = np.array([half_of(s) for s in stats])
-    right = left.copy()
-    for i, values in enumerate(seeds):
-        if 2 <= len(values) < FEW_SEEDS and math.isfinite(means[i]):
-            left[i] = max(means[i] - min(values), 0.0)
-            right[i] = max(max(values) - means[i], 0.0)
-    return np.vstack([left, right])
-
-
 def _hbars(
     ax: Axes,
     positions: np.ndarray,
@@ -73,7 +60,10 @@ def _hbars(
     """
     means = np.array([mean_of(s) for s in stats], dtype=float)
     seeds = list(seeds) if seeds is not None else [[] for _ in stats]
-    xerr = _whiskers(means, stats, seeds)
+    xerr = np.array([[half_of(s) for s in stats]] * 2)  # left and right: the 95% CI
+    for i, values in enumerate(seeds):
+        if 2 <= len(values) < FEW_SEEDS and math.isfinite(means[i]):  # or few seeds' range
+            xerr[:, i] = max(means[i] - min(values), 0.0), max(max(values) - means[i], 0.0)
     errs = xerr.max(axis=0)
     drawn = np.where(np.isfinite(means), means, 0.0)
     bold = list(emphasise or [False] * len(stats))

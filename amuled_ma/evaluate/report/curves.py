@@ -43,8 +43,7 @@ BAND_ALPHA = 0.15
 MAX_CURVE_BYTES = 256 * 2**20
 
 
-def _rolling_band(values: list[float | None], window: int) -> tuple[np.ndarray, ...]:
-    arr = np.array([np.nan if v is None else v for v in values], dtype=float)
+def _rolling_band(arr: np.ndarray, window: int) -> tuple[np.ndarray, ...]:
     mean = np.full_like(arr, np.nan)
     half = np.full_like(arr, np.nan)
     for i in range(len(arr)):
@@ -64,45 +63,44 @@ def load_curves(
 ) -> dict[str, list[list[dict]]]:
     """Every variant's ``curve.json``: ``{variant: [replica, ...]}`` (``names``: folder -> variant).
 
-    Raises:
-        AmuledError: A ``curve.json`` over `MAX_CURVE_BYTES` (refused unread), refused by
-            `checked_read_path`, unreadable or not JSON.
+    AmuledError: a ``curve.json`` over `MAX_CURVE_BYTES`, unsafe, unreadable or not JSON.
     """
-    names = names or {}
-    curves: dict[str, list[list[dict]]] = {}
-    run_dir = Path(run_dir)
-    for path in sorted(run_dir.glob("*/curve.json")):
-        variant = names.get(path.parent.name, path.parent.name)
-        checked_read_path(run_dir, path.relative_to(run_dir))
-        curves.setdefault(variant, []).append(read_curve(path))
-    return curves
-
-
-def read_curve(path: Path) -> list[dict]:
-    """One variant folder's ``curve.json`` rows; AmuledError as `load_curves`."""
     from amuled_ma.files.limits import read_bounded_json
 
     fix = (
         "is it the right folder? It is written by 'amuled train' and 'amuled finetune'; "
         "retrain the variant with --force, or move its folder out of the run"
     )
-    return read_bounded_json(
-        path, MAX_CURVE_BYTES, "learning curve", note="about 590 bytes an iteration", fix=fix
-    )
+    names = names or {}
+    curves: dict[str, list[list[dict]]] = {}
+    run_dir = Path(run_dir)
+    for path in sorted(run_dir.glob("*/curve.json")):
+        variant = names.get(path.parent.name, path.parent.name)
+        checked_read_path(run_dir, path.relative_to(run_dir))
+        note = "about 590 bytes an iteration"
+        curve = read_bounded_json(path, MAX_CURVE_BYTES, "learning curve", note=note, fix=fix)
+        curves.setdefault(variant, []).append(curve)
+    return curves
 
 
-def curve_band(replicas: list[list[dict]], key: str) -> tuple[np.ndarray, ...]:
-    """x, mean and 95% half-width of one metric over a variant's replicas.
+def curve_band(
+    replicas: list[list[dict]], key: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
+    """x, mean and 95% half-width of one metric over a variant's replicas, and each one's line.
 
     Each curve is smoothed by a rolling mean over 5% of its iterations; one replica: the
-    t-interval over that window; several: the t-interval over the seeds (cut to the shortest).
+    t-interval over that window, its line the raw values; several: the t-interval over the seeds
+    (cut to the shortest), each line its rolling mean.
     """
     n = min(len(c) for c in replicas)
     x = np.array([row["env_steps"] for row in replicas[0][:n]], dtype=float)
-    window = max(1, n // 20)
-    bands = [_rolling_band([row.get(key) for row in c[:n]], window) for c in replicas]
+    raw = [
+        np.array([np.nan if (v := row.get(key)) is None else v for row in c[:n]], dtype=float)
+        for c in replicas
+    ]
+    bands = [_rolling_band(values, max(1, n // 20)) for values in raw]
     if len(bands) == 1:
-        return x, bands[0][0], bands[0][1]
+        return x, bands[0][0], bands[0][1], raw
     means = np.stack([mean for mean, _ in bands])
     # Iterations where no seed logged the metric (NaN everywhere) stay NaN, silently.
     with warnings.catch_warnings(), np.errstate(invalid="ignore"):
@@ -112,18 +110,7 @@ def curve_band(replicas: list[list[dict]], key: str) -> tuple[np.ndarray, ...]:
         std = np.nanstd(means, axis=0, ddof=1)
         quantile = np.array([t_quantile(int(k) - 1) if k > 1 else 0.0 for k in count])
         half = np.where(count > 1, quantile * std / np.sqrt(np.maximum(count, 1)), 0.0)
-    return x, mean, half
-
-
-def seed_lines(replicas: list[list[dict]], key: str) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Steps and each replica's rolling mean of one metric (one replica: its raw values)."""
-    n = min(len(c) for c in replicas)
-    x = np.array([row["env_steps"] for row in replicas[0][:n]], dtype=float)
-    rows = [[row.get(key) for row in c[:n]] for c in replicas]
-    if len(replicas) == 1:
-        return x, [np.array([np.nan if v is None else v for v in rows[0]], dtype=float)]
-    window = max(1, n // 20)
-    return x, [_rolling_band(r, window)[0] for r in rows]
+    return x, mean, half, list(means)
 
 
 def curves_figure(
@@ -148,14 +135,13 @@ def curves_figure(
         for name, replicas in curves.items():
             if not any(key in row for c in replicas for row in c):
                 continue
-            x, mean, half = curve_band(replicas, key)
+            x, mean, half, each = curve_band(replicas, key)
             label = name if len(replicas) == 1 else f"{name} ({len(replicas)} seeds)"
             colour = colors.get(name)
             if len(replicas) <= MAX_SEED_LINES:
-                xs, each = seed_lines(replicas, key)
                 gid = "raw-line" if len(replicas) == 1 else "seed-line"
                 for values in each:
-                    ax.plot(xs, values, lw=0.8, color=colour, alpha=SPREAD_ALPHA, gid=gid,
+                    ax.plot(x, values, lw=0.8, color=colour, alpha=SPREAD_ALPHA, gid=gid,
                             zorder=1)  # fmt: skip
                 if len(replicas) > 1:  # one seed's raw values do not set the range
                     spread += each

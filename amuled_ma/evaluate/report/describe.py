@@ -200,12 +200,9 @@ def panels_table(described: Mapping[str, RunRecord | None]) -> str:
     return markdown_table(head, rows)
 
 
-def _distinct(values: Iterable[Any]) -> list[Any]:
-    return list(dict.fromkeys(v for v in values if v is not None and v != ""))
-
-
 def _joined(values: Iterable[Any], several: str = " (per variant)") -> str:
-    found = [f"{v:g}" if isinstance(v, float) else str(v) for v in _distinct(values)]
+    distinct = dict.fromkeys(v for v in values if v is not None and v != "")
+    found = [f"{v:g}" if isinstance(v, float) else str(v) for v in distinct]
     if not found:
         return ""
     return found[0] if len(found) == 1 else ", ".join(found) + several

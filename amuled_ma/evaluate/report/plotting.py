@@ -33,20 +33,10 @@ def pyplot() -> ModuleType:
     return plt
 
 
-# ---------------------------------------------------------------------------------------
-# Numbers and colours
-
-
-def as_stat(stat: Stat | Mapping[str, Any] | None) -> Stat | None:
-    """A statistic as a `Stat` (a dict is validated)."""
-    if stat is None or isinstance(stat, Stat):
-        return stat
-    return Stat.model_validate(dict(stat))
-
-
 def format_stat(stat: Stat | Mapping[str, Any] | None, digits: int = 2) -> str:
     """``mean ± half width`` of a `mean_ci` summary (``n/a``; ``± n/a (n = 1)``)."""
-    stat = as_stat(stat)
+    if stat is not None and not isinstance(stat, Stat):
+        stat = Stat.model_validate(dict(stat))
     mean = mean_of(stat)
     if stat is None or not math.isfinite(mean):
         return "n/a"
@@ -78,10 +68,7 @@ def short_label(value: float) -> str:
 
 
 def variant_colors(names: Iterable[str]) -> dict[str, str]:
-    """One fixed colour ``#rrggbb`` per variant whatever their order: sorted names take tab10.
-
-    Past ten variants, tab20 with its dark shades first.
-    """
+    """One ``#rrggbb`` per variant whatever their order: sorted names take tab10 (past 10 tab20)."""
     from matplotlib import colormaps
     from matplotlib.colors import to_hex
 

@@ -22,10 +22,7 @@ from amuled_ma.evaluate.stats import t_quantile
 
 
 def diagnostics_table(results: Results, finetunes: int | None = None) -> str:
-    """Mean per-cluster weight, conflict and miss rate per variant.
-
-    With ``finetunes`` but no diagnostics, the table says so.
-    """
+    """Mean per-cluster weight, conflict and miss rate per variant, or a note why there are none."""
     rows = {k: v.feedback for k, v in results.variants.items() if v.feedback is not None}
     if not rows:
         if finetunes:
@@ -71,8 +68,7 @@ _MODEL_COLUMNS = (
 def agents_table(results: Results) -> str:
     """Per fine-tune and panel agent, the share of each belief status; ``""`` without counts.
 
-    Not answered: every status but ``ok``, ``repaired`` and the model's answers (the fused
-    reward went on without that agent). A distilled feedback adds the model's three columns.
+    Not answered: every status but the fused ones; a distilled feedback adds the model's columns.
     """
     lines = []
     rows = [
@@ -101,10 +97,7 @@ def agents_table(results: Results) -> str:
 
 
 def servers_table(results: Results) -> str:
-    """Per fine-tune and LLM server, what it was asked and did (`llm_server_stats`); ``""`` if none.
-
-    Requests sent count every attempt (retries and probes); latency is of answered requests.
-    """
+    """Per fine-tune and LLM server, what it was asked and did; ``""`` without servers."""
     lines = []
     for name, entry in results.variants.items():
         servers = entry.feedback.llm_servers if entry.feedback is not None else None
@@ -279,10 +272,6 @@ def differences_table(results: Results, mode: str) -> str:
         for name, row in diffs.items()
     ]
     return markdown_table(["variant", *metrics], rows)
-
-
-# ---------------------------------------------------------------------------------------
-# The paper beside us, and what the fine-tune did
 
 
 #: How a metric's difference to the base reads: (verb phrase before, noun after).

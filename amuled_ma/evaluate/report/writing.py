@@ -29,7 +29,7 @@ from amuled_ma.evaluate.report.tables import (
     same_as_base,
     servers_table,
 )
-from amuled_ma.evaluate.report.trajectories import driving_figure, findmilk_figure
+from amuled_ma.evaluate.report.trajectories import episode_figure
 from amuled_ma.evaluate.results import RESULTS_FILES, Results
 from amuled_ma.files.safe import check_write_targets, checked_read_path, write_text_atomic
 from amuled_ma.records.run_record import RunRecord
@@ -66,9 +66,7 @@ def viewer_line(run_dir: Path) -> str:
 def link_viewer(run_dir: Path) -> bool:
     """Rewrite ``report.md``'s viewer line (`viewer_line`); True when it had one.
 
-    Raises:
-        AmuledError: ``report.md`` over `MAX_REPORT_BYTES` (refused unread), refused by
-            `checked_read_path`, unreadable, or not writable back.
+    AmuledError: ``report.md`` over `MAX_REPORT_BYTES`, unsafe, unreadable, or not writable.
     """
     from amuled_ma.files.limits import read_bounded_bytes
 
@@ -97,10 +95,6 @@ def link_viewer(run_dir: Path) -> bool:
     return found
 
 
-# ---------------------------------------------------------------------------------------
-# The report
-
-
 def evaluation_outputs(run_dir: Path) -> list[Path]:
     """The files an evaluation and its report write or remove in ``run_dir``."""
     run_dir = Path(run_dir)
@@ -123,10 +117,8 @@ def write_report(
 ) -> Path:
     """Write ``report.md`` and its PNG figures into ``run_dir``, removing figures not drawn now.
 
-    Raises:
-        UnsafePathError: One of `evaluation_outputs` is a link or not a regular file;
-            refused before any figure is drawn.
-        FileWriteError: A file could not be written.
+    UnsafePathError (before any figure): one of `evaluation_outputs` is a link or not a regular
+    file; FileWriteError: a file could not be written.
     """
     run_dir = Path(run_dir)
     check_write_targets(evaluation_outputs(run_dir))
@@ -183,18 +175,20 @@ def write_report(
             save_figure(bars_figure(results, mode, colors=colors), run_dir / f"metrics_{mode}.png"),
         ))  # fmt: skip
     episode_figures = {
-        "findmilk": ("A FindMilk trajectory per variant", findmilk_figure, "trajectory_findmilk"),
-        "driving": ("A Driving episode per variant", driving_figure, "episode_driving"),
+        "findmilk": ("A FindMilk trajectory per variant", "trajectory_findmilk"),
+        "driving": ("A Driving episode per variant", "episode_driving"),
     }
     if task in episode_figures:
-        heading, draw, stem = episode_figures[task]
+        heading, stem = episode_figures[task]
         figures.append((
             heading,
             "The first greedy evaluation episode of each variant.",
-            save_figure(draw(results, colors=colors), run_dir / f"{stem}.png"),
+            save_figure(episode_figure(results, colors=colors), run_dir / f"{stem}.png"),
         ))  # fmt: skip
     written = {path.name for _, _, path in figures if path is not None}
-    _remove_stale_figures(run_dir, written)
+    for stale in evaluation_outputs(run_dir):  # a figure of an earlier report not drawn now
+        if stale.suffix == ".png" and stale.name not in written and stale.is_file():
+            stale.unlink()
     lines = [
         f"# {title or 'Run report: ' + str(results.scenario)}",
         "",
@@ -359,12 +353,3 @@ def _paper_lines(results: Results, described: Mapping[str, RunRecord | None]) ->
     if table:
         lines += [table]
     return lines
-
-
-def _remove_stale_figures(run_dir: Path, written: set[str]) -> None:
-    """Remove this module's figures left in ``run_dir`` by an earlier report."""
-    stale = [run_dir / name for name in FIGURE_NAMES]
-    stale += list(run_dir.glob("ablation_*.png"))
-    for path in stale:
-        if path.name not in written and path.is_file():
-            path.unlink()
