@@ -10,6 +10,8 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from amuled_ma.beliefs.replies.validate import uniform_belief
+
 K = TypeVar("K")
 
 #: Parse / answer statuses a `BeliefResult` may carry (their meanings: ``docs/beliefs.md``).
@@ -59,6 +61,24 @@ class BeliefResult:
     prompt_tokens: int | None = None
     completion_tokens: int | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def failed(
+        cls,
+        n_actions: int,
+        status: str,
+        source: str,
+        error: str,
+        *,
+        raw: str | None = None,
+        latency_s: float = 0.0,
+        **extra: Any,
+    ) -> BeliefResult:
+        """No answer: a uniform belief with ``status``, the reason in ``extra["error"]``."""
+        belief = uniform_belief(n_actions)
+        return cls(
+            belief, status, source, raw, latency_s=latency_s, extra={"error": error, **extra}
+        )
 
     def copy(self, **changes: Any) -> BeliefResult:
         """An independent copy (own belief array and extra dict) with ``changes``."""

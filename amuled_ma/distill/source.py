@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from amuled_ma.beliefs.replies.validate import check_belief, uniform_belief
+from amuled_ma.beliefs.replies.validate import check_belief
 from amuled_ma.beliefs.store.cached import requests_sent
 from amuled_ma.beliefs.store.rows import CACHEABLE
 from amuled_ma.beliefs.types import (
@@ -31,6 +31,7 @@ from amuled_ma.beliefs.types import (
     BeliefRequest,
     BeliefResult,
     BeliefSource,
+    ask,
 )
 from amuled_ma.distill.budget import BudgetLedger, check_budget
 from amuled_ma.distill.model import EnsembleModel, FitSettings
@@ -249,8 +250,8 @@ class DistilledSource(BeliefSource):
             self._refit()
         rest = [s for s in candidates if not ledger.is_asked(s.key)]
         self._answer(rest, results)
-        if self.answer_misses and forward:
-            self._answer_misses(forward, results)
+        if self.answer_misses:
+            self._answer(forward, results, misses=True)
         self._save()
         return results  # type: ignore[return-value]
 
@@ -358,12 +359,7 @@ class DistilledSource(BeliefSource):
         """Ask the panel's source about the asked states; keep their answers to learn from."""
         idx = [i for s in forward for positions in s.positions.values() for i in positions]
         before = requests_sent(self.source)
-        answers = self.source.beliefs([requests[i] for i in idx])
-        if len(answers) != len(idx):
-            raise RuntimeError(
-                f"belief source {getattr(self.source, 'name', '?')!r} answered {len(answers)} "
-                f"results for {len(idx)} requests"
-            )
+        answers = ask(self.source, [requests[i] for i in idx])
         after = requests_sent(self.source)
         self.stats.requests_forwarded += len(idx)
         self.stats.requests_sent += len(idx) if before is None or after is None else after - before
@@ -490,69 +486,50 @@ class DistilledSource(BeliefSource):
             "tv_fused": float(np.mean(fused_tv)) if fused_tv else None,
         }
 
-    def _answer(self, states: list[_State], results: list) -> None:
-        """The model's beliefs for states not asked (``unasked`` where it has none)."""
-        if not states:
-            return
-        a = len(self.actions or ())
+    def _answer(self, states: list[_State], results: list, *, misses: bool = False) -> None:
+        """The model's beliefs for states not asked, or (``misses``) for asked states' misses.
+
+        ``unasked`` where the model has no answer for a member; with ``misses`` only the replay
+        misses and abstentions of the asked ``states`` are replaced (``distilled_miss``).
+        """
         model = self.model if self.model is not None and self.model.fitted else None
         column = {m: j for j, m in enumerate(model.members)} if model else {}
-        pred = model.predict(np.asarray([s.obs for s in states])) if model else None
-        for n, state in enumerate(states):
-            for member, positions in state.positions.items():
+        todo: list[tuple[int, str, list[int], int | None]] = []
+        for n, s in enumerate(states):
+            for member, positions in s.positions.items():
                 j = column.get(member)
-                if pred is not None and j is not None and model is not None and model.trained[j]:
-                    belief, _ = check_belief(pred[n, j], a)
-                    assert belief is not None  # a softmax is a valid belief
-                    result = BeliefResult(
-                        belief, DISTILLED, self.name, extra={"generation": self.generation}
-                    )
-                    self.stats.model_answers += 1
-                else:
-                    result = BeliefResult(
-                        uniform_belief(a),
-                        UNASKED,
-                        self.name,
-                        extra={
-                            "error": f"not asked, and no asked state has {member!r}'s answer "
-                            "yet for the distilled model to learn from"
-                        },
-                    )
-                    self.stats.unasked_answers += 1
-                for m, i in enumerate(positions):
-                    results[i] = result if m == 0 else result.copy()
-        self._changed = True
-
-    def _answer_misses(self, forward: list[_State], results: list) -> None:
-        """Replace the replay misses and abstentions of asked states by the model's beliefs."""
-        model = self.model
-        if model is None or not model.fitted:
-            return
-        column = {m: j for j, m in enumerate(model.members)}
-        todo = [
-            (n, member, positions)
-            for n, s in enumerate(forward)
-            for member, positions in s.positions.items()
-            if results[positions[0]].status in MISS_STATUSES
-            and member in column
-            and model.trained[column[member]]
-        ]
+                known = model is not None and j is not None and bool(model.trained[j])
+                if not misses or (known and results[positions[0]].status in MISS_STATUSES):
+                    todo.append((n, member, positions, j if known else None))
         if not todo:
             return
         a = len(self.actions or ())
-        pred = model.predict(np.asarray([s.obs for s in forward]))
-        for n, member, positions in todo:
-            belief, _ = check_belief(pred[n, column[member]], a)
-            assert belief is not None
-            inner = results[positions[0]]
-            result = BeliefResult(
-                belief,
-                DISTILLED_MISS,
-                self.name,
-                raw=inner.raw,
-                extra={"generation": self.generation, "inner_status": inner.status},
-            )
-            self.stats.miss_answers += 1
+        pred = model.predict(np.asarray([s.obs for s in states])) if model else np.zeros(0)
+        for n, member, positions, j in todo:
+            if j is None:
+                error = (
+                    f"not asked, and no asked state has {member!r}'s answer yet for the "
+                    "distilled model to learn from"
+                )
+                result = BeliefResult.failed(a, UNASKED, self.name, error)
+                self.stats.unasked_answers += 1
+            else:
+                belief, _ = check_belief(pred[n, j], a)
+                assert belief is not None  # a softmax is a valid belief
+                inner = results[positions[0]]
+                extra = {"generation": self.generation}
+                if misses:
+                    extra["inner_status"] = inner.status
+                    self.stats.miss_answers += 1
+                else:
+                    self.stats.model_answers += 1
+                result = BeliefResult(
+                    belief,
+                    DISTILLED_MISS if misses else DISTILLED,
+                    self.name,
+                    raw=inner.raw if misses else None,
+                    extra=extra,
+                )
             for m, i in enumerate(positions):
                 results[i] = result if m == 0 else result.copy()
         self._changed = True

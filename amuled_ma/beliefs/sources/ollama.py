@@ -45,15 +45,7 @@ RETRY_STATUSES = frozenset({408, 429, 500, 502, 503, 504})
 
 @dataclass
 class OllamaStats:
-    """Counters of an `OllamaSource` (``stats.as_dict()`` for logging).
-
-    ``requests`` received, ``sent`` (distinct, first attempts), ``deduplicated`` (answered by
-    an identical request of the batch), ``attempts`` (HTTP calls), ``retries`` (after a
-    transient failure), ``parse_retries`` (re-asks after an abstention), ``timeouts`` (every
-    attempt counted), ``errors`` (non-timeout failures in the end), ``fallbacks`` (answered by
-    the fallback source or uniform), ``failovers`` (retried on another host of the pool),
-    ``ok`` / ``repaired`` / ``abstained`` answers, and the server's token counts.
-    """
+    """Counters of an `OllamaSource` (their meanings: ``docs/beliefs.md``, `ollama`)."""
 
     requests: int = 0
     sent: int = 0
@@ -187,12 +179,8 @@ class OllamaSource(BeliefSource):
         `BackendUnavailable`: a host does not answer within ``check_timeout_s``;
         `ModelNotFound`: a host lacks the model, or two hosts hold different digests of it.
         """
-        if self._digest is None:
-            self._digest = self._check_hosts()
-        return self._digest
-
-    def _check_hosts(self) -> str:
-        """Preflight every host; return the one digest of the model."""
+        if self._digest is not None:
+            return self._digest
         found: dict[str, ServerCheck] = {}
         problems: list[tuple[str, AmuledError]] = []
         for url in self.hosts:
@@ -229,7 +217,8 @@ class OllamaSource(BeliefSource):
                     f"'ollama pull {self.model}' (or the same 'ollama create') on each, or "
                     f"remove {url} from the pool"
                 )
-        return digests[first]
+        self._digest = digests[first]
+        return self._digest
 
     def server_stats(self) -> dict[str, dict[str, Any]]:
         """Each host's figures (sent, answered, failed by kind, latencies): `HostPool.as_dict`."""
@@ -284,6 +273,7 @@ class OllamaSource(BeliefSource):
         while True:
             with pool.acquire(avoid=failed_on) as lease:
                 host = lease.host
+                where = f" at {host}" if several else ""
                 self._count(attempts=1)
                 try:
                     reply = self._clients[host].chat(
@@ -295,7 +285,6 @@ class OllamaSource(BeliefSource):
                     )
                 except httpx.TimeoutException as error:
                     self._count(timeouts=1)
-                    where = f" at {host}" if several else ""
                     failure = _FailureError(
                         "timeout", f"timed out after {self.timeout_s} s{where}: {error!r}", host
                     )
@@ -304,7 +293,6 @@ class OllamaSource(BeliefSource):
                     if error.status_code == 404 and "not found" in str(error.error).lower():
                         lease.fail("model_missing", str(error))
                         raise model_missing_error(self.model, host) from error
-                    where = f" at {host}" if several else ""
                     failure = _FailureError("error", f"server error{where}: {error}", host)
                     transient = error.status_code in RETRY_STATUSES
                 except (ConnectionError, httpx.TransportError) as error:
@@ -336,9 +324,7 @@ class OllamaSource(BeliefSource):
         n = request.num_actions
         if not request.messages:
             self._count(errors=1)
-            return BeliefResult(
-                uniform(n), "error", self.name, extra={"error": "request has no messages"}
-            )
+            return BeliefResult.failed(n, "error", self.name, "request has no messages")
         start = time.perf_counter()
         base_seed = int(self.options["seed"])
         reply = None
@@ -424,18 +410,8 @@ class OllamaSource(BeliefSource):
             result = checked_result(self.fallback.beliefs([request])[0], request.num_actions)
             result.extra = {**result.extra, "ollama_failure": failure.status, "error": str(failure)}
             return result
-        return BeliefResult(
-            belief=uniform(request.num_actions),
-            status=failure.status,
-            source=self.name,
-            latency_s=latency,
-            extra={"error": str(failure)},
-        )
-
-    def _executor(self) -> ThreadPoolExecutor:
-        if self._pool is None:
-            self._pool = ThreadPoolExecutor(self.concurrency, thread_name_prefix="amuled-ollama")
-        return self._pool
+        n = request.num_actions
+        return BeliefResult.failed(n, failure.status, self.name, str(failure), latency_s=latency)
 
     def iter_beliefs(self, requests: Sequence[BeliefRequest]) -> Iterator[tuple[int, BeliefResult]]:
         """Yield ``(index, result)`` as answers complete; identical requests are sent once.
@@ -450,7 +426,9 @@ class OllamaSource(BeliefSource):
         # Submit grouped by system prompt (then by the rest), so shared prefixes are adjacent.
         order = sorted(groups, key=lambda k: (k[0][0][1] if k[0] else "", k[0][1:], k[1]))
         self._count(sent=len(order))
-        pool = self._executor()
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(self.concurrency, thread_name_prefix="amuled-ollama")
+        pool = self._pool
         pending: dict[Future[BeliefResult], tuple[Any, ...]] = {}
         queue = list(reversed(order))
         try:

@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 
-from amuled_ma.beliefs.replies.parsing import uniform
 from amuled_ma.beliefs.replies.validate import check_belief, show_values
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, in_order, indices_by
 from amuled_ma.errors import CheckpointError, ScenarioError
@@ -249,9 +248,6 @@ class PolicySource(BeliefSource):
         return probs.numpy(), None
 
     def _error(self, n: int, reason: str) -> BeliefResult:
-        return BeliefResult(
-            belief=uniform(n),
-            status="error",
-            source=self.name,
-            extra={"error": f"{reason} (policy file {self.path.name})"},
+        return BeliefResult.failed(
+            n, "error", self.name, f"{reason} (policy file {self.path.name})"
         )

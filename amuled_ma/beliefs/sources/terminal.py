@@ -17,7 +17,6 @@ from typing import IO, Any
 
 import numpy as np
 
-from amuled_ma.beliefs.replies.parsing import uniform
 from amuled_ma.beliefs.replies.validate import check_belief
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, in_order, indices_by
 from amuled_ma.errors import ScenarioError
@@ -263,13 +262,10 @@ class TerminalSource(BeliefSource):
     def _abstain(
         self, request: BeliefRequest, reason: str, raw: str | None, start: float
     ) -> BeliefResult:
-        return BeliefResult(
-            belief=uniform(request.num_actions),
-            status="abstained",
-            source=self.name,
-            raw=raw,
-            latency_s=time.perf_counter() - start,
-            extra={"error": reason, "person": self.person},
+        latency = time.perf_counter() - start
+        n = request.num_actions
+        return BeliefResult.failed(
+            n, "abstained", self.name, reason, raw=raw, latency_s=latency, person=self.person
         )
 
     def _question(self, request: BeliefRequest, left: int) -> BeliefResult:

@@ -321,21 +321,24 @@ class BeliefStore:
         ``cacheable_only`` returns only answers (``ok``/``repaired``); ``with_messages`` also reads
         each row's chat (slower; ``messages`` is ``None`` otherwise).
         """
-        wanted = list(dict.fromkeys(keys))
         found: dict[str, StoredBelief] = {}
-        status_filter = " AND status IN ('ok', 'repaired')" if cacheable_only else ""
+        for rows in self._by_keys(COLUMNS, keys, cacheable_only):
+            texts = self._texts(rows) if with_messages else None
+            found.update((row[0], decode_row(row, texts, self.path)) for row in rows)
+        return found
+
+    def _by_keys(
+        self, columns: str, keys: Iterable[str], cacheable_only: bool
+    ) -> Iterator[list[tuple[Any, ...]]]:
+        """The ``columns`` of the rows of ``keys`` (each once), a list per `_SQL_CHUNK` keys."""
+        wanted = list(dict.fromkeys(keys))
+        status = " AND status IN ('ok', 'repaired')" if cacheable_only else ""
         for start in range(0, len(wanted), _SQL_CHUNK):
             chunk = wanted[start : start + _SQL_CHUNK]
-            sql = (
-                f"SELECT {COLUMNS} FROM beliefs "
-                f"WHERE key IN ({','.join('?' * len(chunk))}){status_filter}"
+            marks = ",".join("?" * len(chunk))
+            yield self._read_keys(
+                f"SELECT {columns} FROM beliefs WHERE key IN ({marks}){status}", chunk
             )
-            rows = self._read_keys(sql, chunk)
-            texts = self._texts(rows) if with_messages else None
-            for row in rows:
-                stored = decode_row(row, texts, self.path)
-                found[stored.key] = stored
-        return found
 
     def _texts(self, rows: Sequence[Sequence[Any]]) -> dict[str, str]:
         """Fetch the message bodies referenced by ``rows``."""
@@ -363,28 +366,11 @@ class BeliefStore:
         Only a `BeliefResult`'s columns are read; ``cached=True``, ``latency_s=0`` and the
         original latency in ``extra["stored_latency_s"]``.
         """
-        wanted = list(dict.fromkeys(keys))
         found: dict[str, BeliefResult] = {}
         width = self._width
-        for start in range(0, len(wanted), _SQL_CHUNK):
-            chunk = wanted[start : start + _SQL_CHUNK]
-            sql = (
-                "SELECT key, source, raw, belief, status, latency_s, prompt_tokens, "
-                "completion_tokens, extra, actions FROM beliefs "
-                f"WHERE key IN ({','.join('?' * len(chunk))}) AND status IN ('ok', 'repaired')"
-            )
-            for (
-                key,
-                source,
-                raw,
-                belief,
-                status,
-                lat,
-                ptok,
-                ctok,
-                extra,
-                actions,
-            ) in self._read_keys(sql, chunk):
+        columns = "key, source, raw, belief, status, latency_s, prompt_tokens, completion_tokens"
+        for rows in self._by_keys(f"{columns}, extra, actions", keys, True):
+            for key, source, raw, belief, status, lat, ptok, ctok, extra, actions in rows:
                 where = f"{self.path}: row {key}"
                 n = width.get(actions)
                 if n is None:
