@@ -25,11 +25,7 @@ COUNTS = ("sent", "answered", "failed", "retried_from", "went_down", "came_back"
 
 
 def percentile(values: Sequence[float], q: float) -> float | None:
-    """The ``q``-th percentile, ``q`` in (0, 100], of ``values`` by nearest rank (None if empty).
-
-    The smallest value with at least ``q`` percent of the values at or below it (``q`` = 95
-    of 20 values is the 19th smallest).
-    """
+    """The ``q``-th percentile, ``q`` in (0, 100], of ``values`` by nearest rank (None if empty)."""
     if not values:
         return None
     ordered = sorted(values)
@@ -93,9 +89,7 @@ class HostPool:
     ``hosts`` in order of preference on ties; ``down_for_s``: seconds a failed host stays out
     before a request probes it; ``wait_s``: seconds :meth:`acquire` waits for a live host
     (None: ``2 * down_for_s``, each host probed once); ``fix`` ends the all-down error.
-
-    Raises:
-        ValueError: No host, a repeated host, or a negative or non-finite time.
+    `ValueError`: no host, a repeated host, or a negative or non-finite time.
     """
 
     def __init__(
@@ -170,9 +164,7 @@ class HostPool:
         """Choose a host for one request, counted as sent and in flight (prefer :meth:`acquire`).
 
         ``avoid``: hosts this request failed on, used only when no other is live or due a probe.
-
-        Raises:
-            BackendUnavailable: None is within ``wait_s``; names each host, why down, ``fix``.
+        `BackendUnavailable`: none is within ``wait_s`` (each host named, why down, ``fix``).
         """
         avoid = tuple(avoid)
         with self._cond:
@@ -329,11 +321,7 @@ def _seconds(value: float | None) -> str:
 
 
 def host_lines(stats: Mapping[str, Mapping[str, Any]]) -> list[str]:
-    """A pool's figures (:meth:`HostPool.as_dict`, :func:`merge_host_stats`), a line a host.
-
-    E.g. ``http://127.0.0.1:4001: sent 9, answered 8, failed 1 (connection 1), retried from
-    1, latency mean 2.10 s, p95 3.40 s, down 1x, back 0x``.
-    """
+    """A pool's figures (:meth:`HostPool.as_dict`, :func:`merge_host_stats`), a line a host."""
     lines = []
     for host, row in stats.items():
         kinds = ", ".join(f"{k} {n:,}" for k, n in (row.get("failures") or {}).items())

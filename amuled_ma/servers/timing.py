@@ -102,11 +102,9 @@ _logs_lock = threading.Lock()
 
 @contextlib.contextmanager
 def record_timings() -> Iterator[TimingLog]:
-    """Collect the `RequestTiming` of every request answered in this process.
+    """Collect in the yielded `TimingLog` each request an `OllamaSource` of this process answers.
 
-    Every `OllamaSource` of the process adds to the yielded `TimingLog` while the block
-    runs (thread-safe), one entry per answered request (a re-asked abstention's calls summed).
-    Failed requests have no server metrics; requests of other processes are not seen.
+    One entry a request (a re-asked abstention's calls summed); failed ones have no metrics.
     """
     log = TimingLog()
     with _logs_lock:
