@@ -64,11 +64,8 @@ class EnsembleModel:
     def fit(self, obs: np.ndarray, beliefs: np.ndarray, mask: np.ndarray, seed: int) -> None:
         """Fit every network from scratch to the members' beliefs (gradients on in inference mode).
 
-        ``obs`` ``(N, D)``, ``beliefs`` ``(N, K, A)`` and ``mask`` ``(N, K)`` (whether the member
-        answered); ``seed`` seeds the weights and the Poisson(1) bootstrap.
-
-        Raises:
-            ValueError: Shapes that do not match the model's members and actions.
+        ``obs`` ``(N, D)``, ``beliefs`` ``(N, K, A)``, ``mask`` ``(N, K)`` (the member answered);
+        ``seed`` seeds the weights and the Poisson(1) bootstrap. `ValueError`: other shapes.
         """
         obs = np.asarray(obs, dtype=np.float64)
         beliefs = np.asarray(beliefs, dtype=np.float64)

@@ -1,12 +1,6 @@
 """`DistilledSource`: the panel asked only where a distilled reward model is unsure.
 
-Per batch: group the requests by state (observation and chat) and record them as visited;
-answer states asked before (from this process's answers, or after a resume through the
-store); let the selection and budget admit new states, save the spent budget, then forward
-them to the panel; refit when due (after 1, 2, 4, ... answered states, then every
-``refit_every``); answer every other state with the model (``distilled``, or ``unasked`` for
-a member with no answer yet). The model's answers are made above the belief store, so the
-store holds exactly the asked states' answers.
+Its steps per batch are in ``docs/distill.md`` ("What happens in a fine-tune").
 """
 
 from __future__ import annotations
@@ -45,7 +39,6 @@ from amuled_ma.distill.state import (
     START_OVER,
     LedgerRest,
     StateFiles,
-    check_state_keys,
     checked,
 )
 from amuled_ma.errors import AmuledError
@@ -100,11 +93,8 @@ class DistilledSource(BeliefSource):
 
     The settings are ``[feedback.distill]``'s (`DistillConfig`, checked there); ``fusion_rule``
     fuses the held-out agreement; ``state_dir`` None keeps nothing on disk, and without
-    ``resume`` its state files are removed.
-
-    Raises:
-        AmuledError: A budget out of range, or ``resume`` with state files written with other
-            settings or damaged.
+    ``resume`` its state files are removed. `AmuledError`: a budget out of range, or
+    ``resume`` with state files written with other settings or damaged.
     """
 
     name = "distilled"
@@ -220,9 +210,8 @@ class DistilledSource(BeliefSource):
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
         """Forward asked states to the panel's source, answer the others by the model.
 
-        Raises:
-            RuntimeError: The panel's source answered a different number of results.
-            AmuledError: The requests change task, actions or observation length.
+        `RuntimeError`: the panel's source answered another number of results; `AmuledError`:
+        the requests change task, actions or observation length.
         """
         if not requests:
             return []
@@ -569,8 +558,9 @@ class DistilledSource(BeliefSource):
                 f"{where} was written with other [feedback.distill] settings (saved -> now: "
                 f"{'; '.join(diffs)}); {START_OVER}"
             )
+        rest = checked(LedgerRest, dict(data), where)
         # the scenario's budget is the budget: the ledger's must be the same
-        self.ledger = BudgetLedger.from_dict(data.get("ledger"), where, budget=self.budget)
+        self.ledger = BudgetLedger.from_dict(rest.ledger.model_dump(), where, budget=self.budget)
         asked = self.ledger.asked_count
         generation = data.get("generation", 0)
         if type(generation) is not int or not 0 <= generation <= asked:
@@ -578,9 +568,6 @@ class DistilledSource(BeliefSource):
                 f"{where}: generation is {generation!r}, expected an integer in [0, {asked}] "
                 f"(at most one fit per asked state); {START_OVER}"
             )
-        check_state_keys(self.ledger.visited, "ledger.visited", where)
-        check_state_keys(self.ledger.asked, "ledger.asked", where)
-        rest = checked(LedgerRest, dict(data), where)
         self.stats = DistillStats(**rest.counters.model_dump())
         if self.stats.refits > asked:
             raise AmuledError(
