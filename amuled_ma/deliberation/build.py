@@ -488,9 +488,9 @@ def _count_questions(distilled: Any, plan: PanelPlan) -> None:
 
 def run_store(path: Path) -> StoreService:
     """The belief store at ``path``, opened on first use (never, if no member is asked)."""
-    from amuled_ma.beliefs.store.service import open_store
+    from amuled_ma.beliefs.store.database import BeliefStore
 
-    return _Lazy(lambda: open_store(path))
+    return _Lazy(lambda: BeliefStore(path))
 
 
 class _Lazy:

@@ -79,11 +79,11 @@ def _factory(kind: str) -> Callable[..., BeliefSource]:
     )
 
 
-def load_agent_factory(name: str) -> Callable[..., BeliefSource]:
-    """A plug-in agent's factory: an ``amuled_ma.agents`` entry-point name or ``"module:Class"``.
+def entry_point_source(name: str, options: Mapping[str, Any] | None = None) -> BeliefSource:
+    """A plug-in agent: ``name``'s factory (through `load_plugin`) called with ``options``.
 
-    Through `load_plugin`: a ``"module:Class"`` must be allowed with ``--allow-plugin``; a
-    name that is refused, does not import or is not callable raises `ScenarioError`.
+    ``name``: an ``amuled_ma.agents`` entry point, or a ``"module:Class"`` allowed with
+    ``--allow-plugin``. `ScenarioError`: refused, not importable or callable, or no source.
     """
     from amuled_ma.clusters.plugins import load_plugin
 
@@ -97,12 +97,6 @@ def load_agent_factory(name: str) -> Callable[..., BeliefSource]:
             f"entry-point agent {name!r}: it names {type(factory).__name__}, not a class or "
             "function; fix the name"
         )
-    return factory
-
-
-def entry_point_source(name: str, options: Mapping[str, Any] | None = None) -> BeliefSource:
-    """``load_agent_factory(name)(**options)``; `ScenarioError` if that fails or is no source."""
-    factory = load_agent_factory(name)
     options = dict(options or {})
     try:
         source = factory(**options)

@@ -226,12 +226,6 @@ class ReplaySource(BeliefSource):
         self.misses_by_cluster: Counter[str] = Counter()
         self._agent_cache: dict[tuple[int, str], str | None] = {}
 
-    def _recording_for(self, task: str) -> Recording | None:
-        for recording in self.recordings:
-            if _norm(recording.task) == _norm(task):
-                return recording
-        return None
-
     def _aliases(self, cluster: str) -> tuple[tuple[str, ...], bool]:
         registry = self._registry
         if registry is None:
@@ -269,7 +263,8 @@ class ReplaySource(BeliefSource):
 
     def lookup(self, request: BeliefRequest) -> tuple[np.ndarray, str | None] | str:
         """Return ``(belief, raw)`` for a request, or the reason it is a miss."""
-        recording = self._recording_for(request.task)
+        task = _norm(request.task)
+        recording = next((r for r in self.recordings if _norm(r.task) == task), None)
         if recording is None:
             return f"no recording for task {request.task!r}"
         if len(request.action_names) != len(recording.actions):

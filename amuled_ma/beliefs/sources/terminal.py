@@ -18,6 +18,7 @@ from typing import IO, Any
 import numpy as np
 
 from amuled_ma.beliefs.replies.validate import check_belief
+from amuled_ma.beliefs.store.rows import unstorable_text
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, in_order, indices_by
 from amuled_ma.errors import ScenarioError
 from amuled_ma.monitor.progress import held
@@ -41,28 +42,11 @@ _UNDECODABLE_MARK = "\x00undecodable:"
 _UNDECODABLE = _UNDECODABLE_MARK + "{} at byte {}"
 
 
-def _storable(line: str) -> bool:
-    """Whether a line is text UTF-8 can hold (no lone surrogates from undecodable bytes)."""
-    try:
-        line.encode("utf-8")
-    except UnicodeEncodeError:
-        return False
-    return True
-
-
 def _printable(line: str) -> str:
     r"""The line with undecodable bytes as ``\udcNN`` escapes (text the store can hold)."""
     if line.startswith(_UNDECODABLE_MARK):
         return "<not UTF-8: " + line[len(_UNDECODABLE_MARK) :] + ">"
     return line.encode("utf-8", "backslashreplace").decode("utf-8")
-
-
-def _not_text(line: str) -> str:
-    """The reason a line of bytes that are not UTF-8 text is refused."""
-    return (
-        f"found bytes that are not UTF-8 text ({_printable(line)[:80]}); type the answer "
-        "again (numbers, an action index or skip)"
-    )
 
 
 def _cut(token: str) -> str:
@@ -288,15 +272,24 @@ class TerminalSource(BeliefSource):
                 return self._abstain(request, self._eof_reason(), last, start)
             last = line.rstrip("\r\n")
             if last.strip().lower() == PROMPT:  # shown, then asked again: not an attempt
-                self._write(self._prompt_text(request) + "\n")
+                shown = f"(no prompt: the panel sent the observation only, {list(request.obs)})"
+                if request.messages:
+                    shown = request.messages[-1][1].rstrip()
+                self._write(shown + "\n")
                 continue
             attempt += 1
             belief, reason = parse_answer(last, n, request.action_names)
-            if line.startswith(_UNDECODABLE_MARK) or not _storable(last):
+            if line.startswith(_UNDECODABLE_MARK) or unstorable_text(last) is not None:
                 # bytes that are not UTF-8 (read as lone surrogates, or refused by the
                 # decoder): the store could not hold the line, so it is not an answer
-                belief, reason = None, _not_text(last)
                 last = _printable(last)
+                belief, reason = (
+                    None,
+                    (
+                        f"found bytes that are not UTF-8 text ({last[:80]}); type the answer "
+                        "again (numbers, an action index or skip)"
+                    ),
+                )
             if belief is not None:
                 self.stats["answered"] += 1
                 return BeliefResult(
@@ -320,13 +313,6 @@ class TerminalSource(BeliefSource):
             last,
             start,
         )
-
-    @staticmethod
-    def _prompt_text(request: BeliefRequest) -> str:
-        """The full prompt of a request (its chat's last message), or why there is none."""
-        if request.messages:
-            return request.messages[-1][1].rstrip()
-        return f"(no prompt: the panel sent the observation only, {list(request.obs)})"
 
     def _eof_reason(self) -> str:
         return (
