@@ -330,7 +330,6 @@ class OllamaSource(BeliefSource):
         reply = None
         parsed = None
         host = self.host
-        status, belief, invalid = "abstained", uniform(n), None
         timing = RequestTiming()
         for attempt in range(self.parse_retries + 1):
             if attempt:
@@ -354,19 +353,17 @@ class OllamaSource(BeliefSource):
                 completion_tokens=int(reply.eval_count or 0),
             )
             parsed = parse_belief(content, request.action_names, structured=self.structured)
-            status, belief, invalid = parsed.status, parsed.belief, None
-            checked, reason = check_belief(parsed.belief, n)
-            if checked is not None:
-                belief = checked
-            elif status in ANSWER_STATUSES:  # the parser let an invalid belief through
-                invalid = f"the reply gave an invalid belief: it {reason}"
-                status, belief = "abstained", uniform(n)
-            else:
+            status, invalid = parsed.status, None
+            belief, reason = check_belief(parsed.belief, n)
+            if belief is None:
+                if status in ANSWER_STATUSES:  # the parser let an invalid belief through
+                    invalid = f"the reply gave an invalid belief: it {reason}"
+                    status = "abstained"
                 belief = uniform(n)
             if status != "abstained":
                 break
-        assert reply is not None and parsed is not None
-        self._count(**{status if status in ("ok", "repaired") else "abstained": 1})
+        assert reply is not None and parsed is not None and belief is not None
+        self._count(**{status: 1})  # ok, repaired or abstained
         error = "; ".join(e for e in (invalid, parsed.error) if e) or None
         if status == "abstained":
             log.warning("ollama reply abstained for cluster %s: %s", request.cluster, error)
@@ -384,7 +381,7 @@ class OllamaSource(BeliefSource):
             belief=belief,
             status=status,
             source=self.name,
-            raw=reply.message.content if reply.message is not None else None,
+            raw=content,
             latency_s=time.perf_counter() - start,
             prompt_tokens=reply.prompt_eval_count,
             completion_tokens=reply.eval_count,

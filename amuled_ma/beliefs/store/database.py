@@ -510,12 +510,12 @@ class BeliefStore:
                     "a uniform fallback"
                 )
             ident = identity if isinstance(identity, str) else identity_json(identity)
-            try:
-                row, bodies = encode_row(
-                    key, ident, request, belief, answer, attempts, created_at, updated_at
-                )
-            except UnicodeEncodeError:
-                raise self._unstorable(key, request, answer.raw, answer.extra) from None
+            reason = unstorable_text(request.messages, "messages")  # hashed as UTF-8 below
+            if reason is not None:
+                raise self._refuse(key, reason)
+            row, bodies = encode_row(
+                key, ident, request, belief, answer, attempts, created_at, updated_at
+            )
             rows.append(row)
             texts.update((h, b) for h, b in bodies.items() if h not in self._messages_seen)
         if not rows:
@@ -547,20 +547,6 @@ class BeliefStore:
             f"{self.path}: refusing to write row {key}: {reason}; nothing of this batch was "
             "written (fix the text at its source: a file or a reply that is not UTF-8)"
         )
-
-    def _unstorable(
-        self, key: str, request: BeliefRequest, raw: Any, extra: Any
-    ) -> BeliefStoreError:
-        """The error of a row whose request or answer holds text UTF-8 cannot encode."""
-        fields = {
-            "task": request.task,
-            "cluster": request.cluster,
-            "actions": list(request.action_names),
-            "messages": [list(m) for m in request.messages],
-            "raw": raw,
-            "extra": extra,
-        }
-        return self._refuse(key, unstorable_text(fields) or "a text is not valid Unicode")
 
     def integrity_check(self) -> list[str]:
         """SQLite's ``PRAGMA integrity_check``: ``["ok"]`` for a sound file, else its problems."""
