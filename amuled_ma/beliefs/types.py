@@ -88,11 +88,7 @@ class BeliefResult:
 
 
 class BeliefSource(ABC):
-    """Base class of belief sources; subclasses answer batches of requests.
-
-    A source may also define ``iter_beliefs(requests)``, yielding ``(index, result)`` as answers
-    complete; `CachedSource` then stores each on arrival.
-    """
+    """Base class of belief sources (an optional ``iter_beliefs`` yields ``(index, result)``)."""
 
     #: Short registry name of the source kind (``"ollama"``, ``"replay"``, ``"rules"``).
     name: str = "source"

@@ -1,8 +1,4 @@
-"""An LLM reply turned into a belief, never crashing: structured, last JSON object, or abstain.
-
-The order and the key forms accepted are in ``docs/beliefs.md`` ("Parsing rules"); the cost is
-linear in the reply (`objects`). A reply cut off by the token limit abstains, as the authors' did.
-"""
+"""An LLM reply turned into a belief, never crashing (``docs/beliefs.md``, "Parsing rules")."""
 
 from __future__ import annotations
 
@@ -57,10 +53,7 @@ TEXT_KEYS = frozenset({"reasoning", "reason", "explanation", "rationale", "thoug
 
 @dataclass(frozen=True)
 class ParsedBelief:
-    """One parsed reply (``belief``: finite, >= 0, sums to 1; ``status``: `PARSE_STATUSES`).
-
-    ``repairs``: those applied (`REPAIRS`); ``error``: why the reply abstained.
-    """
+    """One parsed reply: a valid ``belief``, `PARSE_STATUSES`, `REPAIRS`, why it abstained."""
 
     belief: np.ndarray
     status: str
@@ -247,10 +240,7 @@ def _key_count(obj: Mapping[str, Any]) -> int:
 def parse_belief(
     text: str | None, action_names: Sequence[str], *, structured: bool = False
 ) -> ParsedBelief:
-    """Parse one LLM reply (``None`` or empty abstains) into a `ParsedBelief`; never raises.
-
-    ``structured``: the reply was requested with `belief_schema` as format; linear in the reply.
-    """
+    """Parse one LLM reply (``structured``: asked with `belief_schema`); never raises."""
     n = len(action_names)
     if n == 0:
         return ParsedBelief(np.zeros(0), "abstained", error="no actions")

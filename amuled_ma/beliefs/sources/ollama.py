@@ -1,8 +1,4 @@
-"""``ollama``: cluster beliefs from Ollama servers, through the official client.
-
-Deterministic options, structured output, a pool of hosts, retries, fallback and the preflight
-are described in ``docs/beliefs.md`` (`ollama`) and ``docs/ollama.md``.
-"""
+"""``ollama``: cluster beliefs from Ollama servers (``docs/beliefs.md``, ``docs/ollama.md``)."""
 
 from __future__ import annotations
 
@@ -225,10 +221,7 @@ class OllamaSource(BeliefSource):
         return self.host_pool.as_dict()
 
     def identity(self) -> dict[str, Any]:
-        """The model name and digest, options and output format (raises as `check`).
-
-        Never the host(s): the same model on another server keys the same answers.
-        """
+        """The model, its digest, options and output format; never the host (raises as `check`)."""
         digest = self.check()
         return {
             "source": self.name,
@@ -411,10 +404,7 @@ class OllamaSource(BeliefSource):
         return BeliefResult.failed(n, failure.status, self.name, str(failure), latency_s=latency)
 
     def iter_beliefs(self, requests: Sequence[BeliefRequest]) -> Iterator[tuple[int, BeliefResult]]:
-        """Yield ``(index, result)`` as answers complete; identical requests are sent once.
-
-        Raises `BackendUnavailable` or `ModelNotFound` as `check`, which runs first.
-        """
+        """Yield ``(index, result)`` as answers complete; identical requests sent once; `check`s."""
         self.check()
         groups = indices_by(requests, lambda r: (r.messages, r.action_names))
         self._count(requests=len(requests), deduplicated=len(requests) - len(groups))

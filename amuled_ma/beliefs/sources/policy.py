@@ -1,8 +1,4 @@
-"""``policy``: a saved torch policy's softmax over its logits for the request's observation.
-
-The file is read weights-only; the network is an MLP inferred from the state dict or a
-``module`` class allowed with ``--allow-plugin`` (``docs/beliefs.md``, "policy").
-"""
+"""``policy``: a saved torch policy's softmax over its logits (``docs/beliefs.md``, "policy")."""
 
 from __future__ import annotations
 
@@ -137,11 +133,7 @@ def infer_mlp(
 
 
 class PolicySource(BeliefSource):
-    """Beliefs from a saved torch policy: the softmax of its logits (``docs/beliefs.md``, "policy").
-
-    Raises `ScenarioError` naming the file and the fix: missing, unsafe, not a state dict, or
-    no network can be built from it.
-    """
+    """Beliefs from a saved torch policy; `ScenarioError` as `load_weights` and `infer_mlp`."""
 
     name = "policy"
     needs_messages = False

@@ -1,7 +1,4 @@
-"""`RoutedSource`: one batch split across the panel members' sources, one call per member.
-
-See ``docs/beliefs.md``, "Per-agent sources".
-"""
+"""`RoutedSource`: one batch split across the members' sources (``docs/beliefs.md``)."""
 
 from __future__ import annotations
 

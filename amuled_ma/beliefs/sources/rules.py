@@ -1,8 +1,4 @@
-"""``rules`` and `ScriptedSource`: belief sources that need no LLM.
-
-A rule answers scores, divided by their sum and checked by `check_belief`; an invalid answer
-becomes a uniform ``"error"``, so a buggy rule never feeds fusion or the store an invalid belief.
-"""
+"""``rules`` and `ScriptedSource`: sources that need no LLM; a bad answer is a uniform ``error``."""
 
 from __future__ import annotations
 
@@ -95,11 +91,7 @@ class RulesSource(BeliefSource):
             self._fn = resolve_callable(policy, "rules source: key policy")
 
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
-        """Answer each request with the rule; a failing rule gives a uniform ``"error"``.
-
-        One batched call per (task, obs length, action count); if it fails or returns the
-        wrong shape, each request is asked on its own.
-        """
+        """One rule call per (task, obs length, actions), else one per request if that fails."""
         pairs: list[tuple[int, BeliefResult]] = []
         groups = indices_by(requests, lambda r: (r.task, len(r.obs), r.num_actions))
         for (task, _, n), indices in groups.items():

@@ -1,8 +1,4 @@
-"""``terminal``: a person at the terminal types a panel member's beliefs, one line per state.
-
-The accepted lines are in ``docs/beliefs.md`` ("terminal: a person answers"); the end of
-the input abstains every later state and is never waited on.
-"""
+"""``terminal``: a person types a member's beliefs, a line a state (``docs/beliefs.md``)."""
 
 from __future__ import annotations
 

@@ -162,10 +162,7 @@ class BeliefStore:
         return conn
 
     def _journal_wal(self, conn: sqlite3.Connection) -> str:
-        """Switch to WAL mode, waiting up to ``timeout_s`` for other processes' locks.
-
-        SQLite calls no busy handler here: processes creating one store at once would fail.
-        """
+        """Switch to WAL mode, waiting ``timeout_s`` for locks (SQLite's busy handler does not)."""
         deadline = time.monotonic() + self.timeout_s
         while True:
             try:
@@ -281,10 +278,7 @@ class BeliefStore:
                 ) from error
 
     def _read_keys(self, sql: str, keys: Sequence[str]) -> list[tuple[Any, ...]]:
-        """`_read` of ``sql`` (one ``key IN (?, ...)``); a too-long value's error names its row.
-
-        The key is found by asking the keys one at a time (each refused without reading it).
-        """
+        """`_read` of ``sql`` (one ``key IN (?, ...)``); a too-long value's error names its row."""
         try:
             return self._read(sql, keys)
         except _ValueTooBig:
@@ -426,10 +420,7 @@ class BeliefStore:
                 yield decode_row(row, texts, self.path)
 
     def identities(self) -> list[dict[str, Any]]:
-        """``[{"identity": {...}, "rows": n, "answers": m}, ...]``, most rows first.
-
-        An ``identity`` given to `CachedSource` replays the store without the source's backend.
-        """
+        """``[{"identity": {...}, "rows": n, "answers": m}, ...]``, most rows first."""
         rows = self._read(
             "SELECT identity, COUNT(*), SUM(status IN ('ok', 'repaired')) FROM beliefs "
             "GROUP BY identity ORDER BY 2 DESC"
@@ -442,10 +433,7 @@ class BeliefStore:
         return out
 
     def request_seconds(self, model: str) -> list[float]:
-        """``latency_s`` of each answer whose identity's ``"model"`` is ``model``, oldest first.
-
-        Only latencies above 0 count (a row answered from a replay or a cache records 0).
-        """
+        """``latency_s`` above 0 of each answer of ``model`` (the identity's), oldest first."""
         rows = self._read(
             "SELECT latency_s FROM beliefs WHERE status IN ('ok', 'repaired') AND latency_s > 0 "
             "AND json_extract(identity, '$.model') = ? ORDER BY created_at, rowid",
@@ -482,11 +470,7 @@ class BeliefStore:
         return self.put_many([(key, identity, request, result)])
 
     def put_rows(self, records: Iterable[StoredBelief]) -> int:
-        """Write whole rows read from another store (`import_jsonl`) as `put_many` does.
-
-        Each row keeps its own ``attempts``, timestamps and identity (``messages`` ``None``
-        counts as no chat).
-        """
+        """Write whole rows (`import_jsonl`) as `put_many` does, keeping attempts and timestamps."""
         return self._put(
             [
                 (r.key, r.identity, r.request(), r, r.attempts, r.created_at, r.updated_at)
@@ -557,10 +541,7 @@ class BeliefStore:
         self._read("PRAGMA wal_checkpoint(TRUNCATE)")
 
     def stats(self) -> dict[str, Any]:
-        """Counts and sums for ``amuled beliefs stats``, as a JSON-compatible dict.
-
-        Rows, rows per status / source+model / task+cluster, latency and token totals, file sizes.
-        """
+        """Counts and sums for ``amuled beliefs stats``, as a JSON-compatible dict."""
         total = len(self)
         by_status = dict(self._read("SELECT status, COUNT(*) FROM beliefs GROUP BY status"))
         by_model = [

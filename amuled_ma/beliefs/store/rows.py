@@ -1,8 +1,4 @@
-"""A belief-store row: the table layout (schema version 1), the row record, every value checked.
-
-The columns are listed in ``docs/store.md``; a row whose belief is invalid is refused on
-write and on read (`damaged_row` names the key and how to delete it).
-"""
+"""A belief-store row: the table layout (``docs/store.md``), the row record, every value checked."""
 
 from __future__ import annotations
 
@@ -74,10 +70,7 @@ class BeliefStoreError(AmuledError, RuntimeError):
 
 @dataclass
 class StoredBelief:
-    """One row of the store, as read back: the columns of ``docs/store.md``, parsed.
-
-    ``messages`` is ``None`` when not read (`get_many`); ``belief`` is float64.
-    """
+    """One row of the store as read back (``messages`` ``None``: not read, `get_many`)."""
 
     key: str
     source: str
