@@ -1,8 +1,4 @@
-"""The budget of asked states: the distinct states visited and asked, how many more may be.
-
-``asked <= cap(visited)`` holds after every batch; a resumed ledger's cap credits only the
-states asked and those visited since (docs/distill.md).
-"""
+"""The budget of asked states: ``asked <= cap(visited)`` after every batch (docs/distill.md)."""
 
 from __future__ import annotations
 

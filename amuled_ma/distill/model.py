@@ -1,7 +1,4 @@
-"""The distilled reward model: an ensemble of small MLPs predicting each panel member's belief.
-
-A fit is deterministic given its seed (its own `torch.Generator`; docs/distill.md).
-"""
+"""The distilled reward model: an ensemble of small MLPs predicting each panel member's belief."""
 
 from __future__ import annotations
 
@@ -37,9 +34,7 @@ class FitSettings:
 class EnsembleModel:
     """An ensemble of MLPs, one softmax head per panel member (``members`` in head order).
 
-    Attributes:
-        trained: ``(K,)`` bool, the members that had an answer in the last fit (the model
-            answers only for them).
+    ``trained``: ``(K,)`` bool, the members answered in the last fit (the model answers for them).
     """
 
     def __init__(

@@ -1,7 +1,4 @@
-"""`DistilledSource`: the panel asked only where a distilled reward model is unsure.
-
-Its steps per batch are in ``docs/distill.md`` ("What happens in a fine-tune").
-"""
+"""`DistilledSource`: the panel asked only where a distilled reward model is unsure."""
 
 from __future__ import annotations
 

@@ -1,7 +1,4 @@
-"""Ollama server addresses and the one preflight (`preflight`): a server answers and has a model.
-
-A missing server or model is one error up front, never a retry loop later.
-"""
+"""Ollama server addresses and the one preflight (`preflight`): a server answers and has a model."""
 
 from __future__ import annotations
 

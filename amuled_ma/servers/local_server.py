@@ -1,7 +1,7 @@
 """A private local Ollama server: find the binary, start it, register the tiny model, stop it.
 
-Loopback port, its own models folder and ``HOME``. ``OLLAMA_FLASH_ATTENTION=0``: "auto" halved
-CPU speed on 3.6k-token prompts; ``OLLAMA_MULTIUSER_CACHE`` crashed the runner (``docs/ollama.md``).
+``OLLAMA_FLASH_ATTENTION=0``: "auto" halved CPU speed on 3.6k-token prompts;
+``OLLAMA_MULTIUSER_CACHE`` crashed the runner (``docs/ollama.md``).
 """
 
 from __future__ import annotations
@@ -380,9 +380,8 @@ def create_model(
 def stop_process_group(
     pid: int, timeout: float = 10.0, process: subprocess.Popen[bytes] | None = None
 ) -> bool:
-    """Stop a server we started: SIGTERM to ``pid``, ``timeout`` s later SIGKILL to its group.
+    """SIGTERM to ``pid``, ``timeout`` s later SIGKILL to its group (a crash's runners too).
 
-    The SIGKILL to the group (its own session: pgid == pid) catches runners a crash left;
     ``process`` (the caller's ``Popen``) is reaped. Returns True when it was running.
     """
     if not _pid_alive(pid):

@@ -1,7 +1,6 @@
 """`HostPool`: the live server with the fewest requests in flight takes the next; per-host figures.
 
-A host failing with `DOWN_FAILURES` is out for ``down_for_s``, then probed; with all down
-`HostPool.acquire` waits ``wait_s`` then raises (``docs/ollama.md``, "A pool of servers").
+The rules: ``docs/ollama.md``, "A pool of servers".
 """
 
 from __future__ import annotations
@@ -191,9 +190,8 @@ class HostPool:
     def acquire(self, avoid: Iterable[str] = ()) -> Iterator[Lease]:
         """Use a host for one request: ``with pool.acquire() as lease: ... lease.host``.
 
-        The host is released when the block ends: as answered, unless the block called
-        ``lease.fail(kind)`` or raised (then as failed, kind ``"error"`` unless given).
-        ``avoid`` and errors as :meth:`take`.
+        Released as answered at the block's end, as failed after ``lease.fail(kind)`` or a raise
+        (kind ``"error"``); ``avoid`` and errors as :meth:`take`.
         """
         lease = self.take(avoid)
         raised = True
@@ -216,9 +214,8 @@ class HostPool:
     ) -> None:
         """Record how a request at ``host`` ended (``latency_s`` kept when ``ok``).
 
-        ``failure``: the kind when not ``ok`` (default ``"error"``); one of
-        :data:`DOWN_FAILURES` takes the host out for ``down_for_s`` (not in a pool of one);
-        any other outcome puts a host that was out back.
+        ``failure`` (default ``"error"``) of :data:`DOWN_FAILURES` takes the host out for
+        ``down_for_s`` (not in a pool of one); any other outcome puts it back.
         """
         with self._cond:
             self._in_flight[host] -= 1

@@ -1,7 +1,6 @@
 """Where an Ollama request's time goes: the server's metrics per request (`RequestTiming`), summed.
 
-Sampling under the JSON grammar is only in ``total_duration``; prefix-cache reuse is read from
-an ``OLLAMA_DEBUG=1`` server's log (`cache_reuse`), as the response does not carry it.
+Prefix-cache reuse is read from an ``OLLAMA_DEBUG=1`` server's log: the response lacks it.
 """
 
 from __future__ import annotations
@@ -20,9 +19,8 @@ from typing import Any
 class RequestTiming:
     """Where one request's time went, by Ollama's own account (its response metrics).
 
-    Ollama's ``prompt_eval_count`` is the whole prompt sent, cached part included;
-    ``prompt_eval_duration`` is the time spent evaluating the part that was not in the
-    server's prefix cache. Decoding is grammar-constrained when ``format`` is a schema.
+    ``prompt_eval_count`` counts the whole prompt, cached part included; ``prompt_eval_duration``
+    only the part evaluated; sampling under the JSON grammar is only in ``total_duration``.
     """
 
     calls: int = 0  # chat calls answered (more than 1 when an abstention was re-asked)
@@ -142,10 +140,7 @@ class CacheReuse:
 
 
 def cache_reuse(log: str | Path, offset: int = 0) -> CacheReuse | None:
-    """Sum the prefix-cache lookups of an ``OLLAMA_DEBUG=1`` server log past ``offset`` bytes.
-
-    Returns None when the log is missing or has no such line (no debug log).
-    """
+    """Sum the prefix-cache lookups of an ``OLLAMA_DEBUG=1`` log past ``offset`` (None: none)."""
     try:
         with open(log, "rb") as handle:
             handle.seek(offset)

@@ -1,7 +1,4 @@
-"""An LLM server's URL parsed once: ``HOST``, ``HOST:PORT``, ``http(s)://HOST:PORT``.
-
-Below the scenario layer, so the scenario models check addresses on load.
-"""
+"""An LLM server's URL parsed once: ``HOST``, ``HOST:PORT``, ``http(s)://HOST:PORT``."""
 
 from __future__ import annotations
 
