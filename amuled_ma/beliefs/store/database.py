@@ -459,16 +459,6 @@ class BeliefStore:
         now = time.time()
         return self._put([(k, ident, req, res, 1, now, now) for k, ident, req, res in items])
 
-    def put(
-        self,
-        key: str,
-        identity: Mapping[str, Any] | str,
-        request: BeliefRequest,
-        result: BeliefResult,
-    ) -> int:
-        """Write one answer (see `put_many`)."""
-        return self.put_many([(key, identity, request, result)])
-
     def put_rows(self, records: Iterable[StoredBelief]) -> int:
         """Write whole rows (`import_jsonl`) as `put_many` does, keeping attempts and timestamps."""
         return self._put(
