@@ -53,7 +53,6 @@ class EnsembleModel:
         """Whether `fit` ran with at least one answer."""
         return self._params is not None and bool(self.trained.any())
 
-    # ------------------------------------------------------------------ fitting
     @torch.inference_mode(False)
     @torch.enable_grad()
     def fit(self, obs: np.ndarray, beliefs: np.ndarray, mask: np.ndarray, seed: int) -> None:
@@ -111,7 +110,6 @@ class EnsembleModel:
         self._params = [p.detach() for p in params]
         self.trained = np.asarray(mask.any(axis=0)) if n else np.zeros(k, dtype=bool)
 
-    # ------------------------------------------------------------------ predicting
     def predict_ensemble(self, obs: np.ndarray) -> np.ndarray:
         """Every network's beliefs ``(E, N, K, A)`` float64; RuntimeError before the first `fit`."""
         if self._params is None or self._mean is None or self._std is None:

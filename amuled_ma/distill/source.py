@@ -167,7 +167,6 @@ class DistilledSource(BeliefSource):
             resume=resume,
         )
 
-    # -- BeliefSource ----------------------------------------------------------------
     @property
     def needs_messages(self) -> bool:  # type: ignore[override]
         """Whether the panel's source reads the chat (the state key then includes it)."""
@@ -241,7 +240,6 @@ class DistilledSource(BeliefSource):
         self._save()
         return results  # type: ignore[return-value]
 
-    # -- accounting --------------------------------------------------------------------
     def report(self) -> dict[str, Any]:
         """The accounting, JSON-ready: settings, state counts, counters, held-out agreement.
 
@@ -264,7 +262,6 @@ class DistilledSource(BeliefSource):
             "holdout_tv_fused": self.agreement.get("tv_fused"),
         }
 
-    # -- grouping --------------------------------------------------------------------
     def _group(self, requests: Sequence[BeliefRequest]) -> list[_State]:
         """The batch's distinct states, in order of first request."""
         first = requests[0]
@@ -321,7 +318,6 @@ class DistilledSource(BeliefSource):
                 digest.update(b"\x1e" + role.encode("utf-8") + b"\x1f" + content.encode("utf-8"))
         return digest.hexdigest()
 
-    # -- selection and asking ----------------------------------------------------------
     def _choose(self, candidates: list[_State], count: int) -> list[_State]:
         if count <= 0 or not candidates:
             return []
@@ -404,7 +400,6 @@ class DistilledSource(BeliefSource):
         share = Fraction(self.holdout)
         return math.floor((index + 1) * share) > math.floor(index * share)
 
-    # -- the model ---------------------------------------------------------------------
     def _ordered_examples(self) -> list[_Example]:
         return [self._examples[k] for k in self.ledger.asked if k in self._examples]
 
@@ -520,7 +515,6 @@ class DistilledSource(BeliefSource):
                 results[i] = result if m == 0 else result.copy()
         self._changed = True
 
-    # -- persistence -----------------------------------------------------------------
     def _save(self, *, force: bool = False) -> None:
         files = self._files
         if files is None or not (force or self._changed):

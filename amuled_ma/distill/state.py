@@ -18,6 +18,7 @@ from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from amuled_ma.beliefs.store.rows import why_not_json
 from amuled_ma.errors import AmuledError
 from amuled_ma.files.limits import check_size, read_bounded_bytes, read_line
 from amuled_ma.files.safe import append_text, atomic_writer, checked_read_path
@@ -200,10 +201,8 @@ class StateFiles:
             )
             data = json.loads(raw)
         except (OSError, ValueError, RecursionError) as error:
-            if isinstance(error, RecursionError):
-                error = ValueError("nested deeper than Python's JSON reader can follow")
             raise AmuledError(
-                f"{self.ledger}: not a readable budget state ({error}); {START_OVER}"
+                f"{self.ledger}: not a readable budget state ({why_not_json(error)}); {START_OVER}"
             ) from error
         if not isinstance(data, dict) or data.get("format") != FORMAT:
             raise AmuledError(

@@ -122,7 +122,6 @@ class HostPool:
         self._probing: set[str] = set()
         self._stats = {h: HostStats(h) for h in hosts}
 
-    # -- state ---------------------------------------------------------------------------
     def live(self) -> list[str]:
         """The hosts in the pool now (not taken out), in list order."""
         with self._cond:
@@ -138,7 +137,6 @@ class HostPool:
         with self._cond:
             return copy.deepcopy(self._stats[host])
 
-    # -- choosing ------------------------------------------------------------------------
     def _choose(self, avoid: Iterable[str], now: float) -> tuple[str, bool] | None:
         """``(host, is a probe)`` by the rules of the module, or None; holds the lock."""
         avoided = set(avoid)
@@ -243,7 +241,6 @@ class HostPool:
         with self._cond:
             self._stats[host].retried_from += 1
 
-    # -- reporting -----------------------------------------------------------------------
     def _all_down_error(self) -> BackendUnavailable:
         now = self._clock()
         parts = []
