@@ -23,7 +23,7 @@ from amuled_ma.beliefs.replies.objects import (
     decode_candidate,
     too_deep,
 )
-from amuled_ma.beliefs.replies.validate import SUM_TOLERANCE
+from amuled_ma.beliefs.replies.validate import SUM_TOLERANCE, show_values
 from amuled_ma.beliefs.replies.validate import uniform_belief as uniform
 
 #: Statuses `parse_belief` returns.
@@ -133,15 +133,6 @@ def _letter_index(key: str, n: int) -> int | None:
     return i if i < n else None
 
 
-def _brief(value: object) -> str:
-    """``repr(value)``, at most 80 characters (an error message never holds a whole reply)."""
-    try:
-        text = repr(value)
-    except RecursionError:  # a value nested deeper than the stack allows
-        text = f"<deeply nested {type(value).__name__}>"
-    return text if len(text) <= 80 else f"{text[:77]}..."
-
-
 def _value(value: object, repairs: set[str]) -> float:
     if isinstance(value, bool):
         raise UnreadableObjectError(f"boolean probability {value!r}")
@@ -153,13 +144,15 @@ def _value(value: object, repairs: set[str]) -> float:
         try:
             number = float(text.rstrip("%").strip())
         except ValueError:
-            raise UnreadableObjectError(f"non-numeric probability {_brief(value)}") from None
+            raise UnreadableObjectError(
+                f"non-numeric probability {show_values(value, 80)}"
+            ) from None
         repairs.add("string_values")
         if percent:
             number /= 100.0
             repairs.add("percent")
     else:
-        raise UnreadableObjectError(f"non-numeric probability {_brief(value)}")
+        raise UnreadableObjectError(f"non-numeric probability {show_values(value, 80)}")
     if math.isnan(number) or math.isinf(number):
         raise UnreadableObjectError(f"probability {number!r} is not finite")
     if number < 0:

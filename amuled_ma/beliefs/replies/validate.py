@@ -44,8 +44,8 @@ def show_values(values: object, limit: int = _MAX_SHOWN_CHARS) -> str:
         if isinstance(values, np.ndarray):
             values = values.tolist()
         text = repr(values)
-    except Exception:  # pragma: no cover - repr of an exotic object failed
-        text = f"<{type(values).__name__}>"
+    except Exception:  # nested deeper than the stack allows, or an exotic repr that failed
+        text = f"<{type(values).__name__} that repr cannot show>"
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 

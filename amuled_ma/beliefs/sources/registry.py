@@ -79,11 +79,7 @@ def entry_point_source(name: str, options: Mapping[str, Any] | None = None) -> B
     """
     from amuled_ma.clusters.plugins import load_plugin
 
-    if not isinstance(name, str) or not name.strip():
-        raise ScenarioError(
-            f"entry-point agent: name expects an entry-point name or 'module:Class', found {name!r}"
-        )
-    factory = load_plugin(name, f"entry-point agent {name!r}")
+    factory = load_plugin(name, f"entry-point agent {name!r}")  # refuses a name that is none
     if not callable(factory):
         raise ScenarioError(
             f"entry-point agent {name!r}: it names {type(factory).__name__}, not a class or "
