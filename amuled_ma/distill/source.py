@@ -231,8 +231,9 @@ class DistilledSource(BeliefSource):
             self._forward(forward, requests, results)
         self._recall(remembered, results)
         forward += remembered
-        if self._refit_due():
-            self._refit()
+        since = sum(1 for e in self._examples.values() if e.beliefs) - self._fit_examples
+        if since > 0 and since >= min(self.refit_every, max(1, self._fit_examples)):
+            self._refit()  # after 1, 2, 4, ... answered asked states, then every refit_every
         rest = [s for s in candidates if not ledger.is_asked(s.key)]
         self._answer(rest, results)
         if self.answer_misses:
@@ -402,11 +403,6 @@ class DistilledSource(BeliefSource):
 
     def _ordered_examples(self) -> list[_Example]:
         return [self._examples[k] for k in self.ledger.asked if k in self._examples]
-
-    def _refit_due(self) -> bool:
-        answered = sum(1 for e in self._examples.values() if e.beliefs)
-        since = answered - self._fit_examples
-        return since > 0 and since >= min(self.refit_every, max(1, self._fit_examples))
 
     def _arrays(self, examples: list[_Example]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         k, a = len(self.members), len(self.actions or ())
