@@ -52,11 +52,7 @@ MISS_STATUSES = frozenset({"replay_miss", "abstained"})
 
 @dataclass
 class DistillStats:
-    """Counters of a `DistilledSource`, kept across a resume.
-
-    ``requests_forwarded``: handed to the panel's source; ``requests_sent``: of those, not in its
-    store; the ``*_answers``: beliefs the model gave (or could not give).
-    """
+    """Counters of a `DistilledSource`, kept across a resume (``docs/distill.md``, "Accounting")."""
 
     requests_forwarded: int = 0
     requests_sent: int = 0
