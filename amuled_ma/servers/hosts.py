@@ -8,8 +8,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from amuled_ma.errors import BackendUnavailable, ModelNotFound, ScenarioError
-from amuled_ma.servers.urls import DEFAULT_PORT, normalize_host, normalize_hosts
+from amuled_ma.errors import BackendUnavailable, ModelNotFound
+from amuled_ma.servers.urls import DEFAULT_PORT, normalize_host
 
 if TYPE_CHECKING:
     import httpx
@@ -27,21 +27,6 @@ def resolve_host(host: str | None = None) -> str:
     if os.environ.get("OLLAMA_HOST"):
         return normalize_host(os.environ["OLLAMA_HOST"], where="$OLLAMA_HOST")
     return DEFAULT_HOST
-
-
-def pool_hosts(host: str | None, hosts: Sequence[str] | None) -> tuple[str, ...]:
-    """The normalised server URLs of a source: ``hosts`` (a pool), else ``host`` resolved.
-
-    `ScenarioError`: both given, or ``hosts`` not as `normalize_hosts` requires.
-    """
-    if hosts is None:
-        return (resolve_host(host),)
-    if host:
-        raise ScenarioError(
-            f"ollama: host {host!r} and hosts {list(hosts)!r} are both given; give one "
-            "server with host, or a pool with hosts = [...] (list the host there too)"
-        )
-    return normalize_hosts(hosts, where="ollama hosts")
 
 
 @dataclass(frozen=True)

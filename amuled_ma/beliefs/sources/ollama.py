@@ -7,7 +7,7 @@ import threading
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any
 
 import httpx
@@ -25,13 +25,14 @@ from amuled_ma.errors import AmuledError, BackendUnavailable, ModelNotFound, Sce
 from amuled_ma.servers.hosts import (
     ServerCheck,
     model_missing_error,
-    pool_hosts,
     preflight,
+    resolve_host,
     unreachable_error,
     up_command,
 )
 from amuled_ma.servers.pool import HostPool
 from amuled_ma.servers.timing import RequestTiming, publish_timing
+from amuled_ma.servers.urls import normalize_hosts
 
 log = logging.getLogger(__name__)
 
@@ -58,10 +59,6 @@ class OllamaStats:
     abstained: int = 0
     prompt_tokens: int = 0
     completion_tokens: int = 0
-
-    def as_dict(self) -> dict[str, int]:
-        """Return the counters as a plain dict."""
-        return asdict(self)
 
 
 class _FailureError(Exception):
@@ -117,9 +114,16 @@ class OllamaSource(BeliefSource):
             raise ScenarioError("ollama retries and parse_retries must be >= 0")
         if not (float(down_for_s) >= 0 and float(down_for_s) < float("inf")):
             raise ScenarioError(f"ollama down_for_s: expected a number >= 0, found {down_for_s}")
+        if host and hosts is not None:
+            raise ScenarioError(
+                f"ollama: host {host!r} and hosts {list(hosts)!r} are both given; give one "
+                "server with host, or a pool with hosts = [...] (list the host there too)"
+            )
         self.model = model
-        #: The server URLs (one, or a pool).
-        self.hosts = pool_hosts(host, hosts)
+        #: The server URLs: ``hosts`` (a pool), else ``host`` resolved.
+        self.hosts = (
+            (resolve_host(host),) if hosts is None else normalize_hosts(hosts, where="ollama hosts")
+        )
         #: The first server (the only one without a pool).
         self.host = self.hosts[0]
         self.structured = structured
