@@ -10,7 +10,7 @@ import re
 import statistics
 import threading
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -58,17 +58,12 @@ class RequestTiming:
 
     def as_dict(self) -> dict[str, float | int]:
         """Return the fields as a plain dict (seconds rounded to microseconds)."""
-        return {
-            f.name: round(v, 6) if isinstance(v, float) else v
-            for f in fields(self)
-            for v in (getattr(self, f.name),)
-        }
+        return {k: round(v, 6) if isinstance(v, float) else v for k, v in asdict(self).items()}
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> RequestTiming:
         """Inverse of `as_dict` (unknown keys are ignored, missing ones count 0)."""
-        zero = cls()
-        kinds = {f.name: type(getattr(zero, f.name)) for f in fields(cls)}
+        kinds = {k: type(v) for k, v in asdict(cls()).items()}
         return cls(**{k: kinds[k](v) for k, v in data.items() if k in kinds})
 
 

@@ -92,9 +92,7 @@ def parse_answer(
     if action_names and any(c.isalpha() for c in text):
         index, alike = action_by_name(text, action_names)
         if index is not None:
-            belief = np.zeros(n_actions)
-            belief[index] = 1.0
-            return belief, None
+            return np.eye(n_actions)[index], None  # all on the named action
         if alike:
             return None, f"found {_cut(text)}, the start of {' and '.join(alike)}; {expected}"
     tokens = [t for t in _SPLIT.split(text) if t]
@@ -106,9 +104,7 @@ def parse_answer(
         index = int(tokens[0])
         if not 0 <= index < n_actions:
             return None, f"found the action index {index}, out of range; {expected}"
-        belief = np.zeros(n_actions)
-        belief[index] = 1.0
-        return belief, None
+        return np.eye(n_actions)[index], None
     values: list[float] = []
     for token in tokens:
         try:
