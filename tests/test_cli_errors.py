@@ -81,7 +81,7 @@ def _store(path: Path, belief: str) -> Path:
     request = BeliefRequest("findmilk", "care", (0.0,) * 8, ("up", "down", "left", "right"))
     result = BeliefResult(belief=torch.full((4,), 0.25).numpy(), status="ok", source="rules")
     with BeliefStore(path) as store:
-        store.put("key-1", {"source": "rules"}, request, result)
+        store.put_many([("key-1", {"source": "rules"}, request, result)])
     with sqlite3.connect(path) as conn:
         conn.execute("UPDATE beliefs SET belief = ?", (belief,))
     return path

@@ -68,7 +68,7 @@ def _store_with_rows(path: Path, n: int = 200) -> None:
             chat = (("user", f"state {i} " + "x" * 2000),)
             request = BeliefRequest("findmilk", "care", (float(i),), ("a", "b"), chat)
             result = BeliefResult(np.array([0.5, 0.5]), "ok", "rules", raw="r")
-            store.put(f"k{i}", {"source": "rules"}, request, result)
+            store.put_many([(f"k{i}", {"source": "rules"}, request, result)])
         store.checkpoint()
 
 

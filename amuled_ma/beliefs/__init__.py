@@ -1,7 +1,4 @@
-"""Where a belief comes from: `sources`, `replies` (parsing, the one check), `store`.
-
-See ``docs/beliefs.md``. The Ollama source is imported on demand (``make_source("ollama")``).
-"""
+"""Where a belief comes from: `sources`, `replies` (parsing, the one check), `store`."""
 
 from amuled_ma.beliefs.replies.parsing import ParsedBelief, belief_schema, parse_belief, uniform
 from amuled_ma.beliefs.replies.validate import (

@@ -10,6 +10,8 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from amuled_ma.beliefs.replies.validate import uniform_belief
+
 K = TypeVar("K")
 
 #: Parse / answer statuses a `BeliefResult` may carry (their meanings: ``docs/beliefs.md``).
@@ -60,6 +62,24 @@ class BeliefResult:
     completion_tokens: int | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
+    @classmethod
+    def failed(
+        cls,
+        n_actions: int,
+        status: str,
+        source: str,
+        error: str,
+        *,
+        raw: str | None = None,
+        latency_s: float = 0.0,
+        **extra: Any,
+    ) -> BeliefResult:
+        """No answer: a uniform belief with ``status``, the reason in ``extra["error"]``."""
+        belief = uniform_belief(n_actions)
+        return cls(
+            belief, status, source, raw, latency_s=latency_s, extra={"error": error, **extra}
+        )
+
     def copy(self, **changes: Any) -> BeliefResult:
         """An independent copy (own belief array and extra dict) with ``changes``."""
         return dataclasses.replace(
@@ -68,11 +88,7 @@ class BeliefResult:
 
 
 class BeliefSource(ABC):
-    """Base class of belief sources; subclasses answer batches of requests.
-
-    A source may also define ``iter_beliefs(requests)``, yielding ``(index, result)`` as answers
-    complete; `CachedSource` then stores each on arrival.
-    """
+    """Base class of belief sources (an optional ``iter_beliefs`` yields ``(index, result)``)."""
 
     #: Short registry name of the source kind (``"ollama"``, ``"replay"``, ``"rules"``).
     name: str = "source"

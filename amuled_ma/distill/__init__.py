@@ -1,7 +1,4 @@
-"""LLM feedback on a budget: a reward model distilled from the panel's answers (docs/distill.md).
-
-This package knows the belief types and the fusion; it knows nothing of the learner.
-"""
+"""LLM feedback on a budget: a reward model distilled from the panel's answers (docs/distill.md)."""
 
 from amuled_ma.distill.budget import BudgetExceeded, BudgetLedger, budget_cap
 from amuled_ma.distill.model import EnsembleModel, FitSettings

@@ -1,8 +1,4 @@
-"""The budget of asked states: the distinct states visited and asked, how many more may be.
-
-``asked <= cap(visited)`` holds after every batch; a resumed ledger's cap credits only the
-states asked and those visited since (docs/distill.md).
-"""
+"""The budget of asked states: ``asked <= cap(visited)`` after every batch (docs/distill.md)."""
 
 from __future__ import annotations
 
@@ -19,11 +15,7 @@ class BudgetExceeded(AmuledError, RuntimeError):
 
 
 def check_budget(budget: object, where: str = "[feedback.distill].budget") -> float | int:
-    """Return ``budget`` if it is a share in ``(0, 1]`` (float) or a count ``>= 1`` (int).
-
-    Raises:
-        AmuledError: Anything else (a bool, a string, 0, 1.5, NaN, -3), naming ``where``.
-    """
+    """``budget`` if a share in ``(0, 1]`` (float) or a count ``>= 1`` (int); else `AmuledError`."""
     if isinstance(budget, bool) or not isinstance(budget, int | float):
         raise AmuledError(
             f"{where} expects a share in (0, 1] (a float) or a count >= 1 (an integer), "
@@ -93,11 +85,9 @@ class BudgetLedger:
         return new
 
     def ask(self, keys: Iterable[str]) -> None:
-        """Record states as asked, within the budget.
+        """Record states as asked, within the budget; nothing recorded on `BudgetExceeded`.
 
-        Raises:
-            BudgetExceeded: A key was not visited or was already asked, or there are more keys
-                than `allowed`; nothing is recorded then.
+        `BudgetExceeded`: a key not visited or already asked, or more keys than `allowed`.
         """
         keys = list(keys)
         if len(set(keys)) != len(keys):
@@ -121,44 +111,25 @@ class BudgetLedger:
     @classmethod
     def from_dict(
         cls,
-        data: object,
+        data: Mapping[str, Any],
         where: str = "budget state",
         budget: float | int | None = None,
     ) -> BudgetLedger:
-        """Rebuild a ledger from `to_dict` under the scenario's ``budget`` (None: the ledger's own).
+        """Rebuild a ledger from `to_dict` (a `LedgerTable`) under the scenario's ``budget``.
 
-        The cap credits the asked states only, until the visited ones are visited again.
-
-        Raises:
-            AmuledError: Malformed data, a budget other than the scenario's, or a broken invariant
-                (an asked state not visited, asked twice, or more asked than the cap allows).
+        ``budget`` None: the ledger's own. The cap credits the asked states only, until the
+        visited ones are visited again. `AmuledError`: a budget other than the scenario's, or a
+        broken invariant (an asked state not visited, asked twice, more asked than the cap).
         """
-        if not isinstance(data, Mapping):
-            raise AmuledError(f"{where}: 'ledger' is not a table; start over with --force")
-        saved = data.get("budget")
+        saved = data["budget"]
         if budget is not None and (type(saved) is not type(budget) or saved != budget):
             raise AmuledError(
                 f"{where}: ledger.budget is {saved!r} but the scenario's [feedback.distill]."
                 f"budget is {budget!r} (the file was edited or is another run's); start the "
                 "fine-tune over with --force"
             )
-        visited, asked = data.get("visited"), data.get("asked")
-        if not (
-            isinstance(visited, list)
-            and isinstance(asked, list)
-            and all(type(k) is str for k in visited)
-            and all(type(k) is str for k in asked)
-        ):
-            raise AmuledError(
-                f"{where}: ledger.visited and ledger.asked must be lists of state keys "
-                "(strings); start over with --force"
-            )
-        try:
-            ledger = cls(check_budget(saved) if budget is None else budget)
-        except AmuledError as error:
-            raise AmuledError(
-                f"{where}: not a budget state ({error}); start over with --force"
-            ) from error
+        visited, asked = data["visited"], data["asked"]
+        ledger = cls(saved if budget is None else budget)
         ledger.visited = set(visited)
         if len(ledger.visited) != len(visited):
             raise AmuledError(f"{where}: a state visited twice; start over with --force")

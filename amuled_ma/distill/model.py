@@ -1,7 +1,4 @@
-"""The distilled reward model: an ensemble of small MLPs predicting each panel member's belief.
-
-A fit is deterministic given its seed (its own `torch.Generator`; docs/distill.md).
-"""
+"""The distilled reward model: an ensemble of small MLPs predicting each panel member's belief."""
 
 from __future__ import annotations
 
@@ -37,9 +34,7 @@ class FitSettings:
 class EnsembleModel:
     """An ensemble of MLPs, one softmax head per panel member (``members`` in head order).
 
-    Attributes:
-        trained: ``(K,)`` bool, the members that had an answer in the last fit (the model
-            answers only for them).
+    ``trained``: ``(K,)`` bool, the members answered in the last fit (the model answers for them).
     """
 
     def __init__(
@@ -58,17 +53,13 @@ class EnsembleModel:
         """Whether `fit` ran with at least one answer."""
         return self._params is not None and bool(self.trained.any())
 
-    # ------------------------------------------------------------------ fitting
     @torch.inference_mode(False)
     @torch.enable_grad()
     def fit(self, obs: np.ndarray, beliefs: np.ndarray, mask: np.ndarray, seed: int) -> None:
         """Fit every network from scratch to the members' beliefs (gradients on in inference mode).
 
-        ``obs`` ``(N, D)``, ``beliefs`` ``(N, K, A)`` and ``mask`` ``(N, K)`` (whether the member
-        answered); ``seed`` seeds the weights and the Poisson(1) bootstrap.
-
-        Raises:
-            ValueError: Shapes that do not match the model's members and actions.
+        ``obs`` ``(N, D)``, ``beliefs`` ``(N, K, A)``, ``mask`` ``(N, K)`` (the member answered);
+        ``seed`` seeds the weights and the Poisson(1) bootstrap. `ValueError`: other shapes.
         """
         obs = np.asarray(obs, dtype=np.float64)
         beliefs = np.asarray(beliefs, dtype=np.float64)
@@ -119,7 +110,6 @@ class EnsembleModel:
         self._params = [p.detach() for p in params]
         self.trained = np.asarray(mask.any(axis=0)) if n else np.zeros(k, dtype=bool)
 
-    # ------------------------------------------------------------------ predicting
     def predict_ensemble(self, obs: np.ndarray) -> np.ndarray:
         """Every network's beliefs ``(E, N, K, A)`` float64; RuntimeError before the first `fit`."""
         if self._params is None or self._mean is None or self._std is None:

@@ -21,17 +21,6 @@ def disagreement(predictions: np.ndarray, members: np.ndarray | None = None) -> 
     return tv.mean(axis=(0, 2))
 
 
-def standardise(candidates: np.ndarray, asked: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Both sets of observations scaled by the mean and spread of their union."""
-    candidates = np.asarray(candidates, dtype=np.float64)
-    asked = np.asarray(asked, dtype=np.float64).reshape(-1, candidates.shape[1])
-    union = np.concatenate([candidates, asked])
-    mean = union.mean(0)
-    std = union.std(0)
-    std = np.where(std > 1e-9, std, 1.0)
-    return (candidates - mean) / std, (asked - mean) / std
-
-
 def choose_uncertain(
     candidates: np.ndarray,
     count: int,
@@ -48,7 +37,11 @@ def choose_uncertain(
     count = min(int(count), n)
     if count <= 0:
         return []
-    x, seen = standardise(candidates, asked)
+    asked = np.asarray(asked, dtype=np.float64).reshape(-1, candidates.shape[1])
+    union = np.concatenate([candidates, asked])  # both scaled by the union's mean and spread
+    std = union.std(0)
+    std = np.where(std > 1e-9, std, 1.0)
+    x, seen = (candidates - union.mean(0)) / std, (asked - union.mean(0)) / std
     scale = np.sqrt(max(1, x.shape[1]))
     nearest = np.full(n, np.inf)
     if len(seen):

@@ -1,13 +1,4 @@
-"""`DistilledSource`: the panel asked only where a distilled reward model is unsure.
-
-Per batch: group the requests by state (observation and chat) and record them as visited;
-answer states asked before (from this process's answers, or after a resume through the
-store); let the selection and budget admit new states, save the spent budget, then forward
-them to the panel; refit when due (after 1, 2, 4, ... answered states, then every
-``refit_every``); answer every other state with the model (``distilled``, or ``unasked`` for
-a member with no answer yet). The model's answers are made above the belief store, so the
-store holds exactly the asked states' answers.
-"""
+"""`DistilledSource`: the panel asked only where a distilled reward model is unsure."""
 
 from __future__ import annotations
 
@@ -22,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from amuled_ma.beliefs.replies.validate import check_belief, uniform_belief
+from amuled_ma.beliefs.replies.validate import check_belief
 from amuled_ma.beliefs.store.cached import requests_sent
 from amuled_ma.beliefs.store.rows import CACHEABLE
 from amuled_ma.beliefs.types import (
@@ -31,6 +22,7 @@ from amuled_ma.beliefs.types import (
     BeliefRequest,
     BeliefResult,
     BeliefSource,
+    ask,
 )
 from amuled_ma.distill.budget import BudgetLedger, check_budget
 from amuled_ma.distill.model import EnsembleModel, FitSettings
@@ -44,7 +36,6 @@ from amuled_ma.distill.state import (
     START_OVER,
     LedgerRest,
     StateFiles,
-    check_state_keys,
     checked,
 )
 from amuled_ma.errors import AmuledError
@@ -61,11 +52,7 @@ MISS_STATUSES = frozenset({"replay_miss", "abstained"})
 
 @dataclass
 class DistillStats:
-    """Counters of a `DistilledSource`, kept across a resume.
-
-    ``requests_forwarded``: handed to the panel's source; ``requests_sent``: of those, not in its
-    store; the ``*_answers``: beliefs the model gave (or could not give).
-    """
+    """Counters of a `DistilledSource`, kept across a resume (``docs/distill.md``, "Accounting")."""
 
     requests_forwarded: int = 0
     requests_sent: int = 0
@@ -99,11 +86,8 @@ class DistilledSource(BeliefSource):
 
     The settings are ``[feedback.distill]``'s (`DistillConfig`, checked there); ``fusion_rule``
     fuses the held-out agreement; ``state_dir`` None keeps nothing on disk, and without
-    ``resume`` its state files are removed.
-
-    Raises:
-        AmuledError: A budget out of range, or ``resume`` with state files written with other
-            settings or damaged.
+    ``resume`` its state files are removed. `AmuledError`: a budget out of range, or
+    ``resume`` with state files written with other settings or damaged.
     """
 
     name = "distilled"
@@ -179,7 +163,6 @@ class DistilledSource(BeliefSource):
             resume=resume,
         )
 
-    # -- BeliefSource ----------------------------------------------------------------
     @property
     def needs_messages(self) -> bool:  # type: ignore[override]
         """Whether the panel's source reads the chat (the state key then includes it)."""
@@ -219,9 +202,8 @@ class DistilledSource(BeliefSource):
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
         """Forward asked states to the panel's source, answer the others by the model.
 
-        Raises:
-            RuntimeError: The panel's source answered a different number of results.
-            AmuledError: The requests change task, actions or observation length.
+        `RuntimeError`: the panel's source answered another number of results; `AmuledError`:
+        the requests change task, actions or observation length.
         """
         if not requests:
             return []
@@ -245,16 +227,16 @@ class DistilledSource(BeliefSource):
             self._forward(forward, requests, results)
         self._recall(remembered, results)
         forward += remembered
-        if self._refit_due():
-            self._refit()
+        since = sum(1 for e in self._examples.values() if e.beliefs) - self._fit_examples
+        if since > 0 and since >= min(self.refit_every, max(1, self._fit_examples)):
+            self._refit()  # after 1, 2, 4, ... answered asked states, then every refit_every
         rest = [s for s in candidates if not ledger.is_asked(s.key)]
         self._answer(rest, results)
-        if self.answer_misses and forward:
-            self._answer_misses(forward, results)
+        if self.answer_misses:
+            self._answer(forward, results, misses=True)
         self._save()
         return results  # type: ignore[return-value]
 
-    # -- accounting --------------------------------------------------------------------
     def report(self) -> dict[str, Any]:
         """The accounting, JSON-ready: settings, state counts, counters, held-out agreement.
 
@@ -277,7 +259,6 @@ class DistilledSource(BeliefSource):
             "holdout_tv_fused": self.agreement.get("tv_fused"),
         }
 
-    # -- grouping --------------------------------------------------------------------
     def _group(self, requests: Sequence[BeliefRequest]) -> list[_State]:
         """The batch's distinct states, in order of first request."""
         first = requests[0]
@@ -334,7 +315,6 @@ class DistilledSource(BeliefSource):
                 digest.update(b"\x1e" + role.encode("utf-8") + b"\x1f" + content.encode("utf-8"))
         return digest.hexdigest()
 
-    # -- selection and asking ----------------------------------------------------------
     def _choose(self, candidates: list[_State], count: int) -> list[_State]:
         if count <= 0 or not candidates:
             return []
@@ -358,12 +338,7 @@ class DistilledSource(BeliefSource):
         """Ask the panel's source about the asked states; keep their answers to learn from."""
         idx = [i for s in forward for positions in s.positions.values() for i in positions]
         before = requests_sent(self.source)
-        answers = self.source.beliefs([requests[i] for i in idx])
-        if len(answers) != len(idx):
-            raise RuntimeError(
-                f"belief source {getattr(self.source, 'name', '?')!r} answered {len(answers)} "
-                f"results for {len(idx)} requests"
-            )
+        answers = ask(self.source, [requests[i] for i in idx])
         after = requests_sent(self.source)
         self.stats.requests_forwarded += len(idx)
         self.stats.requests_sent += len(idx) if before is None or after is None else after - before
@@ -422,14 +397,8 @@ class DistilledSource(BeliefSource):
         share = Fraction(self.holdout)
         return math.floor((index + 1) * share) > math.floor(index * share)
 
-    # -- the model ---------------------------------------------------------------------
     def _ordered_examples(self) -> list[_Example]:
         return [self._examples[k] for k in self.ledger.asked if k in self._examples]
-
-    def _refit_due(self) -> bool:
-        answered = sum(1 for e in self._examples.values() if e.beliefs)
-        since = answered - self._fit_examples
-        return since > 0 and since >= min(self.refit_every, max(1, self._fit_examples))
 
     def _arrays(self, examples: list[_Example]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         k, a = len(self.members), len(self.actions or ())
@@ -490,74 +459,54 @@ class DistilledSource(BeliefSource):
             "tv_fused": float(np.mean(fused_tv)) if fused_tv else None,
         }
 
-    def _answer(self, states: list[_State], results: list) -> None:
-        """The model's beliefs for states not asked (``unasked`` where it has none)."""
-        if not states:
-            return
-        a = len(self.actions or ())
+    def _answer(self, states: list[_State], results: list, *, misses: bool = False) -> None:
+        """The model's beliefs for states not asked, or (``misses``) for asked states' misses.
+
+        ``unasked`` where the model has no answer for a member; with ``misses`` only the replay
+        misses and abstentions of the asked ``states`` are replaced (``distilled_miss``).
+        """
         model = self.model if self.model is not None and self.model.fitted else None
         column = {m: j for j, m in enumerate(model.members)} if model else {}
-        pred = model.predict(np.asarray([s.obs for s in states])) if model else None
-        for n, state in enumerate(states):
-            for member, positions in state.positions.items():
+        todo: list[tuple[int, str, list[int], int | None]] = []
+        for n, s in enumerate(states):
+            for member, positions in s.positions.items():
                 j = column.get(member)
-                if pred is not None and j is not None and model is not None and model.trained[j]:
-                    belief, _ = check_belief(pred[n, j], a)
-                    assert belief is not None  # a softmax is a valid belief
-                    result = BeliefResult(
-                        belief, DISTILLED, self.name, extra={"generation": self.generation}
-                    )
-                    self.stats.model_answers += 1
-                else:
-                    result = BeliefResult(
-                        uniform_belief(a),
-                        UNASKED,
-                        self.name,
-                        extra={
-                            "error": f"not asked, and no asked state has {member!r}'s answer "
-                            "yet for the distilled model to learn from"
-                        },
-                    )
-                    self.stats.unasked_answers += 1
-                for m, i in enumerate(positions):
-                    results[i] = result if m == 0 else result.copy()
-        self._changed = True
-
-    def _answer_misses(self, forward: list[_State], results: list) -> None:
-        """Replace the replay misses and abstentions of asked states by the model's beliefs."""
-        model = self.model
-        if model is None or not model.fitted:
-            return
-        column = {m: j for j, m in enumerate(model.members)}
-        todo = [
-            (n, member, positions)
-            for n, s in enumerate(forward)
-            for member, positions in s.positions.items()
-            if results[positions[0]].status in MISS_STATUSES
-            and member in column
-            and model.trained[column[member]]
-        ]
+                known = model is not None and j is not None and bool(model.trained[j])
+                if not misses or (known and results[positions[0]].status in MISS_STATUSES):
+                    todo.append((n, member, positions, j if known else None))
         if not todo:
             return
         a = len(self.actions or ())
-        pred = model.predict(np.asarray([s.obs for s in forward]))
-        for n, member, positions in todo:
-            belief, _ = check_belief(pred[n, column[member]], a)
-            assert belief is not None
-            inner = results[positions[0]]
-            result = BeliefResult(
-                belief,
-                DISTILLED_MISS,
-                self.name,
-                raw=inner.raw,
-                extra={"generation": self.generation, "inner_status": inner.status},
-            )
-            self.stats.miss_answers += 1
+        pred = model.predict(np.asarray([s.obs for s in states])) if model else np.zeros(0)
+        for n, member, positions, j in todo:
+            if j is None:
+                error = (
+                    f"not asked, and no asked state has {member!r}'s answer yet for the "
+                    "distilled model to learn from"
+                )
+                result = BeliefResult.failed(a, UNASKED, self.name, error)
+                self.stats.unasked_answers += 1
+            else:
+                belief, _ = check_belief(pred[n, j], a)
+                assert belief is not None  # a softmax is a valid belief
+                inner = results[positions[0]]
+                extra = {"generation": self.generation}
+                if misses:
+                    extra["inner_status"] = inner.status
+                    self.stats.miss_answers += 1
+                else:
+                    self.stats.model_answers += 1
+                result = BeliefResult(
+                    belief,
+                    DISTILLED_MISS if misses else DISTILLED,
+                    self.name,
+                    raw=inner.raw if misses else None,
+                    extra=extra,
+                )
             for m, i in enumerate(positions):
                 results[i] = result if m == 0 else result.copy()
         self._changed = True
 
-    # -- persistence -----------------------------------------------------------------
     def _save(self, *, force: bool = False) -> None:
         files = self._files
         if files is None or not (force or self._changed):
@@ -592,8 +541,9 @@ class DistilledSource(BeliefSource):
                 f"{where} was written with other [feedback.distill] settings (saved -> now: "
                 f"{'; '.join(diffs)}); {START_OVER}"
             )
+        rest = checked(LedgerRest, dict(data), where)
         # the scenario's budget is the budget: the ledger's must be the same
-        self.ledger = BudgetLedger.from_dict(data.get("ledger"), where, budget=self.budget)
+        self.ledger = BudgetLedger.from_dict(rest.ledger.model_dump(), where, budget=self.budget)
         asked = self.ledger.asked_count
         generation = data.get("generation", 0)
         if type(generation) is not int or not 0 <= generation <= asked:
@@ -601,9 +551,6 @@ class DistilledSource(BeliefSource):
                 f"{where}: generation is {generation!r}, expected an integer in [0, {asked}] "
                 f"(at most one fit per asked state); {START_OVER}"
             )
-        check_state_keys(self.ledger.visited, "ledger.visited", where)
-        check_state_keys(self.ledger.asked, "ledger.asked", where)
-        rest = checked(LedgerRest, dict(data), where)
         self.stats = DistillStats(**rest.counters.model_dump())
         if self.stats.refits > asked:
             raise AmuledError(

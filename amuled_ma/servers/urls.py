@@ -1,7 +1,4 @@
-"""An LLM server's URL parsed once: ``HOST``, ``HOST:PORT``, ``http(s)://HOST:PORT``.
-
-Below the scenario layer, so the scenario models check addresses on load.
-"""
+"""An LLM server's URL parsed once: ``HOST``, ``HOST:PORT``, ``http(s)://HOST:PORT``."""
 
 from __future__ import annotations
 
@@ -17,8 +14,7 @@ DEFAULT_PORT = 11434
 def normalize_host(host: str, *, where: str = "Ollama host") -> str:
     """Return ``host`` (``HOST[:PORT]``, ``http(s)://HOST:PORT[/path]``) as ``scheme://host:port``.
 
-    Raises:
-        ScenarioError: No host name, a scheme other than http(s), or a bad port; names ``where``.
+    `ScenarioError` naming ``where``: no host name, a scheme other than http(s), or a bad port.
     """
     raw = host.strip().rstrip("/")
     text = raw if "://" in raw else "http://" + raw
@@ -48,9 +44,7 @@ def normalize_host(host: str, *, where: str = "Ollama host") -> str:
 def normalize_hosts(hosts: object, *, where: str = "Ollama hosts") -> tuple[str, ...]:
     """Return a pool's list of server addresses, each normalised by :func:`normalize_host`.
 
-    Raises:
-        ScenarioError: Not a list of strings, an empty list, a malformed address, or the
-            same server twice (after normalisation: ``gpu1`` is ``http://gpu1:11434``).
+    `ScenarioError`: not a list of strings, empty, a bad address, or a server twice (normalised).
     """
     example = 'hosts = ["http://gpu1:11434", "http://gpu2:11434"]'
     if isinstance(hosts, str | bytes) or not isinstance(hosts, Sequence):

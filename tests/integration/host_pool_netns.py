@@ -21,6 +21,7 @@ commands' output. The servers are stopped whatever happens (an alarm after
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import io
 import json
@@ -160,7 +161,7 @@ def run(workdir: Path) -> dict[str, Any]:
         out["probe_attempts"] = [s.stats.attempts for s in used[:-1]]
         if used:
             out["figures"] = used[-1].server_stats()
-            out["stats"] = used[-1].stats.as_dict()
+            out["stats"] = dataclasses.asdict(used[-1].stats)
         out["written"] = written
 
         with contextlib.redirect_stdout(io.StringIO()) as said:

@@ -1,7 +1,4 @@
-"""The ``{...}`` objects of an LLM reply, found and read with repairs, in linear time.
-
-The limits below bound the cost whatever the reply (``docs/beliefs.md``, "Cost and limits").
-"""
+"""The ``{...}`` objects of an LLM reply, read with repairs in linear time (limits: below)."""
 
 from __future__ import annotations
 
@@ -31,10 +28,7 @@ MAX_KEYS = 256
 
 
 class UnreadableObjectError(ValueError):
-    """A candidate object cannot be read or cannot be a belief (never escapes the parser).
-
-    Not `InvalidBeliefError`, the error of a door.
-    """
+    """A candidate object cannot be read or cannot be a belief (never escapes the parser)."""
 
 
 def _codes(text: str) -> np.ndarray:
@@ -51,9 +45,8 @@ def _depths(steps: np.ndarray) -> np.ndarray:
 def candidate_spans(text: str) -> tuple[list[tuple[int, int]], int]:
     """``(start, end)`` of the balanced ``{...}`` spans, the one ending last first.
 
-    Nested spans are all returned; braces in quoted strings are not special-cased. Returns the
-    first `MAX_CANDIDATES` spans of at most `MAX_OBJECT_CHARS` characters, and how many longer
-    spans were left out.
+    Nested ones included, braces in strings too: the first `MAX_CANDIDATES` of at most
+    `MAX_OBJECT_CHARS` characters, and how many longer spans were left out.
     """
     if "{" not in text or "}" not in text:
         return [], 0
@@ -124,10 +117,8 @@ _KEY_MAX = 80
 def _pair_key(text: str, start: int, colon: int) -> str | None:
     """The key of the leftmost ``key: number`` pair starting in ``text[start:colon]``.
 
-    The pair's key ends right before the whitespace preceding the colon: it is the
-    quoted run of key characters there, else that unquoted run (its last 80
-    characters), else one whitespace character (other than a newline) of that
-    whitespace; ``None`` if there is none of these.
+    It ends right before the whitespace preceding the colon: the quoted run of key characters
+    there, else that unquoted run (its last 80), else one whitespace character (no newline).
     """
     segment = text[start:colon]
     head = segment.rstrip()
@@ -177,9 +168,8 @@ def _lenient_pairs(body: str, budget: ReadBudget) -> dict[str, Any]:
 def decode_candidate(candidate: str, budget: ReadBudget) -> tuple[dict[str, Any], tuple[str, ...]]:
     """Decode one ``{...}`` span, repairing the usual faults; linear in its length.
 
-    Strict JSON, a Python literal (within ``budget.literal``), the repairs (quotes, unquoted
-    keys, trailing commas), then the lenient ``key: number`` scan; ``budget`` is spent in place.
-    Returns ``(object, repairs)``; `UnreadableObjectError` when nothing can be read.
+    Strict JSON, a Python literal, the repairs, then the lenient ``key: number`` scan; ``budget``
+    is spent in place. ``(object, repairs)``; `UnreadableObjectError` when nothing can be read.
     """
     if too_deep(candidate):
         raise UnreadableObjectError(f"nested deeper than {MAX_NESTING} levels")

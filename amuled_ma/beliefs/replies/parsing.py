@@ -1,8 +1,4 @@
-"""An LLM reply turned into a belief, never crashing: structured, last JSON object, or abstain.
-
-The order and the key forms accepted are in ``docs/beliefs.md`` ("Parsing rules"); the cost is
-linear in the reply (`objects`). A reply cut off by the token limit abstains, as the authors' did.
-"""
+"""An LLM reply turned into a belief, never crashing (``docs/beliefs.md``, "Parsing rules")."""
 
 from __future__ import annotations
 
@@ -27,7 +23,7 @@ from amuled_ma.beliefs.replies.objects import (
     decode_candidate,
     too_deep,
 )
-from amuled_ma.beliefs.replies.validate import SUM_TOLERANCE
+from amuled_ma.beliefs.replies.validate import SUM_TOLERANCE, show_values
 from amuled_ma.beliefs.replies.validate import uniform_belief as uniform
 
 #: Statuses `parse_belief` returns.
@@ -57,10 +53,7 @@ TEXT_KEYS = frozenset({"reasoning", "reason", "explanation", "rationale", "thoug
 
 @dataclass(frozen=True)
 class ParsedBelief:
-    """One parsed reply (``belief``: finite, >= 0, sums to 1; ``status``: `PARSE_STATUSES`).
-
-    ``repairs``: those applied (`REPAIRS`); ``error``: why the reply abstained.
-    """
+    """One parsed reply: a valid ``belief``, `PARSE_STATUSES`, `REPAIRS`, why it abstained."""
 
     belief: np.ndarray
     status: str
@@ -140,15 +133,6 @@ def _letter_index(key: str, n: int) -> int | None:
     return i if i < n else None
 
 
-def _brief(value: object) -> str:
-    """``repr(value)``, at most 80 characters (an error message never holds a whole reply)."""
-    try:
-        text = repr(value)
-    except RecursionError:  # a value nested deeper than the stack allows
-        text = f"<deeply nested {type(value).__name__}>"
-    return text if len(text) <= 80 else f"{text[:77]}..."
-
-
 def _value(value: object, repairs: set[str]) -> float:
     if isinstance(value, bool):
         raise UnreadableObjectError(f"boolean probability {value!r}")
@@ -160,13 +144,15 @@ def _value(value: object, repairs: set[str]) -> float:
         try:
             number = float(text.rstrip("%").strip())
         except ValueError:
-            raise UnreadableObjectError(f"non-numeric probability {_brief(value)}") from None
+            raise UnreadableObjectError(
+                f"non-numeric probability {show_values(value, 80)}"
+            ) from None
         repairs.add("string_values")
         if percent:
             number /= 100.0
             repairs.add("percent")
     else:
-        raise UnreadableObjectError(f"non-numeric probability {_brief(value)}")
+        raise UnreadableObjectError(f"non-numeric probability {show_values(value, 80)}")
     if math.isnan(number) or math.isinf(number):
         raise UnreadableObjectError(f"probability {number!r} is not finite")
     if number < 0:
@@ -247,10 +233,7 @@ def _key_count(obj: Mapping[str, Any]) -> int:
 def parse_belief(
     text: str | None, action_names: Sequence[str], *, structured: bool = False
 ) -> ParsedBelief:
-    """Parse one LLM reply (``None`` or empty abstains) into a `ParsedBelief`; never raises.
-
-    ``structured``: the reply was requested with `belief_schema` as format; linear in the reply.
-    """
+    """Parse one LLM reply (``structured``: asked with `belief_schema`); never raises."""
     n = len(action_names)
     if n == 0:
         return ParsedBelief(np.zeros(0), "abstained", error="no actions")

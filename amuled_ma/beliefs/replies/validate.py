@@ -44,8 +44,8 @@ def show_values(values: object, limit: int = _MAX_SHOWN_CHARS) -> str:
         if isinstance(values, np.ndarray):
             values = values.tolist()
         text = repr(values)
-    except Exception:  # pragma: no cover - repr of an exotic object failed
-        text = f"<{type(values).__name__}>"
+    except Exception:  # nested deeper than the stack allows, or an exotic repr that failed
+        text = f"<{type(values).__name__} that repr cannot show>"
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
@@ -74,11 +74,7 @@ def _is_float_vector(values: object) -> TypeGuard[np.ndarray]:
 
 
 def _sums_to_one(items: list[Any], n_actions: int) -> bool:
-    """Fast check of a plain list: ``n_actions`` floats/ints in [0, 2] summing to 1 +- tol.
-
-    False sends the list to the full check, which finds and names the problem (NaN fails
-    every comparison, so it never passes here).
-    """
+    """Fast check of a plain list: ``n_actions`` floats/ints in [0, 2] summing to 1 +- tol."""
     if len(items) != n_actions:
         return False
     total = 0.0
@@ -94,10 +90,8 @@ def check_belief(
 ) -> tuple[np.ndarray | None, str | None]:
     """Check one belief of ``n_actions`` values (list, tuple or 1-D array); never raises.
 
-    ``scores`` accepts any positive finite sum and divides by it (rule-based sources, whose
-    answers are documented as scores) instead of requiring a sum of 1. Returns ``(belief,
-    None)``, ``belief`` float64 divided by its sum unless that is 1 within `ROUNDING` (a new
-    array unless ``values`` was a float64 array kept as is), or ``(None, reason)``.
+    ``scores``: any positive finite sum (rules' answers), divided by it. Returns ``(belief,
+    None)``, float64 divided by its sum unless 1 within `ROUNDING`, or ``(None, reason)``.
     """
     if not scores:  # the common case, a valid belief: plain Python, no numpy reductions
         items = values.tolist() if _is_float_vector(values) else values
@@ -136,9 +130,8 @@ def validate_belief(
 ) -> np.ndarray:
     """Return ``values`` as a valid float64 belief of ``n_actions`` (divided by its sum), or raise.
 
-    ``where`` names what holds it (``"rec.json: states[3] 'care'"``); ``fix`` is appended to
-    the message (a generic hint by default); ``scores`` as in `check_belief`. Raises
-    `InvalidBeliefError` naming ``where``, the reason, the values found, the rule and the fix.
+    `InvalidBeliefError` naming ``where`` (``"rec.json: states[3] 'care'"``), the reason, the
+    values, the rule and ``fix``; ``scores`` as in `check_belief`.
     """
     belief, reason = check_belief(values, n_actions, scores=scores)
     if belief is None:
@@ -152,9 +145,8 @@ def validate_belief(
 def check_beliefs(matrix: np.ndarray) -> tuple[np.ndarray, list[str | None]]:
     """Check the rows of an ``(m, A)`` float array at once (the panel's batch path).
 
-    Same rule as `check_belief`, vectorised (a row that could not be made float is passed in
-    as NaN). Returns ``(beliefs, reasons)``: valid rows divided by their sum (unless that is
-    1 within `ROUNDING`), invalid rows as they were; ``reasons[i]`` None for a valid row.
+    `check_belief` vectorised: ``(beliefs, reasons)``, valid rows divided by their sum (as
+    there), invalid ones as they were; ``reasons[i]`` None for a valid row.
     """
     out = np.array(matrix, dtype=np.float64, copy=True)
     with np.errstate(invalid="ignore", over="ignore"):

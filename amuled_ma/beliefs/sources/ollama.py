@@ -1,8 +1,4 @@
-"""``ollama``: cluster beliefs from Ollama servers, through the official client.
-
-Deterministic options, structured output, a pool of hosts, retries, fallback and the preflight
-are described in ``docs/beliefs.md`` (`ollama`) and ``docs/ollama.md``.
-"""
+"""``ollama``: cluster beliefs from Ollama servers (``docs/beliefs.md``, ``docs/ollama.md``)."""
 
 from __future__ import annotations
 
@@ -11,7 +7,7 @@ import threading
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any
 
 import httpx
@@ -29,13 +25,14 @@ from amuled_ma.errors import AmuledError, BackendUnavailable, ModelNotFound, Sce
 from amuled_ma.servers.hosts import (
     ServerCheck,
     model_missing_error,
-    pool_hosts,
     preflight,
+    resolve_host,
     unreachable_error,
     up_command,
 )
 from amuled_ma.servers.pool import HostPool
 from amuled_ma.servers.timing import RequestTiming, publish_timing
+from amuled_ma.servers.urls import normalize_hosts
 
 log = logging.getLogger(__name__)
 
@@ -45,15 +42,7 @@ RETRY_STATUSES = frozenset({408, 429, 500, 502, 503, 504})
 
 @dataclass
 class OllamaStats:
-    """Counters of an `OllamaSource` (``stats.as_dict()`` for logging).
-
-    ``requests`` received, ``sent`` (distinct, first attempts), ``deduplicated`` (answered by
-    an identical request of the batch), ``attempts`` (HTTP calls), ``retries`` (after a
-    transient failure), ``parse_retries`` (re-asks after an abstention), ``timeouts`` (every
-    attempt counted), ``errors`` (non-timeout failures in the end), ``fallbacks`` (answered by
-    the fallback source or uniform), ``failovers`` (retried on another host of the pool),
-    ``ok`` / ``repaired`` / ``abstained`` answers, and the server's token counts.
-    """
+    """Counters of an `OllamaSource` (their meanings: ``docs/beliefs.md``, `ollama`)."""
 
     requests: int = 0
     sent: int = 0
@@ -70,10 +59,6 @@ class OllamaStats:
     abstained: int = 0
     prompt_tokens: int = 0
     completion_tokens: int = 0
-
-    def as_dict(self) -> dict[str, int]:
-        """Return the counters as a plain dict."""
-        return asdict(self)
 
 
 class _FailureError(Exception):
@@ -129,9 +114,16 @@ class OllamaSource(BeliefSource):
             raise ScenarioError("ollama retries and parse_retries must be >= 0")
         if not (float(down_for_s) >= 0 and float(down_for_s) < float("inf")):
             raise ScenarioError(f"ollama down_for_s: expected a number >= 0, found {down_for_s}")
+        if host and hosts is not None:
+            raise ScenarioError(
+                f"ollama: host {host!r} and hosts {list(hosts)!r} are both given; give one "
+                "server with host, or a pool with hosts = [...] (list the host there too)"
+            )
         self.model = model
-        #: The server URLs (one, or a pool).
-        self.hosts = pool_hosts(host, hosts)
+        #: The server URLs: ``hosts`` (a pool), else ``host`` resolved.
+        self.hosts = (
+            (resolve_host(host),) if hosts is None else normalize_hosts(hosts, where="ollama hosts")
+        )
         #: The first server (the only one without a pool).
         self.host = self.hosts[0]
         self.structured = structured
@@ -187,12 +179,8 @@ class OllamaSource(BeliefSource):
         `BackendUnavailable`: a host does not answer within ``check_timeout_s``;
         `ModelNotFound`: a host lacks the model, or two hosts hold different digests of it.
         """
-        if self._digest is None:
-            self._digest = self._check_hosts()
-        return self._digest
-
-    def _check_hosts(self) -> str:
-        """Preflight every host; return the one digest of the model."""
+        if self._digest is not None:
+            return self._digest
         found: dict[str, ServerCheck] = {}
         problems: list[tuple[str, AmuledError]] = []
         for url in self.hosts:
@@ -229,17 +217,15 @@ class OllamaSource(BeliefSource):
                     f"'ollama pull {self.model}' (or the same 'ollama create') on each, or "
                     f"remove {url} from the pool"
                 )
-        return digests[first]
+        self._digest = digests[first]
+        return self._digest
 
     def server_stats(self) -> dict[str, dict[str, Any]]:
         """Each host's figures (sent, answered, failed by kind, latencies): `HostPool.as_dict`."""
         return self.host_pool.as_dict()
 
     def identity(self) -> dict[str, Any]:
-        """The model name and digest, options and output format (raises as `check`).
-
-        Never the host(s): the same model on another server keys the same answers.
-        """
+        """The model, its digest, options and output format; never the host (raises as `check`)."""
         digest = self.check()
         return {
             "source": self.name,
@@ -284,6 +270,7 @@ class OllamaSource(BeliefSource):
         while True:
             with pool.acquire(avoid=failed_on) as lease:
                 host = lease.host
+                where = f" at {host}" if several else ""
                 self._count(attempts=1)
                 try:
                     reply = self._clients[host].chat(
@@ -295,7 +282,6 @@ class OllamaSource(BeliefSource):
                     )
                 except httpx.TimeoutException as error:
                     self._count(timeouts=1)
-                    where = f" at {host}" if several else ""
                     failure = _FailureError(
                         "timeout", f"timed out after {self.timeout_s} s{where}: {error!r}", host
                     )
@@ -304,7 +290,6 @@ class OllamaSource(BeliefSource):
                     if error.status_code == 404 and "not found" in str(error.error).lower():
                         lease.fail("model_missing", str(error))
                         raise model_missing_error(self.model, host) from error
-                    where = f" at {host}" if several else ""
                     failure = _FailureError("error", f"server error{where}: {error}", host)
                     transient = error.status_code in RETRY_STATUSES
                 except (ConnectionError, httpx.TransportError) as error:
@@ -336,15 +321,12 @@ class OllamaSource(BeliefSource):
         n = request.num_actions
         if not request.messages:
             self._count(errors=1)
-            return BeliefResult(
-                uniform(n), "error", self.name, extra={"error": "request has no messages"}
-            )
+            return BeliefResult.failed(n, "error", self.name, "request has no messages")
         start = time.perf_counter()
         base_seed = int(self.options["seed"])
         reply = None
         parsed = None
         host = self.host
-        status, belief, invalid = "abstained", uniform(n), None
         timing = RequestTiming()
         for attempt in range(self.parse_retries + 1):
             if attempt:
@@ -368,19 +350,17 @@ class OllamaSource(BeliefSource):
                 completion_tokens=int(reply.eval_count or 0),
             )
             parsed = parse_belief(content, request.action_names, structured=self.structured)
-            status, belief, invalid = parsed.status, parsed.belief, None
-            checked, reason = check_belief(parsed.belief, n)
-            if checked is not None:
-                belief = checked
-            elif status in ANSWER_STATUSES:  # the parser let an invalid belief through
-                invalid = f"the reply gave an invalid belief: it {reason}"
-                status, belief = "abstained", uniform(n)
-            else:
+            status, invalid = parsed.status, None
+            belief, reason = check_belief(parsed.belief, n)
+            if belief is None:
+                if status in ANSWER_STATUSES:  # the parser let an invalid belief through
+                    invalid = f"the reply gave an invalid belief: it {reason}"
+                    status = "abstained"
                 belief = uniform(n)
             if status != "abstained":
                 break
-        assert reply is not None and parsed is not None
-        self._count(**{status if status in ("ok", "repaired") else "abstained": 1})
+        assert reply is not None and parsed is not None and belief is not None
+        self._count(**{status: 1})  # ok, repaired or abstained
         error = "; ".join(e for e in (invalid, parsed.error) if e) or None
         if status == "abstained":
             log.warning("ollama reply abstained for cluster %s: %s", request.cluster, error)
@@ -398,7 +378,7 @@ class OllamaSource(BeliefSource):
             belief=belief,
             status=status,
             source=self.name,
-            raw=reply.message.content if reply.message is not None else None,
+            raw=content,
             latency_s=time.perf_counter() - start,
             prompt_tokens=reply.prompt_eval_count,
             completion_tokens=reply.eval_count,
@@ -424,24 +404,11 @@ class OllamaSource(BeliefSource):
             result = checked_result(self.fallback.beliefs([request])[0], request.num_actions)
             result.extra = {**result.extra, "ollama_failure": failure.status, "error": str(failure)}
             return result
-        return BeliefResult(
-            belief=uniform(request.num_actions),
-            status=failure.status,
-            source=self.name,
-            latency_s=latency,
-            extra={"error": str(failure)},
-        )
-
-    def _executor(self) -> ThreadPoolExecutor:
-        if self._pool is None:
-            self._pool = ThreadPoolExecutor(self.concurrency, thread_name_prefix="amuled-ollama")
-        return self._pool
+        n = request.num_actions
+        return BeliefResult.failed(n, failure.status, self.name, str(failure), latency_s=latency)
 
     def iter_beliefs(self, requests: Sequence[BeliefRequest]) -> Iterator[tuple[int, BeliefResult]]:
-        """Yield ``(index, result)`` as answers complete; identical requests are sent once.
-
-        Raises `BackendUnavailable` or `ModelNotFound` as `check`, which runs first.
-        """
+        """Yield ``(index, result)`` as answers complete; identical requests sent once; `check`s."""
         self.check()
         groups = indices_by(requests, lambda r: (r.messages, r.action_names))
         self._count(requests=len(requests), deduplicated=len(requests) - len(groups))
@@ -450,7 +417,9 @@ class OllamaSource(BeliefSource):
         # Submit grouped by system prompt (then by the rest), so shared prefixes are adjacent.
         order = sorted(groups, key=lambda k: (k[0][0][1] if k[0] else "", k[0][1:], k[1]))
         self._count(sent=len(order))
-        pool = self._executor()
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(self.concurrency, thread_name_prefix="amuled-ollama")
+        pool = self._pool
         pending: dict[Future[BeliefResult], tuple[Any, ...]] = {}
         queue = list(reversed(order))
         try:

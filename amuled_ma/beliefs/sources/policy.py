@@ -1,8 +1,4 @@
-"""``policy``: a saved torch policy's softmax over its logits for the request's observation.
-
-The file is read weights-only; the network is an MLP inferred from the state dict or a
-``module`` class allowed with ``--allow-plugin`` (``docs/beliefs.md``, "policy").
-"""
+"""``policy``: a saved torch policy's softmax over its logits (``docs/beliefs.md``, "policy")."""
 
 from __future__ import annotations
 
@@ -13,7 +9,6 @@ from typing import Any
 
 import numpy as np
 
-from amuled_ma.beliefs.replies.parsing import uniform
 from amuled_ma.beliefs.replies.validate import check_belief, show_values
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, in_order, indices_by
 from amuled_ma.errors import CheckpointError, ScenarioError
@@ -138,11 +133,7 @@ def infer_mlp(
 
 
 class PolicySource(BeliefSource):
-    """Beliefs from a saved torch policy: the softmax of its logits (``docs/beliefs.md``, "policy").
-
-    Raises `ScenarioError` naming the file and the fix: missing, unsafe, not a state dict, or
-    no network can be built from it.
-    """
+    """Beliefs from a saved torch policy; `ScenarioError` as `load_weights` and `infer_mlp`."""
 
     name = "policy"
     needs_messages = False
@@ -249,9 +240,6 @@ class PolicySource(BeliefSource):
         return probs.numpy(), None
 
     def _error(self, n: int, reason: str) -> BeliefResult:
-        return BeliefResult(
-            belief=uniform(n),
-            status="error",
-            source=self.name,
-            extra={"error": f"{reason} (policy file {self.path.name})"},
+        return BeliefResult.failed(
+            n, "error", self.name, f"{reason} (policy file {self.path.name})"
         )

@@ -1,9 +1,4 @@
-"""Belief sources built by kind: ``make_source(kind, **options)``.
-
-The kinds a scenario may name are `amuled_ma.scenario.agents.AGENT_SPECS`, the one table of
-kinds; `built_in` gives each of its spec models the source class that answers. Other kinds
-come from the ``amuled_ma.agents`` entry-point group or `register_source`.
-"""
+"""Belief sources built by kind (`AGENT_SPECS`, entry points, `register_source`): `make_source`."""
 
 from __future__ import annotations
 
@@ -28,10 +23,7 @@ def _importer(module: str, name: str) -> Callable[[], Factory]:
 
 @functools.cache
 def built_in() -> dict[type[BaseModel], Callable[[], Factory]]:
-    """The source of each spec model of ``AGENT_SPECS``: spec model -> the function importing it.
-
-    Built on first use: the scenario models (pydantic) are not needed to import this package.
-    """
+    """The source of each spec model of ``AGENT_SPECS``: spec model -> the function importing it."""
     from amuled_ma.scenario import agents
 
     here = "amuled_ma.beliefs.sources"
@@ -79,30 +71,20 @@ def _factory(kind: str) -> Callable[..., BeliefSource]:
     )
 
 
-def load_agent_factory(name: str) -> Callable[..., BeliefSource]:
-    """A plug-in agent's factory: an ``amuled_ma.agents`` entry-point name or ``"module:Class"``.
+def entry_point_source(name: str, options: Mapping[str, Any] | None = None) -> BeliefSource:
+    """A plug-in agent: ``name``'s factory (through `load_plugin`) called with ``options``.
 
-    Through `load_plugin`: a ``"module:Class"`` must be allowed with ``--allow-plugin``; a
-    name that is refused, does not import or is not callable raises `ScenarioError`.
+    ``name``: an ``amuled_ma.agents`` entry point, or a ``"module:Class"`` allowed with
+    ``--allow-plugin``. `ScenarioError`: refused, not importable or callable, or no source.
     """
     from amuled_ma.clusters.plugins import load_plugin
 
-    if not isinstance(name, str) or not name.strip():
-        raise ScenarioError(
-            f"entry-point agent: name expects an entry-point name or 'module:Class', found {name!r}"
-        )
-    factory = load_plugin(name, f"entry-point agent {name!r}")
+    factory = load_plugin(name, f"entry-point agent {name!r}")  # refuses a name that is none
     if not callable(factory):
         raise ScenarioError(
             f"entry-point agent {name!r}: it names {type(factory).__name__}, not a class or "
             "function; fix the name"
         )
-    return factory
-
-
-def entry_point_source(name: str, options: Mapping[str, Any] | None = None) -> BeliefSource:
-    """``load_agent_factory(name)(**options)``; `ScenarioError` if that fails or is no source."""
-    factory = load_agent_factory(name)
     options = dict(options or {})
     try:
         source = factory(**options)
@@ -120,10 +102,7 @@ def entry_point_source(name: str, options: Mapping[str, Any] | None = None) -> B
 
 
 def make_source(kind: str, **options: Any) -> BeliefSource:
-    """Build a belief source of ``kind`` (of ``AGENT_SPECS``, registered, or an entry point).
-
-    An unknown kind, or options the source does not accept, raise `ScenarioError`.
-    """
+    """A belief source of ``kind``; `ScenarioError` for an unknown kind or options it refuses."""
     fallback = options.get("fallback")
     if isinstance(fallback, Mapping):
         spec = dict(fallback)

@@ -1,8 +1,4 @@
-"""``replay``: beliefs from a recording of real LLM answers (``docs/beliefs.md``, "replay").
-
-Looked up by task, observation rounded to ``decimals`` and cluster name (or alias); a miss is
-handled by ``miss_policy``. Every recorded belief is checked on load.
-"""
+"""``replay``: beliefs from a recording of real LLM answers (``docs/beliefs.md``, "replay")."""
 
 from __future__ import annotations
 
@@ -145,10 +141,7 @@ class Recording:
 
     @property
     def fused_only(self) -> bool:
-        """True when no state holds a per-agent belief, only the authors' fused one.
-
-        (The authors' Driving cache of gpt-4o-mini: it serves AMULED's feedback, no cluster.)
-        """
+        """True when no state holds a per-agent belief, only the authors' fused one."""
         return bool(self.states) and not any(self._beliefs.values())
 
     def fused(self, obs: Sequence[float]) -> np.ndarray | None:
@@ -170,10 +163,7 @@ class Recording:
         return vector
 
     def answer(self, state: Mapping[str, Any], agent: str) -> tuple[np.ndarray, str | None] | None:
-        """Return ``(belief, raw reply or None)`` of ``agent`` in ``state``, if recorded.
-
-        The belief is the one checked at load (a copy), divided by its sum.
-        """
+        """``(a copy of the checked belief, raw reply or None)`` of ``agent``, if recorded."""
         vector = self._beliefs[obs_key(state["obs"], self.decimals)].get(agent)
         if vector is None:
             return None
@@ -226,12 +216,6 @@ class ReplaySource(BeliefSource):
         self.misses_by_cluster: Counter[str] = Counter()
         self._agent_cache: dict[tuple[int, str], str | None] = {}
 
-    def _recording_for(self, task: str) -> Recording | None:
-        for recording in self.recordings:
-            if _norm(recording.task) == _norm(task):
-                return recording
-        return None
-
     def _aliases(self, cluster: str) -> tuple[tuple[str, ...], bool]:
         registry = self._registry
         if registry is None:
@@ -269,7 +253,8 @@ class ReplaySource(BeliefSource):
 
     def lookup(self, request: BeliefRequest) -> tuple[np.ndarray, str | None] | str:
         """Return ``(belief, raw)`` for a request, or the reason it is a miss."""
-        recording = self._recording_for(request.task)
+        task = _norm(request.task)
+        recording = next((r for r in self.recordings if _norm(r.task) == task), None)
         if recording is None:
             return f"no recording for task {request.task!r}"
         if len(request.action_names) != len(recording.actions):

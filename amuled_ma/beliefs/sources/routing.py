@@ -1,7 +1,4 @@
-"""`RoutedSource`: one batch split across the panel members' sources, one call per member.
-
-See ``docs/beliefs.md``, "Per-agent sources".
-"""
+"""`RoutedSource`: one batch split across the members' sources (``docs/beliefs.md``)."""
 
 from __future__ import annotations
 
@@ -56,29 +53,6 @@ class RoutedSource(BeliefSource):
             )
         return source
 
-    def _split(self, requests: Sequence[BeliefRequest]) -> list[tuple[BeliefSource, list[int]]]:
-        """Group request indices by member source, members in order of first request."""
-        groups: dict[int, tuple[BeliefSource, list[int]]] = {}
-        for i, request in enumerate(requests):
-            source = self.source_for(request.cluster)
-            groups.setdefault(id(source), (source, []))[1].append(i)
-        return list(groups.values())
-
-    @staticmethod
-    def _sub_batch(
-        source: BeliefSource, requests: Sequence[BeliefRequest], indices: list[int]
-    ) -> list[BeliefRequest]:
-        """The member's requests, without the chat for a member that reads none.
-
-        So replay, rules and policy members key the store as when they serve a panel alone.
-        """
-        if getattr(source, "needs_messages", True):
-            return [requests[i] for i in indices]
-        return [
-            dataclasses.replace(requests[i], messages=()) if requests[i].messages else requests[i]
-            for i in indices
-        ]
-
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
         """Send each member its requests in one call; the answers in order (`iter_beliefs`)."""
         return in_order(self.iter_beliefs(requests), len(requests), self.name)
@@ -88,8 +62,14 @@ class RoutedSource(BeliefSource):
 
         `ScenarioError`: an agent without a source; `RuntimeError`: a member's count is wrong.
         """
-        for source, indices in self._split(requests):
-            batch = self._sub_batch(source, requests, indices)
+        groups: dict[int, tuple[BeliefSource, list[int]]] = {}  # by member, in order of use
+        for i, request in enumerate(requests):
+            source = self.source_for(request.cluster)
+            groups.setdefault(id(source), (source, []))[1].append(i)
+        for source, indices in groups.values():
+            batch = [requests[i] for i in indices]
+            if not getattr(source, "needs_messages", True):  # keyed as when alone in a panel
+                batch = [dataclasses.replace(r, messages=()) if r.messages else r for r in batch]
             iterate = getattr(source, "iter_beliefs", None)
             if callable(iterate):
                 for j, result in iterate(batch):

@@ -1,8 +1,4 @@
-"""``rules`` and `ScriptedSource`: belief sources that need no LLM.
-
-A rule answers scores, divided by their sum and checked by `check_belief`; an invalid answer
-becomes a uniform ``"error"``, so a buggy rule never feeds fusion or the store an invalid belief.
-"""
+"""``rules`` and `ScriptedSource`: sources that need no LLM; a bad answer is a uniform ``error``."""
 
 from __future__ import annotations
 
@@ -47,14 +43,9 @@ def _result(values: object, n_actions: int, source: str) -> BeliefResult:
         values = values.reshape(-1)  # a (1, A) row of a batched rule is one answer
     belief, reason = check_belief(values, n_actions, scores=True)
     if belief is None:
-        return BeliefResult(
-            belief=uniform(n_actions),
-            status="error",
-            source=source,
-            extra={
-                "error": f"{source} gave an invalid belief: it {reason}",
-                "invalid_belief": show_values(values),
-            },
+        error = f"{source} gave an invalid belief: it {reason}"
+        return BeliefResult.failed(
+            n_actions, "error", source, error, invalid_belief=show_values(values)
         )
     return BeliefResult(belief=belief, status="ok", source=source)
 
@@ -100,11 +91,7 @@ class RulesSource(BeliefSource):
             self._fn = resolve_callable(policy, "rules source: key policy")
 
     def beliefs(self, requests: Sequence[BeliefRequest]) -> list[BeliefResult]:
-        """Answer each request with the rule; a failing rule gives a uniform ``"error"``.
-
-        One batched call per (task, obs length, action count); if it fails or returns the
-        wrong shape, each request is asked on its own.
-        """
+        """One rule call per (task, obs length, actions), else one per request if that fails."""
         pairs: list[tuple[int, BeliefResult]] = []
         groups = indices_by(requests, lambda r: (r.task, len(r.obs), r.num_actions))
         for (task, _, n), indices in groups.items():
@@ -125,12 +112,7 @@ class RulesSource(BeliefSource):
         try:
             raw = self._fn(request.task, np.asarray(request.obs, dtype=np.float64))
         except Exception as error:  # a rule bug must not stop training
-            return BeliefResult(
-                belief=uniform(request.num_actions),
-                status="error",
-                source=self.name,
-                extra={"error": repr(error)},
-            )
+            return BeliefResult.failed(request.num_actions, "error", self.name, repr(error))
         return _result(raw, request.num_actions, self.name)
 
     def identity(self) -> dict[str, Any]:
@@ -170,9 +152,7 @@ class ScriptedSource(BeliefSource):
                     assert self._table is not None
                     raw = self._table.get(request.cluster, self._table.get("*", uniform(n)))
             except Exception as error:  # a script bug must not stop training
-                out.append(
-                    BeliefResult(uniform(n), "error", self.name, extra={"error": repr(error)})
-                )
+                out.append(BeliefResult.failed(n, "error", self.name, repr(error)))
                 continue
             out.append(_result(raw, n, self.name))
         return out

@@ -1,8 +1,4 @@
-"""``terminal``: a person at the terminal types a panel member's beliefs, one line per state.
-
-The accepted lines are in ``docs/beliefs.md`` ("terminal: a person answers"); the end of
-the input abstains every later state and is never waited on.
-"""
+"""``terminal``: a person types a member's beliefs, a line a state (``docs/beliefs.md``)."""
 
 from __future__ import annotations
 
@@ -17,8 +13,8 @@ from typing import IO, Any
 
 import numpy as np
 
-from amuled_ma.beliefs.replies.parsing import uniform
 from amuled_ma.beliefs.replies.validate import check_belief
+from amuled_ma.beliefs.store.rows import unstorable_text
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult, BeliefSource, in_order, indices_by
 from amuled_ma.errors import ScenarioError
 from amuled_ma.monitor.progress import held
@@ -42,28 +38,11 @@ _UNDECODABLE_MARK = "\x00undecodable:"
 _UNDECODABLE = _UNDECODABLE_MARK + "{} at byte {}"
 
 
-def _storable(line: str) -> bool:
-    """Whether a line is text UTF-8 can hold (no lone surrogates from undecodable bytes)."""
-    try:
-        line.encode("utf-8")
-    except UnicodeEncodeError:
-        return False
-    return True
-
-
 def _printable(line: str) -> str:
     r"""The line with undecodable bytes as ``\udcNN`` escapes (text the store can hold)."""
     if line.startswith(_UNDECODABLE_MARK):
         return "<not UTF-8: " + line[len(_UNDECODABLE_MARK) :] + ">"
     return line.encode("utf-8", "backslashreplace").decode("utf-8")
-
-
-def _not_text(line: str) -> str:
-    """The reason a line of bytes that are not UTF-8 text is refused."""
-    return (
-        f"found bytes that are not UTF-8 text ({_printable(line)[:80]}); type the answer "
-        "again (numbers, an action index or skip)"
-    )
 
 
 def _cut(token: str) -> str:
@@ -113,9 +92,7 @@ def parse_answer(
     if action_names and any(c.isalpha() for c in text):
         index, alike = action_by_name(text, action_names)
         if index is not None:
-            belief = np.zeros(n_actions)
-            belief[index] = 1.0
-            return belief, None
+            return np.eye(n_actions)[index], None  # all on the named action
         if alike:
             return None, f"found {_cut(text)}, the start of {' and '.join(alike)}; {expected}"
     tokens = [t for t in _SPLIT.split(text) if t]
@@ -127,9 +104,7 @@ def parse_answer(
         index = int(tokens[0])
         if not 0 <= index < n_actions:
             return None, f"found the action index {index}, out of range; {expected}"
-        belief = np.zeros(n_actions)
-        belief[index] = 1.0
-        return belief, None
+        return np.eye(n_actions)[index], None
     values: list[float] = []
     for token in tokens:
         try:
@@ -263,13 +238,10 @@ class TerminalSource(BeliefSource):
     def _abstain(
         self, request: BeliefRequest, reason: str, raw: str | None, start: float
     ) -> BeliefResult:
-        return BeliefResult(
-            belief=uniform(request.num_actions),
-            status="abstained",
-            source=self.name,
-            raw=raw,
-            latency_s=time.perf_counter() - start,
-            extra={"error": reason, "person": self.person},
+        latency = time.perf_counter() - start
+        n = request.num_actions
+        return BeliefResult.failed(
+            n, "abstained", self.name, reason, raw=raw, latency_s=latency, person=self.person
         )
 
     def _question(self, request: BeliefRequest, left: int) -> BeliefResult:
@@ -292,15 +264,24 @@ class TerminalSource(BeliefSource):
                 return self._abstain(request, self._eof_reason(), last, start)
             last = line.rstrip("\r\n")
             if last.strip().lower() == PROMPT:  # shown, then asked again: not an attempt
-                self._write(self._prompt_text(request) + "\n")
+                shown = f"(no prompt: the panel sent the observation only, {list(request.obs)})"
+                if request.messages:
+                    shown = request.messages[-1][1].rstrip()
+                self._write(shown + "\n")
                 continue
             attempt += 1
             belief, reason = parse_answer(last, n, request.action_names)
-            if line.startswith(_UNDECODABLE_MARK) or not _storable(last):
+            if line.startswith(_UNDECODABLE_MARK) or unstorable_text(last) is not None:
                 # bytes that are not UTF-8 (read as lone surrogates, or refused by the
                 # decoder): the store could not hold the line, so it is not an answer
-                belief, reason = None, _not_text(last)
                 last = _printable(last)
+                belief, reason = (
+                    None,
+                    (
+                        f"found bytes that are not UTF-8 text ({last[:80]}); type the answer "
+                        "again (numbers, an action index or skip)"
+                    ),
+                )
             if belief is not None:
                 self.stats["answered"] += 1
                 return BeliefResult(
@@ -324,13 +305,6 @@ class TerminalSource(BeliefSource):
             last,
             start,
         )
-
-    @staticmethod
-    def _prompt_text(request: BeliefRequest) -> str:
-        """The full prompt of a request (its chat's last message), or why there is none."""
-        if request.messages:
-            return request.messages[-1][1].rstrip()
-        return f"(no prompt: the panel sent the observation only, {list(request.obs)})"
 
     def _eof_reason(self) -> str:
         return (

@@ -24,10 +24,8 @@ NOT_STORED = frozenset({"replay_miss"})
 class CacheStats:
     """Counters of a `CachedSource` since creation (or `CachedSource.reset_stats`).
 
-    ``requests`` (duplicates included), ``unique`` (per batch), ``store_hits``, ``misses``
-    (distinct requests not found), ``sent`` (to the wrapped source), ``written`` (rows),
-    ``not_cached`` (answers not served back later), ``invalid`` (invalid beliefs, made
-    ``"error"`` or, for a failure, uniform).
+    ``requests`` (duplicates included), ``unique`` (per batch), ``misses`` (distinct, not found),
+    ``sent`` (to the source), ``not_cached`` (never served back), ``invalid`` (made ``error``).
     """
 
     requests: int = 0
@@ -57,10 +55,8 @@ class CacheStats:
 class CachedSource(BeliefSource):
     """A belief source that looks every request up in a store before sending it.
 
-    ``chunk_size``: requests per call to a source without ``iter_beliefs`` (each chunk written
-    before the next is sent); ``flush_every``: with ``iter_beliefs``, answers per transaction;
-    ``identity``: the identity recorded in the store (`identities`), to key it without asking
-    the source (whose ``identity()`` may need its backend): hits then never touch the source.
+    ``chunk_size`` and ``flush_every``: ``docs/store.md`` ("Writing as answers arrive");
+    ``identity``: one the store recorded (`identities`), so that hits never touch the source.
     """
 
     def __init__(

@@ -162,10 +162,7 @@ class BeliefStore:
         return conn
 
     def _journal_wal(self, conn: sqlite3.Connection) -> str:
-        """Switch to WAL mode, waiting up to ``timeout_s`` for other processes' locks.
-
-        SQLite calls no busy handler here: processes creating one store at once would fail.
-        """
+        """Switch to WAL mode, waiting ``timeout_s`` for locks (SQLite's busy handler does not)."""
         deadline = time.monotonic() + self.timeout_s
         while True:
             try:
@@ -281,10 +278,7 @@ class BeliefStore:
                 ) from error
 
     def _read_keys(self, sql: str, keys: Sequence[str]) -> list[tuple[Any, ...]]:
-        """`_read` of ``sql`` (one ``key IN (?, ...)``); a too-long value's error names its row.
-
-        The key is found by asking the keys one at a time (each refused without reading it).
-        """
+        """`_read` of ``sql`` (one ``key IN (?, ...)``); a too-long value's error names its row."""
         try:
             return self._read(sql, keys)
         except _ValueTooBig:
@@ -321,21 +315,24 @@ class BeliefStore:
         ``cacheable_only`` returns only answers (``ok``/``repaired``); ``with_messages`` also reads
         each row's chat (slower; ``messages`` is ``None`` otherwise).
         """
-        wanted = list(dict.fromkeys(keys))
         found: dict[str, StoredBelief] = {}
-        status_filter = " AND status IN ('ok', 'repaired')" if cacheable_only else ""
+        for rows in self._by_keys(COLUMNS, keys, cacheable_only):
+            texts = self._texts(rows) if with_messages else None
+            found.update((row[0], decode_row(row, texts, self.path)) for row in rows)
+        return found
+
+    def _by_keys(
+        self, columns: str, keys: Iterable[str], cacheable_only: bool
+    ) -> Iterator[list[tuple[Any, ...]]]:
+        """The ``columns`` of the rows of ``keys`` (each once), a list per `_SQL_CHUNK` keys."""
+        wanted = list(dict.fromkeys(keys))
+        status = " AND status IN ('ok', 'repaired')" if cacheable_only else ""
         for start in range(0, len(wanted), _SQL_CHUNK):
             chunk = wanted[start : start + _SQL_CHUNK]
-            sql = (
-                f"SELECT {COLUMNS} FROM beliefs "
-                f"WHERE key IN ({','.join('?' * len(chunk))}){status_filter}"
+            marks = ",".join("?" * len(chunk))
+            yield self._read_keys(
+                f"SELECT {columns} FROM beliefs WHERE key IN ({marks}){status}", chunk
             )
-            rows = self._read_keys(sql, chunk)
-            texts = self._texts(rows) if with_messages else None
-            for row in rows:
-                stored = decode_row(row, texts, self.path)
-                found[stored.key] = stored
-        return found
 
     def _texts(self, rows: Sequence[Sequence[Any]]) -> dict[str, str]:
         """Fetch the message bodies referenced by ``rows``."""
@@ -363,28 +360,11 @@ class BeliefStore:
         Only a `BeliefResult`'s columns are read; ``cached=True``, ``latency_s=0`` and the
         original latency in ``extra["stored_latency_s"]``.
         """
-        wanted = list(dict.fromkeys(keys))
         found: dict[str, BeliefResult] = {}
         width = self._width
-        for start in range(0, len(wanted), _SQL_CHUNK):
-            chunk = wanted[start : start + _SQL_CHUNK]
-            sql = (
-                "SELECT key, source, raw, belief, status, latency_s, prompt_tokens, "
-                "completion_tokens, extra, actions FROM beliefs "
-                f"WHERE key IN ({','.join('?' * len(chunk))}) AND status IN ('ok', 'repaired')"
-            )
-            for (
-                key,
-                source,
-                raw,
-                belief,
-                status,
-                lat,
-                ptok,
-                ctok,
-                extra,
-                actions,
-            ) in self._read_keys(sql, chunk):
+        columns = "key, source, raw, belief, status, latency_s, prompt_tokens, completion_tokens"
+        for rows in self._by_keys(f"{columns}, extra, actions", keys, True):
+            for key, source, raw, belief, status, lat, ptok, ctok, extra, actions in rows:
                 where = f"{self.path}: row {key}"
                 n = width.get(actions)
                 if n is None:
@@ -440,10 +420,7 @@ class BeliefStore:
                 yield decode_row(row, texts, self.path)
 
     def identities(self) -> list[dict[str, Any]]:
-        """``[{"identity": {...}, "rows": n, "answers": m}, ...]``, most rows first.
-
-        An ``identity`` given to `CachedSource` replays the store without the source's backend.
-        """
+        """``[{"identity": {...}, "rows": n, "answers": m}, ...]``, most rows first."""
         rows = self._read(
             "SELECT identity, COUNT(*), SUM(status IN ('ok', 'repaired')) FROM beliefs "
             "GROUP BY identity ORDER BY 2 DESC"
@@ -456,10 +433,7 @@ class BeliefStore:
         return out
 
     def request_seconds(self, model: str) -> list[float]:
-        """``latency_s`` of each answer whose identity's ``"model"`` is ``model``, oldest first.
-
-        Only latencies above 0 count (a row answered from a replay or a cache records 0).
-        """
+        """``latency_s`` above 0 of each answer of ``model`` (the identity's), oldest first."""
         rows = self._read(
             "SELECT latency_s FROM beliefs WHERE status IN ('ok', 'repaired') AND latency_s > 0 "
             "AND json_extract(identity, '$.model') = ? ORDER BY created_at, rowid",
@@ -485,22 +459,8 @@ class BeliefStore:
         now = time.time()
         return self._put([(k, ident, req, res, 1, now, now) for k, ident, req, res in items])
 
-    def put(
-        self,
-        key: str,
-        identity: Mapping[str, Any] | str,
-        request: BeliefRequest,
-        result: BeliefResult,
-    ) -> int:
-        """Write one answer (see `put_many`)."""
-        return self.put_many([(key, identity, request, result)])
-
     def put_rows(self, records: Iterable[StoredBelief]) -> int:
-        """Write whole rows read from another store (`import_jsonl`) as `put_many` does.
-
-        Each row keeps its own ``attempts``, timestamps and identity (``messages`` ``None``
-        counts as no chat).
-        """
+        """Write whole rows (`import_jsonl`) as `put_many` does, keeping attempts and timestamps."""
         return self._put(
             [
                 (r.key, r.identity, r.request(), r, r.attempts, r.created_at, r.updated_at)
@@ -524,12 +484,12 @@ class BeliefStore:
                     "a uniform fallback"
                 )
             ident = identity if isinstance(identity, str) else identity_json(identity)
-            try:
-                row, bodies = encode_row(
-                    key, ident, request, belief, answer, attempts, created_at, updated_at
-                )
-            except UnicodeEncodeError:
-                raise self._unstorable(key, request, answer.raw, answer.extra) from None
+            reason = unstorable_text(request.messages, "messages")  # hashed as UTF-8 below
+            if reason is not None:
+                raise self._refuse(key, reason)
+            row, bodies = encode_row(
+                key, ident, request, belief, answer, attempts, created_at, updated_at
+            )
             rows.append(row)
             texts.update((h, b) for h, b in bodies.items() if h not in self._messages_seen)
         if not rows:
@@ -562,20 +522,6 @@ class BeliefStore:
             "written (fix the text at its source: a file or a reply that is not UTF-8)"
         )
 
-    def _unstorable(
-        self, key: str, request: BeliefRequest, raw: Any, extra: Any
-    ) -> BeliefStoreError:
-        """The error of a row whose request or answer holds text UTF-8 cannot encode."""
-        fields = {
-            "task": request.task,
-            "cluster": request.cluster,
-            "actions": list(request.action_names),
-            "messages": [list(m) for m in request.messages],
-            "raw": raw,
-            "extra": extra,
-        }
-        return self._refuse(key, unstorable_text(fields) or "a text is not valid Unicode")
-
     def integrity_check(self) -> list[str]:
         """SQLite's ``PRAGMA integrity_check``: ``["ok"]`` for a sound file, else its problems."""
         return [str(r[0]) for r in self._read("PRAGMA integrity_check")]
@@ -585,10 +531,7 @@ class BeliefStore:
         self._read("PRAGMA wal_checkpoint(TRUNCATE)")
 
     def stats(self) -> dict[str, Any]:
-        """Counts and sums for ``amuled beliefs stats``, as a JSON-compatible dict.
-
-        Rows, rows per status / source+model / task+cluster, latency and token totals, file sizes.
-        """
+        """Counts and sums for ``amuled beliefs stats``, as a JSON-compatible dict."""
         total = len(self)
         by_status = dict(self._read("SELECT status, COUNT(*) FROM beliefs GROUP BY status"))
         by_model = [

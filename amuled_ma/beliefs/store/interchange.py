@@ -1,8 +1,4 @@
-"""JSON Lines export and import of the belief store (``amuled beliefs export`` / ``import``).
-
-Standard JSON only; import checks every field, refuses a key that does not match its row with
-``verify``, and never replaces an existing answer.
-"""
+"""JSON Lines export and import of the belief store (``amuled beliefs export`` / ``import``)."""
 
 from __future__ import annotations
 
@@ -129,11 +125,7 @@ def _reject_constant(name: str) -> Any:
 
 
 def parse_line(line: str, where: str, verify: bool = True) -> StoredBelief:
-    """Validate one exported JSON line into a row, chat included (``verify``: as `import_jsonl`).
-
-    An invalid line raises `BeliefStoreError` naming ``where`` (``FILE:LINE``), the key when
-    known, what was found and the fix.
-    """
+    """One exported line as a row (``verify``: as `import_jsonl`); else `BeliefStoreError`."""
     try:
         obj = json.loads(line, parse_constant=_reject_constant)
     except (ValueError, RecursionError) as error:

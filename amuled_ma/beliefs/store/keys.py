@@ -1,8 +1,4 @@
-"""A store key: the SHA-256 of the canonical JSON of the source identity and the full request.
-
-Hashed in two parts (the per-cluster prefix once per process), byte for byte the same as the
-whole text; the row encoding shares the JSON encoders, so a row's columns are the key's parts.
-"""
+"""A store key: the SHA-256 of the canonical JSON of the source identity and the full request."""
 
 from __future__ import annotations
 

@@ -1,8 +1,4 @@
-"""A belief-store row: the table layout (schema version 1), the row record, every value checked.
-
-The columns are listed in ``docs/store.md``; a row whose belief is invalid is refused on
-write and on read (`damaged_row` names the key and how to delete it).
-"""
+"""A belief-store row: the table layout (``docs/store.md``), the row record, every value checked."""
 
 from __future__ import annotations
 
@@ -74,10 +70,7 @@ class BeliefStoreError(AmuledError, RuntimeError):
 
 @dataclass
 class StoredBelief:
-    """One row of the store, as read back: the columns of ``docs/store.md``, parsed.
-
-    ``messages`` is ``None`` when not read (`get_many`); ``belief`` is float64.
-    """
+    """One row of the store as read back (``messages`` ``None``: not read, `get_many`)."""
 
     key: str
     source: str
@@ -155,9 +148,8 @@ COLUMN_NAMES = tuple(name.strip() for name in COLUMNS.split(","))
 def unstorable_text(value: object, where: str = "") -> str | None:
     r"""Why ``value`` (text, or JSON-like data holding text) cannot be stored as UTF-8, or None.
 
-    Python strings may hold lone surrogates (``"\udcff"``: a byte that was not UTF-8, read
-    with ``surrogateescape``, or a ``\ud800`` escape in JSON) that no UTF-8 file can hold.
-    The reason reads ``"<where> holds ... at character N"`` (``where``: ``raw``, ``extra.error``).
+    A lone surrogate (a byte read with ``surrogateescape``, a ``\ud800`` JSON escape) cannot;
+    the reason reads ``"<where> holds ... at character N"`` (``where``: ``raw``, ``extra.error``).
     """
     stack: list[tuple[Any, str]] = [(value, where)]
     while stack:
@@ -190,10 +182,7 @@ def check_storable(row: Row) -> str | None:
 
 
 def extra_json(extra: Mapping[str, Any] | None) -> str:
-    """Diagnostics as standard JSON (``"{}"`` when empty), what it cannot hold as its repr.
-
-    So is a non-finite float (``"nan"``, ``"inf"``): no row ever holds a non-standard ``NaN``.
-    """
+    """Diagnostics as standard JSON (``"{}"`` when empty), what it cannot hold (NaN too) as repr."""
     if not extra:
         return "{}"
     plain = jsonable(extra, finite=True)
@@ -323,23 +312,15 @@ def decode_row(
         isinstance(x, int | float) and not isinstance(x, bool) for x in obs_values
     ):
         raise damaged_row(where, key, f"column 'obs' is not a list of numbers: {obs!r}")
-    return StoredBelief(
-        key=key,
-        source=column["source"],
+    del column["actions"]
+    column.update(
         identity=load_column(column["identity"], "identity", where, key),
-        task=column["task"],
-        cluster=column["cluster"],
         obs=tuple(obs_values),
-        action_names=tuple(names),
         messages=messages,
-        raw=column["raw"],
         belief=load_belief(column["belief"], len(names), where, key),
-        status=column["status"],
-        latency_s=column["latency_s"],
-        prompt_tokens=column["prompt_tokens"],
-        completion_tokens=column["completion_tokens"],
         extra=load_extra(column["extra"], where, key),
         attempts=int(column["attempts"]),
         created_at=float(column["created_at"]),
         updated_at=float(column["updated_at"]),
     )
+    return StoredBelief(**column, action_names=tuple(names))

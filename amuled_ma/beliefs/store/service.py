@@ -1,4 +1,4 @@
-"""What may stand in for the belief store (`StoreService`), and how a run's store is opened.
+"""What may stand in for the belief store (`StoreService`).
 
 A node that cannot open the SQLite file safely (another machine, a network file system) is
 handed a service instead (for Ray: `amuled_ma.experiments.ray_store`).
@@ -6,11 +6,9 @@ handed a service instead (for Ray: `amuled_ma.experiments.ray_store`).
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping, Sequence
 from typing import Any, Protocol
 
-from amuled_ma.beliefs.store.database import BeliefStore
 from amuled_ma.beliefs.types import BeliefRequest, BeliefResult
 
 #: One answer to write: ``(key, source identity, request, result)``.
@@ -28,8 +26,3 @@ class StoreService(Protocol):
 
     def close(self) -> None:
         """Release the service's handle."""
-
-
-def open_store(path: str | os.PathLike[str]) -> BeliefStore:
-    """Open (creating it and its folder) the `BeliefStore` file at ``path``."""
-    return BeliefStore(path)

@@ -211,7 +211,7 @@ def raw_store(tmp_path, belief_text, status="ok"):
     with BeliefStore(path) as store:
         for i in (1, 2):
             r = BeliefResult(np.array([0.1, 0.2, 0.3, 0.4]), "ok", "nan-bot")
-            store.put(request_key(IDENT, req(i)), IDENT, req(i), r)
+            store.put_many([(request_key(IDENT, req(i)), IDENT, req(i), r)])
     key = request_key(IDENT, req(2))
     conn = sqlite3.connect(path)  # as a hand edit or another program would
     conn.execute(
@@ -315,7 +315,7 @@ def test_export_writes_standard_json_only(tmp_path):
             latency_s=0.5,
             extra={"score": math.nan, "nested": {"big": math.inf}},
         )
-        store.put(request_key(IDENT, req()), IDENT, req(), r)
+        store.put_many([(request_key(IDENT, req()), IDENT, req(), r)])
         buf = io.StringIO()
         assert export_jsonl(store, buf) == 1
     row = strict_loads(buf.getvalue())  # no NaN/Infinity anywhere in the line

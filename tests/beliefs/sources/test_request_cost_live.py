@@ -50,7 +50,9 @@ def test_estimate_within_factor_two_of_measured(ollama_host, ollama_model, tmp_p
             for i in range(5):
                 (result,) = source.beliefs([_request(i)])
                 assert result.status in ("ok", "repaired"), (result.status, result.raw)
-                store.put(request_key(identity, _request(i)), identity, _request(i), result)
+                store.put_many(
+                    [(request_key(identity, _request(i)), identity, _request(i), result)]
+                )
         cost = request_cost(path, ollama_model)
         assert cost.basis == "measured here: median of 5 recorded requests"
         walls = []

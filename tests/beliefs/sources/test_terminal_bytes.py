@@ -97,8 +97,8 @@ def test_the_store_refuses_text_it_cannot_encode_with_one_line(tmp_path: Path) -
     assert len(store) == 0  # the transaction never started
     chat = BeliefRequest("findmilk", "care", (1.0, 2.0), MILK, (("user", "x\ud800"),))
     with pytest.raises(BeliefStoreError, match=r"row k3: messages\[0\]\[1\] holds \\ud800"):
-        store.put("k3", {}, chat, good)
-    store.put("k1", {"source": "rules"}, request, good)  # the store still works
+        store.put_many([("k3", {}, chat, good)])
+    store.put_many([("k1", {"source": "rules"}, request, good)])  # the store still works
     assert len(store) == 1
 
 

@@ -103,7 +103,7 @@ def test_round_trip_all_fields(store):
         completion_tokens=7,
         extra={"retries": 1},
     )
-    assert store.put(key, IDENT, req(1), result) == 1
+    assert store.put_many([(key, IDENT, req(1), result)]) == 1
     row = store.get(key)
     assert row is not None and row.status == "ok"
     np.testing.assert_array_equal(row.belief, [0.1, 0.2, 0.3, 0.4])
@@ -122,21 +122,23 @@ def test_round_trip_all_fields(store):
 
 def test_unserialisable_extra_is_kept_as_repr(store):
     key = request_key(IDENT, req(1))
-    store.put(key, IDENT, req(1), res([1, 0, 0, 0], extra={"error": ValueError("boom"), "n": 2}))
+    store.put_many(
+        [(key, IDENT, req(1), res([1, 0, 0, 0], extra={"error": ValueError("boom"), "n": 2}))]
+    )
     assert store.get(key).extra == {"error": "ValueError('boom')", "n": 2}
 
 
 def test_answers_are_never_replaced_failures_are(store):
     key = request_key(IDENT, req(1))
-    store.put(key, IDENT, req(1), res([0.25] * 4, status="abstained", raw="no json here"))
+    store.put_many([(key, IDENT, req(1), res([0.25] * 4, status="abstained", raw="no json here"))])
     assert store.get(key) is None  # not served
     assert store.get(key, cacheable_only=False).status == "abstained"
-    assert store.put(key, IDENT, req(1), res([1, 0, 0, 0], status="repaired")) == 1
+    assert store.put_many([(key, IDENT, req(1), res([1, 0, 0, 0], status="repaired"))]) == 1
     row = store.get(key)
     assert row.status == "repaired" and row.attempts == 2
     # a later answer (or failure) never overwrites an answer
-    assert store.put(key, IDENT, req(1), res([0, 1, 0, 0])) == 0
-    assert store.put(key, IDENT, req(1), res([0.25] * 4, status="timeout")) == 0
+    assert store.put_many([(key, IDENT, req(1), res([0, 1, 0, 0]))]) == 0
+    assert store.put_many([(key, IDENT, req(1), res([0.25] * 4, status="timeout"))]) == 0
     np.testing.assert_array_equal(store.get(key).belief, [1, 0, 0, 0])
 
 
@@ -152,17 +154,10 @@ def test_message_bodies_are_stored_once(store):
 
 
 def test_stats(store):
-    store.put(
-        request_key(IDENT, req(1)),
-        IDENT,
-        req(1),
-        res([1, 0, 0, 0], latency_s=2.0, prompt_tokens=10, completion_tokens=3),
-    )
-    store.put(
-        request_key(IDENT, req(2)),
-        IDENT,
-        req(2),
-        res([1, 0, 0, 0], status="abstained", latency_s=4.0, prompt_tokens=5),
+    ok = res([1, 0, 0, 0], latency_s=2.0, prompt_tokens=10, completion_tokens=3)
+    abstained = res([1, 0, 0, 0], status="abstained", latency_s=4.0, prompt_tokens=5)
+    store.put_many(
+        [(request_key(IDENT, req(i)), IDENT, req(i), r) for i, r in ((1, ok), (2, abstained))]
     )
     s = store.stats()
     assert s["rows"] == 2 and s["cacheable_rows"] == 1
@@ -264,7 +259,8 @@ _WRITER = textwrap.dedent(
         tag = "shared" if i % 2 == 0 else f"w{wid}"
         r = BeliefRequest("findmilk", tag, (float(i),), ("a", "b"), (("user", f"state {i}"),))
         b = np.array([i % 7, 1.0]) / (i % 7 + 1.0)
-        s.put(request_key(ident, r), ident, r, BeliefResult(b, "ok", "scripted", raw=f"r{i}"))
+        answer = BeliefResult(b, "ok", "scripted", raw=f"r{i}")
+        s.put_many([(request_key(ident, r), ident, r, answer)])
     """
 )
 
@@ -289,14 +285,14 @@ def test_several_processes_write_at_once(tmp_path):
 
 def _child_write(store, i):
     r = req(100 + i)
-    store.put(request_key(IDENT, r), IDENT, r, res([0, 0, 1, 0], raw=f"child {i}"))
+    store.put_many([(request_key(IDENT, r), IDENT, r, res([0, 0, 1, 0], raw=f"child {i}"))])
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="fork start method")
 def test_a_forked_child_reopens_its_own_connection(store):
     import multiprocessing
 
-    store.put(request_key(IDENT, req(1)), IDENT, req(1), res([1, 0, 0, 0]))
+    store.put_many([(request_key(IDENT, req(1)), IDENT, req(1), res([1, 0, 0, 0]))])
     ctx = multiprocessing.get_context("fork")
     procs = [ctx.Process(target=_child_write, args=(store, i)) for i in range(2)]
     for p in procs:
