@@ -20,8 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from amuled_ma.authors.pickle_reader import short_repr
-from amuled_ma.authors.unpickle import load_pickle
+from amuled_ma.authors.unpickle import load_pickle, short_repr
 from amuled_ma.errors import AuthorsImportError
 from amuled_ma.scenario import MORAL_AGENT  # our field (and exchange agent) for that answer
 
