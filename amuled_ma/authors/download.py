@@ -1,9 +1,7 @@
 """Fetch the paper authors' pinned files on first use; convert them as ``amuled import authors``.
 
-pooch fetches each file at the pinned commit and keeps it only when its SHA-256 matches. A
-file found locally is never fetched; offline (``--offline``, ``$AMULED_OFFLINE=1``) a missing
-file is one line naming the manual route. ``$AMULED_AUTHORS_URL`` replaces `RAW_BASE`,
-``$AMULED_CACHE`` the cache root.
+Each file is kept only when its SHA-256 matches; offline use and the environment variables:
+docs/authors.md.
 """
 
 from __future__ import annotations

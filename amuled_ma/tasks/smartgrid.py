@@ -1,9 +1,6 @@
 """Ethical Smart Grid (Chaput et al., ``ethical-smart-grid`` 2.0.0) as an AMULED task.
 
-An adapter, not a fork (the package is imported lazily; extra ``amuled-ma[smartgrid]``):
-one learning household, the other prosumers `FIXED_ACTION`; named discrete actions;
-``num_envs`` package worlds stepped in a loop; the package's per-value rewards as judges.
-docs/tasks.md, "Ethical Smart Grid".
+An adapter, not a fork (extra ``amuled-ma[smartgrid]``): docs/tasks.md, "Ethical Smart Grid".
 """
 
 from __future__ import annotations
