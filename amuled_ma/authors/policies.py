@@ -1,8 +1,7 @@
-"""Convert the authors' CleanRL policies into our run folders.
+"""Convert the authors' CleanRL policies into our run folders (docs/authors.md).
 
-Their ``Agent`` holds two MLPs ``{actor,critic}.{0,2,4}`` (64-64 Tanh); ours are rsl-rl's
-``mlp.{0,2,4}``. Weights are copied layer by layer and both actors are checked to give the
-same logits. Files are read with ``weights_only=True``: tensors only, no code.
+Their ``{actor,critic}.{0,2,4}`` become rsl-rl's ``mlp.{0,2,4}``; both actors must give the same
+logits. Files are read with ``weights_only=True``: tensors only, no code.
 """
 
 from __future__ import annotations

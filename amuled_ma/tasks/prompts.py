@@ -1,8 +1,6 @@
 """Render the paper's state prompts from the templates in ``prompts/tasks/<task>.md``.
 
-Only the fenced block under ``## prompt`` is the template (``str.format`` rules); a field
-``{name:group}`` inserts the first block under ``### group <condition>`` whose condition
-(``== v``, ``!= v``, ``< v``, ``<= v``, ``> v``, ``>= v``, ``in a..b``, ``otherwise``) holds.
+Template syntax (``{name:group}`` fragments, their conditions): docs/tasks.md, "State prompts".
 """
 
 from __future__ import annotations

@@ -1,8 +1,6 @@
 """A demonstrator's counts as a belief table: observation keys, the 0.6 / 0.4 rule, the file.
 
-An observation is keyed exactly (integer entries within the task's bounds, a mixed-radix
-number); anything else, and any observation never met, has no belief (reward 0 in the
-authors' fine-tuning). The ``.npz`` file loads with ``allow_pickle=False``.
+Keys, the rule, unseen observations and the ``.npz`` file (no pickle): docs/tasks.md.
 """
 
 from __future__ import annotations
