@@ -57,8 +57,8 @@ TASK_OPTIONS: dict[str, type[_Options]] = {
     "driving": DrivingOptions,
     "smartgrid": SmartGridOptions,
 }
-#: Other spellings of a task name (``amuled_ma.tasks.names.ALIASES``, compared lower-case).
-_ALIASES = {
+#: Other spellings of a task name (compared lower-case) -> its short name.
+ALIASES: dict[str, str] = {
     "amuled/findmilk-v0": "findmilk",
     "find_milk": "findmilk",
     "amuled/driving-v0": "driving",
@@ -71,7 +71,7 @@ _ALIASES = {
 def options_model(task: str) -> type[_Options] | None:
     """The option model of the task named ``task`` (short name, alias, any case), or None."""
     key = task.strip().lower()
-    return TASK_OPTIONS.get(_ALIASES.get(key, key))
+    return TASK_OPTIONS.get(ALIASES.get(key, key))
 
 
 def check_task_options(task: str, options: Mapping[str, Any], where: str) -> None:
