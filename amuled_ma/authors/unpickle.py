@@ -1,11 +1,7 @@
-"""Read the authors' LLM-cache pickles without running code from them.
+"""Read the authors' LLM-cache pickles without running code from them (docs/authors.md).
 
-A pickle is a program: ``pickle.load`` calls whatever global the file names. `load_pickle`
-first scans the opcodes (`scan_pickle`, nothing built) and refuses a file naming a global
-outside `ALLOWED_GLOBALS`, or nested deeper than `MAX_DEPTH` (deep tuples crash CPython's
-unpickler); then `BoundedReader`, a small reader of only the opcodes an LLM cache uses (pure
-Python, so a SIGTERM handler runs between opcodes), builds the values within the bounds below
-(tabled in docs/authors.md).
+`scan_pickle` first refuses a file naming a global outside `ALLOWED_GLOBALS` or nested deeper
+than `MAX_DEPTH`, nothing built; then `BoundedReader` builds the values within the bounds below.
 """
 
 from __future__ import annotations

@@ -1,7 +1,6 @@
 """Base class of the batched task environments (many copies stepped by tensor operations).
 
-docs/tasks.md, "The batched core", holds the step contract (auto-reset, ``info`` keys,
-per-episode totals) and the seeding rule (copy ``i`` of seed ``s`` draws as seed ``s + i``).
+The step contract and the seeding rule: docs/tasks.md, "The batched core".
 """
 
 from __future__ import annotations
