@@ -58,11 +58,9 @@ def paint_cells(
 class BatchedTask(abc.ABC):
     """``num_envs`` copies of one task, stepped together with torch tensor operations.
 
-    Subclasses implement the rules in `_advance`, `_reset_where` and `_observe`, declare their
-    options as keyword defaults of `_init_task`, and set ``name`` (the key of `TASKS` and of
-    ``prompts/tasks/<name>.md``), ``obs_names`` (the recordings' ``obs_layout``),
-    ``metric_names`` (per-episode sums in ``info["episode"]``), ``prompt_template`` (an
-    outside task's template), ``judge_names``, ``human_feedback`` and ``default_max_steps``.
+    Subclasses implement `_advance`, `_reset_where`, `_observe` and `_init_task` (options as its
+    keyword defaults) and set ``name`` (the key of `TASKS` and of ``prompts/tasks/<name>.md``),
+    ``default_max_steps`` and the attributes docs/tasks.md tables (``obs_names``, ...).
     """
 
     name: ClassVar[str]
