@@ -47,7 +47,7 @@ def project_to_simplex(v: npt.ArrayLike) -> np.ndarray:
 
 
 class DeliberationEnv(ParallelEnv):
-    """The actor and the moral clusters around one task (see the module docstring).
+    """The actor and the moral clusters around one task (docs/deliberation.md).
 
     ``render_mode``: ``None``, ``"ansi"`` or ``"rgb_array"``; ``max_steps`` None keeps the
     task's limit; ``clusters`` defaults to the shipped panel; ``clusters_dirs`` are folders of
