@@ -1,8 +1,7 @@
 """``[task].options``: each task's keyword options, checked when the scenario is read.
 
 A task refuses a bad option only when built, after the run folder exists, so the scenario
-checks them first against one model per task (`TASK_OPTIONS`); tests hold the models equal
-to the tasks' constructors.
+checks them first against one model per task (`TASK_OPTIONS`, held equal to the constructors).
 """
 
 from __future__ import annotations
