@@ -1,10 +1,6 @@
-"""Convert the authors' LLM-cache pickles into our recording JSON format (``docs/authors.md``).
+"""Convert the authors' LLM-cache pickles into our recording JSON format (docs/authors.md).
 
-The authors' cache is keyed by the flattened observation; each value holds a belief per
-moral cluster, the unprompted ``moral`` answer, the fused ``rewards`` and, where their parser
-repaired an answer, ``error: True`` with the raw replies. No value is changed (float64 of the
-pickled scalar); an all-zero fused belief is kept with ``"total_conflict": true``; a cluster
-belief that is not a probability vector is written as ``null`` with its reason.
+No value is changed (float64 of the pickled scalar); what each cache value becomes: docs/authors.md.
 """
 
 from __future__ import annotations
@@ -20,8 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from amuled_ma.authors.pickle_reader import short_repr
-from amuled_ma.authors.unpickle import load_pickle
+from amuled_ma.authors.unpickle import load_pickle, short_repr
 from amuled_ma.errors import AuthorsImportError
 from amuled_ma.scenario import MORAL_AGENT  # our field (and exchange agent) for that answer
 

@@ -1,10 +1,6 @@
 """Import everything usable from a checkout of the authors' repository ``temetski/moral_agent``.
 
-LLM caches become recordings; a cache under ``PickleCacheAndBaseModels/`` beside one of the
-same task and model under ``models/`` is written as ``<task>-<slug>-fused-only.json``. CleanRL
-policies become ``<runs>/authors/<task>/{base,amuled-<slug>}``. Everything is converted and
-checked before anything is written; an output from the same source is left alone, another
-refused unless ``force``.
+What becomes what, and when an output is left alone or refused: docs/authors.md.
 """
 
 from __future__ import annotations

@@ -1,9 +1,7 @@
 """Fetch the paper authors' pinned files on first use; convert them as ``amuled import authors``.
 
-pooch fetches each file at the pinned commit and keeps it only when its SHA-256 matches. A
-file found locally is never fetched; offline (``--offline``, ``$AMULED_OFFLINE=1``) a missing
-file is one line naming the manual route. ``$AMULED_AUTHORS_URL`` replaces `RAW_BASE`,
-``$AMULED_CACHE`` the cache root.
+Each file is kept only when its SHA-256 matches; offline use and the environment variables:
+docs/authors.md.
 """
 
 from __future__ import annotations
@@ -164,9 +162,8 @@ def fetch_pinned(
 
     Says one line first (what, from where, how large, under whose terms) when anything is fetched.
 
-    Raises:
-        AuthorsFetchError: A file could not be fetched or was refused (SHA-256, size); names
-            the file, the URL and the manual route. Nothing partial stays.
+    Raises AuthorsFetchError: A file could not be fetched or was refused (SHA-256, size); names the
+        file, the URL and the manual route. Nothing partial stays.
     """
     import pooch
     import requests
@@ -232,8 +229,7 @@ def _fetch_unless_offline(
 ) -> Path:
     """`fetch_pinned`; offline with a pin not cached: one line (``missing``, then ``route``).
 
-    Raises:
-        AuthorsFetchError: Offline with a file not cached, or the fetch failed.
+    Raises AuthorsFetchError: Offline with a file not cached, or the fetch failed.
     """
     cache = cache or cache_folder()
     off = offline or os.environ.get(OFFLINE_ENV, "").strip().lower() in ("1", "true", "yes", "on")

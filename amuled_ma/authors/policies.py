@@ -1,8 +1,7 @@
-"""Convert the authors' CleanRL policies into our run folders.
+"""Convert the authors' CleanRL policies into our run folders (docs/authors.md).
 
-Their ``Agent`` holds two MLPs ``{actor,critic}.{0,2,4}`` (64-64 Tanh); ours are rsl-rl's
-``mlp.{0,2,4}``. Weights are copied layer by layer and both actors are checked to give the
-same logits. Files are read with ``weights_only=True``: tensors only, no code.
+Their ``{actor,critic}.{0,2,4}`` become rsl-rl's ``mlp.{0,2,4}``; both actors must give the same
+logits. Files are read with ``weights_only=True``: tensors only, no code.
 """
 
 from __future__ import annotations
@@ -62,9 +61,8 @@ def last_checkpoint(folder: Path) -> tuple[Path, int] | None:
 def read_cleanrl(path: str | Path) -> dict[str, torch.Tensor]:
     """Load a CleanRL ``Agent`` state dict (weights only, float32 on the CPU) and check its layout.
 
-    Raises:
-        CheckpointError: Missing, needs code to load (refused; nothing ran), or not the keys
-            and shapes of the authors' ``Agent``.
+    Raises CheckpointError: Missing, needs code to load (refused; nothing ran), or not the keys and
+        shapes of the authors' ``Agent``.
     """
     path = Path(path)
     state = load_weights_only(path, "the CleanRL policy")
@@ -91,8 +89,7 @@ def cleanrl_shape(
 ) -> tuple[int, list[int], int]:
     """``(obs_dim, hidden dims, num_actions)`` of a CleanRL state dict; checks every shape.
 
-    Raises:
-        CheckpointError: A shape does not chain (naming ``where``).
+    Raises CheckpointError: A shape does not chain (naming ``where``).
     """
     layers: dict[str, list[torch.Tensor]] = {}
     for net, out in (("actor", None), ("critic", 1)):
@@ -128,8 +125,7 @@ def build_networks(ppo: PPOConfig, obs_dim: int, num_actions: int) -> tuple[MLPM
 def copy_weights(state: Mapping[str, torch.Tensor], net: str, model: torch.nn.Module) -> None:
     """Copy CleanRL's ``<net>.{0,2,4}`` into the Linear layers of ``model``, in order.
 
-    Raises:
-        CheckpointError: Our network has another number or shape of layers.
+    Raises CheckpointError: Our network has another number or shape of layers.
     """
     ours = [m for m in model.modules() if isinstance(m, torch.nn.Linear)]
     if len(ours) != len(CLEANRL_LINEARS):
@@ -172,9 +168,8 @@ def build_checkpoint(
 ) -> dict[str, Any]:
     """Our checkpoint (a ``model_last.pt``'s dict) of a CleanRL policy; ``source``: its ``authors``.
 
-    Raises:
-        CheckpointError: The ``[ppo]`` networks do not fit the policy, or the converted
-            actor's logits differ from the CleanRL actor's.
+    Raises CheckpointError: The ``[ppo]`` networks do not fit the policy, or the converted actor's
+        logits differ from the CleanRL actor's.
     """
     from amuled_ma.learn.anchored_ppo import adam
     from amuled_ma.learn.config import rsl_rl_config
@@ -222,8 +217,7 @@ def check_equivalent(
 ) -> None:
     """Check that our actor gives the CleanRL actor's logits on random observations.
 
-    Raises:
-        CheckpointError: The logits differ by more than `LOGIT_TOLERANCE`.
+    Raises CheckpointError: The logits differ by more than `LOGIT_TOLERANCE`.
     """
     obs_dim = int(state["actor.0.weight"].shape[1])
     gen = torch.Generator().manual_seed(0)

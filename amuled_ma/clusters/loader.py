@@ -33,15 +33,6 @@ CREDENCE_SUM_TOLERANCE = 1e-6
 
 
 @dataclass(frozen=True)
-class Theory:
-    """One ethical theory guiding a moral cluster."""
-
-    name: str
-    key_concepts: tuple[str, ...]
-    decision_factors: tuple[str, ...]
-
-
-@dataclass(frozen=True)
 class Cluster:
     """One moral-cluster agent, as loaded from its TOML file (fields: docs/clusters.md)."""
 
@@ -75,15 +66,15 @@ _SOURCE_TABLE = (
 )
 _NonEmpty = Annotated[str, Field(pattern=r"\S", description=_TEXT)]
 _Strings = Annotated[
-    list[_NonEmpty],
-    Field(min_length=1, description="a non-empty list of non-empty strings"),
+    tuple[_NonEmpty, ...],
+    Field(min_length=1, strict=False, description="a non-empty list of non-empty strings"),
 ]
 
 
-class _TheoryFile(BaseModel):
-    """One ``[[theories]]`` table as written."""
+class Theory(BaseModel):
+    """One ethical theory guiding a moral cluster: a ``[[theories]]`` table."""
 
-    model_config = ConfigDict(extra="forbid", strict=True)
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
     name: _NonEmpty
     key_concepts: _Strings
@@ -109,7 +100,7 @@ class _ClusterFile(BaseModel):
     credence_label: _NonEmpty | None = None
     focus: _NonEmpty | None = None
     key_principle: _NonEmpty | None = None
-    theories: Annotated[list[_TheoryFile], Field(min_length=1)] | None = Field(
+    theories: Annotated[list[Theory], Field(min_length=1)] | None = Field(
         None, description="one or more [[theories]] tables"
     )
     credences: (
@@ -125,7 +116,7 @@ def _what(loc: tuple[str | int, ...]) -> str:
     if loc[0] == "theories" and len(loc) == 2:
         return "a table"
     if loc[0] == "theories" and len(loc) > 2:
-        return _TheoryFile.model_fields[str(loc[2])].description or _TEXT
+        return Theory.model_fields[str(loc[2])].description or _TEXT
     return _ClusterFile.model_fields[str(loc[0])].description or _TEXT
 
 
@@ -241,9 +232,7 @@ def load_cluster(path: str | Path) -> Cluster:
         values.update(
             credence_label=file.credence_label, focus=file.focus, key_principle=file.key_principle
         )
-        values["theories"] = tuple(
-            Theory(t.name, tuple(t.key_concepts), tuple(t.decision_factors)) for t in file.theories
-        )
+        values["theories"] = tuple(file.theories)
     elif file.kind == "mixture" and file.credences is not None:
         _check_credences(file.credences, path)
         values["credences"] = dict(file.credences)
@@ -274,9 +263,8 @@ class ClusterRegistry:
 
     A later directory's file replaces an earlier one of the same name (``overridden``).
 
-    Raises:
-        ClusterDefinitionError: Names or credence labels collide, or a mixture's credences
-            name no cluster or one twice.
+    Raises ClusterDefinitionError: Names or credence labels collide, or a mixture's credences name
+        no cluster or one twice.
     """
 
     def __init__(self, clusters: Iterable[Cluster]) -> None:

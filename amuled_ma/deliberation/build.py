@@ -235,9 +235,8 @@ class Members(NamedTuple):
 def build_members(plan: PanelPlan, *, build: Callable[..., BeliefSource] = build_source) -> Members:
     """Build and check every distinct member source of a plan once (equal plans share one).
 
-    Raises:
-        AmuledError: One problem: its own class, prefixed with the agent and source; several:
-            a `ScenarioError` listing each. Every source built is closed first.
+    Raises AmuledError: One problem: its own class, prefixed with the agent and source; several: a
+        `ScenarioError` listing each. Every source built is closed first.
     """
     where = plan.where
     default = plan.default
@@ -386,8 +385,7 @@ def build_feedback(
     ``[feedback.distill].enabled`` the panel is distilled in ``state_dir`` (``resume`` continues
     its budget); ``seed`` seeds the distilled model unless ``[feedback.distill].seed`` is set.
 
-    Raises:
-        AmuledError: A member's source cannot be built or checked.
+    Raises AmuledError: A member's source cannot be built or checked.
     """
     from amuled_ma.deliberation.feedback_base import CallableFeedback, DemonstratorFeedback
     from amuled_ma.deliberation.panel_feedback import FusedReplayFeedback, PanelFeedback

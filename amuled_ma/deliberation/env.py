@@ -1,11 +1,6 @@
 """``DeliberationEnv``: one task, an actor and a panel of moral-cluster agents (PettingZoo, v0).
 
-Agents: ``"actor"`` (``Discrete(n_actions)``, observes the task) and one per cluster (acts a
-belief ``Box(0, 1, (n_actions,))``, projected onto the simplex, missing = uniform; observes
-``{"prompt": Text, "obs": Box}``). Each step the beliefs are fused, the task steps with the
-actor's action, the actor gets `actor_reward` and each cluster its fusion weight (a record;
-clusters are not trained). Infos hold ``fused``, ``beliefs``, ``weights``, ``conflict``,
-``conflicts``, ``r_env``, ``r_shaping``, ``r_feedback``. At the task's end every agent is done.
+Agents, spaces, rewards and ``infos`` keys: docs/deliberation.md, "DeliberationEnv".
 """
 
 from __future__ import annotations
@@ -52,7 +47,7 @@ def project_to_simplex(v: npt.ArrayLike) -> np.ndarray:
 
 
 class DeliberationEnv(ParallelEnv):
-    """The actor and the moral clusters around one task (see the module docstring).
+    """The actor and the moral clusters around one task (docs/deliberation.md).
 
     ``render_mode``: ``None``, ``"ansi"`` or ``"rgb_array"``; ``max_steps`` None keeps the
     task's limit; ``clusters`` defaults to the shipped panel; ``clusters_dirs`` are folders of

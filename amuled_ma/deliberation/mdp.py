@@ -1,7 +1,6 @@
 """The deliberation MDP, batched: N task copies, a panel, and the actor's reward, defined once.
 
-The learner and the PettingZoo `DeliberationEnv` (one copy) both step `BatchedDeliberation`.
-The KL anchor to the base policy is not part of the MDP; the learner adds it (`AnchoredPPO`).
+The learner and `DeliberationEnv` both step it; the KL anchor is the learner's (docs/learning.md).
 """
 
 from __future__ import annotations

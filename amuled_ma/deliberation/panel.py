@@ -1,8 +1,6 @@
 """The moral panel: one belief per (env copy, cluster), fused per env copy.
 
-Each distinct state (observation + prompt variables) is asked once, all (state, cluster)
-requests in one batch; an invalid belief becomes status ``"error"`` and is never fused. The
-panel keeps no cache; `Feedback` memoises in front of it.
+What one call does (one batch of new states, invalid beliefs never fused): docs/deliberation.md.
 """
 
 from __future__ import annotations

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from amuled_ma.fusion import moral_uncertainty  # noqa: F401  (registers mec, nash-vote, ...)
-from amuled_ma.fusion._validate import SUM_TOLERANCE
 from amuled_ma.fusion.rules import RULES, RuleSpec, fuse, register_rule, unregister_rule
 from amuled_ma.fusion.xiao import (
+    SUM_TOLERANCE,
     FusionResult,
     bjs_divergence,
     dempster_combine,

@@ -10,8 +10,14 @@ from typing import Any, Literal, overload
 import numpy as np
 import numpy.typing as npt
 
-from amuled_ma.fusion._validate import check_rows, check_weights
-from amuled_ma.fusion.xiao import FusionResult, _measures, bjs_dst, check_prior
+from amuled_ma.fusion.xiao import (
+    FusionResult,
+    _measures,
+    bjs_dst,
+    check_prior,
+    check_rows,
+    check_weights,
+)
 from amuled_ma.scenario.panel_checks import allow_fusion_rule, forget_fusion_rule
 
 __all__ = ["RULES", "RuleSpec", "fuse", "register_rule", "unregister_rule"]

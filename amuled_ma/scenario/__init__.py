@@ -1,8 +1,7 @@
 """Scenarios: everything one experiment needs, read from a TOML file and validated.
 
-One frozen pydantic model per table, the whole file a `Scenario`; defaults follow the paper
-and CleanRL's PPO. Validation runs on load, on ``--set`` and in code; any failure is one
-`ScenarioError` line. The package imports no domain package.
+One frozen pydantic model per table (defaults: the paper's, CleanRL's PPO), the whole file a
+`Scenario`; any failure, on load, on ``--set`` or in code, is one `ScenarioError` line.
 """
 
 from __future__ import annotations

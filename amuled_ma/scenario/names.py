@@ -33,9 +33,7 @@ _SKELETON_ROUNDS = 3
 def odd_character(name: str) -> str | None:
     """The first character a name may not hold, as ``U+2800 (BRAILLE ...)``; None if all may.
 
-    Refused: format (``Cf``), control, private-use, unassigned and surrogate code points, line
-    and paragraph separators, variation selectors, the combining grapheme joiner and blank
-    characters (U+2800, Hangul fillers). Combining accents stay allowed.
+    Refused: `_REFUSED_CATEGORIES`, `_BLANKS` and `_SELECTORS`; combining accents stay allowed.
     """
     for char in name:
         category = unicodedata.category(char)

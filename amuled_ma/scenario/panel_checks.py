@@ -57,8 +57,7 @@ def prior_rules() -> tuple[str, ...]:
 def check_clusters(value: list[str], source: str) -> list[str]:
     """Return ``[feedback].clusters`` if it is a panel: non-empty, distinct, visible names.
 
-    Raises:
-        ScenarioError: No name; a name empty, too long or odd; two of one `identity_key`.
+    Raises ScenarioError: No name; a name empty, too long or odd; two of one `identity_key`.
     """
     head = f"{source}: key [feedback].clusters"
     if not value:
@@ -93,9 +92,8 @@ def check_clusters(value: list[str], source: str) -> list[str]:
 def check_fusion(value: str, clusters: Sequence[str] | None, source: str) -> str:
     """Return ``[feedback].fusion`` if it names a rule of `FUSION_RULES` as it takes.
 
-    Raises:
-        ScenarioError: An unknown rule, a parameter missing or unexpected, or a ``single:<i>``
-            index outside ``clusters`` (negative from the end).
+    Raises ScenarioError: An unknown rule, a parameter missing or unexpected, or a ``single:<i>``
+        index outside ``clusters`` (negative from the end).
     """
     head = f"{source}: key [feedback].fusion"
     name, sep, param = value.partition(":")

@@ -61,9 +61,8 @@ def _component_problem(name: str) -> str | None:
 def check_path_component(name: object, where: str) -> str:
     """Return ``name`` if it can be used as one folder name (``where``: file and key, for errors).
 
-    Raises:
-        ScenarioError: Not a string, empty, too long, or holding a path separator, ``..``, a
-            colon, a control character, a leading ``.``/``-`` or edge spaces.
+    Raises ScenarioError: Not a string, empty, too long, or holding a path separator, ``..``, a
+        colon, a control character, a leading ``.``/``-`` or edge spaces.
     """
     if not isinstance(name, str):
         raise ScenarioError(f"{where} expects string, found {found(name)}")
@@ -79,8 +78,7 @@ def check_path_component(name: object, where: str) -> str:
 def safe_child(root: str | os.PathLike[str], name: str, *, what: str = "name") -> Path:
     """``root / name``, directly inside ``root``: ``name`` is one safe path component.
 
-    Raises:
-        ScenarioError: ``name`` fails `check_path_component`.
+    Raises ScenarioError: ``name`` fails `check_path_component`.
     """
     return Path(root) / check_path_component(name, what)
 

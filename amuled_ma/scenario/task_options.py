@@ -1,8 +1,7 @@
 """``[task].options``: each task's keyword options, checked when the scenario is read.
 
 A task refuses a bad option only when built, after the run folder exists, so the scenario
-checks them first against one model per task (`TASK_OPTIONS`); tests hold the models equal
-to the tasks' constructors.
+checks them first against one model per task (`TASK_OPTIONS`, held equal to the constructors).
 """
 
 from __future__ import annotations
@@ -57,8 +56,8 @@ TASK_OPTIONS: dict[str, type[_Options]] = {
     "driving": DrivingOptions,
     "smartgrid": SmartGridOptions,
 }
-#: Other spellings of a task name (``amuled_ma.tasks.names.ALIASES``, compared lower-case).
-_ALIASES = {
+#: Other spellings of a task name (compared lower-case) -> its short name.
+ALIASES: dict[str, str] = {
     "amuled/findmilk-v0": "findmilk",
     "find_milk": "findmilk",
     "amuled/driving-v0": "driving",
@@ -71,14 +70,13 @@ _ALIASES = {
 def options_model(task: str) -> type[_Options] | None:
     """The option model of the task named ``task`` (short name, alias, any case), or None."""
     key = task.strip().lower()
-    return TASK_OPTIONS.get(_ALIASES.get(key, key))
+    return TASK_OPTIONS.get(ALIASES.get(key, key))
 
 
 def check_task_options(task: str, options: Mapping[str, Any], where: str) -> None:
     """Refuse ``[task].options`` the task would refuse (a task without a model: left to it).
 
-    Raises:
-        ScenarioError: An option the run sets itself, an unknown option, or a bad value.
+    Raises ScenarioError: An option the run sets itself, an unknown option, or a bad value.
     """
     head = f"{where}: key [task].options"
     reserved = sorted(set(options) & set(RESERVED))

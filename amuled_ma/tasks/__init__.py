@@ -47,9 +47,8 @@ _BUILTINS: dict[str, tuple[str, str]] = {
 def _load_entry_point(name: str) -> type[BatchedTask]:
     """The class an installed ``amuled_ma.tasks`` entry point publishes, checked.
 
-    Raises:
-        ScenarioError: It fails to import, is not a `BatchedTask` subclass, or its ``name``
-            differs from the entry point's.
+    Raises ScenarioError: It fails to import, is not a `BatchedTask` subclass, or its ``name``
+        differs from the entry point's.
     """
     from amuled_ma.tasks.base import BatchedTask
 
@@ -102,9 +101,8 @@ TASKS: Mapping[str, type[BatchedTask]] = _TaskRegistry()
 def get_task(name: str) -> type[BatchedTask]:
     """Return the batched task class of a short name, alias or Gymnasium id (any case).
 
-    Raises:
-        ScenarioError: Unknown task (a ``ValueError``), or an entry point that does not
-            load a task class.
+    Raises ScenarioError: Unknown task (a ``ValueError``), or an entry point that does not load a
+        task class.
     """
     return TASKS[canonical_name(name)]
 
@@ -120,8 +118,7 @@ def make_task(task: TaskConfig, num_envs: int, *, shaping_coef: float, seed: int
     ``shaping_coef`` is ``c`` of the reward ``r_env + c * r_shaping``; the section refused
     reserved options on load.
 
-    Raises:
-        ScenarioError: The task refuses an option (one without an option model).
+    Raises ScenarioError: The task refuses an option (one without an option model).
     """
     kwargs: dict[str, Any] = dict(task.options)
     if task.max_steps:

@@ -1,7 +1,6 @@
 """Base class of the batched task environments (many copies stepped by tensor operations).
 
-docs/tasks.md, "The batched core", holds the step contract (auto-reset, ``info`` keys,
-per-episode totals) and the seeding rule (copy ``i`` of seed ``s`` draws as seed ``s + i``).
+The step contract and the seeding rule: docs/tasks.md, "The batched core".
 """
 
 from __future__ import annotations
@@ -24,8 +23,7 @@ __all__ = ["BatchedTask", "check_int"]
 def check_int(value: object, name: str, low: int = 0, high: int | None = None) -> int:
     """``value`` as an ``int`` in ``low..high`` (None: no top; a bool is refused).
 
-    Raises:
-        ValueError: It is not, naming ``name``.
+    Raises ValueError: It is not, naming ``name``.
     """
     if isinstance(value, numbers.Integral) and not isinstance(value, bool):
         number = int(value)
@@ -45,8 +43,7 @@ def paint_cells(
 ) -> np.ndarray:
     """Draw a character grid (top row first) as an RGB image: one padded square per non-``.``.
 
-    Returns:
-        ``uint8`` array ``[len(rows) * cell, len(rows[0]) * cell, 3]``.
+    Returns ``uint8`` array ``[len(rows) * cell, len(rows[0]) * cell, 3]``.
     """
     img = np.full((len(rows) * cell, len(rows[0]) * cell, 3), background, dtype=np.uint8)
     pad = max(1, cell // 8)
@@ -61,11 +58,9 @@ def paint_cells(
 class BatchedTask(abc.ABC):
     """``num_envs`` copies of one task, stepped together with torch tensor operations.
 
-    Subclasses implement the rules in `_advance`, `_reset_where` and `_observe`, declare their
-    options as keyword defaults of `_init_task`, and set ``name`` (the key of `TASKS` and of
-    ``prompts/tasks/<name>.md``), ``obs_names`` (the recordings' ``obs_layout``),
-    ``metric_names`` (per-episode sums in ``info["episode"]``), ``prompt_template`` (an
-    outside task's template), ``judge_names``, ``human_feedback`` and ``default_max_steps``.
+    Subclasses implement `_advance`, `_reset_where`, `_observe` and `_init_task` (options as its
+    keyword defaults) and set ``name`` (the key of `TASKS` and of ``prompts/tasks/<name>.md``),
+    ``default_max_steps`` and the attributes docs/tasks.md tables (``obs_names``, ...).
     """
 
     name: ClassVar[str]
@@ -96,8 +91,7 @@ class BatchedTask(abc.ABC):
         of ``reward = r_env + c * r_shaping``; ``max_steps`` None is ``default_max_steps``;
         ``task_options`` go to `_init_task` (an unknown one: TypeError).
 
-        Raises:
-            ValueError: An argument is out of range; the message names it.
+        Raises ValueError: An argument is out of range; the message names it.
         """
         self.num_envs = check_int(num_envs, "num_envs", 1)
         steps = self.default_max_steps if max_steps is None else max_steps
@@ -157,8 +151,7 @@ class BatchedTask(abc.ABC):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a `state_dict` of a task built with the same settings.
 
-        Raises:
-            ValueError: A tensor is missing or has another shape, naming it.
+        Raises ValueError: A tensor is missing or has another shape, naming it.
         """
         mine = self.state_dict()
         for name, value in mine.items():
@@ -178,8 +171,7 @@ class BatchedTask(abc.ABC):
     def reset(self, seed: int | None = None) -> torch.Tensor:
         """Reset every copy; return float32 ``[num_envs, obs_dim]`` (``seed`` None: same streams).
 
-        Raises:
-            ValueError: ``seed`` is negative or not an integer.
+        Raises ValueError: ``seed`` is negative or not an integer.
         """
         seed = None if seed is None else check_int(seed, "seed")
         if seed is None and self._keys is None:
@@ -279,8 +271,7 @@ class BatchedTask(abc.ABC):
     def judge_scores(cls, judge: str, obs: np.ndarray) -> np.ndarray:
         """The task's judge of a value (``policy = "judge:<name>"``): scores ``[A]`` or ``[B, A]``.
 
-        Raises:
-            ValueError: The task has no judge of that name.
+        Raises ValueError: The task has no judge of that name.
         """
         known = ", ".join(cls.judge_names) or "none"
         raise ValueError(f"judge: task {cls.name!r} has no judge {judge!r} (its judges: {known})")
@@ -288,8 +279,7 @@ class BatchedTask(abc.ABC):
     def render(self, mode: str = "ansi", env_id: int = 0) -> str | np.ndarray:
         """Render copy ``env_id`` as ``"ansi"`` text or an ``"rgb_array"`` (uint8 ``[H, W, 3]``).
 
-        Raises:
-            ValueError: Unknown ``mode`` or ``env_id`` out of range.
+        Raises ValueError: Unknown ``mode`` or ``env_id`` out of range.
         """
         env_id = self._env_id(env_id)
         if mode == "ansi":

@@ -70,40 +70,35 @@ class Driving(BatchedTask):
         self._lane = torch.full((n,), START_LANE, dtype=i64, device=dev)
         self._cars = torch.zeros(n, dtype=i64, device=dev)  # bit (lane+1)*9 + d: car at d
         self._gms = torch.zeros(n, dtype=i64, device=dev)  # bit (lane+1)*4 + k: grandma
-        # per (lane, action): target lane, hit masks (bit 0 of the current and the target
-        # lane groups), straight bonus and the "same lane" shaping term
-        target, hit_car, hit_gm, bonus, same = [], [], [], [], []
+        # per (lane, action): target lane, straight bonus and the "same lane" shaping term
+        target, bonus, same = [], [], []
         for lane in range(NUM_LANES):
             for action, d in enumerate((0, 1, -1)):
                 t = min(max(lane + d, 0), NUM_LANES - 1)
                 target.append(t)
-                hit_car.append(1 << (lane + 1) * _CAR_W | 1 << (t + 1) * _CAR_W)
-                hit_gm.append(1 << (lane + 1) * _GM_W | 1 << (t + 1) * _GM_W)
                 bonus.append(0.5 if action == 0 else 0.0)
                 same.append(20.0 if t == lane else 0.0)
         self._target = torch.tensor(target, dtype=i64, device=dev)
-        self._hit_car = torch.tensor(hit_car, dtype=i64, device=dev)
-        self._hit_gm = torch.tensor(hit_gm, dtype=i64, device=dev)
         self._straight_bonus = torch.tensor(bonus, dtype=torch.float32, device=dev)
         self._same_lane = torch.tensor(same, dtype=torch.float32, device=dev)
         lanes = range(NUM_LANES)
-        # observed lanes current, left, right -> lane group shifts (pad groups at 0 and 6)
-        groups = [[ln + 1, ln, ln + 2] for ln in lanes]
-        self._obs_car_shift = torch.tensor(groups, dtype=i64, device=dev) * _CAR_W
-        self._obs_gm_shift = torch.tensor(groups, dtype=i64, device=dev) * _GM_W
-        self._pad_car = torch.tensor(1 | 1 << (NUM_LANES + 1) * _CAR_W, dtype=i64, device=dev)
-        self._pad_gm = torch.tensor(1 | 1 << (NUM_LANES + 1) * _GM_W, dtype=i64, device=dev)
-        hit_bits_car = sum(1 << (ln + 1) * _CAR_W for ln in lanes)
-        hit_bits_gm = sum(1 << (ln + 1) * _GM_W for ln in lanes)
-        self._keep_car = torch.tensor(~hit_bits_car, dtype=i64, device=dev)
-        self._keep_gm = torch.tensor(~hit_bits_gm, dtype=i64, device=dev)
-        # spawn bit of lane 0..4; index 5 = no spawn
-        self._spawn_car = torch.tensor(
-            [1 << ((ln + 1) * _CAR_W + _CAR_SLOTS) for ln in lanes] + [0], dtype=i64, device=dev
+        car, gm = (
+            [
+                torch.tensor(values, dtype=i64, device=dev)
+                for values in (
+                    # hit masks per (lane, action): bit 0 of the current and the target lane group
+                    [1 << (i // 3 + 1) * w | 1 << (t + 1) * w for i, t in enumerate(target)],
+                    # observed lanes current, left, right -> group shifts (pad groups 0 and 6)
+                    [[(ln + 1) * w, ln * w, (ln + 2) * w] for ln in lanes],
+                    1 | 1 << (NUM_LANES + 1) * w,  # the pad groups
+                    ~sum(1 << (ln + 1) * w for ln in lanes),  # keeps all but distance <= 0
+                    [1 << ((ln + 1) * w + slots) for ln in lanes] + [0],  # spawn bit; 5: none
+                )
+            ]
+            for w, slots in ((_CAR_W, _CAR_SLOTS), (_GM_W, _GM_SLOTS))
         )
-        self._spawn_gm = torch.tensor(
-            [1 << ((ln + 1) * _GM_W + _GM_SLOTS) for ln in lanes] + [0], dtype=i64, device=dev
-        )
+        self._hit_car, self._obs_car_shift, self._pad_car, self._keep_car, self._spawn_car = car
+        self._hit_gm, self._obs_gm_shift, self._pad_gm, self._keep_gm, self._spawn_gm = gm
         self._lane_table = self._observation_table()
         self._onehot = torch.eye(NUM_LANES, dtype=torch.float32, device=dev)
         self._initial_obs = torch.tensor(
@@ -204,9 +199,8 @@ class Driving(BatchedTask):
 
         ``env_ids`` None: all. Two objects of a kind never share a distance (the step relies on it).
 
-        Raises:
-            ValueError: Unknown ``kind``; ``lane`` or ``distance`` impossible; another
-                object of that kind already at that distance in another lane.
+        Raises ValueError: Unknown ``kind``; ``lane`` or ``distance`` impossible; another object of
+            that kind already at that distance in another lane.
         """
         bit, row = self._bit(kind, lane, distance)
         ids = self._env_ids(env_ids)
@@ -263,8 +257,7 @@ class Driving(BatchedTask):
     def prompt_variables_from_obs(cls, obs: np.ndarray, **extra: Any) -> dict[str, Any]:
         """Return ``lane``, the six distances (-1 none, -2 no lane) as ints, and ``extra``.
 
-        Raises:
-            ValueError: ``obs`` is not 11 numbers or its lane one-hot is invalid.
+        Raises ValueError: ``obs`` is not 11 numbers or its lane one-hot is invalid.
         """
         values = cls._obs_values(obs)
         onehot = values[6:]

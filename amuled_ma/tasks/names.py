@@ -6,6 +6,7 @@ import difflib
 from importlib.metadata import EntryPoint, entry_points
 
 from amuled_ma.errors import ScenarioError
+from amuled_ma.scenario.task_options import ALIASES
 
 __all__ = [
     "ALIASES",
@@ -23,15 +24,6 @@ TASK_NAMES: tuple[str, ...] = ("findmilk", "driving")
 BUILTIN_TASKS: tuple[str, ...] = (*TASK_NAMES, "smartgrid")
 #: Entry-point group under which an installed package publishes a task class.
 ENTRY_POINT_GROUP = "amuled_ma.tasks"
-#: Other spellings of a task name (compared lower-case) -> its short name.
-ALIASES: dict[str, str] = {
-    "amuled/findmilk-v0": "findmilk",
-    "find_milk": "findmilk",
-    "amuled/driving-v0": "driving",
-    "driving_and_rescuing": "driving",
-    "smart_grid": "smartgrid",
-    "ethical-smart-grid": "smartgrid",
-}
 
 
 def task_entry_points() -> dict[str, EntryPoint]:
@@ -48,9 +40,8 @@ def task_names() -> tuple[str, ...]:
 def canonical_name(name: str) -> str:
     """Return the short task name for a short name, alias or Gymnasium id (any capitalisation).
 
-    Raises:
-        ScenarioError: Not a string, or an unknown task; the message lists the known ones
-            and the closest.
+    Raises ScenarioError: Not a string, or an unknown task; the message lists the known ones and the
+        closest.
     """
     if not isinstance(name, str):
         raise ScenarioError(f"name: expected a task name, got {name!r}")

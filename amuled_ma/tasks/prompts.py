@@ -1,8 +1,6 @@
 """Render the paper's state prompts from the templates in ``prompts/tasks/<task>.md``.
 
-Only the fenced block under ``## prompt`` is the template (``str.format`` rules); a field
-``{name:group}`` inserts the first block under ``### group <condition>`` whose condition
-(``== v``, ``!= v``, ``< v``, ``<= v``, ``> v``, ``>= v``, ``in a..b``, ``otherwise``) holds.
+Template syntax (``{name:group}`` fragments, their conditions): docs/tasks.md, "State prompts".
 """
 
 from __future__ import annotations
@@ -54,8 +52,7 @@ class StateTemplate:
     def render(self, variables: Mapping[str, Any]) -> str:
         """Fill the template with ``variables``.
 
-        Raises:
-            ValueError: A variable is missing, or no fragment matches a value.
+        Raises ValueError: A variable is missing, or no fragment matches a value.
         """
         return self._fill(self.prompt, variables, depth=0)
 
@@ -103,9 +100,8 @@ def _condition(match: re.Match[str]) -> Callable[[Any], bool]:
 def parse_template(path: Path) -> StateTemplate:
     """Parse one template file.
 
-    Raises:
-        PromptError: ``path`` cannot be read, is larger than `MAX_PROMPT_BYTES` or is not
-            UTF-8; it has no ``## prompt`` block or a malformed fragment heading.
+    Raises PromptError: ``path`` cannot be read, is larger than `MAX_PROMPT_BYTES` or is not UTF-8;
+        it has no ``## prompt`` block or a malformed fragment heading.
     """
     text = read_text(path, "state prompt template", PromptError, max_bytes=MAX_PROMPT_BYTES)
     rows = iter(text.splitlines())
@@ -180,7 +176,6 @@ def load_template(task_name: str) -> StateTemplate:
 def render_state_prompt(task_name: str, variables: Mapping[str, Any]) -> str:
     """Render the state prompt of one state, as the paper's authors sent it (no credence sentence).
 
-    Raises:
-        ValueError: Unknown task, missing variable, or a value no fragment accepts.
+    Raises ValueError: Unknown task, missing variable, or a value no fragment accepts.
     """
     return load_template(task_name).render(variables)

@@ -1,8 +1,7 @@
 """Counter-based random numbers (SplitMix64), one independent stream per environment copy.
 
 Draw ``k`` of copy ``i`` is the SplitMix64 finaliser of ``key_i + k * GAMMA`` (key from
-``seed + i``), so a copy's stream does not depend on the other copies. Integer arithmetic
-only (int64, wrapping), so it runs unchanged on any torch device.
+``seed + i``); int64 wrapping arithmetic only, so it runs unchanged on any torch device.
 """
 
 from __future__ import annotations

@@ -1,9 +1,6 @@
 """Ethical Smart Grid (Chaput et al., ``ethical-smart-grid`` 2.0.0) as an AMULED task.
 
-An adapter, not a fork (the package is imported lazily; extra ``amuled-ma[smartgrid]``):
-one learning household, the other prosumers `FIXED_ACTION`; named discrete actions;
-``num_envs`` package worlds stepped in a loop; the package's per-value rewards as judges.
-docs/tasks.md, "Ethical Smart Grid".
+An adapter, not a fork (extra ``amuled-ma[smartgrid]``): docs/tasks.md, "Ethical Smart Grid".
 """
 
 from __future__ import annotations
@@ -57,8 +54,7 @@ _SCORED: OrderedDict[bytes, np.ndarray] = OrderedDict()
 def action_vector(action: int, need: float, storage: float, capacity: float) -> list[int]:
     """The package's int64 action in Wh for a named action, from need, battery and capacity.
 
-    Returns:
-        ``[grid_consumption, storage_consumption, store_energy, give_energy, buy_energy,
+    Returns ``[grid_consumption, storage_consumption, store_energy, give_energy, buy_energy,
         sell_energy]``.
     """
     from_battery = min(storage, need)
@@ -248,9 +244,8 @@ class SmartGrid(BatchedTask):
         ``r_v(a)``: the package's reward of ``judge`` one step after ``a`` on a copy of the live
         world showing ``obs``.
 
-        Raises:
-            ValueError: Unknown judge, or a state no live copy of this process shows
-                (e.g. a replayed observation).
+        Raises ValueError: Unknown judge, or a state no live copy of this process shows (e.g. a
+            replayed observation).
         """
         if judge not in JUDGES:
             raise ValueError(f"judge: expected one of {', '.join(JUDGES)}, got {judge!r}")

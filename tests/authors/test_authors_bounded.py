@@ -19,14 +19,15 @@ import numpy as np
 import pickle_attacks as attacks
 import pytest
 
-from amuled_ma.authors.pickle_reader import (
+from amuled_ma.authors.unpickle import (
     MAX_KEY_WORK,
     MAX_OPCODES,
+    MAX_PICKLE_BYTES,
     MEMORY_CHECK_EVERY,
     BoundedReader,
     PickleUnbounded,
+    load_pickle,
 )
-from amuled_ma.authors.unpickle import MAX_PICKLE_BYTES, load_pickle
 from amuled_ma.errors import AuthorsImportError, UnsafePickleError
 
 CACHE = "models/FindMilk-v4_42/gpt-4o-mini_llm_cache.pickle"

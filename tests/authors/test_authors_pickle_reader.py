@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from amuled_ma.authors import pickle_reader, unpickle
+from amuled_ma.authors import unpickle
 from amuled_ma.authors.unpickle import load_pickle
 from amuled_ma.errors import AuthorsImportError, UnsafePickleError
 
@@ -95,7 +95,7 @@ def test_set_calls_hash_no_more_items_than_the_file_has_bytes(tmp_path):
 
 
 def test_the_reader_uses_no_private_pickle_name():
-    for module in (unpickle, pickle_reader):
+    for module in (unpickle,):
         source = Path(module.__file__).read_text(encoding="utf-8")
         assert "pickle._" not in source
         tree = ast.parse(source)

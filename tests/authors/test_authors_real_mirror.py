@@ -88,13 +88,12 @@ def test_every_published_cache_fits_the_opcode_budget_with_room():
 
 def test_every_published_cache_fits_the_key_work_budget_with_room():
     """The key work budget (MAX_KEY_WORK) is 7.1 times the most a published cache needs."""
-    from amuled_ma.authors import pickle_reader
-    from amuled_ma.authors.pickle_reader import MAX_KEY_WORK, BoundedReader
+    from amuled_ma.authors.unpickle import MAX_KEY_WORK, BoundedReader
 
     spent = {}
     for name, data in published_caches().items():
         reader = BoundedReader(data, max_array_bytes=len(data), max_memory=None)
         reader.read()
         spent[name] = MAX_KEY_WORK - reader.key_work_left
-    assert max(spent.values()) == 147_488, spent  # the figure pickle_reader gives
-    assert max(spent.values()) * 7 < pickle_reader.MAX_KEY_WORK
+    assert max(spent.values()) == 147_488, spent  # the figure the reader gives
+    assert max(spent.values()) * 7 < MAX_KEY_WORK

@@ -15,7 +15,6 @@ MODULES = [
     "amuled_ma.fusion.rules",
     "amuled_ma.fusion.xiao",
     "amuled_ma.fusion.reference",
-    "amuled_ma.fusion._validate",
 ]
 
 

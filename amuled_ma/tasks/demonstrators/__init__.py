@@ -1,8 +1,6 @@
 """The paper authors' synthetic human feedback: played demonstrators and their count beliefs.
 
-`.play` (both demonstrators and what they share), `.table` (counts to beliefs, the ``.npz``
-file), and here the cached belief (`demonstrator_belief`); docs/tasks.md, "The authors'
-synthetic human demonstrators".
+docs/tasks.md, "The authors' synthetic human demonstrators".
 """
 
 from __future__ import annotations

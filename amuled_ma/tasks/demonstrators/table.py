@@ -1,8 +1,6 @@
 """A demonstrator's counts as a belief table: observation keys, the 0.6 / 0.4 rule, the file.
 
-An observation is keyed exactly (integer entries within the task's bounds, a mixed-radix
-number); anything else, and any observation never met, has no belief (reward 0 in the
-authors' fine-tuning). The ``.npz`` file loads with ``allow_pickle=False``.
+Keys, the rule, unseen observations and the ``.npz`` file (no pickle): docs/tasks.md.
 """
 
 from __future__ import annotations
@@ -55,9 +53,8 @@ def check_table_memory(path: Path, fix: str) -> None:
     Reads only the zip directory and the ``.npy`` headers: ``np.load`` allocates what a header
     claims before it reads, so a small file could claim terabytes. ``fix`` is said last.
 
-    Raises:
-        DemonstratorCacheError: The file is too large, not a zip of ``.npy`` arrays, holds
-            Python objects, or claims more bytes than it holds or than `MAX_TABLE_BYTES`.
+    Raises DemonstratorCacheError: The file is too large, not a zip of ``.npy`` arrays, holds Python
+        objects, or claims more bytes than it holds or than `MAX_TABLE_BYTES`.
     """
     total = 0
     try:
@@ -132,8 +129,7 @@ def encode_observations(task_name: str, obs: object) -> tuple[torch.Tensor, torc
 
     A row has a key when integer-valued within the bounds; on ``obs``'s device (CPU: not a tensor).
 
-    Raises:
-        ValueError: ``obs`` is not ``[N, obs_dim]``.
+    Raises ValueError: ``obs`` is not ``[N, obs_dim]``.
     """
     name = canonical_name(task_name)
     low, high, weight = _encoder(name)
@@ -191,8 +187,7 @@ class DemonstratorBelief:
     ``states`` are strictly increasing keys int64 ``[S]``; ``counts`` int64 ``[S, A]``, every
     row summing to at least 1.
 
-    Raises:
-        ValueError: The arrays are malformed; the message says which.
+    Raises ValueError: The arrays are malformed; the message says which.
     """
 
     def __init__(
@@ -237,8 +232,7 @@ class DemonstratorBelief:
 
         On ``obs``'s device.
 
-        Raises:
-            ValueError: ``obs`` is not ``[N, obs_dim]``.
+        Raises ValueError: ``obs`` is not ``[N, obs_dim]``.
         """
         device = obs.device if isinstance(obs, torch.Tensor) else torch.device("cpu")
         keys, valid = encode_observations(self.task_name, obs)
@@ -277,9 +271,8 @@ class DemonstratorBelief:
     ) -> DemonstratorBelief:
         """Read a file written by `save`, made with ``expect``'s settings (None: any).
 
-        Raises:
-            DemonstratorCacheError: The file cannot be read, is malformed, its arrays would
-                take more than `MAX_TABLE_BYTES`, or it was made with other settings.
+        Raises DemonstratorCacheError: The file cannot be read, is malformed, its arrays would take
+            more than `MAX_TABLE_BYTES`, or it was made with other settings.
         """
         path = checked_read_path(Path(path).parent, Path(path).name)
         fix = "delete it to rebuild the demonstrator"
