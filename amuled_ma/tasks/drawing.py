@@ -25,8 +25,9 @@ def findmilk_subgoals(trajectory: Mapping[str, Any]) -> dict[str, Any]:
 
     Entering a baby's cell removes it, so the layout's babies on the path are those reached.
 
-    Returns ``{"start", "milk", "end": (x, y), "visited": set of cells, "crying", "sleeping",
-        "pacified", "woken": lists of (x, y), "reached_milk": bool}``.
+    Returns:
+        ``{"start", "milk", "end": (x, y), "visited": set of cells, "crying",
+        "sleeping", "pacified", "woken": lists of (x, y), "reached_milk": bool}``.
     """
     obs = np.asarray(trajectory["obs"], dtype=float)
     cells = [(int(np.rint(x)), int(np.rint(y))) for x, y in obs[:, :2]]

@@ -54,7 +54,8 @@ _SCORED: OrderedDict[bytes, np.ndarray] = OrderedDict()
 def action_vector(action: int, need: float, storage: float, capacity: float) -> list[int]:
     """The package's int64 action in Wh for a named action, from need, battery and capacity.
 
-    Returns ``[grid_consumption, storage_consumption, store_energy, give_energy, buy_energy,
+    Returns:
+        ``[grid_consumption, storage_consumption, store_energy, give_energy, buy_energy,
         sell_energy]``.
     """
     from_battery = min(storage, need)
