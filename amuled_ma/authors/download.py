@@ -162,8 +162,9 @@ def fetch_pinned(
 
     Says one line first (what, from where, how large, under whose terms) when anything is fetched.
 
-    Raises AuthorsFetchError: A file could not be fetched or was refused (SHA-256, size); names the
-        file, the URL and the manual route. Nothing partial stays.
+    Raises:
+        AuthorsFetchError: A file could not be fetched or was refused (SHA-256, size); names
+            the file, the URL and the manual route. Nothing partial stays.
     """
     import pooch
     import requests

@@ -61,8 +61,9 @@ def last_checkpoint(folder: Path) -> tuple[Path, int] | None:
 def read_cleanrl(path: str | Path) -> dict[str, torch.Tensor]:
     """Load a CleanRL ``Agent`` state dict (weights only, float32 on the CPU) and check its layout.
 
-    Raises CheckpointError: Missing, needs code to load (refused; nothing ran), or not the keys and
-        shapes of the authors' ``Agent``.
+    Raises:
+        CheckpointError: Missing, needs code to load (refused; nothing ran), or not the keys
+            and shapes of the authors' ``Agent``.
     """
     path = Path(path)
     state = load_weights_only(path, "the CleanRL policy")
@@ -168,8 +169,9 @@ def build_checkpoint(
 ) -> dict[str, Any]:
     """Our checkpoint (a ``model_last.pt``'s dict) of a CleanRL policy; ``source``: its ``authors``.
 
-    Raises CheckpointError: The ``[ppo]`` networks do not fit the policy, or the converted actor's
-        logits differ from the CleanRL actor's.
+    Raises:
+        CheckpointError: The ``[ppo]`` networks do not fit the policy, or the converted
+            actor's logits differ from the CleanRL actor's.
     """
     from amuled_ma.learn.anchored_ppo import adam
     from amuled_ma.learn.config import rsl_rl_config

@@ -263,8 +263,9 @@ class ClusterRegistry:
 
     A later directory's file replaces an earlier one of the same name (``overridden``).
 
-    Raises ClusterDefinitionError: Names or credence labels collide, or a mixture's credences name
-        no cluster or one twice.
+    Raises:
+        ClusterDefinitionError: Names or credence labels collide, or a mixture's credences
+            name no cluster or one twice.
     """
 
     def __init__(self, clusters: Iterable[Cluster]) -> None:

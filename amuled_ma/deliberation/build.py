@@ -235,8 +235,9 @@ class Members(NamedTuple):
 def build_members(plan: PanelPlan, *, build: Callable[..., BeliefSource] = build_source) -> Members:
     """Build and check every distinct member source of a plan once (equal plans share one).
 
-    Raises AmuledError: One problem: its own class, prefixed with the agent and source; several: a
-        `ScenarioError` listing each. Every source built is closed first.
+    Raises:
+        AmuledError: One problem: its own class, prefixed with the agent and source; several:
+            a `ScenarioError` listing each. Every source built is closed first.
     """
     where = plan.where
     default = plan.default

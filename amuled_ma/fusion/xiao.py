@@ -35,8 +35,9 @@ def _index_text(name: str, index: tuple[int, ...]) -> str:
 def check_rows(values: object, name: str = "beliefs", *, min_ndim: int = 2) -> np.ndarray:
     """Return ``values`` (shape ``(..., n)``) as float64 rows rescaled to sum to 1 (read-only).
 
-    Raises ValueError: ``ndim < min_ndim``, an empty row, or a row with NaN/inf, a negative entry or
-        a sum farther than `SUM_TOLERANCE` from 1 (names the row's index).
+    Raises:
+        ValueError: ``ndim < min_ndim``, an empty row, or a row with NaN/inf, a negative
+            entry or a sum farther than `SUM_TOLERANCE` from 1 (names the row's index).
     """
     try:
         array = np.asarray(values, dtype=np.float64)

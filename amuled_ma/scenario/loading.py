@@ -50,8 +50,9 @@ def resolve_scenario_path(name_or_path: str | os.PathLike[str]) -> Path:
 def load_scenario(name_or_path: str | os.PathLike[str]) -> Scenario:
     """Load and validate a scenario from a TOML file or a shipped scenario's name.
 
-    Raises ScenarioError: The file is missing, not valid TOML, fails validation, or its
-        ``[feedback].weights`` file is bad.
+    Raises:
+        ScenarioError: The file is missing, not valid TOML, fails validation, or its
+            ``[feedback].weights`` file is bad.
     """
     path = resolve_scenario_path(name_or_path)
     text = read_text(path, "scenario", ScenarioError, max_bytes=MAX_SCENARIO_BYTES)

@@ -201,8 +201,9 @@ MAX_SEEDS = 10_000
 def check_seed_replicas(seeds: int, variants: int, source: str = "the command line") -> None:
     """Refuse ``--seeds`` beyond `MAX_SEEDS` or planned jobs beyond the memory, before planning.
 
-    Raises ScenarioError: More than `MAX_SEEDS`, or ``seeds x variants`` jobs of
-        `BYTES_PER_PLANNED_JOB` beyond `MEMORY_FRACTION` of the memory.
+    Raises:
+        ScenarioError: More than `MAX_SEEDS`, or ``seeds x variants`` jobs of
+            `BYTES_PER_PLANNED_JOB` beyond `MEMORY_FRACTION` of the memory.
     """
     if seeds > MAX_SEEDS:
         raise ScenarioError(

@@ -92,8 +92,9 @@ def check_clusters(value: list[str], source: str) -> list[str]:
 def check_fusion(value: str, clusters: Sequence[str] | None, source: str) -> str:
     """Return ``[feedback].fusion`` if it names a rule of `FUSION_RULES` as it takes.
 
-    Raises ScenarioError: An unknown rule, a parameter missing or unexpected, or a ``single:<i>``
-        index outside ``clusters`` (negative from the end).
+    Raises:
+        ScenarioError: An unknown rule, a parameter missing or unexpected, or a ``single:<i>``
+            index outside ``clusters`` (negative from the end).
     """
     head = f"{source}: key [feedback].fusion"
     name, sep, param = value.partition(":")

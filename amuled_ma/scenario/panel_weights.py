@@ -119,8 +119,9 @@ def weights_prior(
 ) -> tuple[float, ...]:
     """The prior of a ``[feedback].weights`` file in ``members``' order, scaled to sum 1.
 
-    Raises ScenarioError: The file is missing, not JSON or malformed; a panel member without a
-        weight, a weight for a non-member, or no weight above 0 among the members.
+    Raises:
+        ScenarioError: The file is missing, not JSON or malformed; a panel member without a
+            weight, a weight for a non-member, or no weight above 0 among the members.
     """
     where = f"{where}: key [feedback].weights"
     path = resolve(weights)

@@ -61,8 +61,9 @@ def _component_problem(name: str) -> str | None:
 def check_path_component(name: object, where: str) -> str:
     """Return ``name`` if it can be used as one folder name (``where``: file and key, for errors).
 
-    Raises ScenarioError: Not a string, empty, too long, or holding a path separator, ``..``, a
-        colon, a control character, a leading ``.``/``-`` or edge spaces.
+    Raises:
+        ScenarioError: Not a string, empty, too long, or holding a path separator, ``..``, a
+            colon, a control character, a leading ``.``/``-`` or edge spaces.
     """
     if not isinstance(name, str):
         raise ScenarioError(f"{where} expects string, found {found(name)}")

@@ -47,8 +47,9 @@ _BUILTINS: dict[str, tuple[str, str]] = {
 def _load_entry_point(name: str) -> type[BatchedTask]:
     """The class an installed ``amuled_ma.tasks`` entry point publishes, checked.
 
-    Raises ScenarioError: It fails to import, is not a `BatchedTask` subclass, or its ``name``
-        differs from the entry point's.
+    Raises:
+        ScenarioError: It fails to import, is not a `BatchedTask` subclass, or its ``name``
+            differs from the entry point's.
     """
     from amuled_ma.tasks.base import BatchedTask
 
@@ -101,8 +102,9 @@ TASKS: Mapping[str, type[BatchedTask]] = _TaskRegistry()
 def get_task(name: str) -> type[BatchedTask]:
     """Return the batched task class of a short name, alias or Gymnasium id (any case).
 
-    Raises ScenarioError: Unknown task (a ``ValueError``), or an entry point that does not load a
-        task class.
+    Raises:
+        ScenarioError: Unknown task (a ``ValueError``), or an entry point that does not
+            load a task class.
     """
     return TASKS[canonical_name(name)]
 

@@ -199,8 +199,9 @@ class Driving(BatchedTask):
 
         ``env_ids`` None: all. Two objects of a kind never share a distance (the step relies on it).
 
-        Raises ValueError: Unknown ``kind``; ``lane`` or ``distance`` impossible; another object of
-            that kind already at that distance in another lane.
+        Raises:
+            ValueError: Unknown ``kind``; ``lane`` or ``distance`` impossible; another
+                object of that kind already at that distance in another lane.
         """
         bit, row = self._bit(kind, lane, distance)
         ids = self._env_ids(env_ids)

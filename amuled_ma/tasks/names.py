@@ -40,8 +40,9 @@ def task_names() -> tuple[str, ...]:
 def canonical_name(name: str) -> str:
     """Return the short task name for a short name, alias or Gymnasium id (any capitalisation).
 
-    Raises ScenarioError: Not a string, or an unknown task; the message lists the known ones and the
-        closest.
+    Raises:
+        ScenarioError: Not a string, or an unknown task; the message lists the known ones
+            and the closest.
     """
     if not isinstance(name, str):
         raise ScenarioError(f"name: expected a task name, got {name!r}")

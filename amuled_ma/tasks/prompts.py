@@ -100,8 +100,9 @@ def _condition(match: re.Match[str]) -> Callable[[Any], bool]:
 def parse_template(path: Path) -> StateTemplate:
     """Parse one template file.
 
-    Raises PromptError: ``path`` cannot be read, is larger than `MAX_PROMPT_BYTES` or is not UTF-8;
-        it has no ``## prompt`` block or a malformed fragment heading.
+    Raises:
+        PromptError: ``path`` cannot be read, is larger than `MAX_PROMPT_BYTES` or is not
+            UTF-8; it has no ``## prompt`` block or a malformed fragment heading.
     """
     text = read_text(path, "state prompt template", PromptError, max_bytes=MAX_PROMPT_BYTES)
     rows = iter(text.splitlines())

@@ -245,8 +245,9 @@ class SmartGrid(BatchedTask):
         ``r_v(a)``: the package's reward of ``judge`` one step after ``a`` on a copy of the live
         world showing ``obs``.
 
-        Raises ValueError: Unknown judge, or a state no live copy of this process shows (e.g. a
-            replayed observation).
+        Raises:
+            ValueError: Unknown judge, or a state no live copy of this process shows
+                (e.g. a replayed observation).
         """
         if judge not in JUDGES:
             raise ValueError(f"judge: expected one of {', '.join(JUDGES)}, got {judge!r}")

@@ -53,8 +53,9 @@ def check_table_memory(path: Path, fix: str) -> None:
     Reads only the zip directory and the ``.npy`` headers: ``np.load`` allocates what a header
     claims before it reads, so a small file could claim terabytes. ``fix`` is said last.
 
-    Raises DemonstratorCacheError: The file is too large, not a zip of ``.npy`` arrays, holds Python
-        objects, or claims more bytes than it holds or than `MAX_TABLE_BYTES`.
+    Raises:
+        DemonstratorCacheError: The file is too large, not a zip of ``.npy`` arrays, holds
+            Python objects, or claims more bytes than it holds or than `MAX_TABLE_BYTES`.
     """
     total = 0
     try:
@@ -271,8 +272,9 @@ class DemonstratorBelief:
     ) -> DemonstratorBelief:
         """Read a file written by `save`, made with ``expect``'s settings (None: any).
 
-        Raises DemonstratorCacheError: The file cannot be read, is malformed, its arrays would take
-            more than `MAX_TABLE_BYTES`, or it was made with other settings.
+        Raises:
+            DemonstratorCacheError: The file cannot be read, is malformed, its arrays would
+                take more than `MAX_TABLE_BYTES`, or it was made with other settings.
         """
         path = checked_read_path(Path(path).parent, Path(path).name)
         fix = "delete it to rebuild the demonstrator"
