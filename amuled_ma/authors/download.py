@@ -230,7 +230,8 @@ def _fetch_unless_offline(
 ) -> Path:
     """`fetch_pinned`; offline with a pin not cached: one line (``missing``, then ``route``).
 
-    Raises AuthorsFetchError: Offline with a file not cached, or the fetch failed.
+    Raises:
+        AuthorsFetchError: Offline with a file not cached, or the fetch failed.
     """
     cache = cache or cache_folder()
     off = offline or os.environ.get(OFFLINE_ENV, "").strip().lower() in ("1", "true", "yes", "on")

@@ -90,7 +90,8 @@ def cleanrl_shape(
 ) -> tuple[int, list[int], int]:
     """``(obs_dim, hidden dims, num_actions)`` of a CleanRL state dict; checks every shape.
 
-    Raises CheckpointError: A shape does not chain (naming ``where``).
+    Raises:
+        CheckpointError: A shape does not chain (naming ``where``).
     """
     layers: dict[str, list[torch.Tensor]] = {}
     for net, out in (("actor", None), ("critic", 1)):
@@ -126,7 +127,8 @@ def build_networks(ppo: PPOConfig, obs_dim: int, num_actions: int) -> tuple[MLPM
 def copy_weights(state: Mapping[str, torch.Tensor], net: str, model: torch.nn.Module) -> None:
     """Copy CleanRL's ``<net>.{0,2,4}`` into the Linear layers of ``model``, in order.
 
-    Raises CheckpointError: Our network has another number or shape of layers.
+    Raises:
+        CheckpointError: Our network has another number or shape of layers.
     """
     ours = [m for m in model.modules() if isinstance(m, torch.nn.Linear)]
     if len(ours) != len(CLEANRL_LINEARS):
@@ -219,7 +221,8 @@ def check_equivalent(
 ) -> None:
     """Check that our actor gives the CleanRL actor's logits on random observations.
 
-    Raises CheckpointError: The logits differ by more than `LOGIT_TOLERANCE`.
+    Raises:
+        CheckpointError: The logits differ by more than `LOGIT_TOLERANCE`.
     """
     obs_dim = int(state["actor.0.weight"].shape[1])
     gen = torch.Generator().manual_seed(0)

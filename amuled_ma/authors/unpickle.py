@@ -586,7 +586,8 @@ def scan_pickle(
 
     The stack holds each entry's depth, or a pushed string for ``STACK_GLOBAL``.
 
-    Raises ValueError: The bytes are not a well-formed pickle.
+    Raises:
+        ValueError: The bytes are not a well-formed pickle.
     """
     stack: list[Any] = []
     marks: list[int] = []

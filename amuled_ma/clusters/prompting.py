@@ -114,7 +114,8 @@ def credence_vector(
 
     ``credences`` (``{name or alias: value}``) overrides the agent's own; None: unprompted.
 
-    Raises ClusterDefinitionError: A credence names no panel cluster, or a value is not >= 0.
+    Raises:
+        ClusterDefinitionError: A credence names no panel cluster, or a value is not >= 0.
     """
     registry = registry or default_registry()
     panel = registry.panel() if panel is None else list(panel)

@@ -386,7 +386,8 @@ def build_feedback(
     ``[feedback.distill].enabled`` the panel is distilled in ``state_dir`` (``resume`` continues
     its budget); ``seed`` seeds the distilled model unless ``[feedback.distill].seed`` is set.
 
-    Raises AmuledError: A member's source cannot be built or checked.
+    Raises:
+        AmuledError: A member's source cannot be built or checked.
     """
     from amuled_ma.deliberation.feedback_base import CallableFeedback, DemonstratorFeedback
     from amuled_ma.deliberation.panel_feedback import FusedReplayFeedback, PanelFeedback

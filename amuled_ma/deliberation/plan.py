@@ -88,7 +88,8 @@ class PanelPlan:
 def cluster_registry(feedback: FeedbackConfig, resolve: Callable[[str], Path]) -> ClusterRegistry:
     """The shipped clusters plus ``[feedback].clusters_dirs`` (later win), resolved by ``resolve``.
 
-    Raises ClusterDefinitionError: A folder is missing or a file is malformed or collides.
+    Raises:
+        ClusterDefinitionError: A folder is missing or a file is malformed or collides.
     """
     return _registry_cached(tuple(str(resolve(d)) for d in feedback.clusters_dirs))
 
@@ -105,7 +106,8 @@ def panel_of(
 ) -> tuple[list[Cluster], str]:
     """``(clusters, fusion rule)`` of a feedback variant (``amuled``, ``cluster:care``, ...).
 
-    Raises ClusterDefinitionError: A named cluster is in no loaded cluster file.
+    Raises:
+        ClusterDefinitionError: A named cluster is in no loaded cluster file.
     """
     kind, arg = parse_feedback(variant)
     names, rule = list(feedback.clusters), feedback.fusion
@@ -134,7 +136,8 @@ def default_source(
 ) -> SourcePlan:
     """The plan of ``[feedback].source`` (what every agent without a table uses).
 
-    Raises ScenarioError: The replayed recording is not found.
+    Raises:
+        ScenarioError: The replayed recording is not found.
     """
     fb = feedback
     model = AGENT_SPECS.get(fb.source)  # a kind registered at run time takes no options
@@ -154,7 +157,8 @@ def agent_source(
 ) -> SourcePlan:
     """The plan of agent ``name``'s ``spec``; ``file``: the cluster file the table is from.
 
-    Raises ScenarioError: The agent's recording is not found.
+    Raises:
+        ScenarioError: The agent's recording is not found.
     """
     head = f"{file}: [source]" if file else f"[feedback.agents.{name}]"
     options = spec.source_options(feedback, resolve, where, head)

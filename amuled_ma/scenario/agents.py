@@ -63,7 +63,8 @@ class _Spec(BaseModel):
 
         ``where`` (the scenario) and ``head`` (the table) name it in messages.
 
-        Raises ScenarioError: A file the table names is not found.
+        Raises:
+            ScenarioError: A file the table names is not found.
         """
         return self.model_dump(exclude={"source"})
 
@@ -279,7 +280,8 @@ def check_agent_table(
 
     An ``ollama`` table without ``model`` takes ``default_model`` if ``default_source`` is ollama.
 
-    Raises ScenarioError: Naming the table, what was expected, what was found and the fix.
+    Raises:
+        ScenarioError: Naming the table, what was expected, what was found and the fix.
     """
     kinds = ", ".join(AGENT_SOURCE_KINDS)
     if isinstance(table, BaseModel):

@@ -145,7 +145,8 @@ def _with_nested(table: BaseModel | dict[str, Any], key: str, value: object) -> 
 def validate_section(section: str, values: dict[str, Any], source: str) -> BaseModel:
     """Validate one section's values as a file's table is validated, and build its model.
 
-    Raises ScenarioError: An unknown section or key, or a bad value; names file, key and fix.
+    Raises:
+        ScenarioError: An unknown section or key, or a bad value; names file, key and fix.
     """
     model = SECTIONS.get(section)
     if model is None:

@@ -15,7 +15,8 @@ def parse_set(text: str) -> tuple[str, str, Any]:
     The value is read as TOML; a bare word that is not TOML is a string, but text opening a
     list or table (``[``, ``{``) must parse.
 
-    Raises ScenarioError: No ``=`` or ``.``, an unknown section, bad TOML, a value nested too deep.
+    Raises:
+        ScenarioError: No ``=`` or ``.``, an unknown section, bad TOML, a value nested too deep.
     """
     key, sep, raw = text.partition("=")
     section, dot, name = key.strip().partition(".")

@@ -57,7 +57,8 @@ def prior_rules() -> tuple[str, ...]:
 def check_clusters(value: list[str], source: str) -> list[str]:
     """Return ``[feedback].clusters`` if it is a panel: non-empty, distinct, visible names.
 
-    Raises ScenarioError: No name; a name empty, too long or odd; two of one `identity_key`.
+    Raises:
+        ScenarioError: No name; a name empty, too long or odd; two of one `identity_key`.
     """
     head = f"{source}: key [feedback].clusters"
     if not value:

@@ -79,7 +79,8 @@ def check_path_component(name: object, where: str) -> str:
 def safe_child(root: str | os.PathLike[str], name: str, *, what: str = "name") -> Path:
     """``root / name``, directly inside ``root``: ``name`` is one safe path component.
 
-    Raises ScenarioError: ``name`` fails `check_path_component`.
+    Raises:
+        ScenarioError: ``name`` fails `check_path_component`.
     """
     return Path(root) / check_path_component(name, what)
 

@@ -476,7 +476,8 @@ _M = TypeVar("_M", bound=BaseModel)
 def validate_model(model: type[_M], data: object, source: str, loc: tuple[str, ...] = ()) -> _M:
     """Validate ``data`` into ``model`` as read from ``source``; ``loc``: where it sits.
 
-    Raises ScenarioError: One line naming ``source``, the first problem and how many more.
+    Raises:
+        ScenarioError: One line naming ``source``, the first problem and how many more.
     """
     context = {"source": source}
     token = _CONTEXT.set(context)

@@ -76,7 +76,8 @@ def options_model(task: str) -> type[_Options] | None:
 def check_task_options(task: str, options: Mapping[str, Any], where: str) -> None:
     """Refuse ``[task].options`` the task would refuse (a task without a model: left to it).
 
-    Raises ScenarioError: An option the run sets itself, an unknown option, or a bad value.
+    Raises:
+        ScenarioError: An option the run sets itself, an unknown option, or a bad value.
     """
     head = f"{where}: key [task].options"
     reserved = sorted(set(options) & set(RESERVED))

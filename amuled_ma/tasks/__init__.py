@@ -120,7 +120,8 @@ def make_task(task: TaskConfig, num_envs: int, *, shaping_coef: float, seed: int
     ``shaping_coef`` is ``c`` of the reward ``r_env + c * r_shaping``; the section refused
     reserved options on load.
 
-    Raises ScenarioError: The task refuses an option (one without an option model).
+    Raises:
+        ScenarioError: The task refuses an option (one without an option model).
     """
     kwargs: dict[str, Any] = dict(task.options)
     if task.max_steps:

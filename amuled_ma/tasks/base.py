@@ -23,7 +23,8 @@ __all__ = ["BatchedTask", "check_int"]
 def check_int(value: object, name: str, low: int = 0, high: int | None = None) -> int:
     """``value`` as an ``int`` in ``low..high`` (None: no top; a bool is refused).
 
-    Raises ValueError: It is not, naming ``name``.
+    Raises:
+        ValueError: It is not, naming ``name``.
     """
     if isinstance(value, numbers.Integral) and not isinstance(value, bool):
         number = int(value)
@@ -43,7 +44,8 @@ def paint_cells(
 ) -> np.ndarray:
     """Draw a character grid (top row first) as an RGB image: one padded square per non-``.``.
 
-    Returns ``uint8`` array ``[len(rows) * cell, len(rows[0]) * cell, 3]``.
+    Returns:
+        ``uint8`` array ``[len(rows) * cell, len(rows[0]) * cell, 3]``.
     """
     img = np.full((len(rows) * cell, len(rows[0]) * cell, 3), background, dtype=np.uint8)
     pad = max(1, cell // 8)
@@ -91,7 +93,8 @@ class BatchedTask(abc.ABC):
         of ``reward = r_env + c * r_shaping``; ``max_steps`` None is ``default_max_steps``;
         ``task_options`` go to `_init_task` (an unknown one: TypeError).
 
-        Raises ValueError: An argument is out of range; the message names it.
+        Raises:
+            ValueError: An argument is out of range; the message names it.
         """
         self.num_envs = check_int(num_envs, "num_envs", 1)
         steps = self.default_max_steps if max_steps is None else max_steps
@@ -151,7 +154,8 @@ class BatchedTask(abc.ABC):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a `state_dict` of a task built with the same settings.
 
-        Raises ValueError: A tensor is missing or has another shape, naming it.
+        Raises:
+            ValueError: A tensor is missing or has another shape, naming it.
         """
         mine = self.state_dict()
         for name, value in mine.items():
@@ -171,7 +175,8 @@ class BatchedTask(abc.ABC):
     def reset(self, seed: int | None = None) -> torch.Tensor:
         """Reset every copy; return float32 ``[num_envs, obs_dim]`` (``seed`` None: same streams).
 
-        Raises ValueError: ``seed`` is negative or not an integer.
+        Raises:
+            ValueError: ``seed`` is negative or not an integer.
         """
         seed = None if seed is None else check_int(seed, "seed")
         if seed is None and self._keys is None:
@@ -271,7 +276,8 @@ class BatchedTask(abc.ABC):
     def judge_scores(cls, judge: str, obs: np.ndarray) -> np.ndarray:
         """The task's judge of a value (``policy = "judge:<name>"``): scores ``[A]`` or ``[B, A]``.
 
-        Raises ValueError: The task has no judge of that name.
+        Raises:
+            ValueError: The task has no judge of that name.
         """
         known = ", ".join(cls.judge_names) or "none"
         raise ValueError(f"judge: task {cls.name!r} has no judge {judge!r} (its judges: {known})")
@@ -279,7 +285,8 @@ class BatchedTask(abc.ABC):
     def render(self, mode: str = "ansi", env_id: int = 0) -> str | np.ndarray:
         """Render copy ``env_id`` as ``"ansi"`` text or an ``"rgb_array"`` (uint8 ``[H, W, 3]``).
 
-        Raises ValueError: Unknown ``mode`` or ``env_id`` out of range.
+        Raises:
+            ValueError: Unknown ``mode`` or ``env_id`` out of range.
         """
         env_id = self._env_id(env_id)
         if mode == "ansi":

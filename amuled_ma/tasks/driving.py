@@ -258,7 +258,8 @@ class Driving(BatchedTask):
     def prompt_variables_from_obs(cls, obs: np.ndarray, **extra: Any) -> dict[str, Any]:
         """Return ``lane``, the six distances (-1 none, -2 no lane) as ints, and ``extra``.
 
-        Raises ValueError: ``obs`` is not 11 numbers or its lane one-hot is invalid.
+        Raises:
+            ValueError: ``obs`` is not 11 numbers or its lane one-hot is invalid.
         """
         values = cls._obs_values(obs)
         onehot = values[6:]

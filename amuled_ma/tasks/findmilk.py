@@ -258,7 +258,8 @@ class FindMilk(BatchedTask):
         ``grid_size``, ``num_crying``, the entries as floats (the recordings print ``x=2.0``),
         ``crying_around`` / ``sleeping_around`` (1 while one remains).
 
-        Raises ValueError: ``obs`` is not 8 numbers or ``num_crying`` is missing or negative.
+        Raises:
+            ValueError: ``obs`` is not 8 numbers or ``num_crying`` is missing or negative.
         """
         values = cls._obs_values(obs)
         if num_crying is None or int(num_crying) < 0:

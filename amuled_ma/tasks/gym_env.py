@@ -29,7 +29,8 @@ def _python(value: torch.Tensor) -> Any:
 class TaskEnv(gym.Env[np.ndarray, np.int64]):
     """Single-copy Gymnasium view of a `BatchedTask`; ``task_kwargs`` go to its constructor.
 
-    Raises ValueError: Unknown ``render_mode`` or a bad task argument.
+    Raises:
+        ValueError: Unknown ``render_mode`` or a bad task argument.
     """
 
     # gymnasium.Env declares metadata as an instance attribute, so no ClassVar here.
@@ -68,7 +69,8 @@ class TaskEnv(gym.Env[np.ndarray, np.int64]):
     def step(self, action: object) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Take one action; returns ``(obs, reward, terminated, truncated, info)``.
 
-        Raises ValueError: ``action`` is not an integer in the action space.
+        Raises:
+            ValueError: ``action`` is not an integer in the action space.
         """
         if not self._started:
             raise RuntimeError(f"{type(self).__name__}: call reset() before step()")

@@ -67,7 +67,8 @@ def human_belief(task_name: str, obs: object, *, sleeping: object = None) -> np.
     ``sleeping`` (FindMilk only) gives every remaining sleeping baby ``(..., K, 2)``, negative
     for absent ones, to check them all as the authors' script did.
 
-    Raises ValueError: Unknown task or ``obs`` / ``sleeping`` of the wrong shape.
+    Raises:
+        ValueError: Unknown task or ``obs`` / ``sleeping`` of the wrong shape.
     """
     name = canonical_name(task_name)
     if name == "findmilk":

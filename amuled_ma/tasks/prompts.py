@@ -52,7 +52,8 @@ class StateTemplate:
     def render(self, variables: Mapping[str, Any]) -> str:
         """Fill the template with ``variables``.
 
-        Raises ValueError: A variable is missing, or no fragment matches a value.
+        Raises:
+            ValueError: A variable is missing, or no fragment matches a value.
         """
         return self._fill(self.prompt, variables, depth=0)
 
@@ -177,6 +178,7 @@ def load_template(task_name: str) -> StateTemplate:
 def render_state_prompt(task_name: str, variables: Mapping[str, Any]) -> str:
     """Render the state prompt of one state, as the paper's authors sent it (no credence sentence).
 
-    Raises ValueError: Unknown task, missing variable, or a value no fragment accepts.
+    Raises:
+        ValueError: Unknown task, missing variable, or a value no fragment accepts.
     """
     return load_template(task_name).render(variables)

@@ -117,7 +117,8 @@ def play_counted(
 ) -> DemonstratorBelief:
     """Play and count episodes ``count_from..episodes-1`` in waves of ``batch_size``.
 
-    Raises ValueError: An argument is out of range.
+    Raises:
+        ValueError: An argument is out of range.
     """
     settings = demonstrator_settings(task_name, seed=seed, episodes=episodes)
     seed, episodes = settings["seed"], settings["episodes"]
@@ -193,7 +194,8 @@ def play_findmilk(
 ) -> DemonstratorBelief:
     """Play the FindMilk rule demonstrator, ``batch_size`` episodes side by side; count each step.
 
-    Raises ValueError: An argument is out of range.
+    Raises:
+        ValueError: An argument is out of range.
     """
     return play_counted(
         "findmilk",
@@ -296,7 +298,8 @@ def play_driving(
 ) -> DemonstratorBelief:
     """Play and count Driving episodes ``count_from..episodes-1``, ``batch_size`` side by side.
 
-    Raises ValueError: An argument is out of range.
+    Raises:
+        ValueError: An argument is out of range.
     """
     return play_counted(
         "driving",

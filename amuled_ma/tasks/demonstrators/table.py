@@ -130,7 +130,8 @@ def encode_observations(task_name: str, obs: object) -> tuple[torch.Tensor, torc
 
     A row has a key when integer-valued within the bounds; on ``obs``'s device (CPU: not a tensor).
 
-    Raises ValueError: ``obs`` is not ``[N, obs_dim]``.
+    Raises:
+        ValueError: ``obs`` is not ``[N, obs_dim]``.
     """
     name = canonical_name(task_name)
     low, high, weight = _encoder(name)
@@ -188,7 +189,8 @@ class DemonstratorBelief:
     ``states`` are strictly increasing keys int64 ``[S]``; ``counts`` int64 ``[S, A]``, every
     row summing to at least 1.
 
-    Raises ValueError: The arrays are malformed; the message says which.
+    Raises:
+        ValueError: The arrays are malformed; the message says which.
     """
 
     def __init__(
@@ -233,7 +235,8 @@ class DemonstratorBelief:
 
         On ``obs``'s device.
 
-        Raises ValueError: ``obs`` is not ``[N, obs_dim]``.
+        Raises:
+            ValueError: ``obs`` is not ``[N, obs_dim]``.
         """
         device = obs.device if isinstance(obs, torch.Tensor) else torch.device("cpu")
         keys, valid = encode_observations(self.task_name, obs)
