@@ -7,6 +7,7 @@ the task's actions; panels come from the run's belief store, read-only. Same inp
 from __future__ import annotations
 
 import itertools
+import json
 import os
 import shutil
 from collections.abc import Sequence
@@ -17,6 +18,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 import torch
 
+from amuled_ma.beliefs.replies.parsing import parse_belief
 from amuled_ma.deliberation.plan import plan_panel
 from amuled_ma.deliberation.state_key import freeze
 from amuled_ma.evaluate import episode_trace as trace
@@ -43,7 +45,6 @@ from amuled_ma.study.model import (
     StudyError,
     write_study,
 )
-from amuled_ma.study.reasons import stated_reason
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
@@ -58,6 +59,28 @@ CONSENT_TEMPLATES = {
     "pairs": TEMPLATES / "consent.html",
     "expert": TEMPLATES / "consent_expert.html",
 }
+#: Longest reason kept, in characters (the rest is cut, and the cut is said).
+MAX_REASON_CHARS = 3000
+
+
+def stated_reason(raw: str | None, action_names: Sequence[str]) -> str | None:
+    """A JSON reply's ``reasoning``, or its text if not only JSON, cut at `MAX_REASON_CHARS`."""
+    if not isinstance(raw, str) or not raw.strip():
+        return None
+    parsed = parse_belief(raw, action_names)
+    text: str | None = parsed.reasoning if isinstance(parsed.reasoning, str) else None
+    if not text:
+        try:
+            whole = json.loads(raw)
+        except (ValueError, RecursionError):
+            whole = None
+        text = None if isinstance(whole, dict | list | int | float) else raw
+    if text is None or not text.strip():
+        return None
+    text = text.strip()
+    if len(text) > MAX_REASON_CHARS:
+        text = text[:MAX_REASON_CHARS] + f" [... cut at {MAX_REASON_CHARS} characters]"
+    return text
 
 
 @dataclass
