@@ -1,7 +1,4 @@
-"""One state explained: each agent's belief, weight and reasoning, and the fusion's workings.
-
-``amuled explain`` parses and prints; this module builds the lines.
-"""
+"""One state explained: each agent's belief, weight and reasoning, and the fusion's workings."""
 
 from __future__ import annotations
 

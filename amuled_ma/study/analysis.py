@@ -344,12 +344,6 @@ class Citation:
     by_action: dict[str, int] = field(default_factory=dict)
 
 
-def _action_name(study: Study, task: str, action: int) -> str:
-    names = study.action_names.get(task, [])
-    name = names[action] if action < len(names) else str(action)
-    return name if len(study.action_names) <= 1 else f"{task}:{name}"
-
-
 def framework_citations(study: Study, answers: Sequence[ExpertAnswer]) -> list[Citation]:
     """Each of the study's frameworks (``none`` last), with how often it was cited."""
     total = sum(len(a.judgements) for a in answers)
@@ -359,10 +353,12 @@ def framework_citations(study: Study, answers: Sequence[ExpertAnswer]) -> list[C
     for answer in answers:
         item = study.item(answer.item)
         task = item.task if item is not None else ""
+        names = study.action_names.get(task, [])
         for j in answer.judgements:
             cited[j.framework] += 1
             acceptable[j.framework] += int(j.acceptable)
-            by_action[j.framework][_action_name(study, task, j.action)] += 1
+            name = names[j.action] if j.action < len(names) else str(j.action)
+            by_action[j.framework][name if len(study.action_names) <= 1 else f"{task}:{name}"] += 1
     return [
         Citation(
             name,
