@@ -20,7 +20,7 @@ import numpy as np
 
 from amuled_ma.deliberation.plan import plan_panel
 from amuled_ma.evaluate import episode_trace as trace
-from amuled_ma.evaluate.panel_answers import PanelAnswers, ask_panel, state_prompt
+from amuled_ma.evaluate.panel_answers import ask_panel, state_prompt
 from amuled_ma.evaluate.readonly_feedback import describe_feedback, open_feedback
 from amuled_ma.files.safe import check_write_target, write_text_atomic
 from amuled_ma.tasks.colors import COLORS, css_variables
@@ -134,7 +134,20 @@ def variant_view(
             entry["note_base"] = "no base policy found for this variant"
         if panel is not None:
             answers = ask_panel(panel, ep.obs[first], [ep.prompt_vars[t] for t in first], store)
-            entry.update(_panel_entry(answers, texts))
+            entry.update(
+                _states_entry(
+                    answers.agents,
+                    answers.rule,
+                    answers.statuses.tolist(),
+                    b=_round(answers.beliefs),
+                    w=_round(answers.weights),
+                    k=_round(answers.conflicts),
+                    f=_round(answers.fused),
+                    x=[[texts.add(r) for r in row] for row in answers.raws],
+                    why=[[texts.add(r) for r in row] for row in answers.reasons],
+                    q=[texts.add(p) for p in answers.prompts],
+                )
+            )
             entry.update(
                 kind="panel",
                 s=index.tolist(),
@@ -146,7 +159,23 @@ def variant_view(
                 ),
             )
         elif live is not None and ep.live_beliefs is not None:
-            entry.update(_live_entry(ep, first, live, texts))
+            agent = str(getattr(live, "agent", getattr(live, "name", "feedback")))
+            beliefs = ep.live_beliefs[first]
+            assert ep.live_statuses is not None
+            entry.update(
+                _states_entry(
+                    [agent],
+                    None,
+                    [[pairs[0][1] if (pairs := ep.live_statuses[t]) else "ok"] for t in first],
+                    b=_round(beliefs[:, None, :]),
+                    w=None,
+                    k=None,
+                    f=_round(beliefs),
+                    x=None,
+                    why=None,
+                    q=[texts.add(state_prompt(ep.task, ep.prompt_vars[t])) for t in first],
+                )
+            )
             entry.update(kind="belief", s=index.tolist(), source=describe_feedback(live))
             entry["note"] = (
                 f"The feedback '{feedback_name}' of this variant is not a panel of agents "
@@ -220,41 +249,6 @@ def _states_entry(
         "statuses": names,
         "st": {"b": b, "w": w, "s": coded, **st},
     }
-
-
-def _panel_entry(answers: PanelAnswers, texts: TextTable) -> dict[str, Any]:
-    return _states_entry(
-        answers.agents,
-        answers.rule,
-        answers.statuses.tolist(),
-        b=_round(answers.beliefs),
-        w=_round(answers.weights),
-        k=_round(answers.conflicts),
-        f=_round(answers.fused),
-        x=[[texts.add(r) for r in row] for row in answers.raws],
-        why=[[texts.add(r) for r in row] for row in answers.reasons],
-        q=[texts.add(p) for p in answers.prompts],
-    )
-
-
-def _live_entry(ep: trace.Episode, first: list[int], feedback: object, texts: TextTable) -> dict:
-    assert ep.live_beliefs is not None and ep.live_statuses is not None
-    agent = str(getattr(feedback, "agent", getattr(feedback, "name", "feedback")))
-    statuses = [[pairs[0][1] if (pairs := ep.live_statuses[t]) else "ok"] for t in first]
-    beliefs = ep.live_beliefs[first]
-    prompts = [texts.add(state_prompt(ep.task, ep.prompt_vars[t])) for t in first]
-    return _states_entry(
-        [agent],
-        None,
-        statuses,
-        b=_round(beliefs[:, None, :]),
-        w=None,
-        k=None,
-        f=_round(beliefs),
-        x=None,
-        why=None,
-        q=prompts,
-    )
 
 
 def _csp_hash(text: str) -> str:
