@@ -95,6 +95,15 @@ def _compact_number(value: float) -> int | float:
     return int(value) if float(value).is_integer() else round(float(value), DECIMALS)
 
 
+#: The legend under a task's picture of a state.
+PICTURE_NOTES = {
+    "driving": "Vermillion: cars, green circles: grandmas, black: the agent's car at distance 0; "
+    "red ✕: a collision, green ★: a rescue on this step.",
+    "findmilk": "M milk, C crying baby (solid green ✓ once pacified), z sleeping baby (solid red "
+    "! once woken); the purple line is the path so far.",
+}
+
+
 def variant_view(
     run_dir: Path,
     trained: trace.TrainedVariant,
@@ -119,7 +128,25 @@ def variant_view(
             trained, episode=episode, mode=mode, episodes=episodes, live_feedback=live
         )
         first, index = ep.unique_states()
-        entry = _episode_entry(ep, trained.name)
+        picture: dict[str, Any] = {"kind": ep.task if ep.layout is not None else "text"}
+        entry: dict[str, Any] = {
+            "name": trained.name,
+            "mode": ep.mode,
+            "T": ep.length,
+            "terminated": ep.terminated,
+            "metrics": {k: _compact_number(v) for k, v in ep.metrics.items()},
+            "picture": {**picture, **(ep.layout or {})},
+            "picture_note": PICTURE_NOTES.get(ep.task, ""),
+            "frames": ep.frames,
+            "a": ep.actions.tolist(),
+            "b": ep.base_actions.tolist() if ep.base_actions is not None else None,
+            "p": _round(ep.probs, 3),
+            "bp": _round(ep.base_probs, 3) if ep.base_probs is not None else None,
+            "ev": {
+                k: [_compact_number(x) for x in v.tolist()] for k, v in ep.events.items() if v.any()
+            },
+            "r": _round(ep.rewards, 2),
+        }
         entry.update(
             feedback=feedback_name,
             policy=str(trained.checkpoint),
@@ -197,38 +224,6 @@ def variant_view(
             feedback.close()
         if store is not None:
             store.close()
-
-
-#: The legend under a task's picture of a state.
-PICTURE_NOTES = {
-    "driving": "Vermillion: cars, green circles: grandmas, black: the agent's car at distance 0; "
-    "red ✕: a collision, green ★: a rescue on this step.",
-    "findmilk": "M milk, C crying baby (solid green ✓ once pacified), z sleeping baby (solid red "
-    "! once woken); the purple line is the path so far.",
-}
-
-
-def _episode_entry(ep: trace.Episode, name: str) -> dict[str, Any]:
-    picture: dict[str, Any] = {"kind": ep.task if ep.layout is not None else "text"}
-    picture.update(ep.layout or {})
-    return {
-        "name": name,
-        "mode": ep.mode,
-        "T": ep.length,
-        "terminated": ep.terminated,
-        "metrics": {k: _compact_number(v) for k, v in ep.metrics.items()},
-        "picture": picture,
-        "picture_note": PICTURE_NOTES.get(ep.task, ""),
-        "frames": ep.frames,
-        "a": ep.actions.tolist(),
-        "b": ep.base_actions.tolist() if ep.base_actions is not None else None,
-        "p": _round(ep.probs, 3),
-        "bp": _round(ep.base_probs, 3) if ep.base_probs is not None else None,
-        "ev": {
-            k: [_compact_number(x) for x in v.tolist()] for k, v in ep.events.items() if v.any()
-        },
-        "r": _round(ep.rewards, 2),
-    }
 
 
 def _states_entry(
