@@ -127,18 +127,6 @@ def layout_of(task: BatchedTask, obs: torch.Tensor, copy: int = 0) -> dict[str, 
     return None
 
 
-def _final_frame(task: BatchedTask, previous: Any, final_obs: torch.Tensor) -> Any:
-    """The picture of the last state, after the task reset the copy (from the final observation)."""
-    if task.name == "findmilk":
-        return [int(final_obs[0]), int(final_obs[1])]
-    if task.name == "driving":
-        lane = int(torch.argmax(final_obs[6:]))
-        cars = [[ln, d - 1] for ln, d in previous[1] if d - 1 > 0]
-        grandmas = [[ln, d - 3] for ln, d in previous[2] if d - 3 > 0]
-        return [lane, cars, grandmas]
-    return previous
-
-
 class _Tracer(TrajectoryRecorder):
     """Records copy ``K`` of a rollout step by step, until its first episode ends."""
 
@@ -205,7 +193,14 @@ class _Tracer(TrajectoryRecorder):
         self.metrics = episode_metrics(info.get("episode") or {}, k, len(obs), skip=("done",))
         # the task has reset the copy: the last picture is drawn from the final obs
         final = torch.as_tensor(info.get("final_obs", obs)).float()[k]
-        self.frames.append(_final_frame(task, self.frames[-1], final))
+        previous = self.frames[-1]
+        if task.name == "findmilk":
+            previous = [int(final[0]), int(final[1])]
+        elif task.name == "driving":
+            cars = [[ln, d - 1] for ln, d in previous[1] if d - 1 > 0]
+            grandmas = [[ln, d - 3] for ln, d in previous[2] if d - 3 > 0]
+            previous = [int(torch.argmax(final[6:])), cars, grandmas]
+        self.frames.append(previous)
 
 
 def replay_episode(

@@ -1,7 +1,4 @@
-"""One state explained: each agent's belief, weight and reasoning, and the fusion's workings.
-
-``amuled explain`` parses and prints; this module builds the lines.
-"""
+"""One state explained: each agent's belief, weight and reasoning, and the fusion's workings."""
 
 from __future__ import annotations
 
@@ -98,23 +95,6 @@ def parse_obs(text: str, task_cls: type[BatchedTask]) -> np.ndarray:
 MAX_PROMPT_INT = 2**53
 
 
-def _check_prompt_value(name: str, value: object) -> None:
-    """Refuse a prompt variable that is a non-finite float or an integer beyond 2^53."""
-    numbers = value if isinstance(value, list) else [value]
-    for item in numbers:
-        if isinstance(item, bool) or not isinstance(item, int | float):
-            continue
-        if isinstance(item, float) and not math.isfinite(item):
-            raise ScenarioError(
-                f"--prompt-var {name}: expected a finite number, found {item!r}; e.g. num_crying=4"
-            )
-        if abs(item) > MAX_PROMPT_INT:
-            raise ScenarioError(
-                f"--prompt-var {name}: expected a number within +-{MAX_PROMPT_INT:,} (2^53), "
-                f"found {item:.3g}; e.g. num_crying=4"
-            )
-
-
 def parse_prompt_vars(items: Sequence[str]) -> dict[str, Any]:
     """``["num_crying=4", ...]`` -> ``{"num_crying": 4}`` (TOML values); ScenarioError if bad.
 
@@ -133,7 +113,19 @@ def parse_prompt_vars(items: Sequence[str]) -> dict[str, Any]:
             raise ScenarioError(
                 f"--prompt-var {name.strip()}: the value is nested deeper than Python can read"
             ) from None
-        _check_prompt_value(name.strip(), value)
+        for number in value if isinstance(value, list) else [value]:
+            if isinstance(number, bool) or not isinstance(number, int | float):
+                continue
+            if isinstance(number, float) and not math.isfinite(number):
+                raise ScenarioError(
+                    f"--prompt-var {name.strip()}: expected a finite number, found {number!r}; "
+                    "e.g. num_crying=4"
+                )
+            if abs(number) > MAX_PROMPT_INT:
+                raise ScenarioError(
+                    f"--prompt-var {name.strip()}: expected a number within +-{MAX_PROMPT_INT:,} "
+                    f"(2^53), found {number:.3g}; e.g. num_crying=4"
+                )
         out[name.strip()] = value
     return out
 

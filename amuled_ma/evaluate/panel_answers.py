@@ -114,8 +114,26 @@ def ask_panel(
             raws[u][c] = result.raw
             requests[u][c] = request
             reasons[u][c] = extra.get("miss_reason") or extra.get("error")
-    if store is not None and store.store is not None:
-        _raws_from_store(original, store, requests, raws)
+    # a missing raw reply is filled from the run's store row of any status
+    wanted: dict[str, tuple[int, int]] = {}
+    cells = [(u, c, r) for u, asked in enumerate(requests) for c, r in enumerate(asked)]
+    for u, c, req in cells if store is not None and store.store is not None else []:
+        if req is None or raws[u][c]:
+            continue
+        member = original
+        route = getattr(original, "source_for", None)
+        if callable(route):
+            try:
+                member = route(req.cluster)
+            except AmuledError:
+                continue
+        keys = getattr(member, "keys", None)
+        if callable(keys):
+            wanted[keys([req])[0]] = (u, c)
+    if wanted and store is not None:
+        for key, kept in store.rows(list(wanted)).items():
+            u, c = wanted[key]
+            raws[u][c] = kept.raw
     prompts = [
         None if prompt_vars is None else state_prompt(panel.task_name, prompt_vars[u])
         for u in range(len(obs))
@@ -133,31 +151,3 @@ def ask_panel(
         reasons=reasons,
         prompts=prompts,
     )
-
-
-def _raws_from_store(
-    source: BeliefSource,
-    store: ReadOnlyStore,
-    requests: list[list[BeliefRequest | None]],
-    raws: list[list[str | None]],
-) -> None:
-    """Fill missing raw replies from the run's store rows of any status."""
-    wanted: dict[str, tuple[int, int]] = {}
-    for u, row in enumerate(requests):
-        for c, request in enumerate(row):
-            if request is None or raws[u][c]:
-                continue
-            member = source
-            route = getattr(source, "source_for", None)
-            if callable(route):
-                try:
-                    member = route(request.cluster)
-                except AmuledError:
-                    continue
-            keys = getattr(member, "keys", None)
-            if callable(keys):
-                wanted[keys([request])[0]] = (u, c)
-    if wanted:
-        for key, row in store.rows(list(wanted)).items():
-            u, c = wanted[key]
-            raws[u][c] = row.raw

@@ -20,7 +20,7 @@ import numpy as np
 
 from amuled_ma.deliberation.plan import plan_panel
 from amuled_ma.evaluate import episode_trace as trace
-from amuled_ma.evaluate.panel_answers import PanelAnswers, ask_panel, state_prompt
+from amuled_ma.evaluate.panel_answers import ask_panel, state_prompt
 from amuled_ma.evaluate.readonly_feedback import describe_feedback, open_feedback
 from amuled_ma.files.safe import check_write_target, write_text_atomic
 from amuled_ma.tasks.colors import COLORS, css_variables
@@ -95,6 +95,15 @@ def _compact_number(value: float) -> int | float:
     return int(value) if float(value).is_integer() else round(float(value), DECIMALS)
 
 
+#: The legend under a task's picture of a state.
+PICTURE_NOTES = {
+    "driving": "Vermillion: cars, green circles: grandmas, black: the agent's car at distance 0; "
+    "red ✕: a collision, green ★: a rescue on this step.",
+    "findmilk": "M milk, C crying baby (solid green ✓ once pacified), z sleeping baby (solid red "
+    "! once woken); the purple line is the path so far.",
+}
+
+
 def variant_view(
     run_dir: Path,
     trained: trace.TrainedVariant,
@@ -119,7 +128,25 @@ def variant_view(
             trained, episode=episode, mode=mode, episodes=episodes, live_feedback=live
         )
         first, index = ep.unique_states()
-        entry = _episode_entry(ep, trained.name)
+        picture: dict[str, Any] = {"kind": ep.task if ep.layout is not None else "text"}
+        entry: dict[str, Any] = {
+            "name": trained.name,
+            "mode": ep.mode,
+            "T": ep.length,
+            "terminated": ep.terminated,
+            "metrics": {k: _compact_number(v) for k, v in ep.metrics.items()},
+            "picture": {**picture, **(ep.layout or {})},
+            "picture_note": PICTURE_NOTES.get(ep.task, ""),
+            "frames": ep.frames,
+            "a": ep.actions.tolist(),
+            "b": ep.base_actions.tolist() if ep.base_actions is not None else None,
+            "p": _round(ep.probs, 3),
+            "bp": _round(ep.base_probs, 3) if ep.base_probs is not None else None,
+            "ev": {
+                k: [_compact_number(x) for x in v.tolist()] for k, v in ep.events.items() if v.any()
+            },
+            "r": _round(ep.rewards, 2),
+        }
         entry.update(
             feedback=feedback_name,
             policy=str(trained.checkpoint),
@@ -134,7 +161,20 @@ def variant_view(
             entry["note_base"] = "no base policy found for this variant"
         if panel is not None:
             answers = ask_panel(panel, ep.obs[first], [ep.prompt_vars[t] for t in first], store)
-            entry.update(_panel_entry(answers, texts))
+            entry.update(
+                _states_entry(
+                    answers.agents,
+                    answers.rule,
+                    answers.statuses.tolist(),
+                    b=_round(answers.beliefs),
+                    w=_round(answers.weights),
+                    k=_round(answers.conflicts),
+                    f=_round(answers.fused),
+                    x=[[texts.add(r) for r in row] for row in answers.raws],
+                    why=[[texts.add(r) for r in row] for row in answers.reasons],
+                    q=[texts.add(p) for p in answers.prompts],
+                )
+            )
             entry.update(
                 kind="panel",
                 s=index.tolist(),
@@ -146,7 +186,23 @@ def variant_view(
                 ),
             )
         elif live is not None and ep.live_beliefs is not None:
-            entry.update(_live_entry(ep, first, live, texts))
+            agent = str(getattr(live, "agent", getattr(live, "name", "feedback")))
+            beliefs = ep.live_beliefs[first]
+            assert ep.live_statuses is not None
+            entry.update(
+                _states_entry(
+                    [agent],
+                    None,
+                    [[pairs[0][1] if (pairs := ep.live_statuses[t]) else "ok"] for t in first],
+                    b=_round(beliefs[:, None, :]),
+                    w=None,
+                    k=None,
+                    f=_round(beliefs),
+                    x=None,
+                    why=None,
+                    q=[texts.add(state_prompt(ep.task, ep.prompt_vars[t])) for t in first],
+                )
+            )
             entry.update(kind="belief", s=index.tolist(), source=describe_feedback(live))
             entry["note"] = (
                 f"The feedback '{feedback_name}' of this variant is not a panel of agents "
@@ -170,38 +226,6 @@ def variant_view(
             store.close()
 
 
-#: The legend under a task's picture of a state.
-PICTURE_NOTES = {
-    "driving": "Vermillion: cars, green circles: grandmas, black: the agent's car at distance 0; "
-    "red ✕: a collision, green ★: a rescue on this step.",
-    "findmilk": "M milk, C crying baby (solid green ✓ once pacified), z sleeping baby (solid red "
-    "! once woken); the purple line is the path so far.",
-}
-
-
-def _episode_entry(ep: trace.Episode, name: str) -> dict[str, Any]:
-    picture: dict[str, Any] = {"kind": ep.task if ep.layout is not None else "text"}
-    picture.update(ep.layout or {})
-    return {
-        "name": name,
-        "mode": ep.mode,
-        "T": ep.length,
-        "terminated": ep.terminated,
-        "metrics": {k: _compact_number(v) for k, v in ep.metrics.items()},
-        "picture": picture,
-        "picture_note": PICTURE_NOTES.get(ep.task, ""),
-        "frames": ep.frames,
-        "a": ep.actions.tolist(),
-        "b": ep.base_actions.tolist() if ep.base_actions is not None else None,
-        "p": _round(ep.probs, 3),
-        "bp": _round(ep.base_probs, 3) if ep.base_probs is not None else None,
-        "ev": {
-            k: [_compact_number(x) for x in v.tolist()] for k, v in ep.events.items() if v.any()
-        },
-        "r": _round(ep.rewards, 2),
-    }
-
-
 def _states_entry(
     agents: list[str],
     rule: str | None,
@@ -220,41 +244,6 @@ def _states_entry(
         "statuses": names,
         "st": {"b": b, "w": w, "s": coded, **st},
     }
-
-
-def _panel_entry(answers: PanelAnswers, texts: TextTable) -> dict[str, Any]:
-    return _states_entry(
-        answers.agents,
-        answers.rule,
-        answers.statuses.tolist(),
-        b=_round(answers.beliefs),
-        w=_round(answers.weights),
-        k=_round(answers.conflicts),
-        f=_round(answers.fused),
-        x=[[texts.add(r) for r in row] for row in answers.raws],
-        why=[[texts.add(r) for r in row] for row in answers.reasons],
-        q=[texts.add(p) for p in answers.prompts],
-    )
-
-
-def _live_entry(ep: trace.Episode, first: list[int], feedback: object, texts: TextTable) -> dict:
-    assert ep.live_beliefs is not None and ep.live_statuses is not None
-    agent = str(getattr(feedback, "agent", getattr(feedback, "name", "feedback")))
-    statuses = [[pairs[0][1] if (pairs := ep.live_statuses[t]) else "ok"] for t in first]
-    beliefs = ep.live_beliefs[first]
-    prompts = [texts.add(state_prompt(ep.task, ep.prompt_vars[t])) for t in first]
-    return _states_entry(
-        [agent],
-        None,
-        statuses,
-        b=_round(beliefs[:, None, :]),
-        w=None,
-        k=None,
-        f=_round(beliefs),
-        x=None,
-        why=None,
-        q=prompts,
-    )
 
 
 def _csp_hash(text: str) -> str:

@@ -7,6 +7,7 @@ the task's actions; panels come from the run's belief store, read-only. Same inp
 from __future__ import annotations
 
 import itertools
+import json
 import os
 import shutil
 from collections.abc import Sequence
@@ -17,6 +18,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 import torch
 
+from amuled_ma.beliefs.replies.parsing import parse_belief
 from amuled_ma.deliberation.plan import plan_panel
 from amuled_ma.deliberation.state_key import freeze
 from amuled_ma.evaluate import episode_trace as trace
@@ -43,7 +45,6 @@ from amuled_ma.study.model import (
     StudyError,
     write_study,
 )
-from amuled_ma.study.reasons import stated_reason
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
@@ -58,6 +59,28 @@ CONSENT_TEMPLATES = {
     "pairs": TEMPLATES / "consent.html",
     "expert": TEMPLATES / "consent_expert.html",
 }
+#: Longest reason kept, in characters (the rest is cut, and the cut is said).
+MAX_REASON_CHARS = 3000
+
+
+def stated_reason(raw: str | None, action_names: Sequence[str]) -> str | None:
+    """A JSON reply's ``reasoning``, or its text if not only JSON, cut at `MAX_REASON_CHARS`."""
+    if not isinstance(raw, str) or not raw.strip():
+        return None
+    parsed = parse_belief(raw, action_names)
+    text: str | None = parsed.reasoning if isinstance(parsed.reasoning, str) else None
+    if not text:
+        try:
+            whole = json.loads(raw)
+        except (ValueError, RecursionError):
+            whole = None
+        text = None if isinstance(whole, dict | list | int | float) else raw
+    if text is None or not text.strip():
+        return None
+    text = text.strip()
+    if len(text) > MAX_REASON_CHARS:
+        text = text[:MAX_REASON_CHARS] + f" [... cut at {MAX_REASON_CHARS} characters]"
+    return text
 
 
 @dataclass
@@ -157,43 +180,6 @@ def _states_of_run(
     return states, actions, panel, action_names
 
 
-def _panel_view(found: tuple[str, Any, int] | None, names_of: list[str]) -> PanelView | None:
-    """The panel's answers about one state (``found``: feedback, answers, row)."""
-    if found is None:
-        return None
-    feedback, answers, u = found
-    return PanelView(
-        feedback=feedback,
-        agents=list(answers.agents),
-        rule=answers.rule,
-        beliefs=_round(answers.beliefs[u]),
-        statuses=[str(x) for x in answers.statuses[u]],
-        fused=_round(answers.fused[u]),
-        reasons=[stated_reason(raw, names_of) for raw in answers.raws[u]],
-    )
-
-
-def _frameworks() -> list[tuple[str, str]]:
-    """The moral frameworks an expert may cite: the clusters of the shipped registry."""
-    from amuled_ma.clusters.loader import default_registry
-
-    return [(c.name, c.title) for c in default_registry().panel()]
-
-
-def _check_arguments(names: list[str], mode: str, attention: int | None) -> None:
-    least = 2 if mode == "pairs" else 1
-    if len(names) < least:
-        raise StudyError(
-            f"--variants: expected at least {('one variant', 'two variants')[least - 1]} to "
-            f"compare, found {names}; e.g. --variants amuled,base"
-        )
-    if mode == "expert" and attention:
-        raise StudyError(
-            f"--attention: expert mode asks no attention checks, found {attention}; "
-            "leave --attention out with --mode expert"
-        )
-
-
 def build_study(
     runs: Sequence[Path],
     variants: Sequence[str],
@@ -213,8 +199,20 @@ def build_study(
     variants, no state where two differ, attention checks in expert mode, or ``out`` holds a
     study without ``force``.
     """
+    from amuled_ma.clusters.loader import default_registry
+
     names = list(dict.fromkeys(variants))
-    _check_arguments(names, mode, attention)
+    least = 2 if mode == "pairs" else 1
+    if len(names) < least:
+        raise StudyError(
+            f"--variants: expected at least {('one variant', 'two variants')[least - 1]} to "
+            f"compare, found {names}; e.g. --variants amuled,base"
+        )
+    if mode == "expert" and attention:
+        raise StudyError(
+            f"--attention: expert mode asks no attention checks, found {attention}; "
+            "leave --attention out with --mode expert"
+        )
     out = Path(out)
     if (out / STUDY_FILE).exists() and not force:
         raise StudyError(f"{out}: holds a study already ({STUDY_FILE}); pass --force to rebuild")
@@ -249,6 +247,18 @@ def build_study(
     for position, (kind, s, options, expected) in enumerate(slots):
         item_id = f"q{position + 1:03d}"
         state = states[s]
+        view = None
+        if kind != "attention" and (found := panels[s]) is not None:
+            feedback, answers, u = found
+            view = PanelView(
+                feedback=feedback,
+                agents=list(answers.agents),
+                rule=answers.rule,
+                beliefs=_round(answers.beliefs[u]),
+                statuses=[str(x) for x in answers.statuses[u]],
+                fused=_round(answers.fused[u]),
+                reasons=[stated_reason(raw, action_names[state.task]) for raw in answers.raws[u]],
+            )
         built.append(
             Item(
                 id=item_id,
@@ -265,9 +275,7 @@ def build_study(
                 expected=expected,
                 instruction=None if expected is None else INSTRUCTION.format(expected),
                 policies=dict(actions[s]),
-                panel=None
-                if kind == "attention"
-                else _panel_view(panels[s], action_names[state.task]),
+                panel=view,
             )
         )
         pictures[item_id] = state.svg
@@ -278,7 +286,10 @@ def build_study(
         variants=names,
         folders=folders,
         action_names=action_names,
-        frameworks=_frameworks() if mode == "expert" else [],
+        # the moral frameworks an expert may cite: the clusters of the shipped registry
+        frameworks=[(c.name, c.title) for c in default_registry().panel()]
+        if mode == "expert"
+        else [],
         items=built,
         candidates=candidates,
     )

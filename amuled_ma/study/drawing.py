@@ -129,23 +129,16 @@ def text_svg(text: str) -> str:
     return _svg(width, 24 + 16 * len(lines), body, "the state")
 
 
-def remaining_babies(
-    layout: dict[str, Any], frames: Sequence[Any], step: int
-) -> tuple[list[list[int]], list[list[int]]]:
-    """FindMilk babies still in the room at ``step``: entering a baby's cell removes it."""
-    visited = {tuple(int(v) for v in f) for f in frames[1 : step + 1]}
-    crying = [list(p) for p in layout.get("crying", []) if tuple(p) not in visited]
-    sleeping = [list(p) for p in layout.get("sleeping", []) if tuple(p) not in visited]
-    return crying, sleeping
-
-
 def state_svg(
     task: str, layout: dict[str, Any] | None, frames: Sequence[Any], step: int, obs: Sequence[float]
 ) -> str:
     """The picture of state ``step`` of an episode (its frames and layout, see episode_trace)."""
     frame = frames[step]
     if task == "findmilk" and layout is not None:
-        crying, sleeping = remaining_babies(layout, frames, step)
+        # entering a baby's cell removes it: the babies still in the room at ``step``
+        visited = {tuple(int(v) for v in f) for f in frames[1 : step + 1]}
+        crying = [list(p) for p in layout.get("crying", []) if tuple(p) not in visited]
+        sleeping = [list(p) for p in layout.get("sleeping", []) if tuple(p) not in visited]
         milk = [round(obs[2]), round(obs[3])]
         return findmilk_svg(int(layout["size"]), frame, milk, crying, sleeping)
     if task == "driving" and layout is not None:

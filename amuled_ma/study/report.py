@@ -11,23 +11,28 @@ from typing import Any
 
 from amuled_ma.evaluate.report.plotting import pyplot, save_figure
 from amuled_ma.files.safe import check_own_folder, check_write_targets, write_text_atomic
-from amuled_ma.study import expert
 from amuled_ma.study.analysis import (
     MeanInterval,
     acceptability,
+    acceptability_values,
+    acceptable_sets,
     agreement,
     alpha_unavailable,
     attentive,
     bootstrap_strengths,
     bradley_terry,
     choice_values,
+    clarity,
     comparisons,
     few_people,
+    framework_citations,
+    framework_values,
     load,
     majorities,
     nominal_alpha,
     pair_answers,
     top_action,
+    unreasoned_states,
     wilson,
     win_rates,
 )
@@ -156,10 +161,10 @@ def summarize_expert(folder: Path) -> dict[str, Any]:
     """Every figure of an expert study's report, as JSON-ready data."""
     study, _ = load(folder)
     answers = read_expert_answers(Path(folder) / ANSWERS_FILE)
-    sets = expert.acceptable_sets(answers)
+    sets = acceptable_sets(answers)
     titles = dict(study.frameworks)
-    clear = expert.clarity(answers, seed=study.seed)
-    unreasoned = expert.unreasoned_states(study)
+    clear = clarity(answers, seed=study.seed)
+    unreasoned = unreasoned_states(study)
     unacceptable = []
     for item_id, (accepted, n) in sorted(sets.items()):
         item = study.item(item_id)
@@ -194,17 +199,17 @@ def summarize_expert(folder: Path) -> dict[str, Any]:
                 "share": _num(c.share),
                 "title": titles.get(c.framework, "none of these / other"),
             }
-            for c in expert.framework_citations(study, answers)
+            for c in framework_citations(study, answers)
         ],
         "acceptable_sets": {
             k: {"acceptable": sorted(v[0]), "experts": v[1]} for k, v in sorted(sets.items())
         },
         "agreement": _rates(agreement(study, {k: v[0] for k, v in sets.items()})),
         "clarity": {**_mean(clear, "experts"), "points": study.clarity_points},
-        "alpha_acceptable": _num(nominal_alpha(expert.acceptability_values(answers))),
-        "alpha_framework": _num(nominal_alpha(expert.framework_values(study, answers))),
-        "alpha_acceptable_unavailable": alpha_unavailable(expert.acceptability_values(answers)),
-        "alpha_framework_unavailable": alpha_unavailable(expert.framework_values(study, answers)),
+        "alpha_acceptable": _num(nominal_alpha(acceptability_values(answers))),
+        "alpha_framework": _num(nominal_alpha(framework_values(study, answers))),
+        "alpha_acceptable_unavailable": alpha_unavailable(acceptability_values(answers)),
+        "alpha_framework_unavailable": alpha_unavailable(framework_values(study, answers)),
         "fused_unacceptable": unacceptable[:10],
     }
 

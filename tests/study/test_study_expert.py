@@ -21,8 +21,17 @@ from study_fixtures import (
     start_server,
 )
 
-from amuled_ma.study import expert
-from amuled_ma.study.analysis import agreement, answers_csv, nominal_alpha
+from amuled_ma.study.analysis import (
+    acceptability_values,
+    acceptable_sets,
+    agreement,
+    answers_csv,
+    clarity,
+    framework_citations,
+    framework_values,
+    nominal_alpha,
+    unreasoned_states,
+)
 from amuled_ma.study.answers import ExpertAnswer, Judgement, read_refusals
 from amuled_ma.study.build import build_study
 from amuled_ma.study.model import Item, PanelView, Study, StudyError, public_item, read_study
@@ -72,14 +81,14 @@ def test_expert_numbers_by_hand(hand_study):
     study, answers = hand_study
     # e1: up 2/3 and down 2/3 acceptable, left 0/3, right 1/3; e2: up 2/2, left 1/2 (not more
     # than half)
-    sets = expert.acceptable_sets(answers)
+    sets = acceptable_sets(answers)
     assert sets == {"e1": (frozenset({0, 1}), 3), "e2": (frozenset({0}), 2)}
     agree = agreement(study, {k: v[0] for k, v in sets.items()})
     # care's top is down (in e1's set); virtue ties up and down (not counted); fused: down;
     # amuled takes down in e1, up in e2 (both acceptable); base right and left (neither)
     assert agree == {"cluster:care": [1, 1], "fused": [1, 1], "policy:amuled": [2, 2],
                      "policy:base": [0, 2]}  # fmt: skip
-    cites = {c.framework: c for c in expert.framework_citations(study, answers)}
+    cites = {c.framework: c for c in framework_citations(study, answers)}
     assert list(cites) == [*FRAMEWORKS, "none"]
     counted = {name: (c.cited, c.acceptable, c.by_action) for name, c in cites.items()}
     assert counted == {
@@ -93,16 +102,16 @@ def test_expert_numbers_by_hand(hand_study):
     assert cites["none"].share == pytest.approx(11 / 20)
     # clarity 4, 2, 5 by three experts: mean 11/3; with three experts the interval is the
     # lowest and highest expert's mean (each alone has probability 1/27 > 2.5%)
-    clear = expert.clarity(answers, seed=3)
+    clear = clarity(answers, seed=3)
     assert (clear.mean, clear.low, clear.high, clear.n) == (pytest.approx(11 / 3), 2.0, 5.0, 3)
     # Krippendorff's alpha of acceptable (1) / not (0) over 8 (state, action) units, by the
     # coincidence matrix: o11 = 4, o00 = 8, o01 = o10 = 4; n1 = 8, n0 = 12, n = 20;
     # alpha = 1 - (n - 1) (o01 + o10) / (2 n0 n1) = 1 - 19 * 8 / 192 = 5/24
-    assert nominal_alpha(expert.acceptability_values(answers)) == pytest.approx(5 / 24, abs=1e-12)
+    assert nominal_alpha(acceptability_values(answers)) == pytest.approx(5 / 24, abs=1e-12)
     # experts who always cite the same framework per unit agree perfectly
     same = [judged(p, "e1", "YYNN", ["care", "virtue", "none", "none"], 3) for p in ("a", "b")]
-    assert nominal_alpha(expert.framework_values(study, same)) == pytest.approx(1.0)
-    assert expert.unreasoned_states(study) == ["e2"]
+    assert nominal_alpha(framework_values(study, same)) == pytest.approx(1.0)
+    assert unreasoned_states(study) == ["e2"]
 
 
 @pytest.fixture(scope="module")

@@ -17,8 +17,8 @@ from pydantic import ValidationError
 
 from amuled_ma.study import analysis
 from amuled_ma.study.answers import Answer, AnswerStore, read_answers, read_expert_answers
+from amuled_ma.study.build import stated_reason
 from amuled_ma.study.model import Item, Option, Study
-from amuled_ma.study.reasons import stated_reason
 from amuled_ma.study.report import write_analysis
 from amuled_ma.study.requests import answer_models, first_error, refusal_reason
 

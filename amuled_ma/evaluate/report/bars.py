@@ -211,7 +211,8 @@ def ablation_figure(
     fig, axes = grid_axes(plt, len(panels), 2, 5.2, height)
     for ax, (panel_mode, metric) in zip(axes, panels, strict=False):
         in_mode = {n: results.variants[n].mode(panel_mode) or ModeResult() for n in tunes}
-        order = sorted(tunes, key=lambda n: (_sort_key(in_mode[n].metrics.get(metric)), n))
+        means = {n: mean_of(in_mode[n].metrics.get(metric)) for n in tunes}  # no mean: bottom
+        order = sorted(tunes, key=lambda n: (means[n] if math.isfinite(means[n]) else -math.inf, n))
         stats = [in_mode[n].metrics.get(metric) for n in order]
         _hbars(ax, np.arange(len(order)), order, stats, [colors[n] for n in order],
                emphasise=[n == "finetune-amuled" for n in order],
@@ -363,11 +364,6 @@ def budget_figure(results: Results, mode: str = "greedy") -> Figure | None:
         fontsize=9,
     )
     return fig
-
-
-def _sort_key(stat: Stat | None) -> float:
-    mean = mean_of(stat)
-    return mean if math.isfinite(mean) else -math.inf
 
 
 def _base_line(ax: Axes, base: ModeResult | None, metric: str, *, vertical: bool) -> None:

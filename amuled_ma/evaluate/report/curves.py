@@ -170,20 +170,16 @@ def curves_figure(
         ax.tick_params(labelsize=8)
         ax.grid(alpha=0.3)
     spare = axes[len(keys) :]
-    fig.suptitle(f"{title}: rolling mean over 5% of iterations; {_spread_note(curves)}",
-                 fontsize=9)  # fmt: skip
+    seeds = {len(r) for r in curves.values()}
+    notes = [  # what the faint lines or bands are
+        (1 in seeds, "one seed: faint, its raw values"),
+        (
+            any(1 < k <= MAX_SEED_LINES for k in seeds),
+            "bold: the mean over seeds, faint: each seed",
+        ),
+        (any(k > MAX_SEED_LINES for k in seeds), "band: 95% interval over seeds"),
+    ]
+    fig.suptitle(f"{title}: rolling mean over 5% of iterations; "
+                 + "; ".join(text for shown, text in notes if shown), fontsize=9)  # fmt: skip
     legend_below(fig, list(legend.values()), list(legend), spare)
     return fig
-
-
-def _spread_note(curves: dict[str, list[list[dict]]]) -> str:
-    """What the faint lines or bands of `curves_figure` are."""
-    seeds = {len(r) for r in curves.values()}
-    parts = []
-    if 1 in seeds:
-        parts.append("one seed: faint, its raw values")
-    if any(1 < k <= MAX_SEED_LINES for k in seeds):
-        parts.append("bold: the mean over seeds, faint: each seed")
-    if any(k > MAX_SEED_LINES for k in seeds):
-        parts.append("band: 95% interval over seeds")
-    return "; ".join(parts)

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from amuled_ma.evaluate.numbers import markdown_table
-from amuled_ma.evaluate.results import PanelEntry, Results
+from amuled_ma.evaluate.results import Results
 from amuled_ma.records.run_record import PanelRecord, RunRecord
 from amuled_ma.records.variants import Variant
 
@@ -27,31 +27,28 @@ def variant_records(
         found = records.get(name)
         if found is None:
             found = next((r for r in records.values() if r.name == name), None)
-        if found is None and entry.panel is not None:
-            found = _from_entry(name, entry.panel)
+        if found is None and (panel := entry.panel) is not None:  # what results.json says
+            feedback = panel.feedback or "amuled"
+            found = RunRecord(
+                variant=Variant.finetune(feedback),
+                name=name,
+                seed=panel.seed,
+                training={"inputs": panel.inputs} if panel.inputs else None,
+                panel=PanelRecord(
+                    feedback=feedback,
+                    members=list(panel.agents or []),
+                    agent_sources=dict(panel.agent_sources or {}),
+                    **panel.model_dump(
+                        include={"source", "model", "recording", "fusion", "distill"}
+                    ),
+                ),
+                recipe=_RECIPES.get(panel.recipe or ""),
+                lambda_kl=panel.lambda_kl,
+                base_checkpoint=panel.base_checkpoint,
+                iterations_planned=panel.iterations,
+            )
         out[name] = found
     return out
-
-
-def _from_entry(name: str, panel: PanelEntry) -> RunRecord:
-    """A record of what ``results.json`` says of a fine-tune (no ``config.json`` given)."""
-    feedback = panel.feedback or "amuled"
-    return RunRecord(
-        variant=Variant.finetune(feedback),
-        name=name,
-        seed=panel.seed,
-        training={"inputs": panel.inputs} if panel.inputs else None,
-        panel=PanelRecord(
-            feedback=feedback,
-            members=list(panel.agents or []),
-            agent_sources=dict(panel.agent_sources or {}),
-            **panel.model_dump(include={"source", "model", "recording", "fusion", "distill"}),
-        ),
-        recipe=_RECIPES.get(panel.recipe or ""),
-        lambda_kl=panel.lambda_kl,
-        base_checkpoint=panel.base_checkpoint,
-        iterations_planned=panel.iterations,
-    )
 
 
 def finetune_names(results: Results, described: Mapping[str, RunRecord | None]) -> list[str]:
@@ -208,29 +205,6 @@ def _joined(values: Iterable[Any], several: str = " (per variant)") -> str:
     return found[0] if len(found) == 1 else ", ".join(found) + several
 
 
-def _recordings(records: list[RunRecord]) -> list[str]:
-    """``file sha256 hash`` of every replayed recording the fine-tunes read."""
-    out = []
-    for record in records:
-        panel = record.panel
-        assert panel is not None
-        inputs = (record.training or {}).get("inputs") or {}
-        for key, digest in inputs.items():
-            if key == "recording_sha256":
-                name = panel.recording
-                if panel.fused_only:
-                    name = f"{name}` (fused beliefs only) `"
-            elif key.startswith("recording_sha256[") and key.endswith("]"):
-                agent = key[len("recording_sha256[") : -1]
-                name = f"{(panel.agent_sources.get(agent) or {}).get('recording', '?')} ({agent})"
-            else:
-                continue
-            out.append(f"`{name}` sha256 `{digest}`".replace(" ``", ""))
-        if panel.source == "replay" and "recording_sha256" not in inputs:
-            out.append(f"`{panel.recording}` (no hash recorded)")
-    return list(dict.fromkeys(out))
-
-
 def settings_table(
     results: Results, run: RunRecord | None = None, records: Mapping[str, RunRecord] | None = None
 ) -> str:
@@ -303,10 +277,26 @@ def settings_table(
         rows.append((
             "beliefs from", _joined((source_text(r.panel) for r in judged if r.panel), "")
         ))  # fmt: skip
-        recordings = _recordings(judged)
-        replayed = any(r.panel and r.panel.source == "replay" for r in judged) or recordings
-        if recordings:
-            rows.append(("recording", "; ".join(recordings)))
-        elif not replayed:
-            rows.append(("recording", "none (no fine-tune replayed a recording)"))
+        recordings = []  # `file` sha256 `hash` of every recording the fine-tunes replayed
+        for record in judged:
+            panel = record.panel
+            assert panel is not None
+            inputs = (record.training or {}).get("inputs") or {}
+            for key, digest in inputs.items():
+                if key == "recording_sha256":
+                    name = panel.recording
+                    if panel.fused_only:
+                        name = f"{name}` (fused beliefs only) `"
+                elif key.startswith("recording_sha256[") and key.endswith("]"):
+                    agent = key[len("recording_sha256[") : -1]
+                    name = (
+                        f"{(panel.agent_sources.get(agent) or {}).get('recording', '?')} ({agent})"
+                    )
+                else:
+                    continue
+                recordings.append(f"`{name}` sha256 `{digest}`".replace(" ``", ""))
+            if panel.source == "replay" and "recording_sha256" not in inputs:
+                recordings.append(f"`{panel.recording}` (no hash recorded)")
+        listed = "; ".join(dict.fromkeys(recordings))  # a replay is listed, hashed or not
+        rows.append(("recording", listed or "none (no fine-tune replayed a recording)"))
     return markdown_table(["setting", "value"], rows)

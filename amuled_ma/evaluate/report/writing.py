@@ -204,7 +204,16 @@ def write_report(
             "",
             imported,
         ]
-    lines += _paper_lines(results, described)
+    amuled = [n for n in results.variants if n.split(".seed", 1)[0] == "finetune-amuled"]
+    moved = [movement_sentence(results, amuled[0], m) for m in ("sampled", "greedy") if amuled]
+    sentences = [s for s in moved if s]
+    paper = paper_table(
+        results, {n: r.recipe for n, r in described.items() if r is not None and r.recipe}
+    )
+    if sentences or paper:
+        lines += ["## What AMULED did, beside the paper", ""]
+        lines += [*(f"- {s}" for s in sentences), ""] if sentences else []
+        lines += [paper] if paper else []
     unfinished = unfinished_lines(described)
     if unfinished:
         lines += [*unfinished, ""]
@@ -332,24 +341,3 @@ def readings_lines(results: Results) -> list[str]:
         if variant.feedback is not None
         for sentence in readings(variant.feedback.model_dump())
     ]
-
-
-def _paper_lines(results: Results, described: Mapping[str, RunRecord | None]) -> list[str]:
-    """The section on whether AMULED moved from the base, and the paper's row beside ours."""
-    lines: list[str] = []
-    amuled = [n for n in results.variants if n.split(".seed", 1)[0] == "finetune-amuled"]
-    sentences = [
-        movement_sentence(results, amuled[0], mode) for mode in ("sampled", "greedy") if amuled
-    ]
-    table = paper_table(
-        results, {n: r.recipe for n, r in described.items() if r is not None and r.recipe}
-    )
-    if not any(sentences) and not table:
-        return []
-    lines += ["## What AMULED did, beside the paper", ""]
-    lines += [f"- {s}" for s in sentences if s]
-    if any(sentences):
-        lines.append("")
-    if table:
-        lines += [table]
-    return lines
