@@ -111,7 +111,7 @@ def bench_base(name: str, out: Path, quick: bool) -> dict[str, Any]:
 
 def bench_finetune(out: Path, base_ckpt: Path | None, quick: bool) -> dict[str, Any]:
     """Time a fine-tune of the paper's length with replayed AMULED feedback."""
-    from amuled_ma.experiments.plans import train_variant
+    from amuled_ma.experiments.pipeline import PipelineRequest, train_alone
     from amuled_ma.learn.checkpoints import LAST
     from amuled_ma.learn.population import PopulationTrainer
     from amuled_ma.learn.population_groups import MemberSpec
@@ -131,7 +131,8 @@ def bench_finetune(out: Path, base_ckpt: Path | None, quick: bool) -> dict[str, 
         (run / "base" / LAST).write_bytes(Path(base_ckpt).read_bytes())
     iterations = sc.finetune.iterations // (10 if quick else 1)
     t0 = time.perf_counter()
-    job = train_variant(sc, run, Variant.finetune("amuled"), force=True, iterations=iterations)
+    request = PipelineRequest(sc, run, force=True, progress=False)
+    job = train_alone(request, Variant.finetune("amuled"), iterations=iterations)
     wall = time.perf_counter() - t0
     assert job.outcome is not None
     return {

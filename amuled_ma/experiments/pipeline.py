@@ -242,11 +242,13 @@ def train_alone(
     base_variant: str = "base",
     base_dir: Path | None = None,
     config: dict[str, Any] | None = None,
+    iterations: int | None = None,
 ) -> JobResult:
     """Train one job (``amuled train`` / ``finetune``): planned, locked, trained; not evaluated.
 
     ``base_variant`` is a fine-tune's base folder in ``base_dir`` (default: the run folder);
-    ``config`` holds run-level ``config.json`` fields to write (None: left alone).
+    ``config`` holds run-level ``config.json`` fields to write (None: left alone);
+    ``iterations`` overrides the planned number.
 
     Raises:
         AmuledError: As `run_pipeline`.
@@ -266,6 +268,7 @@ def train_alone(
         resume=request.resume,
         force=request.force,
         base_dir=base_dir,
+        iterations=iterations,
     )
     # before the lock: a refused job makes no folder
     jobs = plan_jobs([job], request.hint, request.rerun)

@@ -82,19 +82,18 @@ def plan_job(
     planned: Collection[str] = (),
     *,
     rerun: Rerun | None = None,
-    check_panel: bool = True,
 ) -> TrainJob:
-    """Plan a job once: panel plan, run shape, settings, base checkpoint, start; writes nothing.
+    """Plan a job once: panel plan (its `preflight` run), run shape, settings, base, start.
 
-    A base in ``planned`` (trained earlier in the same plan) is not looked for yet. With
-    ``check_panel`` the panel's `preflight` runs.
+    Writes nothing. A base in ``planned`` (trained earlier in the same plan) is not looked
+    for yet.
 
     Raises:
         AmuledError: The first thing missing or clashing, in one line naming the fix.
     """
     variant, scenario = job.variant, job.scenario
     panel = plan_panel(variant.feedback, scenario) if variant.feedback is not None else None
-    if panel is not None and check_panel:
+    if panel is not None:
         preflight(panel)
     base = None
     if variant.finetuning:
@@ -377,43 +376,6 @@ def population_failure(failures: Sequence[str], hint: str) -> AmuledError:
         f"{count} of a population failed alone (named above; their last checkpoints are "
         f"kept) and the other members finished{then}"
     )
-
-
-def train_variant(
-    scenario: Scenario,
-    run_dir: Path,
-    variant: Variant,
-    *,
-    resume: bool = False,
-    force: bool = False,
-    hint: str = "",
-    iterations: int | None = None,
-    base_dir: Path | None = None,
-) -> JobResult:
-    """Train one variant (``base``, ``shaped`` or ``finetune:<feedback>``) into the run, alone.
-
-    Planned (`plan_job`) and trained by `train_population_jobs`; a fine-tune anchors to the
-    ``base`` folder of ``base_dir`` (default ``run_dir``); ``hint`` re-runs it (messages).
-
-    Raises:
-        AmuledError: An input is missing or the folder clashes (nothing written).
-        MemberFailed: Its feedback failed or its gradient was not finite (its checkpoint
-            before that iteration is written).
-    """
-    run_dir = Path(run_dir)
-    job = TrainJob(
-        name=variant.folder,
-        scenario=scenario,
-        run_dir=run_dir,
-        variant=variant,
-        out_dir=run_dir / variant.folder,
-        resume=resume,
-        force=force,
-        base_dir=Path(base_dir) if base_dir else None,
-        iterations=iterations,
-    )
-    planned = plan_job(job, hint, check_panel=False)  # prepare_job checks what it builds
-    return train_population_jobs([planned], hint=hint).results[job.name]
 
 
 def ablation_variants(
