@@ -89,7 +89,10 @@ class AnchoredPPO(PPO):
         self.last_losses: dict[str, float] = {}
         self.member_losses: list[dict[str, float]] = [{}]
         self._anchor: torch.Tensor | None = None
-        self._stats = torch.zeros(3, dtype=torch.float64)  # feedback sum, anchor sum, count
+        #: Members (one here; a population's subclass has more) and copies of each.
+        self.population, self.copies = 1, self.storage.num_envs
+        #: ``[2, P]`` sums of each member's feedback and anchor, one per step of the rollout
+        self.step_sums: list[torch.Tensor] = []
 
     # ----------------------------------------------------------------- anchoring
     def anchor_to(self, base_actor: torch.nn.Module) -> None:
@@ -151,10 +154,10 @@ class AnchoredPPO(PPO):
         if anchor is not None:
             rewards = rewards - self.lambda_kl * anchor
             feedback = extras.get("feedback")
-            if feedback is not None:
-                self._stats[0] += float(feedback.sum())
-            self._stats[1] += float(anchor.sum())
-            self._stats[2] += anchor.numel()
+            if feedback is None:
+                feedback = torch.zeros_like(anchor)
+            both = torch.stack((feedback.to(anchor.device, anchor.dtype), anchor))
+            self.step_sums.append(both.reshape(2, self.population, -1).sum(2))
             if self.window is not None:
                 self.window.end_episodes(dones)
             self._anchor = None
@@ -179,13 +182,21 @@ class AnchoredPPO(PPO):
         return [] if bool(torch.isfinite(sums).all()) else [0]
 
     def member_rollout_stats(self) -> list[dict[str, float]]:
-        """`rollout_stats` as a list of one member's."""
-        return [self.rollout_stats()]
+        """Each member's mean ``feedback_reward`` and ``kl`` per step since the last call.
+
+        ``{}`` for each member when no anchored step was taken.
+        """
+        if not self.step_sums:
+            return [{} for _ in range(self.population)]
+        # [steps, 2, P] float32 sums of each step, added in float64
+        sums = torch.stack(self.step_sums).to("cpu", torch.float64).sum(0)
+        count = len(self.step_sums) * self.copies
+        self.step_sums = []
+        return [
+            {"feedback_reward": fb / count, "kl": kl / count}
+            for fb, kl in zip(sums[0].tolist(), sums[1].tolist(), strict=True)
+        ]
 
     def rollout_stats(self) -> dict[str, float]:
-        """Mean ``feedback_reward`` and ``kl`` per step since the last call (``{}``: none)."""
-        total_fb, total_kl, count = self._stats.tolist()
-        self._stats.zero_()
-        if not count:
-            return {}
-        return {"feedback_reward": total_fb / count, "kl": total_kl / count}
+        """A lone job's `member_rollout_stats`."""
+        return self.member_rollout_stats()[0]
