@@ -34,27 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="V",
         help="a variant folder to show (repeatable; default: every fine-tuned variant)",
     )
-    parser.add_argument(
-        "--episode",
-        type=common.bounded_int(0),
-        default=0,
-        metavar="K",
-        help="evaluation episode K, seeded [evaluation].seed + K (default 0)",
-    )
-    parser.add_argument(
-        "--episodes",
-        type=common.bounded_int(1),
-        default=None,
-        metavar="N",
-        help="the evaluation's episodes per policy, whose K-th is replayed (sampled draws "
-        "depend on it; default: the run's results.json, else [evaluation].episodes)",
-    )
-    parser.add_argument(
-        "--mode",
-        choices=("greedy", "sampled"),
-        default="greedy",
-        help="greedy: the policy's most probable action (default); sampled: drawn",
-    )
+    common.add_episode_args(parser)
     parser.add_argument(
         "-o",
         "--output",

@@ -32,7 +32,6 @@ from amuled_ma.experiments.run_folder import (
 )
 from amuled_ma.experiments.training_settings import training_config
 from amuled_ma.learn.checkpoints import LAST
-from amuled_ma.learn.job_shape import job_shape
 from amuled_ma.learn.population_groups import (
     MemberSpec,
     memory_budget_bytes,
@@ -106,14 +105,7 @@ def plan_job(
     return dataclasses.replace(
         job,
         panel=panel,
-        shape=job_shape(
-            scenario.ppo,
-            scenario.base,
-            scenario.finetune,
-            variant,
-            job.iterations,
-            where=str(scenario.path or scenario.name),
-        ),
+        shape=member_spec(job).shape(),
         settings=settings,
         base_checkpoint=base,
         store=scenario.store_path(job.run_dir) if variant.finetuning else None,

@@ -94,7 +94,6 @@ class AnchoredPPO(PPO):
         #: ``[2, P]`` sums of each member's feedback and anchor, one per step of the rollout
         self.step_sums: list[torch.Tensor] = []
 
-    # ----------------------------------------------------------------- anchoring
     def anchor_to(self, base_actor: torch.nn.Module) -> None:
         """Anchor the policy to a frozen, eval-mode copy of ``base_actor`` (a fine-tune's base)."""
         base = copy.deepcopy(base_actor)
@@ -107,18 +106,12 @@ class AnchoredPPO(PPO):
                 self.storage.num_envs, self.storage.num_transitions_per_env
             )
 
-    @property
-    def anchored(self) -> bool:
-        """Whether a base policy anchors this PPO (a fine-tune)."""
-        return self.base_actor is not None
-
     def set_learning_rate(self, lr: float) -> None:
         """Set the learning rate of the optimiser (the trainer's schedule)."""
         self.learning_rate = float(lr)
         for group in self.optimizer.param_groups:
             group["lr"] = self.learning_rate
 
-    # ----------------------------------------------------------------- rsl-rl steps
     def act(self, obs: TensorDict) -> torch.Tensor:
         """rsl-rl's ``act``; when anchored, also the anchor of the sampled actions."""
         actions = super().act(obs)
@@ -196,7 +189,3 @@ class AnchoredPPO(PPO):
             {"feedback_reward": fb / count, "kl": kl / count}
             for fb, kl in zip(sums[0].tolist(), sums[1].tolist(), strict=True)
         ]
-
-    def rollout_stats(self) -> dict[str, float]:
-        """A lone job's `member_rollout_stats`."""
-        return self.member_rollout_stats()[0]

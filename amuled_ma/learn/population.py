@@ -92,7 +92,7 @@ class PopulationTrainer:
     """Train ``P`` jobs of one `population_key` together, each as it trains alone.
 
     ``device`` holds the networks and PPO's buffers (the task copies stay on the CPU);
-    ``progress`` shows one tqdm bar. Raises ValueError: no jobs, or another key.
+    ``progress`` shows one tqdm bar. Raises ValueError: a job of another key.
     """
 
     def __init__(
@@ -100,8 +100,6 @@ class PopulationTrainer:
     ) -> None:
         torch.set_num_threads(1)
         self.specs = list(specs)
-        if not self.specs:
-            raise ValueError("a population needs at least one job")
         keys = [population_key(spec) for spec in self.specs]
         for p, key in enumerate(keys):
             if key != keys[0]:
@@ -177,7 +175,6 @@ class PopulationTrainer:
         alg.streams.set_states([start.torch_rng for start in starts])
         self.runner.current_learning_iteration = starts[0].iteration
 
-    # ------------------------------------------------- stacked, or one member alone
     def _member(self, state: dict[str, torch.Tensor], member: int) -> dict[str, torch.Tensor]:
         """Member ``member``'s lone model state (`member_state`)."""
         if self.stacked:
@@ -190,7 +187,6 @@ class PopulationTrainer:
             return self.alg.streams.get_states()
         return [torch.get_rng_state()]
 
-    # ----------------------------------------------------------------- members
     def member_policy(self, member: int) -> torch.nn.Module:
         """Member ``member``'s actor now, as a lone rsl-rl ``MLPModel`` (CPU, eval mode)."""
         actor = copy.deepcopy(self.template)
@@ -266,7 +262,6 @@ class PopulationTrainer:
             writes.append((self.specs[p].out_dir / LAST, functools.partial(torch.save, checkpoint)))
         return write_checkpoints(writes)
 
-    # ----------------------------------------------------------------- training
     def iterate(self) -> None:
         """One iteration of every member: rsl-rl's rollout and update (``runner.learn(1)``)."""
         self.runner.learn(1)

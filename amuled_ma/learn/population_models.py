@@ -57,12 +57,8 @@ class MemberStreams:
         """``[rows, 1]`` uniforms in ``[0, 1)``: ``rows / P`` from each member, member-major.
 
         Raises:
-            ValueError: ``rows`` is not a multiple of the population.
             RuntimeError: Another draw than the one `reserve` drew ahead.
         """
-        each, rest = divmod(rows, self.population)
-        if rest:
-            raise ValueError(f"{rows} rows do not split into {self.population} members")
         reserved = self.reserved
         if reserved is not None:
             if reserved.shape[1] != rows or reserved.dtype != dtype:
@@ -72,6 +68,7 @@ class MemberStreams:
             if self.next == reserved.shape[0]:
                 self.reserved = None
             return out
+        each = rows // self.population
         draws = [torch.rand((each, 1), dtype=dtype, generator=g) for g in self.generators]
         return torch.cat(draws).to(device)
 

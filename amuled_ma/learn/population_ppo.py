@@ -177,7 +177,6 @@ class PopulationPPO(AnchoredPPO):
             parameter.register_hook(self.keep_members_finite)
         self.optimizer.register_step_pre_hook(self.before_step)
 
-    # ----------------------------------------------------------------- rsl-rl steps
     def act(self, obs: TensorDict) -> torch.Tensor:
         """`AnchoredPPO`'s ``act``; a rollout's first step reserves its samples' uniforms."""
         if self.storage.step == 0:
@@ -196,7 +195,6 @@ class PopulationPPO(AnchoredPPO):
             return per_sample
         return torch.where(self.window_rows, self.window.step(logp, logp_base), per_sample)
 
-    # ----------------------------------------------------------------- the update
     def update(self) -> dict[str, float]:
         """rsl-rl's update (losses averaged over members); each member's in ``member_losses``."""
         self.member_loss_sums.zero_()

@@ -149,21 +149,17 @@ def _load(alg: AnchoredPPO, path: Path, load_cfg: dict | None, what: str) -> dic
 def stack_optimizer_states(states: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """One optimiser's state dict over stacked parameters from the members' (member 0's groups).
 
-    Raises ValueError: the members are at different Adam steps.
+    Adam's step is member 0's: the members start at one iteration (their `population_key`).
     """
     first = states[0]
-    per_param = first["state"]
     stacked: dict[Any, dict[str, Any]] = {}
-    for index, entry in per_param.items():
-        stacked[index] = {}
-        for name, value in entry.items():
-            values = [state["state"][index][name] for state in states]
-            if name == "step":
-                if any(not torch.equal(torch.as_tensor(v), torch.as_tensor(value)) for v in values):
-                    raise ValueError("members at different Adam steps cannot train together")
-                stacked[index][name] = value
-            else:
-                stacked[index][name] = torch.stack(values)
+    for index, entry in first["state"].items():
+        stacked[index] = {
+            name: value
+            if name == "step"
+            else torch.stack([state["state"][index][name] for state in states])
+            for name, value in entry.items()
+        }
     return {"state": stacked, "param_groups": first["param_groups"]}
 
 

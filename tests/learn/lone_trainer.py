@@ -282,7 +282,7 @@ class Trainer:
                 self._iterate()
                 self.runner.current_learning_iteration = it + 1
                 losses = self.alg.last_losses
-                extra = self.alg.rollout_stats()
+                (extra,) = self.alg.member_rollout_stats()
                 self.wall_offset = wall0 + time.perf_counter() - t0
                 episodes = self.env.drain_episodes()
                 recent = (recent + episodes)[-100:]
