@@ -72,16 +72,9 @@ class PopulationMember:
         self.population = population
         self.index = index
         self.spec = population.specs[index]
-
-    @property
-    def out_dir(self) -> Path:
-        """The member's folder."""
-        return self.spec.out_dir
-
-    @property
-    def curve(self) -> list[dict]:
-        """The member's learning curve so far."""
-        return self.population.curves[self.index]
+        self.out_dir: Path = self.spec.out_dir
+        #: The member's learning curve so far (the list the trainer appends to).
+        self.curve: list[dict] = population.curves[index]
 
     def policy(self) -> torch.nn.Module:
         """The member's actor now, as a lone rsl-rl ``MLPModel`` on the CPU, in eval mode."""
