@@ -418,7 +418,7 @@ def train_group(
         return RemoteStore(actor) if away and actor is not None else None
 
     jobs = [_marked(job, sweep, node, announce=inputs is not None) for job in group]
-    outcome = train_population_jobs(
+    results, failures = train_population_jobs(
         jobs,
         progress=False,
         hint="",
@@ -426,7 +426,6 @@ def train_group(
         store_for=store_for,
         announce=False,  # the driver prints each failure once, when the group returns
     )
-    results, failures = outcome.results, outcome.failures
     # with files shipped, every job returns its folder: a fine-tune on a node without the
     # driver's files needs its base's, wherever the base was trained
     files = (
