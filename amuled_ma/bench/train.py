@@ -17,7 +17,7 @@ from amuled_ma.bench._output import output_folder
 if TYPE_CHECKING:
     from rsl_rl.models import MLPModel
 
-    from amuled_ma.scenario import Scenario, TaskConfig
+    from amuled_ma.scenario import TaskConfig
 
 #: Reference figures (the authors' code) and our targets, per measured figure.
 REFERENCE: dict[str, tuple[str, str]] = {
@@ -61,14 +61,6 @@ def _eval(actor: MLPModel, task_config: TaskConfig, episodes: int) -> list[dict]
     return records
 
 
-def _base_scenario(name: str, quick: bool) -> Scenario:
-    """The shipped scenario ``name`` without TensorBoard; ``quick``: a tenth of its base steps."""
-    from amuled_ma.scenario import load_scenario
-
-    sc = load_scenario(name).replace("output", tensorboard=False)
-    return sc.replace("base", total_steps=sc.base.total_steps // 10) if quick else sc
-
-
 def bench_base(name: str, out: Path, quick: bool) -> dict[str, Any]:
     """Base training of a task: the full run and its greedy policy's 50 episodes (``final``).
 
@@ -77,8 +69,11 @@ def bench_base(name: str, out: Path, quick: bool) -> dict[str, Any]:
     """
     from amuled_ma.learn.population import PopulationMember, PopulationTrainer
     from amuled_ma.learn.population_groups import MemberSpec
+    from amuled_ma.scenario import load_scenario
 
-    sc = _base_scenario(name, quick)
+    sc = load_scenario(name).replace("output", tensorboard=False)
+    if quick:  # a tenth of its base steps
+        sc = sc.replace("base", total_steps=sc.base.total_steps // 10)
     first: dict[str, Any] = {}
     eval_s = 0.0
 

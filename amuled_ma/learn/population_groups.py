@@ -96,22 +96,16 @@ class MemberSpec:
         return int((infos or {}).get("iteration", 0))
 
 
-def shared_config(cfg: dict[str, Any]) -> dict[str, Any]:
-    """An rsl-rl config without what may differ between members (KL weight, recipe, cadence)."""
-    shared = json.loads(json.dumps(cfg))
-    shared.pop("save_interval", None)
-    for key in MEMBER_ALGORITHM_KEYS:
-        shared["algorithm"].pop(key, None)
-    return shared
-
-
 def population_key(spec: MemberSpec) -> str:
     """What jobs of one population share: task without seed, shape, schedule, start, factory."""
-    shape = spec.shape()
-    factory = spec.task_factory
+    shape, factory = spec.shape(), spec.task_factory
+    shared = json.loads(json.dumps(shape.cfg))  # without what members may differ in
+    shared.pop("save_interval", None)
+    for name in MEMBER_ALGORITHM_KEYS:
+        shared["algorithm"].pop(name, None)
     key = dataclasses.asdict(shape) | {
         "task": spec.scenario.task.model_dump(mode="json", exclude={"seed"}),
-        "cfg": shared_config(shape.cfg),
+        "cfg": shared,
         "start": spec.start_iteration(),
         "task_factory": None if factory is None else f"{factory.__module__}.{factory!r}",
     }
