@@ -1,28 +1,31 @@
 """rsl-rl's PPO with a fine-tune's KL anchor, plugged in by ``cfg["algorithm"]["class_name"]``.
 
-Unanchored (base training) it is rsl-rl's PPO with CleanRL's Adam and critic initialisation.
+Unanchored (base training) it is rsl-rl's PPO with CleanRL's Adam and critic initialisation;
+two CleanRL habits of the update (``finetune_moral.py``) are its options (`EpochShuffledStorage`,
+`clip_jointly`).
 """
 
 from __future__ import annotations
 
 import copy
 import math
+from collections.abc import Generator
 from itertools import chain
 from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 from rsl_rl.algorithms import PPO
+from rsl_rl.storage import RolloutStorage
 from tensordict import TensorDict
 
 from amuled_ma.learn.anchors import EpisodeWindowKL, per_sample_kl
 from amuled_ma.learn.distribution import orthogonal_init
-from amuled_ma.learn.ppo_options import EpochShuffledStorage, clip_jointly
 
 if TYPE_CHECKING:
     from collections.abc import Iterable
 
     from rsl_rl.models import MLPModel
-    from rsl_rl.storage import RolloutStorage
+    from torch.utils.hooks import RemovableHandle
 
 #: ``per_sample``: the paper's ``log pi(a|s) - log pi_base(a|s)``; ``window``: the authors'.
 AnchorKind = Literal["per_sample", "window"]
@@ -38,6 +41,46 @@ def adam(params: Iterable[torch.nn.Parameter], lr: float, eps: float) -> torch.o
         return torch.optim.Adam(params, lr=lr, eps=eps, fused=True)
     except (RuntimeError, TypeError):  # pragma: no cover - a device without the kernel
         return torch.optim.Adam(params, lr=lr, eps=eps, foreach=True)
+
+
+class EpochShuffledStorage(RolloutStorage):
+    """rsl-rl's rollout storage whose mini-batches are re-partitioned in every epoch."""
+
+    @classmethod
+    def like(cls, storage: RolloutStorage) -> EpochShuffledStorage:
+        """An empty storage of the same kind and shape as ``storage`` (the one rsl-rl built)."""
+        return cls(
+            storage.training_type,
+            storage.num_envs,
+            storage.num_transitions_per_env,
+            storage.observations[0],  # one step of every observation group: [num_envs, ...]
+            storage.actions_shape,
+            storage.device,
+        )
+
+    def mini_batch_generator(
+        self, num_mini_batches: int, num_epochs: int = 8
+    ) -> Generator[RolloutStorage.Batch, None, None]:
+        """Yield ``num_epochs`` epochs of mini-batches, each epoch a new partition."""
+        for _ in range(num_epochs):
+            yield from super().mini_batch_generator(num_mini_batches, 1)
+
+
+def clip_jointly(optimizer: torch.optim.Optimizer, max_norm: float) -> RemovableHandle:
+    """Clip all of ``optimizer``'s gradients as one vector before each step; the hook's handle.
+
+    Raises ValueError: ``max_norm`` is not a positive finite number.
+    """
+    max_norm = float(max_norm)
+    if not 0 < max_norm < float("inf"):
+        raise ValueError(f"max_norm: expected a positive finite number, got {max_norm!r}")
+
+    def hook(opt: torch.optim.Optimizer, args: tuple[Any, ...], kwargs: dict[str, Any]) -> None:
+        params = [p for g in opt.param_groups for p in g["params"] if p.grad is not None]
+        if params:
+            torch.nn.utils.clip_grad_norm_(params, max_norm)
+
+    return optimizer.register_step_pre_hook(hook)
 
 
 class AnchoredPPO(PPO):

@@ -11,6 +11,7 @@ import copy
 import dataclasses
 import functools
 import json
+import math
 import os
 import sys
 import time
@@ -19,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
@@ -30,7 +32,6 @@ from amuled_ma.errors import AmuledError, MemberFailed, Terminated
 from amuled_ma.files.safe import FileWriteError, write_text_atomic
 from amuled_ma.learn.anchored_ppo import AnchoredPPO
 from amuled_ma.learn.checkpoints import LAST, CheckpointWriteError, write_checkpoints
-from amuled_ma.learn.curves import curve_row, quiet
 from amuled_ma.learn.population_groups import MemberSpec, population_config, population_key
 from amuled_ma.learn.population_models import member_state, stack_states
 from amuled_ma.learn.population_ppo import PopulationPPO
@@ -40,6 +41,7 @@ from amuled_ma.learn.population_state import (
     member_env,
     member_env_state,
     member_optimizer_state,
+    quiet,
     split_episodes,
     stack_env_states,
     stack_optimizer_states,
@@ -425,6 +427,34 @@ class PopulationTrainer:
         )
         for hint in hints:
             print(f"resume with: {hint}", file=sys.stderr)
+
+
+def curve_row(
+    it: int,
+    batch: int,
+    wall_s: float,
+    lr: float,
+    episodes: list[dict],
+    losses: dict,
+    extra: dict,
+) -> dict[str, Any]:
+    """One ``curve.json`` row for iteration ``it`` (1-based): its episodes, losses, ``extra``."""
+    row: dict[str, Any] = {
+        "iteration": it,
+        "env_steps": it * batch,
+        "wall_s": round(wall_s, 4),
+        "charts/lr": lr,
+    }
+    for key, value in losses.items():
+        row[f"losses/{key}"] = float(value) if value is not None and math.isfinite(value) else None
+    keys = sorted({k for e in episodes for k in e if k != "env_id"})
+    row["charts/episodes"] = len(episodes)
+    for key in keys:
+        values = [e[key] for e in episodes if key in e]
+        row[f"episode/{key}"] = float(np.mean(values)) if values else None
+    for key, value in extra.items():
+        row[f"feedback/{key}"] = value
+    return row
 
 
 def _cpu(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -6,12 +6,14 @@ once; Adam's step counter is shared.
 
 from __future__ import annotations
 
+import contextlib
 import copy
+import io
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -24,10 +26,17 @@ from amuled_ma.deliberation.mdp import BatchedDeliberation, FeedbackFn
 from amuled_ma.errors import CheckpointError
 from amuled_ma.learn.anchored_ppo import AnchoredPPO
 from amuled_ma.learn.checkpoints import LAST, TRAINER_KEYS, read_checkpoint
-from amuled_ma.learn.curves import quiet
 from amuled_ma.learn.population_groups import MemberSpec
 from amuled_ma.learn.vecenv import DeliberationVecEnv
 from amuled_ma.tasks import make_task
+
+_T = TypeVar("_T")
+
+
+def quiet(fn: Callable[[], _T]) -> _T:
+    """Call ``fn`` with its prints to stdout dropped (rsl-rl's runner prints when built)."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        return fn()
 
 
 @dataclass

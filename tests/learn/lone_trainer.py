@@ -62,8 +62,8 @@ from amuled_ma.learn.checkpoints import (
     read_checkpoint,
     write_checkpoints,
 )
-from amuled_ma.learn.curves import curve_row, quiet
-from amuled_ma.learn.population import TrainOutcome
+from amuled_ma.learn.population import TrainOutcome, curve_row
+from amuled_ma.learn.population_state import quiet
 from amuled_ma.learn.vecenv import DeliberationVecEnv
 from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import Scenario
