@@ -6,8 +6,9 @@ from pathlib import Path
 from typing import Any
 
 from amuled_ma.deliberation.plan import plan_panel
+from amuled_ma.experiments.pipeline import PipelineRequest, train_alone
 from amuled_ma.experiments.plans import ablation_variants
-from amuled_ma.experiments.run_folder import TrainJob
+from amuled_ma.experiments.run_folder import JobResult, TrainJob
 from amuled_ma.experiments.training_settings import training_config
 from amuled_ma.learn.job_shape import JobShape, job_shape
 from amuled_ma.records.variants import Variant
@@ -45,3 +46,17 @@ def ablation_jobs(what: str, scenario: Scenario) -> list[tuple[Variant, Scenario
         what, scenario.feedback, scenario.task.name, scenario.resolve, scenario.name
     )
     return [(variant, scenario.changed(changes)) for variant, changes in listed]
+
+
+def train_variant(
+    scenario: Scenario,
+    run_dir: Path,
+    variant: Variant,
+    *,
+    resume: bool = False,
+    force: bool = False,
+    **options: Any,
+) -> JobResult:
+    """``train_alone`` of ``variant`` into ``run_dir``, no bars (``iterations``, ``base_dir``)."""
+    request = PipelineRequest(scenario, run_dir, resume=resume, force=force, progress=False)
+    return train_alone(request, variant, **options)

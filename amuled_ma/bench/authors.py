@@ -31,19 +31,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Run the benchmark and print the figures; returns 0 (a benchmark, not a test)."""
-    from amuled_ma.experiments.plans import train_variant
+    from amuled_ma.experiments.pipeline import PipelineRequest, train_alone
     from amuled_ma.records.variants import Variant
 
     rows = []
     with output_folder(args.out, "amuled-bench-authors-") as out:
         for task in [t.strip() for t in args.tasks.split(",") if t.strip()]:
             scenario = authors_scenario(task, args.base_steps)
-            run_dir = out / task
-            train_variant(scenario, run_dir, Variant("base"))
+            request = PipelineRequest(scenario, out / task, progress=False)
+            train_alone(request, Variant("base"))
             start = time.perf_counter()
-            job = train_variant(
-                scenario, run_dir, Variant.finetune("amuled"), iterations=args.iterations
-            )
+            job = train_alone(request, Variant.finetune("amuled"), iterations=args.iterations)
             seconds = time.perf_counter() - start
             assert job.outcome is not None
             rows.append((task, job.outcome.iterations, seconds))

@@ -252,24 +252,15 @@ def main(args: argparse.Namespace) -> int:
 def _run_metrics(
     outcome: TrainOutcome, task_config: TaskConfig, evaluation: EvaluationConfig, ppo: PPOConfig
 ) -> dict[str, float]:
-    """A finished fine-tune's figures: its evaluation and its last 100 iterations."""
-    from amuled_ma.evaluate.evaluator import run_episodes
-    from amuled_ma.learn.policies import load_policy
+    """A finished fine-tune's figures: its evaluation's means and its last 100 iterations."""
+    from amuled_ma.commands.demo import evaluate_folder
 
-    actor = load_policy(outcome.checkpoint, ppo)
-    out: dict[str, float] = {}
-    for mode in ("sampled", "greedy"):
-        records, _ = run_episodes(
-            actor,
-            task_config,
-            episodes=evaluation.episodes,
-            mode=mode,
-            seed=evaluation.seed,
-            record_trajectory=False,
-        )
-        for key in sorted({k for r in records for k in r}):
-            values = [r[key] for r in records if key in r]
-            out[f"{mode}/{key}"] = sum(values) / len(values)
+    evaluated = evaluate_folder(outcome.out_dir, ppo, task_config, evaluation)
+    out = {
+        f"{mode}/{key}": stat["mean"]
+        for mode, entry in evaluated.items()
+        for key, stat in entry["metrics"].items()
+    }
     tail = outcome.curve[-100:]
     for key in ("feedback/feedback_reward", "feedback/kl", "losses/value", "losses/entropy"):
         values = [row[key] for row in tail if row.get(key) is not None]

@@ -17,7 +17,7 @@ from amuled_ma.bench._output import output_folder
 if TYPE_CHECKING:
     from rsl_rl.models import MLPModel
 
-    from amuled_ma.scenario import Scenario, TaskConfig
+    from amuled_ma.scenario import TaskConfig
 
 #: Reference figures (the authors' code) and our targets, per measured figure.
 REFERENCE: dict[str, tuple[str, str]] = {
@@ -61,14 +61,6 @@ def _eval(actor: MLPModel, task_config: TaskConfig, episodes: int) -> list[dict]
     return records
 
 
-def _base_scenario(name: str, quick: bool) -> Scenario:
-    """The shipped scenario ``name`` without TensorBoard; ``quick``: a tenth of its base steps."""
-    from amuled_ma.scenario import load_scenario
-
-    sc = load_scenario(name).replace("output", tensorboard=False)
-    return sc.replace("base", total_steps=sc.base.total_steps // 10) if quick else sc
-
-
 def bench_base(name: str, out: Path, quick: bool) -> dict[str, Any]:
     """Base training of a task: the full run and its greedy policy's 50 episodes (``final``).
 
@@ -77,8 +69,11 @@ def bench_base(name: str, out: Path, quick: bool) -> dict[str, Any]:
     """
     from amuled_ma.learn.population import PopulationMember, PopulationTrainer
     from amuled_ma.learn.population_groups import MemberSpec
+    from amuled_ma.scenario import load_scenario
 
-    sc = _base_scenario(name, quick)
+    sc = load_scenario(name).replace("output", tensorboard=False)
+    if quick:  # a tenth of its base steps
+        sc = sc.replace("base", total_steps=sc.base.total_steps // 10)
     first: dict[str, Any] = {}
     eval_s = 0.0
 
@@ -111,7 +106,7 @@ def bench_base(name: str, out: Path, quick: bool) -> dict[str, Any]:
 
 def bench_finetune(out: Path, base_ckpt: Path | None, quick: bool) -> dict[str, Any]:
     """Time a fine-tune of the paper's length with replayed AMULED feedback."""
-    from amuled_ma.experiments.plans import train_variant
+    from amuled_ma.experiments.pipeline import PipelineRequest, train_alone
     from amuled_ma.learn.checkpoints import LAST
     from amuled_ma.learn.population import PopulationTrainer
     from amuled_ma.learn.population_groups import MemberSpec
@@ -131,7 +126,8 @@ def bench_finetune(out: Path, base_ckpt: Path | None, quick: bool) -> dict[str, 
         (run / "base" / LAST).write_bytes(Path(base_ckpt).read_bytes())
     iterations = sc.finetune.iterations // (10 if quick else 1)
     t0 = time.perf_counter()
-    job = train_variant(sc, run, Variant.finetune("amuled"), force=True, iterations=iterations)
+    request = PipelineRequest(sc, run, force=True, progress=False)
+    job = train_alone(request, Variant.finetune("amuled"), iterations=iterations)
     wall = time.perf_counter() - t0
     assert job.outcome is not None
     return {

@@ -12,7 +12,6 @@ from typing import TYPE_CHECKING, Any
 from amuled_ma.files.safe import checked_read_path, write_text_atomic
 
 if TYPE_CHECKING:
-    from amuled_ma.deliberation.plan import PanelPlan
     from amuled_ma.scenario import FeedbackConfig, Scenario
     from amuled_ma.servers.timing import CacheReuse, RequestTiming, TimingLog
 
@@ -33,94 +32,8 @@ LIVE_DIR = "live"
 LIVE_HEADING = "## Live leg: a few requests to a local model (its judgement is not meaningful)"
 
 
-def live_leg(
-    run_dir: Path,
-    plan: PanelPlan,
-    store: str,
-    *,
-    episodes: int,
-    model: str,
-    host: str,
-    states: int = LIVE_STATES,
-) -> dict[str, Any]:
-    """Ask a live model about a few states of the AMULED fine-tune's episode, through a store.
-
-    The first ``states`` distinct states of ``finetune-amuled``'s greedy evaluation episode 0
-    (``episodes``: the evaluation's episodes per policy) are asked of every member of ``plan``'s
-    panel through the store ``RUN_DIR/live/<store>`` and fused, as in training.
-
-    Returns:
-        What ``live/live.json`` holds: the model, host, store, wall seconds, and per state
-        its prompt variables, each cluster's belief, status and weight, the fused belief
-        and Dempster's conflicts.
-
-    Raises:
-        AmuledError: The run has no AMULED fine-tune, or the panel cannot be built.
-    """
-    import numpy as np
-
-    from amuled_ma.beliefs.store.cached import requests_sent
-    from amuled_ma.deliberation.build import build_feedback, run_store
-    from amuled_ma.deliberation.panel_feedback import PanelFeedback
-    from amuled_ma.evaluate.episode_trace import replay_variant
-    from amuled_ma.evaluate.panel_answers import ask_panel
-    from amuled_ma.experiments.trained_variants import trained_variant
-    from amuled_ma.tasks import get_task
-
-    trained = trained_variant(run_dir, run_dir / "finetune-amuled")
-    episode = replay_variant(trained, episode=0, mode="greedy", episodes=episodes)
-    steps = np.asarray(episode.obs[: episode.length], dtype=np.float64)
-    steps = steps.reshape(episode.length, -1)
-    _, first = np.unique(steps, axis=0, return_index=True)  # each distinct state's first step
-    picked = sorted(first.tolist())[:states]
-    obs = steps[picked]
-    prompt_vars = [dict(episode.prompt_vars[i]) for i in picked]
-    out = run_dir / LIVE_DIR
-    out.mkdir(parents=True, exist_ok=True)
-    feedback = build_feedback(plan, run_store(out / store), cache_dir=out)
-    if not isinstance(feedback, PanelFeedback):  # an ollama source is always asked as a panel
-        feedback.close()
-        raise TypeError(f"the live panel's feedback is a {type(feedback).__name__}")
-    began = time.perf_counter()
-    try:
-        answers = ask_panel(feedback.panel, obs, prompt_vars)
-        sent = requests_sent(feedback.source) or 0  # the store answers those asked before
-    finally:
-        feedback.close()
-    wall = time.perf_counter() - began
-    actions = list(get_task(plan.task).action_names)
-    return {
-        "model": model,
-        "host": host,
-        "store": str(out / Path(store).name),
-        "source": "ollama",
-        "meaningful": False,
-        "wall_s": wall,
-        "asked": len(picked) * len(answers.agents),
-        "requests": sent,
-        "actions": actions,
-        "agents": list(answers.agents),
-        "fusion": answers.rule,
-        "states": [
-            {
-                "step": int(step),
-                "obs": obs[u].tolist(),
-                "prompt_vars": {  # numpy numbers as Python's
-                    k: v.item() if hasattr(v, "item") else v for k, v in prompt_vars[u].items()
-                },
-                "beliefs": answers.beliefs[u].tolist(),
-                "statuses": answers.statuses[u].tolist(),
-                "weights": answers.weights[u].tolist(),
-                "fused": answers.fused[u].tolist(),
-                "conflicts": answers.conflicts[u].tolist(),
-            }
-            for u, step in enumerate(picked)
-        ],
-    }
-
-
 def live_section(leg: dict[str, Any]) -> list[str]:
-    """The report's live-leg section (`LIVE_HEADING`), from `live_leg`'s data."""
+    """The report's live-leg section (`LIVE_HEADING`), from ``live/live.json``'s data."""
     actions = leg["actions"]
     lines = [
         LIVE_HEADING,
@@ -154,37 +67,92 @@ def live_section(leg: dict[str, Any]) -> list[str]:
 
 
 def write_live_leg(run_dir: Path, scenario: Scenario, *, model: str, host: str) -> bool:
-    """Plan the live panel, run :func:`live_leg`, write ``live/live.json``, report it.
+    """Ask a live model about a few states of the AMULED fine-tune's episode; report it.
 
-    The live panel is the scenario's with ``[feedback].source = "ollama"``, ``model`` at
-    ``host`` and the clusters :data:`LIVE_CLUSTERS`; its section is appended to
-    ``report.md``. True when the leg ran (a failure is printed and the report says so).
+    The first `LIVE_STATES` distinct states of ``finetune-amuled``'s greedy evaluation episode
+    0 are asked of the scenario's panel with ``[feedback].source = "ollama"``, ``model`` at
+    ``host`` and the clusters `LIVE_CLUSTERS`, through the store ``RUN_DIR/live/<store>``, and
+    fused as in training; ``live/live.json`` keeps the answers and ``report.md`` gets their
+    section. True when the leg ran (a failure is printed and the report says so).
     """
     import json
 
+    import numpy as np
+
+    from amuled_ma.beliefs.store.cached import requests_sent
+    from amuled_ma.deliberation.build import build_feedback, run_store
+    from amuled_ma.deliberation.panel_feedback import PanelFeedback
     from amuled_ma.deliberation.plan import plan_panel
     from amuled_ma.errors import AmuledError
-    from amuled_ma.experiments.trained_variants import evaluated_episodes
+    from amuled_ma.evaluate.episode_trace import replay_variant
+    from amuled_ma.evaluate.panel_answers import ask_panel
+    from amuled_ma.experiments.trained_variants import evaluated_episodes, trained_variant
+    from amuled_ma.monitor.progress import Progress
+    from amuled_ma.tasks import get_task
 
     say(
         f"live leg: {LIVE_STATES} states x {len(LIVE_CLUSTERS)} clusters asked of {model} "
         "(its judgement is not meaningful: it shows the live path)"
     )
-    from amuled_ma.monitor.progress import Progress
-
     try:
         with Progress("live leg", None, bar=False, unit="batch"):  # never silent while asking
             live = scenario.replace(
                 "feedback", source="ollama", model=model, host=host, clusters=list(LIVE_CLUSTERS)
             )
-            leg = live_leg(
-                run_dir,
-                plan_panel("amuled", live),
-                live.feedback.store,
-                episodes=evaluated_episodes(run_dir, scenario.evaluation.episodes),
-                model=model,
-                host=host,
-            )
+            plan, store = plan_panel("amuled", live), live.feedback.store
+            episodes = evaluated_episodes(run_dir, scenario.evaluation.episodes)
+            trained = trained_variant(run_dir, run_dir / "finetune-amuled")
+            episode = replay_variant(trained, episode=0, mode="greedy", episodes=episodes)
+            steps = np.asarray(episode.obs[: episode.length], dtype=np.float64)
+            steps = steps.reshape(episode.length, -1)
+            # each distinct state's first step
+            _, first = np.unique(steps, axis=0, return_index=True)
+            picked = sorted(first.tolist())[:LIVE_STATES]
+            obs = steps[picked]
+            prompt_vars = [dict(episode.prompt_vars[i]) for i in picked]
+            out = run_dir / LIVE_DIR
+            out.mkdir(parents=True, exist_ok=True)
+            feedback = build_feedback(plan, run_store(out / store), cache_dir=out)
+            if not isinstance(feedback, PanelFeedback):  # ollama: always asked as a panel
+                feedback.close()
+                raise TypeError(f"the live panel's feedback is a {type(feedback).__name__}")
+            began = time.perf_counter()
+            try:
+                answers = ask_panel(feedback.panel, obs, prompt_vars)
+                sent = requests_sent(feedback.source) or 0  # the store answers the others
+            finally:
+                feedback.close()
+            wall = time.perf_counter() - began
+            actions = list(get_task(plan.task).action_names)
+            leg: dict[str, Any] = {
+                "model": model,
+                "host": host,
+                "store": str(out / Path(store).name),
+                "source": "ollama",
+                "meaningful": False,
+                "wall_s": wall,
+                "asked": len(picked) * len(answers.agents),
+                "requests": sent,
+                "actions": actions,
+                "agents": list(answers.agents),
+                "fusion": answers.rule,
+                "states": [
+                    {
+                        "step": int(step),
+                        "obs": obs[u].tolist(),
+                        "prompt_vars": {  # numpy numbers as Python's
+                            k: v.item() if hasattr(v, "item") else v
+                            for k, v in prompt_vars[u].items()
+                        },
+                        "beliefs": answers.beliefs[u].tolist(),
+                        "statuses": answers.statuses[u].tolist(),
+                        "weights": answers.weights[u].tolist(),
+                        "fused": answers.fused[u].tolist(),
+                        "conflicts": answers.conflicts[u].tolist(),
+                    }
+                    for u, step in enumerate(picked)
+                ],
+            }
     except (AmuledError, OSError, ValueError) as error:
         say(f"live leg failed: {error}")
         put_live_section(run_dir, [LIVE_HEADING, "", f"The live leg failed: {error}", ""])

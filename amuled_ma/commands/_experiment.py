@@ -46,6 +46,34 @@ def positive_float(text: str) -> float:
     return value
 
 
+def add_episode_args(parser: argparse.ArgumentParser, when: str = "") -> None:
+    """Add ``--episode``, ``--episodes`` and ``--mode``: the evaluation episode replayed.
+
+    ``when`` starts each help text (``"with --state-from: "``).
+    """
+    parser.add_argument(
+        "--episode",
+        type=bounded_int(0),
+        default=0,
+        metavar="K",
+        help=f"{when}evaluation episode K, seeded [evaluation].seed + K (default 0)",
+    )
+    parser.add_argument(
+        "--episodes",
+        type=bounded_int(1),
+        default=None,
+        metavar="N",
+        help=f"{when}the evaluation's episodes per policy, whose K-th is replayed (sampled "
+        "draws depend on it; default: the run's results.json, else [evaluation].episodes)",
+    )
+    parser.add_argument(
+        "--mode",
+        choices=("greedy", "sampled"),
+        default="greedy",
+        help=f"{when}greedy: the policy's most probable action (default); sampled: drawn",
+    )
+
+
 def add_scenario_args(parser: argparse.ArgumentParser) -> None:
     """Add the scenario argument and the options every training command shares."""
     parser.add_argument(

@@ -25,14 +25,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="list every cluster agent with its kind, file and theories",
         description="List every cluster agent (shipped and user) and code-backed agent.",
     )
-    listing.add_argument(
-        "--clusters-dir",
-        action="append",
-        type=Path,
-        default=[],
-        metavar="DIR",
-        help="a directory of extra cluster TOML files (repeatable; later ones win)",
-    )
     listing.add_argument("--json", action="store_true", help="print JSON instead of a table")
     listing.set_defaults(handler=list_clusters)
     show = actions.add_parser(
@@ -47,8 +39,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     show.add_argument("name", help="cluster name or alias")
     show.add_argument("--task", default="findmilk", help="task (selects the few-shot file)")
     show.add_argument("--state", default="<STATE PROMPT>", help="state prompt text")
-    show.add_argument("--clusters-dir", action="append", type=Path, default=[], metavar="DIR")
     show.set_defaults(handler=show_cluster)
+    for sub in (listing, show):
+        sub.add_argument(
+            "--clusters-dir",
+            action="append",
+            type=Path,
+            default=[],
+            metavar="DIR",
+            help="a directory of extra cluster TOML files (repeatable; later ones win)",
+        )
     parser.set_defaults(handler=lambda args: parser.print_help() or 2)
 
 

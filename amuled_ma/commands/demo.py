@@ -436,21 +436,11 @@ def write_demo_view(run_dir: Path) -> Path | None:
     """Write ``view-episode0.html`` of the AMULED fine-tune, linked from the report."""
     from amuled_ma.errors import AmuledError
     from amuled_ma.evaluate.report import link_viewer
-    from amuled_ma.evaluate.viewer import write_view
-    from amuled_ma.experiments.trained_variants import run_to_view
+    from amuled_ma.experiments.trained_variants import write_run_view
 
     _say("writing the step-by-step viewer of finetune-amuled")
     try:
-        view = run_to_view(run_dir, ["finetune-amuled"])
-        result = write_view(
-            run_dir,
-            view.variants,
-            scenario_name=view.scenario.name,
-            task_name=view.scenario.task.name,
-            evaluation=view.scenario.evaluation,
-            episodes=view.episodes,
-            say=_say,
-        )
+        result = write_run_view(run_dir, ["finetune-amuled"], say=_say)
     except AmuledError as error:
         _say(f"no viewer written: {error}")
         return None

@@ -82,28 +82,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--step", type=common.bounded_int(0), default=None, help="with --state-from: the step"
     )
-    parser.add_argument(
-        "--episode",
-        type=common.bounded_int(0),
-        default=0,
-        metavar="K",
-        help="with --state-from: evaluation episode K (default 0)",
-    )
-    parser.add_argument(
-        "--mode",
-        choices=("greedy", "sampled"),
-        default="greedy",
-        help="with --state-from: how the episode's actions were chosen (default greedy)",
-    )
-    parser.add_argument(
-        "--episodes",
-        type=common.bounded_int(1),
-        default=None,
-        metavar="N",
-        help="with --state-from: the evaluation's episodes per policy, whose K-th is replayed "
-        "(sampled draws depend on it; default: the run's results.json, else "
-        "[evaluation].episodes)",
-    )
+    common.add_episode_args(parser, "with --state-from: ")
     parser.add_argument(
         "--full", action="store_true", help=f"print whole replies (default: {REPLY_CHARS} chars)"
     )

@@ -34,27 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="V",
         help="a variant folder to show (repeatable; default: every fine-tuned variant)",
     )
-    parser.add_argument(
-        "--episode",
-        type=common.bounded_int(0),
-        default=0,
-        metavar="K",
-        help="evaluation episode K, seeded [evaluation].seed + K (default 0)",
-    )
-    parser.add_argument(
-        "--episodes",
-        type=common.bounded_int(1),
-        default=None,
-        metavar="N",
-        help="the evaluation's episodes per policy, whose K-th is replayed (sampled draws "
-        "depend on it; default: the run's results.json, else [evaluation].episodes)",
-    )
-    parser.add_argument(
-        "--mode",
-        choices=("greedy", "sampled"),
-        default="greedy",
-        help="greedy: the policy's most probable action (default); sampled: drawn",
-    )
+    common.add_episode_args(parser)
     parser.add_argument(
         "-o",
         "--output",
@@ -109,24 +89,18 @@ def view_command(args: argparse.Namespace) -> int:
     scenario_of_run(run_dir)  # a missing or wrong folder: one line, before the heavy imports
 
     from amuled_ma.evaluate.page_server import serve
-    from amuled_ma.evaluate.viewer import write_view
-    from amuled_ma.experiments.trained_variants import run_to_view
+    from amuled_ma.experiments.trained_variants import write_run_view
     from amuled_ma.files.safe import check_write_target
 
     if args.output is not None:
         check_write_target(args.output)  # a link or a device is refused before any work
-    view = run_to_view(run_dir, args.variants, args.episodes)
-    common.say(f"view {run_dir}: episode {args.episode} of {view.episodes}, {args.mode} actions")
-    result = write_view(
+    result = write_run_view(
         run_dir,
-        view.variants,
+        args.variants,
+        args.episodes,
         args.output,
-        scenario_name=view.scenario.name,
-        task_name=view.scenario.task.name,
-        evaluation=view.scenario.evaluation,
         episode=args.episode,
         mode=args.mode,
-        episodes=view.episodes,
         say=common.say,
     )
     common.say(

@@ -151,12 +151,12 @@ def run_jobs(
 
         ran = {}
         for group in groups:
-            outcome = train_population_jobs(group, progress=progress, hint=hint)
-            for name, result in outcome.results.items():
+            results, failures = train_population_jobs(group, progress=progress, hint=hint)
+            for name, result in results.items():
                 ran[name] = result
                 print(describe(result), flush=True)
-            if outcome.failures:  # the others of its group finished first
-                raise population_failure(outcome.failures, hint)
+            if failures:  # the others of its group finished first
+                raise population_failure(failures, hint)
     by_name = {**skipped, **ran}
     wall = time.perf_counter() - start
     return JobsOutcome([by_name[j.name] for j in jobs], wall, workers if on_ray else 1)

@@ -5,7 +5,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import time
 from collections.abc import Callable, Sequence
@@ -111,19 +110,6 @@ class PipelineOutcome:
     wall_s: float
 
 
-@dataclass(frozen=True)
-class _Plan:
-    """The planned graph of a request and what is written and said about it."""
-
-    jobs: list[TrainJob]
-    out_dir: Path
-    variants: tuple[str, ...]
-    config: dict[str, Any]
-    announce: str
-    title: str
-    extra_dirs: list[Path]
-
-
 def run_pipeline(
     request: PipelineRequest, *, say: Callable[[str], None] = say_line
 ) -> PipelineOutcome:
@@ -141,46 +127,81 @@ def run_pipeline(
         models_ablation_recordings,
         replayed_recordings,
     )
-    from amuled_ma.experiments.plans import plan_jobs, retrain_jobs, training_seeds
+    from amuled_ma.experiments.plans import (
+        MAIN_VARIANTS,
+        ablation_variants,
+        plan_ablation,
+        plan_jobs,
+        plan_run,
+        retrain_jobs,
+        training_seeds,
+    )
     from amuled_ma.experiments.run_folder import read_record, variant_records
     from amuled_ma.scenario.memory import check_seed_replicas
 
     start = time.perf_counter()
     check_seed_replicas(request.seeds, variants=1)  # before a job per seed is planned
-    first = request.scenario.task.seed if request.seed is None else request.seed
-    seeds = training_seeds(first, request.seeds)
-    sc = request.scenario
+    sc, run_dir, what = request.scenario, Path(request.run_dir), request.ablation
+    seeds = training_seeds(sc.task.seed if request.seed is None else request.seed, request.seeds)
     # the authors' recordings found nowhere here are fetched (never with ``offline``)
     fetch = functools.partial(ensure_recordings, sc.resolve, offline=request.offline, say=say)
-    if request.ablation == "models":  # it plans one fine-tune per recording found beside
-        fetch(models_ablation_recordings(sc.feedback, sc.task.name, sc.resolve))
-    if request.ablation is None:
-        plan = _plan_main(request, seeds, say)
-    else:
-        plan = _plan_ablation(request, seeds)
-    replayed = [job.scenario.feedback for job in plan.jobs if job.variant.finetuning]
+    resume, force = request.resume, request.force
+    if what is None:  # the main comparison: MAIN_VARIANTS per seed
+        base, imported = request.base, Path(sc.output.runs_dir) / "authors" / sc.task.name / "base"
+        if base is None and sc.finetune.recipe == "authors":
+            if (imported / "model_last.pt").is_file():
+                base = imported
+                say(f"  fine-tunes start from the authors' imported base {imported}")
+            else:
+                say(
+                    f"  fine-tunes start from this run's own bases (no imported authors' base "
+                    f"at {imported}; 'amuled import authors PATH' makes one)"
+                )
+        jobs = plan_run(sc, run_dir, seeds, resume=resume, force=force, base=base)
+        out_dir, variants, extra_dirs = run_dir, tuple(str(v) for v in MAIN_VARIANTS), []
+        config: dict[str, Any] = {"variants": list(variants), "seeds": seeds}
+        announce, title = f"run {sc.name} -> {run_dir}", f"{sc.name}: the paper's main comparison"
+    else:  # the run's bases, then the ablation's fine-tunes in ablate-<what>/
+        if what == "models":  # it plans one fine-tune per recording found beside
+            fetch(models_ablation_recordings(sc.feedback, sc.task.name, sc.resolve))
+        where = str(sc.path or sc.name)
+        listed = ablation_variants(what, sc.feedback, sc.task.name, sc.resolve, where)
+        variants = tuple(variant.folder for variant, _ in listed)
+        jobs = plan_ablation(what, sc, run_dir, seeds, resume=resume, force=force)
+        out_dir = run_dir / f"ablate-{what}"
+        # the run's folders an ablation evaluates with its own: the bases, and fine-tunes the
+        # run already finished with the same settings (not trained again)
+        shared = [job.out_dir.name for job in jobs if job.out_dir.parent == run_dir]
+        extra_dirs = [run_dir / name for name in shared]
+        config = {"ablation": what, "variants": list(variants), "seeds": seeds, "shared": shared}
+        announce = (
+            f"ablate {sc.name} --what {what}: {len(variants)} fine-tunes x {len(seeds)} "
+            f"seed(s) -> {out_dir}"
+        )
+        title = f"{sc.name}: ablation of {what}"
+    replayed = [job.scenario.feedback for job in jobs if job.variant.finetuning]
     fetch(list(dict.fromkeys(v for feedback in replayed for v in replayed_recordings(feedback))))
     if request.retrain:
-        plan = dataclasses.replace(plan, jobs=retrain_jobs(plan.jobs, request.retrain))
+        jobs = retrain_jobs(jobs, request.retrain)
     # before the lock: a refused run makes no folder
-    plan = dataclasses.replace(plan, jobs=plan_jobs(plan.jobs, request.hint, request.rerun))
-    say_live_costs(plan.jobs, say)
+    jobs = plan_jobs(jobs, request.hint, request.rerun)
+    say_live_costs(jobs, say)
     # after the checks: a refused run answers before torch and matplotlib are imported
     from amuled_ma.evaluate.evaluator import evaluate_run, variant_dirs
     from amuled_ma.evaluate.report import evaluation_outputs, write_report
     from amuled_ma.files.safe import check_write_targets
 
-    check_write_targets(evaluation_outputs(plan.out_dir))  # before training, as the inputs
-    workers = resolve_workers(request.jobs, plan.jobs)
-    with run_folder_lock(request.run_dir):
-        say(plan.announce)
+    check_write_targets(evaluation_outputs(out_dir))  # before training, as the inputs
+    workers = resolve_workers(request.jobs, jobs)
+    with run_folder_lock(run_dir):
+        say(announce)
         # Ray first: a SIGTERM while it starts leaves no run folder (the lock removes it)
-        with ray_connection(plan.jobs, workers=workers, ray=request.ray):
-            write_config(plan.out_dir, request.scenario.to_dict(), plan.config)
+        with ray_connection(jobs, workers=workers, ray=request.ray):
+            write_config(out_dir, sc.to_dict(), config)
             where = "" if request.ray is None else f" on Ray ({request.ray.address or 'local'})"
-            say(f"  {len(plan.jobs)} training jobs, {workers} at a time{where}")
+            say(f"  {len(jobs)} training jobs, {workers} at a time{where}")
             training = run_jobs(
-                plan.jobs,
+                jobs,
                 workers=workers,
                 progress=request.progress,
                 hint=request.hint,
@@ -189,29 +210,29 @@ def run_pipeline(
                 population=request.population,
             )
             say(f"  training done in {training.wall_s:.1f} s on {training.workers} worker(s)")
-        records = variant_records([*variant_dirs(plan.out_dir), *plan.extra_dirs])
+        records = variant_records([*variant_dirs(out_dir), *extra_dirs])
         results = evaluate_run(
-            plan.out_dir,
-            scenario_name=request.scenario.name,
-            task_config=request.scenario.task,
-            evaluation=request.scenario.evaluation,
-            ppo=request.scenario.ppo,
+            out_dir,
+            scenario_name=sc.name,
+            task_config=sc.task,
+            evaluation=sc.evaluation,
+            ppo=sc.ppo,
             episodes=request.episodes,
             progress=request.progress,
-            extra_dirs=plan.extra_dirs or None,
+            extra_dirs=extra_dirs or None,
             records=records,
         )
         report = write_report(
-            plan.out_dir,
+            out_dir,
             results,
-            title=request.title or plan.title,
-            ablation=request.ablation,
-            run=read_record(plan.out_dir),
+            title=request.title or title,
+            ablation=what,
+            run=read_record(out_dir),
             records=records,
         )
     return PipelineOutcome(
-        out_dir=plan.out_dir,
-        variants=plan.variants,
+        out_dir=out_dir,
+        variants=variants,
         seeds=tuple(seeds),
         training=training,
         results=results,
@@ -242,11 +263,13 @@ def train_alone(
     base_variant: str = "base",
     base_dir: Path | None = None,
     config: dict[str, Any] | None = None,
+    iterations: int | None = None,
 ) -> JobResult:
     """Train one job (``amuled train`` / ``finetune``): planned, locked, trained; not evaluated.
 
     ``base_variant`` is a fine-tune's base folder in ``base_dir`` (default: the run folder);
-    ``config`` holds run-level ``config.json`` fields to write (None: left alone).
+    ``config`` holds run-level ``config.json`` fields to write (None: left alone);
+    ``iterations`` overrides the planned number.
 
     Raises:
         AmuledError: As `run_pipeline`.
@@ -266,6 +289,7 @@ def train_alone(
         resume=request.resume,
         force=request.force,
         base_dir=base_dir,
+        iterations=iterations,
     )
     # before the lock: a refused job makes no folder
     jobs = plan_jobs([job], request.hint, request.rerun)
@@ -277,68 +301,6 @@ def train_alone(
             jobs, progress=request.progress, hint=request.hint, describe=describe_job
         )
     return outcome.results[0]
-
-
-def _plan_main(request: PipelineRequest, seeds: list[int], say: Callable[[str], None]) -> _Plan:
-    """The main comparison: :data:`~amuled_ma.experiments.plans.MAIN_VARIANTS` per seed."""
-    from amuled_ma.experiments.plans import MAIN_VARIANTS, plan_run
-
-    scenario, run_dir = request.scenario, Path(request.run_dir)
-    base = request.base
-    imported = Path(scenario.output.runs_dir) / "authors" / scenario.task.name / "base"
-    if base is None and scenario.finetune.recipe == "authors":
-        if (imported / "model_last.pt").is_file():
-            base = imported
-            say(f"  fine-tunes start from the authors' imported base {imported}")
-        else:
-            say(
-                f"  fine-tunes start from this run's own bases (no imported authors' base "
-                f"at {imported}; 'amuled import authors PATH' makes one)"
-            )
-    jobs = plan_run(scenario, run_dir, seeds, resume=request.resume, force=request.force, base=base)
-    variants = tuple(str(v) for v in MAIN_VARIANTS)
-    return _Plan(
-        jobs=jobs,
-        out_dir=run_dir,
-        variants=variants,
-        config={"variants": list(variants), "seeds": seeds},
-        announce=f"run {scenario.name} -> {run_dir}",
-        title=f"{scenario.name}: the paper's main comparison",
-        extra_dirs=[],
-    )
-
-
-def _plan_ablation(request: PipelineRequest, seeds: list[int]) -> _Plan:
-    """One ablation: the run's bases, then the ablation's fine-tunes in ``ablate-<what>/``."""
-    from amuled_ma.experiments.plans import ablation_variants, plan_ablation
-
-    scenario, run_dir, what = request.scenario, Path(request.run_dir), request.ablation
-    assert what is not None
-    out = run_dir / f"ablate-{what}"
-    listed = ablation_variants(
-        what,
-        scenario.feedback,
-        scenario.task.name,
-        scenario.resolve,
-        str(scenario.path or scenario.name),
-    )
-    variants = tuple(variant.folder for variant, _ in listed)
-    jobs = plan_ablation(what, scenario, run_dir, seeds, resume=request.resume, force=request.force)
-    # the run's folders an ablation evaluates with its own: the bases, and fine-tunes the
-    # run already finished with the same settings (not trained again)
-    shared = [job.out_dir.name for job in jobs if job.out_dir.parent == run_dir]
-    return _Plan(
-        jobs=jobs,
-        out_dir=out,
-        variants=variants,
-        config={"ablation": what, "variants": list(variants), "seeds": seeds, "shared": shared},
-        announce=(
-            f"ablate {scenario.name} --what {what}: {len(variants)} fine-tunes x "
-            f"{len(seeds)} seed(s) -> {out}"
-        ),
-        title=f"{scenario.name}: ablation of {what}",
-        extra_dirs=[run_dir / name for name in shared],
-    )
 
 
 def describe_job(job: JobResult) -> str:

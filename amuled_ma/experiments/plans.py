@@ -11,7 +11,6 @@ import dataclasses
 import math
 import sys
 from collections.abc import Callable, Collection, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -32,7 +31,6 @@ from amuled_ma.experiments.run_folder import (
 )
 from amuled_ma.experiments.training_settings import training_config
 from amuled_ma.learn.checkpoints import LAST
-from amuled_ma.learn.job_shape import job_shape
 from amuled_ma.learn.population_groups import (
     MemberSpec,
     memory_budget_bytes,
@@ -46,7 +44,6 @@ from amuled_ma.scenario.paths import find_recording
 if TYPE_CHECKING:
     from amuled_ma.beliefs.store.service import StoreService
     from amuled_ma.deliberation.feedback_base import Feedback
-    from amuled_ma.learn.population import TrainOutcome
 
 #: The variants of the paper's main figure, in order.
 MAIN_VARIANTS = (
@@ -82,19 +79,18 @@ def plan_job(
     planned: Collection[str] = (),
     *,
     rerun: Rerun | None = None,
-    check_panel: bool = True,
 ) -> TrainJob:
-    """Plan a job once: panel plan, run shape, settings, base checkpoint, start; writes nothing.
+    """Plan a job once: panel plan (its `preflight` run), run shape, settings, base, start.
 
-    A base in ``planned`` (trained earlier in the same plan) is not looked for yet. With
-    ``check_panel`` the panel's `preflight` runs.
+    Writes nothing. A base in ``planned`` (trained earlier in the same plan) is not looked
+    for yet.
 
     Raises:
         AmuledError: The first thing missing or clashing, in one line naming the fix.
     """
     variant, scenario = job.variant, job.scenario
     panel = plan_panel(variant.feedback, scenario) if variant.feedback is not None else None
-    if panel is not None and check_panel:
+    if panel is not None:
         preflight(panel)
     base = None
     if variant.finetuning:
@@ -107,14 +103,7 @@ def plan_job(
     return dataclasses.replace(
         job,
         panel=panel,
-        shape=job_shape(
-            scenario.ppo,
-            scenario.base,
-            scenario.finetune,
-            variant,
-            job.iterations,
-            where=str(scenario.path or scenario.name),
-        ),
+        shape=member_spec(job).shape(),
         settings=settings,
         base_checkpoint=base,
         store=scenario.store_path(job.run_dir) if variant.finetuning else None,
@@ -149,40 +138,6 @@ def plan_jobs(
             + "\n".join(f"  - {problem}" for problem in problems)
         )
     return out
-
-
-@dataclass
-class PreparedJob:
-    """A planned job ready to train: its record written, its feedback built (open: `close` it)."""
-
-    job: TrainJob
-    feedback: Feedback | None
-    resume_hint: str | None
-
-    def close(self) -> None:
-        """Close the feedback (its sources and store connections)."""
-        if self.feedback is not None:
-            self.feedback.close()
-
-    def finished(self, outcome: TrainOutcome) -> JobResult:
-        """Record the job complete; its result."""
-        mark_state(self.job.out_dir, "complete", outcome.iterations)
-        return JobResult(self.job.variant, self.job.out_dir, outcome=outcome)
-
-    def failed(self) -> None:
-        """Record the job failed (unless the disk is full: the error says so)."""
-        with contextlib.suppress(OSError):
-            mark_state(self.job.out_dir, "failed")
-
-    def member(self, on_iteration: Callable[[Any, int], None] | None = None) -> MemberSpec:
-        """The population member that trains it (its feedback, base, resume)."""
-        return dataclasses.replace(
-            member_spec(self.job),
-            feedback=self.feedback,
-            base_checkpoint=self.job.base_checkpoint,
-            resume_hint=self.resume_hint,
-            on_iteration=on_iteration,
-        )
 
 
 def member_spec(job: TrainJob) -> MemberSpec:
@@ -225,11 +180,12 @@ def prepare_job(
     *,
     hint: str = "",
     store: StoreService | None = None,
-) -> PreparedJob | JobResult:
+) -> MemberSpec | JobResult:
     """Build a planned job's feedback and write its folder's record.
 
     Returns:
-        The prepared job, or the result of a job planned as ``skip``.
+        The job's population member (its feedback open: the caller closes it), or the result
+        of a job planned as ``skip``.
 
     Raises:
         AmuledError: A member cannot answer, or the base the plan trained is unfinished.
@@ -270,7 +226,12 @@ def prepare_job(
         if feedback is not None:
             feedback.close()
         raise
-    return PreparedJob(job, feedback, f"{hint} --resume" if hint else None)
+    return dataclasses.replace(
+        member_spec(job),
+        feedback=feedback,
+        base_checkpoint=job.base_checkpoint,
+        resume_hint=f"{hint} --resume" if hint else None,
+    )
 
 
 def population_groups(
@@ -302,14 +263,6 @@ def population_groups(
     return groups
 
 
-@dataclass
-class GroupOutcome:
-    """What `train_population_jobs` did: results of the jobs that finished, a line per failure."""
-
-    results: dict[str, JobResult] = field(default_factory=dict)
-    failures: list[str] = field(default_factory=list)
-
-
 def train_population_jobs(
     jobs: Sequence[TrainJob],
     *,
@@ -318,11 +271,12 @@ def train_population_jobs(
     on_iteration: Callable[[Any, int], None] | None = None,
     store_for: Callable[[TrainJob], Any] | None = None,
     announce: bool = True,
-) -> GroupOutcome:
+) -> tuple[dict[str, JobResult], list[str]]:
     """Train a group of planned jobs as populations (split by `population_key`).
 
     A job that fails alone is marked ``failed`` and the others finish; ``announce`` prints a
-    line when one fails (a Ray worker leaves it to the driver).
+    line when one fails (a Ray worker leaves it to the driver). Returns the results of the
+    jobs that finished, by name, and a line per failure.
 
     Raises:
         AmuledError: A job's inputs are missing (before anything trains).
@@ -330,8 +284,8 @@ def train_population_jobs(
     """
     from amuled_ma.learn.population import train_population  # here: it imports torch
 
-    outcome = GroupOutcome()
-    prepared: list[PreparedJob] = []
+    failures: list[str] = []
+    prepared: list[tuple[TrainJob, MemberSpec]] = []
     done: dict[str, JobResult] = {}
     try:
         for job in jobs:
@@ -341,8 +295,9 @@ def train_population_jobs(
             if isinstance(ready, JobResult):
                 done[job.name] = ready
             else:
-                prepared.append(ready)
-        specs = [ready.member(on_iteration) for ready in prepared]
+                ready.on_iteration = on_iteration
+                prepared.append((job, ready))
+        specs = [spec for _, spec in prepared]
         alone = len(jobs) == 1  # a lone job: its failure is the group's error
         for members in split_populations(specs, memory_budget_bytes()):
             try:
@@ -353,20 +308,27 @@ def train_population_jobs(
                     raise trained[0]
             except Exception:
                 for i in members:
-                    prepared[i].failed()
+                    _mark_failed(prepared[i][0])
                 raise
             for i, result in zip(members, trained, strict=True):
-                ready = prepared[i]
+                job = prepared[i][0]
                 if isinstance(result, BaseException):
-                    ready.failed()
-                    outcome.failures.append(str(result))
+                    _mark_failed(job)
+                    failures.append(str(result))
                 else:
-                    done[ready.job.name] = ready.finished(result)
+                    mark_state(job.out_dir, "complete", result.iterations)
+                    done[job.name] = JobResult(job.variant, job.out_dir, outcome=result)
     finally:
-        for ready in prepared:
-            ready.close()
-    outcome.results = {job.name: done[job.name] for job in jobs if job.name in done}
-    return outcome
+        for _, spec in prepared:
+            if spec.feedback is not None:
+                spec.feedback.close()
+    return {job.name: done[job.name] for job in jobs if job.name in done}, failures
+
+
+def _mark_failed(job: TrainJob) -> None:
+    """Record the job failed (unless the disk is full: the error says so)."""
+    with contextlib.suppress(OSError):
+        mark_state(job.out_dir, "failed")
 
 
 def population_failure(failures: Sequence[str], hint: str) -> AmuledError:
@@ -377,43 +339,6 @@ def population_failure(failures: Sequence[str], hint: str) -> AmuledError:
         f"{count} of a population failed alone (named above; their last checkpoints are "
         f"kept) and the other members finished{then}"
     )
-
-
-def train_variant(
-    scenario: Scenario,
-    run_dir: Path,
-    variant: Variant,
-    *,
-    resume: bool = False,
-    force: bool = False,
-    hint: str = "",
-    iterations: int | None = None,
-    base_dir: Path | None = None,
-) -> JobResult:
-    """Train one variant (``base``, ``shaped`` or ``finetune:<feedback>``) into the run, alone.
-
-    Planned (`plan_job`) and trained by `train_population_jobs`; a fine-tune anchors to the
-    ``base`` folder of ``base_dir`` (default ``run_dir``); ``hint`` re-runs it (messages).
-
-    Raises:
-        AmuledError: An input is missing or the folder clashes (nothing written).
-        MemberFailed: Its feedback failed or its gradient was not finite (its checkpoint
-            before that iteration is written).
-    """
-    run_dir = Path(run_dir)
-    job = TrainJob(
-        name=variant.folder,
-        scenario=scenario,
-        run_dir=run_dir,
-        variant=variant,
-        out_dir=run_dir / variant.folder,
-        resume=resume,
-        force=force,
-        base_dir=Path(base_dir) if base_dir else None,
-        iterations=iterations,
-    )
-    planned = plan_job(job, hint, check_panel=False)  # prepare_job checks what it builds
-    return train_population_jobs([planned], hint=hint).results[job.name]
 
 
 def ablation_variants(

@@ -47,9 +47,6 @@ from amuled_ma.learn.checkpoints import LAST, checkpoint_infos
 if TYPE_CHECKING:
     from types import FrameType
 
-    #: What ``signal.getsignal`` returns: a handler, ``SIG_DFL``/``SIG_IGN``, or None.
-    _Handler = Callable[[int, FrameType | None], object] | int | signal.Handlers | None
-
 #: In a job folder: the sweep whose attempt started it (a retry of the same sweep resumes).
 SWEEP_MARK = ".amuled-sweep"
 #: In the run folder: the driver's token (a node that reads it shares the file system).
@@ -141,13 +138,6 @@ def _first_line(error: BaseException) -> str:
 
 #: The signals that stop a command (Ctrl-C and SIGTERM).
 _STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
-
-
-def _restore_sigterm(previous: _Handler) -> None:
-    """Put back the SIGTERM handler ``ray.init`` replaced (Ray's aborts, no checkpoint)."""
-    if previous is None or threading.current_thread() is not threading.main_thread():
-        return  # not set from Python (nothing to put back), or not ours to set
-    signal.signal(signal.SIGTERM, previous)
 
 
 class _SigtermCount:
@@ -263,8 +253,9 @@ def connect(address: str | None, workers: int) -> bool:
                 finally:
                     if held is not None:
                         signal.pthread_sigmask(signal.SIG_SETMASK, held)
-        finally:
-            _restore_sigterm(previous_term)
+        finally:  # the SIGTERM handler ray.init replaced (Ray's aborts, no checkpoint)
+            if previous_term is not None and threading.current_thread() is threading.main_thread():
+                signal.signal(signal.SIGTERM, previous_term)
             if previous is not None:
                 signal.signal(signal.SIGINT, previous)
         stopped = None
@@ -427,7 +418,7 @@ def train_group(
         return RemoteStore(actor) if away and actor is not None else None
 
     jobs = [_marked(job, sweep, node, announce=inputs is not None) for job in group]
-    outcome = train_population_jobs(
+    results, failures = train_population_jobs(
         jobs,
         progress=False,
         hint="",
@@ -435,7 +426,6 @@ def train_group(
         store_for=store_for,
         announce=False,  # the driver prints each failure once, when the group returns
     )
-    results, failures = outcome.results, outcome.failures
     # with files shipped, every job returns its folder: a fine-tune on a node without the
     # driver's files needs its base's, wherever the base was trained
     files = (

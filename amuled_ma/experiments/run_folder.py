@@ -305,12 +305,7 @@ def read_record(folder: Path, *, checkpoint: bool = True) -> RunRecord | None:
             f"{path}: not a readable config ({where}: {first['msg']}); retrain with --force, "
             "or move the folder out of the run"
         ) from None
-    return _with_checkpoint(Path(folder), record) if checkpoint else record
-
-
-def _with_checkpoint(folder: Path, record: RunRecord) -> RunRecord:
-    """The record with its checkpoint's iteration and state (complete or not)."""
-    infos = checkpoint_infos(folder / LAST)
+    infos = checkpoint_infos(Path(folder) / LAST) if checkpoint else None
     if infos is None:
         return record
     planned = infos.get("total_iterations", record.iterations_planned)  # a resume may lengthen

@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from amuled_ma.errors import AmuledError, CheckpointError
 from amuled_ma.evaluate.episode_trace import TrainedVariant
 from amuled_ma.evaluate.evaluator import variant_dirs
 from amuled_ma.experiments.run_folder import read_record, scenario_of_run, split_replica
 from amuled_ma.learn.checkpoints import LAST, checkpoint_infos
-from amuled_ma.scenario import Scenario
+
+if TYPE_CHECKING:
+    from amuled_ma.evaluate.viewer import ViewResult
 
 
 def trained_variant(run_dir: Path, variant_dir: Path) -> TrainedVariant:
@@ -115,27 +117,41 @@ def evaluated_episodes(run_dir: Path, planned: int) -> int:
     return int(planned)
 
 
-@dataclass(frozen=True)
-class RunToView:
-    """What the viewer needs of a run: its scenario, the variants, the evaluation's episodes."""
+def write_run_view(
+    run_dir: Path,
+    names: Sequence[str] | None = None,
+    episodes: int | None = None,
+    output: Path | None = None,
+    *,
+    episode: int = 0,
+    mode: str = "greedy",
+    say: Callable[[str], None],
+) -> ViewResult:
+    """Write the viewer page of a run's `choose_variants` (``amuled view``, the demo's page).
 
-    scenario: Scenario
-    variants: list[TrainedVariant]
-    episodes: int
-
-
-def run_to_view(
-    run_dir: Path, names: Sequence[str] | None = None, episodes: int | None = None
-) -> RunToView:
-    """Resolve a run for ``amuled view`` (or the demo's page).
+    ``episodes`` None: `evaluated_episodes`; ``say`` gets the progress lines.
 
     Raises:
         AmuledError: The folder is no run (no record with a scenario).
         CheckpointError: See `choose_variants`.
     """
+    from amuled_ma.evaluate.viewer import write_view
+
     run_dir = Path(run_dir)
     scenario = scenario_of_run(run_dir)
     chosen = [trained_variant(run_dir, d) for d in choose_variants(run_dir, names)]
     if episodes is None:
         episodes = evaluated_episodes(run_dir, scenario.evaluation.episodes)
-    return RunToView(scenario, chosen, episodes)
+    say(f"view {run_dir}: episode {episode} of {episodes}, {mode} actions")
+    return write_view(
+        run_dir,
+        chosen,
+        output,
+        scenario_name=scenario.name,
+        task_name=scenario.task.name,
+        evaluation=scenario.evaluation,
+        episode=episode,
+        mode=mode,
+        episodes=episodes,
+        say=say,
+    )

@@ -1,28 +1,31 @@
 """rsl-rl's PPO with a fine-tune's KL anchor, plugged in by ``cfg["algorithm"]["class_name"]``.
 
-Unanchored (base training) it is rsl-rl's PPO with CleanRL's Adam and critic initialisation.
+Unanchored (base training) it is rsl-rl's PPO with CleanRL's Adam and critic initialisation;
+two CleanRL habits of the update (``finetune_moral.py``) are its options (`EpochShuffledStorage`,
+`clip_jointly`).
 """
 
 from __future__ import annotations
 
 import copy
 import math
+from collections.abc import Generator
 from itertools import chain
 from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 from rsl_rl.algorithms import PPO
+from rsl_rl.storage import RolloutStorage
 from tensordict import TensorDict
 
 from amuled_ma.learn.anchors import EpisodeWindowKL, per_sample_kl
 from amuled_ma.learn.distribution import orthogonal_init
-from amuled_ma.learn.ppo_options import EpochShuffledStorage, clip_jointly
 
 if TYPE_CHECKING:
     from collections.abc import Iterable
 
     from rsl_rl.models import MLPModel
-    from rsl_rl.storage import RolloutStorage
+    from torch.utils.hooks import RemovableHandle
 
 #: ``per_sample``: the paper's ``log pi(a|s) - log pi_base(a|s)``; ``window``: the authors'.
 AnchorKind = Literal["per_sample", "window"]
@@ -38,6 +41,46 @@ def adam(params: Iterable[torch.nn.Parameter], lr: float, eps: float) -> torch.o
         return torch.optim.Adam(params, lr=lr, eps=eps, fused=True)
     except (RuntimeError, TypeError):  # pragma: no cover - a device without the kernel
         return torch.optim.Adam(params, lr=lr, eps=eps, foreach=True)
+
+
+class EpochShuffledStorage(RolloutStorage):
+    """rsl-rl's rollout storage whose mini-batches are re-partitioned in every epoch."""
+
+    @classmethod
+    def like(cls, storage: RolloutStorage) -> EpochShuffledStorage:
+        """An empty storage of the same kind and shape as ``storage`` (the one rsl-rl built)."""
+        return cls(
+            storage.training_type,
+            storage.num_envs,
+            storage.num_transitions_per_env,
+            storage.observations[0],  # one step of every observation group: [num_envs, ...]
+            storage.actions_shape,
+            storage.device,
+        )
+
+    def mini_batch_generator(
+        self, num_mini_batches: int, num_epochs: int = 8
+    ) -> Generator[RolloutStorage.Batch, None, None]:
+        """Yield ``num_epochs`` epochs of mini-batches, each epoch a new partition."""
+        for _ in range(num_epochs):
+            yield from super().mini_batch_generator(num_mini_batches, 1)
+
+
+def clip_jointly(optimizer: torch.optim.Optimizer, max_norm: float) -> RemovableHandle:
+    """Clip all of ``optimizer``'s gradients as one vector before each step; the hook's handle.
+
+    Raises ValueError: ``max_norm`` is not a positive finite number.
+    """
+    max_norm = float(max_norm)
+    if not 0 < max_norm < float("inf"):
+        raise ValueError(f"max_norm: expected a positive finite number, got {max_norm!r}")
+
+    def hook(opt: torch.optim.Optimizer, args: tuple[Any, ...], kwargs: dict[str, Any]) -> None:
+        params = [p for g in opt.param_groups for p in g["params"] if p.grad is not None]
+        if params:
+            torch.nn.utils.clip_grad_norm_(params, max_norm)
+
+    return optimizer.register_step_pre_hook(hook)
 
 
 class AnchoredPPO(PPO):
@@ -89,9 +132,11 @@ class AnchoredPPO(PPO):
         self.last_losses: dict[str, float] = {}
         self.member_losses: list[dict[str, float]] = [{}]
         self._anchor: torch.Tensor | None = None
-        self._stats = torch.zeros(3, dtype=torch.float64)  # feedback sum, anchor sum, count
+        #: Members (one here; a population's subclass has more) and copies of each.
+        self.population, self.copies = 1, self.storage.num_envs
+        #: ``[2, P]`` sums of each member's feedback and anchor, one per step of the rollout
+        self.step_sums: list[torch.Tensor] = []
 
-    # ----------------------------------------------------------------- anchoring
     def anchor_to(self, base_actor: torch.nn.Module) -> None:
         """Anchor the policy to a frozen, eval-mode copy of ``base_actor`` (a fine-tune's base)."""
         base = copy.deepcopy(base_actor)
@@ -104,18 +149,12 @@ class AnchoredPPO(PPO):
                 self.storage.num_envs, self.storage.num_transitions_per_env
             )
 
-    @property
-    def anchored(self) -> bool:
-        """Whether a base policy anchors this PPO (a fine-tune)."""
-        return self.base_actor is not None
-
     def set_learning_rate(self, lr: float) -> None:
         """Set the learning rate of the optimiser (the trainer's schedule)."""
         self.learning_rate = float(lr)
         for group in self.optimizer.param_groups:
             group["lr"] = self.learning_rate
 
-    # ----------------------------------------------------------------- rsl-rl steps
     def act(self, obs: TensorDict) -> torch.Tensor:
         """rsl-rl's ``act``; when anchored, also the anchor of the sampled actions."""
         actions = super().act(obs)
@@ -151,10 +190,10 @@ class AnchoredPPO(PPO):
         if anchor is not None:
             rewards = rewards - self.lambda_kl * anchor
             feedback = extras.get("feedback")
-            if feedback is not None:
-                self._stats[0] += float(feedback.sum())
-            self._stats[1] += float(anchor.sum())
-            self._stats[2] += anchor.numel()
+            if feedback is None:
+                feedback = torch.zeros_like(anchor)
+            both = torch.stack((feedback.to(anchor.device, anchor.dtype), anchor))
+            self.step_sums.append(both.reshape(2, self.population, -1).sum(2))
             if self.window is not None:
                 self.window.end_episodes(dones)
             self._anchor = None
@@ -179,13 +218,17 @@ class AnchoredPPO(PPO):
         return [] if bool(torch.isfinite(sums).all()) else [0]
 
     def member_rollout_stats(self) -> list[dict[str, float]]:
-        """`rollout_stats` as a list of one member's."""
-        return [self.rollout_stats()]
+        """Each member's mean ``feedback_reward`` and ``kl`` per step since the last call.
 
-    def rollout_stats(self) -> dict[str, float]:
-        """Mean ``feedback_reward`` and ``kl`` per step since the last call (``{}``: none)."""
-        total_fb, total_kl, count = self._stats.tolist()
-        self._stats.zero_()
-        if not count:
-            return {}
-        return {"feedback_reward": total_fb / count, "kl": total_kl / count}
+        ``{}`` for each member when no anchored step was taken.
+        """
+        if not self.step_sums:
+            return [{} for _ in range(self.population)]
+        # [steps, 2, P] float32 sums of each step, added in float64
+        sums = torch.stack(self.step_sums).to("cpu", torch.float64).sum(0)
+        count = len(self.step_sums) * self.copies
+        self.step_sums = []
+        return [
+            {"feedback_reward": fb / count, "kl": kl / count}
+            for fb, kl in zip(sums[0].tolist(), sums[1].tolist(), strict=True)
+        ]

@@ -11,6 +11,7 @@ import copy
 import dataclasses
 import functools
 import json
+import math
 import os
 import sys
 import time
@@ -19,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
@@ -30,7 +32,6 @@ from amuled_ma.errors import AmuledError, MemberFailed, Terminated
 from amuled_ma.files.safe import FileWriteError, write_text_atomic
 from amuled_ma.learn.anchored_ppo import AnchoredPPO
 from amuled_ma.learn.checkpoints import LAST, CheckpointWriteError, write_checkpoints
-from amuled_ma.learn.curves import curve_row, quiet
 from amuled_ma.learn.population_groups import MemberSpec, population_config, population_key
 from amuled_ma.learn.population_models import member_state, stack_states
 from amuled_ma.learn.population_ppo import PopulationPPO
@@ -40,6 +41,7 @@ from amuled_ma.learn.population_state import (
     member_env,
     member_env_state,
     member_optimizer_state,
+    quiet,
     split_episodes,
     stack_env_states,
     stack_optimizer_states,
@@ -72,16 +74,9 @@ class PopulationMember:
         self.population = population
         self.index = index
         self.spec = population.specs[index]
-
-    @property
-    def out_dir(self) -> Path:
-        """The member's folder."""
-        return self.spec.out_dir
-
-    @property
-    def curve(self) -> list[dict]:
-        """The member's learning curve so far."""
-        return self.population.curves[self.index]
+        self.out_dir: Path = self.spec.out_dir
+        #: The member's learning curve so far (the list the trainer appends to).
+        self.curve: list[dict] = population.curves[index]
 
     def policy(self) -> torch.nn.Module:
         """The member's actor now, as a lone rsl-rl ``MLPModel`` on the CPU, in eval mode."""
@@ -92,7 +87,7 @@ class PopulationTrainer:
     """Train ``P`` jobs of one `population_key` together, each as it trains alone.
 
     ``device`` holds the networks and PPO's buffers (the task copies stay on the CPU);
-    ``progress`` shows one tqdm bar. Raises ValueError: no jobs, or another key.
+    ``progress`` shows one tqdm bar. Raises ValueError: a job of another key.
     """
 
     def __init__(
@@ -100,8 +95,6 @@ class PopulationTrainer:
     ) -> None:
         torch.set_num_threads(1)
         self.specs = list(specs)
-        if not self.specs:
-            raise ValueError("a population needs at least one job")
         keys = [population_key(spec) for spec in self.specs]
         for p, key in enumerate(keys):
             if key != keys[0]:
@@ -177,7 +170,6 @@ class PopulationTrainer:
         alg.streams.set_states([start.torch_rng for start in starts])
         self.runner.current_learning_iteration = starts[0].iteration
 
-    # ------------------------------------------------- stacked, or one member alone
     def _member(self, state: dict[str, torch.Tensor], member: int) -> dict[str, torch.Tensor]:
         """Member ``member``'s lone model state (`member_state`)."""
         if self.stacked:
@@ -190,7 +182,6 @@ class PopulationTrainer:
             return self.alg.streams.get_states()
         return [torch.get_rng_state()]
 
-    # ----------------------------------------------------------------- members
     def member_policy(self, member: int) -> torch.nn.Module:
         """Member ``member``'s actor now, as a lone rsl-rl ``MLPModel`` (CPU, eval mode)."""
         actor = copy.deepcopy(self.template)
@@ -266,7 +257,6 @@ class PopulationTrainer:
             writes.append((self.specs[p].out_dir / LAST, functools.partial(torch.save, checkpoint)))
         return write_checkpoints(writes)
 
-    # ----------------------------------------------------------------- training
     def iterate(self) -> None:
         """One iteration of every member: rsl-rl's rollout and update (``runner.learn(1)``)."""
         self.runner.learn(1)
@@ -437,6 +427,34 @@ class PopulationTrainer:
         )
         for hint in hints:
             print(f"resume with: {hint}", file=sys.stderr)
+
+
+def curve_row(
+    it: int,
+    batch: int,
+    wall_s: float,
+    lr: float,
+    episodes: list[dict],
+    losses: dict,
+    extra: dict,
+) -> dict[str, Any]:
+    """One ``curve.json`` row for iteration ``it`` (1-based): its episodes, losses, ``extra``."""
+    row: dict[str, Any] = {
+        "iteration": it,
+        "env_steps": it * batch,
+        "wall_s": round(wall_s, 4),
+        "charts/lr": lr,
+    }
+    for key, value in losses.items():
+        row[f"losses/{key}"] = float(value) if value is not None and math.isfinite(value) else None
+    keys = sorted({k for e in episodes for k in e if k != "env_id"})
+    row["charts/episodes"] = len(episodes)
+    for key in keys:
+        values = [e[key] for e in episodes if key in e]
+        row[f"episode/{key}"] = float(np.mean(values)) if values else None
+    for key, value in extra.items():
+        row[f"feedback/{key}"] = value
+    return row
 
 
 def _cpu(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -96,22 +96,16 @@ class MemberSpec:
         return int((infos or {}).get("iteration", 0))
 
 
-def shared_config(cfg: dict[str, Any]) -> dict[str, Any]:
-    """An rsl-rl config without what may differ between members (KL weight, recipe, cadence)."""
-    shared = json.loads(json.dumps(cfg))
-    shared.pop("save_interval", None)
-    for key in MEMBER_ALGORITHM_KEYS:
-        shared["algorithm"].pop(key, None)
-    return shared
-
-
 def population_key(spec: MemberSpec) -> str:
     """What jobs of one population share: task without seed, shape, schedule, start, factory."""
-    shape = spec.shape()
-    factory = spec.task_factory
+    shape, factory = spec.shape(), spec.task_factory
+    shared = json.loads(json.dumps(shape.cfg))  # without what members may differ in
+    shared.pop("save_interval", None)
+    for name in MEMBER_ALGORITHM_KEYS:
+        shared["algorithm"].pop(name, None)
     key = dataclasses.asdict(shape) | {
         "task": spec.scenario.task.model_dump(mode="json", exclude={"seed"}),
-        "cfg": shared_config(shape.cfg),
+        "cfg": shared,
         "start": spec.start_iteration(),
         "task_factory": None if factory is None else f"{factory.__module__}.{factory!r}",
     }
@@ -171,12 +165,10 @@ def split_populations(
 ) -> list[list[int]]:
     """Indices into ``specs`` grouped by `population_key` within ``memory_budget`` bytes.
 
-    ``min_count`` cuts each group into at least that many populations (one per worker).
-    Raises ValueError: ``memory_budget``, ``max_size`` or ``min_count`` is below 1.
+    ``min_count`` (at least 1) cuts each group into at least that many populations (one per
+    worker).
     """
     budget = memory_budget_bytes() if memory_budget is None else int(memory_budget)
-    if budget < 1 or (max_size is not None and max_size < 1) or min_count < 1:
-        raise ValueError("memory_budget, max_size and min_count must be positive")
     groups: dict[str, list[int]] = {}
     for index, spec in enumerate(specs):
         groups.setdefault(population_key(spec), []).append(index)
@@ -200,12 +192,8 @@ def split_populations(
 def population_config(cfgs: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """rsl-rl's config of a population from its members' lone configs (KL weights as lists).
 
-    Raises ValueError: the members' configs differ in a setting they must share.
+    The members share a `population_key` (checked by `PopulationTrainer`).
     """
-    shared = shared_config(cfgs[0])
-    for p, cfg in enumerate(cfgs):
-        if shared_config(cfg) != shared:
-            raise ValueError(f"member {p} has other training settings than member 0")
     cfg = copy.deepcopy(cfgs[0])
     size = len(cfgs)
     for model in ("actor", "critic"):

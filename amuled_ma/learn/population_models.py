@@ -57,12 +57,8 @@ class MemberStreams:
         """``[rows, 1]`` uniforms in ``[0, 1)``: ``rows / P`` from each member, member-major.
 
         Raises:
-            ValueError: ``rows`` is not a multiple of the population.
             RuntimeError: Another draw than the one `reserve` drew ahead.
         """
-        each, rest = divmod(rows, self.population)
-        if rest:
-            raise ValueError(f"{rows} rows do not split into {self.population} members")
         reserved = self.reserved
         if reserved is not None:
             if reserved.shape[1] != rows or reserved.dtype != dtype:
@@ -72,6 +68,7 @@ class MemberStreams:
             if self.next == reserved.shape[0]:
                 self.reserved = None
             return out
+        each = rows // self.population
         draws = [torch.rand((each, 1), dtype=dtype, generator=g) for g in self.generators]
         return torch.cat(draws).to(device)
 
@@ -153,22 +150,6 @@ class StackedMLP(nn.Sequential):
         return x.reshape(-1, x.shape[-1])
 
 
-def stack_layers(mlp: nn.Sequential, population: int) -> StackedMLP:
-    """The same sequence with each ``nn.Linear`` replaced by ``population`` stacked copies."""
-    layers = []
-    # every child, the activation rsl-rl's MLP shares between its layers included, by index
-    children = [
-        (int(name), module)
-        for name, module in mlp.named_modules(remove_duplicate=False)
-        if name and "." not in name
-    ]
-    for _, module in sorted(children, key=lambda item: item[0]):
-        if isinstance(module, nn.Linear):
-            module = StackedLinear.copies_of(module, population)
-        layers.append(module)
-    return StackedMLP(population, *layers)
-
-
 class PopulationMLPModel(MLPModel):
     """rsl-rl's MLP model for ``population`` members at once (``P x B`` member-major rows)."""
 
@@ -183,7 +164,14 @@ class PopulationMLPModel(MLPModel):
     ) -> None:
         super().__init__(obs, obs_groups, obs_set, output_dim, **kwargs)
         self.population = int(population)
-        self.mlp: StackedMLP = stack_layers(self.mlp, self.population)
+        # the same layers, each nn.Linear as P stacked copies (an activation shared: kept)
+        self.mlp: StackedMLP = StackedMLP(
+            self.population,
+            *[
+                StackedLinear.copies_of(m, self.population) if isinstance(m, nn.Linear) else m
+                for m in self.mlp
+            ],
+        )
         #: The output of the last forward pass (detached): the critic's values of the
         #: mini-batch being updated, read for each member's value loss.
         self.last_output: torch.Tensor | None = None

@@ -169,9 +169,6 @@ class PopulationPPO(AnchoredPPO):
         self.window_rows = torch.tensor(
             [kind == "window" for kind in anchor], device=device
         ).repeat_interleave(self.copies)
-        self.step_anchor: torch.Tensor | None = None
-        #: ``[2, P]`` sums of each member's feedback and anchor, one per step of the rollout
-        self.step_sums: list[torch.Tensor] = []
         self.member_loss_sums = torch.zeros(population, len(LOSS_KEYS), dtype=torch.float64)
         self.member_losses: list[dict[str, float]] = [{} for _ in range(population)]
         #: members whose gradient was not finite in this update (their rows were zeroed)
@@ -180,7 +177,6 @@ class PopulationPPO(AnchoredPPO):
             parameter.register_hook(self.keep_members_finite)
         self.optimizer.register_step_pre_hook(self.before_step)
 
-    # ----------------------------------------------------------------- rsl-rl steps
     def act(self, obs: TensorDict) -> torch.Tensor:
         """`AnchoredPPO`'s ``act``; a rollout's first step reserves its samples' uniforms."""
         if self.storage.step == 0:
@@ -196,45 +192,9 @@ class PopulationPPO(AnchoredPPO):
         """Each copy's anchor by its member's recipe (window KL or per-sample KL)."""
         per_sample = per_sample_kl(logp, logp_base)
         if self.window is None:
-            anchor = per_sample
-        else:
-            anchor = torch.where(self.window_rows, self.window.step(logp, logp_base), per_sample)
-        self.step_anchor = anchor
-        return anchor
+            return per_sample
+        return torch.where(self.window_rows, self.window.step(logp, logp_base), per_sample)
 
-    def process_env_step(
-        self,
-        obs: TensorDict,
-        rewards: torch.Tensor,
-        dones: torch.Tensor,
-        extras: dict[str, Any],
-    ) -> None:
-        """Count each member's feedback and anchor; then `AnchoredPPO`'s step."""
-        anchor = self.step_anchor
-        if anchor is not None:
-            feedback = extras.get("feedback")
-            if feedback is None:
-                feedback = torch.zeros_like(anchor)
-            both = torch.stack((feedback.to(anchor.device, anchor.dtype), anchor))
-            self.step_sums.append(both.reshape(2, self.population, -1).sum(2))
-            self.step_anchor = None
-        super().process_env_step(obs, rewards, dones, extras)
-
-    def member_rollout_stats(self) -> list[dict[str, float]]:
-        """Each member's `AnchoredPPO.rollout_stats` since the last call."""
-        self.rollout_stats()  # AnchoredPPO's totals over all members: reset, unused
-        if not self.step_sums:
-            return [{} for _ in range(self.population)]
-        # [steps, 2, P] float32 sums of each step, added in float64 as AnchoredPPO adds them
-        sums = torch.stack(self.step_sums).to("cpu", torch.float64).sum(0)
-        count = len(self.step_sums) * self.copies
-        self.step_sums = []
-        return [
-            {"feedback_reward": fb / count, "kl": kl / count}
-            for fb, kl in zip(sums[0].tolist(), sums[1].tolist(), strict=True)
-        ]
-
-    # ----------------------------------------------------------------- the update
     def update(self) -> dict[str, float]:
         """rsl-rl's update (losses averaged over members); each member's in ``member_losses``."""
         self.member_loss_sums.zero_()

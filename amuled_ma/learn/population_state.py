@@ -6,12 +6,14 @@ once; Adam's step counter is shared.
 
 from __future__ import annotations
 
+import contextlib
 import copy
+import io
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -24,10 +26,17 @@ from amuled_ma.deliberation.mdp import BatchedDeliberation, FeedbackFn
 from amuled_ma.errors import CheckpointError
 from amuled_ma.learn.anchored_ppo import AnchoredPPO
 from amuled_ma.learn.checkpoints import LAST, TRAINER_KEYS, read_checkpoint
-from amuled_ma.learn.curves import quiet
 from amuled_ma.learn.population_groups import MemberSpec
 from amuled_ma.learn.vecenv import DeliberationVecEnv
 from amuled_ma.tasks import make_task
+
+_T = TypeVar("_T")
+
+
+def quiet(fn: Callable[[], _T]) -> _T:
+    """Call ``fn`` with its prints to stdout dropped (rsl-rl's runner prints when built)."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        return fn()
 
 
 @dataclass
@@ -149,21 +158,17 @@ def _load(alg: AnchoredPPO, path: Path, load_cfg: dict | None, what: str) -> dic
 def stack_optimizer_states(states: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """One optimiser's state dict over stacked parameters from the members' (member 0's groups).
 
-    Raises ValueError: the members are at different Adam steps.
+    Adam's step is member 0's: the members start at one iteration (their `population_key`).
     """
     first = states[0]
-    per_param = first["state"]
     stacked: dict[Any, dict[str, Any]] = {}
-    for index, entry in per_param.items():
-        stacked[index] = {}
-        for name, value in entry.items():
-            values = [state["state"][index][name] for state in states]
-            if name == "step":
-                if any(not torch.equal(torch.as_tensor(v), torch.as_tensor(value)) for v in values):
-                    raise ValueError("members at different Adam steps cannot train together")
-                stacked[index][name] = value
-            else:
-                stacked[index][name] = torch.stack(values)
+    for index, entry in first["state"].items():
+        stacked[index] = {
+            name: value
+            if name == "step"
+            else torch.stack([state["state"][index][name] for state in states])
+            for name, value in entry.items()
+        }
     return {"state": stacked, "param_groups": first["param_groups"]}
 
 

@@ -3,6 +3,7 @@
 import pytest
 import torch
 from authors_fakes import CleanRLAgent, save_agent
+from job_settings import train_variant
 
 from amuled_ma.authors.policies import (
     authors_changes,
@@ -14,7 +15,6 @@ from amuled_ma.authors.policies import (
     write_variant,
 )
 from amuled_ma.errors import CheckpointError
-from amuled_ma.experiments.plans import train_variant
 from amuled_ma.learn.checkpoints import LAST, TRAINER_KEYS, read_checkpoint
 from amuled_ma.learn.policies import action_log_probs, load_policy
 from amuled_ma.records.variants import Variant

@@ -6,11 +6,10 @@ import hashlib
 import json
 
 import pytest
-from job_settings import job_of, settings
+from job_settings import job_of, settings, train_variant
 
 from amuled_ma.clusters import default_clusters_dir
 from amuled_ma.errors import AmuledError
-from amuled_ma.experiments.plans import train_variant
 from amuled_ma.experiments.run_folder import training_differences
 from amuled_ma.experiments.training_settings import training_config
 from amuled_ma.records.variants import Variant

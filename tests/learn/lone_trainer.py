@@ -62,8 +62,8 @@ from amuled_ma.learn.checkpoints import (
     read_checkpoint,
     write_checkpoints,
 )
-from amuled_ma.learn.curves import curve_row, quiet
-from amuled_ma.learn.population import TrainOutcome
+from amuled_ma.learn.population import TrainOutcome, curve_row
+from amuled_ma.learn.population_state import quiet
 from amuled_ma.learn.vecenv import DeliberationVecEnv
 from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import Scenario
@@ -282,7 +282,7 @@ class Trainer:
                 self._iterate()
                 self.runner.current_learning_iteration = it + 1
                 losses = self.alg.last_losses
-                extra = self.alg.rollout_stats()
+                (extra,) = self.alg.member_rollout_stats()
                 self.wall_offset = wall0 + time.perf_counter() - t0
                 episodes = self.env.drain_episodes()
                 recent = (recent + episodes)[-100:]

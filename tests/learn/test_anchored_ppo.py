@@ -38,7 +38,7 @@ def test_rsl_rl_resolves_our_class_and_keeps_its_update(tiny_scenario, factory, 
         assert getattr(AnchoredPPO, name) is getattr(PPO, name)
     # CleanRL's Adam
     assert trainer.alg.optimizer.param_groups[0]["eps"] == 1e-5
-    assert not trainer.alg.anchored
+    assert trainer.alg.base_actor is None
 
 
 def test_transition_reward_is_feedback_minus_lambda_times_per_sample_kl(
@@ -66,7 +66,7 @@ def test_transition_reward_is_feedback_minus_lambda_times_per_sample_kl(
     assert torch.all(timeouts == 0)  # no bootstrap term on the first step
     assert torch.allclose(stored, expected, atol=1e-6)
     assert (logp - logp_base).abs().max() > 1e-3  # the anchor really contributed
-    stats = alg.rollout_stats()
+    (stats,) = alg.member_rollout_stats()
     assert stats["feedback_reward"] == pytest.approx(float(fb.mean()))
     assert stats["kl"] == pytest.approx(float((logp - logp_base).mean()), abs=1e-6)
 

@@ -1,7 +1,7 @@
 """The switches: each CleanRL habit of the authors' fine-tune, alone.
 
 Joint gradient clipping, a new mini-batch partition per epoch, no bootstrap at a
-truncation (``[finetune]`` keys, :mod:`amuled_ma.learn.ppo_options`) and FindMilk's random
+truncation (``[finetune]`` keys, :mod:`amuled_ma.learn.anchored_ppo`) and FindMilk's random
 tie-breaking of the nearest baby (``[task].options.tie_break``). Expected values are
 computed here from their definitions, not by the code under test.
 """
@@ -18,8 +18,8 @@ from rsl_rl.storage import RolloutStorage
 from tensordict import TensorDict
 
 from amuled_ma.deliberation.feedback_base import CallableFeedback
+from amuled_ma.learn.anchored_ppo import EpochShuffledStorage, clip_jointly
 from amuled_ma.learn.config import rsl_rl_config
-from amuled_ma.learn.ppo_options import EpochShuffledStorage, clip_jointly
 from amuled_ma.scenario import PPOConfig
 from amuled_ma.tasks.findmilk import FindMilk
 

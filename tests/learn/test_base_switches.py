@@ -17,9 +17,9 @@ import torch
 from job_settings import job_shape_of
 from tensordict import TensorDict
 
+from amuled_ma.learn.anchored_ppo import EpochShuffledStorage
 from amuled_ma.learn.population import PopulationTrainer
 from amuled_ma.learn.population_groups import MemberSpec
-from amuled_ma.learn.ppo_options import EpochShuffledStorage
 from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import load_scenario
 

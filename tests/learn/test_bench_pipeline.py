@@ -53,9 +53,10 @@ def test_bench_authors_times_a_short_authors_recipe_fine_tune(capsys):
 
     args = Namespace(tasks="findmilk", iterations=3, base_steps=2048, out=None)
     assert authors.main(args) == 0
-    out = capsys.readouterr().out.splitlines()
-    assert out[0].split() == ["task", "iterations", "ours", "[s]", "authors", "[s]", "speed-up"]
-    cells = out[1].split()
+    out = capsys.readouterr().out.splitlines()  # each trained job's line, then the table
+    at = next(i for i, line in enumerate(out) if line.startswith("task "))
+    assert out[at].split() == ["task", "iterations", "ours", "[s]", "authors", "[s]", "speed-up"]
+    cells = out[at + 1].split()
     assert cells[0] == "findmilk" and cells[1] == "3" and float(cells[3]) == 1.0  # 360 s x 3/1000
 
 

@@ -5,11 +5,11 @@ import json
 import numpy as np
 import pytest
 import torch
+from job_settings import train_variant
 from scenario_feedback import make_feedback
 
 from amuled_ma.deliberation.panel_feedback import FusedReplayFeedback, PanelFeedback
 from amuled_ma.errors import ScenarioError
-from amuled_ma.experiments.plans import train_variant
 from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import load_scenario
 

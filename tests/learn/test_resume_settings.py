@@ -5,11 +5,11 @@ from __future__ import annotations
 import json
 
 import pytest
-from job_settings import settings
+from job_settings import settings, train_variant
 
 from amuled_ma.errors import AmuledError
 from amuled_ma.experiments.jobs import run_jobs
-from amuled_ma.experiments.plans import plan_run, train_variant
+from amuled_ma.experiments.plans import plan_run
 from amuled_ma.learn.checkpoints import checkpoint_infos
 from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import load_scenario

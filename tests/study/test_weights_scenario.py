@@ -15,13 +15,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from job_settings import ablation_jobs, settings
+from job_settings import ablation_jobs, settings, train_variant
 from tiny_cli import TINY
 
 from amuled_ma.cli import main
 from amuled_ma.deliberation.plan import plan_panel
 from amuled_ma.errors import AmuledError, ScenarioError
-from amuled_ma.experiments.plans import train_variant
 from amuled_ma.files.resources import scenarios_dir
 from amuled_ma.records.variants import Variant
 from amuled_ma.scenario import PAPER_CLUSTERS, load_scenario
