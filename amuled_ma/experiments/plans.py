@@ -38,7 +38,7 @@ from amuled_ma.learn.population_groups import (
     split_populations,
 )
 from amuled_ma.records.variants import AGGREGATIONS, Variant
-from amuled_ma.scenario import Changes, FeedbackConfig, PPOConfig, Scenario
+from amuled_ma.scenario import Changes, FeedbackConfig, Scenario
 from amuled_ma.scenario.paths import find_recording
 
 if TYPE_CHECKING:
@@ -96,8 +96,21 @@ def plan_job(
     if variant.finetuning:
         base = job.base_folder / LAST
         if job.base_variant not in planned:
+            from amuled_ma.learn.policies import load_policy
+
             base = base_checkpoint(job.base_folder, str(scenario.path or scenario.name))
-            check_base_fits(base, scenario.ppo, scenario.task.name)
+            try:  # a base whose actor does not fit [ppo].hidden_dims is refused here
+                load_policy(base, scenario.ppo)
+            except CheckpointError as error:
+                if "does not fit" not in str(error):
+                    raise  # unreadable: the checkpoint's own line
+                raise CheckpointError(
+                    f"base checkpoint {base}: its networks do not fit this scenario's "
+                    f"([ppo].hidden_dims = {list(scenario.ppo.hidden_dims)}, task "
+                    f"{scenario.task.name!r}); fine-tune with the [ppo] settings and task the "
+                    f"base was trained with (its record: {base.parent / 'config.json'}), or "
+                    "train a base with these; nothing was written"
+                ) from None
     settings = training_config(job, panel)
     action = prepare_variant(job, settings, hint=hint, rerun=rerun)
     return dataclasses.replace(
@@ -122,19 +135,17 @@ def plan_jobs(
     names = {job.out_dir.name for job in jobs}
     out: list[TrainJob] = []
     errors: dict[str, AmuledError] = {}
-    failing = 0
     for job in jobs:
         try:
             out.append(plan_job(job, hint, names, rerun=rerun))
         except AmuledError as error:
-            failing += 1
             errors.setdefault(str(error), error)
     problems = list(errors)
     if len(problems) == 1:
         raise errors[problems[0]]
     if problems:
         raise AmuledError(
-            f"{failing} of {len(jobs)} jobs cannot start, nothing was trained:\n"
+            f"{len(jobs) - len(out)} of {len(jobs)} jobs cannot start, nothing was trained:\n"
             + "\n".join(f"  - {problem}" for problem in problems)
         )
     return out
@@ -151,28 +162,6 @@ def member_spec(job: TrainJob) -> MemberSpec:
         resume=job.action == "resume",
         planned_shape=job.shape,
     )
-
-
-def check_base_fits(base: Path, ppo: PPOConfig, task: str) -> None:
-    """Refuse a base whose actor does not fit ``[ppo].hidden_dims``, before any folder is made.
-
-    Raises:
-        CheckpointError: The actor does not fit, naming the base, the dims and the fix.
-    """
-    from amuled_ma.learn.policies import load_policy
-
-    try:
-        load_policy(base, ppo)
-    except CheckpointError as error:
-        if "does not fit" not in str(error):
-            raise  # unreadable: the checkpoint's own line
-        raise CheckpointError(
-            f"base checkpoint {base}: its networks do not fit this scenario's "
-            f"([ppo].hidden_dims = {list(ppo.hidden_dims)}, task "
-            f"{task!r}); fine-tune with the [ppo] settings and task the base was "
-            f"trained with (its record: {base.parent / 'config.json'}), or train a base with "
-            "these; nothing was written"
-        ) from None
 
 
 def prepare_job(
@@ -496,12 +485,20 @@ def plan_ablation(
     out = run_dir / f"ablate-{what}"
     where = str(scenario.path or scenario.name)
     listed = ablation_variants(what, scenario.feedback, scenario.task.name, scenario.resolve, where)
-    variants = [(variant, scenario.changed(changes)) for variant, changes in listed]
-    variants = [
-        (variant, changed)
-        for variant, changed in variants
-        if variant != Variant.finetune("moral") or not _no_moral_agent(changed)
-    ]
+    variants: list[tuple[Variant, Scenario]] = []
+    for variant, changes in listed:
+        changed = scenario.changed(changes)
+        if variant == Variant.finetune("moral"):  # left out where its agent is the missing human
+            problems = plan_panel("moral", changed).problems
+            missing = [error for error, _ in problems if isinstance(error, NoHumanRule)]
+            if missing:
+                print(
+                    f"amuled: note: no 'moral' row: the unprompted moral agent's source is the "
+                    f"rules source, and {missing[0]}",
+                    file=sys.stderr,
+                )
+                continue
+        variants.append((variant, changed))
     jobs = []
     for seed in seeds:
         base = replica_folder("base", seed, seeds[0])
@@ -527,16 +524,3 @@ def plan_ablation(
                 )
             jobs.append(job)
     return jobs
-
-
-def _no_moral_agent(scenario: Scenario) -> bool:
-    """Whether ``moral`` is left out: its agent would be the missing human (a note on stderr)."""
-    problems = plan_panel("moral", scenario).problems
-    missing = [error for error, _ in problems if isinstance(error, NoHumanRule)]
-    if missing:
-        print(
-            f"amuled: note: no 'moral' row: the unprompted moral agent's source is the rules "
-            f"source, and {missing[0]}",
-            file=sys.stderr,
-        )
-    return bool(missing)

@@ -350,19 +350,6 @@ class SweepBoard:
         return total
 
 
-def _report(board: Any) -> Callable[[Any, int], None]:
-    pending, last = 0, time.monotonic()
-
-    def on_iteration(_trainer: Any, _iteration: int) -> None:
-        nonlocal pending, last
-        pending += 1
-        if time.monotonic() - last > REPORT_EVERY_S:
-            board.add.remote(pending)
-            pending, last = 0, time.monotonic()
-
-    return on_iteration
-
-
 #: What `train_group` returns: results by job name, node id, whether the node sees
 #: the driver's files, the packed folders, the lines of jobs that failed alone.
 GroupReturn = tuple[dict[str, JobResult], str, bool, dict[str, bytes], list[str]]
@@ -417,12 +404,21 @@ def train_group(
         actor = stores.get(str(job.store))
         return RemoteStore(actor) if away and actor is not None else None
 
+    pending, last = 0, time.monotonic()
+
+    def on_iteration(_trainer: Any, _iteration: int) -> None:
+        nonlocal pending, last
+        pending += 1
+        if time.monotonic() - last > REPORT_EVERY_S:
+            board.add.remote(pending)
+            pending, last = 0, time.monotonic()
+
     jobs = [_marked(job, sweep, node, announce=inputs is not None) for job in group]
     results, failures = train_population_jobs(
         jobs,
         progress=False,
         hint="",
-        on_iteration=_report(board),
+        on_iteration=on_iteration,
         store_for=store_for,
         announce=False,  # the driver prints each failure once, when the group returns
     )

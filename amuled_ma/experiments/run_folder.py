@@ -386,45 +386,39 @@ def variant_fields(
         "state": "interrupted",  # until its training completes (the checkpoint says so)
     }
     if variant.finetuning:
+        from amuled_ma.deliberation.panel_feedback import FusedReplayFeedback
+
+        # the panel, from the settings; a fused-only replay has no members
+        settings = training.get("feedback") or {}  # none for the human (it asks no panel)
+        kind, arg = variant.feedback_kind
+        members, rule = list(settings.get("clusters") or []), settings.get("fusion")
+        if kind in ("cluster", "moral"):
+            members, rule = [str(arg) if kind == "cluster" else MORAL_AGENT], "mean"
+        elif kind == "agg":
+            rule = arg
+        fused_only = isinstance(feedback, FusedReplayFeedback)
+        if fused_only:
+            members, rule = [], None
         finetune = training.get("finetune") or {}
         fields.update(
-            panel=panel_of_training(variant, training, feedback),
+            panel=PanelRecord(
+                feedback=str(variant.feedback),
+                members=members,
+                source=settings.get("source"),
+                model=settings.get("model"),
+                recording=settings.get("recording"),
+                fused_only=fused_only,
+                fusion=rule,
+                agent_sources=dict(settings.get("agents") or {}),
+                distill=settings.get("distill"),
+                weights=settings.get("weights") if kind == "amuled" and not fused_only else None,
+            ),
             recipe=finetune.get("recipe"),
             lambda_kl=finetune.get("lambda_kl"),
         )
         if base_checkpoint is not None:
             fields["base_checkpoint"] = str(base_checkpoint)
     return {k: v for k, v in fields.items() if v is not None}
-
-
-def panel_of_training(
-    variant: Variant, training: dict[str, Any], feedback: Feedback | None = None
-) -> PanelRecord:
-    """The `PanelRecord` of a fine-tune, from its settings; a fused-only replay has no members."""
-    from amuled_ma.deliberation.panel_feedback import FusedReplayFeedback
-
-    settings = training.get("feedback") or {}  # none for the human (it asks no panel)
-    kind, arg = variant.feedback_kind
-    members, rule = list(settings.get("clusters") or []), settings.get("fusion")
-    if kind in ("cluster", "moral"):
-        members, rule = [str(arg) if kind == "cluster" else MORAL_AGENT], "mean"
-    elif kind == "agg":
-        rule = arg
-    fused_only = isinstance(feedback, FusedReplayFeedback)
-    if fused_only:
-        members, rule = [], None
-    return PanelRecord(
-        feedback=str(variant.feedback),
-        members=members,
-        source=settings.get("source"),
-        model=settings.get("model"),
-        recording=settings.get("recording"),
-        fused_only=fused_only,
-        fusion=rule,
-        agent_sources=dict(settings.get("agents") or {}),
-        distill=settings.get("distill"),
-        weights=settings.get("weights") if kind == "amuled" and not fused_only else None,
-    )
 
 
 def variant_records(folders: list[Path]) -> dict[str, RunRecord]:

@@ -31,23 +31,8 @@ def trained_variant(run_dir: Path, variant_dir: Path) -> TrainedVariant:
         )
     record = read_record(variant_dir, checkpoint=False)
     own = record is not None and record.scenario is not None
-    return TrainedVariant(
-        name=variant_dir.name,
-        checkpoint=variant_dir / LAST,
-        scenario=scenario_of_run(variant_dir if own else run_dir),
-        variant=record.variant if record is not None else None,
-        base_checkpoint=base_checkpoint_of(run_dir, variant_dir),
-    )
-
-
-def base_checkpoint_of(run_dir: Path, variant_dir: Path) -> Path | None:
-    """The base policy a fine-tune was anchored to, or None.
-
-    The record's ``base_checkpoint`` (else the checkpoint's), as given or by folder name in the
-    run; then the run's ``base`` folder (``base.seed<k>`` first for a replica).
-    """
-    run_dir, variant_dir = Path(run_dir), Path(variant_dir)
-    record = read_record(variant_dir, checkpoint=False)
+    # the base a fine-tune was anchored to: the record's (else the checkpoint's), as given or
+    # by folder name in the run; then the run's base folder (base.seed<k> first for a replica)
     recorded = record.base_checkpoint if record is not None else None
     if not recorded:
         try:
@@ -63,10 +48,15 @@ def base_checkpoint_of(run_dir: Path, variant_dir: Path) -> Path | None:
     if seed is not None:
         candidates.append(run_dir / f"base.seed{seed}" / LAST)
     candidates += [run_dir / "base" / LAST, run_dir.parent / "base" / LAST]
-    for path in candidates:
-        if path.is_file() and path.resolve() != (variant_dir / LAST).resolve():
-            return path
-    return None
+    own_checkpoint = (variant_dir / LAST).resolve()
+    base = next((p for p in candidates if p.is_file() and p.resolve() != own_checkpoint), None)
+    return TrainedVariant(
+        name=variant_dir.name,
+        checkpoint=variant_dir / LAST,
+        scenario=scenario_of_run(variant_dir if own else run_dir),
+        variant=record.variant if record is not None else None,
+        base_checkpoint=base,
+    )
 
 
 def choose_variants(run_dir: Path, names: Sequence[str] | None = None) -> list[Path]:
@@ -79,16 +69,13 @@ def choose_variants(run_dir: Path, names: Sequence[str] | None = None) -> list[P
     found = variant_dirs(run_dir)
     listing = ", ".join(d.name for d in found) or "none"
     if names:
-        chosen = []
         for name in names:
-            folder = run_dir / name
-            if not (folder / LAST).is_file():
+            if not (run_dir / name / LAST).is_file():
                 raise CheckpointError(
-                    f"{run_dir}: no trained variant {name!r} (no {folder / LAST}); "
+                    f"{run_dir}: no trained variant {name!r} (no {run_dir / name / LAST}); "
                     f"variants found: {listing}"
                 )
-            chosen.append(folder)
-        return chosen
+        return [run_dir / name for name in names]
     chosen = []
     for folder in found:
         record = read_record(folder, checkpoint=False)

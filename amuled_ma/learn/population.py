@@ -405,13 +405,9 @@ class PopulationTrainer:
             for hint in hints:
                 print(f"\nresume with: {hint}", file=sys.stderr)
             return
-        why = (
-            "terminated (SIGTERM)"
-            if isinstance(stop, Terminated)
-            else "interrupted"
-            if isinstance(stop, KeyboardInterrupt)
-            else "stopped"
-        )
+        why = "stopped"
+        if isinstance(stop, KeyboardInterrupt):
+            why = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted"
         # the state after the last whole iteration: a stop inside one resumes as if it never began
         self.save_states([(p, self.snapshot) for p in range(self.size)], completed=False)
         first = self.specs[0].out_dir / LAST

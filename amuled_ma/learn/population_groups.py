@@ -12,6 +12,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from amuled_ma.learn.checkpoints import LAST, checkpoint_infos
 from amuled_ma.learn.job_shape import JobShape, job_shape
 from amuled_ma.records.variants import Variant
@@ -180,12 +182,7 @@ def split_populations(
             size = min(size, max_size)
         count = min(len(members), max(math.ceil(len(members) / size), min_count))
         # as even as the budget allows: 100 jobs at 32 a population are 4 of 25, not 32,32,32,4
-        small, larger = divmod(len(members), count)
-        start = 0
-        for k in range(count):
-            end = start + small + (1 if k < larger else 0)
-            populations.append(members[start:end])
-            start = end
+        populations += [part.tolist() for part in np.array_split(np.array(members), count)]
     return populations
 
 
