@@ -606,7 +606,25 @@ def run_on_ray(
     finally:
         drain()
         bar.close()
-        _close_stores(stores)
+        for path, actor in stores.items():  # the store actors, with what they served away
+            try:
+                figures = ray.get(actor.figures.remote())
+                ray.get(actor.close.remote())
+            except ray.exceptions.RayError as error:  # its node's agent died, say
+                print(
+                    f"  belief store {path}: its Ray actor was lost "
+                    f"({type(error).__name__}); the rows written before are in the file",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                continue
+            if figures["lookup"]:
+                print(
+                    f"  belief store {path} served the jobs on other nodes: "
+                    f"{figures['keys_looked_up']:,} keys looked up in {figures['lookup']:,} "
+                    f"calls, {figures['rows_written']:,} rows written",
+                    flush=True,
+                )
         terms.restore()
         for run_dir in run_dirs:
             for mark in (SHARED_TOKEN, STOP_MARK):
@@ -618,26 +636,3 @@ def run_on_ray(
             print(f"{then}: {hint} --resume", file=sys.stderr)
         raise failure
     return done
-
-
-def _close_stores(stores: dict[str, Any]) -> None:
-    """Close the sweep's store actors, printing what they served jobs on other nodes."""
-    for path, actor in stores.items():
-        try:
-            figures = ray.get(actor.figures.remote())
-            ray.get(actor.close.remote())
-        except ray.exceptions.RayError as error:  # its node's agent died, say
-            print(
-                f"  belief store {path}: its Ray actor was lost "
-                f"({type(error).__name__}); the rows written before are in the file",
-                file=sys.stderr,
-                flush=True,
-            )
-            continue
-        if figures["lookup"]:
-            print(
-                f"  belief store {path} served the jobs on other nodes: "
-                f"{figures['keys_looked_up']:,} keys looked up in {figures['lookup']:,} "
-                f"calls, {figures['rows_written']:,} rows written",
-                flush=True,
-            )

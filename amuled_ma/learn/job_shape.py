@@ -57,23 +57,20 @@ def job_shape(
     Raises:
         ScenarioError: Per-mini-batch advantage normalisation of 1-transition mini-batches.
     """
-    ft = finetune
-    run: BaseConfig | FinetuneConfig = ft if variant.finetuning else base
-    num_envs, steps = run.num_envs, run.num_steps_per_env
-    total = planned_iterations(run) if iterations is None else iterations
-    lr, anneal = (
-        (ft.learning_rate, ft.anneal_lr)
-        if variant.finetuning
-        else (ppo.learning_rate, ppo.anneal_lr)
-    )
+    run: BaseConfig | FinetuneConfig = base
+    lr, anneal, task_weight, section = ppo.learning_rate, ppo.anneal_lr, 1.0, "base"
     own: dict[str, Any] = {}
     if variant.finetuning:
+        run, section, task_weight = finetune, "finetune", finetune.env_reward_coef
+        lr, anneal = finetune.learning_rate, finetune.anneal_lr
         own = {
-            "learning_rate": ft.learning_rate,
-            "num_learning_epochs": ft.num_learning_epochs,
-            "lambda_kl": ft.lambda_kl,
-            "anchor": "window" if ft.recipe == "authors" else "per_sample",
+            "learning_rate": finetune.learning_rate,
+            "num_learning_epochs": finetune.num_learning_epochs,
+            "lambda_kl": finetune.lambda_kl,
+            "anchor": "window" if finetune.recipe == "authors" else "per_sample",
         }
+    num_envs, steps = run.num_envs, run.num_steps_per_env
+    total = planned_iterations(run) if iterations is None else iterations
     cfg = rsl_rl_config(
         ppo,
         num_steps_per_env=steps,
@@ -84,8 +81,6 @@ def job_shape(
         **own,
     )
     shaping = base.shaping_coef if variant.kind == "shaped" else 0.0
-    task_weight = ft.env_reward_coef if variant.finetuning else 1.0
-    section = "finetune" if variant.finetuning else "base"
     minibatch = num_envs * steps // ppo.num_mini_batches
     if ppo.normalize_advantage_per_mini_batch and minibatch < 2:
         raise ScenarioError(

@@ -12,32 +12,6 @@ from amuled_ma.deliberation.mdp import BatchedDeliberation, as_tensor
 from amuled_ma.learn.config import OBS_GROUP
 
 
-def episode_table(
-    info: dict[str, Any], done_ids: torch.Tensor, num_envs: int, fallback: dict[str, torch.Tensor]
-) -> tuple[list[str], torch.Tensor]:
-    """The column names and float64 table ``[done, keys + copy index]`` of the ended episodes.
-
-    Columns come from ``info["episode"]`` (every copy's accumulators), else from ``fallback``
-    (float64 holds every float32, int < 2**53 and bool exactly).
-    """
-    keys: list[str] = []
-    columns: list[torch.Tensor] = []
-    for key, value in (info.get("episode") or {}).items():
-        if key.startswith("_") or key == "done":
-            continue
-        tensor = torch.as_tensor(value).reshape(-1)
-        if tensor.numel() != num_envs:
-            continue
-        keys.append(key)
-        columns.append(tensor.to(torch.float64))
-    for key, tensor in fallback.items():
-        if key not in keys:
-            keys.append(key)
-            columns.append(tensor.to(torch.float64))
-    columns.append(torch.arange(num_envs, dtype=torch.float64))
-    return keys, torch.stack(columns, 1)[done_ids.to(columns[0].device)]
-
-
 class DeliberationVecEnv(VecEnv):
     """Expose a ``BatchedDeliberation`` as an rsl-rl ``VecEnv`` with one observation group."""
 
@@ -134,14 +108,32 @@ class DeliberationVecEnv(VecEnv):
         return self._wrap(out.obs), out.reward, dones.float(), extras
 
     def _finish(self, info: dict[str, Any], dones: torch.Tensor, extras: dict[str, Any]) -> None:
-        """Keep the totals of the episodes that ended at this step; reset their accumulators."""
+        """Keep the totals of the episodes that ended at this step; reset their accumulators.
+
+        A table ``[done, keys + copy index]`` in float64 (it holds every float32, int < 2**53
+        and bool exactly): the columns of ``info["episode"]`` (every copy's accumulators),
+        then this env's own sums under names it lacks.
+        """
         done_ids = dones.nonzero(as_tuple=False).squeeze(-1)
-        fallback = {
+        columns: dict[str, torch.Tensor] = {}
+        for key, value in (info.get("episode") or {}).items():
+            if key.startswith("_") or key == "done":
+                continue
+            tensor = torch.as_tensor(value).reshape(-1)
+            if tensor.numel() == self.num_envs:
+                columns[key] = tensor.to(torch.float64)
+        own = {
             "return_env": self._ep_return,
             "length": self.episode_length_buf,
             "return_shaping": self._ep_shaping,
         }
-        keys, table = episode_table(info, done_ids, self.num_envs, fallback)
+        for key, tensor in own.items():
+            columns.setdefault(key, tensor.to(torch.float64))
+        keys = list(columns)
+        table = torch.stack(
+            [*columns.values(), torch.arange(self.num_envs, dtype=torch.float64)], 1
+        )
+        table = table[done_ids.to(table.device)]
         self._pending.append((keys, table))
         means = table[:, :-1].mean(0).tolist()
         extras["log"] = {f"/episode/{key}": m for key, m in zip(keys, means, strict=True)}
