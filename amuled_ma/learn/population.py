@@ -311,16 +311,11 @@ class PopulationTrainer:
             raise
         finally:
             bar.close()  # whatever ends the loop: no watcher thread outlives it
-            stopping = sys.exc_info()[0] is not None
-            for writer in writers:
-                if writer is not None:
-                    # a failed flush must not hide the exception already on its way out
-                    with (
-                        contextlib.suppress(FileWriteError)
-                        if stopping
-                        else contextlib.nullcontext()
-                    ):
-                        writer.close()
+            # a failed flush must not hide the exception already on its way out
+            quiet = (FileWriteError,) if sys.exc_info()[0] is not None else ()
+            for writer in filter(None, writers):
+                with contextlib.suppress(*quiet):
+                    writer.close()
         wall = time.perf_counter() - t0
         now = self.population_state()
         paths = self.save_states([(p, now) for p in range(self.size)], completed=True)
