@@ -30,16 +30,11 @@ def check_budget(budget: object, where: str = "[feedback.distill].budget") -> fl
     return budget
 
 
-def exact_share(share: float) -> Fraction:
-    """A share as the decimal it is written: ``0.3`` -> ``Fraction(3, 10)`` (not binary)."""
-    return Fraction(repr(float(share)))
-
-
 def budget_cap(budget: float | int, visited: int) -> int:
     """Most distinct states that may have been asked after ``visited`` were visited."""
     if isinstance(budget, int) and not isinstance(budget, bool):
         return budget
-    return max(1, math.floor(exact_share(budget) * visited))
+    return max(1, math.floor(Fraction(repr(float(budget))) * visited))  # 0.3 as 3/10, not binary
 
 
 class BudgetLedger:

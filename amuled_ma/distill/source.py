@@ -24,7 +24,7 @@ from amuled_ma.beliefs.types import (
     BeliefSource,
     ask,
 )
-from amuled_ma.distill.budget import BudgetLedger, check_budget
+from amuled_ma.distill.budget import BudgetLedger
 from amuled_ma.distill.model import EnsembleModel, FitSettings
 from amuled_ma.distill.selection import (
     choose_random,
@@ -110,7 +110,8 @@ class DistilledSource(BeliefSource):
         fit_steps: int = 400,
     ) -> None:
         self.source = source
-        self.budget = check_budget(budget)
+        self.ledger = BudgetLedger(budget)
+        self.budget = self.ledger.budget
         self.selection = selection
         self.refit_every = int(refit_every)
         self.holdout = float(holdout)
@@ -118,7 +119,6 @@ class DistilledSource(BeliefSource):
         self.seed = int(seed)
         self.fusion_rule = fusion_rule
         self.fit = FitSettings(ensemble=int(ensemble), hidden=int(hidden), steps=int(fit_steps))
-        self.ledger = BudgetLedger(self.budget)
         self.stats = DistillStats()
         self.members: list[str] = []
         self.actions: tuple[str, ...] | None = None
@@ -137,10 +137,11 @@ class DistilledSource(BeliefSource):
         self._files = StateFiles(state_dir) if state_dir is not None else None
         self._changed = False
         if self._files is not None:
-            if resume and self._files.exists():
+            if resume and self._files.ledger.is_file():
                 self._load()
-            else:
-                self._files.reset()
+            else:  # a fine-tune that starts over
+                for path in (self._files.ledger, self._files.examples):
+                    path.unlink(missing_ok=True)
 
     @classmethod
     def from_config(
@@ -509,9 +510,8 @@ class DistilledSource(BeliefSource):
 
     def _save(self, *, force: bool = False) -> None:
         files = self._files
-        if files is None or not (force or self._changed):
-            return
-        if not force and time.monotonic() - files.saved_at < SAVE_EVERY_S:
+        recent = files is not None and time.monotonic() - files.saved_at < SAVE_EVERY_S
+        if files is None or (not force and (not self._changed or recent)):
             return
         files.save({
             "settings": self.settings(),

@@ -179,15 +179,6 @@ class StateFiles:
         self.examples = self.folder / EXAMPLES_FILE
         self.saved_at = 0.0
 
-    def exists(self) -> bool:
-        """Whether a ledger was written."""
-        return self.ledger.is_file()
-
-    def reset(self) -> None:
-        """Remove both files (a fine-tune that starts over)."""
-        for path in (self.ledger, self.examples):
-            path.unlink(missing_ok=True)
-
     def load(self) -> dict[str, Any]:
         """Read the ledger (`UnsafePathError` on a link; `AmuledError`: too big, or not one)."""
         ledger = checked_read_path(self.folder, LEDGER_FILE)

@@ -392,10 +392,7 @@ def stop_process_group(
         os.kill(pid, signal.SIGTERM)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        if process is not None:
-            if process.poll() is not None:
-                break
-        elif not _pid_alive(pid):
+        if process.poll() is not None if process is not None else not _pid_alive(pid):
             break
         time.sleep(0.05)
     with contextlib.suppress(ProcessLookupError, PermissionError):
@@ -451,6 +448,7 @@ def up(
     directory = _state_dir(state_dir)
     state = read_state(directory)
     started = False
+    gguf_path: Path | None = None
     if state is not None and state.is_ours() and server_version(state.host) is not None:
         server_binary: str | os.PathLike[str] = state.binary
         env = {k: v for k, v in os.environ.items() if not k.startswith("OLLAMA_")}
@@ -469,23 +467,12 @@ def up(
         write_state(state, directory)
         started = True
         server_binary, env = server.binary, server.env()
-        if gguf_path is not None:
-            _create_tiny(server_binary, state, env, gguf_path, directory)
     if tiny and TINY_MODEL not in state.models:
-        _create_tiny(server_binary, state, env, find_tiny_gguf(gguf), directory)
+        gguf_path = gguf_path or find_tiny_gguf(gguf)
+        create_model(server_binary, state.host, TINY_MODEL, gguf_path, env, TINY_PARAMETERS)
+        state.models = sorted({*state.models, TINY_MODEL})
+        write_state(state, directory)
     return state, started
-
-
-def _create_tiny(
-    binary: str | os.PathLike[str],
-    state: ServerState,
-    env: dict[str, str],
-    gguf: Path,
-    directory: Path,
-) -> None:
-    create_model(binary, state.host, TINY_MODEL, gguf, env, TINY_PARAMETERS)
-    state.models = sorted({*state.models, TINY_MODEL})
-    write_state(state, directory)
 
 
 def down(state_dir: str | os.PathLike[str] | None = None, timeout: float = 10.0) -> str:
