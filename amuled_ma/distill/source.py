@@ -346,17 +346,14 @@ class DistilledSource(BeliefSource):
         self._changed = True
         for i, answer in zip(idx, answers, strict=True):
             results[i] = answer
-        for s in forward:  # kept for the rest of this process: asked once per process
-            self._answers[s.key] = {
-                member: results[positions[0]] for member, positions in s.positions.items()
-            }
         order = {key: n for n, key in enumerate(self.ledger.asked)}
         records: list[dict[str, Any]] = []
         a = len(self.actions or ())
         for s in forward:
+            kept = {member: results[positions[0]] for member, positions in s.positions.items()}
+            self._answers[s.key] = kept  # for the rest of this process: asked once per process
             answered: dict[str, np.ndarray] = {}
-            for member, positions in s.positions.items():
-                result = results[positions[0]]
+            for member, result in kept.items():
                 if result.status in CACHEABLE:
                     belief, _ = check_belief(result.belief, a)
                     if belief is not None:

@@ -160,10 +160,8 @@ def checked(model: type[_M], data: object, where: str) -> _M:
         ) from None
 
 
-class Example(BaseModel):
+class Example(_Strict):
     """One line of ``distill-examples.jsonl``; lengths and sums are checked by `DistilledSource`."""
-
-    model_config = ConfigDict(strict=True, extra="forbid", frozen=True)
 
     key: str = Field(pattern=STATE_KEY.pattern)
     obs: list[_Finite] = Field(max_length=MAX_OBS_DIM)

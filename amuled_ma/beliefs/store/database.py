@@ -397,12 +397,8 @@ class BeliefStore:
         if task:
             where.append("task = ?")
             params.append(task)
-        sql = (
-            f"SELECT {COLUMNS} FROM beliefs"
-            + (f" WHERE {' AND '.join(where)}" if where else "")
-            + " ORDER BY created_at, rowid"
-        )
-        rows = self._read(sql, params)
+        sql = f"SELECT {COLUMNS} FROM beliefs WHERE {' AND '.join(where) or '1'}"
+        rows = self._read(f"{sql} ORDER BY created_at, rowid", params)
         for start in range(0, len(rows), _SQL_CHUNK):
             chunk = rows[start : start + _SQL_CHUNK]
             texts = self._texts(chunk)
