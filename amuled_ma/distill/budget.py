@@ -21,11 +21,9 @@ def check_budget(budget: object, where: str = "[feedback.distill].budget") -> fl
             f"{where} expects a share in (0, 1] (a float) or a count >= 1 (an integer), "
             f"found {type(budget).__name__} ({budget!r})"
         )
-    if isinstance(budget, int):
-        if budget < 1:
-            raise AmuledError(f"{where} expects a count >= 1 (an integer), found {budget!r}")
-        return budget
-    if not (math.isfinite(budget) and 0.0 < budget <= 1.0):
+    if isinstance(budget, int) and budget < 1:
+        raise AmuledError(f"{where} expects a count >= 1 (an integer), found {budget!r}")
+    if isinstance(budget, float) and not (math.isfinite(budget) and 0.0 < budget <= 1.0):
         raise AmuledError(f"{where} expects a share in (0, 1] (a float), found {budget!r}")
     return budget
 

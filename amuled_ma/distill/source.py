@@ -264,11 +264,8 @@ class DistilledSource(BeliefSource):
         """The batch's distinct states, in order of first request."""
         first = requests[0]
         if self.actions is None:
-            self.actions, self.task, self.obs_dim = (
-                tuple(first.action_names),
-                first.task,
-                len(first.obs),
-            )
+            self.actions = tuple(first.action_names)
+            self.task, self.obs_dim = first.task, len(first.obs)
         occurrences: dict[tuple[bytes, str], int] = {}
         groups: dict[tuple[bytes, int], dict[str, list[int]]] = {}
         obs_of: dict[bytes, tuple[float, ...]] = {}

@@ -125,10 +125,9 @@ class LedgerRest(BaseModel):
                     f"ledger.{name} holds {bad[:40]!r}, not a state key (32 hexadecimal "
                     "digits, as a fine-tune writes them)"
                 )
-        if len(set(self.members)) != len(self.members):
-            raise ValueError(f"members are not distinct: {self.members}")
-        if self.actions is not None and len(set(self.actions)) != len(self.actions):
-            raise ValueError(f"actions are not distinct: {self.actions}")
+        for name, names in (("members", self.members), ("actions", self.actions or [])):
+            if len(set(names)) != len(names):
+                raise ValueError(f"{name} are not distinct: {names}")
         for key, obs in self.asked_obs.items():
             if not STATE_KEY.fullmatch(key):
                 raise ValueError(f"asked_obs has a key {key[:40]!r}, not a state key")

@@ -221,11 +221,7 @@ class OllamaServer:
 
     def env(self) -> dict[str, str]:
         """Return the environment the server (and ``ollama`` client calls) run with."""
-        env = {
-            k: v
-            for k, v in os.environ.items()
-            if not k.startswith("OLLAMA_") or k in self.extra_env
-        }
+        env = {k: v for k, v in os.environ.items() if not k.startswith("OLLAMA_")}
         env.update(
             HOME=str(self.home),
             OLLAMA_HOST=self.host.split("://", 1)[-1],
@@ -495,11 +491,9 @@ def status(state_dir: str | os.PathLike[str] | None = None) -> dict[str, Any]:
     info: dict[str, Any] = {"running": False, "state_dir": str(directory)}
     if state is None:
         return info
-    info.update(asdict(state))
     alive = state.is_ours()
     version = server_version(state.host) if alive else None
-    info["running"] = alive
-    info["answering"] = version is not None
+    info.update(asdict(state), running=alive, answering=version is not None)
     if version is not None:
         info["version"] = version
         with contextlib.suppress(BackendUnavailable):
