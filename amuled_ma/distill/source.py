@@ -536,7 +536,6 @@ class DistilledSource(BeliefSource):
                 f"{'; '.join(diffs)}); {START_OVER}"
             )
         rest = checked(LedgerRest, dict(data), where)
-        # the scenario's budget is the budget: the ledger's must be the same
         self.ledger = BudgetLedger.from_dict(rest.ledger.model_dump(), where, budget=self.budget)
         asked = self.ledger.asked_count
         generation = data.get("generation", 0)

@@ -101,10 +101,8 @@ def find_tiny_gguf(explicit: str | os.PathLike[str] | None = None) -> Path:
         if path.is_file():
             return path
         raise ModelNotFound(f"GGUF file {path} does not exist; {TINY_HINT}")
-    candidates: list[Path] = []
     env = os.environ.get("AMULED_TINY_GGUF")
-    if env:
-        candidates.append(Path(env).expanduser())
+    candidates = [Path(env).expanduser()] if env else []
     candidates.append(cache_dir() / "models" / TINY_GGUF_NAME)
     import importlib.util
 

@@ -351,18 +351,17 @@ class BeliefStore:
         original latency in ``extra["stored_latency_s"]``.
         """
         found: dict[str, BeliefResult] = {}
-        width = self._width
         columns = "key, source, raw, belief, status, latency_s, prompt_tokens, completion_tokens"
         for rows in self._by_keys(f"{columns}, extra, actions", keys, True):
             for key, source, raw, belief, status, lat, ptok, ctok, extra, actions in rows:
                 where = f"{self.path}: row {key}"
-                n = width.get(actions)
+                n = self._width.get(actions)
                 if n is None:
                     names = load_column(actions, "actions", where, key)
                     if not isinstance(names, list) or not names:
                         problem = f"actions is not a list of names: {actions!r}"
                         raise damaged_row(where, key, problem)
-                    n = width[actions] = len(names)
+                    n = self._width[actions] = len(names)
                 info = load_extra(extra, where, key)
                 info["stored_latency_s"] = lat
                 found[key] = BeliefResult(
