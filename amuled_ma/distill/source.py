@@ -416,7 +416,9 @@ class DistilledSource(BeliefSource):
             return
         new = self.generation + 1 if generation is None else generation
         model = EnsembleModel(self.members, len(self.actions), self.fit)
-        model.fit(*self._arrays(train), seed=fit_seed(self.seed, new))
+        # the fit's seed: a 63-bit integer drawn from (run seed, generation)
+        words = np.random.SeedSequence([self.seed % 2**64, new]).generate_state(2)
+        model.fit(*self._arrays(train), seed=(int(words[0]) << 31 ^ int(words[1])) % 2**63)
         self.model = model
         self.generation = new
         self.stats.refits = max(self.stats.refits, new)
@@ -590,9 +592,3 @@ class DistilledSource(BeliefSource):
             self._examples[key] = _Example(key, obs, beliefs, self._is_holdout(order[key]))
         if generation > 0:
             self._refit(generation=generation)
-
-
-def fit_seed(seed: int, generation: int) -> int:
-    """The seed of the ``generation``-th fit of a run seeded ``seed`` (a 63-bit integer)."""
-    words = np.random.SeedSequence([int(seed) % 2**64, int(generation)]).generate_state(2)
-    return (int(words[0]) << 31 ^ int(words[1])) % 2**63

@@ -138,24 +138,23 @@ class LedgerRest(BaseModel):
         return self
 
 
-def _first_error(error: ValidationError) -> str:
-    """Pydantic's first error as ``field: message, found value`` (the value cut to 60)."""
-    first = error.errors()[0]
-    where = ".".join(str(part) for part in first["loc"])
-    message = str(first["msg"]).removeprefix("Value error, ")
-    found = repr(first.get("input"))
-    found = found if len(found) <= 60 else found[:57] + "..."
-    head = f"{where}: " if where else ""
-    return f"{head}{message}" + ("" if first["type"] == "value_error" else f", found {found}")
-
-
 def checked(model: type[_M], data: object, where: str) -> _M:
-    """``data`` validated as ``model``; else one `AmuledError` line naming ``where``, the field."""
+    """``data`` validated as ``model``; else one `AmuledError` line naming ``where``, the field.
+
+    The line holds pydantic's first error as ``field: message, found value`` (value cut to 60).
+    """
     try:
         return model.model_validate(data)
     except ValidationError as error:
+        first = error.errors()[0]
+        field = ".".join(str(part) for part in first["loc"])
+        message = str(first["msg"]).removeprefix("Value error, ")
+        found = repr(first.get("input"))
+        found = found if len(found) <= 60 else found[:57] + "..."
+        head = f"{where}: {field}: " if field else f"{where}: "
+        tail = "" if first["type"] == "value_error" else f", found {found}"
         raise AmuledError(
-            f"{where}: {_first_error(error)}; the file was edited or damaged; {START_OVER}"
+            f"{head}{message}{tail}; the file was edited or damaged; {START_OVER}"
         ) from None
 
 
