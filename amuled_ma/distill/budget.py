@@ -21,25 +21,18 @@ def check_budget(budget: object, where: str = "[feedback.distill].budget") -> fl
             f"{where} expects a share in (0, 1] (a float) or a count >= 1 (an integer), "
             f"found {type(budget).__name__} ({budget!r})"
         )
-    if isinstance(budget, int):
-        if budget < 1:
-            raise AmuledError(f"{where} expects a count >= 1 (an integer), found {budget!r}")
-        return budget
-    if not (math.isfinite(budget) and 0.0 < budget <= 1.0):
+    if isinstance(budget, int) and budget < 1:
+        raise AmuledError(f"{where} expects a count >= 1 (an integer), found {budget!r}")
+    if isinstance(budget, float) and not (math.isfinite(budget) and 0.0 < budget <= 1.0):
         raise AmuledError(f"{where} expects a share in (0, 1] (a float), found {budget!r}")
     return budget
-
-
-def exact_share(share: float) -> Fraction:
-    """A share as the decimal it is written: ``0.3`` -> ``Fraction(3, 10)`` (not binary)."""
-    return Fraction(repr(float(share)))
 
 
 def budget_cap(budget: float | int, visited: int) -> int:
     """Most distinct states that may have been asked after ``visited`` were visited."""
     if isinstance(budget, int) and not isinstance(budget, bool):
         return budget
-    return max(1, math.floor(exact_share(budget) * visited))
+    return max(1, math.floor(Fraction(repr(float(budget))) * visited))  # 0.3 as 3/10, not binary
 
 
 class BudgetLedger:

@@ -24,7 +24,7 @@ from amuled_ma.beliefs.types import (
     BeliefSource,
     ask,
 )
-from amuled_ma.distill.budget import BudgetLedger, check_budget
+from amuled_ma.distill.budget import BudgetLedger
 from amuled_ma.distill.model import EnsembleModel, FitSettings
 from amuled_ma.distill.selection import (
     choose_random,
@@ -110,7 +110,8 @@ class DistilledSource(BeliefSource):
         fit_steps: int = 400,
     ) -> None:
         self.source = source
-        self.budget = check_budget(budget)
+        self.ledger = BudgetLedger(budget)
+        self.budget = self.ledger.budget
         self.selection = selection
         self.refit_every = int(refit_every)
         self.holdout = float(holdout)
@@ -118,7 +119,6 @@ class DistilledSource(BeliefSource):
         self.seed = int(seed)
         self.fusion_rule = fusion_rule
         self.fit = FitSettings(ensemble=int(ensemble), hidden=int(hidden), steps=int(fit_steps))
-        self.ledger = BudgetLedger(self.budget)
         self.stats = DistillStats()
         self.members: list[str] = []
         self.actions: tuple[str, ...] | None = None
@@ -137,10 +137,11 @@ class DistilledSource(BeliefSource):
         self._files = StateFiles(state_dir) if state_dir is not None else None
         self._changed = False
         if self._files is not None:
-            if resume and self._files.exists():
+            if resume and self._files.ledger.is_file():
                 self._load()
-            else:
-                self._files.reset()
+            else:  # a fine-tune that starts over
+                for path in (self._files.ledger, self._files.examples):
+                    path.unlink(missing_ok=True)
 
     @classmethod
     def from_config(
@@ -263,11 +264,8 @@ class DistilledSource(BeliefSource):
         """The batch's distinct states, in order of first request."""
         first = requests[0]
         if self.actions is None:
-            self.actions, self.task, self.obs_dim = (
-                tuple(first.action_names),
-                first.task,
-                len(first.obs),
-            )
+            self.actions = tuple(first.action_names)
+            self.task, self.obs_dim = first.task, len(first.obs)
         occurrences: dict[tuple[bytes, str], int] = {}
         groups: dict[tuple[bytes, int], dict[str, list[int]]] = {}
         obs_of: dict[bytes, tuple[float, ...]] = {}
@@ -345,17 +343,14 @@ class DistilledSource(BeliefSource):
         self._changed = True
         for i, answer in zip(idx, answers, strict=True):
             results[i] = answer
-        for s in forward:  # kept for the rest of this process: asked once per process
-            self._answers[s.key] = {
-                member: results[positions[0]] for member, positions in s.positions.items()
-            }
         order = {key: n for n, key in enumerate(self.ledger.asked)}
         records: list[dict[str, Any]] = []
         a = len(self.actions or ())
         for s in forward:
+            kept = {member: results[positions[0]] for member, positions in s.positions.items()}
+            self._answers[s.key] = kept  # for the rest of this process: asked once per process
             answered: dict[str, np.ndarray] = {}
-            for member, positions in s.positions.items():
-                result = results[positions[0]]
+            for member, result in kept.items():
                 if result.status in CACHEABLE:
                     belief, _ = check_belief(result.belief, a)
                     if belief is not None:
@@ -421,7 +416,9 @@ class DistilledSource(BeliefSource):
             return
         new = self.generation + 1 if generation is None else generation
         model = EnsembleModel(self.members, len(self.actions), self.fit)
-        model.fit(*self._arrays(train), seed=fit_seed(self.seed, new))
+        # the fit's seed: a 63-bit integer drawn from (run seed, generation)
+        words = np.random.SeedSequence([self.seed % 2**64, new]).generate_state(2)
+        model.fit(*self._arrays(train), seed=(int(words[0]) << 31 ^ int(words[1])) % 2**63)
         self.model = model
         self.generation = new
         self.stats.refits = max(self.stats.refits, new)
@@ -509,9 +506,8 @@ class DistilledSource(BeliefSource):
 
     def _save(self, *, force: bool = False) -> None:
         files = self._files
-        if files is None or not (force or self._changed):
-            return
-        if not force and time.monotonic() - files.saved_at < SAVE_EVERY_S:
+        recent = files is not None and time.monotonic() - files.saved_at < SAVE_EVERY_S
+        if files is None or (not force and (not self._changed or recent)):
             return
         files.save({
             "settings": self.settings(),
@@ -542,7 +538,6 @@ class DistilledSource(BeliefSource):
                 f"{'; '.join(diffs)}); {START_OVER}"
             )
         rest = checked(LedgerRest, dict(data), where)
-        # the scenario's budget is the budget: the ledger's must be the same
         self.ledger = BudgetLedger.from_dict(rest.ledger.model_dump(), where, budget=self.budget)
         asked = self.ledger.asked_count
         generation = data.get("generation", 0)
@@ -597,9 +592,3 @@ class DistilledSource(BeliefSource):
             self._examples[key] = _Example(key, obs, beliefs, self._is_holdout(order[key]))
         if generation > 0:
             self._refit(generation=generation)
-
-
-def fit_seed(seed: int, generation: int) -> int:
-    """The seed of the ``generation``-th fit of a run seeded ``seed`` (a 63-bit integer)."""
-    words = np.random.SeedSequence([int(seed) % 2**64, int(generation)]).generate_state(2)
-    return (int(words[0]) << 31 ^ int(words[1])) % 2**63

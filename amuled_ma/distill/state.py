@@ -125,10 +125,9 @@ class LedgerRest(BaseModel):
                     f"ledger.{name} holds {bad[:40]!r}, not a state key (32 hexadecimal "
                     "digits, as a fine-tune writes them)"
                 )
-        if len(set(self.members)) != len(self.members):
-            raise ValueError(f"members are not distinct: {self.members}")
-        if self.actions is not None and len(set(self.actions)) != len(self.actions):
-            raise ValueError(f"actions are not distinct: {self.actions}")
+        for name, names in (("members", self.members), ("actions", self.actions or [])):
+            if len(set(names)) != len(names):
+                raise ValueError(f"{name} are not distinct: {names}")
         for key, obs in self.asked_obs.items():
             if not STATE_KEY.fullmatch(key):
                 raise ValueError(f"asked_obs has a key {key[:40]!r}, not a state key")
@@ -139,31 +138,28 @@ class LedgerRest(BaseModel):
         return self
 
 
-def _first_error(error: ValidationError) -> str:
-    """Pydantic's first error as ``field: message, found value`` (the value cut to 60)."""
-    first = error.errors()[0]
-    where = ".".join(str(part) for part in first["loc"])
-    message = str(first["msg"]).removeprefix("Value error, ")
-    found = repr(first.get("input"))
-    found = found if len(found) <= 60 else found[:57] + "..."
-    head = f"{where}: " if where else ""
-    return f"{head}{message}" + ("" if first["type"] == "value_error" else f", found {found}")
-
-
 def checked(model: type[_M], data: object, where: str) -> _M:
-    """``data`` validated as ``model``; else one `AmuledError` line naming ``where``, the field."""
+    """``data`` validated as ``model``; else one `AmuledError` line naming ``where``, the field.
+
+    The line holds pydantic's first error as ``field: message, found value`` (value cut to 60).
+    """
     try:
         return model.model_validate(data)
     except ValidationError as error:
+        first = error.errors()[0]
+        field = ".".join(str(part) for part in first["loc"])
+        message = str(first["msg"]).removeprefix("Value error, ")
+        found = repr(first.get("input"))
+        found = found if len(found) <= 60 else found[:57] + "..."
+        head = f"{where}: {field}: " if field else f"{where}: "
+        tail = "" if first["type"] == "value_error" else f", found {found}"
         raise AmuledError(
-            f"{where}: {_first_error(error)}; the file was edited or damaged; {START_OVER}"
+            f"{head}{message}{tail}; the file was edited or damaged; {START_OVER}"
         ) from None
 
 
-class Example(BaseModel):
+class Example(_Strict):
     """One line of ``distill-examples.jsonl``; lengths and sums are checked by `DistilledSource`."""
-
-    model_config = ConfigDict(strict=True, extra="forbid", frozen=True)
 
     key: str = Field(pattern=STATE_KEY.pattern)
     obs: list[_Finite] = Field(max_length=MAX_OBS_DIM)
@@ -178,15 +174,6 @@ class StateFiles:
         self.ledger = self.folder / LEDGER_FILE
         self.examples = self.folder / EXAMPLES_FILE
         self.saved_at = 0.0
-
-    def exists(self) -> bool:
-        """Whether a ledger was written."""
-        return self.ledger.is_file()
-
-    def reset(self) -> None:
-        """Remove both files (a fine-tune that starts over)."""
-        for path in (self.ledger, self.examples):
-            path.unlink(missing_ok=True)
 
     def load(self) -> dict[str, Any]:
         """Read the ledger (`UnsafePathError` on a link; `AmuledError`: too big, or not one)."""

@@ -130,19 +130,18 @@ class OllamaSpec(_Spec):
     def source_options(  # noqa: D102 - see _Spec
         self, feedback: FeedbackConfig, resolve: Callable[[str], Path], where: str, head: str
     ) -> dict[str, Any]:
-        fb = feedback
         rest = self.given()
         own_host, own_hosts = rest.pop("host", None), rest.pop("hosts", None)
         if not own_host and not own_hosts:  # the table names no server: [feedback]'s
-            own_host, own_hosts = fb.host, list(fb.hosts)
+            own_host, own_hosts = feedback.host, list(feedback.hosts)
         options = {
-            "model": rest.pop("model", None) or fb.model,
+            "model": rest.pop("model", None) or feedback.model,
             "host": own_host or None,
             "hosts": list(own_hosts) if own_hosts else None,
-            "concurrency": rest.pop("concurrency", fb.concurrency),
-            "timeout_s": float(rest.pop("timeout_s", fb.timeout_s)),
+            "concurrency": rest.pop("concurrency", feedback.concurrency),
+            "timeout_s": float(rest.pop("timeout_s", feedback.timeout_s)),
         }
-        return {**options, **fb.ollama, **rest}
+        return {**options, **feedback.ollama, **rest}
 
     def detail(self, options: Mapping[str, Any]) -> str:  # noqa: D102 - see _Spec
         return f", model {options['model']!r}"

@@ -101,10 +101,8 @@ def find_tiny_gguf(explicit: str | os.PathLike[str] | None = None) -> Path:
         if path.is_file():
             return path
         raise ModelNotFound(f"GGUF file {path} does not exist; {TINY_HINT}")
-    candidates: list[Path] = []
     env = os.environ.get("AMULED_TINY_GGUF")
-    if env:
-        candidates.append(Path(env).expanduser())
+    candidates = [Path(env).expanduser()] if env else []
     candidates.append(cache_dir() / "models" / TINY_GGUF_NAME)
     import importlib.util
 
@@ -221,11 +219,7 @@ class OllamaServer:
 
     def env(self) -> dict[str, str]:
         """Return the environment the server (and ``ollama`` client calls) run with."""
-        env = {
-            k: v
-            for k, v in os.environ.items()
-            if not k.startswith("OLLAMA_") or k in self.extra_env
-        }
+        env = {k: v for k, v in os.environ.items() if not k.startswith("OLLAMA_")}
         env.update(
             HOME=str(self.home),
             OLLAMA_HOST=self.host.split("://", 1)[-1],
@@ -392,10 +386,7 @@ def stop_process_group(
         os.kill(pid, signal.SIGTERM)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        if process is not None:
-            if process.poll() is not None:
-                break
-        elif not _pid_alive(pid):
+        if process.poll() is not None if process is not None else not _pid_alive(pid):
             break
         time.sleep(0.05)
     with contextlib.suppress(ProcessLookupError, PermissionError):
@@ -451,6 +442,7 @@ def up(
     directory = _state_dir(state_dir)
     state = read_state(directory)
     started = False
+    gguf_path: Path | None = None
     if state is not None and state.is_ours() and server_version(state.host) is not None:
         server_binary: str | os.PathLike[str] = state.binary
         env = {k: v for k, v in os.environ.items() if not k.startswith("OLLAMA_")}
@@ -469,23 +461,12 @@ def up(
         write_state(state, directory)
         started = True
         server_binary, env = server.binary, server.env()
-        if gguf_path is not None:
-            _create_tiny(server_binary, state, env, gguf_path, directory)
     if tiny and TINY_MODEL not in state.models:
-        _create_tiny(server_binary, state, env, find_tiny_gguf(gguf), directory)
+        gguf_path = gguf_path or find_tiny_gguf(gguf)
+        create_model(server_binary, state.host, TINY_MODEL, gguf_path, env, TINY_PARAMETERS)
+        state.models = sorted({*state.models, TINY_MODEL})
+        write_state(state, directory)
     return state, started
-
-
-def _create_tiny(
-    binary: str | os.PathLike[str],
-    state: ServerState,
-    env: dict[str, str],
-    gguf: Path,
-    directory: Path,
-) -> None:
-    create_model(binary, state.host, TINY_MODEL, gguf, env, TINY_PARAMETERS)
-    state.models = sorted({*state.models, TINY_MODEL})
-    write_state(state, directory)
 
 
 def down(state_dir: str | os.PathLike[str] | None = None, timeout: float = 10.0) -> str:
@@ -508,11 +489,9 @@ def status(state_dir: str | os.PathLike[str] | None = None) -> dict[str, Any]:
     info: dict[str, Any] = {"running": False, "state_dir": str(directory)}
     if state is None:
         return info
-    info.update(asdict(state))
     alive = state.is_ours()
     version = server_version(state.host) if alive else None
-    info["running"] = alive
-    info["answering"] = version is not None
+    info.update(asdict(state), running=alive, answering=version is not None)
     if version is not None:
         info["version"] = version
         with contextlib.suppress(BackendUnavailable):

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import re
 import sqlite3
 import threading
 import time
@@ -141,13 +140,10 @@ class BeliefStore:
             self._conn, self._pid = conn, os.getpid()
             self._messages_seen = set()
             self._write(self._create_schema)
-        except sqlite3.DatabaseError as error:
+        except (sqlite3.DatabaseError, BeliefStoreError) as error:
             self._conn = None
-            raise BeliefStoreError(f"{self.path}: cannot open belief store: {error}") from error
-        except BeliefStoreError as error:
-            self._conn = None
-            cause = error.__cause__
-            if isinstance(cause, sqlite3.DatabaseError):  # creating the tables failed
+            cause = error if isinstance(error, sqlite3.DatabaseError) else error.__cause__
+            if isinstance(cause, sqlite3.DatabaseError):  # also: creating the tables failed
                 raise BeliefStoreError(f"{self.path}: cannot open belief store: {cause}") from cause
             raise
         return conn
@@ -277,23 +273,6 @@ class BeliefStore:
                     "it (every belief is then asked again)"
                 ) from error
 
-    def _read_keys(self, sql: str, keys: Sequence[str]) -> list[tuple[Any, ...]]:
-        """`_read` of ``sql`` (one ``key IN (?, ...)``); a too-long value's error names its row."""
-        try:
-            return self._read(sql, keys)
-        except _ValueTooBig:
-            one = re.sub(r"key IN \([?,]+\)", "key IN (?)", sql)
-            for key in keys:
-                try:
-                    self._read(one, [key])
-                except _ValueTooBig:
-                    raise damaged_row(
-                        f"{self.path}: row {key}",
-                        key,
-                        f"a value {_too_long()}; it is not read",
-                    ) from None
-            raise
-
     def close(self) -> None:
         """Close this process's connection (the file stays)."""
         with self._lock:
@@ -324,28 +303,39 @@ class BeliefStore:
     def _by_keys(
         self, columns: str, keys: Iterable[str], cacheable_only: bool
     ) -> Iterator[list[tuple[Any, ...]]]:
-        """The ``columns`` of the rows of ``keys`` (each once), a list per `_SQL_CHUNK` keys."""
+        """The ``columns`` of the rows of ``keys`` (each once), a list per `_SQL_CHUNK` keys.
+
+        A too-long value's error names its row.
+        """
         wanted = list(dict.fromkeys(keys))
         status = " AND status IN ('ok', 'repaired')" if cacheable_only else ""
         for start in range(0, len(wanted), _SQL_CHUNK):
             chunk = wanted[start : start + _SQL_CHUNK]
             marks = ",".join("?" * len(chunk))
-            yield self._read_keys(
-                f"SELECT {columns} FROM beliefs WHERE key IN ({marks}){status}", chunk
-            )
+            try:
+                rows = self._read(
+                    f"SELECT {columns} FROM beliefs WHERE key IN ({marks}){status}", chunk
+                )
+            except _ValueTooBig:
+                for key in chunk:
+                    try:
+                        self._read(f"SELECT {columns} FROM beliefs WHERE key = ?{status}", [key])
+                    except _ValueTooBig:
+                        raise damaged_row(
+                            f"{self.path}: row {key}", key, f"a value {_too_long()}; it is not read"
+                        ) from None
+                raise
+            yield rows
 
     def _texts(self, rows: Sequence[Sequence[Any]]) -> dict[str, str]:
         """Fetch the message bodies referenced by ``rows``."""
         hashes = {h for row in rows if row[7] for _, h in message_refs(row, self.path)}
-        texts: dict[str, str] = {}
-        todo = [h for h in hashes if h not in self._text_cache]
+        texts = {h: self._text_cache[h] for h in hashes if h in self._text_cache}
+        todo = [h for h in hashes if h not in texts]
         for start in range(0, len(todo), _SQL_CHUNK):
             chunk = todo[start : start + _SQL_CHUNK]
             sql = f"SELECT hash, body FROM texts WHERE hash IN ({','.join('?' * len(chunk))})"
             texts.update(self._read(sql, chunk))
-        for h in hashes:
-            if h in self._text_cache:
-                texts[h] = self._text_cache[h]
         if len(self._text_cache) > 4096:
             self._text_cache.clear()
         # keep the bodies shared by many rows (system prompt, few-shot turns) at hand
@@ -361,18 +351,17 @@ class BeliefStore:
         original latency in ``extra["stored_latency_s"]``.
         """
         found: dict[str, BeliefResult] = {}
-        width = self._width
         columns = "key, source, raw, belief, status, latency_s, prompt_tokens, completion_tokens"
         for rows in self._by_keys(f"{columns}, extra, actions", keys, True):
             for key, source, raw, belief, status, lat, ptok, ctok, extra, actions in rows:
                 where = f"{self.path}: row {key}"
-                n = width.get(actions)
+                n = self._width.get(actions)
                 if n is None:
                     names = load_column(actions, "actions", where, key)
                     if not isinstance(names, list) or not names:
                         problem = f"actions is not a list of names: {actions!r}"
                         raise damaged_row(where, key, problem)
-                    n = width[actions] = len(names)
+                    n = self._width[actions] = len(names)
                 info = load_extra(extra, where, key)
                 info["stored_latency_s"] = lat
                 found[key] = BeliefResult(
@@ -407,12 +396,8 @@ class BeliefStore:
         if task:
             where.append("task = ?")
             params.append(task)
-        sql = (
-            f"SELECT {COLUMNS} FROM beliefs"
-            + (f" WHERE {' AND '.join(where)}" if where else "")
-            + " ORDER BY created_at, rowid"
-        )
-        rows = self._read(sql, params)
+        sql = f"SELECT {COLUMNS} FROM beliefs WHERE {' AND '.join(where) or '1'}"
+        rows = self._read(f"{sql} ORDER BY created_at, rowid", params)
         for start in range(0, len(rows), _SQL_CHUNK):
             chunk = rows[start : start + _SQL_CHUNK]
             texts = self._texts(chunk)
