@@ -128,7 +128,8 @@ class DeliberationVecEnv(VecEnv):
             "return_shaping": self._ep_shaping,
         }
         for key, tensor in own.items():
-            columns.setdefault(key, tensor.to(torch.float64))
+            if key not in columns:  # converted only when used: this runs at every step
+                columns[key] = tensor.to(torch.float64)
         keys = list(columns)
         table = torch.stack(
             [*columns.values(), torch.arange(self.num_envs, dtype=torch.float64)], 1
